@@ -1,0 +1,123 @@
+"""Symbolic kinematics in CasADi with the error parameters built in.
+
+Each chain joint contributes ``M_i · Trans(t_i) · RPY(r_i) · Motion_i(q_i + o_i)``:
+the nominal URDF placement ``M_i``, a small 6-DoF placement error, and the joint
+motion about/along its axis with a zero offset. Expressions are CasADi SX so
+derivatives are exact; the same code evaluates numerically through
+:class:`casadi.Function`.
+"""
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+
+from kpi_calib_ros.core.parameters import ParameterSet
+from kpi_calib_ros.core.robot import RobotModel
+
+
+def rot_x(a):
+    c, s = ca.cos(a), ca.sin(a)
+    return ca.vertcat(ca.horzcat(1, 0, 0), ca.horzcat(0, c, -s), ca.horzcat(0, s, c))
+
+
+def rot_y(a):
+    c, s = ca.cos(a), ca.sin(a)
+    return ca.vertcat(ca.horzcat(c, 0, s), ca.horzcat(0, 1, 0), ca.horzcat(-s, 0, c))
+
+
+def rot_z(a):
+    c, s = ca.cos(a), ca.sin(a)
+    return ca.vertcat(ca.horzcat(c, -s, 0), ca.horzcat(s, c, 0), ca.horzcat(0, 0, 1))
+
+
+def rpy_matrix(roll, pitch, yaw):
+    """URDF convention: R = Rz(yaw) · Ry(pitch) · Rx(roll)."""
+    return rot_z(yaw) @ rot_y(pitch) @ rot_x(roll)
+
+
+def homogeneous(rotation, translation):
+    """4x4 transform from a 3x3 rotation and a 3-vector (CasADi or numeric)."""
+    return ca.vertcat(ca.horzcat(rotation, ca.reshape(translation, 3, 1)),
+                      ca.horzcat(0, 0, 0, 1))
+
+
+def axis_rotation(axis: np.ndarray, angle):
+    """Rodrigues rotation about a constant unit ``axis`` (3,) by symbolic ``angle``."""
+    k = np.asarray(axis, float)
+    skew = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return (ca.DM.eye(3) + ca.sin(angle) * ca.DM(skew)
+            + (1 - ca.cos(angle)) * ca.DM(skew @ skew))
+
+
+def error_rotation(axis: np.ndarray, rx, ry, rz):
+    """Small placement rotation error with the component about the joint axis applied last.
+
+    Next to the joint motion, the rotation about the joint's own axis is then
+    exactly a joint offset (not only to first order), and the other two
+    components commute with nothing they should not. For an axis that is not
+    along x, y or z, the frame axis closest to it plays that role.
+    """
+    rots = {0: rot_x(rx), 1: rot_y(ry), 2: rot_z(rz)}
+    last = int(np.argmax(np.abs(axis)))
+    first, second = [k for k in (2, 1, 0) if k != last]
+    return rots[first] @ rots[second] @ rots[last]
+
+
+def pose6(v):
+    """4x4 transform from [x, y, z, roll, pitch, yaw]."""
+    return homogeneous(rpy_matrix(v[3], v[4], v[5]), v[0:3])
+
+
+class SymbolicChain:
+    """Forward kinematics of ``robot`` as a function of (p, q).
+
+    ``p`` is the vector of a :class:`ParameterSet` that contains the geometric
+    parameter names of :func:`geometric_parameters`; extra (effect) entries are
+    ignored here.
+    """
+
+    def __init__(self, robot: RobotModel, params: ParameterSet) -> None:
+        self.robot = robot
+        self.params = params
+        self._base = params.indices([f'base.{c}' for c in ('x', 'y', 'z', 'roll', 'pitch', 'yaw')])
+        self._placement = [params.indices([f'{j.name}.placement.{c}'
+                                           for c in ('tx', 'ty', 'tz', 'rx', 'ry', 'rz')])
+                           for j in robot.joints]
+        self._offset = params.indices([f'{j.name}.offset' for j in robot.joints])
+        self._reflector = params.indices(['reflector.x', 'reflector.y', 'reflector.z'])
+
+    def link_transforms(self, p, q) -> list:
+        """Poses (4x4) of every chain joint frame in the base frame, base to tip."""
+        transforms = []
+        current = ca.DM.eye(4)
+        for i, joint in enumerate(self.robot.joints):
+            e = p[self._placement[i]]
+            error = homogeneous(error_rotation(joint.axis, e[3], e[4], e[5]), e[0:3])
+            value = q[i] + p[self._offset[i]]
+            if joint.kind == 'prismatic':
+                motion = homogeneous(ca.DM.eye(3), ca.DM(joint.axis) * value)
+            else:
+                motion = homogeneous(axis_rotation(joint.axis, value), ca.DM.zeros(3))
+            current = current @ ca.DM(joint.placement) @ error @ motion
+            transforms.append(current)
+        return transforms
+
+    def tip_transform(self, p, q):
+        """Tip frame pose (4x4) in the base frame."""
+        return self.link_transforms(p, q)[-1] @ ca.DM(self.robot.tip_placement)
+
+    def base_in_tracker(self, p):
+        """Base frame pose (4x4) in the tracker frame."""
+        return pose6(p[self._base])
+
+    def reflector(self, p):
+        """Reflector centre (3,) in the tip frame."""
+        return p[self._reflector]
+
+
+def nominal_fk_function(robot: RobotModel, params: ParameterSet) -> ca.Function:
+    """CasADi Function ``fk(p, q) -> 4x4 tip pose in the base frame``."""
+    chain = SymbolicChain(robot, params)
+    p = ca.SX.sym('p', len(params))
+    q = ca.SX.sym('q', robot.n_joints)
+    return ca.Function('fk', [p, q], [chain.tip_transform(p, q)], ['p', 'q'], ['T'])

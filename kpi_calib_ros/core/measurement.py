@@ -1,0 +1,163 @@
+"""Measurement model of a laser tracker, eq. (3), and its incidence angle, eq. (4).
+
+``h(p, q) = T_tracker_base(p) · TCP(p, q) · r(p)``: the reflector centre in the
+tracker frame. Physical effects (joint compliance, cyclic gear errors, …) plug
+in as corrections of the joint values or of the measured point; their
+parameters are appended to the geometric ones so every derivative stays exact.
+
+The KPI point of a working pose is ``h(p, q_work)``: the reflector/TCP centre at
+the working configuration expressed in the tracker frame. Unlike a TCP "in the
+base frame", this point is observable and does not depend on which redundant
+parameters the identifiability analysis keeps (a gauge-free quantity).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol, Sequence
+
+import casadi as ca
+import numpy as np
+
+from kpi_calib_ros.core.kinematics import SymbolicChain
+from kpi_calib_ros.core.parameters import ParameterSet
+from kpi_calib_ros.core.robot import RobotModel
+
+
+class Effect(Protocol):
+    """A physical effect that the geometric model lacks.
+
+    Implementations give parameter names/units/nominal values and CasADi
+    expressions; see :mod:`kpi_calib_ros.core.effects` for the library.
+    """
+
+    name: str
+    parameter_names: tuple[str, ...]
+    units: tuple[str, ...]
+    uses_torque: bool
+
+    def joint_correction(self, q, tau, theta):
+        """Additive joint-value correction (n,) or None."""
+
+    def point_correction(self, point, theta):
+        """Measured point (3,) in the tracker frame after the effect, or None."""
+
+
+@dataclass(frozen=True)
+class Measurements:
+    """Paired measurement data.
+
+    q : (N, n) joint values in chain order; eta : (N, 3) measured points in the
+    tracker frame (m); tau : (N, n) gravity torques or None; stamps_ns : (N,).
+    """
+
+    q: np.ndarray
+    eta: np.ndarray
+    tau: np.ndarray | None = None
+    stamps_ns: np.ndarray | None = field(default=None)
+
+    def __len__(self) -> int:
+        return len(self.q)
+
+
+class MeasurementModel:
+    """Eq. (3) for one robot in one cell, with exact Jacobians.
+
+    Parameters
+    ----------
+    robot : RobotModel
+    geometric : ParameterSet
+        From :func:`geometric_parameters`.
+    effects : sequence of Effect
+        Extra physical effects; their parameters are appended to ``params``.
+    reflector_axis : (3,) array
+        Reflector central axis in the tip frame, for the incidence angle.
+    """
+
+    def __init__(self, robot: RobotModel, geometric: ParameterSet,
+                 effects: Sequence[Effect] = (),
+                 reflector_axis: np.ndarray = (0.0, 0.0, 1.0)) -> None:
+        self.robot = robot
+        self.geometric = geometric
+        self.effects = tuple(effects)
+        params = geometric
+        for effect in self.effects:
+            params = params.extended(list(effect.parameter_names),
+                                     np.zeros(len(effect.parameter_names)), list(effect.units))
+        self.params = params
+        self.reflector_axis = np.asarray(reflector_axis, float)
+        self.chain = SymbolicChain(robot, params)
+        self.uses_torque = any(e.uses_torque for e in self.effects)
+        n = robot.n_joints
+        p = ca.SX.sym('p', len(params))
+        q = ca.SX.sym('q', n)
+        tau = ca.SX.sym('tau', n)
+        point = self.point_expression(p, q, tau)
+        self._h = ca.Function('h', [p, q, tau], [point])
+        self._hj = ca.Function('hj', [p, q, tau], [point, ca.jacobian(point, p)])
+        self._hq = ca.Function('hq', [p, q, tau], [ca.jacobian(point, q)])
+        self._cos = ca.Function('cos_incidence', [p, q], [self.incidence_cos_expression(p, q)])
+
+    # ------------------------------------------------------------ symbolic API
+    def point_expression(self, p, q, tau=None):
+        """Reflector centre in the tracker frame as a CasADi expression (3,)."""
+        q_eff = q
+        offset = len(self.geometric)
+        thetas = []
+        for effect in self.effects:
+            theta = p[offset:offset + len(effect.parameter_names)]
+            offset += len(effect.parameter_names)
+            thetas.append(theta)
+            correction = effect.joint_correction(q, tau, theta)
+            if correction is not None:
+                q_eff = q_eff + correction
+        tip = self.chain.tip_transform(p, q_eff)
+        world = self.chain.base_in_tracker(p) @ tip
+        point = world[0:3, 0:3] @ self.chain.reflector(p) + world[0:3, 3]
+        for effect, theta in zip(self.effects, thetas):
+            corrected = effect.point_correction(point, theta)
+            if corrected is not None:
+                point = corrected
+        return point
+
+    def incidence_cos_expression(self, p, q):
+        """cos β between the reflector axis and the beam towards the tracker, eq. (4)."""
+        world = self.chain.base_in_tracker(p) @ self.chain.tip_transform(p, q)
+        point = world[0:3, 0:3] @ self.chain.reflector(p) + world[0:3, 3]
+        axis = world[0:3, 0:3] @ ca.DM(self.reflector_axis)
+        beam = -point / ca.norm_2(point)  # the tracker sits at the tracker-frame origin
+        return ca.dot(axis, beam) / ca.norm_2(axis)
+
+    # ------------------------------------------------------------- numerics
+    def _torques(self, q: np.ndarray, tau: np.ndarray | None) -> np.ndarray:
+        if tau is not None:
+            return np.atleast_2d(tau)
+        if self.uses_torque:
+            return np.atleast_2d(self.robot.gravity_torques(q))
+        return np.zeros_like(np.atleast_2d(q))
+
+    def predict(self, p: np.ndarray, q: np.ndarray, tau: np.ndarray | None = None) -> np.ndarray:
+        """Predicted points (N, 3) in the tracker frame for joint values ``q`` (N, n)."""
+        q = np.atleast_2d(q)
+        out = self._h.map(len(q))(p, q.T, self._torques(q, tau).T)
+        return np.array(out).T
+
+    def jacobian(self, p: np.ndarray, q: np.ndarray,
+                 tau: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Predicted points (N, 3) and their Jacobian (N, 3, n_p) w.r.t. p."""
+        q = np.atleast_2d(q)
+        pts, jac = self._hj.map(len(q))(p, q.T, self._torques(q, tau).T)
+        n_p = len(self.params)
+        jac = np.array(jac).reshape(3, len(q), n_p).transpose(1, 0, 2)
+        return np.array(pts).T, jac
+
+    def joint_jacobian(self, p: np.ndarray, q: np.ndarray,
+                       tau: np.ndarray | None = None) -> np.ndarray:
+        """Jacobian (N, 3, n) of the predicted points w.r.t. the joint values."""
+        q = np.atleast_2d(q)
+        jac = self._hq.map(len(q))(p, q.T, self._torques(q, tau).T)
+        return np.array(jac).reshape(3, len(q), q.shape[1]).transpose(1, 0, 2)
+
+    def incidence_cos(self, p: np.ndarray, q: np.ndarray) -> np.ndarray:
+        """cos of the incidence angle (N,) at joint values ``q`` (N, n)."""
+        q = np.atleast_2d(q)
+        return np.array(self._cos.map(len(q))(p, q.T)).ravel()

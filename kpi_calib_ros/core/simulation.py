@@ -1,0 +1,152 @@
+"""Simulated cell: a "true" robot, measurable poses and noisy tracker data.
+
+The true robot is the nominal model plus random geometric errors of realistic
+size (0.1-1 mm, 0.01-0.1°), a tracker pose a few mm / tenths of a degree off
+nominal and a reflector a few mm off. Poses are drawn uniformly in the joint
+ranges and kept only where the tracker can see the reflector (incidence angle)
+and where an optional extra check (collisions) passes.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
+from kpi_calib_ros.core.parameters import ParameterSet
+
+_DEG = np.pi / 180.0
+
+
+@dataclass(frozen=True)
+class ErrorMagnitudes:
+    """Ranges [low, high] of |error| drawn uniformly with a random sign (m or rad)."""
+
+    placement_translation: tuple[float, float] = (1e-4, 1e-3)
+    placement_rotation: tuple[float, float] = (0.01 * _DEG, 0.1 * _DEG)
+    joint_offset: tuple[float, float] = (0.01 * _DEG, 0.1 * _DEG)
+    base_translation: tuple[float, float] = (1e-3, 5e-3)
+    base_rotation: tuple[float, float] = (0.1 * _DEG, 0.5 * _DEG)
+    reflector: tuple[float, float] = (1e-3, 3e-3)
+
+
+def _range_for(name: str, mag: ErrorMagnitudes) -> tuple[float, float] | None:
+    if name.startswith('base.'):
+        return mag.base_translation if name[5:] in ('x', 'y', 'z') else mag.base_rotation
+    if name.startswith('reflector.'):
+        return mag.reflector
+    if '.placement.t' in name:
+        return mag.placement_translation
+    if '.placement.r' in name:
+        return mag.placement_rotation
+    if name.endswith('.offset'):
+        return mag.joint_offset
+    return None
+
+
+def true_parameters(params: ParameterSet, rng: np.random.Generator,
+                    magnitudes: ErrorMagnitudes = ErrorMagnitudes(),
+                    overrides: dict[str, float] | None = None) -> np.ndarray:
+    """Nominal values plus random errors for every geometric parameter.
+
+    Parameters without a range (effect parameters) keep their nominal value
+    unless given in ``overrides`` (name -> true value).
+    """
+    p = params.nominal.copy()
+    for i, name in enumerate(params.names):
+        bounds = _range_for(name, magnitudes)
+        if bounds is not None:
+            p[i] += rng.choice([-1.0, 1.0]) * rng.uniform(*bounds)
+    for name, value in (overrides or {}).items():
+        p[params.index(name)] = value
+    return p
+
+
+def sampling_bounds(model: MeasurementModel) -> tuple[np.ndarray, np.ndarray]:
+    """Joint ranges to sample from: limits, with continuous joints on [-π, π]."""
+    lower = np.where(np.isfinite(model.robot.lower), model.robot.lower, -np.pi)
+    upper = np.where(np.isfinite(model.robot.upper), model.robot.upper, np.pi)
+    return lower, upper
+
+
+def random_configurations(model: MeasurementModel, p: np.ndarray, n: int,
+                          rng: np.random.Generator, max_incidence: float = 30 * _DEG,
+                          accept: Callable[[np.ndarray], np.ndarray] | None = None,
+                          max_draws: int = 2_000_000) -> np.ndarray:
+    """``n`` configurations uniform in the joint ranges that the tracker can measure.
+
+    Parameters
+    ----------
+    model : MeasurementModel
+    p : (n_p,) ndarray
+        Parameters used to evaluate the incidence angle (nominal for planning).
+    max_incidence : float
+        Largest angle between reflector axis and beam, rad (eq. 4).
+    accept : callable, optional
+        Extra filter: (M, n) configurations -> (M,) bool (e.g. collision-free).
+
+    Raises
+    ------
+    RuntimeError
+        If fewer than ``n`` feasible poses are found in ``max_draws`` draws.
+    """
+    lower, upper = sampling_bounds(model)
+    found: list[np.ndarray] = []
+    count, drawn = 0, 0
+    batch = max(256, 8 * n)
+    cos_limit = np.cos(max_incidence)
+    while count < n:
+        if drawn >= max_draws:
+            raise RuntimeError(f'only {count} of {n} measurable poses in {drawn} random draws; '
+                               'check the tracker pose, reflector axis and joint limits')
+        cand = rng.uniform(lower, upper, size=(batch, len(lower)))
+        drawn += batch
+        ok = model.incidence_cos(p, cand) >= cos_limit
+        if accept is not None and ok.any():
+            ok[ok] = accept(cand[ok])
+        found.append(cand[ok])
+        count += int(ok.sum())
+    return np.vstack(found)[:n]
+
+
+def simulate_measurements(model: MeasurementModel, p_true: np.ndarray, q: np.ndarray,
+                          sigma: float | np.ndarray, rng: np.random.Generator) -> Measurements:
+    """Tracker points h(p_true, q) + N(0, σ²) per axis."""
+    q = np.atleast_2d(q)
+    clean = model.predict(p_true, q)
+    noise = rng.normal(size=clean.shape) * np.broadcast_to(np.asarray(sigma, float), (3,))
+    return Measurements(q=q, eta=clean + noise)
+
+
+def equivalent_parameters(model: MeasurementModel, p_true: np.ndarray, kept: tuple[str, ...],
+                          p_start: np.ndarray, q_samples: np.ndarray,
+                          iterations: int = 20) -> tuple[np.ndarray, float]:
+    """The true robot expressed in an identified (reduced) parameterisation.
+
+    Dropped parameters stay at ``p_start``; the kept ones absorb the true
+    errors of the dropped ones. This is the truth an estimate of the kept
+    parameters should be compared with. Found by a noiseless Gauss-Newton fit
+    of the reduced model to ``h(p_true, q_samples)``.
+
+    Returns
+    -------
+    p_equiv : (n_p,) ndarray
+    max_residual_m : float
+        Largest remaining point error of the fit: how exactly the reduced model
+        reproduces the true robot (nonlinear effects of the dropped errors).
+    """
+    idx = model.params.indices(kept)
+    target = model.predict(p_true, q_samples)
+    p = np.array(p_start, dtype=float)
+    for _ in range(iterations):
+        pred, jac = model.jacobian(p, q_samples)
+        r = (target - pred).ravel()
+        f = jac.reshape(-1, len(p))[:, idx]
+        scale = np.linalg.norm(f, axis=0)
+        step, *_ = np.linalg.lstsq(f / scale, r, rcond=None)
+        p[idx] += step / scale
+        if np.max(np.abs(step)) < 1e-15:
+            break
+    residual = target - model.predict(p, q_samples)
+    return p, float(np.max(np.linalg.norm(residual, axis=1)))

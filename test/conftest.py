@@ -1,0 +1,56 @@
+"""Shared fixtures: a deliberately awkward URDF chain for generality tests."""
+from __future__ import annotations
+
+import pytest
+
+ODD_ARM_URDF = """<?xml version="1.0"?>
+<robot name="odd_arm">
+  <link name="world"/>
+  <link name="mount"/>
+  <link name="base"/>
+  <link name="l1"><inertial><mass value="3"/><origin xyz="0 0 0.1"/>
+    <inertia ixx="0.1" iyy="0.1" izz="0.1" ixy="0" ixz="0" iyz="0"/></inertial></link>
+  <link name="l2"><inertial><mass value="2"/><origin xyz="0.2 0 0"/>
+    <inertia ixx="0.1" iyy="0.1" izz="0.1" ixy="0" ixz="0" iyz="0"/></inertial></link>
+  <link name="l2_cover"/>
+  <link name="l3"><inertial><mass value="1.5"/><origin xyz="0.1 0 0"/>
+    <inertia ixx="0.1" iyy="0.1" izz="0.1" ixy="0" ixz="0" iyz="0"/></inertial></link>
+  <link name="l4"><inertial><mass value="1"/><origin xyz="0 0 0.05"/>
+    <inertia ixx="0.05" iyy="0.05" izz="0.05" ixy="0" ixz="0" iyz="0"/></inertial></link>
+  <link name="l5"><inertial><mass value="0.5"/><origin xyz="0 0 0.02"/>
+    <inertia ixx="0.01" iyy="0.01" izz="0.01" ixy="0" ixz="0" iyz="0"/></inertial></link>
+  <link name="flange"/>
+  <link name="finger"><inertial><mass value="0.1"/>
+    <inertia ixx="0.001" iyy="0.001" izz="0.001" ixy="0" ixz="0" iyz="0"/></inertial></link>
+  <joint name="world_to_mount" type="fixed"><parent link="world"/><child link="mount"/>
+    <origin xyz="0.3 -0.2 0.1" rpy="0 0 0.4"/></joint>
+  <joint name="mount_to_base" type="fixed"><parent link="mount"/><child link="base"/>
+    <origin xyz="0 0 0.05" rpy="0.01 -0.02 0.3"/></joint>
+  <joint name="swing" type="revolute"><parent link="base"/><child link="l1"/>
+    <origin xyz="0 0 0.3" rpy="0 0 0"/><axis xyz="0 0 1"/>
+    <limit lower="-2.5" upper="2.5" effort="100" velocity="1"/></joint>
+  <joint name="lift" type="revolute"><parent link="l1"/><child link="l2"/>
+    <origin xyz="0.05 0 0.2" rpy="0.1 0 0"/><axis xyz="0 0.6 0.8"/>
+    <limit lower="-1.5" upper="1.5" effort="100" velocity="1"/></joint>
+  <joint name="cover" type="fixed"><parent link="l2"/><child link="l2_cover"/>
+    <origin xyz="0.4 0 0" rpy="0 0.2 0"/></joint>
+  <joint name="telescope" type="prismatic"><parent link="l2_cover"/><child link="l3"/>
+    <origin xyz="0.02 0 0" rpy="0 0 0"/><axis xyz="1 0 0"/>
+    <limit lower="0.0" upper="0.3" effort="100" velocity="1"/></joint>
+  <joint name="wrist" type="continuous"><parent link="l3"/><child link="l4"/>
+    <origin xyz="0.3 0 0" rpy="0 1.5707963 0"/><axis xyz="0 0 -1"/></joint>
+  <joint name="tilt" type="revolute"><parent link="l4"/><child link="l5"/>
+    <origin xyz="0 0 0.1" rpy="0 0 0"/><axis xyz="0 1 0"/>
+    <limit lower="-2" upper="2" effort="10" velocity="1"/></joint>
+  <joint name="to_flange" type="fixed"><parent link="l5"/><child link="flange"/>
+    <origin xyz="0 0.01 0.08" rpy="0.3 0 0"/></joint>
+  <joint name="gripper" type="prismatic"><parent link="l5"/><child link="finger"/>
+    <origin xyz="0 0 0.05"/><axis xyz="0 1 0"/>
+    <limit lower="0" upper="0.04" effort="10" velocity="1"/></joint>
+</robot>
+"""
+
+
+@pytest.fixture
+def odd_arm_urdf() -> str:
+    return ODD_ARM_URDF

@@ -1,0 +1,74 @@
+"""Robot model: chain extraction from arbitrary URDFs, against Pinocchio."""
+import casadi as ca
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.core.kinematics import nominal_fk_function
+from kpi_calib_ros.core.parameters import geometric_parameters
+from kpi_calib_ros.core.robot import Payload, RobotModel
+
+
+def test_chain_skips_fixed_joints_and_side_branches(odd_arm_urdf):
+    robot = RobotModel(odd_arm_urdf, 'mount', 'flange')
+    assert robot.joint_names == ['swing', 'lift', 'telescope', 'wrist', 'tilt']
+    kinds = [j.kind for j in robot.joints]
+    assert kinds == ['revolute', 'revolute', 'prismatic', 'continuous', 'revolute']
+    assert np.allclose(robot.joints[1].axis, [0, 0.6, 0.8])
+    assert robot.joints[3].lower == -np.inf
+
+
+def test_symbolic_nominal_fk_equals_pinocchio(odd_arm_urdf):
+    robot = RobotModel(odd_arm_urdf, 'mount', 'flange')
+    params = geometric_parameters(robot, np.zeros(6), np.zeros(3))
+    fk = nominal_fk_function(robot, params)
+    rng = np.random.default_rng(1)
+    worst = 0.0
+    for _ in range(50):
+        q = rng.uniform([-2.5, -1.5, 0, -6, -2], [2.5, 1.5, 0.3, 6, 2])
+        ours = np.array(fk(params.nominal, q))
+        worst = max(worst, np.abs(ours - robot.pin_tip_pose(q)).max())
+    assert worst < 1e-12
+
+
+def test_gravity_torque_counts_payload(odd_arm_urdf):
+    bare = RobotModel(odd_arm_urdf, 'mount', 'flange')
+    loaded = RobotModel(odd_arm_urdf, 'mount', 'flange', Payload(2.0, (0.0, 0.0, 0.1)))
+    q = np.array([0.3, 0.4, 0.1, 0.5, 0.7])
+    extra = loaded.gravity_torques(q) - bare.gravity_torques(q)
+    # The payload's torque about the tilt axis is m g times its lever arm: check by
+    # finite differences of the payload's potential energy along that joint.
+    def potential(qq):
+        fk_tip = loaded.pin_tip_pose(qq)
+        com_world = fk_tip[:3, :3] @ np.array([0, 0, 0.1]) + fk_tip[:3, 3]
+        base_pose = loaded.pin_model  # noqa: F841  (base is level in this URDF up to mount)
+        return 2.0 * 9.81 * com_world @ _up_in_mount(loaded)
+    eps = 1e-6
+    for j in range(5):
+        dq = np.zeros(5)
+        dq[j] = eps
+        expected = (potential(q + dq) - potential(q - dq)) / (2 * eps)
+        assert extra[j] == pytest.approx(expected, abs=1e-5)
+
+
+def _up_in_mount(robot):
+    data = robot.pin_model.createData()
+    pin.framesForwardKinematics(robot.pin_model, data, pin.neutral(robot.pin_model))
+    o_mount = data.oMf[robot.pin_model.getFrameId('mount')]
+    return o_mount.rotation.T @ np.array([0, 0, 1.0])
+
+
+@pytest.mark.parametrize('base,tip,key', [
+    ('nope', 'flange', 'robot.base_frame'),
+    ('mount', 'nope', 'robot.tip_frame'),
+    ('flange', 'mount', 'robot.tip_frame'),
+])
+def test_bad_frames_name_the_key(odd_arm_urdf, base, tip, key):
+    with pytest.raises(ConfigError, match=key):
+        RobotModel(odd_arm_urdf, base, tip)
+
+
+def test_malformed_urdf_is_a_config_error():
+    with pytest.raises(ConfigError, match='robot.urdf'):
+        RobotModel('<robot name="x"><joint name="j"/></robot>', 'a', 'b')
