@@ -1,0 +1,292 @@
+"""Cell file: the robot, tracker, reflector, noise, payload, working poses and obstacles.
+
+A YAML document validated in one place; every error names the key path and the
+fix. Paths are relative to the cell file. Units are SI (m, rad, kg). Example::
+
+    robot: {urdf: ../robots/kr15_class.urdf, base_frame: base_link, tip_frame: tool0}
+    tracker: {frame_id: laser_tracker, base_in_tracker: [x, y, z, roll, pitch, yaw]}
+    reflector: {offset: [0, 0, 0.03], axis: [0, 0, 1], max_incidence: 0.5236}
+    noise: {sigma: 2.0e-5}
+    payload: {mass: 5.0, com: [0, 0, 0.05]}
+    working_poses:
+      - {name: roof, joints: {joint_1: 0.0, joint_2: 0.3, ...}}
+    obstacles:                      # in the robot base frame
+      - {name: floor, type: halfspace, normal: [0, 0, 1], offset: -0.5}
+      - {name: car_roof, type: capsule, a: [1.6, -1.5, 0.9], b: [1.6, 1.5, 0.9], radius: 0.5}
+    collision: {capsules: [...], ignore_pairs: [[base_link, floor]], beam_radius: 0.005}
+    identification: {method: pivoted}
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import casadi as ca
+import numpy as np
+import yaml
+
+from kpi_calib_ros.core.collision import Capsule, CollisionScene, HalfSpace, capsules_from_urdf
+from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.core.kinematics import pose6
+from kpi_calib_ros.core.measurement import MeasurementModel
+from kpi_calib_ros.core.parameters import ParameterSet, geometric_parameters
+from kpi_calib_ros.core.robot import Payload, RobotModel
+
+_TOP_KEYS = {'robot', 'tracker', 'reflector', 'noise', 'payload', 'working_poses',
+             'obstacles', 'collision', 'identification', 'effects', 'simulation', 'design'}
+DEFAULT_CELL = Path(__file__).resolve().parent.parent / 'data' / 'cells' / 'default_cell.yaml'
+
+
+@dataclass(frozen=True)
+class WorkingPose:
+    name: str
+    joints: dict[str, float]
+
+
+@dataclass(frozen=True)
+class Cell:
+    """Validated content of a cell file (SI units; obstacles in the robot base frame)."""
+
+    urdf_xml: str
+    urdf_path: str
+    base_frame: str
+    tip_frame: str
+    tracker_frame: str
+    base_in_tracker: np.ndarray
+    reflector_offset: np.ndarray
+    reflector_axis: np.ndarray
+    max_incidence: float
+    sigma: np.ndarray
+    payload_mass: float
+    payload_com: np.ndarray
+    working_poses: tuple[WorkingPose, ...]
+    obstacles: tuple[Capsule | HalfSpace, ...]
+    robot_capsules: tuple[Capsule, ...]
+    ignore_pairs: tuple[frozenset, ...]
+    beam_radius: float
+    identification_method: str
+    identification_priority: tuple[str, ...]
+    effects: tuple[str, ...]
+    raw: dict[str, Any] = field(repr=False, compare=False, default_factory=dict)
+
+
+def load_cell(path: str | Path) -> Cell:
+    """Read and validate a cell file; relative paths resolve against its folder."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError('cell', f'file {str(path)!r} does not exist')
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise ConfigError('cell', f'{path} is not valid YAML: {exc}') from exc
+    return cell_from_dict(doc, path.parent)
+
+
+def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None) -> Cell:
+    """Validate a parsed cell document. ``urdf_xml`` overrides ``robot.urdf`` (ROS topic)."""
+    if not isinstance(doc, dict):
+        raise ConfigError('cell', 'the document must be a mapping with keys '
+                          f'{sorted(_TOP_KEYS)}')
+    unknown = set(doc) - _TOP_KEYS
+    if unknown:
+        raise ConfigError(sorted(unknown)[0], f'unknown key; allowed keys are {sorted(_TOP_KEYS)}')
+    robot = _mapping(doc, 'robot')
+    if urdf_xml is None:
+        urdf_rel = _str(robot, 'robot.urdf', 'urdf')
+        urdf_path = (base_dir / urdf_rel).resolve()
+        if not urdf_path.is_file():
+            raise ConfigError('robot.urdf', f'file {str(urdf_path)!r} does not exist; paths are '
+                              'relative to the cell file')
+        urdf_xml = urdf_path.read_text()
+    else:
+        urdf_path = Path('<robot_description>')
+    tracker = _mapping(doc, 'tracker')
+    reflector = _mapping(doc, 'reflector')
+    noise = _mapping(doc, 'noise')
+    payload = doc.get('payload') or {}
+    axis = _vector(reflector.get('axis', [0, 0, 1]), 'reflector.axis', 3)
+    if np.linalg.norm(axis) < 1e-9:
+        raise ConfigError('reflector.axis', 'must be a non-zero vector in the tip frame')
+    sigma = np.broadcast_to(np.asarray(_number_or_vector(noise.get('sigma'), 'noise.sigma'),
+                                       float), (3,)).copy()
+    if np.any(sigma <= 0) or np.any(sigma > 0.01):
+        raise ConfigError('noise.sigma', f'{sigma.tolist()} must be in (0, 0.01] m per axis '
+                          '(SI metres: 20 µm is 2.0e-5)')
+    max_inc = float(reflector.get('max_incidence', np.deg2rad(30.0)))
+    if not 0 < max_inc <= np.pi / 2:
+        raise ConfigError('reflector.max_incidence', 'must be in (0, π/2] rad (30° = 0.5236)')
+    collision = doc.get('collision') or {}
+    ident = doc.get('identification') or {}
+    method = ident.get('method', 'pivoted')
+    if method not in ('pivoted', 'priority'):
+        raise ConfigError('identification.method', "must be 'pivoted' or 'priority'")
+    mass = float(payload.get('mass', 0.0))
+    if mass < 0:
+        raise ConfigError('payload.mass', 'must be >= 0 kg')
+    return Cell(
+        urdf_xml=urdf_xml, urdf_path=str(urdf_path),
+        base_frame=_str(robot, 'robot.base_frame', 'base_frame'),
+        tip_frame=_str(robot, 'robot.tip_frame', 'tip_frame'),
+        tracker_frame=str(tracker.get('frame_id', 'laser_tracker')),
+        base_in_tracker=_vector(tracker.get('base_in_tracker'), 'tracker.base_in_tracker', 6),
+        reflector_offset=_vector(reflector.get('offset'), 'reflector.offset', 3),
+        reflector_axis=axis / np.linalg.norm(axis), max_incidence=max_inc, sigma=sigma,
+        payload_mass=mass,
+        payload_com=_vector(payload.get('com', [0, 0, 0]), 'payload.com', 3),
+        working_poses=_working_poses(doc.get('working_poses')),
+        obstacles=tuple(_obstacle(o, f'obstacles[{i}]')
+                        for i, o in enumerate(doc.get('obstacles') or [])),
+        robot_capsules=tuple(_capsule(c, f'collision.capsules[{i}]', frame_key='link')
+                             for i, c in enumerate(collision.get('capsules') or [])),
+        ignore_pairs=tuple(_pair(p, f'collision.ignore_pairs[{i}]')
+                           for i, p in enumerate(collision.get('ignore_pairs') or [])),
+        beam_radius=float(collision.get('beam_radius', 0.005)),
+        identification_method=method,
+        identification_priority=tuple(ident.get('priority') or ()),
+        effects=tuple(str(e) for e in (doc.get('effects') or [])),
+        raw=doc)
+
+
+def _mapping(doc: dict, key: str) -> dict:
+    value = doc.get(key)
+    if not isinstance(value, dict):
+        raise ConfigError(key, 'missing or not a mapping')
+    return value
+
+
+def _str(doc: dict, path: str, key: str) -> str:
+    value = doc.get(key)
+    if not isinstance(value, str) or not value:
+        raise ConfigError(path, 'missing; give a non-empty string')
+    return value
+
+
+def _vector(value: Any, path: str, n: int) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        arr = np.array([])
+    if value is None or arr.shape != (n,) or not np.all(np.isfinite(arr)):
+        raise ConfigError(path, f'must be a list of {n} finite numbers (SI units), got {value!r}')
+    return arr
+
+
+def _number_or_vector(value: Any, path: str) -> Any:
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        return float(value)
+    return _vector(value, path, 3)
+
+
+def _working_poses(value: Any) -> tuple[WorkingPose, ...]:
+    if not isinstance(value, list) or not value:
+        raise ConfigError('working_poses', 'give at least one working pose as '
+                          '{name: ..., joints: {joint_name: value_rad, ...}}')
+    poses = []
+    for i, item in enumerate(value):
+        key = f'working_poses[{i}]'
+        if not isinstance(item, dict) or not isinstance(item.get('joints'), dict):
+            raise ConfigError(key, 'must be a mapping with a joints: {name: rad} mapping')
+        joints = {}
+        for name, v in item['joints'].items():
+            if not isinstance(v, (int, float)) or not np.isfinite(v):
+                raise ConfigError(f'{key}.joints.{name}', f'must be a finite number (rad), got {v!r}')
+            joints[str(name)] = float(v)
+        poses.append(WorkingPose(str(item.get('name', f'work_{i + 1}')), joints))
+    return tuple(poses)
+
+
+def _capsule(item: Any, key: str, frame_key: str = 'frame') -> Capsule:
+    if not isinstance(item, dict):
+        raise ConfigError(key, 'must be a mapping {name, a, b, radius}')
+    radius = item.get('radius')
+    if not isinstance(radius, (int, float)) or radius < 0:
+        raise ConfigError(f'{key}.radius', 'must be a number >= 0 (m)')
+    frame = str(item.get(frame_key, 'base'))
+    return Capsule(str(item.get('name', frame if frame_key == 'link' else key)), frame,
+                   _vector(item.get('a'), f'{key}.a', 3), _vector(item.get('b'), f'{key}.b', 3),
+                   float(radius))
+
+
+def _obstacle(item: Any, key: str) -> Capsule | HalfSpace:
+    if not isinstance(item, dict) or 'name' not in item:
+        raise ConfigError(key, 'must be a mapping with name and type (capsule or halfspace)')
+    kind = item.get('type', 'capsule')
+    if kind == 'halfspace':
+        normal = _vector(item.get('normal'), f'{key}.normal', 3)
+        if np.linalg.norm(normal) < 1e-9:
+            raise ConfigError(f'{key}.normal', 'must be non-zero')
+        return HalfSpace(str(item['name']), normal, float(item.get('offset', 0.0)))
+    if kind == 'capsule':
+        cap = _capsule(item, key)
+        return Capsule(cap.name, 'base', cap.a, cap.b, cap.radius)
+    raise ConfigError(f'{key}.type', f"must be 'capsule' or 'halfspace', got {kind!r}")
+
+
+def _pair(item: Any, key: str) -> frozenset:
+    if not isinstance(item, (list, tuple)) or len(item) != 2:
+        raise ConfigError(key, 'must be a pair [name_a, name_b] of links/capsules/obstacles')
+    return frozenset(str(x) for x in item)
+
+
+@dataclass(frozen=True)
+class CellModel:
+    """Numerical objects built from a :class:`Cell`.
+
+    ``q_work`` (t, n) is in chain order; ``tracker_in_base`` (4, 4) is the
+    nominal tracker pose in the robot base frame (inverse of ``base_in_tracker``).
+    """
+
+    cell: Cell
+    robot: RobotModel
+    geometric: ParameterSet
+    model: MeasurementModel
+    q_work: np.ndarray
+    working_pose_names: tuple[str, ...]
+    tracker_in_base: np.ndarray
+
+    @property
+    def joint_names(self) -> list[str]:
+        return self.robot.joint_names
+
+    def collision_scene(self) -> CollisionScene:
+        """Robot capsules (cell file first, else fitted to URDF collision geometry) and obstacles."""
+        links = self.robot.link_names
+        given = {c.frame for c in self.cell.robot_capsules}
+        for cap in self.cell.robot_capsules:
+            if cap.frame not in links:
+                raise ConfigError('collision.capsules', f'link {cap.frame!r} is not on the chain '
+                                  f'{links}')
+        fitted = capsules_from_urdf(self.cell.urdf_xml, [l for l in links if l not in given])
+        return CollisionScene(list(self.cell.robot_capsules) + fitted, list(self.cell.obstacles),
+                              links, ignore_pairs=set(self.cell.ignore_pairs),
+                              beam_radius=self.cell.beam_radius)
+
+
+def build_cell_model(cell: Cell, effects: tuple = ()) -> CellModel:
+    """Robot, parameters, measurement model and working poses of ``cell``."""
+    robot = RobotModel(cell.urdf_xml, cell.base_frame, cell.tip_frame,
+                       Payload(cell.payload_mass, tuple(cell.payload_com)))
+    geometric = geometric_parameters(robot, cell.base_in_tracker, cell.reflector_offset)
+    model = MeasurementModel(robot, geometric, effects, cell.reflector_axis)
+    q_work = np.array([_ordered(w, robot, f'working_poses[{i}].joints')
+                       for i, w in enumerate(cell.working_poses)])
+    inside = robot.within_limits(q_work)
+    if not inside.all():
+        bad = cell.working_poses[int(np.argmin(inside))].name
+        raise ConfigError('working_poses', f'pose {bad!r} is outside the joint limits '
+                          f'{robot.lower.round(3).tolist()} .. {robot.upper.round(3).tolist()}')
+    b = cell.base_in_tracker
+    base_in_tracker = np.array(ca.DM(pose6(ca.DM(b))))
+    return CellModel(cell, robot, geometric, model, q_work,
+                     tuple(w.name for w in cell.working_poses), np.linalg.inv(base_in_tracker))
+
+
+def _ordered(pose: WorkingPose, robot: RobotModel, key: str) -> list[float]:
+    names = robot.joint_names
+    missing = [n for n in names if n not in pose.joints]
+    extra = [n for n in pose.joints if n not in names]
+    if missing or extra:
+        raise ConfigError(key, f'joint names must be exactly {names}; missing {missing}, '
+                          f'unknown {extra}')
+    return [pose.joints[n] for n in names]
