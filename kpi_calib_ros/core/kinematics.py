@@ -121,3 +121,25 @@ def nominal_fk_function(robot: RobotModel, params: ParameterSet) -> ca.Function:
     p = ca.SX.sym('p', len(params))
     q = ca.SX.sym('q', robot.n_joints)
     return ca.Function('fk', [p, q], [chain.tip_transform(p, q)], ['p', 'q'], ['T'])
+
+
+def link_poses_function(robot: RobotModel, params: ParameterSet) -> ca.Function:
+    """CasADi Function ``(p, q) -> (T_link_1, ..., T_link_n, T_tip)`` in the base frame.
+
+    Link ``i`` is the child link of chain joint ``i`` (``robot.link_names[i + 1]``).
+    """
+    chain = SymbolicChain(robot, params)
+    p = ca.SX.sym('p', len(params))
+    q = ca.SX.sym('q', robot.n_joints)
+    return ca.Function('link_poses', [p, q],
+                       chain.link_transforms(p, q) + [chain.tip_transform(p, q)])
+
+
+def link_poses(function: ca.Function, robot: RobotModel, p: np.ndarray,
+               q: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """Numeric link poses {link name: (4, 4)} (base link = identity) and the tip pose."""
+    out = function(p, q)
+    poses = {robot.link_names[0]: np.eye(4)}
+    for name, pose in zip(robot.link_names[1:], out[:-1]):
+        poses[name] = np.array(pose)
+    return poses, np.array(out[-1])

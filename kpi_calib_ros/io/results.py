@@ -1,0 +1,90 @@
+"""Result files: calibration.yaml and small helpers to write files atomically."""
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from kpi_calib_ros.core.estimation import CalibrationResult
+from kpi_calib_ros.core.streams import PairingResult
+
+
+def write_atomic(path: str | Path, text: str) -> Path:
+    """Write ``text`` so readers see the old file or the new one, never a partial one."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f'.{path.name}.')
+    try:
+        with os.fdopen(fd, 'w') as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def calibration_to_dict(result: CalibrationResult,
+                        pairing: PairingResult | None = None) -> dict[str, Any]:
+    """YAML-ready description of a calibration (SI units, stable parameter names)."""
+    std = dict(zip(result.estimated, result.std))
+    parameters = []
+    for name, value, unit in zip(result.names, result.values, result.units):
+        entry = {'name': name, 'value': float(value), 'unit': unit,
+                 'estimated': name in std}
+        if name in std:
+            entry['std'] = float(std[name])
+        parameters.append(entry)
+    tcp = []
+    for name, point, cov in zip(result.working_pose_names, result.tcp, result.tcp_covariance):
+        tcp.append({'name': name, 'position': [float(x) for x in point],
+                    'covariance': [[float(x) for x in row] for row in cov],
+                    'std': [float(x) for x in np.sqrt(np.diag(cov))],
+                    'trace_m2': float(np.trace(cov))})
+    doc: dict[str, Any] = {
+        'status': {'converged': bool(result.converged), 'message': result.status,
+                   'iterations': int(result.iterations)},
+        'measurements': int(len(result.residuals)),
+        'rms_m': float(result.rms_m),
+        'max_residual_m': float(np.max(np.linalg.norm(result.residuals, axis=1))),
+        'noise_sigma_m': [float(s) for s in result.sigma],
+        'model_adequacy': {'chi2': float(result.chi2), 'dof': int(result.dof),
+                           'p_value': float(result.p_value),
+                           'adequate': bool(result.p_value > 0.01)},
+        'parameters': parameters,
+        'dropped_parameters': [{'name': d.name, 'reason': d.reason} for d in result.dropped],
+        'tcp': tcp,
+        'residuals_m': [[float(x) for x in r] for r in result.residuals],
+    }
+    if pairing is not None:
+        doc['pairing'] = {'accepted': int(len(pairing)),
+                          'rejected': {k: int(v) for k, v in sorted(pairing.rejections.items())}}
+    return doc
+
+
+def write_calibration(out_dir: str | Path, doc: dict[str, Any]) -> Path:
+    return write_atomic(Path(out_dir) / 'calibration.yaml', yaml.safe_dump(doc, sort_keys=False))
+
+
+def summary_text(doc: dict[str, Any]) -> str:
+    """Readable summary of a calibration document for a terminal."""
+    lines = [f"measurements: {doc['measurements']}"]
+    if 'pairing' in doc:
+        rej = doc['pairing']['rejected']
+        lines.append(f"rejected: {sum(rej.values())} {rej if rej else ''}".rstrip())
+    est = [p for p in doc['parameters'] if p['estimated']]
+    lines += [f"status: {doc['status']['message']}",
+              f"identified parameters: {len(est)} (dropped {len(doc['dropped_parameters'])})",
+              f"rms residual: {doc['rms_m'] * 1e6:.1f} µm  (max {doc['max_residual_m'] * 1e6:.1f} µm)",
+              f"model adequacy: chi2/dof = {doc['model_adequacy']['chi2']:.1f}/"
+              f"{doc['model_adequacy']['dof']}, p = {doc['model_adequacy']['p_value']:.3g}"]
+    for t in doc['tcp']:
+        s = ', '.join(f'{x * 1e6:.1f}' for x in t['std'])
+        lines.append(f"TCP {t['name']}: std [{s}] µm, sqrt(trace) {np.sqrt(t['trace_m2']) * 1e6:.1f} µm")
+    return '\n'.join(lines)

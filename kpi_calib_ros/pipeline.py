@@ -1,0 +1,48 @@
+"""From recorded or live samples to a calibration: the one path every front end uses.
+
+The CLI (`kpi-calib identify`), the ROS node and the demo all call these
+functions, so a bag replayed into the node and the same bag identified offline
+give the same numbers.
+"""
+from __future__ import annotations
+
+from typing import Iterable
+
+import numpy as np
+
+from kpi_calib_ros.core.errors import DataError
+from kpi_calib_ros.core.estimation import CalibrationResult, identify
+from kpi_calib_ros.core.measurement import Measurements
+from kpi_calib_ros.core.streams import JointSample, PairingResult, PointSample, pair_measurements
+from kpi_calib_ros.io.cell import CellModel
+
+
+def measurements_from_samples(cm: CellModel, joint_samples: Iterable[JointSample],
+                              point_samples: Iterable[PointSample],
+                              **pairer_options) -> tuple[Measurements, PairingResult]:
+    """Pair tracker points with still joint states, matching joints by name.
+
+    Raises
+    ------
+    DataError
+        When no point could be paired because the joint states lack the
+        chain's joints (wrong robot or renamed joints): names both sets.
+    """
+    joint_samples = list(joint_samples)
+    pairing = pair_measurements(joint_samples, point_samples, cm.joint_names,
+                                cm.cell.tracker_frame, **pairer_options)
+    if len(pairing) == 0 and pairing.rejections.get('missing_joints'):
+        seen = sorted({n for s in joint_samples for n in s.names})
+        raise DataError(f'the joint states name joints {seen}, but the robot chain needs '
+                        f'{cm.joint_names}; record the right robot or fix the URDF joint names')
+    return Measurements(q=pairing.q, eta=pairing.eta, stamps_ns=pairing.stamps_ns), pairing
+
+
+def identify_cell(cm: CellModel, data: Measurements, p0: np.ndarray | None = None,
+                  free: list[str] | None = None) -> CalibrationResult:
+    """Identify the cell's parameters from paired measurements (σ and poses from the cell)."""
+    if len(data) == 0:
+        raise DataError('no accepted measurement to identify from')
+    return identify(cm.model, data, cm.cell.sigma, cm.q_work, list(cm.working_pose_names),
+                    p0=p0, free=free, identifiability_method=cm.cell.identification_method,
+                    priority=list(cm.cell.identification_priority) or None)
