@@ -1,0 +1,282 @@
+"""MCAP bags: what rosbag2 records, exact round trips, clear errors, nothing lost on SIGKILL."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+
+from kpi_calib_ros.core.streams import JointSample, PointSample, pair_measurements, \
+    synthesize_streams
+from kpi_calib_ros.io.bag import BagError, MeasurementLog, read_bag, write_bag
+
+NAMES = ('joint_1', 'joint_2', 'joint_3', 'joint_4', 'joint_5', 'joint_6')
+FRAME = 'tracker'
+MAGIC = b'\x89MCAP0\r\n'
+
+
+def make_streams(n_poses: int = 3, seed: int = 11):
+    rng = np.random.default_rng(seed)
+    q = rng.uniform(-2.0, 2.0, (n_poses, len(NAMES)))
+    eta = rng.uniform(-1.5, 1.5, (n_poses, 3))
+    joints, points = synthesize_streams(q, NAMES, eta, FRAME, joint_noise_rad=1e-5, rng=rng)
+    # What real drivers also send: extra joints, no velocities, odd stamps.
+    joints.append(JointSample(joints[-1].stamp_ns + 7, ('gripper',) + NAMES,
+                              rng.normal(size=7), None))
+    return q, eta, joints, points
+
+
+def assert_same_joints(actual, expected):
+    assert len(actual) == len(expected)
+    for a, e in zip(actual, expected):
+        assert a.stamp_ns == e.stamp_ns and a.names == e.names
+        np.testing.assert_array_equal(a.positions, e.positions)
+        if e.velocities is None:
+            assert a.velocities is None
+        else:
+            np.testing.assert_array_equal(a.velocities, e.velocities)
+
+
+def assert_same_points(actual, expected):
+    assert [(p.stamp_ns, p.frame_id) for p in actual] == [(p.stamp_ns, p.frame_id)
+                                                          for p in expected]
+    np.testing.assert_array_equal([p.xyz for p in actual], [p.xyz for p in expected])
+
+
+def test_round_trip_is_exact(tmp_path):
+    _, _, joints, points = make_streams()
+    path = write_bag(tmp_path / 'cell.mcap', joints, points)
+    read_joints, read_points = read_bag(path)
+    assert_same_joints(read_joints, joints)
+    assert_same_points(read_points, points)
+
+
+def test_pairing_a_bag_equals_pairing_the_streams(tmp_path):
+    q, _, joints, points = make_streams()
+    path = write_bag(tmp_path / 'cell.mcap', joints, points, joint_topic='/robot/joint_states',
+                     point_topic='/tracker/point')
+    from_bag = pair_measurements(*read_bag(path, '/robot/joint_states', '/tracker/point'),
+                                 NAMES, FRAME)
+    direct = pair_measurements(joints, points, NAMES, FRAME)
+    assert from_bag.rejections == {} and len(from_bag) == len(q)
+    np.testing.assert_array_equal(from_bag.q, direct.q)
+    np.testing.assert_array_equal(from_bag.stamps_ns, direct.stamps_ns)
+
+
+def share_file(relative: str) -> str:
+    prefixes = os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) + [sys.prefix]
+    for prefix in filter(None, prefixes):
+        path = Path(prefix) / 'share' / relative
+        if path.is_file():
+            return path.read_text()
+    raise FileNotFoundError(relative)
+
+
+def section(type_name: str) -> str:
+    return '\n' + '=' * 80 + f'\nMSG: {type_name}\n'
+
+
+def test_bag_is_what_ros2_bag_record_writes(tmp_path):
+    from rclpy.serialization import deserialize_message
+    from geometry_msgs.msg import PointStamped
+    from sensor_msgs.msg import JointState
+
+    _, _, joints, points = make_streams()
+    path = write_bag(tmp_path / 'cell.mcap', joints, points)
+    header = share_file('std_msgs/msg/Header.msg')
+    time = share_file('builtin_interfaces/msg/Time.msg')
+    # rosbag2's complete definitions: own text, then dependencies depth-first, sorted.
+    expected_schemas = {
+        'sensor_msgs/msg/JointState': share_file('sensor_msgs/msg/JointState.msg')
+        + section('std_msgs/Header') + header + section('builtin_interfaces/Time') + time,
+        'geometry_msgs/msg/PointStamped': share_file('geometry_msgs/msg/PointStamped.msg')
+        + section('geometry_msgs/Point') + share_file('geometry_msgs/msg/Point.msg')
+        + section('std_msgs/Header') + header + section('builtin_interfaces/Time') + time,
+    }
+    with open(path, 'rb') as f:
+        reader = make_reader(f)
+        assert reader.get_header().profile == 'ros2'
+        summary = reader.get_summary()
+        assert {s.name: (s.encoding, s.data.decode()) for s in summary.schemas.values()} == {
+            name: ('ros2msg', text) for name, text in expected_schemas.items()}
+        assert all(c.compression == '' for c in summary.chunk_indexes)
+        channels = {c.topic: c for c in summary.channels.values()}
+        assert set(channels) == {'/joint_states', '/laser_tracker/point'}
+        for channel in channels.values():
+            assert channel.message_encoding == 'cdr'
+            assert channel.metadata['topic_type_hash'].startswith('RIHS01_')
+            assert '- history: keep_last' in channel.metadata['offered_qos_profiles']
+        ros_joints, ros_points = [], []
+        for _, channel, message in reader.iter_messages(log_time_order=False):
+            assert message.log_time == message.publish_time
+            # The real ROS 2 type support reads our bytes.
+            if channel.topic == '/joint_states':
+                ros_joints.append((message.log_time, deserialize_message(message.data,
+                                                                         JointState)))
+            else:
+                ros_points.append((message.log_time, deserialize_message(message.data,
+                                                                         PointStamped)))
+    for (log_time, msg), sample in zip(ros_joints, joints, strict=True):
+        assert log_time == sample.stamp_ns == msg.header.stamp.sec * 10 ** 9 \
+            + msg.header.stamp.nanosec
+        assert tuple(msg.name) == sample.names
+        np.testing.assert_array_equal(msg.position, sample.positions)
+    for (log_time, msg), sample in zip(ros_points, points, strict=True):
+        assert log_time == sample.stamp_ns and msg.header.frame_id == FRAME
+        np.testing.assert_array_equal([msg.point.x, msg.point.y, msg.point.z], sample.xyz)
+    # And so does mcap_ros2's own reader, from the schema text alone.
+    with open(path, 'rb') as f:
+        decoded = [m.decoded_message for m in make_reader(
+            f, decoder_factories=[DecoderFactory()]).iter_decoded_messages('/laser_tracker/point')]
+    np.testing.assert_array_equal([[m.point.x, m.point.y, m.point.z] for m in decoded],
+                                  [p.xyz for p in points])
+
+
+def test_errors_name_the_file_topic_and_fix(tmp_path):
+    _, _, joints, points = make_streams(n_poses=1)
+    path = write_bag(tmp_path / 'cell.mcap', joints, points)
+
+    with pytest.raises(BagError, match=r'missing\.mcap: no such file'):
+        read_bag(tmp_path / 'missing.mcap')
+    (tmp_path / 'notes.mcap').write_text('joint_1: 0.1\n')
+    with pytest.raises(BagError, match=r'notes\.mcap is not an MCAP file.*ros2 bag'):
+        read_bag(tmp_path / 'notes.mcap')
+    with pytest.raises(BagError, match=r"is a directory.*\['cell\.mcap', 'notes\.mcap'\]"):
+        read_bag(tmp_path)
+    with pytest.raises(BagError) as error:
+        read_bag(path, joint_topic='/robot/joint_states')
+    message = str(error.value)
+    assert str(path) in message and "'/robot/joint_states' is not in the bag" in message
+    assert "'/joint_states' (sensor_msgs/msg/JointState)" in message and 'joint_topic=' in message
+    with pytest.raises(BagError) as error:
+        read_bag(path, joint_topic='/laser_tracker/point', point_topic='/joint_states')
+    message = str(error.value)
+    assert "topic '/joint_states' carries 'sensor_msgs/msg/JointState', expected " \
+        "'geometry_msgs/msg/PointStamped'" in message and 'point_topic=' in message
+    assert isinstance(error.value, ValueError)
+
+
+def test_unfinalised_bag_yields_every_complete_message(tmp_path):
+    _, _, joints, points = make_streams()
+    path = write_bag(tmp_path / 'cell.mcap', joints, points, chunk_size=4096)
+    data = path.read_bytes()
+    with open(path, 'rb') as f:
+        summary = make_reader(f).get_summary()
+    last = summary.chunk_indexes[-1]
+    data_end = last.chunk_start_offset + last.chunk_length
+    torn = tmp_path / 'torn.mcap'
+    counts = []
+    first = summary.chunk_indexes[0]
+    for cut in list(range(first.chunk_start_offset + first.chunk_length, data_end, 997)) + [
+            data_end]:
+        torn.write_bytes(data[:cut])
+        read_joints, read_points = read_bag(torn)
+        # Whatever survives is exactly the beginning of the recording.
+        assert_same_joints(read_joints, joints[:len(read_joints)])
+        assert_same_points(read_points, points[:len(read_points)])
+        counts.append(len(read_joints) + len(read_points))
+    assert counts == sorted(counts) and counts[0] > 0
+    assert counts[-1] == len(joints) + len(points)
+
+
+def measurement(i: int) -> tuple[JointSample, PointSample]:
+    stamp = 1_700_000_000_000_000_000 + i * 4_000_000_000
+    return (JointSample(stamp, NAMES, 0.001 * i + np.arange(6.0)),
+            PointSample(stamp, FRAME, [i, 2.0 * i, 3.0 * i]))
+
+
+def assert_measurements(loaded, indices):
+    assert len(loaded) == len(indices)
+    for (joint, point), i in zip(loaded, indices):
+        expected_joint, expected_point = measurement(i)
+        assert_same_joints([joint], [expected_joint])
+        assert_same_points([point], [expected_point])
+
+
+def test_measurement_log_round_trip_and_numbering(tmp_path):
+    with MeasurementLog(tmp_path / 'run') as log:
+        for i in range(3):
+            log.append(*measurement(i))
+    assert log.path.name == 'measurements_1.mcap' and log.count == 3
+    assert log.path.read_bytes().endswith(MAGIC)  # close() finalised it
+    second = MeasurementLog(tmp_path / 'run')  # next process run: next file
+    second.append(*measurement(3))
+    assert second.path.name == 'measurements_2.mcap'
+    assert_measurements(MeasurementLog.load_all(tmp_path / 'run'), range(4))
+    # A log is an ordinary bag.
+    read_joints, read_points = read_bag(log.path)
+    assert [j.stamp_ns for j in read_joints] == [p.stamp_ns for p in read_points]
+    second.close()
+    second.close()
+    with pytest.raises(ValueError, match='closed'):
+        second.append(*measurement(4))
+    with MeasurementLog(tmp_path / 'other') as other, pytest.raises(ValueError, match='stamp_ns'):
+        other.append(measurement(5)[0], measurement(6)[1])
+
+
+def test_measurement_log_torn_anywhere_loses_only_the_torn_append(tmp_path):
+    with MeasurementLog(tmp_path) as log:
+        for i in range(3):
+            log.append(*measurement(i))
+    data = log.path.read_bytes()
+    torn_dir = tmp_path / 'torn'
+    torn_dir.mkdir()
+    counts = []
+    for cut in range(0, len(data) + 1, 3):
+        (torn_dir / 'measurements_1.mcap').write_bytes(data[:cut])
+        loaded = MeasurementLog.load_all(torn_dir)
+        assert_measurements(loaded, range(len(loaded)))
+        counts.append(len(loaded))
+    assert counts == sorted(counts) and counts[-1] == 3
+
+
+KILLED_WRITER = r'''
+import sys
+sys.path.insert(0, sys.argv[2])
+from test_bag import measurement
+from kpi_calib_ros.io.bag import MeasurementLog
+
+log = MeasurementLog(sys.argv[1])
+i = 0
+while True:
+    log.append(*measurement(i))
+    i += 1
+    print(i, flush=True)  # only after the append is durable
+'''
+
+
+def test_measurement_log_survives_sigkill(tmp_path):
+    with MeasurementLog(tmp_path) as earlier_run:
+        earlier_run.append(*measurement(1000))
+    process = subprocess.Popen(
+        [sys.executable, '-c', KILLED_WRITER, str(tmp_path), str(Path(__file__).parent)],
+        stdout=subprocess.PIPE, text=True)
+    watchdog = threading.Timer(120, process.kill)  # a hung writer fails the test, not CI
+    watchdog.start()
+    try:
+        acknowledged = 0
+        while acknowledged < 25:
+            line = process.stdout.readline()
+            assert line, 'writer exited before being killed'
+            acknowledged = int(line)
+        process.send_signal(signal.SIGKILL)
+        assert process.wait() == -signal.SIGKILL
+        acknowledged = max([acknowledged] + [int(line) for line in process.stdout])
+    finally:
+        watchdog.cancel()
+        process.kill()
+        process.stdout.close()
+    killed_file = tmp_path / 'measurements_2.mcap'
+    assert not killed_file.read_bytes().endswith(MAGIC)  # never finalised
+    loaded = MeasurementLog.load_all(tmp_path)
+    # Every acknowledged append is back; at most one more finished before the kill landed.
+    assert len(loaded) - 1 in (acknowledged, acknowledged + 1)
+    assert_measurements(loaded[:1], [1000])
+    assert_measurements(loaded[1:], range(len(loaded) - 1))
