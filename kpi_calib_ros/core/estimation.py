@@ -23,6 +23,10 @@ from kpi_calib_ros.core.identifiability import (DroppedParameter, Identifiabilit
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
 
 
+# A nominal model is off by millimetres, a wrong unit or frame by metres.
+MAX_START_ERROR = 0.1
+
+
 @dataclass(frozen=True)
 class CalibrationResult:
     """Everything an identification produces.
@@ -135,7 +139,12 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     p = np.array(model.params.nominal if p0 is None else p0, dtype=float)
     free_idx = model.params.indices(free) if free else np.arange(len(p))
 
-    _, jac = model.jacobian(p, q, tau)
+    pred, jac = model.jacobian(p, q, tau)
+    start_error = float(np.median(np.linalg.norm(eta - pred, axis=1)))
+    if start_error > MAX_START_ERROR:
+        raise DataError(f'measured points are {start_error:.3g} m (median) from the nominal '
+                        'prediction; check that points are in metres, in the tracker frame, and '
+                        'that tracker.base_in_tracker and the joint order/units are right')
     stacked = (jac * w[None, :, None]).reshape(-1, len(p))[:, free_idx]
     ident = select_identifiable(stacked, [model.params.names[i] for i in free_idx],
                                 method=identifiability_method, priority=priority)

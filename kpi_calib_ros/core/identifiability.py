@@ -16,6 +16,7 @@ import numpy as np
 import scipy.linalg
 
 DEFAULT_TOLERANCE = 1e-7
+ZERO_COLUMN = 1e-10
 
 
 @dataclass(frozen=True)
@@ -66,8 +67,11 @@ def select_identifiable(jacobian: np.ndarray, names: list[str] | tuple[str, ...]
     if jacobian.shape[1] != len(names):
         raise ValueError('jacobian columns and names differ in number')
     norms = np.linalg.norm(jacobian, axis=0)
-    unseen = [n for n, v in zip(names, norms) if v == 0.0]
-    cols = [i for i, v in enumerate(norms) if v > 0.0]
+    # A column at round-off level (e.g. a rotation about an axis the reflector sits on)
+    # must not be normalised into noise that QR would take for information.
+    floor = ZERO_COLUMN * norms.max()
+    unseen = [n for n, v in zip(names, norms) if v <= floor]
+    cols = [i for i, v in enumerate(norms) if v > floor]
     a = jacobian[:, cols] / norms[cols]
     if method == 'pivoted':
         _, r, perm = scipy.linalg.qr(a, mode='economic', pivoting=True)
@@ -81,7 +85,8 @@ def select_identifiable(jacobian: np.ndarray, names: list[str] | tuple[str, ...]
         raise ValueError(f"method must be 'pivoted' or 'priority', not {method!r}")
     kept_cols = [cols[i] for i in sorted(kept_pos)]
     kept_local = sorted(kept_pos)
-    dropped = [DroppedParameter(n, 'no effect on the measurements', {}) for n in unseen]
+    dropped = [DroppedParameter(n, 'no effect on the measurements at the nominal geometry', {})
+               for n in unseen]
     basis = a[:, kept_local]
     for local in range(a.shape[1]):
         if local in kept_local:

@@ -1,0 +1,150 @@
+"""Identification on the simulated KR15-class cell: statistical truths of the estimator."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from kpi_calib_ros.core.covariance import (kkt_covariance, kpi_jacobians, nullspace_covariance,
+                                           propagated_kpi_covariance)
+from kpi_calib_ros.core.errors import DataError
+from kpi_calib_ros.core.estimation import identify, weights
+from kpi_calib_ros.core.measurement import Measurements
+from kpi_calib_ros.core.simulation import (equivalent_parameters, random_configurations,
+                                          sampling_bounds, simulate_measurements,
+                                          true_parameters)
+from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+
+SIGMA = 20e-6
+
+
+@pytest.fixture(scope='module')
+def cell():
+    return build_cell_model(load_cell(DEFAULT_CELL))
+
+
+@pytest.fixture(scope='module')
+def campaign(cell):
+    rng = np.random.default_rng(2024)
+    p_true = true_parameters(cell.model.params, rng)
+    q = random_configurations(cell.model, cell.model.params.nominal, 60, rng)
+    data = simulate_measurements(cell.model, p_true, q, SIGMA, rng)
+    result = identify(cell.model, data, SIGMA, cell.q_work)
+    return p_true, q, data, result
+
+
+def test_jacobian_equals_finite_differences(cell):
+    rng = np.random.default_rng(0)
+    p = true_parameters(cell.model.params, rng)
+    q = random_configurations(cell.model, p, 5, rng)
+    _, jac = cell.model.jacobian(p, q)
+    eps = 1e-7
+    for i in range(len(p)):
+        dp = np.zeros(len(p))
+        dp[i] = eps
+        fd = (cell.model.predict(p + dp, q) - cell.model.predict(p - dp, q)) / (2 * eps)
+        assert np.allclose(jac[:, :, i], fd, atol=1e-7), cell.model.params.names[i]
+
+
+def test_identified_parameters_within_three_sigma_of_truth(cell, campaign):
+    p_true, _, _, result = campaign
+    # Dropped parameters are absorbed by kept ones, so the truth to compare with is the
+    # true robot expressed in the kept parameterisation (a noiseless fit).
+    lo, hi = sampling_bounds(cell.model)
+    dense = np.random.default_rng(5).uniform(lo, hi, (600, cell.robot.n_joints))
+    p_equiv, representation_error = equivalent_parameters(
+        cell.model, p_true, result.estimated, cell.model.params.nominal, dense)
+    idx = cell.model.params.indices(result.estimated)
+    z = (result.values[idx] - p_equiv[idx]) / result.std
+    print(f'identifiable {len(idx)}, within 3σ {np.mean(np.abs(z) < 3):.3f}, '
+          f'max |z| {np.abs(z).max():.2f}, representation error {representation_error * 1e6:.2f} µm')
+    assert result.converged
+    assert np.mean(np.abs(z) < 3) >= 0.95
+    assert representation_error < SIGMA / 2
+
+
+def test_residual_rms_matches_noise(campaign):
+    _, q, _, result = campaign
+    floor = SIGMA * np.sqrt(3)
+    # With k fitted parameters E|r|² = 3σ²(1 − k/3N): the expected rms sits below σ√3.
+    expected = floor * np.sqrt(result.dof / (3 * len(q)))
+    print(f'rms {result.rms_m * 1e6:.2f} µm, σ√3 {floor * 1e6:.2f} µm, '
+          f'dof-corrected {expected * 1e6:.2f} µm, p {result.p_value:.3f}')
+    assert abs(result.rms_m - floor) < 0.10 * floor
+    assert 1e-3 < result.p_value < 1 - 1e-3
+
+
+def test_tcp_error_below_three_predicted_std(cell, campaign):
+    p_true, _, _, result = campaign
+    error = result.tcp[0] - cell.model.predict(p_true, cell.q_work)[0]
+    std = np.sqrt(np.diag(result.tcp_covariance[0]))
+    mahalanobis = np.sqrt(error @ np.linalg.solve(result.tcp_covariance[0], error))
+    print(f'TCP error {error * 1e6} µm, std {std * 1e6} µm, Mahalanobis {mahalanobis:.2f}')
+    assert np.all(np.abs(error) < 3 * std)
+
+
+def test_monte_carlo_tcp_covariance_matches_prediction(cell, campaign):
+    p_true, q, data, result = campaign
+    rng = np.random.default_rng(99)
+    clean = cell.model.predict(p_true, q)
+    tcps = []
+    for _ in range(200):
+        noisy = Measurements(q=q, eta=clean + rng.normal(scale=SIGMA, size=clean.shape))
+        tcps.append(identify(cell.model, noisy, SIGMA, cell.q_work).tcp[0])
+    empirical = np.cov(np.array(tcps).T)
+    ratio = np.trace(empirical) / np.trace(result.tcp_covariance[0])
+    print(f'Monte Carlo trace / predicted trace = {ratio:.3f} over 200 repeats')
+    assert abs(ratio - 1) < 0.15
+
+
+def test_kkt_equals_nullspace_and_propagation(cell, campaign):
+    _, q, _, result = campaign
+    idx = cell.model.params.indices(result.estimated)
+    w = weights(SIGMA)
+    _, jac = cell.model.jacobian(result.values, q)
+    f1_p = (jac * w[None, :, None]).reshape(-1, len(result.values))[:, idx]
+    _, wj = cell.model.jacobian(result.values, cell.q_work)
+    tcp_p = wj.reshape(-1, len(result.values))[:, idx]
+    f1, f2 = kpi_jacobians(f1_p, tcp_p)
+    c_kkt = kkt_covariance(f1, f2)
+    c_null = nullspace_covariance(f1, f2)
+    c_prop = propagated_kpi_covariance(f1_p, tcp_p)
+    k = len(idx)
+    scale = np.sqrt(np.outer(np.diag(c_kkt), np.diag(c_kkt)))
+    assert np.max(np.abs(c_kkt - c_null) / scale) < 1e-8
+    assert np.max(np.abs(c_kkt[k:, k:] - c_prop) / scale[k:, k:]) < 1e-8
+
+
+def test_kpi_covariance_is_independent_of_the_kept_subset(cell, campaign):
+    _, q, data, result = campaign
+    names = cell.model.params.names
+    # A deliberately different choice: prefer placement errors, base and reflector last.
+    priority = [n for n in names if '.placement.' in n][::-1] + [n for n in names
+                                                               if '.placement.' not in n]
+    other = identify(cell.model, data, SIGMA, cell.q_work, identifiability_method='priority',
+                     priority=priority)
+    assert set(other.estimated) != set(result.estimated)
+    assert len(other.estimated) == len(result.estimated)
+    a, b = np.trace(result.tcp_covariance[0]), np.trace(other.tcp_covariance[0])
+    print(f'trace C_s: pivoted {a:.6e}, priority {b:.6e}, relative difference {abs(a - b) / a:.2e}')
+    assert abs(a - b) / a < 1e-3
+
+
+def test_too_few_measurements_is_a_data_error(cell, campaign):
+    _, q, data, _ = campaign
+    few = Measurements(q=data.q[:6], eta=data.eta[:6])
+    with pytest.raises(DataError, match='too few measurements'):
+        identify(cell.model, few, SIGMA, cell.q_work)
+
+
+def test_non_finite_data_is_a_data_error(cell, campaign):
+    _, q, data, _ = campaign
+    eta = data.eta.copy()
+    eta[3, 1] = np.nan
+    with pytest.raises(DataError, match='NaN'):
+        identify(cell.model, Measurements(q=data.q, eta=eta), SIGMA, cell.q_work)
+
+
+def test_points_in_millimetres_are_refused_with_the_reason(cell, campaign):
+    _, _, data, _ = campaign
+    with pytest.raises(DataError, match='metres'):
+        identify(cell.model, Measurements(q=data.q, eta=data.eta * 1000), SIGMA, cell.q_work)
