@@ -1,0 +1,125 @@
+"""kpi-calib simulate/identify end to end, and every kind of bad input the issue names."""
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from kpi_calib_ros.cli import main
+from kpi_calib_ros.core.streams import JointSample, PointSample
+from kpi_calib_ros.io.bag import read_bag, write_bag
+from kpi_calib_ros.io.cell import DEFAULT_CELL
+
+CELL = str(DEFAULT_CELL)
+
+
+@pytest.fixture(scope='module')
+def run_bag(tmp_path_factory) -> Path:
+    bag = tmp_path_factory.mktemp('run') / 'run.mcap'
+    assert main(['simulate', '--cell', CELL, '--n', '40', '--out', str(bag), '--seed', '11']) == 0
+    return bag
+
+
+def _cell_copy(tmp_path: Path, **changes) -> Path:
+    doc = yaml.safe_load(DEFAULT_CELL.read_text())
+    doc['robot']['urdf'] = str((DEFAULT_CELL.parent / doc['robot']['urdf']).resolve())
+    for dotted, value in changes.items():
+        node = doc
+        *path, last = dotted.split('.')
+        for key in path:
+            node = node[key]
+        node[last] = value
+    path = tmp_path / 'cell.yaml'
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+def test_identify_recovers_truth_from_a_simulated_bag(run_bag, tmp_path, capsys):
+    assert main(['identify', '--cell', CELL, '--bag', str(run_bag), '--out', str(tmp_path)]) == 0
+    doc = yaml.safe_load((tmp_path / 'calibration.yaml').read_text())
+    truth = yaml.safe_load(run_bag.with_name('run.truth.yaml').read_text())
+    assert doc['pairing'] == {'accepted': 40, 'rejected': {}}
+    tcp = doc['tcp'][0]
+    error = np.array(tcp['position']) - np.array(truth['tcp_true'][0])
+    assert np.all(np.abs(error) < 3 * np.array(tcp['std']))
+    names = {p['name'] for p in doc['parameters'] if p['estimated']}
+    assert 'reflector.z' in {p['name'] for p in doc['parameters']}
+    assert len(names) + len(doc['dropped_parameters']) == len(doc['parameters'])
+    assert 'rms residual' in capsys.readouterr().out
+
+
+def _identify_error(cell: Path | str, bag: Path, out: Path, capsys) -> str:
+    code = main(['identify', '--cell', str(cell), '--bag', str(bag), '--out', str(out)])
+    assert code == 2
+    return capsys.readouterr().err
+
+
+def test_malformed_urdf(tmp_path, run_bag, capsys):
+    urdf = tmp_path / 'bad.urdf'
+    urdf.write_text('<robot name="x"><link name="a"/><joint name="j"/></robot>')
+    err = _identify_error(_cell_copy(tmp_path, **{'robot.urdf': str(urdf)}), run_bag, tmp_path, capsys)
+    assert 'robot.urdf' in err and 'not a valid URDF' in err
+
+
+def test_unknown_frame(tmp_path, run_bag, capsys):
+    err = _identify_error(_cell_copy(tmp_path, **{'robot.tip_frame': 'flange_x'}), run_bag,
+                          tmp_path, capsys)
+    assert 'robot.tip_frame' in err and 'flange_x' in err and 'tool0' in err
+
+
+def test_bad_cell_value_names_the_key(tmp_path, run_bag, capsys):
+    err = _identify_error(_cell_copy(tmp_path, **{'noise.sigma': 20}), run_bag, tmp_path, capsys)
+    assert 'noise.sigma' in err and 'metres' in err
+
+
+def test_wrong_joint_names_in_the_bag(tmp_path, run_bag, capsys):
+    joints, points = read_bag(run_bag)
+    renamed = [JointSample(s.stamp_ns, tuple(f'a{i + 1}' for i in range(len(s.names))),
+                           s.positions, s.velocities) for s in joints]
+    bag = tmp_path / 'renamed.mcap'
+    write_bag(bag, renamed, points)
+    err = _identify_error(CELL, bag, tmp_path, capsys)
+    assert "'a1'" in err and "'joint_1'" in err
+
+
+def test_bad_points_are_rejected_and_counted(tmp_path, run_bag, capsys):
+    joints, points = read_bag(run_bag)
+    bad = list(points)
+    bad[0] = PointSample(points[0].stamp_ns, points[0].frame_id, [np.nan, 0.0, 1.0])
+    bad[1] = PointSample(points[1].stamp_ns, points[1].frame_id, [np.inf, 0.0, 1.0])
+    bad[2] = PointSample(points[2].stamp_ns, 'world', points[2].xyz)
+    # A point stamped while the robot moves between two poses.
+    moving = (points[3].stamp_ns + points[4].stamp_ns) // 2
+    bad.append(PointSample(moving, points[3].frame_id, points[3].xyz))
+    # A point long after the last joint state: no still joint state around it.
+    bad.append(PointSample(joints[-1].stamp_ns + 10**10, points[3].frame_id, points[3].xyz))
+    bag = tmp_path / 'bad_points.mcap'
+    write_bag(bag, joints, bad)
+    out = tmp_path / 'out'
+    assert main(['identify', '--cell', CELL, '--bag', str(bag), '--out', str(out)]) == 0
+    doc = yaml.safe_load((out / 'calibration.yaml').read_text())
+    assert doc['pairing'] == {'accepted': 37, 'rejected': {
+        'no_joint_state': 1, 'non_finite_point': 2, 'robot_moving': 1, 'wrong_frame': 1}}
+    assert 'rejected 2 sample(s): non_finite_point' in capsys.readouterr().err
+
+
+def test_too_few_measurements(tmp_path, run_bag, capsys):
+    joints, points = read_bag(run_bag)
+    bag = tmp_path / 'few.mcap'
+    write_bag(bag, joints, points[:5])
+    err = _identify_error(CELL, bag, tmp_path, capsys)
+    assert 'too few measurements' in err and '5 points' in err
+
+
+def test_cli_errors_have_no_traceback(tmp_path):
+    exe = Path(sys.executable).with_name('kpi-calib')
+    proc = subprocess.run([str(exe), 'identify', '--cell', CELL, '--bag',
+                           str(tmp_path / 'missing.mcap'), '--out', str(tmp_path)],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2
+    assert 'Traceback' not in proc.stderr
+    assert 'missing.mcap' in proc.stderr
