@@ -148,3 +148,33 @@ def test_points_in_millimetres_are_refused_with_the_reason(cell, campaign):
     _, _, data, _ = campaign
     with pytest.raises(DataError, match='metres'):
         identify(cell.model, Measurements(q=data.q, eta=data.eta * 1000), SIGMA, cell.q_work)
+
+
+@pytest.mark.parametrize('robot', ['odd_arm', 'ur_class'])
+def test_identification_is_general_across_robots(robot, odd_arm_urdf, tmp_path):
+    from kpi_calib_ros.core.robot_library import shipped_urdf_path
+    from kpi_calib_ros.io.cell import cell_from_dict
+    if robot == 'odd_arm':
+        urdf, base, tip = odd_arm_urdf, 'mount', 'flange'
+        work = {'swing': 0.2, 'lift': 0.3, 'telescope': 0.1, 'wrist': 0.4, 'tilt': 0.5}
+    else:
+        urdf, base, tip = shipped_urdf_path('ur_class').read_text(), 'base_link', 'tool0'
+        work = {'shoulder_pan_joint': 0.3, 'shoulder_lift_joint': -1.2, 'elbow_joint': 1.4,
+                'wrist_1_joint': -1.5, 'wrist_2_joint': -1.4, 'wrist_3_joint': 0.2}
+    doc = {'robot': {'urdf': 'unused', 'base_frame': base, 'tip_frame': tip},
+           'tracker': {'base_in_tracker': [2.0, 0.3, -0.4, 0.0, 0.0, 2.8]},
+           'reflector': {'offset': [0.01, 0.0, 0.04], 'max_incidence': 1.0},
+           'noise': {'sigma': SIGMA}, 'working_poses': [{'name': 'w', 'joints': work}]}
+    cm = build_cell_model(cell_from_dict(doc, tmp_path, urdf_xml=urdf))
+    rng = np.random.default_rng(3)
+    p_true = true_parameters(cm.model.params, rng)
+    q = random_configurations(cm.model, cm.model.params.nominal, 80, rng, max_incidence=1.0)
+    data = simulate_measurements(cm.model, p_true, q, SIGMA, rng)
+    result = identify(cm.model, data, SIGMA, cm.q_work)
+    error = result.tcp[0] - cm.model.predict(p_true, cm.q_work)[0]
+    std = np.sqrt(np.diag(result.tcp_covariance[0]))
+    print(f'{robot}: {len(result.estimated)} identifiable, rms {result.rms_m * 1e6:.1f} µm, '
+          f'TCP error/std {np.round(error / std, 2)}')
+    assert result.converged
+    assert 1e-3 < result.p_value < 1 - 1e-3
+    assert np.all(np.abs(error) < 3 * std)
