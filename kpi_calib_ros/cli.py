@@ -64,6 +64,7 @@ def _simulate(args: argparse.Namespace) -> int:
 
 
 def _identify(args: argparse.Namespace) -> int:
+    from kpi_calib_ros.core.dh import dh_table
     from kpi_calib_ros.io.bag import read_bag
     from kpi_calib_ros.io.cell import build_cell_model, load_cell
     from kpi_calib_ros.io.results import calibration_to_dict, summary_text, write_calibration
@@ -75,6 +76,8 @@ def _identify(args: argparse.Namespace) -> int:
         print(f'rejected {count} sample(s): {reason}', file=sys.stderr)
     result = identify_cell(cm, data)
     doc = calibration_to_dict(result, pairing)
+    doc['dh_hayati'] = dh_table(cm.robot, cm.geometric, cm.geometric.nominal,
+                                result.values[:len(cm.geometric)])
     path = write_calibration(args.out, doc)
     print(summary_text(doc))
     print(f'written: {path}')
