@@ -1,0 +1,233 @@
+"""design.yaml, design plots and the ``kpi-calib design`` command.
+
+design.yaml holds ``joint_names`` and ``configurations`` (what ``kpi-calib
+simulate --poses`` and a robot program read) plus the criterion, its value,
+the predicted TCP standard deviation per working pose, constraint margins and
+the independent verification. Two PNGs go next to it: the poses in the cell
+(tracker, obstacles) and the 95 % TCP confidence ellipsoids of the heuristic
+against the optimal design (Jost et al. 2017, Fig. 7).
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use('Agg')
+import matplotlib.pyplot as plt  # noqa: E402  (backend first)
+import numpy as np  # noqa: E402
+import scipy.stats  # noqa: E402
+import yaml  # noqa: E402
+
+from kpi_calib_ros.core.collision import Capsule, CollisionScene, HalfSpace  # noqa: E402
+from kpi_calib_ros.core.design import DesignResult  # noqa: E402
+from kpi_calib_ros.core.design_constraints import pin_link_poses  # noqa: E402
+from kpi_calib_ros.io.results import write_atomic  # noqa: E402
+
+CHI2_95_3D = float(scipy.stats.chi2.ppf(0.95, 3))
+
+
+def design_to_dict(result: DesignResult) -> dict[str, Any]:
+    """YAML-ready description of a design (SI units: rad, m)."""
+    unit = {'kpi': 'm^2', 'A': 'm^2', 'D': 'm^2', 'O1': '1', 'cond': '1', 'random': 'm^2'}
+    return {
+        'joint_names': list(result.joint_names),
+        'configurations': [[float(v) for v in q] for q in result.configurations],
+        'criterion': result.criterion,
+        'objective': float(result.objective),
+        'objective_unit': unit[result.criterion],
+        'criteria': {k: float(v) for k, v in result.criteria.items()},
+        'exchange_objective': float(result.exchange_objective),
+        'working_poses': [
+            {'name': name, 'tcp_std_m': [float(s) for s in std],
+             'tcp_variance_mean_m2': float(np.trace(cov) / 3.0)}
+            for name, std, cov in zip(result.working_pose_names, result.tcp_std,
+                                      result.tcp_covariance)],
+        'identified_parameters': list(result.parameter_names),
+        'constraints': {
+            'per_configuration': int(result.constraint_count),
+            'min_margin_m': [float(m) for m in result.min_margin],
+            'incidence_deg': [float(a) for a in result.incidence_deg],
+        },
+        'verification': {'ok': bool(result.verification.ok),
+                         'violations': list(result.verification.violations)},
+        'flagged_pairs': {k: float(v) for k, v in result.flagged_pairs.items()},
+        'status': result.status,
+        'candidates': int(result.candidates),
+        'timings_s': {k: round(float(v), 3) for k, v in result.timings.items()},
+    }
+
+
+def write_design(path: str | Path, result: DesignResult) -> Path:
+    """Write design.yaml atomically."""
+    return write_atomic(path, yaml.safe_dump(design_to_dict(result), sort_keys=False))
+
+
+# --------------------------------------------------------------------------- plots
+def _capsule_world(cap: Capsule, poses: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    t = poses.get(cap.frame, np.eye(4))
+    return tuple(t[:3, :3] @ np.asarray(p) + t[:3, 3] for p in (cap.a, cap.b))
+
+
+def _draw_capsule(ax, a: np.ndarray, b: np.ndarray, radius: float, color: str,
+                  alpha: float) -> None:
+    """Wireframe of a capsule: its cylinder surface (the caps are left out)."""
+    axis = b - a
+    length = np.linalg.norm(axis)
+    z = axis / length if length > 1e-9 else np.array([0.0, 0.0, 1.0])
+    x = np.cross(z, [1.0, 0.0, 0.0] if abs(z[0]) < 0.9 else [0.0, 1.0, 0.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    phi, s = np.meshgrid(np.linspace(0, 2 * np.pi, 16), np.linspace(0, 1, 4))
+    pts = (a[:, None, None] + axis[:, None, None] * s
+           + radius * (x[:, None, None] * np.cos(phi) + y[:, None, None] * np.sin(phi)))
+    ax.plot_wireframe(pts[0], pts[1], pts[2], color=color, alpha=alpha, linewidth=0.4)
+
+
+def plot_design(cell_model, scene: CollisionScene | None, result: DesignResult,
+                path: str | Path) -> Path:
+    """PNG of the design poses (link origins joined), tracker and obstacles, base frame."""
+    fig = plt.figure(figsize=(8, 7))
+    ax = fig.add_subplot(projection='3d')
+    robot = cell_model.robot
+    tracker = cell_model.tracker_in_base[:3, 3]
+    tips = []
+    for q in result.configurations:
+        poses, tip = pin_link_poses(robot, q)
+        chain = np.array([poses[l][:3, 3] for l in robot.link_names] + [tip[:3, 3]])
+        ax.plot(*chain.T, color='tab:orange', alpha=0.35, linewidth=1.0)
+        tips.append(tip[:3, 3])
+    tips = np.array(tips)
+    ax.scatter(*tips.T, color='tab:red', s=8, label=f'{len(tips)} reflector positions')
+    for t in tips[:: max(1, len(tips) // 20)]:
+        ax.plot(*np.c_[tracker, t], color='tab:green', alpha=0.15, linewidth=0.5)
+    ax.scatter(*tracker, color='tab:green', marker='^', s=80, label='laser tracker')
+    for q_work, name in zip(cell_model.q_work, cell_model.working_pose_names):
+        _, tip = pin_link_poses(robot, q_work)
+        ax.scatter(*tip[:3, 3], color='black', marker='*', s=120, label=f'working pose {name}')
+    lim = np.max(np.abs(np.r_[tips, tracker[None]])) * 1.1
+    if scene is not None:
+        for obs in scene.obstacles:
+            if isinstance(obs, Capsule):
+                _draw_capsule(ax, np.array(obs.a), np.array(obs.b), obs.radius, 'tab:blue', 0.4)
+            elif isinstance(obs, HalfSpace):
+                _draw_plane(ax, obs, lim)
+    ax.set(xlabel='x (m)', ylabel='y (m)', zlabel='z (m)', xlim=(-lim, lim), ylim=(-lim, lim),
+           zlim=(-lim / 2, lim), title=f'{result.criterion} design, base frame')
+    ax.legend(loc='upper left', fontsize=8)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def _draw_plane(ax, plane: HalfSpace, lim: float) -> None:
+    n = np.array(plane.normal)
+    u = np.cross(n, [0.0, 0.0, 1.0] if abs(n[2]) < 0.9 else [1.0, 0.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(n, u)
+    s, t = np.meshgrid(np.linspace(-lim, lim, 2), np.linspace(-lim, lim, 2))
+    pts = n[:, None, None] * plane.offset + u[:, None, None] * s + v[:, None, None] * t
+    ax.plot_surface(pts[0], pts[1], pts[2], color='grey', alpha=0.12)
+
+
+def plot_ellipsoids(results: list[DesignResult], labels: list[str], path: str | Path,
+                    pose: int = 0) -> Path:
+    """95 % confidence ellipsoids of the TCP at one working pose (µm), like Fig. 7.
+
+    One 3-D panel and the three 2-D projections (x-y, x-z, y-z; each projection
+    of the 3-D 95 % region), in the tracker frame centred on the TCP.
+    """
+    fig = plt.figure(figsize=(11, 9))
+    ax3 = fig.add_subplot(2, 2, 1, projection='3d')
+    axes2 = [fig.add_subplot(2, 2, k) for k in (2, 3, 4)]
+    colors = ['tab:red', 'tab:blue', 'tab:green', 'tab:purple']
+    scale = np.sqrt(CHI2_95_3D) * 1e6
+    u, v = np.meshgrid(np.linspace(0, 2 * np.pi, 30), np.linspace(0, np.pi, 15))
+    sphere = np.stack([np.cos(u) * np.sin(v), np.sin(u) * np.sin(v), np.cos(v)])
+    circle = np.stack([np.cos(np.linspace(0, 2 * np.pi, 100)),
+                       np.sin(np.linspace(0, 2 * np.pi, 100))])
+    for res, label, color in zip(results, labels, colors):
+        cov = res.tcp_covariance[pose]
+        w, vec = np.linalg.eigh(cov)
+        axes_m = vec * np.sqrt(np.maximum(w, 0.0)) * scale
+        pts = np.tensordot(axes_m, sphere, axes=1)
+        ax3.plot_wireframe(*pts, color=color, alpha=0.35, linewidth=0.5)
+        mean_var = np.trace(cov) / 3.0
+        for ax, (i, j) in zip(axes2, [(0, 1), (0, 2), (1, 2)]):
+            sub = cov[np.ix_([i, j], [i, j])]
+            w2, v2 = np.linalg.eigh(sub)
+            ell = (v2 * np.sqrt(np.maximum(w2, 0.0)) * scale) @ circle
+            ax.plot(*ell, color=color,
+                    label=f'{label}: mean variance {mean_var * 1e12:.3g} µm²')
+    names = 'xyz'
+    for ax, (i, j) in zip(axes2, [(0, 1), (0, 2), (1, 2)]):
+        ax.set(xlabel=f'{names[i]} (µm)', ylabel=f'{names[j]} (µm)', aspect='equal')
+        ax.grid(alpha=0.3)
+    axes2[0].legend(fontsize=8)
+    ax3.set(xlabel='x (µm)', ylabel='y (µm)', zlabel='z (µm)',
+            title=f'TCP 95 % confidence, working pose {results[0].working_pose_names[pose]}')
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+# ----------------------------------------------------------------------------- CLI
+def summary_text(result: DesignResult, baseline: DesignResult | None = None) -> str:
+    """Readable summary for stdout."""
+    lines = [f'criterion {result.criterion}: objective {result.objective:.4g} '
+             f'(exchange {result.exchange_objective:.4g}), {len(result.configurations)} '
+             f'configurations from {result.candidates} candidates, '
+             f'{result.constraint_count} constraints per configuration']
+    for name, std, cov in zip(result.working_pose_names, result.tcp_std, result.tcp_covariance):
+        line = (f'  working pose {name}: TCP std {np.round(std * 1e6, 2).tolist()} µm, '
+                f'mean variance {np.trace(cov) / 3 * 1e12:.4g} µm²')
+        if baseline is not None:
+            ref = np.trace(baseline.tcp_covariance[result.working_pose_names.index(name)]) / 3
+            line += f' ({100 * (1 - np.trace(cov) / 3 / ref):.1f} % below heuristic)'
+        lines.append(line)
+    lines.append(f'  min capsule margin {np.min(result.min_margin) * 1e3:.1f} mm, max incidence '
+                 f'{np.max(result.incidence_deg):.1f} deg')
+    for label, rate in result.flagged_pairs.items():
+        lines.append(f'  WARNING: pair {label} in collision in {100 * rate:.0f} % of measurable '
+                     'poses: ignored; check the capsules')
+    lines.append(f'  verification: {"ok" if result.verification.ok else "FAILED"}'
+                 + ''.join(f'\n    {v}' for v in result.verification.violations[:20]))
+    lines.append(f'  status: {result.status}')
+    lines.append('  time: ' + ', '.join(f'{k} {v:.1f} s' for k, v in result.timings.items()))
+    return '\n'.join(lines)
+
+
+def run_design_command(args: argparse.Namespace) -> int:
+    """``kpi-calib design --cell C --n N --criterion X --out design.yaml [--seed S]``.
+
+    Writes design.yaml, ``<stem>_poses.png`` and ``<stem>_ellipsoids.png``
+    (heuristic vs this design). Returns 0, or 1 when the verification failed.
+    """
+    from kpi_calib_ros.core.design import design_context, design_measurements, design_settings
+    from kpi_calib_ros.io.cell import build_cell_model, load_cell
+    cell_model = build_cell_model(load_cell(args.cell))
+    settings = design_settings(cell_model.cell.raw.get('design'))
+    rng = np.random.default_rng(args.seed)
+    context = design_context(cell_model, rng, settings)
+    print(f'{context.candidates.configurations.shape[0]} feasible candidates from '
+          f'{context.candidates.draws} draws ({context.seconds:.1f} s)')
+    result = design_measurements(cell_model, args.n, args.criterion, rng, settings,
+                                 context=context, progress=print)
+    baseline = result if args.criterion == 'random' else design_measurements(
+        cell_model, args.n, 'random', rng, settings, context=context)
+    out = Path(args.out)
+    write_design(out, result)
+    stem = out.with_suffix('')
+    poses_png = plot_design(cell_model, context.check_scene, result, f'{stem}_poses.png')
+    shown = [baseline] if result is baseline else [baseline, result]
+    names = ['heuristic'] if result is baseline else ['heuristic', f'{args.criterion}-optimal']
+    ell_png = plot_ellipsoids(shown, names, f'{stem}_ellipsoids.png')
+    print(summary_text(result, None if result is baseline else baseline))
+    print(f'written: {out}, {poses_png}, {ell_png}')
+    return 0 if result.verification.ok else 1
