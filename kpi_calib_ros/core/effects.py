@@ -1,0 +1,478 @@
+"""Physical effects the geometric model lacks: a library, specs and a user API.
+
+An effect is a small model with its own parameters that plugs into the
+measurement model (:class:`~kpi_calib_ros.core.measurement.MeasurementModel`)
+either as an additive correction of one joint value or as a correction of the
+measured point. Its parameters get stable names (``joint_compliance.joint_2.c``)
+and nominal value 0, so "no effect" is the geometric model.
+
+Library (per joint ``j`` unless noted; ``τ_j`` is the gravity torque from
+Pinocchio, payload included)::
+
+    joint_compliance      δq_j = c · τ_j                   c  rad/(N m)
+    cyclic_joint_error    δq_j = a · sin q_j + b · cos q_j  a, b  rad
+    cyclic_joint_error_h2 δq_j = a · sin 2q_j + b · cos 2q_j
+    joint_backlash        δq_j = b · sgn(τ_j)              b  rad
+    joint_scale           δq_j = k · q_j                   k  1 (transmission ratio)
+    tracker_scale         η = (1 + s) · h  (global)        s  1 (tracker length scale)
+
+``sgn`` is ``tanh(τ/τ0)`` with τ0 = 0.01 N m: the sign wherever gravity loads
+the joint measurably, and 0 where it exerts no torque at all (a vertical first
+axis), so a joint without load shows no backlash instead of numerical noise.
+
+User effects
+------------
+Describe the effect with :class:`EffectType` and a CasADi function of the joint
+state and the parameters, then make it known in one of three ways::
+
+    import casadi as ca
+    from kpi_calib_ros.core.effects import EffectType, register_effect
+
+    def _thermal(q_j, tau_j, theta):          # SX scalars, theta (k,) SX
+        return theta[0] * ca.cos(q_j) ** 2    # additive joint correction, rad
+
+    THERMAL = EffectType('thermal_bend', parameters=('g',), units=('rad',),
+                         joint_function=_thermal, typical=(1e-4,),
+                         description='bending that grows with cos² of the joint')
+    register_effect(THERMAL)                  # 1. in-process
+
+    # 2. setup.py: entry_points={'kpi_calib_ros.effects': ['thermal = my_pkg.fx:THERMAL']}
+    # 3. cell file: effects: ['my_pkg.fx:THERMAL:joint_2'] (or 'fx.py:THERMAL:joint_2',
+    #    a file next to the cell file)
+
+The entry point or cell reference may name an :class:`EffectType` or a callable
+without arguments that returns one (or a list of them).
+"""
+from __future__ import annotations
+
+import importlib
+import importlib.metadata
+import importlib.util
+import sys
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterable, Sequence
+
+import casadi as ca
+
+from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.core.robot import RobotModel
+
+ENTRY_POINT_GROUP = 'kpi_calib_ros.effects'
+BACKLASH_TORQUE_SCALE = 0.01  # N m: below this a joint counts as unloaded
+
+
+@dataclass(frozen=True)
+class EffectType:
+    """A kind of physical effect, before it is bound to a joint.
+
+    Parameters
+    ----------
+    name : str
+        Registry name, used in specs (``name:joint``) and parameter names.
+    parameters : tuple of str
+        Parameter suffixes, e.g. ``('c',)``; full names are
+        ``<name>.<joint>.<suffix>`` (per joint) or ``<name>.<suffix>`` (global).
+    units : tuple of str
+        Units of the parameters for a revolute joint (or a global effect).
+    joint_function : callable, optional
+        Per joint: ``f(q_j, tau_j, theta) -> SX scalar``, the additive
+        correction of joint j (rad, or m for a prismatic joint). Global:
+        ``f(q, tau, theta) -> SX (n,)``. Use CasADi operations.
+    point_function : callable, optional
+        ``g(point, theta) -> SX (3,)``: the measured point (tracker frame, m)
+        given the model point; for effects of the measuring instrument.
+    per_joint : bool
+        One instance per chain joint (``name:joint``) or one global instance.
+    uses_torque : bool
+        The function reads gravity torques; the model then supplies them.
+    typical : tuple of float
+        A realistic size of each parameter: used to simulate the effect and to
+        decide whether it changes the measurements at all.
+    prismatic_units : tuple of str, optional
+        Units for a prismatic joint (default: ``units`` with rad -> m, N m -> N).
+    description : str
+        One line for reports.
+    hint : str
+        What would make the effect distinguishable from the geometry when the
+        data cannot; ``{joint}`` is replaced by the joint name.
+    signature : str
+        What the fitted joint correction follows, for explanations
+        (``'gravity torque of {joint}'``).
+    screen : bool
+        Whether :func:`candidate_effects` includes it by default.
+    """
+
+    name: str
+    parameters: tuple[str, ...]
+    units: tuple[str, ...]
+    joint_function: Callable | None = None
+    point_function: Callable | None = None
+    per_joint: bool = True
+    uses_torque: bool = False
+    typical: tuple[float, ...] = ()
+    prismatic_units: tuple[str, ...] | None = None
+    description: str = ''
+    hint: str = ''
+    signature: str = 'fitted correction of {joint}'
+    screen: bool = False
+
+    def __post_init__(self) -> None:
+        if not self.name or ':' in self.name or '.' in self.name:
+            raise ValueError(f'effect name {self.name!r} must be non-empty without ":" or "."')
+        if (self.joint_function is None) == (self.point_function is None):
+            raise ValueError(f'effect {self.name!r}: give exactly one of joint_function '
+                             'and point_function')
+        if self.point_function is not None and self.per_joint:
+            raise ValueError(f'effect {self.name!r}: a point correction is global; '
+                             'set per_joint=False')
+        if len(self.units) != len(self.parameters) or not self.parameters:
+            raise ValueError(f'effect {self.name!r}: need one unit per parameter, '
+                             'at least one parameter')
+        if self.typical and len(self.typical) != len(self.parameters):
+            raise ValueError(f'effect {self.name!r}: typical needs one value per parameter')
+
+    def units_for(self, joint_kind: str | None) -> tuple[str, ...]:
+        if joint_kind != 'prismatic':
+            return self.units
+        if self.prismatic_units is not None:
+            return self.prismatic_units
+        return tuple(u.replace('N m', 'N').replace('rad', 'm') for u in self.units)
+
+
+@dataclass(frozen=True)
+class BoundEffect:
+    """An effect type bound to one joint (or global): implements the ``Effect`` protocol.
+
+    ``name`` is the spec (``joint_compliance:joint_2``), unique within a model.
+    """
+
+    kind: EffectType
+    joint: str | None
+    joint_index: int | None
+    n_joints: int
+    name: str = field(init=False)
+    parameter_names: tuple[str, ...] = field(init=False)
+    units: tuple[str, ...] = field(init=False)
+    uses_torque: bool = field(init=False)
+    joint_kind: str | None = None
+
+    def __post_init__(self) -> None:
+        prefix = self.kind.name if self.joint is None else f'{self.kind.name}.{self.joint}'
+        object.__setattr__(self, 'name', self.kind.name if self.joint is None
+                           else f'{self.kind.name}:{self.joint}')
+        object.__setattr__(self, 'parameter_names',
+                           tuple(f'{prefix}.{s}' for s in self.kind.parameters))
+        object.__setattr__(self, 'units', self.kind.units_for(self.joint_kind))
+        object.__setattr__(self, 'uses_torque', self.kind.uses_torque)
+
+    @property
+    def typical(self) -> tuple[float, ...]:
+        return self.kind.typical or (1.0,) * len(self.kind.parameters)
+
+    def joint_correction(self, q, tau, theta):
+        """Additive joint-value correction, SX (n,), or None for a point effect."""
+        fn = self.kind.joint_function
+        if fn is None:
+            return None
+        if self.joint_index is None:
+            return fn(q, tau, theta)
+        out = ca.SX.zeros(self.n_joints)
+        out[self.joint_index] = fn(q[self.joint_index], tau[self.joint_index], theta)
+        return out
+
+    def point_correction(self, point, theta):
+        """Corrected measured point, SX (3,), or None for a joint effect."""
+        fn = self.kind.point_function
+        return None if fn is None else fn(point, theta)
+
+    def hint(self) -> str:
+        return self.kind.hint.replace('{joint}', self.joint or 'the joint')
+
+    def signature(self) -> str:
+        return self.kind.signature.replace('{joint}', self.joint or 'the joint')
+
+
+# ------------------------------------------------------------------ the library
+def _compliance(q_j, tau_j, theta):
+    return theta[0] * tau_j
+
+
+def _cyclic(q_j, tau_j, theta):
+    return theta[0] * ca.sin(q_j) + theta[1] * ca.cos(q_j)
+
+
+def _cyclic_h2(q_j, tau_j, theta):
+    return theta[0] * ca.sin(2 * q_j) + theta[1] * ca.cos(2 * q_j)
+
+
+def _backlash(q_j, tau_j, theta):
+    return theta[0] * ca.tanh(tau_j / BACKLASH_TORQUE_SCALE)
+
+
+def _scale(q_j, tau_j, theta):
+    return theta[0] * q_j
+
+
+def _tracker_scale(point, theta):
+    return (1 + theta[0]) * point
+
+
+LIBRARY: tuple[EffectType, ...] = (
+    EffectType('joint_compliance', ('c',), ('rad/(N m)',), _compliance, uses_torque=True,
+               typical=(1e-6,), prismatic_units=('m/N',), screen=True,
+               description='joint deflection proportional to its gravity torque',
+               hint='gravity must load {joint} with a torque that varies over the poses; '
+                    'a joint with a vertical axis or an unloaded wrist carries none '
+                    '(a tilted base or a heavier, off-axis payload would)',
+               signature='gravity torque of {joint}'),
+    EffectType('cyclic_joint_error', ('a', 'b'), ('rad', 'rad'), _cyclic,
+               typical=(2e-4, 2e-4), screen=True,
+               description='first-harmonic gear/encoder error a·sin q + b·cos q',
+               hint='spread {joint} over most of a revolution so sin q and cos q vary '
+                    'independently of the joint offset',
+               signature='first harmonic a·sin q + b·cos q of {joint}'),
+    EffectType('cyclic_joint_error_h2', ('a', 'b'), ('rad', 'rad'), _cyclic_h2,
+               typical=(1e-4, 1e-4),
+               description='second-harmonic gear/encoder error a·sin 2q + b·cos 2q',
+               hint='spread {joint} over at least half a revolution',
+               signature='second harmonic of {joint}'),
+    EffectType('joint_backlash', ('b',), ('rad',), _backlash, uses_torque=True,
+               typical=(2.5e-4,), screen=True,
+               description='backlash: the joint settles on the side its gravity torque '
+                           'pushes to, b·sgn(τ)',
+               hint='measure poses where the gravity torque of {joint} changes sign '
+                    '(the arm on both sides of its balance point); with one sign only, '
+                    'backlash is a constant the joint offset absorbs',
+               signature='sign of the gravity torque of {joint}'),
+    EffectType('joint_scale', ('k',), ('1',), _scale, typical=(1e-4,), screen=True,
+               prismatic_units=('1',),
+               description='transmission-ratio error k·q',
+               hint='move {joint} over a wide range; over a narrow one k·q looks like '
+                    'the joint offset',
+               signature='angle of {joint}'),
+    EffectType('tracker_scale', ('s',), ('1',), point_function=_tracker_scale,
+               per_joint=False, typical=(1e-5,), screen=True,
+               description='length scale error of the tracker (temperature, refractive '
+                           'index), η = (1 + s)·h',
+               hint='a global scale is absorbed by the free link lengths and the base '
+                    'distance; measure a reference length (a calibrated scale bar) or '
+                    'fix the link lengths to make it distinguishable'),
+)
+
+_REGISTRY: dict[str, EffectType] = {e.name: e for e in LIBRARY}
+_entry_points_loaded = False
+
+
+def register_effect(effect_type: EffectType, replace: bool = False) -> EffectType:
+    """Make ``effect_type`` available to specs, the CLI and the diagnosis.
+
+    Raises
+    ------
+    ValueError
+        If the name is taken and ``replace`` is False.
+    """
+    if not isinstance(effect_type, EffectType):
+        raise ValueError(f'register_effect needs an EffectType, got {type(effect_type).__name__}')
+    if effect_type.name in _REGISTRY and not replace \
+            and _REGISTRY[effect_type.name] is not effect_type:
+        raise ValueError(f'effect {effect_type.name!r} is already registered; '
+                         'pass replace=True to override it')
+    _REGISTRY[effect_type.name] = effect_type
+    return effect_type
+
+
+def available_effects() -> dict[str, EffectType]:
+    """All known effect types: the library, registered ones and entry points."""
+    global _entry_points_loaded
+    if not _entry_points_loaded:
+        _entry_points_loaded = True
+        for ep in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP):
+            try:
+                for effect_type in _as_effect_types(ep.load(), ep.value):
+                    register_effect(effect_type, replace=True)
+            except Exception as exc:  # a broken plugin must not break the tool
+                warnings.warn(f'effect entry point {ep.name!r} ({ep.value}) ignored: {exc}',
+                              stacklevel=2)
+    return dict(_REGISTRY)
+
+
+def _as_effect_types(obj: Any, where: str) -> list[EffectType]:
+    if isinstance(obj, EffectType):
+        return [obj]
+    if callable(obj):
+        made = obj()
+        items = [made] if isinstance(made, EffectType) else list(made)
+        if items and all(isinstance(i, EffectType) for i in items):
+            return items
+    raise ValueError(f'{where} must be an EffectType or a callable without arguments '
+                     'returning EffectType(s)')
+
+
+# ------------------------------------------------------------------------ specs
+def bind_effect(effect_type: EffectType, robot: RobotModel, joint: str | None,
+                key: str = 'effects') -> BoundEffect:
+    """Bind ``effect_type`` to ``joint`` of ``robot`` (None for a global effect)."""
+    names = robot.joint_names
+    if effect_type.per_joint:
+        if joint not in names:
+            raise ConfigError(key, f'effect {effect_type.name!r} acts on one joint: write '
+                              f'{effect_type.name}:<joint> with a joint of {names}'
+                              + (f' (not {joint!r})' if joint else ''))
+        index = names.index(joint)
+        return BoundEffect(effect_type, joint, index, len(names), robot.joints[index].kind)
+    if joint is not None:
+        raise ConfigError(key, f'effect {effect_type.name!r} is global; write '
+                          f'{effect_type.name!r} without a joint')
+    return BoundEffect(effect_type, None, None, len(names))
+
+
+def parse_effect_spec(spec: str, robot: RobotModel, key: str = 'effects',
+                      base_dir: str | Path | None = None) -> BoundEffect:
+    """Resolve ``'effect[:joint]'`` or ``'module:attribute[:joint]'`` to an effect.
+
+    ``module`` is an importable module or a ``.py`` file (relative to
+    ``base_dir``, the cell file's folder); ``attribute`` names an
+    :class:`EffectType` or a callable returning one.
+
+    Raises
+    ------
+    ConfigError
+        Naming ``key`` and the spec, listing the valid effects and joints.
+    """
+    if not isinstance(spec, str) or not spec.strip():
+        raise ConfigError(key, f'effect spec must be a non-empty string, got {spec!r}')
+    parts = [s.strip() for s in spec.strip().split(':')]
+    known = available_effects()
+    where = f'{key}: {spec!r}'
+    if parts[0] in known:
+        if len(parts) > 2:
+            raise ConfigError(key, f'{spec!r}: write effect:joint, e.g. {parts[0]}:'
+                              f'{robot.joint_names[min(1, robot.n_joints - 1)]}')
+        return bind_effect(known[parts[0]], robot, parts[1] if len(parts) == 2 else None, where)
+    if len(parts) in (2, 3) and ('.' in parts[0] or parts[0].endswith('.py')):
+        effect_type = _load_user_effect(parts[0], parts[1], key, spec, base_dir)
+        return bind_effect(effect_type, robot, parts[2] if len(parts) == 3 else None, where)
+    raise ConfigError(key, f'{spec!r}: unknown effect {parts[0]!r}; valid effects are '
+                      f'{sorted(known)}, written effect:joint with a joint of '
+                      f'{robot.joint_names} (global effects without a joint), or '
+                      'module:EffectType[:joint] for your own')
+
+
+def _load_user_effect(module: str, attribute: str, key: str, spec: str,
+                      base_dir: str | Path | None) -> EffectType:
+    try:
+        if module.endswith('.py'):
+            path = Path(module)
+            if not path.is_absolute() and base_dir is not None:
+                path = Path(base_dir) / path
+            name = f'kpi_calib_user_effects_{path.stem}'
+            mod_spec = importlib.util.spec_from_file_location(name, path)
+            if mod_spec is None or not path.is_file():
+                raise FileNotFoundError(f'no file {str(path)!r}')
+            mod = importlib.util.module_from_spec(mod_spec)
+            sys.modules[name] = mod
+            mod_spec.loader.exec_module(mod)
+        else:
+            mod = importlib.import_module(module)
+        obj = getattr(mod, attribute)
+        types = _as_effect_types(obj, f'{module}:{attribute}')
+    except Exception as exc:
+        raise ConfigError(key, f'{spec!r}: cannot load user effect {module}:{attribute} '
+                          f'({exc})') from exc
+    if len(types) != 1:
+        raise ConfigError(key, f'{spec!r}: {module}:{attribute} gives {len(types)} effect '
+                          'types; name exactly one')
+    return register_effect(types[0], replace=True)
+
+
+def resolve_effects(specs: Iterable[str | BoundEffect], robot: RobotModel,
+                    key: str = 'effects',
+                    base_dir: str | Path | None = None) -> tuple[BoundEffect, ...]:
+    """Resolve specs (or pass bound effects through); duplicates are an error."""
+    out: list[BoundEffect] = []
+    for i, spec in enumerate(specs):
+        effect = spec if not isinstance(spec, str) else parse_effect_spec(
+            spec, robot, f'{key}[{i}]', base_dir)
+        if any(e.name == effect.name for e in out):
+            raise ConfigError(f'{key}[{i}]', f'effect {effect.name!r} is given twice')
+        out.append(effect)
+    return tuple(out)
+
+
+def split_specs(text: str) -> list[str]:
+    """``'a:j1,b:j2'`` -> ``['a:j1', 'b:j2']`` (command-line form)."""
+    return [s.strip() for s in text.split(',') if s.strip()]
+
+
+def candidate_effects(robot: RobotModel, kinds: Sequence[str] | None = None,
+                      exclude: Iterable[str] = ()) -> list[BoundEffect]:
+    """Every (effect × joint) to screen: the ``screen`` library effects by default.
+
+    ``exclude`` holds effect names (specs) already in the model.
+    """
+    known = available_effects()
+    if kinds is None:
+        chosen = [t for t in known.values() if t.screen]
+    else:
+        unknown = [k for k in kinds if k not in known]
+        if unknown:
+            raise ConfigError('candidates', f'unknown effect(s) {unknown}; valid effects are '
+                              f'{sorted(known)}')
+        chosen = [known[k] for k in kinds]
+    skip = set(exclude)
+    out = []
+    for effect_type in chosen:
+        joints = robot.joint_names if effect_type.per_joint else [None]
+        for joint in joints:
+            effect = bind_effect(effect_type, robot, joint)
+            if effect.name not in skip:
+                out.append(effect)
+    return out
+
+
+# ----------------------------------------------------------------- simulation
+def hidden_effects(doc: Any, robot: RobotModel, key: str = 'simulation.hidden_effects',
+                   base_dir: str | Path | None = None
+                   ) -> tuple[tuple[BoundEffect, ...], dict[str, float]]:
+    """Effects the simulated "true" robot has and the model lacks.
+
+    ``doc`` maps specs to parameter values, as in a cell file::
+
+        simulation:
+          hidden_effects:
+            joint_compliance:joint_2: {c: 8.0e-7}
+            tracker_scale: {s: 5.0e-6}
+
+    A parameter left out takes the effect's typical size.
+
+    Returns
+    -------
+    effects : tuple of BoundEffect
+    overrides : dict
+        Parameter name -> true value, for :func:`~kpi_calib_ros.core.simulation.true_parameters`.
+    """
+    if not doc:
+        return (), {}
+    if not isinstance(doc, dict):
+        raise ConfigError(key, 'must be a mapping {effect:joint: {parameter: value}}')
+    effects, overrides = [], {}
+    for spec, values in doc.items():
+        effect = parse_effect_spec(str(spec), robot, f'{key}.{spec}', base_dir)
+        values = values or {}
+        if not isinstance(values, dict):
+            raise ConfigError(f'{key}.{spec}', f'must map parameters {list(effect.kind.parameters)} '
+                              'to values')
+        unknown = set(values) - set(effect.kind.parameters)
+        if unknown:
+            raise ConfigError(f'{key}.{spec}.{sorted(unknown)[0]}', 'unknown parameter; '
+                              f'{effect.kind.name} has {list(effect.kind.parameters)}')
+        for suffix, name, typical in zip(effect.kind.parameters, effect.parameter_names,
+                                         effect.typical):
+            value = values.get(suffix, typical)
+            if not isinstance(value, (int, float)) or isinstance(value, bool):
+                raise ConfigError(f'{key}.{spec}.{suffix}', f'must be a number, got {value!r}')
+            overrides[name] = float(value)
+        effects.append(effect)
+    return tuple(effects), overrides
