@@ -209,7 +209,8 @@ class DesignProblem:
             'kpi': float(self.kpi_weights @ np.trace(tcp, axis1=1, axis2=2) / 3.0),
             'A': TraceLoss(self.factor('A')).value(info),
             'D': float(np.exp((log_scale - logdet) / self.k)),
-            'O1': float(np.exp(0.5 * (logdet - log_scale) / self.k) / np.sqrt(rows.size)),
+            'O1': float(np.exp(0.5 * (logdet - log_scale) / self.k)
+                         / np.sqrt(rows.shape[0] * rows.shape[1])),
             'cond': self.loss('cond').value(info),
         }
 

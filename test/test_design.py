@@ -1,0 +1,205 @@
+"""Measurement design: updates, criteria, exchange, NLP and the independent check."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import yaml
+
+from kpi_calib_ros.core.covariance import kkt_covariance, kpi_jacobians, parameter_covariance
+from kpi_calib_ros.core.design import (DesignSettings, design_context, design_measurements,
+                                       design_settings)
+from kpi_calib_ros.core.design_constraints import (feasibility_function, flag_pairs,
+                                                   verify_design)
+from kpi_calib_ros.core.design_exchange import (ConditionLoss, LogDetLoss, TraceLoss, exchange,
+                                                information)
+from kpi_calib_ros.core.design_nlp import solve_design_nlp
+from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.core.estimation import identify
+from kpi_calib_ros.core.measurement import Measurements
+from kpi_calib_ros.core.simulation import sampling_bounds
+from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict, load_cell
+
+SMALL = DesignSettings(candidates=600, nlp=False)
+
+
+@pytest.fixture(scope='module')
+def cell():
+    return build_cell_model(load_cell(DEFAULT_CELL))
+
+
+@pytest.fixture(scope='module')
+def context(cell):
+    return design_context(cell, np.random.default_rng(11), SMALL)
+
+
+def test_woodbury_updates_equal_recomputation():
+    rng = np.random.default_rng(0)
+    rows = rng.normal(size=(40, 3, 9))
+    chosen = list(range(8))
+    info = information(rows[chosen])
+    inv = np.linalg.inv(info)
+    factor = rng.normal(size=(3, 9))
+    for loss in (TraceLoss(factor), LogDetLoss(), ConditionLoss(rng.uniform(0.5, 2, 9))):
+        base = loss.value(info)
+        added = loss.delta(inv, rows[10:20], +1.0)
+        removed = loss.delta(inv, rows[chosen], -1.0)
+        direct_add = [loss.value(info + r.T @ r) - base for r in rows[10:20]]
+        direct_remove = [loss.value(info - r.T @ r) - base for r in rows[chosen]]
+        assert np.allclose(added, direct_add, rtol=1e-8, atol=1e-10 * abs(base))
+        assert np.allclose(removed, direct_remove, rtol=1e-8, atol=1e-10 * abs(base))
+
+
+def test_criteria_equal_the_covariance_module(cell, context):
+    problem = context.problem
+    q = context.candidates.configurations[:40]
+    rows = problem.rows(cell.model, q)
+    _, jac = cell.model.jacobian(problem.p, q)
+    f1_p = (jac[:, :, problem.index] / cell.cell.sigma[None, :, None]).reshape(-1, problem.k)
+    tcp_p = problem.kpi_jacobian.reshape(-1, problem.k)
+    c_v = kkt_covariance(*kpi_jacobians(f1_p, tcp_p))
+    c_s = c_v[problem.k:, problem.k:]
+    values = problem.criteria(rows)
+    assert np.allclose(problem.tcp_covariance(rows)[0], c_s, rtol=1e-6)
+    assert values['kpi'] == pytest.approx(np.trace(c_s) / 3, rel=1e-6)
+    c_p = parameter_covariance(f1_p)
+    scaled = problem.physical_scale[:, None] * c_p * problem.physical_scale[None, :]
+    assert values['A'] == pytest.approx(np.trace(scaled) / problem.k, rel=1e-6)
+    assert values['D'] == pytest.approx(np.linalg.det(scaled) ** (1 / problem.k), rel=1e-6)
+    j_u = f1_p / problem.physical_scale
+    sv = np.linalg.svd(j_u, compute_uv=False)
+    assert values['cond'] == pytest.approx(sv[0] / sv[-1], rel=1e-6)
+    assert values['O1'] == pytest.approx(np.prod(sv) ** (1 / len(sv)) / np.sqrt(len(j_u)),
+                                         rel=1e-6)
+    # The exchange losses are the same numbers.
+    assert problem.loss('kpi').value(information(rows)) == pytest.approx(values['kpi'], rel=1e-9)
+
+
+def test_exchange_never_worsens_and_beats_random(context):
+    rng = np.random.default_rng(3)
+    loss = context.problem.loss('kpi')
+    result = exchange(context.rows, 30, loss, rng)
+    history = np.array(result.history)
+    assert np.all(np.diff(history) <= 1e-12 * history[:-1])
+    random_losses = [loss.value(information(context.rows[rng.choice(len(context.rows), 30,
+                                                                     replace=False)]))
+                     for _ in range(50)]
+    print(f'exchange {result.loss:.3e} m², best of 50 random {min(random_losses):.3e} m², '
+          f'median {np.median(random_losses):.3e} m²')
+    assert result.loss < min(random_losses)
+    assert len(set(result.selected.tolist())) == 30
+
+
+def test_kpi_design_beats_heuristic_on_default_cell(cell, context):
+    rng = np.random.default_rng(4)
+    heuristic = design_measurements(cell, 30, 'random', rng, SMALL, context=context)
+    optimal = design_measurements(cell, 30, 'kpi', rng, SMALL, context=context)
+    a_opt = design_measurements(cell, 30, 'A', rng, SMALL, context=context)
+    h, s, p = (np.trace(r.tcp_covariance[0]) for r in (heuristic, optimal, a_opt))
+    print(f'trace C_s: heuristic {h:.3e}, A-optimal {p:.3e}, KPI-optimal {s:.3e} m² '
+          f'({100 * (1 - s / h):.0f} % / {100 * (1 - s / p):.0f} % better)')
+    assert s < 0.8 * h and s < p
+    for result in (heuristic, optimal, a_opt):
+        assert result.verification.ok, result.verification.violations
+        assert result.constraint_count == 1 + context.scene.count
+
+
+def test_verifier_catches_collision_incidence_and_limits(cell, context):
+    rng = np.random.default_rng(5)
+    lo, hi = sampling_bounds(cell.model)
+    q = rng.uniform(lo, hi, size=(4000, 6))
+    values = np.array(feasibility_function(cell, context.scene).map(len(q))(q.T)).T
+    measurable = values[:, 0] >= np.cos(cell.cell.max_incidence)
+    colliding = q[measurable & (values[:, 1:].min(axis=1) < -0.01)][0]
+    blind = q[values[:, 0] < np.cos(cell.cell.max_incidence) - 0.1][0]
+    good = context.candidates.configurations[0]
+    beyond = good.copy()
+    beyond[1] = hi[1] + 0.1
+    check = verify_design(cell, context.scene, np.array([good, colliding, blind, beyond]))
+    print('\n'.join(check.violations[:6]))
+    assert not check.ok
+    assert not any(v.startswith('configuration 0:') for v in check.violations)
+    assert any(v.startswith('configuration 1:') and '~' in v for v in check.violations)
+    assert any(v.startswith('configuration 2: incidence') for v in check.violations)
+    assert any(v.startswith('configuration 3: joint_2') for v in check.violations)
+    assert check.min_margin[1] < -0.01 <= 0.0 <= check.min_margin[0]
+
+
+def test_nlp_result_passes_the_independent_check(cell, context):
+    rng = np.random.default_rng(6)
+    q0 = context.candidates.configurations[exchange(context.rows, 12,
+                                                    context.problem.loss('kpi'), rng).selected]
+    lines = []
+    nlp = solve_design_nlp(context.problem, cell, context.scene, q0, 'kpi',
+                           max_iterations=60, progress=lines.append, every=20)
+    check = verify_design(cell, context.scene, nlp.configurations)
+    print(f'{nlp.status}: {nlp.loss_start:.3e} -> {nlp.loss:.3e} m² in {nlp.iterations} '
+          f'iterations, {nlp.seconds:.1f} s; min margin {check.min_margin.min() * 1e3:.2f} mm, '
+          f'max incidence {check.incidence_deg.max():.2f} deg')
+    assert lines and lines[0].startswith('ipopt: iteration 20')
+    assert check.ok, check.violations
+    assert nlp.loss < nlp.loss_start
+
+
+def test_predicted_tcp_covariance_matches_monte_carlo(cell, context):
+    rng = np.random.default_rng(7)
+    design = design_measurements(cell, 30, 'kpi', rng, SMALL, context=context)
+    model, sigma = cell.model, cell.cell.sigma
+    p = model.params.nominal
+    clean = model.predict(p, design.configurations)
+    truth = model.predict(p, cell.q_work)[0]
+    errors = []
+    for _ in range(100):
+        data = Measurements(q=design.configurations,
+                            eta=clean + rng.normal(size=clean.shape) * sigma)
+        errors.append(identify(model, data, sigma, cell.q_work).tcp[0] - truth)
+    mse = np.mean(np.sum(np.square(errors), axis=1))
+    ratio = mse / np.trace(design.tcp_covariance[0])
+    print(f'Monte Carlo E|ŝ - s|² / predicted trace C_s = {ratio:.3f} over 100 identifications')
+    assert abs(ratio - 1) < 0.2
+
+
+def test_pairs_violated_almost_always_are_flagged(cell):
+    raw = yaml.safe_load(DEFAULT_CELL.read_text())
+    raw['collision']['ignore_pairs'] = [p for p in raw['collision']['ignore_pairs']
+                                        if 'link_4' not in p]
+    bare = build_cell_model(cell_from_dict(raw, DEFAULT_CELL.parent))
+    flagged = flag_pairs(bare, bare.collision_scene(), np.random.default_rng(8), samples=200)
+    print(flagged)
+    assert set(flagged) == {'link_2~link_4', 'link_4~link_6'}
+    with pytest.raises(ConfigError, match='link_2~link_4'):
+        design_context(bare, np.random.default_rng(8), SMALL)
+    relaxed = dataclasses.replace(SMALL, candidates=50, ignore_flagged=True)
+    ctx = design_context(bare, np.random.default_rng(8), relaxed)
+    assert set(ctx.flagged) == set(flagged) and 'link_2~link_4' not in ctx.scene.labels
+
+
+def test_design_settings_are_validated():
+    assert design_settings({'candidates': 100, 'weights': {'roof': 2.0}}).candidates == 100
+    with pytest.raises(ConfigError, match='design.candidates'):
+        design_settings({'candidates': 0})
+    with pytest.raises(ConfigError, match='design.colision'):
+        design_settings({'colision': False})
+    with pytest.raises(ConfigError, match='design.nlp'):
+        design_settings({'nlp': 'yes'})
+
+
+def test_design_command_writes_yaml_and_plots(tmp_path):
+    from kpi_calib_ros.cli import main
+    raw = yaml.safe_load(DEFAULT_CELL.read_text())
+    raw['robot']['urdf'] = str((DEFAULT_CELL.parent / raw['robot']['urdf']).resolve())
+    raw['design'] = {'candidates': 300, 'nlp': False}
+    cell_path = tmp_path / 'cell.yaml'
+    cell_path.write_text(yaml.safe_dump(raw))
+    out = tmp_path / 'design.yaml'
+    assert main(['design', '--cell', str(cell_path), '--n', '15', '--criterion', 'kpi',
+                 '--out', str(out), '--seed', '1']) == 0
+    doc = yaml.safe_load(out.read_text())
+    assert doc['joint_names'] == [f'joint_{i}' for i in range(1, 7)]
+    assert np.array(doc['configurations']).shape == (15, 6)
+    assert doc['criterion'] == 'kpi' and doc['verification']['ok']
+    assert len(doc['working_poses'][0]['tcp_std_m']) == 3
+    assert len(doc['constraints']['min_margin_m']) == 15
+    assert (tmp_path / 'design_poses.png').stat().st_size > 10_000
+    assert (tmp_path / 'design_ellipsoids.png').stat().st_size > 10_000
