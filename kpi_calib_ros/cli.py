@@ -40,6 +40,14 @@ def main(argv: list[str] | None = None) -> int:
     des.add_argument('--out', required=True, help='output design.yaml')
     des.add_argument('--seed', type=int, default=0)
 
+    rep = sub.add_parser('replay', help='publish a bag onto the live ROS topics with its timing')
+    rep.add_argument('bag', help='MCAP bag with joint states and tracker points')
+    rep.add_argument('--rate', type=float, default=1.0, help='playback speed factor')
+    rep.add_argument('--joint-topic', default='/joint_states')
+    rep.add_argument('--point-topic', default='/laser_tracker/point')
+    rep.add_argument('--wait-for-subscribers', type=float, default=10.0, metavar='SEC',
+                     help='wait this long for a subscriber on both topics before playing')
+
     demo = sub.add_parser('demo', help='simulate, identify and report on the built-in cell')
     demo.add_argument('--out', default='demo_out')
     demo.add_argument('--seed', type=int, default=7)
@@ -89,12 +97,18 @@ def _design(args: argparse.Namespace) -> int:
     return run_design_command(args)
 
 
+def _replay(args: argparse.Namespace) -> int:
+    from kpi_calib_ros.ros.replay import run_replay_command  # ROS only when replaying
+    return run_replay_command(args)
+
+
 def _demo(args: argparse.Namespace) -> int:
     from kpi_calib_ros.io.demo import run_demo
     return run_demo(args.out, args.seed)
 
 
-_COMMANDS = {'simulate': _simulate, 'identify': _identify, 'design': _design, 'demo': _demo}
+_COMMANDS = {'simulate': _simulate, 'identify': _identify, 'design': _design,
+             'replay': _replay, 'demo': _demo}
 
 if __name__ == '__main__':
     sys.exit(main())
