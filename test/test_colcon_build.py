@@ -10,7 +10,7 @@ from pathlib import Path
 
 import yaml
 
-from kpi_calib_ros.ros.node import PARAMETERS
+from kpi_calib_ros.ros.parameters import PARAMETERS
 
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent

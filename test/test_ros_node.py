@@ -38,7 +38,8 @@ from kpi_calib_ros.io.bag import MeasurementLog, read_bag
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 from kpi_calib_ros.io.simulate import simulate_campaign
 from kpi_calib_ros.ros import conversions as cv
-from kpi_calib_ros.ros.node import PARAMETERS, CalibrationNode, settings_from_parameters
+from kpi_calib_ros.ros.node import CalibrationNode
+from kpi_calib_ros.ros.parameters import PARAMETERS, settings_from_parameters
 
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
@@ -232,6 +233,9 @@ def test_design_service_publishes_the_poses_and_a_second_call_is_busy(client, sp
         names, q = cv.configurations_from_trajectory(client.received['measurement_poses'][-1])
         cm = build_cell_model(load_cell(DEFAULT_CELL))
         assert names == cm.joint_names and q.shape == (12, 6)
+        written = yaml.safe_load((tmp_path / 'data' / 'design.yaml').read_text())
+        np.testing.assert_array_equal(written['configurations'], q)
+        assert written['verification']['ok']
         assert cm.robot.within_limits(q).all()
         # The design is drawn in RViz along with the capsules of the cell.
         client.spin_until(lambda: client.received['markers'], 10, 'markers')
@@ -282,8 +286,9 @@ def test_replayed_campaign_survives_a_kill_and_matches_offline(client, campaign,
         assert int(values['rejected.duplicate_stamp']) == len(logged)  # re-sent, not re-counted
         assert int(values['rejected']) == len(logged)
 
-        # Same numbers as the offline identification of the same bag.
+        # The same document, with the same numbers, as the offline identification.
         offline = campaign['offline']
+        assert list(doc) == list(offline)
         assert doc['measurements'] == offline['measurements'] == N_POSES
         assert [p['name'] for p in doc['parameters']] == [p['name'] for p in offline['parameters']]
         node_values = np.array([p['value'] for p in doc['parameters']])

@@ -1,0 +1,199 @@
+"""One calibration campaign as the node lives it: live pairing into a durable store.
+
+No rclpy here: the node converts messages to samples and hands them over; this
+class pairs them with :class:`~kpi_calib_ros.core.streams.Pairer` (the code that
+pairs bags), appends every accepted measurement to a
+:class:`~kpi_calib_ros.io.bag.MeasurementLog` before counting it, reloads the logs
+of earlier runs in the same folder, and never counts a stamp twice. Thread-safe:
+every public method takes the campaign's lock.
+
+Pairing clock: a point waits for joint states up to the pairer's timeout past its
+stamp on a clock that follows the joint stream (newest joint stamp + time since it
+arrived), so live streams, backlogs and replayed recordings (old stamps) behave alike.
+"""
+from __future__ import annotations
+
+import shutil
+import threading
+import time
+from collections import Counter, deque
+from pathlib import Path
+
+import numpy as np
+
+from kpi_calib_ros.core.errors import DataError
+from kpi_calib_ros.core.measurement import Measurements
+from kpi_calib_ros.core.streams import (REJECTION_REASONS, Decision, JointSample,
+                                        PairedMeasurement, Pairer, PairingResult, PointSample,
+                                        Rejection)
+from kpi_calib_ros.io.bag import MeasurementLog
+
+# Campaign-level reasons besides the pairer's: the measurement could not be written.
+NOT_STORED = 'not_stored'
+REASONS = REJECTION_REASONS + (NOT_STORED,)
+RESULT_FILES = ('calibration.yaml', 'robot_description_calibrated.urdf', 'diagnosis.json')
+
+
+class Campaign:
+    """Accepted measurements of one campaign in ``data_dir``, and what was rejected.
+
+    Parameters
+    ----------
+    data_dir : path-like
+        Holds the ``measurements_<n>.mcap`` logs (created if missing); the logs
+        already there are loaded, a new one is started.
+    early_limit : int
+        Samples kept while the robot model (joint names) is not known yet; they are
+        paired once it is.
+    """
+
+    def __init__(self, data_dir: str | Path, early_limit: int = 20_000) -> None:
+        self.data_dir = Path(data_dir)
+        self.lock = threading.RLock()
+        self._measurements: dict[int, tuple[JointSample, PointSample]] = {}
+        if self.data_dir.is_dir():
+            for joint, point in MeasurementLog.load_all(self.data_dir):
+                self._measurements[point.stamp_ns] = (joint, point)
+        self.restored = len(self._measurements)
+        self.log = MeasurementLog(self.data_dir)
+        self.pairer: Pairer | None = None
+        self.rejections: Counter[str] = Counter()
+        self.received = {'joint_states': 0, 'points': 0}
+        self._early: deque[JointSample | PointSample] = deque(maxlen=early_limit)
+        self._clock: tuple[int, int] | None = None     # (stamp ns, monotonic ns of arrival)
+        self._point_clock: tuple[int, int] | None = None
+
+    def __len__(self) -> int:
+        with self.lock:
+            return len(self._measurements)
+
+    # ------------------------------------------------------------------ pairing
+    def set_chain(self, joint_names: list[str], tracker_frame: str) -> list[Decision]:
+        """(Re)start pairing for a robot chain; pairs the samples held until now."""
+        with self.lock:
+            decisions = self._handle(self.pairer.flush()) if self.pairer else []
+            self.pairer = Pairer(joint_names, tracker_frame)
+            early, self._early = list(self._early), deque(maxlen=self._early.maxlen)
+            for sample in early:  # all of them before any timeout is judged
+                self._add(sample)
+            return decisions + self.poll()
+
+    def receive(self, sample: JointSample | PointSample,
+                now_ns: int | None = None) -> list[Decision]:
+        """Take one sample (``now_ns``: monotonic arrival time, default now); returns the
+        decisions it completed: accepted measurements (already on disk) and rejections."""
+        now_ns = time.monotonic_ns() if now_ns is None else now_ns
+        with self.lock:
+            joint = isinstance(sample, JointSample)
+            self.received['joint_states' if joint else 'points'] += 1
+            clock = self._clock if joint else self._point_clock
+            if clock is None or sample.stamp_ns > clock[0]:
+                if joint:
+                    self._clock = (sample.stamp_ns, now_ns)
+                else:
+                    self._point_clock = (sample.stamp_ns, now_ns)
+            if self.pairer is None:
+                self._early.append(sample)
+                return []
+            self._add(sample)
+            return self.poll(now_ns)
+
+    def poll(self, now_ns: int | None = None) -> list[Decision]:
+        """Decide points whose joint states are overdue; see the module docstring."""
+        now_ns = time.monotonic_ns() if now_ns is None else now_ns
+        with self.lock:
+            clock = self._clock or self._point_clock
+            if self.pairer is None or clock is None:
+                return []
+            return self._handle(self.pairer.poll(clock[0] + now_ns - clock[1]))
+
+    def _add(self, sample: JointSample | PointSample) -> None:
+        if isinstance(sample, JointSample):
+            self.pairer.add_joint_sample(sample)
+        else:
+            self.pairer.add_point(sample)
+
+    def _handle(self, decisions: list[Decision]) -> list[Decision]:
+        out: list[Decision] = []
+        for d in decisions:
+            if isinstance(d, PairedMeasurement):
+                if d.stamp_ns in self._measurements:
+                    d = Rejection(d.stamp_ns, 'duplicate_stamp', 'this measurement is already '
+                                  'stored (a replay, or a restart re-receiving it)')
+                else:
+                    joint, point = d.joint_sample(), d.point_sample()
+                    try:
+                        self.log.append(joint, point)  # on disk before it counts
+                    except OSError as exc:
+                        d = Rejection(d.stamp_ns, NOT_STORED, f'not written to {self.log.path}: '
+                                      f'{exc}')
+                    else:
+                        self._measurements[d.stamp_ns] = (joint, point)
+            if isinstance(d, Rejection):
+                self.rejections[d.reason] += 1
+            out.append(d)
+        return out
+
+    # ------------------------------------------------------------------ data
+    def measurements(self, joint_names: list[str],
+                     tracker_frame: str) -> tuple[Measurements, PairingResult]:
+        """Every accepted measurement in stamp order, ``q`` ordered as ``joint_names``."""
+        with self.lock:
+            pairs = [self._measurements[k] for k in sorted(self._measurements)]
+            rejections = {k: v for k, v in sorted(self.rejections.items())}
+        if not pairs:
+            raise DataError('no accepted measurement yet')
+        try:
+            q = np.array([[dict(zip(j.names, j.positions))[n] for n in joint_names]
+                          for j, _ in pairs], dtype=float)
+        except KeyError as exc:
+            raise DataError(f'a stored measurement lacks joint {exc}; the robot model joints '
+                            f'are {list(joint_names)}: reset the campaign to start over') from None
+        eta = np.array([p.xyz for _, p in pairs], dtype=float)
+        stamps = np.array([p.stamp_ns for _, p in pairs], dtype=np.int64)
+        pairing = PairingResult(tuple(joint_names), tracker_frame, q, eta, stamps,
+                                rejections=rejections)
+        return Measurements(q=q, eta=eta, stamps_ns=stamps), pairing
+
+    def counts(self) -> dict[str, int]:
+        """Accepted, restored, received and rejected (total and per reason) counts."""
+        with self.lock:
+            counts = {'accepted': len(self._measurements), 'restored': self.restored,
+                      'received.joint_states': self.received['joint_states'],
+                      'received.points': self.received['points'],
+                      'rejected': sum(self.rejections.values())}
+            counts.update({f'rejected.{r}': self.rejections.get(r, 0) for r in REASONS})
+            counts.update({'ignored_joint_samples': self.pairer.ignored_joint_samples
+                           if self.pairer else 0,
+                           'pending_points': self.pairer.pending if self.pairer else 0})
+            return counts
+
+    def reset(self) -> tuple[int, Path]:
+        """Start over: move (never delete) the logs and result files into
+        ``archive/<time>/``; returns the number of measurements archived and where."""
+        with self.lock:
+            archive = self.data_dir / 'archive' / time.strftime('%Y%m%dT%H%M%S')
+            while archive.exists():
+                archive = archive.with_name(archive.name + '_')
+            archive.mkdir(parents=True)
+            self.log.close()
+            moved = sorted(self.data_dir.glob('measurements_*.mcap'))
+            moved += [self.data_dir / n for n in RESULT_FILES if (self.data_dir / n).exists()]
+            for path in moved:
+                shutil.move(str(path), str(archive / path.name))
+            count = len(self._measurements)
+            self._measurements.clear()
+            self.rejections.clear()
+            self.restored = 0
+            self.log = MeasurementLog(self.data_dir)
+            if self.pairer is not None:
+                self.pairer = Pairer(self.pairer.joint_names, self.pairer.tracker_frame)
+            return count, archive
+
+    def close(self) -> None:
+        """Finalise the current log (idempotent)."""
+        with self.lock:
+            self.log.close()
+
+
+__all__ = ['Campaign', 'NOT_STORED', 'REASONS']

@@ -1,0 +1,124 @@
+"""kpi_calib_node parameters: names, defaults, descriptions and their validation.
+
+Pure functions over plain values (no node needed), so validation is tested with
+data and the same code checks start-up values and runtime changes.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from rclpy.parameter import Parameter
+
+from kpi_calib_ros.core.design import DESIGN_CRITERIA
+from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.io.bag import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC
+from kpi_calib_ros.io.cell import DEFAULT_CELL
+
+
+@dataclass(frozen=True)
+class NodeSettings:
+    """Validated node parameters (see :data:`PARAMETERS` for meaning and units)."""
+
+    robot_description: str
+    robot_description_topic: str
+    cell_file: str
+    working_poses: tuple[float, ...]
+    working_joint_names: tuple[str, ...]
+    num_measurements: int
+    criterion: str
+    design_seed: int
+    joint_states_topic: str
+    point_topic: str
+    min_measurements: int
+    auto_identify: bool
+    data_dir: str
+
+
+# name: (default or parameter type when empty, read only, description)
+PARAMETERS: dict[str, tuple[Any, bool, str]] = {
+    'robot_description': ('', True, 'URDF document; empty: taken from the latched '
+                          'robot_description_topic (as robot_state_publisher provides it)'),
+    'robot_description_topic': ('/robot_description', True,
+                                'latched std_msgs/String topic with the URDF'),
+    'cell_file': ('', True, 'cell YAML (tracker, reflector, noise, working poses, obstacles); '
+                  'empty: the built-in simulated cell'),
+    'working_poses': (Parameter.Type.DOUBLE_ARRAY, True,
+                      'working poses overriding the cell file: flat list, one block of '
+                      'len(working_joint_names) joint values (rad) per pose'),
+    'working_joint_names': (Parameter.Type.STRING_ARRAY, True,
+                            'joint order of working_poses'),
+    'num_measurements': (30, False, 'number of measurement poses ~/design computes'),
+    'criterion': ('kpi', False, f'design criterion, one of {list(DESIGN_CRITERIA)}'),
+    'design_seed': (0, False, 'seed of the design random generator'),
+    'joint_states_topic': (DEFAULT_JOINT_TOPIC, True, 'sensor_msgs/JointState topic'),
+    'point_topic': (DEFAULT_POINT_TOPIC, True, 'geometry_msgs/PointStamped tracker topic'),
+    'min_measurements': (20, False, 'accepted measurements before automatic identification'),
+    'auto_identify': (True, False, 'identify when min_measurements is reached, and again '
+                      'as more measurements arrive'),
+    'data_dir': ('~/.ros/kpi_calib', True, 'measurement log and results (created if missing)'),
+}
+
+
+def settings_from_parameters(values: dict[str, Any]) -> NodeSettings:
+    """Validate raw parameter values; ConfigError names the parameter and the fix."""
+    def text(key: str, allow_empty: bool = False) -> str:
+        value = values[key]
+        if not isinstance(value, str) or (not allow_empty and not value.strip()):
+            raise ConfigError(key, f'must be a non-empty string, got {value!r}')
+        return value
+
+    def integer(key: str, minimum: int) -> int:
+        value = values[key]
+        if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+            raise ConfigError(key, f'must be an integer >= {minimum}, got {value!r}')
+        return value
+
+    poses = tuple(float(v) for v in values['working_poses'] or ())
+    names = tuple(str(v) for v in values['working_joint_names'] or ())
+    if poses or names:
+        if not names or len(set(names)) != len(names):
+            raise ConfigError('working_joint_names', f'give the unique joint names of '
+                              f'working_poses, got {list(names)}')
+        if not poses or len(poses) % len(names) or not np.all(np.isfinite(poses)):
+            raise ConfigError('working_poses', f'must hold finite values (rad), '
+                              f'{len(names)} per pose (one per working_joint_names), '
+                              f'got {len(poses)} values')
+    if values['criterion'] not in DESIGN_CRITERIA:
+        raise ConfigError('criterion', f'must be one of {list(DESIGN_CRITERIA)}, '
+                          f'got {values["criterion"]!r}')
+    if not isinstance(values['auto_identify'], bool):
+        raise ConfigError('auto_identify', 'must be true or false')
+    topics = {k: text(k) for k in ('robot_description_topic', 'joint_states_topic',
+                                   'point_topic')}
+    if topics['joint_states_topic'] == topics['point_topic']:
+        raise ConfigError('point_topic', 'must differ from joint_states_topic')
+    cell_file = text('cell_file', allow_empty=True) or str(DEFAULT_CELL)
+    if not Path(cell_file).expanduser().is_file():
+        raise ConfigError('cell_file', f'file {cell_file!r} does not exist')
+    return NodeSettings(
+        robot_description=text('robot_description', allow_empty=True),
+        cell_file=str(Path(cell_file).expanduser()), working_poses=poses,
+        working_joint_names=names, num_measurements=integer('num_measurements', 1),
+        criterion=values['criterion'], design_seed=integer('design_seed', 0),
+        min_measurements=integer('min_measurements', 1),
+        auto_identify=values['auto_identify'],
+        data_dir=str(Path(text('data_dir')).expanduser()), **topics)
+
+
+def cell_document(settings: NodeSettings, cell_doc: dict[str, Any]) -> dict[str, Any]:
+    """The cell file document with the ``working_poses`` parameters (if any) in place of
+    its working poses, ready for :func:`kpi_calib_ros.io.cell.cell_from_dict`, which
+    validates it (joint names, limits) in the one place cells are validated."""
+    doc = dict(cell_doc)
+    if settings.working_poses:
+        names = settings.working_joint_names
+        values = np.reshape(settings.working_poses, (-1, len(names)))
+        doc['working_poses'] = [{'joints': dict(zip(names, map(float, row)))}
+                                for row in values]
+    return doc
+
+
+__all__ = ['NodeSettings', 'PARAMETERS', 'cell_document', 'settings_from_parameters']

@@ -1,0 +1,130 @@
+"""The node's campaign store without ROS: live pairing equals batch pairing, nothing lost or
+counted twice across restarts, the pairing clock follows the joint stream."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from kpi_calib_ros.core.errors import DataError
+from kpi_calib_ros.core.streams import (PairedMeasurement, Rejection, pair_measurements,
+                                        synthesize_streams)
+from kpi_calib_ros.io.bag import MeasurementLog
+from kpi_calib_ros.ros.campaign import Campaign
+
+NAMES = ['joint_1', 'joint_2', 'joint_3']
+FRAME = 'laser_tracker'
+SECOND = 1_000_000_000
+
+
+def streams(n: int = 6, seed: int = 3):
+    rng = np.random.default_rng(seed)
+    return synthesize_streams(rng.uniform(-1, 1, (n, 3)), NAMES, rng.uniform(-2, 2, (n, 3)),
+                              FRAME, joint_noise_rad=2e-5, rng=rng)
+
+
+def live_order(joints, points):
+    """Arrival order of a live cell: by stamp, a point just after the joint state before it."""
+    return [s for _, _, s in sorted([(j.stamp_ns, 0, j) for j in joints]
+                                    + [(p.stamp_ns, 1, p) for p in points],
+                                    key=lambda item: item[:2])]
+
+
+def feed(campaign: Campaign, samples) -> list:
+    decisions = []
+    for sample in samples:
+        decisions += campaign.receive(sample)
+    return decisions
+
+
+def test_live_campaign_equals_batch_pairing(tmp_path):
+    joints, points = streams()
+    campaign = Campaign(tmp_path)
+    campaign.set_chain(NAMES, FRAME)
+    decisions = feed(campaign, live_order(joints, points))
+    assert all(isinstance(d, PairedMeasurement) for d in decisions) and len(decisions) == 6
+    data, pairing = campaign.measurements(NAMES, FRAME)
+    batch = pair_measurements(joints, points, NAMES, FRAME)
+    np.testing.assert_array_equal(data.q, batch.q)
+    np.testing.assert_array_equal(data.eta, batch.eta)
+    np.testing.assert_array_equal(data.stamps_ns, batch.stamps_ns)
+    assert campaign.counts()['accepted'] == 6 and campaign.counts()['rejected'] == 0
+
+
+def test_restart_restores_everything_and_counts_nothing_twice(tmp_path):
+    joints, points = streams()
+    order = live_order(joints, points)
+    first = Campaign(tmp_path)
+    first.set_chain(NAMES, FRAME)
+    feed(first, order[:len(order) // 2])
+    accepted = len(first)
+    assert 0 < accepted < 6
+    # Killed: no close(). The next process on the same folder restores what was accepted.
+    second = Campaign(tmp_path)
+    assert second.restored == len(second) == accepted
+    second.set_chain(NAMES, FRAME)
+    decisions = feed(second, order)  # the whole recording again
+    duplicates = [d for d in decisions if isinstance(d, Rejection)]
+    assert [d.reason for d in duplicates] == ['duplicate_stamp'] * accepted
+    assert len(second) == 6
+    data, _ = second.measurements(NAMES, FRAME)
+    batch = pair_measurements(joints, points, NAMES, FRAME)
+    np.testing.assert_array_equal(data.q, batch.q)
+    np.testing.assert_array_equal(data.stamps_ns, batch.stamps_ns)
+    second.close()
+    assert len(Campaign(tmp_path)) == 6
+
+
+def test_samples_before_the_robot_model_are_paired_once_it_is_known(tmp_path):
+    joints, points = streams(3)
+    campaign = Campaign(tmp_path)
+    assert feed(campaign, live_order(joints, points)) == []
+    decisions = campaign.set_chain(NAMES, FRAME)
+    assert sum(isinstance(d, PairedMeasurement) for d in decisions) == 3
+
+
+def test_pairing_clock_follows_the_joint_stream(tmp_path):
+    joints, points = streams(2)
+    order = live_order(joints, points)
+    k = order.index(points[0])
+    # A backlog: the joint states after the first point arrive over a minute of wall
+    # time; while they keep coming, the points wait for them instead of timing out.
+    backlog = Campaign(tmp_path / 'backlog')
+    backlog.set_chain(NAMES, FRAME)
+    wall, decisions = 0, []
+    for i, sample in enumerate(order):
+        wall += 1_000_000 if i <= k else 60 * SECOND // (len(order) - k)
+        decisions += backlog.receive(sample, now_ns=wall) + backlog.poll(now_ns=wall)
+    assert [type(d) for d in decisions] == [PairedMeasurement, PairedMeasurement]
+    # When the joint stream stops, a point is decided after the pairer's timeout
+    # (window 0.2 s + timeout 1 s), not before.
+    stopped = Campaign(tmp_path / 'stopped')
+    stopped.set_chain(NAMES, FRAME)
+    for sample in order[:k + 1]:
+        stopped.receive(sample, now_ns=0)
+    assert stopped.poll(now_ns=SECOND) == []
+    assert [d.reason for d in stopped.poll(now_ns=2 * SECOND)] == ['no_joint_state']
+
+
+def test_reset_archives_instead_of_deleting(tmp_path):
+    joints, points = streams(2)
+    campaign = Campaign(tmp_path)
+    campaign.set_chain(NAMES, FRAME)
+    feed(campaign, live_order(joints, points))
+    (tmp_path / 'calibration.yaml').write_text('rms_m: 1\n')
+    count, archive = campaign.reset()
+    assert count == 2 and len(campaign) == 0 and campaign.counts()['rejected'] == 0
+    assert (archive / 'calibration.yaml').exists() and list(archive.glob('measurements_*.mcap'))
+    assert not (tmp_path / 'calibration.yaml').exists()
+    assert len(Campaign(tmp_path)) == 0  # a restart does not bring archived data back
+    assert len(MeasurementLog.load_all(archive)) == 2
+
+
+def test_measurements_name_the_problem(tmp_path):
+    campaign = Campaign(tmp_path)
+    with pytest.raises(DataError, match='no accepted measurement'):
+        campaign.measurements(NAMES, FRAME)
+    campaign.set_chain(NAMES, FRAME)
+    joints, points = streams(1)
+    feed(campaign, live_order(joints, points))
+    with pytest.raises(DataError, match='joint_9'):
+        campaign.measurements(NAMES[:2] + ['joint_9'], FRAME)
