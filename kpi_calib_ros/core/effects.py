@@ -258,7 +258,7 @@ LIBRARY: tuple[EffectType, ...] = (
                            'index), η = (1 + s)·h',
                hint='a global scale is absorbed by the free link lengths and the base '
                     'distance; measure a reference length (a calibrated scale bar) or '
-                    'fix the link lengths to make it distinguishable'),
+                    'fix the link lengths'),
 )
 
 _REGISTRY: dict[str, EffectType] = {e.name: e for e in LIBRARY}

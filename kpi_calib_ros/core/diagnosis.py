@@ -1,0 +1,534 @@
+"""Model diagnosis: how well a calibration explains its data, and which effect is missing.
+
+Three steps, all pure (no files, no plots):
+
+1. :func:`residual_report` -- per-measurement residuals, rms, percentiles, the
+   χ² goodness-of-fit test of the weighted residual sum against the stated
+   tracker σ, leverage (hat-matrix blocks) and outlier flags.
+2. :func:`screen_effects` -- for every candidate effect × joint: is its
+   signature distinguishable from the geometric parameters with this data?
+   If so, fit the augmented model, score it by k-fold cross-validated rms over
+   held-out poses and an F-test against the geometric fit, Bonferroni-corrected
+   over the candidates so that data the geometric model explains claims no
+   effect at the family-wise level ``alpha``.
+3. :func:`compare_models` -- before/after numbers when an effect is added.
+
+The augmented fits are Gauss-Newton steps from the converged geometric
+solution: effects of a few tenths of a milliradian move the points by tenths
+of a millimetre, so the second-order terms (≈ θ²·1 m ≈ 0.1 µm) are far below
+the tracker noise and one linear step is the fit. The effect columns of the
+Jacobian are exact (CasADi, from the augmented measurement model).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import casadi as ca
+import numpy as np
+import scipy.stats
+
+from kpi_calib_ros.core.effects import BoundEffect, candidate_effects
+from kpi_calib_ros.core.estimation import CalibrationResult, weights
+from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
+
+PERCENTILES = (50, 90, 95, 99)
+DEPENDENCE_TOLERANCE = 1e-4  # unique fraction of a signature below this: absorbed
+NO_EFFECT_M = 1e-9           # a typical-size effect moving no point by 1 nm has no effect
+
+
+@dataclass(frozen=True)
+class ResidualReport:
+    """Goodness of fit of one calibration.
+
+    Attributes
+    ----------
+    residuals : (N, 3) ndarray
+        η − h(p̂, q), tracker frame, m.
+    norms : (N,) ndarray
+        ‖r_i‖, m.
+    rms_m, max_m : float
+        sqrt(mean ‖r_i‖²) and max ‖r_i‖, m.
+    percentiles_m : dict
+        {50, 90, 95, 99} -> percentile of ‖r_i‖, m.
+    chi2, dof, p_value : float, int, float
+        Σ‖r_i/σ‖² against χ²(dof); p is the upper tail.
+    adequate : bool
+        p_value >= alpha: the residuals are as small as the stated σ predicts.
+    leverage : (N,) ndarray
+        Trace of the 3×3 hat-matrix block of each pose (0..3, mean k/N).
+    standardized : (N,) ndarray
+        r_iᵀ (I − H_ii)⁻¹ r_i in σ units, χ²(3) under the model.
+    outlier, high_leverage : (N,) bool ndarray
+        Bonferroni-corrected χ²(3) test of ``standardized`` at ``alpha``;
+        leverage above three times the mean.
+    """
+
+    residuals: np.ndarray
+    norms: np.ndarray
+    rms_m: float
+    max_m: float
+    percentiles_m: dict[int, float]
+    chi2: float
+    dof: int
+    p_value: float
+    adequate: bool
+    leverage: np.ndarray
+    standardized: np.ndarray
+    outlier: np.ndarray
+    high_leverage: np.ndarray
+    alpha: float
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One effect × joint, screened against the geometric fit.
+
+    Fitted values, their std and the statistics are NaN when the candidate is
+    not distinguishable. ``p_value`` is Bonferroni-adjusted over the
+    distinguishable candidates; ``p_value_raw`` is the single F-test.
+    """
+
+    effect: str
+    joint: str | None
+    spec: str
+    parameter_names: tuple[str, ...]
+    units: tuple[str, ...]
+    distinguishable: bool
+    values: np.ndarray
+    std: np.ndarray
+    rms_after_m: float
+    validation_rms_after_m: float
+    delta_chi2: float
+    f_statistic: float
+    p_value_raw: float
+    p_value: float
+    significant: bool
+    correlation: float
+    driver_correlation: float
+    unique_fraction: float
+    absorbed_by: dict[str, float]
+    explanation: str
+
+
+@dataclass(frozen=True)
+class Diagnosis:
+    """Verdict on a calibration and the ranked candidate effects (best first)."""
+
+    model_adequate: bool
+    verdict: str
+    residuals: ResidualReport
+    rms_m: float
+    validation_rms_m: float
+    candidates: tuple[Candidate, ...]
+    not_distinguishable: tuple[Candidate, ...]
+    alpha: float
+    folds: int
+
+    @property
+    def best(self) -> Candidate | None:
+        """Top-ranked significant candidate, or None."""
+        return self.candidates[0] if self.candidates and self.candidates[0].significant \
+            else None
+
+
+@dataclass(frozen=True)
+class ModelComparison:
+    """Before/after adding effects: the numbers a person needs to trust the richer model."""
+
+    effects: tuple[str, ...]
+    rms_before_m: float
+    rms_after_m: float
+    validation_rms_before_m: float
+    validation_rms_after_m: float
+    p_value_before: float
+    p_value_after: float
+    effect_parameters: tuple[dict, ...]
+    tcp_std_before_m: np.ndarray
+    tcp_std_after_m: np.ndarray
+    working_pose_names: tuple[str, ...] = field(default=())
+
+
+# --------------------------------------------------------------- linear system
+@dataclass(frozen=True)
+class _System:
+    """Weighted residual r (3N,), geometric Jacobian J (3N, k) at p̂ and helpers."""
+
+    r: np.ndarray
+    jac: np.ndarray
+    basis: np.ndarray  # orthonormal basis of span(J)
+    w: np.ndarray
+    tau: np.ndarray | None
+    p: np.ndarray
+
+
+def _system(model: MeasurementModel, data: Measurements, result: CalibrationResult,
+            tau: np.ndarray | None = None) -> _System:
+    w = weights(result.sigma)
+    q = np.atleast_2d(data.q)
+    if tau is None and model.uses_torque:
+        tau = model.robot.gravity_torques(q)
+    p = np.asarray(result.values, float)
+    pred, jac = model.jacobian(p, q, tau)
+    r = ((np.atleast_2d(data.eta) - pred) * w).ravel()
+    idx = model.params.indices(result.estimated)
+    f = (jac * w[None, :, None]).reshape(-1, len(p))[:, idx]
+    basis = _orthonormal_basis(f)
+    return _System(r, f, basis, w, tau, p)
+
+
+def _orthonormal_basis(a: np.ndarray) -> np.ndarray:
+    norms = np.linalg.norm(a, axis=0)
+    a = a[:, norms > 0] / norms[norms > 0]
+    u, s, _ = np.linalg.svd(a, full_matrices=False)
+    return u[:, s > 1e-9 * s[0]] if len(s) else u
+
+
+def _fold_ids(n_poses: int, folds: int, seed: int) -> np.ndarray:
+    if not 2 <= folds <= n_poses:
+        raise ValueError(f'folds must be in [2, {n_poses}] (number of poses), got {folds}')
+    ids = np.empty(n_poses, dtype=int)
+    ids[np.random.default_rng(seed).permutation(n_poses)] = np.arange(n_poses) % folds
+    return ids
+
+
+def _cv_rms(a: np.ndarray, r: np.ndarray, w: np.ndarray, fold_ids: np.ndarray) -> float:
+    """k-fold cross-validated rms (m) of the linear model r ≈ a·δ, folds over poses."""
+    rows = np.repeat(fold_ids, 3)
+    scale = np.linalg.norm(a, axis=0)
+    scale[scale == 0] = 1.0
+    a = a / scale
+    held = np.empty_like(r)
+    for k in np.unique(fold_ids):
+        test = rows == k
+        delta, *_ = np.linalg.lstsq(a[~test], r[~test], rcond=None)
+        held[test] = r[test] - a[test] @ delta
+    metres = held.reshape(-1, 3) / w
+    return float(np.sqrt(np.mean(np.sum(metres ** 2, axis=1))))
+
+
+# ------------------------------------------------------------------ residuals
+def residual_report(model: MeasurementModel, data: Measurements, result: CalibrationResult,
+                    alpha: float = 0.01) -> ResidualReport:
+    """Residual statistics, χ² test, leverage and outliers of ``result`` on ``data``.
+
+    Parameters
+    ----------
+    model : MeasurementModel
+        The model ``result`` was identified with.
+    data : Measurements
+        The measurements ``result`` was identified from.
+    alpha : float
+        Level of the χ² adequacy test and of the (Bonferroni) outlier test.
+    """
+    sys_ = _system(model, data, result)
+    n = len(data)
+    residuals = sys_.r.reshape(n, 3) / sys_.w
+    norms = np.linalg.norm(residuals, axis=1)
+    u = sys_.basis.reshape(n, 3, -1)
+    blocks = np.einsum('nik,njk->nij', u, u)  # H_ii, (N, 3, 3)
+    leverage = np.trace(blocks, axis1=1, axis2=2)
+    # cov(r_i) = I − H_ii in σ units; pinv because a pose with leverage 1 along some
+    # direction has no residual there.
+    standardized = np.array([ri @ np.linalg.pinv(np.eye(3) - h, rcond=1e-9) @ ri
+                             for ri, h in zip(sys_.r.reshape(n, 3), blocks)])
+    outlier = scipy.stats.chi2.sf(standardized, 3) * n < alpha
+    k = sys_.basis.shape[1]
+    dof = 3 * n - k
+    chi2 = float(sys_.r @ sys_.r)
+    p_value = float(scipy.stats.chi2.sf(chi2, dof)) if dof > 0 else float('nan')
+    return ResidualReport(
+        residuals=residuals, norms=norms,
+        rms_m=float(np.sqrt(np.mean(norms ** 2))), max_m=float(norms.max()),
+        percentiles_m={p: float(np.percentile(norms, p)) for p in PERCENTILES},
+        chi2=chi2, dof=dof, p_value=p_value, adequate=bool(p_value >= alpha),
+        leverage=leverage, standardized=standardized, outlier=outlier,
+        high_leverage=leverage > 3 * k / n, alpha=alpha)
+
+
+def cross_validated_rms(model: MeasurementModel, data: Measurements,
+                        result: CalibrationResult, folds: int = 5, seed: int = 0) -> float:
+    """k-fold cross-validated rms (m) of the identified model over held-out poses.
+
+    Each fold refits the identified parameters on the other poses (a
+    Gauss-Newton step from ``result``, exact for the locally linear model) and
+    predicts the held-out ones. Compare with the noise floor σ√3.
+    """
+    sys_ = _system(model, data, result)
+    return _cv_rms(sys_.jac, sys_.r, sys_.w, _fold_ids(len(data), folds, seed))
+
+
+# ---------------------------------------------------------------- screening
+def screen_effects(model: MeasurementModel, data: Measurements, result: CalibrationResult,
+                   candidates: list[BoundEffect] | None = None, folds: int = 5,
+                   alpha: float = 0.01, seed: int = 0
+                   ) -> tuple[tuple[Candidate, ...], tuple[Candidate, ...]]:
+    """Fit and score every candidate effect against the geometric fit ``result``.
+
+    Parameters
+    ----------
+    model, data, result
+        The model, its measurements and its identification.
+    candidates : list of BoundEffect, optional
+        Default: every screened library effect × joint not already in ``model``.
+    folds : int
+        Folds (over poses) of the cross-validation.
+    alpha : float
+        Family-wise false-alarm level: a candidate is significant when its
+        F-test p-value times the number of distinguishable candidates is below.
+
+    Returns
+    -------
+    ranked : tuple of Candidate
+        Distinguishable candidates, significant first, then by validation rms.
+    not_distinguishable : tuple of Candidate
+        Candidates the geometry absorbs or that change no measurement, with why.
+    """
+    if candidates is None:
+        candidates = candidate_effects(model.robot, exclude=[e.name for e in model.effects])
+    sys_ = _system(model, data, result)
+    n = len(data)
+    fold_ids = _fold_ids(n, folds, seed)
+    r_perp = sys_.r - sys_.basis @ (sys_.basis.T @ sys_.r)
+    chi2_base = float(r_perp @ r_perp)
+    rms_base = float(np.sqrt(np.sum((r_perp.reshape(n, 3) / sys_.w) ** 2) / n))
+    cv_base = _cv_rms(sys_.jac, sys_.r, sys_.w, fold_ids)
+    dof_base = 3 * n - sys_.basis.shape[1]
+    q = np.atleast_2d(data.q)
+    tau = sys_.tau if sys_.tau is not None else model.robot.gravity_torques(q)
+    joint_jac = model.joint_jacobian(sys_.p, q, sys_.tau)
+
+    fits, rejected = [], []
+    for effect in candidates:
+        cols, disp = _effect_columns(model, sys_, effect, q, tau)
+        norms = np.linalg.norm(cols, axis=0)
+        if disp < NO_EFFECT_M or np.any(norms == 0):
+            rejected.append(_rejected(effect, 0.0, {}, (
+                f'no effect on these measurements: a typical-size {effect.kind.name} moves no '
+                f'point by more than {disp:.1e} m. To see it: {effect.hint()}.')))
+            continue
+        unit = cols / norms
+        unique = unit - sys_.basis @ (sys_.basis.T @ unit)
+        fraction = float(np.linalg.svd(unique, compute_uv=False).min())
+        if fraction < DEPENDENCE_TOLERANCE:
+            absorbed = _absorbed_by(model, result, sys_, unit)
+            text = ', '.join(f'{k} ({v:+.2f})' for k, v in absorbed.items())
+            rejected.append(_rejected(effect, fraction, absorbed, (
+                f'not distinguishable with this data: the geometric parameters reproduce its '
+                f'signature (unique part {fraction:.1e}; mainly {text}). To make it '
+                f'distinguishable: {effect.hint()}.')))
+            continue
+        fits.append(_fit_candidate(effect, cols, sys_, r_perp, chi2_base, dof_base, fold_ids,
+                                   joint_jac, q, tau, fraction))
+
+    m = max(len(fits), 1)
+    out = []
+    for fit in fits:
+        p_adj = min(1.0, fit['p_raw'] * m)
+        significant = bool(p_adj < alpha)
+        out.append(Candidate(
+            effect=fit['effect'].kind.name, joint=fit['effect'].joint, spec=fit['effect'].name,
+            parameter_names=fit['effect'].parameter_names, units=fit['effect'].units,
+            distinguishable=True, values=fit['theta'], std=fit['std'],
+            rms_after_m=fit['rms'], validation_rms_after_m=fit['cv'],
+            delta_chi2=fit['delta'], f_statistic=fit['f'], p_value_raw=fit['p_raw'],
+            p_value=p_adj, significant=significant, correlation=fit['corr'],
+            driver_correlation=fit['driver_corr'], unique_fraction=fit['fraction'],
+            absorbed_by={},
+            explanation=_explain(fit, significant, p_adj, m, rms_base, cv_base)))
+    out.sort(key=lambda c: (not c.significant, c.validation_rms_after_m, c.p_value_raw))
+    return tuple(out), tuple(rejected)
+
+
+def diagnose(model: MeasurementModel, data: Measurements, result: CalibrationResult,
+             candidates: list[BoundEffect] | None = None, folds: int = 5,
+             alpha: float = 0.01, seed: int = 0) -> Diagnosis:
+    """Residual report, verdict and ranked candidate effects for one calibration.
+
+    The model is adequate when the χ² test passes at ``alpha`` and no candidate
+    is significant at the family-wise level ``alpha``.
+    """
+    report = residual_report(model, data, result, alpha)
+    ranked, rejected = screen_effects(model, data, result, candidates, folds, alpha, seed)
+    cv = cross_validated_rms(model, data, result, folds, seed)
+    best = ranked[0] if ranked and ranked[0].significant else None
+    adequate = report.adequate and best is None
+    chi = (f'χ²/dof = {report.chi2:.1f}/{report.dof} (p = {report.p_value:.3g}) against the '
+           f'stated σ')
+    if adequate:
+        verdict = (f'model adequate: {chi}; no candidate effect is significant at the '
+                   f'family-wise level {alpha:g}.')
+    elif best is not None:
+        verdict = (f'model not adequate: {chi}. Most likely missing effect: {best.spec} '
+                   f'(validation rms {cv * 1e6:.1f} -> {best.validation_rms_after_m * 1e6:.1f} '
+                   f'µm). Add it with --effects {best.spec}.')
+    else:
+        verdict = (f'model not adequate: {chi}, but no candidate effect explains the misfit; '
+                   'check the outliers, the stated σ and the plots against time and distance.')
+    return Diagnosis(model_adequate=adequate, verdict=verdict, residuals=report,
+                     rms_m=report.rms_m, validation_rms_m=cv, candidates=ranked,
+                     not_distinguishable=rejected, alpha=alpha, folds=folds)
+
+
+# ---------------------------------------------------------------- comparison
+def compare_models(before: tuple[MeasurementModel, CalibrationResult],
+                   after: tuple[MeasurementModel, CalibrationResult], data: Measurements,
+                   folds: int = 5, seed: int = 0) -> ModelComparison:
+    """Rms, validation rms, effect parameters and TCP std before/after adding effects.
+
+    ``after``'s model must contain the effects (its extra parameters are the
+    effect parameters reported).
+    """
+    model_b, res_b = before
+    model_a, res_a = after
+    new = [e for e in model_a.effects if e.name not in {x.name for x in model_b.effects}]
+    std = dict(zip(res_a.estimated, res_a.std))
+    params = []
+    dropped = {d.name: d.reason for d in res_a.dropped}
+    for effect in new:
+        for name, unit in zip(effect.parameter_names, effect.units):
+            entry = {'name': name, 'value': res_a.value(name), 'unit': unit}
+            if name in std:
+                entry['std'] = float(std[name])
+            else:
+                entry['dropped'] = dropped.get(name, 'not estimated')
+            params.append(entry)
+    return ModelComparison(
+        effects=tuple(e.name for e in new),
+        rms_before_m=res_b.rms_m, rms_after_m=res_a.rms_m,
+        validation_rms_before_m=cross_validated_rms(model_b, data, res_b, folds, seed),
+        validation_rms_after_m=cross_validated_rms(model_a, data, res_a, folds, seed),
+        p_value_before=res_b.p_value, p_value_after=res_a.p_value,
+        effect_parameters=tuple(params),
+        tcp_std_before_m=np.sqrt(np.diagonal(res_b.tcp_covariance, axis1=1, axis2=2)),
+        tcp_std_after_m=np.sqrt(np.diagonal(res_a.tcp_covariance, axis1=1, axis2=2)),
+        working_pose_names=res_a.working_pose_names)
+
+
+# ------------------------------------------------------------------ helpers
+def augmented_model(model: MeasurementModel, effects: tuple) -> MeasurementModel:
+    """``model`` with ``effects`` appended (their parameters after the existing ones)."""
+    return MeasurementModel(model.robot, model.geometric, model.effects + tuple(effects),
+                            model.reflector_axis)
+
+
+def _effect_columns(model: MeasurementModel, sys_: _System, effect: BoundEffect,
+                    q: np.ndarray, tau: np.ndarray) -> tuple[np.ndarray, float]:
+    """Weighted Jacobian columns (3N, k) of the effect at θ = 0 and the largest
+    point displacement (m) a typical-size effect causes."""
+    aug = augmented_model(model, (effect,))
+    k = len(effect.parameter_names)
+    p = np.concatenate([sys_.p, np.zeros(k)])
+    _, jac = aug.jacobian(p, q, tau)
+    cols = jac[:, :, -k:]
+    disp = float(np.max(np.linalg.norm(cols @ np.asarray(effect.typical), axis=1)))
+    return (cols * sys_.w[None, :, None]).reshape(-1, k), disp
+
+
+def _absorbed_by(model: MeasurementModel, result: CalibrationResult, sys_: _System,
+                 unit: np.ndarray) -> dict[str, float]:
+    norms = np.linalg.norm(sys_.jac, axis=0)
+    ok = norms > 0
+    coef, *_ = np.linalg.lstsq(sys_.jac[:, ok] / norms[ok], unit[:, 0], rcond=None)
+    names = [n for n, keep in zip(result.estimated, ok) if keep]
+    top = np.argsort(-np.abs(coef))[:4]
+    return {names[t]: float(coef[t]) for t in top if abs(coef[t]) > 1e-3}
+
+
+def _rejected(effect: BoundEffect, fraction: float, absorbed: dict[str, float],
+              why: str) -> Candidate:
+    k = len(effect.parameter_names)
+    nan = np.full(k, np.nan)
+    return Candidate(effect=effect.kind.name, joint=effect.joint, spec=effect.name,
+                     parameter_names=effect.parameter_names, units=effect.units,
+                     distinguishable=False, values=nan, std=nan, rms_after_m=np.nan,
+                     validation_rms_after_m=np.nan, delta_chi2=np.nan, f_statistic=np.nan,
+                     p_value_raw=np.nan, p_value=np.nan, significant=False,
+                     correlation=np.nan, driver_correlation=np.nan, unique_fraction=fraction,
+                     absorbed_by=absorbed, explanation=why)
+
+
+def _fit_candidate(effect: BoundEffect, cols: np.ndarray, sys_: _System, r_perp: np.ndarray,
+                   chi2_base: float, dof_base: int, fold_ids: np.ndarray,
+                   joint_jac: np.ndarray, q: np.ndarray, tau: np.ndarray,
+                   fraction: float) -> dict:
+    """Augmented least squares [J E] from the geometric solution, its F-test and CV."""
+    n = len(q)
+    k = cols.shape[1]
+    unique = cols - sys_.basis @ (sys_.basis.T @ cols)
+    info = unique.T @ unique  # Schur complement: information on θ with geometry free
+    cov = np.linalg.inv(info)
+    theta = cov @ (unique.T @ r_perp)
+    r_aug = r_perp - unique @ theta
+    chi2_aug = float(r_aug @ r_aug)
+    delta = chi2_base - chi2_aug
+    dof = dof_base - k
+    f_stat = (delta / k) / (chi2_aug / dof)
+    p_raw = float(scipy.stats.f.sf(f_stat, k, dof))
+    cv = _cv_rms(np.hstack([sys_.jac, cols]), sys_.r, sys_.w, fold_ids)
+    rms = float(np.sqrt(np.sum((r_aug.reshape(n, 3) / sys_.w) ** 2) / n))
+    corr = float(np.sqrt(max(delta, 0.0) / chi2_base)) if chi2_base > 0 else 0.0
+    return {'effect': effect, 'theta': theta, 'std': np.sqrt(np.diag(cov)), 'rms': rms,
+            'cv': cv, 'delta': delta, 'f': f_stat, 'p_raw': p_raw, 'corr': corr,
+            'driver_corr': _driver_correlation(effect, theta, unique, r_aug, sys_.w,
+                                               joint_jac, q, tau),
+            'fraction': fraction}
+
+
+def _driver_correlation(effect: BoundEffect, theta: np.ndarray, unique: np.ndarray,
+                        r_aug: np.ndarray, w: np.ndarray, joint_jac: np.ndarray,
+                        q: np.ndarray, tau: np.ndarray) -> float:
+    """Correlation of the joint-angle error implied by the residuals with the fitted correction.
+
+    The residual the effect explains (r_aug + Eθ̂, geometry refitted) is
+    projected on the direction the point moves when joint j turns, giving an
+    implied angle error per pose; it is correlated (weighted by the squared
+    lever) with the effect's fitted correction δq_j(q, τ, θ̂).
+    """
+    if effect.joint_index is None:
+        return float('nan')
+    j = effect.joint_index
+    n = len(q)
+    explained = ((r_aug + unique @ theta).reshape(n, 3) / w)
+    lever = joint_jac[:, :, j]
+    lever2 = np.sum(lever ** 2, axis=1)
+    ok = lever2 > 1e-12
+    if ok.sum() < 3:
+        return float('nan')
+    implied = np.sum(lever * explained, axis=1)[ok] / lever2[ok]
+    correction = _joint_correction_values(effect, q, tau, theta)[ok, j]
+    wt = lever2[ok] / lever2[ok].sum()
+    a = implied - wt @ implied
+    b = correction - wt @ correction
+    denom = np.sqrt((wt @ a ** 2) * (wt @ b ** 2))
+    return float(wt @ (a * b) / denom) if denom > 0 else float('nan')
+
+
+def _joint_correction_values(effect: BoundEffect, q: np.ndarray, tau: np.ndarray,
+                             theta: np.ndarray) -> np.ndarray:
+    """Numeric joint corrections (N, n) of ``effect`` at parameters ``theta``."""
+    n = q.shape[1]
+    qs, ts = ca.SX.sym('q', n), ca.SX.sym('tau', n)
+    th = ca.SX.sym('theta', len(theta))
+    fn = ca.Function('dq', [qs, ts, th], [effect.joint_correction(qs, ts, th)])
+    return np.array(fn.map(len(q))(q.T, tau.T, theta)).T
+
+
+def _explain(fit: dict, significant: bool, p_adj: float, m: int, rms_base: float,
+             cv_base: float) -> str:
+    effect: BoundEffect = fit['effect']
+    values = ', '.join(f'{name.rsplit(".", 1)[1]} = {v:.3g} ± {s:.2g} {u}'
+                       for name, v, s, u in zip(effect.parameter_names, fit['theta'],
+                                                fit['std'], effect.units))
+    numbers = (f'rms {rms_base * 1e6:.1f} -> {fit["rms"] * 1e6:.1f} µm, validation rms '
+               f'{cv_base * 1e6:.1f} -> {fit["cv"] * 1e6:.1f} µm; {values}; '
+               f'p = {p_adj:.3g} (F-test, Bonferroni over {m} candidates)')
+    if not significant:
+        return f'not significant: {numbers}.'
+    why = (f'the residuals correlate {fit["corr"]:.2f} with the part of its signature the '
+           'geometry cannot absorb')
+    if np.isfinite(fit['driver_corr']):
+        direction = f'the residual along the {effect.joint} rotation direction' \
+            if effect.joint_kind != 'prismatic' else f'the residual along the {effect.joint} axis'
+        why = (f'{direction} correlates {fit["driver_corr"]:.2f} with the '
+               f'{effect.signature()}, and {why}')
+    return f'{effect.kind.description}: {why}; {numbers}.'
