@@ -32,6 +32,20 @@ def main(argv: list[str] | None = None) -> int:
     ide.add_argument('--cell', required=True)
     ide.add_argument('--bag', required=True, help='MCAP bag with joint states and tracker points')
     ide.add_argument('--out', required=True, help='output folder')
+    ide.add_argument('--effects', default='', metavar='EFFECT:JOINT,...',
+                     help="physical effects added to the cell file's effects: (e.g. "
+                     'joint_compliance:joint_2); the summary compares with the geometric model')
+
+    dia = sub.add_parser('diagnose', help='residual report, model adequacy and the most likely '
+                         'missing physical effect')
+    dia.add_argument('--cell', required=True)
+    dia.add_argument('--bag', required=True, help='MCAP bag with joint states and tracker points')
+    dia.add_argument('--out', required=True, help='output folder: diagnosis.json, report.md, plots')
+    dia.add_argument('--effects', default='', metavar='EFFECT:JOINT,...',
+                     help='effects already in the model, as for identify')
+    dia.add_argument('--folds', type=int, default=5, help='cross-validation folds over poses')
+    dia.add_argument('--alpha', type=float, default=0.01,
+                     help='family-wise false-alarm level of the effect tests')
 
     des = sub.add_parser('design', help='optimal measurement configurations')
     des.add_argument('--cell', required=True)
@@ -74,10 +88,11 @@ def _simulate(args: argparse.Namespace) -> int:
 def _identify(args: argparse.Namespace) -> int:
     from kpi_calib_ros.core.dh import dh_table
     from kpi_calib_ros.io.bag import read_bag
+    from kpi_calib_ros.core.effects import split_specs
     from kpi_calib_ros.io.cell import build_cell_model, load_cell
     from kpi_calib_ros.io.results import calibration_to_dict, summary_text, write_calibration
     from kpi_calib_ros.pipeline import identify_cell, measurements_from_samples
-    cm = build_cell_model(load_cell(args.cell))
+    cm = build_cell_model(load_cell(args.cell), effects=tuple(split_specs(args.effects)))
     joints, points = read_bag(args.bag)
     data, pairing = measurements_from_samples(cm, joints, points)
     for reason, count in sorted(pairing.rejections.items()):
@@ -86,8 +101,14 @@ def _identify(args: argparse.Namespace) -> int:
     doc = calibration_to_dict(result, pairing)
     doc['dh_hayati'] = dh_table(cm.robot, cm.geometric, cm.geometric.nominal,
                                 result.values[:len(cm.geometric)])
+    comparison = ''
+    if cm.model.effects:
+        from kpi_calib_ros.io.report import add_effect_comparison
+        comparison = add_effect_comparison(doc, cm, data, result)
     path = write_calibration(args.out, doc)
     print(summary_text(doc))
+    if comparison:
+        print(comparison)
     print(f'written: {path}')
     return 0 if result.converged else 1
 
@@ -102,13 +123,18 @@ def _replay(args: argparse.Namespace) -> int:
     return run_replay_command(args)
 
 
+def _diagnose(args: argparse.Namespace) -> int:
+    from kpi_calib_ros.io.report import run_diagnose_command
+    return run_diagnose_command(args)
+
+
 def _demo(args: argparse.Namespace) -> int:
     from kpi_calib_ros.io.demo import run_demo
     return run_demo(args.out, args.seed)
 
 
 _COMMANDS = {'simulate': _simulate, 'identify': _identify, 'design': _design,
-             'replay': _replay, 'demo': _demo}
+             'diagnose': _diagnose, 'replay': _replay, 'demo': _demo}
 
 if __name__ == '__main__':
     sys.exit(main())

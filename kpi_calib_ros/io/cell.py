@@ -27,6 +27,7 @@ import numpy as np
 import yaml
 
 from kpi_calib_ros.core.collision import Capsule, CollisionScene, HalfSpace, capsules_from_urdf
+from kpi_calib_ros.core.effects import resolve_effects
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.kinematics import pose6
 from kpi_calib_ros.core.measurement import MeasurementModel
@@ -69,6 +70,7 @@ class Cell:
     identification_priority: tuple[str, ...]
     effects: tuple[str, ...]
     raw: dict[str, Any] = field(repr=False, compare=False, default_factory=dict)
+    source_dir: str = field(default='', compare=False)  # folder of the cell file
 
 
 def load_cell(path: str | Path) -> Cell:
@@ -145,7 +147,7 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None) -> Cel
         identification_method=method,
         identification_priority=tuple(ident.get('priority') or ()),
         effects=tuple(str(e) for e in (doc.get('effects') or [])),
-        raw=doc)
+        raw=doc, source_dir=str(base_dir))
 
 
 def _mapping(doc: dict, key: str) -> dict:
@@ -264,11 +266,19 @@ class CellModel:
 
 
 def build_cell_model(cell: Cell, effects: tuple = ()) -> CellModel:
-    """Robot, parameters, measurement model and working poses of ``cell``."""
+    """Robot, parameters, measurement model and working poses of ``cell``.
+
+    The model holds the cell file's ``effects:`` followed by ``effects`` (specs
+    such as ``'joint_compliance:joint_2'`` or bound effects); one given in both
+    counts once.
+    """
     robot = RobotModel(cell.urdf_xml, cell.base_frame, cell.tip_frame,
                        Payload(cell.payload_mass, tuple(cell.payload_com)))
     geometric = geometric_parameters(robot, cell.base_in_tracker, cell.reflector_offset)
-    model = MeasurementModel(robot, geometric, effects, cell.reflector_axis)
+    resolved = resolve_effects(cell.effects, robot, 'effects', cell.source_dir or None)
+    extra = resolve_effects(effects, robot, 'extra effects', cell.source_dir or None)
+    resolved += tuple(e for e in extra if e.name not in {r.name for r in resolved})
+    model = MeasurementModel(robot, geometric, resolved, cell.reflector_axis)
     q_work = np.array([_ordered(w, robot, f'working_poses[{i}].joints')
                        for i, w in enumerate(cell.working_poses)])
     inside = robot.within_limits(q_work)

@@ -14,13 +14,14 @@ import numpy as np
 import yaml
 
 from kpi_calib_ros.core.collision import verify_configuration
+from kpi_calib_ros.core.effects import hidden_effects
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.kinematics import link_poses, link_poses_function
 from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
                                           true_parameters)
 from kpi_calib_ros.core.streams import synthesize_streams
 from kpi_calib_ros.io.bag import write_bag
-from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
+from kpi_calib_ros.io.cell import Cell, CellModel, build_cell_model, load_cell
 from kpi_calib_ros.io.results import write_atomic
 
 
@@ -43,6 +44,21 @@ def collision_filter(cm: CellModel):
     return accept
 
 
+def truth_cell_model(cell: Cell) -> tuple[CellModel, dict[str, float]]:
+    """The cell's model plus the effects of ``simulation.hidden_effects``, and their
+    true values (parameter name -> value) for the simulated robot."""
+    cm = build_cell_model(cell)
+    sim = cell.raw.get('simulation') or {}
+    if not isinstance(sim, dict):
+        raise ConfigError('simulation', 'must be a mapping, e.g. {hidden_effects: '
+                          '{joint_compliance:joint_2: {c: 5.0e-7}}}')
+    effects, overrides = hidden_effects(sim.get('hidden_effects'), cm.robot,
+                                        base_dir=cell.source_dir or None)
+    if effects:
+        cm = build_cell_model(cell, effects=effects)
+    return cm, overrides
+
+
 def truth_path(bag_path: str | Path) -> Path:
     bag_path = Path(bag_path)
     return bag_path.with_name(bag_path.stem + '.truth.yaml')
@@ -60,6 +76,8 @@ def simulate_campaign(cell_path: str | Path, n: int, out: str | Path, seed: int,
         Measure these (e.g. an optimal design) instead of random poses.
     cm, p_true : optional
         A prepared cell model (e.g. with hidden effects) and true parameters.
+        By default the cell file's model with its ``simulation.hidden_effects``
+        (see :func:`truth_cell_model`) and random geometric errors.
 
     Returns
     -------
@@ -68,10 +86,12 @@ def simulate_campaign(cell_path: str | Path, n: int, out: str | Path, seed: int,
     """
     if n < 1:
         raise ConfigError('n', 'must be at least 1')
-    cm = cm or build_cell_model(load_cell(cell_path))
+    overrides: dict[str, float] = {}
+    if cm is None:
+        cm, overrides = truth_cell_model(load_cell(cell_path))
     rng = np.random.default_rng(seed)
     if p_true is None:
-        p_true = true_parameters(cm.model.params, rng)
+        p_true = true_parameters(cm.model.params, rng, overrides=overrides)
     if poses is not None:
         names, q = poses
         if list(names) != cm.joint_names:

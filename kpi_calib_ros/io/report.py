@@ -1,0 +1,422 @@
+"""Diagnosis report: diagnosis.json, report.md with plots, and before/after comparisons.
+
+``kpi-calib diagnose`` and the demo call :func:`diagnose_cell` (calibrate,
+diagnose, add the suggested effect, compare) and :func:`write_report`. The
+plots (matplotlib, Agg) show the residuals against each joint angle, each
+joint's gravity torque, time and tracker distance, the measured points with
+magnified residual vectors in 3-D, and the error before/after adding the
+effect. Units in files are SI; plots and text use µm for residuals.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from kpi_calib_ros.core.diagnosis import (Candidate, Diagnosis, ModelComparison,
+                                          augmented_model, compare_models, diagnose)
+from kpi_calib_ros.core.effects import BoundEffect, parse_effect_spec
+from kpi_calib_ros.core.estimation import CalibrationResult
+from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
+from kpi_calib_ros.io.cell import CellModel
+from kpi_calib_ros.io.results import write_atomic
+from kpi_calib_ros.pipeline import identify_cell
+
+_UM = 1e6
+_AXES = ('x', 'y', 'z')
+_COLOURS = ('tab:red', 'tab:green', 'tab:blue')
+
+
+@dataclasses.dataclass(frozen=True)
+class CellDiagnosis:
+    """Everything :func:`diagnose_cell` computes; ``after``/``comparison`` only when an
+    effect was added."""
+
+    model: MeasurementModel
+    data: Measurements
+    result: CalibrationResult
+    diagnosis: Diagnosis
+    added: BoundEffect | None = None
+    after_model: MeasurementModel | None = None
+    after: CalibrationResult | None = None
+    comparison: ModelComparison | None = None
+
+
+def geometric_only(cm: CellModel) -> CellModel:
+    """``cm`` with the geometric model only (no effects)."""
+    return dataclasses.replace(cm, model=MeasurementModel(cm.robot, cm.geometric, (),
+                                                          cm.cell.reflector_axis))
+
+
+def with_effects(cm: CellModel, effects: tuple) -> CellModel:
+    """``cm`` with ``effects`` (specs or bound effects) appended to its model."""
+    bound = tuple(parse_effect_spec(e, cm.robot) if isinstance(e, str) else e for e in effects)
+    return dataclasses.replace(cm, model=augmented_model(cm.model, bound))
+
+
+def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 5, alpha: float = 0.01,
+                  add_best: bool = True) -> CellDiagnosis:
+    """Calibrate ``cm`` on ``data``, diagnose it and, when an effect is significant,
+    add the top one and compare before/after (full nonlinear refit)."""
+    result = identify_cell(cm, data)
+    diag = diagnose(cm.model, data, result, folds=folds, alpha=alpha)
+    if not add_best or diag.best is None:
+        return CellDiagnosis(cm.model, data, result, diag)
+    best = parse_effect_spec(diag.best.spec, cm.robot)
+    richer = with_effects(cm, (best,))
+    after = identify_cell(richer, data)
+    comparison = compare_models((cm.model, result), (richer.model, after), data, folds=folds)
+    return CellDiagnosis(cm.model, data, result, diag, best, richer.model, after, comparison)
+
+
+# ------------------------------------------------------------------ documents
+def _candidate_dict(c: Candidate) -> dict[str, Any]:
+    return {'effect': c.effect, 'joint': c.joint, 'spec': c.spec,
+            'rms_after_m': float(c.rms_after_m),
+            'validation_rms_after_m': float(c.validation_rms_after_m),
+            'p_value': float(c.p_value), 'p_value_raw': float(c.p_value_raw),
+            'significant': bool(c.significant),
+            'parameters': [{'name': n, 'value': float(v), 'std': float(s), 'unit': u}
+                           for n, v, s, u in zip(c.parameter_names, c.values, c.std, c.units)],
+            'explanation': c.explanation}
+
+
+def comparison_to_dict(cmp: ModelComparison) -> dict[str, Any]:
+    """YAML/JSON-ready before/after numbers (SI units)."""
+    return {'effects': list(cmp.effects),
+            'rms_before_m': float(cmp.rms_before_m), 'rms_after_m': float(cmp.rms_after_m),
+            'validation_rms_before_m': float(cmp.validation_rms_before_m),
+            'validation_rms_after_m': float(cmp.validation_rms_after_m),
+            'chi2_p_value_before': float(cmp.p_value_before),
+            'chi2_p_value_after': float(cmp.p_value_after),
+            'effect_parameters': [dict(p) for p in cmp.effect_parameters],
+            'tcp_std_m': [{'name': n, 'before': [float(x) for x in b],
+                           'after': [float(x) for x in a]}
+                          for n, b, a in zip(cmp.working_pose_names, cmp.tcp_std_before_m,
+                                             cmp.tcp_std_after_m)]}
+
+
+def diagnosis_to_dict(cd: CellDiagnosis) -> dict[str, Any]:
+    """The diagnosis.json document: verdict, rms, ranked candidates (best first)."""
+    diag, rep = cd.diagnosis, cd.diagnosis.residuals
+    doc: dict[str, Any] = {
+        'model_adequate': bool(diag.model_adequate),
+        'rms_m': float(diag.rms_m),
+        'validation_rms_m': float(diag.validation_rms_m),
+        'noise_floor_m': float(np.sqrt(np.sum(cd.result.sigma ** 2))),
+        'candidates': [_candidate_dict(c) for c in diag.candidates],
+        'verdict': diag.verdict,
+        'alpha': diag.alpha, 'folds': diag.folds,
+        'residuals': {'measurements': int(len(rep.norms)), 'max_m': float(rep.max_m),
+                      'percentiles_m': {str(k): float(v) for k, v in rep.percentiles_m.items()},
+                      'chi2': float(rep.chi2), 'dof': int(rep.dof),
+                      'p_value': float(rep.p_value), 'adequate': bool(rep.adequate),
+                      'outliers': [int(i) for i in np.flatnonzero(rep.outlier)],
+                      'high_leverage': [int(i) for i in np.flatnonzero(rep.high_leverage)]},
+        'not_distinguishable': [{'effect': c.effect, 'joint': c.joint, 'spec': c.spec,
+                                 'reason': c.explanation} for c in diag.not_distinguishable],
+    }
+    if cd.comparison is not None:
+        doc['added_effect'] = comparison_to_dict(cd.comparison)
+    return doc
+
+
+def comparison_text(cmp: ModelComparison) -> str:
+    """Readable before/after summary for a terminal."""
+    lines = [f"with {', '.join(cmp.effects)}:",
+             f'  rms             {cmp.rms_before_m * _UM:7.1f} -> {cmp.rms_after_m * _UM:7.1f} µm',
+             f'  validation rms  {cmp.validation_rms_before_m * _UM:7.1f} -> '
+             f'{cmp.validation_rms_after_m * _UM:7.1f} µm (k-fold over held-out poses)',
+             f'  χ² p-value      {cmp.p_value_before:9.3g} -> {cmp.p_value_after:9.3g}']
+    for p in cmp.effect_parameters:
+        if 'std' in p:
+            lines.append(f"  {p['name']} = {p['value']:.4g} ± {p['std']:.2g} {p['unit']}")
+        else:
+            lines.append(f"  {p['name']}: not estimated ({p['dropped']})")
+    for name, b, a in zip(cmp.working_pose_names, cmp.tcp_std_before_m, cmp.tcp_std_after_m):
+        lines.append(f'  TCP {name} std [{", ".join(f"{x * _UM:.1f}" for x in b)}] -> '
+                     f'[{", ".join(f"{x * _UM:.1f}" for x in a)}] µm')
+    return '\n'.join(lines)
+
+
+def diagnosis_text(cd: CellDiagnosis, top: int = 5) -> str:
+    """Readable diagnosis summary for a terminal."""
+    diag, rep = cd.diagnosis, cd.diagnosis.residuals
+    pct = ', '.join(f'p{k} {v * _UM:.1f}' for k, v in rep.percentiles_m.items())
+    lines = [diag.verdict,
+             f'rms {diag.rms_m * _UM:.1f} µm, validation rms {diag.validation_rms_m * _UM:.1f} µm '
+             f'(noise floor σ√3 {np.sqrt(np.sum(cd.result.sigma ** 2)) * _UM:.1f} µm); '
+             f'|r| {pct}, max {rep.max_m * _UM:.1f} µm',
+             f'outliers: {np.flatnonzero(rep.outlier).tolist()}, high leverage: '
+             f'{np.flatnonzero(rep.high_leverage).tolist()}',
+             f'candidates (best first, {len(diag.candidates)} distinguishable, '
+             f'{len(diag.not_distinguishable)} not):']
+    for i, c in enumerate(diag.candidates[:top], 1):
+        mark = '*' if c.significant else ' '
+        lines.append(f' {mark}{i}. {c.spec:40s} validation rms {c.validation_rms_after_m * _UM:6.1f} '
+                     f'µm  p = {c.p_value:.2g}')
+    if diag.best is not None:
+        lines.append(f'why: {diag.best.explanation}')
+    for c in diag.not_distinguishable:
+        if c.spec == 'tracker_scale' or c.unique_fraction > 0:
+            lines.append(f'{c.spec}: {c.explanation}')
+    if cd.comparison is not None:
+        lines.append(comparison_text(cd.comparison))
+    return '\n'.join(lines)
+
+
+def write_diagnosis_json(out_dir: str | Path, doc: dict[str, Any]) -> Path:
+    return write_atomic(Path(out_dir) / 'diagnosis.json', json.dumps(doc, indent=2) + '\n')
+
+
+# --------------------------------------------------------------------- plots
+def _pyplot():
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    return plt
+
+
+def _grid(plt, n: int):
+    cols = min(3, n)
+    rows = int(np.ceil(n / cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.0 * rows), squeeze=False,
+                             sharey=True)
+    for ax in axes.ravel()[n:]:
+        ax.set_visible(False)
+    return fig, axes.ravel()
+
+
+def _scatter_components(ax, x: np.ndarray, residuals: np.ndarray, outliers: np.ndarray) -> None:
+    for k in range(3):
+        ax.plot(x, residuals[:, k] * _UM, '.', ms=4, color=_COLOURS[k], label=f'r_{_AXES[k]}')
+    if outliers.any():
+        ax.plot(x[outliers], np.linalg.norm(residuals[outliers], axis=1) * _UM, 'kx', ms=8,
+                label='outlier |r|')
+    ax.axhline(0.0, color='0.6', lw=0.8)
+    ax.grid(alpha=0.3)
+
+
+def write_plots(out_dir: str | Path, cd: CellDiagnosis) -> list[Path]:
+    """PNG plots of the residuals of ``cd`` into ``out_dir``; returns their paths."""
+    plt = _pyplot()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rep = cd.diagnosis.residuals
+    res, outl = rep.residuals, rep.outlier
+    robot = cd.model.robot
+    q = np.atleast_2d(cd.data.q)
+    names = robot.joint_names
+    revolute = [j.kind != 'prismatic' for j in robot.joints]
+    paths = []
+
+    def save(fig, name: str) -> None:
+        fig.tight_layout()
+        path = out / name
+        fig.savefig(path, dpi=90)
+        plt.close(fig)
+        paths.append(path)
+
+    fig, axes = _grid(plt, len(names))
+    for j, ax in enumerate(axes[:len(names)]):
+        _scatter_components(ax, np.degrees(q[:, j]) if revolute[j] else q[:, j] * 1e3, res, outl)
+        ax.set_xlabel(f'{names[j]} ({"deg" if revolute[j] else "mm"})')
+    axes[0].set_ylabel('residual (µm)')
+    axes[0].legend(fontsize=7)
+    fig.suptitle('Residuals against each joint value')
+    save(fig, 'residuals_vs_joints.png')
+
+    tau = robot.gravity_torques(q)
+    unloaded = np.ptp(tau, axis=0) < 1e-6
+    tau[:, unloaded] = 0.0  # numerical noise of ~1e-15 N m would set the axis scale
+    fig, axes = _grid(plt, len(names))
+    for j, ax in enumerate(axes[:len(names)]):
+        _scatter_components(ax, tau[:, j], res, outl)
+        ax.set_xlabel(f'gravity torque {names[j]} ({"N m" if revolute[j] else "N"})')
+        if unloaded[j]:
+            ax.set_title('no gravity torque on this joint', fontsize=8)
+    axes[0].set_ylabel('residual (µm)')
+    axes[0].legend(fontsize=7)
+    fig.suptitle('Residuals against gravity torque (payload included)')
+    save(fig, 'residuals_vs_torque.png')
+
+    # The residual seen as an error of one joint: its component along the direction
+    # the point moves when that joint turns, divided by the lever. A compliance is a
+    # line against torque, backlash a step at zero torque, a cyclic error a sine.
+    lever = cd.model.joint_jacobian(cd.result.values, q)
+    lever2 = np.sum(lever ** 2, axis=1)
+    implied = np.einsum('nij,ni->nj', lever, res) / np.maximum(lever2, 1e-12)
+    seen = lever2 > 0.05 * lever2.max(axis=0)
+    fig, axes = plt.subplots(2, len(names), figsize=(2.6 * len(names), 5.2), squeeze=False)
+    for j in range(len(names)):
+        scale = 1e6  # µrad for revolute, µm for prismatic joints
+        x = np.degrees(q[:, j]) if revolute[j] else q[:, j] * 1e3
+        for row, xx, label in ((0, x, f'{names[j]} ({"deg" if revolute[j] else "mm"})'),
+                               (1, tau[:, j], f'τ {names[j]} ({"N m" if revolute[j] else "N"})')):
+            ax = axes[row, j]
+            ax.plot(xx[seen[:, j]], implied[seen[:, j], j] * scale, '.', ms=4, color='tab:purple')
+            ax.axhline(0.0, color='0.6', lw=0.8)
+            ax.set_xlabel(label, fontsize=8)
+            ax.tick_params(labelsize=7)
+            ax.grid(alpha=0.3)
+        axes[0, j].set_title(f'{names[j]} error', fontsize=8)
+    axes[0, 0].set_ylabel('implied joint error (µrad or µm)', fontsize=8)
+    axes[1, 0].set_ylabel('implied joint error (µrad or µm)', fontsize=8)
+    fig.suptitle('Residuals seen as joint errors, against joint value (top) and gravity '
+                 'torque (bottom)', fontsize=10)
+    save(fig, 'joint_errors.png')
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 3.4), sharey=True)
+    stamps = cd.data.stamps_ns
+    if stamps is not None and len(stamps) == len(res):
+        t = (np.asarray(stamps, float) - float(np.min(stamps))) * 1e-9
+        axes[0].set_xlabel('time since first measurement (s)')
+    else:
+        t = np.arange(len(res), dtype=float)
+        axes[0].set_xlabel('measurement index (no time stamps)')
+    _scatter_components(axes[0], t, res, outl)
+    axes[0].plot(t, rep.norms * _UM, '-', color='0.5', lw=0.6, label='|r|')
+    axes[0].set_ylabel('residual (µm)')
+    axes[0].legend(fontsize=7)
+    distance = np.linalg.norm(np.atleast_2d(cd.data.eta), axis=1)
+    _scatter_components(axes[1], distance, res, outl)
+    axes[1].set_xlabel('tracker distance (m)')
+    fig.suptitle('Residuals against time (drift, warm-up) and tracker distance (scale)')
+    save(fig, 'residuals_vs_time_distance.png')
+
+    fig = plt.figure(figsize=(6.5, 5.5))
+    ax = fig.add_subplot(projection='3d')
+    eta = np.atleast_2d(cd.data.eta)
+    pred = eta - res
+    span = float(np.max(np.ptp(eta, axis=0)))
+    gain = 0.1 * span / max(float(rep.max_m), 1e-12)
+    ax.scatter(*eta.T, s=8, c='tab:blue', label='measured')
+    ax.scatter(*pred.T, s=4, c='tab:orange', label='predicted')
+    ax.quiver(*pred.T, *(res * gain).T, color='k', lw=0.8, arrow_length_ratio=0.2)
+    ax.set_xlabel('x (m)')
+    ax.set_ylabel('y (m)')
+    ax.set_zlabel('z (m)')
+    ax.legend(fontsize=7)
+    ax.set_title(f'Measured vs predicted, tracker frame\n(residual arrows magnified {gain:.0f}×)',
+                 fontsize=9)
+    save(fig, 'measured_vs_predicted_3d.png')
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 3.6))
+    floor = float(np.sqrt(np.sum(cd.result.sigma ** 2))) * _UM
+    top = cd.diagnosis.candidates[:8]
+    labels = ['geometric'] + [c.spec for c in top]
+    values = [cd.diagnosis.validation_rms_m * _UM] + [c.validation_rms_after_m * _UM for c in top]
+    colours = ['0.5'] + ['tab:red' if c.significant else 'tab:gray' for c in top]
+    axes[0].barh(labels[::-1], values[::-1], color=colours[::-1])
+    axes[0].axvline(floor, color='k', ls='--', lw=1, label='noise floor σ√3')
+    axes[0].set_xlabel('validation rms (µm), held-out poses')
+    axes[0].legend(fontsize=7)
+    axes[0].set_title('Candidates (red: significant)', fontsize=9)
+    axes[0].tick_params(axis='y', labelsize=7)
+    bins = np.linspace(0, max(rep.max_m, cd.after.rms_m * 3 if cd.after else 0) * _UM, 30)
+    axes[1].hist(rep.norms * _UM, bins=bins, alpha=0.6, label='geometric model')
+    if cd.after is not None:
+        after = np.linalg.norm(cd.after.residuals, axis=1)
+        axes[1].hist(after * _UM, bins=bins, alpha=0.6, label=f'+ {cd.added.name}')
+        axes[1].set_title(f'|r| before/after: rms {cd.result.rms_m * _UM:.1f} -> '
+                          f'{cd.after.rms_m * _UM:.1f} µm', fontsize=9)
+    axes[1].set_xlabel('|residual| (µm)')
+    axes[1].legend(fontsize=7)
+    save(fig, 'before_after.png')
+    return paths
+
+
+def write_report(out_dir: str | Path, cd: CellDiagnosis) -> Path:
+    """diagnosis.json, the plots and report.md into ``out_dir``; returns report.md."""
+    out = Path(out_dir)
+    doc = diagnosis_to_dict(cd)
+    write_diagnosis_json(out, doc)
+    plots = write_plots(out, cd)
+    diag, rep = cd.diagnosis, cd.diagnosis.residuals
+    lines = ['# Model diagnosis', '', f'**{diag.verdict}**', '',
+             '## Residuals of the calibrated model', '',
+             '| quantity | value |', '|---|---|',
+             f'| measurements | {len(rep.norms)} |',
+             f'| rms | {rep.rms_m * _UM:.1f} µm |',
+             f'| validation rms ({diag.folds}-fold, held-out poses) | '
+             f'{diag.validation_rms_m * _UM:.1f} µm |',
+             f'| noise floor σ√3 | {doc["noise_floor_m"] * _UM:.1f} µm |',
+             f'| max | {rep.max_m * _UM:.1f} µm |']
+    lines += [f'| {k}th percentile of \\|r\\| | {v * _UM:.1f} µm |'
+              for k, v in rep.percentiles_m.items()]
+    lines += [f'| χ² / dof | {rep.chi2:.1f} / {rep.dof} (p = {rep.p_value:.3g}) |',
+              f'| outliers (Bonferroni, α = {rep.alpha:g}) | '
+              f'{np.flatnonzero(rep.outlier).tolist()} |',
+              f'| high leverage (> 3× mean) | {np.flatnonzero(rep.high_leverage).tolist()} |',
+              '', '## Candidate effects, best first', '',
+              f'F-test of each augmented fit against the geometric one, Bonferroni over '
+              f'{len(diag.candidates)} candidates, family-wise α = {diag.alpha:g}.', '',
+              '| # | effect | significant | p | rms after (µm) | validation rms after (µm) | '
+              'parameters |', '|---|---|---|---|---|---|---|']
+    for i, c in enumerate(diag.candidates, 1):
+        params = '; '.join(f'{n.rsplit(".", 1)[1]} = {v:.3g} ± {s:.2g} {u}'
+                           for n, v, s, u in zip(c.parameter_names, c.values, c.std, c.units))
+        lines.append(f'| {i} | {c.spec} | {"yes" if c.significant else "no"} | {c.p_value:.2g} '
+                     f'| {c.rms_after_m * _UM:.1f} | {c.validation_rms_after_m * _UM:.1f} '
+                     f'| {params} |')
+    if diag.best is not None:
+        lines += ['', f'Why {diag.best.spec}: {diag.best.explanation}']
+    lines += ['', '## Not distinguishable with this data', '']
+    lines += [f'- **{c.spec}**: {c.explanation}' for c in diag.not_distinguishable] or ['- none']
+    if cd.comparison is not None:
+        cmp = cd.comparison
+        lines += ['', f'## Before/after adding {", ".join(cmp.effects)}', '',
+                  '| | geometric | with effect |', '|---|---|---|',
+                  f'| rms (µm) | {cmp.rms_before_m * _UM:.1f} | {cmp.rms_after_m * _UM:.1f} |',
+                  f'| validation rms (µm) | {cmp.validation_rms_before_m * _UM:.1f} | '
+                  f'{cmp.validation_rms_after_m * _UM:.1f} |',
+                  f'| χ² p-value | {cmp.p_value_before:.3g} | {cmp.p_value_after:.3g} |']
+        for name, b, a in zip(cmp.working_pose_names, cmp.tcp_std_before_m,
+                              cmp.tcp_std_after_m):
+            lines.append(f'| TCP {name} std (µm) | {", ".join(f"{x * _UM:.1f}" for x in b)} | '
+                         f'{", ".join(f"{x * _UM:.1f}" for x in a)} |')
+        lines += ['', 'Effect parameters:', '']
+        lines += [f"- {p['name']} = {p['value']:.4g} ± {p['std']:.2g} {p['unit']}"
+                  if 'std' in p else f"- {p['name']}: not estimated ({p['dropped']})"
+                  for p in cmp.effect_parameters]
+    lines += ['', '## Plots', '']
+    lines += [f'![{p.stem}]({p.name})' for p in plots]
+    return write_atomic(out / 'report.md', '\n'.join(lines) + '\n')
+
+
+# ---------------------------------------------------------------- commands
+def add_effect_comparison(doc: dict[str, Any], cm: CellModel, data: Measurements,
+                          result: CalibrationResult, folds: int = 5) -> str:
+    """Compare ``result`` (model with effects) with the geometric model on the same data.
+
+    Adds ``effects_comparison`` to the calibration document ``doc`` and returns
+    the readable summary.
+    """
+    base = geometric_only(cm)
+    before = identify_cell(base, data)
+    cmp = compare_models((base.model, before), (cm.model, result), data, folds=folds)
+    doc['effects_comparison'] = comparison_to_dict(cmp)
+    return comparison_text(cmp)
+
+
+def run_diagnose_command(args) -> int:
+    """``kpi-calib diagnose --cell CELL --bag BAG --out DIR [--effects ...]``."""
+    import sys
+
+    from kpi_calib_ros.core.effects import split_specs
+    from kpi_calib_ros.io.bag import read_bag
+    from kpi_calib_ros.io.cell import build_cell_model, load_cell
+    from kpi_calib_ros.pipeline import measurements_from_samples
+    cm = build_cell_model(load_cell(args.cell), effects=tuple(split_specs(args.effects)))
+    joints, points = read_bag(args.bag)
+    data, pairing = measurements_from_samples(cm, joints, points)
+    for reason, count in sorted(pairing.rejections.items()):
+        print(f'rejected {count} sample(s): {reason}', file=sys.stderr)
+    cd = diagnose_cell(cm, data, folds=args.folds, alpha=args.alpha)
+    report = write_report(args.out, cd)
+    print(diagnosis_text(cd))
+    print(f'written: {Path(args.out) / "diagnosis.json"}, {report}')
+    return 0

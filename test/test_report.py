@@ -1,0 +1,77 @@
+"""`kpi-calib diagnose` and `identify --effects` end to end on a simulated bag."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import yaml
+
+from kpi_calib_ros.cli import main
+from kpi_calib_ros.io.cell import DEFAULT_CELL
+
+HIDDEN = 'joint_compliance:shoulder_lift_joint'
+
+
+@pytest.fixture(scope='module')
+def campaign(tmp_path_factory):
+    """A UR-class cell whose simulated robot bends at the shoulder; the bag of 80 poses."""
+    folder = tmp_path_factory.mktemp('hidden')
+    doc = yaml.safe_load((DEFAULT_CELL.parent / 'ur_cell.yaml').read_text())
+    doc['robot']['urdf'] = str((DEFAULT_CELL.parent / doc['robot']['urdf']).resolve())
+    doc['simulation'] = {'hidden_effects': {HIDDEN: {'c': 4e-6}}}
+    cell = folder / 'cell.yaml'
+    cell.write_text(yaml.safe_dump(doc))
+    bag = folder / 'run.mcap'
+    assert main(['simulate', '--cell', str(cell), '--n', '80', '--out', str(bag),
+                 '--seed', '3']) == 0
+    truth = yaml.safe_load(bag.with_name('run.truth.yaml').read_text())
+    assert truth['parameters'][f'{HIDDEN.replace(":", ".")}.c'] == 4e-6
+    return cell, bag
+
+
+def test_diagnose_writes_ranked_json_report_and_plots(campaign, tmp_path, capsys):
+    cell, bag = campaign
+    assert main(['diagnose', '--cell', str(cell), '--bag', str(bag), '--out', str(tmp_path)]) == 0
+    doc = json.loads((tmp_path / 'diagnosis.json').read_text())
+    assert doc['model_adequate'] is False and doc['rms_m'] > 1.5 * doc['noise_floor_m']
+    top = doc['candidates'][0]
+    assert (top['effect'], top['joint']) == ('joint_compliance', 'shoulder_lift_joint')
+    assert set(top) >= {'effect', 'joint', 'rms_after_m', 'p_value', 'explanation'}
+    assert top['p_value'] < 0.01 and 'correlates' in top['explanation']
+    assert doc['candidates'][1]['validation_rms_after_m'] >= top['validation_rms_after_m']
+    assert 'tracker_scale' in {c['spec'] for c in doc['not_distinguishable']}
+    added = doc['added_effect']
+    assert added['effects'] == [HIDDEN]
+    assert added['validation_rms_after_m'] < 0.5 * added['validation_rms_before_m']
+    report = (tmp_path / 'report.md').read_text()
+    for png in ('residuals_vs_joints', 'residuals_vs_torque', 'residuals_vs_time_distance',
+                'measured_vs_predicted_3d', 'joint_errors', 'before_after'):
+        assert (tmp_path / f'{png}.png').stat().st_size > 10_000
+        assert f'({png}.png)' in report
+    out = capsys.readouterr().out
+    assert f'Add it with --effects {HIDDEN}' in out and 'validation rms' in out
+
+
+def test_identify_with_effects_reports_before_and_after(campaign, tmp_path, capsys):
+    cell, bag = campaign
+    assert main(['identify', '--cell', str(cell), '--bag', str(bag), '--out', str(tmp_path),
+                 '--effects', HIDDEN]) == 0
+    doc = yaml.safe_load((tmp_path / 'calibration.yaml').read_text())
+    cmp = doc['effects_comparison']
+    assert cmp['rms_after_m'] < 0.6 * cmp['rms_before_m']
+    (param,) = cmp['effect_parameters']
+    assert param['name'] == 'joint_compliance.shoulder_lift_joint.c'
+    assert abs(param['value'] - 4e-6) < 3 * param['std']
+    assert {p['name'] for p in doc['parameters']} >= {param['name']}
+    out = capsys.readouterr().out
+    assert 'validation rms' in out and 'joint_compliance.shoulder_lift_joint.c' in out
+
+
+def test_bad_effect_spec_exits_with_the_choices(campaign, tmp_path, capsys):
+    cell, bag = campaign
+    code = main(['identify', '--cell', str(cell), '--bag', str(bag), '--out', str(tmp_path),
+                 '--effects', 'joint_compliance:elbow'])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "'joint_compliance:elbow'" in err and 'elbow_joint' in err
