@@ -2,9 +2,9 @@
 
 Three steps, all pure (no files, no plots):
 
-1. :func:`residual_report` -- per-measurement residuals, rms, percentiles, the
-   χ² goodness-of-fit test of the weighted residual sum against the stated
-   tracker σ, leverage (hat-matrix blocks) and outlier flags.
+1. :func:`~kpi_calib_ros.core.residuals.residual_report` -- per-measurement
+   residuals, rms, percentiles, the χ² goodness-of-fit test of the weighted
+   residual sum against the stated tracker σ, leverage and outlier flags.
 2. :func:`screen_effects` -- for every candidate effect × joint: is its
    signature distinguishable from the geometric parameters with this data?
    If so, fit the augmented model, score it by k-fold cross-validated rms over
@@ -28,55 +28,16 @@ import numpy as np
 import scipy.stats
 
 from kpi_calib_ros.core.effects import BoundEffect, candidate_effects
-from kpi_calib_ros.core.estimation import CalibrationResult, weights
+from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
+from kpi_calib_ros.core.residuals import (LinearizedFit, ResidualReport, cross_validated_rms,
+                                         cv_rms, fold_ids, linearized_fit, residual_report)
 
-PERCENTILES = (50, 90, 95, 99)
+__all__ = ['Candidate', 'Diagnosis', 'ModelComparison', 'ResidualReport', 'augmented_model',
+           'compare_models', 'cross_validated_rms', 'diagnose', 'residual_report',
+           'screen_effects']
 DEPENDENCE_TOLERANCE = 1e-4  # unique fraction of a signature below this: absorbed
 NO_EFFECT_M = 1e-9           # a typical-size effect moving no point by 1 nm has no effect
-
-
-@dataclass(frozen=True)
-class ResidualReport:
-    """Goodness of fit of one calibration.
-
-    Attributes
-    ----------
-    residuals : (N, 3) ndarray
-        η − h(p̂, q), tracker frame, m.
-    norms : (N,) ndarray
-        ‖r_i‖, m.
-    rms_m, max_m : float
-        sqrt(mean ‖r_i‖²) and max ‖r_i‖, m.
-    percentiles_m : dict
-        {50, 90, 95, 99} -> percentile of ‖r_i‖, m.
-    chi2, dof, p_value : float, int, float
-        Σ‖r_i/σ‖² against χ²(dof); p is the upper tail.
-    adequate : bool
-        p_value >= alpha: the residuals are as small as the stated σ predicts.
-    leverage : (N,) ndarray
-        Trace of the 3×3 hat-matrix block of each pose (0..3, mean k/N).
-    standardized : (N,) ndarray
-        r_iᵀ (I − H_ii)⁻¹ r_i in σ units, χ²(3) under the model.
-    outlier, high_leverage : (N,) bool ndarray
-        Bonferroni-corrected χ²(3) test of ``standardized`` at ``alpha``;
-        leverage above three times the mean.
-    """
-
-    residuals: np.ndarray
-    norms: np.ndarray
-    rms_m: float
-    max_m: float
-    percentiles_m: dict[int, float]
-    chi2: float
-    dof: int
-    p_value: float
-    adequate: bool
-    leverage: np.ndarray
-    standardized: np.ndarray
-    outlier: np.ndarray
-    high_leverage: np.ndarray
-    alpha: float
 
 
 @dataclass(frozen=True)
@@ -148,115 +109,6 @@ class ModelComparison:
     working_pose_names: tuple[str, ...] = field(default=())
 
 
-# --------------------------------------------------------------- linear system
-@dataclass(frozen=True)
-class _System:
-    """Weighted residual r (3N,), geometric Jacobian J (3N, k) at p̂ and helpers."""
-
-    r: np.ndarray
-    jac: np.ndarray
-    basis: np.ndarray  # orthonormal basis of span(J)
-    w: np.ndarray
-    tau: np.ndarray | None
-    p: np.ndarray
-
-
-def _system(model: MeasurementModel, data: Measurements, result: CalibrationResult,
-            tau: np.ndarray | None = None) -> _System:
-    w = weights(result.sigma)
-    q = np.atleast_2d(data.q)
-    if tau is None and model.uses_torque:
-        tau = model.robot.gravity_torques(q)
-    p = np.asarray(result.values, float)
-    pred, jac = model.jacobian(p, q, tau)
-    r = ((np.atleast_2d(data.eta) - pred) * w).ravel()
-    idx = model.params.indices(result.estimated)
-    f = (jac * w[None, :, None]).reshape(-1, len(p))[:, idx]
-    basis = _orthonormal_basis(f)
-    return _System(r, f, basis, w, tau, p)
-
-
-def _orthonormal_basis(a: np.ndarray) -> np.ndarray:
-    norms = np.linalg.norm(a, axis=0)
-    a = a[:, norms > 0] / norms[norms > 0]
-    u, s, _ = np.linalg.svd(a, full_matrices=False)
-    return u[:, s > 1e-9 * s[0]] if len(s) else u
-
-
-def _fold_ids(n_poses: int, folds: int, seed: int) -> np.ndarray:
-    if not 2 <= folds <= n_poses:
-        raise ValueError(f'folds must be in [2, {n_poses}] (number of poses), got {folds}')
-    ids = np.empty(n_poses, dtype=int)
-    ids[np.random.default_rng(seed).permutation(n_poses)] = np.arange(n_poses) % folds
-    return ids
-
-
-def _cv_rms(a: np.ndarray, r: np.ndarray, w: np.ndarray, fold_ids: np.ndarray) -> float:
-    """k-fold cross-validated rms (m) of the linear model r ≈ a·δ, folds over poses."""
-    rows = np.repeat(fold_ids, 3)
-    scale = np.linalg.norm(a, axis=0)
-    scale[scale == 0] = 1.0
-    a = a / scale
-    held = np.empty_like(r)
-    for k in np.unique(fold_ids):
-        test = rows == k
-        delta, *_ = np.linalg.lstsq(a[~test], r[~test], rcond=None)
-        held[test] = r[test] - a[test] @ delta
-    metres = held.reshape(-1, 3) / w
-    return float(np.sqrt(np.mean(np.sum(metres ** 2, axis=1))))
-
-
-# ------------------------------------------------------------------ residuals
-def residual_report(model: MeasurementModel, data: Measurements, result: CalibrationResult,
-                    alpha: float = 0.01) -> ResidualReport:
-    """Residual statistics, χ² test, leverage and outliers of ``result`` on ``data``.
-
-    Parameters
-    ----------
-    model : MeasurementModel
-        The model ``result`` was identified with.
-    data : Measurements
-        The measurements ``result`` was identified from.
-    alpha : float
-        Level of the χ² adequacy test and of the (Bonferroni) outlier test.
-    """
-    sys_ = _system(model, data, result)
-    n = len(data)
-    residuals = sys_.r.reshape(n, 3) / sys_.w
-    norms = np.linalg.norm(residuals, axis=1)
-    u = sys_.basis.reshape(n, 3, -1)
-    blocks = np.einsum('nik,njk->nij', u, u)  # H_ii, (N, 3, 3)
-    leverage = np.trace(blocks, axis1=1, axis2=2)
-    # cov(r_i) = I − H_ii in σ units; pinv because a pose with leverage 1 along some
-    # direction has no residual there.
-    standardized = np.array([ri @ np.linalg.pinv(np.eye(3) - h, rcond=1e-9) @ ri
-                             for ri, h in zip(sys_.r.reshape(n, 3), blocks)])
-    outlier = scipy.stats.chi2.sf(standardized, 3) * n < alpha
-    k = sys_.basis.shape[1]
-    dof = 3 * n - k
-    chi2 = float(sys_.r @ sys_.r)
-    p_value = float(scipy.stats.chi2.sf(chi2, dof)) if dof > 0 else float('nan')
-    return ResidualReport(
-        residuals=residuals, norms=norms,
-        rms_m=float(np.sqrt(np.mean(norms ** 2))), max_m=float(norms.max()),
-        percentiles_m={p: float(np.percentile(norms, p)) for p in PERCENTILES},
-        chi2=chi2, dof=dof, p_value=p_value, adequate=bool(p_value >= alpha),
-        leverage=leverage, standardized=standardized, outlier=outlier,
-        high_leverage=leverage > 3 * k / n, alpha=alpha)
-
-
-def cross_validated_rms(model: MeasurementModel, data: Measurements,
-                        result: CalibrationResult, folds: int = 5, seed: int = 0) -> float:
-    """k-fold cross-validated rms (m) of the identified model over held-out poses.
-
-    Each fold refits the identified parameters on the other poses (a
-    Gauss-Newton step from ``result``, exact for the locally linear model) and
-    predicts the held-out ones. Compare with the noise floor σ√3.
-    """
-    sys_ = _system(model, data, result)
-    return _cv_rms(sys_.jac, sys_.r, sys_.w, _fold_ids(len(data), folds, seed))
-
-
 # ---------------------------------------------------------------- screening
 def screen_effects(model: MeasurementModel, data: Measurements, result: CalibrationResult,
                    candidates: list[BoundEffect] | None = None, folds: int = 5,
@@ -285,13 +137,13 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
     """
     if candidates is None:
         candidates = candidate_effects(model.robot, exclude=[e.name for e in model.effects])
-    sys_ = _system(model, data, result)
+    sys_ = linearized_fit(model, data, result)
     n = len(data)
-    fold_ids = _fold_ids(n, folds, seed)
+    pose_folds = fold_ids(n, folds, seed)
     r_perp = sys_.r - sys_.basis @ (sys_.basis.T @ sys_.r)
     chi2_base = float(r_perp @ r_perp)
     rms_base = float(np.sqrt(np.sum((r_perp.reshape(n, 3) / sys_.w) ** 2) / n))
-    cv_base = _cv_rms(sys_.jac, sys_.r, sys_.w, fold_ids)
+    cv_base = cv_rms(sys_.jac, sys_.r, sys_.w, pose_folds)
     dof_base = 3 * n - sys_.basis.shape[1]
     q = np.atleast_2d(data.q)
     tau = sys_.tau if sys_.tau is not None else model.robot.gravity_torques(q)
@@ -317,7 +169,7 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
                 f'signature (unique part {fraction:.1e}; mainly {text}). To make it '
                 f'distinguishable: {effect.hint()}.')))
             continue
-        fits.append(_fit_candidate(effect, cols, sys_, r_perp, chi2_base, dof_base, fold_ids,
+        fits.append(_fit_candidate(effect, cols, sys_, r_perp, chi2_base, dof_base, pose_folds,
                                    joint_jac, q, tau, fraction))
 
     m = max(len(fits), 1)
@@ -411,7 +263,7 @@ def augmented_model(model: MeasurementModel, effects: tuple) -> MeasurementModel
                             model.reflector_axis)
 
 
-def _effect_columns(model: MeasurementModel, sys_: _System, effect: BoundEffect,
+def _effect_columns(model: MeasurementModel, sys_: LinearizedFit, effect: BoundEffect,
                     q: np.ndarray, tau: np.ndarray) -> tuple[np.ndarray, float]:
     """Weighted Jacobian columns (3N, k) of the effect at θ = 0 and the largest
     point displacement (m) a typical-size effect causes."""
@@ -424,7 +276,7 @@ def _effect_columns(model: MeasurementModel, sys_: _System, effect: BoundEffect,
     return (cols * sys_.w[None, :, None]).reshape(-1, k), disp
 
 
-def _absorbed_by(model: MeasurementModel, result: CalibrationResult, sys_: _System,
+def _absorbed_by(model: MeasurementModel, result: CalibrationResult, sys_: LinearizedFit,
                  unit: np.ndarray) -> dict[str, float]:
     norms = np.linalg.norm(sys_.jac, axis=0)
     ok = norms > 0
@@ -447,8 +299,8 @@ def _rejected(effect: BoundEffect, fraction: float, absorbed: dict[str, float],
                      absorbed_by=absorbed, explanation=why)
 
 
-def _fit_candidate(effect: BoundEffect, cols: np.ndarray, sys_: _System, r_perp: np.ndarray,
-                   chi2_base: float, dof_base: int, fold_ids: np.ndarray,
+def _fit_candidate(effect: BoundEffect, cols: np.ndarray, sys_: LinearizedFit, r_perp: np.ndarray,
+                   chi2_base: float, dof_base: int, pose_folds: np.ndarray,
                    joint_jac: np.ndarray, q: np.ndarray, tau: np.ndarray,
                    fraction: float) -> dict:
     """Augmented least squares [J E] from the geometric solution, its F-test and CV."""
@@ -464,7 +316,7 @@ def _fit_candidate(effect: BoundEffect, cols: np.ndarray, sys_: _System, r_perp:
     dof = dof_base - k
     f_stat = (delta / k) / (chi2_aug / dof)
     p_raw = float(scipy.stats.f.sf(f_stat, k, dof))
-    cv = _cv_rms(np.hstack([sys_.jac, cols]), sys_.r, sys_.w, fold_ids)
+    cv = cv_rms(np.hstack([sys_.jac, cols]), sys_.r, sys_.w, pose_folds)
     rms = float(np.sqrt(np.sum((r_aug.reshape(n, 3) / sys_.w) ** 2) / n))
     corr = float(np.sqrt(max(delta, 0.0) / chi2_base)) if chi2_base > 0 else 0.0
     return {'effect': effect, 'theta': theta, 'std': np.sqrt(np.diag(cov)), 'rms': rms,
