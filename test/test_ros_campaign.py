@@ -111,10 +111,15 @@ def test_reset_archives_instead_of_deleting(tmp_path):
     campaign.set_chain(NAMES, FRAME)
     feed(campaign, live_order(joints, points))
     (tmp_path / 'calibration.yaml').write_text('rms_m: 1\n')
+    (tmp_path / 'diagnosis').mkdir()
+    (tmp_path / 'diagnosis' / 'report.md').write_text('# Model diagnosis\n')
+    (tmp_path / 'design.yaml').write_text('criterion: kpi\n')
     count, archive = campaign.reset()
     assert count == 2 and len(campaign) == 0 and campaign.counts()['rejected'] == 0
     assert (archive / 'calibration.yaml').exists() and list(archive.glob('measurements_*.mcap'))
-    assert not (tmp_path / 'calibration.yaml').exists()
+    assert (archive / 'diagnosis' / 'report.md').exists()
+    assert not (tmp_path / 'calibration.yaml').exists() and not (tmp_path / 'diagnosis').exists()
+    assert (tmp_path / 'design.yaml').exists()  # the plan stays for the next campaign
     assert len(Campaign(tmp_path)) == 0  # a restart does not bring archived data back
     assert len(MeasurementLog.load_all(archive)) == 2
 

@@ -7,6 +7,7 @@ description, calls the services and listens; `kpi-calib replay` plays simulated 
 """
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -68,15 +69,20 @@ def ros_domain():
 
 @pytest.fixture(scope='module')
 def campaign(tmp_path_factory):
-    """A simulated 30-pose bag and what `kpi-calib identify` makes of it offline."""
+    """A simulated 30-pose bag and what `kpi-calib identify` and `kpi-calib diagnose`
+    make of it offline."""
     folder = tmp_path_factory.mktemp('campaign')
     bag = folder / 'run.mcap'
     simulate_campaign(DEFAULT_CELL, N_POSES, bag, seed=21)
     assert cli.main(['identify', '--cell', str(DEFAULT_CELL), '--bag', str(bag),
                      '--out', str(folder / 'offline')]) == 0
+    assert cli.main(['diagnose', '--cell', str(DEFAULT_CELL), '--bag', str(bag),
+                     '--out', str(folder / 'diagnosis')]) == 0
     offline = yaml.safe_load((folder / 'offline' / 'calibration.yaml').read_text())
+    diagnosis = json.loads((folder / 'diagnosis' / 'diagnosis.json').read_text())
     joints, points = read_bag(bag)
-    return {'bag': bag, 'offline': offline, 'joints': joints, 'points': points}
+    return {'bag': bag, 'offline': offline, 'offline_diagnosis': diagnosis, 'joints': joints,
+            'points': points}
 
 
 class Client:
@@ -91,7 +97,7 @@ class Client:
         self.received: dict[str, list] = defaultdict(list)
         for topic, kind in (('measurement_poses', JointTrajectory), ('calibration', String),
                             ('tcp', PoseWithCovarianceStamped), ('markers', MarkerArray),
-                            ('robot_description_calibrated', String)):
+                            ('robot_description_calibrated', String), ('diagnosis', String)):
             self.node.create_subscription(kind, f'{NS}/{topic}', self._recorder(topic), LATCHED)
         self.node.create_subscription(DiagnosticArray, '/diagnostics',
                                       self._recorder('diagnostics'), 50)
@@ -328,6 +334,21 @@ def test_replayed_campaign_survives_a_kill_and_matches_offline(client, campaign,
         answer = client.call('identify')
         print('identify after malformed input:', answer.message)
         assert answer.success and f'from {N_POSES} measurements' in answer.message
+
+        # ~/diagnose gives what `kpi-calib diagnose` gives on the same bag.
+        answer = client.call('diagnose')
+        print('diagnose:', answer.message)
+        assert answer.success, answer.message
+        client.spin_until(lambda: client.received['diagnosis'], 10, 'diagnosis')
+        diagnosis = json.loads(client.received['diagnosis'][-1].data)
+        offline = campaign['offline_diagnosis']
+        assert diagnosis['verdict'] == offline['verdict']
+        assert diagnosis['model_adequate'] == offline['model_adequate']
+        assert diagnosis['rms_m'] == pytest.approx(offline['rms_m'], rel=1e-9)
+        assert [c['spec'] for c in diagnosis['candidates']] == \
+            [c['spec'] for c in offline['candidates']]
+        assert (data_dir / 'diagnosis' / 'report.md').is_file()
+        client.spin_until(lambda: 'model_adequate' in client.diagnostics(), 10, 'diagnostics')
     finally:
         code = second.stop()
     assert code == 0, second.output()

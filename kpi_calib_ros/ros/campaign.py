@@ -31,7 +31,7 @@ from kpi_calib_ros.io.bag import MeasurementLog
 # Campaign-level reasons besides the pairer's: the measurement could not be written.
 NOT_STORED = 'not_stored'
 REASONS = REJECTION_REASONS + (NOT_STORED,)
-RESULT_FILES = ('calibration.yaml', 'robot_description_calibrated.urdf', 'diagnosis.json')
+RESULT_FILES = ('calibration.yaml', 'robot_description_calibrated.urdf', 'diagnosis')
 
 
 class Campaign:
@@ -170,7 +170,8 @@ class Campaign:
 
     def reset(self) -> tuple[int, Path]:
         """Start over: move (never delete) the logs and result files into
-        ``archive/<time>/``; returns the number of measurements archived and where."""
+        ``archive/<time>/``; returns the number of measurements archived and where.
+        The design (``design.yaml``) stays: it is the plan, not campaign data."""
         with self.lock:
             archive = self.data_dir / 'archive' / time.strftime('%Y%m%dT%H%M%S')
             while archive.exists():

@@ -6,7 +6,7 @@ A thin layer over the core: it converts messages, calls the same functions as
 pairs bags and logs every accepted measurement to disk before counting it, so a
 replayed bag and ``kpi-calib identify`` agree and a killed node loses nothing.
 
-Services (std_srvs/srv/Trigger): ``~/design``, ``~/identify``, ``~/reset``.
+Services (std_srvs/srv/Trigger): ``~/design``, ``~/identify``, ``~/diagnose``, ``~/reset``.
 One executor thread serves callbacks in arrival order; long work (design,
 identification) runs in a worker thread while the service callback awaits it, so
 pairing continues, and a call while another job runs answers
@@ -15,6 +15,7 @@ up with 1 kHz joint states on two cores.)
 """
 from __future__ import annotations
 
+import json
 import sys
 import threading
 import time
@@ -48,6 +49,7 @@ from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.streams import Decision, Rejection
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, cell_from_dict
 from kpi_calib_ros.io.design_io import write_design
+from kpi_calib_ros.io.report import diagnose_cell, diagnosis_to_dict, write_report
 from kpi_calib_ros.io.results import calibration_to_dict, write_atomic, write_calibration
 from kpi_calib_ros.io.urdf_export import calibrated_urdf
 from kpi_calib_ros.pipeline import identify_cell
@@ -58,6 +60,7 @@ from kpi_calib_ros.ros.parameters import PARAMETERS, cell_document, settings_fro
 NODE_NAME = 'kpi_calib_node'
 CALIBRATED_URDF_FILE = 'robot_description_calibrated.urdf'
 DESIGN_FILE = 'design.yaml'
+DIAGNOSIS_DIR = 'diagnosis'
 
 
 def _latched(depth: int = 1) -> QoSProfile:
@@ -99,6 +102,7 @@ class CalibrationNode(Node):
         self._result_error = ''
         self._identified_with = 0
         self._design_points: np.ndarray | None = None
+        self._diagnosis: dict[str, Any] | None = None
         self._capsules: list[Capsule] = []
         self._last_diagnostics: tuple[Any, float] = (None, 0.0)
 
@@ -112,6 +116,7 @@ class CalibrationNode(Node):
         self._pub_urdf = self.create_publisher(String, '~/robot_description_calibrated',
                                                _latched())
         self._pub_markers = self.create_publisher(MarkerArray, '~/markers', _latched())
+        self._pub_diagnosis = self.create_publisher(String, '~/diagnosis', _latched())
         self._pub_diagnostics = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self._pub_tcp = None  # latched with one message per working pose: made with the model
         self.create_subscription(JointState, self.settings.joint_states_topic,
@@ -120,6 +125,7 @@ class CalibrationNode(Node):
                                  _stream_qos(100), callback_group=streams)
         for name, doing, work in (('design', 'designing', self._design),
                                   ('identify', 'identifying', self._identify),
+                                  ('diagnose', 'diagnosing', self._diagnose),
                                   ('reset', 'resetting', self._reset)):
             self.create_service(Trigger, f'~/{name}', self._service(name, doing, work),
                                 callback_group=services)
@@ -292,11 +298,24 @@ class CalibrationNode(Node):
             f'{result.rms_m * 1e6:.1f} µm, p = {result.p_value:.3g}, TCP sqrt(trace) <= '
             f'{tcp_um:.1f} µm; written to {self.data_dir}')
 
+    def _diagnose(self) -> tuple[bool, str]:
+        """Model diagnosis of the accepted measurements (as ``kpi-calib diagnose``): residual
+        report, adequacy and the most likely missing effect; report files and ~/diagnosis."""
+        cm = self._model()
+        data, _ = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame)
+        cd = diagnose_cell(cm, data)
+        report = write_report(self.data_dir / DIAGNOSIS_DIR, cd)
+        doc = diagnosis_to_dict(cd)
+        self._diagnosis = doc
+        self._pub_diagnosis.publish(String(data=json.dumps(doc)))
+        self._publish_diagnostics(force=True)
+        return True, f'{cd.diagnosis.verdict} Report: {report}'
+
     def _reset(self) -> tuple[bool, str]:
         """Start a new campaign: archive (never delete) the logs and results."""
         count, archive = self.campaign.reset()
         self._result, self._measured, self._result_error = None, None, ''
-        self._identified_with, self._auto_pending = 0, False
+        self._identified_with, self._auto_pending, self._diagnosis = 0, False, None
         self._publish_markers()
         self._publish_diagnostics(force=True)
         return True, f'archived {count} measurement(s) and the results to {archive}'
@@ -325,6 +344,11 @@ class CalibrationNode(Node):
         if result is not None:
             values.update({'rms_um': round(result.rms_m * 1e6, 3),
                            'p_value': float(result.p_value), 'converged': result.converged})
+        if self._diagnosis is not None:
+            best = next((c['spec'] for c in self._diagnosis['candidates'] if c['significant']),
+                        'none')
+            values.update({'model_adequate': self._diagnosis['model_adequate'],
+                           'suggested_effect': best})
         error = self._model_error or self._result_error
         if error or values['rejected.not_stored']:
             return 'ERROR', error or 'accepted measurements could not be stored', values
