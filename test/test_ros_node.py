@@ -35,7 +35,8 @@ from visualization_msgs.msg import MarkerArray
 
 from kpi_calib_ros import cli
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.io.bag import MeasurementLog, read_bag
+from kpi_calib_ros.core.streams import synthesize_streams
+from kpi_calib_ros.io.bag import MeasurementLog, read_bag, write_bag
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 from kpi_calib_ros.io.simulate import simulate_campaign
 from kpi_calib_ros.ros import conversions as cv
@@ -197,9 +198,9 @@ def spawn(tmp_path):
         started.append(NodeProcess(data_dir, tmp_path / log_name, *overrides))
         return started[-1]
 
-    def replay(bag: Path) -> subprocess.Popen:
+    def replay(bag: Path, rate: float = RATE) -> subprocess.Popen:
         started.append(subprocess.Popen(
-            [str(BIN / 'kpi-calib'), 'replay', str(bag), '--rate', str(RATE)],
+            [str(BIN / 'kpi-calib'), 'replay', str(bag), '--rate', str(rate)],
             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True))
         return started[-1]
 
@@ -400,6 +401,38 @@ def reject_malformed_messages(client: Client, campaign) -> None:
     assert after['accepted'] == before['accepted']
     assert int(after['ignored_joint_samples']) - int(before['ignored_joint_samples']) == 3
     assert client.received['diagnostics'][-1][0] == DiagnosticStatus.WARN
+
+
+def test_replay_publishes_the_bag_with_its_timing(client, spawn, tmp_path):
+    """Every message, unchanged and in order, spread over the recording's duration / rate."""
+    rng = np.random.default_rng(8)
+    joints, points = synthesize_streams(rng.uniform(-1, 1, (2, 3)), ['a', 'b', 'c'],
+                                        rng.uniform(-1, 1, (2, 3)), 'laser_tracker',
+                                        joint_noise_rad=1e-5, rng=rng)
+    bag = write_bag(tmp_path / 'short.mcap', joints, points)
+    arrivals = {'joints': [], 'points': []}
+    qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+    client.node.create_subscription(JointState, '/joint_states', lambda m: arrivals['joints']
+                                    .append((time.monotonic(), m)), qos)
+    client.node.create_subscription(PointStamped, '/laser_tracker/point', lambda m: arrivals[
+        'points'].append((time.monotonic(), m)), qos)
+    rate = 8.0
+    finish(spawn.replay(bag, rate), client)
+    client.spin_until(lambda: len(arrivals['joints']) == len(joints)
+                      and len(arrivals['points']) == len(points), 10, 'every message')
+    for (_, msg), sample in zip(arrivals['joints'], joints):
+        got = cv.joint_sample_from_msg(msg)
+        assert got.stamp_ns == sample.stamp_ns and got.names == sample.names
+        np.testing.assert_array_equal(got.positions, sample.positions)
+        np.testing.assert_array_equal(got.velocities, sample.velocities)
+    for (_, msg), sample in zip(arrivals['points'], points):
+        got = cv.point_sample_from_msg(msg)
+        assert (got.stamp_ns, got.frame_id) == (sample.stamp_ns, sample.frame_id)
+        np.testing.assert_array_equal(got.xyz, sample.xyz)
+    recorded_s = (joints[-1].stamp_ns - joints[0].stamp_ns) * 1e-9
+    played_s = arrivals['joints'][-1][0] - arrivals['joints'][0][0]
+    print(f'replay: {recorded_s:.1f} s recorded, played in {played_s:.2f} s at rate {rate:g}')
+    assert played_s >= 0.9 * recorded_s / rate  # paced, not dumped; slower is allowed
 
 
 def test_invalid_parameters_stop_the_node_with_the_parameter_named(spawn, tmp_path, ros_domain):
