@@ -10,8 +10,11 @@ better" except O1:
 
 * ``kpi``  Σ_t ω_t tr(C_s,t) / 3 with weights ω summing to 1 (m²): eq. (24a)
   with P projecting onto the TCP points; the average TCP variance.
-* ``A``    tr(S C_p S) / k (m²): the parameter-optimal "state of the art" q_p;
-  S turns angles into lengths at the arm's working radius so m and rad add up.
+* ``A``    tr(S C_p S) / k (m²): the parameter-optimal "state of the art" q_p.
+  S_j is the rms length by which a unit change of parameter j moves the
+  measured point (1 for a translation, the lever arm for an angle), so every
+  term is the point variance that parameter's uncertainty causes: m and rad
+  add up, and a parameter the reflector barely feels cannot dominate.
 * ``D``    det(S C_p S)^(1/k) (m²).
 * ``O1``   Borm-Menq (σ₁⋯σ_k)^(1/k)/√m of the S-scaled Jacobian (larger is better).
 * ``cond`` condition number of the S-scaled Jacobian.
@@ -141,7 +144,8 @@ class DesignProblem:
     column_scale : (k,) ndarray
         D: columns of W J D have unit rms over the rich pose set (numerics only).
     physical_scale : (k,) ndarray
-        S: 1 for lengths, ``length_scale`` (m/rad) for angles.
+        S: rms of ‖∂h/∂p_j‖ over the rich pose set (m per unit of p_j; 1 for a
+        translation, the lever arm for an angle).
     kpi_jacobian : (t, 3, k) ndarray
         d s_t / d p of the KPI points (tracker frame).
     kpi_weights : (t,) ndarray
@@ -156,7 +160,6 @@ class DesignProblem:
     physical_scale: np.ndarray
     kpi_jacobian: np.ndarray
     kpi_weights: np.ndarray
-    length_scale: float
 
     @property
     def k(self) -> int:
@@ -229,7 +232,7 @@ def build_problem(cell_model, q_rich: np.ndarray,
     model, cell = cell_model.model, cell_model.cell
     p = model.params.nominal.copy()
     w = 1.0 / cell.sigma
-    pts, jac = model.jacobian(p, q_rich)
+    _, jac = model.jacobian(p, q_rich)
     stacked = (jac * w[None, :, None]).reshape(-1, len(p))
     # A column at round-off level (a rotation about an axis the reflector sits on)
     # has no effect; normalised it would pass the QR as noise with a huge variance.
@@ -240,11 +243,7 @@ def build_problem(cell_model, q_rich: np.ndarray,
                                 priority=list(cell.identification_priority) or None)
     idx = model.params.indices(ident.kept)
     rms = np.sqrt(np.mean(np.sum((jac[:, :, idx] * w[None, :, None]) ** 2, axis=1), axis=0))
-    # Working radius: where the reflector typically is, seen from the base origin.
-    base_pts = (np.c_[pts, np.ones(len(pts))] @ cell_model.tracker_in_base.T)[:, :3]
-    length = float(np.median(np.linalg.norm(base_pts, axis=1)))
-    units = np.array(model.params.units)[idx]
-    physical = np.where(units == 'rad', length, 1.0)
+    effect = np.sqrt(np.mean(np.sum(jac[:, :, idx] ** 2, axis=1), axis=0))
     names = cell_model.working_pose_names
     weights = dict(weights or {})
     unknown = set(weights) - set(names)
@@ -255,8 +254,8 @@ def build_problem(cell_model, q_rich: np.ndarray,
     if omega.sum() <= 0:
         raise ConfigError('design.weights', 'at least one working pose needs a weight > 0')
     _, kpi_jac = model.jacobian(p, cell_model.q_work)
-    return DesignProblem(tuple(ident.kept), idx, p, w, 1.0 / rms, physical,
-                         kpi_jac[:, :, idx], omega / omega.sum(), length)
+    return DesignProblem(tuple(ident.kept), idx, p, w, 1.0 / rms, effect,
+                         kpi_jac[:, :, idx], omega / omega.sum())
 
 
 # ------------------------------------------------------------------------- result

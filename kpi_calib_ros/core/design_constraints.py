@@ -90,6 +90,9 @@ def generate_candidates(cell_model, scene: CollisionScene | None, count: int,
             q = q[np.all(margins >= clearance, axis=1)]
         found.append(q)
         n_found += len(q)
+        # Give up early when the feasible rate cannot reach ``count`` within max_draws.
+        if drawn * count > max_draws * max(n_found, 0.05 * count):
+            break
     rate = {lab: float(v / max(measurable, 1)) for lab, v in zip(labels, violated)}
     flagged = tuple(lab for lab, r in rate.items() if measurable and r >= flag_threshold)
     if n_found < count:
