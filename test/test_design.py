@@ -8,8 +8,8 @@ import pytest
 import yaml
 
 from kpi_calib_ros.core.covariance import kkt_covariance, kpi_jacobians, parameter_covariance
-from kpi_calib_ros.core.design import (DesignSettings, design_context, design_measurements,
-                                       design_settings)
+from kpi_calib_ros.core.design import (DesignSettings, build_problem, design_context,
+                                       design_measurements, design_settings)
 from kpi_calib_ros.core.design_constraints import (feasibility_function, flag_pairs,
                                                    verify_design)
 from kpi_calib_ros.core.design_exchange import (ConditionLoss, LogDetLoss, TraceLoss, exchange,
@@ -74,6 +74,21 @@ def test_criteria_equal_the_covariance_module(cell, context):
                                          rel=1e-6)
     # The exchange losses are the same numbers.
     assert problem.loss('kpi').value(information(rows)) == pytest.approx(values['kpi'], rel=1e-9)
+
+
+def test_kpi_weights_working_poses(cell, context):
+    raw = yaml.safe_load(DEFAULT_CELL.read_text())
+    second = {'name': 'side', 'joints': {'joint_1': 0.6, 'joint_2': 0.2, 'joint_3': -0.1,
+                                         'joint_4': 0.3, 'joint_5': 0.7, 'joint_6': 0.0}}
+    raw['working_poses'].append(second)
+    two = build_cell_model(cell_from_dict(raw, DEFAULT_CELL.parent))
+    q = context.candidates.configurations
+    problem = build_problem(two, q[:300], {'car_roof_edge': 3.0, 'side': 1.0})
+    rows = problem.rows(two.model, q[:40])
+    traces = np.trace(problem.tcp_covariance(rows), axis1=1, axis2=2)
+    assert problem.criteria(rows)['kpi'] == pytest.approx((3 * traces[0] + traces[1]) / 12)
+    with pytest.raises(ConfigError, match='design.weights'):
+        build_problem(two, q[:300], {'roof': 1.0})
 
 
 def test_exchange_never_worsens_and_beats_random(context):
