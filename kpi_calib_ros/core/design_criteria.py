@@ -1,0 +1,168 @@
+"""Design criteria of eq. (24a) for the linearised problem at the nominal parameters.
+
+For the identifiable parameters (QR on a rich random pose set, once per cell)
+the covariance is ``C_p = M⁻¹`` with the information ``M = Σ_i J_iᵀ W² J_i``
+(W = diag(1/σ)), and the KPI covariance at working pose t is
+``C_s,t = J_w,t C_p J_w,tᵀ`` (eq. 19; the KPI point is the reflector centre at
+the working pose in the tracker frame, gauge-free). Criteria, all "smaller is
+better" except O1:
+
+* ``kpi``  Σ_t ω_t tr(C_s,t) / 3 with weights ω summing to 1 (m²): eq. (24a)
+  with P projecting onto the TCP points; the average TCP variance.
+* ``A``    tr(S C_p S) / k (m²): the parameter-optimal "state of the art" q_p.
+  S_j is the rms length by which a unit change of parameter j moves the
+  measured point (1 for a translation, the lever arm for an angle), so every
+  term is the point variance that parameter's uncertainty causes: m and rad
+  add up, and a parameter the reflector barely feels cannot dominate.
+* ``D``    det(S C_p S)^(1/k) (m²).
+* ``O1``   Borm-Menq (σ₁⋯σ_k)^(1/k)/√m of the S-scaled Jacobian (larger is better).
+* ``cond`` condition number of the S-scaled Jacobian.
+
+Numerics use the column-scaled rows W J D (D equilibrates the columns), so M̃ =
+D M D is well conditioned although lengths and angles differ by orders.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Mapping
+
+import numpy as np
+
+from kpi_calib_ros.core.design_exchange import ConditionLoss, LogDetLoss, TraceLoss, information
+from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.core.identifiability import select_identifiable
+
+CRITERIA = ('kpi', 'A', 'D', 'O1', 'cond')
+# Relative column norm below which a parameter counts as having no effect at all.
+NEGLIGIBLE_EFFECT = 1e-8
+
+
+@dataclass(frozen=True)
+class DesignProblem:
+    """Linearised design problem at the nominal parameters.
+
+    Attributes
+    ----------
+    parameter_names : tuple of str
+        Identifiable parameters designed for (k).
+    index : (k,) ndarray
+        Their positions in ``model.params``.
+    p : (n_p,) ndarray
+        Parameters the Jacobians are evaluated at (nominal).
+    weight : (3,) ndarray
+        1/σ per tracker axis (1/m).
+    column_scale : (k,) ndarray
+        D: columns of W J D have unit rms over the rich pose set (numerics only).
+    physical_scale : (k,) ndarray
+        S: rms of ‖∂h/∂p_j‖ over the rich pose set (m per unit of p_j; 1 for a
+        translation, the lever arm for an angle).
+    kpi_jacobian : (t, 3, k) ndarray
+        d s_t / d p of the KPI points (tracker frame).
+    kpi_weights : (t,) ndarray
+        ω_t, summing to 1.
+    """
+
+    parameter_names: tuple[str, ...]
+    index: np.ndarray
+    p: np.ndarray
+    weight: np.ndarray
+    column_scale: np.ndarray
+    physical_scale: np.ndarray
+    kpi_jacobian: np.ndarray
+    kpi_weights: np.ndarray
+
+    @property
+    def k(self) -> int:
+        return len(self.index)
+
+    def rows(self, model, q: np.ndarray) -> np.ndarray:
+        """Scaled weighted Jacobian rows W J D (N, 3, k) of configurations ``q`` (N, n)."""
+        _, jac = model.jacobian(self.p, np.atleast_2d(q))
+        return jac[:, :, self.index] * self.weight[None, :, None] * self.column_scale
+
+    def factor(self, criterion: str) -> np.ndarray:
+        """L with ``loss = tr(L M̃⁻¹ Lᵀ)`` for M̃ = information of :meth:`rows`."""
+        if criterion == 'kpi':
+            w = np.sqrt(self.kpi_weights / 3.0)[:, None, None]
+            return (w * self.kpi_jacobian * self.column_scale).reshape(-1, self.k)
+        if criterion == 'A':
+            return np.diag(self.column_scale * self.physical_scale) / np.sqrt(self.k)
+        raise ValueError(f'criterion {criterion!r} has no trace form')
+
+    def loss(self, criterion: str):
+        """Loss object of :mod:`design_exchange` for ``criterion``."""
+        if criterion in ('kpi', 'A'):
+            return TraceLoss(self.factor(criterion))
+        if criterion in ('D', 'O1'):
+            return LogDetLoss()
+        if criterion == 'cond':
+            return ConditionLoss(1.0 / (self.column_scale * self.physical_scale))
+        raise ValueError(f'criterion must be one of {CRITERIA}, got {criterion!r}')
+
+    def parameter_covariance(self, rows: np.ndarray) -> np.ndarray:
+        """C_p (k, k) of the identifiable parameters, in their own units."""
+        d = self.column_scale
+        return d[:, None] * np.linalg.inv(information(rows)) * d[None, :]
+
+    def tcp_covariance(self, rows: np.ndarray) -> np.ndarray:
+        """C_s,t (t, 3, 3) of the KPI points, m²."""
+        c_p = self.parameter_covariance(rows)
+        return self.kpi_jacobian @ c_p @ self.kpi_jacobian.transpose(0, 2, 1)
+
+    def criteria(self, rows: np.ndarray) -> dict[str, float]:
+        """Every criterion of the design with these rows (see module docstring)."""
+        info = information(rows)
+        sign, logdet = np.linalg.slogdet(info)
+        if sign <= 0:
+            return {c: float('inf') if c != 'O1' else 0.0 for c in CRITERIA}
+        ds = self.column_scale * self.physical_scale
+        log_scale = 2.0 * float(np.sum(np.log(ds)))
+        tcp = self.tcp_covariance(rows)
+        return {
+            'kpi': float(self.kpi_weights @ np.trace(tcp, axis1=1, axis2=2) / 3.0),
+            'A': TraceLoss(self.factor('A')).value(info),
+            'D': float(np.exp((log_scale - logdet) / self.k)),
+            'O1': float(np.exp(0.5 * (logdet - log_scale) / self.k)
+                         / np.sqrt(rows.shape[0] * rows.shape[1])),
+            'cond': self.loss('cond').value(info),
+        }
+
+
+def build_problem(cell_model, q_rich: np.ndarray,
+                  weights: Mapping[str, float] | None = None) -> DesignProblem:
+    """Identifiable parameters, scalings and KPI Jacobians for a cell.
+
+    Parameters
+    ----------
+    cell_model : CellModel
+    q_rich : (R, n) ndarray
+        Many measurable configurations (a few hundred) for the rank analysis.
+    weights : mapping of working pose name to weight, optional
+    """
+    model, cell = cell_model.model, cell_model.cell
+    p = model.params.nominal.copy()
+    w = 1.0 / cell.sigma
+    _, jac = model.jacobian(p, q_rich)
+    stacked = (jac * w[None, :, None]).reshape(-1, len(p))
+    # A column at round-off level (a rotation about an axis the reflector sits on)
+    # has no effect; normalised it would pass the QR as noise with a huge variance.
+    norms = np.linalg.norm(stacked, axis=0)
+    stacked[:, norms < NEGLIGIBLE_EFFECT * norms.max()] = 0.0
+    ident = select_identifiable(stacked, list(model.params.names),
+                                method=cell.identification_method,
+                                priority=list(cell.identification_priority) or None)
+    idx = model.params.indices(ident.kept)
+    rms = np.sqrt(np.mean(np.sum((jac[:, :, idx] * w[None, :, None]) ** 2, axis=1), axis=0))
+    effect = np.sqrt(np.mean(np.sum(jac[:, :, idx] ** 2, axis=1), axis=0))
+    names = cell_model.working_pose_names
+    weights = dict(weights or {})
+    unknown = set(weights) - set(names)
+    if unknown:
+        raise ConfigError('design.weights', f'unknown working poses {sorted(unknown)}; '
+                          f'poses are {list(names)}')
+    omega = np.array([weights.get(n, 1.0) for n in names], float)
+    if omega.sum() <= 0:
+        raise ConfigError('design.weights', 'at least one working pose needs a weight > 0')
+    _, kpi_jac = model.jacobian(p, cell_model.q_work)
+    return DesignProblem(tuple(ident.kept), idx, p, w, 1.0 / rms, effect,
+                         kpi_jac[:, :, idx], omega / omega.sum())
