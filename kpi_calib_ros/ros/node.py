@@ -163,7 +163,7 @@ class CalibrationNode(Node):
         if msg.data != self._urdf:
             try:
                 self._set_robot_description(msg.data)
-            except KpiCalibError as exc:
+            except (KpiCalibError, ValueError) as exc:  # bad URDF / cell: report, keep waiting
                 self._model_error = f'robot description rejected: {exc}'
                 self.get_logger().error(self._model_error)
 
