@@ -25,6 +25,7 @@ from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
 
 # A nominal model is off by millimetres, a wrong unit or frame by metres.
 MAX_START_ERROR = 0.1
+MAX_SELECTION_ROUNDS = 4
 
 
 @dataclass(frozen=True)
@@ -139,23 +140,35 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     p = np.array(model.params.nominal if p0 is None else p0, dtype=float)
     free_idx = model.params.indices(free) if free else np.arange(len(p))
 
-    pred, jac = model.jacobian(p, q, tau)
+    pred, _ = model.jacobian(p, q, tau)
     start_error = float(np.median(np.linalg.norm(eta - pred, axis=1)))
     if start_error > MAX_START_ERROR:
         raise DataError(f'measured points are {start_error:.3g} m (median) from the nominal '
                         'prediction; check that points are in metres, in the tracker frame, and '
                         'that tracker.base_in_tracker and the joint order/units are right')
-    stacked = (jac * w[None, :, None]).reshape(-1, len(p))[:, free_idx]
-    ident = select_identifiable(stacked, [model.params.names[i] for i in free_idx],
-                                method=identifiability_method, priority=priority)
-    idx = model.params.indices(ident.kept)
-    if 3 * len(q) <= len(idx):
-        raise DataError(f'too few measurements: {len(q)} points give {3 * len(q)} equations '
-                        f'for {len(idx)} identifiable parameters; measure at least '
-                        f'{len(idx) // 3 + 2} poses (better 3-5x that)')
-
-    p, converged, status, iterations = _gauss_newton(model, p, idx, q, eta, tau, w,
-                                                     max_iterations)
+    free_names = [model.params.names[i] for i in free_idx]
+    # Identifiability depends on the geometry: at a nominal reflector exactly on the
+    # flange axis some directions vanish that the real (slightly off-axis) robot has.
+    # Select at the start, fit, and select again at the estimate until the set is stable.
+    # A parameter dropped in a later round keeps the value it was fitted to: the full
+    # vector stays one exact solution (one gauge); resetting it would restart the fit.
+    ident, iterations, kept_before = None, 0, None
+    for _ in range(MAX_SELECTION_ROUNDS):
+        _, jac = model.jacobian(p, q, tau)
+        stacked = (jac * w[None, :, None]).reshape(-1, len(p))[:, free_idx]
+        ident = select_identifiable(stacked, free_names, method=identifiability_method,
+                                    priority=priority)
+        if ident.kept == kept_before:
+            break
+        idx = model.params.indices(ident.kept)
+        if 3 * len(q) <= len(idx):
+            raise DataError(f'too few measurements: {len(q)} points give {3 * len(q)} '
+                            f'equations for {len(idx)} identifiable parameters; measure at '
+                            f'least {len(idx) // 3 + 2} poses (better 3-5x that)')
+        p, converged, status, used = _gauss_newton(model, p, idx, q, eta, tau, w,
+                                                   max_iterations)
+        iterations += used
+        kept_before = ident.kept
     pred, jac = model.jacobian(p, q, tau)
     residuals = eta - pred
     f1_p = (jac * w[None, :, None]).reshape(-1, len(p))[:, idx]

@@ -58,6 +58,8 @@ def calibration_to_dict(result: CalibrationResult,
                            'p_value': float(result.p_value),
                            'adequate': bool(result.p_value > 0.01)},
         'parameters': parameters,
+        # Not identifiable: held fixed (at the prior, or where an earlier selection round
+        # left it); their value is a choice of gauge, not a measurement.
         'dropped_parameters': [{'name': d.name, 'reason': d.reason} for d in result.dropped],
         'tcp': tcp,
         'residuals_m': [[float(x) for x in r] for r in result.residuals],
