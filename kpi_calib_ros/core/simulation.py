@@ -13,6 +13,7 @@ from typing import Callable
 
 import numpy as np
 
+from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
 from kpi_calib_ros.core.parameters import ParameterSet
 
@@ -88,7 +89,7 @@ def random_configurations(model: MeasurementModel, p: np.ndarray, n: int,
 
     Raises
     ------
-    RuntimeError
+    ConfigError
         If fewer than ``n`` feasible poses are found in ``max_draws`` draws.
     """
     lower, upper = sampling_bounds(model)
@@ -98,8 +99,10 @@ def random_configurations(model: MeasurementModel, p: np.ndarray, n: int,
     cos_limit = np.cos(max_incidence)
     while count < n:
         if drawn >= max_draws:
-            raise RuntimeError(f'only {count} of {n} measurable poses in {drawn} random draws; '
-                               'check the tracker pose, reflector axis and joint limits')
+            raise ConfigError('tracker.base_in_tracker',
+                              f'only {count} of {n} measurable poses in {drawn} random draws; '
+                              'check the tracker pose, reflector.axis, reflector.max_incidence, '
+                              'the joint limits and collision.ignore_pairs')
         cand = rng.uniform(lower, upper, size=(batch, len(lower)))
         drawn += batch
         ok = model.incidence_cos(p, cand) >= cos_limit
