@@ -13,7 +13,8 @@ import numpy as np
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation import CalibrationResult, identify
 from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.streams import JointSample, PairingResult, PointSample, pair_measurements
+from kpi_calib_ros.core.streams import JointSample, PointSample
+from kpi_calib_ros.core.pairing import PairingResult, pair_measurements
 from kpi_calib_ros.io.cell import CellModel
 
 

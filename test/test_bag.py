@@ -13,9 +13,11 @@ import pytest
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
-from kpi_calib_ros.core.streams import JointSample, PointSample, pair_measurements, \
-    synthesize_streams
-from kpi_calib_ros.io.bag import BagError, MeasurementLog, read_bag, write_bag
+from kpi_calib_ros.core.streams import JointSample, PointSample, synthesize_streams
+
+from kpi_calib_ros.core.pairing import pair_measurements
+from kpi_calib_ros.io.bag import BagError, read_bag, write_bag
+from kpi_calib_ros.io.measurement_log import MeasurementLog
 
 NAMES = ('joint_1', 'joint_2', 'joint_3', 'joint_4', 'joint_5', 'joint_6')
 FRAME = 'tracker'
@@ -241,7 +243,7 @@ KILLED_WRITER = r'''
 import sys
 sys.path.insert(0, sys.argv[2])
 from test_bag import measurement
-from kpi_calib_ros.io.bag import MeasurementLog
+from kpi_calib_ros.io.measurement_log import MeasurementLog
 
 log = MeasurementLog(sys.argv[1])
 i = 0

@@ -1,5 +1,4 @@
 """Robot model: chain extraction from arbitrary URDFs, against Pinocchio."""
-import casadi as ca
 import numpy as np
 import pinocchio as pin
 import pytest
@@ -42,7 +41,6 @@ def test_gravity_torque_counts_payload(odd_arm_urdf):
     def potential(qq):
         fk_tip = loaded.pin_tip_pose(qq)
         com_world = fk_tip[:3, :3] @ np.array([0, 0, 0.1]) + fk_tip[:3, 3]
-        base_pose = loaded.pin_model  # noqa: F841  (base is level in this URDF up to mount)
         return 2.0 * 9.81 * com_world @ _up_in_mount(loaded)
     eps = 1e-6
     for j in range(5):

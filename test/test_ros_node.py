@@ -36,7 +36,8 @@ from visualization_msgs.msg import MarkerArray
 from kpi_calib_ros import cli
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.streams import synthesize_streams
-from kpi_calib_ros.io.bag import MeasurementLog, read_bag, write_bag
+from kpi_calib_ros.io.bag import read_bag, write_bag
+from kpi_calib_ros.io.measurement_log import MeasurementLog
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 from kpi_calib_ros.io.simulate import simulate_campaign
 from kpi_calib_ros.ros import conversions as cv

@@ -10,7 +10,7 @@ import numpy as np
 import yaml
 
 from kpi_calib_ros.core.estimation import CalibrationResult
-from kpi_calib_ros.core.streams import PairingResult
+from kpi_calib_ros.core.pairing import PairingResult
 
 
 def write_atomic(path: str | Path, text: str) -> Path:

@@ -1,9 +1,9 @@
 """One calibration campaign as the node lives it: live pairing into a durable store.
 
 No rclpy here: the node converts messages to samples and hands them over; this
-class pairs them with :class:`~kpi_calib_ros.core.streams.Pairer` (the code that
+class pairs them with :class:`~kpi_calib_ros.core.pairing.Pairer` (the code that
 pairs bags), appends every accepted measurement to a
-:class:`~kpi_calib_ros.io.bag.MeasurementLog` before counting it, reloads the logs
+:class:`~kpi_calib_ros.io.measurement_log.MeasurementLog` before counting it, reloads the logs
 of earlier runs in the same folder, and never counts a stamp twice. Thread-safe:
 every public method takes the campaign's lock.
 
@@ -23,10 +23,10 @@ import numpy as np
 
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.streams import (REJECTION_REASONS, Decision, JointSample,
-                                        PairedMeasurement, Pairer, PairingResult, PointSample,
-                                        Rejection)
-from kpi_calib_ros.io.bag import MeasurementLog
+from kpi_calib_ros.core.streams import JointSample, PointSample
+from kpi_calib_ros.core.pairing import (REJECTION_REASONS, Decision, PairedMeasurement, Pairer,
+                                        PairingResult, Rejection)
+from kpi_calib_ros.io.measurement_log import MeasurementLog
 
 # Campaign-level reasons besides the pairer's: the measurement could not be written.
 NOT_STORED = 'not_stored'

@@ -46,7 +46,7 @@ from kpi_calib_ros.core.design import design_measurements
 from kpi_calib_ros.core.dh import dh_table
 from kpi_calib_ros.core.errors import ConfigError, DataError, KpiCalibError
 from kpi_calib_ros.core.estimation import CalibrationResult
-from kpi_calib_ros.core.streams import Decision, Rejection
+from kpi_calib_ros.core.pairing import Decision, Rejection
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, cell_from_dict
 from kpi_calib_ros.io.design_io import write_design
 from kpi_calib_ros.io.report import diagnose_cell, diagnosis_to_dict, write_report
