@@ -26,6 +26,7 @@ from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
 # A nominal model is off by millimetres, a wrong unit or frame by metres.
 MAX_START_ERROR = 0.1
 MAX_SELECTION_ROUNDS = 4
+MIN_PREDICTED_DECREASE = 1e-9
 
 
 @dataclass(frozen=True)
@@ -158,6 +159,15 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
         stacked = (jac * w[None, :, None]).reshape(-1, len(p))[:, free_idx]
         ident = select_identifiable(stacked, free_names, method=identifiability_method,
                                     priority=priority)
+        if kept_before is not None and ident.rank == len(kept_before):
+            # Same rank: the fitted set still spans the identifiable directions (QR may
+            # merely prefer an equivalent subset here). Keep it; restate its reasons here.
+            kept_first = list(kept_before) + [n for n in free_names if n not in kept_before]
+            again = select_identifiable(stacked, free_names, method='priority',
+                                        priority=kept_first)
+            if again.kept == kept_before:
+                ident = again
+                break
         if ident.kept == kept_before:
             break
         idx = model.params.indices(ident.kept)
@@ -211,6 +221,11 @@ def _gauss_newton(model: MeasurementModel, p: np.ndarray, idx: np.ndarray, q: np
         # |Δ_i| σ_i⁻¹ ≈ |step_scaled_i| in equilibrated units.
         if np.max(np.abs(step_scaled)) < 1e-8 * max(1.0, np.sqrt(2 * cost)):
             return p, True, 'converged: step below 1e-8 of parameter std', iteration
+        # Gauss-Newton predicts a decrease of ½‖F Δ‖² in ½χ²; below 1e-9 nothing is left to
+        # gain (round-off in flat directions would only make the line search fail slowly).
+        predicted = 0.5 * np.sum((f @ step) ** 2)
+        if predicted < MIN_PREDICTED_DECREASE:
+            return p, True, 'converged: predicted χ² decrease below 1e-9', iteration
         accepted = False
         for damping in (0.0, 1e-3, 1e-1, 10.0):
             if damping:
