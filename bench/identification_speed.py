@@ -10,6 +10,7 @@ import sys
 import time
 from pathlib import Path
 
+import kpi_calib_ros  # noqa: F401  (sets single-threaded BLAS before numpy loads)
 import numpy as np
 
 from kpi_calib_ros.core.estimation import identify

@@ -1,6 +1,7 @@
 """Shared fixtures: a deliberately awkward URDF chain for generality tests."""
 from __future__ import annotations
 
+import kpi_calib_ros  # noqa: F401  (single-threaded BLAS before any test imports numpy)
 import pytest
 
 ODD_ARM_URDF = """<?xml version="1.0"?>
