@@ -7,21 +7,18 @@ ball); floor and wall are half-spaces. A pair's *margin* is its signed distance
 
 The margins are written once with CasADi operations so the same code gives
 IPOPT exact derivatives on SX/MX symbols and plain numbers on DM.
-:func:`verify_configuration` recomputes every margin with coal (hpp-fcl) so a
-design can be checked independently of that code path.
+:func:`kpi_calib_ros.core.collision_check.verify_configuration` recomputes every
+margin with coal (hpp-fcl) so a design can be checked independently of this code;
+:mod:`kpi_calib_ros.core.capsule_fit` fits capsules to URDF collision geometry.
 """
 from __future__ import annotations
 
-import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from typing import Any, Mapping, Sequence, Union
 
 import casadi as ca
-import coal
 import numpy as np
-import pinocchio as pin
 
-from kpi_calib_ros.core.errors import ConfigError
 
 BASE = 'base'
 BEAM = 'beam'
@@ -98,119 +95,6 @@ class HalfSpace:
 
 
 Obstacle = Union[Capsule, HalfSpace]
-
-
-# --------------------------------------------------------------------------- fitting
-def _link_capsule(name: str, link: str, placement: pin.SE3, half: float,
-                  radius: float, axis: int = 2) -> Capsule:
-    """Capsule along local ``axis`` of ``placement`` (link frame), half-length ``half``."""
-    direction = placement.rotation[:, axis] * half
-    centre = placement.translation
-    return Capsule(name, link, centre - direction, centre + direction, radius)
-
-
-def _fit(shape: Any, name: str, link: str, placement: pin.SE3) -> Capsule:
-    """Smallest capsule of our family that encloses one coal primitive."""
-    if isinstance(shape, (coal.Cylinder, coal.Capsule)):
-        # For a cylinder the hemispherical caps cover the flat ends: segment = axis.
-        return _link_capsule(name, link, placement, shape.halfLength, shape.radius)
-    if isinstance(shape, coal.Sphere):
-        return _link_capsule(name, link, placement, 0.0, shape.radius)
-    if isinstance(shape, coal.Box):
-        half = np.asarray(shape.halfSide, dtype=float)
-        axis = int(np.argmax(half))
-        # The segment must span the full box length: the corner at the segment's
-        # end is then exactly at distance hypot(other half-sides) = radius.
-        radius = float(np.linalg.norm(np.delete(half, axis)))
-        return _link_capsule(name, link, placement, float(half[axis]), radius, axis)
-    raise ConfigError(f'collision.capsules.{link}',
-                      f'cannot fit a capsule to a {type(shape).__name__}; '
-                      f'give capsules for link {link!r} in the cell file')
-
-
-def _origin(element: ET.Element) -> pin.SE3:
-    """URDF ``<origin>`` of a collision element: its pose in the link frame."""
-    origin = element.find('origin')
-    attrs = origin.attrib if origin is not None else {}
-    xyz, rpy = (np.array(attrs.get(k, '0 0 0').split(), dtype=float) for k in ('xyz', 'rpy'))
-    return pin.SE3(pin.rpy.rpyToMatrix(*rpy), xyz)
-
-
-def capsules_from_urdf(urdf_xml: str, link_names: Sequence[str]) -> list[Capsule]:
-    """Enclosing capsules for the URDF ``<collision>`` primitives of some links.
-
-    cylinder -> capsule on its axis, same radius; box -> capsule along its
-    longest axis, radius = half-diagonal of the other two; sphere -> zero-length
-    capsule; ``<capsule radius length>`` (non-standard, along z) -> itself.
-
-    Parameters
-    ----------
-    urdf_xml : str
-        URDF document.
-    link_names : sequence of str
-        Links to fit, each needing at least one primitive collision element.
-
-    Returns
-    -------
-    list of Capsule
-        Endpoints in the link frame (m). Named after the link when it has one
-        primitive, else ``'<link>.<k>'`` in document order.
-
-    Raises
-    ------
-    ConfigError
-        A link is unknown, has no collision geometry, or uses a mesh.
-    """
-    root = ET.fromstring(urdf_xml)
-    links = {link.get('name'): link for link in root.iter('link')}
-    per_link: dict[str, list[tuple[str, ET.Element]]] = {}
-    for name in link_names:
-        key = f'collision.capsules.{name}'
-        if name not in links:
-            raise ConfigError(key, f'link {name!r} is not in the URDF')
-        items = []
-        for col in links[name].findall('collision'):
-            geometry = col.find('geometry')
-            kind = geometry[0].tag if geometry is not None and len(geometry) else 'none'
-            if kind not in ('cylinder', 'box', 'sphere', 'capsule'):
-                raise ConfigError(key, f'link {name!r} has {kind} collision geometry; '
-                                       'give capsules for this link in the cell file')
-            items.append((kind, col))
-        if not items:
-            raise ConfigError(key, f'link {name!r} has no collision geometry; '
-                                   'give capsules for this link in the cell file')
-        per_link[name] = items
-    # urdfdom cannot load meshes we do not need nor parse <capsule> (it then drops
-    # every collision of that link), so Pinocchio only sees the standard primitives.
-    for link in root.iter('link'):
-        for col in list(link.findall('collision')):
-            geometry = col.find('geometry')
-            if geometry is None or not len(geometry) or geometry[0].tag not in (
-                    'cylinder', 'box', 'sphere'):
-                link.remove(col)
-        for vis in list(link.findall('visual')):
-            link.remove(vis)
-    clean = ET.tostring(root, encoding='unicode')
-    model = pin.buildModelFromXML(clean)
-    geom = pin.buildGeomFromUrdfString(model, clean, pin.GeometryType.COLLISION)
-    capsules = []
-    for name, items in per_link.items():
-        frame = model.frames[model.getFrameId(name, pin.BODY)]
-        from_pin = [o for o in geom.geometryObjects if model.frames[o.parentFrame].name == name]
-        for k, (kind, col) in enumerate(items):
-            cap_name = name if len(items) == 1 else f'{name}.{k}'
-            if kind == 'capsule':
-                g = col.find('geometry')[0]
-                half = 0.5 * float(g.get('length'))
-                capsules.append(_link_capsule(cap_name, name, _origin(col), half,
-                                              float(g.get('radius'))))
-            else:
-                obj = from_pin.pop(0)
-                # Pinocchio places geometry in the parent JOINT frame; the link frame
-                # differs when fixed joints were merged into that joint.
-                capsules.append(_fit(obj.geometry, cap_name, name,
-                                     frame.placement.inverse() * obj.placement))
-    return capsules
 
 
 # ------------------------------------------------------------------ casadi distances
@@ -459,85 +343,3 @@ class CollisionScene:
                                          [self._margins(transforms, tracker, reflector)],
                                          ['T', 'tracker', 'reflector'], ['margins'])
         return self._function
-
-
-# ------------------------------------------------------------------------- verifier
-@dataclass(frozen=True)
-class Verification:
-    """Independent (coal) check of one configuration.
-
-    Attributes
-    ----------
-    distances : dict of str to float
-        Signed distance per pair label (m).
-    violated : list of str
-        Labels whose distance is below the required clearance.
-    """
-
-    distances: dict[str, float]
-    violated: list[str]
-
-    @property
-    def ok(self) -> bool:
-        return not self.violated
-
-    @property
-    def min_distance(self) -> float:
-        return min(self.distances.values(), default=float('inf'))
-
-
-def _coal_capsule(a: np.ndarray, b: np.ndarray, radius: float) -> tuple[Any, Any]:
-    """coal capsule (centred, along local z) and its pose for segment a-b."""
-    axis = b - a
-    length = float(np.linalg.norm(axis))
-    z = axis / length if length > 1e-15 else np.array([0.0, 0.0, 1.0])
-    # Any rotation taking e_z to z: the capsule is symmetric about its axis.
-    rot = pin.Quaternion.FromTwoVectors(np.array([0.0, 0.0, 1.0]), z).matrix()
-    return coal.Capsule(radius, length), coal.Transform3s(rot, 0.5 * (a + b))
-
-
-def verify_configuration(scene: CollisionScene, link_transforms: Mapping[str, Any],
-                         tracker_point: Any, reflector_point: Any,
-                         clearance: float = 0.0) -> Verification:
-    """Signed distance of every pair of ``scene`` computed by coal, not CasADi.
-
-    Parameters
-    ----------
-    scene : CollisionScene
-        Pairs to check (the same labels as :attr:`CollisionScene.labels`).
-    link_transforms : mapping of str to (4, 4) array_like
-        Numeric poses of the scene's :attr:`~CollisionScene.frames` (m).
-    tracker_point, reflector_point : (3,) array_like
-        In the base frame (m).
-    clearance : float
-        A pair is violated when its distance is below this (m).
-
-    Returns
-    -------
-    Verification
-    """
-    def world(cap: Capsule) -> tuple[np.ndarray, np.ndarray]:
-        t = np.eye(4) if cap.frame == BASE else np.asarray(link_transforms[cap.frame], float)
-        return tuple(t[:3, :3] @ np.asarray(p) + t[:3, 3] for p in (cap.a, cap.b))
-
-    tracker = np.asarray(tracker_point, dtype=float).reshape(3)
-    ray = np.asarray(reflector_point, dtype=float).reshape(3) - tracker
-    length = float(np.linalg.norm(ray))
-    keep = max(length - scene.beam_end_clearance, 0.0) / length if length > 1e-12 else 0.0
-    beam = (tracker, tracker + keep * ray)
-    request = coal.DistanceRequest()
-    distances: dict[str, float] = {}
-    for pair in scene._pairs:
-        a1, b1 = beam if pair.first is None else world(pair.first)
-        r1 = scene.beam_radius if pair.first is None else pair.first.radius
-        shape1, pose1 = _coal_capsule(a1, b1, r1)
-        obs = pair.second
-        if isinstance(obs, HalfSpace):
-            # coal's Halfspace(n, d) is the SOLID side n.x <= d: our obstacle side.
-            shape2, pose2 = coal.Halfspace(np.array(obs.normal), obs.offset), coal.Transform3s()
-        else:
-            shape2, pose2 = _coal_capsule(*world(obs), obs.radius)
-        distances[pair.label] = float(coal.distance(shape1, pose1, shape2, pose2, request,
-                                                    coal.DistanceResult()))
-    violated = [label for label, d in distances.items() if d < clearance]
-    return Verification(distances, violated)

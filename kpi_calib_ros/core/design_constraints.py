@@ -18,7 +18,8 @@ import casadi as ca
 import numpy as np
 import pinocchio as pin
 
-from kpi_calib_ros.core.collision import CollisionScene, verify_configuration
+from kpi_calib_ros.core.collision import CollisionScene
+from kpi_calib_ros.core.collision_check import verify_configuration
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.simulation import sampling_bounds
 

@@ -26,7 +26,8 @@ import casadi as ca
 import numpy as np
 import yaml
 
-from kpi_calib_ros.core.collision import Capsule, CollisionScene, HalfSpace, capsules_from_urdf
+from kpi_calib_ros.core.capsule_fit import capsules_from_urdf
+from kpi_calib_ros.core.collision import Capsule, CollisionScene, HalfSpace
 from kpi_calib_ros.core.effects import resolve_effects
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.kinematics import pose6

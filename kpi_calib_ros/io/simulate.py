@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from kpi_calib_ros.core.collision import verify_configuration
+from kpi_calib_ros.core.collision_check import verify_configuration
 from kpi_calib_ros.core.effects import hidden_effects
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.kinematics import link_poses, link_poses_function
