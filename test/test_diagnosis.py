@@ -5,10 +5,9 @@ joint; after adding it the validation rms is within 20 % of the noise floor
 σ√3 and its parameter comes back within 3σ; on data the geometric model
 explains, no effect is claimed in at least 19 of 20 seeds.
 
-Both cells carry the reflector off the last joint axis (as on a real SMR
-adapter): with the reflector on that axis, the errors of the last placement are
-only reachable through large rotations and the geometric fit alone leaves
-systematic residuals of up to ~25 µm (see the report of issue 5).
+Both cells carry the reflector off the last joint axis, as on a real SMR
+adapter (the default cell keeps it on the axis; bench/diagnosis_false_alarms.py
+covers that case too).
 """
 from __future__ import annotations
 
