@@ -331,24 +331,32 @@ def _messages(path: Path, wanted: dict[str, tuple[str, str]], seen: dict[str, st
                 yield topic, message
 
 
-def _stamp_ns(header) -> int:
+def stamp_ns(header) -> int:
+    """Header stamp as integer nanoseconds."""
     return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
 
 
-def _joint_sample(message) -> JointSample:
+def joint_sample_from_message(message) -> JointSample:
+    """A sensor_msgs/JointState (rclpy message or decoded bag record) as a JointSample.
+
+    The one conversion for files and the live node, stamped with the header stamp.
+    A position array whose length differs from ``name`` becomes all-NaN, so the
+    pairer counts it as ``non_finite_joint_state`` instead of it vanishing here;
+    velocities of the wrong length, or none, become None.
+    """
     names = tuple(message.name)
     positions = np.asarray(message.position, dtype=float)
     if positions.shape != (len(names),):
-        # Kept as non-finite so the pairer counts it instead of it vanishing here.
         positions = np.full(len(names), np.nan)
     velocities = np.asarray(message.velocity, dtype=float)
-    return JointSample(_stamp_ns(message.header), names, positions,
+    return JointSample(stamp_ns(message.header), names, positions,
                        velocities if velocities.shape == (len(names),) else None)
 
 
-def _point_sample(message) -> PointSample:
+def point_sample_from_message(message) -> PointSample:
+    """A geometry_msgs/PointStamped (rclpy or decoded) as a PointSample (m, header frame)."""
     p = message.point
-    return PointSample(_stamp_ns(message.header), message.header.frame_id, [p.x, p.y, p.z])
+    return PointSample(stamp_ns(message.header), message.header.frame_id, [p.x, p.y, p.z])
 
 
 def _read(path: Path, joint_topic: str, point_topic: str, require_topics: bool):
@@ -359,8 +367,8 @@ def _read(path: Path, joint_topic: str, point_topic: str, require_topics: bool):
     seen: dict[str, str] = {}
     messages = []
     for topic, message in _messages(path, wanted, seen, allow_empty=not require_topics):
-        messages.append(_joint_sample(message) if topic == joint_topic
-                        else _point_sample(message))
+        messages.append(joint_sample_from_message(message) if topic == joint_topic
+                        else point_sample_from_message(message))
     for topic, (type_name, argument) in wanted.items():
         if require_topics and topic not in seen:
             present = ', '.join(f"'{t}' ({seen[t]})" for t in sorted(seen)) or 'none'
@@ -390,4 +398,5 @@ def read_bag(
 
 
 __all__ = ['BagError', 'DEFAULT_JOINT_TOPIC', 'DEFAULT_POINT_TOPIC', 'JOINT_STATE_TYPE',
-           'POINT_STAMPED_TYPE', 'message_definition', 'read_bag', 'type_hash', 'write_bag']
+           'POINT_STAMPED_TYPE', 'joint_sample_from_message', 'message_definition',
+           'point_sample_from_message', 'read_bag', 'stamp_ns', 'type_hash', 'write_bag']

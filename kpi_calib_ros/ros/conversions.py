@@ -18,6 +18,10 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from kpi_calib_ros.core.collision import BASE, Capsule
 from kpi_calib_ros.core.streams import JointSample, PointSample
+# The same message -> sample conversion as the bag reader, so live and recorded data agree.
+from kpi_calib_ros.io.bag import joint_sample_from_message as joint_sample_from_msg
+from kpi_calib_ros.io.bag import point_sample_from_message as point_sample_from_msg
+from kpi_calib_ros.io.bag import stamp_ns
 
 # Orientation of a TCP point is not measured: this variance (rad²) says "unknown".
 UNKNOWN_ORIENTATION_VARIANCE = 1e6
@@ -32,11 +36,6 @@ LEVELS = {'OK': DiagnosticStatus.OK, 'WARN': DiagnosticStatus.WARN,
 
 
 # ------------------------------------------------------------------ time
-def stamp_ns(header: Header) -> int:
-    """Header stamp as integer nanoseconds."""
-    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
-
-
 def time_msg(ns: int) -> Time:
     sec, nanosec = divmod(int(ns), 1_000_000_000)
     return Time(sec=sec, nanosec=nanosec)
@@ -47,29 +46,6 @@ def _header(ns: int, frame_id: str) -> Header:
 
 
 # ------------------------------------------------------------------ streams
-def joint_sample_from_msg(msg: JointState) -> JointSample:
-    """JointState -> JointSample, stamped with the header stamp.
-
-    A position array whose length differs from ``name`` becomes all-NaN so the
-    pairer counts it as ``non_finite_joint_state`` instead of it vanishing here
-    (as :func:`kpi_calib_ros.io.bag.read_bag` does); velocities of the wrong length,
-    or none, become None.
-    """
-    names = tuple(msg.name)
-    positions = np.asarray(msg.position, dtype=float)
-    if positions.shape != (len(names),):
-        positions = np.full(len(names), np.nan)
-    velocities = np.asarray(msg.velocity, dtype=float)
-    return JointSample(stamp_ns(msg.header), names, positions,
-                       velocities if velocities.shape == (len(names),) else None)
-
-
-def point_sample_from_msg(msg: PointStamped) -> PointSample:
-    """PointStamped -> PointSample (m, in ``header.frame_id``)."""
-    p = msg.point
-    return PointSample(stamp_ns(msg.header), msg.header.frame_id, [p.x, p.y, p.z])
-
-
 def joint_state_msg(sample: JointSample) -> JointState:
     """JointSample -> JointState (empty velocity when the sample has none)."""
     return JointState(
