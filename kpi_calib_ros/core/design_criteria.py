@@ -144,13 +144,10 @@ def build_problem(cell_model, q_rich: np.ndarray,
     w = 1.0 / cell.sigma
     _, jac = model.jacobian(p, q_rich)
     stacked = (jac * w[None, :, None]).reshape(-1, len(p))
-    # A column at round-off level (a rotation about an axis the reflector sits on)
-    # has no effect; normalised it would pass the QR as noise with a huge variance.
-    norms = np.linalg.norm(stacked, axis=0)
-    stacked[:, norms < NEGLIGIBLE_EFFECT * norms.max()] = 0.0
     ident = select_identifiable(stacked, list(model.params.names),
                                 method=cell.identification_method,
-                                priority=list(cell.identification_priority) or None)
+                                priority=list(cell.identification_priority) or None,
+                                zero_column=NEGLIGIBLE_EFFECT)
     idx = model.params.indices(ident.kept)
     rms = np.sqrt(np.mean(np.sum((jac[:, :, idx] * w[None, :, None]) ** 2, axis=1), axis=0))
     effect = np.sqrt(np.mean(np.sum(jac[:, :, idx] ** 2, axis=1), axis=0))

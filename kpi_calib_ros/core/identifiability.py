@@ -45,7 +45,8 @@ class Identifiability:
 def select_identifiable(jacobian: np.ndarray, names: list[str] | tuple[str, ...],
                         tolerance: float = DEFAULT_TOLERANCE,
                         method: str = 'pivoted',
-                        priority: list[str] | None = None) -> Identifiability:
+                        priority: list[str] | None = None,
+                        zero_column: float = ZERO_COLUMN) -> Identifiability:
     """Choose a maximal identifiable subset of parameters.
 
     Parameters
@@ -62,6 +63,9 @@ def select_identifiable(jacobian: np.ndarray, names: list[str] | tuple[str, ...]
         are (numerically) combinations of columns already kept.
     priority : list of str, optional
         Order for ``method='priority'``; names not listed follow in vector order.
+    zero_column : float
+        Columns whose norm is below this fraction of the largest count as having
+        no effect at all (reported as such, never normalised into noise).
     """
     names = list(names)
     if jacobian.shape[1] != len(names):
@@ -69,7 +73,7 @@ def select_identifiable(jacobian: np.ndarray, names: list[str] | tuple[str, ...]
     norms = np.linalg.norm(jacobian, axis=0)
     # A column at round-off level (e.g. a rotation about an axis the reflector sits on)
     # must not be normalised into noise that QR would take for information.
-    floor = ZERO_COLUMN * norms.max()
+    floor = zero_column * norms.max()
     unseen = [n for n, v in zip(names, norms) if v <= floor]
     cols = [i for i, v in enumerate(norms) if v > floor]
     a = jacobian[:, cols] / norms[cols]
