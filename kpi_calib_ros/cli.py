@@ -86,21 +86,19 @@ def _simulate(args: argparse.Namespace) -> int:
 
 
 def _identify(args: argparse.Namespace) -> int:
-    from kpi_calib_ros.core.dh import dh_table
     from kpi_calib_ros.io.bag import read_bag
     from kpi_calib_ros.core.effects import split_specs
     from kpi_calib_ros.io.cell import build_cell_model, load_cell
-    from kpi_calib_ros.io.results import calibration_to_dict, summary_text, write_calibration
-    from kpi_calib_ros.pipeline import identify_cell, measurements_from_samples
+    from kpi_calib_ros.io.results import summary_text, write_calibration
+    from kpi_calib_ros.pipeline import (calibration_document, identify_cell,
+                                        measurements_from_samples)
     cm = build_cell_model(load_cell(args.cell), effects=tuple(split_specs(args.effects)))
     joints, points = read_bag(args.bag)
     data, pairing = measurements_from_samples(cm, joints, points)
     for reason, count in sorted(pairing.rejections.items()):
         print(f'rejected {count} sample(s): {reason}', file=sys.stderr)
     result = identify_cell(cm, data)
-    doc = calibration_to_dict(result, pairing)
-    doc['dh_hayati'] = dh_table(cm.robot, cm.geometric, cm.geometric.nominal,
-                                result.values[:len(cm.geometric)])
+    doc = calibration_document(cm, result, pairing)
     comparison = ''
     if cm.model.effects:
         from kpi_calib_ros.io.report import add_effect_comparison

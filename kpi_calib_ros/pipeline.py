@@ -10,12 +10,14 @@ from typing import Iterable
 
 import numpy as np
 
+from kpi_calib_ros.core.dh import dh_table
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation import CalibrationResult, identify
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.streams import JointSample, PointSample
 from kpi_calib_ros.core.pairing import PairingResult, pair_measurements
 from kpi_calib_ros.io.cell import CellModel
+from kpi_calib_ros.io.results import calibration_to_dict
 
 
 def measurements_from_samples(cm: CellModel, joint_samples: Iterable[JointSample],
@@ -47,3 +49,12 @@ def identify_cell(cm: CellModel, data: Measurements, p0: np.ndarray | None = Non
     return identify(cm.model, data, cm.cell.sigma, cm.q_work, list(cm.working_pose_names),
                     p0=p0, free=free, identifiability_method=cm.cell.identification_method,
                     priority=list(cm.cell.identification_priority) or None)
+
+
+def calibration_document(cm: CellModel, result: CalibrationResult,
+                         pairing: PairingResult | None = None) -> dict:
+    """The calibration.yaml document: the result plus the DH/Hayati view of its axes."""
+    doc = calibration_to_dict(result, pairing)
+    doc['dh_hayati'] = dh_table(cm.robot, cm.geometric, cm.geometric.nominal,
+                                result.values[:len(cm.geometric)])
+    return doc

@@ -16,10 +16,11 @@ import yaml
 from kpi_calib_ros.io.bag import read_bag
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 from kpi_calib_ros.io.report import diagnose_cell, diagnosis_text, write_report
-from kpi_calib_ros.io.results import (calibration_to_dict, summary_text, write_atomic,
+from kpi_calib_ros.io.results import (summary_text, write_atomic,
                                       write_calibration)
 from kpi_calib_ros.io.simulate import simulate_campaign, truth_path
-from kpi_calib_ros.pipeline import identify_cell, measurements_from_samples
+from kpi_calib_ros.pipeline import (calibration_document, identify_cell,
+                                    measurements_from_samples)
 
 
 def run_demo(out: str | Path, seed: int) -> int:
@@ -33,7 +34,7 @@ def run_demo(out: str | Path, seed: int) -> int:
     joints, points = read_bag(bag)
     data, pairing = measurements_from_samples(cm, joints, points)
     result = identify_cell(cm, data)
-    doc = calibration_to_dict(result, pairing)
+    doc = calibration_document(cm, result, pairing)
     write_calibration(out, doc)
     print(summary_text(doc))
     truth = yaml.safe_load(truth_path(bag).read_text())

@@ -43,16 +43,15 @@ from visualization_msgs.msg import MarkerArray
 
 from kpi_calib_ros.core.collision import Capsule
 from kpi_calib_ros.core.design import design_measurements
-from kpi_calib_ros.core.dh import dh_table
 from kpi_calib_ros.core.errors import ConfigError, DataError, KpiCalibError
 from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.pairing import Decision, Rejection
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, cell_from_dict
 from kpi_calib_ros.io.design_io import write_design
 from kpi_calib_ros.io.report import diagnose_cell, diagnosis_to_dict, write_report
-from kpi_calib_ros.io.results import calibration_to_dict, write_atomic, write_calibration
+from kpi_calib_ros.io.results import write_atomic, write_calibration
 from kpi_calib_ros.io.urdf_export import calibrated_urdf
-from kpi_calib_ros.pipeline import identify_cell
+from kpi_calib_ros.pipeline import calibration_document, identify_cell
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros.campaign import Campaign
 from kpi_calib_ros.ros.parameters import PARAMETERS, cell_document, settings_from_parameters
@@ -276,9 +275,7 @@ class CalibrationNode(Node):
         except KpiCalibError as exc:
             self._result_error = f'identification failed: {exc}'
             raise
-        doc = calibration_to_dict(result, pairing)
-        doc['dh_hayati'] = dh_table(cm.robot, cm.geometric, cm.geometric.nominal,
-                                    result.values[:len(cm.geometric)])
+        doc = calibration_document(cm, result, pairing)
         urdf = calibrated_urdf(cm.cell.urdf_xml, cm.robot,
                                dict(zip(result.names, result.values)))
         write_calibration(self.data_dir, doc)
