@@ -2,8 +2,12 @@
 
 cylinder -> capsule along its axis with its radius; box -> capsule along the
 longest axis with the half-diagonal of the other two as radius; sphere -> a
-zero-length capsule; ``<capsule>`` passes through; a mesh is refused with a
-message asking for capsules in the cell file. Endpoints are in the LINK frame.
+zero-length capsule; ``<capsule>`` passes through; the meshes of a link (STL,
+DAE, OBJ as Pinocchio/coal load them) -> one enclosing capsule, or up to
+``max_pieces`` along the principal axis where one is loose (:func:`fit_capsules`).
+Endpoints are in the LINK frame. Mesh URIs must be absolute paths or findable by
+Pinocchio through ``package_dirs`` (:mod:`kpi_calib_ros.io.resources` resolves them
+the ROS way before calling here).
 """
 from __future__ import annotations
 
@@ -14,8 +18,11 @@ import coal
 import numpy as np
 import pinocchio as pin
 
+from kpi_calib_ros.core.capsule_geometry import fit_capsules
 from kpi_calib_ros.core.collision import Capsule
 from kpi_calib_ros.core.errors import ConfigError
+
+_PRIMITIVES = ('cylinder', 'box', 'sphere')
 
 
 def _link_capsule(name: str, link: str, placement: pin.SE3, half: float,
@@ -53,30 +60,13 @@ def _origin(element: ET.Element) -> pin.SE3:
     return pin.SE3(pin.rpy.rpyToMatrix(*rpy), xyz)
 
 
-def capsules_from_urdf(urdf_xml: str, link_names: Sequence[str]) -> list[Capsule]:
-    """Enclosing capsules for the URDF ``<collision>`` primitives of some links.
+def _prepare(urdf_xml: str, link_names: Sequence[str]) -> tuple[
+        dict[str, list[tuple[str, ET.Element]]], str]:
+    """Collision elements per requested link and a URDF Pinocchio can load.
 
-    cylinder -> capsule on its axis, same radius; box -> capsule along its
-    longest axis, radius = half-diagonal of the other two; sphere -> zero-length
-    capsule; ``<capsule radius length>`` (non-standard, along z) -> itself.
-
-    Parameters
-    ----------
-    urdf_xml : str
-        URDF document.
-    link_names : sequence of str
-        Links to fit, each needing at least one primitive collision element.
-
-    Returns
-    -------
-    list of Capsule
-        Endpoints in the link frame (m). Named after the link when it has one
-        primitive, else ``'<link>.<k>'`` in document order.
-
-    Raises
-    ------
-    ConfigError
-        A link is unknown, has no collision geometry, or uses a mesh.
+    urdfdom cannot parse ``<capsule>`` (it then drops every collision of that link)
+    and the meshes of links we do not fit need not be found, so the cleaned URDF
+    keeps the primitives everywhere and the meshes of the requested links only.
     """
     root = ET.fromstring(urdf_xml)
     links = {link.get('name'): link for link in root.iter('link')}
@@ -89,7 +79,7 @@ def capsules_from_urdf(urdf_xml: str, link_names: Sequence[str]) -> list[Capsule
         for col in links[name].findall('collision'):
             geometry = col.find('geometry')
             kind = geometry[0].tag if geometry is not None and len(geometry) else 'none'
-            if kind not in ('cylinder', 'box', 'sphere', 'capsule'):
+            if kind not in _PRIMITIVES + ('capsule', 'mesh'):
                 raise ConfigError(key, f'link {name!r} has {kind} collision geometry; '
                                        'give capsules for this link in the cell file')
             items.append((kind, col))
@@ -97,34 +87,122 @@ def capsules_from_urdf(urdf_xml: str, link_names: Sequence[str]) -> list[Capsule
             raise ConfigError(key, f'link {name!r} has no collision geometry; '
                                    'give capsules for this link in the cell file')
         per_link[name] = items
-    # urdfdom cannot load meshes we do not need nor parse <capsule> (it then drops
-    # every collision of that link), so Pinocchio only sees the standard primitives.
     for link in root.iter('link'):
+        keep = _PRIMITIVES + (('mesh',) if link.get('name') in per_link else ())
         for col in list(link.findall('collision')):
             geometry = col.find('geometry')
-            if geometry is None or not len(geometry) or geometry[0].tag not in (
-                    'cylinder', 'box', 'sphere'):
+            if geometry is None or not len(geometry) or geometry[0].tag not in keep:
                 link.remove(col)
         for vis in list(link.findall('visual')):
             link.remove(vis)
-    clean = ET.tostring(root, encoding='unicode')
+    return per_link, ET.tostring(root, encoding='unicode')
+
+
+def _geometry(clean: str, package_dirs: Sequence[str],
+              per_link: dict[str, list[tuple[str, ET.Element]]]) -> tuple[Any, Any]:
     model = pin.buildModelFromXML(clean)
-    geom = pin.buildGeomFromUrdfString(model, clean, pin.GeometryType.COLLISION)
+    try:
+        geom = pin.buildGeomFromUrdfString(model, clean, pin.GeometryType.COLLISION,
+                                           package_dirs=[str(d) for d in package_dirs])
+    except (ValueError, RuntimeError, OSError) as exc:
+        meshes = {link: [c.find('geometry')[0].get('filename') for k, c in items if k == 'mesh']
+                  for link, items in per_link.items()}
+        meshes = {link: uris for link, uris in meshes.items() if uris}
+        raise ConfigError('robot.package_dirs',
+                          f'mesh collision geometry {meshes} cannot be loaded ({exc}); searched '
+                          f'{list(package_dirs)} and ROS_PACKAGE_PATH/AMENT_PREFIX_PATH; add the '
+                          'package to robot.package_dirs or give capsules for these links in '
+                          'the cell file') from exc
+    return model, geom
+
+
+def collision_vertices(urdf_xml: str, link_names: Sequence[str],
+                       package_dirs: Sequence[str] = ()) -> dict[str, np.ndarray]:
+    """Vertices of the collision MESHES of each link, in the link frame (m).
+
+    Links without a mesh map to a (0, 3) array. Mesh scale is applied by the loader.
+    """
+    per_link, clean = _prepare(urdf_xml, link_names)
+    model, geom = _geometry(clean, package_dirs, per_link)
+    return {name: collision_points(model, geom, name) for name in per_link}
+
+
+def capsules_from_urdf(urdf_xml: str, link_names: Sequence[str],
+                       package_dirs: Sequence[str] = (), max_pieces: int = 3,
+                       loose_ratio: float = 2.5) -> list[Capsule]:
+    """Enclosing capsules for the URDF ``<collision>`` geometry of some links.
+
+    cylinder -> capsule on its axis, same radius; box -> capsule along its
+    longest axis, radius = half-diagonal of the other two; sphere -> zero-length
+    capsule; ``<capsule radius length>`` (non-standard, along z) -> itself; all
+    meshes of a link together -> :func:`~kpi_calib_ros.core.capsule_geometry.fit_capsules`
+    on their vertices (every vertex inside; split along the principal axis into
+    up to ``max_pieces`` when one capsule is ``loose_ratio`` times the hull volume).
+
+    Parameters
+    ----------
+    urdf_xml : str
+        URDF document; mesh filenames absolute or findable through ``package_dirs``.
+    link_names : sequence of str
+        Links to fit, each needing at least one collision element.
+    package_dirs : sequence of str
+        Passed to Pinocchio's mesh loader.
+    max_pieces : int
+        Most capsules fitted to the meshes of one link.
+    loose_ratio : float
+        Capsule volume / convex-hull volume above which a mesh is split.
+
+    Returns
+    -------
+    list of Capsule
+        Endpoints in the link frame (m). Named after the link when it has one
+        capsule, else ``'<link>.<k>'`` (primitives in document order, then meshes).
+
+    Raises
+    ------
+    ConfigError
+        A link is unknown or has no collision geometry; a mesh cannot be loaded.
+    """
+    per_link, clean = _prepare(urdf_xml, link_names)
+    model, geom = _geometry(clean, package_dirs, per_link)
     capsules = []
     for name, items in per_link.items():
         frame = model.frames[model.getFrameId(name, pin.BODY)]
         from_pin = [o for o in geom.geometryObjects if model.frames[o.parentFrame].name == name]
-        for k, (kind, col) in enumerate(items):
-            cap_name = name if len(items) == 1 else f'{name}.{k}'
+        primitives = [o for o in from_pin if not isinstance(o.geometry, coal.BVHModelBase)]
+        fitted: list[tuple[Any, ...]] = []
+        for kind, col in items:
             if kind == 'capsule':
                 g = col.find('geometry')[0]
-                half = 0.5 * float(g.get('length'))
-                capsules.append(_link_capsule(cap_name, name, _origin(col), half,
-                                              float(g.get('radius'))))
+                fitted.append((_origin(col), 0.5 * float(g.get('length')),
+                               float(g.get('radius'))))
+            elif kind != 'mesh':
+                obj = primitives.pop(0)
+                fitted.append((obj.geometry, frame.placement.inverse() * obj.placement))
+        points = collision_points(model, geom, name)
+        pieces = fit_capsules(points, max_pieces, loose_ratio) if len(points) else []
+        count = len(fitted) + len(pieces)
+        names = [name] if count == 1 else [f'{name}.{k}' for k in range(count)]
+        for cap_name, item in zip(names, fitted):
+            if len(item) == 3:
+                placement, half, radius = item
+                capsules.append(_link_capsule(cap_name, name, placement, half, radius))
             else:
-                obj = from_pin.pop(0)
-                # Pinocchio places geometry in the parent JOINT frame; the link frame
-                # differs when fixed joints were merged into that joint.
-                capsules.append(_fit(obj.geometry, cap_name, name,
-                                     frame.placement.inverse() * obj.placement))
+                capsules.append(_fit(item[0], cap_name, name, item[1]))
+        for cap_name, (a, b, radius) in zip(names[len(fitted):], pieces):
+            capsules.append(Capsule(cap_name, name, a, b, radius))
     return capsules
+
+
+def collision_points(model: Any, geom: Any, link: str) -> np.ndarray:
+    """Mesh vertices of ``link`` in its link frame (m), (0, 3) without meshes."""
+    parts = []
+    for obj in geom.geometryObjects:
+        if model.frames[obj.parentFrame].name == link and isinstance(obj.geometry,
+                                                                     coal.BVHModelBase):
+            # Pinocchio places geometry in the parent JOINT frame; the link frame
+            # differs when fixed joints were merged into that joint.
+            local = model.frames[obj.parentFrame].placement.inverse() * obj.placement
+            v = np.asarray(obj.geometry.vertices(), dtype=float).reshape(-1, 3)
+            parts.append(v @ local.rotation.T + local.translation)
+    return np.vstack(parts) if parts else np.zeros((0, 3))
