@@ -48,13 +48,13 @@ class PairClass:
         The two links, in chain order.
     kind : str
         ``'adjacent'``, ``'default'``, ``'always'``, ``'never'`` or ``'sometimes'``.
-    fraction : float
-        Fraction of the samples in collision (0..1; NaN for adjacent pairs, not sampled).
+    fraction : float or None
+        Fraction of the samples in collision (0..1); None for adjacent pairs (not sampled).
     """
 
     links: tuple[str, str]
     kind: str
-    fraction: float
+    fraction: float | None
 
 
 @dataclass(frozen=True)
@@ -87,7 +87,7 @@ class CollisionMatrix:
     def summary(self) -> list[dict]:
         """Skipped pairs, YAML-ready: ``{links: [a, b], class: kind, fraction: f}``."""
         return [{'links': list(p.links), 'class': p.kind,
-                 'fraction': None if np.isnan(p.fraction) else round(p.fraction, 4)}
+                 'fraction': None if p.fraction is None else round(p.fraction, 4)}
                 for p in self.pairs if p.kind in SKIPPED_KINDS]
 
 
@@ -166,7 +166,7 @@ def classify_link_pairs(robot: RobotModel, capsules: Sequence[Capsule], samples:
             # Consecutive among the links with geometry: parent/child, or linked only
             # through geometry-less links (MoveIt's rule).
             if j == i + 1 or key not in hit:
-                pairs.append(PairClass((a, b), 'adjacent', float('nan')))
+                pairs.append(PairClass((a, b), 'adjacent', None))
                 continue
             fraction = float(hit[key][1:].mean())
             if hit[key][0]:

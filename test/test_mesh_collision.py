@@ -1,0 +1,188 @@
+"""Stock mesh URDFs (UR10, Panda from example-robot-data): enclosing capsules, the sampled
+collision matrix and the independent self-collision check on the meshes."""
+import numpy as np
+import pytest
+
+from kpi_calib_ros.core.capsule_fit import capsules_from_urdf, collision_vertices
+from kpi_calib_ros.core.capsule_geometry import (capsule_volume, enclosing_capsule, fit_capsules,
+                                                 outside_distance)
+from kpi_calib_ros.core.collision import BEAM, CollisionScene
+from kpi_calib_ros.core.collision_check import mesh_collisions
+from kpi_calib_ros.core.collision_matrix import (SKIPPED_KINDS, _margins, classify_link_pairs,
+                                                 link_transforms)
+from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.core.robot import RobotModel
+from kpi_calib_ros.io.resources import resolve_mesh_uris, resolve_uri
+
+ROBOTS = {'ur10': ('ur_description/urdf/ur10_robot.urdf', 'base_link', 'tool0'),
+          'panda': ('panda_description/urdf/panda.urdf', 'panda_link0', 'panda_hand')}
+
+
+@pytest.fixture(scope='module', params=sorted(ROBOTS))
+def stock(request):
+    path, base, tip = ROBOTS[request.param]
+    xml = resolve_mesh_uris(resolve_uri(f'package://example-robot-data/robots/{path}').read_text())
+    robot = RobotModel(xml, base, tip)
+    return request.param, xml, robot, capsules_from_urdf(xml, robot.link_names)
+
+
+def test_every_mesh_vertex_of_every_link_is_inside_its_capsules(stock):
+    _, xml, robot, capsules = stock
+    vertices = collision_vertices(xml, robot.link_names)
+    for link in robot.link_names:
+        mine = [c for c in capsules if c.frame == link]
+        assert mine and len(vertices[link]) > 50
+        outside = np.min([outside_distance(vertices[link], c.a, c.b, c.radius) for c in mine],
+                         axis=0)
+        assert outside.max() <= 0.0, link
+        # Tight, not merely enclosing: some vertex within 1 mm of the surface.
+        assert outside.max() > -1e-3, link
+
+
+def test_capsules_are_tighter_than_the_bounding_sphere(stock):
+    _, xml, robot, capsules = stock
+    for link, points in collision_vertices(xml, robot.link_names).items():
+        centre = 0.5 * (points.max(axis=0) + points.min(axis=0))
+        sphere = 4 / 3 * np.pi * np.linalg.norm(points - centre, axis=1).max() ** 3
+        assert sum(capsule_volume(c.a, c.b, c.radius) for c in capsules if c.frame == link) \
+            < sphere, link
+
+
+def test_a_long_thin_point_cloud_gets_its_exact_cylinder_capsule():
+    rng = np.random.default_rng(3)
+    # Points on a capsule of radius 0.05 around segment (0,0,0)-(0,0,0.6), rotated.
+    d = rng.normal(size=(4000, 3))
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    points = 0.05 * d + np.where(d[:, 2:] > 0, [0, 0, 0.6], [0, 0, 0])
+    rot = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    a, b, r = enclosing_capsule(points @ rot.T + [0.1, -0.2, 0.3])
+    assert r == pytest.approx(0.05, abs=2e-4)
+    assert np.linalg.norm(b - a) == pytest.approx(0.6, abs=1e-3)
+
+
+def test_an_l_shaped_mesh_is_split_and_still_enclosed():
+    rng = np.random.default_rng(4)
+    bar = rng.uniform([0, 0, 0], [1.0, 0.1, 0.1], size=(2000, 3))
+    post = rng.uniform([0, 0, 0], [0.1, 0.1, 1.0], size=(2000, 3))
+    points = np.vstack([bar, post])
+    one = fit_capsules(points, max_pieces=1)
+    pieces = fit_capsules(points, max_pieces=3)
+    assert len(one) == 1 and len(pieces) > 1
+    assert sum(capsule_volume(*c) for c in pieces) < 0.8 * capsule_volume(*one[0])
+    outside = np.min([outside_distance(points, *c) for c in pieces], axis=0)
+    assert outside.max() <= 0.0
+
+
+def test_an_unfindable_mesh_asks_for_package_dirs_or_capsules():
+    urdf = ('<robot name="r"><link name="a"><collision><geometry>'
+            '<mesh filename="package://nowhere/a.stl"/></geometry></collision></link></robot>')
+    with pytest.raises(ConfigError, match='package_dirs.*nowhere/a.stl.*cell file'):
+        capsules_from_urdf(urdf, ['a'])
+
+
+def test_collision_matrix_is_seeded_and_classifies_the_stock_arms(stock):
+    name, _, robot, capsules = stock
+    matrix = classify_link_pairs(robot, capsules, samples=500, seed=7)
+    again = classify_link_pairs(robot, capsules, samples=500, seed=7)
+    assert matrix == again
+    links = [link for link in robot.link_names if any(c.frame == link for c in capsules)]
+    assert len(matrix.pairs) == len(links) * (len(links) - 1) // 2
+    adjacent = {p.links for p in matrix.of_kind('adjacent')}
+    assert adjacent == set(zip(links[:-1], links[1:]))
+    for p in matrix.pairs:
+        if p.kind == 'never':
+            assert p.fraction == 0.0
+        elif p.kind == 'always':
+            assert p.fraction >= 0.95
+    assert matrix.skip_pairs() == {frozenset(p.links) for p in matrix.pairs
+                                   if p.kind in SKIPPED_KINDS}
+    if name == 'ur10':
+        # Upper arm against forearm is adjacent; the arm folding back on its base is a
+        # real constraint (sometimes), the far end of the wrist never reaches wrist_1.
+        assert matrix.of_kind('always') == [] and matrix.of_kind('default') == []
+        kinds = {p.links: p.kind for p in matrix.pairs}
+        assert kinds[('shoulder_link', 'forearm_link')] == 'sometimes'
+
+
+def _spheres_urdf(l1: str, joint_1: str) -> str:
+    return f"""<robot name="r">
+      <link name="l0"><collision><geometry><sphere radius="0.1"/></geometry></collision></link>
+      <link name="l1">{l1}</link>
+      <link name="l2"><collision><geometry><sphere radius="0.1"/></geometry></collision></link>
+      <joint name="j1" type="{joint_1}"><parent link="l0"/><child link="l1"/><axis xyz="1 0 0"/>
+        <limit lower="-1" upper="1" effort="1" velocity="1"/></joint>
+      <joint name="j2" type="revolute"><parent link="l1"/><child link="l2"/><axis xyz="0 0 1"/>
+        <limit lower="-1" upper="1" effort="1" velocity="1"/></joint></robot>"""
+
+
+def test_overlap_at_the_default_pose_is_skipped_and_counted():
+    # l2 slides along x with j1 in [-1, 1] m; it overlaps l0 (two 0.1 m balls) for
+    # |x| < 0.2, i.e. in 20 % of uniform samples, and at the middle of the range.
+    urdf = _spheres_urdf('<collision><origin xyz="0 0 1"/><geometry><sphere radius="0.05"/>'
+                         '</geometry></collision>', 'prismatic')
+    robot = RobotModel(urdf, 'l0', 'l2')
+    matrix = classify_link_pairs(robot, capsules_from_urdf(urdf, ['l0', 'l1', 'l2']),
+                                 samples=20000, seed=1)
+    kinds = {p.links: (p.kind, p.fraction) for p in matrix.pairs}
+    assert kinds[('l0', 'l1')] == ('adjacent', None) and kinds[('l1', 'l2')] == ('adjacent', None)
+    kind, fraction = kinds[('l0', 'l2')]
+    assert kind == 'default'
+    assert fraction == pytest.approx(0.2, abs=3 * np.sqrt(0.2 * 0.8 / 20000))
+    assert {'links': ['l0', 'l2'], 'class': 'default',
+            'fraction': round(fraction, 4)} in matrix.summary()
+    # Away from the middle of j1 the same pair is a real constraint.
+    moved = classify_link_pairs(robot, capsules_from_urdf(urdf, ['l0', 'l1', 'l2']),
+                                samples=2000, q_default=np.array([0.9, 0.0]))
+    assert {p.links: p.kind for p in moved.pairs}[('l0', 'l2')] == 'sometimes'
+
+
+def test_links_joined_only_through_geometry_less_links_are_adjacent():
+    urdf = _spheres_urdf('', 'revolute')
+    robot = RobotModel(urdf, 'l0', 'l2')
+    matrix = classify_link_pairs(robot, capsules_from_urdf(urdf, ['l0', 'l2']), samples=100)
+    assert [(p.links, p.kind) for p in matrix.pairs] == [(('l0', 'l2'), 'adjacent')]
+
+
+def test_mesh_check_detects_the_folded_ur10_elbow_and_passes_home():
+    path, base, tip = ROBOTS['ur10']
+    xml = resolve_mesh_uris(resolve_uri(f'package://example-robot-data/robots/{path}').read_text())
+    robot = RobotModel(xml, base, tip)
+    home = [0.0, -np.pi / 2, 0.0, -np.pi / 2, 0.0, 0.0]
+    folded = [0.0, -np.pi / 2, 3.1, 0.0, 0.0, 0.0]   # forearm folded back onto the upper arm
+    check = mesh_collisions(xml, [], base, robot.joint_names, [home, np.zeros(6), folded])
+    assert check.collisions[0] == () and check.collisions[1] == ()
+    assert ('upper_arm_link', 'wrist_1_link') in check.collisions[2]
+    assert check.colliding == [2]
+    assert check.excluded[('upper_arm_link', 'forearm_link')] == 'adjacent'
+    assert check.excluded[('wrist_3_link', 'ee_link')] == 'rigid'
+    # A skipped pair is reported as such and no longer found.
+    skipped = mesh_collisions(xml, [], base, robot.joint_names, [folded],
+                              [frozenset({'upper_arm_link', 'wrist_1_link'})])
+    assert ('upper_arm_link', 'wrist_1_link') not in skipped.collisions[0]
+    assert skipped.excluded[('upper_arm_link', 'wrist_1_link')] == 'skipped'
+    with pytest.raises(ValueError, match='columns'):
+        mesh_collisions(xml, [], base, robot.joint_names, [[0.0, 1.0]])
+
+
+def test_mesh_contact_implies_capsule_contact_on_random_poses(stock):
+    """Capsules enclose the meshes, so every mesh collision is also a capsule collision."""
+    name, xml, robot, capsules = stock
+    rng = np.random.default_rng(11)
+    lower = np.where(np.isfinite(robot.lower), robot.lower, -np.pi)
+    upper = np.where(np.isfinite(robot.upper), robot.upper, np.pi)
+    q = rng.uniform(lower, upper, size=(300, robot.n_joints))
+    meshes = mesh_collisions(xml, [], robot.base_frame, robot.joint_names, q)
+    scene = CollisionScene(capsules, [], robot.link_names,
+                           ignore_pairs={frozenset({BEAM, c.name}) for c in capsules})
+    margins = _margins(scene, link_transforms(robot, q, scene.frames))
+    frame = {c.name: c.frame for c in capsules}
+    chain = set(robot.link_names)
+    found = 0
+    for k, pairs in enumerate(meshes.collisions):
+        hit = {frozenset(frame[n] for n in label.split('~'))
+               for label, m in zip(scene.labels, margins[:, k]) if m < 0}
+        for pair in pairs:
+            if set(pair) <= chain and frozenset(pair) in {frozenset(p) for p in meshes.checked}:
+                found += 1
+                assert frozenset(pair) in hit, (name, k, pair)
+    assert found > 10  # the property was exercised
