@@ -1,0 +1,193 @@
+"""Robot base in the tracker frame and reflector on the tip, registered from a campaign's points.
+
+Model (eq. 3 with nominal kinematics): ``η_i = R (R_i o + p_i) + t``, with
+``(R_i, p_i)`` the nominal tip pose of posture ``i`` in the base frame, ``o``
+the reflector centre in the tip frame and ``(R, t)`` the base pose in the
+tracker frame. Given ``o`` the base pose is the closed-form Horn/Umeyama
+(SVD) fit of the points ``R_i o + p_i`` onto ``η_i``; given ``(R, t)`` the offset
+is linear least squares in ``o``. The two alternate from ``o = 0`` (no start
+needed for the base pose: the closed form has none), then Gauss-Newton on all
+nine unknowns polishes the joint minimum. Identification then starts from the
+result instead of hand-measured placements.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pinocchio as pin
+
+from kpi_calib_ros.core.errors import DataError
+
+# A point set whose second principal spread is below this fraction of the first
+# is a line: the rotation about it is undetermined.
+_COLLINEAR = 1e-3
+
+
+@dataclass(frozen=True)
+class Registration:
+    """Base pose and reflector offset that best map nominal points onto measured ones.
+
+    Attributes
+    ----------
+    base_in_tracker : (6,) ndarray
+        [x, y, z, roll, pitch, yaw] of the base frame in the tracker frame (m, rad),
+        URDF convention R = Rz(yaw) Ry(pitch) Rx(roll).
+    reflector_offset : (3,) ndarray
+        Reflector centre in the tip frame (m).
+    residuals_m : (N,) ndarray
+        Distance between each measured point and its registered nominal point (m).
+    iterations : int
+        Alternations plus Gauss-Newton steps taken.
+    """
+
+    base_in_tracker: np.ndarray
+    reflector_offset: np.ndarray
+    residuals_m: np.ndarray
+    iterations: int
+
+    @property
+    def rms_m(self) -> float:
+        """Root mean square of :attr:`residuals_m` (m)."""
+        return float(np.sqrt(np.mean(self.residuals_m ** 2)))
+
+    @property
+    def transform(self) -> np.ndarray:
+        """Base pose in the tracker frame as a (4, 4) homogeneous matrix."""
+        out = np.eye(4)
+        out[:3, :3] = pin.rpy.rpyToMatrix(*self.base_in_tracker[3:])
+        out[:3, 3] = self.base_in_tracker[:3]
+        return out
+
+
+def horn(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation R (3, 3) and translation t (3,) minimising Σ‖R x_i + t − y_i‖² (Umeyama 1991).
+
+    Parameters
+    ----------
+    source, target : (N, 3) ndarray
+        Corresponding points ``x_i`` and ``y_i`` (m).
+    """
+    mx, my = source.mean(axis=0), target.mean(axis=0)
+    u, _, vt = np.linalg.svd((target - my).T @ (source - mx))
+    # The sign fix keeps a proper rotation when the best orthogonal map is a reflection.
+    d = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt)) or 1.0])
+    rot = u @ d @ vt
+    return rot, my - rot @ mx
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) cross-product matrices of the rows of ``v`` (N, 3)."""
+    z = np.zeros(len(v))
+    return np.stack([np.stack([z, -v[:, 2], v[:, 1]], -1),
+                     np.stack([v[:, 2], z, -v[:, 0]], -1),
+                     np.stack([-v[:, 1], v[:, 0], z], -1)], axis=1)
+
+
+def _check_geometry(eta: np.ndarray, rotations: np.ndarray) -> None:
+    spread = np.linalg.svd(eta - eta.mean(axis=0), compute_uv=False)
+    if spread[1] < _COLLINEAR * spread[0] or spread[1] < 1e-6:
+        raise DataError(f'registration: the {len(eta)} measured points are nearly collinear '
+                        f'(principal spreads {spread.round(6).tolist()} m); the rotation about '
+                        'their line is undetermined. Measure postures that span a plane or a '
+                        'volume')
+    mean = rotations.mean(axis=0)
+    sv = np.linalg.svd((rotations - mean).reshape(-1, 3), compute_uv=False)
+    if sv[-1] < _COLLINEAR * max(sv[0], 1e-12) or sv[-1] < 1e-6:
+        raise DataError('registration: the tip orientations hardly vary (singular values '
+                        f'{sv.round(6).tolist()}), so the reflector offset cannot be told '
+                        'from the base position. Measure postures with different tip '
+                        'orientations about all three axes')
+
+
+def register(eta: np.ndarray, tip_poses: np.ndarray, max_rms: float = 0.02,
+             alternations: int = 50, gauss_newton: int = 20, tol: float = 1e-12
+             ) -> Registration:
+    """Base pose in the tracker frame and reflector offset on the tip from one campaign.
+
+    Parameters
+    ----------
+    eta : (N, 3) array_like
+        Measured reflector centres in the tracker frame (m), N >= 4.
+    tip_poses : (N, 4, 4) array_like
+        Nominal tip poses in the robot base frame at the measured joint values (m).
+    max_rms : float
+        Refuse when the registered points still miss by more than this rms (m): the
+        nominal model then cannot explain the data (units, joint order, tip frame).
+    alternations, gauss_newton : int
+        Most Horn / least-squares alternations, then most Gauss-Newton steps.
+    tol : float
+        Stop when a step changes the unknowns by less than this (m, rad).
+
+    Returns
+    -------
+    Registration
+
+    Raises
+    ------
+    ValueError
+        Shapes or non-finite values.
+    DataError
+        Degenerate postures (collinear points, one tip orientation) or a miss above
+        ``max_rms``, with the distances and the likely causes.
+    """
+    eta = np.asarray(eta, dtype=float)
+    poses = np.asarray(tip_poses, dtype=float)
+    if eta.ndim != 2 or eta.shape[1] != 3 or poses.shape != (len(eta), 4, 4):
+        raise ValueError(f'eta must be (N, 3) and tip_poses (N, 4, 4); got {eta.shape} and '
+                         f'{poses.shape}')
+    if len(eta) < 4:
+        raise ValueError(f'eta: registration needs at least 4 points, got {len(eta)}')
+    if not (np.all(np.isfinite(eta)) and np.all(np.isfinite(poses))):
+        raise ValueError('eta and tip_poses must be finite')
+    rotations, positions = poses[:, :3, :3], poses[:, :3, 3]
+    _check_geometry(eta, rotations)
+
+    offset = np.zeros(3)
+    stacked = rotations.reshape(-1, 3)
+    steps = 0
+    for steps in range(1, alternations + 1):
+        rot, trans = horn(rotations @ offset + positions, eta)
+        # R^T (η_i - t) - p_i = R_i o, stacked over i: one linear system in o.
+        rhs = ((eta - trans) @ rot - positions).reshape(-1)
+        new = np.linalg.lstsq(stacked, rhs, rcond=None)[0]
+        change = float(np.linalg.norm(new - offset))
+        offset = new
+        if change < tol:
+            break
+    for k in range(gauss_newton):
+        points = rotations @ offset + positions
+        world = points @ rot.T
+        residual = (world + trans - eta).reshape(-1)
+        jac = np.concatenate([-_skew(world), np.broadcast_to(np.eye(3), (len(eta), 3, 3)),
+                              rot @ rotations], axis=2).reshape(-1, 9)
+        step = np.linalg.lstsq(jac, -residual, rcond=None)[0]
+        rot = pin.exp3(step[:3]) @ rot
+        trans, offset = trans + step[3:6], offset + step[6:]
+        steps += 1
+        if np.linalg.norm(step) < tol:
+            break
+    residuals = np.linalg.norm((rotations @ offset + positions) @ rot.T + trans - eta, axis=1)
+    result = Registration(np.concatenate([trans, pin.rpy.matrixToRpy(rot)]), offset,
+                          residuals, steps)
+    if result.rms_m > max_rms:
+        raise DataError(_miss_message(result, eta, positions, max_rms))
+    return result
+
+
+def _miss_message(result: Registration, eta: np.ndarray, positions: np.ndarray,
+                  max_rms: float) -> str:
+    """Why registered nominal points still miss: figures first, then the likely causes."""
+    r = result.residuals_m
+    worst = np.argsort(r)[::-1][:3]
+    scale = float(np.sqrt(np.sum(np.var(eta, axis=0)) / max(np.sum(np.var(positions, axis=0)),
+                                                            1e-30)))
+    causes = ['joint values in the wrong order or units (degrees given as radians)',
+              'the wrong tip frame (robot.tip_frame) or base frame',
+              'points paired with the wrong postures']
+    if not 0.5 < scale < 2.0:
+        causes.insert(0, f'units: the measured points spread {scale:.3g} times as far as the '
+                         'nominal tip positions (mm given as m?)')
+    return (f'registration: the nominal model misses the measured points by {result.rms_m:.4g} m '
+            f'rms (max {r.max():.4g} m at points {worst.tolist()}, median {np.median(r):.4g} m; '
+            f'limit {max_rms} m). Likely causes: ' + '; '.join(causes))
