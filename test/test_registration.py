@@ -83,7 +83,8 @@ def test_kinematic_errors_leave_a_small_registered_miss(cm, campaign):
 def test_wrong_units_or_joint_order_are_refused_with_the_distances(cm, campaign):
     q, tips = campaign
     eta = cm.model.predict(cm.model.params.nominal, q)
-    with pytest.raises(DataError, match=r'misses .* m rms .*units: the measured points spread 9\d\d times'):
+    with pytest.raises(DataError,
+                       match=r'misses .* m rms .*units: the measured points spread 9\d\d times'):
         register(eta * 1000.0, tips)
     shuffled = np.array([cm.robot.pin_tip_pose(row[::-1]) for row in q])
     with pytest.raises(DataError, match='wrong order'):

@@ -1,4 +1,4 @@
-"""package:// and file:// resolution: package_dirs, ROS_PACKAGE_PATH, ament index, cmeel prefixes."""
+"""package:// and file:// resolution: package_dirs, ROS_PACKAGE_PATH, ament index, cmeel."""
 from pathlib import Path
 
 import pytest

@@ -61,7 +61,7 @@ class Registration:
 
 
 def horn(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rotation R (3, 3) and translation t (3,) minimising Σ‖R x_i + t − y_i‖² (Umeyama 1991).
+    """Rotation R (3, 3), translation t (3,) minimising Σ‖R x_i + t − y_i‖² (Umeyama 1991).
 
     Parameters
     ----------
