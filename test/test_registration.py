@@ -5,7 +5,9 @@ import pytest
 
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.registration import horn, register
-from kpi_calib_ros.core.simulation import random_configurations, true_parameters
+from kpi_calib_ros.core.estimation import identify
+from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
+                                           true_parameters)
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 
 SIGMA = 10e-6  # tracker noise per axis (m)
@@ -103,3 +105,38 @@ def test_degenerate_postures_are_refused(cm):
         register(tips[:, :3, 3] + [1.0, 2.0, 0.0], tips)
     with pytest.raises(ValueError, match='at least 4'):
         register(np.zeros((3, 3)), tips[:3])
+
+
+def test_identification_from_the_registered_start_equals_the_one_from_the_true_placement(
+        cm, campaign):
+    """A base off by 1 m and 180° yaw and an unknown reflector: register, then identify."""
+    q, tips = campaign
+    rng = np.random.default_rng(21)
+    params = cm.model.params
+    p_true = true_parameters(params, rng)
+    base_idx = [params.index(f'base.{c}') for c in ('x', 'y', 'z', 'roll', 'pitch', 'yaw')]
+    refl_idx = [params.index(f'reflector.{c}') for c in 'xyz']
+    p_true[base_idx] += [1.0, -0.4, 0.2, 0.0, 0.0, np.pi]
+    p_true[refl_idx] = [0.02, -0.01, 0.09]
+    data = simulate_measurements(cm.model, p_true, q, SIGMA, rng)
+
+    perfect = params.nominal.copy()
+    perfect[base_idx], perfect[refl_idx] = p_true[base_idx], p_true[refl_idx]
+    reg = register(data.eta, tips)
+    registered = params.nominal.copy()
+    registered[base_idx], registered[refl_idx] = reg.base_in_tracker, reg.reflector_offset
+    with pytest.raises(DataError, match='from the nominal'):  # the cell's nominal is 1 m off
+        identify(cm.model, data, SIGMA, cm.q_work)
+    from_truth = identify(cm.model, data, SIGMA, cm.q_work, p0=perfect)
+    from_registration = identify(cm.model, data, SIGMA, cm.q_work, p0=registered)
+    assert from_truth.converged and from_registration.converged
+    # The QR may pick another (equivalent) identifiable subset at another start, so
+    # compare what any gauge shares: the same model of the robot, i.e. the same
+    # predicted points everywhere, KPI points and residuals (1e-9 relative to 1 m).
+    assert len(from_registration.estimated) == len(from_truth.estimated)
+    elsewhere = random_configurations(cm.model, p_true, 50, np.random.default_rng(8))
+    for configurations in (q, elsewhere, cm.q_work):
+        assert np.max(np.abs(cm.model.predict(from_registration.values, configurations)
+                             - cm.model.predict(from_truth.values, configurations))) < 1e-9
+    assert np.max(np.abs(from_registration.tcp - from_truth.tcp)) < 1e-9
+    assert from_registration.rms_m == pytest.approx(from_truth.rms_m, rel=1e-9)
