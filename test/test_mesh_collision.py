@@ -186,3 +186,66 @@ def test_mesh_contact_implies_capsule_contact_on_random_poses(stock):
                 found += 1
                 assert frozenset(pair) in hit, (name, k, pair)
     assert found > 10  # the property was exercised
+
+
+CUBE_OBJ = '\n'.join(
+    [f'v {x} {y} {z}' for z in (-100, 100) for x, y in ((-50, -50), (50, -50), (50, 50), (-50, 50))]
+    + ['f 1 2 3', 'f 1 3 4', 'f 5 6 7', 'f 5 7 8', 'f 1 2 6', 'f 1 6 5', 'f 2 3 7', 'f 2 7 6',
+       'f 3 4 8', 'f 3 8 7', 'f 4 1 5', 'f 4 5 8']) + '\n'
+
+
+def test_obj_in_millimetres_with_scale_origin_and_a_primitive_beside_it(tmp_path):
+    (tmp_path / 'block.obj').write_text(CUBE_OBJ)
+    urdf = f"""<robot name="r"><link name="a">
+      <collision><origin xyz="0 0 0.5" rpy="0 1.5707963267948966 0"/>
+        <geometry><mesh filename="file://{tmp_path}/block.obj" scale="0.001 0.001 0.001"/>
+        </geometry></collision>
+      <collision><geometry><sphere radius="0.02"/></geometry></collision></link></robot>"""
+    vertices = collision_vertices(urdf, ['a'])['a']
+    # 100 x 100 x 200 mm block, its long side turned onto x, centred 0.5 m up.
+    assert np.allclose(np.sort(np.unique(vertices[:, 0].round(9))), [-0.1, 0.1])
+    assert np.allclose(np.sort(np.unique(vertices[:, 2].round(9))), [0.45, 0.55])
+    sphere, block = capsules_from_urdf(urdf, ['a'])
+    assert (sphere.name, block.name, sphere.radius) == ('a.0', 'a.1', 0.02)
+    assert outside_distance(vertices, block.a, block.b, block.radius).max() <= 0.0
+    # No looser than the box rule of the primitive path (segment over the length,
+    # radius the half-diagonal of the cross-section).
+    assert capsule_volume(block.a, block.b, block.radius) <= capsule_volume(
+        np.array([-0.1, 0, 0.5]), np.array([0.1, 0, 0.5]), np.hypot(0.05, 0.05)) + 1e-12
+
+
+def test_dae_meshes_load_and_are_enclosed():
+    dae = resolve_uri('package://example-robot-data/robots/ur_description/meshes/ur10/visual/'
+                      'forearm.dae')
+    urdf = (f'<robot name="r"><link name="a"><collision><geometry><mesh filename="{dae}"/>'
+            '</geometry></collision></link></robot>')
+    vertices = collision_vertices(urdf, ['a'])['a']
+    assert len(vertices) > 100
+    caps = capsules_from_urdf(urdf, ['a'])
+    outside = np.min([outside_distance(vertices, c.a, c.b, c.radius) for c in caps], axis=0)
+    assert outside.max() <= 0.0
+    # The UR10 forearm is 0.57 m long: metres, not the millimetres of the raw file units.
+    assert 0.4 < np.ptp(vertices, axis=0).max() < 0.8
+
+
+def test_mesh_check_names_the_meshes_it_cannot_load():
+    urdf = ('<robot name="r"><link name="a"><collision><geometry>'
+            '<mesh filename="package://nowhere/a.stl"/></geometry></collision></link></robot>')
+    with pytest.raises(ConfigError, match='robot.package_dirs.*nowhere/a.stl'):
+        mesh_collisions(urdf, ['/tmp'], 'a', [], np.zeros((1, 0)))
+
+
+def test_vectorised_margins_equal_the_per_configuration_margins(stock):
+    _, _, robot, capsules = stock
+    scene = CollisionScene(capsules, [], robot.link_names,
+                           ignore_pairs={frozenset({BEAM, c.name}) for c in capsules})
+    q = np.random.default_rng(2).uniform(-2, 2, size=(5, robot.n_joints))
+    transforms = link_transforms(robot, q, scene.frames)
+    together = _margins(scene, transforms)
+    for k in range(len(q)):
+        one = scene.margins(dict(zip(scene.frames, transforms[k])), np.zeros(3), np.zeros(3))
+        np.testing.assert_allclose(together[:, k], one, atol=1e-12)
+    # And the link poses are Pinocchio's tip kinematics at the chain's end.
+    tip = robot.pin_tip_pose(q[0])
+    assert np.allclose(link_transforms(robot, q[:1], [robot.link_names[-1]])[0, 0]
+                       @ robot.tip_placement, tip, atol=1e-12)

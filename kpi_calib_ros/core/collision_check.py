@@ -18,6 +18,7 @@ import numpy as np
 import pinocchio as pin
 
 from kpi_calib_ros.core.collision import BASE, Capsule, CollisionScene, HalfSpace
+from kpi_calib_ros.core.errors import ConfigError
 
 
 @dataclass(frozen=True)
@@ -168,11 +169,20 @@ def mesh_collisions(urdf_xml: str, package_dirs: Sequence[str], base_frame: str,
     ------
     ValueError
         Unknown frame or joint, or ``configurations`` of the wrong shape.
+    ConfigError
+        A collision mesh cannot be loaded (key ``robot.package_dirs``).
     """
     xml = _without_visuals(urdf_xml)
     model = pin.buildModelFromXML(xml)
-    geom = pin.buildGeomFromUrdfString(model, xml, pin.GeometryType.COLLISION,
-                                       package_dirs=[str(d) for d in package_dirs])
+    try:
+        geom = pin.buildGeomFromUrdfString(model, xml, pin.GeometryType.COLLISION,
+                                           package_dirs=[str(d) for d in package_dirs])
+    except (ValueError, RuntimeError, OSError) as exc:
+        meshes = [m.get('filename') for c in ET.fromstring(xml).iter('collision')
+                  for m in c.iter('mesh')]
+        raise ConfigError('robot.package_dirs', f'collision meshes {meshes} cannot be loaded '
+                          f'({exc}); searched {list(package_dirs)} and ROS_PACKAGE_PATH/'
+                          'AMENT_PREFIX_PATH') from exc
     if not model.existFrame(base_frame):
         raise ValueError(f'base_frame {base_frame!r} is not in the URDF')
     q = np.atleast_2d(np.asarray(configurations, dtype=float))
