@@ -188,8 +188,9 @@ def test_mesh_contact_implies_capsule_contact_on_random_poses(stock):
     assert found > 10  # the property was exercised
 
 
+CORNERS = ((-50, -50), (50, -50), (50, 50), (-50, 50))
 CUBE_OBJ = '\n'.join(
-    [f'v {x} {y} {z}' for z in (-100, 100) for x, y in ((-50, -50), (50, -50), (50, 50), (-50, 50))]
+    [f'v {x} {y} {z}' for z in (-100, 100) for x, y in CORNERS]
     + ['f 1 2 3', 'f 1 3 4', 'f 5 6 7', 'f 5 7 8', 'f 1 2 6', 'f 1 6 5', 'f 2 3 7', 'f 2 7 6',
        'f 3 4 8', 'f 3 8 7', 'f 4 1 5', 'f 4 5 8']) + '\n'
 
