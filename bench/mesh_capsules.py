@@ -20,7 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from kpi_calib_ros.core.capsule_fit import capsules_from_urdf, collision_vertices
-from kpi_calib_ros.core.capsule_geometry import _hull, capsule_volume, outside_distance
+from kpi_calib_ros.core.capsule_geometry import (capsule_volume, convex_hull_volume,
+                                                 outside_distance)
 from kpi_calib_ros.core.collision_check import mesh_collisions
 from kpi_calib_ros.core.collision_matrix import classify_link_pairs
 from kpi_calib_ros.core.robot import RobotModel
@@ -63,7 +64,7 @@ def main() -> int:
                               for c in mine], axis=0)
             worst = max(worst, float(outside.max()))
             ratios.append(sum(capsule_volume(c.a, c.b, c.radius) for c in mine)
-                          / _hull(vertices[link])[2])
+                          / convex_hull_volume(vertices[link]))
         matrix, t_matrix = _timed(lambda: classify_link_pairs(robot, caps, SAMPLES, seed=0))
         counts = {k: len(matrix.of_kind(k))
                   for k in ('adjacent', 'default', 'always', 'never', 'sometimes')}

@@ -12,6 +12,7 @@ the ROS way before calling here).
 from __future__ import annotations
 
 import xml.etree.ElementTree as ET
+from dataclasses import replace
 from typing import Any, Sequence
 
 import coal
@@ -170,27 +171,23 @@ def capsules_from_urdf(urdf_xml: str, link_names: Sequence[str],
         frame = model.frames[model.getFrameId(name, pin.BODY)]
         from_pin = [o for o in geom.geometryObjects if model.frames[o.parentFrame].name == name]
         primitives = [o for o in from_pin if not isinstance(o.geometry, coal.BVHModelBase)]
-        fitted: list[tuple[Any, ...]] = []
+        shapes: list[Capsule] = []
         for kind, col in items:
             if kind == 'capsule':
                 g = col.find('geometry')[0]
-                fitted.append((_origin(col), 0.5 * float(g.get('length')),
-                               float(g.get('radius'))))
+                shapes.append(_link_capsule(name, name, _origin(col), 0.5 * float(g.get('length')),
+                                            float(g.get('radius'))))
             elif kind != 'mesh':
                 obj = primitives.pop(0)
-                fitted.append((obj.geometry, frame.placement.inverse() * obj.placement))
+                shapes.append(_fit(obj.geometry, name, name,
+                                   frame.placement.inverse() * obj.placement))
         points = collision_points(model, geom, name)
-        pieces = fit_capsules(points, max_pieces, loose_ratio) if len(points) else []
-        count = len(fitted) + len(pieces)
-        names = [name] if count == 1 else [f'{name}.{k}' for k in range(count)]
-        for cap_name, item in zip(names, fitted):
-            if len(item) == 3:
-                placement, half, radius = item
-                capsules.append(_link_capsule(cap_name, name, placement, half, radius))
-            else:
-                capsules.append(_fit(item[0], cap_name, name, item[1]))
-        for cap_name, (a, b, radius) in zip(names[len(fitted):], pieces):
-            capsules.append(Capsule(cap_name, name, a, b, radius))
+        if len(points):
+            shapes += [Capsule(name, name, a, b, radius)
+                       for a, b, radius in fit_capsules(points, max_pieces, loose_ratio)]
+        if len(shapes) > 1:
+            shapes = [replace(c, name=f'{name}.{k}') for k, c in enumerate(shapes)]
+        capsules += shapes
     return capsules
 
 

@@ -41,6 +41,11 @@ def outside_distance(points: np.ndarray, a: np.ndarray, b: np.ndarray,
     return np.linalg.norm(points - a - s[:, None] * axis, axis=1) - radius
 
 
+def convex_hull_volume(points: np.ndarray) -> float:
+    """Volume (m³) of the convex hull of ``points`` (N, 3); 0 for flat or too few points."""
+    return _hull(np.asarray(points, dtype=float).reshape(-1, 3))[2]
+
+
 def _hull(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     """(hull vertices, hull edges (E, 2, 3), volume); the points themselves if flat."""
     try:
