@@ -53,6 +53,9 @@ def test_package_dirs_win_over_the_environment_and_accept_the_package_or_its_par
     # The package directory itself, named differently but declared by package.xml.
     assert resolve_uri(uri, [first]) == (first / 'meshes/link.stl').resolve()
     assert resolve_uri(uri, [tmp_path / 'a']) == resolve_uri(uri)  # parent has no such folder
+    # Relative entries are relative to base_dir (the cell file's folder), not the cwd.
+    assert resolve_uri(uri, ['a/checkout'], base_dir=tmp_path) == (first / 'meshes/link.stl'
+                                                                   ).resolve()
 
 
 def test_ament_prefix_path_is_read_through_the_index(tmp_path, monkeypatch):

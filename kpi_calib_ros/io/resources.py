@@ -120,7 +120,8 @@ def resolve_uri(uri: str, package_dirs: Sequence[str | Path] = (),
     """Absolute path of an existing file named by ``uri``.
 
     ``package://pkg/rel`` -> ``<package dir>/rel``; ``file:///abs`` -> ``/abs``; a
-    plain path is taken relative to ``base_dir`` (default: current directory).
+    plain path, and a relative entry of ``package_dirs``, is taken relative to
+    ``base_dir`` (default: current directory).
 
     Raises
     ------
@@ -130,7 +131,10 @@ def resolve_uri(uri: str, package_dirs: Sequence[str | Path] = (),
     """
     if uri.startswith('package://'):
         package, _, rel = uri[len('package://'):].partition('/')
-        directory, tried = find_package(package, package_dirs)
+        # Relative package_dirs are relative to base_dir (the cell file's folder).
+        dirs = [d if Path(d).expanduser().is_absolute() else Path(base_dir or '.') / d
+                for d in package_dirs]
+        directory, tried = find_package(package, dirs)
         if directory is None:
             raise ConfigError(key, f'{uri} (in {referenced_by}): package {package!r} not found; '
                               f'tried {tried}; install it, source its workspace, or add its '
