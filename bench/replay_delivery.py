@@ -38,9 +38,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--rates', type=float, nargs='+', default=[1.0, 100.0, 1000.0])
     parser.add_argument('--replay-code', help='run the replay from this checkout (PYTHONPATH)')
     args = parser.parse_args(argv)
-    env = dict(os.environ)
-    if args.replay_code:
-        env['PYTHONPATH'] = str(Path(args.replay_code).resolve())
+    code = {'PYTHONPATH': str(Path(args.replay_code).resolve())} if args.replay_code else {}
     folder = Path(tempfile.mkdtemp(prefix='kpi_replay_bench_'))
     bags = {}
     for n in (10, 60):
@@ -57,7 +55,8 @@ def main(argv: list[str] | None = None) -> int:
             started = time.monotonic()
             replay = subprocess.Popen([str(BIN / 'kpi-calib'), 'replay', str(bag), '--rate',
                                        str(rate)], stdout=subprocess.PIPE,
-                                      stderr=subprocess.STDOUT, text=True, env=env)
+                                      stderr=subprocess.STDOUT, text=True,
+                                      env={**os.environ, **code})  # domain set by LiveNode
             live.spin_until(lambda: replay.poll() is not None, 900, 'the replay')
             seconds = time.monotonic() - started
             output = replay.stdout.read().strip()
@@ -74,14 +73,14 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         live.close()
     lines = ['# Replay delivery into kpi_calib_node (separate process)', '',
-             f'`python bench/replay_delivery.py --rates {" ".join(f"{r:g}" for r in args.rates)}`'
-             f', measured {time.strftime("%Y-%m-%d")}', '',
+             f'`python bench/replay_delivery.py --rates {" ".join(f"{r:g}" for r in args.rates)}'
+             + (f' --replay-code {args.replay_code}`' if args.replay_code else '`')
+             +             f', measured {time.strftime("%Y-%m-%d")}', '',
              '| rate | joint states sent | received by node | points sent | received | '
              'replay rc | wall time (s) |', '|---|---|---|---|---|---|---|']
     lines += [f'| {r:g} | {js} | {jr} | {ps} | {pr} | {rc} | {s:.1f} |'
               for r, js, jr, ps, pr, rc, s in rows]
     if args.replay_code:
-        lines[2] += f' --replay-code {args.replay_code}'
         print('\n'.join(lines))
     else:
         OUT.parent.mkdir(exist_ok=True)
