@@ -75,7 +75,7 @@ def main(argv: list[str] | None = None) -> int:
     lines = ['# Replay delivery into kpi_calib_node (separate process)', '',
              f'`python bench/replay_delivery.py --rates {" ".join(f"{r:g}" for r in args.rates)}'
              + (f' --replay-code {args.replay_code}`' if args.replay_code else '`')
-             +             f', measured {time.strftime("%Y-%m-%d")}', '',
+             + f', measured {time.strftime("%Y-%m-%d")}', '',
              '| rate | joint states sent | received by node | points sent | received | '
              'replay rc | wall time (s) |', '|---|---|---|---|---|---|---|']
     lines += [f'| {r:g} | {js} | {jr} | {ps} | {pr} | {rc} | {s:.1f} |'
