@@ -75,3 +75,23 @@ def test_a_wall_clock_joint_state_then_a_replayed_bag_is_paired_and_reset_resets
         assert client.count('rejected') == 0 and client.count('clock_jumps') == 0
     finally:
         assert node.stop() == 0, node.output()
+
+
+def test_a_replay_into_a_node_that_dies_says_what_was_lost_and_fails(client, spawn, tmp_path):
+    bag = tmp_path / 'run.mcap'
+    simulate_campaign(DEFAULT_CELL, 20, bag, seed=7)
+    joints, points = read_bag(bag)
+    node = spawn(tmp_path / 'data', 'node.log', 'auto_identify:=false')
+    client.spin_until(lambda: client.diagnostics().get('state') == 'idle', 30, 'the robot model')
+    replay = spawn.replay(bag, 20.0)
+    client.spin_until(lambda: client.count('received.joint_states') >= 200, 60, 'some delivery')
+    node.process.kill()
+    node.stop()
+    client.spin_until(lambda: replay.poll() is not None, 120, 'the replay to give up')
+    output = replay.stdout.read()
+    print(output.strip())
+    assert replay.returncode == 1, output
+    got_joints, got_points = received(output)
+    lost = re.search(r'LOST: (\d+) joint states and (\d+) tracker points', output)
+    assert lost and 200 <= got_joints < len(joints)
+    assert (int(lost[1]), int(lost[2])) == (len(joints) - got_joints, len(points) - got_points)

@@ -156,18 +156,21 @@ def replay(node: Node, path: str | Path, rate: float = 1.0,
         log.warning(f'no {NODE_STATUS} diagnostics on /diagnostics: only the DDS '
                     'acknowledgement can be checked, not what a node handled')
     windows = (JOINT_WINDOW, POINT_WINDOW)
-    sent = [0, 0]
+    sent, stalled = [0, 0], False
     start = time.monotonic()
     first = stream[0][0] if stream else 0
     for stamp, kind, sample in stream:
         delay = start + (stamp - first) * 1e-9 / rate - time.monotonic()
         if delay > 0:
             time.sleep(delay)  # pacing is the point of a player
-        if baseline is not None:
+        if baseline is not None and not stalled:
             if not sum(sent) % 50:  # a spin costs ~1 ms: take new counts now and then
                 node_counts.spin(0.0)
-            _await(node_counts, lambda: sent[kind] - (node_counts.counts[kind] - baseline[kind])
-                   < windows[kind], 'the node to catch up')
+            stalled = not _await(node_counts, lambda: sent[kind] - (
+                node_counts.counts[kind] - baseline[kind]) < windows[kind])
+            if stalled:
+                log.error(f'{NODE_STATUS} stopped counting for {STALL_S} s; publishing the '
+                          'rest without waiting for it')
         msg = joint_state_msg(sample) if isinstance(sample, JointSample) else \
             point_stamped_msg(sample)
         pubs[kind].publish(msg)
@@ -176,12 +179,12 @@ def replay(node: Node, path: str | Path, rate: float = 1.0,
     delivered = None
     if baseline is not None:
         _await(node_counts, lambda: all(node_counts.counts[k] - baseline[k] >= sent[k]
-                                        for k in (0, 1)), 'the node to count every message')
+                                        for k in (0, 1)))
         delivered = tuple(node_counts.counts[k] - baseline[k] for k in (0, 1))
     return ReplayReport(tuple(sent), delivered, acknowledged, time.monotonic() - start)
 
 
-def _await(node_counts: _NodeCounts, done, what: str) -> bool:
+def _await(node_counts: _NodeCounts, done) -> bool:
     """Spin until ``done()``; False once the node's counts stop moving for ``STALL_S``."""
     last, since = node_counts.counts, time.monotonic()
     while not done():
