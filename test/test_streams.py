@@ -154,13 +154,19 @@ def bad_input_cases():
     def duplicate(j, p):
         return j, p + [p[6]]
 
+    def oversized(j, p):
+        s = j[7]
+        extra = tuple(f'x{i}' for i in range(100))
+        return j + [JointSample(s.stamp_ns + 1, s.names + extra, np.zeros(106))], p
+
     return [('nan_point', nan_point, 'non_finite_point', 1),
             ('wrong_frame', wrong_frame, 'wrong_frame', 1),
             ('during_motion', during_motion, 'robot_moving', 0),
             ('no_joint_state', no_joint_state, 'no_joint_state', 0),
             ('missing_joint', missing_joint, 'missing_joints', 1),
             ('nan_joint_state', nan_joint_state, 'non_finite_joint_state', 0),
-            ('duplicate', duplicate, 'duplicate_stamp', 0)]
+            ('duplicate', duplicate, 'duplicate_stamp', 0),
+            ('oversized', oversized, 'oversized_joint_state', 0)]
 
 
 @pytest.mark.parametrize('name, mutate, reason, lost', bad_input_cases(),
@@ -173,7 +179,8 @@ def test_each_bad_input_is_rejected_with_its_reason(name, mutate, reason, lost):
     assert [r.reason for r in result.rejected] == [reason] and result.rejected[0].detail
     assert len(result) == N_POSES - lost
     # Nothing vanishes: every point is accepted or rejected exactly once.
-    point_rejections = sum(r.reason != 'non_finite_joint_state' for r in result.rejected)
+    point_rejections = sum(r.reason not in ('non_finite_joint_state', 'oversized_joint_state')
+                           for r in result.rejected)
     assert len(result) + point_rejections == len(points)
     kept = np.isin([p.stamp_ns for p in make_cell()[3]], result.stamps_ns)
     assert np.abs(result.q - q[kept]).max() < 5 * NOISE / np.sqrt(20)

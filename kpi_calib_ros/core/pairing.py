@@ -5,6 +5,16 @@ still around its stamp. :class:`Pairer` is the one implementation of that rule;
 the batch wrapper :func:`pair_measurements` (files) and the ROS node (live) both
 use it.
 
+Clock jumps: time may go backwards (sim time restarted, a bag looped or replayed
+after a newer one, a driver restarted). A joint state stamped more than ``jump_ns``
+before the newest one starts a new *epoch*: the pairer decides the points of the old
+epoch with the joint states of the old epoch, clears the buffer and pairs what follows
+against the new stream, counting the jump in ``clock_jumps``.
+
+Memory: a joint state naming far more joints than the chain is rejected as
+``oversized_joint_state`` before it is buffered; only the chain's columns are kept,
+and the name-index cache is a small LRU, so hostile input cannot grow the pairer.
+
 Units: stamps in integer nanoseconds, joint positions in rad (m for prismatic
 joints), velocities in rad/s (m/s), points in metres.
 """
@@ -12,7 +22,8 @@ from __future__ import annotations
 
 import bisect
 import heapq
-from collections import Counter, deque
+import logging
+from collections import Counter, OrderedDict, deque
 from dataclasses import dataclass, field
 from typing import Iterable, Sequence, Union
 
@@ -22,8 +33,12 @@ from kpi_calib_ros.core.streams import JointSample, PointSample, _frozen_array
 
 REJECTION_REASONS = (
     'non_finite_point', 'wrong_frame', 'no_joint_state', 'robot_moving',
-    'missing_joints', 'non_finite_joint_state', 'duplicate_stamp',
+    'missing_joints', 'non_finite_joint_state', 'duplicate_stamp', 'oversized_joint_state',
 )
+INDEX_CACHE_SIZE = 16   # distinct joint-name lists remembered (LRU); drivers use one or two
+EARLY_POINTS = 1000      # points kept waiting for a clock jump
+NAMES_KEPT = 16         # names of a foreign joint state kept for the missing_joints message
+_log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -91,7 +106,7 @@ class _Entry:
     q: np.ndarray | None   # (n,) required joints in calibration order, NaN where missing;
     v: np.ndarray | None   # (n,) or None                None: names none of them
     missing: tuple[str, ...]
-    names: tuple[str, ...]
+    names: tuple[str, ...]  # foreign joint states only (at most NAMES_KEPT), else ()
 
 
 class Pairer:
@@ -129,6 +144,13 @@ class Pairer:
     buffer_ns : int
         Joint-state history kept, measured back from the newest joint stamp (ns);
         bounds memory and the tolerated lateness of points.
+    jump_ns : int
+        A joint state carrying calibrated joints stamped more than this before the
+        newest joint stamp is a backwards clock jump and starts a new epoch (ns).
+        Smaller disorder (several drivers on one topic) is merged in stamp order.
+    max_names : int or None
+        Joint states naming more joints than this are rejected as
+        ``oversized_joint_state``; default ``4 * len(joint_names) + 64``.
     """
 
     def __init__(
@@ -140,6 +162,8 @@ class Pairer:
         window_ns: int = 200_000_000,
         timeout_ns: int = 1_000_000_000,
         buffer_ns: int = 10_000_000_000,
+        jump_ns: int = 1_000_000_000,
+        max_names: int | None = None,
     ) -> None:
         names = tuple(joint_names)
         if not names or len(set(names)) != len(names) or not all(
@@ -153,6 +177,11 @@ class Pairer:
             raise ValueError('window_ns must be > 0 and timeout_ns >= 0')
         if buffer_ns <= 2 * window_ns:
             raise ValueError(f'buffer_ns must exceed 2 * window_ns = {2 * window_ns}')
+        if jump_ns <= 0:
+            raise ValueError(f'jump_ns must be > 0, got {jump_ns}')
+        max_names = 4 * len(names) + 64 if max_names is None else int(max_names)
+        if max_names < len(names):
+            raise ValueError(f'max_names must be >= {len(names)} (the chain), got {max_names}')
         self.joint_names = names
         self.tracker_frame = tracker_frame
         self.still_tol_rad = float(still_tol_rad)
@@ -160,26 +189,49 @@ class Pairer:
         self.window_ns = int(window_ns)
         self.timeout_ns = int(timeout_ns)
         self.buffer_ns = int(buffer_ns)
-        self.ignored_joint_samples = 0
-        self.rejections: Counter[str] = Counter()
+        self.jump_ns = int(jump_ns)
+        self.max_names = max_names
         self._frame = tracker_frame.strip('/')
+        self._index_cache: OrderedDict[tuple[str, ...], tuple[np.ndarray, np.ndarray,
+                                                              tuple[str, ...]]] = OrderedDict()
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget every buffered sample, pending point and count: a new campaign."""
+        self.ignored_joint_samples = 0
+        self.clock_jumps = 0
+        self.epoch = 0
+        self.rejections: Counter[str] = Counter()
+        self._decided: list[Decision] = []
+        self._sequence = 0
+        self._new_epoch()
+
+    def _new_epoch(self) -> None:
         self._stamps: list[int] = []
         self._entries: list[_Entry] = []
-        self._latest: int | None = None
+        self._first: int | None = None    # oldest joint stamp of the epoch
+        self._latest: int | None = None   # newest joint stamp of the epoch
         self._pruned_before: int | None = None
         self._pending: list[tuple[int, int, PointSample]] = []
-        self._sequence = 0
+        self._early: list[tuple[int, PointSample]] = []  # (deadline, point) before the epoch
         self._seen: set[int] = set()
         self._latest_point: int | None = None
         self._seen_order: deque[int] = deque()
-        self._decided: list[Decision] = []
-        self._index_cache: dict[tuple[str, ...], tuple[np.ndarray, np.ndarray,
-                                                       tuple[str, ...]]] = {}
+
+    @property
+    def latest_joint_ns(self) -> int | None:
+        """Newest joint stamp of the current epoch (ns), None before any."""
+        return self._latest
 
     @property
     def pending(self) -> int:
         """Points waiting for joint states."""
-        return len(self._pending)
+        return len(self._pending) + len(self._early)
+
+    @property
+    def index_cache_size(self) -> int:
+        """Distinct joint-name lists currently cached (at most ``INDEX_CACHE_SIZE``)."""
+        return len(self._index_cache)
 
     @property
     def buffered_joint_samples(self) -> int:
@@ -191,10 +243,18 @@ class Pairer:
 
     def add_joint_sample(self, sample: JointSample) -> None:
         """Buffer one joint state and decide the points it completes."""
+        if len(sample.names) > self.max_names:
+            self._reject(sample.stamp_ns, 'oversized_joint_state',
+                         f'joint state names {len(sample.names)} joints, the chain has '
+                         f'{len(self.joint_names)} (limit {self.max_names})')
+            return
         columns, found, missing = self._indices(sample.names)
         if not len(found):
             self.ignored_joint_samples += 1
-            self._insert(_Entry(sample.stamp_ns, None, None, self.joint_names, sample.names))
+            if self._latest is None or sample.stamp_ns >= self._latest - self.jump_ns:
+                # Kept (names only) to tell a renamed robot from a silent one.
+                self._insert(_Entry(sample.stamp_ns, None, None, self.joint_names,
+                                    sample.names[:NAMES_KEPT]))
             return
         q = np.full(len(self.joint_names), np.nan)
         q[found] = sample.positions[columns]
@@ -208,12 +268,33 @@ class Pairer:
             self._reject(sample.stamp_ns, 'non_finite_joint_state',
                          f'joint state has non-finite position/velocity for {bad}')
             return
-        self._insert(_Entry(sample.stamp_ns, q, v, missing, sample.names))
+        if self._latest is not None and sample.stamp_ns < self._latest - self.jump_ns:
+            self._restart_epoch(sample.stamp_ns)
+        self._insert(_Entry(sample.stamp_ns, q, v, missing, ()))
+
+    def _restart_epoch(self, stamp_ns: int) -> None:
+        """The joint clock went back: close the epoch, pairing its points with its own
+        joint states, and start a new one; points that were waiting for it join it."""
+        back_s = (self._latest - stamp_ns) * 1e-9
+        note = (f' (joint-state clock jumped back {back_s:.3f} s after this point; '
+                'no later joint state of its epoch)')
+        while self._pending:
+            self._decide(heapq.heappop(self._pending)[2], note)
+        early = [point for _, point in self._early]
+        self.clock_jumps += 1
+        self.epoch += 1
+        _log.warning('joint-state clock jumped back %.3f s (stamp %d ns after %d ns): '
+                     'pairing epoch %d starts', back_s, stamp_ns, self._latest, self.epoch)
+        self._new_epoch()
+        for point in early:
+            self._queue(point)
 
     def _insert(self, entry: _Entry) -> None:
         at = bisect.bisect_right(self._stamps, entry.stamp_ns)
         self._stamps.insert(at, entry.stamp_ns)
         self._entries.insert(at, entry)
+        if self._first is None or entry.stamp_ns < self._first:
+            self._first = entry.stamp_ns
         if self._latest is None or entry.stamp_ns > self._latest:
             self._latest = entry.stamp_ns
             self._prune()
@@ -229,6 +310,19 @@ class Pairer:
             self._reject(stamp, 'wrong_frame',
                          f"point in frame '{point.frame_id}', expected '{self.tracker_frame}'")
             return
+        if self._first is not None and stamp < self._first - self.window_ns:
+            # Older than the whole epoch: the point of a recording whose joint states
+            # have not arrived yet (their clock jump is coming), or hopelessly late.
+            # Wait for a jump as long as for any joint state, then decide it.
+            self._early.append((self._latest + self.window_ns + self.timeout_ns, point))
+            if len(self._early) > EARLY_POINTS:  # bounded: the oldest waiter is decided now
+                deadline = min(d for d, _ in self._early)
+                self._decide_early(lambda d: d == deadline)
+            return
+        self._queue(point)
+
+    def _queue(self, point: PointSample) -> None:
+        stamp = point.stamp_ns
         if stamp in self._seen:
             self._reject(stamp, 'duplicate_stamp', 'a point with this stamp was already received')
             return
@@ -248,19 +342,33 @@ class Pairer:
         stamps) and return every decision made since the last call, oldest first."""
         while self._pending and now_ns >= self._pending[0][0] + self.window_ns + self.timeout_ns:
             self._decide(heapq.heappop(self._pending)[2])
+        self._decide_early(lambda deadline: now_ns >= deadline)
         decided, self._decided = self._decided, []
         return decided
+
+    def _decide_early(self, due) -> None:
+        keep = []
+        for deadline, point in self._early:
+            if due(deadline):
+                self._decide(point, ' (point older than every joint state of the current '
+                                    'epoch; no backwards clock jump followed)')
+            else:
+                keep.append((deadline, point))
+        self._early = keep
 
     def flush(self) -> list[Decision]:
         """End of stream: decide every pending point with the joint states at hand."""
         while self._pending:
             self._decide(heapq.heappop(self._pending)[2])
+        self._decide_early(lambda deadline: True)
         decided, self._decided = self._decided, []
         return decided
 
     def _indices(self, names: tuple[str, ...]):
         cached = self._index_cache.get(names)
-        if cached is None:
+        if cached is not None:
+            self._index_cache.move_to_end(names)
+        else:
             position = {}
             for i, name in enumerate(names):
                 position.setdefault(name, i)
@@ -268,8 +376,9 @@ class Pairer:
             columns = np.array([position[self.joint_names[i]] for i in found], dtype=int)
             missing = tuple(n for n in self.joint_names if n not in position)
             cached = (columns, np.array(found, dtype=int), missing)
-            if len(self._index_cache) < 64:  # bounded even if names keep changing
-                self._index_cache[names] = cached
+            self._index_cache[names] = cached
+            if len(self._index_cache) > INDEX_CACHE_SIZE:  # names keep changing: evict
+                self._index_cache.popitem(last=False)
         return cached
 
     def _prune(self) -> None:
@@ -289,7 +398,7 @@ class Pairer:
         self.rejections[reason] += 1
         self._decided.append(Rejection(stamp_ns, reason, detail))
 
-    def _decide(self, point: PointSample) -> None:
+    def _decide(self, point: PointSample, note: str = '') -> None:
         t, w = point.stamp_ns, self.window_ns
         lo = bisect.bisect_left(self._stamps, t - w)
         hi = bisect.bisect_right(self._stamps, t + w)
@@ -307,6 +416,7 @@ class Pairer:
                       f'{n_after} in (stamp, stamp + {w} ns]; both sides are needed')
             if self._pruned_before is not None and t - w < self._pruned_before:
                 detail += f' (point older than the {self.buffer_ns} ns joint-state buffer)'
+            detail += note
             self._reject(t, 'no_joint_state', detail)
             return
         missing = sorted({n for e in window for n in e.missing})

@@ -62,6 +62,7 @@ class Campaign:
         self._early: deque[JointSample | PointSample] = deque(maxlen=early_limit)
         self._clock: tuple[int, int] | None = None     # (stamp ns, monotonic ns of arrival)
         self._point_clock: tuple[int, int] | None = None
+        self._epoch = 0  # the pairer's clock epoch the clocks above belong to
 
     def __len__(self) -> int:
         with self.lock:
@@ -96,6 +97,8 @@ class Campaign:
                 self._early.append(sample)
                 return []
             self._add(sample)
+            if joint and self.pairer.epoch != self._epoch:  # the joint clock jumped back
+                self._epoch, self._clock = self.pairer.epoch, (sample.stamp_ns, now_ns)
             return self.poll(now_ns)
 
     def poll(self, now_ns: int | None = None) -> list[Decision]:
@@ -165,6 +168,7 @@ class Campaign:
             counts.update({f'rejected.{r}': self.rejections.get(r, 0) for r in REASONS})
             counts.update({'ignored_joint_samples': self.pairer.ignored_joint_samples
                            if self.pairer else 0,
+                           'clock_jumps': self.pairer.clock_jumps if self.pairer else 0,
                            'pending_points': self.pairer.pending if self.pairer else 0})
             return counts
 
@@ -188,7 +192,9 @@ class Campaign:
             self.restored = 0
             self.log = MeasurementLog(self.data_dir)
             if self.pairer is not None:
-                self.pairer = Pairer(self.pairer.joint_names, self.pairer.tracker_frame)
+                self.pairer.reset()
+            self._clock = self._point_clock = None
+            self._epoch = 0
             return count, archive
 
     def close(self) -> None:

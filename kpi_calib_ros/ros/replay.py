@@ -6,26 +6,101 @@ equal the log time in bags recorded by ``ros2 bag record`` from the drivers and 
 simulated bags) divided by ``rate``. Message contents, stamps included, are
 published unchanged. Imported only by the ``replay`` subcommand, so the rest of
 the CLI works without ROS.
+
+Nothing is lost silently. DDS acknowledges a reliable message once it is in the
+subscriber's queue, not once the node has handled it, and a queue that is full
+drops its oldest message; so a fast replay must be paced by the consumer. The
+calibration node reports how many joint states and points it has received
+(``received.joint_states``, ``received.points`` on /diagnostics). Replay reads those
+counts as its acknowledgement: it keeps at most ``JOINT_WINDOW`` joint states and
+``POINT_WINDOW`` points beyond what the node has confirmed (fewer than the node's
+subscription queues hold), and at the end it reports how many of the messages it
+sent the node received, failing if any are missing. Without the node's
+diagnostics (another consumer) it can only report the DDS acknowledgement. The
+node's counts include messages from other publishers, so run a replay against a
+node that receives nothing else.
 """
 from __future__ import annotations
 
 import argparse
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped
 from rclpy.duration import Duration
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
 from kpi_calib_ros.core.streams import JointSample
 from kpi_calib_ros.io.bag import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, read_bag
-from kpi_calib_ros.ros.conversions import joint_state_msg, point_stamped_msg
+from kpi_calib_ros.ros.conversions import diagnostic_values, joint_state_msg, point_stamped_msg
 
-# Deep enough that a subscriber busy for a second at 20x replay loses nothing.
+# Publisher history at least this deep; it is sized to the whole recording when longer,
+# so a message DDS has not yet acknowledged is never overwritten before it is.
 QOS_DEPTH = 1000
+# Messages in flight beyond the node's confirmed counts: below the node's subscription
+# depths (1000 joint states, 100 points) so its queues never overflow.
+JOINT_WINDOW = 500
+POINT_WINDOW = 50
+NODE_STATUS = 'kpi_calib_node'   # diagnostics status name prefix of the calibration node
+STALL_S = 10.0                   # no progress of the node's counts for this long: give up
+RECEIVED = ('received.joint_states', 'received.points')
+
+
+@dataclass(frozen=True)
+class ReplayReport:
+    """What a replay sent and what was confirmed.
+
+    ``delivered`` is (joint states, points) the calibration node counted beyond its
+    counts before the replay, or None when no node diagnostics were seen;
+    ``acknowledged`` says whether DDS acknowledged every message to every subscriber.
+    """
+
+    sent: tuple[int, int]
+    delivered: tuple[int, int] | None
+    acknowledged: bool
+    seconds: float
+
+    @property
+    def lost(self) -> tuple[int, int] | None:
+        """(joint states, points) sent but not received by the node (None: unknown)."""
+        if self.delivered is None:
+            return None
+        return tuple(max(0, s - d) for s, d in zip(self.sent, self.delivered))
+
+    @property
+    def complete(self) -> bool:
+        return self.acknowledged if self.lost is None else not any(self.lost)
+
+
+class _NodeCounts:
+    """The calibration node's received counts, as last reported on /diagnostics."""
+
+    def __init__(self, node: Node) -> None:
+        self.counts: tuple[int, int] | None = None
+        self.executor = SingleThreadedExecutor(context=node.context)
+        self.executor.add_node(node)
+        node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 50)
+
+    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        if msg.status and msg.status[0].name.startswith(NODE_STATUS):
+            values = diagnostic_values(msg)
+            if all(k in values for k in RECEIVED):
+                self.counts = tuple(int(values[k]) for k in RECEIVED)
+
+    def spin(self, timeout_s: float) -> None:
+        self.executor.spin_once(timeout_sec=timeout_s)
+
+    def wait_first(self, timeout_s: float) -> bool:
+        deadline = time.monotonic() + timeout_s
+        while self.counts is None and time.monotonic() < deadline:
+            self.spin(0.05)
+        return self.counts is not None
 
 
 def wait_for_subscribers(node: Node, publishers: list, timeout_s: float) -> bool:
@@ -40,13 +115,14 @@ def wait_for_subscribers(node: Node, publishers: list, timeout_s: float) -> bool
 
 def replay(node: Node, path: str | Path, rate: float = 1.0,
            joint_topic: str = DEFAULT_JOINT_TOPIC, point_topic: str = DEFAULT_POINT_TOPIC,
-           wait_s: float = 10.0) -> tuple[int, int, float]:
-    """Publish ``path`` through ``node`` in real time scaled by ``rate``.
+           wait_s: float = 10.0) -> ReplayReport:
+    """Publish ``path`` through ``node`` in real time scaled by ``rate``, never faster than
+    the calibration node confirms receiving (see the module docstring).
 
     Parameters
     ----------
     node : rclpy.node.Node
-        Node that owns the publishers (created here).
+        Node that owns the publishers (created here); nothing else may spin it.
     path : path-like
         MCAP bag with ``sensor_msgs/msg/JointState`` on ``joint_topic`` and
         ``geometry_msgs/msg/PointStamped`` on ``point_topic``.
@@ -57,49 +133,93 @@ def replay(node: Node, path: str | Path, rate: float = 1.0,
 
     Returns
     -------
-    (joint states, points, seconds) published and the wall time it took.
+    ReplayReport
+        Messages sent, received by the node, acknowledged, and the wall time (s).
     """
     if not rate > 0:
         raise ValueError(f'rate must be > 0, got {rate}')
     joints, points = read_bag(path, joint_topic, point_topic)
     stream = sorted([(s.stamp_ns, 0, s) for s in joints] + [(p.stamp_ns, 1, p) for p in points],
                     key=lambda item: item[:2])
-    qos = QoSProfile(depth=QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
-    pub_joint = node.create_publisher(JointState, joint_topic, qos)
-    pub_point = node.create_publisher(PointStamped, point_topic, qos)
-    if not wait_for_subscribers(node, [pub_joint, pub_point], wait_s):
-        node.get_logger().warning(f'no subscriber on {joint_topic} and {point_topic} after '
-                                  f'{wait_s} s; publishing anyway')
+    pubs = [node.create_publisher(kind, topic, QoSProfile(
+        depth=max(QOS_DEPTH, n), reliability=ReliabilityPolicy.RELIABLE))
+        for kind, topic, n in ((JointState, joint_topic, len(joints)),
+                               (PointStamped, point_topic, len(points)))]
+    node_counts = _NodeCounts(node)
+    log = node.get_logger()
+    if not wait_for_subscribers(node, pubs, wait_s):
+        log.warning(f'no subscriber on {joint_topic} and {point_topic} after {wait_s} s; '
+                    'publishing anyway')
+    # The node reports at least once a second: a few seconds tell whether it is there.
+    baseline = node_counts.counts if node_counts.wait_first(min(wait_s, 3.0)) else None
+    if baseline is None:
+        log.warning(f'no {NODE_STATUS} diagnostics on /diagnostics: only the DDS '
+                    'acknowledgement can be checked, not what a node handled')
+    windows = (JOINT_WINDOW, POINT_WINDOW)
+    sent, stalled = [0, 0], False
     start = time.monotonic()
     first = stream[0][0] if stream else 0
-    for stamp, _, sample in stream:
+    for stamp, kind, sample in stream:
         delay = start + (stamp - first) * 1e-9 / rate - time.monotonic()
         if delay > 0:
             time.sleep(delay)  # pacing is the point of a player
-        if isinstance(sample, JointSample):
-            pub_joint.publish(joint_state_msg(sample))
-        else:
-            pub_point.publish(point_stamped_msg(sample))
-    for publisher in (pub_joint, pub_point):
-        publisher.wait_for_all_acked(Duration(seconds=5))
-    return len(joints), len(points), time.monotonic() - start
+        if baseline is not None and not stalled:
+            if not sum(sent) % 50:  # a spin costs ~1 ms: take new counts now and then
+                node_counts.spin(0.0)
+            stalled = not _await(node_counts, lambda: sent[kind] - (
+                node_counts.counts[kind] - baseline[kind]) < windows[kind])
+            if stalled:
+                log.error(f'{NODE_STATUS} stopped counting for {STALL_S} s; publishing the '
+                          'rest without waiting for it')
+        msg = joint_state_msg(sample) if isinstance(sample, JointSample) else \
+            point_stamped_msg(sample)
+        pubs[kind].publish(msg)
+        sent[kind] += 1
+    acknowledged = all(p.wait_for_all_acked(Duration(seconds=STALL_S)) for p in pubs)
+    delivered = None
+    if baseline is not None:
+        _await(node_counts, lambda: all(node_counts.counts[k] - baseline[k] >= sent[k]
+                                        for k in (0, 1)))
+        delivered = tuple(node_counts.counts[k] - baseline[k] for k in (0, 1))
+    return ReplayReport(tuple(sent), delivered, acknowledged, time.monotonic() - start)
+
+
+def _await(node_counts: _NodeCounts, done) -> bool:
+    """Spin until ``done()``; False once the node's counts stop moving for ``STALL_S``."""
+    last, since = node_counts.counts, time.monotonic()
+    while not done():
+        node_counts.spin(0.1)
+        if node_counts.counts != last:
+            last, since = node_counts.counts, time.monotonic()
+        elif time.monotonic() - since > STALL_S:
+            return False  # the caller reports what was (not) delivered
+    return True
 
 
 def run_replay_command(args: argparse.Namespace) -> int:
-    """The ``kpi-calib replay`` subcommand."""
+    """The ``kpi-calib replay`` subcommand: 0 if every message was delivered, 1 if not."""
     rclpy.init()
     node = rclpy.create_node('kpi_calib_replay')
     try:
-        n_joints, n_points, seconds = replay(node, args.bag, args.rate, args.joint_topic,
-                                             args.point_topic, args.wait_for_subscribers)
-        print(f'replayed {n_joints} joint states and {n_points} tracker points from '
-              f'{args.bag} in {seconds:.1f} s (rate {args.rate:g})')
+        report = replay(node, args.bag, args.rate, args.joint_topic, args.point_topic,
+                        args.wait_for_subscribers)
     except KeyboardInterrupt:
         return 130
     finally:
         node.destroy_node()
         rclpy.try_shutdown()
-    return 0
+    (n_joints, n_points), seconds = report.sent, report.seconds
+    print(f'sent {n_joints} joint states and {n_points} tracker points from {args.bag} in '
+          f'{seconds:.1f} s (rate {args.rate:g})')
+    if report.delivered is None:
+        print('no kpi_calib_node counts seen; DDS acknowledged '
+              + ('every message' if report.acknowledged else 'NOT every message'))
+    else:
+        print(f'kpi_calib_node received {report.delivered[0]} joint states and '
+              f'{report.delivered[1]} tracker points')
+        if not report.complete:
+            print(f'LOST: {report.lost[0]} joint states and {report.lost[1]} tracker points')
+    return 0 if report.complete else 1
 
 
-__all__ = ['replay', 'run_replay_command', 'wait_for_subscribers']
+__all__ = ['ReplayReport', 'replay', 'run_replay_command', 'wait_for_subscribers']

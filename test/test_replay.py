@@ -1,0 +1,97 @@
+"""The node as a process under replay faults: a fast replay loses nothing (or says so),
+and a wall-clock joint state before a recording, or a reset, does not stop pairing."""
+from __future__ import annotations
+
+import re
+
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Header
+
+from kpi_calib_ros.io.bag import read_bag
+from kpi_calib_ros.io.cell import DEFAULT_CELL
+from kpi_calib_ros.io.simulate import simulate_campaign
+from kpi_calib_ros.ros import conversions as cv
+from test_ros_node import client, finish, ros_domain, spawn  # noqa: F401  (fixtures)
+
+WALL_NS = 1_790_000_000_000_000_000   # a wall-clock stamp, far after any simulated recording
+
+
+def received(output: str) -> tuple[int, int]:
+    found = re.search(r'kpi_calib_node received (\d+) joint states and (\d+) tracker', output)
+    assert found, output
+    return int(found[1]), int(found[2])
+
+
+def test_a_fast_replay_delivers_every_message_to_the_node(client, spawn, tmp_path):
+    n_poses = 20
+    bag = tmp_path / 'run.mcap'
+    simulate_campaign(DEFAULT_CELL, n_poses, bag, seed=5)
+    joints, points = read_bag(bag)
+    node = spawn(tmp_path / 'data', 'node.log', 'auto_identify:=false')
+    try:
+        client.spin_until(lambda: client.diagnostics().get('state') == 'idle', 30,
+                          'the robot model')
+        output = finish(spawn.replay(bag, 1000.0), client, timeout=120)
+        print(output.strip())
+        assert received(output) == (len(joints), len(points))
+        client.spin_until(lambda: client.count('received.joint_states') == len(joints), 10,
+                          'the node to count every joint state')
+        client.spin_until(lambda: client.count('accepted') == n_poses, 20, 'every pose')
+        assert client.count('received.points') == len(points)
+        assert client.count('rejected') == 0
+    finally:
+        assert node.stop() == 0, node.output()
+
+
+def test_a_wall_clock_joint_state_then_a_replayed_bag_is_paired_and_reset_resets(
+        client, spawn, tmp_path):
+    n_poses = 6
+    bag = tmp_path / 'run.mcap'
+    simulate_campaign(DEFAULT_CELL, n_poses, bag, seed=6)
+    joints, _ = read_bag(bag)
+    node = spawn(tmp_path / 'data', 'node.log', 'auto_identify:=false')
+    try:
+        client.spin_until(lambda: client.diagnostics().get('state') == 'idle', 30,
+                          'the robot model')
+        names = list(joints[0].names)
+        client.joints.publish(JointState(header=Header(stamp=cv.time_msg(WALL_NS)), name=names,
+                                         position=[0.0] * len(names)))
+        client.spin_until(lambda: client.count('received.joint_states') == 1, 10,
+                          'the wall-clock joint state')
+        print(finish(spawn.replay(bag, 20.0), client).strip())
+        client.spin_until(lambda: client.count('accepted') == n_poses, 20,
+                          f'{n_poses} accepted measurements')
+        values = client.diagnostics()
+        print('after the wall-clock joint state and the replay:',
+              {k: values[k] for k in ('accepted', 'rejected', 'clock_jumps')})
+        assert int(values['rejected']) == 0 and int(values['clock_jumps']) == 1
+
+        assert client.call('reset').success
+        client.spin_until(lambda: client.count('accepted') == 0, 10, 'the reset')
+        assert client.count('clock_jumps') == 0
+        print(finish(spawn.replay(bag, 20.0), client).strip())
+        client.spin_until(lambda: client.count('accepted') == n_poses, 20,
+                          f'{n_poses} accepted measurements after the reset')
+        assert client.count('rejected') == 0 and client.count('clock_jumps') == 0
+    finally:
+        assert node.stop() == 0, node.output()
+
+
+def test_a_replay_into_a_node_that_dies_says_what_was_lost_and_fails(client, spawn, tmp_path):
+    bag = tmp_path / 'run.mcap'
+    simulate_campaign(DEFAULT_CELL, 20, bag, seed=7)
+    joints, points = read_bag(bag)
+    node = spawn(tmp_path / 'data', 'node.log', 'auto_identify:=false')
+    client.spin_until(lambda: client.diagnostics().get('state') == 'idle', 30, 'the robot model')
+    replay = spawn.replay(bag, 20.0)
+    client.spin_until(lambda: client.count('received.joint_states') >= 200, 60, 'some delivery')
+    node.process.kill()
+    node.stop()
+    client.spin_until(lambda: replay.poll() is not None, 120, 'the replay to give up')
+    output = replay.stdout.read()
+    print(output.strip())
+    assert replay.returncode == 1, output
+    got_joints, got_points = received(output)
+    lost = re.search(r'LOST: (\d+) joint states and (\d+) tracker points', output)
+    assert lost and 200 <= got_joints < len(joints)
+    assert (int(lost[1]), int(lost[2])) == (len(joints) - got_joints, len(points) - got_points)
