@@ -1,11 +1,13 @@
 """MCAP bags: what rosbag2 records, exact round trips, clear errors, nothing lost on SIGKILL."""
 from __future__ import annotations
 
+import errno
 import os
 import signal
 import subprocess
 import sys
 import threading
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +18,7 @@ from mcap_ros2.decoder import DecoderFactory
 from kpi_calib_ros.core.streams import JointSample, PointSample, synthesize_streams
 
 from kpi_calib_ros.core.pairing import pair_measurements
-from kpi_calib_ros.io.bag import BagError, read_bag, write_bag
+from kpi_calib_ros.io.bag import BagError, BagWarning, read_bag, write_bag
 from kpi_calib_ros.io.measurement_log import MeasurementLog
 
 NAMES = ('joint_1', 'joint_2', 'joint_3', 'joint_4', 'joint_5', 'joint_6')
@@ -282,3 +284,97 @@ def test_measurement_log_survives_sigkill(tmp_path):
     assert len(loaded) - 1 in (acknowledged, acknowledged + 1)
     assert_measurements(loaded[:1], [1000])
     assert_measurements(loaded[1:], range(len(loaded) - 1))
+
+
+class DiskFull:
+    """os.pwrite / os.fsync that fail with ENOSPC on chosen calls; a failing pwrite first
+    writes part of its data, as a filling disk does."""
+
+    def __init__(self, monkeypatch, fail_writes=(), fail_syncs=(), truncate_fails=False):
+        self.writes = self.syncs = 0
+        self.fail_writes, self.fail_syncs = set(fail_writes), set(fail_syncs)
+        real_pwrite, real_fsync, real_ftruncate = os.pwrite, os.fsync, os.ftruncate
+
+        def pwrite(fd, data, offset):
+            self.writes += 1
+            if self.writes in self.fail_writes:
+                real_pwrite(fd, bytes(data[:len(data) // 2]), offset)
+                raise OSError(errno.ENOSPC, 'No space left on device')
+            return real_pwrite(fd, data, offset)
+
+        def fsync(fd):
+            self.syncs += 1
+            if self.syncs in self.fail_syncs:
+                raise OSError(errno.ENOSPC, 'No space left on device')
+            return real_fsync(fd)
+
+        def ftruncate(fd, length):
+            if truncate_fails:
+                raise OSError(errno.EIO, 'Input/output error')
+            return real_ftruncate(fd, length)
+
+        monkeypatch.setattr(os, 'pwrite', pwrite)
+        monkeypatch.setattr(os, 'fsync', fsync)
+        monkeypatch.setattr(os, 'ftruncate', ftruncate)
+
+
+@pytest.mark.parametrize('truncate_fails', [False, True])
+def test_disk_full_acknowledged_is_exactly_what_is_on_disk(tmp_path, monkeypatch,
+                                                           truncate_fails):
+    log = MeasurementLog(tmp_path)  # header written before the disk fills
+    # One pwrite per append: pwrite calls 3, 4, 9 and 12 (appends i = 2, 3, 8, 11) tear;
+    # fsync calls 6 and 7 fail (written but not known durable); space comes back between.
+    DiskFull(monkeypatch, fail_writes={3, 4, 9, 12}, fail_syncs={6, 7},
+             truncate_fails=truncate_fails)
+    acknowledged = []
+    not_stored = 0
+    for i in range(12):
+        try:
+            log.append(*measurement(i))
+        except OSError as error:
+            assert error.errno == errno.ENOSPC
+            not_stored += 1
+        else:
+            acknowledged.append(i)
+    assert {2, 3, 8, 11}.isdisjoint(acknowledged) and not_stored >= 5
+    assert log.count == len(acknowledged) == 12 - not_stored
+    if truncate_fails:
+        # The file cannot even be cut back and the process dies: the torn last append
+        # stays in the file, and the reader skips it with a warning.
+        monkeypatch.undo()
+        with pytest.warns(BagWarning, match='bytes unreadable'):
+            loaded = MeasurementLog.load_all(tmp_path)
+    else:  # every failed append was cut back: the file is clean
+        log.close()
+        monkeypatch.undo()
+        assert log.path.read_bytes().endswith(MAGIC)
+        with warnings.catch_warnings():
+            warnings.simplefilter('error')
+            loaded = MeasurementLog.load_all(tmp_path)
+    assert_measurements(loaded, acknowledged)
+    # The next run (a restart) appends after all of it.
+    with MeasurementLog(tmp_path) as again:
+        again.append(*measurement(50))
+    assert_measurements(MeasurementLog.load_all(tmp_path), acknowledged + [50])
+
+
+def test_disk_full_at_close_leaves_a_readable_log(tmp_path, monkeypatch):
+    log = MeasurementLog(tmp_path)
+    log.append(*measurement(0))
+    DiskFull(monkeypatch, fail_writes={1})
+    log.close()  # the footer does not fit: the log stays a valid unfinalised bag
+    monkeypatch.undo()
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')
+        assert_measurements(MeasurementLog.load_all(tmp_path), [0])
+
+
+def test_measurement_log_and_results_are_readable_by_others(tmp_path):
+    from kpi_calib_ros.io.results import write_atomic
+    umask = os.umask(0)
+    os.umask(umask)
+    with MeasurementLog(tmp_path) as log:
+        log.append(*measurement(0))
+    result = write_atomic(tmp_path / 'calibration.yaml', 'a: 1\n')
+    for path in (log.path, result):
+        assert path.stat().st_mode & 0o777 == 0o644 & ~umask
