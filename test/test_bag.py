@@ -13,12 +13,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 from mcap.reader import make_reader
+from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
 
 from kpi_calib_ros.core.streams import JointSample, PointSample, synthesize_streams
 
 from kpi_calib_ros.core.pairing import pair_measurements
-from kpi_calib_ros.io.bag import BagError, BagWarning, read_bag, write_bag
+from kpi_calib_ros.io.bag import BagError, BagWarning, read_bag, read_for_pairing, write_bag
 from kpi_calib_ros.io.measurement_log import MeasurementLog
 
 NAMES = ('joint_1', 'joint_2', 'joint_3', 'joint_4', 'joint_5', 'joint_6')
@@ -378,3 +379,66 @@ def test_measurement_log_and_results_are_readable_by_others(tmp_path):
     result = write_atomic(tmp_path / 'calibration.yaml', 'a: 1\n')
     for path in (log.path, result):
         assert path.stat().st_mode & 0o777 == 0o644 & ~umask
+
+
+def test_cut_inside_a_chunk_recovers_every_complete_message(tmp_path):
+    _, _, joints, points = make_streams(n_poses=6)
+    path = write_bag(tmp_path / 'cell.mcap', joints, points)  # rosbag2's 768 KiB: one chunk
+    data = path.read_bytes()
+    with open(path, 'rb') as f:
+        summary = make_reader(f).get_summary()
+    assert len(summary.chunk_indexes) == 1
+    chunk = summary.chunk_indexes[0]
+    # Where each message record ends in the file, from the writer's own message index.
+    records_start = chunk.chunk_start_offset + 9 + 8 + 8 + 8 + 4 + 4 + 8
+    ends = []  # (end offset in file, channel id)
+    for channel_id, index_offset in chunk.message_index_offsets.items():
+        with open(path, 'rb') as f:
+            f.seek(index_offset)
+            records = StreamReader(f, skip_magic=True).records
+            index = next(records)
+        for _, offset in index.records:
+            start = records_start + offset
+            length = int.from_bytes(data[start + 1:start + 9], 'little')
+            ends.append((start + 9 + length, channel_id))
+    ends.sort()
+    joint_channel = next(c.id for c in summary.channels.values() if c.topic == '/joint_states')
+    data_end = chunk.chunk_start_offset + chunk.chunk_length
+    cut_torn = tmp_path / 'torn.mcap'
+    for cut in [round(f * len(data)) for f in (0.25, 0.5, 0.75)] + [ends[10][0] + 5,
+                                                                    ends[-1][0] - 1]:
+        assert chunk.chunk_start_offset < cut < data_end  # inside the chunk
+        cut_torn.write_bytes(data[:cut])
+        whole = [c for end, c in ends if end <= cut]
+        n_joints = sum(c == joint_channel for c in whole)
+        last_end = max(end for end, _ in ends if end <= cut)
+        with pytest.warns(BagWarning, match=f': {cut - last_end} of {cut} bytes unreadable'):
+            read_joints, read_points = read_bag(cut_torn)
+        assert_same_joints(read_joints, joints[:n_joints])
+        assert_same_points(read_points, points[:len(whole) - n_joints])
+
+
+@pytest.mark.parametrize('window_ns', [200_000_000, 60_000_000])
+def test_reading_for_pairing_decodes_less_and_pairs_the_same(tmp_path, window_ns):
+    rng = np.random.default_rng(4)
+    q = rng.uniform(-2.0, 2.0, (8, len(NAMES)))
+    eta = rng.uniform(-1.5, 1.5, (8, 3))
+    joints, points = synthesize_streams(q, NAMES, eta, FRAME, rate_hz=250.0,
+                                        joint_noise_rad=1e-5, rng=rng)
+    # Points the pairer rejects belong in the comparison too: one while moving, one late,
+    # one with no joint state near it, and a duplicate.
+    points += [PointSample(joints[300].stamp_ns + 1, FRAME, [0.1, 0.2, 0.3]),
+               PointSample(joints[-1].stamp_ns + 10 ** 9, FRAME, [0.0, 0.0, 1.0]),
+               PointSample(points[2].stamp_ns, FRAME, [1.0, 0.0, 0.0])]
+    path = write_bag(tmp_path / 'cell.mcap', joints, points, chunk_size=64 * 1024)
+    contents = read_for_pairing(path, window_ns=window_ns)
+    assert not contents.measurement_log and contents.unreadable_bytes == 0
+    assert len(contents.joints) < len(joints) / 4  # only what pairing needs was decoded
+    partial = pair_measurements(contents.joints, contents.points, NAMES, FRAME,
+                                window_ns=window_ns)
+    full = pair_measurements(joints, points, NAMES, FRAME, window_ns=window_ns)
+    assert len(full) == 8 and partial.rejections == full.rejections
+    assert sum(full.rejections.values()) == 3
+    np.testing.assert_array_equal(partial.q, full.q)
+    np.testing.assert_array_equal(partial.eta, full.eta)
+    np.testing.assert_array_equal(partial.stamps_ns, full.stamps_ns)
