@@ -303,23 +303,34 @@ def _open(path: Path, joint_topic: str, point_topic: str,
     return bag, topics[joint_topic], topics[point_topic]
 
 
-def _indices(bag: ScannedBag, topic: _Topic) -> list[tuple[int, int, int]]:
-    """``(file order, channel id, index)`` of the topic's messages, in file order."""
-    out = [(order, c, i) for c in topic.channel_ids if c in bag.messages
-           for i, order in enumerate(bag.messages[c].order)]
-    out.sort()
-    return out
+def _indices(bag: ScannedBag, topic: _Topic) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(channel ids, indices, file-order keys)`` of the topic's messages, in file order."""
+    parts = [(np.full(len(bag.messages[c]), c), np.arange(len(bag.messages[c])),
+              bag.messages[c].major, bag.messages[c].minor)
+             for c in topic.channel_ids if c in bag.messages]
+    if not parts:
+        empty = np.zeros(0, dtype=np.int64)
+        return empty, empty, np.zeros((0, 2), dtype=np.int64)
+    channel, index, major, minor = (np.concatenate(col) for col in zip(*parts))
+    order = np.lexsort((minor, major))
+    return channel[order], index[order], np.stack([major[order], minor[order]], axis=1)
 
 
-def _decode(path: Path, bag: ScannedBag, topic: _Topic, which: list[tuple[int, int, int]],
-            undecodable: list[int]) -> list[Any]:
-    out = []
-    for _, c, i in which:
-        try:
-            out.append(topic.decode(bag.payload(c, i)))
-        except Exception:  # any decoder failure means a corrupt message: skip, count, warn
-            undecodable.append(c)
-    return out
+def _decode(path: Path, bag: ScannedBag, topic: _Topic, channel: np.ndarray,
+            index: np.ndarray, undecodable: list[int]) -> list[Any]:
+    payloads = [bag.payload(int(c), int(i)) for c, i in zip(channel, index)]
+    many = getattr(topic.decode, 'decode_many', None)
+    if many is not None:
+        out = many(payloads)
+    else:
+        out = []
+        for data in payloads:
+            try:
+                out.append(topic.decode(data))
+            except Exception:  # any decoder failure means a corrupt message
+                out.append(None)
+    undecodable += [1 for m in out if m is None]
+    return [m for m in out if m is not None]
 
 
 def _warn_undecodable(path: Path, undecodable: list[int]) -> None:
@@ -349,8 +360,8 @@ def read_bag(
     assert opened is not None
     bag, joints, points = opened
     bad: list[int] = []
-    result = (_decode(path, bag, joints, _indices(bag, joints), bad),
-              _decode(path, bag, points, _indices(bag, points), bad))
+    result = (_decode(path, bag, joints, *_indices(bag, joints)[:2], bad),
+              _decode(path, bag, points, *_indices(bag, points)[:2], bad))
     _warn_undecodable(path, bad)
     return result
 
@@ -380,8 +391,10 @@ def _stored_pairs(path: Path, bag: ScannedBag, joints: _Topic, points: _Topic,
                   bad: list[int]) -> tuple[list[JointSample], list[PointSample]]:
     """A log's measurements: a joint state directly followed by its point (same stamp);
     anything else (an append torn by a kill or a full disk) is skipped and counted."""
-    merged = sorted([(o, 0, c, i) for o, c, i in _indices(bag, joints)]
-                    + [(o, 1, c, i) for o, c, i in _indices(bag, points)])
+    jc, ji, jo = _indices(bag, joints)
+    pc, pi, po = _indices(bag, points)
+    merged = sorted([(tuple(o), 0, int(c), int(i)) for c, i, o in zip(jc, ji, jo)]
+                    + [(tuple(o), 1, int(c), int(i)) for c, i, o in zip(pc, pi, po)])
     stored_joints: list[JointSample] = []
     stored_points: list[PointSample] = []
     skipped = 0
@@ -389,8 +402,9 @@ def _stored_pairs(path: Path, bag: ScannedBag, joints: _Topic, points: _Topic,
     while k < len(merged):
         _, kind, c, i = merged[k]
         if kind == 0 and k + 1 < len(merged) and merged[k + 1][1] == 1:
-            joint = _decode(path, bag, joints, [(0, c, i)], bad)
-            point = _decode(path, bag, points, [(0,) + merged[k + 1][2:]], bad)
+            _, _, pc_k, pi_k = merged[k + 1]
+            joint = _decode(path, bag, joints, np.array([c]), np.array([i]), bad)
+            point = _decode(path, bag, points, np.array([pc_k]), np.array([pi_k]), bad)
             if joint and point and joint[0].stamp_ns == point[0].stamp_ns:
                 stored_joints += joint
                 stored_points += point
@@ -449,17 +463,19 @@ def read_for_pairing(
         stored_joints, stored_points = _stored_pairs(path, bag, joints, points, bad)
         _warn_undecodable(path, bad)
         return BagContents(stored_joints, stored_points, True, bag.unreadable_bytes)
-    point_samples = _decode(path, bag, points, _indices(bag, points), bad)
-    which = _indices(bag, joints)
-    stamps = [bag.messages[c].stamp_ns[i] for _, c, i in which]
-    known = np.array([s is not None for s in stamps], dtype=bool)
-    stamp_array = np.array([0 if s is None else s for s in stamps], dtype=np.int64)
-    wanted = ~known  # a stamp not read from the bytes: decode to know
-    if len(point_samples) and known.any():
+    point_samples = _decode(path, bag, points, *_indices(bag, points)[:2], bad)
+    channel, index, _ = _indices(bag, joints)
+    stamped = np.zeros(len(channel), dtype=bool)
+    stamps = np.zeros(len(channel), dtype=np.int64)
+    for c in np.unique(channel):
+        k = channel == c
+        stamped[k] = bag.messages[int(c)].stamped[index[k]]
+        stamps[k] = bag.messages[int(c)].stamp_ns[index[k]]
+    wanted = ~stamped  # a stamp not read from the bytes: decode to know
+    if len(point_samples) and stamped.any():
         point_stamps = np.array(sorted(p.stamp_ns for p in point_samples), dtype=np.int64)
-        wanted[known] = _around(stamp_array[known], point_stamps, int(window_ns))
-    joint_samples = _decode(path, bag, joints, [w for w, keep in zip(which, wanted) if keep],
-                            bad)
+        wanted[stamped] = _around(stamps[stamped], point_stamps, int(window_ns))
+    joint_samples = _decode(path, bag, joints, channel[wanted], index[wanted], bad)
     _warn_undecodable(path, bad)
     joint_samples.sort(key=lambda j: j.stamp_ns)
     point_samples.sort(key=lambda p: p.stamp_ns)

@@ -18,6 +18,7 @@ import zlib
 from dataclasses import dataclass, field
 from io import BytesIO
 
+import numpy as np
 from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError
 from mcap.opcode import Opcode
@@ -39,16 +40,34 @@ class BagError(KpiCalibError, ValueError):
     topic and the fix."""
 
 
-@dataclass
 class ChannelMessages:
-    """The messages of one channel, in file order: payload ``buffers[b][start:end]``
-    and header stamp (ns; ``None`` where the payload is not little-endian CDR)."""
+    """The messages of one channel: payload ``buffers[buffer[i]][start[i]:end[i]]``,
+    header stamp ``stamp_ns[i]`` (valid where ``stamped[i]``: little-endian CDR), and
+    file order by ``(major[i], minor[i])`` (record position, position inside a chunk)."""
 
-    buffer: list[int] = field(default_factory=list)
-    start: list[int] = field(default_factory=list)
-    end: list[int] = field(default_factory=list)
-    stamp_ns: list[int | None] = field(default_factory=list)
-    order: list[int] = field(default_factory=list)  # position among all messages read
+    def __init__(self) -> None:
+        self._walked: list[tuple[int, int, int, int, bool, int, int]] = []
+        self._segments: list[tuple[np.ndarray, ...]] = []
+
+    def add(self, buffer: int, start: int, end: int, stamp: int, stamped: bool, major: int,
+            minor: int) -> None:
+        self._walked.append((buffer, start, end, stamp, stamped, major, minor))
+
+    def add_many(self, *columns: np.ndarray) -> None:
+        self._segments.append(columns)
+
+    def finish(self) -> None:
+        columns = [np.concatenate([seg[k] for seg in self._segments]
+                                  + [np.array([w[k] for w in self._walked],
+                                              dtype=bool if k == 4 else np.int64)])
+                   for k in range(7)]
+        (self.buffer, self.start, self.end, self.stamp_ns, self.stamped, self.major,
+         self.minor) = columns
+        self.stamped = self.stamped.astype(bool)
+        self._walked, self._segments = [], []
+
+    def __len__(self) -> int:
+        return len(self.buffer)
 
 
 @dataclass
@@ -59,16 +78,21 @@ class ScannedBag:
     schemas: dict[int, Schema] = field(default_factory=dict)
     channels: dict[int, Channel] = field(default_factory=dict)
     metadata: list[Metadata] = field(default_factory=list)
-    buffers: list[bytes] = field(default_factory=list)
+    buffers: list = field(default_factory=list)
     messages: dict[int, ChannelMessages] = field(default_factory=dict)
     finalised: bool = False
     unreadable_bytes: int = 0
     problems: list[str] = field(default_factory=list)
-    count: int = 0
+
+    def channel(self, channel_id: int) -> ChannelMessages:
+        m = self.messages.get(channel_id)
+        if m is None:
+            m = self.messages[channel_id] = ChannelMessages()
+        return m
 
     def payload(self, channel_id: int, i: int) -> bytes:
         m = self.messages[channel_id]
-        return self.buffers[m.buffer[i]][m.start[i]:m.end[i]]
+        return bytes(self.buffers[m.buffer[i]][m.start[i]:m.end[i]])
 
 
 def _decompress(path, compression: str, data: bytes, size: int) -> bytes:
@@ -97,38 +121,34 @@ def _partial_lz4(data: bytes) -> bytes:
         return b''
 
 
-def _records(bag: ScannedBag, buf: bytes, pos: int, end: int, top: bool, path) -> int:
-    """Walk the records of ``buf[pos:end]``; returns where the complete ones stop."""
+def _records(bag: ScannedBag, buf, pos: int, end: int, top: bool, path,
+             major: int | None = None) -> int:
+    """Walk the records of ``buf[pos:end]``; returns where the complete ones stop.
+    ``major``: file position of the chunk ``buf`` came from (None: ``buf`` is the file)."""
     b = len(bag.buffers)
     bag.buffers.append(buf)
-    messages = bag.messages
     unpack_message, unpack_record = _MESSAGE.unpack_from, _RECORD.unpack_from
     while pos + 9 <= end:
         opcode, length = unpack_record(buf, pos)
         stop = pos + 9 + length
         if stop > end:
             if top and opcode == Opcode.CHUNK:  # cut inside a chunk: keep what is whole
-                bag.unreadable_bytes += _chunk(bag, buf, pos, end, path)
+                bag.unreadable_bytes += _chunk(bag, buf, pos, end, path, [])
                 return end
             break
         if opcode == Opcode.MESSAGE and length >= 22:
             if length >= _MESSAGE_MIN:
                 _, _, channel, _, _, _, encapsulation, sec, nanosec = unpack_message(buf, pos)
-                stamp = sec * 1_000_000_000 + nanosec if encapsulation == b'\x00\x01' else None
+                stamped = encapsulation == b'\x00\x01'
+                stamp = sec * 1_000_000_000 + nanosec if stamped else 0
             else:
                 (channel,) = struct.unpack_from('<H', buf, pos + 9)
-                stamp = None
-            m = messages.get(channel)
-            if m is None:
-                m = messages[channel] = ChannelMessages()
-            m.buffer.append(b)
-            m.start.append(pos + 31)
-            m.end.append(stop)
-            m.stamp_ns.append(stamp)
-            m.order.append(bag.count)
-            bag.count += 1
+                stamp, stamped = 0, False
+            bag.channel(channel).add(b, pos + 31, stop, stamp, stamped,
+                                     pos if major is None else major,
+                                     0 if major is None else pos + 1)
         elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.METADATA):
-            stream = ReadDataStream(BytesIO(buf[pos + 9:stop]))
+            stream = ReadDataStream(BytesIO(bytes(buf[pos + 9:stop])))
             try:
                 if opcode == Opcode.SCHEMA:
                     schema = Schema.read(stream)
@@ -142,7 +162,16 @@ def _records(bag: ScannedBag, buf: bytes, pos: int, end: int, top: bool, path) -
                 raise BagError(f'{path}: corrupt MCAP record at byte {pos} ({error!r}); '
                                're-copy or re-record the file') from error
         elif top and opcode == Opcode.CHUNK:
-            bag.unreadable_bytes += _chunk(bag, buf, pos, stop, path)
+            indexes = []  # the chunk's message indexes follow it (rosbag2, mcap writers)
+            after = stop
+            while after + 9 <= end:
+                next_opcode, next_length = unpack_record(buf, after)
+                if next_opcode != Opcode.MESSAGE_INDEX or after + 9 + next_length > end:
+                    break
+                indexes.append(buf[after + 9:after + 9 + next_length])
+                after += 9 + next_length
+            bag.unreadable_bytes += _chunk(bag, buf, pos, stop, path, indexes)
+            stop = after
         elif top and opcode == Opcode.FOOTER:
             bag.finalised = True
             return stop
@@ -150,7 +179,52 @@ def _records(bag: ScannedBag, buf: bytes, pos: int, end: int, top: bool, path) -
     return pos
 
 
-def _chunk(bag: ScannedBag, buf: bytes, pos: int, stop: int, path) -> int:
+def _indexed(bag: ScannedBag, inner, chunk_pos: int, indexes: list, path) -> bool:
+    """Locate a chunk's messages from its message indexes, vectorised; False if the
+    indexes do not describe the chunk (then it is walked record by record)."""
+    offsets = []
+    for index in indexes:
+        if len(index) < 6:
+            return False
+        (n,) = struct.unpack_from('<I', index, 2)
+        if n % 16 or 6 + n > len(index):
+            return False
+        offsets.append(np.frombuffer(index, '<u8', n // 8, 6)[1::2])
+    if not offsets:
+        return False
+    o = np.sort(np.concatenate(offsets)).astype(np.int64)
+    data = np.frombuffer(inner, np.uint8)
+    if len(o) == 0 or o[-1] + 31 + 12 > len(data) or o[0] < 0:
+        return False
+
+    def gather(offset: int, width: int, dtype: str) -> np.ndarray:
+        return data[(o + offset)[:, None] + np.arange(width)].copy().view(dtype).ravel()
+
+    if not (data[o] == Opcode.MESSAGE).all():
+        return False
+    length = gather(1, 8, '<u8').astype(np.int64)
+    stop = o + 9 + length
+    if (stop > len(data)).any() or (length < _MESSAGE_MIN).any() or (stop[:-1] > o[1:]).any():
+        return False
+    channel = gather(9, 2, '<u2')
+    stamped = (data[o + 31] == 0) & (data[o + 32] == 1)
+    stamp = (gather(35, 4, '<i4').astype(np.int64) * 1_000_000_000
+             + gather(39, 4, '<u4').astype(np.int64))
+    b = len(bag.buffers)
+    bag.buffers.append(inner)
+    for c in np.unique(channel):
+        k = channel == c
+        bag.channel(int(c)).add_many(np.full(k.sum(), b), o[k] + 31, stop[k], stamp[k],
+                                     stamped[k], np.full(k.sum(), chunk_pos), o[k] + 1)
+    # What the indexes do not cover (schemas, channels) is walked.
+    starts = np.concatenate([[0], stop])
+    ends = np.concatenate([o, [len(data)]])
+    for gap_start, gap_end in zip(starts[starts < ends], ends[starts < ends]):
+        _records(bag, inner, int(gap_start), int(gap_end), False, path, chunk_pos)
+    return True
+
+
+def _chunk(bag: ScannedBag, buf, pos: int, stop: int, path, indexes: list) -> int:
     """Read the chunk record at ``buf[pos:stop]`` (``stop`` short of its declared end when
     the file was cut inside it); returns the bytes of it that could not be used."""
     p = pos + 9
@@ -165,7 +239,7 @@ def _chunk(bag: ScannedBag, buf: bytes, pos: int, stop: int, path) -> int:
     (data_length,) = struct.unpack_from('<Q', buf, p)
     p += 8
     complete = p + data_length <= stop
-    data = buf[p:min(p + data_length, stop)]
+    data = memoryview(buf)[p:min(p + data_length, stop)]  # no copy of the file
     if complete:
         inner = _decompress(path, compression, data, size)
         if crc and zlib.crc32(inner) != crc:
@@ -177,7 +251,9 @@ def _chunk(bag: ScannedBag, buf: bytes, pos: int, stop: int, path) -> int:
         inner = _partial_lz4(data)
     else:
         return stop - pos
-    used = _records(bag, inner, 0, len(inner), False, path)
+    if complete and _indexed(bag, inner, pos, indexes, path):
+        return 0
+    used = _records(bag, inner, 0, len(inner), False, path, pos)
     if compression == '':
         return stop - (p + used)
     return 0 if complete else stop - pos
@@ -193,6 +269,8 @@ def scan(path, data: bytes) -> ScannedBag:
     used = _records(bag, data, len(MAGIC), len(data), True, path)
     if not bag.finalised:
         bag.unreadable_bytes += len(data) - used
+    for messages in bag.messages.values():
+        messages.finish()
     return bag
 
 

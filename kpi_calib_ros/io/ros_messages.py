@@ -119,25 +119,27 @@ def _aligned(p: int, k: int) -> int:
     return 4 + (p - 4 + k - 1) // k * k
 
 
-def _float64_sequence(data: bytes, p: int) -> tuple[np.ndarray, int]:
+def _float64_sequence(data: bytes, p: int) -> tuple[int, int, int]:
+    """(count, data start, data end) of the float64 sequence whose length is at ``p``."""
     p = _aligned(p, 4)
     (count,) = _U32.unpack_from(data, p)
     p += 4
     if count == 0:
-        return np.empty(0), p
+        return 0, p, p
     p = _aligned(p, 8)
     end = p + 8 * count
     if end > len(data):
         raise ValueError('float64 sequence runs past the message end')
-    return np.frombuffer(data, _F8, count, p), end
+    return count, p, end
 
 
 class JointStateDecoder:
-    """Decode JointState CDR straight into a JointSample; the same result as decoding the
+    """Decode JointState CDR straight into JointSamples; the same result as decoding the
     message and calling :func:`joint_sample_from_message`.
 
     ``fallback`` (the generic decoder) takes messages that are not little-endian CDR or
-    do not parse. Name blocks are cached (a driver sends the same names every time).
+    do not parse. :meth:`decode_many` decodes every message laid out like the first
+    of its length (same names, same array lengths: one driver) with numpy at once.
     """
 
     def __init__(self, fallback: Callable[[bytes], Any]) -> None:
@@ -147,39 +149,91 @@ class JointStateDecoder:
     def __call__(self, data: bytes) -> JointSample:
         if data[:2] == _CDR_LE:
             try:
-                return self._fast(data)
+                return self._sample(data, self._parse(data))
             except (ValueError, struct.error, UnicodeDecodeError):
                 pass  # unusual layout: the generic decoder decides (and reports) it
         return joint_sample_from_message(self._fallback(data))
 
-    def _fast(self, data: bytes) -> JointSample:
+    def _parse(self, data: bytes) -> tuple:
+        """(stamp ns, names, positions (start, end), velocities (start, end), end)."""
         sec, nanosec = _STAMP.unpack_from(data, 4)
         (n,) = _U32.unpack_from(data, 12)
         p = _aligned(16 + n, 4)                    # after frame_id (length includes NUL)
         start = p
         (count,) = _U32.unpack_from(data, p)
         p += 4
-        lengths = []
+        spans = []
         for _ in range(count):
             p = _aligned(p, 4)
             (n,) = _U32.unpack_from(data, p)
             if n == 0 or p + 4 + n > len(data):
                 raise ValueError('bad string length')
-            lengths.append((p + 4, n))
+            spans.append((p + 4, n))
             p += 4 + n
-        block = data[start:p]
+        block = bytes(data[start:p])
         names = self._names.get(block)
         if names is None:
-            names = tuple(data[q:q + n - 1].decode('utf-8') for q, n in lengths)
+            names = tuple(bytes(data[q:q + n - 1]).decode('utf-8') for q, n in spans)
             if len(self._names) < 64:  # bounded: a few drivers, not one entry per message
                 self._names[block] = names
-        positions, p = _float64_sequence(data, p)
-        velocities, p = _float64_sequence(data, p)
-        _float64_sequence(data, p)  # effort: validated, not used
-        if positions.shape != (len(names),):
-            positions = np.full(len(names), np.nan)
-        return JointSample(int(sec) * _NS + nanosec, names, positions,
-                           velocities if velocities.shape == (len(names),) else None)
+        _, p0, p1 = _float64_sequence(data, p)
+        _, v0, v1 = _float64_sequence(data, p1)
+        _, _, end = _float64_sequence(data, v1)  # effort: validated, not used
+        return int(sec) * _NS + nanosec, names, (p0, p1), (v0, v1), end
+
+    @staticmethod
+    def _sample(data, parsed) -> JointSample:
+        stamp, names, (p0, p1), (v0, v1), _ = parsed
+        return _joint_sample(stamp, names, np.frombuffer(data, _F8, (p1 - p0) // 8, p0),
+                             np.frombuffer(data, _F8, (v1 - v0) // 8, v0))
+
+    def decode_many(self, payloads: list[bytes]) -> list[JointSample | None]:
+        """Decode each payload (None where it does not decode), in order."""
+        out: list[JointSample | None] = [None] * len(payloads)
+        lengths = np.array([len(d) for d in payloads], dtype=np.int64)
+        for length in np.unique(lengths):
+            members = np.flatnonzero(lengths == length)
+            template = payloads[members[0]]
+            try:
+                parsed = self._parse(template) if template[:2] == _CDR_LE else None
+            except (ValueError, struct.error, UnicodeDecodeError):
+                parsed = None
+            if parsed is None or parsed[4] != length:
+                rest = members
+            else:
+                rest = self._decode_alike(payloads, members, template, parsed, out)
+            for k in rest:
+                try:
+                    out[k] = self(payloads[k])
+                except Exception:  # a corrupt message: the caller counts it
+                    out[k] = None
+        return out
+
+    def _decode_alike(self, payloads, members, template, parsed, out) -> np.ndarray:
+        """Decode the members laid out like ``template``; returns those that are not."""
+        _, names, (p0, p1), (v0, v1), _ = parsed
+        rows = np.frombuffer(b''.join(payloads[k] for k in members), np.uint8).reshape(
+            len(members), -1)
+        reference = np.frombuffer(template, np.uint8)
+        alike = np.ones(len(members), dtype=bool)
+        for a, b in ((0, 4), (12, p0), (p1, v0), (v1, len(reference))):
+            alike &= (rows[:, a:b] == reference[a:b]).all(axis=1)
+        stamps = (rows[:, 4:8].copy().view('<i4').ravel().astype(np.int64) * _NS
+                  + rows[:, 8:12].copy().view('<u4').ravel())
+        positions = rows[:, p0:p1].copy().view(_F8)
+        velocities = rows[:, v0:v1].copy().view(_F8)
+        for r in np.flatnonzero(alike):
+            out[members[r]] = _joint_sample(int(stamps[r]), names, positions[r], velocities[r])
+        return members[~alike]
+
+
+def _joint_sample(stamp: int, names: tuple[str, ...], positions: np.ndarray,
+                  velocities: np.ndarray) -> JointSample:
+    # The same length rules as joint_sample_from_message.
+    if positions.shape != (len(names),):
+        positions = np.full(len(names), np.nan)
+    return JointSample(stamp, names, positions,
+                       velocities if velocities.shape == (len(names),) else None)
 
 
 __all__ = ['JointStateDecoder', 'joint_sample_from_message', 'joint_state_fields',
