@@ -19,7 +19,6 @@ import time
 from collections import Counter, deque
 from pathlib import Path
 
-import numpy as np
 
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.measurement import Measurements
