@@ -442,3 +442,23 @@ def test_reading_for_pairing_decodes_less_and_pairs_the_same(tmp_path, window_ns
     np.testing.assert_array_equal(partial.q, full.q)
     np.testing.assert_array_equal(partial.eta, full.eta)
     np.testing.assert_array_equal(partial.stamps_ns, full.stamps_ns)
+
+
+def test_measurement_log_damaged_record_is_skipped_and_others_read_it(tmp_path):
+    with MeasurementLog(tmp_path) as log:
+        for i in range(3):
+            log.append(*measurement(i))
+    data = bytearray(log.path.read_bytes())
+    # Other MCAP readers read the log as an ordinary bag.
+    with open(log.path, 'rb') as f:
+        decoded = [(channel.topic, message.log_time) for _, channel, message
+                   in make_reader(f).iter_messages()]
+    assert decoded == [(t, measurement(i)[1].stamp_ns) for i in range(3)
+                       for t in ('/joint_states', '/laser_tracker/point')]
+    # A flipped bit inside the third measurement's point: that one is skipped, loudly.
+    third = data.find(measurement(2)[1].xyz.tobytes())
+    assert third > 0 and data.count(measurement(2)[1].xyz.tobytes()) == 1
+    data[third] ^= 0x10
+    log.path.write_bytes(bytes(data))
+    with pytest.warns(BagWarning, match='fails its CRC check'):
+        assert_measurements(MeasurementLog.load_all(tmp_path), [0, 1])
