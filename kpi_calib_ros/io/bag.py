@@ -15,6 +15,7 @@ the stored configurations of its points, already paired.
 from __future__ import annotations
 
 import inspect
+import mmap
 import os
 import warnings
 from dataclasses import dataclass
@@ -67,7 +68,10 @@ def _open(path: Path, joint_topic: str, point_topic: str,
     header was written, ``require_topics`` False)."""
     if joint_topic == point_topic:
         raise ValueError(f"joint_topic and point_topic must differ, both are '{joint_topic}'")
-    data = path.read_bytes()
+    with open(path, 'rb') as f:
+        size = os.fstat(f.fileno()).st_size
+        # Mapped, not read: pages of chunks already indexed are given back (see scan).
+        data = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) if size else b''
     if data[:len(MAGIC)] != MAGIC:
         if not require_topics and MAGIC.startswith(data[:len(MAGIC)]):
             return None

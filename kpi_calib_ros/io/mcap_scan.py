@@ -13,6 +13,7 @@ a ``std_msgs/Header``), so a reader can pick the messages it needs before decodi
 """
 from __future__ import annotations
 
+import mmap
 import struct
 import zlib
 from dataclasses import dataclass, field
@@ -171,12 +172,21 @@ def _records(bag: ScannedBag, buf, pos: int, end: int, top: bool, path,
                 indexes.append(buf[after + 9:after + 9 + next_length])
                 after += 9 + next_length
             bag.unreadable_bytes += _chunk(bag, buf, pos, stop, path, indexes)
+            _release(buf, pos, stop)
             stop = after
         elif top and opcode == Opcode.FOOTER:
             bag.finalised = True
             return stop
         pos = stop
     return pos
+
+
+def _release(buf, start: int, stop: int) -> None:
+    """Give back the pages of a mapped file range already scanned: memory stays that of
+    the index, not of the file (the few payloads decoded later are paged in again)."""
+    if isinstance(buf, mmap.mmap):
+        first = start // mmap.PAGESIZE * mmap.PAGESIZE
+        buf.madvise(mmap.MADV_DONTNEED, first, stop - first)
 
 
 def _indexed(bag: ScannedBag, inner, chunk_pos: int, indexes: list, path) -> bool:
