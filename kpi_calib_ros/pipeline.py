@@ -16,7 +16,9 @@ from kpi_calib_ros.core.estimation import CalibrationResult, identify
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.streams import JointSample, PointSample
 from kpi_calib_ros.core.pairing import PairingResult, pair_measurements
+from kpi_calib_ros.io.bag import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, read_for_pairing
 from kpi_calib_ros.io.cell import CellModel
+from kpi_calib_ros.io.measurement_log import stored_pairing
 from kpi_calib_ros.io.results import calibration_to_dict
 
 
@@ -39,6 +41,20 @@ def measurements_from_samples(cm: CellModel, joint_samples: Iterable[JointSample
         raise DataError(f'the joint states name joints {seen}, but the robot chain needs '
                         f'{cm.joint_names}; record the right robot or fix the URDF joint names')
     return Measurements(q=pairing.q, eta=pairing.eta, stamps_ns=pairing.stamps_ns), pairing
+
+
+def measurements_from_bag(cm: CellModel, path, joint_topic: str = DEFAULT_JOINT_TOPIC,
+                          point_topic: str = DEFAULT_POINT_TOPIC,
+                          **pairer_options) -> tuple[Measurements, PairingResult]:
+    """Measurements from a recording (paired here) or from the node's measurement log
+    (paired when stored), reading only the joint states pairing needs."""
+    contents = read_for_pairing(path, joint_topic, point_topic,
+                                window_ns=pairer_options.get('window_ns'))
+    if contents.measurement_log:
+        pairing = stored_pairing(zip(contents.joints, contents.points), list(cm.joint_names),
+                                 cm.cell.tracker_frame)
+        return Measurements(q=pairing.q, eta=pairing.eta, stamps_ns=pairing.stamps_ns), pairing
+    return measurements_from_samples(cm, contents.joints, contents.points, **pairer_options)
 
 
 def identify_cell(cm: CellModel, data: Measurements, p0: np.ndarray | None = None,

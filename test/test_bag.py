@@ -1,22 +1,25 @@
 """MCAP bags: what rosbag2 records, exact round trips, clear errors, nothing lost on SIGKILL."""
 from __future__ import annotations
 
+import errno
 import os
 import signal
 import subprocess
 import sys
 import threading
+import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
 from mcap.reader import make_reader
+from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
 
 from kpi_calib_ros.core.streams import JointSample, PointSample, synthesize_streams
 
 from kpi_calib_ros.core.pairing import pair_measurements
-from kpi_calib_ros.io.bag import BagError, read_bag, write_bag
+from kpi_calib_ros.io.bag import BagError, BagWarning, read_bag, read_for_pairing, write_bag
 from kpi_calib_ros.io.measurement_log import MeasurementLog
 
 NAMES = ('joint_1', 'joint_2', 'joint_3', 'joint_4', 'joint_5', 'joint_6')
@@ -282,3 +285,180 @@ def test_measurement_log_survives_sigkill(tmp_path):
     assert len(loaded) - 1 in (acknowledged, acknowledged + 1)
     assert_measurements(loaded[:1], [1000])
     assert_measurements(loaded[1:], range(len(loaded) - 1))
+
+
+class DiskFull:
+    """os.pwrite / os.fsync that fail with ENOSPC on chosen calls; a failing pwrite first
+    writes part of its data, as a filling disk does."""
+
+    def __init__(self, monkeypatch, fail_writes=(), fail_syncs=(), truncate_fails=False):
+        self.writes = self.syncs = 0
+        self.fail_writes, self.fail_syncs = set(fail_writes), set(fail_syncs)
+        real_pwrite, real_fsync, real_ftruncate = os.pwrite, os.fsync, os.ftruncate
+
+        def pwrite(fd, data, offset):
+            self.writes += 1
+            if self.writes in self.fail_writes:
+                real_pwrite(fd, bytes(data[:len(data) // 2]), offset)
+                raise OSError(errno.ENOSPC, 'No space left on device')
+            return real_pwrite(fd, data, offset)
+
+        def fsync(fd):
+            self.syncs += 1
+            if self.syncs in self.fail_syncs:
+                raise OSError(errno.ENOSPC, 'No space left on device')
+            return real_fsync(fd)
+
+        def ftruncate(fd, length):
+            if truncate_fails:
+                raise OSError(errno.EIO, 'Input/output error')
+            return real_ftruncate(fd, length)
+
+        monkeypatch.setattr(os, 'pwrite', pwrite)
+        monkeypatch.setattr(os, 'fsync', fsync)
+        monkeypatch.setattr(os, 'ftruncate', ftruncate)
+
+
+@pytest.mark.parametrize('truncate_fails', [False, True])
+def test_disk_full_acknowledged_is_exactly_what_is_on_disk(tmp_path, monkeypatch,
+                                                           truncate_fails):
+    log = MeasurementLog(tmp_path)  # header written before the disk fills
+    # One pwrite per append: pwrite calls 3, 4, 9 and 12 (appends i = 2, 3, 8, 11) tear;
+    # fsync calls 6 and 7 fail (written but not known durable); space comes back between.
+    DiskFull(monkeypatch, fail_writes={3, 4, 9, 12}, fail_syncs={6, 7},
+             truncate_fails=truncate_fails)
+    acknowledged = []
+    not_stored = 0
+    for i in range(12):
+        try:
+            log.append(*measurement(i))
+        except OSError as error:
+            assert error.errno == errno.ENOSPC
+            not_stored += 1
+        else:
+            acknowledged.append(i)
+    assert {2, 3, 8, 11}.isdisjoint(acknowledged) and not_stored >= 5
+    assert log.count == len(acknowledged) == 12 - not_stored
+    if truncate_fails:
+        # The file cannot even be cut back and the process dies: the torn last append
+        # stays in the file, and the reader skips it with a warning.
+        monkeypatch.undo()
+        with pytest.warns(BagWarning, match='bytes unreadable'):
+            loaded = MeasurementLog.load_all(tmp_path)
+    else:  # every failed append was cut back: the file is clean
+        log.close()
+        monkeypatch.undo()
+        assert log.path.read_bytes().endswith(MAGIC)
+        with warnings.catch_warnings():
+            warnings.simplefilter('error')
+            loaded = MeasurementLog.load_all(tmp_path)
+    assert_measurements(loaded, acknowledged)
+    # The next run (a restart) appends after all of it.
+    with MeasurementLog(tmp_path) as again:
+        again.append(*measurement(50))
+    assert_measurements(MeasurementLog.load_all(tmp_path), acknowledged + [50])
+
+
+def test_disk_full_at_close_leaves_a_readable_log(tmp_path, monkeypatch):
+    log = MeasurementLog(tmp_path)
+    log.append(*measurement(0))
+    DiskFull(monkeypatch, fail_writes={1})
+    log.close()  # the footer does not fit: the log stays a valid unfinalised bag
+    monkeypatch.undo()
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')
+        assert_measurements(MeasurementLog.load_all(tmp_path), [0])
+
+
+def test_measurement_log_and_results_are_readable_by_others(tmp_path):
+    from kpi_calib_ros.io.results import write_atomic
+    umask = os.umask(0)
+    os.umask(umask)
+    with MeasurementLog(tmp_path) as log:
+        log.append(*measurement(0))
+    result = write_atomic(tmp_path / 'calibration.yaml', 'a: 1\n')
+    for path in (log.path, result):
+        assert path.stat().st_mode & 0o777 == 0o644 & ~umask
+
+
+def test_cut_inside_a_chunk_recovers_every_complete_message(tmp_path):
+    _, _, joints, points = make_streams(n_poses=6)
+    path = write_bag(tmp_path / 'cell.mcap', joints, points)  # rosbag2's 768 KiB: one chunk
+    data = path.read_bytes()
+    with open(path, 'rb') as f:
+        summary = make_reader(f).get_summary()
+    assert len(summary.chunk_indexes) == 1
+    chunk = summary.chunk_indexes[0]
+    # Where each message record ends in the file, from the writer's own message index.
+    records_start = chunk.chunk_start_offset + 9 + 8 + 8 + 8 + 4 + 4 + 8
+    ends = []  # (end offset in file, channel id)
+    for channel_id, index_offset in chunk.message_index_offsets.items():
+        with open(path, 'rb') as f:
+            f.seek(index_offset)
+            records = StreamReader(f, skip_magic=True).records
+            index = next(records)
+        for _, offset in index.records:
+            start = records_start + offset
+            length = int.from_bytes(data[start + 1:start + 9], 'little')
+            ends.append((start + 9 + length, channel_id))
+    ends.sort()
+    joint_channel = next(c.id for c in summary.channels.values() if c.topic == '/joint_states')
+    data_end = chunk.chunk_start_offset + chunk.chunk_length
+    cut_torn = tmp_path / 'torn.mcap'
+    for cut in [round(f * len(data)) for f in (0.25, 0.5, 0.75)] + [ends[10][0] + 5,
+                                                                    ends[-1][0] - 1]:
+        assert chunk.chunk_start_offset < cut < data_end  # inside the chunk
+        cut_torn.write_bytes(data[:cut])
+        whole = [c for end, c in ends if end <= cut]
+        n_joints = sum(c == joint_channel for c in whole)
+        last_end = max(end for end, _ in ends if end <= cut)
+        with pytest.warns(BagWarning, match=f': {cut - last_end} of {cut} bytes unreadable'):
+            read_joints, read_points = read_bag(cut_torn)
+        assert_same_joints(read_joints, joints[:n_joints])
+        assert_same_points(read_points, points[:len(whole) - n_joints])
+
+
+@pytest.mark.parametrize('window_ns', [200_000_000, 60_000_000])
+def test_reading_for_pairing_decodes_less_and_pairs_the_same(tmp_path, window_ns):
+    rng = np.random.default_rng(4)
+    q = rng.uniform(-2.0, 2.0, (8, len(NAMES)))
+    eta = rng.uniform(-1.5, 1.5, (8, 3))
+    joints, points = synthesize_streams(q, NAMES, eta, FRAME, rate_hz=250.0,
+                                        joint_noise_rad=1e-5, rng=rng)
+    # Points the pairer rejects belong in the comparison too: one while moving, one late,
+    # one with no joint state near it, and a duplicate.
+    points += [PointSample(joints[300].stamp_ns + 1, FRAME, [0.1, 0.2, 0.3]),
+               PointSample(joints[-1].stamp_ns + 10 ** 9, FRAME, [0.0, 0.0, 1.0]),
+               PointSample(points[2].stamp_ns, FRAME, [1.0, 0.0, 0.0])]
+    path = write_bag(tmp_path / 'cell.mcap', joints, points, chunk_size=64 * 1024)
+    contents = read_for_pairing(path, window_ns=window_ns)
+    assert not contents.measurement_log and contents.unreadable_bytes == 0
+    assert len(contents.joints) < len(joints) / 4  # only what pairing needs was decoded
+    partial = pair_measurements(contents.joints, contents.points, NAMES, FRAME,
+                                window_ns=window_ns)
+    full = pair_measurements(joints, points, NAMES, FRAME, window_ns=window_ns)
+    assert len(full) == 8 and partial.rejections == full.rejections
+    assert sum(full.rejections.values()) == 3
+    np.testing.assert_array_equal(partial.q, full.q)
+    np.testing.assert_array_equal(partial.eta, full.eta)
+    np.testing.assert_array_equal(partial.stamps_ns, full.stamps_ns)
+
+
+def test_measurement_log_damaged_record_is_skipped_and_others_read_it(tmp_path):
+    with MeasurementLog(tmp_path) as log:
+        for i in range(3):
+            log.append(*measurement(i))
+    data = bytearray(log.path.read_bytes())
+    # Other MCAP readers read the log as an ordinary bag.
+    with open(log.path, 'rb') as f:
+        decoded = [(channel.topic, message.log_time) for _, channel, message
+                   in make_reader(f).iter_messages()]
+    assert decoded == [(t, measurement(i)[1].stamp_ns) for i in range(3)
+                       for t in ('/joint_states', '/laser_tracker/point')]
+    # A flipped bit inside the third measurement's point: that one is skipped, loudly.
+    third = data.find(measurement(2)[1].xyz.tobytes())
+    assert third > 0 and data.count(measurement(2)[1].xyz.tobytes()) == 1
+    data[third] ^= 0x10
+    log.path.write_bytes(bytes(data))
+    with pytest.warns(BagWarning, match='fails its CRC check'):
+        assert_measurements(MeasurementLog.load_all(tmp_path), [0, 1])

@@ -133,3 +133,57 @@ def test_measurements_name_the_problem(tmp_path):
     feed(campaign, live_order(joints, points))
     with pytest.raises(DataError, match='joint_9'):
         campaign.measurements(NAMES[:2] + ['joint_9'], FRAME)
+
+
+def test_the_measurement_log_is_a_bag_every_command_reads(tmp_path, capsys):
+    """identify and diagnose on the node's log give what they give on the recording."""
+    import yaml
+
+    from kpi_calib_ros.cli import main
+    from kpi_calib_ros.io.bag import read_bag
+    from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+    cell = str(DEFAULT_CELL)
+    bag = tmp_path / 'run.mcap'
+    assert main(['simulate', '--cell', cell, '--n', '30', '--out', str(bag), '--seed', '5']) == 0
+    cm = build_cell_model(load_cell(cell))
+    campaign = Campaign(tmp_path / 'data')
+    campaign.set_chain(list(cm.joint_names), cm.cell.tracker_frame)
+    feed(campaign, live_order(*read_bag(bag)))
+    campaign.close()
+    log = tmp_path / 'data' / 'measurements_1.mcap'
+    for source, out in ((bag, tmp_path / 'from_bag'), (log, tmp_path / 'from_log')):
+        assert main(['identify', '--cell', cell, '--bag', str(source), '--out', str(out)]) == 0
+    from_bag, from_log = (yaml.safe_load((tmp_path / d / 'calibration.yaml').read_text())
+                          for d in ('from_bag', 'from_log'))
+    assert from_log['pairing'] == from_bag['pairing'] == {'accepted': 30, 'rejected': {}}
+    np.testing.assert_allclose([p['value'] for p in from_log['parameters']],
+                               [p['value'] for p in from_bag['parameters']], rtol=0, atol=1e-12)
+    assert (tmp_path / 'from_log' / 'calibration.yaml').stat().st_mode & 0o777 == 0o644 & ~_umask()
+    assert main(['diagnose', '--cell', cell, '--bag', str(log), '--out',
+                 str(tmp_path / 'diagnosis')]) == 0
+
+
+def _umask() -> int:
+    import os
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def test_disk_full_then_restart_restores_exactly_what_was_acknowledged(tmp_path, monkeypatch):
+    from test_bag import DiskFull
+    joints, points = streams(12)
+    campaign = Campaign(tmp_path)
+    campaign.set_chain(NAMES, FRAME)
+    # The disk fills after a few measurements (torn writes, failed syncs), then is freed.
+    DiskFull(monkeypatch, fail_writes={3, 4, 5, 9}, fail_syncs={7})
+    decisions = feed(campaign, live_order(joints, points))
+    monkeypatch.undo()
+    acknowledged = sorted(d.stamp_ns for d in decisions if isinstance(d, PairedMeasurement))
+    not_stored = campaign.counts()['rejected.not_stored']
+    assert not_stored >= 4 and len(acknowledged) + not_stored == 12 == len(decisions)
+    campaign.close()
+    restarted = Campaign(tmp_path)
+    assert restarted.restored == len(acknowledged)
+    data, _ = restarted.measurements(NAMES, FRAME)
+    assert data.stamps_ns.tolist() == acknowledged

@@ -1,259 +1,46 @@
-"""MCAP bags of joint states and tracker points, and the node's durable measurement log.
+"""MCAP bags of joint states and tracker points: reading, and the writer's names.
 
-Bags are written the way ``ros2 bag record -s mcap`` (Jazzy, default storage
-preset) writes them: profile ``ros2``, one ``ros2msg`` schema per type holding the
-complete message definition (the ``.msg`` texts of the type and of every type it
-uses, joined with rosbag2's ``====`` / ``MSG: pkg/Type`` delimiters), ``cdr``
-channels carrying ``offered_qos_profiles`` and ``topic_type_hash`` metadata,
-uncompressed chunks, and log time = publish time = header stamp.
+Bags are written as ``ros2 bag record -s mcap`` writes them
+(:mod:`kpi_calib_ros.io.bag_writing`, re-exported here).
 
-Reading is a single linear pass over complete records, so a bag whose writer was
-killed mid-recording (no summary, no footer, a torn last record) still yields every
-message that was completely written.
+Reading is a linear pass over records (:mod:`kpi_calib_ros.io.mcap_scan`), so a bag
+whose writer was killed, or a copy cut anywhere (inside a chunk too), still yields
+every message completely written before the cut, with a :class:`BagWarning` saying how
+many bytes were unreadable. For pairing, :func:`read_for_pairing` decodes the points
+first and then only the joint states around them. A measurement log
+(:class:`~kpi_calib_ros.io.measurement_log.MeasurementLog`) marks itself with the
+``kpi_calib_ros`` metadata record (``content: measurement_log``); its joint states are
+the stored configurations of its points, already paired.
 """
 from __future__ import annotations
 
-import functools
-import importlib.util
-import io
-import json
+import inspect
+import mmap
 import os
-import re
-import struct
-import sys
+import warnings
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Iterator
+from typing import Any, Callable
 
 import numpy as np
-from mcap.exceptions import EndOfFile, McapError, UnsupportedCompressionError
-from mcap.opcode import Opcode
-from mcap.records import Channel, Message, Schema
-from mcap.stream_reader import StreamReader
-from mcap.well_known import MessageEncoding, SchemaEncoding
-from mcap.writer import LIBRARY_IDENTIFIER, CompressionType
-from mcap.writer import Writer as McapWriter
 from mcap_ros2.decoder import DecoderFactory
-# The encoder that mcap_ros2.writer.Writer uses internally; that Writer cannot set
-# channel metadata or disable chunking, both of which we need.
-from mcap_ros2._dynamic import serialize_dynamic
 
-from kpi_calib_ros.core.errors import KpiCalibError
+from kpi_calib_ros.core.pairing import Pairer
 from kpi_calib_ros.core.streams import JointSample, PointSample
+from kpi_calib_ros.io.bag_writing import (DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC,
+                                          JOINT_STATE_TYPE, LIBRARY, POINT_STAMPED_TYPE,
+                                          StreamEncoders, message_definition, type_hash,
+                                          write_bag)
+from kpi_calib_ros.io.mcap_scan import MAGIC, BagError, ScannedBag, scan
+from kpi_calib_ros.io.ros_messages import JointStateDecoder, point_sample_from_message
 
-JOINT_STATE_TYPE = 'sensor_msgs/msg/JointState'
-POINT_STAMPED_TYPE = 'geometry_msgs/msg/PointStamped'
-DEFAULT_JOINT_TOPIC = '/joint_states'
-DEFAULT_POINT_TOPIC = '/laser_tracker/point'
-
-_MAGIC = b'\x89MCAP0\r\n'
-_LIBRARY = f'kpi_calib_ros; {LIBRARY_IDENTIFIER}'
-_ROSBAG2_CHUNK_SIZE = 768 * 1024  # libmcap's default, which rosbag2 keeps
-# What a default reliable/volatile publisher offers, as rosbag2 (metadata v9) writes it.
-_INFINITE = '\n    sec: 9223372036\n    nsec: 854775807'
-_OFFERED_QOS = (
-    '- history: keep_last\n  depth: 10\n  reliability: reliable\n  durability: volatile\n'
-    f'  deadline:{_INFINITE}\n  lifespan:{_INFINITE}\n  liveliness: automatic\n'
-    f'  liveliness_lease_duration:{_INFINITE}\n  avoid_ros_namespace_conventions: false'
-)
-# rosbag2's LocalMessageDefinitionSource: the first token of each line is a field type.
-_FIELD_TYPE = re.compile(r'(?:^|\n)\s*([a-zA-Z0-9_/]+)(?:\[[^\]]*\])?\s+')
-_PRIMITIVES = frozenset({'bool', 'byte', 'char', 'float32', 'float64', 'int8', 'uint8', 'int16',
-                         'uint16', 'int32', 'uint32', 'int64', 'uint64', 'string'})
+# The metadata record by which a measurement log marks itself (see read_for_pairing).
+LOG_METADATA = 'kpi_calib_ros'
+LOG_CONTENT = 'measurement_log'
 
 
-class BagError(KpiCalibError, ValueError):
-    """A bag that cannot be read (or written) as asked; the message names the file, the
-    topic and the fix."""
-
-
-def _share_prefixes(package: str) -> list[Path]:
-    prefixes = [Path(p) for p in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
-    spec = importlib.util.find_spec(package)
-    if spec is not None and spec.origin:
-        parents = Path(spec.origin).resolve().parents
-        if len(parents) > 4:  # <prefix>/lib/pythonX.Y/site-packages/<package>/__init__.py
-            prefixes.append(parents[4])
-    prefixes.append(Path(sys.prefix))
-    return prefixes
-
-
-@functools.lru_cache(maxsize=None)
-def _definition_file(type_name: str, extension: str) -> Path:
-    parts = type_name.split('/')
-    package, interface = parts[0], (parts[1] if len(parts) == 3 else 'msg')
-    for prefix in _share_prefixes(package):
-        candidate = prefix / 'share' / package / interface / (parts[-1] + extension)
-        if candidate.is_file():
-            return candidate
-    raise BagError(f"no {extension} file for '{type_name}' under share/{package}/{interface} "
-                   f'of AMENT_PREFIX_PATH or {sys.prefix}; install {package} '
-                   '(ROS 2 Jazzy) or source its setup file')
-
-
-@functools.lru_cache(maxsize=None)
-def message_definition(type_name: str) -> str:
-    """The complete ``ros2msg`` definition of ``type_name``, exactly as rosbag2 stores it.
-
-    The type's own ``.msg`` text comes first; each dependency not yet included follows
-    depth-first, in sorted order, after a line of 80 ``=`` and a ``MSG: pkg/Type`` line.
-
-    Parameters
-    ----------
-    type_name : str
-        e.g. ``'sensor_msgs/msg/JointState'``.
-    """
-    seen: set[str] = set()
-
-    def text_with_dependencies(name: str) -> str:
-        text = _definition_file(name, '.msg').read_bytes().decode('utf-8')  # bytes as stored
-        package = name.split('/')[0]
-        dependencies = set()
-        for match in _FIELD_TYPE.finditer(text):
-            field_type = match.group(1)
-            if field_type not in _PRIMITIVES:
-                dependencies.add(field_type if '/' in field_type else f'{package}/{field_type}')
-        for dependency in sorted(dependencies):
-            if dependency not in seen:
-                seen.add(dependency)
-                text += f"\n{'=' * 80}\nMSG: {dependency}\n" + text_with_dependencies(dependency)
-        return text
-
-    return text_with_dependencies(type_name)
-
-
-@functools.lru_cache(maxsize=None)
-def type_hash(type_name: str) -> str:
-    """The ``RIHS01_…`` type description hash rosidl generated for ``type_name``, or ``''``
-    where rosidl generated none (rosbag2 then records it empty too)."""
-    try:
-        description = json.loads(_definition_file(type_name, '.json').read_bytes())
-    except BagError:
-        return ''
-    return next((h['hash_string'] for h in description.get('type_hashes', [])
-                 if h['type_name'] == type_name), '')
-
-
-def _ros_time(stamp_ns: int) -> dict[str, int]:
-    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
-    if not -2 ** 31 <= sec < 2 ** 31:
-        raise ValueError(f'stamp {stamp_ns} ns does not fit builtin_interfaces/Time')
-    return {'sec': sec, 'nanosec': nanosec}
-
-
-class _Recorder:
-    """Writes JointState and PointStamped messages to one MCAP stream."""
-
-    def __init__(self, stream, joint_topic: str, point_topic: str, chunked: bool,
-                 chunk_size: int = _ROSBAG2_CHUNK_SIZE) -> None:
-        if joint_topic == point_topic:
-            raise ValueError(f"joint_topic and point_topic must differ, both are '{joint_topic}'")
-        self._writer = McapWriter(stream, chunk_size=chunk_size,
-                                  compression=CompressionType.NONE, use_chunking=chunked)
-        self._writer.start(profile='ros2', library=_LIBRARY)
-        self._channels = {}
-        for topic, type_name in ((joint_topic, JOINT_STATE_TYPE),
-                                 (point_topic, POINT_STAMPED_TYPE)):
-            text = message_definition(type_name)
-            schema_id = self._writer.register_schema(type_name, SchemaEncoding.ROS2, text.encode())
-            channel_id = self._writer.register_channel(
-                topic, MessageEncoding.CDR, schema_id,
-                {'offered_qos_profiles': _OFFERED_QOS, 'topic_type_hash': type_hash(type_name)})
-            self._channels[type_name] = [channel_id, serialize_dynamic(type_name, text)[type_name],
-                                         0]
-
-    def _write(self, type_name: str, stamp_ns: int, message: dict) -> None:
-        entry = self._channels[type_name]
-        entry[2] += 1
-        self._writer.add_message(channel_id=entry[0], log_time=int(stamp_ns),
-                                 publish_time=int(stamp_ns), sequence=entry[2],
-                                 data=entry[1](message))
-
-    def write_joint(self, sample: JointSample) -> None:
-        velocity = [] if sample.velocities is None else sample.velocities.tolist()
-        self._write(JOINT_STATE_TYPE, sample.stamp_ns, {
-            'header': {'stamp': _ros_time(sample.stamp_ns), 'frame_id': ''},
-            'name': list(sample.names), 'position': sample.positions.tolist(),
-            'velocity': velocity, 'effort': []})
-
-    def write_point(self, sample: PointSample) -> None:
-        x, y, z = sample.xyz.tolist()
-        self._write(POINT_STAMPED_TYPE, sample.stamp_ns, {
-            'header': {'stamp': _ros_time(sample.stamp_ns), 'frame_id': sample.frame_id},
-            'point': {'x': x, 'y': y, 'z': z}})
-
-    def add_metadata(self, name: str, data: dict[str, str]) -> None:
-        self._writer.add_metadata(name, data)
-
-    def finish(self) -> None:
-        self._writer.finish()
-
-
-def write_bag(
-    path: str | os.PathLike,
-    joint_samples: Iterable[JointSample],
-    point_samples: Iterable[PointSample],
-    joint_topic: str = DEFAULT_JOINT_TOPIC,
-    point_topic: str = DEFAULT_POINT_TOPIC,
-    chunk_size: int = _ROSBAG2_CHUNK_SIZE,
-) -> Path:
-    """Write joint states and tracker points to an MCAP bag, in stamp order.
-
-    Parameters
-    ----------
-    path : path-like
-        The ``.mcap`` file to create (overwritten if present).
-    joint_samples, point_samples : iterables of JointSample / PointSample
-        Published as ``sensor_msgs/msg/JointState`` on ``joint_topic`` and
-        ``geometry_msgs/msg/PointStamped`` on ``point_topic``.
-    chunk_size : int
-        Bytes per chunk before it is closed (rosbag2's default unless given).
-
-    Returns
-    -------
-    Path
-        ``path``.
-    """
-    path = Path(path)
-    stream = [(s.stamp_ns, 0, s) for s in joint_samples] + [(p.stamp_ns, 1, p)
-                                                            for p in point_samples]
-    stream.sort(key=lambda item: item[:2])
-    with open(path, 'wb') as f:
-        recorder = _Recorder(f, joint_topic, point_topic, chunked=True, chunk_size=chunk_size)
-        for _, kind, sample in stream:
-            (recorder.write_point if kind else recorder.write_joint)(sample)
-        recorder.finish()
-    return path
-
-
-class _Prefix:
-    """The first ``length`` bytes of a file: what the reader is allowed to see."""
-
-    def __init__(self, f, length: int) -> None:
-        self._f, self._left = f, length
-
-    def read(self, n: int = -1) -> bytes:
-        n = self._left if n < 0 else min(n, self._left)
-        data = self._f.read(n)
-        self._left -= len(data)
-        return data
-
-
-def _complete_prefix(f) -> tuple[int, bool]:
-    """Length of the longest prefix made of whole records, and whether it ends the file
-    properly (a footer). Seeks only: record headers are 9 bytes (opcode, length)."""
-    size = f.seek(0, io.SEEK_END)
-    position = len(_MAGIC)
-    while position + 9 <= size:
-        f.seek(position)
-        opcode, length = struct.unpack('<BQ', f.read(9))
-        if position + 9 + length > size:
-            break
-        if opcode == Opcode.FOOTER:
-            if position + 9 + length + len(_MAGIC) <= size:
-                return size, True
-            break  # torn inside the closing magic: read up to the footer
-        position += 9 + length
-    return position, False
+class BagWarning(UserWarning):
+    """Part of a bag could not be read (cut or damaged); everything else was."""
 
 
 def _checked_path(path: str | os.PathLike) -> Path:
@@ -269,112 +56,103 @@ def _checked_path(path: str | os.PathLike) -> Path:
     return path
 
 
-def _messages(path: Path, wanted: dict[str, tuple[str, str]], seen: dict[str, str],
-              allow_empty: bool = False) -> Iterator[tuple[str, Any]]:
-    """Yield ``(topic, decoded message)`` for the ``wanted`` topics (topic -> (type, argument
-    name)) in file order; fill ``seen`` with every topic -> type met. Closes the file."""
-    with open(path, 'rb') as f:
-        magic = f.read(len(_MAGIC))
-        if magic != _MAGIC:
-            if allow_empty and _MAGIC.startswith(magic):
-                return  # created, then killed before the header was written
-            raise BagError(f'{path} is not an MCAP file (no MCAP magic); convert a SQLite '
-                           'bag with `ros2 bag convert` or record with `ros2 bag record -s mcap`')
-        end, finalised = _complete_prefix(f)
-        f.seek(0)
-        records = StreamReader(_Prefix(f, end), validate_crcs=True).records
-        schemas: dict[int, Schema] = {}
-        decoders: dict[int, tuple[str, Any]] = {}
-        factory = DecoderFactory()
-        while True:
-            try:
-                record = next(records)
-            except StopIteration:
-                return
-            except EndOfFile:
-                if finalised:
-                    raise BagError(f'{path}: MCAP file ends inside a record; the file is '
-                                   'corrupt, re-copy or re-record it') from None
-                return  # unfinalised: every complete record has been read
-            except UnsupportedCompressionError as error:
-                raise BagError(f'{path}: chunks are compressed with {error} which is not '
-                               'installed; pip install it, or re-record with the default '
-                               'storage preset (no compression)') from error
-            except (McapError, ValueError, struct.error) as error:
-                raise BagError(f'{path}: corrupt MCAP data ({error})') from error
-            if isinstance(record, Schema):
-                schemas[record.id] = record
-            elif isinstance(record, Channel):
-                schema = schemas.get(record.schema_id)
-                type_name = schema.name if schema is not None else ''
-                seen[record.topic] = type_name
-                if record.topic not in wanted:
-                    continue
-                expected, argument = wanted[record.topic]
-                if type_name != expected:
-                    raise BagError(f"{path}: topic '{record.topic}' carries "
-                                   f"'{type_name or 'no schema'}', expected '{expected}'; pass "
-                                   f'{argument}= naming the topic that carries {expected}')
-                decoder = factory.decoder_for(record.message_encoding, schema)
-                if decoder is None:
-                    raise BagError(f"{path}: topic '{record.topic}' is encoded as "
-                                   f"'{record.message_encoding}' with a '{schema.encoding}' "
-                                   "schema; only 'cdr' with 'ros2msg' schemas can be decoded")
-                decoders[record.id] = (record.topic, decoder)
-            elif isinstance(record, Message) and record.channel_id in decoders:
-                topic, decoder = decoders[record.channel_id]
-                try:
-                    message = decoder(record.data)
-                except Exception as error:  # any decoder failure means a corrupt message
-                    raise BagError(f"{path}: message on '{topic}' logged at {record.log_time} "
-                                   f'ns does not decode ({error!r})') from error
-                yield topic, message
+@dataclass
+class _Topic:
+    channel_ids: list[int]
+    decode: Callable[[bytes], Any]
 
 
-def stamp_ns(header) -> int:
-    """Header stamp as integer nanoseconds."""
-    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
-
-
-def joint_sample_from_message(message) -> JointSample:
-    """A sensor_msgs/JointState (rclpy message or decoded bag record) as a JointSample.
-
-    The one conversion for files and the live node, stamped with the header stamp.
-    A position array whose length differs from ``name`` becomes all-NaN, so the
-    pairer counts it as ``non_finite_joint_state`` instead of it vanishing here;
-    velocities of the wrong length, or none, become None.
-    """
-    names = tuple(message.name)
-    positions = np.asarray(message.position, dtype=float)
-    if positions.shape != (len(names),):
-        positions = np.full(len(names), np.nan)
-    velocities = np.asarray(message.velocity, dtype=float)
-    return JointSample(stamp_ns(message.header), names, positions,
-                       velocities if velocities.shape == (len(names),) else None)
-
-
-def point_sample_from_message(message) -> PointSample:
-    """A geometry_msgs/PointStamped (rclpy or decoded) as a PointSample (m, header frame)."""
-    p = message.point
-    return PointSample(stamp_ns(message.header), message.header.frame_id, [p.x, p.y, p.z])
-
-
-def _read(path: Path, joint_topic: str, point_topic: str, require_topics: bool):
+def _open(path: Path, joint_topic: str, point_topic: str,
+          require_topics: bool) -> tuple[ScannedBag, _Topic, _Topic] | None:
+    """Scan ``path`` and check both topics; None for an empty log (killed before its
+    header was written, ``require_topics`` False)."""
     if joint_topic == point_topic:
         raise ValueError(f"joint_topic and point_topic must differ, both are '{joint_topic}'")
-    wanted = {joint_topic: (JOINT_STATE_TYPE, 'joint_topic'),
-              point_topic: (POINT_STAMPED_TYPE, 'point_topic')}
-    seen: dict[str, str] = {}
-    messages = []
-    for topic, message in _messages(path, wanted, seen, allow_empty=not require_topics):
-        messages.append(joint_sample_from_message(message) if topic == joint_topic
-                        else point_sample_from_message(message))
-    for topic, (type_name, argument) in wanted.items():
-        if require_topics and topic not in seen:
-            present = ', '.join(f"'{t}' ({seen[t]})" for t in sorted(seen)) or 'none'
-            raise BagError(f"{path}: topic '{topic}' is not in the bag; topics present: "
-                           f'{present}. Pass {argument}= naming the {type_name} topic')
-    return messages
+    with open(path, 'rb') as f:
+        size = os.fstat(f.fileno()).st_size
+        # Mapped, not read: pages of chunks already indexed are given back (see scan).
+        data = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) if size else b''
+    if data[:len(MAGIC)] != MAGIC:
+        if not require_topics and MAGIC.startswith(data[:len(MAGIC)]):
+            return None
+        raise BagError(f'{path} is not an MCAP file (no MCAP magic); convert a SQLite '
+                       'bag with `ros2 bag convert` or record with `ros2 bag record -s mcap`')
+    bag = scan(path, data)
+    if bag.unreadable_bytes or bag.problems:
+        why = '; '.join(bag.problems) or 'the file is cut or damaged'
+        warnings.warn(f'{path}: {bag.unreadable_bytes} of {bag.size} bytes unreadable ({why}); '
+                      'every complete message before them was read', BagWarning, stacklevel=3)
+    factory = DecoderFactory()
+    topics = {}
+    seen = {c.topic: bag.schemas[c.schema_id].name if c.schema_id in bag.schemas else ''
+            for c in bag.channels.values()}
+    first = {}
+    for c in sorted(bag.channels):  # check topics in the order the file declares them
+        first.setdefault(bag.channels[c].topic, c)
+    for topic, expected, argument in sorted(
+            ((joint_topic, JOINT_STATE_TYPE, 'joint_topic'),
+             (point_topic, POINT_STAMPED_TYPE, 'point_topic')),
+            key=lambda t: first.get(t[0], len(first) + len(bag.channels) + 1)):
+        if topic not in seen:
+            if require_topics:
+                present = ', '.join(f"'{t}' ({seen[t]})" for t in sorted(seen)) or 'none'
+                raise BagError(f"{path}: topic '{topic}' is not in the bag; topics present: "
+                               f'{present}. Pass {argument}= naming the {expected} topic')
+            topics[topic] = _Topic([], lambda data: None)
+            continue
+        if seen[topic] != expected:
+            raise BagError(f"{path}: topic '{topic}' carries '{seen[topic] or 'no schema'}', "
+                           f"expected '{expected}'; pass {argument}= naming the topic that "
+                           f'carries {expected}')
+        ids = sorted(c.id for c in bag.channels.values() if c.topic == topic)
+        channel = bag.channels[ids[0]]
+        schema = bag.schemas[channel.schema_id]
+        decoder = factory.decoder_for(channel.message_encoding, schema)
+        if decoder is None:
+            raise BagError(f"{path}: topic '{topic}' is encoded as "
+                           f"'{channel.message_encoding}' with a '{schema.encoding}' "
+                           "schema; only 'cdr' with 'ros2msg' schemas can be decoded")
+        if expected == JOINT_STATE_TYPE:
+            topics[topic] = _Topic(ids, JointStateDecoder(decoder))
+        else:
+            topics[topic] = _Topic(ids, lambda data, d=decoder: point_sample_from_message(d(data)))
+    return bag, topics[joint_topic], topics[point_topic]
+
+
+def _indices(bag: ScannedBag, topic: _Topic) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(channel ids, indices, file-order keys)`` of the topic's messages, in file order."""
+    parts = [(np.full(len(bag.messages[c]), c), np.arange(len(bag.messages[c])),
+              bag.messages[c].major, bag.messages[c].minor)
+             for c in topic.channel_ids if c in bag.messages]
+    if not parts:
+        empty = np.zeros(0, dtype=np.int64)
+        return empty, empty, np.zeros((0, 2), dtype=np.int64)
+    channel, index, major, minor = (np.concatenate(col) for col in zip(*parts))
+    order = np.lexsort((minor, major))
+    return channel[order], index[order], np.stack([major[order], minor[order]], axis=1)
+
+
+def _decode(path: Path, bag: ScannedBag, topic: _Topic, channel: np.ndarray,
+            index: np.ndarray, undecodable: list[int]) -> list[Any]:
+    payloads = [bag.payload(int(c), int(i)) for c, i in zip(channel, index)]
+    many = getattr(topic.decode, 'decode_many', None)
+    if many is not None:
+        out = many(payloads)
+    else:
+        out = []
+        for data in payloads:
+            try:
+                out.append(topic.decode(data))
+            except Exception:  # any decoder failure means a corrupt message
+                out.append(None)
+    undecodable += [1 for m in out if m is None]
+    return [m for m in out if m is not None]
+
+
+def _warn_undecodable(path: Path, undecodable: list[int]) -> None:
+    if undecodable:
+        warnings.warn(f'{path}: {len(undecodable)} message(s) do not decode and were skipped',
+                      BagWarning, stacklevel=3)
 
 
 def read_bag(
@@ -382,9 +160,10 @@ def read_bag(
     joint_topic: str = DEFAULT_JOINT_TOPIC,
     point_topic: str = DEFAULT_POINT_TOPIC,
 ) -> tuple[list[JointSample], list[PointSample]]:
-    """Read joint states and tracker points from an MCAP bag, in file (recording) order.
+    """Every joint state and tracker point of an MCAP bag, in file (recording) order.
 
-    An unfinalised bag (recorder killed) yields every completely written message.
+    A bag cut or damaged anywhere yields every message completely written before the
+    damage, with a :class:`BagWarning` giving the unreadable byte count.
 
     Raises
     ------
@@ -392,11 +171,149 @@ def read_bag(
         File missing or not MCAP, a topic absent (the topics present are listed),
         or a topic carrying another message type.
     """
-    messages = _read(_checked_path(path), joint_topic, point_topic, require_topics=True)
-    return ([m for m in messages if isinstance(m, JointSample)],
-            [m for m in messages if isinstance(m, PointSample)])
+    path = _checked_path(path)
+    opened = _open(path, joint_topic, point_topic, require_topics=True)
+    assert opened is not None
+    bag, joints, points = opened
+    bad: list[int] = []
+    result = (_decode(path, bag, joints, *_indices(bag, joints)[:2], bad),
+              _decode(path, bag, points, *_indices(bag, points)[:2], bad))
+    _warn_undecodable(path, bad)
+    return result
 
 
-__all__ = ['BagError', 'DEFAULT_JOINT_TOPIC', 'DEFAULT_POINT_TOPIC', 'JOINT_STATE_TYPE',
-           'POINT_STAMPED_TYPE', 'joint_sample_from_message', 'message_definition',
-           'point_sample_from_message', 'read_bag', 'stamp_ns', 'type_hash', 'write_bag']
+@dataclass(frozen=True, eq=False)
+class BagContents:
+    """What pairing needs from one bag.
+
+    ``joints`` and ``points`` in stamp order. For a recording (``measurement_log``
+    False) ``joints`` holds only the joint states around the points; for a
+    measurement log ``joints[i]`` is the configuration stored with ``points[i]``.
+    ``unreadable_bytes``: bytes of a cut or damaged file that could not be used.
+    """
+
+    joints: list[JointSample]
+    points: list[PointSample]
+    measurement_log: bool
+    unreadable_bytes: int
+
+
+def is_measurement_log(bag: ScannedBag) -> bool:
+    return any(m.name == LOG_METADATA and m.metadata.get('content') == LOG_CONTENT
+               for m in bag.metadata)
+
+
+def _stored_pairs(path: Path, bag: ScannedBag, joints: _Topic, points: _Topic,
+                  bad: list[int]) -> tuple[list[JointSample], list[PointSample]]:
+    """A log's measurements: a joint state directly followed by its point (same stamp);
+    anything else (an append torn by a kill or a full disk) is skipped and counted."""
+    jc, ji, jo = _indices(bag, joints)
+    pc, pi, po = _indices(bag, points)
+    merged = sorted([(tuple(o), 0, int(c), int(i)) for c, i, o in zip(jc, ji, jo)]
+                    + [(tuple(o), 1, int(c), int(i)) for c, i, o in zip(pc, pi, po)])
+    stored_joints: list[JointSample] = []
+    stored_points: list[PointSample] = []
+    skipped = 0
+    k = 0
+    while k < len(merged):
+        _, kind, c, i = merged[k]
+        if kind == 0 and k + 1 < len(merged) and merged[k + 1][1] == 1:
+            _, _, pc_k, pi_k = merged[k + 1]
+            joint = _decode(path, bag, joints, np.array([c]), np.array([i]), bad)
+            point = _decode(path, bag, points, np.array([pc_k]), np.array([pi_k]), bad)
+            if joint and point and joint[0].stamp_ns == point[0].stamp_ns:
+                stored_joints += joint
+                stored_points += point
+                k += 2
+                continue
+        skipped += 1
+        k += 1
+    if skipped:
+        warnings.warn(f'{path}: {skipped} record(s) of this measurement log are not a '
+                      'complete measurement (torn by a kill or a full disk) and were skipped',
+                      BagWarning, stacklevel=3)
+    return stored_joints, stored_points
+
+
+def _around(joint_stamps: np.ndarray, point_stamps: np.ndarray, window_ns: int) -> np.ndarray:
+    """Mask of the joint states within ±window_ns of a point, plus the first one after
+    each window (the pairer decides a point when a later joint state arrives)."""
+    order = np.argsort(joint_stamps, kind='stable')
+    s = joint_stamps[order]
+    lo = np.searchsorted(s, point_stamps - window_ns, side='left')
+    hi = np.searchsorted(s, point_stamps + window_ns, side='right') + 1
+    marks = np.zeros(len(s) + 1, dtype=np.int64)
+    np.add.at(marks, lo, 1)
+    np.add.at(marks, np.minimum(hi, len(s)), -1)
+    mask = np.empty(len(s), dtype=bool)
+    mask[order] = np.cumsum(marks[:-1]) > 0
+    return mask
+
+
+def read_for_pairing(
+    path: str | os.PathLike,
+    joint_topic: str = DEFAULT_JOINT_TOPIC,
+    point_topic: str = DEFAULT_POINT_TOPIC,
+    window_ns: int | None = None,
+) -> BagContents:
+    """The points of a bag and the joint states pairing needs, or a log's stored pairs.
+
+    Points are read first; then only joint states within ±``window_ns`` of a point
+    (and the first one after each window) are decoded, so pairing the result equals
+    pairing the whole bag with the same window, at a fraction of the time. Joint
+    states far from every point are not decoded, so a broken one there is not counted.
+
+    Parameters
+    ----------
+    window_ns : int, optional
+        The pairer's half-window (ns); default :class:`~kpi_calib_ros.core.pairing.Pairer`'s.
+    """
+    if window_ns is None:
+        window_ns = inspect.signature(Pairer).parameters['window_ns'].default
+    path = _checked_path(path)
+    opened = _open(path, joint_topic, point_topic, require_topics=True)
+    assert opened is not None
+    bag, joints, points = opened
+    bad: list[int] = []
+    if is_measurement_log(bag):
+        stored_joints, stored_points = _stored_pairs(path, bag, joints, points, bad)
+        _warn_undecodable(path, bad)
+        return BagContents(stored_joints, stored_points, True, bag.unreadable_bytes)
+    point_samples = _decode(path, bag, points, *_indices(bag, points)[:2], bad)
+    channel, index, _ = _indices(bag, joints)
+    stamped = np.zeros(len(channel), dtype=bool)
+    stamps = np.zeros(len(channel), dtype=np.int64)
+    for c in np.unique(channel):
+        k = channel == c
+        stamped[k] = bag.messages[int(c)].stamped[index[k]]
+        stamps[k] = bag.messages[int(c)].stamp_ns[index[k]]
+    wanted = ~stamped  # a stamp not read from the bytes: decode to know
+    if len(point_samples) and stamped.any():
+        point_stamps = np.array(sorted(p.stamp_ns for p in point_samples), dtype=np.int64)
+        wanted[stamped] = _around(stamps[stamped], point_stamps, int(window_ns))
+    joint_samples = _decode(path, bag, joints, channel[wanted], index[wanted], bad)
+    _warn_undecodable(path, bad)
+    joint_samples.sort(key=lambda j: j.stamp_ns)
+    point_samples.sort(key=lambda p: p.stamp_ns)
+    return BagContents(joint_samples, point_samples, False, bag.unreadable_bytes)
+
+
+def read_log(path: str | os.PathLike, joint_topic: str = DEFAULT_JOINT_TOPIC,
+             point_topic: str = DEFAULT_POINT_TOPIC) -> list[tuple[JointSample, PointSample]]:
+    """The measurements of one log file, in append order; torn appends skipped with a
+    :class:`BagWarning`, a file killed before its header was written is empty."""
+    path = Path(path)
+    opened = _open(path, joint_topic, point_topic, require_topics=False)
+    if opened is None:
+        return []
+    bag, joints, points = opened
+    bad: list[int] = []
+    pairs = list(zip(*_stored_pairs(path, bag, joints, points, bad)))
+    _warn_undecodable(path, bad)
+    return pairs
+
+
+__all__ = ['BagContents', 'BagError', 'BagWarning', 'LIBRARY', 'StreamEncoders', 'DEFAULT_JOINT_TOPIC',
+           'DEFAULT_POINT_TOPIC', 'JOINT_STATE_TYPE', 'LOG_CONTENT', 'LOG_METADATA',
+           'POINT_STAMPED_TYPE', 'is_measurement_log', 'message_definition', 'read_bag',
+           'read_for_pairing', 'read_log', 'type_hash', 'write_bag']

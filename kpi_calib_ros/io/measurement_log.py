@@ -1,20 +1,38 @@
 """The "nothing lost" store: accepted measurements appended durably as MCAP bags.
 
-Every accepted measurement (the paired joint state and tracker point, same stamp)
-is written and fsynced before it counts. Each process run opens the next
-``measurements_<n>.mcap`` in the data directory; every file is itself a bag that
-:func:`kpi_calib_ros.io.bag.read_bag` reads, and :func:`load_all` recovers every
-complete measurement, including those of a process that was killed.
+Each process run opens the next ``measurements_<n>.mcap`` in the data directory.
+Every accepted measurement (the paired joint state and tracker point, same stamp) is
+one self-contained record: an MCAP chunk holding both messages and the CRC of its
+bytes. An append writes the chunk past the last good offset and fsyncs it before it
+counts; if writing or syncing fails (a full disk), the file is cut back to the last
+good offset and the error propagates, so what is acknowledged is exactly what is on
+disk. The reader skips a torn or damaged record with a warning, so a log stays
+readable whatever happened; :meth:`MeasurementLog.load_all` recovers every acknowledged measurement,
+including those of a process that was killed.
+
+The file marks itself as a log with a ``kpi_calib_ros`` metadata record, so every
+command reading a bag takes its measurements as already paired
+(:func:`kpi_calib_ros.io.bag.read_for_pairing`).
 """
 from __future__ import annotations
 
 import os
 import re
+import zlib
 from pathlib import Path
+from typing import Iterable
 
+import numpy as np
+from mcap.data_stream import RecordBuilder
+from mcap.records import Channel, Chunk, DataEnd, Footer, Header, Message, Metadata, Schema
+from mcap.well_known import MessageEncoding, SchemaEncoding
+
+from kpi_calib_ros.core.errors import DataError
+from kpi_calib_ros.core.pairing import PairingResult
 from kpi_calib_ros.core.streams import JointSample, PointSample
-from kpi_calib_ros.io.bag import (DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, BagError, _read,
-                                  _Recorder)
+from kpi_calib_ros.io.bag import (DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, LIBRARY, LOG_CONTENT,
+                                  LOG_METADATA, BagError, StreamEncoders, read_log)
+from kpi_calib_ros.io.mcap_scan import MAGIC
 
 _LOG_NAME = re.compile(r'measurements_(\d+)\.mcap')
 
@@ -26,12 +44,12 @@ def _log_files(directory: Path) -> list[Path]:
 
 
 class MeasurementLog:
-    """Append-only store of accepted measurements that survives the process being killed.
+    """Append-only store of accepted measurements that survives kills and full disks.
 
-    Each instance creates the next ``measurements_<n>.mcap`` in ``directory``, an
-    unchunked bag with the same topics and types as :func:`write_bag`, readable by
-    :func:`read_bag`. :meth:`append` returns only once the measurement is on disk
-    (flush + fsync).
+    Each instance creates the next ``measurements_<n>.mcap`` in ``directory`` (mode
+    0644 less the umask), a bag with the same topics and types as :func:`write_bag`:
+    header, schemas, channels and the log's metadata, then one chunk per measurement.
+    :meth:`append` returns only once the measurement is on disk (fsync).
 
     Parameters
     ----------
@@ -45,34 +63,63 @@ class MeasurementLog:
                  point_topic: str = DEFAULT_POINT_TOPIC) -> None:
         self.directory = Path(directory)
         self.directory.mkdir(parents=True, exist_ok=True)
+        self._encoders = StreamEncoders(joint_topic, point_topic)
         files = _log_files(self.directory)
         n = int(_LOG_NAME.fullmatch(files[-1].name).group(1)) + 1 if files else 1
         while True:
             try:  # exclusive create: two processes never share a file
-                self._file = open(self.directory / f'measurements_{n}.mcap', 'xb')
+                self._fd = os.open(self.directory / f'measurements_{n}.mcap',
+                                   os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
                 break
             except FileExistsError:
                 n += 1
         self.path = self.directory / f'measurements_{n}.mcap'
         self.count = 0
-        self._recorder = _Recorder(self._file, joint_topic, point_topic, chunked=False)
-        # Also flushes the header, schemas and channels: the file is a valid bag at once.
-        self._recorder.add_metadata('kpi_calib_ros', {
-            'content': 'measurement_log', 'joint_topic': joint_topic, 'point_topic': point_topic})
-        self._sync()
-        fd = os.open(self.directory, os.O_RDONLY)
-        try:  # make the new directory entry itself durable
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+        self._size = 0          # bytes known good on disk
+        self._closed = False
+        self._sequence = 0
+        builder = RecordBuilder()
+        Header(profile='ros2', library=LIBRARY).write(builder)
+        for k, (topic, type_name) in enumerate(self._encoders.topics):
+            Schema(id=k + 1, name=type_name, encoding=SchemaEncoding.ROS2,
+                   data=self._encoders.text[type_name].encode()).write(builder)
+            Channel(id=k, topic=topic, message_encoding=MessageEncoding.CDR, schema_id=k + 1,
+                    metadata=self._encoders.metadata[type_name]).write(builder)
+        Metadata(name=LOG_METADATA, metadata={'content': LOG_CONTENT, 'joint_topic': joint_topic,
+                                              'point_topic': point_topic}).write(builder)
+        try:
+            self._commit(MAGIC + builder.end())
+            fd = os.open(self.directory, os.O_RDONLY)
+            try:  # make the new directory entry itself durable
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+        except OSError:
+            os.close(self._fd)
+            self._closed = True
+            raise
 
-    def _sync(self) -> None:
-        self._file.flush()
-        os.fsync(self._file.fileno())
+    def _commit(self, data: bytes) -> None:
+        """Write ``data`` at the last good offset and fsync; on failure cut the file
+        back to that offset (what is not acknowledged does not stay) and re-raise."""
+        view = memoryview(data)
+        try:
+            written = 0
+            while written < len(data):
+                written += os.pwrite(self._fd, view[written:], self._size + written)
+            os.fsync(self._fd)
+        except OSError:
+            try:
+                os.ftruncate(self._fd, self._size)
+                os.fsync(self._fd)
+            except OSError:
+                pass  # the torn record fails its length or CRC check: the reader skips it
+            raise
+        self._size += len(data)
 
     @property
     def closed(self) -> bool:
-        return self._file.closed
+        return self._closed
 
     def append(self, joint_sample: JointSample, point: PointSample) -> None:
         """Store one accepted measurement durably before returning.
@@ -83,23 +130,47 @@ class MeasurementLog:
             The configuration paired with the point (e.g.
             :meth:`PairedMeasurement.joint_sample`), stamped like ``point``.
         point : PointSample
+
+        Raises
+        ------
+        OSError
+            Not stored (e.g. ``ENOSPC``); nothing of this measurement is left in the file.
         """
         if self.closed:
             raise ValueError(f'MeasurementLog {self.path} is closed')
         if joint_sample.stamp_ns != point.stamp_ns:
             raise ValueError(f'joint_sample.stamp_ns {joint_sample.stamp_ns} must equal '
                              f'point.stamp_ns {point.stamp_ns}')
-        self._recorder.write_joint(joint_sample)
-        self._recorder.write_point(point)
-        self._sync()
+        stamp = point.stamp_ns
+        inner = RecordBuilder()
+        for channel, data in ((0, self._encoders.joint(joint_sample)),
+                              (1, self._encoders.point(point))):
+            Message(channel_id=channel, sequence=self._sequence + 1 + channel, log_time=stamp,
+                    publish_time=stamp, data=data).write(inner)
+        body = inner.end()
+        record = RecordBuilder()
+        Chunk(compression='', data=body, message_start_time=stamp, message_end_time=stamp,
+              uncompressed_crc=zlib.crc32(body), uncompressed_size=len(body)).write(record)
+        self._commit(record.end())
+        self._sequence += 2
         self.count += 1
 
     def close(self) -> None:
-        """Finalise the bag (summary and footer); idempotent."""
-        if not self.closed:
-            self._recorder.finish()
-            self._sync()
-            self._file.close()
+        """Finalise the bag (data end and footer; the records are read linearly, so no
+        summary is written); idempotent. A log that cannot be finalised (disk full)
+        stays a valid unfinalised bag."""
+        if self.closed:
+            return
+        self._closed = True
+        builder = RecordBuilder()
+        DataEnd(data_section_crc=0).write(builder)
+        Footer(summary_start=0, summary_offset_start=0, summary_crc=0).write(builder)
+        try:
+            self._commit(builder.end() + MAGIC)
+        except OSError:
+            pass  # nothing acknowledged depends on the footer
+        finally:
+            os.close(self._fd)
 
     def __enter__(self) -> MeasurementLog:
         return self
@@ -112,27 +183,56 @@ class MeasurementLog:
                  point_topic: str = DEFAULT_POINT_TOPIC) -> list[tuple[JointSample, PointSample]]:
         """Every measurement in ``directory``'s logs, oldest file first, in append order.
 
-        Logs of killed processes are included; only an append torn by the kill (a
-        joint state without its point, never acknowledged) is left out.
+        Logs of killed processes are included; a record torn by a kill or a full disk
+        (never acknowledged) is skipped with a :class:`~kpi_calib_ros.io.bag.BagWarning`.
         """
         directory = Path(directory)
         if not directory.is_dir():
             raise BagError(f'{directory}: no such directory of measurement logs')
         pairs: list[tuple[JointSample, PointSample]] = []
         for path in _log_files(directory):
-            messages = _read(path, joint_topic, point_topic, require_topics=False)
-            for i, message in enumerate(messages):
-                if isinstance(message, PointSample):
-                    joint = messages[i - 1] if i else None
-                    if not isinstance(joint, JointSample) or joint.stamp_ns != message.stamp_ns:
-                        raise BagError(f'{path}: point at {message.stamp_ns} ns does not follow '
-                                       'its joint state; this file is not a measurement log')
-                    pairs.append((joint, message))
-                elif i + 1 < len(messages) and not isinstance(messages[i + 1], PointSample):
-                    raise BagError(f'{path}: joint state at {message.stamp_ns} ns has no point; '
-                                   'this file is not a measurement log')
+            pairs += read_log(path, joint_topic, point_topic)
         return pairs
 
 
-load_all = MeasurementLog.load_all
 
+def stored_pairing(pairs: Iterable[tuple[JointSample, PointSample]], joint_names: list[str],
+                   tracker_frame: str, rejections: dict[str, int] | None = None
+                   ) -> PairingResult:
+    """Stored measurements as a pairing result, ``q`` ordered as ``joint_names`` by name.
+
+    Points in another frame are rejected (``wrong_frame``) and counted with
+    ``rejections``; non-finite ones as ``non_finite_point``.
+
+    Raises
+    ------
+    DataError
+        A stored configuration lacks a joint of ``joint_names`` (another robot's log).
+    """
+    frame = tracker_frame.strip('/')
+    counts = dict(rejections or {})
+    q_rows, eta_rows, stamps = [], [], []
+    for joint, point in sorted(pairs, key=lambda jp: jp[1].stamp_ns):
+        reason = ('wrong_frame' if point.frame_id.strip('/') != frame else
+                  'non_finite_point' if not np.all(np.isfinite(point.xyz)) else None)
+        if reason:
+            counts[reason] = counts.get(reason, 0) + 1
+            continue
+        by_name = dict(zip(joint.names, joint.positions))
+        missing = [n for n in joint_names if n not in by_name]
+        if missing:
+            raise DataError(f'a stored measurement (stamp {point.stamp_ns} ns) lacks joints '
+                            f'{missing}; the robot model joints are {list(joint_names)}: '
+                            'use the log of this robot, or reset the campaign to start over')
+        q_rows.append([by_name[n] for n in joint_names])
+        eta_rows.append(point.xyz)
+        stamps.append(point.stamp_ns)
+    n = len(joint_names)
+    return PairingResult(tuple(joint_names), tracker_frame,
+                         np.array(q_rows, dtype=float).reshape(-1, n),
+                         np.array(eta_rows, dtype=float).reshape(-1, 3),
+                         np.array(stamps, dtype=np.int64),
+                         rejections={k: v for k, v in sorted(counts.items()) if v})
+
+
+__all__ = ['MeasurementLog', 'stored_pairing']

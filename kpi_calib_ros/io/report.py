@@ -407,12 +407,10 @@ def run_diagnose_command(args) -> int:
     import sys
 
     from kpi_calib_ros.core.effects import split_specs
-    from kpi_calib_ros.io.bag import read_bag
     from kpi_calib_ros.io.cell import build_cell_model, load_cell
-    from kpi_calib_ros.pipeline import measurements_from_samples
+    from kpi_calib_ros.pipeline import measurements_from_bag
     cm = build_cell_model(load_cell(args.cell), effects=tuple(split_specs(args.effects)))
-    joints, points = read_bag(args.bag)
-    data, pairing = measurements_from_samples(cm, joints, points)
+    data, pairing = measurements_from_bag(cm, args.bag)
     for reason, count in sorted(pairing.rejections.items()):
         print(f'rejected {count} sample(s): {reason}', file=sys.stderr)
     cd = diagnose_cell(cm, data, folds=args.folds, alpha=args.alpha)

@@ -13,12 +13,26 @@ from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.pairing import PairingResult
 
 
+def _umask() -> int:
+    # Read, not set-and-restore: os.umask() would change it for every thread meanwhile.
+    try:
+        with open('/proc/self/status') as f:
+            for line in f:
+                if line.startswith('Umask:'):
+                    return int(line.split()[1], 8)
+    except OSError:
+        pass
+    return 0o022
+
+
 def write_atomic(path: str | Path, text: str) -> Path:
     """Write ``text`` so readers see the old file or the new one, never a partial one."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f'.{path.name}.')
     try:
+        # mkstemp creates 0600; results are for the cell (HMI, other users): 0644 less umask.
+        os.fchmod(fd, 0o644 & ~_umask())
         with os.fdopen(fd, 'w') as f:
             f.write(text)
             f.flush()

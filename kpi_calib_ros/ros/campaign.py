@@ -19,14 +19,13 @@ import time
 from collections import Counter, deque
 from pathlib import Path
 
-import numpy as np
 
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.streams import JointSample, PointSample
 from kpi_calib_ros.core.pairing import (REJECTION_REASONS, Decision, PairedMeasurement, Pairer,
                                         PairingResult, Rejection)
-from kpi_calib_ros.io.measurement_log import MeasurementLog
+from kpi_calib_ros.io.measurement_log import MeasurementLog, stored_pairing
 
 # Campaign-level reasons besides the pairer's: the measurement could not be written.
 NOT_STORED = 'not_stored'
@@ -146,16 +145,8 @@ class Campaign:
             rejections = {k: v for k, v in sorted(self.rejections.items())}
         if not pairs:
             raise DataError('no accepted measurement yet')
-        try:
-            q = np.array([[dict(zip(j.names, j.positions))[n] for n in joint_names]
-                          for j, _ in pairs], dtype=float)
-        except KeyError as exc:
-            raise DataError(f'a stored measurement lacks joint {exc}; the robot model joints '
-                            f'are {list(joint_names)}: reset the campaign to start over') from None
-        eta = np.array([p.xyz for _, p in pairs], dtype=float)
-        stamps = np.array([p.stamp_ns for _, p in pairs], dtype=np.int64)
-        pairing = PairingResult(tuple(joint_names), tracker_frame, q, eta, stamps,
-                                rejections=rejections)
+        pairing = stored_pairing(pairs, list(joint_names), tracker_frame, rejections)
+        q, eta, stamps = pairing.q, pairing.eta, pairing.stamps_ns
         return Measurements(q=q, eta=eta, stamps_ns=stamps), pairing
 
     def counts(self) -> dict[str, int]:

@@ -8,20 +8,19 @@ from __future__ import annotations
 from typing import Any, Mapping, Sequence
 
 import numpy as np
-from builtin_interfaces.msg import Duration, Time
+from builtin_interfaces.msg import Duration
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import Point, PointStamped, PoseWithCovarianceStamped, Quaternion, Vector3
-from sensor_msgs.msg import JointState
+from geometry_msgs.msg import Point, PoseWithCovarianceStamped, Quaternion, Vector3
 from std_msgs.msg import ColorRGBA, Header
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from visualization_msgs.msg import Marker, MarkerArray
 
 from kpi_calib_ros.core.collision import BASE, Capsule
-from kpi_calib_ros.core.streams import JointSample, PointSample
-# The same message -> sample conversion as the bag reader, so live and recorded data agree.
-from kpi_calib_ros.io.bag import joint_sample_from_message as joint_sample_from_msg
-from kpi_calib_ros.io.bag import point_sample_from_message as point_sample_from_msg
-from kpi_calib_ros.io.bag import stamp_ns
+# The one message <-> sample and time conversion, shared with the bag reader and writer,
+# so live and recorded data agree.
+from kpi_calib_ros.io.ros_messages import joint_sample_from_message as joint_sample_from_msg
+from kpi_calib_ros.io.ros_messages import joint_state_msg, point_stamped_msg, stamp_ns, time_msg
+from kpi_calib_ros.io.ros_messages import point_sample_from_message as point_sample_from_msg
 
 # Orientation of a TCP point is not measured: this variance (rad²) says "unknown".
 UNKNOWN_ORIENTATION_VARIANCE = 1e6
@@ -36,28 +35,8 @@ LEVELS = {'OK': DiagnosticStatus.OK, 'WARN': DiagnosticStatus.WARN,
 
 
 # ------------------------------------------------------------------ time
-def time_msg(ns: int) -> Time:
-    sec, nanosec = divmod(int(ns), 1_000_000_000)
-    return Time(sec=sec, nanosec=nanosec)
-
-
 def _header(ns: int, frame_id: str) -> Header:
     return Header(stamp=time_msg(ns), frame_id=frame_id)
-
-
-# ------------------------------------------------------------------ streams
-def joint_state_msg(sample: JointSample) -> JointState:
-    """JointSample -> JointState (empty velocity when the sample has none)."""
-    return JointState(
-        header=_header(sample.stamp_ns, ''), name=list(sample.names),
-        position=[float(x) for x in sample.positions],
-        velocity=[] if sample.velocities is None else [float(x) for x in sample.velocities])
-
-
-def point_stamped_msg(sample: PointSample) -> PointStamped:
-    x, y, z = (float(v) for v in sample.xyz)
-    return PointStamped(header=_header(sample.stamp_ns, sample.frame_id),
-                        point=Point(x=x, y=y, z=z))
 
 
 # ------------------------------------------------------------------ design

@@ -1,0 +1,208 @@
+"""Writing MCAP bags of joint states and tracker points as ``ros2 bag record -s mcap`` does.
+
+Profile ``ros2``, one ``ros2msg`` schema per type holding the complete message
+definition (the ``.msg`` texts of the type and of every type it uses, joined with
+rosbag2's ``====`` / ``MSG: pkg/Type`` delimiters), ``cdr`` channels carrying
+``offered_qos_profiles`` and ``topic_type_hash`` metadata, uncompressed chunks
+(Jazzy's default storage preset), and log time = publish time = header stamp.
+"""
+from __future__ import annotations
+
+import functools
+import importlib.util
+import json
+import os
+import re
+import sys
+from pathlib import Path
+from typing import Iterable
+
+from mcap.well_known import MessageEncoding, SchemaEncoding
+from mcap.writer import LIBRARY_IDENTIFIER, CompressionType
+from mcap.writer import Writer as McapWriter
+# The encoder that mcap_ros2.writer.Writer uses internally; that Writer cannot set
+# channel metadata, which rosbag2 readers expect.
+from mcap_ros2._dynamic import serialize_dynamic
+
+from kpi_calib_ros.core.streams import JointSample, PointSample
+from kpi_calib_ros.io.mcap_scan import BagError
+from kpi_calib_ros.io.ros_messages import joint_state_fields, point_stamped_fields
+
+JOINT_STATE_TYPE = 'sensor_msgs/msg/JointState'
+POINT_STAMPED_TYPE = 'geometry_msgs/msg/PointStamped'
+DEFAULT_JOINT_TOPIC = '/joint_states'
+DEFAULT_POINT_TOPIC = '/laser_tracker/point'
+
+LIBRARY = f'kpi_calib_ros; {LIBRARY_IDENTIFIER}'
+_ROSBAG2_CHUNK_SIZE = 768 * 1024  # libmcap's default, which rosbag2 keeps
+# What a default reliable/volatile publisher offers, as rosbag2 (metadata v9) writes it.
+_INFINITE = '\n    sec: 9223372036\n    nsec: 854775807'
+_OFFERED_QOS = (
+    '- history: keep_last\n  depth: 10\n  reliability: reliable\n  durability: volatile\n'
+    f'  deadline:{_INFINITE}\n  lifespan:{_INFINITE}\n  liveliness: automatic\n'
+    f'  liveliness_lease_duration:{_INFINITE}\n  avoid_ros_namespace_conventions: false'
+)
+# rosbag2's LocalMessageDefinitionSource: the first token of each line is a field type.
+_FIELD_TYPE = re.compile(r'(?:^|\n)\s*([a-zA-Z0-9_/]+)(?:\[[^\]]*\])?\s+')
+_PRIMITIVES = frozenset({'bool', 'byte', 'char', 'float32', 'float64', 'int8', 'uint8', 'int16',
+                         'uint16', 'int32', 'uint32', 'int64', 'uint64', 'string'})
+
+
+def _share_prefixes(package: str) -> list[Path]:
+    prefixes = [Path(p) for p in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
+    spec = importlib.util.find_spec(package)
+    if spec is not None and spec.origin:
+        parents = Path(spec.origin).resolve().parents
+        if len(parents) > 4:  # <prefix>/lib/pythonX.Y/site-packages/<package>/__init__.py
+            prefixes.append(parents[4])
+    prefixes.append(Path(sys.prefix))
+    return prefixes
+
+
+@functools.lru_cache(maxsize=None)
+def _definition_file(type_name: str, extension: str) -> Path:
+    parts = type_name.split('/')
+    package, interface = parts[0], (parts[1] if len(parts) == 3 else 'msg')
+    for prefix in _share_prefixes(package):
+        candidate = prefix / 'share' / package / interface / (parts[-1] + extension)
+        if candidate.is_file():
+            return candidate
+    raise BagError(f"no {extension} file for '{type_name}' under share/{package}/{interface} "
+                   f'of AMENT_PREFIX_PATH or {sys.prefix}; install {package} '
+                   '(ROS 2 Jazzy) or source its setup file')
+
+
+@functools.lru_cache(maxsize=None)
+def message_definition(type_name: str) -> str:
+    """The complete ``ros2msg`` definition of ``type_name``, exactly as rosbag2 stores it.
+
+    The type's own ``.msg`` text comes first; each dependency not yet included follows
+    depth-first, in sorted order, after a line of 80 ``=`` and a ``MSG: pkg/Type`` line.
+
+    Parameters
+    ----------
+    type_name : str
+        e.g. ``'sensor_msgs/msg/JointState'``.
+    """
+    seen: set[str] = set()
+
+    def text_with_dependencies(name: str) -> str:
+        text = _definition_file(name, '.msg').read_bytes().decode('utf-8')  # bytes as stored
+        package = name.split('/')[0]
+        dependencies = set()
+        for match in _FIELD_TYPE.finditer(text):
+            field_type = match.group(1)
+            if field_type not in _PRIMITIVES:
+                dependencies.add(field_type if '/' in field_type else f'{package}/{field_type}')
+        for dependency in sorted(dependencies):
+            if dependency not in seen:
+                seen.add(dependency)
+                text += f"\n{'=' * 80}\nMSG: {dependency}\n" + text_with_dependencies(dependency)
+        return text
+
+    return text_with_dependencies(type_name)
+
+
+@functools.lru_cache(maxsize=None)
+def type_hash(type_name: str) -> str:
+    """The ``RIHS01_…`` type description hash rosidl generated for ``type_name``, or ``''``
+    where rosidl generated none (rosbag2 then records it empty too)."""
+    try:
+        description = json.loads(_definition_file(type_name, '.json').read_bytes())
+    except BagError:
+        return ''
+    return next((h['hash_string'] for h in description.get('type_hashes', [])
+                 if h['type_name'] == type_name), '')
+
+
+class StreamEncoders:
+    """Schema texts, channel metadata and CDR encoders of the two stream topics."""
+
+    def __init__(self, joint_topic: str, point_topic: str) -> None:
+        if joint_topic == point_topic:
+            raise ValueError(f"joint_topic and point_topic must differ, both are '{joint_topic}'")
+        self.topics = ((joint_topic, JOINT_STATE_TYPE), (point_topic, POINT_STAMPED_TYPE))
+        self.text = {t: message_definition(t) for _, t in self.topics}
+        self.metadata = {t: {'offered_qos_profiles': _OFFERED_QOS, 'topic_type_hash': type_hash(t)}
+                         for _, t in self.topics}
+        self._encode = {t: serialize_dynamic(t, self.text[t])[t] for _, t in self.topics}
+
+    def joint(self, sample: JointSample) -> bytes:
+        return self._encode[JOINT_STATE_TYPE](joint_state_fields(sample))
+
+    def point(self, sample: PointSample) -> bytes:
+        return self._encode[POINT_STAMPED_TYPE](point_stamped_fields(sample))
+
+
+class _Recorder:
+    """Writes JointState and PointStamped messages to one chunked MCAP stream."""
+
+    def __init__(self, stream, joint_topic: str, point_topic: str,
+                 chunk_size: int = _ROSBAG2_CHUNK_SIZE) -> None:
+        self.encoders = StreamEncoders(joint_topic, point_topic)
+        self._writer = McapWriter(stream, chunk_size=chunk_size,
+                                  compression=CompressionType.NONE, use_chunking=True)
+        self._writer.start(profile='ros2', library=LIBRARY)
+        self._channels = {}
+        for topic, type_name in self.encoders.topics:
+            schema_id = self._writer.register_schema(type_name, SchemaEncoding.ROS2,
+                                                     self.encoders.text[type_name].encode())
+            self._channels[type_name] = [self._writer.register_channel(
+                topic, MessageEncoding.CDR, schema_id, self.encoders.metadata[type_name]), 0]
+
+    def _write(self, type_name: str, stamp_ns: int, data: bytes) -> None:
+        entry = self._channels[type_name]
+        entry[1] += 1
+        self._writer.add_message(channel_id=entry[0], log_time=int(stamp_ns),
+                                 publish_time=int(stamp_ns), sequence=entry[1], data=data)
+
+    def write_joint(self, sample: JointSample) -> None:
+        self._write(JOINT_STATE_TYPE, sample.stamp_ns, self.encoders.joint(sample))
+
+    def write_point(self, sample: PointSample) -> None:
+        self._write(POINT_STAMPED_TYPE, sample.stamp_ns, self.encoders.point(sample))
+
+    def finish(self) -> None:
+        self._writer.finish()
+
+
+def write_bag(
+    path: str | os.PathLike,
+    joint_samples: Iterable[JointSample],
+    point_samples: Iterable[PointSample],
+    joint_topic: str = DEFAULT_JOINT_TOPIC,
+    point_topic: str = DEFAULT_POINT_TOPIC,
+    chunk_size: int = _ROSBAG2_CHUNK_SIZE,
+) -> Path:
+    """Write joint states and tracker points to an MCAP bag, in stamp order.
+
+    Parameters
+    ----------
+    path : path-like
+        The ``.mcap`` file to create (overwritten if present).
+    joint_samples, point_samples : iterables of JointSample / PointSample
+        Published as ``sensor_msgs/msg/JointState`` on ``joint_topic`` and
+        ``geometry_msgs/msg/PointStamped`` on ``point_topic``.
+    chunk_size : int
+        Bytes per chunk before it is closed (rosbag2's default unless given).
+
+    Returns
+    -------
+    Path
+        ``path``.
+    """
+    path = Path(path)
+    stream = [(s.stamp_ns, 0, s) for s in joint_samples] + [(p.stamp_ns, 1, p)
+                                                            for p in point_samples]
+    stream.sort(key=lambda item: item[:2])
+    with open(path, 'wb') as f:
+        recorder = _Recorder(f, joint_topic, point_topic, chunk_size=chunk_size)
+        for _, kind, sample in stream:
+            (recorder.write_point if kind else recorder.write_joint)(sample)
+        recorder.finish()
+    return path
+
+
+__all__ = ['DEFAULT_JOINT_TOPIC', 'DEFAULT_POINT_TOPIC', 'JOINT_STATE_TYPE', 'LIBRARY',
+           'POINT_STAMPED_TYPE', 'StreamEncoders', 'message_definition', 'type_hash',
+           'write_bag']
