@@ -101,21 +101,26 @@ def _design_work(cm: CellModel, settings: NodeSettings,
     return design, points, path
 
 
-def _identify_work(cm: CellModel, data: Measurements, pairing: PairingResult,
-                   data_dir: Path) -> tuple[CalibrationResult, dict[str, Any], str]:
+# Messages and their text are made here too: a YAML dump takes ~0.1 s, long enough to
+# hold up pairing on the executor.
+def _identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, data_dir: Path
+                   ) -> tuple[CalibrationResult, str, str, list[PoseWithCovarianceStamped]]:
     result = identify_cell(cm, data)
     doc = calibration_document(cm, result, pairing)
     urdf = calibrated_urdf(cm.cell.urdf_xml, cm.robot, dict(zip(result.names, result.values)))
-    write_calibration(data_dir, doc)
+    calibration = write_calibration(data_dir, doc).read_text()  # published as written
     write_atomic(data_dir / CALIBRATED_URDF_FILE, urdf)
-    return result, doc, urdf
+    tcp = cv.tcp_pose_msgs(result.tcp, result.tcp_covariance, cm.cell.tracker_frame,
+                           int(data.stamps_ns[-1]))
+    return result, calibration, urdf, tcp
 
 
 def _diagnose_work(cm: CellModel, data: Measurements,
-                   data_dir: Path) -> tuple[dict[str, Any], str, Path]:
+                   data_dir: Path) -> tuple[dict[str, Any], str, str, Path]:
     cd = diagnose_cell(cm, data)
     report = write_report(data_dir / DIAGNOSIS_DIR, cd)
-    return diagnosis_to_dict(cd), cd.diagnosis.verdict, report
+    doc = diagnosis_to_dict(cd)
+    return doc, json.dumps(doc), cd.diagnosis.verdict, report
 
 
 class CalibrationNode(Node):
@@ -355,19 +360,18 @@ class CalibrationNode(Node):
         cm = self._model()
         data, pairing = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame)
         try:
-            result, doc, urdf = await self._offload(_identify_work, cm, data, pairing,
-                                                    self.data_dir)
+            result, calibration, urdf, tcp = await self._offload(
+                _identify_work, cm, data, pairing, self.data_dir)
         except KpiCalibError as exc:
             self._result_error = f'identification failed: {exc}'
             raise
         self._result, self._measured, self._identified_with = result, data.eta, len(data)
         self._result_error = '' if result.converged else f'not converged: {result.status}'
-        self._pub_calibration.publish(String(data=yaml.safe_dump(doc, sort_keys=False)))
+        self._pub_calibration.publish(String(data=calibration))
         self._pub_urdf.publish(String(data=urdf))
-        tcp = self._tcp_publisher(len(result.tcp))
-        for msg in cv.tcp_pose_msgs(result.tcp, result.tcp_covariance, cm.cell.tracker_frame,
-                                    int(data.stamps_ns[-1])):
-            tcp.publish(msg)
+        publisher = self._tcp_publisher(len(tcp))
+        for msg in tcp:
+            publisher.publish(msg)
         self._publish_markers()
         self._publish_diagnostics(force=True)
         tcp_um = np.sqrt(np.trace(result.tcp_covariance, axis1=1, axis2=2)).max() * 1e6
@@ -381,9 +385,10 @@ class CalibrationNode(Node):
         report, adequacy and the most likely missing effect; report files and ~/diagnosis."""
         cm = self._model()
         data, _ = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame)
-        doc, verdict, report = await self._offload(_diagnose_work, cm, data, self.data_dir)
+        doc, text, verdict, report = await self._offload(_diagnose_work, cm, data,
+                                                         self.data_dir)
         self._diagnosis = doc
-        self._pub_diagnosis.publish(String(data=json.dumps(doc)))
+        self._pub_diagnosis.publish(String(data=text))
         self._publish_diagnostics(force=True)
         return True, f'{verdict} Report: {report}'
 
