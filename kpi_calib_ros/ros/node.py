@@ -19,8 +19,8 @@ and written on the executor thread only. A job is a coroutine on the executor: i
 takes what it needs from the node, hands plain inputs to a worker thread with
 ``await self._offload(fn, ...)``, and when the worker's value comes back (the
 coroutine resumes on the executor) it updates the state and publishes. Worker
-functions are module-level: they compute and write result files, and never see the
-node. The one object both sides touch is the :class:`Campaign`, which is
+functions (:mod:`kpi_calib_ros.ros.jobs`) compute and write result files, and never
+see the node. The one object both sides touch is the :class:`Campaign`, which is
 thread-safe by its own lock. Hence no node lock: ``~/tcp`` is created when the first
 robot model gives its number of working poses and replaced (on the executor, where
 nothing else can be publishing on it) only if a later model has a different number.
@@ -31,7 +31,6 @@ reason); the post-set callback applies the accepted values.
 """
 from __future__ import annotations
 
-import json
 import sys
 import threading
 import time
@@ -49,8 +48,8 @@ from rclpy.exceptions import ParameterUninitializedException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.publisher import Publisher
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
@@ -59,26 +58,16 @@ from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import MarkerArray
 
 from kpi_calib_ros.core.collision import Capsule
-from kpi_calib_ros.core.design import DesignResult, design_measurements
 from kpi_calib_ros.core.errors import ConfigError, DataError, KpiCalibError
 from kpi_calib_ros.core.estimation import CalibrationResult
-from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.pairing import Decision, PairingResult, Rejection
+from kpi_calib_ros.core.pairing import Decision, Rejection
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, cell_from_dict
-from kpi_calib_ros.io.design_io import write_design
-from kpi_calib_ros.io.report import diagnose_cell, diagnosis_to_dict, write_report
-from kpi_calib_ros.io.results import write_atomic, write_calibration
-from kpi_calib_ros.io.urdf_export import calibrated_urdf
-from kpi_calib_ros.pipeline import calibration_document, identify_cell
 from kpi_calib_ros.ros import conversions as cv
+from kpi_calib_ros.ros import jobs
 from kpi_calib_ros.ros.campaign import Campaign
-from kpi_calib_ros.ros.parameters import (PARAMETERS, NodeSettings, cell_document,
-                                          settings_from_parameters)
+from kpi_calib_ros.ros.parameters import PARAMETERS, cell_document, settings_from_parameters
 
 NODE_NAME = 'kpi_calib_node'
-CALIBRATED_URDF_FILE = 'robot_description_calibrated.urdf'
-DESIGN_FILE = 'design.yaml'
-DIAGNOSIS_DIR = 'diagnosis'
 
 
 def _latched(depth: int = 1) -> QoSProfile:
@@ -88,39 +77,6 @@ def _latched(depth: int = 1) -> QoSProfile:
 
 def _stream_qos(depth: int) -> QoSProfile:
     return QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE)
-
-
-# ---------------------------------------------------------------------- worker functions
-# Run in a worker thread: plain inputs in, values out, result files written; no node.
-def _design_work(cm: CellModel, settings: NodeSettings,
-                 data_dir: Path) -> tuple[DesignResult, np.ndarray, Path]:
-    design = design_measurements(cm, settings.num_measurements, settings.criterion,
-                                 np.random.default_rng(settings.design_seed))
-    path = write_design(data_dir / DESIGN_FILE, design)
-    points = cm.model.predict(cm.model.params.nominal, design.configurations)
-    return design, points, path
-
-
-# Messages and their text are made here too: a YAML dump takes ~0.1 s, long enough to
-# hold up pairing on the executor.
-def _identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, data_dir: Path
-                   ) -> tuple[CalibrationResult, str, str, list[PoseWithCovarianceStamped]]:
-    result = identify_cell(cm, data)
-    doc = calibration_document(cm, result, pairing)
-    urdf = calibrated_urdf(cm.cell.urdf_xml, cm.robot, dict(zip(result.names, result.values)))
-    calibration = write_calibration(data_dir, doc).read_text()  # published as written
-    write_atomic(data_dir / CALIBRATED_URDF_FILE, urdf)
-    tcp = cv.tcp_pose_msgs(result.tcp, result.tcp_covariance, cm.cell.tracker_frame,
-                           int(data.stamps_ns[-1]))
-    return result, calibration, urdf, tcp
-
-
-def _diagnose_work(cm: CellModel, data: Measurements,
-                   data_dir: Path) -> tuple[dict[str, Any], str, str, Path]:
-    cd = diagnose_cell(cm, data)
-    report = write_report(data_dir / DIAGNOSIS_DIR, cd)
-    doc = diagnosis_to_dict(cd)
-    return doc, json.dumps(doc), cd.diagnosis.verdict, report
 
 
 class CalibrationNode(Node):
@@ -342,7 +298,7 @@ class CalibrationNode(Node):
 
     async def _design(self) -> tuple[bool, str]:
         cm = self._model()
-        design, points, path = await self._offload(_design_work, cm, self.settings,
+        design, points, path = await self._offload(jobs.design_work, cm, self.settings,
                                                    self.data_dir)
         self._pub_poses.publish(cv.joint_trajectory_msg(design.joint_names,
                                                         design.configurations))
@@ -361,7 +317,7 @@ class CalibrationNode(Node):
         data, pairing = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame)
         try:
             result, calibration, urdf, tcp = await self._offload(
-                _identify_work, cm, data, pairing, self.data_dir)
+                jobs.identify_work, cm, data, pairing, self.data_dir)
         except KpiCalibError as exc:
             self._result_error = f'identification failed: {exc}'
             raise
@@ -385,7 +341,7 @@ class CalibrationNode(Node):
         report, adequacy and the most likely missing effect; report files and ~/diagnosis."""
         cm = self._model()
         data, _ = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame)
-        doc, text, verdict, report = await self._offload(_diagnose_work, cm, data,
+        doc, text, verdict, report = await self._offload(jobs.diagnose_work, cm, data,
                                                          self.data_dir)
         self._diagnosis = doc
         self._pub_diagnosis.publish(String(data=text))
