@@ -231,6 +231,11 @@ def test_a_new_robot_description_keeps_the_tcp_publisher(in_process):
     assert node._model_error == '' and node._urdf.endswith('<!-- re-sent -->')
     assert node._pub_tcp is publisher
     assert node.count_publishers(node.resolve_topic_name('~/tcp')) == 1
+    # A model with another number of working poses: replaced (on the executor), still one.
+    replaced = node._tcp_publisher(depth + 3)
+    assert replaced is not publisher and replaced.qos_profile.depth == depth + 3
+    assert node._tcp_publisher(depth + 3) is replaced
+    assert node.count_publishers(node.resolve_topic_name('~/tcp')) == 1
 
 
 def test_jobs_compute_in_a_worker_and_touch_the_node_on_the_executor(in_process):

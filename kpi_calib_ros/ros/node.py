@@ -238,8 +238,8 @@ class CalibrationNode(Node):
         self._publish_diagnostics()
 
     # ------------------------------------------------------------------ jobs
-    def _service(self, name: str, doing: str,
-                 work: Callable[[], Awaitable[tuple[bool, str]]]):
+    def _service(self, name: str, doing: str, work: Callable[[], Awaitable[tuple[bool, str]]]
+                 ) -> Callable[[Trigger.Request, Trigger.Response], Awaitable[Trigger.Response]]:
         """A Trigger callback that runs job ``work`` and answers when it is done, or
         answers 'busy' at once while another job runs. The executor keeps serving
         meanwhile (the callback awaits, it does not block)."""
