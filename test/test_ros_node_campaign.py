@@ -3,7 +3,8 @@
 One scenario is set up once for the module, because starting nodes and replaying is
 the expensive part: a simulated 30-pose bag is replayed into the node, the node is
 killed (SIGKILL) mid-replay, restarted on the same data folder, and the whole bag is
-replayed again. Each test then checks one behaviour of that run. The tests that
+replayed again; the restarted node identifies by itself once it has all 30. Each
+test then checks one behaviour of that run. The tests that
 send more input or call services come last, in file order; the clean stop is the
 last test.
 """
@@ -93,7 +94,10 @@ def run(offline, ros_domain, tmp_path_factory):
         print(f'killed after {reported} reported accepted, {len(logged)} on disk')
 
         client.received.clear()
-        second = spawn(data_dir, 'node_2.log')
+        # Identification only once every point is in: an identification running in its
+        # worker thread while 1000 joint states/s arrive can starve pairing of the GIL
+        # long enough to lose joint states (a load effect this scenario is not about).
+        second = spawn(data_dir, 'node_2.log', f'min_measurements:={N_POSES}')
         # The restarted node logs to a new file: that tells its reports from late ones.
         client.spin_until(lambda: client.diagnostics().get('log_file', first_log) != first_log,
                           30, 'the restarted node')
