@@ -1,4 +1,5 @@
-"""Shared fixtures: a deliberately awkward URDF chain for generality tests."""
+"""Shared fixtures: a deliberately awkward URDF chain for generality tests, and the ROS
+domain every ROS test runs on."""
 from __future__ import annotations
 
 import kpi_calib_ros  # noqa: F401  (single-threaded BLAS before any test imports numpy)
@@ -55,3 +56,12 @@ ODD_ARM_URDF = """<?xml version="1.0"?>
 @pytest.fixture
 def odd_arm_urdf() -> str:
     return ODD_ARM_URDF
+
+
+@pytest.fixture(scope='session')
+def ros_domain():
+    """A ROS domain id held by this test run alone (see ros_helpers.exclusive_ros_domain)
+    for the whole session, discovery on localhost, in this process and its children."""
+    from ros_helpers import exclusive_ros_domain, ros_environment  # rclpy only when needed
+    with exclusive_ros_domain() as domain, ros_environment(domain):
+        yield domain

@@ -8,19 +8,34 @@ replayed bag and ``kpi-calib identify`` agree and a killed node loses nothing.
 
 Services (std_srvs/srv/Trigger): ``~/design``, ``~/identify``, ``~/diagnose``, ``~/reset``.
 One executor thread serves callbacks in arrival order; long work (design,
-identification) runs in a worker thread while the service callback awaits it, so
+identification) runs in a worker thread while the job coroutine awaits it, so
 pairing continues, and a call while another job runs answers
 ``success=False, message='busy: ...'``. (rclpy's MultiThreadedExecutor could not keep
 up with 1 kHz joint states on two cores.)
+
+Threads: the executor thread owns the node. Every node attribute (robot model,
+result, diagnosis, design points, job name, settings) and every publisher is read
+and written on the executor thread only. A job is a coroutine on the executor: it
+takes what it needs from the node, hands plain inputs to a worker thread with
+``await self._offload(fn, ...)``, and when the worker's value comes back (the
+coroutine resumes on the executor) it updates the state and publishes. Worker
+functions (:mod:`kpi_calib_ros.ros.jobs`) compute and write result files, and never
+see the node. The one object both sides touch is the :class:`Campaign`, which is
+thread-safe by its own lock. Hence no node lock: ``~/tcp`` is created when the first
+robot model gives its number of working poses and replaced (on the executor, where
+nothing else can be publishing on it) only if a later model has a different number.
+
+Parameters follow ros2/demos ``set_parameters_callback.py``: the on-set callback only
+validates (every value, through :func:`settings_from_parameters`, and rejects with the
+reason); the post-set callback applies the accepted values.
 """
 from __future__ import annotations
 
-import json
 import sys
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Awaitable, Callable
 
 import numpy as np
 import rclpy
@@ -33,6 +48,7 @@ from rclpy.exceptions import ParameterUninitializedException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.publisher import Publisher
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
 from sensor_msgs.msg import JointState
@@ -42,24 +58,16 @@ from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import MarkerArray
 
 from kpi_calib_ros.core.collision import Capsule
-from kpi_calib_ros.core.design import design_measurements
 from kpi_calib_ros.core.errors import ConfigError, DataError, KpiCalibError
 from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.pairing import Decision, Rejection
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, cell_from_dict
-from kpi_calib_ros.io.design_io import write_design
-from kpi_calib_ros.io.report import diagnose_cell, diagnosis_to_dict, write_report
-from kpi_calib_ros.io.results import write_atomic, write_calibration
-from kpi_calib_ros.io.urdf_export import calibrated_urdf
-from kpi_calib_ros.pipeline import calibration_document, identify_cell
 from kpi_calib_ros.ros import conversions as cv
+from kpi_calib_ros.ros import jobs
 from kpi_calib_ros.ros.campaign import Campaign
 from kpi_calib_ros.ros.parameters import PARAMETERS, cell_document, settings_from_parameters
 
 NODE_NAME = 'kpi_calib_node'
-CALIBRATED_URDF_FILE = 'robot_description_calibrated.urdf'
-DESIGN_FILE = 'design.yaml'
-DIAGNOSIS_DIR = 'diagnosis'
 
 
 def _latched(depth: int = 1) -> QoSProfile:
@@ -80,7 +88,8 @@ class CalibrationNode(Node):
             self.declare_parameter(name, default, ParameterDescriptor(
                 description=description, read_only=read_only))
         self.settings = settings_from_parameters(self._parameter_values())
-        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.add_on_set_parameters_callback(self._validate_parameters)
+        self.add_post_set_parameters_callback(self._apply_parameters)
         try:
             self._cell_doc = yaml.safe_load(Path(self.settings.cell_file).read_text()) or {}
         except yaml.YAMLError as exc:
@@ -90,8 +99,8 @@ class CalibrationNode(Node):
         self.get_logger().info(f'{self.campaign.restored} measurement(s) restored from '
                                f'{self.data_dir}; logging to {self.campaign.log.path}')
 
-        self._job = threading.Lock()  # one long job at a time: design, identify, reset
-        self._job_name = ''
+        # Executor-thread state (see the module docstring): never touched by a worker.
+        self._job_name = ''  # the running job ('' when idle): one long job at a time
         self._cm: CellModel | None = None
         self._urdf = ''
         self._model_error = ''
@@ -117,7 +126,9 @@ class CalibrationNode(Node):
         self._pub_markers = self.create_publisher(MarkerArray, '~/markers', _latched())
         self._pub_diagnosis = self.create_publisher(String, '~/diagnosis', _latched())
         self._pub_diagnostics = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
-        self._pub_tcp = None  # latched with one message per working pose: made with the model
+        # Latched, one message per working pose: made when a model gives their number.
+        self._pub_tcp: Publisher | None = None
+        self._tcp_depth = 0
         self.create_subscription(JointState, self.settings.joint_states_topic,
                                  self._on_joint_state, _stream_qos(1000), callback_group=streams)
         self.create_subscription(PointStamped, self.settings.point_topic, self._on_point,
@@ -148,14 +159,20 @@ class CalibrationNode(Node):
         values.update(changes or {})
         return values
 
-    def _on_set_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
+    def _validate_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
+        """On-set callback: judge the values as they would be after the change; no side
+        effect (another callback may still reject the change)."""
         try:
-            self.settings = settings_from_parameters(self._parameter_values(
+            settings_from_parameters(self._parameter_values(
                 {p.name: p.value for p in parameters}))
         except ConfigError as exc:
             return SetParametersResult(successful=False, reason=str(exc))
-        self._auto_pending = self._auto_wanted()
         return SetParametersResult(successful=True)
+
+    def _apply_parameters(self, parameters: list[Parameter]) -> None:
+        """Post-set callback: the values are set (and were validated); use them."""
+        self.settings = settings_from_parameters(self._parameter_values())
+        self._auto_pending = self._auto_wanted()
 
     # ------------------------------------------------------------------ robot model
     def _on_robot_description(self, msg: String) -> None:
@@ -173,16 +190,25 @@ class CalibrationNode(Node):
         scene = cm.collision_scene()
         self._capsules = scene.robot_capsules + [o for o in scene.obstacles
                                                  if isinstance(o, Capsule)]
-        if self._pub_tcp is not None:
-            self.destroy_publisher(self._pub_tcp)
-        self._pub_tcp = self.create_publisher(PoseWithCovarianceStamped, '~/tcp',
-                                              _latched(len(cm.working_pose_names)))
+        self._tcp_publisher(len(cm.working_pose_names))
         self._cm, self._urdf, self._model_error = cm, urdf_xml, ''
         self._report(self.campaign.set_chain(cm.joint_names, cm.cell.tracker_frame))
         self._auto_pending = self._auto_wanted()
         self.get_logger().info(f'robot model ready: joints {cm.joint_names}, tracker frame '
                                f"'{cm.cell.tracker_frame}', working poses "
                                f'{list(cm.working_pose_names)}')
+
+    def _tcp_publisher(self, depth: int) -> Publisher:
+        """``~/tcp``, latched with ``depth`` messages (one per working pose), so a late
+        subscriber gets the latest identification's poses and no older ones. Replaced
+        only when the depth changes; safe because only the executor publishes."""
+        if self._pub_tcp is None or depth != self._tcp_depth:
+            if self._pub_tcp is not None:
+                self.destroy_publisher(self._pub_tcp)
+            self._pub_tcp = self.create_publisher(PoseWithCovarianceStamped, '~/tcp',
+                                                  _latched(depth))
+            self._tcp_depth = depth
+        return self._pub_tcp
 
     # ------------------------------------------------------------------ live pairing
     def _on_joint_state(self, msg: JointState) -> None:
@@ -205,44 +231,64 @@ class CalibrationNode(Node):
 
     def _tick(self) -> None:
         self._report(self.campaign.poll())
-        if self._auto_pending and self._job.acquire(blocking=False):
+        if self._auto_pending and self._claim_job('identifying (automatic)'):
             self._auto_pending = False
-            self._job_name = 'identifying (automatic)'
-            threading.Thread(target=self._run_job, daemon=True,
-                             args=('automatic identification', self._identify)).start()
+            self.executor.create_task(self._run_job, 'automatic identification',
+                                      self._identify)
         self._publish_diagnostics()
 
     # ------------------------------------------------------------------ jobs
-    def _service(self, name: str, doing: str, work: Callable[[], tuple[bool, str]]):
-        """A Trigger callback that runs ``work`` in a worker thread and answers when it is
-        done; the executor keeps serving meanwhile (the callback awaits, it does not block)."""
+    def _service(self, name: str, doing: str, work: Callable[[], Awaitable[tuple[bool, str]]]
+                 ) -> Callable[[Trigger.Request, Trigger.Response], Awaitable[Trigger.Response]]:
+        """A Trigger callback that runs job ``work`` and answers when it is done, or
+        answers 'busy' at once while another job runs. The executor keeps serving
+        meanwhile (the callback awaits, it does not block)."""
         async def callback(request: Trigger.Request,
                            response: Trigger.Response) -> Trigger.Response:
-            if not self._job.acquire(blocking=False):
+            if not self._claim_job(doing):
                 response.success, response.message = False, f'busy: {self._job_name}'
-                return response
-            self._job_name = doing
-            done = Future(executor=self.executor)
-            done.add_done_callback(lambda _: None)  # its scheduling wakes the executor
-            threading.Thread(target=self._run_job, args=(name, work, done), daemon=True).start()
-            response.success, response.message = await done
+            else:
+                response.success, response.message = await self._run_job(name, work)
             return response
         return callback
 
-    def _run_job(self, name: str, work: Callable[[], tuple[bool, str]],
-                 done: Future | None = None) -> None:
-        """Run ``work`` holding the job lock (acquired by the caller), then release it."""
+    def _claim_job(self, doing: str) -> bool:
+        """Take the one job slot if it is free. The check and the claim run on the
+        executor with no await between them, so no other callback interleaves."""
+        if self._job_name:
+            return False
+        self._job_name = doing
+        return True
+
+    async def _run_job(self, name: str,
+                       work: Callable[[], Awaitable[tuple[bool, str]]]) -> tuple[bool, str]:
+        """Run the claimed job ``work`` to its (success, message); free the slot after."""
         try:
-            outcome = work()
+            outcome = await work()
         except Exception as exc:  # job boundary: answer, log, keep the node up
             self.get_logger().error(f'{name} failed: {exc}')
             outcome = (False, f'{name} failed: {exc}')
         else:
             self.get_logger().info(f'{name}: {outcome[1]}')
-        self._job_name = ''
-        self._job.release()
-        if done is not None:
-            done.set_result(outcome)
+        finally:
+            self._job_name = ''
+        return outcome
+
+    def _offload(self, fn: Callable[..., Any], *args: Any) -> Future:
+        """Run ``fn(*args)`` in a worker thread; awaiting the returned future resumes the
+        job on the executor with ``fn``'s value (or raises its exception)."""
+        done = Future(executor=self.executor)
+        done.add_done_callback(lambda _: None)  # its scheduling wakes the executor
+
+        def run() -> None:
+            try:
+                value = fn(*args)
+            except Exception as exc:  # handed to the awaiting job, which reports it
+                done.set_exception(exc)
+            else:
+                done.set_result(value)
+        threading.Thread(target=run, daemon=True).start()
+        return done
 
     def _model(self) -> CellModel:
         if self._cm is None:
@@ -250,14 +296,13 @@ class CalibrationNode(Node):
                             f'{self.settings.robot_description_topic}')
         return self._cm
 
-    def _design(self) -> tuple[bool, str]:
-        cm, s = self._model(), self.settings
-        design = design_measurements(cm, s.num_measurements, s.criterion,
-                                     np.random.default_rng(s.design_seed))
-        path = write_design(self.data_dir / DESIGN_FILE, design)
+    async def _design(self) -> tuple[bool, str]:
+        cm = self._model()
+        design, points, path = await self._offload(jobs.design_work, cm, self.settings,
+                                                   self.data_dir)
         self._pub_poses.publish(cv.joint_trajectory_msg(design.joint_names,
                                                         design.configurations))
-        self._design_points = cm.model.predict(cm.model.params.nominal, design.configurations)
+        self._design_points = points
         self._publish_markers()
         tcp_um = np.sqrt((design.tcp_std ** 2).sum(axis=1)).max() * 1e6
         return design.verification.ok, (
@@ -265,28 +310,24 @@ class CalibrationNode(Node):
             f'sqrt(trace) <= {tcp_um:.1f} µm; {design.status}; published on '
             f'{self.resolve_topic_name("~/measurement_poses")}, written to {path}')
 
-    def _identify(self) -> tuple[bool, str]:
+    async def _identify(self) -> tuple[bool, str]:
         """Identify from every accepted measurement (as ``kpi-calib identify`` does);
         write the results atomically and publish them."""
         cm = self._model()
         data, pairing = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame)
         try:
-            result = identify_cell(cm, data)
+            result, calibration, urdf, tcp = await self._offload(
+                jobs.identify_work, cm, data, pairing, self.data_dir)
         except KpiCalibError as exc:
             self._result_error = f'identification failed: {exc}'
             raise
-        doc = calibration_document(cm, result, pairing)
-        urdf = calibrated_urdf(cm.cell.urdf_xml, cm.robot,
-                               dict(zip(result.names, result.values)))
-        write_calibration(self.data_dir, doc)
-        write_atomic(self.data_dir / CALIBRATED_URDF_FILE, urdf)
         self._result, self._measured, self._identified_with = result, data.eta, len(data)
         self._result_error = '' if result.converged else f'not converged: {result.status}'
-        self._pub_calibration.publish(String(data=yaml.safe_dump(doc, sort_keys=False)))
+        self._pub_calibration.publish(String(data=calibration))
         self._pub_urdf.publish(String(data=urdf))
-        for msg in cv.tcp_pose_msgs(result.tcp, result.tcp_covariance, cm.cell.tracker_frame,
-                                    int(data.stamps_ns[-1])):
-            self._pub_tcp.publish(msg)
+        publisher = self._tcp_publisher(len(tcp))
+        for msg in tcp:
+            publisher.publish(msg)
         self._publish_markers()
         self._publish_diagnostics(force=True)
         tcp_um = np.sqrt(np.trace(result.tcp_covariance, axis1=1, axis2=2)).max() * 1e6
@@ -295,22 +336,21 @@ class CalibrationNode(Node):
             f'{result.rms_m * 1e6:.1f} µm, p = {result.p_value:.3g}, TCP sqrt(trace) <= '
             f'{tcp_um:.1f} µm; written to {self.data_dir}')
 
-    def _diagnose(self) -> tuple[bool, str]:
+    async def _diagnose(self) -> tuple[bool, str]:
         """Model diagnosis of the accepted measurements (as ``kpi-calib diagnose``): residual
         report, adequacy and the most likely missing effect; report files and ~/diagnosis."""
         cm = self._model()
         data, _ = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame)
-        cd = diagnose_cell(cm, data)
-        report = write_report(self.data_dir / DIAGNOSIS_DIR, cd)
-        doc = diagnosis_to_dict(cd)
+        doc, text, verdict, report = await self._offload(jobs.diagnose_work, cm, data,
+                                                         self.data_dir)
         self._diagnosis = doc
-        self._pub_diagnosis.publish(String(data=json.dumps(doc)))
+        self._pub_diagnosis.publish(String(data=text))
         self._publish_diagnostics(force=True)
-        return True, f'{cd.diagnosis.verdict} Report: {report}'
+        return True, f'{verdict} Report: {report}'
 
-    def _reset(self) -> tuple[bool, str]:
+    async def _reset(self) -> tuple[bool, str]:
         """Start a new campaign: archive (never delete) the logs and results."""
-        count, archive = self.campaign.reset()
+        count, archive = await self._offload(self.campaign.reset)
         self._result, self._measured, self._result_error = None, None, ''
         self._identified_with, self._auto_pending, self._diagnosis = 0, False, None
         self._publish_markers()

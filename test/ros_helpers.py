@@ -1,0 +1,223 @@
+"""What every ROS test shares: a ROS domain of its own, a test client, the node process.
+
+ROS domains: parallel test runs on one machine (two checkouts, CI jobs) must not hear
+each other's nodes, or one run counts the other's measurements. A domain id is taken
+by an exclusive ``flock`` on ``<tmp>/kpi_calib_ros_domain_<id>.lock``, held for as long
+as the tests use the domain; the kernel drops the lock when the process ends, however
+it ends, so a crashed run never leaves an id taken. Discovery is limited to localhost
+on top of that.
+"""
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections import defaultdict
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+import rclpy
+import yaml
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+from trajectory_msgs.msg import JointTrajectory
+from visualization_msgs.msg import MarkerArray
+
+from kpi_calib_ros.io.cell import DEFAULT_CELL
+from kpi_calib_ros.ros import conversions as cv
+
+REPO = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent
+PARAMS_FILE = REPO / 'config' / 'kpi_calib.params.yaml'
+KR15_URDF = (DEFAULT_CELL.parent.parent / 'robots' / 'kr15_class.urdf').read_text()
+NS = '/kpi_calib_node'
+RATE = 20.0
+LATCHED = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+# 0 is every ROS installation's default domain; ids above 101 can collide with the
+# ephemeral ports Linux hands out (ROS 2 documentation, "The ROS_DOMAIN_ID").
+DOMAIN_IDS = range(1, 102)
+LOCK_DIR = Path(tempfile.gettempdir())
+
+
+@contextlib.contextmanager
+def exclusive_ros_domain(lock_dir: Path = LOCK_DIR, ids: range = DOMAIN_IDS) -> Iterator[int]:
+    """Hold a ROS domain id among ``ids`` that no other holder (this process or another)
+    has taken through this function.
+
+    Ids are tried from a process-dependent start (so concurrent runs rarely contend);
+    the first whose lock file can be locked exclusively without waiting is yielded and
+    stays locked until the ``with`` block ends.
+    """
+    start = os.getpid() % len(ids)
+    for i in range(len(ids)):
+        domain = ids[(start + i) % len(ids)]
+        handle = open(lock_dir / f'kpi_calib_ros_domain_{domain}.lock', 'a')
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:  # held by another run
+            handle.close()
+            continue
+        try:
+            yield domain
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+            handle.close()
+        return
+    raise RuntimeError(f'every ROS domain id in {ids} is held by another test run '
+                       f'(lock files kpi_calib_ros_domain_*.lock in {lock_dir})')
+
+
+@contextlib.contextmanager
+def ros_environment(domain: int) -> Iterator[None]:
+    """ROS_DOMAIN_ID and localhost-only discovery for this process and its children."""
+    keys = ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE')
+    saved = {k: os.environ.get(k) for k in keys}
+    os.environ.update(ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+    try:
+        yield
+    finally:
+        for key, value in saved.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
+
+
+class Client:
+    """Test-side ROS participant: private context, own executor, records what arrives."""
+
+    def __init__(self, domain: int) -> None:
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=domain)
+        self.node = rclpy.create_node('kpi_calib_test_client', context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.received: dict[str, list] = defaultdict(list)
+        for topic, kind in (('measurement_poses', JointTrajectory), ('calibration', String),
+                            ('tcp', PoseWithCovarianceStamped), ('markers', MarkerArray),
+                            ('robot_description_calibrated', String), ('diagnosis', String)):
+            self.node.create_subscription(kind, f'{NS}/{topic}', self._recorder(topic), LATCHED)
+        self.node.create_subscription(DiagnosticArray, '/diagnostics',
+                                      self._recorder('diagnostics'), 50)
+        self.description = self.node.create_publisher(String, '/robot_description', LATCHED)
+        self.joints = self.node.create_publisher(JointState, '/joint_states', 100)
+        self.points = self.node.create_publisher(PointStamped, '/laser_tracker/point', 100)
+        self.clients: dict[str, Any] = {}
+
+    def _recorder(self, topic: str) -> Callable[[Any], None]:
+        def record(msg: Any) -> None:
+            if topic == 'calibration':
+                msg = yaml.safe_load(msg.data)
+            elif topic == 'diagnostics':
+                if not msg.status or not msg.status[0].name.startswith('kpi_calib_node'):
+                    return
+                msg = (msg.status[0].level, cv.diagnostic_values(msg))
+            self.received[topic].append(msg)
+        return record
+
+    def spin_until(self, condition: Callable[[], Any], timeout: float, what: str) -> None:
+        deadline = time.monotonic() + timeout
+        while not condition():
+            assert time.monotonic() < deadline, f'timed out after {timeout} s waiting for {what}'
+            self.executor.spin_once(timeout_sec=0.05)
+
+    def diagnostics(self) -> dict[str, str]:
+        return self.received['diagnostics'][-1][1] if self.received['diagnostics'] else {}
+
+    def count(self, key: str) -> int:
+        return int(self.diagnostics().get(key, -1))
+
+    def call_async(self, service: str, timeout: float = 20.0):
+        if service not in self.clients:
+            self.clients[service] = self.node.create_client(Trigger, f'{NS}/{service}')
+        client = self.clients[service]
+        assert client.wait_for_service(timeout_sec=timeout), f'{NS}/{service} not available'
+        return client.call_async(Trigger.Request())
+
+    def call(self, service: str, timeout: float = 60.0) -> Trigger.Response:
+        future = self.call_async(service)
+        self.executor.spin_until_future_complete(future, timeout_sec=timeout)
+        assert future.done(), f'{NS}/{service} did not answer within {timeout} s'
+        return future.result()
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.shutdown(context=self.context)
+
+
+class NodeProcess:
+    """kpi_calib_node started as a cell controller would, output kept in a file."""
+
+    def __init__(self, data_dir: Path, log: Path, *overrides: str) -> None:
+        args = [str(BIN / 'kpi_calib_node'), '--ros-args', '--params-file', str(PARAMS_FILE),
+                '-p', f'data_dir:={data_dir}']
+        for override in overrides:
+            args += ['-p', override]
+        self.log = log
+        self._out = open(log, 'w')
+        self.process = subprocess.Popen(args, stdout=self._out, stderr=subprocess.STDOUT)
+
+    def output(self) -> str:
+        if not self._out.closed:
+            self._out.flush()
+        return self.log.read_text()
+
+    def stop(self, sig: int = signal.SIGINT, timeout: float = 20.0) -> int:
+        """Send ``sig`` and return the exit code (killed if it does not exit in time)."""
+        if self.process.poll() is None:
+            self.process.send_signal(sig)
+        try:
+            return self.process.wait(timeout=timeout)
+        finally:
+            if self.process.poll() is None:
+                self.process.kill()
+                self.process.wait()
+            self._out.close()
+
+
+class Spawner:
+    """Starts node and replay processes in ``log_dir``; :meth:`kill_all` ends what is
+    still running (a failed test must not leave a node behind)."""
+
+    def __init__(self, log_dir: Path) -> None:
+        self.log_dir = log_dir
+        self.started: list[NodeProcess | subprocess.Popen] = []
+
+    def __call__(self, data_dir: Path, log_name: str, *overrides: str) -> NodeProcess:
+        self.started.append(NodeProcess(data_dir, self.log_dir / log_name, *overrides))
+        return self.started[-1]
+
+    def replay(self, bag: Path, rate: float = RATE) -> subprocess.Popen:
+        self.started.append(subprocess.Popen(
+            [str(BIN / 'kpi-calib'), 'replay', str(bag), '--rate', str(rate)],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True))
+        return self.started[-1]
+
+    def kill_all(self) -> None:
+        for item in self.started:
+            process = item.process if isinstance(item, NodeProcess) else item
+            if process.poll() is None:
+                process.kill()
+                process.wait()
+
+
+def finish(replay: subprocess.Popen, client: Client, timeout: float = 60.0) -> str:
+    """Spin ``client`` until ``replay`` exits; its output (asserted rc 0)."""
+    client.spin_until(lambda: replay.poll() is not None, timeout, 'the replay to finish')
+    output = replay.stdout.read()
+    assert replay.returncode == 0, output
+    return output
