@@ -65,3 +65,27 @@ def ros_domain():
     from ros_helpers import exclusive_ros_domain, ros_environment  # rclpy only when needed
     with exclusive_ros_domain() as domain, ros_environment(domain):
         yield domain
+
+
+@pytest.fixture
+def client(ros_domain):
+    """A test-side ROS participant on the run's domain; the robot description published
+    latched, as robot_state_publisher does."""
+    from std_msgs.msg import String
+
+    from ros_helpers import KR15_URDF, Client
+    c = Client(ros_domain)
+    c.description.publish(String(data=KR15_URDF))
+    try:
+        yield c
+    finally:
+        c.close()
+
+
+@pytest.fixture
+def spawn(tmp_path):
+    """Start node and replay processes; whatever a test leaves running is killed."""
+    from ros_helpers import Spawner
+    spawner = Spawner(tmp_path)
+    yield spawner
+    spawner.kill_all()

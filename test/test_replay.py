@@ -11,7 +11,7 @@ from kpi_calib_ros.io.bag import read_bag
 from kpi_calib_ros.io.cell import DEFAULT_CELL
 from kpi_calib_ros.io.simulate import simulate_campaign
 from kpi_calib_ros.ros import conversions as cv
-from test_ros_node import client, finish, ros_domain, spawn  # noqa: F401  (fixtures)
+from ros_helpers import finish
 
 WALL_NS = 1_790_000_000_000_000_000   # a wall-clock stamp, far after any simulated recording
 

@@ -33,25 +33,7 @@ from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros.node import CalibrationNode
 from kpi_calib_ros.ros.parameters import PARAMETERS, settings_from_parameters
-from ros_helpers import KR15_URDF, Client, Spawner, finish
-
-
-@pytest.fixture
-def client(ros_domain):
-    c = Client(ros_domain)
-    c.description.publish(String(data=KR15_URDF))  # as robot_state_publisher does
-    try:
-        yield c
-    finally:
-        c.close()
-
-
-@pytest.fixture
-def spawn(tmp_path):
-    """Start node and replay processes; whatever a test leaves running is killed."""
-    spawner = Spawner(tmp_path)
-    yield spawner
-    spawner.kill_all()
+from ros_helpers import KR15_URDF, finish
 
 
 @pytest.mark.slow
