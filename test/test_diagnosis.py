@@ -100,6 +100,7 @@ def test_hidden_effect_is_top_candidate_and_adding_it_reaches_noise_floor(cell, 
     assert 'correlates' in top.explanation
 
 
+@pytest.mark.slow
 def test_clean_data_claims_no_effect_in_19_of_20_seeds(cell):
     robot, cm = cell
     claims, inadequate, smallest = [], 0, []

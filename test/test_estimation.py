@@ -95,6 +95,7 @@ def test_tcp_error_below_three_predicted_std(cell, campaign):
     assert mahalanobis < bound
 
 
+@pytest.mark.slow
 def test_monte_carlo_tcp_covariance_matches_prediction(cell, campaign):
     p_true, q, data, result = campaign
     rng = np.random.default_rng(99)
