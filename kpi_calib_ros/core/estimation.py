@@ -56,9 +56,10 @@ class Tolerances:
         Mahalanobis length of Δ against C_p = (FᵀF)⁻¹: 1e-9 is a step of 4.5e-5 std.
         ε_C = eps · ‖r‖ · ‖w∘η‖ / √m is the round-off of the evaluated cost (each r_j is the
         difference of two numbers of size |w_j η_j| and carries about eps times that; the
-        errors add in r·δr as a random walk; measured spread of C over p perturbed by 1e-15:
-        0.3-1.3 ε_C). A decrease the cost cannot resolve is convergence, never a line-search
-        failure.
+        errors add in r·δr as a random walk; measured on the default cell, 60 and 500 poses,
+        residuals at and 20x the noise, over 200 relative perturbations of p by 1e-15: std
+        0.2-0.3 ε_C, range 1.0-1.7 ε_C). A decrease the cost cannot resolve is convergence,
+        never a line-search failure.
     roundoff : float
         Safety factor on ε_C in the predicted-decrease test.
     ftol : float
@@ -100,7 +101,7 @@ STATUS_MESSAGES = {
     GTOL: 'converged: gradient test, max cosine(residual, Jacobian column) < gtol {gtol:g}',
     FTOL: 'converged: cost test, decrease < ftol {ftol:g} of the cost',
     XTOL: 'converged: step test, step < xtol {xtol:g} of parameter std',
-    PREDICTED_DECREASE: 'converged: predicted χ² decrease {pred:.3g} below '
+    PREDICTED_DECREASE: 'converged: predicted decrease of ½χ² {pred:.3g} below '
                         'max(pred_tol {pred_tol:g}, cost round-off)',
 }
 
