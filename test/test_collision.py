@@ -101,6 +101,7 @@ def _random_pairs(rng, n_each=60):
     return out
 
 
+@pytest.mark.slow
 def test_segment_distance_equals_brute_force_and_coal():
     rng = np.random.default_rng(7)
     sym = [ca.SX.sym(n, 3) for n in ('p1', 'q1', 'p2', 'q2')]

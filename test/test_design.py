@@ -157,6 +157,7 @@ def test_nlp_result_passes_the_independent_check(cell, context):
     assert nlp.loss < nlp.loss_start
 
 
+@pytest.mark.slow
 def test_predicted_tcp_covariance_matches_monte_carlo(cell, context):
     rng = np.random.default_rng(7)
     design = design_measurements(cell, 30, 'kpi', rng, SMALL, context=context)

@@ -100,6 +100,7 @@ def test_hidden_effect_is_top_candidate_and_adding_it_reaches_noise_floor(cell, 
     assert 'correlates' in top.explanation
 
 
+@pytest.mark.slow
 def test_clean_data_claims_no_effect_in_19_of_20_seeds(cell):
     robot, cm = cell
     claims, inadequate, smallest = [], 0, []
@@ -156,9 +157,38 @@ def test_residual_report_statistics_and_outliers():
     assert clean.rms_m == pytest.approx(result.rms_m) and clean.max_m >= clean.percentiles_m[99]
     assert report.outlier[17] and np.argmax(report.standardized) == 17
     assert not report.adequate
-    # The clean data of this seed hold one genuine 4σ noise draw (pose 37, |n|² = 25.6 σ²):
-    # the Bonferroni test flags it, and nothing else.
-    assert list(np.flatnonzero(clean.outlier)) == [37]
+
+
+def test_injected_outliers_are_flagged_and_false_flags_stay_within_bonferroni():
+    # Over 20 seeds, three blunders at known poses (0.16-0.24 mm, 8-12σ, random directions)
+    # among 60: every one is flagged after the refit. The other poses are clean; the
+    # Bonferroni test at α = 0.01 keeps the chance of any false flag per campaign below α,
+    # so over 20 campaigns the count is Poisson with mean ≤ 0.2: P(more than 2) = 0.1 %,
+    # on the clean fits and on the contaminated ones alike. (Blunders of 20-30σ drag the
+    # least-squares fit enough to push clean poses over the threshold too: a robust refit
+    # is the remedy for those, not this test.)
+    cm = _cell_model('kr15')
+    bad_poses = {5, 17, 42}
+    index = np.array(sorted(bad_poses))
+    false_clean, false_flags, missed = 0, 0, 0
+    for seed in range(300, 320):
+        data, result, *_ = campaign(cm, {}, seed=seed, n=60)
+        false_clean += int(residual_report(cm.model, data, result).outlier.sum())
+        rng = np.random.default_rng(seed)
+        direction = rng.normal(size=(3, 3))
+        direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+        eta = data.eta.copy()
+        eta[index] += direction * rng.uniform(8 * SIGMA, 12 * SIGMA, (3, 1))
+        bad = Measurements(q=data.q, eta=eta)
+        report = residual_report(cm.model, bad, identify(cm.model, bad, SIGMA, cm.q_work,
+                                                         max_iterations=25))
+        flagged = set(np.flatnonzero(report.outlier).tolist())
+        missed += len(bad_poses - flagged)
+        false_flags += len(flagged - bad_poses)
+    print(f'\n20 campaigns x 3 blunders: missed {missed}; false flags {false_flags} '
+          f'(clean fits: {false_clean}; Bonferroni expectation <= 0.2 each)')
+    assert missed == 0
+    assert false_clean <= 2 and false_flags <= 2
 
 
 def test_cross_validated_rms_is_near_the_noise_floor():

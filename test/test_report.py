@@ -29,6 +29,7 @@ def campaign(tmp_path_factory):
     return cell, bag
 
 
+@pytest.mark.slow
 def test_diagnose_writes_ranked_json_report_and_plots(campaign, tmp_path, capsys):
     cell, bag = campaign
     assert main(['diagnose', '--cell', str(cell), '--bag', str(bag), '--out', str(tmp_path)]) == 0

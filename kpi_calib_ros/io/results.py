@@ -62,8 +62,8 @@ def calibration_to_dict(result: CalibrationResult,
                     'std': [float(x) for x in np.sqrt(np.diag(cov))],
                     'trace_m2': float(np.trace(cov))})
     doc: dict[str, Any] = {
-        'status': {'converged': bool(result.converged), 'message': result.status,
-                   'iterations': int(result.iterations)},
+        'status': {'converged': bool(result.converged), 'code': int(result.status),
+                   'message': result.message, 'iterations': int(result.iterations)},
         'measurements': int(len(result.residuals)),
         'rms_m': float(result.rms_m),
         'max_residual_m': float(np.max(np.linalg.norm(result.residuals, axis=1))),

@@ -322,7 +322,7 @@ class CalibrationNode(Node):
             self._result_error = f'identification failed: {exc}'
             raise
         self._result, self._measured, self._identified_with = result, data.eta, len(data)
-        self._result_error = '' if result.converged else f'not converged: {result.status}'
+        self._result_error = '' if result.converged else result.message
         self._pub_calibration.publish(String(data=calibration))
         self._pub_urdf.publish(String(data=urdf))
         publisher = self._tcp_publisher(len(tcp))
@@ -332,7 +332,7 @@ class CalibrationNode(Node):
         self._publish_diagnostics(force=True)
         tcp_um = np.sqrt(np.trace(result.tcp_covariance, axis1=1, axis2=2)).max() * 1e6
         return result.converged, (
-            f'identified from {len(data)} measurements: {result.status}; rms '
+            f'identified from {len(data)} measurements: {result.message}; rms '
             f'{result.rms_m * 1e6:.1f} µm, p = {result.p_value:.3g}, TCP sqrt(trace) <= '
             f'{tcp_um:.1f} µm; written to {self.data_dir}')
 
