@@ -39,7 +39,7 @@ from kpi_calib_ros.core.streams import synthesize_streams
 from kpi_calib_ros.io.bag import read_bag, write_bag
 from kpi_calib_ros.io.measurement_log import MeasurementLog
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
-from kpi_calib_ros.io.simulate import simulate_campaign
+from kpi_calib_ros.app.simulate import simulate_campaign
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros.node import CalibrationNode
 from kpi_calib_ros.ros.parameters import PARAMETERS, settings_from_parameters

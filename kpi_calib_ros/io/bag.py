@@ -39,11 +39,10 @@ from mcap_ros2._dynamic import serialize_dynamic
 
 from kpi_calib_ros.core.errors import KpiCalibError
 from kpi_calib_ros.core.streams import JointSample, PointSample
+from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC  # noqa: F401  (re-exported)
 
 JOINT_STATE_TYPE = 'sensor_msgs/msg/JointState'
 POINT_STAMPED_TYPE = 'geometry_msgs/msg/PointStamped'
-DEFAULT_JOINT_TOPIC = '/joint_states'
-DEFAULT_POINT_TOPIC = '/laser_tracker/point'
 
 _MAGIC = b'\x89MCAP0\r\n'
 _LIBRARY = f'kpi_calib_ros; {LIBRARY_IDENTIFIER}'

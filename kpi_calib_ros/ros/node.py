@@ -41,25 +41,28 @@ from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import MarkerArray
 
+from kpi_calib_ros.app.design import design_cell_model
+from kpi_calib_ros.app.diagnose import diagnose_cell
+from kpi_calib_ros.app.identify import calibration_document, identify_cell
 from kpi_calib_ros.core.collision import Capsule
-from kpi_calib_ros.core.design import design_measurements
 from kpi_calib_ros.core.errors import ConfigError, DataError, KpiCalibError
 from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.pairing import Decision, Rejection
-from kpi_calib_ros.io.cell import CellModel, build_cell_model, cell_from_dict
+from kpi_calib_ros.core.residuals import is_adequate
+from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell, with_overrides
 from kpi_calib_ros.io.design_io import write_design
-from kpi_calib_ros.io.report import diagnose_cell, diagnosis_to_dict, write_report
+from kpi_calib_ros.io.names import (CALIBRATED_URDF_FILE, CALIBRATED_URDF_TOPIC,
+                                    CALIBRATION_TOPIC, DESIGN_FILE, DIAGNOSIS_DIR,
+                                    DIAGNOSIS_TOPIC, DIAGNOSTICS_TOPIC, MARKERS_TOPIC,
+                                    MEASUREMENT_POSES_TOPIC, TCP_TOPIC)
+from kpi_calib_ros.io.report import diagnosis_to_dict, write_report
 from kpi_calib_ros.io.results import write_atomic, write_calibration
 from kpi_calib_ros.io.urdf_export import calibrated_urdf
-from kpi_calib_ros.pipeline import calibration_document, identify_cell
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros.campaign import Campaign
-from kpi_calib_ros.ros.parameters import PARAMETERS, cell_document, settings_from_parameters
+from kpi_calib_ros.ros.parameters import PARAMETERS, settings_from_parameters, working_poses
 
 NODE_NAME = 'kpi_calib_node'
-CALIBRATED_URDF_FILE = 'robot_description_calibrated.urdf'
-DESIGN_FILE = 'design.yaml'
-DIAGNOSIS_DIR = 'diagnosis'
 
 
 def _latched(depth: int = 1) -> QoSProfile:
@@ -81,10 +84,8 @@ class CalibrationNode(Node):
                 description=description, read_only=read_only))
         self.settings = settings_from_parameters(self._parameter_values())
         self.add_on_set_parameters_callback(self._on_set_parameters)
-        try:
-            self._cell_doc = yaml.safe_load(Path(self.settings.cell_file).read_text()) or {}
-        except yaml.YAMLError as exc:
-            raise ConfigError('cell_file', f'not valid YAML: {exc}') from exc
+        # The cell once, validated; the URDF comes from the parameter or the topic.
+        self._cell = load_cell(self.settings.cell_file, urdf_xml='')
         self.data_dir = Path(self.settings.data_dir)
         self.campaign = Campaign(self.data_dir)
         self.get_logger().info(f'{self.campaign.restored} measurement(s) restored from '
@@ -109,14 +110,13 @@ class CalibrationNode(Node):
         # their worker threads in a reentrant group so a second call gets 'busy'.
         streams = MutuallyExclusiveCallbackGroup()
         services = ReentrantCallbackGroup()
-        self._pub_poses = self.create_publisher(JointTrajectory, '~/measurement_poses',
+        self._pub_poses = self.create_publisher(JointTrajectory, MEASUREMENT_POSES_TOPIC,
                                                 _latched())
-        self._pub_calibration = self.create_publisher(String, '~/calibration', _latched())
-        self._pub_urdf = self.create_publisher(String, '~/robot_description_calibrated',
-                                               _latched())
-        self._pub_markers = self.create_publisher(MarkerArray, '~/markers', _latched())
-        self._pub_diagnosis = self.create_publisher(String, '~/diagnosis', _latched())
-        self._pub_diagnostics = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self._pub_calibration = self.create_publisher(String, CALIBRATION_TOPIC, _latched())
+        self._pub_urdf = self.create_publisher(String, CALIBRATED_URDF_TOPIC, _latched())
+        self._pub_markers = self.create_publisher(MarkerArray, MARKERS_TOPIC, _latched())
+        self._pub_diagnosis = self.create_publisher(String, DIAGNOSIS_TOPIC, _latched())
+        self._pub_diagnostics = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
         self._pub_tcp = None  # latched with one message per working pose: made with the model
         self.create_subscription(JointState, self.settings.joint_states_topic,
                                  self._on_joint_state, _stream_qos(1000), callback_group=streams)
@@ -167,15 +167,14 @@ class CalibrationNode(Node):
                 self.get_logger().error(self._model_error)
 
     def _set_robot_description(self, urdf_xml: str) -> None:
-        cell = cell_from_dict(cell_document(self.settings, self._cell_doc),
-                              Path(self.settings.cell_file).parent, urdf_xml=urdf_xml)
-        cm = build_cell_model(cell)
+        cm = build_cell_model(with_overrides(self._cell, urdf_xml=urdf_xml,
+                                             working_poses=working_poses(self.settings)))
         scene = cm.collision_scene()
         self._capsules = scene.robot_capsules + [o for o in scene.obstacles
                                                  if isinstance(o, Capsule)]
         if self._pub_tcp is not None:
             self.destroy_publisher(self._pub_tcp)
-        self._pub_tcp = self.create_publisher(PoseWithCovarianceStamped, '~/tcp',
+        self._pub_tcp = self.create_publisher(PoseWithCovarianceStamped, TCP_TOPIC,
                                               _latched(len(cm.working_pose_names)))
         self._cm, self._urdf, self._model_error = cm, urdf_xml, ''
         self._report(self.campaign.set_chain(cm.joint_names, cm.cell.tracker_frame))
@@ -252,8 +251,7 @@ class CalibrationNode(Node):
 
     def _design(self) -> tuple[bool, str]:
         cm, s = self._model(), self.settings
-        design = design_measurements(cm, s.num_measurements, s.criterion,
-                                     np.random.default_rng(s.design_seed))
+        design = design_cell_model(cm, s.num_measurements, s.criterion, s.design_seed)
         path = write_design(self.data_dir / DESIGN_FILE, design)
         self._pub_poses.publish(cv.joint_trajectory_msg(design.joint_names,
                                                         design.configurations))
@@ -263,7 +261,7 @@ class CalibrationNode(Node):
         return design.verification.ok, (
             f'{len(design.configurations)} poses ({design.criterion}), predicted TCP '
             f'sqrt(trace) <= {tcp_um:.1f} µm; {design.status}; published on '
-            f'{self.resolve_topic_name("~/measurement_poses")}, written to {path}')
+            f'{self.resolve_topic_name(MEASUREMENT_POSES_TOPIC)}, written to {path}')
 
     def _identify(self) -> tuple[bool, str]:
         """Identify from every accepted measurement (as ``kpi-calib identify`` does);
@@ -349,7 +347,7 @@ class CalibrationNode(Node):
         error = self._model_error or self._result_error
         if error or values['rejected.not_stored']:
             return 'ERROR', error or 'accepted measurements could not be stored', values
-        if result is not None and result.p_value <= 0.01:
+        if result is not None and not is_adequate(result.p_value):
             return 'WARN', f'model inadequate (p = {result.p_value:.2g})', values
         if rejected:
             return 'WARN', f'{n} accepted, {rejected} rejected', values

@@ -9,7 +9,6 @@ the CLI works without ROS.
 """
 from __future__ import annotations
 
-import argparse
 import time
 from pathlib import Path
 
@@ -85,15 +84,15 @@ def replay(node: Node, path: str | Path, rate: float = 1.0,
     return len(joints), len(points), time.monotonic() - start
 
 
-def run_replay_command(args: argparse.Namespace) -> int:
+def run_replay(bag: str | Path, rate: float = 1.0, joint_topic: str = DEFAULT_JOINT_TOPIC,
+               point_topic: str = DEFAULT_POINT_TOPIC, wait_s: float = 10.0) -> int:
     """The ``kpi-calib replay`` subcommand."""
     rclpy.init()
     node = rclpy.create_node('kpi_calib_replay')
     try:
-        n_joints, n_points, seconds = replay(node, args.bag, args.rate, args.joint_topic,
-                                             args.point_topic, args.wait_for_subscribers)
+        n_joints, n_points, seconds = replay(node, bag, rate, joint_topic, point_topic, wait_s)
         print(f'replayed {n_joints} joint states and {n_points} tracker points from '
-              f'{args.bag} in {seconds:.1f} s (rate {args.rate:g})')
+              f'{bag} in {seconds:.1f} s (rate {rate:g})')
     except KeyboardInterrupt:
         return 130
     finally:
@@ -102,4 +101,4 @@ def run_replay_command(args: argparse.Namespace) -> int:
     return 0
 
 
-__all__ = ['replay', 'run_replay_command', 'wait_for_subscribers']
+__all__ = ['replay', 'run_replay', 'wait_for_subscribers']
