@@ -42,8 +42,9 @@ def main(argv: list[str] | None = None) -> int:
     dia.add_argument('--effects', default='', metavar='EFFECT:JOINT,...',
                      help='effects already in the model, as for identify')
     dia.add_argument('--folds', type=int, default=5, help='cross-validation folds over poses')
-    dia.add_argument('--alpha', type=float, default=0.01,
-                     help='family-wise false-alarm level of the effect tests')
+    dia.add_argument('--alpha', type=float, default=None,
+                     help='family-wise false-alarm level of the effect tests (default: the '
+                     'adequacy level, 0.01)')
 
     des = sub.add_parser('design', help='optimal measurement configurations')
     des.add_argument('--cell', required=True)
@@ -98,8 +99,10 @@ def _replay(args: argparse.Namespace) -> int:
 
 def _diagnose(args: argparse.Namespace) -> int:
     from kpi_calib_ros.app.diagnose import run_diagnose
+    from kpi_calib_ros.core.residuals import ADEQUACY_ALPHA
+    alpha = ADEQUACY_ALPHA if args.alpha is None else args.alpha
     return run_diagnose(args.cell, args.bag, args.out, effects=args.effects, folds=args.folds,
-                        alpha=args.alpha)
+                        alpha=alpha)
 
 
 def _demo(args: argparse.Namespace) -> int:

@@ -118,3 +118,50 @@ def test_the_checker_sees_upward_and_relative_imports(tmp_path, monkeypatch):
     names = [n for _, n in _imports(fake)]
     assert names == ['kpi_calib_ros.app.identify', 'kpi_calib_ros.ros']
     assert all(_layer(n) > _layer(_module_name(fake)) for n in names)
+
+
+def _module_graph() -> dict[str, set[str]]:
+    """Module -> the package modules it imports (a sub-module import names its module)."""
+    modules = {_module_name(p): p for p in _sources()}
+    graph = {}
+    for name, path in modules.items():
+        targets = set()
+        for _, imported in _imports(path):
+            while imported and imported not in modules:
+                imported = imported.rpartition('.')[0]
+            if imported and imported != name and imported != 'kpi_calib_ros':
+                targets.add(imported)
+        graph[name] = targets
+    return graph
+
+
+def _cycle(graph: dict[str, set[str]]) -> list[str]:
+    state: dict[str, int] = {}
+    stack: list[str] = []
+
+    def visit(node: str) -> list[str]:
+        state[node] = 1
+        stack.append(node)
+        for nxt in sorted(graph.get(node, ())):
+            if state.get(nxt) == 1:
+                return stack[stack.index(nxt):] + [nxt]
+            if nxt not in state and (found := visit(nxt)):
+                return found
+        stack.pop()
+        state[node] = 2
+        return []
+
+    for node in sorted(graph):
+        if node not in state and (found := visit(node)):
+            return found
+    return []
+
+
+def test_no_import_cycles():
+    cycle = _cycle(_module_graph())
+    assert not cycle, f'import cycle: {" -> ".join(cycle)}'
+
+
+def test_the_cycle_finder_finds_a_cycle():
+    assert _cycle({'a': {'b'}, 'b': {'c'}, 'c': {'a'}}) == ['a', 'b', 'c', 'a']
+    assert _cycle({'a': {'b'}, 'b': set(), 'c': {'a', 'b'}}) == []
