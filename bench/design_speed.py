@@ -27,7 +27,7 @@ N = 60
 
 
 def main() -> int:
-    cm = build_cell_model(load_cell(DEFAULT_CELL))
+    cm = build_cell_model(load_cell(DEFAULT_CELL)).design_cell()
     rows = []
     for seed in SEEDS:
         rng = np.random.default_rng(seed)

@@ -129,7 +129,7 @@ def monte_carlo(cell_model, designs: dict, runs: int, rng) -> dict:
 
 def run_robot(geometry, args) -> dict:
     rng = np.random.default_rng(zlib.crc32(geometry.name.encode()))
-    cell_model = study_cell(geometry)
+    cell_model = study_cell(geometry).design_cell()
     out = {'name': geometry.name, 'a2': geometry.a2, 'd4': geometry.d4, 'variants': {}}
     for variant, collision in (('collision', True), ('free', False)):
         settings = DesignSettings(candidates=args.candidates, collision=collision,

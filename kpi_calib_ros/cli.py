@@ -1,8 +1,8 @@
 """kpi-calib: laser-tracker calibration of industrial robots with KPI-optimal designs.
 
 Subcommands: simulate a cell into an MCAP bag, identify a bag, design optimal
-measurement poses, diagnose a calibration, replay a bag onto ROS topics, and a
-demo on the built-in simulated cell. Results go to files; a summary to stdout.
+measurement poses, diagnose a calibration, replay a bag onto ROS topics, a
+demo on the built-in simulated cell, and regenerate the built-in robot URDFs. Results go to files; a summary to stdout.
 """
 from __future__ import annotations
 
@@ -10,10 +10,8 @@ import argparse
 import sys
 from pathlib import Path
 
-import numpy as np
-import yaml
-
 from kpi_calib_ros.core.errors import KpiCalibError
+from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -44,8 +42,9 @@ def main(argv: list[str] | None = None) -> int:
     dia.add_argument('--effects', default='', metavar='EFFECT:JOINT,...',
                      help='effects already in the model, as for identify')
     dia.add_argument('--folds', type=int, default=5, help='cross-validation folds over poses')
-    dia.add_argument('--alpha', type=float, default=0.01,
-                     help='family-wise false-alarm level of the effect tests')
+    dia.add_argument('--alpha', type=float, default=None,
+                     help='family-wise false-alarm level of the effect tests (default: the '
+                     'adequacy level, 0.01)')
 
     des = sub.add_parser('design', help='optimal measurement configurations')
     des.add_argument('--cell', required=True)
@@ -57,14 +56,17 @@ def main(argv: list[str] | None = None) -> int:
     rep = sub.add_parser('replay', help='publish a bag onto the live ROS topics with its timing')
     rep.add_argument('bag', help='MCAP bag with joint states and tracker points')
     rep.add_argument('--rate', type=float, default=1.0, help='playback speed factor')
-    rep.add_argument('--joint-topic', default='/joint_states')
-    rep.add_argument('--point-topic', default='/laser_tracker/point')
+    rep.add_argument('--joint-topic', default=DEFAULT_JOINT_TOPIC)
+    rep.add_argument('--point-topic', default=DEFAULT_POINT_TOPIC)
     rep.add_argument('--wait-for-subscribers', type=float, default=10.0, metavar='SEC',
                      help='wait this long for a subscriber on both topics before playing')
 
     demo = sub.add_parser('demo', help='simulate, identify and report on the built-in cell')
     demo.add_argument('--out', default='demo_out')
     demo.add_argument('--seed', type=int, default=7)
+
+    rob = sub.add_parser('robots', help='regenerate the URDFs of the built-in robot library')
+    rob.add_argument('--out', help='target folder (default: the package data folder)')
 
     args = parser.parse_args(argv)
     try:
@@ -75,62 +77,48 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _simulate(args: argparse.Namespace) -> int:
-    from kpi_calib_ros.io.simulate import simulate_campaign
-    poses = None
-    if args.poses:
-        doc = yaml.safe_load(Path(args.poses).read_text())
-        poses = (doc['joint_names'], np.asarray(doc['configurations'], float))
-    summary = simulate_campaign(args.cell, args.n, args.out, args.seed, poses=poses)
-    print(summary)
-    return 0
+    from kpi_calib_ros.app.simulate import run_simulate
+    return run_simulate(args.cell, args.n, args.out, args.seed, poses_path=args.poses)
 
 
 def _identify(args: argparse.Namespace) -> int:
-    from kpi_calib_ros.core.effects import split_specs
-    from kpi_calib_ros.io.cell import build_cell_model, load_cell
-    from kpi_calib_ros.io.results import summary_text, write_calibration
-    from kpi_calib_ros.pipeline import (calibration_document, identify_cell,
-                                        measurements_from_bag)
-    cm = build_cell_model(load_cell(args.cell), effects=tuple(split_specs(args.effects)))
-    data, pairing = measurements_from_bag(cm, args.bag)
-    for reason, count in sorted(pairing.rejections.items()):
-        print(f'rejected {count} sample(s): {reason}', file=sys.stderr)
-    result = identify_cell(cm, data)
-    doc = calibration_document(cm, result, pairing)
-    comparison = ''
-    if cm.model.effects:
-        from kpi_calib_ros.io.report import add_effect_comparison
-        comparison = add_effect_comparison(doc, cm, data, result)
-    path = write_calibration(args.out, doc)
-    print(summary_text(doc))
-    if comparison:
-        print(comparison)
-    print(f'written: {path}')
-    return 0 if result.converged else 1
+    from kpi_calib_ros.app.identify import run_identify
+    return run_identify(args.cell, args.bag, args.out, effects=args.effects)
 
 
 def _design(args: argparse.Namespace) -> int:
-    from kpi_calib_ros.io.design_io import run_design_command
-    return run_design_command(args)
+    from kpi_calib_ros.app.design import run_design
+    return run_design(args.cell, args.n, args.criterion, args.out, seed=args.seed)
 
 
 def _replay(args: argparse.Namespace) -> int:
-    from kpi_calib_ros.ros.replay import run_replay_command  # ROS only when replaying
-    return run_replay_command(args)
+    from kpi_calib_ros.ros.replay import run_replay  # ROS only when replaying
+    return run_replay(args.bag, args.rate, args.joint_topic, args.point_topic,
+                      args.wait_for_subscribers)
 
 
 def _diagnose(args: argparse.Namespace) -> int:
-    from kpi_calib_ros.io.report import run_diagnose_command
-    return run_diagnose_command(args)
+    from kpi_calib_ros.app.diagnose import run_diagnose
+    from kpi_calib_ros.core.residuals import ADEQUACY_ALPHA
+    alpha = ADEQUACY_ALPHA if args.alpha is None else args.alpha
+    return run_diagnose(args.cell, args.bag, args.out, effects=args.effects, folds=args.folds,
+                        alpha=alpha)
 
 
 def _demo(args: argparse.Namespace) -> int:
-    from kpi_calib_ros.io.demo import run_demo
+    from kpi_calib_ros.app.demo import run_demo
     return run_demo(args.out, args.seed)
 
 
+def _robots(args: argparse.Namespace) -> int:
+    from kpi_calib_ros.core.robot_library import DATA_DIR, write_shipped
+    for path in write_shipped(Path(args.out) if args.out else DATA_DIR):
+        print(path)
+    return 0
+
+
 _COMMANDS = {'simulate': _simulate, 'identify': _identify, 'design': _design,
-             'diagnose': _diagnose, 'replay': _replay, 'demo': _demo}
+             'diagnose': _diagnose, 'replay': _replay, 'demo': _demo, 'robots': _robots}
 
 if __name__ == '__main__':
     sys.exit(main())

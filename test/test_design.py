@@ -9,7 +9,7 @@ import yaml
 
 from kpi_calib_ros.core.covariance import kkt_covariance, kpi_jacobians, parameter_covariance
 from kpi_calib_ros.core.design import (DesignSettings, build_problem, design_context,
-                                       design_measurements, design_settings)
+                                       design_measurements)
 from kpi_calib_ros.core.design_constraints import (feasibility_function, flag_pairs,
                                                    verify_design)
 from kpi_calib_ros.core.design_exchange import (ConditionLoss, LogDetLoss, TraceLoss, exchange,
@@ -19,14 +19,15 @@ from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation import identify
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.simulation import sampling_bounds
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict, load_cell
+from kpi_calib_ros.io.cell import (DEFAULT_CELL, build_cell_model, cell_from_dict,
+                                  design_settings, load_cell)
 
 SMALL = DesignSettings(candidates=600, nlp=False)
 
 
 @pytest.fixture(scope='module')
 def cell():
-    return build_cell_model(load_cell(DEFAULT_CELL))
+    return build_cell_model(load_cell(DEFAULT_CELL)).design_cell()
 
 
 @pytest.fixture(scope='module')
@@ -56,7 +57,7 @@ def test_criteria_equal_the_covariance_module(cell, context):
     q = context.candidates.configurations[:40]
     rows = problem.rows(cell.model, q)
     _, jac = cell.model.jacobian(problem.p, q)
-    f1_p = (jac[:, :, problem.index] / cell.cell.sigma[None, :, None]).reshape(-1, problem.k)
+    f1_p = (jac[:, :, problem.index] / cell.sigma[None, :, None]).reshape(-1, problem.k)
     tcp_p = problem.kpi_jacobian.reshape(-1, problem.k)
     c_v = kkt_covariance(*kpi_jacobians(f1_p, tcp_p))
     c_s = c_v[problem.k:, problem.k:]
@@ -81,7 +82,7 @@ def test_kpi_weights_working_poses(cell, context):
     second = {'name': 'side', 'joints': {'joint_1': 0.6, 'joint_2': 0.2, 'joint_3': -0.1,
                                          'joint_4': 0.3, 'joint_5': 0.7, 'joint_6': 0.0}}
     raw['working_poses'].append(second)
-    two = build_cell_model(cell_from_dict(raw, DEFAULT_CELL.parent))
+    two = build_cell_model(cell_from_dict(raw, DEFAULT_CELL.parent)).design_cell()
     q = context.candidates.configurations
     problem = build_problem(two, q[:300], {'car_roof_edge': 3.0, 'side': 1.0})
     rows = problem.rows(two.model, q[:40])
@@ -125,9 +126,9 @@ def test_verifier_catches_collision_incidence_and_limits(cell, context):
     lo, hi = sampling_bounds(cell.model)
     q = rng.uniform(lo, hi, size=(4000, 6))
     values = np.array(feasibility_function(cell, context.scene).map(len(q))(q.T)).T
-    measurable = values[:, 0] >= np.cos(cell.cell.max_incidence)
+    measurable = values[:, 0] >= np.cos(cell.max_incidence)
     colliding = q[measurable & (values[:, 1:].min(axis=1) < -0.01)][0]
-    blind = q[values[:, 0] < np.cos(cell.cell.max_incidence) - 0.1][0]
+    blind = q[values[:, 0] < np.cos(cell.max_incidence) - 0.1][0]
     good = context.candidates.configurations[0]
     beyond = good.copy()
     beyond[1] = hi[1] + 0.1
@@ -161,7 +162,7 @@ def test_nlp_result_passes_the_independent_check(cell, context):
 def test_predicted_tcp_covariance_matches_monte_carlo(cell, context):
     rng = np.random.default_rng(7)
     design = design_measurements(cell, 30, 'kpi', rng, SMALL, context=context)
-    model, sigma = cell.model, cell.cell.sigma
+    model, sigma = cell.model, cell.sigma
     p = model.params.nominal
     clean = model.predict(p, design.configurations)
     truth = model.predict(p, cell.q_work)[0]
@@ -180,8 +181,8 @@ def test_pairs_violated_almost_always_are_flagged(cell):
     raw = yaml.safe_load(DEFAULT_CELL.read_text())
     raw['collision']['ignore_pairs'] = [p for p in raw['collision']['ignore_pairs']
                                         if 'link_4' not in p]
-    bare = build_cell_model(cell_from_dict(raw, DEFAULT_CELL.parent))
-    flagged = flag_pairs(bare, bare.collision_scene(), np.random.default_rng(8), samples=200)
+    bare = build_cell_model(cell_from_dict(raw, DEFAULT_CELL.parent)).design_cell()
+    flagged = flag_pairs(bare, bare.scene, np.random.default_rng(8), samples=200)
     print(flagged)
     assert set(flagged) == {'link_2~link_4', 'link_4~link_6'}
     with pytest.raises(ConfigError, match='link_2~link_4'):

@@ -28,6 +28,8 @@ ROSDEP_KEYS = {
     'mcap_ros2': 'python3-mcap-ros2-support-pip',
     'pytest': 'python3-pytest',
     'hypothesis': 'python3-hypothesis',
+    'lz4': 'python3-lz4',
+    'zstandard': 'python3-zstandard',
 }
 
 

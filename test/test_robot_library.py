@@ -63,8 +63,9 @@ def test_shipped_urdf_path_rejects_unknown_name():
         rl.shipped_urdf_path('kr1000_titan')
 
 
-def test_write_entry_regenerates_into_directory(tmp_path):
-    assert rl.main(['--write', '--out', str(tmp_path)]) == 0
+def test_robots_command_regenerates_into_directory(tmp_path):
+    from kpi_calib_ros.cli import main
+    assert main(['robots', '--out', str(tmp_path)]) == 0
     for name in rl.SHIPPED_ROBOTS:
         assert (tmp_path / f'{name}.urdf').read_text() == rl.shipped_urdf_path(name).read_text()
 

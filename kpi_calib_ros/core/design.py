@@ -16,12 +16,13 @@ constraint code; an NLP result that fails that check is never returned.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field, replace
-from typing import Any, Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Callable, Mapping
 
 import numpy as np
 
 from kpi_calib_ros.core.collision import CollisionScene
+from kpi_calib_ros.core.design_cell import DesignCell
 from kpi_calib_ros.core.design_constraints import (CandidateSet, DesignVerification, flag_pairs,
                                                    generate_candidates, scene_without,
                                                    verify_design)
@@ -31,15 +32,16 @@ from kpi_calib_ros.core.design_nlp import solve_design_nlp
 from kpi_calib_ros.core.errors import ConfigError
 
 DESIGN_CRITERIA = CRITERIA + ('random',)
-__all__ = ['CRITERIA', 'DESIGN_CRITERIA', 'DesignContext', 'DesignProblem', 'DesignResult',
-           'DesignSettings', 'build_problem', 'design_context', 'design_measurements',
-           'design_settings']
+__all__ = ['CRITERIA', 'DESIGN_CRITERIA', 'DesignCell', 'DesignContext', 'DesignProblem',
+           'DesignResult', 'DesignSettings', 'build_problem', 'design_context',
+           'design_measurements']
 
 
 # ------------------------------------------------------------------------ settings
 @dataclass(frozen=True)
 class DesignSettings:
-    """Options of :func:`design_measurements`; the cell file's ``design:`` section.
+    """Options of :func:`design_measurements`; the cell file's ``design:`` section
+    (validated by :func:`kpi_calib_ros.io.cell.design_settings`).
 
     Attributes
     ----------
@@ -75,40 +77,6 @@ class DesignSettings:
     max_iterations: int = 300
     ignore_flagged: bool = False
     flag_threshold: float = 0.98
-
-
-def design_settings(raw: Mapping[str, Any] | None) -> DesignSettings:
-    """Validate the ``design:`` mapping of a cell file; errors name the key."""
-    raw = dict(raw or {})
-    defaults = DesignSettings()
-    known = set(defaults.__dataclass_fields__)
-    for key in raw:
-        if key not in known:
-            raise ConfigError(f'design.{key}', f'unknown key; allowed: {sorted(known)}')
-    values: dict[str, Any] = {}
-    for key, value in raw.items():
-        default = getattr(defaults, key)
-        path = f'design.{key}'
-        if key == 'weights':
-            if not isinstance(value, Mapping) or not all(
-                    isinstance(v, (int, float)) and v >= 0 for v in value.values()):
-                raise ConfigError(path, 'must map working pose names to weights >= 0')
-            values[key] = {str(k): float(v) for k, v in value.items()}
-        elif isinstance(default, bool):
-            if not isinstance(value, bool):
-                raise ConfigError(path, f'must be true or false, got {value!r}')
-            values[key] = value
-        elif isinstance(default, int):
-            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-                raise ConfigError(path, f'must be a positive integer, got {value!r}')
-            values[key] = value
-        else:
-            if not isinstance(value, (int, float)) or isinstance(value, bool) or value < 0:
-                raise ConfigError(path, f'must be a number >= 0, got {value!r}')
-            values[key] = float(value)
-    if values.get('flag_threshold', 0.5) > 1:
-        raise ConfigError('design.flag_threshold', 'must be a fraction in [0, 1]')
-    return replace(defaults, **values)
 
 
 # ------------------------------------------------------------------------- result
@@ -183,7 +151,7 @@ class DesignContext:
     seconds: float
 
 
-def design_context(cell_model, rng: np.random.Generator,
+def design_context(cell: DesignCell, rng: np.random.Generator,
                    settings: DesignSettings | None = None) -> DesignContext:
     """Collision scene, feasible candidates and the linearised problem of a cell.
 
@@ -194,9 +162,9 @@ def design_context(cell_model, rng: np.random.Generator,
         ``ignore_flagged`` is off (the message names them and the fix).
     """
     start = time.perf_counter()
-    settings = settings or design_settings(cell_model.cell.raw.get('design'))
-    full = cell_model.collision_scene()
-    flagged = flag_pairs(cell_model, full, rng, threshold=settings.flag_threshold)
+    settings = settings or DesignSettings()
+    full = cell.scene
+    flagged = flag_pairs(cell, full, rng, threshold=settings.flag_threshold)
     if flagged and not settings.ignore_flagged:
         text = ', '.join(f'{k} ({100 * v:.0f} %)' for k, v in flagged.items())
         raise ConfigError('collision.ignore_pairs', f'pairs in collision in nearly every '
@@ -205,18 +173,18 @@ def design_context(cell_model, rng: np.random.Generator,
                           'design.ignore_flagged: true)')
     check = scene_without(full, tuple(flagged)) if flagged else full
     scene = check if settings.collision else None
-    cand = generate_candidates(cell_model, scene, settings.candidates, rng,
+    cand = generate_candidates(cell, scene, settings.candidates, rng,
                                clearance=settings.clearance if scene is not None else 0.0,
                                incidence_clearance=settings.incidence_clearance,
                                flag_threshold=settings.flag_threshold)
-    problem = build_problem(cell_model, cand.configurations[:min(len(cand.configurations), 600)],
+    problem = build_problem(cell, cand.configurations[:min(len(cand.configurations), 600)],
                             settings.weights)
-    rows = problem.rows(cell_model.model, cand.configurations)
+    rows = problem.rows(cell.model, cand.configurations)
     return DesignContext(scene, check, cand, problem, rows, flagged,
                          time.perf_counter() - start)
 
 
-def design_measurements(cell_model, n: int, criterion: str, rng: np.random.Generator,
+def design_measurements(cell: DesignCell, n: int, criterion: str, rng: np.random.Generator,
                         settings: DesignSettings | None = None,
                         context: DesignContext | None = None,
                         progress: Callable[[str], None] | None = None) -> DesignResult:
@@ -224,8 +192,8 @@ def design_measurements(cell_model, n: int, criterion: str, rng: np.random.Gener
 
     Parameters
     ----------
-    cell_model : CellModel
-        From :func:`kpi_calib_ros.io.cell.build_cell_model`.
+    cell : DesignCell
+        The cell's design problem, e.g. ``CellModel.design_cell()``.
     n : int
         Number of configurations N.
     criterion : {'kpi', 'A', 'D', 'O1', 'cond', 'random'}
@@ -233,7 +201,8 @@ def design_measurements(cell_model, n: int, criterion: str, rng: np.random.Gener
         every constraint.
     rng : numpy.random.Generator
     settings : DesignSettings, optional
-        Default: the cell's ``design:`` section.
+        Default: :class:`DesignSettings` defaults (a cell file's ``design:``
+        section is ``Cell.design``).
     context : DesignContext, optional
         Reuse candidates and problem across criteria (same cell and settings).
     progress : callable(str), optional
@@ -247,10 +216,10 @@ def design_measurements(cell_model, n: int, criterion: str, rng: np.random.Gener
     """
     if criterion not in DESIGN_CRITERIA:
         raise ValueError(f'criterion must be one of {DESIGN_CRITERIA}, got {criterion!r}')
-    settings = settings or design_settings(cell_model.cell.raw.get('design'))
+    settings = settings or DesignSettings()
     say = progress or (lambda _msg: None)
     total = time.perf_counter()
-    ctx = context or design_context(cell_model, rng, settings)
+    ctx = context or design_context(cell, rng, settings)
     cand_q, rows, problem = ctx.candidates.configurations, ctx.rows, ctx.problem
     if n > len(cand_q):
         raise ValueError(f'n = {n} exceeds the {len(cand_q)} candidates; raise design.candidates')
@@ -261,7 +230,7 @@ def design_measurements(cell_model, n: int, criterion: str, rng: np.random.Gener
     status = []
     if criterion == 'random':
         q = cand_q[rng.choice(len(cand_q), size=n, replace=False)]
-        exchange_value = problem.criteria(problem.rows(cell_model.model, q))['kpi']
+        exchange_value = problem.criteria(problem.rows(cell.model, q))['kpi']
     else:
         loss = problem.loss(criterion)
         best = None
@@ -275,14 +244,14 @@ def design_measurements(cell_model, n: int, criterion: str, rng: np.random.Gener
     timings['exchange'] = time.perf_counter() - t
     t = time.perf_counter()
     if settings.nlp and criterion in ('kpi', 'A', 'D', 'O1'):
-        nlp = solve_design_nlp(problem, cell_model, ctx.scene, q, criterion,
+        nlp = solve_design_nlp(problem, cell, ctx.scene, q, criterion,
                                clearance=settings.clearance,
                                incidence_clearance=settings.incidence_clearance,
                                max_iterations=settings.max_iterations, progress=progress)
         status.append(f'ipopt: {nlp.status} after {nlp.iterations} iterations, loss '
                       f'{nlp.loss_start:.4g} -> {nlp.loss:.4g}')
         if nlp.loss < nlp.loss_start:
-            trial = verify_design(cell_model, ctx.scene, nlp.configurations)
+            trial = verify_design(cell, ctx.scene, nlp.configurations)
             if trial.ok:
                 q = nlp.configurations
             else:
@@ -293,22 +262,22 @@ def design_measurements(cell_model, n: int, criterion: str, rng: np.random.Gener
             status.append('the NLP did not improve on the exchange design; returned that')
     timings['nlp'] = time.perf_counter() - t
     t = time.perf_counter()
-    verification = verify_design(cell_model, ctx.check_scene, q)
+    verification = verify_design(cell, ctx.check_scene, q)
     timings['verify'] = time.perf_counter() - t
     if not verification.ok:
         where = 'without collision constraints: ' if ctx.scene is None else ''
         status.append(f'{where}{len(verification.violations)} constraint violations '
                       f'(see verification)')
-    final_rows = problem.rows(cell_model.model, q)
+    final_rows = problem.rows(cell.model, q)
     values = problem.criteria(final_rows)
     tcp = problem.tcp_covariance(final_rows)
     timings['total'] = time.perf_counter() - total + timings['candidates']
     return DesignResult(
-        configurations=q, joint_names=tuple(cell_model.robot.joint_names),
+        configurations=q, joint_names=tuple(cell.robot.joint_names),
         criterion=criterion, objective=values['kpi' if criterion == 'random' else criterion],
         criteria=values, tcp_covariance=tcp,
         tcp_std=np.sqrt(np.diagonal(tcp, axis1=1, axis2=2)),
-        working_pose_names=tuple(cell_model.working_pose_names),
+        working_pose_names=tuple(cell.working_pose_names),
         parameter_names=problem.parameter_names, min_margin=verification.min_margin,
         incidence_deg=verification.incidence_deg,
         constraint_count=verification.constraint_count, verification=verification,

@@ -16,33 +16,30 @@ from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
-import pinocchio as pin
 
 from kpi_calib_ros.core.collision import CollisionScene
 from kpi_calib_ros.core.collision_check import verify_configuration
+from kpi_calib_ros.core.design_cell import DesignCell
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.core.simulation import sampling_bounds
+from kpi_calib_ros.core.kinematics import reflector_point
+from kpi_calib_ros.core.simulation import measurable_batch, sampling_bounds
 
-def feasibility_function(cell_model, scene: CollisionScene | None) -> ca.Function:
+
+def feasibility_function(cell: DesignCell, scene: CollisionScene | None) -> ca.Function:
     """CasADi ``q (n) -> [cos β; margins (count)]`` at the nominal parameters.
 
     The incidence cosine (eq. 4) comes first, then the scene's capsule margins
     (m) in :attr:`CollisionScene.labels` order. Used for the candidate filter
     and as the NLP constraints, so both see exactly the same expressions.
     """
-    model = cell_model.model
-    q = ca.SX.sym('q', cell_model.robot.n_joints)
+    model = cell.model
+    q = ca.SX.sym('q', cell.robot.n_joints)
     p = ca.DM(model.params.nominal)
     out = [model.incidence_cos_expression(p, q)]
     if scene is not None and scene.count:
-        chain = model.chain
-        transforms = chain.link_transforms(p, q)
-        links = cell_model.robot.link_names
-        poses = {links[0]: ca.DM.eye(4)}
-        poses.update(dict(zip(links[1:], transforms)))
-        tip = chain.tip_transform(p, q)
-        reflector = tip[0:3, 0:3] @ chain.reflector(p) + tip[0:3, 3]
-        out.append(scene.margins(poses, ca.DM(cell_model.tracker_in_base[:3, 3]), reflector))
+        poses, tip = model.chain.link_poses(p, q)
+        reflector = reflector_point(tip, model.chain.reflector(p))
+        out.append(scene.margins(poses, ca.DM(cell.tracker_in_base[:3, 3]), reflector))
     return ca.Function('feasibility', [q], [ca.vertcat(*out)])
 
 
@@ -62,10 +59,10 @@ class CandidateSet:
     flagged: tuple[str, ...]
 
 
-def generate_candidates(cell_model, scene: CollisionScene | None, count: int,
+def generate_candidates(cell: DesignCell, scene: CollisionScene | None, count: int,
                         rng: np.random.Generator, clearance: float = 0.0,
-                        incidence_clearance: float = 0.0, flag_threshold: float = 0.98, max_draws: int = 20_000_000,
-                        batch: int = 20_000) -> CandidateSet:
+                        incidence_clearance: float = 0.0, flag_threshold: float = 0.98,
+                        max_draws: int = 20_000_000, batch: int = 20_000) -> CandidateSet:
     """``count`` configurations uniform in the joint ranges that satisfy all constraints.
 
     Raises
@@ -73,17 +70,15 @@ def generate_candidates(cell_model, scene: CollisionScene | None, count: int,
     ConfigError
         Too few feasible draws; names the pairs that are violated nearly always.
     """
-    model = cell_model.model
-    lower, upper = sampling_bounds(model)
-    cos_max = np.cos(cell_model.cell.max_incidence - incidence_clearance)
-    fun = feasibility_function(cell_model, scene)
+    model = cell.model
+    cos_max = np.cos(cell.max_incidence - incidence_clearance)
+    fun = feasibility_function(cell, scene)
     labels = scene.labels if scene is not None else []
     violated = np.zeros(len(labels))
     found, n_found, drawn, measurable = [], 0, 0, 0
     while n_found < count and drawn < max_draws:
-        q = rng.uniform(lower, upper, size=(batch, len(lower)))
+        q = measurable_batch(model, model.params.nominal, rng, batch, cos_max)
         drawn += batch
-        q = q[model.incidence_cos(model.params.nominal, q) >= cos_max]
         measurable += len(q)
         if len(q) and labels:
             margins = np.array(fun.map(len(q))(q.T))[1:].T
@@ -105,7 +100,7 @@ def generate_candidates(cell_model, scene: CollisionScene | None, count: int,
     return CandidateSet(np.vstack(found)[:count], drawn, measurable, rate, flagged)
 
 
-def flag_pairs(cell_model, scene: CollisionScene, rng: np.random.Generator,
+def flag_pairs(cell: DesignCell, scene: CollisionScene, rng: np.random.Generator,
                samples: int = 400, threshold: float = 0.98) -> dict[str, float]:
     """Pairs of ``scene`` violated in at least ``threshold`` of measurable random poses.
 
@@ -113,13 +108,11 @@ def flag_pairs(cell_model, scene: CollisionScene, rng: np.random.Generator,
     fitted capsule reaching through a short link); they make a design
     impossible and should be in ``collision.ignore_pairs``.
     """
-    model = cell_model.model
-    lower, upper = sampling_bounds(model)
-    cos_max = np.cos(cell_model.cell.max_incidence)
+    model = cell.model
+    cos_max = np.cos(cell.max_incidence)
     found, n = [], 0
     for _ in range(200):
-        q = rng.uniform(lower, upper, size=(5000, len(lower)))
-        q = q[model.incidence_cos(model.params.nominal, q) >= cos_max]
+        q = measurable_batch(model, model.params.nominal, rng, 5000, cos_max)
         found.append(q)
         n += len(q)
         if n >= samples:
@@ -127,7 +120,7 @@ def flag_pairs(cell_model, scene: CollisionScene, rng: np.random.Generator,
     q = np.vstack(found)
     if not len(q) or not scene.count:
         return {}
-    margins = np.array(feasibility_function(cell_model, scene).map(len(q))(q.T))[1:].T
+    margins = np.array(feasibility_function(cell, scene).map(len(q))(q.T))[1:].T
     rate = np.mean(margins < 0.0, axis=0)
     return {lab: float(r) for lab, r in zip(scene.labels, rate) if r >= threshold}
 
@@ -170,25 +163,13 @@ class DesignVerification:
     constraint_count: int
 
 
-def pin_link_poses(robot, q: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray]:
-    """Link poses {name: (4, 4)} and tip pose in the base frame, by Pinocchio."""
-    model = robot.pin_model
-    data = model.createData()
-    pin.framesForwardKinematics(model, data, robot.pin_configuration(q))
-    base_inv = data.oMf[model.getFrameId(robot.base_frame)].inverse()
-    poses = {link: np.array((base_inv * data.oMf[model.getFrameId(link, pin.BODY)]).homogeneous)
-             for link in robot.link_names}
-    tip = np.array((base_inv * data.oMf[model.getFrameId(robot.tip_frame)]).homogeneous)
-    return poses, tip
-
-
-def verify_design(cell_model, scene: CollisionScene | None, q: np.ndarray,
+def verify_design(cell: DesignCell, scene: CollisionScene | None, q: np.ndarray,
                   max_incidence: float | None = None) -> DesignVerification:
     """Check joint limits, incidence and every capsule pair of each configuration.
 
     Parameters
     ----------
-    cell_model : CellModel
+    cell : DesignCell
     scene : CollisionScene or None
         Pairs to check (None: no collision check).
     q : (N, n) ndarray
@@ -196,16 +177,16 @@ def verify_design(cell_model, scene: CollisionScene | None, q: np.ndarray,
     max_incidence : float, optional
         Largest admissible incidence angle (rad); default the cell's.
     """
-    robot, cell = cell_model.robot, cell_model.cell
+    robot = cell.robot
     q = np.atleast_2d(q)
     limit = cell.max_incidence if max_incidence is None else max_incidence
-    tracker = cell_model.tracker_in_base[:3, 3]
-    lower, upper = sampling_bounds(cell_model.model)
+    tracker = cell.tracker_in_base[:3, 3]
+    lower, upper = sampling_bounds(cell.model)
     violations: list[str] = []
     margins, angles = np.full(len(q), np.inf), np.zeros(len(q))
     for i, qi in enumerate(q):
-        poses, tip = pin_link_poses(robot, qi)
-        reflector = tip[:3, :3] @ cell.reflector_offset + tip[:3, 3]
+        poses, tip = robot.pin_link_poses(qi)  # Pinocchio, not the optimiser's CasADi chain
+        reflector = reflector_point(tip, cell.reflector_offset)
         beam = (tracker - reflector) / np.linalg.norm(tracker - reflector)
         axis = tip[:3, :3] @ cell.reflector_axis
         angles[i] = np.degrees(np.arccos(np.clip(axis @ beam / np.linalg.norm(axis), -1, 1)))

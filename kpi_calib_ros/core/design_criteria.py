@@ -28,9 +28,11 @@ from typing import Mapping
 
 import numpy as np
 
+from kpi_calib_ros.core.design_cell import DesignCell
 from kpi_calib_ros.core.design_exchange import ConditionLoss, LogDetLoss, TraceLoss, information
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.identifiability import select_identifiable
+from kpi_calib_ros.core.measurement import MeasurementModel, weighted_rows
 
 CRITERIA = ('kpi', 'A', 'D', 'O1', 'cond')
 # Relative column norm below which a parameter counts as having no effect at all.
@@ -75,7 +77,7 @@ class DesignProblem:
     def k(self) -> int:
         return len(self.index)
 
-    def rows(self, model, q: np.ndarray) -> np.ndarray:
+    def rows(self, model: MeasurementModel, q: np.ndarray) -> np.ndarray:
         """Scaled weighted Jacobian rows W J D (N, 3, k) of configurations ``q`` (N, n)."""
         _, jac = model.jacobian(self.p, np.atleast_2d(q))
         return jac[:, :, self.index] * self.weight[None, :, None] * self.column_scale
@@ -128,22 +130,22 @@ class DesignProblem:
         }
 
 
-def build_problem(cell_model, q_rich: np.ndarray,
+def build_problem(cell: DesignCell, q_rich: np.ndarray,
                   weights: Mapping[str, float] | None = None) -> DesignProblem:
     """Identifiable parameters, scalings and KPI Jacobians for a cell.
 
     Parameters
     ----------
-    cell_model : CellModel
+    cell : DesignCell
     q_rich : (R, n) ndarray
         Many measurable configurations (a few hundred) for the rank analysis.
     weights : mapping of working pose name to weight, optional
     """
-    model, cell = cell_model.model, cell_model.cell
+    model = cell.model
     p = model.params.nominal.copy()
     w = 1.0 / cell.sigma
     _, jac = model.jacobian(p, q_rich)
-    stacked = (jac * w[None, :, None]).reshape(-1, len(p))
+    stacked = weighted_rows(jac, w)
     ident = select_identifiable(stacked, list(model.params.names),
                                 method=cell.identification_method,
                                 priority=list(cell.identification_priority) or None,
@@ -151,7 +153,7 @@ def build_problem(cell_model, q_rich: np.ndarray,
     idx = model.params.indices(ident.kept)
     rms = np.sqrt(np.mean(np.sum((jac[:, :, idx] * w[None, :, None]) ** 2, axis=1), axis=0))
     effect = np.sqrt(np.mean(np.sum(jac[:, :, idx] ** 2, axis=1), axis=0))
-    names = cell_model.working_pose_names
+    names = cell.working_pose_names
     weights = dict(weights or {})
     unknown = set(weights) - set(names)
     if unknown:
@@ -160,6 +162,6 @@ def build_problem(cell_model, q_rich: np.ndarray,
     omega = np.array([weights.get(n, 1.0) for n in names], float)
     if omega.sum() <= 0:
         raise ConfigError('design.weights', 'at least one working pose needs a weight > 0')
-    _, kpi_jac = model.jacobian(p, cell_model.q_work)
+    _, kpi_jac = model.jacobian(p, cell.q_work)
     return DesignProblem(tuple(ident.kept), idx, p, w, 1.0 / rms, effect,
                          kpi_jac[:, :, idx], omega / omega.sum())

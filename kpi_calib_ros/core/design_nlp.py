@@ -17,6 +17,7 @@ from typing import Callable
 import casadi as ca
 import numpy as np
 
+from kpi_calib_ros.core.design_cell import DesignCell
 from kpi_calib_ros.core.design_constraints import feasibility_function
 from kpi_calib_ros.core.simulation import sampling_bounds
 
@@ -95,7 +96,7 @@ class _Monitor(ca.Callback):
         return [1 if self.stalled > self.stall_iterations else 0]
 
 
-def solve_design_nlp(problem, cell_model, scene, q0: np.ndarray, criterion: str,
+def solve_design_nlp(problem, cell: DesignCell, scene, q0: np.ndarray, criterion: str,
                      clearance: float = 0.002, incidence_clearance: float = 0.002,
                      max_iterations: int = 300,
                      progress: Callable[[str], None] | None = None,
@@ -105,7 +106,7 @@ def solve_design_nlp(problem, cell_model, scene, q0: np.ndarray, criterion: str,
     Parameters
     ----------
     problem : DesignProblem
-    cell_model : CellModel
+    cell : DesignCell
     scene : CollisionScene or None
         Capsule pairs to keep apart by ``clearance`` (m); None: limits and incidence only.
     q0 : (N, n) ndarray
@@ -113,7 +114,7 @@ def solve_design_nlp(problem, cell_model, scene, q0: np.ndarray, criterion: str,
     criterion : {'kpi', 'A', 'D', 'O1'}
     """
     start = time.perf_counter()
-    model = cell_model.model
+    model = cell.model
     n_conf, n = q0.shape
     q = ca.SX.sym('q', n)
     p_sym = ca.SX.sym('p', len(problem.p))
@@ -138,8 +139,8 @@ def solve_design_nlp(problem, cell_model, scene, q0: np.ndarray, criterion: str,
         scale, objective = loss_start, loss / loss_start
     else:
         scale, objective = 1.0, loss - loss_start
-    cos_max = float(np.cos(cell_model.cell.max_incidence - incidence_clearance))
-    feas = feasibility_function(cell_model, scene)
+    cos_max = float(np.cos(cell.max_incidence - incidence_clearance))
+    feas = feasibility_function(cell, scene)
     per = feas.size1_out(0)
     g = feas.map('feasibility_all', 'serial', n_conf, [], [])(x)
     g = ca.reshape(g, per * n_conf, 1)

@@ -30,10 +30,11 @@ import scipy.stats
 from kpi_calib_ros.core.effects import BoundEffect, candidate_effects
 from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
-from kpi_calib_ros.core.residuals import (LinearizedFit, ResidualReport, cross_validated_rms,
-                                         cv_rms, fold_ids, linearized_fit, residual_report)
+from kpi_calib_ros.core.residuals import (ADEQUACY_ALPHA, LinearizedFit, ResidualReport,
+                                         cross_validated_rms, cv_rms, fold_ids,
+                                         linearized_fit, residual_report)
 
-__all__ = ['Candidate', 'Diagnosis', 'ModelComparison', 'ResidualReport', 'augmented_model',
+__all__ = ['Candidate', 'CellDiagnosis', 'Diagnosis', 'ModelComparison', 'ResidualReport', 'augmented_model',
            'compare_models', 'cross_validated_rms', 'diagnose', 'residual_report',
            'screen_effects']
 DEPENDENCE_TOLERANCE = 1e-4  # unique fraction of a signature below this: absorbed
@@ -110,9 +111,24 @@ class ModelComparison:
 
 
 # ---------------------------------------------------------------- screening
+@dataclass(frozen=True)
+class CellDiagnosis:
+    """Everything :func:`kpi_calib_ros.app.diagnose.diagnose_cell` computes; ``after``/``comparison`` only when an
+    effect was added."""
+
+    model: MeasurementModel
+    data: Measurements
+    result: CalibrationResult
+    diagnosis: Diagnosis
+    added: BoundEffect | None = None
+    after_model: MeasurementModel | None = None
+    after: CalibrationResult | None = None
+    comparison: ModelComparison | None = None
+
+
 def screen_effects(model: MeasurementModel, data: Measurements, result: CalibrationResult,
                    candidates: list[BoundEffect] | None = None, folds: int = 5,
-                   alpha: float = 0.01, seed: int = 0
+                   alpha: float = ADEQUACY_ALPHA, seed: int = 0
                    ) -> tuple[tuple[Candidate, ...], tuple[Candidate, ...]]:
     """Fit and score every candidate effect against the geometric fit ``result``.
 
@@ -193,7 +209,7 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
 
 def diagnose(model: MeasurementModel, data: Measurements, result: CalibrationResult,
              candidates: list[BoundEffect] | None = None, folds: int = 5,
-             alpha: float = 0.01, seed: int = 0) -> Diagnosis:
+             alpha: float = ADEQUACY_ALPHA, seed: int = 0) -> Diagnosis:
     """Residual report, verdict and ranked candidate effects for one calibration.
 
     The model is adequate when the χ² test passes at ``alpha`` and no candidate

@@ -23,7 +23,7 @@ from kpi_calib_ros.core.covariance import kkt_covariance, kpi_jacobians
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.identifiability import (DroppedParameter, Identifiability,
                                                 select_identifiable)
-from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
+from kpi_calib_ros.core.measurement import MeasurementModel, Measurements, weighted_rows
 
 
 # A nominal model is off by millimetres, a wrong unit or frame by metres.
@@ -248,7 +248,7 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     ident, iterations, kept_before = None, 0, None
     for _ in range(MAX_SELECTION_ROUNDS):
         _, jac = model.jacobian(p, q, tau)
-        stacked = (jac * w[None, :, None]).reshape(-1, len(p))[:, free_idx]
+        stacked = weighted_rows(jac, w, free_idx)
         ident = select_identifiable(stacked, free_names, method=identifiability_method,
                                     priority=priority)
         if kept_before is not None and ident.rank == len(kept_before):
@@ -273,7 +273,7 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
         kept_before = ident.kept
     pred, jac = model.jacobian(p, q, tau)
     residuals = eta - pred
-    f1_p = (jac * w[None, :, None]).reshape(-1, len(p))[:, idx]
+    f1_p = weighted_rows(jac, w, idx)
     tcp, tcp_jac = model.jacobian(p, q_work, tau_work)
     f1, f2 = kpi_jacobians(f1_p, tcp_jac.reshape(-1, len(p))[:, idx])
     c_v = kkt_covariance(f1, f2)

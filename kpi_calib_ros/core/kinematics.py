@@ -63,6 +63,16 @@ def error_rotation(axis: np.ndarray, rx, ry, rz):
     return rots[first] @ rots[second] @ rots[last]
 
 
+def reflector_point(pose, offset):
+    """Reflector centre in the frame ``pose`` (4x4) is given in: ``R · offset + t``.
+
+    ``pose`` is the tip pose (in the base or tracker frame) and ``offset`` (3,) the
+    reflector centre in the tip frame; works on numpy arrays and CasADi expressions
+    alike, so the model, the design constraints and their independent check share it.
+    """
+    return pose[0:3, 0:3] @ offset + pose[0:3, 3]
+
+
 def pose6(v):
     """4x4 transform from [x, y, z, roll, pitch, yaw]."""
     return homogeneous(rpy_matrix(v[3], v[4], v[5]), v[0:3])
@@ -101,6 +111,16 @@ class SymbolicChain:
             current = current @ ca.DM(joint.placement) @ error @ motion
             transforms.append(current)
         return transforms
+
+    def link_poses(self, p, q) -> tuple[dict, object]:
+        """{link name: pose (4x4)} in the base frame (base link: identity) and the tip pose.
+
+        Link ``i + 1`` of ``robot.link_names`` is the child link of chain joint ``i``.
+        """
+        transforms = self.link_transforms(p, q)
+        poses = {self.robot.link_names[0]: ca.DM.eye(4)}
+        poses.update(zip(self.robot.link_names[1:], transforms))
+        return poses, transforms[-1] @ ca.DM(self.robot.tip_placement)
 
     def tip_transform(self, p, q):
         """Tip frame pose (4x4) in the base frame."""

@@ -18,7 +18,7 @@ from typing import Protocol, Sequence
 import casadi as ca
 import numpy as np
 
-from kpi_calib_ros.core.kinematics import SymbolicChain
+from kpi_calib_ros.core.kinematics import SymbolicChain, reflector_point
 from kpi_calib_ros.core.parameters import ParameterSet
 from kpi_calib_ros.core.robot import RobotModel
 
@@ -112,7 +112,7 @@ class MeasurementModel:
                 q_eff = q_eff + correction
         tip = self.chain.tip_transform(p, q_eff)
         world = self.chain.base_in_tracker(p) @ tip
-        point = world[0:3, 0:3] @ self.chain.reflector(p) + world[0:3, 3]
+        point = reflector_point(world, self.chain.reflector(p))
         for effect, theta in zip(self.effects, thetas):
             corrected = effect.point_correction(point, theta)
             if corrected is not None:
@@ -122,7 +122,7 @@ class MeasurementModel:
     def incidence_cos_expression(self, p, q):
         """cos β between the reflector axis and the beam towards the tracker, eq. (4)."""
         world = self.chain.base_in_tracker(p) @ self.chain.tip_transform(p, q)
-        point = world[0:3, 0:3] @ self.chain.reflector(p) + world[0:3, 3]
+        point = reflector_point(world, self.chain.reflector(p))
         axis = world[0:3, 0:3] @ ca.DM(self.reflector_axis)
         beam = -point / ca.norm_2(point)  # the tracker sits at the tracker-frame origin
         return ca.dot(axis, beam) / ca.norm_2(axis)
@@ -161,3 +161,25 @@ class MeasurementModel:
         """cos of the incidence angle (N,) at joint values ``q`` (N, n)."""
         q = np.atleast_2d(q)
         return np.array(self._cos.map(len(q))(p, q.T)).ravel()
+
+
+def weighted_rows(jac: np.ndarray, w: np.ndarray, idx: np.ndarray | None = None) -> np.ndarray:
+    """Stacked weighted Jacobian ``W J`` (3N, k) of point Jacobians ``jac`` (N, 3, n_p).
+
+    Parameters
+    ----------
+    jac : (N, 3, n_p) ndarray
+        d h_i / d p per measurement (m per unit of each parameter).
+    w : (3,) ndarray
+        1/σ per tracker axis (1/m).
+    idx : (k,) int ndarray, optional
+        Parameter columns to keep (default all).
+
+    Returns
+    -------
+    (3N, k) ndarray
+        Row 3i + a is axis a of measurement i, in units of σ.
+    """
+    rows = (jac * np.asarray(w)[None, :, None]).reshape(-1, jac.shape[2])
+    return rows if idx is None else rows[:, idx]
+

@@ -16,9 +16,12 @@ import numpy as np
 import scipy.stats
 
 from kpi_calib_ros.core.estimation import CalibrationResult, weights
-from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
+from kpi_calib_ros.core.measurement import MeasurementModel, Measurements, weighted_rows
 
 PERCENTILES = (50, 90, 95, 99)
+# Level of the χ² model-adequacy test everywhere a verdict is given (files, node status,
+# diagnosis): below it the residuals are larger than the stated σ explains.
+ADEQUACY_ALPHA = 0.01
 
 
 @dataclass(frozen=True)
@@ -83,6 +86,12 @@ class LinearizedFit:
     p: np.ndarray
 
 
+def is_adequate(p_value: float, alpha: float = ADEQUACY_ALPHA) -> bool:
+    """The χ² adequacy verdict: True when ``p_value >= alpha`` (residuals as small as σ
+    predicts); NaN (no degrees of freedom) is never adequate."""
+    return bool(p_value >= alpha)
+
+
 def linearized_fit(model: MeasurementModel, data: Measurements, result: CalibrationResult,
             tau: np.ndarray | None = None) -> LinearizedFit:
     w = weights(result.sigma)
@@ -93,7 +102,7 @@ def linearized_fit(model: MeasurementModel, data: Measurements, result: Calibrat
     pred, jac = model.jacobian(p, q, tau)
     r = ((np.atleast_2d(data.eta) - pred) * w).ravel()
     idx = model.params.indices(result.estimated)
-    f = (jac * w[None, :, None]).reshape(-1, len(p))[:, idx]
+    f = weighted_rows(jac, w, idx)
     basis = orthonormal_basis(f)
     return LinearizedFit(r, f, basis, w, tau, p)
 
@@ -129,7 +138,7 @@ def cv_rms(a: np.ndarray, r: np.ndarray, w: np.ndarray, pose_folds: np.ndarray) 
 
 
 def residual_report(model: MeasurementModel, data: Measurements, result: CalibrationResult,
-                    alpha: float = 0.01) -> ResidualReport:
+                    alpha: float = ADEQUACY_ALPHA) -> ResidualReport:
     """Residual statistics, χ² test, leverage and outliers of ``result`` on ``data``.
 
     Parameters
@@ -161,7 +170,7 @@ def residual_report(model: MeasurementModel, data: Measurements, result: Calibra
         residuals=residuals, norms=norms,
         rms_m=float(np.sqrt(np.mean(norms ** 2))), max_m=float(norms.max()),
         percentiles_m={p: float(np.percentile(norms, p)) for p in PERCENTILES},
-        chi2=chi2, dof=dof, p_value=p_value, adequate=bool(p_value >= alpha),
+        chi2=chi2, dof=dof, p_value=p_value, adequate=is_adequate(p_value, alpha),
         leverage=leverage, standardized=standardized, outlier=outlier,
         high_leverage=leverage > 3 * k / n, alpha=alpha)
 

@@ -195,13 +195,24 @@ class RobotModel:
                 q_pin[idx] = value
         return q_pin
 
+    def pin_link_poses(self, q: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray]:
+        """Nominal link poses {link name: (4, 4)} and tip pose (4, 4) in the base frame.
+
+        Computed by Pinocchio from the URDF, independently of the CasADi chain of
+        :mod:`kinematics` (the design verification relies on that independence).
+        """
+        model = self.pin_model
+        data = model.createData()  # own data: callers may run in several threads
+        pin.framesForwardKinematics(model, data, self.pin_configuration(q))
+        base_inv = data.oMf[model.getFrameId(self.base_frame)].inverse()
+        poses = {link: np.array((base_inv * data.oMf[model.getFrameId(link, pin.BODY)])
+                                .homogeneous) for link in self.link_names}
+        tip = np.array((base_inv * data.oMf[model.getFrameId(self.tip_frame)]).homogeneous)
+        return poses, tip
+
     def pin_tip_pose(self, q: np.ndarray) -> np.ndarray:
         """Nominal tip pose (4, 4) in the base frame, computed by Pinocchio."""
-        model, data = self.pin_model, self._pin_data
-        pin.framesForwardKinematics(model, data, self.pin_configuration(q))
-        o_base = data.oMf[model.getFrameId(self.base_frame)]
-        o_tip = data.oMf[model.getFrameId(self.tip_frame)]
-        return np.array((o_base.inverse() * o_tip).homogeneous)
+        return self.pin_link_poses(q)[1]
 
     def gravity_torques(self, q: np.ndarray) -> np.ndarray:
         """Gravity torque (N m, or N for prismatic) of each chain joint.

@@ -19,9 +19,7 @@ beyond the wrist centre with z along the flange normal (x down at q = 0).
 """
 from __future__ import annotations
 
-import argparse
 import math
-import sys
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -393,21 +391,3 @@ def write_shipped(directory: Path = DATA_DIR) -> list[Path]:
         path.write_text(text, encoding='utf-8')
         paths.append(path)
     return paths
-
-
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``python -m kpi_calib_ros.core.robot_library --write``."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument('--write', action='store_true', help='regenerate the shipped URDFs')
-    parser.add_argument('--out', type=Path, default=DATA_DIR, help='target directory')
-    args = parser.parse_args(argv)
-    if not args.write:
-        parser.print_help()
-        return 1
-    for path in write_shipped(args.out):
-        print(path)
-    return 0
-
-
-if __name__ == '__main__':
-    sys.exit(main())

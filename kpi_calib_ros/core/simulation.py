@@ -92,7 +92,6 @@ def random_configurations(model: MeasurementModel, p: np.ndarray, n: int,
     ConfigError
         If fewer than ``n`` feasible poses are found in ``max_draws`` draws.
     """
-    lower, upper = sampling_bounds(model)
     found: list[np.ndarray] = []
     count, drawn = 0, 0
     batch = max(256, 8 * n)
@@ -103,14 +102,27 @@ def random_configurations(model: MeasurementModel, p: np.ndarray, n: int,
                               f'only {count} of {n} measurable poses in {drawn} random draws; '
                               'check the tracker pose, reflector.axis, reflector.max_incidence, '
                               'the joint limits and collision.ignore_pairs')
-        cand = rng.uniform(lower, upper, size=(batch, len(lower)))
+        cand = measurable_batch(model, p, rng, batch, cos_limit)
         drawn += batch
-        ok = model.incidence_cos(p, cand) >= cos_limit
-        if accept is not None and ok.any():
-            ok[ok] = accept(cand[ok])
-        found.append(cand[ok])
-        count += int(ok.sum())
+        if accept is not None and len(cand):
+            cand = cand[accept(cand)]
+        found.append(cand)
+        count += len(cand)
     return np.vstack(found)[:n]
+
+
+def measurable_batch(model: MeasurementModel, p: np.ndarray, rng: np.random.Generator,
+                     batch: int, cos_limit: float) -> np.ndarray:
+    """The measurable ones among ``batch`` uniform draws in the joint ranges.
+
+    Draws (batch, n) configurations uniformly within :func:`sampling_bounds` and
+    keeps those whose incidence cosine at parameters ``p`` is ``>= cos_limit``
+    (eq. 4). The one sampler of the simulator, the design candidates and the
+    collision-pair screening.
+    """
+    lower, upper = sampling_bounds(model)
+    q = rng.uniform(lower, upper, size=(batch, len(lower)))
+    return q[model.incidence_cos(p, q) >= cos_limit]
 
 
 def simulate_measurements(model: MeasurementModel, p_true: np.ndarray, q: np.ndarray,

@@ -24,14 +24,13 @@ from mcap.writer import Writer as McapWriter
 # channel metadata, which rosbag2 readers expect.
 from mcap_ros2._dynamic import serialize_dynamic
 
+from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC
 from kpi_calib_ros.core.streams import JointSample, PointSample
 from kpi_calib_ros.io.mcap_scan import BagError
 from kpi_calib_ros.io.ros_messages import joint_state_fields, point_stamped_fields
 
 JOINT_STATE_TYPE = 'sensor_msgs/msg/JointState'
 POINT_STAMPED_TYPE = 'geometry_msgs/msg/PointStamped'
-DEFAULT_JOINT_TOPIC = '/joint_states'
-DEFAULT_POINT_TOPIC = '/laser_tracker/point'
 
 LIBRARY = f'kpi_calib_ros; {LIBRARY_IDENTIFIER}'
 _ROSBAG2_CHUNK_SIZE = 768 * 1024  # libmcap's default, which rosbag2 keeps

@@ -15,12 +15,14 @@ fix. Paths are relative to the cell file. Units are SI (m, rad, kg). Example::
       - {name: car_roof, type: capsule, a: [1.6, -1.5, 0.9], b: [1.6, 1.5, 0.9], radius: 0.5}
     collision: {capsules: [...], ignore_pairs: [[base_link, floor]], beam_radius: 0.005}
     identification: {method: pivoted}
+    design: {candidates: 4000, weights: {roof: 2.0}}        # see DesignSettings
+    simulation: {hidden_effects: {joint_compliance:joint_2: {c: 4.0e-7}}}
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping, Sequence
 
 import casadi as ca
 import numpy as np
@@ -28,12 +30,15 @@ import yaml
 
 from kpi_calib_ros.core.capsule_fit import capsules_from_urdf
 from kpi_calib_ros.core.collision import Capsule, CollisionScene, HalfSpace
+from kpi_calib_ros.core.design import DesignSettings
+from kpi_calib_ros.core.design_cell import DesignCell
 from kpi_calib_ros.core.effects import resolve_effects
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.kinematics import pose6
 from kpi_calib_ros.core.measurement import MeasurementModel
 from kpi_calib_ros.core.parameters import ParameterSet, geometric_parameters
 from kpi_calib_ros.core.robot import Payload, RobotModel
+from kpi_calib_ros.io.results import write_atomic
 
 _TOP_KEYS = {'robot', 'tracker', 'reflector', 'noise', 'payload', 'working_poses',
              'obstacles', 'collision', 'identification', 'effects', 'simulation', 'design'}
@@ -44,6 +49,17 @@ DEFAULT_CELL = Path(__file__).resolve().parent.parent / 'data' / 'cells' / 'defa
 class WorkingPose:
     name: str
     joints: dict[str, float]
+
+
+@dataclass(frozen=True)
+class SimulationSettings:
+    """The ``simulation:`` section: what the simulated robot has beyond the model.
+
+    ``hidden_effects`` maps effect specs to their true parameter values; it is
+    checked against the robot by :func:`kpi_calib_ros.core.effects.hidden_effects`.
+    """
+
+    hidden_effects: Mapping[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -70,20 +86,35 @@ class Cell:
     identification_method: str
     identification_priority: tuple[str, ...]
     effects: tuple[str, ...]
-    raw: dict[str, Any] = field(repr=False, compare=False, default_factory=dict)
+    design: DesignSettings = field(default_factory=DesignSettings)
+    simulation: SimulationSettings = field(default_factory=SimulationSettings)
     source_dir: str = field(default='', compare=False)  # folder of the cell file
 
 
-def load_cell(path: str | Path) -> Cell:
-    """Read and validate a cell file; relative paths resolve against its folder."""
+def load_cell(path: str | Path, urdf_xml: str | None = None) -> Cell:
+    """Read and validate a cell file; relative paths resolve against its folder.
+
+    ``urdf_xml`` replaces ``robot.urdf`` (a URDF from a ROS topic); ``''`` means
+    "given later by :func:`with_overrides`" and leaves ``Cell.urdf_xml`` empty.
+    """
+    path = Path(path)
+    return cell_from_dict(read_cell_document(path), path.parent, urdf_xml=urdf_xml)
+
+
+def read_cell_document(path: str | Path) -> Any:
+    """The parsed YAML of a cell file, not yet validated (see :func:`cell_from_dict`)."""
     path = Path(path)
     if not path.is_file():
         raise ConfigError('cell', f'file {str(path)!r} does not exist')
     try:
-        doc = yaml.safe_load(path.read_text())
+        return yaml.safe_load(path.read_text())
     except yaml.YAMLError as exc:
         raise ConfigError('cell', f'{path} is not valid YAML: {exc}') from exc
-    return cell_from_dict(doc, path.parent)
+
+
+def write_cell_document(path: str | Path, doc: dict[str, Any]) -> Path:
+    """Write a cell document as YAML (atomically); :func:`load_cell` reads it back."""
+    return write_atomic(path, yaml.safe_dump(doc, sort_keys=False))
 
 
 def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None) -> Cell:
@@ -148,7 +179,73 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None) -> Cel
         identification_method=method,
         identification_priority=tuple(ident.get('priority') or ()),
         effects=tuple(str(e) for e in (doc.get('effects') or [])),
-        raw=doc, source_dir=str(base_dir))
+        design=design_settings(doc.get('design')),
+        simulation=simulation_settings(doc.get('simulation')), source_dir=str(base_dir))
+
+
+def with_overrides(cell: Cell, urdf_xml: str | None = None,
+                   working_poses: tuple[WorkingPose, ...] | None = None) -> Cell:
+    """``cell`` with a URDF document (e.g. from ``/robot_description``) and/or working
+    poses (e.g. node parameters) in place of the cell file's; both are checked against
+    the robot when the cell model is built (:func:`build_cell_model`)."""
+    changes: dict[str, Any] = {}
+    if urdf_xml is not None:
+        changes.update(urdf_xml=urdf_xml, urdf_path='<robot_description>')
+    if working_poses:
+        changes['working_poses'] = tuple(working_poses)
+    return replace(cell, **changes)
+
+
+def design_settings(raw: Mapping[str, Any] | None) -> DesignSettings:
+    """Validate the ``design:`` mapping of a cell file; errors name the key."""
+    raw = dict(raw or {})
+    defaults = DesignSettings()
+    known = set(defaults.__dataclass_fields__)
+    for key in raw:
+        if key not in known:
+            raise ConfigError(f'design.{key}', f'unknown key; allowed: {sorted(known)}')
+    values: dict[str, Any] = {}
+    for key, value in raw.items():
+        default = getattr(defaults, key)
+        path = f'design.{key}'
+        if key == 'weights':
+            if not isinstance(value, Mapping) or not all(
+                    isinstance(v, (int, float)) and v >= 0 for v in value.values()):
+                raise ConfigError(path, 'must map working pose names to weights >= 0')
+            values[key] = {str(k): float(v) for k, v in value.items()}
+        elif isinstance(default, bool):
+            if not isinstance(value, bool):
+                raise ConfigError(path, f'must be true or false, got {value!r}')
+            values[key] = value
+        elif isinstance(default, int):
+            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+                raise ConfigError(path, f'must be a positive integer, got {value!r}')
+            values[key] = value
+        else:
+            if not isinstance(value, (int, float)) or isinstance(value, bool) or value < 0:
+                raise ConfigError(path, f'must be a number >= 0, got {value!r}')
+            values[key] = float(value)
+    if values.get('flag_threshold', 0.5) > 1:
+        raise ConfigError('design.flag_threshold', 'must be a fraction in [0, 1]')
+    return replace(defaults, **values)
+
+
+def simulation_settings(raw: Any) -> SimulationSettings:
+    """Validate the ``simulation:`` mapping of a cell file."""
+    if raw is None:
+        return SimulationSettings()
+    if not isinstance(raw, dict):
+        raise ConfigError('simulation', 'must be a mapping, e.g. {hidden_effects: '
+                          '{joint_compliance:joint_2: {c: 5.0e-7}}}')
+    unknown = set(raw) - {'hidden_effects'}
+    if unknown:
+        raise ConfigError(f'simulation.{sorted(unknown)[0]}', "unknown key; allowed: "
+                          "['hidden_effects']")
+    hidden = raw.get('hidden_effects') or {}
+    if not isinstance(hidden, dict):
+        raise ConfigError('simulation.hidden_effects', 'must map effect specs to their '
+                          'parameters, e.g. {joint_compliance:joint_2: {c: 5.0e-7}}')
+    return SimulationSettings(dict(hidden))
 
 
 def _mapping(doc: dict, key: str) -> dict:
@@ -190,13 +287,37 @@ def _working_poses(value: Any) -> tuple[WorkingPose, ...]:
         key = f'working_poses[{i}]'
         if not isinstance(item, dict) or not isinstance(item.get('joints'), dict):
             raise ConfigError(key, 'must be a mapping with a joints: {name: rad} mapping')
-        joints = {}
-        for name, v in item['joints'].items():
-            if not isinstance(v, (int, float)) or not np.isfinite(v):
-                raise ConfigError(f'{key}.joints.{name}', f'must be a finite number (rad), got {v!r}')
-            joints[str(name)] = float(v)
+        joints = {str(name): _joint_value(v, f'{key}.joints.{name}')
+                  for name, v in item['joints'].items()}
         poses.append(WorkingPose(str(item.get('name', f'work_{i + 1}')), joints))
     return tuple(poses)
+
+
+def working_poses_from_arrays(names: Sequence[str], values: Sequence[float],
+                              names_key: str = 'working_joint_names',
+                              values_key: str = 'working_poses') -> tuple[WorkingPose, ...]:
+    """Working poses from a flat list of joint values, one block of ``len(names)`` per
+    pose (the node's parameters); errors name ``names_key`` / ``values_key``."""
+    names = [str(n) for n in names]
+    if not names or len(set(names)) != len(names):
+        raise ConfigError(names_key, f'give the unique joint names of {values_key}, '
+                          f'got {names}')
+    if not len(values) or len(values) % len(names):
+        raise ConfigError(values_key, f'must hold finite values (rad), {len(names)} per pose '
+                          f'(one per {names_key}), got {len(values)} values')
+    poses = []
+    for i in range(len(values) // len(names)):
+        row = values[i * len(names):(i + 1) * len(names)]
+        joints = {n: _joint_value(v, f'{values_key}[{i * len(names) + j}]')
+                  for j, (n, v) in enumerate(zip(names, row))}
+        poses.append(WorkingPose(f'work_{i + 1}', joints))
+    return tuple(poses)
+
+
+def _joint_value(v: Any, key: str) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
+        raise ConfigError(key, f'must be a finite number (rad), got {v!r}')
+    return float(v)
 
 
 def _capsule(item: Any, key: str, frame_key: str = 'frame') -> Capsule:
@@ -266,6 +387,15 @@ class CellModel:
                               beam_radius=self.cell.beam_radius)
 
 
+    def design_cell(self) -> DesignCell:
+        """The typed design problem of this cell (core input of the design modules)."""
+        return DesignCell(self.model, self.q_work, self.working_pose_names,
+                          self.tracker_in_base, self.cell.reflector_offset,
+                          self.cell.max_incidence, self.cell.sigma,
+                          self.cell.identification_method, self.cell.identification_priority,
+                          self.collision_scene())
+
+
 def build_cell_model(cell: Cell, effects: tuple = ()) -> CellModel:
     """Robot, parameters, measurement model and working poses of ``cell``.
 
@@ -273,6 +403,9 @@ def build_cell_model(cell: Cell, effects: tuple = ()) -> CellModel:
     such as ``'joint_compliance:joint_2'`` or bound effects); one given in both
     counts once.
     """
+    if not cell.urdf_xml:
+        raise ConfigError('robot.urdf', 'no robot description yet; give robot.urdf or the '
+                          'URDF document (with_overrides)')
     robot = RobotModel(cell.urdf_xml, cell.base_frame, cell.tip_frame,
                        Payload(cell.payload_mass, tuple(cell.payload_com)))
     geometric = geometric_parameters(robot, cell.base_in_tracker, cell.reflector_offset)

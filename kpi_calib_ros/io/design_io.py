@@ -1,4 +1,4 @@
-"""design.yaml, design plots and the ``kpi-calib design`` command.
+"""design.yaml (written and read back) and the design plots.
 
 design.yaml holds ``joint_names`` and ``configurations`` (what ``kpi-calib
 simulate --poses`` and a robot program read) plus the criterion, its value,
@@ -9,7 +9,6 @@ against the optimal design (Jost et al. 2017, Fig. 7).
 """
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +22,8 @@ import yaml  # noqa: E402
 
 from kpi_calib_ros.core.collision import Capsule, CollisionScene, HalfSpace  # noqa: E402
 from kpi_calib_ros.core.design import DesignResult  # noqa: E402
-from kpi_calib_ros.core.design_constraints import pin_link_poses  # noqa: E402
+from kpi_calib_ros.core.design_cell import DesignCell  # noqa: E402
+from kpi_calib_ros.core.errors import ConfigError  # noqa: E402
 from kpi_calib_ros.io.results import write_atomic  # noqa: E402
 
 CHI2_95_3D = float(scipy.stats.chi2.ppf(0.95, 3))
@@ -65,12 +65,25 @@ def write_design(path: str | Path, result: DesignResult) -> Path:
     return write_atomic(path, yaml.safe_dump(design_to_dict(result), sort_keys=False))
 
 
+def read_design_poses(path: str | Path) -> tuple[list[str], np.ndarray]:
+    """``(joint_names, configurations (N, n))`` of a design.yaml (rad, chain order)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError('poses', f'file {str(path)!r} does not exist')
+    try:
+        doc = yaml.safe_load(path.read_text())
+        names = [str(n) for n in doc['joint_names']]
+        q = np.asarray(doc['configurations'], float)
+    except (yaml.YAMLError, TypeError, KeyError, ValueError) as exc:
+        raise ConfigError('poses', f'{path} is not a design.yaml with joint_names and '
+                          f'configurations: {exc}') from exc
+    if q.ndim != 2 or q.shape[1] != len(names) or not np.all(np.isfinite(q)):
+        raise ConfigError('poses.configurations', f'must be finite rows of {len(names)} joint '
+                          f'values (one per joint_names), got shape {q.shape}')
+    return names, q
+
+
 # --------------------------------------------------------------------------- plots
-def _capsule_world(cap: Capsule, poses: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    t = poses.get(cap.frame, np.eye(4))
-    return tuple(t[:3, :3] @ np.asarray(p) + t[:3, 3] for p in (cap.a, cap.b))
-
-
 def _draw_capsule(ax, a: np.ndarray, b: np.ndarray, radius: float, color: str,
                   alpha: float) -> None:
     """Wireframe of a capsule: its cylinder surface (the caps are left out)."""
@@ -86,16 +99,16 @@ def _draw_capsule(ax, a: np.ndarray, b: np.ndarray, radius: float, color: str,
     ax.plot_wireframe(pts[0], pts[1], pts[2], color=color, alpha=alpha, linewidth=0.4)
 
 
-def plot_design(cell_model, scene: CollisionScene | None, result: DesignResult,
+def plot_design(cell: DesignCell, scene: CollisionScene | None, result: DesignResult,
                 path: str | Path) -> Path:
     """PNG of the design poses (link origins joined), tracker and obstacles, base frame."""
     fig = plt.figure(figsize=(8, 7))
     ax = fig.add_subplot(projection='3d')
-    robot = cell_model.robot
-    tracker = cell_model.tracker_in_base[:3, 3]
+    robot = cell.robot
+    tracker = cell.tracker_in_base[:3, 3]
     tips = []
     for q in result.configurations:
-        poses, tip = pin_link_poses(robot, q)
+        poses, tip = robot.pin_link_poses(q)
         chain = np.array([poses[l][:3, 3] for l in robot.link_names] + [tip[:3, 3]])
         ax.plot(*chain.T, color='tab:orange', alpha=0.35, linewidth=1.0)
         tips.append(tip[:3, 3])
@@ -104,8 +117,8 @@ def plot_design(cell_model, scene: CollisionScene | None, result: DesignResult,
     for t in tips[:: max(1, len(tips) // 20)]:
         ax.plot(*np.c_[tracker, t], color='tab:green', alpha=0.15, linewidth=0.5)
     ax.scatter(*tracker, color='tab:green', marker='^', s=80, label='laser tracker')
-    for q_work, name in zip(cell_model.q_work, cell_model.working_pose_names):
-        _, tip = pin_link_poses(robot, q_work)
+    for q_work, name in zip(cell.q_work, cell.working_pose_names):
+        tip = robot.pin_tip_pose(q_work)
         ax.scatter(*tip[:3, 3], color='black', marker='*', s=120, label=f'working pose {name}')
     lim = np.max(np.abs(np.r_[tips, tracker[None]])) * 1.1
     if scene is not None:
@@ -177,7 +190,7 @@ def plot_ellipsoids(results: list[DesignResult], labels: list[str], path: str | 
     return path
 
 
-# ----------------------------------------------------------------------------- CLI
+# ------------------------------------------------------------------------- summary
 def summary_text(result: DesignResult, baseline: DesignResult | None = None) -> str:
     """Readable summary for stdout."""
     lines = [f'criterion {result.criterion}: objective {result.objective:.4g} '
@@ -201,33 +214,3 @@ def summary_text(result: DesignResult, baseline: DesignResult | None = None) -> 
     lines.append(f'  status: {result.status}')
     lines.append('  time: ' + ', '.join(f'{k} {v:.1f} s' for k, v in result.timings.items()))
     return '\n'.join(lines)
-
-
-def run_design_command(args: argparse.Namespace) -> int:
-    """``kpi-calib design --cell C --n N --criterion X --out design.yaml [--seed S]``.
-
-    Writes design.yaml, ``<stem>_poses.png`` and ``<stem>_ellipsoids.png``
-    (heuristic vs this design). Returns 0, or 1 when the verification failed.
-    """
-    from kpi_calib_ros.core.design import design_context, design_measurements, design_settings
-    from kpi_calib_ros.io.cell import build_cell_model, load_cell
-    cell_model = build_cell_model(load_cell(args.cell))
-    settings = design_settings(cell_model.cell.raw.get('design'))
-    rng = np.random.default_rng(args.seed)
-    context = design_context(cell_model, rng, settings)
-    print(f'{context.candidates.configurations.shape[0]} feasible candidates from '
-          f'{context.candidates.draws} draws ({context.seconds:.1f} s)')
-    result = design_measurements(cell_model, args.n, args.criterion, rng, settings,
-                                 context=context, progress=print)
-    baseline = result if args.criterion == 'random' else design_measurements(
-        cell_model, args.n, 'random', rng, settings, context=context)
-    out = Path(args.out)
-    write_design(out, result)
-    stem = out.with_suffix('')
-    poses_png = plot_design(cell_model, context.check_scene, result, f'{stem}_poses.png')
-    shown = [baseline] if result is baseline else [baseline, result]
-    names = ['heuristic'] if result is baseline else ['heuristic', f'{args.criterion}-optimal']
-    ell_png = plot_ellipsoids(shown, names, f'{stem}_ellipsoids.png')
-    print(summary_text(result, None if result is baseline else baseline))
-    print(f'written: {out}, {poses_png}, {ell_png}')
-    return 0 if result.verification.ok else 1

@@ -1,7 +1,7 @@
 """Diagnosis report: diagnosis.json, report.md with plots, and before/after comparisons.
 
-``kpi-calib diagnose`` and the demo call :func:`diagnose_cell` (calibrate,
-diagnose, add the suggested effect, compare) and :func:`write_report`. The
+Writes what :func:`kpi_calib_ros.app.diagnose.diagnose_cell` computes (calibrate,
+diagnose, add the suggested effect, compare) with :func:`write_report`. The
 plots (matplotlib, Agg) show the residuals against each joint angle, each
 joint's gravity torque, time and tracker distance, the measured points with
 magnified residual vectors in 3-D, and the error before/after adding the
@@ -9,67 +9,19 @@ effect. Units in files are SI; plots and text use µm for residuals.
 """
 from __future__ import annotations
 
-import dataclasses
 import json
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from kpi_calib_ros.core.diagnosis import (Candidate, Diagnosis, ModelComparison,
-                                          augmented_model, compare_models, diagnose)
-from kpi_calib_ros.core.effects import BoundEffect, parse_effect_spec
-from kpi_calib_ros.core.estimation import CalibrationResult
-from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
-from kpi_calib_ros.io.cell import CellModel
+from kpi_calib_ros.core.diagnosis import Candidate, CellDiagnosis, ModelComparison
+from kpi_calib_ros.io.names import DIAGNOSIS_FILE, REPORT_FILE
 from kpi_calib_ros.io.results import write_atomic
-from kpi_calib_ros.pipeline import identify_cell
 
 _UM = 1e6
 _AXES = ('x', 'y', 'z')
 _COLOURS = ('tab:red', 'tab:green', 'tab:blue')
-
-
-@dataclasses.dataclass(frozen=True)
-class CellDiagnosis:
-    """Everything :func:`diagnose_cell` computes; ``after``/``comparison`` only when an
-    effect was added."""
-
-    model: MeasurementModel
-    data: Measurements
-    result: CalibrationResult
-    diagnosis: Diagnosis
-    added: BoundEffect | None = None
-    after_model: MeasurementModel | None = None
-    after: CalibrationResult | None = None
-    comparison: ModelComparison | None = None
-
-
-def geometric_only(cm: CellModel) -> CellModel:
-    """``cm`` with the geometric model only (no effects)."""
-    return dataclasses.replace(cm, model=MeasurementModel(cm.robot, cm.geometric, (),
-                                                          cm.cell.reflector_axis))
-
-
-def with_effects(cm: CellModel, effects: tuple) -> CellModel:
-    """``cm`` with ``effects`` (specs or bound effects) appended to its model."""
-    bound = tuple(parse_effect_spec(e, cm.robot) if isinstance(e, str) else e for e in effects)
-    return dataclasses.replace(cm, model=augmented_model(cm.model, bound))
-
-
-def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 5, alpha: float = 0.01,
-                  add_best: bool = True) -> CellDiagnosis:
-    """Calibrate ``cm`` on ``data``, diagnose it and, when an effect is significant,
-    add the top one and compare before/after (full nonlinear refit)."""
-    result = identify_cell(cm, data)
-    diag = diagnose(cm.model, data, result, folds=folds, alpha=alpha)
-    if not add_best or diag.best is None:
-        return CellDiagnosis(cm.model, data, result, diag)
-    best = parse_effect_spec(diag.best.spec, cm.robot)
-    richer = with_effects(cm, (best,))
-    after = identify_cell(richer, data)
-    comparison = compare_models((cm.model, result), (richer.model, after), data, folds=folds)
-    return CellDiagnosis(cm.model, data, result, diag, best, richer.model, after, comparison)
 
 
 # ------------------------------------------------------------------ documents
@@ -169,7 +121,7 @@ def diagnosis_text(cd: CellDiagnosis, top: int = 5) -> str:
 
 
 def write_diagnosis_json(out_dir: str | Path, doc: dict[str, Any]) -> Path:
-    return write_atomic(Path(out_dir) / 'diagnosis.json', json.dumps(doc, indent=2) + '\n')
+    return write_atomic(Path(out_dir) / DIAGNOSIS_FILE, json.dumps(doc, indent=2) + '\n')
 
 
 # --------------------------------------------------------------------- plots
@@ -384,37 +336,4 @@ def write_report(out_dir: str | Path, cd: CellDiagnosis) -> Path:
                   for p in cmp.effect_parameters]
     lines += ['', '## Plots', '']
     lines += [f'![{p.stem}]({p.name})' for p in plots]
-    return write_atomic(out / 'report.md', '\n'.join(lines) + '\n')
-
-
-# ---------------------------------------------------------------- commands
-def add_effect_comparison(doc: dict[str, Any], cm: CellModel, data: Measurements,
-                          result: CalibrationResult, folds: int = 5) -> str:
-    """Compare ``result`` (model with effects) with the geometric model on the same data.
-
-    Adds ``effects_comparison`` to the calibration document ``doc`` and returns
-    the readable summary.
-    """
-    base = geometric_only(cm)
-    before = identify_cell(base, data)
-    cmp = compare_models((base.model, before), (cm.model, result), data, folds=folds)
-    doc['effects_comparison'] = comparison_to_dict(cmp)
-    return comparison_text(cmp)
-
-
-def run_diagnose_command(args) -> int:
-    """``kpi-calib diagnose --cell CELL --bag BAG --out DIR [--effects ...]``."""
-    import sys
-
-    from kpi_calib_ros.core.effects import split_specs
-    from kpi_calib_ros.io.cell import build_cell_model, load_cell
-    from kpi_calib_ros.pipeline import measurements_from_bag
-    cm = build_cell_model(load_cell(args.cell), effects=tuple(split_specs(args.effects)))
-    data, pairing = measurements_from_bag(cm, args.bag)
-    for reason, count in sorted(pairing.rejections.items()):
-        print(f'rejected {count} sample(s): {reason}', file=sys.stderr)
-    cd = diagnose_cell(cm, data, folds=args.folds, alpha=args.alpha)
-    report = write_report(args.out, cd)
-    print(diagnosis_text(cd))
-    print(f'written: {Path(args.out) / "diagnosis.json"}, {report}')
-    return 0
+    return write_atomic(out / REPORT_FILE, '\n'.join(lines) + '\n')

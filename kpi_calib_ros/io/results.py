@@ -11,6 +11,8 @@ import yaml
 
 from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.pairing import PairingResult
+from kpi_calib_ros.core.residuals import is_adequate
+from kpi_calib_ros.io.names import CALIBRATION_FILE, truth_path
 
 
 def _umask() -> int:
@@ -70,7 +72,7 @@ def calibration_to_dict(result: CalibrationResult,
         'noise_sigma_m': [float(s) for s in result.sigma],
         'model_adequacy': {'chi2': float(result.chi2), 'dof': int(result.dof),
                            'p_value': float(result.p_value),
-                           'adequate': bool(result.p_value > 0.01)},
+                           'adequate': is_adequate(result.p_value)},
         'parameters': parameters,
         # Not identifiable: held fixed (at the prior, or where an earlier selection round
         # left it); their value is a choice of gauge, not a measurement.
@@ -85,7 +87,17 @@ def calibration_to_dict(result: CalibrationResult,
 
 
 def write_calibration(out_dir: str | Path, doc: dict[str, Any]) -> Path:
-    return write_atomic(Path(out_dir) / 'calibration.yaml', yaml.safe_dump(doc, sort_keys=False))
+    return write_atomic(Path(out_dir) / CALIBRATION_FILE, yaml.safe_dump(doc, sort_keys=False))
+
+
+def write_truth(bag_path: str | Path, truth: dict[str, Any]) -> Path:
+    """Write the simulated truth of a bag to ``<bag>.truth.yaml``."""
+    return write_atomic(truth_path(bag_path), yaml.safe_dump(truth, sort_keys=False))
+
+
+def read_truth(bag_path: str | Path) -> dict[str, Any]:
+    """The simulated truth written next to a simulated bag (``<bag>.truth.yaml``)."""
+    return yaml.safe_load(truth_path(bag_path).read_text())
 
 
 def summary_text(doc: dict[str, Any]) -> str:

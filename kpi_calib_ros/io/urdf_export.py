@@ -27,6 +27,7 @@ from typing import Mapping
 
 import casadi as ca
 import numpy as np
+import pinocchio as pin
 
 from kpi_calib_ros.core.kinematics import axis_rotation, error_rotation, homogeneous, pose6
 from kpi_calib_ros.core.parameters import PLACEMENT_COMPONENTS
@@ -45,17 +46,10 @@ def _numbers(text: str | None, default: tuple[float, float, float]) -> np.ndarra
 def rpy_from_matrix(rotation: np.ndarray) -> np.ndarray:
     """URDF roll, pitch, yaw (rad) of a rotation matrix (3, 3), R = Rz(y) Ry(p) Rx(r).
 
-    Accurate to round-off in the reconstructed matrix even next to pitch = ±π/2:
-    yaw is taken from the first column (ill-determined there, but any value is
-    consistent) and roll is then solved from ``(Rz(y) Ry(p))ᵀ R``, which absorbs
-    the error of yaw.
+    Pinocchio's ``rpy.matrixToRpy``: accurate to round-off in the reconstructed
+    matrix even next to pitch = ±π/2 (checked in the tests).
     """
-    r = np.asarray(rotation, dtype=float)
-    pitch = np.arctan2(-r[2, 0], np.hypot(r[0, 0], r[1, 0]))
-    yaw = np.arctan2(r[1, 0], r[0, 0])
-    rest = np.array(ca.DM(pose6(ca.DM([0, 0, 0, 0, pitch, yaw]))))[:3, :3].T @ r
-    roll = np.arctan2(rest[2, 1], rest[1, 1])
-    return np.array([roll, pitch, yaw])
+    return np.asarray(pin.rpy.matrixToRpy(np.asarray(rotation, dtype=float)), dtype=float)
 
 
 def _joint_of(name: str) -> str | None:

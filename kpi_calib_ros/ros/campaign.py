@@ -26,11 +26,11 @@ from kpi_calib_ros.core.streams import JointSample, PointSample
 from kpi_calib_ros.core.pairing import (REJECTION_REASONS, Decision, PairedMeasurement, Pairer,
                                         PairingResult, Rejection)
 from kpi_calib_ros.io.measurement_log import MeasurementLog, stored_pairing
+from kpi_calib_ros.io.names import RESULT_FILES
 
 # Campaign-level reasons besides the pairer's: the measurement could not be written.
 NOT_STORED = 'not_stored'
 REASONS = REJECTION_REASONS + (NOT_STORED,)
-RESULT_FILES = ('calibration.yaml', 'robot_description_calibrated.urdf', 'diagnosis')
 
 
 class Campaign:

@@ -8,6 +8,7 @@ from __future__ import annotations
 from typing import Any, Mapping, Sequence
 
 import numpy as np
+import pinocchio as pin
 from builtin_interfaces.msg import Duration
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point, PoseWithCovarianceStamped, Quaternion, Vector3
@@ -125,25 +126,10 @@ def diagnostic_values(msg: DiagnosticArray) -> dict[str, str]:
 # ------------------------------------------------------------------ markers
 def quaternion_from_matrix(rotation: np.ndarray) -> Quaternion:
     """Unit quaternion of a proper rotation matrix (3, 3)."""
-    r = np.asarray(rotation, dtype=float)
-    # Shepperd's method: divide by the largest of the four candidates, never a small one.
-    trace = np.trace(r)
-    candidates = [trace, r[0, 0], r[1, 1], r[2, 2]]
-    k = int(np.argmax(candidates))
-    if k == 0:
-        s = 2.0 * np.sqrt(1.0 + trace)
-        w, x, y, z = s / 4, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s
-    elif k == 1:
-        s = 2.0 * np.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2])
-        w, x, y, z = (r[2, 1] - r[1, 2]) / s, s / 4, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s
-    elif k == 2:
-        s = 2.0 * np.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2])
-        w, x, y, z = (r[0, 2] - r[2, 0]) / s, (r[0, 1] + r[1, 0]) / s, s / 4, (r[1, 2] + r[2, 1]) / s
-    else:
-        s = 2.0 * np.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1])
-        w, x, y, z = (r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, s / 4
-    q = np.array([x, y, z, w]) * (1.0 if w >= 0 else -1.0)
-    q /= np.linalg.norm(q)
+    # Pinocchio's Quaternion(R) (Eigen: Shepperd's method, stable for any rotation);
+    # w >= 0 picks one of the two equal quaternions.
+    q = pin.Quaternion(np.asarray(rotation, dtype=float)).normalized().coeffs()  # x, y, z, w
+    q = q * (1.0 if q[3] >= 0 else -1.0)
     return Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))
 
 

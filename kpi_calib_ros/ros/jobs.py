@@ -14,22 +14,22 @@ from typing import Any
 import numpy as np
 from geometry_msgs.msg import PoseWithCovarianceStamped
 
-from kpi_calib_ros.core.design import DesignResult, design_measurements
+from kpi_calib_ros.app.design import design_cell_model
+from kpi_calib_ros.core.design import DesignResult
 from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.pairing import PairingResult
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.design_io import write_design
-from kpi_calib_ros.io.report import diagnose_cell, diagnosis_to_dict, write_report
+from kpi_calib_ros.app.diagnose import diagnose_cell
+from kpi_calib_ros.io.report import diagnosis_to_dict, write_report
 from kpi_calib_ros.io.results import write_atomic, write_calibration
 from kpi_calib_ros.io.urdf_export import calibrated_urdf
-from kpi_calib_ros.pipeline import calibration_document, identify_cell
+from kpi_calib_ros.app.identify import calibration_document, identify_cell
+from kpi_calib_ros.io.names import CALIBRATED_URDF_FILE, DESIGN_FILE, DIAGNOSIS_DIR
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros.parameters import NodeSettings
 
-CALIBRATED_URDF_FILE = 'robot_description_calibrated.urdf'
-DESIGN_FILE = 'design.yaml'
-DIAGNOSIS_DIR = 'diagnosis'
 
 
 def design_work(cm: CellModel, settings: NodeSettings,
@@ -44,8 +44,8 @@ def design_work(cm: CellModel, settings: NodeSettings,
     path : Path
         The written design file.
     """
-    design = design_measurements(cm, settings.num_measurements, settings.criterion,
-                                 np.random.default_rng(settings.design_seed))
+    design = design_cell_model(cm, settings.num_measurements, settings.criterion,
+                               settings.design_seed)
     path = write_design(data_dir / DESIGN_FILE, design)
     points = cm.model.predict(cm.model.params.nominal, design.configurations)
     return design, points, path

@@ -39,7 +39,6 @@ from typing import Any, Awaitable, Callable
 
 import numpy as np
 import rclpy
-import yaml
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
@@ -61,11 +60,15 @@ from kpi_calib_ros.core.collision import Capsule
 from kpi_calib_ros.core.errors import ConfigError, DataError, KpiCalibError
 from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.pairing import Decision, Rejection
-from kpi_calib_ros.io.cell import CellModel, build_cell_model, cell_from_dict
+from kpi_calib_ros.core.residuals import is_adequate
+from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell, with_overrides
+from kpi_calib_ros.io.names import (CALIBRATED_URDF_TOPIC, CALIBRATION_TOPIC, DIAGNOSIS_TOPIC,
+                                    DIAGNOSTICS_TOPIC, MARKERS_TOPIC, MEASUREMENT_POSES_TOPIC,
+                                    TCP_TOPIC)
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros import jobs
 from kpi_calib_ros.ros.campaign import Campaign
-from kpi_calib_ros.ros.parameters import PARAMETERS, cell_document, settings_from_parameters
+from kpi_calib_ros.ros.parameters import PARAMETERS, settings_from_parameters, working_poses
 
 NODE_NAME = 'kpi_calib_node'
 
@@ -90,10 +93,8 @@ class CalibrationNode(Node):
         self.settings = settings_from_parameters(self._parameter_values())
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
-        try:
-            self._cell_doc = yaml.safe_load(Path(self.settings.cell_file).read_text()) or {}
-        except yaml.YAMLError as exc:
-            raise ConfigError('cell_file', f'not valid YAML: {exc}') from exc
+        # The cell once, validated; the URDF comes from the parameter or the topic.
+        self._cell = load_cell(self.settings.cell_file, urdf_xml='')
         self.data_dir = Path(self.settings.data_dir)
         self.campaign = Campaign(self.data_dir)
         self.get_logger().info(f'{self.campaign.restored} measurement(s) restored from '
@@ -118,14 +119,13 @@ class CalibrationNode(Node):
         # their worker threads in a reentrant group so a second call gets 'busy'.
         streams = MutuallyExclusiveCallbackGroup()
         services = ReentrantCallbackGroup()
-        self._pub_poses = self.create_publisher(JointTrajectory, '~/measurement_poses',
+        self._pub_poses = self.create_publisher(JointTrajectory, MEASUREMENT_POSES_TOPIC,
                                                 _latched())
-        self._pub_calibration = self.create_publisher(String, '~/calibration', _latched())
-        self._pub_urdf = self.create_publisher(String, '~/robot_description_calibrated',
-                                               _latched())
-        self._pub_markers = self.create_publisher(MarkerArray, '~/markers', _latched())
-        self._pub_diagnosis = self.create_publisher(String, '~/diagnosis', _latched())
-        self._pub_diagnostics = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self._pub_calibration = self.create_publisher(String, CALIBRATION_TOPIC, _latched())
+        self._pub_urdf = self.create_publisher(String, CALIBRATED_URDF_TOPIC, _latched())
+        self._pub_markers = self.create_publisher(MarkerArray, MARKERS_TOPIC, _latched())
+        self._pub_diagnosis = self.create_publisher(String, DIAGNOSIS_TOPIC, _latched())
+        self._pub_diagnostics = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
         # Latched, one message per working pose: made when a model gives their number.
         self._pub_tcp: Publisher | None = None
         self._tcp_depth = 0
@@ -184,9 +184,8 @@ class CalibrationNode(Node):
                 self.get_logger().error(self._model_error)
 
     def _set_robot_description(self, urdf_xml: str) -> None:
-        cell = cell_from_dict(cell_document(self.settings, self._cell_doc),
-                              Path(self.settings.cell_file).parent, urdf_xml=urdf_xml)
-        cm = build_cell_model(cell)
+        cm = build_cell_model(with_overrides(self._cell, urdf_xml=urdf_xml,
+                                             working_poses=working_poses(self.settings)))
         scene = cm.collision_scene()
         self._capsules = scene.robot_capsules + [o for o in scene.obstacles
                                                  if isinstance(o, Capsule)]
@@ -205,7 +204,7 @@ class CalibrationNode(Node):
         if self._pub_tcp is None or depth != self._tcp_depth:
             if self._pub_tcp is not None:
                 self.destroy_publisher(self._pub_tcp)
-            self._pub_tcp = self.create_publisher(PoseWithCovarianceStamped, '~/tcp',
+            self._pub_tcp = self.create_publisher(PoseWithCovarianceStamped, TCP_TOPIC,
                                                   _latched(depth))
             self._tcp_depth = depth
         return self._pub_tcp
@@ -308,7 +307,7 @@ class CalibrationNode(Node):
         return design.verification.ok, (
             f'{len(design.configurations)} poses ({design.criterion}), predicted TCP '
             f'sqrt(trace) <= {tcp_um:.1f} µm; {design.status}; published on '
-            f'{self.resolve_topic_name("~/measurement_poses")}, written to {path}')
+            f'{self.resolve_topic_name(MEASUREMENT_POSES_TOPIC)}, written to {path}')
 
     async def _identify(self) -> tuple[bool, str]:
         """Identify from every accepted measurement (as ``kpi-calib identify`` does);
@@ -389,7 +388,7 @@ class CalibrationNode(Node):
         error = self._model_error or self._result_error
         if error or values['rejected.not_stored']:
             return 'ERROR', error or 'accepted measurements could not be stored', values
-        if result is not None and result.p_value <= 0.01:
+        if result is not None and not is_adequate(result.p_value):
             return 'WARN', f'model inadequate (p = {result.p_value:.2g})', values
         if rejected:
             return 'WARN', f'{n} accepted, {rejected} rejected', values

@@ -9,13 +9,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 from rclpy.parameter import Parameter
 
 from kpi_calib_ros.core.design import DESIGN_CRITERIA
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.io.bag import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC
-from kpi_calib_ros.io.cell import DEFAULT_CELL
+from kpi_calib_ros.io.cell import DEFAULT_CELL, WorkingPose, working_poses_from_arrays
+from kpi_calib_ros.io.names import (DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC,
+                                    ROBOT_DESCRIPTION_TOPIC)
 
 
 @dataclass(frozen=True)
@@ -41,7 +41,7 @@ class NodeSettings:
 PARAMETERS: dict[str, tuple[Any, bool, str]] = {
     'robot_description': ('', True, 'URDF document; empty: taken from the latched '
                           'robot_description_topic (as robot_state_publisher provides it)'),
-    'robot_description_topic': ('/robot_description', True,
+    'robot_description_topic': (ROBOT_DESCRIPTION_TOPIC, True,
                                 'latched std_msgs/String topic with the URDF'),
     'cell_file': ('', True, 'cell YAML (tracker, reflector, noise, working poses, obstacles); '
                   'empty: the built-in simulated cell'),
@@ -79,13 +79,7 @@ def settings_from_parameters(values: dict[str, Any]) -> NodeSettings:
     poses = tuple(float(v) for v in values['working_poses'] or ())
     names = tuple(str(v) for v in values['working_joint_names'] or ())
     if poses or names:
-        if not names or len(set(names)) != len(names):
-            raise ConfigError('working_joint_names', f'give the unique joint names of '
-                              f'working_poses, got {list(names)}')
-        if not poses or len(poses) % len(names) or not np.all(np.isfinite(poses)):
-            raise ConfigError('working_poses', f'must hold finite values (rad), '
-                              f'{len(names)} per pose (one per working_joint_names), '
-                              f'got {len(poses)} values')
+        working_poses_from_arrays(names, poses)  # the cell's validation, keys named as here
     if values['criterion'] not in DESIGN_CRITERIA:
         raise ConfigError('criterion', f'must be one of {list(DESIGN_CRITERIA)}, '
                           f'got {values["criterion"]!r}')
@@ -108,17 +102,12 @@ def settings_from_parameters(values: dict[str, Any]) -> NodeSettings:
         data_dir=str(Path(text('data_dir')).expanduser()), **topics)
 
 
-def cell_document(settings: NodeSettings, cell_doc: dict[str, Any]) -> dict[str, Any]:
-    """The cell file document with the ``working_poses`` parameters (if any) in place of
-    its working poses, ready for :func:`kpi_calib_ros.io.cell.cell_from_dict`, which
-    validates it (joint names, limits) in the one place cells are validated."""
-    doc = dict(cell_doc)
-    if settings.working_poses:
-        names = settings.working_joint_names
-        values = np.reshape(settings.working_poses, (-1, len(names)))
-        doc['working_poses'] = [{'joints': dict(zip(names, map(float, row)))}
-                                for row in values]
-    return doc
+def working_poses(settings: NodeSettings) -> tuple[WorkingPose, ...] | None:
+    """The ``working_poses`` parameters as working poses (None: keep the cell file's); their
+    joint names and limits are checked when the cell model is built."""
+    if not settings.working_poses:
+        return None
+    return working_poses_from_arrays(settings.working_joint_names, settings.working_poses)
 
 
-__all__ = ['NodeSettings', 'PARAMETERS', 'cell_document', 'settings_from_parameters']
+__all__ = ['NodeSettings', 'PARAMETERS', 'settings_from_parameters', 'working_poses']

@@ -22,7 +22,6 @@ node that receives nothing else.
 """
 from __future__ import annotations
 
-import argparse
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -196,21 +195,21 @@ def _await(node_counts: _NodeCounts, done) -> bool:
     return True
 
 
-def run_replay_command(args: argparse.Namespace) -> int:
+def run_replay(bag: str | Path, rate: float = 1.0, joint_topic: str = DEFAULT_JOINT_TOPIC,
+               point_topic: str = DEFAULT_POINT_TOPIC, wait_s: float = 10.0) -> int:
     """The ``kpi-calib replay`` subcommand: 0 if every message was delivered, 1 if not."""
     rclpy.init()
     node = rclpy.create_node('kpi_calib_replay')
     try:
-        report = replay(node, args.bag, args.rate, args.joint_topic, args.point_topic,
-                        args.wait_for_subscribers)
+        report = replay(node, bag, rate, joint_topic, point_topic, wait_s)
     except KeyboardInterrupt:
         return 130
     finally:
         node.destroy_node()
         rclpy.try_shutdown()
     (n_joints, n_points), seconds = report.sent, report.seconds
-    print(f'sent {n_joints} joint states and {n_points} tracker points from {args.bag} in '
-          f'{seconds:.1f} s (rate {args.rate:g})')
+    print(f'sent {n_joints} joint states and {n_points} tracker points from {bag} in '
+          f'{seconds:.1f} s (rate {rate:g})')
     if report.delivered is None:
         print('no kpi_calib_node counts seen; DDS acknowledged '
               + ('every message' if report.acknowledged else 'NOT every message'))
@@ -222,4 +221,4 @@ def run_replay_command(args: argparse.Namespace) -> int:
     return 0 if report.complete else 1
 
 
-__all__ = ['ReplayReport', 'replay', 'run_replay_command', 'wait_for_subscribers']
+__all__ = ['ReplayReport', 'replay', 'run_replay', 'wait_for_subscribers']

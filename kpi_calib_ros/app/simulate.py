@@ -1,4 +1,4 @@
-"""Simulated measurement campaigns written as MCAP bags (the built-in test bench).
+"""Simulation: measurement campaigns written as MCAP bags (the built-in test bench).
 
 A campaign draws a "true" robot (nominal + realistic errors), measures poses
 that are reachable, visible to the tracker and collision-free, and records the
@@ -11,18 +11,19 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from kpi_calib_ros.core.collision_check import verify_configuration
 from kpi_calib_ros.core.effects import hidden_effects
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.core.kinematics import link_poses, link_poses_function
+from kpi_calib_ros.core.kinematics import link_poses, link_poses_function, reflector_point
 from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
                                           true_parameters)
 from kpi_calib_ros.core.streams import synthesize_streams
 from kpi_calib_ros.io.bag import write_bag
 from kpi_calib_ros.io.cell import Cell, CellModel, build_cell_model, load_cell
-from kpi_calib_ros.io.results import write_atomic
+from kpi_calib_ros.io.design_io import read_design_poses
+from kpi_calib_ros.io.names import truth_path
+from kpi_calib_ros.io.results import write_truth
 
 
 def collision_filter(cm: CellModel):
@@ -38,7 +39,7 @@ def collision_filter(cm: CellModel):
         ok = np.zeros(len(q), dtype=bool)
         for i, row in enumerate(q):
             poses, tip = link_poses(fk, cm.robot, p, row)
-            reflector = tip[:3, :3] @ offset + tip[:3, 3]
+            reflector = reflector_point(tip, offset)
             ok[i] = verify_configuration(scene, poses, tracker, reflector).ok
         return ok
     return accept
@@ -48,20 +49,11 @@ def truth_cell_model(cell: Cell) -> tuple[CellModel, dict[str, float]]:
     """The cell's model plus the effects of ``simulation.hidden_effects``, and their
     true values (parameter name -> value) for the simulated robot."""
     cm = build_cell_model(cell)
-    sim = cell.raw.get('simulation') or {}
-    if not isinstance(sim, dict):
-        raise ConfigError('simulation', 'must be a mapping, e.g. {hidden_effects: '
-                          '{joint_compliance:joint_2: {c: 5.0e-7}}}')
-    effects, overrides = hidden_effects(sim.get('hidden_effects'), cm.robot,
+    effects, overrides = hidden_effects(cell.simulation.hidden_effects or None, cm.robot,
                                         base_dir=cell.source_dir or None)
     if effects:
         cm = build_cell_model(cell, effects=effects)
     return cm, overrides
-
-
-def truth_path(bag_path: str | Path) -> Path:
-    bag_path = Path(bag_path)
-    return bag_path.with_name(bag_path.stem + '.truth.yaml')
 
 
 def simulate_campaign(cell_path: str | Path, n: int, out: str | Path, seed: int,
@@ -112,6 +104,14 @@ def simulate_campaign(cell_path: str | Path, n: int, out: str | Path, seed: int,
              'tcp_true': [[float(x) for x in row]
                           for row in cm.model.predict(p_true, cm.q_work)],
              'working_poses': list(cm.working_pose_names)}
-    write_atomic(truth_path(out), yaml.safe_dump(truth, sort_keys=False))
+    write_truth(out, truth)
     return (f'simulated {len(q)} poses ({len(joints)} joint states, {len(points)} tracker '
             f'points) -> {out}\ntruth -> {truth_path(out)}')
+
+
+def run_simulate(cell_path: str | Path, n: int, out: str | Path, seed: int,
+                 poses_path: str | Path | None = None) -> int:
+    """``kpi-calib simulate``: the bag and its truth; ``poses_path`` a design.yaml to measure."""
+    poses = read_design_poses(poses_path) if poses_path else None
+    print(simulate_campaign(cell_path, n, out, seed, poses=poses))
+    return 0

@@ -11,16 +11,15 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import yaml
 
-from kpi_calib_ros.io.bag import read_bag
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
-from kpi_calib_ros.io.report import diagnose_cell, diagnosis_text, write_report
-from kpi_calib_ros.io.results import (summary_text, write_atomic,
-                                      write_calibration)
-from kpi_calib_ros.io.simulate import simulate_campaign, truth_path
-from kpi_calib_ros.pipeline import (calibration_document, identify_cell,
-                                    measurements_from_samples)
+from kpi_calib_ros.app.diagnose import diagnose_cell
+from kpi_calib_ros.app.identify import (calibration_document, identify_cell,
+                                        measurements_from_bag)
+from kpi_calib_ros.app.simulate import simulate_campaign
+from kpi_calib_ros.io.cell import (DEFAULT_CELL, build_cell_model, load_cell,
+                                  read_cell_document, write_cell_document)
+from kpi_calib_ros.io.report import diagnosis_text, write_report
+from kpi_calib_ros.io.results import read_truth, summary_text, write_calibration
 
 
 def run_demo(out: str | Path, seed: int) -> int:
@@ -31,13 +30,12 @@ def run_demo(out: str | Path, seed: int) -> int:
     print(f'== simulate: 60 random measurable, collision-free poses on {DEFAULT_CELL.name}')
     print(simulate_campaign(DEFAULT_CELL, 60, bag, seed, cm=cm))
     print('\n== identify from the bag')
-    joints, points = read_bag(bag)
-    data, pairing = measurements_from_samples(cm, joints, points)
+    data, pairing = measurements_from_bag(cm, bag)
     result = identify_cell(cm, data)
     doc = calibration_document(cm, result, pairing)
     write_calibration(out, doc)
     print(summary_text(doc))
-    truth = yaml.safe_load(truth_path(bag).read_text())
+    truth = read_truth(bag)
     tcp_true = np.array(truth['tcp_true'])
     print('\n== against the simulated truth')
     for name, est, true, cov in zip(result.working_pose_names, result.tcp, tcp_true,
@@ -66,26 +64,25 @@ def run_diagnosis_demo(out: str | Path, seed: int, n: int = 80) -> Path:
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    doc = yaml.safe_load(DEFAULT_CELL.read_text())
+    doc = read_cell_document(DEFAULT_CELL)
     doc['robot']['urdf'] = str((DEFAULT_CELL.parent / doc['robot']['urdf']).resolve())
     # On an adapter, off the flange axis: joint 6 then moves the reflector and the
     # wrist placement errors stay linear (on the axis they leave ~10 µm residuals).
     doc['reflector']['offset'] = [0.05, 0.0, 0.06]
     doc['simulation'] = {'hidden_effects': HIDDEN_EFFECT}
-    cell_path = write_atomic(out / 'hidden_effect_cell.yaml', yaml.safe_dump(doc, sort_keys=False))
+    cell_path = write_cell_document(out / 'hidden_effect_cell.yaml', doc)
     bag = out / 'campaign.mcap'
     spec = next(iter(HIDDEN_EFFECT))
     print(f'\n== diagnosis: the simulated robot has a hidden {spec} '
           f'({HIDDEN_EFFECT[spec]}), the model does not')
     print(simulate_campaign(cell_path, n, bag, seed + 1))
     cm = build_cell_model(load_cell(cell_path))  # geometric model: the cell lists no effects
-    joints, points = read_bag(bag)
-    data, _ = measurements_from_samples(cm, joints, points)
+    data, _ = measurements_from_bag(cm, bag)
     cd = diagnose_cell(cm, data)
     report = write_report(out, cd)
     print(diagnosis_text(cd))
     if cd.after is not None:
-        tcp_true = np.array(yaml.safe_load(truth_path(bag).read_text())['tcp_true'])
+        tcp_true = np.array(read_truth(bag)['tcp_true'])
         print(f'\n== TCP error against the simulated truth, before -> after adding {cd.added.name}')
         for i, name in enumerate(cd.result.working_pose_names):
             before = np.linalg.norm(cd.result.tcp[i] - tcp_true[i])

@@ -1,0 +1,43 @@
+"""Diagnosis: calibrate, test the model, add the most likely missing effect, compare.
+
+``kpi-calib diagnose``, the node's ``~/diagnose`` and the demo call
+:func:`diagnose_cell`; :mod:`kpi_calib_ros.io.report` writes what it returns.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+from kpi_calib_ros.app.identify import identify_cell, load_measurements, with_effects
+from kpi_calib_ros.core.diagnosis import CellDiagnosis, compare_models, diagnose
+from kpi_calib_ros.core.effects import parse_effect_spec
+from kpi_calib_ros.core.measurement import Measurements
+from kpi_calib_ros.core.residuals import ADEQUACY_ALPHA
+from kpi_calib_ros.io.cell import CellModel
+from kpi_calib_ros.io.names import DIAGNOSIS_FILE
+from kpi_calib_ros.io.report import diagnosis_text, write_report
+
+
+def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 5,
+                  alpha: float = ADEQUACY_ALPHA, add_best: bool = True) -> CellDiagnosis:
+    """Calibrate ``cm`` on ``data``, diagnose it and, when an effect is significant,
+    add the top one and compare before/after (full nonlinear refit)."""
+    result = identify_cell(cm, data)
+    diag = diagnose(cm.model, data, result, folds=folds, alpha=alpha)
+    if not add_best or diag.best is None:
+        return CellDiagnosis(cm.model, data, result, diag)
+    best = parse_effect_spec(diag.best.spec, cm.robot)
+    richer = with_effects(cm, (best,))
+    after = identify_cell(richer, data)
+    comparison = compare_models((cm.model, result), (richer.model, after), data, folds=folds)
+    return CellDiagnosis(cm.model, data, result, diag, best, richer.model, after, comparison)
+
+
+def run_diagnose(cell_path: str | Path, bag_path: str | Path, out_dir: str | Path,
+                 effects: str = '', folds: int = 5, alpha: float = ADEQUACY_ALPHA) -> int:
+    """``kpi-calib diagnose``: diagnosis.json, report.md and plots in ``out_dir``."""
+    cm, data, _ = load_measurements(cell_path, bag_path, effects)
+    cd = diagnose_cell(cm, data, folds=folds, alpha=alpha)
+    report = write_report(out_dir, cd)
+    print(diagnosis_text(cd))
+    print(f'written: {Path(out_dir) / DIAGNOSIS_FILE}, {report}')
+    return 0

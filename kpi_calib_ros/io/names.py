@@ -1,0 +1,37 @@
+"""Names of the files and topics the package writes and reads, in one place.
+
+Result files are written by the CLI and the node alike; the topic names are
+those ``ros2 bag record`` captures and the node subscribes and publishes (``~/``
+names resolve under the node's name).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+# ---------------------------------------------------------------- result files
+CALIBRATION_FILE = 'calibration.yaml'
+CALIBRATED_URDF_FILE = 'robot_description_calibrated.urdf'
+DESIGN_FILE = 'design.yaml'
+DIAGNOSIS_DIR = 'diagnosis'
+DIAGNOSIS_FILE = 'diagnosis.json'
+REPORT_FILE = 'report.md'
+# What a campaign reset archives: every result derived from the measurements.
+RESULT_FILES = (CALIBRATION_FILE, CALIBRATED_URDF_FILE, DIAGNOSIS_DIR)
+
+# ---------------------------------------------------------------------- topics
+DEFAULT_JOINT_TOPIC = '/joint_states'
+DEFAULT_POINT_TOPIC = '/laser_tracker/point'
+ROBOT_DESCRIPTION_TOPIC = '/robot_description'
+DIAGNOSTICS_TOPIC = '/diagnostics'
+MEASUREMENT_POSES_TOPIC = '~/measurement_poses'
+CALIBRATION_TOPIC = '~/calibration'
+CALIBRATED_URDF_TOPIC = '~/robot_description_calibrated'
+MARKERS_TOPIC = '~/markers'
+DIAGNOSIS_TOPIC = '~/diagnosis'
+TCP_TOPIC = '~/tcp'
+
+
+def truth_path(bag_path: str | Path) -> Path:
+    """``<bag>.truth.yaml``: the simulated truth written next to a simulated bag."""
+    bag_path = Path(bag_path)
+    return bag_path.with_name(bag_path.stem + '.truth.yaml')

@@ -1,0 +1,82 @@
+"""Cell file validation in io/cell.py: sections, working poses and overrides."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import yaml
+
+from kpi_calib_ros.core.design import DesignSettings
+from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.io.cell import (DEFAULT_CELL, WorkingPose, build_cell_model, cell_from_dict,
+                                  load_cell, simulation_settings, with_overrides,
+                                  working_poses_from_arrays)
+
+
+def _doc() -> dict:
+    return yaml.safe_load(DEFAULT_CELL.read_text())
+
+
+def test_design_and_simulation_sections_are_typed():
+    doc = _doc()
+    doc['design'] = {'candidates': 123, 'weights': {'car_roof_edge': 2}}
+    doc['simulation'] = {'hidden_effects': {'joint_compliance:joint_2': {'c': 4e-7}}}
+    cell = cell_from_dict(doc, DEFAULT_CELL.parent)
+    assert cell.design == DesignSettings(candidates=123, weights={'car_roof_edge': 2.0})
+    assert cell.simulation.hidden_effects == {'joint_compliance:joint_2': {'c': 4e-7}}
+    assert load_cell(DEFAULT_CELL).simulation.hidden_effects == {}
+
+
+@pytest.mark.parametrize('section, key', [
+    ({'design': {'candidates': 0}}, 'design.candidates'),
+    ({'design': {'colision': False}}, 'design.colision'),
+    ({'simulation': [1, 2]}, 'simulation'),
+    ({'simulation': {'hiden_effects': {}}}, 'simulation.hiden_effects'),
+    ({'simulation': {'hidden_effects': ['joint_compliance:joint_2']}},
+     'simulation.hidden_effects'),
+])
+def test_bad_sections_name_the_key(section, key):
+    doc = _doc()
+    doc.update(section)
+    with pytest.raises(ConfigError) as info:
+        cell_from_dict(doc, DEFAULT_CELL.parent)
+    assert info.value.key == key
+
+
+def test_simulation_section_may_be_absent():
+    assert simulation_settings(None).hidden_effects == {}
+
+
+def test_flat_working_poses_become_named_poses():
+    poses = working_poses_from_arrays(['a', 'b'], [0.1, 0.2, 0.3, 0.4])
+    assert poses == (WorkingPose('work_1', {'a': 0.1, 'b': 0.2}),
+                     WorkingPose('work_2', {'a': 0.3, 'b': 0.4}))
+
+
+@pytest.mark.parametrize('names, values, key', [
+    ([], [0.0], 'working_joint_names'),
+    (['a', 'a'], [0.0, 0.0], 'working_joint_names'),
+    (['a', 'b'], [0.0, 0.0, 0.0], 'working_poses'),
+    (['a', 'b'], [0.0, float('nan')], 'working_poses[1]'),
+])
+def test_flat_working_poses_are_validated(names, values, key):
+    with pytest.raises(ConfigError) as info:
+        working_poses_from_arrays(names, values)
+    assert info.value.key == key
+
+
+def test_overrides_replace_urdf_and_working_poses():
+    cell = load_cell(DEFAULT_CELL, urdf_xml='')
+    with pytest.raises(ConfigError, match='robot.urdf'):
+        build_cell_model(cell)
+    urdf = load_cell(DEFAULT_CELL).urdf_xml
+    q = [0.1, -0.2, 0.3, 0.0, 0.5, -0.1]
+    names = [f'joint_{i}' for i in range(1, 7)]
+    poses = working_poses_from_arrays(names, q)
+    cm = build_cell_model(with_overrides(cell, urdf_xml=urdf, working_poses=poses))
+    assert cm.cell.urdf_path == '<robot_description>'
+    np.testing.assert_array_equal(cm.q_work, [q])
+    assert cm.working_pose_names == ('work_1',)
+    # Joint names are checked against the robot when the model is built.
+    wrong = working_poses_from_arrays(['a'] + names[1:], q)
+    with pytest.raises(ConfigError, match='working_poses'):
+        build_cell_model(with_overrides(cell, urdf_xml=urdf, working_poses=wrong))
