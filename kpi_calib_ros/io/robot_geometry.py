@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from typing import Any, Sequence
 
 import numpy as np
+import pinocchio as pin
 
 from kpi_calib_ros.core.capsule_fit import capsules_from_urdf
 from kpi_calib_ros.core.collision import Capsule, HalfSpace, capsule_margin, halfspace_margin
@@ -46,7 +47,9 @@ class RobotGeometry:
     capsules : tuple of Capsule
         Robot capsules in their link frames (m): the cell file's first, then the fitted ones.
     fitted_links : tuple of str
-        Links whose capsules were fitted to the URDF collision geometry.
+        Chain links whose capsules were fitted to the URDF collision geometry. Links off
+        the chain but carried by a chain link (a hand, gripper fingers at their neutral
+        position, a tool) are always fitted and carried by that link's frame.
     matrix : CollisionMatrix
         Sampled classes of the link pairs.
     fixed_pairs : tuple of (str, str)
@@ -55,6 +58,8 @@ class RobotGeometry:
         The URDF with its collision mesh URIs resolved to absolute paths.
     has_meshes : bool
         Whether the URDF has collision meshes (then :func:`mesh_check` applies).
+    n_given : int
+        The first ``n_given`` of :attr:`capsules` come from the cell file.
     """
 
     capsules: tuple[Capsule, ...]
@@ -63,6 +68,7 @@ class RobotGeometry:
     fixed_pairs: tuple[tuple[str, str], ...]
     urdf_xml: str
     has_meshes: bool
+    n_given: int = 0
 
     def skip_pairs(self) -> set[frozenset[str]]:
         """Link/obstacle pairs a design leaves out (besides ``collision.ignore_pairs``)."""
@@ -75,8 +81,8 @@ class RobotGeometry:
         return {
             'capsules': [{'name': c.name, 'link': c.frame, 'a': [round(v, 6) for v in c.a],
                           'b': [round(v, 6) for v in c.b], 'radius': round(c.radius, 6),
-                          'source': 'fitted' if c.frame in self.fitted_links else 'cell'}
-                         for c in self.capsules],
+                          'source': 'cell' if k < self.n_given else 'fitted'}
+                         for k, c in enumerate(self.capsules)],
             'skipped_pairs': skipped,
             'matrix_samples': self.matrix.samples, 'matrix_seed': self.matrix.seed,
         }
@@ -84,8 +90,8 @@ class RobotGeometry:
     def summary_lines(self) -> list[str]:
         """The summary as readable lines for stdout."""
         doc = self.summary()
-        lines = [f'  robot capsules ({len(self.fitted_links)} link(s) fitted to the URDF '
-                 'collision geometry):']
+        lines = [f'  robot capsules ({len(self.capsules) - self.n_given} fitted to the URDF '
+                 f'collision geometry, {self.n_given} from the cell file):']
         lines += [f"    {c['name']} on {c['link']} ({c['source']}): a {c['a']} b {c['b']} "
                   f"r {c['radius']} m" for c in doc['capsules']]
         lines.append(f"  skipped pairs ({len(doc['skipped_pairs'])}, sampled over "
@@ -146,7 +152,8 @@ def robot_geometry(robot: RobotModel, urdf_xml: str, given: Sequence[Capsule],
         # Every link has hand-given capsules: the meshes are not needed for the design.
         resolved, has_meshes = urdf_xml, False
     fitted = capsules_from_urdf(resolved, to_fit) if to_fit else []
-    capsules = tuple(given) + tuple(fitted)
+    attached = _attached_capsules(robot, resolved)
+    capsules = tuple(given) + tuple(fitted) + tuple(attached)
     lower = np.where(np.isfinite(robot.lower), robot.lower, -np.pi)
     upper = np.where(np.isfinite(robot.upper), robot.upper, np.pi)
     q_default = 0.5 * (lower + upper)
@@ -154,11 +161,52 @@ def robot_geometry(robot: RobotModel, urdf_xml: str, given: Sequence[Capsule],
                                  q_default=q_default)
     geometry = RobotGeometry(capsules, tuple(dict.fromkeys(c.frame for c in fitted)), matrix,
                              _fixed_pairs(robot, capsules, obstacles, q_default), resolved,
-                             has_meshes)
+                             has_meshes, len(given))
     if len(_CACHE) >= _CACHE_SIZE:
         _CACHE.pop(next(iter(_CACHE)))
     _CACHE[key] = geometry
     return geometry
+
+
+def _attached_capsules(robot: RobotModel, urdf_xml: str) -> list[Capsule]:
+    """Capsules of the links off the chain that a chain link carries, in its frame.
+
+    A link is carried by the chain link whose joint is its nearest chain ancestor (fixed
+    joints and joints not on the chain, e.g. gripper fingers, held at their neutral
+    position, as the mesh check holds them); links upstream of the first chain joint
+    are carried by the base link. Names are the carried link's (``panda_hand``).
+    """
+    model = robot.pin_model
+    chain = robot.link_names
+    root = ET.fromstring(urdf_xml)
+    with_geometry = {link.get('name') for link in root.iter('link') if link.find('collision')
+                     is not None}
+    joint_of = {model.getJointId(j.name): j.child_link for j in robot.joints}
+    base_link = chain[0]
+    carried: dict[str, str] = {}
+    for frame in model.frames:
+        name = frame.name
+        if frame.type != pin.FrameType.BODY or name in chain or name not in with_geometry:
+            continue
+        jid = frame.parentJoint
+        while jid != 0 and jid not in joint_of:
+            jid = model.parents[jid]
+        carrier = joint_of.get(jid, base_link)
+        if jid == 0 and model.frames[model.getFrameId(robot.base_frame)].parentJoint != 0:
+            continue  # upstream of a base that sits on a joint: not part of this arm
+        carried[name] = carrier
+    if not carried:
+        return []
+    data = model.createData()
+    pin.framesForwardKinematics(model, data, pin.neutral(model))
+    out = []
+    for cap in capsules_from_urdf(urdf_xml, list(carried)):
+        carrier = carried[cap.frame]
+        rel = (data.oMf[model.getFrameId(carrier, pin.BODY)].inverse()
+               * data.oMf[model.getFrameId(cap.frame, pin.BODY)])
+        a, b = (rel.rotation @ np.asarray(p) + rel.translation for p in (cap.a, cap.b))
+        out.append(Capsule(cap.name, carrier, a, b, cap.radius))
+    return out
 
 
 def _fixed_pairs(robot: RobotModel, capsules: Sequence[Capsule],
