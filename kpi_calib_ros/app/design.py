@@ -13,8 +13,8 @@ import numpy as np
 
 from kpi_calib_ros.core.design import DesignResult, design_context, design_measurements
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
-from kpi_calib_ros.io.robot_geometry import mesh_check
 from kpi_calib_ros.io.design_io import plot_design, plot_ellipsoids, summary_text, write_design
+from kpi_calib_ros.io.robot_geometry import mesh_check
 
 
 def design_cell_model(cm: CellModel, n: int, criterion: str, seed: int,

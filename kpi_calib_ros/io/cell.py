@@ -150,8 +150,8 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None) -> Cel
         urdf_xml = urdf_path.read_text()
     else:
         urdf_path = Path('<robot_description>')
-    tracker = doc.get('tracker') or {}
-    reflector = doc.get('reflector') or {}
+    tracker: dict[str, Any] = doc.get('tracker') or {}
+    reflector: dict[str, Any] = doc.get('reflector') or {}
     for key, section in (('tracker', tracker), ('reflector', reflector)):
         if not isinstance(section, dict):
             raise ConfigError(key, 'must be a mapping')
