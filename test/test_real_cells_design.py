@@ -65,3 +65,36 @@ def test_stock_mesh_urdf_design_is_mesh_collision_free_and_as_good_as_hand_capsu
           f'/{N} (hand)')
     print(hand_out[hand_out.find('verification'):][:1500])
     assert abs(ratio - 1.0) <= 0.10
+
+
+def test_configurations_in_mesh_collision_are_violations_and_the_design_is_not_ok():
+    """Random UR10 poses (some self-colliding): each pair the mesh check finds is a
+    violation line and the design is not ok; collision-free poses leave it ok."""
+    import numpy as np
+
+    from kpi_calib_ros.app.design import mesh_verified
+    from kpi_calib_ros.core.design import DesignResult
+    from kpi_calib_ros.core.design_constraints import DesignVerification
+    from kpi_calib_ros.io.robot_geometry import mesh_check
+
+    cm = build_cell_model(load_cell(DATA / 'ur10_mesh_cell.yaml'))
+    lower, upper = np.maximum(cm.robot.lower, -np.pi), np.minimum(cm.robot.upper, np.pi)
+    q = np.random.default_rng(3).uniform(lower, upper, size=(120, 6))
+    check, _ = mesh_check(cm.robot_geometry(), cm.robot, q)
+    bad, good = check.colliding, [k for k in range(len(q)) if k not in check.colliding]
+    assert bad and good
+
+    def result(configurations):
+        n = len(configurations)
+        return DesignResult(configurations, tuple(cm.joint_names), 'kpi', 1.0, {}, np.zeros(0),
+                            np.zeros(0), (), (), np.zeros(n), np.zeros(n), 1,
+                            DesignVerification(True, (), np.zeros(n), np.zeros(n), 1), {},
+                            'ok', {}, n, 1.0)
+
+    checked, doc = mesh_verified(cm, result(q[bad[:3] + good[:3]]))
+    assert not checked.verification.ok and doc['mesh_check']['in_collision'] == 3
+    assert all(line.startswith(('configuration 0:', 'configuration 1:', 'configuration 2:'))
+               and 'mesh collision' in line for line in checked.verification.violations)
+    assert '3/6 configurations in mesh collision' in checked.status
+    clean, doc = mesh_verified(cm, result(q[good[:5]]))
+    assert clean.verification.ok and doc['mesh_check']['in_collision'] == 0
