@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -78,23 +79,8 @@ def test_placement_keys_are_optional_but_a_design_needs_the_tracker_pose():
     assert info.value.key == 'tracker.base_in_tracker'
 
 
-MISSING_MESH_URDF = """<robot name="two">
-  <link name="base"><collision><geometry><mesh filename="package://no_such_pkg/meshes/base.stl"/>
-  </geometry></collision></link>
-  <link name="l1"><collision><geometry><mesh filename="package://no_such_pkg/meshes/l1.stl"/>
-  </geometry></collision></link>
-  <link name="l2"><collision><geometry><mesh filename="file:///nowhere/l2.stl"/></geometry>
-  </collision></link>
-  <joint name="j1" type="revolute"><parent link="base"/><child link="l1"/>
-    <origin xyz="0 0 0.3"/><axis xyz="0 0 1"/><limit lower="-3" upper="3" effort="1" velocity="1"/>
-  </joint>
-  <joint name="j2" type="revolute"><parent link="l1"/><child link="l2"/>
-    <origin xyz="0.4 0 0"/><axis xyz="0 1 0"/><limit lower="-2" upper="2" effort="1" velocity="1"/>
-  </joint>
-  <link name="tip"/>
-  <joint name="tip_joint" type="fixed"><parent link="l2"/><child link="tip"/>
-    <origin xyz="0.3 0 0"/></joint>
-</robot>"""
+# Two-joint arm whose collision meshes exist nowhere.
+MISSING_MESH_URDF = (Path(__file__).resolve().parent / 'data' / 'missing_mesh_arm.urdf').read_text()
 
 
 def test_identification_needs_no_geometry_and_design_names_what_it_could_not_find(tmp_path):

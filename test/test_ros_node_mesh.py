@@ -150,3 +150,37 @@ def test_node_draws_the_fitted_capsules_after_a_design(tmp_path, ros_domain):
         if node is not None:
             node.destroy_node()
         rclpy.shutdown(context=context)
+
+
+def test_node_accepts_a_description_whose_meshes_cannot_be_found(tmp_path, ros_domain):
+    """Identification needs the chain only: the model is ready; a design says what is missing."""
+    missing_mesh_urdf = (DATA / 'missing_mesh_arm.urdf').read_text()
+    cell = tmp_path / 'cell.yaml'
+    cell.write_text(yaml.safe_dump({
+        'robot': {'urdf': 'unused.urdf', 'base_frame': 'base', 'tip_frame': 'tip'},
+        'tracker': {'base_in_tracker': [2.0, 0.0, 0.0, 0.0, 0.0, 3.0]},
+        'noise': {'sigma': SIGMA}, 'working_poses': [[0.5, 0.3]]}))
+    context = Context()
+    rclpy.init(context=context, domain_id=ros_domain)
+    node = executor = spinner = None
+    try:
+        node = CalibrationNode(context=context, parameter_overrides=[
+            Parameter('robot_description', value=missing_mesh_urdf),
+            Parameter('cell_file', value=str(cell)),
+            Parameter('data_dir', value=str(tmp_path / 'data'))])
+        assert node.status()[2]['state'] == 'idle' and node._cm.joint_names == ['j1', 'j2']
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node)
+        spinner = threading.Thread(target=executor.spin, daemon=True)
+        spinner.start()
+        ok, message = _run(node, executor, 'designing', node._design)
+        assert not ok and 'package://no_such_pkg/meshes/base.stl' in message
+        assert 'tried' in message
+    finally:
+        if executor is not None:
+            executor.shutdown()
+        if spinner is not None:
+            spinner.join(timeout=10)
+        if node is not None:
+            node.destroy_node()
+        rclpy.shutdown(context=context)
