@@ -132,6 +132,10 @@ def test_node_draws_the_fitted_capsules_after_a_design(tmp_path, ros_domain):
         spinner.start()
         ok, message = _run(node, executor, 'designing', node._design)
         assert ok, message
+        written = yaml.safe_load((tmp_path / 'data' / 'design.yaml').read_text())
+        assert written['verification']['ok']
+        assert {c['link'] for c in written['geometry']['capsules']} == set(
+            node._cm.robot.link_names)
         links = node._cm.robot.link_names
         fitted = node._cm.robot_geometry().capsules
         assert {c.frame for c in fitted} == set(links)
