@@ -7,6 +7,8 @@ import numpy as np
 import pytest
 import yaml
 
+from kpi_calib_ros.core.collision import CollisionScene
+from kpi_calib_ros.core.collision_matrix import SKIPPED_KINDS
 from kpi_calib_ros.core.covariance import kkt_covariance, kpi_jacobians, parameter_covariance
 from kpi_calib_ros.core.design import (DesignSettings, build_problem, design_context,
                                        design_measurements)
@@ -181,7 +183,16 @@ def test_pairs_violated_almost_always_are_flagged(cell):
     raw = yaml.safe_load(DEFAULT_CELL.read_text())
     raw['collision']['ignore_pairs'] = [p for p in raw['collision']['ignore_pairs']
                                         if 'link_4' not in p]
-    bare = build_cell_model(cell_from_dict(raw, DEFAULT_CELL.parent)).design_cell()
+    cm = build_cell_model(cell_from_dict(raw, DEFAULT_CELL.parent))
+    # The sampled collision matrix skips both pairs (they overlap by construction) ...
+    skipped = {frozenset(p.links): p.kind for p in cm.robot_geometry().matrix.pairs
+               if p.kind in SKIPPED_KINDS}
+    assert {frozenset({'link_2', 'link_4'}), frozenset({'link_4', 'link_6'})} <= set(skipped)
+    # ... and without it, the design's own screening flags them.
+    bare = cm.design_cell()
+    bare = dataclasses.replace(bare, scene=CollisionScene(
+        bare.scene.robot_capsules, bare.scene.obstacles, bare.scene.chain_links,
+        ignore_pairs=set(cm.cell.ignore_pairs), beam_radius=cm.cell.beam_radius))
     flagged = flag_pairs(bare, bare.scene, np.random.default_rng(8), samples=200)
     print(flagged)
     assert set(flagged) == {'link_2~link_4', 'link_4~link_6'}

@@ -5,22 +5,58 @@ uses the cell file's ``design:`` settings, and writes design.yaml and its plots.
 """
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 
 from kpi_calib_ros.core.design import DesignResult, design_context, design_measurements
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
 from kpi_calib_ros.io.design_io import plot_design, plot_ellipsoids, summary_text, write_design
+from kpi_calib_ros.io.robot_geometry import mesh_check
 
 
 def design_cell_model(cm: CellModel, n: int, criterion: str, seed: int,
                       progress: Callable[[str], None] | None = None) -> DesignResult:
     """N configurations optimal for ``criterion`` in the cell of ``cm`` (its ``design:``
-    settings), drawn with ``numpy.random.default_rng(seed)``."""
-    return design_measurements(cm.design_cell(), n, criterion, np.random.default_rng(seed),
-                               cm.cell.design, progress=progress)
+    settings), drawn with ``numpy.random.default_rng(seed)``, verified on the meshes."""
+    result = design_measurements(cm.design_cell(), n, criterion, np.random.default_rng(seed),
+                                 cm.cell.design, progress=progress)
+    return mesh_verified(cm, result)[0]
+
+
+def mesh_verified(cm: CellModel, result: DesignResult) -> tuple[DesignResult, dict[str, Any]]:
+    """``result`` checked against the URDF collision MESHES (Pinocchio + coal), independently
+    of the capsules the design used, and the geometry section of design.yaml.
+
+    A configuration in mesh collision is a violation like any other: the design is then
+    not ok. Returns the result (verification and status extended) and a YAML-ready
+    ``{capsules, skipped_pairs, mesh_check}`` document.
+    """
+    geometry = cm.robot_geometry()
+    doc = geometry.summary()
+    if not geometry.has_meshes:
+        doc['mesh_check'] = {'run': False, 'why': 'the URDF has no collision meshes '
+                             '(or every link has hand-given capsules and the meshes were '
+                             'not found)'}
+        return result, doc
+    check, at_default = mesh_check(geometry, cm.robot, result.configurations,
+                                   cm.cell.ignore_pairs)
+    lines = tuple(f'configuration {k}: mesh collision {a}~{b}'
+                  for k, pairs in enumerate(check.collisions) for a, b in pairs)
+    doc['mesh_check'] = {
+        'run': True, 'configurations': len(check.collisions),
+        'in_collision': len(check.colliding), 'pairs_checked': len(check.checked),
+        'skipped_touching_at_default': [list(p) for p in at_default],
+        'excluded': [{'links': list(k), 'why': v} for k, v in check.excluded.items()]}
+    if not lines:
+        return result, doc
+    verification = dataclasses.replace(result.verification, ok=False,
+                                       violations=result.verification.violations + lines)
+    status = (f'{result.status}; {len(check.colliding)}/{len(check.collisions)} '
+              'configurations in mesh collision (see verification)')
+    return dataclasses.replace(result, verification=verification, status=status), doc
 
 
 def run_design(cell_path: str | Path, n: int, criterion: str, out: str | Path,
@@ -38,15 +74,21 @@ def run_design(cell_path: str | Path, n: int, criterion: str, out: str | Path,
           f'{context.candidates.draws} draws ({context.seconds:.1f} s)')
     result = design_measurements(cell, n, criterion, rng, settings, context=context,
                                  progress=print)
+    result, geometry_doc = mesh_verified(cm, result)
     baseline = result if criterion == 'random' else design_measurements(
         cell, n, 'random', rng, settings, context=context)
     out = Path(out)
-    write_design(out, result)
+    write_design(out, result, extra={'geometry': geometry_doc})
     stem = out.with_suffix('')
     poses_png = plot_design(cell, context.check_scene, result, f'{stem}_poses.png')
     shown = [baseline] if result is baseline else [baseline, result]
     names = ['heuristic'] if result is baseline else ['heuristic', f'{criterion}-optimal']
     ell_png = plot_ellipsoids(shown, names, f'{stem}_ellipsoids.png')
     print(summary_text(result, None if result is baseline else baseline))
+    print('\n'.join(cm.robot_geometry().summary_lines()))
+    mesh = geometry_doc['mesh_check']
+    print(f"  mesh check: {mesh['in_collision']}/{mesh['configurations']} configurations in "
+          f"mesh collision ({mesh['pairs_checked']} link pairs checked)" if mesh['run'] else
+          f"  mesh check: not run, {mesh['why']}")
     print(f'written: {out}, {poses_png}, {ell_png}')
     return 0 if result.verification.ok else 1

@@ -21,6 +21,7 @@ from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation import CalibrationResult, identify
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
 from kpi_calib_ros.core.pairing import PairingResult, pair_measurements
+from kpi_calib_ros.core.registration import Registration, register
 from kpi_calib_ros.core.streams import JointSample, PointSample
 from kpi_calib_ros.io.bag import read_for_pairing
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
@@ -28,6 +29,13 @@ from kpi_calib_ros.io.measurement_log import stored_pairing
 from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC
 from kpi_calib_ros.io.report import comparison_text, comparison_to_dict
 from kpi_calib_ros.io.results import calibration_to_dict, summary_text, write_calibration
+
+# Geometric errors of a robot move its tip by millimetres; a nominal placement that
+# misses the points by more (median, m) is a wrong or unknown placement: register it.
+REGISTER_ABOVE_M = 0.01
+# The registered nominal points may still miss by the robot's geometric errors; far
+# more (rms, m) means the model cannot explain the data (units, joint order, tip frame).
+REGISTRATION_MAX_RMS_M = 0.02
 
 
 def measurements_from_samples(cm: CellModel, joint_samples: Iterable[JointSample],
@@ -66,11 +74,63 @@ def measurements_from_bag(cm: CellModel, path: str | Path,
     return measurements_from_samples(cm, contents.joints, contents.points, **pairer_options)
 
 
+def registered_start(cm: CellModel, data: Measurements) -> tuple[np.ndarray, Registration | None]:
+    """Start parameters for identification, with the placement registered when needed.
+
+    The cell's nominal values, except when ``tracker.base_in_tracker`` or
+    ``reflector.offset`` is left out of the cell, or the nominal prediction misses the
+    measured points by more than :data:`REGISTER_ABOVE_M` (median): then the base pose
+    in the tracker frame and the reflector offset on the tip are registered from the
+    points in closed form (:func:`kpi_calib_ros.core.registration.register`) and replace
+    the nominal ones. Returns the start vector and the registration (None if not run).
+
+    Raises
+    ------
+    DataError
+        The registered nominal points still miss by more than :data:`REGISTRATION_MAX_RMS_M`
+        rms: the message gives the distances and the likely causes (units, joint
+        order, tip frame).
+    """
+    params = cm.model.params
+    p0 = np.array(params.nominal, dtype=float)
+    if cm.cell.base_in_tracker_given and cm.cell.reflector_offset_given and len(data):
+        tau = cm.robot.gravity_torques(data.q) if cm.model.uses_torque else None
+        miss = np.linalg.norm(np.atleast_2d(data.eta) - cm.model.predict(p0, data.q, tau), axis=1)
+        if float(np.median(miss)) <= REGISTER_ABOVE_M:
+            return p0, None
+    tips = np.array([cm.robot.pin_tip_pose(row) for row in np.atleast_2d(data.q)])
+    reg = register(data.eta, tips, max_rms=REGISTRATION_MAX_RMS_M)
+    for k, c in enumerate(('x', 'y', 'z', 'roll', 'pitch', 'yaw')):
+        p0[params.index(f'base.{c}')] = reg.base_in_tracker[k]
+    for k, c in enumerate('xyz'):
+        p0[params.index(f'reflector.{c}')] = reg.reflector_offset[k]
+    return p0, reg
+
+
+def registration_text(reg: Registration | None, cm: CellModel) -> str:
+    """One readable line on the placement the identification started from."""
+    if reg is None:
+        return 'placement: the cell\'s tracker.base_in_tracker and reflector.offset'
+    why = ('left out of the cell' if not (cm.cell.base_in_tracker_given
+                                          and cm.cell.reflector_offset_given)
+           else f'the nominal missed the points by more than {REGISTER_ABOVE_M} m')
+    return (f'placement registered from the points ({why}): base_in_tracker '
+            f'{np.round(reg.base_in_tracker, 5).tolist()}, reflector offset '
+            f'{np.round(reg.reflector_offset, 5).tolist()} m, registered miss '
+            f'{reg.rms_m * 1e3:.3g} mm rms')
+
+
 def identify_cell(cm: CellModel, data: Measurements, p0: np.ndarray | None = None,
                   free: list[str] | None = None) -> CalibrationResult:
-    """Identify the cell's parameters from paired measurements (σ and poses from the cell)."""
+    """Identify the cell's parameters from paired measurements (σ and poses from the cell).
+
+    Without ``p0`` the start is :func:`registered_start`: an unknown or far-off
+    placement is registered from the data first.
+    """
     if len(data) == 0:
         raise DataError('no accepted measurement to identify from')
+    if p0 is None:
+        p0 = registered_start(cm, data)[0]
     return identify(cm.model, data, cm.cell.sigma, cm.q_work, list(cm.working_pose_names),
                     p0=p0, free=free, identifiability_method=cm.cell.identification_method,
                     priority=list(cm.cell.identification_priority) or None)
@@ -129,11 +189,13 @@ def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
     Returns 0 when the identification converged, else 1.
     """
     cm, data, pairing = load_measurements(cell_path, bag_path, effects)
-    result = identify_cell(cm, data)
+    p0, reg = registered_start(cm, data) if len(data) else (None, None)
+    result = identify_cell(cm, data, p0=p0)
     doc = calibration_document(cm, result, pairing)
     comparison = add_effect_comparison(doc, cm, data, result) if cm.model.effects else ''
     path = write_calibration(out_dir, doc)
     print(summary_text(doc))
+    print(registration_text(reg, cm))
     if comparison:
         print(comparison)
     print(f'written: {path}')

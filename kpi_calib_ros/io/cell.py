@@ -3,13 +3,15 @@
 A YAML document validated in one place; every error names the key path and the
 fix. Paths are relative to the cell file. Units are SI (m, rad, kg). Example::
 
-    robot: {urdf: ../robots/kr15_class.urdf, base_frame: base_link, tip_frame: tool0}
-    tracker: {frame_id: laser_tracker, base_in_tracker: [x, y, z, roll, pitch, yaw]}
-    reflector: {offset: [0, 0, 0.03], axis: [0, 0, 1], max_incidence: 0.5236}
+    robot: {urdf: ../robots/kr15_class.urdf, base_frame: base_link, tip_frame: tool0,
+            package_dirs: [../src]}    # optional: where package:// meshes are searched first
+    tracker: {frame_id: laser_tracker, base_in_tracker: [x, y, z, roll, pitch, yaw]}  # optional
+    reflector: {offset: [0, 0, 0.03], axis: [0, 0, 1], max_incidence: 0.5236}  # offset optional
     noise: {sigma: 2.0e-5}
     payload: {mass: 5.0, com: [0, 0, 0.05]}
     working_poses:
       - {name: roof, joints: {joint_1: 0.0, joint_2: 0.3, ...}}
+      - [0.0, -1.2, 1.7, -2.07, -1.57, 0.0]   # or joint values in chain order
     obstacles:                      # in the robot base frame
       - {name: floor, type: halfspace, normal: [0, 0, 1], offset: -0.5}
       - {name: car_roof, type: capsule, a: [1.6, -1.5, 0.9], b: [1.6, 1.5, 0.9], radius: 0.5}
@@ -28,7 +30,6 @@ import casadi as ca
 import numpy as np
 import yaml
 
-from kpi_calib_ros.core.capsule_fit import capsules_from_urdf
 from kpi_calib_ros.core.collision import Capsule, CollisionScene, HalfSpace
 from kpi_calib_ros.core.design import DesignSettings
 from kpi_calib_ros.core.design_cell import DesignCell
@@ -38,7 +39,9 @@ from kpi_calib_ros.core.kinematics import pose6
 from kpi_calib_ros.core.measurement import MeasurementModel
 from kpi_calib_ros.core.parameters import ParameterSet, geometric_parameters
 from kpi_calib_ros.core.robot import Payload, RobotModel
+from kpi_calib_ros.io.resources import resolve_uri
 from kpi_calib_ros.io.results import write_atomic
+from kpi_calib_ros.io.robot_geometry import RobotGeometry, robot_geometry
 
 _TOP_KEYS = {'robot', 'tracker', 'reflector', 'noise', 'payload', 'working_poses',
              'obstacles', 'collision', 'identification', 'effects', 'simulation', 'design'}
@@ -47,8 +50,11 @@ DEFAULT_CELL = Path(__file__).resolve().parent.parent / 'data' / 'cells' / 'defa
 
 @dataclass(frozen=True)
 class WorkingPose:
+    """A working pose by joint name (``joints``) or in chain order (``values``, rad/m)."""
+
     name: str
     joints: dict[str, float]
+    values: tuple[float, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -89,6 +95,12 @@ class Cell:
     design: DesignSettings = field(default_factory=DesignSettings)
     simulation: SimulationSettings = field(default_factory=SimulationSettings)
     source_dir: str = field(default='', compare=False)  # folder of the cell file
+    # robot.package_dirs as written (relative to source_dir): searched first for package://
+    package_dirs: tuple[str, ...] = ()
+    # False when the cell leaves tracker.base_in_tracker / reflector.offset out: the
+    # stored zeros are then placeholders, registered from the data before identifying.
+    base_in_tracker_given: bool = True
+    reflector_offset_given: bool = True
 
 
 def load_cell(path: str | Path, urdf_xml: str | None = None) -> Cell:
@@ -129,14 +141,20 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None) -> Cel
     if urdf_xml is None:
         urdf_rel = _str(robot, 'robot.urdf', 'urdf')
         urdf_path = (base_dir / urdf_rel).resolve()
+        if urdf_rel.startswith(('package://', 'file://')):  # resolved the ROS way
+            urdf_path = resolve_uri(urdf_rel, _package_dirs(robot.get('package_dirs')),
+                                    base_dir, key='robot.urdf', referenced_by='robot.urdf')
         if not urdf_path.is_file():
             raise ConfigError('robot.urdf', f'file {str(urdf_path)!r} does not exist; paths are '
                               'relative to the cell file')
         urdf_xml = urdf_path.read_text()
     else:
         urdf_path = Path('<robot_description>')
-    tracker = _mapping(doc, 'tracker')
-    reflector = _mapping(doc, 'reflector')
+    tracker: dict[str, Any] = doc.get('tracker') or {}
+    reflector: dict[str, Any] = doc.get('reflector') or {}
+    for key, section in (('tracker', tracker), ('reflector', reflector)):
+        if not isinstance(section, dict):
+            raise ConfigError(key, 'must be a mapping')
     noise = _mapping(doc, 'noise')
     payload = doc.get('payload') or {}
     axis = _vector(reflector.get('axis', [0, 0, 1]), 'reflector.axis', 3)
@@ -163,8 +181,9 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None) -> Cel
         base_frame=_str(robot, 'robot.base_frame', 'base_frame'),
         tip_frame=_str(robot, 'robot.tip_frame', 'tip_frame'),
         tracker_frame=str(tracker.get('frame_id', 'laser_tracker')),
-        base_in_tracker=_vector(tracker.get('base_in_tracker'), 'tracker.base_in_tracker', 6),
-        reflector_offset=_vector(reflector.get('offset'), 'reflector.offset', 3),
+        base_in_tracker=_optional_vector(tracker.get('base_in_tracker'),
+                                         'tracker.base_in_tracker', 6),
+        reflector_offset=_optional_vector(reflector.get('offset'), 'reflector.offset', 3),
         reflector_axis=axis / np.linalg.norm(axis), max_incidence=max_inc, sigma=sigma,
         payload_mass=mass,
         payload_com=_vector(payload.get('com', [0, 0, 0]), 'payload.com', 3),
@@ -180,7 +199,10 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None) -> Cel
         identification_priority=tuple(ident.get('priority') or ()),
         effects=tuple(str(e) for e in (doc.get('effects') or [])),
         design=design_settings(doc.get('design')),
-        simulation=simulation_settings(doc.get('simulation')), source_dir=str(base_dir))
+        simulation=simulation_settings(doc.get('simulation')), source_dir=str(base_dir),
+        package_dirs=_package_dirs(robot.get('package_dirs')),
+        base_in_tracker_given=tracker.get('base_in_tracker') is not None,
+        reflector_offset_given=reflector.get('offset') is not None)
 
 
 def with_overrides(cell: Cell, urdf_xml: str | None = None,
@@ -272,6 +294,20 @@ def _vector(value: Any, path: str, n: int) -> np.ndarray:
     return arr
 
 
+def _optional_vector(value: Any, path: str, n: int) -> np.ndarray:
+    """``_vector``, or zeros when the key is left out (registered from the data later)."""
+    return np.zeros(n) if value is None else _vector(value, path, n)
+
+
+def _package_dirs(value: Any) -> tuple[str, ...]:
+    if value is None:
+        return ()
+    if not isinstance(value, list) or not all(isinstance(v, str) and v for v in value):
+        raise ConfigError('robot.package_dirs', 'must be a list of directories (relative to the '
+                          f'cell file) where package:// URIs are searched, got {value!r}')
+    return tuple(value)
+
+
 def _number_or_vector(value: Any, path: str) -> Any:
     if isinstance(value, (int, float)) and not isinstance(value, bool):
         return float(value)
@@ -281,12 +317,18 @@ def _number_or_vector(value: Any, path: str) -> Any:
 def _working_poses(value: Any) -> tuple[WorkingPose, ...]:
     if not isinstance(value, list) or not value:
         raise ConfigError('working_poses', 'give at least one working pose as '
-                          '{name: ..., joints: {joint_name: value_rad, ...}}')
+                          '{name: ..., joints: {joint_name: value_rad, ...}} or as a list of '
+                          'joint values in chain order')
     poses = []
     for i, item in enumerate(value):
         key = f'working_poses[{i}]'
+        if isinstance(item, list):  # joint values in chain order; length checked on the robot
+            poses.append(WorkingPose(f'work_{i + 1}', {}, tuple(
+                _joint_value(v, f'{key}[{j}]') for j, v in enumerate(item))))
+            continue
         if not isinstance(item, dict) or not isinstance(item.get('joints'), dict):
-            raise ConfigError(key, 'must be a mapping with a joints: {name: rad} mapping')
+            raise ConfigError(key, 'must be a mapping with a joints: {name: rad} mapping, or a '
+                              'list of joint values in chain order')
         joints = {str(name): _joint_value(v, f'{key}.joints.{name}')
                   for name, v in item['joints'].items()}
         poses.append(WorkingPose(str(item.get('name', f'work_{i + 1}')), joints))
@@ -374,21 +416,32 @@ class CellModel:
         return self.robot.joint_names
 
     def collision_scene(self) -> CollisionScene:
-        """Robot capsules (cell file first, else fitted to URDF collision geometry) and obstacles."""
+        """Robot capsules (cell file first, else fitted to URDF collision geometry) and
+        obstacles; pairs skipped by the sampled collision matrix and ``ignore_pairs``."""
+        geometry = self.robot_geometry()
+        return CollisionScene(list(geometry.capsules), list(self.cell.obstacles),
+                              self.robot.link_names,
+                              ignore_pairs=set(self.cell.ignore_pairs) | geometry.skip_pairs(),
+                              beam_radius=self.cell.beam_radius)
+
+    def robot_geometry(self) -> RobotGeometry:
+        """Capsules, collision matrix and resolved meshes (built on first use, cached)."""
         links = self.robot.link_names
-        given = {c.frame for c in self.cell.robot_capsules}
         for cap in self.cell.robot_capsules:
             if cap.frame not in links:
                 raise ConfigError('collision.capsules', f'link {cap.frame!r} is not on the chain '
                                   f'{links}')
-        fitted = capsules_from_urdf(self.cell.urdf_xml, [l for l in links if l not in given])
-        return CollisionScene(list(self.cell.robot_capsules) + fitted, list(self.cell.obstacles),
-                              links, ignore_pairs=set(self.cell.ignore_pairs),
-                              beam_radius=self.cell.beam_radius)
-
+        return robot_geometry(self.robot, self.cell.urdf_xml, self.cell.robot_capsules,
+                              self.cell.obstacles, self.cell.package_dirs,
+                              self.cell.source_dir or None, referenced_by=self.cell.urdf_path)
 
     def design_cell(self) -> DesignCell:
         """The typed design problem of this cell (core input of the design modules)."""
+        if not self.cell.base_in_tracker_given:
+            raise ConfigError('tracker.base_in_tracker', 'a design needs to know where the '
+                              'tracker stands: give the robot base pose in the tracker frame '
+                              '[x, y, z, roll, pitch, yaw] (m, rad) in the cell file (a tape '
+                              'measure is enough; identification refines it from the data)')
         return DesignCell(self.model, self.q_work, self.working_pose_names,
                           self.tracker_in_base, self.cell.reflector_offset,
                           self.cell.max_incidence, self.cell.sigma,
@@ -428,6 +481,11 @@ def build_cell_model(cell: Cell, effects: tuple = ()) -> CellModel:
 
 def _ordered(pose: WorkingPose, robot: RobotModel, key: str) -> list[float]:
     names = robot.joint_names
+    if pose.values:
+        if len(pose.values) != len(names):
+            raise ConfigError(key.rsplit('.', 1)[0], f'{len(pose.values)} joint values given; '
+                              f'the chain has {len(names)} joints, in this order: {names}')
+        return list(pose.values)
     missing = [n for n in names if n not in pose.joints]
     extra = [n for n in pose.joints if n not in names]
     if missing or extra:

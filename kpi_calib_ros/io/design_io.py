@@ -60,9 +60,12 @@ def design_to_dict(result: DesignResult) -> dict[str, Any]:
     }
 
 
-def write_design(path: str | Path, result: DesignResult) -> Path:
-    """Write design.yaml atomically."""
-    return write_atomic(path, yaml.safe_dump(design_to_dict(result), sort_keys=False))
+def write_design(path: str | Path, result: DesignResult,
+                 extra: dict[str, Any] | None = None) -> Path:
+    """Write design.yaml atomically; ``extra`` adds top-level sections (e.g. ``geometry``)."""
+    doc = design_to_dict(result)
+    doc.update(extra or {})
+    return write_atomic(path, yaml.safe_dump(doc, sort_keys=False))
 
 
 def read_design_poses(path: str | Path) -> tuple[list[str], np.ndarray]:

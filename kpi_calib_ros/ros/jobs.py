@@ -46,7 +46,10 @@ def design_work(cm: CellModel, settings: NodeSettings,
     """
     design = design_cell_model(cm, settings.num_measurements, settings.criterion,
                                settings.design_seed)
-    path = write_design(data_dir / DESIGN_FILE, design)
+    # The capsules and skipped pairs the design used (built by it, cached); the mesh
+    # check's findings are in the design's verification.
+    path = write_design(data_dir / DESIGN_FILE, design,
+                        extra={'geometry': cm.robot_geometry().summary()})
     points = cm.model.predict(cm.model.params.nominal, design.configurations)
     return design, points, path
 

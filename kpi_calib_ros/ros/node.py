@@ -186,9 +186,9 @@ class CalibrationNode(Node):
     def _set_robot_description(self, urdf_xml: str) -> None:
         cm = build_cell_model(with_overrides(self._cell, urdf_xml=urdf_xml,
                                              working_poses=working_poses(self.settings)))
-        scene = cm.collision_scene()
-        self._capsules = scene.robot_capsules + [o for o in scene.obstacles
-                                                 if isinstance(o, Capsule)]
+        # Robot capsules need the collision geometry, which only a design needs (and may
+        # not be findable): drawn once a design has built them (see _design).
+        self._capsules = [o for o in cm.cell.obstacles if isinstance(o, Capsule)]
         self._tcp_publisher(len(cm.working_pose_names))
         self._cm, self._urdf, self._model_error = cm, urdf_xml, ''
         self._report(self.campaign.set_chain(cm.joint_names, cm.cell.tracker_frame))
@@ -302,6 +302,9 @@ class CalibrationNode(Node):
         self._pub_poses.publish(cv.joint_trajectory_msg(design.joint_names,
                                                         design.configurations))
         self._design_points = points
+        # Built (and cached) by the design: fitted and hand-given robot capsules.
+        self._capsules = list(cm.robot_geometry().capsules) + [
+            o for o in cm.cell.obstacles if isinstance(o, Capsule)]
         self._publish_markers()
         tcp_um = np.sqrt((design.tcp_std ** 2).sum(axis=1)).max() * 1e6
         return design.verification.ok, (
