@@ -244,7 +244,8 @@ class CollisionScene:
         self.ignore_pairs = set(ignore_pairs)
         self.beam_radius = float(beam_radius)
         self.beam_end_clearance = float(beam_end_clearance)
-        self.frames = [l for l in self.chain_links if any(c.frame == l for c in robot_capsules)]
+        self.frames = [link for link in self.chain_links
+                       if any(c.frame == link for c in robot_capsules)]
 
         candidates: list[_Pair] = []
         for i, c1 in enumerate(self.robot_capsules):

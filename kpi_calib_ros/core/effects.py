@@ -462,8 +462,8 @@ def hidden_effects(doc: Any, robot: RobotModel, key: str = 'simulation.hidden_ef
         effect = parse_effect_spec(str(spec), robot, f'{key}.{spec}', base_dir)
         values = values or {}
         if not isinstance(values, dict):
-            raise ConfigError(f'{key}.{spec}', f'must map parameters {list(effect.kind.parameters)} '
-                              'to values')
+            raise ConfigError(f'{key}.{spec}',
+                              f'must map parameters {list(effect.kind.parameters)} to values')
         unknown = set(values) - set(effect.kind.parameters)
         if unknown:
             raise ConfigError(f'{key}.{spec}.{sorted(unknown)[0]}', 'unknown parameter; '

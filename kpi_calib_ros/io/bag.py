@@ -313,7 +313,7 @@ def read_log(path: str | os.PathLike, joint_topic: str = DEFAULT_JOINT_TOPIC,
     return pairs
 
 
-__all__ = ['BagContents', 'BagError', 'BagWarning', 'LIBRARY', 'StreamEncoders', 'DEFAULT_JOINT_TOPIC',
-           'DEFAULT_POINT_TOPIC', 'JOINT_STATE_TYPE', 'LOG_CONTENT', 'LOG_METADATA',
-           'POINT_STAMPED_TYPE', 'is_measurement_log', 'message_definition', 'read_bag',
-           'read_for_pairing', 'read_log', 'type_hash', 'write_bag']
+__all__ = ['BagContents', 'BagError', 'BagWarning', 'LIBRARY', 'StreamEncoders',
+           'DEFAULT_JOINT_TOPIC', 'DEFAULT_POINT_TOPIC', 'JOINT_STATE_TYPE', 'LOG_CONTENT',
+           'LOG_METADATA', 'POINT_STAMPED_TYPE', 'is_measurement_log', 'message_definition',
+           'read_bag', 'read_for_pairing', 'read_log', 'type_hash', 'write_bag']

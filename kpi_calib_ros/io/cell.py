@@ -374,14 +374,17 @@ class CellModel:
         return self.robot.joint_names
 
     def collision_scene(self) -> CollisionScene:
-        """Robot capsules (cell file first, else fitted to URDF collision geometry) and obstacles."""
+        """Robot capsules and obstacles.
+
+        Capsules from the cell file first, else fitted to URDF collision geometry.
+        """
         links = self.robot.link_names
         given = {c.frame for c in self.cell.robot_capsules}
         for cap in self.cell.robot_capsules:
             if cap.frame not in links:
                 raise ConfigError('collision.capsules', f'link {cap.frame!r} is not on the chain '
                                   f'{links}')
-        fitted = capsules_from_urdf(self.cell.urdf_xml, [l for l in links if l not in given])
+        fitted = capsules_from_urdf(self.cell.urdf_xml, [k for k in links if k not in given])
         return CollisionScene(list(self.cell.robot_capsules) + fitted, list(self.cell.obstacles),
                               links, ignore_pairs=set(self.cell.ignore_pairs),
                               beam_radius=self.cell.beam_radius)

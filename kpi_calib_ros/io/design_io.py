@@ -109,7 +109,7 @@ def plot_design(cell: DesignCell, scene: CollisionScene | None, result: DesignRe
     tips = []
     for q in result.configurations:
         poses, tip = robot.pin_link_poses(q)
-        chain = np.array([poses[l][:3, 3] for l in robot.link_names] + [tip[:3, 3]])
+        chain = np.array([poses[k][:3, 3] for k in robot.link_names] + [tip[:3, 3]])
         ax.plot(*chain.T, color='tab:orange', alpha=0.35, linewidth=1.0)
         tips.append(tip[:3, 3])
     tips = np.array(tips)

@@ -108,8 +108,9 @@ def diagnosis_text(cd: CellDiagnosis, top: int = 5) -> str:
              f'{len(diag.not_distinguishable)} not):']
     for i, c in enumerate(diag.candidates[:top], 1):
         mark = '*' if c.significant else ' '
-        lines.append(f' {mark}{i}. {c.spec:40s} validation rms {c.validation_rms_after_m * _UM:6.1f} '
-                     f'µm  p = {c.p_value:.2g}')
+        lines.append(f' {mark}{i}. {c.spec:40s} '
+                     f'validation rms {c.validation_rms_after_m * _UM:6.1f} µm  '
+                     f'p = {c.p_value:.2g}')
     if diag.best is not None:
         lines.append(f'why: {diag.best.explanation}')
     for c in diag.not_distinguishable:
