@@ -369,7 +369,7 @@ def _load_user_effect(module: str, attribute: str, key: str, spec: str,
                 path = Path(base_dir) / path
             name = f'kpi_calib_user_effects_{path.stem}'
             mod_spec = importlib.util.spec_from_file_location(name, path)
-            if mod_spec is None or not path.is_file():
+            if mod_spec is None or mod_spec.loader is None or not path.is_file():
                 raise FileNotFoundError(f'no file {str(path)!r}')
             mod = importlib.util.module_from_spec(mod_spec)
             sys.modules[name] = mod

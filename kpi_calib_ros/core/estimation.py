@@ -271,6 +271,9 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
                                                  max_iterations, tolerances)
         iterations += used
         kept_before = ident.kept
+    if ident is None:
+        raise RuntimeError(f'MAX_SELECTION_ROUNDS = {MAX_SELECTION_ROUNDS}: no round selected '
+                           'the identifiable parameters')
     pred, jac = model.jacobian(p, q, tau)
     residuals = eta - pred
     f1_p = weighted_rows(jac, w, idx)
