@@ -10,7 +10,8 @@ and pairing alone:
 - ``pair``: :func:`pair_measurements` on what was read;
 - ``read_all``: :func:`read_bag` of every message, for comparison.
 
-Usage: ``python bench/bag_reading.py [--cases 50hz,1khz,2000poses] [--keep DIR]`` (bags\nalready in DIR from an earlier run are reused).
+Usage: ``python bench/bag_reading.py [--cases 50hz,1khz,2000poses] [--keep DIR]`` (bags
+already in DIR from an earlier run are reused).
 Writes bench/results/bag_reading.md.
 """
 from __future__ import annotations

@@ -5,8 +5,8 @@ no hidden effect. Counts the seeds where an effect is claimed (family-wise
 α = 0.01, Bonferroni) and where the verdict is "not adequate"; checks that the
 single-candidate F-test p-values are uniform (Kolmogorov-Smirnov). Also runs
 the default cell, whose reflector sits on the flange axis, where the
-identifiable set must be chosen at the estimate for the geometric fit to be exact. Slow (minutes): not part
-of `make test`. Writes bench/results/diagnosis_false_alarms.md.
+identifiable set must be chosen at the estimate for the geometric fit to be exact. Slow (minutes):
+not part of `make test`. Writes bench/results/diagnosis_false_alarms.md.
 
     .venv/bin/python bench/diagnosis_false_alarms.py [n_seeds]
 """

@@ -41,7 +41,8 @@ def main() -> int:
             iterations.append(result.iterations)
         rows.append((n, float(np.median(times)), float(np.min(times)), iterations[0],
                      result.rms_m))
-        print(f'{n:4d} poses: median {rows[-1][1] * 1e3:7.1f} ms (min {rows[-1][2] * 1e3:7.1f} ms), '
+        print(f'{n:4d} poses: median {rows[-1][1] * 1e3:7.1f} ms '
+              f'(min {rows[-1][2] * 1e3:7.1f} ms), '
               f'{iterations[0]} GN iterations, rms {result.rms_m * 1e6:.1f} µm', flush=True)
     lines = ['# Identification time (KR15-class default cell)', '',
              f'Model build (URDF -> CasADi eq. (3) with Jacobians): {build * 1e3:.0f} ms.', '',

@@ -53,9 +53,9 @@ def main() -> int:
              '|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|']
     for name, path, base, tip in ROBOTS:
         uri = f'package://example-robot-data/robots/{path}'
-        xml, t_resolve = _timed(lambda: resolve_mesh_uris(resolve_uri(uri).read_text()))
+        xml, t_resolve = _timed(lambda uri=uri: resolve_mesh_uris(resolve_uri(uri).read_text()))
         robot = RobotModel(xml, base, tip)
-        caps, t_fit = _timed(lambda: capsules_from_urdf(xml, robot.link_names))
+        caps, t_fit = _timed(lambda xml=xml, robot=robot: capsules_from_urdf(xml, robot.link_names))
         vertices = collision_vertices(xml, robot.link_names)
         worst, ratios = -np.inf, []
         for link in robot.link_names:
@@ -65,15 +65,17 @@ def main() -> int:
             worst = max(worst, float(outside.max()))
             ratios.append(sum(capsule_volume(c.a, c.b, c.radius) for c in mine)
                           / convex_hull_volume(vertices[link]))
-        matrix, t_matrix = _timed(lambda: classify_link_pairs(robot, caps, SAMPLES, seed=0))
+        matrix, t_matrix = _timed(lambda robot=robot, caps=caps: classify_link_pairs(
+            robot, caps, SAMPLES, seed=0))
         counts = {k: len(matrix.of_kind(k))
                   for k in ('adjacent', 'default', 'always', 'never', 'sometimes')}
         rng = np.random.default_rng(1)
         lower = np.where(np.isfinite(robot.lower), robot.lower, -np.pi)
         upper = np.where(np.isfinite(robot.upper), robot.upper, np.pi)
         q = rng.uniform(lower, upper, size=(500, robot.n_joints))
-        check, t_check = _timed(lambda: mesh_collisions(xml, [], base, robot.joint_names, q,
-                                                        matrix.skip_pairs()), 1)
+        check, t_check = _timed(
+            lambda xml=xml, base=base, robot=robot, q=q, matrix=matrix: mesh_collisions(
+                xml, [], base, robot.joint_names, q, matrix.skip_pairs()), 1)
         print(f'{name}: {len(robot.link_names)} links -> {len(caps)} capsules; resolve '
               f'{t_resolve:.3f} s, fit {t_fit:.2f} s, max vertex outside {worst:.2e} m, '
               f'volume/hull {min(ratios):.2f}..{max(ratios):.2f}; matrix {t_matrix:.2f} s '

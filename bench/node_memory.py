@@ -78,10 +78,10 @@ def main(argv: list[str] | None = None) -> int:
                 if count < 100:   # large messages: one at a time, acknowledged
                     pub.wait_for_all_acked(Duration(seconds=30))
                 elif k % 50 == 49:   # small ones: at most ~100 ahead of the node
-                    live.spin_until(lambda: live.count('received.joint_states') - base
-                                    >= k - 50, 60, 'the node')
-            live.spin_until(lambda: live.count('received.joint_states') - base >= count, 120,
-                            f'the node to handle the {name} flood')
+                    live.spin_until(lambda base=base, k=k: live.count('received.joint_states')
+                                    - base >= k - 50, 60, 'the node')
+            live.spin_until(lambda base=base, count=count: live.count('received.joint_states')
+                            - base >= count, 120, f'the node to handle the {name} flood')
             rss, peak = live.rss_kb()
             got = live.count('received.joint_states') - base
             rows.append((f'after {name} ({count} msgs)', rss, peak, got,

@@ -216,12 +216,10 @@ def aggregate(results: list[dict], command: str) -> str:
                       '|---|---|---|---|---|---|---|']
             for r in rows:
                 d = r['variants']['collision']['designs']
+                v_h, v_p, v_s = (d[k]['tcp_variance_m2'] for k in ('heuristic', 'A', 'kpi'))
                 lines.append(f'| {r["name"]} | {r["variants"]["collision"]["k"]} | '
-                             f'{d["heuristic"]["tcp_variance_m2"] * 1e12:.1f} | '
-                             f'{d["A"]["tcp_variance_m2"] * 1e12:.1f} | '
-                             f'{d["kpi"]["tcp_variance_m2"] * 1e12:.1f} | '
-                             f'{improvement(d["kpi"]["tcp_variance_m2"], d["heuristic"]["tcp_variance_m2"]):.1f} | '
-                             f'{improvement(d["kpi"]["tcp_variance_m2"], d["A"]["tcp_variance_m2"]):.1f} |')
+                             f'{v_h * 1e12:.1f} | {v_p * 1e12:.1f} | {v_s * 1e12:.1f} | '
+                             f'{improvement(v_s, v_h):.1f} | {improvement(v_s, v_p):.1f} |')
         mc_rows = [r for r in rows if 'monte_carlo' in r['variants']['collision']]
         if mc_rows:
             pred = {d: np.array([r['variants']['collision']['designs'][d]['tcp_variance_m2']
@@ -236,21 +234,24 @@ def aggregate(results: list[dict], command: str) -> str:
                       f'to the three designs; {bad} identifications not converged):', '',
                       '| quantity | predicted (linearised) | Monte Carlo E‖ŝ−s‖²/3 | difference |',
                       '|---|---|---|---|']
-            for label, a, b in (('q_s vs q_h %', 'kpi', 'heuristic'), ('q_s vs q_p %', 'kpi', 'A'),
-                                ('q_p vs q_h %', 'A', 'heuristic')):
+            for label, a, b in (('q_s vs q_h %', 'kpi', 'heuristic'),
+                                ('q_s vs q_p %', 'kpi', 'A'), ('q_p vs q_h %', 'A', 'heuristic')):
                 p_imp = improvement(pred[a], pred[b]).mean()
                 m_imp = improvement(mc[a], mc[b]).mean()
-                lines.append(f'| {label} | {p_imp:.1f} | {m_imp:.1f} | {m_imp - p_imp:+.1f} points |')
+                lines.append(f'| {label} | {p_imp:.1f} | {m_imp:.1f} | '
+                             f'{m_imp - p_imp:+.1f} points |')
             for d in DESIGNS:
                 lines.append(f'| V_{d} µm² (mean) | {pred[d].mean() * 1e12:.1f} | '
-                             f'{mc[d].mean() * 1e12:.1f} | ratio {mc[d].mean() / pred[d].mean():.3f} |')
+                             f'{mc[d].mean() * 1e12:.1f} | '
+                             f'ratio {mc[d].mean() / pred[d].mean():.3f} |')
         times = [r['variants']['collision']['designs'][d]['seconds']
                  for r in rows for d in ('A', 'kpi')]
         per_robot = [sum(v['context_s'] + v.get('monte_carlo_s', 0.0)
                          + sum(d['seconds'] for d in v['designs'].values())
                          for v in r['variants'].values()) for r in rows]
         lines += ['', f'Design time per optimal design (exchange + IPOPT, all constraints, '
-                  f'candidates shared): median {np.median(times):.1f} s, max {np.max(times):.1f} s. '
+                  f'candidates shared): median {np.median(times):.1f} s, '
+                  f'max {np.max(times):.1f} s. '
                   f'Compute per robot (2 candidate sets, 6 designs, Monte Carlo): median '
                   f'{np.median(per_robot):.0f} s, total {np.sum(per_robot) / 60:.0f} min.', '']
     (RESULTS / 'paper_study.md').write_text('\n'.join(lines) + '\n')
@@ -301,8 +302,10 @@ def main(argv: list[str] | None = None) -> int:
             result = run_robot(geometry, args)
             path.write_text(json.dumps(result, indent=1))
             d = result['variants']['collision']['designs']
-            print(f'[{i + 1}/{len(robots)}] {geometry.name}: V_h {d["heuristic"]["tcp_variance_m2"] * 1e12:.1f}, '
-                  f'V_p {d["A"]["tcp_variance_m2"] * 1e12:.1f}, V_s {d["kpi"]["tcp_variance_m2"] * 1e12:.1f} µm², '
+            print(f'[{i + 1}/{len(robots)}] {geometry.name}: '
+                  f'V_h {d["heuristic"]["tcp_variance_m2"] * 1e12:.1f}, '
+                  f'V_p {d["A"]["tcp_variance_m2"] * 1e12:.1f}, '
+                  f'V_s {d["kpi"]["tcp_variance_m2"] * 1e12:.1f} µm², '
                   f'{time.perf_counter() - t0:.0f} s', flush=True)
     done = [json.loads(p.read_text()) for p in sorted(OUT.glob('*.json'))]
     done = [r for r in done if any(r['name'] == g.name for g in robots)]

@@ -57,11 +57,11 @@ def main(argv: list[str] | None = None) -> int:
                                        str(rate)], stdout=subprocess.PIPE,
                                       stderr=subprocess.STDOUT, text=True,
                                       env={**os.environ, **code})  # domain set by LiveNode
-            live.spin_until(lambda: replay.poll() is not None, 900, 'the replay')
+            live.spin_until(lambda replay=replay: replay.poll() is not None, 900, 'the replay')
             seconds = time.monotonic() - started
             output = replay.stdout.read().strip()
-            live.spin_until(lambda: live.count('received.joint_states') - before[0]
-                            >= len(joints), 5, 'the last counts')
+            live.spin_until(lambda before=before, joints=joints: live.count(
+                'received.joint_states') - before[0] >= len(joints), 5, 'the last counts')
             got = (live.count('received.joint_states') - before[0],
                    live.count('received.points') - before[1])
             rows.append((rate, len(joints), got[0], len(points), got[1], replay.returncode,

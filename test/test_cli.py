@@ -61,7 +61,8 @@ def _identify_error(cell: Path | str, bag: Path, out: Path, capsys) -> str:
 def test_malformed_urdf(tmp_path, run_bag, capsys):
     urdf = tmp_path / 'bad.urdf'
     urdf.write_text('<robot name="x"><link name="a"/><joint name="j"/></robot>')
-    err = _identify_error(_cell_copy(tmp_path, **{'robot.urdf': str(urdf)}), run_bag, tmp_path, capsys)
+    err = _identify_error(_cell_copy(tmp_path, **{'robot.urdf': str(urdf)}), run_bag, tmp_path,
+                          capsys)
     assert 'robot.urdf' in err and 'not a valid URDF' in err
 
 

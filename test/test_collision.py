@@ -87,12 +87,14 @@ def _random_pairs(rng, n_each=60):
         side /= np.linalg.norm(side)
         out.append(('generic', p1, p1 + d1, *(rng.uniform(-1, 1, (2, 3)))))
         p2 = p1 + side * rng.uniform(0, 0.5) + d1 * rng.uniform(-1.5, 1.5)
-        out.append(('parallel', p1, p1 + d1, p2, p2 + d1 * rng.choice([-1, 1]) * rng.uniform(0.1, 2)))
+        out.append(('parallel', p1, p1 + d1, p2,
+                    p2 + d1 * rng.choice([-1, 1]) * rng.uniform(0.1, 2)))
         centre = p1 + d1 * rng.uniform(0, 1)
         d2 = np.cross(d1, side) * rng.uniform(0.2, 1) + d1 * rng.uniform(-0.5, 0.5)
         out.append(('crossing', p1, p1 + d1, centre - d2 * rng.uniform(0, 1),
                     centre + d2 * rng.uniform(0, 1)))
-        out.append(('collinear', p1, p1 + d1, p1 + d1 * rng.uniform(-1, 2), p1 + d1 * rng.uniform(-1, 2)))
+        out.append(('collinear', p1, p1 + d1, p1 + d1 * rng.uniform(-1, 2),
+                    p1 + d1 * rng.uniform(-1, 2)))
         point = rng.uniform(-1, 1, 3)
         out.append(('point', point, point.copy(), p1, p1 + d1))
         out.append(('points', point, point.copy(), p1, p1.copy()))
@@ -185,7 +187,8 @@ def test_fitted_capsules_enclose_the_primitives_in_the_link_frame():
 
     def inside_ball(radius):
         v = rng.normal(size=(n, 3))
-        return v / np.linalg.norm(v, axis=1)[:, None] * radius * rng.uniform(0, 1, (n, 1)) ** (1 / 3)
+        return (v / np.linalg.norm(v, axis=1)[:, None] * radius
+                * rng.uniform(0, 1, (n, 1)) ** (1 / 3))
 
     # (capsule, points in the primitive frame incl. its extreme points, URDF <origin>)
     corners = np.array([[x, y, z] for x in (-.5, .5) for y in (-.5, .5) for z in (-.5, .5)])
@@ -196,7 +199,8 @@ def test_fitted_capsules_enclose_the_primitives_in_the_link_frame():
         ('link_5', inside_ball(0.06), ([0, 0, 0], [0, 0, 0])),
         ('tool.0', np.r_[inside_box([0.04, 0.06, 0.1]), corners * [0.04, 0.06, 0.1]],
          ([0, 0.02, 0.05], [0.3, -0.4, 0.5])),
-        ('tool.1', np.r_[inside_cylinder(0.02, 0.05) * [1, 1, 1], inside_ball(0.02) + [0, 0, 0.025]],
+        ('tool.1', np.r_[inside_cylinder(0.02, 0.05) * [1, 1, 1],
+                         inside_ball(0.02) + [0, 0, 0.025]],
          ([0.01, 0, 0.1], [0.2, 0, 0])),
         ('tool.2', inside_ball(0.015), ([0, 0, 0.12], [0, 0, 0])),
     ]
@@ -220,10 +224,10 @@ def test_mesh_and_missing_geometry_ask_for_capsules_in_the_cell_file():
 def _chain_capsules(links, k_by_link=None):
     k_by_link = k_by_link or {}
     caps = []
-    for i, link in enumerate(links):
+    for link in links:
         k = k_by_link.get(link, 1)
-        caps += [Capsule(link if k == 1 else f'{link}.{j}', link, (0, 0, 0), (0.1 * j, 0, 0.3), 0.05)
-                 for j in range(k)]
+        caps += [Capsule(link if k == 1 else f'{link}.{j}', link, (0, 0, 0), (0.1 * j, 0, 0.3),
+                         0.05) for j in range(k)]
     return caps
 
 
@@ -276,15 +280,16 @@ def test_beam_is_shortened_at_the_reflector_end():
 
 def _arm_scene():
     # urdfdom rejects (and complains about) the non-standard <capsule>; kinematics only here.
-    model = pin.buildModelFromXML(re.sub(r'<collision>(?:(?!</collision>).)*<capsule.*?</collision>',
-                                         '', ARM_URDF, flags=re.S))
+    model = pin.buildModelFromXML(re.sub(
+        r'<collision>(?:(?!</collision>).)*<capsule.*?</collision>', '', ARM_URDF, flags=re.S))
     caps = capsules_from_urdf(ARM_URDF, CHAIN + ['tool'])
     # The tool is rigid on link_6: carry its capsules in link_6's frame.
     tool = model.frames[model.getFrameId('tool')].placement
     six = model.frames[model.getFrameId('link_6')].placement
     to_six = six.inverse() * tool
     caps = [c if c.frame != 'tool' else
-            Capsule(c.name, 'link_6', to_six.act(np.array(c.a)), to_six.act(np.array(c.b)), c.radius)
+            Capsule(c.name, 'link_6', to_six.act(np.array(c.a)), to_six.act(np.array(c.b)),
+                    c.radius)
             for c in caps]
     obstacles = [HalfSpace('floor', (0, 0, 1), 0.0), HalfSpace('wall', (1, 0, 0), -0.45),
                  Capsule('mounting', 'base', (0, 0, -0.4), (0, 0, 0), 0.25),

@@ -44,7 +44,8 @@ def test_spec_names_parameters_and_units(cell):
     assert effect.parameter_names == ('joint_compliance.joint_2.c',)
     assert effect.units == ('rad/(N m)',) and effect.uses_torque
     cyclic = parse_effect_spec(' cyclic_joint_error : joint_3 ', cell.robot)
-    assert cyclic.parameter_names == ('cyclic_joint_error.joint_3.a', 'cyclic_joint_error.joint_3.b')
+    assert cyclic.parameter_names == ('cyclic_joint_error.joint_3.a',
+                                      'cyclic_joint_error.joint_3.b')
     scale = parse_effect_spec('tracker_scale', cell.robot)
     assert scale.parameter_names == ('tracker_scale.s',) and scale.joint is None
     assert split_specs('joint_compliance:joint_2, joint_scale:joint_1,') == [
@@ -117,7 +118,7 @@ def test_joint_effects_are_the_documented_corrections(cell):
 
 
 def test_torque_effects_vanish_where_gravity_exerts_no_torque(cell):
-    """Joint 1 is vertical: its compliance and backlash must not turn numerical noise into signal."""
+    """Joint 1 is vertical: compliance and backlash must not turn numerical noise into signal."""
     rng = np.random.default_rng(5)
     q = random_configurations(cell.model, cell.model.params.nominal, 20, rng)
     p_geo = cell.model.params.nominal

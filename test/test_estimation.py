@@ -63,7 +63,8 @@ def test_identified_parameters_within_three_sigma_of_truth(cell, campaign):
         cell.model, p_true, result.estimated, start, dense)
     z = (result.values[idx] - p_equiv[idx]) / result.std
     print(f'identifiable {len(idx)}, within 3σ {np.mean(np.abs(z) < 3):.3f}, '
-          f'max |z| {np.abs(z).max():.2f}, representation error {representation_error * 1e6:.2f} µm')
+          f'max |z| {np.abs(z).max():.2f}, '
+          f'representation error {representation_error * 1e6:.2f} µm')
     assert result.converged
     assert np.mean(np.abs(z) < 3) >= 0.95
     assert representation_error < SIGMA / 2

@@ -70,7 +70,7 @@ def test_live_conversion_equals_the_bag_reader(tmp_path):
     expected_joints, expected_points = read_bag(path)
     live_joints, live_points = [], []
     with open(path, 'rb') as f:
-        for schema, channel, message in make_reader(f).iter_messages():
+        for _schema, channel, message in make_reader(f).iter_messages():
             if channel.topic == '/joint_states':
                 live_joints.append(cv.joint_sample_from_msg(
                     deserialize_message(message.data, JointState)))

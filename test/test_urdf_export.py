@@ -74,8 +74,8 @@ def test_only_chain_joint_origins_change(odd_arm_urdf):
             assert (old is None) == (new is None)
             if old is not None:
                 assert old.attrib == new.attrib
-    assert [l.get('name') for l in ET.fromstring(out).iter('link')] == \
-        [l.get('name') for l in ET.fromstring(odd_arm_urdf).iter('link')]
+    assert [k.get('name') for k in ET.fromstring(out).iter('link')] == \
+        [k.get('name') for k in ET.fromstring(odd_arm_urdf).iter('link')]
 
 
 def test_zero_errors_reproduce_the_original(odd_arm_urdf):

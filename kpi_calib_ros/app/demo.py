@@ -81,7 +81,7 @@ def run_diagnosis_demo(out: str | Path, seed: int, n: int = 80) -> Path:
     cd = diagnose_cell(cm, data)
     report = write_report(out, cd)
     print(diagnosis_text(cd))
-    if cd.after is not None:
+    if cd.after is not None and cd.added is not None:  # set together
         tcp_true = np.array(read_truth(bag)['tcp_true'])
         print(f'\n== TCP error against the simulated truth, before -> after adding {cd.added.name}')
         for i, name in enumerate(cd.result.working_pose_names):

@@ -53,6 +53,14 @@ def _fit(shape: Any, name: str, link: str, placement: pin.SE3) -> Capsule:
                       f'give capsules for link {link!r} in the cell file')
 
 
+def _shape(col: ET.Element) -> ET.Element:
+    """The shape element of a ``<collision>`` that :func:`_prepare` kept."""
+    geometry = col.find('geometry')
+    if geometry is None or not len(geometry):
+        raise RuntimeError('a <collision> without <geometry> was kept: _prepare drops those')
+    return geometry[0]
+
+
 def _origin(element: ET.Element) -> pin.SE3:
     """URDF ``<origin>`` of a collision element: its pose in the link frame."""
     origin = element.find('origin')
@@ -106,7 +114,7 @@ def _geometry(clean: str, package_dirs: Sequence[str],
         geom = pin.buildGeomFromUrdfString(model, clean, pin.GeometryType.COLLISION,
                                            package_dirs=[str(d) for d in package_dirs])
     except (ValueError, RuntimeError, OSError) as exc:
-        meshes = {link: [c.find('geometry')[0].get('filename') for k, c in items if k == 'mesh']
+        meshes = {link: [_shape(c).get('filename') for k, c in items if k == 'mesh']
                   for link, items in per_link.items()}
         meshes = {link: uris for link, uris in meshes.items() if uris}
         raise ConfigError('robot.package_dirs',
@@ -174,9 +182,12 @@ def capsules_from_urdf(urdf_xml: str, link_names: Sequence[str],
         shapes: list[Capsule] = []
         for kind, col in items:
             if kind == 'capsule':
-                g = col.find('geometry')[0]
-                shapes.append(_link_capsule(name, name, _origin(col), 0.5 * float(g.get('length')),
-                                            float(g.get('radius'))))
+                length, radius = (_shape(col).get(k) for k in ('length', 'radius'))
+                if length is None or radius is None:
+                    raise ConfigError(f'collision.capsules.{name}',
+                                      f'link {name!r}: <capsule> needs length and radius')
+                shapes.append(_link_capsule(name, name, _origin(col), 0.5 * float(length),
+                                            float(radius)))
             elif kind != 'mesh':
                 obj = primitives.pop(0)
                 shapes.append(_fit(obj.geometry, name, name,

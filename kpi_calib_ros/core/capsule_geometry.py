@@ -67,7 +67,7 @@ def _frame(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _on_line(points: np.ndarray, c: np.ndarray, u: np.ndarray
-             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """Axial ``t`` (N,), radii tried (K,), segment ends (K, 2) and best index for line c+su."""
     d = points - c
     t = d @ u

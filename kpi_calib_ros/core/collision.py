@@ -14,7 +14,7 @@ margin with coal (hpp-fcl) so a design can be checked independently of this code
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Mapping, Sequence, Union
+from typing import AbstractSet, Any, Mapping, Sequence, Union
 
 import casadi as ca
 import numpy as np
@@ -28,6 +28,11 @@ _EPS2 = 1e-20
 # Floor under the squared distance so the gradient exists at exact contact;
 # shifts a 1 mm distance by 5e-22 m.
 _TINY2 = 1e-24
+
+
+# A 3-vector as callers give it (tuple, list, ndarray); Capsule and HalfSpace store it as a
+# tuple of 3 floats.
+Vector3 = Union[Sequence[float], np.ndarray]
 
 
 def _vec3(value: Any, name: str) -> tuple[float, float, float]:
@@ -55,8 +60,8 @@ class Capsule:
 
     name: str
     frame: str
-    a: tuple[float, float, float]
-    b: tuple[float, float, float]
+    a: Vector3
+    b: Vector3
     radius: float
 
     def __post_init__(self) -> None:
@@ -82,7 +87,7 @@ class HalfSpace:
     """
 
     name: str
-    normal: tuple[float, float, float]
+    normal: Vector3
     offset: float
 
     def __post_init__(self) -> None:
@@ -215,7 +220,7 @@ class CollisionScene:
 
     def __init__(self, robot_capsules: Sequence[Capsule], obstacles: Sequence[Obstacle],
                  chain_links: Sequence[str],
-                 ignore_pairs: set[frozenset[str]] = frozenset(),
+                 ignore_pairs: AbstractSet[frozenset[str]] = frozenset(),
                  beam_radius: float = 0.005, beam_end_clearance: float = 0.05,
                  reflector_link: str | None = None) -> None:
         self.chain_links = list(chain_links)
@@ -244,7 +249,8 @@ class CollisionScene:
         self.ignore_pairs = set(ignore_pairs)
         self.beam_radius = float(beam_radius)
         self.beam_end_clearance = float(beam_end_clearance)
-        self.frames = [l for l in self.chain_links if any(c.frame == l for c in robot_capsules)]
+        self.frames = [link for link in self.chain_links
+                       if any(c.frame == link for c in robot_capsules)]
 
         candidates: list[_Pair] = []
         for i, c1 in enumerate(self.robot_capsules):

@@ -75,7 +75,8 @@ def nullspace_covariance(f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
 def parameter_covariance(f1_p: np.ndarray) -> np.ndarray:
     """Unconstrained covariance (F1ᵀ F1)⁻¹ (k, k), via a scaled QR (no normal equations)."""
     d = 1.0 / np.linalg.norm(f1_p, axis=0)
-    r = np.linalg.qr(f1_p * d, mode='r')
+    # numpy's stubs type every qr() as QRResult; mode='r' returns the R array alone.
+    r: np.ndarray = np.linalg.qr(f1_p * d, mode='r')  # type: ignore[assignment]
     r_inv = scipy.linalg.solve_triangular(r, np.eye(r.shape[0]))
     return d[:, None] * (r_inv @ r_inv.T) * d[None, :]
 

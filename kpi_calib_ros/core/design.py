@@ -238,6 +238,9 @@ def design_measurements(cell: DesignCell, n: int, criterion: str, rng: np.random
             res = exchange(rows, n, loss, rng, progress=say)
             if best is None or res.loss < best.loss:
                 best = res
+        if best is None:
+            raise ValueError('settings.exchange_starts must be >= 1, got '
+                             f'{settings.exchange_starts}')
         q = cand_q[best.selected]
         exchange_value = problem.criteria(rows[best.selected])[criterion]
         status.append(f'exchange: {best.exchanges} exchanges')

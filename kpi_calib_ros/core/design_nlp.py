@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Callable
+from typing import Any, Callable
 
 import casadi as ca
 import numpy as np
@@ -146,6 +146,7 @@ def solve_design_nlp(problem, cell: DesignCell, scene, q0: np.ndarray, criterion
     g = ca.reshape(g, per * n_conf, 1)
     lbg = np.tile(np.r_[cos_max, np.full(per - 1, clearance)], n_conf)
     lower, upper = sampling_bounds(model)
+    opts: dict[str, Any]  # values of several types, and the iteration callback below
     opts = {'ipopt.print_level': 0, 'print_time': False, 'ipopt.sb': 'yes',
             'ipopt.max_iter': int(max_iterations),
             'ipopt.hessian_approximation': 'limited-memory',
@@ -163,7 +164,7 @@ def solve_design_nlp(problem, cell: DesignCell, scene, q0: np.ndarray, criterion
                  lbx=np.tile(lower, n_conf), ubx=np.tile(upper, n_conf),
                  lbg=lbg, ubg=np.inf)
     stats = solver.stats()
-    final = np.array(sol['x']).ravel()
+    final: np.ndarray | None = np.array(sol['x']).ravel()
     if np.max(lbg - np.array(sol['g']).ravel()) > 1e-6:
         final = monitor.best_x  # IPOPT stopped infeasible: keep the best feasible iterate
     elif monitor.best_x is not None and monitor.best < float(sol['f']):

@@ -99,8 +99,8 @@ def describe(robot: RobotModel, params: ParameterSet, p: np.ndarray,
             hayati = conventions[i] == 'Hayati'
         else:
             limit = max(1.0, FOOT_LIMIT * float(np.linalg.norm(o2 - o1)))
-            hayati = dh is None or sin < PARALLEL_SIN or max(
-                np.linalg.norm(dh[1] - origin), np.linalg.norm(dh[2] - o2)) > limit
+            hayati = bool(dh is None or sin < PARALLEL_SIN or max(
+                np.linalg.norm(dh[1] - origin), np.linalg.norm(dh[2] - o2)) > limit)
         if hayati:
             # Origin of the next frame: where axis 2 crosses the plane normal to z1
             # through this frame's origin (a point on axis 2 nearest to it if z2 ⟂ z1).

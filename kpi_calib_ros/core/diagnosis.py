@@ -34,9 +34,9 @@ from kpi_calib_ros.core.residuals import (ADEQUACY_ALPHA, LinearizedFit, Residua
                                          cross_validated_rms, cv_rms, fold_ids,
                                          linearized_fit, residual_report)
 
-__all__ = ['Candidate', 'CellDiagnosis', 'Diagnosis', 'ModelComparison', 'ResidualReport', 'augmented_model',
-           'compare_models', 'cross_validated_rms', 'diagnose', 'residual_report',
-           'screen_effects']
+__all__ = ['Candidate', 'CellDiagnosis', 'Diagnosis', 'ModelComparison', 'ResidualReport',
+           'augmented_model', 'compare_models', 'cross_validated_rms', 'diagnose',
+           'residual_report', 'screen_effects']
 DEPENDENCE_TOLERANCE = 1e-4  # unique fraction of a signature below this: absorbed
 NO_EFFECT_M = 1e-9           # a typical-size effect moving no point by 1 nm has no effect
 
@@ -113,8 +113,9 @@ class ModelComparison:
 # ---------------------------------------------------------------- screening
 @dataclass(frozen=True)
 class CellDiagnosis:
-    """Everything :func:`kpi_calib_ros.app.diagnose.diagnose_cell` computes; ``after``/``comparison`` only when an
-    effect was added."""
+    """Everything :func:`kpi_calib_ros.app.diagnose.diagnose_cell` computes.
+
+    ``after``/``comparison`` only when an effect was added."""
 
     model: MeasurementModel
     data: Measurements

@@ -369,7 +369,7 @@ def _load_user_effect(module: str, attribute: str, key: str, spec: str,
                 path = Path(base_dir) / path
             name = f'kpi_calib_user_effects_{path.stem}'
             mod_spec = importlib.util.spec_from_file_location(name, path)
-            if mod_spec is None or not path.is_file():
+            if mod_spec is None or mod_spec.loader is None or not path.is_file():
                 raise FileNotFoundError(f'no file {str(path)!r}')
             mod = importlib.util.module_from_spec(mod_spec)
             sys.modules[name] = mod
@@ -462,8 +462,8 @@ def hidden_effects(doc: Any, robot: RobotModel, key: str = 'simulation.hidden_ef
         effect = parse_effect_spec(str(spec), robot, f'{key}.{spec}', base_dir)
         values = values or {}
         if not isinstance(values, dict):
-            raise ConfigError(f'{key}.{spec}', f'must map parameters {list(effect.kind.parameters)} '
-                              'to values')
+            raise ConfigError(f'{key}.{spec}',
+                              f'must map parameters {list(effect.kind.parameters)} to values')
         unknown = set(values) - set(effect.kind.parameters)
         if unknown:
             raise ConfigError(f'{key}.{spec}.{sorted(unknown)[0]}', 'unknown parameter; '

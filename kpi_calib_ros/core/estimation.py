@@ -271,6 +271,9 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
                                                  max_iterations, tolerances)
         iterations += used
         kept_before = ident.kept
+    if ident is None:
+        raise RuntimeError(f'MAX_SELECTION_ROUNDS = {MAX_SELECTION_ROUNDS}: no round selected '
+                           'the identifiable parameters')
     pred, jac = model.jacobian(p, q, tau)
     residuals = eta - pred
     f1_p = weighted_rows(jac, w, idx)
@@ -312,7 +315,7 @@ def _gauss_newton(model: MeasurementModel, p: np.ndarray, idx: np.ndarray, q: np
         f = (jac * w[None, :, None]).reshape(-1, len(pp))[:, idx]
         return r, f
 
-    def stop(status: int, **figures) -> tuple[np.ndarray, int, str, int]:
+    def stop(status: int, iteration: int, **figures) -> tuple[np.ndarray, int, str, int]:
         text = STATUS_MESSAGES[status].format(**figures, **tol.__dict__,
                                               iterations=max_iterations)
         return p, status, text, iteration
@@ -321,21 +324,20 @@ def _gauss_newton(model: MeasurementModel, p: np.ndarray, idx: np.ndarray, q: np
     eta_scale = np.linalg.norm(eta * w) / np.sqrt(eta.size)
     r, f = evaluate(p)
     cost = 0.5 * r @ r
-    iteration = 0
     for iteration in range(1, max_iterations + 1):
         scale = np.linalg.norm(f, axis=0)
         norm_r = np.sqrt(2 * cost)
         gradient = f.T @ r  # = −∇C (F is ∂h/∂p weighted, r = w(η − h))
         if np.max(np.abs(gradient) / scale) < tol.gtol * norm_r:
-            return stop(GTOL)
+            return stop(GTOL, iteration)
         step_scaled, *_ = np.linalg.lstsq(f / scale, r, rcond=None)
         step = step_scaled / scale
         if np.max(np.abs(step_scaled)) < tol.xtol * max(1.0, norm_r):
-            return stop(XTOL)
+            return stop(XTOL, iteration)
         predicted = 0.5 * np.sum((f @ step) ** 2)
         roundoff = np.finfo(float).eps * norm_r * eta_scale
         if predicted < max(tol.pred_tol, tol.roundoff * roundoff):
-            return stop(PREDICTED_DECREASE, pred=predicted)
+            return stop(PREDICTED_DECREASE, iteration, pred=predicted)
         accepted = False
         for damping in tol.dampings:
             if damping:
@@ -356,10 +358,10 @@ def _gauss_newton(model: MeasurementModel, p: np.ndarray, idx: np.ndarray, q: np
             if accepted:
                 break
         if not accepted:
-            return stop(LINE_SEARCH_FAILED, pred=predicted)
+            return stop(LINE_SEARCH_FAILED, iteration, pred=predicted)
         decrease = cost - cost_try
         p, r, f, cost = trial, r_try, f_try, cost_try
         if decrease < tol.ftol * (cost + decrease):
-            return stop(FTOL)
+            return stop(FTOL, iteration)
     return p, MAX_ITERATIONS, STATUS_MESSAGES[MAX_ITERATIONS].format(
         iterations=max_iterations), max_iterations

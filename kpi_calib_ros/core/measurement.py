@@ -30,10 +30,18 @@ class Effect(Protocol):
     expressions; see :mod:`kpi_calib_ros.core.effects` for the library.
     """
 
-    name: str
-    parameter_names: tuple[str, ...]
-    units: tuple[str, ...]
-    uses_torque: bool
+    # Read-only: implementations may be frozen dataclasses.
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def parameter_names(self) -> tuple[str, ...]: ...
+
+    @property
+    def units(self) -> tuple[str, ...]: ...
+
+    @property
+    def uses_torque(self) -> bool: ...
 
     def joint_correction(self, q, tau, theta):
         """Additive joint-value correction (n,) or None."""
@@ -75,7 +83,7 @@ class MeasurementModel:
 
     def __init__(self, robot: RobotModel, geometric: ParameterSet,
                  effects: Sequence[Effect] = (),
-                 reflector_axis: np.ndarray = (0.0, 0.0, 1.0)) -> None:
+                 reflector_axis: np.ndarray | Sequence[float] = (0.0, 0.0, 1.0)) -> None:
         self.robot = robot
         self.geometric = geometric
         self.effects = tuple(effects)

@@ -269,13 +269,14 @@ class Pairer:
                          f'joint state has non-finite position/velocity for {bad}')
             return
         if self._latest is not None and sample.stamp_ns < self._latest - self.jump_ns:
-            self._restart_epoch(sample.stamp_ns)
+            self._restart_epoch(sample.stamp_ns, self._latest)
         self._insert(_Entry(sample.stamp_ns, q, v, missing, ()))
 
-    def _restart_epoch(self, stamp_ns: int) -> None:
-        """The joint clock went back: close the epoch, pairing its points with its own
-        joint states, and start a new one; points that were waiting for it join it."""
-        back_s = (self._latest - stamp_ns) * 1e-9
+    def _restart_epoch(self, stamp_ns: int, latest_ns: int) -> None:
+        """The joint clock went back from ``latest_ns`` to ``stamp_ns``: close the epoch,
+        pairing its points with its own joint states, and start a new one; points that were
+        waiting for it join it."""
+        back_s = (latest_ns - stamp_ns) * 1e-9
         note = (f' (joint-state clock jumped back {back_s:.3f} s after this point; '
                 'no later joint state of its epoch)')
         while self._pending:
@@ -284,7 +285,7 @@ class Pairer:
         self.clock_jumps += 1
         self.epoch += 1
         _log.warning('joint-state clock jumped back %.3f s (stamp %d ns after %d ns): '
-                     'pairing epoch %d starts', back_s, stamp_ns, self._latest, self.epoch)
+                     'pairing epoch %d starts', back_s, stamp_ns, latest_ns, self.epoch)
         self._new_epoch()
         for point in early:
             self._queue(point)
@@ -297,7 +298,7 @@ class Pairer:
             self._first = entry.stamp_ns
         if self._latest is None or entry.stamp_ns > self._latest:
             self._latest = entry.stamp_ns
-            self._prune()
+            self._prune(entry.stamp_ns)
         self._decide_covered()
 
     def add_point(self, point: PointSample) -> None:
@@ -310,7 +311,9 @@ class Pairer:
             self._reject(stamp, 'wrong_frame',
                          f"point in frame '{point.frame_id}', expected '{self.tracker_frame}'")
             return
-        if self._first is not None and stamp < self._first - self.window_ns:
+        # _first and _latest are set together, by the epoch's first joint state.
+        if (self._first is not None and self._latest is not None
+                and stamp < self._first - self.window_ns):
             # Older than the whole epoch: the point of a recording whose joint states
             # have not arrived yet (their clock jump is coming), or hopelessly late.
             # Wait for a jump as long as for any joint state, then decide it.
@@ -369,7 +372,7 @@ class Pairer:
         if cached is not None:
             self._index_cache.move_to_end(names)
         else:
-            position = {}
+            position: dict[str, int] = {}
             for i, name in enumerate(names):
                 position.setdefault(name, i)
             found = [i for i, n in enumerate(self.joint_names) if n in position]
@@ -381,8 +384,8 @@ class Pairer:
                 self._index_cache.popitem(last=False)
         return cached
 
-    def _prune(self) -> None:
-        cutoff = self._latest - self.buffer_ns
+    def _prune(self, latest_ns: int) -> None:
+        cutoff = latest_ns - self.buffer_ns
         k = bisect.bisect_left(self._stamps, cutoff)
         if k:
             del self._stamps[:k]
@@ -423,7 +426,7 @@ class Pairer:
         if missing:
             self._reject(t, 'missing_joints', f'joint states around the point lack {missing}')
             return
-        q = np.stack([e.q for e in window])
+        q = np.stack([e.q for e in window if e.q is not None])  # window has no None q
         spread = q.max(axis=0) - q.min(axis=0)
         velocities = [e.v for e in window if e.v is not None]
         speed = np.max(np.abs(np.stack(velocities)), axis=0) if velocities else np.zeros(

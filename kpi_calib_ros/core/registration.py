@@ -146,7 +146,8 @@ def register(eta: np.ndarray, tip_poses: np.ndarray, max_rms: float = 0.02,
     offset = np.zeros(3)
     stacked = rotations.reshape(-1, 3)
     steps = 0
-    for steps in range(1, alternations + 1):
+    for _ in range(alternations):
+        steps += 1
         rot, trans = horn(rotations @ offset + positions, eta)
         # R^T (η_i - t) - p_i = R_i o, stacked over i: one linear system in o.
         rhs = ((eta - trans) @ rot - positions).reshape(-1)
@@ -155,7 +156,7 @@ def register(eta: np.ndarray, tip_poses: np.ndarray, max_rms: float = 0.02,
         offset = new
         if change < tol:
             break
-    for k in range(gauss_newton):
+    for _ in range(gauss_newton):
         points = rotations @ offset + positions
         world = points @ rot.T
         residual = (world + trans - eta).reshape(-1)

@@ -103,8 +103,8 @@ class _Shape:
     axis: int = 2  # cylinder axis: 0 = x, 1 = y, 2 = z
 
 
-def _box(lo: tuple[float, ...], hi: tuple[float, ...]) -> _Shape:
-    return _Shape('box', tuple((a + b) / 2 for a, b in zip(lo, hi)),
+def _box(lo: tuple[float, float, float], hi: tuple[float, float, float]) -> _Shape:
+    return _Shape('box', ((lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, (lo[2] + hi[2]) / 2),
                   tuple(b - a for a, b in zip(lo, hi)))
 
 
@@ -112,7 +112,7 @@ def _cyl(axis: int, start: float, end: float, radius: float,
          offset: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> _Shape:
     center = list(offset)
     center[axis] = (start + end) / 2
-    return _Shape('cylinder', tuple(center), (radius, abs(end - start)), axis)
+    return _Shape('cylinder', (center[0], center[1], center[2]), (radius, abs(end - start)), axis)
 
 
 def _volume(s: _Shape) -> float:
@@ -180,6 +180,8 @@ def _joint_xml(name: str, parent: str, child: str, xyz, rpy, axis=None,
              f'    <parent link="{parent}"/>', f'    <child link="{child}"/>',
              f'    <origin xyz="{_f(xyz)}" rpy="{_f(rpy)}"/>']
     if axis is not None:
+        if limits is None:
+            raise ValueError(f'joint {name!r}: a revolute joint needs limits')
         lo, hi, effort, velocity = limits
         parts += [f'    <axis xyz="{_f(axis)}"/>',
                   f'    <limit lower="{_f(lo)}" upper="{_f(hi)}" effort="{_f(effort)}" '

@@ -62,6 +62,11 @@ class _Topic:
     decode: Callable[[bytes], Any]
 
 
+def _point_decoder(decoder: Callable[[bytes], Any]) -> Callable[[bytes], PointSample]:
+    """CDR bytes of a PointStamped -> PointSample, through ``decoder``."""
+    return lambda data: point_sample_from_message(decoder(data))
+
+
 def _open(path: Path, joint_topic: str, point_topic: str,
           require_topics: bool) -> tuple[ScannedBag, _Topic, _Topic] | None:
     """Scan ``path`` and check both topics; None for an empty log (killed before its
@@ -86,7 +91,7 @@ def _open(path: Path, joint_topic: str, point_topic: str,
     topics = {}
     seen = {c.topic: bag.schemas[c.schema_id].name if c.schema_id in bag.schemas else ''
             for c in bag.channels.values()}
-    first = {}
+    first: dict[str, int] = {}
     for c in sorted(bag.channels):  # check topics in the order the file declares them
         first.setdefault(bag.channels[c].topic, c)
     for topic, expected, argument in sorted(
@@ -115,7 +120,7 @@ def _open(path: Path, joint_topic: str, point_topic: str,
         if expected == JOINT_STATE_TYPE:
             topics[topic] = _Topic(ids, JointStateDecoder(decoder))
         else:
-            topics[topic] = _Topic(ids, lambda data, d=decoder: point_sample_from_message(d(data)))
+            topics[topic] = _Topic(ids, _point_decoder(decoder))
     return bag, topics[joint_topic], topics[point_topic]
 
 
@@ -313,7 +318,7 @@ def read_log(path: str | os.PathLike, joint_topic: str = DEFAULT_JOINT_TOPIC,
     return pairs
 
 
-__all__ = ['BagContents', 'BagError', 'BagWarning', 'LIBRARY', 'StreamEncoders', 'DEFAULT_JOINT_TOPIC',
-           'DEFAULT_POINT_TOPIC', 'JOINT_STATE_TYPE', 'LOG_CONTENT', 'LOG_METADATA',
-           'POINT_STAMPED_TYPE', 'is_measurement_log', 'message_definition', 'read_bag',
-           'read_for_pairing', 'read_log', 'type_hash', 'write_bag']
+__all__ = ['BagContents', 'BagError', 'BagWarning', 'LIBRARY', 'StreamEncoders',
+           'DEFAULT_JOINT_TOPIC', 'DEFAULT_POINT_TOPIC', 'JOINT_STATE_TYPE', 'LOG_CONTENT',
+           'LOG_METADATA', 'POINT_STAMPED_TYPE', 'is_measurement_log', 'message_definition',
+           'read_bag', 'read_for_pairing', 'read_log', 'type_hash', 'write_bag']

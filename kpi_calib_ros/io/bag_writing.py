@@ -196,8 +196,11 @@ def write_bag(
     stream.sort(key=lambda item: item[:2])
     with open(path, 'wb') as f:
         recorder = _Recorder(f, joint_topic, point_topic, chunk_size=chunk_size)
-        for _, kind, sample in stream:
-            (recorder.write_point if kind else recorder.write_joint)(sample)
+        for _, _, sample in stream:
+            if isinstance(sample, PointSample):
+                recorder.write_point(sample)
+            else:
+                recorder.write_joint(sample)
         recorder.finish()
     return path
 

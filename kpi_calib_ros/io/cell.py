@@ -165,7 +165,7 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None) -> Cel
     if np.any(sigma <= 0) or np.any(sigma > 0.01):
         raise ConfigError('noise.sigma', f'{sigma.tolist()} must be in (0, 0.01] m per axis '
                           '(SI metres: 20 µm is 2.0e-5)')
-    max_inc = float(reflector.get('max_incidence', np.deg2rad(30.0)))
+    max_inc = float(reflector.get('max_incidence', float(np.deg2rad(30.0))))
     if not 0 < max_inc <= np.pi / 2:
         raise ConfigError('reflector.max_incidence', 'must be in (0, π/2] rad (30° = 0.5236)')
     collision = doc.get('collision') or {}

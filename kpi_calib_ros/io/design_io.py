@@ -109,13 +109,13 @@ def plot_design(cell: DesignCell, scene: CollisionScene | None, result: DesignRe
     ax = fig.add_subplot(projection='3d')
     robot = cell.robot
     tracker = cell.tracker_in_base[:3, 3]
-    tips = []
+    tip_points = []
     for q in result.configurations:
         poses, tip = robot.pin_link_poses(q)
-        chain = np.array([poses[l][:3, 3] for l in robot.link_names] + [tip[:3, 3]])
+        chain = np.array([poses[k][:3, 3] for k in robot.link_names] + [tip[:3, 3]])
         ax.plot(*chain.T, color='tab:orange', alpha=0.35, linewidth=1.0)
-        tips.append(tip[:3, 3])
-    tips = np.array(tips)
+        tip_points.append(tip[:3, 3])
+    tips = np.array(tip_points)
     ax.scatter(*tips.T, color='tab:red', s=8, label=f'{len(tips)} reflector positions')
     for t in tips[:: max(1, len(tips) // 20)]:
         ax.plot(*np.c_[tracker, t], color='tab:green', alpha=0.15, linewidth=0.5)

@@ -18,6 +18,7 @@ import struct
 import zlib
 from dataclasses import dataclass, field
 from io import BytesIO
+from typing import Union
 
 import numpy as np
 from mcap.data_stream import ReadDataStream
@@ -28,6 +29,9 @@ from mcap.records import Channel, Metadata, Schema
 from kpi_calib_ros.core.errors import KpiCalibError
 
 MAGIC = b'\x89MCAP0\r\n'
+# What records are read from: the file's bytes or its memory map, a view into a chunk of
+# it, or a chunk's decompressed bytes.
+Buffer = Union[bytes, memoryview, mmap.mmap]
 _RECORD = struct.Struct('<BQ')
 # Message record after opcode+length: channel, sequence, log time, publish time; then the
 # CDR payload: encapsulation (2 bytes + 2 options), header stamp sec, nanosec.
@@ -96,7 +100,7 @@ class ScannedBag:
         return bytes(self.buffers[m.buffer[i]][m.start[i]:m.end[i]])
 
 
-def _decompress(path, compression: str, data: bytes, size: int) -> bytes:
+def _decompress(path, compression: str, data: memoryview, size: int) -> Buffer:
     if compression == '':
         return data
     if compression == 'lz4':
@@ -114,7 +118,7 @@ def _decompress(path, compression: str, data: bytes, size: int) -> bytes:
                    'reader knows; re-record with the default storage preset')
 
 
-def _partial_lz4(data: bytes) -> bytes:
+def _partial_lz4(data: memoryview) -> bytes:
     import lz4.frame
     try:
         return lz4.frame.LZ4FrameDecompressor().decompress(data)
@@ -250,6 +254,7 @@ def _chunk(bag: ScannedBag, buf, pos: int, stop: int, path, indexes: list) -> in
     p += 8
     complete = p + data_length <= stop
     data = memoryview(buf)[p:min(p + data_length, stop)]  # no copy of the file
+    inner: Buffer
     if complete:
         inner = _decompress(path, compression, data, size)
         if crc and zlib.crc32(inner) != crc:
@@ -269,7 +274,7 @@ def _chunk(bag: ScannedBag, buf, pos: int, stop: int, path, indexes: list) -> in
     return 0 if complete else stop - pos
 
 
-def scan(path, data: bytes) -> ScannedBag:
+def scan(path, data: Buffer) -> ScannedBag:
     """Every complete record of the MCAP bytes ``data`` read from ``path``.
 
     ``unreadable_bytes`` counts what could not be used: a torn record at the end, the

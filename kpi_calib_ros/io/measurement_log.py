@@ -65,7 +65,8 @@ class MeasurementLog:
         self.directory.mkdir(parents=True, exist_ok=True)
         self._encoders = StreamEncoders(joint_topic, point_topic)
         files = _log_files(self.directory)
-        n = int(_LOG_NAME.fullmatch(files[-1].name).group(1)) + 1 if files else 1
+        last = _LOG_NAME.fullmatch(files[-1].name) if files else None  # files all match
+        n = int(last.group(1)) + 1 if last else 1
         while True:
             try:  # exclusive create: two processes never share a file
                 self._fd = os.open(self.directory / f'measurements_{n}.mcap',

@@ -108,8 +108,9 @@ def diagnosis_text(cd: CellDiagnosis, top: int = 5) -> str:
              f'{len(diag.not_distinguishable)} not):']
     for i, c in enumerate(diag.candidates[:top], 1):
         mark = '*' if c.significant else ' '
-        lines.append(f' {mark}{i}. {c.spec:40s} validation rms {c.validation_rms_after_m * _UM:6.1f} '
-                     f'µm  p = {c.p_value:.2g}')
+        lines.append(f' {mark}{i}. {c.spec:40s} '
+                     f'validation rms {c.validation_rms_after_m * _UM:6.1f} µm  '
+                     f'p = {c.p_value:.2g}')
     if diag.best is not None:
         lines.append(f'why: {diag.best.explanation}')
     for c in diag.not_distinguishable:
@@ -270,7 +271,7 @@ def write_plots(out_dir: str | Path, cd: CellDiagnosis) -> list[Path]:
     axes[0].tick_params(axis='y', labelsize=7)
     bins = np.linspace(0, max(rep.max_m, cd.after.rms_m * 3 if cd.after else 0) * _UM, 30)
     axes[1].hist(rep.norms * _UM, bins=bins, alpha=0.6, label='geometric model')
-    if cd.after is not None:
+    if cd.after is not None and cd.added is not None:  # set together
         after = np.linalg.norm(cd.after.residuals, axis=1)
         axes[1].hist(after * _UM, bins=bins, alpha=0.6, label=f'+ {cd.added.name}')
         axes[1].set_title(f'|r| before/after: rms {cd.result.rms_m * _UM:.1f} -> '

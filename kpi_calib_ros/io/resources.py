@@ -64,7 +64,7 @@ def _is_package(directory: Path, package: str) -> bool:
     manifest = directory / 'package.xml'
     if manifest.is_file():
         found = _PACKAGE_NAME.search(manifest.read_text(errors='replace'))
-        return bool(found) and found.group(1) == package
+        return found is not None and found.group(1) == package
     return False
 
 

@@ -109,10 +109,12 @@ def summary_text(doc: dict[str, Any]) -> str:
     est = [p for p in doc['parameters'] if p['estimated']]
     lines += [f"status: {doc['status']['message']}",
               f"identified parameters: {len(est)} (dropped {len(doc['dropped_parameters'])})",
-              f"rms residual: {doc['rms_m'] * 1e6:.1f} µm  (max {doc['max_residual_m'] * 1e6:.1f} µm)",
+              f"rms residual: {doc['rms_m'] * 1e6:.1f} µm  "
+              f"(max {doc['max_residual_m'] * 1e6:.1f} µm)",
               f"model adequacy: chi2/dof = {doc['model_adequacy']['chi2']:.1f}/"
               f"{doc['model_adequacy']['dof']}, p = {doc['model_adequacy']['p_value']:.3g}"]
     for t in doc['tcp']:
         s = ', '.join(f'{x * 1e6:.1f}' for x in t['std'])
-        lines.append(f"TCP {t['name']}: std [{s}] µm, sqrt(trace) {np.sqrt(t['trace_m2']) * 1e6:.1f} µm")
+        lines.append(f"TCP {t['name']}: std [{s}] µm, "
+                     f"sqrt(trace) {np.sqrt(t['trace_m2']) * 1e6:.1f} µm")
     return '\n'.join(lines)

@@ -69,7 +69,8 @@ def joint_sample_from_message(message: Any) -> JointSample:
 def point_sample_from_message(message: Any) -> PointSample:
     """A geometry_msgs/PointStamped (rclpy or decoded) as a PointSample (m, header frame)."""
     p = message.point
-    return PointSample(stamp_ns(message.header), message.header.frame_id, [p.x, p.y, p.z])
+    return PointSample(stamp_ns(message.header), message.header.frame_id,
+                       np.array([p.x, p.y, p.z], dtype=float))
 
 
 # ------------------------------------------------------------------ sample -> message

@@ -101,9 +101,9 @@ def calibrated_urdf(urdf_xml: str, robot: RobotModel, parameters: Mapping[str, f
     for name, value in parameters.items():
         if not np.isfinite(value):
             raise ValueError(f'parameters[{name!r}] = {value!r} is not finite')
-        joint = _joint_of(name)
-        if joint in elements and joint not in chain:
-            raise ValueError(f'parameters[{name!r}]: joint {joint!r} is not on the chain '
+        joint_name = _joint_of(name)
+        if joint_name in elements and joint_name not in chain:
+            raise ValueError(f'parameters[{name!r}]: joint {joint_name!r} is not on the chain '
                              f'{robot.joint_names}')
     for joint in robot.joints:
         element = elements.get(joint.name)

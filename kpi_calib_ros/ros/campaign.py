@@ -72,10 +72,10 @@ class Campaign:
         """(Re)start pairing for a robot chain; pairs the samples held until now."""
         with self.lock:
             decisions = self._handle(self.pairer.flush()) if self.pairer else []
-            self.pairer = Pairer(joint_names, tracker_frame)
+            pairer = self.pairer = Pairer(joint_names, tracker_frame)
             early, self._early = list(self._early), deque(maxlen=self._early.maxlen)
             for sample in early:  # all of them before any timeout is judged
-                self._add(sample)
+                self._add(pairer, sample)
             return decisions + self.poll()
 
     def receive(self, sample: JointSample | PointSample,
@@ -95,7 +95,7 @@ class Campaign:
             if self.pairer is None:
                 self._early.append(sample)
                 return []
-            self._add(sample)
+            self._add(self.pairer, sample)
             if joint and self.pairer.epoch != self._epoch:  # the joint clock jumped back
                 self._epoch, self._clock = self.pairer.epoch, (sample.stamp_ns, now_ns)
             return self.poll(now_ns)
@@ -109,11 +109,12 @@ class Campaign:
                 return []
             return self._handle(self.pairer.poll(clock[0] + now_ns - clock[1]))
 
-    def _add(self, sample: JointSample | PointSample) -> None:
+    @staticmethod
+    def _add(pairer: Pairer, sample: JointSample | PointSample) -> None:
         if isinstance(sample, JointSample):
-            self.pairer.add_joint_sample(sample)
+            pairer.add_joint_sample(sample)
         else:
-            self.pairer.add_point(sample)
+            pairer.add_point(sample)
 
     def _handle(self, decisions: list[Decision]) -> list[Decision]:
         out: list[Decision] = []

@@ -69,6 +69,9 @@ def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, dat
     tcp : list of PoseWithCovarianceStamped
         One per working pose, stamped with the last measurement.
     """
+    if data.stamps_ns is None:
+        raise ValueError('data.stamps_ns is None: the TCP poses are stamped with the last '
+                         'measurement')
     result = identify_cell(cm, data)
     doc = calibration_document(cm, result, pairing)
     urdf = calibrated_urdf(cm.cell.urdf_xml, cm.robot, dict(zip(result.names, result.values)))

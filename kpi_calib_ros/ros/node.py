@@ -232,8 +232,10 @@ class CalibrationNode(Node):
         self._report(self.campaign.poll())
         if self._auto_pending and self._claim_job('identifying (automatic)'):
             self._auto_pending = False
-            self.executor.create_task(self._run_job, 'automatic identification',
-                                      self._identify)
+            executor = self.executor
+            if executor is None:  # timers fire only under an executor
+                raise RuntimeError('kpi_calib_node ticked without an executor')
+            executor.create_task(self._run_job, 'automatic identification', self._identify)
         self._publish_diagnostics()
 
     # ------------------------------------------------------------------ jobs

@@ -23,6 +23,7 @@ node that receives nothing else.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -70,7 +71,7 @@ class ReplayReport:
         """(joint states, points) sent but not received by the node (None: unknown)."""
         if self.delivered is None:
             return None
-        return tuple(max(0, s - d) for s, d in zip(self.sent, self.delivered))
+        return (max(0, self.sent[0] - self.delivered[0]), max(0, self.sent[1] - self.delivered[1]))
 
     @property
     def complete(self) -> bool:
@@ -90,7 +91,7 @@ class _NodeCounts:
         if msg.status and msg.status[0].name.startswith(NODE_STATUS):
             values = diagnostic_values(msg)
             if all(k in values for k in RECEIVED):
-                self.counts = tuple(int(values[k]) for k in RECEIVED)
+                self.counts = (int(values[RECEIVED[0]]), int(values[RECEIVED[1]]))
 
     def spin(self, timeout_s: float) -> None:
         self.executor.spin_once(timeout_sec=timeout_s)
@@ -100,6 +101,12 @@ class _NodeCounts:
         while self.counts is None and time.monotonic() < deadline:
             self.spin(0.05)
         return self.counts is not None
+
+    def latest(self) -> tuple[int, int]:
+        """The last reported counts; only once :meth:`wait_first` returned True."""
+        if self.counts is None:
+            raise RuntimeError(f'no {NODE_STATUS} counts received yet: call wait_first first')
+        return self.counts
 
 
 def wait_for_subscribers(node: Node, publishers: list, timeout_s: float) -> bool:
@@ -165,8 +172,10 @@ def replay(node: Node, path: str | Path, rate: float = 1.0,
         if baseline is not None and not stalled:
             if not sum(sent) % 50:  # a spin costs ~1 ms: take new counts now and then
                 node_counts.spin(0.0)
-            stalled = not _await(node_counts, lambda: sent[kind] - (
-                node_counts.counts[kind] - baseline[kind]) < windows[kind])
+
+            def within_window(kind: int = kind) -> bool:
+                return sent[kind] - (node_counts.latest()[kind] - baseline[kind]) < windows[kind]
+            stalled = not _await(node_counts, within_window)
             if stalled:
                 log.error(f'{NODE_STATUS} stopped counting for {STALL_S} s; publishing the '
                           'rest without waiting for it')
@@ -177,13 +186,14 @@ def replay(node: Node, path: str | Path, rate: float = 1.0,
     acknowledged = all(p.wait_for_all_acked(Duration(seconds=STALL_S)) for p in pubs)
     delivered = None
     if baseline is not None:
-        _await(node_counts, lambda: all(node_counts.counts[k] - baseline[k] >= sent[k]
+        _await(node_counts, lambda: all(node_counts.latest()[k] - baseline[k] >= sent[k]
                                         for k in (0, 1)))
-        delivered = tuple(node_counts.counts[k] - baseline[k] for k in (0, 1))
-    return ReplayReport(tuple(sent), delivered, acknowledged, time.monotonic() - start)
+        counts = node_counts.latest()
+        delivered = (counts[0] - baseline[0], counts[1] - baseline[1])
+    return ReplayReport((sent[0], sent[1]), delivered, acknowledged, time.monotonic() - start)
 
 
-def _await(node_counts: _NodeCounts, done) -> bool:
+def _await(node_counts: _NodeCounts, done: Callable[[], bool]) -> bool:
     """Spin until ``done()``; False once the node's counts stop moving for ``STALL_S``."""
     last, since = node_counts.counts, time.monotonic()
     while not done():
@@ -216,8 +226,9 @@ def run_replay(bag: str | Path, rate: float = 1.0, joint_topic: str = DEFAULT_JO
     else:
         print(f'kpi_calib_node received {report.delivered[0]} joint states and '
               f'{report.delivered[1]} tracker points')
-        if not report.complete:
-            print(f'LOST: {report.lost[0]} joint states and {report.lost[1]} tracker points')
+        lost = report.lost
+        if lost is not None and not report.complete:
+            print(f'LOST: {lost[0]} joint states and {lost[1]} tracker points')
     return 0 if report.complete else 1
 
 
