@@ -93,5 +93,7 @@ def test_a_replay_into_a_node_that_dies_says_what_was_lost_and_fails(client, spa
     assert replay.returncode == 1, output
     got_joints, got_points = received(output)
     lost = re.search(r'LOST: (\d+) joint states and (\d+) tracker points', output)
-    assert lost and 200 <= got_joints < len(joints)
+    # The replay knows the node's count from its last /diagnostics (at most 1 s old), so it
+    # may have seen fewer than the 200 this client saw before the kill; never all of them.
+    assert lost and 0 < got_joints < len(joints)
     assert (int(lost[1]), int(lost[2])) == (len(joints) - got_joints, len(points) - got_points)
