@@ -33,6 +33,9 @@ def main(argv: list[str] | None = None) -> int:
     ide.add_argument('--effects', default='', metavar='EFFECT:JOINT,...',
                      help="physical effects added to the cell file's effects: (e.g. "
                      'joint_compliance:joint_2); the summary compares with the geometric model')
+    ide.add_argument('--model', choices=['auto', 'registration', 'joint_offsets', 'geometric'],
+                     help="model size (overrides the cell's identification.model; auto: chosen "
+                     'by cross-validation over held-out measurements)')
 
     dia = sub.add_parser('diagnose', help='residual report, model adequacy and the most likely '
                          'missing physical effect')
@@ -83,7 +86,7 @@ def _simulate(args: argparse.Namespace) -> int:
 
 def _identify(args: argparse.Namespace) -> int:
     from kpi_calib_ros.app.identify import run_identify
-    return run_identify(args.cell, args.bag, args.out, effects=args.effects)
+    return run_identify(args.cell, args.bag, args.out, effects=args.effects, model=args.model)
 
 
 def _design(args: argparse.Namespace) -> int:

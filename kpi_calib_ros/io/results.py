@@ -113,6 +113,9 @@ def summary_text(doc: dict[str, Any]) -> str:
               f"model adequacy: chi2/dof = {doc['model_adequacy']['chi2']:.1f}/"
               f"{doc['model_adequacy']['dof']}, p = {doc['model_adequacy']['p_value']:.3g}"]
     for t in doc['tcp']:
+        if t.get('std') is None:
+            lines.append(f"TCP {t['name']}: NOT DETERMINED by the measurements (not estimable)")
+            continue
         s = ', '.join(f'{x * 1e6:.1f}' for x in t['std'])
         lines.append(f"TCP {t['name']}: std [{s}] µm, sqrt(trace) {np.sqrt(t['trace_m2']) * 1e6:.1f} µm")
     return '\n'.join(lines)
