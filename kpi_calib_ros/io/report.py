@@ -33,7 +33,9 @@ def _candidate_dict(c: Candidate) -> dict[str, Any]:
             'significant': bool(c.significant),
             'parameters': [{'name': n, 'value': float(v), 'std': float(s), 'unit': u}
                            for n, v, s, u in zip(c.parameter_names, c.values, c.std, c.units)],
-            'explanation': c.explanation}
+            'explanation': c.explanation, 'plausible': bool(c.plausible),
+            'plausibility': c.plausibility, 'also_explained_by': list(c.also_explained_by),
+            'note': c.note}
 
 
 def comparison_to_dict(cmp: ModelComparison) -> dict[str, Any]:
