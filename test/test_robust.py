@@ -204,3 +204,27 @@ def test_cli_one_pose_campaign_exits_nonzero_and_keeps_the_good_calibration(cm, 
     assert (out / CALIBRATION_FILE).read_text() == before
     failed = yaml.safe_load((out / FAILED_CALIBRATION_FILE).read_text())
     assert failed['valid'] is False and failed['tcp_estimable'] is False
+
+
+def test_design_estimability_says_when_the_kpi_is_not_determined(cm, truth):
+    from kpi_calib_ros.app.design import design_estimability
+    _, q, _ = truth
+    assert design_estimability(cm, q).all_estimable
+    one = design_estimability(cm, np.repeat(q[:1], 30, axis=0))
+    assert not one.all_estimable and 'NOT estimable' in one.summary()
+
+
+def test_node_job_never_writes_an_invalid_calibration_over_the_last_good_one(cm, truth,
+                                                                             tmp_path):
+    from kpi_calib_ros.ros.jobs import identify_work
+    p_true, q, _ = truth
+    good = _campaign(cm, p_true, q, 10)
+    cal, text, urdf, tcp = identify_work(cm, good, None, tmp_path)
+    assert cal.valid and urdf and len(tcp) == 1
+    before = (tmp_path / CALIBRATION_FILE).read_text()
+    assert text == before
+    bad = _campaign(cm, p_true, np.repeat(q[:1], 60, axis=0), 11)
+    cal, text, urdf, tcp = identify_work(cm, bad, None, tmp_path)
+    assert not cal.valid and urdf == '' and tcp == []
+    assert (tmp_path / CALIBRATION_FILE).read_text() == before
+    assert yaml.safe_load((tmp_path / FAILED_CALIBRATION_FILE).read_text())['valid'] is False

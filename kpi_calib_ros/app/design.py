@@ -11,6 +11,8 @@ from typing import Callable
 import numpy as np
 
 from kpi_calib_ros.core.design import DesignResult, design_context, design_measurements
+from kpi_calib_ros.core.estimability import KpiEstimability, result_estimability
+from kpi_calib_ros.core.model_selection import level_free
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
 from kpi_calib_ros.io.design_io import plot_design, plot_ellipsoids, summary_text, write_design
 
@@ -21,6 +23,17 @@ def design_cell_model(cm: CellModel, n: int, criterion: str, seed: int,
     settings), drawn with ``numpy.random.default_rng(seed)``."""
     return design_measurements(cm.design_cell(), n, criterion, np.random.default_rng(seed),
                                cm.cell.design, progress=progress)
+
+
+def design_estimability(cm: CellModel, configurations: np.ndarray) -> KpiEstimability:
+    """Whether measuring ``configurations`` (N, n) determines the TCP at every working
+    pose, for the cell's model level (``auto``: the full geometric model, the most
+    demanding), at the nominal parameters."""
+    level = cm.cell.identification.model
+    free = level_free(cm.model.params, 'geometric' if level == 'auto' else level,
+                      len(cm.geometric))
+    return result_estimability(cm.model, configurations, cm.cell.sigma,
+                               cm.model.params.nominal, cm.q_work, cm.working_pose_names, free)
 
 
 def run_design(cell_path: str | Path, n: int, criterion: str, out: str | Path,
@@ -48,5 +61,7 @@ def run_design(cell_path: str | Path, n: int, criterion: str, out: str | Path,
     names = ['heuristic'] if result is baseline else ['heuristic', f'{criterion}-optimal']
     ell_png = plot_ellipsoids(shown, names, f'{stem}_ellipsoids.png')
     print(summary_text(result, None if result is baseline else baseline))
+    estimability = design_estimability(cm, result.configurations)
+    print(('' if estimability.all_estimable else 'WARNING: ') + estimability.summary())
     print(f'written: {out}, {poses_png}, {ell_png}')
-    return 0 if result.verification.ok else 1
+    return 0 if result.verification.ok and estimability.all_estimable else 1

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 from geometry_msgs.msg import PoseWithCovarianceStamped
 
-from kpi_calib_ros.app.design import design_cell_model
+from kpi_calib_ros.app.design import design_cell_model, design_estimability
 from kpi_calib_ros.core.design import DesignResult
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.pairing import PairingResult
@@ -34,7 +34,7 @@ from kpi_calib_ros.ros.parameters import NodeSettings
 
 
 def design_work(cm: CellModel, settings: NodeSettings,
-                data_dir: Path) -> tuple[DesignResult, np.ndarray, Path]:
+                data_dir: Path) -> tuple[DesignResult, np.ndarray, Path, str]:
     """Design ``settings.num_measurements`` poses and write ``design.yaml``.
 
     Returns
@@ -44,12 +44,15 @@ def design_work(cm: CellModel, settings: NodeSettings,
         Nominal reflector positions (m, tracker frame) of the designed poses.
     path : Path
         The written design file.
+    estimability : str
+        '' when the design determines the TCP at every working pose, else why not.
     """
     design = design_cell_model(cm, settings.num_measurements, settings.criterion,
                                settings.design_seed)
     path = write_design(data_dir / DESIGN_FILE, design)
     points = cm.model.predict(cm.model.params.nominal, design.configurations)
-    return design, points, path
+    estimability = design_estimability(cm, design.configurations)
+    return design, points, path, '' if estimability.all_estimable else estimability.summary()
 
 
 def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, data_dir: Path

@@ -299,16 +299,17 @@ class CalibrationNode(Node):
 
     async def _design(self) -> tuple[bool, str]:
         cm = self._model()
-        design, points, path = await self._offload(jobs.design_work, cm, self.settings,
-                                                   self.data_dir)
+        design, points, path, not_estimable = await self._offload(
+            jobs.design_work, cm, self.settings, self.data_dir)
         self._pub_poses.publish(cv.joint_trajectory_msg(design.joint_names,
                                                         design.configurations))
         self._design_points = points
         self._publish_markers()
         tcp_um = np.sqrt((design.tcp_std ** 2).sum(axis=1)).max() * 1e6
-        return design.verification.ok, (
+        return design.verification.ok and not not_estimable, (
             f'{len(design.configurations)} poses ({design.criterion}), predicted TCP '
-            f'sqrt(trace) <= {tcp_um:.1f} µm; {design.status}; published on '
+            f'sqrt(trace) <= {tcp_um:.1f} µm; {design.status}; '
+            + (f'{not_estimable}; ' if not_estimable else '') + 'published on '
             f'{self.resolve_topic_name(MEASUREMENT_POSES_TOPIC)}, written to {path}')
 
     async def _identify(self) -> tuple[bool, str]:
