@@ -228,3 +228,17 @@ def test_node_job_never_writes_an_invalid_calibration_over_the_last_good_one(cm,
     assert not cal.valid and urdf == '' and tcp == []
     assert (tmp_path / CALIBRATION_FILE).read_text() == before
     assert yaml.safe_load((tmp_path / FAILED_CALIBRATION_FILE).read_text())['valid'] is False
+
+
+def test_diagnosis_outliers_against_the_robust_scale_when_sigma_is_understated(cm, truth):
+    from kpi_calib_ros.core.estimation import identify
+    from kpi_calib_ros.core.residuals import residual_report
+    p_true, q, _ = truth
+    data = _campaign(cm, p_true, q, 12)
+    small = SIGMA / 10  # stated σ 10× too small: against it nearly every point is "outlier"
+    result = identify(cm.model, data, small, cm.q_work)
+    report = residual_report(cm.model, data, result)
+    assert not report.adequate
+    assert report.sigma_robust_m == pytest.approx(SIGMA, rel=0.3)
+    assert 'stated noise.sigma' in report.sigma_warning
+    assert report.outlier.sum() <= 1
