@@ -45,6 +45,9 @@ def main(argv: list[str] | None = None) -> int:
     dia.add_argument('--effects', default='', metavar='EFFECT:JOINT,...',
                      help='effects already in the model, as for identify')
     dia.add_argument('--folds', type=int, default=5, help='cross-validation folds over poses')
+    dia.add_argument('--model', choices=['auto', 'registration', 'joint_offsets', 'geometric'],
+                     help="model level the effects are screened against (overrides the cell's "
+                     'identification.model)')
     dia.add_argument('--alpha', type=float, default=None,
                      help='family-wise false-alarm level of the effect tests (default: the '
                      'adequacy level, 0.01)')
@@ -105,7 +108,7 @@ def _diagnose(args: argparse.Namespace) -> int:
     from kpi_calib_ros.core.residuals import ADEQUACY_ALPHA
     alpha = ADEQUACY_ALPHA if args.alpha is None else args.alpha
     return run_diagnose(args.cell, args.bag, args.out, effects=args.effects, folds=args.folds,
-                        alpha=alpha)
+                        alpha=alpha, model=args.model)
 
 
 def _demo(args: argparse.Namespace) -> int:

@@ -242,3 +242,14 @@ def test_diagnosis_outliers_against_the_robust_scale_when_sigma_is_understated(c
     assert report.sigma_robust_m == pytest.approx(SIGMA, rel=0.3)
     assert 'stated noise.sigma' in report.sigma_warning
     assert report.outlier.sum() <= 1
+
+
+def test_diagnose_screens_against_the_chosen_model_level(cm, truth):
+    from kpi_calib_ros.app.diagnose import diagnose_cell
+    from kpi_calib_ros.core.model_selection import level_free
+    p_true, q, _ = truth
+    cd = diagnose_cell(cm, _campaign(cm, p_true, q, 13), add_best=False, model='joint_offsets')
+    free = set(level_free(cm.model.params, 'joint_offsets', len(cm.geometric)))
+    assert set(cd.result.estimated) <= free
+    # The placements this level leaves out are missed: the verdict says inadequate.
+    assert not cd.diagnosis.model_adequate

@@ -111,6 +111,28 @@ class CellCalibration:
         return not self.problems
 
 
+def _fit_function(cm: CellModel):
+    """``fit(data, free, p0=None, point_weights=None)``: identify with the cell's settings."""
+    def fit(d: Measurements, free: list[str], p0: np.ndarray | None = None,
+            point_weights: np.ndarray | None = None) -> CalibrationResult:
+        return identify(cm.model, d, cm.cell.sigma, cm.q_work, list(cm.working_pose_names),
+                        p0=p0, free=free, identifiability_method=cm.cell.identification_method,
+                        priority=list(cm.cell.identification_priority) or None,
+                        point_weights=point_weights)
+    return fit
+
+
+def choose_level(cm: CellModel, data: Measurements, model: str | None = None) -> ModelChoice:
+    """The model level to identify: ``model`` or the cell's ``identification.model``;
+    ``auto`` is decided by cross-validation on ``data``."""
+    requested = model or cm.cell.identification.model
+    if requested == 'auto':
+        return choose_model(cm.model, data, _fit_function(cm), 'auto', len(cm.geometric),
+                            cm.cell.identification.cv_folds)
+    return ModelChoice(requested, requested, {}, 0, f'{requested} as configured '
+                       '(identification.model / --model; auto compares the levels)')
+
+
 def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None
                    ) -> CellCalibration:
     """The identification the CLI and the node publish: model size (``model`` or the
@@ -118,24 +140,12 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None
     if len(data) == 0:
         raise DataError('no accepted measurement to identify from')
     settings = cm.cell.identification
-    requested = model or settings.model
     n_geo = len(cm.geometric)
-
-    def fit(d: Measurements, free: list[str], p0: np.ndarray | None = None,
-            point_weights: np.ndarray | None = None) -> CalibrationResult:
-        return identify(cm.model, d, cm.cell.sigma, cm.q_work, list(cm.working_pose_names),
-                        p0=p0, free=free, identifiability_method=cm.cell.identification_method,
-                        priority=list(cm.cell.identification_priority) or None,
-                        point_weights=point_weights)
-
+    fit = _fit_function(cm)
     # Model choice on the data without gross points (a 10 m point would decide it alone).
     screened = subset(data, ~gross_outliers(cm.model, data)[0]) \
         if settings.outliers.exclude else data
-    if requested == 'auto':
-        choice = choose_model(cm.model, screened, fit, 'auto', n_geo, settings.cv_folds)
-    else:
-        choice = ModelChoice(requested, requested, {}, 0, f'{requested} as configured '
-                             '(identification.model / --model; auto compares the levels)')
+    choice = choose_level(cm, screened, model)
     free = level_free(cm.model.params, choice.level, n_geo)
     robust = robust_identify(cm.model, data, cm.cell.sigma,
                              lambda d, **kw: fit(d, free, **kw), settings.loss,
