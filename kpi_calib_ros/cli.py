@@ -34,6 +34,9 @@ def main(argv: list[str] | None = None) -> int:
     ide.add_argument('--effects', default='', metavar='EFFECT:JOINT,...',
                      help="physical effects added to the cell file's effects: (e.g. "
                      'joint_compliance:joint_2); the summary compares with the geometric model')
+    ide.add_argument('--model', choices=['auto', 'registration', 'joint_offsets', 'geometric'],
+                     help="model size (overrides the cell's identification.model; auto: chosen "
+                     'by cross-validation over held-out measurements)')
 
     dia = sub.add_parser('diagnose', help='residual report, model adequacy and the most likely '
                          'missing physical effect')
@@ -43,6 +46,9 @@ def main(argv: list[str] | None = None) -> int:
     dia.add_argument('--effects', default='', metavar='EFFECT:JOINT,...',
                      help='effects already in the model, as for identify')
     dia.add_argument('--folds', type=int, default=5, help='cross-validation folds over poses')
+    dia.add_argument('--model', choices=['auto', 'registration', 'joint_offsets', 'geometric'],
+                     help="model level the effects are screened against (overrides the cell's "
+                     'identification.model)')
     dia.add_argument('--alpha', type=float, default=None,
                      help='family-wise false-alarm level of the effect tests (default: the '
                      'adequacy level, 0.01)')
@@ -84,7 +90,7 @@ def _simulate(args: argparse.Namespace) -> int:
 
 def _identify(args: argparse.Namespace) -> int:
     from kpi_calib_ros.app.identify import run_identify
-    return run_identify(args.cell, args.bag, args.out, effects=args.effects)
+    return run_identify(args.cell, args.bag, args.out, effects=args.effects, model=args.model)
 
 
 def _design(args: argparse.Namespace) -> int:
@@ -103,7 +109,7 @@ def _diagnose(args: argparse.Namespace) -> int:
     from kpi_calib_ros.core.residuals import ADEQUACY_ALPHA
     alpha = ADEQUACY_ALPHA if args.alpha is None else args.alpha
     return run_diagnose(args.cell, args.bag, args.out, effects=args.effects, folds=args.folds,
-                        alpha=alpha)
+                        alpha=alpha, model=args.model)
 
 
 def _demo(args: argparse.Namespace) -> int:

@@ -140,3 +140,25 @@ def test_identification_from_the_registered_start_equals_the_one_from_the_true_p
                              - cm.model.predict(from_truth.values, configurations))) < 1e-9
     assert np.max(np.abs(from_registration.tcp - from_truth.tcp)) < 1e-9
     assert from_registration.rms_m == pytest.approx(from_truth.rms_m, rel=1e-9)
+
+
+def test_a_few_gross_points_are_trimmed_and_do_not_move_the_registration(cm, campaign):
+    """A 10 m point and a 0.3 m point among 40 drag a plain closed form by decimetres; the
+    trimmed registration leaves them out, names them, and equals the registration of the
+    clean points to noise level."""
+    q, tips = campaign
+    base = np.asarray(cm.cell.base_in_tracker, float) + np.array([0.5, 0.2, -0.1, 0, 0, 1.5])
+    offset = np.array([0.0, 0.02, 0.05])
+    rng = np.random.default_rng(11)
+    eta = cm.model.predict(_with_placement(cm, base, offset), q) + rng.normal(
+        scale=SIGMA, size=(len(q), 3))
+    clean = register(eta, tips)
+    bad = eta.copy()
+    bad[7] += [10.0, 0.0, 0.0]
+    bad[21] += [0.0, -0.3, 0.0]
+    reg = register(bad, tips)
+    assert reg.trimmed == (7, 21)
+    assert np.allclose(reg.base_in_tracker[:3], clean.base_in_tracker[:3], atol=5 * SIGMA)
+    assert _rotation_error(reg.base_in_tracker[3:], clean.base_in_tracker[3:]) < 1e-4
+    assert np.allclose(reg.reflector_offset, clean.reflector_offset, atol=5 * SIGMA)
+    assert reg.residuals_m[7] > 9.0 and reg.rms_m < 5 * SIGMA

@@ -263,3 +263,54 @@ def test_jobs_compute_in_a_worker_and_touch_the_node_on_the_executor(in_process)
     finally:
         executor.shutdown()
         spinner.join(timeout=10)
+
+
+def test_an_invalid_identification_keeps_the_last_good_calibration(in_process, monkeypatch):
+    """A campaign whose KPI is not estimable (60 points from one pose) is never published:
+    the previous calibration stays (topics, calibration.yaml) and /diagnostics says ERROR
+    with the reason."""
+    from kpi_calib_ros.core.measurement import Measurements
+    from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
+                                              true_parameters)
+    node = in_process
+    cm = node._cm
+    rng = np.random.default_rng(21)
+    p_true = true_parameters(cm.model.params, rng)
+    q = random_configurations(cm.model, cm.model.params.nominal, 40, rng)
+    campaigns = {'good': q, 'one_pose': np.repeat(q[:1], 60, axis=0)}
+    chosen = {}
+
+    def measurements(*_args, **_kwargs):
+        data = simulate_measurements(cm.model, p_true, campaigns[chosen['name']], 2e-5, rng)
+        stamps = 10 ** 9 * (np.arange(len(data)) + 1)
+        return Measurements(q=data.q, eta=data.eta, stamps_ns=stamps), None
+
+    monkeypatch.setattr(node.campaign, 'measurements', measurements)
+    executor = SingleThreadedExecutor(context=node.context)
+    executor.add_node(node)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+
+    def run(name: str) -> tuple[bool, str]:
+        chosen['name'] = name
+        assert node._claim_job('identifying')
+        task = executor.create_task(node._run_job, 'identify', node._identify)
+        finished = threading.Event()
+        task.add_done_callback(lambda _: finished.set())
+        assert finished.wait(timeout=120), 'identification did not finish'
+        return task.result()
+
+    try:
+        ok, message = run('good')
+        assert ok, message
+        good, written = node._result, (node.data_dir / 'calibration.yaml').read_text()
+        assert node.status()[0] in ('OK', 'WARN')
+        ok, message = run('one_pose')
+        assert not ok and 'not estimable' in message.lower()
+        assert node._result is good
+        assert (node.data_dir / 'calibration.yaml').read_text() == written
+        level, text, _ = node.status()
+        assert level == 'ERROR' and 'calibration not published' in text
+    finally:
+        executor.shutdown()
+        spinner.join(timeout=10)

@@ -12,6 +12,8 @@ from typing import Any, Callable
 import numpy as np
 
 from kpi_calib_ros.core.design import DesignResult, design_context, design_measurements
+from kpi_calib_ros.core.estimability import KpiEstimability, result_estimability
+from kpi_calib_ros.core.model_selection import level_free
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
 from kpi_calib_ros.io.design_io import plot_design, plot_ellipsoids, summary_text, write_design
 from kpi_calib_ros.io.robot_geometry import mesh_check
@@ -59,6 +61,17 @@ def mesh_verified(cm: CellModel, result: DesignResult) -> tuple[DesignResult, di
     return dataclasses.replace(result, verification=verification, status=status), doc
 
 
+def design_estimability(cm: CellModel, configurations: np.ndarray) -> KpiEstimability:
+    """Whether measuring ``configurations`` (N, n) determines the TCP at every working
+    pose, for the cell's model level (``auto``: the full geometric model, the most
+    demanding), at the nominal parameters."""
+    level = cm.cell.identification.model
+    free = level_free(cm.model.params, 'geometric' if level == 'auto' else level,
+                      len(cm.geometric))
+    return result_estimability(cm.model, configurations, cm.cell.sigma,
+                               cm.model.params.nominal, cm.q_work, cm.working_pose_names, free)
+
+
 def run_design(cell_path: str | Path, n: int, criterion: str, out: str | Path,
                seed: int = 0) -> int:
     """``kpi-calib design``: design.yaml, ``<stem>_poses.png`` and ``<stem>_ellipsoids.png``
@@ -90,5 +103,7 @@ def run_design(cell_path: str | Path, n: int, criterion: str, out: str | Path,
     print(f"  mesh check: {mesh['in_collision']}/{mesh['configurations']} configurations in "
           f"mesh collision ({mesh['pairs_checked']} link pairs checked)" if mesh['run'] else
           f"  mesh check: not run, {mesh['why']}")
+    estimability = design_estimability(cm, result.configurations)
+    print(('' if estimability.all_estimable else 'WARNING: ') + estimability.summary())
     print(f'written: {out}, {poses_png}, {ell_png}')
-    return 0 if result.verification.ok else 1
+    return 0 if result.verification.ok and estimability.all_estimable else 1

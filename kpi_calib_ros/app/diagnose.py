@@ -7,7 +7,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from kpi_calib_ros.app.identify import identify_cell, load_measurements, with_effects
+from kpi_calib_ros.app.identify import (choose_level, identify_cell, load_measurements,
+                                        with_effects)
+from kpi_calib_ros.core.model_selection import level_free
 from kpi_calib_ros.core.diagnosis import CellDiagnosis, compare_models, diagnose
 from kpi_calib_ros.core.effects import parse_effect_spec
 from kpi_calib_ros.core.measurement import Measurements
@@ -18,25 +20,34 @@ from kpi_calib_ros.io.report import diagnosis_text, write_report
 
 
 def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 5,
-                  alpha: float = ADEQUACY_ALPHA, add_best: bool = True) -> CellDiagnosis:
+                  alpha: float = ADEQUACY_ALPHA, add_best: bool = True,
+                  model: str | None = None) -> CellDiagnosis:
     """Calibrate ``cm`` on ``data``, diagnose it and, when an effect is significant,
-    add the top one and compare before/after (full nonlinear refit)."""
-    result = identify_cell(cm, data)
+    add the top one and compare before/after (full nonlinear refit). ``model`` (or the
+    cell's ``identification.model``) sets the model level the effects are screened
+    against; the default geometric is the full model."""
+    level = choose_level(cm, data, model).level
+    free = None if level == 'geometric' else level_free(cm.model.params, level,
+                                                         len(cm.geometric))
+    result = identify_cell(cm, data, free=free)
     diag = diagnose(cm.model, data, result, folds=folds, alpha=alpha)
     if not add_best or diag.best is None:
         return CellDiagnosis(cm.model, data, result, diag)
     best = parse_effect_spec(diag.best.spec, cm.robot)
     richer = with_effects(cm, (best,))
-    after = identify_cell(richer, data)
+    after = identify_cell(richer, data, free=None if free is None else
+                          level_free(richer.model.params, level, len(cm.geometric)))
     comparison = compare_models((cm.model, result), (richer.model, after), data, folds=folds)
     return CellDiagnosis(cm.model, data, result, diag, best, richer.model, after, comparison)
 
 
 def run_diagnose(cell_path: str | Path, bag_path: str | Path, out_dir: str | Path,
-                 effects: str = '', folds: int = 5, alpha: float = ADEQUACY_ALPHA) -> int:
-    """``kpi-calib diagnose``: diagnosis.json, report.md and plots in ``out_dir``."""
+                 effects: str = '', folds: int = 5, alpha: float = ADEQUACY_ALPHA,
+                 model: str | None = None) -> int:
+    """``kpi-calib diagnose``: diagnosis.json, report.md and plots in ``out_dir``;
+    ``model`` overrides the cell's ``identification.model``."""
     cm, data, _ = load_measurements(cell_path, bag_path, effects)
-    cd = diagnose_cell(cm, data, folds=folds, alpha=alpha)
+    cd = diagnose_cell(cm, data, folds=folds, alpha=alpha, model=model)
     report = write_report(out_dir, cd)
     print(diagnosis_text(cd))
     print(f'written: {Path(out_dir) / DIAGNOSIS_FILE}, {report}')

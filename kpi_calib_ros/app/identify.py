@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable
 
@@ -18,17 +19,23 @@ from kpi_calib_ros.core.dh import dh_table
 from kpi_calib_ros.core.diagnosis import augmented_model, compare_models
 from kpi_calib_ros.core.effects import parse_effect_spec, split_specs
 from kpi_calib_ros.core.errors import DataError
+from kpi_calib_ros.core.estimability import KpiEstimability, result_estimability
 from kpi_calib_ros.core.estimation import CalibrationResult, identify
+from kpi_calib_ros.core.model_selection import ModelChoice, choose_model, level_free
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
 from kpi_calib_ros.core.pairing import PairingResult, pair_measurements
 from kpi_calib_ros.core.registration import Registration, register
+from kpi_calib_ros.core.robust import (LOSS_SCALE, RobustResult, gross_outliers,
+                                       robust_identify, subset)
 from kpi_calib_ros.core.streams import JointSample, PointSample
 from kpi_calib_ros.io.bag import read_for_pairing
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
 from kpi_calib_ros.io.measurement_log import stored_pairing
-from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC
+from kpi_calib_ros.io.names import (DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC,
+                                    FAILED_CALIBRATION_FILE)
 from kpi_calib_ros.io.report import comparison_text, comparison_to_dict
-from kpi_calib_ros.io.results import calibration_to_dict, summary_text, write_calibration
+from kpi_calib_ros.io.results import (calibration_to_dict, summary_text, write_atomic,
+                                      write_calibration)
 
 # Geometric errors of a robot move its tip by millimetres; a nominal placement that
 # misses the points by more (median, m) is a wrong or unknown placement: register it.
@@ -117,7 +124,9 @@ def registration_text(reg: Registration | None, cm: CellModel) -> str:
     return (f'placement registered from the points ({why}): base_in_tracker '
             f'{np.round(reg.base_in_tracker, 5).tolist()}, reflector offset '
             f'{np.round(reg.reflector_offset, 5).tolist()} m, registered miss '
-            f'{reg.rms_m * 1e3:.3g} mm rms')
+            f'{reg.rms_m * 1e3:.3g} mm rms'
+            + (f'; measurements {list(reg.trimmed)} missed by far more and were left out of '
+               'the registration' if reg.trimmed else ''))
 
 
 def identify_cell(cm: CellModel, data: Measurements, p0: np.ndarray | None = None,
@@ -136,6 +145,86 @@ def identify_cell(cm: CellModel, data: Measurements, p0: np.ndarray | None = Non
                     priority=list(cm.cell.identification_priority) or None)
 
 
+@dataclass(frozen=True)
+class CellCalibration:
+    """A calibration with its model choice, robust statistics and KPI estimability.
+
+    ``valid`` is what may be published as the calibration: converged and the TCP estimable
+    at every working pose; ``problems`` says why not.
+    """
+
+    result: CalibrationResult
+    robust: RobustResult
+    choice: ModelChoice
+    estimability: KpiEstimability
+    free: tuple[str, ...]
+    registration: Registration | None = None
+
+    @property
+    def problems(self) -> tuple[str, ...]:
+        out = []
+        if not self.result.converged:
+            out.append(f'identification did not converge: {self.result.message}')
+        if not self.estimability.all_estimable:
+            out.append(self.estimability.summary())
+        return tuple(out)
+
+    @property
+    def valid(self) -> bool:
+        return not self.problems
+
+
+def _fit_function(cm: CellModel, start: np.ndarray | None = None):
+    """``fit(data, free, p0=None, point_weights=None)``: identify with the cell's settings,
+    from ``start`` (e.g. the registered placement) when no ``p0`` is given."""
+    def fit(d: Measurements, free: list[str], p0: np.ndarray | None = None,
+            point_weights: np.ndarray | None = None) -> CalibrationResult:
+        return identify(cm.model, d, cm.cell.sigma, cm.q_work, list(cm.working_pose_names),
+                        p0=start if p0 is None else p0, free=free,
+                        identifiability_method=cm.cell.identification_method,
+                        priority=list(cm.cell.identification_priority) or None,
+                        point_weights=point_weights)
+    return fit
+
+
+def choose_level(cm: CellModel, data: Measurements, model: str | None = None,
+                 start: np.ndarray | None = None) -> ModelChoice:
+    """The model level to identify: ``model`` or the cell's ``identification.model``;
+    ``auto`` is decided by cross-validation on ``data`` (fits from ``start``)."""
+    requested = model or cm.cell.identification.model
+    if requested == 'auto':
+        return choose_model(cm.model, data, _fit_function(cm, start), 'auto', len(cm.geometric),
+                            cm.cell.identification.cv_folds)
+    return ModelChoice(requested, requested, {}, 0, f'{requested} as configured '
+                       '(identification.model / --model; auto compares the levels)')
+
+
+def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None
+                   ) -> CellCalibration:
+    """The identification the CLI and the node publish: model size (``model`` or the
+    cell's ``identification.model``), outlier exclusion and loss, KPI estimability."""
+    if len(data) == 0:
+        raise DataError('no accepted measurement to identify from')
+    settings = cm.cell.identification
+    n_geo = len(cm.geometric)
+    # An unknown or far-off placement is registered from the points first (the median
+    # decides whether it is needed, so a few gross points do not trigger it).
+    start, registration = registered_start(cm, data)
+    fit = _fit_function(cm, start)
+    # Model choice on the data without gross points (a 10 m point would decide it alone).
+    screened = subset(data, ~gross_outliers(cm.model, data, start)[0]) \
+        if settings.outliers.exclude else data
+    choice = choose_level(cm, screened, model, start)
+    free = level_free(cm.model.params, choice.level, n_geo)
+    robust = robust_identify(cm.model, data, cm.cell.sigma,
+                             lambda d, **kw: fit(d, free, **kw), settings.loss,
+                             settings.outliers, start=start)
+    kept = subset(data, robust.kept)
+    est = result_estimability(cm.model, kept.q, cm.cell.sigma, robust.result.values,
+                              cm.q_work, cm.working_pose_names, free)
+    return CellCalibration(robust.result, robust, choice, est, tuple(free), registration)
+
+
 def calibration_document(cm: CellModel, result: CalibrationResult,
                          pairing: PairingResult | None = None) -> dict:
     """The calibration.yaml document: the result plus the DH/Hayati view of its axes."""
@@ -143,6 +232,67 @@ def calibration_document(cm: CellModel, result: CalibrationResult,
     doc['dh_hayati'] = dh_table(cm.robot, cm.geometric, cm.geometric.nominal,
                                 result.values[:len(cm.geometric)])
     return doc
+
+
+def add_robust_sections(doc: dict[str, Any], cal: CellCalibration) -> dict[str, Any]:
+    """Add validity, model choice, robust statistics and KPI estimability to a calibration
+    document (see the README's calibration.yaml fields); TCP std of a pose whose TCP is
+    not estimable becomes null with ``determined: false``."""
+    rob = cal.robust
+    doc['valid'] = cal.valid
+    doc['invalid_reasons'] = list(cal.problems)
+    doc['model'] = {**cal.choice.to_dict(), 'free_parameters': len(cal.free)}
+    doc['robust'] = {
+        'sigma_stated_m': rob.sigma_stated, 'sigma_robust_m': rob.sigma_robust,
+        'sigma_ratio': rob.sigma_ratio, 'loss': rob.loss,
+        'loss_scale': ('c·σ̂ with c = %.3f' % LOSS_SCALE) if rob.loss != 'linear' else None,
+        'outlier_threshold_sigma': rob.threshold,
+        'excluded': [{'index': e.index, 'stamp_ns': e.stamp_ns, 'distance_m': e.distance_m,
+                      'distance_sigma': e.distance_sigma, 'reason': e.reason}
+                     for e in rob.excluded],
+        'outliers': list(rob.outliers),
+        'used_indices': [int(i) for i in np.flatnonzero(rob.kept)],
+        'warnings': list(rob.warnings)}
+    doc['tcp_estimable'] = cal.estimability.all_estimable
+    doc['tcp_estimability'] = cal.estimability.to_dict()
+    for entry, ok in zip(doc['tcp'], cal.estimability.estimable):
+        entry['determined'] = bool(ok)
+        if not ok:
+            entry.update(covariance=None, std=None, trace_m2=None)
+    return doc
+
+
+def robust_summary(doc: dict[str, Any]) -> str:
+    """Summary lines of the sections :func:`add_robust_sections` adds."""
+    rob, model = doc['robust'], doc['model']
+    cv = ', '.join(f'{k} {"n/a" if v is None else f"{v * 1e6:.1f} µm"}'
+                   for k, v in model['cv_rms_m'].items())
+    lines = [f"model: {model['level']} ({model['free_parameters']} free parameters; "
+             f"{model['reason']})"]
+    if cv:
+        lines.append(f'cross-validated rms per level: {cv}')
+    lines.append(f"noise σ: stated {rob['sigma_stated_m'] * 1e6:.3g} µm, robust estimate from "
+                 f"the residuals {rob['sigma_robust_m'] * 1e6:.3g} µm "
+                 f"(ratio {rob['sigma_ratio']:.3g}); loss {rob['loss']}")
+    for e in rob['excluded']:
+        lines.append(f"excluded measurement {e['index']} (stamp {e['stamp_ns']} ns): "
+                     f"{e['distance_m'] * 1e6:.1f} µm from the fit; {e['reason']}")
+    lines += [f'WARNING: {w}' for w in rob['warnings']]
+    if doc['tcp_estimable']:
+        lines.append('TCP estimable at every working pose')
+    if not doc['valid']:
+        lines.append('CALIBRATION NOT VALID: ' + ' | '.join(doc['invalid_reasons']))
+    return '\n'.join(lines)
+
+
+def write_calibration_checked(out_dir: str | Path, doc: dict[str, Any]) -> Path:
+    """calibration.yaml for a valid calibration; a failed one goes to
+    calibration.failed.yaml and never replaces the last good calibration.yaml."""
+    if doc.get('valid', True):
+        return write_calibration(out_dir, doc)
+    import yaml
+    return write_atomic(Path(out_dir) / FAILED_CALIBRATION_FILE,
+                        yaml.safe_dump(doc, sort_keys=False))
 
 
 def geometric_only(cm: CellModel) -> CellModel:
@@ -183,20 +333,24 @@ def load_measurements(cell_path: str | Path, bag_path: str | Path, effects: str 
 
 
 def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Path,
-                 effects: str = '') -> int:
+                 effects: str = '', model: str | None = None) -> int:
     """``kpi-calib identify``: calibration.yaml in ``out_dir`` and a summary on stdout.
 
-    Returns 0 when the identification converged, else 1.
+    ``model`` overrides the cell's ``identification.model``. Returns 0 for a valid
+    calibration; 1 when it did not converge or the TCP is not estimable (then the document
+    goes to calibration.failed.yaml, and an existing calibration.yaml is left as it was).
     """
     cm, data, pairing = load_measurements(cell_path, bag_path, effects)
-    p0, reg = registered_start(cm, data) if len(data) else (None, None)
-    result = identify_cell(cm, data, p0=p0)
-    doc = calibration_document(cm, result, pairing)
-    comparison = add_effect_comparison(doc, cm, data, result) if cm.model.effects else ''
-    path = write_calibration(out_dir, doc)
+    cal = calibrate_cell(cm, data, model)
+    doc = add_robust_sections(calibration_document(cm, cal.result, pairing), cal)
+    comparison = ''
+    if cm.model.effects and cal.valid:
+        comparison = add_effect_comparison(doc, cm, subset(data, cal.robust.kept), cal.result)
+    path = write_calibration_checked(out_dir, doc)
     print(summary_text(doc))
-    print(registration_text(reg, cm))
+    print(registration_text(cal.registration, cm))
+    print(robust_summary(doc))
     if comparison:
         print(comparison)
     print(f'written: {path}')
-    return 0 if result.converged else 1
+    return 0 if cal.valid else 1

@@ -27,7 +27,7 @@ import casadi as ca
 import numpy as np
 import scipy.stats
 
-from kpi_calib_ros.core.effects import BoundEffect, candidate_effects
+from kpi_calib_ros.core.effects import BoundEffect, candidate_effects, implausible
 from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
 from kpi_calib_ros.core.residuals import (ADEQUACY_ALPHA, LinearizedFit, ResidualReport,
@@ -70,6 +70,12 @@ class Candidate:
     unique_fraction: float
     absorbed_by: dict[str, float]
     explanation: str
+    # Plausibility (see effects.implausible), candidates with the same signature merged
+    # into this one, and a note comparing torque-driven candidates of the same joint.
+    plausible: bool = True
+    plausibility: str = ''
+    also_explained_by: tuple[str, ...] = ()
+    note: str = ''
 
 
 @dataclass(frozen=True)
@@ -88,9 +94,9 @@ class Diagnosis:
 
     @property
     def best(self) -> Candidate | None:
-        """Top-ranked significant candidate, or None."""
-        return self.candidates[0] if self.candidates and self.candidates[0].significant \
-            else None
+        """Top-ranked significant, physically plausible candidate, or None."""
+        c = self.candidates[0] if self.candidates else None
+        return c if c is not None and c.significant and c.plausible else None
 
 
 @dataclass(frozen=True)
@@ -189,11 +195,20 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
         fits.append(_fit_candidate(effect, cols, sys_, r_perp, chi2_base, dof_base, pose_folds,
                                    joint_jac, q, tau, fraction))
 
+    fits = merge_same_signature(fits)
+    notes = torque_effect_notes(fits)
     m = max(len(fits), 1)
     out = []
     for fit in fits:
         p_adj = min(1.0, fit['p_raw'] * m)
         significant = bool(p_adj < alpha)
+        warning = implausible(fit['effect'], fit['theta'])
+        merged = tuple(fit.get('merged', ()))
+        extra = ''.join(f' {t}' for t in (
+            warning and f'Warning: {warning}.',
+            merged and f'The same signature is explained by {", ".join(merged)} '
+                       '(one candidate: the data cannot tell them apart).',
+            notes.get(fit['effect'].name, '')) if t)
         out.append(Candidate(
             effect=fit['effect'].kind.name, joint=fit['effect'].joint, spec=fit['effect'].name,
             parameter_names=fit['effect'].parameter_names, units=fit['effect'].units,
@@ -203,8 +218,11 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
             p_value=p_adj, significant=significant, correlation=fit['corr'],
             driver_correlation=fit['driver_corr'], unique_fraction=fit['fraction'],
             absorbed_by={},
-            explanation=_explain(fit, significant, p_adj, m, rms_base, cv_base)))
-    out.sort(key=lambda c: (not c.significant, c.validation_rms_after_m, c.p_value_raw))
+            explanation=_explain(fit, significant, p_adj, m, rms_base, cv_base) + extra,
+            plausible=not warning, plausibility=warning, also_explained_by=merged,
+            note=notes.get(fit['effect'].name, '')))
+    out.sort(key=lambda c: (not (c.significant and c.plausible), not c.significant,
+                            c.validation_rms_after_m, c.p_value_raw))
     return tuple(out), tuple(rejected)
 
 
@@ -219,8 +237,9 @@ def diagnose(model: MeasurementModel, data: Measurements, result: CalibrationRes
     report = residual_report(model, data, result, alpha)
     ranked, rejected = screen_effects(model, data, result, candidates, folds, alpha, seed)
     cv = cross_validated_rms(model, data, result, folds, seed)
-    best = ranked[0] if ranked and ranked[0].significant else None
-    adequate = report.adequate and best is None
+    best = ranked[0] if ranked and ranked[0].significant and ranked[0].plausible else None
+    implausible_only = best is None and any(c.significant for c in ranked)
+    adequate = report.adequate and best is None and not implausible_only
     chi = (f'χ²/dof = {report.chi2:.1f}/{report.dof} (p = {report.p_value:.3g}) against the '
            f'stated σ')
     if adequate:
@@ -230,6 +249,10 @@ def diagnose(model: MeasurementModel, data: Measurements, result: CalibrationRes
         verdict = (f'model not adequate: {chi}. Most likely missing effect: {best.spec} '
                    f'(validation rms {cv * 1e6:.1f} -> {best.validation_rms_after_m * 1e6:.1f} '
                    f'µm). Add it with --effects {best.spec}.')
+    elif implausible_only:
+        verdict = (f'model not adequate: {chi}; the significant candidates fit physically '
+                   'implausible values (see their warnings): the misfit is something else '
+                   '(outliers, the stated σ, an unmodelled effect); none is suggested.')
     else:
         verdict = (f'model not adequate: {chi}, but no candidate effect explains the misfit; '
                    'check the outliers, the stated σ and the plots against time and distance.')
@@ -337,10 +360,61 @@ def _fit_candidate(effect: BoundEffect, cols: np.ndarray, sys_: LinearizedFit, r
     rms = float(np.sqrt(np.sum((r_aug.reshape(n, 3) / sys_.w) ** 2) / n))
     corr = float(np.sqrt(max(delta, 0.0) / chi2_base)) if chi2_base > 0 else 0.0
     return {'effect': effect, 'theta': theta, 'std': np.sqrt(np.diag(cov)), 'rms': rms,
+            'unique': unique,
             'cv': cv, 'delta': delta, 'f': f_stat, 'p_raw': p_raw, 'corr': corr,
             'driver_corr': _driver_correlation(effect, theta, unique, r_aug, sys_.w,
                                                joint_jac, q, tau),
             'fraction': fraction}
+
+
+SAME_SIGNATURE = 1e-6  # sin of the largest principal angle between two signatures
+
+
+def merge_same_signature(fits: list[dict]) -> list[dict]:
+    """Merge candidates whose signatures (the part of their Jacobian columns the geometry
+    does not reproduce) span the same subspace, i.e. the same column up to scale for one
+    parameter. The best-fitting one stays, with the others' specs in ``'merged'``:
+    the data cannot tell them apart, so they are one candidate, not several."""
+    bases = [np.linalg.qr(f['unique'])[0] for f in fits]
+    order = sorted(range(len(fits)), key=lambda i: -fits[i]['delta'])
+    taken: set[int] = set()
+    out = []
+    for i in order:
+        if i in taken:
+            continue
+        fit = dict(fits[i], merged=[])
+        for j in order:
+            if j == i or j in taken or bases[j].shape[1] != bases[i].shape[1]:
+                continue
+            gap = bases[j] - bases[i] @ (bases[i].T @ bases[j])
+            if np.linalg.norm(gap, 2) < SAME_SIGNATURE:
+                fit['merged'].append(fits[j]['effect'].name)
+                taken.add(j)
+        taken.add(i)
+        out.append(fit)
+    return out
+
+
+def torque_effect_notes(fits: list[dict]) -> dict[str, str]:
+    """For a joint with both backlash (a step with the sign of the gravity torque) and
+    compliance (in proportion to it) among the candidates: which fits better, by the
+    χ² reduction of each (both have one parameter). Returns spec -> note."""
+    by_joint: dict[str, dict[str, dict]] = {}
+    for f in fits:
+        e = f['effect']
+        if e.kind.name in ('joint_backlash', 'joint_compliance') and e.joint is not None:
+            by_joint.setdefault(e.joint, {})[e.kind.name] = f
+    notes = {}
+    for joint, pair in by_joint.items():
+        if len(pair) < 2:
+            continue
+        b, c = pair['joint_backlash'], pair['joint_compliance']
+        better = 'backlash (a sign flip with the torque)' if b['delta'] > c['delta'] \
+            else 'compliance (in proportion to the torque)'
+        text = (f'On {joint}, {better} fits better: χ² reduction {b["delta"]:.1f} for '
+                f'backlash vs {c["delta"]:.1f} for compliance.')
+        notes[b['effect'].name] = notes[c['effect'].name] = text
+    return notes
 
 
 def _driver_correlation(effect: BoundEffect, theta: np.ndarray, unique: np.ndarray,

@@ -102,6 +102,14 @@ class EffectType:
         (``'gravity torque of {joint}'``).
     screen : bool
         Whether :func:`candidate_effects` includes it by default.
+    joint_kinds : tuple of str, optional
+        Joint kinds (``revolute``, ``continuous``, ``prismatic``) it applies to; None: any.
+        A cyclic error is a function of an angle: it has no meaning on a prismatic joint.
+    plausible : tuple of float
+        Largest physically plausible |value| of each parameter (revolute units); a fit
+        beyond it is flagged (see :func:`implausible`). Empty: no bound.
+    prismatic_plausible : tuple of float, optional
+        The same for a prismatic joint (its units); None: no bound there.
     """
 
     name: str
@@ -117,6 +125,9 @@ class EffectType:
     hint: str = ''
     signature: str = 'fitted correction of {joint}'
     screen: bool = False
+    joint_kinds: tuple[str, ...] | None = None
+    plausible: tuple[float, ...] = ()
+    prismatic_plausible: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         if not self.name or ':' in self.name or '.' in self.name:
@@ -132,6 +143,14 @@ class EffectType:
                              'at least one parameter')
         if self.typical and len(self.typical) != len(self.parameters):
             raise ValueError(f'effect {self.name!r}: typical needs one value per parameter')
+        for bound in (self.plausible, self.prismatic_plausible or ()):
+            if bound and len(bound) != len(self.parameters):
+                raise ValueError(f'effect {self.name!r}: plausible bounds need one value per '
+                                 'parameter')
+
+    def applies_to(self, joint_kind: str | None) -> bool:
+        """Whether the effect has a meaning on a joint of this kind (global: always)."""
+        return joint_kind is None or self.joint_kinds is None or joint_kind in self.joint_kinds
 
     def units_for(self, joint_kind: str | None) -> tuple[str, ...]:
         if joint_kind != 'prismatic':
@@ -222,6 +241,8 @@ def _tracker_scale(point, theta):
 LIBRARY: tuple[EffectType, ...] = (
     EffectType('joint_compliance', ('c',), ('rad/(N m)',), _compliance, uses_torque=True,
                typical=(1e-6,), prismatic_units=('m/N',), screen=True,
+               # stiffness >= 1e4 N m/rad (a small cobot joint; industrial 1e5-1e7)
+               plausible=(1e-4,), prismatic_plausible=(1e-5,),
                description='joint deflection proportional to its gravity torque',
                hint='gravity must load {joint} with a torque that varies over the poses; '
                     'a joint with a vertical axis or an unloaded wrist carries none '
@@ -229,17 +250,20 @@ LIBRARY: tuple[EffectType, ...] = (
                signature='gravity torque of {joint}'),
     EffectType('cyclic_joint_error', ('a', 'b'), ('rad', 'rad'), _cyclic,
                typical=(2e-4, 2e-4), screen=True,
+               joint_kinds=('revolute', 'continuous'), plausible=(5e-3, 5e-3),
                description='first-harmonic gear/encoder error a·sin q + b·cos q',
                hint='spread {joint} over most of a revolution so sin q and cos q vary '
                     'independently of the joint offset',
                signature='first harmonic a·sin q + b·cos q of {joint}'),
     EffectType('cyclic_joint_error_h2', ('a', 'b'), ('rad', 'rad'), _cyclic_h2,
                typical=(1e-4, 1e-4),
+               joint_kinds=('revolute', 'continuous'), plausible=(5e-3, 5e-3),
                description='second-harmonic gear/encoder error a·sin 2q + b·cos 2q',
                hint='spread {joint} over at least half a revolution',
                signature='second harmonic of {joint}'),
     EffectType('joint_backlash', ('b',), ('rad',), _backlash, uses_torque=True,
                typical=(2.5e-4,), screen=True,
+               plausible=(1e-2,), prismatic_plausible=(5e-3,),
                description='backlash: the joint settles on the side its gravity torque '
                            'pushes to, b·sgn(τ)',
                hint='measure poses where the gravity torque of {joint} changes sign '
@@ -247,13 +271,14 @@ LIBRARY: tuple[EffectType, ...] = (
                     'backlash is a constant the joint offset absorbs',
                signature='sign of the gravity torque of {joint}'),
     EffectType('joint_scale', ('k',), ('1',), _scale, typical=(1e-4,), screen=True,
-               prismatic_units=('1',),
+               prismatic_units=('1',), plausible=(1e-2,), prismatic_plausible=(1e-2,),
                description='transmission-ratio error k·q',
                hint='move {joint} over a wide range; over a narrow one k·q looks like '
                     'the joint offset',
                signature='angle of {joint}'),
     EffectType('tracker_scale', ('s',), ('1',), point_function=_tracker_scale,
                per_joint=False, typical=(1e-5,), screen=True,
+               plausible=(1e-3,),  # 1000 ppm: far beyond any tracker's or camera's scale
                description='length scale error of the tracker (temperature, refractive '
                            'index), η = (1 + s)·h',
                hint='a global scale is absorbed by the free link lengths and the base '
@@ -321,7 +346,12 @@ def bind_effect(effect_type: EffectType, robot: RobotModel, joint: str | None,
                               f'{effect_type.name}:<joint> with a joint of {names}'
                               + (f' (not {joint!r})' if joint else ''))
         index = names.index(joint)
-        return BoundEffect(effect_type, joint, index, len(names), robot.joints[index].kind)
+        kind = robot.joints[index].kind
+        if not effect_type.applies_to(kind):
+            raise ConfigError(key, f'effect {effect_type.name!r} applies to '
+                              f'{list(effect_type.joint_kinds or ())} joints; {joint!r} is '
+                              f'{kind}')
+        return BoundEffect(effect_type, joint, index, len(names), kind)
     if joint is not None:
         raise ConfigError(key, f'effect {effect_type.name!r} is global; write '
                           f'{effect_type.name!r} without a joint')
@@ -426,10 +456,26 @@ def candidate_effects(robot: RobotModel, kinds: Sequence[str] | None = None,
     for effect_type in chosen:
         joints = robot.joint_names if effect_type.per_joint else [None]
         for joint in joints:
+            if joint is not None and not effect_type.applies_to(
+                    robot.joints[robot.joint_names.index(joint)].kind):
+                continue  # e.g. no cyclic (angle) error on a prismatic joint
             effect = bind_effect(effect_type, robot, joint)
             if effect.name not in skip:
                 out.append(effect)
     return out
+
+
+def implausible(effect: BoundEffect, values: Sequence[float]) -> str:
+    """'' when every fitted value is within the effect's plausible range, else a warning
+    naming the parameter, its value and the bound."""
+    kind = effect.kind
+    bounds = kind.prismatic_plausible if effect.joint_kind == 'prismatic' else kind.plausible
+    out = [f'{name} = {value:.3g} {unit} beyond the plausible ±{bound:.3g}'
+           for name, value, unit, bound in zip(effect.parameter_names, values, effect.units,
+                                               bounds or ())
+           if abs(value) > bound]
+    return ('physically implausible: ' + '; '.join(out) +
+            ' (the fit uses the effect to absorb something else)') if out else ''
 
 
 # ----------------------------------------------------------------- simulation

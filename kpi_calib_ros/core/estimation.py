@@ -194,7 +194,8 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
              p0: np.ndarray | None = None, free: list[str] | None = None,
              max_iterations: int = 50, identifiability_method: str = 'pivoted',
              priority: list[str] | None = None,
-             tolerances: Tolerances = TOLERANCES) -> CalibrationResult:
+             tolerances: Tolerances = TOLERANCES,
+             point_weights: np.ndarray | None = None) -> CalibrationResult:
     """Identify the parameters of ``model`` from tracker data.
 
     Parameters
@@ -213,17 +214,22 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
         these is chosen by QR on the data Jacobian at ``p0``.
     tolerances : Tolerances, optional
         Stopping tests of the Gauss-Newton iteration; the result's ``status`` says which held.
+    point_weights : (N,) ndarray, optional
+        Robustness weights ω_i in [0, 1] of the measurements (IRLS, see
+        :mod:`kpi_calib_ros.core.robust`): measurement i counts as if its σ were σ/√ω_i.
+        The covariance and χ² are those of that weighted problem. Default: all 1.
 
     Raises
     ------
     DataError
         Non-finite data or too few measurements for the identifiable set.
     """
-    w = weights(sigma)
+    w_axis = weights(sigma)
     q, eta = np.atleast_2d(data.q), np.atleast_2d(data.eta)
     if q.shape[0] != eta.shape[0] or eta.shape[1] != 3 or q.shape[1] != model.robot.n_joints:
         raise DataError(f'measurement shapes do not fit: q {q.shape}, eta {eta.shape}, '
                         f'{model.robot.n_joints} joints')
+    w = _row_weights(w_axis, point_weights, len(q))
     if not (np.all(np.isfinite(q)) and np.all(np.isfinite(eta))):
         raise DataError('measurements contain NaN or inf; reject them before identification')
     q_work = np.atleast_2d(np.asarray(q_work, float))
@@ -292,8 +298,19 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
         estimated=ident.kept, std=np.sqrt(np.diag(c_p)), covariance=c_p,
         residuals=residuals, rms_m=float(np.sqrt(np.mean(np.sum(residuals ** 2, axis=1)))),
         tcp=tcp, tcp_covariance=tcp_cov, working_pose_names=tuple(names),
-        sigma=1.0 / w, chi2=chi2, dof=dof, p_value=float(scipy.stats.chi2.sf(chi2, dof)),
+        sigma=1.0 / w_axis, chi2=chi2, dof=dof, p_value=float(scipy.stats.chi2.sf(chi2, dof)),
         status=status, message=message, iterations=iterations, identifiability=ident)
+
+
+def _row_weights(w_axis: np.ndarray, point_weights: np.ndarray | None, n: int) -> np.ndarray:
+    """(N, 3) weights w_a·√ω_i of every residual component (1/m)."""
+    if point_weights is None:
+        return np.broadcast_to(w_axis, (n, 3)).copy()
+    omega = np.asarray(point_weights, float)
+    if omega.shape != (n,) or not np.all(np.isfinite(omega)) or np.any(omega < 0):
+        raise ValueError(f'point_weights must be {n} finite numbers >= 0, got shape '
+                         f'{omega.shape}')
+    return w_axis[None, :] * np.sqrt(omega)[:, None]
 
 
 def _gauss_newton(model: MeasurementModel, p: np.ndarray, idx: np.ndarray, q: np.ndarray,
@@ -312,7 +329,7 @@ def _gauss_newton(model: MeasurementModel, p: np.ndarray, idx: np.ndarray, q: np
     def evaluate(pp):
         pred, jac = model.jacobian(pp, q, tau)
         r = ((eta - pred) * w).ravel()
-        f = (jac * w[None, :, None]).reshape(-1, len(pp))[:, idx]
+        f = (jac * w[:, :, None]).reshape(-1, len(pp))[:, idx]
         return r, f
 
     def stop(status: int, iteration: int, **figures) -> tuple[np.ndarray, int, str, int]:

@@ -178,8 +178,8 @@ def weighted_rows(jac: np.ndarray, w: np.ndarray, idx: np.ndarray | None = None)
     ----------
     jac : (N, 3, n_p) ndarray
         d h_i / d p per measurement (m per unit of each parameter).
-    w : (3,) ndarray
-        1/σ per tracker axis (1/m).
+    w : (3,) or (N, 3) ndarray
+        1/σ per tracker axis (1/m), or per measurement and axis (robustness weights).
     idx : (k,) int ndarray, optional
         Parameter columns to keep (default all).
 
@@ -188,6 +188,7 @@ def weighted_rows(jac: np.ndarray, w: np.ndarray, idx: np.ndarray | None = None)
     (3N, k) ndarray
         Row 3i + a is axis a of measurement i, in units of σ.
     """
-    rows = (jac * np.asarray(w)[None, :, None]).reshape(-1, jac.shape[2])
+    w = np.asarray(w)
+    rows = (jac * (w[None, :, None] if w.ndim == 1 else w[:, :, None])).reshape(-1, jac.shape[2])
     return rows if idx is None else rows[:, idx]
 

@@ -22,6 +22,13 @@ from kpi_calib_ros.core.errors import DataError
 # A point set whose second principal spread is below this fraction of the first
 # is a line: the rotation about it is undetermined.
 _COLLINEAR = 1e-3
+# Trimmed registration: a point missing by more than TRIM_FACTOR x the median miss (and
+# more than TRIM_FLOOR_M) is left out and the rest registered again, at most
+# MAX_TRIM_ROUNDS times, keeping at least MIN_KEPT_FRACTION of the points.
+TRIM_FACTOR = 10.0
+TRIM_FLOOR_M = 0.01
+MAX_TRIM_ROUNDS = 5
+MIN_KEPT_FRACTION = 0.7
 
 
 @dataclass(frozen=True)
@@ -39,17 +46,23 @@ class Registration:
         Distance between each measured point and its registered nominal point (m).
     iterations : int
         Alternations plus Gauss-Newton steps taken.
+    trimmed : tuple of int
+        Points left out of the final registration because they missed by far more than
+        the others (see :func:`register`); their residuals are still in ``residuals_m``.
     """
 
     base_in_tracker: np.ndarray
     reflector_offset: np.ndarray
     residuals_m: np.ndarray
     iterations: int
+    trimmed: tuple[int, ...] = ()
 
     @property
     def rms_m(self) -> float:
-        """Root mean square of :attr:`residuals_m` (m)."""
-        return float(np.sqrt(np.mean(self.residuals_m ** 2)))
+        """Root mean square of :attr:`residuals_m` over the points not trimmed (m)."""
+        kept = np.ones(len(self.residuals_m), bool)
+        kept[list(self.trimmed)] = False
+        return float(np.sqrt(np.mean(self.residuals_m[kept] ** 2)))
 
     @property
     def transform(self) -> np.ndarray:
@@ -142,6 +155,29 @@ def register(eta: np.ndarray, tip_poses: np.ndarray, max_rms: float = 0.02,
         raise ValueError('eta and tip_poses must be finite')
     rotations, positions = poses[:, :3, :3], poses[:, :3, 3]
     _check_geometry(eta, rotations)
+    # A gross point (a reflector lost mid-shot, a wrong pairing) drags the closed form;
+    # register again without the points that miss by far more than the median (trimmed
+    # registration), so a few of them cannot spoil the start. They stay in the data: the
+    # identification's own outlier screening decides on them.
+    kept = np.ones(len(eta), bool)
+    for _ in range(MAX_TRIM_ROUNDS):
+        result = _fit(eta[kept], rotations[kept], positions[kept], alternations, gauss_newton,
+                      tol)
+        residuals = _residuals(result, eta, rotations, positions)
+        far = residuals > max(TRIM_FACTOR * float(np.median(residuals[kept])), TRIM_FLOOR_M)
+        if not np.any(far & kept) or np.sum(~far) < max(4, MIN_KEPT_FRACTION * len(eta)):
+            break
+        kept = ~far
+    result = Registration(result.base_in_tracker, result.reflector_offset, residuals,
+                          result.iterations, tuple(int(i) for i in np.flatnonzero(~kept)))
+    if float(np.sqrt(np.mean(residuals[kept] ** 2))) > max_rms:
+        raise DataError(_miss_message(result, eta, positions, max_rms))
+    return result
+
+
+def _fit(eta: np.ndarray, rotations: np.ndarray, positions: np.ndarray, alternations: int,
+         gauss_newton: int, tol: float) -> Registration:
+    """Closed form (Horn) alternating with the offset, then Gauss-Newton, on these points."""
 
     offset = np.zeros(3)
     stacked = rotations.reshape(-1, 3)
@@ -171,9 +207,15 @@ def register(eta: np.ndarray, tip_poses: np.ndarray, max_rms: float = 0.02,
     residuals = np.linalg.norm((rotations @ offset + positions) @ rot.T + trans - eta, axis=1)
     result = Registration(np.concatenate([trans, pin.rpy.matrixToRpy(rot)]), offset,
                           residuals, steps)
-    if result.rms_m > max_rms:
-        raise DataError(_miss_message(result, eta, positions, max_rms))
     return result
+
+
+def _residuals(result: Registration, eta: np.ndarray, rotations: np.ndarray,
+               positions: np.ndarray) -> np.ndarray:
+    """Distance of every measured point from its registered nominal point (m)."""
+    rot, trans = result.transform[:3, :3], result.transform[:3, 3]
+    return np.linalg.norm((rotations @ result.reflector_offset + positions) @ rot.T + trans - eta,
+                          axis=1)
 
 
 def _miss_message(result: Registration, eta: np.ndarray, positions: np.ndarray,

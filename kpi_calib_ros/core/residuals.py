@@ -17,6 +17,7 @@ import scipy.stats
 
 from kpi_calib_ros.core.estimation import CalibrationResult, weights
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements, weighted_rows
+from kpi_calib_ros.core.robust import SIGMA_RATIO_WARNING, robust_sigma, sigma_warning
 
 PERCENTILES = (50, 90, 95, 99)
 # Level of the χ² model-adequacy test everywhere a verdict is given (files, node status,
@@ -47,8 +48,13 @@ class ResidualReport:
     standardized : (N,) ndarray
         r_iᵀ (I − H_ii)⁻¹ r_i in σ units, χ²(3) under the model.
     outlier, high_leverage : (N,) bool ndarray
-        Bonferroni-corrected χ²(3) test of ``standardized`` at ``alpha``;
-        leverage above three times the mean.
+        Bonferroni-corrected χ²(3) test of ``standardized`` at ``alpha``, against the
+        larger of the stated σ and the robust σ̂ (so an understated σ does not make most
+        points outliers); leverage above three times the mean.
+    sigma_robust_m : float
+        σ̂ per axis from the residuals (:func:`kpi_calib_ros.core.robust.robust_sigma`), m.
+    sigma_warning : str
+        '' or the warning that σ̂ and the stated σ differ by more than 2×.
     """
 
     residuals: np.ndarray
@@ -65,6 +71,8 @@ class ResidualReport:
     outlier: np.ndarray
     high_leverage: np.ndarray
     alpha: float
+    sigma_robust_m: float = float('nan')
+    sigma_warning: str = ''
 
 
 
@@ -161,9 +169,15 @@ def residual_report(model: MeasurementModel, data: Measurements, result: Calibra
     # direction has no residual there.
     standardized = np.array([ri @ np.linalg.pinv(np.eye(3) - h, rcond=1e-9) @ ri
                              for ri, h in zip(sys_.r.reshape(n, 3), blocks)])
-    outlier = scipy.stats.chi2.sf(standardized, 3) * n < alpha
     k = sys_.basis.shape[1]
     dof = 3 * n - k
+    stated = float(np.mean(1.0 / sys_.w))
+    sigma_hat = robust_sigma(residuals, dof)
+    inflation = max(1.0, sigma_hat / stated) if np.isfinite(sigma_hat) else 1.0
+    outlier = scipy.stats.chi2.sf(standardized / inflation ** 2, 3) * n < alpha
+    ratio = sigma_hat / stated
+    warning = sigma_warning(sigma_hat, stated) if np.isfinite(ratio) and not (
+        1 / SIGMA_RATIO_WARNING <= ratio <= SIGMA_RATIO_WARNING) else ''
     chi2 = float(sys_.r @ sys_.r)
     p_value = float(scipy.stats.chi2.sf(chi2, dof)) if dof > 0 else float('nan')
     return ResidualReport(
@@ -172,7 +186,8 @@ def residual_report(model: MeasurementModel, data: Measurements, result: Calibra
         percentiles_m={p: float(np.percentile(norms, p)) for p in PERCENTILES},
         chi2=chi2, dof=dof, p_value=p_value, adequate=is_adequate(p_value, alpha),
         leverage=leverage, standardized=standardized, outlier=outlier,
-        high_leverage=leverage > 3 * k / n, alpha=alpha)
+        high_leverage=leverage > 3 * k / n, alpha=alpha, sigma_robust_m=sigma_hat,
+        sigma_warning=warning)
 
 
 def cross_validated_rms(model: MeasurementModel, data: Measurements,

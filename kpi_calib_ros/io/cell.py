@@ -16,7 +16,8 @@ fix. Paths are relative to the cell file. Units are SI (m, rad, kg). Example::
       - {name: floor, type: halfspace, normal: [0, 0, 1], offset: -0.5}
       - {name: car_roof, type: capsule, a: [1.6, -1.5, 0.9], b: [1.6, 1.5, 0.9], radius: 0.5}
     collision: {capsules: [...], ignore_pairs: [[base_link, floor]], beam_radius: 0.005}
-    identification: {method: pivoted}
+    identification: {method: pivoted, model: geometric, loss: linear,
+                     outliers: {exclude: true, threshold: null}, cv_folds: 5}
     design: {candidates: 4000, weights: {roof: 2.0}}        # see DesignSettings
     simulation: {hidden_effects: {joint_compliance:joint_2: {c: 4.0e-7}}}
 """
@@ -36,6 +37,8 @@ from kpi_calib_ros.core.design_cell import DesignCell
 from kpi_calib_ros.core.effects import resolve_effects
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.kinematics import pose6
+from kpi_calib_ros.core.model_selection import DEFAULT_FOLDS, MODEL_CHOICES
+from kpi_calib_ros.core.robust import LOSSES, OutlierSettings
 from kpi_calib_ros.core.measurement import MeasurementModel
 from kpi_calib_ros.core.parameters import ParameterSet, geometric_parameters
 from kpi_calib_ros.core.robot import Payload, RobotModel
@@ -69,6 +72,22 @@ class SimulationSettings:
 
 
 @dataclass(frozen=True)
+class IdentificationSettings:
+    """The model size, loss and outlier keys of ``identification:``.
+
+    model : ``auto`` (chosen by cross-validation) or a level of
+    :mod:`kpi_calib_ros.core.model_selection`; loss : ``linear``, ``huber`` or ``soft_l1``
+    (:mod:`kpi_calib_ros.core.robust`); outliers : exclusion settings; cv_folds : folds of
+    the model choice.
+    """
+
+    model: str = 'geometric'
+    loss: str = 'linear'
+    outliers: OutlierSettings = field(default_factory=OutlierSettings)
+    cv_folds: int = DEFAULT_FOLDS
+
+
+@dataclass(frozen=True)
 class Cell:
     """Validated content of a cell file (SI units; obstacles in the robot base frame)."""
 
@@ -94,6 +113,7 @@ class Cell:
     effects: tuple[str, ...]
     design: DesignSettings = field(default_factory=DesignSettings)
     simulation: SimulationSettings = field(default_factory=SimulationSettings)
+    identification: IdentificationSettings = field(default_factory=IdentificationSettings)
     source_dir: str = field(default='', compare=False)  # folder of the cell file
     # robot.package_dirs as written (relative to source_dir): searched first for package://
     package_dirs: tuple[str, ...] = ()
@@ -170,6 +190,8 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None) -> Cel
         raise ConfigError('reflector.max_incidence', 'must be in (0, π/2] rad (30° = 0.5236)')
     collision = doc.get('collision') or {}
     ident = doc.get('identification') or {}
+    if not isinstance(ident, dict):
+        raise ConfigError('identification', 'must be a mapping, e.g. {method: pivoted}')
     method = ident.get('method', 'pivoted')
     if method not in ('pivoted', 'priority'):
         raise ConfigError('identification.method', "must be 'pivoted' or 'priority'")
@@ -199,7 +221,8 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None) -> Cel
         identification_priority=tuple(ident.get('priority') or ()),
         effects=tuple(str(e) for e in (doc.get('effects') or [])),
         design=design_settings(doc.get('design')),
-        simulation=simulation_settings(doc.get('simulation')), source_dir=str(base_dir),
+        simulation=simulation_settings(doc.get('simulation')),
+        identification=identification_settings(ident), source_dir=str(base_dir),
         package_dirs=_package_dirs(robot.get('package_dirs')),
         base_in_tracker_given=tracker.get('base_in_tracker') is not None,
         reflector_offset_given=reflector.get('offset') is not None)
@@ -250,6 +273,51 @@ def design_settings(raw: Mapping[str, Any] | None) -> DesignSettings:
     if values.get('flag_threshold', 0.5) > 1:
         raise ConfigError('design.flag_threshold', 'must be a fraction in [0, 1]')
     return replace(defaults, **values)
+
+
+_IDENT_KEYS = {'method', 'priority', 'model', 'loss', 'outliers', 'cv_folds'}
+
+
+def identification_settings(raw: Mapping[str, Any]) -> IdentificationSettings:
+    """Validate the model-size, loss and outlier keys of ``identification:``."""
+    unknown = set(raw) - _IDENT_KEYS
+    if unknown:
+        raise ConfigError(f'identification.{sorted(unknown)[0]}',
+                          f'unknown key; allowed: {sorted(_IDENT_KEYS)}')
+    model = raw.get('model', 'geometric')
+    if model not in MODEL_CHOICES:
+        raise ConfigError('identification.model', f'must be one of {list(MODEL_CHOICES)}, '
+                          f'got {model!r}')
+    loss = raw.get('loss', 'linear')
+    if loss not in LOSSES:
+        raise ConfigError('identification.loss', f'must be one of {list(LOSSES)}, got {loss!r}')
+    folds = raw.get('cv_folds', DEFAULT_FOLDS)
+    if isinstance(folds, bool) or not isinstance(folds, int) or folds < 2:
+        raise ConfigError('identification.cv_folds', f'must be an integer >= 2, got {folds!r}')
+    out = raw.get('outliers') or {}
+    if not isinstance(out, dict):
+        raise ConfigError('identification.outliers', 'must be a mapping {exclude: true, '
+                          'threshold: null}')
+    bad = set(out) - {'exclude', 'threshold', 'max_fraction'}
+    if bad:
+        raise ConfigError(f'identification.outliers.{sorted(bad)[0]}', 'unknown key; allowed: '
+                          "['exclude', 'max_fraction', 'threshold']")
+    exclude = out.get('exclude', True)
+    if not isinstance(exclude, bool):
+        raise ConfigError('identification.outliers.exclude', f'must be true or false, got '
+                          f'{exclude!r}')
+    threshold = out.get('threshold')
+    if threshold is not None and (isinstance(threshold, bool) or
+                                  not isinstance(threshold, (int, float)) or threshold <= 1):
+        raise ConfigError('identification.outliers.threshold', 'must be a distance in units of '
+                          f'the robust σ greater than 1 (e.g. 5.0), or null; got {threshold!r}')
+    fraction = out.get('max_fraction', 0.2)
+    if isinstance(fraction, bool) or not isinstance(fraction, (int, float)) or \
+            not 0 <= fraction < 1:
+        raise ConfigError('identification.outliers.max_fraction', f'must be in [0, 1), got '
+                          f'{fraction!r}')
+    return IdentificationSettings(model, loss, OutlierSettings(
+        exclude, None if threshold is None else float(threshold), float(fraction)), folds)
 
 
 def simulation_settings(raw: Any) -> SimulationSettings:

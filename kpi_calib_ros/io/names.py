@@ -10,13 +10,16 @@ from pathlib import Path
 
 # ---------------------------------------------------------------- result files
 CALIBRATION_FILE = 'calibration.yaml'
+# A failed, non-converged or KPI-not-estimable identification: written here, never over
+# the last good calibration.yaml.
+FAILED_CALIBRATION_FILE = 'calibration.failed.yaml'
 CALIBRATED_URDF_FILE = 'robot_description_calibrated.urdf'
 DESIGN_FILE = 'design.yaml'
 DIAGNOSIS_DIR = 'diagnosis'
 DIAGNOSIS_FILE = 'diagnosis.json'
 REPORT_FILE = 'report.md'
 # What a campaign reset archives: every result derived from the measurements.
-RESULT_FILES = (CALIBRATION_FILE, CALIBRATED_URDF_FILE, DIAGNOSIS_DIR)
+RESULT_FILES = (CALIBRATION_FILE, FAILED_CALIBRATION_FILE, CALIBRATED_URDF_FILE, DIAGNOSIS_DIR)
 
 # ---------------------------------------------------------------------- topics
 DEFAULT_JOINT_TOPIC = '/joint_states'

@@ -33,7 +33,9 @@ def _candidate_dict(c: Candidate) -> dict[str, Any]:
             'significant': bool(c.significant),
             'parameters': [{'name': n, 'value': float(v), 'std': float(s), 'unit': u}
                            for n, v, s, u in zip(c.parameter_names, c.values, c.std, c.units)],
-            'explanation': c.explanation}
+            'explanation': c.explanation, 'plausible': bool(c.plausible),
+            'plausibility': c.plausibility, 'also_explained_by': list(c.also_explained_by),
+            'note': c.note}
 
 
 def comparison_to_dict(cmp: ModelComparison) -> dict[str, Any]:
@@ -67,6 +69,9 @@ def diagnosis_to_dict(cd: CellDiagnosis) -> dict[str, Any]:
                       'chi2': float(rep.chi2), 'dof': int(rep.dof),
                       'p_value': float(rep.p_value), 'adequate': bool(rep.adequate),
                       'outliers': [int(i) for i in np.flatnonzero(rep.outlier)],
+                      'sigma_stated_m': float(np.mean(cd.result.sigma)),
+                      'sigma_robust_m': float(rep.sigma_robust_m),
+                      'sigma_warning': rep.sigma_warning,
                       'high_leverage': [int(i) for i in np.flatnonzero(rep.high_leverage)]},
         'not_distinguishable': [{'effect': c.effect, 'joint': c.joint, 'spec': c.spec,
                                  'reason': c.explanation} for c in diag.not_distinguishable],
@@ -102,6 +107,9 @@ def diagnosis_text(cd: CellDiagnosis, top: int = 5) -> str:
              f'rms {diag.rms_m * _UM:.1f} µm, validation rms {diag.validation_rms_m * _UM:.1f} µm '
              f'(noise floor σ√3 {np.sqrt(np.sum(cd.result.sigma ** 2)) * _UM:.1f} µm); '
              f'|r| {pct}, max {rep.max_m * _UM:.1f} µm',
+             f'noise σ: stated {np.mean(cd.result.sigma) * _UM:.3g} µm, robust estimate '
+             f'from the residuals {rep.sigma_robust_m * _UM:.3g} µm',
+             *([f'WARNING: {rep.sigma_warning}'] if rep.sigma_warning else []),
              f'outliers: {np.flatnonzero(rep.outlier).tolist()}, high leverage: '
              f'{np.flatnonzero(rep.high_leverage).tolist()}',
              f'candidates (best first, {len(diag.candidates)} distinguishable, '
@@ -297,6 +305,9 @@ def write_report(out_dir: str | Path, cd: CellDiagnosis) -> Path:
              f'| validation rms ({diag.folds}-fold, held-out poses) | '
              f'{diag.validation_rms_m * _UM:.1f} µm |',
              f'| noise floor σ√3 | {doc["noise_floor_m"] * _UM:.1f} µm |',
+             f'| noise σ stated / robust from residuals | '
+             f'{doc["residuals"]["sigma_stated_m"] * _UM:.3g} / '
+             f'{rep.sigma_robust_m * _UM:.3g} µm |',
              f'| max | {rep.max_m * _UM:.1f} µm |']
     lines += [f'| {k}th percentile of \\|r\\| | {v * _UM:.1f} µm |'
               for k, v in rep.percentiles_m.items()]

@@ -1,4 +1,15 @@
-"""Result files: calibration.yaml and small helpers to write files atomically."""
+"""Result files: calibration.yaml and small helpers to write files atomically.
+
+:func:`calibration_to_dict` writes the identification itself; the application layer
+(:func:`kpi_calib_ros.app.identify.add_robust_sections`) adds ``valid`` /
+``invalid_reasons``, ``model`` (level, every level's ``cv_rms_m``, reason), ``robust``
+(``sigma_stated_m``, ``sigma_robust_m``, ``sigma_ratio``, ``loss``, ``loss_scale``,
+``outlier_threshold_sigma``, ``excluded`` [{index, stamp_ns, distance_m, distance_sigma,
+reason}], ``outliers``, ``used_indices``, ``warnings``) and ``tcp_estimable`` /
+``tcp_estimability`` (per pose: ``estimable``, ``relative_residual``,
+``not_determined``); a TCP entry that is not determined has ``std``, ``covariance`` and
+``trace_m2`` null. An invalid document is written as calibration.failed.yaml.
+"""
 from __future__ import annotations
 
 import os
@@ -114,6 +125,9 @@ def summary_text(doc: dict[str, Any]) -> str:
               f"model adequacy: chi2/dof = {doc['model_adequacy']['chi2']:.1f}/"
               f"{doc['model_adequacy']['dof']}, p = {doc['model_adequacy']['p_value']:.3g}"]
     for t in doc['tcp']:
+        if t.get('std') is None:
+            lines.append(f"TCP {t['name']}: NOT DETERMINED by the measurements (not estimable)")
+            continue
         s = ', '.join(f'{x * 1e6:.1f}' for x in t['std'])
         lines.append(f"TCP {t['name']}: std [{s}] µm, "
                      f"sqrt(trace) {np.sqrt(t['trace_m2']) * 1e6:.1f} µm")

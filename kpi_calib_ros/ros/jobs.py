@@ -14,18 +14,19 @@ from typing import Any
 import numpy as np
 from geometry_msgs.msg import PoseWithCovarianceStamped
 
-from kpi_calib_ros.app.design import design_cell_model
+from kpi_calib_ros.app.design import design_cell_model, design_estimability
 from kpi_calib_ros.core.design import DesignResult
-from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.pairing import PairingResult
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.design_io import write_design
 from kpi_calib_ros.app.diagnose import diagnose_cell
 from kpi_calib_ros.io.report import diagnosis_to_dict, write_report
-from kpi_calib_ros.io.results import write_atomic, write_calibration
+from kpi_calib_ros.io.results import write_atomic
 from kpi_calib_ros.io.urdf_export import calibrated_urdf
-from kpi_calib_ros.app.identify import calibration_document, identify_cell
+from kpi_calib_ros.app.identify import (CellCalibration, add_robust_sections,
+                                        calibrate_cell, calibration_document,
+                                        write_calibration_checked)
 from kpi_calib_ros.io.names import CALIBRATED_URDF_FILE, DESIGN_FILE, DIAGNOSIS_DIR
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros.parameters import NodeSettings
@@ -33,7 +34,7 @@ from kpi_calib_ros.ros.parameters import NodeSettings
 
 
 def design_work(cm: CellModel, settings: NodeSettings,
-                data_dir: Path) -> tuple[DesignResult, np.ndarray, Path]:
+                data_dir: Path) -> tuple[DesignResult, np.ndarray, Path, str]:
     """Design ``settings.num_measurements`` poses and write ``design.yaml``.
 
     Returns
@@ -43,6 +44,8 @@ def design_work(cm: CellModel, settings: NodeSettings,
         Nominal reflector positions (m, tracker frame) of the designed poses.
     path : Path
         The written design file.
+    estimability : str
+        '' when the design determines the TCP at every working pose, else why not.
     """
     design = design_cell_model(cm, settings.num_measurements, settings.criterion,
                                settings.design_seed)
@@ -51,35 +54,41 @@ def design_work(cm: CellModel, settings: NodeSettings,
     path = write_design(data_dir / DESIGN_FILE, design,
                         extra={'geometry': cm.robot_geometry().summary()})
     points = cm.model.predict(cm.model.params.nominal, design.configurations)
-    return design, points, path
+    estimability = design_estimability(cm, design.configurations)
+    return design, points, path, '' if estimability.all_estimable else estimability.summary()
 
 
 def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, data_dir: Path
-                  ) -> tuple[CalibrationResult, str, str, list[PoseWithCovarianceStamped]]:
+                  ) -> tuple[CellCalibration, str, str, list[PoseWithCovarianceStamped]]:
     """Identify from ``data`` as ``kpi-calib identify`` does and write the calibration and
-    the calibrated URDF atomically.
+    the calibrated URDF atomically. An invalid calibration (not converged, TCP not
+    estimable) is written to calibration.failed.yaml only: the last good calibration.yaml
+    and URDF stay, and nothing is returned to publish but its text.
 
     Returns
     -------
-    result : CalibrationResult
-    calibration : str
-        ``calibration.yaml`` exactly as written.
+    calibration : CellCalibration
+    text : str
+        The document exactly as written.
     urdf : str
-        The calibrated robot description, as written.
+        The calibrated robot description, as written ('' when invalid).
     tcp : list of PoseWithCovarianceStamped
-        One per working pose, stamped with the last measurement.
+        One per working pose, stamped with the last measurement (empty when invalid).
     """
     if data.stamps_ns is None:
         raise ValueError('data.stamps_ns is None: the TCP poses are stamped with the last '
                          'measurement')
-    result = identify_cell(cm, data)
-    doc = calibration_document(cm, result, pairing)
+    cal = calibrate_cell(cm, data)
+    result = cal.result
+    doc = add_robust_sections(calibration_document(cm, result, pairing), cal)
+    text = write_calibration_checked(data_dir, doc).read_text()  # published as written
+    if not cal.valid:
+        return cal, text, '', []
     urdf = calibrated_urdf(cm.cell.urdf_xml, cm.robot, dict(zip(result.names, result.values)))
-    calibration = write_calibration(data_dir, doc).read_text()  # published as written
     write_atomic(data_dir / CALIBRATED_URDF_FILE, urdf)
     tcp = cv.tcp_pose_msgs(result.tcp, result.tcp_covariance, cm.cell.tracker_frame,
                            int(data.stamps_ns[-1]))
-    return result, calibration, urdf, tcp
+    return cal, text, urdf, tcp
 
 
 def diagnose_work(cm: CellModel, data: Measurements,

@@ -61,6 +61,7 @@ from kpi_calib_ros.core.errors import ConfigError, DataError, KpiCalibError
 from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.pairing import Decision, Rejection
 from kpi_calib_ros.core.residuals import is_adequate
+from kpi_calib_ros.core.robust import RobustResult
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell, with_overrides
 from kpi_calib_ros.io.names import (CALIBRATED_URDF_TOPIC, CALIBRATION_TOPIC, DIAGNOSIS_TOPIC,
                                     DIAGNOSTICS_TOPIC, MARKERS_TOPIC, MEASUREMENT_POSES_TOPIC,
@@ -109,6 +110,7 @@ class CalibrationNode(Node):
         self._result: CalibrationResult | None = None
         self._measured: np.ndarray | None = None
         self._result_error = ''
+        self._robust: RobustResult | None = None  # robust statistics of self._result
         self._identified_with = 0
         self._design_points: np.ndarray | None = None
         self._diagnosis: dict[str, Any] | None = None
@@ -299,8 +301,8 @@ class CalibrationNode(Node):
 
     async def _design(self) -> tuple[bool, str]:
         cm = self._model()
-        design, points, path = await self._offload(jobs.design_work, cm, self.settings,
-                                                   self.data_dir)
+        design, points, path, not_estimable = await self._offload(
+            jobs.design_work, cm, self.settings, self.data_dir)
         self._pub_poses.publish(cv.joint_trajectory_msg(design.joint_names,
                                                         design.configurations))
         self._design_points = points
@@ -309,9 +311,10 @@ class CalibrationNode(Node):
             o for o in cm.cell.obstacles if isinstance(o, Capsule)]
         self._publish_markers()
         tcp_um = np.sqrt((design.tcp_std ** 2).sum(axis=1)).max() * 1e6
-        return design.verification.ok, (
+        return design.verification.ok and not not_estimable, (
             f'{len(design.configurations)} poses ({design.criterion}), predicted TCP '
-            f'sqrt(trace) <= {tcp_um:.1f} µm; {design.status}; published on '
+            f'sqrt(trace) <= {tcp_um:.1f} µm; {design.status}; '
+            + (f'{not_estimable}; ' if not_estimable else '') + 'published on '
             f'{self.resolve_topic_name(MEASUREMENT_POSES_TOPIC)}, written to {path}')
 
     async def _identify(self) -> tuple[bool, str]:
@@ -320,13 +323,30 @@ class CalibrationNode(Node):
         cm = self._model()
         data, pairing = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame)
         try:
-            result, calibration, urdf, tcp = await self._offload(
+            cal, calibration, urdf, tcp = await self._offload(
                 jobs.identify_work, cm, data, pairing, self.data_dir)
         except KpiCalibError as exc:
             self._result_error = f'identification failed: {exc}'
             raise
+        result = cal.result
+        if not cal.valid:
+            # Never published as the calibration: the last good one stays on every topic
+            # and in calibration.yaml; /diagnostics says ERROR with the reason.
+            reason = ' | '.join(cal.problems)
+            self._result_error = f'calibration not published: {reason}'
+            self.get_logger().error(f'identification from {len(data)} measurements not '
+                                    f'valid, last good calibration kept: {reason}')
+            self._publish_diagnostics(force=True)
+            return False, f'not published (last good calibration kept): {reason}'
+        for e in cal.robust.excluded:
+            self.get_logger().warning(
+                f'measurement {e.index} (stamp {e.stamp_ns} ns) excluded: '
+                f'{e.distance_m * 1e6:.1f} µm from the fit; {e.reason}')
+        for text in cal.robust.warnings:
+            self.get_logger().warning(text)
+        self._robust = cal.robust
         self._result, self._measured, self._identified_with = result, data.eta, len(data)
-        self._result_error = '' if result.converged else result.message
+        self._result_error = ''
         self._pub_calibration.publish(String(data=calibration))
         self._pub_urdf.publish(String(data=urdf))
         publisher = self._tcp_publisher(len(tcp))
@@ -335,10 +355,11 @@ class CalibrationNode(Node):
         self._publish_markers()
         self._publish_diagnostics(force=True)
         tcp_um = np.sqrt(np.trace(result.tcp_covariance, axis1=1, axis2=2)).max() * 1e6
-        return result.converged, (
+        return True, (
             f'identified from {len(data)} measurements: {result.message}; rms '
             f'{result.rms_m * 1e6:.1f} µm, p = {result.p_value:.3g}, TCP sqrt(trace) <= '
-            f'{tcp_um:.1f} µm; written to {self.data_dir}')
+            f'{tcp_um:.1f} µm; {len(cal.robust.excluded)} excluded; written to '
+            f'{self.data_dir}')
 
     async def _diagnose(self) -> tuple[bool, str]:
         """Model diagnosis of the accepted measurements (as ``kpi-calib diagnose``): residual
@@ -356,6 +377,7 @@ class CalibrationNode(Node):
         """Start a new campaign: archive (never delete) the logs and results."""
         count, archive = await self._offload(self.campaign.reset)
         self._result, self._measured, self._result_error = None, None, ''
+        self._robust = None
         self._identified_with, self._auto_pending, self._diagnosis = 0, False, None
         self._publish_markers()
         self._publish_diagnostics(force=True)
@@ -385,6 +407,9 @@ class CalibrationNode(Node):
         if result is not None:
             values.update({'rms_um': round(result.rms_m * 1e6, 3),
                            'p_value': float(result.p_value), 'converged': result.converged})
+        if self._robust is not None:
+            values.update({'sigma_robust_um': round(self._robust.sigma_robust * 1e6, 3),
+                           'excluded_measurements': len(self._robust.excluded)})
         if self._diagnosis is not None:
             best = next((c['spec'] for c in self._diagnosis['candidates'] if c['significant']),
                         'none')
@@ -393,6 +418,8 @@ class CalibrationNode(Node):
         error = self._model_error or self._result_error
         if error or values['rejected.not_stored']:
             return 'ERROR', error or 'accepted measurements could not be stored', values
+        if self._robust is not None and self._robust.warnings:
+            return 'WARN', self._robust.warnings[0], values
         if result is not None and not is_adequate(result.p_value):
             return 'WARN', f'model inadequate (p = {result.p_value:.2g})', values
         if rejected:

@@ -1,0 +1,255 @@
+"""Robust statistics of an identification: σ from the residuals, outliers, robust losses.
+
+*Robust scale.* σ̂ = 1.4826 · MAD of the 3N per-axis residuals · √(3N / dof): the MAD of a
+normal sample times 1.4826 estimates its σ whatever a few wild points do, and the factor
+√(3N/dof) undoes the shrinking of residuals by the fit (a fit of k parameters leaves
+dof = 3N − k degrees of freedom in 3N residuals). It is reported beside the stated σ and a
+ratio beyond 2× either way is a warning: the stated σ, not σ̂, sets the covariance.
+
+*Outliers.* A measurement is an outlier when its distance ‖r_i‖ exceeds ``threshold``·σ̂.
+The default threshold is the Bonferroni bound √χ²₃(1 − α/N), α = 0.01: a clean campaign
+loses a point in 1 % of campaigns. Exclusion is one point per round (the farthest), then a
+refit, so one gross point cannot drag good ones over the threshold (swamping). A point
+farther than `GROSS_DISTANCE` from the nominal prediction (a wrong unit, another target)
+is excluded before the first fit. Excluded points are listed, never dropped silently.
+
+*Robust losses* (``loss``, iteratively reweighted least squares in the Gauss-Newton of
+:func:`~kpi_calib_ros.core.estimation.identify`): with u_i = ‖r_i‖ / (c σ̂), σ̂ re-estimated
+each iteration and c = `LOSS_SCALE` (√χ²₃(0.95) = 2.80, so 95 % of good points are in the
+quadratic zone), the weight of measurement i is ``huber``: min(1, 1/u_i); ``soft_l1``
+(SciPy's ρ(z) = 2(√(1+z) − 1), z = u²): 1/√(1 + u_i²). The covariance is that of the last
+weighted problem (the usual IRLS approximation).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Any, Callable
+
+import numpy as np
+import scipy.stats
+
+from kpi_calib_ros.core.errors import DataError
+from kpi_calib_ros.core.estimation import MAX_START_ERROR, CalibrationResult
+from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
+
+LOSSES = ('linear', 'huber', 'soft_l1')
+LOSS_SCALE = float(np.sqrt(scipy.stats.chi2.ppf(0.95, 3)))
+MAD_TO_SIGMA = 1.4826
+OUTLIER_ALPHA = 0.01
+# Farther than this from the nominal prediction a point is not a measurement of the robot
+# (a nominal model misses by millimetres; see estimation.MAX_START_ERROR).
+GROSS_DISTANCE = MAX_START_ERROR
+SIGMA_RATIO_WARNING = 2.0
+IRLS_ITERATIONS = 20
+
+
+@dataclass(frozen=True)
+class OutlierSettings:
+    """``identification.outliers`` of a cell file.
+
+    exclude : exclude outliers and refit (else only report them);
+    threshold : distance in units of σ̂ above which a point is an outlier (None: Bonferroni);
+    max_fraction : at most this fraction of the measurements is excluded.
+    """
+
+    exclude: bool = True
+    threshold: float | None = None
+    max_fraction: float = 0.2
+
+
+@dataclass(frozen=True)
+class ExcludedMeasurement:
+    """One measurement left out of the fit: its index, stamp and distance to the fit (m)."""
+
+    index: int
+    stamp_ns: int | None
+    distance_m: float
+    distance_sigma: float
+    reason: str
+
+
+@dataclass(frozen=True)
+class RobustResult:
+    """An identification with robust statistics.
+
+    result : the final fit (on the kept measurements, with the loss's weights);
+    kept : (N,) bool, measurements used; excluded : the others, in order of exclusion;
+    outliers : indices over the threshold (excluded or, with exclude false, only reported);
+    sigma_robust : σ̂ (m, per axis) from the final residuals; sigma_stated : mean stated σ;
+    threshold : outlier threshold in σ̂; loss : the loss used; warnings : texts for the user.
+    """
+
+    result: CalibrationResult
+    kept: np.ndarray
+    excluded: tuple[ExcludedMeasurement, ...]
+    outliers: tuple[int, ...]
+    sigma_robust: float
+    sigma_stated: float
+    threshold: float
+    loss: str
+    point_weights: np.ndarray | None
+    warnings: tuple[str, ...] = field(default=())
+
+    @property
+    def sigma_ratio(self) -> float:
+        """σ̂ / stated σ."""
+        return self.sigma_robust / self.sigma_stated
+
+
+def robust_sigma(residuals: np.ndarray, dof: int) -> float:
+    """σ̂ (m) per axis from residuals (N, 3): 1.4826 · MAD · √(3N / dof)."""
+    r = np.asarray(residuals, float).ravel()
+    if dof <= 0 or r.size == 0:
+        return float('nan')
+    mad = float(np.median(np.abs(r - np.median(r))))
+    return MAD_TO_SIGMA * mad * float(np.sqrt(r.size / dof))
+
+
+def outlier_threshold(n: int, alpha: float = OUTLIER_ALPHA) -> float:
+    """Bonferroni bound on ‖r_i‖/σ: √χ²₃(1 − α/n)."""
+    return float(np.sqrt(scipy.stats.chi2.isf(alpha / max(n, 1), 3)))
+
+
+def loss_weights(loss: str, distances: np.ndarray, scale: float) -> np.ndarray:
+    """IRLS weights ω_i (N,) of distances ‖r_i‖ (m) at scale c·σ̂ (see the module text)."""
+    if loss not in LOSSES:
+        raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
+    u = np.asarray(distances, float) / (LOSS_SCALE * scale)
+    if loss == 'huber':
+        return np.minimum(1.0, 1.0 / np.maximum(u, 1e-300))
+    if loss == 'soft_l1':
+        return 1.0 / np.sqrt(1.0 + u ** 2)
+    return np.ones_like(u)
+
+
+def subset(data: Measurements, keep: np.ndarray) -> Measurements:
+    """The measurements selected by the boolean or index array ``keep``."""
+    return Measurements(q=np.atleast_2d(data.q)[keep], eta=np.atleast_2d(data.eta)[keep],
+                        tau=None if data.tau is None else data.tau[keep],
+                        stamps_ns=None if data.stamps_ns is None else data.stamps_ns[keep])
+
+
+Fit = Callable[..., CalibrationResult]
+
+
+def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndarray,
+                    fit: Fit, loss: str = 'linear',
+                    outliers: OutlierSettings = OutlierSettings(),
+                    start: np.ndarray | None = None) -> RobustResult:
+    """Identify with outlier exclusion and a robust loss.
+
+    Parameters
+    ----------
+    model : MeasurementModel
+    data : Measurements
+        All measurements (N).
+    sigma : float or (3,) array
+        Stated tracker σ, m.
+    fit : callable
+        ``fit(data, p0=..., point_weights=...) -> CalibrationResult``: the plain
+        identification (e.g. :func:`~kpi_calib_ros.core.estimation.identify` with the
+        cell's settings bound), called on the kept measurements.
+    loss : {'linear', 'huber', 'soft_l1'}
+    outliers : OutlierSettings
+    start : (n_p,) ndarray, optional
+        Parameters the gross-outlier test predicts with (default: the nominal ones);
+        e.g. the registered placement.
+
+    Raises
+    ------
+    DataError
+        When exclusion would leave fewer measurements than ``1 − max_fraction`` of them.
+    """
+    if loss not in LOSSES:
+        raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
+    n = len(data)
+    q, eta = np.atleast_2d(data.q), np.atleast_2d(data.eta)
+    stamps = data.stamps_ns
+    kept = np.ones(n, bool)
+    excluded: list[ExcludedMeasurement] = []
+    threshold = outliers.threshold or outlier_threshold(n)
+    if outliers.exclude:
+        gross, nominal = gross_outliers(model, data, start)
+        for i in np.flatnonzero(gross):
+            excluded.append(_excluded(int(i), stamps, nominal[i], float('inf'),
+                                      'gross: farther than '
+                                      f'{GROSS_DISTANCE:g} m from the nominal prediction'))
+        kept &= ~gross
+    max_excluded = int(np.floor(outliers.max_fraction * n))
+    p0 = None
+    while True:
+        result, omega = _fit_with_loss(fit, subset(data, kept), loss, p0)
+        p0 = result.values
+        distances = np.linalg.norm(eta - model.predict(result.values, q, data.tau), axis=1)
+        scale = robust_sigma(result.residuals, result.dof)
+        over = kept & (distances > threshold * scale)
+        if not outliers.exclude or not over.any():
+            break
+        if len(excluded) >= max_excluded:
+            raise DataError(f'more than {outliers.max_fraction:.0%} of the {n} measurements '
+                            f'lie beyond {threshold:.2f} σ̂ (σ̂ = {scale * 1e6:.1f} µm): the '
+                            'model or the data is wrong, not a few points; run kpi-calib '
+                            'diagnose, or raise identification.outliers.threshold')
+        worst = int(np.argmax(np.where(over, distances, -1.0)))
+        excluded.append(_excluded(worst, stamps, distances[worst], distances[worst] / scale,
+                                  f'outlier: {distances[worst] / scale:.1f} σ̂ > '
+                                  f'{threshold:.2f} σ̂'))
+        kept[worst] = False
+    # Distances of every measurement (excluded ones too) against the final fit.
+    final_excluded = tuple(replace(e, distance_m=float(distances[e.index]),
+                                   distance_sigma=float(distances[e.index] / scale))
+                           for e in excluded)
+    flagged = tuple(int(i) for i in np.flatnonzero(distances > threshold * scale))
+    stated = float(np.mean(np.broadcast_to(np.asarray(sigma, float), (3,))))
+    warnings = []
+    ratio = scale / stated
+    if not (1 / SIGMA_RATIO_WARNING <= ratio <= SIGMA_RATIO_WARNING):
+        warnings.append(sigma_warning(scale, stated))
+    if flagged and not outliers.exclude:
+        warnings.append(f'{len(flagged)} outlier(s) beyond {threshold:.2f} σ̂ kept in the fit '
+                        '(identification.outliers.exclude is false)')
+    return RobustResult(result, kept, final_excluded, flagged, scale, stated, threshold,
+                        loss, omega, tuple(warnings))
+
+
+def gross_outliers(model: MeasurementModel, data: Measurements,
+                   p: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) bool: points farther than `GROSS_DISTANCE` (and 20× the median) from the
+    prediction with ``p`` (default: the nominal parameters); and the (N,) distances, m."""
+    q, eta = np.atleast_2d(data.q), np.atleast_2d(data.eta)
+    p = np.asarray(model.params.nominal if p is None else p, float)
+    nominal = np.linalg.norm(eta - model.predict(p, q, data.tau), axis=1)
+    return nominal > max(GROSS_DISTANCE, 20 * float(np.median(nominal))), nominal
+
+
+def sigma_warning(robust: float, stated: float) -> str:
+    """The warning text for a robust σ̂ more than 2× away from the stated σ."""
+    ratio = robust / stated
+    side = 'smaller' if ratio < 1 else 'larger'
+    return (f'noise σ estimated from the residuals ({robust * 1e6:.3g} µm) is {ratio:.3g}× the '
+            f'stated noise.sigma ({stated * 1e6:.3g} µm), {side} by more than '
+            f'{SIGMA_RATIO_WARNING:g}×: the stated σ sets every reported std and the χ² test; '
+            'check noise.sigma (units: m) or the model (kpi-calib diagnose)')
+
+
+def _fit_with_loss(fit: Fit, data: Measurements, loss: str, p0: np.ndarray | None
+                   ) -> tuple[CalibrationResult, np.ndarray | None]:
+    result = fit(data, p0=p0)
+    if loss == 'linear':
+        return result, None
+    omega = np.ones(len(data))
+    for _ in range(IRLS_ITERATIONS):
+        scale = robust_sigma(result.residuals, result.dof)
+        new = loss_weights(loss, np.linalg.norm(result.residuals, axis=1), scale)
+        result = fit(data, p0=result.values, point_weights=new)
+        if np.max(np.abs(new - omega)) < 1e-3:
+            omega = new
+            break
+        omega = new
+    return result, omega
+
+
+def _excluded(i: int, stamps: Any, distance: float, in_sigma: float,
+              reason: str) -> ExcludedMeasurement:
+    stamp = None if stamps is None else int(stamps[i])
+    return ExcludedMeasurement(int(i), stamp, float(distance), float(in_sigma), reason)

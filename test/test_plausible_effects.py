@@ -1,0 +1,84 @@
+"""Plausible effects: joint kinds, plausible magnitudes, one candidate per signature, and
+backlash told apart from compliance."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from kpi_calib_ros.core.diagnosis import augmented_model, screen_effects
+from kpi_calib_ros.core.effects import (EffectType, available_effects, bind_effect,
+                                        candidate_effects, implausible)
+from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.core.estimation import identify
+from kpi_calib_ros.core.robot import RobotModel
+from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
+                                          true_parameters)
+from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+
+SIGMA = 20e-6
+
+
+@pytest.fixture(scope='module')
+def cm():
+    return build_cell_model(load_cell(DEFAULT_CELL))
+
+
+def test_no_cyclic_error_on_a_prismatic_joint(odd_arm_urdf):
+    robot = RobotModel(odd_arm_urdf, 'mount', 'flange')
+    specs = {e.name for e in candidate_effects(robot)}
+    assert 'cyclic_joint_error:wrist' in specs
+    assert 'cyclic_joint_error:telescope' not in specs
+    assert {'joint_compliance:telescope', 'joint_scale:telescope'} <= specs
+    with pytest.raises(ConfigError, match='telescope.*prismatic'):
+        bind_effect(available_effects()['cyclic_joint_error'], robot, 'telescope')
+
+
+def test_implausible_magnitudes_are_warned(cm, odd_arm_urdf):
+    backlash = bind_effect(available_effects()['joint_backlash'], cm.robot, 'joint_2')
+    assert implausible(backlash, [1e-3]) == ''
+    text = implausible(backlash, [2.5])  # 2.5 rad of backlash
+    assert 'joint_backlash.joint_2.b' in text and 'implausible' in text
+    robot = RobotModel(odd_arm_urdf, 'mount', 'flange')
+    slide = bind_effect(available_effects()['joint_compliance'], robot, 'telescope')
+    assert implausible(slide, [1e-7]) == '' and implausible(slide, [1e-3]) != ''
+
+
+def _campaign(cm, hidden, value, seed):
+    rng = np.random.default_rng(seed)
+    effect = bind_effect(available_effects()[hidden], cm.robot, 'joint_2')
+    truth_model = augmented_model(cm.model, (effect,))
+    p_true = np.concatenate([true_parameters(cm.model.params, rng), [value]])
+    q = random_configurations(cm.model, cm.model.params.nominal, 80, rng)
+    data = simulate_measurements(truth_model, p_true, q, SIGMA, rng)
+    return data, identify(cm.model, data, SIGMA, cm.q_work)
+
+
+def _compliance_twice(q_j, tau_j, theta):
+    return 2.0 * theta[0] * tau_j
+
+
+def test_candidates_with_the_same_signature_are_one(cm):
+    twice = EffectType('compliance_twice', ('c',), ('rad/(N m)',), _compliance_twice,
+                       uses_torque=True, typical=(5e-7,))
+    data, result = _campaign(cm, 'joint_compliance', 5e-7, 1)
+    same = [bind_effect(available_effects()['joint_compliance'], cm.robot, 'joint_2'),
+            bind_effect(twice, cm.robot, 'joint_2'),
+            bind_effect(available_effects()['joint_backlash'], cm.robot, 'joint_2')]
+    ranked, _ = screen_effects(cm.model, data, result, candidates=same)
+    assert len(ranked) == 2
+    merged = next(c for c in ranked if c.also_explained_by)
+    assert {merged.spec, *merged.also_explained_by} == {'joint_compliance:joint_2',
+                                                        'compliance_twice:joint_2'}
+    assert 'same signature' in merged.explanation
+
+
+@pytest.mark.parametrize('hidden,value,better', [('joint_backlash', 3e-4, 'backlash'),
+                                                 ('joint_compliance', 5e-7, 'compliance')])
+def test_backlash_told_apart_from_compliance(cm, hidden, value, better):
+    data, result = _campaign(cm, hidden, value, 2)
+    pair = [bind_effect(available_effects()[k], cm.robot, 'joint_2')
+            for k in ('joint_backlash', 'joint_compliance')]
+    ranked, _ = screen_effects(cm.model, data, result, candidates=pair)
+    assert len(ranked) == 2 and ranked[0].note == ranked[1].note
+    assert f'{better} (' in ranked[0].note.split('fits better')[0]
+    assert ranked[0].effect == f'joint_{better}' and ranked[0].plausible
