@@ -5,6 +5,7 @@ uses the cell file's ``design:`` settings, and writes design.yaml and its plots.
 """
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Callable
 
@@ -21,6 +22,16 @@ def design_cell_model(cm: CellModel, n: int, criterion: str, seed: int,
     settings), drawn with ``numpy.random.default_rng(seed)``."""
     return design_measurements(cm.design_cell(), n, criterion, np.random.default_rng(seed),
                                cm.cell.design, progress=progress)
+
+
+def controller_design(cm: CellModel, design: DesignResult) -> DesignResult:
+    """``design`` with its configurations in the controller's joint values
+    (``robot.joint_coupling``): what design.yaml and ``~/measurement_poses`` give the
+    robot program. The identity for an uncoupled controller."""
+    if cm.joint_coupling.is_identity:
+        return design
+    return dataclasses.replace(design, configurations=cm.joint_coupling.to_controller(
+        design.configurations))
 
 
 def run_design(cell_path: str | Path, n: int, criterion: str, out: str | Path,
@@ -41,7 +52,7 @@ def run_design(cell_path: str | Path, n: int, criterion: str, out: str | Path,
     baseline = result if criterion == 'random' else design_measurements(
         cell, n, 'random', rng, settings, context=context)
     out = Path(out)
-    write_design(out, result)
+    write_design(out, controller_design(cm, result))
     stem = out.with_suffix('')
     poses_png = plot_design(cell, context.check_scene, result, f'{stem}_poses.png')
     shown = [baseline] if result is baseline else [baseline, result]

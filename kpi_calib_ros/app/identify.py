@@ -25,9 +25,11 @@ from kpi_calib_ros.core.streams import JointSample, PointSample
 from kpi_calib_ros.io.bag import read_for_pairing
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
 from kpi_calib_ros.io.measurement_log import stored_pairing
-from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC
+from kpi_calib_ros.io.names import CALIBRATED_URDF_FILE, DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC
 from kpi_calib_ros.io.report import comparison_text, comparison_to_dict
-from kpi_calib_ros.io.results import calibration_to_dict, summary_text, write_calibration
+from kpi_calib_ros.io.results import (calibration_to_dict, summary_text, write_atomic,
+                                      write_calibration)
+from kpi_calib_ros.io.urdf_export import calibrated_urdf
 
 
 def measurements_from_samples(cm: CellModel, joint_samples: Iterable[JointSample],
@@ -48,7 +50,18 @@ def measurements_from_samples(cm: CellModel, joint_samples: Iterable[JointSample
         seen = sorted({n for s in joint_samples for n in s.names})
         raise DataError(f'the joint states name joints {seen}, but the robot chain needs '
                         f'{cm.joint_names}; record the right robot or fix the URDF joint names')
-    return Measurements(q=pairing.q, eta=pairing.eta, stamps_ns=pairing.stamps_ns), pairing
+    return urdf_measurements(cm, pairing), pairing
+
+
+def urdf_measurements(cm: CellModel, pairing: PairingResult) -> Measurements:
+    """The measurements of paired joint states and points, joint values mapped from the
+    controller's readings to the URDF chain (``robot.joint_coupling``).
+
+    Every path from joint states to the model (bag, measurement log, live node) goes
+    through here, so coupled readings are converted once and only once.
+    """
+    q = cm.joint_coupling.to_urdf(pairing.q) if len(pairing) else pairing.q
+    return Measurements(q=q, eta=pairing.eta, stamps_ns=pairing.stamps_ns)
 
 
 def measurements_from_bag(cm: CellModel, path: str | Path,
@@ -62,7 +75,7 @@ def measurements_from_bag(cm: CellModel, path: str | Path,
     if contents.measurement_log:
         pairing = stored_pairing(zip(contents.joints, contents.points), list(cm.joint_names),
                                  cm.cell.tracker_frame)
-        return Measurements(q=pairing.q, eta=pairing.eta, stamps_ns=pairing.stamps_ns), pairing
+        return urdf_measurements(cm, pairing), pairing
     return measurements_from_samples(cm, contents.joints, contents.points, **pairer_options)
 
 
@@ -83,6 +96,24 @@ def calibration_document(cm: CellModel, result: CalibrationResult,
     doc['dh_hayati'] = dh_table(cm.robot, cm.geometric, cm.geometric.nominal,
                                 result.values[:len(cm.geometric)])
     return doc
+
+
+def calibrated_robot_description(cm: CellModel, result: CalibrationResult) -> str:
+    """The calibrated URDF of ``result`` (identified joint errors folded into the joint
+    origins, see :mod:`kpi_calib_ros.io.urdf_export`); the CLI and the node write this."""
+    return calibrated_urdf(cm.cell.urdf_xml, cm.robot, dict(zip(result.names, result.values)))
+
+
+def write_results(cm: CellModel, result: CalibrationResult, doc: dict[str, Any],
+                  out_dir: str | Path) -> tuple[Path, Path, str]:
+    """Write calibration.yaml and the calibrated URDF beside it (atomically).
+
+    Returns the two paths and the URDF text.
+    """
+    urdf = calibrated_robot_description(cm, result)
+    path = write_calibration(out_dir, doc)
+    urdf_path = write_atomic(Path(out_dir) / CALIBRATED_URDF_FILE, urdf)
+    return path, urdf_path, urdf
 
 
 def geometric_only(cm: CellModel) -> CellModel:
@@ -124,7 +155,9 @@ def load_measurements(cell_path: str | Path, bag_path: str | Path, effects: str 
 
 def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Path,
                  effects: str = '') -> int:
-    """``kpi-calib identify``: calibration.yaml in ``out_dir`` and a summary on stdout.
+    """``kpi-calib identify``: calibration.yaml and the calibrated URDF
+    (:data:`~kpi_calib_ros.io.names.CALIBRATED_URDF_FILE`) in ``out_dir``, a summary on
+    stdout.
 
     Returns 0 when the identification converged, else 1.
     """
@@ -132,9 +165,10 @@ def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
     result = identify_cell(cm, data)
     doc = calibration_document(cm, result, pairing)
     comparison = add_effect_comparison(doc, cm, data, result) if cm.model.effects else ''
-    path = write_calibration(out_dir, doc)
+    path, urdf_path, _ = write_results(cm, result, doc, out_dir)
     print(summary_text(doc))
     if comparison:
         print(comparison)
     print(f'written: {path}')
+    print(f'calibrated robot description (URDF): {urdf_path}')
     return 0 if result.converged else 1

@@ -238,7 +238,10 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     if start_error > MAX_START_ERROR:
         raise DataError(f'measured points are {start_error:.3g} m (median) from the nominal '
                         'prediction; check that points are in metres, in the tracker frame, and '
-                        'that tracker.base_in_tracker and the joint order/units are right')
+                        'that tracker.base_in_tracker and the joint order/units are right, that '
+                        'coupled controller joints are mapped (robot.joint_coupling), and that '
+                        'the point topic carries one reflector (several reflectors on one '
+                        'topic pair each pose with points of the others)')
     free_names = [model.params.names[i] for i in free_idx]
     # Identifiability depends on the geometry: at a nominal reflector exactly on the
     # flange axis some directions vanish that the real (slightly off-axis) robot has.

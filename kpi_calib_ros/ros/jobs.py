@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 from geometry_msgs.msg import PoseWithCovarianceStamped
 
-from kpi_calib_ros.app.design import design_cell_model
+from kpi_calib_ros.app.design import controller_design, design_cell_model
 from kpi_calib_ros.core.design import DesignResult
 from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.measurement import Measurements
@@ -23,10 +23,8 @@ from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.design_io import write_design
 from kpi_calib_ros.app.diagnose import diagnose_cell
 from kpi_calib_ros.io.report import diagnosis_to_dict, write_report
-from kpi_calib_ros.io.results import write_atomic, write_calibration
-from kpi_calib_ros.io.urdf_export import calibrated_urdf
-from kpi_calib_ros.app.identify import calibration_document, identify_cell
-from kpi_calib_ros.io.names import CALIBRATED_URDF_FILE, DESIGN_FILE, DIAGNOSIS_DIR
+from kpi_calib_ros.app.identify import calibration_document, identify_cell, write_results
+from kpi_calib_ros.io.names import DESIGN_FILE, DIAGNOSIS_DIR
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros.parameters import NodeSettings
 
@@ -39,6 +37,7 @@ def design_work(cm: CellModel, settings: NodeSettings,
     Returns
     -------
     design : DesignResult
+        Configurations in the controller's joint values (``robot.joint_coupling``).
     points : ndarray, shape (N, 3)
         Nominal reflector positions (m, tracker frame) of the designed poses.
     path : Path
@@ -46,8 +45,9 @@ def design_work(cm: CellModel, settings: NodeSettings,
     """
     design = design_cell_model(cm, settings.num_measurements, settings.criterion,
                                settings.design_seed)
-    path = write_design(data_dir / DESIGN_FILE, design)
     points = cm.model.predict(cm.model.params.nominal, design.configurations)
+    design = controller_design(cm, design)  # the robot program gets controller values
+    path = write_design(data_dir / DESIGN_FILE, design)
     return design, points, path
 
 
@@ -68,9 +68,8 @@ def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, dat
     """
     result = identify_cell(cm, data)
     doc = calibration_document(cm, result, pairing)
-    urdf = calibrated_urdf(cm.cell.urdf_xml, cm.robot, dict(zip(result.names, result.values)))
-    calibration = write_calibration(data_dir, doc).read_text()  # published as written
-    write_atomic(data_dir / CALIBRATED_URDF_FILE, urdf)
+    path, _, urdf = write_results(cm, result, doc, data_dir)
+    calibration = path.read_text()  # published as written
     tcp = cv.tcp_pose_msgs(result.tcp, result.tcp_covariance, cm.cell.tracker_frame,
                            int(data.stamps_ns[-1]))
     return result, calibration, urdf, tcp

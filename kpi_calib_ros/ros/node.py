@@ -61,6 +61,7 @@ from kpi_calib_ros.core.errors import ConfigError, DataError, KpiCalibError
 from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.pairing import Decision, Rejection
 from kpi_calib_ros.core.residuals import is_adequate
+from kpi_calib_ros.app.identify import urdf_measurements
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell, with_overrides
 from kpi_calib_ros.io.names import (CALIBRATED_URDF_TOPIC, CALIBRATION_TOPIC, DIAGNOSIS_TOPIC,
                                     DIAGNOSTICS_TOPIC, MARKERS_TOPIC, MEASUREMENT_POSES_TOPIC,
@@ -313,7 +314,8 @@ class CalibrationNode(Node):
         """Identify from every accepted measurement (as ``kpi-calib identify`` does);
         write the results atomically and publish them."""
         cm = self._model()
-        data, pairing = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame)
+        _, pairing = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame)
+        data = urdf_measurements(cm, pairing)  # controller readings -> URDF joint values
         try:
             result, calibration, urdf, tcp = await self._offload(
                 jobs.identify_work, cm, data, pairing, self.data_dir)
@@ -339,7 +341,8 @@ class CalibrationNode(Node):
         """Model diagnosis of the accepted measurements (as ``kpi-calib diagnose``): residual
         report, adequacy and the most likely missing effect; report files and ~/diagnosis."""
         cm = self._model()
-        data, _ = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame)
+        data = urdf_measurements(cm, self.campaign.measurements(cm.joint_names,
+                                                                cm.cell.tracker_frame)[1])
         doc, text, verdict, report = await self._offload(jobs.diagnose_work, cm, data,
                                                          self.data_dir)
         self._diagnosis = doc
