@@ -21,6 +21,7 @@ from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation import CalibrationResult, identify
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
 from kpi_calib_ros.core.pairing import PairingResult, pair_measurements
+from kpi_calib_ros.core.precision import honest_precision
 from kpi_calib_ros.core.streams import JointSample, PointSample
 from kpi_calib_ros.io.bag import read_for_pairing
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
@@ -81,12 +82,18 @@ def measurements_from_bag(cm: CellModel, path: str | Path,
 
 def identify_cell(cm: CellModel, data: Measurements, p0: np.ndarray | None = None,
                   free: list[str] | None = None) -> CalibrationResult:
-    """Identify the cell's parameters from paired measurements (σ and poses from the cell)."""
+    """Identify the cell's parameters from paired measurements (σ and poses from the cell).
+
+    Covariances come from the stated σ when the χ² test accepts the model, else they are
+    scaled by χ²/dof (``result.covariance_scale``, see :mod:`kpi_calib_ros.core.precision`).
+    """
     if len(data) == 0:
         raise DataError('no accepted measurement to identify from')
-    return identify(cm.model, data, cm.cell.sigma, cm.q_work, list(cm.working_pose_names),
-                    p0=p0, free=free, identifiability_method=cm.cell.identification_method,
-                    priority=list(cm.cell.identification_priority) or None)
+    result = identify(cm.model, data, cm.cell.sigma, cm.q_work, list(cm.working_pose_names),
+                      p0=p0, free=free, identifiability_method=cm.cell.identification_method,
+                      priority=list(cm.cell.identification_priority) or None)
+    # A model that fails χ² must not report the stated σ's precision (core.precision).
+    return honest_precision(result)
 
 
 def calibration_document(cm: CellModel, result: CalibrationResult,

@@ -139,6 +139,9 @@ class CalibrationResult:
         The status in words, with the figure that decided it.
     iterations : int
         Gauss-Newton iterations over all identifiability-selection rounds.
+    covariance_scale : float
+        Factor applied to every covariance above: 1 (stated σ), or χ²/dof when the model
+        is not adequate (see :func:`kpi_calib_ros.core.precision.honest_precision`).
     """
 
     names: tuple[str, ...]
@@ -160,6 +163,9 @@ class CalibrationResult:
     message: str
     iterations: int
     identifiability: Identifiability
+    # 1 when std/covariances come from the stated σ; χ²/dof when they were scaled to
+    # the estimated σ because the model failed the χ² test (core.precision).
+    covariance_scale: float = 1.0
 
     @property
     def converged(self) -> bool:

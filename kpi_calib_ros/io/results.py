@@ -11,6 +11,7 @@ import yaml
 
 from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.pairing import PairingResult
+from kpi_calib_ros.core.precision import precision_statement
 from kpi_calib_ros.core.residuals import is_adequate
 from kpi_calib_ros.io.names import CALIBRATION_FILE, truth_path
 
@@ -73,6 +74,9 @@ def calibration_to_dict(result: CalibrationResult,
         'model_adequacy': {'chi2': float(result.chi2), 'dof': int(result.dof),
                            'p_value': float(result.p_value),
                            'adequate': is_adequate(result.p_value)},
+        # Which σ the std and covariances below rest on (core.precision).
+        'precision': {'covariance_scale': float(result.covariance_scale),
+                      'basis': precision_statement(float(result.covariance_scale))},
         'parameters': parameters,
         # Not identifiable: held fixed (at the prior, or where an earlier selection round
         # left it); their value is a choice of gauge, not a measurement.
@@ -112,6 +116,9 @@ def summary_text(doc: dict[str, Any]) -> str:
               f"rms residual: {doc['rms_m'] * 1e6:.1f} µm  (max {doc['max_residual_m'] * 1e6:.1f} µm)",
               f"model adequacy: chi2/dof = {doc['model_adequacy']['chi2']:.1f}/"
               f"{doc['model_adequacy']['dof']}, p = {doc['model_adequacy']['p_value']:.3g}"]
+    precision = doc.get('precision', {})
+    if precision.get('covariance_scale', 1.0) != 1.0:
+        lines.append(f"WARNING: std {precision['basis']}")
     for t in doc['tcp']:
         s = ', '.join(f'{x * 1e6:.1f}' for x in t['std'])
         lines.append(f"TCP {t['name']}: std [{s}] µm, sqrt(trace) {np.sqrt(t['trace_m2']) * 1e6:.1f} µm")

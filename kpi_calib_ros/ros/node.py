@@ -60,6 +60,7 @@ from kpi_calib_ros.core.collision import Capsule
 from kpi_calib_ros.core.errors import ConfigError, DataError, KpiCalibError
 from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.pairing import Decision, Rejection
+from kpi_calib_ros.core.precision import precision_statement
 from kpi_calib_ros.core.residuals import is_adequate
 from kpi_calib_ros.app.identify import urdf_measurements
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell, with_overrides
@@ -332,10 +333,13 @@ class CalibrationNode(Node):
         self._publish_markers()
         self._publish_diagnostics(force=True)
         tcp_um = np.sqrt(np.trace(result.tcp_covariance, axis1=1, axis2=2)).max() * 1e6
+        precision = precision_statement(result.covariance_scale)
+        if result.covariance_scale != 1.0:
+            self.get_logger().warning(f'TCP and parameter std {precision}')
         return result.converged, (
             f'identified from {len(data)} measurements: {result.message}; rms '
             f'{result.rms_m * 1e6:.1f} µm, p = {result.p_value:.3g}, TCP sqrt(trace) <= '
-            f'{tcp_um:.1f} µm; written to {self.data_dir}')
+            f'{tcp_um:.1f} µm ({precision}); written to {self.data_dir}')
 
     async def _diagnose(self) -> tuple[bool, str]:
         """Model diagnosis of the accepted measurements (as ``kpi-calib diagnose``): residual
