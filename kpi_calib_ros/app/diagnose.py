@@ -17,7 +17,7 @@ from kpi_calib_ros.io.names import DIAGNOSIS_FILE
 from kpi_calib_ros.io.report import diagnosis_text, write_report
 
 
-def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 5,
+def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
                   alpha: float = ADEQUACY_ALPHA, add_best: bool = True) -> CellDiagnosis:
     """Calibrate ``cm`` on ``data``, diagnose it and, when an effect is significant,
     add the top one and compare before/after (full nonlinear refit)."""
@@ -33,7 +33,7 @@ def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 5,
 
 
 def run_diagnose(cell_path: str | Path, bag_path: str | Path, out_dir: str | Path,
-                 effects: str = '', folds: int = 5, alpha: float = ADEQUACY_ALPHA) -> int:
+                 effects: str = '', folds: int = 0, alpha: float = ADEQUACY_ALPHA) -> int:
     """``kpi-calib diagnose``: diagnosis.json, report.md and plots in ``out_dir``."""
     cm, data, _ = load_measurements(cell_path, bag_path, effects)
     cd = diagnose_cell(cm, data, folds=folds, alpha=alpha)

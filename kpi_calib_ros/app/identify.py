@@ -136,7 +136,7 @@ def with_effects(cm: CellModel, effects: tuple) -> CellModel:
 
 
 def add_effect_comparison(doc: dict[str, Any], cm: CellModel, data: Measurements,
-                          result: CalibrationResult, folds: int = 5) -> str:
+                          result: CalibrationResult, folds: int = 0) -> str:
     """Compare ``result`` (model with effects) with the geometric model on the same data.
 
     Adds ``effects_comparison`` to the calibration document ``doc`` and returns
