@@ -18,6 +18,7 @@ from kpi_calib_ros.core.dh import dh_table
 from kpi_calib_ros.core.diagnosis import augmented_model, compare_models
 from kpi_calib_ros.core.effects import parse_effect_spec, split_specs
 from kpi_calib_ros.core.errors import DataError
+from kpi_calib_ros.core.gravity_compliance import compliance_warnings, mass_warning
 from kpi_calib_ros.core.estimation import CalibrationResult, identify
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
 from kpi_calib_ros.core.pairing import PairingResult, pair_measurements
@@ -100,6 +101,16 @@ def calibration_document(cm: CellModel, result: CalibrationResult,
                          pairing: PairingResult | None = None) -> dict:
     """The calibration.yaml document: the result plus the DH/Hayati view of its axes."""
     doc = calibration_to_dict(result, pairing)
+    std = dict(zip(result.estimated, result.std))
+    estimated = [n for n in result.names if n in std]
+    values = dict(zip(result.names, result.values))
+    notes = compliance_warnings(estimated, [values[n] for n in estimated],
+                                [std[n] for n in estimated])
+    missing_masses = mass_warning(cm.robot, cm.model.effects)
+    if missing_masses:
+        notes.insert(0, missing_masses)
+    if notes:
+        doc['warnings'] = notes
     doc['dh_hayati'] = dh_table(cm.robot, cm.geometric, cm.geometric.nominal,
                                 result.values[:len(cm.geometric)])
     return doc

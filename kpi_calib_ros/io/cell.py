@@ -23,6 +23,7 @@ fix. Paths are relative to the cell file. Units are SI (m, rad, kg). Example::
 from __future__ import annotations
 
 import re
+import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Mapping, Sequence
@@ -38,6 +39,7 @@ from kpi_calib_ros.core.design import DesignSettings
 from kpi_calib_ros.core.design_cell import DesignCell
 from kpi_calib_ros.core.effects import resolve_effects
 from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.core.gravity_compliance import mass_warning
 from kpi_calib_ros.core.kinematics import pose6
 from kpi_calib_ros.core.measurement import MeasurementModel
 from kpi_calib_ros.core.parameters import ParameterSet, geometric_parameters
@@ -483,6 +485,9 @@ def build_cell_model(cell: Cell, effects: tuple = ()) -> CellModel:
     extra = resolve_effects(effects, robot, 'extra effects', cell.source_dir or None)
     resolved += tuple(e for e in extra if e.name not in {r.name for r in resolved})
     model = MeasurementModel(robot, geometric, resolved, cell.reflector_axis)
+    missing_masses = mass_warning(robot, resolved)
+    if missing_masses:
+        warnings.warn(missing_masses, stacklevel=2)
     coupling = coupling_from_mapping(cell.joint_coupling, robot.joint_names)
     q_work = np.array([_ordered(w, robot, f'working_poses[{i}].joints')
                        for i, w in enumerate(cell.working_poses)])

@@ -116,6 +116,7 @@ def summary_text(doc: dict[str, Any]) -> str:
               f"rms residual: {doc['rms_m'] * 1e6:.1f} µm  (max {doc['max_residual_m'] * 1e6:.1f} µm)",
               f"model adequacy: chi2/dof = {doc['model_adequacy']['chi2']:.1f}/"
               f"{doc['model_adequacy']['dof']}, p = {doc['model_adequacy']['p_value']:.3g}"]
+    lines += [f'WARNING: {w}' for w in doc.get('warnings', [])]
     precision = doc.get('precision', {})
     if precision.get('covariance_scale', 1.0) != 1.0:
         lines.append(f"WARNING: std {precision['basis']}")
