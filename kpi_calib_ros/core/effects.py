@@ -370,7 +370,8 @@ def parse_effect_spec(spec: str, robot: RobotModel, key: str = 'effects',
         effect_type = _load_user_effect(parts[0], parts[1], key, spec, base_dir)
         return bind_effect(effect_type, robot, parts[2] if len(parts) == 3 else None, where)
     raise ConfigError(key, f'{spec!r}: unknown effect {parts[0]!r}; valid effects are '
-                      f'{sorted(set(known) | set(CHAIN_EFFECTS))}, written effect:joint with a joint of '
+                      f'{sorted(set(known) | set(CHAIN_EFFECTS))}, written effect:joint with a '
+                      'joint of '
                       f'{robot.joint_names} (global effects without a joint), or '
                       'module:EffectType[:joint] for your own')
 
