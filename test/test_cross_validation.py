@@ -121,3 +121,19 @@ def test_out_of_sample_estimate_within_1_5x_over_20_seeds():
               f'not estimable {int(np.isnan(v).sum())}')
     loo = np.array([r['loo'] for r in runs])
     assert np.all(loo <= 1.5) and np.all(loo >= 1 / 1.5)
+
+
+def test_not_estimable_is_said_not_printed_as_a_number():
+    """Two poses per joint: the diagnosis text names the design instead of a figure."""
+    from kpi_calib_ros.core.diagnosis import compare_models
+    from kpi_calib_ros.io.report import NOT_ESTIMABLE, comparison_text
+    cm = build_cell_model(load_cell(DEFAULT_CELL))
+    rng = np.random.default_rng(2)
+    p_true = true_parameters(cm.model.params, rng)
+    data = simulate_measurements(cm.model, p_true, circle_point_poses(cm, rng, 5)[::3],
+                                 cm.cell.sigma, rng)
+    result = identify_cell(cm, data)
+    assert np.isnan(cross_validated_rms(cm.model, data, result))
+    cmp = compare_models((cm.model, result), (cm.model, result), data)
+    text = comparison_text(cmp)
+    assert f'validation rms  {NOT_ESTIMABLE} -> {NOT_ESTIMABLE}' in text
