@@ -45,7 +45,8 @@ def main(argv: list[str] | None = None) -> int:
     dia.add_argument('--out', required=True, help='output folder: diagnosis.json, report.md, plots')
     dia.add_argument('--effects', default='', metavar='EFFECT:JOINT,...',
                      help='effects already in the model, as for identify')
-    dia.add_argument('--folds', type=int, default=5, help='cross-validation folds over poses')
+    dia.add_argument('--folds', type=int, default=0, help='cross-validation folds over poses; '
+                     '0 (default): leave one pose out')
     dia.add_argument('--model', choices=['auto', 'registration', 'joint_offsets', 'geometric'],
                      help="model level the effects are screened against (overrides the cell's "
                      'identification.model)')

@@ -72,6 +72,16 @@ def design_estimability(cm: CellModel, configurations: np.ndarray) -> KpiEstimab
                                cm.model.params.nominal, cm.q_work, cm.working_pose_names, free)
 
 
+def controller_design(cm: CellModel, design: DesignResult) -> DesignResult:
+    """``design`` with its configurations in the controller's joint values
+    (``robot.joint_coupling``): what design.yaml and ``~/measurement_poses`` give the
+    robot program. The identity for an uncoupled controller."""
+    if cm.joint_coupling.is_identity:
+        return design
+    return dataclasses.replace(design, configurations=cm.joint_coupling.to_controller(
+        design.configurations))
+
+
 def run_design(cell_path: str | Path, n: int, criterion: str, out: str | Path,
                seed: int = 0) -> int:
     """``kpi-calib design``: design.yaml, ``<stem>_poses.png`` and ``<stem>_ellipsoids.png``
@@ -91,7 +101,7 @@ def run_design(cell_path: str | Path, n: int, criterion: str, out: str | Path,
     baseline = result if criterion == 'random' else design_measurements(
         cell, n, 'random', rng, settings, context=context)
     out = Path(out)
-    write_design(out, result, extra={'geometry': geometry_doc})
+    write_design(out, controller_design(cm, result), extra={'geometry': geometry_doc})
     stem = out.with_suffix('')
     poses_png = plot_design(cell, context.check_scene, result, f'{stem}_poses.png')
     shown = [baseline] if result is baseline else [baseline, result]

@@ -19,7 +19,7 @@ from kpi_calib_ros.io.names import DIAGNOSIS_FILE
 from kpi_calib_ros.io.report import diagnosis_text, write_report
 
 
-def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 5,
+def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
                   alpha: float = ADEQUACY_ALPHA, add_best: bool = True,
                   model: str | None = None) -> CellDiagnosis:
     """Calibrate ``cm`` on ``data``, diagnose it and, when an effect is significant,
@@ -42,7 +42,7 @@ def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 5,
 
 
 def run_diagnose(cell_path: str | Path, bag_path: str | Path, out_dir: str | Path,
-                 effects: str = '', folds: int = 5, alpha: float = ADEQUACY_ALPHA,
+                 effects: str = '', folds: int = 0, alpha: float = ADEQUACY_ALPHA,
                  model: str | None = None) -> int:
     """``kpi-calib diagnose``: diagnosis.json, report.md and plots in ``out_dir``;
     ``model`` overrides the cell's ``identification.model``."""

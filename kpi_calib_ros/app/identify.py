@@ -20,6 +20,7 @@ from kpi_calib_ros.core.diagnosis import augmented_model, compare_models
 from kpi_calib_ros.core.effects import parse_effect_spec, split_specs
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimability import KpiEstimability, result_estimability
+from kpi_calib_ros.core.gravity_compliance import compliance_warnings, mass_warning
 from kpi_calib_ros.core.estimation import CalibrationResult, identify
 from kpi_calib_ros.core.model_selection import ModelChoice, choose_model, level_free
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
@@ -27,19 +28,23 @@ from kpi_calib_ros.core.pairing import PairingResult, pair_measurements
 from kpi_calib_ros.core.registration import Registration, register
 from kpi_calib_ros.core.robust import (LOSS_SCALE, RobustResult, gross_outliers,
                                        robust_identify, subset)
+from kpi_calib_ros.core.precision import honest_precision
 from kpi_calib_ros.core.streams import JointSample, PointSample
 from kpi_calib_ros.io.bag import read_for_pairing
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
 from kpi_calib_ros.io.measurement_log import stored_pairing
-from kpi_calib_ros.io.names import (DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC,
-                                    FAILED_CALIBRATION_FILE)
+from kpi_calib_ros.io.names import (CALIBRATED_URDF_FILE, DEFAULT_JOINT_TOPIC,
+                                    DEFAULT_POINT_TOPIC, FAILED_CALIBRATION_FILE)
 from kpi_calib_ros.io.report import comparison_text, comparison_to_dict
 from kpi_calib_ros.io.results import (calibration_to_dict, summary_text, write_atomic,
                                       write_calibration)
+from kpi_calib_ros.io.urdf_export import calibrated_urdf
 
-# Geometric errors of a robot move its tip by millimetres; a nominal placement that
-# misses the points by more (median, m) is a wrong or unknown placement: register it.
-REGISTER_ABOVE_M = 0.01
+# Geometric errors of a robot and a surveyed placement move the predicted points by
+# millimetres to a centimetre or two (a base yaw of 4 mrad at 3 m is 12 mm); the
+# identification absorbs that itself. A nominal placement that misses the points by
+# more (median, m) is a wrong or unknown placement: register it first.
+REGISTER_ABOVE_M = 0.05
 # The registered nominal points may still miss by the robot's geometric errors; far
 # more (rms, m) means the model cannot explain the data (units, joint order, tip frame).
 REGISTRATION_MAX_RMS_M = 0.02
@@ -63,7 +68,24 @@ def measurements_from_samples(cm: CellModel, joint_samples: Iterable[JointSample
         seen = sorted({n for s in joint_samples for n in s.names})
         raise DataError(f'the joint states name joints {seen}, but the robot chain needs '
                         f'{cm.joint_names}; record the right robot or fix the URDF joint names')
-    return Measurements(q=pairing.q, eta=pairing.eta, stamps_ns=pairing.stamps_ns), pairing
+    return urdf_measurements(cm, paired_measurements(pairing)), pairing
+
+
+def urdf_measurements(cm: CellModel, data: Measurements) -> Measurements:
+    """``data`` (paired joint states and points) with its joint values mapped from the
+    controller's readings to the URDF chain (``robot.joint_coupling``).
+
+    Every path from joint states to the model (bag, measurement log, live node) goes
+    through here, so coupled readings are converted once and only once.
+    """
+    if not len(data) or cm.joint_coupling.is_identity:
+        return data
+    return dataclasses.replace(data, q=cm.joint_coupling.to_urdf(data.q))
+
+
+def paired_measurements(pairing: PairingResult) -> Measurements:
+    """The measurements of a pairing (controller joint values, as paired)."""
+    return Measurements(q=pairing.q, eta=pairing.eta, stamps_ns=pairing.stamps_ns)
 
 
 def measurements_from_bag(cm: CellModel, path: str | Path,
@@ -77,7 +99,7 @@ def measurements_from_bag(cm: CellModel, path: str | Path,
     if contents.measurement_log:
         pairing = stored_pairing(zip(contents.joints, contents.points), list(cm.joint_names),
                                  cm.cell.tracker_frame)
-        return Measurements(q=pairing.q, eta=pairing.eta, stamps_ns=pairing.stamps_ns), pairing
+        return urdf_measurements(cm, paired_measurements(pairing)), pairing
     return measurements_from_samples(cm, contents.joints, contents.points, **pairer_options)
 
 
@@ -134,15 +156,19 @@ def identify_cell(cm: CellModel, data: Measurements, p0: np.ndarray | None = Non
     """Identify the cell's parameters from paired measurements (σ and poses from the cell).
 
     Without ``p0`` the start is :func:`registered_start`: an unknown or far-off
-    placement is registered from the data first.
+    placement is registered from the data first. Covariances come from the stated σ when
+    the χ² test accepts the model, else they are scaled by χ²/dof
+    (``result.covariance_scale``, see :mod:`kpi_calib_ros.core.precision`).
     """
     if len(data) == 0:
         raise DataError('no accepted measurement to identify from')
     if p0 is None:
         p0 = registered_start(cm, data)[0]
-    return identify(cm.model, data, cm.cell.sigma, cm.q_work, list(cm.working_pose_names),
-                    p0=p0, free=free, identifiability_method=cm.cell.identification_method,
-                    priority=list(cm.cell.identification_priority) or None)
+    result = identify(cm.model, data, cm.cell.sigma, cm.q_work, list(cm.working_pose_names),
+                      p0=p0, free=free, identifiability_method=cm.cell.identification_method,
+                      priority=list(cm.cell.identification_priority) or None)
+    # A model that fails χ² must not report the stated σ's precision (core.precision).
+    return honest_precision(result)
 
 
 @dataclass(frozen=True)
@@ -222,13 +248,25 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None
     kept = subset(data, robust.kept)
     est = result_estimability(cm.model, kept.q, cm.cell.sigma, robust.result.values,
                               cm.q_work, cm.working_pose_names, free)
-    return CellCalibration(robust.result, robust, choice, est, tuple(free), registration)
+    # A model that fails χ² must not report the stated σ's precision (core.precision).
+    return CellCalibration(honest_precision(robust.result), robust, choice, est, tuple(free),
+                           registration)
 
 
 def calibration_document(cm: CellModel, result: CalibrationResult,
                          pairing: PairingResult | None = None) -> dict:
     """The calibration.yaml document: the result plus the DH/Hayati view of its axes."""
     doc = calibration_to_dict(result, pairing)
+    std = dict(zip(result.estimated, result.std))
+    estimated = [n for n in result.names if n in std]
+    values = dict(zip(result.names, result.values))
+    notes = compliance_warnings(estimated, [values[n] for n in estimated],
+                                [std[n] for n in estimated])
+    missing_masses = mass_warning(cm.robot, cm.model.effects)
+    if missing_masses:
+        notes.insert(0, missing_masses)
+    if notes:
+        doc['warnings'] = notes
     doc['dh_hayati'] = dh_table(cm.robot, cm.geometric, cm.geometric.nominal,
                                 result.values[:len(cm.geometric)])
     return doc
@@ -295,6 +333,29 @@ def write_calibration_checked(out_dir: str | Path, doc: dict[str, Any]) -> Path:
                         yaml.safe_dump(doc, sort_keys=False))
 
 
+def calibrated_robot_description(cm: CellModel, result: CalibrationResult) -> str:
+    """The calibrated URDF of ``result`` (identified joint errors folded into the joint
+    origins, see :mod:`kpi_calib_ros.io.urdf_export`); the CLI and the node write this."""
+    return calibrated_urdf(cm.cell.urdf_xml, cm.robot, dict(zip(result.names, result.values)))
+
+
+def write_results(cm: CellModel, result: CalibrationResult, doc: dict[str, Any],
+                  out_dir: str | Path) -> tuple[Path, Path | None, str]:
+    """Write a valid calibration as calibration.yaml and the calibrated URDF beside it
+    (atomically); an invalid one (``doc['valid']`` false) only as calibration.failed.yaml,
+    leaving the last good files as they were.
+
+    Returns the calibration document's path, the URDF's path (None when invalid) and the
+    URDF text ('' when invalid).
+    """
+    path = write_calibration_checked(out_dir, doc)
+    if not doc.get('valid', True):
+        return path, None, ''
+    urdf = calibrated_robot_description(cm, result)
+    urdf_path = write_atomic(Path(out_dir) / CALIBRATED_URDF_FILE, urdf)
+    return path, urdf_path, urdf
+
+
 def geometric_only(cm: CellModel) -> CellModel:
     """``cm`` with the geometric model only (no effects)."""
     return dataclasses.replace(cm, model=MeasurementModel(cm.robot, cm.geometric, (),
@@ -308,7 +369,7 @@ def with_effects(cm: CellModel, effects: tuple) -> CellModel:
 
 
 def add_effect_comparison(doc: dict[str, Any], cm: CellModel, data: Measurements,
-                          result: CalibrationResult, folds: int = 5) -> str:
+                          result: CalibrationResult, folds: int = 0) -> str:
     """Compare ``result`` (model with effects) with the geometric model on the same data.
 
     Adds ``effects_comparison`` to the calibration document ``doc`` and returns
@@ -334,7 +395,9 @@ def load_measurements(cell_path: str | Path, bag_path: str | Path, effects: str 
 
 def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Path,
                  effects: str = '', model: str | None = None) -> int:
-    """``kpi-calib identify``: calibration.yaml in ``out_dir`` and a summary on stdout.
+    """``kpi-calib identify``: calibration.yaml and the calibrated URDF
+    (:data:`~kpi_calib_ros.io.names.CALIBRATED_URDF_FILE`) in ``out_dir``, a summary on
+    stdout.
 
     ``model`` overrides the cell's ``identification.model``. Returns 0 for a valid
     calibration; 1 when it did not converge or the TCP is not estimable (then the document
@@ -346,11 +409,13 @@ def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
     comparison = ''
     if cm.model.effects and cal.valid:
         comparison = add_effect_comparison(doc, cm, subset(data, cal.robust.kept), cal.result)
-    path = write_calibration_checked(out_dir, doc)
+    path, urdf_path, _ = write_results(cm, cal.result, doc, out_dir)
     print(summary_text(doc))
     print(registration_text(cal.registration, cm))
     print(robust_summary(doc))
     if comparison:
         print(comparison)
     print(f'written: {path}')
+    if urdf_path is not None:
+        print(f'calibrated robot description (URDF): {urdf_path}')
     return 0 if cal.valid else 1

@@ -65,7 +65,7 @@ def simulate_campaign(cell_path: str | Path, n: int, out: str | Path, seed: int,
     Parameters
     ----------
     poses : (joint_names, (N, n) configurations), optional
-        Measure these (e.g. an optimal design) instead of random poses.
+        Measure these (URDF joint values, e.g. an optimal design) instead of random poses.
     cm, p_true : optional
         A prepared cell model (e.g. with hidden effects) and true parameters.
         By default the cell file's model with its ``simulation.hidden_effects``
@@ -94,8 +94,9 @@ def simulate_campaign(cell_path: str | Path, n: int, out: str | Path, seed: int,
         q = random_configurations(cm.model, cm.model.params.nominal, n, rng,
                                   cm.cell.max_incidence, accept=collision_filter(cm))
     data = simulate_measurements(cm.model, p_true, q, cm.cell.sigma, rng)
-    joints, points = synthesize_streams(q, cm.joint_names, data.eta, cm.cell.tracker_frame,
-                                        rng=rng)
+    # The joint states as the controller reports them (robot.joint_coupling).
+    joints, points = synthesize_streams(cm.joint_coupling.to_controller(q), cm.joint_names,
+                                        data.eta, cm.cell.tracker_frame, rng=rng)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     write_bag(out, joints, points)
@@ -113,5 +114,8 @@ def run_simulate(cell_path: str | Path, n: int, out: str | Path, seed: int,
                  poses_path: str | Path | None = None) -> int:
     """``kpi-calib simulate``: the bag and its truth; ``poses_path`` a design.yaml to measure."""
     poses = read_design_poses(poses_path) if poses_path else None
+    if poses is not None:  # design files hold controller values (robot.joint_coupling)
+        coupling = build_cell_model(load_cell(cell_path)).joint_coupling
+        poses = (poses[0], coupling.to_urdf(np.atleast_2d(poses[1])))
     print(simulate_campaign(cell_path, n, out, seed, poses=poses))
     return 0

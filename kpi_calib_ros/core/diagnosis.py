@@ -31,7 +31,7 @@ from kpi_calib_ros.core.effects import BoundEffect, candidate_effects, implausib
 from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
 from kpi_calib_ros.core.residuals import (ADEQUACY_ALPHA, LinearizedFit, ResidualReport,
-                                         cross_validated_rms, cv_rms, fold_ids,
+                                         cross_validated_rms, cv_rms, identifiable_folds,
                                          linearized_fit, residual_report)
 
 __all__ = ['Candidate', 'CellDiagnosis', 'Diagnosis', 'ModelComparison', 'ResidualReport',
@@ -134,7 +134,7 @@ class CellDiagnosis:
 
 
 def screen_effects(model: MeasurementModel, data: Measurements, result: CalibrationResult,
-                   candidates: list[BoundEffect] | None = None, folds: int = 5,
+                   candidates: list[BoundEffect] | None = None, folds: int = 0,
                    alpha: float = ADEQUACY_ALPHA, seed: int = 0
                    ) -> tuple[tuple[Candidate, ...], tuple[Candidate, ...]]:
     """Fit and score every candidate effect against the geometric fit ``result``.
@@ -146,7 +146,8 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
     candidates : list of BoundEffect, optional
         Default: every screened library effect × joint not already in ``model``.
     folds : int
-        Folds (over poses) of the cross-validation.
+        Folds (over poses) of the cross-validation; 0 leaves one pose out
+        (see :func:`kpi_calib_ros.core.residuals.identifiable_folds`).
     alpha : float
         Family-wise false-alarm level: a candidate is significant when its
         F-test p-value times the number of distinguishable candidates is below.
@@ -162,7 +163,7 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
         candidates = candidate_effects(model.robot, exclude=[e.name for e in model.effects])
     sys_ = linearized_fit(model, data, result)
     n = len(data)
-    pose_folds = fold_ids(n, folds, seed)
+    pose_folds = identifiable_folds(sys_.jac, np.atleast_2d(data.q), folds, seed)
     r_perp = sys_.r - sys_.basis @ (sys_.basis.T @ sys_.r)
     chi2_base = float(r_perp @ r_perp)
     rms_base = float(np.sqrt(np.sum((r_perp.reshape(n, 3) / sys_.w) ** 2) / n))
@@ -227,7 +228,7 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
 
 
 def diagnose(model: MeasurementModel, data: Measurements, result: CalibrationResult,
-             candidates: list[BoundEffect] | None = None, folds: int = 5,
+             candidates: list[BoundEffect] | None = None, folds: int = 0,
              alpha: float = ADEQUACY_ALPHA, seed: int = 0) -> Diagnosis:
     """Residual report, verdict and ranked candidate effects for one calibration.
 
@@ -247,8 +248,8 @@ def diagnose(model: MeasurementModel, data: Measurements, result: CalibrationRes
                    f'family-wise level {alpha:g}.')
     elif best is not None:
         verdict = (f'model not adequate: {chi}. Most likely missing effect: {best.spec} '
-                   f'(validation rms {cv * 1e6:.1f} -> {best.validation_rms_after_m * 1e6:.1f} '
-                   f'µm). Add it with --effects {best.spec}.')
+                   f'(validation rms {_micro(cv)} -> {_micro(best.validation_rms_after_m)}'
+                   f'). Add it with --effects {best.spec}.')
     elif implausible_only:
         verdict = (f'model not adequate: {chi}; the significant candidates fit physically '
                    'implausible values (see their warnings): the misfit is something else '
@@ -262,9 +263,13 @@ def diagnose(model: MeasurementModel, data: Measurements, result: CalibrationRes
 
 
 # ---------------------------------------------------------------- comparison
+def _micro(rms_m: float) -> str:
+    return f'{rms_m * 1e6:.1f} µm' if np.isfinite(rms_m) else 'not estimable from this design'
+
+
 def compare_models(before: tuple[MeasurementModel, CalibrationResult],
                    after: tuple[MeasurementModel, CalibrationResult], data: Measurements,
-                   folds: int = 5, seed: int = 0) -> ModelComparison:
+                   folds: int = 0, seed: int = 0) -> ModelComparison:
     """Rms, validation rms, effect parameters and TCP std before/after adding effects.
 
     ``after``'s model must contain the effects (its extra parameters are the
@@ -340,7 +345,7 @@ def _rejected(effect: BoundEffect, fraction: float, absorbed: dict[str, float],
 
 
 def _fit_candidate(effect: BoundEffect, cols: np.ndarray, sys_: LinearizedFit, r_perp: np.ndarray,
-                   chi2_base: float, dof_base: int, pose_folds: np.ndarray,
+                   chi2_base: float, dof_base: int, pose_folds: np.ndarray | None,
                    joint_jac: np.ndarray, q: np.ndarray, tau: np.ndarray,
                    fraction: float) -> dict:
     """Augmented least squares [J E] from the geometric solution, its F-test and CV."""

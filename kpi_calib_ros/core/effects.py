@@ -10,11 +10,19 @@ Library (per joint ``j`` unless noted; ``τ_j`` is the gravity torque from
 Pinocchio, payload included)::
 
     joint_compliance      δq_j = c · τ_j                   c  rad/(N m)
+    gravity_compliance    δq_j = Σ g_i ψ_i(q), link masses unknown (see
+                          :mod:`kpi_calib_ros.core.gravity_compliance`)  g_i  rad
     cyclic_joint_error    δq_j = a · sin q_j + b · cos q_j  a, b  rad
     cyclic_joint_error_h2 δq_j = a · sin 2q_j + b · cos 2q_j
     joint_backlash        δq_j = b · sgn(τ_j)              b  rad
     joint_scale           δq_j = k · q_j                   k  1 (transmission ratio)
     tracker_scale         η = (1 + s) · h  (global)        s  1 (tracker length scale)
+
+Sign of ``joint_compliance``: τ_j is Pinocchio's generalised gravity g(q), the torque
+the drive must apply to *hold* the arm, and the model puts the joint at q + δq. A
+joint of stiffness k sags along gravity, against its holding torque, so a physical
+compliance is c = −1/k < 0. Industrial joints have k ≈ 1e4 … 1e7 N m/rad, hence
+|c| ≈ 1e-7 … 1e-4 rad/(N m); :func:`compliance_warnings` flags fitted values outside.
 
 ``sgn`` is ``tanh(τ/τ0)`` with τ0 = 0.01 N m: the sign wherever gravity loads
 the joint measurably, and 0 where it exerts no torque at all (a vertical first
@@ -358,6 +366,11 @@ def bind_effect(effect_type: EffectType, robot: RobotModel, joint: str | None,
     return BoundEffect(effect_type, None, None, len(names))
 
 
+# Effects built from the whole chain rather than one joint's (q_j, τ_j): spec name ->
+# binder(robot, joint, key) -> BoundEffect. core.gravity_compliance registers its own.
+CHAIN_EFFECTS: dict[str, Callable[[RobotModel, str | None, str], BoundEffect]] = {}
+
+
 def parse_effect_spec(spec: str, robot: RobotModel, key: str = 'effects',
                       base_dir: str | Path | None = None) -> BoundEffect:
     """Resolve ``'effect[:joint]'`` or ``'module:attribute[:joint]'`` to an effect.
@@ -376,6 +389,8 @@ def parse_effect_spec(spec: str, robot: RobotModel, key: str = 'effects',
     parts = [s.strip() for s in spec.strip().split(':')]
     known = available_effects()
     where = f'{key}: {spec!r}'
+    if parts[0] in CHAIN_EFFECTS and len(parts) <= 2:
+        return CHAIN_EFFECTS[parts[0]](robot, parts[1] if len(parts) == 2 else None, where)
     if parts[0] in known:
         if len(parts) > 2:
             raise ConfigError(key, f'{spec!r}: write effect:joint, e.g. {parts[0]}:'
@@ -385,7 +400,8 @@ def parse_effect_spec(spec: str, robot: RobotModel, key: str = 'effects',
         effect_type = _load_user_effect(parts[0], parts[1], key, spec, base_dir)
         return bind_effect(effect_type, robot, parts[2] if len(parts) == 3 else None, where)
     raise ConfigError(key, f'{spec!r}: unknown effect {parts[0]!r}; valid effects are '
-                      f'{sorted(known)}, written effect:joint with a joint of '
+                      f'{sorted(set(known) | set(CHAIN_EFFECTS))}, written effect:joint with a '
+                      'joint of '
                       f'{robot.joint_names} (global effects without a joint), or '
                       'module:EffectType[:joint] for your own')
 

@@ -139,6 +139,9 @@ class CalibrationResult:
         The status in words, with the figure that decided it.
     iterations : int
         Gauss-Newton iterations over all identifiability-selection rounds.
+    covariance_scale : float
+        Factor applied to every covariance above: 1 (stated σ), or χ²/dof when the model
+        is not adequate (see :func:`kpi_calib_ros.core.precision.honest_precision`).
     """
 
     names: tuple[str, ...]
@@ -160,6 +163,9 @@ class CalibrationResult:
     message: str
     iterations: int
     identifiability: Identifiability
+    # 1 when std/covariances come from the stated σ; χ²/dof when they were scaled to
+    # the estimated σ because the model failed the χ² test (core.precision).
+    covariance_scale: float = 1.0
 
     @property
     def converged(self) -> bool:
@@ -244,7 +250,10 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     if start_error > MAX_START_ERROR:
         raise DataError(f'measured points are {start_error:.3g} m (median) from the nominal '
                         'prediction; check that points are in metres, in the tracker frame, and '
-                        'that tracker.base_in_tracker and the joint order/units are right')
+                        'that tracker.base_in_tracker and the joint order/units are right, that '
+                        'coupled controller joints are mapped (robot.joint_coupling), and that '
+                        'the point topic carries one reflector (several reflectors on one '
+                        'topic pair each pose with points of the others)')
     free_names = [model.params.names[i] for i in free_idx]
     # Identifiability depends on the geometry: at a nominal reflector exactly on the
     # flange axis some directions vanish that the real (slightly off-axis) robot has.

@@ -227,7 +227,11 @@ def _miss_message(result: Registration, eta: np.ndarray, positions: np.ndarray,
                                                             1e-30)))
     causes = ['joint values in the wrong order or units (degrees given as radians)',
               'the wrong tip frame (robot.tip_frame) or base frame',
-              'points paired with the wrong postures']
+              'points paired with the wrong postures',
+              'several reflectors published on the one point topic (one reflector per '
+              'campaign or topic)',
+              'coupled controller joints (J3 against the horizontal) not mapped: set '
+              'robot.joint_coupling']
     if not 0.5 < scale < 2.0:
         causes.insert(0, f'units: the measured points spread {scale:.3g} times as far as the '
                          'nominal tip positions (mm given as m?)')

@@ -4,9 +4,10 @@ Everything is computed on the weighted, locally linear problem at the
 identified parameters: the residual r = Σ⁻¹(η − h(p̂, q)) and the Jacobian of
 the identified parameters. The χ² test compares Σ‖r_i/σ‖² with χ²(dof); the
 hat matrix H = U Uᵀ (U an orthonormal basis of the Jacobian's columns) gives
-each pose's leverage and the covariance I − H_ii of its residual; k-fold
-cross-validation refits on the other poses and predicts the held-out ones
-(exact for the linear model, which a converged fit is to far below σ).
+each pose's leverage and the covariance I − H_ii of its residual; cross-validation
+(leave one pose out by default, or k-fold) refits on the other poses and predicts the
+held-out ones (exact for the linear model, which a converged fit is to far below σ),
+with folds that keep every identified parameter determined.
 """
 from __future__ import annotations
 
@@ -123,6 +124,9 @@ def orthonormal_basis(a: np.ndarray) -> np.ndarray:
 
 
 def fold_ids(n_poses: int, folds: int, seed: int) -> np.ndarray:
+    """Random fold of each pose, (n_poses,) ints in [0, folds), sizes within one."""
+    if folds == LEAVE_ONE_OUT:
+        return np.arange(n_poses)
     if not 2 <= folds <= n_poses:
         raise ValueError(f'folds must be in [2, {n_poses}] (number of poses), got {folds}')
     ids = np.empty(n_poses, dtype=int)
@@ -130,17 +134,108 @@ def fold_ids(n_poses: int, folds: int, seed: int) -> np.ndarray:
     return ids
 
 
-def cv_rms(a: np.ndarray, r: np.ndarray, w: np.ndarray, pose_folds: np.ndarray) -> float:
-    """k-fold cross-validated rms (m) of the linear model r ≈ a·δ, folds over poses."""
+def moved_joints(q: np.ndarray, atol: float = 1e-6) -> np.ndarray:
+    """(N, n) bool: which joints of each pose differ from the campaign's home value (the
+    most frequent value of that joint). One-joint-at-a-time campaigns (the circle point
+    method) give rows with a single True."""
+    q = np.atleast_2d(np.asarray(q, float))
+    moved = np.zeros(q.shape, dtype=bool)
+    for j in range(q.shape[1]):
+        values, counts = np.unique(np.round(q[:, j] / atol), return_counts=True)
+        home = values[np.argmax(counts)] * atol
+        moved[:, j] = np.abs(q[:, j] - home) > atol
+    return moved
+
+
+def stratified_fold_ids(q: np.ndarray, folds: int, seed: int) -> np.ndarray:
+    """Folds stratified by the joints moved: each group of poses that move the same
+    joints is dealt round the folds, so every fold holds out a share of every group
+    and every training set keeps poses of every group."""
+    q = np.atleast_2d(q)
+    n = len(q)
+    if folds == LEAVE_ONE_OUT:
+        return np.arange(n)
+    if not 2 <= folds <= n:
+        raise ValueError(f'folds must be in [2, {n}] (number of poses), got {folds}')
+    rng = np.random.default_rng(seed)
+    _, group = np.unique(moved_joints(q), axis=0, return_inverse=True)
+    ids = np.empty(n, dtype=int)
+    next_fold = 0
+    for g in rng.permutation(group.max() + 1):
+        members = rng.permutation(np.flatnonzero(group.ravel() == g))
+        ids[members] = (next_fold + np.arange(len(members))) % folds
+        next_fold = (next_fold + len(members)) % folds
+    return ids
+
+
+# A fold whose training poses leave a direction of the identified parameters with less
+# than this fraction of its full-data information cannot refit it (I − H_FF singular).
+RANK_TOLERANCE = 1e-9
+LEAVE_ONE_OUT = 0  # ``folds`` value: every pose its own fold (exact, the default)
+
+
+def _fold_blocks(a: np.ndarray, pose_folds: np.ndarray, u: np.ndarray | None = None):
+    """(rows, I − H_FF) of each fold F, H = U Uᵀ the hat matrix of span(a)."""
+    u = orthonormal_basis(a) if u is None else u
     rows = np.repeat(pose_folds, 3)
-    scale = np.linalg.norm(a, axis=0)
-    scale[scale == 0] = 1.0
-    a = a / scale
-    held = np.empty_like(r)
     for k in np.unique(pose_folds):
         test = rows == k
-        delta, *_ = np.linalg.lstsq(a[~test], r[~test], rcond=None)
-        held[test] = r[test] - a[test] @ delta
+        uf = u[test]
+        yield test, np.eye(int(test.sum())) - uf @ uf.T
+
+
+def folds_keep_rank(a: np.ndarray, pose_folds: np.ndarray) -> bool:
+    """True when every fold's training rows (the other folds' poses) still determine every
+    column of ``a`` (3N, k): I − H_FF is nonsingular for every fold F."""
+    return all(np.linalg.eigvalsh(m)[0] > RANK_TOLERANCE for _, m in _fold_blocks(a, pose_folds))
+
+
+def identifiable_folds(a: np.ndarray, q: np.ndarray, folds: int,
+                       seed: int) -> np.ndarray | None:
+    """Folds over poses that keep every identified parameter determined in each fold.
+
+    ``folds`` 0 (or >= N): leave one pose out. Otherwise random folds first; when one of
+    them leaves a parameter without excitation (a fold that holds out the poses moving
+    one joint), folds stratified by the joints moved. ``None`` when no such folds exist:
+    the design cannot estimate an out-of-sample error by refitting without some of its
+    poses ("not estimable from this design").
+
+    Parameters
+    ----------
+    a : (3N, k) ndarray
+        Weighted Jacobian of the identified parameters, three rows per pose.
+    q : (N, n) ndarray
+        Joint values of the poses (rad), for the stratification.
+    """
+    n = len(q)
+    if folds == LEAVE_ONE_OUT or folds >= n:
+        ids = np.arange(n)
+        return ids if folds_keep_rank(a, ids) else None
+    for ids in (fold_ids(n, folds, seed), stratified_fold_ids(q, folds, seed)):
+        if folds_keep_rank(a, ids):
+            return ids
+    return None
+
+
+def cv_rms(a: np.ndarray, r: np.ndarray, w: np.ndarray, pose_folds: np.ndarray | None) -> float:
+    """Cross-validated rms (m) of the linear model r ≈ a·δ, folds over poses.
+
+    Each fold's held-out residual is exactly that of the refit without it,
+    (I − H_FF)⁻¹ e_F with e = (I − H) r the full-data residual (the PRESS identity; H
+    the hat matrix of ``a``). NaN ("not
+    estimable from this design") when ``pose_folds`` is None or a fold's training poses
+    leave a column of ``a`` undetermined: a minimum-norm refit would then predict the
+    held-out poses with a parameter the fold cannot see.
+    """
+    if pose_folds is None:
+        return float('nan')
+    u = orthonormal_basis(a)
+    r = r - u @ (u.T @ r)  # the full-data fit of r ≈ a·δ (r need not be converged on a)
+    held = np.empty_like(r)
+    for test, m in _fold_blocks(a, pose_folds, u):
+        if np.linalg.eigvalsh(m)[0] <= RANK_TOLERANCE:
+            return float('nan')
+        held[test] = np.linalg.solve(m, r[test])
     metres = held.reshape(-1, 3) / w
     return float(np.sqrt(np.mean(np.sum(metres ** 2, axis=1))))
 
@@ -191,12 +286,21 @@ def residual_report(model: MeasurementModel, data: Measurements, result: Calibra
 
 
 def cross_validated_rms(model: MeasurementModel, data: Measurements,
-                        result: CalibrationResult, folds: int = 5, seed: int = 0) -> float:
-    """k-fold cross-validated rms (m) of the identified model over held-out poses.
+                        result: CalibrationResult, folds: int = LEAVE_ONE_OUT,
+                        seed: int = 0) -> float:
+    """Cross-validated rms (m) of the identified model over held-out poses.
 
-    Each fold refits the identified parameters on the other poses (a
-    Gauss-Newton step from ``result``, exact for the locally linear model) and
-    predicts the held-out ones. Compare with the noise floor σ√3.
+    Each fold refits the identified parameters on the other poses (exact for the
+    locally linear model, which a converged fit is to far below σ) and predicts the
+    held-out ones. ``folds`` 0 (default) leaves one pose out at a time: the refits then
+    differ least from the fit being judged, where k-fold refits on (k−1)/k of a small
+    design would judge a weaker model. Compare with the noise floor σ√3. The folds keep
+    every identified parameter determined (:func:`identifiable_folds`); NaN when no
+    such folds exist ("not estimable from this design").
     """
+    if folds != LEAVE_ONE_OUT and not 2 <= folds <= len(data):
+        raise ValueError(f'folds must be 0 (leave one pose out) or in [2, {len(data)}] '
+                         f'(number of poses), got {folds}')
     sys_ = linearized_fit(model, data, result)
-    return cv_rms(sys_.jac, sys_.r, sys_.w, fold_ids(len(data), folds, seed))
+    return cv_rms(sys_.jac, sys_.r, sys_.w,
+                  identifiable_folds(sys_.jac, np.atleast_2d(data.q), folds, seed))

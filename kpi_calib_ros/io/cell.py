@@ -4,7 +4,9 @@ A YAML document validated in one place; every error names the key path and the
 fix. Paths are relative to the cell file. Units are SI (m, rad, kg). Example::
 
     robot: {urdf: ../robots/kr15_class.urdf, base_frame: base_link, tip_frame: tool0,
-            package_dirs: [../src]}    # optional: where package:// meshes are searched first
+            package_dirs: [../src],    # optional: where package:// meshes are searched first
+            joint_coupling: {joint_3: {joint_3: 1.0, joint_2: 1.0}},  # optional
+            working_poses_in: controller}                              # or urdf
     tracker: {frame_id: laser_tracker, base_in_tracker: [x, y, z, roll, pitch, yaw]}  # optional
     reflector: {offset: [0, 0, 0.03], axis: [0, 0, 1], max_incidence: 0.5236}  # offset optional
     noise: {sigma: 2.0e-5}
@@ -23,6 +25,8 @@ fix. Paths are relative to the cell file. Units are SI (m, rad, kg). Example::
 """
 from __future__ import annotations
 
+import re
+import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Mapping, Sequence
@@ -32,10 +36,12 @@ import numpy as np
 import yaml
 
 from kpi_calib_ros.core.collision import Capsule, CollisionScene, HalfSpace
+from kpi_calib_ros.core.coupling import JointCoupling, coupling_from_mapping, identity_coupling
 from kpi_calib_ros.core.design import DesignSettings
 from kpi_calib_ros.core.design_cell import DesignCell
 from kpi_calib_ros.core.effects import resolve_effects
 from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.core.gravity_compliance import mass_warning
 from kpi_calib_ros.core.kinematics import pose6
 from kpi_calib_ros.core.model_selection import DEFAULT_FOLDS, MODEL_CHOICES
 from kpi_calib_ros.core.robust import LOSSES, OutlierSettings
@@ -121,6 +127,10 @@ class Cell:
     # stored zeros are then placeholders, registered from the data before identifying.
     base_in_tracker_given: bool = True
     reflector_offset_given: bool = True
+    # robot.joint_coupling: {urdf_joint: {controller_joint: factor}} (validated against
+    # the chain in build_cell_model); robot.working_poses_in: 'controller' or 'urdf'.
+    joint_coupling: Mapping[str, Any] = field(default_factory=dict)
+    working_poses_in: str = 'controller'
 
 
 def load_cell(path: str | Path, urdf_xml: str | None = None) -> Cell:
@@ -139,9 +149,30 @@ def read_cell_document(path: str | Path) -> Any:
     if not path.is_file():
         raise ConfigError('cell', f'file {str(path)!r} does not exist')
     try:
-        return yaml.safe_load(path.read_text())
+        return yaml.load(path.read_text(), Loader=CellLoader)
     except yaml.YAMLError as exc:
         raise ConfigError('cell', f'{path} is not valid YAML: {exc}') from exc
+
+
+class CellLoader(yaml.SafeLoader):
+    """PyYAML's safe loader with the YAML 1.2 float rule.
+
+    YAML 1.1 (PyYAML) reads ``2e-06`` as the *string* '2e-06' (it wants ``2.0e-06``);
+    every other YAML reader and every user reads a number. Here any plain scalar that
+    YAML 1.2 calls a float is one, so ``noise: {sigma: 2e-06}`` means 2 µm.
+    """
+
+
+CellLoader.yaml_implicit_resolvers = {
+    k: list(v) for k, v in yaml.SafeLoader.yaml_implicit_resolvers.items()}
+CellLoader.add_implicit_resolver(
+    'tag:yaml.org,2002:float',
+    re.compile(r'''^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
+                   |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
+                   |\.[0-9_]+(?:[eE][-+]?[0-9]+)?
+                   |[-+]?\.(?:inf|Inf|INF)
+                   |\.(?:nan|NaN|NAN))$''', re.X),
+    list('-+0123456789.'))
 
 
 def write_cell_document(path: str | Path, doc: dict[str, Any]) -> Path:
@@ -225,7 +256,27 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None) -> Cel
         identification=identification_settings(ident), source_dir=str(base_dir),
         package_dirs=_package_dirs(robot.get('package_dirs')),
         base_in_tracker_given=tracker.get('base_in_tracker') is not None,
-        reflector_offset_given=reflector.get('offset') is not None)
+        reflector_offset_given=reflector.get('offset') is not None,
+        joint_coupling=_coupling_mapping(robot.get('joint_coupling')),
+        working_poses_in=_working_poses_in(robot.get('working_poses_in', 'controller')))
+
+
+def _coupling_mapping(raw: Any) -> dict[str, Any]:
+    """``robot.joint_coupling`` as a plain mapping; names are checked against the chain
+    when the model is built (:func:`build_cell_model`)."""
+    if raw is None:
+        return {}
+    if not isinstance(raw, dict):
+        raise ConfigError('robot.joint_coupling', 'must map URDF joints to {controller_joint: '
+                          'factor}, e.g. {joint_3: {joint_3: 1.0, joint_2: 1.0}}')
+    return {str(k): v for k, v in raw.items()}
+
+
+def _working_poses_in(value: Any) -> str:
+    if value not in ('controller', 'urdf'):
+        raise ConfigError('robot.working_poses_in', "must be 'controller' (values as the "
+                          f"controller reports them) or 'urdf', got {value!r}")
+    return str(value)
 
 
 def with_overrides(cell: Cell, urdf_xml: str | None = None,
@@ -358,7 +409,8 @@ def _vector(value: Any, path: str, n: int) -> np.ndarray:
     except (TypeError, ValueError):
         arr = np.array([])
     if value is None or arr.shape != (n,) or not np.all(np.isfinite(arr)):
-        raise ConfigError(path, f'must be a list of {n} finite numbers (SI units), got {value!r}')
+        raise ConfigError(path, f'must be a list of {n} finite numbers (SI units), got '
+                          f'{value!r}{_text_number_hint(value)}')
     return arr
 
 
@@ -374,6 +426,19 @@ def _package_dirs(value: Any) -> tuple[str, ...]:
         raise ConfigError('robot.package_dirs', 'must be a list of directories (relative to the '
                           f'cell file) where package:// URIs are searched, got {value!r}')
     return tuple(value)
+
+
+def _text_number_hint(value: Any) -> str:
+    """Why a number arrived as text: quoted, or YAML 1.1's float rule (``2e-06`` is a
+    string for PyYAML; ``2.0e-06`` a number), and the fix."""
+    try:
+        number = float(value) if isinstance(value, str) else None
+    except ValueError:
+        number = None
+    if number is None:
+        return ''
+    return (f' (a string: a quoted number, or YAML 1.1 reading an exponent without a '
+            f'decimal point as text; write {number:.1e} unquoted, e.g. sigma: {number:.1e})')
 
 
 def _number_or_vector(value: Any, path: str) -> Any:
@@ -467,8 +532,9 @@ def _pair(item: Any, key: str) -> frozenset:
 class CellModel:
     """Numerical objects built from a :class:`Cell`.
 
-    ``q_work`` (t, n) is in chain order; ``tracker_in_base`` (4, 4) is the
-    nominal tracker pose in the robot base frame (inverse of ``base_in_tracker``).
+    ``q_work`` (t, n) is in chain order, URDF values; ``tracker_in_base`` (4, 4) is the
+    nominal tracker pose in the robot base frame (inverse of ``base_in_tracker``);
+    ``coupling`` maps the controller's joint values to URDF values (``None``: uncoupled).
     """
 
     cell: Cell
@@ -478,10 +544,16 @@ class CellModel:
     q_work: np.ndarray
     working_pose_names: tuple[str, ...]
     tracker_in_base: np.ndarray
+    coupling: JointCoupling | None = None
 
     @property
     def joint_names(self) -> list[str]:
         return self.robot.joint_names
+
+    @property
+    def joint_coupling(self) -> JointCoupling:
+        """``robot.joint_coupling`` of the cell; the identity when it has none."""
+        return self.coupling or identity_coupling(self.robot.joint_names)
 
     def collision_scene(self) -> CollisionScene:
         """Robot capsules (cell file first, else fitted to URDF collision geometry) and
@@ -534,8 +606,14 @@ def build_cell_model(cell: Cell, effects: tuple = ()) -> CellModel:
     extra = resolve_effects(effects, robot, 'extra effects', cell.source_dir or None)
     resolved += tuple(e for e in extra if e.name not in {r.name for r in resolved})
     model = MeasurementModel(robot, geometric, resolved, cell.reflector_axis)
+    missing_masses = mass_warning(robot, resolved)
+    if missing_masses:
+        warnings.warn(missing_masses, stacklevel=2)
+    coupling = coupling_from_mapping(cell.joint_coupling, robot.joint_names)
     q_work = np.array([_ordered(w, robot, f'working_poses[{i}].joints')
                        for i, w in enumerate(cell.working_poses)])
+    if cell.working_poses_in == 'controller':
+        q_work = coupling.to_urdf(q_work)
     inside = robot.within_limits(q_work)
     if not inside.all():
         bad = cell.working_poses[int(np.argmin(inside))].name
@@ -544,7 +622,8 @@ def build_cell_model(cell: Cell, effects: tuple = ()) -> CellModel:
     b = cell.base_in_tracker
     base_in_tracker = np.array(ca.DM(pose6(ca.DM(b))))
     return CellModel(cell, robot, geometric, model, q_work,
-                     tuple(w.name for w in cell.working_poses), np.linalg.inv(base_in_tracker))
+                     tuple(w.name for w in cell.working_poses), np.linalg.inv(base_in_tracker),
+                     coupling)
 
 
 def _ordered(pose: WorkingPose, robot: RobotModel, key: str) -> list[float]:

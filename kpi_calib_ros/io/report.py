@@ -81,12 +81,27 @@ def diagnosis_to_dict(cd: CellDiagnosis) -> dict[str, Any]:
     return doc
 
 
+NOT_ESTIMABLE = 'not estimable from this design'
+
+
+def _validation(rms_m: float, width: str = '', unit: str = '') -> str:
+    """A cross-validated rms in µm, or why there is none: NaN when no folds keep
+    every identified parameter determined (core.residuals.identifiable_folds)."""
+    if not np.isfinite(rms_m):
+        return NOT_ESTIMABLE
+    return f'{rms_m * _UM:{width}.1f}{unit}'
+
+
+def _fold_name(folds: int) -> str:
+    return 'leave one pose out' if folds == 0 else f'{folds}-fold'
+
+
 def comparison_text(cmp: ModelComparison) -> str:
     """Readable before/after summary for a terminal."""
     lines = [f"with {', '.join(cmp.effects)}:",
              f'  rms             {cmp.rms_before_m * _UM:7.1f} -> {cmp.rms_after_m * _UM:7.1f} µm',
-             f'  validation rms  {cmp.validation_rms_before_m * _UM:7.1f} -> '
-             f'{cmp.validation_rms_after_m * _UM:7.1f} µm (k-fold over held-out poses)',
+             f'  validation rms  {_validation(cmp.validation_rms_before_m, "7", " µm")} -> '
+             f'{_validation(cmp.validation_rms_after_m, "7", " µm")} (held-out poses)',
              f'  χ² p-value      {cmp.p_value_before:9.3g} -> {cmp.p_value_after:9.3g}']
     for p in cmp.effect_parameters:
         if 'std' in p:
@@ -104,7 +119,8 @@ def diagnosis_text(cd: CellDiagnosis, top: int = 5) -> str:
     diag, rep = cd.diagnosis, cd.diagnosis.residuals
     pct = ', '.join(f'p{k} {v * _UM:.1f}' for k, v in rep.percentiles_m.items())
     lines = [diag.verdict,
-             f'rms {diag.rms_m * _UM:.1f} µm, validation rms {diag.validation_rms_m * _UM:.1f} µm '
+             f'rms {diag.rms_m * _UM:.1f} µm, validation rms '
+             f'{_validation(diag.validation_rms_m, "", " µm")} '
              f'(noise floor σ√3 {np.sqrt(np.sum(cd.result.sigma ** 2)) * _UM:.1f} µm); '
              f'|r| {pct}, max {rep.max_m * _UM:.1f} µm',
              f'noise σ: stated {np.mean(cd.result.sigma) * _UM:.3g} µm, robust estimate '
@@ -116,9 +132,8 @@ def diagnosis_text(cd: CellDiagnosis, top: int = 5) -> str:
              f'{len(diag.not_distinguishable)} not):']
     for i, c in enumerate(diag.candidates[:top], 1):
         mark = '*' if c.significant else ' '
-        lines.append(f' {mark}{i}. {c.spec:40s} '
-                     f'validation rms {c.validation_rms_after_m * _UM:6.1f} µm  '
-                     f'p = {c.p_value:.2g}')
+        lines.append(f' {mark}{i}. {c.spec:40s} validation rms '
+                     f'{_validation(c.validation_rms_after_m, "6", " µm")}  p = {c.p_value:.2g}')
     if diag.best is not None:
         lines.append(f'why: {diag.best.explanation}')
     for c in diag.not_distinguishable:
@@ -302,8 +317,8 @@ def write_report(out_dir: str | Path, cd: CellDiagnosis) -> Path:
              '| quantity | value |', '|---|---|',
              f'| measurements | {len(rep.norms)} |',
              f'| rms | {rep.rms_m * _UM:.1f} µm |',
-             f'| validation rms ({diag.folds}-fold, held-out poses) | '
-             f'{diag.validation_rms_m * _UM:.1f} µm |',
+             f'| validation rms ({_fold_name(diag.folds)}, held-out poses) | '
+             f'{_validation(diag.validation_rms_m, "", " µm")} |',
              f'| noise floor σ√3 | {doc["noise_floor_m"] * _UM:.1f} µm |',
              f'| noise σ stated / robust from residuals | '
              f'{doc["residuals"]["sigma_stated_m"] * _UM:.3g} / '
@@ -324,7 +339,7 @@ def write_report(out_dir: str | Path, cd: CellDiagnosis) -> Path:
         params = '; '.join(f'{n.rsplit(".", 1)[1]} = {v:.3g} ± {s:.2g} {u}'
                            for n, v, s, u in zip(c.parameter_names, c.values, c.std, c.units))
         lines.append(f'| {i} | {c.spec} | {"yes" if c.significant else "no"} | {c.p_value:.2g} '
-                     f'| {c.rms_after_m * _UM:.1f} | {c.validation_rms_after_m * _UM:.1f} '
+                     f'| {c.rms_after_m * _UM:.1f} | {_validation(c.validation_rms_after_m)} '
                      f'| {params} |')
     if diag.best is not None:
         lines += ['', f'Why {diag.best.spec}: {diag.best.explanation}']
@@ -335,8 +350,8 @@ def write_report(out_dir: str | Path, cd: CellDiagnosis) -> Path:
         lines += ['', f'## Before/after adding {", ".join(cmp.effects)}', '',
                   '| | geometric | with effect |', '|---|---|---|',
                   f'| rms (µm) | {cmp.rms_before_m * _UM:.1f} | {cmp.rms_after_m * _UM:.1f} |',
-                  f'| validation rms (µm) | {cmp.validation_rms_before_m * _UM:.1f} | '
-                  f'{cmp.validation_rms_after_m * _UM:.1f} |',
+                  f'| validation rms (µm) | {_validation(cmp.validation_rms_before_m)} | '
+                  f'{_validation(cmp.validation_rms_after_m)} |',
                   f'| χ² p-value | {cmp.p_value_before:.3g} | {cmp.p_value_after:.3g} |']
         for name, b, a in zip(cmp.working_pose_names, cmp.tcp_std_before_m,
                               cmp.tcp_std_after_m):

@@ -22,6 +22,7 @@ import yaml
 
 from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.pairing import PairingResult
+from kpi_calib_ros.core.precision import precision_statement
 from kpi_calib_ros.core.residuals import is_adequate
 from kpi_calib_ros.io.names import CALIBRATION_FILE, truth_path
 
@@ -84,6 +85,9 @@ def calibration_to_dict(result: CalibrationResult,
         'model_adequacy': {'chi2': float(result.chi2), 'dof': int(result.dof),
                            'p_value': float(result.p_value),
                            'adequate': is_adequate(result.p_value)},
+        # Which σ the std and covariances below rest on (core.precision).
+        'precision': {'covariance_scale': float(result.covariance_scale),
+                      'basis': precision_statement(float(result.covariance_scale))},
         'parameters': parameters,
         # Not identifiable: held fixed (at the prior, or where an earlier selection round
         # left it); their value is a choice of gauge, not a measurement.
@@ -124,6 +128,10 @@ def summary_text(doc: dict[str, Any]) -> str:
               f"(max {doc['max_residual_m'] * 1e6:.1f} µm)",
               f"model adequacy: chi2/dof = {doc['model_adequacy']['chi2']:.1f}/"
               f"{doc['model_adequacy']['dof']}, p = {doc['model_adequacy']['p_value']:.3g}"]
+    lines += [f'WARNING: {w}' for w in doc.get('warnings', [])]
+    precision = doc.get('precision', {})
+    if precision.get('covariance_scale', 1.0) != 1.0:
+        lines.append(f"WARNING: std {precision['basis']}")
     for t in doc['tcp']:
         if t.get('std') is None:
             lines.append(f"TCP {t['name']}: NOT DETERMINED by the measurements (not estimable)")

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 from geometry_msgs.msg import PoseWithCovarianceStamped
 
-from kpi_calib_ros.app.design import design_cell_model, design_estimability
+from kpi_calib_ros.app.design import controller_design, design_cell_model, design_estimability
 from kpi_calib_ros.core.design import DesignResult
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.pairing import PairingResult
@@ -22,12 +22,9 @@ from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.design_io import write_design
 from kpi_calib_ros.app.diagnose import diagnose_cell
 from kpi_calib_ros.io.report import diagnosis_to_dict, write_report
-from kpi_calib_ros.io.results import write_atomic
-from kpi_calib_ros.io.urdf_export import calibrated_urdf
 from kpi_calib_ros.app.identify import (CellCalibration, add_robust_sections,
-                                        calibrate_cell, calibration_document,
-                                        write_calibration_checked)
-from kpi_calib_ros.io.names import CALIBRATED_URDF_FILE, DESIGN_FILE, DIAGNOSIS_DIR
+                                        calibrate_cell, calibration_document, write_results)
+from kpi_calib_ros.io.names import DESIGN_FILE, DIAGNOSIS_DIR
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros.parameters import NodeSettings
 
@@ -40,6 +37,7 @@ def design_work(cm: CellModel, settings: NodeSettings,
     Returns
     -------
     design : DesignResult
+        Configurations in the controller's joint values (``robot.joint_coupling``).
     points : ndarray, shape (N, 3)
         Nominal reflector positions (m, tracker frame) of the designed poses.
     path : Path
@@ -49,12 +47,13 @@ def design_work(cm: CellModel, settings: NodeSettings,
     """
     design = design_cell_model(cm, settings.num_measurements, settings.criterion,
                                settings.design_seed)
+    points = cm.model.predict(cm.model.params.nominal, design.configurations)
+    estimability = design_estimability(cm, design.configurations)
+    design = controller_design(cm, design)  # the robot program gets controller values
     # The capsules and skipped pairs the design used (built by it, cached); the mesh
     # check's findings are in the design's verification.
     path = write_design(data_dir / DESIGN_FILE, design,
                         extra={'geometry': cm.robot_geometry().summary()})
-    points = cm.model.predict(cm.model.params.nominal, design.configurations)
-    estimability = design_estimability(cm, design.configurations)
     return design, points, path, '' if estimability.all_estimable else estimability.summary()
 
 
@@ -81,11 +80,10 @@ def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, dat
     cal = calibrate_cell(cm, data)
     result = cal.result
     doc = add_robust_sections(calibration_document(cm, result, pairing), cal)
-    text = write_calibration_checked(data_dir, doc).read_text()  # published as written
+    path, _, urdf = write_results(cm, result, doc, data_dir)
+    text = path.read_text()  # published as written
     if not cal.valid:
         return cal, text, '', []
-    urdf = calibrated_urdf(cm.cell.urdf_xml, cm.robot, dict(zip(result.names, result.values)))
-    write_atomic(data_dir / CALIBRATED_URDF_FILE, urdf)
     tcp = cv.tcp_pose_msgs(result.tcp, result.tcp_covariance, cm.cell.tracker_frame,
                            int(data.stamps_ns[-1]))
     return cal, text, urdf, tcp

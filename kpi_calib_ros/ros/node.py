@@ -60,8 +60,10 @@ from kpi_calib_ros.core.collision import Capsule
 from kpi_calib_ros.core.errors import ConfigError, DataError, KpiCalibError
 from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.pairing import Decision, Rejection
+from kpi_calib_ros.core.precision import precision_statement
 from kpi_calib_ros.core.residuals import is_adequate
 from kpi_calib_ros.core.robust import RobustResult
+from kpi_calib_ros.app.identify import urdf_measurements
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell, with_overrides
 from kpi_calib_ros.io.names import (CALIBRATED_URDF_TOPIC, CALIBRATION_TOPIC, DIAGNOSIS_TOPIC,
                                     DIAGNOSTICS_TOPIC, MARKERS_TOPIC, MEASUREMENT_POSES_TOPIC,
@@ -322,6 +324,7 @@ class CalibrationNode(Node):
         write the results atomically and publish them."""
         cm = self._model()
         data, pairing = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame)
+        data = urdf_measurements(cm, data)  # controller readings -> URDF joint values
         try:
             cal, calibration, urdf, tcp = await self._offload(
                 jobs.identify_work, cm, data, pairing, self.data_dir)
@@ -355,17 +358,21 @@ class CalibrationNode(Node):
         self._publish_markers()
         self._publish_diagnostics(force=True)
         tcp_um = np.sqrt(np.trace(result.tcp_covariance, axis1=1, axis2=2)).max() * 1e6
+        precision = precision_statement(result.covariance_scale)
+        if result.covariance_scale != 1.0:
+            self.get_logger().warning(f'TCP and parameter std {precision}')
         return True, (
             f'identified from {len(data)} measurements: {result.message}; rms '
             f'{result.rms_m * 1e6:.1f} µm, p = {result.p_value:.3g}, TCP sqrt(trace) <= '
-            f'{tcp_um:.1f} µm; {len(cal.robust.excluded)} excluded; written to '
+            f'{tcp_um:.1f} µm ({precision}); {len(cal.robust.excluded)} excluded; written to '
             f'{self.data_dir}')
 
     async def _diagnose(self) -> tuple[bool, str]:
         """Model diagnosis of the accepted measurements (as ``kpi-calib diagnose``): residual
         report, adequacy and the most likely missing effect; report files and ~/diagnosis."""
         cm = self._model()
-        data, _ = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame)
+        data = urdf_measurements(cm, self.campaign.measurements(cm.joint_names,
+                                                                cm.cell.tracker_frame)[0])
         doc, text, verdict, report = await self._offload(jobs.diagnose_work, cm, data,
                                                          self.data_dir)
         self._diagnosis = doc

@@ -1,0 +1,139 @@
+"""Out-of-sample error of one-joint-at-a-time campaigns (the circle point method): the
+k-fold validation rms keeps every identified parameter determined in each fold."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from kpi_calib_ros.app.identify import identify_cell
+from kpi_calib_ros.core.measurement import Measurements
+from kpi_calib_ros.core.residuals import (cross_validated_rms, cv_rms, fold_ids,
+                                          folds_keep_rank, identifiable_folds, linearized_fit,
+                                          moved_joints, stratified_fold_ids)
+from kpi_calib_ros.core.simulation import simulate_measurements, true_parameters
+from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+
+POSES_PER_JOINT = 5
+
+
+def circle_point_poses(cm, rng: np.random.Generator, per_joint: int = POSES_PER_JOINT):
+    """Each joint swept alone from the home pose (the first working pose), the others fixed."""
+    home = cm.q_work[0]
+    lo, hi = cm.robot.lower, cm.robot.upper
+    rows = []
+    for j in range(len(home)):
+        span = 0.6 * (hi[j] - lo[j]) / 2
+        for angle in rng.uniform(max(lo[j], home[j] - span), min(hi[j], home[j] + span),
+                                 per_joint):
+            q = home.copy()
+            q[j] = angle
+            rows.append(q)
+    return np.array(rows)
+
+
+def one_campaign(cm, seed: int, per_joint: int = POSES_PER_JOINT) -> dict[str, float]:
+    """Cross-validated rms (leave one pose out, 5-fold with identifiable folds, 5-fold
+    random without the rank check as before) over the true rms on fresh poses of the
+    same kind (a fresh one-joint-at-a-time campaign)."""
+    rng = np.random.default_rng(seed)
+    p_true = true_parameters(cm.model.params, rng)
+    sigma = cm.cell.sigma
+    data = simulate_measurements(cm.model, p_true, circle_point_poses(cm, rng, per_joint),
+                                 sigma, rng)
+    result = identify_cell(cm, data)
+    fresh = simulate_measurements(cm.model, p_true, circle_point_poses(cm, rng, 50), sigma, rng)
+    err = fresh.eta - cm.model.predict(result.values, fresh.q)
+    true_rms = float(np.sqrt(np.mean(np.sum(err ** 2, axis=1))))
+    sys_ = linearized_fit(cm.model, data, result)
+    return {'loo': cross_validated_rms(cm.model, data, result) / true_rms,
+            'kfold': cross_validated_rms(cm.model, data, result, folds=5) / true_rms,
+            'before': _unchecked(sys_) / true_rms}
+
+
+def _unchecked(sys_) -> float:
+    """The 5-fold rms of random folds without the rank check (a minimum-norm refit)."""
+    pose_folds = fold_ids(len(sys_.r) // 3, 5, 0)
+    rows = np.repeat(pose_folds, 3)
+    a = sys_.jac / np.linalg.norm(sys_.jac, axis=0)
+    held = np.empty_like(sys_.r)
+    for k in np.unique(pose_folds):
+        test = rows == k
+        delta, *_ = np.linalg.lstsq(a[~test], sys_.r[~test], rcond=None)
+        held[test] = sys_.r[test] - a[test] @ delta
+    return float(np.sqrt(np.mean(np.sum((held.reshape(-1, 3) / sys_.w) ** 2, axis=1))))
+
+
+def test_held_out_residuals_equal_refits():
+    """The PRESS identity used by cv_rms equals refitting without each fold."""
+    rng = np.random.default_rng(4)
+    a, r = rng.normal(size=(60, 7)), rng.normal(size=60)
+    folds = fold_ids(20, 4, 1)
+    w = np.ones(3)
+    rows = np.repeat(folds, 3)
+    held = np.empty_like(r)
+    for k in range(4):
+        t = rows == k
+        delta = np.linalg.lstsq(a[~t], r[~t], rcond=None)[0]
+        held[t] = r[t] - a[t] @ delta
+    expect = np.sqrt(np.mean(np.sum(held.reshape(-1, 3) ** 2, axis=1)))
+    assert cv_rms(a, r, w, folds) == pytest.approx(expect, rel=1e-10)
+
+
+def test_moved_joints_and_stratified_folds():
+    cm = build_cell_model(load_cell(DEFAULT_CELL))
+    q = circle_point_poses(cm, np.random.default_rng(0))
+    moved = moved_joints(q)
+    np.testing.assert_array_equal(moved.sum(axis=1), 1)
+    np.testing.assert_array_equal(np.argmax(moved, axis=1), np.repeat(np.arange(6),
+                                                                      POSES_PER_JOINT))
+    ids = stratified_fold_ids(q, 5, 0)
+    for j in range(6):   # every fold holds out exactly one pose of every joint's sweep
+        np.testing.assert_array_equal(np.sort(ids[moved[:, j]]), np.arange(5))
+
+
+def test_a_fold_without_a_joint_is_refused():
+    cm = build_cell_model(load_cell(DEFAULT_CELL))
+    rng = np.random.default_rng(2)
+    p_true = true_parameters(cm.model.params, rng)
+    data = simulate_measurements(cm.model, p_true, circle_point_poses(cm, rng), cm.cell.sigma,
+                                 rng)
+    sys_ = linearized_fit(cm.model, data, identify_cell(cm, data))
+    by_joint = np.argmax(moved_joints(data.q), axis=1) % 5   # a fold = one joint's sweep
+    assert not folds_keep_rank(sys_.jac, by_joint)
+    assert np.isnan(cv_rms(sys_.jac, sys_.r, sys_.w, by_joint))
+    folds = identifiable_folds(sys_.jac, data.q, 5, 0)
+    assert folds is not None and folds_keep_rank(sys_.jac, folds)
+    # Two poses per joint: every fold that holds one out loses that joint's excitation.
+    few = Measurements(q=data.q[::3], eta=data.eta[::3])
+    assert identifiable_folds(linearized_fit(cm.model, few, identify_cell(cm, few)).jac,
+                              few.q, 5, 0) is None
+
+
+@pytest.mark.slow
+def test_out_of_sample_estimate_within_1_5x_over_20_seeds():
+    """Eight poses per joint (a circle of eight points per axis)."""
+    cm = build_cell_model(load_cell(DEFAULT_CELL))
+    runs = [one_campaign(cm, seed, per_joint=8) for seed in range(20)]
+    for key in ('loo', 'kfold', 'before'):
+        v = np.array([r[key] for r in runs])
+        print(f'{key}: cross-validated / true rms on fresh poses, 20 seeds: min '
+              f'{np.nanmin(v):.3f}, median {np.nanmedian(v):.3f}, max {np.nanmax(v):.3f}, '
+              f'not estimable {int(np.isnan(v).sum())}')
+    loo = np.array([r['loo'] for r in runs])
+    assert np.all(loo <= 1.5) and np.all(loo >= 1 / 1.5)
+
+
+def test_not_estimable_is_said_not_printed_as_a_number():
+    """Two poses per joint: the diagnosis text names the design instead of a figure."""
+    from kpi_calib_ros.core.diagnosis import compare_models
+    from kpi_calib_ros.io.report import NOT_ESTIMABLE, comparison_text
+    cm = build_cell_model(load_cell(DEFAULT_CELL))
+    rng = np.random.default_rng(2)
+    p_true = true_parameters(cm.model.params, rng)
+    data = simulate_measurements(cm.model, p_true, circle_point_poses(cm, rng, 5)[::3],
+                                 cm.cell.sigma, rng)
+    result = identify_cell(cm, data)
+    assert np.isnan(cross_validated_rms(cm.model, data, result))
+    cmp = compare_models((cm.model, result), (cm.model, result), data)
+    text = comparison_text(cmp)
+    assert f'validation rms  {NOT_ESTIMABLE} -> {NOT_ESTIMABLE}' in text
