@@ -21,6 +21,7 @@ from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation import CalibrationResult, identify
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
 from kpi_calib_ros.core.pairing import PairingResult, pair_measurements
+from kpi_calib_ros.core.registration import Registration, register
 from kpi_calib_ros.core.streams import JointSample, PointSample
 from kpi_calib_ros.io.bag import read_for_pairing
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
@@ -42,13 +43,46 @@ def measurements_from_samples(cm: CellModel, joint_samples: Iterable[JointSample
         chain's joints (wrong robot or renamed joints): names both sets.
     """
     joint_samples = list(joint_samples)
+    pairer_options.setdefault('reflectors', reflector_names(cm))
     pairing = pair_measurements(joint_samples, point_samples, cm.joint_names,
                                 cm.cell.tracker_frame, **pairer_options)
     if len(pairing) == 0 and pairing.rejections.get('missing_joints'):
         seen = sorted({n for s in joint_samples for n in s.names})
         raise DataError(f'the joint states name joints {seen}, but the robot chain needs '
                         f'{cm.joint_names}; record the right robot or fix the URDF joint names')
-    return Measurements(q=pairing.q, eta=pairing.eta, stamps_ns=pairing.stamps_ns), pairing
+    return to_measurements(cm, pairing), pairing
+
+
+def reflector_names(cm: CellModel) -> tuple[str, ...]:
+    """Reflector names points carry after '#' in their frame id ('' : single reflector)."""
+    return cm.cell.reflector_names or ('',)
+
+
+def to_measurements(cm: CellModel, pairing: PairingResult) -> Measurements:
+    """(pose, reflector) rows of a pairing, reflector indices in the cell's order."""
+    try:
+        ref = pairing.reflector_indices(reflector_names(cm))
+    except ValueError as exc:
+        raise DataError(f'{exc}: point frame ids are <tracker_frame>#<reflector name> for '
+                        "the cell's reflectors: list") from None
+    return Measurements(q=pairing.q, eta=pairing.eta, stamps_ns=pairing.stamps_ns,
+                        reflector=ref if cm.cell.reflector_names else None)
+
+
+def registration_start(cm: CellModel, data: Measurements) -> tuple[np.ndarray, Registration]:
+    """Start values with the base pose and every reflector offset registered from the
+    points (:func:`kpi_calib_ros.core.registration.register`), for a cell that omits
+    ``tracker.base_in_tracker`` or a reflector offset."""
+    tips = np.array([cm.robot.pin_tip_pose(q) for q in data.q])
+    reg = register(data.eta, tips, reflector=data.reflector)
+    offsets = reg.reflector_offsets if reg.reflector_offsets is not None else \
+        reg.reflector_offset.reshape(1, 3)
+    values = {f'base.{c}': float(v) for c, v in
+              zip(('x', 'y', 'z', 'roll', 'pitch', 'yaw'), reg.base_in_tracker)}
+    prefixes = [f'reflector.{n}' for n in cm.cell.reflector_names] or ['reflector']
+    for prefix, offset in zip(prefixes, offsets):
+        values.update({f'{prefix}.{c}': float(v) for c, v in zip('xyz', offset)})
+    return cm.model.params.with_values(values), reg
 
 
 def measurements_from_bag(cm: CellModel, path: str | Path,
@@ -62,7 +96,7 @@ def measurements_from_bag(cm: CellModel, path: str | Path,
     if contents.measurement_log:
         pairing = stored_pairing(zip(contents.joints, contents.points), list(cm.joint_names),
                                  cm.cell.tracker_frame)
-        return Measurements(q=pairing.q, eta=pairing.eta, stamps_ns=pairing.stamps_ns), pairing
+        return to_measurements(cm, pairing), pairing
     return measurements_from_samples(cm, contents.joints, contents.points, **pairer_options)
 
 
@@ -71,6 +105,10 @@ def identify_cell(cm: CellModel, data: Measurements, p0: np.ndarray | None = Non
     """Identify the cell's parameters from paired measurements (σ and poses from the cell)."""
     if len(data) == 0:
         raise DataError('no accepted measurement to identify from')
+    if p0 is None and cm.needs_registration:
+        p0, reg = registration_start(cm, data)
+        print(f'registered base pose and reflector offsets from {len(data)} points: '
+              f'{reg.rms_m * 1e3:.3g} mm rms', file=sys.stderr)
     return identify(cm.model, data, cm.cell.sigma, cm.q_work, list(cm.working_pose_names),
                     p0=p0, free=free, identifiability_method=cm.cell.identification_method,
                     priority=list(cm.cell.identification_priority) or None)

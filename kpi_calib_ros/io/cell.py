@@ -6,6 +6,8 @@ fix. Paths are relative to the cell file. Units are SI (m, rad, kg). Example::
     robot: {urdf: ../robots/kr15_class.urdf, base_frame: base_link, tip_frame: tool0}
     tracker: {frame_id: laser_tracker, base_in_tracker: [x, y, z, roll, pitch, yaw]}
     reflector: {offset: [0, 0, 0.03], axis: [0, 0, 1], max_incidence: 0.5236}
+    # or several reflectors / markers (the first one is the KPI point):
+    # reflectors: [{name: a, offset: [0, 0, 0.03]}, {name: b, offset: [0.05, 0, 0.03]}]
     noise: {sigma: 2.0e-5}
     payload: {mass: 5.0, com: [0, 0, 0.05]}
     working_poses:
@@ -38,9 +40,10 @@ from kpi_calib_ros.core.kinematics import pose6
 from kpi_calib_ros.core.measurement import MeasurementModel
 from kpi_calib_ros.core.parameters import ParameterSet, geometric_parameters
 from kpi_calib_ros.core.robot import Payload, RobotModel
+from kpi_calib_ros.io.resources import resolve_uri
 from kpi_calib_ros.io.results import write_atomic
 
-_TOP_KEYS = {'robot', 'tracker', 'reflector', 'noise', 'payload', 'working_poses',
+_TOP_KEYS = {'robot', 'tracker', 'reflector', 'reflectors', 'noise', 'payload', 'working_poses',
              'obstacles', 'collision', 'identification', 'effects', 'simulation', 'design'}
 DEFAULT_CELL = Path(__file__).resolve().parent.parent / 'data' / 'cells' / 'default_cell.yaml'
 
@@ -89,6 +92,17 @@ class Cell:
     design: DesignSettings = field(default_factory=DesignSettings)
     simulation: SimulationSettings = field(default_factory=SimulationSettings)
     source_dir: str = field(default='', compare=False)  # folder of the cell file
+    # ``reflectors:`` form: names and (R, 3) offsets, NaN rows where the offset is to be
+    # registered from the data; () for the single ``reflector:`` form.
+    reflector_names: tuple[str, ...] = ()
+    reflector_offsets: np.ndarray | None = field(default=None, compare=False)
+
+    @property
+    def offsets(self) -> np.ndarray:
+        """(R, 3) nominal offsets of every reflector (NaN: unknown, to be registered)."""
+        if self.reflector_offsets is not None:
+            return self.reflector_offsets
+        return self.reflector_offset.reshape(1, 3)
 
 
 def load_cell(path: str | Path, urdf_xml: str | None = None) -> Cell:
@@ -128,7 +142,9 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None) -> Cel
     robot = _mapping(doc, 'robot')
     if urdf_xml is None:
         urdf_rel = _str(robot, 'robot.urdf', 'urdf')
-        urdf_path = (base_dir / urdf_rel).resolve()
+        urdf_path = ((base_dir / urdf_rel).resolve() if '://' not in urdf_rel else
+                     resolve_uri(urdf_rel, robot.get('package_dirs') or (), base_dir,
+                                 referenced_by='robot.urdf'))
         if not urdf_path.is_file():
             raise ConfigError('robot.urdf', f'file {str(urdf_path)!r} does not exist; paths are '
                               'relative to the cell file')
@@ -136,7 +152,11 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None) -> Cel
     else:
         urdf_path = Path('<robot_description>')
     tracker = _mapping(doc, 'tracker')
-    reflector = _mapping(doc, 'reflector')
+    names, offsets = _reflectors(doc)
+    reflector = (doc.get('reflector') or {}) if names else _mapping(doc, 'reflector')
+    if not isinstance(reflector, dict):
+        raise ConfigError('reflector', 'must be a mapping {axis, max_incidence} beside '
+                          'reflectors:')
     noise = _mapping(doc, 'noise')
     payload = doc.get('payload') or {}
     axis = _vector(reflector.get('axis', [0, 0, 1]), 'reflector.axis', 3)
@@ -163,8 +183,11 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None) -> Cel
         base_frame=_str(robot, 'robot.base_frame', 'base_frame'),
         tip_frame=_str(robot, 'robot.tip_frame', 'tip_frame'),
         tracker_frame=str(tracker.get('frame_id', 'laser_tracker')),
-        base_in_tracker=_vector(tracker.get('base_in_tracker'), 'tracker.base_in_tracker', 6),
-        reflector_offset=_vector(reflector.get('offset'), 'reflector.offset', 3),
+        base_in_tracker=(np.full(6, np.nan) if names and tracker.get('base_in_tracker') is None
+                         else _vector(tracker.get('base_in_tracker'),
+                                      'tracker.base_in_tracker', 6)),
+        reflector_offset=(offsets[0] if names
+                          else _vector(reflector.get('offset'), 'reflector.offset', 3)),
         reflector_axis=axis / np.linalg.norm(axis), max_incidence=max_inc, sigma=sigma,
         payload_mass=mass,
         payload_com=_vector(payload.get('com', [0, 0, 0]), 'payload.com', 3),
@@ -180,7 +203,36 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None) -> Cel
         identification_priority=tuple(ident.get('priority') or ()),
         effects=tuple(str(e) for e in (doc.get('effects') or [])),
         design=design_settings(doc.get('design')),
-        simulation=simulation_settings(doc.get('simulation')), source_dir=str(base_dir))
+        simulation=simulation_settings(doc.get('simulation')), source_dir=str(base_dir),
+        reflector_names=names, reflector_offsets=offsets if names else None)
+
+
+def _reflectors(doc: dict) -> tuple[tuple[str, ...], np.ndarray | None]:
+    """The ``reflectors:`` list: names and (R, 3) offsets (NaN row: offset omitted, to
+    be registered from the data). ``((), None)`` when the key is absent."""
+    items = doc.get('reflectors')
+    if items is None:
+        return (), None
+    if 'offset' in (doc.get('reflector') or {}):
+        raise ConfigError('reflector.offset', 'give the offsets in reflectors: only (the '
+                          'reflector: mapping then holds axis and max_incidence)')
+    if not isinstance(items, list) or not items:
+        raise ConfigError('reflectors', 'must be a list of {name, offset: [x, y, z]} (m, tip '
+                          'frame); the first is the KPI point')
+    names, offsets = [], []
+    for i, item in enumerate(items):
+        key = f'reflectors[{i}]'
+        if not isinstance(item, dict) or not isinstance(item.get('name'), str):
+            raise ConfigError(key, 'must be a mapping {name: str, offset: [x, y, z]}')
+        name = item['name']
+        if not name or not all(c.isalnum() or c == '_' for c in name) or name in names:
+            raise ConfigError(f'{key}.name', f'{name!r}: give a unique name of letters, digits '
+                              'and _ (it appears in parameter names reflector.<name>.x)')
+        names.append(name)
+        offset = item.get('offset')
+        offsets.append(np.full(3, np.nan) if offset is None
+                       else _vector(offset, f'{key}.offset', 3))
+    return tuple(names), np.array(offsets)
 
 
 def with_overrides(cell: Cell, urdf_xml: str | None = None,
@@ -373,6 +425,12 @@ class CellModel:
     def joint_names(self) -> list[str]:
         return self.robot.joint_names
 
+    @property
+    def needs_registration(self) -> bool:
+        """The base pose or a reflector offset is not given: register them from the data."""
+        return bool(np.isnan(self.cell.base_in_tracker).any()
+                    or np.isnan(self.cell.offsets).any())
+
     def collision_scene(self) -> CollisionScene:
         """Robot capsules (cell file first, else fitted to URDF collision geometry) and obstacles."""
         links = self.robot.link_names
@@ -408,7 +466,10 @@ def build_cell_model(cell: Cell, effects: tuple = ()) -> CellModel:
                           'URDF document (with_overrides)')
     robot = RobotModel(cell.urdf_xml, cell.base_frame, cell.tip_frame,
                        Payload(cell.payload_mass, tuple(cell.payload_com)))
-    geometric = geometric_parameters(robot, cell.base_in_tracker, cell.reflector_offset)
+    # Unknown placements (NaN) start at zero; identification registers them first.
+    geometric = geometric_parameters(robot, np.nan_to_num(cell.base_in_tracker),
+                                     np.nan_to_num(cell.offsets),
+                                     cell.reflector_names or None)
     resolved = resolve_effects(cell.effects, robot, 'effects', cell.source_dir or None)
     extra = resolve_effects(effects, robot, 'extra effects', cell.source_dir or None)
     resolved += tuple(e for e in extra if e.name not in {r.name for r in resolved})
@@ -420,7 +481,7 @@ def build_cell_model(cell: Cell, effects: tuple = ()) -> CellModel:
         bad = cell.working_poses[int(np.argmin(inside))].name
         raise ConfigError('working_poses', f'pose {bad!r} is outside the joint limits '
                           f'{robot.lower.round(3).tolist()} .. {robot.upper.round(3).tolist()}')
-    b = cell.base_in_tracker
+    b = np.nan_to_num(cell.base_in_tracker)
     base_in_tracker = np.array(ca.DM(pose6(ca.DM(b))))
     return CellModel(cell, robot, geometric, model, q_work,
                      tuple(w.name for w in cell.working_poses), np.linalg.inv(base_in_tracker))
