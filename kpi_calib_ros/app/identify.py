@@ -118,6 +118,7 @@ def calibration_document(cm: CellModel, result: CalibrationResult,
                          pairing: PairingResult | None = None) -> dict:
     """The calibration.yaml document: the result plus the DH/Hayati view of its axes."""
     doc = calibration_to_dict(result, pairing)
+    doc['effects'] = [e.name for e in cm.model.effects]  # validate rebuilds this model
     doc['dh_hayati'] = dh_table(cm.robot, cm.geometric, cm.geometric.nominal,
                                 result.values[:len(cm.geometric)])
     return doc
