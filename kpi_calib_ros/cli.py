@@ -55,7 +55,8 @@ def main(argv: list[str] | None = None) -> int:
     val.add_argument('--out', required=True, help='output folder: validation.json, plot')
 
     imp = sub.add_parser('import-csv', help='a table of static postures (CSV) into an MCAP bag')
-    imp.add_argument('csv', help='one row per posture: joint values and marker points')
+    imp.add_argument('csv', nargs='+', help='one row per posture: joint values and marker '
+                     'points; several tables (sessions) go into one bag')
     imp.add_argument('--out', required=True, help='output .mcap file')
     imp.add_argument('--mapping', help='YAML: frame_id, joints, markers, stamp_columns, units')
     imp.add_argument('--frame', help='frame of the points (mapping frame_id)')

@@ -165,18 +165,27 @@ def read_postures(path: str | Path, mapping: CsvMapping
     return joint_names, q, points, stamps
 
 
-def import_csv(csv_path: str | Path, out_path: str | Path, mapping: CsvMapping,
+def import_csv(csv_path: str | Path | list, out_path: str | Path, mapping: CsvMapping,
                rate_hz: float = 50.0, hold_s: float = 0.5,
                joint_topic: str = DEFAULT_JOINT_TOPIC,
                point_topic: str = DEFAULT_POINT_TOPIC) -> tuple[Path, int, int]:
-    """Write the postures of ``csv_path`` as an MCAP bag.
+    """Write the postures of ``csv_path`` (one table, or a list of tables of one
+    campaign, e.g. several sessions) as an MCAP bag.
 
     Returns
     -------
     (Path, int, int)
         The bag, the number of postures and of points written.
     """
-    names, q, points, stamps = read_postures(csv_path, mapping)
+    tables = [read_postures(p, mapping) for p in
+              (csv_path if isinstance(csv_path, list) else [csv_path])]
+    names = tables[0][0]
+    order = np.argsort(np.concatenate([t[3] for t in tables]), kind='stable')
+    q = np.concatenate([t[1] for t in tables])[order]
+    stamps = np.concatenate([t[3] for t in tables])[order]
+    points = {m: np.concatenate([t[2][m] for t in tables])[order] for m in mapping.markers}
+    if len(tables) > 1 and not mapping.stamp_columns:
+        stamps = _START_NS + np.arange(len(q), dtype=np.int64) * 4_000_000_000
     gaps = np.diff(stamps)
     if len(gaps) and gaps.min() <= 2 * hold_s * 1e9:
         raise DataError(f'{csv_path}: postures {int(gaps.min())} ns apart overlap the '
