@@ -3,7 +3,8 @@
 Subcommands: simulate a cell into an MCAP bag, identify a bag, design optimal
 measurement poses, diagnose a calibration, validate it on a new bag, import a
 table of static postures (CSV) as a bag, replay a bag onto ROS topics, a
-demo on the built-in simulated cell, and regenerate the built-in robot URDFs. Results go to files; a summary to stdout.
+demo on the built-in simulated cell, and regenerate the built-in robot URDFs.
+Results go to files; a summary to stdout.
 """
 from __future__ import annotations
 

@@ -88,7 +88,8 @@ def test_noiseless_three_reflector_campaign_is_fitted_exactly_and_gives_the_true
     # The KPI is reflector 0's centre at the working pose: gauge-free, so exact.
     assert np.allclose(result.tcp, cm.model.predict(p_true, cm.q_work), atol=1e-9)
     # Off-axis reflectors observe what one on-axis reflector cannot (the last joint offset).
-    single = identify_cell(cm, Measurements(data.q[::3], data.eta[::3], reflector=data.reflector[::3]))
+    single = identify_cell(cm, Measurements(data.q[::3], data.eta[::3],
+                                            reflector=data.reflector[::3]))
     assert len(result.estimated) > len(single.estimated)
 
 
@@ -96,7 +97,8 @@ def test_three_reflectors_shrink_the_tcp_covariance_against_one(cm):
     p_true = true_parameters(cm.model.params, np.random.default_rng(3))
     data = _campaign(cm, 30, 6, p_true, sigma=2e-5)
     three = identify_cell(cm, data)
-    one = identify_cell(cm, Measurements(data.q[::3], data.eta[::3], reflector=data.reflector[::3]))
+    one = identify_cell(cm, Measurements(data.q[::3], data.eta[::3],
+                                         reflector=data.reflector[::3]))
     assert np.trace(three.tcp_covariance[0]) < np.trace(one.tcp_covariance[0])
     # Truth within 3σ of the stated TCP covariance (3 axes: χ²(3) 99.9 % is 16.3).
     err = three.tcp[0] - cm.model.predict(p_true, cm.q_work)[0]
@@ -158,7 +160,8 @@ def test_csv_import_round_trip_through_a_bag(cm, tmp_path: Path):
     lines = [','.join(header)]
     for row in q:
         pts = [cm.model.predict(p_true, row, reflector=[k])[0] * 1e3 for k in range(3)]
-        lines.append(','.join(repr(float(v)) for v in list(np.concatenate(pts)) + list(np.degrees(row))))
+        values = list(np.concatenate(pts)) + list(np.degrees(row))
+        lines.append(','.join(repr(float(v)) for v in values))
     table = tmp_path / 'postures.csv'
     table.write_text('\n'.join(lines) + '\n')
     mapping = mapping_from_dict({
@@ -171,6 +174,7 @@ def test_csv_import_round_trip_through_a_bag(cm, tmp_path: Path):
     assert len(data) == 18 and sum(pairing.rejections.values()) == 0
     assert np.allclose(cm.model.predict(p_true, data.q, reflector=data.reflector), data.eta,
                        atol=1e-12)
-    bad = mapping_from_dict({'frame_id': 'f', 'joints': ['nope'], 'markers': {'a': ['x1', 'y1', 'z1']}})
+    bad = mapping_from_dict({'frame_id': 'f', 'joints': ['nope'],
+                             'markers': {'a': ['x1', 'y1', 'z1']}})
     with pytest.raises(DataError, match=r"\['nope'\] are not in the file"):
         import_csv(table, tmp_path / 'q.mcap', bad)

@@ -14,14 +14,13 @@ import numpy as np
 import yaml
 
 from kpi_calib_ros.app.identify import measurements_from_bag
-from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.validation import Validation, validate
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
+from kpi_calib_ros.io.names import VALIDATION_FILE
 from kpi_calib_ros.io.report import write_validation_plots
 from kpi_calib_ros.io.results import write_atomic
-
-VALIDATION_FILE = 'validation.json'
 
 
 def read_calibration(path: str | Path) -> dict[str, Any]:
@@ -45,12 +44,17 @@ def read_calibration(path: str | Path) -> dict[str, Any]:
 def calibrated_model(cell: Any, doc: dict[str, Any]) -> tuple[CellModel, np.ndarray]:
     """The cell model with the calibration's effects and its parameter vector."""
     cm = build_cell_model(cell, effects=tuple(doc.get('effects') or ()))
+    return cm, parameter_vector(cm, doc)
+
+
+def parameter_vector(cm: CellModel, doc: dict[str, Any]) -> np.ndarray:
+    """The calibration's values of ``cm``'s parameters, by name."""
     values = {str(e['name']): float(e['value']) for e in doc['parameters']}
     missing = [n for n in cm.model.params.names if n not in values]
     if missing:
         raise ConfigError('calibration.parameters', f'lacks {missing[:5]} of this cell\'s '
                           'model: the calibration belongs to another cell, robot or effects')
-    return cm, np.array([values[n] for n in cm.model.params.names])
+    return np.array([values[n] for n in cm.model.params.names])
 
 
 def validate_calibration(cm: CellModel, p: np.ndarray, doc: dict[str, Any],
@@ -110,6 +114,19 @@ def validation_text(doc: dict[str, Any]) -> str:
     return '\n'.join(lines)
 
 
+def validate_report(cm: CellModel, doc: dict[str, Any], data: Measurements,
+                    out_dir: str | Path) -> dict[str, Any]:
+    """Validate ``doc`` on ``data`` and write validation.json and the plot to ``out_dir``;
+    returns the validation document."""
+    if len(data) == 0:
+        raise DataError('no new measurement to validate the calibration on')
+    v = validate_calibration(cm, parameter_vector(cm, doc), doc, data)
+    out = validation_to_dict(v, data, doc.get('rms_m'))
+    write_atomic(Path(out_dir) / VALIDATION_FILE, json.dumps(out, indent=1))
+    write_validation_plots(out_dir, cm.robot, np.atleast_2d(data.q), v.residuals, v.outside)
+    return out
+
+
 def run_validate(cell_path: str | Path, calibration_path: str | Path, bag_path: str | Path,
                  out_dir: str | Path) -> int:
     """``kpi-calib validate``: validation.json and a plot in ``out_dir``.
@@ -117,15 +134,12 @@ def run_validate(cell_path: str | Path, calibration_path: str | Path, bag_path: 
     Returns 0 when the calibration holds, 1 when it does not.
     """
     doc = read_calibration(calibration_path)
-    cm, p = calibrated_model(load_cell(cell_path), doc)
+    cm, _ = calibrated_model(load_cell(cell_path), doc)
     data, pairing = measurements_from_bag(cm, bag_path)
     for reason, count in sorted(pairing.rejections.items()):
         print(f'rejected {count} sample(s): {reason}', file=sys.stderr)
-    v = validate_calibration(cm, p, doc, data)
-    out = validation_to_dict(v, data, doc.get('rms_m'))
-    path = write_atomic(Path(out_dir) / VALIDATION_FILE, json.dumps(out, indent=1))
-    plot = write_validation_plots(out_dir, cm.robot, np.atleast_2d(data.q), v.residuals,
-                                  v.outside)
+    out = validate_report(cm, doc, data, out_dir)
     print(validation_text(out))
-    print(f'written: {path}, {plot}')
-    return 0 if v.holds else 1
+    print(f"written: {Path(out_dir) / VALIDATION_FILE}, "
+          f"{Path(out_dir) / 'validation_residuals.png'}")
+    return 0 if out['holds'] else 1

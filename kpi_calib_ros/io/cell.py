@@ -186,7 +186,7 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None) -> Cel
         base_in_tracker=(np.full(6, np.nan) if names and tracker.get('base_in_tracker') is None
                          else _vector(tracker.get('base_in_tracker'),
                                       'tracker.base_in_tracker', 6)),
-        reflector_offset=(offsets[0] if names
+        reflector_offset=(offsets[0] if offsets is not None
                           else _vector(reflector.get('offset'), 'reflector.offset', 3)),
         reflector_axis=axis / np.linalg.norm(axis), max_incidence=max_inc, sigma=sigma,
         payload_mass=mass,

@@ -71,12 +71,14 @@ def mapping_from_dict(doc: Any) -> CsvMapping:
     allowed = {'frame_id', 'joints', 'markers', 'stamp_columns', 'point_unit', 'joint_unit'}
     unknown = set(doc) - allowed
     if unknown:
-        raise ConfigError(f'mapping.{sorted(unknown)[0]}', f'unknown key; allowed {sorted(allowed)}')
+        raise ConfigError(f'mapping.{sorted(unknown)[0]}',
+                          f'unknown key; allowed {sorted(allowed)}')
     joints = doc.get('joints')
     if isinstance(joints, list):
         joints = {str(j): str(j) for j in joints}
     if not isinstance(joints, dict) or not joints:
-        raise ConfigError('mapping.joints', 'give the joint columns: [name, ...] or {joint: column}')
+        raise ConfigError('mapping.joints',
+                          'give the joint columns: [name, ...] or {joint: column}')
     markers = doc.get('markers')
     if not isinstance(markers, dict) or not markers:
         raise ConfigError('mapping.markers', 'give {marker name: [x column, y column, z column]}')

@@ -28,7 +28,7 @@ from mcap.records import Channel, Chunk, DataEnd, Footer, Header, Message, Metad
 from mcap.well_known import MessageEncoding, SchemaEncoding
 
 from kpi_calib_ros.core.errors import DataError
-from kpi_calib_ros.core.pairing import PairingResult
+from kpi_calib_ros.core.pairing import PairingResult, split_frame
 from kpi_calib_ros.core.streams import JointSample, PointSample
 from kpi_calib_ros.io.bag import (DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, LIBRARY, LOG_CONTENT,
                                   LOG_METADATA, BagError, StreamEncoders, read_log)
