@@ -31,8 +31,9 @@ from kpi_calib_ros.core.effects import BoundEffect, candidate_effects
 from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
 from kpi_calib_ros.core.residuals import (ADEQUACY_ALPHA, LinearizedFit, ResidualReport,
-                                         cross_validated_rms, cv_rms, fold_ids,
-                                         linearized_fit, residual_report)
+                                         cross_validated_rms, cv_rms, linearized_fit,
+                                         residual_report)
+from kpi_calib_ros.core.residuals import pose_folds as fold_by_pose
 
 __all__ = ['Candidate', 'CellDiagnosis', 'Diagnosis', 'ModelComparison', 'ResidualReport', 'augmented_model',
            'compare_models', 'cross_validated_rms', 'diagnose', 'residual_report',
@@ -155,7 +156,7 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
         candidates = candidate_effects(model.robot, exclude=[e.name for e in model.effects])
     sys_ = linearized_fit(model, data, result)
     n = len(data)
-    pose_folds = fold_ids(n, folds, seed)
+    pose_folds = fold_by_pose(data, folds, seed)
     r_perp = sys_.r - sys_.basis @ (sys_.basis.T @ sys_.r)
     chi2_base = float(r_perp @ r_perp)
     rms_base = float(np.sqrt(np.sum((r_perp.reshape(n, 3) / sys_.w) ** 2) / n))
@@ -163,7 +164,7 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
     dof_base = 3 * n - sys_.basis.shape[1]
     q = np.atleast_2d(data.q)
     tau = sys_.tau if sys_.tau is not None else model.robot.gravity_torques(q)
-    joint_jac = model.joint_jacobian(sys_.p, q, sys_.tau)
+    joint_jac = model.joint_jacobian(sys_.p, q, sys_.tau, sys_.reflector)
 
     fits, rejected = [], []
     for effect in candidates:
@@ -286,7 +287,7 @@ def _effect_columns(model: MeasurementModel, sys_: LinearizedFit, effect: BoundE
     aug = augmented_model(model, (effect,))
     k = len(effect.parameter_names)
     p = np.concatenate([sys_.p, np.zeros(k)])
-    _, jac = aug.jacobian(p, q, tau)
+    _, jac = aug.jacobian(p, q, tau, sys_.reflector)
     cols = jac[:, :, -k:]
     disp = float(np.max(np.linalg.norm(cols @ np.asarray(effect.typical), axis=1)))
     return (cols * sys_.w[None, :, None]).reshape(-1, k), disp

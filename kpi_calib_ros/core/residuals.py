@@ -84,6 +84,7 @@ class LinearizedFit:
     w: np.ndarray
     tau: np.ndarray | None
     p: np.ndarray
+    reflector: np.ndarray | None = None  # (N,) reflector index of every row, None: all 0
 
 
 def is_adequate(p_value: float, alpha: float = ADEQUACY_ALPHA) -> bool:
@@ -99,12 +100,12 @@ def linearized_fit(model: MeasurementModel, data: Measurements, result: Calibrat
     if tau is None and model.uses_torque:
         tau = model.robot.gravity_torques(q)
     p = np.asarray(result.values, float)
-    pred, jac = model.jacobian(p, q, tau)
+    pred, jac = model.jacobian(p, q, tau, data.reflector)
     r = ((np.atleast_2d(data.eta) - pred) * w).ravel()
     idx = model.params.indices(result.estimated)
     f = weighted_rows(jac, w, idx)
     basis = orthonormal_basis(f)
-    return LinearizedFit(r, f, basis, w, tau, p)
+    return LinearizedFit(r, f, basis, w, tau, p, data.reflector)
 
 
 def orthonormal_basis(a: np.ndarray) -> np.ndarray:
@@ -175,6 +176,16 @@ def residual_report(model: MeasurementModel, data: Measurements, result: Calibra
         high_leverage=leverage > 3 * k / n, alpha=alpha)
 
 
+def pose_folds(data: Measurements, folds: int, seed: int) -> np.ndarray:
+    """Fold id (N,) of every row, the rows of one pose (several reflectors measured at
+    the same joint values) always in one fold: held-out poses, not held-out points."""
+    if data.reflector is None:
+        return fold_ids(len(data), folds, seed)
+    _, pose = np.unique(np.atleast_2d(data.q), axis=0, return_inverse=True)
+    pose = np.asarray(pose).reshape(-1)
+    return fold_ids(int(pose.max()) + 1, folds, seed)[pose]
+
+
 def cross_validated_rms(model: MeasurementModel, data: Measurements,
                         result: CalibrationResult, folds: int = 5, seed: int = 0) -> float:
     """k-fold cross-validated rms (m) of the identified model over held-out poses.
@@ -184,4 +195,4 @@ def cross_validated_rms(model: MeasurementModel, data: Measurements,
     predicts the held-out ones. Compare with the noise floor σ√3.
     """
     sys_ = linearized_fit(model, data, result)
-    return cv_rms(sys_.jac, sys_.r, sys_.w, fold_ids(len(data), folds, seed))
+    return cv_rms(sys_.jac, sys_.r, sys_.w, pose_folds(data, folds, seed))
