@@ -330,7 +330,7 @@ class CalibrationNode(Node):
         self._result_error = '' if result.converged else result.message
         self._pub_calibration.publish(String(data=calibration))
         self._calibration_text = calibration
-        self._identified_stamps = set(int(s) for s in data.stamps_ns)
+        self._identified_stamps = {int(s) for s in np.asarray(data.stamps_ns).ravel()}
         self._pub_urdf.publish(String(data=urdf))
         publisher = self._tcp_publisher(len(tcp))
         for msg in tcp:
@@ -362,12 +362,13 @@ class CalibrationNode(Node):
         if not self._calibration_text:
             raise DataError('no calibration to validate yet: call ~/identify first')
         data, _ = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame)
-        new = np.array([int(s) not in self._identified_stamps for s in data.stamps_ns],
-                       dtype=bool)
+        stamps = np.asarray(data.stamps_ns, dtype=np.int64).ravel()
+        new = np.isin(stamps, np.fromiter(self._identified_stamps, dtype=np.int64),
+                      invert=True)
         if not new.any():
             raise DataError('no measurement accepted since the last identification; measure '
                             'new poses with auto_identify:=false, then call ~/validate')
-        fresh = Measurements(q=data.q[new], eta=data.eta[new], stamps_ns=data.stamps_ns[new],
+        fresh = Measurements(q=data.q[new], eta=data.eta[new], stamps_ns=stamps[new],
                              reflector=None if data.reflector is None else data.reflector[new])
         doc, text = await self._offload(jobs.validate_work, cm, self._calibration_text, fresh,
                                         self.data_dir)
