@@ -178,3 +178,26 @@ def test_csv_import_round_trip_through_a_bag(cm, tmp_path: Path):
                              'markers': {'a': ['x1', 'y1', 'z1']}})
     with pytest.raises(DataError, match=r"\['nope'\] are not in the file"):
         import_csv(table, tmp_path / 'q.mcap', bad)
+
+
+def test_design_rows_hold_every_reflector_of_a_pose(cm):
+    from kpi_calib_ros.core.design_criteria import build_problem
+    q = random_configurations(cm.model, cm.geometric.nominal, 60, np.random.default_rng(4))
+    problem = build_problem(cm.design_cell(), q)
+    rows = problem.rows(cm.model, q[:5])
+    assert rows.shape == (5, 9, problem.k)
+    # Rows 3k..3k+2 are reflector k's weighted, scaled Jacobian.
+    _, jac = cm.model.jacobian(problem.p, q[:5], reflector=np.full(5, 2))
+    expected = jac[:, :, problem.index] / cm.cell.sigma[None, :, None] * problem.column_scale
+    assert np.allclose(rows[:, 6:9], expected, rtol=1e-12, atol=0)
+
+
+@pytest.mark.slow
+def test_a_design_for_three_reflectors_predicts_a_smaller_tcp_covariance(cm):
+    from kpi_calib_ros.app.design import design_cell_model
+    single = build_cell_model(cell_from_dict(read_cell_document(DEFAULT_CELL),
+                                             DEFAULT_CELL.parent))
+    one = design_cell_model(single, 30, 'kpi', 0)
+    three = design_cell_model(cm, 30, 'kpi', 0)
+    assert one.verification.ok and three.verification.ok
+    assert three.criteria['kpi'] < 0.75 * one.criteria['kpi']

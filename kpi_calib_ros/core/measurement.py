@@ -201,6 +201,20 @@ class MeasurementModel:
                 out[rows] = np.array(jac).reshape(3, len(rows), q.shape[1]).transpose(1, 0, 2)
         return out
 
+    def pose_jacobian(self, p: np.ndarray, q: np.ndarray,
+                      tau: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Every reflector at every configuration, as the design sees a pose: points
+        (N, 3R) and Jacobian (N, 3R, n_p), reflector k in rows 3k..3k+2."""
+        q = np.atleast_2d(q)
+        parts = [self.jacobian(p, q, tau, np.full(len(q), k)) for k in range(self.n_reflectors)]
+        return (np.concatenate([pt for pt, _ in parts], axis=1),
+                np.concatenate([j for _, j in parts], axis=1))
+
+    def pose_point_expression(self, p, q, tau=None):
+        """Every reflector's centre stacked, CasADi expression (3R,)."""
+        return ca.vertcat(*[self.point_expression(p, q, tau, k)
+                            for k in range(self.n_reflectors)])
+
     def incidence_cos(self, p: np.ndarray, q: np.ndarray) -> np.ndarray:
         """cos of the incidence angle (N,) at joint values ``q`` (N, n)."""
         q = np.atleast_2d(q)
@@ -215,7 +229,7 @@ def weighted_rows(jac: np.ndarray, w: np.ndarray, idx: np.ndarray | None = None)
     jac : (N, 3, n_p) ndarray
         d h_i / d p per measurement (m per unit of each parameter).
     w : (3,) ndarray
-        1/σ per tracker axis (1/m).
+        1/σ per tracker axis (1/m); (3R,) for rows of ``MeasurementModel.pose_jacobian``.
     idx : (k,) int ndarray, optional
         Parameter columns to keep (default all).
 
