@@ -197,7 +197,8 @@ class CalibrationNode(Node):
                                                  if isinstance(o, Capsule)]
         self._tcp_publisher(len(cm.working_pose_names))
         self._cm, self._urdf, self._model_error = cm, urdf_xml, ''
-        self._report(self.campaign.set_chain(cm.joint_names, cm.cell.tracker_frame))
+        self._report(self.campaign.set_chain(cm.joint_names, cm.cell.tracker_frame,
+                                             cm.cell.reflector_names or ('',)))
         self._auto_pending = self._auto_wanted()
         self.get_logger().info(f'robot model ready: joints {cm.joint_names}, tracker frame '
                                f"'{cm.cell.tracker_frame}', working poses "
@@ -319,7 +320,8 @@ class CalibrationNode(Node):
         """Identify from every accepted measurement (as ``kpi-calib identify`` does);
         write the results atomically and publish them."""
         cm = self._model()
-        data, pairing = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame)
+        data, pairing = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame,
+                                                   cm.cell.reflector_names or ('',))
         try:
             result, calibration, urdf, tcp = await self._offload(
                 jobs.identify_work, cm, data, pairing, self.data_dir)
@@ -347,7 +349,8 @@ class CalibrationNode(Node):
         """Model diagnosis of the accepted measurements (as ``kpi-calib diagnose``): residual
         report, adequacy and the most likely missing effect; report files and ~/diagnosis."""
         cm = self._model()
-        data, _ = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame)
+        data, _ = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame,
+                                             cm.cell.reflector_names or ('',))
         doc, text, verdict, report = await self._offload(jobs.diagnose_work, cm, data,
                                                          self.data_dir)
         self._diagnosis = doc
@@ -361,7 +364,8 @@ class CalibrationNode(Node):
         cm = self._model()
         if not self._calibration_text:
             raise DataError('no calibration to validate yet: call ~/identify first')
-        data, _ = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame)
+        data, _ = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame,
+                                             cm.cell.reflector_names or ('',))
         stamps = np.asarray(data.stamps_ns, dtype=np.int64).ravel()
         new = np.isin(stamps, np.fromiter(self._identified_stamps, dtype=np.int64),
                       invert=True)
