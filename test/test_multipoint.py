@@ -219,3 +219,12 @@ def test_the_node_store_keeps_every_reflector_of_a_pose_and_restores_them(tmp_pa
     again, _ = Campaign(tmp_path).measurements(['j1'], 'mocap', ('b', 'a'))
     assert sorted(again.reflector.tolist()) == [0, 1]
     assert np.allclose(sorted(map(tuple, again.eta)), sorted(map(tuple, data.eta)))
+
+
+def test_a_cell_names_a_pip_installed_urdf_by_package_uri():
+    cell_path = Path(__file__).resolve().parent / 'data' / 'tiago_mocap_cell.yaml'
+    from kpi_calib_ros.io.cell import load_cell
+    tiago = build_cell_model(load_cell(cell_path))
+    assert tiago.cell.urdf_path.endswith('robots/tiago_description/robots/tiago_no_hand.urdf')
+    assert tiago.joint_names == ['torso_lift_joint'] + [f'arm_{i}_joint' for i in range(1, 8)]
+    assert tiago.needs_registration and tiago.model.n_reflectors == 4
