@@ -2,9 +2,11 @@
 
 Calibrate on the three 2021-11-30 sessions, validate on the 2021-11-26 one with
 ``kpi-calib validate`` (the held-out day). The shared data folder is part of the
-test environment; the cell and column mapping are in test/data/.
+test environment (it is not copied into the repository); the cell and column mapping are
+in test/data/.
 """
 import json
+import os
 from pathlib import Path
 
 import pytest
@@ -12,7 +14,10 @@ import yaml
 
 from kpi_calib_ros.cli import main
 
-DATA = Path('/work/shared/data/tiago_mocap')
+# Beside the repository (../shared/data/tiago_mocap), or where TIAGO_MOCAP_DIR says.
+_BESIDE = Path(__file__).resolve().parents[2] / 'shared' / 'data' / 'tiago_mocap'
+DATA = Path(os.environ.get('TIAGO_MOCAP_DIR') or (
+    _BESIDE if _BESIDE.is_dir() else '/work/shared/data/tiago_mocap'))
 HERE = Path(__file__).resolve().parent / 'data'
 CELL = HERE / 'tiago_mocap_cell.yaml'
 MAPPING = HERE / 'tiago_mocap_mapping.yaml'
