@@ -1,9 +1,10 @@
 """kpi-calib: laser-tracker calibration of industrial robots with KPI-optimal designs.
 
 Subcommands: simulate a cell into an MCAP bag, identify a bag, design optimal
-measurement poses, diagnose a calibration, replay a bag onto ROS topics, a
-demo on the built-in simulated cell, and regenerate the built-in robot URDFs. Results go to files;
-a summary to stdout.
+measurement poses, diagnose a calibration, validate it on a new bag, import a
+table of static postures (CSV) as a bag, replay a bag onto ROS topics, a
+demo on the built-in simulated cell, and regenerate the built-in robot URDFs.
+Results go to files; a summary to stdout.
 """
 from __future__ import annotations
 
@@ -53,6 +54,25 @@ def main(argv: list[str] | None = None) -> int:
     dia.add_argument('--alpha', type=float, default=None,
                      help='family-wise false-alarm level of the effect tests (default: the '
                      'adequacy level, 0.01)')
+
+    val = sub.add_parser('validate', help='predict a new recording with a calibration; exit 0 '
+                         'when it holds, 1 when it does not')
+    val.add_argument('--cell', required=True)
+    val.add_argument('--calibration', required=True, help='calibration.yaml of identify')
+    val.add_argument('--bag', required=True, help='new MCAP bag (not used for the calibration)')
+    val.add_argument('--out', required=True, help='output folder: validation.json, plot')
+
+    imp = sub.add_parser('import-csv', help='a table of static postures (CSV) into an MCAP bag')
+    imp.add_argument('csv', nargs='+', help='one row per posture: joint values and marker '
+                     'points; several tables (sessions) go into one bag')
+    imp.add_argument('--out', required=True, help='output .mcap file')
+    imp.add_argument('--mapping', help='YAML: frame_id, joints, markers, stamp_columns, units')
+    imp.add_argument('--frame', help='frame of the points (mapping frame_id)')
+    imp.add_argument('--joints', help='comma-separated joint columns (named as the joints)')
+    imp.add_argument('--marker', action='append', default=[], metavar='NAME=X,Y,Z',
+                     help='a marker and its three columns; repeat per marker')
+    imp.add_argument('--stamp-columns', default='', help='comma-separated Unix-second '
+                     'columns whose mean stamps a row (default: synthetic stamps)')
 
     des = sub.add_parser('design', help='optimal measurement configurations')
     des.add_argument('--cell', required=True)
@@ -113,6 +133,29 @@ def _diagnose(args: argparse.Namespace) -> int:
                         alpha=alpha, model=args.model)
 
 
+def _validate(args: argparse.Namespace) -> int:
+    from kpi_calib_ros.app.validate import run_validate
+    return run_validate(args.cell, args.calibration, args.bag, args.out)
+
+
+def _import_csv(args: argparse.Namespace) -> int:
+    from kpi_calib_ros.io.csv_import import import_csv, load_mapping, mapping_from_dict
+    if args.mapping:
+        mapping = load_mapping(args.mapping)
+    else:
+        markers = {}
+        for item in args.marker:
+            name, _, cols = item.partition('=')
+            markers[name] = cols.split(',')
+        mapping = mapping_from_dict({
+            'frame_id': args.frame, 'joints': [j for j in (args.joints or '').split(',') if j],
+            'markers': markers,
+            'stamp_columns': [c for c in args.stamp_columns.split(',') if c]})
+    path, postures, points = import_csv(args.csv, args.out, mapping)
+    print(f'written: {path} ({postures} postures, {points} points)')
+    return 0
+
+
 def _demo(args: argparse.Namespace) -> int:
     from kpi_calib_ros.app.demo import run_demo
     return run_demo(args.out, args.seed)
@@ -126,7 +169,8 @@ def _robots(args: argparse.Namespace) -> int:
 
 
 _COMMANDS = {'simulate': _simulate, 'identify': _identify, 'design': _design,
-             'diagnose': _diagnose, 'replay': _replay, 'demo': _demo, 'robots': _robots}
+             'diagnose': _diagnose, 'validate': _validate, 'import-csv': _import_csv,
+             'replay': _replay, 'demo': _demo, 'robots': _robots}
 
 if __name__ == '__main__':
     sys.exit(main())

@@ -154,6 +154,10 @@ def bad_input_cases():
     def duplicate(j, p):
         return j, p + [p[6]]
 
+    def unknown_reflector(j, p):
+        # A second point at pose 0's stamp, from a reflector the cell does not have.
+        return j, p + [replace(p[0], frame_id=f'{FRAME}#spare')]
+
     def oversized(j, p):
         s = j[7]
         extra = tuple(f'x{i}' for i in range(100))
@@ -166,7 +170,8 @@ def bad_input_cases():
             ('missing_joint', missing_joint, 'missing_joints', 1),
             ('nan_joint_state', nan_joint_state, 'non_finite_joint_state', 0),
             ('duplicate', duplicate, 'duplicate_stamp', 0),
-            ('oversized', oversized, 'oversized_joint_state', 0)]
+            ('oversized', oversized, 'oversized_joint_state', 0),
+            ('unknown_reflector', unknown_reflector, 'unknown_reflector', 0)]
 
 
 @pytest.mark.parametrize('name, mutate, reason, lost', bad_input_cases(),

@@ -62,13 +62,14 @@ def measurements_from_samples(cm: CellModel, joint_samples: Iterable[JointSample
         chain's joints (wrong robot or renamed joints): names both sets.
     """
     joint_samples = list(joint_samples)
+    pairer_options.setdefault('reflectors', reflector_names(cm))
     pairing = pair_measurements(joint_samples, point_samples, cm.joint_names,
                                 cm.cell.tracker_frame, **pairer_options)
     if len(pairing) == 0 and pairing.rejections.get('missing_joints'):
         seen = sorted({n for s in joint_samples for n in s.names})
         raise DataError(f'the joint states name joints {seen}, but the robot chain needs '
                         f'{cm.joint_names}; record the right robot or fix the URDF joint names')
-    return urdf_measurements(cm, paired_measurements(pairing)), pairing
+    return urdf_measurements(cm, to_measurements(cm, pairing)), pairing
 
 
 def urdf_measurements(cm: CellModel, data: Measurements) -> Measurements:
@@ -83,9 +84,21 @@ def urdf_measurements(cm: CellModel, data: Measurements) -> Measurements:
     return dataclasses.replace(data, q=cm.joint_coupling.to_urdf(data.q))
 
 
-def paired_measurements(pairing: PairingResult) -> Measurements:
-    """The measurements of a pairing (controller joint values, as paired)."""
-    return Measurements(q=pairing.q, eta=pairing.eta, stamps_ns=pairing.stamps_ns)
+def reflector_names(cm: CellModel) -> tuple[str, ...]:
+    """Reflector names points carry after '#' in their frame id ('' : single reflector)."""
+    return cm.cell.reflector_names or ('',)
+
+
+def to_measurements(cm: CellModel, pairing: PairingResult) -> Measurements:
+    """(pose, reflector) rows of a pairing, reflector indices in the cell's order
+    (controller joint values, as paired)."""
+    try:
+        ref = pairing.reflector_indices(reflector_names(cm))
+    except ValueError as exc:
+        raise DataError(f'{exc}: point frame ids are <tracker_frame>#<reflector name> for '
+                        "the cell's reflectors: list") from None
+    return Measurements(q=pairing.q, eta=pairing.eta, stamps_ns=pairing.stamps_ns,
+                        reflector=ref if cm.cell.reflector_names else None)
 
 
 def measurements_from_bag(cm: CellModel, path: str | Path,
@@ -99,19 +112,19 @@ def measurements_from_bag(cm: CellModel, path: str | Path,
     if contents.measurement_log:
         pairing = stored_pairing(zip(contents.joints, contents.points), list(cm.joint_names),
                                  cm.cell.tracker_frame)
-        return urdf_measurements(cm, paired_measurements(pairing)), pairing
+        return urdf_measurements(cm, to_measurements(cm, pairing)), pairing
     return measurements_from_samples(cm, contents.joints, contents.points, **pairer_options)
 
 
 def registered_start(cm: CellModel, data: Measurements) -> tuple[np.ndarray, Registration | None]:
     """Start parameters for identification, with the placement registered when needed.
 
-    The cell's nominal values, except when ``tracker.base_in_tracker`` or
-    ``reflector.offset`` is left out of the cell, or the nominal prediction misses the
-    measured points by more than :data:`REGISTER_ABOVE_M` (median): then the base pose
-    in the tracker frame and the reflector offset on the tip are registered from the
-    points in closed form (:func:`kpi_calib_ros.core.registration.register`) and replace
-    the nominal ones. Returns the start vector and the registration (None if not run).
+    The cell's nominal values, except when ``tracker.base_in_tracker`` or a reflector
+    offset is left out of the cell, or the nominal prediction misses the measured points
+    by more than :data:`REGISTER_ABOVE_M` (median): then the base pose in the tracker
+    frame and every reflector offset on the tip are registered from the points
+    (:func:`kpi_calib_ros.core.registration.register`) and replace the nominal ones.
+    Returns the start vector and the registration (None if not run).
 
     Raises
     ------
@@ -122,26 +135,29 @@ def registered_start(cm: CellModel, data: Measurements) -> tuple[np.ndarray, Reg
     """
     params = cm.model.params
     p0 = np.array(params.nominal, dtype=float)
-    if cm.cell.base_in_tracker_given and cm.cell.reflector_offset_given and len(data):
+    if not cm.needs_registration and len(data):
         tau = cm.robot.gravity_torques(data.q) if cm.model.uses_torque else None
-        miss = np.linalg.norm(np.atleast_2d(data.eta) - cm.model.predict(p0, data.q, tau), axis=1)
+        miss = np.linalg.norm(np.atleast_2d(data.eta)
+                              - cm.model.predict(p0, data.q, tau, data.reflector), axis=1)
         if float(np.median(miss)) <= REGISTER_ABOVE_M:
             return p0, None
     tips = np.array([cm.robot.pin_tip_pose(row) for row in np.atleast_2d(data.q)])
-    reg = register(data.eta, tips, max_rms=REGISTRATION_MAX_RMS_M)
-    for k, c in enumerate(('x', 'y', 'z', 'roll', 'pitch', 'yaw')):
-        p0[params.index(f'base.{c}')] = reg.base_in_tracker[k]
-    for k, c in enumerate('xyz'):
-        p0[params.index(f'reflector.{c}')] = reg.reflector_offset[k]
-    return p0, reg
+    reg = register(data.eta, tips, max_rms=REGISTRATION_MAX_RMS_M, reflector=data.reflector)
+    offsets = (reg.reflector_offsets if reg.reflector_offsets is not None
+               else reg.reflector_offset.reshape(1, 3))
+    values = {f'base.{c}': float(v) for c, v in
+              zip(('x', 'y', 'z', 'roll', 'pitch', 'yaw'), reg.base_in_tracker)}
+    prefixes = [f'reflector.{n}' for n in cm.cell.reflector_names] or ['reflector']
+    for prefix, offset in zip(prefixes, offsets):
+        values.update({f'{prefix}.{c}': float(v) for c, v in zip('xyz', offset)})
+    return params.with_values(values), reg
 
 
 def registration_text(reg: Registration | None, cm: CellModel) -> str:
     """One readable line on the placement the identification started from."""
     if reg is None:
         return 'placement: the cell\'s tracker.base_in_tracker and reflector.offset'
-    why = ('left out of the cell' if not (cm.cell.base_in_tracker_given
-                                          and cm.cell.reflector_offset_given)
+    why = ('left out of the cell' if cm.needs_registration
            else f'the nominal missed the points by more than {REGISTER_ABOVE_M} m')
     return (f'placement registered from the points ({why}): base_in_tracker '
             f'{np.round(reg.base_in_tracker, 5).tolist()}, reflector offset '
@@ -267,6 +283,7 @@ def calibration_document(cm: CellModel, result: CalibrationResult,
         notes.insert(0, missing_masses)
     if notes:
         doc['warnings'] = notes
+    doc['effects'] = [e.name for e in cm.model.effects]  # validate rebuilds this model
     doc['dh_hayati'] = dh_table(cm.robot, cm.geometric, cm.geometric.nominal,
                                 result.values[:len(cm.geometric)])
     return doc

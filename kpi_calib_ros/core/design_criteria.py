@@ -78,9 +78,11 @@ class DesignProblem:
         return len(self.index)
 
     def rows(self, model: MeasurementModel, q: np.ndarray) -> np.ndarray:
-        """Scaled weighted Jacobian rows W J D (N, 3, k) of configurations ``q`` (N, n)."""
-        _, jac = model.jacobian(self.p, np.atleast_2d(q))
-        return jac[:, :, self.index] * self.weight[None, :, None] * self.column_scale
+        """Scaled weighted Jacobian rows W J D (N, 3R, k) of configurations ``q`` (N, n),
+        every reflector of the tool at each pose (R = 1 for a single reflector)."""
+        _, jac = model.pose_jacobian(self.p, np.atleast_2d(q))
+        weight = np.tile(self.weight, model.n_reflectors)
+        return jac[:, :, self.index] * weight[None, :, None] * self.column_scale
 
     def factor(self, criterion: str) -> np.ndarray:
         """L with ``loss = tr(L M̃⁻¹ Lᵀ)`` for M̃ = information of :meth:`rows`."""
@@ -144,14 +146,15 @@ def build_problem(cell: DesignCell, q_rich: np.ndarray,
     model = cell.model
     p = model.params.nominal.copy()
     w = 1.0 / cell.sigma
-    _, jac = model.jacobian(p, q_rich)
-    stacked = weighted_rows(jac, w)
+    _, jac = model.pose_jacobian(p, q_rich)  # every reflector of the tool at each pose
+    wr = np.tile(w, model.n_reflectors)
+    stacked = weighted_rows(jac, wr)
     ident = select_identifiable(stacked, list(model.params.names),
                                 method=cell.identification_method,
                                 priority=list(cell.identification_priority) or None,
                                 zero_column=NEGLIGIBLE_EFFECT)
     idx = model.params.indices(ident.kept)
-    rms = np.sqrt(np.mean(np.sum((jac[:, :, idx] * w[None, :, None]) ** 2, axis=1), axis=0))
+    rms = np.sqrt(np.mean(np.sum((jac[:, :, idx] * wr[None, :, None]) ** 2, axis=1), axis=0))
     effect = np.sqrt(np.mean(np.sum(jac[:, :, idx] ** 2, axis=1), axis=0))
     names = cell.working_pose_names
     weights = dict(weights or {})

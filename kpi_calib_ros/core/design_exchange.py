@@ -41,7 +41,7 @@ class TraceLoss:
     def delta(self, info_inv: np.ndarray, rows: np.ndarray, sign: float) -> np.ndarray:
         """Change of the loss when each of ``rows`` (c, 3, k) is added (+1) or removed (-1)."""
         b = rows @ info_inv                                   # (c, 3, k)
-        s = np.eye(3) + sign * b @ rows.transpose(0, 2, 1)    # (c, 3, 3)
+        s = np.eye(rows.shape[1]) + sign * b @ rows.transpose(0, 2, 1)  # (c, 3, 3)
         bl = b @ self.factor.T                                # (c, 3, r)
         h = bl @ bl.transpose(0, 2, 1)
         out = np.full(len(rows), np.inf if sign < 0 else 0.0)
@@ -58,7 +58,7 @@ class LogDetLoss:
         return float(-logdet) if sign > 0 else float('inf')
 
     def delta(self, info_inv: np.ndarray, rows: np.ndarray, sign: float) -> np.ndarray:
-        s = np.eye(3) + sign * (rows @ info_inv) @ rows.transpose(0, 2, 1)
+        s = np.eye(rows.shape[1]) + sign * (rows @ info_inv) @ rows.transpose(0, 2, 1)
         det_sign, logdet = np.linalg.slogdet(s)
         return np.where(det_sign > 0, -logdet, np.inf)
 

@@ -244,8 +244,9 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     tau_work = model.robot.gravity_torques(q_work) if model.uses_torque else None
     p = np.array(model.params.nominal if p0 is None else p0, dtype=float)
     free_idx = model.params.indices(free) if free else np.arange(len(p))
+    ref = data.reflector  # (pose, reflector) rows; None: reflector 0 throughout
 
-    pred, _ = model.jacobian(p, q, tau)
+    pred, _ = model.jacobian(p, q, tau, ref)
     start_error = float(np.median(np.linalg.norm(eta - pred, axis=1)))
     if start_error > MAX_START_ERROR:
         raise DataError(f'measured points are {start_error:.3g} m (median) from the nominal '
@@ -262,7 +263,7 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     # vector stays one exact solution (one gauge); resetting it would restart the fit.
     ident, iterations, kept_before = None, 0, None
     for _ in range(MAX_SELECTION_ROUNDS):
-        _, jac = model.jacobian(p, q, tau)
+        _, jac = model.jacobian(p, q, tau, ref)
         stacked = weighted_rows(jac, w, free_idx)
         ident = select_identifiable(stacked, free_names, method=identifiability_method,
                                     priority=priority)
@@ -283,13 +284,13 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
                             f'equations for {len(idx)} identifiable parameters; measure at '
                             f'least {len(idx) // 3 + 2} poses (better 3-5x that)')
         p, status, message, used = _gauss_newton(model, p, idx, q, eta, tau, w,
-                                                 max_iterations, tolerances)
+                                                 max_iterations, tolerances, ref)
         iterations += used
         kept_before = ident.kept
     if ident is None:
         raise RuntimeError(f'MAX_SELECTION_ROUNDS = {MAX_SELECTION_ROUNDS}: no round selected '
                            'the identifiable parameters')
-    pred, jac = model.jacobian(p, q, tau)
+    pred, jac = model.jacobian(p, q, tau, ref)
     residuals = eta - pred
     f1_p = weighted_rows(jac, w, idx)
     tcp, tcp_jac = model.jacobian(p, q_work, tau_work)
@@ -324,7 +325,8 @@ def _row_weights(w_axis: np.ndarray, point_weights: np.ndarray | None, n: int) -
 
 def _gauss_newton(model: MeasurementModel, p: np.ndarray, idx: np.ndarray, q: np.ndarray,
                   eta: np.ndarray, tau: np.ndarray | None, w: np.ndarray, max_iterations: int,
-                  tol: Tolerances = TOLERANCES) -> tuple[np.ndarray, int, str, int]:
+                  tol: Tolerances = TOLERANCES, reflector: np.ndarray | None = None
+                  ) -> tuple[np.ndarray, int, str, int]:
     """Gauss-Newton with Armijo backtracking; Levenberg-Marquardt damping when that stalls.
 
     Returns
@@ -336,7 +338,7 @@ def _gauss_newton(model: MeasurementModel, p: np.ndarray, idx: np.ndarray, q: np
     iterations : int
     """
     def evaluate(pp):
-        pred, jac = model.jacobian(pp, q, tau)
+        pred, jac = model.jacobian(pp, q, tau, reflector)
         r = ((eta - pred) * w).ravel()
         f = (jac * w[:, :, None]).reshape(-1, len(pp))[:, idx]
         return r, f

@@ -11,7 +11,7 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-from kpi_calib_ros.core.parameters import ParameterSet
+from kpi_calib_ros.core.parameters import ParameterSet, reflector_prefixes
 from kpi_calib_ros.core.robot import RobotModel
 
 
@@ -94,7 +94,8 @@ class SymbolicChain:
                                            for c in ('tx', 'ty', 'tz', 'rx', 'ry', 'rz')])
                            for j in robot.joints]
         self._offset = params.indices([f'{j.name}.offset' for j in robot.joints])
-        self._reflector = params.indices(['reflector.x', 'reflector.y', 'reflector.z'])
+        self._reflectors = [params.indices([f'{r}.x', f'{r}.y', f'{r}.z'])
+                            for r in reflector_prefixes(params)]
 
     def link_transforms(self, p, q) -> list:
         """Poses (4x4) of every chain joint frame in the base frame, base to tip."""
@@ -130,9 +131,14 @@ class SymbolicChain:
         """Base frame pose (4x4) in the tracker frame."""
         return pose6(p[self._base])
 
-    def reflector(self, p):
-        """Reflector centre (3,) in the tip frame."""
-        return p[self._reflector]
+    @property
+    def n_reflectors(self) -> int:
+        """Reflectors (or markers) on the tool, each with its own offset triple."""
+        return len(self._reflectors)
+
+    def reflector(self, p, k: int = 0):
+        """Centre (3,) of reflector ``k`` in the tip frame (0: the KPI reflector)."""
+        return p[self._reflectors[k]]
 
 
 def nominal_fk_function(robot: RobotModel, params: ParameterSet) -> ca.Function:

@@ -5,7 +5,13 @@ tracker frame. Physical effects (joint compliance, cyclic gear errors, …) plug
 in as corrections of the joint values or of the measured point; their
 parameters are appended to the geometric ones so every derivative stays exact.
 
-The KPI point of a working pose is ``h(p, q_work)``: the reflector/TCP centre at
+Several reflectors (or motion-capture markers) on one tool are one model: each
+measurement row is a (pose, reflector) pair, ``Measurements.reflector`` holds the
+reflector index of every row, and every numeric method takes that index array
+(``None``: reflector 0 throughout).
+
+The KPI point of a working pose is ``h(p, q_work)`` of reflector 0 (the first
+reflector of the cell): the reflector/TCP centre at
 the working configuration expressed in the tracker frame. Unlike a TCP "in the
 base frame", this point is observable and does not depend on which redundant
 parameters the identifiability analysis keeps (a gauge-free quantity).
@@ -55,13 +61,16 @@ class Measurements:
     """Paired measurement data.
 
     q : (N, n) joint values in chain order; eta : (N, 3) measured points in the
-    tracker frame (m); tau : (N, n) gravity torques or None; stamps_ns : (N,).
+    tracker frame (m); tau : (N, n) gravity torques or None; stamps_ns : (N,);
+    reflector : (N,) int index of the reflector each row measured, or None (all 0).
+    One pose measured by R reflectors is R rows with the same ``q``.
     """
 
     q: np.ndarray
     eta: np.ndarray
     tau: np.ndarray | None = None
     stamps_ns: np.ndarray | None = field(default=None)
+    reflector: np.ndarray | None = field(default=None)
 
     def __len__(self) -> int:
         return len(self.q)
@@ -99,15 +108,22 @@ class MeasurementModel:
         p = ca.SX.sym('p', len(params))
         q = ca.SX.sym('q', n)
         tau = ca.SX.sym('tau', n)
-        point = self.point_expression(p, q, tau)
-        self._h = ca.Function('h', [p, q, tau], [point])
-        self._hj = ca.Function('hj', [p, q, tau], [point, ca.jacobian(point, p)])
-        self._hq = ca.Function('hq', [p, q, tau], [ca.jacobian(point, q)])
+        self._h, self._hj, self._hq = [], [], []
+        for k in range(self.chain.n_reflectors):
+            point = self.point_expression(p, q, tau, k)
+            self._h.append(ca.Function('h', [p, q, tau], [point]))
+            self._hj.append(ca.Function('hj', [p, q, tau], [point, ca.jacobian(point, p)]))
+            self._hq.append(ca.Function('hq', [p, q, tau], [ca.jacobian(point, q)]))
         self._cos = ca.Function('cos_incidence', [p, q], [self.incidence_cos_expression(p, q)])
 
+    @property
+    def n_reflectors(self) -> int:
+        """Reflectors (or markers) on the tool; index 0 is the KPI reflector."""
+        return self.chain.n_reflectors
+
     # ------------------------------------------------------------ symbolic API
-    def point_expression(self, p, q, tau=None):
-        """Reflector centre in the tracker frame as a CasADi expression (3,)."""
+    def point_expression(self, p, q, tau=None, reflector: int = 0):
+        """Centre of reflector ``reflector`` in the tracker frame, CasADi expression (3,)."""
         q_eff = q
         offset = len(self.geometric)
         thetas = []
@@ -120,7 +136,7 @@ class MeasurementModel:
                 q_eff = q_eff + correction
         tip = self.chain.tip_transform(p, q_eff)
         world = self.chain.base_in_tracker(p) @ tip
-        point = reflector_point(world, self.chain.reflector(p))
+        point = reflector_point(world, self.chain.reflector(p, reflector))
         for effect, theta in zip(self.effects, thetas):
             corrected = effect.point_correction(point, theta)
             if corrected is not None:
@@ -143,27 +159,69 @@ class MeasurementModel:
             return np.atleast_2d(self.robot.gravity_torques(q))
         return np.zeros_like(np.atleast_2d(q))
 
-    def predict(self, p: np.ndarray, q: np.ndarray, tau: np.ndarray | None = None) -> np.ndarray:
-        """Predicted points (N, 3) in the tracker frame for joint values ``q`` (N, n)."""
-        q = np.atleast_2d(q)
-        out = self._h.map(len(q))(p, q.T, self._torques(q, tau).T)
-        return np.array(out).T
+    def _groups(self, n: int, reflector: np.ndarray | None) -> list[tuple[int, np.ndarray]]:
+        """(reflector index, rows) pairs covering rows 0..n-1."""
+        if reflector is None:
+            return [(0, np.arange(n))]
+        ref = np.asarray(reflector, dtype=int).reshape(-1)
+        if len(ref) != n:
+            raise ValueError(f'reflector must hold one index per row ({n}), got {len(ref)}')
+        if n and (ref.min() < 0 or ref.max() >= self.n_reflectors):
+            raise ValueError(f'reflector indices must be in [0, {self.n_reflectors}), got '
+                             f'{sorted(set(ref.tolist()))}')
+        return [(int(k), np.flatnonzero(ref == k)) for k in np.unique(ref)]
 
-    def jacobian(self, p: np.ndarray, q: np.ndarray,
-                 tau: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def predict(self, p: np.ndarray, q: np.ndarray, tau: np.ndarray | None = None,
+                reflector: np.ndarray | None = None) -> np.ndarray:
+        """Predicted points (N, 3) in the tracker frame for joint values ``q`` (N, n)
+        and reflector indices ``reflector`` (N,) (None: reflector 0)."""
+        q = np.atleast_2d(q)
+        tau = self._torques(q, tau)
+        out = np.zeros((len(q), 3))
+        for k, rows in self._groups(len(q), reflector):
+            if len(rows):
+                out[rows] = np.array(self._h[k].map(len(rows))(p, q[rows].T, tau[rows].T)).T
+        return out
+
+    def jacobian(self, p: np.ndarray, q: np.ndarray, tau: np.ndarray | None = None,
+                 reflector: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Predicted points (N, 3) and their Jacobian (N, 3, n_p) w.r.t. p."""
         q = np.atleast_2d(q)
-        pts, jac = self._hj.map(len(q))(p, q.T, self._torques(q, tau).T)
+        tau = self._torques(q, tau)
         n_p = len(self.params)
-        jac = np.array(jac).reshape(3, len(q), n_p).transpose(1, 0, 2)
-        return np.array(pts).T, jac
+        pts, jac = np.zeros((len(q), 3)), np.zeros((len(q), 3, n_p))
+        for k, rows in self._groups(len(q), reflector):
+            if len(rows):
+                h, j = self._hj[k].map(len(rows))(p, q[rows].T, tau[rows].T)
+                pts[rows] = np.array(h).T
+                jac[rows] = np.array(j).reshape(3, len(rows), n_p).transpose(1, 0, 2)
+        return pts, jac
 
-    def joint_jacobian(self, p: np.ndarray, q: np.ndarray,
-                       tau: np.ndarray | None = None) -> np.ndarray:
+    def joint_jacobian(self, p: np.ndarray, q: np.ndarray, tau: np.ndarray | None = None,
+                       reflector: np.ndarray | None = None) -> np.ndarray:
         """Jacobian (N, 3, n) of the predicted points w.r.t. the joint values."""
         q = np.atleast_2d(q)
-        jac = self._hq.map(len(q))(p, q.T, self._torques(q, tau).T)
-        return np.array(jac).reshape(3, len(q), q.shape[1]).transpose(1, 0, 2)
+        tau = self._torques(q, tau)
+        out = np.zeros((len(q), 3, q.shape[1]))
+        for k, rows in self._groups(len(q), reflector):
+            if len(rows):
+                jac = self._hq[k].map(len(rows))(p, q[rows].T, tau[rows].T)
+                out[rows] = np.array(jac).reshape(3, len(rows), q.shape[1]).transpose(1, 0, 2)
+        return out
+
+    def pose_jacobian(self, p: np.ndarray, q: np.ndarray,
+                      tau: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Every reflector at every configuration, as the design sees a pose: points
+        (N, 3R) and Jacobian (N, 3R, n_p), reflector k in rows 3k..3k+2."""
+        q = np.atleast_2d(q)
+        parts = [self.jacobian(p, q, tau, np.full(len(q), k)) for k in range(self.n_reflectors)]
+        return (np.concatenate([pt for pt, _ in parts], axis=1),
+                np.concatenate([j for _, j in parts], axis=1))
+
+    def pose_point_expression(self, p, q, tau=None):
+        """Every reflector's centre stacked, CasADi expression (3R,)."""
+        return ca.vertcat(*[self.point_expression(p, q, tau, k)
+                            for k in range(self.n_reflectors)])
 
     def incidence_cos(self, p: np.ndarray, q: np.ndarray) -> np.ndarray:
         """cos of the incidence angle (N,) at joint values ``q`` (N, n)."""
@@ -178,8 +236,9 @@ def weighted_rows(jac: np.ndarray, w: np.ndarray, idx: np.ndarray | None = None)
     ----------
     jac : (N, 3, n_p) ndarray
         d h_i / d p per measurement (m per unit of each parameter).
-    w : (3,) or (N, 3) ndarray
-        1/σ per tracker axis (1/m), or per measurement and axis (robustness weights).
+    w : (3,), (3R,) or (N, 3) ndarray
+        1/σ per tracker axis (1/m); (3R,) for rows of ``MeasurementModel.pose_jacobian``;
+        (N, 3) per measurement and axis (robustness weights).
     idx : (k,) int ndarray, optional
         Parameter columns to keep (default all).
 

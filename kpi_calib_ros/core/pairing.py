@@ -15,6 +15,13 @@ Memory: a joint state naming far more joints than the chain is rejected as
 ``oversized_joint_state`` before it is buffered; only the chain's columns are kept,
 and the name-index cache is a small LRU, so hostile input cannot grow the pairer.
 
+Several reflectors per pose: every reflector (or mocap marker) point is its own
+``PointStamped`` with ``header.frame_id = '<tracker_frame>#<reflector name>'`` (the
+point is expressed in ``<tracker_frame>``; the part after ``#``, a character no ROS
+frame name contains, names the reflector of the cell's ``reflectors:`` list). One
+topic, one log and one replay carry every reflector, and points of one pose may share
+a stamp. A plain ``<tracker_frame>`` is the single ``reflector:`` of a cell.
+
 Units: stamps in integer nanoseconds, joint positions in rad (m for prismatic
 joints), velocities in rad/s (m/s), points in metres.
 """
@@ -34,11 +41,20 @@ from kpi_calib_ros.core.streams import JointSample, PointSample, _frozen_array
 REJECTION_REASONS = (
     'non_finite_point', 'wrong_frame', 'no_joint_state', 'robot_moving',
     'missing_joints', 'non_finite_joint_state', 'duplicate_stamp', 'oversized_joint_state',
+    'unknown_reflector',
 )
+REFLECTOR_SEPARATOR = '#'
 INDEX_CACHE_SIZE = 16   # distinct joint-name lists remembered (LRU); drivers use one or two
 EARLY_POINTS = 1000      # points kept waiting for a clock jump
 NAMES_KEPT = 16         # names of a foreign joint state kept for the missing_joints message
 _log = logging.getLogger(__name__)
+
+
+def split_frame(frame_id: str) -> tuple[str, str]:
+    """``(frame, reflector name)`` of a point's frame id ``'<frame>#<name>'`` (name ''
+    when there is no ``#``); a leading '/' of the frame is dropped."""
+    frame, _, name = frame_id.partition(REFLECTOR_SEPARATOR)
+    return frame.strip('/'), name
 
 
 @dataclass(frozen=True)
@@ -75,6 +91,11 @@ class PairedMeasurement:
     def point_sample(self) -> PointSample:
         return PointSample(self.stamp_ns, self.frame_id, self.eta)
 
+    @property
+    def reflector(self) -> str:
+        """Reflector name of the point ('' for a cell's single reflector)."""
+        return split_frame(self.frame_id)[1]
+
 
 Decision = Union[PairedMeasurement, Rejection]
 
@@ -85,7 +106,8 @@ class PairingResult:
 
     ``q`` (N, n) rad ordered as ``joint_names``, ``eta`` (N, 3) m, ``stamps_ns`` (N,)
     int64, sorted by stamp. ``rejections`` counts reasons that occurred;
-    ``rejected`` lists every rejection in stamp order.
+    ``rejected`` lists every rejection in stamp order; ``reflectors`` (N,) names the
+    reflector of every row ('' the single one; empty tuple: all '').
     """
 
     joint_names: tuple[str, ...]
@@ -95,6 +117,16 @@ class PairingResult:
     stamps_ns: np.ndarray
     rejections: dict[str, int] = field(default_factory=dict)
     rejected: list[Rejection] = field(default_factory=list)
+    reflectors: tuple[str, ...] = ()
+
+    def reflector_indices(self, names: Sequence[str]) -> np.ndarray:
+        """(N,) index of every row's reflector in ``names`` (the cell's order)."""
+        rows = self.reflectors or ('',) * len(self)
+        position = {n: i for i, n in enumerate(names)}
+        unknown = sorted({r for r in rows if r not in position})
+        if unknown:
+            raise ValueError(f'reflectors {unknown} are not among {list(names)}')
+        return np.array([position[r] for r in rows], dtype=int)
 
     def __len__(self) -> int:
         return len(self.stamps_ns)
@@ -151,6 +183,10 @@ class Pairer:
     max_names : int or None
         Joint states naming more joints than this are rejected as
         ``oversized_joint_state``; default ``4 * len(joint_names) + 64``.
+    reflectors : sequence of str
+        Reflector names a point may carry after ``#`` in its frame id (see the module
+        doc); ``('',)``, the default, is the single-reflector cell. Others are rejected
+        as ``unknown_reflector``.
     """
 
     def __init__(
@@ -164,6 +200,7 @@ class Pairer:
         buffer_ns: int = 10_000_000_000,
         jump_ns: int = 1_000_000_000,
         max_names: int | None = None,
+        reflectors: Sequence[str] = ('',),
     ) -> None:
         names = tuple(joint_names)
         if not names or len(set(names)) != len(names) or not all(
@@ -192,6 +229,7 @@ class Pairer:
         self.jump_ns = int(jump_ns)
         self.max_names = max_names
         self._frame = tracker_frame.strip('/')
+        self.reflectors = tuple(reflectors)
         self._index_cache: OrderedDict[tuple[str, ...], tuple[np.ndarray, np.ndarray,
                                                               tuple[str, ...]]] = OrderedDict()
         self.reset()
@@ -214,9 +252,9 @@ class Pairer:
         self._pruned_before: int | None = None
         self._pending: list[tuple[int, int, PointSample]] = []
         self._early: list[tuple[int, PointSample]] = []  # (deadline, point) before the epoch
-        self._seen: set[int] = set()
+        self._seen: set[tuple[int, str]] = set()   # (stamp, reflector)
         self._latest_point: int | None = None
-        self._seen_order: deque[int] = deque()
+        self._seen_order: deque[tuple[int, str]] = deque()
 
     @property
     def latest_joint_ns(self) -> int | None:
@@ -307,9 +345,14 @@ class Pairer:
         if not np.all(np.isfinite(point.xyz)):
             self._reject(stamp, 'non_finite_point', f'point {point.xyz.tolist()} is not finite')
             return
-        if point.frame_id.strip('/') != self._frame:
+        frame, reflector = split_frame(point.frame_id)
+        if frame != self._frame:
             self._reject(stamp, 'wrong_frame',
                          f"point in frame '{point.frame_id}', expected '{self.tracker_frame}'")
+            return
+        if reflector not in self.reflectors:
+            self._reject(stamp, 'unknown_reflector', _unknown_reflector(
+                point.frame_id, self.tracker_frame, self.reflectors))
             return
         # _first and _latest are set together, by the epoch's first joint state.
         if (self._first is not None and self._latest is not None
@@ -326,15 +369,17 @@ class Pairer:
 
     def _queue(self, point: PointSample) -> None:
         stamp = point.stamp_ns
-        if stamp in self._seen:
-            self._reject(stamp, 'duplicate_stamp', 'a point with this stamp was already received')
+        key = (stamp, split_frame(point.frame_id)[1])
+        if key in self._seen:
+            self._reject(stamp, 'duplicate_stamp', 'a point with this stamp was already received'
+                         + (f' for reflector {key[1]!r}' if key[1] else ''))
             return
-        self._seen.add(stamp)
-        self._seen_order.append(stamp)
+        self._seen.add(key)
+        self._seen_order.append(key)
         if self._latest_point is None or stamp > self._latest_point:
             self._latest_point = stamp
         # Forget stamps beyond the buffer horizon: memory stays bounded.
-        while self._seen_order and self._seen_order[0] < self._latest_point - self.buffer_ns:
+        while self._seen_order and self._seen_order[0][0] < self._latest_point - self.buffer_ns:
             self._seen.discard(self._seen_order.popleft())
         heapq.heappush(self._pending, (stamp, self._sequence, point))
         self._sequence += 1
@@ -445,6 +490,15 @@ class Pairer:
             spread_rad=float(spread.max())))
 
 
+def _unknown_reflector(frame_id: str, tracker_frame: str, reflectors: Sequence[str]) -> str:
+    expected = [tracker_frame if not r else f'{tracker_frame}{REFLECTOR_SEPARATOR}{r}'
+                for r in reflectors]
+    return (f"point frame_id '{frame_id}' names a reflector the cell does not have; "
+            f"frame ids are '<tracker_frame>{REFLECTOR_SEPARATOR}<reflector name>' for the cell's "
+            f'reflectors: list (a plain tracker frame for a single reflector:), expected one '
+            f'of {expected}')
+
+
 def pair_measurements(
     joint_samples: Iterable[JointSample],
     point_samples: Iterable[PointSample],
@@ -480,4 +534,5 @@ def pair_measurements(
         stamps_ns=np.array([m.stamp_ns for m in accepted], dtype=np.int64),
         rejections=dict(Counter(r.reason for r in rejected)),
         rejected=rejected,
+        reflectors=tuple(m.reflector for m in accepted),
     )

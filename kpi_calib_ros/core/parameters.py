@@ -8,7 +8,9 @@ reports. The geometric set is general for any URDF chain:
 * ``<joint>.placement.{tx,ty,tz,rx,ry,rz}`` -- a small 6-DoF error applied to
   every joint placement after the nominal URDF origin, 6 per joint;
 * ``<joint>.offset`` -- joint zero offset, 1 per joint;
-* ``reflector.{x,y,z}`` -- reflector centre in the tip frame (full values), 3.
+* ``reflector.{x,y,z}`` -- reflector centre in the tip frame (full values), 3;
+  with several reflectors (or mocap markers) on the tool, one triple per
+  reflector: ``reflector.<name>.{x,y,z}``, in the cell's order.
 
 Many of these are redundant for position-only tracker data; the identifiable
 subset is chosen by :mod:`kpi_calib_ros.core.identifiability`.
@@ -77,8 +79,18 @@ class ParameterSet:
         return p
 
 
+def reflector_prefixes(params: ParameterSet) -> list[str]:
+    """Name prefixes of the reflector triples of ``params``, in vector order.
+
+    ``['reflector']`` for the single-reflector form, ``['reflector.a', 'reflector.b']``
+    for named reflectors; reflector index ``k`` everywhere is position ``k`` here.
+    """
+    return [n[:-2] for n in params.names if n.startswith('reflector.') and n.endswith('.x')]
+
+
 def geometric_parameters(robot: RobotModel, base_in_tracker: np.ndarray,
-                         reflector_offset: np.ndarray) -> ParameterSet:
+                         reflector_offset: np.ndarray,
+                         reflector_names: tuple[str, ...] | None = None) -> ParameterSet:
     """The full geometric parameter set of ``robot`` in a laser-tracker cell.
 
     Parameters
@@ -87,8 +99,11 @@ def geometric_parameters(robot: RobotModel, base_in_tracker: np.ndarray,
     base_in_tracker : (6,) array
         Nominal [x, y, z, roll, pitch, yaw] of the base frame in the tracker
         frame (m, rad).
-    reflector_offset : (3,) array
-        Nominal reflector centre in the tip frame (m).
+    reflector_offset : (3,) or (R, 3) array
+        Nominal reflector centre(s) in the tip frame (m).
+    reflector_names : tuple of str, optional
+        Names of the R reflectors (``reflector.<name>.x`` …); None: one unnamed
+        reflector (``reflector.x`` …).
     """
     names: list[str] = [f'base.{c}' for c in BASE_COMPONENTS]
     nominal: list[float] = list(np.asarray(base_in_tracker, float))
@@ -100,7 +115,17 @@ def geometric_parameters(robot: RobotModel, base_in_tracker: np.ndarray,
         names.append(f'{joint.name}.offset')
         nominal.append(0.0)
         units.append('m' if joint.kind == 'prismatic' else 'rad')
-    names += ['reflector.x', 'reflector.y', 'reflector.z']
-    nominal += list(np.asarray(reflector_offset, float))
-    units += ['m'] * 3
+    offsets = np.asarray(reflector_offset, float).reshape(-1, 3)
+    if reflector_names is None:
+        if len(offsets) != 1:
+            raise ValueError('several reflector offsets need reflector_names')
+        prefixes = ['reflector']
+    else:
+        if len(reflector_names) != len(offsets) or len(set(reflector_names)) != len(offsets):
+            raise ValueError('reflector_names must be unique, one per offset')
+        prefixes = [f'reflector.{n}' for n in reflector_names]
+    for prefix, offset in zip(prefixes, offsets):
+        names += [f'{prefix}.x', f'{prefix}.y', f'{prefix}.z']
+        nominal += list(offset)
+        units += ['m'] * 3
     return ParameterSet(tuple(names), np.array(nominal), tuple(units))

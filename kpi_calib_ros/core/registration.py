@@ -9,6 +9,11 @@ is linear least squares in ``o``. The two alternate from ``o = 0`` (no start
 needed for the base pose: the closed form has none), then Gauss-Newton on all
 nine unknowns polishes the joint minimum. Identification then starts from the
 result instead of hand-measured placements.
+
+Several reflectors (mocap markers) on one tool: row ``i`` measured reflector
+``k_i`` with its own offset ``o_k``; the base pose and every offset are registered
+jointly (Horn on all rows, one linear least squares per reflector, Gauss-Newton
+on 6 + 3R unknowns).
 """
 from __future__ import annotations
 
@@ -46,6 +51,8 @@ class Registration:
         Distance between each measured point and its registered nominal point (m).
     iterations : int
         Alternations plus Gauss-Newton steps taken.
+    reflector_offsets : (R, 3) ndarray
+        Every reflector's centre in the tip frame (m); row 0 is ``reflector_offset``.
     trimmed : tuple of int
         Points left out of the final registration because they missed by far more than
         the others (see :func:`register`); their residuals are still in ``residuals_m``.
@@ -55,6 +62,7 @@ class Registration:
     reflector_offset: np.ndarray
     residuals_m: np.ndarray
     iterations: int
+    reflector_offsets: np.ndarray | None = None
     trimmed: tuple[int, ...] = ()
 
     @property
@@ -114,8 +122,8 @@ def _check_geometry(eta: np.ndarray, rotations: np.ndarray) -> None:
 
 
 def register(eta: np.ndarray, tip_poses: np.ndarray, max_rms: float = 0.02,
-             alternations: int = 50, gauss_newton: int = 20, tol: float = 1e-12
-             ) -> Registration:
+             alternations: int = 50, gauss_newton: int = 20, tol: float = 1e-12,
+             reflector: np.ndarray | None = None) -> Registration:
     """Base pose in the tracker frame and reflector offset on the tip from one campaign.
 
     Parameters
@@ -131,6 +139,9 @@ def register(eta: np.ndarray, tip_poses: np.ndarray, max_rms: float = 0.02,
         Most Horn / least-squares alternations, then most Gauss-Newton steps.
     tol : float
         Stop when a step changes the unknowns by less than this (m, rad).
+    reflector : (N,) int array_like, optional
+        Reflector index of every row (several reflectors on the tool, each with its
+        own offset); None: one reflector.
 
     Returns
     -------
@@ -153,69 +164,87 @@ def register(eta: np.ndarray, tip_poses: np.ndarray, max_rms: float = 0.02,
         raise ValueError(f'eta: registration needs at least 4 points, got {len(eta)}')
     if not (np.all(np.isfinite(eta)) and np.all(np.isfinite(poses))):
         raise ValueError('eta and tip_poses must be finite')
+    ref = (np.zeros(len(eta), dtype=int) if reflector is None
+           else np.asarray(reflector, dtype=int).reshape(-1))
+    if len(ref) != len(eta) or ref.min() < 0:
+        raise ValueError(f'reflector must hold one index >= 0 per point ({len(eta)})')
+    n_ref = int(ref.max()) + 1
     rotations, positions = poses[:, :3, :3], poses[:, :3, 3]
-    _check_geometry(eta, rotations)
+    for k in range(n_ref):
+        if np.count_nonzero(ref == k) < 2:
+            raise ValueError(f'reflector: index {k} has fewer than 2 points; every reflector '
+                             'needs several postures to register its offset')
+        _check_geometry(eta[ref == k], rotations[ref == k])
+
     # A gross point (a reflector lost mid-shot, a wrong pairing) drags the closed form;
     # register again without the points that miss by far more than the median (trimmed
     # registration), so a few of them cannot spoil the start. They stay in the data: the
     # identification's own outlier screening decides on them.
     kept = np.ones(len(eta), bool)
     for _ in range(MAX_TRIM_ROUNDS):
-        result = _fit(eta[kept], rotations[kept], positions[kept], alternations, gauss_newton,
-                      tol)
-        residuals = _residuals(result, eta, rotations, positions)
+        result = _fit(eta[kept], rotations[kept], positions[kept], ref[kept], n_ref,
+                      alternations, gauss_newton, tol)
+        residuals = _residuals(result, eta, rotations, positions, ref)
         far = residuals > max(TRIM_FACTOR * float(np.median(residuals[kept])), TRIM_FLOOR_M)
-        if not np.any(far & kept) or np.sum(~far) < max(4, MIN_KEPT_FRACTION * len(eta)):
+        enough = all(np.count_nonzero(~far & (ref == k)) >= 2 for k in range(n_ref))
+        if (not np.any(far & kept) or not enough
+                or np.sum(~far) < max(4, MIN_KEPT_FRACTION * len(eta))):
             break
         kept = ~far
     result = Registration(result.base_in_tracker, result.reflector_offset, residuals,
-                          result.iterations, tuple(int(i) for i in np.flatnonzero(~kept)))
-    if float(np.sqrt(np.mean(residuals[kept] ** 2))) > max_rms:
+                          result.iterations, result.reflector_offsets,
+                          tuple(int(i) for i in np.flatnonzero(~kept)))
+    if result.rms_m > max_rms:
         raise DataError(_miss_message(result, eta, positions, max_rms))
     return result
 
 
-def _fit(eta: np.ndarray, rotations: np.ndarray, positions: np.ndarray, alternations: int,
-         gauss_newton: int, tol: float) -> Registration:
-    """Closed form (Horn) alternating with the offset, then Gauss-Newton, on these points."""
-
-    offset = np.zeros(3)
-    stacked = rotations.reshape(-1, 3)
+def _fit(eta: np.ndarray, rotations: np.ndarray, positions: np.ndarray, ref: np.ndarray,
+         n_ref: int, alternations: int, gauss_newton: int, tol: float) -> Registration:
+    """Closed form (Horn) alternating with the offsets, then Gauss-Newton, on these rows."""
+    offsets = np.zeros((n_ref, 3))
+    rows = [np.flatnonzero(ref == k) for k in range(n_ref)]
     steps = 0
     for _ in range(alternations):
         steps += 1
-        rot, trans = horn(rotations @ offset + positions, eta)
-        # R^T (η_i - t) - p_i = R_i o, stacked over i: one linear system in o.
-        rhs = ((eta - trans) @ rot - positions).reshape(-1)
-        new = np.linalg.lstsq(stacked, rhs, rcond=None)[0]
-        change = float(np.linalg.norm(new - offset))
-        offset = new
+        rot, trans = horn(np.einsum('nij,nj->ni', rotations, offsets[ref]) + positions, eta)
+        # R^T (η_i - t) - p_i = R_i o_k, stacked over the rows of reflector k: linear in o_k.
+        rhs = (eta - trans) @ rot - positions
+        new = np.array([np.linalg.lstsq(rotations[r].reshape(-1, 3), rhs[r].reshape(-1),
+                                        rcond=None)[0] for r in rows])
+        change = float(np.linalg.norm(new - offsets))
+        offsets = new
         if change < tol:
             break
     for _ in range(gauss_newton):
-        points = rotations @ offset + positions
+        points = np.einsum('nij,nj->ni', rotations, offsets[ref]) + positions
         world = points @ rot.T
         residual = (world + trans - eta).reshape(-1)
-        jac = np.concatenate([-_skew(world), np.broadcast_to(np.eye(3), (len(eta), 3, 3)),
-                              rot @ rotations], axis=2).reshape(-1, 9)
-        step = np.linalg.lstsq(jac, -residual, rcond=None)[0]
+        jac = np.zeros((len(eta), 3, 6 + 3 * n_ref))
+        jac[:, :, :3] = -_skew(world)
+        jac[:, :, 3:6] = np.eye(3)
+        for k, r in enumerate(rows):
+            jac[r, :, 6 + 3 * k:9 + 3 * k] = rot @ rotations[r]
+        step = np.linalg.lstsq(jac.reshape(-1, 6 + 3 * n_ref), -residual, rcond=None)[0]
         rot = pin.exp3(step[:3]) @ rot
-        trans, offset = trans + step[3:6], offset + step[6:]
+        trans, offsets = trans + step[3:6], offsets + step[6:].reshape(n_ref, 3)
         steps += 1
         if np.linalg.norm(step) < tol:
             break
-    residuals = np.linalg.norm((rotations @ offset + positions) @ rot.T + trans - eta, axis=1)
-    result = Registration(np.concatenate([trans, pin.rpy.matrixToRpy(rot)]), offset,
-                          residuals, steps)
+    points = np.einsum('nij,nj->ni', rotations, offsets[ref]) + positions
+    residuals = np.linalg.norm(points @ rot.T + trans - eta, axis=1)
+    result = Registration(np.concatenate([trans, pin.rpy.matrixToRpy(rot)]), offsets[0],
+                          residuals, steps, offsets)
     return result
 
 
 def _residuals(result: Registration, eta: np.ndarray, rotations: np.ndarray,
-               positions: np.ndarray) -> np.ndarray:
+               positions: np.ndarray, ref: np.ndarray) -> np.ndarray:
     """Distance of every measured point from its registered nominal point (m)."""
     rot, trans = result.transform[:3, :3], result.transform[:3, 3]
-    return np.linalg.norm((rotations @ result.reflector_offset + positions) @ rot.T + trans - eta,
-                          axis=1)
+    offsets = np.asarray(result.reflector_offsets)
+    points = np.einsum('nij,nj->ni', rotations, offsets[ref]) + positions
+    return np.linalg.norm(points @ rot.T + trans - eta, axis=1)
 
 
 def _miss_message(result: Registration, eta: np.ndarray, positions: np.ndarray,
@@ -227,11 +256,7 @@ def _miss_message(result: Registration, eta: np.ndarray, positions: np.ndarray,
                                                             1e-30)))
     causes = ['joint values in the wrong order or units (degrees given as radians)',
               'the wrong tip frame (robot.tip_frame) or base frame',
-              'points paired with the wrong postures',
-              'several reflectors published on the one point topic (one reflector per '
-              'campaign or topic)',
-              'coupled controller joints (J3 against the horizontal) not mapped: set '
-              'robot.joint_coupling']
+              'points paired with the wrong postures']
     if not 0.5 < scale < 2.0:
         causes.insert(0, f'units: the measured points spread {scale:.3g} times as far as the '
                          'nominal tip positions (mm given as m?)')

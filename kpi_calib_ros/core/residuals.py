@@ -93,6 +93,7 @@ class LinearizedFit:
     w: np.ndarray
     tau: np.ndarray | None
     p: np.ndarray
+    reflector: np.ndarray | None = None  # (N,) reflector index of every row, None: all 0
 
 
 def is_adequate(p_value: float, alpha: float = ADEQUACY_ALPHA) -> bool:
@@ -108,12 +109,12 @@ def linearized_fit(model: MeasurementModel, data: Measurements, result: Calibrat
     if tau is None and model.uses_torque:
         tau = model.robot.gravity_torques(q)
     p = np.asarray(result.values, float)
-    pred, jac = model.jacobian(p, q, tau)
+    pred, jac = model.jacobian(p, q, tau, data.reflector)
     r = ((np.atleast_2d(data.eta) - pred) * w).ravel()
     idx = model.params.indices(result.estimated)
     f = weighted_rows(jac, w, idx)
     basis = orthonormal_basis(f)
-    return LinearizedFit(r, f, basis, w, tau, p)
+    return LinearizedFit(r, f, basis, w, tau, p, data.reflector)
 
 
 def orthonormal_basis(a: np.ndarray) -> np.ndarray:
@@ -203,18 +204,32 @@ def identifiable_folds(a: np.ndarray, q: np.ndarray, folds: int,
     Parameters
     ----------
     a : (3N, k) ndarray
-        Weighted Jacobian of the identified parameters, three rows per pose.
+        Weighted Jacobian of the identified parameters, three rows per measurement.
     q : (N, n) ndarray
-        Joint values of the poses (rad), for the stratification.
+        Joint values of the measurements (rad): rows with equal values are one pose.
     """
-    n = len(q)
+    # Rows measured at the same joint values (several reflectors, or repeated shots) are
+    # one pose and stay in one fold: held-out poses, not held-out points.
+    poses, pose = pose_index(q)
+    n = len(poses)
     if folds == LEAVE_ONE_OUT or folds >= n:
-        ids = np.arange(n)
+        ids = pose
         return ids if folds_keep_rank(a, ids) else None
-    for ids in (fold_ids(n, folds, seed), stratified_fold_ids(q, folds, seed)):
+    for ids in (fold_ids(n, folds, seed)[pose], stratified_fold_ids(poses, folds, seed)[pose]):
         if folds_keep_rank(a, ids):
             return ids
     return None
+
+
+def pose_index(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct poses of ``q`` (N, n) in order of first appearance, and each row's
+    pose index (N,)."""
+    q = np.atleast_2d(q)
+    _, first, inverse = np.unique(q, axis=0, return_index=True, return_inverse=True)
+    order = np.argsort(first)  # unique sorts; renumber by first appearance
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    return q[np.sort(first)], rank[np.asarray(inverse).reshape(-1)]
 
 
 def cv_rms(a: np.ndarray, r: np.ndarray, w: np.ndarray, pose_folds: np.ndarray | None) -> float:

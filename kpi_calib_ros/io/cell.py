@@ -9,6 +9,8 @@ fix. Paths are relative to the cell file. Units are SI (m, rad, kg). Example::
             working_poses_in: controller}                              # or urdf
     tracker: {frame_id: laser_tracker, base_in_tracker: [x, y, z, roll, pitch, yaw]}  # optional
     reflector: {offset: [0, 0, 0.03], axis: [0, 0, 1], max_incidence: 0.5236}  # offset optional
+    # or several reflectors / markers (the first one is the KPI point; offsets optional):
+    # reflectors: [{name: a, offset: [0, 0, 0.03]}, {name: b, offset: [0.05, 0, 0.03]}]
     noise: {sigma: 2.0e-5}
     payload: {mass: 5.0, com: [0, 0, 0.05]}
     working_poses:
@@ -52,7 +54,7 @@ from kpi_calib_ros.io.resources import resolve_uri
 from kpi_calib_ros.io.results import write_atomic
 from kpi_calib_ros.io.robot_geometry import RobotGeometry, robot_geometry
 
-_TOP_KEYS = {'robot', 'tracker', 'reflector', 'noise', 'payload', 'working_poses',
+_TOP_KEYS = {'robot', 'tracker', 'reflector', 'reflectors', 'noise', 'payload', 'working_poses',
              'obstacles', 'collision', 'identification', 'effects', 'simulation', 'design'}
 DEFAULT_CELL = Path(__file__).resolve().parent.parent / 'data' / 'cells' / 'default_cell.yaml'
 
@@ -131,6 +133,17 @@ class Cell:
     # the chain in build_cell_model); robot.working_poses_in: 'controller' or 'urdf'.
     joint_coupling: Mapping[str, Any] = field(default_factory=dict)
     working_poses_in: str = 'controller'
+    # ``reflectors:`` form: names and (R, 3) offsets (zeros where the offset is left out
+    # and registered from the data); () for the single ``reflector:`` form.
+    reflector_names: tuple[str, ...] = ()
+    reflector_offsets: np.ndarray | None = field(default=None, compare=False)
+
+    @property
+    def offsets(self) -> np.ndarray:
+        """(R, 3) nominal offsets of every reflector."""
+        if self.reflector_offsets is not None:
+            return self.reflector_offsets
+        return self.reflector_offset.reshape(1, 3)
 
 
 def load_cell(path: str | Path, urdf_xml: str | None = None) -> Cell:
@@ -202,6 +215,7 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None) -> Cel
     else:
         urdf_path = Path('<robot_description>')
     tracker: dict[str, Any] = doc.get('tracker') or {}
+    names, offsets = _reflectors(doc)
     reflector: dict[str, Any] = doc.get('reflector') or {}
     for key, section in (('tracker', tracker), ('reflector', reflector)):
         if not isinstance(section, dict):
@@ -236,7 +250,8 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None) -> Cel
         tracker_frame=str(tracker.get('frame_id', 'laser_tracker')),
         base_in_tracker=_optional_vector(tracker.get('base_in_tracker'),
                                          'tracker.base_in_tracker', 6),
-        reflector_offset=_optional_vector(reflector.get('offset'), 'reflector.offset', 3),
+        reflector_offset=(np.nan_to_num(offsets[0]) if offsets is not None else
+                          _optional_vector(reflector.get('offset'), 'reflector.offset', 3)),
         reflector_axis=axis / np.linalg.norm(axis), max_incidence=max_inc, sigma=sigma,
         payload_mass=mass,
         payload_com=_vector(payload.get('com', [0, 0, 0]), 'payload.com', 3),
@@ -256,7 +271,10 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None) -> Cel
         identification=identification_settings(ident), source_dir=str(base_dir),
         package_dirs=_package_dirs(robot.get('package_dirs')),
         base_in_tracker_given=tracker.get('base_in_tracker') is not None,
-        reflector_offset_given=reflector.get('offset') is not None,
+        reflector_offset_given=(bool(not np.isnan(offsets).any()) if offsets is not None
+                                else reflector.get('offset') is not None),
+        reflector_names=names,
+        reflector_offsets=np.nan_to_num(offsets) if offsets is not None else None,
         joint_coupling=_coupling_mapping(robot.get('joint_coupling')),
         working_poses_in=_working_poses_in(robot.get('working_poses_in', 'controller')))
 
@@ -277,6 +295,34 @@ def _working_poses_in(value: Any) -> str:
         raise ConfigError('robot.working_poses_in', "must be 'controller' (values as the "
                           f"controller reports them) or 'urdf', got {value!r}")
     return str(value)
+
+
+def _reflectors(doc: dict) -> tuple[tuple[str, ...], np.ndarray | None]:
+    """The ``reflectors:`` list: names and (R, 3) offsets (NaN row: offset omitted, to
+    be registered from the data). ``((), None)`` when the key is absent."""
+    items = doc.get('reflectors')
+    if items is None:
+        return (), None
+    if 'offset' in (doc.get('reflector') or {}):
+        raise ConfigError('reflector.offset', 'give the offsets in reflectors: only (the '
+                          'reflector: mapping then holds axis and max_incidence)')
+    if not isinstance(items, list) or not items:
+        raise ConfigError('reflectors', 'must be a list of {name, offset: [x, y, z]} (m, tip '
+                          'frame); the first is the KPI point')
+    names, offsets = [], []
+    for i, item in enumerate(items):
+        key = f'reflectors[{i}]'
+        if not isinstance(item, dict) or not isinstance(item.get('name'), str):
+            raise ConfigError(key, 'must be a mapping {name: str, offset: [x, y, z]}')
+        name = item['name']
+        if not name or not all(c.isalnum() or c == '_' for c in name) or name in names:
+            raise ConfigError(f'{key}.name', f'{name!r}: give a unique name of letters, digits '
+                              'and _ (it appears in parameter names reflector.<name>.x)')
+        names.append(name)
+        offset = item.get('offset')
+        offsets.append(np.full(3, np.nan) if offset is None
+                       else _vector(offset, f'{key}.offset', 3))
+    return tuple(names), np.array(offsets)
 
 
 def with_overrides(cell: Cell, urdf_xml: str | None = None,
@@ -555,6 +601,12 @@ class CellModel:
         """``robot.joint_coupling`` of the cell; the identity when it has none."""
         return self.coupling or identity_coupling(self.robot.joint_names)
 
+    @property
+    def needs_registration(self) -> bool:
+        """The cell leaves the base pose or a reflector offset out: register them from
+        the data before identifying."""
+        return not (self.cell.base_in_tracker_given and self.cell.reflector_offset_given)
+
     def collision_scene(self) -> CollisionScene:
         """Robot capsules (cell file first, else fitted to URDF collision geometry) and
         obstacles; pairs skipped by the sampled collision matrix and ``ignore_pairs``."""
@@ -601,7 +653,9 @@ def build_cell_model(cell: Cell, effects: tuple = ()) -> CellModel:
                           'URDF document (with_overrides)')
     robot = RobotModel(cell.urdf_xml, cell.base_frame, cell.tip_frame,
                        Payload(cell.payload_mass, tuple(cell.payload_com)))
-    geometric = geometric_parameters(robot, cell.base_in_tracker, cell.reflector_offset)
+    # Placements left out are zeros here; identification registers them first.
+    geometric = geometric_parameters(robot, cell.base_in_tracker, cell.offsets,
+                                     cell.reflector_names or None)
     resolved = resolve_effects(cell.effects, robot, 'effects', cell.source_dir or None)
     extra = resolve_effects(effects, robot, 'extra effects', cell.source_dir or None)
     resolved += tuple(e for e in extra if e.name not in {r.name for r in resolved})

@@ -28,7 +28,7 @@ from mcap.records import Channel, Chunk, DataEnd, Footer, Header, Message, Metad
 from mcap.well_known import MessageEncoding, SchemaEncoding
 
 from kpi_calib_ros.core.errors import DataError
-from kpi_calib_ros.core.pairing import PairingResult
+from kpi_calib_ros.core.pairing import PairingResult, split_frame
 from kpi_calib_ros.core.streams import JointSample, PointSample
 from kpi_calib_ros.io.bag import (DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, LIBRARY, LOG_CONTENT,
                                   LOG_METADATA, BagError, StreamEncoders, read_log)
@@ -212,9 +212,9 @@ def stored_pairing(pairs: Iterable[tuple[JointSample, PointSample]], joint_names
     """
     frame = tracker_frame.strip('/')
     counts = dict(rejections or {})
-    q_rows, eta_rows, stamps = [], [], []
+    q_rows, eta_rows, stamps, reflectors = [], [], [], []
     for joint, point in sorted(pairs, key=lambda jp: jp[1].stamp_ns):
-        reason = ('wrong_frame' if point.frame_id.strip('/') != frame else
+        reason = ('wrong_frame' if split_frame(point.frame_id)[0] != frame else
                   'non_finite_point' if not np.all(np.isfinite(point.xyz)) else None)
         if reason:
             counts[reason] = counts.get(reason, 0) + 1
@@ -228,12 +228,14 @@ def stored_pairing(pairs: Iterable[tuple[JointSample, PointSample]], joint_names
         q_rows.append([by_name[n] for n in joint_names])
         eta_rows.append(point.xyz)
         stamps.append(point.stamp_ns)
+        reflectors.append(split_frame(point.frame_id)[1])
     n = len(joint_names)
     return PairingResult(tuple(joint_names), tracker_frame,
                          np.array(q_rows, dtype=float).reshape(-1, n),
                          np.array(eta_rows, dtype=float).reshape(-1, 3),
                          np.array(stamps, dtype=np.int64),
-                         rejections={k: v for k, v in sorted(counts.items()) if v})
+                         rejections={k: v for k, v in sorted(counts.items()) if v},
+                         reflectors=tuple(reflectors))
 
 
 __all__ = ['MeasurementLog', 'stored_pairing']

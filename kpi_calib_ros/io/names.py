@@ -18,8 +18,11 @@ DESIGN_FILE = 'design.yaml'
 DIAGNOSIS_DIR = 'diagnosis'
 DIAGNOSIS_FILE = 'diagnosis.json'
 REPORT_FILE = 'report.md'
+VALIDATION_DIR = 'validation'
+VALIDATION_FILE = 'validation.json'
 # What a campaign reset archives: every result derived from the measurements.
-RESULT_FILES = (CALIBRATION_FILE, FAILED_CALIBRATION_FILE, CALIBRATED_URDF_FILE, DIAGNOSIS_DIR)
+RESULT_FILES = (CALIBRATION_FILE, FAILED_CALIBRATION_FILE, CALIBRATED_URDF_FILE, DIAGNOSIS_DIR,
+                VALIDATION_DIR)
 
 # ---------------------------------------------------------------------- topics
 DEFAULT_JOINT_TOPIC = '/joint_states'
@@ -32,6 +35,7 @@ CALIBRATED_URDF_TOPIC = '~/robot_description_calibrated'
 MARKERS_TOPIC = '~/markers'
 DIAGNOSIS_TOPIC = '~/diagnosis'
 TCP_TOPIC = '~/tcp'
+VALIDATION_TOPIC = '~/validation'
 
 
 def truth_path(bag_path: str | Path) -> Path:

@@ -176,6 +176,30 @@ def _scatter_components(ax, x: np.ndarray, residuals: np.ndarray, outliers: np.n
     ax.grid(alpha=0.3)
 
 
+def write_validation_plots(out_dir: str | Path, robot: Any, q: np.ndarray,
+                           residuals: np.ndarray, marked: np.ndarray) -> Path:
+    """``validation_residuals.png``: residuals (N, 3) m of new points against each joint
+    value (N, n), the ``marked`` (N,) points (outside the training ranges) crossed."""
+    plt = _pyplot()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    names = robot.joint_names
+    revolute = [j.kind != 'prismatic' for j in robot.joints]
+    fig, axes = _grid(plt, len(names))
+    for j, ax in enumerate(axes[:len(names)]):
+        _scatter_components(ax, np.degrees(q[:, j]) if revolute[j] else q[:, j] * 1e3,
+                            residuals, marked)
+        ax.set_xlabel(f'{names[j]} ({"deg" if revolute[j] else "mm"})')
+    axes[0].set_ylabel('residual (µm); x: outside training range')
+    axes[0].legend(fontsize=7)
+    fig.suptitle('Validation residuals against each joint value')
+    fig.tight_layout()
+    path = out / 'validation_residuals.png'
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
 def write_plots(out_dir: str | Path, cd: CellDiagnosis) -> list[Path]:
     """PNG plots of the residuals of ``cd`` into ``out_dir``; returns their paths."""
     plt = _pyplot()
@@ -222,7 +246,7 @@ def write_plots(out_dir: str | Path, cd: CellDiagnosis) -> list[Path]:
     # The residual seen as an error of one joint: its component along the direction
     # the point moves when that joint turns, divided by the lever. A compliance is a
     # line against torque, backlash a step at zero torque, a cyclic error a sine.
-    lever = cd.model.joint_jacobian(cd.result.values, q)
+    lever = cd.model.joint_jacobian(cd.result.values, q, None, cd.data.reflector)
     lever2 = np.sum(lever ** 2, axis=1)
     implied = np.einsum('nij,ni->nj', lever, res) / np.maximum(lever2, 1e-12)
     seen = lever2 > 0.05 * lever2.max(axis=0)

@@ -95,9 +95,19 @@ def calibration_to_dict(result: CalibrationResult,
         'tcp': tcp,
         'residuals_m': [[float(x) for x in r] for r in result.residuals],
     }
+    # The full C_p of the identified parameters (m, rad): `kpi-calib validate` predicts
+    # the error of new points from it.
+    doc['parameter_covariance'] = {'names': list(result.estimated),
+                                   'matrix': [[float(x) for x in row]
+                                              for row in result.covariance]}
     if pairing is not None:
         doc['pairing'] = {'accepted': int(len(pairing)),
                           'rejected': {k: int(v) for k, v in sorted(pairing.rejections.items())}}
+        if len(pairing):
+            # The joint ranges the calibration has seen: validation marks poses beyond them.
+            doc['training_joint_ranges'] = {
+                name: [float(lo), float(hi)] for name, lo, hi in zip(
+                    pairing.joint_names, pairing.q.min(axis=0), pairing.q.max(axis=0))}
     return doc
 
 

@@ -17,6 +17,7 @@ import shutil
 import threading
 import time
 from collections import Counter, deque
+from typing import Sequence
 from pathlib import Path
 
 
@@ -49,10 +50,11 @@ class Campaign:
     def __init__(self, data_dir: str | Path, early_limit: int = 20_000) -> None:
         self.data_dir = Path(data_dir)
         self.lock = threading.RLock()
-        self._measurements: dict[int, tuple[JointSample, PointSample]] = {}
+        # Keyed by (stamp, frame id): the reflectors of one pose share a stamp.
+        self._measurements: dict[tuple[int, str], tuple[JointSample, PointSample]] = {}
         if self.data_dir.is_dir():
             for joint, point in MeasurementLog.load_all(self.data_dir):
-                self._measurements[point.stamp_ns] = (joint, point)
+                self._measurements[(point.stamp_ns, point.frame_id)] = (joint, point)
         self.restored = len(self._measurements)
         self.log = MeasurementLog(self.data_dir)
         self.pairer: Pairer | None = None
@@ -68,11 +70,14 @@ class Campaign:
             return len(self._measurements)
 
     # ------------------------------------------------------------------ pairing
-    def set_chain(self, joint_names: list[str], tracker_frame: str) -> list[Decision]:
-        """(Re)start pairing for a robot chain; pairs the samples held until now."""
+    def set_chain(self, joint_names: list[str], tracker_frame: str,
+                  reflectors: Sequence[str] = ('',)) -> list[Decision]:
+        """(Re)start pairing for a robot chain (and the cell's reflector names, see
+        :mod:`kpi_calib_ros.core.pairing`); pairs the samples held until now."""
         with self.lock:
             decisions = self._handle(self.pairer.flush()) if self.pairer else []
-            pairer = self.pairer = Pairer(joint_names, tracker_frame)
+            pairer = self.pairer = Pairer(joint_names, tracker_frame,
+                                          reflectors=tuple(reflectors))
             early, self._early = list(self._early), deque(maxlen=self._early.maxlen)
             for sample in early:  # all of them before any timeout is judged
                 self._add(pairer, sample)
@@ -120,7 +125,7 @@ class Campaign:
         out: list[Decision] = []
         for d in decisions:
             if isinstance(d, PairedMeasurement):
-                if d.stamp_ns in self._measurements:
+                if (d.stamp_ns, d.frame_id) in self._measurements:
                     d = Rejection(d.stamp_ns, 'duplicate_stamp', 'this measurement is already '
                                   'stored (a replay, or a restart re-receiving it)')
                 else:
@@ -131,16 +136,17 @@ class Campaign:
                         d = Rejection(d.stamp_ns, NOT_STORED, f'not written to {self.log.path}: '
                                       f'{exc}')
                     else:
-                        self._measurements[d.stamp_ns] = (joint, point)
+                        self._measurements[(d.stamp_ns, d.frame_id)] = (joint, point)
             if isinstance(d, Rejection):
                 self.rejections[d.reason] += 1
             out.append(d)
         return out
 
     # ------------------------------------------------------------------ data
-    def measurements(self, joint_names: list[str],
-                     tracker_frame: str) -> tuple[Measurements, PairingResult]:
-        """Every accepted measurement in stamp order, ``q`` ordered as ``joint_names``."""
+    def measurements(self, joint_names: list[str], tracker_frame: str,
+                     reflectors: Sequence[str] = ('',)) -> tuple[Measurements, PairingResult]:
+        """Every accepted measurement in stamp order, ``q`` ordered as ``joint_names``;
+        with several ``reflectors`` (the cell's names), each row's reflector index."""
         with self.lock:
             pairs = [self._measurements[k] for k in sorted(self._measurements)]
             rejections = {k: v for k, v in sorted(self.rejections.items())}
@@ -148,7 +154,14 @@ class Campaign:
             raise DataError('no accepted measurement yet')
         pairing = stored_pairing(pairs, list(joint_names), tracker_frame, rejections)
         q, eta, stamps = pairing.q, pairing.eta, pairing.stamps_ns
-        return Measurements(q=q, eta=eta, stamps_ns=stamps), pairing
+        if tuple(reflectors) == ('',):
+            return Measurements(q=q, eta=eta, stamps_ns=stamps), pairing
+        try:
+            ref = pairing.reflector_indices(reflectors)
+        except ValueError as exc:
+            raise DataError(f'stored measurements: {exc}; reset the campaign after changing '
+                            'the reflectors of the cell') from None
+        return Measurements(q=q, eta=eta, stamps_ns=stamps, reflector=ref), pairing
 
     def counts(self) -> dict[str, int]:
         """Accepted, restored, received and rejected (total and per reason) counts."""

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 from geometry_msgs.msg import PoseWithCovarianceStamped
 
 from kpi_calib_ros.app.design import controller_design, design_cell_model, design_estimability
@@ -21,10 +22,11 @@ from kpi_calib_ros.core.pairing import PairingResult
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.design_io import write_design
 from kpi_calib_ros.app.diagnose import diagnose_cell
+from kpi_calib_ros.app.validate import validate_report
 from kpi_calib_ros.io.report import diagnosis_to_dict, write_report
 from kpi_calib_ros.app.identify import (CellCalibration, add_robust_sections,
                                         calibrate_cell, calibration_document, write_results)
-from kpi_calib_ros.io.names import DESIGN_FILE, DIAGNOSIS_DIR
+from kpi_calib_ros.io.names import DESIGN_FILE, DIAGNOSIS_DIR, VALIDATION_DIR
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros.parameters import NodeSettings
 
@@ -89,6 +91,20 @@ def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, dat
     return cal, text, urdf, tcp
 
 
+def validate_work(cm: CellModel, calibration: str, data: Measurements,
+                  data_dir: Path) -> tuple[dict[str, Any], str]:
+    """Validate the calibration (the YAML text the node published) on new measurements,
+    as ``kpi-calib validate`` does; writes ``data_dir/validation/``.
+
+    Returns
+    -------
+    doc : dict
+        ``validation.json``'s document; ``text`` : str, it as JSON.
+    """
+    doc = validate_report(cm, yaml.safe_load(calibration), data, data_dir / VALIDATION_DIR)
+    return doc, json.dumps(doc)
+
+
 def diagnose_work(cm: CellModel, data: Measurements,
                   data_dir: Path) -> tuple[dict[str, Any], str, str, Path]:
     """Diagnose the model on ``data`` as ``kpi-calib diagnose`` does; write the report.
@@ -105,4 +121,4 @@ def diagnose_work(cm: CellModel, data: Measurements,
     return doc, json.dumps(doc), cd.diagnosis.verdict, report
 
 
-__all__ = ['design_work', 'diagnose_work', 'identify_work']
+__all__ = ['design_work', 'diagnose_work', 'identify_work', 'validate_work']

@@ -6,7 +6,8 @@ A thin layer over the core: it converts messages, calls the same functions as
 pairs bags and logs every accepted measurement to disk before counting it, so a
 replayed bag and ``kpi-calib identify`` agree and a killed node loses nothing.
 
-Services (std_srvs/srv/Trigger): ``~/design``, ``~/identify``, ``~/diagnose``, ``~/reset``.
+Services (std_srvs/srv/Trigger): ``~/design``, ``~/identify``, ``~/diagnose``, ``~/validate``,
+``~/reset``.
 One executor thread serves callbacks in arrival order; long work (design,
 identification) runs in a worker thread while the job coroutine awaits it, so
 pairing continues, and a call while another job runs answers
@@ -59,6 +60,7 @@ from visualization_msgs.msg import MarkerArray
 from kpi_calib_ros.core.collision import Capsule
 from kpi_calib_ros.core.errors import ConfigError, DataError, KpiCalibError
 from kpi_calib_ros.core.estimation import CalibrationResult
+from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.pairing import Decision, Rejection
 from kpi_calib_ros.core.precision import precision_statement
 from kpi_calib_ros.core.residuals import is_adequate
@@ -67,7 +69,7 @@ from kpi_calib_ros.app.identify import urdf_measurements
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell, with_overrides
 from kpi_calib_ros.io.names import (CALIBRATED_URDF_TOPIC, CALIBRATION_TOPIC, DIAGNOSIS_TOPIC,
                                     DIAGNOSTICS_TOPIC, MARKERS_TOPIC, MEASUREMENT_POSES_TOPIC,
-                                    TCP_TOPIC)
+                                    TCP_TOPIC, VALIDATION_TOPIC)
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros import jobs
 from kpi_calib_ros.ros.campaign import Campaign
@@ -129,6 +131,9 @@ class CalibrationNode(Node):
         self._pub_urdf = self.create_publisher(String, CALIBRATED_URDF_TOPIC, _latched())
         self._pub_markers = self.create_publisher(MarkerArray, MARKERS_TOPIC, _latched())
         self._pub_diagnosis = self.create_publisher(String, DIAGNOSIS_TOPIC, _latched())
+        self._pub_validation = self.create_publisher(String, VALIDATION_TOPIC, _latched())
+        self._calibration_text = ''            # the published calibration.yaml
+        self._identified_stamps: set[int] = set()  # stamps the calibration was fitted to
         self._pub_diagnostics = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
         # Latched, one message per working pose: made when a model gives their number.
         self._pub_tcp: Publisher | None = None
@@ -140,6 +145,7 @@ class CalibrationNode(Node):
         for name, doing, work in (('design', 'designing', self._design),
                                   ('identify', 'identifying', self._identify),
                                   ('diagnose', 'diagnosing', self._diagnose),
+                                  ('validate', 'validating', self._validate),
                                   ('reset', 'resetting', self._reset)):
             self.create_service(Trigger, f'~/{name}', self._service(name, doing, work),
                                 callback_group=services)
@@ -195,7 +201,8 @@ class CalibrationNode(Node):
         self._capsules = [o for o in cm.cell.obstacles if isinstance(o, Capsule)]
         self._tcp_publisher(len(cm.working_pose_names))
         self._cm, self._urdf, self._model_error = cm, urdf_xml, ''
-        self._report(self.campaign.set_chain(cm.joint_names, cm.cell.tracker_frame))
+        self._report(self.campaign.set_chain(cm.joint_names, cm.cell.tracker_frame,
+                                             cm.cell.reflector_names or ('',)))
         self._auto_pending = self._auto_wanted()
         self.get_logger().info(f'robot model ready: joints {cm.joint_names}, tracker frame '
                                f"'{cm.cell.tracker_frame}', working poses "
@@ -323,7 +330,8 @@ class CalibrationNode(Node):
         """Identify from every accepted measurement (as ``kpi-calib identify`` does);
         write the results atomically and publish them."""
         cm = self._model()
-        data, pairing = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame)
+        data, pairing = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame,
+                                                   cm.cell.reflector_names or ('',))
         data = urdf_measurements(cm, data)  # controller readings -> URDF joint values
         try:
             cal, calibration, urdf, tcp = await self._offload(
@@ -351,6 +359,8 @@ class CalibrationNode(Node):
         self._result, self._measured, self._identified_with = result, data.eta, len(data)
         self._result_error = ''
         self._pub_calibration.publish(String(data=calibration))
+        self._calibration_text = calibration
+        self._identified_stamps = {int(s) for s in np.asarray(data.stamps_ns).ravel()}
         self._pub_urdf.publish(String(data=urdf))
         publisher = self._tcp_publisher(len(tcp))
         for msg in tcp:
@@ -371,14 +381,40 @@ class CalibrationNode(Node):
         """Model diagnosis of the accepted measurements (as ``kpi-calib diagnose``): residual
         report, adequacy and the most likely missing effect; report files and ~/diagnosis."""
         cm = self._model()
-        data = urdf_measurements(cm, self.campaign.measurements(cm.joint_names,
-                                                                cm.cell.tracker_frame)[0])
+        data, _ = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame,
+                                             cm.cell.reflector_names or ('',))
+        data = urdf_measurements(cm, data)  # controller readings -> URDF joint values
         doc, text, verdict, report = await self._offload(jobs.diagnose_work, cm, data,
                                                          self.data_dir)
         self._diagnosis = doc
         self._pub_diagnosis.publish(String(data=text))
         self._publish_diagnostics(force=True)
         return True, f'{verdict} Report: {report}'
+
+    async def _validate(self) -> tuple[bool, str]:
+        """Validate the last calibration on the measurements accepted since it was
+        identified (as ``kpi-calib validate``): ~/validation, data_dir/validation/."""
+        cm = self._model()
+        if not self._calibration_text:
+            raise DataError('no calibration to validate yet: call ~/identify first')
+        data, _ = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame,
+                                             cm.cell.reflector_names or ('',))
+        data = urdf_measurements(cm, data)  # controller readings -> URDF joint values
+        stamps = np.asarray(data.stamps_ns, dtype=np.int64).ravel()
+        new = np.isin(stamps, np.fromiter(self._identified_stamps, dtype=np.int64),
+                      invert=True)
+        if not new.any():
+            raise DataError('no measurement accepted since the last identification; measure '
+                            'new poses with auto_identify:=false, then call ~/validate')
+        fresh = Measurements(q=data.q[new], eta=data.eta[new], stamps_ns=stamps[new],
+                             reflector=None if data.reflector is None else data.reflector[new])
+        doc, text = await self._offload(jobs.validate_work, cm, self._calibration_text, fresh,
+                                        self.data_dir)
+        self._pub_validation.publish(String(data=text))
+        return doc['holds'], (f"{doc['verdict']} on {doc['measurements']} new measurements: "
+                              f"rms {doc['rms_m'] * 1e6:.1f} µm, chi2/dof {doc['chi2']:.1f}/"
+                              f"{doc['dof']}, p = {doc['p_value']:.3g}; "
+                              f"{doc['outside_training_range']} outside the training ranges")
 
     async def _reset(self) -> tuple[bool, str]:
         """Start a new campaign: archive (never delete) the logs and results."""

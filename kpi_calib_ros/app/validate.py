@@ -1,0 +1,145 @@
+"""Validate: does a calibration predict a new recording within its own predicted errors?
+
+``kpi-calib validate`` and the node's ``~/validate`` call :func:`validate_calibration`;
+the numerics are :mod:`kpi_calib_ros.core.validation`.
+"""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from kpi_calib_ros.app.identify import measurements_from_bag
+from kpi_calib_ros.core.errors import ConfigError, DataError
+from kpi_calib_ros.core.measurement import Measurements
+from kpi_calib_ros.core.validation import Validation, validate
+from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
+from kpi_calib_ros.io.names import VALIDATION_FILE
+from kpi_calib_ros.io.report import write_validation_plots
+from kpi_calib_ros.io.results import write_atomic
+
+
+def read_calibration(path: str | Path) -> dict[str, Any]:
+    """The calibration.yaml document, checked for what validation needs."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError('calibration', f'file {str(path)!r} does not exist')
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise ConfigError('calibration', f'{path} is not valid YAML: {exc}') from exc
+    if not isinstance(doc, dict):
+        raise ConfigError('calibration', f'{path} is not a calibration document')
+    for key in ('parameters', 'parameter_covariance', 'noise_sigma_m'):
+        if key not in doc:
+            raise ConfigError(f'calibration.{key}', f'missing in {path}; identify again with '
+                              'this version (kpi-calib identify) to write it')
+    return doc
+
+
+def calibrated_model(cell: Any, doc: dict[str, Any]) -> tuple[CellModel, np.ndarray]:
+    """The cell model with the calibration's effects and its parameter vector."""
+    cm = build_cell_model(cell, effects=tuple(doc.get('effects') or ()))
+    return cm, parameter_vector(cm, doc)
+
+
+def parameter_vector(cm: CellModel, doc: dict[str, Any]) -> np.ndarray:
+    """The calibration's values of ``cm``'s parameters, by name."""
+    values = {str(e['name']): float(e['value']) for e in doc['parameters']}
+    missing = [n for n in cm.model.params.names if n not in values]
+    if missing:
+        raise ConfigError('calibration.parameters', f'lacks {missing[:5]} of this cell\'s '
+                          'model: the calibration belongs to another cell, robot or effects')
+    return np.array([values[n] for n in cm.model.params.names])
+
+
+def validate_calibration(cm: CellModel, p: np.ndarray, doc: dict[str, Any],
+                         data: Measurements) -> Validation:
+    """Test the calibration ``doc`` (values ``p``) on new measurements ``data``."""
+    cov = doc['parameter_covariance']
+    estimated = cm.model.params.indices(list(cov['names']))
+    ranges = doc.get('training_joint_ranges') or {}
+    lower = np.array([ranges.get(n, [-np.inf, np.inf])[0] for n in cm.joint_names])
+    upper = np.array([ranges.get(n, [-np.inf, np.inf])[1] for n in cm.joint_names])
+    return validate(cm.model, p, estimated, np.array(cov['matrix'], dtype=float).reshape(
+        len(estimated), len(estimated)), np.array(doc['noise_sigma_m'], dtype=float), data,
+        lower, upper)
+
+
+def validation_to_dict(v: Validation, data: Measurements, training_rms_m: float | None
+                       ) -> dict[str, Any]:
+    """JSON-ready verdict, figures and per-point residuals."""
+    inside = ~v.outside
+    return {
+        'holds': v.holds,
+        'verdict': 'calibration holds' if v.holds else 'calibration does not hold',
+        'measurements': int(len(v.residuals)),
+        'rms_m': v.rms_m,
+        'rms_inside_training_range_m': _num(v.rms_where(inside)),
+        'rms_outside_training_range_m': _num(v.rms_where(v.outside)),
+        'outside_training_range': int(np.count_nonzero(v.outside)),
+        'training_rms_m': training_rms_m,
+        'predicted_std_median_m': float(np.median(v.predicted_std)),
+        'chi2': v.chi2, 'dof': v.dof, 'p_value': v.p_value, 'alpha': v.alpha,
+        'points': [{'stamp_ns': int(s) if data.stamps_ns is not None else None,
+                    'reflector': int(data.reflector[i]) if data.reflector is not None else 0,
+                    'residual_m': [float(x) for x in v.residuals[i]],
+                    'mahalanobis': float(v.mahalanobis[i]),
+                    'outside_training_range': bool(v.outside[i])}
+                   for i, s in enumerate(data.stamps_ns if data.stamps_ns is not None
+                                         else np.zeros(len(v.residuals)))],
+    }
+
+
+def _num(x: float) -> float | None:
+    return None if not np.isfinite(x) else float(x)
+
+
+def validation_text(doc: dict[str, Any]) -> str:
+    """Readable summary for a terminal."""
+    def mm(x: float | None) -> str:
+        return 'n/a' if x is None else f'{x * 1e3:.3f} mm'
+    lines = [f"{doc['verdict']}: chi2/dof = {doc['chi2']:.1f}/{doc['dof']}, "
+             f"p = {doc['p_value']:.3g} (level {doc['alpha']})",
+             f"new measurements: {doc['measurements']}, rms {mm(doc['rms_m'])} "
+             f"(training rms {mm(doc['training_rms_m'])}, predicted std per axis "
+             f"{mm(doc['predicted_std_median_m'])} median)",
+             f"inside the training joint ranges: rms {mm(doc['rms_inside_training_range_m'])}; "
+             f"outside ({doc['outside_training_range']} points): "
+             f"{mm(doc['rms_outside_training_range_m'])}"]
+    return '\n'.join(lines)
+
+
+def validate_report(cm: CellModel, doc: dict[str, Any], data: Measurements,
+                    out_dir: str | Path) -> dict[str, Any]:
+    """Validate ``doc`` on ``data`` and write validation.json and the plot to ``out_dir``;
+    returns the validation document."""
+    if len(data) == 0:
+        raise DataError('no new measurement to validate the calibration on')
+    v = validate_calibration(cm, parameter_vector(cm, doc), doc, data)
+    out = validation_to_dict(v, data, doc.get('rms_m'))
+    write_atomic(Path(out_dir) / VALIDATION_FILE, json.dumps(out, indent=1))
+    write_validation_plots(out_dir, cm.robot, np.atleast_2d(data.q), v.residuals, v.outside)
+    return out
+
+
+def run_validate(cell_path: str | Path, calibration_path: str | Path, bag_path: str | Path,
+                 out_dir: str | Path) -> int:
+    """``kpi-calib validate``: validation.json and a plot in ``out_dir``.
+
+    Returns 0 when the calibration holds, 1 when it does not.
+    """
+    doc = read_calibration(calibration_path)
+    cm, _ = calibrated_model(load_cell(cell_path), doc)
+    data, pairing = measurements_from_bag(cm, bag_path)
+    for reason, count in sorted(pairing.rejections.items()):
+        print(f'rejected {count} sample(s): {reason}', file=sys.stderr)
+    out = validate_report(cm, doc, data, out_dir)
+    print(validation_text(out))
+    print(f"written: {Path(out_dir) / VALIDATION_FILE}, "
+          f"{Path(out_dir) / 'validation_residuals.png'}")
+    return 0 if out['holds'] else 1

@@ -1,0 +1,107 @@
+"""Validation of a calibration on new measurements: do the new points fall within
+the errors the calibration itself predicts?
+
+A new point ``η_i`` is predicted as ``h(p̂, q_i)``; its error is the measurement noise
+plus the propagated uncertainty of the identified parameters,
+
+    C_i = Σ + J_i C_p J_iᵀ        (J_i = ∂h/∂p of the identified parameters at q_i),
+
+so ``χ² = Σ_i r_iᵀ C_i⁻¹ r_i`` follows χ²(3N) when the calibration holds (new data
+are independent of the fit). The verdict is this test at the adequacy level; poses
+outside the joint ranges the calibration was identified on are marked, since an
+extrapolated prediction is where a geometric model fails first.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.stats
+
+from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
+from kpi_calib_ros.core.residuals import ADEQUACY_ALPHA
+
+
+@dataclass(frozen=True)
+class Validation:
+    """Prediction of new measurements by a calibration.
+
+    Attributes
+    ----------
+    residuals : (N, 3) ndarray
+        η − h(p̂, q) per new measurement, tracker frame (m).
+    predicted_std : (N,) ndarray
+        sqrt(trace C_i / 3): the calibration's own predicted error per axis (m).
+    mahalanobis : (N,) ndarray
+        sqrt(r_iᵀ C_i⁻¹ r_i) per point.
+    outside : (N,) bool ndarray
+        Pose beyond the training joint range of some joint.
+    chi2, dof, p_value : float, int, float
+    holds : bool
+        p_value >= alpha.
+    """
+
+    residuals: np.ndarray
+    predicted_std: np.ndarray
+    mahalanobis: np.ndarray
+    outside: np.ndarray
+    chi2: float
+    dof: int
+    p_value: float
+    alpha: float
+
+    @property
+    def holds(self) -> bool:
+        return bool(self.p_value >= self.alpha)
+
+    @property
+    def rms_m(self) -> float:
+        """sqrt(mean ‖r_i‖²) over every new point (m)."""
+        return _rms(self.residuals)
+
+    def rms_where(self, mask: np.ndarray) -> float:
+        """rms (m) over the points of ``mask`` (NaN when there are none)."""
+        return _rms(self.residuals[mask]) if np.any(mask) else float('nan')
+
+
+def _rms(r: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.sum(r ** 2, axis=1))))
+
+
+def validate(model: MeasurementModel, p: np.ndarray, estimated: np.ndarray,
+             covariance: np.ndarray, sigma: np.ndarray, data: Measurements,
+             lower: np.ndarray, upper: np.ndarray,
+             alpha: float = ADEQUACY_ALPHA) -> Validation:
+    """Predict ``data`` with the calibration ``p`` and test the residuals.
+
+    Parameters
+    ----------
+    model : MeasurementModel
+        The calibrated model (effects included).
+    p : (n_p,) ndarray
+        Calibrated parameter values.
+    estimated : (k,) int ndarray
+        Indices in ``p`` of the identified parameters, ordered as ``covariance``.
+    covariance : (k, k) ndarray
+        C_p of the identified parameters.
+    sigma : (3,) ndarray
+        Measurement noise std per axis (m).
+    data : Measurements
+        New (pose, reflector) rows.
+    lower, upper : (n,) ndarray
+        Training joint ranges; a pose with any joint outside is marked.
+    """
+    q = np.atleast_2d(data.q)
+    tau = model.robot.gravity_torques(q) if model.uses_torque else None
+    pred, jac = model.jacobian(p, q, tau, data.reflector)
+    residuals = np.atleast_2d(data.eta) - pred
+    j = jac[:, :, estimated]
+    cov = np.einsum('nak,kl,nbl->nab', j, covariance, j) + np.diag(np.asarray(sigma) ** 2)
+    solved = np.linalg.solve(cov, residuals[:, :, None])[:, :, 0]
+    d2 = np.sum(residuals * solved, axis=1)
+    chi2 = float(np.sum(d2))
+    dof = 3 * len(q)
+    tol = 1e-9
+    outside = np.any((q < np.asarray(lower) - tol) | (q > np.asarray(upper) + tol), axis=1)
+    return Validation(residuals, np.sqrt(np.trace(cov, axis1=1, axis2=2) / 3), np.sqrt(d2),
+                      outside, chi2, dof, float(scipy.stats.chi2.sf(chi2, dof)), alpha)

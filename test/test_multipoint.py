@@ -1,0 +1,230 @@
+"""Several reflectors per pose: cell key, measurement rows, pairing convention,
+identification, joint registration, CSV import."""
+import copy
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from kpi_calib_ros.app.identify import identify_cell, measurements_from_bag, registered_start
+from kpi_calib_ros.core.errors import ConfigError, DataError
+from kpi_calib_ros.core.measurement import Measurements
+from kpi_calib_ros.core.pairing import pair_measurements
+from kpi_calib_ros.core.registration import register
+from kpi_calib_ros.core.simulation import random_configurations, true_parameters
+from kpi_calib_ros.core.streams import JointSample, PointSample
+from kpi_calib_ros.io.cell import (DEFAULT_CELL, build_cell_model, cell_from_dict,
+                                   read_cell_document)
+from kpi_calib_ros.io.csv_import import import_csv, mapping_from_dict
+
+OFFSETS = [[0.0, 0.0, 0.03], [0.06, 0.0, 0.03], [0.0, 0.05, 0.02]]
+NAMES = ['a', 'b', 'c']
+
+
+def _doc(offsets=OFFSETS):
+    doc = copy.deepcopy(read_cell_document(DEFAULT_CELL))
+    del doc['reflector']['offset']
+    doc['reflectors'] = [{'name': n, **({} if o is None else {'offset': o})}
+                         for n, o in zip(NAMES, offsets)]
+    return doc
+
+
+@pytest.fixture(scope='module')
+def cm():
+    return build_cell_model(cell_from_dict(_doc(), DEFAULT_CELL.parent))
+
+
+def _campaign(cm, n, seed, p_true, sigma=0.0):
+    rng = np.random.default_rng(seed)
+    q = random_configurations(cm.model, cm.geometric.nominal, n, rng)
+    q_rows = np.repeat(q, len(NAMES), axis=0)
+    ref = np.tile(np.arange(len(NAMES)), n)
+    eta = cm.model.predict(p_true, q_rows, reflector=ref)
+    eta = eta + rng.normal(size=eta.shape) * sigma
+    return Measurements(q=q_rows, eta=eta, reflector=ref)
+
+
+def test_cell_reflectors_give_one_named_offset_triple_each(cm):
+    names = cm.model.params.names
+    for n, o in zip(NAMES, OFFSETS):
+        assert [cm.model.params.nominal[names.index(f'reflector.{n}.{c}')]
+                for c in 'xyz'] == o
+    assert 'reflector.x' not in names and cm.model.n_reflectors == 3
+    assert not cm.needs_registration
+
+
+@pytest.mark.parametrize('change, key', [
+    (lambda d: d['reflectors'].append({'name': 'a', 'offset': [0, 0, 0]}), 'reflectors[3].name'),
+    (lambda d: d['reflectors'][0].update(offset=[0, 0]), 'reflectors[0].offset'),
+    (lambda d: d['reflector'].update(offset=[0, 0, 0.03]), 'reflector.offset'),
+    (lambda d: d.update(reflectors=[]), 'reflectors'),
+])
+def test_bad_reflectors_name_the_key(change, key):
+    doc = _doc()
+    change(doc)
+    with pytest.raises(ConfigError) as err:
+        cell_from_dict(doc, DEFAULT_CELL.parent)
+    assert err.value.key == key
+
+
+def test_each_row_is_predicted_with_its_own_reflector(cm):
+    p = cm.model.params.nominal
+    q = random_configurations(cm.model, p, 4, np.random.default_rng(1))
+    tips = np.array([cm.robot.pin_tip_pose(row) for row in q])
+    base = np.linalg.inv(cm.tracker_in_base)
+    for k, offset in enumerate(OFFSETS):
+        expected = (base @ tips @ np.append(offset, 1.0))[:, :3]
+        got = cm.model.predict(p, q, reflector=np.full(4, k))
+        assert np.allclose(got, expected, atol=1e-12)
+    with pytest.raises(ValueError, match='reflector indices'):
+        cm.model.predict(p, q, reflector=np.full(4, 3))
+
+
+def test_noiseless_three_reflector_campaign_is_fitted_exactly_and_gives_the_true_tcp(cm):
+    p_true = true_parameters(cm.model.params, np.random.default_rng(3))
+    data = _campaign(cm, 25, 4, p_true)
+    result = identify_cell(cm, data)
+    assert result.converged and result.rms_m < 1e-9
+    # The KPI is reflector 0's centre at the working pose: gauge-free, so exact.
+    assert np.allclose(result.tcp, cm.model.predict(p_true, cm.q_work), atol=1e-9)
+    # Off-axis reflectors observe what one on-axis reflector cannot (the last joint offset).
+    single = identify_cell(cm, Measurements(data.q[::3], data.eta[::3],
+                                            reflector=data.reflector[::3]))
+    assert len(result.estimated) > len(single.estimated)
+
+
+def test_three_reflectors_shrink_the_tcp_covariance_against_one(cm):
+    p_true = true_parameters(cm.model.params, np.random.default_rng(3))
+    data = _campaign(cm, 30, 6, p_true, sigma=2e-5)
+    three = identify_cell(cm, data)
+    one = identify_cell(cm, Measurements(data.q[::3], data.eta[::3],
+                                         reflector=data.reflector[::3]))
+    assert np.trace(three.tcp_covariance[0]) < np.trace(one.tcp_covariance[0])
+    # Truth within 3σ of the stated TCP covariance (3 axes: χ²(3) 99.9 % is 16.3).
+    err = three.tcp[0] - cm.model.predict(p_true, cm.q_work)[0]
+    assert err @ np.linalg.solve(three.tcp_covariance[0], err) < 16.3
+
+
+def test_registration_of_base_and_every_offset_jointly(cm):
+    p = cm.model.params.nominal.copy()
+    base = np.array([1.9, -0.7, 0.4, 0.05, -0.03, -2.6])
+    for c, v in zip(('x', 'y', 'z', 'roll', 'pitch', 'yaw'), base):
+        p[cm.model.params.index(f'base.{c}')] = v
+    data = _campaign(cm, 20, 8, p)
+    tips = np.array([cm.robot.pin_tip_pose(q) for q in data.q])
+    reg = register(data.eta, tips, reflector=data.reflector)
+    assert np.allclose(reg.base_in_tracker, base, atol=1e-9)
+    assert np.allclose(reg.reflector_offsets, OFFSETS, atol=1e-9)
+    assert reg.rms_m < 1e-10
+
+
+def test_cell_without_placement_is_registered_then_identified_like_the_known_one(cm):
+    p_true = true_parameters(cm.model.params, np.random.default_rng(3))
+    data = _campaign(cm, 25, 4, p_true, sigma=1e-5)
+    doc = _doc(offsets=[None, None, None])
+    del doc['tracker']['base_in_tracker']
+    unknown = build_cell_model(cell_from_dict(doc, DEFAULT_CELL.parent))
+    assert unknown.needs_registration
+    p0, reg = registered_start(unknown, data)
+    assert reg.rms_m < 5e-3
+    a, b = identify_cell(cm, data), identify_cell(unknown, data)
+    assert b.converged and abs(a.rms_m - b.rms_m) < 1e-9 * a.rms_m + 1e-12
+    assert np.allclose(a.tcp, b.tcp, atol=1e-8)
+
+
+def _streams(points, frame_ids, stamp=5_000_000_000):
+    joints = [JointSample(stamp + dt, ('j1',), [0.1], [0.0])
+              for dt in range(-300_000_000, 300_000_001, 20_000_000)]
+    pts = [PointSample(stamp, f, xyz) for f, xyz in zip(frame_ids, points)]
+    return joints, pts
+
+
+def test_points_of_one_pose_share_a_stamp_and_are_told_apart_by_the_frame_suffix():
+    joints, pts = _streams(np.eye(3), ['mocap#a', 'mocap#b', '/mocap#c'])
+    res = pair_measurements(joints, pts, ['j1'], 'mocap', reflectors=('a', 'b', 'c'))
+    assert len(res) == 3 and res.reflectors == ('a', 'b', 'c')
+    assert res.reflector_indices(['c', 'b', 'a']).tolist() == [2, 1, 0]
+    joints, pts = _streams(np.eye(3), ['mocap#a', 'mocap#a', 'mocap#z'])
+    res = pair_measurements(joints, pts, ['j1'], 'mocap', reflectors=('a', 'b'))
+    assert len(res) == 1
+    assert res.rejections == {'duplicate_stamp': 1, 'unknown_reflector': 1}
+    detail = [r.detail for r in res.rejected if r.reason == 'unknown_reflector'][0]
+    assert "'mocap#z'" in detail and 'mocap#b' in detail and '<reflector name>' in detail
+
+
+def test_csv_import_round_trip_through_a_bag(cm, tmp_path: Path):
+    p_true = cm.model.params.nominal
+    q = random_configurations(cm.model, p_true, 6, np.random.default_rng(2))
+    names = cm.joint_names
+    header = [f'{c}{k}' for k in (1, 2, 3) for c in 'xyz'] + [f'col_{n}' for n in names]
+    lines = [','.join(header)]
+    for row in q:
+        pts = [cm.model.predict(p_true, row, reflector=[k])[0] * 1e3 for k in range(3)]
+        values = list(np.concatenate(pts)) + list(np.degrees(row))
+        lines.append(','.join(repr(float(v)) for v in values))
+    table = tmp_path / 'postures.csv'
+    table.write_text('\n'.join(lines) + '\n')
+    mapping = mapping_from_dict({
+        'frame_id': cm.cell.tracker_frame, 'joints': {n: f'col_{n}' for n in names},
+        'markers': {n: [f'x{k}', f'y{k}', f'z{k}'] for k, n in enumerate(NAMES, 1)},
+        'point_unit': 'mm', 'joint_unit': 'deg'})
+    bag, postures, points = import_csv(table, tmp_path / 'p.mcap', mapping)
+    assert (postures, points) == (6, 18)
+    data, pairing = measurements_from_bag(cm, bag)
+    assert len(data) == 18 and sum(pairing.rejections.values()) == 0
+    assert np.allclose(cm.model.predict(p_true, data.q, reflector=data.reflector), data.eta,
+                       atol=1e-12)
+    bad = mapping_from_dict({'frame_id': 'f', 'joints': ['nope'],
+                             'markers': {'a': ['x1', 'y1', 'z1']}})
+    with pytest.raises(DataError, match=r"\['nope'\] are not in the file"):
+        import_csv(table, tmp_path / 'q.mcap', bad)
+
+
+def test_design_rows_hold_every_reflector_of_a_pose(cm):
+    from kpi_calib_ros.core.design_criteria import build_problem
+    q = random_configurations(cm.model, cm.geometric.nominal, 60, np.random.default_rng(4))
+    problem = build_problem(cm.design_cell(), q)
+    rows = problem.rows(cm.model, q[:5])
+    assert rows.shape == (5, 9, problem.k)
+    # Rows 3k..3k+2 are reflector k's weighted, scaled Jacobian.
+    _, jac = cm.model.jacobian(problem.p, q[:5], reflector=np.full(5, 2))
+    expected = jac[:, :, problem.index] / cm.cell.sigma[None, :, None] * problem.column_scale
+    assert np.allclose(rows[:, 6:9], expected, rtol=1e-12, atol=0)
+
+
+@pytest.mark.slow
+def test_a_design_for_three_reflectors_predicts_a_smaller_tcp_covariance(cm):
+    from kpi_calib_ros.app.design import design_cell_model
+    single = build_cell_model(cell_from_dict(read_cell_document(DEFAULT_CELL),
+                                             DEFAULT_CELL.parent))
+    one = design_cell_model(single, 30, 'kpi', 0)
+    three = design_cell_model(cm, 30, 'kpi', 0)
+    assert one.verification.ok and three.verification.ok
+    assert three.criteria['kpi'] < 0.75 * one.criteria['kpi']
+
+
+def test_the_node_store_keeps_every_reflector_of_a_pose_and_restores_them(tmp_path):
+    from kpi_calib_ros.ros.campaign import Campaign
+    joints, pts = _streams(np.eye(3), ['mocap#a', 'mocap#b', 'mocap#a'])
+    store = Campaign(tmp_path)
+    store.set_chain(['j1'], 'mocap', ('a', 'b'))
+    for sample in sorted(joints + pts[:2], key=lambda s: s.stamp_ns):
+        store.receive(sample, now_ns=0)
+    store.receive(pts[2], now_ns=0)  # the same reflector at the same stamp again
+    store.poll(now_ns=10**12)
+    data, _ = store.measurements(['j1'], 'mocap', ('a', 'b'))
+    assert len(data) == 2 and data.reflector.tolist() == [0, 1]
+    assert store.rejections['duplicate_stamp'] == 1
+    store.close()
+    again, _ = Campaign(tmp_path).measurements(['j1'], 'mocap', ('b', 'a'))
+    assert sorted(again.reflector.tolist()) == [0, 1]
+    assert np.allclose(sorted(map(tuple, again.eta)), sorted(map(tuple, data.eta)))
+
+
+def test_a_cell_names_a_pip_installed_urdf_by_package_uri():
+    cell_path = Path(__file__).resolve().parent / 'data' / 'tiago_mocap_cell.yaml'
+    from kpi_calib_ros.io.cell import load_cell
+    tiago = build_cell_model(load_cell(cell_path))
+    assert tiago.cell.urdf_path.endswith('robots/tiago_description/robots/tiago_no_hand.urdf')
+    assert tiago.joint_names == ['torso_lift_joint'] + [f'arm_{i}_joint' for i in range(1, 8)]
+    assert tiago.needs_registration and tiago.model.n_reflectors == 4

@@ -1,0 +1,96 @@
+"""kpi_calib_node ~/validate, in process (private context): the last calibration is
+tested on the measurements accepted since it was identified, as `kpi-calib validate`."""
+from __future__ import annotations
+
+import json
+import threading
+
+import numpy as np
+import pytest
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, QoSProfile
+from std_msgs.msg import String
+
+from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
+                                           true_parameters)
+from kpi_calib_ros.core.streams import synthesize_streams
+from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.io.ros_messages import joint_state_msg, point_stamped_msg
+from kpi_calib_ros.ros.node import CalibrationNode
+from ros_helpers import KR15_URDF
+
+
+@pytest.fixture
+def node(tmp_path, ros_domain):
+    context = Context()
+    rclpy.init(context=context, domain_id=ros_domain)
+    made = None
+    try:
+        made = CalibrationNode(context=context, parameter_overrides=[
+            Parameter('robot_description', value=KR15_URDF),
+            Parameter('data_dir', value=str(tmp_path)),
+            Parameter('auto_identify', value=False)])
+        yield made
+    finally:
+        if made is not None:
+            made.destroy_node()
+        rclpy.shutdown(context=context)
+
+
+def _feed(node, joints, points):
+    stream = sorted([(s.stamp_ns, 0, s) for s in joints] + [(p.stamp_ns, 1, p) for p in points],
+                    key=lambda item: item[:2])
+    for _, kind, sample in stream:
+        if kind:
+            node._on_point(point_stamped_msg(sample))
+        else:
+            node._on_joint_state(joint_state_msg(sample))
+
+
+def _call(node, executor, name, work):
+    assert node._claim_job(name)
+    task = executor.create_task(node._run_job, name, work)
+    done = threading.Event()
+    task.add_done_callback(lambda _: done.set())
+    assert done.wait(timeout=120), f'{name} did not finish'
+    return task.result()
+
+
+@pytest.mark.slow
+def test_validate_service_tests_the_calibration_on_the_new_measurements(node, tmp_path):
+    cm = build_cell_model(load_cell(DEFAULT_CELL))
+    rng = np.random.default_rng(21)
+    p_true = true_parameters(cm.model.params, rng)
+    q = random_configurations(cm.model, p_true, 45, rng)
+    eta = simulate_measurements(cm.model, p_true, q, cm.cell.sigma, rng).eta
+    joints, points = synthesize_streams(q, cm.joint_names, eta, cm.cell.tracker_frame)
+    cut = points[35].stamp_ns - 1_000_000_000  # between the holds of poses 34 and 35
+    received, got = [], threading.Event()
+    node.create_subscription(String, '~/validation',
+                             lambda m: (received.append(m.data), got.set()),
+                             QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+    executor = SingleThreadedExecutor(context=node.context)
+    executor.add_node(node)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    try:
+        ok, message = _call(node, executor, 'validating', node._validate)
+        assert not ok and 'no calibration' in message
+        _feed(node, [j for j in joints if j.stamp_ns < cut], points[:35])
+        ok, message = _call(node, executor, 'identifying', node._identify)
+        assert ok, message
+        ok, message = _call(node, executor, 'validating', node._validate)
+        assert not ok and 'since the last identification' in message
+        _feed(node, [j for j in joints if j.stamp_ns >= cut], points[35:])
+        ok, message = _call(node, executor, 'validating', node._validate)
+        assert ok and message.startswith('calibration holds on 10 new measurements'), message
+        assert got.wait(timeout=30), 'no message on ~/validation'
+    finally:
+        executor.shutdown()
+        spinner.join(timeout=10)
+    doc = json.loads((tmp_path / 'validation' / 'validation.json').read_text())
+    assert doc['holds'] and doc['measurements'] == 10
+    assert received and json.loads(received[-1]) == doc

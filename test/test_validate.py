@@ -1,0 +1,104 @@
+"""kpi-calib validate: a calibration predicts new points within its own predicted errors."""
+import json
+
+import numpy as np
+import pytest
+import yaml
+
+from kpi_calib_ros.app.identify import (calibration_document, identify_cell,
+                                        measurements_from_bag)
+from kpi_calib_ros.cli import main
+from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
+                                           true_parameters)
+from kpi_calib_ros.core.streams import synthesize_streams
+from kpi_calib_ros.io.bag_writing import write_bag
+from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.io.results import write_calibration
+
+
+@pytest.fixture(scope='module')
+def setup(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp('validate')
+    cm = build_cell_model(load_cell(DEFAULT_CELL))
+    rng = np.random.default_rng(11)
+    p_true = true_parameters(cm.model.params, rng)
+    sigma = cm.cell.sigma
+
+    def bag(n, name, p=p_true):
+        q = random_configurations(cm.model, p, n, rng)
+        data = simulate_measurements(cm.model, p, q, sigma, rng)
+        joints, points = synthesize_streams(q, cm.joint_names, data.eta, cm.cell.tracker_frame)
+        return write_bag(tmp / name, joints, points), data
+
+    train_bag, train = bag(40, 'train.mcap')
+    new_bag, _ = bag(30, 'new.mcap')
+    result = identify_cell(cm, train)
+    _, pairing = measurements_from_bag(cm, train_bag)
+    doc = calibration_document(cm, result, pairing)
+    write_calibration(tmp / 'good', doc)
+    # The same calibration with joint_2's offset 1 mrad off: a robot that changed.
+    bad = yaml.safe_load(yaml.safe_dump(doc))
+    for entry in bad['parameters']:
+        if entry['name'] == 'joint_2.offset':
+            entry['value'] += 1e-3
+    write_calibration(tmp / 'bad', bad)
+    return tmp, doc, cm
+
+
+def _run(tmp, calibration, out):
+    return main(['validate', '--cell', str(DEFAULT_CELL), '--calibration',
+                 str(tmp / calibration / 'calibration.yaml'), '--bag', str(tmp / 'new.mcap'),
+                 '--out', str(tmp / out)])
+
+
+def test_calibration_stores_training_ranges_and_parameter_covariance(setup):
+    _, doc, cm = setup
+    ranges = doc['training_joint_ranges']
+    assert list(ranges) == cm.joint_names and all(lo < hi for lo, hi in ranges.values())
+    cov = np.array(doc['parameter_covariance']['matrix'])
+    std = [p['std'] for p in doc['parameters'] if p['estimated']]
+    assert np.allclose(np.sqrt(np.diag(cov)), std, rtol=1e-12)
+
+
+def test_calibration_holds_on_new_points_of_the_same_robot(setup):
+    tmp, doc, _ = setup
+    assert _run(tmp, 'good', 'val_good') == 0
+    out = json.loads((tmp / 'val_good' / 'validation.json').read_text())
+    assert out['holds'] and out['measurements'] == 30 and out['dof'] == 90
+    # New points scatter like the noise: rms of |r| about sqrt(3) σ (20 µm per axis).
+    assert 0.7 * np.sqrt(3) * 2e-5 < out['rms_m'] < 1.3 * np.sqrt(3) * 2e-5
+    assert (tmp / 'val_good' / 'validation_residuals.png').stat().st_size > 0
+
+
+def test_calibration_does_not_hold_for_a_changed_robot(setup):
+    tmp, _, _ = setup
+    assert _run(tmp, 'bad', 'val_bad') == 1
+    out = json.loads((tmp / 'val_bad' / 'validation.json').read_text())
+    assert not out['holds'] and out['p_value'] < 1e-10
+    assert out['verdict'] == 'calibration does not hold'
+
+
+def test_poses_beyond_the_training_ranges_are_marked(setup):
+    tmp, doc, cm = setup
+    narrow = yaml.safe_load(yaml.safe_dump(doc))
+    lo, hi = narrow['training_joint_ranges']['joint_1']
+    narrow['training_joint_ranges']['joint_1'] = [lo, 0.5 * (lo + hi)]
+    write_calibration(tmp / 'narrow', narrow)
+    _run(tmp, 'narrow', 'val_narrow')
+    out = json.loads((tmp / 'val_narrow' / 'validation.json').read_text())
+    new, _ = measurements_from_bag(cm, tmp / 'new.mcap')
+    full = np.array([doc['training_joint_ranges'][n] for n in cm.joint_names])
+    expected = ((new.q[:, 0] > 0.5 * (lo + hi) + 1e-9) | np.any(new.q < full[:, 0] - 1e-9, axis=1)
+                | np.any(new.q > full[:, 1] + 1e-9, axis=1))
+    marked = np.array([p['outside_training_range'] for p in out['points']])
+    assert 0 < expected.sum() < 30 and np.array_equal(marked, expected)
+    assert out['outside_training_range'] == int(expected.sum())
+
+
+def test_a_calibration_of_another_cell_is_an_error_naming_the_key(setup, capsys):
+    tmp, doc, _ = setup
+    other = yaml.safe_load(yaml.safe_dump(doc))
+    other['parameters'] = [p for p in other['parameters'] if p['name'] != 'joint_3.offset']
+    write_calibration(tmp / 'other', other)
+    assert _run(tmp, 'other', 'val_other') == 2
+    assert 'calibration.parameters' in capsys.readouterr().err
