@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 from kpi_calib_ros.app.identify import identify_cell, load_measurements, with_effects
 from kpi_calib_ros.core.diagnosis import CellDiagnosis, compare_models, diagnose
@@ -15,6 +16,7 @@ from kpi_calib_ros.core.residuals import ADEQUACY_ALPHA
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.names import DIAGNOSIS_FILE
 from kpi_calib_ros.io.report import diagnosis_text, write_report
+from kpi_calib_ros.io.results import writable_folder
 
 
 def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 5,
@@ -33,9 +35,12 @@ def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 5,
 
 
 def run_diagnose(cell_path: str | Path, bag_path: str | Path, out_dir: str | Path,
-                 effects: str = '', folds: int = 5, alpha: float = ADEQUACY_ALPHA) -> int:
-    """``kpi-calib diagnose``: diagnosis.json, report.md and plots in ``out_dir``."""
-    cm, data, _ = load_measurements(cell_path, bag_path, effects)
+                 effects: str = '', folds: int = 5, alpha: float = ADEQUACY_ALPHA,
+                 **options: Any) -> int:
+    """``kpi-calib diagnose``: diagnosis.json, report.md and plots in ``out_dir``
+    (checked first); ``options`` as for :func:`load_measurements`."""
+    writable_folder(out_dir, '--out')
+    cm, data, _ = load_measurements(cell_path, bag_path, effects, **options)
     cd = diagnose_cell(cm, data, folds=folds, alpha=alpha)
     report = write_report(out_dir, cd)
     print(diagnosis_text(cd))

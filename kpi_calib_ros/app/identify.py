@@ -27,7 +27,8 @@ from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
 from kpi_calib_ros.io.measurement_log import stored_pairing
 from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC
 from kpi_calib_ros.io.report import comparison_text, comparison_to_dict
-from kpi_calib_ros.io.results import calibration_to_dict, summary_text, write_calibration
+from kpi_calib_ros.io.results import (calibration_to_dict, summary_text, writable_folder,
+                                      write_calibration)
 
 
 def measurements_from_samples(cm: CellModel, joint_samples: Iterable[JointSample],
@@ -111,24 +112,34 @@ def add_effect_comparison(doc: dict[str, Any], cm: CellModel, data: Measurements
     return comparison_text(cmp)
 
 
-def load_measurements(cell_path: str | Path, bag_path: str | Path, effects: str = ''
+def load_measurements(cell_path: str | Path, bag_path: str | Path, effects: str = '',
+                      joint_topic: str | None = None, point_topic: str | None = None,
+                      allow_code_effects: bool = False
                       ) -> tuple[CellModel, Measurements, PairingResult]:
     """Cell model (with the extra ``effects`` specs, comma-separated) and the paired
-    measurements of a bag; rejections are reported on stderr."""
-    cm = build_cell_model(load_cell(cell_path), effects=tuple(split_specs(effects)))
-    data, pairing = measurements_from_bag(cm, bag_path)
+    measurements of a bag; rejections are reported on stderr.
+
+    ``joint_topic`` / ``point_topic`` (``--joint-topic`` / ``--point-topic``) override
+    the cell's ``topics:``; ``allow_code_effects`` lets effects name Python code.
+    """
+    cell = load_cell(cell_path, allow_code_effects=allow_code_effects)
+    cm = build_cell_model(cell, effects=tuple(split_specs(effects)))
+    data, pairing = measurements_from_bag(cm, bag_path, joint_topic or cell.joint_topic,
+                                          point_topic or cell.point_topic)
     for reason, count in sorted(pairing.rejections.items()):
         print(f'rejected {count} sample(s): {reason}', file=sys.stderr)
     return cm, data, pairing
 
 
 def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Path,
-                 effects: str = '') -> int:
-    """``kpi-calib identify``: calibration.yaml in ``out_dir`` and a summary on stdout.
+                 effects: str = '', **options: Any) -> int:
+    """``kpi-calib identify``: calibration.yaml in ``out_dir`` and a summary on stdout;
+    ``options`` as for :func:`load_measurements`. ``out_dir`` is checked first.
 
     Returns 0 when the identification converged, else 1.
     """
-    cm, data, pairing = load_measurements(cell_path, bag_path, effects)
+    writable_folder(out_dir, '--out')
+    cm, data, pairing = load_measurements(cell_path, bag_path, effects, **options)
     result = identify_cell(cm, data)
     doc = calibration_document(cm, result, pairing)
     comparison = add_effect_comparison(doc, cm, data, result) if cm.model.effects else ''

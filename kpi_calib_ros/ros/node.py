@@ -43,7 +43,8 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.exceptions import ParameterUninitializedException
+from rclpy.exceptions import (InvalidParameterTypeException, InvalidParameterValueException,
+                              ParameterUninitializedException)
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -68,7 +69,8 @@ from kpi_calib_ros.io.names import (CALIBRATED_URDF_TOPIC, CALIBRATION_TOPIC, DI
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros import jobs
 from kpi_calib_ros.ros.campaign import Campaign
-from kpi_calib_ros.ros.parameters import PARAMETERS, settings_from_parameters, working_poses
+from kpi_calib_ros.ros.parameters import (PARAMETERS, settings_from_parameters, type_error,
+                                          working_poses)
 
 NODE_NAME = 'kpi_calib_node'
 
@@ -87,16 +89,19 @@ class CalibrationNode(Node):
 
     def __init__(self, **kwargs) -> None:
         super().__init__(NODE_NAME, **kwargs)
-        for name, (default, read_only, description) in PARAMETERS.items():
-            self.declare_parameter(name, default, ParameterDescriptor(
-                description=description, read_only=read_only))
+        self._declare_parameters()
         self.settings = settings_from_parameters(self._parameter_values())
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
         # The cell once, validated; the URDF comes from the parameter or the topic.
-        self._cell = load_cell(self.settings.cell_file, urdf_xml='')
+        self._cell = load_cell(self.settings.cell_file, urdf_xml='',
+                               allow_code_effects=self.settings.allow_code_effects)
         self.data_dir = Path(self.settings.data_dir)
-        self.campaign = Campaign(self.data_dir)
+        try:
+            self.campaign = Campaign(self.data_dir)
+        except OSError as exc:  # missing parent, read-only, a file in the way, no space
+            raise ConfigError('data_dir', f'cannot log measurements in {str(self.data_dir)!r}: '
+                              f'{exc.strerror or exc}; give a writable folder') from None
         self.get_logger().info(f'{self.campaign.restored} measurement(s) restored from '
                                f'{self.data_dir}; logging to {self.campaign.log.path}')
 
@@ -149,6 +154,17 @@ class CalibrationNode(Node):
             self.get_logger().info(f'waiting for {self.settings.robot_description_topic}')
 
     # ------------------------------------------------------------------ parameters
+    def _declare_parameters(self) -> None:
+        """Declare every parameter; a start-up value of the wrong type (``-p
+        auto_identify:=maybe`` arrives as a string) is a ConfigError naming it."""
+        for name, (default, read_only, description) in PARAMETERS.items():
+            try:
+                self.declare_parameter(name, default, ParameterDescriptor(
+                    description=description, read_only=read_only))
+            except (InvalidParameterTypeException, InvalidParameterValueException) as exc:
+                given = getattr(self, '_parameter_overrides', {}).get(name)
+                raise type_error(name, exc if given is None else given.value) from None
+
     def _parameter_values(self, changes: dict[str, Any] | None = None) -> dict[str, Any]:
         values = {}
         for name in PARAMETERS:
