@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -133,6 +134,11 @@ def defaults(**changes):
     ({'point_topic': '/joint_states'}, 'point_topic'),
     ({'cell_file': '/no/such/cell.yaml'}, 'cell_file'),
     ({'data_dir': ''}, 'data_dir'),
+    ({'joint_states_topic': '/joint states'}, 'joint_states_topic'),
+    ({'point_topic': 'tracker/point!'}, 'point_topic'),
+    ({'robot_description_topic': ''}, 'robot_description_topic'),
+    ({'auto_identify': 'maybe'}, 'auto_identify'),
+    ({'allow_code_effects': 'yes'}, 'allow_code_effects'),
 ])
 def test_parameters_are_validated_by_name(changes, key):
     with pytest.raises(ConfigError) as info:
@@ -165,6 +171,76 @@ def test_working_poses_parameters_override_the_cell(tmp_path, ros_domain):
         if node is not None:
             node.destroy_node()
         rclpy.shutdown(context=context)
+
+
+def _start_error(tmp_path, ros_domain, *overrides: Parameter) -> ConfigError:
+    """The ConfigError a node started with ``overrides`` stops with."""
+    context = Context()
+    rclpy.init(context=context, domain_id=ros_domain)
+    try:
+        with pytest.raises(ConfigError) as info:
+            CalibrationNode(context=context, parameter_overrides=[
+                Parameter('robot_description', value=KR15_URDF),
+                Parameter('data_dir', value=str(tmp_path / 'data')), *overrides])
+    finally:
+        rclpy.shutdown(context=context)
+    return info.value
+
+
+@pytest.mark.parametrize('name, value, words', [
+    ('auto_identify', 'maybe', 'true or false'),     # -p auto_identify:=maybe: a string
+    ('num_measurements', 1.5, 'an integer'),
+    ('design_seed', 'one', 'an integer'),
+    ('working_poses', 'up', 'a list of numbers'),
+    ('joint_states_topic', '/joint states', 'not a valid ROS topic name'),
+])
+def test_a_start_up_value_of_the_wrong_kind_names_the_parameter(tmp_path, ros_domain, name,
+                                                                 value, words):
+    error = _start_error(tmp_path, ros_domain, Parameter(name, value=value))
+    assert error.key == name and words in str(error) and repr(value) in str(error)
+
+
+def test_an_unusable_data_dir_is_a_config_error(tmp_path, ros_domain):
+    blocker = tmp_path / 'a_file'
+    blocker.write_text('in the way')
+    for data_dir in (blocker, blocker / 'data', Path('/proc/kpi_calib_data')):
+        error = _start_error(tmp_path, ros_domain, Parameter('data_dir', value=str(data_dir)))
+        assert error.key == 'data_dir' and str(data_dir) in str(error)
+
+
+def test_the_node_runs_no_code_named_by_the_cell_without_the_opt_in(tmp_path, ros_domain):
+    marker = tmp_path / 'ran.marker'
+    (tmp_path / 'evil.py').write_text(
+        f'from pathlib import Path\nPath({str(marker)!r}).write_text("ran")\n')
+    doc = yaml.safe_load(DEFAULT_CELL.read_text())
+    doc['robot']['urdf'] = str((DEFAULT_CELL.parent / doc['robot']['urdf']).resolve())
+    doc['effects'] = ['evil.py:SAG:joint_2']
+    cell = tmp_path / 'cell.yaml'
+    cell.write_text(yaml.safe_dump(doc))
+    error = _start_error(tmp_path, ros_domain, Parameter('cell_file', value=str(cell)))
+    assert error.key == 'effects[0]' and 'allow_code_effects' in str(error)
+    assert not marker.exists()
+    # With the opt-in the file runs (and is then refused: it defines no SAG).
+    error = _start_error(tmp_path, ros_domain, Parameter('cell_file', value=str(cell)),
+                         Parameter('allow_code_effects', value=True))
+    assert marker.exists() and 'SAG' in str(error)
+
+
+@pytest.mark.slow
+def test_bad_command_line_parameters_exit_2_naming_them(spawn, tmp_path, ros_domain):
+    blocker = tmp_path / 'a_file'
+    blocker.write_text('in the way')
+    for i, (override, name) in enumerate([('auto_identify:=maybe', 'auto_identify'),
+                                          ('num_measurements:=1.5', 'num_measurements'),
+                                          ('point_topic:=/tracker point', 'point_topic'),
+                                          (f'data_dir:={blocker}/data', 'data_dir')]):
+        node = spawn(tmp_path / 'data', f'node{i}.log', override)
+        try:
+            code = node.process.wait(timeout=60)
+        finally:
+            node.stop()
+        assert code == 2, node.output()
+        assert f'error: {name}' in node.output() and 'Traceback' not in node.output()
 
 
 @pytest.fixture
