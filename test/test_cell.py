@@ -149,3 +149,15 @@ def test_bag_topics_come_from_the_cell_or_their_defaults():
         with pytest.raises(ConfigError) as info:
             cell_from_dict(_set(_doc(), 'topics', topics), DEFAULT_CELL.parent)
         assert info.value.key == key
+
+
+def test_identification_priority_names_are_checked_against_the_model():
+    doc = _set(_doc(), 'identification', {'method': 'priority',
+                                          'priority': ['joint_1.offset', 'joint_1.ofset']})
+    with pytest.raises(ConfigError) as info:
+        build_cell_model(cell_from_dict(doc, DEFAULT_CELL.parent))
+    assert info.value.key == 'identification.priority'
+    assert "['joint_1.ofset']" in str(info.value) and "'joint_1.offset'" in str(info.value)
+    doc = _set(_doc(), 'identification', {'priority': ['joint_1.offset']})  # method pivoted
+    with pytest.raises(ConfigError, match='only with method: priority'):
+        cell_from_dict(doc, DEFAULT_CELL.parent)

@@ -198,7 +198,7 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None,
         beam_radius=_non_negative(number(collision, 'beam_radius', 'collision', 0.005, 'm'),
                                   'collision.beam_radius', 'm'),
         identification_method=method,
-        identification_priority=tuple(ident.get('priority') or ()),
+        identification_priority=_priority(ident, method),
         effects=tuple(str(e) for e in (doc.get('effects') or [])),
         **_topics(doc.get('topics')),
         design=design_settings(doc.get('design')),
@@ -335,6 +335,21 @@ def _topics(raw: Any) -> dict[str, str]:
     if names['joint_states'] == names['point']:
         raise ConfigError('topics.point', 'must differ from topics.joint_states')
     return {'joint_topic': names['joint_states'], 'point_topic': names['point']}
+
+
+def _priority(ident: dict, method: str) -> tuple[str, ...]:
+    """``identification.priority``: parameter names, used only by ``method: priority``
+    (their existence is checked against the model in :func:`build_cell_model`)."""
+    raw = ident.get('priority')
+    if raw is None:
+        return ()
+    if not isinstance(raw, list) or not all(isinstance(n, str) for n in raw):
+        raise ConfigError('identification.priority', 'must be a list of parameter names, e.g. '
+                          '[joint_1.offset, joint_2.offset]')
+    if method != 'priority':
+        raise ConfigError('identification.priority', "is used only with method: priority; "
+                          'set it or remove the list')
+    return tuple(raw)
 
 
 def _optional_mapping(doc: dict, key: str) -> dict:
@@ -510,6 +525,10 @@ def build_cell_model(cell: Cell, effects: tuple = ()) -> CellModel:
     extra = resolve_effects(effects, robot, 'extra effects', cell.source_dir or None, code)
     resolved += tuple(e for e in extra if e.name not in {r.name for r in resolved})
     model = MeasurementModel(robot, geometric, resolved, cell.reflector_axis)
+    unknown = [n for n in cell.identification_priority if n not in model.params.names]
+    if unknown:
+        raise ConfigError('identification.priority', f'unknown parameter(s) {unknown}; valid '
+                          f'names: {list(model.params.names)}')
     q_work = np.array([_ordered(w, robot, f'working_poses[{i}].joints')
                        for i, w in enumerate(cell.working_poses)])
     inside = robot.within_limits(q_work)
