@@ -179,6 +179,11 @@ def test_the_measurement_log_is_a_bag_every_command_reads(tmp_path, capsys):
     assert (tmp_path / 'from_log' / 'calibration.yaml').stat().st_mode & 0o777 == 0o644 & ~_umask()
     assert main(['diagnose', '--cell', cell, '--bag', str(log), '--out',
                  str(tmp_path / 'diagnosis')]) == 0
+    capsys.readouterr()
+    # Replaying it into a node would reject every point: refused, saying what to do.
+    assert main(['replay', str(log)]) == 2
+    err = capsys.readouterr().err
+    assert 'measurement log' in err and 'kpi-calib identify --bag' in err and 'data_dir' in err
 
 
 def _umask() -> int:

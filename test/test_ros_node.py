@@ -339,3 +339,52 @@ def test_jobs_compute_in_a_worker_and_touch_the_node_on_the_executor(in_process)
     finally:
         executor.shutdown()
         spinner.join(timeout=10)
+
+
+def test_heavy_jobs_compute_in_a_child_process_that_holds_no_gil_of_the_node(in_process,
+                                                                            tmp_path):
+    """``child=True``: the function runs in another process (its own interpreter and GIL),
+    sees the inputs without pickling them, writes files the node then reads, and its
+    value or its error (ConfigError included) comes back to the job on the executor."""
+    import os
+
+    from kpi_calib_ros.core.errors import KpiCalibError
+    node = in_process
+    executor = SingleThreadedExecutor(context=node.context)
+    executor.add_node(node)
+    unpicklable = threading.Lock()  # an input that could not be sent to a spawned process
+
+    def compute(lock, path):
+        path.write_text(str(os.getpid()))
+        return os.getpid(), lock.locked()
+
+    def refuse():
+        raise ConfigError('some.key', 'a reason')
+
+    async def job():
+        pid, locked = await node._offload(compute, unpicklable, tmp_path / 'pid', child=True)
+        try:
+            await node._offload(refuse, child=True)
+        except KpiCalibError as exc:
+            return pid, locked, str(exc)
+        return pid, locked, ''
+
+    try:
+        task = executor.create_task(job)
+        executor.spin_until_future_complete(task, timeout_sec=60)
+        pid, locked, error = task.result()
+    finally:
+        executor.shutdown()
+    assert pid != os.getpid() and (tmp_path / 'pid').read_text() == str(pid)
+    assert locked is False and error == 'some.key: a reason'
+
+
+def test_joint_states_lost_before_the_node_read_them_are_counted_and_reported(in_process):
+    """DDS numbers each message of a publisher; a gap is messages the queue dropped."""
+    node = in_process
+    sequence = node._sequences['joint_states']
+    for number in (1, 2, 3, 7, 8, 20, 1, 2):  # 3 + 11 lost; 1 again: a new publisher
+        sequence.see({'publication_sequence_number': number})
+    level, message, values = node.status()
+    assert values['lost.joint_states'] == 14 and values['lost.points'] == 0
+    assert level == 'WARN' and '14 joint states' in message

@@ -97,7 +97,7 @@ class Campaign:
                 else:
                     self._point_clock = (sample.stamp_ns, now_ns)
             if self.pairer is None:
-                if joint and len(sample.names) > EARLY_MAX_NAMES:
+                if isinstance(sample, JointSample) and len(sample.names) > EARLY_MAX_NAMES:
                     rejection = Rejection(sample.stamp_ns, 'oversized_joint_state',
                                           f'joint state names {len(sample.names)} joints '
                                           f'(limit {EARLY_MAX_NAMES} before the robot model '

@@ -69,6 +69,7 @@ from kpi_calib_ros.io.names import (CALIBRATED_URDF_TOPIC, CALIBRATION_TOPIC, DI
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros import jobs
 from kpi_calib_ros.ros.campaign import Campaign
+from kpi_calib_ros.ros.child_process import run_in_child
 from kpi_calib_ros.ros.parameters import (PARAMETERS, settings_from_parameters, type_error,
                                           working_poses)
 
@@ -82,6 +83,32 @@ def _latched(depth: int = 1) -> QoSProfile:
 
 def _stream_qos(depth: int) -> QoSProfile:
     return QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE)
+
+
+# Subscription queues sized in seconds at the highest expected rates: a stall of the
+# executor this long (a slow disk, a busy machine) loses nothing. Jobs run in a child
+# process (ros/child_process.py), so no job holds the executor back.
+JOINT_STATES_MAX_HZ = 1000.0
+POINTS_MAX_HZ = 50.0
+STREAM_BUFFER_S = 10.0
+
+
+class _Sequence:
+    """Messages lost before the node read them, from the publication sequence numbers
+    DDS gives each message (one publisher per topic; a number that goes back is a new
+    publisher, or the same one restarted)."""
+
+    def __init__(self) -> None:
+        self.last: int | None = None
+        self.lost = 0
+
+    def see(self, info: dict[str, Any]) -> None:
+        number = info.get('publication_sequence_number')
+        if not number:  # the middleware does not report them
+            return
+        if self.last is not None and number > self.last + 1:
+            self.lost += number - self.last - 1
+        self.last = number
 
 
 class CalibrationNode(Node):
@@ -134,10 +161,17 @@ class CalibrationNode(Node):
         # Latched, one message per working pose: made when a model gives their number.
         self._pub_tcp: Publisher | None = None
         self._tcp_depth = 0
+        self._sequences = {'joint_states': _Sequence(), 'points': _Sequence()}
+        self._identifications = 0
+        # Callbacks with (message, message info); rclpy 7.1's annotation omits that form.
         self.create_subscription(JointState, self.settings.joint_states_topic,
-                                 self._on_joint_state, _stream_qos(1000), callback_group=streams)
-        self.create_subscription(PointStamped, self.settings.point_topic, self._on_point,
-                                 _stream_qos(100), callback_group=streams)
+                                 self._on_joint_state,  # type: ignore[arg-type]
+                                 _stream_qos(int(JOINT_STATES_MAX_HZ * STREAM_BUFFER_S)),
+                                 callback_group=streams)
+        self.create_subscription(PointStamped, self.settings.point_topic,
+                                 self._on_point,  # type: ignore[arg-type]
+                                 _stream_qos(int(POINTS_MAX_HZ * STREAM_BUFFER_S)),
+                                 callback_group=streams)
         for name, doing, work in (('design', 'designing', self._design),
                                   ('identify', 'identifying', self._identify),
                                   ('diagnose', 'diagnosing', self._diagnose),
@@ -226,10 +260,12 @@ class CalibrationNode(Node):
         return self._pub_tcp
 
     # ------------------------------------------------------------------ live pairing
-    def _on_joint_state(self, msg: JointState) -> None:
+    def _on_joint_state(self, msg: JointState, info: dict[str, Any]) -> None:
+        self._sequences['joint_states'].see(info)
         self._report(self.campaign.receive(cv.joint_sample_from_msg(msg)))
 
-    def _on_point(self, msg: PointStamped) -> None:
+    def _on_point(self, msg: PointStamped, info: dict[str, Any]) -> None:
+        self._sequences['points'].see(info)
         self._report(self.campaign.receive(cv.point_sample_from_msg(msg)))
 
     def _report(self, decisions: list[Decision]) -> None:
@@ -289,15 +325,17 @@ class CalibrationNode(Node):
             self._job_name = ''
         return outcome
 
-    def _offload(self, fn: Callable[..., Any], *args: Any) -> Future:
-        """Run ``fn(*args)`` in a worker thread; awaiting the returned future resumes the
-        job on the executor with ``fn``'s value (or raises its exception)."""
+    def _offload(self, fn: Callable[..., Any], *args: Any, child: bool = False) -> Future:
+        """Run ``fn(*args)`` in a worker thread (``child``: in a forked child process that
+        the thread waits for, for pure computations that must not hold the GIL); awaiting
+        the returned future resumes the job on the executor with ``fn``'s value (or
+        raises its exception)."""
         done = Future(executor=self.executor)
         done.add_done_callback(lambda _: None)  # its scheduling wakes the executor
 
         def run() -> None:
             try:
-                value = fn(*args)
+                value = run_in_child(fn, *args) if child else fn(*args)
             except Exception as exc:  # handed to the awaiting job, which reports it
                 done.set_exception(exc)
             else:
@@ -314,7 +352,7 @@ class CalibrationNode(Node):
     async def _design(self) -> tuple[bool, str]:
         cm = self._model()
         design, points, path = await self._offload(jobs.design_work, cm, self.settings,
-                                                   self.data_dir)
+                                                   self.data_dir, child=True)
         self._pub_poses.publish(cv.joint_trajectory_msg(design.joint_names,
                                                         design.configurations))
         self._design_points = points
@@ -332,11 +370,12 @@ class CalibrationNode(Node):
         data, pairing = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame)
         try:
             result, calibration, urdf, tcp = await self._offload(
-                jobs.identify_work, cm, data, pairing, self.data_dir)
+                jobs.identify_work, cm, data, pairing, self.data_dir, child=True)
         except KpiCalibError as exc:
             self._result_error = f'identification failed: {exc}'
             raise
         self._result, self._measured, self._identified_with = result, data.eta, len(data)
+        self._identifications += 1
         self._result_error = '' if result.converged else result.message
         self._pub_calibration.publish(String(data=calibration))
         self._pub_urdf.publish(String(data=urdf))
@@ -357,7 +396,7 @@ class CalibrationNode(Node):
         cm = self._model()
         data, _ = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame)
         doc, text, verdict, report = await self._offload(jobs.diagnose_work, cm, data,
-                                                         self.data_dir)
+                                                         self.data_dir, child=True)
         self._diagnosis = doc
         self._pub_diagnosis.publish(String(data=text))
         self._publish_diagnostics(force=True)
@@ -391,7 +430,11 @@ class CalibrationNode(Node):
             'waiting for robot description' if self._cm is None else 'idle')}
         values.update(self.campaign.counts())
         values.update({'identified_with': self._identified_with,
+                       'identifications': self._identifications,
+                       'lost.joint_states': self._sequences['joint_states'].lost,
+                       'lost.points': self._sequences['points'].lost,
                        'log_file': str(self.campaign.log.path)})
+        lost = values['lost.joint_states'] + values['lost.points']
         result, n, rejected = self._result, values['accepted'], values['rejected']
         if result is not None:
             values.update({'rms_um': round(result.rms_m * 1e6, 3),
@@ -406,6 +449,10 @@ class CalibrationNode(Node):
             return 'ERROR', error or 'accepted measurements could not be stored', values
         if result is not None and not is_adequate(result.p_value):
             return 'WARN', f'model inadequate (p = {result.p_value:.2g})', values
+        if lost:
+            return 'WARN', (f"{values['lost.joint_states']} joint states and "
+                            f"{values['lost.points']} points lost before the node read them "
+                            '(queue overflow: the node fell behind)'), values
         if rejected:
             return 'WARN', f'{n} accepted, {rejected} rejected', values
         if self._cm is None:
