@@ -72,7 +72,8 @@ def main(argv: list[str] | None = None) -> int:
             pubs[kind].publish(msg)
             sent_joints += kind == 0
             if not i % 200:
-                live.executor.spin_once(timeout_sec=0.0)
+                for _ in range(20):  # take every diagnostics message waiting (10 Hz)
+                    live.executor.spin_once(timeout_sec=0.0)
                 states.add(live.values.get('state', ''))
                 # Joint states published but not yet handled by the node (its count is
                 # up to one diagnostics period, 0.1 s, old): the executor's lag.

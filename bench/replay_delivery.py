@@ -27,7 +27,7 @@ from _live_node import BIN, LiveNode
 
 from kpi_calib_ros.io.bag import read_bag
 from kpi_calib_ros.io.cell import DEFAULT_CELL
-from kpi_calib_ros.io.simulate import simulate_campaign
+from kpi_calib_ros.app.simulate import simulate_campaign
 
 OUT = Path(__file__).resolve().parent / 'results' / 'replay_delivery.md'
 

@@ -9,7 +9,7 @@ from std_msgs.msg import Header
 
 from kpi_calib_ros.io.bag import read_bag
 from kpi_calib_ros.io.cell import DEFAULT_CELL
-from kpi_calib_ros.io.simulate import simulate_campaign
+from kpi_calib_ros.app.simulate import simulate_campaign
 from kpi_calib_ros.ros import conversions as cv
 from ros_helpers import finish
 
