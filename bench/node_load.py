@@ -89,6 +89,7 @@ def main(argv: list[str] | None = None) -> int:
     lost = int(values.get('lost.joint_states', -1))
     accepted = int(values.get('accepted', -1))
     jobs = int(values.get('identifications', -1))
+    lag_ms = values.get('max_lag_ms.joint_states', '-')
     identifying = sorted(s for s in states if s.startswith('identifying'))
     print(f'published {len(joints)} joint states at {args.rate_hz:g} Hz and {len(points)} '
           f'points in {seconds:.1f} s (publisher at most {behind_max * 1e3:.1f} ms late); node '
@@ -96,15 +97,15 @@ def main(argv: list[str] | None = None) -> int:
           f'{lost}), accepted {accepted} of {len(points)} points; identifications '
           f'{jobs} (identified_with {values.get("identified_with")}, before '
           f'{identified_before}); states seen {identifying}; largest backlog {backlog} joint '
-          'states')
+          f'states; largest lag publication -> callback {lag_ms} ms')
     row = (f'| {args.label or "-"} | {args.rate_hz:g} | {len(joints)} | {received} | '
            f'{len(joints) - received} | {lost} | {len(points)} | {accepted} | {jobs} | '
-           f'{backlog} |')
+           f'{backlog} | {lag_ms} |')
     header = ['# Joint states received by kpi_calib_node while it identifies', '',
               '`python bench/node_load.py` (2 shared cores); one row per run.', '',
               '| code | rate (Hz) | joint states published | received | missing | counted '
-              'lost | points | accepted | identifications | largest backlog |',
-              '|---|---|---|---|---|---|---|---|---|---|']
+              'lost | points | accepted | identifications | largest backlog | largest lag (ms) |',
+              '|---|---|---|---|---|---|---|---|---|---|---|']
     lines = OUT.read_text().splitlines() if OUT.exists() else header
     OUT.write_text('\n'.join(lines + [row]) + '\n')
     print(f'wrote {OUT}')

@@ -11,14 +11,16 @@ Fork, not spawn: the child starts with the job's inputs (robot model, CasADi fun
 measurements) already in memory, copy-on-write, so nothing is pickled on the way in and
 nothing is rebuilt. The child only computes and writes result files; it never touches
 ROS (the DDS threads of the parent do not exist in it) and leaves with ``os._exit``
-so no parent atexit or finaliser runs there. The value (or the exception) comes back
-pickled through a pipe.
+so no parent atexit or finaliser runs there; it ends with the node (Linux
+``PR_SET_PDEATHSIG``). The value (or the exception) comes back pickled through a pipe.
 """
 from __future__ import annotations
 
+import ctypes
 import multiprocessing
 import os
 import pickle
+import signal
 import traceback
 from multiprocessing.connection import Connection
 from typing import Any, Callable
@@ -41,8 +43,22 @@ def _portable(exc: BaseException) -> BaseException:
         return kind(str(exc))
 
 
-def _child(conn: Connection, fn: Callable[..., Any], args: tuple[Any, ...]) -> None:
+def _die_with(parent: int) -> None:
+    """Linux: end this child when its parent ends (a killed node leaves no job behind
+    to write results later); elsewhere, or if that fails, the child finishes its job."""
     try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        return
+    if os.getppid() != parent:  # the parent ended before the request took effect
+        os._exit(1)
+
+
+def _child(conn: Connection, fn: Callable[..., Any], args: tuple[Any, ...],
+           parent: int) -> None:
+    try:
+        _die_with(parent)
         try:
             outcome: tuple[bool, Any] = (True, fn(*args))
         except Exception as exc:  # handed back to the parent, which raises it
@@ -65,7 +81,7 @@ def run_in_child(fn: Callable[..., Any], *args: Any) -> Any:
     """
     context = multiprocessing.get_context('fork')
     receive, send = context.Pipe(duplex=False)
-    process = context.Process(target=_child, args=(send, fn, args), daemon=True)
+    process = context.Process(target=_child, args=(send, fn, args, os.getpid()), daemon=True)
     process.start()
     send.close()  # the child holds its end; EOF here once it is gone
     try:

@@ -101,8 +101,12 @@ class _Sequence:
     def __init__(self) -> None:
         self.last: int | None = None
         self.lost = 0
+        self.max_lag_ns = 0  # publication to callback: how far the executor fell behind
 
     def see(self, info: dict[str, Any]) -> None:
+        sent = info.get('source_timestamp')
+        if sent:
+            self.max_lag_ns = max(self.max_lag_ns, time.time_ns() - sent)
         number = info.get('publication_sequence_number')
         if not number:  # the middleware does not report them
             return
@@ -433,6 +437,8 @@ class CalibrationNode(Node):
                        'identifications': self._identifications,
                        'lost.joint_states': self._sequences['joint_states'].lost,
                        'lost.points': self._sequences['points'].lost,
+                       'max_lag_ms.joint_states': round(
+                           self._sequences['joint_states'].max_lag_ns * 1e-6, 1),
                        'log_file': str(self.campaign.log.path)})
         lost = values['lost.joint_states'] + values['lost.points']
         result, n, rejected = self._result, values['accepted'], values['rejected']
