@@ -16,6 +16,20 @@ from kpi_calib_ros.core.errors import KpiCalibError
 from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC
 
 
+CODE_EFFECTS_HELP = ("let the cell file's effects: name Python code ('file.py:Type:joint', "
+                     "'module:Type:joint') and run it; without it only built-in and installed "
+                     '(entry point) effects are used')
+
+
+def _bag_topics(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument('--joint-topic', default=None, help='sensor_msgs/JointState topic of '
+                        f"the bag (default: the cell's topics.joint_states, else "
+                        f'{DEFAULT_JOINT_TOPIC})')
+    parser.add_argument('--point-topic', default=None, help='geometry_msgs/PointStamped topic '
+                        "of the bag (default: the cell's topics.point, else "
+                        f'{DEFAULT_POINT_TOPIC})')
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog='kpi-calib', description=__doc__)
     sub = parser.add_subparsers(dest='command', required=True)
@@ -27,6 +41,7 @@ def main(argv: list[str] | None = None) -> int:
     sim.add_argument('--seed', type=int, default=0)
     sim.add_argument('--poses', help='design.yaml whose configurations to measure '
                      '(default: random measurable, collision-free poses)')
+    sim.add_argument('--allow-code-effects', action='store_true', help=CODE_EFFECTS_HELP)
 
     ide = sub.add_parser('identify', help='identify parameters from a bag')
     ide.add_argument('--cell', required=True)
@@ -38,6 +53,8 @@ def main(argv: list[str] | None = None) -> int:
     ide.add_argument('--model', choices=['auto', 'registration', 'joint_offsets', 'geometric'],
                      help="model size (overrides the cell's identification.model; auto: chosen "
                      'by cross-validation over held-out measurements)')
+    _bag_topics(ide)
+    ide.add_argument('--allow-code-effects', action='store_true', help=CODE_EFFECTS_HELP)
 
     dia = sub.add_parser('diagnose', help='residual report, model adequacy and the most likely '
                          'missing physical effect')
@@ -54,6 +71,8 @@ def main(argv: list[str] | None = None) -> int:
     dia.add_argument('--alpha', type=float, default=None,
                      help='family-wise false-alarm level of the effect tests (default: the '
                      'adequacy level, 0.01)')
+    _bag_topics(dia)
+    dia.add_argument('--allow-code-effects', action='store_true', help=CODE_EFFECTS_HELP)
 
     val = sub.add_parser('validate', help='predict a new recording with a calibration; exit 0 '
                          'when it holds, 1 when it does not')
@@ -80,6 +99,7 @@ def main(argv: list[str] | None = None) -> int:
     des.add_argument('--criterion', choices=['kpi', 'A', 'D', 'random'], default='kpi')
     des.add_argument('--out', required=True, help='output design.yaml')
     des.add_argument('--seed', type=int, default=0)
+    des.add_argument('--allow-code-effects', action='store_true', help=CODE_EFFECTS_HELP)
 
     rep = sub.add_parser('replay', help='publish a bag onto the live ROS topics with its timing')
     rep.add_argument('bag', help='MCAP bag with joint states and tracker points')
@@ -106,17 +126,21 @@ def main(argv: list[str] | None = None) -> int:
 
 def _simulate(args: argparse.Namespace) -> int:
     from kpi_calib_ros.app.simulate import run_simulate
-    return run_simulate(args.cell, args.n, args.out, args.seed, poses_path=args.poses)
+    return run_simulate(args.cell, args.n, args.out, args.seed, poses_path=args.poses,
+                        allow_code_effects=args.allow_code_effects)
 
 
 def _identify(args: argparse.Namespace) -> int:
     from kpi_calib_ros.app.identify import run_identify
-    return run_identify(args.cell, args.bag, args.out, effects=args.effects, model=args.model)
+    return run_identify(args.cell, args.bag, args.out, effects=args.effects, model=args.model,
+                        joint_topic=args.joint_topic, point_topic=args.point_topic,
+                        allow_code_effects=args.allow_code_effects)
 
 
 def _design(args: argparse.Namespace) -> int:
     from kpi_calib_ros.app.design import run_design
-    return run_design(args.cell, args.n, args.criterion, args.out, seed=args.seed)
+    return run_design(args.cell, args.n, args.criterion, args.out, seed=args.seed,
+                      allow_code_effects=args.allow_code_effects)
 
 
 def _replay(args: argparse.Namespace) -> int:
@@ -130,7 +154,9 @@ def _diagnose(args: argparse.Namespace) -> int:
     from kpi_calib_ros.core.residuals import ADEQUACY_ALPHA
     alpha = ADEQUACY_ALPHA if args.alpha is None else args.alpha
     return run_diagnose(args.cell, args.bag, args.out, effects=args.effects, folds=args.folds,
-                        alpha=alpha, model=args.model)
+                        alpha=alpha, model=args.model, joint_topic=args.joint_topic,
+                        point_topic=args.point_topic,
+                        allow_code_effects=args.allow_code_effects)
 
 
 def _validate(args: argparse.Namespace) -> int:

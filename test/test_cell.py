@@ -80,3 +80,84 @@ def test_overrides_replace_urdf_and_working_poses():
     wrong = working_poses_from_arrays(['a'] + names[1:], q)
     with pytest.raises(ConfigError, match='working_poses'):
         build_cell_model(with_overrides(cell, urdf_xml=urdf, working_poses=wrong))
+
+
+def _set(doc: dict, dotted: str, value) -> dict:
+    node = doc
+    *path, last = dotted.split('.')
+    for key in path:
+        node = node.setdefault(key, {})
+    node[last] = value
+    return doc
+
+
+# Every numeric key of a cell file, given a word: the error names exactly that key.
+NUMERIC_KEYS = ['collision.beam_radius', 'reflector.max_incidence', 'payload.mass',
+                'noise.sigma', 'design.candidates', 'design.flag_threshold']
+
+
+@pytest.mark.parametrize('key', NUMERIC_KEYS)
+def test_a_word_where_a_number_belongs_names_the_key(key):
+    with pytest.raises(ConfigError) as info:
+        cell_from_dict(_set(_doc(), key, 'wide'), DEFAULT_CELL.parent)
+    assert info.value.key == key
+    assert 'wide' in str(info.value)
+
+
+@pytest.mark.parametrize('item, key', [
+    ({'name': 'box', 'type': 'capsule', 'a': [0, 0, 0], 'b': [1, 0, 0], 'radius': 'wide'},
+     'obstacles[0].radius'),
+    ({'name': 'floor', 'type': 'halfspace', 'normal': [0, 0, 1], 'offset': 'low'},
+     'obstacles[0].offset'),
+    ({'name': 'box', 'type': 'capsule', 'a': [0, 0, 'x'], 'b': [1, 0, 0], 'radius': 0.1},
+     'obstacles[0].a'),
+])
+def test_numbers_inside_lists_name_their_item(item, key):
+    doc = _doc()
+    doc['obstacles'] = [item]
+    with pytest.raises(ConfigError) as info:
+        cell_from_dict(doc, DEFAULT_CELL.parent)
+    assert info.value.key == key
+
+
+@pytest.mark.parametrize('key, value', [
+    ('tracker.base_in_tracker', [2654.4, 272.8, -200.0, 0.0, 0.0, 1.9]),   # millimetres
+    ('tracker.base_in_tracker', [2.6544, 0.2728, -0.2, 0.0, 0.0, 108.9]),  # degrees
+    ('reflector.offset', [0, 0, 30]),                                       # millimetres
+])
+def test_values_in_other_units_are_caught_at_load_with_a_units_hint(key, value):
+    with pytest.raises(ConfigError) as info:
+        cell_from_dict(_set(_doc(), key, value), DEFAULT_CELL.parent)
+    assert info.value.key == key
+    assert 'SI metres' in str(info.value) or 'radians' in str(info.value)
+
+
+def test_the_largest_plausible_values_still_load():
+    doc = _set(_doc(), 'tracker.base_in_tracker', [30.0, -20.0, 5.0, 3.1, -1.5, 6.2])
+    cell = cell_from_dict(_set(doc, 'reflector.offset', [0.0, 0.5, 1.2]), DEFAULT_CELL.parent)
+    assert cell.reflector_offset.tolist() == [0.0, 0.5, 1.2]
+
+
+def test_bag_topics_come_from_the_cell_or_their_defaults():
+    assert (load_cell(DEFAULT_CELL).joint_topic, load_cell(DEFAULT_CELL).point_topic) == (
+        '/joint_states', '/laser_tracker/point')
+    doc = _set(_doc(), 'topics', {'joint_states': '/arm/joint_states'})
+    cell = cell_from_dict(doc, DEFAULT_CELL.parent)
+    assert (cell.joint_topic, cell.point_topic) == ('/arm/joint_states', '/laser_tracker/point')
+    for topics, key in (({'joints': '/x'}, 'topics.joints'), ({'point': 'a b'}, 'topics.point'),
+                        ({'point': '/joint_states'}, 'topics.point')):
+        with pytest.raises(ConfigError) as info:
+            cell_from_dict(_set(_doc(), 'topics', topics), DEFAULT_CELL.parent)
+        assert info.value.key == key
+
+
+def test_identification_priority_names_are_checked_against_the_model():
+    doc = _set(_doc(), 'identification', {'method': 'priority',
+                                          'priority': ['joint_1.offset', 'joint_1.ofset']})
+    with pytest.raises(ConfigError) as info:
+        build_cell_model(cell_from_dict(doc, DEFAULT_CELL.parent))
+    assert info.value.key == 'identification.priority'
+    assert "['joint_1.ofset']" in str(info.value) and "'joint_1.offset'" in str(info.value)
+    doc = _set(_doc(), 'identification', {'priority': ['joint_1.offset']})  # method pivoted
+    with pytest.raises(ConfigError, match='only with method: priority'):
+        cell_from_dict(doc, DEFAULT_CELL.parent)

@@ -124,3 +124,69 @@ def test_cli_errors_have_no_traceback(tmp_path):
     assert proc.returncode == 2
     assert 'Traceback' not in proc.stderr
     assert 'missing.mcap' in proc.stderr
+
+
+@pytest.fixture(scope='module')
+def renamed_bag(run_bag, tmp_path_factory) -> Path:
+    """The campaign of ``run_bag`` recorded on a robot's own topic names."""
+    joints, points = read_bag(run_bag)
+    bag = tmp_path_factory.mktemp('renamed') / 'renamed.mcap'
+    write_bag(bag, joints, points, joint_topic='/arm/joint_states', point_topic='/tracker/pt')
+    return bag
+
+
+@pytest.mark.parametrize('command', ['identify', 'diagnose'])
+def test_renamed_topics_error_names_the_options_that_exist(command, renamed_bag, tmp_path,
+                                                           capsys):
+    code = main([command, '--cell', CELL, '--bag', str(renamed_bag), '--out', str(tmp_path)])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert "'/arm/joint_states'" in err and '--joint-topic' in err and 'topics.' in err
+
+
+def test_identify_reads_renamed_topics_from_options_or_cell(renamed_bag, tmp_path, capsys):
+    assert main(['identify', '--cell', CELL, '--bag', str(renamed_bag), '--out',
+                 str(tmp_path / 'a'), '--joint-topic', '/arm/joint_states',
+                 '--point-topic', '/tracker/pt']) == 0
+    cell = _cell_copy(tmp_path, topics={'joint_states': '/arm/joint_states',
+                                        'point': '/tracker/pt'})
+    assert main(['identify', '--cell', str(cell), '--bag', str(renamed_bag), '--out',
+                 str(tmp_path / 'b')]) == 0
+    a, b = (yaml.safe_load((tmp_path / d / 'calibration.yaml').read_text()) for d in 'ab')
+    assert a['pairing'] == b['pairing'] == {'accepted': 40, 'rejected': {}}
+    assert a['parameters'] == b['parameters']
+
+
+@pytest.mark.parametrize('command', ['identify', 'diagnose'])
+def test_an_unwritable_out_fails_before_computing(command, run_bag, tmp_path, capsys,
+                                                  monkeypatch):
+    from kpi_calib_ros.app import identify as app_identify
+
+    def no_computing(*args, **kwargs):
+        raise AssertionError('the bag was read before --out was checked')
+    monkeypatch.setattr(app_identify, 'measurements_from_bag', no_computing)
+    blocker = tmp_path / 'a_file'
+    blocker.write_text('in the way')
+    for out in (blocker / 'result', Path('/proc/kpi_calib_result')):
+        code = main([command, '--cell', CELL, '--bag', str(run_bag), '--out', str(out)])
+        err = capsys.readouterr().err
+        assert code == 2
+        assert '--out' in err and str(out) in err and 'writable' in err
+
+
+def test_a_cell_file_cannot_run_code_without_the_flag(run_bag, tmp_path, capsys):
+    marker = tmp_path / 'ran.marker'
+    (tmp_path / 'evil.py').write_text(
+        f'from pathlib import Path\nPath({str(marker)!r}).write_text("ran")\n'
+        'from kpi_calib_ros.core.effects import EffectType\n'
+        "SAG = EffectType('sag', ('g',), ('rad',), joint_function=lambda q, t, th: th[0] * q)\n")
+    cell = _cell_copy(tmp_path, effects=['evil.py:SAG:joint_2'])
+    for command in (['identify', '--bag', str(run_bag)], ['diagnose', '--bag', str(run_bag)],
+                    ['design', '--n', '3'], ['simulate', '--n', '3']):
+        code = main(command + ['--cell', str(cell), '--out', str(tmp_path / 'out.x')])
+        err = capsys.readouterr().err
+        assert code == 2 and '--allow-code-effects' in err and 'effects[0]' in err, command
+        assert not marker.exists(), command
+    code = main(['identify', '--bag', str(run_bag), '--cell', str(cell), '--out',
+                 str(tmp_path / 'ok'), '--allow-code-effects'])
+    assert marker.exists() and code in (0, 1)  # ran: the opt-in was given

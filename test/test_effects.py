@@ -180,10 +180,45 @@ def test_cell_file_names_a_user_effect_file(cell, clean_registry, tmp_path):
         from kpi_calib_ros.core.effects import EffectType
         WARP = EffectType('warp', ('w',), ('rad',), joint_function=lambda q, t, th: th[0] * q ** 2)
     '''))
-    effect = parse_effect_spec('cell_effects.py:WARP:joint_2', cell.robot, base_dir=tmp_path)
+    effect = parse_effect_spec('cell_effects.py:WARP:joint_2', cell.robot, base_dir=tmp_path,
+                               allow_code=True)
     assert effect.parameter_names == ('warp.joint_2.w',)
     with pytest.raises(ConfigError, match='cannot load user effect'):
-        parse_effect_spec('missing.py:WARP:joint_2', cell.robot, base_dir=tmp_path)
+        parse_effect_spec('missing.py:WARP:joint_2', cell.robot, base_dir=tmp_path,
+                          allow_code=True)
+
+
+EVIL = '''
+from pathlib import Path
+Path({marker!r}).write_text('the cell file ran this code')
+from kpi_calib_ros.core.effects import EffectType
+SAG = EffectType('sag', ('g',), ('rad',), joint_function=lambda q, t, th: th[0] * q)
+'''
+
+
+@pytest.mark.parametrize('spec', ['evil.py:SAG:joint_2', 'evil_pkg.evil:SAG:joint_2'])
+def test_code_named_by_a_cell_file_does_not_run_without_the_opt_in(cell, clean_registry,
+                                                                   tmp_path, monkeypatch, spec):
+    code = EVIL.format(marker=str(tmp_path / 'ran.marker'))
+    (tmp_path / 'evil.py').write_text(code)
+    (tmp_path / 'evil_pkg').mkdir()
+    (tmp_path / 'evil_pkg' / '__init__.py').write_text('')
+    (tmp_path / 'evil_pkg' / 'evil.py').write_text(code)
+    monkeypatch.syspath_prepend(str(tmp_path))  # the module form would import it from here
+    for call in (lambda: parse_effect_spec(spec, cell.robot, base_dir=tmp_path),
+                 lambda: resolve_effects([spec], cell.robot, base_dir=tmp_path),
+                 lambda: hidden_effects({spec: {}}, cell.robot, base_dir=tmp_path)):
+        with pytest.raises(ConfigError, match='--allow-code-effects.*allow_code_effects'):
+            call()
+    assert not (tmp_path / 'ran.marker').exists()
+    assert parse_effect_spec(spec, cell.robot, base_dir=tmp_path, allow_code=True).name == \
+        'sag:joint_2'
+    assert (tmp_path / 'ran.marker').exists()  # the opt-in runs it
+
+
+def test_built_in_effects_need_no_opt_in(cell):
+    assert resolve_effects(['joint_compliance:joint_2', 'tracker_scale'],
+                           cell.robot)[1].name == 'tracker_scale'
 
 
 def test_hidden_effects_for_the_simulator(cell):

@@ -82,6 +82,24 @@ def test_samples_before_the_robot_model_are_paired_once_it_is_known(tmp_path):
     assert sum(isinstance(d, PairedMeasurement) for d in decisions) == 3
 
 
+def test_oversized_joint_states_are_rejected_before_the_robot_model_too(tmp_path):
+    """The early buffer (samples held until the chain is known) takes no absurd message:
+    each is rejected and counted by reason; the campaign still pairs the rest."""
+    from kpi_calib_ros.core.streams import JointSample
+    from kpi_calib_ros.ros.campaign import EARLY_MAX_NAMES
+    joints, points = streams(3)
+    campaign = Campaign(tmp_path)
+    names = tuple(f'fake_{i}' for i in range(EARLY_MAX_NAMES + 1))
+    huge = [JointSample(joints[0].stamp_ns + k, names, np.zeros(len(names)))
+            for k in range(50)]
+    decisions = feed(campaign, huge + live_order(joints, points))
+    assert [d.reason for d in decisions] == ['oversized_joint_state'] * 50
+    assert campaign.counts()['rejected.oversized_joint_state'] == 50
+    assert len(campaign._early) == len(joints) + len(points)  # nothing of the 50 held
+    paired = campaign.set_chain(NAMES, FRAME)
+    assert sum(isinstance(d, PairedMeasurement) for d in paired) == 3
+
+
 def test_pairing_clock_follows_the_joint_stream(tmp_path):
     joints, points = streams(2)
     order = live_order(joints, points)
@@ -161,6 +179,11 @@ def test_the_measurement_log_is_a_bag_every_command_reads(tmp_path, capsys):
     assert (tmp_path / 'from_log' / 'calibration.yaml').stat().st_mode & 0o777 == 0o644 & ~_umask()
     assert main(['diagnose', '--cell', cell, '--bag', str(log), '--out',
                  str(tmp_path / 'diagnosis')]) == 0
+    capsys.readouterr()
+    # Replaying it into a node would reject every point: refused, saying what to do.
+    assert main(['replay', str(log)]) == 2
+    err = capsys.readouterr().err
+    assert 'measurement log' in err and 'kpi-calib identify --bag' in err and 'data_dir' in err
 
 
 def _umask() -> int:

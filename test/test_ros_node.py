@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -133,6 +134,11 @@ def defaults(**changes):
     ({'point_topic': '/joint_states'}, 'point_topic'),
     ({'cell_file': '/no/such/cell.yaml'}, 'cell_file'),
     ({'data_dir': ''}, 'data_dir'),
+    ({'joint_states_topic': '/joint states'}, 'joint_states_topic'),
+    ({'point_topic': 'tracker/point!'}, 'point_topic'),
+    ({'robot_description_topic': ''}, 'robot_description_topic'),
+    ({'auto_identify': 'maybe'}, 'auto_identify'),
+    ({'allow_code_effects': 'yes'}, 'allow_code_effects'),
 ])
 def test_parameters_are_validated_by_name(changes, key):
     with pytest.raises(ConfigError) as info:
@@ -165,6 +171,76 @@ def test_working_poses_parameters_override_the_cell(tmp_path, ros_domain):
         if node is not None:
             node.destroy_node()
         rclpy.shutdown(context=context)
+
+
+def _start_error(tmp_path, ros_domain, *overrides: Parameter) -> ConfigError:
+    """The ConfigError a node started with ``overrides`` stops with."""
+    context = Context()
+    rclpy.init(context=context, domain_id=ros_domain)
+    try:
+        with pytest.raises(ConfigError) as info:
+            CalibrationNode(context=context, parameter_overrides=[
+                Parameter('robot_description', value=KR15_URDF),
+                Parameter('data_dir', value=str(tmp_path / 'data')), *overrides])
+    finally:
+        rclpy.shutdown(context=context)
+    return info.value
+
+
+@pytest.mark.parametrize('name, value, words', [
+    ('auto_identify', 'maybe', 'true or false'),     # -p auto_identify:=maybe: a string
+    ('num_measurements', 1.5, 'an integer'),
+    ('design_seed', 'one', 'an integer'),
+    ('working_poses', 'up', 'a list of numbers'),
+    ('joint_states_topic', '/joint states', 'not a valid ROS topic name'),
+])
+def test_a_start_up_value_of_the_wrong_kind_names_the_parameter(tmp_path, ros_domain, name,
+                                                                 value, words):
+    error = _start_error(tmp_path, ros_domain, Parameter(name, value=value))
+    assert error.key == name and words in str(error) and repr(value) in str(error)
+
+
+def test_an_unusable_data_dir_is_a_config_error(tmp_path, ros_domain):
+    blocker = tmp_path / 'a_file'
+    blocker.write_text('in the way')
+    for data_dir in (blocker, blocker / 'data', Path('/proc/kpi_calib_data')):
+        error = _start_error(tmp_path, ros_domain, Parameter('data_dir', value=str(data_dir)))
+        assert error.key == 'data_dir' and str(data_dir) in str(error)
+
+
+def test_the_node_runs_no_code_named_by_the_cell_without_the_opt_in(tmp_path, ros_domain):
+    marker = tmp_path / 'ran.marker'
+    (tmp_path / 'evil.py').write_text(
+        f'from pathlib import Path\nPath({str(marker)!r}).write_text("ran")\n')
+    doc = yaml.safe_load(DEFAULT_CELL.read_text())
+    doc['robot']['urdf'] = str((DEFAULT_CELL.parent / doc['robot']['urdf']).resolve())
+    doc['effects'] = ['evil.py:SAG:joint_2']
+    cell = tmp_path / 'cell.yaml'
+    cell.write_text(yaml.safe_dump(doc))
+    error = _start_error(tmp_path, ros_domain, Parameter('cell_file', value=str(cell)))
+    assert error.key == 'effects[0]' and 'allow_code_effects' in str(error)
+    assert not marker.exists()
+    # With the opt-in the file runs (and is then refused: it defines no SAG).
+    error = _start_error(tmp_path, ros_domain, Parameter('cell_file', value=str(cell)),
+                         Parameter('allow_code_effects', value=True))
+    assert marker.exists() and 'SAG' in str(error)
+
+
+@pytest.mark.slow
+def test_bad_command_line_parameters_exit_2_naming_them(spawn, tmp_path, ros_domain):
+    blocker = tmp_path / 'a_file'
+    blocker.write_text('in the way')
+    for i, (override, name) in enumerate([('auto_identify:=maybe', 'auto_identify'),
+                                          ('num_measurements:=1.5', 'num_measurements'),
+                                          ('point_topic:=/tracker point', 'point_topic'),
+                                          (f'data_dir:={blocker}/data', 'data_dir')]):
+        node = spawn(tmp_path / 'data', f'node{i}.log', override)
+        try:
+            code = node.process.wait(timeout=60)
+        finally:
+            node.stop()
+        assert code == 2, node.output()
+        assert f'error: {name}' in node.output() and 'Traceback' not in node.output()
 
 
 @pytest.fixture
@@ -314,3 +390,93 @@ def test_an_invalid_identification_keeps_the_last_good_calibration(in_process, m
     finally:
         executor.shutdown()
         spinner.join(timeout=10)
+
+
+def test_heavy_jobs_compute_in_a_child_process_that_holds_no_gil_of_the_node(in_process,
+                                                                            tmp_path):
+    """``child=True``: the function runs in another process (its own interpreter and GIL),
+    sees the inputs without pickling them, writes files the node then reads, and its
+    value or its error (ConfigError included) comes back to the job on the executor."""
+    import os
+
+    from kpi_calib_ros.core.errors import KpiCalibError
+    node = in_process
+    executor = SingleThreadedExecutor(context=node.context)
+    executor.add_node(node)
+    unpicklable = threading.Lock()  # an input that could not be sent to a spawned process
+
+    def compute(lock, path):
+        path.write_text(str(os.getpid()))
+        return os.getpid(), lock.locked()
+
+    def refuse():
+        raise ConfigError('some.key', 'a reason')
+
+    async def job():
+        pid, locked = await node._offload(compute, unpicklable, tmp_path / 'pid', child=True)
+        try:
+            await node._offload(refuse, child=True)
+        except KpiCalibError as exc:
+            return pid, locked, str(exc)
+        return pid, locked, ''
+
+    try:
+        task = executor.create_task(job)
+        executor.spin_until_future_complete(task, timeout_sec=60)
+        pid, locked, error = task.result()
+    finally:
+        executor.shutdown()
+    assert pid != os.getpid() and (tmp_path / 'pid').read_text() == str(pid)
+    assert locked is False and error == 'some.key: a reason'
+
+
+def test_joint_states_lost_before_the_node_read_them_are_counted_and_reported(in_process):
+    """DDS numbers each message of a publisher; a gap is messages the queue dropped."""
+    node = in_process
+    sequence = node._sequences['joint_states']
+    for number in (1, 2, 3, 7, 8, 20, 1, 2):  # 3 + 11 lost; 1 again: a new publisher
+        sequence.see({'publication_sequence_number': number})
+    level, message, values = node.status()
+    assert values['lost.joint_states'] == 14 and values['lost.points'] == 0
+    assert level == 'WARN' and '14 joint states' in message
+
+
+@pytest.mark.slow
+def test_joint_states_at_1khz_all_arrive_while_the_node_identifies(client, spawn, tmp_path):
+    """A driver streams 1 kHz joint states, unpaced by the node, while the node identifies
+    again after every new measurement: every joint state is received, none counted lost,
+    every point accepted. (Jobs in a thread of the node lost 37 % of them:
+    bench/node_load.py.)"""
+    from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
+                                               true_parameters)
+    cm = build_cell_model(load_cell(DEFAULT_CELL))
+    rng = np.random.default_rng(4)
+    q = random_configurations(cm.model, cm.model.params.nominal, 16, rng)
+    data = simulate_measurements(cm.model, true_parameters(cm.model.params, rng), q,
+                                 cm.cell.sigma, rng)
+    joints, points = synthesize_streams(q, cm.joint_names, data.eta, cm.cell.tracker_frame,
+                                        rate_hz=1000.0, move_time_s=1.0, hold_time_s=1.0,
+                                        rng=rng)
+    stream = sorted([(s.stamp_ns, 0, cv.joint_state_msg(s)) for s in joints]
+                    + [(p.stamp_ns, 1, cv.point_stamped_msg(p)) for p in points],
+                    key=lambda item: item[:2])
+    node = spawn(tmp_path / 'data', 'node.log', 'auto_identify:=true', 'min_measurements:=10')
+    client.spin_until(lambda: client.diagnostics().get('state') == 'idle', 60, 'the model')
+    publishers = (client.joints, client.points)
+    start, first = time.monotonic(), stream[0][0]
+    for i, (stamp, kind, msg) in enumerate(stream):
+        delay = start + (stamp - first) * 1e-9 - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)  # the driver's clock: pacing, not synchronisation
+        publishers[kind].publish(msg)
+        if not i % 500:
+            client.executor.spin_once(timeout_sec=0.0)
+    client.spin_until(lambda: client.count('identified_with') == len(points)
+                      and client.count('received.joint_states') >= len(joints)
+                      and client.diagnostics().get('state') == 'idle', 180, 'the last job')
+    counts = client.diagnostics()
+    node.stop()
+    assert int(counts['received.joint_states']) == len(joints)
+    assert int(counts['lost.joint_states']) == 0 and int(counts['lost.points']) == 0
+    assert int(counts['accepted']) == len(points) and int(counts['rejected']) == 0
+    assert int(counts['identifications']) >= 2  # jobs ran while the stream went on

@@ -83,13 +83,13 @@ def controller_design(cm: CellModel, design: DesignResult) -> DesignResult:
 
 
 def run_design(cell_path: str | Path, n: int, criterion: str, out: str | Path,
-               seed: int = 0) -> int:
+               seed: int = 0, allow_code_effects: bool = False) -> int:
     """``kpi-calib design``: design.yaml, ``<stem>_poses.png`` and ``<stem>_ellipsoids.png``
     (heuristic vs this design) and a summary on stdout.
 
     Returns 0, or 1 when the independent verification failed.
     """
-    cm = build_cell_model(load_cell(cell_path))
+    cm = build_cell_model(load_cell(cell_path, allow_code_effects=allow_code_effects))
     cell, settings = cm.design_cell(), cm.cell.design
     rng = np.random.default_rng(seed)
     context = design_context(cell, rng, settings)

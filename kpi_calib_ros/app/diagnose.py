@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 from kpi_calib_ros.app.identify import (choose_level, identify_cell, load_measurements,
                                         with_effects)
@@ -17,6 +18,7 @@ from kpi_calib_ros.core.residuals import ADEQUACY_ALPHA
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.names import DIAGNOSIS_FILE
 from kpi_calib_ros.io.report import diagnosis_text, write_report
+from kpi_calib_ros.io.results import writable_folder
 
 
 def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
@@ -43,10 +45,12 @@ def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
 
 def run_diagnose(cell_path: str | Path, bag_path: str | Path, out_dir: str | Path,
                  effects: str = '', folds: int = 0, alpha: float = ADEQUACY_ALPHA,
-                 model: str | None = None) -> int:
-    """``kpi-calib diagnose``: diagnosis.json, report.md and plots in ``out_dir``;
-    ``model`` overrides the cell's ``identification.model``."""
-    cm, data, _ = load_measurements(cell_path, bag_path, effects)
+                 model: str | None = None, **options: Any) -> int:
+    """``kpi-calib diagnose``: diagnosis.json, report.md and plots in ``out_dir``
+    (checked first); ``model`` overrides the cell's ``identification.model``; ``options``
+    as for :func:`load_measurements`."""
+    writable_folder(out_dir, '--out')
+    cm, data, _ = load_measurements(cell_path, bag_path, effects, **options)
     cd = diagnose_cell(cm, data, folds=folds, alpha=alpha, model=model)
     report = write_report(out_dir, cd)
     print(diagnosis_text(cd))

@@ -36,8 +36,8 @@ from kpi_calib_ros.io.measurement_log import stored_pairing
 from kpi_calib_ros.io.names import (CALIBRATED_URDF_FILE, DEFAULT_JOINT_TOPIC,
                                     DEFAULT_POINT_TOPIC, FAILED_CALIBRATION_FILE)
 from kpi_calib_ros.io.report import comparison_text, comparison_to_dict
-from kpi_calib_ros.io.results import (calibration_to_dict, summary_text, write_atomic,
-                                      write_calibration)
+from kpi_calib_ros.io.results import (calibration_to_dict, summary_text, writable_folder,
+                                      write_atomic, write_calibration)
 from kpi_calib_ros.io.urdf_export import calibrated_urdf
 
 # Geometric errors of a robot and a surveyed placement move the predicted points by
@@ -399,28 +399,37 @@ def add_effect_comparison(doc: dict[str, Any], cm: CellModel, data: Measurements
     return comparison_text(cmp)
 
 
-def load_measurements(cell_path: str | Path, bag_path: str | Path, effects: str = ''
+def load_measurements(cell_path: str | Path, bag_path: str | Path, effects: str = '',
+                      joint_topic: str | None = None, point_topic: str | None = None,
+                      allow_code_effects: bool = False
                       ) -> tuple[CellModel, Measurements, PairingResult]:
     """Cell model (with the extra ``effects`` specs, comma-separated) and the paired
-    measurements of a bag; rejections are reported on stderr."""
-    cm = build_cell_model(load_cell(cell_path), effects=tuple(split_specs(effects)))
-    data, pairing = measurements_from_bag(cm, bag_path)
+    measurements of a bag; rejections are reported on stderr.
+
+    ``joint_topic`` / ``point_topic`` (``--joint-topic`` / ``--point-topic``) override
+    the cell's ``topics:``; ``allow_code_effects`` lets effects name Python code.
+    """
+    cell = load_cell(cell_path, allow_code_effects=allow_code_effects)
+    cm = build_cell_model(cell, effects=tuple(split_specs(effects)))
+    data, pairing = measurements_from_bag(cm, bag_path, joint_topic or cell.joint_topic,
+                                          point_topic or cell.point_topic)
     for reason, count in sorted(pairing.rejections.items()):
         print(f'rejected {count} sample(s): {reason}', file=sys.stderr)
     return cm, data, pairing
 
 
 def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Path,
-                 effects: str = '', model: str | None = None) -> int:
+                 effects: str = '', model: str | None = None, **options: Any) -> int:
     """``kpi-calib identify``: calibration.yaml and the calibrated URDF
-    (:data:`~kpi_calib_ros.io.names.CALIBRATED_URDF_FILE`) in ``out_dir``, a summary on
-    stdout.
+    (:data:`~kpi_calib_ros.io.names.CALIBRATED_URDF_FILE`) in ``out_dir`` (checked first),
+    a summary on stdout; ``options`` as for :func:`load_measurements`.
 
     ``model`` overrides the cell's ``identification.model``. Returns 0 for a valid
     calibration; 1 when it did not converge or the TCP is not estimable (then the document
     goes to calibration.failed.yaml, and an existing calibration.yaml is left as it was).
     """
-    cm, data, pairing = load_measurements(cell_path, bag_path, effects)
+    writable_folder(out_dir, '--out')
+    cm, data, pairing = load_measurements(cell_path, bag_path, effects, **options)
     cal = calibrate_cell(cm, data, model)
     doc = add_robust_sections(calibration_document(cm, cal.result, pairing), cal)
     comparison = ''

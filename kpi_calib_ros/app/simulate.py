@@ -50,7 +50,8 @@ def truth_cell_model(cell: Cell) -> tuple[CellModel, dict[str, float]]:
     true values (parameter name -> value) for the simulated robot."""
     cm = build_cell_model(cell)
     effects, overrides = hidden_effects(cell.simulation.hidden_effects or None, cm.robot,
-                                        base_dir=cell.source_dir or None)
+                                        base_dir=cell.source_dir or None,
+                                        allow_code=cell.allow_code_effects)
     if effects:
         cm = build_cell_model(cell, effects=effects)
     return cm, overrides
@@ -59,7 +60,8 @@ def truth_cell_model(cell: Cell) -> tuple[CellModel, dict[str, float]]:
 def simulate_campaign(cell_path: str | Path, n: int, out: str | Path, seed: int,
                       poses: tuple[list[str], np.ndarray] | None = None,
                       cm: CellModel | None = None,
-                      p_true: np.ndarray | None = None) -> str:
+                      p_true: np.ndarray | None = None,
+                      allow_code_effects: bool = False) -> str:
     """Simulate ``n`` measurements in the cell and write ``out`` (.mcap) and its truth.
 
     Parameters
@@ -80,7 +82,8 @@ def simulate_campaign(cell_path: str | Path, n: int, out: str | Path, seed: int,
         raise ConfigError('n', 'must be at least 1')
     overrides: dict[str, float] = {}
     if cm is None:
-        cm, overrides = truth_cell_model(load_cell(cell_path))
+        cm, overrides = truth_cell_model(load_cell(cell_path,
+                                                   allow_code_effects=allow_code_effects))
     rng = np.random.default_rng(seed)
     if p_true is None:
         p_true = true_parameters(cm.model.params, rng, overrides=overrides)
@@ -111,11 +114,13 @@ def simulate_campaign(cell_path: str | Path, n: int, out: str | Path, seed: int,
 
 
 def run_simulate(cell_path: str | Path, n: int, out: str | Path, seed: int,
-                 poses_path: str | Path | None = None) -> int:
+                 poses_path: str | Path | None = None, allow_code_effects: bool = False) -> int:
     """``kpi-calib simulate``: the bag and its truth; ``poses_path`` a design.yaml to measure."""
     poses = read_design_poses(poses_path) if poses_path else None
     if poses is not None:  # design files hold controller values (robot.joint_coupling)
-        coupling = build_cell_model(load_cell(cell_path)).joint_coupling
+        coupling = build_cell_model(load_cell(cell_path, allow_code_effects=allow_code_effects)
+                                    ).joint_coupling
         poses = (poses[0], coupling.to_urdf(np.atleast_2d(poses[1])))
-    print(simulate_campaign(cell_path, n, out, seed, poses=poses))
+    print(simulate_campaign(cell_path, n, out, seed, poses=poses,
+                            allow_code_effects=allow_code_effects))
     return 0

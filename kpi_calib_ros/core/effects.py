@@ -372,12 +372,16 @@ CHAIN_EFFECTS: dict[str, Callable[[RobotModel, str | None, str], BoundEffect]] =
 
 
 def parse_effect_spec(spec: str, robot: RobotModel, key: str = 'effects',
-                      base_dir: str | Path | None = None) -> BoundEffect:
+                      base_dir: str | Path | None = None,
+                      allow_code: bool = False) -> BoundEffect:
     """Resolve ``'effect[:joint]'`` or ``'module:attribute[:joint]'`` to an effect.
 
     ``module`` is an importable module or a ``.py`` file (relative to
     ``base_dir``, the cell file's folder); ``attribute`` names an
-    :class:`EffectType` or a callable returning one.
+    :class:`EffectType` or a callable returning one. Loading it runs its code, so
+    this form needs ``allow_code=True`` (``--allow-code-effects`` on the command
+    line, ``allow_code_effects`` on the node): a data file alone never runs code.
+    Built-in effects and installed entry points need no opt-in.
 
     Raises
     ------
@@ -397,6 +401,11 @@ def parse_effect_spec(spec: str, robot: RobotModel, key: str = 'effects',
                               f'{robot.joint_names[min(1, robot.n_joints - 1)]}')
         return bind_effect(known[parts[0]], robot, parts[1] if len(parts) == 2 else None, where)
     if len(parts) in (2, 3) and ('.' in parts[0] or parts[0].endswith('.py')):
+        if not allow_code:
+            raise ConfigError(key, f'{spec!r} names Python code ({parts[0]}), which is not run '
+                              'unless asked: pass --allow-code-effects to kpi-calib, or set '
+                              'the node parameter allow_code_effects:=true, if you trust '
+                              f'it; built-in effects are {sorted(known)}')
         effect_type = _load_user_effect(parts[0], parts[1], key, spec, base_dir)
         return bind_effect(effect_type, robot, parts[2] if len(parts) == 3 else None, where)
     raise ConfigError(key, f'{spec!r}: unknown effect {parts[0]!r}; valid effects are '
@@ -434,13 +443,14 @@ def _load_user_effect(module: str, attribute: str, key: str, spec: str,
 
 
 def resolve_effects(specs: Iterable[str | BoundEffect], robot: RobotModel,
-                    key: str = 'effects',
-                    base_dir: str | Path | None = None) -> tuple[BoundEffect, ...]:
-    """Resolve specs (or pass bound effects through); duplicates are an error."""
+                    key: str = 'effects', base_dir: str | Path | None = None,
+                    allow_code: bool = False) -> tuple[BoundEffect, ...]:
+    """Resolve specs (or pass bound effects through); duplicates are an error.
+    ``allow_code``: see :func:`parse_effect_spec`."""
     out: list[BoundEffect] = []
     for i, spec in enumerate(specs):
         effect = spec if not isinstance(spec, str) else parse_effect_spec(
-            spec, robot, f'{key}[{i}]', base_dir)
+            spec, robot, f'{key}[{i}]', base_dir, allow_code)
         if any(e.name == effect.name for e in out):
             raise ConfigError(f'{key}[{i}]', f'effect {effect.name!r} is given twice')
         out.append(effect)
@@ -496,7 +506,7 @@ def implausible(effect: BoundEffect, values: Sequence[float]) -> str:
 
 # ----------------------------------------------------------------- simulation
 def hidden_effects(doc: Any, robot: RobotModel, key: str = 'simulation.hidden_effects',
-                   base_dir: str | Path | None = None
+                   base_dir: str | Path | None = None, allow_code: bool = False
                    ) -> tuple[tuple[BoundEffect, ...], dict[str, float]]:
     """Effects the simulated "true" robot has and the model lacks.
 
@@ -521,7 +531,7 @@ def hidden_effects(doc: Any, robot: RobotModel, key: str = 'simulation.hidden_ef
         raise ConfigError(key, 'must be a mapping {effect:joint: {parameter: value}}')
     effects, overrides = [], {}
     for spec, values in doc.items():
-        effect = parse_effect_spec(str(spec), robot, f'{key}.{spec}', base_dir)
+        effect = parse_effect_spec(str(spec), robot, f'{key}.{spec}', base_dir, allow_code)
         values = values or {}
         if not isinstance(values, dict):
             raise ConfigError(f'{key}.{spec}',

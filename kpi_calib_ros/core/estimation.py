@@ -272,7 +272,7 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
             # merely prefer an equivalent subset here). Keep it; restate its reasons here.
             kept_first = list(kept_before) + [n for n in free_names if n not in kept_before]
             again = select_identifiable(stacked, free_names, method='priority',
-                                        priority=kept_first)
+                                        priority=kept_first, pivot_fraction=0.0)
             if again.kept == kept_before:
                 ident = again
                 break

@@ -17,6 +17,12 @@ import scipy.linalg
 
 DEFAULT_TOLERANCE = 1e-7
 ZERO_COLUMN = 1e-10
+# Threshold pivoting for method='priority': the next column in priority order is kept only
+# if its residual is at least this fraction of the largest remaining one. Without it the
+# order alone decides, and a column that is a combination of the kept ones up to 1e-6
+# is "independent": the kept set then had a condition number ~2e6 (pivoted: ~190) and
+# Gauss-Newton stopped at its iteration limit, 34 µm rms against 32 µm.
+PRIORITY_PIVOT_FRACTION = 0.1
 
 
 @dataclass(frozen=True)
@@ -46,7 +52,8 @@ def select_identifiable(jacobian: np.ndarray, names: list[str] | tuple[str, ...]
                         tolerance: float = DEFAULT_TOLERANCE,
                         method: str = 'pivoted',
                         priority: list[str] | None = None,
-                        zero_column: float = ZERO_COLUMN) -> Identifiability:
+                        zero_column: float = ZERO_COLUMN,
+                        pivot_fraction: float = PRIORITY_PIVOT_FRACTION) -> Identifiability:
     """Choose a maximal identifiable subset of parameters.
 
     Parameters
@@ -59,17 +66,31 @@ def select_identifiable(jacobian: np.ndarray, names: list[str] | tuple[str, ...]
         Relative threshold on |R_kk| / |R_00| of the column-normalised QR.
     method : {'pivoted', 'priority'}
         ``'pivoted'``: QR with column pivoting (largest remaining column first).
-        ``'priority'``: keep columns in the order of ``priority`` unless they
-        are (numerically) combinations of columns already kept.
+        ``'priority'``: QR with threshold pivoting: the next column is the first in
+        the order of ``priority`` whose residual (after projecting out the kept
+        columns) is at least ``pivot_fraction`` of the largest remaining one. Same
+        rank as ``'pivoted'``, a preferred choice of columns, and a conditioning within
+        a known factor of the pivoted one.
     priority : list of str, optional
         Order for ``method='priority'``; names not listed follow in vector order.
     zero_column : float
         Columns whose norm is below this fraction of the largest count as having
         no effect at all (reported as such, never normalised into noise).
+    pivot_fraction : float
+        In [0, 1]; 0 keeps columns in priority order whenever they are independent
+        at all (used to restate an already chosen, well-conditioned set).
+
+    Raises
+    ------
+    ValueError
+        ``priority`` names a parameter not in ``names``.
     """
     names = list(names)
     if jacobian.shape[1] != len(names):
         raise ValueError('jacobian columns and names differ in number')
+    unknown = [p for p in priority or [] if p not in names]
+    if unknown:
+        raise ValueError(f'priority names unknown parameters {unknown}; valid: {names}')
     norms = np.linalg.norm(jacobian, axis=0)
     # A column at round-off level (e.g. a rotation about an axis the reflector sits on)
     # must not be normalised into noise that QR would take for information.
@@ -83,8 +104,9 @@ def select_identifiable(jacobian: np.ndarray, names: list[str] | tuple[str, ...]
         kept_pos = perm[:len(diag)][diag > tolerance * diag[0]]
         kept_diag = diag[diag > tolerance * diag[0]]
     elif method == 'priority':
-        kept_pos, kept_diag = _greedy(a, _priority_order([names[i] for i in cols],
-                                                         priority or []), tolerance)
+        kept_pos, kept_diag = _threshold_pivoting(
+            a, _priority_order([names[i] for i in cols], priority or []), tolerance,
+            pivot_fraction)
     else:
         raise ValueError(f"method must be 'pivoted' or 'priority', not {method!r}")
     kept_cols = [cols[i] for i in sorted(kept_pos)]
@@ -113,21 +135,37 @@ def _priority_order(names: list[str], priority: list[str]) -> list[int]:
     return ranked + [i for i in range(len(names)) if i not in ranked]
 
 
-def _greedy(a: np.ndarray, order: list[int], tolerance: float) -> tuple[np.ndarray, np.ndarray]:
-    """Keep columns in ``order`` whose residual after projecting out the kept ones is large.
+def _threshold_pivoting(a: np.ndarray, order: list[int], tolerance: float,
+                        fraction: float) -> tuple[np.ndarray, np.ndarray]:
+    """Column selection of unit columns ``a`` by QR with threshold pivoting.
 
-    Gram-Schmidt (applied twice for orthogonality) rather than unpivoted
-    Householder QR, which mis-handles a dependent column in the middle.
+    At each step the residuals of the remaining columns (after projecting out the kept
+    ones) are compared with the largest: the first column in ``order`` within
+    ``fraction`` of it is kept. Stops when the largest residual is below ``tolerance``
+    (the pivoted rule, whose first pivot is 1 for unit columns). Gram-Schmidt, applied
+    twice for orthogonality.
+
+    Returns
+    -------
+    kept : ndarray of int
+        Positions in ``a`` in the order chosen.
+    sizes : ndarray
+        Their residual norms (the pivots).
     """
-    basis = np.zeros((a.shape[0], 0))
+    residual = a.copy()
+    remaining = list(order)
     kept, sizes = [], []
-    for i in order:
-        v = a[:, i].copy()
+    while remaining:
+        norms = np.linalg.norm(residual[:, remaining], axis=0)
+        largest = norms.max()
+        if largest <= tolerance:
+            break
+        pick = next(k for k, size in enumerate(norms) if size >= fraction * largest
+                    and size > tolerance)
+        i = remaining.pop(pick)
+        v = residual[:, i] / norms[pick]
         for _ in range(2):
-            v -= basis @ (basis.T @ v)
-        size = np.linalg.norm(v)
-        if size > tolerance:
-            basis = np.hstack([basis, (v / size)[:, None]])
-            kept.append(i)
-            sizes.append(size)
+            residual -= np.outer(v, v @ residual)
+        kept.append(i)
+        sizes.append(norms[pick])
     return np.array(kept, dtype=int), np.array(sizes)

@@ -67,6 +67,16 @@ def _point_decoder(decoder: Callable[[bytes], Any]) -> Callable[[bytes], PointSa
     return lambda data: point_sample_from_message(decoder(data))
 
 
+def _topic_option(argument: str) -> str:
+    """How each front end names the topic: the command-line option, the cell key, the
+    node parameter and the Python argument."""
+    cli, cell = (('--joint-topic', 'topics.joint_states') if argument == 'joint_topic'
+                 else ('--point-topic', 'topics.point'))
+    node = 'joint_states_topic' if argument == 'joint_topic' else 'point_topic'
+    return (f'Pass {cli} (kpi-calib), set {cell} in the cell file, the node parameter '
+            f'{node}, or {argument}= (Python)')
+
+
 def _open(path: Path, joint_topic: str, point_topic: str,
           require_topics: bool) -> tuple[ScannedBag, _Topic, _Topic] | None:
     """Scan ``path`` and check both topics; None for an empty log (killed before its
@@ -102,13 +112,14 @@ def _open(path: Path, joint_topic: str, point_topic: str,
             if require_topics:
                 present = ', '.join(f"'{t}' ({seen[t]})" for t in sorted(seen)) or 'none'
                 raise BagError(f"{path}: topic '{topic}' is not in the bag; topics present: "
-                               f'{present}. Pass {argument}= naming the {expected} topic')
+                               f'{present}. {_topic_option(argument)} naming the {expected} '
+                               'topic')
             topics[topic] = _Topic([], lambda data: None)
             continue
         if seen[topic] != expected:
             raise BagError(f"{path}: topic '{topic}' carries '{seen[topic] or 'no schema'}', "
-                           f"expected '{expected}'; pass {argument}= naming the topic that "
-                           f'carries {expected}')
+                           f"expected '{expected}'; {_topic_option(argument).lower()} naming "
+                           f'the topic that carries {expected}')
         ids = sorted(c.id for c in bag.channels.values() if c.topic == topic)
         channel = bag.channels[ids[0]]
         schema = bag.schemas[channel.schema_id]

@@ -22,6 +22,7 @@ fix. Paths are relative to the cell file. Units are SI (m, rad, kg). Example::
     collision: {capsules: [...], ignore_pairs: [[base_link, floor]], beam_radius: 0.005}
     identification: {method: pivoted, model: geometric, loss: linear,
                      outliers: {exclude: true, threshold: null}, cv_folds: 5}
+    topics: {joint_states: /joint_states, point: /laser_tracker/point}   # bags read
     design: {candidates: 4000, weights: {roof: 2.0}}        # see DesignSettings
     simulation: {hidden_effects: {joint_compliance:joint_2: {c: 4.0e-7}}}
 """
@@ -50,12 +51,18 @@ from kpi_calib_ros.core.robust import LOSSES, OutlierSettings
 from kpi_calib_ros.core.measurement import MeasurementModel
 from kpi_calib_ros.core.parameters import ParameterSet, geometric_parameters
 from kpi_calib_ros.core.robot import Payload, RobotModel
+from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC
 from kpi_calib_ros.io.resources import resolve_uri
 from kpi_calib_ros.io.results import write_atomic
 from kpi_calib_ros.io.robot_geometry import RobotGeometry, robot_geometry
 
 _TOP_KEYS = {'robot', 'tracker', 'reflector', 'reflectors', 'noise', 'payload', 'working_poses',
-             'obstacles', 'collision', 'identification', 'effects', 'simulation', 'design'}
+             'obstacles', 'collision', 'identification', 'effects', 'simulation', 'design',
+             'topics'}
+_TOPIC_KEYS = {'joint_states': DEFAULT_JOINT_TOPIC, 'point': DEFAULT_POINT_TOPIC}
+# Plausibility of SI values: beyond these a value is almost surely in other units.
+MAX_TRACKER_RANGE_M = 50.0     # laser trackers measure to ~40-80 m; cells are far smaller
+MAX_REFLECTOR_OFFSET_M = 2.0   # reflector from the flange: a tool, not a second robot
 DEFAULT_CELL = Path(__file__).resolve().parent.parent / 'data' / 'cells' / 'default_cell.yaml'
 
 
@@ -119,6 +126,8 @@ class Cell:
     identification_method: str
     identification_priority: tuple[str, ...]
     effects: tuple[str, ...]
+    joint_topic: str = DEFAULT_JOINT_TOPIC   # bag topics (topics: section)
+    point_topic: str = DEFAULT_POINT_TOPIC
     design: DesignSettings = field(default_factory=DesignSettings)
     simulation: SimulationSettings = field(default_factory=SimulationSettings)
     identification: IdentificationSettings = field(default_factory=IdentificationSettings)
@@ -144,16 +153,23 @@ class Cell:
         if self.reflector_offsets is not None:
             return self.reflector_offsets
         return self.reflector_offset.reshape(1, 3)
+    # Set by the caller (--allow-code-effects, node parameter), never by the file: may
+    # effects name Python code to run (see core.effects.parse_effect_spec)?
+    allow_code_effects: bool = field(default=False, compare=False)
 
 
-def load_cell(path: str | Path, urdf_xml: str | None = None) -> Cell:
+def load_cell(path: str | Path, urdf_xml: str | None = None,
+              allow_code_effects: bool = False) -> Cell:
     """Read and validate a cell file; relative paths resolve against its folder.
 
     ``urdf_xml`` replaces ``robot.urdf`` (a URDF from a ROS topic); ``''`` means
     "given later by :func:`with_overrides`" and leaves ``Cell.urdf_xml`` empty.
+    ``allow_code_effects``: effects may name Python files or modules, whose code runs
+    when the model is built; off, such an effect is a ConfigError naming the opt-in.
     """
     path = Path(path)
-    return cell_from_dict(read_cell_document(path), path.parent, urdf_xml=urdf_xml)
+    return cell_from_dict(read_cell_document(path), path.parent, urdf_xml=urdf_xml,
+                          allow_code_effects=allow_code_effects)
 
 
 def read_cell_document(path: str | Path) -> Any:
@@ -193,8 +209,10 @@ def write_cell_document(path: str | Path, doc: dict[str, Any]) -> Path:
     return write_atomic(path, yaml.safe_dump(doc, sort_keys=False))
 
 
-def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None) -> Cell:
-    """Validate a parsed cell document. ``urdf_xml`` overrides ``robot.urdf`` (ROS topic)."""
+def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None,
+                   allow_code_effects: bool = False) -> Cell:
+    """Validate a parsed cell document. ``urdf_xml`` overrides ``robot.urdf`` (ROS topic);
+    ``allow_code_effects`` as for :func:`load_cell`."""
     if not isinstance(doc, dict):
         raise ConfigError('cell', 'the document must be a mapping with keys '
                           f'{sorted(_TOP_KEYS)}')
@@ -221,7 +239,7 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None) -> Cel
         if not isinstance(section, dict):
             raise ConfigError(key, 'must be a mapping')
     noise = _mapping(doc, 'noise')
-    payload = doc.get('payload') or {}
+    payload = _optional_mapping(doc, 'payload')
     axis = _vector(reflector.get('axis', [0, 0, 1]), 'reflector.axis', 3)
     if np.linalg.norm(axis) < 1e-9:
         raise ConfigError('reflector.axis', 'must be a non-zero vector in the tip frame')
@@ -230,17 +248,15 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None) -> Cel
     if np.any(sigma <= 0) or np.any(sigma > 0.01):
         raise ConfigError('noise.sigma', f'{sigma.tolist()} must be in (0, 0.01] m per axis '
                           '(SI metres: 20 µm is 2.0e-5)')
-    max_inc = float(reflector.get('max_incidence', float(np.deg2rad(30.0))))
+    max_inc = number(reflector, 'max_incidence', 'reflector', np.deg2rad(30.0), 'rad')
     if not 0 < max_inc <= np.pi / 2:
         raise ConfigError('reflector.max_incidence', 'must be in (0, π/2] rad (30° = 0.5236)')
-    collision = doc.get('collision') or {}
-    ident = doc.get('identification') or {}
-    if not isinstance(ident, dict):
-        raise ConfigError('identification', 'must be a mapping, e.g. {method: pivoted}')
+    collision = _optional_mapping(doc, 'collision')
+    ident = _optional_mapping(doc, 'identification')
     method = ident.get('method', 'pivoted')
     if method not in ('pivoted', 'priority'):
         raise ConfigError('identification.method', "must be 'pivoted' or 'priority'")
-    mass = float(payload.get('mass', 0.0))
+    mass = number(payload, 'mass', 'payload', 0.0, 'kg')
     if mass < 0:
         raise ConfigError('payload.mass', 'must be >= 0 kg')
     return Cell(
@@ -248,10 +264,11 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None) -> Cel
         base_frame=_str(robot, 'robot.base_frame', 'base_frame'),
         tip_frame=_str(robot, 'robot.tip_frame', 'tip_frame'),
         tracker_frame=str(tracker.get('frame_id', 'laser_tracker')),
-        base_in_tracker=_optional_vector(tracker.get('base_in_tracker'),
-                                         'tracker.base_in_tracker', 6),
-        reflector_offset=(np.nan_to_num(offsets[0]) if offsets is not None else
-                          _optional_vector(reflector.get('offset'), 'reflector.offset', 3)),
+        base_in_tracker=_plausible_pose(_optional_vector(tracker.get('base_in_tracker'),
+                                                         'tracker.base_in_tracker', 6)),
+        reflector_offset=_plausible_offset(
+            np.nan_to_num(offsets[0]) if offsets is not None else
+            _optional_vector(reflector.get('offset'), 'reflector.offset', 3)),
         reflector_axis=axis / np.linalg.norm(axis), max_incidence=max_inc, sigma=sigma,
         payload_mass=mass,
         payload_com=_vector(payload.get('com', [0, 0, 0]), 'payload.com', 3),
@@ -262,10 +279,12 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None) -> Cel
                              for i, c in enumerate(collision.get('capsules') or [])),
         ignore_pairs=tuple(_pair(p, f'collision.ignore_pairs[{i}]')
                            for i, p in enumerate(collision.get('ignore_pairs') or [])),
-        beam_radius=float(collision.get('beam_radius', 0.005)),
+        beam_radius=_non_negative(number(collision, 'beam_radius', 'collision', 0.005, 'm'),
+                                  'collision.beam_radius', 'm'),
         identification_method=method,
-        identification_priority=tuple(ident.get('priority') or ()),
+        identification_priority=_priority(ident, method),
         effects=tuple(str(e) for e in (doc.get('effects') or [])),
+        **_topics(doc.get('topics')),
         design=design_settings(doc.get('design')),
         simulation=simulation_settings(doc.get('simulation')),
         identification=identification_settings(ident), source_dir=str(base_dir),
@@ -276,7 +295,8 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None) -> Cel
         reflector_names=names,
         reflector_offsets=np.nan_to_num(offsets) if offsets is not None else None,
         joint_coupling=_coupling_mapping(robot.get('joint_coupling')),
-        working_poses_in=_working_poses_in(robot.get('working_poses_in', 'controller')))
+        working_poses_in=_working_poses_in(robot.get('working_poses_in', 'controller')),
+        allow_code_effects=allow_code_effects)
 
 
 def _coupling_mapping(raw: Any) -> dict[str, Any]:
@@ -364,9 +384,7 @@ def design_settings(raw: Mapping[str, Any] | None) -> DesignSettings:
                 raise ConfigError(path, f'must be a positive integer, got {value!r}')
             values[key] = value
         else:
-            if not isinstance(value, (int, float)) or isinstance(value, bool) or value < 0:
-                raise ConfigError(path, f'must be a number >= 0, got {value!r}')
-            values[key] = float(value)
+            values[key] = _non_negative(number(raw, key, 'design'), path, '')
     if values.get('flag_threshold', 0.5) > 1:
         raise ConfigError('design.flag_threshold', 'must be a fraction in [0, 1]')
     return replace(defaults, **values)
@@ -433,6 +451,98 @@ def simulation_settings(raw: Any) -> SimulationSettings:
         raise ConfigError('simulation.hidden_effects', 'must map effect specs to their '
                           'parameters, e.g. {joint_compliance:joint_2: {c: 5.0e-7}}')
     return SimulationSettings(dict(hidden))
+
+
+def number(section: Mapping[str, Any], name: str, path: str,
+           default: float | None = None, unit: str = '') -> float:
+    """The finite number ``section[name]`` (``default`` when absent); the one reader of
+    numeric cell values, so a wrong type (``beam_radius: wide``) names its key path
+    ``path.name`` and the unit."""
+    key = f'{path}.{name}' if path else name
+    value = section.get(name, default)
+    if value is None:
+        raise ConfigError(key, f'missing; give a number{f" ({unit})" if unit else ""}')
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
+        raise ConfigError(key, f'must be a finite number{f" in {unit}" if unit else ""} '
+                          f'(SI units), got {value!r}')
+    return float(value)
+
+
+def _non_negative(value: float, key: str, unit: str) -> float:
+    if value < 0:
+        raise ConfigError(key, f'must be >= 0 {unit}, got {value}')
+    return value
+
+
+def _plausible_pose(pose: np.ndarray) -> np.ndarray:
+    """``tracker.base_in_tracker`` in SI units, or a ConfigError with a units hint (a pose
+    in millimetres or degrees would otherwise end in a design with no feasible pose)."""
+    distance = float(np.linalg.norm(pose[:3]))
+    if distance > MAX_TRACKER_RANGE_M:
+        raise ConfigError('tracker.base_in_tracker', f'the robot base is {distance:g} m from '
+                          f'the tracker, beyond any tracker range ({MAX_TRACKER_RANGE_M:g} m); '
+                          'give x, y, z in SI metres (millimetres? divide by 1000)')
+    if np.any(np.abs(pose[3:]) > 2 * np.pi):
+        raise ConfigError('tracker.base_in_tracker', f'roll, pitch, yaw {pose[3:].tolist()} '
+                          'exceed 2π; give them in radians (degrees? multiply by π/180)')
+    return pose
+
+
+def _plausible_offset(offset: np.ndarray) -> np.ndarray:
+    """``reflector.offset`` in SI metres, or a ConfigError with a units hint."""
+    length = float(np.linalg.norm(offset))
+    if length > MAX_REFLECTOR_OFFSET_M:
+        raise ConfigError('reflector.offset', f'the reflector is {length:g} m from the tip '
+                          f'frame (at most {MAX_REFLECTOR_OFFSET_M:g} m is plausible); give '
+                          'it in SI metres (millimetres? divide by 1000; 30 mm is 0.03)')
+    return offset
+
+
+def _topics(raw: Any) -> dict[str, str]:
+    """The ``topics:`` section: which topics of a bag carry the joint states and the
+    tracker points (``--joint-topic`` / ``--point-topic`` override it)."""
+    if raw is None:
+        raw = {}
+    if not isinstance(raw, dict):
+        raise ConfigError('topics', f'must be a mapping with keys {sorted(_TOPIC_KEYS)}')
+    unknown = set(raw) - set(_TOPIC_KEYS)
+    if unknown:
+        raise ConfigError(f'topics.{sorted(unknown)[0]}', f'unknown key; allowed: '
+                          f'{sorted(_TOPIC_KEYS)}')
+    names = {}
+    for key, default in _TOPIC_KEYS.items():
+        value = raw.get(key, default)
+        if not isinstance(value, str) or not value.strip() or ' ' in value:
+            raise ConfigError(f'topics.{key}', f'must be a topic name such as {default!r}, '
+                              f'got {value!r}')
+        names[key] = value
+    if names['joint_states'] == names['point']:
+        raise ConfigError('topics.point', 'must differ from topics.joint_states')
+    return {'joint_topic': names['joint_states'], 'point_topic': names['point']}
+
+
+def _priority(ident: dict, method: str) -> tuple[str, ...]:
+    """``identification.priority``: parameter names, used only by ``method: priority``
+    (their existence is checked against the model in :func:`build_cell_model`)."""
+    raw = ident.get('priority')
+    if raw is None:
+        return ()
+    if not isinstance(raw, list) or not all(isinstance(n, str) for n in raw):
+        raise ConfigError('identification.priority', 'must be a list of parameter names, e.g. '
+                          '[joint_1.offset, joint_2.offset]')
+    if method != 'priority':
+        raise ConfigError('identification.priority', "is used only with method: priority; "
+                          'set it or remove the list')
+    return tuple(raw)
+
+
+def _optional_mapping(doc: dict, key: str) -> dict:
+    value = doc.get(key)
+    if value is None:
+        return {}
+    if not isinstance(value, dict):
+        raise ConfigError(key, f'must be a mapping, got {value!r}')
+    return value
 
 
 def _mapping(doc: dict, key: str) -> dict:
@@ -544,13 +654,11 @@ def _joint_value(v: Any, key: str) -> float:
 def _capsule(item: Any, key: str, frame_key: str = 'frame') -> Capsule:
     if not isinstance(item, dict):
         raise ConfigError(key, 'must be a mapping {name, a, b, radius}')
-    radius = item.get('radius')
-    if not isinstance(radius, (int, float)) or radius < 0:
-        raise ConfigError(f'{key}.radius', 'must be a number >= 0 (m)')
+    radius = _non_negative(number(item, 'radius', key, unit='m'), f'{key}.radius', 'm')
     frame = str(item.get(frame_key, 'base'))
     return Capsule(str(item.get('name', frame if frame_key == 'link' else key)), frame,
                    _vector(item.get('a'), f'{key}.a', 3), _vector(item.get('b'), f'{key}.b', 3),
-                   float(radius))
+                   radius)
 
 
 def _obstacle(item: Any, key: str) -> Capsule | HalfSpace:
@@ -561,7 +669,7 @@ def _obstacle(item: Any, key: str) -> Capsule | HalfSpace:
         normal = _vector(item.get('normal'), f'{key}.normal', 3)
         if np.linalg.norm(normal) < 1e-9:
             raise ConfigError(f'{key}.normal', 'must be non-zero')
-        return HalfSpace(str(item['name']), normal, float(item.get('offset', 0.0)))
+        return HalfSpace(str(item['name']), normal, number(item, 'offset', key, 0.0, 'm'))
     if kind == 'capsule':
         cap = _capsule(item, key)
         return Capsule(cap.name, 'base', cap.a, cap.b, cap.radius)
@@ -656,10 +764,15 @@ def build_cell_model(cell: Cell, effects: tuple = ()) -> CellModel:
     # Placements left out are zeros here; identification registers them first.
     geometric = geometric_parameters(robot, cell.base_in_tracker, cell.offsets,
                                      cell.reflector_names or None)
-    resolved = resolve_effects(cell.effects, robot, 'effects', cell.source_dir or None)
-    extra = resolve_effects(effects, robot, 'extra effects', cell.source_dir or None)
+    code = cell.allow_code_effects
+    resolved = resolve_effects(cell.effects, robot, 'effects', cell.source_dir or None, code)
+    extra = resolve_effects(effects, robot, 'extra effects', cell.source_dir or None, code)
     resolved += tuple(e for e in extra if e.name not in {r.name for r in resolved})
     model = MeasurementModel(robot, geometric, resolved, cell.reflector_axis)
+    unknown = [n for n in cell.identification_priority if n not in model.params.names]
+    if unknown:
+        raise ConfigError('identification.priority', f'unknown parameter(s) {unknown}; valid '
+                          f'names: {list(model.params.names)}')
     missing_masses = mass_warning(robot, resolved)
     if missing_masses:
         warnings.warn(missing_masses, stacklevel=2)

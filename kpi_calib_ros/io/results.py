@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.pairing import PairingResult
 from kpi_calib_ros.core.precision import precision_statement
@@ -55,6 +56,21 @@ def write_atomic(path: str | Path, text: str) -> Path:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+    return path
+
+
+def writable_folder(path: str | Path, key: str = 'out') -> Path:
+    """Create folder ``path`` if needed and prove a file can be written in it (read-only
+    file system, permissions, a file in the way), so a command fails before its
+    computation, not after; ConfigError names ``key``."""
+    path = Path(path)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=path, prefix='.write_test.'):
+            pass
+    except OSError as exc:
+        raise ConfigError(key, f'cannot write results to {str(path)!r}: '
+                          f'{exc.strerror or exc}; give a writable folder') from None
     return path
 
 

@@ -32,6 +32,10 @@ from kpi_calib_ros.io.names import RESULT_FILES
 # Campaign-level reasons besides the pairer's: the measurement could not be written.
 NOT_STORED = 'not_stored'
 REASONS = REJECTION_REASONS + (NOT_STORED,)
+# Joint names a joint state may carry while the chain is not known yet (the pairer's
+# own limit, 4 x chain + 64, needs the chain): far above any robot cell's joint count,
+# far below a hostile message, so the early buffer of 20 000 samples stays small.
+EARLY_MAX_NAMES = 256
 
 
 class Campaign:
@@ -98,6 +102,13 @@ class Campaign:
                 else:
                     self._point_clock = (sample.stamp_ns, now_ns)
             if self.pairer is None:
+                if isinstance(sample, JointSample) and len(sample.names) > EARLY_MAX_NAMES:
+                    rejection = Rejection(sample.stamp_ns, 'oversized_joint_state',
+                                          f'joint state names {len(sample.names)} joints '
+                                          f'(limit {EARLY_MAX_NAMES} before the robot model '
+                                          'is known)')
+                    self.rejections[rejection.reason] += 1
+                    return [rejection]
                 self._early.append(sample)
                 return []
             self._add(self.pairer, sample)

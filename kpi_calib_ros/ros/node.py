@@ -44,7 +44,8 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.exceptions import ParameterUninitializedException
+from rclpy.exceptions import (InvalidParameterTypeException, InvalidParameterValueException,
+                              ParameterUninitializedException)
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -73,7 +74,9 @@ from kpi_calib_ros.io.names import (CALIBRATED_URDF_TOPIC, CALIBRATION_TOPIC, DI
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros import jobs
 from kpi_calib_ros.ros.campaign import Campaign
-from kpi_calib_ros.ros.parameters import PARAMETERS, settings_from_parameters, working_poses
+from kpi_calib_ros.ros.child_process import run_in_child
+from kpi_calib_ros.ros.parameters import (PARAMETERS, settings_from_parameters, type_error,
+                                          working_poses)
 
 NODE_NAME = 'kpi_calib_node'
 
@@ -87,21 +90,54 @@ def _stream_qos(depth: int) -> QoSProfile:
     return QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE)
 
 
+# Subscription queues sized in seconds at the highest expected rates: a stall of the
+# executor this long (a slow disk, a busy machine) loses nothing. Jobs run in a child
+# process (ros/child_process.py), so no job holds the executor back.
+JOINT_STATES_MAX_HZ = 1000.0
+POINTS_MAX_HZ = 50.0
+STREAM_BUFFER_S = 10.0
+
+
+class _Sequence:
+    """Messages lost before the node read them, from the publication sequence numbers
+    DDS gives each message (one publisher per topic; a number that goes back is a new
+    publisher, or the same one restarted)."""
+
+    def __init__(self) -> None:
+        self.last: int | None = None
+        self.lost = 0
+        self.max_lag_ns = 0  # publication to callback: how far the executor fell behind
+
+    def see(self, info: dict[str, Any]) -> None:
+        sent = info.get('source_timestamp')
+        if sent:
+            self.max_lag_ns = max(self.max_lag_ns, time.time_ns() - sent)
+        number = info.get('publication_sequence_number')
+        if not number:  # the middleware does not report them
+            return
+        if self.last is not None and number > self.last + 1:
+            self.lost += number - self.last - 1
+        self.last = number
+
+
 class CalibrationNode(Node):
     """The calibration node; the README's "cell controller" section lists its interface."""
 
     def __init__(self, **kwargs) -> None:
         super().__init__(NODE_NAME, **kwargs)
-        for name, (default, read_only, description) in PARAMETERS.items():
-            self.declare_parameter(name, default, ParameterDescriptor(
-                description=description, read_only=read_only))
+        self._declare_parameters()
         self.settings = settings_from_parameters(self._parameter_values())
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
         # The cell once, validated; the URDF comes from the parameter or the topic.
-        self._cell = load_cell(self.settings.cell_file, urdf_xml='')
+        self._cell = load_cell(self.settings.cell_file, urdf_xml='',
+                               allow_code_effects=self.settings.allow_code_effects)
         self.data_dir = Path(self.settings.data_dir)
-        self.campaign = Campaign(self.data_dir)
+        try:
+            self.campaign = Campaign(self.data_dir)
+        except OSError as exc:  # missing parent, read-only, a file in the way, no space
+            raise ConfigError('data_dir', f'cannot log measurements in {str(self.data_dir)!r}: '
+                              f'{exc.strerror or exc}; give a writable folder') from None
         self.get_logger().info(f'{self.campaign.restored} measurement(s) restored from '
                                f'{self.data_dir}; logging to {self.campaign.log.path}')
 
@@ -138,10 +174,17 @@ class CalibrationNode(Node):
         # Latched, one message per working pose: made when a model gives their number.
         self._pub_tcp: Publisher | None = None
         self._tcp_depth = 0
+        self._sequences = {'joint_states': _Sequence(), 'points': _Sequence()}
+        self._identifications = 0
+        # Callbacks with (message, message info); rclpy 7.1's annotation omits that form.
         self.create_subscription(JointState, self.settings.joint_states_topic,
-                                 self._on_joint_state, _stream_qos(1000), callback_group=streams)
-        self.create_subscription(PointStamped, self.settings.point_topic, self._on_point,
-                                 _stream_qos(100), callback_group=streams)
+                                 self._on_joint_state,  # type: ignore[arg-type]
+                                 _stream_qos(int(JOINT_STATES_MAX_HZ * STREAM_BUFFER_S)),
+                                 callback_group=streams)
+        self.create_subscription(PointStamped, self.settings.point_topic,
+                                 self._on_point,  # type: ignore[arg-type]
+                                 _stream_qos(int(POINTS_MAX_HZ * STREAM_BUFFER_S)),
+                                 callback_group=streams)
         for name, doing, work in (('design', 'designing', self._design),
                                   ('identify', 'identifying', self._identify),
                                   ('diagnose', 'diagnosing', self._diagnose),
@@ -159,6 +202,17 @@ class CalibrationNode(Node):
             self.get_logger().info(f'waiting for {self.settings.robot_description_topic}')
 
     # ------------------------------------------------------------------ parameters
+    def _declare_parameters(self) -> None:
+        """Declare every parameter; a start-up value of the wrong type (``-p
+        auto_identify:=maybe`` arrives as a string) is a ConfigError naming it."""
+        for name, (default, read_only, description) in PARAMETERS.items():
+            try:
+                self.declare_parameter(name, default, ParameterDescriptor(
+                    description=description, read_only=read_only))
+            except (InvalidParameterTypeException, InvalidParameterValueException) as exc:
+                given = getattr(self, '_parameter_overrides', {}).get(name)
+                raise type_error(name, exc if given is None else given.value) from None
+
     def _parameter_values(self, changes: dict[str, Any] | None = None) -> dict[str, Any]:
         values = {}
         for name in PARAMETERS:
@@ -221,10 +275,12 @@ class CalibrationNode(Node):
         return self._pub_tcp
 
     # ------------------------------------------------------------------ live pairing
-    def _on_joint_state(self, msg: JointState) -> None:
+    def _on_joint_state(self, msg: JointState, info: dict[str, Any]) -> None:
+        self._sequences['joint_states'].see(info)
         self._report(self.campaign.receive(cv.joint_sample_from_msg(msg)))
 
-    def _on_point(self, msg: PointStamped) -> None:
+    def _on_point(self, msg: PointStamped, info: dict[str, Any]) -> None:
+        self._sequences['points'].see(info)
         self._report(self.campaign.receive(cv.point_sample_from_msg(msg)))
 
     def _report(self, decisions: list[Decision]) -> None:
@@ -286,15 +342,17 @@ class CalibrationNode(Node):
             self._job_name = ''
         return outcome
 
-    def _offload(self, fn: Callable[..., Any], *args: Any) -> Future:
-        """Run ``fn(*args)`` in a worker thread; awaiting the returned future resumes the
-        job on the executor with ``fn``'s value (or raises its exception)."""
+    def _offload(self, fn: Callable[..., Any], *args: Any, child: bool = False) -> Future:
+        """Run ``fn(*args)`` in a worker thread (``child``: in a forked child process that
+        the thread waits for, for pure computations that must not hold the GIL); awaiting
+        the returned future resumes the job on the executor with ``fn``'s value (or
+        raises its exception)."""
         done = Future(executor=self.executor)
         done.add_done_callback(lambda _: None)  # its scheduling wakes the executor
 
         def run() -> None:
             try:
-                value = fn(*args)
+                value = run_in_child(fn, *args) if child else fn(*args)
             except Exception as exc:  # handed to the awaiting job, which reports it
                 done.set_exception(exc)
             else:
@@ -311,7 +369,7 @@ class CalibrationNode(Node):
     async def _design(self) -> tuple[bool, str]:
         cm = self._model()
         design, points, path, not_estimable = await self._offload(
-            jobs.design_work, cm, self.settings, self.data_dir)
+            jobs.design_work, cm, self.settings, self.data_dir, child=True)
         self._pub_poses.publish(cv.joint_trajectory_msg(design.joint_names,
                                                         design.configurations))
         self._design_points = points
@@ -335,7 +393,7 @@ class CalibrationNode(Node):
         data = urdf_measurements(cm, data)  # controller readings -> URDF joint values
         try:
             cal, calibration, urdf, tcp = await self._offload(
-                jobs.identify_work, cm, data, pairing, self.data_dir)
+                jobs.identify_work, cm, data, pairing, self.data_dir, child=True)
         except KpiCalibError as exc:
             self._result_error = f'identification failed: {exc}'
             raise
@@ -357,6 +415,7 @@ class CalibrationNode(Node):
             self.get_logger().warning(text)
         self._robust = cal.robust
         self._result, self._measured, self._identified_with = result, data.eta, len(data)
+        self._identifications += 1
         self._result_error = ''
         self._pub_calibration.publish(String(data=calibration))
         self._calibration_text = calibration
@@ -385,7 +444,7 @@ class CalibrationNode(Node):
                                              cm.cell.reflector_names or ('',))
         data = urdf_measurements(cm, data)  # controller readings -> URDF joint values
         doc, text, verdict, report = await self._offload(jobs.diagnose_work, cm, data,
-                                                         self.data_dir)
+                                                         self.data_dir, child=True)
         self._diagnosis = doc
         self._pub_diagnosis.publish(String(data=text))
         self._publish_diagnostics(force=True)
@@ -445,7 +504,13 @@ class CalibrationNode(Node):
             'waiting for robot description' if self._cm is None else 'idle')}
         values.update(self.campaign.counts())
         values.update({'identified_with': self._identified_with,
+                       'identifications': self._identifications,
+                       'lost.joint_states': self._sequences['joint_states'].lost,
+                       'lost.points': self._sequences['points'].lost,
+                       'max_lag_ms.joint_states': round(
+                           self._sequences['joint_states'].max_lag_ns * 1e-6, 1),
                        'log_file': str(self.campaign.log.path)})
+        lost = values['lost.joint_states'] + values['lost.points']
         result, n, rejected = self._result, values['accepted'], values['rejected']
         if result is not None:
             values.update({'rms_um': round(result.rms_m * 1e6, 3),
@@ -465,6 +530,10 @@ class CalibrationNode(Node):
             return 'WARN', self._robust.warnings[0], values
         if result is not None and not is_adequate(result.p_value):
             return 'WARN', f'model inadequate (p = {result.p_value:.2g})', values
+        if lost:
+            return 'WARN', (f"{values['lost.joint_states']} joint states and "
+                            f"{values['lost.points']} points lost before the node read them "
+                            '(queue overflow: the node fell behind)'), values
         if rejected:
             return 'WARN', f'{n} accepted, {rejected} rejected', values
         if self._cm is None:

@@ -9,7 +9,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from rclpy.exceptions import InvalidTopicNameException
 from rclpy.parameter import Parameter
+from rclpy.validate_topic_name import validate_topic_name
 
 from kpi_calib_ros.core.design import DESIGN_CRITERIA
 from kpi_calib_ros.core.errors import ConfigError
@@ -35,6 +37,7 @@ class NodeSettings:
     min_measurements: int
     auto_identify: bool
     data_dir: str
+    allow_code_effects: bool = False
 
 
 # name: (default or parameter type when empty, read only, description)
@@ -59,7 +62,30 @@ PARAMETERS: dict[str, tuple[Any, bool, str]] = {
     'auto_identify': (True, False, 'identify when min_measurements is reached, and again '
                       'as more measurements arrive'),
     'data_dir': ('~/.ros/kpi_calib', True, 'measurement log and results (created if missing)'),
+    'allow_code_effects': (False, True, "run the Python code a cell file's effects: name "
+                           "('file.py:Type:joint', 'module:Type:joint'); off: only built-in "
+                           'and installed (entry point) effects'),
 }
+
+# What a value of each declared type is written as on the command line.
+_TYPE_WORDS = {Parameter.Type.BOOL: 'true or false', Parameter.Type.INTEGER: 'an integer',
+               Parameter.Type.DOUBLE: 'a number', Parameter.Type.STRING: 'a string',
+               Parameter.Type.DOUBLE_ARRAY: 'a list of numbers, e.g. [0.0, 1.2]',
+               Parameter.Type.STRING_ARRAY: "a list of strings, e.g. ['a', 'b']"}
+
+
+def parameter_type(name: str) -> Parameter.Type:
+    """The declared type of parameter ``name`` (from its default)."""
+    default = PARAMETERS[name][0]
+    if isinstance(default, Parameter.Type):
+        return default
+    return Parameter.Type.from_parameter_value(default)
+
+
+def type_error(name: str, value: Any) -> ConfigError:
+    """The error for a parameter given with the wrong type (``-p auto_identify:=maybe``
+    arrives as the string 'maybe'), naming the parameter and the type it takes."""
+    return ConfigError(name, f'must be {_TYPE_WORDS[parameter_type(name)]}, got {value!r}')
 
 
 def settings_from_parameters(values: dict[str, Any]) -> NodeSettings:
@@ -76,6 +102,16 @@ def settings_from_parameters(values: dict[str, Any]) -> NodeSettings:
             raise ConfigError(key, f'must be an integer >= {minimum}, got {value!r}')
         return value
 
+    def topic(key: str) -> str:
+        name = text(key)
+        try:
+            validate_topic_name(name)
+        except InvalidTopicNameException as exc:  # its message points at the bad character
+            raise ConfigError(key, f'{name!r} is not a valid ROS topic name: '
+                              f'{str(exc).splitlines()[0].split(": ", 1)[-1]} '
+                              "(e.g. '/joint_states')") from None
+        return name
+
     poses = tuple(float(v) for v in values['working_poses'] or ())
     names = tuple(str(v) for v in values['working_joint_names'] or ())
     if poses or names:
@@ -83,10 +119,11 @@ def settings_from_parameters(values: dict[str, Any]) -> NodeSettings:
     if values['criterion'] not in DESIGN_CRITERIA:
         raise ConfigError('criterion', f'must be one of {list(DESIGN_CRITERIA)}, '
                           f'got {values["criterion"]!r}')
-    if not isinstance(values['auto_identify'], bool):
-        raise ConfigError('auto_identify', 'must be true or false')
-    topics = {k: text(k) for k in ('robot_description_topic', 'joint_states_topic',
-                                   'point_topic')}
+    for key in ('auto_identify', 'allow_code_effects'):
+        if not isinstance(values[key], bool):
+            raise ConfigError(key, f'must be true or false, got {values[key]!r}')
+    topics = {k: topic(k) for k in ('robot_description_topic', 'joint_states_topic',
+                                    'point_topic')}
     if topics['joint_states_topic'] == topics['point_topic']:
         raise ConfigError('point_topic', 'must differ from joint_states_topic')
     cell_file = text('cell_file', allow_empty=True) or str(DEFAULT_CELL)
@@ -98,7 +135,7 @@ def settings_from_parameters(values: dict[str, Any]) -> NodeSettings:
         working_joint_names=names, num_measurements=integer('num_measurements', 1),
         criterion=values['criterion'], design_seed=integer('design_seed', 0),
         min_measurements=integer('min_measurements', 1),
-        auto_identify=values['auto_identify'],
+        auto_identify=values['auto_identify'], allow_code_effects=values['allow_code_effects'],
         data_dir=str(Path(text('data_dir')).expanduser()), **topics)
 
 
@@ -110,4 +147,5 @@ def working_poses(settings: NodeSettings) -> tuple[WorkingPose, ...] | None:
     return working_poses_from_arrays(settings.working_joint_names, settings.working_poses)
 
 
-__all__ = ['NodeSettings', 'PARAMETERS', 'settings_from_parameters', 'working_poses']
+__all__ = ['NodeSettings', 'PARAMETERS', 'parameter_type', 'settings_from_parameters',
+           'type_error', 'working_poses']

@@ -22,10 +22,12 @@ node that receives nothing else.
 """
 from __future__ import annotations
 
+import mmap
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import cast
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
@@ -36,8 +38,11 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
+from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.streams import JointSample
-from kpi_calib_ros.io.bag import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, read_bag
+from kpi_calib_ros.io.bag import (DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, is_measurement_log,
+                                  read_bag)
+from kpi_calib_ros.io.mcap_scan import MAGIC, scan
 from kpi_calib_ros.ros.conversions import diagnostic_values, joint_state_msg, point_stamped_msg
 
 # Publisher history at least this deep; it is sized to the whole recording when longer,
@@ -144,6 +149,7 @@ def replay(node: Node, path: str | Path, rate: float = 1.0,
     """
     if not rate > 0:
         raise ValueError(f'rate must be > 0, got {rate}')
+    refuse_measurement_log(path)
     joints, points = read_bag(path, joint_topic, point_topic)
     stream = sorted([(s.stamp_ns, 0, s) for s in joints] + [(p.stamp_ns, 1, p) for p in points],
                     key=lambda item: item[:2])
@@ -193,6 +199,31 @@ def replay(node: Node, path: str | Path, rate: float = 1.0,
     return ReplayReport((sent[0], sent[1]), delivered, acknowledged, time.monotonic() - start)
 
 
+def refuse_measurement_log(path: str | Path) -> None:
+    """Raise DataError if ``path`` is a kpi_calib_node measurement log.
+
+    A log holds one averaged joint state per accepted point, not the joint stream the
+    node pairs (still joint states around each point), so replayed into a node every
+    point would be rejected. Its measurements are already paired: every command reads
+    the log directly, and a node restores it from its ``data_dir``.
+    """
+    path = Path(path)
+    if not path.is_file():
+        return  # read_bag names the missing file
+    with open(path, 'rb') as f:
+        if f.read(len(MAGIC)) != MAGIC:
+            return  # read_bag explains what the file is not
+        # Mapped, not read: only the records' headers and the metadata are touched.
+        with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as data:
+            log = is_measurement_log(scan(path, cast(bytes, data)))  # reads it as bytes
+    if log:
+        raise DataError(f'{path} is a kpi_calib_node measurement log (one averaged joint '
+                        'state per accepted point, already paired), not a recording of the '
+                        'joint stream, so a node would reject every point. Use it as it is: '
+                        f'`kpi-calib identify --bag {path}` (or diagnose), or copy it into a '
+                        "node's data_dir, which restores it at start-up")
+
+
 def _await(node_counts: _NodeCounts, done: Callable[[], bool]) -> bool:
     """Spin until ``done()``; False once the node's counts stop moving for ``STALL_S``."""
     last, since = node_counts.counts, time.monotonic()
@@ -208,6 +239,7 @@ def _await(node_counts: _NodeCounts, done: Callable[[], bool]) -> bool:
 def run_replay(bag: str | Path, rate: float = 1.0, joint_topic: str = DEFAULT_JOINT_TOPIC,
                point_topic: str = DEFAULT_POINT_TOPIC, wait_s: float = 10.0) -> int:
     """The ``kpi-calib replay`` subcommand: 0 if every message was delivered, 1 if not."""
+    refuse_measurement_log(bag)  # before joining the ROS graph
     rclpy.init()
     node = rclpy.create_node('kpi_calib_replay')
     try:
