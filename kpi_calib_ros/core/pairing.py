@@ -36,7 +36,7 @@ from typing import Iterable, Sequence, Union
 
 import numpy as np
 
-from kpi_calib_ros.core.streams import JointSample, PointSample, _frozen_array
+from kpi_calib_ros.core.streams import JointSample, PointSample, frozen_array
 
 REJECTION_REASONS = (
     'non_finite_point', 'wrong_frame', 'no_joint_state', 'robot_moving',
@@ -484,7 +484,7 @@ class Pairer:
                          f'(tol {self.still_vel_tol:g}) within ±{w} ns')
             return
         self._decided.append(PairedMeasurement(
-            stamp_ns=t, joint_names=self.joint_names, q=_frozen_array(
+            stamp_ns=t, joint_names=self.joint_names, q=frozen_array(
                 q.mean(axis=0), (len(self.joint_names),), 'q'),
             eta=point.xyz, frame_id=point.frame_id, n_joint_samples=len(window),
             spread_rad=float(spread.max())))

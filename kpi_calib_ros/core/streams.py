@@ -16,7 +16,8 @@ from typing import Sequence
 
 import numpy as np
 
-def _frozen_array(values, shape: tuple[int, ...], name: str) -> np.ndarray:
+def frozen_array(values, shape: tuple[int, ...], name: str) -> np.ndarray:
+    """``values`` as a read-only float array of ``shape``; ValueError naming ``name``."""
     array = np.array(values, dtype=float)
     if array.shape != shape:
         raise ValueError(f'{name} must have shape {shape}, got {array.shape}')
@@ -50,10 +51,10 @@ class JointSample:
         object.__setattr__(self, 'stamp_ns', int(self.stamp_ns))
         object.__setattr__(self, 'names', names)
         object.__setattr__(self, 'positions',
-                           _frozen_array(self.positions, (len(names),), 'positions'))
+                           frozen_array(self.positions, (len(names),), 'positions'))
         if self.velocities is not None:
             object.__setattr__(self, 'velocities',
-                               _frozen_array(self.velocities, (len(names),), 'velocities'))
+                               frozen_array(self.velocities, (len(names),), 'velocities'))
 
 
 @dataclass(frozen=True, eq=False)
@@ -66,7 +67,7 @@ class PointSample:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, 'stamp_ns', int(self.stamp_ns))
-        object.__setattr__(self, 'xyz', _frozen_array(self.xyz, (3,), 'xyz'))
+        object.__setattr__(self, 'xyz', frozen_array(self.xyz, (3,), 'xyz'))
 
 
 def _quintic(tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
