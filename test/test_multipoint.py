@@ -228,3 +228,29 @@ def test_a_cell_names_a_pip_installed_urdf_by_package_uri():
     assert tiago.cell.urdf_path.endswith('robots/tiago_description/robots/tiago_no_hand.urdf')
     assert tiago.joint_names == ['torso_lift_joint'] + [f'arm_{i}_joint' for i in range(1, 8)]
     assert tiago.needs_registration and tiago.model.n_reflectors == 4
+
+
+def test_robust_identification_and_auto_model_keep_each_rows_reflector(cm):
+    """The path the CLI and the node publish (calibrate_cell: registration, gross screen,
+    model choice by cross-validation over poses, outlier exclusion, estimability) keeps
+    every row's reflector: on a three-reflector campaign with one blunder it excludes
+    exactly that row, and the fit of the others is at the noise floor."""
+    import dataclasses
+
+    from kpi_calib_ros.app.identify import calibrate_cell
+    sigma = 2e-5
+    p_true = true_parameters(cm.model.params, np.random.default_rng(31))
+    data = _campaign(cm, 25, 32, p_true, sigma=sigma)
+    eta = data.eta.copy()
+    eta[10] += [0.0, 2e-3, 0.0]  # 100 σ off, one reflector of one pose
+    data = dataclasses.replace(data, eta=eta, stamps_ns=np.arange(len(eta)) + 1)
+    auto = dataclasses.replace(cm.cell.identification, model='auto')
+    cal = calibrate_cell(dataclasses.replace(cm, cell=dataclasses.replace(
+        cm.cell, identification=auto)), data)
+    assert cal.valid and cal.choice.level == 'geometric'
+    assert [e.index for e in cal.robust.excluded] == [10]
+    kept = data.subset(cal.robust.kept)
+    assert kept.reflector.tolist() == np.delete(data.reflector, 10).tolist()
+    # rms of the kept rows against σ√3 (dof-corrected: 3N − k of 3N)
+    n, k = 3 * len(kept), len(cal.result.estimated)
+    assert cal.result.rms_m == pytest.approx(sigma * np.sqrt(3 * (n - k) / n), rel=0.15)

@@ -68,8 +68,13 @@ def design_estimability(cm: CellModel, configurations: np.ndarray) -> KpiEstimab
     level = cm.cell.identification.model
     free = level_free(cm.model.params, 'geometric' if level == 'auto' else level,
                       len(cm.geometric))
-    return result_estimability(cm.model, configurations, cm.cell.sigma,
-                               cm.model.params.nominal, cm.q_work, cm.working_pose_names, free)
+    # Every reflector is measured at every designed pose: R rows per configuration.
+    n_ref = cm.model.n_reflectors
+    rows = np.repeat(np.atleast_2d(configurations), n_ref, axis=0)
+    reflector = np.tile(np.arange(n_ref), len(np.atleast_2d(configurations)))
+    return result_estimability(cm.model, rows, cm.cell.sigma, cm.model.params.nominal,
+                               cm.q_work, cm.working_pose_names, free,
+                               reflector=reflector if n_ref > 1 else None)
 
 
 def controller_design(cm: CellModel, design: DesignResult) -> DesignResult:

@@ -263,7 +263,8 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None
                              settings.outliers, start=start)
     kept = subset(data, robust.kept)
     est = result_estimability(cm.model, kept.q, cm.cell.sigma, robust.result.values,
-                              cm.q_work, cm.working_pose_names, free)
+                              cm.q_work, cm.working_pose_names, free,
+                              reflector=kept.reflector)
     # A model that fails χ² must not report the stated σ's precision (core.precision).
     return CellCalibration(honest_precision(robust.result), robust, choice, est, tuple(free),
                            registration)

@@ -75,6 +75,14 @@ class Measurements:
     def __len__(self) -> int:
         return len(self.q)
 
+    def subset(self, keep: np.ndarray) -> Measurements:
+        """The rows selected by the boolean or index array ``keep``, every field kept."""
+        def pick(values: np.ndarray | None) -> np.ndarray | None:
+            return None if values is None else np.asarray(values)[keep]
+        return Measurements(q=np.atleast_2d(self.q)[keep], eta=np.atleast_2d(self.eta)[keep],
+                            tau=pick(self.tau), stamps_ns=pick(self.stamps_ns),
+                            reflector=pick(self.reflector))
+
 
 class MeasurementModel:
     """Eq. (3) for one robot in one cell, with exact Jacobians.

@@ -10,7 +10,8 @@ level):
 * ``geometric``     -- every geometric parameter (placements too): the full model.
 
 ``auto`` fits every level on k-1 folds of the measurements and predicts the held-out fold
-(full nonlinear refits, folds over measurements, seeded), and picks the smallest level
+(full nonlinear refits, folds over poses: every reflector of a pose held out together;
+seeded), and picks the smallest level
 whose cross-validated rms is within `PARSIMONY` of the best: a larger model must predict
 new poses measurably better to be chosen. A level that cannot be fitted on some fold
 (fewer equations than parameters) has no CV rms and is not chosen.
@@ -25,6 +26,7 @@ import numpy as np
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
+from kpi_calib_ros.core.residuals import pose_index
 from kpi_calib_ros.core.parameters import ParameterSet
 
 LEVELS = ('registration', 'joint_offsets', 'geometric')
@@ -90,21 +92,29 @@ def cross_validated_level_rms(model: MeasurementModel, data: Measurements, fit: 
     folds = min(folds, n)
     if folds < 2:
         return None
-    ids = np.empty(n, dtype=int)
-    ids[np.random.default_rng(seed).permutation(n)] = np.arange(n) % folds
+    # Folds over poses: the rows of one pose (several reflectors) are held out together.
+    poses, pose = pose_index(data.q)
+    folds = min(folds, len(poses))
+    if folds < 2:
+        return None
+    by_pose = np.empty(len(poses), dtype=int)
+    by_pose[np.random.default_rng(seed).permutation(len(poses))] = np.arange(len(poses)) % folds
+    ids = by_pose[pose]
     q, eta = np.atleast_2d(data.q), np.atleast_2d(data.eta)
     held = np.empty_like(eta)
     for k in range(folds):
         test = ids == k
-        train = Measurements(q=q[~test], eta=eta[~test],
-                             tau=None if data.tau is None else data.tau[~test])
+        train = data.subset(~test)
         try:
             result = fit(train, free)
         except (DataError, np.linalg.LinAlgError):
             return None
         if not np.all(np.isfinite(result.values)):
             return None
-        held[test] = eta[test] - model.predict(result.values, q[test])
+        held[test] = eta[test] - model.predict(result.values, q[test],
+                                                None if data.tau is None else data.tau[test],
+                                                None if data.reflector is None
+                                                else data.reflector[test])
     return float(np.sqrt(np.mean(np.sum(held ** 2, axis=1))))
 
 
@@ -140,7 +150,7 @@ def choose_model(model: MeasurementModel, data: Measurements, fit: Fit, requeste
                         for k, v in cv.items())
     larger = [k for k in LEVELS[LEVELS.index(level) + 1:]]
     why = (f'smallest level within {PARSIMONY:.0%} of the best cross-validated rms '
-           f'({used}-fold over measurements: {figures})')
+           f'({used}-fold over poses: {figures})')
     if larger:
         unfit = [k for k in larger if cv[k] is None]
         worse = [k for k in larger if cv[k] is not None]
