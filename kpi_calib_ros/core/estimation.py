@@ -9,10 +9,11 @@ the constraint, the minimiser is p̂ of the plain weighted least squares and
 ŝ = h(p̂, q_work); the covariance of v = (p, s) comes from the KKT matrix,
 eq. (19). A Gaussian prior (:class:`~kpi_calib_ros.core.prior.Prior`) adds the rows
 L (m − p), LᵀL = Λ, to the weighted residual: the estimate is then the maximum a
-posteriori one and C_p = (FᵀF + Λ)⁻¹ on the identified set. Non-convergence is reported as a status, not an exception: as in SciPy's
-``least_squares``, the stopping tests are named tolerances with their formulas
-(`Tolerances`), the result carries an integer ``status`` with a ``message``, and
-``converged`` is true only when a convergence test held.
+posteriori one and C_p = (FᵀF + Λ)⁻¹ on the identified set. Non-convergence is
+reported as a status, not an exception: as in SciPy's ``least_squares``, the
+stopping tests are named tolerances with their formulas (`Tolerances`), the result
+carries an integer ``status`` with a ``message``, and ``converged`` is true only when a
+convergence test held.
 """
 from __future__ import annotations
 

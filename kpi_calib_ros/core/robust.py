@@ -126,7 +126,8 @@ def subset(data: Measurements, keep: np.ndarray) -> Measurements:
     """The measurements selected by the boolean or index array ``keep``."""
     return Measurements(q=np.atleast_2d(data.q)[keep], eta=np.atleast_2d(data.eta)[keep],
                         tau=None if data.tau is None else data.tau[keep],
-                        stamps_ns=None if data.stamps_ns is None else data.stamps_ns[keep])
+                        stamps_ns=None if data.stamps_ns is None else data.stamps_ns[keep],
+                        reflector=None if data.reflector is None else data.reflector[keep])
 
 
 Fit = Callable[..., CalibrationResult]
@@ -180,7 +181,8 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
     while True:
         result, omega = _fit_with_loss(fit, subset(data, kept), loss, p0)
         p0 = result.values
-        distances = np.linalg.norm(eta - model.predict(result.values, q, data.tau), axis=1)
+        distances = np.linalg.norm(
+            eta - model.predict(result.values, q, data.tau, data.reflector), axis=1)
         scale = robust_sigma(result.residuals, result.dof)
         over = kept & (distances > threshold * scale)
         if not outliers.exclude or not over.any():
@@ -218,7 +220,7 @@ def gross_outliers(model: MeasurementModel, data: Measurements,
     prediction with ``p`` (default: the nominal parameters); and the (N,) distances, m."""
     q, eta = np.atleast_2d(data.q), np.atleast_2d(data.eta)
     p = np.asarray(model.params.nominal if p is None else p, float)
-    nominal = np.linalg.norm(eta - model.predict(p, q, data.tau), axis=1)
+    nominal = np.linalg.norm(eta - model.predict(p, q, data.tau, data.reflector), axis=1)
     return nominal > max(GROSS_DISTANCE, 20 * float(np.median(nominal))), nominal
 
 
