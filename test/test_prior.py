@@ -140,3 +140,59 @@ def test_bad_priors_are_refused(cell):
         Prior(('a',), np.zeros(1), np.zeros((1, 1)))
     with pytest.raises(DataError, match='unknown parameter'):
         Prior(('nope',), np.zeros(1), np.eye(1)).rows(cell.model.params)
+
+
+@pytest.fixture(scope='module')
+def run_bag(tmp_path_factory):
+    from kpi_calib_ros.cli import main
+    bag = tmp_path_factory.mktemp('run') / 'run.mcap'
+    assert main(['simulate', '--cell', str(DEFAULT_CELL), '--n', '40', '--out', str(bag),
+                 '--seed', '3']) == 0
+    return bag
+
+
+def test_previous_calibration_as_prior_from_the_cli(run_bag, tmp_path, capsys):
+    import yaml
+
+    from kpi_calib_ros.app.identify import measurements_from_bag
+    from kpi_calib_ros.cli import main
+    cell = str(DEFAULT_CELL)
+    assert main(['identify', '--cell', cell, '--bag', str(run_bag), '--out',
+                 str(tmp_path / 'old')]) == 0
+    old = yaml.safe_load((tmp_path / 'old' / 'calibration.yaml').read_text())
+    data, _ = measurements_from_bag(build_cell_model(load_cell(DEFAULT_CELL)), run_bag)
+    assert old['identified_at_ns'] == int(np.max(data.stamps_ns))
+    capsys.readouterr()
+    assert main(['identify', '--cell', cell, '--bag', str(run_bag), '--out',
+                 str(tmp_path / 'new'), '--prior', str(tmp_path / 'old' / 'calibration.yaml'),
+                 '--drift-per-hour', '0,0']) == 0
+    assert 'prior calibration widened for' in capsys.readouterr().out
+    new = yaml.safe_load((tmp_path / 'new' / 'calibration.yaml').read_text())
+    assert new['prior']['source'].endswith('calibration.yaml')
+    # The same data twice: the prior (a marginal of the same information) at most doubles
+    # the information, so the TCP variance shrinks, but by no more than half.
+    before, after = old['tcp'][0]['trace_m2'], new['tcp'][0]['trace_m2']
+    assert 0.5 * before <= after < before
+    assert main(['identify', '--cell', cell, '--bag', str(run_bag), '--out',
+                 str(tmp_path / 'bad'), '--prior', str(tmp_path / 'missing.yaml')]) == 2
+    assert '--prior' in capsys.readouterr().err
+
+
+def test_cell_prior_key_is_validated(tmp_path):
+    import yaml
+
+    from kpi_calib_ros.core.errors import ConfigError
+    doc = yaml.safe_load(DEFAULT_CELL.read_text())
+    doc['robot']['urdf'] = str((DEFAULT_CELL.parent / doc['robot']['urdf']).resolve())
+    doc['identification'] = {'prior': {'translation': 1e-3, 'rotation': 1e-3, 'offset': 2e-3}}
+    path = tmp_path / 'cell.yaml'
+    path.write_text(yaml.safe_dump(doc))
+    assert load_cell(path).identification.prior == (1e-3, 1e-3, 2e-3)
+    doc['identification']['prior'] = {'translation': 1e-3, 'rotation': -1.0, 'offset': 1e-3}
+    path.write_text(yaml.safe_dump(doc))
+    with pytest.raises(ConfigError, match='identification.prior.rotation'):
+        load_cell(path)
+    doc['identification']['prior'] = {'translation': 1e-3}
+    path.write_text(yaml.safe_dump(doc))
+    with pytest.raises(ConfigError, match='identification.prior'):
+        load_cell(path)
