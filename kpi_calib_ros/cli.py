@@ -65,7 +65,7 @@ def main(argv: list[str] | None = None) -> int:
                      'joint_compliance:joint_2); the summary compares with the geometric model')
     ide.add_argument('--model', choices=['auto', 'registration', 'joint_offsets', 'geometric'],
                      help="model size (overrides the cell's identification.model; auto: chosen "
-                     'by cross-validation over held-out measurements)')
+                     'by cross-validation over held-out poses)')
     ide.add_argument('--prior', metavar='OLD/calibration.yaml',
                      help="a previous calibration as Gaussian prior (its values and "
                      "parameter_covariance; replaces the cell's identification.prior)")

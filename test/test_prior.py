@@ -196,3 +196,27 @@ def test_cell_prior_key_is_validated(tmp_path):
     path.write_text(yaml.safe_dump(doc))
     with pytest.raises(ConfigError, match='identification.prior'):
         load_cell(path)
+
+
+def test_cross_validation_holds_out_whole_poses(cell, campaign):
+    from kpi_calib_ros.core.measurement import Measurements
+    from kpi_calib_ros.core.model_selection import cross_validated_level_rms, level_free
+    data, _ = campaign
+    # Each pose measured twice (as by two reflectors at the same joint values).
+    twice = Measurements(q=np.repeat(data.q, 2, axis=0), eta=np.repeat(data.eta, 2, axis=0))
+    trained: list[set] = []
+    rows: list[int] = []
+
+    def fit(d, free):
+        trained.append({tuple(row) for row in d.q})
+        rows.append(len(d.q))
+        return identify(cell.model, d, SIGMA, cell.q_work, free=free)
+
+    free = level_free(cell.model.params, 'joint_offsets')
+    rms = cross_validated_level_rms(cell.model, twice, fit, free, folds=5)
+    assert rms is not None and len(trained) == 5
+    every = {tuple(row) for row in twice.q}
+    for train, n_rows in zip(trained, rows):
+        # Both rows of every training pose are in the training set (none split off).
+        assert n_rows == 2 * len(train) and every - train
+    assert set().union(*(every - t for t in trained)) == every
