@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 
 from kpi_calib_ros.core.errors import KpiCalibError
+from kpi_calib_ros.core.prior import DRIFT_ANGLE_PER_SQRT_HOUR, DRIFT_LENGTH_PER_SQRT_HOUR
 from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC
 
 
@@ -28,6 +29,18 @@ def _bag_topics(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--point-topic', default=None, help='geometry_msgs/PointStamped topic '
                         "of the bag (default: the cell's topics.point, else "
                         f'{DEFAULT_POINT_TOPIC})')
+
+
+def _drift(text: str) -> tuple[float, float]:
+    """``--drift-per-hour LENGTH,ANGLE``: two numbers >= 0."""
+    try:
+        length, angle = (float(x) for x in text.split(','))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'{text!r}: give LENGTH,ANGLE, e.g. 1.2e-5,2e-5 '
+                                         '(relative length and rad per √hour)') from None
+    if not (0 <= length < float('inf') and 0 <= angle < float('inf')):
+        raise argparse.ArgumentTypeError(f'{text!r}: both rates must be finite and >= 0')
+    return length, angle
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -52,7 +65,16 @@ def main(argv: list[str] | None = None) -> int:
                      'joint_compliance:joint_2); the summary compares with the geometric model')
     ide.add_argument('--model', choices=['auto', 'registration', 'joint_offsets', 'geometric'],
                      help="model size (overrides the cell's identification.model; auto: chosen "
-                     'by cross-validation over held-out measurements)')
+                     'by cross-validation over held-out poses)')
+    ide.add_argument('--prior', metavar='OLD/calibration.yaml',
+                     help="a previous calibration as Gaussian prior (its values and "
+                     "parameter_covariance; replaces the cell's identification.prior)")
+    ide.add_argument('--drift-per-hour', type=_drift, metavar='LENGTH,ANGLE',
+                     default=(DRIFT_LENGTH_PER_SQRT_HOUR, DRIFT_ANGLE_PER_SQRT_HOUR),
+                     help='random-walk drift that widens --prior per √hour since its '
+                     'identified_at_ns: relative length change (thermal growth) and angle '
+                     f'(rad); default {DRIFT_LENGTH_PER_SQRT_HOUR:g},'
+                     f'{DRIFT_ANGLE_PER_SQRT_HOUR:g}')
     _bag_topics(ide)
     ide.add_argument('--allow-code-effects', action='store_true', help=CODE_EFFECTS_HELP)
 
@@ -133,6 +155,7 @@ def _simulate(args: argparse.Namespace) -> int:
 def _identify(args: argparse.Namespace) -> int:
     from kpi_calib_ros.app.identify import run_identify
     return run_identify(args.cell, args.bag, args.out, effects=args.effects, model=args.model,
+                        prior_path=args.prior, drift=args.drift_per_hour,
                         joint_topic=args.joint_topic, point_topic=args.point_topic,
                         allow_code_effects=args.allow_code_effects)
 

@@ -40,7 +40,9 @@ def test_calibrated_on_one_day_predicts_the_other_day_better_than_before(tmp_pat
     assert main(['identify', '--cell', str(CELL), '--bag', str(tmp_path / 'train.mcap'),
                  '--out', str(tmp_path / 'cal')]) == 0
     cal = yaml.safe_load((tmp_path / 'cal' / 'calibration.yaml').read_text())
-    assert cal['measurements'] == 4 * (37 + 63 + 59)
+    assert cal['pairing']['accepted'] == 4 * (37 + 63 + 59)
+    # Outlier exclusion (identification.outliers) leaves the rest in the fit.
+    assert cal['measurements'] == 4 * (37 + 63 + 59) - len(cal['robust']['excluded'])
     rc = main(['validate', '--cell', str(CELL), '--calibration',
                str(tmp_path / 'cal' / 'calibration.yaml'), '--bag', str(tmp_path / 'new.mcap'),
                '--out', str(tmp_path / 'val')])

@@ -29,6 +29,9 @@ from kpi_calib_ros.core.registration import Registration, register
 from kpi_calib_ros.core.robust import (LOSS_SCALE, RobustResult, gross_outliers,
                                        robust_identify, subset)
 from kpi_calib_ros.core.precision import honest_precision
+from kpi_calib_ros.core.prior import (DRIFT_ANGLE_PER_SQRT_HOUR, DRIFT_LENGTH_PER_SQRT_HOUR,
+                                      Prior, drift_widened, prior_from_calibration,
+                                      tolerance_prior)
 from kpi_calib_ros.core.streams import JointSample, PointSample
 from kpi_calib_ros.io.bag import read_for_pairing
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
@@ -36,8 +39,9 @@ from kpi_calib_ros.io.measurement_log import stored_pairing
 from kpi_calib_ros.io.names import (CALIBRATED_URDF_FILE, DEFAULT_JOINT_TOPIC,
                                     DEFAULT_POINT_TOPIC, FAILED_CALIBRATION_FILE)
 from kpi_calib_ros.io.report import comparison_text, comparison_to_dict
-from kpi_calib_ros.io.results import (calibration_to_dict, summary_text, writable_folder,
-                                      write_atomic, write_calibration)
+from kpi_calib_ros.io.results import (calibration_to_dict, read_calibration_document,
+                                      summary_text, writable_folder, write_atomic,
+                                      write_calibration)
 from kpi_calib_ros.io.urdf_export import calibrated_urdf
 
 # Geometric errors of a robot and a surveyed placement move the predicted points by
@@ -167,14 +171,58 @@ def registration_text(reg: Registration | None, cm: CellModel) -> str:
                'the registration' if reg.trimmed else ''))
 
 
+def cell_prior(cm: CellModel) -> Prior | None:
+    """The tolerance prior of the cell's ``identification.prior`` (None when not set)."""
+    tol = cm.cell.identification.prior
+    if tol is None:
+        return None
+    return tolerance_prior(cm.model.params, *tol, n_geometric=len(cm.geometric))
+
+
+def calibration_prior(cm: CellModel, doc: dict[str, Any], data: Measurements,
+                      length_rate: float = DRIFT_LENGTH_PER_SQRT_HOUR,
+                      angle_rate: float = DRIFT_ANGLE_PER_SQRT_HOUR) -> tuple[Prior, str]:
+    """A previous calibration (``doc``, calibration.yaml) as the prior of ``data``: its
+    robot parameters and their covariance, widened by the drift over the time from its
+    ``identified_at_ns`` to the first measurement of ``data``
+    (:func:`kpi_calib_ros.core.prior.drift_widened`; lengths are the URDF joint origins'
+    distances, a prismatic offset's the joint's stroke). Returns the prior and a line
+    saying how it was widened.
+    """
+    prior = prior_from_calibration(doc)
+    unknown = [n for n in prior.names if n not in cm.model.params.names]
+    if unknown:
+        raise DataError(f'the prior calibration has parameters {unknown} this cell model '
+                        'lacks; use a calibration of the same robot and effects')
+    lengths: dict[str, float] = {}
+    for joint in cm.robot.joints:
+        ell = float(np.linalg.norm(joint.placement[:3, 3]))
+        lengths.update({f'{joint.name}.placement.{c}': ell for c in ('tx', 'ty', 'tz')})
+        if joint.kind == 'prismatic':
+            lengths[f'{joint.name}.offset'] = float(max(abs(joint.lower), abs(joint.upper)))
+    stamp = doc.get('identified_at_ns')
+    if stamp is None or data.stamps_ns is None or not len(data.stamps_ns):
+        hours = 0.0
+        how = ('prior calibration NOT widened for drift: '
+               + ('it has no identified_at_ns stamp' if stamp is None
+                  else 'the measurements carry no stamps'))
+    else:
+        hours = (int(np.min(data.stamps_ns)) - int(stamp)) / 3.6e12
+        how = (f'prior calibration widened for {abs(hours):.3g} h of drift (lengths '
+               f'{length_rate:.3g}/√h relative, angles {angle_rate:.3g} rad/√h)')
+    return drift_widened(prior, hours, lengths, length_rate, angle_rate), how
+
+
 def identify_cell(cm: CellModel, data: Measurements, p0: np.ndarray | None = None,
-                  free: list[str] | None = None) -> CalibrationResult:
+                  free: list[str] | None = None, prior: Prior | None = None
+                  ) -> CalibrationResult:
     """Identify the cell's parameters from paired measurements (σ and poses from the cell).
 
     Without ``p0`` the start is :func:`registered_start`: an unknown or far-off
     placement is registered from the data first. Covariances come from the stated σ when
     the χ² test accepts the model, else they are scaled by χ²/dof
-    (``result.covariance_scale``, see :mod:`kpi_calib_ros.core.precision`).
+    (``result.covariance_scale``, see :mod:`kpi_calib_ros.core.precision`). ``prior``
+    defaults to the cell's :func:`cell_prior`.
     """
     if len(data) == 0:
         raise DataError('no accepted measurement to identify from')
@@ -182,7 +230,8 @@ def identify_cell(cm: CellModel, data: Measurements, p0: np.ndarray | None = Non
         p0 = registered_start(cm, data)[0]
     result = identify(cm.model, data, cm.cell.sigma, cm.q_work, list(cm.working_pose_names),
                       p0=p0, free=free, identifiability_method=cm.cell.identification_method,
-                      priority=list(cm.cell.identification_priority) or None)
+                      priority=list(cm.cell.identification_priority) or None,
+                      prior=prior or cell_prior(cm))
     # A model that fails χ² must not report the stated σ's precision (core.precision).
     return honest_precision(result)
 
@@ -216,35 +265,38 @@ class CellCalibration:
         return not self.problems
 
 
-def _fit_function(cm: CellModel, start: np.ndarray | None = None):
-    """``fit(data, free, p0=None, point_weights=None)``: identify with the cell's settings,
-    from ``start`` (e.g. the registered placement) when no ``p0`` is given."""
+def _fit_function(cm: CellModel, start: np.ndarray | None = None,
+                  prior: Prior | None = None):
+    """``fit(data, free, p0=None, point_weights=None)``: identify with the cell's settings
+    and ``prior``, from ``start`` (e.g. the registered placement) when no ``p0`` is given."""
     def fit(d: Measurements, free: list[str], p0: np.ndarray | None = None,
             point_weights: np.ndarray | None = None) -> CalibrationResult:
         return identify(cm.model, d, cm.cell.sigma, cm.q_work, list(cm.working_pose_names),
                         p0=start if p0 is None else p0, free=free,
                         identifiability_method=cm.cell.identification_method,
                         priority=list(cm.cell.identification_priority) or None,
-                        point_weights=point_weights)
+                        point_weights=point_weights, prior=prior)
     return fit
 
 
 def choose_level(cm: CellModel, data: Measurements, model: str | None = None,
-                 start: np.ndarray | None = None) -> ModelChoice:
+                 start: np.ndarray | None = None, prior: Prior | None = None) -> ModelChoice:
     """The model level to identify: ``model`` or the cell's ``identification.model``;
     ``auto`` is decided by cross-validation on ``data`` (fits from ``start``)."""
     requested = model or cm.cell.identification.model
     if requested == 'auto':
-        return choose_model(cm.model, data, _fit_function(cm, start), 'auto', len(cm.geometric),
+        return choose_model(cm.model, data, _fit_function(cm, start, prior), 'auto',
+                            len(cm.geometric),
                             cm.cell.identification.cv_folds)
     return ModelChoice(requested, requested, {}, 0, f'{requested} as configured '
                        '(identification.model / --model; auto compares the levels)')
 
 
-def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None
-                   ) -> CellCalibration:
+def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
+                   prior: Prior | None = None) -> CellCalibration:
     """The identification the CLI and the node publish: model size (``model`` or the
-    cell's ``identification.model``), outlier exclusion and loss, KPI estimability."""
+    cell's ``identification.model``), outlier exclusion and loss, KPI estimability;
+    ``prior`` (e.g. a previous calibration's) replaces the cell's tolerance prior."""
     if len(data) == 0:
         raise DataError('no accepted measurement to identify from')
     settings = cm.cell.identification
@@ -252,18 +304,19 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None
     # An unknown or far-off placement is registered from the points first (the median
     # decides whether it is needed, so a few gross points do not trigger it).
     start, registration = registered_start(cm, data)
-    fit = _fit_function(cm, start)
+    prior = prior or cell_prior(cm)
+    fit = _fit_function(cm, start, prior)
     # Model choice on the data without gross points (a 10 m point would decide it alone).
     screened = subset(data, ~gross_outliers(cm.model, data, start)[0]) \
         if settings.outliers.exclude else data
-    choice = choose_level(cm, screened, model, start)
+    choice = choose_level(cm, screened, model, start, prior)
     free = level_free(cm.model.params, choice.level, n_geo)
     robust = robust_identify(cm.model, data, cm.cell.sigma,
                              lambda d, **kw: fit(d, free, **kw), settings.loss,
                              settings.outliers, start=start)
     kept = subset(data, robust.kept)
     est = result_estimability(cm.model, kept.q, cm.cell.sigma, robust.result.values,
-                              cm.q_work, cm.working_pose_names, free,
+                              cm.q_work, cm.working_pose_names, free, prior=prior,
                               reflector=kept.reflector)
     # A model that fails χ² must not report the stated σ's precision (core.precision).
     return CellCalibration(honest_precision(robust.result), robust, choice, est, tuple(free),
@@ -420,19 +473,36 @@ def load_measurements(cell_path: str | Path, bag_path: str | Path, effects: str 
 
 
 def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Path,
-                 effects: str = '', model: str | None = None, **options: Any) -> int:
+                 effects: str = '', model: str | None = None,
+                 prior_path: str | Path | None = None,
+                 drift: tuple[float, float] = (DRIFT_LENGTH_PER_SQRT_HOUR,
+                                               DRIFT_ANGLE_PER_SQRT_HOUR),
+                 **options: Any) -> int:
     """``kpi-calib identify``: calibration.yaml and the calibrated URDF
     (:data:`~kpi_calib_ros.io.names.CALIBRATED_URDF_FILE`) in ``out_dir`` (checked first),
     a summary on stdout; ``options`` as for :func:`load_measurements`.
 
-    ``model`` overrides the cell's ``identification.model``. Returns 0 for a valid
+    ``model`` overrides the cell's ``identification.model``; ``prior_path`` (``--prior``)
+    a previous calibration.yaml used as the prior instead of the cell's
+    ``identification.prior``, widened by ``drift`` (relative length, angle in rad; per
+    √hour). Returns 0 for a valid
     calibration; 1 when it did not converge or the TCP is not estimable (then the document
     goes to calibration.failed.yaml, and an existing calibration.yaml is left as it was).
     """
     writable_folder(out_dir, '--out')
+    old = read_calibration_document(prior_path, '--prior') if prior_path else None
     cm, data, pairing = load_measurements(cell_path, bag_path, effects, **options)
-    cal = calibrate_cell(cm, data, model)
+    prior, how = None, ''
+    if old is not None:
+        prior, how = calibration_prior(cm, old, data, *drift)
+    elif cm.cell.identification.prior is not None:
+        how = ('prior: nominal tolerances (translation, rotation, offset std) '
+               f'{list(cm.cell.identification.prior)} (identification.prior)')
+    cal = calibrate_cell(cm, data, model, prior)
     doc = add_robust_sections(calibration_document(cm, cal.result, pairing), cal)
+    if how:
+        doc['prior'] = {'source': str(prior_path) if prior_path else 'identification.prior',
+                        'description': how}
     comparison = ''
     if cm.model.effects and cal.valid:
         comparison = add_effect_comparison(doc, cm, subset(data, cal.robust.kept), cal.result)
@@ -440,6 +510,8 @@ def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
     print(summary_text(doc))
     print(registration_text(cal.registration, cm))
     print(robust_summary(doc))
+    if how:
+        print(how)
     if comparison:
         print(comparison)
     print(f'written: {path}')

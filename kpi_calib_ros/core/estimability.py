@@ -23,6 +23,7 @@ import numpy as np
 
 from kpi_calib_ros.core.identifiability import DEFAULT_TOLERANCE
 from kpi_calib_ros.core.measurement import MeasurementModel, weighted_rows
+from kpi_calib_ros.core.prior import Prior
 
 ESTIMABILITY_TOLERANCE = 1e-6
 
@@ -138,14 +139,18 @@ def result_estimability(model: MeasurementModel, q: np.ndarray, sigma: np.ndarra
                         working_pose_names: list[str] | tuple[str, ...],
                         free: list[str] | tuple[str, ...] | None = None,
                         tolerance: float = ESTIMABILITY_TOLERANCE,
+                        prior: Prior | None = None,
                         reflector: np.ndarray | None = None) -> KpiEstimability:
     """:func:`kpi_estimability` of a model at parameters ``p`` for measured poses ``q``
     (N, n), σ (3,) and working poses ``q_work`` (t, n); ``free`` names the free
-    parameters (all by default); ``reflector`` (N,) the reflector each row measured."""
+    parameters (all by default); ``reflector`` (N,) the reflector each row measured. A
+    ``prior``'s rows count as information: what it determines is estimable."""
     names = list(free) if free else list(model.params.names)
     idx = model.params.indices(names)
     _, jac = model.jacobian(p, np.atleast_2d(q), None, reflector)
     data_jac = weighted_rows(jac, 1.0 / np.broadcast_to(np.asarray(sigma, float), (3,)), idx)
+    if prior is not None:
+        data_jac = np.vstack([data_jac, prior.rows(model.params)[0][:, idx]])
     _, kpi = model.jacobian(p, np.atleast_2d(q_work))
     return kpi_estimability(data_jac, kpi.reshape(-1, len(p))[:, idx], names,
                             working_pose_names, tolerance)

@@ -7,10 +7,13 @@ The estimate solves
 over the identifiable parameters p and the KPI points s. Because s enters only
 the constraint, the minimiser is p̂ of the plain weighted least squares and
 ŝ = h(p̂, q_work); the covariance of v = (p, s) comes from the KKT matrix,
-eq. (19). Non-convergence is reported as a status, not an exception: as in SciPy's
-``least_squares``, the stopping tests are named tolerances with their formulas
-(`Tolerances`), the result carries an integer ``status`` with a ``message``, and
-``converged`` is true only when a convergence test held.
+eq. (19). A Gaussian prior (:class:`~kpi_calib_ros.core.prior.Prior`) adds the rows
+L (m − p), LᵀL = Λ, to the weighted residual: the estimate is then the maximum a
+posteriori one and C_p = (FᵀF + Λ)⁻¹ on the identified set. Non-convergence is
+reported as a status, not an exception: as in SciPy's ``least_squares``, the
+stopping tests are named tolerances with their formulas (`Tolerances`), the result
+carries an integer ``status`` with a ``message``, and ``converged`` is true only when a
+convergence test held.
 """
 from __future__ import annotations
 
@@ -24,6 +27,10 @@ from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.identifiability import (DroppedParameter, Identifiability,
                                                 select_identifiable)
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements, weighted_rows
+from kpi_calib_ros.core.prior import Prior
+
+# Prior rows over the full parameter vector: L (n_rows, n_p) and L m (n_rows,).
+PriorRows = tuple[np.ndarray, np.ndarray]
 
 
 # A nominal model is off by millimetres, a wrong unit or frame by metres.
@@ -132,6 +139,10 @@ class CalibrationResult:
         C_s blocks of eq. (19), m².
     chi2, dof, p_value : float, int, float
         Weighted residual sum against σ, degrees of freedom, upper-tail probability.
+        With a prior, χ² counts the data rows only and dof = round(3N − k_eff) with
+        k_eff = tr(F C_p Fᵀ) (F the weighted data Jacobian), the number of parameters
+        the data rather than the prior determine: E[χ²] = 3N − k_eff when the truth is
+        drawn from the prior. Without a prior k_eff = k.
     status : int
         Why the last Gauss-Newton run stopped, one of `STATUS_MESSAGES`: 1-4 a convergence
         test of `Tolerances` held, 0 the iteration limit, -1 a failed line search.
@@ -201,7 +212,8 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
              max_iterations: int = 50, identifiability_method: str = 'pivoted',
              priority: list[str] | None = None,
              tolerances: Tolerances = TOLERANCES,
-             point_weights: np.ndarray | None = None) -> CalibrationResult:
+             point_weights: np.ndarray | None = None,
+             prior: Prior | None = None) -> CalibrationResult:
     """Identify the parameters of ``model`` from tracker data.
 
     Parameters
@@ -224,6 +236,11 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
         Robustness weights ω_i in [0, 1] of the measurements (IRLS, see
         :mod:`kpi_calib_ros.core.robust`): measurement i counts as if its σ were σ/√ω_i.
         The covariance and χ² are those of that weighted problem. Default: all 1.
+    prior : Prior, optional
+        Gaussian prior on some parameters (maximum a posteriori estimate); parameters it
+        does not name are unconstrained. Its rows take part in the identifiability
+        selection, so a parameter the prior determines is identified; a prior on a
+        parameter that is not identified is conditioned on the held value.
 
     Raises
     ------
@@ -245,6 +262,7 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     p = np.array(model.params.nominal if p0 is None else p0, dtype=float)
     free_idx = model.params.indices(free) if free else np.arange(len(p))
     ref = data.reflector  # (pose, reflector) rows; None: reflector 0 throughout
+    rows = prior.rows(model.params) if prior is not None else None
 
     pred, _ = model.jacobian(p, q, tau, ref)
     start_error = float(np.median(np.linalg.norm(eta - pred, axis=1)))
@@ -264,7 +282,7 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     ident, iterations, kept_before = None, 0, None
     for _ in range(MAX_SELECTION_ROUNDS):
         _, jac = model.jacobian(p, q, tau, ref)
-        stacked = weighted_rows(jac, w, free_idx)
+        stacked = _with_prior(weighted_rows(jac, w, free_idx), rows, free_idx)
         ident = select_identifiable(stacked, free_names, method=identifiability_method,
                                     priority=priority)
         if kept_before is not None and ident.rank == len(kept_before):
@@ -279,12 +297,12 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
         if ident.kept == kept_before:
             break
         idx = model.params.indices(ident.kept)
-        if 3 * len(q) <= len(idx):
+        if 3 * len(q) + (0 if rows is None else len(rows[0])) <= len(idx):
             raise DataError(f'too few measurements: {len(q)} points give {3 * len(q)} '
                             f'equations for {len(idx)} identifiable parameters; measure at '
                             f'least {len(idx) // 3 + 2} poses (better 3-5x that)')
         p, status, message, used = _gauss_newton(model, p, idx, q, eta, tau, w,
-                                                 max_iterations, tolerances, ref)
+                                                 max_iterations, tolerances, ref, rows)
         iterations += used
         kept_before = ident.kept
     if ident is None:
@@ -292,9 +310,9 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
                            'the identifiable parameters')
     pred, jac = model.jacobian(p, q, tau, ref)
     residuals = eta - pred
-    f1_p = weighted_rows(jac, w, idx)
+    f_data = weighted_rows(jac, w, idx)
     tcp, tcp_jac = model.jacobian(p, q_work, tau_work)
-    f1, f2 = kpi_jacobians(f1_p, tcp_jac.reshape(-1, len(p))[:, idx])
+    f1, f2 = kpi_jacobians(_with_prior(f_data, rows, idx), tcp_jac.reshape(-1, len(p))[:, idx])
     c_v = kkt_covariance(f1, f2)
     k = len(idx)
     c_p = c_v[:k, :k]
@@ -302,7 +320,10 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     t = len(q_work)
     tcp_cov = np.array([c_s[3 * i:3 * i + 3, 3 * i:3 * i + 3] for i in range(t)])
     chi2 = float(np.sum((residuals * w) ** 2))
+    # χ² of the data rows only; the prior rows are information, not measurements.
     dof = 3 * len(q) - k
+    if rows is not None:
+        dof = int(round(3 * len(q) - float(np.sum((f_data @ c_p) * f_data))))
     return CalibrationResult(
         names=model.params.names, values=p, units=model.params.units,
         estimated=ident.kept, std=np.sqrt(np.diag(c_p)), covariance=c_p,
@@ -310,6 +331,11 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
         tcp=tcp, tcp_covariance=tcp_cov, working_pose_names=tuple(names),
         sigma=1.0 / w_axis, chi2=chi2, dof=dof, p_value=float(scipy.stats.chi2.sf(chi2, dof)),
         status=status, message=message, iterations=iterations, identifiability=ident)
+
+
+def _with_prior(f: np.ndarray, rows: PriorRows | None, idx: np.ndarray) -> np.ndarray:
+    """Weighted data Jacobian columns ``idx`` with the prior's L rows below."""
+    return f if rows is None else np.vstack([f, rows[0][:, idx]])
 
 
 def _row_weights(w_axis: np.ndarray, point_weights: np.ndarray | None, n: int) -> np.ndarray:
@@ -325,8 +351,8 @@ def _row_weights(w_axis: np.ndarray, point_weights: np.ndarray | None, n: int) -
 
 def _gauss_newton(model: MeasurementModel, p: np.ndarray, idx: np.ndarray, q: np.ndarray,
                   eta: np.ndarray, tau: np.ndarray | None, w: np.ndarray, max_iterations: int,
-                  tol: Tolerances = TOLERANCES, reflector: np.ndarray | None = None
-                  ) -> tuple[np.ndarray, int, str, int]:
+                  tol: Tolerances = TOLERANCES, reflector: np.ndarray | None = None,
+                  rows: PriorRows | None = None) -> tuple[np.ndarray, int, str, int]:
     """Gauss-Newton with Armijo backtracking; Levenberg-Marquardt damping when that stalls.
 
     Returns
@@ -341,6 +367,10 @@ def _gauss_newton(model: MeasurementModel, p: np.ndarray, idx: np.ndarray, q: np
         pred, jac = model.jacobian(pp, q, tau, reflector)
         r = ((eta - pred) * w).ravel()
         f = (jac * w[:, :, None]).reshape(-1, len(pp))[:, idx]
+        if rows is not None:
+            # Prior rows: residual L(m − p), Jacobian L (as for h, F = ∂(Lp)/∂p).
+            r = np.concatenate([r, rows[1] - rows[0] @ pp])
+            f = np.vstack([f, rows[0][:, idx]])
         return r, f
 
     def stop(status: int, iteration: int, **figures) -> tuple[np.ndarray, int, str, int]:

@@ -10,8 +10,8 @@ level):
 * ``geometric``     -- every geometric parameter (placements too): the full model.
 
 ``auto`` fits every level on k-1 folds of the measurements and predicts the held-out fold
-(full nonlinear refits, folds over poses: every reflector of a pose held out together;
-seeded), and picks the smallest level
+(full nonlinear refits, seeded; folds over poses: the rows of one pose, e.g. several
+reflectors measured at the same joint values, are held out together), and picks the smallest level
 whose cross-validated rms is within `PARSIMONY` of the best: a larger model must predict
 new poses measurably better to be chosen. A level that cannot be fitted on some fold
 (fewer equations than parameters) has no CV rms and is not chosen.
@@ -26,7 +26,6 @@ import numpy as np
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
-from kpi_calib_ros.core.residuals import pose_index
 from kpi_calib_ros.core.parameters import ParameterSet
 
 LEVELS = ('registration', 'joint_offsets', 'geometric')
@@ -88,19 +87,18 @@ def cross_validated_level_rms(model: MeasurementModel, data: Measurements, fit: 
                               seed: int = 0) -> float | None:
     """k-fold CV rms (m) of refitting ``free`` on the training folds and predicting the
     held-out measurements; None when a fold cannot be fitted."""
-    n = len(data)
+    q, eta = np.atleast_2d(data.q), np.atleast_2d(data.eta)
+    # A pose's rows (one per reflector) share q: a fold holds out whole poses, else the
+    # other reflectors of a held-out pose would be in the training set.
+    _, pose = np.unique(q, axis=0, return_inverse=True)
+    pose = pose.ravel()
+    n = int(pose.max()) + 1 if len(pose) else 0
     folds = min(folds, n)
     if folds < 2:
         return None
-    # Folds over poses: the rows of one pose (several reflectors) are held out together.
-    poses, pose = pose_index(data.q)
-    folds = min(folds, len(poses))
-    if folds < 2:
-        return None
-    by_pose = np.empty(len(poses), dtype=int)
-    by_pose[np.random.default_rng(seed).permutation(len(poses))] = np.arange(len(poses)) % folds
-    ids = by_pose[pose]
-    q, eta = np.atleast_2d(data.q), np.atleast_2d(data.eta)
+    pose_fold = np.empty(n, dtype=int)
+    pose_fold[np.random.default_rng(seed).permutation(n)] = np.arange(n) % folds
+    ids = pose_fold[pose]
     held = np.empty_like(eta)
     for k in range(folds):
         test = ids == k
@@ -111,10 +109,9 @@ def cross_validated_level_rms(model: MeasurementModel, data: Measurements, fit: 
             return None
         if not np.all(np.isfinite(result.values)):
             return None
-        held[test] = eta[test] - model.predict(result.values, q[test],
-                                                None if data.tau is None else data.tau[test],
-                                                None if data.reflector is None
-                                                else data.reflector[test])
+        held[test] = eta[test] - model.predict(
+            result.values, q[test], None if data.tau is None else data.tau[test],
+            None if data.reflector is None else data.reflector[test])
     return float(np.sqrt(np.mean(np.sum(held ** 2, axis=1))))
 
 
@@ -137,7 +134,7 @@ def choose_model(model: MeasurementModel, data: Measurements, fit: Fit, requeste
                                            level_free(model.params, level, n_geometric),
                                            folds, seed)
           for level in LEVELS}
-    used = min(folds, len(data))
+    used = min(folds, len(np.unique(np.atleast_2d(data.q), axis=0)))
     if requested != 'auto':
         return ModelChoice(requested, requested, cv, used, f'{requested} as configured')
     finite = {k: v for k, v in cv.items() if v is not None}

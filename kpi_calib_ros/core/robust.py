@@ -178,8 +178,8 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
     while True:
         result, omega = _fit_with_loss(fit, subset(data, kept), loss, p0)
         p0 = result.values
-        distances = np.linalg.norm(eta - model.predict(result.values, q, data.tau,
-                                                       data.reflector), axis=1)
+        distances = np.linalg.norm(
+            eta - model.predict(result.values, q, data.tau, data.reflector), axis=1)
         scale = robust_sigma(result.residuals, result.dof)
         over = kept & (distances > threshold * scale)
         if not outliers.exclude or not over.any():

@@ -21,7 +21,8 @@ fix. Paths are relative to the cell file. Units are SI (m, rad, kg). Example::
       - {name: car_roof, type: capsule, a: [1.6, -1.5, 0.9], b: [1.6, 1.5, 0.9], radius: 0.5}
     collision: {capsules: [...], ignore_pairs: [[base_link, floor]], beam_radius: 0.005}
     identification: {method: pivoted, model: geometric, loss: linear,
-                     outliers: {exclude: true, threshold: null}, cv_folds: 5}
+                     outliers: {exclude: true, threshold: null}, cv_folds: 5,
+                     prior: {translation: 1.0e-3, rotation: 1.0e-3, offset: 1.0e-3}}
     topics: {joint_states: /joint_states, point: /laser_tracker/point}   # bags read
     design: {candidates: 4000, weights: {roof: 2.0}}        # see DesignSettings
     simulation: {hidden_effects: {joint_compliance:joint_2: {c: 4.0e-7}}}
@@ -93,13 +94,16 @@ class IdentificationSettings:
     model : ``auto`` (chosen by cross-validation) or a level of
     :mod:`kpi_calib_ros.core.model_selection`; loss : ``linear``, ``huber`` or ``soft_l1``
     (:mod:`kpi_calib_ros.core.robust`); outliers : exclusion settings; cv_folds : folds of
-    the model choice.
+    the model choice; prior : std (m, rad, rad) of the joint placement translations,
+    rotations and joint offsets around the nominal (:func:`kpi_calib_ros.core.prior.
+    tolerance_prior`), None: no prior.
     """
 
     model: str = 'geometric'
     loss: str = 'linear'
     outliers: OutlierSettings = field(default_factory=OutlierSettings)
     cv_folds: int = DEFAULT_FOLDS
+    prior: tuple[float, float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -390,7 +394,8 @@ def design_settings(raw: Mapping[str, Any] | None) -> DesignSettings:
     return replace(defaults, **values)
 
 
-_IDENT_KEYS = {'method', 'priority', 'model', 'loss', 'outliers', 'cv_folds'}
+_IDENT_KEYS = {'method', 'priority', 'model', 'loss', 'outliers', 'cv_folds', 'prior'}
+PRIOR_KEYS = ('translation', 'rotation', 'offset')
 
 
 def identification_settings(raw: Mapping[str, Any]) -> IdentificationSettings:
@@ -432,7 +437,30 @@ def identification_settings(raw: Mapping[str, Any]) -> IdentificationSettings:
         raise ConfigError('identification.outliers.max_fraction', f'must be in [0, 1), got '
                           f'{fraction!r}')
     return IdentificationSettings(model, loss, OutlierSettings(
-        exclude, None if threshold is None else float(threshold), float(fraction)), folds)
+        exclude, None if threshold is None else float(threshold), float(fraction)), folds,
+        _tolerance_prior(raw.get('prior')))
+
+
+def _tolerance_prior(raw: Any) -> tuple[float, float, float] | None:
+    """``identification.prior``: {translation, rotation, offset} std (m, rad), or null."""
+    if raw is None:
+        return None
+    fix = ('a mapping {translation: 1.0e-3, rotation: 1.0e-3, offset: 1.0e-3} of the '
+           'tolerance std (m, rad, rad) of the joint placements and offsets, or null')
+    if not isinstance(raw, dict):
+        raise ConfigError('identification.prior', f'must be {fix}; got {raw!r}')
+    bad = set(raw) ^ set(PRIOR_KEYS)
+    if bad:
+        raise ConfigError(f'identification.prior.{sorted(bad)[0]}',
+                          f'unknown or missing key: give exactly {list(PRIOR_KEYS)}')
+    values = []
+    for key in PRIOR_KEYS:
+        v = raw[key]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < float('inf'):
+            raise ConfigError(f'identification.prior.{key}', 'must be a positive std in m '
+                              f'or rad (e.g. 1.0e-3){_text_number_hint(v)}; got {v!r}')
+        values.append(float(v))
+    return values[0], values[1], values[2]
 
 
 def simulation_settings(raw: Any) -> SimulationSettings:

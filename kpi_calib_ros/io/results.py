@@ -120,10 +120,29 @@ def calibration_to_dict(result: CalibrationResult,
         doc['pairing'] = {'accepted': int(len(pairing)),
                           'rejected': {k: int(v) for k, v in sorted(pairing.rejections.items())}}
         if len(pairing):
+            # When the robot was as calibrated: a later campaign widens this calibration,
+            # used as its prior, by the drift since then (core.prior.drift_widened).
+            doc['identified_at_ns'] = int(np.max(pairing.stamps_ns))
             # The joint ranges the calibration has seen: validation marks poses beyond them.
             doc['training_joint_ranges'] = {
                 name: [float(lo), float(hi)] for name, lo, hi in zip(
                     pairing.joint_names, pairing.q.min(axis=0), pairing.q.max(axis=0))}
+    return doc
+
+
+def read_calibration_document(path: str | Path, key: str = 'calibration') -> dict[str, Any]:
+    """A calibration.yaml as a dict, checked to be a mapping with ``parameters``;
+    ConfigError names ``key`` (the option that gave the path)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(key, f'file {str(path)!r} does not exist; give a calibration.yaml '
+                          'written by kpi-calib identify')
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise ConfigError(key, f'{path} is not valid YAML: {exc}') from exc
+    if not isinstance(doc, dict) or 'parameters' not in doc:
+        raise ConfigError(key, f'{path} is not a calibration document (no parameters:)')
     return doc
 
 
