@@ -76,9 +76,9 @@ def test_node_identifies_from_a_stock_mesh_urdf_with_unknown_placement(tmp_path,
                          key=lambda t: t[:2])
         for _, kind, sample in samples:  # arrival order, on this (the executor's) thread
             if kind == 0:
-                node._on_joint_state(cv.joint_state_msg(sample))
+                node._on_joint_state(cv.joint_state_msg(sample), {})
             else:
-                node._on_point(cv.point_stamped_msg(sample))
+                node._on_point(cv.point_stamped_msg(sample), {})
         assert len(node.campaign) == 30
 
         executor = SingleThreadedExecutor(context=context)

@@ -45,9 +45,9 @@ def _feed(node, joints, points):
                     key=lambda item: item[:2])
     for _, kind, sample in stream:
         if kind:
-            node._on_point(point_stamped_msg(sample))
+            node._on_point(point_stamped_msg(sample), {})
         else:
-            node._on_joint_state(joint_state_msg(sample))
+            node._on_joint_state(joint_state_msg(sample), {})
 
 
 def _call(node, executor, name, work):
