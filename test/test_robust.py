@@ -193,6 +193,7 @@ def test_cli_one_pose_campaign_exits_nonzero_and_keeps_the_good_calibration(cm, 
                  '--model', 'auto']) == 0
     text = capsys.readouterr().out
     assert 'cross-validated rms per level' in text and 'TCP estimable' in text
+    assert 'predicted out-of-sample rms per level' in text
     before = (out / CALIBRATION_FILE).read_text()
     assert yaml.safe_load(before)['valid'] is True
     one = tmp_path / 'one.mcap'
