@@ -350,6 +350,8 @@ def out_of_sample_table(oos: OutOfSample) -> list[str]:
         else:
             lines.append(f'| {DOMAIN_TEXT[d.domain]} | {NOT_ESTIMABLE} (not determined: '
                          f'{", ".join(d.not_determined)}) | | |')
+    if oos.caveat:
+        lines += ['', f'**Warning:** {oos.caveat}.']
     return lines
 
 
