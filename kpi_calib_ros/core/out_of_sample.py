@@ -2,8 +2,8 @@
 
 A new measurement at a fresh pose q misses the calibrated prediction by the tracker noise
 plus the error of the identified parameters carried to that pose. To first order, with
-C the covariance of the identified parameters (eq. (19)-style, in units of the stated
-σ) and J(q) the point Jacobian of the identified parameters::
+C the covariance of the identified parameters (eq. (19)-style, from the stated σ) and
+J(q) the point Jacobian of the identified parameters::
 
     E‖η(q) − h(p̂, q)‖² = s · tr(J(q) C Jᵀ(q)) + Σ_axes σ̂_a²
 
@@ -32,13 +32,14 @@ Interval: where the error this one calibration will show is expected to lie (95 
 parameter part varies from calibration to calibration (a χ² mixture, most where few
 parameter directions dominate, far from the measured poses) and σ̂ is itself uncertain
 (s · dof ~ χ²(dof)); the interval combines both, conservatively, and does not cover a
-systematic misfit. With an
-effect the model lacks, the fit absorbs part of the misfit at the measured poses and the
-estimate is biased low: by at most about √(3N/dof) for the like-measured domain, and by
-far more away from the measured poses, where the misfit grows (a hidden joint compliance
-on a circle-point campaign: 0.2-0.5x the truth over the joint ranges,
-bench/results/one_joint_oos.md). When χ² rejects the model the figures are therefore
-marked as lower bounds.
+systematic misfit.
+
+Known bias: with an effect the model lacks, the fit absorbs part of the misfit at the
+measured poses and the estimate is low. √(3N/dof), the factor a noise-like misfit would
+give, is not a bound for a systematic one: a hidden joint compliance on a circle-point
+campaign gave 0.56-1.27x the truth like measured and 0.18-0.37x over the joint ranges,
+where the misfit grows (bench/results/one_joint_oos.md). When χ² rejects the model the
+figures are therefore marked as lower bounds.
 """
 from __future__ import annotations
 
