@@ -52,7 +52,7 @@ from kpi_calib_ros.core.estimability import kpi_estimability
 from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements, weighted_rows
 from kpi_calib_ros.core.prior import Prior
-from kpi_calib_ros.core.residuals import is_adequate
+from kpi_calib_ros.core.residuals import campaign_home, is_adequate, moved_joints
 from kpi_calib_ros.core.simulation import sampling_bounds
 
 DOMAINS = ('like_measured', 'within_measured_ranges', 'over_joint_ranges')
@@ -149,19 +149,15 @@ SWEEP_ATOL = 1e-6   # rad (m): a joint within this of its home value has not mov
 
 
 def joint_sweeps(q: np.ndarray) -> tuple[np.ndarray, dict[int, int]] | None:
-    """A one-joint-at-a-time campaign's home configuration and, per swept joint, its
-    number of poses; None when some pose moves more than one joint from the home (the
-    most frequent value of each joint)."""
+    """A one-joint-at-a-time campaign's home configuration
+    (:func:`~kpi_calib_ros.core.residuals.campaign_home`) and, per swept joint, its number
+    of poses; None when some pose moves more than one joint from the home."""
     q = np.atleast_2d(q)
-    home = np.empty(q.shape[1])
-    for j in range(q.shape[1]):
-        values, counts = np.unique(np.round(q[:, j] / SWEEP_ATOL), return_counts=True)
-        home[j] = values[np.argmax(counts)] * SWEEP_ATOL
-    moved = np.abs(q - home) > SWEEP_ATOL
+    moved = moved_joints(q, SWEEP_ATOL)
     if len(q) < 2 or np.any(moved.sum(axis=1) > 1) or not moved.any():
         return None
     joints, counts = np.unique(np.argmax(moved[moved.any(axis=1)], axis=1), return_counts=True)
-    return home, {int(j): int(c) for j, c in zip(joints, counts)}
+    return campaign_home(q, SWEEP_ATOL), {int(j): int(c) for j, c in zip(joints, counts)}
 
 
 def domain_configurations(model: MeasurementModel, q: np.ndarray, domain: str,
