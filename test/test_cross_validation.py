@@ -10,25 +10,17 @@ from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.residuals import (cross_validated_rms, cv_rms, fold_ids,
                                           folds_keep_rank, identifiable_folds, linearized_fit,
                                           moved_joints, stratified_fold_ids)
-from kpi_calib_ros.core.simulation import simulate_measurements, true_parameters
+from kpi_calib_ros.core.simulation import (one_joint_at_a_time, simulate_measurements,
+                                          true_parameters)
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 
 POSES_PER_JOINT = 5
 
 
 def circle_point_poses(cm, rng: np.random.Generator, per_joint: int = POSES_PER_JOINT):
-    """Each joint swept alone from the home pose (the first working pose), the others fixed."""
-    home = cm.q_work[0]
-    lo, hi = cm.robot.lower, cm.robot.upper
-    rows = []
-    for j in range(len(home)):
-        span = 0.6 * (hi[j] - lo[j]) / 2
-        for angle in rng.uniform(max(lo[j], home[j] - span), min(hi[j], home[j] + span),
-                                 per_joint):
-            q = home.copy()
-            q[j] = angle
-            rows.append(q)
-    return np.array(rows)
+    """Each joint swept alone over 60 % of its range around the home pose (the first
+    working pose), the others fixed."""
+    return one_joint_at_a_time(cm.model, cm.q_work[0], per_joint, rng, span=0.6)
 
 
 def one_campaign(cm, seed: int, per_joint: int = POSES_PER_JOINT) -> dict[str, float]:

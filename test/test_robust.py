@@ -157,6 +157,12 @@ def test_auto_picks_geometric_for_60_poses_and_smaller_for_8(cm, truth):
     assert set(big.choice.cv_rms_m) == {'registration', 'joint_offsets', 'geometric'}
     assert big.choice.cv_rms_m['geometric'] < 3 * SIGMA * np.sqrt(3)
     small = calibrate_cell(cm, _campaign(cm, p_true, q[:8], 8), model='auto')
+    for n, cal in ((60, big), (8, small)):   # the README quotes these figures
+        print(f'{n} poses -> {cal.choice.level}; predicted rms (µm):',
+              {k: None if v is None else round(v * 1e6, 1)
+               for k, v in cal.choice.predicted_rms_m.items()})
+    assert big.choice.predicted_rms_m['geometric'] < 3 * SIGMA * np.sqrt(3)
+    assert small.choice.predicted_rms_m['geometric'] is None
     assert small.choice.level in ('registration', 'joint_offsets')
     assert 'geometric' in small.choice.reason and small.valid
     assert len(small.free) < len(big.free)
@@ -193,6 +199,7 @@ def test_cli_one_pose_campaign_exits_nonzero_and_keeps_the_good_calibration(cm, 
                  '--model', 'auto']) == 0
     text = capsys.readouterr().out
     assert 'cross-validated rms per level' in text and 'TCP estimable' in text
+    assert 'predicted out-of-sample rms per level' in text
     before = (out / CALIBRATION_FILE).read_text()
     assert yaml.safe_load(before)['valid'] is True
     one = tmp_path / 'one.mcap'

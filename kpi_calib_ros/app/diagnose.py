@@ -8,12 +8,13 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from kpi_calib_ros.app.identify import (choose_level, identify_cell, load_measurements,
-                                        with_effects)
+from kpi_calib_ros.app.identify import (cell_prior, choose_level, identify_cell,
+                                        load_measurements, with_effects)
 from kpi_calib_ros.core.model_selection import level_free
 from kpi_calib_ros.core.diagnosis import CellDiagnosis, compare_models, diagnose
 from kpi_calib_ros.core.effects import parse_effect_spec
 from kpi_calib_ros.core.measurement import Measurements
+from kpi_calib_ros.core.out_of_sample import out_of_sample_error
 from kpi_calib_ros.core.residuals import ADEQUACY_ALPHA
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.names import DIAGNOSIS_FILE
@@ -27,20 +28,28 @@ def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
     """Calibrate ``cm`` on ``data``, diagnose it and, when an effect is significant,
     add the top one and compare before/after (full nonlinear refit). ``model`` (or the
     cell's ``identification.model``) sets the model level the effects are screened
-    against; the default geometric is the full model."""
+    against; the default geometric is the full model. Both calibrations carry their
+    predicted out-of-sample error (:mod:`kpi_calib_ros.core.out_of_sample`)."""
     level = choose_level(cm, data, model).level
     free = None if level == 'geometric' else level_free(cm.model.params, level,
                                                          len(cm.geometric))
     result = identify_cell(cm, data, free=free)
     diag = diagnose(cm.model, data, result, folds=folds, alpha=alpha)
+    prior = cell_prior(cm)
+    oos = out_of_sample_error(cm.model, data, result, free or list(cm.model.params.names),
+                              prior)
     if not add_best or diag.best is None:
-        return CellDiagnosis(cm.model, data, result, diag)
+        return CellDiagnosis(cm.model, data, result, diag, out_of_sample=oos)
     best = parse_effect_spec(diag.best.spec, cm.robot)
     richer = with_effects(cm, (best,))
-    after = identify_cell(richer, data, free=None if free is None else
-                          level_free(richer.model.params, level, len(cm.geometric)))
+    richer_free = None if free is None else level_free(richer.model.params, level,
+                                                       len(cm.geometric))
+    after = identify_cell(richer, data, free=richer_free)
     comparison = compare_models((cm.model, result), (richer.model, after), data, folds=folds)
-    return CellDiagnosis(cm.model, data, result, diag, best, richer.model, after, comparison)
+    after_oos = out_of_sample_error(richer.model, data, after,
+                                    richer_free or list(richer.model.params.names), prior)
+    return CellDiagnosis(cm.model, data, result, diag, best, richer.model, after, comparison,
+                         oos, after_oos)
 
 
 def run_diagnose(cell_path: str | Path, bag_path: str | Path, out_dir: str | Path,

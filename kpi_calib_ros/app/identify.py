@@ -282,13 +282,13 @@ def _fit_function(cm: CellModel, start: np.ndarray | None = None,
 def choose_level(cm: CellModel, data: Measurements, model: str | None = None,
                  start: np.ndarray | None = None, prior: Prior | None = None) -> ModelChoice:
     """The model level to identify: ``model`` or the cell's ``identification.model``;
-    ``auto`` is decided by cross-validation on ``data`` (fits from ``start``)."""
+    ``auto`` is decided by the predicted out-of-sample error on ``data`` (fits from
+    ``start``, :func:`kpi_calib_ros.core.model_selection.choose_model`)."""
     requested = model or cm.cell.identification.model
     if requested == 'auto':
         return choose_model(cm.model, data, _fit_function(cm, start, prior), 'auto',
-                            len(cm.geometric),
-                            cm.cell.identification.cv_folds)
-    return ModelChoice(requested, requested, {}, 0, f'{requested} as configured '
+                            len(cm.geometric), cm.cell.identification.cv_folds, prior=prior)
+    return ModelChoice(requested, requested, {}, {}, 0, f'{requested} as configured '
                        '(identification.model / --model; auto compares the levels)')
 
 
@@ -374,12 +374,18 @@ def add_robust_sections(doc: dict[str, Any], cal: CellCalibration) -> dict[str, 
 def robust_summary(doc: dict[str, Any]) -> str:
     """Summary lines of the sections :func:`add_robust_sections` adds."""
     rob, model = doc['robust'], doc['model']
-    cv = ', '.join(f'{k} {"n/a" if v is None else f"{v * 1e6:.1f} µm"}'
-                   for k, v in model['cv_rms_m'].items())
+    def per_level(values: dict, missing: str) -> str:
+        return ', '.join(f'{k} {missing if v is None else f"{v * 1e6:.1f} µm"}'
+                         for k, v in values.items())
     lines = [f"model: {model['level']} ({model['free_parameters']} free parameters; "
              f"{model['reason']})"]
-    if cv:
-        lines.append(f'cross-validated rms per level: {cv}')
+    if model.get('predicted_rms_m'):
+        lines.append('predicted out-of-sample rms per level (measured configurations): '
+                     + per_level(model['predicted_rms_m'], 'n/a'))
+    if model.get('cv_rms_m'):
+        lines.append(f"cross-validated rms per level ({model['folds']}-fold, folds that keep "
+                     'every parameter determined): '
+                     + per_level(model['cv_rms_m'], 'not estimable from this design'))
     lines.append(f"noise σ: stated {rob['sigma_stated_m'] * 1e6:.3g} µm, robust estimate from "
                  f"the residuals {rob['sigma_robust_m'] * 1e6:.3g} µm "
                  f"(ratio {rob['sigma_ratio']:.3g}); loss {rob['loss']}")

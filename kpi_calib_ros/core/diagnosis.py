@@ -30,6 +30,7 @@ import scipy.stats
 from kpi_calib_ros.core.effects import BoundEffect, candidate_effects, implausible
 from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
+from kpi_calib_ros.core.out_of_sample import OutOfSample
 from kpi_calib_ros.core.residuals import (ADEQUACY_ALPHA, LinearizedFit, ResidualReport,
                                          cross_validated_rms, cv_rms, identifiable_folds,
                                          linearized_fit, residual_report)
@@ -131,6 +132,10 @@ class CellDiagnosis:
     after_model: MeasurementModel | None = None
     after: CalibrationResult | None = None
     comparison: ModelComparison | None = None
+    # Predicted error of new measurements at fresh poses (core.out_of_sample), of the
+    # calibration diagnosed and of the one with the added effect.
+    out_of_sample: OutOfSample | None = None
+    after_out_of_sample: OutOfSample | None = None
 
 
 def screen_effects(model: MeasurementModel, data: Measurements, result: CalibrationResult,

@@ -1,4 +1,4 @@
-"""Model size: which parameters to identify, and the choice by cross-validation.
+"""Model size: which parameters to identify, and the choice by the predicted error.
 
 Levels, each the free parameters of :func:`~kpi_calib_ros.core.estimation.identify` (the
 identifiable subset is then chosen by QR as always; effect parameters are free at every
@@ -9,12 +9,14 @@ level):
 * ``joint_offsets`` -- registration and every ``<joint>.offset``;
 * ``geometric``     -- every geometric parameter (placements too): the full model.
 
-``auto`` fits every level on k-1 folds of the measurements and predicts the held-out fold
-(full nonlinear refits, seeded; folds over poses: the rows of one pose, e.g. several
-reflectors measured at the same joint values, are held out together), and picks the smallest level
-whose cross-validated rms is within `PARSIMONY` of the best: a larger model must predict
-new poses measurably better to be chosen. A level that cannot be fitted on some fold
-(fewer equations than parameters) has no CV rms and is not chosen.
+``auto`` fits every level once and predicts its rms error of new measurements from the
+fit itself (:mod:`kpi_calib_ros.core.out_of_sample`, no refits), and picks the smallest
+level whose predicted rms is within `PARSIMONY` of the best: a larger model must predict
+new measurements measurably better to be chosen. A level that leaves no degrees of freedom
+has no figure and is not chosen. K-fold refits are not used for the choice: on a
+one-joint-at-a-time campaign a fold holding out one joint's poses leaves parameters
+without excitation and judged the model 7x too pessimistically.
+:func:`cross_validated_level_rms` (full nonlinear k-fold refits) remains for comparison.
 """
 from __future__ import annotations
 
@@ -26,7 +28,10 @@ import numpy as np
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
+from kpi_calib_ros.core.out_of_sample import METHOD, out_of_sample_error
 from kpi_calib_ros.core.parameters import ParameterSet
+from kpi_calib_ros.core.prior import Prior
+from kpi_calib_ros.core.residuals import cross_validated_rms
 
 LEVELS = ('registration', 'joint_offsets', 'geometric')
 MODEL_CHOICES = ('auto',) + LEVELS
@@ -64,19 +69,24 @@ def level_free(params: ParameterSet, level: str, n_geometric: int | None = None)
 
 @dataclass(frozen=True)
 class ModelChoice:
-    """The chosen level, every level's cross-validated rms (m; None: not fitted) and why."""
+    """The chosen level, every level's predicted out-of-sample rms (m; None: not fitted or
+    no degrees of freedom), its cross-validated rms where folds keep every identified
+    parameter determined (None: not estimable from this design) and why."""
 
     level: str
     requested: str
+    predicted_rms_m: dict[str, float | None]
     cv_rms_m: dict[str, float | None]
     folds: int
     reason: str
+    method: str = ''
 
     def to_dict(self) -> dict:
-        return {'level': self.level, 'requested': self.requested, 'folds': self.folds,
-                'cv_rms_m': {k: (None if v is None else float(v))
-                             for k, v in self.cv_rms_m.items()},
-                'reason': self.reason}
+        def figures(values: dict[str, float | None]) -> dict[str, float | None]:
+            return {k: (None if v is None else float(v)) for k, v in values.items()}
+        return {'level': self.level, 'requested': self.requested, 'method': self.method,
+                'predicted_rms_m': figures(self.predicted_rms_m), 'folds': self.folds,
+                'cv_rms_m': figures(self.cv_rms_m), 'reason': self.reason}
 
 
 Fit = Callable[[Measurements, list[str]], CalibrationResult]
@@ -117,42 +127,66 @@ def cross_validated_level_rms(model: MeasurementModel, data: Measurements, fit: 
 
 def choose_model(model: MeasurementModel, data: Measurements, fit: Fit, requested: str,
                  n_geometric: int | None = None, folds: int = DEFAULT_FOLDS,
-                 seed: int = 0) -> ModelChoice:
-    """Every level's CV rms and the level to use.
+                 seed: int = 0, prior: Prior | None = None) -> ModelChoice:
+    """Every level's predicted out-of-sample rms and the level to use.
 
-    ``requested`` is a level (used as given; the CV rms are still reported) or ``'auto'``
-    (the smallest level within `PARSIMONY` of the best CV rms).
+    Each level is fitted once on all of ``data``; its predicted rms error of new
+    measurements at the measured configurations
+    (:func:`kpi_calib_ros.core.out_of_sample.out_of_sample_error`, domain
+    ``like_measured``: σ̂² (3 + tr(J C Jᵀ)/σ²) with σ̂² from χ²/dof, an FPE-like criterion
+    that charges a larger model its extra parameters and a smaller one its misfit) decides.
+    ``requested`` is a level (used as given; the figures are still reported) or
+    ``'auto'`` (the smallest level within `PARSIMONY` of the best). Beside it, the
+    cross-validated rms over ``folds`` folds of poses
+    (:func:`kpi_calib_ros.core.residuals.cross_validated_rms`, folds that keep every
+    identified parameter determined, else None: not estimable from this design) is
+    reported, not used.
 
     Raises
     ------
     DataError
-        ``auto`` and no level can be cross-validated (too few measurements).
+        ``auto`` and no level leaves degrees of freedom (too few measurements).
     """
     if requested not in MODEL_CHOICES:
         raise ValueError(f'model must be one of {MODEL_CHOICES}, got {requested!r}')
-    cv = {level: cross_validated_level_rms(model, data, fit,
-                                           level_free(model.params, level, n_geometric),
-                                           folds, seed)
-          for level in LEVELS}
-    used = min(folds, len(np.unique(np.atleast_2d(data.q), axis=0)))
+    predicted: dict[str, float | None] = {}
+    cv: dict[str, float | None] = {}
+    n_poses = len(np.unique(np.atleast_2d(data.q), axis=0))
+    used = min(folds, n_poses)
+    for level in LEVELS:
+        free = level_free(model.params, level, n_geometric)
+        predicted[level] = cv[level] = None
+        try:
+            result = fit(data, free)
+        except (DataError, np.linalg.LinAlgError):
+            continue
+        if not np.all(np.isfinite(result.values)) or result.dof <= 0:
+            continue
+        oos = out_of_sample_error(model, data, result, free, prior, seed,
+                                  domains=('like_measured',)).domains['like_measured']
+        predicted[level] = oos.rms_m if oos.estimable else None
+        if used >= 2:
+            value = cross_validated_rms(model, data, result, used, seed)
+            cv[level] = value if np.isfinite(value) else None
     if requested != 'auto':
-        return ModelChoice(requested, requested, cv, used, f'{requested} as configured')
-    finite = {k: v for k, v in cv.items() if v is not None}
+        return ModelChoice(requested, requested, predicted, cv, used,
+                           f'{requested} as configured', METHOD)
+    finite = {k: v for k, v in predicted.items() if v is not None}
     if not finite:
-        raise DataError(f'{len(data)} measurements are too few to cross-validate even the '
-                        'registration model; measure more poses')
+        raise DataError(f'{len(data)} measurements are too few to fit even the registration '
+                        'model with degrees of freedom left; measure more poses')
     best = min(finite.values())
     level = next(k for k in LEVELS if k in finite and finite[k] <= (1 + PARSIMONY) * best)
     figures = ', '.join(f'{k} {"n/a" if v is None else f"{v * 1e6:.1f} µm"}'
-                        for k, v in cv.items())
+                        for k, v in predicted.items())
     larger = [k for k in LEVELS[LEVELS.index(level) + 1:]]
-    why = (f'smallest level within {PARSIMONY:.0%} of the best cross-validated rms '
-           f'({used}-fold over poses: {figures})')
+    why = (f'smallest level within {PARSIMONY:.0%} of the best predicted out-of-sample rms '
+           f'at the measured configurations ({figures})')
     if larger:
-        unfit = [k for k in larger if cv[k] is None]
-        worse = [k for k in larger if cv[k] is not None]
+        unfit = [k for k in larger if predicted[k] is None]
+        worse = [k for k in larger if predicted[k] is not None]
         if unfit:
-            why += f'; {", ".join(unfit)} cannot be fitted on the folds (too few poses)'
+            why += f'; {", ".join(unfit)} leaves no degrees of freedom (too few poses)'
         if worse:
-            why += f'; {", ".join(worse)} predicts held-out poses no better'
-    return ModelChoice(level, 'auto', cv, used, why)
+            why += f'; {", ".join(worse)} predicts new measurements no better'
+    return ModelChoice(level, 'auto', predicted, cv, used, why, METHOD)

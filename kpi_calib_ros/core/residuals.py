@@ -135,17 +135,23 @@ def fold_ids(n_poses: int, folds: int, seed: int) -> np.ndarray:
     return ids
 
 
-def moved_joints(q: np.ndarray, atol: float = 1e-6) -> np.ndarray:
-    """(N, n) bool: which joints of each pose differ from the campaign's home value (the
-    most frequent value of that joint). One-joint-at-a-time campaigns (the circle point
-    method) give rows with a single True."""
+def campaign_home(q: np.ndarray, atol: float = 1e-6) -> np.ndarray:
+    """(n,) the campaign's home configuration: the most frequent value of each joint
+    (to ``atol``)."""
     q = np.atleast_2d(np.asarray(q, float))
-    moved = np.zeros(q.shape, dtype=bool)
+    home = np.empty(q.shape[1])
     for j in range(q.shape[1]):
         values, counts = np.unique(np.round(q[:, j] / atol), return_counts=True)
-        home = values[np.argmax(counts)] * atol
-        moved[:, j] = np.abs(q[:, j] - home) > atol
-    return moved
+        home[j] = values[np.argmax(counts)] * atol
+    return home
+
+
+def moved_joints(q: np.ndarray, atol: float = 1e-6) -> np.ndarray:
+    """(N, n) bool: which joints of each pose differ from the campaign's home value
+    (:func:`campaign_home`). One-joint-at-a-time campaigns (the circle point method) give
+    rows with a single True."""
+    q = np.atleast_2d(np.asarray(q, float))
+    return np.abs(q - campaign_home(q, atol)) > atol
 
 
 def stratified_fold_ids(q: np.ndarray, folds: int, seed: int) -> np.ndarray:

@@ -125,6 +125,68 @@ def measurable_batch(model: MeasurementModel, p: np.ndarray, rng: np.random.Gene
     return q[model.incidence_cos(p, q) >= cos_limit]
 
 
+def one_joint_at_a_time(model: MeasurementModel, home: np.ndarray, per_joint: int,
+                        rng: np.random.Generator | None = None, span: float = 1.0,
+                        p: np.ndarray | None = None, max_incidence: float | None = None,
+                        max_draws: int = 100_000) -> np.ndarray:
+    """A one-joint-at-a-time campaign (the circle point method): each joint swept alone
+    from ``home``, the other joints held at their home values.
+
+    Parameters
+    ----------
+    model : MeasurementModel
+    home : (n,) ndarray
+        Home configuration, rad (m for prismatic joints).
+    per_joint : int
+        Poses per joint.
+    rng : numpy.random.Generator, optional
+        Draw each joint's values uniformly over its sweep; without it they are evenly
+        spaced over the sweep (end points included).
+    span : float
+        The sweep of joint j is ``span`` × its range (:func:`sampling_bounds`), centred
+        on its home value and shifted inside the limits; 1: the whole range.
+    p, max_incidence : ndarray, float, optional
+        With both, keep only poses the tracker can measure at parameters ``p`` (eq. 4,
+        rad); default every pose (a reflector seen from every side, as several
+        reflectors or an active target give).
+
+    Returns
+    -------
+    (n * per_joint, n) ndarray
+        Joint 0's poses first, then joint 1's, ...
+
+    Raises
+    ------
+    ConfigError
+        A joint has fewer than ``per_joint`` measurable poses in its sweep.
+    """
+    home = np.asarray(home, float)
+    if per_joint < 1 or not 0 < span <= 1:
+        raise ValueError(f'per_joint must be >= 1 and span in (0, 1], got {per_joint}, {span}')
+    lower, upper = sampling_bounds(model)
+    cos_limit = None if p is None or max_incidence is None else float(np.cos(max_incidence))
+    check = cos_limit is not None
+    rows = []
+    for j in range(len(home)):
+        width = span * (upper[j] - lower[j])
+        lo = min(max(lower[j], home[j] - width / 2), upper[j] - width)
+        count = per_joint if not check else min(max_draws, 64 * per_joint)
+        values = (np.linspace(lo, lo + width, count) if rng is None
+                  else rng.uniform(lo, lo + width, count))
+        q = np.repeat(home[None, :], count, axis=0)
+        q[:, j] = values
+        if p is not None and cos_limit is not None:
+            q = q[model.incidence_cos(p, q) >= cos_limit]
+            if len(q) < per_joint:
+                raise ConfigError('reflector.max_incidence',
+                                  f'only {len(q)} measurable poses of joint {j} swept alone '
+                                  f'from the home pose {np.round(home, 3).tolist()}; choose '
+                                  'another home pose or allow a larger incidence')
+            q = q[np.round(np.linspace(0, len(q) - 1, per_joint)).astype(int)]
+        rows.append(q)
+    return np.vstack(rows)
+
+
 def simulate_measurements(model: MeasurementModel, p_true: np.ndarray, q: np.ndarray,
                           sigma: float | np.ndarray, rng: np.random.Generator) -> Measurements:
     """Tracker points h(p_true, q) + N(0, σ²) per axis."""

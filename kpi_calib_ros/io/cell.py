@@ -91,12 +91,12 @@ class SimulationSettings:
 class IdentificationSettings:
     """The model size, loss and outlier keys of ``identification:``.
 
-    model : ``auto`` (chosen by cross-validation) or a level of
+    model : ``auto`` (chosen by the predicted out-of-sample error) or a level of
     :mod:`kpi_calib_ros.core.model_selection`; loss : ``linear``, ``huber`` or ``soft_l1``
     (:mod:`kpi_calib_ros.core.robust`); outliers : exclusion settings; cv_folds : folds of
-    the model choice; prior : std (m, rad, rad) of the joint placement translations,
-    rotations and joint offsets around the nominal (:func:`kpi_calib_ros.core.prior.
-    tolerance_prior`), None: no prior.
+    the cross-validated rms reported beside the model choice; prior : std (m, rad, rad)
+    of the joint placement translations, rotations and joint offsets around the nominal
+    (:func:`kpi_calib_ros.core.prior.tolerance_prior`), None: no prior.
     """
 
     model: str = 'geometric'

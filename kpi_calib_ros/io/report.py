@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from kpi_calib_ros.core.diagnosis import Candidate, CellDiagnosis, ModelComparison
+from kpi_calib_ros.core.out_of_sample import DOMAIN_TEXT, NOT_ESTIMABLE, OutOfSample
 from kpi_calib_ros.io.names import DIAGNOSIS_FILE, REPORT_FILE
 from kpi_calib_ros.io.results import write_atomic
 
@@ -76,12 +77,15 @@ def diagnosis_to_dict(cd: CellDiagnosis) -> dict[str, Any]:
         'not_distinguishable': [{'effect': c.effect, 'joint': c.joint, 'spec': c.spec,
                                  'reason': c.explanation} for c in diag.not_distinguishable],
     }
+    if cd.out_of_sample is not None:
+        doc['out_of_sample'] = cd.out_of_sample.to_dict()
     if cd.comparison is not None:
         doc['added_effect'] = comparison_to_dict(cd.comparison)
+        if cd.after_out_of_sample is not None:
+            doc['added_effect']['out_of_sample'] = cd.after_out_of_sample.to_dict()
     return doc
 
 
-NOT_ESTIMABLE = 'not estimable from this design'
 
 
 def _validation(rms_m: float, width: str = '', unit: str = '') -> str:
@@ -126,6 +130,7 @@ def diagnosis_text(cd: CellDiagnosis, top: int = 5) -> str:
              f'noise σ: stated {np.mean(cd.result.sigma) * _UM:.3g} µm, robust estimate '
              f'from the residuals {rep.sigma_robust_m * _UM:.3g} µm',
              *([f'WARNING: {rep.sigma_warning}'] if rep.sigma_warning else []),
+             *([cd.out_of_sample.text()] if cd.out_of_sample is not None else []),
              f'outliers: {np.flatnonzero(rep.outlier).tolist()}, high leverage: '
              f'{np.flatnonzero(rep.high_leverage).tolist()}',
              f'candidates (best first, {len(diag.candidates)} distinguishable, '
@@ -329,6 +334,27 @@ def write_plots(out_dir: str | Path, cd: CellDiagnosis) -> list[Path]:
     return paths
 
 
+def out_of_sample_table(oos: OutOfSample) -> list[str]:
+    """report.md section: the predicted error of new measurements per domain."""
+    lines = ['', '## Predicted out-of-sample error', '',
+             f'Error of a new measurement at fresh poses, {oos.method}; '
+             f'σ̂ = {np.mean(oos.sigma_hat_m) * _UM:.3g} µm per axis (χ²/dof = '
+             f'{oos.scale:.3g}, dof {oos.dof}). An effect the model lacks biases it low.', '',
+             '| fresh poses | rms (µm) | 95 % interval (µm) | parameters alone (µm) |',
+             '|---|---|---|---|']
+    for d in oos.domains.values():
+        if d.estimable:
+            lines.append(f'| {DOMAIN_TEXT[d.domain]} | {d.rms_m * _UM:.1f} | '
+                         f'{d.interval_m[0] * _UM:.1f}-{d.interval_m[1] * _UM:.1f} | '
+                         f'{d.parameter_rms_m * _UM:.1f} |')
+        else:
+            lines.append(f'| {DOMAIN_TEXT[d.domain]} | {NOT_ESTIMABLE} (not determined: '
+                         f'{", ".join(d.not_determined)}) | | |')
+    if oos.caveat:
+        lines += ['', f'**Warning:** {oos.caveat}.']
+    return lines
+
+
 def write_report(out_dir: str | Path, cd: CellDiagnosis) -> Path:
     """diagnosis.json, the plots and report.md into ``out_dir``; returns report.md."""
     out = Path(out_dir)
@@ -353,8 +379,10 @@ def write_report(out_dir: str | Path, cd: CellDiagnosis) -> Path:
     lines += [f'| χ² / dof | {rep.chi2:.1f} / {rep.dof} (p = {rep.p_value:.3g}) |',
               f'| outliers (Bonferroni, α = {rep.alpha:g}) | '
               f'{np.flatnonzero(rep.outlier).tolist()} |',
-              f'| high leverage (> 3× mean) | {np.flatnonzero(rep.high_leverage).tolist()} |',
-              '', '## Candidate effects, best first', '',
+              f'| high leverage (> 3× mean) | {np.flatnonzero(rep.high_leverage).tolist()} |']
+    if cd.out_of_sample is not None:
+        lines += out_of_sample_table(cd.out_of_sample)
+    lines += ['', '## Candidate effects, best first', '',
               f'F-test of each augmented fit against the geometric one, Bonferroni over '
               f'{len(diag.candidates)} candidates, family-wise α = {diag.alpha:g}.', '',
               '| # | effect | significant | p | rms after (µm) | validation rms after (µm) | '

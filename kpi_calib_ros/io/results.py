@@ -2,7 +2,8 @@
 
 :func:`calibration_to_dict` writes the identification itself; the application layer
 (:func:`kpi_calib_ros.app.identify.add_robust_sections`) adds ``valid`` /
-``invalid_reasons``, ``model`` (level, every level's ``cv_rms_m``, reason), ``robust``
+``invalid_reasons``, ``model`` (level, every level's ``predicted_rms_m`` and
+``cv_rms_m``, reason), ``robust``
 (``sigma_stated_m``, ``sigma_robust_m``, ``sigma_ratio``, ``loss``, ``loss_scale``,
 ``outlier_threshold_sigma``, ``excluded`` [{index, stamp_ns, distance_m, distance_sigma,
 reason}], ``outliers``, ``used_indices``, ``warnings``) and ``tcp_estimable`` /
