@@ -142,9 +142,12 @@ def registered_start(cm: CellModel, data: Measurements) -> tuple[np.ndarray, Reg
     if not cm.needs_registration and len(data):
         tau = cm.robot.gravity_torques(data.q) if cm.model.uses_torque else None
         miss = np.linalg.norm(np.atleast_2d(data.eta)
-                              - cm.model.predict(p0, data.q, tau, data.reflector), axis=1)
+                              - cm.model.predict(p0, data.q, tau, data.reflector,
+                                                    data.rotation), axis=1)
         if float(np.median(miss)) <= REGISTER_ABOVE_M:
             return p0, None
+    if data.reflector is not None:  # rotation rows (tracked poses) carry no point
+        data = data.subset(np.asarray(data.reflector) < cm.model.n_reflectors)
     tips = np.array([cm.robot.pin_tip_pose(row) for row in np.atleast_2d(data.q)])
     reg = register(data.eta, tips, max_rms=REGISTRATION_MAX_RMS_M, reflector=data.reflector)
     offsets = (reg.reflector_offsets if reg.reflector_offsets is not None
@@ -317,7 +320,7 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
     kept = subset(data, robust.kept)
     est = result_estimability(cm.model, kept.q, cm.cell.sigma, robust.result.values,
                               cm.q_work, cm.working_pose_names, free, prior=prior,
-                              reflector=kept.reflector)
+                              reflector=kept.reflector, rotation=kept.rotation)
     # A model that fails χ² must not report the stated σ's precision (core.precision).
     return CellCalibration(honest_precision(robust.result), robust, choice, est, tuple(free),
                            registration)
@@ -429,8 +432,9 @@ def write_results(cm: CellModel, result: CalibrationResult, doc: dict[str, Any],
 
 def geometric_only(cm: CellModel) -> CellModel:
     """``cm`` with the geometric model only (no effects)."""
-    return dataclasses.replace(cm, model=MeasurementModel(cm.robot, cm.geometric, (),
-                                                          cm.cell.reflector_axis))
+    return dataclasses.replace(cm, model=MeasurementModel(
+        cm.robot, cm.geometric, (), cm.cell.reflector_axis, cm.model.orientations,
+        cm.model.rotation_scale))
 
 
 def with_effects(cm: CellModel, effects: tuple) -> CellModel:

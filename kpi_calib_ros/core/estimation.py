@@ -262,9 +262,10 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     p = np.array(model.params.nominal if p0 is None else p0, dtype=float)
     free_idx = model.params.indices(free) if free else np.arange(len(p))
     ref = data.reflector  # (pose, reflector) rows; None: reflector 0 throughout
+    rot = data.rotation   # measured rotations of the rotation rows (tracked poses)
     rows = prior.rows(model.params) if prior is not None else None
 
-    pred, _ = model.jacobian(p, q, tau, ref)
+    pred, _ = model.jacobian(p, q, tau, ref, rot)
     start_error = float(np.median(np.linalg.norm(eta - pred, axis=1)))
     if start_error > MAX_START_ERROR:
         raise DataError(f'measured points are {start_error:.3g} m (median) from the nominal '
@@ -281,7 +282,7 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     # vector stays one exact solution (one gauge); resetting it would restart the fit.
     ident, iterations, kept_before = None, 0, None
     for _ in range(MAX_SELECTION_ROUNDS):
-        _, jac = model.jacobian(p, q, tau, ref)
+        _, jac = model.jacobian(p, q, tau, ref, rot)
         stacked = _with_prior(weighted_rows(jac, w, free_idx), rows, free_idx)
         ident = select_identifiable(stacked, free_names, method=identifiability_method,
                                     priority=priority)
@@ -302,13 +303,13 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
                             f'equations for {len(idx)} identifiable parameters; measure at '
                             f'least {len(idx) // 3 + 2} poses (better 3-5x that)')
         p, status, message, used = _gauss_newton(model, p, idx, q, eta, tau, w,
-                                                 max_iterations, tolerances, ref, rows)
+                                                 max_iterations, tolerances, ref, rows, rot)
         iterations += used
         kept_before = ident.kept
     if ident is None:
         raise RuntimeError(f'MAX_SELECTION_ROUNDS = {MAX_SELECTION_ROUNDS}: no round selected '
                            'the identifiable parameters')
-    pred, jac = model.jacobian(p, q, tau, ref)
+    pred, jac = model.jacobian(p, q, tau, ref, rot)
     residuals = eta - pred
     f_data = weighted_rows(jac, w, idx)
     tcp, tcp_jac = model.jacobian(p, q_work, tau_work)
@@ -352,7 +353,8 @@ def _row_weights(w_axis: np.ndarray, point_weights: np.ndarray | None, n: int) -
 def _gauss_newton(model: MeasurementModel, p: np.ndarray, idx: np.ndarray, q: np.ndarray,
                   eta: np.ndarray, tau: np.ndarray | None, w: np.ndarray, max_iterations: int,
                   tol: Tolerances = TOLERANCES, reflector: np.ndarray | None = None,
-                  rows: PriorRows | None = None) -> tuple[np.ndarray, int, str, int]:
+                  rows: PriorRows | None = None,
+                  rotation: np.ndarray | None = None) -> tuple[np.ndarray, int, str, int]:
     """Gauss-Newton with Armijo backtracking; Levenberg-Marquardt damping when that stalls.
 
     Returns
@@ -364,7 +366,7 @@ def _gauss_newton(model: MeasurementModel, p: np.ndarray, idx: np.ndarray, q: np
     iterations : int
     """
     def evaluate(pp):
-        pred, jac = model.jacobian(pp, q, tau, reflector)
+        pred, jac = model.jacobian(pp, q, tau, reflector, rotation)
         r = ((eta - pred) * w).ravel()
         f = (jac * w[:, :, None]).reshape(-1, len(pp))[:, idx]
         if rows is not None:

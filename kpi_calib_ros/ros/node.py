@@ -32,6 +32,7 @@ reason); the post-set callback applies the accepted values.
 """
 from __future__ import annotations
 
+import dataclasses
 import sys
 import threading
 import time
@@ -61,7 +62,6 @@ from visualization_msgs.msg import MarkerArray
 from kpi_calib_ros.core.collision import Capsule
 from kpi_calib_ros.core.errors import ConfigError, DataError, KpiCalibError
 from kpi_calib_ros.core.estimation import CalibrationResult
-from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.pairing import Decision, Rejection
 from kpi_calib_ros.core.precision import precision_statement
 from kpi_calib_ros.core.residuals import is_adequate
@@ -465,8 +465,7 @@ class CalibrationNode(Node):
         if not new.any():
             raise DataError('no measurement accepted since the last identification; measure '
                             'new poses with auto_identify:=false, then call ~/validate')
-        fresh = Measurements(q=data.q[new], eta=data.eta[new], stamps_ns=stamps[new],
-                             reflector=None if data.reflector is None else data.reflector[new])
+        fresh = dataclasses.replace(data, stamps_ns=stamps).subset(new)
         doc, text = await self._offload(jobs.validate_work, cm, self._calibration_text, fresh,
                                         self.data_dir)
         self._pub_validation.publish(String(data=text))
