@@ -3,22 +3,30 @@ the SO(3) logarithm and the rotation rows' exact Jacobian, the cell keys, a simu
 campaign identified to its truth, what the orientation adds to the TCP precision, and
 Monte Carlo agreement of χ² and the TCP covariance."""
 import copy
+import json
 
 import casadi as ca
 import numpy as np
 import pinocchio as pin
 import pytest
+import yaml
+from geometry_msgs.msg import PoseStamped
 
+from kpi_calib_ros.cli import main
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation import identify
 from kpi_calib_ros.core.measurement import Measurements, with_rotation_rows
 from kpi_calib_ros.core.pose_measurement import (log3_expression, noisy_rotations,
                                                  quaternion_from_rotation,
                                                  rotation_from_quaternion, rotation_from_rpy)
+from kpi_calib_ros.core.pairing import pair_measurements
 from kpi_calib_ros.core.simulation import random_configurations, true_parameters
+from kpi_calib_ros.core.streams import PointSample, synthesize_streams
 from kpi_calib_ros.core.validation import validate
+from kpi_calib_ros.io.bag import read_bag, write_bag
 from kpi_calib_ros.io.cell import (DEFAULT_CELL, build_cell_model, cell_from_dict,
                                    read_cell_document)
+from kpi_calib_ros.io.ros_messages import pose_sample_from_message
 
 SIGMA = 2e-5            # m per axis, the default cell's
 SIGMA_ROTATION = 1e-4   # rad: a 6-DoF probe's orientation noise (~0.006°)
@@ -262,3 +270,111 @@ def test_monte_carlo_chi2_and_tcp_covariance_agree_with_eq_19(cm):
     # The truth's TCP is the mean of the estimates (no bias beyond 3 standard errors).
     bias = np.mean(tcps, axis=0) - cm.model.predict(p_true, cm.q_work)[0]
     assert bias @ np.linalg.solve(predicted / runs, bias) < 14.2
+
+
+# ------------------------------------------------- messages, bags, command line
+def _write_cell(tmp_path, doc):
+    doc = copy.deepcopy(doc)
+    doc['robot']['urdf'] = str((DEFAULT_CELL.parent / doc['robot']['urdf']).resolve())
+    path = tmp_path / 'pose_cell.yaml'
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+def test_pose_stamped_round_trips_through_a_bag(tmp_path):
+    rng = np.random.default_rng(5)
+    joints, _ = synthesize_streams(np.zeros((2, 6)), [f'joint_{i}' for i in range(1, 7)],
+                                   np.zeros((2, 3)), 'laser_tracker')
+    rotations = [rotation_from_quaternion(q / np.linalg.norm(q)) for q in rng.normal(size=(3, 4))]
+    poses = [PointSample(10 + i, 'laser_tracker#probe', rng.normal(size=3), r)
+             for i, r in enumerate(rotations)]
+    plain = [PointSample(20, 'laser_tracker#ball', [1.0, 2.0, 3.0])]
+    path = write_bag(tmp_path / 'poses.mcap', joints, poses + plain)
+    _, points = read_bag(path)
+    read = {p.stamp_ns: p for p in points}
+    assert read[20].rotation is None and np.array_equal(read[20].xyz, [1.0, 2.0, 3.0])
+    for pose in poses:
+        got = read[pose.stamp_ns]
+        assert got.frame_id == 'laser_tracker#probe'
+        assert np.array_equal(got.xyz, pose.xyz)
+        assert np.allclose(got.rotation, pose.rotation, atol=1e-15)
+    # A bag without tracked poses has no pose channel (as before).
+    _, points = read_bag(write_bag(tmp_path / 'plain.mcap', joints, plain))
+    assert [p.rotation for p in points] == [None]
+
+
+def test_a_bad_quaternion_is_rejected_when_paired_not_normalised():
+    message = PoseStamped()
+    message.header.frame_id = 'laser_tracker#probe'
+    message.pose.orientation.w = 2.0  # not unit length
+    sample = pose_sample_from_message(message)
+    assert np.all(np.isnan(sample.rotation))
+    names = [f'joint_{i}' for i in range(1, 7)]
+    joints, _ = synthesize_streams(np.zeros((1, 6)), names, np.zeros((1, 3)), 'laser_tracker')
+    bad = PointSample(joints[len(joints) // 2].stamp_ns, sample.frame_id, [1.0, 0.0, 0.0],
+                      sample.rotation)
+    result = pair_measurements(joints, [bad], names, 'laser_tracker', reflectors=('probe',))
+    assert len(result) == 0 and result.rejections == {'invalid_orientation': 1}
+
+
+def test_a_pose_for_a_reflector_without_orientation_names_the_cell_key(tmp_path, capsys):
+    doc = pose_doc()
+    del doc['reflectors'][0]['orientation']
+    cell = _write_cell(tmp_path, doc)
+    (tmp_path / 'rich').mkdir()
+    rich = _write_cell(tmp_path / 'rich', pose_doc())
+    bag = tmp_path / 'run.mcap'
+    assert main(['simulate', '--cell', str(rich), '--n', '12', '--out', str(bag),
+                 '--seed', '2']) == 0
+    capsys.readouterr()
+    assert main(['identify', '--cell', str(cell), '--bag', str(bag), '--out',
+                 str(tmp_path / 'out')]) == 2
+    assert 'reflectors[i].orientation' in capsys.readouterr().err
+
+
+@pytest.fixture(scope='module')
+def pose_bag(tmp_path_factory):
+    folder = tmp_path_factory.mktemp('pose_campaign')
+    cell = _write_cell(folder, pose_doc())
+    bag = folder / 'run.mcap'
+    assert main(['simulate', '--cell', str(cell), '--n', '40', '--out', str(bag),
+                 '--seed', '7']) == 0
+    return folder, cell, bag
+
+
+def test_simulate_writes_pose_stamped_and_identify_recovers_the_tcp(pose_bag, capsys):
+    folder, cell, bag = pose_bag
+    _, points = read_bag(bag)
+    assert len(points) == 40 and all(p.rotation is not None for p in points)
+    assert {p.frame_id for p in points} == {'laser_tracker#probe'}
+    out = folder / 'result'
+    assert main(['identify', '--cell', str(cell), '--bag', str(bag), '--out', str(out)]) == 0
+    doc = yaml.safe_load((out / 'calibration.yaml').read_text())
+    truth = yaml.safe_load((folder / 'run.truth.yaml').read_text())
+    assert len(doc['residuals_m']) == 80  # 40 point rows and 40 rotation rows
+    error = np.array(doc['tcp'][0]['position']) - np.array(truth['tcp_true'][0])
+    cov = np.array(doc['tcp'][0]['covariance'])
+    d2 = float(error @ np.linalg.solve(cov, error))
+    print(f'TCP error {np.linalg.norm(error) * 1e6:.2f} µm, Mahalanobis² {d2:.2f}')
+    assert d2 < 14.2  # 3σ of χ²₃
+    assert doc['valid']
+
+
+def test_validate_a_pose_calibration_on_a_new_pose_recording(pose_bag, tmp_path):
+    folder, cell, bag = pose_bag
+    out = folder / 'result_for_validation'
+    assert main(['identify', '--cell', str(cell), '--bag', str(bag), '--out', str(out)]) == 0
+    fresh = tmp_path / 'fresh.mcap'
+    # Same cell, same true robot (seed 7 draws the same truth first), new poses: holds.
+    from kpi_calib_ros.app.simulate import simulate_campaign, truth_cell_model
+    from kpi_calib_ros.io.cell import load_cell
+    truth = yaml.safe_load((folder / 'run.truth.yaml').read_text())['parameters']
+    cm, _ = truth_cell_model(load_cell(cell))
+    p_true = np.array([truth[n] for n in cm.model.params.names])
+    simulate_campaign(cell, 25, fresh, seed=99, cm=cm, p_true=p_true)
+    code = main(['validate', '--cell', str(cell), '--calibration',
+                 str(out / 'calibration.yaml'), '--bag', str(fresh), '--out',
+                 str(tmp_path / 'val')])
+    report = json.loads((tmp_path / 'val' / 'validation.json').read_text())
+    print(f"validation: chi2 {report['chi2']:.1f} / {report['dof']}, p {report['p_value']:.3f}")
+    assert report['dof'] == 3 * 50 and code == 0 and report['holds']

@@ -130,9 +130,10 @@ class CalibrationResult:
     covariance : (k, k) ndarray
         C_p block of eq. (19).
     residuals : (N, 3) ndarray
-        η − h(p̂, q) per measurement, tracker frame, m.
+        η − h(p̂, q) per measurement, tracker frame, m (a rotation row of a tracked
+        pose: rad × σ/σ_rot, see :mod:`kpi_calib_ros.core.pose_measurement`).
     rms_m : float
-        sqrt(mean ‖r_i‖²), m.
+        sqrt(mean ‖r_i‖²) over the point rows, m.
     tcp : (t, 3) ndarray
         KPI points ŝ at the working poses, tracker frame, m.
     tcp_covariance : (t, 3, 3) ndarray
@@ -328,10 +329,16 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     return CalibrationResult(
         names=model.params.names, values=p, units=model.params.units,
         estimated=ident.kept, std=np.sqrt(np.diag(c_p)), covariance=c_p,
-        residuals=residuals, rms_m=float(np.sqrt(np.mean(np.sum(residuals ** 2, axis=1)))),
+        residuals=residuals, rms_m=_point_rms(residuals, ref, model.n_reflectors),
         tcp=tcp, tcp_covariance=tcp_cov, working_pose_names=tuple(names),
         sigma=1.0 / w_axis, chi2=chi2, dof=dof, p_value=float(scipy.stats.chi2.sf(chi2, dof)),
         status=status, message=message, iterations=iterations, identifiability=ident)
+
+
+def _point_rms(residuals: np.ndarray, reflector: np.ndarray | None, n_reflectors: int) -> float:
+    """rms (m) of the point rows' residuals; rotation rows (tracked poses) are not lengths."""
+    points = residuals if reflector is None else residuals[np.asarray(reflector) < n_reflectors]
+    return float(np.sqrt(np.mean(np.sum(points ** 2, axis=1))))
 
 
 def _with_prior(f: np.ndarray, rows: PriorRows | None, idx: np.ndarray) -> np.ndarray:

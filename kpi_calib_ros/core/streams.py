@@ -59,15 +59,22 @@ class JointSample:
 
 @dataclass(frozen=True, eq=False)
 class PointSample:
-    """One tracker point: reflector centre ``xyz`` (3,) in metres, in frame ``frame_id``."""
+    """One tracker point: reflector centre ``xyz`` (3,) in metres, in frame ``frame_id``.
+
+    A tracked 6-DoF pose is a point with ``rotation`` (3, 3), the body's orientation in
+    that frame (NaN: the message carried no valid orientation, rejected when paired)."""
 
     stamp_ns: int
     frame_id: str
     xyz: np.ndarray
+    rotation: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, 'stamp_ns', int(self.stamp_ns))
         object.__setattr__(self, 'xyz', frozen_array(self.xyz, (3,), 'xyz'))
+        if self.rotation is not None:
+            object.__setattr__(self, 'rotation', frozen_array(self.rotation, (3, 3),
+                                                              'rotation'))
 
 
 def _quintic(tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -14,10 +14,12 @@ from typing import Any, Callable
 
 import numpy as np
 from builtin_interfaces.msg import Time
-from geometry_msgs.msg import Point, PointStamped
+from geometry_msgs.msg import Point, PointStamped, Pose, PoseStamped, Quaternion
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Header
 
+from kpi_calib_ros.core.pose_measurement import (quaternion_from_rotation,
+                                                 rotation_from_quaternion)
 from kpi_calib_ros.core.streams import JointSample, PointSample
 
 _NS = 1_000_000_000
@@ -73,6 +75,20 @@ def point_sample_from_message(message: Any) -> PointSample:
                        np.array([p.x, p.y, p.z], dtype=float))
 
 
+def pose_sample_from_message(message: Any) -> PointSample:
+    """A geometry_msgs/PoseStamped (rclpy or decoded) as a PointSample with ``rotation``:
+    the tracked body's origin (m) and orientation in the header frame. A quaternion that
+    is not finite and of unit length gives an all-NaN rotation (rejected when paired as
+    ``invalid_orientation``), never a silently normalised one."""
+    p, o = message.pose.position, message.pose.orientation
+    try:
+        rotation = rotation_from_quaternion([o.x, o.y, o.z, o.w])
+    except ValueError:
+        rotation = np.full((3, 3), np.nan)
+    return PointSample(stamp_ns(message.header), message.header.frame_id,
+                       np.array([p.x, p.y, p.z], dtype=float), rotation)
+
+
 # ------------------------------------------------------------------ sample -> message
 def joint_state_fields(sample: JointSample) -> dict[str, Any]:
     """A JointSample as the nested fields of a JointState (empty velocity when none)."""
@@ -91,6 +107,18 @@ def point_stamped_fields(sample: PointSample) -> dict[str, Any]:
                        'frame_id': sample.frame_id}, 'point': {'x': x, 'y': y, 'z': z}}
 
 
+def pose_stamped_fields(sample: PointSample) -> dict[str, Any]:
+    """A PointSample with a rotation as the nested fields of a PoseStamped."""
+    if sample.rotation is None:
+        raise ValueError('a PoseStamped needs the sample\'s rotation')
+    sec, nanosec = stamp_fields(sample.stamp_ns)
+    x, y, z = (float(v) for v in sample.xyz)
+    qx, qy, qz, qw = (float(v) for v in quaternion_from_rotation(sample.rotation))
+    return {'header': {'stamp': {'sec': sec, 'nanosec': nanosec}, 'frame_id': sample.frame_id},
+            'pose': {'position': {'x': x, 'y': y, 'z': z},
+                     'orientation': {'x': qx, 'y': qy, 'z': qz, 'w': qw}}}
+
+
 def _header(fields: dict[str, Any]) -> Header:
     return Header(stamp=Time(**fields['stamp']), frame_id=fields['frame_id'])
 
@@ -106,6 +134,14 @@ def point_stamped_msg(sample: PointSample) -> PointStamped:
     """PointSample -> PointStamped."""
     f = point_stamped_fields(sample)
     return PointStamped(header=_header(f['header']), point=Point(**f['point']))
+
+
+def pose_stamped_msg(sample: PointSample) -> PoseStamped:
+    """PointSample with a rotation -> PoseStamped."""
+    f = pose_stamped_fields(sample)
+    return PoseStamped(header=_header(f['header']),
+                       pose=Pose(position=Point(**f['pose']['position']),
+                                 orientation=Quaternion(**f['pose']['orientation'])))
 
 
 # ------------------------------------------------------------------ fast CDR
@@ -239,4 +275,5 @@ def _joint_sample(stamp: int, names: tuple[str, ...], positions: np.ndarray,
 
 __all__ = ['JointStateDecoder', 'joint_sample_from_message', 'joint_state_fields',
            'joint_state_msg', 'point_sample_from_message', 'point_stamped_fields',
-           'point_stamped_msg', 'stamp_fields', 'stamp_ns', 'time_msg']
+           'point_stamped_msg', 'pose_sample_from_message', 'pose_stamped_fields',
+           'pose_stamped_msg', 'stamp_fields', 'stamp_ns', 'time_msg']

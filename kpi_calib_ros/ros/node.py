@@ -66,7 +66,7 @@ from kpi_calib_ros.core.pairing import Decision, Rejection
 from kpi_calib_ros.core.precision import precision_statement
 from kpi_calib_ros.core.residuals import is_adequate
 from kpi_calib_ros.core.robust import RobustResult
-from kpi_calib_ros.app.identify import urdf_measurements
+from kpi_calib_ros.app.identify import pose_rows, urdf_measurements
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell, with_overrides
 from kpi_calib_ros.io.names import (CALIBRATED_URDF_TOPIC, CALIBRATION_TOPIC, DIAGNOSIS_TOPIC,
                                     DIAGNOSTICS_TOPIC, MARKERS_TOPIC, MEASUREMENT_POSES_TOPIC,
@@ -390,7 +390,8 @@ class CalibrationNode(Node):
         cm = self._model()
         data, pairing = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame,
                                                    cm.cell.reflector_names or ('',))
-        data = urdf_measurements(cm, data)  # controller readings -> URDF joint values
+        # tracked poses' rotation rows; controller readings -> URDF joint values
+        data = urdf_measurements(cm, pose_rows(cm, data, pairing))
         try:
             cal, calibration, urdf, tcp = await self._offload(
                 jobs.identify_work, cm, data, pairing, self.data_dir, child=True)
@@ -440,9 +441,10 @@ class CalibrationNode(Node):
         """Model diagnosis of the accepted measurements (as ``kpi-calib diagnose``): residual
         report, adequacy and the most likely missing effect; report files and ~/diagnosis."""
         cm = self._model()
-        data, _ = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame,
-                                             cm.cell.reflector_names or ('',))
-        data = urdf_measurements(cm, data)  # controller readings -> URDF joint values
+        data, pairing = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame,
+                                                   cm.cell.reflector_names or ('',))
+        # tracked poses' rotation rows; controller readings -> URDF joint values
+        data = urdf_measurements(cm, pose_rows(cm, data, pairing))
         doc, text, verdict, report = await self._offload(jobs.diagnose_work, cm, data,
                                                          self.data_dir, child=True)
         self._diagnosis = doc
@@ -456,9 +458,10 @@ class CalibrationNode(Node):
         cm = self._model()
         if not self._calibration_text:
             raise DataError('no calibration to validate yet: call ~/identify first')
-        data, _ = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame,
-                                             cm.cell.reflector_names or ('',))
-        data = urdf_measurements(cm, data)  # controller readings -> URDF joint values
+        data, pairing = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame,
+                                                   cm.cell.reflector_names or ('',))
+        # tracked poses' rotation rows; controller readings -> URDF joint values
+        data = urdf_measurements(cm, pose_rows(cm, data, pairing))
         stamps = np.asarray(data.stamps_ns, dtype=np.int64).ravel()
         new = np.isin(stamps, np.fromiter(self._identified_stamps, dtype=np.int64),
                       invert=True)
