@@ -286,8 +286,8 @@ def test_pose_stamped_round_trips_through_a_bag(tmp_path):
     joints, _ = synthesize_streams(np.zeros((2, 6)), [f'joint_{i}' for i in range(1, 7)],
                                    np.zeros((2, 3)), 'laser_tracker')
     rotations = [rotation_from_quaternion(q / np.linalg.norm(q)) for q in rng.normal(size=(3, 4))]
-    poses = [PointSample(10 + i, 'laser_tracker#probe', rng.normal(size=3), r)
-             for i, r in enumerate(rotations)]
+    poses = [PointSample(10 + i, 'laser_tracker#probe', rng.normal(size=3),
+                         quaternion_from_rotation(r)) for i, r in enumerate(rotations)]
     plain = [PointSample(20, 'laser_tracker#ball', [1.0, 2.0, 3.0])]
     path = write_bag(tmp_path / 'poses.mcap', joints, poses + plain)
     _, points = read_bag(path)
@@ -297,6 +297,7 @@ def test_pose_stamped_round_trips_through_a_bag(tmp_path):
         got = read[pose.stamp_ns]
         assert got.frame_id == 'laser_tracker#probe'
         assert np.array_equal(got.xyz, pose.xyz)
+        assert np.array_equal(got.orientation, pose.orientation)  # as published, exactly
         assert np.allclose(got.rotation, pose.rotation, atol=1e-15)
     # A bag without tracked poses has no pose channel (as before).
     _, points = read_bag(write_bag(tmp_path / 'plain.mcap', joints, plain))
@@ -312,7 +313,7 @@ def test_a_bad_quaternion_is_rejected_when_paired_not_normalised():
     names = [f'joint_{i}' for i in range(1, 7)]
     joints, _ = synthesize_streams(np.zeros((1, 6)), names, np.zeros((1, 3)), 'laser_tracker')
     bad = PointSample(joints[len(joints) // 2].stamp_ns, sample.frame_id, [1.0, 0.0, 0.0],
-                      sample.rotation)
+                      sample.orientation)
     result = pair_measurements(joints, [bad], names, 'laser_tracker', reflectors=('probe',))
     assert len(result) == 0 and result.rejections == {'invalid_orientation': 1}
 

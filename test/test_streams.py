@@ -159,8 +159,8 @@ def bad_input_cases():
         return j, p + [replace(p[0], frame_id=f'{FRAME}#spare')]
 
     def invalid_orientation(j, p):
-        # A tracked pose whose quaternion was not a unit one (decoded as NaN), beside pose 0.
-        return j, p + [replace(p[0], rotation=np.full((3, 3), np.nan))]
+        # A tracked pose whose quaternion is not a unit one, beside pose 0.
+        return j, p + [replace(p[0], orientation=[0.0, 0.0, 0.0, 2.0])]
 
     def oversized(j, p):
         s = j[7]

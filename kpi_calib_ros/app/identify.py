@@ -105,10 +105,11 @@ def to_measurements(cm: CellModel, pairing: PairingResult) -> Measurements:
     return pose_rows(cm, data, pairing)
 
 
-def pose_rows(cm: CellModel, data: Measurements, pairing: PairingResult) -> Measurements:
+def pose_rows(cm: CellModel, data: Measurements,
+              pairing: PairingResult | None) -> Measurements:
     """``data`` with the rotation row of every tracked 6-DoF pose of ``pairing`` (see
-    :func:`kpi_calib_ros.core.measurement.with_rotation_rows`)."""
-    if pairing.rotations is None:
+    :func:`kpi_calib_ros.core.measurement.with_rotation_rows`); None: no pairing, as is."""
+    if pairing is None or pairing.rotations is None:
         return data
     try:
         return with_rotation_rows(cm.model, data, pairing.rotations)

@@ -19,7 +19,7 @@ from kpi_calib_ros.core.effects import hidden_effects
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.kinematics import link_poses, link_poses_function, reflector_point
 from kpi_calib_ros.core.pairing import REFLECTOR_SEPARATOR
-from kpi_calib_ros.core.pose_measurement import noisy_rotations
+from kpi_calib_ros.core.pose_measurement import noisy_rotations, quaternion_from_rotation
 from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
                                           true_parameters)
 from kpi_calib_ros.core.streams import PointSample, synthesize_streams
@@ -140,7 +140,8 @@ def every_reflector(cm: CellModel, p_true: np.ndarray, q: np.ndarray,
     for i, sample in enumerate(first):
         for k, name in enumerate(names):
             out.append(PointSample(sample.stamp_ns, f'{tracker}{REFLECTOR_SEPARATOR}{name}',
-                                   eta[k][i], rotations[k][i] if k in rotations else None))
+                                   eta[k][i], quaternion_from_rotation(rotations[k][i])
+                                   if k in rotations else None))
     return out
 
 

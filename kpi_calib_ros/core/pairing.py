@@ -83,14 +83,19 @@ class PairedMeasurement:
     frame_id: str
     n_joint_samples: int
     spread_rad: float
-    rotation: np.ndarray | None = None   # (3, 3) of a tracked 6-DoF pose, else None
+    orientation: np.ndarray | None = None   # quaternion of a tracked 6-DoF pose, else None
 
     def joint_sample(self) -> JointSample:
         """The averaged configuration as a joint sample stamped like the point."""
         return JointSample(self.stamp_ns, self.joint_names, self.q, None)
 
     def point_sample(self) -> PointSample:
-        return PointSample(self.stamp_ns, self.frame_id, self.eta, self.rotation)
+        return PointSample(self.stamp_ns, self.frame_id, self.eta, self.orientation)
+
+    @property
+    def rotation(self) -> np.ndarray | None:
+        """(3, 3) body rotation of a tracked 6-DoF pose, None for a point."""
+        return self.point_sample().rotation
 
     @property
     def reflector(self) -> str:
@@ -495,7 +500,7 @@ class Pairer:
             stamp_ns=t, joint_names=self.joint_names, q=frozen_array(
                 q.mean(axis=0), (len(self.joint_names),), 'q'),
             eta=point.xyz, frame_id=point.frame_id, n_joint_samples=len(window),
-            spread_rad=float(spread.max()), rotation=point.rotation))
+            spread_rad=float(spread.max()), orientation=point.orientation))
 
 
 def _unknown_reflector(frame_id: str, tracker_frame: str, reflectors: Sequence[str]) -> str:

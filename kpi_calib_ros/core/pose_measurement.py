@@ -69,7 +69,7 @@ def rotation_from_rpy(rpy: Sequence[float]) -> np.ndarray:
                      [-sp, cp * sr, cp * cr]])
 
 
-def rotation_from_quaternion(xyzw: Sequence[float]) -> np.ndarray:
+def rotation_from_quaternion(xyzw: Sequence[float] | np.ndarray) -> np.ndarray:
     """3x3 rotation of a unit quaternion [x, y, z, w] (the geometry_msgs order).
 
     Raises ValueError when the quaternion is not finite or not of unit length (1e-3):

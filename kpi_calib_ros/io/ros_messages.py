@@ -18,8 +18,6 @@ from geometry_msgs.msg import Point, PointStamped, Pose, PoseStamped, Quaternion
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Header
 
-from kpi_calib_ros.core.pose_measurement import (quaternion_from_rotation,
-                                                 rotation_from_quaternion)
 from kpi_calib_ros.core.streams import JointSample, PointSample
 
 _NS = 1_000_000_000
@@ -76,17 +74,14 @@ def point_sample_from_message(message: Any) -> PointSample:
 
 
 def pose_sample_from_message(message: Any) -> PointSample:
-    """A geometry_msgs/PoseStamped (rclpy or decoded) as a PointSample with ``rotation``:
-    the tracked body's origin (m) and orientation in the header frame. A quaternion that
-    is not finite and of unit length gives an all-NaN rotation (rejected when paired as
-    ``invalid_orientation``), never a silently normalised one."""
+    """A geometry_msgs/PoseStamped (rclpy or decoded) as a PointSample with an
+    ``orientation``: the tracked body's origin (m) and quaternion in the header frame,
+    as received. A quaternion that is not finite and of unit length is rejected when
+    paired (``invalid_orientation``), never silently normalised."""
     p, o = message.pose.position, message.pose.orientation
-    try:
-        rotation = rotation_from_quaternion([o.x, o.y, o.z, o.w])
-    except ValueError:
-        rotation = np.full((3, 3), np.nan)
     return PointSample(stamp_ns(message.header), message.header.frame_id,
-                       np.array([p.x, p.y, p.z], dtype=float), rotation)
+                       np.array([p.x, p.y, p.z], dtype=float),
+                       np.array([o.x, o.y, o.z, o.w], dtype=float))
 
 
 # ------------------------------------------------------------------ sample -> message
@@ -108,12 +103,12 @@ def point_stamped_fields(sample: PointSample) -> dict[str, Any]:
 
 
 def pose_stamped_fields(sample: PointSample) -> dict[str, Any]:
-    """A PointSample with a rotation as the nested fields of a PoseStamped."""
-    if sample.rotation is None:
-        raise ValueError('a PoseStamped needs the sample\'s rotation')
+    """A PointSample with an orientation as the nested fields of a PoseStamped."""
+    if sample.orientation is None:
+        raise ValueError('a PoseStamped needs the sample\'s orientation')
     sec, nanosec = stamp_fields(sample.stamp_ns)
     x, y, z = (float(v) for v in sample.xyz)
-    qx, qy, qz, qw = (float(v) for v in quaternion_from_rotation(sample.rotation))
+    qx, qy, qz, qw = (float(v) for v in sample.orientation)
     return {'header': {'stamp': {'sec': sec, 'nanosec': nanosec}, 'frame_id': sample.frame_id},
             'pose': {'position': {'x': x, 'y': y, 'z': z},
                      'orientation': {'x': qx, 'y': qy, 'z': qz, 'w': qw}}}
