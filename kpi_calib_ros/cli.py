@@ -131,6 +131,8 @@ def main(argv: list[str] | None = None) -> int:
     rep.add_argument('--rate', type=float, default=1.0, help='playback speed factor')
     rep.add_argument('--joint-topic', default=DEFAULT_JOINT_TOPIC)
     rep.add_argument('--point-topic', default=DEFAULT_POINT_TOPIC)
+    rep.add_argument('--pose-topic', default=DEFAULT_POSE_TOPIC,
+                     help='geometry_msgs/PoseStamped topic of tracked 6-DoF bodies')
     rep.add_argument('--wait-for-subscribers', type=float, default=10.0, metavar='SEC',
                      help='wait this long for a subscriber on both topics before playing')
 
@@ -172,7 +174,7 @@ def _design(args: argparse.Namespace) -> int:
 def _replay(args: argparse.Namespace) -> int:
     from kpi_calib_ros.ros.replay import run_replay  # ROS only when replaying
     return run_replay(args.bag, args.rate, args.joint_topic, args.point_topic,
-                      args.wait_for_subscribers)
+                      args.wait_for_subscribers, args.pose_topic)
 
 
 def _diagnose(args: argparse.Namespace) -> int:

@@ -18,7 +18,7 @@ from kpi_calib_ros.core.streams import PointSample, synthesize_streams
 from kpi_calib_ros.io.cell import (DEFAULT_CELL, build_cell_model, cell_from_dict,
                                    read_cell_document)
 from kpi_calib_ros.io.ros_messages import joint_state_msg, pose_stamped_msg
-from ros_helpers import KR15_URDF, Client, Spawner
+from ros_helpers import KR15_URDF, Client, Spawner, finish
 
 pytestmark = pytest.mark.slow
 N_POSES = 24
@@ -122,6 +122,37 @@ def test_the_node_identifies_tracked_poses_as_offline_and_restores_them(ros_doma
                              ['parameters']])
         assert np.allclose(restored, values, rtol=1e-9, atol=1e-12)
         again.stop()
+    finally:
+        spawn.kill_all()
+        client.close()
+
+
+def test_a_replayed_pose_bag_gives_the_node_what_identify_gets_offline(ros_domain, tmp_path):
+    cell, _ = _pose_cell(tmp_path)
+    bag = tmp_path / 'run.mcap'
+    assert cli.main(['simulate', '--cell', str(cell), '--n', '20', '--out', str(bag),
+                     '--seed', '5']) == 0
+    assert cli.main(['identify', '--cell', str(cell), '--bag', str(bag),
+                     '--out', str(tmp_path / 'offline')]) == 0
+    offline = yaml.safe_load((tmp_path / 'offline' / 'calibration.yaml').read_text())
+    spawn = Spawner(tmp_path)
+    client = Client(ros_domain)
+    client.description.publish(String(data=KR15_URDF))
+    try:
+        node = spawn(tmp_path / 'data', 'node.log', f'cell_file:={cell}', 'auto_identify:=false')
+        client.spin_until(lambda: client.diagnostics().get('state') == 'idle', 60,
+                          'the node to load the cell')
+        output = finish(spawn.replay(bag), client)
+        assert 'and 20 tracker points' in output and 'LOST' not in output
+        client.spin_until(lambda: client.count('accepted') == 20, 30, '20 accepted poses')
+        answer = client.call('identify', timeout=120)
+        assert answer.success, answer.message
+        client.spin_until(lambda: client.received['calibration'], 30, 'the calibration')
+        live = client.received['calibration'][-1]
+        assert live['measurements'] == offline['measurements'] == 40
+        assert np.allclose([p['value'] for p in live['parameters']],
+                           [p['value'] for p in offline['parameters']], rtol=1e-9, atol=1e-12)
+        node.stop()
     finally:
         spawn.kill_all()
         client.close()
