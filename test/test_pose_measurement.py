@@ -379,3 +379,10 @@ def test_validate_a_pose_calibration_on_a_new_pose_recording(pose_bag, tmp_path)
     report = json.loads((tmp_path / 'val' / 'validation.json').read_text())
     print(f"validation: chi2 {report['chi2']:.1f} / {report['dof']}, p {report['p_value']:.3f}")
     assert report['dof'] == 3 * 50 and code == 0 and report['holds']
+    # rms over the 25 point rows in metres; the orientation residual in rad on its own:
+    # E‖ω‖² = 3σ_rot² (plus the small parameter share), χ²(75)/75 within ±3·0.16.
+    ratio_points = report['rms_per_reflector_m']['probe'] ** 2 / (3 * SIGMA ** 2)
+    ratio_rotation = report['rotation_rms_rad']['probe'] ** 2 / (3 * SIGMA_ROTATION ** 2)
+    print(f'point rms / (σ√3) squared {ratio_points:.3f}, rotation {ratio_rotation:.3f}')
+    assert report['rms_m'] == report['rms_per_reflector_m']['probe']
+    assert 0.5 < ratio_points < 1.6 and 0.5 < ratio_rotation < 1.6
