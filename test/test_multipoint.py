@@ -58,6 +58,9 @@ def test_cell_reflectors_give_one_named_offset_triple_each(cm):
     (lambda d: d['reflectors'][0].update(offset=[0, 0]), 'reflectors[0].offset'),
     (lambda d: d['reflector'].update(offset=[0, 0, 0.03]), 'reflector.offset'),
     (lambda d: d.update(reflectors=[]), 'reflectors'),
+    (lambda d: d['reflectors'][1].update(offset=[0, 0, 30]), 'reflectors[1].offset'),
+    (lambda d: d['reflectors'][0].update(offset=[0, 0, 30]), 'reflectors[0].offset'),
+    (lambda d: d['reflectors'][2].update(offset=[0, float('nan'), 0]), 'reflectors[2].offset'),
 ])
 def test_bad_reflectors_name_the_key(change, key):
     doc = _doc()

@@ -374,7 +374,8 @@ def _reflectors(doc: dict) -> tuple[tuple[str, ...], np.ndarray | None,
         names.append(name)
         offset = item.get('offset')
         offsets.append(np.full(3, np.nan) if offset is None
-                       else _vector(offset, f'{key}.offset', 3))
+                       else _plausible_offset(_vector(offset, f'{key}.offset', 3),
+                                              f'{key}.offset'))
         if item.get('orientation') is not None:
             orientations.append((i, _orientation(item['orientation'], f'{key}.orientation')))
     return tuple(names), np.array(offsets), tuple(orientations)
@@ -569,11 +570,11 @@ def _plausible_pose(pose: np.ndarray) -> np.ndarray:
     return pose
 
 
-def _plausible_offset(offset: np.ndarray) -> np.ndarray:
-    """``reflector.offset`` in SI metres, or a ConfigError with a units hint."""
+def _plausible_offset(offset: np.ndarray, key: str = 'reflector.offset') -> np.ndarray:
+    """A reflector offset (``key``) in SI metres, or a ConfigError with a units hint."""
     length = float(np.linalg.norm(offset))
     if length > MAX_REFLECTOR_OFFSET_M:
-        raise ConfigError('reflector.offset', f'the reflector is {length:g} m from the tip '
+        raise ConfigError(key, f'the reflector is {length:g} m from the tip '
                           f'frame (at most {MAX_REFLECTOR_OFFSET_M:g} m is plausible); give '
                           'it in SI metres (millimetres? divide by 1000; 30 mm is 0.03)')
     return offset
