@@ -14,7 +14,7 @@ from pathlib import Path
 
 from kpi_calib_ros.core.errors import KpiCalibError
 from kpi_calib_ros.core.prior import DRIFT_ANGLE_PER_SQRT_HOUR, DRIFT_LENGTH_PER_SQRT_HOUR
-from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC
+from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, DEFAULT_POSE_TOPIC
 
 
 CODE_EFFECTS_HELP = ("let the cell file's effects: name Python code ('file.py:Type:joint', "
@@ -29,6 +29,9 @@ def _bag_topics(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--point-topic', default=None, help='geometry_msgs/PointStamped topic '
                         "of the bag (default: the cell's topics.point, else "
                         f'{DEFAULT_POINT_TOPIC})')
+    parser.add_argument('--pose-topic', default=None, help='geometry_msgs/PoseStamped topic '
+                        'of tracked 6-DoF bodies, read when the bag has it (default: the '
+                        f"cell's topics.pose, else {DEFAULT_POSE_TOPIC})")
 
 
 def _drift(text: str) -> tuple[float, float]:
@@ -128,6 +131,8 @@ def main(argv: list[str] | None = None) -> int:
     rep.add_argument('--rate', type=float, default=1.0, help='playback speed factor')
     rep.add_argument('--joint-topic', default=DEFAULT_JOINT_TOPIC)
     rep.add_argument('--point-topic', default=DEFAULT_POINT_TOPIC)
+    rep.add_argument('--pose-topic', default=DEFAULT_POSE_TOPIC,
+                     help='geometry_msgs/PoseStamped topic of tracked 6-DoF bodies')
     rep.add_argument('--wait-for-subscribers', type=float, default=10.0, metavar='SEC',
                      help='wait this long for a subscriber on both topics before playing')
 
@@ -157,7 +162,7 @@ def _identify(args: argparse.Namespace) -> int:
     return run_identify(args.cell, args.bag, args.out, effects=args.effects, model=args.model,
                         prior_path=args.prior, drift=args.drift_per_hour,
                         joint_topic=args.joint_topic, point_topic=args.point_topic,
-                        allow_code_effects=args.allow_code_effects)
+                        pose_topic=args.pose_topic, allow_code_effects=args.allow_code_effects)
 
 
 def _design(args: argparse.Namespace) -> int:
@@ -169,7 +174,7 @@ def _design(args: argparse.Namespace) -> int:
 def _replay(args: argparse.Namespace) -> int:
     from kpi_calib_ros.ros.replay import run_replay  # ROS only when replaying
     return run_replay(args.bag, args.rate, args.joint_topic, args.point_topic,
-                      args.wait_for_subscribers)
+                      args.wait_for_subscribers, args.pose_topic)
 
 
 def _diagnose(args: argparse.Namespace) -> int:
@@ -178,7 +183,7 @@ def _diagnose(args: argparse.Namespace) -> int:
     alpha = ADEQUACY_ALPHA if args.alpha is None else args.alpha
     return run_diagnose(args.cell, args.bag, args.out, effects=args.effects, folds=args.folds,
                         alpha=alpha, model=args.model, joint_topic=args.joint_topic,
-                        point_topic=args.point_topic,
+                        point_topic=args.point_topic, pose_topic=args.pose_topic,
                         allow_code_effects=args.allow_code_effects)
 
 

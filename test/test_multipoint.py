@@ -58,6 +58,9 @@ def test_cell_reflectors_give_one_named_offset_triple_each(cm):
     (lambda d: d['reflectors'][0].update(offset=[0, 0]), 'reflectors[0].offset'),
     (lambda d: d['reflector'].update(offset=[0, 0, 0.03]), 'reflector.offset'),
     (lambda d: d.update(reflectors=[]), 'reflectors'),
+    (lambda d: d['reflectors'][1].update(offset=[0, 0, 30]), 'reflectors[1].offset'),
+    (lambda d: d['reflectors'][0].update(offset=[0, 0, 30]), 'reflectors[0].offset'),
+    (lambda d: d['reflectors'][2].update(offset=[0, float('nan'), 0]), 'reflectors[2].offset'),
 ])
 def test_bad_reflectors_name_the_key(change, key):
     doc = _doc()
@@ -254,3 +257,29 @@ def test_robust_identification_and_auto_model_keep_each_rows_reflector(cm):
     # rms of the kept rows against σ√3 (dof-corrected: 3N − k of 3N)
     n, k = 3 * len(kept), len(cal.result.estimated)
     assert cal.result.rms_m == pytest.approx(sigma * np.sqrt(3 * (n - k) / n), rel=0.15)
+
+
+def test_simulate_writes_every_reflector_and_identify_takes_them(tmp_path):
+    import yaml
+
+    from kpi_calib_ros.cli import main
+    from kpi_calib_ros.io.bag import read_bag
+    doc = _doc()
+    doc['robot']['urdf'] = str((DEFAULT_CELL.parent / doc['robot']['urdf']).resolve())
+    cell = tmp_path / 'cell.yaml'
+    cell.write_text(yaml.safe_dump(doc))
+    bag = tmp_path / 'run.mcap'
+    assert main(['simulate', '--cell', str(cell), '--n', '15', '--out', str(bag),
+                 '--seed', '4']) == 0
+    _, points = read_bag(bag)
+    frames = [p.frame_id for p in points]
+    assert len(points) == 45 and {f: frames.count(f) for f in set(frames)} == {
+        f'laser_tracker#{n}': 15 for n in NAMES}
+    assert main(['identify', '--cell', str(cell), '--bag', str(bag), '--out',
+                 str(tmp_path / 'out')]) == 0
+    result = yaml.safe_load((tmp_path / 'out' / 'calibration.yaml').read_text())
+    truth = yaml.safe_load((tmp_path / 'run.truth.yaml').read_text())
+    assert result['measurements'] == 45
+    error = np.array(result['tcp'][0]['position']) - np.array(truth['tcp_true'][0])
+    cov = np.array(result['tcp'][0]['covariance'])
+    assert error @ np.linalg.solve(cov, error) < 14.2  # 3σ of χ²₃

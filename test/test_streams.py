@@ -158,6 +158,10 @@ def bad_input_cases():
         # A second point at pose 0's stamp, from a reflector the cell does not have.
         return j, p + [replace(p[0], frame_id=f'{FRAME}#spare')]
 
+    def invalid_orientation(j, p):
+        # A tracked pose whose quaternion is not a unit one, beside pose 0.
+        return j, p + [replace(p[0], orientation=[0.0, 0.0, 0.0, 2.0])]
+
     def oversized(j, p):
         s = j[7]
         extra = tuple(f'x{i}' for i in range(100))
@@ -171,7 +175,8 @@ def bad_input_cases():
             ('nan_joint_state', nan_joint_state, 'non_finite_joint_state', 0),
             ('duplicate', duplicate, 'duplicate_stamp', 0),
             ('oversized', oversized, 'oversized_joint_state', 0),
-            ('unknown_reflector', unknown_reflector, 'unknown_reflector', 0)]
+            ('unknown_reflector', unknown_reflector, 'unknown_reflector', 0),
+            ('invalid_orientation', invalid_orientation, 'invalid_orientation', 0)]
 
 
 @pytest.mark.parametrize('name, mutate, reason, lost', bad_input_cases(),

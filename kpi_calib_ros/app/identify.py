@@ -23,7 +23,7 @@ from kpi_calib_ros.core.estimability import KpiEstimability, result_estimability
 from kpi_calib_ros.core.gravity_compliance import compliance_warnings, mass_warning
 from kpi_calib_ros.core.estimation import CalibrationResult, identify
 from kpi_calib_ros.core.model_selection import ModelChoice, choose_model, level_free
-from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
+from kpi_calib_ros.core.measurement import MeasurementModel, Measurements, with_rotation_rows
 from kpi_calib_ros.core.pairing import PairingResult, pair_measurements
 from kpi_calib_ros.core.registration import Registration, register
 from kpi_calib_ros.core.robust import (LOSS_SCALE, RobustResult, gross_outliers,
@@ -36,8 +36,7 @@ from kpi_calib_ros.core.streams import JointSample, PointSample
 from kpi_calib_ros.io.bag import read_for_pairing
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
 from kpi_calib_ros.io.measurement_log import stored_pairing
-from kpi_calib_ros.io.names import (CALIBRATED_URDF_FILE, DEFAULT_JOINT_TOPIC,
-                                    DEFAULT_POINT_TOPIC, FAILED_CALIBRATION_FILE)
+from kpi_calib_ros.io.names import CALIBRATED_URDF_FILE, FAILED_CALIBRATION_FILE
 from kpi_calib_ros.io.report import comparison_text, comparison_to_dict
 from kpi_calib_ros.io.results import (calibration_to_dict, read_calibration_document,
                                       summary_text, writable_folder, write_atomic,
@@ -101,18 +100,40 @@ def to_measurements(cm: CellModel, pairing: PairingResult) -> Measurements:
     except ValueError as exc:
         raise DataError(f'{exc}: point frame ids are <tracker_frame>#<reflector name> for '
                         "the cell's reflectors: list") from None
-    return Measurements(q=pairing.q, eta=pairing.eta, stamps_ns=pairing.stamps_ns,
+    data = Measurements(q=pairing.q, eta=pairing.eta, stamps_ns=pairing.stamps_ns,
                         reflector=ref if cm.cell.reflector_names else None)
+    return pose_rows(cm, data, pairing)
+
+
+def pose_rows(cm: CellModel, data: Measurements,
+              pairing: PairingResult | None) -> Measurements:
+    """``data`` with the rotation row of every tracked 6-DoF pose of ``pairing`` (see
+    :func:`kpi_calib_ros.core.measurement.with_rotation_rows`); None: no pairing, as is."""
+    if pairing is None or pairing.rotations is None:
+        return data
+    try:
+        return with_rotation_rows(cm.model, data, pairing.rotations)
+    except ValueError as exc:
+        names = reflector_names(cm)
+        raise DataError(f'{exc}; a PoseStamped was recorded for a reflector of the cell '
+                        f'{list(names)} that has no orientation: give the tracked body\'s '
+                        'orientation in the cell (reflectors[i].orientation: {rpy: [r, p, y]}) '
+                        'or record its position as a PointStamped') from None
 
 
 def measurements_from_bag(cm: CellModel, path: str | Path,
-                          joint_topic: str = DEFAULT_JOINT_TOPIC,
-                          point_topic: str = DEFAULT_POINT_TOPIC,
+                          joint_topic: str | None = None,
+                          point_topic: str | None = None,
+                          pose_topic: str | None = None,
                           **pairer_options) -> tuple[Measurements, PairingResult]:
     """Measurements from a recording (paired here) or from the node's measurement log
-    (paired when stored), reading only the joint states pairing needs."""
-    contents = read_for_pairing(path, joint_topic, point_topic,
-                                window_ns=pairer_options.get('window_ns'))
+    (paired when stored), reading only the joint states pairing needs. Topics default
+    to the cell's ``topics:``; tracked 6-DoF poses on the pose topic add rotation rows."""
+    cell = cm.cell
+    contents = read_for_pairing(path, joint_topic or cell.joint_topic,
+                                point_topic or cell.point_topic,
+                                window_ns=pairer_options.get('window_ns'),
+                                pose_topic=pose_topic or cell.pose_topic)
     if contents.measurement_log:
         pairing = stored_pairing(zip(contents.joints, contents.points), list(cm.joint_names),
                                  cm.cell.tracker_frame)
@@ -142,9 +163,12 @@ def registered_start(cm: CellModel, data: Measurements) -> tuple[np.ndarray, Reg
     if not cm.needs_registration and len(data):
         tau = cm.robot.gravity_torques(data.q) if cm.model.uses_torque else None
         miss = np.linalg.norm(np.atleast_2d(data.eta)
-                              - cm.model.predict(p0, data.q, tau, data.reflector), axis=1)
+                              - cm.model.predict(p0, data.q, tau, data.reflector,
+                                                    data.rotation), axis=1)
         if float(np.median(miss)) <= REGISTER_ABOVE_M:
             return p0, None
+    if data.reflector is not None:  # rotation rows (tracked poses) carry no point
+        data = data.subset(np.asarray(data.reflector) < cm.model.n_reflectors)
     tips = np.array([cm.robot.pin_tip_pose(row) for row in np.atleast_2d(data.q)])
     reg = register(data.eta, tips, max_rms=REGISTRATION_MAX_RMS_M, reflector=data.reflector)
     offsets = (reg.reflector_offsets if reg.reflector_offsets is not None
@@ -317,7 +341,7 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
     kept = subset(data, robust.kept)
     est = result_estimability(cm.model, kept.q, cm.cell.sigma, robust.result.values,
                               cm.q_work, cm.working_pose_names, free, prior=prior,
-                              reflector=kept.reflector)
+                              reflector=kept.reflector, rotation=kept.rotation)
     # A model that fails χ² must not report the stated σ's precision (core.precision).
     return CellCalibration(honest_precision(robust.result), robust, choice, est, tuple(free),
                            registration)
@@ -435,8 +459,9 @@ def write_results(cm: CellModel, result: CalibrationResult, doc: dict[str, Any],
 
 def geometric_only(cm: CellModel) -> CellModel:
     """``cm`` with the geometric model only (no effects)."""
-    return dataclasses.replace(cm, model=MeasurementModel(cm.robot, cm.geometric, (),
-                                                          cm.cell.reflector_axis))
+    return dataclasses.replace(cm, model=MeasurementModel(
+        cm.robot, cm.geometric, (), cm.cell.reflector_axis, cm.model.orientations,
+        cm.model.rotation_scale))
 
 
 def with_effects(cm: CellModel, effects: tuple) -> CellModel:
@@ -461,18 +486,18 @@ def add_effect_comparison(doc: dict[str, Any], cm: CellModel, data: Measurements
 
 def load_measurements(cell_path: str | Path, bag_path: str | Path, effects: str = '',
                       joint_topic: str | None = None, point_topic: str | None = None,
-                      allow_code_effects: bool = False
+                      allow_code_effects: bool = False, pose_topic: str | None = None
                       ) -> tuple[CellModel, Measurements, PairingResult]:
     """Cell model (with the extra ``effects`` specs, comma-separated) and the paired
     measurements of a bag; rejections are reported on stderr.
 
-    ``joint_topic`` / ``point_topic`` (``--joint-topic`` / ``--point-topic``) override
-    the cell's ``topics:``; ``allow_code_effects`` lets effects name Python code.
+    ``joint_topic`` / ``point_topic`` / ``pose_topic`` (``--joint-topic`` /
+    ``--point-topic`` / ``--pose-topic``) override the cell's ``topics:``;
+    ``allow_code_effects`` lets effects name Python code.
     """
     cell = load_cell(cell_path, allow_code_effects=allow_code_effects)
     cm = build_cell_model(cell, effects=tuple(split_specs(effects)))
-    data, pairing = measurements_from_bag(cm, bag_path, joint_topic or cell.joint_topic,
-                                          point_topic or cell.point_topic)
+    data, pairing = measurements_from_bag(cm, bag_path, joint_topic, point_topic, pose_topic)
     for reason, count in sorted(pairing.rejections.items()):
         print(f'rejected {count} sample(s): {reason}', file=sys.stderr)
     return cm, data, pairing

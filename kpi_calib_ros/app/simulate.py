@@ -3,8 +3,10 @@
 A campaign draws a "true" robot (nominal + realistic errors), measures poses
 that are reachable, visible to the tracker and collision-free, and records the
 joint-state and tracker-point streams exactly as ``ros2 bag record -s mcap``
-would. The truth is written next to the bag (``<bag>.truth.yaml``) so that an
-identification can be checked against it.
+would: every reflector of the cell at every pose (frame id ``<tracker>#<name>`` for a
+``reflectors:`` cell), a reflector with an ``orientation`` as a tracked 6-DoF pose
+(PoseStamped, orientation noise ``noise.sigma_rotation``). The truth is written next
+to the bag (``<bag>.truth.yaml``) so that an identification can be checked against it.
 """
 from __future__ import annotations
 
@@ -16,9 +18,11 @@ from kpi_calib_ros.core.collision_check import verify_configuration
 from kpi_calib_ros.core.effects import hidden_effects
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.kinematics import link_poses, link_poses_function, reflector_point
+from kpi_calib_ros.core.pairing import REFLECTOR_SEPARATOR
+from kpi_calib_ros.core.pose_measurement import noisy_rotations, quaternion_from_rotation
 from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
                                           true_parameters)
-from kpi_calib_ros.core.streams import synthesize_streams
+from kpi_calib_ros.core.streams import PointSample, synthesize_streams
 from kpi_calib_ros.io.bag import write_bag
 from kpi_calib_ros.io.cell import Cell, CellModel, build_cell_model, load_cell
 from kpi_calib_ros.io.design_io import read_design_poses
@@ -100,9 +104,10 @@ def simulate_campaign(cell_path: str | Path, n: int, out: str | Path, seed: int,
     # The joint states as the controller reports them (robot.joint_coupling).
     joints, points = synthesize_streams(cm.joint_coupling.to_controller(q), cm.joint_names,
                                         data.eta, cm.cell.tracker_frame, rng=rng)
+    points = every_reflector(cm, p_true, q, points, rng)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    write_bag(out, joints, points)
+    write_bag(out, joints, points, pose_topic=cm.cell.pose_topic)
     truth = {'seed': seed, 'parameters': {name: float(v) for name, v in
                                           zip(cm.model.params.names, p_true)},
              'tcp_true': [[float(x) for x in row]
@@ -111,6 +116,33 @@ def simulate_campaign(cell_path: str | Path, n: int, out: str | Path, seed: int,
     write_truth(out, truth)
     return (f'simulated {len(q)} poses ({len(joints)} joint states, {len(points)} tracker '
             f'points) -> {out}\ntruth -> {truth_path(out)}')
+
+
+def every_reflector(cm: CellModel, p_true: np.ndarray, q: np.ndarray,
+                    first: list[PointSample], rng: np.random.Generator) -> list[PointSample]:
+    """The tracker's samples of every reflector at every pose, stamped like ``first``
+    (reflector 0's points, already drawn): each further reflector's point with its own
+    noise, frame ids ``<tracker>#<name>`` in a ``reflectors:`` cell, and a tracked body's
+    orientation (noise ``noise.sigma_rotation`` in the body frame) with its point."""
+    names = cm.cell.reflector_names
+    if not names:
+        return first
+    tracker = cm.cell.tracker_frame
+    sigma = np.broadcast_to(np.asarray(cm.cell.sigma, float), (3,))
+    eta = {0: np.array([p.xyz for p in first])}
+    for k in range(1, len(names)):
+        eta[k] = (cm.model.predict(p_true, q, reflector=np.full(len(q), k))
+                  + rng.normal(size=(len(q), 3)) * sigma)
+    rotations = {k: noisy_rotations(cm.model.body_rotations(p_true, q, k),
+                                    float(cm.cell.sigma_rotation or 0.0), rng)
+                 for k in sorted(cm.model.orientations)}
+    out = []
+    for i, sample in enumerate(first):
+        for k, name in enumerate(names):
+            out.append(PointSample(sample.stamp_ns, f'{tracker}{REFLECTOR_SEPARATOR}{name}',
+                                   eta[k][i], quaternion_from_rotation(rotations[k][i])
+                                   if k in rotations else None))
+    return out
 
 
 def run_simulate(cell_path: str | Path, n: int, out: str | Path, seed: int,

@@ -70,17 +70,38 @@ def validate_calibration(cm: CellModel, p: np.ndarray, doc: dict[str, Any],
         lower, upper)
 
 
-def validation_to_dict(v: Validation, data: Measurements, training_rms_m: float | None
-                       ) -> dict[str, Any]:
-    """JSON-ready verdict, figures and per-point residuals."""
+def validation_to_dict(v: Validation, data: Measurements, training_rms_m: float | None,
+                       cm: CellModel | None = None) -> dict[str, Any]:
+    """JSON-ready verdict, figures and per-point residuals.
+
+    The rms figures (m) are over point rows; with ``cm``, ``rms_per_reflector_m`` gives
+    each reflector's and ``rotation_rms_rad`` each tracked body's orientation residual
+    (rad). The χ² test and the per-row list take every row."""
+    ref = (np.zeros(len(v.residuals), dtype=int) if data.reflector is None
+           else np.asarray(data.reflector, dtype=int))
+    n_points = cm.model.n_reflectors if cm is not None else int(ref.max(initial=0)) + 1
+    points = ref < n_points
     inside = ~v.outside
+    extra: dict[str, Any] = {}
+    if cm is not None:
+        names = list(cm.cell.reflector_names) or ['reflector']
+        extra['rms_per_reflector_m'] = {n: _num(v.rms_where(ref == k))
+                                        for k, n in enumerate(names)}
+        scale = cm.model.rotation_scale
+        if cm.model.orientations and scale is not None:
+            extra['rotation_rms_rad'] = {
+                names[k]: _num(float(np.sqrt(np.mean(np.sum(
+                    (v.residuals[ref == n_points + k] / scale) ** 2, axis=1))))
+                    if np.any(ref == n_points + k) else float('nan'))
+                for k in sorted(cm.model.orientations)}
     return {
         'holds': v.holds,
         'verdict': 'calibration holds' if v.holds else 'calibration does not hold',
         'measurements': int(len(v.residuals)),
-        'rms_m': v.rms_m,
-        'rms_inside_training_range_m': _num(v.rms_where(inside)),
-        'rms_outside_training_range_m': _num(v.rms_where(v.outside)),
+        'rms_m': _num(v.rms_where(points)),
+        'rms_inside_training_range_m': _num(v.rms_where(inside & points)),
+        'rms_outside_training_range_m': _num(v.rms_where(v.outside & points)),
+        **extra,
         'outside_training_range': int(np.count_nonzero(v.outside)),
         'training_rms_m': training_rms_m,
         'predicted_std_median_m': float(np.median(v.predicted_std)),
@@ -121,7 +142,7 @@ def validate_report(cm: CellModel, doc: dict[str, Any], data: Measurements,
     if len(data) == 0:
         raise DataError('no new measurement to validate the calibration on')
     v = validate_calibration(cm, parameter_vector(cm, doc), doc, data)
-    out = validation_to_dict(v, data, doc.get('rms_m'))
+    out = validation_to_dict(v, data, doc.get('rms_m'), cm)
     write_atomic(Path(out_dir) / VALIDATION_FILE, json.dumps(out, indent=1))
     write_validation_plots(out_dir, cm.robot, np.atleast_2d(data.q), v.residuals, v.outside)
     return out

@@ -176,7 +176,7 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
     dof_base = 3 * n - sys_.basis.shape[1]
     q = np.atleast_2d(data.q)
     tau = sys_.tau if sys_.tau is not None else model.robot.gravity_torques(q)
-    joint_jac = model.joint_jacobian(sys_.p, q, sys_.tau, sys_.reflector)
+    joint_jac = model.joint_jacobian(sys_.p, q, sys_.tau, sys_.reflector, sys_.rotation)
 
     fits, rejected = [], []
     for effect in candidates:
@@ -310,7 +310,7 @@ def compare_models(before: tuple[MeasurementModel, CalibrationResult],
 def augmented_model(model: MeasurementModel, effects: tuple) -> MeasurementModel:
     """``model`` with ``effects`` appended (their parameters after the existing ones)."""
     return MeasurementModel(model.robot, model.geometric, model.effects + tuple(effects),
-                            model.reflector_axis)
+                            model.reflector_axis, model.orientations, model.rotation_scale)
 
 
 def _effect_columns(model: MeasurementModel, sys_: LinearizedFit, effect: BoundEffect,
@@ -320,7 +320,7 @@ def _effect_columns(model: MeasurementModel, sys_: LinearizedFit, effect: BoundE
     aug = augmented_model(model, (effect,))
     k = len(effect.parameter_names)
     p = np.concatenate([sys_.p, np.zeros(k)])
-    _, jac = aug.jacobian(p, q, tau, sys_.reflector)
+    _, jac = aug.jacobian(p, q, tau, sys_.reflector, sys_.rotation)
     cols = jac[:, :, -k:]
     disp = float(np.max(np.linalg.norm(cols @ np.asarray(effect.typical), axis=1)))
     return (cols * sys_.w[None, :, None]).reshape(-1, k), disp

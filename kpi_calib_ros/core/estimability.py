@@ -140,14 +140,16 @@ def result_estimability(model: MeasurementModel, q: np.ndarray, sigma: np.ndarra
                         free: list[str] | tuple[str, ...] | None = None,
                         tolerance: float = ESTIMABILITY_TOLERANCE,
                         prior: Prior | None = None,
-                        reflector: np.ndarray | None = None) -> KpiEstimability:
+                        reflector: np.ndarray | None = None,
+                        rotation: np.ndarray | None = None) -> KpiEstimability:
     """:func:`kpi_estimability` of a model at parameters ``p`` for measured poses ``q``
     (N, n), σ (3,) and working poses ``q_work`` (t, n); ``free`` names the free
     parameters (all by default); ``reflector`` (N,) the reflector each row measured. A
+    ``rotation`` (N, 3, 3) the measured rotations of rotation rows. A
     ``prior``'s rows count as information: what it determines is estimable."""
     names = list(free) if free else list(model.params.names)
     idx = model.params.indices(names)
-    _, jac = model.jacobian(p, np.atleast_2d(q), None, reflector)
+    _, jac = model.jacobian(p, np.atleast_2d(q), None, reflector, rotation)
     data_jac = weighted_rows(jac, 1.0 / np.broadcast_to(np.asarray(sigma, float), (3,)), idx)
     if prior is not None:
         data_jac = np.vstack([data_jac, prior.rows(model.params)[0][:, idx]])

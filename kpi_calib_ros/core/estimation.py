@@ -130,9 +130,10 @@ class CalibrationResult:
     covariance : (k, k) ndarray
         C_p block of eq. (19).
     residuals : (N, 3) ndarray
-        η − h(p̂, q) per measurement, tracker frame, m.
+        η − h(p̂, q) per measurement, tracker frame, m (a rotation row of a tracked
+        pose: rad × σ/σ_rot, see :mod:`kpi_calib_ros.core.pose_measurement`).
     rms_m : float
-        sqrt(mean ‖r_i‖²), m.
+        sqrt(mean ‖r_i‖²) over the point rows, m.
     tcp : (t, 3) ndarray
         KPI points ŝ at the working poses, tracker frame, m.
     tcp_covariance : (t, 3, 3) ndarray
@@ -262,9 +263,10 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     p = np.array(model.params.nominal if p0 is None else p0, dtype=float)
     free_idx = model.params.indices(free) if free else np.arange(len(p))
     ref = data.reflector  # (pose, reflector) rows; None: reflector 0 throughout
+    rot = data.rotation   # measured rotations of the rotation rows (tracked poses)
     rows = prior.rows(model.params) if prior is not None else None
 
-    pred, _ = model.jacobian(p, q, tau, ref)
+    pred, _ = model.jacobian(p, q, tau, ref, rot)
     start_error = float(np.median(np.linalg.norm(eta - pred, axis=1)))
     if start_error > MAX_START_ERROR:
         raise DataError(f'measured points are {start_error:.3g} m (median) from the nominal '
@@ -281,7 +283,7 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     # vector stays one exact solution (one gauge); resetting it would restart the fit.
     ident, iterations, kept_before = None, 0, None
     for _ in range(MAX_SELECTION_ROUNDS):
-        _, jac = model.jacobian(p, q, tau, ref)
+        _, jac = model.jacobian(p, q, tau, ref, rot)
         stacked = _with_prior(weighted_rows(jac, w, free_idx), rows, free_idx)
         ident = select_identifiable(stacked, free_names, method=identifiability_method,
                                     priority=priority)
@@ -302,13 +304,13 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
                             f'equations for {len(idx)} identifiable parameters; measure at '
                             f'least {len(idx) // 3 + 2} poses (better 3-5x that)')
         p, status, message, used = _gauss_newton(model, p, idx, q, eta, tau, w,
-                                                 max_iterations, tolerances, ref, rows)
+                                                 max_iterations, tolerances, ref, rows, rot)
         iterations += used
         kept_before = ident.kept
     if ident is None:
         raise RuntimeError(f'MAX_SELECTION_ROUNDS = {MAX_SELECTION_ROUNDS}: no round selected '
                            'the identifiable parameters')
-    pred, jac = model.jacobian(p, q, tau, ref)
+    pred, jac = model.jacobian(p, q, tau, ref, rot)
     residuals = eta - pred
     f_data = weighted_rows(jac, w, idx)
     tcp, tcp_jac = model.jacobian(p, q_work, tau_work)
@@ -327,10 +329,16 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     return CalibrationResult(
         names=model.params.names, values=p, units=model.params.units,
         estimated=ident.kept, std=np.sqrt(np.diag(c_p)), covariance=c_p,
-        residuals=residuals, rms_m=float(np.sqrt(np.mean(np.sum(residuals ** 2, axis=1)))),
+        residuals=residuals, rms_m=_point_rms(residuals, ref, model.n_reflectors),
         tcp=tcp, tcp_covariance=tcp_cov, working_pose_names=tuple(names),
         sigma=1.0 / w_axis, chi2=chi2, dof=dof, p_value=float(scipy.stats.chi2.sf(chi2, dof)),
         status=status, message=message, iterations=iterations, identifiability=ident)
+
+
+def _point_rms(residuals: np.ndarray, reflector: np.ndarray | None, n_reflectors: int) -> float:
+    """rms (m) of the point rows' residuals; rotation rows (tracked poses) are not lengths."""
+    points = residuals if reflector is None else residuals[np.asarray(reflector) < n_reflectors]
+    return float(np.sqrt(np.mean(np.sum(points ** 2, axis=1))))
 
 
 def _with_prior(f: np.ndarray, rows: PriorRows | None, idx: np.ndarray) -> np.ndarray:
@@ -352,7 +360,8 @@ def _row_weights(w_axis: np.ndarray, point_weights: np.ndarray | None, n: int) -
 def _gauss_newton(model: MeasurementModel, p: np.ndarray, idx: np.ndarray, q: np.ndarray,
                   eta: np.ndarray, tau: np.ndarray | None, w: np.ndarray, max_iterations: int,
                   tol: Tolerances = TOLERANCES, reflector: np.ndarray | None = None,
-                  rows: PriorRows | None = None) -> tuple[np.ndarray, int, str, int]:
+                  rows: PriorRows | None = None,
+                  rotation: np.ndarray | None = None) -> tuple[np.ndarray, int, str, int]:
     """Gauss-Newton with Armijo backtracking; Levenberg-Marquardt damping when that stalls.
 
     Returns
@@ -364,7 +373,7 @@ def _gauss_newton(model: MeasurementModel, p: np.ndarray, idx: np.ndarray, q: np
     iterations : int
     """
     def evaluate(pp):
-        pred, jac = model.jacobian(pp, q, tau, reflector)
+        pred, jac = model.jacobian(pp, q, tau, reflector, rotation)
         r = ((eta - pred) * w).ravel()
         f = (jac * w[:, :, None]).reshape(-1, len(pp))[:, idx]
         if rows is not None:

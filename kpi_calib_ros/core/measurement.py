@@ -10,6 +10,11 @@ measurement row is a (pose, reflector) pair, ``Measurements.reflector`` holds th
 reflector index of every row, and every numeric method takes that index array
 (``None``: reflector 0 throughout).
 
+A tracked 6-DoF pose (a body on the tool whose orientation the tracker also reports)
+adds a rotation row per pose (:mod:`kpi_calib_ros.core.pose_measurement`): its
+reflector index is ``n_reflectors + k`` for reflector ``k``, its ``eta`` is zero and
+``Measurements.rotation`` holds the measured body rotation that its prediction takes.
+
 The KPI point of a working pose is ``h(p, q_work)`` of reflector 0 (the first
 reflector of the cell): the reflector/TCP centre at
 the working configuration expressed in the tracker frame. Unlike a TCP "in the
@@ -19,13 +24,15 @@ parameters the identifiability analysis keeps (a gauge-free quantity).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Protocol, Sequence
+from typing import Mapping, Protocol, Sequence
 
 import casadi as ca
 import numpy as np
 
 from kpi_calib_ros.core.kinematics import SymbolicChain, reflector_point
 from kpi_calib_ros.core.parameters import ParameterSet
+from kpi_calib_ros.core.pose_measurement import (measured_rotation_input,
+                                                 rotation_residual_expression)
 from kpi_calib_ros.core.robot import RobotModel
 
 
@@ -62,7 +69,10 @@ class Measurements:
 
     q : (N, n) joint values in chain order; eta : (N, 3) measured points in the
     tracker frame (m); tau : (N, n) gravity torques or None; stamps_ns : (N,);
-    reflector : (N,) int index of the reflector each row measured, or None (all 0).
+    reflector : (N,) int index of the reflector each row measured, or None (all 0);
+    ``n_reflectors + k`` marks the rotation row of reflector ``k``'s tracked body.
+    rotation : (N, 3, 3) measured body rotations in the tracker frame on rotation rows
+    (ignored on point rows), or None when there are none.
     One pose measured by R reflectors is R rows with the same ``q``.
     """
 
@@ -71,6 +81,7 @@ class Measurements:
     tau: np.ndarray | None = None
     stamps_ns: np.ndarray | None = field(default=None)
     reflector: np.ndarray | None = field(default=None)
+    rotation: np.ndarray | None = field(default=None)
 
     def __len__(self) -> int:
         return len(self.q)
@@ -81,7 +92,7 @@ class Measurements:
             return None if values is None else np.asarray(values)[keep]
         return Measurements(q=np.atleast_2d(self.q)[keep], eta=np.atleast_2d(self.eta)[keep],
                             tau=pick(self.tau), stamps_ns=pick(self.stamps_ns),
-                            reflector=pick(self.reflector))
+                            reflector=pick(self.reflector), rotation=pick(self.rotation))
 
 
 class MeasurementModel:
@@ -96,11 +107,18 @@ class MeasurementModel:
         Extra physical effects; their parameters are appended to ``params``.
     reflector_axis : (3,) array
         Reflector central axis in the tip frame, for the incidence angle.
+    orientations : mapping {reflector index: (3, 3) rotation}, optional
+        Orientation in the tip frame of the tracked body whose origin is that
+        reflector; each gets a rotation row (channel ``n_reflectors + index``).
+    rotation_scale : (3,) array, optional
+        σ / σ_rot per axis (m/rad): rotation rows are in metres at the stated σ.
     """
 
     def __init__(self, robot: RobotModel, geometric: ParameterSet,
                  effects: Sequence[Effect] = (),
-                 reflector_axis: np.ndarray | Sequence[float] = (0.0, 0.0, 1.0)) -> None:
+                 reflector_axis: np.ndarray | Sequence[float] = (0.0, 0.0, 1.0),
+                 orientations: Mapping[int, np.ndarray] | None = None,
+                 rotation_scale: np.ndarray | Sequence[float] | None = None) -> None:
         self.robot = robot
         self.geometric = geometric
         self.effects = tuple(effects)
@@ -123,15 +141,41 @@ class MeasurementModel:
             self._hj.append(ca.Function('hj', [p, q, tau], [point, ca.jacobian(point, p)]))
             self._hq.append(ca.Function('hq', [p, q, tau], [ca.jacobian(point, q)]))
         self._cos = ca.Function('cos_incidence', [p, q], [self.incidence_cos_expression(p, q)])
+        self.orientations = {int(k): np.asarray(r, float).reshape(3, 3)
+                             for k, r in (orientations or {}).items()}
+        if any(not 0 <= k < self.chain.n_reflectors for k in self.orientations):
+            raise ValueError(f'orientations name reflectors {sorted(self.orientations)}; the '
+                             f'model has {self.chain.n_reflectors}')
+        if self.orientations and rotation_scale is None:
+            raise ValueError('orientations need rotation_scale (σ / σ_rot per axis, m/rad)')
+        self.rotation_scale = (None if rotation_scale is None
+                               else np.broadcast_to(np.asarray(rotation_scale, float), 3).copy())
+        measured = ca.SX.sym('rotation', 9)
+        self._rot: dict[int, tuple[ca.Function, ca.Function, ca.Function, ca.Function]] = {}
+        for k in self.orientations:
+            body = self.body_rotation_expression(p, q, tau, k)
+            row = rotation_residual_expression(measured, body, self.rotation_scale)
+            self._rot[k] = (ca.Function('hr', [p, q, tau, measured], [row]),
+                            ca.Function('hrj', [p, q, tau, measured], [row, ca.jacobian(row, p)]),
+                            ca.Function('hrq', [p, q, tau, measured], [ca.jacobian(row, q)]),
+                            ca.Function('body', [p, q, tau], [body]))
 
     @property
     def n_reflectors(self) -> int:
         """Reflectors (or markers) on the tool; index 0 is the KPI reflector."""
         return self.chain.n_reflectors
 
+    def rotation_channel(self, reflector: int) -> int:
+        """Row index (``Measurements.reflector``) of reflector ``reflector``'s rotation row."""
+        if reflector not in self.orientations:
+            raise ValueError(f'reflector {reflector} has no orientation: it measures no '
+                             'rotation (give its orientation in the cell)')
+        return self.n_reflectors + reflector
+
     # ------------------------------------------------------------ symbolic API
-    def point_expression(self, p, q, tau=None, reflector: int = 0):
-        """Centre of reflector ``reflector`` in the tracker frame, CasADi expression (3,)."""
+    def _tool_pose(self, p, q, tau):
+        """Tip pose (4x4) in the tracker frame with the joint corrections of the
+        effects applied, and each effect's parameter slice."""
         q_eff = q
         offset = len(self.geometric)
         thetas = []
@@ -143,7 +187,16 @@ class MeasurementModel:
             if correction is not None:
                 q_eff = q_eff + correction
         tip = self.chain.tip_transform(p, q_eff)
-        world = self.chain.base_in_tracker(p) @ tip
+        return self.chain.base_in_tracker(p) @ tip, thetas
+
+    def body_rotation_expression(self, p, q, tau, reflector: int):
+        """Rotation (3x3) of reflector ``reflector``'s tracked body in the tracker frame."""
+        world, _ = self._tool_pose(p, q, tau)
+        return world[0:3, 0:3] @ ca.DM(self.orientations[reflector])
+
+    def point_expression(self, p, q, tau=None, reflector: int = 0):
+        """Centre of reflector ``reflector`` in the tracker frame, CasADi expression (3,)."""
+        world, thetas = self._tool_pose(p, q, tau)
         point = reflector_point(world, self.chain.reflector(p, reflector))
         for effect, theta in zip(self.effects, thetas):
             corrected = effect.point_correction(point, theta)
@@ -168,31 +221,54 @@ class MeasurementModel:
         return np.zeros_like(np.atleast_2d(q))
 
     def _groups(self, n: int, reflector: np.ndarray | None) -> list[tuple[int, np.ndarray]]:
-        """(reflector index, rows) pairs covering rows 0..n-1."""
+        """(row channel, rows) pairs covering rows 0..n-1: a reflector index, or
+        ``n_reflectors + k`` for the rotation row of reflector ``k``."""
         if reflector is None:
             return [(0, np.arange(n))]
         ref = np.asarray(reflector, dtype=int).reshape(-1)
         if len(ref) != n:
             raise ValueError(f'reflector must hold one index per row ({n}), got {len(ref)}')
-        if n and (ref.min() < 0 or ref.max() >= self.n_reflectors):
-            raise ValueError(f'reflector indices must be in [0, {self.n_reflectors}), got '
-                             f'{sorted(set(ref.tolist()))}')
+        valid = set(range(self.n_reflectors)) | {self.n_reflectors + k for k in self.orientations}
+        bad = sorted(set(ref.tolist()) - valid)
+        if bad:
+            raise ValueError(f'reflector indices must be in [0, {self.n_reflectors}) or a '
+                             f'rotation row {sorted(valid - set(range(self.n_reflectors)))}, '
+                             f'got {bad}')
         return [(int(k), np.flatnonzero(ref == k)) for k in np.unique(ref)]
 
+    def _evaluate(self, which: int, channel: int, rows: np.ndarray, p: np.ndarray,
+                  q: np.ndarray, tau: np.ndarray, rotation: np.ndarray | None) -> list:
+        """Function ``which`` (0: h, 1: h and ∂h/∂p, 2: ∂h/∂q) of a row channel, mapped
+        over ``rows``; a rotation row takes its measured rotation as an input."""
+        m = len(rows)
+        if channel < self.n_reflectors:
+            fn = (self._h, self._hj, self._hq)[which][channel]
+            out = fn.map(m)(p, q[rows].T, tau[rows].T)
+        else:
+            if rotation is None:
+                raise ValueError('rotation rows need the measured rotations (rotation=)')
+            measured = measured_rotation_input(np.asarray(rotation)[rows])
+            fn = self._rot[channel - self.n_reflectors][which]
+            out = fn.map(m)(p, q[rows].T, tau[rows].T, measured.T)
+        return [np.array(o) for o in (out if isinstance(out, (list, tuple)) else [out])]
+
     def predict(self, p: np.ndarray, q: np.ndarray, tau: np.ndarray | None = None,
-                reflector: np.ndarray | None = None) -> np.ndarray:
+                reflector: np.ndarray | None = None,
+                rotation: np.ndarray | None = None) -> np.ndarray:
         """Predicted points (N, 3) in the tracker frame for joint values ``q`` (N, n)
-        and reflector indices ``reflector`` (N,) (None: reflector 0)."""
+        and reflector indices ``reflector`` (N,) (None: reflector 0); rotation rows
+        (see :class:`Measurements`) need ``rotation`` (N, 3, 3)."""
         q = np.atleast_2d(q)
         tau = self._torques(q, tau)
         out = np.zeros((len(q), 3))
         for k, rows in self._groups(len(q), reflector):
             if len(rows):
-                out[rows] = np.array(self._h[k].map(len(rows))(p, q[rows].T, tau[rows].T)).T
+                out[rows] = self._evaluate(0, k, rows, p, q, tau, rotation)[0].T
         return out
 
     def jacobian(self, p: np.ndarray, q: np.ndarray, tau: np.ndarray | None = None,
-                 reflector: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 reflector: np.ndarray | None = None,
+                 rotation: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Predicted points (N, 3) and their Jacobian (N, 3, n_p) w.r.t. p."""
         q = np.atleast_2d(q)
         tau = self._torques(q, tau)
@@ -200,22 +276,33 @@ class MeasurementModel:
         pts, jac = np.zeros((len(q), 3)), np.zeros((len(q), 3, n_p))
         for k, rows in self._groups(len(q), reflector):
             if len(rows):
-                h, j = self._hj[k].map(len(rows))(p, q[rows].T, tau[rows].T)
-                pts[rows] = np.array(h).T
-                jac[rows] = np.array(j).reshape(3, len(rows), n_p).transpose(1, 0, 2)
+                h, j = self._evaluate(1, k, rows, p, q, tau, rotation)
+                pts[rows] = h.T
+                jac[rows] = j.reshape(3, len(rows), n_p).transpose(1, 0, 2)
         return pts, jac
 
     def joint_jacobian(self, p: np.ndarray, q: np.ndarray, tau: np.ndarray | None = None,
-                       reflector: np.ndarray | None = None) -> np.ndarray:
+                       reflector: np.ndarray | None = None,
+                       rotation: np.ndarray | None = None) -> np.ndarray:
         """Jacobian (N, 3, n) of the predicted points w.r.t. the joint values."""
         q = np.atleast_2d(q)
         tau = self._torques(q, tau)
         out = np.zeros((len(q), 3, q.shape[1]))
         for k, rows in self._groups(len(q), reflector):
             if len(rows):
-                jac = self._hq[k].map(len(rows))(p, q[rows].T, tau[rows].T)
-                out[rows] = np.array(jac).reshape(3, len(rows), q.shape[1]).transpose(1, 0, 2)
+                jac = self._evaluate(2, k, rows, p, q, tau, rotation)[0]
+                out[rows] = jac.reshape(3, len(rows), q.shape[1]).transpose(1, 0, 2)
         return out
+
+    def body_rotations(self, p: np.ndarray, q: np.ndarray, reflector: int,
+                       tau: np.ndarray | None = None) -> np.ndarray:
+        """Rotations (N, 3, 3) of reflector ``reflector``'s tracked body in the tracker
+        frame at joint values ``q`` (N, n) (what a 6-DoF tracker reports, noise-free)."""
+        q = np.atleast_2d(q)
+        tau = self._torques(q, tau)
+        fn = self._rot[reflector][3].map(len(q))
+        out = np.array(fn(p, q.T, tau.T))            # (3, 3N), one 3x3 block per row
+        return out.reshape(3, len(q), 3).transpose(1, 0, 2)
 
     def pose_jacobian(self, p: np.ndarray, q: np.ndarray,
                       tau: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -235,6 +322,41 @@ class MeasurementModel:
         """cos of the incidence angle (N,) at joint values ``q`` (N, n)."""
         q = np.atleast_2d(q)
         return np.array(self._cos.map(len(q))(p, q.T)).ravel()
+
+
+def with_rotation_rows(model: MeasurementModel, data: Measurements,
+                       rotations: np.ndarray) -> Measurements:
+    """``data`` (point rows) with a rotation row after every row that carries a measured
+    body rotation: ``rotations`` (N, 3, 3), NaN where a row has none (a plain point).
+
+    The rotation row repeats the pose's ``q`` and stamp, has ``eta = 0`` and reflector
+    index :meth:`MeasurementModel.rotation_channel` of its point's reflector.
+
+    Raises
+    ------
+    ValueError
+        A row carries a rotation but its reflector has no orientation in the model.
+    """
+    rotations = np.asarray(rotations, float).reshape(len(data), 3, 3)
+    has = np.all(np.isfinite(rotations), axis=(1, 2))
+    if not has.any():
+        return data
+    ref = (np.zeros(len(data), dtype=int) if data.reflector is None
+           else np.asarray(data.reflector, dtype=int))
+    order, channel = [], []
+    for i in range(len(data)):
+        order.append(i)
+        channel.append(ref[i])
+        if has[i]:
+            order.append(i)
+            channel.append(model.rotation_channel(int(ref[i])))
+    rows = np.array(order)
+    rotation_row = np.array(channel) >= model.n_reflectors
+    expanded = data.subset(rows)
+    eta = np.where(rotation_row[:, None], 0.0, expanded.eta)
+    rot = np.where(rotation_row[:, None, None], rotations[rows], np.eye(3))
+    return Measurements(q=expanded.q, eta=eta, tau=expanded.tau, stamps_ns=expanded.stamps_ns,
+                        reflector=np.array(channel), rotation=rot)
 
 
 def weighted_rows(jac: np.ndarray, w: np.ndarray, idx: np.ndarray | None = None) -> np.ndarray:

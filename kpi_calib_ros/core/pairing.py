@@ -41,7 +41,7 @@ from kpi_calib_ros.core.streams import JointSample, PointSample, frozen_array
 REJECTION_REASONS = (
     'non_finite_point', 'wrong_frame', 'no_joint_state', 'robot_moving',
     'missing_joints', 'non_finite_joint_state', 'duplicate_stamp', 'oversized_joint_state',
-    'unknown_reflector',
+    'unknown_reflector', 'invalid_orientation',
 )
 REFLECTOR_SEPARATOR = '#'
 INDEX_CACHE_SIZE = 16   # distinct joint-name lists remembered (LRU); drivers use one or two
@@ -83,13 +83,19 @@ class PairedMeasurement:
     frame_id: str
     n_joint_samples: int
     spread_rad: float
+    orientation: np.ndarray | None = None   # quaternion of a tracked 6-DoF pose, else None
 
     def joint_sample(self) -> JointSample:
         """The averaged configuration as a joint sample stamped like the point."""
         return JointSample(self.stamp_ns, self.joint_names, self.q, None)
 
     def point_sample(self) -> PointSample:
-        return PointSample(self.stamp_ns, self.frame_id, self.eta)
+        return PointSample(self.stamp_ns, self.frame_id, self.eta, self.orientation)
+
+    @property
+    def rotation(self) -> np.ndarray | None:
+        """(3, 3) body rotation of a tracked 6-DoF pose, None for a point."""
+        return self.point_sample().rotation
 
     @property
     def reflector(self) -> str:
@@ -107,7 +113,9 @@ class PairingResult:
     ``q`` (N, n) rad ordered as ``joint_names``, ``eta`` (N, 3) m, ``stamps_ns`` (N,)
     int64, sorted by stamp. ``rejections`` counts reasons that occurred;
     ``rejected`` lists every rejection in stamp order; ``reflectors`` (N,) names the
-    reflector of every row ('' the single one; empty tuple: all '').
+    reflector of every row ('' the single one; empty tuple: all ''); ``rotations``
+    (N, 3, 3) the measured body rotation of tracked 6-DoF poses (NaN on plain points),
+    None when no row has one.
     """
 
     joint_names: tuple[str, ...]
@@ -118,6 +126,7 @@ class PairingResult:
     rejections: dict[str, int] = field(default_factory=dict)
     rejected: list[Rejection] = field(default_factory=list)
     reflectors: tuple[str, ...] = ()
+    rotations: np.ndarray | None = None
 
     def reflector_indices(self, names: Sequence[str]) -> np.ndarray:
         """(N,) index of every row's reflector in ``names`` (the cell's order)."""
@@ -345,6 +354,10 @@ class Pairer:
         if not np.all(np.isfinite(point.xyz)):
             self._reject(stamp, 'non_finite_point', f'point {point.xyz.tolist()} is not finite')
             return
+        if point.rotation is not None and not np.all(np.isfinite(point.rotation)):
+            self._reject(stamp, 'invalid_orientation', 'the pose\'s orientation is not a '
+                         'finite unit quaternion [x, y, z, w]')
+            return
         frame, reflector = split_frame(point.frame_id)
         if frame != self._frame:
             self._reject(stamp, 'wrong_frame',
@@ -487,7 +500,7 @@ class Pairer:
             stamp_ns=t, joint_names=self.joint_names, q=frozen_array(
                 q.mean(axis=0), (len(self.joint_names),), 'q'),
             eta=point.xyz, frame_id=point.frame_id, n_joint_samples=len(window),
-            spread_rad=float(spread.max())))
+            spread_rad=float(spread.max()), orientation=point.orientation))
 
 
 def _unknown_reflector(frame_id: str, tracker_frame: str, reflectors: Sequence[str]) -> str:
@@ -535,4 +548,13 @@ def pair_measurements(
         rejections=dict(Counter(r.reason for r in rejected)),
         rejected=rejected,
         reflectors=tuple(m.reflector for m in accepted),
+        rotations=stacked_rotations([m.rotation for m in accepted]),
     )
+
+
+def stacked_rotations(rotations: Sequence[np.ndarray | None]) -> np.ndarray | None:
+    """(N, 3, 3) rotations of accepted rows, NaN where a row is a plain point; None when
+    no row carries one."""
+    if all(r is None for r in rotations):
+        return None
+    return np.array([np.full((3, 3), np.nan) if r is None else r for r in rotations])

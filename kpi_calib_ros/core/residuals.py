@@ -94,6 +94,7 @@ class LinearizedFit:
     tau: np.ndarray | None
     p: np.ndarray
     reflector: np.ndarray | None = None  # (N,) reflector index of every row, None: all 0
+    rotation: np.ndarray | None = None   # (N, 3, 3) measured rotations of rotation rows
 
 
 def is_adequate(p_value: float, alpha: float = ADEQUACY_ALPHA) -> bool:
@@ -109,12 +110,12 @@ def linearized_fit(model: MeasurementModel, data: Measurements, result: Calibrat
     if tau is None and model.uses_torque:
         tau = model.robot.gravity_torques(q)
     p = np.asarray(result.values, float)
-    pred, jac = model.jacobian(p, q, tau, data.reflector)
+    pred, jac = model.jacobian(p, q, tau, data.reflector, data.rotation)
     r = ((np.atleast_2d(data.eta) - pred) * w).ravel()
     idx = model.params.indices(result.estimated)
     f = weighted_rows(jac, w, idx)
     basis = orthonormal_basis(f)
-    return LinearizedFit(r, f, basis, w, tau, p, data.reflector)
+    return LinearizedFit(r, f, basis, w, tau, p, data.reflector, data.rotation)
 
 
 def orthonormal_basis(a: np.ndarray) -> np.ndarray:

@@ -179,7 +179,8 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
         result, omega = _fit_with_loss(fit, subset(data, kept), loss, p0)
         p0 = result.values
         distances = np.linalg.norm(
-            eta - model.predict(result.values, q, data.tau, data.reflector), axis=1)
+            eta - model.predict(result.values, q, data.tau, data.reflector, data.rotation),
+            axis=1)
         scale = robust_sigma(result.residuals, result.dof)
         over = kept & (distances > threshold * scale)
         if not outliers.exclude or not over.any():
@@ -217,7 +218,8 @@ def gross_outliers(model: MeasurementModel, data: Measurements,
     prediction with ``p`` (default: the nominal parameters); and the (N,) distances, m."""
     q, eta = np.atleast_2d(data.q), np.atleast_2d(data.eta)
     p = np.asarray(model.params.nominal if p is None else p, float)
-    nominal = np.linalg.norm(eta - model.predict(p, q, data.tau, data.reflector), axis=1)
+    nominal = np.linalg.norm(eta - model.predict(p, q, data.tau, data.reflector,
+                                               data.rotation), axis=1)
     return nominal > max(GROSS_DISTANCE, 20 * float(np.median(nominal))), nominal
 
 

@@ -16,6 +16,8 @@ from typing import Sequence
 
 import numpy as np
 
+from kpi_calib_ros.core.pose_measurement import rotation_from_quaternion
+
 def frozen_array(values, shape: tuple[int, ...], name: str) -> np.ndarray:
     """``values`` as a read-only float array of ``shape``; ValueError naming ``name``."""
     array = np.array(values, dtype=float)
@@ -59,15 +61,37 @@ class JointSample:
 
 @dataclass(frozen=True, eq=False)
 class PointSample:
-    """One tracker point: reflector centre ``xyz`` (3,) in metres, in frame ``frame_id``."""
+    """One tracker point: reflector centre ``xyz`` (3,) in metres, in frame ``frame_id``.
+
+    A tracked 6-DoF pose is a point with ``orientation``, the body's unit quaternion
+    [x, y, z, w] in that frame, kept exactly as received so that a logged and restored
+    pose is bit for bit the live one; :attr:`rotation` is its matrix."""
 
     stamp_ns: int
     frame_id: str
     xyz: np.ndarray
+    orientation: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, 'stamp_ns', int(self.stamp_ns))
         object.__setattr__(self, 'xyz', frozen_array(self.xyz, (3,), 'xyz'))
+        if self.orientation is not None:
+            object.__setattr__(self, 'orientation', frozen_array(self.orientation, (4,),
+                                                                 'orientation'))
+
+    @property
+    def rotation(self) -> np.ndarray | None:
+        """(3, 3) rotation of ``orientation`` (all NaN when it is not a finite unit
+        quaternion: rejected when paired); None for a plain point."""
+        return None if self.orientation is None else checked_rotation(self.orientation)
+
+
+def checked_rotation(quaternion: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation of a quaternion [x, y, z, w]; all NaN if it is not finite and unit."""
+    try:
+        return rotation_from_quaternion(quaternion)
+    except ValueError:
+        return np.full((3, 3), np.nan)
 
 
 def _quintic(tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -93,7 +93,7 @@ def validate(model: MeasurementModel, p: np.ndarray, estimated: np.ndarray,
     """
     q = np.atleast_2d(data.q)
     tau = model.robot.gravity_torques(q) if model.uses_torque else None
-    pred, jac = model.jacobian(p, q, tau, data.reflector)
+    pred, jac = model.jacobian(p, q, tau, data.reflector, data.rotation)
     residuals = np.atleast_2d(data.eta) - pred
     j = jac[:, :, estimated]
     cov = np.einsum('nak,kl,nbl->nab', j, covariance, j) + np.diag(np.asarray(sigma) ** 2)

@@ -29,10 +29,13 @@ from kpi_calib_ros.core.pairing import Pairer
 from kpi_calib_ros.core.streams import JointSample, PointSample
 from kpi_calib_ros.io.bag_writing import (DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC,
                                           JOINT_STATE_TYPE, LIBRARY, POINT_STAMPED_TYPE,
+                                          POSE_STAMPED_TYPE,
                                           StreamEncoders, message_definition, type_hash,
                                           write_bag)
 from kpi_calib_ros.io.mcap_scan import MAGIC, BagError, ScannedBag, scan
-from kpi_calib_ros.io.ros_messages import JointStateDecoder, point_sample_from_message
+from kpi_calib_ros.io.names import DEFAULT_POSE_TOPIC
+from kpi_calib_ros.io.ros_messages import (JointStateDecoder, point_sample_from_message,
+                                           pose_sample_from_message)
 
 # The metadata record by which a measurement log marks itself (see read_for_pairing).
 LOG_METADATA = 'kpi_calib_ros'
@@ -67,22 +70,32 @@ def _point_decoder(decoder: Callable[[bytes], Any]) -> Callable[[bytes], PointSa
     return lambda data: point_sample_from_message(decoder(data))
 
 
+def _pose_decoder(decoder: Callable[[bytes], Any]) -> Callable[[bytes], PointSample]:
+    """CDR bytes of a PoseStamped -> PointSample with a rotation, through ``decoder``."""
+    return lambda data: pose_sample_from_message(decoder(data))
+
+
 def _topic_option(argument: str) -> str:
     """How each front end names the topic: the command-line option, the cell key, the
     node parameter and the Python argument."""
-    cli, cell = (('--joint-topic', 'topics.joint_states') if argument == 'joint_topic'
-                 else ('--point-topic', 'topics.point'))
-    node = 'joint_states_topic' if argument == 'joint_topic' else 'point_topic'
+    cli, cell, node = {
+        'joint_topic': ('--joint-topic', 'topics.joint_states', 'joint_states_topic'),
+        'point_topic': ('--point-topic', 'topics.point', 'point_topic'),
+        'pose_topic': ('--pose-topic', 'topics.pose', 'pose_topic')}[argument]
     return (f'Pass {cli} (kpi-calib), set {cell} in the cell file, the node parameter '
             f'{node}, or {argument}= (Python)')
 
 
-def _open(path: Path, joint_topic: str, point_topic: str,
-          require_topics: bool) -> tuple[ScannedBag, _Topic, _Topic] | None:
-    """Scan ``path`` and check both topics; None for an empty log (killed before its
-    header was written, ``require_topics`` False)."""
+def _open(path: Path, joint_topic: str, point_topic: str, require_topics: bool,
+          pose_topic: str | None = None) -> tuple[ScannedBag, _Topic, _Topic, _Topic] | None:
+    """Scan ``path`` and check the topics; None for an empty log (killed before its
+    header was written, ``require_topics`` False). The pose topic is optional; a bag
+    with tracked poses on it needs no point topic."""
     if joint_topic == point_topic:
         raise ValueError(f"joint_topic and point_topic must differ, both are '{joint_topic}'")
+    if pose_topic in (joint_topic, point_topic):
+        raise ValueError(f"pose_topic '{pose_topic}' must differ from the joint and point "
+                         'topics')
     with open(path, 'rb') as f:
         size = os.fstat(f.fileno()).st_size
         # Mapped, not read: pages of chunks already indexed are given back (see scan).
@@ -104,12 +117,17 @@ def _open(path: Path, joint_topic: str, point_topic: str,
     first: dict[str, int] = {}
     for c in sorted(bag.channels):  # check topics in the order the file declares them
         first.setdefault(bag.channels[c].topic, c)
+    wanted = [(joint_topic, JOINT_STATE_TYPE, 'joint_topic'),
+              (point_topic, POINT_STAMPED_TYPE, 'point_topic')]
+    if pose_topic is not None:
+        wanted.append((pose_topic, POSE_STAMPED_TYPE, 'pose_topic'))
+    has_poses = pose_topic is not None and pose_topic in seen
     for topic, expected, argument in sorted(
-            ((joint_topic, JOINT_STATE_TYPE, 'joint_topic'),
-             (point_topic, POINT_STAMPED_TYPE, 'point_topic')),
-            key=lambda t: first.get(t[0], len(first) + len(bag.channels) + 1)):
+            wanted, key=lambda t: first.get(t[0], len(first) + len(bag.channels) + 1)):
         if topic not in seen:
-            if require_topics:
+            optional = (argument == 'pose_topic'
+                        or (argument == 'point_topic' and has_poses))
+            if require_topics and not optional:
                 present = ', '.join(f"'{t}' ({seen[t]})" for t in sorted(seen)) or 'none'
                 raise BagError(f"{path}: topic '{topic}' is not in the bag; topics present: "
                                f'{present}. {_topic_option(argument)} naming the {expected} '
@@ -130,9 +148,12 @@ def _open(path: Path, joint_topic: str, point_topic: str,
                            "schema; only 'cdr' with 'ros2msg' schemas can be decoded")
         if expected == JOINT_STATE_TYPE:
             topics[topic] = _Topic(ids, JointStateDecoder(decoder))
+        elif expected == POSE_STAMPED_TYPE:
+            topics[topic] = _Topic(ids, _pose_decoder(decoder))
         else:
             topics[topic] = _Topic(ids, _point_decoder(decoder))
-    return bag, topics[joint_topic], topics[point_topic]
+    poses = topics[pose_topic] if pose_topic is not None else _Topic([], lambda data: None)
+    return bag, topics[joint_topic], topics[point_topic], poses
 
 
 def _indices(bag: ScannedBag, topic: _Topic) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -175,8 +196,11 @@ def read_bag(
     path: str | os.PathLike,
     joint_topic: str = DEFAULT_JOINT_TOPIC,
     point_topic: str = DEFAULT_POINT_TOPIC,
+    pose_topic: str = DEFAULT_POSE_TOPIC,
 ) -> tuple[list[JointSample], list[PointSample]]:
-    """Every joint state and tracker point of an MCAP bag, in file (recording) order.
+    """Every joint state and tracker point of an MCAP bag, in file (recording) order;
+    tracked poses (``pose_topic``, if in the bag) follow the points, as point samples
+    with a rotation.
 
     A bag cut or damaged anywhere yields every message completely written before the
     damage, with a :class:`BagWarning` giving the unreadable byte count.
@@ -188,12 +212,13 @@ def read_bag(
         or a topic carrying another message type.
     """
     path = _checked_path(path)
-    opened = _open(path, joint_topic, point_topic, require_topics=True)
+    opened = _open(path, joint_topic, point_topic, require_topics=True, pose_topic=pose_topic)
     assert opened is not None
-    bag, joints, points = opened
+    bag, joints, points, poses = opened
     bad: list[int] = []
     result = (_decode(path, bag, joints, *_indices(bag, joints)[:2], bad),
-              _decode(path, bag, points, *_indices(bag, points)[:2], bad))
+              _decode(path, bag, points, *_indices(bag, points)[:2], bad)
+              + _decode(path, bag, poses, *_indices(bag, poses)[:2], bad))
     _warn_undecodable(path, bad)
     return result
 
@@ -220,23 +245,30 @@ def is_measurement_log(bag: ScannedBag) -> bool:
 
 
 def _stored_pairs(path: Path, bag: ScannedBag, joints: _Topic, points: _Topic,
-                  bad: list[int]) -> tuple[list[JointSample], list[PointSample]]:
-    """A log's measurements: a joint state directly followed by its point (same stamp);
-    anything else (an append torn by a kill or a full disk) is skipped and counted."""
+                  bad: list[int], poses: _Topic | None = None
+                  ) -> tuple[list[JointSample], list[PointSample]]:
+    """A log's measurements: a joint state directly followed by its point or tracked
+    pose (same stamp); anything else (an append torn by a kill or a full disk) is
+    skipped and counted."""
     jc, ji, jo = _indices(bag, joints)
     pc, pi, po = _indices(bag, points)
     merged = sorted([(tuple(o), 0, int(c), int(i)) for c, i, o in zip(jc, ji, jo)]
                     + [(tuple(o), 1, int(c), int(i)) for c, i, o in zip(pc, pi, po)])
+    if poses is not None:
+        sc, si, so = _indices(bag, poses)
+        merged = sorted(merged + [(tuple(o), 2, int(c), int(i)) for c, i, o in zip(sc, si, so)])
     stored_joints: list[JointSample] = []
     stored_points: list[PointSample] = []
     skipped = 0
     k = 0
     while k < len(merged):
         _, kind, c, i = merged[k]
-        if kind == 0 and k + 1 < len(merged) and merged[k + 1][1] == 1:
-            _, _, pc_k, pi_k = merged[k + 1]
+        if kind == 0 and k + 1 < len(merged) and merged[k + 1][1] in (1, 2):
+            _, next_kind, pc_k, pi_k = merged[k + 1]
             joint = _decode(path, bag, joints, np.array([c]), np.array([i]), bad)
-            point = _decode(path, bag, points, np.array([pc_k]), np.array([pi_k]), bad)
+            source = points if next_kind == 1 else poses
+            assert source is not None
+            point = _decode(path, bag, source, np.array([pc_k]), np.array([pi_k]), bad)
             if joint and point and joint[0].stamp_ns == point[0].stamp_ns:
                 stored_joints += joint
                 stored_points += point
@@ -271,6 +303,7 @@ def read_for_pairing(
     joint_topic: str = DEFAULT_JOINT_TOPIC,
     point_topic: str = DEFAULT_POINT_TOPIC,
     window_ns: int | None = None,
+    pose_topic: str = DEFAULT_POSE_TOPIC,
 ) -> BagContents:
     """The points of a bag and the joint states pairing needs, or a log's stored pairs.
 
@@ -278,6 +311,7 @@ def read_for_pairing(
     (and the first one after each window) are decoded, so pairing the result equals
     pairing the whole bag with the same window, at a fraction of the time. Joint
     states far from every point are not decoded, so a broken one there is not counted.
+    Tracked poses on ``pose_topic`` (if the bag has it) are points with a rotation.
 
     Parameters
     ----------
@@ -287,15 +321,16 @@ def read_for_pairing(
     if window_ns is None:
         window_ns = inspect.signature(Pairer).parameters['window_ns'].default
     path = _checked_path(path)
-    opened = _open(path, joint_topic, point_topic, require_topics=True)
+    opened = _open(path, joint_topic, point_topic, require_topics=True, pose_topic=pose_topic)
     assert opened is not None
-    bag, joints, points = opened
+    bag, joints, points, poses = opened
     bad: list[int] = []
     if is_measurement_log(bag):
-        stored_joints, stored_points = _stored_pairs(path, bag, joints, points, bad)
+        stored_joints, stored_points = _stored_pairs(path, bag, joints, points, bad, poses)
         _warn_undecodable(path, bad)
         return BagContents(stored_joints, stored_points, True, bag.unreadable_bytes)
-    point_samples = _decode(path, bag, points, *_indices(bag, points)[:2], bad)
+    point_samples = (_decode(path, bag, points, *_indices(bag, points)[:2], bad)
+                     + _decode(path, bag, poses, *_indices(bag, poses)[:2], bad))
     channel, index, _ = _indices(bag, joints)
     stamped = np.zeros(len(channel), dtype=bool)
     stamps = np.zeros(len(channel), dtype=np.int64)
@@ -315,16 +350,17 @@ def read_for_pairing(
 
 
 def read_log(path: str | os.PathLike, joint_topic: str = DEFAULT_JOINT_TOPIC,
-             point_topic: str = DEFAULT_POINT_TOPIC) -> list[tuple[JointSample, PointSample]]:
+             point_topic: str = DEFAULT_POINT_TOPIC,
+             pose_topic: str = DEFAULT_POSE_TOPIC) -> list[tuple[JointSample, PointSample]]:
     """The measurements of one log file, in append order; torn appends skipped with a
     :class:`BagWarning`, a file killed before its header was written is empty."""
     path = Path(path)
-    opened = _open(path, joint_topic, point_topic, require_topics=False)
+    opened = _open(path, joint_topic, point_topic, require_topics=False, pose_topic=pose_topic)
     if opened is None:
         return []
-    bag, joints, points = opened
+    bag, joints, points, poses = opened
     bad: list[int] = []
-    pairs = list(zip(*_stored_pairs(path, bag, joints, points, bad)))
+    pairs = list(zip(*_stored_pairs(path, bag, joints, points, bad, poses)))
     _warn_undecodable(path, bad)
     return pairs
 

@@ -1,5 +1,8 @@
 """Writing MCAP bags of joint states and tracker points as ``ros2 bag record -s mcap`` does.
 
+Tracked 6-DoF poses (point samples with a rotation) go to a third topic as
+``geometry_msgs/msg/PoseStamped``; a bag without any has no such channel.
+
 Profile ``ros2``, one ``ros2msg`` schema per type holding the complete message
 definition (the ``.msg`` texts of the type and of every type it uses, joined with
 rosbag2's ``====`` / ``MSG: pkg/Type`` delimiters), ``cdr`` channels carrying
@@ -24,13 +27,15 @@ from mcap.writer import Writer as McapWriter
 # channel metadata, which rosbag2 readers expect.
 from mcap_ros2._dynamic import serialize_dynamic
 
-from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC
+from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, DEFAULT_POSE_TOPIC
 from kpi_calib_ros.core.streams import JointSample, PointSample
 from kpi_calib_ros.io.mcap_scan import BagError
-from kpi_calib_ros.io.ros_messages import joint_state_fields, point_stamped_fields
+from kpi_calib_ros.io.ros_messages import (joint_state_fields, point_stamped_fields,
+                                           pose_stamped_fields)
 
 JOINT_STATE_TYPE = 'sensor_msgs/msg/JointState'
 POINT_STAMPED_TYPE = 'geometry_msgs/msg/PointStamped'
+POSE_STAMPED_TYPE = 'geometry_msgs/msg/PoseStamped'
 
 LIBRARY = f'kpi_calib_ros; {LIBRARY_IDENTIFIER}'
 _ROSBAG2_CHUNK_SIZE = 768 * 1024  # libmcap's default, which rosbag2 keeps
@@ -115,12 +120,19 @@ def type_hash(type_name: str) -> str:
 
 
 class StreamEncoders:
-    """Schema texts, channel metadata and CDR encoders of the two stream topics."""
+    """Schema texts, channel metadata and CDR encoders of the stream topics (the pose
+    topic only when ``pose_topic`` is given)."""
 
-    def __init__(self, joint_topic: str, point_topic: str) -> None:
+    def __init__(self, joint_topic: str, point_topic: str, pose_topic: str | None = None) -> None:
         if joint_topic == point_topic:
             raise ValueError(f"joint_topic and point_topic must differ, both are '{joint_topic}'")
-        self.topics = ((joint_topic, JOINT_STATE_TYPE), (point_topic, POINT_STAMPED_TYPE))
+        if pose_topic in (joint_topic, point_topic):
+            raise ValueError(f"pose_topic '{pose_topic}' must differ from the joint and point "
+                             'topics')
+        self.topics: tuple[tuple[str, str], ...] = (
+            (joint_topic, JOINT_STATE_TYPE), (point_topic, POINT_STAMPED_TYPE))
+        if pose_topic is not None:
+            self.topics += ((pose_topic, POSE_STAMPED_TYPE),)
         self.text = {t: message_definition(t) for _, t in self.topics}
         self.metadata = {t: {'offered_qos_profiles': _OFFERED_QOS, 'topic_type_hash': type_hash(t)}
                          for _, t in self.topics}
@@ -132,13 +144,16 @@ class StreamEncoders:
     def point(self, sample: PointSample) -> bytes:
         return self._encode[POINT_STAMPED_TYPE](point_stamped_fields(sample))
 
+    def pose(self, sample: PointSample) -> bytes:
+        return self._encode[POSE_STAMPED_TYPE](pose_stamped_fields(sample))
+
 
 class _Recorder:
     """Writes JointState and PointStamped messages to one chunked MCAP stream."""
 
     def __init__(self, stream, joint_topic: str, point_topic: str,
-                 chunk_size: int = _ROSBAG2_CHUNK_SIZE) -> None:
-        self.encoders = StreamEncoders(joint_topic, point_topic)
+                 chunk_size: int = _ROSBAG2_CHUNK_SIZE, pose_topic: str | None = None) -> None:
+        self.encoders = StreamEncoders(joint_topic, point_topic, pose_topic)
         self._writer = McapWriter(stream, chunk_size=chunk_size,
                                   compression=CompressionType.NONE, use_chunking=True)
         self._writer.start(profile='ros2', library=LIBRARY)
@@ -159,7 +174,11 @@ class _Recorder:
         self._write(JOINT_STATE_TYPE, sample.stamp_ns, self.encoders.joint(sample))
 
     def write_point(self, sample: PointSample) -> None:
-        self._write(POINT_STAMPED_TYPE, sample.stamp_ns, self.encoders.point(sample))
+        """A plain point as PointStamped, a point with a rotation as PoseStamped."""
+        if sample.rotation is not None:
+            self._write(POSE_STAMPED_TYPE, sample.stamp_ns, self.encoders.pose(sample))
+        else:
+            self._write(POINT_STAMPED_TYPE, sample.stamp_ns, self.encoders.point(sample))
 
     def finish(self) -> None:
         self._writer.finish()
@@ -172,6 +191,7 @@ def write_bag(
     joint_topic: str = DEFAULT_JOINT_TOPIC,
     point_topic: str = DEFAULT_POINT_TOPIC,
     chunk_size: int = _ROSBAG2_CHUNK_SIZE,
+    pose_topic: str = DEFAULT_POSE_TOPIC,
 ) -> Path:
     """Write joint states and tracker points to an MCAP bag, in stamp order.
 
@@ -181,7 +201,9 @@ def write_bag(
         The ``.mcap`` file to create (overwritten if present).
     joint_samples, point_samples : iterables of JointSample / PointSample
         Published as ``sensor_msgs/msg/JointState`` on ``joint_topic`` and
-        ``geometry_msgs/msg/PointStamped`` on ``point_topic``.
+        ``geometry_msgs/msg/PointStamped`` on ``point_topic``; point samples with a
+        rotation (tracked 6-DoF bodies) as ``geometry_msgs/msg/PoseStamped`` on
+        ``pose_topic`` (a channel created only when there are some).
     chunk_size : int
         Bytes per chunk before it is closed (rosbag2's default unless given).
 
@@ -194,8 +216,10 @@ def write_bag(
     stream = [(s.stamp_ns, 0, s) for s in joint_samples] + [(p.stamp_ns, 1, p)
                                                             for p in point_samples]
     stream.sort(key=lambda item: item[:2])
+    poses = any(isinstance(s, PointSample) and s.rotation is not None for _, _, s in stream)
     with open(path, 'wb') as f:
-        recorder = _Recorder(f, joint_topic, point_topic, chunk_size=chunk_size)
+        recorder = _Recorder(f, joint_topic, point_topic, chunk_size=chunk_size,
+                             pose_topic=pose_topic if poses else None)
         for _, _, sample in stream:
             if isinstance(sample, PointSample):
                 recorder.write_point(sample)
@@ -206,5 +230,5 @@ def write_bag(
 
 
 __all__ = ['DEFAULT_JOINT_TOPIC', 'DEFAULT_POINT_TOPIC', 'JOINT_STATE_TYPE', 'LIBRARY',
-           'POINT_STAMPED_TYPE', 'StreamEncoders', 'message_definition', 'type_hash',
-           'write_bag']
+           'POINT_STAMPED_TYPE', 'POSE_STAMPED_TYPE', 'StreamEncoders', 'message_definition',
+           'type_hash', 'write_bag']

@@ -11,7 +11,9 @@ fix. Paths are relative to the cell file. Units are SI (m, rad, kg). Example::
     reflector: {offset: [0, 0, 0.03], axis: [0, 0, 1], max_incidence: 0.5236}  # offset optional
     # or several reflectors / markers (the first one is the KPI point; offsets optional):
     # reflectors: [{name: a, offset: [0, 0, 0.03]}, {name: b, offset: [0.05, 0, 0.03]}]
-    noise: {sigma: 2.0e-5}
+    # a tracked 6-DoF body: its origin is the reflector, orientation in the tip frame
+    # reflectors: [{name: probe, offset: [0, 0, 0.1], orientation: {rpy: [0, 0, 0]}}]
+    noise: {sigma: 2.0e-5}          # sigma_rotation: 5.0e-5 (rad) with an orientation
     payload: {mass: 5.0, com: [0, 0, 0.05]}
     working_poses:
       - {name: roof, joints: {joint_1: 0.0, joint_2: 0.3, ...}}
@@ -23,7 +25,8 @@ fix. Paths are relative to the cell file. Units are SI (m, rad, kg). Example::
     identification: {method: pivoted, model: geometric, loss: linear,
                      outliers: {exclude: true, threshold: null}, cv_folds: 5,
                      prior: {translation: 1.0e-3, rotation: 1.0e-3, offset: 1.0e-3}}
-    topics: {joint_states: /joint_states, point: /laser_tracker/point}   # bags read
+    topics: {joint_states: /joint_states, point: /laser_tracker/point,   # bags read
+             pose: /laser_tracker/pose}
     design: {candidates: 4000, weights: {roof: 2.0}}        # see DesignSettings
     simulation: {hidden_effects: {joint_compliance:joint_2: {c: 4.0e-7}}}
 """
@@ -51,8 +54,9 @@ from kpi_calib_ros.core.model_selection import DEFAULT_FOLDS, MODEL_CHOICES
 from kpi_calib_ros.core.robust import LOSSES, OutlierSettings
 from kpi_calib_ros.core.measurement import MeasurementModel
 from kpi_calib_ros.core.parameters import ParameterSet, geometric_parameters
+from kpi_calib_ros.core.pose_measurement import rotation_from_quaternion, rotation_from_rpy
 from kpi_calib_ros.core.robot import Payload, RobotModel
-from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC
+from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, DEFAULT_POSE_TOPIC
 from kpi_calib_ros.io.resources import resolve_uri
 from kpi_calib_ros.io.results import write_atomic
 from kpi_calib_ros.io.robot_geometry import RobotGeometry, robot_geometry
@@ -60,7 +64,8 @@ from kpi_calib_ros.io.robot_geometry import RobotGeometry, robot_geometry
 _TOP_KEYS = {'robot', 'tracker', 'reflector', 'reflectors', 'noise', 'payload', 'working_poses',
              'obstacles', 'collision', 'identification', 'effects', 'simulation', 'design',
              'topics'}
-_TOPIC_KEYS = {'joint_states': DEFAULT_JOINT_TOPIC, 'point': DEFAULT_POINT_TOPIC}
+_TOPIC_KEYS = {'joint_states': DEFAULT_JOINT_TOPIC, 'point': DEFAULT_POINT_TOPIC,
+               'pose': DEFAULT_POSE_TOPIC}
 # Plausibility of SI values: beyond these a value is almost surely in other units.
 MAX_TRACKER_RANGE_M = 50.0     # laser trackers measure to ~40-80 m; cells are far smaller
 MAX_REFLECTOR_OFFSET_M = 2.0   # reflector from the flange: a tool, not a second robot
@@ -132,6 +137,7 @@ class Cell:
     effects: tuple[str, ...]
     joint_topic: str = DEFAULT_JOINT_TOPIC   # bag topics (topics: section)
     point_topic: str = DEFAULT_POINT_TOPIC
+    pose_topic: str = DEFAULT_POSE_TOPIC
     design: DesignSettings = field(default_factory=DesignSettings)
     simulation: SimulationSettings = field(default_factory=SimulationSettings)
     identification: IdentificationSettings = field(default_factory=IdentificationSettings)
@@ -150,6 +156,11 @@ class Cell:
     # and registered from the data); () for the single ``reflector:`` form.
     reflector_names: tuple[str, ...] = ()
     reflector_offsets: np.ndarray | None = field(default=None, compare=False)
+    # Tracked 6-DoF bodies: (reflector index, (3, 3) body rotation in the tip frame) of
+    # every reflector with an ``orientation``, and noise.sigma_rotation (rad).
+    reflector_orientations: tuple[tuple[int, np.ndarray], ...] = field(default=(),
+                                                                        compare=False)
+    sigma_rotation: float | None = None
 
     @property
     def offsets(self) -> np.ndarray:
@@ -237,7 +248,7 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None,
     else:
         urdf_path = Path('<robot_description>')
     tracker: dict[str, Any] = doc.get('tracker') or {}
-    names, offsets = _reflectors(doc)
+    names, offsets, orientations = _reflectors(doc)
     reflector: dict[str, Any] = doc.get('reflector') or {}
     for key, section in (('tracker', tracker), ('reflector', reflector)):
         if not isinstance(section, dict):
@@ -252,6 +263,13 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None,
     if np.any(sigma <= 0) or np.any(sigma > 0.01):
         raise ConfigError('noise.sigma', f'{sigma.tolist()} must be in (0, 0.01] m per axis '
                           '(SI metres: 20 µm is 2.0e-5)')
+    sigma_rotation = None
+    if orientations or 'sigma_rotation' in noise:
+        sigma_rotation = number(noise, 'sigma_rotation', 'noise', None, 'rad')
+        if not 0 < sigma_rotation <= 0.1:
+            raise ConfigError('noise.sigma_rotation', f'{sigma_rotation!r} must be in (0, 0.1] '
+                              'rad: the orientation noise of the tracked body (SI radians: '
+                              '0.01° is 1.75e-4)')
     max_inc = number(reflector, 'max_incidence', 'reflector', np.deg2rad(30.0), 'rad')
     if not 0 < max_inc <= np.pi / 2:
         raise ConfigError('reflector.max_incidence', 'must be in (0, π/2] rad (30° = 0.5236)')
@@ -298,6 +316,7 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None,
                                 else reflector.get('offset') is not None),
         reflector_names=names,
         reflector_offsets=np.nan_to_num(offsets) if offsets is not None else None,
+        reflector_orientations=orientations, sigma_rotation=sigma_rotation,
         joint_coupling=_coupling_mapping(robot.get('joint_coupling')),
         working_poses_in=_working_poses_in(robot.get('working_poses_in', 'controller')),
         allow_code_effects=allow_code_effects)
@@ -321,23 +340,33 @@ def _working_poses_in(value: Any) -> str:
     return str(value)
 
 
-def _reflectors(doc: dict) -> tuple[tuple[str, ...], np.ndarray | None]:
-    """The ``reflectors:`` list: names and (R, 3) offsets (NaN row: offset omitted, to
-    be registered from the data). ``((), None)`` when the key is absent."""
+def _reflectors(doc: dict) -> tuple[tuple[str, ...], np.ndarray | None,
+                                     tuple[tuple[int, np.ndarray], ...]]:
+    """The ``reflectors:`` list: names, (R, 3) offsets (NaN row: offset omitted, to
+    be registered from the data) and the orientations of tracked bodies.
+    ``((), None, ())`` when the key is absent."""
     items = doc.get('reflectors')
     if items is None:
-        return (), None
+        if 'orientation' in (doc.get('reflector') or {}):
+            raise ConfigError('reflector.orientation', 'a tracked 6-DoF body is a reflectors: '
+                              'entry: reflectors: [{name: probe, offset: [x, y, z], '
+                              'orientation: {rpy: [r, p, y]}}]')
+        return (), None, ()
     if 'offset' in (doc.get('reflector') or {}):
         raise ConfigError('reflector.offset', 'give the offsets in reflectors: only (the '
                           'reflector: mapping then holds axis and max_incidence)')
     if not isinstance(items, list) or not items:
         raise ConfigError('reflectors', 'must be a list of {name, offset: [x, y, z]} (m, tip '
                           'frame); the first is the KPI point')
-    names, offsets = [], []
+    names, offsets, orientations = [], [], []
     for i, item in enumerate(items):
         key = f'reflectors[{i}]'
         if not isinstance(item, dict) or not isinstance(item.get('name'), str):
             raise ConfigError(key, 'must be a mapping {name: str, offset: [x, y, z]}')
+        unknown = sorted(set(item) - {'name', 'offset', 'orientation'})
+        if unknown:
+            raise ConfigError(f'{key}.{unknown[0]}', 'unknown key; allowed: name, offset, '
+                              'orientation')
         name = item['name']
         if not name or not all(c.isalnum() or c == '_' for c in name) or name in names:
             raise ConfigError(f'{key}.name', f'{name!r}: give a unique name of letters, digits '
@@ -345,8 +374,33 @@ def _reflectors(doc: dict) -> tuple[tuple[str, ...], np.ndarray | None]:
         names.append(name)
         offset = item.get('offset')
         offsets.append(np.full(3, np.nan) if offset is None
-                       else _vector(offset, f'{key}.offset', 3))
-    return tuple(names), np.array(offsets)
+                       else _plausible_offset(_vector(offset, f'{key}.offset', 3),
+                                              f'{key}.offset'))
+        if item.get('orientation') is not None:
+            orientations.append((i, _orientation(item['orientation'], f'{key}.orientation')))
+    return tuple(names), np.array(offsets), tuple(orientations)
+
+
+def _orientation(raw: Any, key: str) -> np.ndarray:
+    """A tracked body's orientation in the tip frame, ``{rpy: [roll, pitch, yaw]}`` (rad,
+    URDF convention) or ``{quaternion: [x, y, z, w]}``, as a (3, 3) rotation."""
+    if not isinstance(raw, dict) or len(raw) != 1 or next(iter(raw)) not in ('rpy',
+                                                                            'quaternion'):
+        raise ConfigError(key, 'must be {rpy: [roll, pitch, yaw]} (rad, URDF convention) or '
+                          f'{{quaternion: [x, y, z, w]}} of the tracked body in the tip frame, '
+                          f'got {raw!r}')
+    if 'rpy' in raw:
+        rpy = _vector(raw['rpy'], f'{key}.rpy', 3)
+        if np.any(np.abs(rpy) > 2 * np.pi):
+            raise ConfigError(f'{key}.rpy', f'{rpy.tolist()}: angles beyond 2π; give radians '
+                              '(degrees? multiply by π/180)')
+        return rotation_from_rpy(rpy.tolist())
+    quaternion = _vector(raw['quaternion'], f'{key}.quaternion', 4)
+    try:
+        return rotation_from_quaternion(quaternion.tolist())
+    except ValueError as exc:
+        raise ConfigError(f'{key}.quaternion', f'{exc}; give a unit quaternion in the '
+                          'order [x, y, z, w]') from None
 
 
 def with_overrides(cell: Cell, urdf_xml: str | None = None,
@@ -516,19 +570,20 @@ def _plausible_pose(pose: np.ndarray) -> np.ndarray:
     return pose
 
 
-def _plausible_offset(offset: np.ndarray) -> np.ndarray:
-    """``reflector.offset`` in SI metres, or a ConfigError with a units hint."""
+def _plausible_offset(offset: np.ndarray, key: str = 'reflector.offset') -> np.ndarray:
+    """A reflector offset (``key``) in SI metres, or a ConfigError with a units hint."""
     length = float(np.linalg.norm(offset))
     if length > MAX_REFLECTOR_OFFSET_M:
-        raise ConfigError('reflector.offset', f'the reflector is {length:g} m from the tip '
+        raise ConfigError(key, f'the reflector is {length:g} m from the tip '
                           f'frame (at most {MAX_REFLECTOR_OFFSET_M:g} m is plausible); give '
                           'it in SI metres (millimetres? divide by 1000; 30 mm is 0.03)')
     return offset
 
 
 def _topics(raw: Any) -> dict[str, str]:
-    """The ``topics:`` section: which topics of a bag carry the joint states and the
-    tracker points (``--joint-topic`` / ``--point-topic`` override it)."""
+    """The ``topics:`` section: which topics of a bag carry the joint states, the
+    tracker points and the tracked 6-DoF poses (``--joint-topic`` / ``--point-topic`` /
+    ``--pose-topic`` override it)."""
     if raw is None:
         raw = {}
     if not isinstance(raw, dict):
@@ -544,9 +599,13 @@ def _topics(raw: Any) -> dict[str, str]:
             raise ConfigError(f'topics.{key}', f'must be a topic name such as {default!r}, '
                               f'got {value!r}')
         names[key] = value
-    if names['joint_states'] == names['point']:
-        raise ConfigError('topics.point', 'must differ from topics.joint_states')
-    return {'joint_topic': names['joint_states'], 'point_topic': names['point']}
+    keys = list(names)
+    for i, key in enumerate(keys):
+        same = [k for k in keys[:i] if names[k] == names[key]]
+        if same:
+            raise ConfigError(f'topics.{key}', f'must differ from topics.{same[0]}')
+    return {'joint_topic': names['joint_states'], 'point_topic': names['point'],
+            'pose_topic': names['pose']}
 
 
 def _priority(ident: dict, method: str) -> tuple[str, ...]:
@@ -796,7 +855,10 @@ def build_cell_model(cell: Cell, effects: tuple = ()) -> CellModel:
     resolved = resolve_effects(cell.effects, robot, 'effects', cell.source_dir or None, code)
     extra = resolve_effects(effects, robot, 'extra effects', cell.source_dir or None, code)
     resolved += tuple(e for e in extra if e.name not in {r.name for r in resolved})
-    model = MeasurementModel(robot, geometric, resolved, cell.reflector_axis)
+    model = MeasurementModel(robot, geometric, resolved, cell.reflector_axis,
+                             dict(cell.reflector_orientations),
+                             None if cell.sigma_rotation is None
+                             else cell.sigma / cell.sigma_rotation)
     unknown = [n for n in cell.identification_priority if n not in model.params.names]
     if unknown:
         raise ConfigError('identification.priority', f'unknown parameter(s) {unknown}; valid '

@@ -28,11 +28,12 @@ from mcap.records import Channel, Chunk, DataEnd, Footer, Header, Message, Metad
 from mcap.well_known import MessageEncoding, SchemaEncoding
 
 from kpi_calib_ros.core.errors import DataError
-from kpi_calib_ros.core.pairing import PairingResult, split_frame
+from kpi_calib_ros.core.pairing import PairingResult, split_frame, stacked_rotations
 from kpi_calib_ros.core.streams import JointSample, PointSample
 from kpi_calib_ros.io.bag import (DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, LIBRARY, LOG_CONTENT,
                                   LOG_METADATA, BagError, StreamEncoders, read_log)
 from kpi_calib_ros.io.mcap_scan import MAGIC
+from kpi_calib_ros.io.names import DEFAULT_POSE_TOPIC
 
 _LOG_NAME = re.compile(r'measurements_(\d+)\.mcap')
 
@@ -55,15 +56,17 @@ class MeasurementLog:
     ----------
     directory : path-like
         Created if missing.
-    joint_topic, point_topic : str
-        Topics the paired joint state and point are stored under.
+    joint_topic, point_topic, pose_topic : str
+        Topics the paired joint state and point (a tracked 6-DoF pose: PoseStamped on
+        ``pose_topic``) are stored under.
     """
 
     def __init__(self, directory: str | os.PathLike, joint_topic: str = DEFAULT_JOINT_TOPIC,
-                 point_topic: str = DEFAULT_POINT_TOPIC) -> None:
+                 point_topic: str = DEFAULT_POINT_TOPIC,
+                 pose_topic: str = DEFAULT_POSE_TOPIC) -> None:
         self.directory = Path(directory)
         self.directory.mkdir(parents=True, exist_ok=True)
-        self._encoders = StreamEncoders(joint_topic, point_topic)
+        self._encoders = StreamEncoders(joint_topic, point_topic, pose_topic)
         files = _log_files(self.directory)
         last = _LOG_NAME.fullmatch(files[-1].name) if files else None  # files all match
         n = int(last.group(1)) + 1 if last else 1
@@ -87,7 +90,8 @@ class MeasurementLog:
             Channel(id=k, topic=topic, message_encoding=MessageEncoding.CDR, schema_id=k + 1,
                     metadata=self._encoders.metadata[type_name]).write(builder)
         Metadata(name=LOG_METADATA, metadata={'content': LOG_CONTENT, 'joint_topic': joint_topic,
-                                              'point_topic': point_topic}).write(builder)
+                                              'point_topic': point_topic,
+                                              'pose_topic': pose_topic}).write(builder)
         try:
             self._commit(MAGIC + builder.end())
             fd = os.open(self.directory, os.O_RDONLY)
@@ -144,9 +148,11 @@ class MeasurementLog:
                              f'point.stamp_ns {point.stamp_ns}')
         stamp = point.stamp_ns
         inner = RecordBuilder()
-        for channel, data in ((0, self._encoders.joint(joint_sample)),
-                              (1, self._encoders.point(point))):
-            Message(channel_id=channel, sequence=self._sequence + 1 + channel, log_time=stamp,
+        measured = ((2, self._encoders.pose(point)) if point.rotation is not None
+                    else (1, self._encoders.point(point)))
+        for channel, data in ((0, self._encoders.joint(joint_sample)), measured):
+            Message(channel_id=channel, sequence=self._sequence + 1 + min(channel, 1),
+                    log_time=stamp,
                     publish_time=stamp, data=data).write(inner)
         body = inner.end()
         record = RecordBuilder()
@@ -181,7 +187,8 @@ class MeasurementLog:
 
     @staticmethod
     def load_all(directory: str | os.PathLike, joint_topic: str = DEFAULT_JOINT_TOPIC,
-                 point_topic: str = DEFAULT_POINT_TOPIC) -> list[tuple[JointSample, PointSample]]:
+                 point_topic: str = DEFAULT_POINT_TOPIC,
+                 pose_topic: str = DEFAULT_POSE_TOPIC) -> list[tuple[JointSample, PointSample]]:
         """Every measurement in ``directory``'s logs, oldest file first, in append order.
 
         Logs of killed processes are included; a record torn by a kill or a full disk
@@ -192,7 +199,7 @@ class MeasurementLog:
             raise BagError(f'{directory}: no such directory of measurement logs')
         pairs: list[tuple[JointSample, PointSample]] = []
         for path in _log_files(directory):
-            pairs += read_log(path, joint_topic, point_topic)
+            pairs += read_log(path, joint_topic, point_topic, pose_topic)
         return pairs
 
 
@@ -212,7 +219,7 @@ def stored_pairing(pairs: Iterable[tuple[JointSample, PointSample]], joint_names
     """
     frame = tracker_frame.strip('/')
     counts = dict(rejections or {})
-    q_rows, eta_rows, stamps, reflectors = [], [], [], []
+    q_rows, eta_rows, stamps, reflectors, rotations = [], [], [], [], []
     for joint, point in sorted(pairs, key=lambda jp: jp[1].stamp_ns):
         reason = ('wrong_frame' if split_frame(point.frame_id)[0] != frame else
                   'non_finite_point' if not np.all(np.isfinite(point.xyz)) else None)
@@ -229,13 +236,14 @@ def stored_pairing(pairs: Iterable[tuple[JointSample, PointSample]], joint_names
         eta_rows.append(point.xyz)
         stamps.append(point.stamp_ns)
         reflectors.append(split_frame(point.frame_id)[1])
+        rotations.append(point.rotation)
     n = len(joint_names)
     return PairingResult(tuple(joint_names), tracker_frame,
                          np.array(q_rows, dtype=float).reshape(-1, n),
                          np.array(eta_rows, dtype=float).reshape(-1, 3),
                          np.array(stamps, dtype=np.int64),
                          rejections={k: v for k, v in sorted(counts.items()) if v},
-                         reflectors=tuple(reflectors))
+                         reflectors=tuple(reflectors), rotations=stacked_rotations(rotations))
 
 
 __all__ = ['MeasurementLog', 'stored_pairing']

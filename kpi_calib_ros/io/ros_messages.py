@@ -14,7 +14,7 @@ from typing import Any, Callable
 
 import numpy as np
 from builtin_interfaces.msg import Time
-from geometry_msgs.msg import Point, PointStamped
+from geometry_msgs.msg import Point, PointStamped, Pose, PoseStamped, Quaternion
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Header
 
@@ -73,6 +73,17 @@ def point_sample_from_message(message: Any) -> PointSample:
                        np.array([p.x, p.y, p.z], dtype=float))
 
 
+def pose_sample_from_message(message: Any) -> PointSample:
+    """A geometry_msgs/PoseStamped (rclpy or decoded) as a PointSample with an
+    ``orientation``: the tracked body's origin (m) and quaternion in the header frame,
+    as received. A quaternion that is not finite and of unit length is rejected when
+    paired (``invalid_orientation``), never silently normalised."""
+    p, o = message.pose.position, message.pose.orientation
+    return PointSample(stamp_ns(message.header), message.header.frame_id,
+                       np.array([p.x, p.y, p.z], dtype=float),
+                       np.array([o.x, o.y, o.z, o.w], dtype=float))
+
+
 # ------------------------------------------------------------------ sample -> message
 def joint_state_fields(sample: JointSample) -> dict[str, Any]:
     """A JointSample as the nested fields of a JointState (empty velocity when none)."""
@@ -91,6 +102,18 @@ def point_stamped_fields(sample: PointSample) -> dict[str, Any]:
                        'frame_id': sample.frame_id}, 'point': {'x': x, 'y': y, 'z': z}}
 
 
+def pose_stamped_fields(sample: PointSample) -> dict[str, Any]:
+    """A PointSample with an orientation as the nested fields of a PoseStamped."""
+    if sample.orientation is None:
+        raise ValueError('a PoseStamped needs the sample\'s orientation')
+    sec, nanosec = stamp_fields(sample.stamp_ns)
+    x, y, z = (float(v) for v in sample.xyz)
+    qx, qy, qz, qw = (float(v) for v in sample.orientation)
+    return {'header': {'stamp': {'sec': sec, 'nanosec': nanosec}, 'frame_id': sample.frame_id},
+            'pose': {'position': {'x': x, 'y': y, 'z': z},
+                     'orientation': {'x': qx, 'y': qy, 'z': qz, 'w': qw}}}
+
+
 def _header(fields: dict[str, Any]) -> Header:
     return Header(stamp=Time(**fields['stamp']), frame_id=fields['frame_id'])
 
@@ -106,6 +129,14 @@ def point_stamped_msg(sample: PointSample) -> PointStamped:
     """PointSample -> PointStamped."""
     f = point_stamped_fields(sample)
     return PointStamped(header=_header(f['header']), point=Point(**f['point']))
+
+
+def pose_stamped_msg(sample: PointSample) -> PoseStamped:
+    """PointSample with a rotation -> PoseStamped."""
+    f = pose_stamped_fields(sample)
+    return PoseStamped(header=_header(f['header']),
+                       pose=Pose(position=Point(**f['pose']['position']),
+                                 orientation=Quaternion(**f['pose']['orientation'])))
 
 
 # ------------------------------------------------------------------ fast CDR
@@ -239,4 +270,5 @@ def _joint_sample(stamp: int, names: tuple[str, ...], positions: np.ndarray,
 
 __all__ = ['JointStateDecoder', 'joint_sample_from_message', 'joint_state_fields',
            'joint_state_msg', 'point_sample_from_message', 'point_stamped_fields',
-           'point_stamped_msg', 'stamp_fields', 'stamp_ns', 'time_msg']
+           'point_stamped_msg', 'pose_sample_from_message', 'pose_stamped_fields',
+           'pose_stamped_msg', 'stamp_fields', 'stamp_ns', 'time_msg']

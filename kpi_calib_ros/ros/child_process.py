@@ -17,6 +17,7 @@ so no parent atexit or finaliser runs there; it ends with the node (Linux
 from __future__ import annotations
 
 import ctypes
+import gc
 import multiprocessing
 import os
 import pickle
@@ -57,6 +58,14 @@ def _die_with(parent: int) -> None:
 
 def _child(conn: Connection, fn: Callable[..., Any], args: tuple[Any, ...],
            parent: int) -> None:
+    # The child inherits every object of the node, rclpy handles (contexts, nodes,
+    # subscriptions) among them. If its garbage collector finalised one of those, the
+    # destructor would act on DDS entities whose threads exist only in the parent; it
+    # did, and the child died with SIGSEGV now and then. So the child never collects
+    # what it inherited: freeze moves those objects out of the collector's reach (the
+    # parent froze them just before the fork; this covers what other threads of the
+    # parent allocated in between). The job's own objects are collected as usual.
+    gc.freeze()
     try:
         _die_with(parent)
         try:
@@ -82,7 +91,13 @@ def run_in_child(fn: Callable[..., Any], *args: Any) -> Any:
     context = multiprocessing.get_context('fork')
     receive, send = context.Pipe(duplex=False)
     process = context.Process(target=_child, args=(send, fn, args, os.getpid()), daemon=True)
-    process.start()
+    # Freeze before the fork so that no collection in the child can reach the parent's
+    # objects (see _child); unfreeze after it so the parent's collector works as before.
+    gc.freeze()
+    try:
+        process.start()
+    finally:
+        gc.unfreeze()
     send.close()  # the child holds its end; EOF here once it is gone
     try:
         ok, value = receive.recv()

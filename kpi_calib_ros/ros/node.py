@@ -32,6 +32,7 @@ reason); the post-set callback applies the accepted values.
 """
 from __future__ import annotations
 
+import dataclasses
 import sys
 import threading
 import time
@@ -41,7 +42,7 @@ from typing import Any, Awaitable, Callable
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
+from geometry_msgs.msg import PointStamped, PoseStamped, PoseWithCovarianceStamped
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.exceptions import (InvalidParameterTypeException, InvalidParameterValueException,
@@ -61,12 +62,11 @@ from visualization_msgs.msg import MarkerArray
 from kpi_calib_ros.core.collision import Capsule
 from kpi_calib_ros.core.errors import ConfigError, DataError, KpiCalibError
 from kpi_calib_ros.core.estimation import CalibrationResult
-from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.pairing import Decision, Rejection
 from kpi_calib_ros.core.precision import precision_statement
 from kpi_calib_ros.core.residuals import is_adequate
 from kpi_calib_ros.core.robust import RobustResult
-from kpi_calib_ros.app.identify import urdf_measurements
+from kpi_calib_ros.app.identify import pose_rows, urdf_measurements
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell, with_overrides
 from kpi_calib_ros.io.names import (CALIBRATED_URDF_TOPIC, CALIBRATION_TOPIC, DIAGNOSIS_TOPIC,
                                     DIAGNOSTICS_TOPIC, MARKERS_TOPIC, MEASUREMENT_POSES_TOPIC,
@@ -149,6 +149,7 @@ class CalibrationNode(Node):
         self._auto_pending = False
         self._result: CalibrationResult | None = None
         self._measured: np.ndarray | None = None
+        self._marker_rows: np.ndarray | None = None   # which fitted rows are points
         self._result_error = ''
         self._robust: RobustResult | None = None  # robust statistics of self._result
         self._identified_with = 0
@@ -174,7 +175,8 @@ class CalibrationNode(Node):
         # Latched, one message per working pose: made when a model gives their number.
         self._pub_tcp: Publisher | None = None
         self._tcp_depth = 0
-        self._sequences = {'joint_states': _Sequence(), 'points': _Sequence()}
+        self._sequences = {'joint_states': _Sequence(), 'points': _Sequence(),
+                           'poses': _Sequence()}
         self._identifications = 0
         # Callbacks with (message, message info); rclpy 7.1's annotation omits that form.
         self.create_subscription(JointState, self.settings.joint_states_topic,
@@ -183,6 +185,10 @@ class CalibrationNode(Node):
                                  callback_group=streams)
         self.create_subscription(PointStamped, self.settings.point_topic,
                                  self._on_point,  # type: ignore[arg-type]
+                                 _stream_qos(int(POINTS_MAX_HZ * STREAM_BUFFER_S)),
+                                 callback_group=streams)
+        self.create_subscription(PoseStamped, self.settings.pose_topic,
+                                 self._on_pose,  # type: ignore[arg-type]
                                  _stream_qos(int(POINTS_MAX_HZ * STREAM_BUFFER_S)),
                                  callback_group=streams)
         for name, doing, work in (('design', 'designing', self._design),
@@ -282,6 +288,11 @@ class CalibrationNode(Node):
     def _on_point(self, msg: PointStamped, info: dict[str, Any]) -> None:
         self._sequences['points'].see(info)
         self._report(self.campaign.receive(cv.point_sample_from_msg(msg)))
+
+    def _on_pose(self, msg: PoseStamped, info: dict[str, Any]) -> None:
+        """A tracked 6-DoF body: a point with its orientation, paired like any point."""
+        self._sequences['poses'].see(info)
+        self._report(self.campaign.receive(cv.pose_sample_from_msg(msg)))
 
     def _report(self, decisions: list[Decision]) -> None:
         for d in decisions:
@@ -390,7 +401,8 @@ class CalibrationNode(Node):
         cm = self._model()
         data, pairing = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame,
                                                    cm.cell.reflector_names or ('',))
-        data = urdf_measurements(cm, data)  # controller readings -> URDF joint values
+        # tracked poses' rotation rows; controller readings -> URDF joint values
+        data = urdf_measurements(cm, pose_rows(cm, data, pairing))
         try:
             cal, calibration, urdf, tcp = await self._offload(
                 jobs.identify_work, cm, data, pairing, self.data_dir, child=True)
@@ -414,7 +426,13 @@ class CalibrationNode(Node):
         for text in cal.robust.warnings:
             self.get_logger().warning(text)
         self._robust = cal.robust
-        self._result, self._measured, self._identified_with = result, data.eta, len(data)
+        # Residual arrows: the fitted (kept) rows that are points; a tracked pose's
+        # rotation row is no point to draw from.
+        kept = np.asarray(cal.robust.kept, dtype=bool)
+        points = (np.ones(len(data), dtype=bool) if data.reflector is None
+                  else np.asarray(data.reflector) < cm.model.n_reflectors)
+        self._marker_rows = points[kept]
+        self._result, self._measured, self._identified_with = result, data.eta[kept], len(data)
         self._identifications += 1
         self._result_error = ''
         self._pub_calibration.publish(String(data=calibration))
@@ -440,9 +458,10 @@ class CalibrationNode(Node):
         """Model diagnosis of the accepted measurements (as ``kpi-calib diagnose``): residual
         report, adequacy and the most likely missing effect; report files and ~/diagnosis."""
         cm = self._model()
-        data, _ = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame,
-                                             cm.cell.reflector_names or ('',))
-        data = urdf_measurements(cm, data)  # controller readings -> URDF joint values
+        data, pairing = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame,
+                                                   cm.cell.reflector_names or ('',))
+        # tracked poses' rotation rows; controller readings -> URDF joint values
+        data = urdf_measurements(cm, pose_rows(cm, data, pairing))
         doc, text, verdict, report = await self._offload(jobs.diagnose_work, cm, data,
                                                          self.data_dir, child=True)
         self._diagnosis = doc
@@ -456,17 +475,17 @@ class CalibrationNode(Node):
         cm = self._model()
         if not self._calibration_text:
             raise DataError('no calibration to validate yet: call ~/identify first')
-        data, _ = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame,
-                                             cm.cell.reflector_names or ('',))
-        data = urdf_measurements(cm, data)  # controller readings -> URDF joint values
+        data, pairing = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame,
+                                                   cm.cell.reflector_names or ('',))
+        # tracked poses' rotation rows; controller readings -> URDF joint values
+        data = urdf_measurements(cm, pose_rows(cm, data, pairing))
         stamps = np.asarray(data.stamps_ns, dtype=np.int64).ravel()
         new = np.isin(stamps, np.fromiter(self._identified_stamps, dtype=np.int64),
                       invert=True)
         if not new.any():
             raise DataError('no measurement accepted since the last identification; measure '
                             'new poses with auto_identify:=false, then call ~/validate')
-        fresh = Measurements(q=data.q[new], eta=data.eta[new], stamps_ns=stamps[new],
-                             reflector=None if data.reflector is None else data.reflector[new])
+        fresh = dataclasses.replace(data, stamps_ns=stamps).subset(new)
         doc, text = await self._offload(jobs.validate_work, cm, self._calibration_text, fresh,
                                         self.data_dir)
         self._pub_validation.publish(String(data=text))
@@ -490,13 +509,17 @@ class CalibrationNode(Node):
         cm, result = self._cm, self._result
         if cm is None:
             return
+        measured, residuals = self._measured, None if result is None else result.residuals
+        rows = self._marker_rows
+        if (measured is not None and residuals is not None and rows is not None
+                and len(rows) == len(measured) == len(residuals)):
+            measured, residuals = measured[rows], residuals[rows]
         # Stamp 0: RViz draws latched markers with the latest transforms.
         self._pub_markers.publish(cv.marker_array_msg(
             0, cm.cell.tracker_frame, cm.cell.base_frame, design_points=self._design_points,
             tcp=None if result is None else result.tcp,
             tcp_covariance=None if result is None else result.tcp_covariance,
-            capsules=self._capsules, measured=self._measured,
-            residuals=None if result is None else result.residuals))
+            capsules=self._capsules, measured=measured, residuals=residuals))
 
     def status(self) -> tuple[str, str, dict[str, Any]]:
         """(level, message, key values) as /diagnostics reports them."""
@@ -506,7 +529,8 @@ class CalibrationNode(Node):
         values.update({'identified_with': self._identified_with,
                        'identifications': self._identifications,
                        'lost.joint_states': self._sequences['joint_states'].lost,
-                       'lost.points': self._sequences['points'].lost,
+                       'lost.points': (self._sequences['points'].lost
+                                       + self._sequences['poses'].lost),
                        'max_lag_ms.joint_states': round(
                            self._sequences['joint_states'].max_lag_ns * 1e-6, 1),
                        'log_file': str(self.campaign.log.path)})

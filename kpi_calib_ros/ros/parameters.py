@@ -17,7 +17,7 @@ from kpi_calib_ros.core.design import DESIGN_CRITERIA
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.io.cell import DEFAULT_CELL, WorkingPose, working_poses_from_arrays
 from kpi_calib_ros.io.names import (DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC,
-                                    ROBOT_DESCRIPTION_TOPIC)
+                                    DEFAULT_POSE_TOPIC, ROBOT_DESCRIPTION_TOPIC)
 
 
 @dataclass(frozen=True)
@@ -38,6 +38,7 @@ class NodeSettings:
     auto_identify: bool
     data_dir: str
     allow_code_effects: bool = False
+    pose_topic: str = DEFAULT_POSE_TOPIC
 
 
 # name: (default or parameter type when empty, read only, description)
@@ -58,6 +59,8 @@ PARAMETERS: dict[str, tuple[Any, bool, str]] = {
     'design_seed': (0, False, 'seed of the design random generator'),
     'joint_states_topic': (DEFAULT_JOINT_TOPIC, True, 'sensor_msgs/JointState topic'),
     'point_topic': (DEFAULT_POINT_TOPIC, True, 'geometry_msgs/PointStamped tracker topic'),
+    'pose_topic': (DEFAULT_POSE_TOPIC, True, 'geometry_msgs/PoseStamped topic of tracked 6-DoF '
+                   "bodies (reflectors with an orientation in the cell)"),
     'min_measurements': (20, False, 'accepted measurements before automatic identification'),
     'auto_identify': (True, False, 'identify when min_measurements is reached, and again '
                       'as more measurements arrive'),
@@ -123,9 +126,11 @@ def settings_from_parameters(values: dict[str, Any]) -> NodeSettings:
         if not isinstance(values[key], bool):
             raise ConfigError(key, f'must be true or false, got {values[key]!r}')
     topics = {k: topic(k) for k in ('robot_description_topic', 'joint_states_topic',
-                                    'point_topic')}
+                                    'point_topic', 'pose_topic')}
     if topics['joint_states_topic'] == topics['point_topic']:
         raise ConfigError('point_topic', 'must differ from joint_states_topic')
+    if topics['pose_topic'] in (topics['joint_states_topic'], topics['point_topic']):
+        raise ConfigError('pose_topic', 'must differ from joint_states_topic and point_topic')
     cell_file = text('cell_file', allow_empty=True) or str(DEFAULT_CELL)
     if not Path(cell_file).expanduser().is_file():
         raise ConfigError('cell_file', f'file {cell_file!r} does not exist')

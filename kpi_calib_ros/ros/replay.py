@@ -31,7 +31,7 @@ from typing import cast
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PointStamped
+from geometry_msgs.msg import PointStamped, PoseStamped
 from rclpy.duration import Duration
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -43,6 +43,8 @@ from kpi_calib_ros.core.streams import JointSample
 from kpi_calib_ros.io.bag import (DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, is_measurement_log,
                                   read_bag)
 from kpi_calib_ros.io.mcap_scan import MAGIC, scan
+from kpi_calib_ros.io.names import DEFAULT_POSE_TOPIC
+from kpi_calib_ros.io.ros_messages import pose_stamped_msg
 from kpi_calib_ros.ros.conversions import diagnostic_values, joint_state_msg, point_stamped_msg
 
 # Publisher history at least this deep; it is sized to the whole recording when longer,
@@ -126,7 +128,7 @@ def wait_for_subscribers(node: Node, publishers: list, timeout_s: float) -> bool
 
 def replay(node: Node, path: str | Path, rate: float = 1.0,
            joint_topic: str = DEFAULT_JOINT_TOPIC, point_topic: str = DEFAULT_POINT_TOPIC,
-           wait_s: float = 10.0) -> ReplayReport:
+           wait_s: float = 10.0, pose_topic: str = DEFAULT_POSE_TOPIC) -> ReplayReport:
     """Publish ``path`` through ``node`` in real time scaled by ``rate``, never faster than
     the calibration node confirms receiving (see the module docstring).
 
@@ -136,7 +138,9 @@ def replay(node: Node, path: str | Path, rate: float = 1.0,
         Node that owns the publishers (created here); nothing else may spin it.
     path : path-like
         MCAP bag with ``sensor_msgs/msg/JointState`` on ``joint_topic`` and
-        ``geometry_msgs/msg/PointStamped`` on ``point_topic``.
+        ``geometry_msgs/msg/PointStamped`` on ``point_topic``; tracked 6-DoF poses
+        (``geometry_msgs/msg/PoseStamped`` on ``pose_topic``, if any) are published there
+        and counted with the points.
     rate : float
         Playback speed factor (> 0); 2 plays twice as fast.
     wait_s : float
@@ -150,13 +154,16 @@ def replay(node: Node, path: str | Path, rate: float = 1.0,
     if not rate > 0:
         raise ValueError(f'rate must be > 0, got {rate}')
     refuse_measurement_log(path)
-    joints, points = read_bag(path, joint_topic, point_topic)
+    joints, points = read_bag(path, joint_topic, point_topic, pose_topic)
     stream = sorted([(s.stamp_ns, 0, s) for s in joints] + [(p.stamp_ns, 1, p) for p in points],
                     key=lambda item: item[:2])
+    n_poses = sum(p.orientation is not None for p in points)
+    topics = [(JointState, joint_topic, len(joints)), (PointStamped, point_topic, len(points))]
+    if n_poses:
+        topics.append((PoseStamped, pose_topic, n_poses))
     pubs = [node.create_publisher(kind, topic, QoSProfile(
         depth=max(QOS_DEPTH, n), reliability=ReliabilityPolicy.RELIABLE))
-        for kind, topic, n in ((JointState, joint_topic, len(joints)),
-                               (PointStamped, point_topic, len(points)))]
+        for kind, topic, n in topics]
     node_counts = _NodeCounts(node)
     log = node.get_logger()
     if not wait_for_subscribers(node, pubs, wait_s):
@@ -185,9 +192,12 @@ def replay(node: Node, path: str | Path, rate: float = 1.0,
             if stalled:
                 log.error(f'{NODE_STATUS} stopped counting for {STALL_S} s; publishing the '
                           'rest without waiting for it')
-        msg = joint_state_msg(sample) if isinstance(sample, JointSample) else \
-            point_stamped_msg(sample)
-        pubs[kind].publish(msg)
+        if isinstance(sample, JointSample):
+            pubs[0].publish(joint_state_msg(sample))
+        elif sample.orientation is not None:  # a tracked pose; counted as a point
+            pubs[2].publish(pose_stamped_msg(sample))
+        else:
+            pubs[1].publish(point_stamped_msg(sample))
         sent[kind] += 1
     acknowledged = all(p.wait_for_all_acked(Duration(seconds=STALL_S)) for p in pubs)
     delivered = None
@@ -237,13 +247,14 @@ def _await(node_counts: _NodeCounts, done: Callable[[], bool]) -> bool:
 
 
 def run_replay(bag: str | Path, rate: float = 1.0, joint_topic: str = DEFAULT_JOINT_TOPIC,
-               point_topic: str = DEFAULT_POINT_TOPIC, wait_s: float = 10.0) -> int:
+               point_topic: str = DEFAULT_POINT_TOPIC, wait_s: float = 10.0,
+               pose_topic: str = DEFAULT_POSE_TOPIC) -> int:
     """The ``kpi-calib replay`` subcommand: 0 if every message was delivered, 1 if not."""
     refuse_measurement_log(bag)  # before joining the ROS graph
     rclpy.init()
     node = rclpy.create_node('kpi_calib_replay')
     try:
-        report = replay(node, bag, rate, joint_topic, point_topic, wait_s)
+        report = replay(node, bag, rate, joint_topic, point_topic, wait_s, pose_topic)
     except KeyboardInterrupt:
         return 130
     finally:

@@ -1,0 +1,388 @@
+"""A tracked 6-DoF pose (position and orientation of a body on the tool) as a measurement:
+the SO(3) logarithm and the rotation rows' exact Jacobian, the cell keys, a simulated
+campaign identified to its truth, what the orientation adds to the TCP precision, and
+Monte Carlo agreement of χ² and the TCP covariance."""
+import copy
+import json
+
+import casadi as ca
+import numpy as np
+import pinocchio as pin
+import pytest
+import yaml
+from geometry_msgs.msg import PoseStamped
+
+from kpi_calib_ros.cli import main
+from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.core.estimation import identify
+from kpi_calib_ros.core.measurement import Measurements, with_rotation_rows
+from kpi_calib_ros.core.pose_measurement import (log3_expression, noisy_rotations,
+                                                 quaternion_from_rotation,
+                                                 rotation_from_quaternion, rotation_from_rpy)
+from kpi_calib_ros.core.pairing import pair_measurements
+from kpi_calib_ros.core.simulation import random_configurations, true_parameters
+from kpi_calib_ros.core.streams import PointSample, synthesize_streams
+from kpi_calib_ros.core.validation import validate
+from kpi_calib_ros.io.bag import read_bag, write_bag
+from kpi_calib_ros.io.cell import (DEFAULT_CELL, build_cell_model, cell_from_dict,
+                                   read_cell_document)
+from kpi_calib_ros.io.ros_messages import pose_sample_from_message
+
+SIGMA = 2e-5            # m per axis, the default cell's
+SIGMA_ROTATION = 1e-4   # rad: a 6-DoF probe's orientation noise (~0.006°)
+BODY_RPY = [0.1, -0.2, 0.3]
+N_POSES = 60
+
+
+def pose_doc(orientation=None, sigma_rotation=SIGMA_ROTATION):
+    doc = copy.deepcopy(read_cell_document(DEFAULT_CELL))
+    del doc['reflector']['offset']
+    body = {'name': 'probe', 'offset': [0.0, 0.02, 0.03],
+            'orientation': orientation or {'rpy': BODY_RPY}}
+    doc['reflectors'] = [body]
+    doc['noise']['sigma_rotation'] = sigma_rotation
+    return doc
+
+
+@pytest.fixture(scope='module')
+def cm():
+    return build_cell_model(cell_from_dict(pose_doc(), DEFAULT_CELL.parent))
+
+
+def campaign(cm, p_true, q, rng, with_orientation=True):
+    """Points of the probe's origin (σ per axis) and, with orientation, its rotation
+    (σ_rot in the body frame) at every configuration of ``q``."""
+    ref = np.zeros(len(q), dtype=int)
+    eta = cm.model.predict(p_true, q, reflector=ref) + rng.normal(size=(len(q), 3)) * SIGMA
+    rotations = noisy_rotations(cm.model.body_rotations(p_true, q, 0), SIGMA_ROTATION, rng)
+    points = Measurements(q=q, eta=eta, reflector=ref)
+    return with_rotation_rows(cm.model, points, rotations) if with_orientation else points
+
+
+def equivalent_truth(cm, p_true, kept, start, q_dense):
+    """The true robot in the identified parameterisation: the kept parameters fitted
+    noise-free to the true points and rotations at ``q_dense`` (dropped ones at ``start``)."""
+    truth = campaign(cm, p_true, q_dense, np.random.default_rng(0), True)
+    exact = with_rotation_rows(cm.model, Measurements(
+        q=q_dense, eta=cm.model.predict(p_true, q_dense, reflector=np.zeros(len(q_dense), int)),
+        reflector=np.zeros(len(q_dense), int)), cm.model.body_rotations(p_true, q_dense, 0))
+    assert len(truth) == len(exact)
+    idx = cm.model.params.indices(kept)
+    p = np.array(start, float)
+    for _ in range(20):
+        pred, jac = cm.model.jacobian(p, exact.q, None, exact.reflector, exact.rotation)
+        f = jac.reshape(-1, len(p))[:, idx]
+        scale = np.linalg.norm(f, axis=0)
+        step, *_ = np.linalg.lstsq(f / scale, (exact.eta - pred).ravel(), rcond=None)
+        p[idx] += step / scale
+    pred = cm.model.predict(p, exact.q, None, exact.reflector, exact.rotation)
+    return p, float(np.max(np.abs(exact.eta - pred)))
+
+
+# ----------------------------------------------------------------- the model
+@pytest.mark.parametrize('angle', [0.0, 1e-9, 1e-5, 0.3, 2.0, 3.1])
+def test_log3_equals_pinocchio(angle):
+    axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    rotation = pin.exp3(axis * angle)
+    sym = ca.SX.sym('R', 3, 3)
+    log3 = ca.Function('log3', [sym], [log3_expression(sym)])
+    assert np.allclose(np.array(log3(rotation)).ravel(), pin.log3(rotation), atol=1e-12)
+
+
+def test_quaternion_and_rpy_conversions_agree_with_pinocchio():
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        q = rng.normal(size=4)
+        q /= np.linalg.norm(q)
+        expected = pin.Quaternion(q[3], q[0], q[1], q[2]).toRotationMatrix()
+        assert np.allclose(rotation_from_quaternion(q), expected, atol=1e-12)
+        assert np.allclose(quaternion_from_rotation(expected), q * np.sign(q[3]), atol=1e-12)
+        rpy = rng.uniform(-1.5, 1.5, 3)
+        assert np.allclose(rotation_from_rpy(rpy), pin.rpy.rpyToMatrix(*rpy), atol=1e-12)
+    with pytest.raises(ValueError, match='length'):
+        rotation_from_quaternion([0.0, 0.0, 0.0, 2.0])
+
+
+def test_rotation_row_is_the_scaled_log_and_its_jacobian_is_exact(cm):
+    rng = np.random.default_rng(4)
+    p0 = cm.model.params.nominal
+    p = true_parameters(cm.model.params, rng)
+    q = random_configurations(cm.model, p0, 6, rng)
+    measured = cm.model.body_rotations(p, q, 0)
+    channel = np.full(len(q), cm.model.rotation_channel(0))
+    pred, jac = cm.model.jacobian(p0, q, None, channel, measured)
+    nominal = cm.model.body_rotations(p0, q, 0)
+    scale = SIGMA / SIGMA_ROTATION
+    for i in range(len(q)):  # residual 0 - h = log3(R(p0)ᵀ R_m) · σ/σ_rot
+        assert np.allclose(-pred[i], pin.log3(nominal[i].T @ measured[i]) * scale, atol=1e-14)
+    for k in range(0, len(p0), 7):
+        step = np.zeros(len(p0))
+        step[k] = 1e-7
+        fd = (cm.model.predict(p0 + step, q, None, channel, measured)
+              - cm.model.predict(p0 - step, q, None, channel, measured)) / 2e-7
+        assert np.allclose(jac[:, :, k], fd, atol=1e-7 * scale, rtol=1e-6)
+    # At the truth the residual is zero and the Jacobian finite (the log's series branch).
+    pred, jac = cm.model.jacobian(p, q, None, channel, measured)
+    assert np.abs(pred).max() < 1e-12 and np.all(np.isfinite(jac))
+
+
+def test_rotation_rows_need_the_measured_rotations(cm):
+    q = cm.q_work
+    with pytest.raises(ValueError, match='measured rotations'):
+        cm.model.predict(cm.model.params.nominal, q, None,
+                         np.full(len(q), cm.model.rotation_channel(0)))
+
+
+# ----------------------------------------------------------------- cell keys
+@pytest.mark.parametrize('change, key', [
+    (lambda d: d['reflectors'][0].update(orientation={'rpy': [0, 0]}),
+     'reflectors[0].orientation.rpy'),
+    (lambda d: d['reflectors'][0].update(orientation={'rpy': [0, 0, 90]}),
+     'reflectors[0].orientation.rpy'),
+    (lambda d: d['reflectors'][0].update(orientation={'quaternion': [0, 0, 0, 2]}),
+     'reflectors[0].orientation.quaternion'),
+    (lambda d: d['reflectors'][0].update(orientation={'euler': [0, 0, 0]}),
+     'reflectors[0].orientation'),
+    (lambda d: d['reflectors'][0].update(colour='red'), 'reflectors[0].colour'),
+    (lambda d: d['noise'].pop('sigma_rotation'), 'noise.sigma_rotation'),
+    (lambda d: d['noise'].update(sigma_rotation=0.5), 'noise.sigma_rotation'),
+    (lambda d: d['noise'].update(sigma_rotation='1e-4'), 'noise.sigma_rotation'),
+    (lambda d: d['reflector'].update(orientation={'rpy': [0, 0, 0]}), 'reflector.orientation'),
+])
+def test_bad_orientation_keys_are_named(change, key):
+    doc = pose_doc()
+    change(doc)
+    if key == 'reflector.orientation':
+        doc['reflector']['offset'] = [0, 0, 0.03]
+        del doc['reflectors']
+    with pytest.raises(ConfigError) as err:
+        cell_from_dict(doc, DEFAULT_CELL.parent)
+    assert err.value.key == key
+
+
+def test_quaternion_and_rpy_forms_give_the_same_cell():
+    quaternion = quaternion_from_rotation(rotation_from_rpy(BODY_RPY)).tolist()
+    a = cell_from_dict(pose_doc(), DEFAULT_CELL.parent)
+    b = cell_from_dict(pose_doc({'quaternion': quaternion}), DEFAULT_CELL.parent)
+    assert np.allclose(a.reflector_orientations[0][1], b.reflector_orientations[0][1],
+                       atol=1e-12)
+    assert a.sigma_rotation == SIGMA_ROTATION
+
+
+# ----------------------------------------------------------- identification
+@pytest.fixture(scope='module')
+def identified(cm):
+    rng = np.random.default_rng(11)
+    p_true = true_parameters(cm.model.params, rng)
+    q = random_configurations(cm.model, cm.model.params.nominal, N_POSES, rng)
+    seed = np.random.default_rng(12)
+    data = campaign(cm, p_true, q, seed)
+    with_rot = identify(cm.model, data, cm.cell.sigma, cm.q_work)
+    points = data.subset(data.reflector == 0)
+    without = identify(cm.model, points, cm.cell.sigma, cm.q_work)
+    return p_true, q, data, with_rot, without
+
+
+def test_a_pose_campaign_recovers_the_truth_within_3_sigma(cm, identified):
+    p_true, q, data, result, _ = identified
+    assert result.converged and len(data) == 2 * N_POSES
+    idx = cm.model.params.indices(result.estimated)
+    start = result.values.copy()
+    start[idx] = p_true[idx]
+    dense = random_configurations(cm.model, cm.model.params.nominal, 400,
+                                  np.random.default_rng(13))
+    p_equiv, representation = equivalent_truth(cm, p_true, result.estimated, start, dense)
+    z = (result.values[idx] - p_equiv[idx]) / result.std
+    print(f'identified {len(idx)} parameters with orientation, within 3σ '
+          f'{np.mean(np.abs(z) < 3):.3f}, max |z| {np.abs(z).max():.2f}, '
+          f'representation error {representation * 1e6:.3f} µm (σ units: m at σ)')
+    assert representation < SIGMA / 2
+    assert np.mean(np.abs(z) < 3) >= 0.95
+    # The TCP point (probe origin at the working pose) too, against its own std.
+    tcp_true = cm.model.predict(p_true, cm.q_work)
+    for t, cov in zip(tcp_true - result.tcp, result.tcp_covariance):
+        assert t @ np.linalg.solve(cov, t) < 14.2  # χ²₃ 0.997 quantile (3σ)
+
+
+def test_the_orientation_identifies_more_and_shrinks_the_tcp_std(cm, identified):
+    _, _, _, with_rot, without = identified
+    std_with = np.sqrt(np.trace(with_rot.tcp_covariance, axis1=1, axis2=2))
+    std_without = np.sqrt(np.trace(without.tcp_covariance, axis1=1, axis2=2))
+    print(f'TCP std (sqrt trace) {std_with[0] * 1e6:.2f} µm with orientation, '
+          f'{std_without[0] * 1e6:.2f} µm without; identified {len(with_rot.estimated)} vs '
+          f'{len(without.estimated)} parameters')
+    assert len(with_rot.estimated) > len(without.estimated)
+    assert np.all(std_with < std_without)
+
+
+def test_validate_takes_rotation_rows_and_holds_on_fresh_poses(cm, identified):
+    p_true, q, _, result, _ = identified
+    rng = np.random.default_rng(21)
+    fresh = campaign(cm, p_true, random_configurations(cm.model, cm.model.params.nominal,
+                                                       30, rng), rng)
+    idx = cm.model.params.indices(result.estimated)
+    check = validate(cm.model, result.values, idx, result.covariance, cm.cell.sigma, fresh,
+                     q.min(axis=0), q.max(axis=0))
+    print(f'validation on 30 fresh poses: chi2 {check.chi2:.1f} / {check.dof}, '
+          f'p = {check.p_value:.3f}')
+    assert check.dof == 3 * 60 and check.holds
+    # A body rotated by 1 mrad more than calibrated is seen: rows 3σ_rot off each.
+    tilted = copy.copy(fresh)
+    rot = fresh.rotation.copy()
+    rot[fresh.reflector == 1] = rot[fresh.reflector == 1] @ pin.exp3(np.array([1e-3, 0, 0]))
+    tilted = Measurements(q=fresh.q, eta=fresh.eta, reflector=fresh.reflector, rotation=rot)
+    assert not validate(cm.model, result.values, idx, result.covariance, cm.cell.sigma,
+                        tilted, q.min(axis=0), q.max(axis=0)).holds
+
+
+@pytest.mark.slow
+def test_monte_carlo_chi2_and_tcp_covariance_agree_with_eq_19(cm):
+    """Fixed robot and poses, fresh noise M times: mean χ² = dof and the scatter of the
+    TCP estimates = the eq. (19) covariance, within their Monte Carlo uncertainty."""
+    rng = np.random.default_rng(31)
+    p_true = true_parameters(cm.model.params, rng)
+    q = random_configurations(cm.model, cm.model.params.nominal, 40, rng)
+    runs = 200
+    chi2, dofs, tcps, covs = [], [], [], []
+    for m in range(runs):
+        data = campaign(cm, p_true, q, np.random.default_rng(1000 + m))
+        result = identify(cm.model, data, cm.cell.sigma, cm.q_work)
+        assert result.converged
+        chi2.append(result.chi2)
+        dofs.append(result.dof)
+        tcps.append(result.tcp[0])
+        covs.append(result.tcp_covariance[0])
+    dof = dofs[0]
+    assert len(set(dofs)) == 1
+    mean_chi2 = float(np.mean(chi2))
+    se = np.sqrt(2 * dof / runs)
+    scatter = np.cov(np.array(tcps).T)
+    predicted = np.mean(covs, axis=0)
+    ratio = np.trace(scatter) / np.trace(predicted)
+    # var of a sample trace ≈ 2 tr(C²)/(M-1): its relative standard error
+    rel_se = np.sqrt(2 * np.trace(predicted @ predicted) / (runs - 1)) / np.trace(predicted)
+    print(f'Monte Carlo ({runs} runs, 40 poses): mean chi2 {mean_chi2:.1f} / dof {dof} '
+          f'(SE {se:.1f}); TCP trace MC/eq.(19) {ratio:.3f} (SE {rel_se:.3f}); TCP std '
+          f'{np.sqrt(np.trace(predicted)) * 1e6:.2f} µm predicted, '
+          f'{np.sqrt(np.trace(scatter)) * 1e6:.2f} µm Monte Carlo')
+    assert abs(mean_chi2 - dof) < 3 * se
+    assert abs(ratio - 1) < 3 * rel_se
+    # The truth's TCP is the mean of the estimates (no bias beyond 3 standard errors).
+    bias = np.mean(tcps, axis=0) - cm.model.predict(p_true, cm.q_work)[0]
+    assert bias @ np.linalg.solve(predicted / runs, bias) < 14.2
+
+
+# ------------------------------------------------- messages, bags, command line
+def _write_cell(tmp_path, doc):
+    doc = copy.deepcopy(doc)
+    doc['robot']['urdf'] = str((DEFAULT_CELL.parent / doc['robot']['urdf']).resolve())
+    path = tmp_path / 'pose_cell.yaml'
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+def test_pose_stamped_round_trips_through_a_bag(tmp_path):
+    rng = np.random.default_rng(5)
+    joints, _ = synthesize_streams(np.zeros((2, 6)), [f'joint_{i}' for i in range(1, 7)],
+                                   np.zeros((2, 3)), 'laser_tracker')
+    rotations = [rotation_from_quaternion(q / np.linalg.norm(q)) for q in rng.normal(size=(3, 4))]
+    poses = [PointSample(10 + i, 'laser_tracker#probe', rng.normal(size=3),
+                         quaternion_from_rotation(r)) for i, r in enumerate(rotations)]
+    plain = [PointSample(20, 'laser_tracker#ball', [1.0, 2.0, 3.0])]
+    path = write_bag(tmp_path / 'poses.mcap', joints, poses + plain)
+    _, points = read_bag(path)
+    read = {p.stamp_ns: p for p in points}
+    assert read[20].rotation is None and np.array_equal(read[20].xyz, [1.0, 2.0, 3.0])
+    for pose in poses:
+        got = read[pose.stamp_ns]
+        assert got.frame_id == 'laser_tracker#probe'
+        assert np.array_equal(got.xyz, pose.xyz)
+        assert np.array_equal(got.orientation, pose.orientation)  # as published, exactly
+        assert np.allclose(got.rotation, pose.rotation, atol=1e-15)
+    # A bag without tracked poses has no pose channel (as before).
+    _, points = read_bag(write_bag(tmp_path / 'plain.mcap', joints, plain))
+    assert [p.rotation for p in points] == [None]
+
+
+def test_a_bad_quaternion_is_rejected_when_paired_not_normalised():
+    message = PoseStamped()
+    message.header.frame_id = 'laser_tracker#probe'
+    message.pose.orientation.w = 2.0  # not unit length
+    sample = pose_sample_from_message(message)
+    assert np.all(np.isnan(sample.rotation))
+    names = [f'joint_{i}' for i in range(1, 7)]
+    joints, _ = synthesize_streams(np.zeros((1, 6)), names, np.zeros((1, 3)), 'laser_tracker')
+    bad = PointSample(joints[len(joints) // 2].stamp_ns, sample.frame_id, [1.0, 0.0, 0.0],
+                      sample.orientation)
+    result = pair_measurements(joints, [bad], names, 'laser_tracker', reflectors=('probe',))
+    assert len(result) == 0 and result.rejections == {'invalid_orientation': 1}
+
+
+def test_a_pose_for_a_reflector_without_orientation_names_the_cell_key(tmp_path, capsys):
+    doc = pose_doc()
+    del doc['reflectors'][0]['orientation']
+    cell = _write_cell(tmp_path, doc)
+    (tmp_path / 'rich').mkdir()
+    rich = _write_cell(tmp_path / 'rich', pose_doc())
+    bag = tmp_path / 'run.mcap'
+    assert main(['simulate', '--cell', str(rich), '--n', '12', '--out', str(bag),
+                 '--seed', '2']) == 0
+    capsys.readouterr()
+    assert main(['identify', '--cell', str(cell), '--bag', str(bag), '--out',
+                 str(tmp_path / 'out')]) == 2
+    assert 'reflectors[i].orientation' in capsys.readouterr().err
+
+
+@pytest.fixture(scope='module')
+def pose_bag(tmp_path_factory):
+    folder = tmp_path_factory.mktemp('pose_campaign')
+    cell = _write_cell(folder, pose_doc())
+    bag = folder / 'run.mcap'
+    assert main(['simulate', '--cell', str(cell), '--n', '40', '--out', str(bag),
+                 '--seed', '7']) == 0
+    return folder, cell, bag
+
+
+def test_simulate_writes_pose_stamped_and_identify_recovers_the_tcp(pose_bag, capsys):
+    folder, cell, bag = pose_bag
+    _, points = read_bag(bag)
+    assert len(points) == 40 and all(p.rotation is not None for p in points)
+    assert {p.frame_id for p in points} == {'laser_tracker#probe'}
+    out = folder / 'result'
+    assert main(['identify', '--cell', str(cell), '--bag', str(bag), '--out', str(out)]) == 0
+    doc = yaml.safe_load((out / 'calibration.yaml').read_text())
+    truth = yaml.safe_load((folder / 'run.truth.yaml').read_text())
+    assert len(doc['residuals_m']) == 80  # 40 point rows and 40 rotation rows
+    error = np.array(doc['tcp'][0]['position']) - np.array(truth['tcp_true'][0])
+    cov = np.array(doc['tcp'][0]['covariance'])
+    d2 = float(error @ np.linalg.solve(cov, error))
+    print(f'TCP error {np.linalg.norm(error) * 1e6:.2f} µm, Mahalanobis² {d2:.2f}')
+    assert d2 < 14.2  # 3σ of χ²₃
+    assert doc['valid']
+
+
+def test_validate_a_pose_calibration_on_a_new_pose_recording(pose_bag, tmp_path):
+    folder, cell, bag = pose_bag
+    out = folder / 'result_for_validation'
+    assert main(['identify', '--cell', str(cell), '--bag', str(bag), '--out', str(out)]) == 0
+    fresh = tmp_path / 'fresh.mcap'
+    # Same cell, same true robot (seed 7 draws the same truth first), new poses: holds.
+    from kpi_calib_ros.app.simulate import simulate_campaign, truth_cell_model
+    from kpi_calib_ros.io.cell import load_cell
+    truth = yaml.safe_load((folder / 'run.truth.yaml').read_text())['parameters']
+    cm, _ = truth_cell_model(load_cell(cell))
+    p_true = np.array([truth[n] for n in cm.model.params.names])
+    simulate_campaign(cell, 25, fresh, seed=99, cm=cm, p_true=p_true)
+    code = main(['validate', '--cell', str(cell), '--calibration',
+                 str(out / 'calibration.yaml'), '--bag', str(fresh), '--out',
+                 str(tmp_path / 'val')])
+    report = json.loads((tmp_path / 'val' / 'validation.json').read_text())
+    print(f"validation: chi2 {report['chi2']:.1f} / {report['dof']}, p {report['p_value']:.3f}")
+    assert report['dof'] == 3 * 50 and code == 0 and report['holds']
+    # rms over the 25 point rows in metres; the orientation residual in rad on its own:
+    # E‖ω‖² = 3σ_rot² (plus the small parameter share), χ²(75)/75 within ±3·0.16.
+    ratio_points = report['rms_per_reflector_m']['probe'] ** 2 / (3 * SIGMA ** 2)
+    ratio_rotation = report['rotation_rms_rad']['probe'] ** 2 / (3 * SIGMA_ROTATION ** 2)
+    print(f'point rms / (σ√3) squared {ratio_points:.3f}, rotation {ratio_rotation:.3f}')
+    assert report['rms_m'] == report['rms_per_reflector_m']['probe']
+    assert 0.5 < ratio_points < 1.6 and 0.5 < ratio_rotation < 1.6
