@@ -386,3 +386,24 @@ def test_validate_a_pose_calibration_on_a_new_pose_recording(pose_bag, tmp_path)
     print(f'point rms / (σ√3) squared {ratio_points:.3f}, rotation {ratio_rotation:.3f}')
     assert report['rms_m'] == report['rms_per_reflector_m']['probe']
     assert 0.5 < ratio_points < 1.6 and 0.5 < ratio_rotation < 1.6
+
+
+def test_model_choice_and_diagnosis_take_a_pose_campaign(pose_bag, capsys):
+    """The out-of-sample prediction (model choice, diagnose) uses the rotation rows as
+    information and predicts fresh poses as points: a 40-pose pose campaign of a robot
+    the geometric model describes gets the geometric level, and its predicted error at
+    the measured poses is the noise floor σ√3 within the scatter of a 40-pose fit."""
+    folder, cell, bag = pose_bag
+    out = folder / 'auto'
+    assert main(['identify', '--cell', str(cell), '--bag', str(bag), '--out', str(out),
+                 '--model', 'auto']) == 0
+    doc = yaml.safe_load((out / 'calibration.yaml').read_text())
+    assert doc['model']['level'] == 'geometric', doc['model']
+    assert main(['diagnose', '--cell', str(cell), '--bag', str(bag), '--out',
+                 str(folder / 'diag')]) == 0
+    capsys.readouterr()
+    report = json.loads((folder / 'diag' / 'diagnosis.json').read_text())
+    like = report['out_of_sample']['like_measured']
+    ratio = like['rms_m'] / (SIGMA * np.sqrt(3))
+    print(f'predicted out-of-sample rms / σ√3 at the measured poses: {ratio:.3f}')
+    assert like['estimable'] and 0.8 < ratio < 1.3

@@ -256,12 +256,15 @@ def out_of_sample_error(model: MeasurementModel, data: Measurements,
     dof = int(result.dof)
     scale = float(result.chi2 / dof) if dof > 0 else float('nan')
     c0 = np.asarray(result.covariance, float) / float(result.covariance_scale)
-    _, jac = model.jacobian(p, q, None, data.reflector)
+    _, jac = model.jacobian(p, q, None, data.reflector, data.rotation)
     data_jac = weighted_rows(jac, w, free_idx)
     if prior is not None:
         data_jac = np.vstack([data_jac, prior.rows(model.params)[0][:, free_idx]])
+    # Fresh poses are predicted as points: rotation rows of tracked bodies (channels from
+    # model.n_reflectors on) need a measured rotation and are no length.
     reflectors = (np.array([0]) if data.reflector is None
                   else np.unique(np.asarray(data.reflector, int)))
+    reflectors = reflectors[reflectors < model.n_reflectors]
     rng = np.random.default_rng(seed)
     out: dict[str, DomainError] = {}
     for domain in domains:
