@@ -49,11 +49,11 @@ from kpi_calib_ros.core.measurement import Measurements, weighted_rows
 TARGET_MET = 'target met'
 # Look-ahead of the plan (poses) and the time its exchange sweeps may take (s): the
 # next-pose step must stay below 1 s on two cores.
-MAX_HORIZON = 60
+MAX_HORIZON = 30
 # Random starts of the exchange algorithm for the initial design (its quality is the
 # start of every prefix).
 INITIAL_STARTS = 3
-PLAN_SECONDS = 0.5
+PLAN_SECONDS = 0.4
 MODEL_INADEQUATE = 'model inadequate: call ~/diagnose'
 MAX_MEASUREMENTS = 'max_measurements reached'
 
@@ -282,6 +282,7 @@ class SequentialCampaign:
         self._p = cell.model.params.nominal.copy()
         self._replicating = False
         self._statistic = float('inf')
+        self._last_plan: list[int] = []
 
     # ------------------------------------------------------------------ initial design
     def initial_design(self) -> np.ndarray:
@@ -397,7 +398,9 @@ class SequentialCampaign:
         info = information(problem.rows(model, self.q))
         rows = problem.rows(model, self.candidates)
         exclude = np.array(sorted({u for u in self.used if u >= 0}), int)
-        planned = plan_ahead(rows, info, self._horizon(), loss, exclude, PLAN_SECONDS)
+        planned = plan_ahead(rows, info, self._horizon(), loss, exclude, PLAN_SECONDS,
+                             start_plan=self._last_plan)
+        self._last_plan = [int(i) for i in planned]
         q_plan, index = self.candidates[planned], planned
         if self._replicating and dof_pe < 3 * self.settings.replicates:
             _, first, counts = np.unique(np.round(self.q, 12), axis=0, return_index=True,
@@ -422,13 +425,16 @@ class SequentialCampaign:
 
 
 def plan_ahead(rows: np.ndarray, info: np.ndarray, m: int, loss,
-               exclude: np.ndarray, seconds: float = PLAN_SECONDS) -> np.ndarray:
+               exclude: np.ndarray, seconds: float = PLAN_SECONDS,
+               start_plan: Sequence[int] = ()) -> np.ndarray:
     """``m`` candidates that, added to the measured information ``info`` (k, k), lower
     ``loss`` most together: greedy additions, then remove-and-replace sweeps over the
     planned ones only (the measured ones are fixed), as steps 3-4 of
     :func:`kpi_calib_ros.core.design_exchange.exchange`, until no exchange improves or
-    ``seconds`` have passed. Returns the indices (m,), the one whose single addition
-    lowers the loss most first.
+    ``seconds`` have passed. ``start_plan`` (the previous plan) is kept where still
+    allowed, so the sweeps continue from one measurement to the next instead of
+    starting over. Returns the indices (m,), the one whose single addition lowers the
+    loss most first.
 
     Planning ahead rather than adding greedily one at a time is what keeps every prefix
     close to the batch design of its size: a greedy first choice for a criterion of rank
@@ -437,9 +443,11 @@ def plan_ahead(rows: np.ndarray, info: np.ndarray, m: int, loss,
     start = time.perf_counter()
     banned = np.zeros(len(rows), bool)
     banned[exclude] = True
-    chosen: list[int] = []
+    chosen = [int(i) for i in start_plan if not banned[i]][:m]
     current = info.copy()
-    for _ in range(min(m, int(np.sum(~banned)))):
+    for i in chosen:
+        current = current + rows[i].T @ rows[i]
+    for _ in range(min(m, int(np.sum(~banned))) - len(chosen)):
         gain = loss.delta(_inverse(current), rows, +1.0)
         gain[banned] = np.inf
         gain[chosen] = np.inf
