@@ -53,6 +53,9 @@ MAX_HORIZON = 30
 # Random starts of the exchange algorithm for the initial design (its quality is the
 # start of every prefix).
 INITIAL_STARTS = 3
+# Joint values (rad, m) within which two measured poses are the same pose measured again:
+# above the averaged joint-state noise of a still robot, far below any two candidates.
+REPLICATE_TOLERANCE = 1e-4
 PLAN_SECONDS = 0.4
 MODEL_INADEQUATE = 'model inadequate: call ~/diagnose'
 MAX_MEASUREMENTS = 'max_measurements reached'
@@ -209,16 +212,28 @@ def sigma_upper_limit(chi2: float, dof: int, sigma: float, confidence: float) ->
     return float(sigma * np.sqrt(chi2 / scipy.stats.chi2.ppf(1.0 - confidence, dof)))
 
 
+def pose_groups(q: np.ndarray, tolerance: float = REPLICATE_TOLERANCE) -> np.ndarray:
+    """Label (N,) of each row of ``q`` (N, n): rows whose joint values all differ by at
+    most ``tolerance`` (rad, m) from the group's first row share a label (replicates)."""
+    q = np.atleast_2d(q)
+    labels = np.full(len(q), -1)
+    for i in range(len(q)):
+        if labels[i] < 0:
+            same = (labels < 0) & np.all(np.abs(q - q[i]) <= tolerance, axis=1)
+            labels[same] = i
+    return labels
+
+
 def pure_error(q: np.ndarray, eta: np.ndarray, weight: np.ndarray) -> tuple[float, int]:
-    """Weighted sum of squares (σ units) and dof of the scatter of repeated poses."""
+    """Weighted sum of squares (σ units) and dof of the scatter of repeated poses
+    (:func:`pose_groups`): 3 (m − 1) dof per pose measured m times."""
     ss, dof = 0.0, 0
-    _, inverse, counts = np.unique(np.round(q, 12), axis=0, return_inverse=True,
-                                   return_counts=True)
-    inverse = np.asarray(inverse).ravel()
-    for g in np.flatnonzero(counts > 1):
-        pts = eta[inverse == g] * weight
-        ss += float(np.sum((pts - pts.mean(axis=0)) ** 2))
-        dof += 3 * (len(pts) - 1)
+    labels = pose_groups(q)
+    for g in np.unique(labels):
+        pts = eta[labels == g] * weight
+        if len(pts) > 1:
+            ss += float(np.sum((pts - pts.mean(axis=0)) ** 2))
+            dof += 3 * (len(pts) - 1)
     return ss, dof
 
 
@@ -312,6 +327,18 @@ class SequentialCampaign:
         assert best is not None
         return np.asarray(best.selected, int)
 
+    def match_candidates(self, q: np.ndarray, tolerance: float = 1e-3) -> np.ndarray:
+        """Candidate index (N,) of each measured pose ``q`` (N, n): the candidate within
+        ``tolerance`` (rad, m) on every joint, -1 if none (a robot that stopped off the
+        planned pose)."""
+        out = np.full(len(q), -1)
+        for i, row in enumerate(np.atleast_2d(q)):
+            dist = np.max(np.abs(self.candidates - row), axis=1)
+            j = int(np.argmin(dist))
+            if dist[j] <= tolerance:
+                out[i] = j
+        return out
+
     def _estimable(self, q: np.ndarray) -> bool:
         model, names = self.cell.model, self.free or list(self.cell.model.params.names)
         idx = model.params.indices(names)
@@ -328,8 +355,9 @@ class SequentialCampaign:
             candidate: int | Sequence[int] | np.ndarray = -1) -> CampaignStatus:
         """Add measurements (q (m, n), eta (m, 3) tracker frame, m) and update the plan.
 
-        ``candidate`` gives the candidate index of each row (-1: a pose that is not a
-        candidate); a measured candidate is not proposed again except as a replicate.
+        ``candidate`` gives the candidate index of each row (-1: found by
+        :meth:`match_candidates`); a measured candidate is not proposed again except as
+        a replicate.
 
         Raises
         ------
@@ -345,6 +373,7 @@ class SequentialCampaign:
         self.q = np.vstack([self.q, q])
         self.eta = np.vstack([self.eta, eta])
         index = np.broadcast_to(np.asarray(candidate, int), (len(q),))
+        index = np.where(index >= 0, index, self.match_candidates(q))
         self.used.extend(int(i) for i in index)
         cell = self.cell
         res = identify(cell.model, Measurements(q=self.q, eta=self.eta), cell.sigma,
@@ -403,9 +432,8 @@ class SequentialCampaign:
         self._last_plan = [int(i) for i in planned]
         q_plan, index = self.candidates[planned], planned
         if self._replicating and dof_pe < 3 * self.settings.replicates:
-            _, first, counts = np.unique(np.round(self.q, 12), axis=0, return_index=True,
-                                         return_counts=True)
-            once = np.sort(first[counts == 1])
+            labels = pose_groups(self.q)
+            once = np.flatnonzero(np.bincount(labels, minlength=len(labels))[labels] == 1)
             if len(once):
                 gain = loss.delta(_inverse(info), problem.rows(model, self.q[once]), +1.0)
                 pick = int(once[int(np.argmin(gain))])
