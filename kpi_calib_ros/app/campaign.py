@@ -134,7 +134,7 @@ def run_campaign(cell_path: str | Path, target_std: float, out: str | Path,
     print(f'sequential campaign: {final.measurements} poses ({run.initial} initial), '
           f'stopped: {final.stop_reason}')
     print(f'  sigma: stated {final.sigma_stated * 1e6:.2f} um, estimated '
-          f'{final.sigma_hat * 1e6:.2f} um, upper {100 * settings.confidence:.0f} % limit '
+          f'{final.sigma_hat * 1e6:.2f} um, upper {100 * settings.confidence:.1f} % limit '
           f'{final.sigma_upper * 1e6:.2f} um')
     for name, std, err, std_true in zip(cm.working_pose_names, final.tcp_std, error,
                                         run.tcp_std_true):

@@ -8,7 +8,9 @@ identifiable parameter and every working pose's TCP estimable (plus
 1. re-identifies (:func:`kpi_calib_ros.core.estimation.identify`, warm start);
 2. estimates σ from the residuals, σ̂² = σ_s² χ²/dof, and takes its upper confidence
    limit σ_u² = σ_s² χ² / χ²_dof(1 − confidence): with probability ``confidence`` the
-   true σ is below σ_u (never below what the data say: σ_u ≥ σ̂);
+   true σ is below σ_u (never below what the data say: σ_u ≥ σ̂). ``confidence`` is
+   0.975 by default so that the target holds in ≥ 95 % of campaigns despite the test
+   being repeated after every measurement (see :class:`CampaignSettings`);
 3. predicts the TCP covariance (eq. 19) with σ_u, and stops when the statistic — the
    largest per-axis TCP std over the working poses — is ≤ the target. The largest, not
    the mean: a tolerance holds at every working pose and on every axis, and the worst
@@ -72,7 +74,11 @@ class CampaignSettings:
     max_measurements : int
         Hard cap on the number of measurements.
     confidence : float
-        One-sided confidence of the σ upper limit, hence of "target met".
+        One-sided confidence of the σ upper limit. The limit is checked after every
+        measurement and the campaign stops at the first crossing, which favours runs
+        whose σ̂ happens to be low: at 0.95 the target was met in 47 of 50 simulated
+        campaigns (bench/results/sequential_campaign.md), so the default is 0.975 for
+        "target met in ≥ 95 % of campaigns".
     initial_margin : int
         Poses added to the smallest estimable initial design (σ needs some dof).
     replicates : int
@@ -85,7 +91,7 @@ class CampaignSettings:
 
     target_std: float
     max_measurements: int = 200
-    confidence: float = 0.95
+    confidence: float = 0.975
     initial_margin: int = 2
     replicates: int = 5
     adequacy_alpha: float = 0.01
