@@ -182,3 +182,23 @@ def test_chi2_quantile_used_is_the_lower_tail():
     dof = 100
     assert sigma_upper_limit(dof, dof, 1.0, 0.95) == pytest.approx(
         np.sqrt(dof / scipy.stats.chi2.ppf(0.05, dof)))
+
+
+@pytest.mark.parametrize('changes, key', [
+    ({'campaign': 'adaptive'}, 'campaign'),
+    ({'target_tcp_std': -1e-5}, 'target_tcp_std'),
+    ({'target_tcp_std': float('nan')}, 'target_tcp_std'),
+    ({'max_measurements': 0}, 'max_measurements'),
+])
+def test_node_campaign_parameters_are_validated_with_their_name(changes, key):
+    from rclpy.parameter import Parameter
+
+    from kpi_calib_ros.ros.parameters import PARAMETERS, settings_from_parameters
+    values = {k: ([] if isinstance(v[0], Parameter.Type) else v[0])
+              for k, v in PARAMETERS.items()}
+    settings = settings_from_parameters(values)
+    assert (settings.campaign, settings.target_tcp_std, settings.max_measurements) == (
+        'fixed', 1.0e-5, 200)
+    values.update(changes)
+    with pytest.raises(ConfigError, match=key):
+        settings_from_parameters(values)
