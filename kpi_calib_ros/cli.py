@@ -2,7 +2,7 @@
 
 Subcommands: simulate a cell into an MCAP bag, identify a bag, design optimal
 measurement poses, diagnose a calibration, validate it on a new bag, import a
-table of static postures (CSV) as a bag, replay a bag onto ROS topics, a
+table of static postures (CSV) as a bag, run a sequential campaign, replay a bag onto ROS topics, a
 demo on the built-in simulated cell, and regenerate the built-in robot URDFs.
 Results go to files; a summary to stdout.
 """
@@ -126,6 +126,20 @@ def main(argv: list[str] | None = None) -> int:
     des.add_argument('--seed', type=int, default=0)
     des.add_argument('--allow-code-effects', action='store_true', help=CODE_EFFECTS_HELP)
 
+    cam = sub.add_parser('campaign', help='sequential campaign: each next pose from what has '
+                         'been measured, stop when the TCP std reaches the target')
+    cam.add_argument('--cell', required=True)
+    cam.add_argument('--target-std', type=float, required=True, metavar='M',
+                     help='target of the largest per-axis TCP std over the working poses (m)')
+    cam.add_argument('--simulate', action='store_true', help='run the loop against a '
+                     "simulated true robot (the cell's simulation.hidden_effects included); "
+                     'without it: write and print the initial plan')
+    cam.add_argument('--seed', type=int, default=0)
+    cam.add_argument('--max', type=int, default=200, dest='max_measurements',
+                     help='largest number of measurements (default 200)')
+    cam.add_argument('--out', required=True, help='output folder')
+    cam.add_argument('--allow-code-effects', action='store_true', help=CODE_EFFECTS_HELP)
+
     rep = sub.add_parser('replay', help='publish a bag onto the live ROS topics with its timing')
     rep.add_argument('bag', help='MCAP bag with joint states and tracker points')
     rep.add_argument('--rate', type=float, default=1.0, help='playback speed factor')
@@ -169,6 +183,13 @@ def _design(args: argparse.Namespace) -> int:
     from kpi_calib_ros.app.design import run_design
     return run_design(args.cell, args.n, args.criterion, args.out, seed=args.seed,
                       allow_code_effects=args.allow_code_effects)
+
+
+def _campaign(args: argparse.Namespace) -> int:
+    from kpi_calib_ros.app.campaign import run_campaign
+    return run_campaign(args.cell, args.target_std, args.out, simulate=args.simulate,
+                        seed=args.seed, max_measurements=args.max_measurements,
+                        allow_code_effects=args.allow_code_effects)
 
 
 def _replay(args: argparse.Namespace) -> int:
@@ -224,7 +245,7 @@ def _robots(args: argparse.Namespace) -> int:
 
 _COMMANDS = {'simulate': _simulate, 'identify': _identify, 'design': _design,
              'diagnose': _diagnose, 'validate': _validate, 'import-csv': _import_csv,
-             'replay': _replay, 'demo': _demo, 'robots': _robots}
+             'replay': _replay, 'campaign': _campaign, 'demo': _demo, 'robots': _robots}
 
 if __name__ == '__main__':
     sys.exit(main())

@@ -15,6 +15,7 @@ CALIBRATION_FILE = 'calibration.yaml'
 FAILED_CALIBRATION_FILE = 'calibration.failed.yaml'
 CALIBRATED_URDF_FILE = 'robot_description_calibrated.urdf'
 DESIGN_FILE = 'design.yaml'
+CAMPAIGN_PLAN_FILE = 'campaign_plan.yaml'   # initial design of a sequential campaign
 DIAGNOSIS_DIR = 'diagnosis'
 DIAGNOSIS_FILE = 'diagnosis.json'
 REPORT_FILE = 'report.md'
@@ -37,6 +38,7 @@ MARKERS_TOPIC = '~/markers'
 DIAGNOSIS_TOPIC = '~/diagnosis'
 TCP_TOPIC = '~/tcp'
 VALIDATION_TOPIC = '~/validation'
+CAMPAIGN_STATUS_TOPIC = '~/campaign_status'
 
 
 def truth_path(bag_path: str | Path) -> Path:

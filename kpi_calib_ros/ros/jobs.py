@@ -15,10 +15,13 @@ import numpy as np
 import yaml
 from geometry_msgs.msg import PoseWithCovarianceStamped
 
+from kpi_calib_ros.app.campaign import campaign_context, new_campaign
 from kpi_calib_ros.app.design import controller_design, design_cell_model, design_estimability
 from kpi_calib_ros.core.design import DesignResult
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.pairing import PairingResult
+from kpi_calib_ros.core.sequential import CampaignSettings, CampaignStatus, SequentialCampaign
+from kpi_calib_ros.io.campaign_io import write_plan
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.design_io import write_design
 from kpi_calib_ros.app.diagnose import diagnose_cell
@@ -26,7 +29,7 @@ from kpi_calib_ros.app.validate import validate_report
 from kpi_calib_ros.io.report import diagnosis_to_dict, write_report
 from kpi_calib_ros.app.identify import (CellCalibration, add_robust_sections,
                                         calibrate_cell, calibration_document, write_results)
-from kpi_calib_ros.io.names import DESIGN_FILE, DIAGNOSIS_DIR, VALIDATION_DIR
+from kpi_calib_ros.io.names import CAMPAIGN_PLAN_FILE, DESIGN_FILE, DIAGNOSIS_DIR, VALIDATION_DIR
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros.parameters import NodeSettings
 
@@ -122,3 +125,43 @@ def diagnose_work(cm: CellModel, data: Measurements,
 
 
 __all__ = ['design_work', 'diagnose_work', 'identify_work', 'validate_work']
+
+
+def sequential_start_work(cm: CellModel, settings: NodeSettings,
+                          data_dir: Path) -> tuple[SequentialCampaign, np.ndarray, np.ndarray,
+                                                   Path]:
+    """A sequential campaign for the cell and its initial design.
+
+    Returns
+    -------
+    campaign : SequentialCampaign
+        Owned by whoever runs the next step (one job at a time).
+    initial : ndarray, shape (m, n)
+        The initial design in the controller's joint values.
+    points : ndarray, shape (m, 3)
+        Nominal reflector positions (m, tracker frame) of the initial design.
+    path : Path
+        ``campaign_plan.yaml``: the initial design, as ``kpi-calib campaign`` writes it.
+    """
+    cell, ctx = campaign_context(cm, settings.design_seed)
+    campaign = new_campaign(cm, cell, ctx, CampaignSettings(
+        target_std=settings.target_tcp_std, max_measurements=settings.max_measurements),
+        settings.design_seed)
+    q = ctx.candidates.configurations[campaign.initial_design()]
+    points = cm.model.predict(cm.model.params.nominal, q)
+    controller = cm.joint_coupling.to_controller(q)
+    path = write_plan(data_dir / CAMPAIGN_PLAN_FILE, cm.joint_names, controller,
+                      campaign.settings)
+    return campaign, controller, points, path
+
+
+def sequential_step_work(campaign: SequentialCampaign, cm: CellModel,
+                         data: Measurements) -> tuple[CampaignStatus, np.ndarray, str]:
+    """Add the measurements ``data`` (URDF joint values) to ``campaign``: re-identify,
+    re-plan. Returns the status, the plan in controller values (next pose first) and the
+    status as YAML text (``~/campaign_status``)."""
+    status = campaign.add(data.q, data.eta)
+    plan = cm.joint_coupling.to_controller(status.next_configurations) if len(
+        status.next_configurations) else status.next_configurations
+    text = yaml.safe_dump(status.to_dict(cm.working_pose_names), sort_keys=False)
+    return status, plan, text

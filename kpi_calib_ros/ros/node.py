@@ -41,6 +41,7 @@ from typing import Any, Awaitable, Callable
 
 import numpy as np
 import rclpy
+import yaml
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped, PoseStamped, PoseWithCovarianceStamped
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
@@ -62,15 +63,18 @@ from visualization_msgs.msg import MarkerArray
 from kpi_calib_ros.core.collision import Capsule
 from kpi_calib_ros.core.errors import ConfigError, DataError, KpiCalibError
 from kpi_calib_ros.core.estimation import CalibrationResult
+from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.pairing import Decision, Rejection
 from kpi_calib_ros.core.precision import precision_statement
 from kpi_calib_ros.core.residuals import is_adequate
 from kpi_calib_ros.core.robust import RobustResult
 from kpi_calib_ros.app.identify import pose_rows, urdf_measurements
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell, with_overrides
-from kpi_calib_ros.io.names import (CALIBRATED_URDF_TOPIC, CALIBRATION_TOPIC, DIAGNOSIS_TOPIC,
-                                    DIAGNOSTICS_TOPIC, MARKERS_TOPIC, MEASUREMENT_POSES_TOPIC,
-                                    TCP_TOPIC, VALIDATION_TOPIC)
+from kpi_calib_ros.core.sequential import MODEL_INADEQUATE, CampaignStatus, SequentialCampaign
+from kpi_calib_ros.io.names import (CALIBRATED_URDF_TOPIC, CALIBRATION_TOPIC,
+                                    CAMPAIGN_STATUS_TOPIC, DIAGNOSIS_TOPIC, DIAGNOSTICS_TOPIC,
+                                    MARKERS_TOPIC, MEASUREMENT_POSES_TOPIC, TCP_TOPIC,
+                                    VALIDATION_TOPIC)
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros import jobs
 from kpi_calib_ros.ros.campaign import Campaign
@@ -157,6 +161,12 @@ class CalibrationNode(Node):
         self._diagnosis: dict[str, Any] | None = None
         self._capsules: list[Capsule] = []
         self._last_diagnostics: tuple[Any, float] = (None, 0.0)
+        # Sequential campaign (campaign:=sequential): the campaign object is handed to the
+        # worker thread of a step job and back; the stamps it has been given.
+        self._sequential: SequentialCampaign | None = None
+        self._sequential_stamps: set[int] = set()
+        self._sequential_initial = 0
+        self._sequential_status: CampaignStatus | None = None
 
         # One executor thread: pairing callbacks run in arrival order; services await
         # their worker threads in a reentrant group so a second call gets 'busy'.
@@ -169,6 +179,8 @@ class CalibrationNode(Node):
         self._pub_markers = self.create_publisher(MarkerArray, MARKERS_TOPIC, _latched())
         self._pub_diagnosis = self.create_publisher(String, DIAGNOSIS_TOPIC, _latched())
         self._pub_validation = self.create_publisher(String, VALIDATION_TOPIC, _latched())
+        self._pub_campaign_status = self.create_publisher(String, CAMPAIGN_STATUS_TOPIC,
+                                                          _latched())
         self._calibration_text = ''            # the published calibration.yaml
         self._identified_stamps: set[int] = set()  # stamps the calibration was fitted to
         self._pub_diagnostics = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
@@ -303,11 +315,32 @@ class CalibrationNode(Node):
                 self._auto_pending = True
 
     def _auto_wanted(self) -> bool:
+        # A running sequential campaign re-identifies in its own steps.
         return (self.settings.auto_identify and self._cm is not None
+                and not self._sequential_running()
                 and len(self.campaign) >= self.settings.min_measurements)
+
+    def _sequential_running(self) -> bool:
+        status = self._sequential_status
+        return self._sequential is not None and (status is None or not status.stopped)
+
+    def _sequential_due(self) -> bool:
+        """A step is due: the campaign runs, the initial design is measured and some
+        accepted measurement has not been added yet."""
+        if not self._sequential_running():
+            return False
+        accepted = len(self.campaign)
+        return (accepted >= self._sequential_initial
+                and accepted > len(self._sequential_stamps))
 
     def _tick(self) -> None:
         self._report(self.campaign.poll())
+        if self._sequential_due() and self._claim_job('planning the next pose'):
+            executor = self.executor
+            if executor is None:  # timers fire only under an executor
+                raise RuntimeError('kpi_calib_node ticked without an executor')
+            executor.create_task(self._run_job, 'sequential campaign step',
+                                 self._sequential_step)
         if self._auto_pending and self._claim_job('identifying (automatic)'):
             self._auto_pending = False
             executor = self.executor
@@ -379,6 +412,8 @@ class CalibrationNode(Node):
 
     async def _design(self) -> tuple[bool, str]:
         cm = self._model()
+        if self.settings.campaign == 'sequential':
+            return await self._design_sequential(cm)
         design, points, path, not_estimable = await self._offload(
             jobs.design_work, cm, self.settings, self.data_dir, child=True)
         self._pub_poses.publish(cv.joint_trajectory_msg(design.joint_names,
@@ -394,6 +429,57 @@ class CalibrationNode(Node):
             f'sqrt(trace) <= {tcp_um:.1f} µm; {design.status}; '
             + (f'{not_estimable}; ' if not_estimable else '') + 'published on '
             f'{self.resolve_topic_name(MEASUREMENT_POSES_TOPIC)}, written to {path}')
+
+    async def _design_sequential(self, cm: CellModel) -> tuple[bool, str]:
+        """Start a sequential campaign: publish its initial design on ~/measurement_poses.
+        Measurements accepted before it are part of the campaign (the first step adds
+        them all)."""
+        campaign, initial, points, path = await self._offload(
+            jobs.sequential_start_work, cm, self.settings, self.data_dir)
+        self._sequential, self._sequential_status = campaign, None
+        self._sequential_stamps, self._sequential_initial = set(), len(initial)
+        self._pub_poses.publish(cv.joint_trajectory_msg(cm.joint_names, initial))
+        self._design_points = points
+        self._publish_markers()
+        self._pub_campaign_status.publish(String(data=yaml.safe_dump({
+            'measurements': len(self.campaign), 'initial_design': len(initial),
+            'target_tcp_std_m': self.settings.target_tcp_std,
+            'stop_reason': 'running'}, sort_keys=False)))
+        return True, (f'sequential campaign: initial design of {len(initial)} poses '
+                      f'published on {self.resolve_topic_name(MEASUREMENT_POSES_TOPIC)}, '
+                      f'written to {path}; target TCP std {self.settings.target_tcp_std:g} m, '
+                      f'at most {self.settings.max_measurements} measurements')
+
+    async def _sequential_step(self) -> tuple[bool, str]:
+        """Add the accepted measurements the campaign has not seen, re-identify and
+        publish the updated plan (next pose first) and ~/campaign_status."""
+        cm, campaign = self._model(), self._sequential
+        if campaign is None:
+            raise DataError('no sequential campaign: call ~/design with campaign:=sequential')
+        data, _ = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame,
+                                             cm.cell.reflector_names or ('',))
+        data = urdf_measurements(cm, data)  # controller readings -> URDF joint values
+        stamps = np.asarray(data.stamps_ns, dtype=np.int64).ravel()
+        new = np.array([int(s) not in self._sequential_stamps for s in stamps])
+        fresh = Measurements(q=data.q[new], eta=data.eta[new])
+        status, plan, text = await self._offload(jobs.sequential_step_work, campaign, cm,
+                                                 fresh)
+        self._sequential_stamps.update(int(s) for s in stamps[new])
+        self._sequential_status = status
+        if len(plan):
+            self._pub_poses.publish(cv.joint_trajectory_msg(cm.joint_names, plan))
+        self._pub_campaign_status.publish(String(data=text))
+        self._publish_diagnostics(force=True)
+        if status.stopped:
+            self.get_logger().info(f'sequential campaign stopped after {status.measurements} '
+                                   f'measurements: {status.stop_reason}')
+            # The calibration of the finished campaign, as an automatic identification.
+            self._auto_pending = self.settings.auto_identify
+        return True, (f'{status.measurements} measurements, largest TCP std '
+                      f'{status.statistic * 1e6:.2f} µm (target '
+                      f'{status.target_std * 1e6:.2f} µm), '
+                      + (f'stopped: {status.stop_reason}' if status.stopped else
+                         f'{len(plan)} poses planned') + f', {status.step_seconds:.2f} s')
 
     async def _identify(self) -> tuple[bool, str]:
         """Identify from every accepted measurement (as ``kpi-calib identify`` does);
@@ -500,6 +586,8 @@ class CalibrationNode(Node):
         self._result, self._measured, self._result_error = None, None, ''
         self._robust = None
         self._identified_with, self._auto_pending, self._diagnosis = 0, False, None
+        self._sequential, self._sequential_status = None, None
+        self._sequential_stamps, self._sequential_initial = set(), 0
         self._publish_markers()
         self._publish_diagnostics(force=True)
         return True, f'archived {count} measurement(s) and the results to {archive}'
@@ -547,9 +635,20 @@ class CalibrationNode(Node):
                         'none')
             values.update({'model_adequate': self._diagnosis['model_adequate'],
                            'suggested_effect': best})
+        seq = self._sequential_status
+        if self._sequential is not None:
+            values.update({'campaign': 'sequential',
+                           'campaign.measurements': seq.measurements if seq else 0,
+                           'campaign.tcp_std_um': round(seq.statistic * 1e6, 3) if seq
+                           else float('inf'),
+                           'campaign.target_um': round(self.settings.target_tcp_std * 1e6, 3),
+                           'campaign.stop_reason': (seq.stop_reason if seq else '')
+                           or 'running'})
         error = self._model_error or self._result_error
         if error or values['rejected.not_stored']:
             return 'ERROR', error or 'accepted measurements could not be stored', values
+        if seq is not None and seq.stop_reason == MODEL_INADEQUATE:
+            return 'WARN', f'sequential campaign stopped: {MODEL_INADEQUATE}', values
         if self._robust is not None and self._robust.warnings:
             return 'WARN', self._robust.warnings[0], values
         if result is not None and not is_adequate(result.p_value):

@@ -39,7 +39,12 @@ class NodeSettings:
     data_dir: str
     allow_code_effects: bool = False
     pose_topic: str = DEFAULT_POSE_TOPIC
+    campaign: str = 'fixed'
+    target_tcp_std: float = 1.0e-5
+    max_measurements: int = 200
 
+
+CAMPAIGNS = ('fixed', 'sequential')
 
 # name: (default or parameter type when empty, read only, description)
 PARAMETERS: dict[str, tuple[Any, bool, str]] = {
@@ -65,6 +70,14 @@ PARAMETERS: dict[str, tuple[Any, bool, str]] = {
     'auto_identify': (True, False, 'identify when min_measurements is reached, and again '
                       'as more measurements arrive'),
     'data_dir': ('~/.ros/kpi_calib', True, 'measurement log and results (created if missing)'),
+    'campaign': ('fixed', False, "'fixed': ~/design publishes num_measurements poses; "
+                 "'sequential': ~/design publishes a small initial design, and after every "
+                 'accepted measurement the node re-identifies and publishes the updated plan '
+                 '(next pose first) until the target is met'),
+    'target_tcp_std': (1.0e-5, False, 'sequential campaign: target of the largest per-axis '
+                       'TCP std over the working poses (m)'),
+    'max_measurements': (200, False, 'sequential campaign: stop after this many '
+                         'measurements'),
     'allow_code_effects': (False, True, "run the Python code a cell file's effects: name "
                            "('file.py:Type:joint', 'module:Type:joint'); off: only built-in "
                            'and installed (entry point) effects'),
@@ -122,6 +135,14 @@ def settings_from_parameters(values: dict[str, Any]) -> NodeSettings:
     if values['criterion'] not in DESIGN_CRITERIA:
         raise ConfigError('criterion', f'must be one of {list(DESIGN_CRITERIA)}, '
                           f'got {values["criterion"]!r}')
+    if values['campaign'] not in CAMPAIGNS:
+        raise ConfigError('campaign', f'must be one of {list(CAMPAIGNS)}, '
+                          f'got {values["campaign"]!r}')
+    target = values['target_tcp_std']
+    if isinstance(target, bool) or not isinstance(target, (int, float)) or not (
+            0 < float(target) < float('inf')):
+        raise ConfigError('target_tcp_std', f'must be a positive length in m (e.g. 1.0e-5), '
+                          f'got {target!r}')
     for key in ('auto_identify', 'allow_code_effects'):
         if not isinstance(values[key], bool):
             raise ConfigError(key, f'must be true or false, got {values[key]!r}')
@@ -141,7 +162,9 @@ def settings_from_parameters(values: dict[str, Any]) -> NodeSettings:
         criterion=values['criterion'], design_seed=integer('design_seed', 0),
         min_measurements=integer('min_measurements', 1),
         auto_identify=values['auto_identify'], allow_code_effects=values['allow_code_effects'],
-        data_dir=str(Path(text('data_dir')).expanduser()), **topics)
+        data_dir=str(Path(text('data_dir')).expanduser()), campaign=values['campaign'],
+        target_tcp_std=float(target), max_measurements=integer('max_measurements', 1),
+        **topics)
 
 
 def working_poses(settings: NodeSettings) -> tuple[WorkingPose, ...] | None:

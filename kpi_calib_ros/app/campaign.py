@@ -1,0 +1,157 @@
+"""Sequential campaign for a cell: the ``kpi-calib campaign`` command and its simulation.
+
+Builds the feasible candidates and the KPI design problem of the cell (the batch
+design's :func:`~kpi_calib_ros.core.design.design_context`, so every constraint of
+the batch design holds), runs :class:`~kpi_calib_ros.core.sequential.SequentialCampaign`
+against a simulated true robot (the cell's ``simulation.hidden_effects`` included),
+and compares it with fixed KPI designs of every size.
+"""
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+
+from kpi_calib_ros.app.simulate import truth_cell_model
+from kpi_calib_ros.core.design import DesignContext, design_context
+from kpi_calib_ros.core.design_cell import DesignCell
+from kpi_calib_ros.core.design_exchange import exchange
+from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.core.model_selection import level_free
+from kpi_calib_ros.core.sequential import CampaignSettings, SequentialCampaign, SimulatedRun
+from kpi_calib_ros.core.simulation import simulate_measurements, true_parameters
+from kpi_calib_ros.io.campaign_io import plot_campaign, write_campaign, write_plan
+from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
+
+# Candidates of a campaign: fewer than a batch design's, so that re-evaluating every
+# candidate's Jacobian at the current estimate fits the 1 s next-pose budget.
+CAMPAIGN_CANDIDATES = 2000
+
+
+def campaign_free(cm: CellModel) -> list[str]:
+    """Free parameters of the cell's model level (``auto``: the full geometric model)."""
+    level = cm.cell.identification.model
+    return level_free(cm.model.params, 'geometric' if level == 'auto' else level,
+                      len(cm.geometric))
+
+
+def campaign_context(cm: CellModel, seed: int,
+                     candidates: int = CAMPAIGN_CANDIDATES) -> tuple[DesignCell, DesignContext]:
+    """The cell's design problem and ``candidates`` feasible configurations."""
+    cell = cm.design_cell()
+    settings = dataclasses.replace(cm.cell.design, candidates=candidates)
+    return cell, design_context(cell, np.random.default_rng(seed), settings)
+
+
+def new_campaign(cm: CellModel, cell: DesignCell, ctx: DesignContext,
+                 settings: CampaignSettings, seed: int) -> SequentialCampaign:
+    """A sequential campaign on the cell; it measures one point per pose, so a cell with
+    several reflectors or a tracked 6-DoF body is refused by name."""
+    if len(cm.cell.reflector_names) > 1 or cm.cell.reflector_orientations:
+        raise ConfigError('reflectors', 'the sequential campaign measures one reflector point '
+                          'per pose; a cell with several reflectors or a tracked body '
+                          "(reflectors[i].orientation) takes a fixed design (campaign: fixed, "
+                          "or 'kpi-calib design')")
+    return SequentialCampaign(cell, ctx.problem, ctx.candidates.configurations, settings,
+                              np.random.default_rng(seed), free=campaign_free(cm))
+
+
+def simulate_sequential(campaign: SequentialCampaign, truth: CellModel, p_true: np.ndarray,
+                        sigma_true: float, rng: np.random.Generator) -> SimulatedRun:
+    """Run ``campaign`` to its stop against the true robot ``truth`` / ``p_true`` with
+    tracker noise ``sigma_true`` (m per axis)."""
+    initial = campaign.initial_design()
+    q = campaign.candidates[initial]
+
+    def measure(qq: np.ndarray) -> np.ndarray:
+        return simulate_measurements(truth.model, p_true, qq, sigma_true, rng).eta
+
+    history = [campaign.add(q, measure(q), initial)]
+    while not history[-1].stopped:
+        q_next = history[-1].next_configurations[:1]
+        history.append(campaign.add(q_next, measure(q_next),
+                                    history[-1].next_candidates[:1]))
+    res = campaign.result
+    assert res is not None
+    tcp_true = truth.model.predict(p_true, truth.q_work)
+    scale = (sigma_true / campaign.sigma) ** 2
+    std_true = np.sqrt(np.diagonal(res.tcp_covariance, axis1=1, axis2=2) * scale)
+    return SimulatedRun(tuple(history), campaign.q.copy(), np.array(campaign.used),
+                        len(initial), tcp_true, res.tcp.copy(), std_true)
+
+
+def fixed_curve(cell: DesignCell, ctx: DesignContext, sizes: list[int],
+                seed: int) -> dict[int, tuple[float, float]]:
+    """Batch KPI designs (exchange over the same candidates) of every size in ``sizes``:
+    size -> (KPI criterion m², largest per-axis TCP std m), at the stated σ."""
+    rows, problem = ctx.rows, ctx.problem
+    loss = problem.loss('kpi')
+    out = {}
+    for n in sizes:
+        res = exchange(rows, n, loss, np.random.default_rng(seed))
+        tcp = problem.tcp_covariance(rows[res.selected])
+        out[n] = (float(res.loss), float(np.sqrt(np.diagonal(tcp, axis1=1, axis2=2)).max()))
+    return out
+
+
+def run_campaign(cell_path: str | Path, target_std: float, out: str | Path,
+                 simulate: bool = False, seed: int = 0, max_measurements: int = 200,
+                 allow_code_effects: bool = False) -> int:
+    """``kpi-calib campaign``: with ``simulate`` the whole loop against a simulated true
+    robot (campaign.yaml, campaign_poses.yaml, campaign_tcp_std.png); without it the
+    initial plan (initial_design.yaml) for a manual cell.
+
+    Returns 0 when the target was met (or the plan written), 1 when the campaign
+    stopped for another reason.
+    """
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    cell_doc = load_cell(cell_path, allow_code_effects=allow_code_effects)
+    cm = build_cell_model(cell_doc)
+    settings = CampaignSettings(target_std=target_std, max_measurements=max_measurements)
+    cell, ctx = campaign_context(cm, seed)
+    campaign = new_campaign(cm, cell, ctx, settings, seed)
+    if not simulate:
+        initial = campaign.initial_design()
+        q = cm.joint_coupling.to_controller(ctx.candidates.configurations[initial])
+        path = write_plan(out / 'initial_design.yaml', cm.joint_names, q, settings)
+        print(f'initial design: {len(q)} poses (smallest KPI design that determines every '
+              f'identifiable parameter and the TCP, + {settings.initial_margin}); measure them, '
+              'then add each next pose the node or this loop proposes')
+        for i, row in enumerate(q):
+            print(f'  {i + 1:3d}: ' + ' '.join(f'{v:+.4f}' for v in row))
+        print(f'written: {path}')
+        return 0
+    truth, overrides = truth_cell_model(cell_doc)
+    rng = np.random.default_rng(seed)
+    p_true = true_parameters(truth.model.params, rng, overrides=overrides)
+    run = simulate_sequential(campaign, truth, p_true, float(cm.cell.sigma[0]), rng)
+    if len(run.configurations) > len(ctx.candidates.configurations):
+        raise ConfigError('max_measurements', 'more measurements than candidates')
+    sizes = sorted(set(range(run.initial, len(run.configurations) + 1,
+                             max(1, (len(run.configurations) - run.initial) // 15))))
+    curve = fixed_curve(cell, ctx, sizes, seed)
+    final = run.final
+    error = run.tcp_estimated - run.tcp_true
+    written = write_campaign(out / 'campaign.yaml', run, cm.working_pose_names, curve)
+    poses = write_plan(out / 'campaign_poses.yaml', cm.joint_names,
+                       cm.joint_coupling.to_controller(run.configurations), settings)
+    png = plot_campaign(out / 'campaign_tcp_std.png', run, curve, target_std)
+    print(f'sequential campaign: {final.measurements} poses ({run.initial} initial), '
+          f'stopped: {final.stop_reason}')
+    print(f'  sigma: stated {final.sigma_stated * 1e6:.2f} um, estimated '
+          f'{final.sigma_hat * 1e6:.2f} um, upper {100 * settings.confidence:.1f} % limit '
+          f'{final.sigma_upper * 1e6:.2f} um')
+    for name, std, err, std_true in zip(cm.working_pose_names, final.tcp_std, error,
+                                        run.tcp_std_true):
+        print(f'  {name}: predicted TCP std {np.round(std * 1e6, 2).tolist()} um '
+              f'(target {target_std * 1e6:.2f} um), true error '
+              f'{np.round(err * 1e6, 2).tolist()} um, std with the true sigma '
+              f'{np.round(std_true * 1e6, 2).tolist()} um')
+    times = [s.step_seconds for s in run.history[1:]]
+    if times:
+        print(f'  next-pose step: median {1e3 * float(np.median(times)):.0f} ms, max '
+              f'{1e3 * max(times):.0f} ms')
+    print(f'written: {written}, {poses}, {png}')
+    return 0 if final.stop_reason == 'target met' else 1

@@ -1,0 +1,124 @@
+"""kpi_calib_node in a sequential campaign, end to end (node process, real rclpy, Fast DDS).
+
+A simulated robot client plays the cell controller: it calls ~/design, drives to every
+pose the node publishes on ~/measurement_poses (the initial design, then always the
+first pose of the updated plan), publishes still joint states around each stop and the
+tracker point of a simulated true robot. The campaign must stop by itself with the
+target met, and its figures must equal the same campaign run offline on the same data.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import yaml
+from geometry_msgs.msg import Point, PointStamped
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Header, String
+
+from kpi_calib_ros.app.campaign import campaign_context, new_campaign
+from kpi_calib_ros.core.sequential import TARGET_MET, CampaignSettings
+from kpi_calib_ros.core.simulation import true_parameters
+from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.ros import conversions as cv
+from ros_helpers import KR15_URDF, LATCHED, NS, Client, Spawner
+
+pytestmark = pytest.mark.slow
+TARGET = 15e-6
+SECOND = 1_000_000_000
+
+
+def measure(client: Client, names: list[str], q: np.ndarray, point: np.ndarray,
+            stamp: int) -> None:
+    """The robot still at ``q`` from stamp - 0.4 s to stamp + 0.4 s (50 Hz), the tracker
+    point at ``stamp``."""
+    for dt in range(-400_000_000, 400_000_001, 20_000_000):
+        client.joints.publish(JointState(header=Header(stamp=cv.time_msg(stamp + dt)),
+                                         name=names, position=[float(v) for v in q]))
+    x, y, z = (float(v) for v in point)
+    client.points.publish(PointStamped(header=Header(stamp=cv.time_msg(stamp),
+                                                     frame_id='laser_tracker'),
+                                       point=Point(x=x, y=y, z=z)))
+
+
+def test_sequential_campaign_stops_by_itself_at_the_target(ros_domain, tmp_path):
+    cm = build_cell_model(load_cell(DEFAULT_CELL))
+    rng = np.random.default_rng(31)
+    p_true = true_parameters(cm.model.params, rng)
+    sigma = float(cm.cell.sigma[0])
+    spawn = Spawner(tmp_path)
+    client = Client(ros_domain)
+    client.node.create_subscription(String, f'{NS}/campaign_status',
+                                    client._recorder('campaign_status'), LATCHED)
+    client.description.publish(String(data=KR15_URDF))
+    measured_q: list[np.ndarray] = []
+    measured_eta: list[np.ndarray] = []
+    try:
+        node = spawn(tmp_path / 'data', 'node.log', 'campaign:=sequential',
+                     f'target_tcp_std:={TARGET}', 'max_measurements:=80')
+        client.spin_until(lambda: client.diagnostics().get('state') == 'idle', 60,
+                          'the robot model')
+        answer = client.call('design')
+        assert answer.success, answer.message
+        client.spin_until(lambda: client.received['measurement_poses'], 10, 'the initial design')
+        plan = client.received['measurement_poses'][-1]
+        names = list(plan.joint_names)
+        initial = np.array([p.positions for p in plan.points])
+        stamp = client.node.get_clock().now().nanoseconds
+
+        def go(q: np.ndarray) -> None:
+            nonlocal stamp
+            stamp += 2 * SECOND
+            eta = cm.model.predict(p_true, q[None, :])[0] + rng.normal(scale=sigma, size=3)
+            measure(client, names, q, eta, stamp)
+            measured_q.append(q)
+            measured_eta.append(eta)
+
+        for q in initial:
+            go(q)
+        plans_seen = len(client.received['measurement_poses'])
+        while True:
+            n = len(measured_q)
+
+            def reported(count: int = n) -> bool:
+                docs = [yaml.safe_load(m.data) for m in client.received['campaign_status']]
+                return any(d.get('measurements') == count and 'statistic_m' in d for d in docs)
+            client.spin_until(reported, 60, f'the campaign status after {n} measurements')
+            status = next(d for d in (yaml.safe_load(m.data) for m in
+                                      client.received['campaign_status'])
+                          if d.get('measurements') == n and 'statistic_m' in d)
+            if status['stop_reason'] != 'running':
+                break
+            client.spin_until(lambda seen=plans_seen: len(client.received['measurement_poses'])
+                              > seen, 10, 'the updated plan')
+            plans_seen = len(client.received['measurement_poses'])
+            go(np.array(client.received['measurement_poses'][-1].points[0].positions))
+            assert len(measured_q) < 80, 'the campaign did not stop'
+        print(f'stopped after {status["measurements"]} measurements: '
+              f'{status["stop_reason"]}, TCP std {status["statistic_m"] * 1e6:.2f} µm')
+        assert status['stop_reason'] == TARGET_MET
+        assert status['statistic_m'] <= TARGET
+        assert status['measurements'] == len(measured_q) > len(initial)
+        client.spin_until(lambda: client.diagnostics().get('campaign.stop_reason') == TARGET_MET,
+                          10, 'diagnostics of the stopped campaign')
+        # The finished campaign is calibrated as an automatic identification would.
+        client.spin_until(lambda: any(d['measurements'] == len(measured_q)
+                                      for d in client.received['calibration']),
+                          60, 'the calibration of the finished campaign')
+        node.stop()
+    finally:
+        spawn.kill_all()
+        client.close()
+    # The same campaign offline on the same measurements: same initial design, same plan,
+    # same figures (the node only converts and calls the core).
+    cell, ctx = campaign_context(cm, 0)
+    offline = new_campaign(cm, cell, ctx, CampaignSettings(target_std=TARGET,
+                                                           max_measurements=80), 0)
+    first = ctx.candidates.configurations[offline.initial_design()]
+    assert np.allclose(first, initial, atol=1e-12)
+    q_all, eta_all = np.array(measured_q), np.array(measured_eta)
+    result = offline.add(q_all[:len(initial)], eta_all[:len(initial)])
+    for i in range(len(initial), len(q_all)):
+        assert np.allclose(result.next_configurations[0], q_all[i], atol=1e-9)
+        result = offline.add(q_all[i:i + 1], eta_all[i:i + 1])
+    assert result.stop_reason == TARGET_MET
+    assert result.statistic == pytest.approx(status['statistic_m'], rel=1e-6)

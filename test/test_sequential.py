@@ -1,0 +1,221 @@
+"""Sequential campaign: σ upper limit, lack-of-fit test, plan and stop rules on the real
+identification of the default cell (the Monte Carlo figures are in bench/)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.stats
+import yaml
+
+from kpi_calib_ros.app.campaign import campaign_context, new_campaign, simulate_sequential
+from kpi_calib_ros.cli import main
+from kpi_calib_ros.core.design_exchange import information
+from kpi_calib_ros.core.effects import hidden_effects
+from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.core.sequential import (MAX_MEASUREMENTS, MODEL_INADEQUATE, TARGET_MET,
+                                           CampaignSettings, lack_of_fit, plan_ahead,
+                                           pure_error, sigma_upper_limit)
+from kpi_calib_ros.core.simulation import true_parameters
+from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell, read_cell_document
+from kpi_calib_ros.io.design_io import read_design_poses
+
+
+@pytest.fixture(scope='module')
+def setup():
+    cell_doc = load_cell(DEFAULT_CELL)
+    cm = build_cell_model(cell_doc)
+    cell, ctx = campaign_context(cm, 3, candidates=1000)
+    return cell_doc, cm, cell, ctx
+
+
+def test_sigma_upper_limit_covers_the_true_sigma_at_its_confidence():
+    rng = np.random.default_rng(0)
+    runs, dof, sigma = 20000, 40, 2e-5
+    chi2 = rng.chisquare(dof, size=runs)          # χ² against the true σ
+    upper = np.array([sigma_upper_limit(c, dof, sigma, 0.95) for c in chi2])
+    coverage = np.mean(upper >= sigma)
+    assert abs(coverage - 0.95) < 3 * np.sqrt(0.95 * 0.05 / runs)
+    estimate = sigma * np.sqrt(chi2 / dof)
+    assert np.all(upper >= estimate)               # never below what the data say
+    assert sigma_upper_limit(10.0, 0, sigma, 0.95) == float('inf')
+
+
+def test_pure_error_is_the_scatter_of_repeated_poses():
+    rng = np.random.default_rng(1)
+    q = rng.normal(size=(4, 6))
+    rows = q[[0, 1, 1, 2, 3, 3, 3]]
+    eta = rng.normal(size=(7, 3))
+    w = np.array([2.0, 3.0, 4.0])
+    ss, dof = pure_error(rows, eta, w)
+    expected = sum(np.sum(((eta[idx] - eta[idx].mean(axis=0)) * w) ** 2)
+                   for idx in ([1, 2], [4, 5, 6]))
+    assert dof == 3 * (1 + 2)
+    assert ss == pytest.approx(expected, rel=1e-12)
+
+
+def test_lack_of_fit_false_alarms_at_its_level_and_detects_a_bias_beyond_the_target():
+    """Sums of squares in σ units: pure error χ²(ν_pe); lack of fit χ²(ν_lof) plus a bias
+    b per axis that the model cannot absorb (noncentral, λ = ν_lof b²)."""
+    rng = np.random.default_rng(2)
+    runs, nu_pe, nu_lof, alpha, target = 4000, 15, 60, 0.01, 0.5
+    ss_pe = rng.chisquare(nu_pe, size=runs)
+    for bias, check in ((0.0, lambda r: r <= alpha + 3 * np.sqrt(alpha / runs)),
+                        (target, lambda r: r <= alpha + 3 * np.sqrt(alpha / runs)),
+                        (4 * target, lambda r: r >= 0.9)):
+        ss_lof = (rng.noncentral_chisquare(nu_lof, nu_lof * bias ** 2, size=runs) if bias
+                  else rng.chisquare(nu_lof, size=runs))
+        rejects = np.array([lack_of_fit(a + b, nu_pe + nu_lof, b, nu_pe, target,
+                                        alpha)['rejects'] for a, b in zip(ss_lof, ss_pe)])
+        assert check(rejects.mean()), (bias, rejects.mean())
+    assert lack_of_fit(50.0, 40, 0.0, 0, target, alpha) == {}   # no replicates, no test
+
+
+def test_plan_ahead_keeps_excluded_out_and_beats_the_greedy_sequence(setup):
+    _, cm, cell, ctx = setup
+    rows, loss = ctx.rows, ctx.problem.loss('kpi')
+    start = list(range(10))
+    info = information(rows[start])
+    plan = plan_ahead(rows, info, 8, loss, np.array(start), seconds=5.0)
+    assert len(set(plan.tolist())) == 8 and not set(plan.tolist()) & set(start)
+    greedy, cur = [], info.copy()
+    for _ in range(8):
+        gain = loss.delta(np.linalg.inv(cur), rows, +1.0)
+        gain[start + greedy] = np.inf
+        greedy.append(int(np.argmin(gain)))
+        cur = cur + rows[greedy[-1]].T @ rows[greedy[-1]]
+    planned = loss.value(info + information(rows[plan]))
+    assert planned <= loss.value(cur) * (1 + 1e-12)
+    # The first pose of the plan is the one whose single addition helps most.
+    single = loss.delta(np.linalg.inv(info), rows[plan], +1.0)
+    assert single[0] == single.min()
+
+
+def test_settings_are_validated_with_the_key():
+    with pytest.raises(ConfigError, match='target_tcp_std'):
+        CampaignSettings(target_std=-1e-5)
+    with pytest.raises(ConfigError, match='max_measurements'):
+        CampaignSettings(target_std=1e-5, max_measurements=0)
+
+
+def test_campaign_meets_the_target_and_the_prediction_holds(setup):
+    _, cm, cell, ctx = setup
+    target = 15e-6
+    campaign = new_campaign(cm, cell, ctx, CampaignSettings(target_std=target), seed=0)
+    rng = np.random.default_rng(5)
+    p_true = true_parameters(cm.model.params, rng)
+    run = simulate_sequential(campaign, cm, p_true, float(cm.cell.sigma[0]), rng)
+    final = run.final
+    assert final.stop_reason == TARGET_MET
+    assert final.statistic <= target < run.history[-2].statistic
+    assert final.measurements > run.initial
+    # The stop statistic is eq. (19) at the estimate, scaled to the σ upper limit.
+    res = campaign.result
+    scale = (final.sigma_upper / final.sigma_stated) ** 2
+    assert np.allclose(final.tcp_std ** 2,
+                       np.diagonal(res.tcp_covariance, axis1=1, axis2=2) * scale)
+    assert final.sigma_upper >= final.sigma_hat
+    # Every measured pose after the initial design is a feasible candidate, none twice
+    # (no χ² rejection here, so no replicates).
+    later = run.candidates[run.initial:]
+    assert np.all(later >= 0) and len(set(run.candidates.tolist())) == len(run.candidates)
+    assert np.allclose(run.configurations, ctx.candidates.configurations[run.candidates])
+    # The true TCP error is within 4 std (true σ) on every axis.
+    error = run.tcp_estimated - run.tcp_true
+    assert np.all(np.abs(error) <= 4 * run.tcp_std_true)
+
+
+def test_hidden_compliance_stops_model_inadequate_before_max(setup):
+    cell_doc, cm, cell, ctx = setup
+    effects, overrides = hidden_effects({'joint_compliance:joint_2': {'c': 4.0e-7}}, cm.robot)
+    truth = build_cell_model(cell_doc, effects=effects)
+    settings = CampaignSettings(target_std=10e-6, max_measurements=80)
+    campaign = new_campaign(cm, cell, ctx, settings, seed=1)
+    rng = np.random.default_rng(7)
+    p_true = true_parameters(truth.model.params, rng, overrides=overrides)
+    run = simulate_sequential(campaign, truth, p_true, float(cm.cell.sigma[0]), rng)
+    assert run.final.stop_reason == MODEL_INADEQUATE
+    assert run.final.measurements < settings.max_measurements
+    lof = run.final.lack_of_fit
+    assert lof['rejects'] == 1.0 and lof['bias_rms_m'] > settings.target_std
+    # The replicates were measured again exactly (pure error from them).
+    assert lof['pure_error_dof'] >= 3
+
+
+def test_understated_sigma_is_not_called_model_inadequate(setup):
+    """True σ 2x the stated one, no missing effect: χ² rejects, replicates are taken, the
+    lack-of-fit test stays quiet and the campaign goes on with the σ of the data."""
+    _, cm, cell, ctx = setup
+    settings = CampaignSettings(target_std=10e-6, max_measurements=30)
+    campaign = new_campaign(cm, cell, ctx, settings, seed=2)
+    rng = np.random.default_rng(11)
+    p_true = true_parameters(cm.model.params, rng)
+    sigma = float(cm.cell.sigma[0])
+    run = simulate_sequential(campaign, cm, p_true, 2 * sigma, rng)
+    final = run.final
+    assert final.stop_reason == MAX_MEASUREMENTS
+    assert final.lack_of_fit['pure_error_dof'] >= 3 and final.lack_of_fit['rejects'] == 0.0
+    # σ̂ agrees with the true σ within 3 std of its chi-square spread.
+    rel = 3 * np.sqrt(1 / (2 * final.dof))
+    assert abs(final.sigma_hat / (2 * sigma) - 1) < rel
+    assert final.sigma_upper >= final.sigma_hat
+
+
+def test_cli_plan_and_simulated_campaign(tmp_path):
+    assert main(['campaign', '--cell', str(DEFAULT_CELL), '--target-std', '15e-6',
+                 '--out', str(tmp_path / 'plan')]) == 0
+    names, q = read_design_poses(tmp_path / 'plan' / 'initial_design.yaml')
+    assert names == build_cell_model(load_cell(DEFAULT_CELL)).joint_names and len(q) >= 9
+    assert main(['campaign', '--cell', str(DEFAULT_CELL), '--target-std', '15e-6',
+                 '--simulate', '--seed', '2', '--out', str(tmp_path / 'sim')]) == 0
+    doc = yaml.safe_load((tmp_path / 'sim' / 'campaign.yaml').read_text())
+    assert doc['status']['stop_reason'] == TARGET_MET
+    assert doc['status']['statistic_m'] <= 15e-6
+    assert (tmp_path / 'sim' / 'campaign_tcp_std.png').stat().st_size > 10_000
+    _, poses = read_design_poses(tmp_path / 'sim' / 'campaign_poses.yaml')
+    assert len(poses) == doc['status']['measurements']
+    assert main(['campaign', '--cell', str(DEFAULT_CELL), '--target-std', '-1',
+                 '--out', str(tmp_path / 'bad')]) == 2
+
+
+def test_chi2_quantile_used_is_the_lower_tail():
+    # σ_u² = σ² χ² / χ²_dof(0.05): at χ² = dof the limit exceeds σ by the known factor.
+    dof = 100
+    assert sigma_upper_limit(dof, dof, 1.0, 0.95) == pytest.approx(
+        np.sqrt(dof / scipy.stats.chi2.ppf(0.05, dof)))
+
+
+@pytest.mark.parametrize('changes, key', [
+    ({'campaign': 'adaptive'}, 'campaign'),
+    ({'target_tcp_std': -1e-5}, 'target_tcp_std'),
+    ({'target_tcp_std': float('nan')}, 'target_tcp_std'),
+    ({'max_measurements': 0}, 'max_measurements'),
+])
+def test_node_campaign_parameters_are_validated_with_their_name(changes, key):
+    from rclpy.parameter import Parameter
+
+    from kpi_calib_ros.ros.parameters import PARAMETERS, settings_from_parameters
+    values = {k: ([] if isinstance(v[0], Parameter.Type) else v[0])
+              for k, v in PARAMETERS.items()}
+    settings = settings_from_parameters(values)
+    assert (settings.campaign, settings.target_tcp_std, settings.max_measurements) == (
+        'fixed', 1.0e-5, 200)
+    values.update(changes)
+    with pytest.raises(ConfigError, match=key):
+        settings_from_parameters(values)
+
+
+def test_a_cell_with_several_reflectors_is_refused_by_name(tmp_path, capsys):
+    """The campaign measures one point per pose: a several-reflector cell gets exit 2 and
+    the key, not a campaign that silently drops the other reflectors."""
+    doc = read_cell_document(DEFAULT_CELL)
+    doc['reflector'].pop('offset')
+    doc['reflectors'] = [{'name': 'a', 'offset': [0.0, 0.0, 0.03]},
+                         {'name': 'b', 'offset': [0.06, 0.0, 0.03]}]
+    doc['robot']['urdf'] = str((DEFAULT_CELL.parent / doc['robot']['urdf']).resolve())
+    cell = tmp_path / 'cell.yaml'
+    cell.write_text(yaml.safe_dump(doc))
+    capsys.readouterr()
+    rc = main(['campaign', '--cell', str(cell), '--target-std', '15e-6',
+               '--out', str(tmp_path / 'plan')])
+    err = capsys.readouterr().err
+    assert rc == 2 and 'reflectors' in err and 'fixed design' in err, err
