@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kpi_calib_ros.core.estimation import FTOL, STALLED, Tolerances, _gauss_newton, identify
+from kpi_calib_ros.core.estimation import (FTOL, STALLED, STATISTICAL, Tolerances,
+                                           _gauss_newton, identify)
 from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
                                           true_parameters)
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
@@ -45,5 +46,5 @@ def test_a_cost_test_while_the_step_still_promises_a_decrease_is_a_stall(cell, t
     again = identify(cell.model, data, SIGMA, cell.q_work, p0=plain.values,
                      tolerances=Tolerances(ftol=1.0, gtol=0.0, xtol=0.0, pred_tol=0.0,
                                            roundoff=0.0))
-    assert again.status == FTOL and again.converged
+    assert again.converged and again.status in (FTOL, STATISTICAL)
     assert again.chi2 == pytest.approx(plain.chi2, rel=1e-6)
