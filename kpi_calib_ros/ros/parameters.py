@@ -38,6 +38,7 @@ class NodeSettings:
     auto_identify: bool
     data_dir: str
     allow_code_effects: bool = False
+    reidentify_with_prior: bool = True
 
 
 # name: (default or parameter type when empty, read only, description)
@@ -62,6 +63,9 @@ PARAMETERS: dict[str, tuple[Any, bool, str]] = {
     'auto_identify': (True, False, 'identify when min_measurements is reached, and again '
                       'as more measurements arrive'),
     'data_dir': ('~/.ros/kpi_calib', True, 'measurement log and results (created if missing)'),
+    'reidentify_with_prior': (True, False, 'identify with the last calibration of an earlier '
+                              'cycle (data_dir/calibrations/) as prior, widened by the '
+                              'default drift model; a change beyond it is not blended'),
     'allow_code_effects': (False, True, "run the Python code a cell file's effects: name "
                            "('file.py:Type:joint', 'module:Type:joint'); off: only built-in "
                            'and installed (entry point) effects'),
@@ -119,7 +123,7 @@ def settings_from_parameters(values: dict[str, Any]) -> NodeSettings:
     if values['criterion'] not in DESIGN_CRITERIA:
         raise ConfigError('criterion', f'must be one of {list(DESIGN_CRITERIA)}, '
                           f'got {values["criterion"]!r}')
-    for key in ('auto_identify', 'allow_code_effects'):
+    for key in ('auto_identify', 'allow_code_effects', 'reidentify_with_prior'):
         if not isinstance(values[key], bool):
             raise ConfigError(key, f'must be true or false, got {values[key]!r}')
     topics = {k: topic(k) for k in ('robot_description_topic', 'joint_states_topic',
@@ -136,6 +140,7 @@ def settings_from_parameters(values: dict[str, Any]) -> NodeSettings:
         criterion=values['criterion'], design_seed=integer('design_seed', 0),
         min_measurements=integer('min_measurements', 1),
         auto_identify=values['auto_identify'], allow_code_effects=values['allow_code_effects'],
+        reidentify_with_prior=values['reidentify_with_prior'],
         data_dir=str(Path(text('data_dir')).expanduser()), **topics)
 
 
