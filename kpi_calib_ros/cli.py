@@ -176,12 +176,17 @@ def _simulate(args: argparse.Namespace) -> int:
 
 
 def _identify(args: argparse.Namespace) -> int:
+    options = {'joint_topic': args.joint_topic, 'point_topic': args.point_topic,
+               'allow_code_effects': args.allow_code_effects}
+    if args.prior:
+        from kpi_calib_ros.app.reidentify import run_reidentify
+        return run_reidentify(args.cell, args.bag, args.out, args.prior, effects=args.effects,
+                              model=args.model, drift=args.drift_per_hour,
+                              keep_placement=args.keep_placement,
+                              drift_model=args.drift_model, **options)
     from kpi_calib_ros.app.identify import run_identify
     return run_identify(args.cell, args.bag, args.out, effects=args.effects, model=args.model,
-                        prior_path=args.prior, drift=args.drift_per_hour,
-                        keep_placement=args.keep_placement, drift_model=args.drift_model,
-                        joint_topic=args.joint_topic, point_topic=args.point_topic,
-                        allow_code_effects=args.allow_code_effects)
+                        **options)
 
 
 def _design(args: argparse.Namespace) -> int:

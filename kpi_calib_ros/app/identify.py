@@ -29,8 +29,7 @@ from kpi_calib_ros.core.registration import Registration, register
 from kpi_calib_ros.core.robust import (LOSS_SCALE, RobustResult, gross_outliers,
                                        robust_identify, subset)
 from kpi_calib_ros.core.precision import honest_precision
-from kpi_calib_ros.core.prior import (DRIFT_ANGLE_PER_SQRT_HOUR, DRIFT_LENGTH_PER_SQRT_HOUR,
-                                      Prior, tolerance_prior)
+from kpi_calib_ros.core.prior import Prior, tolerance_prior
 from kpi_calib_ros.core.streams import JointSample, PointSample
 from kpi_calib_ros.io.bag import read_for_pairing
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
@@ -445,38 +444,25 @@ def load_measurements(cell_path: str | Path, bag_path: str | Path, effects: str 
 
 
 def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Path,
-                 effects: str = '', model: str | None = None,
-                 prior_path: str | Path | None = None,
-                 drift: tuple[float, ...] = (DRIFT_LENGTH_PER_SQRT_HOUR,
-                                             DRIFT_ANGLE_PER_SQRT_HOUR),
-                 keep_placement: bool = False, drift_model: str = 'thermal',
-                 **options: Any) -> int:
+                 effects: str = '', model: str | None = None, **options: Any) -> int:
     """``kpi-calib identify``: calibration.yaml and the calibrated URDF
     (:data:`~kpi_calib_ros.io.names.CALIBRATED_URDF_FILE`) in ``out_dir`` (checked first),
     a summary on stdout; ``options`` as for :func:`load_measurements`.
 
-    ``model`` overrides the cell's ``identification.model``; ``prior_path`` (``--prior``)
-    a previous calibration.yaml used as the prior instead of the cell's
-    ``identification.prior``, widened by ``drift`` (relative length, joint offset angle
-    and optionally placement rotation, rad; per √hour; ``drift_model`` thermal or
-    isotropic; ``keep_placement``: the base and reflector placement in the prior too):
-    see :func:`kpi_calib_ros.app.reidentify.run_reidentify`,
-    which also exits with 3 when the new points contradict the prior. Returns 0 for a
-    valid calibration; 1 when it did not converge or the TCP is not estimable (then the
-    document goes to calibration.failed.yaml, and an existing calibration.yaml is left as
-    it was).
+    ``model`` overrides the cell's ``identification.model``; the cell's
+    ``identification.prior`` (tolerances) is used when set. With a previous calibration as
+    prior (``--prior``) the CLI runs :func:`kpi_calib_ros.app.reidentify.run_reidentify`
+    instead. Returns 0 for a valid calibration; 1 when it did not converge or the TCP is
+    not estimable (then the document goes to calibration.failed.yaml, and an existing
+    calibration.yaml is left as it was).
     """
-    if prior_path:
-        from kpi_calib_ros.app.reidentify import run_reidentify
-        return run_reidentify(cell_path, bag_path, out_dir, prior_path, effects, model,
-                              drift, keep_placement, drift_model, **options)
     writable_folder(out_dir, '--out')
     cm, data, pairing = load_measurements(cell_path, bag_path, effects, **options)
-    prior, how = None, ''
+    how = ''
     if cm.cell.identification.prior is not None:
         how = ('prior: nominal tolerances (translation, rotation, offset std) '
                f'{list(cm.cell.identification.prior)} (identification.prior)')
-    cal = calibrate_cell(cm, data, model, prior)
+    cal = calibrate_cell(cm, data, model)
     doc = add_robust_sections(calibration_document(cm, cal.result, pairing), cal)
     if how:
         doc['prior'] = {'source': 'identification.prior', 'description': how}
