@@ -277,7 +277,8 @@ def _rms(a: np.ndarray, axis=0) -> np.ndarray:
 def report(runs, tables, bends, length_rate, angle_rate, design10, t60, t10, seconds,
            quick) -> None:
     cmd = (f'.venv/bin/python bench/work_cycles.py {runs}' + (' --quick' if quick else '')
-           + ('' if MAX_GROWTH == 100e-6 else f' --growth-um={MAX_GROWTH * 1e6:g}'))
+           + ('' if MAX_GROWTH == 100e-6 else f' --growth-um={MAX_GROWTH * 1e6:g}')
+           + ('' if OFFSET_DRIFT == 0.05e-3 else f' --offset-mrad={OFFSET_DRIFT * 1e3:g}'))
     lines = ['# Re-identification over work cycles', '',
              f'`{cmd}` ({seconds / 60:.1f} min on one core; OPENBLAS_NUM_THREADS=1). '
              'Setting in the script docstring.', '',
@@ -335,7 +336,13 @@ def report(runs, tables, bends, length_rate, angle_rate, design10, t60, t10, sec
 if __name__ == '__main__':
     args = [a for a in sys.argv[1:] if not a.startswith('--')]
     growth = [a.split('=', 1)[1] for a in sys.argv[1:] if a.startswith('--growth-um=')]
+    offset = [a.split('=', 1)[1] for a in sys.argv[1:] if a.startswith('--offset-mrad=')]
+    suffix = ''
     if growth:  # sensitivity: another thermal amplitude (drift model matched to it)
         MAX_GROWTH = float(growth[0]) * 1e-6
-        OUT = OUT.with_name(f'work_cycles_growth{growth[0]}um.md')
+        suffix += f'_growth{growth[0]}um'
+    if offset:  # sensitivity: another offset drift amplitude (drift model matched to it)
+        OFFSET_DRIFT = float(offset[0]) * 1e-3
+        suffix += f'_offset{offset[0]}mrad'
+    OUT = OUT.with_name(f'work_cycles{suffix}.md')
     main(int(args[0]) if args else 20, '--quick' in sys.argv)
