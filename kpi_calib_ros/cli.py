@@ -32,15 +32,16 @@ def _bag_topics(parser: argparse.ArgumentParser) -> None:
 
 
 def _drift(text: str) -> tuple[float, ...]:
-    """``--drift-per-hour LENGTH,ANGLE[,ROTATION]``: two or three numbers >= 0."""
+    """``--drift-per-hour LENGTH,ANGLE[,ROTATION[,PLACEMENT]]``: two to four numbers >= 0."""
     try:
         rates = tuple(float(x) for x in text.split(','))
     except ValueError:
         rates = ()
-    if len(rates) not in (2, 3):
-        raise argparse.ArgumentTypeError(f'{text!r}: give LENGTH,ANGLE[,ROTATION], e.g. '
-                                         '1.2e-5,2e-5 (relative length, joint offset and '
-                                         'placement rotation in rad, per √hour)')
+    if len(rates) not in (2, 3, 4):
+        raise argparse.ArgumentTypeError(f'{text!r}: give LENGTH,ANGLE[,ROTATION[,PLACEMENT]], '
+                                         'e.g. 1.2e-5,2e-5 (relative length, joint offset and '
+                                         'placement rotation in rad, relative base position; '
+                                         'per √hour)')
     if not all(0 <= r < float('inf') for r in rates):
         raise argparse.ArgumentTypeError(f'{text!r}: the rates must be finite and >= 0')
     return rates
@@ -74,11 +75,12 @@ def main(argv: list[str] | None = None) -> int:
     ide.add_argument('--prior', metavar='OLD/calibration.yaml',
                      help="a previous calibration as Gaussian prior (its values and "
                      "parameter_covariance; replaces the cell's identification.prior)")
-    ide.add_argument('--drift-per-hour', type=_drift, metavar='LENGTH,ANGLE[,ROTATION]',
+    ide.add_argument('--drift-per-hour', type=_drift, metavar='LENGTH,ANGLE[,ROTATION[,PLACEMENT]]',
                      default=(DRIFT_LENGTH_PER_SQRT_HOUR, DRIFT_ANGLE_PER_SQRT_HOUR),
                      help='random-walk drift that widens --prior per √hour since its '
                      'identified_at_ns: relative length change (thermal growth), joint offset '
-                     'angle (rad) and placement rotation (rad, default: ANGLE); default '
+                     'angle (rad), placement rotation (rad, default: ANGLE) and relative base '
+                     'position change (default: LENGTH); default '
                      f'{DRIFT_LENGTH_PER_SQRT_HOUR:g},{DRIFT_ANGLE_PER_SQRT_HOUR:g}')
     ide.add_argument('--drift-model', choices=['thermal', 'isotropic'], default='thermal',
                      help='thermal (default): each translation grows along its nominal '
@@ -138,7 +140,7 @@ def main(argv: list[str] | None = None) -> int:
     des.add_argument('--hours', type=float, default=1.0,
                      help='drift time from the --prior calibration to the measurement '
                      '(default 1 h)')
-    des.add_argument('--drift-per-hour', type=_drift, metavar='LENGTH,ANGLE[,ROTATION]',
+    des.add_argument('--drift-per-hour', type=_drift, metavar='LENGTH,ANGLE[,ROTATION[,PLACEMENT]]',
                      default=(DRIFT_LENGTH_PER_SQRT_HOUR, DRIFT_ANGLE_PER_SQRT_HOUR),
                      help='drift rates as for identify --prior')
     des.add_argument('--drift-model', choices=['thermal', 'isotropic'], default='thermal')

@@ -127,7 +127,8 @@ def run_design(cell_path: str | Path, n: int, criterion: str, out: str | Path,
         old = read_calibration_document(prior_path, '--prior')
         cp = cycle_prior(cm, old, None, drift[0], drift[1], keep_placement=keep_placement,
                          drift_model=drift_model, hours=hours,
-                         rotation_rate=drift[2] if len(drift) > 2 else None)
+                         rotation_rate=drift[2] if len(drift) > 2 else None,
+                         placement_rate=drift[3] if len(drift) > 3 else None)
         prior, p, allowed = cp.prior, cm.model.params.with_values(cp.values), cp.allowed
         prior_doc = {'source': str(prior_path), 'description': cp.description,
                      'hours': float(hours), 'keep_placement': keep_placement}

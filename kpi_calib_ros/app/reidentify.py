@@ -104,8 +104,8 @@ def cycle_prior(cm: CellModel, doc: dict[str, Any], data: Measurements | None,
                 length_rate: float = DRIFT_LENGTH_PER_SQRT_HOUR,
                 angle_rate: float = DRIFT_ANGLE_PER_SQRT_HOUR,
                 keep_placement: bool = False, drift_model: str = 'thermal',
-                hours: float | None = None, rotation_rate: float | None = None
-                ) -> CyclePrior:
+                hours: float | None = None, rotation_rate: float | None = None,
+                placement_rate: float | None = None) -> CyclePrior:
     """The previous calibration ``doc`` (calibration.yaml) as the prior of ``data``.
 
     Drift (:func:`kpi_calib_ros.core.prior.drift_widened`) over the time from its
@@ -114,7 +114,9 @@ def cycle_prior(cm: CellModel, doc: dict[str, Any], data: Measurements | None,
     translation along its nominal vector (rank one, the physics of thermal expansion),
     ``isotropic`` each axis independently by ``length_rate`` × the vector's length;
     joint offsets by ``angle_rate`` and placement rotations by ``rotation_rate``
-    (default ``angle_rate``) either way.
+    (default ``angle_rate``) either way. The base position in the tracker frame and the
+    reflector offsets grow by ``placement_rate`` (relative, per √hour; default
+    ``length_rate``: the floor between tracker and robot expands like the arm).
 
     Raises
     ------
@@ -137,11 +139,15 @@ def cycle_prior(cm: CellModel, doc: dict[str, Any], data: Measurements | None,
         if joint.kind == 'prismatic':
             lengths[f'{joint.name}.offset'] = float(max(abs(joint.lower), abs(joint.upper)))
     rotation = angle_rate if rotation_rate is None else rotation_rate
+    placement = length_rate if placement_rate is None else placement_rate
+    if placement < 0:
+        raise DataError(f'placement drift rate must be >= 0, got {placement}')
     stamp = doc.get('identified_at_ns')
     if hours is not None:
         how = (f'prior calibration widened for {abs(hours):.3g} h of {drift_model} drift '
                f'(lengths {length_rate:.3g}/√h relative, offsets {angle_rate:.3g} rad/√h, '
-               f'placement rotations {rotation:.3g} rad/√h)')
+               f'placement rotations {rotation:.3g} rad/√h, base and reflector position '
+               f'{placement:.3g}/√h relative)')
     elif stamp is None or data is None or data.stamps_ns is None or not len(data.stamps_ns):
         hours = 0.0
         how = ('prior calibration NOT widened for drift: '
@@ -151,7 +157,8 @@ def cycle_prior(cm: CellModel, doc: dict[str, Any], data: Measurements | None,
         hours = (int(np.min(data.stamps_ns)) - int(stamp)) / 3.6e12
         how = (f'prior calibration widened for {abs(hours):.3g} h of {drift_model} drift '
                f'(lengths {length_rate:.3g}/√h relative, offsets {angle_rate:.3g} rad/√h, '
-               f'placement rotations {rotation:.3g} rad/√h)')
+               f'placement rotations {rotation:.3g} rad/√h, base and reflector position '
+               f'{placement:.3g}/√h relative)')
     how += ('; base and reflector placement in the prior (not moved)' if keep_placement
             else '; base and reflector placement identified anew')
     old_identified = set(doc['parameter_covariance']['names'])
@@ -161,9 +168,19 @@ def cycle_prior(cm: CellModel, doc: dict[str, Any], data: Measurements | None,
     # The drift of every parameter, mapped onto the identified ones (the held ones' drift
     # shows in them; core.prior.mapped_drift), on the configurations the robot reaches.
     geometric = set(cm.geometric.names)
-    q_full = drift_covariance(params.names, lengths, length_rate, angle_rate,
-                              link_vectors=vectors if drift_model == 'thermal' else None,
-                              drifting=lambda n: n in geometric, rotation_rate=rotation_rate)
+    thermal = drift_model == 'thermal'
+    placed = {n for triple in vectors for n in triple if n.startswith(PLACEMENT_PREFIXES)}
+    q_full = drift_covariance(params.names, {n: v for n, v in lengths.items()
+                                             if n not in placed},
+                              length_rate, angle_rate,
+                              link_vectors={t: v for t, v in vectors.items()
+                                            if t[0] not in placed} if thermal else None,
+                              drifting=lambda n: n in geometric and n not in placed,
+                              rotation_rate=rotation_rate)
+    q_full += drift_covariance(params.names, {n: lengths[n] for n in placed}, placement,
+                               0.0, link_vectors={t: v for t, v in vectors.items()
+                                                  if t[0] in placed} if thermal else None,
+                               drifting=lambda n: n in placed, rotation_rate=0.0)
     start = params.with_values(values)
     configurations = random_configurations(cm.model, start, DRIFT_MAP_POSES,
                                            np.random.default_rng(0))
@@ -281,7 +298,8 @@ def run_reidentify(cell_path: str | Path, bag_path: str | Path, out_dir: str | P
     cm, data, pairing = load_measurements(cell_path, bag_path, effects, **options)
     cp = cycle_prior(cm, old, data, drift[0], drift[1], keep_placement=keep_placement,
                      drift_model=drift_model,
-                     rotation_rate=drift[2] if len(drift) > 2 else None)
+                     rotation_rate=drift[2] if len(drift) > 2 else None,
+                     placement_rate=drift[3] if len(drift) > 3 else None)
     out = reidentify(cm, data, cp, model)
     doc = reidentification_document(cm, out, cp, str(prior_path), pairing)
     path, urdf_path, _ = write_results(cm, (out.calibration.result if out.calibration
