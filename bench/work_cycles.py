@@ -249,8 +249,10 @@ def bend_study(cm, runs: int, d60, d10, length_rate: float, angle_rate: float, s
                                  placement_rate=PLACEMENT_RATE)
                 res = reidentify(cm, data, cp)
                 if k < BEND_CYCLE:
-                    if res.calibration is None:
-                        break  # a false alarm before the bend: counted as a miss
+                    if res.calibration is None:  # a false alarm before the bend: a miss
+                        cases.append(f'{jumped}: false alarm at cycle {k}, before the bend '
+                                     '(counted as not detected)')
+                        break
                     doc = reidentification_document(cm, res, cp, 'previous cycle')
                     doc['identified_at_ns'] = int(data.stamps_ns[0])
                     continue
