@@ -34,16 +34,20 @@ def _bag_topics(parser: argparse.ArgumentParser) -> None:
                         f"cell's topics.pose, else {DEFAULT_POSE_TOPIC})")
 
 
-def _drift(text: str) -> tuple[float, float]:
-    """``--drift-per-hour LENGTH,ANGLE``: two numbers >= 0."""
+def _drift(text: str) -> tuple[float, ...]:
+    """``--drift-per-hour LENGTH,ANGLE[,ROTATION[,PLACEMENT]]``: two to four numbers >= 0."""
     try:
-        length, angle = (float(x) for x in text.split(','))
+        rates = tuple(float(x) for x in text.split(','))
     except ValueError:
-        raise argparse.ArgumentTypeError(f'{text!r}: give LENGTH,ANGLE, e.g. 1.2e-5,2e-5 '
-                                         '(relative length and rad per √hour)') from None
-    if not (0 <= length < float('inf') and 0 <= angle < float('inf')):
-        raise argparse.ArgumentTypeError(f'{text!r}: both rates must be finite and >= 0')
-    return length, angle
+        rates = ()
+    if len(rates) not in (2, 3, 4):
+        raise argparse.ArgumentTypeError(f'{text!r}: give LENGTH,ANGLE[,ROTATION[,PLACEMENT]], '
+                                         'e.g. 1.2e-5,2e-5 (relative length, joint offset and '
+                                         'placement rotation in rad, relative base position; '
+                                         'per √hour)')
+    if not all(0 <= r < float('inf') for r in rates):
+        raise argparse.ArgumentTypeError(f'{text!r}: the rates must be finite and >= 0')
+    return rates
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -59,7 +63,9 @@ def main(argv: list[str] | None = None) -> int:
                      '(default: random measurable, collision-free poses)')
     sim.add_argument('--allow-code-effects', action='store_true', help=CODE_EFFECTS_HELP)
 
-    ide = sub.add_parser('identify', help='identify parameters from a bag')
+    ide = sub.add_parser('identify', help='identify parameters from a bag; exit 0 valid, 1 '
+                         'not valid, 2 error, 3 (with --prior) a change beyond the drift '
+                         'model: not blended')
     ide.add_argument('--cell', required=True)
     ide.add_argument('--bag', required=True, help='MCAP bag with joint states and tracker points')
     ide.add_argument('--out', required=True, help='output folder')
@@ -72,12 +78,19 @@ def main(argv: list[str] | None = None) -> int:
     ide.add_argument('--prior', metavar='OLD/calibration.yaml',
                      help="a previous calibration as Gaussian prior (its values and "
                      "parameter_covariance; replaces the cell's identification.prior)")
-    ide.add_argument('--drift-per-hour', type=_drift, metavar='LENGTH,ANGLE',
+    ide.add_argument('--drift-per-hour', type=_drift, metavar='LENGTH,ANGLE[,ROTATION[,PLACEMENT]]',
                      default=(DRIFT_LENGTH_PER_SQRT_HOUR, DRIFT_ANGLE_PER_SQRT_HOUR),
                      help='random-walk drift that widens --prior per √hour since its '
-                     'identified_at_ns: relative length change (thermal growth) and angle '
-                     f'(rad); default {DRIFT_LENGTH_PER_SQRT_HOUR:g},'
-                     f'{DRIFT_ANGLE_PER_SQRT_HOUR:g}')
+                     'identified_at_ns: relative length change (thermal growth), joint offset '
+                     'angle (rad), placement rotation (rad, default: ANGLE) and relative base '
+                     'position change (default: LENGTH); default '
+                     f'{DRIFT_LENGTH_PER_SQRT_HOUR:g},{DRIFT_ANGLE_PER_SQRT_HOUR:g}')
+    ide.add_argument('--drift-model', choices=['thermal', 'isotropic'], default='thermal',
+                     help='thermal (default): each translation grows along its nominal '
+                     'vector (thermal expansion); isotropic: every axis independently')
+    ide.add_argument('--keep-placement', action='store_true',
+                     help='tracker and reflector nest not moved since --prior: keep the base '
+                     'and reflector placement in the prior (default: identified anew)')
     _bag_topics(ide)
     ide.add_argument('--allow-code-effects', action='store_true', help=CODE_EFFECTS_HELP)
 
@@ -124,6 +137,18 @@ def main(argv: list[str] | None = None) -> int:
     des.add_argument('--criterion', choices=['kpi', 'A', 'D', 'random'], default='kpi')
     des.add_argument('--out', required=True, help='output design.yaml')
     des.add_argument('--seed', type=int, default=0)
+    des.add_argument('--prior', metavar='OLD/calibration.yaml',
+                     help='design the poses of a re-identification: the KPI criterion with '
+                     "this calibration's information (prior precision) added")
+    des.add_argument('--hours', type=float, default=1.0,
+                     help='drift time from the --prior calibration to the measurement '
+                     '(default 1 h)')
+    des.add_argument('--drift-per-hour', type=_drift, metavar='LENGTH,ANGLE[,ROTATION[,PLACEMENT]]',
+                     default=(DRIFT_LENGTH_PER_SQRT_HOUR, DRIFT_ANGLE_PER_SQRT_HOUR),
+                     help='drift rates as for identify --prior')
+    des.add_argument('--drift-model', choices=['thermal', 'isotropic'], default='thermal')
+    des.add_argument('--keep-placement', action='store_true',
+                     help='as for identify --prior: base and reflector placement in the prior')
     des.add_argument('--allow-code-effects', action='store_true', help=CODE_EFFECTS_HELP)
 
     cam = sub.add_parser('campaign', help='sequential campaign: each next pose from what has '
@@ -172,17 +197,28 @@ def _simulate(args: argparse.Namespace) -> int:
 
 
 def _identify(args: argparse.Namespace) -> int:
+    options = {'joint_topic': args.joint_topic, 'point_topic': args.point_topic,
+               'pose_topic': args.pose_topic,
+               'allow_code_effects': args.allow_code_effects}
+    if args.prior:
+        from kpi_calib_ros.app.reidentify import run_reidentify
+        return run_reidentify(args.cell, args.bag, args.out, args.prior, effects=args.effects,
+                              model=args.model, drift=args.drift_per_hour,
+                              keep_placement=args.keep_placement,
+                              drift_model=args.drift_model, **options)
     from kpi_calib_ros.app.identify import run_identify
     return run_identify(args.cell, args.bag, args.out, effects=args.effects, model=args.model,
-                        prior_path=args.prior, drift=args.drift_per_hour,
-                        joint_topic=args.joint_topic, point_topic=args.point_topic,
-                        pose_topic=args.pose_topic, allow_code_effects=args.allow_code_effects)
+                        **options)
 
 
 def _design(args: argparse.Namespace) -> int:
     from kpi_calib_ros.app.design import run_design
+    if not (args.hours >= 0 and args.hours < float('inf')):
+        raise ValueError(f'--hours must be finite and >= 0, got {args.hours}')
     return run_design(args.cell, args.n, args.criterion, args.out, seed=args.seed,
-                      allow_code_effects=args.allow_code_effects)
+                      allow_code_effects=args.allow_code_effects, prior_path=args.prior,
+                      hours=args.hours, drift=args.drift_per_hour,
+                      keep_placement=args.keep_placement, drift_model=args.drift_model)
 
 
 def _campaign(args: argparse.Namespace) -> int:

@@ -231,3 +231,18 @@ def test_design_command_writes_yaml_and_plots(tmp_path):
     assert len(doc['constraints']['min_margin_m']) == 15
     assert (tmp_path / 'design_poses.png').stat().st_size > 10_000
     assert (tmp_path / 'design_ellipsoids.png').stat().st_size > 10_000
+
+
+def test_exchange_at_the_smallest_size_completes_when_a_removal_is_singular():
+    """9 poses for 25 parameters: without one pose 24 equations remain, and round-off let
+    the loss of that singular information look finite (the inverse then raised); the
+    removal is skipped, the design is nonsingular and its loss finite."""
+    from kpi_calib_ros.app.campaign import campaign_context
+    cm = build_cell_model(load_cell(DEFAULT_CELL))
+    cell, ctx = campaign_context(cm, 0)
+    rows = ctx.problem.rows(cell.model, ctx.candidates.configurations)
+    n = int(np.ceil(ctx.problem.k / 3))
+    res = exchange(rows, n, ctx.problem.loss('kpi'), np.random.default_rng(21))  # one that hit it
+    assert len(set(res.selected)) == n and np.isfinite(res.loss) and res.loss > 0
+    info = sum(r.T @ r for r in rows[res.selected])
+    assert np.linalg.matrix_rank(info) == ctx.problem.k

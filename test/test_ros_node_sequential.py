@@ -23,7 +23,10 @@ from kpi_calib_ros.ros import conversions as cv
 from ros_helpers import KR15_URDF, LATCHED, NS, Client, Spawner
 
 pytestmark = pytest.mark.slow
-TARGET = 15e-6
+# Below what the initial design reaches at the stated σ (about 17 µm for its 12 poses), so the
+# node must plan and the client drive to further poses; at 15 µm a low noise draw let the
+# initial design alone meet it and the loop was never exercised.
+TARGET = 12e-6
 SECOND = 1_000_000_000
 
 

@@ -7,15 +7,18 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from kpi_calib_ros.core.design import DesignResult, design_context, design_measurements
 from kpi_calib_ros.core.estimability import KpiEstimability, result_estimability
 from kpi_calib_ros.core.model_selection import level_free
+from kpi_calib_ros.core.prior import (DRIFT_ANGLE_PER_SQRT_HOUR, DRIFT_LENGTH_PER_SQRT_HOUR,
+                                      Prior)
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
 from kpi_calib_ros.io.design_io import plot_design, plot_ellipsoids, summary_text, write_design
+from kpi_calib_ros.io.results import read_calibration_document
 from kpi_calib_ros.io.robot_geometry import mesh_check
 
 
@@ -61,20 +64,31 @@ def mesh_verified(cm: CellModel, result: DesignResult) -> tuple[DesignResult, di
     return dataclasses.replace(result, verification=verification, status=status), doc
 
 
-def design_estimability(cm: CellModel, configurations: np.ndarray) -> KpiEstimability:
+def design_estimability(cm: CellModel, configurations: np.ndarray,
+                        prior: Prior | None = None, p: np.ndarray | None = None,
+                        allowed: Sequence[str] | None = None) -> KpiEstimability:
     """Whether measuring ``configurations`` (N, n) determines the TCP at every working
     pose, for the cell's model level (``auto``: the full geometric model, the most
-    demanding), at the nominal parameters."""
-    level = cm.cell.identification.model
-    free = level_free(cm.model.params, 'geometric' if level == 'auto' else level,
-                      len(cm.geometric))
+    demanding), at the nominal parameters (or ``p``); with ``prior`` (whose information
+    counts) and ``allowed`` (the parameters a re-identification frees)."""
+    free = design_free(cm, allowed)
     # Every reflector is measured at every designed pose: R rows per configuration.
     n_ref = cm.model.n_reflectors
     rows = np.repeat(np.atleast_2d(configurations), n_ref, axis=0)
     reflector = np.tile(np.arange(n_ref), len(np.atleast_2d(configurations)))
-    return result_estimability(cm.model, rows, cm.cell.sigma, cm.model.params.nominal,
-                               cm.q_work, cm.working_pose_names, free,
+    return result_estimability(cm.model, rows, cm.cell.sigma,
+                               cm.model.params.nominal if p is None else p,
+                               cm.q_work, cm.working_pose_names, free, prior=prior,
                                reflector=reflector if n_ref > 1 else None)
+
+
+def design_free(cm: CellModel, allowed: Sequence[str] | None = None) -> list[str]:
+    """Free parameters of the cell's model level (``auto``: geometric), within
+    ``allowed`` when given."""
+    level = cm.cell.identification.model
+    free = level_free(cm.model.params, 'geometric' if level == 'auto' else level,
+                      len(cm.geometric))
+    return free if allowed is None else [n for n in free if n in set(allowed)]
 
 
 def controller_design(cm: CellModel, design: DesignResult) -> DesignResult:
@@ -88,16 +102,39 @@ def controller_design(cm: CellModel, design: DesignResult) -> DesignResult:
 
 
 def run_design(cell_path: str | Path, n: int, criterion: str, out: str | Path,
-               seed: int = 0, allow_code_effects: bool = False) -> int:
+               seed: int = 0, allow_code_effects: bool = False,
+               prior_path: str | Path | None = None, hours: float = 1.0,
+               drift: tuple[float, ...] = (DRIFT_LENGTH_PER_SQRT_HOUR,
+                                           DRIFT_ANGLE_PER_SQRT_HOUR),
+               keep_placement: bool = False, drift_model: str = 'thermal') -> int:
     """``kpi-calib design``: design.yaml, ``<stem>_poses.png`` and ``<stem>_ellipsoids.png``
     (heuristic vs this design) and a summary on stdout.
 
-    Returns 0, or 1 when the independent verification failed.
+    ``prior_path`` (``--prior``): a previous calibration whose information every design
+    has (the KPI criterion with the prior precision added), widened by ``drift`` for
+    ``hours`` (:func:`kpi_calib_ros.app.reidentify.cycle_prior`, the same prior the
+    re-identification of the measured poses will use) and linearised at its values.
+
+    Returns 0, or 1 when the independent verification failed or the design (with the
+    prior) leaves the KPI not estimable.
     """
     cm = build_cell_model(load_cell(cell_path, allow_code_effects=allow_code_effects))
     cell, settings = cm.design_cell(), cm.cell.design
     rng = np.random.default_rng(seed)
-    context = design_context(cell, rng, settings)
+    prior, p, allowed, prior_doc = None, None, None, None
+    if prior_path is not None:
+        from kpi_calib_ros.app.reidentify import cycle_prior
+        old = read_calibration_document(prior_path, '--prior')
+        cp = cycle_prior(cm, old, None, drift[0], drift[1], keep_placement=keep_placement,
+                         drift_model=drift_model, hours=hours,
+                         rotation_rate=drift[2] if len(drift) > 2 else None,
+                         placement_rate=drift[3] if len(drift) > 3 else None)
+        prior, p, allowed = cp.prior, cm.model.params.with_values(cp.values), cp.allowed
+        prior_doc = {'source': str(prior_path), 'description': cp.description,
+                     'hours': float(hours), 'keep_placement': keep_placement}
+        print(cp.description)
+    context = design_context(cell, rng, settings, prior=prior, p=p,
+                             free=None if allowed is None else design_free(cm, allowed))
     print(f'{context.candidates.configurations.shape[0]} feasible candidates from '
           f'{context.candidates.draws} draws ({context.seconds:.1f} s)')
     result = design_measurements(cell, n, criterion, rng, settings, context=context,
@@ -106,7 +143,10 @@ def run_design(cell_path: str | Path, n: int, criterion: str, out: str | Path,
     baseline = result if criterion == 'random' else design_measurements(
         cell, n, 'random', rng, settings, context=context)
     out = Path(out)
-    write_design(out, controller_design(cm, result), extra={'geometry': geometry_doc})
+    extra: dict[str, Any] = {'geometry': geometry_doc}
+    if prior_doc is not None:
+        extra['prior'] = prior_doc
+    write_design(out, controller_design(cm, result), extra=extra)
     stem = out.with_suffix('')
     poses_png = plot_design(cell, context.check_scene, result, f'{stem}_poses.png')
     shown = [baseline] if result is baseline else [baseline, result]
@@ -118,7 +158,7 @@ def run_design(cell_path: str | Path, n: int, criterion: str, out: str | Path,
     print(f"  mesh check: {mesh['in_collision']}/{mesh['configurations']} configurations in "
           f"mesh collision ({mesh['pairs_checked']} link pairs checked)" if mesh['run'] else
           f"  mesh check: not run, {mesh['why']}")
-    estimability = design_estimability(cm, result.configurations)
+    estimability = design_estimability(cm, result.configurations, prior, p, allowed)
     print(('' if estimability.all_estimable else 'WARNING: ') + estimability.summary())
     print(f'written: {out}, {poses_png}, {ell_png}')
     return 0 if result.verification.ok and estimability.all_estimable else 1

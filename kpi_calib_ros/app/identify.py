@@ -11,7 +11,7 @@ import dataclasses
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Iterable, Sequence
 
 import numpy as np
 
@@ -29,16 +29,14 @@ from kpi_calib_ros.core.registration import Registration, register
 from kpi_calib_ros.core.robust import (LOSS_SCALE, RobustResult, gross_outliers,
                                        robust_identify, subset)
 from kpi_calib_ros.core.precision import honest_precision
-from kpi_calib_ros.core.prior import (DRIFT_ANGLE_PER_SQRT_HOUR, DRIFT_LENGTH_PER_SQRT_HOUR,
-                                      Prior, drift_widened, prior_from_calibration,
-                                      tolerance_prior)
+from kpi_calib_ros.core.prior import Prior, tolerance_prior
 from kpi_calib_ros.core.streams import JointSample, PointSample
 from kpi_calib_ros.io.bag import read_for_pairing
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
 from kpi_calib_ros.io.measurement_log import stored_pairing
 from kpi_calib_ros.io.names import CALIBRATED_URDF_FILE, FAILED_CALIBRATION_FILE
 from kpi_calib_ros.io.report import comparison_text, comparison_to_dict
-from kpi_calib_ros.io.results import (calibration_to_dict, read_calibration_document,
+from kpi_calib_ros.io.results import (calibration_to_dict,
                                       summary_text, writable_folder, write_atomic,
                                       write_calibration)
 from kpi_calib_ros.io.urdf_export import calibrated_urdf
@@ -203,40 +201,6 @@ def cell_prior(cm: CellModel) -> Prior | None:
     return tolerance_prior(cm.model.params, *tol, n_geometric=len(cm.geometric))
 
 
-def calibration_prior(cm: CellModel, doc: dict[str, Any], data: Measurements,
-                      length_rate: float = DRIFT_LENGTH_PER_SQRT_HOUR,
-                      angle_rate: float = DRIFT_ANGLE_PER_SQRT_HOUR) -> tuple[Prior, str]:
-    """A previous calibration (``doc``, calibration.yaml) as the prior of ``data``: its
-    robot parameters and their covariance, widened by the drift over the time from its
-    ``identified_at_ns`` to the first measurement of ``data``
-    (:func:`kpi_calib_ros.core.prior.drift_widened`; lengths are the URDF joint origins'
-    distances, a prismatic offset's the joint's stroke). Returns the prior and a line
-    saying how it was widened.
-    """
-    prior = prior_from_calibration(doc)
-    unknown = [n for n in prior.names if n not in cm.model.params.names]
-    if unknown:
-        raise DataError(f'the prior calibration has parameters {unknown} this cell model '
-                        'lacks; use a calibration of the same robot and effects')
-    lengths: dict[str, float] = {}
-    for joint in cm.robot.joints:
-        ell = float(np.linalg.norm(joint.placement[:3, 3]))
-        lengths.update({f'{joint.name}.placement.{c}': ell for c in ('tx', 'ty', 'tz')})
-        if joint.kind == 'prismatic':
-            lengths[f'{joint.name}.offset'] = float(max(abs(joint.lower), abs(joint.upper)))
-    stamp = doc.get('identified_at_ns')
-    if stamp is None or data.stamps_ns is None or not len(data.stamps_ns):
-        hours = 0.0
-        how = ('prior calibration NOT widened for drift: '
-               + ('it has no identified_at_ns stamp' if stamp is None
-                  else 'the measurements carry no stamps'))
-    else:
-        hours = (int(np.min(data.stamps_ns)) - int(stamp)) / 3.6e12
-        how = (f'prior calibration widened for {abs(hours):.3g} h of drift (lengths '
-               f'{length_rate:.3g}/√h relative, angles {angle_rate:.3g} rad/√h)')
-    return drift_widened(prior, hours, lengths, length_rate, angle_rate), how
-
-
 def identify_cell(cm: CellModel, data: Measurements, p0: np.ndarray | None = None,
                   free: list[str] | None = None, prior: Prior | None = None
                   ) -> CalibrationResult:
@@ -317,17 +281,22 @@ def choose_level(cm: CellModel, data: Measurements, model: str | None = None,
 
 
 def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
-                   prior: Prior | None = None) -> CellCalibration:
+                   prior: Prior | None = None, start: np.ndarray | None = None,
+                   allowed: Sequence[str] | None = None) -> CellCalibration:
     """The identification the CLI and the node publish: model size (``model`` or the
     cell's ``identification.model``), outlier exclusion and loss, KPI estimability;
-    ``prior`` (e.g. a previous calibration's) replaces the cell's tolerance prior."""
+    ``prior`` (e.g. a previous calibration's) replaces the cell's tolerance prior.
+    ``start`` replaces the registered start; ``allowed`` restricts the free parameters
+    of the model level (a previous calibration's gauge, see :mod:`app.reidentify`)."""
     if len(data) == 0:
         raise DataError('no accepted measurement to identify from')
     settings = cm.cell.identification
     n_geo = len(cm.geometric)
     # An unknown or far-off placement is registered from the points first (the median
     # decides whether it is needed, so a few gross points do not trigger it).
-    start, registration = registered_start(cm, data)
+    registration = None
+    if start is None:
+        start, registration = registered_start(cm, data)
     prior = prior or cell_prior(cm)
     fit = _fit_function(cm, start, prior)
     # Model choice on the data without gross points (a 10 m point would decide it alone).
@@ -335,6 +304,8 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
         if settings.outliers.exclude else data
     choice = choose_level(cm, screened, model, start, prior)
     free = level_free(cm.model.params, choice.level, n_geo)
+    if allowed is not None:
+        free = [n for n in free if n in set(allowed)]
     robust = robust_identify(cm.model, data, cm.cell.sigma,
                              lambda d, **kw: fit(d, free, **kw), settings.loss,
                              settings.outliers, start=start)
@@ -504,36 +475,28 @@ def load_measurements(cell_path: str | Path, bag_path: str | Path, effects: str 
 
 
 def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Path,
-                 effects: str = '', model: str | None = None,
-                 prior_path: str | Path | None = None,
-                 drift: tuple[float, float] = (DRIFT_LENGTH_PER_SQRT_HOUR,
-                                               DRIFT_ANGLE_PER_SQRT_HOUR),
-                 **options: Any) -> int:
+                 effects: str = '', model: str | None = None, **options: Any) -> int:
     """``kpi-calib identify``: calibration.yaml and the calibrated URDF
     (:data:`~kpi_calib_ros.io.names.CALIBRATED_URDF_FILE`) in ``out_dir`` (checked first),
     a summary on stdout; ``options`` as for :func:`load_measurements`.
 
-    ``model`` overrides the cell's ``identification.model``; ``prior_path`` (``--prior``)
-    a previous calibration.yaml used as the prior instead of the cell's
-    ``identification.prior``, widened by ``drift`` (relative length, angle in rad; per
-    √hour). Returns 0 for a valid
-    calibration; 1 when it did not converge or the TCP is not estimable (then the document
-    goes to calibration.failed.yaml, and an existing calibration.yaml is left as it was).
+    ``model`` overrides the cell's ``identification.model``; the cell's
+    ``identification.prior`` (tolerances) is used when set. With a previous calibration as
+    prior (``--prior``) the CLI runs :func:`kpi_calib_ros.app.reidentify.run_reidentify`
+    instead. Returns 0 for a valid calibration; 1 when it did not converge or the TCP is
+    not estimable (then the document goes to calibration.failed.yaml, and an existing
+    calibration.yaml is left as it was).
     """
     writable_folder(out_dir, '--out')
-    old = read_calibration_document(prior_path, '--prior') if prior_path else None
     cm, data, pairing = load_measurements(cell_path, bag_path, effects, **options)
-    prior, how = None, ''
-    if old is not None:
-        prior, how = calibration_prior(cm, old, data, *drift)
-    elif cm.cell.identification.prior is not None:
+    how = ''
+    if cm.cell.identification.prior is not None:
         how = ('prior: nominal tolerances (translation, rotation, offset std) '
                f'{list(cm.cell.identification.prior)} (identification.prior)')
-    cal = calibrate_cell(cm, data, model, prior)
+    cal = calibrate_cell(cm, data, model)
     doc = add_robust_sections(calibration_document(cm, cal.result, pairing), cal)
     if how:
-        doc['prior'] = {'source': str(prior_path) if prior_path else 'identification.prior',
-                        'description': how}
+        doc['prior'] = {'source': 'identification.prior', 'description': how}
     comparison = ''
     if cm.model.effects and cal.valid:
         comparison = add_effect_comparison(doc, cm, subset(data, cal.robust.kept), cal.result)

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Mapping
+from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -30,6 +30,7 @@ from kpi_calib_ros.core.design_criteria import CRITERIA, DesignProblem, build_pr
 from kpi_calib_ros.core.design_exchange import exchange
 from kpi_calib_ros.core.design_nlp import solve_design_nlp
 from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.core.prior import Prior
 
 DESIGN_CRITERIA = CRITERIA + ('random',)
 __all__ = ['CRITERIA', 'DESIGN_CRITERIA', 'DesignCell', 'DesignContext', 'DesignProblem',
@@ -152,8 +153,14 @@ class DesignContext:
 
 
 def design_context(cell: DesignCell, rng: np.random.Generator,
-                   settings: DesignSettings | None = None) -> DesignContext:
+                   settings: DesignSettings | None = None, prior: Prior | None = None,
+                   p: np.ndarray | None = None,
+                   free: Sequence[str] | None = None) -> DesignContext:
     """Collision scene, feasible candidates and the linearised problem of a cell.
+
+    ``prior``, ``p`` and ``free`` (a previous calibration as prior, its values, the
+    parameters a re-identification frees) go to :func:`build_problem`: every design of
+    this context then counts the prior's information.
 
     Raises
     ------
@@ -178,7 +185,7 @@ def design_context(cell: DesignCell, rng: np.random.Generator,
                                incidence_clearance=settings.incidence_clearance,
                                flag_threshold=settings.flag_threshold)
     problem = build_problem(cell, cand.configurations[:min(len(cand.configurations), 600)],
-                            settings.weights)
+                            settings.weights, prior=prior, p=p, free=free)
     rows = problem.rows(cell.model, cand.configurations)
     return DesignContext(scene, check, cand, problem, rows, flagged,
                          time.perf_counter() - start)
@@ -235,7 +242,7 @@ def design_measurements(cell: DesignCell, n: int, criterion: str, rng: np.random
         loss = problem.loss(criterion)
         best = None
         for _ in range(settings.exchange_starts):
-            res = exchange(rows, n, loss, rng, progress=say)
+            res = exchange(rows, n, loss, rng, progress=say, base=problem.prior_information)
             if best is None or res.loss < best.loss:
                 best = res
         if best is None:

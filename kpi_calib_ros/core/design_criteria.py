@@ -24,7 +24,7 @@ D M D is well conditioned although lengths and angles differ by orders.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Mapping
+from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -33,6 +33,7 @@ from kpi_calib_ros.core.design_exchange import ConditionLoss, LogDetLoss, TraceL
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.identifiability import select_identifiable
 from kpi_calib_ros.core.measurement import MeasurementModel, weighted_rows
+from kpi_calib_ros.core.prior import Prior
 
 CRITERIA = ('kpi', 'A', 'D', 'O1', 'cond')
 # Relative column norm below which a parameter counts as having no effect at all.
@@ -62,6 +63,10 @@ class DesignProblem:
         d s_t / d p of the KPI points (tracker frame).
     kpi_weights : (t,) ndarray
         ω_t, summing to 1.
+    prior_information : (k, k) ndarray or None
+        D Λ D: the precision of a Gaussian prior on the parameters (e.g. the last
+        calibration widened by drift), column-scaled like the rows. Every design has it:
+        M = D Λ D + Σ rows (the KPI criterion with the prior information added).
     """
 
     parameter_names: tuple[str, ...]
@@ -72,6 +77,7 @@ class DesignProblem:
     physical_scale: np.ndarray
     kpi_jacobian: np.ndarray
     kpi_weights: np.ndarray
+    prior_information: np.ndarray | None = None
 
     @property
     def k(self) -> int:
@@ -103,10 +109,15 @@ class DesignProblem:
             return ConditionLoss(1.0 / (self.column_scale * self.physical_scale))
         raise ValueError(f'criterion must be one of {CRITERIA}, got {criterion!r}')
 
+    def information(self, rows: np.ndarray) -> np.ndarray:
+        """M̃ of ``rows`` (N, 3R, k), the prior's information included."""
+        info = information(rows)
+        return info if self.prior_information is None else info + self.prior_information
+
     def parameter_covariance(self, rows: np.ndarray) -> np.ndarray:
         """C_p (k, k) of the identifiable parameters, in their own units."""
         d = self.column_scale
-        return d[:, None] * np.linalg.inv(information(rows)) * d[None, :]
+        return d[:, None] * np.linalg.inv(self.information(rows)) * d[None, :]
 
     def tcp_covariance(self, rows: np.ndarray) -> np.ndarray:
         """C_s,t (t, 3, 3) of the KPI points, m²."""
@@ -115,7 +126,7 @@ class DesignProblem:
 
     def criteria(self, rows: np.ndarray) -> dict[str, float]:
         """Every criterion of the design with these rows (see module docstring)."""
-        info = information(rows)
+        info = self.information(rows)
         sign, logdet = np.linalg.slogdet(info)
         if sign <= 0:
             return {c: float('inf') if c != 'O1' else 0.0 for c in CRITERIA}
@@ -133,7 +144,9 @@ class DesignProblem:
 
 
 def build_problem(cell: DesignCell, q_rich: np.ndarray,
-                  weights: Mapping[str, float] | None = None) -> DesignProblem:
+                  weights: Mapping[str, float] | None = None, prior: Prior | None = None,
+                  p: np.ndarray | None = None,
+                  free: Sequence[str] | None = None) -> DesignProblem:
     """Identifiable parameters, scalings and KPI Jacobians for a cell.
 
     Parameters
@@ -142,29 +155,60 @@ def build_problem(cell: DesignCell, q_rich: np.ndarray,
     q_rich : (R, n) ndarray
         Many measurable configurations (a few hundred) for the rank analysis.
     weights : mapping of working pose name to weight, optional
+    prior : Prior, optional
+        Gaussian prior information every design has (e.g. the last calibration, widened
+        by drift): its rows take part in the identifiability selection, as in
+        :func:`kpi_calib_ros.core.estimation.identify`, and its precision is added to
+        the information of every design (``prior_information``).
+    p : (n_p,) ndarray, optional
+        Where to linearise (default: nominal; with a prior: its mean, e.g. the last
+        calibration's values).
+    free : sequence of str, optional
+        The parameters the identification may free (default: all).
     """
     model = cell.model
-    p = model.params.nominal.copy()
+    p = model.params.nominal.copy() if p is None else np.asarray(p, float)
     w = 1.0 / cell.sigma
     _, jac = model.pose_jacobian(p, q_rich)  # every reflector of the tool at each pose
     wr = np.tile(w, model.n_reflectors)
+    names = list(model.params.names) if free is None else list(free)
+    cols = model.params.indices(names)
     stacked = weighted_rows(jac, wr)
-    ident = select_identifiable(stacked, list(model.params.names),
+    if free is not None:
+        stacked = stacked[:, cols]
+    if prior is not None:
+        # A parameter that moves no point moves no KPI point either: leave it out even
+        # when the prior names it (its column scale would be infinite).
+        norms = np.linalg.norm(stacked, axis=0)
+        seen = norms > NEGLIGIBLE_EFFECT * norms.max()
+        names = [n for n, ok in zip(names, seen) if ok]
+        cols, stacked = cols[seen], stacked[:, seen]
+    rows_prior = None
+    if prior is not None:
+        rows_prior = prior.rows(model.params)[0]
+        # Scaled like the data rows of the rich set: a prior worth many poses is not
+        # drowned by the few hundred rows used for the rank decision.
+        stacked = np.vstack([stacked, rows_prior[:, cols] * np.sqrt(len(q_rich))])
+    ident = select_identifiable(stacked, names,
                                 method=cell.identification_method,
                                 priority=list(cell.identification_priority) or None,
                                 zero_column=NEGLIGIBLE_EFFECT)
     idx = model.params.indices(ident.kept)
     rms = np.sqrt(np.mean(np.sum((jac[:, :, idx] * wr[None, :, None]) ** 2, axis=1), axis=0))
     effect = np.sqrt(np.mean(np.sum(jac[:, :, idx] ** 2, axis=1), axis=0))
-    names = cell.working_pose_names
+    poses = cell.working_pose_names
     weights = dict(weights or {})
-    unknown = set(weights) - set(names)
+    unknown = set(weights) - set(poses)
     if unknown:
         raise ConfigError('design.weights', f'unknown working poses {sorted(unknown)}; '
-                          f'poses are {list(names)}')
-    omega = np.array([weights.get(n, 1.0) for n in names], float)
+                          f'poses are {list(poses)}')
+    omega = np.array([weights.get(n, 1.0) for n in poses], float)
     if omega.sum() <= 0:
         raise ConfigError('design.weights', 'at least one working pose needs a weight > 0')
     _, kpi_jac = model.jacobian(p, cell.q_work)
+    prior_info = None
+    if rows_prior is not None:
+        scaled = rows_prior[:, idx] / rms  # D = 1/rms, the column scale of the rows
+        prior_info = scaled.T @ scaled
     return DesignProblem(tuple(ident.kept), idx, p, w, 1.0 / rms, effect,
-                         kpi_jac[:, :, idx], omega / omega.sum())
+                         kpi_jac[:, :, idx], omega / omega.sum(), prior_info)

@@ -102,7 +102,8 @@ def information(rows: np.ndarray) -> np.ndarray:
 
 def exchange(rows: np.ndarray, n: int, loss, rng: np.random.Generator,
              n_init: int | None = None, max_sweeps: int = 20,
-             progress: Callable[[str], None] | None = None) -> ExchangeResult:
+             progress: Callable[[str], None] | None = None,
+             base: np.ndarray | None = None) -> ExchangeResult:
     """Choose ``n`` of the candidates ``rows`` (c, 3, k) that minimise ``loss``.
 
     Parameters
@@ -116,6 +117,9 @@ def exchange(rows: np.ndarray, n: int, loss, rng: np.random.Generator,
         Size of the random start (step 1); default ``ceil(k/3) + 2``.
     max_sweeps : int
         Cap on the passes of steps 2 and 4 (each pass is N exchanges at most).
+    base : (k, k) ndarray, optional
+        Information every design already has (a prior's precision, column-scaled like
+        the rows): M = base + Σ_i A_iᵀ A_i. With it fewer than k/3 configurations do.
 
     Raises
     ------
@@ -125,14 +129,19 @@ def exchange(rows: np.ndarray, n: int, loss, rng: np.random.Generator,
     c, _, k = rows.shape
     if n > c:
         raise ValueError(f'n = {n} exceeds the {c} candidates')
-    if 3 * n < k:
+    prior_info = np.zeros((k, k)) if base is None else np.asarray(base, float)
+
+    def information_of(chosen) -> np.ndarray:
+        return information(rows[chosen]) + prior_info
+
+    if base is None and 3 * n < k:
         raise ValueError(f'n = {n} configurations give {3 * n} equations for {k} parameters')
     n_init = min(n, max(int(np.ceil(k / 3)) + 2, 1) if n_init is None else n_init)
     say = progress or (lambda _msg: None)
     # (1) Initialise: a random subset with a nonsingular information matrix.
     for _ in range(100):
         selected = list(rng.choice(c, size=n_init, replace=False))
-        current = loss.value(information(rows[selected]))
+        current = loss.value(information_of(selected))
         if np.isfinite(current):
             break
     else:
@@ -147,7 +156,7 @@ def exchange(rows: np.ndarray, n: int, loss, rng: np.random.Generator,
         return best, float(gain[best])
 
     def state(chosen: list[int]) -> tuple[np.ndarray, np.ndarray]:
-        info = information(rows[chosen])
+        info = information_of(chosen)
         return info, np.linalg.inv(info)
 
     # (2) Remove the configuration whose loss increases least, add the best one.
@@ -165,7 +174,7 @@ def exchange(rows: np.ndarray, n: int, loss, rng: np.random.Generator,
         if not trial < current - 1e-12 * abs(current):
             break
         selected = rest + [add]
-        current = loss.value(information(rows[selected]))
+        current = loss.value(information_of(selected))
         history.append(current)
         exchanges += 1
     say(f'exchange: start {history[0]:.4g}, after remove-and-replace {current:.4g}')
@@ -174,7 +183,7 @@ def exchange(rows: np.ndarray, n: int, loss, rng: np.random.Generator,
         _, info_inv = state(selected)
         add, _ = best_add(info_inv, selected)
         selected.append(add)
-        current = loss.value(information(rows[selected]))
+        current = loss.value(information_of(selected))
         history.append(current)
     say(f'exchange: {n} configurations, loss {current:.4g}')
     # (4) Final remove-and-replace: try every selected configuration in turn.
@@ -182,14 +191,18 @@ def exchange(rows: np.ndarray, n: int, loss, rng: np.random.Generator,
         improved = False
         for pos in range(n):
             rest = selected[:pos] + selected[pos + 1:]
-            rest_info = information(rows[rest])
+            rest_info = information_of(rest)
             rest_loss = loss.value(rest_info)
             if not np.isfinite(rest_loss):
                 continue
-            add, gain = best_add(np.linalg.inv(rest_info), selected)
+            try:  # n near k/3: without one pose the information can be singular in fact
+                rest_inv = np.linalg.inv(rest_info)
+            except np.linalg.LinAlgError:
+                continue
+            add, gain = best_add(rest_inv, selected)
             if rest_loss + gain < current - 1e-9 * abs(current):
                 selected[pos] = add
-                current = loss.value(information(rows[selected]))
+                current = loss.value(information_of(selected))
                 history.append(current)
                 exchanges += 1
                 improved = True

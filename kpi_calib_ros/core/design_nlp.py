@@ -127,6 +127,8 @@ def solve_design_nlp(problem, cell: DesignCell, scene, q0: np.ndarray, criterion
     info_fun = ca.Function('info', [q], [ca.mtimes(rows.T, rows)])
     x = ca.MX.sym('x', n, n_conf)
     info = info_fun.map('info_sum', 'serial', n_conf, [], [0])(x)
+    if problem.prior_information is not None:
+        info = info + ca.DM(problem.prior_information)
     if criterion in ('kpi', 'A'):
         factor = ca.DM(problem.factor(criterion))
         loss = ca.sum1(ca.sum2(factor.T * ca.solve(info, factor.T)))

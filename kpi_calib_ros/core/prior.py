@@ -17,6 +17,7 @@ Two sources:
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable, Sequence
 
 import numpy as np
 import scipy.linalg
@@ -135,24 +136,80 @@ def tolerance_prior(params: ParameterSet, translation: float, rotation: float,
     return Prior(tuple(names), mean, np.diag(np.square(std)))
 
 
-def drift_widened(prior: Prior, hours: float, lengths: dict[str, float],
-                  length_rate: float = DRIFT_LENGTH_PER_SQRT_HOUR,
-                  angle_rate: float = DRIFT_ANGLE_PER_SQRT_HOUR) -> Prior:
-    """``prior`` after ``hours`` of drift: C + Q·|hours| with Q diagonal (random walks).
+def drift_covariance(names: Sequence[str], lengths: dict[str, float],
+                     length_rate: float = DRIFT_LENGTH_PER_SQRT_HOUR,
+                     angle_rate: float = DRIFT_ANGLE_PER_SQRT_HOUR,
+                     link_vectors: dict[tuple[str, str, str], np.ndarray] | None = None,
+                     drifting: Callable[[str], bool] | None = None,
+                     rotation_rate: float | None = None) -> np.ndarray:
+    """Q (k, k): the covariance the parameters ``names`` gain per hour (random walks).
 
     A translation parameter named in ``lengths`` (the nominal length, m, of the link its
-    placement belongs to) drifts by ``length_rate`` × length per √hour (thermal growth);
-    every other translation gets no drift; every rotation and joint offset (rad) drifts by
-    ``angle_rate`` rad per √hour; a prismatic offset (m) by ``length_rate`` × its length.
+    placement belongs to) drifts by ``length_rate`` × length per √hour, independently
+    per axis (isotropic); every other translation gets no drift; every joint offset
+    (rad) drifts by ``angle_rate`` rad per √hour and every placement rotation (joint
+    placements, base angles) by ``rotation_rate`` (default: ``angle_rate``); a prismatic
+    offset (m) by ``length_rate`` × its length. ``drifting(name)`` false: no drift (e.g.
+    effects).
+
+    ``link_vectors`` (thermal model) maps the names of a translation triple (x, y, z) to
+    its nominal vector t (m): thermal growth scales a link, δt = α ΔT t, so the triple
+    drifts along t only, Q = length_rate² t tᵀ per hour (rank one; the temperature as a
+    random walk of ``length_rate`` / α K per √hour). These triples override ``lengths``.
     """
+    rotation_rate = angle_rate if rotation_rate is None else rotation_rate
+    if length_rate < 0 or angle_rate < 0 or rotation_rate < 0:
+        raise DataError('drift rates must be >= 0')
+    names = list(names)
+    q = np.diag([0.0 if drifting is not None and not drifting(n)
+                 else (length_rate * lengths[n]) ** 2 if n in lengths
+                 else 0.0 if _is_translation(n)
+                 else angle_rate ** 2 if n.endswith('.offset') else rotation_rate ** 2
+                 for n in names])
+    for triple, vector in (link_vectors or {}).items():
+        where = [(names.index(n), float(v)) for n, v in zip(triple, vector) if n in names]
+        if not where:
+            continue
+        idx = np.array([i for i, _ in where])
+        t = np.array([v for _, v in where])
+        q[idx, idx] = 0.0  # the isotropic terms of these names, replaced
+        q[np.ix_(idx, idx)] = length_rate ** 2 * np.outer(t, t)
+    return q
+
+
+def drift_widened(prior: Prior, hours: float, lengths: dict[str, float],
+                  length_rate: float = DRIFT_LENGTH_PER_SQRT_HOUR,
+                  angle_rate: float = DRIFT_ANGLE_PER_SQRT_HOUR,
+                  link_vectors: dict[tuple[str, str, str], np.ndarray] | None = None
+                  ) -> Prior:
+    """``prior`` after ``hours`` of drift: C + Q·|hours| with Q of
+    :func:`drift_covariance` on the prior's own parameters (see
+    :func:`mapped_drift` when those are a reduced, identified set)."""
     if not np.isfinite(hours):
         raise DataError(f'drift time must be finite, got {hours} h')
-    if length_rate < 0 or angle_rate < 0:
-        raise DataError('drift rates must be >= 0')
-    q = np.array([(length_rate * lengths[n]) ** 2 if n in lengths
-                  else 0.0 if _is_translation(n) else angle_rate ** 2
-                  for n in prior.names])
-    return Prior(prior.names, prior.mean, prior.covariance + np.diag(q) * abs(hours))
+    q = drift_covariance(prior.names, lengths, length_rate, angle_rate, link_vectors)
+    return Prior(prior.names, prior.mean, prior.covariance + q * abs(hours))
+
+
+def mapped_drift(q_full: np.ndarray, jacobian: np.ndarray,
+                 kept: Sequence[int] | np.ndarray) -> np.ndarray:
+    """The drift Q_full of every parameter mapped onto the identified ones ``kept``.
+
+    Position data cannot separate all parameters: an identification keeps a maximal
+    independent set and holds the rest, whose physical drift then shows up in the kept
+    ones (the growth of a held link length appears as a change of the kept parameters
+    that reproduce it). With J (m, n_p) the Jacobian of the measured points over many
+    configurations, the kept parameters' change that reproduces a change δp of all is
+    G δp, G = J_k⁺ J (least squares), so the kept set drifts by G Q_full Gᵀ.
+
+    Returns
+    -------
+    (k, k) ndarray, k = len(kept)
+    """
+    kept = list(kept)
+    g, *_ = np.linalg.lstsq(jacobian[:, kept], jacobian, rcond=None)
+    q = g @ q_full @ g.T
+    return 0.5 * (q + q.T)
 
 
 def _is_translation(name: str) -> bool:
@@ -183,6 +240,13 @@ def prior_from_calibration(doc: dict, keep_placement: bool = False) -> Prior:
     if matrix.shape != (len(names), len(names)) or any(n not in values for n in names):
         raise DataError('prior calibration: parameter_covariance names and matrix do not '
                         'fit the parameters; give an unedited calibration.yaml')
+    # A covariance computed through a KKT solve is symmetric to round-off only (relative
+    # to its correlation scale); a larger asymmetry is an edited or damaged file.
+    scale = np.sqrt(np.outer(np.abs(np.diag(matrix)), np.abs(np.diag(matrix))))
+    if not np.all(np.abs(matrix - matrix.T) <= 1e-6 * scale):
+        raise DataError('prior calibration: parameter_covariance is not symmetric; give an '
+                        'unedited calibration.yaml')
+    matrix = 0.5 * (matrix + matrix.T)
     keep = [i for i, n in enumerate(names)
             if keep_placement or not n.startswith(PLACEMENT_PREFIXES)]
     if not keep:

@@ -22,6 +22,8 @@ REPORT_FILE = 'report.md'
 VALIDATION_DIR = 'validation'
 VALIDATION_FILE = 'validation.json'
 # What a campaign reset archives: every result derived from the measurements.
+# Every valid calibration of the node, kept by its identified_at_ns (not moved by reset).
+CALIBRATIONS_DIR = 'calibrations'
 RESULT_FILES = (CALIBRATION_FILE, FAILED_CALIBRATION_FILE, CALIBRATED_URDF_FILE, DIAGNOSIS_DIR,
                 VALIDATION_DIR)
 
@@ -39,6 +41,7 @@ DIAGNOSIS_TOPIC = '~/diagnosis'
 TCP_TOPIC = '~/tcp'
 VALIDATION_TOPIC = '~/validation'
 CAMPAIGN_STATUS_TOPIC = '~/campaign_status'
+CHANGE_TEST_TOPIC = '~/change_test'
 
 
 def truth_path(bag_path: str | Path) -> Path:

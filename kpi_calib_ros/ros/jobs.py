@@ -29,7 +29,11 @@ from kpi_calib_ros.app.validate import validate_report
 from kpi_calib_ros.io.report import diagnosis_to_dict, write_report
 from kpi_calib_ros.app.identify import (CellCalibration, add_robust_sections,
                                         calibrate_cell, calibration_document, write_results)
-from kpi_calib_ros.io.names import CAMPAIGN_PLAN_FILE, DESIGN_FILE, DIAGNOSIS_DIR, VALIDATION_DIR
+from kpi_calib_ros.app.reidentify import cycle_prior, reidentification_document, reidentify
+from kpi_calib_ros.core.change_detection import ChangeTest
+from kpi_calib_ros.io.names import (CALIBRATIONS_DIR, CAMPAIGN_PLAN_FILE, DESIGN_FILE,
+                                    DIAGNOSIS_DIR, VALIDATION_DIR)
+from kpi_calib_ros.io.results import read_calibration_document, write_atomic
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros.parameters import NodeSettings
 
@@ -62,36 +66,84 @@ def design_work(cm: CellModel, settings: NodeSettings,
     return design, points, path, '' if estimability.all_estimable else estimability.summary()
 
 
-def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, data_dir: Path
-                  ) -> tuple[CellCalibration, str, str, list[PoseWithCovarianceStamped]]:
+def previous_calibration(data_dir: Path, first_stamp_ns: int) -> Path | None:
+    """The newest archived calibration (``data_dir/calibrations/<identified_at_ns>.yaml``)
+    identified before ``first_stamp_ns``: the last cycle's, never one fitted to any of
+    the current measurements."""
+    best: tuple[int, Path] | None = None
+    for path in (data_dir / CALIBRATIONS_DIR).glob('*.yaml'):
+        try:
+            stamp = int(path.stem)
+        except ValueError:
+            continue
+        if stamp < first_stamp_ns and (best is None or stamp > best[0]):
+            best = (stamp, path)
+    return None if best is None else best[1]
+
+
+def archive_calibration(data_dir: Path, doc: dict[str, Any], text: str) -> Path | None:
+    """Keep a valid calibration as ``data_dir/calibrations/<identified_at_ns>.yaml``."""
+    stamp = doc.get('identified_at_ns')
+    if stamp is None:
+        return None
+    return write_atomic(data_dir / CALIBRATIONS_DIR / f'{int(stamp)}.yaml', text)
+
+
+def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, data_dir: Path,
+                  with_prior: bool = False
+                  ) -> tuple[CellCalibration | None, str, str, list[PoseWithCovarianceStamped],
+                             ChangeTest | None, str]:
     """Identify from ``data`` as ``kpi-calib identify`` does and write the calibration and
     the calibrated URDF atomically. An invalid calibration (not converged, TCP not
     estimable) is written to calibration.failed.yaml only: the last good calibration.yaml
-    and URDF stay, and nothing is returned to publish but its text.
+    and URDF stay, and nothing is returned to publish but its text. A valid one is also
+    archived as ``data_dir/calibrations/<identified_at_ns>.yaml``.
+
+    ``with_prior``: the last archived calibration of an earlier cycle
+    (:func:`previous_calibration`) is the prior (``identify --prior``, default drift);
+    a change beyond the drift model returns no calibration, the change test and the
+    failed document's text (written to calibration.failed.yaml).
 
     Returns
     -------
-    calibration : CellCalibration
+    calibration : CellCalibration or None
+        None when a change was detected (nothing blended).
     text : str
         The document exactly as written.
     urdf : str
         The calibrated robot description, as written ('' when invalid).
     tcp : list of PoseWithCovarianceStamped
         One per working pose, stamped with the last measurement (empty when invalid).
+    change : ChangeTest or None
+        The innovation test against the prior (None without a prior).
+    prior : str
+        The prior calibration's path ('' without).
     """
     if data.stamps_ns is None:
         raise ValueError('data.stamps_ns is None: the TCP poses are stamped with the last '
                          'measurement')
-    cal = calibrate_cell(cm, data)
-    result = cal.result
-    doc = add_robust_sections(calibration_document(cm, result, pairing), cal)
+    source = (previous_calibration(data_dir, int(np.min(data.stamps_ns)))
+              if with_prior and len(data) else None)
+    change = None
+    if source is None:
+        cal: CellCalibration | None = calibrate_cell(cm, data)
+        assert cal is not None
+        doc = add_robust_sections(calibration_document(cm, cal.result, pairing), cal)
+        result = cal.result
+    else:
+        cp = cycle_prior(cm, read_calibration_document(source, 'prior calibration'), data)
+        out = reidentify(cm, data, cp)
+        cal, change = out.calibration, out.change
+        doc = reidentification_document(cm, out, cp, str(source), pairing)
+        result = cal.result if cal is not None else out.fit
     path, _, urdf = write_results(cm, result, doc, data_dir)
     text = path.read_text()  # published as written
-    if not cal.valid:
-        return cal, text, '', []
+    if cal is None or not cal.valid:
+        return cal, text, '', [], change, str(source or '')
+    archive_calibration(data_dir, doc, text)
     tcp = cv.tcp_pose_msgs(result.tcp, result.tcp_covariance, cm.cell.tracker_frame,
                            int(data.stamps_ns[-1]))
-    return cal, text, urdf, tcp
+    return cal, text, urdf, tcp, change, str(source or '')
 
 
 def validate_work(cm: CellModel, calibration: str, data: Measurements,
@@ -122,9 +174,6 @@ def diagnose_work(cm: CellModel, data: Measurements,
     report = write_report(data_dir / DIAGNOSIS_DIR, cd)
     doc = diagnosis_to_dict(cd)
     return doc, json.dumps(doc), cd.diagnosis.verdict, report
-
-
-__all__ = ['design_work', 'diagnose_work', 'identify_work', 'validate_work']
 
 
 def sequential_start_work(cm: CellModel, settings: NodeSettings,
@@ -165,3 +214,8 @@ def sequential_step_work(campaign: SequentialCampaign, cm: CellModel,
         status.next_configurations) else status.next_configurations
     text = yaml.safe_dump(status.to_dict(cm.working_pose_names), sort_keys=False)
     return status, plan, text
+
+
+__all__ = ['archive_calibration', 'design_work', 'diagnose_work', 'identify_work',
+           'previous_calibration', 'sequential_start_work', 'sequential_step_work',
+           'validate_work']

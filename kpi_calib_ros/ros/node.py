@@ -33,6 +33,7 @@ reason); the post-set callback applies the accepted values.
 from __future__ import annotations
 
 import dataclasses
+import json
 import sys
 import threading
 import time
@@ -72,9 +73,9 @@ from kpi_calib_ros.app.identify import pose_rows, urdf_measurements
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell, with_overrides
 from kpi_calib_ros.core.sequential import MODEL_INADEQUATE, CampaignStatus, SequentialCampaign
 from kpi_calib_ros.io.names import (CALIBRATED_URDF_TOPIC, CALIBRATION_TOPIC,
-                                    CAMPAIGN_STATUS_TOPIC, DIAGNOSIS_TOPIC, DIAGNOSTICS_TOPIC,
-                                    MARKERS_TOPIC, MEASUREMENT_POSES_TOPIC, TCP_TOPIC,
-                                    VALIDATION_TOPIC)
+                                    CAMPAIGN_STATUS_TOPIC, CHANGE_TEST_TOPIC, DIAGNOSIS_TOPIC,
+                                    DIAGNOSTICS_TOPIC, MARKERS_TOPIC, MEASUREMENT_POSES_TOPIC,
+                                    TCP_TOPIC, VALIDATION_TOPIC)
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros import jobs
 from kpi_calib_ros.ros.campaign import Campaign
@@ -175,6 +176,7 @@ class CalibrationNode(Node):
         self._pub_poses = self.create_publisher(JointTrajectory, MEASUREMENT_POSES_TOPIC,
                                                 _latched())
         self._pub_calibration = self.create_publisher(String, CALIBRATION_TOPIC, _latched())
+        self._pub_change_test = self.create_publisher(String, CHANGE_TEST_TOPIC, _latched())
         self._pub_urdf = self.create_publisher(String, CALIBRATED_URDF_TOPIC, _latched())
         self._pub_markers = self.create_publisher(MarkerArray, MARKERS_TOPIC, _latched())
         self._pub_diagnosis = self.create_publisher(String, DIAGNOSIS_TOPIC, _latched())
@@ -490,11 +492,27 @@ class CalibrationNode(Node):
         # tracked poses' rotation rows; controller readings -> URDF joint values
         data = urdf_measurements(cm, pose_rows(cm, data, pairing))
         try:
-            cal, calibration, urdf, tcp = await self._offload(
-                jobs.identify_work, cm, data, pairing, self.data_dir, child=True)
+            cal, calibration, urdf, tcp, change, prior = await self._offload(
+                jobs.identify_work, cm, data, pairing, self.data_dir,
+                self.settings.reidentify_with_prior, child=True)
         except KpiCalibError as exc:
             self._result_error = f'identification failed: {exc}'
             raise
+        if change is not None:
+            # Latched: the last re-identification's innovation test, consistent or not.
+            self._pub_change_test.publish(String(data=json.dumps(
+                {'prior': prior, 'measurements': len(data), **change.to_dict()})))
+        if cal is None:
+            # A change beyond the drift model: not blended, never published as the
+            # calibration; the last good one stays; /diagnostics says ERROR.
+            assert change is not None
+            self._result_error = change.summary()
+            self.get_logger().error(f'identification from {len(data)} measurements with prior '
+                                    f'{prior}: {change.summary()}')
+            self._publish_diagnostics(force=True)
+            return False, ('change detected, last good calibration kept: moved '
+                           + (', '.join(m.name for m in change.moved) or 'no single parameter')
+                           + '; measure a full campaign')
         result = cal.result
         if not cal.valid:
             # Never published as the calibration: the last good one stays on every topic
@@ -537,8 +555,8 @@ class CalibrationNode(Node):
         return True, (
             f'identified from {len(data)} measurements: {result.message}; rms '
             f'{result.rms_m * 1e6:.1f} µm, p = {result.p_value:.3g}, TCP sqrt(trace) <= '
-            f'{tcp_um:.1f} µm ({precision}); {len(cal.robust.excluded)} excluded; written to '
-            f'{self.data_dir}')
+            f'{tcp_um:.1f} µm ({precision}); {len(cal.robust.excluded)} excluded; '
+            + (f'prior {prior}; ' if prior else '') + f'written to {self.data_dir}')
 
     async def _diagnose(self) -> tuple[bool, str]:
         """Model diagnosis of the accepted measurements (as ``kpi-calib diagnose``): residual

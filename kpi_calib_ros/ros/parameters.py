@@ -42,6 +42,7 @@ class NodeSettings:
     campaign: str = 'fixed'
     target_tcp_std: float = 1.0e-5
     max_measurements: int = 200
+    reidentify_with_prior: bool = True
 
 
 CAMPAIGNS = ('fixed', 'sequential')
@@ -78,6 +79,9 @@ PARAMETERS: dict[str, tuple[Any, bool, str]] = {
                        'TCP std over the working poses (m)'),
     'max_measurements': (200, False, 'sequential campaign: stop after this many '
                          'measurements'),
+    'reidentify_with_prior': (True, False, 'identify with the last calibration of an earlier '
+                              'cycle (data_dir/calibrations/) as prior, widened by the '
+                              'default drift model; a change beyond it is not blended'),
     'allow_code_effects': (False, True, "run the Python code a cell file's effects: name "
                            "('file.py:Type:joint', 'module:Type:joint'); off: only built-in "
                            'and installed (entry point) effects'),
@@ -143,7 +147,7 @@ def settings_from_parameters(values: dict[str, Any]) -> NodeSettings:
             0 < float(target) < float('inf')):
         raise ConfigError('target_tcp_std', f'must be a positive length in m (e.g. 1.0e-5), '
                           f'got {target!r}')
-    for key in ('auto_identify', 'allow_code_effects'):
+    for key in ('auto_identify', 'allow_code_effects', 'reidentify_with_prior'):
         if not isinstance(values[key], bool):
             raise ConfigError(key, f'must be true or false, got {values[key]!r}')
     topics = {k: topic(k) for k in ('robot_description_topic', 'joint_states_topic',
@@ -164,7 +168,7 @@ def settings_from_parameters(values: dict[str, Any]) -> NodeSettings:
         auto_identify=values['auto_identify'], allow_code_effects=values['allow_code_effects'],
         data_dir=str(Path(text('data_dir')).expanduser()), campaign=values['campaign'],
         target_tcp_std=float(target), max_measurements=integer('max_measurements', 1),
-        **topics)
+        reidentify_with_prior=values['reidentify_with_prior'], **topics)
 
 
 def working_poses(settings: NodeSettings) -> tuple[WorkingPose, ...] | None:
