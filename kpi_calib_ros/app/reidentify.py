@@ -73,6 +73,12 @@ class CyclePrior:
         Drift time from the calibration's ``identified_at_ns`` to the first new point.
     description : str
         One line on how the prior was made.
+    noise_scale, noise_dof : float, int or None
+        χ²/dof of the previous calibration and its dof when its model was not adequate
+        (its covariance was scaled by it, ``precision.covariance_scale``): the new points
+        are then weighted by the noise it showed, σ·√noise_scale, not the stated σ, so
+        prior and data keep their balance and the same unmodelled effects are no change.
+        1.0 and None when the model was adequate.
     """
 
     prior: Prior
@@ -81,6 +87,8 @@ class CyclePrior:
     keep_placement: bool
     hours: float
     description: str
+    noise_scale: float = 1.0
+    noise_dof: int | None = None
 
 
 def link_vectors(cm: CellModel) -> dict[tuple[str, str, str], np.ndarray]:
@@ -190,7 +198,16 @@ def cycle_prior(cm: CellModel, doc: dict[str, Any], data: Measurements | None,
     where = [list(allowed).index(n) for n in prior.names]
     q_prior = q_kept[np.ix_(where, where)]
     widened = Prior(prior.names, prior.mean, prior.covariance + q_prior * abs(hours))
-    return CyclePrior(widened, values, allowed, keep_placement, hours, how)
+    noise_scale = float((doc.get('precision') or {}).get('covariance_scale', 1.0))
+    noise_dof = None
+    if noise_scale != 1.0:
+        noise_dof = int((doc.get('model_adequacy') or {}).get('dof', 0)) or None
+        how += (f'; its model was not adequate (chi2/dof {noise_scale:.3g}): new points are '
+                f'weighted by the noise it showed, {np.sqrt(noise_scale):.3g} x the stated '
+                'sigma, and the change test accounts for that estimate'
+                + (f' ({noise_dof} dof)' if noise_dof else ''))
+    return CyclePrior(widened, values, allowed, keep_placement, hours, how, noise_scale,
+                      noise_dof)
 
 
 def cycle_start(cm: CellModel, data: Measurements, cp: CyclePrior) -> np.ndarray:
@@ -231,6 +248,7 @@ def reidentify(cm: CellModel, data: Measurements, cp: CyclePrior, model: str | N
     estimability), in the previous calibration's gauge and from its values."""
     if len(data) == 0:
         raise DataError('no accepted measurement to identify from')
+    cm = with_noise_scale(cm, cp.noise_scale)
     start = cycle_start(cm, data, cp)
     level = model or cm.cell.identification.model
     free = [n for n in level_free(cm.model.params, 'geometric' if level == 'auto' else level,
@@ -238,12 +256,35 @@ def reidentify(cm: CellModel, data: Measurements, cp: CyclePrior, model: str | N
     fit = identify(cm.model, data, cm.cell.sigma, cm.q_work, list(cm.working_pose_names),
                    p0=start, free=free, identifiability_method=cm.cell.identification_method,
                    priority=list(cm.cell.identification_priority) or None, prior=cp.prior)
-    change = change_test(cm.model, data, cm.cell.sigma, fit, cp.prior, alpha)
+    change = change_test(cm.model, data, cm.cell.sigma, fit, cp.prior, alpha,
+                         sigma_dof=cp.noise_dof)
+    if not change.consistent and not change.moved and cp.noise_scale != 1.0:
+        change = dataclasses.replace(change, caveat=(
+            'The previous calibration\'s model was not adequate (chi2/dof '
+            f'{cp.noise_scale:.3g}): a broad inconsistency with no single parameter moved may '
+            'be its unmodelled effects at poses it was not fitted on, not a physical change; '
+            'run kpi-calib diagnose on both recordings'))
     if not change.consistent:
         return Reidentification(change, fit, None)
     cal = calibrate_cell(without_exclusion(cm), data, model, cp.prior, start=start,
                          allowed=cp.allowed)
     return Reidentification(change, fit, cal)
+
+
+def with_noise_scale(cm: CellModel, scale: float) -> CellModel:
+    """``cm`` with its stated noise (``noise.sigma``, ``noise.sigma_rotation``) multiplied by
+    √scale; ``cm`` itself for scale 1."""
+    if scale == 1.0:
+        return cm
+    if not (scale > 0 and np.isfinite(scale)):
+        raise DataError(f'prior calibration: precision.covariance_scale must be a positive '
+                        f'number, got {scale!r}')
+    factor = float(np.sqrt(scale))
+    cell = dataclasses.replace(
+        cm.cell, sigma=np.asarray(cm.cell.sigma, float) * factor,
+        sigma_rotation=(None if cm.cell.sigma_rotation is None
+                        else float(cm.cell.sigma_rotation) * factor))
+    return dataclasses.replace(cm, cell=cell)
 
 
 def without_exclusion(cm: CellModel) -> CellModel:

@@ -64,6 +64,7 @@ class ChangeTest:
     lr_threshold: float
     parameters: tuple[ParameterShift, ...]
     moved: tuple[ParameterShift, ...]
+    caveat: str = ''
 
     def summary(self) -> str:
         head = (f'innovation chi2 {self.chi2:.1f} for {self.dof} dof (p = {self.p_value:.3g}); '
@@ -75,7 +76,8 @@ class ChangeTest:
                           for m in self.moved) or 'no single parameter (a broad change)'
         return ('CHANGE DETECTED: the new data contradict the prior calibration beyond its '
                 f'drift model ({head}); moved: {moved}. The update was not blended: measure '
-                'a full campaign (kpi-calib design --n 60, then identify without --prior)')
+                'a full campaign (kpi-calib design --n 60, then identify without --prior)'
+                + (f'. {self.caveat}' if self.caveat else ''))
 
     def to_dict(self) -> dict[str, Any]:
         def entry(m: ParameterShift) -> dict[str, Any]:
@@ -83,15 +85,20 @@ class ChangeTest:
                     'shift_std': m.shift_std, 'prior_std': m.prior_std}
         return {'consistent': self.consistent, 'alpha': float(self.alpha), 'chi2': self.chi2,
                 'dof': self.dof, 'p_value': self.p_value, 'lr_threshold': self.lr_threshold,
-                'moved': [entry(m) for m in self.moved],
+                'moved': [entry(m) for m in self.moved], 'caveat': self.caveat,
                 'parameters': [entry(m) for m in self.parameters]}
 
 
 def change_test(model: MeasurementModel, data: Measurements, sigma: float | np.ndarray,
                 result: CalibrationResult, prior: Prior,
-                alpha: float = CHANGE_ALPHA) -> ChangeTest:
+                alpha: float = CHANGE_ALPHA, sigma_dof: int | None = None) -> ChangeTest:
     """Innovation tests of ``data`` against ``prior`` at the MAP estimate ``result``
     (identified with that prior on the same data, all points weighted by ``sigma``).
+
+    ``sigma_dof``: ``sigma`` is itself an estimate on that many degrees of freedom (σ̂ of
+    a previous calibration whose model was not adequate); the tests then use the F
+    distribution (F(dof, sigma_dof) for the global one, F(1, sigma_dof) per parameter)
+    instead of χ², so the uncertainty of σ̂ raises no false alarm.
 
     Raises
     ------
@@ -115,12 +122,22 @@ def change_test(model: MeasurementModel, data: Measurements, sigma: float | np.n
     n_prior = len(prior.names)
     chi2 = float(b @ b)
     dof = max(int(len(r_data) + n_prior - len(idx)), 1)
-    p_global = float(scipy.stats.chi2.sf(chi2, dof))
+    if sigma_dof is None:
+        p_global = float(scipy.stats.chi2.sf(chi2, dof))
+        threshold = float(scipy.stats.chi2.isf(alpha / (2 * n_prior), 1))
+
+        def p_one(lr: float) -> float:
+            return float(scipy.stats.chi2.sf(lr, 1))
+    else:
+        p_global = float(scipy.stats.f.sf(chi2 / dof, dof, sigma_dof))
+        threshold = float(scipy.stats.f.isf(alpha / (2 * n_prior), 1, sigma_dof))
+
+        def p_one(lr: float) -> float:
+            return float(scipy.stats.f.sf(lr, 1, sigma_dof))
     # Projector onto the complement of the identified directions (orthonormal basis).
     u, s, _ = np.linalg.svd(a, full_matrices=False)
     u = u[:, s > s[0] * 1e-12]
     pb = b - u @ (u.T @ b)
-    threshold = float(scipy.stats.chi2.isf(alpha / (2 * n_prior), 1))
     prior_std = prior.std
     shifts = []
     for j, name in enumerate(prior.names):
@@ -131,7 +148,7 @@ def change_test(model: MeasurementModel, data: Measurements, sigma: float | np.n
             continue  # the identified parameters absorb this shift entirely: not testable
         numerator = float(c @ pb)
         lr = numerator ** 2 / denominator
-        shifts.append(ParameterShift(name, float(lr), float(scipy.stats.chi2.sf(lr, 1)),
+        shifts.append(ParameterShift(name, float(lr), p_one(lr),
                                      float(-numerator / denominator),
                                      float(1.0 / np.sqrt(denominator)),
                                      float(prior_std[j])))
