@@ -53,6 +53,13 @@ ODD_ARM_URDF = """<?xml version="1.0"?>
 """
 
 
+@pytest.fixture(scope='module')
+def cell():
+    """The built-in simulated cell's model (KR15-class), one per test module."""
+    from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+    return build_cell_model(load_cell(DEFAULT_CELL))
+
+
 @pytest.fixture
 def odd_arm_urdf() -> str:
     return ODD_ARM_URDF

@@ -15,12 +15,6 @@ from kpi_calib_ros.core.effects import (EffectType, candidate_effects, hidden_ef
                                         split_specs)
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.simulation import random_configurations, true_parameters
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
-
-
-@pytest.fixture(scope='module')
-def cell():
-    return build_cell_model(load_cell(DEFAULT_CELL))
 
 
 @pytest.fixture

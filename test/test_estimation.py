@@ -15,14 +15,9 @@ from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.simulation import (equivalent_parameters, random_configurations,
                                           sampling_bounds, simulate_measurements,
                                           true_parameters)
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.io.cell import build_cell_model
 
 SIGMA = 20e-6
-
-
-@pytest.fixture(scope='module')
-def cell():
-    return build_cell_model(load_cell(DEFAULT_CELL))
 
 
 @pytest.fixture(scope='module')

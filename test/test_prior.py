@@ -17,11 +17,6 @@ SIGMA = 20e-6
 
 
 @pytest.fixture(scope='module')
-def cell():
-    return build_cell_model(load_cell(DEFAULT_CELL))
-
-
-@pytest.fixture(scope='module')
 def campaign(cell):
     rng = np.random.default_rng(7)
     p_true = true_parameters(cell.model.params, rng)

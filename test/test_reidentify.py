@@ -9,14 +9,9 @@ from kpi_calib_ros.core.estimation import (FTOL, STALLED, STATISTICAL, Tolerance
                                            _gauss_newton, identify)
 from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
                                           true_parameters)
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.io.cell import DEFAULT_CELL
 
 SIGMA = 20e-6
-
-
-@pytest.fixture(scope='module')
-def cell():
-    return build_cell_model(load_cell(DEFAULT_CELL))
 
 
 @pytest.fixture(scope='module')
