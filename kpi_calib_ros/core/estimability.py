@@ -134,6 +134,19 @@ def kpi_estimability(data_jacobian: np.ndarray, kpi_jacobian: np.ndarray,
     return KpiEstimability(tuple(working_pose_names), rel, ok, tuple(missing), tolerance)
 
 
+def information_rows(model: MeasurementModel, p: np.ndarray, q: np.ndarray,
+                     sigma: float | np.ndarray, idx: np.ndarray, prior: Prior | None = None,
+                     reflector: np.ndarray | None = None,
+                     rotation: np.ndarray | None = None) -> np.ndarray:
+    """Information of measured poses ``q`` (N, n) at ``p`` in columns ``idx``: the data
+    Jacobian weighted by 1/σ, with a ``prior``'s L rows below (what it determines counts
+    as determined); ``reflector`` and ``rotation`` as for
+    :meth:`~kpi_calib_ros.core.measurement.MeasurementModel.jacobian`."""
+    _, jac = model.jacobian(p, np.atleast_2d(q), None, reflector, rotation)
+    rows = weighted_rows(jac, 1.0 / np.broadcast_to(np.asarray(sigma, float), (3,)), idx)
+    return rows if prior is None else np.vstack([rows, prior.rows(model.params)[0][:, idx]])
+
+
 def result_estimability(model: MeasurementModel, q: np.ndarray, sigma: np.ndarray,
                         p: np.ndarray, q_work: np.ndarray,
                         working_pose_names: list[str] | tuple[str, ...],
@@ -149,10 +162,7 @@ def result_estimability(model: MeasurementModel, q: np.ndarray, sigma: np.ndarra
     ``prior``'s rows count as information: what it determines is estimable."""
     names = list(free) if free else list(model.params.names)
     idx = model.params.indices(names)
-    _, jac = model.jacobian(p, np.atleast_2d(q), None, reflector, rotation)
-    data_jac = weighted_rows(jac, 1.0 / np.broadcast_to(np.asarray(sigma, float), (3,)), idx)
-    if prior is not None:
-        data_jac = np.vstack([data_jac, prior.rows(model.params)[0][:, idx]])
+    data_jac = information_rows(model, p, q, sigma, idx, prior, reflector, rotation)
     _, kpi = model.jacobian(p, np.atleast_2d(q_work))
     return kpi_estimability(data_jac, kpi.reshape(-1, len(p))[:, idx], names,
                             working_pose_names, tolerance)

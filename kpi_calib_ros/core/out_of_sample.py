@@ -48,9 +48,9 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.stats
 
-from kpi_calib_ros.core.estimability import kpi_estimability
+from kpi_calib_ros.core.estimability import information_rows, kpi_estimability
 from kpi_calib_ros.core.estimation import CalibrationResult
-from kpi_calib_ros.core.measurement import MeasurementModel, Measurements, weighted_rows
+from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
 from kpi_calib_ros.core.prior import Prior
 from kpi_calib_ros.core.residuals import campaign_home, is_adequate, moved_joints
 from kpi_calib_ros.core.simulation import sampling_bounds
@@ -246,7 +246,6 @@ def out_of_sample_error(model: MeasurementModel, data: Measurements,
     q = np.atleast_2d(data.q)
     p = np.asarray(result.values, float)
     sigma = np.broadcast_to(np.asarray(result.sigma, float), (3,))
-    w = 1.0 / sigma
     if free is None:
         free = list(result.identifiability.kept) + [d.name for d in
                                                     result.identifiability.dropped]
@@ -256,10 +255,8 @@ def out_of_sample_error(model: MeasurementModel, data: Measurements,
     dof = int(result.dof)
     scale = float(result.chi2 / dof) if dof > 0 else float('nan')
     c0 = np.asarray(result.covariance, float) / float(result.covariance_scale)
-    _, jac = model.jacobian(p, q, None, data.reflector, data.rotation)
-    data_jac = weighted_rows(jac, w, free_idx)
-    if prior is not None:
-        data_jac = np.vstack([data_jac, prior.rows(model.params)[0][:, free_idx]])
+    data_jac = information_rows(model, p, q, sigma, free_idx, prior, data.reflector,
+                                data.rotation)
     # Fresh poses are predicted as points: rotation rows of tracked bodies (channels from
     # model.n_reflectors on) need a measured rotation and are no length.
     reflectors = (np.array([0]) if data.reflector is None

@@ -44,9 +44,9 @@ from kpi_calib_ros.core.design_cell import DesignCell
 from kpi_calib_ros.core.design_criteria import DesignProblem
 from kpi_calib_ros.core.design_exchange import exchange, information
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.core.estimability import kpi_estimability
+from kpi_calib_ros.core.estimability import result_estimability
 from kpi_calib_ros.core.estimation import CalibrationResult, identify
-from kpi_calib_ros.core.measurement import Measurements, weighted_rows
+from kpi_calib_ros.core.measurement import Measurements
 
 TARGET_MET = 'target met'
 # Look-ahead of the plan (poses) and the time its exchange sweeps may take (s): the
@@ -346,15 +346,10 @@ class SequentialCampaign:
         return out
 
     def _estimable(self, q: np.ndarray) -> bool:
-        model, names = self.cell.model, self.free or list(self.cell.model.params.names)
-        idx = model.params.indices(names)
-        p = model.params.nominal
-        _, jac = model.jacobian(p, q)
-        _, kpi = model.jacobian(p, self.cell.q_work)
-        check = kpi_estimability(weighted_rows(jac, 1.0 / self.cell.sigma, idx),
-                                 kpi.reshape(-1, len(p))[:, idx], names,
-                                 self.cell.working_pose_names)
-        return check.all_estimable
+        model = self.cell.model
+        return result_estimability(model, q, self.cell.sigma, model.params.nominal,
+                                   self.cell.q_work, self.cell.working_pose_names,
+                                   free=self.free).all_estimable
 
     # ---------------------------------------------------------------------- the loop
     def add(self, q: np.ndarray, eta: np.ndarray,
