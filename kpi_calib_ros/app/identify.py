@@ -139,6 +139,16 @@ def measurements_from_bag(cm: CellModel, path: str | Path,
     return measurements_from_samples(cm, contents.joints, contents.points, **pairer_options)
 
 
+def places_the_points(cm: CellModel, data: Measurements, p: np.ndarray) -> bool:
+    """Do parameters ``p`` predict ``data`` within :data:`REGISTER_ABOVE_M` (median miss)?
+    If not, the placement is registered from the points before fitting."""
+    tau = cm.robot.gravity_torques(data.q) if cm.model.uses_torque else None
+    miss = np.linalg.norm(np.atleast_2d(data.eta)
+                          - cm.model.predict(p, data.q, tau, data.reflector, data.rotation),
+                          axis=1)
+    return float(np.median(miss)) <= REGISTER_ABOVE_M
+
+
 def registered_start(cm: CellModel, data: Measurements) -> tuple[np.ndarray, Registration | None]:
     """Start parameters for identification, with the placement registered when needed.
 
@@ -158,13 +168,8 @@ def registered_start(cm: CellModel, data: Measurements) -> tuple[np.ndarray, Reg
     """
     params = cm.model.params
     p0 = np.array(params.nominal, dtype=float)
-    if not cm.needs_registration and len(data):
-        tau = cm.robot.gravity_torques(data.q) if cm.model.uses_torque else None
-        miss = np.linalg.norm(np.atleast_2d(data.eta)
-                              - cm.model.predict(p0, data.q, tau, data.reflector,
-                                                    data.rotation), axis=1)
-        if float(np.median(miss)) <= REGISTER_ABOVE_M:
-            return p0, None
+    if not cm.needs_registration and len(data) and places_the_points(cm, data, p0):
+        return p0, None
     if data.reflector is not None:  # rotation rows (tracked poses) carry no point
         data = data.subset(np.asarray(data.reflector) < cm.model.n_reflectors)
     tips = np.array([cm.robot.pin_tip_pose(row) for row in np.atleast_2d(data.q)])

@@ -42,9 +42,9 @@ from kpi_calib_ros.core.simulation import random_configurations
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.results import read_calibration_document, writable_folder
 
-from kpi_calib_ros.app.identify import (REGISTER_ABOVE_M, CellCalibration, add_robust_sections,
+from kpi_calib_ros.app.identify import (CellCalibration, add_robust_sections,
                                         calibrate_cell, calibration_document,
-                                        load_measurements, registered_start,
+                                        load_measurements, places_the_points, registered_start,
                                         robust_summary, write_results)
 
 # Exit code of `kpi-calib identify --prior` when the new cycle contradicts the prior.
@@ -218,11 +218,7 @@ def cycle_start(cm: CellModel, data: Measurements, cp: CyclePrior) -> np.ndarray
     start = params.with_values(cp.values)
     if cp.keep_placement:
         return start
-    tau = cm.robot.gravity_torques(data.q) if cm.model.uses_torque else None
-    miss = np.linalg.norm(np.atleast_2d(data.eta)
-                          - cm.model.predict(start, data.q, tau, data.reflector, data.rotation),
-                          axis=1)
-    if float(np.median(miss)) <= REGISTER_ABOVE_M:
+    if places_the_points(cm, data, start):
         return start
     registered = registered_start(cm, data)[0]
     for i, name in enumerate(params.names):

@@ -173,6 +173,8 @@ def build_problem(cell: DesignCell, q_rich: np.ndarray,
     wr = np.tile(w, model.n_reflectors)
     names = list(model.params.names) if free is None else list(free)
     cols = model.params.indices(names)
+    # Without `free`, all columns as they are: a copy indexed by every column changes the
+    # QR pivot among equivalent parameters (round-off), and so every plain design.
     stacked = weighted_rows(jac, wr)
     if free is not None:
         stacked = stacked[:, cols]
