@@ -158,7 +158,11 @@ def settings_from_parameters(values: dict[str, Any]) -> NodeSettings:
     for key in ('auto_identify', 'allow_code_effects', 'reidentify_with_prior'):
         if not isinstance(values[key], bool):
             raise ConfigError(key, f'must be true or false, got {values[key]!r}')
-    swing = tuple(float(v) for v in values.get('drift_velocity') or ())
+    try:
+        swing = tuple(float(v) for v in values.get('drift_velocity') or ())
+    except (TypeError, ValueError):
+        raise ConfigError('drift_velocity', 'must be a list of numbers, e.g. [5.0, 5.0e-5], '
+                          f"got {values.get('drift_velocity')!r}") from None
     if swing:
         if len(swing) not in (2, 3) or not all(0 <= v < float('inf') for v in swing[:2]) \
                 or (len(swing) == 3 and not 0 < swing[2] < float('inf')):
