@@ -12,7 +12,11 @@ Two sources:
   and joint offset) has a std around its nominal value; base and reflector placements
   stay free (they are measured anew in every cell);
 * :func:`prior_from_calibration` -- a previous calibration's values and
-  ``parameter_covariance``, widened by :func:`drift_widened` for the time since it.
+  ``parameter_covariance``, widened by :func:`drift_widened` for the time since it, and
+  optionally moved along a drift state (:class:`DriftSwing`, :class:`DriftState`,
+  :func:`state_predicted`, :func:`state_updated`): the deviation and rate of each
+  parameter in a daily swing, carried from cycle to cycle so the prior follows a thermal
+  trend instead of lagging it.
 """
 from __future__ import annotations
 
