@@ -13,9 +13,12 @@ The tracker and the reflector nest stay where they are.
 Cycle 0: a full identification from a KPI-optimal 60-pose design. Cycles 1-20 measure the
 10 poses of a design that knows the prior (`design --prior`: the cycle-0 calibration of
 run 0 widened by one cycle of drift, designed once) and are identified with the last
-calibration as prior (Kalman chain: each cycle's posterior is the next prior), the drift
-model matched to the simulated physics (thermal, a random walk whose std per cycle is half
-the largest true step). Beside it at every cycle: a full 60-pose identification (same
+calibration as prior (Kalman chain: each cycle's posterior is the next prior). Drift
+models: the drift state of a daily swing (`--drift-velocity T,B`, core.prior.DriftSwing)
+with the swing the scenario states, T = the temperature amplitude that moves the longest
+link 100 µm and B = 0.05 mrad, and no random walk (`--drift-per-hour 0,0`); and, for
+comparison, the random walk alone matched to the simulated physics (thermal, std per
+cycle half the largest true step). Beside it at every cycle: a full 60-pose identification (same
 design, fresh noise), a from-scratch identification of the same 10 poses, and no
 re-identification (the cycle-0 calibration). TCP error: distance of the identified TCP
 (working pose, tracker frame) to the true one; predicted: √trace of its covariance.
@@ -41,6 +44,7 @@ from kpi_calib_ros.core.design import design_context, design_measurements
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.model_selection import level_free
+from kpi_calib_ros.core.prior import DriftSwing
 from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
                                           true_parameters)
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
@@ -131,12 +135,16 @@ def main(runs: int, quick: bool) -> None:
     data0 = stamped(simulate_measurements(cm.model, truth0.at(0.0), d60, sigma,
                                           np.random.default_rng(1)), 0.0)
     _, doc0 = full_calibration(cm, data0, 0.0)
-    modes = [('kept', True)] if quick else [('kept', True), ('re-registered', False)]
+    # The swing the scenario states (what a user knows of the cell): the temperature
+    # amplitude that moves the longest link MAX_GROWTH, and the offsets' OFFSET_DRIFT.
+    swing = DriftSwing(amplitude_k, OFFSET_DRIFT, 24.0)
+    modes = [('kept', True, 'state')] if quick else [
+        ('kept', True, 'state'), ('re-registered', False, 'state'),
+        ('kept, random walk', True, 'walk')]
     designs = {}
-    for label, keep in modes:  # each mode's prior (the placement in it or not) designs
-        cp = cycle_prior(cm, doc0, None, length_rate, angle_rate, keep_placement=keep,
-                         hours=HOURS, rotation_rate=ROTATION_RATE,
-                         placement_rate=PLACEMENT_RATE)
+    for label, keep, model in modes:  # each mode's prior (the placement in it or not) designs
+        cp = cycle_prior(cm, doc0, None, **drift_args(model, length_rate, angle_rate, swing),
+                         keep_placement=keep, hours=HOURS)
         free = [n for n in level_free(cm.model.params, 'geometric', len(cm.geometric))
                 if n in set(cp.allowed)]
         t = time.perf_counter()
@@ -150,10 +158,13 @@ def main(runs: int, quick: bool) -> None:
     design10 = designs['kept']
 
     tables = {}
-    for label, keep in modes:
+    for label, keep, model in modes:
         d10 = designs[label].configurations
         err = {k: np.full((runs, CYCLES), np.nan) for k in ('prior', 'full', 'scratch', 'none')}
         pred = {k: np.full((runs, CYCLES), np.nan) for k in ('prior', 'full')}
+        # The prior-based error along the true TCP's step since the last cycle (µm): < 0
+        # when the estimate lags the drift.
+        lag = np.full((runs, CYCLES), np.nan)
         alarms = np.zeros((runs, CYCLES), bool)
         statuses: dict[int, int] = {}
         scratch_ok = 0
@@ -164,13 +175,16 @@ def main(runs: int, quick: bool) -> None:
                             0.0)
             first_cal, doc = full_calibration(cm, data0, 0.0)
             cal0 = first_cal.result
+            tcp_before = cm.model.predict(truth.at(0.0), cm.q_work)[0]
             for k in range(1, CYCLES + 1):
                 hours = k * HOURS
                 p_true = truth.at(hours)
+                tcp_true = cm.model.predict(p_true, cm.q_work)[0]
+                step, tcp_before = tcp_true - tcp_before, tcp_true
                 data = stamped(simulate_measurements(cm.model, p_true, d10, sigma, rng), hours)
-                cp = cycle_prior(cm, doc, data, length_rate, angle_rate, keep_placement=keep,
-                                 rotation_rate=ROTATION_RATE,
-                                 placement_rate=PLACEMENT_RATE)
+                cp = cycle_prior(cm, doc, data,
+                                 **drift_args(model, length_rate, angle_rate, swing),
+                                 keep_placement=keep)
                 out = reidentify(cm, data, cp)
                 statuses[out.fit.status] = statuses.get(out.fit.status, 0) + 1
                 full_data = stamped(simulate_measurements(cm.model, p_true, d60, sigma, rng),
@@ -185,6 +199,8 @@ def main(runs: int, quick: bool) -> None:
                     res = out.calibration.result
                     err['prior'][run, k - 1], pred['prior'][run, k - 1] = tcp_error(
                         cm, res, p_true)
+                    lag[run, k - 1] = float((np.asarray(res.tcp[0]) - tcp_true)
+                                            @ step / np.linalg.norm(step))
                     doc = reidentification_document(cm, out, cp, 'previous cycle')
                     doc['identified_at_ns'] = int(data.stamps_ns[0])
                 try:
@@ -196,18 +212,29 @@ def main(runs: int, quick: bool) -> None:
                 err['none'][run, k - 1] = tcp_error(cm, cal0, p_true)[0]
             print(f'[{label}] run {run + 1}/{runs}: alarms {int(alarms[run].sum())}, '
                   f'{time.perf_counter() - t_start:.0f} s', flush=True)
-        tables[label] = (err, pred, alarms, statuses, scratch_ok)
+        tables[label] = (err, pred, alarms, statuses, scratch_ok, lag)
 
     # Written before the bend study too, so a failure there keeps these figures.
-    report(runs, tables, {}, length_rate, angle_rate, design10, t60, t10,
+    report(runs, tables, {}, length_rate, angle_rate, swing, design10, t60, t10,
            time.perf_counter() - t_start, quick)
-    bends = bend_study(cm, runs, d60, design10.configurations, length_rate, angle_rate,
-                       sigma)
-    report(runs, tables, bends, length_rate, angle_rate, design10, t60, t10,
+    bends = bend_study(cm, runs, d60, design10.configurations,
+                       drift_args('state', length_rate, angle_rate, swing), sigma)
+    report(runs, tables, bends, length_rate, angle_rate, swing, design10, t60, t10,
            time.perf_counter() - t_start, quick)
 
 
-def bend_study(cm, runs: int, d60, d10, length_rate: float, angle_rate: float, sigma):
+def drift_args(model: str, length_rate: float, angle_rate: float, swing: DriftSwing):
+    """cycle_prior's drift arguments (length and angle random walks, rotation rate,
+    placement rate, swing) of a bench drift model: 'state' the daily swing and no random
+    walk, 'walk' the matched random walk alone."""
+    if model == 'state':
+        return dict(length_rate=0.0, angle_rate=0.0, rotation_rate=0.0, placement_rate=0.0,
+                    swing=swing)
+    return dict(length_rate=length_rate, angle_rate=angle_rate, rotation_rate=ROTATION_RATE,
+                placement_rate=PLACEMENT_RATE)
+
+
+def bend_study(cm, runs: int, d60, d10, drift: dict, sigma):
     """Per kind: (detected at the bend cycle, named first, named at all, runs, cases).
 
     Link: 1 mm on one of the calibration's identified translations. Offset: 2 mrad on the
@@ -244,9 +271,7 @@ def bend_study(cm, runs: int, d60, d10, length_rate: float, angle_rate: float, s
                     truth.jump[params.index(jumped)] = sign * size
                 data = stamped(simulate_measurements(cm.model, truth.at(hours), d10, sigma,
                                                      rng), hours)
-                cp = cycle_prior(cm, doc, data, length_rate, angle_rate, keep_placement=True,
-                                 rotation_rate=ROTATION_RATE,
-                                 placement_rate=PLACEMENT_RATE)
+                cp = cycle_prior(cm, doc, data, **drift, keep_placement=True)
                 res = reidentify(cm, data, cp)
                 if k < BEND_CYCLE:
                     if res.calibration is None:  # a false alarm before the bend: a miss
@@ -282,7 +307,7 @@ def _rms(a: np.ndarray, axis=0) -> np.ndarray:
     return np.sqrt(np.nanmean(a ** 2, axis=axis))
 
 
-def report(runs, tables, bends, length_rate, angle_rate, design10, t60, t10, seconds,
+def report(runs, tables, bends, length_rate, angle_rate, swing, design10, t60, t10, seconds,
            quick) -> None:
     cmd = (f'.venv/bin/python bench/work_cycles.py {runs}' + (' --quick' if quick else '')
            + ('' if MAX_GROWTH == 100e-6 else f' --growth-um={MAX_GROWTH * 1e6:g}')
@@ -290,20 +315,26 @@ def report(runs, tables, bends, length_rate, angle_rate, design10, t60, t10, sec
     lines = ['# Re-identification over work cycles', '',
              f'`{cmd}` ({seconds / 60:.1f} min on one core; OPENBLAS_NUM_THREADS=1). '
              'Setting in the script docstring.', '',
-             f'Drift model matched to the simulated physics (thermal): lengths '
-             f'{length_rate:.3g}/√h relative (temperature random walk '
+             f'Drift state (`--drift-velocity {swing.temperature_k:.4g},'
+             f'{swing.offset_rad:g},{swing.period_hours:g} --drift-per-hour 0,0,0,0`): '
+             f'daily swing ±{swing.temperature_k:.3g} K (the longest link '
+             f'±{MAX_GROWTH * 1e6:g} µm), offsets ±{swing.offset_rad:g} rad, no random walk. '
+             f'Random walk for comparison, matched to the simulated physics (thermal): '
+             f'lengths {length_rate:.3g}/√h relative (temperature random walk '
              f'{length_rate / ALPHA:.3g} K/√h), joint offsets {angle_rate:.3g} rad/√h, '
              f'placement rotations {ROTATION_RATE:g}, base and reflector position '
              f'{PLACEMENT_RATE:g}. '
              f'Designs: 60 poses KPI-optimal ({t60:.0f} s), 10 poses KPI-optimal with the '
              f'prior of each mode (placement kept: predicted TCP std '
              f'{np.sqrt(design10.criteria["kpi"] * 3) * 1e6:.2f} µm at cycle 1).', '']
-    for label, (err, pred, alarms, statuses, scratch_ok) in tables.items():
+    for label, (err, pred, alarms, statuses, scratch_ok, lag) in tables.items():
         ratio = _rms(err['prior']) / _rms(err['full'])
         mc = _rms(pred['prior']) / _rms(err['prior'])
         lines += [f'## Placement {label} '
                   + ('(tracker and reflector nest unchanged: in the prior, `--keep-placement`)'
-                     if label == 'kept' else '(identified anew each cycle, the default)'), '',
+                     if label.startswith('kept') else '(identified anew each cycle, the default)')
+                  + (', random walk only (the previous drift model)' if 'walk' in label
+                     else ', drift state'), '',
                   f'RMS over {runs} runs of the true TCP error (µm) per cycle; ratio = '
                   'prior-based / full 60-pose; predicted/MC = RMS predicted std / RMS '
                   'true error of the prior-based re-identification.', '',
@@ -317,16 +348,23 @@ def report(runs, tables, bends, length_rate, angle_rate, design10, t60, t10, sec
                          f'{_rms(err["none"][:, k]) * 1e6:.1f} | {mc[k]:.2f} |')
         all_mc = _rms(pred['prior'], None) / _rms(err['prior'], None)
         lines += ['', f'- ratio prior/full: {np.nanmin(ratio):.2f}–{np.nanmax(ratio):.2f}, '
-                  f'above 1.5 in {int(np.sum(ratio > 1.5))}/{CYCLES} cycles',
+                  f'above 1.5 in {int(np.sum(ratio > 1.5))}/{CYCLES} cycles; pooled over all '
+                  f'cycles {_rms(err["prior"], None) * 1e6:.2f} / '
+                  f'{_rms(err["full"], None) * 1e6:.2f} µm = '
+                  f'{_rms(err["prior"], None) / _rms(err["full"], None):.2f}',
                   f'- predicted/MC per cycle {np.nanmin(mc):.2f}–{np.nanmax(mc):.2f} '
                   f'(±20 % band: {int(np.sum(np.abs(mc - 1) <= 0.2))}/{CYCLES} cycles); '
                   f'pooled over all cycles {all_mc:.3f}',
+                  f'- error along the true TCP step since the last cycle (< 0: lagging the '
+                  f'drift): mean {np.nanmean(lag) * 1e6:+.2f} µm ± '
+                  f'{np.nanstd(lag) / np.sqrt(np.sum(np.isfinite(lag))) * 1e6:.2f} (std of '
+                  'the mean)',
                   f'- false alarms (drift only): {int(alarms.sum())} of {alarms.size} cycles, '
                   f'runs with any: {int(alarms.any(axis=1).sum())}/{runs}',
                   f'- MAP fit status counts: {dict(sorted(statuses.items()))}',
                   f'- from scratch with the 10 poses (30 equations, 27 identifiable '
                   f'parameters): converged in {scratch_ok}/{alarms.size} cycles', '']
-    lines += ['## Bends between cycles 9 and 10 (placement kept)', '',
+    lines += ['## Bends between cycles 9 and 10 (placement kept, drift state)', '',
               'Named: the identified parameter carrying the change (the bent one for a '
               'link; for an offset, the identified parameter with the largest equivalent '
               'change in prior std, see `bend_study`).', '',

@@ -13,7 +13,9 @@ import sys
 from pathlib import Path
 
 from kpi_calib_ros.core.errors import KpiCalibError
-from kpi_calib_ros.core.prior import DRIFT_ANGLE_PER_SQRT_HOUR, DRIFT_LENGTH_PER_SQRT_HOUR
+from kpi_calib_ros.core.prior import (DAY_HOURS, DRIFT_ANGLE_PER_SQRT_HOUR,
+                                      DRIFT_LENGTH_PER_SQRT_HOUR, OFFSET_SWING_RAD,
+                                      TEMPERATURE_SWING_K)
 from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, DEFAULT_POSE_TOPIC
 
 
@@ -48,6 +50,33 @@ def _drift(text: str) -> tuple[float, ...]:
     if not all(0 <= r < float('inf') for r in rates):
         raise argparse.ArgumentTypeError(f'{text!r}: the rates must be finite and >= 0')
     return rates
+
+
+DEFAULT_SWING = (TEMPERATURE_SWING_K, OFFSET_SWING_RAD, DAY_HOURS)
+SWING_HELP = ('drift state of a daily swing (core.prior.DriftSwing): the rates of the prior '
+              'calibration (its drift_state) extrapolate it, and this cycle\'s calibration '
+              'stores them; TEMPERATURE_K: ± temperature amplitude of the links (12 µm per m '
+              'and K), OFFSET_RAD: ± joint offset amplitude, PERIOD_H: its period (default '
+              f'{DAY_HOURS:g}); without values {TEMPERATURE_SWING_K:g},{OFFSET_SWING_RAD:g},'
+              f'{DAY_HOURS:g}; added to --drift-per-hour (give 0,0 for the swing alone)')
+
+
+def _swing(text: str) -> tuple[float, ...]:
+    """``--drift-velocity TEMPERATURE_K,OFFSET_RAD[,PERIOD_H]``."""
+    try:
+        values = tuple(float(x) for x in text.split(','))
+    except ValueError:
+        values = ()
+    if len(values) not in (2, 3):
+        raise argparse.ArgumentTypeError(f'{text!r}: give TEMPERATURE_K,OFFSET_RAD[,PERIOD_H], '
+                                         'e.g. 5,5e-5 (± daily temperature swing of the '
+                                         'links in K, ± joint offset swing in rad, period in '
+                                         'hours)')
+    if not all(0 <= v < float('inf') for v in values[:2]):
+        raise argparse.ArgumentTypeError(f'{text!r}: the swings must be finite and >= 0')
+    if len(values) == 3 and not 0 < values[2] < float('inf'):
+        raise argparse.ArgumentTypeError(f'{text!r}: the period must be > 0 hours')
+    return values if len(values) == 3 else values + (DAY_HOURS,)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -91,6 +120,8 @@ def main(argv: list[str] | None = None) -> int:
     ide.add_argument('--keep-placement', action='store_true',
                      help='tracker and reflector nest not moved since --prior: keep the base '
                      'and reflector placement in the prior (default: identified anew)')
+    ide.add_argument('--drift-velocity', type=_swing, nargs='?', const=DEFAULT_SWING,
+                     metavar='TEMPERATURE_K,OFFSET_RAD[,PERIOD_H]', help=SWING_HELP)
     _bag_topics(ide)
     ide.add_argument('--allow-code-effects', action='store_true', help=CODE_EFFECTS_HELP)
 
@@ -149,6 +180,9 @@ def main(argv: list[str] | None = None) -> int:
     des.add_argument('--drift-model', choices=['thermal', 'isotropic'], default='thermal')
     des.add_argument('--keep-placement', action='store_true',
                      help='as for identify --prior: base and reflector placement in the prior')
+    des.add_argument('--drift-velocity', type=_swing, nargs='?', const=DEFAULT_SWING,
+                     metavar='TEMPERATURE_K,OFFSET_RAD[,PERIOD_H]',
+                     help='drift state as for identify --prior')
     des.add_argument('--allow-code-effects', action='store_true', help=CODE_EFFECTS_HELP)
 
     cam = sub.add_parser('campaign', help='sequential campaign: each next pose from what has '
@@ -205,7 +239,8 @@ def _identify(args: argparse.Namespace) -> int:
         return run_reidentify(args.cell, args.bag, args.out, args.prior, effects=args.effects,
                               model=args.model, drift=args.drift_per_hour,
                               keep_placement=args.keep_placement,
-                              drift_model=args.drift_model, **options)
+                              drift_model=args.drift_model, swing=args.drift_velocity,
+                              **options)
     from kpi_calib_ros.app.identify import run_identify
     return run_identify(args.cell, args.bag, args.out, effects=args.effects, model=args.model,
                         **options)
@@ -218,7 +253,8 @@ def _design(args: argparse.Namespace) -> int:
     return run_design(args.cell, args.n, args.criterion, args.out, seed=args.seed,
                       allow_code_effects=args.allow_code_effects, prior_path=args.prior,
                       hours=args.hours, drift=args.drift_per_hour,
-                      keep_placement=args.keep_placement, drift_model=args.drift_model)
+                      keep_placement=args.keep_placement, drift_model=args.drift_model,
+                      swing=args.drift_velocity)
 
 
 def _campaign(args: argparse.Namespace) -> int:

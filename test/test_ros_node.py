@@ -138,6 +138,10 @@ def defaults(**changes):
     ({'point_topic': 'tracker/point!'}, 'point_topic'),
     ({'robot_description_topic': ''}, 'robot_description_topic'),
     ({'auto_identify': 'maybe'}, 'auto_identify'),
+    ({'drift_velocity': [5.0]}, 'drift_velocity'),
+    ({'drift_velocity': [5.0, -1e-5]}, 'drift_velocity'),
+    ({'drift_velocity': [5.0, 5e-5, 0.0]}, 'drift_velocity'),
+    ({'drift_velocity': ['warm', 'cold']}, 'drift_velocity'),
     ({'allow_code_effects': 'yes'}, 'allow_code_effects'),
 ])
 def test_parameters_are_validated_by_name(changes, key):

@@ -46,7 +46,9 @@ def test_second_cycle_is_identified_with_the_first_as_prior(tmp_path, client, sp
         QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                    durability=DurabilityPolicy.TRANSIENT_LOCAL))
     data_dir = tmp_path / 'data'
-    node = spawn(data_dir, 'node.log', 'min_measurements:=30')
+    # With the drift state (a daily swing): the second calibration carries it onward.
+    node = spawn(data_dir, 'node.log', 'min_measurements:=30',
+                 'drift_velocity:=[5.0, 5.0e-5]')
     finish(spawn.replay(first), client)
     client.spin_until(lambda: any(d['measurements'] == 30
                                   for d in client.received['calibration']),
@@ -68,6 +70,10 @@ def test_second_cycle_is_identified_with_the_first_as_prior(tmp_path, client, sp
     two = next(d for d in client.received['calibration'] if d['measurements'] == 12)
     assert two['valid'] and two['prior']['source'] == str(archived)
     assert two['change_test']['consistent'] is True
+    assert 'no drift_state in it: stationary' in two['prior']['description']
+    state = two['drift_state']
+    assert state['swing'] == {'temperature_k': 5.0, 'offset_rad': 5e-5, 'period_hours': 24.0}
+    assert len(state['values']) == 2 * len(state['names']) > 0
     client.spin_until(lambda: changes, 10, '~/change_test')
     assert changes[-1]['consistent'] is True and changes[-1]['prior'] == str(archived)
     # The identified TCP agrees with the truth within 4 of its predicted std.
@@ -79,4 +85,7 @@ def test_second_cycle_is_identified_with_the_first_as_prior(tmp_path, client, sp
     assert [f.name for f in files] == sorted([archived.name,
                                              f"{two['identified_at_ns']}.yaml"])
     assert yaml.safe_load(archived.read_text())['measurements'] == 30
+    kept = yaml.safe_load((data_dir / 'calibrations' / f"{two['identified_at_ns']}.yaml")
+                          .read_text())
+    assert kept['drift_state']['names'] == state['names']
     assert node.stop() == 0

@@ -106,14 +106,16 @@ def run_design(cell_path: str | Path, n: int, criterion: str, out: str | Path,
                prior_path: str | Path | None = None, hours: float = 1.0,
                drift: tuple[float, ...] = (DRIFT_LENGTH_PER_SQRT_HOUR,
                                            DRIFT_ANGLE_PER_SQRT_HOUR),
-               keep_placement: bool = False, drift_model: str = 'thermal') -> int:
+               keep_placement: bool = False, drift_model: str = 'thermal',
+               swing: tuple[float, ...] | None = None) -> int:
     """``kpi-calib design``: design.yaml, ``<stem>_poses.png`` and ``<stem>_ellipsoids.png``
     (heuristic vs this design) and a summary on stdout.
 
     ``prior_path`` (``--prior``): a previous calibration whose information every design
     has (the KPI criterion with the prior precision added), widened by ``drift`` for
     ``hours`` (:func:`kpi_calib_ros.app.reidentify.cycle_prior`, the same prior the
-    re-identification of the measured poses will use) and linearised at its values.
+    re-identification of the measured poses will use; with ``swing``, extrapolated along
+    its drift state) and linearised at its values.
 
     Returns 0, or 1 when the independent verification failed or the design (with the
     prior) leaves the KPI not estimable.
@@ -124,11 +126,13 @@ def run_design(cell_path: str | Path, n: int, criterion: str, out: str | Path,
     prior, p, allowed, prior_doc = None, None, None, None
     if prior_path is not None:
         from kpi_calib_ros.app.reidentify import cycle_prior
+        from kpi_calib_ros.core.prior import DriftSwing
         old = read_calibration_document(prior_path, '--prior')
         cp = cycle_prior(cm, old, None, drift[0], drift[1], keep_placement=keep_placement,
                          drift_model=drift_model, hours=hours,
                          rotation_rate=drift[2] if len(drift) > 2 else None,
-                         placement_rate=drift[3] if len(drift) > 3 else None)
+                         placement_rate=drift[3] if len(drift) > 3 else None,
+                         swing=None if swing is None else DriftSwing(*swing))
         prior, p, allowed = cp.prior, cm.model.params.with_values(cp.values), cp.allowed
         prior_doc = {'source': str(prior_path), 'description': cp.description,
                      'hours': float(hours), 'keep_placement': keep_placement}

@@ -36,8 +36,9 @@ from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.model_selection import level_free
 from kpi_calib_ros.core.pairing import PairingResult
 from kpi_calib_ros.core.prior import (DRIFT_ANGLE_PER_SQRT_HOUR, DRIFT_LENGTH_PER_SQRT_HOUR,
-                                      PLACEMENT_PREFIXES, Prior, drift_covariance,
-                                      mapped_drift, prior_from_calibration)
+                                      PLACEMENT_PREFIXES, DriftState, DriftSwing, Prior,
+                                      drift_covariance, mapped_drift, prior_from_calibration,
+                                      state_predicted, state_updated, stationary_state)
 from kpi_calib_ros.core.simulation import random_configurations
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.results import read_calibration_document, writable_folder
@@ -79,6 +80,12 @@ class CyclePrior:
         are then weighted by the noise it showed, σ·√noise_scale, not the stated σ, so
         prior and data keep their balance and the same unmodelled effects are no change.
         1.0 and None when the model was adequate.
+    state : DriftState or None
+        With a drift state (``swing``): the deviations and rates of the prior's parameters
+        and their covariance with them, extrapolated with ``prior`` to the new cycle (the
+        prior's mean is already moved along them); None without.
+    swing : DriftSwing or None
+        The daily swing the drift state is modelled on (``--drift-velocity``).
     """
 
     prior: Prior
@@ -89,6 +96,8 @@ class CyclePrior:
     description: str
     noise_scale: float = 1.0
     noise_dof: int | None = None
+    state: DriftState | None = None
+    swing: DriftSwing | None = None
 
 
 def link_vectors(cm: CellModel) -> dict[tuple[str, str, str], np.ndarray]:
@@ -113,7 +122,8 @@ def cycle_prior(cm: CellModel, doc: dict[str, Any], data: Measurements | None,
                 angle_rate: float = DRIFT_ANGLE_PER_SQRT_HOUR,
                 keep_placement: bool = False, drift_model: str = 'thermal',
                 hours: float | None = None, rotation_rate: float | None = None,
-                placement_rate: float | None = None) -> CyclePrior:
+                placement_rate: float | None = None,
+                swing: DriftSwing | None = None) -> CyclePrior:
     """The previous calibration ``doc`` (calibration.yaml) as the prior of ``data``.
 
     Drift (:func:`kpi_calib_ros.core.prior.drift_widened`) over the time from its
@@ -125,6 +135,14 @@ def cycle_prior(cm: CellModel, doc: dict[str, Any], data: Measurements | None,
     (default ``angle_rate``) either way. The base position in the tracker frame and the
     reflector offsets grow by ``placement_rate`` (relative, per √hour; default
     ``length_rate``: the floor between tracker and robot expands like the arm).
+
+    ``swing`` (:class:`~kpi_calib_ros.core.prior.DriftSwing`) adds a drift state: the
+    deviations and rates of the prior's parameters (``drift_state`` of ``doc``; the
+    swing's stationary state when it has none, backwards compatible) extrapolate the prior
+    over the drift time (:func:`~kpi_calib_ros.core.prior.state_predicted`), on top of the
+    random walks. The swing of link translations (along each link's vector for
+    ``thermal``) and joint offsets is modelled, mapped onto the identified parameters as
+    the random walk is; placement rotations, the base and the reflectors get none.
 
     Raises
     ------
@@ -198,6 +216,27 @@ def cycle_prior(cm: CellModel, doc: dict[str, Any], data: Measurements | None,
     where = [list(allowed).index(n) for n in prior.names]
     q_prior = q_kept[np.ix_(where, where)]
     widened = Prior(prior.names, prior.mean, prior.covariance + q_prior * abs(hours))
+    state = None
+    if swing is not None:
+        # The swing amplitude's covariance over every parameter (along each link's vector
+        # for thermal), mapped onto the prior's parameters like the random walk.
+        a_full = drift_covariance(params.names, {n: v for n, v in lengths.items()
+                                                 if n not in placed},
+                                  swing.length_amplitude, swing.offset_rad,
+                                  link_vectors={t: v for t, v in vectors.items()
+                                                if t[0] not in placed} if thermal else None,
+                                  drifting=lambda n: n in geometric and n not in placed,
+                                  rotation_rate=0.0)
+        shape = mapped_drift(a_full, jac.reshape(-1, len(params.names)), kept)[
+            np.ix_(where, where)]
+        state = initial_state(prior.names, swing, shape, doc)
+        widened, state = state_predicted(widened, state, swing, shape, hours)
+        values = {**values, **dict(zip(prior.names, map(float, widened.mean)))}
+        stored = 'drift_state' in doc
+        how += (f'; drift state (daily swing ±{swing.temperature_k:g} K, offsets '
+                f'±{swing.offset_rad:.3g} rad, period {swing.period_hours:g} h): '
+                + ('its drift_state' if stored else 'no drift_state in it: stationary')
+                + f' extrapolated over {hours:.3g} h')
     noise_scale = float((doc.get('precision') or {}).get('covariance_scale', 1.0))
     noise_dof = None
     if noise_scale != 1.0:
@@ -207,7 +246,32 @@ def cycle_prior(cm: CellModel, doc: dict[str, Any], data: Measurements | None,
                 'sigma, and the change test accounts for that estimate'
                 + (f' ({noise_dof} dof)' if noise_dof else ''))
     return CyclePrior(widened, values, allowed, keep_placement, hours, how, noise_scale,
-                      noise_dof)
+                      noise_dof, state, swing)
+
+
+def initial_state(names: tuple[str, ...], swing: DriftSwing, shape: np.ndarray,
+                  doc: dict[str, Any]) -> DriftState:
+    """The drift state of the prior parameters ``names`` before extrapolation: the
+    ``drift_state`` of ``doc`` for the names it has; for the others the stationary
+    state of the swing (:func:`~kpi_calib_ros.core.prior.stationary_state`), uncorrelated."""
+    k = len(names)
+    fresh = stationary_state(names, swing, shape)
+    if 'drift_state' not in doc:
+        return fresh
+    stored = DriftState.from_dict(doc['drift_state'])
+    have = [i for i, n in enumerate(names) if n in stored.names]
+    new = [i for i in range(k) if i not in have]
+    znew = new + [k + i for i in new]
+    zhave = have + [k + i for i in have]
+    at = [stored.names.index(names[i]) for i in have]
+    kk = len(stored.names)
+    zat = at + [kk + i for i in at]
+    state, cov, cross = np.zeros(2 * k), np.zeros((2 * k, 2 * k)), np.zeros((k, 2 * k))
+    cov[np.ix_(znew, znew)] = fresh.covariance[np.ix_(znew, znew)]
+    state[zhave] = stored.state[zat]
+    cov[np.ix_(zhave, zhave)] = stored.covariance[np.ix_(zat, zat)]
+    cross[np.ix_(have, zhave)] = stored.cross[np.ix_(at, zat)]
+    return DriftState(tuple(names), state, cov, cross)
 
 
 def cycle_start(cm: CellModel, data: Measurements, cp: CyclePrior) -> np.ndarray:
@@ -235,6 +299,7 @@ class Reidentification:
     change: ChangeTest
     fit: CalibrationResult
     calibration: CellCalibration | None
+    state: DriftState | None = None
 
 
 def reidentify(cm: CellModel, data: Measurements, cp: CyclePrior, model: str | None = None,
@@ -264,7 +329,13 @@ def reidentify(cm: CellModel, data: Measurements, cp: CyclePrior, model: str | N
         return Reidentification(change, fit, None)
     cal = calibrate_cell(without_exclusion(cm), data, model, cp.prior, start=start,
                          allowed=cp.allowed)
-    return Reidentification(change, fit, cal)
+    state = None
+    if cp.state is not None:
+        res = cal.result
+        state = state_updated(cp.prior, cp.state, res.estimated,
+                              res.values[cm.model.params.indices(list(res.estimated))],
+                              res.covariance)
+    return Reidentification(change, fit, cal, state)
 
 
 def with_noise_scale(cm: CellModel, scale: float) -> CellModel:
@@ -315,6 +386,9 @@ def reidentification_document(cm: CellModel, out: Reidentification, cp: CyclePri
     doc['prior'] = {'source': source, 'description': cp.description,
                     'hours': float(cp.hours), 'keep_placement': cp.keep_placement}
     doc['change_test'] = out.change.to_dict()
+    if out.state is not None and cp.swing is not None:
+        # The drift state for the next cycle (core.prior.DriftState; rates per hour).
+        doc['drift_state'] = {'swing': cp.swing.to_dict(), **out.state.to_dict()}
     return doc
 
 
@@ -323,8 +397,11 @@ def run_reidentify(cell_path: str | Path, bag_path: str | Path, out_dir: str | P
                    drift: tuple[float, ...] = (DRIFT_LENGTH_PER_SQRT_HOUR,
                                                DRIFT_ANGLE_PER_SQRT_HOUR),
                    keep_placement: bool = False, drift_model: str = 'thermal',
-                   **options: Any) -> int:
+                   swing: tuple[float, ...] | None = None, **options: Any) -> int:
     """``kpi-calib identify --prior OLD/calibration.yaml``.
+
+    ``swing`` (``--drift-velocity``): temperature amplitude (K), offset amplitude (rad)
+    and period (h) of the drift state (:class:`~kpi_calib_ros.core.prior.DriftSwing`).
 
     Returns 0 for a valid calibration, 1 when it did not converge or the TCP is not
     estimable, :data:`EXIT_CHANGE` (3) when the new points contradict the prior beyond
@@ -337,7 +414,8 @@ def run_reidentify(cell_path: str | Path, bag_path: str | Path, out_dir: str | P
     cp = cycle_prior(cm, old, data, drift[0], drift[1], keep_placement=keep_placement,
                      drift_model=drift_model,
                      rotation_rate=drift[2] if len(drift) > 2 else None,
-                     placement_rate=drift[3] if len(drift) > 3 else None)
+                     placement_rate=drift[3] if len(drift) > 3 else None,
+                     swing=None if swing is None else DriftSwing(*swing))
     out = reidentify(cm, data, cp, model)
     doc = reidentification_document(cm, out, cp, str(prior_path), pairing)
     path, urdf_path, _ = write_results(cm, (out.calibration.result if out.calibration

@@ -30,6 +30,7 @@ from kpi_calib_ros.io.report import diagnosis_to_dict, write_report
 from kpi_calib_ros.app.identify import (CellCalibration, add_robust_sections,
                                         calibrate_cell, calibration_document, write_results)
 from kpi_calib_ros.app.reidentify import cycle_prior, reidentification_document, reidentify
+from kpi_calib_ros.core.prior import DriftSwing
 from kpi_calib_ros.core.change_detection import ChangeTest
 from kpi_calib_ros.io.names import (CALIBRATIONS_DIR, CAMPAIGN_PLAN_FILE, DESIGN_FILE,
                                     DIAGNOSIS_DIR, VALIDATION_DIR)
@@ -90,7 +91,7 @@ def archive_calibration(data_dir: Path, doc: dict[str, Any], text: str) -> Path 
 
 
 def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, data_dir: Path,
-                  with_prior: bool = False
+                  with_prior: bool = False, swing: tuple[float, ...] | None = None
                   ) -> tuple[CellCalibration | None, str, str, list[PoseWithCovarianceStamped],
                              ChangeTest | None, str]:
     """Identify from ``data`` as ``kpi-calib identify`` does and write the calibration and
@@ -100,7 +101,8 @@ def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, dat
     archived as ``data_dir/calibrations/<identified_at_ns>.yaml``.
 
     ``with_prior``: the last archived calibration of an earlier cycle
-    (:func:`previous_calibration`) is the prior (``identify --prior``, default drift);
+    (:func:`previous_calibration`) is the prior (``identify --prior``, default drift;
+    ``swing``: temperature K, offset rad, period h of its drift state, ``--drift-velocity``);
     a change beyond the drift model returns no calibration, the change test and the
     failed document's text (written to calibration.failed.yaml).
 
@@ -131,7 +133,8 @@ def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, dat
         doc = add_robust_sections(calibration_document(cm, cal.result, pairing), cal)
         result = cal.result
     else:
-        cp = cycle_prior(cm, read_calibration_document(source, 'prior calibration'), data)
+        cp = cycle_prior(cm, read_calibration_document(source, 'prior calibration'), data,
+                         swing=None if swing is None else DriftSwing(*swing))
         out = reidentify(cm, data, cp)
         cal, change = out.calibration, out.change
         doc = reidentification_document(cm, out, cp, str(source), pairing)

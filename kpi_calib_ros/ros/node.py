@@ -494,7 +494,8 @@ class CalibrationNode(Node):
         try:
             cal, calibration, urdf, tcp, change, prior = await self._offload(
                 jobs.identify_work, cm, data, pairing, self.data_dir,
-                self.settings.reidentify_with_prior, child=True)
+                self.settings.reidentify_with_prior, self.settings.drift_velocity or None,
+                child=True)
         except KpiCalibError as exc:
             self._result_error = f'identification failed: {exc}'
             raise

@@ -15,6 +15,7 @@ from rclpy.validate_topic_name import validate_topic_name
 
 from kpi_calib_ros.core.design import DESIGN_CRITERIA
 from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.core.prior import DAY_HOURS
 from kpi_calib_ros.io.cell import DEFAULT_CELL, WorkingPose, working_poses_from_arrays
 from kpi_calib_ros.io.names import (DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC,
                                     DEFAULT_POSE_TOPIC, ROBOT_DESCRIPTION_TOPIC)
@@ -43,6 +44,7 @@ class NodeSettings:
     target_tcp_std: float = 1.0e-5
     max_measurements: int = 200
     reidentify_with_prior: bool = True
+    drift_velocity: tuple[float, ...] = ()
 
 
 CAMPAIGNS = ('fixed', 'sequential')
@@ -82,6 +84,12 @@ PARAMETERS: dict[str, tuple[Any, bool, str]] = {
     'reidentify_with_prior': (True, False, 'identify with the last calibration of an earlier '
                               'cycle (data_dir/calibrations/) as prior, widened by the '
                               'default drift model; a change beyond it is not blended'),
+    'drift_velocity': (Parameter.Type.DOUBLE_ARRAY, False,
+                       'drift state of re-identifications (as identify --drift-velocity): '
+                       '[temperature_K, offset_rad] or [temperature_K, offset_rad, period_h], '
+                       'the daily swing of the links\' temperature and of the joint offsets, '
+                       'e.g. [5.0, 5.0e-5]; the rates are stored in each calibration for the '
+                       'next cycle; empty (default): the random-walk drift model only'),
     'allow_code_effects': (False, True, "run the Python code a cell file's effects: name "
                            "('file.py:Type:joint', 'module:Type:joint'); off: only built-in "
                            'and installed (entry point) effects'),
@@ -150,6 +158,18 @@ def settings_from_parameters(values: dict[str, Any]) -> NodeSettings:
     for key in ('auto_identify', 'allow_code_effects', 'reidentify_with_prior'):
         if not isinstance(values[key], bool):
             raise ConfigError(key, f'must be true or false, got {values[key]!r}')
+    try:
+        swing = tuple(float(v) for v in values.get('drift_velocity') or ())
+    except (TypeError, ValueError):
+        raise ConfigError('drift_velocity', 'must be a list of numbers, e.g. [5.0, 5.0e-5], '
+                          f"got {values.get('drift_velocity')!r}") from None
+    if swing:
+        if len(swing) not in (2, 3) or not all(0 <= v < float('inf') for v in swing[:2]) \
+                or (len(swing) == 3 and not 0 < swing[2] < float('inf')):
+            raise ConfigError('drift_velocity', 'must be empty or [temperature_K, offset_rad'
+                              '(, period_h)] with finite swings >= 0 and a period > 0 h, e.g. '
+                              f'[5.0, 5.0e-5], got {list(swing)}')
+        swing = swing if len(swing) == 3 else swing + (DAY_HOURS,)
     topics = {k: topic(k) for k in ('robot_description_topic', 'joint_states_topic',
                                     'point_topic', 'pose_topic')}
     if topics['joint_states_topic'] == topics['point_topic']:
@@ -168,7 +188,8 @@ def settings_from_parameters(values: dict[str, Any]) -> NodeSettings:
         auto_identify=values['auto_identify'], allow_code_effects=values['allow_code_effects'],
         data_dir=str(Path(text('data_dir')).expanduser()), campaign=values['campaign'],
         target_tcp_std=float(target), max_measurements=integer('max_measurements', 1),
-        reidentify_with_prior=values['reidentify_with_prior'], **topics)
+        reidentify_with_prior=values['reidentify_with_prior'], drift_velocity=swing,
+        **topics)
 
 
 def working_poses(settings: NodeSettings) -> tuple[WorkingPose, ...] | None:
