@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import pickle
 import sys
 import time
 from pathlib import Path
@@ -166,9 +167,26 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--cases', default='right,pessimistic,optimistic,compliance')
     ap.add_argument('--confidence', type=float, default=CampaignSettings(1.0).confidence)
     ap.add_argument('--precise-target', type=float, default=PRECISE_TARGET)
+    ap.add_argument('--first-run', type=int, default=0,
+                    help='index of the first run (true robot) of every case, to split a '
+                         'case over processes')
+    ap.add_argument('--save', help='pickle the runs here after every case (for --merge)')
+    ap.add_argument('--merge', help='comma-separated --save files of processes that ran '
+                                    'parts of the cases: write their combined tables only')
     ap.add_argument('--out', default=str(Path(__file__).parent / 'results' /
                                          'sequential_campaign.md'))
     args = ap.parse_args(argv)
+    if args.merge:
+        parts = [pickle.loads(Path(f).read_bytes()) for f in args.merge.split(',')]
+        merged: dict[str, list] = {}
+        for part in parts:
+            for case, rows in part['results'].items():
+                merged.setdefault(case, []).extend(rows)
+        command = ('; '.join(part['command'] for part in parts)
+                   + f'; merged with `--merge {args.merge}`')
+        write(args.out, merged, parts[0]['unit'], parts[0]['sigma'], parts[0]['args'],
+              parts[0]['designs'], command)
+        return 0
     cases = args.cases.split(',')
     cell_doc = load_cell(DEFAULT_CELL)
     cm = build_cell_model(cell_doc)
@@ -196,7 +214,7 @@ def main(argv: list[str] | None = None) -> int:
             effects, overrides = hidden_effects(COMPLIANCE, cm.robot)
             truth = build_cell_model(cell_doc, effects=effects)
         rows = []
-        for r in range(runs):
+        for r in range(args.first_run, args.first_run + runs):
             rng = np.random.default_rng(1000 * (1 + list(FACTORS).index(case)) + r)
             p_true = true_parameters(truth.model.params, rng, overrides=overrides)
             campaign = new_campaign(cm, cell, ctx, settings, seed=r)
@@ -227,16 +245,23 @@ def main(argv: list[str] | None = None) -> int:
                   f'{rows[-1]["oracle_cal"]}, max prefix ratio {rows[-1]["max_ratio"]:.3f}, '
                   f'{seconds:.0f} s', flush=True)
         results[case] = rows
-        write(args.out, results, unit, sigma, args, designs)  # after every case
+        command = (f'`.venv/bin/python bench/sequential_campaign.py --runs {args.runs} '
+                   f'--compliance-runs {args.compliance_runs} --precise-runs '
+                   f'{args.precise_runs} --cases {args.cases} --confidence {args.confidence}'
+                   + (f' --first-run {args.first_run}' if args.first_run else '') + '`')
+        write(args.out, results, unit, sigma, args, designs, command)  # after every case
+        if args.save:
+            Path(args.save).write_bytes(pickle.dumps({
+                'results': results, 'unit': unit, 'sigma': sigma, 'designs': designs,
+                'args': argparse.Namespace(**vars(args)), 'command': command}))
     return 0
 
 
-def write(out: str, results: dict, unit: dict, sigma: float, args, designs) -> None:
+def write(out: str, results: dict, unit: dict, sigma: float, args, designs,
+          command: str) -> None:
     load = os.getloadavg()[0]
     lines = ['# Sequential campaign (KR15-class default cell, stated σ 20 µm)',
-             '', f'Command: `.venv/bin/python bench/sequential_campaign.py --runs {args.runs} '
-             f'--compliance-runs {args.compliance_runs} --precise-runs {args.precise_runs} '
-             f'--cases {args.cases} --confidence {args.confidence}`; '
+             '', f'Command: {command}; '
              f'{os.cpu_count()} cores shared with other work (1-min load {load:.1f} at the '
              'end). Statistic: largest per-axis TCP std over the working poses; target 10 µm '
              f'({args.precise_target * 1e6:g} µm for "precise"). '
