@@ -465,7 +465,7 @@ class SequentialCampaign:
         parameters identifiable at the nominal geometry; a real robot's (J2 and J3 not
         exactly parallel) makes more of them identifiable, the calibration estimates
         them, and their variance is part of the statistic the campaign stops on (the
-        batch KPI designs calibrate to a 6-9 % larger TCP std than the design problem
+        batch KPI designs calibrate to an 8-9 % larger TCP std than the design problem
         says, bench/results/sequential_campaign.md)."""
         model = self.cell.model
         assert self.result is not None
