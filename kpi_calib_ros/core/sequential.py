@@ -64,6 +64,8 @@ NESTED_FACTOR = 3
 # above the averaged joint-state noise of a still robot, far below any two candidates.
 REPLICATE_TOLERANCE = 1e-4
 PLAN_SECONDS = 0.4
+# While replicates are due, one replicate after every REPLICATE_EVERY - 1 new poses.
+REPLICATE_EVERY = 3
 MODEL_INADEQUATE = 'model inadequate: call ~/diagnose'
 MAX_MEASUREMENTS = 'max_measurements reached'
 
@@ -434,7 +436,7 @@ class SequentialCampaign:
     def _plan(self, dof_pe: int) -> tuple[np.ndarray, np.ndarray]:
         """The plan, next pose first, and the candidate index of each (-1: not a
         candidate): while χ² has rejected and the pure-error dof are short, a replicate
-        of the measured pose that helps the KPI most, every second pose; then the candidates
+        of the measured pose that helps the KPI most, every third pose; then the candidates
         :func:`plan_ahead` chooses in :meth:`_estimate_problem`."""
         model = self.cell.model
         problem = self._estimate_problem()
@@ -448,9 +450,10 @@ class SequentialCampaign:
         q_plan, index = self.candidates[planned], planned
         labels = pose_groups(self.q)
         counts = np.bincount(labels, minlength=len(labels))[labels]
-        # Replicates alternate with new poses: a block of them right after the χ²
+        # A replicate after every two new poses: a block of them right after the χ²
         # rejection spends several poses in a row on little KPI and is the worst prefix.
-        if self._replicating and dof_pe < 3 * self.settings.replicates and counts[-1] == 1:
+        if (self._replicating and dof_pe < 3 * self.settings.replicates
+                and np.all(counts[-REPLICATE_EVERY + 1:] == 1)):
             once = np.flatnonzero(counts == 1)
             if len(once):
                 gain = loss.delta(_inverse(info), problem.rows(model, self.q[once]), +1.0)
