@@ -12,8 +12,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from kpi_calib_ros.core.errors import KpiCalibError
-from kpi_calib_ros.core.prior import (DAY_HOURS, DRIFT_ANGLE_PER_SQRT_HOUR,
+from kpi_calib_ros.core.errors import DataError, KpiCalibError
+from kpi_calib_ros.core.prior import (DAY_HOURS, DriftSwing, DRIFT_ANGLE_PER_SQRT_HOUR,
                                       DRIFT_LENGTH_PER_SQRT_HOUR, OFFSET_SWING_RAD,
                                       TEMPERATURE_SWING_K)
 from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, DEFAULT_POSE_TOPIC
@@ -62,21 +62,15 @@ SWING_HELP = ('drift state of a daily swing (core.prior.DriftSwing): the rates o
 
 
 def _swing(text: str) -> tuple[float, ...]:
-    """``--drift-velocity TEMPERATURE_K,OFFSET_RAD[,PERIOD_H]``."""
+    """``--drift-velocity TEMPERATURE_K,OFFSET_RAD[,PERIOD_H]`` (checked by
+    :meth:`kpi_calib_ros.core.prior.DriftSwing.from_values`)."""
     try:
-        values = tuple(float(x) for x in text.split(','))
-    except ValueError:
-        values = ()
-    if len(values) not in (2, 3):
-        raise argparse.ArgumentTypeError(f'{text!r}: give TEMPERATURE_K,OFFSET_RAD[,PERIOD_H], '
-                                         'e.g. 5,5e-5 (± daily temperature swing of the '
-                                         'links in K, ± joint offset swing in rad, period in '
-                                         'hours)')
-    if not all(0 <= v < float('inf') for v in values[:2]):
-        raise argparse.ArgumentTypeError(f'{text!r}: the swings must be finite and >= 0')
-    if len(values) == 3 and not 0 < values[2] < float('inf'):
-        raise argparse.ArgumentTypeError(f'{text!r}: the period must be > 0 hours')
-    return values if len(values) == 3 else values + (DAY_HOURS,)
+        return DriftSwing.from_values([float(x) for x in text.split(',')]).values()
+    except (ValueError, DataError) as exc:
+        raise argparse.ArgumentTypeError(
+            f'{text!r}: give TEMPERATURE_K,OFFSET_RAD[,PERIOD_H], e.g. 5,5e-5 (± daily '
+            'temperature swing of the links in K >= 0, ± joint offset swing in rad >= 0, '
+            f'period in hours > 0): {exc}') from None
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -300,6 +300,27 @@ class DriftSwing:
             raise DataError('drift velocity: the period must be a positive number of hours, '
                             f'got {self.period_hours}')
 
+    @classmethod
+    def from_values(cls, values: Sequence[float]) -> DriftSwing:
+        """The swing of ``[temperature_K, offset_rad(, period_h)]`` (period default
+        `DAY_HOURS`), as the CLI's ``--drift-velocity`` and the node's ``drift_velocity`` give
+        it.
+
+        Raises
+        ------
+        DataError
+            Not two or three numbers, or a value out of range (see the class).
+        """
+        values = tuple(float(v) for v in values)
+        if len(values) not in (2, 3):
+            raise DataError('drift velocity: give temperature_K, offset_rad and optionally '
+                            f'period_h (2 or 3 numbers), got {len(values)}')
+        return cls(*values)
+
+    def values(self) -> tuple[float, float, float]:
+        """(temperature_k, offset_rad, period_hours)."""
+        return (self.temperature_k, self.offset_rad, self.period_hours)
+
     @property
     def omega(self) -> float:
         """Angular frequency of the swing, rad per hour."""

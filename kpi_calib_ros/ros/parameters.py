@@ -14,8 +14,8 @@ from rclpy.parameter import Parameter
 from rclpy.validate_topic_name import validate_topic_name
 
 from kpi_calib_ros.core.design import DESIGN_CRITERIA
-from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.core.prior import DAY_HOURS
+from kpi_calib_ros.core.errors import ConfigError, DataError
+from kpi_calib_ros.core.prior import DriftSwing
 from kpi_calib_ros.io.cell import DEFAULT_CELL, WorkingPose, working_poses_from_arrays
 from kpi_calib_ros.io.names import (DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC,
                                     DEFAULT_POSE_TOPIC, ROBOT_DESCRIPTION_TOPIC)
@@ -158,18 +158,15 @@ def settings_from_parameters(values: dict[str, Any]) -> NodeSettings:
     for key in ('auto_identify', 'allow_code_effects', 'reidentify_with_prior'):
         if not isinstance(values[key], bool):
             raise ConfigError(key, f'must be true or false, got {values[key]!r}')
-    try:
-        swing = tuple(float(v) for v in values.get('drift_velocity') or ())
-    except (TypeError, ValueError):
-        raise ConfigError('drift_velocity', 'must be a list of numbers, e.g. [5.0, 5.0e-5], '
-                          f"got {values.get('drift_velocity')!r}") from None
-    if swing:
-        if len(swing) not in (2, 3) or not all(0 <= v < float('inf') for v in swing[:2]) \
-                or (len(swing) == 3 and not 0 < swing[2] < float('inf')):
+    swing: tuple[float, ...] = ()
+    if values.get('drift_velocity'):
+        try:
+            swing = DriftSwing.from_values(values['drift_velocity']).values()
+        except (TypeError, ValueError, DataError) as exc:
             raise ConfigError('drift_velocity', 'must be empty or [temperature_K, offset_rad'
                               '(, period_h)] with finite swings >= 0 and a period > 0 h, e.g. '
-                              f'[5.0, 5.0e-5], got {list(swing)}')
-        swing = swing if len(swing) == 3 else swing + (DAY_HOURS,)
+                              f"[5.0, 5.0e-5], got {values['drift_velocity']!r} ({exc})"
+                              ) from None
     topics = {k: topic(k) for k in ('robot_description_topic', 'joint_states_topic',
                                     'point_topic', 'pose_topic')}
     if topics['joint_states_topic'] == topics['point_topic']:
