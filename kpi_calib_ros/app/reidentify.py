@@ -37,8 +37,8 @@ from kpi_calib_ros.core.model_selection import level_free
 from kpi_calib_ros.core.pairing import PairingResult
 from kpi_calib_ros.core.prior import (DRIFT_ANGLE_PER_SQRT_HOUR, DRIFT_LENGTH_PER_SQRT_HOUR,
                                       PLACEMENT_PREFIXES, DriftState, DriftSwing, Prior,
-                                      drift_covariance, mapped_drift, prior_from_calibration,
-                                      state_predicted, state_updated, stationary_state)
+                                      drift_covariance, initial_state, mapped_drift,
+                                      prior_from_calibration, state_predicted, state_updated)
 from kpi_calib_ros.core.simulation import random_configurations
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.results import read_calibration_document, writable_folder
@@ -229,7 +229,9 @@ def cycle_prior(cm: CellModel, doc: dict[str, Any], data: Measurements | None,
                                   rotation_rate=0.0)
         shape = mapped_drift(a_full, jac.reshape(-1, len(params.names)), kept)[
             np.ix_(where, where)]
-        state = initial_state(prior.names, swing, shape, doc)
+        state = initial_state(prior.names, swing, shape,
+                              DriftState.from_dict(doc['drift_state'])
+                              if 'drift_state' in doc else None)
         widened, state = state_predicted(widened, state, swing, shape, hours)
         values = {**values, **dict(zip(prior.names, map(float, widened.mean)))}
         stored = 'drift_state' in doc
@@ -247,31 +249,6 @@ def cycle_prior(cm: CellModel, doc: dict[str, Any], data: Measurements | None,
                 + (f' ({noise_dof} dof)' if noise_dof else ''))
     return CyclePrior(widened, values, allowed, keep_placement, hours, how, noise_scale,
                       noise_dof, state, swing)
-
-
-def initial_state(names: tuple[str, ...], swing: DriftSwing, shape: np.ndarray,
-                  doc: dict[str, Any]) -> DriftState:
-    """The drift state of the prior parameters ``names`` before extrapolation: the
-    ``drift_state`` of ``doc`` for the names it has; for the others the stationary
-    state of the swing (:func:`~kpi_calib_ros.core.prior.stationary_state`), uncorrelated."""
-    k = len(names)
-    fresh = stationary_state(names, swing, shape)
-    if 'drift_state' not in doc:
-        return fresh
-    stored = DriftState.from_dict(doc['drift_state'])
-    have = [i for i, n in enumerate(names) if n in stored.names]
-    new = [i for i in range(k) if i not in have]
-    znew = new + [k + i for i in new]
-    zhave = have + [k + i for i in have]
-    at = [stored.names.index(names[i]) for i in have]
-    kk = len(stored.names)
-    zat = at + [kk + i for i in at]
-    state, cov, cross = np.zeros(2 * k), np.zeros((2 * k, 2 * k)), np.zeros((k, 2 * k))
-    cov[np.ix_(znew, znew)] = fresh.covariance[np.ix_(znew, znew)]
-    state[zhave] = stored.state[zat]
-    cov[np.ix_(zhave, zhave)] = stored.covariance[np.ix_(zat, zat)]
-    cross[np.ix_(have, zhave)] = stored.cross[np.ix_(at, zat)]
-    return DriftState(tuple(names), state, cov, cross)
 
 
 def cycle_start(cm: CellModel, data: Measurements, cp: CyclePrior) -> np.ndarray:

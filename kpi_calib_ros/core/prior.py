@@ -466,6 +466,31 @@ def stationary_state(names: Sequence[str], swing: DriftSwing, shape: np.ndarray
     return DriftState(tuple(names), np.zeros(2 * k), cov, np.zeros((k, 2 * k)))
 
 
+def initial_state(names: Sequence[str], swing: DriftSwing, shape: np.ndarray,
+                  stored: DriftState | None) -> DriftState:
+    """The drift state of the prior parameters ``names`` before extrapolation: ``stored``
+    (a previous calibration's ``drift_state``) for the names it has; for the others, and
+    for all without one, the stationary state of the swing (:func:`stationary_state`),
+    uncorrelated."""
+    k = len(names)
+    fresh = stationary_state(names, swing, shape)
+    if stored is None:
+        return fresh
+    have = [i for i, n in enumerate(names) if n in stored.names]
+    new = [i for i in range(k) if i not in have]
+    znew = new + [k + i for i in new]
+    zhave = have + [k + i for i in have]
+    at = [stored.names.index(names[i]) for i in have]
+    kk = len(stored.names)
+    zat = at + [kk + i for i in at]
+    state, cov, cross = np.zeros(2 * k), np.zeros((2 * k, 2 * k)), np.zeros((k, 2 * k))
+    cov[np.ix_(znew, znew)] = fresh.covariance[np.ix_(znew, znew)]
+    state[zhave] = stored.state[zat]
+    cov[np.ix_(zhave, zhave)] = stored.covariance[np.ix_(zat, zat)]
+    cross[np.ix_(have, zhave)] = stored.cross[np.ix_(at, zat)]
+    return DriftState(tuple(names), state, cov, cross)
+
+
 def state_updated(prior: Prior, state: DriftState, names: Sequence[str],
                   mean: np.ndarray, covariance: np.ndarray) -> DriftState:
     """The drift state after a cycle's identification (its Kalman update).
