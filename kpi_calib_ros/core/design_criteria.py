@@ -143,6 +143,15 @@ class DesignProblem:
         }
 
 
+def scales(jac: np.ndarray, weight_rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(column_scale, physical_scale)`` of a :class:`DesignProblem` from the point
+    Jacobians ``jac`` (R, 3·m, k) of its parameters over a pose set and the row weights
+    ``weight_rows`` (3·m,) (1/σ per axis, per reflector): D = 1/rms of the weighted
+    columns, S = rms of ‖∂h/∂p_j‖."""
+    rms = np.sqrt(np.mean(np.sum((jac * weight_rows[None, :, None]) ** 2, axis=1), axis=0))
+    return 1.0 / rms, np.sqrt(np.mean(np.sum(jac ** 2, axis=1), axis=0))
+
+
 def build_problem(cell: DesignCell, q_rich: np.ndarray,
                   weights: Mapping[str, float] | None = None, prior: Prior | None = None,
                   p: np.ndarray | None = None,
@@ -196,8 +205,7 @@ def build_problem(cell: DesignCell, q_rich: np.ndarray,
                                 priority=list(cell.identification_priority) or None,
                                 zero_column=NEGLIGIBLE_EFFECT)
     idx = model.params.indices(ident.kept)
-    rms = np.sqrt(np.mean(np.sum((jac[:, :, idx] * wr[None, :, None]) ** 2, axis=1), axis=0))
-    effect = np.sqrt(np.mean(np.sum(jac[:, :, idx] ** 2, axis=1), axis=0))
+    column_scale, effect = scales(jac[:, :, idx], wr)
     poses = cell.working_pose_names
     weights = dict(weights or {})
     unknown = set(weights) - set(poses)
@@ -210,7 +218,7 @@ def build_problem(cell: DesignCell, q_rich: np.ndarray,
     _, kpi_jac = model.jacobian(p, cell.q_work)
     prior_info = None
     if rows_prior is not None:
-        scaled = rows_prior[:, idx] / rms  # D = 1/rms, the column scale of the rows
+        scaled = rows_prior[:, idx] * column_scale  # D, the column scale of the rows
         prior_info = scaled.T @ scaled
-    return DesignProblem(tuple(ident.kept), idx, p, w, 1.0 / rms, effect,
+    return DesignProblem(tuple(ident.kept), idx, p, w, column_scale, effect,
                          kpi_jac[:, :, idx], omega / omega.sum(), prior_info)

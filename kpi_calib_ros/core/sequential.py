@@ -43,7 +43,7 @@ import numpy as np
 import scipy.stats
 
 from kpi_calib_ros.core.design_cell import DesignCell
-from kpi_calib_ros.core.design_criteria import DesignProblem
+from kpi_calib_ros.core.design_criteria import DesignProblem, scales
 from kpi_calib_ros.core.design_exchange import exchange, information
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimability import result_estimability
@@ -475,11 +475,10 @@ class SequentialCampaign:
         idx = model.params.indices(list(self.result.estimated))
         weight = self.problem.weight
         _, jac = model.pose_jacobian(self._p, self.q)
-        rms = np.sqrt(np.mean(np.sum((jac[:, :, idx] * weight[None, :, None]) ** 2, axis=1),
-                              axis=0))
+        column_scale, physical_scale = scales(jac[:, :, idx], weight)
         kpi = model.jacobian(self._p, self.cell.q_work)[1][:, :, idx]
         return DesignProblem(tuple(self.result.estimated), idx, self._p.copy(), weight,
-                             1.0 / rms, np.ones(len(idx)), kpi, self.problem.kpi_weights)
+                             column_scale, physical_scale, kpi, self.problem.kpi_weights)
 
     def _horizon(self) -> int:
         """Poses still needed, from the std falling as 1/√N (at least 1)."""
