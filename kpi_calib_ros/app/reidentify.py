@@ -169,18 +169,15 @@ def cycle_prior(cm: CellModel, doc: dict[str, Any], data: Measurements | None,
     if placement < 0:
         raise DataError(f'placement drift rate must be >= 0, got {placement}')
     stamp = doc.get('identified_at_ns')
-    if hours is not None:
-        how = (f'prior calibration widened for {abs(hours):.3g} h of {drift_model} drift '
-               f'(lengths {length_rate:.3g}/√h relative, offsets {angle_rate:.3g} rad/√h, '
-               f'placement rotations {rotation:.3g} rad/√h, base and reflector position '
-               f'{placement:.3g}/√h relative)')
-    elif stamp is None or data is None or data.stamps_ns is None or not len(data.stamps_ns):
+    if (hours is None and stamp is not None and data is not None
+            and data.stamps_ns is not None and len(data.stamps_ns)):
+        hours = (int(np.min(data.stamps_ns)) - int(stamp)) / 3.6e12
+    if hours is None:
         hours = 0.0
         how = ('prior calibration NOT widened for drift: '
                + ('it has no identified_at_ns stamp' if stamp is None
                   else 'the measurements carry no stamps'))
     else:
-        hours = (int(np.min(data.stamps_ns)) - int(stamp)) / 3.6e12
         how = (f'prior calibration widened for {abs(hours):.3g} h of {drift_model} drift '
                f'(lengths {length_rate:.3g}/√h relative, offsets {angle_rate:.3g} rad/√h, '
                f'placement rotations {rotation:.3g} rad/√h, base and reflector position '
@@ -196,13 +193,17 @@ def cycle_prior(cm: CellModel, doc: dict[str, Any], data: Measurements | None,
     geometric = set(cm.geometric.names)
     thermal = drift_model == 'thermal'
     placed = {n for triple in vectors for n in triple if n.startswith(PLACEMENT_PREFIXES)}
-    q_full = drift_covariance(params.names, {n: v for n, v in lengths.items()
-                                             if n not in placed},
-                              length_rate, angle_rate,
-                              link_vectors={t: v for t, v in vectors.items()
-                                            if t[0] not in placed} if thermal else None,
-                              drifting=lambda n: n in geometric and n not in placed,
-                              rotation_rate=rotation_rate)
+
+    def robot_drift(length: float, angle: float, rotation: float | None) -> np.ndarray:
+        # Every geometric parameter but the placement of the base and the reflectors.
+        return drift_covariance(params.names, {n: v for n, v in lengths.items()
+                                               if n not in placed},
+                                length, angle,
+                                link_vectors={t: v for t, v in vectors.items()
+                                              if t[0] not in placed} if thermal else None,
+                                drifting=lambda n: n in geometric and n not in placed,
+                                rotation_rate=rotation)
+    q_full = robot_drift(length_rate, angle_rate, rotation_rate)
     q_full += drift_covariance(params.names, {n: lengths[n] for n in placed}, placement,
                                0.0, link_vectors={t: v for t, v in vectors.items()
                                                   if t[0] in placed} if thermal else None,
@@ -212,23 +213,18 @@ def cycle_prior(cm: CellModel, doc: dict[str, Any], data: Measurements | None,
                                            np.random.default_rng(0))
     _, jac = cm.model.pose_jacobian(start, configurations)
     kept = params.indices(list(allowed))
-    q_kept = mapped_drift(q_full, jac.reshape(-1, len(params.names)), kept)
     where = [list(allowed).index(n) for n in prior.names]
-    q_prior = q_kept[np.ix_(where, where)]
+
+    def on_prior(q: np.ndarray) -> np.ndarray:
+        # Mapped onto the identified parameters (core.prior.mapped_drift), the prior's.
+        return mapped_drift(q, jac.reshape(-1, len(params.names)), kept)[np.ix_(where, where)]
+    q_prior = on_prior(q_full)
     widened = Prior(prior.names, prior.mean, prior.covariance + q_prior * abs(hours))
     state = None
     if swing is not None:
         # The swing amplitude's covariance over every parameter (along each link's vector
         # for thermal), mapped onto the prior's parameters like the random walk.
-        a_full = drift_covariance(params.names, {n: v for n, v in lengths.items()
-                                                 if n not in placed},
-                                  swing.length_amplitude, swing.offset_rad,
-                                  link_vectors={t: v for t, v in vectors.items()
-                                                if t[0] not in placed} if thermal else None,
-                                  drifting=lambda n: n in geometric and n not in placed,
-                                  rotation_rate=0.0)
-        shape = mapped_drift(a_full, jac.reshape(-1, len(params.names)), kept)[
-            np.ix_(where, where)]
+        shape = on_prior(robot_drift(swing.length_amplitude, swing.offset_rad, 0.0))
         state = initial_state(prior.names, swing, shape,
                               DriftState.from_dict(doc['drift_state'])
                               if 'drift_state' in doc else None)
