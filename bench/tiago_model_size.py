@@ -4,9 +4,10 @@ Backward elimination on the 37-posture session (2021-11-30, four markers per pos
 with the rule fixed before any held-out figure was looked at: start from the full geometric
 model; at each step drop the geometric parameter (not the base or reflector placement) with
 the smallest |value / std|, refit; score every model by its leave-one-posture-out error
-(PRESS over posture blocks of the linearised fit: all four markers of a posture held out
-together) and choose the smallest PRESS. Every step's error on the 2021-11-26 session and on
-the two other 2021-11-30 sessions (which none of the choices uses) is printed beside it.
+(core.residuals.cross_validated_rms: PRESS over posture blocks of the linearised fit, all
+four markers of a posture held out together) and choose the smallest PRESS. Every step's
+error on the 2021-11-26 session and on the two other 2021-11-30 sessions (which none of the
+choices uses) is printed beside it.
 
     .venv/bin/python bench/tiago_model_size.py
 
@@ -27,6 +28,7 @@ import numpy as np
 from kpi_calib_ros.app.identify import identify_cell, load_measurements, registered_start
 from kpi_calib_ros.cli import main as cli
 from kpi_calib_ros.core.model_selection import level_free
+from kpi_calib_ros.core.residuals import cross_validated_rms
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get('TIAGO_MOCAP_DIR') or ROOT.parent / 'shared' / 'data' / 'tiago_mocap')
@@ -51,27 +53,6 @@ def _rms(cm, values, data) -> float:
     return float(np.sqrt(np.mean(np.sum(e ** 2, axis=1))))
 
 
-def posture_press(cm, result, data) -> float:
-    """Leave-one-posture-out rms (m) of the linearised fit: e_k/(I - H_kk) per posture."""
-    names = list(cm.model.params.names)
-    idx = [names.index(n) for n in result.estimated]
-    jac = cm.model.jacobian(result.values, data.q, data.tau, data.reflector,
-                            data.rotation)[1]
-    jac = jac.reshape(-1, jac.shape[-1])[:, idx]
-    e = (data.eta - cm.model.predict(result.values, data.q, data.tau, data.reflector,
-                                     data.rotation)).reshape(-1)
-    _, posture = np.unique(data.q, axis=0, return_inverse=True)
-    rows = np.repeat(posture.ravel(), 3)
-    inv = np.linalg.pinv(jac.T @ jac)
-    total = 0.0
-    for k in np.unique(rows):
-        r = rows == k
-        hat = jac[r] @ inv @ jac[r].T
-        held = np.linalg.solve(np.eye(int(r.sum())) - hat, e[r])
-        total += float(held @ held)
-    return float(np.sqrt(total / len(data)))
-
-
 def main() -> None:
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
@@ -85,7 +66,7 @@ def main() -> None:
     while True:
         result = identify_cell(cm, data, p0=start, free=free)
         row = {'n': len(result.estimated), 'train': result.rms_m,
-               'press': posture_press(cm, result, data),
+               'press': cross_validated_rms(cm.model, data, result),
                **{s: _rms(cm, result.values, d) for s, d in held.items()}}
         t = {n: abs(result.values[names.index(n)]) / s
              for n, s in zip(result.estimated, result.std) if not n.startswith(PLACEMENT)}
