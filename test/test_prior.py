@@ -215,3 +215,42 @@ def test_cross_validation_holds_out_whole_poses(cell, campaign):
         # Both rows of every training pose are in the training set (none split off).
         assert n_rows == 2 * len(train) and every - train
     assert set().union(*(every - t for t in trained)) == every
+
+
+@pytest.mark.slow
+def test_d_tolerances_weigh_against_the_noise_the_data_show(cell):
+    """The stated σ is 5x too small: with it the data outweigh the tolerance prior 25x too
+    much. Balanced (core.precision.balanced_prior) the prior is tightened by the χ²/dof
+    the residuals show (≈ 25), the estimate is the posterior of the true noise (smaller
+    TCP error than the unbalanced MAP) and the scaled covariance matches Monte Carlo."""
+    from kpi_calib_ros.core.precision import balanced_prior, honest_precision
+    params = cell.model.params
+    prior = tolerance_prior(params, 1e-4, 1e-4, 1e-4)
+    rng = np.random.default_rng(12)
+    q = random_configurations(cell.model, params.nominal, 12, rng)
+    idx = params.indices(list(prior.names))
+    chol = np.linalg.cholesky(prior.covariance)
+    true_sigma = 5 * SIGMA
+    scales, err_bal, err_plain, stated = [], [], [], []
+    for _ in range(100):
+        p_true = np.array(params.nominal, float)
+        p_true[idx] = prior.mean + chol @ rng.normal(size=len(idx))
+        data = simulate_measurements(cell.model, p_true, q, true_sigma, rng)
+        true_tcp = cell.model.predict(p_true, cell.q_work)
+
+        def fit(pr, data=data):
+            return identify(cell.model, data, SIGMA, cell.q_work, prior=pr)
+        _, scale, balanced = balanced_prior(fit, prior)
+        plain = fit(prior)
+        assert balanced.converged and plain.converged
+        scales.append(scale)
+        balanced = honest_precision(balanced)
+        err_bal.append(np.sum((balanced.tcp - true_tcp) ** 2))
+        err_plain.append(np.sum((plain.tcp - true_tcp) ** 2))
+        stated.append(np.trace(balanced.tcp_covariance[0]))
+    # χ²/dof at the balance: the noise the data show, (5 σ)² / σ²
+    assert np.median(scales) == pytest.approx(25.0, rel=0.15)
+    # The posterior of the true noise predicts the TCP better than the unbalanced MAP.
+    assert np.mean(err_bal) < 0.8 * np.mean(err_plain)
+    # ... and states its error: E‖ŝ − s‖² against tr C_s (scaled by χ²/dof).
+    assert np.mean(err_bal) == pytest.approx(np.mean(stated), rel=0.2)

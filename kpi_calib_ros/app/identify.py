@@ -11,7 +11,7 @@ import dataclasses
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
@@ -28,7 +28,7 @@ from kpi_calib_ros.core.pairing import PairingResult, pair_measurements
 from kpi_calib_ros.core.registration import Registration, register
 from kpi_calib_ros.core.robust import (LOSS_SCALE, RobustResult, gross_outliers,
                                        robust_identify, subset)
-from kpi_calib_ros.core.precision import honest_precision
+from kpi_calib_ros.core.precision import balanced_prior, honest_precision
 from kpi_calib_ros.core.prior import Prior, tolerance_prior
 from kpi_calib_ros.core.streams import JointSample, PointSample
 from kpi_calib_ros.io.bag import read_for_pairing
@@ -206,6 +206,21 @@ def cell_prior(cm: CellModel) -> Prior | None:
     return tolerance_prior(cm.model.params, *tol, n_geometric=len(cm.geometric))
 
 
+def tolerance_text(cm: CellModel, scale: float = 1.0) -> str:
+    """One line on the cell's tolerance prior and its balance against the data ('' when
+    the cell has none)."""
+    tol = cm.cell.identification.prior
+    if tol is None:
+        return ''
+    text = ('prior: nominal tolerances (translation, rotation, offset std) '
+            f'{list(tol)} (identification.prior)')
+    if scale != 1.0:
+        text += (f'; weighed against the data at the noise they show, {np.sqrt(scale):.3g} x '
+                 f'the stated sigma (chi2/dof {scale:.3g} at the balance): with the stated '
+                 'sigma the data would outweigh the tolerances that much more')
+    return text
+
+
 def identify_cell(cm: CellModel, data: Measurements, p0: np.ndarray | None = None,
                   free: list[str] | None = None, prior: Prior | None = None
                   ) -> CalibrationResult:
@@ -215,16 +230,16 @@ def identify_cell(cm: CellModel, data: Measurements, p0: np.ndarray | None = Non
     placement is registered from the data first. Covariances come from the stated σ when
     the χ² test accepts the model, else they are scaled by χ²/dof
     (``result.covariance_scale``, see :mod:`kpi_calib_ros.core.precision`). ``prior``
-    defaults to the cell's :func:`cell_prior`.
+    defaults to the cell's :func:`cell_prior`, weighed against the noise the data show
+    (:func:`kpi_calib_ros.core.precision.balanced_prior`).
     """
     if len(data) == 0:
         raise DataError('no accepted measurement to identify from')
     if p0 is None:
         p0 = registered_start(cm, data)[0]
-    result = identify(cm.model, data, cm.cell.sigma, cm.q_work, list(cm.working_pose_names),
-                      p0=p0, free=free, identifiability_method=cm.cell.identification_method,
-                      priority=list(cm.cell.identification_priority) or None,
-                      prior=prior or cell_prior(cm))
+    tolerance = cell_prior(cm) if prior is None else None
+    result = _fit_function(cm, p0, prior or tolerance, balance=tolerance is not None)(
+        data, free or list(cm.model.params.names))
     # A model that fails χ² must not report the stated σ's precision (core.precision).
     return honest_precision(result)
 
@@ -243,6 +258,9 @@ class CellCalibration:
     estimability: KpiEstimability
     free: tuple[str, ...]
     registration: Registration | None = None
+    # The cell's tolerance prior was tightened by this factor: the data weighed at the
+    # noise they show, √prior_scale × the stated σ (core.precision.balanced_prior).
+    prior_scale: float = 1.0
 
     @property
     def problems(self) -> tuple[str, ...]:
@@ -259,27 +277,39 @@ class CellCalibration:
 
 
 def _fit_function(cm: CellModel, start: np.ndarray | None = None,
-                  prior: Prior | None = None):
+                  prior: Prior | None = None, balance: bool = False,
+                  scales: list[float] | None = None):
     """``fit(data, free, p0=None, point_weights=None)``: identify with the cell's settings
-    and ``prior``, from ``start`` (e.g. the registered placement) when no ``p0`` is given."""
+    and ``prior``, from ``start`` (e.g. the registered placement) when no ``p0`` is given.
+    ``balance``: ``prior`` is a tolerance prior, tightened for every fit by the noise
+    scale its data show (:func:`kpi_calib_ros.core.precision.balanced_prior`), the scale
+    appended to ``scales``."""
     def fit(d: Measurements, free: list[str], p0: np.ndarray | None = None,
             point_weights: np.ndarray | None = None) -> CalibrationResult:
-        return identify(cm.model, d, cm.cell.sigma, cm.q_work, list(cm.working_pose_names),
-                        p0=start if p0 is None else p0, free=free,
-                        identifiability_method=cm.cell.identification_method,
-                        priority=list(cm.cell.identification_priority) or None,
-                        point_weights=point_weights, prior=prior)
+        def with_prior(pr: Prior | None) -> CalibrationResult:
+            return identify(cm.model, d, cm.cell.sigma, cm.q_work, list(cm.working_pose_names),
+                            p0=start if p0 is None else p0, free=free,
+                            identifiability_method=cm.cell.identification_method,
+                            priority=list(cm.cell.identification_priority) or None,
+                            point_weights=point_weights, prior=pr)
+        if not balance or prior is None:
+            return with_prior(prior)
+        _, scale, result = balanced_prior(with_prior, prior)
+        if scales is not None:
+            scales.append(scale)
+        return result
     return fit
 
 
 def choose_level(cm: CellModel, data: Measurements, model: str | None = None,
-                 start: np.ndarray | None = None, prior: Prior | None = None) -> ModelChoice:
+                 start: np.ndarray | None = None, prior: Prior | None = None,
+                 fit: Callable[..., CalibrationResult] | None = None) -> ModelChoice:
     """The model level to identify: ``model`` or the cell's ``identification.model``;
     ``auto`` is decided by the predicted out-of-sample error on ``data`` (fits from
-    ``start``, :func:`kpi_calib_ros.core.model_selection.choose_model`)."""
+    ``start``, or by ``fit``; :func:`kpi_calib_ros.core.model_selection.choose_model`)."""
     requested = model or cm.cell.identification.model
     if requested == 'auto':
-        return choose_model(cm.model, data, _fit_function(cm, start, prior), 'auto',
+        return choose_model(cm.model, data, fit or _fit_function(cm, start, prior), 'auto',
                             len(cm.geometric), cm.cell.identification.cv_folds, prior=prior)
     return ModelChoice(requested, requested, {}, {}, 0, f'{requested} as configured '
                        '(identification.model / --model; auto compares the levels)')
@@ -302,12 +332,16 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
     registration = None
     if start is None:
         start, registration = registered_start(cm, data)
-    prior = prior or cell_prior(cm)
-    fit = _fit_function(cm, start, prior)
+    tolerance = cell_prior(cm) if prior is None else None
+    prior = prior or tolerance
     # Model choice on the data without gross points (a 10 m point would decide it alone).
     screened = subset(data, ~gross_outliers(cm.model, data, start)[0]) \
         if settings.outliers.exclude else data
-    choice = choose_level(cm, screened, model, start, prior)
+    # Every fit weighs the cell's tolerances against the noise its data show
+    # (core.precision.balanced_prior); ``scales`` keeps the last balance.
+    scales = [1.0]
+    fit = _fit_function(cm, start, prior, balance=tolerance is not None, scales=scales)
+    choice = choose_level(cm, screened, model, start, prior, fit)
     free = level_free(cm.model.params, choice.level, n_geo)
     if allowed is not None:
         free = [n for n in free if n in set(allowed)]
@@ -320,7 +354,7 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
                               reflector=kept.reflector, rotation=kept.rotation)
     # A model that fails χ² must not report the stated σ's precision (core.precision).
     return CellCalibration(honest_precision(robust.result), robust, choice, est, tuple(free),
-                           registration)
+                           registration, scales[-1])
 
 
 def calibration_document(cm: CellModel, result: CalibrationResult,
@@ -494,14 +528,12 @@ def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
     """
     writable_folder(out_dir, '--out')
     cm, data, pairing = load_measurements(cell_path, bag_path, effects, **options)
-    how = ''
-    if cm.cell.identification.prior is not None:
-        how = ('prior: nominal tolerances (translation, rotation, offset std) '
-               f'{list(cm.cell.identification.prior)} (identification.prior)')
     cal = calibrate_cell(cm, data, model)
+    how = tolerance_text(cm, cal.prior_scale)
     doc = add_robust_sections(calibration_document(cm, cal.result, pairing), cal)
     if how:
-        doc['prior'] = {'source': 'identification.prior', 'description': how}
+        doc['prior'] = {'source': 'identification.prior', 'description': how,
+                        'noise_scale': cal.prior_scale}
     comparison = ''
     if cm.model.effects and cal.valid:
         comparison = add_effect_comparison(doc, cm, subset(data, cal.robust.kept), cal.result)
