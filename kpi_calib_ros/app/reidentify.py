@@ -292,12 +292,14 @@ def reidentify(cm: CellModel, data: Measurements, cp: CyclePrior, model: str | N
                    priority=list(cm.cell.identification_priority) or None, prior=cp.prior)
     change = change_test(cm.model, data, cm.cell.sigma, fit, cp.prior, alpha,
                          sigma_dof=cp.noise_dof)
-    if not change.consistent and not change.moved and cp.noise_scale != 1.0:
+    if not change.consistent and cp.noise_scale != 1.0:
+        what = ('the parameters named as moved' if change.moved else
+                'a broad inconsistency with no single parameter moved')
         change = dataclasses.replace(change, caveat=(
             'The previous calibration\'s model was not adequate (chi2/dof '
-            f'{cp.noise_scale:.3g}): a broad inconsistency with no single parameter moved may '
-            'be its unmodelled effects at poses it was not fitted on, not a physical change; '
-            'run kpi-calib diagnose on both recordings'))
+            f'{cp.noise_scale:.3g}): {what} may be its unmodelled effects seen from other '
+            'poses (a systematic misfit shifts the parameters with the poses it is fitted '
+            'on), not a physical change; run kpi-calib diagnose on both recordings'))
     if not change.consistent:
         return Reidentification(change, fit, None)
     cal = calibrate_cell(without_exclusion(cm), data, model, cp.prior, start=start,
