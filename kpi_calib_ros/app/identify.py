@@ -17,6 +17,7 @@ import numpy as np
 
 from kpi_calib_ros.core.dh import dh_table
 from kpi_calib_ros.core.diagnosis import augmented_model, compare_models
+from kpi_calib_ros.core.effect_selection import choose_effects
 from kpi_calib_ros.core.effects import parse_effect_spec, split_specs
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimability import KpiEstimability, result_estimability
@@ -243,6 +244,9 @@ class CellCalibration:
     estimability: KpiEstimability
     free: tuple[str, ...]
     registration: Registration | None = None
+    # The cell model the result belongs to: the given one with the effects ``auto`` added
+    # (core.effect_selection); documents and the calibrated URDF are written with it.
+    cell: CellModel | None = None
 
     @property
     def problems(self) -> tuple[str, ...]:
@@ -308,6 +312,9 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
     screened = subset(data, ~gross_outliers(cm.model, data, start)[0]) \
         if settings.outliers.exclude else data
     choice = choose_level(cm, screened, model, start, prior)
+    if choice.requested == 'auto' and allowed is None:
+        cm, start, choice = add_chosen_effects(cm, screened, choice, start, prior)
+        fit = _fit_function(cm, start, prior)
     free = level_free(cm.model.params, choice.level, n_geo)
     if allowed is not None:
         free = [n for n in free if n in set(allowed)]
@@ -320,7 +327,33 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
                               reflector=kept.reflector, rotation=kept.rotation)
     # A model that fails χ² must not report the stated σ's precision (core.precision).
     return CellCalibration(honest_precision(robust.result), robust, choice, est, tuple(free),
-                           registration)
+                           registration, cm)
+
+
+def add_chosen_effects(cm: CellModel, data: Measurements, choice: ModelChoice,
+                       start: np.ndarray, prior: Prior | None
+                       ) -> tuple[CellModel, np.ndarray, ModelChoice]:
+    """``auto``'s second step: the physical effects the diagnosis finds significant and
+    plausible on ``data`` that predict new measurements better
+    (:func:`kpi_calib_ros.core.effect_selection.choose_effects`), added to ``cm``'s model at
+    the chosen level. Returns the cell model with them, the start vector extended with
+    their nominal values (0) and the choice with the effects and the record."""
+    n_geo = len(cm.geometric)
+
+    def fit_for(model: MeasurementModel):
+        extra = np.zeros(len(model.params.names) - len(start))
+        return _fit_function(dataclasses.replace(cm, model=model),
+                             np.concatenate([start, extra]), prior)
+    chosen = choose_effects(cm.model, data, fit_for, choice.level, n_geo, prior)
+    if not chosen.effects:
+        return cm, start, dataclasses.replace(
+            choice, reason=f'{choice.reason}; {chosen.reason}',
+            effect_selection=chosen.to_dict())
+    richer = dataclasses.replace(cm, model=chosen.model)
+    start = np.concatenate([start, np.zeros(len(chosen.model.params.names) - len(start))])
+    return richer, start, dataclasses.replace(
+        choice, reason=f'{choice.reason}; {chosen.reason}',
+        effects=tuple(e.name for e in chosen.effects), effect_selection=chosen.to_dict())
 
 
 def calibration_document(cm: CellModel, result: CalibrationResult,
@@ -499,6 +532,7 @@ def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
         how = ('prior: nominal tolerances (translation, rotation, offset std) '
                f'{list(cm.cell.identification.prior)} (identification.prior)')
     cal = calibrate_cell(cm, data, model)
+    cm = cal.cell or cm  # with the effects auto added
     doc = add_robust_sections(calibration_document(cm, cal.result, pairing), cal)
     if how:
         doc['prior'] = {'source': 'identification.prior', 'description': how}

@@ -1,0 +1,198 @@
+"""Which physical effects ``auto`` adds to the chosen model level, from the training data.
+
+Forward selection, one effect per round, by the criterion that chose the level
+(:func:`kpi_calib_ros.core.model_selection.choose_model`): the predicted out-of-sample rms
+at the measured configurations (:mod:`kpi_calib_ros.core.out_of_sample`), which charges
+every added parameter its variance.
+
+Each round:
+
+1. the diagnosis screens every library effect × joint against the current fit
+   (:func:`kpi_calib_ros.core.diagnosis.screen_effects`: distinguishable from the
+   geometry, F-test Bonferroni-corrected over the candidates at the family-wise level
+   ``alpha``, candidates with the same signature merged); only candidates that are
+   **significant and physically plausible** (:func:`kpi_calib_ros.core.effects.implausible`)
+   go on;
+2. the best :data:`TRIALS` of them (by their cross-validated rms) are fitted with the full
+   nonlinear identification at the chosen level; a fit that does not converge, leaves an
+   effect parameter unidentified or fits an implausible value is refused;
+3. the trial with the lowest predicted out-of-sample rms is added when it predicts new
+   measurements at least :data:`~kpi_calib_ros.core.model_selection.PARSIMONY` better
+   than the current model; otherwise selection stops.
+
+On data the geometric model explains, step 1 passes a candidate with probability at most
+``alpha`` per round, and step 3 then still asks for a 5 % better prediction.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from kpi_calib_ros.core.diagnosis import augmented_model, screen_effects
+from kpi_calib_ros.core.effects import BoundEffect, candidate_effects, implausible
+from kpi_calib_ros.core.errors import DataError
+from kpi_calib_ros.core.estimation import CalibrationResult
+from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
+from kpi_calib_ros.core.model_selection import PARSIMONY, level_free
+from kpi_calib_ros.core.out_of_sample import out_of_sample_error
+from kpi_calib_ros.core.prior import Prior
+from kpi_calib_ros.core.residuals import ADEQUACY_ALPHA
+
+MAX_EFFECTS = 3  # rounds: more effects than this on one campaign is a model to rethink
+TRIALS = 3       # significant, plausible candidates refitted per round
+
+# fit_for(model)(data, free) -> the identification of ``model`` with the cell's settings
+FitFor = Callable[[MeasurementModel], Callable[[Measurements, list[str]], CalibrationResult]]
+
+
+@dataclass(frozen=True)
+class EffectTrial:
+    """One candidate effect refitted in a round: its fitted values, the predicted
+    out-of-sample rms (m, None when refused before) and the outcome."""
+
+    spec: str
+    round: int
+    values: dict[str, float]
+    std: dict[str, float]
+    predicted_rms_m: float | None
+    added: bool
+    reason: str
+
+    def to_dict(self) -> dict:
+        return {'spec': self.spec, 'round': self.round, 'values': dict(self.values),
+                'std': dict(self.std),
+                'predicted_rms_m': None if self.predicted_rms_m is None
+                else float(self.predicted_rms_m),
+                'added': self.added, 'reason': self.reason}
+
+
+@dataclass(frozen=True)
+class EffectChoice:
+    """The effects added (in order), the model with them, the predicted out-of-sample rms
+    (m) before and after, every trial and why selection stopped."""
+
+    effects: tuple[BoundEffect, ...]
+    model: MeasurementModel
+    predicted_before_m: float | None
+    predicted_after_m: float | None
+    trials: tuple[EffectTrial, ...]
+    reason: str
+
+    def to_dict(self) -> dict:
+        return {'added': [e.name for e in self.effects],
+                'predicted_rms_before_m': self.predicted_before_m,
+                'predicted_rms_after_m': self.predicted_after_m,
+                'trials': [t.to_dict() for t in self.trials], 'reason': self.reason}
+
+
+def _predicted(model: MeasurementModel, data: Measurements, result: CalibrationResult,
+               free: list[str], prior: Prior | None, seed: int) -> float | None:
+    if not np.all(np.isfinite(result.values)) or result.dof <= 0:
+        return None
+    oos = out_of_sample_error(model, data, result, free, prior, seed,
+                              domains=('like_measured',)).domains['like_measured']
+    return float(oos.rms_m) if oos.estimable else None
+
+
+def choose_effects(model: MeasurementModel, data: Measurements, fit_for: FitFor, level: str,
+                   n_geometric: int, prior: Prior | None = None,
+                   alpha: float = ADEQUACY_ALPHA, seed: int = 0,
+                   max_effects: int = MAX_EFFECTS) -> EffectChoice:
+    """Forward selection of physical effects on top of ``model`` at ``level`` (see the
+    module docstring). ``n_geometric``: the number of geometric parameters of ``model``
+    (its effects' parameters follow and are free at every level).
+
+    Returns the choice; ``choice.model`` is ``model`` with the added effects appended.
+    """
+    fit = fit_for(model)
+    free = level_free(model.params, level, n_geometric)
+    try:
+        current = fit(data, free)
+    except (DataError, np.linalg.LinAlgError) as exc:
+        return EffectChoice((), model, None, None, (), f'no effect screened: {exc}')
+    first = _predicted(model, data, current, free, prior, seed)
+    if first is None:
+        return EffectChoice((), model, None, None, (), 'no effect screened: the level leaves '
+                            'no degrees of freedom to judge an effect by')
+    best_rms = before = first
+    added: list[BoundEffect] = []
+    trials: list[EffectTrial] = []
+    reason = f'at most {max_effects} effects'
+    for rnd in range(1, max_effects + 1):
+        pool = {e.name: e for e in candidate_effects(
+            model.robot, exclude=[e.name for e in model.effects])}
+        ranked, _ = screen_effects(model, data, current, list(pool.values()), alpha=alpha,
+                                   seed=seed)
+        passed = [c for c in ranked if c.significant and c.plausible]
+        if not passed:
+            significant = [c.spec for c in ranked if c.significant]
+            reason = ('no candidate effect is significant and physically plausible'
+                      + (f' (significant but implausible: {", ".join(significant)})'
+                         if significant else ''))
+            break
+        round_trials: list[tuple[EffectTrial, MeasurementModel | None,
+                                 CalibrationResult | None]] = []
+        for cand in passed[:TRIALS]:
+            effect = pool[cand.spec]
+            aug = augmented_model(model, (effect,))
+            aug_free = level_free(aug.params, level, n_geometric)
+            values: dict[str, float] = {}
+            std: dict[str, float] = {}
+            try:
+                res = fit_for(aug)(data, aug_free)
+            except (DataError, np.linalg.LinAlgError) as exc:
+                round_trials.append((EffectTrial(effect.name, rnd, values, std, None, False,
+                                                 f'fit failed: {exc}'), None, None))
+                continue
+            values = {n: float(res.value(n)) for n in effect.parameter_names}
+            std = {n: float(s) for n, s in zip(res.estimated, res.std)
+                   if n in effect.parameter_names}
+            why = ''
+            if not res.converged:
+                why = f'the fit did not converge ({res.message})'
+            elif len(std) < len(effect.parameter_names):
+                why = 'not identified with the geometry at this level'
+            else:
+                why = implausible(effect, list(values.values()))
+            pred = None if why else _predicted(aug, data, res, aug_free, prior, seed)
+            if not why and pred is None:
+                why = 'no degrees of freedom left'
+            round_trials.append((EffectTrial(effect.name, rnd, values, std, pred, False, why),
+                                 aug, res))
+        usable = [t for t in round_trials if t[0].predicted_rms_m is not None]
+        if not usable:
+            trials += [t[0] for t in round_trials]
+            reason = 'no significant, plausible candidate survived its nonlinear fit'
+            break
+        best = min(usable, key=lambda t: t[0].predicted_rms_m or np.inf)
+        improves = (best[0].predicted_rms_m or np.inf) < (1 - PARSIMONY) * best_rms
+        for trial, *_ in round_trials:
+            if trial is best[0] and improves:
+                trial = EffectTrial(trial.spec, rnd, trial.values, trial.std,
+                                    trial.predicted_rms_m, True,
+                                    f'added: predicted out-of-sample rms '
+                                    f'{best_rms * 1e6:.1f} -> '
+                                    f'{(trial.predicted_rms_m or 0) * 1e6:.1f} µm')
+            elif not trial.reason:
+                trial = EffectTrial(trial.spec, rnd, trial.values, trial.std,
+                                    trial.predicted_rms_m, False,
+                                    'predicts new measurements less well than '
+                                    + (best[0].spec if trial is not best[0] else
+                                       f'{1 - PARSIMONY:.0%} of the current model'))
+            trials.append(trial)
+        if not improves:
+            reason = (f'{best[0].spec} would predict new measurements '
+                      f'{(best[0].predicted_rms_m or 0) * 1e6:.1f} µm against '
+                      f'{best_rms * 1e6:.1f} µm: not {PARSIMONY:.0%} better')
+            break
+        _, aug_model, aug_result = best
+        assert aug_model is not None and aug_result is not None
+        model, current = aug_model, aug_result
+        added.append(pool[best[0].spec])
+        best_rms = best[0].predicted_rms_m or best_rms
+    text = (f'added {", ".join(e.name for e in added)} (predicted out-of-sample rms '
+            f'{before * 1e6:.1f} -> {best_rms * 1e6:.1f} µm); stopped: {reason}'
+            if added else f'no effect added: {reason}')
+    return EffectChoice(tuple(added), model, before, best_rms, tuple(trials), text)
