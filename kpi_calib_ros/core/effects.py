@@ -271,7 +271,11 @@ LIBRARY: tuple[EffectType, ...] = (
                signature='second harmonic of {joint}'),
     EffectType('joint_backlash', ('b',), ('rad',), _backlash, uses_torque=True,
                typical=(2.5e-4,), screen=True,
-               plausible=(1e-2,), prismatic_plausible=(5e-3,),
+               # b is half the free play. Industrial gearboxes: below 1 mrad; service and
+               # cable/belt-driven arms show tens of mrad of play in their wrists (the TIAGo
+               # data's origin documents ~40 mrad in arm_6, b ~ 20 mrad). 50 mrad (a play
+               # of ~6 deg) is where a joint is broken rather than loose.
+               plausible=(5e-2,), prismatic_plausible=(5e-3,),
                description='backlash: the joint settles on the side its gravity torque '
                            'pushes to, b·sgn(τ)',
                hint='measure poses where the gravity torque of {joint} changes sign '
