@@ -315,7 +315,8 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
     if choice.requested == 'auto' and allowed is None:
         cm, start, choice = add_chosen_effects(cm, screened, choice, start, prior)
         fit = _fit_function(cm, start, prior)
-    free = level_free(cm.model.params, choice.level, n_geo)
+    free = [n for n in level_free(cm.model.params, choice.level, n_geo)
+            if n not in choice.held]
     if allowed is not None:
         free = [n for n in free if n in set(allowed)]
     robust = robust_identify(cm.model, data, cm.cell.sigma,
@@ -350,10 +351,14 @@ def add_chosen_effects(cm: CellModel, data: Measurements, choice: ModelChoice,
             choice, reason=f'{choice.reason}; {chosen.reason}',
             effect_selection=chosen.to_dict())
     richer = dataclasses.replace(cm, model=chosen.model)
-    start = np.concatenate([start, np.zeros(len(chosen.model.params.names) - len(start))])
+    # The effects start from their selected values: a shape parameter (joint_play's τ0)
+    # is nonlinear, and at zero size its column vanishes.
+    start = np.concatenate([start, [chosen.values[n] for n in
+                                    chosen.model.params.names[len(start):]]])
     return richer, start, dataclasses.replace(
         choice, reason=f'{choice.reason}; {chosen.reason}',
-        effects=tuple(e.name for e in chosen.effects), effect_selection=chosen.to_dict())
+        effects=tuple(e.name for e in chosen.effects), effect_selection=chosen.to_dict(),
+        held=chosen.held)
 
 
 def calibration_document(cm: CellModel, result: CalibrationResult,

@@ -25,7 +25,7 @@ On data the geometric model explains, step 1 passes a candidate with probability
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable
 
 import numpy as np
@@ -44,7 +44,8 @@ MAX_EFFECTS = 3  # rounds: more effects than this on one campaign is a model to 
 TRIALS = 3       # significant, plausible candidates refitted per round
 
 # fit_for(model)(data, free) -> the identification of ``model`` with the cell's settings
-FitFor = Callable[[MeasurementModel], Callable[[Measurements, list[str]], CalibrationResult]]
+# (and a start vector p0 of ``model``'s parameters)
+FitFor = Callable[[MeasurementModel], Callable[..., CalibrationResult]]
 
 
 @dataclass(frozen=True)
@@ -59,13 +60,17 @@ class EffectTrial:
     predicted_rms_m: float | None
     added: bool
     reason: str
+    # Shape parameters held at their screened value, and why the free fit was refused.
+    held: tuple[str, ...] = ()
+    previous: str = ''
 
     def to_dict(self) -> dict:
         return {'spec': self.spec, 'round': self.round, 'values': dict(self.values),
                 'std': dict(self.std),
                 'predicted_rms_m': None if self.predicted_rms_m is None
                 else float(self.predicted_rms_m),
-                'added': self.added, 'reason': self.reason}
+                'added': self.added, 'reason': self.reason, 'held': list(self.held),
+                'free_fit_refused': self.previous or None}
 
 
 @dataclass(frozen=True)
@@ -75,13 +80,15 @@ class EffectChoice:
 
     effects: tuple[BoundEffect, ...]
     model: MeasurementModel
+    values: dict[str, float]  # the added effects' fitted values (a start for the final fit)
     predicted_before_m: float | None
     predicted_after_m: float | None
     trials: tuple[EffectTrial, ...]
     reason: str
+    held: tuple[str, ...] = ()  # shape parameters held at their screened values
 
     def to_dict(self) -> dict:
-        return {'added': [e.name for e in self.effects],
+        return {'added': [e.name for e in self.effects], 'held': list(self.held),
                 'predicted_rms_before_m': self.predicted_before_m,
                 'predicted_rms_after_m': self.predicted_after_m,
                 'trials': [t.to_dict() for t in self.trials], 'reason': self.reason}
@@ -111,12 +118,13 @@ def choose_effects(model: MeasurementModel, data: Measurements, fit_for: FitFor,
     try:
         current = fit(data, free)
     except (DataError, np.linalg.LinAlgError) as exc:
-        return EffectChoice((), model, None, None, (), f'no effect screened: {exc}')
+        return EffectChoice((), model, {}, None, None, (), f'no effect screened: {exc}')
     first = _predicted(model, data, current, free, prior, seed)
     if first is None:
-        return EffectChoice((), model, None, None, (), 'no effect screened: the level leaves '
+        return EffectChoice((), model, {}, None, None, (), 'no effect screened: the level leaves '
                             'no degrees of freedom to judge an effect by')
     best_rms = before = first
+    held: list[str] = []
     added: list[BoundEffect] = []
     trials: list[EffectTrial] = []
     reason = f'at most {max_effects} effects'
@@ -135,32 +143,9 @@ def choose_effects(model: MeasurementModel, data: Measurements, fit_for: FitFor,
         round_trials: list[tuple[EffectTrial, MeasurementModel | None,
                                  CalibrationResult | None]] = []
         for cand in passed[:TRIALS]:
-            effect = pool[cand.spec]
-            aug = augmented_model(model, (effect,))
-            aug_free = level_free(aug.params, level, n_geometric)
-            values: dict[str, float] = {}
-            std: dict[str, float] = {}
-            try:
-                res = fit_for(aug)(data, aug_free)
-            except (DataError, np.linalg.LinAlgError) as exc:
-                round_trials.append((EffectTrial(effect.name, rnd, values, std, None, False,
-                                                 f'fit failed: {exc}'), None, None))
-                continue
-            values = {n: float(res.value(n)) for n in effect.parameter_names}
-            std = {n: float(s) for n, s in zip(res.estimated, res.std)
-                   if n in effect.parameter_names}
-            why = ''
-            if not res.converged:
-                why = f'the fit did not converge ({res.message})'
-            elif len(std) < len(effect.parameter_names):
-                why = 'not identified with the geometry at this level'
-            else:
-                why = implausible(effect, list(values.values()))
-            pred = None if why else _predicted(aug, data, res, aug_free, prior, seed)
-            if not why and pred is None:
-                why = 'no degrees of freedom left'
-            round_trials.append((EffectTrial(effect.name, rnd, values, std, pred, False, why),
-                                 aug, res))
+            round_trials.append(_trial(model, data, fit_for, current, pool[cand.spec],
+                                       cand.values, level, n_geometric, held, prior, seed,
+                                       rnd))
         usable = [t for t in round_trials if t[0].predicted_rms_m is not None]
         if not usable:
             trials += [t[0] for t in round_trials]
@@ -170,24 +155,23 @@ def choose_effects(model: MeasurementModel, data: Measurements, fit_for: FitFor,
         improves = (best[0].predicted_rms_m or np.inf) < (1 - PARSIMONY) * best_rms
         for trial, *_ in round_trials:
             if trial is best[0] and improves:
-                trial = EffectTrial(trial.spec, rnd, trial.values, trial.std,
-                                    trial.predicted_rms_m, True,
-                                    f'added: predicted out-of-sample rms '
-                                    f'{best_rms * 1e6:.1f} -> '
-                                    f'{(trial.predicted_rms_m or 0) * 1e6:.1f} µm')
+                trial = replace(trial, added=True, reason=(
+                    f'added: predicted out-of-sample rms {best_rms * 1e6:.1f} -> '
+                    f'{(trial.predicted_rms_m or 0) * 1e6:.1f} µm'
+                    + (f'; {", ".join(trial.held)} held at the best plausible point of its '
+                       'grid (free fit refused: ' + trial.previous + ')' if trial.held else '')))
             elif not trial.reason:
-                trial = EffectTrial(trial.spec, rnd, trial.values, trial.std,
-                                    trial.predicted_rms_m, False,
-                                    'predicts new measurements less well than '
-                                    + (best[0].spec if trial is not best[0] else
-                                       f'{1 - PARSIMONY:.0%} of the current model'))
+                trial = replace(trial, reason='predicts new measurements less well than '
+                                + (best[0].spec if trial is not best[0] else
+                                   f'{1 - PARSIMONY:.0%} of the current model'))
             trials.append(trial)
         if not improves:
             reason = (f'{best[0].spec} would predict new measurements '
                       f'{(best[0].predicted_rms_m or 0) * 1e6:.1f} µm against '
                       f'{best_rms * 1e6:.1f} µm: not {PARSIMONY:.0%} better')
             break
-        _, aug_model, aug_result = best
+        trial, aug_model, aug_result = best
+        held += trial.held
         assert aug_model is not None and aug_result is not None
         model, current = aug_model, aug_result
         added.append(pool[best[0].spec])
@@ -195,4 +179,51 @@ def choose_effects(model: MeasurementModel, data: Measurements, fit_for: FitFor,
     text = (f'added {", ".join(e.name for e in added)} (predicted out-of-sample rms '
             f'{before * 1e6:.1f} -> {best_rms * 1e6:.1f} µm); stopped: {reason}'
             if added else f'no effect added: {reason}')
-    return EffectChoice(tuple(added), model, before, best_rms, tuple(trials), text)
+    values = {n: float(current.value(n)) for e in added for n in e.parameter_names}
+    return EffectChoice(tuple(added), model, values, before, best_rms, tuple(trials), text,
+                        tuple(held))
+
+
+def _trial(model: MeasurementModel, data: Measurements, fit_for: FitFor,
+           current: CalibrationResult, effect: BoundEffect, screened: np.ndarray, level: str,
+           n_geometric: int, held: list[str], prior: Prior | None, seed: int, rnd: int
+           ) -> tuple[EffectTrial, MeasurementModel | None, CalibrationResult | None]:
+    """Fit ``model`` + ``effect`` from the current fit and the screened values; judge it.
+
+    An effect with shape parameters (nonlinear, e.g. joint_play's τ0) is fitted with them
+    free first; when that fit does not converge or leaves the plausible range, they are
+    held at the screened value (the best plausible point of their grid) and only the size
+    is fitted: the plausible-constrained estimate on the grid."""
+    aug = augmented_model(model, (effect,))
+    p0 = np.concatenate([current.values, screened])
+    names = list(effect.parameter_names)
+    shape = names[len(names) - effect.kind.n_shape:] if effect.kind.n_shape else []
+    attempts = [list(held), list(held) + shape] if shape else [list(held)]
+    trial: tuple[EffectTrial, MeasurementModel | None, CalibrationResult | None] = (
+        EffectTrial(effect.name, rnd, {}, {}, None, False, 'not fitted'), None, None)
+    for fixed in attempts:
+        free = [n for n in level_free(aug.params, level, n_geometric) if n not in fixed]
+        try:
+            res = fit_for(aug)(data, free, p0)
+        except (DataError, np.linalg.LinAlgError) as exc:
+            trial = (EffectTrial(effect.name, rnd, {}, {}, None, False, f'fit failed: {exc}'),
+                     None, None)
+            continue
+        values = {n: float(res.value(n)) for n in names}
+        std = {n: float(v) for n, v in zip(res.estimated, res.std) if n in names}
+        wanted = [n for n in names if n not in fixed]
+        if not res.converged:
+            why = f'the fit did not converge ({res.message})'
+        elif any(n not in std for n in wanted):
+            why = 'not identified with the geometry at this level'
+        else:
+            why = implausible(effect, list(values.values()))
+        pred = None if why else _predicted(aug, data, res, free, prior, seed)
+        if not why and pred is None:
+            why = 'no degrees of freedom left'
+        now = [n for n in shape if n in fixed]
+        trial = (EffectTrial(effect.name, rnd, values, std, pred, False, why, tuple(now),
+                             previous=trial[0].reason if now else ''), aug, res)
+        if not why:
+            break
+    return trial

@@ -83,6 +83,7 @@ class ModelChoice:
     # Effects ``auto`` added on the training data (core.effect_selection) and its record.
     effects: tuple[str, ...] = ()
     effect_selection: dict | None = None
+    held: tuple[str, ...] = ()  # effect shape parameters held at their selected values
 
     def to_dict(self) -> dict:
         def figures(values: dict[str, float | None]) -> dict[str, float | None]:
