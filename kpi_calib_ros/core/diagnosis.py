@@ -305,7 +305,7 @@ def compare_models(before: tuple[MeasurementModel, CalibrationResult],
             if name in std:
                 entry['std'] = float(std[name])
             else:
-                entry['dropped'] = dropped.get(name, 'not estimated')
+                entry['dropped'] = dropped.get(name, 'held at its start value (not free)')
             params.append(entry)
     return ModelComparison(
         effects=tuple(e.name for e in new),
