@@ -417,7 +417,10 @@ def _gauss_newton(model: MeasurementModel, p: np.ndarray, idx: np.ndarray, q: np
     # along it), and the decrease it gained (for the cost test).
     nonlinear, decrease = False, None
     for iteration in range(1, max_iterations + 1):
+        # A column can vanish on the way (a saturating effect's shape parameter once
+        # tanh is flat at every pose): no step along it, not a NaN step.
         scale = np.linalg.norm(f, axis=0)
+        scale[scale == 0] = 1.0
         norm_r = np.sqrt(2 * cost)
         gradient = f.T @ r  # = −∇C (F is ∂h/∂p weighted, r = w(η − h))
         if np.max(np.abs(gradient) / scale) < tol.gtol * norm_r:
@@ -450,7 +453,9 @@ def _gauss_newton(model: MeasurementModel, p: np.ndarray, idx: np.ndarray, q: np
                 trial[idx] += alpha * step
                 r_try, f_try = evaluate(trial)
                 cost_try = 0.5 * r_try @ r_try
-                if cost_try <= cost + tol.armijo * alpha * slope:
+                # A point where the Jacobian is not finite (a saturating effect's shape
+                # parameter driven to a sharp step) is no step to take.
+                if cost_try <= cost + tol.armijo * alpha * slope and np.all(np.isfinite(f_try)):
                     accepted = True
                     break
                 alpha *= 0.5
