@@ -99,6 +99,8 @@ def test_joint_effects_are_the_documented_corrections(cell):
                                             lambda qq, tt, th: th[0] * np.sin(qq[:, 2])
                                             + th[1] * np.cos(qq[:, 2])),
              'joint_backlash:joint_2': ([3e-4], 1, lambda qq, tt, th: th[0] * np.sign(tt[:, 1])),
+             'joint_play:joint_3': ([3e-4, np.log(50.0)], 2,
+                                    lambda qq, tt, th: th[0] * np.tanh(tt[:, 2] / np.exp(th[1]))),
              'joint_scale:joint_1': ([1e-4], 0, lambda qq, tt, th: th[0] * qq[:, 0])}
     for spec, (theta, j, formula) in cases.items():
         model = augmented_model(cell.model, (parse_effect_spec(spec, cell.robot),))
@@ -126,7 +128,7 @@ def test_torque_effects_vanish_where_gravity_exerts_no_torque(cell):
 def test_candidates_cover_every_screened_effect_and_joint(cell):
     candidates = candidate_effects(cell.robot, exclude=['joint_scale:joint_1'])
     names = {c.name for c in candidates}
-    assert len(candidates) == 4 * 6 + 1 - 1
+    assert len(candidates) == 5 * 6 + 1 - 1  # compliance, cyclic, backlash, play, scale
     assert 'joint_scale:joint_1' not in names and 'tracker_scale' in names
     assert 'cyclic_joint_error_h2:joint_1' not in names  # optional, not screened by default
     with pytest.raises(ConfigError, match='valid effects'):

@@ -13,6 +13,8 @@ import pytest
 import yaml
 
 from kpi_calib_ros.cli import main
+from kpi_calib_ros.core.effects import implausible, parse_effect_spec
+from kpi_calib_ros.io.cell import build_cell_model, load_cell
 
 # Beside the repository (../shared/data/tiago_mocap), or where TIAGO_MOCAP_DIR says.
 _BESIDE = Path(__file__).resolve().parents[2] / 'shared' / 'data' / 'tiago_mocap'
@@ -143,3 +145,49 @@ def test_a_moved_parameter_after_an_inadequate_calibration_carries_the_caveat(tm
     assert rc == 3 and not test['consistent']
     assert test['moved'] and 'not adequate' in test['caveat']
     assert 'named as moved' in test['caveat']
+
+
+def _figures(doc):
+    return (f"rms {doc['rms_m'] * 1e3:.3f} mm (inside the training ranges "
+            f"{doc['rms_inside_training_range_m'] * 1e3:.3f}, outside "
+            f"{doc['rms_outside_training_range_m'] * 1e3:.3f}; "
+            + ', '.join(f'{k} {v * 1e3:.3f}' for k, v in doc['rms_per_reflector_m'].items())
+            + ')')
+
+
+@pytest.mark.slow
+def test_auto_on_the_smallest_session_adds_plausible_play_and_beats_the_full_model(tmp_path):
+    """Issue 10's second acceptance: auto on the 37-posture session, validated on the other
+    day (and on the two later sessions of the same day, never used for a choice). auto
+    adds the free play the training data shows (significant, plausible, better predicted);
+    the other day is predicted better than by the full geometric model, most of all
+    inside the training ranges. The issue asks < 3.1 mm: not reached (README, Real data)."""
+    for session in ('2021-11-30', '2021-11-26', '2021-11-30-1403', '2021-11-30-1504'):
+        assert main(['import-csv', _table(session), '--mapping', str(MAPPING),
+                     '--out', str(tmp_path / f'{session}.mcap')]) == 0
+    docs = {}
+    for model in ('geometric', 'auto'):
+        assert main(['identify', '--cell', str(CELL), '--bag', str(tmp_path / '2021-11-30.mcap'),
+                     '--out', str(tmp_path / model), '--model', model]) == 0
+        for session in ('2021-11-26', '2021-11-30-1403', '2021-11-30-1504'):
+            main(['validate', '--cell', str(CELL), '--calibration',
+                  str(tmp_path / model / 'calibration.yaml'), '--bag',
+                  str(tmp_path / f'{session}.mcap'), '--out', str(tmp_path / f'{model}-{session}')])
+            docs[model, session] = json.loads(
+                (tmp_path / f'{model}-{session}' / 'validation.json').read_text())
+            print(f'{model} calibrated on 2021-11-30, validated on {session}: '
+                  + _figures(docs[model, session]))
+    cal = yaml.safe_load((tmp_path / 'auto' / 'calibration.yaml').read_text())
+    assert cal['model']['level'] == 'geometric'
+    assert cal['effects'] and cal['effects'] == cal['model']['effects']
+    robot = build_cell_model(load_cell(CELL)).robot
+    values = {p['name']: p['value'] for p in cal['parameters']}
+    for spec in cal['effects']:
+        effect = parse_effect_spec(spec, robot)
+        assert implausible(effect, [values[n] for n in effect.parameter_names]) == '', spec
+    # The documented arm_6 play is among them, a play of tens of mrad (b its half).
+    assert 'joint_play:arm_6_joint' in cal['effects']
+    assert 0.01 < -values['joint_play.arm_6_joint.b'] < 0.05
+    auto, full = docs['auto', '2021-11-26'], docs['geometric', '2021-11-26']
+    assert auto['rms_m'] < full['rms_m']
+    assert auto['rms_inside_training_range_m'] < 0.9 * full['rms_inside_training_range_m']

@@ -12,7 +12,8 @@ from kpi_calib_ros.app.identify import (cell_prior, choose_level, identify_cell,
                                         load_measurements, with_effects)
 from kpi_calib_ros.core.model_selection import level_free
 from kpi_calib_ros.core.diagnosis import CellDiagnosis, compare_models, diagnose
-from kpi_calib_ros.core.effects import parse_effect_spec
+from kpi_calib_ros.core.effect_selection import effect_start
+from kpi_calib_ros.core.effects import implausible, parse_effect_spec
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.out_of_sample import out_of_sample_error
 from kpi_calib_ros.core.residuals import ADEQUACY_ALPHA
@@ -44,7 +45,16 @@ def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
     richer = with_effects(cm, (best,))
     richer_free = None if free is None else level_free(richer.model.params, level,
                                                        len(cm.geometric))
-    after = identify_cell(richer, data, free=richer_free)
+    # A shape parameter (joint_play's τ0) starts at its screened grid point; when its free
+    # fit fails or leaves the plausible range it is held there, as auto does.
+    p0 = effect_start(result.values, best, diag.best.values)
+    after = identify_cell(richer, data, p0=p0, free=richer_free)
+    shape = best.parameter_names[len(best.parameter_names) - best.kind.n_shape:] \
+        if best.kind.n_shape else ()
+    if shape and (not after.converged or implausible(
+            best, [after.value(n) for n in best.parameter_names])):
+        richer_free = [n for n in (richer_free or richer.model.params.names) if n not in shape]
+        after = identify_cell(richer, data, p0=p0, free=richer_free)
     comparison = compare_models((cm.model, result), (richer.model, after), data, folds=folds)
     after_oos = out_of_sample_error(richer.model, data, after,
                                     richer_free or list(richer.model.params.names), prior)

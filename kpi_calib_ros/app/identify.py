@@ -17,6 +17,7 @@ import numpy as np
 
 from kpi_calib_ros.core.dh import dh_table
 from kpi_calib_ros.core.diagnosis import augmented_model, compare_models
+from kpi_calib_ros.core.effect_selection import choose_effects
 from kpi_calib_ros.core.effects import parse_effect_spec, split_specs
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimability import KpiEstimability, result_estimability
@@ -261,6 +262,9 @@ class CellCalibration:
     # The cell's tolerance prior was tightened by this factor: the data weighed at the
     # noise they show, √prior_scale × the stated σ (core.precision.balanced_prior).
     prior_scale: float = 1.0
+    # The cell model the result belongs to: the given one with the effects ``auto`` added
+    # (core.effect_selection); documents and the calibrated URDF are written with it.
+    cell: CellModel | None = None
 
     @property
     def problems(self) -> tuple[str, ...]:
@@ -340,9 +344,14 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
     # Every fit weighs the cell's tolerances against the noise its data show
     # (core.precision.balanced_prior); ``scales`` keeps the last balance.
     scales = [1.0]
-    fit = _fit_function(cm, start, prior, balance=tolerance is not None, scales=scales)
+    balance = tolerance is not None
+    fit = _fit_function(cm, start, prior, balance=balance, scales=scales)
     choice = choose_level(cm, screened, model, start, prior, fit)
-    free = level_free(cm.model.params, choice.level, n_geo)
+    if choice.requested == 'auto' and allowed is None:
+        cm, start, choice = add_chosen_effects(cm, screened, choice, start, prior, balance)
+        fit = _fit_function(cm, start, prior, balance=balance, scales=scales)
+    free = [n for n in level_free(cm.model.params, choice.level, n_geo)
+            if n not in choice.held]
     if allowed is not None:
         free = [n for n in free if n in set(allowed)]
     robust = robust_identify(cm.model, data, cm.cell.sigma,
@@ -354,7 +363,37 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
                               reflector=kept.reflector, rotation=kept.rotation)
     # A model that fails χ² must not report the stated σ's precision (core.precision).
     return CellCalibration(honest_precision(robust.result), robust, choice, est, tuple(free),
-                           registration, scales[-1])
+                           registration, scales[-1], cm)
+
+
+def add_chosen_effects(cm: CellModel, data: Measurements, choice: ModelChoice,
+                       start: np.ndarray, prior: Prior | None, balance: bool = False
+                       ) -> tuple[CellModel, np.ndarray, ModelChoice]:
+    """``auto``'s second step: the physical effects the diagnosis finds significant and
+    plausible on ``data`` that predict new measurements better
+    (:func:`kpi_calib_ros.core.effect_selection.choose_effects`), added to ``cm``'s model at
+    the chosen level. Returns the cell model with them, the start vector extended with
+    their nominal values (0) and the choice with the effects and the record."""
+    n_geo = len(cm.geometric)
+
+    def fit_for(model: MeasurementModel):
+        extra = np.zeros(len(model.params.names) - len(start))
+        return _fit_function(dataclasses.replace(cm, model=model),
+                             np.concatenate([start, extra]), prior, balance=balance)
+    chosen = choose_effects(cm.model, data, fit_for, choice.level, n_geo, prior)
+    if not chosen.effects:
+        return cm, start, dataclasses.replace(
+            choice, reason=f'{choice.reason}; {chosen.reason}',
+            effect_selection=chosen.to_dict())
+    richer = dataclasses.replace(cm, model=chosen.model)
+    # The effects start from their selected values: a shape parameter (joint_play's τ0)
+    # is nonlinear, and at zero size its column vanishes.
+    start = np.concatenate([start, [chosen.values[n] for n in
+                                    chosen.model.params.names[len(start):]]])
+    return richer, start, dataclasses.replace(
+        choice, reason=f'{choice.reason}; {chosen.reason}',
+        effects=tuple(e.name for e in chosen.effects), effect_selection=chosen.to_dict(),
+        held=chosen.held)
 
 
 def calibration_document(cm: CellModel, result: CalibrationResult,
@@ -529,6 +568,7 @@ def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
     writable_folder(out_dir, '--out')
     cm, data, pairing = load_measurements(cell_path, bag_path, effects, **options)
     cal = calibrate_cell(cm, data, model)
+    cm = cal.cell or cm  # with the effects auto added
     how = tolerance_text(cm, cal.prior_scale)
     doc = add_robust_sections(calibration_document(cm, cal.result, pairing), cal)
     if how:

@@ -180,41 +180,54 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
 
     fits, rejected = [], []
     for effect in candidates:
-        cols, disp = _effect_columns(model, sys_, effect, q, tau)
-        norms = np.linalg.norm(cols, axis=0)
-        if disp < NO_EFFECT_M or np.any(norms == 0):
-            rejected.append(_rejected(effect, 0.0, {}, (
-                f'no effect on these measurements: a typical-size {effect.kind.name} moves no '
-                f'point by more than {disp:.1e} m. To see it: {effect.hint()}.')))
-            continue
-        unit = cols / norms
-        unique = unit - sys_.basis @ (sys_.basis.T @ unit)
-        fraction = float(np.linalg.svd(unique, compute_uv=False).min())
-        if fraction < DEPENDENCE_TOLERANCE:
-            absorbed = _absorbed_by(model, result, sys_, unit)
-            text = ', '.join(f'{k} ({v:+.2f})' for k, v in absorbed.items())
-            rejected.append(_rejected(effect, fraction, absorbed, (
-                f'not distinguishable with this data: the geometric parameters reproduce its '
-                f'signature (unique part {fraction:.1e}; mainly {text}). To make it '
-                f'distinguishable: {effect.hint()}.')))
-            continue
-        fits.append(_fit_candidate(effect, cols, sys_, r_perp, chi2_base, dof_base, pose_folds,
-                                   joint_jac, q, tau, fraction))
+        # An effect nonlinear in its shape parameters is screened at each value of its
+        # shape grid (the size parameters linear there); the best fit stands for it.
+        tried, why_not = [], None
+        for shape in effect.kind.shape_grid or ((),):
+            cols, disp = _effect_columns(model, sys_, effect, q, tau, shape)
+            norms = np.linalg.norm(cols, axis=0)
+            if disp < NO_EFFECT_M or np.any(norms == 0):
+                why_not = why_not or _rejected(effect, 0.0, {}, (
+                    f'no effect on these measurements: a typical-size {effect.kind.name} '
+                    f'moves no point by more than {disp:.1e} m. To see it: {effect.hint()}.'))
+                continue
+            unit = cols / norms
+            unique = unit - sys_.basis @ (sys_.basis.T @ unit)
+            fraction = float(np.linalg.svd(unique, compute_uv=False).min())
+            if fraction < DEPENDENCE_TOLERANCE:
+                absorbed = _absorbed_by(model, result, sys_, unit)
+                text = ', '.join(f'{k} ({v:+.2f})' for k, v in absorbed.items())
+                why_not = _rejected(effect, fraction, absorbed, (
+                    f'not distinguishable with this data: the geometric parameters reproduce '
+                    f'its signature (unique part {fraction:.1e}; mainly {text}). To make it '
+                    f'distinguishable: {effect.hint()}.'))
+                continue
+            tried.append(_fit_candidate(effect, cols, sys_, r_perp, chi2_base, dof_base,
+                                        pose_folds, joint_jac, q, tau, fraction, shape))
+        if tried:
+            # The best physically plausible shape (a fit constrained to the plausible
+            # region); only when none is plausible, the best of all (reported implausible).
+            plausible = [f for f in tried if not implausible(effect, f['theta'])]
+            fits.append(max(plausible or tried, key=lambda f: f['delta']))
+        elif why_not is not None:
+            rejected.append(why_not)
 
     fits = merge_same_signature(fits)
     notes = torque_effect_notes(fits)
+    simpler = nested_alternatives(fits, alpha)
     m = max(len(fits), 1)
     out = []
     for fit in fits:
         p_adj = min(1.0, fit['p_raw'] * m)
-        significant = bool(p_adj < alpha)
+        nested = simpler.get(fit['effect'].name, '')
+        significant = bool(p_adj < alpha) and not nested
         warning = implausible(fit['effect'], fit['theta'])
         merged = tuple(fit.get('merged', ()))
         extra = ''.join(f' {t}' for t in (
             warning and f'Warning: {warning}.',
             merged and f'The same signature is explained by {", ".join(merged)} '
                        '(one candidate: the data cannot tell them apart).',
-            notes.get(fit['effect'].name, '')) if t)
+            nested, notes.get(fit['effect'].name, '')) if t)
         out.append(Candidate(
             effect=fit['effect'].kind.name, joint=fit['effect'].joint, spec=fit['effect'].name,
             parameter_names=fit['effect'].parameter_names, units=fit['effect'].units,
@@ -292,7 +305,7 @@ def compare_models(before: tuple[MeasurementModel, CalibrationResult],
             if name in std:
                 entry['std'] = float(std[name])
             else:
-                entry['dropped'] = dropped.get(name, 'not estimated')
+                entry['dropped'] = dropped.get(name, 'held at its start value (not free)')
             params.append(entry)
     return ModelComparison(
         effects=tuple(e.name for e in new),
@@ -314,15 +327,17 @@ def augmented_model(model: MeasurementModel, effects: tuple) -> MeasurementModel
 
 
 def _effect_columns(model: MeasurementModel, sys_: LinearizedFit, effect: BoundEffect,
-                    q: np.ndarray, tau: np.ndarray) -> tuple[np.ndarray, float]:
-    """Weighted Jacobian columns (3N, k) of the effect at θ = 0 and the largest
-    point displacement (m) a typical-size effect causes."""
+                    q: np.ndarray, tau: np.ndarray,
+                    shape: tuple[float, ...] = ()) -> tuple[np.ndarray, float]:
+    """Weighted Jacobian columns (3N, k) of the effect's size parameters at size 0 (shape
+    parameters, the last ``len(shape)``, held at ``shape``) and the largest point
+    displacement (m) a typical-size effect causes."""
     aug = augmented_model(model, (effect,))
-    k = len(effect.parameter_names)
-    p = np.concatenate([sys_.p, np.zeros(k)])
+    k = len(effect.parameter_names) - len(shape)
+    p = np.concatenate([sys_.p, np.zeros(k), shape])
     _, jac = aug.jacobian(p, q, tau, sys_.reflector, sys_.rotation)
-    cols = jac[:, :, -k:]
-    disp = float(np.max(np.linalg.norm(cols @ np.asarray(effect.typical), axis=1)))
+    cols = jac[:, :, len(sys_.p):len(sys_.p) + k]
+    disp = float(np.max(np.linalg.norm(cols @ np.asarray(effect.typical[:k]), axis=1)))
     return (cols * sys_.w[None, :, None]).reshape(-1, k), disp
 
 
@@ -352,15 +367,19 @@ def _rejected(effect: BoundEffect, fraction: float, absorbed: dict[str, float],
 def _fit_candidate(effect: BoundEffect, cols: np.ndarray, sys_: LinearizedFit, r_perp: np.ndarray,
                    chi2_base: float, dof_base: int, pose_folds: np.ndarray | None,
                    joint_jac: np.ndarray, q: np.ndarray, tau: np.ndarray,
-                   fraction: float) -> dict:
-    """Augmented least squares [J E] from the geometric solution, its F-test and CV."""
+                   fraction: float, shape: tuple[float, ...] = ()) -> dict:
+    """Augmented least squares [J E] from the geometric solution, its F-test and CV.
+    Shape parameters held at ``shape`` (chosen from a grid) count as fitted in the
+    F-test's degrees of freedom; their std is NaN."""
     n = len(q)
-    k = cols.shape[1]
+    k = cols.shape[1] + len(shape)
     unique = cols - sys_.basis @ (sys_.basis.T @ cols)
     info = unique.T @ unique  # Schur complement: information on θ with geometry free
     cov = np.linalg.inv(info)
-    theta = cov @ (unique.T @ r_perp)
-    r_aug = r_perp - unique @ theta
+    size = cov @ (unique.T @ r_perp)
+    r_aug = r_perp - unique @ size
+    theta = np.concatenate([size, shape])
+    std = np.concatenate([np.sqrt(np.diag(cov)), np.full(len(shape), np.nan)])
     chi2_aug = float(r_aug @ r_aug)
     delta = chi2_base - chi2_aug
     dof = dof_base - k
@@ -369,10 +388,11 @@ def _fit_candidate(effect: BoundEffect, cols: np.ndarray, sys_: LinearizedFit, r
     cv = cv_rms(np.hstack([sys_.jac, cols]), sys_.r, sys_.w, pose_folds)
     rms = float(np.sqrt(np.sum((r_aug.reshape(n, 3) / sys_.w) ** 2) / n))
     corr = float(np.sqrt(max(delta, 0.0) / chi2_base)) if chi2_base > 0 else 0.0
-    return {'effect': effect, 'theta': theta, 'std': np.sqrt(np.diag(cov)), 'rms': rms,
+    return {'effect': effect, 'theta': theta, 'std': std, 'rms': rms,
+            'chi2': chi2_aug, 'dof': dof,
             'unique': unique,
             'cv': cv, 'delta': delta, 'f': f_stat, 'p_raw': p_raw, 'corr': corr,
-            'driver_corr': _driver_correlation(effect, theta, unique, r_aug, sys_.w,
+            'driver_corr': _driver_correlation(effect, theta, unique, size, r_aug, sys_.w,
                                                joint_jac, q, tau),
             'fraction': fraction}
 
@@ -405,6 +425,33 @@ def merge_same_signature(fits: list[dict]) -> list[dict]:
     return out
 
 
+def nested_alternatives(fits: list[dict], alpha: float = ADEQUACY_ALPHA) -> dict[str, str]:
+    """For an effect that contains simpler ones of the same joint (``EffectType.nests``:
+    joint_play is joint_backlash as τ0 -> 0 and joint_compliance as τ0 -> ∞): is it
+    significantly better than the best plausible simpler one (F-test of its extra
+    parameters at ``alpha``)? If not, the simpler one is the explanation. Returns
+    spec -> why it is not counted significant."""
+    by_joint: dict[tuple[str | None, str], dict] = {
+        (f['effect'].joint, f['effect'].kind.name): f for f in fits}
+    out = {}
+    for fit in fits:
+        effect = fit['effect']
+        rivals = [by_joint[(effect.joint, name)] for name in effect.kind.nests
+                  if (effect.joint, name) in by_joint]
+        rivals = [r for r in rivals if not implausible(r['effect'], r['theta'])]
+        if not rivals:
+            continue
+        rival = max(rivals, key=lambda r: r['delta'])
+        extra = len(fit['theta']) - len(rival['theta'])
+        f_stat = (fit['delta'] - rival['delta']) / extra / (fit['chi2'] / fit['dof'])
+        p = float(scipy.stats.f.sf(f_stat, extra, fit['dof'])) if f_stat > 0 else 1.0
+        if p >= alpha:
+            out[effect.name] = (f'Not counted: the simpler {rival["effect"].name} explains '
+                                f'as much (F-test of the extra parameter p = {p:.3g} >= '
+                                f'{alpha:g}).')
+    return out
+
+
 def torque_effect_notes(fits: list[dict]) -> dict[str, str]:
     """For a joint with both backlash (a step with the sign of the gravity torque) and
     compliance (in proportion to it) among the candidates: which fits better, by the
@@ -428,7 +475,8 @@ def torque_effect_notes(fits: list[dict]) -> dict[str, str]:
 
 
 def _driver_correlation(effect: BoundEffect, theta: np.ndarray, unique: np.ndarray,
-                        r_aug: np.ndarray, w: np.ndarray, joint_jac: np.ndarray,
+                        size: np.ndarray, r_aug: np.ndarray, w: np.ndarray,
+                        joint_jac: np.ndarray,
                         q: np.ndarray, tau: np.ndarray) -> float:
     """Correlation of the joint-angle error implied by the residuals with the fitted correction.
 
@@ -441,7 +489,7 @@ def _driver_correlation(effect: BoundEffect, theta: np.ndarray, unique: np.ndarr
         return float('nan')
     j = effect.joint_index
     n = len(q)
-    explained = ((r_aug + unique @ theta).reshape(n, 3) / w)
+    explained = ((r_aug + unique @ size).reshape(n, 3) / w)
     lever = joint_jac[:, :, j]
     lever2 = np.sum(lever ** 2, axis=1)
     ok = lever2 > 1e-12
@@ -469,7 +517,8 @@ def _joint_correction_values(effect: BoundEffect, q: np.ndarray, tau: np.ndarray
 def _explain(fit: dict, significant: bool, p_adj: float, m: int, rms_base: float,
              cv_base: float) -> str:
     effect: BoundEffect = fit['effect']
-    values = ', '.join(f'{name.rsplit(".", 1)[1]} = {v:.3g} ± {s:.2g} {u}'
+    values = ', '.join(f'{name.rsplit(".", 1)[1]} = {v:.3g} '
+                       + (f'± {s:.2g} {u}' if np.isfinite(s) else f'{u} (best of its grid)')
                        for name, v, s, u in zip(effect.parameter_names, fit['theta'],
                                                 fit['std'], effect.units))
     numbers = (f'rms {rms_base * 1e6:.1f} -> {fit["rms"] * 1e6:.1f} µm, validation rms '

@@ -15,6 +15,8 @@ Pinocchio, payload included)::
     cyclic_joint_error    δq_j = a · sin q_j + b · cos q_j  a, b  rad
     cyclic_joint_error_h2 δq_j = a · sin 2q_j + b · cos 2q_j
     joint_backlash        δq_j = b · sgn(τ_j)              b  rad
+    joint_play            δq_j = b · tanh(τ_j / τ0),       b  rad, u = ln(τ0 / 1 N m)
+                          τ0 = e^u N m identified
     joint_scale           δq_j = k · q_j                   k  1 (transmission ratio)
     tracker_scale         η = (1 + s) · h  (global)        s  1 (tracker length scale)
 
@@ -56,6 +58,7 @@ from __future__ import annotations
 import importlib
 import importlib.metadata
 import importlib.util
+import math
 import sys
 import warnings
 from dataclasses import dataclass, field
@@ -69,6 +72,10 @@ from kpi_calib_ros.core.robot import RobotModel
 
 ENTRY_POINT_GROUP = 'kpi_calib_ros.effects'
 BACKLASH_TORQUE_SCALE = 0.01  # N m: below this a joint counts as unloaded
+PLAY_TORQUE_UNIT = 1.0        # N m (N for a prismatic joint): joint_play's τ0 = e^u of it
+# joint_play's screened transition torques τ0: 0.01 ... 10 N m, three per decade
+PLAY_GRID = tuple((math.log(t),) for t in (0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0,
+                                                5.0, 10.0))
 
 
 @dataclass(frozen=True)
@@ -118,6 +125,16 @@ class EffectType:
         beyond it is flagged (see :func:`implausible`). Empty: no bound.
     prismatic_plausible : tuple of float, optional
         The same for a prismatic joint (its units); None: no bound there.
+    shape_grid : tuple of tuple of float
+        For an effect nonlinear in its last parameters (they set the shape, not the size:
+        their Jacobian column vanishes at zero size), the values of those shape parameters
+        the linear screening tries (:func:`kpi_calib_ros.core.diagnosis.screen_effects`
+        keeps the best, counting them in the F-test's degrees of freedom); the
+        identification then fits them from there. Empty: linear at zero (every column
+        non-zero at θ = 0).
+    nests : tuple of str
+        Simpler effects (names) this one contains as limits on the same joint; the
+        diagnosis counts it only when it fits significantly better than them.
     """
 
     name: str
@@ -136,6 +153,8 @@ class EffectType:
     joint_kinds: tuple[str, ...] | None = None
     plausible: tuple[float, ...] = ()
     prismatic_plausible: tuple[float, ...] | None = None
+    shape_grid: tuple[tuple[float, ...], ...] = ()
+    nests: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if not self.name or ':' in self.name or '.' in self.name:
@@ -151,10 +170,19 @@ class EffectType:
                              'at least one parameter')
         if self.typical and len(self.typical) != len(self.parameters):
             raise ValueError(f'effect {self.name!r}: typical needs one value per parameter')
+        if any(len(g) >= len(self.parameters) or len(g) != len(self.shape_grid[0])
+               for g in self.shape_grid):
+            raise ValueError(f'effect {self.name!r}: every shape_grid entry gives the same '
+                             'number of (last) parameters, fewer than all')
         for bound in (self.plausible, self.prismatic_plausible or ()):
             if bound and len(bound) != len(self.parameters):
                 raise ValueError(f'effect {self.name!r}: plausible bounds need one value per '
                                  'parameter')
+
+    @property
+    def n_shape(self) -> int:
+        """Number of shape parameters (the last ones), see ``shape_grid``."""
+        return len(self.shape_grid[0]) if self.shape_grid else 0
 
     def applies_to(self, joint_kind: str | None) -> bool:
         """Whether the effect has a meaning on a joint of this kind (global: always)."""
@@ -238,6 +266,10 @@ def _backlash(q_j, tau_j, theta):
     return theta[0] * ca.tanh(tau_j / BACKLASH_TORQUE_SCALE)
 
 
+def _play(q_j, tau_j, theta):
+    return theta[0] * ca.tanh(tau_j / (PLAY_TORQUE_UNIT * ca.exp(theta[1])))
+
+
 def _scale(q_j, tau_j, theta):
     return theta[0] * q_j
 
@@ -282,6 +314,20 @@ LIBRARY: tuple[EffectType, ...] = (
                     '(the arm on both sides of its balance point); with one sign only, '
                     'backlash is a constant the joint offset absorbs',
                signature='sign of the gravity torque of {joint}'),
+    EffectType('joint_play', ('b', 'u'), ('rad', '1'), _play, uses_torque=True,
+               typical=(2.5e-4, 0.0), screen=True, prismatic_units=('m', '1'),
+               # b as joint_backlash; τ0 from 1 mN m (a sharp step) to 1 kN m (never loaded
+               # out of its play), |u| <= ln 1000
+               plausible=(5e-2, 6.91), prismatic_plausible=(5e-3, 6.91),
+               shape_grid=PLAY_GRID, nests=('joint_backlash', 'joint_compliance'),
+               description='free play crossed smoothly with the gravity torque, '
+                           'b·tanh(τ/τ0), τ0 = e^u N m identified: the joint sits inside its '
+                           'play where the load is small (friction, a cable, the unmodelled '
+                           'part of the load decide) and at ±b where it is large',
+               hint='measure poses where the gravity torque of {joint} changes sign and '
+                    'poses where it is small and large, so the size b and the transition '
+                    'torque τ0 of the play show apart from the offset and a compliance',
+               signature='saturating function b·tanh(τ/τ0) of the gravity torque of {joint}'),
     EffectType('joint_scale', ('k',), ('1',), _scale, typical=(1e-4,), screen=True,
                prismatic_units=('1',), plausible=(1e-2,), prismatic_plausible=(1e-2,),
                description='transmission-ratio error k·q',

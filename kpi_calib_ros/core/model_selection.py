@@ -80,13 +80,18 @@ class ModelChoice:
     folds: int
     reason: str
     method: str = ''
+    # Effects ``auto`` added on the training data (core.effect_selection) and its record.
+    effects: tuple[str, ...] = ()
+    effect_selection: dict | None = None
+    held: tuple[str, ...] = ()  # effect shape parameters held at their selected values
 
     def to_dict(self) -> dict:
         def figures(values: dict[str, float | None]) -> dict[str, float | None]:
             return {k: (None if v is None else float(v)) for k, v in values.items()}
         return {'level': self.level, 'requested': self.requested, 'method': self.method,
                 'predicted_rms_m': figures(self.predicted_rms_m), 'folds': self.folds,
-                'cv_rms_m': figures(self.cv_rms_m), 'reason': self.reason}
+                'cv_rms_m': figures(self.cv_rms_m), 'reason': self.reason,
+                'effects': list(self.effects), 'effect_selection': self.effect_selection}
 
 
 Fit = Callable[[Measurements, list[str]], CalibrationResult]

@@ -389,7 +389,8 @@ def write_report(out_dir: str | Path, cd: CellDiagnosis) -> Path:
               '| # | effect | significant | p | rms after (µm) | validation rms after (µm) | '
               'parameters |', '|---|---|---|---|---|---|---|']
     for i, c in enumerate(diag.candidates, 1):
-        params = '; '.join(f'{n.rsplit(".", 1)[1]} = {v:.3g} ± {s:.2g} {u}'
+        params = '; '.join(f'{n.rsplit(".", 1)[1]} = {v:.3g} '
+                           + (f'± {s:.2g} {u}' if np.isfinite(s) else f'{u} (grid)')
                            for n, v, s, u in zip(c.parameter_names, c.values, c.std, c.units))
         lines.append(f'| {i} | {c.spec} | {"yes" if c.significant else "no"} | {c.p_value:.2g} '
                      f'| {c.rms_after_m * _UM:.1f} | {_validation(c.validation_rms_after_m)} '

@@ -130,6 +130,7 @@ def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, dat
     if source is None:
         cal: CellCalibration | None = calibrate_cell(cm, data)
         assert cal is not None
+        cm = cal.cell or cm  # with the effects identification.model auto added
         doc = add_robust_sections(calibration_document(cm, cal.result, pairing), cal)
         result = cal.result
     else:

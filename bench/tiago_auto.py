@@ -1,0 +1,92 @@
+"""Real data: model choice on the smallest TIAGo session, validated on the other sessions.
+
+Calibrates on the 37-posture session (2021-11-30) with ``--model geometric`` and ``--model
+auto`` (auto chooses the level and the physical effects on that session alone), validates
+each calibration with ``kpi-calib validate`` on the other day (2021-11-26) and on the two
+later sessions of the same afternoon (2021-11-30-1403, -1504; never used for a choice),
+and writes bench/results/tiago_auto.md: rms over all markers, inside / outside the
+training joint ranges, per marker (m1 alone is the peer toolbox's metric).
+
+    .venv/bin/python bench/tiago_auto.py [DATA_DIR]   # default ../shared/data/tiago_mocap
+"""
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import yaml
+
+from kpi_calib_ros.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+CELL = ROOT / 'test' / 'data' / 'tiago_mocap_cell.yaml'
+MAPPING = ROOT / 'test' / 'data' / 'tiago_mocap_mapping.yaml'
+TRAIN = '2021-11-30'
+VALIDATE = ('2021-11-26', '2021-11-30-1403', '2021-11-30-1504')
+
+
+def _quiet(argv: list[str]) -> int:
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+        return main(argv)
+
+
+def main_bench(data_dir: Path) -> str:
+    t0 = time.time()
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp)
+        for session in (TRAIN, *VALIDATE):
+            table = data_dir / f'qualisys_{session}_static_postures.csv'
+            assert _quiet(['import-csv', str(table), '--mapping', str(MAPPING),
+                           '--out', str(out / f'{session}.mcap')]) == 0
+        for model in ('geometric', 'auto'):
+            assert _quiet(['identify', '--cell', str(CELL), '--bag', str(out / f'{TRAIN}.mcap'),
+                           '--out', str(out / model), '--model', model]) == 0
+            cal = yaml.safe_load((out / model / 'calibration.yaml').read_text())
+            values = {p['name']: p for p in cal['parameters']}
+            effects = '; '.join(
+                f"{spec} ("
+                + ', '.join(f"{n.rsplit('.', 1)[1]} = {values[n]['value']:.4g}"
+                            + (f" ± {values[n]['std']:.2g}" if 'std' in values[n] else ' held')
+                            for n in values if n.startswith(spec.replace(':', '.') + '.'))
+                + ')' for spec in cal['effects']) or 'none'
+            for session in VALIDATE:
+                _quiet(['validate', '--cell', str(CELL), '--calibration',
+                        str(out / model / 'calibration.yaml'), '--bag',
+                        str(out / f'{session}.mcap'), '--out', str(out / f'{model}-{session}')])
+                doc = json.loads((out / f'{model}-{session}' / 'validation.json').read_text())
+                marker = doc['rms_per_reflector_m']
+                outside = doc['outside_training_range']
+                rows.append(
+                    f"| `{model}` | {effects} | {cal['rms_m'] * 1e3:.2f} | {session} | "
+                    f"{doc['rms_m'] * 1e3:.3f} | {doc['rms_inside_training_range_m'] * 1e3:.3f} | "
+                    f"{doc['rms_outside_training_range_m'] * 1e3:.3f} ({outside} of "
+                    f"{doc['measurements']}) | {marker['m1'] * 1e3:.3f} | "
+                    + ' / '.join(f'{marker[k] * 1e3:.2f}' for k in ('m2', 'm3', 'm4')) + ' |')
+            if model == 'auto':
+                reason = cal['model']['reason']
+    header = (
+        '# Model choice on the smallest TIAGo session, validated on the other sessions\n\n'
+        f'Calibrated on {TRAIN} (37 postures, 4 markers each, outlier exclusion on), validated '
+        'with `kpi-calib validate` (rms in mm). auto chose on the training session alone: '
+        f'{reason}.\n\n'
+        f'Command: `.venv/bin/python bench/tiago_auto.py` ({time.time() - t0:.0f} s)\n\n'
+        '| model | effects (fitted) | training rms | validated on | rms | inside training '
+        'ranges | outside (points) | m1 | m2 / m3 / m4 |\n'
+        '|---|---|---|---|---|---|---|---|---|\n')
+    return header + '\n'.join(rows) + '\n'
+
+
+if __name__ == '__main__':
+    beside = ROOT.parents[1] / 'shared' / 'data' / 'tiago_mocap'
+    data = Path(sys.argv[1]) if len(sys.argv) > 1 else beside
+    if not data.is_dir():
+        data = Path('/work/shared/data/tiago_mocap')
+    text = main_bench(data)
+    (ROOT / 'bench' / 'results' / 'tiago_auto.md').write_text(text)
+    print(text)
