@@ -81,47 +81,6 @@ def test_an_inadequate_calibration_as_prior_names_no_moved_parameter_on_the_same
     assert test['chi2'] / test['dof'] < 3.0
 
 
-def _validate(tmp_path, cal, session, name):
-    main(['validate', '--cell', str(TOLERANCES), '--calibration', str(cal / 'calibration.yaml'),
-          '--bag', str(tmp_path / f'{session}.mcap'), '--out', str(tmp_path / name)])
-    return json.loads((tmp_path / name / 'validation.json').read_text())['rms_m']
-
-
-@pytest.mark.slow
-def test_tolerances_and_the_suggested_effect_predict_new_days_better(tmp_path):
-    """The 37-posture session, as a user would: diagnose, add the effect it suggests,
-    identify with ``auto``. The cell's tolerances (weighed against the noise the
-    residuals show) keep the geometry from bending to the postures where arm_6's play
-    changes side, and the suggested backlash models them: the other day and both
-    confirmation sessions are predicted better than by ``auto`` without either (measured
-    3.75 / 3.23 / 2.80 mm against 4.30 / 3.74 / 3.15 mm)."""
-    held_out = ('2021-11-26', '2021-11-30-1403', '2021-11-30-1504')
-    for session in ('2021-11-30',) + held_out:
-        assert main(['import-csv', _table(session), '--mapping', str(MAPPING),
-                     '--out', str(tmp_path / f'{session}.mcap')]) == 0
-    train = str(tmp_path / '2021-11-30.mcap')
-    assert main(['diagnose', '--cell', str(TOLERANCES), '--bag', train,
-                 '--out', str(tmp_path / 'diag')]) == 0
-    diag = json.loads((tmp_path / 'diag' / 'diagnosis.json').read_text())
-    suggested = diag['added_effect']['effects']
-    assert suggested == ['joint_backlash:arm_6_joint']
-    assert main(['identify', '--cell', str(TOLERANCES), '--bag', train, '--model', 'auto',
-                 '--effects', ','.join(suggested), '--out', str(tmp_path / 'cal')]) == 0
-    cal = yaml.safe_load((tmp_path / 'cal' / 'calibration.yaml').read_text())
-    assert cal['prior']['noise_scale'] > 10  # mm residuals against a stated 0.2 mm
-    values = {p['name']: p['value'] for p in cal['parameters']}
-    b = values['joint_backlash.arm_6_joint.b']
-    assert 0.005 < abs(b) < 0.05  # half a play of tens of mrad, within the plausible range
-    # auto without tolerances and effect, the same data
-    assert main(['identify', '--cell', str(CELL), '--bag', train, '--model', 'auto',
-                 '--out', str(tmp_path / 'plain')]) == 0
-    for session in held_out:
-        rms = _validate(tmp_path, tmp_path / 'cal', session, f'v-{session}')
-        before = _validate(tmp_path, tmp_path / 'plain', session, f'p-{session}')
-        print(f'{session}: {rms * 1e3:.2f} mm (auto alone {before * 1e3:.2f} mm)')
-        assert rms < 0.93 * before
-
-
 @pytest.mark.slow
 def test_a_moved_parameter_after_an_inadequate_calibration_carries_the_caveat(tmp_path):
     """With the tolerances the 37-posture calibration's posterior is tight where the
@@ -156,31 +115,36 @@ def _figures(doc):
 
 
 @pytest.mark.slow
-def test_auto_on_the_smallest_session_adds_plausible_play_and_beats_the_full_model(tmp_path):
-    """Issue 10's second acceptance: auto on the 37-posture session, validated on the other
-    day (and on the two later sessions of the same day, never used for a choice). auto
-    adds the free play the training data shows (significant, plausible, better predicted);
-    the other day is predicted better than by the full geometric model, most of all
-    inside the training ranges. The issue asks < 3.1 mm: not reached (README, Real data)."""
-    for session in ('2021-11-30', '2021-11-26', '2021-11-30-1403', '2021-11-30-1504'):
+def test_auto_with_tolerances_on_the_smallest_session_predicts_new_days_better(tmp_path):
+    """Issue 10's second acceptance: ``auto`` on the 37-posture session, validated on the
+    other day and on the two later sessions of the same day (never used for a choice).
+    With the cell's tolerances (weighed against the noise the residuals show) auto keeps
+    the geometric level and adds the free play the training data show (significant,
+    plausible, better predicted), the documented arm_6 play among them; every held-out
+    session is predicted better than by the full geometric model without tolerances
+    (measured 3.12 / 2.56 / 2.19 mm against 4.30 / 3.74 / 3.15). The issue asks < 3.1 mm
+    on 2021-11-26 over the four markers: not reached (README, Real data)."""
+    held_out = ('2021-11-26', '2021-11-30-1403', '2021-11-30-1504')
+    for session in ('2021-11-30',) + held_out:
         assert main(['import-csv', _table(session), '--mapping', str(MAPPING),
                      '--out', str(tmp_path / f'{session}.mcap')]) == 0
     docs = {}
-    for model in ('geometric', 'auto'):
-        assert main(['identify', '--cell', str(CELL), '--bag', str(tmp_path / '2021-11-30.mcap'),
-                     '--out', str(tmp_path / model), '--model', model]) == 0
-        for session in ('2021-11-26', '2021-11-30-1403', '2021-11-30-1504'):
-            main(['validate', '--cell', str(CELL), '--calibration',
-                  str(tmp_path / model / 'calibration.yaml'), '--bag',
-                  str(tmp_path / f'{session}.mcap'), '--out', str(tmp_path / f'{model}-{session}')])
-            docs[model, session] = json.loads(
-                (tmp_path / f'{model}-{session}' / 'validation.json').read_text())
-            print(f'{model} calibrated on 2021-11-30, validated on {session}: '
-                  + _figures(docs[model, session]))
+    for name, cell, model in (('full', CELL, 'geometric'), ('auto', TOLERANCES, 'auto')):
+        assert main(['identify', '--cell', str(cell), '--bag', str(tmp_path / '2021-11-30.mcap'),
+                     '--out', str(tmp_path / name), '--model', model]) == 0
+        for session in held_out:
+            main(['validate', '--cell', str(cell), '--calibration',
+                  str(tmp_path / name / 'calibration.yaml'), '--bag',
+                  str(tmp_path / f'{session}.mcap'), '--out', str(tmp_path / f'{name}-{session}')])
+            docs[name, session] = json.loads(
+                (tmp_path / f'{name}-{session}' / 'validation.json').read_text())
+            print(f'{name} calibrated on 2021-11-30, validated on {session}: '
+                  + _figures(docs[name, session]))
     cal = yaml.safe_load((tmp_path / 'auto' / 'calibration.yaml').read_text())
     assert cal['model']['level'] == 'geometric'
+    assert cal['prior']['noise_scale'] > 10  # mm residuals against a stated 0.2 mm
     assert cal['effects'] and cal['effects'] == cal['model']['effects']
-    robot = build_cell_model(load_cell(CELL)).robot
+    robot = build_cell_model(load_cell(TOLERANCES)).robot
     values = {p['name']: p['value'] for p in cal['parameters']}
     for spec in cal['effects']:
         effect = parse_effect_spec(spec, robot)
@@ -188,6 +152,5 @@ def test_auto_on_the_smallest_session_adds_plausible_play_and_beats_the_full_mod
     # The documented arm_6 play is among them, a play of tens of mrad (b its half).
     assert 'joint_play:arm_6_joint' in cal['effects']
     assert 0.01 < -values['joint_play.arm_6_joint.b'] < 0.05
-    auto, full = docs['auto', '2021-11-26'], docs['geometric', '2021-11-26']
-    assert auto['rms_m'] < full['rms_m']
-    assert auto['rms_inside_training_range_m'] < 0.9 * full['rms_inside_training_range_m']
+    for session in held_out:
+        assert docs['auto', session]['rms_m'] < 0.8 * docs['full', session]['rms_m'], session
