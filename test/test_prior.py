@@ -61,19 +61,31 @@ def test_b_prior_on_a_parameter_the_data_cannot_see_is_the_posterior(cell, campa
     assert result.dof == plain.dof
 
 
+def _drawn_from_the_prior(cell, seed, poses):
+    """A tolerance prior (0.1 mm, 0.1 mrad), its rng, ``poses`` random configurations and
+    a function drawing a true robot from the prior (the rng's next normals)."""
+    params = cell.model.params
+    prior = tolerance_prior(params, 1e-4, 1e-4, 1e-4)
+    rng = np.random.default_rng(seed)
+    q = random_configurations(cell.model, params.nominal, poses, rng)
+    idx = params.indices(list(prior.names))
+    chol = np.linalg.cholesky(prior.covariance)
+
+    def draw():
+        p_true = np.array(params.nominal, float)
+        p_true[idx] = prior.mean + chol @ rng.normal(size=len(idx))
+        return p_true
+    return prior, rng, q, draw
+
+
 @pytest.mark.slow
 def test_c_posterior_covariance_matches_monte_carlo_over_prior_and_noise(cell):
     # 8 poses give 24 equations for 51 parameters: the prior is what makes it solvable.
     params = cell.model.params
-    prior = tolerance_prior(params, 1e-4, 1e-4, 1e-4)
-    rng = np.random.default_rng(11)
-    q = random_configurations(cell.model, params.nominal, 8, rng)
-    idx = params.indices(list(prior.names))
-    chol = np.linalg.cholesky(prior.covariance)
+    prior, rng, q, draw = _drawn_from_the_prior(cell, seed=11, poses=8)
     tcp_err, p_err, chi2, first = [], [], [], None
     for _ in range(300):
-        p_true = np.array(params.nominal, float)
-        p_true[idx] = prior.mean + chol @ rng.normal(size=len(idx))
+        p_true = draw()
         data = simulate_measurements(cell.model, p_true, q, SIGMA, rng)
         result = identify(cell.model, data, SIGMA, cell.q_work, prior=prior)
         assert result.converged
@@ -224,17 +236,11 @@ def test_d_tolerances_weigh_against_the_noise_the_data_show(cell):
     the residuals show (≈ 25), the estimate is the posterior of the true noise (smaller
     TCP error than the unbalanced MAP) and the scaled covariance matches Monte Carlo."""
     from kpi_calib_ros.core.precision import balanced_prior, honest_precision
-    params = cell.model.params
-    prior = tolerance_prior(params, 1e-4, 1e-4, 1e-4)
-    rng = np.random.default_rng(12)
-    q = random_configurations(cell.model, params.nominal, 12, rng)
-    idx = params.indices(list(prior.names))
-    chol = np.linalg.cholesky(prior.covariance)
+    prior, rng, q, draw = _drawn_from_the_prior(cell, seed=12, poses=12)
     true_sigma = 5 * SIGMA
     scales, err_bal, err_plain, stated = [], [], [], []
     for _ in range(100):
-        p_true = np.array(params.nominal, float)
-        p_true[idx] = prior.mean + chol @ rng.normal(size=len(idx))
+        p_true = draw()
         data = simulate_measurements(cell.model, p_true, q, true_sigma, rng)
         true_tcp = cell.model.predict(p_true, cell.q_work)
 

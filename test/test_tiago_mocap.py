@@ -57,6 +57,24 @@ def test_calibrated_on_one_day_predicts_the_other_day_better_than_before(tmp_pat
     assert rc == 1 and not out['holds']
 
 
+def _next_session_with_prior(tmp_path, cell):
+    """The 37-posture session calibrated (geometric) with ``cell``, then the 2021-11-30-1403
+    session identified with it as --prior: the exit code and the change test."""
+    for session, name in (('2021-11-30', 'small'), ('2021-11-30-1403', 'later')):
+        assert main(['import-csv', _table(session), '--mapping', str(MAPPING),
+                     '--out', str(tmp_path / f'{name}.mcap')]) == 0
+    assert main(['identify', '--cell', str(cell), '--bag', str(tmp_path / 'small.mcap'),
+                 '--out', str(tmp_path / 'cal'), '--model', 'geometric']) == 0
+    rc = main(['identify', '--cell', str(cell), '--bag', str(tmp_path / 'later.mcap'),
+               '--out', str(tmp_path / 'cycle'), '--prior',
+               str(tmp_path / 'cal' / 'calibration.yaml')])
+    doc = yaml.safe_load((tmp_path / 'cycle' / 'calibration.failed.yaml').read_text())
+    test = doc['change_test']
+    print(f"innovation chi2/dof {test['chi2'] / test['dof']:.2f}, "
+          f"moved {[m['name'] for m in test['moved']]}")
+    return rc, test
+
+
 @pytest.mark.slow
 def test_an_inadequate_calibration_as_prior_names_no_moved_parameter_on_the_same_robot(tmp_path):
     """Two sessions of one afternoon, nothing changed on the robot. The 37-posture
@@ -65,17 +83,7 @@ def test_an_inadequate_calibration_as_prior_names_no_moved_parameter_on_the_same
     showed. Weighted by the stated σ the innovation was chi2/dof ~52 and a placement
     rotation was named as moved; now the test stays within a small factor, names no
     parameter and says the inconsistency may be the model's, not a change."""
-    for session, name in (('2021-11-30', 'small'), ('2021-11-30-1403', 'later')):
-        assert main(['import-csv', _table(session), '--mapping', str(MAPPING),
-                     '--out', str(tmp_path / f'{name}.mcap')]) == 0
-    assert main(['identify', '--cell', str(CELL), '--bag', str(tmp_path / 'small.mcap'),
-                 '--out', str(tmp_path / 'cal'), '--model', 'geometric']) == 0
-    rc = main(['identify', '--cell', str(CELL), '--bag', str(tmp_path / 'later.mcap'),
-               '--out', str(tmp_path / 'cycle'), '--prior',
-               str(tmp_path / 'cal' / 'calibration.yaml')])
-    doc = yaml.safe_load((tmp_path / 'cycle' / 'calibration.failed.yaml').read_text())
-    test = doc['change_test']
-    print(f"innovation chi2/dof {test['chi2'] / test['dof']:.2f}, moved {test['moved']}")
+    rc, test = _next_session_with_prior(tmp_path, CELL)
     assert rc == 3 and not test['consistent']
     assert test['moved'] == [] and 'not adequate' in test['caveat']
     assert test['chi2'] / test['dof'] < 3.0
@@ -89,18 +97,7 @@ def test_a_moved_parameter_after_an_inadequate_calibration_carries_the_caveat(tm
     change test names parameters. The refusal stands (nothing is blended), and the
     message says that an inadequate model's parameters move with the poses they are
     fitted on."""
-    for session, name in (('2021-11-30', 'small'), ('2021-11-30-1403', 'later')):
-        assert main(['import-csv', _table(session), '--mapping', str(MAPPING),
-                     '--out', str(tmp_path / f'{name}.mcap')]) == 0
-    assert main(['identify', '--cell', str(TOLERANCES), '--bag', str(tmp_path / 'small.mcap'),
-                 '--out', str(tmp_path / 'cal'), '--model', 'geometric']) == 0
-    rc = main(['identify', '--cell', str(TOLERANCES), '--bag', str(tmp_path / 'later.mcap'),
-               '--out', str(tmp_path / 'cycle'), '--prior',
-               str(tmp_path / 'cal' / 'calibration.yaml')])
-    doc = yaml.safe_load((tmp_path / 'cycle' / 'calibration.failed.yaml').read_text())
-    test = doc['change_test']
-    print(f"innovation chi2/dof {test['chi2'] / test['dof']:.2f}, "
-          f"moved {[m['name'] for m in test['moved']]}")
+    rc, test = _next_session_with_prior(tmp_path, TOLERANCES)
     assert rc == 3 and not test['consistent']
     assert test['moved'] and 'not adequate' in test['caveat']
     assert 'named as moved' in test['caveat']
