@@ -11,8 +11,8 @@ import pytest
 from kpi_calib_ros.core import effects as fx
 from kpi_calib_ros.core.diagnosis import augmented_model
 from kpi_calib_ros.core.effects import (EffectType, candidate_effects, hidden_effects,
-                                        parse_effect_spec, register_effect, resolve_effects,
-                                        split_specs)
+                                        implausible, parse_effect_spec, register_effect,
+                                        resolve_effects, split_specs)
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.simulation import random_configurations, true_parameters
 
@@ -227,3 +227,17 @@ def test_hidden_effects_for_the_simulator(cell):
                          'cyclic_joint_error.joint_3.b': 2e-4, 'tracker_scale.s': 1e-5}
     with pytest.raises(ConfigError, match=r'simulation.hidden_effects.joint_scale:joint_1.x'):
         hidden_effects({'joint_scale:joint_1': {'x': 1.0}}, cell.robot)
+
+
+def test_a_play_far_above_its_torques_must_be_a_plausible_compliance(cell):
+    """joint_play b·tanh(τ/τ0) with every |τ| below τ0/3 is the compliance b/τ0: there it is
+    judged by the compliance bound (1e-4 rad/(N m)), in its transition not."""
+    play = parse_effect_spec('joint_play:joint_2', cell.robot)
+    tau = np.array([-40.0, 20.0, 50.0])    # N m
+    soft = [0.015, np.log(200.0)]          # τ0 200 N m: compliance 7.5e-5 rad/(N m)
+    too_soft = [0.045, np.log(200.0)]      # 2.25e-4 rad/(N m): a joint of 4.4e3 N m/rad
+    assert implausible(play, soft, tau) == ''
+    why = implausible(play, too_soft, tau)
+    assert 'compliance b/τ0 = 0.000225' in why
+    assert implausible(play, too_soft) == ''                     # no torques: its own bounds
+    assert implausible(play, [0.045, np.log(100.0)], tau) == ''  # 50 > 100/3: a play

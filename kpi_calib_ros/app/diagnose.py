@@ -8,6 +8,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from kpi_calib_ros.app.identify import (cell_prior, choose_level, identify_cell,
                                         load_measurements, with_effects)
 from kpi_calib_ros.core.model_selection import level_free
@@ -51,8 +53,10 @@ def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
     after = identify_cell(richer, data, p0=p0, free=richer_free)
     shape = best.parameter_names[len(best.parameter_names) - best.kind.n_shape:] \
         if best.kind.n_shape else ()
+    tau = (None if best.joint_index is None or not richer.model.uses_torque
+           else richer.robot.gravity_torques(np.atleast_2d(data.q))[:, best.joint_index])
     if shape and (not after.converged or implausible(
-            best, [after.value(n) for n in best.parameter_names])):
+            best, [after.value(n) for n in best.parameter_names], tau)):
         richer_free = [n for n in (richer_free or richer.model.params.names) if n not in shape]
         after = identify_cell(richer, data, p0=p0, free=richer_free)
     comparison = compare_models((cm.model, result), (richer.model, after), data, folds=folds)

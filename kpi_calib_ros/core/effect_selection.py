@@ -184,6 +184,20 @@ def choose_effects(model: MeasurementModel, data: Measurements, fit_for: FitFor,
                         tuple(held))
 
 
+def _implausible_fit(effects: tuple, result: CalibrationResult,
+                     tau: np.ndarray | None) -> str:
+    """Why the fitted values of ``effects`` (the new one and those added before, which the
+    refit moves too) are not physically plausible at the measured torques, or ''."""
+    for e in reversed([e for e in effects if isinstance(e, BoundEffect)]):
+        why = implausible(e, [float(result.value(n)) for n in e.parameter_names],
+                          None if tau is None or e.joint_index is None
+                          else tau[:, e.joint_index])
+        if why:
+            return why if e is effects[-1] else f'it moves {e.name} out of its plausible ' \
+                f'range ({why})'
+    return ''
+
+
 def effect_start(values: np.ndarray, effect: BoundEffect, screened: np.ndarray) -> np.ndarray:
     """Start of a fit with ``effect`` appended to a fit's ``values``: its size parameters at
     0 and its shape parameters at their ``screened`` values. The screened size came with a
@@ -228,7 +242,8 @@ def _trial(model: MeasurementModel, data: Measurements, fit_for: FitFor,
         elif any(n not in std for n in wanted):
             why = 'not identified with the geometry at this level'
         else:
-            why = implausible(effect, list(values.values()))
+            why = _implausible_fit(aug.effects, res, aug.robot.gravity_torques(
+                np.atleast_2d(data.q)) if aug.uses_torque else None)
         pred = None if why else _predicted(aug, data, res, free, prior, seed)
         if not why and pred is None:
             why = 'no degrees of freedom left'

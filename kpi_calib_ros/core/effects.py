@@ -66,6 +66,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterable, Sequence
 
 import casadi as ca
+import numpy as np
 
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.robot import RobotModel
@@ -541,17 +542,46 @@ def candidate_effects(robot: RobotModel, kinds: Sequence[str] | None = None,
     return out
 
 
-def implausible(effect: BoundEffect, values: Sequence[float]) -> str:
+def implausible(effect: BoundEffect, values: Sequence[float],
+                tau: np.ndarray | None = None) -> str:
     """'' when every fitted value is within the effect's plausible range, else a warning
-    naming the parameter, its value and the bound."""
+    naming the parameter, its value and the bound.
+
+    ``tau``: the gravity torques of the effect's joint at the measured poses (N m). An
+    effect that contains ``joint_compliance`` as a limit of its shape (``joint_play``) is
+    that compliance, b·τ/τ0, where every torque is below :data:`LINEAR_PLAY` τ0 (tanh
+    within 4 % of linear): there b/τ0 must also be a plausible compliance."""
     kind = effect.kind
     bounds = kind.prismatic_plausible if effect.joint_kind == 'prismatic' else kind.plausible
     out = [f'{name} = {value:.3g} {unit} beyond the plausible ±{bound:.3g}'
            for name, value, unit, bound in zip(effect.parameter_names, values, effect.units,
                                                bounds or ())
            if abs(value) > bound]
+    if not out and tau is not None and len(tau) and 'joint_compliance' in kind.nests \
+            and kind.n_shape == 1:
+        out += _compliance_limit(effect, values, tau)
     return ('physically implausible: ' + '; '.join(out) +
             ' (the fit uses the effect to absorb something else)') if out else ''
+
+
+LINEAR_PLAY = 1.0 / 3.0
+
+
+def _compliance_limit(effect: BoundEffect, values: Sequence[float],
+                      tau: np.ndarray) -> list[str]:
+    compliance = _REGISTRY['joint_compliance']
+    bound = (compliance.prismatic_plausible if effect.joint_kind == 'prismatic'
+             else compliance.plausible)
+    tau0 = PLAY_TORQUE_UNIT * math.exp(float(values[-1]))
+    largest = float(np.max(np.abs(tau)))
+    if not bound or largest >= LINEAR_PLAY * tau0:
+        return []
+    c = float(values[0]) / tau0
+    if abs(c) <= bound[0]:
+        return []
+    unit = 'm/N' if effect.joint_kind == 'prismatic' else 'rad/(N m)'
+    return [f'at the measured torques (|τ| ≤ {largest:.3g}, τ0 = {tau0:.3g}) it is the '
+            f'compliance b/τ0 = {c:.3g} {unit}, beyond the plausible ±{bound[0]:.3g}']
 
 
 # ----------------------------------------------------------------- simulation
