@@ -18,7 +18,7 @@ import numpy as np
 from kpi_calib_ros.core.dh import dh_table
 from kpi_calib_ros.core.diagnosis import augmented_model, compare_models
 from kpi_calib_ros.core.effect_selection import choose_effects
-from kpi_calib_ros.core.effects import parse_effect_spec, split_specs
+from kpi_calib_ros.core.effects import BoundEffect, parse_effect_spec, split_specs
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimability import KpiEstimability, result_estimability
 from kpi_calib_ros.core.gravity_compliance import compliance_warnings, mass_warning
@@ -357,6 +357,21 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
     robust = robust_identify(cm.model, data, cm.cell.sigma,
                              lambda d, **kw: fit(d, free, **kw), settings.loss,
                              settings.outliers, start=start)
+    shapes = [n for e in cm.model.effects
+              if isinstance(e, BoundEffect) and e.name in choice.effects and e.kind.n_shape
+              for n in e.parameter_names[len(e.parameter_names) - e.kind.n_shape:]
+              if n in free]
+    if not robust.result.converged and shapes:
+        # The effects auto added converged in its trials; when the final fit (other
+        # points kept) does not with their shapes free, they are held at the values the
+        # selection found, as the trials do.
+        free = [n for n in free if n not in shapes]
+        robust = robust_identify(cm.model, data, cm.cell.sigma,
+                                 lambda d, **kw: fit(d, free, **kw), settings.loss,
+                                 settings.outliers, start=start)
+        choice = dataclasses.replace(choice, held=tuple(choice.held) + tuple(shapes), reason=(
+            f'{choice.reason}; the final fit did not converge with '
+            f'{", ".join(shapes)} free: held at the selected values'))
     kept = subset(data, robust.kept)
     est = result_estimability(cm.model, kept.q, cm.cell.sigma, robust.result.values,
                               cm.q_work, cm.working_pose_names, free, prior=prior,

@@ -91,7 +91,8 @@ class ModelChoice:
         return {'level': self.level, 'requested': self.requested, 'method': self.method,
                 'predicted_rms_m': figures(self.predicted_rms_m), 'folds': self.folds,
                 'cv_rms_m': figures(self.cv_rms_m), 'reason': self.reason,
-                'effects': list(self.effects), 'effect_selection': self.effect_selection}
+                'effects': list(self.effects), 'held': list(self.held),
+                'effect_selection': self.effect_selection}
 
 
 Fit = Callable[[Measurements, list[str]], CalibrationResult]
