@@ -28,6 +28,13 @@ from kpi_calib_ros.core.prior import Prior
 from kpi_calib_ros.core.residuals import ADEQUACY_ALPHA, is_adequate
 
 
+def noise_scale(result: CalibrationResult, alpha: float = ADEQUACY_ALPHA) -> float:
+    """χ²/dof of ``result`` when the χ² test rejects it and it exceeds 1, else 1."""
+    if result.dof <= 0 or is_adequate(result.p_value, alpha):
+        return 1.0
+    return max(1.0, float(result.chi2 / result.dof))
+
+
 def honest_precision(result: CalibrationResult,
                      alpha: float = ADEQUACY_ALPHA) -> CalibrationResult:
     """``result`` with its covariances from the estimated σ when χ² rejects the model.
@@ -46,10 +53,8 @@ def honest_precision(result: CalibrationResult,
         ``covariance`` and ``tcp_covariance`` × s with s = χ²/dof > 1, and
         ``covariance_scale`` = s.
     """
-    if result.covariance_scale != 1.0 or result.dof <= 0 or is_adequate(result.p_value, alpha):
-        return result
-    scale = float(result.chi2 / result.dof)
-    if scale <= 1.0:
+    scale = noise_scale(result, alpha)
+    if result.covariance_scale != 1.0 or scale == 1.0:
         return result
     return dataclasses.replace(result, std=result.std * np.sqrt(scale),
                                covariance=result.covariance * scale,
@@ -67,13 +72,6 @@ def precision_statement(scale: float) -> str:
 
 BALANCE_ROUNDS = 12
 BALANCE_RTOL = 0.02
-
-
-def noise_scale(result: CalibrationResult, alpha: float = ADEQUACY_ALPHA) -> float:
-    """χ²/dof of ``result`` when the χ² test rejects it and it exceeds 1, else 1."""
-    if result.dof <= 0 or is_adequate(result.p_value, alpha):
-        return 1.0
-    return max(1.0, float(result.chi2 / result.dof))
 
 
 def tightened(prior: Prior, scale: float) -> Prior:
