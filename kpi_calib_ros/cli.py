@@ -52,7 +52,7 @@ def _drift(text: str) -> tuple[float, ...]:
     return rates
 
 
-DEFAULT_SWING = (TEMPERATURE_SWING_K, OFFSET_SWING_RAD, DAY_HOURS)
+DEFAULT_SWING = DriftSwing()  # the defaults: TEMPERATURE_SWING_K, OFFSET_SWING_RAD, DAY_HOURS
 SWING_HELP = ('drift state of a daily swing (core.prior.DriftSwing): the rates of the prior '
               'calibration (its drift_state) extrapolate it, and this cycle\'s calibration '
               'stores them; TEMPERATURE_K: ± temperature amplitude of the links (12 µm per m '
@@ -61,11 +61,11 @@ SWING_HELP = ('drift state of a daily swing (core.prior.DriftSwing): the rates o
               f'{DAY_HOURS:g}; added to --drift-per-hour (give 0,0 for the swing alone)')
 
 
-def _swing(text: str) -> tuple[float, ...]:
+def _swing(text: str) -> DriftSwing:
     """``--drift-velocity TEMPERATURE_K,OFFSET_RAD[,PERIOD_H]`` (checked by
     :meth:`kpi_calib_ros.core.prior.DriftSwing.from_values`)."""
     try:
-        return DriftSwing.from_values([float(x) for x in text.split(',')]).values()
+        return DriftSwing.from_values([float(x) for x in text.split(',')])
     except (ValueError, DataError) as exc:
         raise argparse.ArgumentTypeError(
             f'{text!r}: give TEMPERATURE_K,OFFSET_RAD[,PERIOD_H], e.g. 5,5e-5 (± daily '

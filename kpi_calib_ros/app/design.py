@@ -15,7 +15,7 @@ from kpi_calib_ros.core.design import DesignResult, design_context, design_measu
 from kpi_calib_ros.core.estimability import KpiEstimability, result_estimability
 from kpi_calib_ros.core.model_selection import level_free
 from kpi_calib_ros.core.prior import (DRIFT_ANGLE_PER_SQRT_HOUR, DRIFT_LENGTH_PER_SQRT_HOUR,
-                                      Prior)
+                                      DriftSwing, Prior)
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
 from kpi_calib_ros.io.design_io import plot_design, plot_ellipsoids, summary_text, write_design
 from kpi_calib_ros.io.results import read_calibration_document
@@ -107,7 +107,7 @@ def run_design(cell_path: str | Path, n: int, criterion: str, out: str | Path,
                drift: tuple[float, ...] = (DRIFT_LENGTH_PER_SQRT_HOUR,
                                            DRIFT_ANGLE_PER_SQRT_HOUR),
                keep_placement: bool = False, drift_model: str = 'thermal',
-               swing: tuple[float, ...] | None = None) -> int:
+               swing: DriftSwing | None = None) -> int:
     """``kpi-calib design``: design.yaml, ``<stem>_poses.png`` and ``<stem>_ellipsoids.png``
     (heuristic vs this design) and a summary on stdout.
 
@@ -126,13 +126,12 @@ def run_design(cell_path: str | Path, n: int, criterion: str, out: str | Path,
     prior, p, allowed, prior_doc = None, None, None, None
     if prior_path is not None:
         from kpi_calib_ros.app.reidentify import cycle_prior
-        from kpi_calib_ros.core.prior import DriftSwing
         old = read_calibration_document(prior_path, '--prior')
         cp = cycle_prior(cm, old, None, drift[0], drift[1], keep_placement=keep_placement,
                          drift_model=drift_model, hours=hours,
                          rotation_rate=drift[2] if len(drift) > 2 else None,
                          placement_rate=drift[3] if len(drift) > 3 else None,
-                         swing=None if swing is None else DriftSwing(*swing))
+                         swing=swing)
         prior, p, allowed = cp.prior, cm.model.params.with_values(cp.values), cp.allowed
         prior_doc = {'source': str(prior_path), 'description': cp.description,
                      'hours': float(hours), 'keep_placement': keep_placement}

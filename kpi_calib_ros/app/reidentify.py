@@ -372,11 +372,11 @@ def run_reidentify(cell_path: str | Path, bag_path: str | Path, out_dir: str | P
                    drift: tuple[float, ...] = (DRIFT_LENGTH_PER_SQRT_HOUR,
                                                DRIFT_ANGLE_PER_SQRT_HOUR),
                    keep_placement: bool = False, drift_model: str = 'thermal',
-                   swing: tuple[float, ...] | None = None, **options: Any) -> int:
+                   swing: DriftSwing | None = None, **options: Any) -> int:
     """``kpi-calib identify --prior OLD/calibration.yaml``.
 
-    ``swing`` (``--drift-velocity``): temperature amplitude (K), offset amplitude (rad)
-    and period (h) of the drift state (:class:`~kpi_calib_ros.core.prior.DriftSwing`).
+    ``swing`` (``--drift-velocity``): the daily swing of the drift state
+    (:class:`~kpi_calib_ros.core.prior.DriftSwing`).
 
     Returns 0 for a valid calibration, 1 when it did not converge or the TCP is not
     estimable, :data:`EXIT_CHANGE` (3) when the new points contradict the prior beyond
@@ -390,7 +390,7 @@ def run_reidentify(cell_path: str | Path, bag_path: str | Path, out_dir: str | P
                      drift_model=drift_model,
                      rotation_rate=drift[2] if len(drift) > 2 else None,
                      placement_rate=drift[3] if len(drift) > 3 else None,
-                     swing=None if swing is None else DriftSwing(*swing))
+                     swing=swing)
     out = reidentify(cm, data, cp, model)
     doc = reidentification_document(cm, out, cp, str(prior_path), pairing)
     path, urdf_path, _ = write_results(cm, (out.calibration.result if out.calibration

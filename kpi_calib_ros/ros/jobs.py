@@ -91,7 +91,7 @@ def archive_calibration(data_dir: Path, doc: dict[str, Any], text: str) -> Path 
 
 
 def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, data_dir: Path,
-                  with_prior: bool = False, swing: tuple[float, ...] | None = None
+                  with_prior: bool = False, swing: DriftSwing | None = None
                   ) -> tuple[CellCalibration | None, str, str, list[PoseWithCovarianceStamped],
                              ChangeTest | None, str]:
     """Identify from ``data`` as ``kpi-calib identify`` does and write the calibration and
@@ -102,7 +102,7 @@ def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, dat
 
     ``with_prior``: the last archived calibration of an earlier cycle
     (:func:`previous_calibration`) is the prior (``identify --prior``, default drift;
-    ``swing``: temperature K, offset rad, period h of its drift state, ``--drift-velocity``);
+    ``swing``: the daily swing of its drift state, ``--drift-velocity``);
     a change beyond the drift model returns no calibration, the change test and the
     failed document's text (written to calibration.failed.yaml).
 
@@ -135,7 +135,7 @@ def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, dat
         result = cal.result
     else:
         cp = cycle_prior(cm, read_calibration_document(source, 'prior calibration'), data,
-                         swing=None if swing is None else DriftSwing(*swing))
+                         swing=swing)
         out = reidentify(cm, data, cp)
         cal, change = out.calibration, out.change
         doc = reidentification_document(cm, out, cp, str(source), pairing)

@@ -65,6 +65,7 @@ from kpi_calib_ros.core.collision import Capsule
 from kpi_calib_ros.core.errors import ConfigError, DataError, KpiCalibError
 from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.measurement import Measurements
+from kpi_calib_ros.core.prior import DriftSwing
 from kpi_calib_ros.core.pairing import Decision, Rejection
 from kpi_calib_ros.core.precision import precision_statement
 from kpi_calib_ros.core.residuals import is_adequate
@@ -494,7 +495,9 @@ class CalibrationNode(Node):
         try:
             cal, calibration, urdf, tcp, change, prior = await self._offload(
                 jobs.identify_work, cm, data, pairing, self.data_dir,
-                self.settings.reidentify_with_prior, self.settings.drift_velocity or None,
+                self.settings.reidentify_with_prior,
+                DriftSwing(*self.settings.drift_velocity) if self.settings.drift_velocity
+                else None,
                 child=True)
         except KpiCalibError as exc:
             self._result_error = f'identification failed: {exc}'
