@@ -233,7 +233,9 @@ def test_a_play_far_above_its_torques_must_be_a_plausible_compliance(cell):
     """joint_play b·tanh(τ/τ0) with every |τ| below τ0/3 is the compliance b/τ0: there it is
     judged by the compliance bound (1e-4 rad/(N m)), in its transition not."""
     play = parse_effect_spec('joint_play:joint_2', cell.robot)
-    tau = np.array([-40.0, 20.0, 50.0])    # N m
+    # (poses, joints) N m: joint_2's torques -40, 20, 50; the other joints' far larger
+    tau = np.full((3, cell.robot.n_joints), 500.0)
+    tau[:, play.joint_index] = [-40.0, 20.0, 50.0]
     soft = [0.015, np.log(200.0)]          # τ0 200 N m: compliance 7.5e-5 rad/(N m)
     too_soft = [0.045, np.log(200.0)]      # 2.25e-4 rad/(N m): a joint of 4.4e3 N m/rad
     assert implausible(play, soft, tau) == ''

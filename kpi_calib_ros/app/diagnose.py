@@ -51,10 +51,9 @@ def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
     # fit fails or leaves the plausible range it is held there, as auto does.
     p0 = effect_start(result.values, best, diag.best.values)
     after = identify_cell(richer, data, p0=p0, free=richer_free)
-    shape = best.parameter_names[len(best.parameter_names) - best.kind.n_shape:] \
-        if best.kind.n_shape else ()
-    tau = (None if best.joint_index is None or not richer.model.uses_torque
-           else richer.robot.gravity_torques(np.atleast_2d(data.q))[:, best.joint_index])
+    shape = best.shape_names
+    tau = (richer.robot.gravity_torques(np.atleast_2d(data.q)) if richer.model.uses_torque
+           else None)
     if shape and (not after.converged or implausible(
             best, [after.value(n) for n in best.parameter_names], tau)):
         richer_free = [n for n in (richer_free or richer.model.params.names) if n not in shape]

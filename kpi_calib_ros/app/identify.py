@@ -358,9 +358,8 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
                              lambda d, **kw: fit(d, free, **kw), settings.loss,
                              settings.outliers, start=start)
     shapes = [n for e in cm.model.effects
-              if isinstance(e, BoundEffect) and e.name in choice.effects and e.kind.n_shape
-              for n in e.parameter_names[len(e.parameter_names) - e.kind.n_shape:]
-              if n in free]
+              if isinstance(e, BoundEffect) and e.name in choice.effects
+              for n in e.shape_names if n in free]
     if not robust.result.converged and shapes:
         # The effects auto added converged in its trials; when the final fit (other
         # points kept) does not with their shapes free, they are held at the values the

@@ -207,8 +207,7 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
         if tried:
             # The best physically plausible shape (a fit constrained to the plausible
             # region); only when none is plausible, the best of all (reported implausible).
-            plausible = [f for f in tried
-                         if not implausible(effect, f['theta'], _joint_torques(effect, tau))]
+            plausible = [f for f in tried if not implausible(effect, f['theta'], tau)]
             best = max(plausible or tried, key=lambda f: f['delta'])
             if len(tried) > 1:
                 # The best of several shapes is the best of several tests: its p-value is
@@ -228,7 +227,7 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
         p_adj = min(1.0, fit['p_raw'] * m)
         nested = simpler.get(fit['effect'].name, '')
         significant = bool(p_adj < alpha) and not nested
-        warning = implausible(fit['effect'], fit['theta'], _joint_torques(fit['effect'], tau))
+        warning = implausible(fit['effect'], fit['theta'], tau)
         merged = tuple(fit.get('merged', ()))
         extra = ''.join(f' {t}' for t in (
             warning and f'Warning: {warning}.',
@@ -430,11 +429,6 @@ def merge_same_signature(fits: list[dict]) -> list[dict]:
         taken.add(i)
         out.append(fit)
     return out
-
-
-def _joint_torques(effect: BoundEffect, tau: np.ndarray | None) -> np.ndarray | None:
-    """The gravity torques of ``effect``'s joint at the measured poses (None: global)."""
-    return None if effect.joint_index is None or tau is None else tau[:, effect.joint_index]
 
 
 def nested_alternatives(fits: list[dict], alpha: float = ADEQUACY_ALPHA) -> dict[str, str]:

@@ -189,9 +189,7 @@ def _implausible_fit(effects: tuple, result: CalibrationResult,
     """Why the fitted values of ``effects`` (the new one and those added before, which the
     refit moves too) are not physically plausible at the measured torques, or ''."""
     for e in reversed([e for e in effects if isinstance(e, BoundEffect)]):
-        why = implausible(e, [float(result.value(n)) for n in e.parameter_names],
-                          None if tau is None or e.joint_index is None
-                          else tau[:, e.joint_index])
+        why = implausible(e, [float(result.value(n)) for n in e.parameter_names], tau)
         if why:
             return why if e is effects[-1] else f'it moves {e.name} out of its plausible ' \
                 f'range ({why})'
@@ -221,8 +219,9 @@ def _trial(model: MeasurementModel, data: Measurements, fit_for: FitFor,
     is fitted: the plausible-constrained estimate on the grid."""
     aug = augmented_model(model, (effect,))
     names = list(effect.parameter_names)
-    shape = names[len(names) - effect.kind.n_shape:] if effect.kind.n_shape else []
+    shape = list(effect.shape_names)
     p0 = effect_start(current.values, effect, screened)
+    tau = aug.robot.gravity_torques(np.atleast_2d(data.q)) if aug.uses_torque else None
     attempts = [list(held), list(held) + shape] if shape else [list(held)]
     trial: tuple[EffectTrial, MeasurementModel | None, CalibrationResult | None] = (
         EffectTrial(effect.name, rnd, {}, {}, None, False, 'not fitted'), None, None)
@@ -242,8 +241,7 @@ def _trial(model: MeasurementModel, data: Measurements, fit_for: FitFor,
         elif any(n not in std for n in wanted):
             why = 'not identified with the geometry at this level'
         else:
-            why = _implausible_fit(aug.effects, res, aug.robot.gravity_torques(
-                np.atleast_2d(data.q)) if aug.uses_torque else None)
+            why = _implausible_fit(aug.effects, res, tau)
         pred = None if why else _predicted(aug, data, res, free, prior, seed)
         if not why and pred is None:
             why = 'no degrees of freedom left'

@@ -227,6 +227,12 @@ class BoundEffect:
     def typical(self) -> tuple[float, ...]:
         return self.kind.typical or (1.0,) * len(self.kind.parameters)
 
+    @property
+    def shape_names(self) -> tuple[str, ...]:
+        """Names of its shape parameters (the last ``kind.n_shape``; empty when linear)."""
+        return self.parameter_names[len(self.parameter_names) - self.kind.n_shape:] \
+            if self.kind.n_shape else ()
+
     def joint_correction(self, q, tau, theta):
         """Additive joint-value correction, SX (n,), or None for a point effect."""
         fn = self.kind.joint_function
@@ -547,8 +553,8 @@ def implausible(effect: BoundEffect, values: Sequence[float],
     """'' when every fitted value is within the effect's plausible range, else a warning
     naming the parameter, its value and the bound.
 
-    ``tau``: the gravity torques of the effect's joint at the measured poses (N m). An
-    effect that contains ``joint_compliance`` as a limit of its shape (``joint_play``) is
+    ``tau``: (N, n) gravity torques of the measured poses (N m); the effect's joint's are
+    used. An effect that contains ``joint_compliance`` as a limit of its shape (``joint_play``) is
     that compliance, b·τ/τ0, where every torque is below :data:`LINEAR_PLAY` τ0 (tanh
     within 4 % of linear): there b/τ0 must also be a plausible compliance."""
     kind = effect.kind
@@ -557,9 +563,9 @@ def implausible(effect: BoundEffect, values: Sequence[float],
            for name, value, unit, bound in zip(effect.parameter_names, values, effect.units,
                                                bounds or ())
            if abs(value) > bound]
-    if not out and tau is not None and len(tau) and 'joint_compliance' in kind.nests \
-            and kind.n_shape == 1:
-        out += _compliance_limit(effect, values, tau)
+    if not out and tau is not None and effect.joint_index is not None and len(tau) \
+            and 'joint_compliance' in kind.nests and kind.n_shape == 1:
+        out += _compliance_limit(effect, values, np.atleast_2d(tau)[:, effect.joint_index])
     return ('physically implausible: ' + '; '.join(out) +
             ' (the fit uses the effect to absorb something else)') if out else ''
 
