@@ -1,4 +1,5 @@
 """kpi-calib validate: a calibration predicts new points within its own predicted errors."""
+import dataclasses
 import json
 
 import numpy as np
@@ -7,6 +8,8 @@ import yaml
 
 from kpi_calib_ros.app.identify import (calibration_document, identify_cell,
                                         measurements_from_bag)
+from kpi_calib_ros.app.validate import (calibration_noise_scale, parameter_vector,
+                                        validate_calibration, validation_to_dict)
 from kpi_calib_ros.cli import main
 from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
                                            true_parameters)
@@ -102,3 +105,61 @@ def test_a_calibration_of_another_cell_is_an_error_naming_the_key(setup, capsys)
     write_calibration(tmp / 'other', other)
     assert _run(tmp, 'other', 'val_other') == 2
     assert 'calibration.parameters' in capsys.readouterr().err
+
+
+@pytest.fixture(scope='module')
+def understated(tmp_path_factory):
+    """A calibration whose cell states σ 5× below the true 20 µm, its training poses and
+    a true robot: χ² rejects it and its covariance is scaled by χ²/dof (about 25)."""
+    cm_true = build_cell_model(load_cell(DEFAULT_CELL))
+    cm = build_cell_model(dataclasses.replace(load_cell(DEFAULT_CELL),
+                                              sigma=cm_true.cell.sigma / 5))
+    rng = np.random.default_rng(12)
+    p_true = true_parameters(cm.model.params, rng)
+    q = random_configurations(cm.model, p_true, 40, rng)
+    train = simulate_measurements(cm.model, p_true, q, cm_true.cell.sigma, rng)
+    joints, points = synthesize_streams(q, cm.joint_names, train.eta, cm.cell.tracker_frame)
+    bag = write_bag(tmp_path_factory.mktemp('understated') / 'train.mcap', joints, points)
+    data, pairing = measurements_from_bag(cm, bag)
+    doc = calibration_document(cm, identify_cell(cm, data), pairing)
+    return cm, doc, p_true, q, rng, cm_true.cell.sigma
+
+
+def test_a_calibration_predicts_new_points_with_the_noise_it_showed(understated):
+    """Its model not adequate (σ understated), a calibration's own prediction of a new point
+    is σ̂ = σ·√(χ²/dof), the noise its residuals showed, as its covariance is: new points
+    of the same robot then fall within its predicted errors. With the stated σ they
+    would be 25 times too wide in variance, and any calibration of such a cell would be
+    said not to hold on data of its own robot."""
+    cm, doc, p_true, _, rng, sigma = understated
+    assert 15 < doc['precision']['covariance_scale'] < 40
+    q = random_configurations(cm.model, p_true, 30, rng)
+    new = simulate_measurements(cm.model, p_true, q, sigma, rng)
+    out = validation_to_dict(validate_calibration(cm, parameter_vector(cm, doc), doc, new), new,
+                             doc['rms_m'], cm, calibration_noise_scale(doc))
+    assert out['holds'] and 0.5 < out['chi2'] / out['dof'] < 1.5
+    assert out['noise_scale'] == doc['precision']['covariance_scale']
+    # Predicted std per axis: the true noise (20 µm) plus the parameters' small share.
+    assert 0.8 * sigma[0] < out['predicted_std_median_m'] < 1.3 * sigma[0]
+
+
+def test_poses_measured_again_are_told_from_new_ones(understated):
+    """A training pose measured again is 'repeated' (its error: repeatability); a new pose
+    inside the ranges is not, and neither is a pose outside them."""
+    cm, doc, p_true, q_train, rng, sigma = understated
+    fresh = random_configurations(cm.model, p_true, 20, rng)
+    again = q_train[:10] + rng.uniform(-0.009, 0.009, q_train[:10].shape)
+    q = np.vstack([again, fresh])
+    new = simulate_measurements(cm.model, p_true, q, sigma, rng)
+    out = validation_to_dict(validate_calibration(cm, parameter_vector(cm, doc), doc, new), new,
+                             doc['rms_m'], cm, calibration_noise_scale(doc))
+    ranges = np.array([doc['training_joint_ranges'][n] for n in cm.joint_names])
+    inside = np.all((q >= ranges[:, 0]) & (q <= ranges[:, 1]), axis=1)
+    marked = np.array([p['repeated_from_training'] for p in out['points']])
+    assert np.array_equal(marked, inside & (np.arange(30) < 10))
+    assert 5 <= marked.sum() <= 10 and out['repeated_from_training'] == marked.sum()
+    outside = np.array([p['outside_training_range'] for p in out['points']])
+    assert np.array_equal(outside, ~inside) and not np.any(marked & outside)
+    # Repeated poses are at most 0.01 rad from a pose the fit saw: their rms is the noise
+    # (20 µm per axis) and the parameters' small share there.
+    assert out['rms_repeated_from_training_m'] < 1.5 * np.sqrt(3) * sigma[0]

@@ -47,6 +47,7 @@ from kpi_calib_ros.app.identify import (CellCalibration, add_robust_sections,
                                         calibrate_cell, calibration_document,
                                         load_measurements, places_the_points, registered_start,
                                         robust_summary, write_results)
+from kpi_calib_ros.app.validate import calibration_noise_scale
 
 # Exit code of `kpi-calib identify --prior` when the new cycle contradicts the prior.
 EXIT_CHANGE = 3
@@ -235,7 +236,7 @@ def cycle_prior(cm: CellModel, doc: dict[str, Any], data: Measurements | None,
                 f'±{swing.offset_rad:.3g} rad, period {swing.period_hours:g} h): '
                 + ('its drift_state' if stored else 'no drift_state in it: stationary')
                 + f' extrapolated over {hours:.3g} h')
-    noise_scale = float((doc.get('precision') or {}).get('covariance_scale', 1.0))
+    noise_scale = calibration_noise_scale(doc)
     noise_dof = None
     if noise_scale != 1.0:
         noise_dof = int((doc.get('model_adequacy') or {}).get('dof', 0)) or None

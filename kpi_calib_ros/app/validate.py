@@ -16,7 +16,7 @@ import yaml
 from kpi_calib_ros.app.identify import measurements_from_bag
 from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.validation import Validation, validate
+from kpi_calib_ros.core.validation import REPEATED_WITHIN, Validation, validate
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
 from kpi_calib_ros.io.names import VALIDATION_FILE
 from kpi_calib_ros.io.report import write_validation_plots
@@ -57,6 +57,27 @@ def parameter_vector(cm: CellModel, doc: dict[str, Any]) -> np.ndarray:
     return np.array([values[n] for n in cm.model.params.names])
 
 
+def calibration_noise_scale(doc: dict[str, Any]) -> float:
+    """χ²/dof the calibration's covariance was scaled by (its model not adequate), else 1:
+    new points scatter about its predictions by σ·√scale, the noise it showed."""
+    scale = float((doc.get('precision') or {}).get('covariance_scale', 1.0))
+    if not np.isfinite(scale) or scale <= 0.0:
+        raise ConfigError('calibration.precision.covariance_scale',
+                          f'must be a positive number, not {scale}; identify again')
+    return scale
+
+
+def training_poses(cm: CellModel, doc: dict[str, Any]) -> np.ndarray | None:
+    """The calibration's training poses in ``cm``'s chain order, or None when it does not
+    list them (written before ``training_configurations``) or lacks one of the joints."""
+    conf = doc.get('training_configurations') or {}
+    names = list(conf.get('joints') or ())
+    if not names or any(n not in names for n in cm.joint_names):
+        return None
+    q = np.array(conf.get('q') or (), dtype=float).reshape(-1, len(names))
+    return q[:, [names.index(n) for n in cm.joint_names]]
+
+
 def validate_calibration(cm: CellModel, p: np.ndarray, doc: dict[str, Any],
                          data: Measurements) -> Validation:
     """Test the calibration ``doc`` (values ``p``) on new measurements ``data``."""
@@ -65,18 +86,20 @@ def validate_calibration(cm: CellModel, p: np.ndarray, doc: dict[str, Any],
     ranges = doc.get('training_joint_ranges') or {}
     lower = np.array([ranges.get(n, [-np.inf, np.inf])[0] for n in cm.joint_names])
     upper = np.array([ranges.get(n, [-np.inf, np.inf])[1] for n in cm.joint_names])
+    sigma = np.array(doc['noise_sigma_m'], dtype=float) * np.sqrt(calibration_noise_scale(doc))
     return validate(cm.model, p, estimated, np.array(cov['matrix'], dtype=float).reshape(
-        len(estimated), len(estimated)), np.array(doc['noise_sigma_m'], dtype=float), data,
-        lower, upper)
+        len(estimated), len(estimated)), sigma, data, lower, upper,
+        training_q=training_poses(cm, doc))
 
 
 def validation_to_dict(v: Validation, data: Measurements, training_rms_m: float | None,
-                       cm: CellModel | None = None) -> dict[str, Any]:
+                       cm: CellModel | None = None, noise_scale: float = 1.0) -> dict[str, Any]:
     """JSON-ready verdict, figures and per-point residuals.
 
     The rms figures (m) are over point rows; with ``cm``, ``rms_per_reflector_m`` gives
     each reflector's and ``rotation_rms_rad`` each tracked body's orientation residual
-    (rad). The χ² test and the per-row list take every row."""
+    (rad). The χ² test and the per-row list take every row; ``scale`` is the
+    calibration's :func:`calibration_noise_scale` (the predicted std includes it)."""
     ref = (np.zeros(len(v.residuals), dtype=int) if data.reflector is None
            else np.asarray(data.reflector, dtype=int))
     n_points = cm.model.n_reflectors if cm is not None else int(ref.max(initial=0)) + 1
@@ -101,8 +124,12 @@ def validation_to_dict(v: Validation, data: Measurements, training_rms_m: float 
         'rms_m': _num(v.rms_where(points)),
         'rms_inside_training_range_m': _num(v.rms_where(inside & points)),
         'rms_outside_training_range_m': _num(v.rms_where(v.outside & points)),
+        'rms_repeated_from_training_m': _num(v.rms_where(v.repeated & points)),
+        'rms_new_inside_training_range_m': _num(v.rms_where(inside & ~v.repeated & points)),
         **extra,
         'outside_training_range': int(np.count_nonzero(v.outside)),
+        'repeated_from_training': int(np.count_nonzero(v.repeated)),
+        'noise_scale': noise_scale,
         'training_rms_m': training_rms_m,
         'predicted_std_median_m': float(np.median(v.predicted_std)),
         'chi2': v.chi2, 'dof': v.dof, 'p_value': v.p_value, 'alpha': v.alpha,
@@ -110,7 +137,8 @@ def validation_to_dict(v: Validation, data: Measurements, training_rms_m: float 
                     'reflector': int(data.reflector[i]) if data.reflector is not None else 0,
                     'residual_m': [float(x) for x in v.residuals[i]],
                     'mahalanobis': float(v.mahalanobis[i]),
-                    'outside_training_range': bool(v.outside[i])}
+                    'outside_training_range': bool(v.outside[i]),
+                    'repeated_from_training': bool(v.repeated[i])}
                    for i, s in enumerate(data.stamps_ns if data.stamps_ns is not None
                                          else np.zeros(len(v.residuals)))],
     }
@@ -128,10 +156,17 @@ def validation_text(doc: dict[str, Any]) -> str:
              f"p = {doc['p_value']:.3g} (level {doc['alpha']})",
              f"new measurements: {doc['measurements']}, rms {mm(doc['rms_m'])} "
              f"(training rms {mm(doc['training_rms_m'])}, predicted std per axis "
-             f"{mm(doc['predicted_std_median_m'])} median)",
+             f"{mm(doc['predicted_std_median_m'])} median"
+             + (f", with the noise the calibration showed, {np.sqrt(doc['noise_scale']):.3g} x "
+                'the stated sigma' if doc.get('noise_scale', 1.0) != 1.0 else '') + ')',
              f"inside the training joint ranges: rms {mm(doc['rms_inside_training_range_m'])}; "
              f"outside ({doc['outside_training_range']} points): "
              f"{mm(doc['rms_outside_training_range_m'])}"]
+    if doc.get('repeated_from_training'):
+        lines.append(f"inside: poses repeated from training ({doc['repeated_from_training']} "
+                     f"points, every joint within {REPEATED_WITHIN:g} rad or m): rms "
+                     f"{mm(doc['rms_repeated_from_training_m'])} (repeatability between "
+                     f"the campaigns); new poses: {mm(doc['rms_new_inside_training_range_m'])}")
     return '\n'.join(lines)
 
 
@@ -142,7 +177,7 @@ def validate_report(cm: CellModel, doc: dict[str, Any], data: Measurements,
     if len(data) == 0:
         raise DataError('no new measurement to validate the calibration on')
     v = validate_calibration(cm, parameter_vector(cm, doc), doc, data)
-    out = validation_to_dict(v, data, doc.get('rms_m'), cm)
+    out = validation_to_dict(v, data, doc.get('rms_m'), cm, calibration_noise_scale(doc))
     write_atomic(Path(out_dir) / VALIDATION_FILE, json.dumps(out, indent=1))
     write_validation_plots(out_dir, cm.robot, np.atleast_2d(data.q), v.residuals, v.outside)
     return out

@@ -128,6 +128,11 @@ def calibration_to_dict(result: CalibrationResult,
             doc['training_joint_ranges'] = {
                 name: [float(lo), float(hi)] for name, lo, hi in zip(
                     pairing.joint_names, pairing.q.min(axis=0), pairing.q.max(axis=0))}
+            # The poses themselves, once each: validation tells a pose measured again
+            # (repeatability) from a new one (generalisation).
+            doc['training_configurations'] = {
+                'joints': list(pairing.joint_names),
+                'q': [[float(x) for x in row] for row in np.unique(pairing.q, axis=0)]}
     return doc
 
 
