@@ -11,7 +11,8 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from kpi_calib_ros.core.design import DesignResult, design_context, design_measurements
+from kpi_calib_ros.core.design import (DesignResult, design_context, design_measurements,
+                                       tcp_std_on_drawn_robots)
 from kpi_calib_ros.core.estimability import KpiEstimability, result_estimability
 from kpi_calib_ros.core.model_selection import level_free
 from kpi_calib_ros.core.prior import (DRIFT_ANGLE_PER_SQRT_HOUR, DRIFT_LENGTH_PER_SQRT_HOUR,
@@ -91,6 +92,26 @@ def design_free(cm: CellModel, allowed: Sequence[str] | None = None) -> list[str
     return free if allowed is None else [n for n in free if n in set(allowed)]
 
 
+def drawn_robots_section(cm: CellModel, design: DesignResult,
+                         seed: int) -> tuple[dict[str, Any], str]:
+    """design.yaml's ``drawn_robots`` section and a summary line: the TCP std the
+    identification of ``design`` (URDF joint values) will report on robots drawn around
+    the nominal geometry (:func:`~kpi_calib_ros.core.design.tcp_std_on_drawn_robots`),
+    where it may free parameters the nominal design problem cannot."""
+    drawn = tcp_std_on_drawn_robots(cm.design_cell(), design.configurations,
+                                    cm.cell.design.weights, np.random.default_rng([seed, 1]))
+    doc = drawn.to_dict(len(design.parameter_names), design.working_pose_names,
+                        design.tcp_std)
+    counts = sorted(set(drawn.parameters))
+    text = (f"  on {doc['robots']} robots drawn around the nominal geometry the "
+            f"identification frees {'/'.join(map(str, counts))} parameters "
+            f"({doc['nominal_parameters']} at the nominal geometry): TCP std "
+            + '; '.join(f"{name} {np.round(np.array(v['median']) * 1e6, 2).tolist()} µm "
+                        f"(x{v['ratio_to_nominal_median']:.3f} on the largest axis)"
+                        for name, v in doc['tcp_std_m'].items()))
+    return doc, text
+
+
 def controller_design(cm: CellModel, design: DesignResult) -> DesignResult:
     """``design`` with its configurations in the controller's joint values
     (``robot.joint_coupling``): what design.yaml and ``~/measurement_poses`` give the
@@ -147,8 +168,11 @@ def run_design(cell_path: str | Path, n: int, criterion: str, out: str | Path,
         cell, n, 'random', rng, settings, context=context)
     out = Path(out)
     extra: dict[str, Any] = {'geometry': geometry_doc}
+    drawn_text = ''
     if prior_doc is not None:
         extra['prior'] = prior_doc
+    else:  # with a prior the problem is linearised at its values, not at the nominal
+        extra['drawn_robots'], drawn_text = drawn_robots_section(cm, result, seed)
     write_design(out, controller_design(cm, result), extra=extra)
     stem = out.with_suffix('')
     poses_png = plot_design(cell, context.check_scene, result, f'{stem}_poses.png')
@@ -156,6 +180,8 @@ def run_design(cell_path: str | Path, n: int, criterion: str, out: str | Path,
     names = ['heuristic'] if result is baseline else ['heuristic', f'{criterion}-optimal']
     ell_png = plot_ellipsoids(shown, names, f'{stem}_ellipsoids.png')
     print(summary_text(result, None if result is baseline else baseline))
+    if drawn_text:
+        print(drawn_text)
     print('\n'.join(cm.robot_geometry().summary_lines()))
     mesh = geometry_doc['mesh_check']
     print(f"  mesh check: {mesh['in_collision']}/{mesh['configurations']} configurations in "

@@ -16,7 +16,8 @@ import yaml
 from geometry_msgs.msg import PoseWithCovarianceStamped
 
 from kpi_calib_ros.app.campaign import campaign_context, new_campaign
-from kpi_calib_ros.app.design import controller_design, design_cell_model, design_estimability
+from kpi_calib_ros.app.design import (controller_design, design_cell_model, design_estimability,
+                                      drawn_robots_section)
 from kpi_calib_ros.core.design import DesignResult
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.pairing import PairingResult
@@ -59,11 +60,13 @@ def design_work(cm: CellModel, settings: NodeSettings,
                                settings.design_seed)
     points = cm.model.predict(cm.model.params.nominal, design.configurations)
     estimability = design_estimability(cm, design.configurations)
+    drawn, _ = drawn_robots_section(cm, design, settings.design_seed)
     design = controller_design(cm, design)  # the robot program gets controller values
     # The capsules and skipped pairs the design used (built by it, cached); the mesh
     # check's findings are in the design's verification.
     path = write_design(data_dir / DESIGN_FILE, design,
-                        extra={'geometry': cm.robot_geometry().summary()})
+                        extra={'geometry': cm.robot_geometry().summary(),
+                               'drawn_robots': drawn})
     return design, points, path, '' if estimability.all_estimable else estimability.summary()
 
 
