@@ -179,7 +179,8 @@ def validate_report(cm: CellModel, doc: dict[str, Any], data: Measurements,
     v = validate_calibration(cm, parameter_vector(cm, doc), doc, data)
     out = validation_to_dict(v, data, doc.get('rms_m'), cm, calibration_noise_scale(doc))
     write_atomic(Path(out_dir) / VALIDATION_FILE, json.dumps(out, indent=1))
-    write_validation_plots(out_dir, cm.robot, np.atleast_2d(data.q), v.residuals, v.outside)
+    write_validation_plots(out_dir, cm.robot, np.atleast_2d(data.q), v.residuals, v.outside,
+                           v.repeated)
     return out
 
 

@@ -171,20 +171,23 @@ def _grid(plt, n: int):
     return fig, axes.ravel()
 
 
-def _scatter_components(ax, x: np.ndarray, residuals: np.ndarray, outliers: np.ndarray) -> None:
+def _scatter_components(ax, x: np.ndarray, residuals: np.ndarray, outliers: np.ndarray,
+                        label: str = 'outlier |r|') -> None:
     for k in range(3):
         ax.plot(x, residuals[:, k] * _UM, '.', ms=4, color=_COLOURS[k], label=f'r_{_AXES[k]}')
     if outliers.any():
         ax.plot(x[outliers], np.linalg.norm(residuals[outliers], axis=1) * _UM, 'kx', ms=8,
-                label='outlier |r|')
+                label=label)
     ax.axhline(0.0, color='0.6', lw=0.8)
     ax.grid(alpha=0.3)
 
 
 def write_validation_plots(out_dir: str | Path, robot: Any, q: np.ndarray,
-                           residuals: np.ndarray, marked: np.ndarray) -> Path:
+                           residuals: np.ndarray, marked: np.ndarray,
+                           repeated: np.ndarray | None = None) -> Path:
     """``validation_residuals.png``: residuals (N, 3) m of new points against each joint
-    value (N, n), the ``marked`` (N,) points (outside the training ranges) crossed."""
+    value (N, n), the ``marked`` (N,) points (outside the training ranges) crossed, the
+    ``repeated`` ones (training poses measured again) circled."""
     plt = _pyplot()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -192,10 +195,13 @@ def write_validation_plots(out_dir: str | Path, robot: Any, q: np.ndarray,
     revolute = [j.kind != 'prismatic' for j in robot.joints]
     fig, axes = _grid(plt, len(names))
     for j, ax in enumerate(axes[:len(names)]):
-        _scatter_components(ax, np.degrees(q[:, j]) if revolute[j] else q[:, j] * 1e3,
-                            residuals, marked)
+        x = np.degrees(q[:, j]) if revolute[j] else q[:, j] * 1e3
+        _scatter_components(ax, x, residuals, marked, label='outside training range |r|')
+        if repeated is not None and repeated.any():
+            ax.plot(x[repeated], np.linalg.norm(residuals[repeated], axis=1) * _UM, 'o',
+                    mfc='none', mec='0.3', ms=6, label='training pose again |r|')
         ax.set_xlabel(f'{names[j]} ({"deg" if revolute[j] else "mm"})')
-    axes[0].set_ylabel('residual (µm); x: outside training range')
+    axes[0].set_ylabel('residual (µm)')
     axes[0].legend(fontsize=7)
     fig.suptitle('Validation residuals against each joint value')
     fig.tight_layout()
