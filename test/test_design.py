@@ -160,20 +160,24 @@ def test_nlp_result_passes_the_independent_check(cell, context):
     assert nlp.loss < nlp.loss_start
 
 
+def _tcp_mean_square_error(cell, q, p, runs, rng):
+    """E|ŝ - s|² (m²) at the first working pose over ``runs`` identifications of the
+    poses ``q`` of a robot with parameters ``p``, each with new noise at the cell's σ."""
+    model, sigma = cell.model, cell.sigma
+    clean = model.predict(p, q)
+    truth = model.predict(p, cell.q_work)[0]
+    errors = [identify(model, Measurements(q=q, eta=clean + rng.normal(size=clean.shape)
+                                           * sigma), sigma, cell.q_work).tcp[0] - truth
+              for _ in range(runs)]
+    return float(np.mean(np.sum(np.square(errors), axis=1)))
+
+
 @pytest.mark.slow
 def test_predicted_tcp_covariance_matches_monte_carlo(cell, context):
     rng = np.random.default_rng(7)
     design = design_measurements(cell, 30, 'kpi', rng, SMALL, context=context)
-    model, sigma = cell.model, cell.sigma
-    p = model.params.nominal
-    clean = model.predict(p, design.configurations)
-    truth = model.predict(p, cell.q_work)[0]
-    errors = []
-    for _ in range(100):
-        data = Measurements(q=design.configurations,
-                            eta=clean + rng.normal(size=clean.shape) * sigma)
-        errors.append(identify(model, data, sigma, cell.q_work).tcp[0] - truth)
-    mse = np.mean(np.sum(np.square(errors), axis=1))
+    mse = _tcp_mean_square_error(cell, design.configurations, cell.model.params.nominal, 100,
+                                 rng)
     ratio = mse / np.trace(design.tcp_covariance[0])
     print(f'Monte Carlo E|ŝ - s|² / predicted trace C_s = {ratio:.3f} over 100 identifications')
     assert abs(ratio - 1) < 0.2
@@ -191,16 +195,8 @@ def test_tcp_std_on_drawn_robots_matches_monte_carlo_where_the_nominal_one_is_lo
     assert len(design.parameter_names) == 25 and set(drawn.parameters) == {27}
     predicted = float(np.median(np.sum(drawn.tcp_std[:, 0] ** 2, axis=1)))
     nominal = float(np.trace(design.tcp_covariance[0]))
-    model, sigma = cell.model, cell.sigma
-    p = true_parameters(model.params, np.random.default_rng(5))
-    clean = model.predict(p, design.configurations)
-    truth = model.predict(p, cell.q_work)[0]
-    errors = []
-    for _ in range(1000):
-        data = Measurements(q=design.configurations,
-                            eta=clean + rng.normal(size=clean.shape) * sigma)
-        errors.append(identify(model, data, sigma, cell.q_work).tcp[0] - truth)
-    mse = float(np.mean(np.sum(np.square(errors), axis=1)))
+    p = true_parameters(cell.model.params, np.random.default_rng(5))
+    mse = _tcp_mean_square_error(cell, design.configurations, p, 1000, rng)
     print(f'E|ŝ - s|² over 1000 identifications / predicted trace C_s: drawn robots '
           f'{mse / predicted:.3f}, nominal {mse / nominal:.3f}')
     # 1000 errors in 3 axes: relative std of the mean square about 2.6 %
