@@ -173,3 +173,27 @@ def test_a_number_written_as_text_names_the_cause(tmp_path):
     path.write_text(yaml.safe_dump(doc).replace('SIGMA', '"2e-06"'))  # quoted: text
     with pytest.raises(ConfigError, match=r'write 2\.0e-06'):
         load_cell(path)
+
+
+def test_validate_compares_urdf_values_with_the_training_poses_of_a_coupled_robot(tmp_path):
+    """The training ranges and poses of calibration.yaml are URDF joint values, as validate
+    reads new joint states: the training recording validated against its own calibration
+    has every pose inside the ranges and repeated (controller values would put joint_3
+    outside for poses where J3 and joint_3 differ)."""
+    cell = _cell_copy(tmp_path, joint_coupling=FANUC, working_poses_in='urdf')
+    bag = tmp_path / 'coupled.mcap'
+    simulate_campaign(cell, 30, bag, seed=5)
+    assert main(['identify', '--cell', str(cell), '--bag', str(bag),
+                 '--out', str(tmp_path / 'cal')]) == 0
+    cal = yaml.safe_load((tmp_path / 'cal' / 'calibration.yaml').read_text())
+    cm = build_cell_model(load_cell(cell))
+    data, _ = measurements_from_samples(cm, *read_bag(bag))
+    lo, hi = np.array([cal['training_joint_ranges'][n] for n in NAMES]).T
+    np.testing.assert_allclose(lo, data.q.min(axis=0), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(hi, data.q.max(axis=0), rtol=0, atol=1e-12)
+    main(['validate', '--cell', str(cell), '--calibration',
+          str(tmp_path / 'cal' / 'calibration.yaml'), '--bag', str(bag),
+          '--out', str(tmp_path / 'val')])
+    out = yaml.safe_load((tmp_path / 'val' / 'validation.json').read_text())
+    assert out['outside_training_range'] == 0
+    assert out['repeated_from_training'] == out['measurements'] == 30

@@ -412,7 +412,12 @@ def add_chosen_effects(cm: CellModel, data: Measurements, choice: ModelChoice,
 
 def calibration_document(cm: CellModel, result: CalibrationResult,
                          pairing: PairingResult | None = None) -> dict:
-    """The calibration.yaml document: the result plus the DH/Hayati view of its axes."""
+    """The calibration.yaml document: the result plus the DH/Hayati view of its axes.
+    Its training joint ranges and poses are URDF joint values (``robot.joint_coupling``
+    applied to the readings), as validate reads new joint states."""
+    if (pairing is not None and len(pairing) and not cm.joint_coupling.is_identity
+            and tuple(pairing.joint_names) == tuple(cm.joint_names)):
+        pairing = dataclasses.replace(pairing, q=cm.joint_coupling.to_urdf(pairing.q))
     doc = calibration_to_dict(result, pairing)
     std = dict(zip(result.estimated, result.std))
     estimated = [n for n in result.names if n in std]
