@@ -65,6 +65,7 @@ def test_validate_service_tests_the_calibration_on_the_new_measurements(node, tm
     rng = np.random.default_rng(21)
     p_true = true_parameters(cm.model.params, rng)
     q = random_configurations(cm.model, p_true, 45, rng)
+    q[42:] = q[:3]  # three training poses measured again among the ten new ones
     eta = simulate_measurements(cm.model, p_true, q, cm.cell.sigma, rng).eta
     joints, points = synthesize_streams(q, cm.joint_names, eta, cm.cell.tracker_frame)
     cut = points[35].stamp_ns - 1_000_000_000  # between the holds of poses 34 and 35
@@ -87,10 +88,11 @@ def test_validate_service_tests_the_calibration_on_the_new_measurements(node, tm
         _feed(node, [j for j in joints if j.stamp_ns >= cut], points[35:])
         ok, message = _call(node, executor, 'validating', node._validate)
         assert ok and message.startswith('calibration holds on 10 new measurements'), message
+        assert '; 3 at training poses measured again' in message, message
         assert got.wait(timeout=30), 'no message on ~/validation'
     finally:
         executor.shutdown()
         spinner.join(timeout=10)
     doc = json.loads((tmp_path / 'validation' / 'validation.json').read_text())
-    assert doc['holds'] and doc['measurements'] == 10
+    assert doc['holds'] and doc['measurements'] == 10 and doc['repeated_from_training'] == 3
     assert received and json.loads(received[-1]) == doc

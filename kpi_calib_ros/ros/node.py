@@ -600,7 +600,11 @@ class CalibrationNode(Node):
         return doc['holds'], (f"{doc['verdict']} on {doc['measurements']} new measurements: "
                               f"rms {doc['rms_m'] * 1e6:.1f} µm, chi2/dof {doc['chi2']:.1f}/"
                               f"{doc['dof']}, p = {doc['p_value']:.3g}; "
-                              f"{doc['outside_training_range']} outside the training ranges")
+                              f"{doc['outside_training_range']} outside the training ranges"
+                              + (f"; {doc['repeated_from_training']} at training poses "
+                                 f"measured again, rms "
+                                 f"{doc['rms_repeated_from_training_m'] * 1e6:.1f} µm"
+                                 if doc['repeated_from_training'] else ''))
 
     async def _reset(self) -> tuple[bool, str]:
         """Start a new campaign: archive (never delete) the logs and results."""
