@@ -354,9 +354,12 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
             if n not in choice.held]
     if allowed is not None:
         free = [n for n in free if n in set(allowed)]
-    robust = robust_identify(cm.model, data, cm.cell.sigma,
-                             lambda d, **kw: fit(d, free, **kw), settings.loss,
-                             settings.outliers, start=start)
+
+    def robust_fit(free: list[str]) -> RobustResult:
+        return robust_identify(cm.model, data, cm.cell.sigma,
+                               lambda d, **kw: fit(d, free, **kw), settings.loss,
+                               settings.outliers, start=start)
+    robust = robust_fit(free)
     shapes = [n for e in cm.model.effects
               if isinstance(e, BoundEffect) and e.name in choice.effects
               for n in e.shape_names if n in free]
@@ -365,9 +368,7 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
         # points kept) does not with their shapes free, they are held at the values the
         # selection found, as the trials do.
         free = [n for n in free if n not in shapes]
-        robust = robust_identify(cm.model, data, cm.cell.sigma,
-                                 lambda d, **kw: fit(d, free, **kw), settings.loss,
-                                 settings.outliers, start=start)
+        robust = robust_fit(free)
         choice = dataclasses.replace(choice, held=tuple(choice.held) + tuple(shapes), reason=(
             f'{choice.reason}; the final fit did not converge with '
             f'{", ".join(shapes)} free: held at the selected values'))
