@@ -96,7 +96,9 @@ def main_bench(data_dir: Path) -> str:
                 assert _quiet(['import-csv', str(table), '--mapping', str(mapping),
                                '--out', str(out / f'{session}-{markers}.mcap')]) == 0
         reasons, group_rows = [], []
-        q_train = np.array(list(poses(CELL, out / f'{TRAIN}-all.mcap').values()))
+        # Joint values by stamp, read once per session (the m1 bags have the same stamps).
+        q_by_stamp = {s: poses(CELL, out / f'{s}-all.mcap') for s in (TRAIN, *VALIDATE)}
+        q_train = np.array(list(q_by_stamp[TRAIN].values()))
         for name, cell_path, model, markers in RUNS:
             run = name.replace(', ', '-').replace(' ', '_')
             cell = cells.get((cell_path, markers), cell_path)
@@ -118,7 +120,7 @@ def main_bench(data_dir: Path) -> str:
                         str(out / f'{run}-{session}')])
                 doc = json.loads((out / f'{run}-{session}' / 'validation.json').read_text())
                 group_rows.append(f"| `{name}` | {session} | " + peer_groups(
-                    doc, poses(cell, out / f'{session}-{markers}.mcap'), q_train) + ' |')
+                    doc, q_by_stamp[session], q_train) + ' |')
                 marker = doc['rms_per_reflector_m']
                 outside = doc['outside_training_range']
                 rows.append(
