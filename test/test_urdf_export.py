@@ -2,14 +2,18 @@
 from __future__ import annotations
 
 import xml.etree.ElementTree as ET
+import zlib
+from pathlib import Path
 
 import numpy as np
+import pinocchio as pin
 import pytest
 
 from kpi_calib_ros.core.kinematics import nominal_fk_function, rpy_matrix
 from kpi_calib_ros.core.parameters import geometric_parameters
 from kpi_calib_ros.core.robot import RobotModel
 from kpi_calib_ros.io.cell import DEFAULT_CELL
+from kpi_calib_ros.io.resources import cmeel_prefixes
 from kpi_calib_ros.io.urdf_export import calibrated_urdf, rpy_from_matrix
 
 KR15 = (DEFAULT_CELL.parent.parent / 'robots' / 'kr15_class.urdf').read_text()
@@ -103,3 +107,145 @@ def test_bad_parameters_are_named(odd_arm_urdf):
         calibrated_urdf(odd_arm_urdf, robot, {'gripper.offset': 0.01})
     with pytest.raises(ValueError, match='swing.placement.tx'):
         calibrated_urdf(odd_arm_urdf, robot, {'swing.placement.tx': float('nan')})
+
+
+# ---------------------------------------------------------------- every stock description
+def _stock_root() -> Path:
+    share = [p / 'share' / 'example-robot-data' / 'robots' for p in cmeel_prefixes()]
+    found = [p for p in share if p.is_dir()]
+    assert found, 'example-robot-data is a pinned requirement: pip install -r requirements.txt'
+    return found[0]
+
+
+_ONE_DOF = ('JointModelR', 'JointModelP')
+
+
+def _longest_chain(urdf_xml: str) -> tuple[str, str] | None:
+    """(base, tip) link names of the longest chain of 1-DoF joints from the root link."""
+    model = pin.buildModelFromXML(urdf_xml)
+    best: tuple[int, str] | None = None
+    for frame in model.frames:
+        if frame.type != pin.FrameType.BODY:
+            continue
+        support = [j for j in model.supports[frame.parentJoint] if j > 0]
+        if support and all(model.joints[j].shortname().startswith(_ONE_DOF) for j in support) \
+                and (best is None or len(support) > best[0]):
+            best = (len(support), frame.name)
+    return None if best is None else (model.frames[1].name, best[1])
+
+
+def _stock_descriptions() -> list[tuple[str, str, str, str]]:
+    """(id, urdf text, base, tip): every example-robot-data URDF with a chain, and the
+    built-in robots."""
+    cases = []
+    root = _stock_root()
+    for path in sorted(root.rglob('*.urdf')):
+        text = path.read_text()
+        try:
+            chain = _longest_chain(text)
+        except (ValueError, RuntimeError):
+            continue  # not a URDF urdfdom reads (ur3.urdf has no robot name)
+        if chain is not None:
+            cases.append((str(path.relative_to(root)), text, *chain))
+    builtin = DEFAULT_CELL.parent.parent / 'robots'
+    for path in sorted(builtin.glob('*.urdf')):
+        cases.append((f'builtin/{path.name}', path.read_text(), 'base_link', 'tool0'))
+    return cases
+
+
+STOCK = _stock_descriptions()
+
+
+def test_the_stock_collection_is_all_there():
+    """Enough descriptions to mean something: the arms with transmissions and mimic joints."""
+    names = [c[0] for c in STOCK]
+    assert len(names) >= 60, names
+    with_transmissions = [c[0] for c in STOCK if '<transmission' in c[1]]
+    with_mimic = [c[0] for c in STOCK if '<mimic' in c[1]]
+    assert 'ur_description/urdf/ur10_robot.urdf' in with_transmissions
+    assert len(with_transmissions) >= 20 and len(with_mimic) >= 5
+
+
+def _realistic_errors(robot: RobotModel, rng: np.random.Generator) -> dict[str, float]:
+    """Identified errors of the size a calibration finds: 0.5 mm, 1 mrad per component."""
+    values = {}
+    for joint in robot.joints:
+        for c in ('tx', 'ty', 'tz'):
+            values[f'{joint.name}.placement.{c}'] = rng.normal(0, 5e-4)
+        for c in ('rx', 'ry', 'rz'):
+            values[f'{joint.name}.placement.{c}'] = rng.normal(0, 1e-3)
+        values[f'{joint.name}.offset'] = rng.normal(0, 1e-3)
+    return values
+
+
+def _working_q(robot: RobotModel, rng: np.random.Generator, n: int) -> np.ndarray:
+    """Joint values within the limits and within one turn (rotor joints of 1e16 rad)."""
+    lower = np.maximum(np.nan_to_num(robot.lower, neginf=-np.pi), -np.pi)
+    upper = np.minimum(np.nan_to_num(robot.upper, posinf=np.pi), np.pi)
+    return rng.uniform(lower, upper, (n, robot.n_joints))
+
+
+def _elements(xml: str, tag: str) -> list[bytes]:
+    return [ET.tostring(e) for e in ET.fromstring(xml).iter(tag)]
+
+
+@pytest.mark.parametrize('case', STOCK, ids=[c[0] for c in STOCK])
+def test_stock_description_exports_the_calibrated_kinematics(case):
+    """The written URDF's forward kinematics (Pinocchio) equal the calibrated model's
+    (CasADi) to 1e-9 m; transmissions and every joint off the chain are untouched."""
+    name, urdf, base, tip = case
+    rng = np.random.default_rng(zlib.crc32(name.encode()))
+    robot = RobotModel(urdf, base, tip)
+    params = geometric_parameters(robot, np.zeros(6), np.zeros(3))
+    errors = _realistic_errors(robot, rng)
+    fk = nominal_fk_function(robot, params)
+    p = params.with_values(errors)
+    out = calibrated_urdf(urdf, robot, errors)
+    exported = RobotModel(out, base, tip)
+    worst, moved = 0.0, 0.0
+    for q in _working_q(robot, rng, 8):
+        actual = exported.pin_tip_pose(q)
+        worst = max(worst, np.abs(actual - np.array(fk(p, q))).max())
+        moved = max(moved, np.abs(actual[:3, 3] - robot.pin_tip_pose(q)[:3, 3]).max())
+    assert worst < 1e-9, f'{name}: |T_exported - T_calibrated| = {worst:.2e}'
+    assert moved > 1e-4, f'{name}: the written URDF is the nominal one ({moved:.2e} m)'
+    # Still a URDF with the same structure: transmissions (and their <joint>s) intact.
+    assert _elements(out, 'transmission') == _elements(urdf, 'transmission')
+    before = {e.get('name'): ET.tostring(e) for e in ET.fromstring(urdf).findall('joint')}
+    after = {e.get('name'): ET.tostring(e) for e in ET.fromstring(out).findall('joint')}
+    assert before.keys() == after.keys()
+    assert {n for n in after if after[n] != before[n]} <= set(robot.joint_names)
+
+
+def test_cli_calibrated_urdf_of_the_stock_ur10_reproduces_the_fit(tmp_path):
+    """As a user uses it: the written URDF, the base pose and reflector of calibration.yaml
+    predict every measured point with the identification's own residual (the stock UR10 has
+    <transmission> elements; with them edited instead of the joints it missed by mm)."""
+    import yaml
+
+    from kpi_calib_ros.app.identify import load_measurements
+    from kpi_calib_ros.app.simulate import simulate_campaign
+    from kpi_calib_ros.cli import main
+    from kpi_calib_ros.core.kinematics import pose6
+    from kpi_calib_ros.io.names import CALIBRATED_URDF_FILE
+    cell = Path(__file__).parent / 'data' / 'ur10_mesh_cell.yaml'
+    bag = tmp_path / 'run.mcap'
+    simulate_campaign(cell, 40, bag, seed=5)
+    assert main(['identify', '--cell', str(cell), '--bag', str(bag),
+                 '--out', str(tmp_path / 'out')]) == 0
+    doc = yaml.safe_load((tmp_path / 'out' / 'calibration.yaml').read_text())
+    value = {p['name']: p['value'] for p in doc['parameters']}
+    cm, data, _ = load_measurements(cell, bag)
+    calibrated = RobotModel((tmp_path / 'out' / CALIBRATED_URDF_FILE).read_text(),
+                            cm.robot.base_frame, cm.robot.tip_frame)
+    base = np.array(pose6([value[f'base.{c}'] for c in ('x', 'y', 'z', 'roll', 'pitch',
+                                                         'yaw')]))
+    reflector = np.array([value[f'reflector.{c}'] for c in 'xyz'] + [1.0])
+    predicted = np.array([(base @ calibrated.pin_tip_pose(q) @ reflector)[:3]
+                          for q in data.q])
+    residuals = np.asarray(doc['residuals_m'])
+    assert residuals.shape == data.eta.shape
+    np.testing.assert_allclose(data.eta - predicted, residuals, atol=1e-9)
+    # ... and the calibration is a real one: the nominal URDF misses by far more.
+    nominal = np.array([(base @ cm.robot.pin_tip_pose(q) @ reflector)[:3] for q in data.q])
+    assert np.sqrt(np.mean((data.eta - nominal) ** 2)) > 20 * doc['rms_m']

@@ -78,7 +78,7 @@ def _prepare(urdf_xml: str, link_names: Sequence[str]) -> tuple[
     keeps the primitives everywhere and the meshes of the requested links only.
     """
     root = ET.fromstring(urdf_xml)
-    links = {link.get('name'): link for link in root.iter('link')}
+    links = {link.get('name'): link for link in root.findall('link')}
     per_link: dict[str, list[tuple[str, ET.Element]]] = {}
     for name in link_names:
         key = f'collision.capsules.{name}'
@@ -96,7 +96,7 @@ def _prepare(urdf_xml: str, link_names: Sequence[str]) -> tuple[
             raise ConfigError(key, f'link {name!r} has no collision geometry; '
                                    'give capsules for this link in the cell file')
         per_link[name] = items
-    for link in root.iter('link'):
+    for link in root.findall('link'):
         keep = _PRIMITIVES + (('mesh',) if link.get('name') in per_link else ())
         for col in list(link.findall('collision')):
             geometry = col.find('geometry')

@@ -130,7 +130,7 @@ class MeshCheck:
 def _without_visuals(urdf_xml: str) -> str:
     """URDF without ``<visual>``: its meshes need not be found for a collision check."""
     root = ET.fromstring(urdf_xml)
-    for link in root.iter('link'):
+    for link in root.findall('link'):
         for vis in list(link.findall('visual')):
             link.remove(vis)
     return ET.tostring(root, encoding='unicode')

@@ -180,7 +180,7 @@ def _attached_capsules(robot: RobotModel, urdf_xml: str) -> list[Capsule]:
     model = robot.pin_model
     chain = robot.link_names
     root = ET.fromstring(urdf_xml)
-    with_geometry = {link.get('name') for link in root.iter('link') if link.find('collision')
+    with_geometry = {link.get('name') for link in root.findall('link') if link.find('collision')
                      is not None}
     joint_of = {model.getJointId(j.name): j.child_link for j in robot.joints}
     base_link = chain[0]

@@ -96,7 +96,9 @@ def calibrated_urdf(urdf_xml: str, robot: RobotModel, parameters: Mapping[str, f
     """
     root = ET.fromstring(urdf_xml, parser=ET.XMLParser(
         target=ET.TreeBuilder(insert_comments=True)))
-    elements = {e.get('name'): e for e in root.iter('joint')}
+    # Only the <robot>'s own <joint> children are joints: a <transmission> has <joint>
+    # elements too (the actuated joint's name, no origin), and iter() would find them.
+    elements = {e.get('name'): e for e in root.findall('joint')}
     chain = {j.name for j in robot.joints}
     for name, value in parameters.items():
         if not np.isfinite(value):
