@@ -212,11 +212,11 @@ def test_fitted_capsules_enclose_the_primitives_in_the_link_frame():
         assert caps[name].frame == name.split('.')[0]
 
 
-def test_mesh_and_missing_geometry_ask_for_capsules_in_the_cell_file():
+def test_mesh_asks_for_capsules_and_a_link_without_geometry_gets_none():
     with pytest.raises(ConfigError, match='mesh.*cell file'):
         capsules_from_urdf(ARM_URDF, ['link_1', 'meshy'])
-    with pytest.raises(ConfigError, match='no collision.*cell file'):
-        capsules_from_urdf(ARM_URDF, ['bare'])
+    # No <collision>: no body to check (RobotGeometry.bare_links names it to the user).
+    assert capsules_from_urdf(ARM_URDF, ['bare']) == []
     with pytest.raises(ConfigError, match='not in the URDF'):
         capsules_from_urdf(ARM_URDF, ['link_9'])
 

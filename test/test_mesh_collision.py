@@ -1,5 +1,7 @@
 """Stock mesh URDFs (UR10, Panda from example-robot-data): enclosing capsules, the sampled
 collision matrix and the independent self-collision check on the meshes."""
+import xml.etree.ElementTree as ET
+
 import numpy as np
 import pytest
 
@@ -250,3 +252,41 @@ def test_vectorised_margins_equal_the_per_configuration_margins(stock):
     tip = robot.pin_tip_pose(q[0])
     assert np.allclose(link_transforms(robot, q[:1], [robot.link_names[-1]])[0, 0]
                        @ robot.tip_placement, tip, atol=1e-12)
+
+
+def test_a_chain_link_without_collision_geometry_is_named_not_refused(tmp_path):
+    """Stock descriptions leave small links without <collision> (the Unitree Z1's link01,
+    04, 05, TIAGo's arm_7_link): no body to check, as in MoveIt. The cell loads, a campaign
+    is simulated and identified, and the design summary names the links left unchecked."""
+    import yaml
+
+    from kpi_calib_ros.app.identify import identify_cell, measurements_from_bag
+    from kpi_calib_ros.app.simulate import simulate_campaign
+    from kpi_calib_ros.io.cell import build_cell_model, load_cell
+    from kpi_calib_ros.io.results import read_truth
+    uri = 'package://example-robot-data/robots/z1_description/urdf/z1.urdf'
+    cell = {'robot': {'urdf': uri, 'base_frame': 'link00', 'tip_frame': 'link06'},
+            'tracker': {'frame_id': 'laser_tracker',
+                        'base_in_tracker': [2.5, 0.3, -0.2, 0.0, 0.0, 3.0]},
+            'reflector': {'offset': [0.0, 0.02, 0.03], 'axis': [0, 0, 1],
+                          'max_incidence': 1.2},
+            'noise': {'sigma': 2.0e-5},
+            'working_poses': [{'name': 'work', 'joints': {
+                'joint1': 0.3, 'joint2': 1.2, 'joint3': -1.1, 'joint4': 0.2, 'joint5': 0.3,
+                'joint6': 0.1}}]}
+    path = tmp_path / 'z1_cell.yaml'
+    path.write_text(yaml.safe_dump(cell))
+    cm = build_cell_model(load_cell(path))
+    geometry = cm.robot_geometry()
+    root = ET.fromstring(resolve_uri(uri).read_text())
+    bare = {link.get('name') for link in root.findall('link') if link.find('collision') is None}
+    assert set(geometry.bare_links) == bare & set(cm.robot.link_names) != set()
+    assert {c.frame for c in geometry.capsules}.isdisjoint(bare)
+    assert any(str(sorted(bare & set(cm.robot.link_names))[0]) in line and 'not checked' in line
+               for line in geometry.summary_lines())
+    bag = tmp_path / 'run.mcap'
+    simulate_campaign(path, 40, bag, seed=2)
+    data, _ = measurements_from_bag(cm, bag)
+    result = identify_cell(cm, data)
+    error = np.asarray(result.tcp[0]) - np.asarray(read_truth(bag)['tcp_true'][0])
+    assert np.all(np.abs(error) < 3.5 * np.sqrt(np.diag(result.tcp_covariance[0])))

@@ -92,10 +92,10 @@ def _prepare(urdf_xml: str, link_names: Sequence[str]) -> tuple[
                 raise ConfigError(key, f'link {name!r} has {kind} collision geometry; '
                                        'give capsules for this link in the cell file')
             items.append((kind, col))
-        if not items:
-            raise ConfigError(key, f'link {name!r} has no collision geometry; '
-                                   'give capsules for this link in the cell file')
-        per_link[name] = items
+        if items:
+            # A link without <collision> (a mount, a virtual wrist link) has no body to
+            # collide, as in MoveIt; the caller names such links (RobotGeometry.bare_links).
+            per_link[name] = items
     for link in root.findall('link'):
         keep = _PRIMITIVES + (('mesh',) if link.get('name') in per_link else ())
         for col in list(link.findall('collision')):
@@ -153,7 +153,7 @@ def capsules_from_urdf(urdf_xml: str, link_names: Sequence[str],
     urdf_xml : str
         URDF document; mesh filenames absolute or findable through ``package_dirs``.
     link_names : sequence of str
-        Links to fit, each needing at least one collision element.
+        Links to fit; a link without collision elements gets no capsule.
     package_dirs : sequence of str
         Passed to Pinocchio's mesh loader.
     max_pieces : int
@@ -170,7 +170,8 @@ def capsules_from_urdf(urdf_xml: str, link_names: Sequence[str],
     Raises
     ------
     ConfigError
-        A link is unknown or has no collision geometry; a mesh cannot be loaded.
+        A link is unknown or has collision geometry of no supported kind; a mesh cannot
+        be loaded.
     """
     per_link, clean = _prepare(urdf_xml, link_names)
     model, geom = _geometry(clean, package_dirs, per_link)

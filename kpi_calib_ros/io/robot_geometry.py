@@ -61,6 +61,10 @@ class RobotGeometry:
         Whether the URDF has collision meshes (then :func:`mesh_check` applies).
     n_given : int
         The first ``n_given`` of :attr:`capsules` come from the cell file.
+    bare_links : tuple of str
+        Chain links with no capsule in the cell file and no ``<collision>`` in the URDF:
+        no body, so not checked for collisions (give capsules in the cell file if they
+        have one).
     """
 
     capsules: tuple[Capsule, ...]
@@ -70,6 +74,7 @@ class RobotGeometry:
     urdf_xml: str
     has_meshes: bool
     n_given: int = 0
+    bare_links: tuple[str, ...] = ()
 
     def skip_pairs(self) -> set[frozenset[str]]:
         """Link/obstacle pairs a design leaves out (besides ``collision.ignore_pairs``)."""
@@ -79,7 +84,7 @@ class RobotGeometry:
         """YAML-ready: every robot capsule with its source, every skipped pair with its class."""
         skipped = self.matrix.summary() + [{'links': list(p), 'class': 'fixed', 'fraction': None}
                                            for p in self.fixed_pairs]
-        return {
+        doc: dict[str, Any] = {
             'capsules': [{'name': c.name, 'link': c.frame, 'a': [round(v, 6) for v in c.a],
                           'b': [round(v, 6) for v in c.b], 'radius': round(c.radius, 6),
                           'source': 'cell' if k < self.n_given else 'fitted'}
@@ -87,6 +92,9 @@ class RobotGeometry:
             'skipped_pairs': skipped,
             'matrix_samples': self.matrix.samples, 'matrix_seed': self.matrix.seed,
         }
+        if self.bare_links:
+            doc['links_without_collision_geometry'] = list(self.bare_links)
+        return doc
 
     def summary_lines(self) -> list[str]:
         """The summary as readable lines for stdout."""
@@ -95,6 +103,10 @@ class RobotGeometry:
                  f'collision geometry, {self.n_given} from the cell file):']
         lines += [f"    {c['name']} on {c['link']} ({c['source']}): a {c['a']} b {c['b']} "
                   f"r {c['radius']} m" for c in doc['capsules']]
+        if self.bare_links:
+            lines.append(f'  links without collision geometry in the URDF, not checked for '
+                         f'collisions (give capsules in the cell file if they have a body): '
+                         f'{list(self.bare_links)}')
         lines.append(f"  skipped pairs ({len(doc['skipped_pairs'])}, sampled over "
                      f'{self.matrix.samples} configurations):')
         lines += [f"    {p['links'][0]} ~ {p['links'][1]}: {p['class']}"
@@ -160,9 +172,11 @@ def robot_geometry(robot: RobotModel, urdf_xml: str, given: Sequence[Capsule],
     q_default = 0.5 * (lower + upper)
     matrix = classify_link_pairs(robot, capsules, samples=MATRIX_SAMPLES, seed=MATRIX_SEED,
                                  q_default=q_default)
+    covered = {c.frame for c in fitted}
     geometry = RobotGeometry(capsules, tuple(dict.fromkeys(c.frame for c in fitted)), matrix,
                              _fixed_pairs(robot, capsules, obstacles, q_default), resolved,
-                             has_meshes, len(given))
+                             has_meshes, len(given),
+                             tuple(link for link in to_fit if link not in covered))
     if len(_CACHE) >= _CACHE_SIZE:
         _CACHE.pop(next(iter(_CACHE)))
     _CACHE[key] = geometry
