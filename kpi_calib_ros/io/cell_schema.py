@@ -1,0 +1,242 @@
+"""The keys of the cell file, described once: path, type, unit, default and meaning.
+
+Data only: :mod:`kpi_calib_ros.io.cell` validates a cell document, this module says
+what each key is for. The documentation's cell-key reference is generated from
+:data:`CELL_KEYS`, and ``test/test_cell_schema.py`` checks it against what the loader
+accepts (every key it accepts is described, and nothing else).
+
+Paths: ``section.key``; ``section[].key`` is a key of every item of a list.
+``example`` is a value the loader accepts there (for the tests and the reference).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+REQUIRED = 'required'
+NONE = 'none'
+
+
+@dataclass(frozen=True)
+class CellKey:
+    """One key of the cell file.
+
+    Attributes
+    ----------
+    path : str
+        Key path, e.g. ``noise.sigma`` or ``reflectors[].offset``.
+    type : str
+        What the value is written as (``number``, ``[x, y, z]``, ``string``, …).
+    unit : str
+        SI unit of the value (``m``, ``rad``, ``kg``, …); empty when it has none.
+    default : str
+        The value used when the key is absent; :data:`REQUIRED` when it must be given,
+        :data:`NONE` when absence has a meaning of its own (said in ``meaning``).
+    meaning : str
+        One or two sentences for the reference.
+    example : Any
+        A value the loader accepts at this path.
+    """
+
+    path: str
+    type: str
+    unit: str
+    default: str
+    meaning: str
+    example: Any
+
+    @property
+    def section(self) -> str:
+        """The top-level key the path starts with."""
+        return self.path.split('.')[0].split('[')[0]
+
+
+_K = CellKey
+
+CELL_KEYS: tuple[CellKey, ...] = (
+    # ------------------------------------------------------------------ robot
+    _K('robot', 'mapping', '', REQUIRED, 'The robot: its URDF and the chain to calibrate.',
+       {'urdf': 'robot.urdf', 'base_frame': 'base_link', 'tip_frame': 'tool0'}),
+    _K('robot.urdf', 'string', '', REQUIRED, 'URDF file, relative to the cell file, or a '
+       '`package://` / `file://` URI resolved as ROS does.', 'robot.urdf'),
+    _K('robot.base_frame', 'string', '', REQUIRED, 'First link of the calibrated chain.',
+       'base_link'),
+    _K('robot.tip_frame', 'string', '', REQUIRED, 'Last link of the chain (the flange); '
+       'reflector offsets are in its frame.', 'tool0'),
+    _K('robot.package_dirs', 'list of string', '', '[]', 'Folders (relative to the cell file) '
+       'searched first for `package://` URIs of the URDF and its meshes.', ['../src']),
+    _K('robot.joint_coupling', 'mapping', '', '{} (identity)', 'Linear map from the '
+       "controller's joint values to the URDF's, `{urdf_joint: {controller_joint: factor}}`; "
+       'unlisted joints map to themselves; must be invertible.',
+       {'joint_3': {'joint_3': 1.0, 'joint_2': 1.0}}),
+    _K('robot.working_poses_in', '`controller` or `urdf`', '', 'controller', 'How the '
+       'working poses are written: controller values (mapped by `joint_coupling`) or URDF '
+       'values.', 'urdf'),
+    # ---------------------------------------------------------------- tracker
+    _K('tracker', 'mapping', '', '{}', 'The laser tracker (or motion-capture) frame.',
+       {'frame_id': 'laser_tracker'}),
+    _K('tracker.frame_id', 'string', '', 'laser_tracker', 'Frame id of the tracker points '
+       '(`header.frame_id`).', 'laser_tracker'),
+    _K('tracker.base_in_tracker', '[x, y, z, roll, pitch, yaw]', 'm, rad', NONE, 'Nominal '
+       'robot base pose in the tracker frame; absent: registered from the points (a design '
+       'needs it).', [2.6544, 0.2728, -0.2, 0.0, 0.0, 1.9]),
+    # -------------------------------------------------------------- reflector
+    _K('reflector', 'mapping', '', '{}', 'The single reflector (SMR) on the tip; with '
+       '`reflectors:` it holds `axis` and `max_incidence` only.', {'offset': [0, 0, 0.03]}),
+    _K('reflector.offset', '[x, y, z]', 'm', NONE, 'Reflector centre in the tip frame; '
+       'absent: registered from the points.', [0.0, 0.0, 0.03]),
+    _K('reflector.axis', '[x, y, z]', '', '[0, 0, 1]', 'Reflector axis in the tip frame '
+       '(the incidence is measured from it).', [0.0, 0.0, 1.0]),
+    _K('reflector.max_incidence', 'number', 'rad', '0.5236 (30°)', 'Largest angle between '
+       'the reflector axis and the line of sight, in (0, π/2].', 0.5236),
+    _K('reflectors', 'list', '', NONE, 'Several reflectors or markers per pose, instead of '
+       '`reflector.offset`; the first is the KPI point.', [{'name': 'm1'}]),
+    _K('reflectors[].name', 'string', '', REQUIRED, 'Unique name of letters, digits and _; '
+       "in parameter names (`reflector.<name>.x`) and frame ids (`<tracker>#<name>`).", 'm1'),
+    _K('reflectors[].offset', '[x, y, z]', 'm', NONE, 'Centre in the tip frame; absent: '
+       'registered from the points.', [0.05, 0.0, 0.03]),
+    _K('reflectors[].orientation', '{rpy: [r, p, y]} or {quaternion: [x, y, z, w]}', 'rad',
+       NONE, 'A tracked 6-DoF body: its axes in the tip frame (URDF rpy, or a unit '
+       'quaternion); measured as PoseStamped; needs `noise.sigma_rotation`.',
+       {'rpy': [0.1, -0.2, 0.3]}),
+    # ------------------------------------------------------------------ noise
+    _K('noise', 'mapping', '', REQUIRED, 'Measurement noise of the tracker.', {'sigma': 2e-5}),
+    _K('noise.sigma', 'number or [x, y, z]', 'm', REQUIRED, 'Tracker σ per axis, in '
+       '(0, 0.01]; sets the weights, the χ² test and the stated precision.', 2.0e-5),
+    _K('noise.sigma_rotation', 'number', 'rad', NONE, 'Orientation noise per axis of tracked '
+       'bodies, in (0, 0.1]; required with a reflector `orientation`.', 1.0e-4),
+    # ---------------------------------------------------------------- payload
+    _K('payload', 'mapping', '', '{}', 'Payload on the tip, for the gravity torques of the '
+       'torque-driven effects.', {'mass': 5.0}),
+    _K('payload.mass', 'number', 'kg', '0', 'Payload mass, ≥ 0.', 5.0),
+    _K('payload.com', '[x, y, z]', 'm', '[0, 0, 0]', 'Payload centre of mass in the tip '
+       'frame.', [0.0, 0.0, 0.05]),
+    # ---------------------------------------------------------- working poses
+    _K('working_poses', 'list', 'rad (m for prismatic joints)', REQUIRED, 'The poses where '
+       'the robot works: the KPI is the TCP covariance there. Each item is a mapping or a '
+       'list of joint values in chain order.', [[0.0, 0.45, -0.35, 0.0, 0.9, 0.0]]),
+    _K('working_poses[].name', 'string', '', 'work_<i>', 'Name in outputs and '
+       '`design.weights`.', 'car_roof_edge'),
+    _K('working_poses[].joints', 'mapping of joint name to number', 'rad (m)', REQUIRED,
+       'Joint values by name.', {'joint_1': 0.0, 'joint_2': 0.45, 'joint_3': -0.35,
+                                 'joint_4': 0.0, 'joint_5': 0.9, 'joint_6': 0.0}),
+    # -------------------------------------------------------------- obstacles
+    _K('obstacles', 'list', '', '[]', 'Obstacles in the robot base frame, kept clear by the '
+       'design (and the tracker beam).', [{'name': 'floor', 'type': 'halfspace',
+                                          'normal': [0, 0, 1], 'offset': -0.6}]),
+    _K('obstacles[].name', 'string', '', REQUIRED, 'Name in reports and `ignore_pairs`.',
+       'floor'),
+    _K('obstacles[].type', '`capsule` or `halfspace`', '', 'capsule', 'Shape of the '
+       'obstacle.', 'halfspace'),
+    _K('obstacles[].normal', '[x, y, z]', '', REQUIRED + ' (halfspace)', 'Outward normal of '
+       'a half-space obstacle: the free side.', [0.0, 0.0, 1.0]),
+    _K('obstacles[].offset', 'number', 'm', '0', 'Half-space boundary: the points x with '
+       'normal·x = offset.', -0.6),
+    _K('obstacles[].a', '[x, y, z]', 'm', REQUIRED + ' (capsule)', 'First end of the capsule '
+       'axis.', [1.75, -2.0, -0.15]),
+    _K('obstacles[].b', '[x, y, z]', 'm', REQUIRED + ' (capsule)', 'Second end of the capsule '
+       'axis.', [1.75, 2.0, -0.15]),
+    _K('obstacles[].radius', 'number', 'm', REQUIRED + ' (capsule)', 'Capsule radius, ≥ 0.',
+       0.45),
+    # -------------------------------------------------------------- collision
+    _K('collision', 'mapping', '', '{}', 'Robot collision geometry and pairs to skip.',
+       {'beam_radius': 0.005}),
+    _K('collision.capsules', 'list', '', '[] (fitted to the URDF)', 'Hand-given capsules of '
+       'chain links; links without them get capsules fitted to their collision geometry.',
+       [{'name': 'upper_arm', 'link': 'link_2', 'a': [0, 0, 0], 'b': [0.6, 0, 0],
+         'radius': 0.12}]),
+    _K('collision.capsules[].name', 'string', '', 'the link name', 'Name in reports and '
+       '`ignore_pairs`.', 'upper_arm'),
+    _K('collision.capsules[].link', 'string', '', 'base', 'Link whose frame holds the '
+       'capsule.', 'link_2'),
+    _K('collision.capsules[].a', '[x, y, z]', 'm', REQUIRED, 'First end of the axis in the '
+       'link frame.', [0.0, 0.0, 0.0]),
+    _K('collision.capsules[].b', '[x, y, z]', 'm', REQUIRED, 'Second end of the axis in the '
+       'link frame.', [0.6, 0.0, 0.0]),
+    _K('collision.capsules[].radius', 'number', 'm', REQUIRED, 'Capsule radius, ≥ 0.', 0.12),
+    _K('collision.ignore_pairs', 'list of [name, name]', '', '[]', 'Pairs of links, capsules '
+       'or obstacles never checked (added to the computed collision matrix).',
+       [['base_link', 'mounting']]),
+    _K('collision.beam_radius', 'number', 'm', '0.005', 'Radius of the tracker beam kept '
+       'clear of obstacles and links, ≥ 0.', 0.005),
+    # --------------------------------------------------------- identification
+    _K('identification', 'mapping', '', '{}', 'How the robot is identified.',
+       {'method': 'pivoted'}),
+    _K('identification.method', '`pivoted` or `priority`', '', 'pivoted', 'Selection of the '
+       'identifiable parameters: QR with column pivoting, or preferring the names in '
+       '`priority`.', 'pivoted'),
+    _K('identification.priority', 'list of parameter names', '', '[]', 'Parameters '
+       '`method: priority` prefers (e.g. joint offsets over base angles).', []),
+    _K('identification.model', '`auto`, `registration`, `joint_offsets` or `geometric`', '',
+       'geometric', 'Model size (CLI `--model`); `auto` chooses by the predicted '
+       'out-of-sample error and adds the effects the data show.', 'auto'),
+    _K('identification.loss', '`linear`, `huber` or `soft_l1`', '', 'linear', 'Robust loss '
+       '(IRLS) of the identification.', 'huber'),
+    _K('identification.outliers', 'mapping', '', '{exclude: true}', 'Outlier exclusion.',
+       {'exclude': True}),
+    _K('identification.outliers.exclude', 'boolean', '', 'true', 'Exclude outliers (false: '
+       'report them only).', False),
+    _K('identification.outliers.threshold', 'number or null', 'robust σ', 'null (Bonferroni '
+       'bound √χ²₃(1 − 0.01/N))', 'Distance beyond which a point is an outlier, > 1.', 5.0),
+    _K('identification.outliers.max_fraction', 'number', '', '0.2', 'Largest fraction of '
+       'outliers before the fit is refused, in [0, 1).', 0.1),
+    _K('identification.cv_folds', 'integer', '', '5', 'Folds of the cross-validated rms '
+       "reported beside `auto`'s choice, ≥ 2.", 5),
+    _K('identification.prior', 'mapping or null', '', 'null', 'Nominal tolerances: one std '
+       'around the URDF for every joint placement and offset (a Gaussian prior).',
+       {'translation': 1e-3, 'rotation': 1e-3, 'offset': 1e-3}),
+    _K('identification.prior.translation', 'number', 'm', REQUIRED + ' (with prior)',
+       'Std of each joint placement translation.', 1.0e-3),
+    _K('identification.prior.rotation', 'number', 'rad', REQUIRED + ' (with prior)',
+       'Std of each joint placement rotation.', 5.0e-3),
+    _K('identification.prior.offset', 'number', 'rad (m for prismatic joints)',
+       REQUIRED + ' (with prior)', 'Std of each joint zero offset.', 5.0e-2),
+    # ---------------------------------------------------------------- effects
+    _K('effects', 'list of effect specs', '', '[]', 'Physical effects in the model, '
+       '`effect:joint` (see the effect library); code effects need the opt-in.',
+       ['joint_compliance:joint_2']),
+    # ------------------------------------------------------------- simulation
+    _K('simulation', 'mapping', '', '{}', 'What `kpi-calib simulate` and `campaign '
+       '--simulate` put into the simulated true robot.', {'hidden_effects': {}}),
+    _K('simulation.hidden_effects', 'mapping of effect spec to its parameters', '', '{}',
+       'Effects the true robot has and the model may lack.',
+       {'joint_compliance:joint_2': {'c': 4.0e-7}}),
+    # ----------------------------------------------------------------- design
+    _K('design', 'mapping', '', '{}', 'Options of the measurement design.',
+       {'candidates': 1500}),
+    _K('design.candidates', 'integer', '', '4000', 'Size of the random feasible candidate '
+       'set of the exchange algorithm.', 1500),
+    _K('design.weights', 'mapping of working pose name to number', '', '{} (equal)',
+       'Weight of each working pose in the KPI criterion, ≥ 0.', {'car_roof_edge': 2.0}),
+    _K('design.collision', 'boolean', '', 'true', 'Impose the capsule constraints (false: '
+       'joint limits and incidence only).', True),
+    _K('design.clearance', 'number', 'm', '0.002', 'Margin the optimiser keeps from every '
+       'capsule pair; verification uses 0.', 0.002),
+    _K('design.incidence_clearance', 'number', 'rad', '0.002', 'Margin the optimiser keeps '
+       'below `reflector.max_incidence`; verification uses 0.', 0.002),
+    _K('design.nlp', 'boolean', '', 'true', 'Refine the exchange design with IPOPT.', False),
+    _K('design.exchange_starts', 'integer', '', '1', 'Random restarts of the exchange '
+       'algorithm; the best is kept.', 3),
+    _K('design.max_iterations', 'integer', '', '300', 'IPOPT iteration limit.', 150),
+    _K('design.ignore_flagged', 'boolean', '', 'false', 'Drop collision pairs violated in '
+       'nearly every measurable pose (reported) instead of failing.', True),
+    _K('design.flag_threshold', 'number', '', '0.98', 'Fraction of measurable random poses '
+       'above which a pair is flagged, in [0, 1].', 0.9),
+    # ----------------------------------------------------------------- topics
+    _K('topics', 'mapping', '', '{}', 'Topics of a bag (`--joint-topic`, `--point-topic`, '
+       '`--pose-topic` override them).', {'point': '/tracker/point'}),
+    _K('topics.joint_states', 'string', '', '/joint_states', 'sensor_msgs/JointState topic.',
+       '/arm/joint_states'),
+    _K('topics.point', 'string', '', '/laser_tracker/point', 'geometry_msgs/PointStamped '
+       'topic of the tracker points.', '/tracker/point'),
+    _K('topics.pose', 'string', '', '/laser_tracker/pose', 'geometry_msgs/PoseStamped topic '
+       'of tracked 6-DoF bodies.', '/tracker/pose'),
+)
+
+
+def cell_key(path: str) -> CellKey:
+    """The description of ``path``; KeyError naming the path when there is none."""
+    for key in CELL_KEYS:
+        if key.path == path:
+            return key
+    raise KeyError(f'{path!r} is not a cell key; see kpi_calib_ros.io.cell_schema.CELL_KEYS')
