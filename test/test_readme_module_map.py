@@ -1,5 +1,6 @@
-"""The README's module map ("How it works") lists every module of the package exactly once,
-and nothing that does not exist: a newcomer finds each concept where the map says."""
+"""The module map of the documentation (doc/architecture.md) lists every module of the
+package exactly once, and nothing that does not exist: a newcomer finds each concept where
+the map says."""
 from __future__ import annotations
 
 import re
@@ -10,8 +11,8 @@ PACKAGE = REPO / 'kpi_calib_ros'
 
 
 def _map_rows() -> list[str]:
-    text = (REPO / 'README.md').read_text()
-    section = text.split('## How it works', 1)[1].split('\n\n**', 1)[0]
+    text = (REPO / 'doc' / 'architecture.md').read_text()
+    section = text.split('| concept | module |', 1)[1]
     return re.findall(r'^\|[^|]+\| `([^`]+)` \|$', section, flags=re.M)
 
 
@@ -25,5 +26,5 @@ def test_every_module_is_in_the_map_once_and_every_entry_exists():
                      if p.name != '__init__.py')
     duplicates = sorted({p for p in listed if listed.count(p) > 1})
     assert duplicates == [], f'listed more than once: {duplicates}'
-    assert sorted(set(modules) - set(listed)) == [], 'modules missing from the README map'
-    assert sorted(set(listed) - set(modules)) == [], 'README map entries with no module'
+    assert sorted(set(modules) - set(listed)) == [], 'modules missing from doc/architecture.md'
+    assert sorted(set(listed) - set(modules)) == [], 'doc/architecture.md entries with no module'

@@ -1,0 +1,57 @@
+"""The reference pages of doc/ are generated from the code: every node parameter, topic
+and service, every library effect and every cell key appears on its page."""
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope='module')
+def pages():
+    spec = importlib.util.spec_from_file_location(
+        'reference_pages', REPO / 'doc' / '_ext' / 'reference_pages.py')
+    module = importlib.util.module_from_spec(spec)
+    sys.modules['reference_pages'] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_node_page_lists_every_parameter_topic_and_service(pages):
+    from kpi_calib_ros.io import names
+    from kpi_calib_ros.ros.parameters import PARAMETERS
+    text = pages.node_page()
+    for name in PARAMETERS:
+        assert f'| `{name}` |' in text
+    node_source = (REPO / 'kpi_calib_ros' / 'ros' / 'node.py').read_text()
+    published = [k for k in vars(names) if k.endswith('_TOPIC') and k in node_source
+                 and k != 'ROBOT_DESCRIPTION_TOPIC']
+    assert len(published) >= 10
+    for constant in published:
+        assert f'`io.names.{constant}`' in text, constant
+    for service in ('design', 'identify', 'diagnose', 'validate', 'reset'):
+        assert f'| `~/{service}` | `std_srvs/srv/Trigger` |' in text
+    assert '| `/joint_states` | `sensor_msgs/msg/JointState` |' in text
+    assert '| `~/tcp` | `geometry_msgs/msg/PoseWithCovarianceStamped` |' in text
+
+
+def test_effects_page_gives_every_library_effect_with_units_and_plausible_range(pages):
+    from kpi_calib_ros.core.effects import LIBRARY
+    text = pages.effects_page()
+    for effect in LIBRARY:
+        row = next(line for line in text.splitlines() if line.startswith(f'| `{effect.name}` |'))
+        for parameter, unit in zip(effect.parameters, effect.units):
+            assert f'{parameter} [{unit}]' in row
+        for bound in effect.plausible:
+            assert f'{bound:g}' in row
+
+
+def test_cell_keys_page_lists_every_described_key(pages):
+    from kpi_calib_ros.io.cell_schema import CELL_KEYS
+    text = pages.cell_keys_page()
+    for key in CELL_KEYS:
+        assert f'| `{key.path}` |' in text
