@@ -6,7 +6,7 @@ package_name = 'kpi_calib_ros'
 
 setup(
     name=package_name,
-    version='0.1.0',
+    version='0.2.0',
     packages=find_packages(exclude=['test', 'test.*', 'bench', 'bench.*']),
     package_data={package_name: ['data/robots/*.urdf', 'data/cells/*.yaml']},
     data_files=[
