@@ -1,4 +1,4 @@
-# Fresh-machine entry points: `make demo` and `make test`.
+# Fresh-machine entry points: `make demo` and `make test`; `make check` is the quick loop.
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 export OPENBLAS_NUM_THREADS ?= 1
 export OMP_NUM_THREADS ?= 1
 
-.PHONY: install demo test bench clean
+.PHONY: install demo lint doc check test bench clean
 
 install: $(STAMP)
 
@@ -21,14 +21,26 @@ $(STAMP): requirements.txt setup.py setup.cfg package.xml
 demo: $(STAMP)
 	$(VENV)/bin/kpi-calib demo --out demo_out
 
-# Lint and types first: they fail in seconds (mypy ~40 s without its cache), the tests take minutes.
-test: $(STAMP)
-	$(VENV)/bin/ruff check kpi_calib_ros test bench
+lint: $(STAMP)
+	$(VENV)/bin/ruff check kpi_calib_ros test bench examples doc
 	$(VENV)/bin/mypy kpi_calib_ros
-	$(PY) -m pytest -q test
+
+# The documentation (doc/, reference pages generated from the code) with warnings as errors.
+doc: $(STAMP)
+	$(VENV)/bin/sphinx-build -q -W --keep-going -b html doc build/doc
+
+# The quick loop while editing: lint, types, the documentation, the tests not marked slow.
+check: lint doc
+	$(PY) -m pytest -q -m "not slow" --durations=15 test
+
+# Lint and types first: they fail in seconds (mypy ~40 s without its cache), then the
+# documentation (seconds), then every test (minutes); the 15 slowest are listed.
+test: lint doc
+	$(PY) -m pytest -q --durations=15 test
 
 bench: $(STAMP)
 	$(PY) bench/run_all.py
 
 clean:
-	rm -rf $(VENV) build install log demo_out *.egg-info .mypy_cache .ruff_cache
+	rm -rf $(VENV) build install log demo_out *.egg-info .mypy_cache .ruff_cache \
+		doc/reference/_generated doc/_generated

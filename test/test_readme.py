@@ -1,0 +1,28 @@
+"""The README is the short entry point (at most 200 lines): what the package is, the two
+commands, the demo, and where to go next; every file it points to exists."""
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+README = (REPO / 'README.md').read_text()
+
+
+def test_readme_is_at_most_200_lines():
+    assert len(README.splitlines()) <= 200
+
+
+def test_every_path_the_readme_names_exists():
+    paths = set(re.findall(r'`((?:doc|examples|bench/results|config)/[^`\s]*)`', README))
+    paths |= set(re.findall(r'\]\(((?:doc)/[^)\s]+)\)', README))
+    paths |= {p for p in re.findall(r'`([A-Za-z_.]+\.(?:rst|txt|md))`', README)}
+    assert len(paths) >= 10
+    missing = sorted(p for p in paths if not (REPO / p).exists())
+    assert missing == [], f'the README points to files that do not exist: {missing}'
+
+
+def test_the_two_commands_are_make_targets():
+    makefile = (REPO / 'Makefile').read_text()
+    for target in re.findall(r'^make (\w+)', README, flags=re.M) + ['check', 'doc']:
+        assert re.search(rf'^{target}:', makefile, flags=re.M), target
