@@ -1,6 +1,7 @@
 """Every script in examples/ runs as a user runs it, and what it prints is true: the TCP
 error against the simulated truth within 3σ of the std eq. (19) predicts, the KPI design
-beating the random one, the hidden effect found and its value recovered within 3σ."""
+beating the random one, the hidden effect found and its value recovered within 3σ, a work
+cycle of the same robot blended and a bent one refused with the bent parameter named."""
 from __future__ import annotations
 
 import re
@@ -67,3 +68,16 @@ def test_the_hidden_compliance_is_found_and_recovered(capsys):
     c, c_std, c_true = (float(v) for v in re.search(
         rf'identified c = ({NUMBER}) ± ({NUMBER}) rad/\(N m\), true ({NUMBER})', out).groups())
     assert abs(c - c_true) < 3 * c_std
+
+
+def test_a_work_cycle_blends_the_same_robot_and_refuses_a_bent_one(capsys):
+    out = _run('work_cycle.py', capsys)
+    cycle = next(line for line in out.splitlines() if line.startswith('cycle 1:'))
+    assert 'consistent: True' in cycle
+    assert max(abs(v) for v in _vector(cycle, 'z')) < 3.0
+    bent = next(line for line in out.splitlines() if line.startswith('cycle 2:'))
+    assert 'consistent: False' in bent
+    name, shift, std = re.search(rf'moved most: (\S+) by ({NUMBER}) ± ({NUMBER}) mm',
+                                 out).groups()
+    assert name == 'joint_2.placement.tx'            # the bent parameter, named first
+    assert abs(float(shift) - 1.0) < 3 * float(std)  # by the 1 mm it was bent
