@@ -3,6 +3,7 @@ and service, every library effect and every cell key appears on its page."""
 from __future__ import annotations
 
 import importlib.util
+import re
 import sys
 from pathlib import Path
 
@@ -55,3 +56,12 @@ def test_cell_keys_page_lists_every_described_key(pages):
     text = pages.cell_keys_page()
     for key in CELL_KEYS:
         assert f'| `{key.path}` |' in text
+
+
+def test_code_in_the_generated_pages_is_shown_as_written(pages):
+    """Angle brackets are escaped for HTML outside code spans only: inside one,
+    `reflector.<name>.x` must stay as written."""
+    text = pages.cell_keys_page() + pages.node_page() + pages.effects_page()
+    spans = re.findall(r'`([^`]+)`', text)
+    assert any('<name>' in s for s in spans)
+    assert [s for s in spans if '&lt;' in s or '&gt;' in s] == []
