@@ -49,6 +49,11 @@ def test_effects_page_gives_every_library_effect_with_units_and_plausible_range(
             assert f'{parameter} [{unit}]' in row
         for bound in effect.plausible:
             assert f'{bound:g}' in row
+    from kpi_calib_ros.core.effects import CHAIN_EFFECTS
+    assert 'gravity_compliance' in CHAIN_EFFECTS
+    for name in CHAIN_EFFECTS:
+        row = next(line for line in text.splitlines() if line.startswith(f'| `{name}:J` |'))
+        assert 'g0 [rad]' in row
 
 
 def test_cell_keys_page_lists_every_described_key(pages):

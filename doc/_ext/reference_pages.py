@@ -121,7 +121,9 @@ def node_page() -> str:
 
 # ------------------------------------------------------------------------ effects
 def effects_page() -> str:
-    from kpi_calib_ros.core.effects import ENTRY_POINT_GROUP, LIBRARY
+    from kpi_calib_ros.core.effects import CHAIN_EFFECTS, ENTRY_POINT_GROUP, LIBRARY
+    # The cell loader imports the chain effects (core.gravity_compliance registers itself).
+    from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
     out = ['# Effect library\n', NOTE,
            'The physical effects `diagnose` screens and `--effects` / the cell file\'s '
            '`effects:` add, as `name:joint` (per joint) or `name` (global). Parameter names '
@@ -146,8 +148,18 @@ def effects_page() -> str:
                      'yes' if e.screen else 'no', cell(e.description)])
     out.append(table(['effect', 'applies to', 'parameters [unit]', 'typical', 'plausible',
                       'screened', 'what it models'], rows))
+    out.append('## Effects built from the chain\n')
+    out.append('Their parameters depend on the robot: they are bound to its chain when a '
+               'spec names them (not screened by `diagnose`). Shown bound to `joint_2` of the '
+               'built-in cell (`kpi_calib_ros/data/cells/default_cell.yaml`).\n')
+    robot = build_cell_model(load_cell(DEFAULT_CELL)).robot
+    chain = [(name, binder(robot, 'joint_2', 'effects')) for name, binder in CHAIN_EFFECTS.items()]
+    rows = [[code(f'{name}:J'), cell(', '.join(f'{p} [{u}]' for p, u in
+                                              zip(b.kind.parameters, b.kind.units))),
+             cell(b.kind.description)] for name, b in chain]
+    out.append(table(['effect', 'parameters [unit] on joint_2', 'what it models'], rows))
     out.append('## What separates each effect from the geometry\n')
-    for e in LIBRARY:
+    for e in LIBRARY + tuple(b.kind for _, b in chain):
         out.append(f'- {code(e.name)}: {cell(e.hint.replace("{joint}", "the joint"))}')
     return '\n'.join(out) + '\n'
 
