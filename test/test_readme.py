@@ -5,6 +5,8 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+import pytest
+
 REPO = Path(__file__).resolve().parents[1]
 README = (REPO / 'README.md').read_text()
 
@@ -26,3 +28,15 @@ def test_the_two_commands_are_make_targets():
     makefile = (REPO / 'Makefile').read_text()
     for target in re.findall(r'^make (\w+)', README, flags=re.M) + ['check', 'doc']:
         assert re.search(rf'^{target}:', makefile, flags=re.M), target
+
+
+@pytest.mark.slow
+def test_the_demo_summary_the_readme_quotes_is_what_the_demo_prints(tmp_path, capsys):
+    from kpi_calib_ros.app.demo import run_demo
+    assert run_demo(tmp_path, seed=7) == 0
+    printed = capsys.readouterr().out.splitlines()
+    block = README.split('Lines\nof its summary (seed 7):\n\n```text\n', 1)[1].split('```', 1)[0]
+    quoted = [line for line in block.splitlines() if line.strip()]
+    assert len(quoted) >= 10
+    assert [line for line in quoted if line not in printed] == []
+    assert (tmp_path / 'diagnosis' / 'before_after.png').is_file()
