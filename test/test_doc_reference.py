@@ -1,7 +1,9 @@
-"""The reference pages of doc/ are generated from the code: every node parameter, topic
-and service, every library effect and every cell key appears on its page."""
+"""The reference pages of doc/ are generated from the code: every subcommand and option of
+the `kpi-calib` parser, every node parameter, topic and service, every library effect and
+every cell key appears on its page, and a change in the code shows on the page."""
 from __future__ import annotations
 
+import argparse
 import importlib.util
 import re
 import sys
@@ -20,6 +22,37 @@ def pages():
     sys.modules['reference_pages'] = module
     spec.loader.exec_module(module)
     return module
+
+
+def test_cli_page_lists_every_subcommand_and_option_of_the_parser(pages):
+    from kpi_calib_ros.cli import build_parser
+    text = pages.cli_page()
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    assert len(sub.choices) >= 10
+    for name, parser in sub.choices.items():
+        assert f'## `kpi-calib {name}`' in text
+        section = text.split(f'## `kpi-calib {name}`', 1)[1].split('\n## ', 1)[0]
+        for action in parser._actions:
+            for flag in action.option_strings:
+                if flag not in ('-h', '--help'):
+                    assert f'`{flag}' in section, f'{name} {flag} missing from the CLI page'
+
+
+def test_cli_page_follows_the_parser(pages, monkeypatch):
+    from kpi_calib_ros import cli
+    original = cli.build_parser
+
+    def extended() -> argparse.ArgumentParser:
+        parser = original()
+        sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+        sub.choices['identify'].add_argument('--tracker-temperature', type=float, default=20.0,
+                                             help='air temperature at the tracker (°C)')
+        return parser
+
+    monkeypatch.setattr(cli, 'build_parser', extended)
+    text = pages.cli_page()
+    assert ('| `--tracker-temperature TRACKER_TEMPERATURE` | `20.0` | air temperature at the '
+            'tracker (°C) |') in text
 
 
 def test_node_page_lists_every_parameter_topic_and_service(pages):

@@ -1,6 +1,7 @@
 """Reference pages generated from the code, written before Sphinx reads the sources.
 
-The code is the source of these pages: the node's parameters
+The code is the source of these pages: the ``kpi-calib`` argparse parser
+(:func:`kpi_calib_ros.cli.build_parser`), the node's parameters
 (:data:`kpi_calib_ros.ros.parameters.PARAMETERS`), its topics and services (the names of
 :mod:`kpi_calib_ros.io.names`, the message types as ``ros/node.py`` creates them), the
 effect library (:data:`kpi_calib_ros.core.effects.LIBRARY`) and the cell keys
@@ -10,6 +11,7 @@ effect library (:data:`kpi_calib_ros.core.effects.LIBRARY`) and the cell keys
 """
 from __future__ import annotations
 
+import argparse
 import ast
 import shutil
 from pathlib import Path
@@ -42,6 +44,56 @@ def table(header: Iterable[str], rows: Iterable[Iterable[Any]]) -> str:
 def code(text: Any) -> str:
     text = str(text)
     return f'`` {text} ``' if '`' in text else f'`{text}`'
+
+
+# ---------------------------------------------------------------------------- CLI
+def _subcommands(parser: argparse.ArgumentParser) -> list[tuple[str, str, argparse.ArgumentParser]]:
+    for action in parser._actions:  # argparse keeps its sub-parsers here only
+        if isinstance(action, argparse._SubParsersAction):
+            helps = {a.dest: a.help or '' for a in action._choices_actions}
+            return [(name, helps.get(name, ''), sub) for name, sub in action.choices.items()]
+    return []
+
+
+def _option_row(action: argparse.Action) -> list[str]:
+    if action.option_strings:
+        name = ', '.join(action.option_strings)
+        if action.nargs != 0:
+            metavar = action.metavar or action.dest.upper()
+            name += f' {metavar}' if action.nargs != '?' else f' [{metavar}]'
+    else:
+        name = str(action.metavar or action.dest) + (' …' if action.nargs in ('+', '*') else '')
+    if action.required or not action.option_strings:
+        default = 'required'
+    elif action.nargs == 0:
+        default = 'off'
+    elif action.default is None or action.default == '' or action.default == []:
+        default = '–'
+    elif isinstance(action.default, tuple):
+        default = code(','.join(f'{v:g}' for v in action.default))
+    else:
+        default = code(action.default)
+    choices = f' (one of {", ".join(map(str, action.choices))})' if action.choices else ''
+    return [code(name), default, cell((action.help or '') + choices)]
+
+
+def cli_page() -> str:
+    from kpi_calib_ros import cli
+    parser = cli.build_parser()
+    out = ['# `kpi-calib`: command-line reference\n', NOTE,
+           cell(parser.description or '').replace('\\*', '*') + '\n',
+           'Exit codes: 0 success, 1 a result that does not hold (not valid, not met), '
+           '2 an input error (the message names the file or field and the fix); '
+           '`identify --prior` also 3, a change beyond the drift model (not blended).\n']
+    for name, help_text, sub in _subcommands(parser):
+        out.append(f'## `kpi-calib {name}`\n')
+        out.append(cell(help_text) + '\n')
+        usage = ' '.join(sub.format_usage().split())
+        out.append(f'```text\n{usage}\n```\n')
+        rows = [_option_row(a) for a in sub._actions
+                if not isinstance(a, argparse._HelpAction)]
+        out.append(table(['argument', 'default', 'meaning'], rows))
+    return '\n'.join(out)
 
 
 # --------------------------------------------------------------------------- node
@@ -193,7 +245,7 @@ def copy_bench_results() -> None:
             shutil.copy2(path, BENCH / path.name)
 
 
-PAGES = {'node.md': node_page, 'effects.md': effects_page,
+PAGES = {'cli.md': cli_page, 'node.md': node_page, 'effects.md': effects_page,
          'cell_keys.md': cell_keys_page}
 
 
