@@ -73,7 +73,9 @@ def _swing(text: str) -> DriftSwing:
             f'period in hours > 0): {exc}') from None
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """The `kpi-calib` parser with every subcommand (also the source of the CLI
+    reference page of the documentation)."""
     parser = argparse.ArgumentParser(prog='kpi-calib', description=__doc__)
     sub = parser.add_subparsers(dest='command', required=True)
 
@@ -209,7 +211,11 @@ def main(argv: list[str] | None = None) -> int:
 
     rob = sub.add_parser('robots', help='regenerate the URDFs of the built-in robot library')
     rob.add_argument('--out', help='target folder (default: the package data folder)')
+    return parser
 
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
     args = parser.parse_args(argv)
     try:
         return _COMMANDS[args.command](args)
