@@ -528,9 +528,7 @@ class CalibrationNode(Node):
             self._publish_diagnostics(force=True)
             return False, f'not published (last good calibration kept): {reason}'
         for e in cal.robust.excluded:
-            self.get_logger().warning(
-                f'measurement {e.index} (stamp {e.stamp_ns} ns) excluded: '
-                f'{e.distance_m * 1e6:.1f} µm from the fit; {e.reason}')
+            self.get_logger().warning(e.text())
         for text in cal.robust.warnings:
             self.get_logger().warning(text)
         self._robust = cal.robust
