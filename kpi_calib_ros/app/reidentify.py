@@ -41,7 +41,8 @@ from kpi_calib_ros.core.prior import (DRIFT_ANGLE_PER_SQRT_HOUR, DRIFT_LENGTH_PE
                                       prior_from_calibration, state_predicted, state_updated)
 from kpi_calib_ros.core.simulation import random_configurations
 from kpi_calib_ros.io.cell import CellModel
-from kpi_calib_ros.io.results import read_calibration_document, writable_folder
+from kpi_calib_ros.io.calibration_file import read_calibration_document
+from kpi_calib_ros.io.results import writable_folder
 
 from kpi_calib_ros.app.identify import (CellCalibration, add_robust_sections,
                                         calibrate_cell, calibration_document,

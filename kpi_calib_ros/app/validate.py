@@ -11,7 +11,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from kpi_calib_ros.app.identify import measurements_from_bag
 from kpi_calib_ros.core.errors import ConfigError, DataError
@@ -20,25 +19,15 @@ from kpi_calib_ros.core.validation import REPEATED_WITHIN, Validation, validate
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
 from kpi_calib_ros.io.names import VALIDATION_FILE
 from kpi_calib_ros.io.report import write_validation_plots
-from kpi_calib_ros.io.results import write_atomic
+from kpi_calib_ros.io.calibration_file import read_calibration_document
+from kpi_calib_ros.io.results import writable_folder, write_atomic
 
 
 def read_calibration(path: str | Path) -> dict[str, Any]:
-    """The calibration.yaml document, checked for what validation needs."""
-    path = Path(path)
-    if not path.is_file():
-        raise ConfigError('calibration', f'file {str(path)!r} does not exist')
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        raise ConfigError('calibration', f'{path} is not valid YAML: {exc}') from exc
-    if not isinstance(doc, dict):
-        raise ConfigError('calibration', f'{path} is not a calibration document')
-    for key in ('parameters', 'parameter_covariance', 'noise_sigma_m'):
-        if key not in doc:
-            raise ConfigError(f'calibration.{key}', f'missing in {path}; identify again with '
-                              'this version (kpi-calib identify) to write it')
-    return doc
+    """The calibration.yaml document, checked for what validation needs
+    (:func:`~kpi_calib_ros.io.calibration_file.read_calibration_document`)."""
+    return read_calibration_document(path, 'calibration',
+                                     required=('parameter_covariance', 'noise_sigma_m'))
 
 
 def calibrated_model(cell: Any, doc: dict[str, Any]) -> tuple[CellModel, np.ndarray]:
@@ -185,13 +174,17 @@ def validate_report(cm: CellModel, doc: dict[str, Any], data: Measurements,
 
 
 def run_validate(cell_path: str | Path, calibration_path: str | Path, bag_path: str | Path,
-                 out_dir: str | Path) -> int:
+                 out_dir: str | Path, allow_code_effects: bool = False) -> int:
     """``kpi-calib validate``: validation.json and a plot in ``out_dir``.
+
+    ``allow_code_effects``: the cell's (and the calibration's) effects may name Python
+    code, as for identify.
 
     Returns 0 when the calibration holds, 1 when it does not.
     """
+    writable_folder(out_dir, '--out')
     doc = read_calibration(calibration_path)
-    cm, _ = calibrated_model(load_cell(cell_path), doc)
+    cm, _ = calibrated_model(load_cell(cell_path, allow_code_effects=allow_code_effects), doc)
     data, pairing = measurements_from_bag(cm, bag_path)
     for reason, count in sorted(pairing.rejections.items()):
         print(f'rejected {count} sample(s): {reason}', file=sys.stderr)

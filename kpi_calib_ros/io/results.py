@@ -63,8 +63,16 @@ def write_atomic(path: str | Path, text: str) -> Path:
 def writable_folder(path: str | Path, key: str = 'out') -> Path:
     """Create folder ``path`` if needed and prove a file can be written in it (read-only
     file system, permissions, a file in the way), so a command fails before its
-    computation, not after; ConfigError names ``key``."""
+    computation, not after; a file-system root (``/``) is refused. ConfigError names
+    ``key``."""
     path = Path(path)
+    resolved = path.resolve()
+    if resolved.parent == resolved:
+        # Results are a folder of files (calibration.yaml, plots, validation/...) that a
+        # later run replaces: never spread over a file system's root.
+        raise ConfigError(key, f'{str(path)!r} is the root of a file system: the results '
+                          '(calibration.yaml, plots, ...) would be written and replaced '
+                          'there; give a folder of their own, e.g. ./calibration_out')
     try:
         path.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryFile(dir=path, prefix='.write_test.'):
@@ -133,22 +141,6 @@ def calibration_to_dict(result: CalibrationResult,
             doc['training_configurations'] = {
                 'joints': list(pairing.joint_names),
                 'q': [[float(x) for x in row] for row in np.unique(pairing.q, axis=0)]}
-    return doc
-
-
-def read_calibration_document(path: str | Path, key: str = 'calibration') -> dict[str, Any]:
-    """A calibration.yaml as a dict, checked to be a mapping with ``parameters``;
-    ConfigError names ``key`` (the option that gave the path)."""
-    path = Path(path)
-    if not path.is_file():
-        raise ConfigError(key, f'file {str(path)!r} does not exist; give a calibration.yaml '
-                          'written by kpi-calib identify')
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        raise ConfigError(key, f'{path} is not valid YAML: {exc}') from exc
-    if not isinstance(doc, dict) or 'parameters' not in doc:
-        raise ConfigError(key, f'{path} is not a calibration document (no parameters:)')
     return doc
 
 

@@ -33,9 +33,11 @@ from kpi_calib_ros.app.identify import (CellCalibration, add_robust_sections,
 from kpi_calib_ros.app.reidentify import cycle_prior, reidentification_document, reidentify
 from kpi_calib_ros.core.prior import DriftSwing
 from kpi_calib_ros.core.change_detection import ChangeTest
+from kpi_calib_ros.core.errors import KpiCalibError
 from kpi_calib_ros.io.names import (CALIBRATIONS_DIR, CAMPAIGN_PLAN_FILE, DESIGN_FILE,
                                     DIAGNOSIS_DIR, VALIDATION_DIR)
-from kpi_calib_ros.io.results import read_calibration_document, write_atomic
+from kpi_calib_ros.io.calibration_file import read_calibration_document
+from kpi_calib_ros.io.results import write_atomic
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros.parameters import NodeSettings
 
