@@ -25,7 +25,8 @@ from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.pairing import PairingResult
 from kpi_calib_ros.core.precision import precision_statement
-from kpi_calib_ros.core.residuals import is_adequate
+from kpi_calib_ros.core.residuals import (SIGMA_OVERSTATED, is_adequate, noise_verdict,
+                                          sigma_overstated_text)
 from kpi_calib_ros.io.names import CALIBRATION_FILE, truth_path
 
 
@@ -100,6 +101,7 @@ def calibration_to_dict(result: CalibrationResult,
                     'covariance': [[float(x) for x in row] for row in cov],
                     'std': [float(x) for x in np.sqrt(np.diag(cov))],
                     'trace_m2': float(np.trace(cov))})
+    verdict, lower_p = noise_verdict(float(result.chi2), int(result.dof))
     doc: dict[str, Any] = {
         'status': {'converged': bool(result.converged), 'code': int(result.status),
                    'message': result.message, 'iterations': int(result.iterations)},
@@ -107,9 +109,12 @@ def calibration_to_dict(result: CalibrationResult,
         'rms_m': float(result.rms_m),
         'max_residual_m': float(np.max(np.linalg.norm(result.residuals, axis=1))),
         'noise_sigma_m': [float(s) for s in result.sigma],
+        # `adequate`: the upper tail (the model); `noise_verdict`: the lower tail (the
+        # stated σ; core.residuals.noise_verdict), each at the adequacy level.
         'model_adequacy': {'chi2': float(result.chi2), 'dof': int(result.dof),
                            'p_value': float(result.p_value),
-                           'adequate': is_adequate(result.p_value)},
+                           'adequate': is_adequate(result.p_value),
+                           'noise_verdict': verdict, 'lower_tail_p': lower_p},
         # Which σ the std and covariances below rest on (core.precision).
         'precision': {'covariance_scale': float(result.covariance_scale),
                       'basis': precision_statement(float(result.covariance_scale))},
@@ -172,6 +177,10 @@ def summary_text(doc: dict[str, Any]) -> str:
               f"model adequacy: chi2/dof = {doc['model_adequacy']['chi2']:.1f}/"
               f"{doc['model_adequacy']['dof']}, p = {doc['model_adequacy']['p_value']:.3g}"]
     lines += [f'WARNING: {w}' for w in doc.get('warnings', [])]
+    adequacy = doc['model_adequacy']
+    if adequacy.get('noise_verdict') == SIGMA_OVERSTATED:
+        lines.append('WARNING: ' + sigma_overstated_text(adequacy['chi2'], adequacy['dof'],
+                                                         adequacy['lower_tail_p']))
     precision = doc.get('precision', {})
     if precision.get('covariance_scale', 1.0) != 1.0:
         lines.append(f"WARNING: std {precision['basis']}")
