@@ -184,7 +184,15 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
     max_excluded = int(np.floor(outliers.max_fraction * n))
     p0 = None
     while True:
-        result, omega = _fit_with_loss(fit, subset(data, kept), loss, p0)
+        try:
+            result, omega = _fit_with_loss(fit, subset(data, kept), loss, p0)
+        except DataError as exc:
+            if not excluded:
+                raise
+            # 'too few measurements: 9 points' of 10 accepted: say which were left out.
+            raise DataError(f'{exc} (after excluding {len(excluded)} of the {n} measurements: '
+                            + '; '.join(f'{e.index}: {e.reason}' for e in excluded) + ')'
+                            ) from None
         p0 = result.values
         distances = np.linalg.norm(
             eta - model.predict(result.values, q, data.tau, data.reflector, data.rotation),
