@@ -279,3 +279,23 @@ def test_validate_takes_the_code_effects_opt_in_it_advises(made, tmp_path, capsy
     err = capsys.readouterr().err
     # Ran: the calibration lacks the effect's parameter, which validate names.
     assert marker.exists() and code == 2 and 'sag' in err, err
+
+
+def test_validate_says_sigma_overstated_when_chi2_is_far_below_its_dof(made, tmp_path,
+                                                                        capsys):
+    """The same calibration with noise_sigma_m 250x: the new points 'hold' (p = 1) and
+    validation.json and the summary say 'sigma overstated'; as written: consistent."""
+    import json
+    tmp, doc, new = made
+    loud = {**doc, 'noise_sigma_m': [s * 250 for s in doc['noise_sigma_m']]}
+    for name, calibration, verdict in (('honest', doc, 'sigma consistent'),
+                                       ('loud', loud, 'sigma overstated')):
+        path = _write(tmp_path, name, calibration)
+        out = tmp_path / f'out_{name}'
+        code = main(['validate', '--cell', CELL, '--calibration', str(path), '--bag', str(new),
+                     '--out', str(out)])
+        text = capsys.readouterr().out
+        result = json.loads((out / 'validation.json').read_text())
+        assert code == 0 and result['holds'], text
+        assert result['noise_verdict'] == verdict, result['lower_tail_p']
+        assert ('WARNING: sigma overstated' in text) == (name == 'loud')

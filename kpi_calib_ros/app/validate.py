@@ -15,6 +15,7 @@ import numpy as np
 from kpi_calib_ros.app.identify import measurements_from_bag
 from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.measurement import Measurements
+from kpi_calib_ros.core.residuals import SIGMA_OVERSTATED, noise_verdict, sigma_overstated_text
 from kpi_calib_ros.core.validation import REPEATED_WITHIN, Validation, validate
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
 from kpi_calib_ros.io.names import VALIDATION_FILE
@@ -122,6 +123,8 @@ def validation_to_dict(v: Validation, data: Measurements, training_rms_m: float 
         'training_rms_m': training_rms_m,
         'predicted_std_median_m': float(np.median(v.predicted_std)),
         'chi2': v.chi2, 'dof': v.dof, 'p_value': v.p_value, 'alpha': v.alpha,
+        # The lower tail at the same level: 'sigma overstated' (core.residuals.noise_verdict).
+        **dict(zip(('noise_verdict', 'lower_tail_p'), noise_verdict(v.chi2, v.dof, v.alpha))),
         'points': [{'stamp_ns': int(s) if data.stamps_ns is not None else None,
                     'reflector': int(data.reflector[i]) if data.reflector is not None else 0,
                     'residual_m': [float(x) for x in v.residuals[i]],
@@ -151,6 +154,9 @@ def validation_text(doc: dict[str, Any]) -> str:
              f"inside the training joint ranges: rms {mm(doc['rms_inside_training_range_m'])}; "
              f"outside ({doc['outside_training_range']} points): "
              f"{mm(doc['rms_outside_training_range_m'])}"]
+    if doc.get('noise_verdict') == SIGMA_OVERSTATED:
+        lines.append('WARNING: ' + sigma_overstated_text(doc['chi2'], doc['dof'],
+                                                         doc['lower_tail_p'], doc['alpha']))
     if doc.get('repeated_from_training'):
         lines.append(f"inside: poses repeated from training ({doc['repeated_from_training']} "
                      f"points, every joint within {REPEATED_WITHIN:g} rad or m): rms "
