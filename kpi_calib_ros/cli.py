@@ -143,6 +143,7 @@ def main(argv: list[str] | None = None) -> int:
     val.add_argument('--calibration', required=True, help='calibration.yaml of identify')
     val.add_argument('--bag', required=True, help='new MCAP bag (not used for the calibration)')
     val.add_argument('--out', required=True, help='output folder: validation.json, plot')
+    val.add_argument('--allow-code-effects', action='store_true', help=CODE_EFFECTS_HELP)
 
     imp = sub.add_parser('import-csv', help='a table of static postures (CSV) into an MCAP bag')
     imp.add_argument('csv', nargs='+', help='one row per posture: joint values and marker '
@@ -276,7 +277,8 @@ def _diagnose(args: argparse.Namespace) -> int:
 
 def _validate(args: argparse.Namespace) -> int:
     from kpi_calib_ros.app.validate import run_validate
-    return run_validate(args.cell, args.calibration, args.bag, args.out)
+    return run_validate(args.cell, args.calibration, args.bag, args.out,
+                        allow_code_effects=args.allow_code_effects)
 
 
 def _import_csv(args: argparse.Namespace) -> int:

@@ -19,7 +19,7 @@ from kpi_calib_ros.core.prior import (DRIFT_ANGLE_PER_SQRT_HOUR, DRIFT_LENGTH_PE
                                       DriftSwing, Prior)
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
 from kpi_calib_ros.io.design_io import plot_design, plot_ellipsoids, summary_text, write_design
-from kpi_calib_ros.io.results import read_calibration_document
+from kpi_calib_ros.io.calibration_file import read_calibration_document
 from kpi_calib_ros.io.robot_geometry import mesh_check
 
 

@@ -27,8 +27,8 @@ from kpi_calib_ros.core.model_selection import ModelChoice, choose_model, level_
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements, with_rotation_rows
 from kpi_calib_ros.core.pairing import PairingResult, pair_measurements
 from kpi_calib_ros.core.registration import Registration, register
-from kpi_calib_ros.core.robust import (LOSS_SCALE, RobustResult, gross_outliers,
-                                       robust_identify, subset)
+from kpi_calib_ros.core.robust import (LOSS_SCALE, ExcludedMeasurement, RobustResult,
+                                      gross_outliers, robust_identify, subset)
 from kpi_calib_ros.core.precision import balanced_prior, honest_precision
 from kpi_calib_ros.core.prior import Prior, tolerance_prior
 from kpi_calib_ros.core.streams import JointSample, PointSample
@@ -482,9 +482,7 @@ def robust_summary(doc: dict[str, Any]) -> str:
     lines.append(f"noise σ: stated {rob['sigma_stated_m'] * 1e6:.3g} µm, robust estimate from "
                  f"the residuals {rob['sigma_robust_m'] * 1e6:.3g} µm "
                  f"(ratio {rob['sigma_ratio']:.3g}); loss {rob['loss']}")
-    for e in rob['excluded']:
-        lines.append(f"excluded measurement {e['index']} (stamp {e['stamp_ns']} ns): "
-                     f"{e['distance_m'] * 1e6:.1f} µm from the fit; {e['reason']}")
+    lines += [ExcludedMeasurement(**e).text() for e in rob['excluded']]
     lines += [f'WARNING: {w}' for w in rob['warnings']]
     if doc['tcp_estimable']:
         lines.append('TCP estimable at every working pose')

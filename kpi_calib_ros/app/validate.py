@@ -11,34 +11,24 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from kpi_calib_ros.app.identify import measurements_from_bag
 from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.measurement import Measurements
+from kpi_calib_ros.core.residuals import SIGMA_OVERSTATED, noise_verdict, sigma_overstated_text
 from kpi_calib_ros.core.validation import REPEATED_WITHIN, Validation, validate
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
 from kpi_calib_ros.io.names import VALIDATION_FILE
 from kpi_calib_ros.io.report import write_validation_plots
-from kpi_calib_ros.io.results import write_atomic
+from kpi_calib_ros.io.calibration_file import read_calibration_document
+from kpi_calib_ros.io.results import writable_folder, write_atomic
 
 
 def read_calibration(path: str | Path) -> dict[str, Any]:
-    """The calibration.yaml document, checked for what validation needs."""
-    path = Path(path)
-    if not path.is_file():
-        raise ConfigError('calibration', f'file {str(path)!r} does not exist')
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        raise ConfigError('calibration', f'{path} is not valid YAML: {exc}') from exc
-    if not isinstance(doc, dict):
-        raise ConfigError('calibration', f'{path} is not a calibration document')
-    for key in ('parameters', 'parameter_covariance', 'noise_sigma_m'):
-        if key not in doc:
-            raise ConfigError(f'calibration.{key}', f'missing in {path}; identify again with '
-                              'this version (kpi-calib identify) to write it')
-    return doc
+    """The calibration.yaml document, checked for what validation needs
+    (:func:`~kpi_calib_ros.io.calibration_file.read_calibration_document`)."""
+    return read_calibration_document(path, 'calibration',
+                                     required=('parameter_covariance', 'noise_sigma_m'))
 
 
 def calibrated_model(cell: Any, doc: dict[str, Any]) -> tuple[CellModel, np.ndarray]:
@@ -133,6 +123,8 @@ def validation_to_dict(v: Validation, data: Measurements, training_rms_m: float 
         'training_rms_m': training_rms_m,
         'predicted_std_median_m': float(np.median(v.predicted_std)),
         'chi2': v.chi2, 'dof': v.dof, 'p_value': v.p_value, 'alpha': v.alpha,
+        # The lower tail at the same level: 'sigma overstated' (core.residuals.noise_verdict).
+        **dict(zip(('noise_verdict', 'lower_tail_p'), noise_verdict(v.chi2, v.dof, v.alpha))),
         'points': [{'stamp_ns': int(s) if data.stamps_ns is not None else None,
                     'reflector': int(data.reflector[i]) if data.reflector is not None else 0,
                     'residual_m': [float(x) for x in v.residuals[i]],
@@ -162,6 +154,9 @@ def validation_text(doc: dict[str, Any]) -> str:
              f"inside the training joint ranges: rms {mm(doc['rms_inside_training_range_m'])}; "
              f"outside ({doc['outside_training_range']} points): "
              f"{mm(doc['rms_outside_training_range_m'])}"]
+    if doc.get('noise_verdict') == SIGMA_OVERSTATED:
+        lines.append('WARNING: ' + sigma_overstated_text(doc['chi2'], doc['dof'],
+                                                         doc['lower_tail_p'], doc['alpha']))
     if doc.get('repeated_from_training'):
         lines.append(f"inside: poses repeated from training ({doc['repeated_from_training']} "
                      f"points, every joint within {REPEATED_WITHIN:g} rad or m): rms "
@@ -185,13 +180,17 @@ def validate_report(cm: CellModel, doc: dict[str, Any], data: Measurements,
 
 
 def run_validate(cell_path: str | Path, calibration_path: str | Path, bag_path: str | Path,
-                 out_dir: str | Path) -> int:
+                 out_dir: str | Path, allow_code_effects: bool = False) -> int:
     """``kpi-calib validate``: validation.json and a plot in ``out_dir``.
+
+    ``allow_code_effects``: the cell's (and the calibration's) effects may name Python
+    code, as for identify.
 
     Returns 0 when the calibration holds, 1 when it does not.
     """
+    writable_folder(out_dir, '--out')
     doc = read_calibration(calibration_path)
-    cm, _ = calibrated_model(load_cell(cell_path), doc)
+    cm, _ = calibrated_model(load_cell(cell_path, allow_code_effects=allow_code_effects), doc)
     data, pairing = measurements_from_bag(cm, bag_path)
     for reason, count in sorted(pairing.rejections.items()):
         print(f'rejected {count} sample(s): {reason}', file=sys.stderr)

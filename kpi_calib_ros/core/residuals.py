@@ -103,6 +103,38 @@ def is_adequate(p_value: float, alpha: float = ADEQUACY_ALPHA) -> bool:
     return bool(p_value >= alpha)
 
 
+# The noise verdicts of the χ² test's two tails (calibration.yaml model_adequacy).
+SIGMA_OVERSTATED = 'sigma overstated'
+SIGMA_CONSISTENT = 'sigma consistent'
+SIGMA_NOT_TESTED = 'not tested'
+
+
+def noise_verdict(chi2: float, dof: int, alpha: float = ADEQUACY_ALPHA) -> tuple[str, float]:
+    """The lower tail of the χ² test: (verdict, P(χ²_dof <= chi2)).
+
+    χ² far *below* its dof is a verdict too: the residuals are smaller than the stated σ
+    allows, the σ is overstated (every std and covariance resting on it is too large)
+    and the upper-tail adequacy test (:func:`is_adequate`) has lost its power. The two
+    tails are two questions, each at the adequacy level ``alpha``: ``adequate`` (upper
+    tail) stays about the model, this about the stated σ. :data:`SIGMA_OVERSTATED` when
+    the lower tail is below ``alpha``; :data:`SIGMA_NOT_TESTED` with no dof.
+    """
+    if dof <= 0 or not np.isfinite(chi2):
+        return SIGMA_NOT_TESTED, float('nan')
+    lower = float(scipy.stats.chi2.cdf(chi2, dof))
+    return (SIGMA_OVERSTATED if lower < alpha else SIGMA_CONSISTENT), lower
+
+
+def sigma_overstated_text(chi2: float, dof: int, lower_p: float,
+                          alpha: float = ADEQUACY_ALPHA) -> str:
+    """The warning of :data:`SIGMA_OVERSTATED`, naming the key to fix."""
+    return (f'{SIGMA_OVERSTATED}: chi2/dof = {chi2:.3g}/{dof} is far below its dof '
+            f'(P(chi2 <= {chi2:.3g}) = {lower_p:.2g} < {alpha:g}): the residuals are '
+            f'{np.sqrt(chi2 / dof):.3g} x the stated noise.sigma; every std and covariance '
+            'resting on it is too large and the adequacy test cannot fail; check '
+            'noise.sigma (units: m)')
+
+
 def linearized_fit(model: MeasurementModel, data: Measurements, result: CalibrationResult,
             tau: np.ndarray | None = None) -> LinearizedFit:
     w = weights(result.sigma)

@@ -67,6 +67,14 @@ class ExcludedMeasurement:
     distance_sigma: float
     reason: str
 
+    def text(self) -> str:
+        """The one line the log and the summary print: ``distance_sigma`` is the number
+        calibration.yaml stores (distance from the final fit over its σ̂), so a point
+        reads the same in both."""
+        return (f'measurement {self.index} (stamp {self.stamp_ns} ns) excluded: '
+                f'{self.distance_m * 1e6:.1f} µm from the final fit, distance_sigma '
+                f'{self.distance_sigma:.2f} σ̂; {self.reason}')
+
 
 @dataclass(frozen=True)
 class RobustResult:
@@ -176,7 +184,15 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
     max_excluded = int(np.floor(outliers.max_fraction * n))
     p0 = None
     while True:
-        result, omega = _fit_with_loss(fit, subset(data, kept), loss, p0)
+        try:
+            result, omega = _fit_with_loss(fit, subset(data, kept), loss, p0)
+        except DataError as exc:
+            if not excluded:
+                raise
+            # 'too few measurements: 9 points' of 10 accepted: say which were left out.
+            raise DataError(f'{exc} (after excluding {len(excluded)} of the {n} measurements: '
+                            + '; '.join(f'{e.index}: {e.reason}' for e in excluded) + ')'
+                            ) from None
         p0 = result.values
         distances = np.linalg.norm(
             eta - model.predict(result.values, q, data.tau, data.reflector, data.rotation),
@@ -191,9 +207,11 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
                             'model or the data is wrong, not a few points; run kpi-calib '
                             'diagnose, or raise identification.outliers.threshold')
         worst = int(np.argmax(np.where(over, distances, -1.0)))
+        # The reason carries no distance of its own: distance_sigma (against the final
+        # fit, below) is the one figure reported for the point.
         excluded.append(_excluded(worst, stamps, distances[worst], distances[worst] / scale,
-                                  f'outlier: {distances[worst] / scale:.1f} σ̂ > '
-                                  f'{threshold:.2f} σ̂'))
+                                  f'outlier: beyond {threshold:.2f} σ̂ from the fit it was '
+                                  'excluded from'))
         kept[worst] = False
     # Distances of every measurement (excluded ones too) against the final fit.
     final_excluded = tuple(replace(e, distance_m=float(distances[e.index]),

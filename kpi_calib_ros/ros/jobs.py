@@ -33,9 +33,11 @@ from kpi_calib_ros.app.identify import (CellCalibration, add_robust_sections,
 from kpi_calib_ros.app.reidentify import cycle_prior, reidentification_document, reidentify
 from kpi_calib_ros.core.prior import DriftSwing
 from kpi_calib_ros.core.change_detection import ChangeTest
+from kpi_calib_ros.core.errors import KpiCalibError
 from kpi_calib_ros.io.names import (CALIBRATIONS_DIR, CAMPAIGN_PLAN_FILE, DESIGN_FILE,
                                     DIAGNOSIS_DIR, VALIDATION_DIR)
-from kpi_calib_ros.io.results import read_calibration_document, write_atomic
+from kpi_calib_ros.io.calibration_file import read_calibration_document
+from kpi_calib_ros.io.results import write_atomic
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros.parameters import NodeSettings
 
@@ -70,19 +72,50 @@ def design_work(cm: CellModel, settings: NodeSettings,
     return design, points, path, '' if estimability.all_estimable else estimability.summary()
 
 
-def previous_calibration(data_dir: Path, first_stamp_ns: int) -> Path | None:
+def previous_calibration(data_dir: Path, first_stamp_ns: int
+                         ) -> tuple[Path | None, dict[str, Any] | None, list[str]]:
     """The newest archived calibration (``data_dir/calibrations/<identified_at_ns>.yaml``)
     identified before ``first_stamp_ns``: the last cycle's, never one fitted to any of
-    the current measurements."""
-    best: tuple[int, Path] | None = None
-    for path in (data_dir / CALIBRATIONS_DIR).glob('*.yaml'):
+    the current measurements. A file that is not a readable calibration (damaged, edited,
+    not one) is skipped with a warning and the next older one is tried.
+
+    Returns
+    -------
+    path, doc : Path and dict, or None and None
+        The prior calibration and its checked document; None when there is none.
+    notes : list of str
+        The files skipped and, without a prior, why none was used.
+    """
+    folder = data_dir / CALIBRATIONS_DIR
+    dated: list[tuple[int, Path]] = []
+    notes: list[str] = []
+    for path in sorted(folder.glob('*.yaml')):
         try:
-            stamp = int(path.stem)
+            dated.append((int(path.stem), path))
         except ValueError:
-            continue
-        if stamp < first_stamp_ns and (best is None or stamp > best[0]):
-            best = (stamp, path)
-    return None if best is None else best[1]
+            notes.append(f'{path} skipped: not named <identified_at_ns>.yaml')
+    before = sorted((d for d in dated if d[0] < first_stamp_ns), reverse=True)
+    for _, path in before:
+        try:
+            return path, read_calibration_document(path, 'prior calibration'), notes
+        except KpiCalibError as exc:
+            notes.append(f'{path} skipped: {exc}')
+    after = len(dated) - len(before)
+    if after:
+        newest = max(d[0] for d in dated)
+        notes.append(f'no prior: {after} archived calibration(s) in {folder} dated at or '
+                     f'after the first measurement (identified_at_ns up to {newest}, first '
+                     f'measurement stamped {int(first_stamp_ns)}, '
+                     f'{(newest - int(first_stamp_ns)) / 3.6e12:.3g} h later): the clock that '
+                     'stamps the measurements was set back, or they are from another cycle; '
+                     'identified without a prior')
+    elif not before:
+        notes.append(f'no prior: no archived calibration in {folder}; identified without '
+                     'a prior')
+    else:
+        notes.append('no prior: no archived calibration could be read; identified without '
+                     'a prior')
+    return None, None, notes
 
 
 def archive_calibration(data_dir: Path, doc: dict[str, Any], text: str) -> Path | None:
@@ -96,7 +129,7 @@ def archive_calibration(data_dir: Path, doc: dict[str, Any], text: str) -> Path 
 def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, data_dir: Path,
                   with_prior: bool = False, swing: DriftSwing | None = None
                   ) -> tuple[CellCalibration | None, str, str, list[PoseWithCovarianceStamped],
-                             ChangeTest | None, str]:
+                             ChangeTest | None, str, list[str]]:
     """Identify from ``data`` as ``kpi-calib identify`` does and write the calibration and
     the calibrated URDF atomically. An invalid calibration (not converged, TCP not
     estimable) is written to calibration.failed.yaml only: the last good calibration.yaml
@@ -123,12 +156,15 @@ def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, dat
         The innovation test against the prior (None without a prior).
     prior : str
         The prior calibration's path ('' without).
+    notes : list of str
+        With ``with_prior``: archived files skipped, why no prior was used, and the
+        prior's drift-time warnings (clocks that disagree).
     """
     if data.stamps_ns is None:
         raise ValueError('data.stamps_ns is None: the TCP poses are stamped with the last '
                          'measurement')
-    source = (previous_calibration(data_dir, int(np.min(data.stamps_ns)))
-              if with_prior and len(data) else None)
+    source, old, notes = (previous_calibration(data_dir, int(np.min(data.stamps_ns)))
+                          if with_prior and len(data) else (None, None, []))
     change = None
     if source is None:
         cal: CellCalibration | None = calibrate_cell(cm, data)
@@ -137,8 +173,9 @@ def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, dat
         doc = add_robust_sections(calibration_document(cm, cal.result, pairing), cal)
         result = cal.result
     else:
-        cp = cycle_prior(cm, read_calibration_document(source, 'prior calibration'), data,
-                         swing=swing)
+        assert old is not None
+        cp = cycle_prior(cm, old, data, swing=swing)
+        notes += list(cp.warnings)
         out = reidentify(cm, data, cp)
         cal, change = out.calibration, out.change
         doc = reidentification_document(cm, out, cp, str(source), pairing)
@@ -146,11 +183,11 @@ def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, dat
     path, _, urdf = write_results(cm, result, doc, data_dir)
     text = path.read_text()  # published as written
     if cal is None or not cal.valid:
-        return cal, text, '', [], change, str(source or '')
+        return cal, text, '', [], change, str(source or ''), notes
     archive_calibration(data_dir, doc, text)
     tcp = cv.tcp_pose_msgs(result.tcp, result.tcp_covariance, cm.cell.tracker_frame,
                            int(data.stamps_ns[-1]))
-    return cal, text, urdf, tcp, change, str(source or '')
+    return cal, text, urdf, tcp, change, str(source or ''), notes
 
 
 def validate_work(cm: CellModel, calibration: str, data: Measurements,

@@ -493,15 +493,20 @@ class CalibrationNode(Node):
         # tracked poses' rotation rows; controller readings -> URDF joint values
         data = urdf_measurements(cm, pose_rows(cm, data, pairing))
         try:
-            cal, calibration, urdf, tcp, change, prior = await self._offload(
+            cal, calibration, urdf, tcp, change, prior, notes = await self._offload(
                 jobs.identify_work, cm, data, pairing, self.data_dir,
                 self.settings.reidentify_with_prior,
                 DriftSwing(*self.settings.drift_velocity) if self.settings.drift_velocity
                 else None,
                 child=True)
-        except KpiCalibError as exc:
-            self._result_error = f'identification failed: {exc}'
+        except Exception as exc:  # job boundary: also a full disk or a lost data_dir
+            where = (f' (results not written to {self.data_dir})'
+                     if isinstance(exc, OSError) else '')
+            self._result_error = f'identification failed{where}: {exc}'
+            self._publish_diagnostics(force=True)
             raise
+        for note in notes:  # which prior, or why none; archived files skipped
+            self.get_logger().warning(note)
         if change is not None:
             # Latched: the last re-identification's innovation test, consistent or not.
             self._pub_change_test.publish(String(data=json.dumps(
@@ -528,9 +533,7 @@ class CalibrationNode(Node):
             self._publish_diagnostics(force=True)
             return False, f'not published (last good calibration kept): {reason}'
         for e in cal.robust.excluded:
-            self.get_logger().warning(
-                f'measurement {e.index} (stamp {e.stamp_ns} ns) excluded: '
-                f'{e.distance_m * 1e6:.1f} µm from the fit; {e.reason}')
+            self.get_logger().warning(e.text())
         for text in cal.robust.warnings:
             self.get_logger().warning(text)
         self._robust = cal.robust
@@ -560,7 +563,8 @@ class CalibrationNode(Node):
             f'identified from {len(data)} measurements: {result.message}; rms '
             f'{result.rms_m * 1e6:.1f} µm, p = {result.p_value:.3g}, TCP sqrt(trace) <= '
             f'{tcp_um:.1f} µm ({precision}); {len(cal.robust.excluded)} excluded; '
-            + (f'prior {prior}; ' if prior else '') + f'written to {self.data_dir}')
+            + (f'prior {prior}; ' if prior else '') + ''.join(f'{n}; ' for n in notes)
+            + f'written to {self.data_dir}')
 
     async def _diagnose(self) -> tuple[bool, str]:
         """Model diagnosis of the accepted measurements (as ``kpi-calib diagnose``): residual
