@@ -16,10 +16,11 @@ from kpi_calib_ros.core.simulation import (random_configurations, simulate_measu
                                            true_parameters)
 from kpi_calib_ros.core.streams import synthesize_streams
 from kpi_calib_ros.io.bag_writing import write_bag
-from kpi_calib_ros.io.calibration_file import (MAX_DOCUMENT_NODES, load_yaml_bounded,
+from kpi_calib_ros.io.calibration_file import (load_yaml_bounded,
                                                read_calibration_document)
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 from kpi_calib_ros.io.results import write_calibration
+from kpi_calib_ros.io.yaml_bounded import MAX_DOCUMENT_NODES
 
 CELL = str(DEFAULT_CELL)
 HOUR_NS = 3_600_000_000_000
@@ -299,3 +300,33 @@ def test_validate_says_sigma_overstated_when_chi2_is_far_below_its_dof(made, tmp
         assert code == 0 and result['holds'], text
         assert result['noise_verdict'] == verdict, result['lower_tail_p']
         assert ('WARNING: sigma overstated' in text) == (name == 'loud')
+
+
+def _inline_bomb(levels: int, width: int) -> str:
+    """The bomb as one flow sequence whose anchors are defined at their first use, so it
+    fits under any key: ``[&l1 [&l0 [1.0, ...], *l0, ...], *l1, ...]``."""
+    text = '&l0 [' + ', '.join(['1.0'] * width) + ']'
+    for i in range(1, levels):
+        text = f'&l{i} [' + ', '.join([text] + [f'*l{i - 1}'] * (width - 1)) + ']'
+    return text
+
+
+def test_a_cell_file_or_design_with_an_alias_bomb_is_refused_at_once(tmp_path, capsys):
+    """The cell file and a design.yaml given to simulate --poses are read with the same
+    bounds (a cell is a few kB: 1e6 expanded nodes at most), exit 2 naming the file."""
+    cell_doc = yaml.safe_load(Path(CELL).read_text())
+    cell_doc['robot']['urdf'] = str(Path(CELL).parent.parent / 'robots' / 'kr15_class.urdf')
+    cell_doc['obstacles'] = 'BOMB'
+    cell = tmp_path / 'cell.yaml'
+    cell.write_text(yaml.safe_dump(cell_doc).replace('obstacles: BOMB',
+                                                    'obstacles: ' + _inline_bomb(7, 11)))
+    code = main(['simulate', '--cell', str(cell), '--n', '5', '--out', str(tmp_path / 'a.mcap')])
+    err = capsys.readouterr().err
+    assert code == 2 and 'aliases' in err and str(cell) in err, err
+    design = tmp_path / 'design.yaml'
+    design.write_text('joint_names: [joint_1]\nconfigurations: ' + _inline_bomb(8, 11) + '\n')
+    code = main(['simulate', '--cell', CELL, '--n', '5', '--poses', str(design),
+                 '--out', str(tmp_path / 'b.mcap')])
+    err = capsys.readouterr().err
+    assert code == 2 and 'aliases' in err and str(design) in err, err
+    assert not (tmp_path / 'a.mcap').exists() and not (tmp_path / 'b.mcap').exists()

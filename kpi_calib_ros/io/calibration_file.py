@@ -2,13 +2,9 @@
 the package computes with, so a damaged or edited file is a :class:`ConfigError` naming
 the file, the field and the fix, never a crash or a NaN in a result.
 
-The YAML load is bounded twice: the file size (:data:`MAX_DOCUMENT_BYTES`) and the size
-of the document with every alias expanded (:data:`MAX_DOCUMENT_NODES`). PyYAML shares an
-aliased node instead of copying it, so a 1 kB "billion laughs" loads at once into a few
-shared lists; it is the first conversion to an array (``np.array(matrix)``) that expands it
-(7.45 GiB for a nine-level bomb in ``parameter_covariance.matrix``). Counting the
-expanded nodes on the composed graph (memoised, linear in the file) refuses it before
-anything is built, and still reads a file that uses an alias or two.
+The YAML load is bounded (:mod:`kpi_calib_ros.io.yaml_bounded`: the file size and the
+size of the document with every alias expanded), so an alias bomb in
+``parameter_covariance.matrix`` is refused before anything is built.
 """
 from __future__ import annotations
 
@@ -17,81 +13,18 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.io.yaml_bounded import MAX_DOCUMENT_BYTES
+from kpi_calib_ros.io.yaml_bounded import load_yaml_bounded as _load_bounded
 
-# A calibration.yaml of 10 000 measurements is ~2 MB (its residuals); 32 MiB is far above
-# any real one and bounds the pure-Python parse to seconds.
-MAX_DOCUMENT_BYTES = 32 * 2 ** 20
-# Scalars and collections of the document with every alias expanded: ~10 per measurement
-# (residuals, training poses), so a million measurements fit.
-MAX_DOCUMENT_NODES = 10_000_000
 FIX = 'give a calibration.yaml written by kpi-calib identify (unedited)'
 
 
 def load_yaml_bounded(text: str, where: str, key: str) -> Any:
-    """The YAML document ``text`` (safe types only), refused when larger than
-    :data:`MAX_DOCUMENT_BYTES` or, with its aliases expanded, than
-    :data:`MAX_DOCUMENT_NODES` nodes, or recursive; ConfigError names ``key`` and
-    ``where`` (the file)."""
-    size = len(text.encode('utf-8', 'surrogatepass'))
-    if size > MAX_DOCUMENT_BYTES:
-        raise ConfigError(key, f'{where} is {size} bytes, more than the '
-                          f'{MAX_DOCUMENT_BYTES} bytes a calibration document may have; '
-                          f'{FIX}')
-    loader = yaml.SafeLoader(text)
-    try:
-        node = loader.get_single_node()
-        if node is None:
-            return None
-        nodes = _expanded_nodes(node, key, where)
-        if nodes > MAX_DOCUMENT_NODES:
-            raise ConfigError(key, f'{where}: its YAML aliases (*name) expand to more than '
-                              f'{MAX_DOCUMENT_NODES} nodes (a calibration has ~10 per '
-                              f'measurement); {FIX}')
-        return loader.construct_document(node)
-    except yaml.YAMLError as exc:
-        raise ConfigError(key, f'{where} is not valid YAML: {exc}') from None
-    except RecursionError:
-        raise ConfigError(key, f'{where} nests deeper than YAML can be read; {FIX}') from None
-    finally:
-        loader.dispose()
-
-
-def _expanded_nodes(root: yaml.Node, key: str, where: str) -> int:
-    """Number of nodes of ``root`` with every alias (a shared node) counted each time it
-    is used; stops counting above the limit. Iterative, memoised by node."""
-    done: dict[int, int] = {}
-    open_: set[int] = set()
-    stack: list[tuple[yaml.Node, bool]] = [(root, False)]
-    while stack:
-        node, children_done = stack.pop()
-        ident = id(node)
-        if ident in done:
-            continue
-        children: list[yaml.Node] = []
-        if isinstance(node, yaml.SequenceNode):
-            children = list(node.value)
-        elif isinstance(node, yaml.MappingNode):
-            children = [n for pair in node.value for n in pair]
-        if children_done:
-            total = 1 + sum(done[id(c)] for c in children)
-            done[ident] = min(total, MAX_DOCUMENT_NODES + 1)
-            open_.discard(ident)
-            continue
-        if ident in open_:
-            raise ConfigError(key, f'{where}: a YAML alias refers to itself (a recursive '
-                              f'document); {FIX}')
-        open_.add(ident)
-        stack.append((node, True))
-        for child in children:
-            if id(child) in open_:
-                raise ConfigError(key, f'{where}: a YAML alias refers to itself (a '
-                                  f'recursive document); {FIX}')
-            if id(child) not in done:
-                stack.append((child, False))
-    return done[id(root)]
+    """A calibration document loaded with the bounds of
+    :func:`kpi_calib_ros.io.yaml_bounded.load_yaml_bounded`."""
+    return _load_bounded(text, where, key, FIX)
 
 
 def read_calibration_document(path: str | Path, key: str = 'calibration',

@@ -60,6 +60,7 @@ from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, DEF
 from kpi_calib_ros.io.resources import resolve_uri
 from kpi_calib_ros.io.results import write_atomic
 from kpi_calib_ros.io.robot_geometry import RobotGeometry, robot_geometry
+from kpi_calib_ros.io.yaml_bounded import read_yaml_file
 
 _TOP_KEYS = {'robot', 'tracker', 'reflector', 'reflectors', 'noise', 'payload', 'working_poses',
              'obstacles', 'collision', 'identification', 'effects', 'simulation', 'design',
@@ -192,10 +193,10 @@ def read_cell_document(path: str | Path) -> Any:
     path = Path(path)
     if not path.is_file():
         raise ConfigError('cell', f'file {str(path)!r} does not exist')
-    try:
-        return yaml.load(path.read_text(), Loader=CellLoader)
-    except yaml.YAMLError as exc:
-        raise ConfigError('cell', f'{path} is not valid YAML: {exc}') from exc
+    # A cell is a few kB; 4 MiB and 1e6 nodes bound a hostile or wrong file (an alias bomb
+    # in a capsule list) to a quick refusal.
+    return read_yaml_file(path, 'cell', 'give a cell file (see the cell-file reference)',
+                          loader=CellLoader, max_bytes=4 * 2 ** 20, max_nodes=1_000_000)
 
 
 class CellLoader(yaml.SafeLoader):
