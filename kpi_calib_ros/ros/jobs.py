@@ -154,16 +154,17 @@ def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, dat
 
 
 def validate_work(cm: CellModel, calibration: str, data: Measurements,
-                  data_dir: Path) -> tuple[dict[str, Any], str]:
+                  data_dir: Path, register: str | None = None) -> tuple[dict[str, Any], str]:
     """Validate the calibration (the YAML text the node published) on new measurements,
-    as ``kpi-calib validate`` does; writes ``data_dir/validation/``.
+    as ``kpi-calib validate`` (``--register register``) does; writes ``data_dir/validation/``.
 
     Returns
     -------
     doc : dict
         ``validation.json``'s document; ``text`` : str, it as JSON.
     """
-    doc = validate_report(cm, yaml.safe_load(calibration), data, data_dir / VALIDATION_DIR)
+    doc = validate_report(cm, yaml.safe_load(calibration), data, data_dir / VALIDATION_DIR,
+                          register)
     return doc, json.dumps(doc)
 
 

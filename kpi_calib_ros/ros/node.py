@@ -595,10 +595,14 @@ class CalibrationNode(Node):
                             'new poses with auto_identify:=false, then call ~/validate')
         fresh = dataclasses.replace(data, stamps_ns=stamps).subset(new)
         doc, text = await self._offload(jobs.validate_work, cm, self._calibration_text, fresh,
-                                        self.data_dir)
+                                        self.data_dir, self.settings.validate_register or None)
         self._pub_validation.publish(String(data=text))
         return doc['holds'], (f"{doc['verdict']} on {doc['measurements']} new measurements: "
-                              f"rms {doc['rms_m'] * 1e6:.1f} µm, chi2/dof {doc['chi2']:.1f}/"
+                              f"rms {doc['rms_m'] * 1e6:.1f} µm"
+                              + (' after re-registering '
+                                 + '/'.join(doc['registration']['parameters'])
+                                 if doc.get('registration') else '')
+                              + f", chi2/dof {doc['chi2']:.1f}/"
                               f"{doc['dof']}, p = {doc['p_value']:.3g}; "
                               f"{doc['outside_training_range']} outside the training ranges"
                               + (f"; {doc['repeated_from_training']} at training poses "
