@@ -23,7 +23,8 @@ from kpi_calib_ros.core.measurement import Measurements, with_rotation_rows
 from kpi_calib_ros.core.pose_measurement import noisy_rotations
 from kpi_calib_ros.core.simulation import sampling_bounds, true_parameters
 from kpi_calib_ros.io.cell import (DEFAULT_CELL, build_cell_model, cell_from_dict,
-                                  design_settings, load_cell, read_cell_document)
+                                  design_settings, load_cell)
+from cell_variants import KINDS, cell_document
 
 SMALL = DesignSettings(candidates=600, nlp=False)
 
@@ -80,23 +81,6 @@ def test_criteria_equal_the_covariance_module(cell, context):
     assert problem.loss('kpi').value(information(rows)) == pytest.approx(values['kpi'], rel=1e-9)
 
 
-def _cell_document(kind):
-    """The default cell as measured by one reflector, by three reflectors, or by a tracked
-    6-DoF body (a probe whose orientation the tracker reports at σ_rot = 0.1 mrad)."""
-    doc = read_cell_document(DEFAULT_CELL)
-    if kind == 'three reflectors':
-        del doc['reflector']['offset']
-        doc['reflectors'] = [{'name': 'a', 'offset': [0.0, 0.0, 0.03]},
-                             {'name': 'b', 'offset': [0.06, 0.0, 0.03]},
-                             {'name': 'c', 'offset': [0.0, 0.05, 0.02]}]
-    elif kind == 'tracked pose':
-        del doc['reflector']['offset']
-        doc['reflectors'] = [{'name': 'probe', 'offset': [0.0, 0.02, 0.03],
-                              'orientation': {'rpy': [0.1, -0.2, 0.3]}}]
-        doc['noise']['sigma_rotation'] = 1e-4
-    return doc
-
-
 def _measured(model, p, q, sigma, rng):
     """What the tracker reports at configurations ``q``: every reflector's point (noise
     ``sigma`` per axis) and every tracked body's rotation (noise ``sigma`` / rotation
@@ -115,14 +99,14 @@ def _measured(model, p, q, sigma, rng):
     return with_rotation_rows(model, data, rotations)
 
 
-@pytest.mark.parametrize('kind', ['one point', 'three reflectors', 'tracked pose'])
+@pytest.mark.parametrize('kind', KINDS)
 def test_design_covariance_equals_the_identifications_at_the_designed_poses(kind):
     """The TCP covariance a design predicts is the one the identification of its poses
     reports (1e-3 relative) when every row the cell declares is measured there: each
     reflector's point and each tracked body's rotation. Noise-free at the nominal
     geometry, where both linearise (with noise the estimate leaves the nominal geometry's
     degenerate directions and frees more parameters: tcp_std_on_drawn_robots)."""
-    model_cell = build_cell_model(cell_from_dict(_cell_document(kind), DEFAULT_CELL.parent))
+    model_cell = build_cell_model(cell_from_dict(cell_document(kind), DEFAULT_CELL.parent))
     cell = model_cell.design_cell()
     design = design_measurements(cell, 15, 'kpi', np.random.default_rng(2), SMALL)
     data = _measured(cell.model, cell.model.params.nominal, design.configurations,
@@ -140,7 +124,7 @@ def test_design_covariance_equals_the_identifications_at_the_designed_poses(kind
 def test_the_nlp_counts_the_rotation_rows_of_a_tracked_pose():
     """The IPOPT refinement's KPI criterion at its start is the identification's (the
     weighted mean TCP variance) for a tracked-pose cell: its rotation rows are in it."""
-    cell = build_cell_model(cell_from_dict(_cell_document('tracked pose'),
+    cell = build_cell_model(cell_from_dict(cell_document('tracked pose'),
                                            DEFAULT_CELL.parent)).design_cell()
     ctx = design_context(cell, np.random.default_rng(1), SMALL)
     start = exchange(ctx.rows, 15, ctx.problem.loss('kpi'), np.random.default_rng(2))

@@ -217,7 +217,7 @@ def sequential_step_work(campaign: SequentialCampaign, cm: CellModel,
     """Add the measurements ``data`` (URDF joint values) to ``campaign``: re-identify,
     re-plan. Returns the status, the plan in controller values (next pose first) and the
     status as YAML text (``~/campaign_status``)."""
-    status = campaign.add(data.q, data.eta)
+    status = campaign.add(data.q, data.eta, -1, data.reflector, data.rotation)
     plan = cm.joint_coupling.to_controller(status.next_configurations) if len(
         status.next_configurations) else status.next_configurations
     text = yaml.safe_dump(status.to_dict(cm.working_pose_names), sort_keys=False)
