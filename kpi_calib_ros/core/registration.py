@@ -315,12 +315,17 @@ def reregister(model: MeasurementModel, p: np.ndarray, data: Measurements, index
     calibration's predicted points onto the measured ones, composed with the calibrated
     base pose, so a tracker moved by metres and turned by any angle needs no start.
 
-    Gauss-Newton then minimises ``eᵀ V⁻¹ e`` over the re-fitted parameters, with ``e``
-    every row's residual stacked (3N) and ``V = Σ ⊗ I + J_u C_u J_uᵀ`` its covariance:
-    the noise plus the calibration's uncertainty of the other parameters, which is
-    common to all rows. Written as a least-squares problem that also fits a correction
-    ``δ`` of the uncertain parameters under the prior ``δ ~ N(0, C_u)`` (profiled out,
-    never applied), so V is never formed. The minimum is χ²(3N − r), r the rank.
+    Gauss-Newton then fits the re-fitted parameters by least squares with the
+    calibration's other values held: the placement, and the residuals the user compares.
+    The χ² of the test is the minimum over them of ``eᵀ V⁻¹ e``, with ``e`` every row's
+    residual stacked (3N) and ``V = Σ ⊗ I + J_u C_u J_uᵀ`` its covariance: the noise plus
+    the calibration's uncertainty of the other parameters, which is common to all rows.
+    It is a least-squares problem that also fits a correction ``δ`` of the uncertain
+    parameters under the prior ``δ ~ N(0, C_u)`` (profiled out, never applied), so V is
+    never formed. The minimum is χ²(3N − r), r the rank. The two fits coincide when the
+    calibration is precise; where a re-fitted parameter is nearly redundant with
+    uncertain ones (a reflector offset along the tool axis), the χ² fit may move it
+    where δ explains the miss, which is no placement to report.
 
     Parameters
     ----------
@@ -368,10 +373,27 @@ def reregister(model: MeasurementModel, p: np.ndarray, data: Measurements, index
         p[base[:3]] = rot @ p[base[:3]] + trans
         p[base[3:]] = pin.rpy.matrixToRpy(rot @ old)
     weight = 1.0 / np.asarray(sigma, dtype=float)
-    k, r = len(uncertain), len(index)
+    k = len(uncertain)
     # Prior rows L⁻¹ δ with C_u = L Lᵀ (C_u⁻¹ = L⁻ᵀ L⁻¹).
-    prior = (np.linalg.inv(np.linalg.cholesky(covariance)) if k
-             else np.zeros((0, 0)))
+    prior = np.linalg.inv(np.linalg.cholesky(covariance)) if k else np.zeros((0, 0))
+    # The placement is the least-squares fit with the calibration held (the miss the user
+    # sees); the χ² is the minimum with its uncertainty free (the test), from there.
+    p, _, _, steps = _refit(model, p, data, index, weight, np.zeros(0, int),
+                            np.zeros((0, 0)), iterations, tol)
+    _, chi2, rank, more = _refit(model, p, data, index, weight, uncertain, prior,
+                                 iterations, tol)
+    return Reregistration(p, index, rank - k, chi2, steps + more)
+
+
+def _refit(model: MeasurementModel, p: np.ndarray, data: Measurements, index: np.ndarray,
+           weight: np.ndarray, uncertain: np.ndarray, prior: np.ndarray, iterations: int,
+           tol: float) -> tuple[np.ndarray, float, int, int]:
+    """Gauss-Newton on ``p[index]`` minimising ``‖W (η − h)‖²`` plus, with ``uncertain``
+    parameters, a correction ``δ`` of them under the prior rows ``prior`` (profiled out,
+    never applied). Returns the values, the minimum, the rank of the system and the steps."""
+    p = p.copy()
+    q, eta = np.atleast_2d(data.q), np.atleast_2d(data.eta)
+    k, r = len(uncertain), len(index)
     steps, rank, chi2 = 0, 0, float('nan')
     while steps < iterations:
         steps += 1
@@ -387,4 +409,4 @@ def reregister(model: MeasurementModel, p: np.ndarray, data: Measurements, index
         p[index] += step[:r] / scale[:r]
         if np.linalg.norm(step[:r]) < tol:
             break
-    return Reregistration(p, index, int(rank) - k, chi2, steps)
+    return p, chi2, int(rank), steps

@@ -23,9 +23,10 @@ of the configuration removes); *new* poses inside the ranges (generalisation).
 A validation recording is usually made with the tracker (or the probe) set up again, so
 its points are in another tracker frame. With ``registered`` the base pose (and, if
 named, the reflector offsets) are re-fitted on the new recording alone
-(:func:`kpi_calib_ros.core.registration.reregister`): the calibration's uncertainty of
-those parameters is absorbed by the fit, that of the others is common to every new
-point, and χ² is then the fit's minimum of ``eᵀ V⁻¹ e`` with the full covariance V
+(:func:`kpi_calib_ros.core.registration.reregister`, least squares with the other
+values held: the residuals and rms reported). The calibration's uncertainty of those
+parameters is absorbed by the fit, that of the others is common to every new point, and
+χ² is the minimum over them of ``eᵀ V⁻¹ e`` with the full covariance V
 (noise plus ``J_u C_u J_uᵀ`` across all points), which follows χ²(3N − r), r the rank
 of the re-fitted parameters' Jacobian: the degrees of freedom the registration costs.
 The per-point distances keep the per-point ``C_i`` of the other parameters.
