@@ -144,6 +144,10 @@ def main(argv: list[str] | None = None) -> int:
     val.add_argument('--bag', required=True, help='new MCAP bag (not used for the calibration)')
     val.add_argument('--out', required=True, help='output folder: validation.json, plot')
     val.add_argument('--allow-code-effects', action='store_true', help=CODE_EFFECTS_HELP)
+    val.add_argument('--register', nargs='?', const='base', choices=['base', 'base+reflector'],
+                     help='the tracker (or probe) was set up again: re-fit the base pose '
+                     '(base+reflector: and the reflector offsets) on the new recording alone '
+                     'first; the rms after it is the figure to compare, chi2 loses its dof')
 
     imp = sub.add_parser('import-csv', help='a table of static postures (CSV) into an MCAP bag')
     imp.add_argument('csv', nargs='+', help='one row per posture: joint values and marker '
@@ -277,7 +281,7 @@ def _diagnose(args: argparse.Namespace) -> int:
 
 def _validate(args: argparse.Namespace) -> int:
     from kpi_calib_ros.app.validate import run_validate
-    return run_validate(args.cell, args.calibration, args.bag, args.out,
+    return run_validate(args.cell, args.calibration, args.bag, args.out, args.register,
                         allow_code_effects=args.allow_code_effects)
 
 

@@ -19,8 +19,9 @@ from kpi_calib_ros.core.design_cell import DesignCell
 from kpi_calib_ros.core.design_exchange import exchange
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.model_selection import level_free
-from kpi_calib_ros.core.sequential import CampaignSettings, SequentialCampaign, SimulatedRun
-from kpi_calib_ros.core.simulation import simulate_measurements, true_parameters
+from kpi_calib_ros.core.sequential import (CampaignSettings, CampaignStatus, SequentialCampaign,
+                                           SimulatedRun)
+from kpi_calib_ros.core.simulation import simulate_pose_measurements, true_parameters
 from kpi_calib_ros.io.campaign_io import plot_campaign, write_campaign, write_plan
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
 
@@ -46,13 +47,8 @@ def campaign_context(cm: CellModel, seed: int,
 
 def new_campaign(cm: CellModel, cell: DesignCell, ctx: DesignContext,
                  settings: CampaignSettings, seed: int) -> SequentialCampaign:
-    """A sequential campaign on the cell; it measures one point per pose, so a cell with
-    several reflectors or a tracked 6-DoF body is refused by name."""
-    if len(cm.cell.reflector_names) > 1 or cm.cell.reflector_orientations:
-        raise ConfigError('reflectors', 'the sequential campaign measures one reflector point '
-                          'per pose; a cell with several reflectors or a tracked body '
-                          "(reflectors[i].orientation) takes a fixed design (campaign: fixed, "
-                          "or 'kpi-calib design')")
+    """A sequential campaign on the cell; every pose is measured with every row the cell
+    declares (each reflector's point, each tracked body's rotation)."""
     return SequentialCampaign(cell, ctx.problem, ctx.candidates.configurations, settings,
                               np.random.default_rng(seed), free=campaign_free(cm))
 
@@ -60,18 +56,21 @@ def new_campaign(cm: CellModel, cell: DesignCell, ctx: DesignContext,
 def simulate_sequential(campaign: SequentialCampaign, truth: CellModel, p_true: np.ndarray,
                         sigma_true: float, rng: np.random.Generator) -> SimulatedRun:
     """Run ``campaign`` to its stop against the true robot ``truth`` / ``p_true`` with
-    tracker noise ``sigma_true`` (m per axis)."""
+    tracker noise ``sigma_true`` (m per axis; a tracked body's orientation with the
+    cell's ``noise.sigma_rotation``)."""
     initial = campaign.initial_design()
     q = campaign.candidates[initial]
+    sigma_rotation = float(truth.cell.sigma_rotation or 0.0)
 
-    def measure(qq: np.ndarray) -> np.ndarray:
-        return simulate_measurements(truth.model, p_true, qq, sigma_true, rng).eta
+    def add(qq: np.ndarray, candidates: np.ndarray) -> CampaignStatus:
+        rows = simulate_pose_measurements(truth.model, p_true, qq, sigma_true, sigma_rotation,
+                                          rng)
+        return campaign.add(rows.q, rows.eta, candidates, rows.reflector, rows.rotation)
 
-    history = [campaign.add(q, measure(q), initial)]
+    history = [add(q, initial)]
     while not history[-1].stopped:
-        q_next = history[-1].next_configurations[:1]
-        history.append(campaign.add(q_next, measure(q_next),
-                                    history[-1].next_candidates[:1]))
+        history.append(add(history[-1].next_configurations[:1],
+                           history[-1].next_candidates[:1]))
     res = campaign.result
     assert res is not None
     tcp_true = truth.model.predict(p_true, truth.q_work)

@@ -23,6 +23,7 @@ parameters the identifiability analysis keeps (a gauge-free quantity).
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Mapping, Protocol, Sequence
 
@@ -304,19 +305,69 @@ class MeasurementModel:
         out = np.array(fn(p, q.T, tau.T))            # (3, 3N), one 3x3 block per row
         return out.reshape(3, len(q), 3).transpose(1, 0, 2)
 
+    @property
+    def pose_channels(self) -> tuple[int, ...]:
+        """Row channels every measured pose gives (``Measurements.reflector`` values):
+        each reflector's point, then each tracked body's rotation row."""
+        return (tuple(range(self.n_reflectors))
+                + tuple(self.n_reflectors + k for k in sorted(self.orientations)))
+
+    @property
+    def rows_per_pose(self) -> int:
+        """Rows of three residuals a measured pose gives (:attr:`pose_channels`)."""
+        return len(self.pose_channels)
+
+    def pose_measurements(self, p: np.ndarray, q: np.ndarray,
+                          tau: np.ndarray | None = None) -> Measurements:
+        """The rows measuring configurations ``q`` (N, n) gives, noise-free at ``p``: for
+        every pose, :attr:`pose_channels` in turn (pose ``i``, channel ``c`` in row
+        ``i·B + c``); a rotation row carries the body rotation at ``p`` as measured, so
+        its residual is zero and its Jacobian the one identification takes there."""
+        rows = self._pose_rows(p, q, tau)
+        eta = self.predict(p, rows.q, rows.tau, rows.reflector, rows.rotation)
+        return dataclasses.replace(rows, eta=eta)
+
+    def _pose_rows(self, p: np.ndarray, q: np.ndarray,
+                   tau: np.ndarray | None) -> Measurements:
+        """:meth:`pose_measurements` without the predicted points (eta zero)."""
+        q = np.atleast_2d(q)
+        channels = np.array(self.pose_channels)
+        rows_q = np.repeat(q, len(channels), axis=0)
+        rows_tau = None if tau is None else np.repeat(np.atleast_2d(tau), len(channels), axis=0)
+        reflector = np.tile(channels, len(q))
+        rotation = None
+        if self.orientations:
+            rotation = np.broadcast_to(np.eye(3), (len(rows_q), 3, 3)).copy()
+            for k in self.orientations:
+                rotation[reflector == self.n_reflectors + k] = self.body_rotations(p, q, k, tau)
+        return Measurements(q=rows_q, eta=np.zeros((len(rows_q), 3)), tau=rows_tau,
+                            reflector=reflector, rotation=rotation)
+
     def pose_jacobian(self, p: np.ndarray, q: np.ndarray,
                       tau: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Every reflector at every configuration, as the design sees a pose: points
-        (N, 3R) and Jacobian (N, 3R, n_p), reflector k in rows 3k..3k+2."""
+        """Every row a measured pose gives, as the design sees a pose
+        (:meth:`pose_measurements`): predictions (N, 3B) and Jacobian (N, 3B, n_p), channel
+        ``c`` of :attr:`pose_channels` in rows 3c..3c+2 (B = 1 for a single reflector)."""
         q = np.atleast_2d(q)
-        parts = [self.jacobian(p, q, tau, np.full(len(q), k)) for k in range(self.n_reflectors)]
-        return (np.concatenate([pt for pt, _ in parts], axis=1),
-                np.concatenate([j for _, j in parts], axis=1))
+        rows = self._pose_rows(p, q, tau)
+        pts, jac = self.jacobian(p, rows.q, rows.tau, rows.reflector, rows.rotation)
+        b = self.rows_per_pose
+        return pts.reshape(len(q), 3 * b), jac.reshape(len(q), 3 * b, -1)
 
-    def pose_point_expression(self, p, q, tau=None):
-        """Every reflector's centre stacked, CasADi expression (3R,)."""
-        return ca.vertcat(*[self.point_expression(p, q, tau, k)
-                            for k in range(self.n_reflectors)])
+    def pose_point_expression(self, p, q, tau=None, p_measured=None):
+        """Every row of a pose stacked (:attr:`pose_channels`), CasADi expression (3B,);
+        a rotation row takes the body rotation at ``p_measured`` as the measured one (its
+        Jacobian in ``p`` at ``p = p_measured`` is the design's; required with
+        tracked bodies)."""
+        rows = [self.point_expression(p, q, tau, k) for k in range(self.n_reflectors)]
+        if self.orientations and p_measured is None:
+            raise ValueError('p_measured is needed for the rotation rows of tracked bodies')
+        for k in sorted(self.orientations):
+            measured = self.body_rotation_expression(p_measured, q, tau, k)
+            rows.append(rotation_residual_expression(
+                ca.reshape(measured, 9, 1), self.body_rotation_expression(p, q, tau, k),
+                self.rotation_scale))
+        return ca.vertcat(*rows)
 
     def incidence_cos(self, p: np.ndarray, q: np.ndarray) -> np.ndarray:
         """cos of the incidence angle (N,) at joint values ``q`` (N, n)."""

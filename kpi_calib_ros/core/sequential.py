@@ -32,6 +32,12 @@ systematic part of the residual (per axis, rms) exceeds the target at level
 measured points systematically by more than the target cannot be trusted to place the
 TCP within it, and more measurements do not shrink a bias. The level is small because
 the test is repeated after every measurement.
+
+*What a pose gives.* A measurement is a pose, and a pose gives every row the cell
+declares (:attr:`~kpi_calib_ros.core.measurement.MeasurementModel.pose_channels`):
+each reflector's point and each tracked body's rotation. The plan, the estimability and
+the stop statistic count all of them, as the identification does; the pure error is the
+scatter of each reflector's point over the replicates of a pose.
 """
 from __future__ import annotations
 
@@ -241,11 +247,15 @@ def pose_groups(q: np.ndarray, tolerance: float = REPLICATE_TOLERANCE) -> np.nda
     return labels
 
 
-def pure_error(q: np.ndarray, eta: np.ndarray, weight: np.ndarray) -> tuple[float, int]:
+def pure_error(q: np.ndarray, eta: np.ndarray, weight: np.ndarray,
+               reflector: np.ndarray | None = None) -> tuple[float, int]:
     """Weighted sum of squares (σ units) and dof of the scatter of repeated poses
-    (:func:`pose_groups`): 3 (m − 1) dof per pose measured m times."""
+    (:func:`pose_groups`): 3 (m − 1) dof per pose measured m times, per reflector
+    (``reflector`` (N,) the reflector of each point row; None: one)."""
     ss, dof = 0.0, 0
     labels = pose_groups(q)
+    if reflector is not None:
+        labels = labels * (int(np.max(reflector, initial=0)) + 1) + np.asarray(reflector)
     for g in np.unique(labels):
         pts = eta[labels == g] * weight
         if len(pts) > 1:
@@ -294,9 +304,6 @@ class SequentialCampaign:
     def __init__(self, cell: DesignCell, problem: DesignProblem, candidates: np.ndarray,
                  settings: CampaignSettings, rng: np.random.Generator,
                  free: list[str] | None = None) -> None:
-        if cell.model.n_reflectors != 1:
-            raise ConfigError('reflectors', 'the sequential campaign measures one reflector '
-                              f'per pose; the cell has {cell.model.n_reflectors}')
         sigma = np.asarray(cell.sigma, float)
         if not np.allclose(sigma, sigma[0]):
             raise ConfigError('noise.sigma', 'the sequential campaign estimates one σ for '
@@ -306,8 +313,9 @@ class SequentialCampaign:
         self.free = free
         self.sigma = float(sigma[0])
         self.rng = rng
-        self.q = np.zeros((0, cell.robot.n_joints))
-        self.eta = np.zeros((0, 3))
+        self.q = np.zeros((0, cell.robot.n_joints))     # one row per measured pose
+        self.rows = Measurements(q=self.q, eta=np.zeros((0, 3)),  # every row measured
+                                 reflector=np.zeros(0, int))
         self.used: list[int] = []   # candidate index of every measurement (-1: other pose)
         self.result: CalibrationResult | None = None
         self.status: CampaignStatus | None = None
@@ -367,18 +375,31 @@ class SequentialCampaign:
                 out[i] = j
         return out
 
+    @property
+    def eta(self) -> np.ndarray:
+        """Every measured row (m, tracker frame; zero on rotation rows), :attr:`rows`."""
+        return self.rows.eta
+
     def _estimable(self, q: np.ndarray) -> bool:
         model = self.cell.model
-        return result_estimability(model, q, self.cell.sigma, model.params.nominal,
+        rows = model.pose_measurements(model.params.nominal, q)  # every row of each pose
+        return result_estimability(model, rows.q, self.cell.sigma, model.params.nominal,
                                    self.cell.q_work, self.cell.working_pose_names,
-                                   free=self.free).all_estimable
+                                   free=self.free, reflector=rows.reflector,
+                                   rotation=rows.rotation).all_estimable
 
     # ---------------------------------------------------------------------- the loop
     def add(self, q: np.ndarray, eta: np.ndarray,
-            candidate: int | Sequence[int] | np.ndarray = -1) -> CampaignStatus:
-        """Add measurements (q (m, n), eta (m, 3) tracker frame, m) and update the plan.
+            candidate: int | Sequence[int] | np.ndarray = -1,
+            reflector: np.ndarray | None = None,
+            rotation: np.ndarray | None = None) -> CampaignStatus:
+        """Add measurements (rows q (m, n), eta (m, 3) tracker frame, m) and update the plan.
 
-        ``candidate`` gives the candidate index of each row (-1: found by
+        As :class:`~kpi_calib_ros.core.measurement.Measurements`: ``reflector`` (m,) the
+        row channel of each row (None: reflector 0 throughout) and ``rotation`` (m, 3, 3)
+        the measured rotations of rotation rows. A pose is the consecutive rows with the
+        same ``q`` and no channel twice (each reflector's point, each tracked body's
+        rotation). ``candidate`` gives the candidate index of each pose (-1: found by
         :meth:`match_candidates`); a measured candidate is not proposed again except as
         a replicate.
 
@@ -393,13 +414,23 @@ class SequentialCampaign:
         if q.shape[1] != self.cell.robot.n_joints or eta.shape != (len(q), 3):
             raise ValueError(f'q {q.shape} and eta {eta.shape} do not fit '
                              f'{self.cell.robot.n_joints} joints')
-        self.q = np.vstack([self.q, q])
-        self.eta = np.vstack([self.eta, eta])
-        index = np.broadcast_to(np.asarray(candidate, int), (len(q),))
-        index = np.where(index >= 0, index, self.match_candidates(q))
+        model = self.cell.model
+        channel = (np.zeros(len(q), int) if reflector is None
+                   else np.asarray(reflector, int).reshape(len(q)))
+        bad = sorted(set(channel.tolist()) - set(model.pose_channels))
+        if bad or (rotation is None and np.any(channel >= model.n_reflectors)):
+            raise ValueError(f'reflector: row channels must be among {model.pose_channels} '
+                             f'(rotation rows with their rotation=), got {bad or "no rotation"}')
+        rows = Measurements(q=q, eta=eta, reflector=channel,
+                            rotation=None if rotation is None else np.asarray(rotation, float))
+        poses = q[_pose_starts(q, channel)]
+        self.q = np.vstack([self.q, poses])
+        self.rows = _concatenate(self.rows, rows)
+        index = np.broadcast_to(np.asarray(candidate, int), (len(poses),))
+        index = np.where(index >= 0, index, self.match_candidates(poses))
         self.used.extend(int(i) for i in index)
         cell = self.cell
-        res = identify(cell.model, Measurements(q=self.q, eta=self.eta), cell.sigma,
+        res = identify(cell.model, self.rows, cell.sigma,
                        cell.q_work, list(cell.working_pose_names), p0=self._p,
                        free=self.free, identifiability_method=cell.identification_method,
                        priority=list(cell.identification_priority) or None)
@@ -412,7 +443,10 @@ class SequentialCampaign:
         statistic = float(np.max(tcp_std)) if np.all(np.isfinite(tcp_std)) else float('inf')
         if res.p_value < s.adequacy_alpha:
             self._replicating = True
-        ss_pe, dof_pe = pure_error(self.q, self.eta, np.full(3, 1.0 / self.sigma))
+        channel = np.asarray(self.rows.reflector)
+        points = channel < model.n_reflectors
+        ss_pe, dof_pe = pure_error(self.rows.q[points], self.rows.eta[points],
+                                   np.full(3, 1.0 / self.sigma), channel[points])
         lof = lack_of_fit(res.chi2, res.dof, ss_pe, dof_pe, s.target_std / self.sigma,
                           s.inadequacy_alpha)
         if lof:
@@ -478,8 +512,9 @@ class SequentialCampaign:
         assert self.result is not None
         idx = model.params.indices(list(self.result.estimated))
         weight = self.problem.weight
-        _, jac = model.pose_jacobian(self._p, self.q)
-        column_scale, physical_scale = scales(jac[:, :, idx], weight)
+        _, jac = model.pose_jacobian(self._p, self.q)  # every row of each pose
+        column_scale, physical_scale = scales(jac[:, :, idx],
+                                              np.tile(weight, model.rows_per_pose))
         kpi = model.jacobian(self._p, self.cell.q_work)[1][:, :, idx]
         return DesignProblem(tuple(self.result.estimated), idx, self._p.copy(), weight,
                              column_scale, physical_scale, kpi, self.problem.kpi_weights)
@@ -557,6 +592,34 @@ def nested_order(rows: np.ndarray, design: np.ndarray, loss, n_min: int) -> np.n
             break
         removed.append(kept.pop(int(np.argmin(raise_))))
     return np.array(kept + removed[::-1], int)
+
+
+def _pose_starts(q: np.ndarray, channel: np.ndarray) -> np.ndarray:
+    """First row (indices) of each pose among rows ``q`` (m, n) with row channels
+    ``channel`` (m,): a pose ends where ``q`` changes or a channel comes again."""
+    starts: list[int] = []
+    seen: set[int] = set()
+    for i in range(len(q)):
+        if i == 0 or not np.array_equal(q[i], q[i - 1]) or int(channel[i]) in seen:
+            starts.append(i)
+            seen = set()
+        seen.add(int(channel[i]))
+    return np.array(starts, int)
+
+
+def _concatenate(a: Measurements, b: Measurements) -> Measurements:
+    """The rows of ``a`` then those of ``b`` (rotations identity where one has none)."""
+    def rotations(m: Measurements) -> np.ndarray:
+        return (np.broadcast_to(np.eye(3), (len(m), 3, 3)) if m.rotation is None
+                else np.asarray(m.rotation))
+    rotation = (None if a.rotation is None and b.rotation is None
+                else np.concatenate([rotations(a), rotations(b)]))
+    return Measurements(q=np.vstack([a.q, b.q]), eta=np.vstack([a.eta, b.eta]),
+                        reflector=np.concatenate([np.zeros(len(a), int) if a.reflector is None
+                                                  else a.reflector,
+                                                  np.zeros(len(b), int) if b.reflector is None
+                                                  else b.reflector]),
+                        rotation=rotation)
 
 
 def _inverse(info: np.ndarray) -> np.ndarray:

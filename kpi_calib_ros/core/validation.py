@@ -19,15 +19,28 @@ geometric model fails first); *repeated*, inside them and within :data:`REPEATED
 of a training pose on every joint (the same configuration measured again: their error is
 the robot's and the instrument's repeatability between the campaigns, which no model
 of the configuration removes); *new* poses inside the ranges (generalisation).
+
+A validation recording is usually made with the tracker (or the probe) set up again, so
+its points are in another tracker frame. With ``registered`` the base pose (and, if
+named, the reflector offsets) are re-fitted on the new recording alone
+(:func:`kpi_calib_ros.core.registration.reregister`, least squares with the other
+values held: the residuals and rms reported). The calibration's uncertainty of those
+parameters is absorbed by the fit, that of the others is common to every new point, and
+χ² is the minimum over them of ``eᵀ V⁻¹ e`` with the full covariance V
+(noise plus ``J_u C_u J_uᵀ`` across all points), which follows χ²(3N − r), r the rank
+of the re-fitted parameters' Jacobian: the degrees of freedom the registration costs.
+The per-point distances keep the per-point ``C_i`` of the other parameters.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
 import scipy.stats
 
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
+from kpi_calib_ros.core.registration import Reregistration, reregister
 from kpi_calib_ros.core.residuals import ADEQUACY_ALPHA
 
 # A new pose within this of a training pose on every joint (rad, or m for a prismatic
@@ -53,8 +66,11 @@ class Validation:
         Pose inside the ranges and within :data:`REPEATED_WITHIN` of a training pose on
         every joint (all False when the training poses are not known).
     chi2, dof, p_value : float, int, float
+        dof is 3N less the degrees of freedom the re-registration took.
     holds : bool
         p_value >= alpha.
+    registration : Reregistration or None
+        The placement re-fitted on the new recording (``registered`` of :func:`validate`).
     """
 
     residuals: np.ndarray
@@ -66,6 +82,7 @@ class Validation:
     dof: int
     p_value: float
     alpha: float
+    registration: Reregistration | None = None
 
     @property
     def holds(self) -> bool:
@@ -89,7 +106,8 @@ def validate(model: MeasurementModel, p: np.ndarray, estimated: np.ndarray,
              covariance: np.ndarray, sigma: np.ndarray, data: Measurements,
              lower: np.ndarray, upper: np.ndarray,
              alpha: float = ADEQUACY_ALPHA,
-             training_q: np.ndarray | None = None) -> Validation:
+             training_q: np.ndarray | None = None,
+             registered: np.ndarray | None = None) -> Validation:
     """Predict ``data`` with the calibration ``p`` and test the residuals.
 
     Parameters
@@ -111,17 +129,34 @@ def validate(model: MeasurementModel, p: np.ndarray, estimated: np.ndarray,
     training_q : (M, n) ndarray, optional
         The training poses (chain order): a pose inside the ranges near one is marked
         repeated.
+    registered : (r,) int ndarray, optional
+        Indices in ``p`` re-fitted on ``data`` first (the tracker set up again: the
+        ``base.*`` parameters, optionally the reflector offsets).
     """
     q = np.atleast_2d(data.q)
     tau = model.robot.gravity_torques(q) if model.uses_torque else None
+    estimated = np.asarray(estimated, dtype=int)
+    covariance = np.asarray(covariance, dtype=float)
+    keep = ~np.isin(estimated, [] if registered is None else registered)
+    estimated, covariance = estimated[keep], covariance[np.ix_(keep, keep)]
+
+    def point_covariance(jac: np.ndarray) -> np.ndarray:
+        j = jac[:, :, estimated]
+        return (np.einsum('nak,kl,nbl->nab', j, covariance, j)
+                + np.diag(np.asarray(sigma, dtype=float) ** 2))
+
+    registration = None
+    if registered is not None and len(registered):
+        registration = reregister(model, p, dataclasses.replace(data, tau=tau), registered,
+                                  np.asarray(sigma, dtype=float), estimated, covariance)
+        p = registration.p
     pred, jac = model.jacobian(p, q, tau, data.reflector, data.rotation)
     residuals = np.atleast_2d(data.eta) - pred
-    j = jac[:, :, estimated]
-    cov = np.einsum('nak,kl,nbl->nab', j, covariance, j) + np.diag(np.asarray(sigma) ** 2)
+    cov = point_covariance(jac)
     solved = np.linalg.solve(cov, residuals[:, :, None])[:, :, 0]
     d2 = np.sum(residuals * solved, axis=1)
-    chi2 = float(np.sum(d2))
-    dof = 3 * len(q)
+    chi2 = float(np.sum(d2)) if registration is None else registration.chi2
+    dof = 3 * len(q) - (registration.dof if registration is not None else 0)
     tol = 1e-9
     outside = np.any((q < np.asarray(lower) - tol) | (q > np.asarray(upper) + tol), axis=1)
     repeated = np.zeros(len(q), dtype=bool)
@@ -132,4 +167,4 @@ def validate(model: MeasurementModel, p: np.ndarray, estimated: np.ndarray,
         repeated = near[np.ravel(inverse)] & ~outside
     return Validation(residuals, np.sqrt(np.trace(cov, axis1=1, axis2=2) / 3), np.sqrt(d2),
                       outside, repeated, chi2, dof, float(scipy.stats.chi2.sf(chi2, dof)),
-                      alpha)
+                      alpha, registration)

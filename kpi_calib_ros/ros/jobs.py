@@ -191,16 +191,17 @@ def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, dat
 
 
 def validate_work(cm: CellModel, calibration: str, data: Measurements,
-                  data_dir: Path) -> tuple[dict[str, Any], str]:
+                  data_dir: Path, register: str | None = None) -> tuple[dict[str, Any], str]:
     """Validate the calibration (the YAML text the node published) on new measurements,
-    as ``kpi-calib validate`` does; writes ``data_dir/validation/``.
+    as ``kpi-calib validate`` (``--register register``) does; writes ``data_dir/validation/``.
 
     Returns
     -------
     doc : dict
         ``validation.json``'s document; ``text`` : str, it as JSON.
     """
-    doc = validate_report(cm, yaml.safe_load(calibration), data, data_dir / VALIDATION_DIR)
+    doc = validate_report(cm, yaml.safe_load(calibration), data, data_dir / VALIDATION_DIR,
+                          register)
     return doc, json.dumps(doc)
 
 
@@ -253,7 +254,7 @@ def sequential_step_work(campaign: SequentialCampaign, cm: CellModel,
     """Add the measurements ``data`` (URDF joint values) to ``campaign``: re-identify,
     re-plan. Returns the status, the plan in controller values (next pose first) and the
     status as YAML text (``~/campaign_status``)."""
-    status = campaign.add(data.q, data.eta)
+    status = campaign.add(data.q, data.eta, -1, data.reflector, data.rotation)
     plan = cm.joint_coupling.to_controller(status.next_configurations) if len(
         status.next_configurations) else status.next_configurations
     text = yaml.safe_dump(status.to_dict(cm.working_pose_names), sort_keys=False)

@@ -64,7 +64,6 @@ from visualization_msgs.msg import MarkerArray
 from kpi_calib_ros.core.collision import Capsule
 from kpi_calib_ros.core.errors import ConfigError, DataError, KpiCalibError
 from kpi_calib_ros.core.estimation import CalibrationResult
-from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.prior import DriftSwing
 from kpi_calib_ros.core.pairing import Decision, Rejection
 from kpi_calib_ros.core.precision import precision_statement
@@ -459,12 +458,14 @@ class CalibrationNode(Node):
         cm, campaign = self._model(), self._sequential
         if campaign is None:
             raise DataError('no sequential campaign: call ~/design with campaign:=sequential')
-        data, _ = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame,
-                                             cm.cell.reflector_names or ('',))
-        data = urdf_measurements(cm, data)  # controller readings -> URDF joint values
+        data, pairing = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame,
+                                                   cm.cell.reflector_names or ('',))
+        # every row of each pose (reflectors, tracked bodies' rotation rows); controller
+        # readings -> URDF joint values
+        data = urdf_measurements(cm, pose_rows(cm, data, pairing))
         stamps = np.asarray(data.stamps_ns, dtype=np.int64).ravel()
-        new = np.array([int(s) not in self._sequential_stamps for s in stamps])
-        fresh = Measurements(q=data.q[new], eta=data.eta[new])
+        new = np.array([int(s) not in self._sequential_stamps for s in stamps], dtype=bool)
+        fresh = data.subset(new)
         status, plan, text = await self._offload(jobs.sequential_step_work, campaign, cm,
                                                  fresh)
         self._sequential_stamps.update(int(s) for s in stamps[new])
@@ -599,10 +600,14 @@ class CalibrationNode(Node):
                             'new poses with auto_identify:=false, then call ~/validate')
         fresh = dataclasses.replace(data, stamps_ns=stamps).subset(new)
         doc, text = await self._offload(jobs.validate_work, cm, self._calibration_text, fresh,
-                                        self.data_dir)
+                                        self.data_dir, self.settings.validate_register or None)
         self._pub_validation.publish(String(data=text))
         return doc['holds'], (f"{doc['verdict']} on {doc['measurements']} new measurements: "
-                              f"rms {doc['rms_m'] * 1e6:.1f} µm, chi2/dof {doc['chi2']:.1f}/"
+                              f"rms {doc['rms_m'] * 1e6:.1f} µm"
+                              + (' after re-registering '
+                                 + '/'.join(doc['registration']['parameters'])
+                                 if doc.get('registration') else '')
+                              + f", chi2/dof {doc['chi2']:.1f}/"
                               f"{doc['dof']}, p = {doc['p_value']:.3g}; "
                               f"{doc['outside_training_range']} outside the training ranges"
                               + (f"; {doc['repeated_from_training']} at training poses "
