@@ -6,7 +6,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kpi_calib_ros.app.identify import identify_cell, measurements_from_bag, registered_start
+from kpi_calib_ros.app.identify import (identify_cell, measurements_from_bag, print_rejections,
+                                        registered_start)
 from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.pairing import pair_measurements
@@ -153,6 +154,15 @@ def test_points_of_one_pose_share_a_stamp_and_are_told_apart_by_the_frame_suffix
     assert res.rejections == {'duplicate_stamp': 1, 'unknown_reflector': 1}
     detail = [r.detail for r in res.rejected if r.reason == 'unknown_reflector'][0]
     assert "'mocap#z'" in detail and 'mocap#b' in detail and '<reflector name>' in detail
+
+
+def test_a_named_point_for_a_one_reflector_cell_names_its_frame_id_and_the_fix(capsys):
+    joints, pts = _streams([[1.0, 2.0, 3.0]], ['laser_tracker#tmac'])
+    res = pair_measurements(joints, pts, ['j1'], 'laser_tracker')  # a reflector: cell
+    assert res.rejections == {'unknown_reflector': 1}
+    print_rejections(res)  # what identify and validate print
+    err = capsys.readouterr().err
+    assert "frame_id 'laser_tracker#tmac'" in err and 'reflectors: [{name: tmac}]' in err
 
 
 def test_csv_import_round_trip_through_a_bag(cm, tmp_path: Path):
