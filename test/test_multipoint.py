@@ -181,9 +181,9 @@ def test_csv_import_round_trip_through_a_bag(cm, tmp_path: Path):
         'frame_id': cm.cell.tracker_frame, 'joints': {n: f'col_{n}' for n in names},
         'markers': {n: [f'x{k}', f'y{k}', f'z{k}'] for k, n in enumerate(NAMES, 1)},
         'point_unit': 'mm', 'joint_unit': 'deg'})
-    bag, postures, points = import_csv(table, tmp_path / 'p.mcap', mapping)
-    assert (postures, points) == (6, 18)
-    data, pairing = measurements_from_bag(cm, bag)
+    summary = import_csv(table, tmp_path / 'p.mcap', mapping)
+    assert (summary.postures, summary.points) == (6, 18)
+    data, pairing = measurements_from_bag(cm, summary.path)
     assert len(data) == 18 and sum(pairing.rejections.values()) == 0
     assert np.allclose(cm.model.predict(p_true, data.q, reflector=data.reflector), data.eta,
                        atol=1e-12)
