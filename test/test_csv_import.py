@@ -211,3 +211,17 @@ def test_memory_does_not_grow_with_the_rows(tmp_path):
     # Four times the rows; what may grow is the stamp index (16 bytes a row, 32 while
     # it is sorted at the end).
     assert large < small + 6000 * 32 + 64 * 1024, (small, large)
+
+
+def test_delimiter_and_decimal_given_read_a_tab_table_with_decimal_commas(tmp_path, capsys):
+    lines = _plain_table(4)
+    (tmp_path / 'plain.csv').write_text('\n'.join(lines) + '\n')
+    (tmp_path / 'tab.csv').write_text('\n'.join(
+        line.replace(',', '\t').replace('.', ',') for line in lines) + '\n')
+    assert main(['import-csv', str(tmp_path / 'plain.csv'), *_PLAIN, '--stamp-columns',
+                 'stamp', '--out', str(tmp_path / 'plain.mcap')]) == 0
+    assert main(['import-csv', str(tmp_path / 'tab.csv'), *_PLAIN, '--stamp-columns', 'stamp',
+                 '--delimiter', 'tab', '--decimal', ',', '--out', str(tmp_path / 'tab.mcap')]) == 0
+    out = capsys.readouterr().out
+    assert "separator '\\t', decimal ','" in out and 'detected' not in out.split('tab.csv')[-1]
+    assert (tmp_path / 'plain.mcap').read_bytes() == (tmp_path / 'tab.mcap').read_bytes()
