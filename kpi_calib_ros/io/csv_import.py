@@ -40,7 +40,7 @@ _PERIOD_NS = 4_000_000_000
 _UNITS = {'m': 1.0, 'mm': 1e-3, 'rad': 1.0, 'deg': np.pi / 180.0}
 _EPOCH = datetime(1970, 1, 1, tzinfo=timezone.utc)
 _SPREADSHEET_EPOCH = datetime(1899, 12, 30)  # serial day 0 of Excel / LibreOffice dates
-_MAX_NS = (2 ** 31 - 1) * 1_000_000_000     # builtin_interfaces/Time: int32 seconds
+_MAX_S = 2 ** 31 - 1     # builtin_interfaces/Time: int32 seconds
 STAMP_FORMATS = ('unix', 'iso8601', 'serial')
 
 
@@ -282,8 +282,8 @@ def read_postures(path: str | Path, mapping: CsvMapping, fmt: TableFormat | None
             points.append((name, cell.vector(m.position) * point_scale, quaternion, sigma))
         stamp = None
         if mapping.stamp_columns:
-            stamp = int(round(np.mean([_stamp_ns(path, line, c, row[c], mapping, fmt, zone)
-                                       for c in mapping.stamp_columns])))
+            stamp = int(round(np.mean([_stamp_s(path, line, c, row[c], mapping, fmt, zone)
+                                       for c in mapping.stamp_columns]) * 1e9))
         yield Posture(path, line, stamp,
                       cell.vector(tuple(mapping.joints.values())) * joint_scale, tuple(points),
                       cell.value(mapping.temperature) if mapping.temperature else None)
@@ -313,9 +313,9 @@ class _Cells:
         return np.array([self.value(c) for c in columns])
 
 
-def _stamp_ns(path: Path, line: int, column: str, text: str, mapping: CsvMapping,
-              fmt: TableFormat, zone: tzinfo) -> float:
-    """The stamp of one field (ns since the Unix epoch)."""
+def _stamp_s(path: Path, line: int, column: str, text: str, mapping: CsvMapping,
+             fmt: TableFormat, zone: tzinfo) -> float:
+    """The stamp of one field (s since the Unix epoch)."""
     how = mapping.stamp_format
     fix = (f'fix the value or stamp_format ({how!r}), or give no stamp_columns: the time '
            'axis is then the row order')
@@ -323,24 +323,24 @@ def _stamp_ns(path: Path, line: int, column: str, text: str, mapping: CsvMapping
         if how in ('unix', 'serial'):
             number = fmt.number(text)
             if how == 'unix':
-                ns = number * 1e9
+                seconds = number
             else:
                 moment = (_SPREADSHEET_EPOCH + timedelta(days=number)).replace(tzinfo=zone)
-                ns = (moment - _EPOCH) / timedelta(microseconds=1) * 1e3
+                seconds = (moment - _EPOCH) / timedelta(seconds=1)
         else:
             moment = (datetime.fromisoformat(text.strip()) if how == 'iso8601'
                       else datetime.strptime(text.strip(), how))
             if moment.tzinfo is None:
                 moment = moment.replace(tzinfo=zone)
-            ns = (moment - _EPOCH) / timedelta(microseconds=1) * 1e3
+            seconds = (moment - _EPOCH) / timedelta(seconds=1)
     except (ValueError, OverflowError):
         raise DataError(f'{path}: line {line}, column {column!r}: {text!r} is not a stamp '
                         f'of format {how!r}; {fix}') from None
-    if not (0 <= ns < _MAX_NS):
+    if not (0 <= seconds < _MAX_S):
         raise DataError(f'{path}: line {line}, column {column!r}: {text!r} is '
-                        f'{ns / 1e9:.6g} s since 1970, outside 1970-2038 (int32 seconds of a '
+                        f'{seconds:.6g} s since 1970, outside 1970-2038 (int32 seconds of a '
                         f'ROS stamp); {fix}')
-    return ns
+    return seconds
 
 
 @dataclass
