@@ -153,6 +153,15 @@ def test_a_malformed_table_is_exit_2_naming_file_and_place_and_leaves_nothing(
     assert [p.name for p in tmp_path.iterdir()] == [table.name]
 
 
+def test_an_out_path_that_is_a_folder_is_exit_2_naming_out(tmp_path, capsys):
+    table = tmp_path / 'plain.csv'
+    table.write_text('\n'.join(_plain_table(3)) + '\n')
+    (tmp_path / 'folder.mcap').mkdir()
+    assert main(['import-csv', str(table), *_PLAIN, '--out', str(tmp_path / 'folder.mcap')]) == 2
+    assert f"--out {tmp_path / 'folder.mcap'}" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ['folder.mcap', 'plain.csv']
+
+
 @pytest.mark.parametrize('encoding, note', [
     ('utf-8-sig', 'UTF-8 byte-order mark stripped'),
     ('utf-16', 'UTF-16 by its byte-order mark'),

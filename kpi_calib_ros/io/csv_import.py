@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import heapq
 import itertools
+import os
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta, timezone, tzinfo
 from pathlib import Path
@@ -236,9 +237,12 @@ def import_csv(csv_path: str | Path | list, out_path: str | Path, mapping: CsvMa
     sigma_sum: dict[str, np.ndarray] = {}
     temperatures = [np.inf, -np.inf]
     stamps = _Stamps(paths)
-    if not Path(out_path).parent.is_dir():
-        raise DataError(f'--out {out_path}: the folder {Path(out_path).parent} does not '
-                        'exist; create it first')
+    out = Path(out_path)
+    if not out.parent.is_dir() or out.is_dir() or not os.access(out.parent, os.W_OK):
+        raise DataError(f'--out {out}: give a .mcap file in an existing folder this user can '
+                        'write (' + ('it is a folder' if out.is_dir() else
+                                     f'{out.parent} does not exist' if not out.parent.is_dir()
+                                     else f'{out.parent} is not writable') + ')')
     with BagStream(out_path, joint_topic, point_topic,
                    pose_topic if mapping.has_poses else None,
                    temperature_topic if mapping.temperature else None) as bag:
