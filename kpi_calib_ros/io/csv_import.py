@@ -10,7 +10,8 @@ writes, for every row, joint states held still (zero velocity, ``rate_hz``) for
 ``sensor_msgs/Temperature``. Which columns mean what is given by a
 :class:`~kpi_calib_ros.io.csv_mapping.CsvMapping` (flags or a small YAML file). Separator, decimal
 mark and encoding are detected (:mod:`kpi_calib_ros.io.csv_table`). Rows stream into
-the bag: memory does not grow with the table, and a failed import leaves no file.
+the bag (memory grows only by a 16-byte stamp index a row: 142 MiB peak RSS for 1e6
+rows, bench/csv_import_large.py), and a failed import leaves no file.
 """
 from __future__ import annotations
 
