@@ -159,7 +159,11 @@ def main(argv: list[str] | None = None) -> int:
     imp.add_argument('--marker', action='append', default=[], metavar='NAME=X,Y,Z',
                      help='a marker and its three columns; repeat per marker')
     imp.add_argument('--stamp-columns', default='', help='comma-separated Unix-second '
-                     'columns whose mean stamps a row (default: synthetic stamps)')
+                     'columns whose mean stamps a row (default: the row order)')
+    imp.add_argument('--delimiter', choices=[',', ';', 'tab', '|'], default=None,
+                     help='column separator (default: the mapping\'s, else detected)')
+    imp.add_argument('--decimal', choices=['.', ','], default=None,
+                     help="decimal mark (default: the mapping's, else detected)")
 
     des = sub.add_parser('design', help='optimal measurement configurations')
     des.add_argument('--cell', required=True)
@@ -298,8 +302,10 @@ def _import_csv(args: argparse.Namespace) -> int:
             'frame_id': args.frame, 'joints': [j for j in (args.joints or '').split(',') if j],
             'markers': markers,
             'stamp_columns': [c for c in args.stamp_columns.split(',') if c]})
-    path, postures, points = import_csv(args.csv, args.out, mapping)
-    print(f'written: {path} ({postures} postures, {points} points)')
+    summary = import_csv(args.csv, args.out, mapping,
+                         delimiter='\t' if args.delimiter == 'tab' else args.delimiter,
+                         decimal=args.decimal)
+    print('\n'.join(summary.lines()))
     return 0
 
 

@@ -565,9 +565,19 @@ def load_measurements(cell_path: str | Path, bag_path: str | Path, effects: str 
     cell = load_cell(cell_path, allow_code_effects=allow_code_effects)
     cm = build_cell_model(cell, effects=tuple(split_specs(effects)))
     data, pairing = measurements_from_bag(cm, bag_path, joint_topic, point_topic, pose_topic)
-    for reason, count in sorted(pairing.rejections.items()):
-        print(f'rejected {count} sample(s): {reason}', file=sys.stderr)
+    print_rejections(pairing)
     return cm, data, pairing
+
+
+def print_rejections(pairing: PairingResult) -> None:
+    """Every rejection reason on stderr with its count and the first one's detail (which
+    names what was received and the fix)."""
+    first: dict[str, str] = {}
+    for r in pairing.rejected:
+        first.setdefault(r.reason, r.detail)
+    for reason, count in sorted(pairing.rejections.items()):
+        detail = f' (first: {first[reason]})' if reason in first else ''
+        print(f'rejected {count} sample(s): {reason}{detail}', file=sys.stderr)
 
 
 def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Path,

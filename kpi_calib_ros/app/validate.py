@@ -11,13 +11,12 @@ the numerics are :mod:`kpi_calib_ros.core.validation`.
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from kpi_calib_ros.app.identify import measurements_from_bag
+from kpi_calib_ros.app.identify import measurements_from_bag, print_rejections
 from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.parameters import BASE_COMPONENTS, reflector_prefixes
@@ -230,8 +229,7 @@ def run_validate(cell_path: str | Path, calibration_path: str | Path, bag_path: 
     doc = read_calibration(calibration_path)
     cm, _ = calibrated_model(load_cell(cell_path, allow_code_effects=allow_code_effects), doc)
     data, pairing = measurements_from_bag(cm, bag_path)
-    for reason, count in sorted(pairing.rejections.items()):
-        print(f'rejected {count} sample(s): {reason}', file=sys.stderr)
+    print_rejections(pairing)
     out = validate_report(cm, doc, data, out_dir, register)
     print(validation_text(out))
     print(f"written: {Path(out_dir) / VALIDATION_FILE}, "

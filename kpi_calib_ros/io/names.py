@@ -31,6 +31,7 @@ RESULT_FILES = (CALIBRATION_FILE, FAILED_CALIBRATION_FILE, CALIBRATED_URDF_FILE,
 DEFAULT_JOINT_TOPIC = '/joint_states'
 DEFAULT_POINT_TOPIC = '/laser_tracker/point'
 DEFAULT_POSE_TOPIC = '/laser_tracker/pose'   # tracked 6-DoF bodies (PoseStamped)
+DEFAULT_TEMPERATURE_TOPIC = '/cell/temperature'   # sensor_msgs/Temperature of imported tables
 ROBOT_DESCRIPTION_TOPIC = '/robot_description'
 DIAGNOSTICS_TOPIC = '/diagnostics'
 MEASUREMENT_POSES_TOPIC = '~/measurement_poses'
