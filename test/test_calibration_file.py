@@ -330,3 +330,14 @@ def test_a_cell_file_or_design_with_an_alias_bomb_is_refused_at_once(tmp_path, c
     err = capsys.readouterr().err
     assert code == 2 and 'aliases' in err and str(design) in err, err
     assert not (tmp_path / 'a.mcap').exists() and not (tmp_path / 'b.mcap').exists()
+
+
+def test_a_column_mapping_with_an_alias_bomb_is_refused(tmp_path, capsys):
+    mapping = tmp_path / 'mapping.yaml'
+    mapping.write_text('frame_id: laser_tracker\njoints: ' + _inline_bomb(6, 11) + '\n')
+    table = tmp_path / 't.csv'
+    table.write_text('a,b\n1,2\n')
+    code = main(['import-csv', str(table), '--mapping', str(mapping),
+                 '--out', str(tmp_path / 'o.mcap')])
+    err = capsys.readouterr().err
+    assert code == 2 and 'aliases' in err and str(mapping) in err, err

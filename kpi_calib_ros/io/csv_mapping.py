@@ -13,12 +13,12 @@ from datetime import tzinfo
 from pathlib import Path
 from typing import Any
 
-import yaml
 from scipy.spatial.transform import Rotation
 
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.pairing import REFLECTOR_SEPARATOR
 from kpi_calib_ros.io.csv_table import DECIMALS, DELIMITERS
+from kpi_calib_ros.io.yaml_bounded import read_yaml_file
 
 STAMP_FORMATS = ('unix', 'iso8601', 'serial')
 
@@ -206,10 +206,8 @@ def load_mapping(path: str | Path) -> CsvMapping:
     path = Path(path)
     if not path.is_file():
         raise ConfigError('mapping', f'file {str(path)!r} does not exist')
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except (yaml.YAMLError, UnicodeDecodeError) as exc:
-        raise ConfigError('mapping', f'{path}: not a YAML file ({exc})') from None
+    doc = read_yaml_file(path, 'mapping', 'give a column mapping (see import-csv in the '
+                         'README)', max_bytes=2 ** 20, max_nodes=100_000)
     return mapping_from_dict(doc)
 
 
