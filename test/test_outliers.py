@@ -9,11 +9,13 @@ import dataclasses
 import numpy as np
 import pytest
 
+from kpi_calib_ros.app.diagnose import diagnose_cell
 from kpi_calib_ros.app.identify import calibrate_cell
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.outliers import pose_groups
 from kpi_calib_ros.core.robust import OutlierSettings
-from kpi_calib_ros.core.simulation import (one_joint_at_a_time, true_parameters)
+from kpi_calib_ros.core.simulation import (one_joint_at_a_time, random_configurations,
+                                          true_parameters)
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict, \
     read_cell_document
 
@@ -106,3 +108,39 @@ def test_pose_groups_join_rows_within_the_tolerance_in_order_of_appearance():
     q = np.array([[0.5, 1.0], [0.0, 0.0], [0.5 + 2e-4, 1.0 - 3e-4], [0.0, 1e-5], [0.0, 0.1]])
     assert pose_groups(q).tolist() == [0, 1, 0, 1, 2]
     assert pose_groups(q, tolerance=1e-6).tolist() == [0, 1, 2, 3, 4]
+
+
+def _random_campaign_with_faults(cm, p_true, n_poses, fraction, seed):
+    """``n_poses`` random poses, three reflectors each, ``fraction`` of the points moved
+    0.5-5 mm in a random direction (a tracker locked on something else)."""
+    rng = np.random.default_rng(seed)
+    q = random_configurations(cm.model, cm.geometric.nominal, n_poses, rng)
+    data = _three_reflectors(cm, p_true, q, rng)
+    data = dataclasses.replace(data, eta=cm.model.predict(p_true, data.q,
+                                                          reflector=data.reflector)
+                               + rng.normal(size=data.eta.shape) * cm.cell.sigma)
+    faults = np.sort(rng.choice(len(data), int(fraction * len(data)), replace=False))
+    d = rng.normal(size=(len(faults), 3))
+    eta = data.eta.copy()
+    eta[faults] += rng.uniform(0.5e-3, 5e-3, (len(faults), 1)) * d / \
+        np.linalg.norm(d, axis=1, keepdims=True)
+    return dataclasses.replace(data, eta=eta), faults
+
+
+def test_identify_and_diagnose_exclude_the_same_points_the_faults_in_batches(cm, p_true):
+    data, faults = _random_campaign_with_faults(cm, p_true, 100, 0.3, 11)
+    outliers = OutlierSettings(max_fraction=0.4)
+    cell = dataclasses.replace(cm.cell, identification=dataclasses.replace(
+        cm.cell.identification, outliers=outliers))
+    cm40 = dataclasses.replace(cm, cell=cell)
+    rounds: list[str] = []
+    cal = calibrate_cell(cm40, data, progress=rounds.append)
+    excluded = sorted(e.index for e in cal.robust.excluded)
+    assert excluded == faults.tolist()
+    # Batches: a few rounds for 90 faults, each reported.
+    assert 1 < len(rounds) < 20 and all('outliers: round' in r for r in rounds)
+    cd = diagnose_cell(cm40, data, add_best=False)
+    assert np.array_equal(cd.kept, cal.robust.kept) and sorted(cd.excluded) == excluded
+    assert len(cd.data) == len(data) - len(faults)
+    assert cd.diagnosis.residuals.sigma_robust_m == pytest.approx(cal.robust.sigma_robust,
+                                                                 rel=0.05)

@@ -22,7 +22,10 @@ excluding a fault makes it better. What tells them apart is what the model can n
    Bonferroni bound of that test (over the poses tested) is *inconsistent*; its over point
    whose removal restores the most consistency (ties: the farther) is a *fault*, one per
    pose and round (the others are judged again after the refit). An over point of a
-   consistent pose is *misfit*: its replicates disagree with the model alike, unless it
+   consistent pose is *misfit*: its replicates disagree with the model alike (two points
+   must be off by the same vector, r_a − r_b ~ noise, χ²(3): a rotation would leave only
+   their distance to test, and a rotation of the pair absorbs most two-point faults),
+   unless it
    is the pose's only point over the threshold and `SET_APART` times as far as any other
    point of the pose: then its replicates agree with the model and it is a fault (three
    close reflectors let a rotation of the pose absorb much of a one-point fault, so
@@ -138,12 +141,13 @@ def studentized(r: np.ndarray, blocks: np.ndarray) -> np.ndarray:
 
 def rigid_inconsistency(residuals: np.ndarray, points: np.ndarray) -> tuple[float, int]:
     """‖(I − P) r‖² and its degrees of freedom 3m − rank for the residuals (m, 3) of one
-    pose's points (m, 3): P projects on the rigid motions t + ω × (η_k − c)."""
+    pose's points (m, 3): P projects on the rigid motions t + ω × (η_k − c); for two
+    points on the translations t alone (see the module text, rule 2)."""
     m = len(points)
     c = points - points.mean(axis=0)
-    a = np.zeros((3 * m, 6))
+    a = np.zeros((3 * m, 6 if m > 2 else 3))
     a[:, :3] = np.tile(np.eye(3), (m, 1))
-    for k, (x, y, z) in enumerate(c):
+    for k, (x, y, z) in enumerate(c if m > 2 else ()):
         a[3 * k:3 * k + 3, 3:] = [[0.0, z, -y], [-z, 0.0, x], [y, -x, 0.0]]  # ω × c = −[c]×ω
     u = scipy.linalg.orth(a, rcond=1e-6)
     r = np.asarray(residuals, float).ravel()
