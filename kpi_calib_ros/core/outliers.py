@@ -31,18 +31,22 @@ excluding a fault makes it better. What tells them apart is what the model can n
    close reflectors let a rotation of the pose absorb much of a one-point fault, so
    consistency alone would miss one along the normal of their plane).
 3. *No replicates.* An over point with no other point at its pose is a fault unless its
-   leverage, trace H_ii, exceeds `HIGH_LEVERAGE` × the mean k/N: removing such a point
-   changes a large part of the fit, and nothing but the model it disagrees with says it
-   is wrong; it is a misfit candidate, kept.
+   leverage along some direction, the largest eigenvalue h of H_ii, exceeds
+   `HIGH_LEVERAGE` = ½: the fit then moves more than half way to the point, so removing
+   it changes the fit there by h/(1 − h) > 1 times the residual left: the point carries
+   what no other pose tells (the end of a sweep), and nothing but the model it disagrees
+   with says it is wrong; it is a misfit candidate, kept.
 
 Misfit points are kept in the fit and reported ("model misfit at these poses, see
 kpi-calib diagnose"), never excluded. Gross points (metres off, a wrong unit or target)
 are excluded before any fit (:func:`kpi_calib_ros.core.robust.gross_outliers`).
 Limitations: the hat matrix is that of the data alone (a prior lowers the leverage a
-little, so t_i is slightly overstated at poses the prior helps); a fault of one of three
-reflectors that happens to be a rotation of the pose about the line through the other two
-is a rigid motion and counts as misfit; rotation rows of tracked bodies are judged by
-rule 3 only.
+little, so t_i is slightly overstated at poses the prior helps); without replicates a
+misfit at ordinary leverage looks like a fault and is excluded (one-reflector sweeps of 8
+poses per joint with a hidden cubic joint error: one such point, held-out rms 39.6 µm
+against 39.2 µm keeping it); a one-point fault that is a rotation of its pose about the
+line through two other points, with those points also over the threshold, counts as
+misfit; rotation rows of tracked bodies are judged by rule 3 only.
 """
 from __future__ import annotations
 
@@ -60,7 +64,7 @@ from kpi_calib_ros.core.measurement import MeasurementModel, Measurements, weigh
 # Joint values (rad, m for prismatic joints) closer than this are one pose: the readings
 # of a still robot at one commanded pose differ by encoder counts (~1e-5 rad).
 POSE_TOLERANCE = 1e-3
-HIGH_LEVERAGE = 3.0
+HIGH_LEVERAGE = 0.5
 CONSISTENCY_ALPHA = 0.01
 RANK_TOLERANCE = 1e-9
 # A point this many times farther from the fit than every other point of its pose stands
@@ -77,7 +81,8 @@ class Judgement:
 
     distance_sigma : (N,) studentized distance t_i in σ̂; over : (N,) t_i > threshold;
     fault : (N,) over points to exclude (at most one per pose); misfit : (N,) over points
-    to keep; pose : (N,) pose index of every point; leverage : (N,) trace of H_ii;
+    to keep; pose : (N,) pose index of every point; leverage : (N,) largest eigenvalue
+    of H_ii (0 for excluded points);
     inconsistency : (P,) ‖e‖²/σ̂² of every pose (NaN: no replicates); why : (N,) reason
     of each fault or misfit ('' otherwise).
     """
@@ -189,7 +194,7 @@ def judge(model: MeasurementModel, data: Measurements, p: np.ndarray,
     lev = np.zeros(n)
     r_k, blocks = hat_blocks(model, data.subset(kept), p, estimated, sigma, point_weights)
     t[kept] = np.sqrt(studentized(r_k, blocks)) * float(np.mean(ratio))
-    lev[kept] = np.trace(blocks, axis1=1, axis2=2)
+    lev[kept] = np.linalg.eigvalsh(blocks)[:, -1]
     # Excluded points: plain distance in σ̂ (no leverage: they are not in the fit).
     rest = ~kept
     if rest.any():
@@ -210,60 +215,52 @@ def judge(model: MeasurementModel, data: Measurements, p: np.ndarray,
     fault = np.zeros(n, bool)
     misfit = np.zeros(n, bool)
     why = [''] * n
-    k_eff = float(lev[kept].sum())
-    n_kept = int(kept.sum())
-    high = lev > HIGH_LEVERAGE * k_eff / max(n_kept, 1)
-    members: dict[int, np.ndarray] = {}
-    for g in np.unique(pose[over]):
-        rows = np.flatnonzero((pose == g) & kept & is_point)
-        members[int(g)] = rows
-    tested = [g for g, rows in members.items() if len(rows) >= 2]
-    for g in tested:
-        rows = members[g]
-        inconsistency[g], _ = rigid_inconsistency(resid[rows], eta[rows])
-    bound_cache: dict[int, float] = {}
+    high = lev > HIGH_LEVERAGE
+    members = {int(g): np.flatnonzero((pose == g) & kept & is_point)
+               for g in np.unique(pose[over])}
+    tests = {g: rigid_inconsistency(resid[rows], eta[rows])
+             for g, rows in members.items() if len(rows) >= 2}
+    for g, (total, _) in tests.items():
+        inconsistency[g] = total
 
     def bound(dof: int) -> float:
-        if dof not in bound_cache:
-            bound_cache[dof] = float(scipy.stats.chi2.isf(
-                CONSISTENCY_ALPHA / max(len(tested), 1), dof)) if dof > 0 else np.inf
-        return bound_cache[dof]
+        return float(scipy.stats.chi2.isf(CONSISTENCY_ALPHA / len(tests), dof))
     for g, rows in members.items():
         candidates = [int(i) for i in np.flatnonzero((pose == g) & over)]
-        if len(rows) >= 2:
-            total, dof = rigid_inconsistency(resid[rows], eta[rows])
-            alone = [i for i in candidates if i in set(rows.tolist())]
-            others = np.setdiff1d(rows, alone)
-            if total <= bound(dof) and len(alone) == 1 and len(others) and \
-                    t[alone[0]] > SET_APART * float(np.max(t[others])):
-                # One point off while its replicates agree with the model: a rigid motion
-                # may absorb it (three close reflectors), the replicates do not.
-                fault[alone[0]] = True
-                why[alone[0]] = (f'fault: the other {len(others)} point(s) of its pose '
-                                 'agree with the model')
-                continue
-            if total <= bound(dof):
-                for i in candidates:
-                    misfit[i] = True
-                    why[i] = (f'model misfit: the {len(rows)} points of this pose are off '
-                              'alike (a rigid motion); see kpi-calib diagnose')
-                continue
-            pick = [i for i in candidates if i in set(rows.tolist())]
-            if pick:
-                drop = [total - rigid_inconsistency(resid[rows[rows != i]],
-                                                    eta[rows[rows != i]])[0]
-                        if len(rows) > 2 else total for i in pick]
-                best = pick[int(np.lexsort((t[pick], np.round(drop, 6)))[-1])]
-                fault[best] = True
-                why[best] = (f'fault: disagrees with the other {len(rows) - 1} point(s) of '
-                             f'its pose ({total:.1f} > {bound(dof):.1f} for χ²({dof}))')
-                candidates = [i for i in candidates if i != best]
-            for i in candidates:  # judged again after the refit
-                if not fault[i] and i not in set(rows.tolist()):
-                    _single(i, high, fault, misfit, why)
-            continue
-        for i in candidates:
+        for i in (i for i in candidates if not is_point[i]):  # rotation rows: rule 3
             _single(i, high, fault, misfit, why)
+        candidates = [i for i in candidates if is_point[i]]
+        if not candidates:
+            continue
+        if g not in tests:
+            for i in candidates:
+                _single(i, high, fault, misfit, why)
+            continue
+        total, dof = tests[g]
+        consistent = total <= bound(dof)
+        others = np.setdiff1d(rows, candidates)
+        if consistent and len(candidates) == 1 and len(others) and \
+                t[candidates[0]] > SET_APART * float(np.max(t[others])):
+            # One point off while its replicates agree with the model: a rigid motion
+            # may absorb it (three close reflectors), the replicates do not.
+            fault[candidates[0]] = True
+            why[candidates[0]] = (f'fault: the other {len(others)} point(s) of its pose '
+                                  'agree with the model')
+        elif consistent:
+            for i in candidates:
+                misfit[i] = True
+                why[i] = (f'model misfit: the {len(rows)} points of this pose are off '
+                          'alike; see kpi-calib diagnose')
+        else:
+            # The point whose removal restores the most consistency (two points: the
+            # farther); the pose's other over points are judged again after the refit.
+            drop = [total - rigid_inconsistency(resid[rows[rows != i]],
+                                                eta[rows[rows != i]])[0]
+                    if len(rows) > 2 else total for i in candidates]
+            best = candidates[int(np.lexsort((t[candidates], np.round(drop, 6)))[-1])]
+            fault[best] = True
+            why[best] = (f'fault: disagrees with the other {len(rows) - 1} point(s) of its '
+                         f'pose ({total:.1f} > {bound(dof):.1f} for χ²({dof}))')
     return Judgement(t, over, fault, misfit, pose, lev, inconsistency, tuple(why))
 
 
