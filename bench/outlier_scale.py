@@ -74,7 +74,8 @@ def main() -> int:
             ('excluded', str(len(excluded))),
             ('faults not excluded / good points excluded', f'{len(missed)} / {len(extra)}'),
             ('misfit points kept', str(len(cal.robust.misfit))),
-            ('σ̂ after exclusion', f'{cal.robust.sigma_robust * 1e6:.1f} µm'),
+            ('identify rms / σ̂ (calibration.yaml)', f'{cal.result.rms_m * 1e6:.1f} µm / '
+                                                    f'{cal.robust.sigma_robust * 1e6:.1f} µm'),
             ('diagnose (diagnose_cell, no effect added) wall time', f'{t_diagnose:.1f} s'),
             ('diagnose keeps the points identify keeps', str(same)),
             ('diagnose rms / σ̂', f'{cd.diagnosis.rms_m * 1e6:.1f} µm / '

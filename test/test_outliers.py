@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from kpi_calib_ros.app.diagnose import diagnose_cell
-from kpi_calib_ros.app.identify import calibrate_cell
+from kpi_calib_ros.app.identify import add_robust_sections, calibrate_cell, \
+    calibration_document
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.outliers import pose_groups
 from kpi_calib_ros.core.robust import OutlierSettings
@@ -83,6 +84,8 @@ def test_misfit_at_the_sweep_ends_is_kept_and_held_out_error_is_the_no_exclusion
     assert set(cal.robust.misfit) == set(ends) and set(cal.robust.outliers) == set(ends)
     assert any('model misfit at poses 4, 7' in w and 'diagnose' in w
                for w in cal.robust.warnings)
+    doc = add_robust_sections(calibration_document(cm, cal.result), cal)
+    assert doc['robust']['misfit'] == sorted(ends) and doc['robust']['excluded'] == []
     held, held_plain = (_held_out_rms(cm, p_true, c.result.values) for c in (cal, plain))
     print(f'held-out rms: {held * 1e6:.1f} µm, without exclusion {held_plain * 1e6:.1f} µm')
     assert held == pytest.approx(held_plain, rel=1e-9)

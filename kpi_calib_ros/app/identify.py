@@ -455,6 +455,8 @@ def add_robust_sections(doc: dict[str, Any], cal: CellCalibration) -> dict[str, 
                       'distance_sigma': e.distance_sigma, 'reason': e.reason}
                      for e in rob.excluded],
         'outliers': list(rob.outliers),
+        # Over the threshold but kept: the model misfits their pose (core.outliers).
+        'misfit': list(rob.misfit),
         'used_indices': [int(i) for i in np.flatnonzero(rob.kept)],
         'warnings': list(rob.warnings)}
     doc['tcp_estimable'] = cal.estimability.all_estimable
