@@ -22,14 +22,12 @@ excluding a fault makes it better. What tells them apart is what the model can n
    Bonferroni bound of that test (over the poses tested) is *inconsistent*; its over point
    whose removal restores the most consistency (ties: the farther) is a *fault*, one per
    pose and round (the others are judged again after the refit). An over point of a
-   consistent pose is *misfit*: its replicates disagree with the model alike (two points
-   must be off by the same vector, r_a − r_b ~ noise, χ²(3): a rotation would leave only
-   their distance to test, and a rotation of the pair absorbs most two-point faults),
-   unless it
-   is the pose's only point over the threshold and `SET_APART` times as far as any other
-   point of the pose: then its replicates agree with the model and it is a fault (three
-   close reflectors let a rotation of the pose absorb much of a one-point fault, so
-   consistency alone would miss one along the normal of their plane).
+   consistent pose is *misfit*: its replicates disagree with the model alike. Two points
+   must be off by the same vector (r_a − r_b ~ noise, χ²(3)): a rotation would leave only
+   their distance to test and absorb most two-point faults. Exception: the pose's only
+   point over the threshold, `SET_APART` times as far as any other point of the pose, is
+   a fault: its replicates agree with the model (three close reflectors let a rotation of
+   the pose absorb much of a one-point fault along the normal of their plane).
 3. *No replicates.* An over point with no other point at its pose is a fault unless its
    leverage along some direction, the largest eigenvalue h of H_ii, exceeds
    `HIGH_LEVERAGE` = ½: the fit then moves more than half way to the point, so removing
