@@ -1,24 +1,31 @@
 """Faults, not model misfit (core/outliers.py): a pose the model misfits is kept and named,
 a fault of one reflector is excluded, exclusion runs in batches and diagnose keeps the
-points identify keeps. Simulated three-reflector campaigns on the default cell."""
+points identify keeps. Simulated campaigns on the default cell (three reflectors unless
+said)."""
 from __future__ import annotations
 
 import copy
 import dataclasses
+import json
 
 import numpy as np
 import pytest
+import yaml
 
 from kpi_calib_ros.app.diagnose import diagnose_cell
 from kpi_calib_ros.app.identify import add_robust_sections, calibrate_cell, \
     calibration_document
+from kpi_calib_ros.cli import main
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.outliers import pose_groups
 from kpi_calib_ros.core.robust import OutlierSettings
 from kpi_calib_ros.core.simulation import (one_joint_at_a_time, random_configurations,
                                           true_parameters)
+from kpi_calib_ros.core.streams import synthesize_streams
+from kpi_calib_ros.io.bag_writing import write_bag
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict, \
     load_cell, read_cell_document
+from kpi_calib_ros.io.names import CALIBRATION_FILE, DIAGNOSIS_FILE
 
 OFFSETS = [[0.0, 0.0, 0.03], [0.06, 0.0, 0.03], [0.0, 0.05, 0.02]]
 SWEPT = 1          # the joint whose hidden error grows with the cube of its travel
@@ -163,3 +170,30 @@ def test_identify_and_diagnose_exclude_the_same_points_the_faults_in_batches(cm,
     assert len(cd.data) == len(data) - len(faults)
     assert cd.diagnosis.residuals.sigma_robust_m == pytest.approx(cal.robust.sigma_robust,
                                                                  rel=0.05)
+
+
+def test_cli_identify_shows_rounds_and_diagnose_lists_the_same_excluded_points(
+        tmp_path, capsys):
+    """A bag of 60 random poses (default cell, one reflector) with three 1 mm faults:
+    identify prints its exclusion rounds on stderr; diagnose excludes the same points."""
+    single = build_cell_model(load_cell(DEFAULT_CELL))
+    rng = np.random.default_rng(4)
+    p = true_parameters(single.model.params, rng)
+    q = random_configurations(single.model, single.model.params.nominal, 60, rng)
+    eta = single.model.predict(p, q) + rng.normal(size=(len(q), 3)) * single.cell.sigma
+    faults = [7, 21, 44]
+    eta[faults] += 1e-3 / np.sqrt(3)
+    joints, points = synthesize_streams(q, single.joint_names, eta, single.cell.tracker_frame)
+    bag = write_bag(tmp_path / 'faults.mcap', joints, points)
+    assert main(['identify', '--cell', str(DEFAULT_CELL), '--bag', str(bag),
+                 '--out', str(tmp_path / 'cal')]) == 0
+    assert 'outliers: round 1: excluded' in capsys.readouterr().err
+    cal = yaml.safe_load((tmp_path / 'cal' / CALIBRATION_FILE).read_text())
+    assert sorted(e['index'] for e in cal['robust']['excluded']) == faults
+    assert main(['diagnose', '--cell', str(DEFAULT_CELL), '--bag', str(bag),
+                 '--out', str(tmp_path / 'diag')]) == 0
+    diag = json.loads((tmp_path / 'diag' / DIAGNOSIS_FILE).read_text())
+    assert sorted(diag['residuals']['excluded']) == faults
+    assert diag['residuals']['measurements'] == 60 - len(faults)
+    assert diag['residuals']['sigma_robust_m'] == pytest.approx(
+        cal['robust']['sigma_robust_m'], rel=0.05)
