@@ -321,12 +321,14 @@ def choose_level(cm: CellModel, data: Measurements, model: str | None = None,
 
 def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
                    prior: Prior | None = None, start: np.ndarray | None = None,
-                   allowed: Sequence[str] | None = None) -> CellCalibration:
+                   allowed: Sequence[str] | None = None,
+                   progress: Callable[[str], None] | None = None) -> CellCalibration:
     """The identification the CLI and the node publish: model size (``model`` or the
     cell's ``identification.model``), outlier exclusion and loss, KPI estimability;
     ``prior`` (e.g. a previous calibration's) replaces the cell's tolerance prior.
     ``start`` replaces the registered start; ``allowed`` restricts the free parameters
-    of the model level (a previous calibration's gauge, see :mod:`app.reidentify`)."""
+    of the model level (a previous calibration's gauge, see :mod:`app.reidentify`);
+    ``progress`` is called with a line per outlier-exclusion round."""
     if len(data) == 0:
         raise DataError('no accepted measurement to identify from')
     settings = cm.cell.identification
@@ -358,7 +360,7 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
     def robust_fit(free: list[str]) -> RobustResult:
         return robust_identify(cm.model, data, cm.cell.sigma,
                                lambda d, **kw: fit(d, free, **kw), settings.loss,
-                               settings.outliers, start=start)
+                               settings.outliers, start=start, progress=progress)
     robust = robust_fit(free)
     shapes = [n for e in cm.model.effects
               if isinstance(e, BoundEffect) and e.name in choice.effects
@@ -453,6 +455,8 @@ def add_robust_sections(doc: dict[str, Any], cal: CellCalibration) -> dict[str, 
                       'distance_sigma': e.distance_sigma, 'reason': e.reason}
                      for e in rob.excluded],
         'outliers': list(rob.outliers),
+        # Over the threshold but kept: the model misfits their pose (core.outliers).
+        'misfit': list(rob.misfit),
         'used_indices': [int(i) for i in np.flatnonzero(rob.kept)],
         'warnings': list(rob.warnings)}
     doc['tcp_estimable'] = cal.estimability.all_estimable
@@ -580,6 +584,11 @@ def print_rejections(pairing: PairingResult) -> None:
         print(f'rejected {count} sample(s): {reason}{detail}', file=sys.stderr)
 
 
+def print_progress(line: str) -> None:
+    """A progress line of a long identification, on stderr (stdout is the summary)."""
+    print(line, file=sys.stderr, flush=True)
+
+
 def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Path,
                  effects: str = '', model: str | None = None, **options: Any) -> int:
     """``kpi-calib identify``: calibration.yaml and the calibrated URDF
@@ -595,7 +604,7 @@ def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
     """
     writable_folder(out_dir, '--out')
     cm, data, pairing = load_measurements(cell_path, bag_path, effects, **options)
-    cal = calibrate_cell(cm, data, model)
+    cal = calibrate_cell(cm, data, model, progress=print_progress)
     cm = cal.cell or cm  # with the effects auto added
     how = tolerance_text(cm, cal.prior_scale)
     doc = add_robust_sections(calibration_document(cm, cal.result, pairing), cal)

@@ -136,6 +136,17 @@ class CellDiagnosis:
     # calibration diagnosed and of the one with the added effect.
     out_of_sample: OutOfSample | None = None
     after_out_of_sample: OutOfSample | None = None
+    # The measurements given: ``data`` is those identification keeps (``kept``, (M,) bool;
+    # None: all), so the diagnosis describes the calibration the user gets; ``excluded``
+    # names the others (indices into the given measurements).
+    kept: np.ndarray | None = None
+    excluded: tuple[int, ...] = ()
+
+    def given_index(self, rows: np.ndarray) -> list[int]:
+        """Indices into the given measurements of rows (bool mask or indices) of ``data``."""
+        rows = np.asarray(rows)
+        idx = np.flatnonzero(rows) if rows.dtype == bool else rows.astype(int)
+        return [int(i) for i in (idx if self.kept is None else np.flatnonzero(self.kept)[idx])]
 
 
 def screen_effects(model: MeasurementModel, data: Measurements, result: CalibrationResult,

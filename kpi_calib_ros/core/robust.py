@@ -6,12 +6,19 @@ normal sample times 1.4826 estimates its σ whatever a few wild points do, and t
 dof = 3N − k degrees of freedom in 3N residuals). It is reported beside the stated σ and a
 ratio beyond 2× either way is a warning: the stated σ, not σ̂, sets the covariance.
 
-*Outliers.* A measurement is an outlier when its distance ‖r_i‖ exceeds ``threshold``·σ̂.
-The default threshold is the Bonferroni bound √χ²₃(1 − α/N), α = 0.01: a clean campaign
-loses a point in 1 % of campaigns. Exclusion is one point per round (the farthest), then a
-refit, so one gross point cannot drag good ones over the threshold (swamping). A point
-farther than `GROSS_DISTANCE` from the nominal prediction (a wrong unit, another target)
-is excluded before the first fit. Excluded points are listed, never dropped silently.
+*Outliers.* A measurement is over the threshold when its studentized distance
+t_i = √(r_iᵀ (I − H_ii)⁺ r_i) / σ̂ exceeds ``threshold``. The default threshold is the
+Bonferroni bound √χ²₃(1 − α/N), α = 0.01: a clean campaign loses a point in 1 % of
+campaigns. A point over it is excluded only when it is a *fault*, not a *misfit* of the
+model: the rule (replicates of the pose, a rigid motion of the pose, leverage) and its
+reasoning are in :mod:`kpi_calib_ros.core.outliers`; misfit points are kept and named
+("model misfit at these poses, see kpi-calib diagnose"). Faults are excluded in batches
+and the fit repeated: each round the faults within half the farthest one's distance
+(at least the threshold), so one gross point cannot drag good ones over the threshold
+(swamping) and a campaign with hundreds of faults needs a few rounds, not hundreds; at
+most one point per pose and round. A point farther than `GROSS_DISTANCE` from the nominal
+prediction (a wrong unit, another target) is excluded before the first fit. Excluded
+points are listed, never dropped silently.
 
 *Robust losses* (``loss``, iteratively reweighted least squares in the Gauss-Newton of
 :func:`~kpi_calib_ros.core.estimation.identify`): with u_i = ‖r_i‖ / (c σ̂), σ̂ re-estimated
@@ -31,6 +38,7 @@ import scipy.stats
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation import MAX_START_ERROR, CalibrationResult
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
+from kpi_calib_ros.core.outliers import judge, pose_groups
 
 LOSSES = ('linear', 'huber', 'soft_l1')
 LOSS_SCALE = float(np.sqrt(scipy.stats.chi2.ppf(0.95, 3)))
@@ -83,6 +91,7 @@ class RobustResult:
     result : the final fit (on the kept measurements, with the loss's weights);
     kept : (N,) bool, measurements used; excluded : the others, in order of exclusion;
     outliers : indices over the threshold (excluded or, with exclude false, only reported);
+    misfit : indices over the threshold kept as model misfit (core.outliers), not faults;
     sigma_robust : σ̂ (m, per axis) from the final residuals; sigma_stated : mean stated σ;
     threshold : outlier threshold in σ̂; loss : the loss used; warnings : texts for the user.
     """
@@ -97,6 +106,7 @@ class RobustResult:
     loss: str
     point_weights: np.ndarray | None
     warnings: tuple[str, ...] = field(default=())
+    misfit: tuple[int, ...] = field(default=())
 
     @property
     def sigma_ratio(self) -> float:
@@ -141,7 +151,8 @@ Fit = Callable[..., CalibrationResult]
 def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndarray,
                     fit: Fit, loss: str = 'linear',
                     outliers: OutlierSettings = OutlierSettings(),
-                    start: np.ndarray | None = None) -> RobustResult:
+                    start: np.ndarray | None = None,
+                    progress: Callable[[str], None] | None = None) -> RobustResult:
     """Identify with outlier exclusion and a robust loss.
 
     Parameters
@@ -160,6 +171,8 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
     start : (n_p,) ndarray, optional
         Parameters the gross-outlier test predicts with (default: the nominal ones);
         e.g. the registered placement.
+    progress : callable, optional
+        Called with one line of text after every exclusion round.
 
     Raises
     ------
@@ -182,7 +195,9 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
                                       f'{GROSS_DISTANCE:g} m from the nominal prediction'))
         kept &= ~gross
     max_excluded = int(np.floor(outliers.max_fraction * n))
+    pose = pose_groups(q)
     p0 = None
+    rounds = 0
     while True:
         try:
             result, omega = _fit_with_loss(fit, subset(data, kept), loss, p0)
@@ -198,26 +213,37 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
             eta - model.predict(result.values, q, data.tau, data.reflector, data.rotation),
             axis=1)
         scale = robust_sigma(result.residuals, result.dof)
-        over = kept & (distances > threshold * scale)
-        if not outliers.exclude or not over.any():
+        verdict = judge(model, data, result.values, result.estimated, sigma, scale,
+                        threshold, kept, pose, omega)
+        t = verdict.distance_sigma
+        if not outliers.exclude or not verdict.fault.any():
             break
-        if len(excluded) >= max_excluded:
+        # The faults within half the farthest one's distance: a batch a distorted fit
+        # cannot have pushed good points into (swamping), then a refit.
+        batch = verdict.fault & (t >= max(threshold, 0.5 * float(t[verdict.fault].max())))
+        if len(excluded) + int(batch.sum()) > max_excluded:
             raise DataError(f'more than {outliers.max_fraction:.0%} of the {n} measurements '
                             f'lie beyond {threshold:.2f} σ̂ (σ̂ = {scale * 1e6:.1f} µm): the '
                             'model or the data is wrong, not a few points; run kpi-calib '
                             'diagnose, or raise identification.outliers.threshold')
-        worst = int(np.argmax(np.where(over, distances, -1.0)))
         # The reason carries no distance of its own: distance_sigma (against the final
         # fit, below) is the one figure reported for the point.
-        excluded.append(_excluded(worst, stamps, distances[worst], distances[worst] / scale,
-                                  f'outlier: beyond {threshold:.2f} σ̂ from the fit it was '
-                                  'excluded from'))
-        kept[worst] = False
+        for i in np.flatnonzero(batch)[np.argsort(-t[batch])]:
+            excluded.append(_excluded(int(i), stamps, distances[i], distances[i] / scale,
+                                      f'outlier: studentized residual beyond {threshold:.2f} '
+                                      'σ̂ in the fit it was excluded from'))
+        kept[batch] = False
+        rounds += 1
+        if progress is not None:
+            progress(f'outliers: round {rounds}: excluded {int(batch.sum())} '
+                     f'({len(excluded)} of {n} in all, σ̂ {scale * 1e6:.3g} µm), refitting '
+                     f'{int(kept.sum())} points')
     # Distances of every measurement (excluded ones too) against the final fit.
     final_excluded = tuple(replace(e, distance_m=float(distances[e.index]),
                                    distance_sigma=float(distances[e.index] / scale))
                            for e in excluded)
-    flagged = tuple(int(i) for i in np.flatnonzero(distances > threshold * scale))
+    flagged = tuple(int(i) for i in np.flatnonzero(t > threshold))
+    misfit = tuple(int(i) for i in np.flatnonzero(verdict.misfit))
     stated = float(np.mean(np.broadcast_to(np.asarray(sigma, float), (3,))))
     warnings = []
     ratio = scale / stated
@@ -226,8 +252,19 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
     if flagged and not outliers.exclude:
         warnings.append(f'{len(flagged)} outlier(s) beyond {threshold:.2f} σ̂ kept in the fit '
                         '(identification.outliers.exclude is false)')
+    if misfit:
+        warnings.append(misfit_warning(misfit, pose, threshold))
     return RobustResult(result, kept, final_excluded, flagged, scale, stated, threshold,
-                        loss, omega, tuple(warnings))
+                        loss, omega, tuple(warnings), misfit)
+
+
+def misfit_warning(misfit: tuple[int, ...], pose: np.ndarray, threshold: float) -> str:
+    """The text naming the points over the threshold kept as model misfit."""
+    poses = sorted({int(pose[i]) for i in misfit})
+    shown = ', '.join(str(g) for g in poses[:12]) + (', …' if len(poses) > 12 else '')
+    return (f'model misfit at poses {shown} ({len(misfit)} point(s) beyond '
+            f'{threshold:.2f} σ̂ kept: their pose\'s other points agree with them, or they '
+            'carry information no other pose has); see kpi-calib diagnose')
 
 
 def gross_outliers(model: MeasurementModel, data: Measurements,

@@ -69,11 +69,12 @@ def diagnosis_to_dict(cd: CellDiagnosis) -> dict[str, Any]:
                       'percentiles_m': {str(k): float(v) for k, v in rep.percentiles_m.items()},
                       'chi2': float(rep.chi2), 'dof': int(rep.dof),
                       'p_value': float(rep.p_value), 'adequate': bool(rep.adequate),
-                      'outliers': [int(i) for i in np.flatnonzero(rep.outlier)],
+                      'outliers': cd.given_index(rep.outlier),
+                      'excluded': list(cd.excluded),
                       'sigma_stated_m': float(np.mean(cd.result.sigma)),
                       'sigma_robust_m': float(rep.sigma_robust_m),
                       'sigma_warning': rep.sigma_warning,
-                      'high_leverage': [int(i) for i in np.flatnonzero(rep.high_leverage)]},
+                      'high_leverage': cd.given_index(rep.high_leverage)},
         'not_distinguishable': [{'effect': c.effect, 'joint': c.joint, 'spec': c.spec,
                                  'reason': c.explanation} for c in diag.not_distinguishable],
     }
@@ -131,8 +132,10 @@ def diagnosis_text(cd: CellDiagnosis, top: int = 5) -> str:
              f'from the residuals {rep.sigma_robust_m * _UM:.3g} µm',
              *([f'WARNING: {rep.sigma_warning}'] if rep.sigma_warning else []),
              *([cd.out_of_sample.text()] if cd.out_of_sample is not None else []),
-             f'outliers: {np.flatnonzero(rep.outlier).tolist()}, high leverage: '
-             f'{np.flatnonzero(rep.high_leverage).tolist()}',
+             *([f'diagnosed the {len(cd.data)} measurements identify keeps; excluded as '
+                f'outliers: {list(cd.excluded)}'] if cd.excluded else []),
+             f'outliers: {cd.given_index(rep.outlier)}, high leverage: '
+             f'{cd.given_index(rep.high_leverage)}',
              f'candidates (best first, {len(diag.candidates)} distinguishable, '
              f'{len(diag.not_distinguishable)} not):']
     for i, c in enumerate(diag.candidates[:top], 1):
@@ -385,8 +388,9 @@ def write_report(out_dir: str | Path, cd: CellDiagnosis) -> Path:
               for k, v in rep.percentiles_m.items()]
     lines += [f'| χ² / dof | {rep.chi2:.1f} / {rep.dof} (p = {rep.p_value:.3g}) |',
               f'| outliers (Bonferroni, α = {rep.alpha:g}) | '
-              f'{np.flatnonzero(rep.outlier).tolist()} |',
-              f'| high leverage (> 3× mean) | {np.flatnonzero(rep.high_leverage).tolist()} |']
+              f'{cd.given_index(rep.outlier)} |',
+              f'| high leverage (> 3× mean) | {cd.given_index(rep.high_leverage)} |',
+              f'| excluded by identify (not diagnosed) | {list(cd.excluded)} |']
     if cd.out_of_sample is not None:
         lines += out_of_sample_table(cd.out_of_sample)
     lines += ['', '## Candidate effects, best first', '',
