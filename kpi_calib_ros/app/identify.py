@@ -530,7 +530,7 @@ def geometric_only(cm: CellModel) -> CellModel:
     """``cm`` with the geometric model only (no effects)."""
     return dataclasses.replace(cm, model=MeasurementModel(
         cm.robot, cm.geometric, (), cm.cell.reflector_axis, cm.model.orientations,
-        cm.model.rotation_scale))
+        cm.model.rotation_scale, cm.model.joint_sigma))
 
 
 def with_effects(cm: CellModel, effects: tuple) -> CellModel:

@@ -62,12 +62,21 @@ def honest_precision(result: CalibrationResult,
                                covariance_scale=scale)
 
 
-def precision_statement(scale: float) -> str:
-    """How the reported std were obtained, for files, summaries and the node."""
+JOINT_NOISE_CAUSE = ('joint readings noisier than exact are one cause (a controller read-back '
+                     'of 0.02-0.05 deg moves the point by 0.2-0.9 mm at 1 m): state them as '
+                     'noise.joint_sigma (rad, per joint) in the cell')
+
+
+def precision_statement(scale: float, joint_sigma: np.ndarray | None = None) -> str:
+    """How the reported std were obtained, for files, summaries and the node.
+
+    ``joint_sigma``: the joint-reading noise the fit assumed (rad, chain order), None when
+    the cell stated none; then the joint readings are named as a cause of a rejection."""
     if scale == 1.0:
         return 'from the stated sigma (model adequate)'
-    return (f'scaled by chi2/dof = {scale:.4g} (estimated sigma = {np.sqrt(scale):.3g} x '
+    text = (f'scaled by chi2/dof = {scale:.4g} (estimated sigma = {np.sqrt(scale):.3g} x '
             'stated): the model is not adequate, the stated sigma understates the residuals')
+    return text + ('; ' + JOINT_NOISE_CAUSE if joint_sigma is None else '')
 
 
 BALANCE_ROUNDS = 12
@@ -104,5 +113,5 @@ def balanced_prior(fit: Callable[[Prior], CalibrationResult], prior: Prior,
     return tightened(prior, scale), scale, result
 
 
-__all__ = ['balanced_prior', 'honest_precision', 'noise_scale', 'precision_statement',
-           'tightened']
+__all__ = ['JOINT_NOISE_CAUSE', 'balanced_prior', 'honest_precision', 'noise_scale',
+           'precision_statement', 'tightened']

@@ -553,7 +553,7 @@ class CalibrationNode(Node):
         self._publish_markers()
         self._publish_diagnostics(force=True)
         tcp_um = np.sqrt(np.trace(result.tcp_covariance, axis1=1, axis2=2)).max() * 1e6
-        precision = precision_statement(result.covariance_scale)
+        precision = precision_statement(result.covariance_scale, result.joint_sigma)
         if result.covariance_scale != 1.0:
             self.get_logger().warning(f'TCP and parameter std {precision}')
         return True, (
