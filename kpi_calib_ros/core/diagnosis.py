@@ -32,7 +32,7 @@ from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.measurement import (MeasurementModel, Measurements, unweighted,
                                             weighted_rows)
 from kpi_calib_ros.core.out_of_sample import OutOfSample
-from kpi_calib_ros.core.precision import JOINT_NOISE_CAUSE
+from kpi_calib_ros.core.precision import JOINT_NOISE_CAUSE, ExpectedTcpError
 from kpi_calib_ros.core.residuals import (ADEQUACY_ALPHA, LinearizedFit, ResidualReport,
                                          cross_validated_rms, cv_rms, identifiable_folds,
                                          linearized_fit, residual_report)
@@ -139,6 +139,8 @@ class CellDiagnosis:
     # calibration diagnosed and of the one with the added effect.
     out_of_sample: OutOfSample | None = None
     after_out_of_sample: OutOfSample | None = None
+    # Expected TCP error at the working poses with the misfit (core.precision).
+    expected: ExpectedTcpError | None = None
 
 
 def screen_effects(model: MeasurementModel, data: Measurements, result: CalibrationResult,
