@@ -153,3 +153,26 @@ def test_joint_sigma_is_matched_by_name(cell):
     np.testing.assert_allclose(cm.model.joint_sigma, [0, 2e-4, 0, 0, 1e-4, 0])
     with pytest.raises(ConfigError, match='unknown joint'):
         build_cell_model(dataclasses.replace(cell, joint_sigma={'elbow': 1e-4}))
+
+
+def test_out_of_sample_prediction_holds_the_joint_noise(exact, stated, cell):
+    """One robot and design, 30 draws: the predicted like-measured error of a new
+    measurement (tracker and joint noise, parameter error) equals the mean true square error
+    ‖h_true − ĥ‖² + Σσ² + tr(J_q Σ_q J_qᵀ) at the measured poses."""
+    from kpi_calib_ros.core.out_of_sample import out_of_sample_error
+    p_true, q, _ = campaign(exact, 21)
+    rng = np.random.default_rng(22)
+    jq = stated.model.joint_jacobian(p_true, q) * JOINT_SIGMA
+    noise = float(np.sum(cell.sigma ** 2) + np.mean(np.sum(jq ** 2, axis=(1, 2))))
+    predicted, true = [], []
+    for _ in range(30):
+        data = simulate_measurements(exact.model, p_true, q, cell.sigma, rng, JOINT_SIGMA)
+        result = identify(stated.model, data, cell.sigma, stated.q_work)
+        oos = out_of_sample_error(stated.model, data, result, domains=('like_measured',))
+        predicted.append(oos.domains['like_measured'].rms_m ** 2)
+        miss = exact.model.predict(p_true, q) - stated.model.predict(result.values, q)
+        true.append(float(np.mean(np.sum(miss ** 2, axis=1))) + noise)
+    ratio = np.mean(predicted) / np.mean(true)
+    error = (np.std(predicted) + np.std(true)) / np.mean(true) / np.sqrt(30)
+    assert abs(ratio - 1) < 3 * error + 0.02, (ratio, error)
+    assert noise > 20 * np.sum(cell.sigma ** 2)   # the joint noise is what is predicted
