@@ -6,6 +6,8 @@ plus the propagated uncertainty of the identified parameters,
 
     C_i = Σ + J_i C_p J_iᵀ        (J_i = ∂h/∂p of the identified parameters at q_i),
 
+plus J_q Σ_q J_qᵀ when the model states joint-reading noise,
+
 so ``χ² = Σ_i r_iᵀ C_i⁻¹ r_i`` follows χ²(3N) when the calibration holds (new data
 are independent of the fit). Σ is the noise the calibration showed: the stated σ, or
 σ̂ = σ·√(χ²/dof) when its model was not adequate and its covariance was scaled by that
@@ -89,7 +91,8 @@ def validate(model: MeasurementModel, p: np.ndarray, estimated: np.ndarray,
              covariance: np.ndarray, sigma: np.ndarray, data: Measurements,
              lower: np.ndarray, upper: np.ndarray,
              alpha: float = ADEQUACY_ALPHA,
-             training_q: np.ndarray | None = None) -> Validation:
+             training_q: np.ndarray | None = None,
+             noise_scale: float = 1.0) -> Validation:
     """Predict ``data`` with the calibration ``p`` and test the residuals.
 
     Parameters
@@ -111,6 +114,10 @@ def validate(model: MeasurementModel, p: np.ndarray, estimated: np.ndarray,
     training_q : (M, n) ndarray, optional
         The training poses (chain order): a pose inside the ranges near one is marked
         repeated.
+    noise_scale : float
+        The factor ``sigma`` was scaled by (χ²/dof of a calibration whose model was not
+        adequate); the joint-reading noise of the model, ``J_q Σ_q J_qᵀ`` per point, is
+        added scaled by it as well.
     """
     q = np.atleast_2d(data.q)
     tau = model.robot.gravity_torques(q) if model.uses_torque else None
@@ -118,6 +125,9 @@ def validate(model: MeasurementModel, p: np.ndarray, estimated: np.ndarray,
     residuals = np.atleast_2d(data.eta) - pred
     j = jac[:, :, estimated]
     cov = np.einsum('nak,kl,nbl->nab', j, covariance, j) + np.diag(np.asarray(sigma) ** 2)
+    if model.joint_sigma is not None:
+        jq = model.joint_jacobian(p, q, tau, data.reflector, data.rotation) * model.joint_sigma
+        cov += noise_scale * np.einsum('nak,nbk->nab', jq, jq)
     solved = np.linalg.solve(cov, residuals[:, :, None])[:, :, 0]
     d2 = np.sum(residuals * solved, axis=1)
     chi2 = float(np.sum(d2))
