@@ -74,7 +74,7 @@ def one_run(cm, spec: str, seed: int, poses: int) -> list[dict]:
 
 
 def main() -> None:
-    runs = int(sys.argv[1]) if len(sys.argv) > 1 else 20
+    runs = int(sys.argv[1]) if len(sys.argv) > 1 else 30
     poses = int(sys.argv[2]) if len(sys.argv) > 2 else 40
     cm = build_cell_model(load_cell(DEFAULT_CELL))
     start = time.time()
