@@ -200,3 +200,34 @@ def test_validation_holds_new_points_with_the_joint_noise(exact, stated, cell):
                                 cell.sigma, new, lower, upper).p_value)
     assert scipy.stats.kstest(with_noise, 'uniform').pvalue > 0.01, np.round(with_noise, 3)
     assert max(without) < 0.01
+
+
+def test_simulate_and_identify_carry_the_cell_joint_noise(tmp_path, capsys):
+    """kpi-calib simulate reads the joints with the cell's noise.joint_sigma; identify with
+    that cell accepts the model and writes the joint noise it carried; with the joint
+    noise left out of the cell the χ² warning names the joint readings."""
+    import yaml
+
+    from kpi_calib_ros.cli import main
+    doc = yaml.safe_load(open(DEFAULT_CELL))
+    doc['robot']['urdf'] = str((DEFAULT_CELL.parent / doc['robot']['urdf']).resolve())
+    plain = tmp_path / 'plain.yaml'
+    plain.write_text(yaml.safe_dump(doc))
+    doc['noise']['joint_sigma'] = float(JOINT_SIGMA)
+    noisy = tmp_path / 'noisy.yaml'
+    noisy.write_text(yaml.safe_dump(doc))
+    bag = tmp_path / 'run.mcap'
+    assert main(['simulate', '--cell', str(noisy), '--n', '40', '--out', str(bag),
+                 '--seed', '4']) == 0
+    assert main(['identify', '--cell', str(noisy), '--bag', str(bag), '--out',
+                 str(tmp_path / 'a')]) == 0
+    cal = yaml.safe_load((tmp_path / 'a' / 'calibration.yaml').read_text())
+    assert cal['model_adequacy']['adequate'], cal['model_adequacy']
+    assert cal['noise_joint_sigma_rad'] == pytest.approx([JOINT_SIGMA] * 6)
+    capsys.readouterr()
+    assert main(['identify', '--cell', str(plain), '--bag', str(bag), '--out',
+                 str(tmp_path / 'b')]) == 0
+    out = capsys.readouterr().out
+    assert 'WARNING: std scaled by chi2/dof' in out and 'noise.joint_sigma' in out
+    cal = yaml.safe_load((tmp_path / 'b' / 'calibration.yaml').read_text())
+    assert cal['noise_joint_sigma_rad'] is None and not cal['model_adequacy']['adequate']
