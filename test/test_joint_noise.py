@@ -231,3 +231,25 @@ def test_simulate_and_identify_carry_the_cell_joint_noise(tmp_path, capsys):
     assert 'WARNING: std scaled by chi2/dof' in out and 'noise.joint_sigma' in out
     cal = yaml.safe_load((tmp_path / 'b' / 'calibration.yaml').read_text())
     assert cal['noise_joint_sigma_rad'] is None and not cal['model_adequacy']['adequate']
+
+
+@pytest.mark.parametrize('loss', ['linear', 'huber'])
+def test_robust_statistics_take_the_joint_noise_as_stated(exact, stated, cell, loss):
+    """With the joint noise stated, the robust σ̂ is the tracker σ (within 1.5×, no σ
+    warning) and no good point is an outlier, where the metric residuals (0.5 mm of joint
+    noise) would read as a σ 15-20× the stated one; the residual report agrees."""
+    from kpi_calib_ros.core.residuals import residual_report
+    from kpi_calib_ros.core.robust import OutlierSettings, robust_identify
+
+    def fit(d, free=None, **kw):
+        return identify(stated.model, d, cell.sigma, stated.q_work, **kw)
+    for seed in range(3):
+        p_true, q, rng = campaign(exact, 40 + seed, 60)
+        data = simulate_measurements(exact.model, p_true, q, cell.sigma, rng, JOINT_SIGMA)
+        robust = robust_identify(stated.model, data, cell.sigma, fit, loss, OutlierSettings())
+        assert 1 / 1.5 < robust.sigma_robust / cell.sigma[0] < 1.5, robust.sigma_robust
+        assert not robust.warnings and not robust.excluded, robust.warnings
+        report = residual_report(stated.model, data, robust.result)
+        assert not report.sigma_warning and not report.outlier.any()
+        metric = np.sqrt(np.mean(robust.result.residuals ** 2))
+        assert metric > 10 * cell.sigma[0]

@@ -294,7 +294,10 @@ def residual_report(model: MeasurementModel, data: Measurements, result: Calibra
     k = sys_.basis.shape[1]
     dof = 3 * n - k
     stated = float(np.mean(result.sigma))
-    sigma_hat = robust_sigma(residuals, dof)
+    # With joint-reading noise σ̂ is that of the whitened residuals at the stated σ: the
+    # joints' share of the scatter is stated, not a misfit (core.robust).
+    sigma_hat = robust_sigma(residuals if model.joint_sigma is None
+                             else sys_.r.reshape(n, 3) * stated, dof)
     inflation = max(1.0, sigma_hat / stated) if np.isfinite(sigma_hat) else 1.0
     outlier = scipy.stats.chi2.sf(standardized / inflation ** 2, 3) * n < alpha
     ratio = sigma_hat / stated

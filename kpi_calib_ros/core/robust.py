@@ -6,6 +6,11 @@ normal sample times 1.4826 estimates its σ whatever a few wild points do, and t
 dof = 3N − k degrees of freedom in 3N residuals). It is reported beside the stated σ and a
 ratio beyond 2× either way is a warning: the stated σ, not σ̂, sets the covariance.
 
+*Joint-reading noise.* With ``noise.joint_sigma`` stated a point's noise is σ²I + J_q Σ_q J_qᵀ,
+larger where the joints' lever is long: the statistics below then take each residual
+whitened (W_i r_i, :meth:`~kpi_calib_ros.core.measurement.MeasurementModel.whitening`) times
+the stated σ, a residual whose noise is the stated σ on every axis at every pose.
+
 *Outliers.* A measurement is an outlier when its distance ‖r_i‖ exceeds ``threshold``·σ̂.
 The default threshold is the Bonferroni bound √χ²₃(1 − α/N), α = 0.01: a clean campaign
 loses a point in 1 % of campaigns. Exclusion is one point per round (the farthest), then a
@@ -30,7 +35,7 @@ import scipy.stats
 
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation import MAX_START_ERROR, CalibrationResult
-from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
+from kpi_calib_ros.core.measurement import MeasurementModel, Measurements, weighted_residuals
 
 LOSSES = ('linear', 'huber', 'soft_l1')
 LOSS_SCALE = float(np.sqrt(scipy.stats.chi2.ppf(0.95, 3)))
@@ -176,13 +181,18 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
     max_excluded = int(np.floor(outliers.max_fraction * n))
     p0 = None
     while True:
-        result, omega = _fit_with_loss(fit, subset(data, kept), loss, p0)
+        result, omega = _fit_with_loss(fit, subset(data, kept), loss, p0, model, sigma)
         p0 = result.values
-        distances = np.linalg.norm(
-            eta - model.predict(result.values, q, data.tau, data.reflector, data.rotation),
-            axis=1)
-        scale = robust_sigma(result.residuals, result.dof)
-        over = kept & (distances > threshold * scale)
+        miss = eta - model.predict(result.values, q, data.tau, data.reflector, data.rotation)
+        distances = np.linalg.norm(miss, axis=1)
+        # What the outlier test and σ̂ see: the metric distances, or with joint-reading
+        # noise the residuals at the stated σ (module text).
+        tested, scaled = distances, result.residuals
+        if model.joint_sigma is not None:
+            standard = noise_units(model, data, result.values, miss, sigma)
+            tested, scaled = np.linalg.norm(standard, axis=1), standard[kept]
+        scale = robust_sigma(scaled, result.dof)
+        over = kept & (tested > threshold * scale)
         if not outliers.exclude or not over.any():
             break
         if len(excluded) >= max_excluded:
@@ -190,16 +200,16 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
                             f'lie beyond {threshold:.2f} σ̂ (σ̂ = {scale * 1e6:.1f} µm): the '
                             'model or the data is wrong, not a few points; run kpi-calib '
                             'diagnose, or raise identification.outliers.threshold')
-        worst = int(np.argmax(np.where(over, distances, -1.0)))
-        excluded.append(_excluded(worst, stamps, distances[worst], distances[worst] / scale,
-                                  f'outlier: {distances[worst] / scale:.1f} σ̂ > '
+        worst = int(np.argmax(np.where(over, tested, -1.0)))
+        excluded.append(_excluded(worst, stamps, distances[worst], tested[worst] / scale,
+                                  f'outlier: {tested[worst] / scale:.1f} σ̂ > '
                                   f'{threshold:.2f} σ̂'))
         kept[worst] = False
     # Distances of every measurement (excluded ones too) against the final fit.
     final_excluded = tuple(replace(e, distance_m=float(distances[e.index]),
-                                   distance_sigma=float(distances[e.index] / scale))
+                                   distance_sigma=float(tested[e.index] / scale))
                            for e in excluded)
-    flagged = tuple(int(i) for i in np.flatnonzero(distances > threshold * scale))
+    flagged = tuple(int(i) for i in np.flatnonzero(tested > threshold * scale))
     stated = float(np.mean(np.broadcast_to(np.asarray(sigma, float), (3,))))
     warnings = []
     ratio = scale / stated
@@ -234,15 +244,29 @@ def sigma_warning(robust: float, stated: float) -> str:
             'check noise.sigma (units: m) or the model (kpi-calib diagnose)')
 
 
-def _fit_with_loss(fit: Fit, data: Measurements, loss: str, p0: np.ndarray | None
+def noise_units(model: MeasurementModel, data: Measurements, p: np.ndarray,
+                residuals: np.ndarray, sigma: float | np.ndarray) -> np.ndarray:
+    """Residuals (N, 3) of ``data`` at ``p`` as the robust statistics take them (m): as
+    given without joint-reading noise; with it, W_i r_i times the mean stated σ, whose noise
+    is the stated σ on every axis at every pose."""
+    if model.joint_sigma is None:
+        return residuals
+    sigma = np.broadcast_to(np.asarray(sigma, float), (3,))
+    w = model.whitening(p, data.q, sigma, data.tau, data.reflector, data.rotation)
+    return weighted_residuals(residuals, w).reshape(-1, 3) * float(np.mean(sigma))
+
+
+def _fit_with_loss(fit: Fit, data: Measurements, loss: str, p0: np.ndarray | None,
+                   model: MeasurementModel, sigma: float | np.ndarray
                    ) -> tuple[CalibrationResult, np.ndarray | None]:
     result = fit(data, p0=p0)
     if loss == 'linear':
         return result, None
     omega = np.ones(len(data))
     for _ in range(IRLS_ITERATIONS):
-        scale = robust_sigma(result.residuals, result.dof)
-        new = loss_weights(loss, np.linalg.norm(result.residuals, axis=1), scale)
+        residuals = noise_units(model, data, result.values, result.residuals, sigma)
+        scale = robust_sigma(residuals, result.dof)
+        new = loss_weights(loss, np.linalg.norm(residuals, axis=1), scale)
         result = fit(data, p0=result.values, point_weights=new)
         if np.max(np.abs(new - omega)) < 1e-3:
             omega = new
