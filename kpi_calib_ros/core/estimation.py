@@ -254,7 +254,11 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     data : Measurements
         q (N, n) in chain order, eta (N, 3) in the tracker frame, m.
     sigma : float or (3,) array
-        Tracker noise standard deviation per axis, m.
+        Tracker noise standard deviation per axis, m. With joint-reading noise in the
+        model (``model.joint_sigma``) each measurement's covariance is
+        σ²I + J_q Σ_q J_qᵀ: its rows are whitened at the current estimate
+        (:meth:`MeasurementModel.whitening`), and after the fit the weights are evaluated
+        at the estimate and the fit repeated until they settle (`REWEIGHT_RTOL`).
     q_work : (t, n) ndarray
         Working configurations whose KPI points are estimated.
     p0 : (n_p,) ndarray, optional

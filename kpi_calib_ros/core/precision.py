@@ -131,8 +131,8 @@ class ExpectedTcpError:
     def to_dict(self) -> dict:
         def metres(v: float) -> float | None:
             return float(v) if np.isfinite(v) else None
-        return {'tcp_std_m': {n: float(v) for n, v in zip(self.working_pose_names,
-                                                           self.tcp_std_m)},
+        return {'tcp_std_m': {n: metres(v) for n, v in zip(self.working_pose_names,
+                                                            self.tcp_std_m)},
                 'expected_tcp_error_m': {n: metres(v) for n, v in zip(
                     self.working_pose_names, self.expected_tcp_error_m)},
                 'misfit_m': metres(self.misfit_m),
@@ -170,8 +170,10 @@ def expected_tcp_error(model: MeasurementModel, data: Measurements, result: Cali
     """
     tcp_std = np.sqrt(np.trace(result.tcp_covariance, axis1=1, axis2=2))
     noise = float(np.sqrt(measurement_noise_ms(model, data, result)))
-    adequate = result.dof <= 0 or is_adequate(result.p_value, alpha)
-    if adequate:
+    if result.dof <= 0:  # no residual left to tell a misfit from the noise
+        return ExpectedTcpError(result.working_pose_names, tcp_std, float('nan'),
+                                np.full(len(tcp_std), np.nan), float('nan'), noise, False)
+    if is_adequate(result.p_value, alpha):
         return ExpectedTcpError(result.working_pose_names, tcp_std, 0.0, tcp_std,
                                 float('nan'), noise, True)
     cv = cross_validated_rms(model, data, result, LEAVE_ONE_OUT)
