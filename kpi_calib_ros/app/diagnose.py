@@ -19,6 +19,7 @@ from kpi_calib_ros.core.effects import implausible, parse_effect_spec
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.robust import subset
 from kpi_calib_ros.core.out_of_sample import out_of_sample_error
+from kpi_calib_ros.core.precision import expected_tcp_error
 from kpi_calib_ros.core.residuals import ADEQUACY_ALPHA
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.names import DIAGNOSIS_FILE
@@ -52,9 +53,10 @@ def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
     prior = cell_prior(cm)
     oos = out_of_sample_error(cm.model, data, result, free or list(cm.model.params.names),
                               prior)
+    expected = expected_tcp_error(cm.model, data, result)  # result: honest precision
     if not add_best or diag.best is None:
         return CellDiagnosis(cm.model, data, result, diag, out_of_sample=oos, kept=kept,
-                             excluded=excluded)
+                             excluded=excluded, expected=expected)
     best = parse_effect_spec(diag.best.spec, cm.robot)
     richer = with_effects(cm, (best,))
     richer_free = None if free is None else level_free(richer.model.params, level,
@@ -74,7 +76,7 @@ def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
     after_oos = out_of_sample_error(richer.model, data, after,
                                     richer_free or list(richer.model.params.names), prior)
     return CellDiagnosis(cm.model, data, result, diag, best, richer.model, after, comparison,
-                         oos, after_oos, kept, excluded)
+                         oos, after_oos, kept, excluded, expected)
 
 
 def run_diagnose(cell_path: str | Path, bag_path: str | Path, out_dir: str | Path,

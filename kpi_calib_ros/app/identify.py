@@ -28,8 +28,9 @@ from kpi_calib_ros.core.measurement import MeasurementModel, Measurements, with_
 from kpi_calib_ros.core.pairing import PairingResult, pair_measurements
 from kpi_calib_ros.core.registration import Registration, register
 from kpi_calib_ros.core.robust import (LOSS_SCALE, ExcludedMeasurement, RobustResult,
-                                      gross_outliers, robust_identify, subset)
-from kpi_calib_ros.core.precision import balanced_prior, honest_precision
+                                       gross_outliers, robust_identify, subset)
+from kpi_calib_ros.core.precision import (ExpectedTcpError, balanced_prior,
+                                          expected_tcp_error, honest_precision)
 from kpi_calib_ros.core.prior import Prior, tolerance_prior
 from kpi_calib_ros.core.streams import JointSample, PointSample
 from kpi_calib_ros.io.bag import read_for_pairing
@@ -265,6 +266,8 @@ class CellCalibration:
     # The cell model the result belongs to: the given one with the effects ``auto`` added
     # (core.effect_selection); documents and the calibrated URDF are written with it.
     cell: CellModel | None = None
+    # Expected TCP error at the working poses with the misfit included (core.precision).
+    expected: ExpectedTcpError | None = None
 
     @property
     def problems(self) -> tuple[str, ...]:
@@ -379,8 +382,10 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
                               cm.q_work, cm.working_pose_names, free, prior=prior,
                               reflector=kept.reflector, rotation=kept.rotation)
     # A model that fails χ² must not report the stated σ's precision (core.precision).
-    return CellCalibration(honest_precision(robust.result), robust, choice, est, tuple(free),
-                           registration, scales[-1], cm)
+    result = honest_precision(robust.result)
+    return CellCalibration(result, robust, choice, est, tuple(free),
+                           registration, scales[-1], cm,
+                           expected_tcp_error(cm.model, kept, result))
 
 
 def add_chosen_effects(cm: CellModel, data: Measurements, choice: ModelChoice,
@@ -465,7 +470,18 @@ def add_robust_sections(doc: dict[str, Any], cal: CellCalibration) -> dict[str, 
         entry['determined'] = bool(ok)
         if not ok:
             entry.update(covariance=None, std=None, trace_m2=None)
+    if cal.expected is not None:
+        # tcp_std_m: the parameter part; expected_tcp_error_m: with the model's misfit.
+        expected = cal.expected.to_dict()
+        for name, ok in zip(cal.expected.working_pose_names, cal.estimability.estimable):
+            if not ok:
+                expected['tcp_std_m'][name] = expected['expected_tcp_error_m'][name] = None
+        doc['precision'].update(expected)
     return doc
+
+
+def _um(metres: float | None) -> str:
+    return 'not estimable' if metres is None else f'{metres * 1e6:.1f} µm'
 
 
 def robust_summary(doc: dict[str, Any]) -> str:
@@ -488,6 +504,14 @@ def robust_summary(doc: dict[str, Any]) -> str:
                  f"(ratio {rob['sigma_ratio']:.3g}); loss {rob['loss']}")
     lines += [ExcludedMeasurement(**e).text() for e in rob['excluded']]
     lines += [f'WARNING: {w}' for w in rob['warnings']]
+    precision = doc.get('precision', {})
+    for name, error in precision.get('expected_tcp_error_m', {}).items():
+        std = precision['tcp_std_m'][name]
+        if std is not None:
+            lines.append(f'TCP {name}: expected error {_um(error)} (with the misfit), '
+                         f'parameter part tcp_std {_um(std)} (sqrt(trace))')
+    if precision.get('expected_tcp_error_m'):
+        lines.append(f"expected TCP error: {precision['expected_tcp_error_basis']}")
     if doc['tcp_estimable']:
         lines.append('TCP estimable at every working pose')
     if not doc['valid']:
@@ -532,7 +556,7 @@ def geometric_only(cm: CellModel) -> CellModel:
     """``cm`` with the geometric model only (no effects)."""
     return dataclasses.replace(cm, model=MeasurementModel(
         cm.robot, cm.geometric, (), cm.cell.reflector_axis, cm.model.orientations,
-        cm.model.rotation_scale))
+        cm.model.rotation_scale, cm.model.joint_sigma))
 
 
 def with_effects(cm: CellModel, effects: tuple) -> CellModel:

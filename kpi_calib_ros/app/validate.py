@@ -100,10 +100,11 @@ def validate_calibration(cm: CellModel, p: np.ndarray, doc: dict[str, Any],
     ranges = doc.get('training_joint_ranges') or {}
     lower = np.array([ranges.get(n, [-np.inf, np.inf])[0] for n in cm.joint_names])
     upper = np.array([ranges.get(n, [-np.inf, np.inf])[1] for n in cm.joint_names])
-    sigma = np.array(doc['noise_sigma_m'], dtype=float) * np.sqrt(calibration_noise_scale(doc))
+    scale = calibration_noise_scale(doc)
+    sigma = np.array(doc['noise_sigma_m'], dtype=float) * np.sqrt(scale)
     return validate(cm.model, p, estimated, np.array(cov['matrix'], dtype=float).reshape(
         len(estimated), len(estimated)), sigma, data, lower, upper,
-        training_q=training_poses(cm, doc),
+        training_q=training_poses(cm, doc), noise_scale=scale,
         registered=cm.model.params.indices(registered) if registered else None)
 
 

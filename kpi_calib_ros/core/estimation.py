@@ -26,7 +26,8 @@ from kpi_calib_ros.core.covariance import kkt_covariance, kpi_jacobians
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.identifiability import (DroppedParameter, Identifiability,
                                                 select_identifiable)
-from kpi_calib_ros.core.measurement import MeasurementModel, Measurements, weighted_rows
+from kpi_calib_ros.core.measurement import (MeasurementModel, Measurements, weighted_residuals,
+                                            weighted_rows)
 from kpi_calib_ros.core.prior import Prior
 
 # Prior rows over the full parameter vector: L (n_rows, n_p) and L m (n_rows,).
@@ -36,6 +37,12 @@ PriorRows = tuple[np.ndarray, np.ndarray]
 # A nominal model is off by millimetres, a wrong unit or frame by metres.
 MAX_START_ERROR = 0.1
 MAX_SELECTION_ROUNDS = 4
+# Joint-reading noise makes the row weights depend on p (core.measurement): they are
+# evaluated at the estimate and the fit repeated until no weight moves by more than
+# REWEIGHT_RTOL of the largest (a relative change ε of the weights moves the estimate by
+# about ε of its std).
+MAX_REWEIGHT_ROUNDS = 4
+REWEIGHT_RTOL = 1e-3
 
 
 @dataclass(frozen=True)
@@ -200,6 +207,8 @@ class CalibrationResult:
     # 1 when std/covariances come from the stated σ; χ²/dof when they were scaled to
     # the estimated σ because the model failed the χ² test (core.precision).
     covariance_scale: float = 1.0
+    # Joint-reading noise (rad, chain order) the row weights carried; None: exact readings.
+    joint_sigma: np.ndarray | None = None
 
     @property
     def converged(self) -> bool:
@@ -245,7 +254,11 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     data : Measurements
         q (N, n) in chain order, eta (N, 3) in the tracker frame, m.
     sigma : float or (3,) array
-        Tracker noise standard deviation per axis, m.
+        Tracker noise standard deviation per axis, m. With joint-reading noise in the
+        model (``model.joint_sigma``) each measurement's covariance is
+        σ²I + J_q Σ_q J_qᵀ: its rows are whitened at the current estimate
+        (:meth:`MeasurementModel.whitening`), and after the fit the weights are evaluated
+        at the estimate and the fit repeated until they settle (`REWEIGHT_RTOL`).
     q_work : (t, n) ndarray
         Working configurations whose KPI points are estimated.
     p0 : (n_p,) ndarray, optional
@@ -288,6 +301,12 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     rot = data.rotation   # measured rotations of the rotation rows (tracked poses)
     rows = prior.rows(model.params) if prior is not None else None
 
+    def reweighted(pp: np.ndarray) -> np.ndarray:
+        """Row weights at ``pp``: fixed 1/σ, or whitening with joint-reading noise."""
+        if model.joint_sigma is None:
+            return w
+        return model.whitening(pp, q, 1.0 / w_axis, tau, ref, rot, point_weights)
+
     pred, _ = model.jacobian(p, q, tau, ref, rot)
     start_error = float(np.median(np.linalg.norm(eta - pred, axis=1)))
     if start_error > MAX_START_ERROR:
@@ -304,6 +323,7 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     # A parameter dropped in a later round keeps the value it was fitted to: the full
     # vector stays one exact solution (one gauge); resetting it would restart the fit.
     ident, iterations, kept_before = None, 0, None
+    w = reweighted(p)
     for _ in range(MAX_SELECTION_ROUNDS):
         _, jac = model.jacobian(p, q, tau, ref, rot)
         stacked = _with_prior(weighted_rows(jac, w, free_idx), rows, free_idx)
@@ -332,6 +352,15 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     if ident is None:
         raise RuntimeError(f'MAX_SELECTION_ROUNDS = {MAX_SELECTION_ROUNDS}: no round selected '
                            'the identifiable parameters')
+    for _ in range(MAX_REWEIGHT_ROUNDS if model.joint_sigma is not None else 0):
+        new = reweighted(p)
+        change = float(np.max(np.abs(new - w)) / np.max(np.abs(w)))
+        w = new
+        if change < REWEIGHT_RTOL:
+            break
+        p, status, message, used = _gauss_newton(model, p, idx, q, eta, tau, w,
+                                                 max_iterations, tolerances, ref, rows, rot)
+        iterations += used
     pred, jac = model.jacobian(p, q, tau, ref, rot)
     residuals = eta - pred
     f_data = weighted_rows(jac, w, idx)
@@ -343,7 +372,7 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     c_s = c_v[k:, k:]
     t = len(q_work)
     tcp_cov = np.array([c_s[3 * i:3 * i + 3, 3 * i:3 * i + 3] for i in range(t)])
-    chi2 = float(np.sum((residuals * w) ** 2))
+    chi2 = float(np.sum(weighted_residuals(residuals, w) ** 2))
     # χ² of the data rows only; the prior rows are information, not measurements.
     dof = 3 * len(q) - k
     if rows is not None:
@@ -354,7 +383,8 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
         residuals=residuals, rms_m=_point_rms(residuals, ref, model.n_reflectors),
         tcp=tcp, tcp_covariance=tcp_cov, working_pose_names=tuple(names),
         sigma=1.0 / w_axis, chi2=chi2, dof=dof, p_value=float(scipy.stats.chi2.sf(chi2, dof)),
-        status=status, message=message, iterations=iterations, identifiability=ident)
+        status=status, message=message, iterations=iterations, identifiability=ident,
+        joint_sigma=model.joint_sigma)
 
 
 def _point_rms(residuals: np.ndarray, reflector: np.ndarray | None, n_reflectors: int) -> float:
@@ -396,8 +426,8 @@ def _gauss_newton(model: MeasurementModel, p: np.ndarray, idx: np.ndarray, q: np
     """
     def evaluate(pp):
         pred, jac = model.jacobian(pp, q, tau, reflector, rotation)
-        r = ((eta - pred) * w).ravel()
-        f = (jac * w[:, :, None]).reshape(-1, len(pp))[:, idx]
+        r = weighted_residuals(eta - pred, w)
+        f = weighted_rows(jac, w, idx)
         if rows is not None:
             # Prior rows: residual L(m − p), Jacobian L (as for h, F = ∂(Lp)/∂p).
             r = np.concatenate([r, rows[1] - rows[0] @ pp])
@@ -410,7 +440,7 @@ def _gauss_newton(model: MeasurementModel, p: np.ndarray, idx: np.ndarray, q: np
         return p, status, text, iteration
 
     # Size of the measured values the residuals are differences of (see Tolerances.pred_tol).
-    eta_scale = np.linalg.norm(eta * w) / np.sqrt(eta.size)
+    eta_scale = np.linalg.norm(weighted_residuals(eta, w)) / np.sqrt(eta.size)
     r, f = evaluate(p)
     cost = 0.5 * r @ r
     # Whether the last accepted step was shortened or damped (the linear model failed

@@ -57,7 +57,8 @@ import scipy.sparse.csgraph
 import scipy.spatial
 import scipy.stats
 
-from kpi_calib_ros.core.measurement import MeasurementModel, Measurements, weighted_rows
+from kpi_calib_ros.core.measurement import (MeasurementModel, Measurements, weighted_residuals,
+                                           weighted_rows)
 
 # Joint values (rad, m for prismatic joints) closer than this are one pose: the readings
 # of a still robot at one commanded pose differ by encoder counts (~1e-5 rad).
@@ -123,10 +124,17 @@ def hat_blocks(model: MeasurementModel, data: Measurements, p: np.ndarray,
         tau = model.robot.gravity_torques(q)
     pred, jac = model.jacobian(np.asarray(p, float), q, tau, data.reflector, data.rotation)
     n = len(q)
-    row_w = np.broadcast_to(w, (n, 3)).copy()
-    if point_weights is not None:
-        row_w *= np.sqrt(np.asarray(point_weights, float))[:, None]
-    r = (np.atleast_2d(data.eta) - pred) * row_w
+    row_w: np.ndarray
+    if model.joint_sigma is not None:
+        # Joint-reading noise: the rows whitened as the fit weighs them (W_i, 3×3).
+        row_w = model.whitening(np.asarray(p, float), q, np.broadcast_to(1.0 / w, (3,)), tau,
+                                data.reflector, data.rotation, point_weights)
+        r = weighted_residuals(np.atleast_2d(data.eta) - pred, row_w).reshape(n, 3)
+    else:
+        row_w = np.broadcast_to(w, (n, 3)).copy()
+        if point_weights is not None:
+            row_w *= np.sqrt(np.asarray(point_weights, float))[:, None]
+        r = (np.atleast_2d(data.eta) - pred) * row_w
     f = weighted_rows(jac, row_w, model.params.indices(list(estimated)))
     norms = np.linalg.norm(f, axis=0)
     f = f[:, norms > 0] / norms[norms > 0]
@@ -198,7 +206,13 @@ def judge(model: MeasurementModel, data: Measurements, p: np.ndarray,
     if rest.any():
         out = data.subset(rest)
         pred = model.predict(p, np.atleast_2d(out.q), out.tau, out.reflector, out.rotation)
-        t[rest] = np.linalg.norm(np.atleast_2d(out.eta) - pred, axis=1) / scale
+        miss = np.atleast_2d(out.eta) - pred
+        if model.joint_sigma is not None:
+            # In the stated σ's units, as the fit's σ̂ (core.robust.noise_units).
+            white = model.whitening(p, np.atleast_2d(out.q), stated, out.tau, out.reflector,
+                                    out.rotation)
+            miss = weighted_residuals(miss, white).reshape(-1, 3) * float(np.mean(stated))
+        t[rest] = np.linalg.norm(miss, axis=1) / scale
     over = kept & (t > threshold)
     # Residuals in σ̂ units of every kept point (unweighted by ω: consistency is geometry).
     resid = np.zeros((n, 3))

@@ -6,6 +6,12 @@ normal sample times 1.4826 estimates its σ whatever a few wild points do, and t
 dof = 3N − k degrees of freedom in 3N residuals). It is reported beside the stated σ and a
 ratio beyond 2× either way is a warning: the stated σ, not σ̂, sets the covariance.
 
+*Joint-reading noise.* With ``noise.joint_sigma`` stated a point's noise is σ²I + J_q Σ_q J_qᵀ,
+larger where the joints' lever is long: σ̂ and the distances reported then take each
+residual whitened (W_i r_i, :meth:`~kpi_calib_ros.core.measurement.MeasurementModel.whitening`)
+times the stated σ, a residual whose noise is the stated σ on every axis at every pose, and
+the studentized distances below come from the whitened rows.
+
 *Outliers.* A measurement is over the threshold when its studentized distance
 t_i = √(r_iᵀ (I − H_ii)⁺ r_i) / σ̂ exceeds ``threshold``. The default threshold is the
 Bonferroni bound √χ²₃(1 − α/N), α = 0.01: a clean campaign loses a point in 1 % of
@@ -37,7 +43,7 @@ import scipy.stats
 
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation import MAX_START_ERROR, CalibrationResult
-from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
+from kpi_calib_ros.core.measurement import MeasurementModel, Measurements, weighted_residuals
 from kpi_calib_ros.core.outliers import judge, pose_groups
 
 LOSSES = ('linear', 'huber', 'soft_l1')
@@ -200,7 +206,7 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
     rounds = 0
     while True:
         try:
-            result, omega = _fit_with_loss(fit, subset(data, kept), loss, p0)
+            result, omega = _fit_with_loss(fit, subset(data, kept), loss, p0, model, sigma)
         except DataError as exc:
             if not excluded:
                 raise
@@ -209,10 +215,15 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
                             + '; '.join(f'{e.index}: {e.reason}' for e in excluded) + ')'
                             ) from None
         p0 = result.values
-        distances = np.linalg.norm(
-            eta - model.predict(result.values, q, data.tau, data.reflector, data.rotation),
-            axis=1)
-        scale = robust_sigma(result.residuals, result.dof)
+        miss = eta - model.predict(result.values, q, data.tau, data.reflector, data.rotation)
+        distances = np.linalg.norm(miss, axis=1)
+        # What σ̂ and the reported distances see: the metric distances, or with joint-reading
+        # noise the residuals at the stated σ (module text).
+        tested, scaled = distances, result.residuals
+        if model.joint_sigma is not None:
+            standard = noise_units(model, data, result.values, miss, sigma)
+            tested, scaled = np.linalg.norm(standard, axis=1), standard[kept]
+        scale = robust_sigma(scaled, result.dof)
         verdict = judge(model, data, result.values, result.estimated, sigma, scale,
                         threshold, kept, pose, omega)
         t = verdict.distance_sigma
@@ -229,7 +240,7 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
         # The reason carries no distance of its own: distance_sigma (against the final
         # fit, below) is the one figure reported for the point.
         for i in np.flatnonzero(batch)[np.argsort(-t[batch])]:
-            excluded.append(_excluded(int(i), stamps, distances[i], distances[i] / scale,
+            excluded.append(_excluded(int(i), stamps, distances[i], tested[i] / scale,
                                       f'outlier: studentized residual beyond {threshold:.2f} '
                                       'σ̂ in the fit it was excluded from'))
         kept[batch] = False
@@ -240,7 +251,7 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
                      f'{int(kept.sum())} points')
     # Distances of every measurement (excluded ones too) against the final fit.
     final_excluded = tuple(replace(e, distance_m=float(distances[e.index]),
-                                   distance_sigma=float(distances[e.index] / scale))
+                                   distance_sigma=float(tested[e.index] / scale))
                            for e in excluded)
     flagged = tuple(int(i) for i in np.flatnonzero(t > threshold))
     misfit = tuple(int(i) for i in np.flatnonzero(verdict.misfit))
@@ -289,15 +300,29 @@ def sigma_warning(robust: float, stated: float) -> str:
             'check noise.sigma (units: m) or the model (kpi-calib diagnose)')
 
 
-def _fit_with_loss(fit: Fit, data: Measurements, loss: str, p0: np.ndarray | None
+def noise_units(model: MeasurementModel, data: Measurements, p: np.ndarray,
+                residuals: np.ndarray, sigma: float | np.ndarray) -> np.ndarray:
+    """Residuals (N, 3) of ``data`` at ``p`` as the robust statistics take them (m): as
+    given without joint-reading noise; with it, W_i r_i times the mean stated σ, whose noise
+    is the stated σ on every axis at every pose."""
+    if model.joint_sigma is None:
+        return residuals
+    sigma = np.broadcast_to(np.asarray(sigma, float), (3,))
+    w = model.whitening(p, data.q, sigma, data.tau, data.reflector, data.rotation)
+    return weighted_residuals(residuals, w).reshape(-1, 3) * float(np.mean(sigma))
+
+
+def _fit_with_loss(fit: Fit, data: Measurements, loss: str, p0: np.ndarray | None,
+                   model: MeasurementModel, sigma: float | np.ndarray
                    ) -> tuple[CalibrationResult, np.ndarray | None]:
     result = fit(data, p0=p0)
     if loss == 'linear':
         return result, None
     omega = np.ones(len(data))
     for _ in range(IRLS_ITERATIONS):
-        scale = robust_sigma(result.residuals, result.dof)
-        new = loss_weights(loss, np.linalg.norm(result.residuals, axis=1), scale)
+        residuals = noise_units(model, data, result.values, result.residuals, sigma)
+        scale = robust_sigma(residuals, result.dof)
+        new = loss_weights(loss, np.linalg.norm(residuals, axis=1), scale)
         result = fit(data, p0=result.values, point_weights=new)
         if np.max(np.abs(new - omega)) < 1e-3:
             omega = new

@@ -190,12 +190,21 @@ def one_joint_at_a_time(model: MeasurementModel, home: np.ndarray, per_joint: in
 
 
 def simulate_measurements(model: MeasurementModel, p_true: np.ndarray, q: np.ndarray,
-                          sigma: float | np.ndarray, rng: np.random.Generator) -> Measurements:
-    """Tracker points h(p_true, q) + N(0, σ²) per axis."""
+                          sigma: float | np.ndarray, rng: np.random.Generator,
+                          joint_sigma: float | np.ndarray | None = None) -> Measurements:
+    """Tracker points h(p_true, q) + N(0, σ²) per axis.
+
+    With ``joint_sigma`` (rad, scalar or (n,) in chain order) the joint readings are not
+    exact: the measurements carry the readings q + N(0, joint_sigma²) of the true joints q
+    (drawn after the tracker noise, so the points are the same as without it)."""
     q = np.atleast_2d(q)
     clean = model.predict(p_true, q)
     noise = rng.normal(size=clean.shape) * np.broadcast_to(np.asarray(sigma, float), (3,))
-    return Measurements(q=q, eta=clean + noise)
+    if joint_sigma is None:
+        return Measurements(q=q, eta=clean + noise)
+    read = q + rng.normal(size=q.shape) * np.broadcast_to(np.asarray(joint_sigma, float),
+                                                          (q.shape[1],))
+    return Measurements(q=read, eta=clean + noise)
 
 
 def simulate_pose_measurements(model: MeasurementModel, p_true: np.ndarray, q: np.ndarray,

@@ -6,6 +6,8 @@ plus the propagated uncertainty of the identified parameters,
 
     C_i = Σ + J_i C_p J_iᵀ        (J_i = ∂h/∂p of the identified parameters at q_i),
 
+plus J_q Σ_q J_qᵀ when the model states joint-reading noise,
+
 so ``χ² = Σ_i r_iᵀ C_i⁻¹ r_i`` follows χ²(3N) when the calibration holds (new data
 are independent of the fit). Σ is the noise the calibration showed: the stated σ, or
 σ̂ = σ·√(χ²/dof) when its model was not adequate and its covariance was scaled by that
@@ -107,6 +109,7 @@ def validate(model: MeasurementModel, p: np.ndarray, estimated: np.ndarray,
              lower: np.ndarray, upper: np.ndarray,
              alpha: float = ADEQUACY_ALPHA,
              training_q: np.ndarray | None = None,
+             noise_scale: float = 1.0,
              registered: np.ndarray | None = None) -> Validation:
     """Predict ``data`` with the calibration ``p`` and test the residuals.
 
@@ -131,7 +134,13 @@ def validate(model: MeasurementModel, p: np.ndarray, estimated: np.ndarray,
         repeated.
     registered : (r,) int ndarray, optional
         Indices in ``p`` re-fitted on ``data`` first (the tracker set up again: the
-        ``base.*`` parameters, optionally the reflector offsets).
+        ``base.*`` parameters, optionally the reflector offsets). The re-registration's
+        own χ² holds the tracker noise and the parameters' share, not the joint-reading
+        noise.
+    noise_scale : float
+        The factor ``sigma`` was scaled by (χ²/dof of a calibration whose model was not
+        adequate); the joint-reading noise of the model, ``J_q Σ_q J_qᵀ`` per point, is
+        added scaled by it as well.
     """
     q = np.atleast_2d(data.q)
     tau = model.robot.gravity_torques(q) if model.uses_torque else None
@@ -140,10 +149,15 @@ def validate(model: MeasurementModel, p: np.ndarray, estimated: np.ndarray,
     keep = ~np.isin(estimated, [] if registered is None else registered)
     estimated, covariance = estimated[keep], covariance[np.ix_(keep, keep)]
 
-    def point_covariance(jac: np.ndarray) -> np.ndarray:
+    def point_covariance(jac: np.ndarray, p_now: np.ndarray) -> np.ndarray:
         j = jac[:, :, estimated]
-        return (np.einsum('nak,kl,nbl->nab', j, covariance, j)
-                + np.diag(np.asarray(sigma, dtype=float) ** 2))
+        cov = (np.einsum('nak,kl,nbl->nab', j, covariance, j)
+               + np.diag(np.asarray(sigma, dtype=float) ** 2))
+        if model.joint_sigma is not None:
+            jq = (model.joint_jacobian(p_now, q, tau, data.reflector, data.rotation)
+                  * model.joint_sigma)
+            cov = cov + noise_scale * np.einsum('nak,nbk->nab', jq, jq)
+        return cov
 
     registration = None
     if registered is not None and len(registered):
@@ -152,7 +166,7 @@ def validate(model: MeasurementModel, p: np.ndarray, estimated: np.ndarray,
         p = registration.p
     pred, jac = model.jacobian(p, q, tau, data.reflector, data.rotation)
     residuals = np.atleast_2d(data.eta) - pred
-    cov = point_covariance(jac)
+    cov = point_covariance(jac, p)
     solved = np.linalg.solve(cov, residuals[:, :, None])[:, :, 0]
     d2 = np.sum(residuals * solved, axis=1)
     chi2 = float(np.sum(d2)) if registration is None else registration.chi2

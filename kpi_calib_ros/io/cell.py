@@ -14,6 +14,8 @@ fix. Paths are relative to the cell file. Units are SI (m, rad, kg). Example::
     # a tracked 6-DoF body: its origin is the reflector, orientation in the tip frame
     # reflectors: [{name: probe, offset: [0, 0, 0.1], orientation: {rpy: [0, 0, 0]}}]
     noise: {sigma: 2.0e-5}          # sigma_rotation: 5.0e-5 (rad) with an orientation
+    # joint-reading noise (rad), all joints or by name: joint_sigma: 5.2e-4
+    # or joint_sigma: {joint_1: 5.2e-4, joint_2: 5.2e-4}   (joints left out read exactly)
     payload: {mass: 5.0, com: [0, 0, 0.05]}
     working_poses:
       - {name: roof, joints: {joint_1: 0.0, joint_2: 0.3, ...}}
@@ -162,6 +164,9 @@ class Cell:
     reflector_orientations: tuple[tuple[int, np.ndarray], ...] = field(default=(),
                                                                         compare=False)
     sigma_rotation: float | None = None
+    # noise.joint_sigma: a number (rad, every joint) or {joint name: rad}; None: exact
+    # joint readings. Matched to the chain by name in build_cell_model.
+    joint_sigma: float | Mapping[str, float] | None = None
 
     @property
     def offsets(self) -> np.ndarray:
@@ -271,6 +276,7 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None,
             raise ConfigError('noise.sigma_rotation', f'{sigma_rotation!r} must be in (0, 0.1] '
                               'rad: the orientation noise of the tracked body (SI radians: '
                               '0.01° is 1.75e-4)')
+    joint_sigma = _joint_sigma(noise.get('joint_sigma'))
     max_inc = number(reflector, 'max_incidence', 'reflector', np.deg2rad(30.0), 'rad')
     if not 0 < max_inc <= np.pi / 2:
         raise ConfigError('reflector.max_incidence', 'must be in (0, π/2] rad (30° = 0.5236)')
@@ -318,6 +324,7 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None,
         reflector_names=names,
         reflector_offsets=np.nan_to_num(offsets) if offsets is not None else None,
         reflector_orientations=orientations, sigma_rotation=sigma_rotation,
+        joint_sigma=joint_sigma,
         joint_coupling=_coupling_mapping(robot.get('joint_coupling')),
         working_poses_in=_working_poses_in(robot.get('working_poses_in', 'controller')),
         allow_code_effects=allow_code_effects)
@@ -624,6 +631,45 @@ def _priority(ident: dict, method: str) -> tuple[str, ...]:
     return tuple(raw)
 
 
+MAX_JOINT_SIGMA = 0.01  # rad (0.57°); m for a prismatic joint
+
+
+def _joint_sigma(value: Any) -> float | dict[str, float] | None:
+    """noise.joint_sigma: None, a number for every joint or {joint name: number}, each in
+    [0, MAX_JOINT_SIGMA]."""
+    if value is None:
+        return None
+    fix = ('the standard deviation of the joint readings in rad (m for a prismatic joint), '
+           'one number for every joint or {joint_name: value}; 0.03° is 5.2e-4')
+    if isinstance(value, dict):
+        out = {}
+        for name, v in value.items():
+            out[str(name)] = number(value, name, 'noise.joint_sigma', None, 'rad')
+            if not 0 <= out[str(name)] <= MAX_JOINT_SIGMA:
+                raise ConfigError(f'noise.joint_sigma.{name}', f'{v!r} must be in '
+                                  f'[0, {MAX_JOINT_SIGMA}]: {fix}')
+        return out
+    sigma = number({'joint_sigma': value}, 'joint_sigma', 'noise', None, 'rad')
+    if not 0 <= sigma <= MAX_JOINT_SIGMA:
+        raise ConfigError('noise.joint_sigma', f'{value!r} must be in [0, {MAX_JOINT_SIGMA}]: '
+                          f'{fix}')
+    return sigma
+
+
+def joint_sigma_vector(value: float | Mapping[str, float] | None,
+                       joint_names: Sequence[str]) -> np.ndarray | None:
+    """noise.joint_sigma in chain order (n,) rad, matched by joint name; None when unstated."""
+    if value is None:
+        return None
+    if not isinstance(value, Mapping):
+        return np.full(len(joint_names), float(value))
+    unknown = [n for n in value if n not in joint_names]
+    if unknown:
+        raise ConfigError('noise.joint_sigma', f'unknown joint(s) {unknown}; the chain joints '
+                          f'are {list(joint_names)}')
+    return np.array([float(value.get(n, 0.0)) for n in joint_names])
+
+
 def _optional_mapping(doc: dict, key: str) -> dict:
     value = doc.get(key)
     if value is None:
@@ -859,7 +905,8 @@ def build_cell_model(cell: Cell, effects: tuple = ()) -> CellModel:
     model = MeasurementModel(robot, geometric, resolved, cell.reflector_axis,
                              dict(cell.reflector_orientations),
                              None if cell.sigma_rotation is None
-                             else cell.sigma / cell.sigma_rotation)
+                             else cell.sigma / cell.sigma_rotation,
+                             joint_sigma_vector(cell.joint_sigma, robot.joint_names))
     unknown = [n for n in cell.identification_priority if n not in model.params.names]
     if unknown:
         raise ConfigError('identification.priority', f'unknown parameter(s) {unknown}; valid '

@@ -17,6 +17,7 @@ import numpy as np
 
 from kpi_calib_ros.core.diagnosis import Candidate, CellDiagnosis, ModelComparison
 from kpi_calib_ros.core.out_of_sample import DOMAIN_TEXT, NOT_ESTIMABLE, OutOfSample
+from kpi_calib_ros.core.precision import ExpectedTcpError
 from kpi_calib_ros.io.names import DIAGNOSIS_FILE, REPORT_FILE
 from kpi_calib_ros.io.results import write_atomic
 
@@ -80,6 +81,8 @@ def diagnosis_to_dict(cd: CellDiagnosis) -> dict[str, Any]:
     }
     if cd.out_of_sample is not None:
         doc['out_of_sample'] = cd.out_of_sample.to_dict()
+    if cd.expected is not None:
+        doc['expected_tcp_error'] = cd.expected.to_dict()
     if cd.comparison is not None:
         doc['added_effect'] = comparison_to_dict(cd.comparison)
         if cd.after_out_of_sample is not None:
@@ -134,6 +137,7 @@ def diagnosis_text(cd: CellDiagnosis, top: int = 5) -> str:
              *([cd.out_of_sample.text()] if cd.out_of_sample is not None else []),
              *([f'diagnosed the {len(cd.data)} measurements identify keeps; excluded as '
                 f'outliers: {list(cd.excluded)}'] if cd.excluded else []),
+             *(expected_tcp_lines(cd.expected) if cd.expected is not None else []),
              f'outliers: {cd.given_index(rep.outlier)}, high leverage: '
              f'{cd.given_index(rep.high_leverage)}',
              f'candidates (best first, {len(diag.candidates)} distinguishable, '
@@ -344,6 +348,16 @@ def write_plots(out_dir: str | Path, cd: CellDiagnosis) -> list[Path]:
     return paths
 
 
+def expected_tcp_lines(expected: ExpectedTcpError) -> list[str]:
+    """Terminal lines: the expected TCP error of every working pose beside its parameter
+    part, and what the expected error rests on."""
+    return [f'TCP {n}: expected error {e * _UM:.1f} µm (with the misfit), parameter part '
+            f'tcp_std {s * _UM:.1f} µm (sqrt(trace))'
+            for n, s, e in zip(expected.working_pose_names, expected.tcp_std_m,
+                               expected.expected_tcp_error_m)] + [
+        f'expected TCP error: {expected.basis}']
+
+
 def out_of_sample_table(oos: OutOfSample) -> list[str]:
     """report.md section: the predicted error of new measurements per domain."""
     lines = ['', '## Predicted out-of-sample error', '',
@@ -393,6 +407,14 @@ def write_report(out_dir: str | Path, cd: CellDiagnosis) -> Path:
               f'| excluded by identify (not diagnosed) | {list(cd.excluded)} |']
     if cd.out_of_sample is not None:
         lines += out_of_sample_table(cd.out_of_sample)
+    if cd.expected is not None:
+        lines += ['', '## Expected TCP error at the working poses', '',
+                  cd.expected.basis + '.', '',
+                  '| working pose | tcp_std_m: parameter part (µm) | expected_tcp_error_m: '
+                  'with the misfit (µm) |', '|---|---|---|']
+        lines += [f'| {n} | {s * _UM:.1f} | {e * _UM:.1f} |' for n, s, e in zip(
+            cd.expected.working_pose_names, cd.expected.tcp_std_m,
+            cd.expected.expected_tcp_error_m)]
     lines += ['', '## Candidate effects, best first', '',
               f'F-test of each augmented fit against the geometric one, Bonferroni over '
               f'{len(diag.candidates)} candidates, family-wise α = {diag.alpha:g}.', '',

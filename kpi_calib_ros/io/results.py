@@ -109,6 +109,9 @@ def calibration_to_dict(result: CalibrationResult,
         'rms_m': float(result.rms_m),
         'max_residual_m': float(np.max(np.linalg.norm(result.residuals, axis=1))),
         'noise_sigma_m': [float(s) for s in result.sigma],
+        # noise.joint_sigma the fit carried (rad, chain order); null: exact joint readings.
+        'noise_joint_sigma_rad': (None if result.joint_sigma is None
+                                  else [float(s) for s in result.joint_sigma]),
         # `adequate`: the upper tail (the model); `noise_verdict`: the lower tail (the
         # stated σ; core.residuals.noise_verdict), each at the adequacy level.
         'model_adequacy': {'chi2': float(result.chi2), 'dof': int(result.dof),
@@ -117,7 +120,8 @@ def calibration_to_dict(result: CalibrationResult,
                            'noise_verdict': verdict, 'lower_tail_p': lower_p},
         # Which σ the std and covariances below rest on (core.precision).
         'precision': {'covariance_scale': float(result.covariance_scale),
-                      'basis': precision_statement(float(result.covariance_scale))},
+                      'basis': precision_statement(float(result.covariance_scale),
+                                                   result.joint_sigma)},
         'parameters': parameters,
         # Not identifiable: held fixed (at the prior, or where an earlier selection round
         # left it); their value is a choice of gauge, not a measurement.

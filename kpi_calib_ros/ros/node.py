@@ -557,13 +557,17 @@ class CalibrationNode(Node):
         self._publish_markers()
         self._publish_diagnostics(force=True)
         tcp_um = np.sqrt(np.trace(result.tcp_covariance, axis1=1, axis2=2)).max() * 1e6
-        precision = precision_statement(result.covariance_scale)
+        # With the misfit of a model χ² rejects (core.precision.expected_tcp_error).
+        expected = ('' if cal.expected is None else
+                    f', expected TCP error <= '
+                    f'{np.max(cal.expected.expected_tcp_error_m) * 1e6:.1f} µm with the misfit')
+        precision = precision_statement(result.covariance_scale, result.joint_sigma)
         if result.covariance_scale != 1.0:
             self.get_logger().warning(f'TCP and parameter std {precision}')
         return True, (
             f'identified from {len(data)} measurements: {result.message}; rms '
             f'{result.rms_m * 1e6:.1f} µm, p = {result.p_value:.3g}, TCP sqrt(trace) <= '
-            f'{tcp_um:.1f} µm ({precision}); {len(cal.robust.excluded)} excluded; '
+            f'{tcp_um:.1f} µm ({precision}){expected}; {len(cal.robust.excluded)} excluded; '
             + (f'prior {prior}; ' if prior else '') + ''.join(f'{n}; ' for n in notes)
             + f'written to {self.data_dir}')
 
