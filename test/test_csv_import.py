@@ -77,11 +77,17 @@ def test_ur10_series_a_as_exported_is_imported_and_identified(tmp_path, capsys):
     assert 0.7e-3 < registered_rms < 0.9e-3
     assert abs(registration.reflector_offset[2] - 0.093) < 2e-3
     assert np.linalg.norm(registration.reflector_offset[:2]) < 2e-3
+    capsys.readouterr()
     rc = main(['identify', '--cell', str(CELL), '--bag', str(bag), '--out',
                str(tmp_path / 'cal')])
     assert rc in (0, 1)
     cal = yaml.safe_load(next((tmp_path / 'cal').glob('calibration*.yaml')).read_text())
     assert cal['status']['converged'] and cal['pairing']['accepted'] == 149
+    # With outlier exclusion on (the default): the points beyond the threshold are the
+    # model's misfit, one point a pose and too many to be faults: kept, and said so.
+    text = capsys.readouterr()
+    assert cal['robust']['excluded'] == [] and len(cal['robust']['misfit']) > 50
+    assert 'taken as model misfit' in text.err and 'model misfit at poses' in text.out
     # A geometric calibration leaves about 0.4 mm (data README): well below registration.
     assert cal['rms_m'] < 0.6 * registered_rms
 

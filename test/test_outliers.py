@@ -197,3 +197,26 @@ def test_cli_identify_shows_rounds_and_diagnose_lists_the_same_excluded_points(
     assert diag['residuals']['measurements'] == 60 - len(faults)
     assert diag['residuals']['sigma_robust_m'] == pytest.approx(
         cal['robust']['sigma_robust_m'], rel=0.05)
+
+
+def test_a_misfit_everywhere_with_one_point_a_pose_is_kept_not_excluded():
+    """One reflector, random poses, an effect the model lacks far above the noise at many
+    of them (a real arm's 0.4 mm, the UR10 of shared/data): no replicate tells a fault,
+    and more than max_fraction of 'faults' is a misfit. Nothing is excluded (before:
+    'more than 20 % ... lie beyond', exit 2, after excluding a fifth of the poses), the
+    fit is the no-exclusion one, and the points are named as misfit."""
+    single = build_cell_model(load_cell(DEFAULT_CELL))
+    p = true_parameters(single.model.params, np.random.default_rng(3))
+    q = random_configurations(single.model, p, 60, np.random.default_rng(4))
+    lacking = q.copy()
+    lacking[:, SWEPT] += 40 * HIDDEN * (q[:, SWEPT] - single.q_work[0][SWEPT]) ** 3
+    lacking[:, 2] += 2e-4 * np.sin(3 * q[:, 2])
+    eta = single.model.predict(p, lacking)
+    eta += np.random.default_rng(5).normal(size=eta.shape) * single.cell.sigma
+    data = Measurements(q=q, eta=eta, stamps_ns=np.arange(len(q)) + 1)
+    cal = calibrate_cell(single, data)
+    assert not cal.robust.excluded
+    assert cal.robust.misfit
+    assert any('more than 20% of the measurements' in w for w in cal.robust.warnings)
+    plain = calibrate_cell(_no_exclusion(single), data)
+    np.testing.assert_allclose(cal.result.values, plain.result.values, rtol=0, atol=1e-12)

@@ -80,6 +80,8 @@ class ExcludedMeasurement:
     distance_m: float
     distance_sigma: float
     reason: str
+    # Excluded by the lone-point rule alone (no replicate confirmed it as a fault).
+    lone: bool = False
 
     def text(self) -> str:
         """The one line the log and the summary print: ``distance_sigma`` is the number
@@ -204,6 +206,7 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
     pose = pose_groups(q)
     p0 = None
     rounds = 0
+    lone_misfit = False
     while True:
         try:
             result, omega = _fit_with_loss(fit, subset(data, kept), loss, p0, model, sigma)
@@ -227,11 +230,27 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
         verdict = judge(model, data, result.values, result.estimated, sigma, scale,
                         threshold, kept, pose, omega)
         t = verdict.distance_sigma
-        if not outliers.exclude or not verdict.fault.any():
+        fault = verdict.fault & ~(verdict.lone & lone_misfit)
+        if not outliers.exclude or not fault.any():
             break
         # The faults within half the farthest one's distance: a batch a distorted fit
         # cannot have pushed good points into (swamping), then a refit.
-        batch = verdict.fault & (t >= max(threshold, 0.5 * float(t[verdict.fault].max())))
+        batch = fault & (t >= max(threshold, 0.5 * float(t[fault].max())))
+        if len(excluded) + int(batch.sum()) > max_excluded and not lone_misfit and (
+                batch & verdict.lone).any():
+            # More lone "faults" than faults happen: points no replicate confirms, this
+            # many, are the model's misfit (real arms with an effect the model lacks), not
+            # the tracker's faults. Keep them all, those excluded before too, and refit.
+            lone_misfit = True
+            restored = [e.index for e in excluded if e.lone]
+            kept[restored] = True
+            excluded = [e for e in excluded if not e.lone]
+            p0 = None  # from the start, as a fit that never excluded them
+            if progress is not None:
+                progress(f'outliers: more than {outliers.max_fraction:.0%} of the points '
+                         'would be excluded with no replicate to confirm them: taken as '
+                         f'model misfit; {len(restored)} restored, refitting')
+            continue
         if len(excluded) + int(batch.sum()) > max_excluded:
             raise DataError(f'more than {outliers.max_fraction:.0%} of the {n} measurements '
                             f'lie beyond {threshold:.2f} σ̂ (σ̂ = {scale * 1e6:.1f} µm): the '
@@ -240,9 +259,10 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
         # The reason carries no distance of its own: distance_sigma (against the final
         # fit, below) is the one figure reported for the point.
         for i in np.flatnonzero(batch)[np.argsort(-t[batch])]:
-            excluded.append(_excluded(int(i), stamps, distances[i], tested[i] / scale,
-                                      f'outlier: studentized residual beyond {threshold:.2f} '
-                                      'σ̂ in the fit it was excluded from'))
+            excluded.append(replace(
+                _excluded(int(i), stamps, distances[i], tested[i] / scale,
+                          f'outlier: studentized residual beyond {threshold:.2f} σ̂ in the '
+                          'fit it was excluded from'), lone=bool(verdict.lone[i])))
         kept[batch] = False
         rounds += 1
         if progress is not None:
@@ -254,7 +274,8 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
                                    distance_sigma=float(tested[e.index] / scale))
                            for e in excluded)
     flagged = tuple(int(i) for i in np.flatnonzero(t > threshold))
-    misfit = tuple(int(i) for i in np.flatnonzero(verdict.misfit))
+    misfit = tuple(int(i) for i in np.flatnonzero(
+        verdict.misfit | (verdict.fault & verdict.lone & lone_misfit)))
     stated = float(np.mean(np.broadcast_to(np.asarray(sigma, float), (3,))))
     warnings = []
     ratio = scale / stated
@@ -264,18 +285,26 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
         warnings.append(f'{len(flagged)} outlier(s) beyond {threshold:.2f} σ̂ kept in the fit '
                         '(identification.outliers.exclude is false)')
     if misfit:
-        warnings.append(misfit_warning(misfit, pose, threshold))
+        warnings.append(misfit_warning(misfit, pose, threshold,
+                                       outliers.max_fraction if lone_misfit else None))
     return RobustResult(result, kept, final_excluded, flagged, scale, stated, threshold,
                         loss, omega, tuple(warnings), misfit)
 
 
-def misfit_warning(misfit: tuple[int, ...], pose: np.ndarray, threshold: float) -> str:
-    """The text naming the points over the threshold kept as model misfit."""
+def misfit_warning(misfit: tuple[int, ...], pose: np.ndarray, threshold: float,
+                   too_many_lone: float | None = None) -> str:
+    """The text naming the points over the threshold kept as model misfit;
+    ``too_many_lone``: the fraction beyond which lone points were taken as misfit."""
     poses = sorted({int(pose[i]) for i in misfit})
     shown = ', '.join(str(g) for g in poses[:12]) + (', …' if len(poses) > 12 else '')
+    why = ('their pose\'s other points agree with them, or they carry information no other '
+           'pose has')
+    if too_many_lone is not None:
+        why += (f'; or, with no other point at their pose, they are more than '
+                f'{too_many_lone:.0%} of the measurements: faults are few, a misfit is '
+                'everywhere')
     return (f'model misfit at poses {shown} ({len(misfit)} point(s) beyond '
-            f'{threshold:.2f} σ̂ kept: their pose\'s other points agree with them, or they '
-            'carry information no other pose has); see kpi-calib diagnose')
+            f'{threshold:.2f} σ̂ kept: {why}); see kpi-calib diagnose')
 
 
 def gross_outliers(model: MeasurementModel, data: Measurements,
