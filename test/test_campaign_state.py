@@ -9,10 +9,13 @@ import numpy as np
 import pytest
 import yaml
 
+from kpi_calib_ros.app.campaign import campaign_context, new_campaign
+from kpi_calib_ros.core.effects import hidden_effects
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.sequential import TARGET_MET, CampaignSettings
-from kpi_calib_ros.core.simulation import true_parameters
+from kpi_calib_ros.core.pairing import PairingResult
+from kpi_calib_ros.core.sequential import MODEL_INADEQUATE, TARGET_MET, CampaignSettings
+from kpi_calib_ros.core.simulation import simulate_measurements, true_parameters
 from kpi_calib_ros.io.campaign_io import (CampaignState, read_campaign_state,
                                           write_campaign_state)
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
@@ -119,3 +122,42 @@ def test_the_published_calibration_states_the_precision_the_campaign_stopped_on(
     assert doc['valid'] is True
     assert len(list((data_dir / CALIBRATIONS_DIR).glob('*.yaml'))) == 1
     assert read_campaign_state(data_dir / CAMPAIGN_STATE_FILE).stopped
+
+
+def test_a_campaign_stopped_model_inadequate_publishes_and_archives_nothing(tmp_path):
+    """Hidden joint compliance the model lacks: the campaign stops 'model inadequate'; the
+    step gives no calibration to publish, nothing is archived as the next cycle's prior,
+    and an identification of the same data afterwards (~/identify) is not archived."""
+    cell_doc = load_cell(DEFAULT_CELL)
+    cm = build_cell_model(cell_doc)
+    effects, overrides = hidden_effects({'joint_compliance:joint_2': {'c': 4.0e-7}}, cm.robot)
+    truth = build_cell_model(cell_doc, effects=effects)
+    cell, ctx = campaign_context(cm, 3, candidates=1000)
+    settings = CampaignSettings(target_std=10e-6, max_measurements=80)
+    campaign = new_campaign(cm, cell, ctx, settings, seed=1)
+    rng = np.random.default_rng(7)
+    p_true = true_parameters(truth.model.params, rng, overrides=overrides)
+    sigma = float(cm.cell.sigma[0])
+    state = CampaignState(settings, 1)
+    q = ctx.candidates.configurations[campaign.initial_design()]
+    n = 0
+    while True:
+        eta = simulate_measurements(truth.model, p_true, q, sigma, rng).eta
+        stamps = SECOND * np.arange(n + 1, n + len(q) + 1)
+        n += len(q)
+        out = jobs.sequential_step_work(campaign, cm, Measurements(q=q, eta=eta,
+                                                                   stamps_ns=stamps),
+                                        state, tmp_path)
+        state = out.state
+        if out.status.stopped:
+            break
+        q = out.status.next_configurations[:1]
+    assert out.status.stop_reason == MODEL_INADEQUATE
+    assert out.calibration is None and out.result is None
+    assert not (tmp_path / CALIBRATIONS_DIR).exists()
+    data = Measurements(q=campaign.q, eta=campaign.eta, stamps_ns=campaign.stamps)
+    pairing = PairingResult(tuple(cm.joint_names), cm.cell.tracker_frame, campaign.q,
+                            campaign.eta, campaign.stamps)
+    cal, text, *_ = jobs.identify_work(cm, data, pairing, tmp_path, archive=False)
+    assert cal is not None and cal.valid and yaml.safe_load(text)['identified_at_ns'] > 0
+    assert not (tmp_path / CALIBRATIONS_DIR).exists()
