@@ -208,12 +208,16 @@ def test_campaign_survives_a_fault_a_kill_and_a_parameter_change(ros_domain, tmp
                 measure(client, names, measured_q[-1], measured_eta[-1], stamp)
                 request = SetParameters.Request(parameters=[Parameter(
                     'target_tcp_std', value=2 * TARGET).to_parameter_msg()])
-                # A client made now: discovery may still hold the killed node's service.
+                # Discovery may still list the killed nodes' services: a request sent only
+                # to them is lost, so it is sent again until the new node answers.
                 set_parameters = client.node.create_client(SetParameters,
                                                            f'{NS}/set_parameters')
                 assert set_parameters.wait_for_service(timeout_sec=10)
-                future = set_parameters.call_async(request)
-                client.executor.spin_until_future_complete(future, timeout_sec=20)
+                for _ in range(6):
+                    future = set_parameters.call_async(request)
+                    client.executor.spin_until_future_complete(future, timeout_sec=5)
+                    if future.done():
+                        break
                 assert future.done(), 'set_parameters did not answer'
                 refused = future.result().results[0]
                 plans_seen = 0

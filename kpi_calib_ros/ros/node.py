@@ -357,7 +357,7 @@ class CalibrationNode(Node):
         # A sequential campaign re-identifies in its own steps and publishes its own
         # calibration when it stops (none after 'model inadequate').
         return (self.settings.auto_identify and self._cm is not None
-                and self._sequential is None and not self._resume_pending
+                and self._sequential is None and self._sequential_state is None
                 and len(self.campaign) >= self.settings.min_measurements)
 
     def _sequential_running(self) -> bool:
