@@ -133,7 +133,7 @@ def test_sequential_campaign_stops_by_itself_at_the_target(ros_domain, tmp_path)
 
 def test_campaign_survives_a_fault_a_kill_and_a_parameter_change(ros_domain, tmp_path):
     """One 1 mm fault among the initial design's points, ``kill -9`` of the node after
-    ~/design and right after the 16th measurement, restarts on the same data_dir, a refused
+    ~/design and right after the 13th measurement, restarts on the same data_dir, a refused
     change of the target:
     the campaign resumes (same plan as the same campaign offline, to 1e-9), excludes and
     names the fault, stops 'target met', never 'model inadequate'; no calibration is
@@ -142,7 +142,7 @@ def test_campaign_survives_a_fault_a_kill_and_a_parameter_change(ros_domain, tmp
     rng = np.random.default_rng(31)
     p_true = true_parameters(cm.model.params, rng)
     sigma = float(cm.cell.sigma[0])
-    fault, kill_at = 3, 16
+    fault, kill_at = 3, 13
     spawn = Spawner(tmp_path)
     client = Client(ros_domain)
     client.node.create_subscription(String, f'{NS}/campaign_status',
@@ -217,12 +217,20 @@ def test_campaign_survives_a_fault_a_kill_and_a_parameter_change(ros_domain, tmp
                 # the restarted node takes it once (the same stamp again is a duplicate).
                 assert node.stop(signal.SIGKILL) == -signal.SIGKILL
                 assert not client.received['calibration'], 'published before the stop'
+                before = np.array([p.positions for p in
+                                   client.received['measurement_poses'][-1].points])
                 for topic in ('measurement_poses', 'campaign_status', 'diagnostics'):
                     client.received[topic].clear()  # what the killed node said
                 node = spawn(data, 'node2.log', *args)
                 client.spin_until(lambda: client.diagnostics().get('campaign.resumed') == 'True'
                                   and client.diagnostics().get('state') == 'idle', 90,
                                   'the resumed campaign')
+                # The resumed campaign publishes the plan the killed one had published.
+                client.spin_until(lambda: client.received['measurement_poses'], 10,
+                                  'the plan of the resumed campaign')
+                resumed = client.received['measurement_poses'][0]
+                np.testing.assert_allclose([p.positions for p in resumed.points], before,
+                                           atol=1e-9)
                 settle(kill_at)
                 request = SetParameters.Request(parameters=[Parameter(
                     'target_tcp_std', value=2 * TARGET).to_parameter_msg()])

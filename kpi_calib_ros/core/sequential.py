@@ -456,6 +456,10 @@ class SequentialCampaign:
         statistic = float(np.max(tcp_std)) if np.all(np.isfinite(tcp_std)) else float('inf')
         if res.p_value < s.adequacy_alpha:
             self._replicating = True
+        elif robust.excluded:
+            # The rejection was the excluded faults': the rest fits as a clean campaign's
+            # does, which takes no replicates (and runs no lack-of-fit test on few).
+            self._replicating = False
         ss_pe, dof_pe = pure_error(self.q[kept], self.eta[kept], np.full(3, 1.0 / self.sigma))
         lof = lack_of_fit(res.chi2, res.dof, ss_pe, dof_pe, s.target_std / self.sigma,
                           s.inadequacy_alpha)
