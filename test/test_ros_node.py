@@ -490,7 +490,7 @@ def test_campaign_parameters_are_refused_while_a_sequential_campaign_runs(tmp_pa
                                                                           ros_domain):
     """A running campaign keeps its target and cap: a change is refused with the reason, so
     the parameter, ~/campaign_status and /diagnostics all keep stating the one target the
-    campaign works to; other parameters still change."""
+    campaign works to; other parameters still change. ~/identify is refused too."""
     from std_srvs.srv import Trigger
     context = Context()
     rclpy.init(context=context, domain_id=ros_domain)
@@ -519,6 +519,13 @@ def test_campaign_parameters_are_refused_while_a_sequential_campaign_runs(tmp_pa
         assert values['campaign.target_um'] == pytest.approx(12.0)
         assert values['campaign.max_measurements'] == 200
         assert node.set_parameters([Parameter('num_measurements', value=12)])[0].successful
+        # Nor is a calibration of part of the campaign published.
+        identify = caller.create_client(Trigger, '/kpi_calib_node/identify')
+        assert identify.wait_for_service(timeout_sec=10)
+        future = identify.call_async(Trigger.Request())
+        executor.spin_until_future_complete(future, timeout_sec=60)
+        answer = future.result()
+        assert not answer.success and 'sequential campaign is running' in answer.message
     finally:
         executor.shutdown()
         for n in (caller, node):

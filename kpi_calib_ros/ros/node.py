@@ -613,8 +613,13 @@ class CalibrationNode(Node):
 
     async def _identify(self) -> tuple[bool, str]:
         """Identify from every accepted measurement (as ``kpi-calib identify`` does);
-        write the results atomically and publish them."""
+        write the results atomically and publish them. Refused while a sequential campaign
+        runs: its calibration is published when it stops, never one of part of it."""
         cm = self._model()
+        if self._sequential_running():
+            raise DataError('a sequential campaign is running: its calibration is published '
+                            'on ~/calibration when it stops (~/campaign_status); call '
+                            '~/reset to end it')
         data, pairing = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame,
                                                    cm.cell.reflector_names or ('',))
         # tracked poses' rotation rows; controller readings -> URDF joint values
