@@ -314,3 +314,55 @@ def test_a_campaign_on_a_several_reflector_cell_plans_its_initial_design(tmp_pat
                '--out', str(tmp_path / 'plan')])
     assert rc == 0, capsys.readouterr().err
     assert len(read_design_poses(tmp_path / 'plan' / 'initial_design.yaml')[1]) > 0
+
+
+def _campaign_with_outlier(campaign, cm, p_true, sigma, rng, outlier: int, offset_m: float):
+    """Run ``campaign`` to its stop on the true robot, measurement ``outlier`` of the
+    initial design ``offset_m`` off along x (a fault of the tracker reading)."""
+    initial = campaign.initial_design()
+    q = campaign.candidates[initial]
+
+    def measure(qq):
+        return cm.model.predict(p_true, qq) + rng.normal(scale=sigma, size=(len(qq), 3))
+    eta = measure(q)
+    eta[outlier, 0] += offset_m
+    history = [campaign.add(q, eta, initial)]
+    while not history[-1].stopped:
+        q_next = history[-1].next_configurations[:1]
+        history.append(campaign.add(q_next, measure(q_next), history[-1].next_candidates[:1]))
+    return history
+
+
+def test_one_outlier_among_the_first_points_is_excluded_and_measured_again(setup):
+    """A 1 mm fault among the initial design's points: the campaign applies the batch outlier
+    rule, names the point, measures its pose again and meets the target; it never calls the
+    model inadequate for one wild point."""
+    _, cm, cell, ctx = setup
+    target = 10e-6
+    campaign = new_campaign(cm, cell, ctx, CampaignSettings(target_std=target,
+                                                            max_measurements=60), seed=0)
+    rng = np.random.default_rng(5)
+    p_true = true_parameters(cm.model.params, rng)
+    sigma = float(cm.cell.sigma[0])
+    history = _campaign_with_outlier(campaign, cm, p_true, sigma, rng, 3, 1e-3)
+    final = history[-1]
+    assert all(s.stop_reason != MODEL_INADEQUATE for s in history)
+    assert final.stop_reason == TARGET_MET and final.statistic <= target
+    assert [e['measurement'] for e in final.excluded] == [3]
+    assert final.excluded[0]['distance_m'] > 0.5e-3
+    # Its pose was measured again, and the replicate agrees with the fit.
+    again = [i for i in range(4, len(campaign.q))
+             if np.allclose(campaign.q[i], campaign.q[3], atol=1e-12)]
+    assert again and bool(campaign.robust.kept[again[0]])
+    # The fit is the one without the fault: the true TCP within 4 std (stop σ).
+    error = campaign.result.tcp - cm.model.predict(p_true, cm.q_work)
+    assert np.all(np.abs(error) <= 4 * final.tcp_std)
+
+
+def test_a_cap_below_the_initial_design_names_the_cap_and_the_size(tmp_path, capsys):
+    capsys.readouterr()
+    rc = main(['campaign', '--cell', str(DEFAULT_CELL), '--target-std', '15e-6', '--max', '1',
+               '--out', str(tmp_path / 'plan')])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert 'max_measurements' in err and ' 1 is below the initial design of ' in err, err
