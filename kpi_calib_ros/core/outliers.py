@@ -208,6 +208,9 @@ def judge(model: MeasurementModel, data: Measurements, p: np.ndarray,
     kept = np.asarray(kept, bool)
     pose = pose_groups(data.q) if pose is None else np.asarray(pose)
     stated = np.broadcast_to(np.asarray(sigma, float), (3,))
+    # A noise-free fit (simulated) has a σ̂ of round-off, or 0: floored far below any
+    # real noise, so its residuals stay far below the threshold instead of 0/0.
+    scale = max(float(scale), 1e-9 * float(np.mean(stated)))
     ratio = stated / scale  # σ units -> σ̂ units
     t = np.zeros(n)
     lev = np.zeros(n)
