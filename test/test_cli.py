@@ -190,3 +190,23 @@ def test_a_cell_file_cannot_run_code_without_the_flag(run_bag, tmp_path, capsys)
     code = main(['identify', '--bag', str(run_bag), '--cell', str(cell), '--out',
                  str(tmp_path / 'ok'), '--allow-code-effects'])
     assert marker.exists() and code in (0, 1)  # ran: the opt-in was given
+
+
+def test_the_iteration_limit_is_a_cell_setting_and_a_flag(run_bag, tmp_path, capsys):
+    """identification.max_iterations / --max-iterations reach every fit: one iteration from
+    the nominal start (millimetres off) is no convergence, and the calibration says so."""
+    limited = _cell_copy(tmp_path, **{'identification': {'max_iterations': 1}})
+    for cell, extra in ((limited, []), (CELL, ['--max-iterations', '1'])):
+        out = tmp_path / ('cell' if extra == [] else 'flag')
+        assert main(['identify', '--cell', str(cell), '--bag', str(run_bag), '--out', str(out),
+                     *extra]) == 1
+        doc = yaml.safe_load((out / 'calibration.failed.yaml').read_text())
+        assert 'maximum number of iterations (1)' in ' '.join(doc['invalid_reasons'])
+    capsys.readouterr()
+    bad = _cell_copy(tmp_path, **{'identification': {'max_iterations': 0}})
+    err = _identify_error(bad, run_bag, tmp_path, capsys)
+    assert 'identification.max_iterations' in err and 'positive integer' in err
+    with pytest.raises(SystemExit) as info:
+        main(['identify', '--cell', CELL, '--bag', str(run_bag), '--out', str(tmp_path),
+              '--max-iterations', '0'])
+    assert info.value.code == 2 and 'positive integer' in capsys.readouterr().err

@@ -22,7 +22,7 @@ fix. Paths are relative to the cell file. Units are SI (m, rad, kg). Example::
       - {name: floor, type: halfspace, normal: [0, 0, 1], offset: -0.5}
       - {name: car_roof, type: capsule, a: [1.6, -1.5, 0.9], b: [1.6, 1.5, 0.9], radius: 0.5}
     collision: {capsules: [...], ignore_pairs: [[base_link, floor]], beam_radius: 0.005}
-    identification: {method: pivoted, model: geometric, loss: linear,
+    identification: {method: pivoted, model: geometric, loss: linear, max_iterations: 500,
                      outliers: {exclude: true, threshold: null}, cv_folds: 5,
                      prior: {translation: 1.0e-3, rotation: 1.0e-3, offset: 1.0e-3}}
     topics: {joint_states: /joint_states, point: /laser_tracker/point,   # bags read
@@ -48,6 +48,7 @@ from kpi_calib_ros.core.design import DesignSettings
 from kpi_calib_ros.core.design_cell import DesignCell
 from kpi_calib_ros.core.effects import resolve_effects
 from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.core.estimation import DEFAULT_MAX_ITERATIONS
 from kpi_calib_ros.core.gravity_compliance import mass_warning
 from kpi_calib_ros.core.kinematics import pose6
 from kpi_calib_ros.core.model_selection import DEFAULT_FOLDS, MODEL_CHOICES
@@ -101,7 +102,8 @@ class IdentificationSettings:
     (:mod:`kpi_calib_ros.core.robust`); outliers : exclusion settings; cv_folds : folds of
     the cross-validated rms reported beside the model choice; prior : std (m, rad, rad)
     of the joint placement translations, rotations and joint offsets around the nominal
-    (:func:`kpi_calib_ros.core.prior.tolerance_prior`), None: no prior.
+    (:func:`kpi_calib_ros.core.prior.tolerance_prior`), None: no prior; max_iterations :
+    iteration limit of every fit (:func:`kpi_calib_ros.core.estimation.identify`).
     """
 
     model: str = 'geometric'
@@ -109,6 +111,7 @@ class IdentificationSettings:
     outliers: OutlierSettings = field(default_factory=OutlierSettings)
     cv_folds: int = DEFAULT_FOLDS
     prior: tuple[float, float, float] | None = None
+    max_iterations: int = DEFAULT_MAX_ITERATIONS
 
 
 @dataclass(frozen=True)
@@ -448,7 +451,8 @@ def design_settings(raw: Mapping[str, Any] | None) -> DesignSettings:
     return replace(defaults, **values)
 
 
-_IDENT_KEYS = {'method', 'priority', 'model', 'loss', 'outliers', 'cv_folds', 'prior'}
+_IDENT_KEYS = {'method', 'priority', 'model', 'loss', 'outliers', 'cv_folds', 'prior',
+               'max_iterations'}
 PRIOR_KEYS = ('translation', 'rotation', 'offset')
 
 
@@ -490,9 +494,14 @@ def identification_settings(raw: Mapping[str, Any]) -> IdentificationSettings:
             not 0 <= fraction < 1:
         raise ConfigError('identification.outliers.max_fraction', f'must be in [0, 1), got '
                           f'{fraction!r}')
+    limit = raw.get('max_iterations', DEFAULT_MAX_ITERATIONS)
+    if isinstance(limit, bool) or not isinstance(limit, int) or limit < 1:
+        raise ConfigError('identification.max_iterations', 'must be a positive integer (the '
+                          f'iteration limit of every fit, default {DEFAULT_MAX_ITERATIONS}), '
+                          f'got {limit!r}')
     return IdentificationSettings(model, loss, OutlierSettings(
         exclude, None if threshold is None else float(threshold), float(fraction)), folds,
-        _tolerance_prior(raw.get('prior')))
+        _tolerance_prior(raw.get('prior')), limit)
 
 
 def _tolerance_prior(raw: Any) -> tuple[float, float, float] | None:
