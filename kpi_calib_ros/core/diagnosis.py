@@ -115,6 +115,9 @@ class ModelComparison:
     tcp_std_before_m: np.ndarray
     tcp_std_after_m: np.ndarray
     working_pose_names: tuple[str, ...] = field(default=())
+    # A fit that did not converge, named with its stop: its figures are those of the last
+    # iterate, not of a minimum, and the comparison says so.
+    warnings: tuple[str, ...] = field(default=())
 
 
 # ---------------------------------------------------------------- screening
@@ -322,7 +325,16 @@ def compare_models(before: tuple[MeasurementModel, CalibrationResult],
         effect_parameters=tuple(params),
         tcp_std_before_m=np.sqrt(np.diagonal(res_b.tcp_covariance, axis1=1, axis2=2)),
         tcp_std_after_m=np.sqrt(np.diagonal(res_a.tcp_covariance, axis1=1, axis2=2)),
-        working_pose_names=res_a.working_pose_names)
+        working_pose_names=res_a.working_pose_names,
+        warnings=tuple(unconverged_warning(res, which) for res, which in
+                       ((res_b, 'before'), (res_a, 'after')) if not res.converged))
+
+
+def unconverged_warning(result: CalibrationResult, which: str) -> str:
+    """What a comparison with ``result``, a fit that did not converge, is worth."""
+    return (f'the fit {which} did not converge ({result.message}): its figures are those of '
+            'the last iterate, not of a minimum, and the comparison may favour the other '
+            'side (identification.max_iterations / --max-iterations raises the limit)')
 
 
 # ------------------------------------------------------------------ helpers

@@ -51,7 +51,8 @@ def comparison_to_dict(cmp: ModelComparison) -> dict[str, Any]:
             'tcp_std_m': [{'name': n, 'before': [float(x) for x in b],
                            'after': [float(x) for x in a]}
                           for n, b, a in zip(cmp.working_pose_names, cmp.tcp_std_before_m,
-                                             cmp.tcp_std_after_m)]}
+                                             cmp.tcp_std_after_m)],
+            'warnings': list(cmp.warnings)}
 
 
 def diagnosis_to_dict(cd: CellDiagnosis) -> dict[str, Any]:
@@ -59,6 +60,7 @@ def diagnosis_to_dict(cd: CellDiagnosis) -> dict[str, Any]:
     diag, rep = cd.diagnosis, cd.diagnosis.residuals
     doc: dict[str, Any] = {
         'model_adequate': bool(diag.model_adequate),
+        'converged': bool(cd.result.converged), 'status': cd.result.message,
         'rms_m': float(diag.rms_m),
         'validation_rms_m': float(diag.validation_rms_m),
         'noise_floor_m': float(np.sqrt(np.sum(cd.result.sigma ** 2))),
@@ -115,6 +117,7 @@ def comparison_text(cmp: ModelComparison) -> str:
     for name, b, a in zip(cmp.working_pose_names, cmp.tcp_std_before_m, cmp.tcp_std_after_m):
         lines.append(f'  TCP {name} std [{", ".join(f"{x * _UM:.1f}" for x in b)}] -> '
                      f'[{", ".join(f"{x * _UM:.1f}" for x in a)}] µm')
+    lines += [f'  WARNING: {w}' for w in cmp.warnings]
     return '\n'.join(lines)
 
 
@@ -122,7 +125,10 @@ def diagnosis_text(cd: CellDiagnosis, top: int = 5) -> str:
     """Readable diagnosis summary for a terminal."""
     diag, rep = cd.diagnosis, cd.diagnosis.residuals
     pct = ', '.join(f'p{k} {v * _UM:.1f}' for k, v in rep.percentiles_m.items())
-    lines = [diag.verdict,
+    lines = [*([f'WARNING: the calibration did not converge ({cd.result.message}); the '
+               'diagnosis judges its last iterate, not a minimum (identification.'
+               'max_iterations raises the limit)'] if not cd.result.converged else []),
+             diag.verdict,
              f'rms {diag.rms_m * _UM:.1f} µm, validation rms '
              f'{_validation(diag.validation_rms_m, "", " µm")} '
              f'(noise floor σ√3 {np.sqrt(np.sum(cd.result.sigma ** 2)) * _UM:.1f} µm); '
