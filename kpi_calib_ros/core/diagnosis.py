@@ -31,6 +31,7 @@ from kpi_calib_ros.core.effects import BoundEffect, candidate_effects, implausib
 from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
 from kpi_calib_ros.core.out_of_sample import OutOfSample
+from kpi_calib_ros.core.precision import chi2_scale
 from kpi_calib_ros.core.residuals import (ADEQUACY_ALPHA, LinearizedFit, ResidualReport,
                                          cross_validated_rms, cv_rms, identifiable_folds,
                                          linearized_fit, residual_report)
@@ -77,6 +78,9 @@ class Candidate:
     plausibility: str = ''
     also_explained_by: tuple[str, ...] = ()
     note: str = ''
+    # ``std`` are from the stated σ (1) or scaled by χ²/dof of the augmented fit when it
+    # fails the χ² test, as identify reports (core.precision.chi2_scale).
+    covariance_scale: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -240,7 +244,9 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
         out.append(Candidate(
             effect=fit['effect'].kind.name, joint=fit['effect'].joint, spec=fit['effect'].name,
             parameter_names=fit['effect'].parameter_names, units=fit['effect'].units,
-            distinguishable=True, values=fit['theta'], std=fit['std'],
+            distinguishable=True, values=fit['theta'],
+            std=fit['std'] * np.sqrt(chi2_scale(fit['chi2'], fit['dof'])),
+            covariance_scale=chi2_scale(fit['chi2'], fit['dof']),
             rms_after_m=fit['rms'], validation_rms_after_m=fit['cv'],
             delta_chi2=fit['delta'], f_statistic=fit['f'], p_value_raw=fit['p_raw'],
             p_value=p_adj, significant=significant, correlation=fit['corr'],

@@ -17,6 +17,7 @@ import numpy as np
 
 from kpi_calib_ros.core.diagnosis import Candidate, CellDiagnosis, ModelComparison
 from kpi_calib_ros.core.out_of_sample import DOMAIN_TEXT, NOT_ESTIMABLE, OutOfSample
+from kpi_calib_ros.core.precision import precision_statement
 from kpi_calib_ros.io.names import DIAGNOSIS_FILE, REPORT_FILE
 from kpi_calib_ros.io.results import write_atomic
 
@@ -34,6 +35,7 @@ def _candidate_dict(c: Candidate) -> dict[str, Any]:
             'significant': bool(c.significant),
             'parameters': [{'name': n, 'value': float(v), 'std': float(s), 'unit': u}
                            for n, v, s, u in zip(c.parameter_names, c.values, c.std, c.units)],
+            'std_basis': precision_statement(float(c.covariance_scale)),
             'explanation': c.explanation, 'plausible': bool(c.plausible),
             'plausibility': c.plausibility, 'also_explained_by': list(c.also_explained_by),
             'note': c.note}
@@ -397,7 +399,9 @@ def write_report(out_dir: str | Path, cd: CellDiagnosis) -> Path:
         lines += out_of_sample_table(cd.out_of_sample)
     lines += ['', '## Candidate effects, best first', '',
               f'F-test of each augmented fit against the geometric one, Bonferroni over '
-              f'{len(diag.candidates)} candidates, family-wise α = {diag.alpha:g}.', '',
+              f'{len(diag.candidates)} candidates, family-wise α = {diag.alpha:g}. Parameter '
+              '± std as identify reports them: from the stated σ when the augmented fit '
+              'passes the χ² test, else scaled by its χ²/dof.', '',
               '| # | effect | significant | p | rms after (µm) | validation rms after (µm) | '
               'parameters |', '|---|---|---|---|---|---|---|']
     for i, c in enumerate(diag.candidates, 1):
