@@ -487,7 +487,7 @@ def robust_summary(doc: dict[str, Any]) -> str:
         lines.append(f"excluded measurement {e['index']} (stamp {e['stamp_ns']} ns): "
                      f"{e['distance_m'] * 1e6:.1f} µm from the fit; {e['reason']}")
     lines += [f'WARNING: {w}' for w in rob['warnings']]
-    if doc['tcp_estimable']:
+    if doc['tcp_estimable'] and doc['tcp']:
         lines.append('TCP estimable at every working pose')
     if not doc['valid']:
         lines.append('CALIBRATION NOT VALID: ' + ' | '.join(doc['invalid_reasons']))

@@ -15,7 +15,7 @@ fix. Paths are relative to the cell file. Units are SI (m, rad, kg). Example::
     # reflectors: [{name: probe, offset: [0, 0, 0.1], orientation: {rpy: [0, 0, 0]}}]
     noise: {sigma: 2.0e-5}          # sigma_rotation: 5.0e-5 (rad) with an orientation
     payload: {mass: 5.0, com: [0, 0, 0.05]}
-    working_poses:
+    working_poses:                  # optional for identify (no TCP then); design needs them
       - {name: roof, joints: {joint_1: 0.0, joint_2: 0.3, ...}}
       - [0.0, -1.2, 1.7, -2.07, -1.57, 0.0]   # or joint values in chain order
     obstacles:                      # in the robot base frame
@@ -700,10 +700,14 @@ def _number_or_vector(value: Any, path: str) -> Any:
 
 
 def _working_poses(value: Any) -> tuple[WorkingPose, ...]:
-    if not isinstance(value, list) or not value:
-        raise ConfigError('working_poses', 'give at least one working pose as '
-                          '{name: ..., joints: {joint_name: value_rad, ...}} or as a list of '
-                          'joint values in chain order')
+    """``working_poses``: none (left out or empty: identify reports no TCP, design refuses),
+    or a list of named or chain-ordered poses."""
+    if value is None or value == []:
+        return ()
+    if not isinstance(value, list):
+        raise ConfigError('working_poses', 'must be a list of working poses as '
+                          '{name: ..., joints: {joint_name: value_rad, ...}} or as lists of '
+                          'joint values in chain order (or left out: no TCP is reported)')
     poses = []
     for i, item in enumerate(value):
         key = f'working_poses[{i}]'
@@ -838,6 +842,10 @@ class CellModel:
                               'tracker stands: give the robot base pose in the tracker frame '
                               '[x, y, z, roll, pitch, yaw] (m, rad) in the cell file (a tape '
                               'measure is enough; identification refines it from the data)')
+        if not len(self.q_work):
+            raise ConfigError('working_poses', 'a design optimises the TCP precision at the '
+                              'working poses: give at least one as {name: ..., joints: '
+                              '{joint_name: value_rad, ...}} (identify needs none)')
         return DesignCell(self.model, self.q_work, self.working_pose_names,
                           self.tracker_in_base, self.cell.reflector_offset,
                           self.cell.max_incidence, self.cell.sigma,
@@ -877,7 +885,7 @@ def build_cell_model(cell: Cell, effects: tuple = ()) -> CellModel:
         warnings.warn(missing_masses, stacklevel=2)
     coupling = coupling_from_mapping(cell.joint_coupling, robot.joint_names)
     q_work = np.array([_ordered(w, robot, f'working_poses[{i}].joints')
-                       for i, w in enumerate(cell.working_poses)])
+                       for i, w in enumerate(cell.working_poses)]).reshape(-1, robot.n_joints)
     if cell.working_poses_in == 'controller':
         q_work = coupling.to_urdf(q_work)
     inside = robot.within_limits(q_work)
