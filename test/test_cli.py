@@ -238,3 +238,14 @@ def test_identify_needs_no_working_poses_and_design_says_it_does(run_bag, tmp_pa
                  str(tmp_path / 'design.yaml')]) == 2
     err = capsys.readouterr().err
     assert 'working_poses' in err and 'identify needs none' in err
+
+
+def test_identify_help_says_how_auto_chooses(capsys):
+    """auto chooses by the out-of-sample rms predicted from each fit (core.model_selection),
+    not by cross-validation, which it only reports beside."""
+    with pytest.raises(SystemExit):
+        main(['identify', '--help'])
+    text = ' '.join(capsys.readouterr().out.split())
+    assert 'by cross-validation' not in text
+    assert 'out-of-sample rms, predicted from each fit without refits' in text
+    assert '--max-iterations' in text
