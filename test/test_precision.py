@@ -12,7 +12,8 @@ from kpi_calib_ros.app.simulate import truth_cell_model
 from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
                                           true_parameters)
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
-from kpi_calib_ros.io.report import diagnosis_to_dict
+from kpi_calib_ros.core.diagnosis import compare_models
+from kpi_calib_ros.io.report import comparison_text, diagnosis_to_dict
 from kpi_calib_ros.io.results import calibration_to_dict, summary_text
 
 TRUE_SIGMA = 2.0e-5
@@ -97,3 +98,7 @@ def test_diagnose_reports_effect_std_as_identify_does_for_an_inadequate_model(ce
     assert cand.covariance_scale > 4
     entry = next(c for c in diagnosis_to_dict(cd)['candidates'] if c['spec'] == spec)
     assert 'scaled by chi2/dof' in entry['std_basis']
+    # The before/after of identify --effects / diagnose says which σ its std are from.
+    richer = with_effects(cell, (spec,))
+    text = comparison_text(compare_models((cell.model, cd.result), (richer.model, fit), data))
+    assert 'std scaled by chi2/dof' in text

@@ -31,7 +31,7 @@ from kpi_calib_ros.core.effects import BoundEffect, candidate_effects, implausib
 from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
 from kpi_calib_ros.core.out_of_sample import OutOfSample
-from kpi_calib_ros.core.precision import chi2_scale
+from kpi_calib_ros.core.precision import chi2_scale, precision_statement
 from kpi_calib_ros.core.residuals import (ADEQUACY_ALPHA, LinearizedFit, ResidualReport,
                                          cross_validated_rms, cv_rms, identifiable_folds,
                                          linearized_fit, residual_report)
@@ -122,6 +122,8 @@ class ModelComparison:
     # A fit that did not converge, named with its stop: its figures are those of the last
     # iterate, not of a minimum, and the comparison says so.
     warnings: tuple[str, ...] = field(default=())
+    # How the after-fit's std were obtained (core.precision.precision_statement).
+    std_basis: str = ''
 
 
 # ---------------------------------------------------------------- screening
@@ -333,7 +335,8 @@ def compare_models(before: tuple[MeasurementModel, CalibrationResult],
         tcp_std_after_m=np.sqrt(np.diagonal(res_a.tcp_covariance, axis1=1, axis2=2)),
         working_pose_names=res_a.working_pose_names,
         warnings=tuple(unconverged_warning(res, which) for res, which in
-                       ((res_b, 'before'), (res_a, 'after')) if not res.converged))
+                       ((res_b, 'before'), (res_a, 'after')) if not res.converged),
+        std_basis=precision_statement(res_a.covariance_scale))
 
 
 def unconverged_warning(result: CalibrationResult, which: str) -> str:

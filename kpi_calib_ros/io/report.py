@@ -54,7 +54,7 @@ def comparison_to_dict(cmp: ModelComparison) -> dict[str, Any]:
                            'after': [float(x) for x in a]}
                           for n, b, a in zip(cmp.working_pose_names, cmp.tcp_std_before_m,
                                              cmp.tcp_std_after_m)],
-            'warnings': list(cmp.warnings)}
+            'warnings': list(cmp.warnings), 'std_basis': cmp.std_basis}
 
 
 def diagnosis_to_dict(cd: CellDiagnosis) -> dict[str, Any]:
@@ -111,6 +111,8 @@ def comparison_text(cmp: ModelComparison) -> str:
              f'  validation rms  {_validation(cmp.validation_rms_before_m, "7", " µm")} -> '
              f'{_validation(cmp.validation_rms_after_m, "7", " µm")} (held-out poses)',
              f'  χ² p-value      {cmp.p_value_before:9.3g} -> {cmp.p_value_after:9.3g}']
+    if cmp.std_basis and cmp.effect_parameters:
+        lines.append(f'  std {cmp.std_basis}')
     for p in cmp.effect_parameters:
         if 'std' in p:
             lines.append(f"  {p['name']} = {p['value']:.4g} ± {p['std']:.2g} {p['unit']}")
