@@ -19,7 +19,7 @@ from kpi_calib_ros.core.dh import dh_table
 from kpi_calib_ros.core.diagnosis import augmented_model, compare_models
 from kpi_calib_ros.core.effect_selection import choose_effects
 from kpi_calib_ros.core.effects import BoundEffect, parse_effect_spec, split_specs
-from kpi_calib_ros.core.errors import DataError
+from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.estimability import KpiEstimability, result_estimability
 from kpi_calib_ros.core.gravity_compliance import compliance_warnings, mass_warning
 from kpi_calib_ros.core.estimation import CalibrationResult, identify
@@ -298,7 +298,8 @@ def _fit_function(cm: CellModel, start: np.ndarray | None = None,
                             p0=start if p0 is None else p0, free=free,
                             identifiability_method=cm.cell.identification_method,
                             priority=list(cm.cell.identification_priority) or None,
-                            point_weights=point_weights, prior=pr)
+                            point_weights=point_weights, prior=pr,
+                            max_iterations=cm.cell.identification.max_iterations)
         if not balance or prior is None:
             return with_prior(prior)
         _, scale, result = balanced_prior(with_prior, prior)
@@ -512,7 +513,7 @@ def robust_summary(doc: dict[str, Any]) -> str:
                          f'parameter part tcp_std {_um(std)} (sqrt(trace))')
     if precision.get('expected_tcp_error_m'):
         lines.append(f"expected TCP error: {precision['expected_tcp_error_basis']}")
-    if doc['tcp_estimable']:
+    if doc['tcp_estimable'] and doc['tcp']:
         lines.append('TCP estimable at every working pose')
     if not doc['valid']:
         lines.append('CALIBRATION NOT VALID: ' + ' | '.join(doc['invalid_reasons']))
@@ -550,6 +551,16 @@ def write_results(cm: CellModel, result: CalibrationResult, doc: dict[str, Any],
     urdf = calibrated_robot_description(cm, result)
     urdf_path = write_atomic(Path(out_dir) / CALIBRATED_URDF_FILE, urdf)
     return path, urdf_path, urdf
+
+
+def with_iteration_limit(cm: CellModel, max_iterations: int) -> CellModel:
+    """``cm`` with ``identification.max_iterations`` replaced (``--max-iterations``)."""
+    if isinstance(max_iterations, bool) or not isinstance(max_iterations, int) \
+            or max_iterations < 1:
+        raise ConfigError('--max-iterations', f'must be a positive integer, got '
+                          f'{max_iterations!r}')
+    settings = dataclasses.replace(cm.cell.identification, max_iterations=max_iterations)
+    return dataclasses.replace(cm, cell=dataclasses.replace(cm.cell, identification=settings))
 
 
 def geometric_only(cm: CellModel) -> CellModel:
@@ -614,12 +625,14 @@ def print_progress(line: str) -> None:
 
 
 def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Path,
-                 effects: str = '', model: str | None = None, **options: Any) -> int:
+                 effects: str = '', model: str | None = None,
+                 max_iterations: int | None = None, **options: Any) -> int:
     """``kpi-calib identify``: calibration.yaml and the calibrated URDF
     (:data:`~kpi_calib_ros.io.names.CALIBRATED_URDF_FILE`) in ``out_dir`` (checked first),
     a summary on stdout; ``options`` as for :func:`load_measurements`.
 
-    ``model`` overrides the cell's ``identification.model``; the cell's
+    ``model`` overrides the cell's ``identification.model``, ``max_iterations`` its
+    ``identification.max_iterations``; the cell's
     ``identification.prior`` (tolerances) is used when set. With a previous calibration as
     prior (``--prior``) the CLI runs :func:`kpi_calib_ros.app.reidentify.run_reidentify`
     instead. Returns 0 for a valid calibration; 1 when it did not converge or the TCP is
@@ -628,6 +641,8 @@ def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
     """
     writable_folder(out_dir, '--out')
     cm, data, pairing = load_measurements(cell_path, bag_path, effects, **options)
+    if max_iterations is not None:
+        cm = with_iteration_limit(cm, max_iterations)
     cal = calibrate_cell(cm, data, model, progress=print_progress)
     cm = cal.cell or cm  # with the effects auto added
     how = tolerance_text(cm, cal.prior_scale)

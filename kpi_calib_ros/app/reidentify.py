@@ -47,7 +47,7 @@ from kpi_calib_ros.io.results import writable_folder
 from kpi_calib_ros.app.identify import (CellCalibration, add_robust_sections,
                                         calibrate_cell, calibration_document,
                                         load_measurements, places_the_points, registered_start,
-                                        robust_summary, write_results)
+                                        robust_summary, with_iteration_limit, write_results)
 from kpi_calib_ros.app.validate import calibration_noise_scale
 
 # Exit code of `kpi-calib identify --prior` when the new cycle contradicts the prior.
@@ -323,7 +323,8 @@ def reidentify(cm: CellModel, data: Measurements, cp: CyclePrior, model: str | N
                                   len(cm.geometric)) if n in set(cp.allowed)]
     fit = identify(cm.model, data, cm.cell.sigma, cm.q_work, list(cm.working_pose_names),
                    p0=start, free=free, identifiability_method=cm.cell.identification_method,
-                   priority=list(cm.cell.identification_priority) or None, prior=cp.prior)
+                   priority=list(cm.cell.identification_priority) or None, prior=cp.prior,
+                   max_iterations=cm.cell.identification.max_iterations)
     change = change_test(cm.model, data, cm.cell.sigma, fit, cp.prior, alpha,
                          sigma_dof=cp.noise_dof)
     if not change.consistent and cp.noise_scale != 1.0:
@@ -407,7 +408,8 @@ def run_reidentify(cell_path: str | Path, bag_path: str | Path, out_dir: str | P
                    drift: tuple[float, ...] = (DRIFT_LENGTH_PER_SQRT_HOUR,
                                                DRIFT_ANGLE_PER_SQRT_HOUR),
                    keep_placement: bool = False, drift_model: str = 'thermal',
-                   swing: DriftSwing | None = None, **options: Any) -> int:
+                   swing: DriftSwing | None = None, max_iterations: int | None = None,
+                   **options: Any) -> int:
     """``kpi-calib identify --prior OLD/calibration.yaml``.
 
     ``swing`` (``--drift-velocity``): the daily swing of the drift state
@@ -421,6 +423,8 @@ def run_reidentify(cell_path: str | Path, bag_path: str | Path, out_dir: str | P
     writable_folder(out_dir, '--out')
     old = read_calibration_document(prior_path, '--prior')
     cm, data, pairing = load_measurements(cell_path, bag_path, effects, **options)
+    if max_iterations is not None:
+        cm = with_iteration_limit(cm, max_iterations)
     cp = cycle_prior(cm, old, data, drift[0], drift[1], keep_placement=keep_placement,
                      drift_model=drift_model,
                      rotation_rate=drift[2] if len(drift) > 2 else None,

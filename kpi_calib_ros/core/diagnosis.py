@@ -32,7 +32,8 @@ from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.measurement import (MeasurementModel, Measurements, unweighted,
                                             weighted_rows)
 from kpi_calib_ros.core.out_of_sample import OutOfSample
-from kpi_calib_ros.core.precision import JOINT_NOISE_CAUSE, ExpectedTcpError
+from kpi_calib_ros.core.precision import (JOINT_NOISE_CAUSE, ExpectedTcpError, chi2_scale,
+                                          precision_statement)
 from kpi_calib_ros.core.residuals import (ADEQUACY_ALPHA, LinearizedFit, ResidualReport,
                                          cross_validated_rms, cv_rms, identifiable_folds,
                                          linearized_fit, residual_report)
@@ -80,6 +81,9 @@ class Candidate:
     plausibility: str = ''
     also_explained_by: tuple[str, ...] = ()
     note: str = ''
+    # ``std`` are from the stated σ (1) or scaled by χ²/dof of the augmented fit when it
+    # fails the χ² test, as identify reports (core.precision.chi2_scale).
+    covariance_scale: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -118,6 +122,11 @@ class ModelComparison:
     tcp_std_before_m: np.ndarray
     tcp_std_after_m: np.ndarray
     working_pose_names: tuple[str, ...] = field(default=())
+    # A fit that did not converge, named with its stop: its figures are those of the last
+    # iterate, not of a minimum, and the comparison says so.
+    warnings: tuple[str, ...] = field(default=())
+    # How the after-fit's std were obtained (core.precision.precision_statement).
+    std_basis: str = ''
 
 
 # ---------------------------------------------------------------- screening
@@ -253,7 +262,9 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
         out.append(Candidate(
             effect=fit['effect'].kind.name, joint=fit['effect'].joint, spec=fit['effect'].name,
             parameter_names=fit['effect'].parameter_names, units=fit['effect'].units,
-            distinguishable=True, values=fit['theta'], std=fit['std'],
+            distinguishable=True, values=fit['theta'],
+            std=fit['std'] * np.sqrt(chi2_scale(fit['chi2'], fit['dof'])),
+            covariance_scale=chi2_scale(fit['chi2'], fit['dof']),
             rms_after_m=fit['rms'], validation_rms_after_m=fit['cv'],
             delta_chi2=fit['delta'], f_statistic=fit['f'], p_value_raw=fit['p_raw'],
             p_value=p_adj, significant=significant, correlation=fit['corr'],
@@ -361,7 +372,17 @@ def compare_models(before: tuple[MeasurementModel, CalibrationResult],
         effect_parameters=tuple(params),
         tcp_std_before_m=np.sqrt(np.diagonal(res_b.tcp_covariance, axis1=1, axis2=2)),
         tcp_std_after_m=np.sqrt(np.diagonal(res_a.tcp_covariance, axis1=1, axis2=2)),
-        working_pose_names=res_a.working_pose_names)
+        working_pose_names=res_a.working_pose_names,
+        warnings=tuple(unconverged_warning(res, which) for res, which in
+                       ((res_b, 'before'), (res_a, 'after')) if not res.converged),
+        std_basis=precision_statement(res_a.covariance_scale))
+
+
+def unconverged_warning(result: CalibrationResult, which: str) -> str:
+    """What a comparison with ``result``, a fit that did not converge, is worth."""
+    return (f'the fit {which} did not converge ({result.message}): its figures are those of '
+            'the last iterate, not of a minimum, and the comparison may favour the other '
+            'side (identification.max_iterations / --max-iterations raises the limit)')
 
 
 # ------------------------------------------------------------------ helpers

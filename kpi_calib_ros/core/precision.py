@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
+import scipy.stats
 
 from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.prior import Prior
@@ -33,9 +34,15 @@ from kpi_calib_ros.core.residuals import (ADEQUACY_ALPHA, LEAVE_ONE_OUT, cross_v
 
 def noise_scale(result: CalibrationResult, alpha: float = ADEQUACY_ALPHA) -> float:
     """χ²/dof of ``result`` when the χ² test rejects it and it exceeds 1, else 1."""
-    if result.dof <= 0 or is_adequate(result.p_value, alpha):
+    return chi2_scale(result.chi2, result.dof, alpha)
+
+
+def chi2_scale(chi2: float, dof: int, alpha: float = ADEQUACY_ALPHA) -> float:
+    """χ²/dof when the χ² test (``dof`` degrees of freedom) rejects ``chi2`` and it exceeds
+    1, else 1: the factor on every covariance of a fit with that χ² (see the module)."""
+    if dof <= 0 or is_adequate(float(scipy.stats.chi2.sf(chi2, dof)), alpha):
         return 1.0
-    return max(1.0, float(result.chi2 / result.dof))
+    return max(1.0, float(chi2 / dof))
 
 
 def honest_precision(result: CalibrationResult,
@@ -216,6 +223,6 @@ def balanced_prior(fit: Callable[[Prior], CalibrationResult], prior: Prior,
     return tightened(prior, scale), scale, result
 
 
-__all__ = ['ExpectedTcpError', 'JOINT_NOISE_CAUSE', 'balanced_prior', 'expected_tcp_error',
-           'measurement_noise_ms', 'honest_precision', 'noise_scale',
+__all__ = ['ExpectedTcpError', 'JOINT_NOISE_CAUSE', 'balanced_prior', 'chi2_scale',
+           'expected_tcp_error', 'measurement_noise_ms', 'honest_precision', 'noise_scale',
            'precision_statement', 'tightened']

@@ -17,14 +17,14 @@ fix. Paths are relative to the cell file. Units are SI (m, rad, kg). Example::
     # joint-reading noise (rad), all joints or by name: joint_sigma: 5.2e-4
     # or joint_sigma: {joint_1: 5.2e-4, joint_2: 5.2e-4}   (joints left out read exactly)
     payload: {mass: 5.0, com: [0, 0, 0.05]}
-    working_poses:
+    working_poses:                  # optional for identify (no TCP then); design needs them
       - {name: roof, joints: {joint_1: 0.0, joint_2: 0.3, ...}}
       - [0.0, -1.2, 1.7, -2.07, -1.57, 0.0]   # or joint values in chain order
     obstacles:                      # in the robot base frame
       - {name: floor, type: halfspace, normal: [0, 0, 1], offset: -0.5}
       - {name: car_roof, type: capsule, a: [1.6, -1.5, 0.9], b: [1.6, 1.5, 0.9], radius: 0.5}
     collision: {capsules: [...], ignore_pairs: [[base_link, floor]], beam_radius: 0.005}
-    identification: {method: pivoted, model: geometric, loss: linear,
+    identification: {method: pivoted, model: geometric, loss: linear, max_iterations: 500,
                      outliers: {exclude: true, threshold: null}, cv_folds: 5,
                      prior: {translation: 1.0e-3, rotation: 1.0e-3, offset: 1.0e-3}}
     topics: {joint_states: /joint_states, point: /laser_tracker/point,   # bags read
@@ -50,6 +50,7 @@ from kpi_calib_ros.core.design import DesignSettings
 from kpi_calib_ros.core.design_cell import DesignCell
 from kpi_calib_ros.core.effects import resolve_effects
 from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.core.estimation import DEFAULT_MAX_ITERATIONS
 from kpi_calib_ros.core.gravity_compliance import mass_warning
 from kpi_calib_ros.core.kinematics import pose6
 from kpi_calib_ros.core.model_selection import DEFAULT_FOLDS, MODEL_CHOICES
@@ -104,7 +105,8 @@ class IdentificationSettings:
     (:mod:`kpi_calib_ros.core.robust`); outliers : exclusion settings; cv_folds : folds of
     the cross-validated rms reported beside the model choice; prior : std (m, rad, rad)
     of the joint placement translations, rotations and joint offsets around the nominal
-    (:func:`kpi_calib_ros.core.prior.tolerance_prior`), None: no prior.
+    (:func:`kpi_calib_ros.core.prior.tolerance_prior`), None: no prior; max_iterations :
+    iteration limit of every fit (:func:`kpi_calib_ros.core.estimation.identify`).
     """
 
     model: str = 'geometric'
@@ -112,6 +114,7 @@ class IdentificationSettings:
     outliers: OutlierSettings = field(default_factory=OutlierSettings)
     cv_folds: int = DEFAULT_FOLDS
     prior: tuple[float, float, float] | None = None
+    max_iterations: int = DEFAULT_MAX_ITERATIONS
 
 
 @dataclass(frozen=True)
@@ -456,7 +459,8 @@ def design_settings(raw: Mapping[str, Any] | None) -> DesignSettings:
     return replace(defaults, **values)
 
 
-_IDENT_KEYS = {'method', 'priority', 'model', 'loss', 'outliers', 'cv_folds', 'prior'}
+_IDENT_KEYS = {'method', 'priority', 'model', 'loss', 'outliers', 'cv_folds', 'prior',
+               'max_iterations'}
 PRIOR_KEYS = ('translation', 'rotation', 'offset')
 
 
@@ -498,9 +502,14 @@ def identification_settings(raw: Mapping[str, Any]) -> IdentificationSettings:
             not 0 <= fraction < 1:
         raise ConfigError('identification.outliers.max_fraction', f'must be in [0, 1), got '
                           f'{fraction!r}')
+    limit = raw.get('max_iterations', DEFAULT_MAX_ITERATIONS)
+    if isinstance(limit, bool) or not isinstance(limit, int) or limit < 1:
+        raise ConfigError('identification.max_iterations', 'must be a positive integer (the '
+                          f'iteration limit of every fit, default {DEFAULT_MAX_ITERATIONS}), '
+                          f'got {limit!r}')
     return IdentificationSettings(model, loss, OutlierSettings(
         exclude, None if threshold is None else float(threshold), float(fraction)), folds,
-        _tolerance_prior(raw.get('prior')))
+        _tolerance_prior(raw.get('prior')), limit)
 
 
 def _tolerance_prior(raw: Any) -> tuple[float, float, float] | None:
@@ -738,10 +747,14 @@ def _number_or_vector(value: Any, path: str) -> Any:
 
 
 def _working_poses(value: Any) -> tuple[WorkingPose, ...]:
-    if not isinstance(value, list) or not value:
-        raise ConfigError('working_poses', 'give at least one working pose as '
-                          '{name: ..., joints: {joint_name: value_rad, ...}} or as a list of '
-                          'joint values in chain order')
+    """``working_poses``: none (left out or empty: identify reports no TCP, design refuses),
+    or a list of named or chain-ordered poses."""
+    if value is None or value == []:
+        return ()
+    if not isinstance(value, list):
+        raise ConfigError('working_poses', 'must be a list of working poses as '
+                          '{name: ..., joints: {joint_name: value_rad, ...}} or as lists of '
+                          'joint values in chain order (or left out: no TCP is reported)')
     poses = []
     for i, item in enumerate(value):
         key = f'working_poses[{i}]'
@@ -876,6 +889,10 @@ class CellModel:
                               'tracker stands: give the robot base pose in the tracker frame '
                               '[x, y, z, roll, pitch, yaw] (m, rad) in the cell file (a tape '
                               'measure is enough; identification refines it from the data)')
+        if not len(self.q_work):
+            raise ConfigError('working_poses', 'a design optimises the TCP precision at the '
+                              'working poses: give at least one as {name: ..., joints: '
+                              '{joint_name: value_rad, ...}} (identify needs none)')
         return DesignCell(self.model, self.q_work, self.working_pose_names,
                           self.tracker_in_base, self.cell.reflector_offset,
                           self.cell.max_incidence, self.cell.sigma,
@@ -916,7 +933,7 @@ def build_cell_model(cell: Cell, effects: tuple = ()) -> CellModel:
         warnings.warn(missing_masses, stacklevel=2)
     coupling = coupling_from_mapping(cell.joint_coupling, robot.joint_names)
     q_work = np.array([_ordered(w, robot, f'working_poses[{i}].joints')
-                       for i, w in enumerate(cell.working_poses)])
+                       for i, w in enumerate(cell.working_poses)]).reshape(-1, robot.n_joints)
     if cell.working_poses_in == 'controller':
         q_work = coupling.to_urdf(q_work)
     inside = robot.within_limits(q_work)

@@ -17,7 +17,7 @@ import numpy as np
 
 from kpi_calib_ros.core.diagnosis import Candidate, CellDiagnosis, ModelComparison
 from kpi_calib_ros.core.out_of_sample import DOMAIN_TEXT, NOT_ESTIMABLE, OutOfSample
-from kpi_calib_ros.core.precision import ExpectedTcpError
+from kpi_calib_ros.core.precision import ExpectedTcpError, precision_statement
 from kpi_calib_ros.io.names import DIAGNOSIS_FILE, REPORT_FILE
 from kpi_calib_ros.io.results import write_atomic
 
@@ -35,6 +35,7 @@ def _candidate_dict(c: Candidate) -> dict[str, Any]:
             'significant': bool(c.significant),
             'parameters': [{'name': n, 'value': float(v), 'std': float(s), 'unit': u}
                            for n, v, s, u in zip(c.parameter_names, c.values, c.std, c.units)],
+            'std_basis': precision_statement(float(c.covariance_scale)),
             'explanation': c.explanation, 'plausible': bool(c.plausible),
             'plausibility': c.plausibility, 'also_explained_by': list(c.also_explained_by),
             'note': c.note}
@@ -52,7 +53,8 @@ def comparison_to_dict(cmp: ModelComparison) -> dict[str, Any]:
             'tcp_std_m': [{'name': n, 'before': [float(x) for x in b],
                            'after': [float(x) for x in a]}
                           for n, b, a in zip(cmp.working_pose_names, cmp.tcp_std_before_m,
-                                             cmp.tcp_std_after_m)]}
+                                             cmp.tcp_std_after_m)],
+            'warnings': list(cmp.warnings), 'std_basis': cmp.std_basis}
 
 
 def diagnosis_to_dict(cd: CellDiagnosis) -> dict[str, Any]:
@@ -60,6 +62,7 @@ def diagnosis_to_dict(cd: CellDiagnosis) -> dict[str, Any]:
     diag, rep = cd.diagnosis, cd.diagnosis.residuals
     doc: dict[str, Any] = {
         'model_adequate': bool(diag.model_adequate),
+        'converged': bool(cd.result.converged), 'status': cd.result.message,
         'rms_m': float(diag.rms_m),
         'validation_rms_m': float(diag.validation_rms_m),
         'noise_floor_m': float(np.sqrt(np.sum(cd.result.sigma ** 2))),
@@ -111,6 +114,8 @@ def comparison_text(cmp: ModelComparison) -> str:
              f'  validation rms  {_validation(cmp.validation_rms_before_m, "7", " µm")} -> '
              f'{_validation(cmp.validation_rms_after_m, "7", " µm")} (held-out poses)',
              f'  χ² p-value      {cmp.p_value_before:9.3g} -> {cmp.p_value_after:9.3g}']
+    if cmp.std_basis and cmp.effect_parameters:
+        lines.append(f'  std {cmp.std_basis}')
     for p in cmp.effect_parameters:
         if 'std' in p:
             lines.append(f"  {p['name']} = {p['value']:.4g} ± {p['std']:.2g} {p['unit']}")
@@ -119,6 +124,7 @@ def comparison_text(cmp: ModelComparison) -> str:
     for name, b, a in zip(cmp.working_pose_names, cmp.tcp_std_before_m, cmp.tcp_std_after_m):
         lines.append(f'  TCP {name} std [{", ".join(f"{x * _UM:.1f}" for x in b)}] -> '
                      f'[{", ".join(f"{x * _UM:.1f}" for x in a)}] µm')
+    lines += [f'  WARNING: {w}' for w in cmp.warnings]
     return '\n'.join(lines)
 
 
@@ -126,7 +132,10 @@ def diagnosis_text(cd: CellDiagnosis, top: int = 5) -> str:
     """Readable diagnosis summary for a terminal."""
     diag, rep = cd.diagnosis, cd.diagnosis.residuals
     pct = ', '.join(f'p{k} {v * _UM:.1f}' for k, v in rep.percentiles_m.items())
-    lines = [diag.verdict,
+    lines = [*([f'WARNING: the calibration did not converge ({cd.result.message}); the '
+               'diagnosis judges its last iterate, not a minimum (identification.'
+               'max_iterations raises the limit)'] if not cd.result.converged else []),
+             diag.verdict,
              f'rms {diag.rms_m * _UM:.1f} µm, validation rms '
              f'{_validation(diag.validation_rms_m, "", " µm")} '
              f'(noise floor σ√3 {np.sqrt(np.sum(cd.result.sigma ** 2)) * _UM:.1f} µm); '
@@ -417,7 +426,9 @@ def write_report(out_dir: str | Path, cd: CellDiagnosis) -> Path:
             cd.expected.expected_tcp_error_m)]
     lines += ['', '## Candidate effects, best first', '',
               f'F-test of each augmented fit against the geometric one, Bonferroni over '
-              f'{len(diag.candidates)} candidates, family-wise α = {diag.alpha:g}.', '',
+              f'{len(diag.candidates)} candidates, family-wise α = {diag.alpha:g}. Parameter '
+              '± std as identify reports them: from the stated σ when the augmented fit '
+              'passes the χ² test, else scaled by its χ²/dof.', '',
               '| # | effect | significant | p | rms after (µm) | validation rms after (µm) | '
               'parameters |', '|---|---|---|---|---|---|---|']
     for i, c in enumerate(diag.candidates, 1):

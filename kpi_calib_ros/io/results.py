@@ -188,6 +188,9 @@ def summary_text(doc: dict[str, Any]) -> str:
     precision = doc.get('precision', {})
     if precision.get('covariance_scale', 1.0) != 1.0:
         lines.append(f"WARNING: std {precision['basis']}")
+    if not doc['tcp']:
+        lines.append('TCP: none reported (the cell gives no working_poses; add them to '
+                     'estimate the KPI points and their covariance)')
     for t in doc['tcp']:
         if t.get('std') is None:
             lines.append(f"TCP {t['name']}: NOT DETERMINED by the measurements (not estimable)")

@@ -326,8 +326,9 @@ class CalibrationNode(Node):
         if self._pub_tcp is None or depth != self._tcp_depth:
             if self._pub_tcp is not None:
                 self.destroy_publisher(self._pub_tcp)
+            # A cell without working poses publishes no TCP; depth 0 is no valid history.
             self._pub_tcp = self.create_publisher(PoseWithCovarianceStamped, TCP_TOPIC,
-                                                  _latched(depth))
+                                                  _latched(max(depth, 1)))
             self._tcp_depth = depth
         return self._pub_tcp
 
