@@ -175,7 +175,8 @@ def expected_tcp_error(model: MeasurementModel, data: Measurements, result: Cali
     result : CalibrationResult
         Its TCP covariance as reported (after :func:`honest_precision`).
     """
-    tcp_std = np.sqrt(np.trace(result.tcp_covariance, axis1=1, axis2=2))
+    covariance = np.asarray(result.tcp_covariance, float).reshape(-1, 3, 3)  # (0, 3, 3): no
+    tcp_std = np.sqrt(np.trace(covariance, axis1=1, axis2=2))              # working pose
     noise = float(np.sqrt(measurement_noise_ms(model, data, result)))
     if result.dof <= 0:  # no residual left to tell a misfit from the noise
         return ExpectedTcpError(result.working_pose_names, tcp_std, float('nan'),
