@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 
 from kpi_calib_ros.core.errors import DataError, KpiCalibError
+from kpi_calib_ros.core.estimation import DEFAULT_MAX_ITERATIONS
 from kpi_calib_ros.core.prior import (DAY_HOURS, DriftSwing, DRIFT_ANGLE_PER_SQRT_HOUR,
                                       DRIFT_LENGTH_PER_SQRT_HOUR, OFFSET_SWING_RAD,
                                       TEMPERATURE_SWING_K)
@@ -50,6 +51,17 @@ def _drift(text: str) -> tuple[float, ...]:
     if not all(0 <= r < float('inf') for r in rates):
         raise argparse.ArgumentTypeError(f'{text!r}: the rates must be finite and >= 0')
     return rates
+
+
+def _positive_int(text: str) -> int:
+    """``--max-iterations N``: a positive integer."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f'{text!r}: give a positive integer, e.g. 500')
+    return value
 
 
 DEFAULT_SWING = DriftSwing()  # the defaults: TEMPERATURE_SWING_K, OFFSET_SWING_RAD, DAY_HOURS
@@ -98,8 +110,13 @@ def build_parser() -> argparse.ArgumentParser:
                      help="physical effects added to the cell file's effects: (e.g. "
                      'joint_compliance:joint_2); the summary compares with the geometric model')
     ide.add_argument('--model', choices=['auto', 'registration', 'joint_offsets', 'geometric'],
-                     help="model size (overrides the cell's identification.model; auto: chosen "
-                     'by cross-validation over held-out poses)')
+                     help="model size (overrides the cell's identification.model; auto: the "
+                     'smallest level whose out-of-sample rms, predicted from each fit without '
+                     'refits, is within 5%% of the best; then the significant, plausible '
+                     'effects that predict better)')
+    ide.add_argument('--max-iterations', type=_positive_int, metavar='N',
+                     help="iteration limit of every fit (overrides the cell's "
+                     f'identification.max_iterations; default {DEFAULT_MAX_ITERATIONS})')
     ide.add_argument('--prior', metavar='OLD/calibration.yaml',
                      help="a previous calibration as Gaussian prior (its values and "
                      "parameter_covariance; replaces the cell's identification.prior)")
@@ -145,6 +162,11 @@ def build_parser() -> argparse.ArgumentParser:
     val.add_argument('--calibration', required=True, help='calibration.yaml of identify')
     val.add_argument('--bag', required=True, help='new MCAP bag (not used for the calibration)')
     val.add_argument('--out', required=True, help='output folder: validation.json, plot')
+    val.add_argument('--allow-code-effects', action='store_true', help=CODE_EFFECTS_HELP)
+    val.add_argument('--register', nargs='?', const='base', choices=['base', 'base+reflector'],
+                     help='the tracker (or probe) was set up again: re-fit the base pose '
+                     '(base+reflector: and the reflector offsets) on the new recording alone '
+                     'first; the rms after it is the figure to compare, chi2 loses its dof')
 
     imp = sub.add_parser('import-csv', help='a table of static postures (CSV) into an MCAP bag')
     imp.add_argument('csv', nargs='+', help='one row per posture: joint values and marker '
@@ -156,7 +178,11 @@ def build_parser() -> argparse.ArgumentParser:
     imp.add_argument('--marker', action='append', default=[], metavar='NAME=X,Y,Z',
                      help='a marker and its three columns; repeat per marker')
     imp.add_argument('--stamp-columns', default='', help='comma-separated Unix-second '
-                     'columns whose mean stamps a row (default: synthetic stamps)')
+                     'columns whose mean stamps a row (default: the row order)')
+    imp.add_argument('--delimiter', choices=[',', ';', 'tab', '|'], default=None,
+                     help='column separator (default: the mapping\'s, else detected)')
+    imp.add_argument('--decimal', choices=['.', ','], default=None,
+                     help="decimal mark (default: the mapping's, else detected)")
 
     des = sub.add_parser('design', help='optimal measurement configurations')
     des.add_argument('--cell', required=True)
@@ -240,10 +266,10 @@ def _identify(args: argparse.Namespace) -> int:
                               model=args.model, drift=args.drift_per_hour,
                               keep_placement=args.keep_placement,
                               drift_model=args.drift_model, swing=args.drift_velocity,
-                              **options)
+                              max_iterations=args.max_iterations, **options)
     from kpi_calib_ros.app.identify import run_identify
     return run_identify(args.cell, args.bag, args.out, effects=args.effects, model=args.model,
-                        **options)
+                        max_iterations=args.max_iterations, **options)
 
 
 def _design(args: argparse.Namespace) -> int:
@@ -282,7 +308,8 @@ def _diagnose(args: argparse.Namespace) -> int:
 
 def _validate(args: argparse.Namespace) -> int:
     from kpi_calib_ros.app.validate import run_validate
-    return run_validate(args.cell, args.calibration, args.bag, args.out)
+    return run_validate(args.cell, args.calibration, args.bag, args.out, args.register,
+                        allow_code_effects=args.allow_code_effects)
 
 
 def _import_csv(args: argparse.Namespace) -> int:
@@ -298,8 +325,10 @@ def _import_csv(args: argparse.Namespace) -> int:
             'frame_id': args.frame, 'joints': [j for j in (args.joints or '').split(',') if j],
             'markers': markers,
             'stamp_columns': [c for c in args.stamp_columns.split(',') if c]})
-    path, postures, points = import_csv(args.csv, args.out, mapping)
-    print(f'written: {path} ({postures} postures, {points} points)')
+    summary = import_csv(args.csv, args.out, mapping,
+                         delimiter='\t' if args.delimiter == 'tab' else args.delimiter,
+                         decimal=args.decimal)
+    print('\n'.join(summary.lines()))
     return 0
 
 

@@ -190,3 +190,62 @@ def test_a_cell_file_cannot_run_code_without_the_flag(run_bag, tmp_path, capsys)
     code = main(['identify', '--bag', str(run_bag), '--cell', str(cell), '--out',
                  str(tmp_path / 'ok'), '--allow-code-effects'])
     assert marker.exists() and code in (0, 1)  # ran: the opt-in was given
+
+
+def test_the_iteration_limit_is_a_cell_setting_and_a_flag(run_bag, tmp_path, capsys):
+    """identification.max_iterations / --max-iterations reach every fit: one iteration from
+    the nominal start (millimetres off) is no convergence, and the calibration says so."""
+    limited = _cell_copy(tmp_path, **{'identification': {'max_iterations': 1}})
+    for cell, extra in ((limited, []), (CELL, ['--max-iterations', '1'])):
+        out = tmp_path / ('cell' if extra == [] else 'flag')
+        assert main(['identify', '--cell', str(cell), '--bag', str(run_bag), '--out', str(out),
+                     *extra]) == 1
+        doc = yaml.safe_load((out / 'calibration.failed.yaml').read_text())
+        assert 'maximum number of iterations (1)' in ' '.join(doc['invalid_reasons'])
+    capsys.readouterr()
+    bad = _cell_copy(tmp_path, **{'identification': {'max_iterations': 0}})
+    err = _identify_error(bad, run_bag, tmp_path, capsys)
+    assert 'identification.max_iterations' in err and 'positive integer' in err
+    with pytest.raises(SystemExit) as info:
+        main(['identify', '--cell', CELL, '--bag', str(run_bag), '--out', str(tmp_path),
+              '--max-iterations', '0'])
+    assert info.value.code == 2 and 'positive integer' in capsys.readouterr().err
+
+
+def test_identify_needs_no_working_poses_and_design_says_it_does(run_bag, tmp_path, capsys):
+    """Identification does not need the KPI points: without working_poses it calibrates and
+    reports no TCP; a design optimises the TCP precision and refuses, naming the key."""
+    doc = yaml.safe_load(DEFAULT_CELL.read_text())
+    doc['robot']['urdf'] = str((DEFAULT_CELL.parent / doc['robot']['urdf']).resolve())
+    del doc['working_poses']
+    cell = tmp_path / 'cell.yaml'
+    cell.write_text(yaml.safe_dump(doc))
+    assert main(['identify', '--cell', str(cell), '--bag', str(run_bag), '--out',
+                 str(tmp_path / 'cal')]) == 0
+    out = capsys.readouterr().out
+    assert 'TCP: none reported' in out and 'TCP estimable' not in out
+    cal = yaml.safe_load((tmp_path / 'cal' / 'calibration.yaml').read_text())
+    assert cal['valid'] and cal['tcp'] == []
+    # The KPI points enter only the constraint s = h(p, q_work): the estimate is the same.
+    assert main(['identify', '--cell', CELL, '--bag', str(run_bag), '--out',
+                 str(tmp_path / 'ref')]) == 0
+    ref = yaml.safe_load((tmp_path / 'ref' / 'calibration.yaml').read_text())
+    assert len(ref['tcp']) == 1 and cal['measurements'] == ref['measurements'] == 40
+    assert [p['value'] for p in cal['parameters']] == pytest.approx(
+        [p['value'] for p in ref['parameters']], rel=0, abs=1e-12)
+    capsys.readouterr()
+    assert main(['design', '--cell', str(cell), '--n', '10', '--out',
+                 str(tmp_path / 'design.yaml')]) == 2
+    err = capsys.readouterr().err
+    assert 'working_poses' in err and 'identify needs none' in err
+
+
+def test_identify_help_says_how_auto_chooses(capsys):
+    """auto chooses by the out-of-sample rms predicted from each fit (core.model_selection),
+    not by cross-validation, which it only reports beside."""
+    with pytest.raises(SystemExit):
+        main(['identify', '--help'])
+    text = ' '.join(capsys.readouterr().out.split())
+    assert 'by cross-validation' not in text
+    assert 'out-of-sample rms, predicted from each fit without refits' in text
+    assert '--max-iterations' in text

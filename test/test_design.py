@@ -19,10 +19,12 @@ from kpi_calib_ros.core.design_exchange import (ConditionLoss, LogDetLoss, Trace
 from kpi_calib_ros.core.design_nlp import solve_design_nlp
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation import identify
-from kpi_calib_ros.core.measurement import Measurements
+from kpi_calib_ros.core.measurement import Measurements, with_rotation_rows
+from kpi_calib_ros.core.pose_measurement import noisy_rotations
 from kpi_calib_ros.core.simulation import sampling_bounds, true_parameters
 from kpi_calib_ros.io.cell import (DEFAULT_CELL, build_cell_model, cell_from_dict,
                                   design_settings, load_cell)
+from cell_variants import KINDS, cell_document
 
 SMALL = DesignSettings(candidates=600, nlp=False)
 
@@ -77,6 +79,62 @@ def test_criteria_equal_the_covariance_module(cell, context):
                                          rel=1e-6)
     # The exchange losses are the same numbers.
     assert problem.loss('kpi').value(information(rows)) == pytest.approx(values['kpi'], rel=1e-9)
+
+
+def _measured(model, p, q, sigma, rng):
+    """What the tracker reports at configurations ``q``: every reflector's point (noise
+    ``sigma`` per axis) and every tracked body's rotation (noise ``sigma`` / rotation
+    scale), as the pairing gives them."""
+    n_ref = model.n_reflectors
+    rows_q, ref = np.repeat(q, n_ref, axis=0), np.tile(np.arange(n_ref), len(q))
+    eta = model.predict(p, rows_q, reflector=ref) + rng.normal(size=(len(rows_q), 3)) * sigma
+    data = Measurements(q=rows_q, eta=eta, reflector=ref)
+    if not model.orientations:
+        return data
+    rotations = np.full((len(rows_q), 3, 3), np.nan)
+    for k in model.orientations:
+        sigma_rotation = np.asarray(sigma)[0] / model.rotation_scale[0]
+        rotations[ref == k] = noisy_rotations(model.body_rotations(p, rows_q[ref == k], k),
+                                              sigma_rotation, rng)
+    return with_rotation_rows(model, data, rotations)
+
+
+@pytest.mark.parametrize('kind', KINDS)
+def test_design_covariance_equals_the_identifications_at_the_designed_poses(kind):
+    """The TCP covariance a design predicts is the one the identification of its poses
+    reports (1e-3 relative) when every row the cell declares is measured there: each
+    reflector's point and each tracked body's rotation. Noise-free at the nominal
+    geometry, where both linearise (with noise the estimate leaves the nominal geometry's
+    degenerate directions and frees more parameters: tcp_std_on_drawn_robots)."""
+    model_cell = build_cell_model(cell_from_dict(cell_document(kind), DEFAULT_CELL.parent))
+    cell = model_cell.design_cell()
+    design = design_measurements(cell, 15, 'kpi', np.random.default_rng(2), SMALL)
+    data = _measured(cell.model, cell.model.params.nominal, design.configurations,
+                     np.zeros(3), np.random.default_rng(3))
+    result = identify(cell.model, data, cell.sigma, cell.q_work)
+    assert len(data) == 15 * (cell.model.n_reflectors + len(cell.model.orientations))
+    for predicted, identified in zip(design.tcp_covariance, result.tcp_covariance):
+        deviation = np.linalg.norm(predicted - identified) / np.linalg.norm(identified)
+        print(f'{kind}: {len(result.estimated)} parameters, |C_design - C_identified| / '
+              f'|C_identified| = {deviation:.2e}, TCP std {np.sqrt(np.diag(identified)) * 1e6}'
+              ' µm')
+        assert deviation < 1e-6
+
+
+def test_the_nlp_counts_the_rotation_rows_of_a_tracked_pose():
+    """The IPOPT refinement's KPI criterion at its start is the identification's (the
+    weighted mean TCP variance) for a tracked-pose cell: its rotation rows are in it."""
+    cell = build_cell_model(cell_from_dict(cell_document('tracked pose'),
+                                           DEFAULT_CELL.parent)).design_cell()
+    ctx = design_context(cell, np.random.default_rng(1), SMALL)
+    start = exchange(ctx.rows, 15, ctx.problem.loss('kpi'), np.random.default_rng(2))
+    q0 = ctx.candidates.configurations[start.selected]
+    nlp = solve_design_nlp(ctx.problem, cell, ctx.scene, q0, 'kpi', max_iterations=3)
+    result = identify(cell.model, _measured(cell.model, cell.model.params.nominal, q0,
+                                            np.zeros(3), np.random.default_rng(3)),
+                      cell.sigma, cell.q_work)
+    kpi = float(ctx.problem.kpi_weights @ np.trace(result.tcp_covariance, axis1=1, axis2=2)) / 3
+    assert nlp.loss_start == pytest.approx(kpi, rel=1e-6)
 
 
 def test_kpi_weights_working_poses(cell, context):

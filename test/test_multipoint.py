@@ -6,7 +6,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kpi_calib_ros.app.identify import identify_cell, measurements_from_bag, registered_start
+from kpi_calib_ros.app.identify import (identify_cell, measurements_from_bag, print_rejections,
+                                        registered_start)
 from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.pairing import pair_measurements
@@ -155,6 +156,15 @@ def test_points_of_one_pose_share_a_stamp_and_are_told_apart_by_the_frame_suffix
     assert "'mocap#z'" in detail and 'mocap#b' in detail and '<reflector name>' in detail
 
 
+def test_a_named_point_for_a_one_reflector_cell_names_its_frame_id_and_the_fix(capsys):
+    joints, pts = _streams([[1.0, 2.0, 3.0]], ['laser_tracker#tmac'])
+    res = pair_measurements(joints, pts, ['j1'], 'laser_tracker')  # a reflector: cell
+    assert res.rejections == {'unknown_reflector': 1}
+    print_rejections(res)  # what identify and validate print
+    err = capsys.readouterr().err
+    assert "frame_id 'laser_tracker#tmac'" in err and 'reflectors: [{name: tmac}]' in err
+
+
 def test_csv_import_round_trip_through_a_bag(cm, tmp_path: Path):
     p_true = cm.model.params.nominal
     q = random_configurations(cm.model, p_true, 6, np.random.default_rng(2))
@@ -171,9 +181,9 @@ def test_csv_import_round_trip_through_a_bag(cm, tmp_path: Path):
         'frame_id': cm.cell.tracker_frame, 'joints': {n: f'col_{n}' for n in names},
         'markers': {n: [f'x{k}', f'y{k}', f'z{k}'] for k, n in enumerate(NAMES, 1)},
         'point_unit': 'mm', 'joint_unit': 'deg'})
-    bag, postures, points = import_csv(table, tmp_path / 'p.mcap', mapping)
-    assert (postures, points) == (6, 18)
-    data, pairing = measurements_from_bag(cm, bag)
+    summary = import_csv(table, tmp_path / 'p.mcap', mapping)
+    assert (summary.postures, summary.points) == (6, 18)
+    data, pairing = measurements_from_bag(cm, summary.path)
     assert len(data) == 18 and sum(pairing.rejections.values()) == 0
     assert np.allclose(cm.model.predict(p_true, data.q, reflector=data.reflector), data.eta,
                        atol=1e-12)

@@ -6,11 +6,14 @@ import numpy as np
 import pytest
 import yaml
 
-from kpi_calib_ros.app.identify import identify_cell
+from kpi_calib_ros.app.diagnose import diagnose_cell
+from kpi_calib_ros.app.identify import identify_cell, with_effects
 from kpi_calib_ros.app.simulate import truth_cell_model
 from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
                                           true_parameters)
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.core.diagnosis import compare_models
+from kpi_calib_ros.io.report import comparison_text, diagnosis_to_dict
 from kpi_calib_ros.io.results import calibration_to_dict, summary_text
 
 TRUE_SIGMA = 2.0e-5
@@ -74,3 +77,28 @@ def test_true_tcp_error_within_three_reported_std_in_90_percent(tmp_path):
     print(f'coverage over 50 runs: every axis within 3 std {axes:.2f}, norm within '
           f'3 sqrt(trace) {norm:.2f}; chi2/dof median {np.median(scales):.0f}')
     assert axes >= 0.9
+
+
+def test_diagnose_reports_effect_std_as_identify_does_for_an_inadequate_model(cell):
+    """Noise 3x the stated σ: every fit fails χ² (χ²/dof ≈ 9). identify scales its std by
+    χ²/dof; the diagnosis's candidate std (the linearised augmented fit) did not, and
+    printed the same effect 3x more precise. One convention now, and it is named."""
+    rng = np.random.default_rng(21)
+    p_true = true_parameters(cell.model.params, rng)
+    q = random_configurations(cell.model, cell.model.params.nominal, 40, rng)
+    data = simulate_measurements(cell.model, p_true, q, 3 * cell.cell.sigma, rng)
+    cd = diagnose_cell(cell, data, add_best=False)
+    spec = 'joint_compliance:joint_2'
+    cand = next(c for c in cd.diagnosis.candidates if c.spec == spec)
+    fit = identify_cell(with_effects(cell, (spec,)), data)
+    assert fit.covariance_scale > 4
+    name = cand.parameter_names[0]
+    print(f'{name}: diagnose ± {cand.std[0]:.3g}, identify ± {fit.std_of(name):.3g}')
+    assert cand.std[0] == pytest.approx(fit.std_of(name), rel=0.1)
+    assert cand.covariance_scale > 4
+    entry = next(c for c in diagnosis_to_dict(cd)['candidates'] if c['spec'] == spec)
+    assert 'scaled by chi2/dof' in entry['std_basis']
+    # The before/after of identify --effects / diagnose says which σ its std are from.
+    richer = with_effects(cell, (spec,))
+    text = comparison_text(compare_models((cell.model, cd.result), (richer.model, fit), data))
+    assert 'std scaled by chi2/dof' in text

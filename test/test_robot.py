@@ -70,3 +70,23 @@ def test_bad_frames_name_the_key(odd_arm_urdf, base, tip, key):
 def test_malformed_urdf_is_a_config_error():
     with pytest.raises(ConfigError, match='robot.urdf'):
         RobotModel('<robot name="x"><joint name="j"/></robot>', 'a', 'b')
+
+
+def test_a_urdf_with_more_links_than_any_robot_is_refused_before_parsing(odd_arm_urdf):
+    """20 000 fixed links took Pinocchio 7.9 s (200 000: no answer in 300 s); a bound far
+    above any robot (MAX_URDF_ELEMENTS) refuses them with the count, and a robot with
+    a few hundred extra fixed links still loads."""
+    from kpi_calib_ros.core.robot import MAX_URDF_ELEMENTS
+
+    def with_fixed_links(n: int) -> str:
+        extra = ''.join(f'<link name="extra_{i}"/><joint name="fix_{i}" type="fixed">'
+                        f'<parent link="mount"/><child link="extra_{i}"/></joint>'
+                        for i in range(n))
+        return odd_arm_urdf.replace('</robot>', extra + '</robot>')
+    assert RobotModel(with_fixed_links(300), 'mount', 'flange').n_joints == \
+        RobotModel(odd_arm_urdf, 'mount', 'flange').n_joints
+    n = MAX_URDF_ELEMENTS // 2 + 1  # n links and n joints: just over the bound
+    with pytest.raises(ConfigError, match=r'robot.urdf: \d+ <link>/<joint>') as info:
+        RobotModel(with_fixed_links(n), 'mount', 'flange')
+    found = int(str(info.value).split()[1])
+    assert found >= 2 * n and str(MAX_URDF_ELEMENTS) in str(info.value)

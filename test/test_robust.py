@@ -226,12 +226,12 @@ def test_node_job_never_writes_an_invalid_calibration_over_the_last_good_one(cm,
     from kpi_calib_ros.ros.jobs import identify_work
     p_true, q, _ = truth
     good = _campaign(cm, p_true, q, 10)
-    cal, text, urdf, tcp, _, _ = identify_work(cm, good, None, tmp_path)
+    cal, text, urdf, tcp, _, _, _ = identify_work(cm, good, None, tmp_path)
     assert cal.valid and urdf and len(tcp) == 1
     before = (tmp_path / CALIBRATION_FILE).read_text()
     assert text == before
     bad = _campaign(cm, p_true, np.repeat(q[:1], 60, axis=0), 11)
-    cal, text, urdf, tcp, _, _ = identify_work(cm, bad, None, tmp_path)
+    cal, text, urdf, tcp, _, _, _ = identify_work(cm, bad, None, tmp_path)
     assert not cal.valid and urdf == '' and tcp == []
     assert (tmp_path / CALIBRATION_FILE).read_text() == before
     assert yaml.safe_load((tmp_path / FAILED_CALIBRATION_FILE).read_text())['valid'] is False
@@ -260,3 +260,16 @@ def test_diagnose_screens_against_the_chosen_model_level(cm, truth):
     assert set(cd.result.estimated) <= free
     # The placements this level leaves out are missed: the verdict says inadequate.
     assert not cd.diagnosis.model_adequate
+
+
+def test_too_few_after_exclusion_names_the_excluded_measurements(cm, truth):
+    """10 accepted points, one 10 m off: the 9 left are too few for 27 parameters; the
+    error says 9 of the 10 were used and why the tenth was left out."""
+    from kpi_calib_ros.core.errors import DataError
+    p_true, q, _ = truth
+    data = _campaign(cm, p_true, q[:10], 5)
+    eta = data.eta.copy()
+    eta[2] += [10.0, 0.0, 0.0]
+    with pytest.raises(DataError, match=r'too few measurements: 9 points') as info:
+        calibrate_cell(cm, dataclasses.replace(data, eta=eta))
+    assert 'after excluding 1 of the 10 measurements: 2: gross' in str(info.value)

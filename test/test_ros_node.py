@@ -484,3 +484,51 @@ def test_joint_states_at_1khz_all_arrive_while_the_node_identifies(client, spawn
     assert int(counts['lost.joint_states']) == 0 and int(counts['lost.points']) == 0
     assert int(counts['accepted']) == len(points) and int(counts['rejected']) == 0
     assert int(counts['identifications']) >= 2  # jobs ran while the stream went on
+
+
+def test_campaign_parameters_are_refused_while_a_sequential_campaign_runs(tmp_path,
+                                                                          ros_domain):
+    """A running campaign keeps its target and cap: a change is refused with the reason, so
+    the parameter, ~/campaign_status and /diagnostics all keep stating the one target the
+    campaign works to; other parameters still change. ~/identify is refused too."""
+    from std_srvs.srv import Trigger
+    context = Context()
+    rclpy.init(context=context, domain_id=ros_domain)
+    node = caller = None
+    executor = SingleThreadedExecutor(context=context)
+    try:
+        node = CalibrationNode(context=context, parameter_overrides=[
+            Parameter('robot_description', value=KR15_URDF),
+            Parameter('data_dir', value=str(tmp_path)),
+            Parameter('campaign', value='sequential'),
+            Parameter('target_tcp_std', value=12e-6)])
+        caller = rclpy.create_node('caller', context=context)
+        executor.add_node(node)
+        executor.add_node(caller)
+        design = caller.create_client(Trigger, '/kpi_calib_node/design')
+        assert design.wait_for_service(timeout_sec=10)
+        future = design.call_async(Trigger.Request())
+        executor.spin_until_future_complete(future, timeout_sec=120)
+        assert future.done() and future.result().success, future.result()
+        for name, value in (('target_tcp_std', 2e-5), ('max_measurements', 30)):
+            result = node.set_parameters([Parameter(name, value=value)])[0]
+            assert not result.successful
+            assert name in result.reason and 'campaign is running' in result.reason
+        assert node.get_parameter('target_tcp_std').value == 12e-6
+        _, _, values = node.status()
+        assert values['campaign.target_um'] == pytest.approx(12.0)
+        assert values['campaign.max_measurements'] == 200
+        assert node.set_parameters([Parameter('num_measurements', value=12)])[0].successful
+        # Nor is a calibration of part of the campaign published.
+        identify = caller.create_client(Trigger, '/kpi_calib_node/identify')
+        assert identify.wait_for_service(timeout_sec=10)
+        future = identify.call_async(Trigger.Request())
+        executor.spin_until_future_complete(future, timeout_sec=60)
+        answer = future.result()
+        assert not answer.success and 'sequential campaign is running' in answer.message
+    finally:
+        executor.shutdown()
+        for n in (caller, node):
+            if n is not None:
+                n.destroy_node()
+        rclpy.shutdown(context=context)

@@ -64,11 +64,14 @@ def test_second_cycle_is_identified_with_the_first_as_prior(tmp_path, client, sp
     answer = client.call('identify', timeout=120)
     assert answer.success, answer.message
     assert f'prior {archived}' in answer.message
+    assert 'expected TCP error <=' in answer.message
     client.spin_until(lambda: any(d['measurements'] == 12
                                   for d in client.received['calibration']),
                       30, 'the second cycle calibration on ~/calibration')
     two = next(d for d in client.received['calibration'] if d['measurements'] == 12)
     assert two['valid'] and two['prior']['source'] == str(archived)
+    # Both TCP figures by working pose: the parameter part and with the misfit.
+    assert set(two['precision']['expected_tcp_error_m']) == set(two['precision']['tcp_std_m'])
     assert two['change_test']['consistent'] is True
     assert 'no drift_state in it: stationary' in two['prior']['description']
     state = two['drift_state']

@@ -96,3 +96,46 @@ def test_validate_service_tests_the_calibration_on_the_new_measurements(node, tm
     doc = json.loads((tmp_path / 'validation' / 'validation.json').read_text())
     assert doc['holds'] and doc['measurements'] == 10 and doc['repeated_from_training'] == 3
     assert received and json.loads(received[-1]) == doc
+
+
+def test_validate_service_re_registers_a_tracker_set_up_again(node, tmp_path):
+    """With ``validate_register: base`` the node scores new measurements from a moved
+    tracker after re-fitting the base pose on them (as ``validate --register``): the
+    calibration holds with 3N − 6 dof; without it the same points do not hold."""
+    import pinocchio as pin
+    cm = build_cell_model(load_cell(DEFAULT_CELL))
+    rng = np.random.default_rng(22)
+    p_true = true_parameters(cm.model.params, rng)
+    p_moved = p_true.copy()
+    base = cm.model.params.indices([f'base.{c}' for c in ('x', 'y', 'z', 'roll', 'pitch', 'yaw')])
+    moved = pin.SE3(pin.rpy.rpyToMatrix(0.0, 0.0, 1.3), np.array([0.8, -0.5, 0.1])) * pin.SE3(
+        pin.rpy.rpyToMatrix(*p_true[base[3:]]), p_true[base[:3]])
+    p_moved[base[:3]], p_moved[base[3:]] = moved.translation, pin.rpy.matrixToRpy(moved.rotation)
+    q = np.vstack([random_configurations(cm.model, p_true, 35, rng),
+                   random_configurations(cm.model, p_moved, 12, rng)])
+    eta = np.vstack([simulate_measurements(cm.model, p_true, q[:35], cm.cell.sigma, rng).eta,
+                     simulate_measurements(cm.model, p_moved, q[35:], cm.cell.sigma, rng).eta])
+    joints, points = synthesize_streams(q, cm.joint_names, eta, cm.cell.tracker_frame)
+    cut = points[35].stamp_ns - 1_000_000_000
+    executor = SingleThreadedExecutor(context=node.context)
+    executor.add_node(node)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    try:
+        _feed(node, [j for j in joints if j.stamp_ns < cut], points[:35])
+        ok, message = _call(node, executor, 'identifying', node._identify)
+        assert ok, message
+        _feed(node, [j for j in joints if j.stamp_ns >= cut], points[35:])
+        ok, message = _call(node, executor, 'validating', node._validate)
+        assert not ok and 're-registering' not in message, message
+        result = node.set_parameters([Parameter('validate_register', value='bad')])
+        assert not result[0].successful and 'validate_register' in result[0].reason
+        assert node.set_parameters([Parameter('validate_register', value='base')])[0].successful
+        ok, message = _call(node, executor, 'validating', node._validate)
+        assert ok and 'after re-registering base.x/base.y/base.z/' in message, message
+        assert 'chi2/dof' in message and f'/{3 * 12 - 6},' in message, message
+    finally:
+        executor.shutdown()
+        spinner.join(timeout=10)
+    doc = json.loads((tmp_path / 'validation' / 'validation.json').read_text())
+    assert doc['holds'] and doc['registration']['dof'] == 6 and doc['rms_m'] < 1e-4

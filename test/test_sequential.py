@@ -15,9 +15,11 @@ from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.sequential import (MAX_MEASUREMENTS, MODEL_INADEQUATE, TARGET_MET,
                                            CampaignSettings, lack_of_fit, nested_order,
                                            plan_ahead, pure_error, sigma_upper_limit)
-from kpi_calib_ros.core.simulation import true_parameters
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell, read_cell_document
+from kpi_calib_ros.core.simulation import simulate_pose_measurements, true_parameters
+from kpi_calib_ros.io.cell import (DEFAULT_CELL, build_cell_model, cell_from_dict, load_cell,
+                                  read_cell_document)
 from kpi_calib_ros.io.design_io import read_design_poses
+from cell_variants import cell_document
 
 
 @pytest.fixture(scope='module')
@@ -251,9 +253,55 @@ def test_node_campaign_parameters_are_validated_with_their_name(changes, key):
         settings_from_parameters(values)
 
 
-def test_a_cell_with_several_reflectors_is_refused_by_name(tmp_path, capsys):
-    """The campaign measures one point per pose: a several-reflector cell gets exit 2 and
-    the key, not a campaign that silently drops the other reflectors."""
+@pytest.fixture(scope='module', params=['three reflectors', 'tracked pose'])
+def several_rows(request):
+    """A campaign context on a cell whose poses give several rows."""
+    cm = build_cell_model(cell_from_dict(cell_document(request.param), DEFAULT_CELL.parent))
+    cell, ctx = campaign_context(cm, 3, candidates=1000)
+    return request.param, cm, cell, ctx
+
+
+def test_the_campaign_counts_every_row_a_pose_gives(several_rows):
+    """Three reflectors, or a tracked body's rotation: the initial design's predicted TCP
+    covariance is the one its identification reports (noise-free at the nominal
+    geometry, 1e-3 relative), every row of each pose counted (3 or 2 per pose)."""
+    kind, cm, cell, ctx = several_rows
+    campaign = new_campaign(cm, cell, ctx, CampaignSettings(target_std=10e-6), seed=0)
+    initial = campaign.initial_design()
+    q = ctx.candidates.configurations[initial]
+    rows = simulate_pose_measurements(cm.model, cm.model.params.nominal, q, 0.0, 0.0,
+                                      np.random.default_rng(0))
+    status = campaign.add(rows.q, rows.eta, initial, rows.reflector, rows.rotation)
+    assert status.measurements == len(initial) == len(campaign.q)
+    assert len(campaign.rows) == len(initial) * (cm.model.n_reflectors
+                                                 + len(cm.model.orientations))
+    problem = ctx.problem
+    predicted = problem.tcp_covariance(problem.rows(cell.model, q))
+    identified = campaign.result.tcp_covariance
+    deviation = np.linalg.norm(predicted - identified) / np.linalg.norm(identified)
+    print(f'{kind}: initial design {len(initial)} poses, |C_design - C_identified| / '
+          f'|C_identified| = {deviation:.2e}')
+    assert deviation < 1e-3
+
+
+def test_a_campaign_with_several_rows_per_pose_meets_the_target(several_rows):
+    """The whole loop on a three-reflector and a tracked-pose cell against a true robot:
+    the target is met and the true TCP error is within 4 std on every axis."""
+    kind, cm, cell, ctx = several_rows
+    target = 10e-6
+    campaign = new_campaign(cm, cell, ctx, CampaignSettings(target_std=target), seed=0)
+    rng = np.random.default_rng(5)
+    p_true = true_parameters(cm.model.params, rng)
+    run = simulate_sequential(campaign, cm, p_true, float(cm.cell.sigma[0]), rng)
+    print(f'{kind}: {run.final.stop_reason} after {run.final.measurements} poses '
+          f'({run.initial} initial), statistic {run.final.statistic * 1e6:.2f} µm')
+    assert run.final.stop_reason == TARGET_MET and run.final.statistic <= target
+    assert np.all(np.abs(run.tcp_estimated - run.tcp_true) <= 4 * run.tcp_std_true)
+
+
+def test_a_campaign_on_a_several_reflector_cell_plans_its_initial_design(tmp_path, capsys):
+    """`kpi-calib campaign` on a two-reflector cell writes the initial plan (it was
+    refused before: one reflector per pose)."""
     doc = read_cell_document(DEFAULT_CELL)
     doc['reflector'].pop('offset')
     doc['reflectors'] = [{'name': 'a', 'offset': [0.0, 0.0, 0.03]},
@@ -264,5 +312,57 @@ def test_a_cell_with_several_reflectors_is_refused_by_name(tmp_path, capsys):
     capsys.readouterr()
     rc = main(['campaign', '--cell', str(cell), '--target-std', '15e-6',
                '--out', str(tmp_path / 'plan')])
+    assert rc == 0, capsys.readouterr().err
+    assert len(read_design_poses(tmp_path / 'plan' / 'initial_design.yaml')[1]) > 0
+
+
+def _campaign_with_outlier(campaign, cm, p_true, sigma, rng, outlier: int, offset_m: float):
+    """Run ``campaign`` to its stop on the true robot, measurement ``outlier`` of the
+    initial design ``offset_m`` off along x (a fault of the tracker reading)."""
+    initial = campaign.initial_design()
+    q = campaign.candidates[initial]
+
+    def measure(qq):
+        return cm.model.predict(p_true, qq) + rng.normal(scale=sigma, size=(len(qq), 3))
+    eta = measure(q)
+    eta[outlier, 0] += offset_m
+    history = [campaign.add(q, eta, initial)]
+    while not history[-1].stopped:
+        q_next = history[-1].next_configurations[:1]
+        history.append(campaign.add(q_next, measure(q_next), history[-1].next_candidates[:1]))
+    return history
+
+
+def test_one_outlier_among_the_first_points_is_excluded_and_measured_again(setup):
+    """A 1 mm fault among the initial design's points: the campaign applies the batch outlier
+    rule, names the point, measures its pose again and meets the target; it never calls the
+    model inadequate for one wild point."""
+    _, cm, cell, ctx = setup
+    target = 10e-6
+    campaign = new_campaign(cm, cell, ctx, CampaignSettings(target_std=target,
+                                                            max_measurements=60), seed=0)
+    rng = np.random.default_rng(5)
+    p_true = true_parameters(cm.model.params, rng)
+    sigma = float(cm.cell.sigma[0])
+    history = _campaign_with_outlier(campaign, cm, p_true, sigma, rng, 3, 1e-3)
+    final = history[-1]
+    assert all(s.stop_reason != MODEL_INADEQUATE for s in history)
+    assert final.stop_reason == TARGET_MET and final.statistic <= target
+    assert [e['measurement'] for e in final.excluded] == [3]
+    assert final.excluded[0]['distance_m'] > 0.5e-3
+    # Its pose was measured again, and the replicate agrees with the fit.
+    again = [i for i in range(4, len(campaign.q))
+             if np.allclose(campaign.q[i], campaign.q[3], atol=1e-12)]
+    assert again and bool(campaign.robust.kept[again[0]])
+    # The fit is the one without the fault: the true TCP within 4 std (stop σ).
+    error = campaign.result.tcp - cm.model.predict(p_true, cm.q_work)
+    assert np.all(np.abs(error) <= 4 * final.tcp_std)
+
+
+def test_a_cap_below_the_initial_design_names_the_cap_and_the_size(tmp_path, capsys):
+    capsys.readouterr()
+    rc = main(['campaign', '--cell', str(DEFAULT_CELL), '--target-std', '15e-6', '--max', '1',
+               '--out', str(tmp_path / 'plan')])
     err = capsys.readouterr().err
-    assert rc == 2 and 'reflectors' in err and 'fixed design' in err, err
+    assert rc == 2
+    assert 'max_measurements' in err and ' 1 is below the initial design of ' in err, err

@@ -13,14 +13,19 @@ from pathlib import Path
 
 import numpy as np
 
+from kpi_calib_ros.app.identify import CellCalibration, add_robust_sections, calibration_document
 from kpi_calib_ros.app.simulate import truth_cell_model
 from kpi_calib_ros.core.design import DesignContext, design_context
 from kpi_calib_ros.core.design_cell import DesignCell
 from kpi_calib_ros.core.design_exchange import exchange
-from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.core.model_selection import level_free
-from kpi_calib_ros.core.sequential import CampaignSettings, SequentialCampaign, SimulatedRun
-from kpi_calib_ros.core.simulation import simulate_measurements, true_parameters
+from kpi_calib_ros.core.errors import ConfigError, DataError
+from kpi_calib_ros.core.estimability import result_estimability
+from kpi_calib_ros.core.model_selection import ModelChoice, level_free
+from kpi_calib_ros.core.pairing import PairingResult
+from kpi_calib_ros.core.sequential import (TARGET_MET, CampaignSettings, CampaignStatus,
+                                           SequentialCampaign, SimulatedRun)
+from kpi_calib_ros.core.simulation import (simulate_pose_measurements,
+                                           true_parameters)
 from kpi_calib_ros.io.campaign_io import plot_campaign, write_campaign, write_plan
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
 
@@ -46,32 +51,79 @@ def campaign_context(cm: CellModel, seed: int,
 
 def new_campaign(cm: CellModel, cell: DesignCell, ctx: DesignContext,
                  settings: CampaignSettings, seed: int) -> SequentialCampaign:
-    """A sequential campaign on the cell; it measures one point per pose, so a cell with
-    several reflectors or a tracked 6-DoF body is refused by name."""
-    if len(cm.cell.reflector_names) > 1 or cm.cell.reflector_orientations:
-        raise ConfigError('reflectors', 'the sequential campaign measures one reflector point '
-                          'per pose; a cell with several reflectors or a tracked body '
-                          "(reflectors[i].orientation) takes a fixed design (campaign: fixed, "
-                          "or 'kpi-calib design')")
+    """A sequential campaign on the cell; every pose is measured with every row the cell
+    declares (each reflector's point, each tracked body's rotation)."""
     return SequentialCampaign(cell, ctx.problem, ctx.candidates.configurations, settings,
                               np.random.default_rng(seed), free=campaign_free(cm))
+
+
+def campaign_calibration(cm: CellModel, campaign: SequentialCampaign,
+                         pairing: PairingResult | None = None) -> tuple[CellCalibration, dict]:
+    """The calibration a stopped campaign publishes: its own last fit (outliers excluded
+    by the batch rule), with every std and covariance at the σ the campaign stopped on —
+    the upper confidence limit σ_u, i.e. scaled by (σ_u/σ)² — so the TCP std it states
+    are the campaign's ``tcp_std`` and its largest is the stop statistic. The document's
+    ``campaign`` section says which σ and whether the target was met.
+
+    Raises
+    ------
+    DataError
+        Before the campaign's first step.
+    """
+    status, robust = campaign.status, campaign.robust
+    if status is None or robust is None:
+        raise DataError('the campaign has no measurement yet: nothing to calibrate')
+    scale = (status.sigma_upper / status.sigma_stated) ** 2
+    base = robust.result
+    result = dataclasses.replace(base, std=base.std * np.sqrt(scale),
+                                 covariance=base.covariance * scale,
+                                 tcp_covariance=base.tcp_covariance * scale,
+                                 covariance_scale=scale)
+    kept = np.asarray(robust.kept, bool)
+    free = tuple(campaign.free or cm.model.params.names)
+    est = result_estimability(cm.model, campaign.q[kept], cm.cell.sigma, result.values,
+                              cm.q_work, cm.working_pose_names, list(free))
+    level = cm.cell.identification.model
+    choice = ModelChoice(level='geometric' if level == 'auto' else level, requested=level,
+                         predicted_rms_m={}, cv_rms_m={}, folds=0,
+                         reason='the sequential campaign\'s model (no model selection)')
+    cal = CellCalibration(result, dataclasses.replace(robust, result=result), choice, est, free,
+                          cell=cm)
+    doc = add_robust_sections(calibration_document(cm, result, pairing), cal)
+    if 'identified_at_ns' not in doc and len(campaign.stamps) and campaign.stamps.min() >= 0:
+        doc['identified_at_ns'] = int(campaign.stamps.max())  # when the robot was measured
+    basis = (f'scaled to the upper {100 * status.confidence:g} % confidence limit of sigma '
+             f'({status.sigma_upper * 1e6:.3g} um, stated {status.sigma_stated * 1e6:.3g} um): '
+             'the sigma the sequential campaign stopped on')
+    doc['precision']['basis'] = basis
+    doc['campaign'] = {'statistic_m': float(status.statistic),
+                       'statistic': 'largest per-axis TCP std over the working poses',
+                       'sigma': basis, 'sigma_upper_m': float(status.sigma_upper),
+                       'target_tcp_std_m': float(status.target_std),
+                       'target_met': status.stop_reason == TARGET_MET,
+                       'stop_reason': status.stop_reason or 'running',
+                       'measurements': int(status.measurements)}
+    return cal, doc
 
 
 def simulate_sequential(campaign: SequentialCampaign, truth: CellModel, p_true: np.ndarray,
                         sigma_true: float, rng: np.random.Generator) -> SimulatedRun:
     """Run ``campaign`` to its stop against the true robot ``truth`` / ``p_true`` with
-    tracker noise ``sigma_true`` (m per axis)."""
+    tracker noise ``sigma_true`` (m per axis; a tracked body's orientation with the
+    cell's ``noise.sigma_rotation``)."""
     initial = campaign.initial_design()
     q = campaign.candidates[initial]
+    sigma_rotation = float(truth.cell.sigma_rotation or 0.0)
 
-    def measure(qq: np.ndarray) -> np.ndarray:
-        return simulate_measurements(truth.model, p_true, qq, sigma_true, rng).eta
+    def add(qq: np.ndarray, candidates: np.ndarray) -> CampaignStatus:
+        rows = simulate_pose_measurements(truth.model, p_true, qq, sigma_true, sigma_rotation,
+                                          rng)
+        return campaign.add(rows.q, rows.eta, candidates, rows.reflector, rows.rotation)
 
-    history = [campaign.add(q, measure(q), initial)]
+    history = [add(q, initial)]
     while not history[-1].stopped:
-        q_next = history[-1].next_configurations[:1]
-        history.append(campaign.add(q_next, measure(q_next),
-                                    history[-1].next_candidates[:1]))
+        history.append(add(history[-1].next_configurations[:1],
+                           history[-1].next_candidates[:1]))
     res = campaign.result
     assert res is not None
     tcp_true = truth.model.predict(p_true, truth.q_work)

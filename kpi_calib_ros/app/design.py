@@ -19,7 +19,7 @@ from kpi_calib_ros.core.prior import (DRIFT_ANGLE_PER_SQRT_HOUR, DRIFT_LENGTH_PE
                                       DriftSwing, Prior)
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
 from kpi_calib_ros.io.design_io import plot_design, plot_ellipsoids, summary_text, write_design
-from kpi_calib_ros.io.results import read_calibration_document
+from kpi_calib_ros.io.calibration_file import read_calibration_document
 from kpi_calib_ros.io.robot_geometry import mesh_check
 
 
@@ -73,14 +73,12 @@ def design_estimability(cm: CellModel, configurations: np.ndarray,
     demanding), at the nominal parameters (or ``p``); with ``prior`` (whose information
     counts) and ``allowed`` (the parameters a re-identification frees)."""
     free = design_free(cm, allowed)
-    # Every reflector is measured at every designed pose: R rows per configuration.
-    n_ref = cm.model.n_reflectors
-    rows = np.repeat(np.atleast_2d(configurations), n_ref, axis=0)
-    reflector = np.tile(np.arange(n_ref), len(np.atleast_2d(configurations)))
-    return result_estimability(cm.model, rows, cm.cell.sigma,
-                               cm.model.params.nominal if p is None else p,
-                               cm.q_work, cm.working_pose_names, free, prior=prior,
-                               reflector=reflector if n_ref > 1 else None)
+    at = cm.model.params.nominal if p is None else p
+    # Every row a designed pose gives: each reflector's point, each tracked body's rotation.
+    rows = cm.model.pose_measurements(at, np.atleast_2d(configurations))
+    return result_estimability(cm.model, rows.q, cm.cell.sigma, at, cm.q_work,
+                               cm.working_pose_names, free, prior=prior,
+                               reflector=rows.reflector, rotation=rows.rotation)
 
 
 def design_free(cm: CellModel, allowed: Sequence[str] | None = None) -> list[str]:

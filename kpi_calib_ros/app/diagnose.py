@@ -6,18 +6,20 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
-from kpi_calib_ros.app.identify import (cell_prior, choose_level, identify_cell,
-                                        load_measurements, with_effects)
+from kpi_calib_ros.app.identify import (calibrate_cell, cell_prior, identify_cell,
+                                        load_measurements, print_progress, with_effects)
 from kpi_calib_ros.core.model_selection import level_free
 from kpi_calib_ros.core.diagnosis import CellDiagnosis, compare_models, diagnose
 from kpi_calib_ros.core.effect_selection import effect_start
 from kpi_calib_ros.core.effects import implausible, parse_effect_spec
 from kpi_calib_ros.core.measurement import Measurements
+from kpi_calib_ros.core.robust import subset
 from kpi_calib_ros.core.out_of_sample import out_of_sample_error
+from kpi_calib_ros.core.precision import expected_tcp_error
 from kpi_calib_ros.core.residuals import ADEQUACY_ALPHA
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.names import DIAGNOSIS_FILE
@@ -27,22 +29,34 @@ from kpi_calib_ros.io.results import writable_folder
 
 def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
                   alpha: float = ADEQUACY_ALPHA, add_best: bool = True,
-                  model: str | None = None) -> CellDiagnosis:
+                  model: str | None = None,
+                  progress: Callable[[str], None] | None = None) -> CellDiagnosis:
     """Calibrate ``cm`` on ``data``, diagnose it and, when an effect is significant,
     add the top one and compare before/after (full nonlinear refit). ``model`` (or the
     cell's ``identification.model``) sets the model level the effects are screened
     against; the default geometric is the full model. Both calibrations carry their
-    predicted out-of-sample error (:mod:`kpi_calib_ros.core.out_of_sample`)."""
-    level = choose_level(cm, data, model).level
+    predicted out-of-sample error (:mod:`kpi_calib_ros.core.out_of_sample`). The points
+    diagnosed are those :func:`~kpi_calib_ros.app.identify.calibrate_cell` keeps
+    (``kept``, ``excluded`` of the result); ``progress`` gets its exclusion rounds."""
+    # The points identify keeps, with its model level (outliers that are faults excluded,
+    # core.outliers): the diagnosis describes the calibration the user gets.
+    cal = calibrate_cell(cm, data, model, progress=progress)
+    level = cal.choice.level
     free = None if level == 'geometric' else level_free(cm.model.params, level,
                                                          len(cm.geometric))
-    result = identify_cell(cm, data, free=free)
+    kept, excluded = cal.robust.kept, tuple(e.index for e in cal.robust.excluded)
+    data = subset(data, kept)
+    # Without effects auto added, identify's fit is the one on the kept points.
+    result = cal.result if cal.cell is None or cal.cell is cm else \
+        identify_cell(cm, data, free=free)
     diag = diagnose(cm.model, data, result, folds=folds, alpha=alpha)
     prior = cell_prior(cm)
     oos = out_of_sample_error(cm.model, data, result, free or list(cm.model.params.names),
                               prior)
+    expected = expected_tcp_error(cm.model, data, result)  # result: honest precision
     if not add_best or diag.best is None:
-        return CellDiagnosis(cm.model, data, result, diag, out_of_sample=oos)
+        return CellDiagnosis(cm.model, data, result, diag, out_of_sample=oos, kept=kept,
+                             excluded=excluded, expected=expected)
     best = parse_effect_spec(diag.best.spec, cm.robot)
     richer = with_effects(cm, (best,))
     richer_free = None if free is None else level_free(richer.model.params, level,
@@ -62,7 +76,7 @@ def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
     after_oos = out_of_sample_error(richer.model, data, after,
                                     richer_free or list(richer.model.params.names), prior)
     return CellDiagnosis(cm.model, data, result, diag, best, richer.model, after, comparison,
-                         oos, after_oos)
+                         oos, after_oos, kept, excluded, expected)
 
 
 def run_diagnose(cell_path: str | Path, bag_path: str | Path, out_dir: str | Path,
@@ -73,7 +87,8 @@ def run_diagnose(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
     as for :func:`load_measurements`."""
     writable_folder(out_dir, '--out')
     cm, data, _ = load_measurements(cell_path, bag_path, effects, **options)
-    cd = diagnose_cell(cm, data, folds=folds, alpha=alpha, model=model)
+    cd = diagnose_cell(cm, data, folds=folds, alpha=alpha, model=model,
+                       progress=print_progress)
     report = write_report(out_dir, cd)
     print(diagnosis_text(cd))
     print(f'written: {Path(out_dir) / DIAGNOSIS_FILE}, {report}')

@@ -19,7 +19,7 @@ from kpi_calib_ros.core.dh import dh_table
 from kpi_calib_ros.core.diagnosis import augmented_model, compare_models
 from kpi_calib_ros.core.effect_selection import choose_effects
 from kpi_calib_ros.core.effects import BoundEffect, parse_effect_spec, split_specs
-from kpi_calib_ros.core.errors import DataError
+from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.estimability import KpiEstimability, result_estimability
 from kpi_calib_ros.core.gravity_compliance import compliance_warnings, mass_warning
 from kpi_calib_ros.core.estimation import CalibrationResult, identify
@@ -27,9 +27,10 @@ from kpi_calib_ros.core.model_selection import ModelChoice, choose_model, level_
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements, with_rotation_rows
 from kpi_calib_ros.core.pairing import PairingResult, pair_measurements
 from kpi_calib_ros.core.registration import Registration, register
-from kpi_calib_ros.core.robust import (LOSS_SCALE, RobustResult, gross_outliers,
-                                       robust_identify, subset)
-from kpi_calib_ros.core.precision import balanced_prior, honest_precision
+from kpi_calib_ros.core.robust import (LOSS_SCALE, ExcludedMeasurement, RobustResult,
+                                       gross_outliers, robust_identify, subset)
+from kpi_calib_ros.core.precision import (ExpectedTcpError, balanced_prior,
+                                          expected_tcp_error, honest_precision)
 from kpi_calib_ros.core.prior import Prior, tolerance_prior
 from kpi_calib_ros.core.streams import JointSample, PointSample
 from kpi_calib_ros.io.bag import read_for_pairing
@@ -265,6 +266,8 @@ class CellCalibration:
     # The cell model the result belongs to: the given one with the effects ``auto`` added
     # (core.effect_selection); documents and the calibrated URDF are written with it.
     cell: CellModel | None = None
+    # Expected TCP error at the working poses with the misfit included (core.precision).
+    expected: ExpectedTcpError | None = None
 
     @property
     def problems(self) -> tuple[str, ...]:
@@ -295,7 +298,8 @@ def _fit_function(cm: CellModel, start: np.ndarray | None = None,
                             p0=start if p0 is None else p0, free=free,
                             identifiability_method=cm.cell.identification_method,
                             priority=list(cm.cell.identification_priority) or None,
-                            point_weights=point_weights, prior=pr)
+                            point_weights=point_weights, prior=pr,
+                            max_iterations=cm.cell.identification.max_iterations)
         if not balance or prior is None:
             return with_prior(prior)
         _, scale, result = balanced_prior(with_prior, prior)
@@ -321,12 +325,14 @@ def choose_level(cm: CellModel, data: Measurements, model: str | None = None,
 
 def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
                    prior: Prior | None = None, start: np.ndarray | None = None,
-                   allowed: Sequence[str] | None = None) -> CellCalibration:
+                   allowed: Sequence[str] | None = None,
+                   progress: Callable[[str], None] | None = None) -> CellCalibration:
     """The identification the CLI and the node publish: model size (``model`` or the
     cell's ``identification.model``), outlier exclusion and loss, KPI estimability;
     ``prior`` (e.g. a previous calibration's) replaces the cell's tolerance prior.
     ``start`` replaces the registered start; ``allowed`` restricts the free parameters
-    of the model level (a previous calibration's gauge, see :mod:`app.reidentify`)."""
+    of the model level (a previous calibration's gauge, see :mod:`app.reidentify`);
+    ``progress`` is called with a line per outlier-exclusion round."""
     if len(data) == 0:
         raise DataError('no accepted measurement to identify from')
     settings = cm.cell.identification
@@ -358,7 +364,7 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
     def robust_fit(free: list[str]) -> RobustResult:
         return robust_identify(cm.model, data, cm.cell.sigma,
                                lambda d, **kw: fit(d, free, **kw), settings.loss,
-                               settings.outliers, start=start)
+                               settings.outliers, start=start, progress=progress)
     robust = robust_fit(free)
     shapes = [n for e in cm.model.effects
               if isinstance(e, BoundEffect) and e.name in choice.effects
@@ -377,8 +383,10 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
                               cm.q_work, cm.working_pose_names, free, prior=prior,
                               reflector=kept.reflector, rotation=kept.rotation)
     # A model that fails χ² must not report the stated σ's precision (core.precision).
-    return CellCalibration(honest_precision(robust.result), robust, choice, est, tuple(free),
-                           registration, scales[-1], cm)
+    result = honest_precision(robust.result)
+    return CellCalibration(result, robust, choice, est, tuple(free),
+                           registration, scales[-1], cm,
+                           expected_tcp_error(cm.model, kept, result))
 
 
 def add_chosen_effects(cm: CellModel, data: Measurements, choice: ModelChoice,
@@ -453,6 +461,8 @@ def add_robust_sections(doc: dict[str, Any], cal: CellCalibration) -> dict[str, 
                       'distance_sigma': e.distance_sigma, 'reason': e.reason}
                      for e in rob.excluded],
         'outliers': list(rob.outliers),
+        # Over the threshold but kept: the model misfits their pose (core.outliers).
+        'misfit': list(rob.misfit),
         'used_indices': [int(i) for i in np.flatnonzero(rob.kept)],
         'warnings': list(rob.warnings)}
     doc['tcp_estimable'] = cal.estimability.all_estimable
@@ -461,7 +471,18 @@ def add_robust_sections(doc: dict[str, Any], cal: CellCalibration) -> dict[str, 
         entry['determined'] = bool(ok)
         if not ok:
             entry.update(covariance=None, std=None, trace_m2=None)
+    if cal.expected is not None:
+        # tcp_std_m: the parameter part; expected_tcp_error_m: with the model's misfit.
+        expected = cal.expected.to_dict()
+        for name, ok in zip(cal.expected.working_pose_names, cal.estimability.estimable):
+            if not ok:
+                expected['tcp_std_m'][name] = expected['expected_tcp_error_m'][name] = None
+        doc['precision'].update(expected)
     return doc
+
+
+def _um(metres: float | None) -> str:
+    return 'not estimable' if metres is None else f'{metres * 1e6:.1f} µm'
 
 
 def robust_summary(doc: dict[str, Any]) -> str:
@@ -482,11 +503,17 @@ def robust_summary(doc: dict[str, Any]) -> str:
     lines.append(f"noise σ: stated {rob['sigma_stated_m'] * 1e6:.3g} µm, robust estimate from "
                  f"the residuals {rob['sigma_robust_m'] * 1e6:.3g} µm "
                  f"(ratio {rob['sigma_ratio']:.3g}); loss {rob['loss']}")
-    for e in rob['excluded']:
-        lines.append(f"excluded measurement {e['index']} (stamp {e['stamp_ns']} ns): "
-                     f"{e['distance_m'] * 1e6:.1f} µm from the fit; {e['reason']}")
+    lines += [ExcludedMeasurement(**e).text() for e in rob['excluded']]
     lines += [f'WARNING: {w}' for w in rob['warnings']]
-    if doc['tcp_estimable']:
+    precision = doc.get('precision', {})
+    for name, error in precision.get('expected_tcp_error_m', {}).items():
+        std = precision['tcp_std_m'][name]
+        if std is not None:
+            lines.append(f'TCP {name}: expected error {_um(error)} (with the misfit), '
+                         f'parameter part tcp_std {_um(std)} (sqrt(trace))')
+    if precision.get('expected_tcp_error_m'):
+        lines.append(f"expected TCP error: {precision['expected_tcp_error_basis']}")
+    if doc['tcp_estimable'] and doc['tcp']:
         lines.append('TCP estimable at every working pose')
     if not doc['valid']:
         lines.append('CALIBRATION NOT VALID: ' + ' | '.join(doc['invalid_reasons']))
@@ -526,11 +553,21 @@ def write_results(cm: CellModel, result: CalibrationResult, doc: dict[str, Any],
     return path, urdf_path, urdf
 
 
+def with_iteration_limit(cm: CellModel, max_iterations: int) -> CellModel:
+    """``cm`` with ``identification.max_iterations`` replaced (``--max-iterations``)."""
+    if isinstance(max_iterations, bool) or not isinstance(max_iterations, int) \
+            or max_iterations < 1:
+        raise ConfigError('--max-iterations', f'must be a positive integer, got '
+                          f'{max_iterations!r}')
+    settings = dataclasses.replace(cm.cell.identification, max_iterations=max_iterations)
+    return dataclasses.replace(cm, cell=dataclasses.replace(cm.cell, identification=settings))
+
+
 def geometric_only(cm: CellModel) -> CellModel:
     """``cm`` with the geometric model only (no effects)."""
     return dataclasses.replace(cm, model=MeasurementModel(
         cm.robot, cm.geometric, (), cm.cell.reflector_axis, cm.model.orientations,
-        cm.model.rotation_scale))
+        cm.model.rotation_scale, cm.model.joint_sigma))
 
 
 def with_effects(cm: CellModel, effects: tuple) -> CellModel:
@@ -567,18 +604,35 @@ def load_measurements(cell_path: str | Path, bag_path: str | Path, effects: str 
     cell = load_cell(cell_path, allow_code_effects=allow_code_effects)
     cm = build_cell_model(cell, effects=tuple(split_specs(effects)))
     data, pairing = measurements_from_bag(cm, bag_path, joint_topic, point_topic, pose_topic)
-    for reason, count in sorted(pairing.rejections.items()):
-        print(f'rejected {count} sample(s): {reason}', file=sys.stderr)
+    print_rejections(pairing)
     return cm, data, pairing
 
 
+def print_rejections(pairing: PairingResult) -> None:
+    """Every rejection reason on stderr with its count and the first one's detail (which
+    names what was received and the fix)."""
+    first: dict[str, str] = {}
+    for r in pairing.rejected:
+        first.setdefault(r.reason, r.detail)
+    for reason, count in sorted(pairing.rejections.items()):
+        detail = f' (first: {first[reason]})' if reason in first else ''
+        print(f'rejected {count} sample(s): {reason}{detail}', file=sys.stderr)
+
+
+def print_progress(line: str) -> None:
+    """A progress line of a long identification, on stderr (stdout is the summary)."""
+    print(line, file=sys.stderr, flush=True)
+
+
 def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Path,
-                 effects: str = '', model: str | None = None, **options: Any) -> int:
+                 effects: str = '', model: str | None = None,
+                 max_iterations: int | None = None, **options: Any) -> int:
     """``kpi-calib identify``: calibration.yaml and the calibrated URDF
     (:data:`~kpi_calib_ros.io.names.CALIBRATED_URDF_FILE`) in ``out_dir`` (checked first),
     a summary on stdout; ``options`` as for :func:`load_measurements`.
 
-    ``model`` overrides the cell's ``identification.model``; the cell's
+    ``model`` overrides the cell's ``identification.model``, ``max_iterations`` its
+    ``identification.max_iterations``; the cell's
     ``identification.prior`` (tolerances) is used when set. With a previous calibration as
     prior (``--prior``) the CLI runs :func:`kpi_calib_ros.app.reidentify.run_reidentify`
     instead. Returns 0 for a valid calibration; 1 when it did not converge or the TCP is
@@ -587,7 +641,9 @@ def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
     """
     writable_folder(out_dir, '--out')
     cm, data, pairing = load_measurements(cell_path, bag_path, effects, **options)
-    cal = calibrate_cell(cm, data, model)
+    if max_iterations is not None:
+        cm = with_iteration_limit(cm, max_iterations)
+    cal = calibrate_cell(cm, data, model, progress=print_progress)
     cm = cal.cell or cm  # with the effects auto added
     how = tolerance_text(cm, cal.prior_scale)
     doc = add_robust_sections(calibration_document(cm, cal.result, pairing), cal)

@@ -41,12 +41,13 @@ from kpi_calib_ros.core.prior import (DRIFT_ANGLE_PER_SQRT_HOUR, DRIFT_LENGTH_PE
                                       prior_from_calibration, state_predicted, state_updated)
 from kpi_calib_ros.core.simulation import random_configurations
 from kpi_calib_ros.io.cell import CellModel
-from kpi_calib_ros.io.results import read_calibration_document, writable_folder
+from kpi_calib_ros.io.calibration_file import read_calibration_document
+from kpi_calib_ros.io.results import writable_folder
 
 from kpi_calib_ros.app.identify import (CellCalibration, add_robust_sections,
                                         calibrate_cell, calibration_document,
                                         load_measurements, places_the_points, registered_start,
-                                        robust_summary, write_results)
+                                        robust_summary, with_iteration_limit, write_results)
 from kpi_calib_ros.app.validate import calibration_noise_scale
 
 # Exit code of `kpi-calib identify --prior` when the new cycle contradicts the prior.
@@ -54,6 +55,9 @@ EXIT_CHANGE = 3
 DRIFT_MODELS = ('thermal', 'isotropic')
 # Random measurable configurations over which the drift is mapped onto the identified set.
 DRIFT_MAP_POSES = 200
+# A drift time longer than this (h) is implausible for a work cycle's prior: a clock set
+# wrong or a calibration of another era; widened all the same, with a warning.
+PLAUSIBLE_DRIFT_HOURS = 24.0 * 366
 
 
 @dataclass(frozen=True)
@@ -81,6 +85,9 @@ class CyclePrior:
         are then weighted by the noise it showed, σ·√noise_scale, not the stated σ, so
         prior and data keep their balance and the same unmodelled effects are no change.
         1.0 and None when the model was adequate.
+    warnings : tuple of str
+        A negative or implausible drift time: which clocks disagree (``identified_at_ns``
+        of the calibration against the stamps of the new measurements).
     state : DriftState or None
         With a drift state (``swing``): the deviations and rates of the prior's parameters
         and their covariance with them, extrapolated with ``prior`` to the new cycle (the
@@ -99,6 +106,7 @@ class CyclePrior:
     noise_dof: int | None = None
     state: DriftState | None = None
     swing: DriftSwing | None = None
+    warnings: tuple[str, ...] = ()
 
 
 def link_vectors(cm: CellModel) -> dict[tuple[str, str, str], np.ndarray]:
@@ -173,6 +181,8 @@ def cycle_prior(cm: CellModel, doc: dict[str, Any], data: Measurements | None,
     if (hours is None and stamp is not None and data is not None
             and data.stamps_ns is not None and len(data.stamps_ns)):
         hours = (int(np.min(data.stamps_ns)) - int(stamp)) / 3.6e12
+    warnings = drift_time_warnings(hours, stamp) if hours is not None and stamp is not None \
+        and data is not None else []
     if hours is None:
         hours = 0.0
         how = ('prior calibration NOT widened for drift: '
@@ -245,7 +255,30 @@ def cycle_prior(cm: CellModel, doc: dict[str, Any], data: Measurements | None,
                 'sigma, and the change test accounts for that estimate'
                 + (f' ({noise_dof} dof)' if noise_dof else ''))
     return CyclePrior(widened, values, allowed, keep_placement, hours, how, noise_scale,
-                      noise_dof, state, swing)
+                      noise_dof, state, swing, tuple(warnings))
+
+
+def drift_time_warnings(hours: float, stamp_ns: int) -> list[str]:
+    """Warnings for a drift time ``hours`` from a calibration's ``identified_at_ns``
+    (``stamp_ns``) to the first new measurement that no clock in agreement gives:
+    negative (the calibration dated after the data) or beyond
+    :data:`PLAUSIBLE_DRIFT_HOURS`. The prior is widened by |hours| either way (the
+    larger uncertainty), never narrowed."""
+    clocks = (f'the clock that stamped the prior calibration\'s measurements '
+              f'(identified_at_ns {int(stamp_ns)}) and the clock that stamped the new '
+              'measurements (header.stamp of the joint states and points) disagree')
+    if hours < 0:
+        return [f'the prior calibration is dated {-hours:.3g} h AFTER the first new '
+                f'measurement: {clocks}, or the prior is not from an earlier cycle; widened '
+                f'for {-hours:.3g} h all the same; check both clocks (NTP, use_sim_time) and '
+                'the --prior file']
+    if hours > PLAUSIBLE_DRIFT_HOURS:
+        return [f'the prior calibration is {hours:.6g} h ({hours / 24 / 365.25:.3g} years) '
+                f'older than the new measurements, more than the '
+                f'{PLAUSIBLE_DRIFT_HOURS:g} h a work cycle\'s prior plausibly is: {clocks}, '
+                'or the prior is from another era; widened that far all the same (little '
+                'is left of it); check both clocks and the --prior file']
+    return []
 
 
 def cycle_start(cm: CellModel, data: Measurements, cp: CyclePrior) -> np.ndarray:
@@ -290,7 +323,8 @@ def reidentify(cm: CellModel, data: Measurements, cp: CyclePrior, model: str | N
                                   len(cm.geometric)) if n in set(cp.allowed)]
     fit = identify(cm.model, data, cm.cell.sigma, cm.q_work, list(cm.working_pose_names),
                    p0=start, free=free, identifiability_method=cm.cell.identification_method,
-                   priority=list(cm.cell.identification_priority) or None, prior=cp.prior)
+                   priority=list(cm.cell.identification_priority) or None, prior=cp.prior,
+                   max_iterations=cm.cell.identification.max_iterations)
     change = change_test(cm.model, data, cm.cell.sigma, fit, cp.prior, alpha,
                          sigma_dof=cp.noise_dof)
     if not change.consistent and cp.noise_scale != 1.0:
@@ -360,7 +394,8 @@ def reidentification_document(cm: CellModel, out: Reidentification, cp: CyclePri
         doc['valid'] = False
         doc['invalid_reasons'] = [out.change.summary()]
     doc['prior'] = {'source': source, 'description': cp.description,
-                    'hours': float(cp.hours), 'keep_placement': cp.keep_placement}
+                    'hours': float(cp.hours), 'keep_placement': cp.keep_placement,
+                    'warnings': list(cp.warnings)}
     doc['change_test'] = out.change.to_dict()
     if out.state is not None and cp.swing is not None:
         # The drift state for the next cycle (core.prior.DriftState; rates per hour).
@@ -373,7 +408,8 @@ def run_reidentify(cell_path: str | Path, bag_path: str | Path, out_dir: str | P
                    drift: tuple[float, ...] = (DRIFT_LENGTH_PER_SQRT_HOUR,
                                                DRIFT_ANGLE_PER_SQRT_HOUR),
                    keep_placement: bool = False, drift_model: str = 'thermal',
-                   swing: DriftSwing | None = None, **options: Any) -> int:
+                   swing: DriftSwing | None = None, max_iterations: int | None = None,
+                   **options: Any) -> int:
     """``kpi-calib identify --prior OLD/calibration.yaml``.
 
     ``swing`` (``--drift-velocity``): the daily swing of the drift state
@@ -387,11 +423,15 @@ def run_reidentify(cell_path: str | Path, bag_path: str | Path, out_dir: str | P
     writable_folder(out_dir, '--out')
     old = read_calibration_document(prior_path, '--prior')
     cm, data, pairing = load_measurements(cell_path, bag_path, effects, **options)
+    if max_iterations is not None:
+        cm = with_iteration_limit(cm, max_iterations)
     cp = cycle_prior(cm, old, data, drift[0], drift[1], keep_placement=keep_placement,
                      drift_model=drift_model,
                      rotation_rate=drift[2] if len(drift) > 2 else None,
                      placement_rate=drift[3] if len(drift) > 3 else None,
                      swing=swing)
+    for warning in cp.warnings:
+        print(f'WARNING: {warning}', file=sys.stderr)
     out = reidentify(cm, data, cp, model)
     doc = reidentification_document(cm, out, cp, str(prior_path), pairing)
     path, urdf_path, _ = write_results(cm, (out.calibration.result if out.calibration

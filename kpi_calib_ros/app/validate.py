@@ -1,44 +1,56 @@
 """Validate: does a calibration predict a new recording within its own predicted errors?
 
+A recording made with the tracker (or the probe) set up again is validated with
+``register`` (:data:`REGISTER`): the base pose, and with ``'base+reflector'`` the
+reflector offsets too, are re-fitted on the new recording alone; the rms after that
+re-registration is the figure to compare, and χ² loses the dof the fit took.
+
 ``kpi-calib validate`` and the node's ``~/validate`` call :func:`validate_calibration`;
 the numerics are :mod:`kpi_calib_ros.core.validation`.
 """
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
-from kpi_calib_ros.app.identify import measurements_from_bag
+from kpi_calib_ros.app.identify import measurements_from_bag, print_rejections
 from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.measurement import Measurements
+from kpi_calib_ros.core.parameters import BASE_COMPONENTS, reflector_prefixes
+from kpi_calib_ros.core.residuals import SIGMA_OVERSTATED, noise_verdict, sigma_overstated_text
 from kpi_calib_ros.core.validation import REPEATED_WITHIN, Validation, validate
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
 from kpi_calib_ros.io.names import VALIDATION_FILE
 from kpi_calib_ros.io.report import write_validation_plots
-from kpi_calib_ros.io.results import write_atomic
+from kpi_calib_ros.io.calibration_file import read_calibration_document
+from kpi_calib_ros.io.results import writable_folder, write_atomic
+
+
+# What ``validate --register`` re-fits on the new recording.
+REGISTER = ('base', 'base+reflector')
+
+
+def registered_names(cm: CellModel, register: str | None) -> list[str]:
+    """Names of the parameters ``register`` (one of :data:`REGISTER`, or None) re-fits."""
+    if register is None:
+        return []
+    if register not in REGISTER:
+        raise ConfigError('register', f'must be one of {list(REGISTER)}, not {register!r}')
+    names = [f'base.{c}' for c in BASE_COMPONENTS]
+    if register == 'base+reflector':
+        names += [f'{prefix}.{c}' for prefix in reflector_prefixes(cm.model.params)
+                  for c in 'xyz']
+    return names
 
 
 def read_calibration(path: str | Path) -> dict[str, Any]:
-    """The calibration.yaml document, checked for what validation needs."""
-    path = Path(path)
-    if not path.is_file():
-        raise ConfigError('calibration', f'file {str(path)!r} does not exist')
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        raise ConfigError('calibration', f'{path} is not valid YAML: {exc}') from exc
-    if not isinstance(doc, dict):
-        raise ConfigError('calibration', f'{path} is not a calibration document')
-    for key in ('parameters', 'parameter_covariance', 'noise_sigma_m'):
-        if key not in doc:
-            raise ConfigError(f'calibration.{key}', f'missing in {path}; identify again with '
-                              'this version (kpi-calib identify) to write it')
-    return doc
+    """The calibration.yaml document, checked for what validation needs
+    (:func:`~kpi_calib_ros.io.calibration_file.read_calibration_document`)."""
+    return read_calibration_document(path, 'calibration',
+                                     required=('parameter_covariance', 'noise_sigma_m'))
 
 
 def calibrated_model(cell: Any, doc: dict[str, Any]) -> tuple[CellModel, np.ndarray]:
@@ -79,17 +91,21 @@ def training_poses(cm: CellModel, doc: dict[str, Any]) -> np.ndarray | None:
 
 
 def validate_calibration(cm: CellModel, p: np.ndarray, doc: dict[str, Any],
-                         data: Measurements) -> Validation:
-    """Test the calibration ``doc`` (values ``p``) on new measurements ``data``."""
+                         data: Measurements, register: str | None = None) -> Validation:
+    """Test the calibration ``doc`` (values ``p``) on new measurements ``data``, after
+    re-fitting the placement ``register`` (:data:`REGISTER`) on them when given."""
+    registered = registered_names(cm, register)
     cov = doc['parameter_covariance']
     estimated = cm.model.params.indices(list(cov['names']))
     ranges = doc.get('training_joint_ranges') or {}
     lower = np.array([ranges.get(n, [-np.inf, np.inf])[0] for n in cm.joint_names])
     upper = np.array([ranges.get(n, [-np.inf, np.inf])[1] for n in cm.joint_names])
-    sigma = np.array(doc['noise_sigma_m'], dtype=float) * np.sqrt(calibration_noise_scale(doc))
+    scale = calibration_noise_scale(doc)
+    sigma = np.array(doc['noise_sigma_m'], dtype=float) * np.sqrt(scale)
     return validate(cm.model, p, estimated, np.array(cov['matrix'], dtype=float).reshape(
         len(estimated), len(estimated)), sigma, data, lower, upper,
-        training_q=training_poses(cm, doc))
+        training_q=training_poses(cm, doc), noise_scale=scale,
+        registered=cm.model.params.indices(registered) if registered else None)
 
 
 def validation_to_dict(v: Validation, data: Measurements, training_rms_m: float | None,
@@ -106,6 +122,12 @@ def validation_to_dict(v: Validation, data: Measurements, training_rms_m: float 
     points = ref < n_points
     inside = ~v.outside
     extra: dict[str, Any] = {}
+    if v.registration is not None and cm is not None:
+        names = [cm.model.params.names[i] for i in v.registration.index]
+        extra['registration'] = {
+            'parameters': names, 'dof': v.registration.dof,
+            'values': {n: float(v.registration.p[i])
+                       for n, i in zip(names, v.registration.index)}}
     if cm is not None:
         names = list(cm.cell.reflector_names) or ['reflector']
         extra['rms_per_reflector_m'] = {n: _num(v.rms_where(ref == k))
@@ -133,6 +155,8 @@ def validation_to_dict(v: Validation, data: Measurements, training_rms_m: float 
         'training_rms_m': training_rms_m,
         'predicted_std_median_m': float(np.median(v.predicted_std)),
         'chi2': v.chi2, 'dof': v.dof, 'p_value': v.p_value, 'alpha': v.alpha,
+        # The lower tail at the same level: 'sigma overstated' (core.residuals.noise_verdict).
+        **dict(zip(('noise_verdict', 'lower_tail_p'), noise_verdict(v.chi2, v.dof, v.alpha))),
         'points': [{'stamp_ns': int(s) if data.stamps_ns is not None else None,
                     'reflector': int(data.reflector[i]) if data.reflector is not None else 0,
                     'residual_m': [float(x) for x in v.residuals[i]],
@@ -159,9 +183,16 @@ def validation_text(doc: dict[str, Any]) -> str:
              f"{mm(doc['predicted_std_median_m'])} median"
              + (f", with the noise the calibration showed, {np.sqrt(doc['noise_scale']):.3g} x "
                 'the stated sigma' if doc.get('noise_scale', 1.0) != 1.0 else '') + ')',
+             *(['re-registered on the new recording: '
+                + ', '.join(doc['registration']['parameters'])
+                + f" ({doc['registration']['dof']} dof); the rms above is after it"]
+               if doc.get('registration') else []),
              f"inside the training joint ranges: rms {mm(doc['rms_inside_training_range_m'])}; "
              f"outside ({doc['outside_training_range']} points): "
              f"{mm(doc['rms_outside_training_range_m'])}"]
+    if doc.get('noise_verdict') == SIGMA_OVERSTATED:
+        lines.append('WARNING: ' + sigma_overstated_text(doc['chi2'], doc['dof'],
+                                                         doc['lower_tail_p'], doc['alpha']))
     if doc.get('repeated_from_training'):
         lines.append(f"inside: poses repeated from training ({doc['repeated_from_training']} "
                      f"points, every joint within {REPEATED_WITHIN:g} rad or m): rms "
@@ -171,12 +202,12 @@ def validation_text(doc: dict[str, Any]) -> str:
 
 
 def validate_report(cm: CellModel, doc: dict[str, Any], data: Measurements,
-                    out_dir: str | Path) -> dict[str, Any]:
-    """Validate ``doc`` on ``data`` and write validation.json and the plot to ``out_dir``;
-    returns the validation document."""
+                    out_dir: str | Path, register: str | None = None) -> dict[str, Any]:
+    """Validate ``doc`` on ``data`` (re-fitting ``register`` first, :data:`REGISTER`) and
+    write validation.json and the plot to ``out_dir``; returns the validation document."""
     if len(data) == 0:
         raise DataError('no new measurement to validate the calibration on')
-    v = validate_calibration(cm, parameter_vector(cm, doc), doc, data)
+    v = validate_calibration(cm, parameter_vector(cm, doc), doc, data, register)
     out = validation_to_dict(v, data, doc.get('rms_m'), cm, calibration_noise_scale(doc))
     write_atomic(Path(out_dir) / VALIDATION_FILE, json.dumps(out, indent=1))
     write_validation_plots(out_dir, cm.robot, np.atleast_2d(data.q), v.residuals, v.outside,
@@ -185,17 +216,22 @@ def validate_report(cm: CellModel, doc: dict[str, Any], data: Measurements,
 
 
 def run_validate(cell_path: str | Path, calibration_path: str | Path, bag_path: str | Path,
-                 out_dir: str | Path) -> int:
-    """``kpi-calib validate``: validation.json and a plot in ``out_dir``.
+                 out_dir: str | Path, register: str | None = None,
+                 allow_code_effects: bool = False) -> int:
+    """``kpi-calib validate``: validation.json and a plot in ``out_dir``; ``register``
+    (:data:`REGISTER`) re-fits the placement on the new recording first.
+
+    ``allow_code_effects``: the cell's (and the calibration's) effects may name Python
+    code, as for identify.
 
     Returns 0 when the calibration holds, 1 when it does not.
     """
+    writable_folder(out_dir, '--out')
     doc = read_calibration(calibration_path)
-    cm, _ = calibrated_model(load_cell(cell_path), doc)
+    cm, _ = calibrated_model(load_cell(cell_path, allow_code_effects=allow_code_effects), doc)
     data, pairing = measurements_from_bag(cm, bag_path)
-    for reason, count in sorted(pairing.rejections.items()):
-        print(f'rejected {count} sample(s): {reason}', file=sys.stderr)
-    out = validate_report(cm, doc, data, out_dir)
+    print_rejections(pairing)
+    out = validate_report(cm, doc, data, out_dir, register)
     print(validation_text(out))
     print(f"written: {Path(out_dir) / VALIDATION_FILE}, "
           f"{Path(out_dir) / 'validation_residuals.png'}")

@@ -85,9 +85,10 @@ class DesignProblem:
 
     def rows(self, model: MeasurementModel, q: np.ndarray) -> np.ndarray:
         """Scaled weighted Jacobian rows W J D (N, 3R, k) of configurations ``q`` (N, n),
-        every reflector of the tool at each pose (R = 1 for a single reflector)."""
+        every row a measured pose gives (every reflector's point, every tracked body's
+        rotation: R = ``model.rows_per_pose``, 1 for a single reflector)."""
         _, jac = model.pose_jacobian(self.p, np.atleast_2d(q))
-        weight = np.tile(self.weight, model.n_reflectors)
+        weight = np.tile(self.weight, model.rows_per_pose)
         return jac[:, :, self.index] * weight[None, :, None] * self.column_scale
 
     def factor(self, criterion: str) -> np.ndarray:
@@ -178,8 +179,8 @@ def build_problem(cell: DesignCell, q_rich: np.ndarray,
     model = cell.model
     p = model.params.nominal.copy() if p is None else np.asarray(p, float)
     w = 1.0 / cell.sigma
-    _, jac = model.pose_jacobian(p, q_rich)  # every reflector of the tool at each pose
-    wr = np.tile(w, model.n_reflectors)
+    _, jac = model.pose_jacobian(p, q_rich)  # every row a measured pose gives
+    wr = np.tile(w, model.rows_per_pose)
     names = list(model.params.names) if free is None else list(free)
     cols = model.params.indices(names)
     # Without `free`, all columns as they are: a copy indexed by every column changes the

@@ -118,10 +118,11 @@ def solve_design_nlp(problem, cell: DesignCell, scene, q0: np.ndarray, criterion
     n_conf, n = q0.shape
     q = ca.SX.sym('q', n)
     p_sym = ca.SX.sym('p', len(problem.p))
-    point = model.pose_point_expression(p_sym, q)  # every reflector of the tool
+    # Every row a measured pose gives (reflector points, tracked bodies' rotations).
+    point = model.pose_point_expression(p_sym, q, p_measured=ca.DM(problem.p))
     jac = ca.jacobian(point, p_sym)[:, list(problem.index)]
     rows_fun = ca.Function('rows', [p_sym, q], [jac])
-    weight = np.tile(problem.weight, model.n_reflectors)
+    weight = np.tile(problem.weight, model.rows_per_pose)
     rows = ca.diag(ca.DM(weight)) @ rows_fun(ca.DM(problem.p), q) @ ca.diag(
         ca.DM(problem.column_scale))
     info_fun = ca.Function('info', [q], [ca.mtimes(rows.T, rows)])

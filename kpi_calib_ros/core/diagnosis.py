@@ -29,14 +29,18 @@ import scipy.stats
 
 from kpi_calib_ros.core.effects import BoundEffect, candidate_effects, implausible
 from kpi_calib_ros.core.estimation import CalibrationResult
-from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
+from kpi_calib_ros.core.measurement import (MeasurementModel, Measurements, unweighted,
+                                            weighted_rows)
 from kpi_calib_ros.core.out_of_sample import OutOfSample
+from kpi_calib_ros.core.precision import (JOINT_NOISE_CAUSE, ExpectedTcpError, chi2_scale,
+                                          precision_statement)
 from kpi_calib_ros.core.residuals import (ADEQUACY_ALPHA, LinearizedFit, ResidualReport,
                                          cross_validated_rms, cv_rms, identifiable_folds,
                                          linearized_fit, residual_report)
 
 __all__ = ['Candidate', 'CellDiagnosis', 'Diagnosis', 'ModelComparison', 'ResidualReport',
            'augmented_model', 'compare_models', 'cross_validated_rms', 'diagnose',
+           'equivalent_joint_sigma',
            'residual_report', 'screen_effects']
 DEPENDENCE_TOLERANCE = 1e-4  # unique fraction of a signature below this: absorbed
 NO_EFFECT_M = 1e-9           # a typical-size effect moving no point by 1 nm has no effect
@@ -77,6 +81,9 @@ class Candidate:
     plausibility: str = ''
     also_explained_by: tuple[str, ...] = ()
     note: str = ''
+    # ``std`` are from the stated σ (1) or scaled by χ²/dof of the augmented fit when it
+    # fails the χ² test, as identify reports (core.precision.chi2_scale).
+    covariance_scale: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -115,6 +122,11 @@ class ModelComparison:
     tcp_std_before_m: np.ndarray
     tcp_std_after_m: np.ndarray
     working_pose_names: tuple[str, ...] = field(default=())
+    # A fit that did not converge, named with its stop: its figures are those of the last
+    # iterate, not of a minimum, and the comparison says so.
+    warnings: tuple[str, ...] = field(default=())
+    # How the after-fit's std were obtained (core.precision.precision_statement).
+    std_basis: str = ''
 
 
 # ---------------------------------------------------------------- screening
@@ -136,6 +148,19 @@ class CellDiagnosis:
     # calibration diagnosed and of the one with the added effect.
     out_of_sample: OutOfSample | None = None
     after_out_of_sample: OutOfSample | None = None
+    # The measurements given: ``data`` is those identification keeps (``kept``, (M,) bool;
+    # None: all), so the diagnosis describes the calibration the user gets; ``excluded``
+    # names the others (indices into the given measurements).
+    kept: np.ndarray | None = None
+    excluded: tuple[int, ...] = ()
+
+    def given_index(self, rows: np.ndarray) -> list[int]:
+        """Indices into the given measurements of rows (bool mask or indices) of ``data``."""
+        rows = np.asarray(rows)
+        idx = np.flatnonzero(rows) if rows.dtype == bool else rows.astype(int)
+        return [int(i) for i in (idx if self.kept is None else np.flatnonzero(self.kept)[idx])]
+    # Expected TCP error at the working poses with the misfit (core.precision).
+    expected: ExpectedTcpError | None = None
 
 
 def screen_effects(model: MeasurementModel, data: Measurements, result: CalibrationResult,
@@ -171,7 +196,7 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
     pose_folds = identifiable_folds(sys_.jac, np.atleast_2d(data.q), folds, seed)
     r_perp = sys_.r - sys_.basis @ (sys_.basis.T @ sys_.r)
     chi2_base = float(r_perp @ r_perp)
-    rms_base = float(np.sqrt(np.sum((r_perp.reshape(n, 3) / sys_.w) ** 2) / n))
+    rms_base = float(np.sqrt(np.sum(unweighted(r_perp, sys_.w) ** 2) / n))
     cv_base = cv_rms(sys_.jac, sys_.r, sys_.w, pose_folds)
     dof_base = 3 * n - sys_.basis.shape[1]
     q = np.atleast_2d(data.q)
@@ -237,7 +262,9 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
         out.append(Candidate(
             effect=fit['effect'].kind.name, joint=fit['effect'].joint, spec=fit['effect'].name,
             parameter_names=fit['effect'].parameter_names, units=fit['effect'].units,
-            distinguishable=True, values=fit['theta'], std=fit['std'],
+            distinguishable=True, values=fit['theta'],
+            std=fit['std'] * np.sqrt(chi2_scale(fit['chi2'], fit['dof'])),
+            covariance_scale=chi2_scale(fit['chi2'], fit['dof']),
             rms_after_m=fit['rms'], validation_rms_after_m=fit['cv'],
             delta_chi2=fit['delta'], f_statistic=fit['f'], p_value_raw=fit['p_raw'],
             p_value=p_adj, significant=significant, correlation=fit['corr'],
@@ -281,9 +308,32 @@ def diagnose(model: MeasurementModel, data: Measurements, result: CalibrationRes
     else:
         verdict = (f'model not adequate: {chi}, but no candidate effect explains the misfit; '
                    'check the outliers, the stated σ and the plots against time and distance.')
+    if not report.adequate and model.joint_sigma is None:
+        equivalent = equivalent_joint_sigma(model, data, result)
+        verdict += (f' The joint readings may be the cause: the residuals equal joint-reading '
+                    f'noise of {np.rad2deg(equivalent):.3g}° on every joint. '
+                    + JOINT_NOISE_CAUSE[0].upper() + JOINT_NOISE_CAUSE[1:] + '.')
     return Diagnosis(model_adequate=adequate, verdict=verdict, residuals=report,
                      rms_m=report.rms_m, validation_rms_m=cv, candidates=ranked,
                      not_distinguishable=rejected, alpha=alpha, folds=folds)
+
+
+def equivalent_joint_sigma(model: MeasurementModel, data: Measurements,
+                           result: CalibrationResult) -> float:
+    """Joint-reading noise σ_q (rad, the same on every joint) that explains the residual sum
+    of squares beyond the stated tracker σ: Σ‖r_i‖² · 3N/dof = Σ_i (Σ_a σ_a² + σ_q² ‖J_q,i‖²)
+    (the fit leaves dof/3N of the noise in the residuals); 0 when σ explains them."""
+    point = (np.ones(len(data), bool) if data.reflector is None
+             else np.asarray(data.reflector) < model.n_reflectors)
+    q = np.atleast_2d(data.q)[point]
+    jq = model.joint_jacobian(result.values, q, None if data.tau is None else data.tau[point],
+                              None if data.reflector is None else data.reflector[point])
+    residuals = np.asarray(result.residuals)[point]
+    n_rows = 3 * len(data)
+    excess = (np.sum(residuals ** 2) * n_rows / max(result.dof, 1)
+              - len(q) * np.sum(np.asarray(result.sigma) ** 2))
+    lever = float(np.sum(jq ** 2))
+    return float(np.sqrt(max(excess, 0.0) / lever)) if lever > 0 else float('nan')
 
 
 # ---------------------------------------------------------------- comparison
@@ -322,14 +372,25 @@ def compare_models(before: tuple[MeasurementModel, CalibrationResult],
         effect_parameters=tuple(params),
         tcp_std_before_m=np.sqrt(np.diagonal(res_b.tcp_covariance, axis1=1, axis2=2)),
         tcp_std_after_m=np.sqrt(np.diagonal(res_a.tcp_covariance, axis1=1, axis2=2)),
-        working_pose_names=res_a.working_pose_names)
+        working_pose_names=res_a.working_pose_names,
+        warnings=tuple(unconverged_warning(res, which) for res, which in
+                       ((res_b, 'before'), (res_a, 'after')) if not res.converged),
+        std_basis=precision_statement(res_a.covariance_scale))
+
+
+def unconverged_warning(result: CalibrationResult, which: str) -> str:
+    """What a comparison with ``result``, a fit that did not converge, is worth."""
+    return (f'the fit {which} did not converge ({result.message}): its figures are those of '
+            'the last iterate, not of a minimum, and the comparison may favour the other '
+            'side (identification.max_iterations / --max-iterations raises the limit)')
 
 
 # ------------------------------------------------------------------ helpers
 def augmented_model(model: MeasurementModel, effects: tuple) -> MeasurementModel:
     """``model`` with ``effects`` appended (their parameters after the existing ones)."""
     return MeasurementModel(model.robot, model.geometric, model.effects + tuple(effects),
-                            model.reflector_axis, model.orientations, model.rotation_scale)
+                            model.reflector_axis, model.orientations, model.rotation_scale,
+                            model.joint_sigma)
 
 
 def _effect_columns(model: MeasurementModel, sys_: LinearizedFit, effect: BoundEffect,
@@ -344,7 +405,7 @@ def _effect_columns(model: MeasurementModel, sys_: LinearizedFit, effect: BoundE
     _, jac = aug.jacobian(p, q, tau, sys_.reflector, sys_.rotation)
     cols = jac[:, :, len(sys_.p):len(sys_.p) + k]
     disp = float(np.max(np.linalg.norm(cols @ np.asarray(effect.typical[:k]), axis=1)))
-    return (cols * sys_.w[None, :, None]).reshape(-1, k), disp
+    return weighted_rows(cols, sys_.w), disp
 
 
 def _absorbed_by(model: MeasurementModel, result: CalibrationResult, sys_: LinearizedFit,
@@ -392,7 +453,7 @@ def _fit_candidate(effect: BoundEffect, cols: np.ndarray, sys_: LinearizedFit, r
     f_stat = (delta / k) / (chi2_aug / dof)
     p_raw = float(scipy.stats.f.sf(f_stat, k, dof))
     cv = cv_rms(np.hstack([sys_.jac, cols]), sys_.r, sys_.w, pose_folds)
-    rms = float(np.sqrt(np.sum((r_aug.reshape(n, 3) / sys_.w) ** 2) / n))
+    rms = float(np.sqrt(np.sum(unweighted(r_aug, sys_.w) ** 2) / n))
     corr = float(np.sqrt(max(delta, 0.0) / chi2_base)) if chi2_base > 0 else 0.0
     return {'effect': effect, 'theta': theta, 'std': std, 'rms': rms,
             'chi2': chi2_aug, 'dof': dof,
@@ -494,8 +555,7 @@ def _driver_correlation(effect: BoundEffect, theta: np.ndarray, unique: np.ndarr
     if effect.joint_index is None:
         return float('nan')
     j = effect.joint_index
-    n = len(q)
-    explained = ((r_aug + unique @ size).reshape(n, 3) / w)
+    explained = unweighted(r_aug + unique @ size, w)
     lever = joint_jac[:, :, j]
     lever2 = np.sum(lever ** 2, axis=1)
     ok = lever2 > 1e-12

@@ -119,6 +119,10 @@ def choose_effects(model: MeasurementModel, data: Measurements, fit_for: FitFor,
         current = fit(data, free)
     except (DataError, np.linalg.LinAlgError) as exc:
         return EffectChoice((), model, {}, None, None, (), f'no effect screened: {exc}')
+    if not current.converged:
+        return EffectChoice((), model, {}, None, None, (), 'no effect screened: the fit at '
+                            f'level {level} did not converge ({current.message}); effects are '
+                            'not compared against its last iterate')
     first = _predicted(model, data, current, free, prior, seed)
     if first is None:
         return EffectChoice((), model, {}, None, None, (), 'no effect screened: the level leaves '

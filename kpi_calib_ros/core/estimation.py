@@ -20,13 +20,15 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.optimize
 import scipy.stats
 
 from kpi_calib_ros.core.covariance import kkt_covariance, kpi_jacobians
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.identifiability import (DroppedParameter, Identifiability,
                                                 select_identifiable)
-from kpi_calib_ros.core.measurement import MeasurementModel, Measurements, weighted_rows
+from kpi_calib_ros.core.measurement import (MeasurementModel, Measurements, weighted_residuals,
+                                            weighted_rows)
 from kpi_calib_ros.core.prior import Prior
 
 # Prior rows over the full parameter vector: L (n_rows, n_p) and L m (n_rows,).
@@ -36,6 +38,16 @@ PriorRows = tuple[np.ndarray, np.ndarray]
 # A nominal model is off by millimetres, a wrong unit or frame by metres.
 MAX_START_ERROR = 0.1
 MAX_SELECTION_ROUNDS = 4
+# Joint-reading noise makes the row weights depend on p (core.measurement): they are
+# evaluated at the estimate and the fit repeated until no weight moves by more than
+# REWEIGHT_RTOL of the largest (a relative change ε of the weights moves the estimate by
+# about ε of its std).
+MAX_REWEIGHT_ROUNDS = 4
+REWEIGHT_RTOL = 1e-3
+# Trust-region iterations per selection round. A well-posed fit converges in 3-20; a nearly
+# dependent parameter set follows a long curved valley: 120 real UR10 poses with an unknown
+# probe offset took 32-244 (identification.max_iterations sets it per cell).
+DEFAULT_MAX_ITERATIONS = 500
 
 
 @dataclass(frozen=True)
@@ -75,8 +87,8 @@ class Tolerances:
         ``stat_tol``; a tiny decrease while the step still promises more is a stall
         (status -2), never convergence.
     stat_tol : float
-        Statistical test, status 5: the last step had to be shortened or damped (the
-        linear model failed along it) and the Gauss-Newton step now predicts
+        Statistical test, status 5: the last step had to be damped (the linear model
+        failed along the Gauss-Newton step) and the Gauss-Newton step now predicts
         ``½‖F Δ‖² < stat_tol``: what is left to gain moves the estimate by less than
         √(2 · stat_tol) = 0.14 of its std in the Mahalanobis sense, far below its
         precision. Found on MAP fits with a previous calibration as prior and 10 poses,
@@ -84,13 +96,10 @@ class Tolerances:
         3e-7 of the equilibrated Jacobian): the remaining predicted decrease stayed at
         0.0086 while damped steps gained 5e-10 each, 50 iterations without end.
     armijo : float
-        Sufficient decrease of the backtracking line search:
-        ``C(p + αΔ) ≤ C(p) + armijo · α · ∇Cᵀ Δ``.
-    min_step : float
-        Smallest step fraction α the line search tries before the next damping.
-    dampings : tuple of float
-        Levenberg-Marquardt damping λ tried in turn, (AᵀA + λ I) DΔ = Aᵀ r with A = F D⁻¹;
-        0 is the plain Gauss-Newton step. When none decreases the cost: status -1.
+        Sufficient decrease for accepting a step Δ (Gauss-Newton or damped):
+        ``C(p + Δ) ≤ C(p) − armijo · (−∇Cᵀ Δ)``. A trial that fails it shrinks the trust
+        region to a quarter of its length; once the region is smaller than the step test's
+        ``xtol · max(1, ‖r‖)`` without a step that passes: status -1.
     """
 
     gtol: float = 1e-10
@@ -100,8 +109,6 @@ class Tolerances:
     roundoff: float = 10.0
     ftol: float = 1e-14
     armijo: float = 1e-4
-    min_step: float = 1e-6
-    dampings: tuple[float, ...] = (0.0, 1e-3, 1e-1, 10.0)
 
 
 TOLERANCES = Tolerances()
@@ -120,8 +127,9 @@ STATUS_MESSAGES = {
     STALLED: 'stalled: the cost fell by only {decrease:.3g} of ½χ² = {cost:.4g} although the '
              'Gauss-Newton step predicts {pred:.3g} (above stat_tol {stat_tol:g}); not a '
              'minimum (a start farther from the truth than the model is linear?)',
-    LINE_SEARCH_FAILED: 'failed: no step along the Gauss-Newton or damped directions '
-                        'decreases the cost (predicted decrease {pred:.3g} above round-off)',
+    LINE_SEARCH_FAILED: 'failed: neither the Gauss-Newton step nor a damped step in a '
+                        'trust region down to the step tolerance decreases the cost '
+                        '(predicted decrease {pred:.3g} above round-off)',
     MAX_ITERATIONS: 'not converged: maximum number of iterations ({iterations}) reached',
     GTOL: 'converged: gradient test, max cosine(residual, Jacobian column) < gtol {gtol:g}',
     FTOL: 'converged: cost test, decrease < ftol {ftol:g} of the cost',
@@ -130,7 +138,7 @@ STATUS_MESSAGES = {
                         'max(pred_tol {pred_tol:g}, cost round-off)',
     STATISTICAL: 'converged: statistical test, the remaining Gauss-Newton step predicts a '
                  'decrease of ½χ² {pred:.3g} < stat_tol {stat_tol:g} (under 0.14 std) and '
-                 'the last step was shortened by nonlinearity',
+                 'the last step was damped by nonlinearity',
 }
 
 
@@ -167,8 +175,9 @@ class CalibrationResult:
         drawn from the prior. Without a prior k_eff = k.
     status : int
         Why the last Gauss-Newton run stopped, one of `STATUS_MESSAGES`: 1-5 a convergence
-        test of `Tolerances` held, 0 the iteration limit, -1 a failed line search, -2 a
-        stall (cost no longer falling while the step still promises a decrease).
+        test of `Tolerances` held, 0 the iteration limit, -1 no step (Gauss-Newton or
+        damped) decreased the cost, -2 a stall (cost no longer falling while the step still
+        promises a decrease).
     message : str
         The status in words, with the figure that decided it.
     iterations : int
@@ -200,6 +209,8 @@ class CalibrationResult:
     # 1 when std/covariances come from the stated σ; χ²/dof when they were scaled to
     # the estimated σ because the model failed the χ² test (core.precision).
     covariance_scale: float = 1.0
+    # Joint-reading noise (rad, chain order) the row weights carried; None: exact readings.
+    joint_sigma: np.ndarray | None = None
 
     @property
     def converged(self) -> bool:
@@ -232,7 +243,8 @@ def weights(sigma: float | np.ndarray) -> np.ndarray:
 def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndarray,
              q_work: np.ndarray, working_pose_names: list[str] | None = None,
              p0: np.ndarray | None = None, free: list[str] | None = None,
-             max_iterations: int = 50, identifiability_method: str = 'pivoted',
+             max_iterations: int = DEFAULT_MAX_ITERATIONS,
+             identifiability_method: str = 'pivoted',
              priority: list[str] | None = None,
              tolerances: Tolerances = TOLERANCES,
              point_weights: np.ndarray | None = None,
@@ -245,7 +257,11 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     data : Measurements
         q (N, n) in chain order, eta (N, 3) in the tracker frame, m.
     sigma : float or (3,) array
-        Tracker noise standard deviation per axis, m.
+        Tracker noise standard deviation per axis, m. With joint-reading noise in the
+        model (``model.joint_sigma``) each measurement's covariance is
+        σ²I + J_q Σ_q J_qᵀ: its rows are whitened at the current estimate
+        (:meth:`MeasurementModel.whitening`), and after the fit the weights are evaluated
+        at the estimate and the fit repeated until they settle (`REWEIGHT_RTOL`).
     q_work : (t, n) ndarray
         Working configurations whose KPI points are estimated.
     p0 : (n_p,) ndarray, optional
@@ -253,6 +269,8 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     free : list of str, optional
         Parameters allowed to vary; all by default. The identifiable subset of
         these is chosen by QR on the data Jacobian at ``p0``.
+    max_iterations : int, optional
+        Iteration limit of each trust-region Gauss-Newton run (status 0 when reached).
     tolerances : Tolerances, optional
         Stopping tests of the Gauss-Newton iteration; the result's ``status`` says which held.
     point_weights : (N,) ndarray, optional
@@ -288,6 +306,12 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     rot = data.rotation   # measured rotations of the rotation rows (tracked poses)
     rows = prior.rows(model.params) if prior is not None else None
 
+    def reweighted(pp: np.ndarray) -> np.ndarray:
+        """Row weights at ``pp``: fixed 1/σ, or whitening with joint-reading noise."""
+        if model.joint_sigma is None:
+            return w
+        return model.whitening(pp, q, 1.0 / w_axis, tau, ref, rot, point_weights)
+
     pred, _ = model.jacobian(p, q, tau, ref, rot)
     start_error = float(np.median(np.linalg.norm(eta - pred, axis=1)))
     if start_error > MAX_START_ERROR:
@@ -304,6 +328,7 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     # A parameter dropped in a later round keeps the value it was fitted to: the full
     # vector stays one exact solution (one gauge); resetting it would restart the fit.
     ident, iterations, kept_before = None, 0, None
+    w = reweighted(p)
     for _ in range(MAX_SELECTION_ROUNDS):
         _, jac = model.jacobian(p, q, tau, ref, rot)
         stacked = _with_prior(weighted_rows(jac, w, free_idx), rows, free_idx)
@@ -332,6 +357,15 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     if ident is None:
         raise RuntimeError(f'MAX_SELECTION_ROUNDS = {MAX_SELECTION_ROUNDS}: no round selected '
                            'the identifiable parameters')
+    for _ in range(MAX_REWEIGHT_ROUNDS if model.joint_sigma is not None else 0):
+        new = reweighted(p)
+        change = float(np.max(np.abs(new - w)) / np.max(np.abs(w)))
+        w = new
+        if change < REWEIGHT_RTOL:
+            break
+        p, status, message, used = _gauss_newton(model, p, idx, q, eta, tau, w,
+                                                 max_iterations, tolerances, ref, rows, rot)
+        iterations += used
     pred, jac = model.jacobian(p, q, tau, ref, rot)
     residuals = eta - pred
     f_data = weighted_rows(jac, w, idx)
@@ -343,7 +377,7 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     c_s = c_v[k:, k:]
     t = len(q_work)
     tcp_cov = np.array([c_s[3 * i:3 * i + 3, 3 * i:3 * i + 3] for i in range(t)])
-    chi2 = float(np.sum((residuals * w) ** 2))
+    chi2 = float(np.sum(weighted_residuals(residuals, w) ** 2))
     # χ² of the data rows only; the prior rows are information, not measurements.
     dof = 3 * len(q) - k
     if rows is not None:
@@ -354,7 +388,8 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
         residuals=residuals, rms_m=_point_rms(residuals, ref, model.n_reflectors),
         tcp=tcp, tcp_covariance=tcp_cov, working_pose_names=tuple(names),
         sigma=1.0 / w_axis, chi2=chi2, dof=dof, p_value=float(scipy.stats.chi2.sf(chi2, dof)),
-        status=status, message=message, iterations=iterations, identifiability=ident)
+        status=status, message=message, iterations=iterations, identifiability=ident,
+        joint_sigma=model.joint_sigma)
 
 
 def _point_rms(residuals: np.ndarray, reflector: np.ndarray | None, n_reflectors: int) -> float:
@@ -379,12 +414,42 @@ def _row_weights(w_axis: np.ndarray, point_weights: np.ndarray | None, n: int) -
     return w_axis[None, :] * np.sqrt(omega)[:, None]
 
 
+# Trust-region radius updates (Nocedal & Wright, Algorithm 4.1; SciPy's ``trf``).
+SHRINK, GROW = 0.25, 2.0
+
+
+def _boundary_step(u: np.ndarray, s: np.ndarray, vt: np.ndarray, r: np.ndarray,
+                   radius: float) -> np.ndarray:
+    """The Levenberg-Marquardt step z(λ) = V diag(s / (s² + λ)) Uᵀ r of A = U diag(s) Vᵀ
+    with ‖z(λ)‖ = ``radius``, the minimiser of ‖r − A z‖ on the trust-region boundary
+    (valid when the Gauss-Newton step z(0) is longer than ``radius``)."""
+    sc = s * (u.T @ r)
+
+    def excess(lam: float) -> float:
+        return float(np.linalg.norm(sc / (s ** 2 + lam))) - radius
+    # ‖z(λ)‖ falls monotonically from ‖z(0)‖ > radius and is below ‖S c‖/λ.
+    upper = float(np.linalg.norm(sc)) / radius
+    lam = upper if excess(upper) >= 0 else scipy.optimize.brentq(excess, 0.0, upper,
+                                                                 xtol=1e-12 * upper, rtol=1e-10)
+    return vt.T @ (sc / (s ** 2 + lam))
+
+
 def _gauss_newton(model: MeasurementModel, p: np.ndarray, idx: np.ndarray, q: np.ndarray,
                   eta: np.ndarray, tau: np.ndarray | None, w: np.ndarray, max_iterations: int,
                   tol: Tolerances = TOLERANCES, reflector: np.ndarray | None = None,
                   rows: PriorRows | None = None,
                   rotation: np.ndarray | None = None) -> tuple[np.ndarray, int, str, int]:
-    """Gauss-Newton with Armijo backtracking; Levenberg-Marquardt damping when that stalls.
+    """Gauss-Newton in a trust region (Levenberg-Marquardt), as SciPy's ``trf`` without bounds.
+
+    The step z = D Δ lives in equilibrated units (D the largest column norms of F seen so
+    far, SciPy's ``x_scale='jac'``). The Gauss-Newton step is taken whole while it lies in
+    the trust region (at the start the region is unbounded, so a well-behaved fit takes
+    exactly the Gauss-Newton steps); otherwise the damped step (AᵀA + λ I) z = Aᵀ r,
+    A = F D⁻¹, on the region's boundary. The region shrinks to a quarter of the step when
+    the gain ratio ρ (actual over predicted decrease) is below 0.25 and doubles when
+    ρ > 0.75 on the boundary (Nocedal & Wright, Algorithm 4.1). Unlike a line search
+    along the Gauss-Newton direction, the damped step turns towards the steepest descent,
+    which follows the curved valleys of a nearly dependent parameter set.
 
     Returns
     -------
@@ -393,11 +458,12 @@ def _gauss_newton(model: MeasurementModel, p: np.ndarray, idx: np.ndarray, q: np
     status, message : int, str
         See `STATUS_MESSAGES` and `Tolerances`.
     iterations : int
+        Accepted steps (each may have needed several trials of λ).
     """
     def evaluate(pp):
         pred, jac = model.jacobian(pp, q, tau, reflector, rotation)
-        r = ((eta - pred) * w).ravel()
-        f = (jac * w[:, :, None]).reshape(-1, len(pp))[:, idx]
+        r = weighted_residuals(eta - pred, w)
+        f = weighted_rows(jac, w, idx)
         if rows is not None:
             # Prior rows: residual L(m − p), Jacobian L (as for h, F = ∂(Lp)/∂p).
             r = np.concatenate([r, rows[1] - rows[0] @ pp])
@@ -410,26 +476,31 @@ def _gauss_newton(model: MeasurementModel, p: np.ndarray, idx: np.ndarray, q: np
         return p, status, text, iteration
 
     # Size of the measured values the residuals are differences of (see Tolerances.pred_tol).
-    eta_scale = np.linalg.norm(eta * w) / np.sqrt(eta.size)
+    eta_scale = np.linalg.norm(weighted_residuals(eta, w)) / np.sqrt(eta.size)
     r, f = evaluate(p)
     cost = 0.5 * r @ r
-    # Whether the last accepted step was shortened or damped (the linear model failed
-    # along it), and the decrease it gained (for the cost test).
+    # Whether the last accepted step was damped (the linear model failed along the
+    # Gauss-Newton step), and the decrease it gained (for the cost test).
     nonlinear, decrease = False, None
+    region: np.ndarray | None = None
+    radius = float(np.inf)  # trust region on the equilibrated step DΔ; none until a step fails
     for iteration in range(1, max_iterations + 1):
         # A column can vanish on the way (a saturating effect's shape parameter once
         # tanh is flat at every pose): no step along it, not a NaN step.
         scale = np.linalg.norm(f, axis=0)
         scale[scale == 0] = 1.0
+        # The trust region lives in units D Δ with D the largest column norms so far (as
+        # SciPy's x_scale='jac'): a radius keeps its meaning from one iteration to the next.
+        region = scale if region is None else np.maximum(region, scale)
         norm_r = np.sqrt(2 * cost)
         gradient = f.T @ r  # = −∇C (F is ∂h/∂p weighted, r = w(η − h))
         if np.max(np.abs(gradient) / scale) < tol.gtol * norm_r:
             return stop(GTOL, iteration)
-        step_scaled, *_ = np.linalg.lstsq(f / scale, r, rcond=None)
-        step = step_scaled / scale
+        a = f / scale
+        step_scaled, *_ = np.linalg.lstsq(a, r, rcond=None)
         if np.max(np.abs(step_scaled)) < tol.xtol * max(1.0, norm_r):
             return stop(XTOL, iteration)
-        predicted = 0.5 * np.sum((f @ step) ** 2)
+        predicted = 0.5 * np.sum((a @ step_scaled) ** 2)
         roundoff = np.finfo(float).eps * norm_r * eta_scale
         if predicted < max(tol.pred_tol, tol.roundoff * roundoff):
             return stop(PREDICTED_DECREASE, iteration, pred=predicted)
@@ -440,31 +511,38 @@ def _gauss_newton(model: MeasurementModel, p: np.ndarray, idx: np.ndarray, q: np
             if predicted < tol.stat_tol:
                 return stop(FTOL, iteration)
             return stop(STALLED, iteration, pred=predicted, decrease=decrease, cost=cost)
-        accepted = False
-        for damping in tol.dampings:
-            if damping:
-                a = f / scale
-                lhs = a.T @ a + damping * np.eye(len(idx))
-                step = np.linalg.solve(lhs, a.T @ r) / scale
-            alpha = 1.0
-            slope = -gradient @ step  # directional derivative of the cost (negative)
-            while alpha > tol.min_step:
-                trial = p.copy()
-                trial[idx] += alpha * step
-                r_try, f_try = evaluate(trial)
-                cost_try = 0.5 * r_try @ r_try
-                # A point where the Jacobian is not finite (a saturating effect's shape
-                # parameter driven to a sharp step) is no step to take.
-                if cost_try <= cost + tol.armijo * alpha * slope and np.all(np.isfinite(f_try)):
-                    accepted = True
-                    break
-                alpha *= 0.5
-            if accepted:
+        gn_step = step_scaled / scale
+        gn_length = float(np.linalg.norm(region * gn_step))
+        svd = None
+        while True:
+            step = gn_step
+            if gn_length > radius:
+                # The Gauss-Newton step leaves the trust region: the damped step on its
+                # boundary, (AᵀA + λ I) z = Aᵀ r with ‖z‖ = radius, A = F D⁻¹.
+                if svd is None:
+                    svd = np.linalg.svd(f / region, full_matrices=False)
+                step = _boundary_step(*svd, r, radius) / region
+            length = float(np.linalg.norm(region * step))
+            linear = gradient @ step  # decrease of the cost along Δ to first order (> 0)
+            model_decrease = linear - 0.5 * np.sum((f @ step) ** 2)
+            trial = p.copy()
+            trial[idx] += step
+            r_try, f_try = evaluate(trial)
+            cost_try = 0.5 * r_try @ r_try
+            # A point where the Jacobian is not finite (a saturating effect's shape
+            # parameter driven to a sharp step) is no step to take.
+            if cost_try <= cost - tol.armijo * linear and np.all(np.isfinite(f_try)):
                 break
-        if not accepted:
-            return stop(LINE_SEARCH_FAILED, iteration, pred=predicted)
+            radius = SHRINK * length
+            if radius < tol.xtol * max(1.0, norm_r):
+                return stop(LINE_SEARCH_FAILED, iteration, pred=predicted)
+        nonlinear = bool(gn_length > radius)
+        rho = (cost - cost_try) / model_decrease if model_decrease > 0 else 0.0
+        if rho < 0.25:
+            radius = SHRINK * length
+        elif rho > 0.75 and nonlinear:
+            radius = GROW * radius
         decrease = cost - cost_try
-        nonlinear = alpha < 1.0 or damping > 0.0
         p, r, f, cost = trial, r_try, f_try, cost_try
     return p, MAX_ITERATIONS, STATUS_MESSAGES[MAX_ITERATIONS].format(
         iterations=max_iterations), max_iterations

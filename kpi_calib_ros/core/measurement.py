@@ -15,6 +15,13 @@ adds a rotation row per pose (:mod:`kpi_calib_ros.core.pose_measurement`): its
 reflector index is ``n_reflectors + k`` for reflector ``k``, its ``eta`` is zero and
 ``Measurements.rotation`` holds the measured body rotation that its prediction takes.
 
+Joint readings are not exact either: with a joint-reading noise Σ_q = diag(σ_q²) stated
+(``joint_sigma``), measurement i has the covariance Σ_i = diag(σ²) + J_q,i Σ_q J_q,iᵀ
+(J_q,i = ∂h/∂q at the measurement), no longer diagonal and dependent on p. Its rows are
+whitened with W_i = L_i⁻¹, L_i L_iᵀ = Σ_i (:meth:`MeasurementModel.whitening`), evaluated at
+the current estimate. Rows of one pose measured by several reflectors share that pose's
+joint readings; their correlation is not modelled (each row carries its own J_q Σ_q J_qᵀ).
+
 The KPI point of a working pose is ``h(p, q_work)`` of reflector 0 (the first
 reflector of the cell): the reflector/TCP centre at
 the working configuration expressed in the tracker frame. Unlike a TCP "in the
@@ -23,6 +30,7 @@ parameters the identifiability analysis keeps (a gauge-free quantity).
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Mapping, Protocol, Sequence
 
@@ -112,14 +120,24 @@ class MeasurementModel:
         reflector; each gets a rotation row (channel ``n_reflectors + index``).
     rotation_scale : (3,) array, optional
         σ / σ_rot per axis (m/rad): rotation rows are in metres at the stated σ.
+    joint_sigma : (n,) array, optional
+        Standard deviation of each joint reading (rad, m for prismatic joints) in chain
+        order; None (default): exact joint readings, every row weighted by 1/σ alone.
     """
 
     def __init__(self, robot: RobotModel, geometric: ParameterSet,
                  effects: Sequence[Effect] = (),
                  reflector_axis: np.ndarray | Sequence[float] = (0.0, 0.0, 1.0),
                  orientations: Mapping[int, np.ndarray] | None = None,
-                 rotation_scale: np.ndarray | Sequence[float] | None = None) -> None:
+                 rotation_scale: np.ndarray | Sequence[float] | None = None,
+                 joint_sigma: np.ndarray | Sequence[float] | None = None) -> None:
         self.robot = robot
+        self.joint_sigma = None if joint_sigma is None else np.asarray(joint_sigma, float)
+        if self.joint_sigma is not None and (
+                self.joint_sigma.shape != (robot.n_joints,)
+                or not np.all(np.isfinite(self.joint_sigma)) or np.any(self.joint_sigma < 0)):
+            raise ValueError(f'joint_sigma must be {robot.n_joints} finite numbers >= 0 (one '
+                             f'per joint, chain order), got {self.joint_sigma}')
         self.geometric = geometric
         self.effects = tuple(effects)
         params = geometric
@@ -294,6 +312,37 @@ class MeasurementModel:
                 out[rows] = jac.reshape(3, len(rows), q.shape[1]).transpose(1, 0, 2)
         return out
 
+    def whitening(self, p: np.ndarray, q: np.ndarray, sigma: np.ndarray,
+                  tau: np.ndarray | None = None, reflector: np.ndarray | None = None,
+                  rotation: np.ndarray | None = None,
+                  point_weights: np.ndarray | None = None) -> np.ndarray:
+        """Weights of the residual rows at parameters ``p``, for :func:`weighted_rows`.
+
+        Without joint-reading noise (``joint_sigma`` None): (N, 3) per-axis weights
+        √ω_i / σ_a. With it: (N, 3, 3) W_i = √ω_i L_i⁻¹, L_i the Cholesky factor of
+        Σ_i = diag(σ²) + J_q,i diag(joint_sigma²) J_q,iᵀ, so W_i Σ_i W_iᵀ = ω_i I.
+
+        Parameters
+        ----------
+        sigma : (3,) ndarray
+            Tracker noise per axis, m (rotation rows are in metres at this σ).
+        point_weights : (N,) ndarray, optional
+            Robustness weights ω_i in [0, 1]; default 1.
+        """
+        q = np.atleast_2d(q)
+        sigma = np.broadcast_to(np.asarray(sigma, float), (3,))
+        omega = np.ones(len(q)) if point_weights is None else np.asarray(point_weights, float)
+        if omega.shape != (len(q),) or not np.all(np.isfinite(omega)) or np.any(omega < 0):
+            raise ValueError(f'point_weights must be {len(q)} finite numbers >= 0, got shape '
+                             f'{omega.shape}')
+        if self.joint_sigma is None:
+            return np.sqrt(omega)[:, None] / sigma[None, :]
+        jq = self.joint_jacobian(p, q, tau, reflector, rotation) * self.joint_sigma
+        cov = np.einsum('nak,nbk->nab', jq, jq) + np.diag(sigma ** 2)
+        chol = np.linalg.cholesky(cov)
+        inverse = np.linalg.solve(chol, np.broadcast_to(np.eye(3), chol.shape))
+        return inverse * np.sqrt(omega)[:, None, None]
+
     def body_rotations(self, p: np.ndarray, q: np.ndarray, reflector: int,
                        tau: np.ndarray | None = None) -> np.ndarray:
         """Rotations (N, 3, 3) of reflector ``reflector``'s tracked body in the tracker
@@ -304,19 +353,69 @@ class MeasurementModel:
         out = np.array(fn(p, q.T, tau.T))            # (3, 3N), one 3x3 block per row
         return out.reshape(3, len(q), 3).transpose(1, 0, 2)
 
+    @property
+    def pose_channels(self) -> tuple[int, ...]:
+        """Row channels every measured pose gives (``Measurements.reflector`` values):
+        each reflector's point, then each tracked body's rotation row."""
+        return (tuple(range(self.n_reflectors))
+                + tuple(self.n_reflectors + k for k in sorted(self.orientations)))
+
+    @property
+    def rows_per_pose(self) -> int:
+        """Rows of three residuals a measured pose gives (:attr:`pose_channels`)."""
+        return len(self.pose_channels)
+
+    def pose_measurements(self, p: np.ndarray, q: np.ndarray,
+                          tau: np.ndarray | None = None) -> Measurements:
+        """The rows measuring configurations ``q`` (N, n) gives, noise-free at ``p``: for
+        every pose, :attr:`pose_channels` in turn (pose ``i``, channel ``c`` in row
+        ``i·B + c``); a rotation row carries the body rotation at ``p`` as measured, so
+        its residual is zero and its Jacobian the one identification takes there."""
+        rows = self._pose_rows(p, q, tau)
+        eta = self.predict(p, rows.q, rows.tau, rows.reflector, rows.rotation)
+        return dataclasses.replace(rows, eta=eta)
+
+    def _pose_rows(self, p: np.ndarray, q: np.ndarray,
+                   tau: np.ndarray | None) -> Measurements:
+        """:meth:`pose_measurements` without the predicted points (eta zero)."""
+        q = np.atleast_2d(q)
+        channels = np.array(self.pose_channels)
+        rows_q = np.repeat(q, len(channels), axis=0)
+        rows_tau = None if tau is None else np.repeat(np.atleast_2d(tau), len(channels), axis=0)
+        reflector = np.tile(channels, len(q))
+        rotation = None
+        if self.orientations:
+            rotation = np.broadcast_to(np.eye(3), (len(rows_q), 3, 3)).copy()
+            for k in self.orientations:
+                rotation[reflector == self.n_reflectors + k] = self.body_rotations(p, q, k, tau)
+        return Measurements(q=rows_q, eta=np.zeros((len(rows_q), 3)), tau=rows_tau,
+                            reflector=reflector, rotation=rotation)
+
     def pose_jacobian(self, p: np.ndarray, q: np.ndarray,
                       tau: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Every reflector at every configuration, as the design sees a pose: points
-        (N, 3R) and Jacobian (N, 3R, n_p), reflector k in rows 3k..3k+2."""
+        """Every row a measured pose gives, as the design sees a pose
+        (:meth:`pose_measurements`): predictions (N, 3B) and Jacobian (N, 3B, n_p), channel
+        ``c`` of :attr:`pose_channels` in rows 3c..3c+2 (B = 1 for a single reflector)."""
         q = np.atleast_2d(q)
-        parts = [self.jacobian(p, q, tau, np.full(len(q), k)) for k in range(self.n_reflectors)]
-        return (np.concatenate([pt for pt, _ in parts], axis=1),
-                np.concatenate([j for _, j in parts], axis=1))
+        rows = self._pose_rows(p, q, tau)
+        pts, jac = self.jacobian(p, rows.q, rows.tau, rows.reflector, rows.rotation)
+        b = self.rows_per_pose
+        return pts.reshape(len(q), 3 * b), jac.reshape(len(q), 3 * b, -1)
 
-    def pose_point_expression(self, p, q, tau=None):
-        """Every reflector's centre stacked, CasADi expression (3R,)."""
-        return ca.vertcat(*[self.point_expression(p, q, tau, k)
-                            for k in range(self.n_reflectors)])
+    def pose_point_expression(self, p, q, tau=None, p_measured=None):
+        """Every row of a pose stacked (:attr:`pose_channels`), CasADi expression (3B,);
+        a rotation row takes the body rotation at ``p_measured`` as the measured one (its
+        Jacobian in ``p`` at ``p = p_measured`` is the design's; required with
+        tracked bodies)."""
+        rows = [self.point_expression(p, q, tau, k) for k in range(self.n_reflectors)]
+        if self.orientations and p_measured is None:
+            raise ValueError('p_measured is needed for the rotation rows of tracked bodies')
+        for k in sorted(self.orientations):
+            measured = self.body_rotation_expression(p_measured, q, tau, k)
+            rows.append(rotation_residual_expression(
+                ca.reshape(measured, 9, 1), self.body_rotation_expression(p, q, tau, k),
+                self.rotation_scale))
+        return ca.vertcat(*rows)
 
     def incidence_cos(self, p: np.ndarray, q: np.ndarray) -> np.ndarray:
         """cos of the incidence angle (N,) at joint values ``q`` (N, n)."""
@@ -366,9 +465,10 @@ def weighted_rows(jac: np.ndarray, w: np.ndarray, idx: np.ndarray | None = None)
     ----------
     jac : (N, 3, n_p) ndarray
         d h_i / d p per measurement (m per unit of each parameter).
-    w : (3,), (3R,) or (N, 3) ndarray
+    w : (3,), (3R,), (N, 3) or (N, 3, 3) ndarray
         1/σ per tracker axis (1/m); (3R,) for rows of ``MeasurementModel.pose_jacobian``;
-        (N, 3) per measurement and axis (robustness weights).
+        (N, 3) per measurement and axis (robustness weights); (N, 3, 3) a whitening
+        matrix per measurement (joint-reading noise, :meth:`MeasurementModel.whitening`).
     idx : (k,) int ndarray, optional
         Parameter columns to keep (default all).
 
@@ -378,6 +478,26 @@ def weighted_rows(jac: np.ndarray, w: np.ndarray, idx: np.ndarray | None = None)
         Row 3i + a is axis a of measurement i, in units of σ.
     """
     w = np.asarray(w)
-    rows = (jac * (w[None, :, None] if w.ndim == 1 else w[:, :, None])).reshape(-1, jac.shape[2])
+    if w.ndim == 3:
+        rows = np.einsum('nab,nbk->nak', w, jac).reshape(-1, jac.shape[2])
+    else:
+        rows = (jac * (w[None, :, None] if w.ndim == 1 else w[:, :, None])
+                ).reshape(-1, jac.shape[2])
     return rows if idx is None else rows[:, idx]
+
+
+def weighted_residuals(residuals: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Stacked weighted residuals (3N,) of ``residuals`` (N, 3) in m, with the weights
+    ``w`` of :func:`weighted_rows` ((3,), (N, 3) or (N, 3, 3)): in units of σ."""
+    return weighted_rows(np.asarray(residuals, float)[:, :, None], w)[:, 0]
+
+
+def unweighted(r: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Residuals (N, 3) in m from weighted residuals ``r`` (3N,): the inverse of
+    :func:`weighted_residuals` (a row of weight 0 gives 0)."""
+    r = np.asarray(r, float).reshape(-1, 3)
+    w = np.asarray(w, float)
+    if w.ndim == 3:
+        return np.einsum('nab,nb->na', np.linalg.pinv(w), r)
+    return np.divide(r, w, out=np.zeros_like(r), where=w != 0)
 

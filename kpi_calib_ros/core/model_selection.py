@@ -160,6 +160,7 @@ def choose_model(model: MeasurementModel, data: Measurements, fit: Fit, requeste
     cv: dict[str, float | None] = {}
     n_poses = len(np.unique(np.atleast_2d(data.q), axis=0))
     used = min(folds, n_poses)
+    unconverged: dict[str, str] = {}  # level: why its fit stopped
     for level in LEVELS:
         free = level_free(model.params, level, n_geometric)
         predicted[level] = cv[level] = None
@@ -169,6 +170,8 @@ def choose_model(model: MeasurementModel, data: Measurements, fit: Fit, requeste
             continue
         if not np.all(np.isfinite(result.values)) or result.dof <= 0:
             continue
+        if not result.converged:
+            unconverged[level] = result.message
         oos = out_of_sample_error(model, data, result, free, prior, seed,
                                   domains=('like_measured',)).domains['like_measured']
         predicted[level] = oos.rms_m if oos.estimable else None
@@ -178,7 +181,12 @@ def choose_model(model: MeasurementModel, data: Measurements, fit: Fit, requeste
     if requested != 'auto':
         return ModelChoice(requested, requested, predicted, cv, used,
                            f'{requested} as configured', METHOD)
-    finite = {k: v for k, v in predicted.items() if v is not None}
+    # A level whose fit did not converge is judged by its last iterate, not its minimum:
+    # it is neither chosen nor the best the others are measured against.
+    finite = {k: v for k, v in predicted.items() if v is not None and k not in unconverged}
+    compared_unconverged = not finite
+    if compared_unconverged:  # none converged: compare them, and say so
+        finite = {k: v for k, v in predicted.items() if v is not None}
     if not finite:
         raise DataError(f'{len(data)} measurements are too few to fit even the registration '
                         'model with degrees of freedom left; measure more poses')
@@ -191,9 +199,16 @@ def choose_model(model: MeasurementModel, data: Measurements, fit: Fit, requeste
            f'at the measured configurations ({figures})')
     if larger:
         unfit = [k for k in larger if predicted[k] is None]
-        worse = [k for k in larger if predicted[k] is not None]
+        worse = [k for k in larger if predicted[k] is not None and k in finite]
         if unfit:
             why += f'; {", ".join(unfit)} leaves no degrees of freedom (too few poses)'
         if worse:
             why += f'; {", ".join(worse)} predicts new measurements no better'
+    if compared_unconverged and unconverged:
+        why = ('WARNING: no level\'s fit converged; compared by their last iterates, not '
+               'their minima (raise identification.max_iterations / --max-iterations): '
+               + why)
+    else:
+        for k, message in unconverged.items():
+            why += f'; {k} not compared: its fit did not converge ({message})'
     return ModelChoice(level, 'auto', predicted, cv, used, why, METHOD)

@@ -1,7 +1,8 @@
 """Predicted out-of-sample error of a calibration, from the fit itself (no refits).
 
 A new measurement at a fresh pose q misses the calibrated prediction by the tracker noise
-plus the error of the identified parameters carried to that pose. To first order, with
+(and the joint-reading noise carried to the point, tr(J_q Σ_q J_qᵀ), when the model states
+it) plus the error of the identified parameters carried to that pose. To first order, with
 C the covariance of the identified parameters (eq. (19)-style, from the stated σ) and
 J(q) the point Jacobian of the identified parameters::
 
@@ -292,6 +293,10 @@ def out_of_sample_error(model: MeasurementModel, data: Measurements,
         m = je.T @ je / (len(je) / 3)
         param_ms = float(np.trace(c0 @ m))
         noise_ms = float(np.sum(sigma ** 2))
+        if model.joint_sigma is not None:
+            # Joint-reading noise at the fresh poses: mean tr(J_q Σ_q J_qᵀ) per point.
+            jq = model.joint_jacobian(p, rows_q, None, None if data.reflector is None else ref)
+            noise_ms += float(np.mean(np.sum((jq * model.joint_sigma) ** 2, axis=(1, 2))))
         ms_unit = param_ms + noise_ms                # mean square at s = 1
         lo, hi = _interval(c0, m, noise_ms, scale, dof)
         out[domain] = DomainError(domain, True, float(np.sqrt(scale * ms_unit)),

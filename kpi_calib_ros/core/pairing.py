@@ -506,10 +506,20 @@ class Pairer:
 def _unknown_reflector(frame_id: str, tracker_frame: str, reflectors: Sequence[str]) -> str:
     expected = [tracker_frame if not r else f'{tracker_frame}{REFLECTOR_SEPARATOR}{r}'
                 for r in reflectors]
+    _, name = split_frame(frame_id)
+    if not name:
+        fix = (f"send the points with frame_id '{expected[0]}', or their reflector name "
+               "after the '#'")
+    elif tuple(reflectors) == ('',):
+        fix = (f'the cell has one reflector: (no names); name it as the points do: '
+               f'reflectors: [{{name: {name}}}] (offset and orientation as in reflector:)')
+    else:
+        fix = (f"add {{name: {name}}} to the cell's reflectors: list, or send the points "
+               'with one of the names above')
     return (f"point frame_id '{frame_id}' names a reflector the cell does not have; "
             f"frame ids are '<tracker_frame>{REFLECTOR_SEPARATOR}<reflector name>' for the cell's "
             f'reflectors: list (a plain tracker frame for a single reflector:), expected one '
-            f'of {expected}')
+            f'of {expected}; {fix}')
 
 
 def pair_measurements(

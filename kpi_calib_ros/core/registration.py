@@ -14,6 +14,11 @@ Several reflectors (mocap markers) on one tool: row ``i`` measured reflector
 ``k_i`` with its own offset ``o_k``; the base pose and every offset are registered
 jointly (Horn on all rows, one linear least squares per reflector, Gauss-Newton
 on 6 + 3R unknowns).
+
+A calibrated model is re-registered on a recording made with the tracker (or the probe)
+set up again (:func:`reregister`): the same closed-form start on the calibration's
+predicted points, then Gauss-Newton on the base pose (and the reflector offsets) with the
+calibration's other parameters held, as ``validate --register`` needs.
 """
 from __future__ import annotations
 
@@ -23,6 +28,7 @@ import numpy as np
 import pinocchio as pin
 
 from kpi_calib_ros.core.errors import DataError
+from kpi_calib_ros.core.measurement import MeasurementModel, Measurements, weighted_rows
 
 # A point set whose second principal spread is below this fraction of the first
 # is a line: the rotation about it is undetermined.
@@ -263,3 +269,144 @@ def _miss_message(result: Registration, eta: np.ndarray, positions: np.ndarray,
     return (f'registration: the nominal model misses the measured points by {result.rms_m:.4g} m '
             f'rms (max {r.max():.4g} m at points {worst.tolist()}, median {np.median(r):.4g} m; '
             f'limit {max_rms} m). Likely causes: ' + '; '.join(causes))
+
+
+# Re-registration of a calibrated model on a new recording: a registration direction whose
+# scaled singular value is below this fraction of the largest is not determined by the new
+# poses (it costs no degree of freedom and is left at the calibration's value).
+RANK_TOLERANCE = 1e-8
+
+
+@dataclass(frozen=True)
+class Reregistration:
+    """A calibrated model's placement re-fitted on a new recording alone.
+
+    Attributes
+    ----------
+    p : (n_p,) ndarray
+        The calibration's values with the re-fitted ones replaced.
+    index : (r,) int ndarray
+        Positions in ``p`` of the re-fitted parameters.
+    dof : int
+        Degrees of freedom the fit takes from the new recording: the rank of its
+        Jacobian (r when the new poses determine every re-fitted parameter).
+    chi2 : float
+        The minimum ``eᵀ V⁻¹ e`` (see :func:`reregister`), χ²(3N − dof) when the
+        calibration holds.
+    iterations : int
+        Gauss-Newton steps taken after the closed-form start.
+    """
+
+    p: np.ndarray
+    index: np.ndarray
+    dof: int
+    chi2: float
+    iterations: int
+
+
+def reregister(model: MeasurementModel, p: np.ndarray, data: Measurements, index: np.ndarray,
+               sigma: np.ndarray, uncertain: np.ndarray, covariance: np.ndarray,
+               iterations: int = 30, tol: float = 1e-9) -> Reregistration:
+    """Re-fit the parameters ``index`` of the calibrated model on ``data``, the rest fixed.
+
+    The new recording's tracker (or probe) was set up again: its base pose in the
+    tracker frame (``base.*``) and possibly the reflector offsets changed, nothing else.
+    When every ``base.*`` is re-fitted, the start is the closed-form (Horn) fit of the
+    calibration's predicted points onto the measured ones, composed with the calibrated
+    base pose, so a tracker moved by metres and turned by any angle needs no start.
+
+    Gauss-Newton then fits the re-fitted parameters by least squares with the
+    calibration's other values held: the placement, and the residuals the user compares.
+    The χ² of the test is the minimum over them of ``eᵀ V⁻¹ e``, with ``e`` every row's
+    residual stacked (3N) and ``V = Σ ⊗ I + J_u C_u J_uᵀ`` its covariance: the noise plus
+    the calibration's uncertainty of the other parameters, which is common to all rows.
+    It is a least-squares problem that also fits a correction ``δ`` of the uncertain
+    parameters under the prior ``δ ~ N(0, C_u)`` (profiled out, never applied), so V is
+    never formed. The minimum is χ²(3N − r), r the rank. The two fits coincide when the
+    calibration is precise; where a re-fitted parameter is nearly redundant with
+    uncertain ones (a reflector offset along the tool axis), the χ² fit may move it
+    where δ explains the miss, which is no placement to report.
+
+    Parameters
+    ----------
+    model : MeasurementModel
+    p : (n_p,) ndarray
+        Calibrated parameter values.
+    data : Measurements
+        The new recording (point rows, and rotation rows of tracked bodies).
+    index : (r,) int ndarray
+        Parameters to re-fit (positions in ``p``).
+    sigma : (3,) ndarray
+        Noise std per axis of a row about the calibrated prediction (m).
+    uncertain : (k,) int ndarray
+        Positions in ``p`` of the other identified parameters, ordered as ``covariance``.
+    covariance : (k, k) ndarray
+        C_u, their covariance from the calibration.
+    iterations : int
+        Most Gauss-Newton steps.
+    tol : float
+        Stop when a step moves the whitened residuals by less than this (units of their
+        std).
+
+    Raises
+    ------
+    DataError
+        Fewer than 3 point rows to place the base on.
+    """
+    index = np.asarray(index, dtype=int)
+    uncertain = np.asarray(uncertain, dtype=int)
+    p = np.asarray(p, dtype=float).copy()
+    q = np.atleast_2d(data.q)
+    eta = np.atleast_2d(data.eta)
+    base = model.params.indices([f'base.{c}' for c in ('x', 'y', 'z', 'roll', 'pitch', 'yaw')])
+    if set(base.tolist()) <= set(index.tolist()):
+        ref = (np.zeros(len(q), dtype=int) if data.reflector is None
+               else np.asarray(data.reflector, dtype=int))
+        points = ref < model.n_reflectors
+        if np.count_nonzero(points) < 3:
+            raise DataError(f're-registration needs at least 3 measured points, got '
+                            f'{np.count_nonzero(points)}')
+        pred = model.predict(p, q[points], None if data.tau is None else data.tau[points],
+                             ref[points])
+        rot, trans = horn(pred, eta[points])
+        old = pin.rpy.rpyToMatrix(*p[base[3:]])
+        p[base[:3]] = rot @ p[base[:3]] + trans
+        p[base[3:]] = pin.rpy.matrixToRpy(rot @ old)
+    weight = 1.0 / np.asarray(sigma, dtype=float)
+    k = len(uncertain)
+    # Prior rows L⁻¹ δ with C_u = L Lᵀ (C_u⁻¹ = L⁻ᵀ L⁻¹).
+    prior = np.linalg.inv(np.linalg.cholesky(covariance)) if k else np.zeros((0, 0))
+    # The placement is the least-squares fit with the calibration held (the miss the user
+    # sees); the χ² is the minimum with its uncertainty free (the test), from there.
+    p, _, _, steps = _refit(model, p, data, index, weight, np.zeros(0, int),
+                            np.zeros((0, 0)), iterations, tol)
+    _, chi2, rank, more = _refit(model, p, data, index, weight, uncertain, prior,
+                                 iterations, tol)
+    return Reregistration(p, index, rank - k, chi2, steps + more)
+
+
+def _refit(model: MeasurementModel, p: np.ndarray, data: Measurements, index: np.ndarray,
+           weight: np.ndarray, uncertain: np.ndarray, prior: np.ndarray, iterations: int,
+           tol: float) -> tuple[np.ndarray, float, int, int]:
+    """Gauss-Newton on ``p[index]`` minimising ``‖W (η − h)‖²`` plus, with ``uncertain``
+    parameters, a correction ``δ`` of them under the prior rows ``prior`` (profiled out,
+    never applied). Returns the values, the minimum, the rank of the system and the steps."""
+    p = p.copy()
+    q, eta = np.atleast_2d(data.q), np.atleast_2d(data.eta)
+    k, r = len(uncertain), len(index)
+    steps, rank, chi2 = 0, 0, float('nan')
+    while steps < iterations:
+        steps += 1
+        pred, jac = model.jacobian(p, q, data.tau, data.reflector, data.rotation)
+        rows = np.vstack([
+            np.hstack([weighted_rows(jac, weight, index), weighted_rows(jac, weight, uncertain)]),
+            np.hstack([np.zeros((k, r)), prior])])
+        rhs = np.concatenate([((eta - pred) * weight).reshape(-1), np.zeros(k)])
+        scale = np.linalg.norm(rows, axis=0)
+        scale[scale == 0.0] = 1.0
+        step, _, rank, _ = np.linalg.lstsq(rows / scale, rhs, rcond=RANK_TOLERANCE)
+        chi2 = float(np.sum((rhs - (rows / scale) @ step) ** 2))
+        p[index] += step[:r] / scale[:r]
+        if np.linalg.norm(step[:r]) < tol:
+            break
+    return p, chi2, int(rank), steps

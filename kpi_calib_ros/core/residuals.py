@@ -17,7 +17,8 @@ import numpy as np
 import scipy.stats
 
 from kpi_calib_ros.core.estimation import CalibrationResult, weights
-from kpi_calib_ros.core.measurement import MeasurementModel, Measurements, weighted_rows
+from kpi_calib_ros.core.measurement import (MeasurementModel, Measurements, unweighted,
+                                            weighted_residuals, weighted_rows)
 from kpi_calib_ros.core.robust import SIGMA_RATIO_WARNING, robust_sigma, sigma_warning
 
 PERCENTILES = (50, 90, 95, 99)
@@ -84,7 +85,9 @@ class LinearizedFit:
 
     r : (3N,) weighted residuals; jac : (3N, k) weighted Jacobian of the
     identified parameters; basis : orthonormal basis of span(jac); w : (3,)
-    weights 1/σ; tau : (N, n) gravity torques or None; p : (n_p,) p̂.
+    weights 1/σ, or (N, 3, 3) whitening matrices with joint-reading noise
+    (:meth:`~kpi_calib_ros.core.measurement.MeasurementModel.whitening`);
+    tau : (N, n) gravity torques or None; p : (n_p,) p̂.
     """
 
     r: np.ndarray
@@ -103,6 +106,38 @@ def is_adequate(p_value: float, alpha: float = ADEQUACY_ALPHA) -> bool:
     return bool(p_value >= alpha)
 
 
+# The noise verdicts of the χ² test's two tails (calibration.yaml model_adequacy).
+SIGMA_OVERSTATED = 'sigma overstated'
+SIGMA_CONSISTENT = 'sigma consistent'
+SIGMA_NOT_TESTED = 'not tested'
+
+
+def noise_verdict(chi2: float, dof: int, alpha: float = ADEQUACY_ALPHA) -> tuple[str, float]:
+    """The lower tail of the χ² test: (verdict, P(χ²_dof <= chi2)).
+
+    χ² far *below* its dof is a verdict too: the residuals are smaller than the stated σ
+    allows, the σ is overstated (every std and covariance resting on it is too large)
+    and the upper-tail adequacy test (:func:`is_adequate`) has lost its power. The two
+    tails are two questions, each at the adequacy level ``alpha``: ``adequate`` (upper
+    tail) stays about the model, this about the stated σ. :data:`SIGMA_OVERSTATED` when
+    the lower tail is below ``alpha``; :data:`SIGMA_NOT_TESTED` with no dof.
+    """
+    if dof <= 0 or not np.isfinite(chi2):
+        return SIGMA_NOT_TESTED, float('nan')
+    lower = float(scipy.stats.chi2.cdf(chi2, dof))
+    return (SIGMA_OVERSTATED if lower < alpha else SIGMA_CONSISTENT), lower
+
+
+def sigma_overstated_text(chi2: float, dof: int, lower_p: float,
+                          alpha: float = ADEQUACY_ALPHA) -> str:
+    """The warning of :data:`SIGMA_OVERSTATED`, naming the key to fix."""
+    return (f'{SIGMA_OVERSTATED}: chi2/dof = {chi2:.3g}/{dof} is far below its dof '
+            f'(P(chi2 <= {chi2:.3g}) = {lower_p:.2g} < {alpha:g}): the residuals are '
+            f'{np.sqrt(chi2 / dof):.3g} x the stated noise.sigma; every std and covariance '
+            'resting on it is too large and the adequacy test cannot fail; check '
+            'noise.sigma (units: m)')
+
+
 def linearized_fit(model: MeasurementModel, data: Measurements, result: CalibrationResult,
             tau: np.ndarray | None = None) -> LinearizedFit:
     w = weights(result.sigma)
@@ -110,8 +145,10 @@ def linearized_fit(model: MeasurementModel, data: Measurements, result: Calibrat
     if tau is None and model.uses_torque:
         tau = model.robot.gravity_torques(q)
     p = np.asarray(result.values, float)
+    if model.joint_sigma is not None:
+        w = model.whitening(p, q, result.sigma, tau, data.reflector, data.rotation)
     pred, jac = model.jacobian(p, q, tau, data.reflector, data.rotation)
-    r = ((np.atleast_2d(data.eta) - pred) * w).ravel()
+    r = weighted_residuals(np.atleast_2d(data.eta) - pred, w)
     idx = model.params.indices(result.estimated)
     f = weighted_rows(jac, w, idx)
     basis = orthonormal_basis(f)
@@ -258,7 +295,7 @@ def cv_rms(a: np.ndarray, r: np.ndarray, w: np.ndarray, pose_folds: np.ndarray |
         if np.linalg.eigvalsh(m)[0] <= RANK_TOLERANCE:
             return float('nan')
         held[test] = np.linalg.solve(m, r[test])
-    metres = held.reshape(-1, 3) / w
+    metres = unweighted(held, w)
     return float(np.sqrt(np.mean(np.sum(metres ** 2, axis=1))))
 
 
@@ -277,7 +314,7 @@ def residual_report(model: MeasurementModel, data: Measurements, result: Calibra
     """
     sys_ = linearized_fit(model, data, result)
     n = len(data)
-    residuals = sys_.r.reshape(n, 3) / sys_.w
+    residuals = unweighted(sys_.r, sys_.w)
     norms = np.linalg.norm(residuals, axis=1)
     u = sys_.basis.reshape(n, 3, -1)
     blocks = np.einsum('nik,njk->nij', u, u)  # H_ii, (N, 3, 3)
@@ -288,8 +325,11 @@ def residual_report(model: MeasurementModel, data: Measurements, result: Calibra
                              for ri, h in zip(sys_.r.reshape(n, 3), blocks)])
     k = sys_.basis.shape[1]
     dof = 3 * n - k
-    stated = float(np.mean(1.0 / sys_.w))
-    sigma_hat = robust_sigma(residuals, dof)
+    stated = float(np.mean(result.sigma))
+    # With joint-reading noise σ̂ is that of the whitened residuals at the stated σ: the
+    # joints' share of the scatter is stated, not a misfit (core.robust).
+    sigma_hat = robust_sigma(residuals if model.joint_sigma is None
+                             else sys_.r.reshape(n, 3) * stated, dof)
     inflation = max(1.0, sigma_hat / stated) if np.isfinite(sigma_hat) else 1.0
     outlier = scipy.stats.chi2.sf(standardized / inflation ** 2, 3) * n < alpha
     ratio = sigma_hat / stated

@@ -6,12 +6,25 @@ normal sample times 1.4826 estimates its σ whatever a few wild points do, and t
 dof = 3N − k degrees of freedom in 3N residuals). It is reported beside the stated σ and a
 ratio beyond 2× either way is a warning: the stated σ, not σ̂, sets the covariance.
 
-*Outliers.* A measurement is an outlier when its distance ‖r_i‖ exceeds ``threshold``·σ̂.
-The default threshold is the Bonferroni bound √χ²₃(1 − α/N), α = 0.01: a clean campaign
-loses a point in 1 % of campaigns. Exclusion is one point per round (the farthest), then a
-refit, so one gross point cannot drag good ones over the threshold (swamping). A point
-farther than `GROSS_DISTANCE` from the nominal prediction (a wrong unit, another target)
-is excluded before the first fit. Excluded points are listed, never dropped silently.
+*Joint-reading noise.* With ``noise.joint_sigma`` stated a point's noise is σ²I + J_q Σ_q J_qᵀ,
+larger where the joints' lever is long: σ̂ and the distances reported then take each
+residual whitened (W_i r_i, :meth:`~kpi_calib_ros.core.measurement.MeasurementModel.whitening`)
+times the stated σ, a residual whose noise is the stated σ on every axis at every pose, and
+the studentized distances below come from the whitened rows.
+
+*Outliers.* A measurement is over the threshold when its studentized distance
+t_i = √(r_iᵀ (I − H_ii)⁺ r_i) / σ̂ exceeds ``threshold``. The default threshold is the
+Bonferroni bound √χ²₃(1 − α/N), α = 0.01: a clean campaign loses a point in 1 % of
+campaigns. A point over it is excluded only when it is a *fault*, not a *misfit* of the
+model: the rule (replicates of the pose, a rigid motion of the pose, leverage) and its
+reasoning are in :mod:`kpi_calib_ros.core.outliers`; misfit points are kept and named
+("model misfit at these poses, see kpi-calib diagnose"). Faults are excluded in batches
+and the fit repeated: each round the faults within half the farthest one's distance
+(at least the threshold), so one gross point cannot drag good ones over the threshold
+(swamping) and a campaign with hundreds of faults needs a few rounds, not hundreds; at
+most one point per pose and round. A point farther than `GROSS_DISTANCE` from the nominal
+prediction (a wrong unit, another target) is excluded before the first fit. Excluded
+points are listed, never dropped silently.
 
 *Robust losses* (``loss``, iteratively reweighted least squares in the Gauss-Newton of
 :func:`~kpi_calib_ros.core.estimation.identify`): with u_i = ‖r_i‖ / (c σ̂), σ̂ re-estimated
@@ -30,7 +43,8 @@ import scipy.stats
 
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation import MAX_START_ERROR, CalibrationResult
-from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
+from kpi_calib_ros.core.measurement import MeasurementModel, Measurements, weighted_residuals
+from kpi_calib_ros.core.outliers import judge, pose_groups
 
 LOSSES = ('linear', 'huber', 'soft_l1')
 LOSS_SCALE = float(np.sqrt(scipy.stats.chi2.ppf(0.95, 3)))
@@ -66,6 +80,16 @@ class ExcludedMeasurement:
     distance_m: float
     distance_sigma: float
     reason: str
+    # Excluded by the lone-point rule alone (no replicate confirmed it as a fault).
+    lone: bool = False
+
+    def text(self) -> str:
+        """The one line the log and the summary print: ``distance_sigma`` is the number
+        calibration.yaml stores (distance from the final fit over its σ̂), so a point
+        reads the same in both."""
+        return (f'measurement {self.index} (stamp {self.stamp_ns} ns) excluded: '
+                f'{self.distance_m * 1e6:.1f} µm from the final fit, distance_sigma '
+                f'{self.distance_sigma:.2f} σ̂; {self.reason}')
 
 
 @dataclass(frozen=True)
@@ -75,6 +99,7 @@ class RobustResult:
     result : the final fit (on the kept measurements, with the loss's weights);
     kept : (N,) bool, measurements used; excluded : the others, in order of exclusion;
     outliers : indices over the threshold (excluded or, with exclude false, only reported);
+    misfit : indices over the threshold kept as model misfit (core.outliers), not faults;
     sigma_robust : σ̂ (m, per axis) from the final residuals; sigma_stated : mean stated σ;
     threshold : outlier threshold in σ̂; loss : the loss used; warnings : texts for the user.
     """
@@ -89,6 +114,7 @@ class RobustResult:
     loss: str
     point_weights: np.ndarray | None
     warnings: tuple[str, ...] = field(default=())
+    misfit: tuple[int, ...] = field(default=())
 
     @property
     def sigma_ratio(self) -> float:
@@ -133,7 +159,8 @@ Fit = Callable[..., CalibrationResult]
 def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndarray,
                     fit: Fit, loss: str = 'linear',
                     outliers: OutlierSettings = OutlierSettings(),
-                    start: np.ndarray | None = None) -> RobustResult:
+                    start: np.ndarray | None = None,
+                    progress: Callable[[str], None] | None = None) -> RobustResult:
     """Identify with outlier exclusion and a robust loss.
 
     Parameters
@@ -152,6 +179,8 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
     start : (n_p,) ndarray, optional
         Parameters the gross-outlier test predicts with (default: the nominal ones);
         e.g. the registered placement.
+    progress : callable, optional
+        Called with one line of text after every exclusion round.
 
     Raises
     ------
@@ -174,32 +203,79 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
                                       f'{GROSS_DISTANCE:g} m from the nominal prediction'))
         kept &= ~gross
     max_excluded = int(np.floor(outliers.max_fraction * n))
+    pose = pose_groups(q)
     p0 = None
+    rounds = 0
+    lone_misfit = False
     while True:
-        result, omega = _fit_with_loss(fit, subset(data, kept), loss, p0)
+        try:
+            result, omega = _fit_with_loss(fit, subset(data, kept), loss, p0, model, sigma)
+        except DataError as exc:
+            if not excluded:
+                raise
+            # 'too few measurements: 9 points' of 10 accepted: say which were left out.
+            raise DataError(f'{exc} (after excluding {len(excluded)} of the {n} measurements: '
+                            + '; '.join(f'{e.index}: {e.reason}' for e in excluded) + ')'
+                            ) from None
         p0 = result.values
-        distances = np.linalg.norm(
-            eta - model.predict(result.values, q, data.tau, data.reflector, data.rotation),
-            axis=1)
-        scale = robust_sigma(result.residuals, result.dof)
-        over = kept & (distances > threshold * scale)
-        if not outliers.exclude or not over.any():
+        miss = eta - model.predict(result.values, q, data.tau, data.reflector, data.rotation)
+        distances = np.linalg.norm(miss, axis=1)
+        # What σ̂ and the reported distances see: the metric distances, or with joint-reading
+        # noise the residuals at the stated σ (module text).
+        tested, scaled = distances, result.residuals
+        if model.joint_sigma is not None:
+            standard = noise_units(model, data, result.values, miss, sigma)
+            tested, scaled = np.linalg.norm(standard, axis=1), standard[kept]
+        scale = robust_sigma(scaled, result.dof)
+        verdict = judge(model, data, result.values, result.estimated, sigma, scale,
+                        threshold, kept, pose, omega)
+        t = verdict.distance_sigma
+        fault = verdict.fault & ~(verdict.lone & lone_misfit)
+        if not outliers.exclude or not fault.any():
             break
-        if len(excluded) >= max_excluded:
+        # The faults within half the farthest one's distance: a batch a distorted fit
+        # cannot have pushed good points into (swamping), then a refit.
+        batch = fault & (t >= max(threshold, 0.5 * float(t[fault].max())))
+        if len(excluded) + int(batch.sum()) > max_excluded and not lone_misfit and (
+                batch & verdict.lone).any():
+            # More lone "faults" than faults happen: points no replicate confirms, this
+            # many, are the model's misfit (real arms with an effect the model lacks), not
+            # the tracker's faults. Keep them all, those excluded before too, and refit.
+            lone_misfit = True
+            restored = [e.index for e in excluded if e.lone]
+            kept[restored] = True
+            excluded = [e for e in excluded if not e.lone]
+            p0 = None  # from the start, as a fit that never excluded them
+            if progress is not None:
+                progress(f'outliers: more than {outliers.max_fraction:.0%} of the points '
+                         'would be excluded with no replicate to confirm them: taken as '
+                         f'model misfit; {len(restored)} restored, refitting')
+            continue
+        if len(excluded) + int(batch.sum()) > max_excluded:
             raise DataError(f'more than {outliers.max_fraction:.0%} of the {n} measurements '
                             f'lie beyond {threshold:.2f} σ̂ (σ̂ = {scale * 1e6:.1f} µm): the '
                             'model or the data is wrong, not a few points; run kpi-calib '
                             'diagnose, or raise identification.outliers.threshold')
-        worst = int(np.argmax(np.where(over, distances, -1.0)))
-        excluded.append(_excluded(worst, stamps, distances[worst], distances[worst] / scale,
-                                  f'outlier: {distances[worst] / scale:.1f} σ̂ > '
-                                  f'{threshold:.2f} σ̂'))
-        kept[worst] = False
+        # The reason carries no distance of its own: distance_sigma (against the final
+        # fit, below) is the one figure reported for the point.
+        for i in np.flatnonzero(batch)[np.argsort(-t[batch])]:
+            excluded.append(replace(
+                _excluded(int(i), stamps, distances[i], tested[i] / scale,
+                          f'outlier: studentized residual beyond {threshold:.2f} σ̂ in the '
+                          'fit it was excluded from'), lone=bool(verdict.lone[i])))
+        kept[batch] = False
+        rounds += 1
+        if progress is not None:
+            progress(f'outliers: round {rounds}: excluded {int(batch.sum())} '
+                     f'({len(excluded)} of {n} in all, σ̂ {scale * 1e6:.3g} µm), refitting '
+                     f'{int(kept.sum())} points')
     # Distances of every measurement (excluded ones too) against the final fit.
     final_excluded = tuple(replace(e, distance_m=float(distances[e.index]),
-                                   distance_sigma=float(distances[e.index] / scale))
+                                   distance_sigma=float(tested[e.index] / scale))
                            for e in excluded)
-    flagged = tuple(int(i) for i in np.flatnonzero(distances > threshold * scale))
+    flagged = tuple(int(i) for i in np.flatnonzero(t > threshold))
+    misfit = tuple(int(i) for i in np.flatnonzero(
+        verdict.misfit | (verdict.fault & verdict.lone & lone_misfit)))
     stated = float(np.mean(np.broadcast_to(np.asarray(sigma, float), (3,))))
     warnings = []
     ratio = scale / stated
@@ -208,8 +284,27 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
     if flagged and not outliers.exclude:
         warnings.append(f'{len(flagged)} outlier(s) beyond {threshold:.2f} σ̂ kept in the fit '
                         '(identification.outliers.exclude is false)')
+    if misfit:
+        warnings.append(misfit_warning(misfit, pose, threshold,
+                                       outliers.max_fraction if lone_misfit else None))
     return RobustResult(result, kept, final_excluded, flagged, scale, stated, threshold,
-                        loss, omega, tuple(warnings))
+                        loss, omega, tuple(warnings), misfit)
+
+
+def misfit_warning(misfit: tuple[int, ...], pose: np.ndarray, threshold: float,
+                   too_many_lone: float | None = None) -> str:
+    """The text naming the points over the threshold kept as model misfit;
+    ``too_many_lone``: the fraction beyond which lone points were taken as misfit."""
+    poses = sorted({int(pose[i]) for i in misfit})
+    shown = ', '.join(str(g) for g in poses[:12]) + (', …' if len(poses) > 12 else '')
+    why = ('their pose\'s other points agree with them, or they carry information no other '
+           'pose has')
+    if too_many_lone is not None:
+        why += (f'; or, with no other point at their pose, they are more than '
+                f'{too_many_lone:.0%} of the measurements: faults are few, a misfit is '
+                'everywhere')
+    return (f'model misfit at poses {shown} ({len(misfit)} point(s) beyond '
+            f'{threshold:.2f} σ̂ kept: {why}); see kpi-calib diagnose')
 
 
 def gross_outliers(model: MeasurementModel, data: Measurements,
@@ -234,15 +329,29 @@ def sigma_warning(robust: float, stated: float) -> str:
             'check noise.sigma (units: m) or the model (kpi-calib diagnose)')
 
 
-def _fit_with_loss(fit: Fit, data: Measurements, loss: str, p0: np.ndarray | None
+def noise_units(model: MeasurementModel, data: Measurements, p: np.ndarray,
+                residuals: np.ndarray, sigma: float | np.ndarray) -> np.ndarray:
+    """Residuals (N, 3) of ``data`` at ``p`` as the robust statistics take them (m): as
+    given without joint-reading noise; with it, W_i r_i times the mean stated σ, whose noise
+    is the stated σ on every axis at every pose."""
+    if model.joint_sigma is None:
+        return residuals
+    sigma = np.broadcast_to(np.asarray(sigma, float), (3,))
+    w = model.whitening(p, data.q, sigma, data.tau, data.reflector, data.rotation)
+    return weighted_residuals(residuals, w).reshape(-1, 3) * float(np.mean(sigma))
+
+
+def _fit_with_loss(fit: Fit, data: Measurements, loss: str, p0: np.ndarray | None,
+                   model: MeasurementModel, sigma: float | np.ndarray
                    ) -> tuple[CalibrationResult, np.ndarray | None]:
     result = fit(data, p0=p0)
     if loss == 'linear':
         return result, None
     omega = np.ones(len(data))
     for _ in range(IRLS_ITERATIONS):
-        scale = robust_sigma(result.residuals, result.dof)
-        new = loss_weights(loss, np.linalg.norm(result.residuals, axis=1), scale)
+        residuals = noise_units(model, data, result.values, result.residuals, sigma)
+        scale = robust_sigma(residuals, result.dof)
+        new = loss_weights(loss, np.linalg.norm(residuals, axis=1), scale)
         result = fit(data, p0=result.values, point_weights=new)
         if np.max(np.abs(new - omega)) < 1e-3:
             omega = new

@@ -22,6 +22,14 @@ measurement
    most, by the rank-3 Woodbury update of :mod:`design_exchange` with the Jacobians at
    the current estimate.
 
+*Outliers.* Every re-identification applies the batch identification's outlier rule
+(:func:`kpi_calib_ros.core.robust.robust_identify`: Bonferroni threshold on the distance
+in robust σ̂, one point per round): an excluded measurement is named in the status and
+left out of the fit, the χ² and the pure error, and its pose is measured again next
+(a replicate that agrees with the fit says the first reading was a fault, one that
+agrees with the excluded reading says the model misses there). Only then does the
+lack-of-fit test below judge the model: one wild point is not a missing effect.
+
 *Model adequacy.* A χ² test against the stated σ cannot tell an understated σ from an
 effect the model lacks. When it rejects, the campaign measures ``replicates`` already
 measured poses again (the ones that help the KPI most); their scatter is pure error,
@@ -32,9 +40,17 @@ systematic part of the residual (per axis, rms) exceeds the target at level
 measured points systematically by more than the target cannot be trusted to place the
 TCP within it, and more measurements do not shrink a bias. The level is small because
 the test is repeated after every measurement.
+
+*What a pose gives.* A measurement is a pose, and a pose gives every row the cell
+declares (:attr:`~kpi_calib_ros.core.measurement.MeasurementModel.pose_channels`):
+each reflector's point and each tracked body's rotation. The plan, the estimability and
+the stop statistic count all of them, as the identification does; the pure error is the
+scatter of each reflector's point over the replicates of a pose; the outlier rule judges
+rows, and a pose with an excluded row is measured again.
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 from typing import Sequence
@@ -45,10 +61,12 @@ import scipy.stats
 from kpi_calib_ros.core.design_cell import DesignCell
 from kpi_calib_ros.core.design_criteria import DesignProblem, scales
 from kpi_calib_ros.core.design_exchange import exchange, information
-from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.estimability import result_estimability
 from kpi_calib_ros.core.estimation import CalibrationResult, identify
 from kpi_calib_ros.core.measurement import Measurements
+from kpi_calib_ros.core.robust import (ExcludedMeasurement, OutlierSettings, RobustResult,
+                                       robust_identify)
 
 TARGET_MET = 'target met'
 # Look-ahead of the plan (poses): the next-pose step must stay below 1 s on two cores.
@@ -148,6 +166,11 @@ class CampaignStatus:
         Candidate index of each planned pose (-1: not a candidate).
     step_seconds : float
         Time of the last re-identification and next-pose choice.
+    excluded : tuple of dict
+        Measurements the outlier rule left out: ``measurement`` (0-based, campaign
+        order), ``stamp_ns`` (None without stamps), ``distance_m``, ``reason``.
+    confidence : float
+        Confidence of ``sigma_upper``.
     """
 
     measurements: int
@@ -165,6 +188,8 @@ class CampaignStatus:
     next_configurations: np.ndarray
     next_candidates: np.ndarray
     step_seconds: float
+    excluded: tuple[dict, ...] = ()
+    confidence: float = 0.975
 
     @property
     def stopped(self) -> bool:
@@ -176,13 +201,14 @@ class CampaignStatus:
             'measurements': int(self.measurements), 'target_tcp_std_m': float(self.target_std),
             'statistic_m': float(self.statistic),
             'statistic': 'largest per-axis TCP std over the working poses, from the upper '
-                         'confidence limit of sigma',
+                         f'{100 * self.confidence:g} % confidence limit of sigma',
             'tcp_std_m': {n: [float(x) for x in row]
                           for n, row in zip(working_pose_names, self.tcp_std)},
             'sigma_m': {'stated': float(self.sigma_stated), 'estimated': float(self.sigma_hat),
                         'upper_limit': float(self.sigma_upper)},
             'chi2': float(self.chi2), 'dof': int(self.dof), 'p_value': float(self.p_value),
             'lack_of_fit': {k: float(v) for k, v in self.lack_of_fit.items()},
+            'excluded': [dict(e) for e in self.excluded],
             'stop_reason': self.stop_reason or 'running',
             'next_poses': len(self.next_configurations),
             'step_seconds': float(self.step_seconds)}
@@ -241,11 +267,15 @@ def pose_groups(q: np.ndarray, tolerance: float = REPLICATE_TOLERANCE) -> np.nda
     return labels
 
 
-def pure_error(q: np.ndarray, eta: np.ndarray, weight: np.ndarray) -> tuple[float, int]:
+def pure_error(q: np.ndarray, eta: np.ndarray, weight: np.ndarray,
+               reflector: np.ndarray | None = None) -> tuple[float, int]:
     """Weighted sum of squares (σ units) and dof of the scatter of repeated poses
-    (:func:`pose_groups`): 3 (m − 1) dof per pose measured m times."""
+    (:func:`pose_groups`): 3 (m − 1) dof per pose measured m times, per reflector
+    (``reflector`` (N,) the reflector of each point row; None: one)."""
     ss, dof = 0.0, 0
     labels = pose_groups(q)
+    if reflector is not None:
+        labels = labels * (int(np.max(reflector, initial=0)) + 1) + np.asarray(reflector)
     for g in np.unique(labels):
         pts = eta[labels == g] * weight
         if len(pts) > 1:
@@ -294,9 +324,6 @@ class SequentialCampaign:
     def __init__(self, cell: DesignCell, problem: DesignProblem, candidates: np.ndarray,
                  settings: CampaignSettings, rng: np.random.Generator,
                  free: list[str] | None = None) -> None:
-        if cell.model.n_reflectors != 1:
-            raise ConfigError('reflectors', 'the sequential campaign measures one reflector '
-                              f'per pose; the cell has {cell.model.n_reflectors}')
         sigma = np.asarray(cell.sigma, float)
         if not np.allclose(sigma, sigma[0]):
             raise ConfigError('noise.sigma', 'the sequential campaign estimates one σ for '
@@ -306,11 +333,15 @@ class SequentialCampaign:
         self.free = free
         self.sigma = float(sigma[0])
         self.rng = rng
-        self.q = np.zeros((0, cell.robot.n_joints))
-        self.eta = np.zeros((0, 3))
+        self.q = np.zeros((0, cell.robot.n_joints))     # one row per measured pose
+        self.rows = Measurements(q=self.q, eta=np.zeros((0, 3)),  # every row measured
+                                 reflector=np.zeros(0, int), stamps_ns=np.zeros(0, np.int64))
+        self._row_pose = np.zeros(0, int)  # the pose (index in q) of every row
         self.used: list[int] = []   # candidate index of every measurement (-1: other pose)
         self.result: CalibrationResult | None = None
+        self.robust: RobustResult | None = None
         self.status: CampaignStatus | None = None
+        self._suspects: list[int] = []  # excluded measurements, to be measured again
         self._p = cell.model.params.nominal.copy()
         self._replicating = False
         self._statistic = float('inf')
@@ -341,7 +372,8 @@ class SequentialCampaign:
             raise ConfigError('design.candidates', 'no candidate subset makes the TCP '
                               'estimable; check the working poses and the joint ranges')
         cap = min(len(self.candidates), self.settings.max_measurements)
-        size = min(n + self.settings.initial_margin, cap)
+        size = n + self.settings.initial_margin
+        self._check_cap(size, n)
         big = min(NESTED_FACTOR * size, cap)
         best = res if big == n else None
         for _ in range(INITIAL_STARTS if best is None else 0):
@@ -352,8 +384,21 @@ class SequentialCampaign:
         order = nested_order(rows, np.asarray(best.selected, int), loss, n)
         while size < len(order) and not self._estimable(self.candidates[order[:size]]):
             size += 1
+        self._check_cap(size, n)
         self._last_plan = [int(i) for i in order[size:]]
         return order[:size]
+
+    def _check_cap(self, size: int, smallest: int) -> None:
+        """ConfigError naming the cap and the initial design's size when the campaign may
+        not measure even its initial design."""
+        s = self.settings
+        if size > s.max_measurements or size > len(self.candidates):
+            limit = ('max_measurements', s.max_measurements) if size > s.max_measurements \
+                else ('design.candidates', len(self.candidates))
+            raise ConfigError(limit[0], f'{limit[1]} is below the initial design of {size} '
+                              f'poses (the smallest KPI design that determines every '
+                              f'identifiable parameter and the TCP has {smallest}, + '
+                              f'initial_margin {s.initial_margin}); give at least {size}')
 
     def match_candidates(self, q: np.ndarray, tolerance: float = 1e-3) -> np.ndarray:
         """Candidate index (N,) of each measured pose ``q`` (N, n): the candidate within
@@ -367,20 +412,39 @@ class SequentialCampaign:
                 out[i] = j
         return out
 
+    @property
+    def eta(self) -> np.ndarray:
+        """Every measured row (m, tracker frame; zero on rotation rows), :attr:`rows`."""
+        return self.rows.eta
+
+    @property
+    def stamps(self) -> np.ndarray:
+        """Stamp of every measured row (ns; -1: none), :attr:`rows`."""
+        return np.asarray(self.rows.stamps_ns, np.int64)
+
     def _estimable(self, q: np.ndarray) -> bool:
         model = self.cell.model
-        return result_estimability(model, q, self.cell.sigma, model.params.nominal,
+        rows = model.pose_measurements(model.params.nominal, q)  # every row of each pose
+        return result_estimability(model, rows.q, self.cell.sigma, model.params.nominal,
                                    self.cell.q_work, self.cell.working_pose_names,
-                                   free=self.free).all_estimable
+                                   free=self.free, reflector=rows.reflector,
+                                   rotation=rows.rotation).all_estimable
 
     # ---------------------------------------------------------------------- the loop
     def add(self, q: np.ndarray, eta: np.ndarray,
-            candidate: int | Sequence[int] | np.ndarray = -1) -> CampaignStatus:
-        """Add measurements (q (m, n), eta (m, 3) tracker frame, m) and update the plan.
+            candidate: int | Sequence[int] | np.ndarray = -1,
+            reflector: np.ndarray | None = None,
+            rotation: np.ndarray | None = None,
+            stamps_ns: Sequence[int] | np.ndarray | None = None) -> CampaignStatus:
+        """Add measurements (rows q (m, n), eta (m, 3) tracker frame, m) and update the plan.
 
-        ``candidate`` gives the candidate index of each row (-1: found by
+        As :class:`~kpi_calib_ros.core.measurement.Measurements`: ``reflector`` (m,) the
+        row channel of each row (None: reflector 0 throughout) and ``rotation`` (m, 3, 3)
+        the measured rotations of rotation rows. A pose is the consecutive rows with the
+        same ``q`` and no channel twice (each reflector's point, each tracked body's
+        rotation). ``candidate`` gives the candidate index of each pose (-1: found by
         :meth:`match_candidates`); a measured candidate is not proposed again except as
-        a replicate.
+        a replicate. ``stamps_ns`` (m,) name the rows the outlier rule excludes.
 
         Raises
         ------
@@ -393,18 +457,37 @@ class SequentialCampaign:
         if q.shape[1] != self.cell.robot.n_joints or eta.shape != (len(q), 3):
             raise ValueError(f'q {q.shape} and eta {eta.shape} do not fit '
                              f'{self.cell.robot.n_joints} joints')
-        self.q = np.vstack([self.q, q])
-        self.eta = np.vstack([self.eta, eta])
-        index = np.broadcast_to(np.asarray(candidate, int), (len(q),))
-        index = np.where(index >= 0, index, self.match_candidates(q))
+        stamps = (np.full(len(q), -1, np.int64) if stamps_ns is None
+                  else np.asarray(stamps_ns, np.int64).reshape(len(q)))
+        model = self.cell.model
+        channel = (np.zeros(len(q), int) if reflector is None
+                   else np.asarray(reflector, int).reshape(len(q)))
+        bad = sorted(set(channel.tolist()) - set(model.pose_channels))
+        if bad or (rotation is None and np.any(channel >= model.n_reflectors)):
+            raise ValueError(f'reflector: row channels must be among {model.pose_channels} '
+                             f'(rotation rows with their rotation=), got {bad or "no rotation"}')
+        rows = Measurements(q=q, eta=eta, reflector=channel, stamps_ns=stamps,
+                            rotation=None if rotation is None else np.asarray(rotation, float))
+        starts = _pose_starts(q, channel)
+        poses = q[starts]
+        first = len(self.q)
+        self._row_pose = np.concatenate([
+            self._row_pose, first + np.searchsorted(starts, np.arange(len(q)), side='right') - 1])
+        self.q = np.vstack([self.q, poses])
+        self.rows = _concatenate(self.rows, rows)
+        index = np.broadcast_to(np.asarray(candidate, int), (len(poses),))
+        index = np.where(index >= 0, index, self.match_candidates(poses))
         self.used.extend(int(i) for i in index)
-        cell = self.cell
-        res = identify(cell.model, Measurements(q=self.q, eta=self.eta), cell.sigma,
-                       cell.q_work, list(cell.working_pose_names), p0=self._p,
-                       free=self.free, identifiability_method=cell.identification_method,
-                       priority=list(cell.identification_priority) or None)
-        self.result, self._p = res, res.values.copy()
+        robust = self._robust_fit()
+        res = robust.result
+        kept = np.asarray(robust.kept, bool)
+        self.robust, self.result, self._p = robust, res, res.values.copy()
         s = self.settings
+        self._suspects = [e.index for e in robust.excluded]
+        if res.p_value < s.adequacy_alpha and self._pure_error(kept, np.ones(3))[1] == 0:
+            # χ² rejects before any replicate: the first one is the pose whose point
+            # stands out most (studentized), so a fault is found before a misfit is judged.
+            self._suspects.append(self._most_suspect(kept))
         sigma_hat = self.sigma * np.sqrt(res.chi2 / res.dof) if res.dof > 0 else float('inf')
         sigma_up = sigma_upper_limit(res.chi2, res.dof, self.sigma, s.confidence)
         scale = (sigma_up / self.sigma) ** 2
@@ -412,7 +495,11 @@ class SequentialCampaign:
         statistic = float(np.max(tcp_std)) if np.all(np.isfinite(tcp_std)) else float('inf')
         if res.p_value < s.adequacy_alpha:
             self._replicating = True
-        ss_pe, dof_pe = pure_error(self.q, self.eta, np.full(3, 1.0 / self.sigma))
+        elif robust.excluded:
+            # The rejection was the excluded faults': the rest fits as a clean campaign's
+            # does, which takes no replicates (and runs no lack-of-fit test on few).
+            self._replicating = False
+        ss_pe, dof_pe = self._pure_error(kept, np.full(3, 1.0 / self.sigma))
         lof = lack_of_fit(res.chi2, res.dof, ss_pe, dof_pe, s.target_std / self.sigma,
                           s.inadequacy_alpha)
         if lof:
@@ -426,26 +513,119 @@ class SequentialCampaign:
         elif len(self.q) >= s.max_measurements:
             reason = MAX_MEASUREMENTS
         self._statistic = statistic
-        plan, plan_index = ((np.zeros((0, cell.robot.n_joints)), np.zeros(0, int)) if reason
-                            else self._plan(dof_pe))
+        plan, plan_index = ((np.zeros((0, self.cell.robot.n_joints)), np.zeros(0, int))
+                            if reason else self._plan(dof_pe))
+        excluded = tuple(
+            {'measurement': int(e.index),
+             'stamp_ns': int(self.stamps[e.index]) if self.stamps[e.index] >= 0 else None,
+             'distance_m': float(e.distance_m), 'reason': e.reason}
+            for e in robust.excluded)
         self.status = CampaignStatus(
             measurements=len(self.q), tcp_std=tcp_std, statistic=statistic,
             target_std=s.target_std, sigma_stated=self.sigma, sigma_hat=float(sigma_hat),
             sigma_upper=sigma_up, chi2=res.chi2, dof=res.dof, p_value=res.p_value,
             lack_of_fit=lof, stop_reason=reason, next_configurations=plan,
             next_candidates=plan_index,
-            step_seconds=time.perf_counter() - start)
+            step_seconds=time.perf_counter() - start, excluded=excluded,
+            confidence=s.confidence)
         return self.status
+
+    def _robust_fit(self) -> RobustResult:
+        """The identification with the batch outlier rule (warm start). More outliers than
+        the rule may exclude is no longer a few faults: every point is kept, and the
+        lack-of-fit test judges the model."""
+        cell = self.cell
+
+        def fit(data: Measurements, p0: np.ndarray | None = None,
+                point_weights: np.ndarray | None = None) -> CalibrationResult:
+            return identify(cell.model, data, cell.sigma, cell.q_work,
+                            list(cell.working_pose_names),
+                            p0=self._p if p0 is None else p0, free=self.free,
+                            identifiability_method=cell.identification_method,
+                            priority=list(cell.identification_priority) or None,
+                            point_weights=point_weights)
+        data = self.rows
+        try:
+            robust = robust_identify(cell.model, data, cell.sigma, fit)
+        except DataError:
+            return robust_identify(cell.model, data, cell.sigma, fit,
+                                   outliers=OutlierSettings(exclude=False))
+        if robust.result.p_value >= self.settings.adequacy_alpha:
+            return robust
+        return self._replicate_fault(data, robust, fit)
+
+    def _replicate_fault(self, data: Measurements, robust: RobustResult,
+                         fit) -> RobustResult:
+        """A pose measured more than once whose readings disagree: the reading whose
+        removal lets the fit pass the χ² test is a fault (the replicate agrees with the
+        model, the first reading does not); a misfit fails with either removed, so
+        nothing is excluded and the lack-of-fit test judges the model."""
+        kept = np.asarray(robust.kept, bool)
+        labels = self._replicate_labels()
+        best: tuple[float, int, RobustResult] | None = None
+        for g in np.unique(labels[kept]):
+            members = np.flatnonzero((labels == g) & kept)
+            if len(members) < 2:
+                continue
+            for i in members:
+                keep = kept.copy()
+                keep[i] = False
+                trial = robust_identify(self.cell.model, data.subset(keep), self.cell.sigma,
+                                        fit, outliers=OutlierSettings(exclude=False))
+                if best is None or trial.result.chi2 < best[0]:
+                    best = (trial.result.chi2, int(i), trial)
+        if best is None or best[2].result.p_value < self.settings.adequacy_alpha:
+            return robust
+        _, fault, trial = best
+        index = np.flatnonzero(kept & (np.arange(len(kept)) != fault))
+        new_kept = np.zeros(len(kept), bool)
+        new_kept[index] = np.asarray(trial.kept, bool)
+        one = self.rows.subset(np.arange(fault, fault + 1))
+        predicted = self.cell.model.predict(trial.result.values, one.q, None, one.reflector,
+                                            one.rotation)[0]
+        distance = float(np.linalg.norm(self.eta[fault] - predicted))
+        stamp = int(self.stamps[fault]) if self.stamps[fault] >= 0 else None
+        fault_entry = ExcludedMeasurement(
+            fault, stamp, distance, distance / self.sigma,
+            'fault: its pose measured again agrees with the model, this reading does not '
+            f'(without it chi2 p = {trial.result.p_value:.3g})')
+        return dataclasses.replace(trial, kept=new_kept,
+                                   excluded=tuple(robust.excluded) + (fault_entry,))
+
+    def _most_suspect(self, kept: np.ndarray) -> int:
+        """The kept measurement with the largest studentized distance to the fit,
+        r_iᵀ(I − H_ii)⁻¹r_i with H the hat matrix of the weighted Jacobian: a point the
+        fit is drawn towards (high leverage) counts its residual accordingly."""
+        model, res = self.cell.model, self.result
+        assert res is not None
+        idx = model.params.indices(list(res.estimated))
+        rows = self.rows.subset(kept)
+        q = rows.q
+        pred, jac = model.jacobian(self._p, rows.q, None, rows.reflector, rows.rotation)
+        r = rows.eta - pred
+        j = jac[:, :, idx]
+        flat = j.reshape(-1, len(idx))
+        inv = np.linalg.pinv(flat.T @ flat)
+        score = np.full(len(q), -np.inf)
+        for i in range(len(q)):
+            h = j[i] @ inv @ j[i].T
+            try:
+                score[i] = float(r[i] @ np.linalg.solve(np.eye(3) - h, r[i]))
+            except np.linalg.LinAlgError:
+                continue
+        return int(np.flatnonzero(kept)[int(np.argmax(score))])
 
     def _plan(self, dof_pe: int) -> tuple[np.ndarray, np.ndarray]:
         """The plan, next pose first, and the candidate index of each (-1: not a
-        candidate): while χ² has rejected and the pure-error dof are short, a replicate
-        of the measured pose that helps the KPI most, every third pose; then the candidates
-        :func:`plan_ahead` chooses in :meth:`_estimate_problem`."""
+        candidate): first the pose of a measurement the outlier rule excluded, measured
+        once only (a replicate tells a fault from a misfit); while χ² has rejected and
+        the pure-error dof are short, a replicate of the measured pose that helps the KPI
+        most, every third pose; then the candidates :func:`plan_ahead` chooses in
+        :meth:`_estimate_problem`."""
         model = self.cell.model
         problem = self._estimate_problem()
         loss = problem.loss('kpi')
-        info = information(problem.rows(model, self.q))
+        info = information(problem.rows(model, self._kept_q()))
         rows = problem.rows(model, self.candidates)
         exclude = np.array(sorted({u for u in self.used if u >= 0}), int)
         planned = plan_ahead(rows, info, self._horizon(), loss, exclude,
@@ -454,9 +634,16 @@ class SequentialCampaign:
         q_plan, index = self.candidates[planned], planned
         labels = pose_groups(self.q)
         counts = np.bincount(labels, minlength=len(labels))[labels]
+        # Excluded rows -> their poses, measured once so far.
+        suspects = [p for p in dict.fromkeys(int(self._row_pose[i]) for i in self._suspects)
+                    if counts[p] == 1]
+        if suspects:
+            pick = suspects[0]
+            q_plan = np.vstack([self.q[pick], q_plan])
+            index = np.concatenate([[self.used[pick]], index])
         # A replicate after every two new poses: a block of them right after the χ²
         # rejection spends several poses in a row on little KPI and is the worst prefix.
-        if (self._replicating and dof_pe < 3 * self.settings.replicates
+        elif (self._replicating and dof_pe < 3 * self.settings.replicates
                 and np.all(counts[-REPLICATE_EVERY + 1:] == 1)):
             once = np.flatnonzero(counts == 1)
             if len(once):
@@ -465,6 +652,26 @@ class SequentialCampaign:
                 q_plan = np.vstack([self.q[pick], q_plan])
                 index = np.concatenate([[self.used[pick]], index])
         return q_plan, np.asarray(index, int)
+
+    def _kept_q(self) -> np.ndarray:
+        """Joint values of the poses whose every row the last fit kept (a pose with an
+        excluded row is measured again, and its information counted then)."""
+        if self.robust is None:
+            return self.q
+        lost = np.unique(self._row_pose[~np.asarray(self.robust.kept, bool)])
+        return np.delete(self.q, lost, axis=0)
+
+    def _pure_error(self, kept: np.ndarray, weight: np.ndarray) -> tuple[float, int]:
+        """:func:`pure_error` of the kept point rows, per reflector."""
+        channel = np.asarray(self.rows.reflector)
+        points = kept & (channel < self.cell.model.n_reflectors)
+        return pure_error(self.rows.q[points], self.rows.eta[points], weight, channel[points])
+
+    def _replicate_labels(self) -> np.ndarray:
+        """(rows,) the same label for the rows of one reflector (or rotation channel) at
+        one pose measured again: replicates of each other, not the other reflectors."""
+        channel = np.asarray(self.rows.reflector)
+        return pose_groups(self.rows.q) * (int(np.max(channel, initial=0)) + 1) + channel
 
     def _estimate_problem(self) -> DesignProblem:
         """The KPI design problem at the current estimate, for the parameters the
@@ -478,8 +685,9 @@ class SequentialCampaign:
         assert self.result is not None
         idx = model.params.indices(list(self.result.estimated))
         weight = self.problem.weight
-        _, jac = model.pose_jacobian(self._p, self.q)
-        column_scale, physical_scale = scales(jac[:, :, idx], weight)
+        _, jac = model.pose_jacobian(self._p, self._kept_q())  # every row of each pose
+        column_scale, physical_scale = scales(jac[:, :, idx],
+                                              np.tile(weight, model.rows_per_pose))
         kpi = model.jacobian(self._p, self.cell.q_work)[1][:, :, idx]
         return DesignProblem(tuple(self.result.estimated), idx, self._p.copy(), weight,
                              column_scale, physical_scale, kpi, self.problem.kpi_weights)
@@ -564,3 +772,39 @@ def _inverse(info: np.ndarray) -> np.ndarray:
         return np.linalg.inv(info)
     except np.linalg.LinAlgError:
         return np.linalg.pinv(info)
+
+
+def _pose_starts(q: np.ndarray, channel: np.ndarray) -> np.ndarray:
+    """First row (indices) of each pose among rows ``q`` (m, n) with row channels
+    ``channel`` (m,): a pose ends where ``q`` changes or a channel comes again."""
+    starts: list[int] = []
+    seen: set[int] = set()
+    for i in range(len(q)):
+        if i == 0 or not np.array_equal(q[i], q[i - 1]) or int(channel[i]) in seen:
+            starts.append(i)
+            seen = set()
+        seen.add(int(channel[i]))
+    return np.array(starts, int)
+
+
+def _concatenate(a: Measurements, b: Measurements) -> Measurements:
+    """The rows of ``a`` then those of ``b`` (rotations identity where one has none,
+    stamps -1 where one has none)."""
+    def rotations(m: Measurements) -> np.ndarray:
+        return (np.broadcast_to(np.eye(3), (len(m), 3, 3)) if m.rotation is None
+                else np.asarray(m.rotation))
+    rotation = (None if a.rotation is None and b.rotation is None
+                else np.concatenate([rotations(a), rotations(b)]))
+    return Measurements(q=np.vstack([a.q, b.q]), eta=np.vstack([a.eta, b.eta]),
+                        reflector=np.concatenate([np.zeros(len(a), int) if a.reflector is None
+                                                  else a.reflector,
+                                                  np.zeros(len(b), int) if b.reflector is None
+                                                  else b.reflector]),
+                        rotation=rotation,
+                        stamps_ns=np.concatenate([_stamps(a), _stamps(b)]))
+
+
+def _stamps(m: Measurements) -> np.ndarray:
+    return (np.full(len(m), -1, np.int64) if m.stamps_ns is None
+            else np.asarray(m.stamps_ns, np.int64).reshape(len(m)))
+

@@ -8,6 +8,7 @@ and where an optional extra check (collisions) passes.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Callable
 
@@ -16,6 +17,7 @@ import numpy as np
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
 from kpi_calib_ros.core.parameters import ParameterSet
+from kpi_calib_ros.core.pose_measurement import noisy_rotations
 
 _DEG = np.pi / 180.0
 
@@ -188,12 +190,42 @@ def one_joint_at_a_time(model: MeasurementModel, home: np.ndarray, per_joint: in
 
 
 def simulate_measurements(model: MeasurementModel, p_true: np.ndarray, q: np.ndarray,
-                          sigma: float | np.ndarray, rng: np.random.Generator) -> Measurements:
-    """Tracker points h(p_true, q) + N(0, σ²) per axis."""
+                          sigma: float | np.ndarray, rng: np.random.Generator,
+                          joint_sigma: float | np.ndarray | None = None) -> Measurements:
+    """Tracker points h(p_true, q) + N(0, σ²) per axis.
+
+    With ``joint_sigma`` (rad, scalar or (n,) in chain order) the joint readings are not
+    exact: the measurements carry the readings q + N(0, joint_sigma²) of the true joints q
+    (drawn after the tracker noise, so the points are the same as without it)."""
     q = np.atleast_2d(q)
     clean = model.predict(p_true, q)
     noise = rng.normal(size=clean.shape) * np.broadcast_to(np.asarray(sigma, float), (3,))
-    return Measurements(q=q, eta=clean + noise)
+    if joint_sigma is None:
+        return Measurements(q=q, eta=clean + noise)
+    read = q + rng.normal(size=q.shape) * np.broadcast_to(np.asarray(joint_sigma, float),
+                                                          (q.shape[1],))
+    return Measurements(q=read, eta=clean + noise)
+
+
+def simulate_pose_measurements(model: MeasurementModel, p_true: np.ndarray, q: np.ndarray,
+                               sigma: float | np.ndarray, sigma_rotation: float,
+                               rng: np.random.Generator) -> Measurements:
+    """Every row measuring the poses ``q`` (N, n) gives
+    (:meth:`MeasurementModel.pose_measurements`), with noise: each reflector's point
+    ``h(p_true, q) + N(0, σ²)`` per axis, each tracked body's rotation ``R · exp(ω)``,
+    ``ω ~ N(0, σ_rot² I)`` (rad) in the body frame. For one reflector the same draws as
+    :func:`simulate_measurements`."""
+    rows = model.pose_measurements(p_true, q)
+    points = np.asarray(rows.reflector) < model.n_reflectors
+    eta = rows.eta.copy()
+    eta[points] += (rng.normal(size=(int(points.sum()), 3))
+                    * np.broadcast_to(np.asarray(sigma, float), (3,)))
+    rotation = rows.rotation
+    if rotation is not None and not points.all():
+        rotation = rotation.copy()
+        rotation[~points] = noisy_rotations(rotation[~points], sigma_rotation, rng)
+        eta[~points] = 0.0
+    return dataclasses.replace(rows, eta=eta, rotation=rotation)
 
 
 def equivalent_parameters(model: MeasurementModel, p_true: np.ndarray, kept: tuple[str, ...],

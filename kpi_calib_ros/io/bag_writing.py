@@ -1,7 +1,10 @@
 """Writing MCAP bags of joint states and tracker points as ``ros2 bag record -s mcap`` does.
 
 Tracked 6-DoF poses (point samples with a rotation) go to a third topic as
-``geometry_msgs/msg/PoseStamped``; a bag without any has no such channel.
+``geometry_msgs/msg/PoseStamped``; a bag without any has no such channel. Cell
+temperatures, where a table gives them, go to their own ``sensor_msgs/msg/Temperature``
+topic. A bag is written under a temporary name beside ``path`` and renamed when
+complete, so a failed write leaves nothing behind.
 
 Profile ``ros2``, one ``ros2msg`` schema per type holding the complete message
 definition (the ``.msg`` texts of the type and of every type it uses, joined with
@@ -16,8 +19,11 @@ import importlib.util
 import json
 import os
 import re
+import struct
 import sys
+import tempfile
 from pathlib import Path
+from types import TracebackType
 from typing import Iterable
 
 from mcap.well_known import MessageEncoding, SchemaEncoding
@@ -31,11 +37,13 @@ from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, DEF
 from kpi_calib_ros.core.streams import JointSample, PointSample
 from kpi_calib_ros.io.mcap_scan import BagError
 from kpi_calib_ros.io.ros_messages import (joint_state_fields, point_stamped_fields,
-                                           pose_stamped_fields)
+                                           pose_stamped_fields, stamp_fields,
+                                           temperature_fields)
 
 JOINT_STATE_TYPE = 'sensor_msgs/msg/JointState'
 POINT_STAMPED_TYPE = 'geometry_msgs/msg/PointStamped'
 POSE_STAMPED_TYPE = 'geometry_msgs/msg/PoseStamped'
+TEMPERATURE_TYPE = 'sensor_msgs/msg/Temperature'
 
 LIBRARY = f'kpi_calib_ros; {LIBRARY_IDENTIFIER}'
 _ROSBAG2_CHUNK_SIZE = 768 * 1024  # libmcap's default, which rosbag2 keeps
@@ -121,18 +129,25 @@ def type_hash(type_name: str) -> str:
 
 class StreamEncoders:
     """Schema texts, channel metadata and CDR encoders of the stream topics (the pose
-    topic only when ``pose_topic`` is given)."""
+    and temperature topics only when given)."""
 
-    def __init__(self, joint_topic: str, point_topic: str, pose_topic: str | None = None) -> None:
+    def __init__(self, joint_topic: str, point_topic: str, pose_topic: str | None = None,
+                 temperature_topic: str | None = None) -> None:
         if joint_topic == point_topic:
             raise ValueError(f"joint_topic and point_topic must differ, both are '{joint_topic}'")
         if pose_topic in (joint_topic, point_topic):
             raise ValueError(f"pose_topic '{pose_topic}' must differ from the joint and point "
                              'topics')
+        if temperature_topic is not None and temperature_topic in (joint_topic, point_topic,
+                                                                   pose_topic):
+            raise ValueError(f"temperature_topic '{temperature_topic}' must differ from the "
+                             'joint, point and pose topics')
         self.topics: tuple[tuple[str, str], ...] = (
             (joint_topic, JOINT_STATE_TYPE), (point_topic, POINT_STAMPED_TYPE))
         if pose_topic is not None:
             self.topics += ((pose_topic, POSE_STAMPED_TYPE),)
+        if temperature_topic is not None:
+            self.topics += ((temperature_topic, TEMPERATURE_TYPE),)
         self.text = {t: message_definition(t) for _, t in self.topics}
         self.metadata = {t: {'offered_qos_profiles': _OFFERED_QOS, 'topic_type_hash': type_hash(t)}
                          for _, t in self.topics}
@@ -147,13 +162,17 @@ class StreamEncoders:
     def pose(self, sample: PointSample) -> bytes:
         return self._encode[POSE_STAMPED_TYPE](pose_stamped_fields(sample))
 
+    def temperature(self, stamp_ns: int, frame_id: str, celsius: float) -> bytes:
+        return self._encode[TEMPERATURE_TYPE](temperature_fields(stamp_ns, frame_id, celsius))
+
 
 class _Recorder:
     """Writes JointState and PointStamped messages to one chunked MCAP stream."""
 
     def __init__(self, stream, joint_topic: str, point_topic: str,
-                 chunk_size: int = _ROSBAG2_CHUNK_SIZE, pose_topic: str | None = None) -> None:
-        self.encoders = StreamEncoders(joint_topic, point_topic, pose_topic)
+                 chunk_size: int = _ROSBAG2_CHUNK_SIZE, pose_topic: str | None = None,
+                 temperature_topic: str | None = None) -> None:
+        self.encoders = StreamEncoders(joint_topic, point_topic, pose_topic, temperature_topic)
         self._writer = McapWriter(stream, chunk_size=chunk_size,
                                   compression=CompressionType.NONE, use_chunking=True)
         self._writer.start(profile='ros2', library=LIBRARY)
@@ -173,6 +192,17 @@ class _Recorder:
     def write_joint(self, sample: JointSample) -> None:
         self._write(JOINT_STATE_TYPE, sample.stamp_ns, self.encoders.joint(sample))
 
+    def write_joint_held(self, sample: JointSample, stamps_ns: Iterable[int]) -> None:
+        """``sample`` once at each of ``stamps_ns`` (a posture held still): encoded once,
+        the header stamp rewritten in place (little-endian CDR: ``sec`` int32 and
+        ``nanosec`` uint32 right after the 4-byte encapsulation header)."""
+        data = bytearray(self.encoders.joint(sample))
+        if data[:2] != b'\x00\x01':
+            raise BagError(f'unexpected CDR encapsulation {bytes(data[:4])!r} of a JointState')
+        for stamp in stamps_ns:
+            data[4:12] = struct.pack('<iI', *stamp_fields(stamp))
+            self._write(JOINT_STATE_TYPE, stamp, bytes(data))
+
     def write_point(self, sample: PointSample) -> None:
         """A plain point as PointStamped, a point with a rotation as PoseStamped."""
         if sample.rotation is not None:
@@ -180,8 +210,72 @@ class _Recorder:
         else:
             self._write(POINT_STAMPED_TYPE, sample.stamp_ns, self.encoders.point(sample))
 
+    def write_temperature(self, stamp_ns: int, frame_id: str, celsius: float) -> None:
+        self._write(TEMPERATURE_TYPE, stamp_ns,
+                    self.encoders.temperature(stamp_ns, frame_id, celsius))
+
     def finish(self) -> None:
         self._writer.finish()
+
+
+class BagStream:
+    """A bag written message by message, in stamp order, under a temporary name beside
+    ``path`` and renamed to ``path`` on a clean exit; removed when the block raises.
+
+    Memory does not grow with the number of messages (chunks go to disk as they fill)::
+
+        with BagStream(path, pose_topic=...) as bag:
+            bag.write_joint(sample)
+            bag.write_point(point)
+    """
+
+    def __init__(self, path: str | os.PathLike, joint_topic: str = DEFAULT_JOINT_TOPIC,
+                 point_topic: str = DEFAULT_POINT_TOPIC, pose_topic: str | None = None,
+                 temperature_topic: str | None = None,
+                 chunk_size: int = _ROSBAG2_CHUNK_SIZE) -> None:
+        self.path = Path(path)
+        self._options = (joint_topic, point_topic, chunk_size, pose_topic, temperature_topic)
+
+    def __enter__(self) -> _Recorder:
+        joint_topic, point_topic, chunk_size, pose_topic, temperature_topic = self._options
+        # Checked before any file is created: bad topics leave nothing behind.
+        StreamEncoders(joint_topic, point_topic, pose_topic, temperature_topic)
+        fd, name = tempfile.mkstemp(prefix=f'.{self.path.name}.', suffix='.partial',
+                                    dir=self.path.parent)
+        self._tmp = Path(name)
+        self._file = os.fdopen(fd, 'wb')
+        try:
+            self._recorder = _Recorder(self._file, joint_topic, point_topic,
+                                       chunk_size=chunk_size, pose_topic=pose_topic,
+                                       temperature_topic=temperature_topic)
+            return self._recorder
+        except BaseException:
+            self._discard()
+            raise
+
+    def _discard(self) -> None:
+        self._file.close()
+        self._tmp.unlink(missing_ok=True)
+
+    def __exit__(self, kind: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        if kind is not None:
+            self._discard()
+            return
+        try:
+            self._recorder.finish()
+        except BaseException:
+            self._discard()
+            raise
+        self._file.close()
+        os.chmod(self._tmp, 0o666 & ~_umask())
+        os.replace(self._tmp, self.path)
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
 
 
 def write_bag(
@@ -217,18 +311,16 @@ def write_bag(
                                                             for p in point_samples]
     stream.sort(key=lambda item: item[:2])
     poses = any(isinstance(s, PointSample) and s.rotation is not None for _, _, s in stream)
-    with open(path, 'wb') as f:
-        recorder = _Recorder(f, joint_topic, point_topic, chunk_size=chunk_size,
-                             pose_topic=pose_topic if poses else None)
+    with BagStream(path, joint_topic, point_topic, pose_topic=pose_topic if poses else None,
+                   chunk_size=chunk_size) as recorder:
         for _, _, sample in stream:
             if isinstance(sample, PointSample):
                 recorder.write_point(sample)
             else:
                 recorder.write_joint(sample)
-        recorder.finish()
     return path
 
 
-__all__ = ['DEFAULT_JOINT_TOPIC', 'DEFAULT_POINT_TOPIC', 'JOINT_STATE_TYPE', 'LIBRARY',
-           'POINT_STAMPED_TYPE', 'POSE_STAMPED_TYPE', 'StreamEncoders', 'message_definition',
-           'type_hash', 'write_bag']
+__all__ = ['BagStream', 'DEFAULT_JOINT_TOPIC', 'DEFAULT_POINT_TOPIC', 'JOINT_STATE_TYPE',
+           'LIBRARY', 'POINT_STAMPED_TYPE', 'POSE_STAMPED_TYPE', 'StreamEncoders',
+           'TEMPERATURE_TYPE', 'message_definition', 'type_hash', 'write_bag']

@@ -1,6 +1,8 @@
-"""Files of a sequential campaign: the plan, campaign.yaml and the TCP-std plot."""
+"""Files of a sequential campaign: the plan, campaign.yaml, the TCP-std plot, and the
+node's campaign state (``campaign_state.yaml``: what a restarted node resumes from)."""
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -11,8 +13,11 @@ import matplotlib.pyplot as plt  # noqa: E402  (backend first)
 import numpy as np  # noqa: E402
 import yaml  # noqa: E402
 
+from kpi_calib_ros.core.errors import DataError  # noqa: E402
 from kpi_calib_ros.core.sequential import CampaignSettings, SimulatedRun  # noqa: E402
 from kpi_calib_ros.io.results import write_atomic  # noqa: E402
+
+STATE_VERSION = 1
 
 
 def write_plan(path: str | Path, joint_names: Sequence[str], q: np.ndarray,
@@ -72,3 +77,67 @@ def plot_campaign(path: str | Path, run: SimulatedRun,
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return Path(path)
+
+
+@dataclass(frozen=True)
+class CampaignState:
+    """A node's sequential campaign as ``campaign_state.yaml`` keeps it.
+
+    Attributes
+    ----------
+    settings : CampaignSettings
+        Target and cap the campaign runs to.
+    design_seed : int
+        Seed of its initial design (with the cell it fixes the candidates and the plan).
+    steps : tuple of tuple of int
+        The stamps (ns) of the measurements each step added, in the order added; the
+        campaign is rebuilt by adding them again step by step.
+    status : dict
+        The last ``~/campaign_status`` document ({} before the first step).
+    """
+
+    settings: CampaignSettings
+    design_seed: int
+    steps: tuple[tuple[int, ...], ...] = ()
+    status: dict = field(default_factory=dict)
+
+    @property
+    def stopped(self) -> bool:
+        return self.status.get('stop_reason', 'running') != 'running'
+
+
+def write_campaign_state(path: str | Path, state: CampaignState) -> Path:
+    """Write ``state`` atomically (a reader sees the old state or the new one)."""
+    s = state.settings
+    doc = {'version': STATE_VERSION, 'campaign': 'sequential',
+           'settings': {'target_tcp_std_m': float(s.target_std),
+                        'max_measurements': int(s.max_measurements),
+                        'confidence': float(s.confidence), 'design_seed': int(state.design_seed)},
+           'steps': [[int(t) for t in step] for step in state.steps],
+           'status': state.status}
+    return write_atomic(path, yaml.safe_dump(doc, sort_keys=False))
+
+
+def read_campaign_state(path: str | Path) -> CampaignState:
+    """Read a campaign state; DataError names the file and the field, and the fix."""
+    path = Path(path)
+    fix = 'call ~/reset to archive it and start a new campaign'
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as exc:
+        raise DataError(f'{path}: not readable ({exc}); {fix}') from None
+    if not isinstance(doc, dict) or doc.get('version') != STATE_VERSION:
+        raise DataError(f'{path}: version must be {STATE_VERSION}; {fix}')
+    try:
+        raw = doc['settings']
+        settings = CampaignSettings(target_std=float(raw['target_tcp_std_m']),
+                                    max_measurements=int(raw['max_measurements']),
+                                    confidence=float(raw['confidence']))
+        seed = int(raw['design_seed'])
+        steps = tuple(tuple(int(t) for t in step) for step in doc['steps'])
+        status = doc['status']
+        if not isinstance(status, dict):
+            raise TypeError('status must be a mapping')
+    except (KeyError, TypeError, ValueError) as exc:
+        raise DataError(f'{path}: field {exc} missing or malformed; {fix}') from None
+    return CampaignState(settings, seed, steps, status)

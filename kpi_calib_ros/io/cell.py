@@ -14,15 +14,17 @@ fix. Paths are relative to the cell file. Units are SI (m, rad, kg). Example::
     # a tracked 6-DoF body: its origin is the reflector, orientation in the tip frame
     # reflectors: [{name: probe, offset: [0, 0, 0.1], orientation: {rpy: [0, 0, 0]}}]
     noise: {sigma: 2.0e-5}          # sigma_rotation: 5.0e-5 (rad) with an orientation
+    # joint-reading noise (rad), all joints or by name: joint_sigma: 5.2e-4
+    # or joint_sigma: {joint_1: 5.2e-4, joint_2: 5.2e-4}   (joints left out read exactly)
     payload: {mass: 5.0, com: [0, 0, 0.05]}
-    working_poses:
+    working_poses:                  # optional for identify (no TCP then); design needs them
       - {name: roof, joints: {joint_1: 0.0, joint_2: 0.3, ...}}
       - [0.0, -1.2, 1.7, -2.07, -1.57, 0.0]   # or joint values in chain order
     obstacles:                      # in the robot base frame
       - {name: floor, type: halfspace, normal: [0, 0, 1], offset: -0.5}
       - {name: car_roof, type: capsule, a: [1.6, -1.5, 0.9], b: [1.6, 1.5, 0.9], radius: 0.5}
     collision: {capsules: [...], ignore_pairs: [[base_link, floor]], beam_radius: 0.005}
-    identification: {method: pivoted, model: geometric, loss: linear,
+    identification: {method: pivoted, model: geometric, loss: linear, max_iterations: 500,
                      outliers: {exclude: true, threshold: null}, cv_folds: 5,
                      prior: {translation: 1.0e-3, rotation: 1.0e-3, offset: 1.0e-3}}
     topics: {joint_states: /joint_states, point: /laser_tracker/point,   # bags read
@@ -48,6 +50,7 @@ from kpi_calib_ros.core.design import DesignSettings
 from kpi_calib_ros.core.design_cell import DesignCell
 from kpi_calib_ros.core.effects import resolve_effects
 from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.core.estimation import DEFAULT_MAX_ITERATIONS
 from kpi_calib_ros.core.gravity_compliance import mass_warning
 from kpi_calib_ros.core.kinematics import pose6
 from kpi_calib_ros.core.model_selection import DEFAULT_FOLDS, MODEL_CHOICES
@@ -60,6 +63,7 @@ from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, DEF
 from kpi_calib_ros.io.resources import resolve_uri
 from kpi_calib_ros.io.results import write_atomic
 from kpi_calib_ros.io.robot_geometry import RobotGeometry, robot_geometry
+from kpi_calib_ros.io.yaml_bounded import read_yaml_file
 
 _TOP_KEYS = {'robot', 'tracker', 'reflector', 'reflectors', 'noise', 'payload', 'working_poses',
              'obstacles', 'collision', 'identification', 'effects', 'simulation', 'design',
@@ -101,7 +105,8 @@ class IdentificationSettings:
     (:mod:`kpi_calib_ros.core.robust`); outliers : exclusion settings; cv_folds : folds of
     the cross-validated rms reported beside the model choice; prior : std (m, rad, rad)
     of the joint placement translations, rotations and joint offsets around the nominal
-    (:func:`kpi_calib_ros.core.prior.tolerance_prior`), None: no prior.
+    (:func:`kpi_calib_ros.core.prior.tolerance_prior`), None: no prior; max_iterations :
+    iteration limit of every fit (:func:`kpi_calib_ros.core.estimation.identify`).
     """
 
     model: str = 'geometric'
@@ -109,6 +114,7 @@ class IdentificationSettings:
     outliers: OutlierSettings = field(default_factory=OutlierSettings)
     cv_folds: int = DEFAULT_FOLDS
     prior: tuple[float, float, float] | None = None
+    max_iterations: int = DEFAULT_MAX_ITERATIONS
 
 
 @dataclass(frozen=True)
@@ -161,6 +167,9 @@ class Cell:
     reflector_orientations: tuple[tuple[int, np.ndarray], ...] = field(default=(),
                                                                         compare=False)
     sigma_rotation: float | None = None
+    # noise.joint_sigma: a number (rad, every joint) or {joint name: rad}; None: exact
+    # joint readings. Matched to the chain by name in build_cell_model.
+    joint_sigma: float | Mapping[str, float] | None = None
 
     @property
     def offsets(self) -> np.ndarray:
@@ -192,10 +201,10 @@ def read_cell_document(path: str | Path) -> Any:
     path = Path(path)
     if not path.is_file():
         raise ConfigError('cell', f'file {str(path)!r} does not exist')
-    try:
-        return yaml.load(path.read_text(), Loader=CellLoader)
-    except yaml.YAMLError as exc:
-        raise ConfigError('cell', f'{path} is not valid YAML: {exc}') from exc
+    # A cell is a few kB; 4 MiB and 1e6 nodes bound a hostile or wrong file (an alias bomb
+    # in a capsule list) to a quick refusal.
+    return read_yaml_file(path, 'cell', 'give a cell file (see the cell-file reference)',
+                          loader=CellLoader, max_bytes=4 * 2 ** 20, max_nodes=1_000_000)
 
 
 class CellLoader(yaml.SafeLoader):
@@ -270,6 +279,7 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None,
             raise ConfigError('noise.sigma_rotation', f'{sigma_rotation!r} must be in (0, 0.1] '
                               'rad: the orientation noise of the tracked body (SI radians: '
                               '0.01° is 1.75e-4)')
+    joint_sigma = _joint_sigma(noise.get('joint_sigma'))
     max_inc = number(reflector, 'max_incidence', 'reflector', np.deg2rad(30.0), 'rad')
     if not 0 < max_inc <= np.pi / 2:
         raise ConfigError('reflector.max_incidence', 'must be in (0, π/2] rad (30° = 0.5236)')
@@ -317,6 +327,7 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None,
         reflector_names=names,
         reflector_offsets=np.nan_to_num(offsets) if offsets is not None else None,
         reflector_orientations=orientations, sigma_rotation=sigma_rotation,
+        joint_sigma=joint_sigma,
         joint_coupling=_coupling_mapping(robot.get('joint_coupling')),
         working_poses_in=_working_poses_in(robot.get('working_poses_in', 'controller')),
         allow_code_effects=allow_code_effects)
@@ -448,7 +459,8 @@ def design_settings(raw: Mapping[str, Any] | None) -> DesignSettings:
     return replace(defaults, **values)
 
 
-_IDENT_KEYS = {'method', 'priority', 'model', 'loss', 'outliers', 'cv_folds', 'prior'}
+_IDENT_KEYS = {'method', 'priority', 'model', 'loss', 'outliers', 'cv_folds', 'prior',
+               'max_iterations'}
 PRIOR_KEYS = ('translation', 'rotation', 'offset')
 
 
@@ -490,9 +502,14 @@ def identification_settings(raw: Mapping[str, Any]) -> IdentificationSettings:
             not 0 <= fraction < 1:
         raise ConfigError('identification.outliers.max_fraction', f'must be in [0, 1), got '
                           f'{fraction!r}')
+    limit = raw.get('max_iterations', DEFAULT_MAX_ITERATIONS)
+    if isinstance(limit, bool) or not isinstance(limit, int) or limit < 1:
+        raise ConfigError('identification.max_iterations', 'must be a positive integer (the '
+                          f'iteration limit of every fit, default {DEFAULT_MAX_ITERATIONS}), '
+                          f'got {limit!r}')
     return IdentificationSettings(model, loss, OutlierSettings(
         exclude, None if threshold is None else float(threshold), float(fraction)), folds,
-        _tolerance_prior(raw.get('prior')))
+        _tolerance_prior(raw.get('prior')), limit)
 
 
 def _tolerance_prior(raw: Any) -> tuple[float, float, float] | None:
@@ -623,6 +640,45 @@ def _priority(ident: dict, method: str) -> tuple[str, ...]:
     return tuple(raw)
 
 
+MAX_JOINT_SIGMA = 0.01  # rad (0.57°); m for a prismatic joint
+
+
+def _joint_sigma(value: Any) -> float | dict[str, float] | None:
+    """noise.joint_sigma: None, a number for every joint or {joint name: number}, each in
+    [0, MAX_JOINT_SIGMA]."""
+    if value is None:
+        return None
+    fix = ('the standard deviation of the joint readings in rad (m for a prismatic joint), '
+           'one number for every joint or {joint_name: value}; 0.03° is 5.2e-4')
+    if isinstance(value, dict):
+        out = {}
+        for name, v in value.items():
+            out[str(name)] = number(value, name, 'noise.joint_sigma', None, 'rad')
+            if not 0 <= out[str(name)] <= MAX_JOINT_SIGMA:
+                raise ConfigError(f'noise.joint_sigma.{name}', f'{v!r} must be in '
+                                  f'[0, {MAX_JOINT_SIGMA}]: {fix}')
+        return out
+    sigma = number({'joint_sigma': value}, 'joint_sigma', 'noise', None, 'rad')
+    if not 0 <= sigma <= MAX_JOINT_SIGMA:
+        raise ConfigError('noise.joint_sigma', f'{value!r} must be in [0, {MAX_JOINT_SIGMA}]: '
+                          f'{fix}')
+    return sigma
+
+
+def joint_sigma_vector(value: float | Mapping[str, float] | None,
+                       joint_names: Sequence[str]) -> np.ndarray | None:
+    """noise.joint_sigma in chain order (n,) rad, matched by joint name; None when unstated."""
+    if value is None:
+        return None
+    if not isinstance(value, Mapping):
+        return np.full(len(joint_names), float(value))
+    unknown = [n for n in value if n not in joint_names]
+    if unknown:
+        raise ConfigError('noise.joint_sigma', f'unknown joint(s) {unknown}; the chain joints '
+                          f'are {list(joint_names)}')
+    return np.array([float(value.get(n, 0.0)) for n in joint_names])
+
+
 def _optional_mapping(doc: dict, key: str) -> dict:
     value = doc.get(key)
     if value is None:
@@ -691,10 +747,14 @@ def _number_or_vector(value: Any, path: str) -> Any:
 
 
 def _working_poses(value: Any) -> tuple[WorkingPose, ...]:
-    if not isinstance(value, list) or not value:
-        raise ConfigError('working_poses', 'give at least one working pose as '
-                          '{name: ..., joints: {joint_name: value_rad, ...}} or as a list of '
-                          'joint values in chain order')
+    """``working_poses``: none (left out or empty: identify reports no TCP, design refuses),
+    or a list of named or chain-ordered poses."""
+    if value is None or value == []:
+        return ()
+    if not isinstance(value, list):
+        raise ConfigError('working_poses', 'must be a list of working poses as '
+                          '{name: ..., joints: {joint_name: value_rad, ...}} or as lists of '
+                          'joint values in chain order (or left out: no TCP is reported)')
     poses = []
     for i, item in enumerate(value):
         key = f'working_poses[{i}]'
@@ -829,6 +889,10 @@ class CellModel:
                               'tracker stands: give the robot base pose in the tracker frame '
                               '[x, y, z, roll, pitch, yaw] (m, rad) in the cell file (a tape '
                               'measure is enough; identification refines it from the data)')
+        if not len(self.q_work):
+            raise ConfigError('working_poses', 'a design optimises the TCP precision at the '
+                              'working poses: give at least one as {name: ..., joints: '
+                              '{joint_name: value_rad, ...}} (identify needs none)')
         return DesignCell(self.model, self.q_work, self.working_pose_names,
                           self.tracker_in_base, self.cell.reflector_offset,
                           self.cell.max_incidence, self.cell.sigma,
@@ -858,7 +922,8 @@ def build_cell_model(cell: Cell, effects: tuple = ()) -> CellModel:
     model = MeasurementModel(robot, geometric, resolved, cell.reflector_axis,
                              dict(cell.reflector_orientations),
                              None if cell.sigma_rotation is None
-                             else cell.sigma / cell.sigma_rotation)
+                             else cell.sigma / cell.sigma_rotation,
+                             joint_sigma_vector(cell.joint_sigma, robot.joint_names))
     unknown = [n for n in cell.identification_priority if n not in model.params.names]
     if unknown:
         raise ConfigError('identification.priority', f'unknown parameter(s) {unknown}; valid '
@@ -868,7 +933,7 @@ def build_cell_model(cell: Cell, effects: tuple = ()) -> CellModel:
         warnings.warn(missing_masses, stacklevel=2)
     coupling = coupling_from_mapping(cell.joint_coupling, robot.joint_names)
     q_work = np.array([_ordered(w, robot, f'working_poses[{i}].joints')
-                       for i, w in enumerate(cell.working_poses)])
+                       for i, w in enumerate(cell.working_poses)]).reshape(-1, robot.n_joints)
     if cell.working_poses_in == 'controller':
         q_work = coupling.to_urdf(q_work)
     inside = robot.within_limits(q_work)

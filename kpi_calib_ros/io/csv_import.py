@@ -1,205 +1,342 @@
 """Static-posture tables (CSV) into MCAP bags every command reads.
 
-A posture table has one row per still posture: joint values and the points of one
-or several reflectors / markers measured there. :func:`import_csv` writes, for
-every row, joint states held still (zero velocity, ``rate_hz``) for ``±hold_s``
-around the row's stamp and one ``PointStamped`` per marker at that stamp, with
+A posture table has one row per still posture: joint values and the points (or 6-DoF
+poses) of one or several reflectors / markers measured there. :func:`import_csv`
+writes, for every row, joint states held still (zero velocity, ``rate_hz``) for
+``±hold_s`` around the row's stamp and one ``PointStamped`` per marker at that stamp
+(a ``PoseStamped`` on the pose topic for a marker with orientation columns), with
 ``header.frame_id = '<frame_id>#<marker name>'`` (the several-points convention of
-:mod:`kpi_calib_ros.core.pairing`). Which columns mean what is given by a
-:class:`CsvMapping` (flags or a small YAML file); nothing about a robot is built in.
+:mod:`kpi_calib_ros.core.pairing`), and the row's cell temperature, if mapped, as a
+``sensor_msgs/Temperature``. Which columns mean what is given by a
+:class:`~kpi_calib_ros.io.csv_mapping.CsvMapping` (flags or a small YAML file). Separator, decimal
+mark and encoding are detected (:mod:`kpi_calib_ros.io.csv_table`). Rows stream into
+the bag (memory grows only by a 16-byte stamp index a row: 142 MiB peak RSS for 1e6
+rows, bench/csv_import_large.py), and a failed import leaves no file.
 """
 from __future__ import annotations
 
-import csv
-from dataclasses import dataclass
+import heapq
+import itertools
+import os
+from dataclasses import dataclass, field
+from datetime import datetime, timedelta, timezone, tzinfo
 from pathlib import Path
-from typing import Any
+from typing import Iterator
 
 import numpy as np
-import yaml
+from scipy.spatial.transform import Rotation
 
-from kpi_calib_ros.core.errors import ConfigError, DataError
+from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.pairing import REFLECTOR_SEPARATOR
 from kpi_calib_ros.core.streams import JointSample, PointSample
-from kpi_calib_ros.io.bag_writing import write_bag
-from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC
+from kpi_calib_ros.io.bag_writing import BagStream
+from kpi_calib_ros.io.csv_mapping import (CsvMapping, MarkerColumns, load_mapping,
+                                          mapping_from_dict, time_zone)
+from kpi_calib_ros.io.csv_table import TableFormat, detect_format, read_table
+from kpi_calib_ros.io.names import (DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, DEFAULT_POSE_TOPIC,
+                                    DEFAULT_TEMPERATURE_TOPIC)
 
 # Synthetic stamps when the table has none: one posture every few seconds from here.
 _START_NS = 1_700_000_000_000_000_000
+_PERIOD_NS = 4_000_000_000
 _UNITS = {'m': 1.0, 'mm': 1e-3, 'rad': 1.0, 'deg': np.pi / 180.0}
+_EPOCH = datetime(1970, 1, 1, tzinfo=timezone.utc)
+_SPREADSHEET_EPOCH = datetime(1899, 12, 30)  # serial day 0 of Excel / LibreOffice dates
+_MAX_S = 2 ** 31 - 1     # builtin_interfaces/Time: int32 seconds
 
 
 @dataclass(frozen=True)
-class CsvMapping:
-    """Which columns of a posture table are what.
+class Posture:
+    """One row: ``stamp_ns`` (None: row order), joint values (n,) SI, and per marker
+    (name, xyz (3,) m, quaternion [x, y, z, w] or None, σ (3,) m or None)."""
 
-    Attributes
-    ----------
-    joints : dict {joint name: column}
-        Joint values, in ``joint_unit`` (prismatic joints always in m).
-    markers : dict {marker name: (x column, y column, z column)}
-        Points in ``frame_id``, in ``point_unit``; names as in the cell's ``reflectors:``.
-    frame_id : str
-        Frame the points are expressed in (the cell's ``tracker.frame_id``).
-    stamp_columns : tuple of str
-        Column(s) in Unix seconds whose mean is the row's stamp; () for synthetic
-        stamps ``period_s`` apart.
-    point_unit, joint_unit : str
-        ``m`` or ``mm``; ``rad`` or ``deg``.
-    """
-
-    joints: dict[str, str]
-    markers: dict[str, tuple[str, str, str]]
-    frame_id: str
-    stamp_columns: tuple[str, ...] = ()
-    point_unit: str = 'm'
-    joint_unit: str = 'rad'
+    path: Path
+    line: int
+    stamp_ns: int | None
+    q: np.ndarray
+    points: tuple[tuple[str, np.ndarray, np.ndarray | None, np.ndarray | None], ...]
+    temperature: float | None
 
 
-def mapping_from_dict(doc: Any) -> CsvMapping:
-    """Validate a mapping document::
-
-        frame_id: mocap
-        joints: [torso_lift_joint, arm_1_joint]      # column = joint name, or {joint: column}
-        markers: {m1: [x1, y1, z1], m2: [x2, y2, z2]}
-        stamp_columns: [t_start, t_end]              # optional, Unix s
-        point_unit: m                                 # m | mm
-        joint_unit: rad                               # rad | deg
-    """
-    if not isinstance(doc, dict):
-        raise ConfigError('mapping', 'must be a mapping with joints, markers, frame_id')
-    allowed = {'frame_id', 'joints', 'markers', 'stamp_columns', 'point_unit', 'joint_unit'}
-    unknown = set(doc) - allowed
-    if unknown:
-        raise ConfigError(f'mapping.{sorted(unknown)[0]}',
-                          f'unknown key; allowed {sorted(allowed)}')
-    joints = doc.get('joints')
-    if isinstance(joints, list):
-        joints = {str(j): str(j) for j in joints}
-    if not isinstance(joints, dict) or not joints:
-        raise ConfigError('mapping.joints',
-                          'give the joint columns: [name, ...] or {joint: column}')
-    markers = doc.get('markers')
-    if not isinstance(markers, dict) or not markers:
-        raise ConfigError('mapping.markers', 'give {marker name: [x column, y column, z column]}')
-    out_markers = {}
-    for name, cols in markers.items():
-        if not isinstance(cols, (list, tuple)) or len(cols) != 3:
-            raise ConfigError(f'mapping.markers.{name}', 'must be [x column, y column, z column]')
-        if not str(name) or REFLECTOR_SEPARATOR in str(name):
-            raise ConfigError(f'mapping.markers.{name}', f'a non-empty name without '
-                              f'{REFLECTOR_SEPARATOR!r}')
-        out_markers[str(name)] = (str(cols[0]), str(cols[1]), str(cols[2]))
-    frame = doc.get('frame_id')
-    if not isinstance(frame, str) or not frame or REFLECTOR_SEPARATOR in frame:
-        raise ConfigError('mapping.frame_id', "the points' frame (the cell's tracker.frame_id)")
-    point_unit, joint_unit = doc.get('point_unit', 'm'), doc.get('joint_unit', 'rad')
-    if point_unit not in ('m', 'mm'):
-        raise ConfigError('mapping.point_unit', f"'m' or 'mm', got {point_unit!r}")
-    if joint_unit not in ('rad', 'deg'):
-        raise ConfigError('mapping.joint_unit', f"'rad' or 'deg', got {joint_unit!r}")
-    stamps = doc.get('stamp_columns') or ()
-    if isinstance(stamps, str):
-        stamps = (stamps,)
-    return CsvMapping({str(k): str(v) for k, v in joints.items()}, out_markers, frame,
-                      tuple(str(s) for s in stamps), point_unit, joint_unit)
-
-
-def load_mapping(path: str | Path) -> CsvMapping:
-    """A :class:`CsvMapping` from a YAML file (see :func:`mapping_from_dict`)."""
-    path = Path(path)
-    if not path.is_file():
-        raise ConfigError('mapping', f'file {str(path)!r} does not exist')
-    return mapping_from_dict(yaml.safe_load(path.read_text()))
-
-
-def read_postures(path: str | Path, mapping: CsvMapping
-                  ) -> tuple[list[str], np.ndarray, dict[str, np.ndarray], np.ndarray]:
-    """Joint names, joint values (N, n) in SI, marker points {name: (N, 3)} m, stamps (N,) ns.
+def read_postures(path: str | Path, mapping: CsvMapping, fmt: TableFormat | None = None
+                  ) -> Iterator[Posture]:
+    """The rows of one table, one :class:`Posture` at a time (in the file's order).
 
     Raises
     ------
     DataError
-        A missing column (the columns present are listed), a value that is not a
-        finite number (row and column named), or stamps that do not increase.
+        A missing column (the columns present and the format read are listed), a value
+        that is not a finite number or a stamp that is none (line and column named).
     """
     path = Path(path)
-    if not path.is_file():
-        raise DataError(f'{path}: no such file')
-    with open(path, newline='') as f:
-        rows = list(csv.DictReader(f))
-    if not rows:
-        raise DataError(f'{path}: no data rows')
-    present = list(rows[0])
-    needed = list(mapping.joints.values()) + [c for cols in mapping.markers.values()
-                                              for c in cols] + list(mapping.stamp_columns)
-    missing = [c for c in needed if c not in present]
+    fmt = fmt or detect_format(path, mapping.delimiter, mapping.decimal)
+    rows = read_table(path, fmt)
+    present = list(next(rows)[1])
+    missing = [c for c in dict.fromkeys(mapping.columns) if c not in present]
     if missing:
         raise DataError(f'{path}: columns {missing} are not in the file; columns present: '
-                        f'{present}. Fix the mapping')
+                        f'{present} (read as {fmt.describe()}). Fix the mapping, or give '
+                        '--delimiter / --decimal')
+    zone = time_zone(mapping.stamp_timezone)
+    joint_scale, point_scale = _UNITS[mapping.joint_unit], _UNITS[mapping.point_unit]
+    degrees = mapping.angle_unit == 'deg'
+    for line, row in rows:
+        cell = _Cells(path, line, row, fmt)
+        points = []
+        for name, m in mapping.markers.items():
+            quaternion = None
+            if len(m.orientation) == 3:
+                quaternion = Rotation.from_euler(m.euler, cell.vector(m.orientation),
+                                                 degrees=degrees).as_quat()
+            elif m.orientation:
+                quaternion = cell.vector(m.orientation)
+            sigma = cell.vector(m.sigma) * point_scale if m.sigma else None
+            points.append((name, cell.vector(m.position) * point_scale, quaternion, sigma))
+        stamp = None
+        if mapping.stamp_columns:
+            stamp = int(round(np.mean([_stamp_s(path, line, c, row[c], mapping, fmt, zone)
+                                       for c in mapping.stamp_columns]) * 1e9))
+        yield Posture(path, line, stamp,
+                      cell.vector(tuple(mapping.joints.values())) * joint_scale, tuple(points),
+                      cell.value(mapping.temperature) if mapping.temperature else None)
 
-    def column(name: str) -> np.ndarray:
-        values = []
-        for i, row in enumerate(rows):
-            try:
-                v = float(row[name])
-            except (TypeError, ValueError):
-                v = np.nan
-            if not np.isfinite(v):
-                raise DataError(f'{path}: row {i + 2}, column {name!r}: {row[name]!r} is not a '
-                                'finite number')
-            values.append(v)
-        return np.array(values)
 
-    joint_names = list(mapping.joints)
-    q = np.stack([column(c) for c in mapping.joints.values()], axis=1)
-    q *= _UNITS[mapping.joint_unit]
-    points = {m: np.stack([column(c) for c in cols], axis=1) * _UNITS[mapping.point_unit]
-              for m, cols in mapping.markers.items()}
-    if mapping.stamp_columns:
-        stamps = np.round(np.mean([column(c) for c in mapping.stamp_columns], axis=0)
-                          * 1e9).astype(np.int64)
-        if np.any(np.diff(stamps) <= 0):
-            raise DataError(f'{path}: the stamps of {list(mapping.stamp_columns)} do not increase '
-                            'row by row; give no stamp columns for synthetic stamps')
-    else:
-        stamps = _START_NS + np.arange(len(rows), dtype=np.int64) * 4_000_000_000
-    return joint_names, q, points, stamps
+@dataclass(frozen=True)
+class _Cells:
+    """The numbers of one row; a field that is none is an error naming line and column."""
+
+    path: Path
+    line: int
+    row: dict[str, str]
+    fmt: TableFormat
+
+    def value(self, column: str) -> float:
+        try:
+            v = self.fmt.number(self.row[column])
+        except ValueError:
+            v = np.nan
+        if not np.isfinite(v):
+            raise DataError(f'{self.path}: line {self.line}, column {column!r}: '
+                            f'{self.row[column]!r} is not a finite number (read as '
+                            f'{self.fmt.describe()})')
+        return v
+
+    def vector(self, columns: tuple[str, ...]) -> np.ndarray:
+        return np.array([self.value(c) for c in columns])
+
+
+def _stamp_s(path: Path, line: int, column: str, text: str, mapping: CsvMapping,
+             fmt: TableFormat, zone: tzinfo) -> float:
+    """The stamp of one field (s since the Unix epoch)."""
+    how = mapping.stamp_format
+    fix = (f'fix the value or stamp_format ({how!r}), or give no stamp_columns: the time '
+           'axis is then the row order')
+    try:
+        if how in ('unix', 'serial'):
+            number = fmt.number(text)
+            if how == 'unix':
+                seconds = number
+            else:
+                moment = (_SPREADSHEET_EPOCH + timedelta(days=number)).replace(tzinfo=zone)
+                seconds = (moment - _EPOCH) / timedelta(seconds=1)
+        else:
+            moment = (datetime.fromisoformat(text.strip()) if how == 'iso8601'
+                      else datetime.strptime(text.strip(), how))
+            if moment.tzinfo is None:
+                moment = moment.replace(tzinfo=zone)
+            seconds = (moment - _EPOCH) / timedelta(seconds=1)
+    except (ValueError, OverflowError):
+        raise DataError(f'{path}: line {line}, column {column!r}: {text!r} is not a stamp '
+                        f'of format {how!r}; {fix}') from None
+    if not (0 <= seconds < _MAX_S):
+        raise DataError(f'{path}: line {line}, column {column!r}: {text!r} is '
+                        f'{seconds:.6g} s since 1970, outside 1970-2038 (int32 seconds of a '
+                        f'ROS stamp); {fix}')
+    return seconds
+
+
+@dataclass
+class ImportSummary:
+    """What :func:`import_csv` wrote and read: the bag, the postures, points and poses,
+    how every table was read, the time axis, per-point σ and temperatures."""
+
+    path: Path
+    postures: int = 0
+    points: int = 0
+    poses: int = 0
+    formats: dict[str, str] = field(default_factory=dict)
+    time_axis: str = ''
+    reordered: list[str] = field(default_factory=list)
+    sigma_mean_m: dict[str, np.ndarray] = field(default_factory=dict)
+    sigma_max_m: dict[str, np.ndarray] = field(default_factory=dict)
+    temperature_range_c: tuple[float, float] | None = None
+
+    def lines(self) -> list[str]:
+        out = [f'written: {self.path} ({self.postures} postures, {self.points} points'
+               + (f', of which {self.poses} 6-DoF poses' if self.poses else '') + ')']
+        out += [f'read {name}: {how}' for name, how in self.formats.items()]
+        out.append(f'time axis: {self.time_axis}')
+        if self.reordered:
+            out.append(f'{len(self.reordered)} row(s) out of stamp order kept at their '
+                       f'stamps: {", ".join(self.reordered[:5])}'
+                       + (' ...' if len(self.reordered) > 5 else ''))
+        for name, mean in self.sigma_mean_m.items():
+            out.append(f"per-point σ of {name}: mean {np.round(mean * 1e6, 1).tolist()} µm, "
+                       f'max {np.round(self.sigma_max_m[name] * 1e6, 1).tolist()} µm (x, y, '
+                       "z); not used by identify, which weighs every point by the cell's "
+                       'noise.sigma')
+        if self.temperature_range_c:
+            low, high = self.temperature_range_c
+            out.append(f'cell temperature: {low:.2f} to {high:.2f} °C')
+        return out
 
 
 def import_csv(csv_path: str | Path | list, out_path: str | Path, mapping: CsvMapping,
                rate_hz: float = 50.0, hold_s: float = 0.5,
                joint_topic: str = DEFAULT_JOINT_TOPIC,
-               point_topic: str = DEFAULT_POINT_TOPIC) -> tuple[Path, int, int]:
+               point_topic: str = DEFAULT_POINT_TOPIC,
+               pose_topic: str = DEFAULT_POSE_TOPIC,
+               temperature_topic: str = DEFAULT_TEMPERATURE_TOPIC,
+               delimiter: str | None = None, decimal: str | None = None) -> ImportSummary:
     """Write the postures of ``csv_path`` (one table, or a list of tables of one
-    campaign, e.g. several sessions) as an MCAP bag.
+    campaign, e.g. several sessions) as an MCAP bag, row by row.
 
-    Returns
-    -------
-    (Path, int, int)
-        The bag, the number of postures and of points written.
+    With stamp columns the tables' rows are merged by stamp; without, they follow one
+    another in the given order, :data:`_PERIOD_NS` apart. ``delimiter`` / ``decimal``
+    override the mapping's and the detection.
+
+    Rows are written as they come (memory does not grow with them but for 16 bytes of
+    stamp, table and line a row); rows out of stamp order (a pose measured again, or
+    rows appended later) are listed in the summary.
+
+    Raises
+    ------
+    DataError
+        Anything :func:`read_postures` refuses, two rows with one stamp or whose holds
+        overlap (files and lines named). ``out_path`` is then left as it was.
     """
-    tables = [read_postures(p, mapping) for p in
-              (csv_path if isinstance(csv_path, list) else [csv_path])]
-    names = tables[0][0]
-    order = np.argsort(np.concatenate([t[3] for t in tables]), kind='stable')
-    q = np.concatenate([t[1] for t in tables])[order]
-    stamps = np.concatenate([t[3] for t in tables])[order]
-    points = {m: np.concatenate([t[2][m] for t in tables])[order] for m in mapping.markers}
-    if len(tables) > 1 and not mapping.stamp_columns:
-        stamps = _START_NS + np.arange(len(q), dtype=np.int64) * 4_000_000_000
-    gaps = np.diff(stamps)
-    if len(gaps) and gaps.min() <= 2 * hold_s * 1e9:
-        raise DataError(f'{csv_path}: postures {int(gaps.min())} ns apart overlap the '
-                        f'±{hold_s} s hold; reduce hold_s')
+    paths = [Path(p) for p in (csv_path if isinstance(csv_path, list) else [csv_path])]
+    if not paths:
+        raise DataError('import-csv: give at least one table')
+    summary = ImportSummary(Path(out_path))
+    formats = {}
+    for p in paths:
+        fmt = detect_format(p, delimiter or mapping.delimiter, decimal or mapping.decimal)
+        formats[p] = fmt
+        summary.formats[str(p)] = fmt.describe()
+    streams = [read_postures(p, mapping, formats[p]) for p in paths]
+    table = {p: k for k, p in enumerate(paths)}
+    rows: Iterator[Posture] = itertools.chain(*streams)
+    if mapping.stamp_columns:
+        # Tables of several sessions interleave by stamp (each in its own order).
+        rows = heapq.merge(*streams, key=lambda r: r.stamp_ns or 0)
+    names = tuple(mapping.joints)
     period = int(round(1e9 / rate_hz))
-    offsets = np.arange(-int(hold_s * 1e9), int(hold_s * 1e9) + 1, period)
-    joints = [JointSample(int(t + dt), tuple(names), qi, np.zeros(len(names)))
-              for t, qi in zip(stamps, q) for dt in offsets]
-    pts = [PointSample(int(t), f'{mapping.frame_id}{REFLECTOR_SEPARATOR}{m}', xyz[i])
-           for m, xyz in points.items() for i, t in enumerate(stamps)]
-    path = write_bag(out_path, joints, pts, joint_topic, point_topic)
-    return path, len(q), len(pts)
+    hold = int(hold_s * 1e9)
+    offsets = np.arange(-hold, hold + 1, period)
+    zeros = np.zeros(len(names))
+    sigma_sum: dict[str, np.ndarray] = {}
+    temperatures = [np.inf, -np.inf]
+    stamps = _Stamps(paths)
+    out = Path(out_path)
+    if not out.parent.is_dir() or out.is_dir() or not os.access(out.parent, os.W_OK):
+        raise DataError(f'--out {out}: give a .mcap file in an existing folder this user can '
+                        'write (' + ('it is a folder' if out.is_dir() else
+                                     f'{out.parent} does not exist' if not out.parent.is_dir()
+                                     else f'{out.parent} is not writable') + ')')
+    with BagStream(out_path, joint_topic, point_topic,
+                   pose_topic if mapping.has_poses else None,
+                   temperature_topic if mapping.temperature else None) as bag:
+        for i, row in enumerate(rows):
+            t = row.stamp_ns if row.stamp_ns is not None else _START_NS + i * _PERIOD_NS
+            stamps.add(t, row, table[row.path])
+            held = JointSample(t, names, row.q, zeros)
+            bag.write_joint_held(held, (int(t + dt) for dt in offsets[offsets <= 0]))
+            for name, xyz, quaternion, sigma in row.points:
+                bag.write_point(PointSample(t, f'{mapping.frame_id}{REFLECTOR_SEPARATOR}{name}',
+                                            xyz, quaternion))
+                summary.points += 1
+                summary.poses += quaternion is not None
+                if sigma is not None:
+                    sigma_sum[name] = sigma_sum.get(name, 0.0) + sigma
+                    summary.sigma_max_m[name] = np.maximum(
+                        summary.sigma_max_m.get(name, sigma), sigma)
+            if row.temperature is not None:
+                bag.write_temperature(t, mapping.frame_id, row.temperature)
+                temperatures = [min(temperatures[0], row.temperature),
+                                max(temperatures[1], row.temperature)]
+            bag.write_joint_held(held, (int(t + dt) for dt in offsets[offsets > 0]))
+            summary.postures += 1
+        if not summary.postures:
+            raise DataError(f'{", ".join(map(str, paths))}: no data rows')
+        first, last = stamps.check(hold_s)
+    summary.reordered = stamps.reordered
+    summary.sigma_mean_m = {k: v / summary.postures for k, v in sigma_sum.items()}
+    if mapping.temperature:
+        summary.temperature_range_c = (temperatures[0], temperatures[1])
+    summary.time_axis = _time_axis(mapping, first, last)
+    return summary
 
 
-__all__ = ['CsvMapping', 'import_csv', 'load_mapping', 'mapping_from_dict', 'read_postures']
+class _Stamps:
+    """Every row's stamp (8 bytes) and its table and line (4 + 4 bytes), kept in blocks to
+    check at the end that no two postures' holds overlap; rows need not come in stamp
+    order (MCAP readers order messages by stamp)."""
+
+    _BLOCK = 1 << 16
+
+    def __init__(self, paths: list[Path]) -> None:
+        self.paths = paths
+        self._stamps: list[np.ndarray] = []
+        self._places: list[np.ndarray] = []
+        self._fill = self._BLOCK
+        self.latest: int | None = None
+        self.reordered: list[str] = []
+
+    def add(self, stamp: int, row: Posture, table: int) -> None:
+        if self.latest is not None and stamp < self.latest:
+            self.reordered.append(f'{row.path.name} line {row.line}')
+        self.latest = stamp if self.latest is None else max(self.latest, stamp)
+        if self._fill == self._BLOCK:
+            self._stamps.append(np.empty(self._BLOCK, dtype=np.int64))
+            self._places.append(np.empty((self._BLOCK, 2), dtype=np.int32))
+            self._fill = 0
+        self._stamps[-1][self._fill] = stamp
+        self._places[-1][self._fill] = (table, row.line)
+        self._fill += 1
+
+    def check(self, hold_s: float) -> tuple[int, int]:
+        """(first, last) stamp; DataError naming both rows when two postures' stamps are
+        equal or their ±hold_s holds overlap."""
+        self._stamps[-1] = self._stamps[-1][:self._fill]
+        stamps = np.concatenate(self._stamps) if len(self._stamps) > 1 else self._stamps[0]
+        order = np.argsort(stamps, kind='stable')
+        gaps = np.diff(stamps[order])
+        if len(gaps) and gaps.min() <= 2 * hold_s * 1e9:
+            k = int(np.argmin(gaps))
+            (t0, l0), (t1, l1) = (self._places[i // self._BLOCK][i % self._BLOCK]
+                                  for i in (int(order[k]), int(order[k + 1])))
+            where = (f'{self.paths[t0]} line {l0} and {self.paths[t1]} line {l1} have '
+                     f'stamps {gaps[k] / 1e9:g} s apart')
+            if gaps[k] <= 0:
+                raise DataError(f'{where}: stamps truncated or repeated? give no '
+                                'stamp_columns: the time axis is then the row order')
+            raise DataError(f'{where}, within the ±{hold_s} s hold of the joint states; '
+                            'reduce hold_s')
+        return int(stamps[order[0]]), int(stamps[order[-1]])
+
+
+def _time_axis(mapping: CsvMapping, first_ns: int, last_ns: int) -> str:
+    if not mapping.stamp_columns:
+        return (f'row order (no stamp_columns): postures {_PERIOD_NS / 1e9:g} s apart from '
+                f'{datetime.fromtimestamp(first_ns / 1e9, timezone.utc).isoformat()}')
+    zone = time_zone(mapping.stamp_timezone)
+    return (f'stamps of {list(mapping.stamp_columns)} ({mapping.stamp_format}, '
+            f'{mapping.stamp_timezone}): '
+            f'{datetime.fromtimestamp(first_ns / 1e9, zone).isoformat()} to '
+            f'{datetime.fromtimestamp(last_ns / 1e9, zone).isoformat()}')
+
+
+# The mapping's names, for callers that import everything of an import from here.
+__all__ = ['CsvMapping', 'ImportSummary', 'MarkerColumns', 'Posture', 'import_csv',
+           'load_mapping', 'mapping_from_dict', 'read_postures']

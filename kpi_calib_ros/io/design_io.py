@@ -25,6 +25,7 @@ from kpi_calib_ros.core.design import DesignResult  # noqa: E402
 from kpi_calib_ros.core.design_cell import DesignCell  # noqa: E402
 from kpi_calib_ros.core.errors import ConfigError  # noqa: E402
 from kpi_calib_ros.io.results import write_atomic  # noqa: E402
+from kpi_calib_ros.io.yaml_bounded import read_yaml_file  # noqa: E402
 
 CHI2_95_3D = float(scipy.stats.chi2.ppf(0.95, 3))
 
@@ -73,8 +74,8 @@ def read_design_poses(path: str | Path) -> tuple[list[str], np.ndarray]:
     path = Path(path)
     if not path.is_file():
         raise ConfigError('poses', f'file {str(path)!r} does not exist')
+    doc = read_yaml_file(path, 'poses', 'give a design.yaml written by kpi-calib design')
     try:
-        doc = yaml.safe_load(path.read_text())
         names = [str(n) for n in doc['joint_names']]
         q = np.asarray(doc['configurations'], float)
     except (yaml.YAMLError, TypeError, KeyError, ValueError) as exc:

@@ -16,6 +16,7 @@ FAILED_CALIBRATION_FILE = 'calibration.failed.yaml'
 CALIBRATED_URDF_FILE = 'robot_description_calibrated.urdf'
 DESIGN_FILE = 'design.yaml'
 CAMPAIGN_PLAN_FILE = 'campaign_plan.yaml'   # initial design of a sequential campaign
+CAMPAIGN_STATE_FILE = 'campaign_state.yaml'  # a node's sequential campaign, to resume it
 DIAGNOSIS_DIR = 'diagnosis'
 DIAGNOSIS_FILE = 'diagnosis.json'
 REPORT_FILE = 'report.md'
@@ -25,12 +26,13 @@ VALIDATION_FILE = 'validation.json'
 # Every valid calibration of the node, kept by its identified_at_ns (not moved by reset).
 CALIBRATIONS_DIR = 'calibrations'
 RESULT_FILES = (CALIBRATION_FILE, FAILED_CALIBRATION_FILE, CALIBRATED_URDF_FILE, DIAGNOSIS_DIR,
-                VALIDATION_DIR)
+                VALIDATION_DIR, CAMPAIGN_STATE_FILE)
 
 # ---------------------------------------------------------------------- topics
 DEFAULT_JOINT_TOPIC = '/joint_states'
 DEFAULT_POINT_TOPIC = '/laser_tracker/point'
 DEFAULT_POSE_TOPIC = '/laser_tracker/pose'   # tracked 6-DoF bodies (PoseStamped)
+DEFAULT_TEMPERATURE_TOPIC = '/cell/temperature'   # sensor_msgs/Temperature of imported tables
 ROBOT_DESCRIPTION_TOPIC = '/robot_description'
 DIAGNOSTICS_TOPIC = '/diagnostics'
 MEASUREMENT_POSES_TOPIC = '~/measurement_poses'

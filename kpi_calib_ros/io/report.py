@@ -17,6 +17,7 @@ import numpy as np
 
 from kpi_calib_ros.core.diagnosis import Candidate, CellDiagnosis, ModelComparison
 from kpi_calib_ros.core.out_of_sample import DOMAIN_TEXT, NOT_ESTIMABLE, OutOfSample
+from kpi_calib_ros.core.precision import ExpectedTcpError, precision_statement
 from kpi_calib_ros.io.names import DIAGNOSIS_FILE, REPORT_FILE
 from kpi_calib_ros.io.results import write_atomic
 
@@ -34,6 +35,7 @@ def _candidate_dict(c: Candidate) -> dict[str, Any]:
             'significant': bool(c.significant),
             'parameters': [{'name': n, 'value': float(v), 'std': float(s), 'unit': u}
                            for n, v, s, u in zip(c.parameter_names, c.values, c.std, c.units)],
+            'std_basis': precision_statement(float(c.covariance_scale)),
             'explanation': c.explanation, 'plausible': bool(c.plausible),
             'plausibility': c.plausibility, 'also_explained_by': list(c.also_explained_by),
             'note': c.note}
@@ -51,7 +53,8 @@ def comparison_to_dict(cmp: ModelComparison) -> dict[str, Any]:
             'tcp_std_m': [{'name': n, 'before': [float(x) for x in b],
                            'after': [float(x) for x in a]}
                           for n, b, a in zip(cmp.working_pose_names, cmp.tcp_std_before_m,
-                                             cmp.tcp_std_after_m)]}
+                                             cmp.tcp_std_after_m)],
+            'warnings': list(cmp.warnings), 'std_basis': cmp.std_basis}
 
 
 def diagnosis_to_dict(cd: CellDiagnosis) -> dict[str, Any]:
@@ -59,6 +62,7 @@ def diagnosis_to_dict(cd: CellDiagnosis) -> dict[str, Any]:
     diag, rep = cd.diagnosis, cd.diagnosis.residuals
     doc: dict[str, Any] = {
         'model_adequate': bool(diag.model_adequate),
+        'converged': bool(cd.result.converged), 'status': cd.result.message,
         'rms_m': float(diag.rms_m),
         'validation_rms_m': float(diag.validation_rms_m),
         'noise_floor_m': float(np.sqrt(np.sum(cd.result.sigma ** 2))),
@@ -69,16 +73,19 @@ def diagnosis_to_dict(cd: CellDiagnosis) -> dict[str, Any]:
                       'percentiles_m': {str(k): float(v) for k, v in rep.percentiles_m.items()},
                       'chi2': float(rep.chi2), 'dof': int(rep.dof),
                       'p_value': float(rep.p_value), 'adequate': bool(rep.adequate),
-                      'outliers': [int(i) for i in np.flatnonzero(rep.outlier)],
+                      'outliers': cd.given_index(rep.outlier),
+                      'excluded': list(cd.excluded),
                       'sigma_stated_m': float(np.mean(cd.result.sigma)),
                       'sigma_robust_m': float(rep.sigma_robust_m),
                       'sigma_warning': rep.sigma_warning,
-                      'high_leverage': [int(i) for i in np.flatnonzero(rep.high_leverage)]},
+                      'high_leverage': cd.given_index(rep.high_leverage)},
         'not_distinguishable': [{'effect': c.effect, 'joint': c.joint, 'spec': c.spec,
                                  'reason': c.explanation} for c in diag.not_distinguishable],
     }
     if cd.out_of_sample is not None:
         doc['out_of_sample'] = cd.out_of_sample.to_dict()
+    if cd.expected is not None:
+        doc['expected_tcp_error'] = cd.expected.to_dict()
     if cd.comparison is not None:
         doc['added_effect'] = comparison_to_dict(cd.comparison)
         if cd.after_out_of_sample is not None:
@@ -107,6 +114,8 @@ def comparison_text(cmp: ModelComparison) -> str:
              f'  validation rms  {_validation(cmp.validation_rms_before_m, "7", " µm")} -> '
              f'{_validation(cmp.validation_rms_after_m, "7", " µm")} (held-out poses)',
              f'  χ² p-value      {cmp.p_value_before:9.3g} -> {cmp.p_value_after:9.3g}']
+    if cmp.std_basis and cmp.effect_parameters:
+        lines.append(f'  std {cmp.std_basis}')
     for p in cmp.effect_parameters:
         if 'std' in p:
             lines.append(f"  {p['name']} = {p['value']:.4g} ± {p['std']:.2g} {p['unit']}")
@@ -115,6 +124,7 @@ def comparison_text(cmp: ModelComparison) -> str:
     for name, b, a in zip(cmp.working_pose_names, cmp.tcp_std_before_m, cmp.tcp_std_after_m):
         lines.append(f'  TCP {name} std [{", ".join(f"{x * _UM:.1f}" for x in b)}] -> '
                      f'[{", ".join(f"{x * _UM:.1f}" for x in a)}] µm')
+    lines += [f'  WARNING: {w}' for w in cmp.warnings]
     return '\n'.join(lines)
 
 
@@ -122,7 +132,10 @@ def diagnosis_text(cd: CellDiagnosis, top: int = 5) -> str:
     """Readable diagnosis summary for a terminal."""
     diag, rep = cd.diagnosis, cd.diagnosis.residuals
     pct = ', '.join(f'p{k} {v * _UM:.1f}' for k, v in rep.percentiles_m.items())
-    lines = [diag.verdict,
+    lines = [*([f'WARNING: the calibration did not converge ({cd.result.message}); the '
+               'diagnosis judges its last iterate, not a minimum (identification.'
+               'max_iterations raises the limit)'] if not cd.result.converged else []),
+             diag.verdict,
              f'rms {diag.rms_m * _UM:.1f} µm, validation rms '
              f'{_validation(diag.validation_rms_m, "", " µm")} '
              f'(noise floor σ√3 {np.sqrt(np.sum(cd.result.sigma ** 2)) * _UM:.1f} µm); '
@@ -131,8 +144,11 @@ def diagnosis_text(cd: CellDiagnosis, top: int = 5) -> str:
              f'from the residuals {rep.sigma_robust_m * _UM:.3g} µm',
              *([f'WARNING: {rep.sigma_warning}'] if rep.sigma_warning else []),
              *([cd.out_of_sample.text()] if cd.out_of_sample is not None else []),
-             f'outliers: {np.flatnonzero(rep.outlier).tolist()}, high leverage: '
-             f'{np.flatnonzero(rep.high_leverage).tolist()}',
+             *([f'diagnosed the {len(cd.data)} measurements identify keeps; excluded as '
+                f'outliers: {list(cd.excluded)}'] if cd.excluded else []),
+             *(expected_tcp_lines(cd.expected) if cd.expected is not None else []),
+             f'outliers: {cd.given_index(rep.outlier)}, high leverage: '
+             f'{cd.given_index(rep.high_leverage)}',
              f'candidates (best first, {len(diag.candidates)} distinguishable, '
              f'{len(diag.not_distinguishable)} not):']
     for i, c in enumerate(diag.candidates[:top], 1):
@@ -341,6 +357,16 @@ def write_plots(out_dir: str | Path, cd: CellDiagnosis) -> list[Path]:
     return paths
 
 
+def expected_tcp_lines(expected: ExpectedTcpError) -> list[str]:
+    """Terminal lines: the expected TCP error of every working pose beside its parameter
+    part, and what the expected error rests on."""
+    return [f'TCP {n}: expected error {e * _UM:.1f} µm (with the misfit), parameter part '
+            f'tcp_std {s * _UM:.1f} µm (sqrt(trace))'
+            for n, s, e in zip(expected.working_pose_names, expected.tcp_std_m,
+                               expected.expected_tcp_error_m)] + [
+        f'expected TCP error: {expected.basis}']
+
+
 def out_of_sample_table(oos: OutOfSample) -> list[str]:
     """report.md section: the predicted error of new measurements per domain."""
     lines = ['', '## Predicted out-of-sample error', '',
@@ -385,13 +411,24 @@ def write_report(out_dir: str | Path, cd: CellDiagnosis) -> Path:
               for k, v in rep.percentiles_m.items()]
     lines += [f'| χ² / dof | {rep.chi2:.1f} / {rep.dof} (p = {rep.p_value:.3g}) |',
               f'| outliers (Bonferroni, α = {rep.alpha:g}) | '
-              f'{np.flatnonzero(rep.outlier).tolist()} |',
-              f'| high leverage (> 3× mean) | {np.flatnonzero(rep.high_leverage).tolist()} |']
+              f'{cd.given_index(rep.outlier)} |',
+              f'| high leverage (> 3× mean) | {cd.given_index(rep.high_leverage)} |',
+              f'| excluded by identify (not diagnosed) | {list(cd.excluded)} |']
     if cd.out_of_sample is not None:
         lines += out_of_sample_table(cd.out_of_sample)
+    if cd.expected is not None:
+        lines += ['', '## Expected TCP error at the working poses', '',
+                  cd.expected.basis + '.', '',
+                  '| working pose | tcp_std_m: parameter part (µm) | expected_tcp_error_m: '
+                  'with the misfit (µm) |', '|---|---|---|']
+        lines += [f'| {n} | {s * _UM:.1f} | {e * _UM:.1f} |' for n, s, e in zip(
+            cd.expected.working_pose_names, cd.expected.tcp_std_m,
+            cd.expected.expected_tcp_error_m)]
     lines += ['', '## Candidate effects, best first', '',
               f'F-test of each augmented fit against the geometric one, Bonferroni over '
-              f'{len(diag.candidates)} candidates, family-wise α = {diag.alpha:g}.', '',
+              f'{len(diag.candidates)} candidates, family-wise α = {diag.alpha:g}. Parameter '
+              '± std as identify reports them: from the stated σ when the augmented fit '
+              'passes the χ² test, else scaled by its χ²/dof.', '',
               '| # | effect | significant | p | rms after (µm) | validation rms after (µm) | '
               'parameters |', '|---|---|---|---|---|---|---|']
     for i, c in enumerate(diag.candidates, 1):

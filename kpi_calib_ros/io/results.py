@@ -25,7 +25,8 @@ from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.pairing import PairingResult
 from kpi_calib_ros.core.precision import precision_statement
-from kpi_calib_ros.core.residuals import is_adequate
+from kpi_calib_ros.core.residuals import (SIGMA_OVERSTATED, is_adequate, noise_verdict,
+                                          sigma_overstated_text)
 from kpi_calib_ros.io.names import CALIBRATION_FILE, truth_path
 
 
@@ -63,8 +64,16 @@ def write_atomic(path: str | Path, text: str) -> Path:
 def writable_folder(path: str | Path, key: str = 'out') -> Path:
     """Create folder ``path`` if needed and prove a file can be written in it (read-only
     file system, permissions, a file in the way), so a command fails before its
-    computation, not after; ConfigError names ``key``."""
+    computation, not after; a file-system root (``/``) is refused. ConfigError names
+    ``key``."""
     path = Path(path)
+    resolved = path.resolve()
+    if resolved.parent == resolved:
+        # Results are a folder of files (calibration.yaml, plots, validation/...) that a
+        # later run replaces: never spread over a file system's root.
+        raise ConfigError(key, f'{str(path)!r} is the root of a file system: the results '
+                          '(calibration.yaml, plots, ...) would be written and replaced '
+                          'there; give a folder of their own, e.g. ./calibration_out')
     try:
         path.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryFile(dir=path, prefix='.write_test.'):
@@ -92,6 +101,7 @@ def calibration_to_dict(result: CalibrationResult,
                     'covariance': [[float(x) for x in row] for row in cov],
                     'std': [float(x) for x in np.sqrt(np.diag(cov))],
                     'trace_m2': float(np.trace(cov))})
+    verdict, lower_p = noise_verdict(float(result.chi2), int(result.dof))
     doc: dict[str, Any] = {
         'status': {'converged': bool(result.converged), 'code': int(result.status),
                    'message': result.message, 'iterations': int(result.iterations)},
@@ -99,12 +109,19 @@ def calibration_to_dict(result: CalibrationResult,
         'rms_m': float(result.rms_m),
         'max_residual_m': float(np.max(np.linalg.norm(result.residuals, axis=1))),
         'noise_sigma_m': [float(s) for s in result.sigma],
+        # noise.joint_sigma the fit carried (rad, chain order); null: exact joint readings.
+        'noise_joint_sigma_rad': (None if result.joint_sigma is None
+                                  else [float(s) for s in result.joint_sigma]),
+        # `adequate`: the upper tail (the model); `noise_verdict`: the lower tail (the
+        # stated σ; core.residuals.noise_verdict), each at the adequacy level.
         'model_adequacy': {'chi2': float(result.chi2), 'dof': int(result.dof),
                            'p_value': float(result.p_value),
-                           'adequate': is_adequate(result.p_value)},
+                           'adequate': is_adequate(result.p_value),
+                           'noise_verdict': verdict, 'lower_tail_p': lower_p},
         # Which σ the std and covariances below rest on (core.precision).
         'precision': {'covariance_scale': float(result.covariance_scale),
-                      'basis': precision_statement(float(result.covariance_scale))},
+                      'basis': precision_statement(float(result.covariance_scale),
+                                                   result.joint_sigma)},
         'parameters': parameters,
         # Not identifiable: held fixed (at the prior, or where an earlier selection round
         # left it); their value is a choice of gauge, not a measurement.
@@ -136,22 +153,6 @@ def calibration_to_dict(result: CalibrationResult,
     return doc
 
 
-def read_calibration_document(path: str | Path, key: str = 'calibration') -> dict[str, Any]:
-    """A calibration.yaml as a dict, checked to be a mapping with ``parameters``;
-    ConfigError names ``key`` (the option that gave the path)."""
-    path = Path(path)
-    if not path.is_file():
-        raise ConfigError(key, f'file {str(path)!r} does not exist; give a calibration.yaml '
-                          'written by kpi-calib identify')
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        raise ConfigError(key, f'{path} is not valid YAML: {exc}') from exc
-    if not isinstance(doc, dict) or 'parameters' not in doc:
-        raise ConfigError(key, f'{path} is not a calibration document (no parameters:)')
-    return doc
-
-
 def write_calibration(out_dir: str | Path, doc: dict[str, Any]) -> Path:
     return write_atomic(Path(out_dir) / CALIBRATION_FILE, yaml.safe_dump(doc, sort_keys=False))
 
@@ -180,9 +181,16 @@ def summary_text(doc: dict[str, Any]) -> str:
               f"model adequacy: chi2/dof = {doc['model_adequacy']['chi2']:.1f}/"
               f"{doc['model_adequacy']['dof']}, p = {doc['model_adequacy']['p_value']:.3g}"]
     lines += [f'WARNING: {w}' for w in doc.get('warnings', [])]
+    adequacy = doc['model_adequacy']
+    if adequacy.get('noise_verdict') == SIGMA_OVERSTATED:
+        lines.append('WARNING: ' + sigma_overstated_text(adequacy['chi2'], adequacy['dof'],
+                                                         adequacy['lower_tail_p']))
     precision = doc.get('precision', {})
     if precision.get('covariance_scale', 1.0) != 1.0:
         lines.append(f"WARNING: std {precision['basis']}")
+    if not doc['tcp']:
+        lines.append('TCP: none reported (the cell gives no working_poses; add them to '
+                     'estimate the KPI points and their covariance)')
     for t in doc['tcp']:
         if t.get('std') is None:
             lines.append(f"TCP {t['name']}: NOT DETERMINED by the measurements (not estimable)")

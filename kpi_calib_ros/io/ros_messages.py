@@ -114,6 +114,14 @@ def pose_stamped_fields(sample: PointSample) -> dict[str, Any]:
                      'orientation': {'x': qx, 'y': qy, 'z': qz, 'w': qw}}}
 
 
+def temperature_fields(stamp_ns: int, frame_id: str, celsius: float) -> dict[str, Any]:
+    """A temperature (°C, as sensor_msgs/Temperature carries it) as the nested fields of
+    that message; variance 0 (unknown)."""
+    sec, nanosec = stamp_fields(stamp_ns)
+    return {'header': {'stamp': {'sec': sec, 'nanosec': nanosec}, 'frame_id': frame_id},
+            'temperature': float(celsius), 'variance': 0.0}
+
+
 def _header(fields: dict[str, Any]) -> Header:
     return Header(stamp=Time(**fields['stamp']), frame_id=fields['frame_id'])
 
@@ -271,4 +279,4 @@ def _joint_sample(stamp: int, names: tuple[str, ...], positions: np.ndarray,
 __all__ = ['JointStateDecoder', 'joint_sample_from_message', 'joint_state_fields',
            'joint_state_msg', 'point_sample_from_message', 'point_stamped_fields',
            'point_stamped_msg', 'pose_sample_from_message', 'pose_stamped_fields',
-           'pose_stamped_msg', 'stamp_fields', 'stamp_ns', 'time_msg']
+           'pose_stamped_msg', 'stamp_fields', 'stamp_ns', 'temperature_fields', 'time_msg']

@@ -7,7 +7,9 @@ long enough to hold up pairing if the executor did it.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -15,14 +17,16 @@ import numpy as np
 import yaml
 from geometry_msgs.msg import PoseWithCovarianceStamped
 
-from kpi_calib_ros.app.campaign import campaign_context, new_campaign
+from kpi_calib_ros.app.campaign import campaign_calibration, campaign_context, new_campaign
 from kpi_calib_ros.app.design import (controller_design, design_cell_model, design_estimability,
                                       drawn_robots_section)
 from kpi_calib_ros.core.design import DesignResult
+from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.pairing import PairingResult
-from kpi_calib_ros.core.sequential import CampaignSettings, CampaignStatus, SequentialCampaign
-from kpi_calib_ros.io.campaign_io import write_plan
+from kpi_calib_ros.core.sequential import (MODEL_INADEQUATE, CampaignSettings, CampaignStatus,
+                                           SequentialCampaign)
+from kpi_calib_ros.io.campaign_io import CampaignState, write_campaign_state, write_plan
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.design_io import write_design
 from kpi_calib_ros.app.diagnose import diagnose_cell
@@ -33,9 +37,11 @@ from kpi_calib_ros.app.identify import (CellCalibration, add_robust_sections,
 from kpi_calib_ros.app.reidentify import cycle_prior, reidentification_document, reidentify
 from kpi_calib_ros.core.prior import DriftSwing
 from kpi_calib_ros.core.change_detection import ChangeTest
-from kpi_calib_ros.io.names import (CALIBRATIONS_DIR, CAMPAIGN_PLAN_FILE, DESIGN_FILE,
-                                    DIAGNOSIS_DIR, VALIDATION_DIR)
-from kpi_calib_ros.io.results import read_calibration_document, write_atomic
+from kpi_calib_ros.core.errors import KpiCalibError
+from kpi_calib_ros.io.calibration_file import read_calibration_document
+from kpi_calib_ros.io.names import (CALIBRATIONS_DIR, CAMPAIGN_PLAN_FILE, CAMPAIGN_STATE_FILE,
+                                    DESIGN_FILE, DIAGNOSIS_DIR, VALIDATION_DIR)
+from kpi_calib_ros.io.results import write_atomic
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros.parameters import NodeSettings
 
@@ -70,19 +76,50 @@ def design_work(cm: CellModel, settings: NodeSettings,
     return design, points, path, '' if estimability.all_estimable else estimability.summary()
 
 
-def previous_calibration(data_dir: Path, first_stamp_ns: int) -> Path | None:
+def previous_calibration(data_dir: Path, first_stamp_ns: int
+                         ) -> tuple[Path | None, dict[str, Any] | None, list[str]]:
     """The newest archived calibration (``data_dir/calibrations/<identified_at_ns>.yaml``)
     identified before ``first_stamp_ns``: the last cycle's, never one fitted to any of
-    the current measurements."""
-    best: tuple[int, Path] | None = None
-    for path in (data_dir / CALIBRATIONS_DIR).glob('*.yaml'):
+    the current measurements. A file that is not a readable calibration (damaged, edited,
+    not one) is skipped with a warning and the next older one is tried.
+
+    Returns
+    -------
+    path, doc : Path and dict, or None and None
+        The prior calibration and its checked document; None when there is none.
+    notes : list of str
+        The files skipped and, without a prior, why none was used.
+    """
+    folder = data_dir / CALIBRATIONS_DIR
+    dated: list[tuple[int, Path]] = []
+    notes: list[str] = []
+    for path in sorted(folder.glob('*.yaml')):
         try:
-            stamp = int(path.stem)
+            dated.append((int(path.stem), path))
         except ValueError:
-            continue
-        if stamp < first_stamp_ns and (best is None or stamp > best[0]):
-            best = (stamp, path)
-    return None if best is None else best[1]
+            notes.append(f'{path} skipped: not named <identified_at_ns>.yaml')
+    before = sorted((d for d in dated if d[0] < first_stamp_ns), reverse=True)
+    for _, path in before:
+        try:
+            return path, read_calibration_document(path, 'prior calibration'), notes
+        except KpiCalibError as exc:
+            notes.append(f'{path} skipped: {exc}')
+    after = len(dated) - len(before)
+    if after:
+        newest = max(d[0] for d in dated)
+        notes.append(f'no prior: {after} archived calibration(s) in {folder} dated at or '
+                     f'after the first measurement (identified_at_ns up to {newest}, first '
+                     f'measurement stamped {int(first_stamp_ns)}, '
+                     f'{(newest - int(first_stamp_ns)) / 3.6e12:.3g} h later): the clock that '
+                     'stamps the measurements was set back, or they are from another cycle; '
+                     'identified without a prior')
+    elif not before:
+        notes.append(f'no prior: no archived calibration in {folder}; identified without '
+                     'a prior')
+    else:
+        notes.append('no prior: no archived calibration could be read; identified without '
+                     'a prior')
+    return None, None, notes
 
 
 def archive_calibration(data_dir: Path, doc: dict[str, Any], text: str) -> Path | None:
@@ -94,9 +131,10 @@ def archive_calibration(data_dir: Path, doc: dict[str, Any], text: str) -> Path 
 
 
 def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, data_dir: Path,
-                  with_prior: bool = False, swing: DriftSwing | None = None
+                  with_prior: bool = False, swing: DriftSwing | None = None,
+                  archive: bool = True
                   ) -> tuple[CellCalibration | None, str, str, list[PoseWithCovarianceStamped],
-                             ChangeTest | None, str]:
+                             ChangeTest | None, str, list[str]]:
     """Identify from ``data`` as ``kpi-calib identify`` does and write the calibration and
     the calibrated URDF atomically. An invalid calibration (not converged, TCP not
     estimable) is written to calibration.failed.yaml only: the last good calibration.yaml
@@ -107,7 +145,9 @@ def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, dat
     (:func:`previous_calibration`) is the prior (``identify --prior``, default drift;
     ``swing``: the daily swing of its drift state, ``--drift-velocity``);
     a change beyond the drift model returns no calibration, the change test and the
-    failed document's text (written to calibration.failed.yaml).
+    failed document's text (written to calibration.failed.yaml). ``archive`` false: a
+    valid calibration is written and returned but not archived (never the next cycle's
+    prior), e.g. from a campaign that stopped as model inadequate.
 
     Returns
     -------
@@ -123,12 +163,15 @@ def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, dat
         The innovation test against the prior (None without a prior).
     prior : str
         The prior calibration's path ('' without).
+    notes : list of str
+        With ``with_prior``: archived files skipped, why no prior was used, and the
+        prior's drift-time warnings (clocks that disagree).
     """
     if data.stamps_ns is None:
         raise ValueError('data.stamps_ns is None: the TCP poses are stamped with the last '
                          'measurement')
-    source = (previous_calibration(data_dir, int(np.min(data.stamps_ns)))
-              if with_prior and len(data) else None)
+    source, old, notes = (previous_calibration(data_dir, int(np.min(data.stamps_ns)))
+                          if with_prior and len(data) else (None, None, []))
     change = None
     if source is None:
         cal: CellCalibration | None = calibrate_cell(cm, data)
@@ -137,8 +180,9 @@ def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, dat
         doc = add_robust_sections(calibration_document(cm, cal.result, pairing), cal)
         result = cal.result
     else:
-        cp = cycle_prior(cm, read_calibration_document(source, 'prior calibration'), data,
-                         swing=swing)
+        assert old is not None
+        cp = cycle_prior(cm, old, data, swing=swing)
+        notes += list(cp.warnings)
         out = reidentify(cm, data, cp)
         cal, change = out.calibration, out.change
         doc = reidentification_document(cm, out, cp, str(source), pairing)
@@ -146,24 +190,26 @@ def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, dat
     path, _, urdf = write_results(cm, result, doc, data_dir)
     text = path.read_text()  # published as written
     if cal is None or not cal.valid:
-        return cal, text, '', [], change, str(source or '')
-    archive_calibration(data_dir, doc, text)
+        return cal, text, '', [], change, str(source or ''), notes
+    if archive:
+        archive_calibration(data_dir, doc, text)
     tcp = cv.tcp_pose_msgs(result.tcp, result.tcp_covariance, cm.cell.tracker_frame,
                            int(data.stamps_ns[-1]))
-    return cal, text, urdf, tcp, change, str(source or '')
+    return cal, text, urdf, tcp, change, str(source or ''), notes
 
 
 def validate_work(cm: CellModel, calibration: str, data: Measurements,
-                  data_dir: Path) -> tuple[dict[str, Any], str]:
+                  data_dir: Path, register: str | None = None) -> tuple[dict[str, Any], str]:
     """Validate the calibration (the YAML text the node published) on new measurements,
-    as ``kpi-calib validate`` does; writes ``data_dir/validation/``.
+    as ``kpi-calib validate`` (``--register register``) does; writes ``data_dir/validation/``.
 
     Returns
     -------
     doc : dict
         ``validation.json``'s document; ``text`` : str, it as JSON.
     """
-    doc = validate_report(cm, yaml.safe_load(calibration), data, data_dir / VALIDATION_DIR)
+    doc = validate_report(cm, yaml.safe_load(calibration), data, data_dir / VALIDATION_DIR,
+                          register)
     return doc, json.dumps(doc)
 
 
@@ -183,10 +229,17 @@ def diagnose_work(cm: CellModel, data: Measurements,
     return doc, json.dumps(doc), cd.diagnosis.verdict, report
 
 
-def sequential_start_work(cm: CellModel, settings: NodeSettings,
+def campaign_settings(settings: NodeSettings) -> CampaignSettings:
+    """The campaign settings the node's parameters give."""
+    return CampaignSettings(target_std=settings.target_tcp_std,
+                            max_measurements=settings.max_measurements)
+
+
+def sequential_start_work(cm: CellModel, settings: CampaignSettings, design_seed: int,
                           data_dir: Path) -> tuple[SequentialCampaign, np.ndarray, np.ndarray,
                                                    Path]:
-    """A sequential campaign for the cell and its initial design.
+    """A sequential campaign for the cell and its initial design; writes the plan and the
+    campaign state (no step yet), so a restarted node resumes it.
 
     Returns
     -------
@@ -199,30 +252,126 @@ def sequential_start_work(cm: CellModel, settings: NodeSettings,
     path : Path
         ``campaign_plan.yaml``: the initial design, as ``kpi-calib campaign`` writes it.
     """
-    cell, ctx = campaign_context(cm, settings.design_seed)
-    campaign = new_campaign(cm, cell, ctx, CampaignSettings(
-        target_std=settings.target_tcp_std, max_measurements=settings.max_measurements),
-        settings.design_seed)
-    q = ctx.candidates.configurations[campaign.initial_design()]
+    campaign, q = _new_sequential(cm, settings, design_seed)
     points = cm.model.predict(cm.model.params.nominal, q)
     controller = cm.joint_coupling.to_controller(q)
     path = write_plan(data_dir / CAMPAIGN_PLAN_FILE, cm.joint_names, controller,
                       campaign.settings)
+    write_campaign_state(data_dir / CAMPAIGN_STATE_FILE, CampaignState(settings, design_seed))
     return campaign, controller, points, path
 
 
-def sequential_step_work(campaign: SequentialCampaign, cm: CellModel,
-                         data: Measurements) -> tuple[CampaignStatus, np.ndarray, str]:
-    """Add the measurements ``data`` (URDF joint values) to ``campaign``: re-identify,
-    re-plan. Returns the status, the plan in controller values (next pose first) and the
-    status as YAML text (``~/campaign_status``)."""
-    status = campaign.add(data.q, data.eta)
+def _new_sequential(cm: CellModel, settings: CampaignSettings,
+                    design_seed: int) -> tuple[SequentialCampaign, np.ndarray]:
+    """The campaign and its initial design (URDF joint values): the same for the same
+    cell, settings and seed."""
+    cell, ctx = campaign_context(cm, design_seed)
+    campaign = new_campaign(cm, cell, ctx, settings, design_seed)
+    return campaign, ctx.candidates.configurations[campaign.initial_design()]
+
+
+@dataclass(frozen=True)
+class StepOutput:
+    """What a campaign step gives the node to publish.
+
+    status : the campaign's status; plan : (m, n) controller values, next pose first;
+    text : ``~/campaign_status`` (YAML); state : the campaign state as written;
+    calibration : (text, urdf, tcp messages) of a stopped campaign's calibration, None
+    while it runs or when it stopped as model inadequate (nothing published, nothing
+    archived as a prior); result : that calibration.
+    """
+
+    status: CampaignStatus
+    plan: np.ndarray
+    text: str
+    state: CampaignState
+    calibration: tuple[str, str, list[PoseWithCovarianceStamped]] | None = None
+    result: CellCalibration | None = None
+
+
+def sequential_step_work(campaign: SequentialCampaign, cm: CellModel, data: Measurements,
+                         state: CampaignState, data_dir: Path,
+                         pairing: PairingResult | None = None,
+                         extra: dict[str, Any] | None = None) -> StepOutput:
+    """Add the measurements ``data`` (URDF joint values, stamped) to ``campaign``:
+    re-identify, re-plan, write the campaign state with this step; once the campaign
+    stopped (target met or cap), write, archive and return its calibration
+    (:func:`~kpi_calib_ros.app.campaign.campaign_calibration`). ``extra`` is added to the
+    status text (e.g. ``resumed``)."""
+    status = campaign.add(data.q, data.eta, -1, data.reflector, data.rotation,
+                          stamps_ns=data.stamps_ns)
+    # A pose's rows (reflectors, rotation rows) may share a stamp: stored once.
+    stamps = tuple(dict.fromkeys(int(t) for t in np.asarray(data.stamps_ns).ravel()))
+    return _step_output(campaign, cm, dataclasses.replace(
+        state, steps=state.steps + (stamps,),
+        status=status.to_dict(cm.working_pose_names)), data_dir, pairing, extra)
+
+
+def _step_output(campaign: SequentialCampaign, cm: CellModel, state: CampaignState,
+                 data_dir: Path, pairing: PairingResult | None,
+                 extra: dict[str, Any] | None, publish: bool = True) -> StepOutput:
+    status = campaign.status
+    assert status is not None
+    doc = {**status.to_dict(cm.working_pose_names), **(extra or {})}
     plan = cm.joint_coupling.to_controller(status.next_configurations) if len(
         status.next_configurations) else status.next_configurations
-    text = yaml.safe_dump(status.to_dict(cm.working_pose_names), sort_keys=False)
-    return status, plan, text
+    text = yaml.safe_dump(doc, sort_keys=False)
+    calibration, result = None, None
+    # The calibration is on disk before the state says the campaign stopped: a node
+    # killed in between repeats this step on restart and writes it again.
+    if publish and status.stopped and status.stop_reason != MODEL_INADEQUATE:
+        cal, cal_doc = campaign_calibration(cm, campaign, pairing)
+        path, _, urdf = write_results(cm, cal.result, cal_doc, data_dir)
+        cal_text = path.read_text()
+        if cal.valid:
+            archive_calibration(data_dir, cal_doc, cal_text)
+            stamp = int(np.max(campaign.stamps)) if len(campaign.stamps) else 0
+            calibration = (cal_text, urdf, cv.tcp_pose_msgs(
+                cal.result.tcp, cal.result.tcp_covariance, cm.cell.tracker_frame, stamp))
+            result = cal
+    state = dataclasses.replace(state, status=doc)
+    write_campaign_state(data_dir / CAMPAIGN_STATE_FILE, state)
+    return StepOutput(status, plan, text, state, calibration, result)
 
 
-__all__ = ['archive_calibration', 'design_work', 'diagnose_work', 'identify_work',
-           'previous_calibration', 'sequential_start_work', 'sequential_step_work',
-           'validate_work']
+def sequential_resume_work(cm: CellModel, state: CampaignState, data: Measurements,
+                           data_dir: Path) -> tuple[SequentialCampaign, np.ndarray,
+                                                    StepOutput | None]:
+    """Rebuild the campaign of ``state`` after a restart: the same initial design, then
+    every step added again with the same stored measurements (found by stamp in
+    ``data``, URDF joint values), so the status and the plan are the ones the campaign
+    had (the core is deterministic). Nothing is published as a calibration here: a
+    campaign that had stopped published its calibration then.
+
+    Returns the campaign, its initial design (controller values) and the last step's
+    output (None before the first step).
+
+    Raises
+    ------
+    DataError
+        A stored step's measurement is not among the restored ones (the logs and the
+        state file disagree).
+    """
+    stamps = np.asarray(data.stamps_ns, dtype=np.int64).ravel()
+    known = set(int(t) for t in stamps)
+    missing = [t for step in state.steps for t in step if t not in known]
+    if missing:
+        raise DataError(f'{data_dir / CAMPAIGN_STATE_FILE}: steps: measurement stamp '
+                        f'{missing[0]} is not in the restored measurement logs; call '
+                        '~/reset to archive the campaign and start a new one')
+    campaign, q = _new_sequential(cm, state.settings, state.design_seed)
+    for step in state.steps:
+        # Every row with a stamp of the step (a pose's reflectors and rotation rows).
+        rows = data.subset(np.isin(stamps, np.asarray(step, np.int64)))
+        campaign.add(rows.q, rows.eta, -1, rows.reflector, rows.rotation,
+                     stamps_ns=rows.stamps_ns)
+    controller = cm.joint_coupling.to_controller(q)
+    if not state.steps:
+        return campaign, controller, None
+    return campaign, controller, _step_output(campaign, cm, state, data_dir, None,
+                                              {'resumed': True}, publish=False)
+
+
+__all__ = ['StepOutput', 'archive_calibration', 'campaign_settings', 'design_work',
+           'diagnose_work', 'identify_work', 'previous_calibration', 'sequential_resume_work',
+           'sequential_start_work', 'sequential_step_work', 'validate_work']

@@ -73,9 +73,11 @@ from kpi_calib_ros.core.robust import RobustResult
 from kpi_calib_ros.app.identify import pose_rows, urdf_measurements
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell, with_overrides
 from kpi_calib_ros.core.sequential import MODEL_INADEQUATE, CampaignStatus, SequentialCampaign
+from kpi_calib_ros.io.campaign_io import CampaignState, read_campaign_state
 from kpi_calib_ros.io.names import (CALIBRATED_URDF_TOPIC, CALIBRATION_TOPIC,
-                                    CAMPAIGN_STATUS_TOPIC, CHANGE_TEST_TOPIC, DIAGNOSIS_TOPIC,
-                                    DIAGNOSTICS_TOPIC, MARKERS_TOPIC, MEASUREMENT_POSES_TOPIC,
+                                    CAMPAIGN_STATE_FILE, CAMPAIGN_STATUS_TOPIC,
+                                    CHANGE_TEST_TOPIC, DIAGNOSIS_TOPIC, DIAGNOSTICS_TOPIC,
+                                    MARKERS_TOPIC, MEASUREMENT_POSES_TOPIC,
                                     TCP_TOPIC, VALIDATION_TOPIC)
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros import jobs
@@ -85,6 +87,9 @@ from kpi_calib_ros.ros.parameters import (PARAMETERS, settings_from_parameters, 
                                           working_poses)
 
 NODE_NAME = 'kpi_calib_node'
+# Parameters a running sequential campaign was started with: refused while it runs (its
+# status, plan and stop rule rest on them).
+CAMPAIGN_FIXED = ('campaign', 'target_tcp_std', 'max_measurements', 'design_seed')
 
 
 def _latched(depth: int = 1) -> QoSProfile:
@@ -169,6 +174,25 @@ class CalibrationNode(Node):
         self._sequential_stamps: set[int] = set()
         self._sequential_initial = 0
         self._sequential_status: CampaignStatus | None = None
+        # The campaign as data_dir/campaign_state.yaml keeps it; one found at start is
+        # resumed (_resume) once the robot model is known, before anything is identified.
+        self._sequential_state: CampaignState | None = None
+        self._resume_pending = False
+        self._resumed = False
+        state_path = self.data_dir / CAMPAIGN_STATE_FILE
+        if state_path.is_file():
+            try:
+                self._sequential_state = read_campaign_state(state_path)
+            except DataError as exc:
+                self._result_error = f'sequential campaign not resumed: {exc}'
+                self.get_logger().error(self._result_error)
+            else:
+                self._resume_pending = True
+                self.get_logger().info(
+                    f'sequential campaign found in {state_path} '
+                    f'({len(self._sequential_state.steps)} step(s), '
+                    f"{self._sequential_state.status.get('stop_reason', 'running')}): "
+                    'resuming it once the robot model is known')
 
         # One executor thread: pairing callbacks run in arrival order; services await
         # their worker threads in a reentrant group so a second call gets 'busy'.
@@ -252,6 +276,18 @@ class CalibrationNode(Node):
                 {p.name: p.value for p in parameters}))
         except ConfigError as exc:
             return SetParametersResult(successful=False, reason=str(exc))
+        fixed = [p.name for p in parameters if p.name in CAMPAIGN_FIXED
+                 and p.value != getattr(self.settings, p.name)]
+        if fixed and self._sequential_running():
+            state = self._sequential_state
+            now = ('' if state is None else
+                   f' (target_tcp_std {state.settings.target_std:g} m, max_measurements '
+                   f'{state.settings.max_measurements})')
+            return SetParametersResult(successful=False, reason=(
+                f"{', '.join(fixed)}: a sequential campaign is running{now}; it keeps the "
+                'values it started with, which ~/campaign_status and /diagnostics show. '
+                'Change them after it stops, or call ~/reset and ~/design to start a new '
+                'campaign'))
         return SetParametersResult(successful=True)
 
     def _apply_parameters(self, parameters: list[Parameter]) -> None:
@@ -290,8 +326,9 @@ class CalibrationNode(Node):
         if self._pub_tcp is None or depth != self._tcp_depth:
             if self._pub_tcp is not None:
                 self.destroy_publisher(self._pub_tcp)
+            # A cell without working poses publishes no TCP; depth 0 is no valid history.
             self._pub_tcp = self.create_publisher(PoseWithCovarianceStamped, TCP_TOPIC,
-                                                  _latched(depth))
+                                                  _latched(max(depth, 1)))
             self._tcp_depth = depth
         return self._pub_tcp
 
@@ -318,19 +355,22 @@ class CalibrationNode(Node):
                 self._auto_pending = True
 
     def _auto_wanted(self) -> bool:
-        # A running sequential campaign re-identifies in its own steps.
+        # A sequential campaign re-identifies in its own steps and publishes its own
+        # calibration when it stops (none after 'model inadequate').
         return (self.settings.auto_identify and self._cm is not None
-                and not self._sequential_running()
+                and self._sequential is None and self._sequential_state is None
                 and len(self.campaign) >= self.settings.min_measurements)
 
     def _sequential_running(self) -> bool:
+        if self._resume_pending:
+            return self._sequential_state is not None and not self._sequential_state.stopped
         status = self._sequential_status
         return self._sequential is not None and (status is None or not status.stopped)
 
     def _sequential_due(self) -> bool:
         """A step is due: the campaign runs, the initial design is measured and some
         accepted measurement has not been added yet."""
-        if not self._sequential_running():
+        if self._resume_pending or not self._sequential_running():
             return False
         accepted = len(self.campaign)
         return (accepted >= self._sequential_initial
@@ -338,6 +378,9 @@ class CalibrationNode(Node):
 
     def _tick(self) -> None:
         self._report(self.campaign.poll())
+        if (self._resume_pending and self._cm is not None
+                and self._claim_job('resuming the sequential campaign')):
+            self._create_task('resuming the sequential campaign', self._resume)
         if self._sequential_due() and self._claim_job('planning the next pose'):
             executor = self.executor
             if executor is None:  # timers fire only under an executor
@@ -389,6 +432,12 @@ class CalibrationNode(Node):
             self._job_name = ''
         return outcome
 
+    def _create_task(self, name: str, work: Callable[[], Awaitable[tuple[bool, str]]]) -> None:
+        executor = self.executor
+        if executor is None:  # timers fire only under an executor
+            raise RuntimeError('kpi_calib_node ticked without an executor')
+        executor.create_task(self._run_job, name, work)
+
     def _offload(self, fn: Callable[..., Any], *args: Any, child: bool = False) -> Future:
         """Run ``fn(*args)`` in a worker thread (``child``: in a forked child process that
         the thread waits for, for pure computations that must not hold the GIL); awaiting
@@ -437,71 +486,163 @@ class CalibrationNode(Node):
         """Start a sequential campaign: publish its initial design on ~/measurement_poses.
         Measurements accepted before it are part of the campaign (the first step adds
         them all)."""
+        settings, seed = jobs.campaign_settings(self.settings), self.settings.design_seed
         campaign, initial, points, path = await self._offload(
-            jobs.sequential_start_work, cm, self.settings, self.data_dir)
+            jobs.sequential_start_work, cm, settings, seed, self.data_dir)
         self._sequential, self._sequential_status = campaign, None
+        self._sequential_state = CampaignState(settings, seed)
         self._sequential_stamps, self._sequential_initial = set(), len(initial)
+        self._resume_pending, self._resumed = False, False
         self._pub_poses.publish(cv.joint_trajectory_msg(cm.joint_names, initial))
         self._design_points = points
         self._publish_markers()
         self._pub_campaign_status.publish(String(data=yaml.safe_dump({
             'measurements': len(self.campaign), 'initial_design': len(initial),
-            'target_tcp_std_m': self.settings.target_tcp_std,
+            'target_tcp_std_m': settings.target_std,
             'stop_reason': 'running'}, sort_keys=False)))
         return True, (f'sequential campaign: initial design of {len(initial)} poses '
                       f'published on {self.resolve_topic_name(MEASUREMENT_POSES_TOPIC)}, '
-                      f'written to {path}; target TCP std {self.settings.target_tcp_std:g} m, '
-                      f'at most {self.settings.max_measurements} measurements')
+                      f'written to {path}; target TCP std {settings.target_std:g} m, '
+                      f'at most {settings.max_measurements} measurements')
+
+    async def _resume(self) -> tuple[bool, str]:
+        """Rebuild the campaign data_dir/campaign_state.yaml keeps, from the restored
+        measurements (the same steps, so the same status and plan), and publish its
+        plan and status again, saying it was resumed."""
+        cm, state = self._model(), self._sequential_state
+        assert state is not None
+        self._resume_pending = False
+        data = self._campaign_data(cm)[0] if len(self.campaign) else Measurements(
+            q=np.zeros((0, len(cm.joint_names))), eta=np.zeros((0, 3)),
+            stamps_ns=np.zeros(0, np.int64))
+        try:
+            campaign, initial, out = await self._offload(jobs.sequential_resume_work, cm,
+                                                         state, data, self.data_dir)
+        except KpiCalibError as exc:
+            self._result_error = f'sequential campaign not resumed: {exc}'
+            self._publish_diagnostics(force=True)
+            raise
+        self._sequential, self._sequential_initial = campaign, len(initial)
+        self._sequential_stamps = {t for step in state.steps for t in step}
+        self._resumed = True
+        if out is None:  # no step yet: the initial design is still the plan
+            self._pub_poses.publish(cv.joint_trajectory_msg(cm.joint_names, initial))
+            self._pub_campaign_status.publish(String(data=yaml.safe_dump({
+                'measurements': len(self.campaign), 'initial_design': len(initial),
+                'target_tcp_std_m': state.settings.target_std, 'stop_reason': 'running',
+                'resumed': True}, sort_keys=False)))
+            message = f'initial design of {len(initial)} poses published again'
+        else:
+            self._sequential_state, self._sequential_status = out.state, out.status
+            if len(out.plan):
+                self._pub_poses.publish(cv.joint_trajectory_msg(cm.joint_names, out.plan))
+            self._pub_campaign_status.publish(String(data=out.text))
+            message = (f'{out.status.measurements} measurements, largest TCP std '
+                       f'{out.status.statistic * 1e6:.2f} µm (target '
+                       f'{out.status.target_std * 1e6:.2f} µm), '
+                       + (f'stopped: {out.status.stop_reason}' if out.status.stopped
+                          else f'{len(out.plan)} poses planned'))
+        self._publish_diagnostics(force=True)
+        return True, f'sequential campaign resumed from {self.data_dir}: {message}'
+
+    def _campaign_data(self, cm: CellModel) -> tuple[Measurements, Any]:
+        """Every accepted measurement with its stamps, URDF joint values."""
+        data, pairing = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame,
+                                                   cm.cell.reflector_names or ('',))
+        # every row of each pose (reflectors, tracked bodies' rotation rows); controller
+        # readings -> URDF joint values
+        data = urdf_measurements(cm, pose_rows(cm, data, pairing))
+        stamps = np.asarray(data.stamps_ns, dtype=np.int64).ravel()
+        return dataclasses.replace(data, stamps_ns=stamps), pairing
 
     async def _sequential_step(self) -> tuple[bool, str]:
         """Add the accepted measurements the campaign has not seen, re-identify and
-        publish the updated plan (next pose first) and ~/campaign_status."""
-        cm, campaign = self._model(), self._sequential
-        if campaign is None:
+        publish the updated plan (next pose first) and ~/campaign_status; once the
+        campaign stopped (target met or cap), publish its calibration."""
+        cm, campaign, state = self._model(), self._sequential, self._sequential_state
+        if campaign is None or state is None:
             raise DataError('no sequential campaign: call ~/design with campaign:=sequential')
-        data, _ = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame,
-                                             cm.cell.reflector_names or ('',))
-        data = urdf_measurements(cm, data)  # controller readings -> URDF joint values
-        stamps = np.asarray(data.stamps_ns, dtype=np.int64).ravel()
-        new = np.array([int(s) not in self._sequential_stamps for s in stamps])
-        fresh = Measurements(q=data.q[new], eta=data.eta[new])
-        status, plan, text = await self._offload(jobs.sequential_step_work, campaign, cm,
-                                                 fresh)
-        self._sequential_stamps.update(int(s) for s in stamps[new])
-        self._sequential_status = status
+        data, pairing = self._campaign_data(cm)
+        stamps = np.asarray(data.stamps_ns, dtype=np.int64)
+        new = np.array([int(t) not in self._sequential_stamps for t in stamps], dtype=bool)
+        fresh = data.subset(new)
+        out = await self._offload(jobs.sequential_step_work, campaign, cm, fresh, state,
+                                  self.data_dir, pairing,
+                                  {'resumed': True} if self._resumed else None)
+        status, plan = out.status, out.plan
+        self._sequential_stamps.update(int(t) for t in stamps[new])
+        self._sequential_status, self._sequential_state = status, out.state
+        for e in status.excluded:
+            self.get_logger().warning(f"measurement {e['measurement']} (stamp "
+                                      f"{e['stamp_ns']} ns) excluded: "
+                                      f"{e['distance_m'] * 1e6:.1f} µm from the fit; "
+                                      f"{e['reason']}")
         if len(plan):
             self._pub_poses.publish(cv.joint_trajectory_msg(cm.joint_names, plan))
-        self._pub_campaign_status.publish(String(data=text))
+        self._pub_campaign_status.publish(String(data=out.text))
+        if out.calibration is not None and out.result is not None:
+            text, urdf, tcp = out.calibration
+            self._publish_campaign_calibration(out.result, text, urdf, tcp, stamps)
         self._publish_diagnostics(force=True)
         if status.stopped:
             self.get_logger().info(f'sequential campaign stopped after {status.measurements} '
                                    f'measurements: {status.stop_reason}')
-            # The calibration of the finished campaign, as an automatic identification.
-            self._auto_pending = self.settings.auto_identify
         return True, (f'{status.measurements} measurements, largest TCP std '
                       f'{status.statistic * 1e6:.2f} µm (target '
                       f'{status.target_std * 1e6:.2f} µm), '
                       + (f'stopped: {status.stop_reason}' if status.stopped else
-                         f'{len(plan)} poses planned') + f', {status.step_seconds:.2f} s')
+                         f'{len(plan)} poses planned') + f', {status.step_seconds:.2f} s'
+                      + (f', {len(status.excluded)} excluded' if status.excluded else ''))
+
+    def _publish_campaign_calibration(self, cal: Any, text: str, urdf: str, tcp: list,
+                                      stamps: np.ndarray) -> None:
+        """Publish a stopped campaign's calibration as ~/identify publishes one."""
+        campaign = self._sequential
+        assert campaign is not None
+        kept = np.asarray(cal.robust.kept, dtype=bool)
+        self._robust, self._result = cal.robust, cal.result
+        self._measured, self._marker_rows = campaign.eta[kept], np.ones(int(kept.sum()), bool)
+        self._identified_with = len(campaign.q)
+        self._identifications += 1
+        self._result_error = ''
+        self._pub_calibration.publish(String(data=text))
+        self._calibration_text = text
+        self._identified_stamps = {int(t) for t in stamps}
+        self._pub_urdf.publish(String(data=urdf))
+        publisher = self._tcp_publisher(len(tcp))
+        for msg in tcp:
+            publisher.publish(msg)
+        self._publish_markers()
 
     async def _identify(self) -> tuple[bool, str]:
         """Identify from every accepted measurement (as ``kpi-calib identify`` does);
-        write the results atomically and publish them."""
+        write the results atomically and publish them. Refused while a sequential campaign
+        runs: its calibration is published when it stops, never one of part of it."""
         cm = self._model()
+        if self._sequential_running():
+            raise DataError('a sequential campaign is running: its calibration is published '
+                            'on ~/calibration when it stops (~/campaign_status); call '
+                            '~/reset to end it')
         data, pairing = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame,
                                                    cm.cell.reflector_names or ('',))
         # tracked poses' rotation rows; controller readings -> URDF joint values
         data = urdf_measurements(cm, pose_rows(cm, data, pairing))
         try:
-            cal, calibration, urdf, tcp, change, prior = await self._offload(
+            cal, calibration, urdf, tcp, change, prior, notes = await self._offload(
                 jobs.identify_work, cm, data, pairing, self.data_dir,
                 self.settings.reidentify_with_prior,
                 DriftSwing(*self.settings.drift_velocity) if self.settings.drift_velocity
                 else None,
+                not self._campaign_inadequate(),
                 child=True)
-        except KpiCalibError as exc:
-            self._result_error = f'identification failed: {exc}'
+        except Exception as exc:  # job boundary: also a full disk or a lost data_dir
+            where = (f' (results not written to {self.data_dir})'
+                     if isinstance(exc, OSError) else '')
+            self._result_error = f'identification failed{where}: {exc}'
+            self._publish_diagnostics(force=True)
             raise
+        for note in notes:  # which prior, or why none; archived files skipped
+            self.get_logger().warning(note)
         if change is not None:
             # Latched: the last re-identification's innovation test, consistent or not.
             self._pub_change_test.publish(String(data=json.dumps(
@@ -528,9 +669,7 @@ class CalibrationNode(Node):
             self._publish_diagnostics(force=True)
             return False, f'not published (last good calibration kept): {reason}'
         for e in cal.robust.excluded:
-            self.get_logger().warning(
-                f'measurement {e.index} (stamp {e.stamp_ns} ns) excluded: '
-                f'{e.distance_m * 1e6:.1f} µm from the fit; {e.reason}')
+            self.get_logger().warning(e.text())
         for text in cal.robust.warnings:
             self.get_logger().warning(text)
         self._robust = cal.robust
@@ -553,14 +692,25 @@ class CalibrationNode(Node):
         self._publish_markers()
         self._publish_diagnostics(force=True)
         tcp_um = np.sqrt(np.trace(result.tcp_covariance, axis1=1, axis2=2)).max() * 1e6
-        precision = precision_statement(result.covariance_scale)
+        # With the misfit of a model χ² rejects (core.precision.expected_tcp_error).
+        expected = ('' if cal.expected is None else
+                    f', expected TCP error <= '
+                    f'{np.max(cal.expected.expected_tcp_error_m) * 1e6:.1f} µm with the misfit')
+        precision = precision_statement(result.covariance_scale, result.joint_sigma)
         if result.covariance_scale != 1.0:
             self.get_logger().warning(f'TCP and parameter std {precision}')
         return True, (
             f'identified from {len(data)} measurements: {result.message}; rms '
             f'{result.rms_m * 1e6:.1f} µm, p = {result.p_value:.3g}, TCP sqrt(trace) <= '
-            f'{tcp_um:.1f} µm ({precision}); {len(cal.robust.excluded)} excluded; '
-            + (f'prior {prior}; ' if prior else '') + f'written to {self.data_dir}')
+            f'{tcp_um:.1f} µm ({precision}){expected}; {len(cal.robust.excluded)} excluded; '
+            + (f'prior {prior}; ' if prior else '') + ''.join(f'{n}; ' for n in notes)
+            + f'written to {self.data_dir}')
+
+    def _campaign_inadequate(self) -> bool:
+        """The sequential campaign stopped as model inadequate: a calibration of its
+        measurements is never archived as the next cycle's prior."""
+        status = self._sequential_status
+        return status is not None and status.stop_reason == MODEL_INADEQUATE
 
     async def _diagnose(self) -> tuple[bool, str]:
         """Model diagnosis of the accepted measurements (as ``kpi-calib diagnose``): residual
@@ -595,10 +745,14 @@ class CalibrationNode(Node):
                             'new poses with auto_identify:=false, then call ~/validate')
         fresh = dataclasses.replace(data, stamps_ns=stamps).subset(new)
         doc, text = await self._offload(jobs.validate_work, cm, self._calibration_text, fresh,
-                                        self.data_dir)
+                                        self.data_dir, self.settings.validate_register or None)
         self._pub_validation.publish(String(data=text))
         return doc['holds'], (f"{doc['verdict']} on {doc['measurements']} new measurements: "
-                              f"rms {doc['rms_m'] * 1e6:.1f} µm, chi2/dof {doc['chi2']:.1f}/"
+                              f"rms {doc['rms_m'] * 1e6:.1f} µm"
+                              + (' after re-registering '
+                                 + '/'.join(doc['registration']['parameters'])
+                                 if doc.get('registration') else '')
+                              + f", chi2/dof {doc['chi2']:.1f}/"
                               f"{doc['dof']}, p = {doc['p_value']:.3g}; "
                               f"{doc['outside_training_range']} outside the training ranges"
                               + (f"; {doc['repeated_from_training']} at training poses "
@@ -614,6 +768,7 @@ class CalibrationNode(Node):
         self._identified_with, self._auto_pending, self._diagnosis = 0, False, None
         self._sequential, self._sequential_status = None, None
         self._sequential_stamps, self._sequential_initial = set(), 0
+        self._sequential_state, self._resume_pending, self._resumed = None, False, False
         self._publish_markers()
         self._publish_diagnostics(force=True)
         return True, f'archived {count} measurement(s) and the results to {archive}'
@@ -661,15 +816,20 @@ class CalibrationNode(Node):
                         'none')
             values.update({'model_adequate': self._diagnosis['model_adequate'],
                            'suggested_effect': best})
-        seq = self._sequential_status
-        if self._sequential is not None:
+        seq, state = self._sequential_status, self._sequential_state
+        if state is not None:
+            # The campaign's own target (the one its status and stop rule use).
             values.update({'campaign': 'sequential',
                            'campaign.measurements': seq.measurements if seq else 0,
                            'campaign.tcp_std_um': round(seq.statistic * 1e6, 3) if seq
                            else float('inf'),
-                           'campaign.target_um': round(self.settings.target_tcp_std * 1e6, 3),
-                           'campaign.stop_reason': (seq.stop_reason if seq else '')
-                           or 'running'})
+                           'campaign.target_um': round(state.settings.target_std * 1e6, 3),
+                           'campaign.max_measurements': state.settings.max_measurements,
+                           'campaign.excluded': len(seq.excluded) if seq else 0,
+                           'campaign.resumed': self._resumed or self._resume_pending,
+                           'campaign.stop_reason': (
+                               'resuming' if self._resume_pending else
+                               (seq.stop_reason if seq else '') or 'running')})
         error = self._model_error or self._result_error
         if error or values['rejected.not_stored']:
             return 'ERROR', error or 'accepted measurements could not be stored', values

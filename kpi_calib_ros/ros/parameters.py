@@ -13,6 +13,7 @@ from rclpy.exceptions import InvalidTopicNameException
 from rclpy.parameter import Parameter
 from rclpy.validate_topic_name import validate_topic_name
 
+from kpi_calib_ros.app.validate import REGISTER
 from kpi_calib_ros.core.design import DESIGN_CRITERIA
 from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.prior import DriftSwing
@@ -45,6 +46,7 @@ class NodeSettings:
     max_measurements: int = 200
     reidentify_with_prior: bool = True
     drift_velocity: tuple[float, ...] = ()
+    validate_register: str = ''
 
 
 CAMPAIGNS = ('fixed', 'sequential')
@@ -90,6 +92,10 @@ PARAMETERS: dict[str, tuple[Any, bool, str]] = {
                        'the daily swing of the links\' temperature and of the joint offsets, '
                        'e.g. [5.0, 5.0e-5]; the rates are stored in each calibration for the '
                        'next cycle; empty (default): the random-walk drift model only'),
+    'validate_register': ('', False, "~/validate with the tracker (or probe) set up again "
+                          "since the calibration: 'base' re-fits the base pose, "
+                          "'base+reflector' also the reflector offsets, on the new measurements "
+                          "alone (as validate --register); '' (default): none"),
     'allow_code_effects': (False, True, "run the Python code a cell file's effects: name "
                            "('file.py:Type:joint', 'module:Type:joint'); off: only built-in "
                            'and installed (entry point) effects'),
@@ -155,6 +161,10 @@ def settings_from_parameters(values: dict[str, Any]) -> NodeSettings:
             0 < float(target) < float('inf')):
         raise ConfigError('target_tcp_std', f'must be a positive length in m (e.g. 1.0e-5), '
                           f'got {target!r}')
+    register = values.get('validate_register', '')
+    if register not in ('', *REGISTER):
+        raise ConfigError('validate_register', f"must be '' or one of {list(REGISTER)}, "
+                          f'got {register!r}')
     for key in ('auto_identify', 'allow_code_effects', 'reidentify_with_prior'):
         if not isinstance(values[key], bool):
             raise ConfigError(key, f'must be true or false, got {values[key]!r}')
@@ -186,7 +196,7 @@ def settings_from_parameters(values: dict[str, Any]) -> NodeSettings:
         data_dir=str(Path(text('data_dir')).expanduser()), campaign=values['campaign'],
         target_tcp_std=float(target), max_measurements=integer('max_measurements', 1),
         reidentify_with_prior=values['reidentify_with_prior'], drift_velocity=swing,
-        **topics)
+        validate_register=register, **topics)
 
 
 def working_poses(settings: NodeSettings) -> tuple[WorkingPose, ...] | None:

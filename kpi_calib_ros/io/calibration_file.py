@@ -1,0 +1,214 @@
+"""Reading a calibration.yaml from outside: a bounded YAML load and a check of every field
+the package computes with, so a damaged or edited file is a :class:`ConfigError` naming
+the file, the field and the fix, never a crash or a NaN in a result.
+
+The YAML load is bounded (:mod:`kpi_calib_ros.io.yaml_bounded`: the file size and the
+size of the document with every alias expanded), so an alias bomb in
+``parameter_covariance.matrix`` is refused before anything is built.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.io.yaml_bounded import MAX_DOCUMENT_BYTES
+from kpi_calib_ros.io.yaml_bounded import load_yaml_bounded as _load_bounded
+
+FIX = 'give a calibration.yaml written by kpi-calib identify (unedited)'
+
+
+def load_yaml_bounded(text: str, where: str, key: str) -> Any:
+    """A calibration document loaded with the bounds of
+    :func:`kpi_calib_ros.io.yaml_bounded.load_yaml_bounded`."""
+    return _load_bounded(text, where, key, FIX)
+
+
+def read_calibration_document(path: str | Path, key: str = 'calibration',
+                              required: tuple[str, ...] = ('parameter_covariance',)
+                              ) -> dict[str, Any]:
+    """A calibration.yaml as a dict, loaded bounded (:func:`load_yaml_bounded`) and checked
+    field by field (:func:`check_calibration_document`); ``required``: the sections the
+    caller computes with. ConfigError names ``key`` (the option that gave the path), the
+    file and the field."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(key, f'file {str(path)!r} does not exist; give a calibration.yaml '
+                          'written by kpi-calib identify')
+    try:
+        size = path.stat().st_size
+        if size > MAX_DOCUMENT_BYTES:
+            raise ConfigError(key, f'{path} is {size} bytes, more than the '
+                              f'{MAX_DOCUMENT_BYTES} bytes a calibration document may have; '
+                              f'{FIX}')
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(key, f'cannot read {path}: {exc}') from None
+    doc = load_yaml_bounded(text, str(path), key)
+    if not isinstance(doc, dict) or 'parameters' not in doc:
+        raise ConfigError(key, f'{path} is not a calibration document (no parameters:)')
+    check_calibration_document(doc, f'{key} {path}', required)
+    return doc
+
+
+def check_calibration_document(doc: dict[str, Any], where: str,
+                               required: tuple[str, ...] = ()) -> None:
+    """Check every field of a calibration document the package reads (types, shapes,
+    finite values, ranges); ConfigError's key is the field (``precision.covariance_scale``,
+    ``training_joint_ranges.joint_1``), its message names ``where`` and the fix.
+
+    ``required``: top-level sections that must be present (the others are optional, as
+    older files lack them).
+    """
+    def bad(field: str, what: str) -> ConfigError:
+        return ConfigError(field, f'in {where}: {what}; {FIX}')
+
+    for name in required:
+        if name not in doc:
+            raise bad(name, 'missing (identify again with this version to write it)')
+    parameters = doc['parameters']
+    if not isinstance(parameters, list) or not parameters:
+        raise bad('parameters', 'must be a non-empty list of {name, value, ...}')
+    names = []
+    for i, entry in enumerate(parameters):
+        if not isinstance(entry, dict) or not isinstance(entry.get('name'), str):
+            raise bad(f'parameters[{i}]', 'must be a mapping with a name (text) and a value')
+        value = entry.get('value')
+        if isinstance(value, bool) or not isinstance(value, (int, float)) \
+                or not math.isfinite(value):
+            raise bad(f'parameters[{i}].value', f"{entry['name']} must be a finite number, "
+                      f'got {value!r}')
+        names.append(entry['name'])
+    if len(set(names)) != len(names):
+        raise bad('parameters', 'names a parameter twice')
+    known = set(names)
+    if 'parameter_covariance' in doc:
+        cov = doc['parameter_covariance']
+        if not isinstance(cov, dict) or not isinstance(cov.get('names'), list) \
+                or not all(isinstance(n, str) for n in cov['names']):
+            raise bad('parameter_covariance', 'must be a mapping with names (a list of '
+                      'parameter names) and matrix')
+        cnames = cov['names']
+        if len(set(cnames)) != len(cnames) or any(n not in known for n in cnames):
+            raise bad('parameter_covariance.names', 'must be unique names of parameters')
+        matrix = _matrix(cov.get('matrix'), (len(cnames), len(cnames)),
+                         'parameter_covariance.matrix', bad)
+        _covariance(matrix, 'parameter_covariance.matrix', bad)
+    if 'noise_sigma_m' in doc:
+        sigma = doc['noise_sigma_m']
+        values = sigma if isinstance(sigma, list) else [sigma]
+        if not values or len(values) > 3:
+            raise bad('noise_sigma_m', 'must be one to three numbers (m)')
+        for i, s in enumerate(values):
+            if _finite(s, f'noise_sigma_m[{i}]', bad) <= 0:
+                raise bad(f'noise_sigma_m[{i}]', f'must be > 0 m, got {s!r}')
+    if 'precision' in doc:
+        precision = doc['precision']
+        if not isinstance(precision, dict):
+            raise bad('precision', f'must be a mapping (covariance_scale, basis), got '
+                      f'{precision!r}')
+        if 'covariance_scale' in precision and _finite(
+                precision['covariance_scale'], 'precision.covariance_scale', bad) <= 0:
+            raise bad('precision.covariance_scale', 'must be > 0, got '
+                      f"{precision['covariance_scale']!r}")
+    adequacy = doc.get('model_adequacy')
+    if adequacy is not None:
+        if not isinstance(adequacy, dict):
+            raise bad('model_adequacy', f'must be a mapping (chi2, dof, ...), got {adequacy!r}')
+        dof = adequacy.get('dof', 0)
+        if not isinstance(dof, int) or isinstance(dof, bool) or dof < 0:
+            raise bad('model_adequacy.dof', f'must be an integer >= 0, got {dof!r}')
+    if 'identified_at_ns' in doc:
+        stamp = doc['identified_at_ns']
+        if not isinstance(stamp, int) or isinstance(stamp, bool) or stamp < 0:
+            raise bad('identified_at_ns', 'must be an integer time stamp (ns since the Unix '
+                      f'epoch, the last measurement of the calibration), got {stamp!r}')
+    if doc.get('training_joint_ranges') is not None:
+        ranges = doc['training_joint_ranges']
+        if not isinstance(ranges, dict):
+            raise bad('training_joint_ranges', 'must be a mapping joint: [lower, upper]')
+        for joint, pair in ranges.items():
+            field = f'training_joint_ranges.{joint}'
+            if not isinstance(pair, list) or len(pair) != 2:
+                raise bad(field, f'must be [lower, upper] (rad or m), got {pair!r}')
+            lo, hi = (_finite(x, field, bad) for x in pair)
+            if lo > hi:
+                raise bad(field, f'lower {lo} is above upper {hi}')
+    if doc.get('training_configurations') is not None:
+        conf = doc['training_configurations']
+        joints = conf.get('joints') if isinstance(conf, dict) else None
+        if not isinstance(joints, list) or not all(isinstance(j, str) for j in joints):
+            raise bad('training_configurations', 'must be a mapping with joints (names) '
+                      'and q (one row of values per pose)')
+        rows = conf.get('q') or []
+        _matrix(rows, (len(rows) if isinstance(rows, list) else -1, len(joints)),
+                'training_configurations.q', bad)
+    effects = doc.get('effects')
+    if effects is not None and (not isinstance(effects, list)
+                                or not all(isinstance(e, str) for e in effects)):
+        raise bad('effects', f'must be a list of effect specs (text), got {effects!r}')
+    if doc.get('rms_m') is not None:
+        _finite(doc['rms_m'], 'rms_m', bad)
+    if 'drift_state' in doc:
+        _drift_state(doc['drift_state'], list((doc.get('parameter_covariance') or {})
+                                              .get('names') or ()), bad)
+
+
+def _finite(value: Any, field: str, bad: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) \
+            or not math.isfinite(value):
+        raise bad(field, f'must be a finite number, got {value!r}')
+    return float(value)
+
+
+def _matrix(value: Any, shape: tuple[int, int], field: str, bad: Any) -> np.ndarray:
+    rows, cols = shape
+    if not isinstance(value, list) or len(value) != rows or not all(
+            isinstance(r, list) and len(r) == cols for r in value):
+        raise bad(field, f'must be {rows} rows of {cols} numbers')
+    for i, row in enumerate(value):
+        for j, x in enumerate(row):
+            _finite(x, f'{field}[{i}][{j}]', bad)
+    return np.array(value, dtype=float).reshape(rows, cols)
+
+
+def _covariance(matrix: np.ndarray, field: str, bad: Any) -> None:
+    """Symmetric to round-off and positive semi-definite, as a KKT solve writes it."""
+    diag = np.diag(matrix)
+    if np.any(diag < 0):
+        raise bad(field, f'has a negative variance on its diagonal (row {int(np.argmin(diag))})')
+    scale = np.sqrt(np.outer(diag, diag))
+    if not np.all(np.abs(matrix - matrix.T) <= 1e-6 * scale + 1e-300):
+        raise bad(field, 'is not symmetric')
+    if len(matrix) and np.min(np.linalg.eigvalsh(0.5 * (matrix + matrix.T))) \
+            < -1e-9 * max(float(np.max(diag)), 1e-300):
+        raise bad(field, 'is not positive semi-definite (a covariance)')
+
+
+def _drift_state(state: Any, prior_names: list[str], bad: Any) -> None:
+    if not isinstance(state, dict):
+        raise bad('drift_state', 'must be a mapping (names, values, covariance, '
+                  'cross_covariance)')
+    names = state.get('names')
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names) \
+            or len(set(names)) != len(names):
+        raise bad('drift_state.names', 'must be a list of unique parameter names')
+    unknown = [n for n in names if n not in prior_names]
+    if unknown:
+        raise bad('drift_state.names', f'{unknown[:3]} are not in parameter_covariance.names')
+    order = [prior_names.index(n) for n in names]
+    if order != sorted(order):
+        raise bad('drift_state.names', 'are not in the order of parameter_covariance.names '
+                  '(the state rows would be paired with the wrong parameters)')
+    k = len(names)
+    values = state.get('values')
+    if not isinstance(values, list) or len(values) != 2 * k:
+        raise bad('drift_state.values', f'must be {2 * k} numbers (deviations, then rates)')
+    for i, x in enumerate(values):
+        _finite(x, f'drift_state.values[{i}]', bad)
+    cov = _matrix(state.get('covariance'), (2 * k, 2 * k), 'drift_state.covariance', bad)
+    _covariance(cov, 'drift_state.covariance', bad)
+    _matrix(state.get('cross_covariance'), (k, 2 * k), 'drift_state.cross_covariance', bad)

@@ -1,0 +1,216 @@
+"""The column mapping of a posture table: which columns are joints, points, 6-DoF
+orientations, per-point σ, stamps (and their format) and the cell temperature.
+
+A small YAML file (``kpi-calib import-csv --mapping``) or flags, validated here in one
+place; every error is a :class:`~kpi_calib_ros.core.errors.ConfigError` naming the key
+and the fix. Nothing about a robot is built in.
+"""
+from __future__ import annotations
+
+import zoneinfo
+from dataclasses import dataclass
+from datetime import tzinfo
+from pathlib import Path
+from typing import Any
+
+from scipy.spatial.transform import Rotation
+
+from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.core.pairing import REFLECTOR_SEPARATOR
+from kpi_calib_ros.io.csv_table import DECIMALS, DELIMITERS
+from kpi_calib_ros.io.yaml_bounded import read_yaml_file
+
+STAMP_FORMATS = ('unix', 'iso8601', 'serial')
+
+
+@dataclass(frozen=True)
+class MarkerColumns:
+    """Columns of one marker: ``position`` (x, y, z) in ``point_unit``; ``orientation``
+    () for a plain point, three Euler angles (``euler`` sequence, SciPy's convention:
+    upper case intrinsic) in ``angle_unit`` or a quaternion x, y, z, w; ``sigma`` ()
+    or the per-point standard deviations of x, y, z in ``point_unit``."""
+
+    position: tuple[str, str, str]
+    orientation: tuple[str, ...] = ()
+    euler: str = 'XYZ'
+    sigma: tuple[str, ...] = ()
+
+    @property
+    def columns(self) -> tuple[str, ...]:
+        return self.position + self.orientation + self.sigma
+
+
+@dataclass(frozen=True)
+class CsvMapping:
+    """Which columns of a posture table are what.
+
+    Attributes
+    ----------
+    joints : dict {joint name: column}
+        Joint values, in ``joint_unit`` (prismatic joints always in m).
+    markers : dict {marker name: MarkerColumns}
+        Points (poses) in ``frame_id``; names as in the cell's ``reflectors:``.
+    frame_id : str
+        Frame the points are expressed in (the cell's ``tracker.frame_id``).
+    stamp_columns : tuple of str
+        Column(s) whose mean is the row's stamp; () for the row order (synthetic stamps
+        4 s apart).
+    stamp_format : str
+        ``unix`` (seconds), ``iso8601``, ``serial`` (spreadsheet days since 1899-12-30)
+        or a ``strptime`` pattern such as ``%Y%m%d%H%M%S``.
+    stamp_timezone : str
+        IANA zone of stamps written without an offset (``Europe/Berlin``); UTC default.
+    point_unit, joint_unit, angle_unit : str
+        ``m`` or ``mm``; ``rad`` or ``deg``; ``rad`` or ``deg`` (Euler angles).
+    temperature : str or None
+        Column of the cell temperature (°C), written to its own topic.
+    delimiter, decimal : str or None
+        Separator and decimal mark; None: detected.
+    """
+
+    joints: dict[str, str]
+    markers: dict[str, MarkerColumns]
+    frame_id: str
+    stamp_columns: tuple[str, ...] = ()
+    point_unit: str = 'm'
+    joint_unit: str = 'rad'
+    stamp_format: str = 'unix'
+    stamp_timezone: str = 'UTC'
+    angle_unit: str = 'rad'
+    temperature: str | None = None
+    delimiter: str | None = None
+    decimal: str | None = None
+
+    @property
+    def columns(self) -> list[str]:
+        return (list(self.joints.values()) + [c for m in self.markers.values()
+                                              for c in m.columns]
+                + list(self.stamp_columns) + ([self.temperature] if self.temperature else []))
+
+    @property
+    def has_poses(self) -> bool:
+        return any(m.orientation for m in self.markers.values())
+
+
+_KEYS = ('frame_id', 'joints', 'markers', 'stamp_columns', 'stamp_format', 'stamp_timezone',
+         'point_unit', 'joint_unit', 'angle_unit', 'temperature', 'delimiter', 'decimal')
+
+
+def mapping_from_dict(doc: Any) -> CsvMapping:
+    """Validate a mapping document::
+
+        frame_id: mocap
+        joints: [torso_lift_joint, arm_1_joint]      # column = joint name, or {joint: column}
+        markers: {m1: [x1, y1, z1], m2: [x2, y2, z2]}
+        # or a 6-DoF body: {probe: {position: [x, y, z], orientation: [rx, ry, rz],
+        #                           euler: XYZ, sigma: [sx, sy, sz]}}   # sigma optional
+        stamp_columns: [t_start, t_end]              # optional
+        stamp_format: unix                            # unix | iso8601 | serial | '%Y%m%d%H%M%S'
+        stamp_timezone: UTC                           # of stamps without an offset
+        point_unit: m                                 # m | mm
+        joint_unit: rad                               # rad | deg
+        angle_unit: rad                               # rad | deg (Euler angles)
+        temperature: t_cell                           # optional, °C
+        delimiter: ';'                                # optional: detected
+        decimal: ','                                  # optional: detected
+    """
+    if not isinstance(doc, dict):
+        raise ConfigError('mapping', 'must be a mapping with joints, markers, frame_id')
+    unknown = set(doc) - set(_KEYS)
+    if unknown:
+        raise ConfigError(f'mapping.{sorted(unknown)[0]}',
+                          f'unknown key; allowed {sorted(_KEYS)}')
+    joints = doc.get('joints')
+    if isinstance(joints, list):
+        joints = {str(j): str(j) for j in joints}
+    if not isinstance(joints, dict) or not joints:
+        raise ConfigError('mapping.joints',
+                          'give the joint columns: [name, ...] or {joint: column}')
+    markers = doc.get('markers')
+    if not isinstance(markers, dict) or not markers:
+        raise ConfigError('mapping.markers', 'give {marker name: [x column, y column, z column]}')
+    out_markers = {str(name): _marker(str(name), cols) for name, cols in markers.items()}
+    frame = doc.get('frame_id')
+    if not isinstance(frame, str) or not frame or REFLECTOR_SEPARATOR in frame:
+        raise ConfigError('mapping.frame_id', "the points' frame (the cell's tracker.frame_id)")
+    units = {key: doc.get(key, 'm' if key == 'point_unit' else 'rad')
+             for key in ('point_unit', 'joint_unit', 'angle_unit')}
+    for key, allowed in (('point_unit', ('m', 'mm')), ('joint_unit', ('rad', 'deg')),
+                         ('angle_unit', ('rad', 'deg'))):
+        if units[key] not in allowed:
+            raise ConfigError(f'mapping.{key}', f'{allowed[0]!r} or {allowed[1]!r}, got '
+                              f'{units[key]!r}')
+    stamps = doc.get('stamp_columns') or ()
+    if isinstance(stamps, str):
+        stamps = (stamps,)
+    stamp_format = str(doc.get('stamp_format', 'unix'))
+    if stamp_format not in STAMP_FORMATS and '%' not in stamp_format:
+        raise ConfigError('mapping.stamp_format', f'{stamp_format!r}: give one of '
+                          f"{list(STAMP_FORMATS)} or a strptime pattern such as '%Y%m%d%H%M%S'")
+    zone = str(doc.get('stamp_timezone', 'UTC'))
+    time_zone(zone)
+    temperature = doc.get('temperature')
+    if temperature is not None and (not isinstance(temperature, str) or not temperature):
+        raise ConfigError('mapping.temperature', 'the column of the cell temperature (°C)')
+    delimiter, decimal = doc.get('delimiter'), doc.get('decimal')
+    if delimiter is not None and delimiter not in DELIMITERS:
+        raise ConfigError('mapping.delimiter', f'{delimiter!r}: one of {list(DELIMITERS)}')
+    if decimal is not None and decimal not in DECIMALS:
+        raise ConfigError('mapping.decimal', f'{decimal!r}: one of {list(DECIMALS)}')
+    return CsvMapping({str(k): str(v) for k, v in joints.items()}, out_markers, frame,
+                      tuple(str(s) for s in stamps), units['point_unit'], units['joint_unit'],
+                      stamp_format, zone, units['angle_unit'], temperature, delimiter, decimal)
+
+
+def _marker(name: str, cols: Any) -> MarkerColumns:
+    key = f'mapping.markers.{name}'
+    if not name or REFLECTOR_SEPARATOR in name:
+        raise ConfigError(key, f'a non-empty name without {REFLECTOR_SEPARATOR!r}')
+    if isinstance(cols, (list, tuple)):
+        cols = {'position': cols}
+    if not isinstance(cols, dict) or set(cols) - {'position', 'orientation', 'euler', 'sigma'}:
+        raise ConfigError(key, 'must be [x column, y column, z column] or {position: [x, y, '
+                          'z], orientation: [rx, ry, rz] or [qx, qy, qz, qw], euler: XYZ, '
+                          'sigma: [sx, sy, sz]}')
+
+    def columns(sub: str, sizes: tuple[int, ...]) -> tuple[str, ...]:
+        value = cols.get(sub, [] if sub != 'position' else None)
+        if not isinstance(value, (list, tuple)) or len(value) not in sizes:
+            raise ConfigError(f'{key}.{sub}', f'give {" or ".join(map(str, sizes))} columns')
+        return tuple(str(c) for c in value)
+
+    position = columns('position', (3,))
+    orientation = columns('orientation', (0, 3, 4))
+    euler = str(cols.get('euler', 'XYZ'))
+    if len(orientation) == 3:
+        try:
+            Rotation.from_euler(euler, [0.0, 0.0, 0.0])
+        except ValueError:
+            raise ConfigError(f'{key}.euler', f"{euler!r}: three of x, y, z, upper case "
+                              "intrinsic ('XYZ'), lower case extrinsic ('xyz')") from None
+    return MarkerColumns((position[0], position[1], position[2]), orientation, euler,
+                         columns('sigma', (0, 3)))
+
+
+def time_zone(name: str) -> tzinfo:
+    """The IANA time zone ``name``; ConfigError naming ``mapping.stamp_timezone``."""
+    try:
+        return zoneinfo.ZoneInfo(name)
+    except (zoneinfo.ZoneInfoNotFoundError, ValueError):
+        raise ConfigError('mapping.stamp_timezone', f'{name!r}: an IANA time zone such as '
+                          "'UTC' or 'Europe/Berlin'") from None
+
+
+def load_mapping(path: str | Path) -> CsvMapping:
+    """A :class:`CsvMapping` from a YAML file (see :func:`mapping_from_dict`)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError('mapping', f'file {str(path)!r} does not exist')
+    doc = read_yaml_file(path, 'mapping', 'give a column mapping (see import-csv in the '
+                         'README)', max_bytes=2 ** 20, max_nodes=100_000)
+    return mapping_from_dict(doc)
+
+
+
+__all__ = ['CsvMapping', 'MarkerColumns', 'STAMP_FORMATS', 'load_mapping', 'mapping_from_dict',
+           'time_zone']

@@ -1,0 +1,111 @@
+"""Expected TCP error with the misfit (core.precision.expected_tcp_error): with an effect the
+model lacks, the true TCP error at the working poses lies within 2× the stated expected
+error, where the parameter covariance alone promises too much; in calibration.yaml, the
+summary and the diagnosis report. The full study: bench/expected_tcp_error.py."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import yaml
+
+from kpi_calib_ros.cli import main
+from kpi_calib_ros.core.diagnosis import augmented_model
+from kpi_calib_ros.core.effects import parse_effect_spec
+from kpi_calib_ros.core.estimation import identify
+from kpi_calib_ros.core.precision import expected_tcp_error, honest_precision
+from kpi_calib_ros.core.residuals import cross_validated_rms
+from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
+                                          true_parameters)
+from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+
+# Hidden effects of several kinds, each at a size χ² rejects with 40 poses.
+HIDDEN = (('joint_compliance:joint_2', 1.5e-6), ('cyclic_joint_error:joint_1', 3e-4),
+          ('joint_scale:joint_2', 3e-4), ('joint_backlash:joint_2', 3e-4))
+EXTRA_WORK = 4
+
+
+@pytest.fixture(scope='module')
+def cm():
+    return build_cell_model(load_cell(DEFAULT_CELL))
+
+
+def hidden_run(cm, spec: str, value: float, seed: int):
+    """A robot with the hidden effect ``spec`` (its first parameter ``value``), 40 random
+    poses, the geometric model identified: the true TCP error at the cell's working pose
+    and 4 random ones, and the expected error stated."""
+    rng = np.random.default_rng(seed)
+    effect = parse_effect_spec(spec, cm.robot)
+    truth = augmented_model(cm.model, (effect,))
+    p_geo = true_parameters(cm.model.params, rng)
+    p_true = np.concatenate([p_geo, np.zeros(len(effect.parameter_names))])
+    p_true[len(p_geo)] = value * rng.choice([-1.0, 1.0])
+    q = random_configurations(cm.model, p_geo, 40, rng)
+    q_work = np.vstack([cm.q_work, random_configurations(cm.model, p_geo, EXTRA_WORK, rng)])
+    data = simulate_measurements(truth, p_true, q, cm.cell.sigma, rng)
+    result = honest_precision(identify(cm.model, data, cm.cell.sigma, q_work))
+    miss = np.linalg.norm(truth.predict(p_true, q_work) - result.tcp, axis=1)
+    return miss, expected_tcp_error(cm.model, data, result), result, data
+
+
+def test_true_tcp_error_within_twice_the_expected_error(cm):
+    """4 hidden-effect kinds × 4 runs × 5 working poses: the true error is within 2× the
+    expected error in >= 90 % of the poses, where 2× the χ²-scaled std alone covers fewer."""
+    by_expected, by_std = [], []
+    for k, (spec, value) in enumerate(HIDDEN):
+        for seed in range(4):
+            miss, expected, result, _ = hidden_run(cm, spec, value, 100 * k + seed)
+            assert result.p_value < 0.01 and not expected.adequate
+            by_expected += list(miss <= 2 * expected.expected_tcp_error_m)
+            by_std += list(miss <= 2 * expected.tcp_std_m)
+    assert np.mean(by_expected) >= 0.9, np.mean(by_expected)
+    assert np.mean(by_std) < np.mean(by_expected) - 0.1, (np.mean(by_std),
+                                                          np.mean(by_expected))
+
+
+def test_expected_error_is_the_parameter_part_plus_the_held_out_misfit(cm):
+    """b² = (held-out rms)² − 3σ², the expected error √(tr C + b²); an adequate model has
+    no misfit term and states its parameter part alone."""
+    _, expected, result, data = hidden_run(cm, *HIDDEN[0], 7)
+    cv = cross_validated_rms(cm.model, data, result)
+    std = np.sqrt(np.trace(result.tcp_covariance, axis1=1, axis2=2))
+    misfit = np.sqrt(cv ** 2 - np.sum(cm.cell.sigma ** 2))
+    assert expected.misfit_m == pytest.approx(misfit)
+    np.testing.assert_allclose(expected.expected_tcp_error_m, np.sqrt(std ** 2 + misfit ** 2))
+    assert 'tcp_std_m is the parameter part' in expected.basis
+    rng = np.random.default_rng(3)
+    p_true = true_parameters(cm.model.params, rng)
+    clean = simulate_measurements(cm.model, p_true, random_configurations(
+        cm.model, p_true, 40, rng), cm.cell.sigma, rng)
+    fit = honest_precision(identify(cm.model, clean, cm.cell.sigma, cm.q_work))
+    plain = expected_tcp_error(cm.model, clean, fit)
+    assert plain.adequate and plain.misfit_m == 0.0
+    np.testing.assert_allclose(plain.expected_tcp_error_m, plain.tcp_std_m)
+
+
+def test_identify_and_diagnose_state_both_figures(tmp_path, capsys):
+    """calibration.yaml's precision section, the identify summary and the diagnosis report
+    carry tcp_std_m (parameter part) and expected_tcp_error_m (with the misfit)."""
+    doc = yaml.safe_load(DEFAULT_CELL.read_text())
+    doc['robot']['urdf'] = str((DEFAULT_CELL.parent / doc['robot']['urdf']).resolve())
+    doc['simulation'] = {'hidden_effects': {'joint_compliance:joint_2': {'c': 1.5e-6}}}
+    cell = tmp_path / 'cell.yaml'
+    cell.write_text(yaml.safe_dump(doc))
+    bag = tmp_path / 'run.mcap'
+    assert main(['simulate', '--cell', str(cell), '--n', '40', '--out', str(bag),
+                 '--seed', '3']) == 0
+    out = tmp_path / 'out'
+    capsys.readouterr()
+    assert main(['identify', '--cell', str(cell), '--bag', str(bag), '--out', str(out)]) == 0
+    text = capsys.readouterr().out
+    precision = yaml.safe_load((out / 'calibration.yaml').read_text())['precision']
+    name = doc['working_poses'][0]['name']
+    assert precision['expected_tcp_error_m'][name] > 1.5 * precision['tcp_std_m'][name]
+    assert precision['misfit_m'] > 0
+    assert 'scaled by chi2/dof' in precision['basis']          # the std's own basis kept
+    assert 'tcp_std_m is the parameter part' in precision['expected_tcp_error_basis']
+    assert f'TCP {name}: expected error' in text and 'parameter part' in text
+    assert main(['diagnose', '--cell', str(cell), '--bag', str(bag), '--out',
+                 str(tmp_path / 'diag')]) == 0
+    report = (tmp_path / 'diag' / 'report.md').read_text()
+    assert '## Expected TCP error at the working poses' in report
+    assert 'expected_tcp_error_m' in report

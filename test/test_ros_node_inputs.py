@@ -1,0 +1,100 @@
+"""The node's ~/identify against its archive and its disk (in process, private context):
+a junk file in data_dir/calibrations/ is skipped with a warning, the answer says which
+prior was used or why none, and a write that fails (a full disk) is an ERROR on
+/diagnostics, not a silent OK."""
+from __future__ import annotations
+
+import errno
+import os
+import threading
+
+import numpy as np
+import pytest
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+
+from kpi_calib_ros.core.measurement import Measurements
+from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
+                                           true_parameters)
+from kpi_calib_ros.ros import jobs
+from kpi_calib_ros.ros.node import CalibrationNode
+from ros_helpers import KR15_URDF
+
+FIRST_NS = 1_700_000_000_000_000_000
+
+
+@pytest.fixture
+def node(tmp_path, ros_domain, monkeypatch):
+    """A node (re-identifying with its archived prior) whose accepted measurements are 40
+    simulated points stamped from FIRST_NS on, and a runner of its ~/identify job."""
+    context = Context()
+    rclpy.init(context=context, domain_id=ros_domain)
+    made = None
+    executor = SingleThreadedExecutor(context=context)
+    try:
+        made = CalibrationNode(context=context, parameter_overrides=[
+            Parameter('robot_description', value=KR15_URDF),
+            Parameter('data_dir', value=str(tmp_path)),
+            Parameter('reidentify_with_prior', value=True)])
+        cm = made._cm
+        rng = np.random.default_rng(3)
+        p_true = true_parameters(cm.model.params, rng)
+        q = random_configurations(cm.model, cm.model.params.nominal, 40, rng)
+        data = simulate_measurements(cm.model, p_true, q, 2e-5, rng)
+        stamps = FIRST_NS + 10 ** 9 * np.arange(len(data))
+        monkeypatch.setattr(made.campaign, 'measurements', lambda *a, **k: (
+            Measurements(q=data.q, eta=data.eta, stamps_ns=stamps), None))
+        executor.add_node(made)
+        spinner = threading.Thread(target=executor.spin, daemon=True)
+        spinner.start()
+
+        def identify() -> tuple[bool, str]:
+            assert made._claim_job('identifying')
+            task = executor.create_task(made._run_job, 'identify', made._identify)
+            finished = threading.Event()
+            task.add_done_callback(lambda _: finished.set())
+            assert finished.wait(timeout=120), 'identification did not finish'
+            return task.result()
+        made.identify = identify
+        yield made
+    finally:
+        executor.shutdown()
+        if made is not None:
+            made.destroy_node()
+        rclpy.shutdown(context=context)
+
+
+def test_junk_in_the_archive_is_skipped_and_the_answer_says_why_no_prior(node):
+    """An unreadable archived calibration (older than the data) and one dated after the
+    data: ~/identify succeeds without a prior and says so, naming both files."""
+    archive = node.data_dir / 'calibrations'
+    archive.mkdir()
+    junk = archive / f'{FIRST_NS - 3600 * 10 ** 9}.yaml'
+    junk.write_text('parameters: [1, 2\nprecision: x\n')
+    later = archive / f'{FIRST_NS + 2 * 3600 * 10 ** 9}.yaml'
+    later.write_text('not read: dated after the data\n')
+    ok, message = node.identify()
+    assert ok, message
+    assert f'{junk} skipped' in message and 'not valid YAML' in message
+    assert 'no prior: 1 archived calibration(s)' in message and 'dated at or after' in message
+    assert 'clock' in message and 'prior /' not in message
+
+
+def test_a_full_disk_during_identify_is_an_error_on_diagnostics(node, monkeypatch):
+    """[Errno 28] from writing the results: the service answers it and /diagnostics says
+    ERROR with it (it stayed OK); a later successful identification clears it."""
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+    written = jobs.write_results
+    monkeypatch.setattr(jobs, 'write_results', full)
+    ok, message = node.identify()
+    assert not ok and 'No space left on device' in message
+    level, text, _ = node.status()
+    assert level == 'ERROR' and 'No space left on device' in text, text
+    assert str(node.data_dir) in text
+    monkeypatch.setattr(jobs, 'write_results', written)
+    ok, message = node.identify()
+    assert ok, message
+    assert node.status()[0] != 'ERROR'
