@@ -179,9 +179,12 @@ def test_stated_defaults_are_the_loaders():
         pytest.approx(bare.max_incidence, abs=1e-4)
     assert cell_key('tracker.frame_id').default == loaded.tracker_frame
     required = {k.path for k in CELL_KEYS if k.default == REQUIRED}
-    assert {'robot', 'noise', 'working_poses', 'noise.sigma'} <= required
-    for path in ('noise', 'working_poses'):
-        doc = _base()
-        doc.pop(path)
-        with pytest.raises(ConfigError, match=path):
-            _load(doc)
+    assert {'robot', 'noise', 'noise.sigma'} <= required
+    assert 'working_poses' not in required  # identify needs none; design refuses without
+    doc = _base()
+    doc.pop('noise')
+    with pytest.raises(ConfigError, match='noise'):
+        _load(doc)
+    doc = _base()
+    doc.pop('working_poses')
+    assert cell_from_dict(doc, DEFAULT_CELL.parent).working_poses == ()

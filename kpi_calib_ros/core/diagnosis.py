@@ -308,7 +308,9 @@ def diagnose(model: MeasurementModel, data: Measurements, result: CalibrationRes
     else:
         verdict = (f'model not adequate: {chi}, but no candidate effect explains the misfit; '
                    'check the outliers, the stated σ and the plots against time and distance.')
-    if not report.adequate and model.joint_sigma is None:
+    if not report.adequate and model.joint_sigma is None and best is None:
+        # Only where no effect explains the misfit: beside a significant compliance the
+        # sentence would send the user after the wrong cause.
         equivalent = equivalent_joint_sigma(model, data, result)
         verdict += (f' The joint readings may be the cause: the residuals equal joint-reading '
                     f'noise of {np.rad2deg(equivalent):.3g}° on every joint. '

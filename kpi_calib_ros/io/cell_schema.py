@@ -105,6 +105,10 @@ CELL_KEYS: tuple[CellKey, ...] = (
        '(0, 0.01]; sets the weights, the χ² test and the stated precision.', 2.0e-5),
     _K('noise.sigma_rotation', 'number', 'rad', NONE, 'Orientation noise per axis of tracked '
        'bodies, in (0, 0.1]; required with a reflector `orientation`.', 1.0e-4),
+    _K('noise.joint_sigma', 'number or mapping of joint name to number', 'rad (m for '
+       'prismatic joints)', NONE, 'Joint-reading noise (a controller read-back): one σ for '
+       'every joint or per joint by name, joints left out read exactly; each point then has '
+       'the covariance σ²I + J_q Σ_q J_qᵀ.', 5.2e-4),
     # ---------------------------------------------------------------- payload
     _K('payload', 'mapping', '', '{}', 'Payload on the tip, for the gravity torques of the '
        'torque-driven effects.', {'mass': 5.0}),
@@ -112,9 +116,10 @@ CELL_KEYS: tuple[CellKey, ...] = (
     _K('payload.com', '[x, y, z]', 'm', '[0, 0, 0]', 'Payload centre of mass in the tip '
        'frame.', [0.0, 0.0, 0.05]),
     # ---------------------------------------------------------- working poses
-    _K('working_poses', 'list', 'rad (m for prismatic joints)', REQUIRED, 'The poses where '
+    _K('working_poses', 'list', 'rad (m for prismatic joints)', NONE, 'The poses where '
        'the robot works: the KPI is the TCP covariance there. Each item is a mapping or a '
-       'list of joint values in chain order.', [[0.0, 0.45, -0.35, 0.0, 0.9, 0.0]]),
+       'list of joint values in chain order. Required by `design` and the campaign; '
+       '`identify` reports no TCP without them.', [[0.0, 0.45, -0.35, 0.0, 0.9, 0.0]]),
     _K('working_poses[].name', 'string', '', 'work_<i>', 'Name in outputs and '
        '`design.weights`.', 'car_roof_edge'),
     _K('working_poses[].joints', 'mapping of joint name to number', 'rad (m)', REQUIRED,
@@ -182,6 +187,8 @@ CELL_KEYS: tuple[CellKey, ...] = (
        'outliers before the fit is refused, in [0, 1).', 0.1),
     _K('identification.cv_folds', 'integer', '', '5', 'Folds of the cross-validated rms '
        "reported beside `auto`'s choice, ≥ 2.", 5),
+    _K('identification.max_iterations', 'integer', '', '500', 'Iteration limit of every '
+       'fit (trust-region Gauss-Newton), ≥ 1; `identify --max-iterations` overrides it.', 200),
     _K('identification.prior', 'mapping or null', '', 'null', 'Nominal tolerances: one std '
        'around the URDF for every joint placement and offset (a Gaussian prior).',
        {'translation': 1e-3, 'rotation': 1e-3, 'offset': 1e-3}),
