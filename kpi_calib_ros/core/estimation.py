@@ -401,6 +401,19 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
         joint_sigma=model.joint_sigma, point_sigma=None if data.sigma is None else sigma_rows)
 
 
+def point_sigma_squares(result: CalibrationResult, reflector: np.ndarray | None,
+                        n_reflectors: int) -> np.ndarray:
+    """Σ_a σ_i,a² (m²) of every point row of the fit (rotation rows left out): each row's
+    stated σ (``result.point_sigma``) or the cell's σ; (N_points,), or (1,) when the fit
+    took the cell's σ for every row."""
+    if result.point_sigma is None:
+        return np.array([float(np.sum(np.asarray(result.sigma) ** 2))])
+    rows = np.asarray(result.point_sigma)
+    if reflector is not None:
+        rows = rows[np.asarray(reflector) < n_reflectors]
+    return np.sum(rows ** 2, axis=1)
+
+
 def _point_rms(residuals: np.ndarray, reflector: np.ndarray | None, n_reflectors: int) -> float:
     """rms (m) of the point rows' residuals; rotation rows (tracked poses) are not lengths."""
     points = residuals if reflector is None else residuals[np.asarray(reflector) < n_reflectors]
