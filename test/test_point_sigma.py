@@ -264,3 +264,16 @@ def test_a_non_positive_table_sigma_is_exit_2_naming_line_and_column(tmp_path, c
 
 def cm_joint_names() -> list[str]:
     return list(build_cell_model(load_cell(DEFAULT_CELL)).joint_names)
+
+
+def test_a_sequential_campaign_keeps_the_stated_sigma_of_its_rows(cm):
+    """Rows appended to a campaign keep their stated σ; rows without one get NaN (the
+    cell's σ), never a σ of another row."""
+    from kpi_calib_ros.core.sequential import _concatenate
+    p_true, q, rng = campaign(cm, 6, 6)
+    a = measure(cm, p_true, q[:4], rng)
+    b = Measurements(q=q[4:], eta=cm.model.predict(p_true, q[4:]))
+    both = _concatenate(a, b)
+    np.testing.assert_array_equal(both.sigma[:4], a.sigma)
+    assert np.isnan(both.sigma[4:]).all()
+    assert _concatenate(b, b).sigma is None
