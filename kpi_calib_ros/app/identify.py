@@ -11,7 +11,7 @@ import dataclasses
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterable, Sequence
+from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
@@ -25,7 +25,7 @@ from kpi_calib_ros.core.gravity_compliance import compliance_warnings, mass_warn
 from kpi_calib_ros.core.estimation import CalibrationResult, identify
 from kpi_calib_ros.core.model_selection import ModelChoice, choose_model, level_free
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements, with_rotation_rows
-from kpi_calib_ros.core.pairing import PairingResult, pair_measurements
+from kpi_calib_ros.core.pairing import PairingResult, pair_measurements, split_frame
 from kpi_calib_ros.core.registration import Registration, register
 from kpi_calib_ros.core.robust import (LOSS_SCALE, ExcludedMeasurement, RobustResult,
                                        gross_outliers, robust_identify, subset)
@@ -55,8 +55,10 @@ REGISTRATION_MAX_RMS_M = 0.02
 
 def measurements_from_samples(cm: CellModel, joint_samples: Iterable[JointSample],
                               point_samples: Iterable[PointSample],
+                              point_sigma: Mapping[tuple[int, str], np.ndarray] | None = None,
                               **pairer_options) -> tuple[Measurements, PairingResult]:
-    """Pair tracker points with still joint states, matching joints by name.
+    """Pair tracker points with still joint states, matching joints by name; the points'
+    stated σ by (stamp ns, frame id), if any, weigh their rows (:func:`to_measurements`).
 
     Raises
     ------
@@ -72,7 +74,7 @@ def measurements_from_samples(cm: CellModel, joint_samples: Iterable[JointSample
         seen = sorted({n for s in joint_samples for n in s.names})
         raise DataError(f'the joint states name joints {seen}, but the robot chain needs '
                         f'{cm.joint_names}; record the right robot or fix the URDF joint names')
-    return urdf_measurements(cm, to_measurements(cm, pairing)), pairing
+    return urdf_measurements(cm, to_measurements(cm, pairing, point_sigma)), pairing
 
 
 def urdf_measurements(cm: CellModel, data: Measurements) -> Measurements:
@@ -92,17 +94,36 @@ def reflector_names(cm: CellModel) -> tuple[str, ...]:
     return cm.cell.reflector_names or ('',)
 
 
-def to_measurements(cm: CellModel, pairing: PairingResult) -> Measurements:
+def to_measurements(cm: CellModel, pairing: PairingResult,
+                    point_sigma: Mapping[tuple[int, str], np.ndarray] | None = None
+                    ) -> Measurements:
     """(pose, reflector) rows of a pairing, reflector indices in the cell's order
-    (controller joint values, as paired)."""
+    (controller joint values, as paired); ``point_sigma`` the tracker's stated σ (3,) (m)
+    by (stamp ns, frame id) (:attr:`kpi_calib_ros.io.bag.BagContents.point_sigma`): a row
+    without one takes the cell's noise.sigma."""
     try:
         ref = pairing.reflector_indices(reflector_names(cm))
     except ValueError as exc:
         raise DataError(f'{exc}: point frame ids are <tracker_frame>#<reflector name> for '
                         "the cell's reflectors: list") from None
     data = Measurements(q=pairing.q, eta=pairing.eta, stamps_ns=pairing.stamps_ns,
-                        reflector=ref if cm.cell.reflector_names else None)
+                        reflector=ref if cm.cell.reflector_names else None,
+                        sigma=stated_sigma(pairing, point_sigma))
     return pose_rows(cm, data, pairing)
+
+
+def stated_sigma(pairing: PairingResult,
+                 point_sigma: Mapping[tuple[int, str], np.ndarray] | None) -> np.ndarray | None:
+    """(N, 3) σ (m) of the pairing's rows, matched by stamp and reflector (the frame id's
+    part after '#'; the tracker frame is the pairing's), NaN where none was stated; None
+    when no row has one."""
+    if not point_sigma:
+        return None
+    by_row = {(stamp, split_frame(frame)[1]): s for (stamp, frame), s in point_sigma.items()}
+    names = pairing.reflectors or ('',) * len(pairing)
+    rows = np.array([by_row.get((int(t), name), np.full(3, np.nan))
+                     for t, name in zip(pairing.stamps_ns, names)], dtype=float).reshape(-1, 3)
+    return rows if np.isfinite(rows).any() else None
 
 
 def pose_rows(cm: CellModel, data: Measurements,
@@ -137,8 +158,9 @@ def measurements_from_bag(cm: CellModel, path: str | Path,
     if contents.measurement_log:
         pairing = stored_pairing(zip(contents.joints, contents.points), list(cm.joint_names),
                                  cm.cell.tracker_frame)
-        return urdf_measurements(cm, to_measurements(cm, pairing)), pairing
-    return measurements_from_samples(cm, contents.joints, contents.points, **pairer_options)
+        return urdf_measurements(cm, to_measurements(cm, pairing, contents.point_sigma)), pairing
+    return measurements_from_samples(cm, contents.joints, contents.points,
+                                     point_sigma=contents.point_sigma, **pairer_options)
 
 
 def places_the_points(cm: CellModel, data: Measurements, p: np.ndarray) -> bool:

@@ -28,7 +28,7 @@ import numpy as np
 import scipy.stats
 
 from kpi_calib_ros.core.effects import BoundEffect, candidate_effects, implausible
-from kpi_calib_ros.core.estimation import CalibrationResult
+from kpi_calib_ros.core.estimation import CalibrationResult, point_sigma_squares
 from kpi_calib_ros.core.measurement import (MeasurementModel, Measurements, unweighted,
                                             weighted_rows)
 from kpi_calib_ros.core.out_of_sample import OutOfSample
@@ -333,7 +333,8 @@ def equivalent_joint_sigma(model: MeasurementModel, data: Measurements,
     residuals = np.asarray(result.residuals)[point]
     n_rows = 3 * len(data)
     excess = (np.sum(residuals ** 2) * n_rows / max(result.dof, 1)
-              - len(q) * np.sum(np.asarray(result.sigma) ** 2))
+              - len(q) * np.mean(point_sigma_squares(result, data.reflector,
+                                                     model.n_reflectors)))
     lever = float(np.sum(jq ** 2))
     return float(np.sqrt(max(excess, 0.0) / lever)) if lever > 0 else float('nan')
 

@@ -27,8 +27,8 @@ from kpi_calib_ros.core.covariance import kkt_covariance, kpi_jacobians
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.identifiability import (DroppedParameter, Identifiability,
                                                 select_identifiable)
-from kpi_calib_ros.core.measurement import (MeasurementModel, Measurements, weighted_residuals,
-                                            weighted_rows)
+from kpi_calib_ros.core.measurement import (MeasurementModel, Measurements, row_sigma,
+                                            weighted_residuals, weighted_rows)
 from kpi_calib_ros.core.prior import Prior
 
 # Prior rows over the full parameter vector: L (n_rows, n_p) and L m (n_rows,).
@@ -211,6 +211,9 @@ class CalibrationResult:
     covariance_scale: float = 1.0
     # Joint-reading noise (rad, chain order) the row weights carried; None: exact readings.
     joint_sigma: np.ndarray | None = None
+    # (N, 3) σ of every row and axis the weights carried (m): the tracker's stated σ per
+    # point where the data gave one, ``sigma`` elsewhere; None: ``sigma`` for every row.
+    point_sigma: np.ndarray | None = None
 
     @property
     def converged(self) -> bool:
@@ -257,7 +260,9 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     data : Measurements
         q (N, n) in chain order, eta (N, 3) in the tracker frame, m.
     sigma : float or (3,) array
-        Tracker noise standard deviation per axis, m. With joint-reading noise in the
+        Tracker noise standard deviation per axis, m; a row whose ``data.sigma`` states
+        its own (the tracker's per-point uncertainty) is weighed by that one instead
+        (:func:`~kpi_calib_ros.core.measurement.row_sigma`). With joint-reading noise in the
         model (``model.joint_sigma``) each measurement's covariance is
         σ²I + J_q Σ_q J_qᵀ: its rows are whitened at the current estimate
         (:meth:`MeasurementModel.whitening`), and after the fit the weights are evaluated
@@ -293,7 +298,11 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     if q.shape[0] != eta.shape[0] or eta.shape[1] != 3 or q.shape[1] != model.robot.n_joints:
         raise DataError(f'measurement shapes do not fit: q {q.shape}, eta {eta.shape}, '
                         f'{model.robot.n_joints} joints')
-    w = _row_weights(w_axis, point_weights, len(q))
+    try:
+        sigma_rows = row_sigma(sigma, data.sigma, len(q))
+    except ValueError as exc:
+        raise DataError(f'{exc}; the per-point sigma comes from the tracker (m)') from None
+    w = _row_weights(1.0 / sigma_rows, point_weights, len(q))
     if not (np.all(np.isfinite(q)) and np.all(np.isfinite(eta))):
         raise DataError('measurements contain NaN or inf; reject them before identification')
     q_work = np.atleast_2d(np.asarray(q_work, float))
@@ -310,7 +319,7 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
         """Row weights at ``pp``: fixed 1/σ, or whitening with joint-reading noise."""
         if model.joint_sigma is None:
             return w
-        return model.whitening(pp, q, 1.0 / w_axis, tau, ref, rot, point_weights)
+        return model.whitening(pp, q, sigma_rows, tau, ref, rot, point_weights)
 
     pred, _ = model.jacobian(p, q, tau, ref, rot)
     start_error = float(np.median(np.linalg.norm(eta - pred, axis=1)))
@@ -389,7 +398,20 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
         tcp=tcp, tcp_covariance=tcp_cov, working_pose_names=tuple(names),
         sigma=1.0 / w_axis, chi2=chi2, dof=dof, p_value=float(scipy.stats.chi2.sf(chi2, dof)),
         status=status, message=message, iterations=iterations, identifiability=ident,
-        joint_sigma=model.joint_sigma)
+        joint_sigma=model.joint_sigma, point_sigma=None if data.sigma is None else sigma_rows)
+
+
+def point_sigma_squares(result: CalibrationResult, reflector: np.ndarray | None,
+                        n_reflectors: int) -> np.ndarray:
+    """Σ_a σ_i,a² (m²) of every point row of the fit (rotation rows left out): each row's
+    stated σ (``result.point_sigma``) or the cell's σ; (N_points,), or (1,) when the fit
+    took the cell's σ for every row."""
+    if result.point_sigma is None:
+        return np.array([float(np.sum(np.asarray(result.sigma) ** 2))])
+    rows = np.asarray(result.point_sigma)
+    if reflector is not None:
+        rows = rows[np.asarray(reflector) < n_reflectors]
+    return np.sum(rows ** 2, axis=1)
 
 
 def _point_rms(residuals: np.ndarray, reflector: np.ndarray | None, n_reflectors: int) -> float:
@@ -404,14 +426,16 @@ def _with_prior(f: np.ndarray, rows: PriorRows | None, idx: np.ndarray) -> np.nd
 
 
 def _row_weights(w_axis: np.ndarray, point_weights: np.ndarray | None, n: int) -> np.ndarray:
-    """(N, 3) weights w_a·√ω_i of every residual component (1/m)."""
+    """(N, 3) weights w_i,a·√ω_i of every residual component (1/m); ``w_axis`` (3,) or
+    (N, 3)."""
+    w_axis = np.broadcast_to(w_axis, (n, 3))
     if point_weights is None:
-        return np.broadcast_to(w_axis, (n, 3)).copy()
+        return w_axis.copy()
     omega = np.asarray(point_weights, float)
     if omega.shape != (n,) or not np.all(np.isfinite(omega)) or np.any(omega < 0):
         raise ValueError(f'point_weights must be {n} finite numbers >= 0, got shape '
                          f'{omega.shape}')
-    return w_axis[None, :] * np.sqrt(omega)[:, None]
+    return w_axis * np.sqrt(omega)[:, None]
 
 
 # Trust-region radius updates (Nocedal & Wright, Algorithm 4.1; SciPy's ``trf``).

@@ -22,6 +22,12 @@ whitened with W_i = L_i⁻¹, L_i L_iᵀ = Σ_i (:meth:`MeasurementModel.whiteni
 the current estimate. Rows of one pose measured by several reflectors share that pose's
 joint readings; their correlation is not modelled (each row carries its own J_q Σ_q J_qᵀ).
 
+A tracker states its uncertainty per point (it grows with the distance, e.g. 15 µm + 6 µm/m):
+``Measurements.sigma`` (N, 3) holds it per row and axis (m), NaN where a row states none;
+:func:`row_sigma` puts it in place of the cell's σ row by row, so that σ in the covariance
+above, every weight and every statistic in units of σ is that row's own
+(:func:`noise_weights`, the one place the weights of data rows are formed).
+
 The KPI point of a working pose is ``h(p, q_work)`` of reflector 0 (the first
 reflector of the cell): the reflector/TCP centre at
 the working configuration expressed in the tracker frame. Unlike a TCP "in the
@@ -81,6 +87,8 @@ class Measurements:
     ``n_reflectors + k`` marks the rotation row of reflector ``k``'s tracked body.
     rotation : (N, 3, 3) measured body rotations in the tracker frame on rotation rows
     (ignored on point rows), or None when there are none.
+    sigma : (N, 3) the tracker's stated standard deviation of each row per axis (m), NaN
+    where a row states none (the cell's σ applies, :func:`row_sigma`), or None: none stated.
     One pose measured by R reflectors is R rows with the same ``q``.
     """
 
@@ -90,6 +98,7 @@ class Measurements:
     stamps_ns: np.ndarray | None = field(default=None)
     reflector: np.ndarray | None = field(default=None)
     rotation: np.ndarray | None = field(default=None)
+    sigma: np.ndarray | None = field(default=None)
 
     def __len__(self) -> int:
         return len(self.q)
@@ -100,7 +109,35 @@ class Measurements:
             return None if values is None else np.asarray(values)[keep]
         return Measurements(q=np.atleast_2d(self.q)[keep], eta=np.atleast_2d(self.eta)[keep],
                             tau=pick(self.tau), stamps_ns=pick(self.stamps_ns),
-                            reflector=pick(self.reflector), rotation=pick(self.rotation))
+                            reflector=pick(self.reflector), rotation=pick(self.rotation),
+                            sigma=pick(self.sigma))
+
+
+def row_sigma(sigma: float | np.ndarray, data_sigma: np.ndarray | None, n: int) -> np.ndarray:
+    """Standard deviation (N, 3) of every row and axis, m: the stated per-row σ
+    ``data_sigma`` (N, 3) where finite, the cell's ``sigma`` (scalar or (3,)) elsewhere.
+
+    Raises
+    ------
+    ValueError
+        ``sigma`` not positive, ``data_sigma`` of another shape or a stated σ <= 0 / inf.
+    """
+    cell = np.broadcast_to(np.asarray(sigma, float), (3,))
+    if not np.all(np.isfinite(cell)) or np.any(cell <= 0):
+        raise ValueError(f'noise sigma must be positive and finite, got {cell}')
+    out = np.broadcast_to(cell, (n, 3)).copy()
+    if data_sigma is None:
+        return out
+    given = np.asarray(data_sigma, float)
+    if given.shape != (n, 3):
+        raise ValueError(f'per-row sigma must be ({n}, 3) (m, NaN: none stated), got '
+                         f'{given.shape}')
+    stated = ~np.isnan(given)
+    if np.any(given[stated] <= 0) or not np.all(np.isfinite(given[stated])):
+        raise ValueError('per-row sigma must be positive and finite where stated (NaN: the '
+                         f'cell\'s sigma), got {given[stated & ~(given > 0)][:3]}')
+    out[stated] = given[stated]
+    return out
 
 
 class MeasurementModel:
@@ -319,26 +356,27 @@ class MeasurementModel:
         """Weights of the residual rows at parameters ``p``, for :func:`weighted_rows`.
 
         Without joint-reading noise (``joint_sigma`` None): (N, 3) per-axis weights
-        √ω_i / σ_a. With it: (N, 3, 3) W_i = √ω_i L_i⁻¹, L_i the Cholesky factor of
-        Σ_i = diag(σ²) + J_q,i diag(joint_sigma²) J_q,iᵀ, so W_i Σ_i W_iᵀ = ω_i I.
+        √ω_i / σ_i,a. With it: (N, 3, 3) W_i = √ω_i L_i⁻¹, L_i the Cholesky factor of
+        Σ_i = diag(σ_i²) + J_q,i diag(joint_sigma²) J_q,iᵀ, so W_i Σ_i W_iᵀ = ω_i I.
 
         Parameters
         ----------
-        sigma : (3,) ndarray
-            Tracker noise per axis, m (rotation rows are in metres at this σ).
+        sigma : (3,) or (N, 3) ndarray
+            Tracker noise per axis, m, for every row or per row (:func:`row_sigma`)
+            (rotation rows are in metres at this σ).
         point_weights : (N,) ndarray, optional
             Robustness weights ω_i in [0, 1]; default 1.
         """
         q = np.atleast_2d(q)
-        sigma = np.broadcast_to(np.asarray(sigma, float), (3,))
+        sigma = np.broadcast_to(np.asarray(sigma, float), (len(q), 3))
         omega = np.ones(len(q)) if point_weights is None else np.asarray(point_weights, float)
         if omega.shape != (len(q),) or not np.all(np.isfinite(omega)) or np.any(omega < 0):
             raise ValueError(f'point_weights must be {len(q)} finite numbers >= 0, got shape '
                              f'{omega.shape}')
         if self.joint_sigma is None:
-            return np.sqrt(omega)[:, None] / sigma[None, :]
+            return np.sqrt(omega)[:, None] / sigma
         jq = self.joint_jacobian(p, q, tau, reflector, rotation) * self.joint_sigma
-        cov = np.einsum('nak,nbk->nab', jq, jq) + np.diag(sigma ** 2)
+        cov = np.einsum('nak,nbk->nab', jq, jq) + sigma[:, :, None] ** 2 * np.eye(3)
         chol = np.linalg.cholesky(cov)
         inverse = np.linalg.solve(chol, np.broadcast_to(np.eye(3), chol.shape))
         return inverse * np.sqrt(omega)[:, None, None]
@@ -454,8 +492,27 @@ def with_rotation_rows(model: MeasurementModel, data: Measurements,
     expanded = data.subset(rows)
     eta = np.where(rotation_row[:, None], 0.0, expanded.eta)
     rot = np.where(rotation_row[:, None, None], rotations[rows], np.eye(3))
+    # A rotation row is in metres at the cell's σ (rotation_scale): no stated point σ.
+    sigma = (None if expanded.sigma is None
+             else np.where(rotation_row[:, None], np.nan, expanded.sigma))
     return Measurements(q=expanded.q, eta=eta, tau=expanded.tau, stamps_ns=expanded.stamps_ns,
-                        reflector=np.array(channel), rotation=rot)
+                        reflector=np.array(channel), rotation=rot, sigma=sigma)
+
+
+def noise_weights(model: MeasurementModel, p: np.ndarray, data: Measurements,
+                  sigma: float | np.ndarray, tau: np.ndarray | None = None,
+                  point_weights: np.ndarray | None = None) -> np.ndarray:
+    """Weights of ``data``'s rows at ``p`` for :func:`weighted_rows`: (N, 3) 1/σ_i,a (each
+    row's stated σ or the cell's ``sigma``, :func:`row_sigma`) times √ω_i, or (N, 3, 3)
+    whitening with joint-reading noise (:meth:`MeasurementModel.whitening`)."""
+    q = np.atleast_2d(data.q)
+    rows = row_sigma(sigma, data.sigma, len(q))
+    if tau is None and data.tau is not None:
+        tau = data.tau
+    if tau is None and model.uses_torque:
+        tau = model.robot.gravity_torques(q)
+    return model.whitening(np.asarray(p, float), q, rows, tau, data.reflector, data.rotation,
+                           point_weights)
 
 
 def weighted_rows(jac: np.ndarray, w: np.ndarray, idx: np.ndarray | None = None) -> np.ndarray:

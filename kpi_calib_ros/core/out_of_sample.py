@@ -50,7 +50,7 @@ import numpy as np
 import scipy.stats
 
 from kpi_calib_ros.core.estimability import information_rows, kpi_estimability
-from kpi_calib_ros.core.estimation import CalibrationResult
+from kpi_calib_ros.core.estimation import CalibrationResult, point_sigma_squares
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
 from kpi_calib_ros.core.prior import Prior
 from kpi_calib_ros.core.residuals import campaign_home, is_adequate, moved_joints
@@ -292,7 +292,9 @@ def out_of_sample_error(model: MeasurementModel, data: Measurements,
         # Mean over the fresh rows of ‖J δp‖² = δpᵀ M δp, M = mean JᵀJ (per pose: 3 rows).
         m = je.T @ je / (len(je) / 3)
         param_ms = float(np.trace(c0 @ m))
-        noise_ms = float(np.sum(sigma ** 2))
+        # A fresh pose's tracker noise: the mean over the measured points of their σ.
+        noise_ms = float(np.mean(point_sigma_squares(result, data.reflector,
+                                                     model.n_reflectors)))
         if model.joint_sigma is not None:
             # Joint-reading noise at the fresh poses: mean tr(J_q Σ_q J_qᵀ) per point.
             jq = model.joint_jacobian(p, rows_q, None, None if data.reflector is None else ref)
@@ -302,6 +304,8 @@ def out_of_sample_error(model: MeasurementModel, data: Measurements,
         out[domain] = DomainError(domain, True, float(np.sqrt(scale * ms_unit)),
                                   (float(np.sqrt(lo)), float(np.sqrt(hi))),
                                   float(np.sqrt(scale * param_ms)), len(configs))
+    if result.point_sigma is not None:
+        sigma = np.sqrt(np.mean(np.asarray(result.point_sigma) ** 2, axis=0))
     return OutOfSample(out, sigma * np.sqrt(scale) if np.isfinite(scale) else
                        np.full(3, np.nan), scale, dof, is_adequate(result.p_value))
 

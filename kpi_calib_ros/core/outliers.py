@@ -66,8 +66,8 @@ import scipy.sparse.csgraph
 import scipy.spatial
 import scipy.stats
 
-from kpi_calib_ros.core.measurement import (MeasurementModel, Measurements, weighted_residuals,
-                                           weighted_rows)
+from kpi_calib_ros.core.measurement import (MeasurementModel, Measurements, noise_weights,
+                                           row_sigma, weighted_residuals, weighted_rows)
 
 # Joint values (rad, m for prismatic joints) closer than this are one pose: the readings
 # of a still robot at one commanded pose differ by encoder counts (~1e-5 rad).
@@ -130,24 +130,16 @@ def hat_blocks(model: MeasurementModel, data: Measurements, p: np.ndarray,
     """Weighted residuals (N, 3) in σ units and hat-matrix blocks H_ii (N, 3, 3) of the
     data Jacobian of the ``estimated`` parameters at ``p``; robustness weights ω_i scale
     point i's rows by √ω_i, as in the fit."""
-    w = 1.0 / np.broadcast_to(np.asarray(sigma, float), (3,))
     q = np.atleast_2d(data.q)
     tau = data.tau
     if tau is None and model.uses_torque:
         tau = model.robot.gravity_torques(q)
     pred, jac = model.jacobian(np.asarray(p, float), q, tau, data.reflector, data.rotation)
     n = len(q)
-    row_w: np.ndarray
-    if model.joint_sigma is not None:
-        # Joint-reading noise: the rows whitened as the fit weighs them (W_i, 3×3).
-        row_w = model.whitening(np.asarray(p, float), q, np.broadcast_to(1.0 / w, (3,)), tau,
-                                data.reflector, data.rotation, point_weights)
-        r = weighted_residuals(np.atleast_2d(data.eta) - pred, row_w).reshape(n, 3)
-    else:
-        row_w = np.broadcast_to(w, (n, 3)).copy()
-        if point_weights is not None:
-            row_w *= np.sqrt(np.asarray(point_weights, float))[:, None]
-        r = (np.atleast_2d(data.eta) - pred) * row_w
+    # The rows weighed as the fit weighs them: each point's σ (its own or the cell's), and
+    # whitened (W_i, 3×3) with joint-reading noise.
+    row_w = noise_weights(model, p, data, sigma, tau, point_weights)
+    r = weighted_residuals(np.atleast_2d(data.eta) - pred, row_w).reshape(n, 3)
     f = weighted_rows(jac, row_w, model.params.indices(list(estimated)))
     norms = np.linalg.norm(f, axis=0)
     f = f[:, norms > 0] / norms[norms > 0]
@@ -223,18 +215,22 @@ def judge(model: MeasurementModel, data: Measurements, p: np.ndarray,
         out = data.subset(rest)
         pred = model.predict(p, np.atleast_2d(out.q), out.tau, out.reflector, out.rotation)
         miss = np.atleast_2d(out.eta) - pred
-        if model.joint_sigma is not None:
+        if model.joint_sigma is not None or out.sigma is not None:
             # In the stated σ's units, as the fit's σ̂ (core.robust.noise_units).
-            white = model.whitening(p, np.atleast_2d(out.q), stated, out.tau, out.reflector,
-                                    out.rotation)
+            white = noise_weights(model, p, out, stated)
             miss = weighted_residuals(miss, white).reshape(-1, 3) * float(np.mean(stated))
         t[rest] = np.linalg.norm(miss, axis=1) / scale
     over = kept & (t > threshold)
     # Residuals in σ̂ units of every kept point (unweighted by ω: consistency is geometry).
     resid = np.zeros((n, 3))
     kq = data.subset(kept)
-    resid[kept] = (np.atleast_2d(kq.eta) - model.predict(
-        p, np.atleast_2d(kq.q), kq.tau, kq.reflector, kq.rotation)) / scale
+    miss_k = np.atleast_2d(kq.eta) - model.predict(
+        p, np.atleast_2d(kq.q), kq.tau, kq.reflector, kq.rotation)
+    if kq.sigma is not None:
+        # Each point in units of its own σ, at the stated σ as σ̂ (core.robust.noise_units).
+        miss_k = weighted_residuals(miss_k, 1.0 / row_sigma(stated, kq.sigma, len(miss_k))
+                                    ).reshape(-1, 3) * float(np.mean(stated))
+    resid[kept] = miss_k / scale
     is_point = np.ones(n, bool) if data.reflector is None else \
         np.asarray(data.reflector) < model.n_reflectors
     eta = np.atleast_2d(data.eta)

@@ -25,7 +25,7 @@ from typing import Callable
 import numpy as np
 import scipy.stats
 
-from kpi_calib_ros.core.estimation import CalibrationResult
+from kpi_calib_ros.core.estimation import CalibrationResult, point_sigma_squares
 from kpi_calib_ros.core.prior import Prior
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
 from kpi_calib_ros.core.residuals import (ADEQUACY_ALPHA, LEAVE_ONE_OUT, cross_validated_rms,
@@ -150,9 +150,10 @@ class ExpectedTcpError:
 
 def measurement_noise_ms(model: MeasurementModel, data: Measurements,
                          result: CalibrationResult) -> float:
-    """Mean square noise (m²) of one point measurement: Σ_a σ_a², plus the joint readings'
-    mean tr(J_q Σ_q J_qᵀ) when the model carries joint-reading noise."""
-    noise = float(np.sum(np.asarray(result.sigma) ** 2))
+    """Mean square noise (m²) of one point measurement: Σ_a σ_a² (the mean over the points
+    of their own σ where the tracker stated it), plus the joint readings' mean
+    tr(J_q Σ_q J_qᵀ) when the model carries joint-reading noise."""
+    noise = float(np.mean(point_sigma_squares(result, data.reflector, model.n_reflectors)))
     if model.joint_sigma is None:
         return noise
     point = (np.ones(len(data), bool) if data.reflector is None

@@ -336,8 +336,8 @@ def reregister(model: MeasurementModel, p: np.ndarray, data: Measurements, index
         The new recording (point rows, and rotation rows of tracked bodies).
     index : (r,) int ndarray
         Parameters to re-fit (positions in ``p``).
-    sigma : (3,) ndarray
-        Noise std per axis of a row about the calibrated prediction (m).
+    sigma : (3,) or (N, 3) ndarray
+        Noise std per axis of a row about the calibrated prediction (m), or per row.
     uncertain : (k,) int ndarray
         Positions in ``p`` of the other identified parameters, ordered as ``covariance``.
     covariance : (k, k) ndarray

@@ -16,9 +16,9 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.stats
 
-from kpi_calib_ros.core.estimation import CalibrationResult, weights
-from kpi_calib_ros.core.measurement import (MeasurementModel, Measurements, unweighted,
-                                            weighted_residuals, weighted_rows)
+from kpi_calib_ros.core.estimation import CalibrationResult
+from kpi_calib_ros.core.measurement import (MeasurementModel, Measurements, noise_weights,
+                                            unweighted, weighted_residuals, weighted_rows)
 from kpi_calib_ros.core.robust import SIGMA_RATIO_WARNING, robust_sigma, sigma_warning
 
 PERCENTILES = (50, 90, 95, 99)
@@ -140,13 +140,11 @@ def sigma_overstated_text(chi2: float, dof: int, lower_p: float,
 
 def linearized_fit(model: MeasurementModel, data: Measurements, result: CalibrationResult,
             tau: np.ndarray | None = None) -> LinearizedFit:
-    w = weights(result.sigma)
     q = np.atleast_2d(data.q)
     if tau is None and model.uses_torque:
         tau = model.robot.gravity_torques(q)
     p = np.asarray(result.values, float)
-    if model.joint_sigma is not None:
-        w = model.whitening(p, q, result.sigma, tau, data.reflector, data.rotation)
+    w = noise_weights(model, p, data, result.sigma, tau)
     pred, jac = model.jacobian(p, q, tau, data.reflector, data.rotation)
     r = weighted_residuals(np.atleast_2d(data.eta) - pred, w)
     idx = model.params.indices(result.estimated)
@@ -328,7 +326,7 @@ def residual_report(model: MeasurementModel, data: Measurements, result: Calibra
     stated = float(np.mean(result.sigma))
     # With joint-reading noise σ̂ is that of the whitened residuals at the stated σ: the
     # joints' share of the scatter is stated, not a misfit (core.robust).
-    sigma_hat = robust_sigma(residuals if model.joint_sigma is None
+    sigma_hat = robust_sigma(residuals if model.joint_sigma is None and data.sigma is None
                              else sys_.r.reshape(n, 3) * stated, dof)
     inflation = max(1.0, sigma_hat / stated) if np.isfinite(sigma_hat) else 1.0
     outlier = scipy.stats.chi2.sf(standardized / inflation ** 2, 3) * n < alpha

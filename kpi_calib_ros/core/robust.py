@@ -43,7 +43,8 @@ import scipy.stats
 
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation import MAX_START_ERROR, CalibrationResult
-from kpi_calib_ros.core.measurement import MeasurementModel, Measurements, weighted_residuals
+from kpi_calib_ros.core.measurement import (MeasurementModel, Measurements, noise_weights,
+                                            weighted_residuals)
 from kpi_calib_ros.core.outliers import judge, pose_groups
 
 LOSSES = ('linear', 'huber', 'soft_l1')
@@ -223,7 +224,7 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
         # What σ̂ and the reported distances see: the metric distances, or with joint-reading
         # noise the residuals at the stated σ (module text).
         tested, scaled = distances, result.residuals
-        if model.joint_sigma is not None:
+        if model.joint_sigma is not None or data.sigma is not None:
             standard = noise_units(model, data, result.values, miss, sigma)
             tested, scaled = np.linalg.norm(standard, axis=1), standard[kept]
         scale = robust_sigma(scaled, result.dof)
@@ -332,12 +333,14 @@ def sigma_warning(robust: float, stated: float) -> str:
 def noise_units(model: MeasurementModel, data: Measurements, p: np.ndarray,
                 residuals: np.ndarray, sigma: float | np.ndarray) -> np.ndarray:
     """Residuals (N, 3) of ``data`` at ``p`` as the robust statistics take them (m): as
-    given without joint-reading noise; with it, W_i r_i times the mean stated σ, whose noise
-    is the stated σ on every axis at every pose."""
-    if model.joint_sigma is None:
+    given without joint-reading noise and per-point σ; with either, W_i r_i times the mean
+    stated σ, whose noise is the stated σ on every axis at every pose (a point's own σ
+    from the tracker counts in units of itself, :func:`~kpi_calib_ros.core.measurement.
+    noise_weights`)."""
+    if model.joint_sigma is None and data.sigma is None:
         return residuals
     sigma = np.broadcast_to(np.asarray(sigma, float), (3,))
-    w = model.whitening(p, data.q, sigma, data.tau, data.reflector, data.rotation)
+    w = noise_weights(model, p, data, sigma)
     return weighted_residuals(residuals, w).reshape(-1, 3) * float(np.mean(sigma))
 
 

@@ -789,18 +789,23 @@ def _pose_starts(q: np.ndarray, channel: np.ndarray) -> np.ndarray:
 
 def _concatenate(a: Measurements, b: Measurements) -> Measurements:
     """The rows of ``a`` then those of ``b`` (rotations identity where one has none,
-    stamps -1 where one has none)."""
+    stamps -1 and stated σ NaN, the cell's, where one has none)."""
     def rotations(m: Measurements) -> np.ndarray:
         return (np.broadcast_to(np.eye(3), (len(m), 3, 3)) if m.rotation is None
                 else np.asarray(m.rotation))
     rotation = (None if a.rotation is None and b.rotation is None
                 else np.concatenate([rotations(a), rotations(b)]))
+
+    def sigmas(m: Measurements) -> np.ndarray:
+        return np.full((len(m), 3), np.nan) if m.sigma is None else np.asarray(m.sigma)
+    sigma = (None if a.sigma is None and b.sigma is None
+             else np.concatenate([sigmas(a), sigmas(b)]))
     return Measurements(q=np.vstack([a.q, b.q]), eta=np.vstack([a.eta, b.eta]),
                         reflector=np.concatenate([np.zeros(len(a), int) if a.reflector is None
                                                   else a.reflector,
                                                   np.zeros(len(b), int) if b.reflector is None
                                                   else b.reflector]),
-                        rotation=rotation,
+                        rotation=rotation, sigma=sigma,
                         stamps_ns=np.concatenate([_stamps(a), _stamps(b)]))
 
 

@@ -41,7 +41,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.stats
 
-from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
+from kpi_calib_ros.core.errors import DataError
+from kpi_calib_ros.core.measurement import MeasurementModel, Measurements, row_sigma
 from kpi_calib_ros.core.registration import Reregistration, reregister
 from kpi_calib_ros.core.residuals import ADEQUACY_ALPHA
 
@@ -124,7 +125,9 @@ def validate(model: MeasurementModel, p: np.ndarray, estimated: np.ndarray,
     covariance : (k, k) ndarray
         C_p of the identified parameters.
     sigma : (3,) ndarray
-        Noise std per axis (m) of a new point about the calibrated prediction.
+        Noise std per axis (m) of a new point about the calibrated prediction; a row of
+        ``data`` with its own stated σ (``data.sigma``) takes that one, times
+        √``noise_scale``.
     data : Measurements
         New (pose, reflector) rows.
     lower, upper : (n,) ndarray
@@ -149,10 +152,16 @@ def validate(model: MeasurementModel, p: np.ndarray, estimated: np.ndarray,
     keep = ~np.isin(estimated, [] if registered is None else registered)
     estimated, covariance = estimated[keep], covariance[np.ix_(keep, keep)]
 
+    stated = None if data.sigma is None else np.asarray(data.sigma, float) * np.sqrt(noise_scale)
+    try:
+        sigma_rows = row_sigma(sigma, stated, len(q))
+    except ValueError as exc:
+        raise DataError(f'{exc}; the per-point sigma of the validation data') from None
+
     def point_covariance(jac: np.ndarray, p_now: np.ndarray) -> np.ndarray:
         j = jac[:, :, estimated]
         cov = (np.einsum('nak,kl,nbl->nab', j, covariance, j)
-               + np.diag(np.asarray(sigma, dtype=float) ** 2))
+               + sigma_rows[:, :, None] ** 2 * np.eye(3))
         if model.joint_sigma is not None:
             jq = (model.joint_jacobian(p_now, q, tau, data.reflector, data.rotation)
                   * model.joint_sigma)
@@ -162,7 +171,7 @@ def validate(model: MeasurementModel, p: np.ndarray, estimated: np.ndarray,
     registration = None
     if registered is not None and len(registered):
         registration = reregister(model, p, dataclasses.replace(data, tau=tau), registered,
-                                  np.asarray(sigma, dtype=float), estimated, covariance)
+                                  sigma_rows, estimated, covariance)
         p = registration.p
     pred, jac = model.jacobian(p, q, tau, data.reflector, data.rotation)
     residuals = np.atleast_2d(data.eta) - pred

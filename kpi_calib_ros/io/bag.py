@@ -18,7 +18,7 @@ import inspect
 import mmap
 import os
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
@@ -29,13 +29,13 @@ from kpi_calib_ros.core.pairing import Pairer
 from kpi_calib_ros.core.streams import JointSample, PointSample
 from kpi_calib_ros.io.bag_writing import (DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC,
                                           JOINT_STATE_TYPE, LIBRARY, POINT_STAMPED_TYPE,
-                                          POSE_STAMPED_TYPE,
+                                          POSE_STAMPED_TYPE, VECTOR3_STAMPED_TYPE,
                                           StreamEncoders, message_definition, type_hash,
                                           write_bag)
 from kpi_calib_ros.io.mcap_scan import MAGIC, BagError, ScannedBag, scan
-from kpi_calib_ros.io.names import DEFAULT_POSE_TOPIC
+from kpi_calib_ros.io.names import DEFAULT_POSE_TOPIC, point_sigma_topic
 from kpi_calib_ros.io.ros_messages import (JointStateDecoder, point_sample_from_message,
-                                           pose_sample_from_message)
+                                           pose_sample_from_message, stamp_ns)
 
 # The metadata record by which a measurement log marks itself (see read_for_pairing).
 LOG_METADATA = 'kpi_calib_ros'
@@ -231,12 +231,47 @@ class BagContents:
     False) ``joints`` holds only the joint states around the points; for a
     measurement log ``joints[i]`` is the configuration stored with ``points[i]``.
     ``unreadable_bytes``: bytes of a cut or damaged file that could not be used.
+    ``point_sigma``: the tracker's stated σ (3,) (m) of points by (stamp ns, frame id),
+    from the point topic's companion ``<point topic>/sigma`` (empty when the bag has none).
     """
 
     joints: list[JointSample]
     points: list[PointSample]
     measurement_log: bool
     unreadable_bytes: int
+    point_sigma: dict[tuple[int, str], np.ndarray] = field(default_factory=dict)
+
+
+def _point_sigma(path: Path, bag: ScannedBag, point_topic: str
+                 ) -> dict[tuple[int, str], np.ndarray]:
+    """The stated σ (3,) (m) of the points by (stamp ns, frame id), from the
+    Vector3Stamped messages on ``point_sigma_topic(point_topic)``; {} without that topic."""
+    topic = point_sigma_topic(point_topic)
+    ids = sorted(c.id for c in bag.channels.values() if c.topic == topic)
+    if not ids:
+        return {}
+    schema = bag.schemas.get(bag.channels[ids[0]].schema_id)
+    if schema is None or schema.name != VECTOR3_STAMPED_TYPE:
+        raise BagError(f"{path}: topic '{topic}' carries "
+                       f"'{schema.name if schema else 'no schema'}', expected "
+                       f"'{VECTOR3_STAMPED_TYPE}' (each point's sigma per axis, m, with the "
+                       'point\'s stamp and frame id); rename or drop that topic')
+    decoder = DecoderFactory().decoder_for(bag.channels[ids[0]].message_encoding, schema)
+    if decoder is None:
+        raise BagError(f"{path}: topic '{topic}' is not CDR with a ros2msg schema")
+    out: dict[tuple[int, str], np.ndarray] = {}
+    for c in (c for c in ids if c in bag.messages):
+        for i in range(len(bag.messages[c])):
+            message = decoder(bag.payload(c, i))
+            v = message.vector
+            sigma = np.array([v.x, v.y, v.z], dtype=float)
+            key = (stamp_ns(message.header), str(message.header.frame_id))
+            if not np.all(np.isfinite(sigma)) or np.any(sigma <= 0):
+                raise BagError(f"{path}: topic '{topic}', stamp {key[0]} ns, frame "
+                               f"'{key[1]}': sigma {sigma.tolist()} is not > 0 and finite "
+                               '(per axis, m)')
+            out[key] = sigma
+    return out
 
 
 def is_measurement_log(bag: ScannedBag) -> bool:
@@ -325,10 +360,11 @@ def read_for_pairing(
     assert opened is not None
     bag, joints, points, poses = opened
     bad: list[int] = []
+    sigma = _point_sigma(path, bag, point_topic)
     if is_measurement_log(bag):
         stored_joints, stored_points = _stored_pairs(path, bag, joints, points, bad, poses)
         _warn_undecodable(path, bad)
-        return BagContents(stored_joints, stored_points, True, bag.unreadable_bytes)
+        return BagContents(stored_joints, stored_points, True, bag.unreadable_bytes, sigma)
     point_samples = (_decode(path, bag, points, *_indices(bag, points)[:2], bad)
                      + _decode(path, bag, poses, *_indices(bag, poses)[:2], bad))
     channel, index, _ = _indices(bag, joints)
@@ -346,7 +382,7 @@ def read_for_pairing(
     _warn_undecodable(path, bad)
     joint_samples.sort(key=lambda j: j.stamp_ns)
     point_samples.sort(key=lambda p: p.stamp_ns)
-    return BagContents(joint_samples, point_samples, False, bag.unreadable_bytes)
+    return BagContents(joint_samples, point_samples, False, bag.unreadable_bytes, sigma)
 
 
 def read_log(path: str | os.PathLike, joint_topic: str = DEFAULT_JOINT_TOPIC,

@@ -26,6 +26,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import Iterable
 
+import numpy as np
 from mcap.well_known import MessageEncoding, SchemaEncoding
 from mcap.writer import LIBRARY_IDENTIFIER, CompressionType
 from mcap.writer import Writer as McapWriter
@@ -38,12 +39,13 @@ from kpi_calib_ros.core.streams import JointSample, PointSample
 from kpi_calib_ros.io.mcap_scan import BagError
 from kpi_calib_ros.io.ros_messages import (joint_state_fields, point_stamped_fields,
                                            pose_stamped_fields, stamp_fields,
-                                           temperature_fields)
+                                           temperature_fields, vector3_stamped_fields)
 
 JOINT_STATE_TYPE = 'sensor_msgs/msg/JointState'
 POINT_STAMPED_TYPE = 'geometry_msgs/msg/PointStamped'
 POSE_STAMPED_TYPE = 'geometry_msgs/msg/PoseStamped'
 TEMPERATURE_TYPE = 'sensor_msgs/msg/Temperature'
+VECTOR3_STAMPED_TYPE = 'geometry_msgs/msg/Vector3Stamped'   # a point's stated σ (m)
 
 LIBRARY = f'kpi_calib_ros; {LIBRARY_IDENTIFIER}'
 _ROSBAG2_CHUNK_SIZE = 768 * 1024  # libmcap's default, which rosbag2 keeps
@@ -128,11 +130,11 @@ def type_hash(type_name: str) -> str:
 
 
 class StreamEncoders:
-    """Schema texts, channel metadata and CDR encoders of the stream topics (the pose
-    and temperature topics only when given)."""
+    """Schema texts, channel metadata and CDR encoders of the stream topics (the pose,
+    temperature and point-σ topics only when given)."""
 
     def __init__(self, joint_topic: str, point_topic: str, pose_topic: str | None = None,
-                 temperature_topic: str | None = None) -> None:
+                 temperature_topic: str | None = None, sigma_topic: str | None = None) -> None:
         if joint_topic == point_topic:
             raise ValueError(f"joint_topic and point_topic must differ, both are '{joint_topic}'")
         if pose_topic in (joint_topic, point_topic):
@@ -142,12 +144,17 @@ class StreamEncoders:
                                                                    pose_topic):
             raise ValueError(f"temperature_topic '{temperature_topic}' must differ from the "
                              'joint, point and pose topics')
+        if sigma_topic is not None and sigma_topic in (joint_topic, point_topic, pose_topic,
+                                                       temperature_topic):
+            raise ValueError(f"sigma_topic '{sigma_topic}' must differ from the other topics")
         self.topics: tuple[tuple[str, str], ...] = (
             (joint_topic, JOINT_STATE_TYPE), (point_topic, POINT_STAMPED_TYPE))
         if pose_topic is not None:
             self.topics += ((pose_topic, POSE_STAMPED_TYPE),)
         if temperature_topic is not None:
             self.topics += ((temperature_topic, TEMPERATURE_TYPE),)
+        if sigma_topic is not None:
+            self.topics += ((sigma_topic, VECTOR3_STAMPED_TYPE),)
         self.text = {t: message_definition(t) for _, t in self.topics}
         self.metadata = {t: {'offered_qos_profiles': _OFFERED_QOS, 'topic_type_hash': type_hash(t)}
                          for _, t in self.topics}
@@ -165,14 +172,19 @@ class StreamEncoders:
     def temperature(self, stamp_ns: int, frame_id: str, celsius: float) -> bytes:
         return self._encode[TEMPERATURE_TYPE](temperature_fields(stamp_ns, frame_id, celsius))
 
+    def point_sigma(self, stamp_ns: int, frame_id: str, sigma: np.ndarray) -> bytes:
+        return self._encode[VECTOR3_STAMPED_TYPE](vector3_stamped_fields(stamp_ns, frame_id,
+                                                                         sigma))
+
 
 class _Recorder:
     """Writes JointState and PointStamped messages to one chunked MCAP stream."""
 
     def __init__(self, stream, joint_topic: str, point_topic: str,
                  chunk_size: int = _ROSBAG2_CHUNK_SIZE, pose_topic: str | None = None,
-                 temperature_topic: str | None = None) -> None:
-        self.encoders = StreamEncoders(joint_topic, point_topic, pose_topic, temperature_topic)
+                 temperature_topic: str | None = None, sigma_topic: str | None = None) -> None:
+        self.encoders = StreamEncoders(joint_topic, point_topic, pose_topic, temperature_topic,
+                                       sigma_topic)
         self._writer = McapWriter(stream, chunk_size=chunk_size,
                                   compression=CompressionType.NONE, use_chunking=True)
         self._writer.start(profile='ros2', library=LIBRARY)
@@ -214,6 +226,12 @@ class _Recorder:
         self._write(TEMPERATURE_TYPE, stamp_ns,
                     self.encoders.temperature(stamp_ns, frame_id, celsius))
 
+    def write_point_sigma(self, sample: PointSample, sigma: np.ndarray) -> None:
+        """The tracker's stated σ (3,) (m) of ``sample``, on the point-σ topic with the
+        point's stamp and frame id (:func:`kpi_calib_ros.io.names.point_sigma_topic`)."""
+        self._write(VECTOR3_STAMPED_TYPE, sample.stamp_ns,
+                    self.encoders.point_sigma(sample.stamp_ns, sample.frame_id, sigma))
+
     def finish(self) -> None:
         self._writer.finish()
 
@@ -232,14 +250,16 @@ class BagStream:
     def __init__(self, path: str | os.PathLike, joint_topic: str = DEFAULT_JOINT_TOPIC,
                  point_topic: str = DEFAULT_POINT_TOPIC, pose_topic: str | None = None,
                  temperature_topic: str | None = None,
-                 chunk_size: int = _ROSBAG2_CHUNK_SIZE) -> None:
+                 chunk_size: int = _ROSBAG2_CHUNK_SIZE, sigma_topic: str | None = None) -> None:
         self.path = Path(path)
-        self._options = (joint_topic, point_topic, chunk_size, pose_topic, temperature_topic)
+        self._options = (joint_topic, point_topic, chunk_size, pose_topic, temperature_topic,
+                         sigma_topic)
 
     def __enter__(self) -> _Recorder:
-        joint_topic, point_topic, chunk_size, pose_topic, temperature_topic = self._options
+        (joint_topic, point_topic, chunk_size, pose_topic, temperature_topic,
+         sigma_topic) = self._options
         # Checked before any file is created: bad topics leave nothing behind.
-        StreamEncoders(joint_topic, point_topic, pose_topic, temperature_topic)
+        StreamEncoders(joint_topic, point_topic, pose_topic, temperature_topic, sigma_topic)
         fd, name = tempfile.mkstemp(prefix=f'.{self.path.name}.', suffix='.partial',
                                     dir=self.path.parent)
         self._tmp = Path(name)
@@ -247,7 +267,8 @@ class BagStream:
         try:
             self._recorder = _Recorder(self._file, joint_topic, point_topic,
                                        chunk_size=chunk_size, pose_topic=pose_topic,
-                                       temperature_topic=temperature_topic)
+                                       temperature_topic=temperature_topic,
+                                       sigma_topic=sigma_topic)
             return self._recorder
         except BaseException:
             self._discard()

@@ -34,7 +34,7 @@ from kpi_calib_ros.io.csv_mapping import (CsvMapping, MarkerColumns, load_mappin
                                           mapping_from_dict, time_zone)
 from kpi_calib_ros.io.csv_table import TableFormat, detect_format, read_table
 from kpi_calib_ros.io.names import (DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, DEFAULT_POSE_TOPIC,
-                                    DEFAULT_TEMPERATURE_TOPIC)
+                                    DEFAULT_TEMPERATURE_TOPIC, point_sigma_topic)
 
 # Synthetic stamps when the table has none: one posture every few seconds from here.
 _START_NS = 1_700_000_000_000_000_000
@@ -91,6 +91,12 @@ def read_postures(path: str | Path, mapping: CsvMapping, fmt: TableFormat | None
             elif m.orientation:
                 quaternion = cell.vector(m.orientation)
             sigma = cell.vector(m.sigma) * point_scale if m.sigma else None
+            if sigma is not None and np.any(sigma <= 0):
+                column = m.sigma[int(np.argmax(sigma <= 0))]
+                raise DataError(f'{path}: line {line}, column {column!r}: a point\'s sigma '
+                                f'must be > 0 ({mapping.point_unit}, the '
+                                "tracker's stated standard deviation); leave the sigma "
+                                'columns out of the mapping if the table has none')
             points.append((name, cell.vector(m.position) * point_scale, quaternion, sigma))
         stamp = None
         if mapping.stamp_columns:
@@ -170,6 +176,7 @@ class ImportSummary:
     sigma_mean_m: dict[str, np.ndarray] = field(default_factory=dict)
     sigma_max_m: dict[str, np.ndarray] = field(default_factory=dict)
     temperature_range_c: tuple[float, float] | None = None
+    sigma_topic: str = ''
 
     def lines(self) -> list[str]:
         out = [f'written: {self.path} ({self.postures} postures, {self.points} points'
@@ -183,8 +190,7 @@ class ImportSummary:
         for name, mean in self.sigma_mean_m.items():
             out.append(f"per-point σ of {name}: mean {np.round(mean * 1e6, 1).tolist()} µm, "
                        f'max {np.round(self.sigma_max_m[name] * 1e6, 1).tolist()} µm (x, y, '
-                       "z); not used by identify, which weighs every point by the cell's "
-                       'noise.sigma')
+                       f'z), written to {self.sigma_topic}: identify weighs each point by it')
         if self.temperature_range_c:
             low, high = self.temperature_range_c
             out.append(f'cell temperature: {low:.2f} to {high:.2f} °C')
@@ -244,20 +250,25 @@ def import_csv(csv_path: str | Path | list, out_path: str | Path, mapping: CsvMa
                         'write (' + ('it is a folder' if out.is_dir() else
                                      f'{out.parent} does not exist' if not out.parent.is_dir()
                                      else f'{out.parent} is not writable') + ')')
+    has_sigma = any(m.sigma for m in mapping.markers.values())
+    summary.sigma_topic = point_sigma_topic(point_topic)
     with BagStream(out_path, joint_topic, point_topic,
                    pose_topic if mapping.has_poses else None,
-                   temperature_topic if mapping.temperature else None) as bag:
+                   temperature_topic if mapping.temperature else None,
+                   sigma_topic=point_sigma_topic(point_topic) if has_sigma else None) as bag:
         for i, row in enumerate(rows):
             t = row.stamp_ns if row.stamp_ns is not None else _START_NS + i * _PERIOD_NS
             stamps.add(t, row, table[row.path])
             held = JointSample(t, names, row.q, zeros)
             bag.write_joint_held(held, (int(t + dt) for dt in offsets[offsets <= 0]))
             for name, xyz, quaternion, sigma in row.points:
-                bag.write_point(PointSample(t, f'{mapping.frame_id}{REFLECTOR_SEPARATOR}{name}',
-                                            xyz, quaternion))
+                sample = PointSample(t, f'{mapping.frame_id}{REFLECTOR_SEPARATOR}{name}', xyz,
+                                     quaternion)
+                bag.write_point(sample)
                 summary.points += 1
                 summary.poses += quaternion is not None
                 if sigma is not None:
+                    bag.write_point_sigma(sample, sigma)
                     sigma_sum[name] = sigma_sum.get(name, 0.0) + sigma
                     summary.sigma_max_m[name] = np.maximum(
                         summary.sigma_max_m.get(name, sigma), sigma)

@@ -33,6 +33,15 @@ DEFAULT_JOINT_TOPIC = '/joint_states'
 DEFAULT_POINT_TOPIC = '/laser_tracker/point'
 DEFAULT_POSE_TOPIC = '/laser_tracker/pose'   # tracked 6-DoF bodies (PoseStamped)
 DEFAULT_TEMPERATURE_TOPIC = '/cell/temperature'   # sensor_msgs/Temperature of imported tables
+# The tracker's stated σ of a point, per axis (m), as geometry_msgs/Vector3Stamped on
+# '<point topic>/sigma', with the point's stamp and frame id (paired by both); it covers the
+# points of the point topic and the positions of tracked poses.
+POINT_SIGMA_SUFFIX = '/sigma'
+
+
+def point_sigma_topic(point_topic: str) -> str:
+    """The companion topic of ``point_topic`` carrying each point's stated σ (m)."""
+    return point_topic.rstrip('/') + POINT_SIGMA_SUFFIX
 ROBOT_DESCRIPTION_TOPIC = '/robot_description'
 DIAGNOSTICS_TOPIC = '/diagnostics'
 MEASUREMENT_POSES_TOPIC = '~/measurement_poses'

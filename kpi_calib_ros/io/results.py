@@ -84,6 +84,16 @@ def writable_folder(path: str | Path, key: str = 'out') -> Path:
     return path
 
 
+def _point_sigma_summary(result: CalibrationResult) -> dict[str, Any] | None:
+    if result.point_sigma is None:
+        return None
+    rows = np.asarray(result.point_sigma)
+    own = np.any(rows != np.asarray(result.sigma), axis=1)
+    return {'rows': int(own.sum()),
+            'mean': [float(v) for v in rows[own].mean(axis=0)] if own.any() else None,
+            'max': [float(v) for v in rows[own].max(axis=0)] if own.any() else None}
+
+
 def calibration_to_dict(result: CalibrationResult,
                         pairing: PairingResult | None = None) -> dict[str, Any]:
     """YAML-ready description of a calibration (SI units, stable parameter names)."""
@@ -109,6 +119,9 @@ def calibration_to_dict(result: CalibrationResult,
         'rms_m': float(result.rms_m),
         'max_residual_m': float(np.max(np.linalg.norm(result.residuals, axis=1))),
         'noise_sigma_m': [float(s) for s in result.sigma],
+        # The tracker's own σ per point (m) where the data stated it, weighing those rows in
+        # place of noise_sigma_m: how many rows, their mean and largest σ per axis; null: none.
+        'noise_point_sigma_m': _point_sigma_summary(result),
         # noise.joint_sigma the fit carried (rad, chain order); null: exact joint readings.
         'noise_joint_sigma_rad': (None if result.joint_sigma is None
                                   else [float(s) for s in result.joint_sigma]),

@@ -114,6 +114,14 @@ def pose_stamped_fields(sample: PointSample) -> dict[str, Any]:
                      'orientation': {'x': qx, 'y': qy, 'z': qz, 'w': qw}}}
 
 
+def vector3_stamped_fields(stamp_ns: int, frame_id: str, xyz: np.ndarray) -> dict[str, Any]:
+    """A vector (3,) as the nested fields of a Vector3Stamped (a point's σ per axis, m)."""
+    sec, nanosec = stamp_fields(stamp_ns)
+    x, y, z = (float(v) for v in xyz)
+    return {'header': {'stamp': {'sec': sec, 'nanosec': nanosec}, 'frame_id': frame_id},
+            'vector': {'x': x, 'y': y, 'z': z}}
+
+
 def temperature_fields(stamp_ns: int, frame_id: str, celsius: float) -> dict[str, Any]:
     """A temperature (°C, as sensor_msgs/Temperature carries it) as the nested fields of
     that message; variance 0 (unknown)."""
