@@ -2,8 +2,9 @@
 domain every ROS test runs on."""
 from __future__ import annotations
 
-import kpi_calib_ros  # noqa: F401  (single-threaded BLAS before any test imports numpy)
 import pytest
+
+import kpi_calib_ros  # noqa: F401  (single-threaded BLAS before any test imports numpy)
 
 ODD_ARM_URDF = """<?xml version="1.0"?>
 <robot name="odd_arm">

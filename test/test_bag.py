@@ -16,9 +16,8 @@ from mcap.reader import make_reader
 from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
 
-from kpi_calib_ros.core.streams import JointSample, PointSample, synthesize_streams
-
 from kpi_calib_ros.core.pairing import pair_measurements
+from kpi_calib_ros.core.streams import JointSample, PointSample, synthesize_streams
 from kpi_calib_ros.io.bag import BagError, BagWarning, read_bag, read_for_pairing, write_bag
 from kpi_calib_ros.io.measurement_log import MeasurementLog
 
@@ -89,8 +88,8 @@ def section(type_name: str) -> str:
 
 
 def test_bag_is_what_ros2_bag_record_writes(tmp_path):
-    from rclpy.serialization import deserialize_message
     from geometry_msgs.msg import PointStamped
+    from rclpy.serialization import deserialize_message
     from sensor_msgs.msg import JointState
 
     _, _, joints, points = make_streams()

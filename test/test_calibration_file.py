@@ -12,12 +12,14 @@ import yaml
 
 from kpi_calib_ros.app.identify import calibration_document, identify_cell, measurements_from_bag
 from kpi_calib_ros.cli import main
-from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
-                                           true_parameters)
+from kpi_calib_ros.core.simulation import (
+    random_configurations,
+    simulate_measurements,
+    true_parameters,
+)
 from kpi_calib_ros.core.streams import synthesize_streams
 from kpi_calib_ros.io.bag_writing import write_bag
-from kpi_calib_ros.io.calibration_file import (load_yaml_bounded,
-                                               read_calibration_document)
+from kpi_calib_ros.io.calibration_file import load_yaml_bounded, read_calibration_document
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 from kpi_calib_ros.io.results import write_calibration
 from kpi_calib_ros.io.yaml_bounded import MAX_DOCUMENT_NODES

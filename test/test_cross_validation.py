@@ -7,11 +7,21 @@ import pytest
 
 from kpi_calib_ros.app.identify import identify_cell
 from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.residuals import (cross_validated_rms, cv_rms, fold_ids,
-                                          folds_keep_rank, identifiable_folds, linearized_fit,
-                                          moved_joints, stratified_fold_ids)
-from kpi_calib_ros.core.simulation import (one_joint_at_a_time, simulate_measurements,
-                                          true_parameters)
+from kpi_calib_ros.core.residuals import (
+    cross_validated_rms,
+    cv_rms,
+    fold_ids,
+    folds_keep_rank,
+    identifiable_folds,
+    linearized_fit,
+    moved_joints,
+    stratified_fold_ids,
+)
+from kpi_calib_ros.core.simulation import (
+    one_joint_at_a_time,
+    simulate_measurements,
+    true_parameters,
+)
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 
 POSES_PER_JOINT = 5

@@ -10,8 +10,11 @@ from kpi_calib_ros.app.identify import calibrate_cell, identify_cell, with_effec
 from kpi_calib_ros.core.diagnosis import augmented_model, screen_effects
 from kpi_calib_ros.core.effects import available_effects, bind_effect, hidden_effects, implausible
 from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
-                                          true_parameters)
+from kpi_calib_ros.core.simulation import (
+    random_configurations,
+    simulate_measurements,
+    true_parameters,
+)
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 
 SIGMA = 20e-6  # the default cell's tracker σ

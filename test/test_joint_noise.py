@@ -14,8 +14,11 @@ from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation import identify
 from kpi_calib_ros.core.measurement import unweighted, weighted_residuals, weighted_rows
 from kpi_calib_ros.core.precision import honest_precision, precision_statement
-from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
-                                          true_parameters)
+from kpi_calib_ros.core.simulation import (
+    random_configurations,
+    simulate_measurements,
+    true_parameters,
+)
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 
 JOINT_SIGMA = np.deg2rad(0.03)   # a controller read-back (the real-data issue: 0.02-0.05°)

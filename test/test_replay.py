@@ -7,10 +7,11 @@ import re
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Header
 
+from kpi_calib_ros.app.simulate import simulate_campaign
 from kpi_calib_ros.io.bag import read_bag
 from kpi_calib_ros.io.cell import DEFAULT_CELL
-from kpi_calib_ros.app.simulate import simulate_campaign
 from kpi_calib_ros.ros import conversions as cv
+
 from ros_helpers import finish
 
 WALL_NS = 1_790_000_000_000_000_000   # a wall-clock stamp, far after any simulated recording

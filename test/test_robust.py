@@ -15,12 +15,13 @@ from kpi_calib_ros.cli import main
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimability import kpi_estimability
 from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.robust import (OutlierSettings, loss_weights, outlier_threshold,
-                                       robust_sigma)
-from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
-                                          true_parameters)
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, identification_settings, \
-    load_cell
+from kpi_calib_ros.core.robust import OutlierSettings, loss_weights, outlier_threshold, robust_sigma
+from kpi_calib_ros.core.simulation import (
+    random_configurations,
+    simulate_measurements,
+    true_parameters,
+)
+from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, identification_settings, load_cell
 from kpi_calib_ros.io.names import CALIBRATION_FILE, FAILED_CALIBRATION_FILE
 
 SIGMA = 20e-6

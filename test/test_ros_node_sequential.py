@@ -24,6 +24,7 @@ from kpi_calib_ros.core.sequential import MODEL_INADEQUATE, TARGET_MET, Campaign
 from kpi_calib_ros.core.simulation import true_parameters
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 from kpi_calib_ros.ros import conversions as cv
+
 from ros_helpers import KR15_URDF, LATCHED, NS, Client, Spawner
 
 pytestmark = pytest.mark.slow

@@ -14,12 +14,16 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile
 from std_msgs.msg import String
 
-from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
-                                           true_parameters)
+from kpi_calib_ros.core.simulation import (
+    random_configurations,
+    simulate_measurements,
+    true_parameters,
+)
 from kpi_calib_ros.core.streams import synthesize_streams
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 from kpi_calib_ros.io.ros_messages import joint_state_msg, point_stamped_msg
 from kpi_calib_ros.ros.node import CalibrationNode
+
 from ros_helpers import KR15_URDF
 
 

@@ -9,8 +9,8 @@ link cannot either.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 import xml.etree.ElementTree as ET
+from dataclasses import dataclass
 from typing import Any, Iterable, Mapping, Sequence
 
 import coal

@@ -25,10 +25,17 @@ import scipy.stats
 
 from kpi_calib_ros.core.covariance import kkt_covariance, kpi_jacobians
 from kpi_calib_ros.core.errors import DataError
-from kpi_calib_ros.core.identifiability import (DroppedParameter, Identifiability,
-                                                select_identifiable)
-from kpi_calib_ros.core.measurement import (MeasurementModel, Measurements, weighted_residuals,
-                                            weighted_rows)
+from kpi_calib_ros.core.identifiability import (
+    DroppedParameter,
+    Identifiability,
+    select_identifiable,
+)
+from kpi_calib_ros.core.measurement import (
+    MeasurementModel,
+    Measurements,
+    weighted_residuals,
+    weighted_rows,
+)
 from kpi_calib_ros.core.prior import Prior
 
 # Prior rows over the full parameter vector: L (n_rows, n_p) and L m (n_rows,).

@@ -39,8 +39,10 @@ import numpy as np
 
 from kpi_calib_ros.core.kinematics import SymbolicChain, reflector_point
 from kpi_calib_ros.core.parameters import ParameterSet
-from kpi_calib_ros.core.pose_measurement import (measured_rotation_input,
-                                                 rotation_residual_expression)
+from kpi_calib_ros.core.pose_measurement import (
+    measured_rotation_input,
+    rotation_residual_expression,
+)
 from kpi_calib_ros.core.robot import RobotModel
 
 

@@ -26,10 +26,14 @@ import numpy as np
 import scipy.stats
 
 from kpi_calib_ros.core.estimation import CalibrationResult
-from kpi_calib_ros.core.prior import Prior
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
-from kpi_calib_ros.core.residuals import (ADEQUACY_ALPHA, LEAVE_ONE_OUT, cross_validated_rms,
-                                         is_adequate)
+from kpi_calib_ros.core.prior import Prior
+from kpi_calib_ros.core.residuals import (
+    ADEQUACY_ALPHA,
+    LEAVE_ONE_OUT,
+    cross_validated_rms,
+    is_adequate,
+)
 
 
 def noise_scale(result: CalibrationResult, alpha: float = ADEQUACY_ALPHA) -> float:

@@ -17,8 +17,13 @@ import numpy as np
 import scipy.stats
 
 from kpi_calib_ros.core.estimation import CalibrationResult, weights
-from kpi_calib_ros.core.measurement import (MeasurementModel, Measurements, unweighted,
-                                            weighted_residuals, weighted_rows)
+from kpi_calib_ros.core.measurement import (
+    MeasurementModel,
+    Measurements,
+    unweighted,
+    weighted_residuals,
+    weighted_rows,
+)
 from kpi_calib_ros.core.robust import SIGMA_RATIO_WARNING, robust_sigma, sigma_warning
 
 PERCENTILES = (50, 90, 95, 99)

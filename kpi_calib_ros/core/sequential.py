@@ -65,8 +65,12 @@ from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.estimability import result_estimability
 from kpi_calib_ros.core.estimation import CalibrationResult, identify
 from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.robust import (ExcludedMeasurement, OutlierSettings, RobustResult,
-                                       robust_identify)
+from kpi_calib_ros.core.robust import (
+    ExcludedMeasurement,
+    OutlierSettings,
+    RobustResult,
+    robust_identify,
+)
 
 TARGET_MET = 'target met'
 # Look-ahead of the plan (poses): the next-pose step must stay below 1 s on two cores.

@@ -18,6 +18,7 @@ import numpy as np
 
 from kpi_calib_ros.core.pose_measurement import rotation_from_quaternion
 
+
 def frozen_array(values, shape: tuple[int, ...], name: str) -> np.ndarray:
     """``values`` as a read-only float array of ``shape``; ValueError naming ``name``."""
     array = np.array(values, dtype=float)
