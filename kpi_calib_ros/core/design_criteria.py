@@ -81,6 +81,7 @@ class DesignProblem:
 
     @property
     def k(self) -> int:
+        """Number k of identified (designed-for) parameters."""
         return len(self.index)
 
     def rows(self, model: MeasurementModel, q: np.ndarray) -> np.ndarray:

@@ -190,6 +190,7 @@ class EffectType:
         return joint_kind is None or self.joint_kinds is None or joint_kind in self.joint_kinds
 
     def units_for(self, joint_kind: str | None) -> tuple[str, ...]:
+        """Units of the parameters on a joint of this kind (rad -> m, N m -> N if prismatic)."""
         if joint_kind != 'prismatic':
             return self.units
         if self.prismatic_units is not None:
@@ -225,6 +226,7 @@ class BoundEffect:
 
     @property
     def typical(self) -> tuple[float, ...]:
+        """Typical magnitude of each parameter (its units), 1 where the kind states none."""
         return self.kind.typical or (1.0,) * len(self.kind.parameters)
 
     @property
@@ -250,9 +252,11 @@ class BoundEffect:
         return None if fn is None else fn(point, theta)
 
     def hint(self) -> str:
+        """What would make this effect distinguishable, with the joint named."""
         return self.kind.hint.replace('{joint}', self.joint or 'the joint')
 
     def signature(self) -> str:
+        """What the fitted correction follows, with the joint named."""
         return self.kind.signature.replace('{joint}', self.joint or 'the joint')
 
 

@@ -80,6 +80,8 @@ class MassFreeCompliance(BoundEffect):
     basis: ca.Function | None = field(default=None, compare=False)
 
     def joint_correction(self, q, tau, theta):
+        """Joint-value correction SX (n,): ``θ · ψ(q)`` (rad or m) on this effect's joint,
+        0 elsewhere."""
         assert self.basis is not None and self.joint_index is not None  # set by the binder
         out = ca.SX.zeros(self.n_joints)
         out[self.joint_index] = ca.dot(self.basis(q), theta)

@@ -16,16 +16,19 @@ from kpi_calib_ros.core.robot import RobotModel
 
 
 def rot_x(a):
+    """Rotation matrix SX (3, 3) about x by ``a`` (rad)."""
     c, s = ca.cos(a), ca.sin(a)
     return ca.vertcat(ca.horzcat(1, 0, 0), ca.horzcat(0, c, -s), ca.horzcat(0, s, c))
 
 
 def rot_y(a):
+    """Rotation matrix SX (3, 3) about y by ``a`` (rad)."""
     c, s = ca.cos(a), ca.sin(a)
     return ca.vertcat(ca.horzcat(c, 0, s), ca.horzcat(0, 1, 0), ca.horzcat(-s, 0, c))
 
 
 def rot_z(a):
+    """Rotation matrix SX (3, 3) about z by ``a`` (rad)."""
     c, s = ca.cos(a), ca.sin(a)
     return ca.vertcat(ca.horzcat(c, -s, 0), ca.horzcat(s, c, 0), ca.horzcat(0, 0, 1))
 

@@ -145,6 +145,10 @@ def sigma_overstated_text(chi2: float, dof: int, lower_p: float,
 
 def linearized_fit(model: MeasurementModel, data: Measurements, result: CalibrationResult,
             tau: np.ndarray | None = None) -> LinearizedFit:
+    """The calibration ``result`` linearized at p̂ over ``data`` (N poses).
+
+    Residuals and Jacobian rows are whitened as in the fit; ``tau`` (N, n) are the
+    gravity torques (computed from the model when it needs them and None is given)."""
     w = weights(result.sigma)
     q = np.atleast_2d(data.q)
     if tau is None and model.uses_torque:
@@ -161,6 +165,10 @@ def linearized_fit(model: MeasurementModel, data: Measurements, result: Calibrat
 
 
 def orthonormal_basis(a: np.ndarray) -> np.ndarray:
+    """Orthonormal basis (m, r) of the column span of ``a`` (m, k), zero columns dropped.
+
+    Columns are normalized first, so r is the numerical rank at 1e-9 of the largest
+    singular value whatever the columns' units."""
     norms = np.linalg.norm(a, axis=0)
     a = a[:, norms > 0] / norms[norms > 0]
     u, s, _ = np.linalg.svd(a, full_matrices=False)

@@ -197,6 +197,7 @@ class CampaignStatus:
 
     @property
     def stopped(self) -> bool:
+        """Whether the campaign has a stop reason."""
         return bool(self.stop_reason)
 
     def to_dict(self, working_pose_names: Sequence[str]) -> dict:
@@ -248,6 +249,7 @@ class SimulatedRun:
 
     @property
     def final(self) -> CampaignStatus:
+        """The last status of the campaign."""
         return self.history[-1]
 
 
