@@ -19,9 +19,19 @@ every selected configuration until none improves.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Protocol, Sequence
 
 import numpy as np
+
+
+class Loss(Protocol):
+    """A design criterion as the exchange algorithm uses it (smaller is better)."""
+
+    def value(self, info: np.ndarray) -> float:
+        """Loss of the information matrix ``info`` (k, k); inf when singular."""
+
+    def delta(self, info_inv: np.ndarray, rows: np.ndarray, sign: float) -> np.ndarray:
+        """Change of the loss (c,) when each of ``rows`` (c, 3, k) is added (+1) or removed (-1)."""
 
 
 class TraceLoss:
@@ -105,7 +115,7 @@ def information(rows: np.ndarray) -> np.ndarray:
     return flat.T @ flat
 
 
-def exchange(rows: np.ndarray, n: int, loss, rng: np.random.Generator,
+def exchange(rows: np.ndarray, n: int, loss: Loss, rng: np.random.Generator,
              n_init: int | None = None, max_sweeps: int = 20,
              progress: Callable[[str], None] | None = None,
              base: np.ndarray | None = None) -> ExchangeResult:
@@ -136,7 +146,7 @@ def exchange(rows: np.ndarray, n: int, loss, rng: np.random.Generator,
         raise ValueError(f'n = {n} exceeds the {c} candidates')
     prior_info = np.zeros((k, k)) if base is None else np.asarray(base, float)
 
-    def information_of(chosen) -> np.ndarray:
+    def information_of(chosen: Sequence[int] | np.ndarray) -> np.ndarray:
         return information(rows[chosen]) + prior_info
 
     if base is None and 3 * n < k:

@@ -12,6 +12,7 @@ with folds that keep every identified parameter determined.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Iterator
 
 import numpy as np
 import scipy.stats
@@ -232,7 +233,8 @@ RANK_TOLERANCE = 1e-9
 LEAVE_ONE_OUT = 0  # ``folds`` value: every pose its own fold (exact, the default)
 
 
-def _fold_blocks(a: np.ndarray, pose_folds: np.ndarray, u: np.ndarray | None = None):
+def _fold_blocks(a: np.ndarray, pose_folds: np.ndarray, u: np.ndarray | None = None
+                 ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """(rows, I − H_FF) of each fold F, H = U Uᵀ the hat matrix of span(a)."""
     u = orthonormal_basis(a) if u is None else u
     rows = np.repeat(pose_folds, 3)
