@@ -335,12 +335,11 @@ def test_design_command_writes_yaml_and_plots(tmp_path):
     assert (tmp_path / 'design_ellipsoids.png').stat().st_size > 10_000
 
 
-def test_exchange_at_the_smallest_size_completes_when_a_removal_is_singular():
+def test_exchange_at_the_smallest_size_completes_when_a_removal_is_singular(cm):
     """9 poses for 25 parameters: without one pose 24 equations remain, and round-off let
     the loss of that singular information look finite (the inverse then raised); the
     removal is skipped, the design is nonsingular and its loss finite."""
     from kpi_calib_ros.app.campaign import campaign_context
-    cm = build_cell_model(load_cell(DEFAULT_CELL))
     cell, ctx = campaign_context(cm, 0)
     rows = ctx.problem.rows(cell.model, ctx.candidates.configurations)
     n = int(np.ceil(ctx.problem.k / 3))

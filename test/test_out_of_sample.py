@@ -23,16 +23,11 @@ from kpi_calib_ros.core.simulation import (
     simulate_measurements,
     true_parameters,
 )
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 from kpi_calib_ros.io.report import diagnosis_to_dict
 
 SPAN = 0.6       # each joint swept over 60 % of its range around the home pose
 FRESH = 1200
 
-
-@pytest.fixture(scope='module')
-def cm():
-    return build_cell_model(load_cell(DEFAULT_CELL))
 
 
 def circle(cm, rng, per_joint=8):

@@ -21,14 +21,9 @@ from kpi_calib_ros.core.simulation import (
     simulate_measurements,
     true_parameters,
 )
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 
 SIGMA = 20e-6
 
-
-@pytest.fixture(scope='module')
-def cm():
-    return build_cell_model(load_cell(DEFAULT_CELL))
 
 
 def test_no_cyclic_error_on_a_prismatic_joint(odd_arm_urdf):

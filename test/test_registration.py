@@ -11,14 +11,9 @@ from kpi_calib_ros.core.simulation import (
     simulate_measurements,
     true_parameters,
 )
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 
 SIGMA = 10e-6  # tracker noise per axis (m)
 
-
-@pytest.fixture(scope='module')
-def cm():
-    return build_cell_model(load_cell(DEFAULT_CELL))
 
 
 @pytest.fixture(scope='module')
