@@ -63,7 +63,6 @@ def test_whitening_gives_the_identity_covariance(stated, cell):
                                weighted_rows(r[:, :, None], w)[:, 0])
 
 
-@pytest.mark.slow  # 11 s: Monte Carlo over seeds
 def test_chi2_p_values_are_uniform_with_the_joint_noise_stated(exact, stated, cell):
     """100 campaigns with 0.03° joint noise: stated, χ²'s p-values are uniform (KS); unstated,
     χ² rejects every one (the joint noise moves the points by ~0.5 mm, σ is 20 µm)."""
