@@ -24,7 +24,8 @@ from typing import Sequence
 
 import casadi as ca
 import numpy as np
-from numpy.typing import ArrayLike
+
+from kpi_calib_ros.core.kinematics import Expr
 
 # Below this sin²θ the logarithm uses its series: θ/sin θ = 1 + sin²θ/6 + O(θ⁴), with an
 # error below 1e-16 there, and neither branch divides by zero (both are evaluated).
@@ -53,8 +54,7 @@ def measured_rotation_input(rotations: np.ndarray) -> np.ndarray:
     return r.transpose(0, 2, 1).reshape(-1, 9)
 
 
-def rotation_residual_expression(measured9: ca.SX, predicted: ca.SX, scale: ArrayLike
-                                 ) -> ca.SX:
+def rotation_residual_expression(measured9: Expr, predicted: Expr, scale: Expr) -> ca.SX:
     """Rotation row prediction ``log3(R_mᵀ R(p, q)) ⊙ scale`` (3,): with ``eta = 0`` the
     residual ``eta - h`` is ``log3(R(p, q)ᵀ R_m) ⊙ scale``, the measured rotation relative
     to the predicted one in the body frame (scale: σ/σ_rot per axis, m/rad)."""

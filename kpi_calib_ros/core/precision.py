@@ -128,6 +128,8 @@ class ExpectedTcpError:
 
     @property
     def basis(self) -> str:
+        """What the expected TCP error rests on: the parameter part alone, or with the
+        systematic misfit (and its figures in µm), or unknown."""
         if self.adequate:
             return ('model adequate (chi2 accepts it): the expected TCP error is the '
                     'parameter part tcp_std_m alone')
@@ -140,6 +142,7 @@ class ExpectedTcpError:
                 f'{self.noise_floor_m * 1e6:.1f} um); tcp_std_m is the parameter part only')
 
     def to_dict(self) -> dict:
+        """YAML-ready form (m); a figure that is not finite is None."""
         def metres(v: float) -> float | None:
             return float(v) if np.isfinite(v) else None
         return {'tcp_std_m': {n: metres(v) for n, v in zip(self.working_pose_names,
