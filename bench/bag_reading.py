@@ -25,8 +25,9 @@ import tempfile
 import time
 from pathlib import Path
 
-import kpi_calib_ros  # noqa: F401  (sets single-threaded BLAS before numpy loads)
 import numpy as np
+
+import kpi_calib_ros  # noqa: F401  (sets single-threaded BLAS before numpy loads)
 
 NAMES = tuple(f'joint_{i}' for i in range(1, 7))
 FRAME = 'laser_tracker'

@@ -26,8 +26,11 @@ from kpi_calib_ros.core.diagnosis import diagnose
 from kpi_calib_ros.core.effects import available_effects
 from kpi_calib_ros.core.estimation import identify
 from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
-                                          true_parameters)
+from kpi_calib_ros.core.simulation import (
+    random_configurations,
+    simulate_measurements,
+    true_parameters,
+)
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict
 
 SIGMA = 20e-6

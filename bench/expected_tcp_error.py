@@ -26,8 +26,11 @@ from kpi_calib_ros.core.diagnosis import augmented_model
 from kpi_calib_ros.core.effects import parse_effect_spec
 from kpi_calib_ros.core.estimation import identify
 from kpi_calib_ros.core.precision import expected_tcp_error, honest_precision
-from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
-                                          true_parameters)
+from kpi_calib_ros.core.simulation import (
+    random_configurations,
+    simulate_measurements,
+    true_parameters,
+)
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 
 # Hidden effects and the size range their value is drawn from (uniform, random sign):

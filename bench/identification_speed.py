@@ -10,12 +10,15 @@ import sys
 import time
 from pathlib import Path
 
-import kpi_calib_ros  # noqa: F401  (sets single-threaded BLAS before numpy loads)
 import numpy as np
 
+import kpi_calib_ros  # noqa: F401  (sets single-threaded BLAS before numpy loads)
 from kpi_calib_ros.core.estimation import identify
-from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
-                                          true_parameters)
+from kpi_calib_ros.core.simulation import (
+    random_configurations,
+    simulate_measurements,
+    true_parameters,
+)
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 
 SIGMA = 20e-6

@@ -25,8 +25,11 @@ import scipy.stats
 from kpi_calib_ros.core.diagnosis import diagnose, equivalent_joint_sigma
 from kpi_calib_ros.core.estimation import identify
 from kpi_calib_ros.core.precision import honest_precision
-from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
-                                          true_parameters)
+from kpi_calib_ros.core.simulation import (
+    random_configurations,
+    simulate_measurements,
+    true_parameters,
+)
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 
 JOINT_SIGMA = float(np.deg2rad(0.03))

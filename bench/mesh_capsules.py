@@ -20,8 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from kpi_calib_ros.core.capsule_fit import capsules_from_urdf, collision_vertices
-from kpi_calib_ros.core.capsule_geometry import (capsule_volume, convex_hull_volume,
-                                                 outside_distance)
+from kpi_calib_ros.core.capsule_geometry import capsule_volume, convex_hull_volume, outside_distance
 from kpi_calib_ros.core.collision_check import mesh_collisions
 from kpi_calib_ros.core.collision_matrix import classify_link_pairs
 from kpi_calib_ros.core.robot import RobotModel

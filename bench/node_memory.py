@@ -19,17 +19,16 @@ import sys
 import time
 from pathlib import Path
 
-import kpi_calib_ros  # noqa: F401  (single-threaded BLAS before numpy loads)
-
 from rclpy.duration import Duration
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Header
 
-from _live_node import LiveNode
-
+import kpi_calib_ros  # noqa: F401  (single-threaded BLAS before numpy loads)
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 from kpi_calib_ros.ros import conversions as cv
+
+from _live_node import LiveNode
 
 OUT = Path(__file__).resolve().parent / 'results' / 'node_memory.md'
 CHAIN = build_cell_model(load_cell(DEFAULT_CELL)).joint_names

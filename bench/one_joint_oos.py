@@ -34,8 +34,11 @@ from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.model_selection import cross_validated_level_rms
 from kpi_calib_ros.core.out_of_sample import DOMAINS, domain_configurations, out_of_sample_error
 from kpi_calib_ros.core.residuals import cross_validated_rms
-from kpi_calib_ros.core.simulation import (one_joint_at_a_time, random_configurations,
-                                          true_parameters)
+from kpi_calib_ros.core.simulation import (
+    one_joint_at_a_time,
+    random_configurations,
+    true_parameters,
+)
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 
 SIGMA = 20e-6

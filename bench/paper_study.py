@@ -44,8 +44,13 @@ import numpy as np
 from kpi_calib_ros.core.design import DesignSettings, design_context, design_measurements
 from kpi_calib_ros.core.estimation import identify
 from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.robot_library import (industrial_6r_urdf, kr15_class, kr300_class,
-                                             kr500_class, notional_manipulators)
+from kpi_calib_ros.core.robot_library import (
+    industrial_6r_urdf,
+    kr15_class,
+    kr300_class,
+    kr500_class,
+    notional_manipulators,
+)
 from kpi_calib_ros.core.simulation import true_parameters
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict
 

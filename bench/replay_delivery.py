@@ -22,12 +22,11 @@ import time
 from pathlib import Path
 
 import kpi_calib_ros  # noqa: F401  (single-threaded BLAS before numpy loads)
-
-from _live_node import BIN, LiveNode
-
+from kpi_calib_ros.app.simulate import simulate_campaign
 from kpi_calib_ros.io.bag import read_bag
 from kpi_calib_ros.io.cell import DEFAULT_CELL
-from kpi_calib_ros.app.simulate import simulate_campaign
+
+from _live_node import BIN, LiveNode
 
 OUT = Path(__file__).resolve().parent / 'results' / 'replay_delivery.md'
 

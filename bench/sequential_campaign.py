@@ -52,8 +52,12 @@ from pathlib import Path
 import numpy as np
 import scipy.stats
 
-from kpi_calib_ros.app.campaign import (campaign_context, campaign_free, new_campaign,
-                                        simulate_sequential)
+from kpi_calib_ros.app.campaign import (
+    campaign_context,
+    campaign_free,
+    new_campaign,
+    simulate_sequential,
+)
 from kpi_calib_ros.core.design_exchange import exchange, information
 from kpi_calib_ros.core.effects import hidden_effects
 from kpi_calib_ros.core.identifiability import select_identifiable

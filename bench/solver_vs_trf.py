@@ -24,12 +24,20 @@ from pathlib import Path
 import numpy as np
 import scipy.optimize
 
-from kpi_calib_ros.core.estimation import (DEFAULT_MAX_ITERATIONS, MAX_START_ERROR,
-                                           CalibrationResult, identify, weights)
-from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
-from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
-                                          true_parameters)
 from kpi_calib_ros.app.identify import registered_start
+from kpi_calib_ros.core.estimation import (
+    DEFAULT_MAX_ITERATIONS,
+    MAX_START_ERROR,
+    CalibrationResult,
+    identify,
+    weights,
+)
+from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
+from kpi_calib_ros.core.simulation import (
+    random_configurations,
+    simulate_measurements,
+    true_parameters,
+)
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict, load_cell
 
 SIGMA = 20e-6

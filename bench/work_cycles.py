@@ -36,17 +36,18 @@ from pathlib import Path
 
 import numpy as np
 
-from kpi_calib_ros.app.identify import (add_robust_sections, calibrate_cell,
-                                        calibration_document)
-from kpi_calib_ros.app.reidentify import (cycle_prior, reidentification_document,
-                                          reidentify)
+from kpi_calib_ros.app.identify import add_robust_sections, calibrate_cell, calibration_document
+from kpi_calib_ros.app.reidentify import cycle_prior, reidentification_document, reidentify
 from kpi_calib_ros.core.design import design_context, design_measurements
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.model_selection import level_free
 from kpi_calib_ros.core.prior import DriftSwing
-from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
-                                          true_parameters)
+from kpi_calib_ros.core.simulation import (
+    random_configurations,
+    simulate_measurements,
+    true_parameters,
+)
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 
 CYCLES = 20

@@ -13,8 +13,11 @@ import numpy as np
 
 from kpi_calib_ros.app.diagnose import diagnose_cell
 from kpi_calib_ros.core.effects import parse_effect_spec
-from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
-                                          true_parameters)
+from kpi_calib_ros.core.simulation import (
+    random_configurations,
+    simulate_measurements,
+    true_parameters,
+)
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 
 HIDDEN = 'joint_compliance:joint_2'

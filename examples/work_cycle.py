@@ -12,8 +12,11 @@ import numpy as np
 
 from kpi_calib_ros.app.identify import calibration_document, identify_cell
 from kpi_calib_ros.app.reidentify import cycle_prior, reidentify
-from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
-                                          true_parameters)
+from kpi_calib_ros.core.simulation import (
+    random_configurations,
+    simulate_measurements,
+    true_parameters,
+)
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 
 BENT = 'joint_2.placement.tx'

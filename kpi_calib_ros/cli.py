@@ -14,11 +14,15 @@ from pathlib import Path
 
 from kpi_calib_ros.core.errors import DataError, KpiCalibError
 from kpi_calib_ros.core.estimation import DEFAULT_MAX_ITERATIONS
-from kpi_calib_ros.core.prior import (DAY_HOURS, DriftSwing, DRIFT_ANGLE_PER_SQRT_HOUR,
-                                      DRIFT_LENGTH_PER_SQRT_HOUR, OFFSET_SWING_RAD,
-                                      TEMPERATURE_SWING_K)
+from kpi_calib_ros.core.prior import (
+    DAY_HOURS,
+    DRIFT_ANGLE_PER_SQRT_HOUR,
+    DRIFT_LENGTH_PER_SQRT_HOUR,
+    OFFSET_SWING_RAD,
+    TEMPERATURE_SWING_K,
+    DriftSwing,
+)
 from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, DEFAULT_POSE_TOPIC
-
 
 CODE_EFFECTS_HELP = ("let the cell file's effects: name Python code ('file.py:Type:joint', "
                      "'module:Type:joint') and run it; without it only built-in and installed "

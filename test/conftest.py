@@ -2,8 +2,9 @@
 domain every ROS test runs on."""
 from __future__ import annotations
 
-import kpi_calib_ros  # noqa: F401  (single-threaded BLAS before any test imports numpy)
 import pytest
+
+import kpi_calib_ros  # noqa: F401  (single-threaded BLAS before any test imports numpy)
 
 ODD_ARM_URDF = """<?xml version="1.0"?>
 <robot name="odd_arm">
@@ -53,11 +54,18 @@ ODD_ARM_URDF = """<?xml version="1.0"?>
 """
 
 
-@pytest.fixture(scope='module')
-def cell():
-    """The built-in simulated cell's model (KR15-class), one per test module."""
+@pytest.fixture(scope='session')
+def cm():
+    """The built-in simulated cell's model (KR15-class), built once for the whole run and
+    shared: a frozen CellModel that no test changes (a variant is a new model)."""
     from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
     return build_cell_model(load_cell(DEFAULT_CELL))
+
+
+@pytest.fixture(scope='session')
+def cell(cm):
+    """The same shared model under the name the ROS and joint-noise tests use."""
+    return cm
 
 
 @pytest.fixture

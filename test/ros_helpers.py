@@ -208,11 +208,16 @@ class Spawner:
         return self.started[-1]
 
     def kill_all(self) -> None:
+        """Kill what still runs and close every log and pipe (unclosed: a ResourceWarning)."""
         for item in self.started:
             process = item.process if isinstance(item, NodeProcess) else item
             if process.poll() is None:
                 process.kill()
                 process.wait()
+            if isinstance(item, NodeProcess):
+                item._out.close()
+            elif process.stdout is not None:
+                process.stdout.close()
 
 
 def finish(replay: subprocess.Popen, client: Client, timeout: float = 60.0) -> str:

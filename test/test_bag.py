@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import errno
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -16,9 +17,8 @@ from mcap.reader import make_reader
 from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
 
-from kpi_calib_ros.core.streams import JointSample, PointSample, synthesize_streams
-
 from kpi_calib_ros.core.pairing import pair_measurements
+from kpi_calib_ros.core.streams import JointSample, PointSample, synthesize_streams
 from kpi_calib_ros.io.bag import BagError, BagWarning, read_bag, read_for_pairing, write_bag
 from kpi_calib_ros.io.measurement_log import MeasurementLog
 
@@ -89,8 +89,8 @@ def section(type_name: str) -> str:
 
 
 def test_bag_is_what_ros2_bag_record_writes(tmp_path):
-    from rclpy.serialization import deserialize_message
     from geometry_msgs.msg import PointStamped
+    from rclpy.serialization import deserialize_message
     from sensor_msgs.msg import JointState
 
     _, _, joints, points = make_streams()
@@ -168,7 +168,28 @@ def test_errors_name_the_file_topic_and_fix(tmp_path):
     assert isinstance(error.value, ValueError)
 
 
+def read_warned(read, path):
+    """``read(path)`` and the messages of the warnings it gave, each a BagWarning."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter('always')
+        result = read(path)
+    assert all(issubclass(w.category, BagWarning) for w in caught), caught
+    return result, [str(w.message) for w in caught]
+
+
+def unreadable_tail(messages: list[str], path: Path, size: int) -> int:
+    """Bytes a single warning about ``path`` (``size`` bytes) says are unreadable."""
+    assert len(messages) == 1, messages
+    match = re.fullmatch(rf'{re.escape(str(path))}: (\d+) of {size} bytes unreadable .*',
+                         messages[0])
+    assert match, messages
+    return int(match.group(1))
+
+
 def test_unfinalised_bag_yields_every_complete_message(tmp_path):
+    """A bag cut anywhere yields the beginning of the recording; a cut at a chunk end
+    reads silently, any other cut warns once and names exactly the torn tail: the file
+    without those bytes reads the same, silently."""
     _, _, joints, points = make_streams()
     path = write_bag(tmp_path / 'cell.mcap', joints, points, chunk_size=4096)
     data = path.read_bytes()
@@ -179,14 +200,21 @@ def test_unfinalised_bag_yields_every_complete_message(tmp_path):
     torn = tmp_path / 'torn.mcap'
     counts = []
     first = summary.chunk_indexes[0]
-    for cut in list(range(first.chunk_start_offset + first.chunk_length, data_end, 997)) + [
-            data_end]:
+    chunk_ends = {c.chunk_start_offset + c.chunk_length for c in summary.chunk_indexes}
+    cuts = list(range(first.chunk_start_offset + first.chunk_length, data_end, 997))
+    for cut in cuts + [data_end]:
         torn.write_bytes(data[:cut])
-        read_joints, read_points = read_bag(torn)
+        (read_joints, read_points), warned = read_warned(read_bag, torn)
         # Whatever survives is exactly the beginning of the recording.
         assert_same_joints(read_joints, joints[:len(read_joints)])
         assert_same_points(read_points, points[:len(read_points)])
         counts.append(len(read_joints) + len(read_points))
+        if cut in chunk_ends:
+            assert warned == [], (cut, warned)
+            continue
+        torn.write_bytes(data[:cut - unreadable_tail(warned, torn, cut)])
+        (clean_joints, clean_points), again = read_warned(read_bag, torn)
+        assert again == [] and len(clean_joints) + len(clean_points) == counts[-1], cut
     assert counts == sorted(counts) and counts[0] > 0
     assert counts[-1] == len(joints) + len(points)
 
@@ -233,13 +261,20 @@ def test_measurement_log_torn_anywhere_loses_only_the_torn_append(tmp_path):
     data = log.path.read_bytes()
     torn_dir = tmp_path / 'torn'
     torn_dir.mkdir()
-    counts = []
-    for cut in range(0, len(data) + 1, 3):
-        (torn_dir / 'measurements_1.mcap').write_bytes(data[:cut])
-        loaded = MeasurementLog.load_all(torn_dir)
+    torn = torn_dir / 'measurements_1.mcap'
+    counts, silent = [], []
+    for cut in [*range(0, len(data), 3), len(data)]:
+        torn.write_bytes(data[:cut])
+        loaded, warned = read_warned(MeasurementLog.load_all, torn_dir)
         assert_measurements(loaded, range(len(loaded)))
         counts.append(len(loaded))
+        # Every loss is reported, naming the torn file.
+        assert all(m.startswith(f'{torn}: ') for m in warned), warned
+        if not warned:
+            silent.append(cut)
     assert counts == sorted(counts) and counts[-1] == 3
+    # Only a cut at a record boundary (or inside the magic) loses nothing unreported.
+    assert len(data) in silent and len(silent) < 20, silent
 
 
 KILLED_WRITER = r'''
@@ -353,10 +388,13 @@ def test_disk_full_acknowledged_is_exactly_what_is_on_disk(tmp_path, monkeypatch
             warnings.simplefilter('error')
             loaded = MeasurementLog.load_all(tmp_path)
     assert_measurements(loaded, acknowledged)
-    # The next run (a restart) appends after all of it.
+    # The next run (a restart) appends after all of it; a torn append stays reported.
     with MeasurementLog(tmp_path) as again:
         again.append(*measurement(50))
-    assert_measurements(MeasurementLog.load_all(tmp_path), acknowledged + [50])
+    loaded, warned = read_warned(MeasurementLog.load_all, tmp_path)
+    assert_measurements(loaded, acknowledged + [50])
+    assert len(warned) == truncate_fails and all(
+        m.startswith(f'{log.path}: ') and 'bytes unreadable' in m for m in warned), warned
 
 
 def test_disk_full_at_close_leaves_a_readable_log(tmp_path, monkeypatch):

@@ -12,12 +12,14 @@ import yaml
 
 from kpi_calib_ros.app.identify import calibration_document, identify_cell, measurements_from_bag
 from kpi_calib_ros.cli import main
-from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
-                                           true_parameters)
+from kpi_calib_ros.core.simulation import (
+    random_configurations,
+    simulate_measurements,
+    true_parameters,
+)
 from kpi_calib_ros.core.streams import synthesize_streams
 from kpi_calib_ros.io.bag_writing import write_bag
-from kpi_calib_ros.io.calibration_file import (load_yaml_bounded,
-                                               read_calibration_document)
+from kpi_calib_ros.io.calibration_file import load_yaml_bounded, read_calibration_document
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 from kpi_calib_ros.io.results import write_calibration
 from kpi_calib_ros.io.yaml_bounded import MAX_DOCUMENT_NODES
@@ -188,12 +190,11 @@ def test_out_at_the_file_system_root_is_refused_before_computing(made, monkeypat
         assert code == 2 and '--out' in err and 'root of a file system' in err, err
 
 
-def test_a_prior_dated_after_the_data_or_years_before_warns_naming_the_clocks(made):
+def test_a_prior_dated_after_the_data_or_years_before_warns_naming_the_clocks(made, cm):
     """Δt = −2 h (the prior after the data) and 55 554 h: each a warning that names the
     clocks; the prior is widened by |Δt| all the same (never narrowed)."""
     from kpi_calib_ros.app.reidentify import cycle_prior
     tmp, doc, new = made
-    cm = build_cell_model(load_cell(DEFAULT_CELL))
     data, _ = measurements_from_bag(cm, new)
     first = int(np.min(data.stamps_ns))
     honest = cycle_prior(cm, doc, data)
@@ -229,14 +230,13 @@ def test_an_overstated_sigma_is_a_verdict_beside_the_adequacy(made, capsys):
     assert 'noise.sigma' in summary_text(over)
 
 
-def test_excluded_points_read_the_same_number_in_the_log_and_the_file(made):
+def test_excluded_points_read_the_same_number_in_the_log_and_the_file(made, cm):
     """A point moved 2 mm: the summary (and the node's log, the same text) states the
     distance_sigma that calibration.yaml stores, and the reason adds no other figure."""
     import re
 
     from kpi_calib_ros.app.identify import add_robust_sections, calibrate_cell, robust_summary
     tmp, _, _ = made
-    cm = build_cell_model(load_cell(DEFAULT_CELL))
     data, pairing = measurements_from_bag(cm, tmp / 'train.mcap')
     eta = np.array(data.eta)
     eta[7] += [2e-3, 0.0, 0.0]

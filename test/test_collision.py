@@ -8,8 +8,14 @@ import pinocchio as pin
 import pytest
 
 from kpi_calib_ros.core.capsule_fit import capsules_from_urdf
-from kpi_calib_ros.core.collision import (Capsule, CollisionScene, HalfSpace, capsule_margin,
-                                          halfspace_margin, segment_distance)
+from kpi_calib_ros.core.collision import (
+    Capsule,
+    CollisionScene,
+    HalfSpace,
+    capsule_margin,
+    halfspace_margin,
+    segment_distance,
+)
 from kpi_calib_ros.core.collision_check import _coal_capsule, verify_configuration
 from kpi_calib_ros.core.errors import ConfigError
 

@@ -7,12 +7,21 @@ import pytest
 
 from kpi_calib_ros.app.identify import identify_cell
 from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.residuals import (cross_validated_rms, cv_rms, fold_ids,
-                                          folds_keep_rank, identifiable_folds, linearized_fit,
-                                          moved_joints, stratified_fold_ids)
-from kpi_calib_ros.core.simulation import (one_joint_at_a_time, simulate_measurements,
-                                          true_parameters)
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.core.residuals import (
+    cross_validated_rms,
+    cv_rms,
+    fold_ids,
+    folds_keep_rank,
+    identifiable_folds,
+    linearized_fit,
+    moved_joints,
+    stratified_fold_ids,
+)
+from kpi_calib_ros.core.simulation import (
+    one_joint_at_a_time,
+    simulate_measurements,
+    true_parameters,
+)
 
 POSES_PER_JOINT = 5
 
@@ -71,8 +80,7 @@ def test_held_out_residuals_equal_refits():
     assert cv_rms(a, r, w, folds) == pytest.approx(expect, rel=1e-10)
 
 
-def test_moved_joints_and_stratified_folds():
-    cm = build_cell_model(load_cell(DEFAULT_CELL))
+def test_moved_joints_and_stratified_folds(cm):
     q = circle_point_poses(cm, np.random.default_rng(0))
     moved = moved_joints(q)
     np.testing.assert_array_equal(moved.sum(axis=1), 1)
@@ -83,8 +91,7 @@ def test_moved_joints_and_stratified_folds():
         np.testing.assert_array_equal(np.sort(ids[moved[:, j]]), np.arange(5))
 
 
-def test_a_fold_without_a_joint_is_refused():
-    cm = build_cell_model(load_cell(DEFAULT_CELL))
+def test_a_fold_without_a_joint_is_refused(cm):
     rng = np.random.default_rng(2)
     p_true = true_parameters(cm.model.params, rng)
     data = simulate_measurements(cm.model, p_true, circle_point_poses(cm, rng), cm.cell.sigma,
@@ -102,9 +109,8 @@ def test_a_fold_without_a_joint_is_refused():
 
 
 @pytest.mark.slow
-def test_out_of_sample_estimate_within_1_5x_over_20_seeds():
+def test_out_of_sample_estimate_within_1_5x_over_20_seeds(cm):
     """Eight poses per joint (a circle of eight points per axis)."""
-    cm = build_cell_model(load_cell(DEFAULT_CELL))
     runs = [one_campaign(cm, seed, per_joint=8) for seed in range(20)]
     for key in ('loo', 'kfold', 'before'):
         v = np.array([r[key] for r in runs])
@@ -115,11 +121,10 @@ def test_out_of_sample_estimate_within_1_5x_over_20_seeds():
     assert np.all(loo <= 1.5) and np.all(loo >= 1 / 1.5)
 
 
-def test_not_estimable_is_said_not_printed_as_a_number():
+def test_not_estimable_is_said_not_printed_as_a_number(cm):
     """Two poses per joint: the diagnosis text names the design instead of a figure."""
     from kpi_calib_ros.core.diagnosis import compare_models
     from kpi_calib_ros.io.report import NOT_ESTIMABLE, comparison_text
-    cm = build_cell_model(load_cell(DEFAULT_CELL))
     rng = np.random.default_rng(2)
     p_true = true_parameters(cm.model.params, rng)
     data = simulate_measurements(cm.model, p_true, circle_point_poses(cm, rng, 5)[::3],

@@ -10,20 +10,35 @@ import yaml
 from kpi_calib_ros.core.collision import CollisionScene
 from kpi_calib_ros.core.collision_matrix import SKIPPED_KINDS
 from kpi_calib_ros.core.covariance import kkt_covariance, kpi_jacobians, parameter_covariance
-from kpi_calib_ros.core.design import (DesignSettings, build_problem, design_context,
-                                       design_measurements, tcp_std_on_drawn_robots)
-from kpi_calib_ros.core.design_constraints import (feasibility_function, flag_pairs,
-                                                   verify_design)
-from kpi_calib_ros.core.design_exchange import (ConditionLoss, LogDetLoss, TraceLoss, exchange,
-                                                information)
+from kpi_calib_ros.core.design import (
+    DesignSettings,
+    build_problem,
+    design_context,
+    design_measurements,
+    tcp_std_on_drawn_robots,
+)
+from kpi_calib_ros.core.design_constraints import feasibility_function, flag_pairs, verify_design
+from kpi_calib_ros.core.design_exchange import (
+    ConditionLoss,
+    LogDetLoss,
+    TraceLoss,
+    exchange,
+    information,
+)
 from kpi_calib_ros.core.design_nlp import solve_design_nlp
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation import identify
 from kpi_calib_ros.core.measurement import Measurements, with_rotation_rows
 from kpi_calib_ros.core.pose_measurement import noisy_rotations
 from kpi_calib_ros.core.simulation import sampling_bounds, true_parameters
-from kpi_calib_ros.io.cell import (DEFAULT_CELL, build_cell_model, cell_from_dict,
-                                  design_settings, load_cell)
+from kpi_calib_ros.io.cell import (
+    DEFAULT_CELL,
+    build_cell_model,
+    cell_from_dict,
+    design_settings,
+    load_cell,
+)
+
 from cell_variants import KINDS, cell_document
 
 SMALL = DesignSettings(candidates=600, nlp=False)
@@ -320,12 +335,11 @@ def test_design_command_writes_yaml_and_plots(tmp_path):
     assert (tmp_path / 'design_ellipsoids.png').stat().st_size > 10_000
 
 
-def test_exchange_at_the_smallest_size_completes_when_a_removal_is_singular():
+def test_exchange_at_the_smallest_size_completes_when_a_removal_is_singular(cm):
     """9 poses for 25 parameters: without one pose 24 equations remain, and round-off let
     the loss of that singular information look finite (the inverse then raised); the
     removal is skipped, the design is nonsingular and its loss finite."""
     from kpi_calib_ros.app.campaign import campaign_context
-    cm = build_cell_model(load_cell(DEFAULT_CELL))
     cell, ctx = campaign_context(cm, 0)
     rows = ctx.problem.rows(cell.model, ctx.candidates.configurations)
     n = int(np.ceil(ctx.problem.k / 3))

@@ -4,12 +4,6 @@ import pytest
 
 from kpi_calib_ros.core.dh import describe, dh_table
 from kpi_calib_ros.core.robot_library import kr15_class
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
-
-
-@pytest.fixture(scope='module')
-def cm():
-    return build_cell_model(load_cell(DEFAULT_CELL))
 
 
 def test_nominal_kr15_dh_equals_data_sheet(cm):

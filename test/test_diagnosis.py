@@ -17,13 +17,21 @@ import numpy as np
 import pytest
 import yaml
 
-from kpi_calib_ros.core.diagnosis import (augmented_model, compare_models,
-                                          cross_validated_rms, diagnose, residual_report)
+from kpi_calib_ros.core.diagnosis import (
+    augmented_model,
+    compare_models,
+    cross_validated_rms,
+    diagnose,
+    residual_report,
+)
 from kpi_calib_ros.core.effects import hidden_effects, parse_effect_spec
 from kpi_calib_ros.core.estimation import identify
 from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
-                                          true_parameters)
+from kpi_calib_ros.core.simulation import (
+    random_configurations,
+    simulate_measurements,
+    true_parameters,
+)
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict
 
 SIGMA = 20e-6

@@ -10,19 +10,17 @@ from kpi_calib_ros.app.identify import calibrate_cell, identify_cell, with_effec
 from kpi_calib_ros.core.diagnosis import augmented_model, screen_effects
 from kpi_calib_ros.core.effects import available_effects, bind_effect, hidden_effects, implausible
 from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
-                                          true_parameters)
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.core.simulation import (
+    random_configurations,
+    simulate_measurements,
+    true_parameters,
+)
 
 SIGMA = 20e-6  # the default cell's tracker σ
 # Joint 3 of the KR15-class cell carries -130 ... +130 N m of gravity torque over random
 # poses: a play of 0.5 mrad crossed over ~30 N m shows both its size and its transition.
 PLAY = {'joint_play:joint_3': {'b': -5e-4, 'u': float(np.log(30.0))}}
 
-
-@pytest.fixture(scope='module')
-def cm():
-    return build_cell_model(load_cell(DEFAULT_CELL))
 
 
 def _campaign(cm, hidden, seed, n=60):
@@ -105,10 +103,9 @@ def test_screen_tells_a_sharp_backlash_from_a_play_and_a_compliance(cm):
             not play[0].significant and 'simpler' in play[0].explanation), spec
 
 
-def test_joint_play_bounds():
+def test_joint_play_bounds(cm):
     play = available_effects()['joint_play']
     assert play.n_shape == 1 and play.nests == ('joint_backlash', 'joint_compliance')
-    cm = build_cell_model(load_cell(DEFAULT_CELL))
     bound = bind_effect(play, cm.robot, 'joint_3')
     assert bound.units == ('rad', '1')
     assert implausible(bound, [0.03, 0.0]) == ''          # 30 mrad: a loose service-arm wrist

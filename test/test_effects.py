@@ -10,9 +10,16 @@ import pytest
 
 from kpi_calib_ros.core import effects as fx
 from kpi_calib_ros.core.diagnosis import augmented_model
-from kpi_calib_ros.core.effects import (EffectType, candidate_effects, hidden_effects,
-                                        implausible, parse_effect_spec, register_effect,
-                                        resolve_effects, split_specs)
+from kpi_calib_ros.core.effects import (
+    EffectType,
+    candidate_effects,
+    hidden_effects,
+    implausible,
+    parse_effect_spec,
+    register_effect,
+    resolve_effects,
+    split_specs,
+)
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.simulation import random_configurations, true_parameters
 

@@ -5,16 +5,32 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from kpi_calib_ros.core.covariance import (kkt_covariance, kpi_jacobians, nullspace_covariance,
-                                           propagated_kpi_covariance)
+from kpi_calib_ros.core.covariance import (
+    kkt_covariance,
+    kpi_jacobians,
+    nullspace_covariance,
+    propagated_kpi_covariance,
+)
 from kpi_calib_ros.core.errors import DataError
-from kpi_calib_ros.core.estimation import (FTOL, GTOL, LINE_SEARCH_FAILED, MAX_ITERATIONS,
-                                           PREDICTED_DECREASE, XTOL, Tolerances, identify,
-                                           weights)
+from kpi_calib_ros.core.estimation import (
+    FTOL,
+    GTOL,
+    LINE_SEARCH_FAILED,
+    MAX_ITERATIONS,
+    PREDICTED_DECREASE,
+    XTOL,
+    Tolerances,
+    identify,
+    weights,
+)
 from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.simulation import (equivalent_parameters, random_configurations,
-                                          sampling_bounds, simulate_measurements,
-                                          true_parameters)
+from kpi_calib_ros.core.simulation import (
+    equivalent_parameters,
+    random_configurations,
+    sampling_bounds,
+    simulate_measurements,
+    true_parameters,
+)
 from kpi_calib_ros.io.cell import build_cell_model
 
 SIGMA = 20e-6

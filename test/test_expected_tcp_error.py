@@ -14,19 +14,18 @@ from kpi_calib_ros.core.effects import parse_effect_spec
 from kpi_calib_ros.core.estimation import identify
 from kpi_calib_ros.core.precision import expected_tcp_error, honest_precision
 from kpi_calib_ros.core.residuals import cross_validated_rms
-from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
-                                          true_parameters)
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.core.simulation import (
+    random_configurations,
+    simulate_measurements,
+    true_parameters,
+)
+from kpi_calib_ros.io.cell import DEFAULT_CELL
 
 # Hidden effects of several kinds, each at a size χ² rejects with 40 poses.
 HIDDEN = (('joint_compliance:joint_2', 1.5e-6), ('cyclic_joint_error:joint_1', 3e-4),
           ('joint_scale:joint_2', 3e-4), ('joint_backlash:joint_2', 3e-4))
 EXTRA_WORK = 4
 
-
-@pytest.fixture(scope='module')
-def cm():
-    return build_cell_model(load_cell(DEFAULT_CELL))
 
 
 def hidden_run(cm, spec: str, value: float, seed: int):

@@ -12,11 +12,17 @@ import yaml
 
 from kpi_calib_ros.app.identify import identify_cell
 from kpi_calib_ros.app.simulate import truth_cell_model
-from kpi_calib_ros.core.gravity_compliance import (compliance_warnings, massless_links,
-                                                   torque_regressor)
+from kpi_calib_ros.core.gravity_compliance import (
+    compliance_warnings,
+    massless_links,
+    torque_regressor,
+)
 from kpi_calib_ros.core.robot import Payload, RobotModel
-from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
-                                          true_parameters)
+from kpi_calib_ros.core.simulation import (
+    random_configurations,
+    simulate_measurements,
+    true_parameters,
+)
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 
 SIGMA = 2.0e-5

@@ -14,8 +14,11 @@ from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation import identify
 from kpi_calib_ros.core.measurement import unweighted, weighted_residuals, weighted_rows
 from kpi_calib_ros.core.precision import honest_precision, precision_statement
-from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
-                                          true_parameters)
+from kpi_calib_ros.core.simulation import (
+    random_configurations,
+    simulate_measurements,
+    true_parameters,
+)
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 
 JOINT_SIGMA = np.deg2rad(0.03)   # a controller read-back (the real-data issue: 0.02-0.05°)
@@ -138,7 +141,7 @@ def test_no_joint_noise_keeps_every_figure(exact, cell):
     ({'joint_2': 0.2}, 'noise.joint_sigma.joint_2')])
 def test_bad_joint_sigma_names_the_key(tmp_path, value, key):
     import yaml
-    doc = yaml.safe_load(open(DEFAULT_CELL))
+    doc = yaml.safe_load(DEFAULT_CELL.read_text())
     doc['noise']['joint_sigma'] = value
     doc['robot']['urdf'] = str((DEFAULT_CELL.parent / doc['robot']['urdf']).resolve())
     path = tmp_path / 'cell.yaml'
@@ -209,7 +212,7 @@ def test_simulate_and_identify_carry_the_cell_joint_noise(tmp_path, capsys):
     import yaml
 
     from kpi_calib_ros.cli import main
-    doc = yaml.safe_load(open(DEFAULT_CELL))
+    doc = yaml.safe_load(DEFAULT_CELL.read_text())
     doc['robot']['urdf'] = str((DEFAULT_CELL.parent / doc['robot']['urdf']).resolve())
     plain = tmp_path / 'plain.yaml'
     plain.write_text(yaml.safe_dump(doc))

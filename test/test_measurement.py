@@ -6,7 +6,6 @@ import numpy as np
 from kpi_calib_ros.core.kinematics import reflector_point
 from kpi_calib_ros.core.measurement import weighted_rows
 from kpi_calib_ros.core.simulation import measurable_batch, sampling_bounds
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 
 
 def test_weighted_rows_are_w_times_j_in_measurement_order():
@@ -20,10 +19,9 @@ def test_weighted_rows_are_w_times_j_in_measurement_order():
     np.testing.assert_array_equal(weighted_rows(jac, w, idx), expected[:, idx])
 
 
-def test_model_point_is_pinocchio_tip_with_the_reflector_offset():
+def test_model_point_is_pinocchio_tip_with_the_reflector_offset(cm):
     """The CasADi measurement model at nominal parameters and the independent Pinocchio
     forward kinematics place the reflector at the same point (tracker frame)."""
-    cm = build_cell_model(load_cell(DEFAULT_CELL))
     rng = np.random.default_rng(1)
     lo, hi = sampling_bounds(cm.model)
     q = rng.uniform(lo, hi, size=(20, cm.robot.n_joints))
@@ -35,8 +33,7 @@ def test_model_point_is_pinocchio_tip_with_the_reflector_offset():
                                    atol=1e-12)
 
 
-def test_measurable_batch_keeps_exactly_the_visible_draws():
-    cm = build_cell_model(load_cell(DEFAULT_CELL))
+def test_measurable_batch_keeps_exactly_the_visible_draws(cm):
     p, cos_limit = cm.model.params.nominal, np.cos(cm.cell.max_incidence)
     kept = measurable_batch(cm.model, p, np.random.default_rng(2), 2000, cos_limit)
     lo, hi = sampling_bounds(cm.model)

@@ -6,12 +6,20 @@ import numpy as np
 import pytest
 
 from kpi_calib_ros.core.capsule_fit import capsules_from_urdf, collision_vertices
-from kpi_calib_ros.core.capsule_geometry import (capsule_volume, enclosing_capsule, fit_capsules,
-                                                 outside_distance)
+from kpi_calib_ros.core.capsule_geometry import (
+    capsule_volume,
+    enclosing_capsule,
+    fit_capsules,
+    outside_distance,
+)
 from kpi_calib_ros.core.collision import BEAM, CollisionScene
 from kpi_calib_ros.core.collision_check import mesh_collisions
-from kpi_calib_ros.core.collision_matrix import (SKIPPED_KINDS, _margins, classify_link_pairs,
-                                                 link_transforms)
+from kpi_calib_ros.core.collision_matrix import (
+    SKIPPED_KINDS,
+    _margins,
+    classify_link_pairs,
+    link_transforms,
+)
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.robot import RobotModel
 from kpi_calib_ros.io.resources import resolve_mesh_uris, resolve_uri

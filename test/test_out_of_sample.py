@@ -11,20 +11,23 @@ from kpi_calib_ros.core.diagnosis import augmented_model
 from kpi_calib_ros.core.effects import parse_effect_spec
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.model_selection import choose_model
-from kpi_calib_ros.core.out_of_sample import (NOT_ESTIMABLE, domain_configurations,
-                                              joint_sweeps, out_of_sample_error)
-from kpi_calib_ros.core.simulation import (one_joint_at_a_time, random_configurations,
-                                          simulate_measurements, true_parameters)
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.core.out_of_sample import (
+    NOT_ESTIMABLE,
+    domain_configurations,
+    joint_sweeps,
+    out_of_sample_error,
+)
+from kpi_calib_ros.core.simulation import (
+    one_joint_at_a_time,
+    random_configurations,
+    simulate_measurements,
+    true_parameters,
+)
 from kpi_calib_ros.io.report import diagnosis_to_dict
 
 SPAN = 0.6       # each joint swept over 60 % of its range around the home pose
 FRESH = 1200
 
-
-@pytest.fixture(scope='module')
-def cm():
-    return build_cell_model(load_cell(DEFAULT_CELL))
 
 
 def circle(cm, rng, per_joint=8):

@@ -13,18 +13,25 @@ import pytest
 import yaml
 
 from kpi_calib_ros.app.diagnose import diagnose_cell
-from kpi_calib_ros.app.identify import add_robust_sections, calibrate_cell, \
-    calibration_document
+from kpi_calib_ros.app.identify import add_robust_sections, calibrate_cell, calibration_document
 from kpi_calib_ros.cli import main
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.outliers import pose_groups
 from kpi_calib_ros.core.robust import OutlierSettings
-from kpi_calib_ros.core.simulation import (one_joint_at_a_time, random_configurations,
-                                          true_parameters)
+from kpi_calib_ros.core.simulation import (
+    one_joint_at_a_time,
+    random_configurations,
+    true_parameters,
+)
 from kpi_calib_ros.core.streams import synthesize_streams
 from kpi_calib_ros.io.bag_writing import write_bag
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict, \
-    load_cell, read_cell_document
+from kpi_calib_ros.io.cell import (
+    DEFAULT_CELL,
+    build_cell_model,
+    cell_from_dict,
+    load_cell,
+    read_cell_document,
+)
 from kpi_calib_ros.io.names import CALIBRATION_FILE, DIAGNOSIS_FILE
 
 OFFSETS = [[0.0, 0.0, 0.03], [0.06, 0.0, 0.03], [0.0, 0.05, 0.02]]

@@ -80,8 +80,7 @@ def test_every_module_the_package_imports_is_an_exec_depend():
 
 def test_every_module_the_tests_import_is_declared():
     files = sorted((REPO / 'test').glob('*.py'))
-    # The repository's own modules: the tests' helpers and the bench scripts some tests
-    # share their study code with (bench/solver_vs_trf.py).
+    # The tests' helpers and the benches a test reuses (sys.path) are ours, not packages.
     local = {p.stem for p in files} | {p.stem for p in (REPO / 'bench').glob('*.py')}
     modules = {m: f for m, f in imported_modules(files).items()
                if m != PACKAGE and m not in local}

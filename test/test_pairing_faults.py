@@ -5,8 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kpi_calib_ros.core.pairing import (INDEX_CACHE_SIZE, NAMES_KEPT, PairedMeasurement, Pairer,
-                                        Rejection, pair_measurements)
+from kpi_calib_ros.core.pairing import (
+    INDEX_CACHE_SIZE,
+    NAMES_KEPT,
+    PairedMeasurement,
+    Pairer,
+    Rejection,
+    pair_measurements,
+)
 from kpi_calib_ros.core.streams import JointSample, PointSample, synthesize_streams
 from kpi_calib_ros.ros.campaign import Campaign
 

@@ -6,21 +6,24 @@ import numpy as np
 import pytest
 
 from kpi_calib_ros.core.diagnosis import augmented_model, screen_effects
-from kpi_calib_ros.core.effects import (EffectType, available_effects, bind_effect,
-                                        candidate_effects, implausible)
+from kpi_calib_ros.core.effects import (
+    EffectType,
+    available_effects,
+    bind_effect,
+    candidate_effects,
+    implausible,
+)
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation import identify
 from kpi_calib_ros.core.robot import RobotModel
-from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
-                                          true_parameters)
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.core.simulation import (
+    random_configurations,
+    simulate_measurements,
+    true_parameters,
+)
 
 SIGMA = 20e-6
 
-
-@pytest.fixture(scope='module')
-def cm():
-    return build_cell_model(load_cell(DEFAULT_CELL))
 
 
 def test_no_cyclic_error_on_a_prismatic_joint(odd_arm_urdf):

@@ -16,16 +16,19 @@ from kpi_calib_ros.cli import main
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation import identify
 from kpi_calib_ros.core.measurement import Measurements, with_rotation_rows
-from kpi_calib_ros.core.pose_measurement import (log3_expression, noisy_rotations,
-                                                 quaternion_from_rotation,
-                                                 rotation_from_quaternion, rotation_from_rpy)
 from kpi_calib_ros.core.pairing import pair_measurements
+from kpi_calib_ros.core.pose_measurement import (
+    log3_expression,
+    noisy_rotations,
+    quaternion_from_rotation,
+    rotation_from_quaternion,
+    rotation_from_rpy,
+)
 from kpi_calib_ros.core.simulation import random_configurations, true_parameters
 from kpi_calib_ros.core.streams import PointSample, synthesize_streams
 from kpi_calib_ros.core.validation import validate
 from kpi_calib_ros.io.bag import read_bag, write_bag
-from kpi_calib_ros.io.cell import (DEFAULT_CELL, build_cell_model, cell_from_dict,
-                                   read_cell_document)
+from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict, read_cell_document
 from kpi_calib_ros.io.ros_messages import pose_sample_from_message
 
 SIGMA = 2e-5            # m per axis, the default cell's

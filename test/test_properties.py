@@ -35,8 +35,7 @@ from hypothesis import strategies as st
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Header
 
-from kpi_calib_ros.core.pairing import (PairedMeasurement, Pairer, Rejection,
-                                        pair_measurements)
+from kpi_calib_ros.core.pairing import PairedMeasurement, Pairer, Rejection, pair_measurements
 from kpi_calib_ros.core.streams import JointSample, PointSample
 from kpi_calib_ros.ros import conversions as cv
 

@@ -9,15 +9,21 @@ import numpy as np
 import pytest
 import yaml
 
-from kpi_calib_ros.app.identify import (REGISTER_ABOVE_M, identify_cell, registered_start,
-                                        run_identify)
+from kpi_calib_ros.app.identify import (
+    REGISTER_ABOVE_M,
+    identify_cell,
+    registered_start,
+    run_identify,
+)
 from kpi_calib_ros.core.errors import ConfigError, DataError
-from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
-                                           true_parameters)
-from kpi_calib_ros.io.bag import write_bag
-from kpi_calib_ros.io.cell import (DEFAULT_CELL, build_cell_model, cell_from_dict,
-                                   read_cell_document)
+from kpi_calib_ros.core.simulation import (
+    random_configurations,
+    simulate_measurements,
+    true_parameters,
+)
 from kpi_calib_ros.core.streams import synthesize_streams
+from kpi_calib_ros.io.bag import write_bag
+from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict, read_cell_document
 
 DATA = DEFAULT_CELL.parent  # relative paths of the default cell resolve here
 SIGMA = 2.0e-5

@@ -4,18 +4,16 @@ import pinocchio as pin
 import pytest
 
 from kpi_calib_ros.core.errors import DataError
-from kpi_calib_ros.core.registration import horn, register
 from kpi_calib_ros.core.estimation import identify
-from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
-                                           true_parameters)
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.core.registration import horn, register
+from kpi_calib_ros.core.simulation import (
+    random_configurations,
+    simulate_measurements,
+    true_parameters,
+)
 
 SIGMA = 10e-6  # tracker noise per axis (m)
 
-
-@pytest.fixture(scope='module')
-def cm():
-    return build_cell_model(load_cell(DEFAULT_CELL))
 
 
 @pytest.fixture(scope='module')

@@ -5,10 +5,19 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kpi_calib_ros.core.estimation import (FTOL, STALLED, STATISTICAL, Tolerances,
-                                           _gauss_newton, identify)
-from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
-                                          true_parameters)
+from kpi_calib_ros.core.estimation import (
+    FTOL,
+    STALLED,
+    STATISTICAL,
+    Tolerances,
+    _gauss_newton,
+    identify,
+)
+from kpi_calib_ros.core.simulation import (
+    random_configurations,
+    simulate_measurements,
+    true_parameters,
+)
 from kpi_calib_ros.io.cell import DEFAULT_CELL
 
 SIGMA = 20e-6
@@ -48,8 +57,7 @@ def test_a_cost_test_while_the_step_still_promises_a_decrease_is_a_stall(cell, t
 @pytest.fixture(scope='module')
 def first_cycle(cell, truth):
     """A 60-pose calibration (the previous cycle) and its document."""
-    from kpi_calib_ros.app.identify import (add_robust_sections, calibrate_cell,
-                                            calibration_document)
+    from kpi_calib_ros.app.identify import add_robust_sections, calibrate_cell, calibration_document
     p_true, _ = truth
     rng = np.random.default_rng(12)
     q = random_configurations(cell.model, cell.model.params.nominal, 60, rng)
@@ -200,8 +208,13 @@ def test_the_drift_state_filter_matches_monte_carlo_of_the_swing_process():
     (transition Φ, discrete noise Q), measured every cycle with noise; the posterior
     error of the parameters and of the rates after 12 cycles has the variance the filter
     states (χ²(1) means within 3 std over 400 trials) and no bias."""
-    from kpi_calib_ros.core.prior import (DriftSwing, Prior, state_predicted, state_updated,
-                                          stationary_state)
+    from kpi_calib_ros.core.prior import (
+        DriftSwing,
+        Prior,
+        state_predicted,
+        state_updated,
+        stationary_state,
+    )
     swing = DriftSwing(10.0, 5e-5, 24.0)
     names = ('a', 'b')
     shape = np.array([[4e-8, 1e-8], [1e-8, 1e-8]])       # swing amplitudes 200, 100 µm
@@ -243,8 +256,13 @@ def test_the_drift_state_filter_matches_monte_carlo_of_the_swing_process():
 
 def test_the_stationary_drift_state_stays_stationary_and_bad_states_are_refused():
     from kpi_calib_ros.core.errors import DataError
-    from kpi_calib_ros.core.prior import (DriftState, DriftSwing, Prior, state_predicted,
-                                          stationary_state)
+    from kpi_calib_ros.core.prior import (
+        DriftState,
+        DriftSwing,
+        Prior,
+        state_predicted,
+        stationary_state,
+    )
     swing = DriftSwing(5.0, 5e-5)
     shape = np.diag([1e-8, 4e-8])
     state = stationary_state(('a', 'b'), swing, shape)
@@ -271,8 +289,7 @@ def test_a_cycle_with_a_drift_state_stores_it_and_the_next_prior_follows_its_rat
         cell, truth, first_cycle):
     import yaml
 
-    from kpi_calib_ros.app.reidentify import (cycle_prior, reidentification_document,
-                                              reidentify)
+    from kpi_calib_ros.app.reidentify import cycle_prior, reidentification_document, reidentify
     from kpi_calib_ros.core.prior import DriftState, DriftSwing
     p_true, _ = truth
     _, doc = first_cycle

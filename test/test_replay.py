@@ -4,14 +4,19 @@ from __future__ import annotations
 
 import re
 
+import pytest
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Header
 
+from kpi_calib_ros.app.simulate import simulate_campaign
 from kpi_calib_ros.io.bag import read_bag
 from kpi_calib_ros.io.cell import DEFAULT_CELL
-from kpi_calib_ros.app.simulate import simulate_campaign
 from kpi_calib_ros.ros import conversions as cv
+
 from ros_helpers import finish
+
+# Node and replay processes, 10 to 37 s each on 2 cores: end-to-end runs, not the quick loop.
+pytestmark = pytest.mark.slow
 
 WALL_NS = 1_790_000_000_000_000_000   # a wall-clock stamp, far after any simulated recording
 

@@ -4,8 +4,13 @@ from pathlib import Path
 import pytest
 
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.io.resources import (cmeel_prefixes, find_package, mesh_uris, resolve_mesh_uris,
-                                        resolve_uri)
+from kpi_calib_ros.io.resources import (
+    cmeel_prefixes,
+    find_package,
+    mesh_uris,
+    resolve_mesh_uris,
+    resolve_uri,
+)
 
 UR10 = 'package://example-robot-data/robots/ur_description/urdf/ur10_robot.urdf'
 

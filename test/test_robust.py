@@ -15,22 +15,19 @@ from kpi_calib_ros.cli import main
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimability import kpi_estimability
 from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.robust import (OutlierSettings, loss_weights, outlier_threshold,
-                                       robust_sigma)
-from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
-                                          true_parameters)
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, identification_settings, \
-    load_cell
+from kpi_calib_ros.core.robust import OutlierSettings, loss_weights, outlier_threshold, robust_sigma
+from kpi_calib_ros.core.simulation import (
+    random_configurations,
+    simulate_measurements,
+    true_parameters,
+)
+from kpi_calib_ros.io.cell import DEFAULT_CELL, identification_settings
 from kpi_calib_ros.io.names import CALIBRATION_FILE, FAILED_CALIBRATION_FILE
 
 SIGMA = 20e-6
 CELL = str(DEFAULT_CELL)
 OUTLIERS = {5: 10.0, 17: 1e-3, 33: 1e-3, 48: 1e-3}  # index -> distance added, m
 
-
-@pytest.fixture(scope='module')
-def cm():
-    return build_cell_model(load_cell(DEFAULT_CELL))
 
 
 @pytest.fixture(scope='module')

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from kpi_calib_ros.core.errors import DataError
-from kpi_calib_ros.core.streams import synthesize_streams
 from kpi_calib_ros.core.pairing import PairedMeasurement, Rejection, pair_measurements
+from kpi_calib_ros.core.streams import synthesize_streams
 from kpi_calib_ros.io.measurement_log import MeasurementLog
 from kpi_calib_ros.ros.campaign import Campaign
 

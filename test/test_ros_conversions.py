@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from diagnostic_msgs.msg import DiagnosticStatus
-from mcap.reader import make_reader
 from geometry_msgs.msg import PointStamped
+from mcap.reader import make_reader
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
 from visualization_msgs.msg import Marker

@@ -34,6 +34,7 @@ from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros.node import CalibrationNode
 from kpi_calib_ros.ros.parameters import PARAMETERS, settings_from_parameters
+
 from ros_helpers import KR15_URDF, finish
 
 
@@ -350,8 +351,11 @@ def test_an_invalid_identification_keeps_the_last_good_calibration(in_process, m
     the previous calibration stays (topics, calibration.yaml) and /diagnostics says ERROR
     with the reason."""
     from kpi_calib_ros.core.measurement import Measurements
-    from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
-                                              true_parameters)
+    from kpi_calib_ros.core.simulation import (
+        random_configurations,
+        simulate_measurements,
+        true_parameters,
+    )
     node = in_process
     cm = node._cm
     rng = np.random.default_rng(21)
@@ -451,8 +455,11 @@ def test_joint_states_at_1khz_all_arrive_while_the_node_identifies(client, spawn
     again after every new measurement: every joint state is received, none counted lost,
     every point accepted. (Jobs in a thread of the node lost 37 % of them:
     bench/node_load.py.)"""
-    from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
-                                               true_parameters)
+    from kpi_calib_ros.core.simulation import (
+        random_configurations,
+        simulate_measurements,
+        true_parameters,
+    )
     cm = build_cell_model(load_cell(DEFAULT_CELL))
     rng = np.random.default_rng(4)
     q = random_configurations(cm.model, cm.model.params.nominal, 16, rng)

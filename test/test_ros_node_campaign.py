@@ -26,11 +26,12 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Header, String
 
 from kpi_calib_ros import cli
+from kpi_calib_ros.app.simulate import simulate_campaign
 from kpi_calib_ros.io.bag import read_bag
 from kpi_calib_ros.io.cell import DEFAULT_CELL
 from kpi_calib_ros.io.measurement_log import MeasurementLog
-from kpi_calib_ros.app.simulate import simulate_campaign
 from kpi_calib_ros.ros import conversions as cv
+
 from ros_helpers import KR15_URDF, Client, NodeProcess, Spawner, finish
 
 pytestmark = pytest.mark.slow

@@ -16,10 +16,14 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
 from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
-                                           true_parameters)
+from kpi_calib_ros.core.simulation import (
+    random_configurations,
+    simulate_measurements,
+    true_parameters,
+)
 from kpi_calib_ros.ros import jobs
 from kpi_calib_ros.ros.node import CalibrationNode
+
 from ros_helpers import KR15_URDF
 
 FIRST_NS = 1_700_000_000_000_000_000

@@ -18,13 +18,17 @@ from rclpy.parameter import Parameter
 from visualization_msgs.msg import MarkerArray
 
 from kpi_calib_ros.app.identify import identify_cell
-from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
-                                           true_parameters)
+from kpi_calib_ros.core.simulation import (
+    random_configurations,
+    simulate_measurements,
+    true_parameters,
+)
 from kpi_calib_ros.core.streams import synthesize_streams
 from kpi_calib_ros.io.cell import build_cell_model, load_cell
 from kpi_calib_ros.io.resources import resolve_uri
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros.node import CalibrationNode
+
 from ros_helpers import LATCHED
 
 DATA = Path(__file__).resolve().parent / 'data'

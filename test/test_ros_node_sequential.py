@@ -22,8 +22,8 @@ from std_msgs.msg import Header, String
 from kpi_calib_ros.app.campaign import campaign_context, new_campaign
 from kpi_calib_ros.core.sequential import MODEL_INADEQUATE, TARGET_MET, CampaignSettings
 from kpi_calib_ros.core.simulation import true_parameters
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 from kpi_calib_ros.ros import conversions as cv
+
 from ros_helpers import KR15_URDF, LATCHED, NS, Client, Spawner
 
 pytestmark = pytest.mark.slow
@@ -47,8 +47,7 @@ def measure(client: Client, names: list[str], q: np.ndarray, point: np.ndarray,
                                        point=Point(x=x, y=y, z=z)))
 
 
-def test_sequential_campaign_stops_by_itself_at_the_target(ros_domain, tmp_path):
-    cm = build_cell_model(load_cell(DEFAULT_CELL))
+def test_sequential_campaign_stops_by_itself_at_the_target(ros_domain, tmp_path, cm):
     rng = np.random.default_rng(31)
     p_true = true_parameters(cm.model.params, rng)
     sigma = float(cm.cell.sigma[0])
@@ -131,14 +130,13 @@ def test_sequential_campaign_stops_by_itself_at_the_target(ros_domain, tmp_path)
     assert result.statistic == pytest.approx(status['statistic_m'], rel=1e-6)
 
 
-def test_campaign_survives_a_fault_a_kill_and_a_parameter_change(ros_domain, tmp_path):
+def test_campaign_survives_a_fault_a_kill_and_a_parameter_change(ros_domain, tmp_path, cm):
     """One 1 mm fault among the initial design's points, ``kill -9`` of the node after
     ~/design and right after the 13th measurement, restarts on the same data_dir, a refused
     change of the target:
     the campaign resumes (same plan as the same campaign offline, to 1e-9), excludes and
     names the fault, stops 'target met', never 'model inadequate'; no calibration is
     published before it stops, and the one it publishes states the stop statistic."""
-    cm = build_cell_model(load_cell(DEFAULT_CELL))
     rng = np.random.default_rng(31)
     p_true = true_parameters(cm.model.params, rng)
     sigma = float(cm.cell.sigma[0])

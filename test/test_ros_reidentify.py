@@ -12,11 +12,14 @@ import yaml
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
-from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
-                                           true_parameters)
+from kpi_calib_ros.core.simulation import (
+    random_configurations,
+    simulate_measurements,
+    true_parameters,
+)
 from kpi_calib_ros.core.streams import synthesize_streams
 from kpi_calib_ros.io.bag_writing import write_bag
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+
 from ros_helpers import finish
 
 pytestmark = pytest.mark.slow
@@ -34,8 +37,7 @@ def _cycle_bag(path: Path, cm, p_true, n: int, start_ns: int, seed: int) -> Path
     return path
 
 
-def test_second_cycle_is_identified_with_the_first_as_prior(tmp_path, client, spawn):
-    cm = build_cell_model(load_cell(DEFAULT_CELL))
+def test_second_cycle_is_identified_with_the_first_as_prior(tmp_path, client, spawn, cm):
     p_true = true_parameters(cm.model.params, np.random.default_rng(31))
     first = _cycle_bag(tmp_path / 'cycle1.mcap', cm, p_true, 30, START_NS, 1)
     # Two hours later, the same robot: 12 poses, fewer than the 30 of a full campaign.

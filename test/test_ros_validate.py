@@ -14,12 +14,15 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile
 from std_msgs.msg import String
 
-from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
-                                           true_parameters)
+from kpi_calib_ros.core.simulation import (
+    random_configurations,
+    simulate_measurements,
+    true_parameters,
+)
 from kpi_calib_ros.core.streams import synthesize_streams
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 from kpi_calib_ros.io.ros_messages import joint_state_msg, point_stamped_msg
 from kpi_calib_ros.ros.node import CalibrationNode
+
 from ros_helpers import KR15_URDF
 
 
@@ -60,8 +63,7 @@ def _call(node, executor, name, work):
 
 
 @pytest.mark.slow
-def test_validate_service_tests_the_calibration_on_the_new_measurements(node, tmp_path):
-    cm = build_cell_model(load_cell(DEFAULT_CELL))
+def test_validate_service_tests_the_calibration_on_the_new_measurements(node, tmp_path, cm):
     rng = np.random.default_rng(21)
     p_true = true_parameters(cm.model.params, rng)
     q = random_configurations(cm.model, p_true, 45, rng)
@@ -98,12 +100,11 @@ def test_validate_service_tests_the_calibration_on_the_new_measurements(node, tm
     assert received and json.loads(received[-1]) == doc
 
 
-def test_validate_service_re_registers_a_tracker_set_up_again(node, tmp_path):
+def test_validate_service_re_registers_a_tracker_set_up_again(node, tmp_path, cm):
     """With ``validate_register: base`` the node scores new measurements from a moved
     tracker after re-fitting the base pose on them (as ``validate --register``): the
     calibration holds with 3N − 6 dof; without it the same points do not hold."""
     import pinocchio as pin
-    cm = build_cell_model(load_cell(DEFAULT_CELL))
     rng = np.random.default_rng(22)
     p_true = true_parameters(cm.model.params, rng)
     p_moved = p_true.copy()

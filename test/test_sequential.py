@@ -12,13 +12,27 @@ from kpi_calib_ros.cli import main
 from kpi_calib_ros.core.design_exchange import exchange, information
 from kpi_calib_ros.core.effects import hidden_effects
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.core.sequential import (MAX_MEASUREMENTS, MODEL_INADEQUATE, TARGET_MET,
-                                           CampaignSettings, lack_of_fit, nested_order,
-                                           plan_ahead, pure_error, sigma_upper_limit)
+from kpi_calib_ros.core.sequential import (
+    MAX_MEASUREMENTS,
+    MODEL_INADEQUATE,
+    TARGET_MET,
+    CampaignSettings,
+    lack_of_fit,
+    nested_order,
+    plan_ahead,
+    pure_error,
+    sigma_upper_limit,
+)
 from kpi_calib_ros.core.simulation import simulate_pose_measurements, true_parameters
-from kpi_calib_ros.io.cell import (DEFAULT_CELL, build_cell_model, cell_from_dict, load_cell,
-                                  read_cell_document)
+from kpi_calib_ros.io.cell import (
+    DEFAULT_CELL,
+    build_cell_model,
+    cell_from_dict,
+    load_cell,
+    read_cell_document,
+)
 from kpi_calib_ros.io.design_io import read_design_poses
+
 from cell_variants import cell_document
 
 

@@ -12,10 +12,17 @@ from kpi_calib_ros.core.diagnosis import compare_models
 from kpi_calib_ros.core.effect_selection import choose_effects
 from kpi_calib_ros.core.estimation import identify
 from kpi_calib_ros.core.model_selection import choose_model
-from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
-                                          true_parameters)
-from kpi_calib_ros.io.report import comparison_text, comparison_to_dict, diagnosis_text, \
-    diagnosis_to_dict
+from kpi_calib_ros.core.simulation import (
+    random_configurations,
+    simulate_measurements,
+    true_parameters,
+)
+from kpi_calib_ros.io.report import (
+    comparison_text,
+    comparison_to_dict,
+    diagnosis_text,
+    diagnosis_to_dict,
+)
 
 SIGMA = 20e-6
 

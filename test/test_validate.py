@@ -9,16 +9,22 @@ import pytest
 import scipy.stats
 import yaml
 
-from kpi_calib_ros.app.identify import (calibration_document, identify_cell,
-                                        measurements_from_bag)
-from kpi_calib_ros.app.validate import (calibration_noise_scale, parameter_vector,
-                                        validate_calibration, validation_to_dict)
+from kpi_calib_ros.app.identify import calibration_document, identify_cell, measurements_from_bag
+from kpi_calib_ros.app.validate import (
+    calibration_noise_scale,
+    parameter_vector,
+    validate_calibration,
+    validation_to_dict,
+)
 from kpi_calib_ros.cli import main
-from kpi_calib_ros.core.simulation import (random_configurations, simulate_measurements,
-                                           true_parameters)
+from kpi_calib_ros.core.measurement import Measurements
+from kpi_calib_ros.core.simulation import (
+    random_configurations,
+    simulate_measurements,
+    true_parameters,
+)
 from kpi_calib_ros.core.streams import synthesize_streams
 from kpi_calib_ros.io.bag_writing import write_bag
-from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict, load_cell
 from kpi_calib_ros.io.results import write_calibration
 

@@ -174,6 +174,7 @@ def node_page() -> str:
 # ------------------------------------------------------------------------ effects
 def effects_page() -> str:
     from kpi_calib_ros.core.effects import CHAIN_EFFECTS, ENTRY_POINT_GROUP, LIBRARY
+
     # The cell loader imports the chain effects (core.gravity_compliance registers itself).
     from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
     out = ['# Effect library\n', NOTE,

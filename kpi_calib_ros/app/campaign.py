@@ -22,10 +22,14 @@ from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.estimability import result_estimability
 from kpi_calib_ros.core.model_selection import ModelChoice, level_free
 from kpi_calib_ros.core.pairing import PairingResult
-from kpi_calib_ros.core.sequential import (TARGET_MET, CampaignSettings, CampaignStatus,
-                                           SequentialCampaign, SimulatedRun)
-from kpi_calib_ros.core.simulation import (simulate_pose_measurements,
-                                           true_parameters)
+from kpi_calib_ros.core.sequential import (
+    TARGET_MET,
+    CampaignSettings,
+    CampaignStatus,
+    SequentialCampaign,
+    SimulatedRun,
+)
+from kpi_calib_ros.core.simulation import simulate_pose_measurements, true_parameters
 from kpi_calib_ros.io.campaign_io import plot_campaign, write_campaign, write_plan
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
 

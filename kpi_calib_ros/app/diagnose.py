@@ -10,17 +10,23 @@ from typing import Any, Callable
 
 import numpy as np
 
-from kpi_calib_ros.app.identify import (calibrate_cell, cell_prior, identify_cell,
-                                        load_measurements, print_progress, with_effects)
-from kpi_calib_ros.core.model_selection import level_free
+from kpi_calib_ros.app.identify import (
+    calibrate_cell,
+    cell_prior,
+    identify_cell,
+    load_measurements,
+    print_progress,
+    with_effects,
+)
 from kpi_calib_ros.core.diagnosis import CellDiagnosis, compare_models, diagnose
 from kpi_calib_ros.core.effect_selection import effect_start
 from kpi_calib_ros.core.effects import implausible, parse_effect_spec
 from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.robust import subset
+from kpi_calib_ros.core.model_selection import level_free
 from kpi_calib_ros.core.out_of_sample import out_of_sample_error
 from kpi_calib_ros.core.precision import expected_tcp_error
 from kpi_calib_ros.core.residuals import ADEQUACY_ALPHA
+from kpi_calib_ros.core.robust import subset
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.names import DIAGNOSIS_FILE
 from kpi_calib_ros.io.report import diagnosis_text, write_report

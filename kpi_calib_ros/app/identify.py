@@ -21,26 +21,40 @@ from kpi_calib_ros.core.effect_selection import choose_effects
 from kpi_calib_ros.core.effects import BoundEffect, parse_effect_spec, split_specs
 from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.estimability import KpiEstimability, result_estimability
-from kpi_calib_ros.core.gravity_compliance import compliance_warnings, mass_warning
 from kpi_calib_ros.core.estimation import CalibrationResult, identify
-from kpi_calib_ros.core.model_selection import ModelChoice, choose_model, level_free
+from kpi_calib_ros.core.gravity_compliance import compliance_warnings, mass_warning
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements, with_rotation_rows
+from kpi_calib_ros.core.model_selection import ModelChoice, choose_model, level_free
 from kpi_calib_ros.core.pairing import PairingResult, pair_measurements, split_frame
-from kpi_calib_ros.core.registration import Registration, register
-from kpi_calib_ros.core.robust import (LOSS_SCALE, ExcludedMeasurement, RobustResult,
-                                       gross_outliers, robust_identify, subset)
-from kpi_calib_ros.core.precision import (ExpectedTcpError, balanced_prior,
-                                          expected_tcp_error, honest_precision)
+from kpi_calib_ros.core.precision import (
+    ExpectedTcpError,
+    balanced_prior,
+    expected_tcp_error,
+    honest_precision,
+)
 from kpi_calib_ros.core.prior import Prior, tolerance_prior
+from kpi_calib_ros.core.registration import Registration, register
+from kpi_calib_ros.core.robust import (
+    LOSS_SCALE,
+    ExcludedMeasurement,
+    RobustResult,
+    gross_outliers,
+    robust_identify,
+    subset,
+)
 from kpi_calib_ros.core.streams import JointSample, PointSample
 from kpi_calib_ros.io.bag import read_for_pairing
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
 from kpi_calib_ros.io.measurement_log import stored_pairing
 from kpi_calib_ros.io.names import CALIBRATED_URDF_FILE, FAILED_CALIBRATION_FILE
 from kpi_calib_ros.io.report import comparison_text, comparison_to_dict
-from kpi_calib_ros.io.results import (calibration_to_dict,
-                                      summary_text, writable_folder, write_atomic,
-                                      write_calibration)
+from kpi_calib_ros.io.results import (
+    calibration_to_dict,
+    summary_text,
+    writable_folder,
+    write_atomic,
+    write_calibration,
+)
 from kpi_calib_ros.io.urdf_export import calibrated_urdf
 
 # Geometric errors of a robot and a surveyed placement move the predicted points by

@@ -29,26 +29,43 @@ from typing import Any
 
 import numpy as np
 
+from kpi_calib_ros.app.identify import (
+    CellCalibration,
+    add_robust_sections,
+    calibrate_cell,
+    calibration_document,
+    load_measurements,
+    places_the_points,
+    registered_start,
+    robust_summary,
+    with_iteration_limit,
+    write_results,
+)
+from kpi_calib_ros.app.validate import calibration_noise_scale
 from kpi_calib_ros.core.change_detection import CHANGE_ALPHA, ChangeTest, change_test
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation import CalibrationResult, identify
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.model_selection import level_free
 from kpi_calib_ros.core.pairing import PairingResult
-from kpi_calib_ros.core.prior import (DRIFT_ANGLE_PER_SQRT_HOUR, DRIFT_LENGTH_PER_SQRT_HOUR,
-                                      PLACEMENT_PREFIXES, DriftState, DriftSwing, Prior,
-                                      drift_covariance, initial_state, mapped_drift,
-                                      prior_from_calibration, state_predicted, state_updated)
+from kpi_calib_ros.core.prior import (
+    DRIFT_ANGLE_PER_SQRT_HOUR,
+    DRIFT_LENGTH_PER_SQRT_HOUR,
+    PLACEMENT_PREFIXES,
+    DriftState,
+    DriftSwing,
+    Prior,
+    drift_covariance,
+    initial_state,
+    mapped_drift,
+    prior_from_calibration,
+    state_predicted,
+    state_updated,
+)
 from kpi_calib_ros.core.simulation import random_configurations
-from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.calibration_file import read_calibration_document
+from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.results import writable_folder
-
-from kpi_calib_ros.app.identify import (CellCalibration, add_robust_sections,
-                                        calibrate_cell, calibration_document,
-                                        load_measurements, places_the_points, registered_start,
-                                        robust_summary, with_iteration_limit, write_results)
-from kpi_calib_ros.app.validate import calibration_noise_scale
 
 # Exit code of `kpi-calib identify --prior` when the new cycle contradicts the prior.
 EXIT_CHANGE = 3

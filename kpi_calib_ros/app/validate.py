@@ -22,12 +22,11 @@ from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.parameters import BASE_COMPONENTS, reflector_prefixes
 from kpi_calib_ros.core.residuals import SIGMA_OVERSTATED, noise_verdict, sigma_overstated_text
 from kpi_calib_ros.core.validation import REPEATED_WITHIN, Validation, validate
+from kpi_calib_ros.io.calibration_file import read_calibration_document
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
 from kpi_calib_ros.io.names import VALIDATION_FILE
 from kpi_calib_ros.io.report import write_validation_plots
-from kpi_calib_ros.io.calibration_file import read_calibration_document
 from kpi_calib_ros.io.results import writable_folder, write_atomic
-
 
 # What ``validate --register`` re-fits on the new recording.
 REGISTER = ('base', 'base+reflector')

@@ -67,6 +67,7 @@ class ChangeTest:
     caveat: str = ''
 
     def summary(self) -> str:
+        """One line for reports: consistent or the moved parameters, with the test figures."""
         head = (f'innovation chi2 {self.chi2:.1f} for {self.dof} dof (p = {self.p_value:.3g}); '
                 f'per-parameter LR threshold {self.lr_threshold:.1f} (family-wise alpha '
                 f'{self.alpha:g})')
@@ -80,6 +81,7 @@ class ChangeTest:
                 + (f'. {self.caveat}' if self.caveat else ''))
 
     def to_dict(self) -> dict[str, Any]:
+        """YAML-ready form: the test figures and the moved parameters (SI units)."""
         def entry(m: ParameterShift) -> dict[str, Any]:
             return {'name': m.name, 'lr': m.lr, 'p_value': m.p_value, 'shift': m.shift,
                     'shift_std': m.shift_std, 'prior_std': m.prior_std}

@@ -19,7 +19,6 @@ from typing import AbstractSet, Any, Mapping, Sequence, Union
 import casadi as ca
 import numpy as np
 
-
 BASE = 'base'
 BEAM = 'beam'
 # Squared lengths below this (m^2) count as a point / as parallel: far below any

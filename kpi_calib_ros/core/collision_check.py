@@ -9,8 +9,8 @@ link cannot either.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 import xml.etree.ElementTree as ET
+from dataclasses import dataclass
 from typing import Any, Iterable, Mapping, Sequence
 
 import coal
@@ -38,15 +38,17 @@ class Verification:
 
     @property
     def ok(self) -> bool:
+        """Whether no pair is closer than its clearance."""
         return not self.violated
 
     @property
     def min_distance(self) -> float:
+        """Smallest distance over the checked pairs (m); inf with no pair."""
         return min(self.distances.values(), default=float('inf'))
 
 
 def _coal_capsule(a: np.ndarray, b: np.ndarray, radius: float) -> tuple[Any, Any]:
-    """coal capsule (centred, along local z) and its pose for segment a-b."""
+    """A coal capsule (centred, along local z) and its pose for segment a-b."""
     axis = b - a
     length = float(np.linalg.norm(axis))
     z = axis / length if length > 1e-15 else np.array([0.0, 0.0, 1.0])

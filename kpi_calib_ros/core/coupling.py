@@ -43,6 +43,7 @@ class JointCoupling:
 
     @property
     def is_identity(self) -> bool:
+        """Whether the controller values are the URDF joint values (no coupling)."""
         return bool(np.array_equal(self.matrix, np.eye(len(self.joint_names))))
 
     def to_urdf(self, q: np.ndarray) -> np.ndarray:

@@ -23,9 +23,14 @@ import numpy as np
 
 from kpi_calib_ros.core.collision import CollisionScene
 from kpi_calib_ros.core.design_cell import DesignCell
-from kpi_calib_ros.core.design_constraints import (CandidateSet, DesignVerification, flag_pairs,
-                                                   generate_candidates, scene_without,
-                                                   verify_design)
+from kpi_calib_ros.core.design_constraints import (
+    CandidateSet,
+    DesignVerification,
+    flag_pairs,
+    generate_candidates,
+    scene_without,
+    verify_design,
+)
 from kpi_calib_ros.core.design_criteria import CRITERIA, DesignProblem, build_problem
 from kpi_calib_ros.core.design_exchange import exchange
 from kpi_calib_ros.core.design_nlp import solve_design_nlp

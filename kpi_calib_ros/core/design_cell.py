@@ -53,6 +53,7 @@ class DesignCell:
 
     @property
     def robot(self) -> RobotModel:
+        """The kinematic chain of the measurement model."""
         return self.model.robot
 
     @property

@@ -29,7 +29,13 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from kpi_calib_ros.core.design_cell import DesignCell
-from kpi_calib_ros.core.design_exchange import ConditionLoss, LogDetLoss, TraceLoss, information
+from kpi_calib_ros.core.design_exchange import (
+    ConditionLoss,
+    LogDetLoss,
+    Loss,
+    TraceLoss,
+    information,
+)
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.identifiability import select_identifiable
 from kpi_calib_ros.core.measurement import MeasurementModel, weighted_rows
@@ -81,6 +87,7 @@ class DesignProblem:
 
     @property
     def k(self) -> int:
+        """Number k of identified (designed-for) parameters."""
         return len(self.index)
 
     def rows(self, model: MeasurementModel, q: np.ndarray) -> np.ndarray:
@@ -100,7 +107,7 @@ class DesignProblem:
             return np.diag(self.column_scale * self.physical_scale) / np.sqrt(self.k)
         raise ValueError(f'criterion {criterion!r} has no trace form')
 
-    def loss(self, criterion: str):
+    def loss(self, criterion: str) -> Loss:
         """Loss object of :mod:`design_exchange` for ``criterion``."""
         if criterion in ('kpi', 'A'):
             return TraceLoss(self.factor(criterion))

@@ -19,9 +19,19 @@ every selected configuration until none improves.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Protocol, Sequence
 
 import numpy as np
+
+
+class Loss(Protocol):
+    """A design criterion as the exchange algorithm uses it (smaller is better)."""
+
+    def value(self, info: np.ndarray) -> float:
+        """Loss of the information matrix ``info`` (k, k); inf when singular."""
+
+    def delta(self, info_inv: np.ndarray, rows: np.ndarray, sign: float) -> np.ndarray:
+        """Change of the loss (c,) when each of ``rows`` (c, 3, k) is added (+1) or removed (-1)."""
 
 
 class TraceLoss:
@@ -31,6 +41,7 @@ class TraceLoss:
         self.factor = np.asarray(factor, float)
 
     def value(self, info: np.ndarray) -> float:
+        """Loss ``tr(L M⁻¹ Lᵀ)`` of the information matrix ``info`` (k, k); inf when singular."""
         try:
             chol = np.linalg.cholesky(info)
         except np.linalg.LinAlgError:
@@ -54,10 +65,12 @@ class LogDetLoss:
     """``-log det M``: the D criterion (and O1, equivalent for a fixed N)."""
 
     def value(self, info: np.ndarray) -> float:
+        """Loss ``-log det M`` of ``info`` (k, k); inf when not positive definite."""
         sign, logdet = np.linalg.slogdet(info)
         return float(-logdet) if sign > 0 else float('inf')
 
     def delta(self, info_inv: np.ndarray, rows: np.ndarray, sign: float) -> np.ndarray:
+        """Change of the loss (c,) when each of ``rows`` (c, 3, k) is added (+1) or removed (-1)."""
         s = np.eye(rows.shape[1]) + sign * (rows @ info_inv) @ rows.transpose(0, 2, 1)
         det_sign, logdet = np.linalg.slogdet(s)
         return np.where(det_sign > 0, -logdet, np.inf)
@@ -76,9 +89,11 @@ class ConditionLoss:
         return np.where(lo > 0, np.sqrt(np.abs(hi / np.where(lo > 0, lo, 1.0))), np.inf)
 
     def value(self, info: np.ndarray) -> float:
+        """Condition number of the rescaled ``info`` (k, k); inf when singular."""
         return float(self._cond(info))
 
     def delta(self, info_inv: np.ndarray, rows: np.ndarray, sign: float) -> np.ndarray:
+        """Change of the loss (c,) when each of ``rows`` (c, 3, k) is added (+1) or removed (-1)."""
         info = np.linalg.inv(info_inv)
         updated = info[None] + sign * rows.transpose(0, 2, 1) @ rows
         return self._cond(updated) - self.value(info)
@@ -100,7 +115,7 @@ def information(rows: np.ndarray) -> np.ndarray:
     return flat.T @ flat
 
 
-def exchange(rows: np.ndarray, n: int, loss, rng: np.random.Generator,
+def exchange(rows: np.ndarray, n: int, loss: Loss, rng: np.random.Generator,
              n_init: int | None = None, max_sweeps: int = 20,
              progress: Callable[[str], None] | None = None,
              base: np.ndarray | None = None) -> ExchangeResult:
@@ -131,7 +146,7 @@ def exchange(rows: np.ndarray, n: int, loss, rng: np.random.Generator,
         raise ValueError(f'n = {n} exceeds the {c} candidates')
     prior_info = np.zeros((k, k)) if base is None else np.asarray(base, float)
 
-    def information_of(chosen) -> np.ndarray:
+    def information_of(chosen: Sequence[int] | np.ndarray) -> np.ndarray:
         return information(rows[chosen]) + prior_info
 
     if base is None and 3 * n < k:

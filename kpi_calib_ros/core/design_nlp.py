@@ -12,13 +12,15 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import casadi as ca
 import numpy as np
 
+from kpi_calib_ros.core.collision import CollisionScene
 from kpi_calib_ros.core.design_cell import DesignCell
 from kpi_calib_ros.core.design_constraints import feasibility_function
+from kpi_calib_ros.core.design_criteria import DesignProblem
 from kpi_calib_ros.core.simulation import sampling_bounds
 
 
@@ -54,19 +56,19 @@ class _Monitor(ca.Callback):
         self.best_x: np.ndarray | None = None
         self.construct('design_monitor', {})
 
-    def get_n_in(self):
+    def get_n_in(self) -> int:
         return ca.nlpsol_n_out()
 
-    def get_n_out(self):
+    def get_n_out(self) -> int:
         return 1
 
-    def get_name_in(self, i):
+    def get_name_in(self, i: int) -> str:
         return ca.nlpsol_out(i)
 
-    def get_name_out(self, i):
+    def get_name_out(self, i: int) -> str:
         return 'ret'
 
-    def get_sparsity_in(self, i):
+    def get_sparsity_in(self, i: int) -> ca.Sparsity:
         name = ca.nlpsol_out(i)
         if name == 'f':
             return ca.Sparsity.scalar()
@@ -76,7 +78,7 @@ class _Monitor(ca.Callback):
             return ca.Sparsity.dense(self.ng)
         return ca.Sparsity(0, 0)
 
-    def eval(self, arg):
+    def eval(self, arg: Sequence[ca.DM]) -> list[int]:
         self.iteration += 1
         f = float(arg[ca.nlpsol_out().index('f')])
         g = np.array(arg[ca.nlpsol_out().index('g')]).ravel()
@@ -96,7 +98,8 @@ class _Monitor(ca.Callback):
         return [1 if self.stalled > self.stall_iterations else 0]
 
 
-def solve_design_nlp(problem, cell: DesignCell, scene, q0: np.ndarray, criterion: str,
+def solve_design_nlp(problem: DesignProblem, cell: DesignCell, scene: CollisionScene | None,
+                     q0: np.ndarray, criterion: str,
                      clearance: float = 0.002, incidence_clearance: float = 0.002,
                      max_iterations: int = 300,
                      progress: Callable[[str], None] | None = None,

@@ -57,7 +57,8 @@ def axis_lines(robot: RobotModel, params: ParameterSet, p: np.ndarray) -> list[t
     return lines
 
 
-def _common_normal(o1, z1, o2, z2):
+def _common_normal(o1: np.ndarray, z1: np.ndarray, o2: np.ndarray,
+                   z2: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     n = np.cross(z1, z2)
     n /= np.linalg.norm(n)
     # Closest points o1 + s z1 and o2 + t z2 on the two lines.

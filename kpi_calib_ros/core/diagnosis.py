@@ -29,14 +29,24 @@ import scipy.stats
 
 from kpi_calib_ros.core.effects import BoundEffect, candidate_effects, implausible
 from kpi_calib_ros.core.estimation import CalibrationResult, point_sigma_squares
-from kpi_calib_ros.core.measurement import (MeasurementModel, Measurements, unweighted,
-                                            weighted_rows)
+from kpi_calib_ros.core.measurement import MeasurementModel, Measurements, unweighted, weighted_rows
 from kpi_calib_ros.core.out_of_sample import OutOfSample
-from kpi_calib_ros.core.precision import (JOINT_NOISE_CAUSE, ExpectedTcpError, chi2_scale,
-                                          precision_statement)
-from kpi_calib_ros.core.residuals import (ADEQUACY_ALPHA, LinearizedFit, ResidualReport,
-                                         cross_validated_rms, cv_rms, identifiable_folds,
-                                         linearized_fit, residual_report)
+from kpi_calib_ros.core.precision import (
+    JOINT_NOISE_CAUSE,
+    ExpectedTcpError,
+    chi2_scale,
+    precision_statement,
+)
+from kpi_calib_ros.core.residuals import (
+    ADEQUACY_ALPHA,
+    LinearizedFit,
+    ResidualReport,
+    cross_validated_rms,
+    cv_rms,
+    identifiable_folds,
+    linearized_fit,
+    residual_report,
+)
 
 __all__ = ['Candidate', 'CellDiagnosis', 'Diagnosis', 'ModelComparison', 'ResidualReport',
            'augmented_model', 'compare_models', 'cross_validated_rms', 'diagnose',

@@ -65,6 +65,7 @@ class EffectTrial:
     previous: str = ''
 
     def to_dict(self) -> dict:
+        """YAML-ready form of the trial (values and std in SI units)."""
         return {'spec': self.spec, 'round': self.round, 'values': dict(self.values),
                 'std': dict(self.std),
                 'predicted_rms_m': None if self.predicted_rms_m is None
@@ -88,6 +89,7 @@ class EffectChoice:
     held: tuple[str, ...] = ()  # shape parameters held at their screened values
 
     def to_dict(self) -> dict:
+        """YAML-ready form: the effects added, held, the trials and the predicted rms (m)."""
         return {'added': [e.name for e in self.effects], 'held': list(self.held),
                 'predicted_rms_before_m': self.predicted_before_m,
                 'predicted_rms_after_m': self.predicted_after_m,

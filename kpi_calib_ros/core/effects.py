@@ -190,6 +190,7 @@ class EffectType:
         return joint_kind is None or self.joint_kinds is None or joint_kind in self.joint_kinds
 
     def units_for(self, joint_kind: str | None) -> tuple[str, ...]:
+        """Units of the parameters on a joint of this kind (rad -> m, N m -> N if prismatic)."""
         if joint_kind != 'prismatic':
             return self.units
         if self.prismatic_units is not None:
@@ -225,6 +226,7 @@ class BoundEffect:
 
     @property
     def typical(self) -> tuple[float, ...]:
+        """Typical magnitude of each parameter (its units), 1 where the kind states none."""
         return self.kind.typical or (1.0,) * len(self.kind.parameters)
 
     @property
@@ -233,7 +235,7 @@ class BoundEffect:
         return self.parameter_names[len(self.parameter_names) - self.kind.n_shape:] \
             if self.kind.n_shape else ()
 
-    def joint_correction(self, q, tau, theta):
+    def joint_correction(self, q: ca.SX, tau: ca.SX, theta: ca.SX) -> Any:
         """Additive joint-value correction, SX (n,), or None for a point effect."""
         fn = self.kind.joint_function
         if fn is None:
@@ -244,44 +246,46 @@ class BoundEffect:
         out[self.joint_index] = fn(q[self.joint_index], tau[self.joint_index], theta)
         return out
 
-    def point_correction(self, point, theta):
+    def point_correction(self, point: ca.SX, theta: ca.SX) -> Any:
         """Corrected measured point, SX (3,), or None for a joint effect."""
         fn = self.kind.point_function
         return None if fn is None else fn(point, theta)
 
     def hint(self) -> str:
+        """What would make this effect distinguishable, with the joint named."""
         return self.kind.hint.replace('{joint}', self.joint or 'the joint')
 
     def signature(self) -> str:
+        """What the fitted correction follows, with the joint named."""
         return self.kind.signature.replace('{joint}', self.joint or 'the joint')
 
 
 # ------------------------------------------------------------------ the library
-def _compliance(q_j, tau_j, theta):
+def _compliance(q_j: ca.SX, tau_j: ca.SX, theta: ca.SX) -> ca.SX:
     return theta[0] * tau_j
 
 
-def _cyclic(q_j, tau_j, theta):
+def _cyclic(q_j: ca.SX, tau_j: ca.SX, theta: ca.SX) -> ca.SX:
     return theta[0] * ca.sin(q_j) + theta[1] * ca.cos(q_j)
 
 
-def _cyclic_h2(q_j, tau_j, theta):
+def _cyclic_h2(q_j: ca.SX, tau_j: ca.SX, theta: ca.SX) -> ca.SX:
     return theta[0] * ca.sin(2 * q_j) + theta[1] * ca.cos(2 * q_j)
 
 
-def _backlash(q_j, tau_j, theta):
+def _backlash(q_j: ca.SX, tau_j: ca.SX, theta: ca.SX) -> ca.SX:
     return theta[0] * ca.tanh(tau_j / BACKLASH_TORQUE_SCALE)
 
 
-def _play(q_j, tau_j, theta):
+def _play(q_j: ca.SX, tau_j: ca.SX, theta: ca.SX) -> ca.SX:
     return theta[0] * ca.tanh(tau_j / (PLAY_TORQUE_UNIT * ca.exp(theta[1])))
 
 
-def _scale(q_j, tau_j, theta):
+def _scale(q_j: ca.SX, tau_j: ca.SX, theta: ca.SX) -> ca.SX:
     return theta[0] * q_j
 
 
-def _tracker_scale(point, theta):
+def _tracker_scale(point: ca.SX, theta: ca.SX) -> ca.SX:
     return (1 + theta[0]) * point
 
 

@@ -53,6 +53,7 @@ class KpiEstimability:
 
     @property
     def all_estimable(self) -> bool:
+        """Whether the TCP is estimable at every working pose."""
         return bool(np.all(self.estimable))
 
     def summary(self) -> str:

@@ -25,10 +25,18 @@ import scipy.stats
 
 from kpi_calib_ros.core.covariance import kkt_covariance, kpi_jacobians
 from kpi_calib_ros.core.errors import DataError
-from kpi_calib_ros.core.identifiability import (DroppedParameter, Identifiability,
-                                                select_identifiable)
-from kpi_calib_ros.core.measurement import (MeasurementModel, Measurements, row_sigma,
-                                            weighted_residuals, weighted_rows)
+from kpi_calib_ros.core.identifiability import (
+    DroppedParameter,
+    Identifiability,
+    select_identifiable,
+)
+from kpi_calib_ros.core.measurement import (
+    MeasurementModel,
+    Measurements,
+    row_sigma,
+    weighted_residuals,
+    weighted_rows,
+)
 from kpi_calib_ros.core.prior import Prior
 
 # Prior rows over the full parameter vector: L (n_rows, n_p) and L m (n_rows,).
@@ -222,16 +230,21 @@ class CalibrationResult:
 
     @property
     def correlation(self) -> np.ndarray:
+        """Correlation matrix (k, k) of the estimated parameters (dimensionless)."""
         return self.covariance / np.outer(self.std, self.std)
 
     @property
     def dropped(self) -> tuple[DroppedParameter, ...]:
+        """Parameters left at their nominal value as not identifiable, with the reason."""
         return self.identifiability.dropped
 
     def value(self, name: str) -> float:
+        """Identified value of parameter ``name`` (its unit); ValueError if unknown."""
         return float(self.values[self.names.index(name)])
 
     def std_of(self, name: str) -> float:
+        """Standard deviation of estimated parameter ``name`` (its unit); ValueError if not
+        estimated."""
         return float(self.std[self.estimated.index(name)])
 
 
@@ -415,7 +428,8 @@ def point_sigma_squares(result: CalibrationResult, reflector: np.ndarray | None,
 
 
 def _point_rms(residuals: np.ndarray, reflector: np.ndarray | None, n_reflectors: int) -> float:
-    """rms (m) of the point rows' residuals; rotation rows (tracked poses) are not lengths."""
+    """Root mean square (m) of the point rows' residuals; rotation rows (tracked poses)
+    are not lengths."""
     points = residuals if reflector is None else residuals[np.asarray(reflector) < n_reflectors]
     return float(np.sqrt(np.mean(np.sum(points ** 2, axis=1))))
 
@@ -484,7 +498,7 @@ def _gauss_newton(model: MeasurementModel, p: np.ndarray, idx: np.ndarray, q: np
     iterations : int
         Accepted steps (each may have needed several trials of λ).
     """
-    def evaluate(pp):
+    def evaluate(pp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         pred, jac = model.jacobian(pp, q, tau, reflector, rotation)
         r = weighted_residuals(eta - pred, w)
         f = weighted_rows(jac, w, idx)
@@ -494,7 +508,7 @@ def _gauss_newton(model: MeasurementModel, p: np.ndarray, idx: np.ndarray, q: np
             f = np.vstack([f, rows[0][:, idx]])
         return r, f
 
-    def stop(status: int, iteration: int, **figures) -> tuple[np.ndarray, int, str, int]:
+    def stop(status: int, iteration: int, **figures: float) -> tuple[np.ndarray, int, str, int]:
         text = STATUS_MESSAGES[status].format(**figures, **tol.__dict__,
                                               iterations=max_iterations)
         return p, status, text, iteration

@@ -65,7 +65,7 @@ def torque_regressor(robot: RobotModel, joint: int) -> ca.Function:
     return ca.Function('gravity_regressor', [q], [ca.horzcat(*terms)])
 
 
-def _whole_configuration(q_j, tau_j, theta):
+def _whole_configuration(q_j: ca.SX, tau_j: ca.SX, theta: ca.SX) -> ca.SX:
     """Never called: the correction needs the whole configuration, so
     :meth:`MassFreeCompliance.joint_correction` computes it."""
     raise TypeError(f'{NAME} needs the whole configuration (MassFreeCompliance)')
@@ -79,7 +79,9 @@ class MassFreeCompliance(BoundEffect):
 
     basis: ca.Function | None = field(default=None, compare=False)
 
-    def joint_correction(self, q, tau, theta):
+    def joint_correction(self, q: ca.SX, tau: ca.SX, theta: ca.SX) -> ca.SX:
+        """Joint-value correction SX (n,): ``θ · ψ(q)`` (rad or m) on this effect's joint,
+        0 elsewhere."""
         assert self.basis is not None and self.joint_index is not None  # set by the binder
         out = ca.SX.zeros(self.n_joints)
         out[self.joint_index] = ca.dot(self.basis(q), theta)

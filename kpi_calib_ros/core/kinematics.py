@@ -8,40 +8,49 @@ derivatives are exact; the same code evaluates numerically through
 """
 from __future__ import annotations
 
+from typing import Any
+
 import casadi as ca
 import numpy as np
 
 from kpi_calib_ros.core.parameters import ParameterSet, reflector_prefixes
 from kpi_calib_ros.core.robot import RobotModel
 
+# A CasADi expression (SX symbolic, DM numeric) or a number: these functions serve the
+# symbolic model and its numeric checks alike.
+Expr = Any
 
-def rot_x(a):
+
+def rot_x(a: Expr) -> Expr:
+    """Rotation matrix SX (3, 3) about x by ``a`` (rad)."""
     c, s = ca.cos(a), ca.sin(a)
     return ca.vertcat(ca.horzcat(1, 0, 0), ca.horzcat(0, c, -s), ca.horzcat(0, s, c))
 
 
-def rot_y(a):
+def rot_y(a: Expr) -> Expr:
+    """Rotation matrix SX (3, 3) about y by ``a`` (rad)."""
     c, s = ca.cos(a), ca.sin(a)
     return ca.vertcat(ca.horzcat(c, 0, s), ca.horzcat(0, 1, 0), ca.horzcat(-s, 0, c))
 
 
-def rot_z(a):
+def rot_z(a: Expr) -> Expr:
+    """Rotation matrix SX (3, 3) about z by ``a`` (rad)."""
     c, s = ca.cos(a), ca.sin(a)
     return ca.vertcat(ca.horzcat(c, -s, 0), ca.horzcat(s, c, 0), ca.horzcat(0, 0, 1))
 
 
-def rpy_matrix(roll, pitch, yaw):
+def rpy_matrix(roll: Expr, pitch: Expr, yaw: Expr) -> Expr:
     """URDF convention: R = Rz(yaw) · Ry(pitch) · Rx(roll)."""
     return rot_z(yaw) @ rot_y(pitch) @ rot_x(roll)
 
 
-def homogeneous(rotation, translation):
+def homogeneous(rotation: Expr, translation: Expr) -> Expr:
     """4x4 transform from a 3x3 rotation and a 3-vector (CasADi or numeric)."""
     return ca.vertcat(ca.horzcat(rotation, ca.reshape(translation, 3, 1)),
                       ca.horzcat(0, 0, 0, 1))
 
 
-def axis_rotation(axis: np.ndarray, angle):
+def axis_rotation(axis: np.ndarray, angle: Expr) -> Expr:
     """Rodrigues rotation about a constant unit ``axis`` (3,) by symbolic ``angle``."""
     k = np.asarray(axis, float)
     skew = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
@@ -49,7 +58,7 @@ def axis_rotation(axis: np.ndarray, angle):
             + (1 - ca.cos(angle)) * ca.DM(skew @ skew))
 
 
-def error_rotation(axis: np.ndarray, rx, ry, rz):
+def error_rotation(axis: np.ndarray, rx: Expr, ry: Expr, rz: Expr) -> Expr:
     """Small placement rotation error with the component about the joint axis applied last.
 
     Next to the joint motion, the rotation about the joint's own axis is then
@@ -63,7 +72,7 @@ def error_rotation(axis: np.ndarray, rx, ry, rz):
     return rots[first] @ rots[second] @ rots[last]
 
 
-def reflector_point(pose, offset):
+def reflector_point(pose: Expr, offset: Expr) -> Expr:
     """Reflector centre in the frame ``pose`` (4x4) is given in: ``R · offset + t``.
 
     ``pose`` is the tip pose (in the base or tracker frame) and ``offset`` (3,) the
@@ -73,7 +82,7 @@ def reflector_point(pose, offset):
     return pose[0:3, 0:3] @ offset + pose[0:3, 3]
 
 
-def pose6(v):
+def pose6(v: Expr) -> Expr:
     """4x4 transform from [x, y, z, roll, pitch, yaw]."""
     return homogeneous(rpy_matrix(v[3], v[4], v[5]), v[0:3])
 
@@ -97,7 +106,7 @@ class SymbolicChain:
         self._reflectors = [params.indices([f'{r}.x', f'{r}.y', f'{r}.z'])
                             for r in reflector_prefixes(params)]
 
-    def link_transforms(self, p, q) -> list:
+    def link_transforms(self, p: Expr, q: Expr) -> list:
         """Poses (4x4) of every chain joint frame in the base frame, base to tip."""
         transforms = []
         current = ca.DM.eye(4)
@@ -113,7 +122,7 @@ class SymbolicChain:
             transforms.append(current)
         return transforms
 
-    def link_poses(self, p, q) -> tuple[dict, object]:
+    def link_poses(self, p: Expr, q: Expr) -> tuple[dict, object]:
         """{link name: pose (4x4)} in the base frame (base link: identity) and the tip pose.
 
         Link ``i + 1`` of ``robot.link_names`` is the child link of chain joint ``i``.
@@ -123,11 +132,11 @@ class SymbolicChain:
         poses.update(zip(self.robot.link_names[1:], transforms))
         return poses, transforms[-1] @ ca.DM(self.robot.tip_placement)
 
-    def tip_transform(self, p, q):
+    def tip_transform(self, p: Expr, q: Expr) -> Expr:
         """Tip frame pose (4x4) in the base frame."""
         return self.link_transforms(p, q)[-1] @ ca.DM(self.robot.tip_placement)
 
-    def base_in_tracker(self, p):
+    def base_in_tracker(self, p: Expr) -> Expr:
         """Base frame pose (4x4) in the tracker frame."""
         return pose6(p[self._base])
 
@@ -136,7 +145,7 @@ class SymbolicChain:
         """Reflectors (or markers) on the tool, each with its own offset triple."""
         return len(self._reflectors)
 
-    def reflector(self, p, k: int = 0):
+    def reflector(self, p: Expr, k: int = 0) -> Expr:
         """Centre (3,) of reflector ``k`` in the tip frame (0: the KPI reflector)."""
         return p[self._reflectors[k]]
 

@@ -43,10 +43,12 @@ from typing import Mapping, Protocol, Sequence
 import casadi as ca
 import numpy as np
 
-from kpi_calib_ros.core.kinematics import SymbolicChain, reflector_point
+from kpi_calib_ros.core.kinematics import Expr, SymbolicChain, reflector_point
 from kpi_calib_ros.core.parameters import ParameterSet
-from kpi_calib_ros.core.pose_measurement import (measured_rotation_input,
-                                                 rotation_residual_expression)
+from kpi_calib_ros.core.pose_measurement import (
+    measured_rotation_input,
+    rotation_residual_expression,
+)
 from kpi_calib_ros.core.robot import RobotModel
 
 
@@ -59,21 +61,25 @@ class Effect(Protocol):
 
     # Read-only: implementations may be frozen dataclasses.
     @property
-    def name(self) -> str: ...
+    def name(self) -> str:
+        """Stable name, the prefix of its parameters' names."""
 
     @property
-    def parameter_names(self) -> tuple[str, ...]: ...
+    def parameter_names(self) -> tuple[str, ...]:
+        """Names of its parameters, in the order of their slice of p."""
 
     @property
-    def units(self) -> tuple[str, ...]: ...
+    def units(self) -> tuple[str, ...]:
+        """Unit of each parameter."""
 
     @property
-    def uses_torque(self) -> bool: ...
+    def uses_torque(self) -> bool:
+        """Whether its expressions read the gravity torques (the model then supplies them)."""
 
-    def joint_correction(self, q, tau, theta):
+    def joint_correction(self, q: ca.SX, tau: ca.SX, theta: ca.SX) -> ca.SX | None:
         """Additive joint-value correction (n,) or None."""
 
-    def point_correction(self, point, theta):
+    def point_correction(self, point: ca.SX, theta: ca.SX) -> ca.SX | None:
         """Measured point (3,) in the tracker frame after the effect, or None."""
 
 
@@ -228,7 +234,7 @@ class MeasurementModel:
         return self.n_reflectors + reflector
 
     # ------------------------------------------------------------ symbolic API
-    def _tool_pose(self, p, q, tau):
+    def _tool_pose(self, p: Expr, q: Expr, tau: Expr) -> tuple[Expr, list[Expr]]:
         """Tip pose (4x4) in the tracker frame with the joint corrections of the
         effects applied, and each effect's parameter slice."""
         q_eff = q
@@ -244,12 +250,13 @@ class MeasurementModel:
         tip = self.chain.tip_transform(p, q_eff)
         return self.chain.base_in_tracker(p) @ tip, thetas
 
-    def body_rotation_expression(self, p, q, tau, reflector: int):
+    def body_rotation_expression(self, p: Expr, q: Expr, tau: Expr, reflector: int) -> Expr:
         """Rotation (3x3) of reflector ``reflector``'s tracked body in the tracker frame."""
         world, _ = self._tool_pose(p, q, tau)
         return world[0:3, 0:3] @ ca.DM(self.orientations[reflector])
 
-    def point_expression(self, p, q, tau=None, reflector: int = 0):
+    def point_expression(self, p: Expr, q: Expr, tau: Expr = None,
+                         reflector: int = 0) -> Expr:
         """Centre of reflector ``reflector`` in the tracker frame, CasADi expression (3,)."""
         world, thetas = self._tool_pose(p, q, tau)
         point = reflector_point(world, self.chain.reflector(p, reflector))
@@ -259,8 +266,8 @@ class MeasurementModel:
                 point = corrected
         return point
 
-    def incidence_cos_expression(self, p, q):
-        """cos β between the reflector axis and the beam towards the tracker, eq. (4)."""
+    def incidence_cos_expression(self, p: Expr, q: Expr) -> Expr:
+        """Cosine of β between the reflector axis and the beam towards the tracker, eq. (4)."""
         world = self.chain.base_in_tracker(p) @ self.chain.tip_transform(p, q)
         point = reflector_point(world, self.chain.reflector(p))
         axis = world[0:3, 0:3] @ ca.DM(self.reflector_axis)
@@ -440,7 +447,8 @@ class MeasurementModel:
         b = self.rows_per_pose
         return pts.reshape(len(q), 3 * b), jac.reshape(len(q), 3 * b, -1)
 
-    def pose_point_expression(self, p, q, tau=None, p_measured=None):
+    def pose_point_expression(self, p: Expr, q: Expr, tau: Expr = None,
+                              p_measured: Expr = None) -> Expr:
         """Every row of a pose stacked (:attr:`pose_channels`), CasADi expression (3B,);
         a rotation row takes the body rotation at ``p_measured`` as the measured one (its
         Jacobian in ``p`` at ``p = p_measured`` is the design's; required with
@@ -456,7 +464,7 @@ class MeasurementModel:
         return ca.vertcat(*rows)
 
     def incidence_cos(self, p: np.ndarray, q: np.ndarray) -> np.ndarray:
-        """cos of the incidence angle (N,) at joint values ``q`` (N, n)."""
+        """Cosine of the incidence angle (N,) at joint values ``q`` (N, n)."""
         q = np.atleast_2d(q)
         return np.array(self._cos.map(len(q))(p, q.T)).ravel()
 

@@ -86,6 +86,7 @@ class ModelChoice:
     held: tuple[str, ...] = ()  # effect shape parameters held at their selected values
 
     def to_dict(self) -> dict:
+        """YAML-ready form: the level chosen, its reason and the rms figures (m) per level."""
         def figures(values: dict[str, float | None]) -> dict[str, float | None]:
             return {k: (None if v is None else float(v)) for k, v in values.items()}
         return {'level': self.level, 'requested': self.requested, 'method': self.method,

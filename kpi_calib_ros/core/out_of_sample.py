@@ -88,6 +88,7 @@ class DomainError:
     not_determined: tuple[str, ...] = ()
 
     def text(self) -> str:
+        """One line: the predicted rms (µm) with its interval, or why it is not estimable."""
         head = f'{DOMAIN_TEXT[self.domain]}: '
         if not self.estimable:
             return head + NOT_ESTIMABLE + (f' (not determined: {", ".join(self.not_determined)})'
@@ -98,6 +99,7 @@ class DomainError:
                 f'{self.parameter_rms_m * 1e6:.1f} µm)')
 
     def to_dict(self) -> dict:
+        """YAML-ready form (m); the figures are None when not estimable."""
         ok = self.estimable
         return {'estimable': ok, 'rms_m': float(self.rms_m) if ok else None,
                 'interval_m': [float(v) for v in self.interval_m] if ok else None,
@@ -128,6 +130,7 @@ class OutOfSample:
         return '' if self.adequate else LOWER_BOUND
 
     def to_dict(self) -> dict:
+        """YAML-ready form: σ̂ (m), the χ² figures and every domain's prediction."""
         return {'method': self.method, 'sigma_hat_m': [float(v) for v in self.sigma_hat_m],
                 'chi2_per_dof': float(self.scale), 'dof': int(self.dof),
                 'interval_level': INTERVAL_LEVEL, 'model_adequate': bool(self.adequate),
@@ -135,6 +138,7 @@ class OutOfSample:
                 **{name: d.to_dict() for name, d in self.domains.items()}}
 
     def text(self) -> str:
+        """Several lines: every domain's prediction, then the caveat if any."""
         return '\n'.join(['predicted out-of-sample error (' + self.method + '):']
                          + [f'  {d.text()}' for d in self.domains.values()]
                          + ([f'  WARNING: {self.caveat}'] if self.caveat else []))

@@ -66,8 +66,14 @@ import scipy.sparse.csgraph
 import scipy.spatial
 import scipy.stats
 
-from kpi_calib_ros.core.measurement import (MeasurementModel, Measurements, noise_weights,
-                                           row_sigma, weighted_residuals, weighted_rows)
+from kpi_calib_ros.core.measurement import (
+    MeasurementModel,
+    Measurements,
+    noise_weights,
+    row_sigma,
+    weighted_residuals,
+    weighted_rows,
+)
 
 # Joint values (rad, m for prismatic joints) closer than this are one pose: the readings
 # of a still robot at one commanded pose differ by encoder counts (~1e-5 rad).

@@ -32,7 +32,7 @@ import heapq
 import logging
 from collections import Counter, OrderedDict, deque
 from dataclasses import dataclass, field
-from typing import Iterable, Sequence, Union
+from typing import Any, Callable, Iterable, Sequence, Union
 
 import numpy as np
 
@@ -90,6 +90,7 @@ class PairedMeasurement:
         return JointSample(self.stamp_ns, self.joint_names, self.q, None)
 
     def point_sample(self) -> PointSample:
+        """The tracker reading (point, and orientation of a 6-DoF pose) as a point sample."""
         return PointSample(self.stamp_ns, self.frame_id, self.eta, self.orientation)
 
     @property
@@ -282,9 +283,11 @@ class Pairer:
 
     @property
     def buffered_joint_samples(self) -> int:
+        """Joint samples held for pairing (bounded by the buffer duration)."""
         return len(self._entries)
 
     def add_joint_samples(self, samples: Iterable[JointSample]) -> None:
+        """Add each of ``samples`` in turn, see :meth:`add_joint_sample`."""
         for sample in samples:
             self.add_joint_sample(sample)
 
@@ -407,7 +410,7 @@ class Pairer:
         decided, self._decided = self._decided, []
         return decided
 
-    def _decide_early(self, due) -> None:
+    def _decide_early(self, due: Callable[[int], bool]) -> None:
         keep = []
         for deadline, point in self._early:
             if due(deadline):
@@ -425,7 +428,8 @@ class Pairer:
         decided, self._decided = self._decided, []
         return decided
 
-    def _indices(self, names: tuple[str, ...]):
+    def _indices(self, names: tuple[str, ...]
+                 ) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:
         cached = self._index_cache.get(names)
         if cached is not None:
             self._index_cache.move_to_end(names)
@@ -527,7 +531,7 @@ def pair_measurements(
     point_samples: Iterable[PointSample],
     joint_names: Sequence[str],
     tracker_frame: str,
-    **pairer_options,
+    **pairer_options: Any,
 ) -> PairingResult:
     """Pair recorded streams with :class:`Pairer` (keyword options are passed to it).
 

@@ -62,6 +62,7 @@ class ParameterSet:
             raise KeyError(f'unknown parameter {name!r}') from None
 
     def indices(self, names: list[str] | tuple[str, ...]) -> np.ndarray:
+        """Positions (len(names),) of ``names`` in the vector; KeyError naming an unknown one."""
         return np.array([self.index(n) for n in names], dtype=int)
 
     def extended(self, names: list[str], nominal: np.ndarray,

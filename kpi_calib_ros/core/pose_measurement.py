@@ -25,12 +25,14 @@ from typing import Sequence
 import casadi as ca
 import numpy as np
 
+from kpi_calib_ros.core.kinematics import Expr
+
 # Below this sin²θ the logarithm uses its series: θ/sin θ = 1 + sin²θ/6 + O(θ⁴), with an
 # error below 1e-16 there, and neither branch divides by zero (both are evaluated).
 _SERIES_BELOW = 1e-8
 
 
-def log3_expression(rotation):
+def log3_expression(rotation: ca.SX) -> ca.SX:
     """SO(3) logarithm (3,) of a 3x3 CasADi rotation: axis · angle (rad), angle in [0, π).
 
     Smooth at the identity (where the residuals of a fit sit), exact elsewhere; at an
@@ -52,7 +54,7 @@ def measured_rotation_input(rotations: np.ndarray) -> np.ndarray:
     return r.transpose(0, 2, 1).reshape(-1, 9)
 
 
-def rotation_residual_expression(measured9, predicted, scale):
+def rotation_residual_expression(measured9: Expr, predicted: Expr, scale: Expr) -> ca.SX:
     """Rotation row prediction ``log3(R_mᵀ R(p, q)) ⊙ scale`` (3,): with ``eta = 0`` the
     residual ``eta - h`` is ``log3(R(p, q)ᵀ R_m) ⊙ scale``, the measured rotation relative
     to the predicted one in the body frame (scale: σ/σ_rot per axis, m/rad)."""

@@ -26,10 +26,14 @@ import numpy as np
 import scipy.stats
 
 from kpi_calib_ros.core.estimation import CalibrationResult, point_sigma_squares
-from kpi_calib_ros.core.prior import Prior
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
-from kpi_calib_ros.core.residuals import (ADEQUACY_ALPHA, LEAVE_ONE_OUT, cross_validated_rms,
-                                         is_adequate)
+from kpi_calib_ros.core.prior import Prior
+from kpi_calib_ros.core.residuals import (
+    ADEQUACY_ALPHA,
+    LEAVE_ONE_OUT,
+    cross_validated_rms,
+    is_adequate,
+)
 
 
 def noise_scale(result: CalibrationResult, alpha: float = ADEQUACY_ALPHA) -> float:
@@ -124,6 +128,8 @@ class ExpectedTcpError:
 
     @property
     def basis(self) -> str:
+        """What the expected TCP error rests on: the parameter part alone, or with the
+        systematic misfit (and its figures in µm), or unknown."""
         if self.adequate:
             return ('model adequate (chi2 accepts it): the expected TCP error is the '
                     'parameter part tcp_std_m alone')
@@ -136,6 +142,7 @@ class ExpectedTcpError:
                 f'{self.noise_floor_m * 1e6:.1f} um); tcp_std_m is the parameter part only')
 
     def to_dict(self) -> dict:
+        """YAML-ready form (m); a figure that is not finite is None."""
         def metres(v: float) -> float | None:
             return float(v) if np.isfinite(v) else None
         return {'tcp_std_m': {n: metres(v) for n, v in zip(self.working_pose_names,

@@ -80,6 +80,7 @@ class Prior:
 
     @property
     def std(self) -> np.ndarray:
+        """Standard deviations (n,) of the prior, the parameters' units."""
         return np.sqrt(np.diag(self.covariance))
 
     def rows(self, params: ParameterSet) -> tuple[np.ndarray, np.ndarray]:
@@ -347,6 +348,7 @@ class DriftSwing:
         return np.diag([1.0, self.omega ** 2])
 
     def to_dict(self) -> dict:
+        """YAML-ready form (K, rad, h)."""
         return {'temperature_k': float(self.temperature_k), 'offset_rad': float(self.offset_rad),
                 'period_hours': float(self.period_hours)}
 
@@ -400,6 +402,7 @@ class DriftState:
         return self.state[len(self.names):]
 
     def to_dict(self) -> dict:
+        """YAML-ready form: names, state, covariance and cross-covariance (SI units)."""
         return {'names': list(self.names), 'values': [float(x) for x in self.state],
                 'covariance': [[float(x) for x in row] for row in self.covariance],
                 'cross_covariance': [[float(x) for x in row] for row in self.cross]}

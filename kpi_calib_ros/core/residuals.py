@@ -12,13 +12,20 @@ with folds that keep every identified parameter determined.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Iterator
 
 import numpy as np
 import scipy.stats
 
 from kpi_calib_ros.core.estimation import CalibrationResult
-from kpi_calib_ros.core.measurement import (MeasurementModel, Measurements, noise_weights,
-                                            unweighted, weighted_residuals, weighted_rows)
+from kpi_calib_ros.core.measurement import (
+    MeasurementModel,
+    Measurements,
+    noise_weights,
+    unweighted,
+    weighted_residuals,
+    weighted_rows,
+)
 from kpi_calib_ros.core.robust import SIGMA_RATIO_WARNING, robust_sigma, sigma_warning
 
 PERCENTILES = (50, 90, 95, 99)
@@ -140,6 +147,11 @@ def sigma_overstated_text(chi2: float, dof: int, lower_p: float,
 
 def linearized_fit(model: MeasurementModel, data: Measurements, result: CalibrationResult,
             tau: np.ndarray | None = None) -> LinearizedFit:
+    """The calibration ``result`` linearized at p̂ over ``data`` (N poses).
+
+    Residuals and Jacobian rows are whitened as in the fit (each point's stated σ where
+    given); ``tau`` (N, n) are the gravity torques (computed from the model when it needs
+    them and None is given)."""
     q = np.atleast_2d(data.q)
     if tau is None and model.uses_torque:
         tau = model.robot.gravity_torques(q)
@@ -154,6 +166,10 @@ def linearized_fit(model: MeasurementModel, data: Measurements, result: Calibrat
 
 
 def orthonormal_basis(a: np.ndarray) -> np.ndarray:
+    """Orthonormal basis (m, r) of the column span of ``a`` (m, k), zero columns dropped.
+
+    Columns are normalized first, so r is the numerical rank at 1e-9 of the largest
+    singular value whatever the columns' units."""
     norms = np.linalg.norm(a, axis=0)
     a = a[:, norms > 0] / norms[norms > 0]
     u, s, _ = np.linalg.svd(a, full_matrices=False)
@@ -217,7 +233,8 @@ RANK_TOLERANCE = 1e-9
 LEAVE_ONE_OUT = 0  # ``folds`` value: every pose its own fold (exact, the default)
 
 
-def _fold_blocks(a: np.ndarray, pose_folds: np.ndarray, u: np.ndarray | None = None):
+def _fold_blocks(a: np.ndarray, pose_folds: np.ndarray, u: np.ndarray | None = None
+                 ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """(rows, I − H_FF) of each fold F, H = U Uᵀ the hat matrix of span(a)."""
     u = orthonormal_basis(a) if u is None else u
     rows = np.repeat(pose_folds, 3)

@@ -131,18 +131,22 @@ class RobotModel:
     # ------------------------------------------------------------------ structure
     @property
     def joint_names(self) -> list[str]:
+        """Chain joint names, base to tip."""
         return [j.name for j in self.joints]
 
     @property
     def n_joints(self) -> int:
+        """Number of chain joints n."""
         return len(self.joints)
 
     @property
     def lower(self) -> np.ndarray:
+        """Lower joint limits (n,) (rad or m), chain order."""
         return np.array([j.lower for j in self.joints])
 
     @property
     def upper(self) -> np.ndarray:
+        """Upper joint limits (n,) (rad or m), chain order."""
         return np.array([j.upper for j in self.joints])
 
     @property

@@ -24,6 +24,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from kpi_calib_ros.core.errors import ConfigError
 
@@ -143,7 +144,7 @@ def _composite_inertia(mass: float, shapes: list[_Shape]) -> tuple[np.ndarray, n
     return com, inertia
 
 
-def _f(values) -> str:
+def _f(values: ArrayLike) -> str:
     # 12 significant digits keep FK exact to ~1e-12 m while the files stay readable;
     # adding 0.0 turns -0.0 into 0.0 so regenerated files never drift.
     return ' '.join(f'{float(v) + 0.0:.12g}' for v in np.atleast_1d(values))
@@ -172,7 +173,8 @@ def _link_xml(name: str, mass: float, shapes: list[_Shape]) -> str:
     return '\n'.join(parts + ['  </link>'])
 
 
-def _joint_xml(name: str, parent: str, child: str, xyz, rpy, axis=None,
+def _joint_xml(name: str, parent: str, child: str, xyz: ArrayLike, rpy: ArrayLike,
+               axis: ArrayLike | None = None,
                limits: tuple[float, float, float, float] | None = None) -> str:
     """Revolute joint if ``axis`` is given (limits: lower, upper, effort, velocity), else fixed."""
     kind = 'fixed' if axis is None else 'revolute'

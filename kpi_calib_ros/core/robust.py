@@ -43,8 +43,12 @@ import scipy.stats
 
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation import MAX_START_ERROR, CalibrationResult
-from kpi_calib_ros.core.measurement import (MeasurementModel, Measurements, noise_weights,
-                                            weighted_residuals)
+from kpi_calib_ros.core.measurement import (
+    MeasurementModel,
+    Measurements,
+    noise_weights,
+    weighted_residuals,
+)
 from kpi_calib_ros.core.outliers import judge, pose_groups
 
 LOSSES = ('linear', 'huber', 'soft_l1')

@@ -60,13 +60,18 @@ import scipy.stats
 
 from kpi_calib_ros.core.design_cell import DesignCell
 from kpi_calib_ros.core.design_criteria import DesignProblem, scales
-from kpi_calib_ros.core.design_exchange import exchange, information
+from kpi_calib_ros.core.design_exchange import Loss, exchange, information
 from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.estimability import result_estimability
 from kpi_calib_ros.core.estimation import CalibrationResult, identify
 from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.robust import (ExcludedMeasurement, OutlierSettings, RobustResult,
-                                       robust_identify)
+from kpi_calib_ros.core.robust import (
+    ExcludedMeasurement,
+    Fit,
+    OutlierSettings,
+    RobustResult,
+    robust_identify,
+)
 
 TARGET_MET = 'target met'
 # Look-ahead of the plan (poses): the next-pose step must stay below 1 s on two cores.
@@ -193,6 +198,7 @@ class CampaignStatus:
 
     @property
     def stopped(self) -> bool:
+        """Whether the campaign has a stop reason."""
         return bool(self.stop_reason)
 
     def to_dict(self, working_pose_names: Sequence[str]) -> dict:
@@ -244,6 +250,7 @@ class SimulatedRun:
 
     @property
     def final(self) -> CampaignStatus:
+        """The last status of the campaign."""
         return self.history[-1]
 
 
@@ -555,7 +562,7 @@ class SequentialCampaign:
         return self._replicate_fault(data, robust, fit)
 
     def _replicate_fault(self, data: Measurements, robust: RobustResult,
-                         fit) -> RobustResult:
+                         fit: Fit) -> RobustResult:
         """A pose measured more than once whose readings disagree: the reading whose
         removal lets the fit pass the χ² test is a fault (the replicate agrees with the
         model, the first reading does not); a misfit fails with either removed, so
@@ -703,7 +710,7 @@ class SequentialCampaign:
         return int(np.clip(np.ceil(need), 1, max(1, min(left, MAX_HORIZON))))
 
 
-def plan_ahead(rows: np.ndarray, info: np.ndarray, m: int, loss,
+def plan_ahead(rows: np.ndarray, info: np.ndarray, m: int, loss: Loss,
                exclude: np.ndarray, max_sweeps: int = PLAN_SWEEPS,
                start_plan: Sequence[int] = ()) -> np.ndarray:
     """``m`` candidates that, added to the measured information ``info`` (k, k), lower
@@ -751,7 +758,7 @@ def plan_ahead(rows: np.ndarray, info: np.ndarray, m: int, loss,
     return np.array(chosen)[np.argsort(first, kind='stable')]
 
 
-def nested_order(rows: np.ndarray, design: np.ndarray, loss, n_min: int) -> np.ndarray:
+def nested_order(rows: np.ndarray, design: np.ndarray, loss: Loss, n_min: int) -> np.ndarray:
     """The poses of ``design`` (indices into ``rows`` (c, 3, k)) ordered so that every
     prefix of at least ``n_min`` poses is a good design of its size: backward
     elimination, repeatedly removing the pose whose removal raises ``loss`` least (never

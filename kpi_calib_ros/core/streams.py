@@ -15,10 +15,12 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from kpi_calib_ros.core.pose_measurement import rotation_from_quaternion
 
-def frozen_array(values, shape: tuple[int, ...], name: str) -> np.ndarray:
+
+def frozen_array(values: ArrayLike, shape: tuple[int, ...], name: str) -> np.ndarray:
     """``values`` as a read-only float array of ``shape``; ValueError naming ``name``."""
     array = np.array(values, dtype=float)
     if array.shape != shape:

@@ -89,6 +89,7 @@ class Validation:
 
     @property
     def holds(self) -> bool:
+        """Whether the calibration passes: p-value at least ``alpha``."""
         return bool(self.p_value >= self.alpha)
 
     @property
@@ -97,7 +98,7 @@ class Validation:
         return _rms(self.residuals)
 
     def rms_where(self, mask: np.ndarray) -> float:
-        """rms (m) over the points of ``mask`` (NaN when there are none)."""
+        """Root mean square (m) over the points of ``mask`` (NaN when there are none)."""
         return _rms(self.residuals[mask]) if np.any(mask) else float('nan')
 
 

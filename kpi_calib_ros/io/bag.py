@@ -27,15 +27,27 @@ from mcap_ros2.decoder import DecoderFactory
 
 from kpi_calib_ros.core.pairing import Pairer
 from kpi_calib_ros.core.streams import JointSample, PointSample
-from kpi_calib_ros.io.bag_writing import (DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC,
-                                          JOINT_STATE_TYPE, LIBRARY, POINT_STAMPED_TYPE,
-                                          POSE_STAMPED_TYPE, VECTOR3_STAMPED_TYPE,
-                                          StreamEncoders, message_definition, type_hash,
-                                          write_bag)
+from kpi_calib_ros.io.bag_writing import (
+    DEFAULT_JOINT_TOPIC,
+    DEFAULT_POINT_TOPIC,
+    JOINT_STATE_TYPE,
+    LIBRARY,
+    POINT_STAMPED_TYPE,
+    POSE_STAMPED_TYPE,
+    VECTOR3_STAMPED_TYPE,
+    StreamEncoders,
+    message_definition,
+    type_hash,
+    write_bag,
+)
 from kpi_calib_ros.io.mcap_scan import MAGIC, BagError, ScannedBag, scan
 from kpi_calib_ros.io.names import DEFAULT_POSE_TOPIC, point_sigma_topic
-from kpi_calib_ros.io.ros_messages import (JointStateDecoder, point_sample_from_message,
-                                           pose_sample_from_message, stamp_ns)
+from kpi_calib_ros.io.ros_messages import (
+    JointStateDecoder,
+    point_sample_from_message,
+    pose_sample_from_message,
+    stamp_ns,
+)
 
 # The metadata record by which a measurement log marks itself (see read_for_pairing).
 LOG_METADATA = 'kpi_calib_ros'

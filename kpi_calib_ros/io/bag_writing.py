@@ -30,16 +30,22 @@ import numpy as np
 from mcap.well_known import MessageEncoding, SchemaEncoding
 from mcap.writer import LIBRARY_IDENTIFIER, CompressionType
 from mcap.writer import Writer as McapWriter
+
 # The encoder that mcap_ros2.writer.Writer uses internally; that Writer cannot set
 # channel metadata, which rosbag2 readers expect.
 from mcap_ros2._dynamic import serialize_dynamic
 
-from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, DEFAULT_POSE_TOPIC
 from kpi_calib_ros.core.streams import JointSample, PointSample
 from kpi_calib_ros.io.mcap_scan import BagError
-from kpi_calib_ros.io.ros_messages import (joint_state_fields, point_stamped_fields,
-                                           pose_stamped_fields, stamp_fields,
-                                           temperature_fields, vector3_stamped_fields)
+from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, DEFAULT_POSE_TOPIC
+from kpi_calib_ros.io.ros_messages import (
+    joint_state_fields,
+    point_stamped_fields,
+    pose_stamped_fields,
+    stamp_fields,
+    temperature_fields,
+    vector3_stamped_fields,
+)
 
 JOINT_STATE_TYPE = 'sensor_msgs/msg/JointState'
 POINT_STAMPED_TYPE = 'geometry_msgs/msg/PointStamped'

@@ -53,12 +53,12 @@ from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation import DEFAULT_MAX_ITERATIONS
 from kpi_calib_ros.core.gravity_compliance import mass_warning
 from kpi_calib_ros.core.kinematics import pose6
-from kpi_calib_ros.core.model_selection import DEFAULT_FOLDS, MODEL_CHOICES
-from kpi_calib_ros.core.robust import LOSSES, OutlierSettings
 from kpi_calib_ros.core.measurement import MeasurementModel
+from kpi_calib_ros.core.model_selection import DEFAULT_FOLDS, MODEL_CHOICES
 from kpi_calib_ros.core.parameters import ParameterSet, geometric_parameters
 from kpi_calib_ros.core.pose_measurement import rotation_from_quaternion, rotation_from_rpy
 from kpi_calib_ros.core.robot import Payload, RobotModel
+from kpi_calib_ros.core.robust import LOSSES, OutlierSettings
 from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, DEFAULT_POSE_TOPIC
 from kpi_calib_ros.io.resources import resolve_uri
 from kpi_calib_ros.io.results import write_atomic

@@ -30,11 +30,21 @@ from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.pairing import REFLECTOR_SEPARATOR
 from kpi_calib_ros.core.streams import JointSample, PointSample
 from kpi_calib_ros.io.bag_writing import BagStream
-from kpi_calib_ros.io.csv_mapping import (CsvMapping, MarkerColumns, load_mapping,
-                                          mapping_from_dict, time_zone)
+from kpi_calib_ros.io.csv_mapping import (
+    CsvMapping,
+    MarkerColumns,
+    load_mapping,
+    mapping_from_dict,
+    time_zone,
+)
 from kpi_calib_ros.io.csv_table import TableFormat, detect_format, read_table
-from kpi_calib_ros.io.names import (DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, DEFAULT_POSE_TOPIC,
-                                    DEFAULT_TEMPERATURE_TOPIC, point_sigma_topic)
+from kpi_calib_ros.io.names import (
+    DEFAULT_JOINT_TOPIC,
+    DEFAULT_POINT_TOPIC,
+    DEFAULT_POSE_TOPIC,
+    DEFAULT_TEMPERATURE_TOPIC,
+    point_sigma_topic,
+)
 
 # Synthetic stamps when the table has none: one posture every few seconds from here.
 _START_NS = 1_700_000_000_000_000_000

@@ -30,8 +30,16 @@ from mcap.well_known import MessageEncoding, SchemaEncoding
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.pairing import PairingResult, split_frame, stacked_rotations
 from kpi_calib_ros.core.streams import JointSample, PointSample
-from kpi_calib_ros.io.bag import (DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, LIBRARY, LOG_CONTENT,
-                                  LOG_METADATA, BagError, StreamEncoders, read_log)
+from kpi_calib_ros.io.bag import (
+    DEFAULT_JOINT_TOPIC,
+    DEFAULT_POINT_TOPIC,
+    LIBRARY,
+    LOG_CONTENT,
+    LOG_METADATA,
+    BagError,
+    StreamEncoders,
+    read_log,
+)
 from kpi_calib_ros.io.mcap_scan import MAGIC
 from kpi_calib_ros.io.names import DEFAULT_POSE_TOPIC
 

@@ -96,8 +96,10 @@ def find_package(package: str, package_dirs: Sequence[str | Path] = ()) -> tuple
     prefixes = ament_prefixes()
     if ament_env:
         try:  # the ROS implementation when it is there, so both always agree
-            from ament_index_python.packages import (PackageNotFoundError,
-                                                     get_package_share_directory)
+            from ament_index_python.packages import (
+                PackageNotFoundError,
+                get_package_share_directory,
+            )
         except ImportError:
             pass
         else:

@@ -25,8 +25,12 @@ from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.pairing import PairingResult
 from kpi_calib_ros.core.precision import precision_statement
-from kpi_calib_ros.core.residuals import (SIGMA_OVERSTATED, is_adequate, noise_verdict,
-                                          sigma_overstated_text)
+from kpi_calib_ros.core.residuals import (
+    SIGMA_OVERSTATED,
+    is_adequate,
+    noise_verdict,
+    sigma_overstated_text,
+)
 from kpi_calib_ros.io.names import CALIBRATION_FILE, truth_path
 
 

@@ -25,8 +25,11 @@ import pinocchio as pin
 from kpi_calib_ros.core.capsule_fit import capsules_from_urdf
 from kpi_calib_ros.core.collision import Capsule, HalfSpace, capsule_margin, halfspace_margin
 from kpi_calib_ros.core.collision_check import MeshCheck, mesh_collisions
-from kpi_calib_ros.core.collision_matrix import (CollisionMatrix, classify_link_pairs,
-                                                 link_transforms)
+from kpi_calib_ros.core.collision_matrix import (
+    CollisionMatrix,
+    classify_link_pairs,
+    link_transforms,
+)
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.robot import RobotModel
 from kpi_calib_ros.io.resources import resolve_mesh_uris

@@ -17,15 +17,20 @@ import shutil
 import threading
 import time
 from collections import Counter, deque
-from typing import Sequence
 from pathlib import Path
-
+from typing import Sequence
 
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.measurement import Measurements
+from kpi_calib_ros.core.pairing import (
+    REJECTION_REASONS,
+    Decision,
+    PairedMeasurement,
+    Pairer,
+    PairingResult,
+    Rejection,
+)
 from kpi_calib_ros.core.streams import JointSample, PointSample
-from kpi_calib_ros.core.pairing import (REJECTION_REASONS, Decision, PairedMeasurement, Pairer,
-                                        PairingResult, Rejection)
 from kpi_calib_ros.io.measurement_log import MeasurementLog, stored_pairing
 from kpi_calib_ros.io.names import RESULT_FILES
 

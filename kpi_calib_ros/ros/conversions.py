@@ -17,6 +17,7 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from visualization_msgs.msg import Marker, MarkerArray
 
 from kpi_calib_ros.core.collision import BASE, Capsule
+
 # The one message <-> sample and time conversion, shared with the bag reader and writer,
 # so live and recorded data agree.
 from kpi_calib_ros.io.ros_messages import joint_sample_from_message as joint_sample_from_msg

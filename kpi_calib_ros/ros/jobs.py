@@ -18,33 +18,50 @@ import yaml
 from geometry_msgs.msg import PoseWithCovarianceStamped
 
 from kpi_calib_ros.app.campaign import campaign_calibration, campaign_context, new_campaign
-from kpi_calib_ros.app.design import (controller_design, design_cell_model, design_estimability,
-                                      drawn_robots_section)
+from kpi_calib_ros.app.design import (
+    controller_design,
+    design_cell_model,
+    design_estimability,
+    drawn_robots_section,
+)
+from kpi_calib_ros.app.diagnose import diagnose_cell
+from kpi_calib_ros.app.identify import (
+    CellCalibration,
+    add_robust_sections,
+    calibrate_cell,
+    calibration_document,
+    write_results,
+)
+from kpi_calib_ros.app.reidentify import cycle_prior, reidentification_document, reidentify
+from kpi_calib_ros.app.validate import validate_report
+from kpi_calib_ros.core.change_detection import ChangeTest
 from kpi_calib_ros.core.design import DesignResult
-from kpi_calib_ros.core.errors import DataError
+from kpi_calib_ros.core.errors import DataError, KpiCalibError
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.pairing import PairingResult
-from kpi_calib_ros.core.sequential import (MODEL_INADEQUATE, CampaignSettings, CampaignStatus,
-                                           SequentialCampaign)
+from kpi_calib_ros.core.prior import DriftSwing
+from kpi_calib_ros.core.sequential import (
+    MODEL_INADEQUATE,
+    CampaignSettings,
+    CampaignStatus,
+    SequentialCampaign,
+)
+from kpi_calib_ros.io.calibration_file import read_calibration_document
 from kpi_calib_ros.io.campaign_io import CampaignState, write_campaign_state, write_plan
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.design_io import write_design
-from kpi_calib_ros.app.diagnose import diagnose_cell
-from kpi_calib_ros.app.validate import validate_report
+from kpi_calib_ros.io.names import (
+    CALIBRATIONS_DIR,
+    CAMPAIGN_PLAN_FILE,
+    CAMPAIGN_STATE_FILE,
+    DESIGN_FILE,
+    DIAGNOSIS_DIR,
+    VALIDATION_DIR,
+)
 from kpi_calib_ros.io.report import diagnosis_to_dict, write_report
-from kpi_calib_ros.app.identify import (CellCalibration, add_robust_sections,
-                                        calibrate_cell, calibration_document, write_results)
-from kpi_calib_ros.app.reidentify import cycle_prior, reidentification_document, reidentify
-from kpi_calib_ros.core.prior import DriftSwing
-from kpi_calib_ros.core.change_detection import ChangeTest
-from kpi_calib_ros.core.errors import KpiCalibError
-from kpi_calib_ros.io.calibration_file import read_calibration_document
-from kpi_calib_ros.io.names import (CALIBRATIONS_DIR, CAMPAIGN_PLAN_FILE, CAMPAIGN_STATE_FILE,
-                                    DESIGN_FILE, DIAGNOSIS_DIR, VALIDATION_DIR)
 from kpi_calib_ros.io.results import write_atomic
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros.parameters import NodeSettings
-
 
 
 def design_work(cm: CellModel, settings: NodeSettings,

@@ -47,8 +47,11 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped, PoseStamped, PoseWithCovarianceStamped
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.exceptions import (InvalidParameterTypeException, InvalidParameterValueException,
-                              ParameterUninitializedException)
+from rclpy.exceptions import (
+    InvalidParameterTypeException,
+    InvalidParameterValueException,
+    ParameterUninitializedException,
+)
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -61,30 +64,42 @@ from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import MarkerArray
 
+from kpi_calib_ros.app.identify import pose_rows, urdf_measurements
 from kpi_calib_ros.core.collision import Capsule
 from kpi_calib_ros.core.errors import ConfigError, DataError, KpiCalibError
 from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.prior import DriftSwing
 from kpi_calib_ros.core.pairing import Decision, Rejection
 from kpi_calib_ros.core.precision import precision_statement
+from kpi_calib_ros.core.prior import DriftSwing
 from kpi_calib_ros.core.residuals import is_adequate
 from kpi_calib_ros.core.robust import RobustResult
-from kpi_calib_ros.app.identify import pose_rows, urdf_measurements
-from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell, with_overrides
 from kpi_calib_ros.core.sequential import MODEL_INADEQUATE, CampaignStatus, SequentialCampaign
 from kpi_calib_ros.io.campaign_io import CampaignState, read_campaign_state
-from kpi_calib_ros.io.names import (CALIBRATED_URDF_TOPIC, CALIBRATION_TOPIC,
-                                    CAMPAIGN_STATE_FILE, CAMPAIGN_STATUS_TOPIC,
-                                    CHANGE_TEST_TOPIC, DIAGNOSIS_TOPIC, DIAGNOSTICS_TOPIC,
-                                    MARKERS_TOPIC, MEASUREMENT_POSES_TOPIC,
-                                    TCP_TOPIC, VALIDATION_TOPIC)
+from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell, with_overrides
+from kpi_calib_ros.io.names import (
+    CALIBRATED_URDF_TOPIC,
+    CALIBRATION_TOPIC,
+    CAMPAIGN_STATE_FILE,
+    CAMPAIGN_STATUS_TOPIC,
+    CHANGE_TEST_TOPIC,
+    DIAGNOSIS_TOPIC,
+    DIAGNOSTICS_TOPIC,
+    MARKERS_TOPIC,
+    MEASUREMENT_POSES_TOPIC,
+    TCP_TOPIC,
+    VALIDATION_TOPIC,
+)
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros import jobs
 from kpi_calib_ros.ros.campaign import Campaign
 from kpi_calib_ros.ros.child_process import run_in_child
-from kpi_calib_ros.ros.parameters import (PARAMETERS, settings_from_parameters, type_error,
-                                          working_poses)
+from kpi_calib_ros.ros.parameters import (
+    PARAMETERS,
+    settings_from_parameters,
+    type_error,
+    working_poses,
+)
 
 NODE_NAME = 'kpi_calib_node'
 # Parameters a running sequential campaign was started with: refused while it runs (its

@@ -18,8 +18,12 @@ from kpi_calib_ros.core.design import DESIGN_CRITERIA
 from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.prior import DriftSwing
 from kpi_calib_ros.io.cell import DEFAULT_CELL, WorkingPose, working_poses_from_arrays
-from kpi_calib_ros.io.names import (DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC,
-                                    DEFAULT_POSE_TOPIC, ROBOT_DESCRIPTION_TOPIC)
+from kpi_calib_ros.io.names import (
+    DEFAULT_JOINT_TOPIC,
+    DEFAULT_POINT_TOPIC,
+    DEFAULT_POSE_TOPIC,
+    ROBOT_DESCRIPTION_TOPIC,
+)
 
 
 @dataclass(frozen=True)

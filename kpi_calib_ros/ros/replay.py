@@ -40,8 +40,12 @@ from sensor_msgs.msg import JointState
 
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.streams import JointSample
-from kpi_calib_ros.io.bag import (DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, is_measurement_log,
-                                  read_bag)
+from kpi_calib_ros.io.bag import (
+    DEFAULT_JOINT_TOPIC,
+    DEFAULT_POINT_TOPIC,
+    is_measurement_log,
+    read_bag,
+)
 from kpi_calib_ros.io.mcap_scan import MAGIC, scan
 from kpi_calib_ros.io.names import DEFAULT_POSE_TOPIC
 from kpi_calib_ros.io.ros_messages import pose_stamped_msg
