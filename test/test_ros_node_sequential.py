@@ -47,6 +47,24 @@ def measure(client: Client, names: list[str], q: np.ndarray, point: np.ndarray,
                                        point=Point(x=x, y=y, z=z)))
 
 
+def assert_offline_campaign_agrees(cm, initial, measured_q, measured_eta, status) -> None:
+    """The campaign run offline on the node's measurements has the node's initial design,
+    plans every next pose the node planned (1e-9) and stops at its statistic."""
+    cell, ctx = campaign_context(cm, 0)
+    offline = new_campaign(cm, cell, ctx, CampaignSettings(target_std=TARGET,
+                                                           max_measurements=80), 0)
+    first = ctx.candidates.configurations[offline.initial_design()]
+    assert np.allclose(first, initial, atol=1e-12)
+    q_all, eta_all = np.array(measured_q), np.array(measured_eta)
+    result = offline.add(q_all[:len(initial)], eta_all[:len(initial)])
+    for i in range(len(initial), len(q_all)):
+        assert np.allclose(result.next_configurations[0], q_all[i], atol=1e-9), (
+            f'measurement {i}: the node planned another pose than the campaign offline')
+        result = offline.add(q_all[i:i + 1], eta_all[i:i + 1])
+    assert result.stop_reason == TARGET_MET
+    assert result.statistic == pytest.approx(status['statistic_m'], rel=1e-6)
+
+
 def test_sequential_campaign_stops_by_itself_at_the_target(ros_domain, tmp_path, cm):
     rng = np.random.default_rng(31)
     p_true = true_parameters(cm.model.params, rng)
@@ -116,18 +134,7 @@ def test_sequential_campaign_stops_by_itself_at_the_target(ros_domain, tmp_path,
         client.close()
     # The same campaign offline on the same measurements: same initial design, same plan,
     # same figures (the node only converts and calls the core).
-    cell, ctx = campaign_context(cm, 0)
-    offline = new_campaign(cm, cell, ctx, CampaignSettings(target_std=TARGET,
-                                                           max_measurements=80), 0)
-    first = ctx.candidates.configurations[offline.initial_design()]
-    assert np.allclose(first, initial, atol=1e-12)
-    q_all, eta_all = np.array(measured_q), np.array(measured_eta)
-    result = offline.add(q_all[:len(initial)], eta_all[:len(initial)])
-    for i in range(len(initial), len(q_all)):
-        assert np.allclose(result.next_configurations[0], q_all[i], atol=1e-9)
-        result = offline.add(q_all[i:i + 1], eta_all[i:i + 1])
-    assert result.stop_reason == TARGET_MET
-    assert result.statistic == pytest.approx(status['statistic_m'], rel=1e-6)
+    assert_offline_campaign_agrees(cm, initial, measured_q, measured_eta, status)
 
 
 def test_campaign_survives_a_fault_a_kill_and_a_parameter_change(ros_domain, tmp_path, cm):
@@ -288,16 +295,4 @@ def test_campaign_survives_a_fault_a_kill_and_a_parameter_change(ros_domain, tmp
         client.close()
     # The same campaign offline: the node's plan after the restart is the one an
     # uninterrupted campaign makes.
-    cell, ctx = campaign_context(cm, 0)
-    offline = new_campaign(cm, cell, ctx, CampaignSettings(target_std=TARGET,
-                                                           max_measurements=80), 0)
-    first = ctx.candidates.configurations[offline.initial_design()]
-    assert np.allclose(first, initial, atol=1e-12)
-    q_all, eta_all = np.array(measured_q), np.array(measured_eta)
-    result = offline.add(q_all[:len(initial)], eta_all[:len(initial)])
-    for i in range(len(initial), len(q_all)):
-        assert np.allclose(result.next_configurations[0], q_all[i], atol=1e-9), (
-            f'measurement {i}: the node planned another pose than the campaign offline')
-        result = offline.add(q_all[i:i + 1], eta_all[i:i + 1])
-    assert result.stop_reason == TARGET_MET
-    assert result.statistic == pytest.approx(status['statistic_m'], rel=1e-6)
+    assert_offline_campaign_agrees(cm, initial, measured_q, measured_eta, status)
