@@ -16,7 +16,6 @@ another iteration limit).
 """
 from __future__ import annotations
 
-import csv
 import sys
 import time
 from pathlib import Path
@@ -39,6 +38,8 @@ from kpi_calib_ros.core.simulation import (
     true_parameters,
 )
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict, load_cell
+from kpi_calib_ros.io.csv_import import read_postures
+from kpi_calib_ros.io.csv_mapping import load_mapping
 
 SIGMA = 20e-6
 N_POSES = 60
@@ -49,25 +50,20 @@ SAME_COST = 1e-6
 
 _BESIDE = Path(__file__).resolve().parents[2] / 'shared' / 'data' / 'ipa_ur10'
 DATA = _BESIDE if _BESIDE.is_dir() else Path('/work/shared/data/ipa_ur10')
-JOINTS = ['shoulder_pan_joint', 'shoulder_lift_joint', 'elbow_joint', 'wrist_1_joint',
-          'wrist_2_joint', 'wrist_3_joint']
+MAPPING = Path(__file__).resolve().parents[1] / 'test' / 'data' / 'ipa_ur10_mapping.yaml'
 # Laser tracker + probe, per axis (README of the data: AT960 at 3-3.5 m).
 UR10_SIGMA = 20e-6
 
 
-def _decimal(text: str) -> float:
-    return float(text.replace(',', '.'))  # the series writes decimal commas
-
-
 def ur10_series_a(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """``n`` poses of Series A drawn over the night (seeded): joint values (rad, by name)
-    and the probe origin in the tracker frame (m)."""
-    with (DATA / 'Series_A' / 'measurements_grid.csv').open(newline='') as fh:
-        rows = list(csv.DictReader(fh, delimiter=';'))
+    and the probe origin in the tracker frame (m), read as import-csv reads the table."""
+    rows = list(read_postures(DATA / 'Series_A' / 'measurements_grid.csv',
+                              load_mapping(MAPPING)))
     pick = np.sort(np.random.default_rng(seed).choice(len(rows), n, replace=False))
-    q = np.array([[_decimal(rows[i][j]) for j in JOINTS] for i in pick])
-    eta = np.array([[_decimal(rows[i][f'measurement_{c}']) for c in 'xyz'] for i in pick])
-    return q, eta * 1e-3
+    q = np.array([rows[i].q for i in pick])
+    eta = np.array([rows[i].points[0][1] for i in pick])
+    return q, eta
 
 
 def ur10_cell():

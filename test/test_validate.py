@@ -26,6 +26,8 @@ from kpi_calib_ros.core.simulation import (
 from kpi_calib_ros.core.streams import synthesize_streams
 from kpi_calib_ros.io.bag_writing import write_bag
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict, load_cell
+from kpi_calib_ros.io.csv_import import read_postures
+from kpi_calib_ros.io.csv_mapping import mapping_from_dict
 from kpi_calib_ros.io.results import write_calibration
 
 
@@ -285,19 +287,19 @@ def test_validate_register_on_a_bag_recorded_with_the_tracker_set_up_again(setup
 # Beside the repository (../shared/data/ipa_ur10), else the shared folder.
 _UR10_BESIDE = Path(__file__).resolve().parents[2] / 'shared' / 'data' / 'ipa_ur10'
 UR10_DATA = _UR10_BESIDE if _UR10_BESIDE.is_dir() else Path('/work/shared/data/ipa_ur10')
-UR10_JOINTS = ['shoulder_pan_joint', 'shoulder_lift_joint', 'elbow_joint', 'wrist_1_joint',
-               'wrist_2_joint', 'wrist_3_joint']
+UR10_MAPPING = Path(__file__).parent / 'data' / 'ipa_ur10_mapping.yaml'
 
 
 def _ur10_series(path):
-    """Joint readings (rad) and probe origins (m, tracker frame) of one series' CSV
-    (';' separated, decimal commas, points in mm)."""
-    lines = [line.strip() for line in path.read_text().splitlines() if line.strip()]
-    head = lines[0].split(';')
-    table = np.array([[float(v.replace(',', '.')) for v in line.split(';')]
-                      for line in lines[1:]])
-    q = table[:, [head.index(n) for n in UR10_JOINTS]]
-    eta = table[:, [head.index(f'measurement_{c}') for c in 'xyz']] * 1e-3
+    """Joint readings (rad) and probe origins (m, tracker frame) of one series' CSV, read
+    as import-csv reads it (the shipped mapping; Series D's stamps are not usable, so the
+    rows are read without them)."""
+    doc = yaml.safe_load(UR10_MAPPING.read_text())
+    for key in ('stamp_columns', 'stamp_format', 'stamp_timezone'):
+        doc.pop(key)
+    rows = list(read_postures(path, mapping_from_dict(doc)))
+    q = np.array([r.q for r in rows])
+    eta = np.array([r.points[0][1] for r in rows])
     return Measurements(q=q, eta=eta, reflector=np.zeros(len(q), int))
 
 
