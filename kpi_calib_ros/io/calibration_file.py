@@ -15,8 +15,8 @@ from typing import Any
 import numpy as np
 
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.io.yaml_bounded import MAX_DOCUMENT_BYTES
 from kpi_calib_ros.io.yaml_bounded import load_yaml_bounded as _load_bounded
+from kpi_calib_ros.io.yaml_bounded import read_yaml_file
 
 FIX = 'give a calibration.yaml written by kpi-calib identify (unedited)'
 
@@ -38,16 +38,7 @@ def read_calibration_document(path: str | Path, key: str = 'calibration',
     if not path.is_file():
         raise ConfigError(key, f'file {str(path)!r} does not exist; give a calibration.yaml '
                           'written by kpi-calib identify')
-    try:
-        size = path.stat().st_size
-        if size > MAX_DOCUMENT_BYTES:
-            raise ConfigError(key, f'{path} is {size} bytes, more than the '
-                              f'{MAX_DOCUMENT_BYTES} bytes a calibration document may have; '
-                              f'{FIX}')
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(key, f'cannot read {path}: {exc}') from None
-    doc = load_yaml_bounded(text, str(path), key)
+    doc = read_yaml_file(path, key, FIX)
     if not isinstance(doc, dict) or 'parameters' not in doc:
         raise ConfigError(key, f'{path} is not a calibration document (no parameters:)')
     check_calibration_document(doc, f'{key} {path}', required)
