@@ -26,14 +26,15 @@ POSES = 30
 
 
 @pytest.fixture(scope='module')
-def cell():
-    return load_cell(DEFAULT_CELL)
+def cell(cm):
+    """The built-in cell file as loaded (conftest's shared model's)."""
+    return cm.cell
 
 
 @pytest.fixture(scope='module')
-def exact(cell):
-    """The cell as written: exact joint readings."""
-    return build_cell_model(cell)
+def exact(cm):
+    """The cell as written: exact joint readings (conftest's shared model)."""
+    return cm
 
 
 @pytest.fixture(scope='module')

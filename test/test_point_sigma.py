@@ -27,13 +27,9 @@ POSES = 30
 
 
 @pytest.fixture(scope='module')
-def cell():
-    return load_cell(DEFAULT_CELL)
-
-
-@pytest.fixture(scope='module')
-def cm(cell):
-    return build_cell_model(cell)
+def cell(cm):
+    """The built-in cell file as loaded (conftest's shared model's)."""
+    return cm.cell
 
 
 def tracker_sigma(points: np.ndarray) -> np.ndarray:
