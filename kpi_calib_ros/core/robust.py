@@ -85,8 +85,6 @@ class ExcludedMeasurement:
     distance_m: float
     distance_sigma: float
     reason: str
-    # Excluded by the lone-point rule alone (no replicate confirmed it as a fault).
-    lone: bool = False
 
     def text(self) -> str:
         """The one line the log and the summary print: ``distance_sigma`` is the number
@@ -212,6 +210,7 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
     p0 = None
     rounds = 0
     lone_misfit = False
+    lone_excluded: set[int] = set()
     while True:
         try:
             result, omega = _fit_with_loss(fit, subset(data, kept), loss, p0, model, sigma)
@@ -241,22 +240,23 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
         # The faults within half the farthest one's distance: a batch a distorted fit
         # cannot have pushed good points into (swamping), then a refit.
         batch = fault & (t >= max(threshold, 0.5 * float(t[fault].max())))
-        if len(excluded) + int(batch.sum()) > max_excluded and not lone_misfit and (
-                batch & verdict.lone).any():
+        too_many = len(excluded) + int(batch.sum()) > max_excluded
+        if too_many and not lone_misfit and (batch & verdict.lone).any():
             # More lone "faults" than faults happen: points no replicate confirms, this
             # many, are the model's misfit (real arms with an effect the model lacks), not
             # the tracker's faults. Keep them all, those excluded before too, and refit.
             lone_misfit = True
-            restored = [e.index for e in excluded if e.lone]
+            restored = sorted(lone_excluded)
             kept[restored] = True
-            excluded = [e for e in excluded if not e.lone]
+            excluded = [e for e in excluded if e.index not in lone_excluded]
+            lone_excluded.clear()
             p0 = None  # from the start, as a fit that never excluded them
             if progress is not None:
                 progress(f'outliers: more than {outliers.max_fraction:.0%} of the points '
                          'would be excluded with no replicate to confirm them: taken as '
                          f'model misfit; {len(restored)} restored, refitting')
             continue
-        if len(excluded) + int(batch.sum()) > max_excluded:
+        if too_many:
             raise DataError(f'more than {outliers.max_fraction:.0%} of the {n} measurements '
                             f'lie beyond {threshold:.2f} σ̂ (σ̂ = {scale * 1e6:.1f} µm): the '
                             'model or the data is wrong, not a few points; run kpi-calib '
@@ -264,10 +264,11 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
         # The reason carries no distance of its own: distance_sigma (against the final
         # fit, below) is the one figure reported for the point.
         for i in np.flatnonzero(batch)[np.argsort(-t[batch])]:
-            excluded.append(replace(
-                _excluded(int(i), stamps, distances[i], tested[i] / scale,
-                          f'outlier: studentized residual beyond {threshold:.2f} σ̂ in the '
-                          'fit it was excluded from'), lone=bool(verdict.lone[i])))
+            excluded.append(_excluded(int(i), stamps, distances[i], tested[i] / scale,
+                                      f'outlier: studentized residual beyond {threshold:.2f} '
+                                      'σ̂ in the fit it was excluded from'))
+        # Excluded by the lone-point rule alone (no replicate confirmed them as faults).
+        lone_excluded.update(int(i) for i in np.flatnonzero(batch & verdict.lone))
         kept[batch] = False
         rounds += 1
         if progress is not None:
