@@ -195,13 +195,19 @@ class MeasurementModel:
         p = ca.SX.sym('p', len(params))
         q = ca.SX.sym('q', n)
         tau = ca.SX.sym('tau', n)
-        self._h, self._hj, self._hq = [], [], []
-        for k in range(self.chain.n_reflectors):
-            point = self.point_expression(p, q, tau, k)
-            self._h.append(ca.Function('h', [p, q, tau], [point]))
-            self._hj.append(ca.Function('hj', [p, q, tau], [point, ca.jacobian(point, p)]))
-            self._hq.append(ca.Function('hq', [p, q, tau], [ca.jacobian(point, q)]))
-        self._cos = ca.Function('cos_incidence', [p, q], [self.incidence_cos_expression(p, q)])
+        # One tool pose for every reflector; ∂h/∂q and the incidence cosine are built on
+        # first use (a model made for one Jacobian, as the diagnosis screen makes one per
+        # candidate effect, never needs them).
+        world, thetas = self._tool_pose(p, q, tau)
+        self._points = [self._reflector_point(world, thetas, p, k)
+                        for k in range(self.chain.n_reflectors)]
+        self._symbols = (p, q, tau)
+        self._h = [ca.Function('h', [p, q, tau], [point]) for point in self._points]
+        self._hj = [ca.Function('hj', [p, q, tau], [point, ca.jacobian(point, p)])
+                    for point in self._points]
+        self._hq_built: list[ca.Function] | None = None
+        self._cos_built: ca.Function | None = None
+        self._mapped: dict[tuple[int, int, int], ca.Function] = {}
         self.orientations = {int(k): np.asarray(r, float).reshape(3, 3)
                              for k, r in (orientations or {}).items()}
         if any(not 0 <= k < self.chain.n_reflectors for k in self.orientations):
@@ -259,6 +265,11 @@ class MeasurementModel:
                          reflector: int = 0) -> Expr:
         """Centre of reflector ``reflector`` in the tracker frame, CasADi expression (3,)."""
         world, thetas = self._tool_pose(p, q, tau)
+        return self._reflector_point(world, thetas, p, reflector)
+
+    def _reflector_point(self, world: Expr, thetas: list, p: Expr, reflector: int) -> Expr:
+        """Reflector ``reflector``'s centre from the tool pose ``world`` (4x4) and the
+        effects' parameters ``thetas`` of :meth:`_tool_pose`."""
         point = reflector_point(world, self.chain.reflector(p, reflector))
         for effect, theta in zip(self.effects, thetas):
             corrected = effect.point_correction(point, theta)
@@ -298,20 +309,47 @@ class MeasurementModel:
                              f'got {bad}')
         return [(int(k), np.flatnonzero(ref == k)) for k in np.unique(ref)]
 
+    @property
+    def _hq(self) -> list[ca.Function]:
+        """∂h/∂q of each reflector (built on first use)."""
+        if self._hq_built is None:
+            p, q, tau = self._symbols
+            self._hq_built = [ca.Function('hq', [p, q, tau], [ca.jacobian(point, q)])
+                              for point in self._points]
+        return self._hq_built
+
+    @property
+    def _cos(self) -> ca.Function:
+        """Cosine of the incidence angle (built on first use)."""
+        if self._cos_built is None:
+            p, q, _ = self._symbols
+            self._cos_built = ca.Function('cos_incidence', [p, q],
+                                          [self.incidence_cos_expression(p, q)])
+        return self._cos_built
+
+    def _map(self, which: int, channel: int, m: int) -> ca.Function:
+        """Function ``which`` of a row channel mapped over ``m`` rows (built once per m)."""
+        key = (which, channel, m)
+        if key not in self._mapped:
+            if channel < self.n_reflectors:
+                fn = (self._h, self._hj, self._hq)[which][channel]
+            else:
+                fn = self._rot[channel - self.n_reflectors][which]
+            self._mapped[key] = fn.map(m)
+        return self._mapped[key]
+
     def _evaluate(self, which: int, channel: int, rows: np.ndarray, p: np.ndarray,
                   q: np.ndarray, tau: np.ndarray, rotation: np.ndarray | None) -> list:
         """Function ``which`` (0: h, 1: h and ∂h/∂p, 2: ∂h/∂q) of a row channel, mapped
         over ``rows``; a rotation row takes its measured rotation as an input."""
         m = len(rows)
         if channel < self.n_reflectors:
-            fn = (self._h, self._hj, self._hq)[which][channel]
-            out = fn.map(m)(p, q[rows].T, tau[rows].T)
+            out = self._map(which, channel, m)(p, q[rows].T, tau[rows].T)
         else:
             if rotation is None:
                 raise ValueError('rotation rows need the measured rotations (rotation=)')
             measured = measured_rotation_input(np.asarray(rotation)[rows])
-            fn = self._rot[channel - self.n_reflectors][which]
-            out = fn.map(m)(p, q[rows].T, tau[rows].T, measured.T)
+            out = self._map(which, channel, m)(p, q[rows].T, tau[rows].T, measured.T)
         return [np.array(o) for o in (out if isinstance(out, (list, tuple)) else [out])]
 
     def predict(self, p: np.ndarray, q: np.ndarray, tau: np.ndarray | None = None,
