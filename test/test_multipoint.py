@@ -1,6 +1,7 @@
 """Several reflectors per pose: cell key, measurement rows, pairing convention,
 identification, joint registration, CSV import."""
 import copy
+import pickle
 from pathlib import Path
 
 import numpy as np
@@ -330,3 +331,8 @@ def test_the_model_evaluates_each_reflector_exactly_as_its_own_point_expression(
             np.testing.assert_array_equal(jq[i], hq)
             assert cos[i] == float(expected_cos(p, q[i]))
         np.testing.assert_array_equal(model.predict(p, q, tau, ref), pts)
+        # A job's result crosses a process boundary pickled, its model with it.
+        copy_ = pickle.loads(pickle.dumps(model))
+        np.testing.assert_array_equal(copy_.jacobian(p, q, tau, ref)[1], jac)
+        np.testing.assert_array_equal(copy_.joint_jacobian(p, q, tau, ref), jq)
+        np.testing.assert_array_equal(copy_.incidence_cos(p, q), cos)

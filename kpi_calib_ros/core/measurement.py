@@ -309,6 +309,12 @@ class MeasurementModel:
                              f'got {bad}')
         return [(int(k), np.flatnonzero(ref == k)) for k in np.unique(ref)]
 
+    def __getstate__(self) -> dict:
+        """Picklable state (a job's result crosses a process boundary): the functions built
+        on first use are built now; CasADi expressions and the mapped functions stay behind."""
+        return dict(self.__dict__, _hq_built=self._hq, _cos_built=self._cos, _symbols=None,
+                    _points=None, _mapped={})
+
     @property
     def _hq(self) -> list[ca.Function]:
         """∂h/∂q of each reflector (built on first use)."""
