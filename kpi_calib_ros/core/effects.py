@@ -136,6 +136,10 @@ class EffectType:
     nests : tuple of str
         Simpler effects (names) this one contains as limits on the same joint; the
         diagnosis counts it only when it fits significantly better than them.
+    general : bool
+        A general effect (a periodic joint error at a frequency found from the data, link
+        bending; :mod:`kpi_calib_ros.core.general_effects`) rather than a named mechanism:
+        the diagnosis ranks it after every significant, plausible named effect.
     """
 
     name: str
@@ -156,6 +160,7 @@ class EffectType:
     prismatic_plausible: tuple[float, ...] | None = None
     shape_grid: tuple[tuple[float, ...], ...] = ()
     nests: tuple[str, ...] = ()
+    general: bool = False
 
     def __post_init__(self) -> None:
         if not self.name or ':' in self.name or '.' in self.name:
@@ -203,6 +208,9 @@ class BoundEffect:
     """An effect type bound to one joint (or global): implements the ``Effect`` protocol.
 
     ``name`` is the spec (``joint_compliance:joint_2``), unique within a model.
+    ``searched``: the number of alternatives a search on the same data chose this
+    candidate from (a frequency of :mod:`kpi_calib_ros.core.periodic_search`); the screen
+    multiplies its p-value by it, so the search counts in the test's level.
     """
 
     kind: EffectType
@@ -214,6 +222,7 @@ class BoundEffect:
     units: tuple[str, ...] = field(init=False)
     uses_torque: bool = field(init=False)
     joint_kind: str | None = None
+    searched: int = field(default=1, compare=False)
 
     def __post_init__(self) -> None:
         prefix = self.kind.name if self.joint is None else f'{self.kind.name}.{self.joint}'
@@ -250,6 +259,12 @@ class BoundEffect:
         """Corrected measured point, SX (3,), or None for a joint effect."""
         fn = self.kind.point_function
         return None if fn is None else fn(point, theta)
+
+    def frame_correction(self, q: ca.SX, tau: ca.SX, theta: ca.SX) -> Any:
+        """``(joint index, SX (3, 3) rotation)`` applied to that joint's frame after its
+        motion (link bending, :class:`kpi_calib_ros.core.general_effects.LinkBending`), or
+        None: the library's effects correct joint values or the point only."""
+        return None
 
     def hint(self) -> str:
         """What would make this effect distinguishable, with the joint named."""
@@ -430,6 +445,10 @@ def bind_effect(effect_type: EffectType, robot: RobotModel, joint: str | None,
 # Effects built from the whole chain rather than one joint's (q_j, τ_j): spec name ->
 # binder(robot, joint, key) -> BoundEffect. core.gravity_compliance registers its own.
 CHAIN_EFFECTS: dict[str, Callable[[RobotModel, str | None, str], BoundEffect]] = {}
+# Effects with a constant of their own in the spec, ``name:joint:argument``
+# (``periodic_joint_error:joint_2:k=17``): spec name -> binder(robot, joint, argument,
+# key) -> BoundEffect. core.general_effects registers its own.
+ARGUMENT_EFFECTS: dict[str, Callable[[RobotModel, str | None, str, str], BoundEffect]] = {}
 
 
 def parse_effect_spec(spec: str, robot: RobotModel, key: str = 'effects',
@@ -456,6 +475,9 @@ def parse_effect_spec(spec: str, robot: RobotModel, key: str = 'effects',
     where = f'{key}: {spec!r}'
     if parts[0] in CHAIN_EFFECTS and len(parts) <= 2:
         return CHAIN_EFFECTS[parts[0]](robot, parts[1] if len(parts) == 2 else None, where)
+    if parts[0] in ARGUMENT_EFFECTS:
+        return ARGUMENT_EFFECTS[parts[0]](robot, parts[1] if len(parts) > 1 else None,
+                                          ':'.join(parts[2:]), where)
     if parts[0] in known:
         if len(parts) > 2:
             raise ConfigError(key, f'{spec!r}: write effect:joint, e.g. {parts[0]}:'
@@ -470,7 +492,7 @@ def parse_effect_spec(spec: str, robot: RobotModel, key: str = 'effects',
         effect_type = _load_user_effect(parts[0], parts[1], key, spec, base_dir)
         return bind_effect(effect_type, robot, parts[2] if len(parts) == 3 else None, where)
     raise ConfigError(key, f'{spec!r}: unknown effect {parts[0]!r}; valid effects are '
-                      f'{sorted(set(known) | set(CHAIN_EFFECTS))}, written effect:joint with a '
+                      f'{sorted(set(known) | set(CHAIN_EFFECTS) | set(ARGUMENT_EFFECTS))}, written effect:joint with a '
                       'joint of '
                       f'{robot.joint_names} (global effects without a joint), or '
                       'module:EffectType[:joint] for your own')

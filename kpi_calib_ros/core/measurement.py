@@ -82,6 +82,10 @@ class Effect(Protocol):
     def point_correction(self, point: ca.SX, theta: ca.SX) -> ca.SX | None:
         """Measured point (3,) in the tracker frame after the effect, or None."""
 
+    # Optional: ``frame_correction(q, tau, theta) -> (joint index, SX (3, 3)) | None``, a
+    # rotation of that joint's frame after its motion (link bending); read with getattr,
+    # so an effect without it corrects joint values or the point only.
+
 
 @dataclass(frozen=True)
 class Measurements:
@@ -235,11 +239,13 @@ class MeasurementModel:
 
     # ------------------------------------------------------------ symbolic API
     def _tool_pose(self, p: Expr, q: Expr, tau: Expr) -> tuple[Expr, list[Expr]]:
-        """Tip pose (4x4) in the tracker frame with the joint corrections of the
-        effects applied, and each effect's parameter slice."""
+        """Tip pose (4x4) in the tracker frame with the joint corrections and the frame
+        deflections (link bending) of the effects applied, and each effect's parameter
+        slice."""
         q_eff = q
         offset = len(self.geometric)
         thetas = []
+        deflections: dict[int, Expr] = {}
         for effect in self.effects:
             theta = p[offset:offset + len(effect.parameter_names)]
             offset += len(effect.parameter_names)
@@ -247,7 +253,13 @@ class MeasurementModel:
             correction = effect.joint_correction(q, tau, theta)
             if correction is not None:
                 q_eff = q_eff + correction
-        tip = self.chain.tip_transform(p, q_eff)
+            frame = getattr(effect, 'frame_correction', None)
+            bent = frame(q, tau, theta) if frame is not None else None
+            if bent is not None:
+                index, rotation = bent
+                deflections[index] = (deflections[index] @ rotation if index in deflections
+                                      else rotation)
+        tip = self.chain.tip_transform(p, q_eff, deflections)
         return self.chain.base_in_tracker(p) @ tip, thetas
 
     def body_rotation_expression(self, p: Expr, q: Expr, tau: Expr, reflector: int) -> Expr:
