@@ -28,6 +28,7 @@ Parameters ``link_bending.<joint>.c<u>``, ``.c<v>`` (``cx``, ``cy`` for a z axis
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -62,8 +63,10 @@ class PeriodicJointError(BoundEffect):
             f'{PERIODIC}.{self.joint}.k{self.cycles}.{s}' for s in self.kind.parameters))
 
 
+@functools.lru_cache(maxsize=None)
 def periodic_kind(cycles: int) -> EffectType:
-    """The effect type of a periodic joint error at ``cycles`` cycles per revolution."""
+    """The effect type of a periodic joint error at ``cycles`` cycles per revolution (one
+    object per k, so effects bound from the same spec compare equal)."""
     k = int(cycles)
 
     def correction(q_j: ca.SX, tau_j: ca.SX, theta: ca.SX) -> ca.SX:
