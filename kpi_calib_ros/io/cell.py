@@ -51,6 +51,7 @@ from kpi_calib_ros.core.design_cell import DesignCell
 from kpi_calib_ros.core.effects import resolve_effects
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation import DEFAULT_MAX_ITERATIONS
+from kpi_calib_ros.core.general_effects import general_candidates  # noqa: F401  (registers specs)
 from kpi_calib_ros.core.gravity_compliance import mass_warning
 from kpi_calib_ros.core.kinematics import pose6
 from kpi_calib_ros.core.measurement import MeasurementModel
