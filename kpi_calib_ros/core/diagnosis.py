@@ -28,8 +28,8 @@ import numpy as np
 import scipy.stats
 
 from kpi_calib_ros.core.effects import BoundEffect, candidate_effects, implausible
-from kpi_calib_ros.core.general_effects import general_candidates
 from kpi_calib_ros.core.estimation import CalibrationResult, point_sigma_squares
+from kpi_calib_ros.core.general_effects import general_candidates
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements, unweighted, weighted_rows
 from kpi_calib_ros.core.model_selection import PARSIMONY
 from kpi_calib_ros.core.out_of_sample import OutOfSample

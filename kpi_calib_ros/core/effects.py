@@ -491,8 +491,9 @@ def parse_effect_spec(spec: str, robot: RobotModel, key: str = 'effects',
                               f'it; built-in effects are {sorted(known)}')
         effect_type = _load_user_effect(parts[0], parts[1], key, spec, base_dir)
         return bind_effect(effect_type, robot, parts[2] if len(parts) == 3 else None, where)
+    every = sorted(set(known) | set(CHAIN_EFFECTS) | set(ARGUMENT_EFFECTS))
     raise ConfigError(key, f'{spec!r}: unknown effect {parts[0]!r}; valid effects are '
-                      f'{sorted(set(known) | set(CHAIN_EFFECTS) | set(ARGUMENT_EFFECTS))}, written effect:joint with a '
+                      f'{every}, written effect:joint with a '
                       'joint of '
                       f'{robot.joint_names} (global effects without a joint), or '
                       'module:EffectType[:joint] for your own')

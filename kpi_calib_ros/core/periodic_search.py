@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.stats
 
-from kpi_calib_ros.core.effects import BoundEffect, bind_effect, available_effects
+from kpi_calib_ros.core.effects import BoundEffect, available_effects, bind_effect
 from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.general_effects import periodic_joint_error
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements, weighted_rows
