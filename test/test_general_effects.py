@@ -10,12 +10,18 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import casadi as ca
 import numpy as np
 import pytest
 import yaml
 
 from kpi_calib_ros.core.diagnosis import augmented_model, diagnose, screen_effects
-from kpi_calib_ros.core.effects import hidden_effects, parse_effect_spec, resolve_effects
+from kpi_calib_ros.core.effects import (
+    hidden_effects,
+    parse_effect_spec,
+    resolve_effects,
+    split_specs,
+)
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation import identify
 from kpi_calib_ros.core.general_effects import general_candidates, gravity_moment
@@ -169,3 +175,35 @@ def test_clean_data_claims_no_general_effect(kr15):
                 assert tried > 1
     print(f'\nclaims on clean data: {claims}')
     assert not claims
+
+
+def test_the_command_line_form_of_the_suggestion_resolves(kr15):
+    """``diagnose`` suggests ``--effects <spec>``: the spec of a found frequency and of a
+    bending are valid there, also together."""
+    effects = resolve_effects(split_specs('periodic_joint_error:joint_2:k=17,'
+                                          'link_bending:joint_1'), kr15.robot)
+    assert [e.name for e in effects] == ['periodic_joint_error:joint_2:k=17',
+                                         'link_bending:joint_1']
+    model = augmented_model(kr15.model, effects)
+    q = random_configurations(kr15.model, kr15.model.params.nominal, 5,
+                              np.random.default_rng(0))
+    # At zero effect parameters the model is the geometric one.
+    p = np.concatenate([kr15.model.params.nominal, np.zeros(4)])
+    np.testing.assert_allclose(model.predict(p, q),
+                               kr15.model.predict(kr15.model.params.nominal, q), atol=1e-12)
+
+
+def test_a_physical_bending_sags_the_arm_along_gravity(kr15):
+    """c < 0 (the link turns against the holding moment) tilts the column of a vertical
+    first axis under the arm's overhang: the tip goes down in every pose (the tip lies on the
+    side of the column where the arm's mass is)."""
+    model = kr15.model
+    nominal = model.params.nominal
+    up = np.array(ca.DM(model.chain.base_in_tracker(ca.DM(nominal))))[:3, 2]
+    q = random_configurations(model, nominal, 20, np.random.default_rng(1))
+    for spec, c in (('link_bending:joint_1', -1e-6),):
+        bent = augmented_model(model, (parse_effect_spec(spec, kr15.robot),))
+        moved = bent.predict(np.concatenate([nominal, [c, c]]), q) - model.predict(nominal, q)
+        drop = moved @ up
+        print(f'\n{spec}: tip height change {np.round(drop * 1e6, 1).tolist()} µm')
+        assert np.all(drop <= 1e-9) and np.mean(drop) < -1e-6
