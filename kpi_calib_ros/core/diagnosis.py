@@ -97,6 +97,9 @@ class Candidate:
     # ``std`` are from the stated σ (1) or scaled by χ²/dof of the augmented fit when it
     # fails the χ² test, as identify reports (core.precision.chi2_scale).
     covariance_scale: float = 1.0
+    # The number of frequencies searched when the effect's frequency was found on these
+    # residuals (core.periodic_search); its p-values are multiplied by it. 1: no search.
+    searched: int = 1
 
 
 @dataclass(frozen=True)
@@ -291,7 +294,7 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
             absorbed_by={},
             explanation=_explain(fit, significant, p_adj, m, rms_base, cv_base) + extra,
             plausible=not warning, plausibility=warning, also_explained_by=merged,
-            note=notes.get(fit['effect'].name, '')))
+            note=notes.get(fit['effect'].name, ''), searched=fit['effect'].searched))
     # A general effect (core.general_effects) is offered when no named one fits: it ranks
     # after the significant, plausible named effects unless it predicts held-out poses
     # PARSIMONY better than the best of them.

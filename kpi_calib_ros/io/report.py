@@ -39,7 +39,7 @@ def _candidate_dict(c: Candidate) -> dict[str, Any]:
             'std_basis': precision_statement(float(c.covariance_scale)),
             'explanation': c.explanation, 'plausible': bool(c.plausible),
             'plausibility': c.plausibility, 'also_explained_by': list(c.also_explained_by),
-            'note': c.note}
+            'note': c.note, 'frequencies_searched': int(c.searched)}
 
 
 def comparison_to_dict(cmp: ModelComparison) -> dict[str, Any]:
