@@ -132,7 +132,6 @@ def test_lomb_scargle_finds_17_cpr_and_the_effect_recovers_it(kr15):
     assert all(g.p_value > 0.01 for g in again)  # and no frequency is left
 
 
-@pytest.mark.slow
 def test_diagnosis_proposes_link_bending_and_fresh_poses_reach_the_floor(kr15):
     # The forearm bent by the wrist and payload (joint_4's axis along the forearm): no
     # named effect has its signature.
