@@ -353,9 +353,22 @@ class CorrectedTcp:
         return np.sqrt(np.trace(self.covariance, axis1=1, axis2=2))
 
 
-def corrected_tcp(tcp: np.ndarray, tcp_jacobian: np.ndarray, parameter_covariance: np.ndarray,
-                  q: np.ndarray, model: LearnedResidual | None) -> CorrectedTcp:
+def corrected_tcp(tcp: np.ndarray, tcp_jacobian: np.ndarray, covariance_inside: np.ndarray,
+                  q: np.ndarray, model: LearnedResidual | None,
+                  covariance_outside: np.ndarray | None = None,
+                  misfit_m: float = 0.0) -> CorrectedTcp:
     """The physical TCP prediction plus the learned residual, with both uncertainties.
+
+    Inside the fitted region the learned residual explains the misfit, so the parameters'
+    covariance is the one with the noise it leaves (``covariance_inside``); far from
+    the training poses it explains nothing, and the physical model's own honest covariance
+    (``covariance_outside``: χ²-scaled when the model is not adequate,
+    :mod:`kpi_calib_ros.core.precision`) applies, with its systematic misfit b
+    (``misfit_m``, :class:`kpi_calib_ros.core.precision.ExpectedTcpError`) spread over
+    the three axes: the expected TCP error the project states without a learned residual.
+    Between the two the weight is the share of the prior variance the training poses
+    explain at the query, 1 − ((latent variance)/c)²: 1 where the learned residual knows
+    δ, 0 where it has returned to its prior.
 
     Parameters
     ----------
@@ -363,19 +376,34 @@ def corrected_tcp(tcp: np.ndarray, tcp_jacobian: np.ndarray, parameter_covarianc
         Physical model's TCP at the query poses, tracker frame, m.
     tcp_jacobian : (M, 3, k) ndarray
         d tcp / d p of the k estimated parameters.
-    parameter_covariance : (k, k) ndarray
-        Their covariance (scaled by :func:`residual_noise_scale` with a learned residual).
+    covariance_inside : (k, k) ndarray
+        Their covariance with the noise the learned residual leaves
+        (:func:`residual_noise_scale`); without a learned residual, the one reported.
     q : (M, n) ndarray
         The query poses (URDF chain order).
     model : LearnedResidual or None
         None: the physical prediction alone.
+    covariance_outside : (k, k) ndarray, optional
+        The covariance reported without the learned residual; default
+        ``covariance_inside``.
+    misfit_m : float
+        b, the physical model's held-out misfit level (m, 3D), added far from data.
     """
     tcp = np.asarray(tcp, float).reshape(-1, 3)
     jac = np.asarray(tcp_jacobian, float).reshape(len(tcp), 3, -1)
-    physical = np.einsum('mik,kl,mjl->mij', jac, parameter_covariance, jac)
+
+    def propagated(cov: np.ndarray) -> np.ndarray:
+        return np.einsum('mik,kl,mjl->mij', jac, cov, jac)
+    inside = propagated(covariance_inside)
     if model is None:
-        return CorrectedTcp(tcp, physical, physical, None)
+        return CorrectedTcp(tcp, inside, inside, None)
     pred = model.predict(q)
+    physical = inside
+    if covariance_outside is not None:
+        latent = pred.covariance[:, 0, 0] / model.amplitude_m2
+        weight = np.clip(1.0 - latent ** 2, 0.0, 1.0)[:, None, None]
+        outside = propagated(covariance_outside) + misfit_m ** 2 / 3.0 * np.eye(3)
+        physical = weight * inside + (1.0 - weight) * outside
     return CorrectedTcp(tcp + pred.mean, physical + pred.covariance, physical, pred)
 
 
