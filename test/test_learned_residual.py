@@ -16,6 +16,7 @@ from kpi_calib_ros.app.learned_residual import (
     predict_stored,
     predict_tcp,
 )
+from kpi_calib_ros.cli import main
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation import identify
 from kpi_calib_ros.core.learned_residual import fit_learned_residual
@@ -27,6 +28,7 @@ from kpi_calib_ros.core.simulation import (
     smooth_joint_map,
     true_parameters,
 )
+from kpi_calib_ros.io.cell import DEFAULT_CELL
 from kpi_calib_ros.io.learned_residual_file import read_residual, residual_document, write_residual
 
 AMPLITUDE_M = 1e-4   # 5 σ of the built-in cell's tracker
@@ -155,3 +157,44 @@ def test_a_damaged_file_names_the_field(cm, smooth, tmp_path):
     path.write_text(yaml.safe_dump(doc))
     with pytest.raises(ConfigError, match=r'training.residual_m\[3\]\[1\]'):
         read_residual(path)
+
+
+def _cell(tmp_path, hidden: dict | None):
+    doc = yaml.safe_load(DEFAULT_CELL.read_text())
+    doc['robot']['urdf'] = str((DEFAULT_CELL.parent / doc['robot']['urdf']).resolve())
+    if hidden:
+        doc['simulation'] = {'hidden_effects': hidden}
+    cell = tmp_path / ('misfit.yaml' if hidden else 'clean.yaml')
+    cell.write_text(yaml.safe_dump(doc))
+    return cell
+
+
+@pytest.mark.slow
+def test_identify_writes_the_chosen_learned_residual_and_removes_a_stale_one(tmp_path, capsys):
+    """``identify --learned-residual`` on a robot with a second-harmonic error of joint_2 the
+    geometric model lacks: learned_residual.yaml beside calibration.yaml, the working pose's
+    TCP with it in calibration.yaml; then a clean robot identified into the same folder: not
+    chosen, and the older file is gone."""
+    misfit = _cell(tmp_path, {'cyclic_joint_error_h2:joint_2': {'a': 4e-4, 'b': 2e-4}})
+    clean = _cell(tmp_path, None)
+    out = tmp_path / 'out'
+    for cell, seed in ((misfit, 4), (clean, 5)):
+        bag = tmp_path / f'{cell.stem}.mcap'
+        assert main(['simulate', '--cell', str(cell), '--n', '90', '--out', str(bag),
+                     '--seed', str(seed)]) == 0
+    capsys.readouterr()
+    assert main(['identify', '--cell', str(misfit), '--bag', str(tmp_path / 'misfit.mcap'),
+                 '--out', str(out), '--model', 'geometric', '--learned-residual']) == 0
+    text = capsys.readouterr().out
+    section = yaml.safe_load((out / 'calibration.yaml').read_text())['learned_residual']
+    assert section['chosen'] and section['file'] == 'learned_residual.yaml', section['reason']
+    assert section['cv_rms_learned_m'] < section['cv_rms_physical_m']
+    entry = section['tcp']['car_roof_edge']
+    assert entry['std_m'] > entry['parameter_std_m'] > 0
+    assert 'learned residual chosen' in text and 'TCP car_roof_edge with the learned' in text
+    assert read_residual(out / 'learned_residual.yaml').residual.q.shape == (90, 6)
+    assert main(['identify', '--cell', str(clean), '--bag', str(tmp_path / 'clean.mcap'),
+                 '--out', str(out), '--model', 'geometric', '--learned-residual']) == 0
+    section = yaml.safe_load((out / 'calibration.yaml').read_text())['learned_residual']
+    assert not section['chosen'] and section['file'] is None
+    assert not (out / 'learned_residual.yaml').exists()
