@@ -198,3 +198,16 @@ def test_identify_writes_the_chosen_learned_residual_and_removes_a_stale_one(tmp
     section = yaml.safe_load((out / 'calibration.yaml').read_text())['learned_residual']
     assert not section['chosen'] and section['file'] is None
     assert not (out / 'learned_residual.yaml').exists()
+
+
+def test_too_few_poses_are_never_chosen(smooth):
+    """Fewer than MIN_POSES distinct poses (here 8, three reflectors each): no
+    cross-validated choice, not chosen, said why."""
+    from kpi_calib_ros.core.learned_residual import MIN_POSES
+    _, choice, *_ = smooth
+    q = np.repeat(choice.model.q[:MIN_POSES - 2], 3, axis=0)
+    y = np.repeat(choice.model.residual_m[:MIN_POSES - 2], 3, axis=0)
+    few = fit_learned_residual(q, y, 2e-5, choice.model.joint_names)
+    assert not few.chosen and f'{MIN_POSES - 2} poses' in few.reason
+    with pytest.raises(ValueError, match='folds'):
+        fit_learned_residual(q, y, 2e-5, choice.model.joint_names, folds=0)

@@ -59,6 +59,7 @@ INSIDE_DISTANCE = 1.0
 CHOICE_ALPHA = 0.01
 MIN_GAIN = 0.05
 DEFAULT_FOLDS = 5
+MIN_POSES = 10  # fewer: no cross-validated choice, never chosen
 # The white noise is not allowed below this fraction of the stated σ² (per axis): a
 # Gaussian process that explains the noise itself would promise more than the tracker.
 MIN_NOISE_FRACTION = 0.25
@@ -275,14 +276,22 @@ def fit_learned_residual(q: np.ndarray, residual_m: np.ndarray, sigma_m: float |
     -------
     ResidualChoice
     """
+    if folds < 2:
+        raise ValueError(f'folds must be at least 2, got {folds}')
     q = np.atleast_2d(np.asarray(q, float))
     y = np.asarray(residual_m, float).reshape(-1, 3)
+    if len(q) != len(y):
+        raise ValueError(f'q has {len(q)} rows, residual_m {len(y)}')
     noise = float(np.mean(np.broadcast_to(np.asarray(sigma_m, float), (3,)) ** 2))
     kernel = _kernel(q, y, noise)
     full = _optimised(q, y, kernel, restarts, seed)
     model = _from_gp(full, tuple(joint_names), q, y)
     _, pose = pose_index(q)
     n_poses = int(pose.max()) + 1
+    if n_poses < MIN_POSES:
+        return ResidualChoice(False, model, float('nan'), float('nan'), 1.0, 0,
+                              f'learned residual not chosen: {n_poses} poses, fewer than the '
+                              f'{MIN_POSES} a cross-validated choice needs')
     k = min(folds, n_poses)
     fold = fold_ids(n_poses, k, seed)[pose]
     predicted = np.zeros_like(y)
