@@ -193,6 +193,10 @@ def test_identify_writes_the_chosen_learned_residual_and_removes_a_stale_one(tmp
     assert entry['std_m'] > entry['parameter_std_m'] > 0
     assert 'learned residual chosen' in text and 'TCP car_roof_edge with the learned' in text
     assert read_residual(out / 'learned_residual.yaml').residual.q.shape == (90, 6)
+    # diagnose states the learned residual's decision beside the library's candidates.
+    assert main(['diagnose', '--cell', str(misfit), '--bag', str(tmp_path / 'misfit.mcap'),
+                 '--out', str(tmp_path / 'diag'), '--model', 'geometric']) == 0
+    assert 'learned residual chosen' in capsys.readouterr().out
     assert main(['identify', '--cell', str(clean), '--bag', str(tmp_path / 'clean.mcap'),
                  '--out', str(out), '--model', 'geometric', '--learned-residual']) == 0
     section = yaml.safe_load((out / 'calibration.yaml').read_text())['learned_residual']

@@ -91,8 +91,8 @@ def run_diagnose(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
                  model: str | None = None, **options: Any) -> int:
     """``kpi-calib diagnose``: diagnosis.json, report.md and plots in ``out_dir``
     (checked first); ``model`` overrides the cell's ``identification.model``; ``options``
-    as for :func:`load_measurements`. When the model is not adequate and no effect of the
-    library is significant, the learned residual's decision is printed
+    as for :func:`load_measurements`. When the model is not adequate, the learned
+    residual's decision on the calibrated model is printed too
     (:func:`kpi_calib_ros.app.learned_residual.choose_residual`)."""
     writable_folder(out_dir, '--out')
     cm, data, _ = load_measurements(cell_path, bag_path, effects, **options)
@@ -100,8 +100,9 @@ def run_diagnose(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
                        progress=print_progress)
     report = write_report(out_dir, cd)
     print(diagnosis_text(cd))
-    if cd.diagnosis.best is None and not is_adequate(cd.result.p_value, alpha):
-        # The library has no answer: would the learned residual predict better?
+    if not is_adequate(cd.result.p_value, alpha):
+        # Beside the library's answer (or when it has none): would the learned residual
+        # predict held-out poses better than the calibrated model?
         choice = choose_residual(cm, cd.data, cd.result)
         print(choice.reason + ('; kpi-calib identify --learned-residual writes it beside '
                                'calibration.yaml' if choice.chosen else ''))
