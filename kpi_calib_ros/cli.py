@@ -139,6 +139,10 @@ def build_parser() -> argparse.ArgumentParser:
                      'and reflector placement in the prior (default: identified anew)')
     ide.add_argument('--drift-velocity', type=_swing, nargs='?', const=DEFAULT_SWING,
                      metavar='TEMPERATURE_K,OFFSET_RAD[,PERIOD_H]', help=SWING_HELP)
+    ide.add_argument('--learned-residual', action='store_true',
+                     help='also learn what the physical model leaves as a Gaussian process '
+                     'over joint space; written as learned_residual.yaml beside '
+                     'calibration.yaml only when it lowers the cross-validated error')
     _bag_topics(ide)
     ide.add_argument('--allow-code-effects', action='store_true', help=CODE_EFFECTS_HELP)
 
@@ -265,6 +269,9 @@ def _identify(args: argparse.Namespace) -> int:
                'pose_topic': args.pose_topic,
                'allow_code_effects': args.allow_code_effects}
     if args.prior:
+        if args.learned_residual:
+            raise ValueError('--learned-residual is not available with --prior: identify '
+                             'without --prior to learn the residual')
         from kpi_calib_ros.app.reidentify import run_reidentify
         return run_reidentify(args.cell, args.bag, args.out, args.prior, effects=args.effects,
                               model=args.model, drift=args.drift_per_hour,
@@ -273,7 +280,8 @@ def _identify(args: argparse.Namespace) -> int:
                               max_iterations=args.max_iterations, **options)
     from kpi_calib_ros.app.identify import run_identify
     return run_identify(args.cell, args.bag, args.out, effects=args.effects, model=args.model,
-                        max_iterations=args.max_iterations, **options)
+                        max_iterations=args.max_iterations,
+                        learned_residual=args.learned_residual, **options)
 
 
 def _design(args: argparse.Namespace) -> int:

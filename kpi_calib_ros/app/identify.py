@@ -46,7 +46,11 @@ from kpi_calib_ros.core.streams import JointSample, PointSample
 from kpi_calib_ros.io.bag import read_for_pairing
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
 from kpi_calib_ros.io.measurement_log import stored_pairing
-from kpi_calib_ros.io.names import CALIBRATED_URDF_FILE, FAILED_CALIBRATION_FILE
+from kpi_calib_ros.io.names import (
+    CALIBRATED_URDF_FILE,
+    FAILED_CALIBRATION_FILE,
+    LEARNED_RESIDUAL_FILE,
+)
 from kpi_calib_ros.io.report import comparison_text, comparison_to_dict
 from kpi_calib_ros.io.results import (
     calibration_to_dict,
@@ -662,7 +666,8 @@ def print_progress(line: str) -> None:
 
 def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Path,
                  effects: str = '', model: str | None = None,
-                 max_iterations: int | None = None, **options: Any) -> int:
+                 max_iterations: int | None = None, learned_residual: bool = False,
+                 **options: Any) -> int:
     """``kpi-calib identify``: calibration.yaml and the calibrated URDF
     (:data:`~kpi_calib_ros.io.names.CALIBRATED_URDF_FILE`) in ``out_dir`` (checked first),
     a summary on stdout; ``options`` as for :func:`load_measurements`.
@@ -674,6 +679,11 @@ def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
     instead. Returns 0 for a valid calibration; 1 when it did not converge or the TCP is
     not estimable (then the document goes to calibration.failed.yaml, and an existing
     calibration.yaml is left as it was).
+
+    ``learned_residual`` (``--learned-residual``): a Gaussian process of what the model
+    leaves, written as learned_residual.yaml beside calibration.yaml when it predicts
+    held-out poses better (:mod:`kpi_calib_ros.app.learned_residual`); a valid calibration
+    removes an older learned_residual.yaml it does not replace.
     """
     writable_folder(out_dir, '--out')
     cm, data, pairing = load_measurements(cell_path, bag_path, effects, **options)
@@ -689,6 +699,13 @@ def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
     comparison = ''
     if cm.model.effects and cal.valid:
         comparison = add_effect_comparison(doc, cm, subset(data, cal.robust.kept), cal.result)
+    residual_text = ''
+    if cal.valid:
+        (Path(out_dir) / LEARNED_RESIDUAL_FILE).unlink(missing_ok=True)
+    if learned_residual:
+        from kpi_calib_ros.app.learned_residual import add_learned_residual
+        residual_text, _ = add_learned_residual(doc, cm, subset(data, cal.robust.kept),
+                                                cal.result, out_dir)
     path, urdf_path, _ = write_results(cm, cal.result, doc, out_dir)
     print(summary_text(doc))
     print(registration_text(cal.registration, cm))
@@ -697,6 +714,8 @@ def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
         print(how)
     if comparison:
         print(comparison)
+    if residual_text:
+        print(residual_text)
     print(f'written: {path}')
     if urdf_path is not None:
         print(f'calibrated robot description (URDF): {urdf_path}')

@@ -85,6 +85,7 @@ from kpi_calib_ros.io.names import (
     CHANGE_TEST_TOPIC,
     DIAGNOSIS_TOPIC,
     DIAGNOSTICS_TOPIC,
+    LEARNED_RESIDUAL_FILE,
     MARKERS_TOPIC,
     MEASUREMENT_POSES_TOPIC,
     TCP_TOPIC,
@@ -100,6 +101,7 @@ from kpi_calib_ros.ros.parameters import (
     type_error,
     working_poses,
 )
+from kpi_calib_ros.ros.tcp_query import TcpQuery
 
 NODE_NAME = 'kpi_calib_node'
 # Parameters a running sequential campaign was started with: refused while it runs (its
@@ -252,6 +254,8 @@ class CalibrationNode(Node):
                                   ('reset', 'resetting', self._reset)):
             self.create_service(Trigger, f'~/{name}', self._service(name, doing, work),
                                 callback_group=services)
+        self.tcp_query = TcpQuery(self, lambda: self._cm, lambda: self._result,
+                                  self.data_dir / LEARNED_RESIDUAL_FILE)
         self.create_timer(0.1, self._tick, callback_group=streams)
         if self.settings.robot_description:
             self._set_robot_description(self.settings.robot_description)
