@@ -45,7 +45,7 @@ import numpy as np
 import yaml
 
 from kpi_calib_ros.core.collision import Capsule, CollisionScene, HalfSpace
-from kpi_calib_ros.core.coupling import JointCoupling, coupling_from_mapping, identity_coupling
+from kpi_calib_ros.core.coupling import JointCoupling, identity_coupling
 from kpi_calib_ros.core.design import DesignSettings
 from kpi_calib_ros.core.design_cell import DesignCell
 from kpi_calib_ros.core.effects import resolve_effects
@@ -57,6 +57,7 @@ from kpi_calib_ros.core.parameters import ParameterSet, geometric_parameters
 from kpi_calib_ros.core.robot import Payload, RobotModel
 from kpi_calib_ros.io.cell_sections import (
     WorkingPose,
+    coupling_from_mapping,
     joint_sigma_vector,
     parse_capsule,
     parse_coupling,

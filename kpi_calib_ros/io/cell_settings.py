@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Any, Mapping
 
 from kpi_calib_ros.core.design import DesignSettings
+from kpi_calib_ros.core.effects import BoundEffect, parse_effect_spec
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation import DEFAULT_MAX_ITERATIONS
 from kpi_calib_ros.core.model_selection import DEFAULT_FOLDS, MODEL_CHOICES
+from kpi_calib_ros.core.robot import RobotModel
 from kpi_calib_ros.core.robust import LOSSES, OutlierSettings
 from kpi_calib_ros.io.cell_values import non_negative, number, text_number_hint
 from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, DEFAULT_POSE_TOPIC
@@ -22,7 +25,7 @@ class SimulationSettings:
     """The ``simulation:`` section: what the simulated robot has beyond the model.
 
     ``hidden_effects`` maps effect specs to their true parameter values; it is
-    checked against the robot by :func:`kpi_calib_ros.core.effects.hidden_effects`.
+    checked against the robot by :func:`hidden_effects`.
     """
 
     hidden_effects: Mapping[str, Any] = field(default_factory=dict)
@@ -216,3 +219,49 @@ def parse_priority(ident: dict, method: str) -> tuple[str, ...]:
         raise ConfigError('identification.priority', "is used only with method: priority; "
                           'set it or remove the list')
     return tuple(raw)
+
+
+# ----------------------------------------------------------------- simulation
+def hidden_effects(doc: Any, robot: RobotModel, key: str = 'simulation.hidden_effects',
+                   base_dir: str | Path | None = None, allow_code: bool = False
+                   ) -> tuple[tuple[BoundEffect, ...], dict[str, float]]:
+    """Effects the simulated "true" robot has and the model lacks.
+
+    ``doc`` maps specs to parameter values, as in a cell file::
+
+        simulation:
+          hidden_effects:
+            joint_compliance:joint_2: {c: 8.0e-7}
+            tracker_scale: {s: 5.0e-6}
+
+    A parameter left out takes the effect's typical size.
+
+    Returns
+    -------
+    effects : tuple of BoundEffect
+    overrides : dict
+        Parameter name -> true value, for :func:`~kpi_calib_ros.core.simulation.true_parameters`.
+    """
+    if not doc:
+        return (), {}
+    if not isinstance(doc, dict):
+        raise ConfigError(key, 'must be a mapping {effect:joint: {parameter: value}}')
+    effects, overrides = [], {}
+    for spec, values in doc.items():
+        effect = parse_effect_spec(str(spec), robot, f'{key}.{spec}', base_dir, allow_code)
+        values = values or {}
+        if not isinstance(values, dict):
+            raise ConfigError(f'{key}.{spec}',
+                              f'must map parameters {list(effect.kind.parameters)} to values')
+        unknown = set(values) - set(effect.kind.parameters)
+        if unknown:
+            raise ConfigError(f'{key}.{spec}.{sorted(unknown)[0]}', 'unknown parameter; '
+                              f'{effect.kind.name} has {list(effect.kind.parameters)}')
+        for suffix, name, typical in zip(effect.kind.parameters, effect.parameter_names,
+                                         effect.typical):
+            value = values.get(suffix, typical)
+            if not isinstance(value, (int, float)) or isinstance(value, bool):
+                raise ConfigError(f'{key}.{spec}.{suffix}', f'must be a number, got {value!r}')
+            overrides[name] = float(value)
+        effects.append(effect)
+    return tuple(effects), overrides
