@@ -36,10 +36,10 @@ from kpi_calib_ros.app.reidentify import cycle_prior, reidentification_document,
 from kpi_calib_ros.app.validate import validate_report
 from kpi_calib_ros.core.change_detection import ChangeTest
 from kpi_calib_ros.core.design import DesignResult
+from kpi_calib_ros.core.drift_state import DriftSwing
 from kpi_calib_ros.core.errors import DataError, KpiCalibError
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.pairing import PairingResult
-from kpi_calib_ros.core.prior import DriftSwing
 from kpi_calib_ros.core.sequential import (
     MODEL_INADEQUATE,
     CampaignSettings,
