@@ -71,6 +71,18 @@ def rotation_from_rpy(rpy: Sequence[float]) -> np.ndarray:
                      [-sp, cp * sr, cp * cr]])
 
 
+def pose_matrix(pose: Sequence[float] | np.ndarray) -> np.ndarray:
+    """4x4 transform (m) of ``[x, y, z, roll, pitch, yaw]`` (m, rad, URDF convention): the
+    numeric twin of :func:`kpi_calib_ros.core.kinematics.pose6`, equal to it to the bit."""
+    v = np.asarray(pose, float).reshape(-1)
+    if v.shape != (6,):
+        raise ValueError(f'a pose is 6 numbers [x, y, z, roll, pitch, yaw], got {v.tolist()}')
+    out = np.eye(4)
+    out[:3, :3] = rotation_from_rpy(v[3:])
+    out[:3, 3] = v[:3]
+    return out
+
+
 def rotation_from_quaternion(xyzw: Sequence[float] | np.ndarray) -> np.ndarray:
     """3x3 rotation of a unit quaternion [x, y, z, w] (the geometry_msgs order).
 

@@ -40,7 +40,6 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Mapping
 
-import casadi as ca
 import numpy as np
 import yaml
 
@@ -51,9 +50,9 @@ from kpi_calib_ros.core.design_cell import DesignCell
 from kpi_calib_ros.core.effects import resolve_effects
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.gravity_compliance import mass_warning
-from kpi_calib_ros.core.kinematics import pose6
 from kpi_calib_ros.core.measurement import MeasurementModel
 from kpi_calib_ros.core.parameters import ParameterSet, geometric_parameters
+from kpi_calib_ros.core.pose_measurement import pose_matrix
 from kpi_calib_ros.core.robot import Payload, RobotModel
 from kpi_calib_ros.io.cell_sections import (
     WorkingPose,
@@ -443,8 +442,7 @@ def build_cell_model(cell: Cell, effects: tuple = ()) -> CellModel:
         bad = cell.working_poses[int(np.argmin(inside))].name
         raise ConfigError('working_poses', f'pose {bad!r} is outside the joint limits '
                           f'{robot.lower.round(3).tolist()} .. {robot.upper.round(3).tolist()}')
-    b = cell.base_in_tracker
-    base_in_tracker = np.array(ca.DM(pose6(ca.DM(b))))
+    base_in_tracker = pose_matrix(cell.base_in_tracker)
     return CellModel(cell, robot, geometric, model, q_work,
                      tuple(w.name for w in cell.working_poses), np.linalg.inv(base_in_tracker),
                      coupling)
