@@ -552,7 +552,7 @@ def candidate_effects(robot: RobotModel, kinds: Sequence[str] | None = None,
     return out
 
 
-def implausible(effect: BoundEffect, values: Sequence[float],
+def implausible(effect: BoundEffect, values: Sequence[float] | np.ndarray,
                 tau: np.ndarray | None = None) -> str:
     """'' when every fitted value is within the effect's plausible range, else a warning
     naming the parameter, its value and the bound.
@@ -577,7 +577,7 @@ def implausible(effect: BoundEffect, values: Sequence[float],
 LINEAR_PLAY = 1.0 / 3.0
 
 
-def _compliance_limit(effect: BoundEffect, values: Sequence[float],
+def _compliance_limit(effect: BoundEffect, values: Sequence[float] | np.ndarray,
                       tau: np.ndarray) -> list[str]:
     compliance = _REGISTRY['joint_compliance']
     bound = (compliance.prismatic_plausible if effect.joint_kind == 'prismatic'

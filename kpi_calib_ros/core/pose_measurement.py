@@ -62,7 +62,7 @@ def rotation_residual_expression(measured9: Expr, predicted: Expr, scale: Expr) 
     return log3_expression(measured.T @ predicted) * ca.DM(np.asarray(scale, float))
 
 
-def rotation_from_rpy(rpy: Sequence[float]) -> np.ndarray:
+def rotation_from_rpy(rpy: Sequence[float] | np.ndarray) -> np.ndarray:
     """3x3 rotation of URDF roll, pitch, yaw (rad): Rz(yaw) · Ry(pitch) · Rx(roll)."""
     r, p, y = (float(a) for a in rpy)
     cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
