@@ -25,7 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from kpi_calib_ros.app.identify import identify_cell, load_measurements, registered_start
+from kpi_calib_ros.app.identify import identify_cell, registered_start
+from kpi_calib_ros.app.measurements import load_measurements
 from kpi_calib_ros.cli import main as cli
 from kpi_calib_ros.core.model_selection import level_free
 from kpi_calib_ros.core.residuals import cross_validated_rms

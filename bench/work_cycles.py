@@ -36,7 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
-from kpi_calib_ros.app.identify import add_robust_sections, calibrate_cell, calibration_document
+from kpi_calib_ros.app.calibration_document import add_robust_sections, calibration_document
+from kpi_calib_ros.app.identify import calibrate_cell
 from kpi_calib_ros.app.reidentify import cycle_prior, reidentification_document, reidentify
 from kpi_calib_ros.core.design import design_context, design_measurements
 from kpi_calib_ros.core.drift_state import DriftSwing

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import yaml
 
-from kpi_calib_ros.app.identify import identify_cell, measurements_from_samples
+from kpi_calib_ros.app.identify import identify_cell
+from kpi_calib_ros.app.measurements import measurements_from_samples
 from kpi_calib_ros.app.simulate import simulate_campaign
 from kpi_calib_ros.cli import main
 from kpi_calib_ros.core.errors import ConfigError
@@ -137,7 +138,7 @@ def test_design_poses_leave_in_controller_values(tmp_path):
 def test_cli_writes_the_node_calibrated_urdf(tmp_path, capsys):
     """kpi-calib identify writes the calibrated URDF beside calibration.yaml, and it is
     the node's byte for byte on the same data."""
-    from kpi_calib_ros.app.identify import load_measurements
+    from kpi_calib_ros.app.measurements import load_measurements
     from kpi_calib_ros.ros.jobs import identify_work
     bag = tmp_path / 'run.mcap'
     simulate_campaign(DEFAULT_CELL, 30, bag, seed=3)

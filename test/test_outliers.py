@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 import yaml
 
+from kpi_calib_ros.app.calibration_document import add_robust_sections, calibration_document
 from kpi_calib_ros.app.diagnose import diagnose_cell
-from kpi_calib_ros.app.identify import add_robust_sections, calibrate_cell, calibration_document
+from kpi_calib_ros.app.identify import calibrate_cell
 from kpi_calib_ros.cli import main
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.replicates import pose_groups

@@ -164,7 +164,7 @@ def run_bag(tmp_path_factory):
 def test_previous_calibration_as_prior_from_the_cli(run_bag, tmp_path, capsys):
     import yaml
 
-    from kpi_calib_ros.app.identify import measurements_from_bag
+    from kpi_calib_ros.app.measurements import measurements_from_bag
     from kpi_calib_ros.cli import main
     cell = str(DEFAULT_CELL)
     assert main(['identify', '--cell', cell, '--bag', str(run_bag), '--out',

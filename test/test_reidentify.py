@@ -57,7 +57,8 @@ def test_a_cost_test_while_the_step_still_promises_a_decrease_is_a_stall(cell, t
 @pytest.fixture(scope='module')
 def first_cycle(cell, truth):
     """A 60-pose calibration (the previous cycle) and its document."""
-    from kpi_calib_ros.app.identify import add_robust_sections, calibrate_cell, calibration_document
+    from kpi_calib_ros.app.calibration_document import add_robust_sections, calibration_document
+    from kpi_calib_ros.app.identify import calibrate_cell
     p_true, _ = truth
     rng = np.random.default_rng(12)
     q = random_configurations(cell.model, cell.model.params.nominal, 60, rng)

@@ -9,7 +9,9 @@ import pytest
 import scipy.stats
 import yaml
 
-from kpi_calib_ros.app.identify import calibration_document, identify_cell, measurements_from_bag
+from kpi_calib_ros.app.calibration_document import calibration_document
+from kpi_calib_ros.app.identify import identify_cell
+from kpi_calib_ros.app.measurements import measurements_from_bag
 from kpi_calib_ros.app.validate import (
     calibration_noise_scale,
     parameter_vector,

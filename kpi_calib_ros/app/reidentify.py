@@ -29,18 +29,20 @@ from typing import Any
 
 import numpy as np
 
-from kpi_calib_ros.app.identify import (
+from kpi_calib_ros.app.calibration_document import (
     CellCalibration,
     add_robust_sections,
-    calibrate_cell,
     calibration_document,
-    load_measurements,
-    places_the_points,
-    registered_start,
     robust_summary,
-    with_iteration_limit,
     write_results,
 )
+from kpi_calib_ros.app.identify import (
+    calibrate_cell,
+    places_the_points,
+    registered_start,
+    with_iteration_limit,
+)
+from kpi_calib_ros.app.measurements import load_measurements
 from kpi_calib_ros.app.validate import calibration_noise_scale
 from kpi_calib_ros.core.change_detection import CHANGE_ALPHA, ChangeTest, change_test
 from kpi_calib_ros.core.drift_state import (

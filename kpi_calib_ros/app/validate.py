@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from kpi_calib_ros.app.identify import measurements_from_bag, print_rejections
+from kpi_calib_ros.app.measurements import measurements_from_bag, print_rejections
 from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.parameters import BASE_COMPONENTS, reflector_prefixes

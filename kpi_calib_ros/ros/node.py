@@ -64,7 +64,7 @@ from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import MarkerArray
 
-from kpi_calib_ros.app.identify import pose_rows, urdf_measurements
+from kpi_calib_ros.app.measurements import pose_rows, urdf_measurements
 from kpi_calib_ros.core.collision import Capsule
 from kpi_calib_ros.core.drift_state import DriftSwing
 from kpi_calib_ros.core.errors import ConfigError, DataError, KpiCalibError
