@@ -41,16 +41,16 @@ from kpi_calib_ros.core.residuals import (
     ADEQUACY_ALPHA,
     LinearizedFit,
     ResidualReport,
-    cross_validated_rms,
-    cv_rms,
     identifiable_folds,
+    linear_validation_rms,
     linearized_fit,
     residual_report,
+    validation_rms,
 )
 
 __all__ = ['Candidate', 'CandidateFit', 'CellDiagnosis', 'Diagnosis', 'ModelComparison',
            'ResidualReport',
-           'augmented_model', 'compare_models', 'cross_validated_rms', 'diagnose',
+           'augmented_model', 'compare_models', 'validation_rms', 'diagnose',
            'equivalent_joint_sigma',
            'residual_report', 'screen_effects']
 DEPENDENCE_TOLERANCE = 1e-4  # unique fraction of a signature below this: absorbed
@@ -251,7 +251,7 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
     r_perp = sys_.r - sys_.basis @ (sys_.basis.T @ sys_.r)
     chi2_base = float(r_perp @ r_perp)
     rms_base = float(np.sqrt(np.sum(unweighted(r_perp, sys_.w) ** 2) / n))
-    cv_base = cv_rms(sys_.jac, sys_.r, sys_.w, pose_folds)
+    cv_base = linear_validation_rms(sys_.jac, sys_.r, sys_.w, pose_folds)
     dof_base = 3 * n - sys_.basis.shape[1]
     q = np.atleast_2d(data.q)
     tau = sys_.tau if sys_.tau is not None else model.robot.gravity_torques(q)
@@ -343,7 +343,7 @@ def diagnose(model: MeasurementModel, data: Measurements, result: CalibrationRes
     """
     report = residual_report(model, data, result, alpha)
     ranked, rejected = screen_effects(model, data, result, candidates, folds, alpha, seed)
-    cv = cross_validated_rms(model, data, result, folds, seed)
+    cv = validation_rms(model, data, result, folds, seed)
     best = ranked[0] if ranked and ranked[0].significant and ranked[0].plausible else None
     implausible_only = best is None and any(c.significant for c in ranked)
     adequate = report.adequate and best is None and not implausible_only
@@ -424,8 +424,8 @@ def compare_models(before: tuple[MeasurementModel, CalibrationResult],
     return ModelComparison(
         effects=tuple(e.name for e in new),
         rms_before_m=res_b.rms_m, rms_after_m=res_a.rms_m,
-        validation_rms_before_m=cross_validated_rms(model_b, data, res_b, folds, seed),
-        validation_rms_after_m=cross_validated_rms(model_a, data, res_a, folds, seed),
+        validation_rms_before_m=validation_rms(model_b, data, res_b, folds, seed),
+        validation_rms_after_m=validation_rms(model_a, data, res_a, folds, seed),
         p_value_before=res_b.p_value, p_value_after=res_a.p_value,
         effect_parameters=tuple(params),
         tcp_std_before_m=np.sqrt(np.diagonal(res_b.tcp_covariance, axis1=1, axis2=2)),
@@ -510,7 +510,7 @@ def _fit_candidate(effect: BoundEffect, cols: np.ndarray, sys_: LinearizedFit, r
     dof = dof_base - k
     f_stat = (delta / k) / (chi2_aug / dof)
     p_raw = float(scipy.stats.f.sf(f_stat, k, dof))
-    cv = cv_rms(np.hstack([sys_.jac, cols]), sys_.r, sys_.w, pose_folds)
+    cv = linear_validation_rms(np.hstack([sys_.jac, cols]), sys_.r, sys_.w, pose_folds)
     rms = float(np.sqrt(np.sum(unweighted(r_aug, sys_.w) ** 2) / n))
     corr = float(np.sqrt(max(delta, 0.0) / chi2_base)) if chi2_base > 0 else 0.0
     return CandidateFit(
