@@ -16,7 +16,6 @@ from kpi_calib_ros.io.cell_values import joint_value, non_negative, number, vect
 
 # Plausibility of SI values: beyond these a value is almost surely in other units.
 MAX_TRACKER_RANGE_M = 50.0     # laser trackers measure to ~40-80 m; cells are far smaller
-
 MAX_REFLECTOR_OFFSET_M = 2.0   # reflector from the flange: a tool, not a second robot
 
 
