@@ -12,16 +12,15 @@ import argparse
 import sys
 from pathlib import Path
 
-from kpi_calib_ros.core.errors import DataError, KpiCalibError
-from kpi_calib_ros.core.estimation import DEFAULT_MAX_ITERATIONS
-from kpi_calib_ros.core.prior import (
+from kpi_calib_ros.core.drift_state import (
     DAY_HOURS,
-    DRIFT_ANGLE_PER_SQRT_HOUR,
-    DRIFT_LENGTH_PER_SQRT_HOUR,
     OFFSET_SWING_RAD,
     TEMPERATURE_SWING_K,
     DriftSwing,
 )
+from kpi_calib_ros.core.errors import DataError, KpiCalibError
+from kpi_calib_ros.core.estimation import DEFAULT_MAX_ITERATIONS
+from kpi_calib_ros.core.prior import DRIFT_ANGLE_PER_SQRT_HOUR, DRIFT_LENGTH_PER_SQRT_HOUR
 from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, DEFAULT_POSE_TOPIC
 
 CODE_EFFECTS_HELP = ("let the cell file's effects: name Python code ('file.py:Type:joint', "
@@ -69,7 +68,7 @@ def _positive_int(text: str) -> int:
 
 
 DEFAULT_SWING = DriftSwing()  # the defaults: TEMPERATURE_SWING_K, OFFSET_SWING_RAD, DAY_HOURS
-SWING_HELP = ('drift state of a daily swing (core.prior.DriftSwing): the rates of the prior '
+SWING_HELP = ('drift state of a daily swing (core.drift_state.DriftSwing): the rates of the prior '
               'calibration (its drift_state) extrapolate it, and this cycle\'s calibration '
               'stores them; TEMPERATURE_K: ± temperature amplitude of the links (12 µm per m '
               'and K), OFFSET_RAD: ± joint offset amplitude, PERIOD_H: its period (default '
@@ -79,7 +78,7 @@ SWING_HELP = ('drift state of a daily swing (core.prior.DriftSwing): the rates o
 
 def _swing(text: str) -> DriftSwing:
     """``--drift-velocity TEMPERATURE_K,OFFSET_RAD[,PERIOD_H]`` (checked by
-    :meth:`kpi_calib_ros.core.prior.DriftSwing.from_values`)."""
+    :meth:`kpi_calib_ros.core.drift_state.DriftSwing.from_values`)."""
     try:
         return DriftSwing.from_values([float(x) for x in text.split(',')])
     except (ValueError, DataError) as exc:

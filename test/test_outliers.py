@@ -12,11 +12,12 @@ import numpy as np
 import pytest
 import yaml
 
+from kpi_calib_ros.app.calibration_document import add_robust_sections, calibration_document
 from kpi_calib_ros.app.diagnose import diagnose_cell
-from kpi_calib_ros.app.identify import add_robust_sections, calibrate_cell, calibration_document
+from kpi_calib_ros.app.identify import calibrate_cell
 from kpi_calib_ros.cli import main
 from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.outliers import pose_groups
+from kpi_calib_ros.core.replicates import pose_groups
 from kpi_calib_ros.core.robust import OutlierSettings
 from kpi_calib_ros.core.simulation import (
     one_joint_at_a_time,
@@ -135,12 +136,6 @@ def test_a_fault_of_one_reflector_is_excluded_even_at_a_pose_the_model_misfits(c
     plain = calibrate_cell(_no_exclusion(cm), dataclasses.replace(data, eta=eta))
     assert _held_out_rms(cm, p_true, cal.result.values) < \
         _held_out_rms(cm, p_true, plain.result.values)
-
-
-def test_pose_groups_join_rows_within_the_tolerance_in_order_of_appearance():
-    q = np.array([[0.5, 1.0], [0.0, 0.0], [0.5 + 2e-4, 1.0 - 3e-4], [0.0, 1e-5], [0.0, 0.1]])
-    assert pose_groups(q).tolist() == [0, 1, 0, 1, 2]
-    assert pose_groups(q, tolerance=1e-6).tolist() == [0, 1, 2, 3, 4]
 
 
 def _random_campaign_with_faults(cm, p_true, n_poses, fraction, seed):

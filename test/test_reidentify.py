@@ -57,7 +57,8 @@ def test_a_cost_test_while_the_step_still_promises_a_decrease_is_a_stall(cell, t
 @pytest.fixture(scope='module')
 def first_cycle(cell, truth):
     """A 60-pose calibration (the previous cycle) and its document."""
-    from kpi_calib_ros.app.identify import add_robust_sections, calibrate_cell, calibration_document
+    from kpi_calib_ros.app.calibration_document import add_robust_sections, calibration_document
+    from kpi_calib_ros.app.identify import calibrate_cell
     p_true, _ = truth
     rng = np.random.default_rng(12)
     q = random_configurations(cell.model, cell.model.params.nominal, 60, rng)
@@ -208,13 +209,13 @@ def test_the_drift_state_filter_matches_monte_carlo_of_the_swing_process():
     (transition Φ, discrete noise Q), measured every cycle with noise; the posterior
     error of the parameters and of the rates after 12 cycles has the variance the filter
     states (χ²(1) means within 3 std over 400 trials) and no bias."""
-    from kpi_calib_ros.core.prior import (
+    from kpi_calib_ros.core.drift_state import (
         DriftSwing,
-        Prior,
         state_predicted,
         state_updated,
         stationary_state,
     )
+    from kpi_calib_ros.core.prior import Prior
     swing = DriftSwing(10.0, 5e-5, 24.0)
     names = ('a', 'b')
     shape = np.array([[4e-8, 1e-8], [1e-8, 1e-8]])       # swing amplitudes 200, 100 µm
@@ -255,14 +256,15 @@ def test_the_drift_state_filter_matches_monte_carlo_of_the_swing_process():
 
 
 def test_the_stationary_drift_state_stays_stationary_and_bad_states_are_refused():
-    from kpi_calib_ros.core.errors import DataError
-    from kpi_calib_ros.core.prior import (
+    from kpi_calib_ros.core.drift_state import (
         DriftState,
         DriftSwing,
-        Prior,
         state_predicted,
         stationary_state,
     )
+    from kpi_calib_ros.core.errors import DataError
+    from kpi_calib_ros.core.prior import Prior
+    from kpi_calib_ros.io.calibration_file import drift_state_from_dict
     swing = DriftSwing(5.0, 5e-5)
     shape = np.diag([1e-8, 4e-8])
     state = stationary_state(('a', 'b'), swing, shape)
@@ -278,9 +280,9 @@ def test_the_stationary_drift_state_stays_stationary_and_bad_states_are_refused(
     bad = state.to_dict()
     bad['covariance'] = bad['covariance'][:3]
     with pytest.raises(DataError, match='drift_state.covariance'):
-        DriftState.from_dict(bad)
+        drift_state_from_dict(bad)
     with pytest.raises(DataError, match='drift_state lacks'):
-        DriftState.from_dict({'names': ['a']})
+        drift_state_from_dict({'names': ['a']})
     with pytest.raises(DataError, match='period'):
         DriftSwing(5.0, 5e-5, 0.0)
 
@@ -290,7 +292,8 @@ def test_a_cycle_with_a_drift_state_stores_it_and_the_next_prior_follows_its_rat
     import yaml
 
     from kpi_calib_ros.app.reidentify import cycle_prior, reidentification_document, reidentify
-    from kpi_calib_ros.core.prior import DriftState, DriftSwing
+    from kpi_calib_ros.core.drift_state import DriftSwing
+    from kpi_calib_ros.io.calibration_file import drift_state_from_dict
     p_true, _ = truth
     _, doc = first_cycle
     swing = DriftSwing(8.0, 5e-5)
@@ -302,7 +305,7 @@ def test_a_cycle_with_a_drift_state_stores_it_and_the_next_prior_follows_its_rat
     out = reidentify(cell, data, cp)
     assert out.calibration is not None and out.state is not None
     new = yaml.safe_load(yaml.safe_dump(reidentification_document(cell, out, cp, 'old')))
-    stored = DriftState.from_dict(new['drift_state'])
+    stored = drift_state_from_dict(new['drift_state'])
     assert stored.names == cp.prior.names
     assert new['drift_state']['swing']['temperature_k'] == 8.0
     # The next cycle's prior mean is the calibration moved along its state.

@@ -4,7 +4,7 @@ The code is the source of these pages: the ``kpi-calib`` argparse parser
 (:func:`kpi_calib_ros.cli.build_parser`), the node's parameters
 (:data:`kpi_calib_ros.ros.parameters.PARAMETERS`), its topics and services (the names of
 :mod:`kpi_calib_ros.io.names`, the message types as ``ros/node.py`` creates them), the
-effect library (:data:`kpi_calib_ros.core.effects.LIBRARY`) and the cell keys
+effect library (:data:`kpi_calib_ros.core.effect_library.LIBRARY`) and the cell keys
 (:data:`kpi_calib_ros.io.cell_schema.CELL_KEYS`). Each page goes to
 ``doc/reference/_generated/`` (not committed); ``bench/results/*.md`` are copied to
 ``doc/_generated/bench/`` so the benchmark page links them.
@@ -183,7 +183,8 @@ def node_page() -> str:
 
 # ------------------------------------------------------------------------ effects
 def effects_page() -> str:
-    from kpi_calib_ros.core.effects import CHAIN_EFFECTS, ENTRY_POINT_GROUP, LIBRARY
+    from kpi_calib_ros.core.effect_library import LIBRARY
+    from kpi_calib_ros.core.effects import CHAIN_EFFECTS, ENTRY_POINT_GROUP
 
     # The cell loader imports the chain effects (core.gravity_compliance registers itself).
     from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell

@@ -14,11 +14,11 @@ from kpi_calib_ros.app.identify import (
     calibrate_cell,
     cell_prior,
     identify_cell,
-    load_measurements,
     print_progress,
     with_effects,
 )
 from kpi_calib_ros.app.learned_residual import choose_residual
+from kpi_calib_ros.app.measurements import load_measurements
 from kpi_calib_ros.core.diagnosis import CellDiagnosis, compare_models, diagnose
 from kpi_calib_ros.core.effect_selection import effect_start
 from kpi_calib_ros.core.effects import implausible, parse_effect_spec

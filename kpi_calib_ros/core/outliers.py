@@ -13,12 +13,12 @@ excluding a fault makes it better. What tells them apart is what the model can n
    a point of leverage h pulls the fit towards itself and its residual has covariance
    σ²(I − H_ii), so ‖r_i‖/σ̂ understates how far it is. A point is *over* when
    t_i > threshold.
-2. *Replicates decide.* Points measured at one pose (joint values equal within
-   `POSE_TOLERANCE`: the other reflectors, the pose measured again) are replicates of
-   each other. A model misfit moves the tip as a rigid body, so a pose's residuals are
-   r_k ≈ t + ω × (η_k − c) plus noise whatever the model lacks; a fault moves one point
-   alone. The part of the pose's residuals no rigid motion explains, e = (I − P) r, is
-   noise under a misfit: ‖e‖²/σ̂² ~ χ²(3m − rank P) for m points. A pose beyond the
+2. *Replicates decide.* Points measured at one pose (the same pose of
+   :mod:`kpi_calib_ros.core.replicates`: the other reflectors, the pose measured again) are
+   replicates of each other. A model misfit moves the tip as a rigid body, so a pose's
+   residuals are r_k ≈ t + ω × (η_k − c) plus noise whatever the model lacks; a fault moves
+   one point alone. The part of the pose's residuals no rigid motion explains, e = (I − P)
+   r, is noise under a misfit: ‖e‖²/σ̂² ~ χ²(3m − rank P) for m points. A pose beyond the
    Bonferroni bound of that test (over the poses tested) is *inconsistent*; its over point
    whose removal restores the most consistency (ties: the farther) is a *fault*, one per
    pose and round (the others are judged again after the refit). An over point of a
@@ -61,9 +61,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg
-import scipy.sparse
-import scipy.sparse.csgraph
-import scipy.spatial
 import scipy.stats
 
 from kpi_calib_ros.core.measurement import (
@@ -74,10 +71,8 @@ from kpi_calib_ros.core.measurement import (
     weighted_residuals,
     weighted_rows,
 )
+from kpi_calib_ros.core.replicates import pose_groups
 
-# Joint values (rad, m for prismatic joints) closer than this are one pose: the readings
-# of a still robot at one commanded pose differ by encoder counts (~1e-5 rad).
-POSE_TOLERANCE = 1e-3
 HIGH_LEVERAGE = 0.5
 CONSISTENCY_ALPHA = 0.01
 RANK_TOLERANCE = 1e-9
@@ -113,21 +108,6 @@ class Judgement:
     inconsistency: np.ndarray
     why: tuple[str, ...]
     lone: np.ndarray
-
-
-def pose_groups(q: np.ndarray, tolerance: float = POSE_TOLERANCE) -> np.ndarray:
-    """Pose index (N,) of every row of ``q`` (N, n): rows whose joint values are all within
-    ``tolerance`` of a chain of others share one, numbered in order of first appearance."""
-    q = np.atleast_2d(np.asarray(q, float))
-    tree = scipy.spatial.cKDTree(q)
-    pairs = tree.query_pairs(tolerance, p=np.inf, output_type='ndarray')
-    graph = scipy.sparse.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])),
-                                    shape=(len(q), len(q)))
-    _, labels = scipy.sparse.csgraph.connected_components(graph, directed=False)
-    _, first, inverse = np.unique(labels, return_index=True, return_inverse=True)
-    rank = np.empty(len(first), int)
-    rank[np.argsort(first)] = np.arange(len(first))
-    return rank[inverse.reshape(-1)]
 
 
 def hat_blocks(model: MeasurementModel, data: Measurements, p: np.ndarray,

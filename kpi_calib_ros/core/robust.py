@@ -49,7 +49,8 @@ from kpi_calib_ros.core.measurement import (
     noise_weights,
     weighted_residuals,
 )
-from kpi_calib_ros.core.outliers import judge, pose_groups
+from kpi_calib_ros.core.outliers import judge
+from kpi_calib_ros.core.replicates import pose_groups
 
 LOSSES = ('linear', 'huber', 'soft_l1')
 LOSS_SCALE = float(np.sqrt(scipy.stats.chi2.ppf(0.95, 3)))

@@ -64,14 +64,14 @@ from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import MarkerArray
 
-from kpi_calib_ros.app.identify import pose_rows, urdf_measurements
+from kpi_calib_ros.app.measurements import pose_rows, urdf_measurements
 from kpi_calib_ros.core.collision import Capsule
+from kpi_calib_ros.core.drift_state import DriftSwing
 from kpi_calib_ros.core.errors import ConfigError, DataError, KpiCalibError
 from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.pairing import Decision, Rejection
 from kpi_calib_ros.core.precision import precision_statement
-from kpi_calib_ros.core.prior import DriftSwing
 from kpi_calib_ros.core.residuals import is_adequate
 from kpi_calib_ros.core.robust import RobustResult
 from kpi_calib_ros.core.sequential import MODEL_INADEQUATE, CampaignStatus, SequentialCampaign
