@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 from kpi_calib_ros.core.errors import DataError, KpiCalibError
-from kpi_calib_ros.core.estimation import DEFAULT_MAX_ITERATIONS
+from kpi_calib_ros.core.estimation import ITERATIONS_PER_PARAMETER
 from kpi_calib_ros.core.prior import (
     DAY_HOURS,
     DRIFT_ANGLE_PER_SQRT_HOUR,
@@ -120,7 +120,8 @@ def build_parser() -> argparse.ArgumentParser:
                      'effects that predict better)')
     ide.add_argument('--max-iterations', type=_positive_int, metavar='N',
                      help="iteration limit of every fit (overrides the cell's "
-                     f'identification.max_iterations; default {DEFAULT_MAX_ITERATIONS})')
+                     f'identification.max_iterations; default {ITERATIONS_PER_PARAMETER} '
+                     'per identified parameter)')
     ide.add_argument('--prior', metavar='OLD/calibration.yaml',
                      help="a previous calibration as Gaussian prior (its values and "
                      "parameter_covariance; replaces the cell's identification.prior)")

@@ -24,7 +24,7 @@ fix. Paths are relative to the cell file. Units are SI (m, rad, kg). Example::
       - {name: floor, type: halfspace, normal: [0, 0, 1], offset: -0.5}
       - {name: car_roof, type: capsule, a: [1.6, -1.5, 0.9], b: [1.6, 1.5, 0.9], radius: 0.5}
     collision: {capsules: [...], ignore_pairs: [[base_link, floor]], beam_radius: 0.005}
-    identification: {method: pivoted, model: geometric, loss: linear, max_iterations: 500,
+    identification: {method: pivoted, model: geometric, loss: linear, max_iterations: null,
                      outliers: {exclude: true, threshold: null}, cv_folds: 5,
                      prior: {translation: 1.0e-3, rotation: 1.0e-3, offset: 1.0e-3}}
     topics: {joint_states: /joint_states, point: /laser_tracker/point,   # bags read
@@ -50,7 +50,7 @@ from kpi_calib_ros.core.design import DesignSettings
 from kpi_calib_ros.core.design_cell import DesignCell
 from kpi_calib_ros.core.effects import resolve_effects
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.core.estimation import DEFAULT_MAX_ITERATIONS
+from kpi_calib_ros.core.estimation import DEFAULT_MAX_ITERATIONS, ITERATIONS_PER_PARAMETER
 from kpi_calib_ros.core.gravity_compliance import mass_warning
 from kpi_calib_ros.core.kinematics import pose6
 from kpi_calib_ros.core.measurement import MeasurementModel
@@ -106,7 +106,8 @@ class IdentificationSettings:
     the cross-validated rms reported beside the model choice; prior : std (m, rad, rad)
     of the joint placement translations, rotations and joint offsets around the nominal
     (:func:`kpi_calib_ros.core.prior.tolerance_prior`), None: no prior; max_iterations :
-    iteration limit of every fit (:func:`kpi_calib_ros.core.estimation.identify`).
+    iteration limit of every fit (:func:`kpi_calib_ros.core.estimation.identify`), None:
+    100 per identified parameter.
     """
 
     model: str = 'geometric'
@@ -114,7 +115,7 @@ class IdentificationSettings:
     outliers: OutlierSettings = field(default_factory=OutlierSettings)
     cv_folds: int = DEFAULT_FOLDS
     prior: tuple[float, float, float] | None = None
-    max_iterations: int = DEFAULT_MAX_ITERATIONS
+    max_iterations: int | None = DEFAULT_MAX_ITERATIONS
 
 
 @dataclass(frozen=True)
@@ -503,10 +504,12 @@ def identification_settings(raw: Mapping[str, Any]) -> IdentificationSettings:
         raise ConfigError('identification.outliers.max_fraction', f'must be in [0, 1), got '
                           f'{fraction!r}')
     limit = raw.get('max_iterations', DEFAULT_MAX_ITERATIONS)
-    if isinstance(limit, bool) or not isinstance(limit, int) or limit < 1:
+    if limit is not None and (isinstance(limit, bool) or not isinstance(limit, int)
+                              or limit < 1):
         raise ConfigError('identification.max_iterations', 'must be a positive integer (the '
-                          f'iteration limit of every fit, default {DEFAULT_MAX_ITERATIONS}), '
-                          f'got {limit!r}')
+                          'iteration limit of every fit) or null (the default: '
+                          f'{ITERATIONS_PER_PARAMETER} per identified parameter), got '
+                          f'{limit!r}')
     return IdentificationSettings(model, loss, OutlierSettings(
         exclude, None if threshold is None else float(threshold), float(fraction)), folds,
         _tolerance_prior(raw.get('prior')), limit)
