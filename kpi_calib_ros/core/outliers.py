@@ -54,8 +54,12 @@ are excluded before any fit (:func:`kpi_calib_ros.core.robust.gross_outliers`).
 Limitations: the hat matrix is that of the data alone (a prior lowers the leverage a
 little, so t_i is slightly overstated at poses the prior helps); without replicates a
 misfit at ordinary leverage looks like a fault and is excluded (one-reflector sweeps of 8
-poses per joint with a hidden cubic joint error: one such point, held-out rms 39.6 µm
-against 39.2 µm keeping it); a one-point fault that is a rotation of its pose about the
+poses per joint with a hidden cubic joint error, 1 of 8 seeds: the pose next to a sweep
+end, 4.5 σ̂ against the bound 4.42, leverage 0.30, its residual along the sweep end's
+(cosine 0.83), held-out rms 39.6 µm against 39.2 µm keeping it; a leverage bound of 0.3
+has no meaning like ½'s and would shield faults at up to 2 of 60 random poses, largest
+leverage 0.25-0.40; a rule on the residual of the nearest pose would shield faults beside
+a misfit pose); a one-point fault that is a rotation of its pose about the
 line through two other points, with those points also over the threshold, counts as
 misfit; rotation rows of tracked bodies are judged by rule 3 only.
 """
