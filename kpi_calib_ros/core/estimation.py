@@ -56,7 +56,7 @@ REWEIGHT_RTOL = 1e-3
 # SciPy's least_squares allows 100 n evaluations (max_nfev of 'trf'), and an iteration here
 # is one accepted step. A well-posed fit converges in 3-20; a nearly dependent parameter set
 # follows a long curved valley: 120 real UR10 poses with an unknown probe offset took
-# 10-244, starts 5-20 mm off the truth up to ~2000 in a wrong minimum
+# 7-244, starts 5-20 mm off the truth 251-2479 in a wrong minimum (27 parameters)
 # (identification.max_iterations sets a fixed limit per cell).
 ITERATIONS_PER_PARAMETER = 100
 DEFAULT_MAX_ITERATIONS: int | None = None
@@ -105,7 +105,7 @@ class Tolerances:
         (it is no estimate), and an accepted step with ρ ≤ 0.25 (the model failed; the
         region shrinks and the iteration goes on). Found on simulated starts 5-20 mm /
         10-50 mrad off the truth (``bench/solver_vs_trf.py``): some end in a wrong minimum
-        (2-14 mm rms) on a nearly singular Jacobian, the Gauss-Newton step 10⁷-10⁹ in
+        (0.6-14 mm rms) on a nearly singular Jacobian, the Gauss-Newton step 10⁷-10⁹ in
         equilibrated units and predicting the whole cost, while damped steps gain 1e-8 to
         1e-7 of it each; no Gauss-Newton test can hold there, and SciPy's TRF stops on this
         test. SciPy's other two tests are not taken over: its gtol is absolute in the units
