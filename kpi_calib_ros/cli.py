@@ -19,7 +19,7 @@ from kpi_calib_ros.core.drift_state import (
     DriftSwing,
 )
 from kpi_calib_ros.core.errors import DataError, KpiCalibError
-from kpi_calib_ros.core.estimation import DEFAULT_MAX_ITERATIONS
+from kpi_calib_ros.core.estimation import ITERATIONS_PER_PARAMETER
 from kpi_calib_ros.core.prior import DRIFT_ANGLE_PER_SQRT_HOUR, DRIFT_LENGTH_PER_SQRT_HOUR
 from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, DEFAULT_POSE_TOPIC
 
@@ -119,7 +119,8 @@ def build_parser() -> argparse.ArgumentParser:
                      'effects that predict better)')
     ide.add_argument('--max-iterations', type=_positive_int, metavar='N',
                      help="iteration limit of every fit (overrides the cell's "
-                     f'identification.max_iterations; default {DEFAULT_MAX_ITERATIONS})')
+                     f'identification.max_iterations; default {ITERATIONS_PER_PARAMETER} '
+                     'per identified parameter)')
     ide.add_argument('--prior', metavar='OLD/calibration.yaml',
                      help="a previous calibration as Gaussian prior (its values and "
                      "parameter_covariance; replaces the cell's identification.prior)")

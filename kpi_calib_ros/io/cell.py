@@ -24,7 +24,7 @@ fix. Paths are relative to the cell file. Units are SI (m, rad, kg). Example::
       - {name: floor, type: halfspace, normal: [0, 0, 1], offset: -0.5}
       - {name: car_roof, type: capsule, a: [1.6, -1.5, 0.9], b: [1.6, 1.5, 0.9], radius: 0.5}
     collision: {capsules: [...], ignore_pairs: [[base_link, floor]], beam_radius: 0.005}
-    identification: {method: pivoted, model: geometric, loss: linear, max_iterations: 500,
+    identification: {method: pivoted, model: geometric, loss: linear, max_iterations: null,
                      outliers: {exclude: true, threshold: null}, cv_folds: 5,
                      prior: {translation: 1.0e-3, rotation: 1.0e-3, offset: 1.0e-3}}
     topics: {joint_states: /joint_states, point: /laser_tracker/point,   # bags read

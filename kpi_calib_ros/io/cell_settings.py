@@ -9,7 +9,7 @@ from typing import Any, Mapping
 from kpi_calib_ros.core.design import DesignSettings
 from kpi_calib_ros.core.effects import BoundEffect, parse_effect_spec
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.core.estimation import DEFAULT_MAX_ITERATIONS
+from kpi_calib_ros.core.estimation import DEFAULT_MAX_ITERATIONS, ITERATIONS_PER_PARAMETER
 from kpi_calib_ros.core.model_selection import DEFAULT_FOLDS, MODEL_CHOICES
 from kpi_calib_ros.core.robot import RobotModel
 from kpi_calib_ros.core.robust import LOSSES, OutlierSettings
@@ -41,7 +41,8 @@ class IdentificationSettings:
     the cross-validated rms reported beside the model choice; prior : std (m, rad, rad)
     of the joint placement translations, rotations and joint offsets around the nominal
     (:func:`kpi_calib_ros.core.prior.tolerance_prior`), None: no prior; max_iterations :
-    iteration limit of every fit (:func:`kpi_calib_ros.core.estimation.identify`).
+    iteration limit of every fit (:func:`kpi_calib_ros.core.estimation.identify`), None:
+    100 per identified parameter.
     """
 
     model: str = 'geometric'
@@ -49,7 +50,7 @@ class IdentificationSettings:
     outliers: OutlierSettings = field(default_factory=OutlierSettings)
     cv_folds: int = DEFAULT_FOLDS
     prior: tuple[float, float, float] | None = None
-    max_iterations: int = DEFAULT_MAX_ITERATIONS
+    max_iterations: int | None = DEFAULT_MAX_ITERATIONS
 
 
 def design_settings(raw: Mapping[str, Any] | None) -> DesignSettings:
@@ -129,10 +130,12 @@ def identification_settings(raw: Mapping[str, Any]) -> IdentificationSettings:
         raise ConfigError('identification.outliers.max_fraction', f'must be in [0, 1), got '
                           f'{fraction!r}')
     limit = raw.get('max_iterations', DEFAULT_MAX_ITERATIONS)
-    if isinstance(limit, bool) or not isinstance(limit, int) or limit < 1:
+    if limit is not None and (isinstance(limit, bool) or not isinstance(limit, int)
+                              or limit < 1):
         raise ConfigError('identification.max_iterations', 'must be a positive integer (the '
-                          f'iteration limit of every fit, default {DEFAULT_MAX_ITERATIONS}), '
-                          f'got {limit!r}')
+                          'iteration limit of every fit) or null (the default: '
+                          f'{ITERATIONS_PER_PARAMETER} per identified parameter), got '
+                          f'{limit!r}')
     return IdentificationSettings(model, loss, OutlierSettings(
         exclude, None if threshold is None else float(threshold), float(fraction)), folds,
         _tolerance_prior(raw.get('prior')), limit)
