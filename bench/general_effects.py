@@ -28,7 +28,7 @@ import numpy as np
 import yaml
 
 from kpi_calib_ros.core.diagnosis import augmented_model, diagnose
-from kpi_calib_ros.core.effects import hidden_effects, parse_effect_spec
+from kpi_calib_ros.core.effects import parse_effect_spec
 from kpi_calib_ros.core.estimation import identify
 from kpi_calib_ros.core.simulation import (
     random_configurations,
@@ -36,6 +36,7 @@ from kpi_calib_ros.core.simulation import (
     true_parameters,
 )
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict
+from kpi_calib_ros.io.cell_settings import hidden_effects
 
 SIGMA = 20e-6
 FLOOR = SIGMA * np.sqrt(3)

@@ -16,12 +16,7 @@ import pytest
 import yaml
 
 from kpi_calib_ros.core.diagnosis import augmented_model, diagnose, screen_effects
-from kpi_calib_ros.core.effects import (
-    hidden_effects,
-    parse_effect_spec,
-    resolve_effects,
-    split_specs,
-)
+from kpi_calib_ros.core.effects import parse_effect_spec, resolve_effects, split_specs
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation import identify
 from kpi_calib_ros.core.general_effects import general_candidates, gravity_moment
@@ -36,6 +31,7 @@ from kpi_calib_ros.core.simulation import (
     true_parameters,
 )
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict
+from kpi_calib_ros.io.cell_settings import hidden_effects
 
 SIGMA = 20e-6
 FLOOR = SIGMA * np.sqrt(3)
