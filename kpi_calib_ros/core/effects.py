@@ -20,6 +20,19 @@ Pinocchio, payload included)::
     joint_scale           δq_j = k · q_j                   k  1 (transmission ratio)
     tracker_scale         η = (1 + s) · h  (global)        s  1 (tracker length scale)
 
+Thermal effects read the covariate ``delta_temperature`` (ΔT, K: the arm's temperature
+minus the cell's reference, :mod:`kpi_calib_ros.core.covariates`); they are candidates only
+where the measurements carry it::
+
+    thermal_zero_drift    δq_j = d · ΔT                    d  rad/K
+    thermal_link_growth   t_j -> (1 + α ΔT) · t_j          α  1/K (linear expansion)
+    thermal_growth        every t_j -> (1 + α ΔT) · t_j    α  1/K  (global: one material)
+
+``t_j`` is the nominal translation of joint j's origin from its parent (the URDF
+``<origin xyz>``: the link before the joint); the growth is written into that joint's
+placement error, so the geometric placement stays what it is at the reference temperature.
+Steel grows 11–13 µm/(m K), aluminium 23–24 µm/(m K): α outside ±30e-6 /K is flagged.
+
 Sign of ``joint_compliance``: τ_j is Pinocchio's generalised gravity g(q), the torque
 the drive must apply to *hold* the arm, and the model puts the joint at q + δq. A
 joint of stiffness k sags along gravity, against its holding torque, so a physical
@@ -136,6 +149,16 @@ class EffectType:
     nests : tuple of str
         Simpler effects (names) this one contains as limits on the same joint; the
         diagnosis counts it only when it fits significantly better than them.
+    inputs : tuple of str
+        Covariates (``Measurements.covariates`` names) the effect reads; with any, its
+        functions take them as one more argument ``z`` (SX (len(inputs),), in this order):
+        ``joint_function(q_j, tau_j, theta, z)``, ``placement_function(t, theta, z)``. Every
+        input is 0 at the reference condition. Candidates only where the data carry them.
+    placement_function : callable, optional
+        ``f(t, theta, z) -> SX (6,)``: additive correction of a joint's placement error
+        (tx, ty, tz m in the joint's placement frame; rx, ry, rz rad) given ``t`` (3,), the
+        joint's nominal origin translation expressed in that frame (``M_jᵀ`` applied). Per
+        joint it moves its joint; global, every joint.
     """
 
     name: str
@@ -156,13 +179,19 @@ class EffectType:
     prismatic_plausible: tuple[float, ...] | None = None
     shape_grid: tuple[tuple[float, ...], ...] = ()
     nests: tuple[str, ...] = ()
+    inputs: tuple[str, ...] = ()
+    placement_function: Callable | None = None
 
     def __post_init__(self) -> None:
         if not self.name or ':' in self.name or '.' in self.name:
             raise ValueError(f'effect name {self.name!r} must be non-empty without ":" or "."')
-        if (self.joint_function is None) == (self.point_function is None):
-            raise ValueError(f'effect {self.name!r}: give exactly one of joint_function '
-                             'and point_function')
+        given = [f for f in (self.joint_function, self.point_function,
+                             self.placement_function) if f is not None]
+        if len(given) != 1:
+            raise ValueError(f'effect {self.name!r}: give exactly one of joint_function, '
+                             'point_function and placement_function')
+        if self.point_function is not None and self.inputs:
+            raise ValueError(f'effect {self.name!r}: a point correction reads no covariates')
         if self.point_function is not None and self.per_joint:
             raise ValueError(f'effect {self.name!r}: a point correction is global; '
                              'set per_joint=False')
@@ -214,6 +243,9 @@ class BoundEffect:
     units: tuple[str, ...] = field(init=False)
     uses_torque: bool = field(init=False)
     joint_kind: str | None = None
+    # Nominal origin translation of every chain joint in its placement frame (M_jᵀ t_j),
+    # (n, 3), for a placement effect; set by bind_effect.
+    origins: np.ndarray | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         prefix = self.kind.name if self.joint is None else f'{self.kind.name}.{self.joint}'
@@ -223,6 +255,11 @@ class BoundEffect:
                            tuple(f'{prefix}.{s}' for s in self.kind.parameters))
         object.__setattr__(self, 'units', self.kind.units_for(self.joint_kind))
         object.__setattr__(self, 'uses_torque', self.kind.uses_torque)
+
+    @property
+    def inputs(self) -> tuple[str, ...]:
+        """Covariates the effect reads (``Measurements.covariates`` names)."""
+        return self.kind.inputs
 
     @property
     def typical(self) -> tuple[float, ...]:
@@ -235,16 +272,29 @@ class BoundEffect:
         return self.parameter_names[len(self.parameter_names) - self.kind.n_shape:] \
             if self.kind.n_shape else ()
 
-    def joint_correction(self, q: ca.SX, tau: ca.SX, theta: ca.SX) -> Any:
-        """Additive joint-value correction, SX (n,), or None for a point effect."""
+    def joint_correction(self, q: ca.SX, tau: ca.SX, theta: ca.SX, z: Any = None) -> Any:
+        """Additive joint-value correction, SX (n,), or None for a point or placement
+        effect; ``z`` the covariates :attr:`inputs` (SX, an effect with inputs only)."""
         fn = self.kind.joint_function
         if fn is None:
             return None
+        extra = (z,) if self.kind.inputs else ()
         if self.joint_index is None:
-            return fn(q, tau, theta)
+            return fn(q, tau, theta, *extra)
         out = ca.SX.zeros(self.n_joints)
-        out[self.joint_index] = fn(q[self.joint_index], tau[self.joint_index], theta)
+        out[self.joint_index] = fn(q[self.joint_index], tau[self.joint_index], theta, *extra)
         return out
+
+    def placement_correction(self, theta: ca.SX, z: Any = None) -> list[tuple[int, Any]]:
+        """Additive corrections of joint placement errors: [(joint index, SX (6,))]; empty
+        unless the kind has a ``placement_function``."""
+        fn = self.kind.placement_function
+        if fn is None or self.origins is None:
+            return []
+        extra = (z,) if self.kind.inputs else ()
+        joints = range(self.n_joints) if self.joint_index is None else (self.joint_index,)
+        return [(j, fn(ca.DM(self.origins[j]), theta, *extra)) for j in joints
+                if np.any(self.origins[j] != 0)]
 
     def point_correction(self, point: ca.SX, theta: ca.SX) -> Any:
         """Corrected measured point, SX (3,), or None for a joint effect."""
@@ -287,6 +337,20 @@ def _scale(q_j: ca.SX, tau_j: ca.SX, theta: ca.SX) -> ca.SX:
 
 def _tracker_scale(point: ca.SX, theta: ca.SX) -> ca.SX:
     return (1 + theta[0]) * point
+
+
+DELTA_TEMPERATURE = 'delta_temperature'  # covariate: ΔT from the cell's reference, K
+# Linear expansion of the materials arms are made of, 1/K: steel 11-13e-6, cast iron ~10e-6,
+# aluminium 23-24e-6. A fitted α beyond THERMAL_EXPANSION_BOUND is flagged.
+THERMAL_EXPANSION_BOUND = 30e-6
+
+
+def _thermal_drift(q_j: ca.SX, tau_j: ca.SX, theta: ca.SX, z: ca.SX) -> ca.SX:
+    return theta[0] * z[0]
+
+
+def _thermal_growth(origin: ca.DM, theta: ca.SX, z: ca.SX) -> ca.SX:
+    return ca.vertcat(theta[0] * z[0] * origin, ca.SX.zeros(3))
 
 
 LIBRARY: tuple[EffectType, ...] = (
@@ -353,6 +417,30 @@ LIBRARY: tuple[EffectType, ...] = (
                hint='a global scale is absorbed by the free link lengths and the base '
                     'distance; measure a reference length (a calibrated scale bar) or '
                     'fix the link lengths'),
+    EffectType('thermal_zero_drift', ('d',), ('rad/K',), _thermal_drift, typical=(2e-6,),
+               screen=True, inputs=(DELTA_TEMPERATURE,), prismatic_units=('m/K',),
+               # 1e-4 rad/K: 2 mrad over a 20 K shift, far beyond a drifting encoder zero
+               plausible=(1e-4,), prismatic_plausible=(1e-4,),
+               description='joint-zero drift in proportion to the temperature change d·ΔT',
+               hint='measure while the temperature changes (a warm-up, a shift), with '
+                    'the poses spread over the temperatures, not one temperature per region',
+               signature='temperature change (zero of {joint})'),
+    EffectType('thermal_link_growth', ('alpha',), ('1/K',),
+               placement_function=_thermal_growth, typical=(12e-6,), screen=True,
+               inputs=(DELTA_TEMPERATURE,), plausible=(THERMAL_EXPANSION_BOUND,),
+               prismatic_plausible=(THERMAL_EXPANSION_BOUND,), prismatic_units=('1/K',),
+               description='thermal growth α·ΔT of the link before the joint (its origin '
+                           'translation)',
+               hint='measure while the temperature changes, with poses that stretch the '
+                    'link before {joint} in different directions at each temperature',
+               signature='temperature change (length of the link before {joint})'),
+    EffectType('thermal_growth', ('alpha',), ('1/K',), placement_function=_thermal_growth,
+               per_joint=False, typical=(12e-6,), screen=True, inputs=(DELTA_TEMPERATURE,),
+               plausible=(THERMAL_EXPANSION_BOUND,),
+               description='thermal growth α·ΔT of every link (one material)',
+               hint='measure while the temperature changes, over a wide workspace at each '
+                    'temperature',
+               signature='temperature change (every link length)'),
 )
 
 _REGISTRY: dict[str, EffectType] = {e.name: e for e in LIBRARY}
@@ -420,11 +508,21 @@ def bind_effect(effect_type: EffectType, robot: RobotModel, joint: str | None,
             raise ConfigError(key, f'effect {effect_type.name!r} applies to '
                               f'{list(effect_type.joint_kinds or ())} joints; {joint!r} is '
                               f'{kind}')
-        return BoundEffect(effect_type, joint, index, len(names), kind)
+        return BoundEffect(effect_type, joint, index, len(names), kind,
+                           origins=_origins(effect_type, robot))
     if joint is not None:
         raise ConfigError(key, f'effect {effect_type.name!r} is global; write '
                           f'{effect_type.name!r} without a joint')
-    return BoundEffect(effect_type, None, None, len(names))
+    return BoundEffect(effect_type, None, None, len(names), origins=_origins(effect_type, robot))
+
+
+def _origins(effect_type: EffectType, robot: RobotModel) -> np.ndarray | None:
+    """(n, 3) nominal origin translation of every joint in its placement frame, m (for a
+    placement effect; None otherwise)."""
+    if effect_type.placement_function is None:
+        return None
+    return np.array([np.asarray(j.placement)[:3, :3].T @ np.asarray(j.placement)[:3, 3]
+                     for j in robot.joints])
 
 
 # Effects built from the whole chain rather than one joint's (q_j, τ_j): spec name ->
@@ -524,14 +622,18 @@ def split_specs(text: str) -> list[str]:
 
 
 def candidate_effects(robot: RobotModel, kinds: Sequence[str] | None = None,
-                      exclude: Iterable[str] = ()) -> list[BoundEffect]:
+                      exclude: Iterable[str] = (),
+                      covariates: Iterable[str] = ()) -> list[BoundEffect]:
     """Every (effect × joint) to screen: the ``screen`` library effects by default.
 
-    ``exclude`` holds effect names (specs) already in the model.
+    ``exclude`` holds effect names (specs) already in the model; ``covariates`` the names
+    the measurements carry: by default an effect that reads covariates is a candidate only
+    where all its inputs are among them.
     """
     known = available_effects()
     if kinds is None:
-        chosen = [t for t in known.values() if t.screen]
+        present = set(covariates)
+        chosen = [t for t in known.values() if t.screen and set(t.inputs) <= present]
     else:
         unknown = [k for k in kinds if k not in known]
         if unknown:

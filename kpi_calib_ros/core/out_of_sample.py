@@ -261,7 +261,7 @@ def out_of_sample_error(model: MeasurementModel, data: Measurements,
     scale = float(result.chi2 / dof) if dof > 0 else float('nan')
     c0 = np.asarray(result.covariance, float) / float(result.covariance_scale)
     data_jac = information_rows(model, p, q, sigma, free_idx, prior, data.reflector,
-                                data.rotation)
+                                data.rotation, data.covariates)
     # Fresh poses are predicted as points: rotation rows of tracked bodies (channels from
     # model.n_reflectors on) need a measured rotation and are no length.
     reflectors = (np.array([0]) if data.reflector is None
