@@ -81,6 +81,7 @@ from typing import Any, Callable, Iterable, Sequence
 import casadi as ca
 import numpy as np
 
+from kpi_calib_ros.core.covariates import DELTA_TEMPERATURE
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.robot import RobotModel
 
@@ -339,7 +340,6 @@ def _tracker_scale(point: ca.SX, theta: ca.SX) -> ca.SX:
     return (1 + theta[0]) * point
 
 
-DELTA_TEMPERATURE = 'delta_temperature'  # covariate: ΔT from the cell's reference, K
 # Linear expansion of the materials arms are made of, 1/K: steel 11-13e-6, cast iron ~10e-6,
 # aluminium 23-24e-6. A fitted α beyond THERMAL_EXPANSION_BOUND is flagged.
 THERMAL_EXPANSION_BOUND = 30e-6

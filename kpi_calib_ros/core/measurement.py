@@ -287,7 +287,7 @@ class MeasurementModel:
                 correction = effect.joint_correction(q, tau, theta, z_e)
                 moves = getattr(effect, 'placement_correction', None)
                 for joint, delta in (moves(theta, z_e) if moves is not None else ()):
-                    placement = placement if placement is not None else ca.SX.zeros(len(p))
+                    placement = placement if placement is not None else ca.SX.zeros(p.shape[0])
                     idx = self.chain.placement_indices(joint)
                     placement[idx] = placement[idx] + delta
             else:

@@ -1,0 +1,163 @@
+"""Covariates and the thermal effects: temperature paired to points by time (exact linear
+interpolation, refusal outside the recording), exact Jacobians, the growth as written, and
+a hidden thermal growth under a shift's warm-up found, recovered within 3σ and predicting
+fresh poses at the noise floor; no thermal effect on data the geometry explains."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from kpi_calib_ros.app.identify import calibrate_cell
+from kpi_calib_ros.core.covariates import (
+    DELTA_TEMPERATURE,
+    TemperatureSample,
+    interpolate,
+    shift_temperature,
+    temperature_covariates,
+    with_covariates,
+)
+from kpi_calib_ros.core.diagnosis import augmented_model
+from kpi_calib_ros.core.effects import candidate_effects, hidden_effects, parse_effect_spec
+from kpi_calib_ros.core.measurement import Measurements
+from kpi_calib_ros.core.simulation import (
+    random_configurations,
+    simulate_measurements,
+    true_parameters,
+)
+
+SIGMA = 20e-6  # the default cell's tracker σ
+S = 10**9
+
+
+def test_interpolation_is_exact_for_a_linear_signal_and_refuses_outside():
+    t0 = 1_700_000_000 * S  # real epoch stamps: exact despite their size
+    samples = t0 + np.arange(0, 600, 10) * S
+    values = 20.0 + 0.01 * (samples - t0) / S        # 0.01 K/s
+    stamps = t0 + np.array([5, 17.5, 300, 590, 600, 700, -5, -200]) * S
+    got = interpolate(stamps.astype(np.int64), samples, values, max_gap_ns=60 * S)
+    expected = 20.0 + 0.01 * (stamps - t0) / S
+    np.testing.assert_allclose(got[:4], expected[:4], rtol=0, atol=1e-12)
+    assert got[4] == values[-1] and got[6] == values[0]   # held within the tolerance
+    assert np.isnan(got[5]) and np.isnan(got[7])            # beyond it: refused
+    # a gap longer than the tolerance gives no value inside it
+    sparse = np.delete(samples, np.arange(20, 40))
+    got = interpolate(np.array([t0 + 300 * S]), sparse, 20.0 + 0.01 * (sparse - t0) / S,
+                      max_gap_ns=60 * S)
+    assert np.isnan(got[0])
+
+
+def test_temperature_covariates_per_sensor_mean_and_refused_rows():
+    stamps = np.arange(0, 3600, 60) * S
+    samples = [TemperatureSample(int(t), f, base + 1e-3 * t / S)
+               for t in stamps for f, base in (('arm', 22.0), ('base', 24.0))]
+    points = np.array([30, 1200, 4000]) * S                # the last after the recording
+    cov = temperature_covariates(points, samples, reference_c=20.0, max_gap_ns=120 * S)
+    np.testing.assert_allclose(cov['temperature.arm'][:2], 22.0 + 1e-3 * points[:2] / S)
+    np.testing.assert_allclose(cov[DELTA_TEMPERATURE][:2], 3.0 + 1e-3 * points[:2] / S)
+    data = Measurements(q=np.zeros((3, 6)), eta=np.zeros((3, 3)), stamps_ns=points)
+    kept, refused = with_covariates(data, cov)
+    assert len(kept) == 2 and [i for i, _ in refused] == [2]
+    np.testing.assert_array_equal(kept.subset([1]).covariates['temperature.base'],
+                                  cov['temperature.base'][1:2])
+    with pytest.raises(ValueError, match='nope'):
+        temperature_covariates(points, samples, sensors=['nope'])
+
+
+def test_thermal_effects_are_candidates_only_with_a_temperature(cm):
+    plain = {e.name for e in candidate_effects(cm.robot)}
+    warm = {e.name for e in candidate_effects(cm.robot, covariates=[DELTA_TEMPERATURE])}
+    assert not any(n.startswith('thermal') for n in plain)
+    assert {'thermal_growth', 'thermal_zero_drift:joint_2',
+            'thermal_link_growth:joint_3'} <= warm
+
+
+def test_link_growth_lengthens_the_link_and_drift_turns_the_joint(cm):
+    """α ΔT grows joint 3's origin translation t (the upper arm) by α ΔT |t|: the tip moves
+    by exactly that vector turned by joint 2's frame; zero drift moves joint 2 by d ΔT."""
+    rng = np.random.default_rng(0)
+    q = random_configurations(cm.model, cm.model.params.nominal, 5, rng)
+    p0 = cm.model.params.nominal
+    growth = parse_effect_spec('thermal_link_growth:joint_3', cm.robot)
+    drift = parse_effect_spec('thermal_zero_drift:joint_2', cm.robot)
+    model = augmented_model(cm.model, (growth, drift))
+    dt = np.full(len(q), 8.0)
+    alpha, d = 12e-6, 3e-6
+    moved = model.predict(np.concatenate([p0, [alpha, 0.0]]), q,
+                          covariates={DELTA_TEMPERATURE: dt})
+    still = model.predict(np.concatenate([p0, [alpha, 0.0]]), q)   # ΔT = 0: no growth
+    np.testing.assert_allclose(still, cm.model.predict(p0, q), atol=1e-12)
+    t = cm.robot.joints[2].placement[:3, 3]
+    frames = cm.model.chain.link_transforms(p0, q[0])
+    # the shift is α ΔT t expressed in joint 2's child frame, then in the tracker frame
+    base = np.array(cm.model.chain.base_in_tracker(p0))[:3, :3]
+    expected = base @ np.array(frames[1])[:3, :3] @ (alpha * 8.0 * t)
+    np.testing.assert_allclose(moved[0] - cm.model.predict(p0, q[:1])[0], expected, atol=1e-12)
+    turned = model.predict(np.concatenate([p0, [0.0, d]]), q, covariates={DELTA_TEMPERATURE: dt})
+    q_turned = q.copy()
+    q_turned[:, 1] += d * 8.0
+    np.testing.assert_allclose(turned, cm.model.predict(p0, q_turned), atol=1e-12)
+
+
+@pytest.mark.parametrize('spec', ['thermal_growth', 'thermal_zero_drift:joint_2',
+                                  'thermal_link_growth:joint_3'])
+def test_thermal_jacobian_equals_finite_differences(cm, spec):
+    rng = np.random.default_rng(1)
+    model = augmented_model(cm.model, (parse_effect_spec(spec, cm.robot),))
+    q = random_configurations(cm.model, cm.model.params.nominal, 4, rng)
+    cov = {DELTA_TEMPERATURE: rng.uniform(-5, 10, len(q))}
+    p = np.concatenate([true_parameters(cm.model.params, rng), [1e-5]])
+    _, jac = model.jacobian(p, q, covariates=cov)
+    h = 1e-7
+    for i in (len(p) - 1, model.params.names.index('joint_3.placement.tx')):
+        step = np.zeros(len(p))
+        step[i] = h
+        fd = (model.predict(p + step, q, covariates=cov)
+              - model.predict(p - step, q, covariates=cov)) / (2 * h)
+        np.testing.assert_allclose(jac[:, :, i], fd, atol=1e-7)
+    with pytest.raises(ValueError, match='delta_temperature'):
+        model.predict(p, q, covariates={'temperature.arm': np.zeros(len(q))})
+
+
+def _shift(cm, hidden, seed, n=60, rise=8.0):
+    """A campaign of ``n`` poses over an 8 h shift whose arm warms by ``rise`` K."""
+    rng = np.random.default_rng(seed)
+    effects, overrides = hidden_effects(hidden, cm.robot)
+    truth = augmented_model(cm.model, effects)
+    p_true = np.concatenate([true_parameters(cm.model.params, rng),
+                             [overrides[k] for e in effects for k in e.parameter_names]])
+
+    def measure(count, start_h):
+        q = random_configurations(cm.model, cm.model.params.nominal, count, rng)
+        stamps = ((start_h + np.sort(rng.uniform(0, 8, count))) * 3600 * S).astype(np.int64)
+        celsius = shift_temperature(stamps, 20.0, rise, 4.0, start_ns=0)
+        cov = {'temperature.arm': celsius, DELTA_TEMPERATURE: celsius - 20.0}
+        return simulate_measurements(truth, p_true, q, SIGMA, rng, covariates=cov,
+                                     stamps_ns=stamps)
+    return measure(n, 0.0), measure(40, 0.0), dict(zip(truth.params.names, p_true))
+
+
+@pytest.mark.slow
+def test_a_hidden_thermal_growth_is_found_recovered_and_predicts_at_the_noise_floor(cm):
+    alpha = 23e-6  # an aluminium upper arm
+    data, fresh, truth = _shift(cm, {'thermal_link_growth:joint_3': {'alpha': alpha}}, 1)
+    cal = calibrate_cell(cm, data, model='auto')
+    assert cal.choice.effects == ('thermal_link_growth:joint_3',)
+    name = 'thermal_link_growth.joint_3.alpha'
+    assert abs(cal.result.value(name) - alpha) < 3 * cal.result.std_of(name)
+    assert cal.cell is not None
+    # fresh poses at fresh times of the same shift: the noise alone is left
+    miss = fresh.eta - cal.cell.model.predict(cal.result.values, fresh.q,
+                                              covariates=fresh.covariates)
+    rms = float(np.sqrt(np.mean(np.sum(miss ** 2, axis=1))))
+    assert rms <= 1.5 * np.sqrt(3) * SIGMA, rms
+    # without the effect part of the warm-up stays in the error
+    plain = calibrate_cell(cm, data, model='geometric')
+    miss = fresh.eta - cm.model.predict(plain.result.values, fresh.q)
+    assert float(np.sqrt(np.mean(np.sum(miss ** 2, axis=1)))) > rms
+
+
+@pytest.mark.slow
+def test_no_thermal_effect_on_a_warm_up_the_geometry_explains(cm):
+    data, _, _ = _shift(cm, {}, 2)
+    cal = calibrate_cell(cm, data, model='auto')
+    assert not any(e.startswith('thermal') for e in cal.choice.effects), cal.choice.effects
