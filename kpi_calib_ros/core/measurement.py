@@ -478,7 +478,8 @@ class MeasurementModel:
         q = np.atleast_2d(q)
         tau = self._torques(q, tau)
         fn = self._rot[reflector][3].map(len(q))
-        out = np.array(fn(p, q.T, tau.T, np.zeros((len(self.inputs), len(q)))))            # (3, 3N), one 3x3 block per row
+        # (3, 3N), one 3x3 block per row; at the reference condition (no covariates)
+        out = np.array(fn(p, q.T, tau.T, np.zeros((len(self.inputs), len(q)))))
         return out.reshape(3, len(q), 3).transpose(1, 0, 2)
 
     @property
