@@ -161,3 +161,72 @@ def test_no_thermal_effect_on_a_warm_up_the_geometry_explains(cm):
     data, _, _ = _shift(cm, {}, 2)
     cal = calibrate_cell(cm, data, model='auto')
     assert not any(e.startswith('thermal') for e in cal.choice.effects), cal.choice.effects
+
+
+def _recorded(cm, tmp_path, temperatures, n=6, seed=3):
+    """A bag of ``n`` poses (joint states, points) and ``temperatures`` [(stamp, frame, °C)]
+    on the default temperature topic; the points' stamps."""
+    from kpi_calib_ros.core.streams import synthesize_streams
+    from kpi_calib_ros.io.bag_writing import BagStream
+    from kpi_calib_ros.io.names import DEFAULT_TEMPERATURE_TOPIC
+    rng = np.random.default_rng(seed)
+    q = random_configurations(cm.model, cm.model.params.nominal, n, rng)
+    eta = cm.model.predict(cm.model.params.nominal, q)
+    joints, points = synthesize_streams(q, cm.joint_names, eta, cm.cell.tracker_frame)
+    path = tmp_path / 'warm.mcap'
+    with BagStream(path, temperature_topic=DEFAULT_TEMPERATURE_TOPIC) as bag:
+        messages = ([(j.stamp_ns, 0, j) for j in joints] + [(p.stamp_ns, 1, p) for p in points]
+                    + [(t, 2, (f, c)) for t, f, c in temperatures])
+        for stamp, kind, item in sorted(messages, key=lambda m: (m[0], m[1])):
+            if kind == 0:
+                bag.write_joint(item)
+            elif kind == 1:
+                bag.write_point(item)
+            else:
+                bag.write_temperature(stamp, *item)
+    return path, np.array([p.stamp_ns for p in points])
+
+
+def test_temperature_messages_in_a_bag_are_paired_to_the_points(cm, tmp_path):
+    import dataclasses
+
+    from kpi_calib_ros.app.identify import measurements_from_bag
+    from kpi_calib_ros.io.bag import read_temperatures
+    from kpi_calib_ros.io.cell_temperature import TemperatureSettings
+    start = 1_700_000_000 * S
+    # two sensors every 7 s over the whole recording, rising linearly at different rates
+    ticks = start + np.arange(-7, 80, 7) * S
+    temps = [(int(t), f, base + rate * (t - start) / S) for t in ticks
+             for f, base, rate in (('upper_arm', 22.0, 0.02), ('forearm', 25.0, -0.01))]
+    path, point_stamps = _recorded(cm, tmp_path, temps)
+    assert len(read_temperatures(path)) == len(temps)
+    warm = dataclasses.replace(cm, cell=dataclasses.replace(
+        cm.cell, temperature=TemperatureSettings(sensors=('upper_arm', 'forearm'),
+                                                 reference_c=21.0)))
+    data, _ = measurements_from_bag(warm, path)
+    assert len(data) == len(point_stamps)
+    t = (np.asarray(data.stamps_ns) - start) / S
+    np.testing.assert_allclose(data.covariates['temperature.upper_arm'], 22.0 + 0.02 * t,
+                               rtol=0, atol=1e-9)
+    np.testing.assert_allclose(data.covariates['temperature.forearm'], 25.0 - 0.01 * t,
+                               rtol=0, atol=1e-9)
+    np.testing.assert_allclose(data.covariates[DELTA_TEMPERATURE],
+                               (22.0 + 0.02 * t + 25.0 - 0.01 * t) / 2 - 21.0, atol=1e-9)
+    # without the section nothing is read
+    assert measurements_from_bag(cm, path)[0].covariates is None
+
+
+def test_points_beyond_the_temperature_recording_are_refused(cm, tmp_path):
+    import dataclasses
+
+    from kpi_calib_ros.app.identify import measurements_from_bag
+    from kpi_calib_ros.io.cell_temperature import TemperatureSettings
+    start = 1_700_000_000 * S
+    temps = [(int(start + k * S), 'arm', 22.0) for k in range(0, 12)]  # the first 11 s only
+    path, point_stamps = _recorded(cm, tmp_path, temps)
+    warm = dataclasses.replace(cm, cell=dataclasses.replace(
+        cm.cell, temperature=TemperatureSettings(max_gap_s=5.0)))
+    expected = int(np.sum(point_stamps <= start + 16 * S))
+    with pytest.warns(UserWarning, match='refused'):
+        data, _ = measurements_from_bag(warm, path)
+    assert len(data) == expected < len(point_stamps)

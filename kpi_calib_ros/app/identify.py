@@ -9,12 +9,14 @@ from __future__ import annotations
 
 import dataclasses
 import sys
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
+from kpi_calib_ros.core.covariates import temperature_covariates, with_covariates
 from kpi_calib_ros.core.dh import dh_table
 from kpi_calib_ros.core.diagnosis import augmented_model, compare_models
 from kpi_calib_ros.core.effect_selection import choose_effects
@@ -43,7 +45,7 @@ from kpi_calib_ros.core.robust import (
     subset,
 )
 from kpi_calib_ros.core.streams import JointSample, PointSample
-from kpi_calib_ros.io.bag import read_for_pairing
+from kpi_calib_ros.io.bag import read_for_pairing, read_temperatures
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
 from kpi_calib_ros.io.measurement_log import stored_pairing
 from kpi_calib_ros.io.names import CALIBRATED_URDF_FILE, FAILED_CALIBRATION_FILE
@@ -172,9 +174,47 @@ def measurements_from_bag(cm: CellModel, path: str | Path,
     if contents.measurement_log:
         pairing = stored_pairing(zip(contents.joints, contents.points), list(cm.joint_names),
                                  cm.cell.tracker_frame)
-        return urdf_measurements(cm, to_measurements(cm, pairing, contents.point_sigma)), pairing
-    return measurements_from_samples(cm, contents.joints, contents.points,
-                                     point_sigma=contents.point_sigma, **pairer_options)
+        data = urdf_measurements(cm, to_measurements(cm, pairing, contents.point_sigma))
+    else:
+        data, pairing = measurements_from_samples(cm, contents.joints, contents.points,
+                                                  point_sigma=contents.point_sigma,
+                                                  **pairer_options)
+    return with_temperature(cm, data, path), pairing
+
+
+def with_temperature(cm: CellModel, data: Measurements, path: str | Path) -> Measurements:
+    """``data`` with the temperatures of the cell's ``temperature:`` topic in the bag
+    ``path`` paired to every row by its stamp (:mod:`kpi_calib_ros.core.covariates`); rows
+    without a temperature are refused with a warning. ``data`` unchanged without the
+    section.
+
+    Raises
+    ------
+    DataError
+        The section is there but the bag has no temperature on its topic, or a listed
+        sensor never published.
+    """
+    settings = cm.cell.temperature
+    if settings is None or len(data) == 0:
+        return data
+    samples = read_temperatures(path, settings.topic)
+    if not samples:
+        raise DataError(f"{path}: no sensor_msgs/Temperature on '{settings.topic}' "
+                        '(temperature.topic in the cell file); record it, or remove the '
+                        'temperature: section')
+    if data.stamps_ns is None:
+        raise DataError('the measurements carry no stamps to pair temperatures with')
+    try:
+        cov = temperature_covariates(data.stamps_ns, samples, settings.sensors,
+                                     settings.reference_c, settings.max_gap_ns)
+    except ValueError as exc:
+        raise DataError(f'temperature.sensors: {exc}') from None
+    kept, refused = with_covariates(data, cov)
+    if refused:
+        warnings.warn(f'{len(refused)} of {len(data)} measurement rows refused: '
+                      f'{refused[0][1]} (temperature.max_gap = {settings.max_gap_s:g} s)',
+                      stacklevel=2)
+    return kept
 
 
 def places_the_points(cm: CellModel, data: Measurements, p: np.ndarray) -> bool:

@@ -59,6 +59,7 @@ from kpi_calib_ros.core.parameters import ParameterSet, geometric_parameters
 from kpi_calib_ros.core.pose_measurement import rotation_from_quaternion, rotation_from_rpy
 from kpi_calib_ros.core.robot import Payload, RobotModel
 from kpi_calib_ros.core.robust import LOSSES, OutlierSettings
+from kpi_calib_ros.io.cell_temperature import TemperatureSettings, temperature_settings
 from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, DEFAULT_POSE_TOPIC
 from kpi_calib_ros.io.resources import resolve_uri
 from kpi_calib_ros.io.results import write_atomic
@@ -67,7 +68,7 @@ from kpi_calib_ros.io.yaml_bounded import read_yaml_file
 
 _TOP_KEYS = {'robot', 'tracker', 'reflector', 'reflectors', 'noise', 'payload', 'working_poses',
              'obstacles', 'collision', 'identification', 'effects', 'simulation', 'design',
-             'topics'}
+             'topics', 'temperature'}
 _TOPIC_KEYS = {'joint_states': DEFAULT_JOINT_TOPIC, 'point': DEFAULT_POINT_TOPIC,
                'pose': DEFAULT_POSE_TOPIC}
 # Plausibility of SI values: beyond these a value is almost surely in other units.
@@ -170,6 +171,8 @@ class Cell:
     # noise.joint_sigma: a number (rad, every joint) or {joint name: rad}; None: exact
     # joint readings. Matched to the chain by name in build_cell_model.
     joint_sigma: float | Mapping[str, float] | None = None
+    # temperature: section (io.cell_temperature); None: no temperature read.
+    temperature: TemperatureSettings | None = None
 
     @property
     def offsets(self) -> np.ndarray:
@@ -330,6 +333,7 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None,
         joint_sigma=joint_sigma,
         joint_coupling=_coupling_mapping(robot.get('joint_coupling')),
         working_poses_in=_working_poses_in(robot.get('working_poses_in', 'controller')),
+        temperature=temperature_settings(doc.get('temperature')),
         allow_code_effects=allow_code_effects)
 
 
