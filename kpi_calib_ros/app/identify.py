@@ -16,7 +16,11 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from kpi_calib_ros.core.covariates import temperature_covariates, with_covariates
+from kpi_calib_ros.core.covariates import (
+    TemperatureSample,
+    temperature_covariates,
+    with_covariates,
+)
 from kpi_calib_ros.core.dh import dh_table
 from kpi_calib_ros.core.diagnosis import augmented_model, compare_models
 from kpi_calib_ros.core.effect_selection import choose_effects
@@ -197,9 +201,28 @@ def with_temperature(cm: CellModel, data: Measurements, path: str | Path) -> Mea
     settings = cm.cell.temperature
     if settings is None or len(data) == 0:
         return data
-    samples = read_temperatures(path, settings.topic)
+    kept, refused = paired_temperature(cm, data, read_temperatures(path, settings.topic),
+                                       str(path))
+    if refused:
+        warnings.warn(refused_text(cm, len(data), refused), stacklevel=2)
+    return kept
+
+
+def paired_temperature(cm: CellModel, data: Measurements, samples: Sequence[TemperatureSample],
+                       where: str = 'the recording'
+                       ) -> tuple[Measurements, list[tuple[int, str]]]:
+    """``data`` with the temperature readings ``samples`` paired to its rows by stamp, per
+    the cell's ``temperature:`` section, rows without one removed; [(row, reason)] of those.
+
+    Raises
+    ------
+    DataError
+        No reading at all, no stamps, or a listed sensor never published.
+    """
+    settings = cm.cell.temperature
+    assert settings is not None
     if not samples:
-        raise DataError(f"{path}: no sensor_msgs/Temperature on '{settings.topic}' "
+        raise DataError(f"{where}: no sensor_msgs/Temperature on '{settings.topic}' "
                         '(temperature.topic in the cell file); record it, or remove the '
                         'temperature: section')
     if data.stamps_ns is None:
@@ -209,12 +232,14 @@ def with_temperature(cm: CellModel, data: Measurements, path: str | Path) -> Mea
                                      settings.reference_c, settings.max_gap_ns)
     except ValueError as exc:
         raise DataError(f'temperature.sensors: {exc}') from None
-    kept, refused = with_covariates(data, cov)
-    if refused:
-        warnings.warn(f'{len(refused)} of {len(data)} measurement rows refused: '
-                      f'{refused[0][1]} (temperature.max_gap = {settings.max_gap_s:g} s)',
-                      stacklevel=2)
-    return kept
+    return with_covariates(data, cov)
+
+
+def refused_text(cm: CellModel, total: int, refused: list[tuple[int, str]]) -> str:
+    """One line on the rows refused for want of a temperature."""
+    gap = cm.cell.temperature.max_gap_s if cm.cell.temperature else float('nan')
+    return (f'{len(refused)} of {total} measurement rows refused: {refused[0][1]} '
+            f'(temperature.max_gap = {gap:g} s)')
 
 
 def places_the_points(cm: CellModel, data: Measurements, p: np.ndarray) -> bool:

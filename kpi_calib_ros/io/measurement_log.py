@@ -27,6 +27,7 @@ from mcap.data_stream import RecordBuilder
 from mcap.records import Channel, Chunk, DataEnd, Footer, Header, Message, Metadata, Schema
 from mcap.well_known import MessageEncoding, SchemaEncoding
 
+from kpi_calib_ros.core.covariates import TemperatureSample
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.pairing import PairingResult, split_frame, stacked_rotations
 from kpi_calib_ros.core.streams import JointSample, PointSample
@@ -39,6 +40,7 @@ from kpi_calib_ros.io.bag import (
     BagError,
     StreamEncoders,
     read_log,
+    read_temperatures,
 )
 from kpi_calib_ros.io.mcap_scan import MAGIC
 from kpi_calib_ros.io.names import DEFAULT_POSE_TOPIC
@@ -67,14 +69,20 @@ class MeasurementLog:
     joint_topic, point_topic, pose_topic : str
         Topics the paired joint state and point (a tracked 6-DoF pose: PoseStamped on
         ``pose_topic``) are stored under.
+    temperature_topic : str, optional
+        With it, the temperature readings (:meth:`append_temperature`) are stored too, as
+        ``sensor_msgs/Temperature`` on that topic, and paired to the points by time when
+        the log is read (:func:`kpi_calib_ros.io.bag.read_temperatures`).
     """
 
     def __init__(self, directory: str | os.PathLike, joint_topic: str = DEFAULT_JOINT_TOPIC,
                  point_topic: str = DEFAULT_POINT_TOPIC,
-                 pose_topic: str = DEFAULT_POSE_TOPIC) -> None:
+                 pose_topic: str = DEFAULT_POSE_TOPIC,
+                 temperature_topic: str | None = None) -> None:
         self.directory = Path(directory)
         self.directory.mkdir(parents=True, exist_ok=True)
-        self._encoders = StreamEncoders(joint_topic, point_topic, pose_topic)
+        self._encoders = StreamEncoders(joint_topic, point_topic, pose_topic, temperature_topic)
+        self.temperature_topic = temperature_topic
         files = _log_files(self.directory)
         last = _LOG_NAME.fullmatch(files[-1].name) if files else None  # files all match
         n = int(last.group(1)) + 1 if last else 1
@@ -169,6 +177,39 @@ class MeasurementLog:
         self._commit(record.end())
         self._sequence += 2
         self.count += 1
+
+    def append_temperature(self, sample: TemperatureSample) -> None:
+        """Store one temperature reading durably before returning (its own chunk).
+
+        Raises
+        ------
+        ValueError
+            The log was opened without a temperature topic, or is closed.
+        OSError
+            Not stored; nothing of it is left in the file.
+        """
+        if self.closed or self.temperature_topic is None:
+            raise ValueError(f'MeasurementLog {self.path} is closed or stores no temperature')
+        stamp = int(sample.stamp_ns)
+        inner = RecordBuilder()
+        Message(channel_id=3, sequence=self._sequence + 1, log_time=stamp, publish_time=stamp,
+                data=self._encoders.temperature(stamp, sample.frame_id, sample.celsius)
+                ).write(inner)
+        body = inner.end()
+        record = RecordBuilder()
+        Chunk(compression='', data=body, message_start_time=stamp, message_end_time=stamp,
+              uncompressed_crc=zlib.crc32(body), uncompressed_size=len(body)).write(record)
+        self._commit(record.end())
+        self._sequence += 1
+
+    @staticmethod
+    def load_temperatures(directory: str | os.PathLike,
+                          topic: str) -> list[TemperatureSample]:
+        """Every temperature reading on ``topic`` in ``directory``'s logs, in stamp order."""
+        samples: list[TemperatureSample] = []
+        for path in _log_files(Path(directory)):
+            samples += read_temperatures(path, topic)
+        return sorted(samples, key=lambda s: s.stamp_ns)
 
     def close(self) -> None:
         """Finalise the bag (data end and footer; the records are read linearly, so no

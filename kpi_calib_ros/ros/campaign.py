@@ -20,6 +20,7 @@ from collections import Counter, deque
 from pathlib import Path
 from typing import Sequence
 
+from kpi_calib_ros.core.covariates import TemperatureSample
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.pairing import (
@@ -54,9 +55,13 @@ class Campaign:
     early_limit : int
         Samples kept while the robot model (joint names) is not known yet; they are
         paired once it is.
+    temperature_topic : str, optional
+        The cell's temperature topic: readings (:meth:`receive_temperature`) are logged
+        under it and kept, those of earlier runs reloaded; None: none kept.
     """
 
-    def __init__(self, data_dir: str | Path, early_limit: int = 20_000) -> None:
+    def __init__(self, data_dir: str | Path, early_limit: int = 20_000,
+                 temperature_topic: str | None = None) -> None:
         self.data_dir = Path(data_dir)
         self.lock = threading.RLock()
         # Keyed by (stamp, frame id): the reflectors of one pose share a stamp.
@@ -65,7 +70,11 @@ class Campaign:
             for joint, point in MeasurementLog.load_all(self.data_dir):
                 self._measurements[(point.stamp_ns, point.frame_id)] = (joint, point)
         self.restored = len(self._measurements)
-        self.log = MeasurementLog(self.data_dir)
+        self.temperature_topic = temperature_topic
+        self._temperatures: list[TemperatureSample] = (
+            MeasurementLog.load_temperatures(self.data_dir, temperature_topic)
+            if temperature_topic and self.data_dir.is_dir() else [])
+        self.log = MeasurementLog(self.data_dir, temperature_topic=temperature_topic)
         self.pairer: Pairer | None = None
         self.rejections: Counter[str] = Counter()
         self.received = {'joint_states': 0, 'points': 0}
@@ -211,12 +220,24 @@ class Campaign:
             self._measurements.clear()
             self.rejections.clear()
             self.restored = 0
-            self.log = MeasurementLog(self.data_dir)
+            self._temperatures.clear()
+            self.log = MeasurementLog(self.data_dir, temperature_topic=self.temperature_topic)
             if self.pairer is not None:
                 self.pairer.reset()
             self._clock = self._point_clock = None
             self._epoch = 0
             return count, archive
+
+    def receive_temperature(self, sample: TemperatureSample) -> None:
+        """Keep one temperature reading, logged durably first (OSError: not kept)."""
+        with self.lock:
+            self.log.append_temperature(sample)
+            self._temperatures.append(sample)
+
+    def temperatures(self) -> list[TemperatureSample]:
+        """The temperature readings kept (this run's and the reloaded ones), a copy."""
+        with self.lock:
+            return list(self._temperatures)
 
     def close(self) -> None:
         """Finalise the current log (idempotent)."""

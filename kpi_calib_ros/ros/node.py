@@ -100,6 +100,7 @@ from kpi_calib_ros.ros.parameters import (
     type_error,
     working_poses,
 )
+from kpi_calib_ros.ros.temperature import subscribe_temperature, with_live_temperature
 
 NODE_NAME = 'kpi_calib_node'
 # Parameters a running sequential campaign was started with: refused while it runs (its
@@ -160,7 +161,8 @@ class CalibrationNode(Node):
                                allow_code_effects=self.settings.allow_code_effects)
         self.data_dir = Path(self.settings.data_dir)
         try:
-            self.campaign = Campaign(self.data_dir)
+            self.campaign = Campaign(self.data_dir, temperature_topic=(
+                self._cell.temperature.topic if self._cell.temperature else None))
         except OSError as exc:  # missing parent, read-only, a file in the way, no space
             raise ConfigError('data_dir', f'cannot log measurements in {str(self.data_dir)!r}: '
                               f'{exc.strerror or exc}; give a writable folder') from None
@@ -245,6 +247,7 @@ class CalibrationNode(Node):
                                  self._on_pose,  # type: ignore[arg-type]
                                  _stream_qos(int(POINTS_MAX_HZ * STREAM_BUFFER_S)),
                                  callback_group=streams)
+        subscribe_temperature(self, self.campaign, callback_group=streams)
         for name, doing, work in (('design', 'designing', self._design),
                                   ('identify', 'identifying', self._identify),
                                   ('diagnose', 'diagnosing', self._diagnose),
@@ -567,6 +570,7 @@ class CalibrationNode(Node):
         # every row of each pose (reflectors, tracked bodies' rotation rows); controller
         # readings -> URDF joint values
         data = urdf_measurements(cm, pose_rows(cm, data, pairing))
+        data = with_live_temperature(self, cm, self.campaign, data)  # ros/temperature.py
         stamps = np.asarray(data.stamps_ns, dtype=np.int64).ravel()
         return dataclasses.replace(data, stamps_ns=stamps), pairing
 
@@ -642,6 +646,7 @@ class CalibrationNode(Node):
                                                    cm.cell.reflector_names or ('',))
         # tracked poses' rotation rows; controller readings -> URDF joint values
         data = urdf_measurements(cm, pose_rows(cm, data, pairing))
+        data = with_live_temperature(self, cm, self.campaign, data)  # ros/temperature.py
         try:
             cal, calibration, urdf, tcp, change, prior, notes = await self._offload(
                 jobs.identify_work, cm, data, pairing, self.data_dir,
@@ -735,6 +740,7 @@ class CalibrationNode(Node):
                                                    cm.cell.reflector_names or ('',))
         # tracked poses' rotation rows; controller readings -> URDF joint values
         data = urdf_measurements(cm, pose_rows(cm, data, pairing))
+        data = with_live_temperature(self, cm, self.campaign, data)  # ros/temperature.py
         doc, text, verdict, report = await self._offload(jobs.diagnose_work, cm, data,
                                                          self.data_dir, child=True)
         self._diagnosis = doc
@@ -752,6 +758,7 @@ class CalibrationNode(Node):
                                                    cm.cell.reflector_names or ('',))
         # tracked poses' rotation rows; controller readings -> URDF joint values
         data = urdf_measurements(cm, pose_rows(cm, data, pairing))
+        data = with_live_temperature(self, cm, self.campaign, data)  # ros/temperature.py
         stamps = np.asarray(data.stamps_ns, dtype=np.int64).ravel()
         new = np.isin(stamps, np.fromiter(self._identified_stamps, dtype=np.int64),
                       invert=True)
