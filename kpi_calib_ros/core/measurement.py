@@ -49,7 +49,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from typing import Mapping, Protocol, Sequence
+from typing import Any, Mapping, Protocol, Sequence, cast
 
 import casadi as ca
 import numpy as np
@@ -284,7 +284,8 @@ class MeasurementModel:
             names = effect_inputs(effect)
             if names:
                 z_e = ca.vertcat(*[z[self.inputs.index(name)] for name in names])
-                correction = effect.joint_correction(q, tau, theta, z_e)
+                # the optional fourth argument of an effect with inputs (module docstring)
+                correction = cast(Any, effect).joint_correction(q, tau, theta, z_e)
                 moves = getattr(effect, 'placement_correction', None)
                 for joint, delta in (moves(theta, z_e) if moves is not None else ()):
                     placement = placement if placement is not None else ca.SX.zeros(p.shape[0])
