@@ -192,7 +192,8 @@ class MeasurementLog:
             raise ValueError(f'MeasurementLog {self.path} is closed or stores no temperature')
         stamp = int(sample.stamp_ns)
         inner = RecordBuilder()
-        Message(channel_id=3, sequence=self._sequence + 1, log_time=stamp, publish_time=stamp,
+        channel = [t for t, _ in self._encoders.topics].index(self.temperature_topic)
+        Message(channel_id=channel, sequence=self._sequence + 1, log_time=stamp, publish_time=stamp,
                 data=self._encoders.temperature(stamp, sample.frame_id, sample.celsius)
                 ).write(inner)
         body = inner.end()
