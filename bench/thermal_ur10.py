@@ -74,7 +74,8 @@ def main() -> str:
              f'{temp[:split].max():.2f}; last 40 %: {temp[split:].min():.2f} to '
              f'{temp[split:].max():.2f}); correlation of temperature with time '
              f'{np.corrcoef(hours, temp)[0, 1]:+.2f}.', '',
-             '| model | fitted | training rms (mm) | later poses rms (mm) | s |', '|---|---|---|---|---|']
+             '| model | fitted | training rms (mm) | later poses rms (mm) | s |',
+             '|---|---|---|---|---|']
     t0 = time.perf_counter()
     base = identify_cell(cm, train)
     lines.append(f'| geometric | - | {base.rms_m * 1e3:.3f} | {rms(cm, base, later) * 1e3:.3f} | '

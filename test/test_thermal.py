@@ -230,3 +230,39 @@ def test_points_beyond_the_temperature_recording_are_refused(cm, tmp_path):
     with pytest.warns(UserWarning, match='refused'):
         data, _ = measurements_from_bag(warm, path)
     assert len(data) == expected < len(point_stamps)
+
+
+def test_an_imported_table_carries_its_temperature_column_to_every_row(tmp_path):
+    """Series A of the real UR10 as exported: import-csv writes the temperature column on
+    /cell/temperature at each posture's stamp, and every row (point and rotation row of the
+    6-DoF probe) gets its own posture's temperature back."""
+    import dataclasses
+    from pathlib import Path
+
+    from kpi_calib_ros.app.identify import measurements_from_bag
+    from kpi_calib_ros.cli import main
+    from kpi_calib_ros.io.cell import build_cell_model, load_cell
+    from kpi_calib_ros.io.cell_temperature import TemperatureSettings
+    from kpi_calib_ros.io.csv_import import read_postures
+    from kpi_calib_ros.io.csv_mapping import load_mapping
+    here = Path(__file__).parent / 'data'
+    beside = Path(__file__).resolve().parents[2] / 'shared' / 'data' / 'ipa_ur10'
+    source = (beside if beside.is_dir() else Path('/work/shared/data/ipa_ur10')) \
+        / 'Series_A' / 'measurements_grid.csv'
+    lines = source.read_bytes().split(b'\r\n')
+    table = tmp_path / 'grid.csv'
+    table.write_bytes(b'\r\n'.join([lines[0], *[x for x in lines[1:] if x][::300][:30]])
+                      + b'\r\n')
+    bag = tmp_path / 'grid.mcap'
+    assert main(['import-csv', str(table), '--mapping', str(here / 'ipa_ur10_mapping.yaml'),
+                 '--out', str(bag)]) == 0
+    cm = build_cell_model(load_cell(here / 'ipa_ur10_cell.yaml'))
+    warm = dataclasses.replace(cm, cell=dataclasses.replace(
+        cm.cell, temperature=TemperatureSettings()))
+    data, _ = measurements_from_bag(warm, bag)
+    rows = {r.stamp_ns: r.temperature for r in read_postures(
+        table, load_mapping(here / 'ipa_ur10_mapping.yaml'))}
+    expected = np.array([rows[int(t)] for t in data.stamps_ns])
+    assert len(data) == 2 * len(rows)  # a point and a rotation row per posture
+    np.testing.assert_array_equal(data.covariates['temperature.laser_tracker'], expected)
+    np.testing.assert_allclose(data.covariates[DELTA_TEMPERATURE], expected - 20.0)
