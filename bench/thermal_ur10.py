@@ -1,9 +1,10 @@
 """Real data: does a thermal effect help the UR10 of ../shared/data/ipa_ur10 predict later poses?
 
-Series A ran overnight (2020-07-14 16:39 to 07-15 05:01) with the cell temperature recorded
-(22.9-23.7 °C). Each pose gets ``delta_temperature`` (temperature − 20 °C) as a covariate,
-as ``kpi-calib import-csv`` + the cell's ``temperature:`` section would give it. Calibration
-on 400 random poses of the first 60 % of the night (by time), prediction of 1500 random
+Series A carries the cell temperature with every pose (22.9-23.7 °C); its stamps run from
+2020-07-14 16:39 to 2020-07-18 (4.2 days; the data README says overnight). Each pose gets
+``delta_temperature`` (temperature − 20 °C) as a covariate, as ``kpi-calib import-csv`` + the
+cell's ``temperature:`` section would give it. Calibration
+on 400 random poses of the first 60 % of the poses by time, prediction of 1500 random
 poses of the last 40 %: held-out rms (3-D distance) of the geometric model, of the geometric
 model plus each thermal effect (fitted), and of ``auto`` (which screens the thermal effects
 with the library's). The probe origin is used as a point (its orientation is not used);
@@ -67,7 +68,7 @@ def main() -> str:
     rng = np.random.default_rng(0)
     train = data.subset(np.sort(rng.choice(split, 400, replace=False)))
     later = data.subset(np.sort(split + rng.choice(len(data) - split, 1500, replace=False)))
-    lines = ['# Thermal effects on the real UR10 (Series A, overnight)', '',
+    lines = ['# Thermal effects on the real UR10 (Series A, temperature recorded)', '',
              __doc__.split('\n\n')[1].replace('\n', ' '), '',
              f'{len(data)} poses over {hours[-1]:.1f} h; temperature {temp.min():.2f} to '
              f'{temp.max():.2f} °C (first 60 %: {temp[:split].min():.2f} to '

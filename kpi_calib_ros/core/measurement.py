@@ -282,17 +282,15 @@ class MeasurementModel:
             offset += len(effect.parameter_names)
             thetas.append(theta)
             names = effect_inputs(effect)
-            if names:
-                z_e = ca.vertcat(*[z[self.inputs.index(name)] for name in names])
-                # the optional fourth argument of an effect with inputs (module docstring)
-                correction = cast(Any, effect).joint_correction(q, tau, theta, z_e)
-                moves = getattr(effect, 'placement_correction', None)
-                for joint, delta in (moves(theta, z_e) if moves is not None else ()):
-                    placement = placement if placement is not None else ca.SX.zeros(p.shape[0])
-                    idx = self.chain.placement_indices(joint)
-                    placement[idx] = placement[idx] + delta
-            else:
-                correction = effect.joint_correction(q, tau, theta)
+            # the optional fourth argument of an effect with inputs (module docstring)
+            extra = (ca.vertcat(*[z[self.inputs.index(name)] for name in names]),) \
+                if names else ()
+            correction = cast(Any, effect).joint_correction(q, tau, theta, *extra)
+            moves = getattr(effect, 'placement_correction', None)
+            for joint, delta in (moves(theta, *extra) if moves is not None else ()):
+                placement = placement if placement is not None else ca.SX.zeros(p.shape[0])
+                idx = self.chain.placement_indices(joint)
+                placement[idx] = placement[idx] + delta
             if correction is not None:
                 q_eff = q_eff + correction
         tip = self.chain.tip_transform(p if placement is None else p + placement, q_eff)
