@@ -266,3 +266,22 @@ def test_an_imported_table_carries_its_temperature_column_to_every_row(tmp_path)
     assert len(data) == 2 * len(rows)  # a point and a rotation row per posture
     np.testing.assert_array_equal(data.covariates['temperature.laser_tracker'], expected)
     np.testing.assert_allclose(data.covariates[DELTA_TEMPERATURE], expected - 20.0)
+
+
+def test_at_one_temperature_a_thermal_effect_is_not_distinguishable(cm):
+    """ΔT the same at every pose: link growth is a fixed change of the link lengths and a
+    drift a fixed zero offset, which the geometry reproduces; the screen says so and asks for
+    measurements while the temperature changes."""
+    from kpi_calib_ros.core.diagnosis import screen_effects
+    from kpi_calib_ros.core.estimation import identify
+    rng = np.random.default_rng(5)
+    p_true = true_parameters(cm.model.params, rng)
+    q = random_configurations(cm.model, cm.model.params.nominal, 40, rng)
+    data = simulate_measurements(cm.model, p_true, q, SIGMA, rng,
+                                 covariates={DELTA_TEMPERATURE: np.full(len(q), 5.0)})
+    result = identify(cm.model, data, SIGMA, cm.q_work)
+    candidates = [parse_effect_spec(s, cm.robot) for s in
+                  ('thermal_zero_drift:joint_2', 'thermal_link_growth:joint_3')]
+    ranked, rejected = screen_effects(cm.model, data, result, candidates)
+    assert not ranked and {c.spec for c in rejected} == {e.name for e in candidates}
+    assert all('temperature changes' in c.explanation for c in rejected)
