@@ -421,7 +421,8 @@ LIBRARY: tuple[EffectType, ...] = (
                screen=True, inputs=(DELTA_TEMPERATURE,), prismatic_units=('m/K',),
                # 1e-4 rad/K: 2 mrad over a 20 K shift, far beyond a drifting encoder zero
                plausible=(1e-4,), prismatic_plausible=(1e-4,),
-               description='joint-zero drift in proportion to the temperature change d·ΔT',
+               description='joint-zero drift in proportion to the temperature change d·ΔT '
+                           '(screened where a temperature is recorded)',
                hint='measure while the temperature changes (a warm-up, a shift), with '
                     'the poses spread over the temperatures, not one temperature per region',
                signature='temperature change (zero of {joint})'),
@@ -429,15 +430,16 @@ LIBRARY: tuple[EffectType, ...] = (
                placement_function=_thermal_growth, typical=(12e-6,), screen=True,
                inputs=(DELTA_TEMPERATURE,), plausible=(THERMAL_EXPANSION_BOUND,),
                prismatic_plausible=(THERMAL_EXPANSION_BOUND,), prismatic_units=('1/K',),
-               description='thermal growth α·ΔT of the link before the joint (its origin '
-                           'translation)',
+               description='thermal growth α·ΔT of the link before the joint, its origin '
+                           'translation (screened where a temperature is recorded)',
                hint='measure while the temperature changes, with poses that stretch the '
                     'link before {joint} in different directions at each temperature',
                signature='temperature change (length of the link before {joint})'),
     EffectType('thermal_growth', ('alpha',), ('1/K',), placement_function=_thermal_growth,
                per_joint=False, typical=(12e-6,), screen=True, inputs=(DELTA_TEMPERATURE,),
                plausible=(THERMAL_EXPANSION_BOUND,),
-               description='thermal growth α·ΔT of every link (one material)',
+               description='thermal growth α·ΔT of every link, one material (screened where a '
+                           'temperature is recorded)',
                hint='measure while the temperature changes, over a wide workspace at each '
                     'temperature',
                signature='temperature change (every link length)'),
