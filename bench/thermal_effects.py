@@ -23,13 +23,13 @@ import numpy as np
 from kpi_calib_ros.app.identify import calibrate_cell
 from kpi_calib_ros.core.covariates import DELTA_TEMPERATURE, shift_temperature
 from kpi_calib_ros.core.diagnosis import augmented_model
-from kpi_calib_ros.core.effects import hidden_effects
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,
     true_parameters,
 )
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.io.cell_settings import hidden_effects
 
 SIGMA = 20e-6
 S = 10**9

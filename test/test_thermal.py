@@ -17,13 +17,14 @@ from kpi_calib_ros.core.covariates import (
     with_covariates,
 )
 from kpi_calib_ros.core.diagnosis import augmented_model
-from kpi_calib_ros.core.effects import candidate_effects, hidden_effects, parse_effect_spec
+from kpi_calib_ros.core.effects import candidate_effects, parse_effect_spec
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,
     true_parameters,
 )
+from kpi_calib_ros.io.cell_settings import hidden_effects
 
 SIGMA = 20e-6  # the default cell's tracker σ
 S = 10**9
@@ -190,7 +191,7 @@ def _recorded(cm, tmp_path, temperatures, n=6, seed=3):
 def test_temperature_messages_in_a_bag_are_paired_to_the_points(cm, tmp_path):
     import dataclasses
 
-    from kpi_calib_ros.app.identify import measurements_from_bag
+    from kpi_calib_ros.app.measurements import measurements_from_bag
     from kpi_calib_ros.io.bag import read_temperatures
     from kpi_calib_ros.io.cell_temperature import TemperatureSettings
     start = 1_700_000_000 * S
@@ -219,7 +220,7 @@ def test_temperature_messages_in_a_bag_are_paired_to_the_points(cm, tmp_path):
 def test_points_beyond_the_temperature_recording_are_refused(cm, tmp_path):
     import dataclasses
 
-    from kpi_calib_ros.app.identify import measurements_from_bag
+    from kpi_calib_ros.app.measurements import measurements_from_bag
     from kpi_calib_ros.io.cell_temperature import TemperatureSettings
     start = 1_700_000_000 * S
     temps = [(int(start + k * S), 'arm', 22.0) for k in range(0, 12)]  # the first 11 s only
@@ -239,7 +240,7 @@ def test_an_imported_table_carries_its_temperature_column_to_every_row(tmp_path)
     import dataclasses
     from pathlib import Path
 
-    from kpi_calib_ros.app.identify import measurements_from_bag
+    from kpi_calib_ros.app.measurements import measurements_from_bag
     from kpi_calib_ros.cli import main
     from kpi_calib_ros.io.cell import build_cell_model, load_cell
     from kpi_calib_ros.io.cell_temperature import TemperatureSettings

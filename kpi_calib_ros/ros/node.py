@@ -64,14 +64,14 @@ from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import MarkerArray
 
-from kpi_calib_ros.app.identify import pose_rows, urdf_measurements
+from kpi_calib_ros.app.measurements import pose_rows, urdf_measurements
 from kpi_calib_ros.core.collision import Capsule
+from kpi_calib_ros.core.drift_state import DriftSwing
 from kpi_calib_ros.core.errors import ConfigError, DataError, KpiCalibError
 from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.pairing import Decision, Rejection
 from kpi_calib_ros.core.precision import precision_statement
-from kpi_calib_ros.core.prior import DriftSwing
 from kpi_calib_ros.core.residuals import is_adequate
 from kpi_calib_ros.core.robust import RobustResult
 from kpi_calib_ros.core.sequential import MODEL_INADEQUATE, CampaignStatus, SequentialCampaign
@@ -85,6 +85,7 @@ from kpi_calib_ros.io.names import (
     CHANGE_TEST_TOPIC,
     DIAGNOSIS_TOPIC,
     DIAGNOSTICS_TOPIC,
+    LEARNED_RESIDUAL_FILE,
     MARKERS_TOPIC,
     MEASUREMENT_POSES_TOPIC,
     TCP_TOPIC,
@@ -100,6 +101,7 @@ from kpi_calib_ros.ros.parameters import (
     type_error,
     working_poses,
 )
+from kpi_calib_ros.ros.tcp_query import TcpQuery
 from kpi_calib_ros.ros.temperature import subscribe_temperature, with_live_temperature
 
 NODE_NAME = 'kpi_calib_node'
@@ -255,6 +257,8 @@ class CalibrationNode(Node):
                                   ('reset', 'resetting', self._reset)):
             self.create_service(Trigger, f'~/{name}', self._service(name, doing, work),
                                 callback_group=services)
+        self.tcp_query = TcpQuery(self, lambda: self._cm, lambda: self._result,
+                                  self.data_dir / LEARNED_RESIDUAL_FILE)
         self.create_timer(0.1, self._tick, callback_group=streams)
         if self.settings.robot_description:
             self._set_robot_description(self.settings.robot_description)

@@ -3,7 +3,7 @@ the measurements and paired to them by time when a job takes the campaign's data
 
 Readings go to the :class:`~kpi_calib_ros.ros.campaign.Campaign` (durably logged before
 they are kept); a job pairs them with the accepted measurements as a bag's are paired
-(:func:`kpi_calib_ros.app.identify.paired_temperature`): interpolated at each point's
+(:func:`kpi_calib_ros.app.measurements.paired_temperature`): interpolated at each point's
 stamp, a point outside the readings refused and logged.
 """
 from __future__ import annotations
@@ -14,7 +14,7 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile
 from sensor_msgs.msg import Temperature
 
-from kpi_calib_ros.app.identify import paired_temperature, refused_text
+from kpi_calib_ros.app.measurements import paired_temperature, refused_text
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.ros_messages import temperature_sample_from_message
