@@ -99,7 +99,9 @@ def cli_page() -> str:
 # --------------------------------------------------------------------------- node
 def _node_calls() -> tuple[dict[str, str], dict[str, str], list[str]]:
     """From ``ros/node.py``: publisher topic constant -> message type, subscription
-    setting -> message type, and the service names, as the node creates them."""
+    setting (or ``function(setting)`` for a topic named from a setting, such as
+    ``point_sigma_topic(point_topic)``) -> message type, and the service names, as the
+    node creates them."""
     tree = ast.parse((REPO / 'kpi_calib_ros' / 'ros' / 'node.py').read_text())
     pubs: dict[str, str] = {}
     subs: dict[str, str] = {}
@@ -112,6 +114,10 @@ def _node_calls() -> tuple[dict[str, str], dict[str, str], list[str]]:
                 pubs[topic.id] = node.args[0].id
             elif kind == 'create_subscription' and isinstance(topic, ast.Attribute):
                 subs[topic.attr] = node.args[0].id
+            elif (kind == 'create_subscription' and isinstance(topic, ast.Call)
+                  and isinstance(topic.func, ast.Name) and len(topic.args) == 1
+                  and isinstance(topic.args[0], ast.Attribute)):
+                subs[f'{topic.func.id}({topic.args[0].attr})'] = node.args[0].id
         if isinstance(node, ast.For) and isinstance(node.iter, ast.Tuple) and any(
                 isinstance(c, ast.Call) and isinstance(c.func, ast.Attribute) and
                 c.func.attr == 'create_service' for c in ast.walk(node)):
@@ -123,7 +129,8 @@ def _node_calls() -> tuple[dict[str, str], dict[str, str], list[str]]:
 _PACKAGES = {'JointTrajectory': 'trajectory_msgs', 'String': 'std_msgs',
              'MarkerArray': 'visualization_msgs', 'DiagnosticArray': 'diagnostic_msgs',
              'PoseWithCovarianceStamped': 'geometry_msgs', 'PoseStamped': 'geometry_msgs',
-             'PointStamped': 'geometry_msgs', 'JointState': 'sensor_msgs'}
+             'PointStamped': 'geometry_msgs', 'JointState': 'sensor_msgs',
+             'Vector3Stamped': 'geometry_msgs'}
 
 
 def _msg(name: str) -> str:
@@ -156,6 +163,12 @@ def node_page() -> str:
               'robot_description_topic': names.ROBOT_DESCRIPTION_TOPIC}
     rows = [[code(PARAMETERS[setting][0]), code(_msg(kind)), f'parameter {code(setting)}']
             for setting, kind in subs.items() if setting in topics]
+    for call, kind in subs.items():  # a topic named from a setting: function(setting)
+        function, _, setting = call.rstrip(')').partition('(')
+        if setting in topics and callable(getattr(names, function, None)):
+            rows.append([code(getattr(names, function)(PARAMETERS[setting][0])),
+                         code(_msg(kind)),
+                         f'parameter {code(setting)} ({code(f"io.names.{function}")})'])
     out.append(table(['topic (default)', 'type', 'set by'], rows))
     out.append('## Published topics\n')
     out.append('`~/` names resolve under the node name, e.g. `/kpi_calib_node/calibration`.\n')

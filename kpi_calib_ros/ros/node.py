@@ -44,7 +44,12 @@ import numpy as np
 import rclpy
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PointStamped, PoseStamped, PoseWithCovarianceStamped
+from geometry_msgs.msg import (
+    PointStamped,
+    PoseStamped,
+    PoseWithCovarianceStamped,
+    Vector3Stamped,
+)
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.exceptions import (
@@ -89,6 +94,7 @@ from kpi_calib_ros.io.names import (
     MEASUREMENT_POSES_TOPIC,
     TCP_TOPIC,
     VALIDATION_TOPIC,
+    point_sigma_topic,
 )
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros import jobs
@@ -160,7 +166,8 @@ class CalibrationNode(Node):
                                allow_code_effects=self.settings.allow_code_effects)
         self.data_dir = Path(self.settings.data_dir)
         try:
-            self.campaign = Campaign(self.data_dir)
+            self.campaign = Campaign(self.data_dir,
+                                     sigma_topic=point_sigma_topic(self.settings.point_topic))
         except OSError as exc:  # missing parent, read-only, a file in the way, no space
             raise ConfigError('data_dir', f'cannot log measurements in {str(self.data_dir)!r}: '
                               f'{exc.strerror or exc}; give a writable folder') from None
@@ -230,7 +237,7 @@ class CalibrationNode(Node):
         self._pub_tcp: Publisher | None = None
         self._tcp_depth = 0
         self._sequences = {'joint_states': _Sequence(), 'points': _Sequence(),
-                           'poses': _Sequence()}
+                           'poses': _Sequence(), 'sigma': _Sequence()}
         self._identifications = 0
         # Callbacks with (message, message info); rclpy 7.1's annotation omits that form.
         self.create_subscription(JointState, self.settings.joint_states_topic,
@@ -243,6 +250,11 @@ class CalibrationNode(Node):
                                  callback_group=streams)
         self.create_subscription(PoseStamped, self.settings.pose_topic,
                                  self._on_pose,  # type: ignore[arg-type]
+                                 _stream_qos(int(POINTS_MAX_HZ * STREAM_BUFFER_S)),
+                                 callback_group=streams)
+        # Each point's stated σ, paired with it by stamp and frame id (ros/campaign.py).
+        self.create_subscription(Vector3Stamped, point_sigma_topic(self.settings.point_topic),
+                                 self._on_point_sigma,  # type: ignore[arg-type]
                                  _stream_qos(int(POINTS_MAX_HZ * STREAM_BUFFER_S)),
                                  callback_group=streams)
         for name, doing, work in (('design', 'designing', self._design),
@@ -360,6 +372,12 @@ class CalibrationNode(Node):
         """A tracked 6-DoF body: a point with its orientation, paired like any point."""
         self._sequences['poses'].see(info)
         self._report(self.campaign.receive(cv.pose_sample_from_msg(msg)))
+
+    def _on_point_sigma(self, msg: Vector3Stamped, info: dict[str, Any]) -> None:
+        """A point's stated σ per axis (m): stored with its measurement, which then
+        weighs by it instead of the cell's noise.sigma."""
+        self._sequences['sigma'].see(info)
+        self._report(self.campaign.receive_sigma(*cv.point_sigma_from_msg(msg)))
 
     def _report(self, decisions: list[Decision]) -> None:
         for d in decisions:
@@ -814,7 +832,8 @@ class CalibrationNode(Node):
                        'identifications': self._identifications,
                        'lost.joint_states': self._sequences['joint_states'].lost,
                        'lost.points': (self._sequences['points'].lost
-                                       + self._sequences['poses'].lost),
+                                       + self._sequences['poses'].lost
+                                       + self._sequences['sigma'].lost),
                        'max_lag_ms.joint_states': round(
                            self._sequences['joint_states'].max_lag_ns * 1e-6, 1),
                        'log_file': str(self.campaign.log.path)})
