@@ -35,10 +35,9 @@ from __future__ import annotations
 import dataclasses
 import json
 import sys
-import threading
 import time
 from pathlib import Path
-from typing import Any, Awaitable, Callable
+from typing import Any
 
 import numpy as np
 import rclpy
@@ -58,11 +57,8 @@ from rclpy.exceptions import (
     ParameterUninitializedException,
 )
 from rclpy.executors import ExternalShutdownException
-from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.publisher import Publisher
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.task import Future
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
@@ -99,7 +95,15 @@ from kpi_calib_ros.io.names import (
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros import jobs
 from kpi_calib_ros.ros.campaign import Campaign
-from kpi_calib_ros.ros.child_process import run_in_child
+from kpi_calib_ros.ros.delivery import (
+    JOINT_STATES_MAX_HZ,
+    POINTS_MAX_HZ,
+    STREAM_BUFFER_S,
+    MessageSequence,
+    latched,
+    stream_qos,
+)
+from kpi_calib_ros.ros.job_node import JobNode
 from kpi_calib_ros.ros.parameters import (
     PARAMETERS,
     settings_from_parameters,
@@ -113,46 +117,7 @@ NODE_NAME = 'kpi_calib_node'
 CAMPAIGN_FIXED = ('campaign', 'target_tcp_std', 'max_measurements', 'design_seed')
 
 
-def _latched(depth: int = 1) -> QoSProfile:
-    return QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE,
-                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
-
-
-def _stream_qos(depth: int) -> QoSProfile:
-    return QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE)
-
-
-# Subscription queues sized in seconds at the highest expected rates: a stall of the
-# executor this long (a slow disk, a busy machine) loses nothing. Jobs run in a child
-# process (ros/child_process.py), so no job holds the executor back.
-JOINT_STATES_MAX_HZ = 1000.0
-POINTS_MAX_HZ = 50.0
-STREAM_BUFFER_S = 10.0
-
-
-class _Sequence:
-    """Messages lost before the node read them, from the publication sequence numbers
-    DDS gives each message (one publisher per topic; a number that goes back is a new
-    publisher, or the same one restarted)."""
-
-    def __init__(self) -> None:
-        self.last: int | None = None
-        self.lost = 0
-        self.max_lag_ns = 0  # publication to callback: how far the executor fell behind
-
-    def see(self, info: dict[str, Any]) -> None:
-        sent = info.get('source_timestamp')
-        if sent:
-            self.max_lag_ns = max(self.max_lag_ns, time.time_ns() - sent)
-        number = info.get('publication_sequence_number')
-        if not number:  # the middleware does not report them
-            return
-        if self.last is not None and number > self.last + 1:
-            self.lost += number - self.last - 1
-        self.last = number
-
-
-class CalibrationNode(Node):
+class CalibrationNode(JobNode):
     """The calibration node; the README's "cell controller" section lists its interface."""
 
     def __init__(self, **kwargs) -> None:
@@ -175,7 +140,6 @@ class CalibrationNode(Node):
                                f'{self.data_dir}; logging to {self.campaign.log.path}')
 
         # Executor-thread state (see the module docstring): never touched by a worker.
-        self._job_name = ''  # the running job ('' when idle): one long job at a time
         self._cm: CellModel | None = None
         self._urdf = ''
         self._model_error = ''
@@ -221,41 +185,41 @@ class CalibrationNode(Node):
         streams = MutuallyExclusiveCallbackGroup()
         services = ReentrantCallbackGroup()
         self._pub_poses = self.create_publisher(JointTrajectory, MEASUREMENT_POSES_TOPIC,
-                                                _latched())
-        self._pub_calibration = self.create_publisher(String, CALIBRATION_TOPIC, _latched())
-        self._pub_change_test = self.create_publisher(String, CHANGE_TEST_TOPIC, _latched())
-        self._pub_urdf = self.create_publisher(String, CALIBRATED_URDF_TOPIC, _latched())
-        self._pub_markers = self.create_publisher(MarkerArray, MARKERS_TOPIC, _latched())
-        self._pub_diagnosis = self.create_publisher(String, DIAGNOSIS_TOPIC, _latched())
-        self._pub_validation = self.create_publisher(String, VALIDATION_TOPIC, _latched())
+                                                latched())
+        self._pub_calibration = self.create_publisher(String, CALIBRATION_TOPIC, latched())
+        self._pub_change_test = self.create_publisher(String, CHANGE_TEST_TOPIC, latched())
+        self._pub_urdf = self.create_publisher(String, CALIBRATED_URDF_TOPIC, latched())
+        self._pub_markers = self.create_publisher(MarkerArray, MARKERS_TOPIC, latched())
+        self._pub_diagnosis = self.create_publisher(String, DIAGNOSIS_TOPIC, latched())
+        self._pub_validation = self.create_publisher(String, VALIDATION_TOPIC, latched())
         self._pub_campaign_status = self.create_publisher(String, CAMPAIGN_STATUS_TOPIC,
-                                                          _latched())
+                                                          latched())
         self._calibration_text = ''            # the published calibration.yaml
         self._identified_stamps: set[int] = set()  # stamps the calibration was fitted to
         self._pub_diagnostics = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
         # Latched, one message per working pose: made when a model gives their number.
         self._pub_tcp: Publisher | None = None
         self._tcp_depth = 0
-        self._sequences = {'joint_states': _Sequence(), 'points': _Sequence(),
-                           'poses': _Sequence(), 'sigma': _Sequence()}
+        self._sequences = {'joint_states': MessageSequence(), 'points': MessageSequence(),
+                           'poses': MessageSequence(), 'sigma': MessageSequence()}
         self._identifications = 0
         # Callbacks with (message, message info); rclpy 7.1's annotation omits that form.
         self.create_subscription(JointState, self.settings.joint_states_topic,
                                  self._on_joint_state,  # type: ignore[arg-type]
-                                 _stream_qos(int(JOINT_STATES_MAX_HZ * STREAM_BUFFER_S)),
+                                 stream_qos(int(JOINT_STATES_MAX_HZ * STREAM_BUFFER_S)),
                                  callback_group=streams)
         self.create_subscription(PointStamped, self.settings.point_topic,
                                  self._on_point,  # type: ignore[arg-type]
-                                 _stream_qos(int(POINTS_MAX_HZ * STREAM_BUFFER_S)),
+                                 stream_qos(int(POINTS_MAX_HZ * STREAM_BUFFER_S)),
                                  callback_group=streams)
         self.create_subscription(PoseStamped, self.settings.pose_topic,
                                  self._on_pose,  # type: ignore[arg-type]
-                                 _stream_qos(int(POINTS_MAX_HZ * STREAM_BUFFER_S)),
+                                 stream_qos(int(POINTS_MAX_HZ * STREAM_BUFFER_S)),
                                  callback_group=streams)
         # Each point's stated σ, paired with it by stamp and frame id (ros/campaign.py).
         self.create_subscription(Vector3Stamped, point_sigma_topic(self.settings.point_topic),
                                  self._on_point_sigma,  # type: ignore[arg-type]
-                                 _stream_qos(int(POINTS_MAX_HZ * STREAM_BUFFER_S)),
+                                 stream_qos(int(POINTS_MAX_HZ * STREAM_BUFFER_S)),
                                  callback_group=streams)
         for name, doing, work in (('design', 'designing', self._design),
                                   ('identify', 'identifying', self._identify),
@@ -269,7 +233,7 @@ class CalibrationNode(Node):
             self._set_robot_description(self.settings.robot_description)
         else:
             self.create_subscription(String, self.settings.robot_description_topic,
-                                     self._on_robot_description, _latched(),
+                                     self._on_robot_description, latched(),
                                      callback_group=streams)
             self.get_logger().info(f'waiting for {self.settings.robot_description_topic}')
 
@@ -355,7 +319,7 @@ class CalibrationNode(Node):
                 self.destroy_publisher(self._pub_tcp)
             # A cell without working poses publishes no TCP; depth 0 is no valid history.
             self._pub_tcp = self.create_publisher(PoseWithCovarianceStamped, TCP_TOPIC,
-                                                  _latched(max(depth, 1)))
+                                                  latched(max(depth, 1)))
             self._tcp_depth = depth
         return self._pub_tcp
 
@@ -427,67 +391,6 @@ class CalibrationNode(Node):
                 raise RuntimeError('kpi_calib_node ticked without an executor')
             executor.create_task(self._run_job, 'automatic identification', self._identify)
         self._publish_diagnostics()
-
-    # ------------------------------------------------------------------ jobs
-    def _service(self, name: str, doing: str, work: Callable[[], Awaitable[tuple[bool, str]]]
-                 ) -> Callable[[Trigger.Request, Trigger.Response], Awaitable[Trigger.Response]]:
-        """A Trigger callback that runs job ``work`` and answers when it is done, or
-        answers 'busy' at once while another job runs. The executor keeps serving
-        meanwhile (the callback awaits, it does not block)."""
-        async def callback(request: Trigger.Request,
-                           response: Trigger.Response) -> Trigger.Response:
-            if not self._claim_job(doing):
-                response.success, response.message = False, f'busy: {self._job_name}'
-            else:
-                response.success, response.message = await self._run_job(name, work)
-            return response
-        return callback
-
-    def _claim_job(self, doing: str) -> bool:
-        """Take the one job slot if it is free. The check and the claim run on the
-        executor with no await between them, so no other callback interleaves."""
-        if self._job_name:
-            return False
-        self._job_name = doing
-        return True
-
-    async def _run_job(self, name: str,
-                       work: Callable[[], Awaitable[tuple[bool, str]]]) -> tuple[bool, str]:
-        """Run the claimed job ``work`` to its (success, message); free the slot after."""
-        try:
-            outcome = await work()
-        except Exception as exc:  # job boundary: answer, log, keep the node up
-            self.get_logger().error(f'{name} failed: {exc}')
-            outcome = (False, f'{name} failed: {exc}')
-        else:
-            self.get_logger().info(f'{name}: {outcome[1]}')
-        finally:
-            self._job_name = ''
-        return outcome
-
-    def _create_task(self, name: str, work: Callable[[], Awaitable[tuple[bool, str]]]) -> None:
-        executor = self.executor
-        if executor is None:  # timers fire only under an executor
-            raise RuntimeError('kpi_calib_node ticked without an executor')
-        executor.create_task(self._run_job, name, work)
-
-    def _offload(self, fn: Callable[..., Any], *args: Any, child: bool = False) -> Future:
-        """Run ``fn(*args)`` in a worker thread (``child``: in a forked child process that
-        the thread waits for, for pure computations that must not hold the GIL); awaiting
-        the returned future resumes the job on the executor with ``fn``'s value (or
-        raises its exception)."""
-        done = Future(executor=self.executor)
-        done.add_done_callback(lambda _: None)  # its scheduling wakes the executor
-
-        def run() -> None:
-            try:
-                value = run_in_child(fn, *args) if child else fn(*args)
-            except Exception as exc:  # handed to the awaiting job, which reports it
-                done.set_exception(exc)
-            else:
-                done.set_result(value)
-        threading.Thread(target=run, daemon=True).start()
-        return done
 
     def _model(self) -> CellModel:
         if self._cm is None:
