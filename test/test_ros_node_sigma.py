@@ -129,7 +129,7 @@ def test_live_sigma_identifies_as_the_bag_with_sigma(tmp_path, ros_domain, cm):
         assert finished.wait(timeout=120), 'identification did not finish'
         ok, message = task.result()
         assert ok, message
-        live = node._result.values
+        live = node._run.result.values
     finally:
         executor.shutdown()
         for made in (source, node):

@@ -68,14 +68,10 @@ from visualization_msgs.msg import MarkerArray
 from kpi_calib_ros.app.identify import pose_rows, urdf_measurements
 from kpi_calib_ros.core.collision import Capsule
 from kpi_calib_ros.core.errors import ConfigError, DataError, KpiCalibError
-from kpi_calib_ros.core.estimation import CalibrationResult
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.pairing import Decision, Rejection
 from kpi_calib_ros.core.precision import precision_statement
 from kpi_calib_ros.core.prior import DriftSwing
-from kpi_calib_ros.core.residuals import is_adequate
-from kpi_calib_ros.core.robust import RobustResult
-from kpi_calib_ros.core.sequential import MODEL_INADEQUATE, CampaignStatus, SequentialCampaign
 from kpi_calib_ros.io.campaign_io import CampaignState, read_campaign_state
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell, with_overrides
 from kpi_calib_ros.io.names import (
@@ -110,6 +106,8 @@ from kpi_calib_ros.ros.parameters import (
     type_error,
     working_poses,
 )
+from kpi_calib_ros.ros.run_state import RunState
+from kpi_calib_ros.ros.status import StreamHealth, node_status
 
 NODE_NAME = 'kpi_calib_node'
 # Parameters a running sequential campaign was started with: refused while it runs (its
@@ -143,41 +141,26 @@ class CalibrationNode(JobNode):
         self._cm: CellModel | None = None
         self._urdf = ''
         self._model_error = ''
-        self._auto_pending = False
-        self._result: CalibrationResult | None = None
-        self._measured: np.ndarray | None = None
-        self._marker_rows: np.ndarray | None = None   # which fitted rows are points
-        self._result_error = ''
-        self._robust: RobustResult | None = None  # robust statistics of self._result
-        self._identified_with = 0
         self._design_points: np.ndarray | None = None
-        self._diagnosis: dict[str, Any] | None = None
         self._capsules: list[Capsule] = []
         self._last_diagnostics: tuple[Any, float] = (None, 0.0)
-        # Sequential campaign (campaign:=sequential): the campaign object is handed to the
-        # worker thread of a step job and back; the stamps it has been given.
-        self._sequential: SequentialCampaign | None = None
-        self._sequential_stamps: set[int] = set()
-        self._sequential_initial = 0
-        self._sequential_status: CampaignStatus | None = None
-        # The campaign as data_dir/campaign_state.yaml keeps it; one found at start is
-        # resumed (_resume) once the robot model is known, before anything is identified.
-        self._sequential_state: CampaignState | None = None
-        self._resume_pending = False
-        self._resumed = False
+        # This campaign's results and sequential campaign, replaced whole by ~/reset. A
+        # sequential campaign data_dir/campaign_state.yaml keeps is resumed (_resume) once
+        # the robot model is known, before anything is identified.
+        self._run = RunState()
         state_path = self.data_dir / CAMPAIGN_STATE_FILE
         if state_path.is_file():
             try:
-                self._sequential_state = read_campaign_state(state_path)
+                self._run.sequential_state = read_campaign_state(state_path)
             except DataError as exc:
-                self._result_error = f'sequential campaign not resumed: {exc}'
-                self.get_logger().error(self._result_error)
+                self._run.result_error = f'sequential campaign not resumed: {exc}'
+                self.get_logger().error(self._run.result_error)
             else:
-                self._resume_pending = True
+                self._run.resume_pending = True
                 self.get_logger().info(
                     f'sequential campaign found in {state_path} '
-                    f'({len(self._sequential_state.steps)} step(s), '
-                    f"{self._sequential_state.status.get('stop_reason', 'running')}): "
+                    f'({len(self._run.sequential_state.steps)} step(s), '
+                    f"{self._run.sequential_state.status.get('stop_reason', 'running')}): "
                     'resuming it once the robot model is known')
 
         # One executor thread: pairing callbacks run in arrival order; services await
@@ -269,8 +252,8 @@ class CalibrationNode(JobNode):
             return SetParametersResult(successful=False, reason=str(exc))
         fixed = [p.name for p in parameters if p.name in CAMPAIGN_FIXED
                  and p.value != getattr(self.settings, p.name)]
-        if fixed and self._sequential_running():
-            state = self._sequential_state
+        if fixed and self._run.sequential_running():
+            state = self._run.sequential_state
             now = ('' if state is None else
                    f' (target_tcp_std {state.settings.target_std:g} m, max_measurements '
                    f'{state.settings.max_measurements})')
@@ -284,7 +267,7 @@ class CalibrationNode(JobNode):
     def _apply_parameters(self, parameters: list[Parameter]) -> None:
         """Post-set callback: the values are set (and were validated); use them."""
         self.settings = settings_from_parameters(self._parameter_values())
-        self._auto_pending = self._auto_wanted()
+        self._run.auto_pending = self._auto_wanted()
 
     # ------------------------------------------------------------------ robot model
     def _on_robot_description(self, msg: String) -> None:
@@ -305,7 +288,7 @@ class CalibrationNode(JobNode):
         self._cm, self._urdf, self._model_error = cm, urdf_xml, ''
         self._report(self.campaign.set_chain(cm.joint_names, cm.cell.tracker_frame,
                                              cm.cell.reflector_names or ('',)))
-        self._auto_pending = self._auto_wanted()
+        self._run.auto_pending = self._auto_wanted()
         self.get_logger().info(f'robot model ready: joints {cm.joint_names}, tracker frame '
                                f"'{cm.cell.tracker_frame}', working poses "
                                f'{list(cm.working_pose_names)}')
@@ -349,43 +332,29 @@ class CalibrationNode(JobNode):
                 self.get_logger().warning(f'rejected ({d.reason}): {d.detail}',
                                           throttle_duration_sec=1.0)
             elif self._auto_wanted():
-                self._auto_pending = True
+                self._run.auto_pending = True
 
     def _auto_wanted(self) -> bool:
         # A sequential campaign re-identifies in its own steps and publishes its own
         # calibration when it stops (none after 'model inadequate').
         return (self.settings.auto_identify and self._cm is not None
-                and self._sequential is None and self._sequential_state is None
+                and self._run.sequential is None and self._run.sequential_state is None
                 and len(self.campaign) >= self.settings.min_measurements)
-
-    def _sequential_running(self) -> bool:
-        if self._resume_pending:
-            return self._sequential_state is not None and not self._sequential_state.stopped
-        status = self._sequential_status
-        return self._sequential is not None and (status is None or not status.stopped)
-
-    def _sequential_due(self) -> bool:
-        """A step is due: the campaign runs, the initial design is measured and some
-        accepted measurement has not been added yet."""
-        if self._resume_pending or not self._sequential_running():
-            return False
-        accepted = len(self.campaign)
-        return (accepted >= self._sequential_initial
-                and accepted > len(self._sequential_stamps))
 
     def _tick(self) -> None:
         self._report(self.campaign.poll())
-        if (self._resume_pending and self._cm is not None
+        if (self._run.resume_pending and self._cm is not None
                 and self._claim_job('resuming the sequential campaign')):
             self._create_task('resuming the sequential campaign', self._resume)
-        if self._sequential_due() and self._claim_job('planning the next pose'):
+        if (self._run.sequential_due(len(self.campaign))
+                and self._claim_job('planning the next pose')):
             executor = self.executor
             if executor is None:  # timers fire only under an executor
                 raise RuntimeError('kpi_calib_node ticked without an executor')
             executor.create_task(self._run_job, 'sequential campaign step',
                                  self._sequential_step)
-        if self._auto_pending and self._claim_job('identifying (automatic)'):
-            self._auto_pending = False
+        if self._run.auto_pending and self._claim_job('identifying (automatic)'):
+            self._run.auto_pending = False
             executor = self.executor
             if executor is None:  # timers fire only under an executor
                 raise RuntimeError('kpi_calib_node ticked without an executor')
@@ -425,10 +394,10 @@ class CalibrationNode(JobNode):
         settings, seed = jobs.campaign_settings(self.settings), self.settings.design_seed
         campaign, initial, points, path = await self._offload(
             jobs.sequential_start_work, cm, settings, seed, self.data_dir)
-        self._sequential, self._sequential_status = campaign, None
-        self._sequential_state = CampaignState(settings, seed)
-        self._sequential_stamps, self._sequential_initial = set(), len(initial)
-        self._resume_pending, self._resumed = False, False
+        self._run.sequential, self._run.sequential_status = campaign, None
+        self._run.sequential_state = CampaignState(settings, seed)
+        self._run.sequential_stamps, self._run.sequential_initial = set(), len(initial)
+        self._run.resume_pending, self._run.resumed = False, False
         self._pub_poses.publish(cv.joint_trajectory_msg(cm.joint_names, initial))
         self._design_points = points
         self._publish_markers()
@@ -445,9 +414,9 @@ class CalibrationNode(JobNode):
         """Rebuild the campaign data_dir/campaign_state.yaml keeps, from the restored
         measurements (the same steps, so the same status and plan), and publish its
         plan and status again, saying it was resumed."""
-        cm, state = self._model(), self._sequential_state
+        cm, state = self._model(), self._run.sequential_state
         assert state is not None
-        self._resume_pending = False
+        self._run.resume_pending = False
         data = self._campaign_data(cm)[0] if len(self.campaign) else Measurements(
             q=np.zeros((0, len(cm.joint_names))), eta=np.zeros((0, 3)),
             stamps_ns=np.zeros(0, np.int64))
@@ -455,12 +424,12 @@ class CalibrationNode(JobNode):
             campaign, initial, out = await self._offload(jobs.sequential_resume_work, cm,
                                                          state, data, self.data_dir)
         except KpiCalibError as exc:
-            self._result_error = f'sequential campaign not resumed: {exc}'
+            self._run.result_error = f'sequential campaign not resumed: {exc}'
             self._publish_diagnostics(force=True)
             raise
-        self._sequential, self._sequential_initial = campaign, len(initial)
-        self._sequential_stamps = {t for step in state.steps for t in step}
-        self._resumed = True
+        self._run.sequential, self._run.sequential_initial = campaign, len(initial)
+        self._run.sequential_stamps = {t for step in state.steps for t in step}
+        self._run.resumed = True
         if out is None:  # no step yet: the initial design is still the plan
             self._pub_poses.publish(cv.joint_trajectory_msg(cm.joint_names, initial))
             self._pub_campaign_status.publish(String(data=yaml.safe_dump({
@@ -469,7 +438,7 @@ class CalibrationNode(JobNode):
                 'resumed': True}, sort_keys=False)))
             message = f'initial design of {len(initial)} poses published again'
         else:
-            self._sequential_state, self._sequential_status = out.state, out.status
+            self._run.sequential_state, self._run.sequential_status = out.state, out.status
             if len(out.plan):
                 self._pub_poses.publish(cv.joint_trajectory_msg(cm.joint_names, out.plan))
             self._pub_campaign_status.publish(String(data=out.text))
@@ -495,19 +464,19 @@ class CalibrationNode(JobNode):
         """Add the accepted measurements the campaign has not seen, re-identify and
         publish the updated plan (next pose first) and ~/campaign_status; once the
         campaign stopped (target met or cap), publish its calibration."""
-        cm, campaign, state = self._model(), self._sequential, self._sequential_state
+        cm, campaign, state = self._model(), self._run.sequential, self._run.sequential_state
         if campaign is None or state is None:
             raise DataError('no sequential campaign: call ~/design with campaign:=sequential')
         data, pairing = self._campaign_data(cm)
         stamps = np.asarray(data.stamps_ns, dtype=np.int64)
-        new = np.array([int(t) not in self._sequential_stamps for t in stamps], dtype=bool)
+        new = np.array([int(t) not in self._run.sequential_stamps for t in stamps], dtype=bool)
         fresh = data.subset(new)
         out = await self._offload(jobs.sequential_step_work, campaign, cm, fresh, state,
                                   self.data_dir, pairing,
-                                  {'resumed': True} if self._resumed else None)
+                                  {'resumed': True} if self._run.resumed else None)
         status, plan = out.status, out.plan
-        self._sequential_stamps.update(int(t) for t in stamps[new])
-        self._sequential_status, self._sequential_state = status, out.state
+        self._run.sequential_stamps.update(int(t) for t in stamps[new])
+        self._run.sequential_status, self._run.sequential_state = status, out.state
         for e in status.excluded:
             self.get_logger().warning(f"measurement {e['measurement']} (stamp "
                                       f"{e['stamp_ns']} ns) excluded: "
@@ -533,14 +502,15 @@ class CalibrationNode(JobNode):
     def _publish_campaign_calibration(self, cal: Any, text: str, urdf: str, tcp: list,
                                       stamps: np.ndarray) -> None:
         """Publish a stopped campaign's calibration as ~/identify publishes one."""
-        campaign = self._sequential
+        campaign = self._run.sequential
         assert campaign is not None
         kept = np.asarray(cal.robust.kept, dtype=bool)
-        self._robust, self._result = cal.robust, cal.result
-        self._measured, self._marker_rows = campaign.eta[kept], np.ones(int(kept.sum()), bool)
-        self._identified_with = len(campaign.q)
+        self._run.robust, self._run.result = cal.robust, cal.result
+        self._run.measured = campaign.eta[kept]
+        self._run.marker_rows = np.ones(int(kept.sum()), bool)
+        self._run.identified_with = len(campaign.q)
         self._identifications += 1
-        self._result_error = ''
+        self._run.result_error = ''
         self._pub_calibration.publish(String(data=text))
         self._calibration_text = text
         self._identified_stamps = {int(t) for t in stamps}
@@ -555,7 +525,7 @@ class CalibrationNode(JobNode):
         write the results atomically and publish them. Refused while a sequential campaign
         runs: its calibration is published when it stops, never one of part of it."""
         cm = self._model()
-        if self._sequential_running():
+        if self._run.sequential_running():
             raise DataError('a sequential campaign is running: its calibration is published '
                             'on ~/calibration when it stops (~/campaign_status); call '
                             '~/reset to end it')
@@ -569,12 +539,12 @@ class CalibrationNode(JobNode):
                 self.settings.reidentify_with_prior,
                 DriftSwing(*self.settings.drift_velocity) if self.settings.drift_velocity
                 else None,
-                not self._campaign_inadequate(),
+                not self._run.campaign_inadequate(),
                 child=True)
         except Exception as exc:  # job boundary: also a full disk or a lost data_dir
             where = (f' (results not written to {self.data_dir})'
                      if isinstance(exc, OSError) else '')
-            self._result_error = f'identification failed{where}: {exc}'
+            self._run.result_error = f'identification failed{where}: {exc}'
             self._publish_diagnostics(force=True)
             raise
         for note in notes:  # which prior, or why none; archived files skipped
@@ -587,7 +557,7 @@ class CalibrationNode(JobNode):
             # A change beyond the drift model: not blended, never published as the
             # calibration; the last good one stays; /diagnostics says ERROR.
             assert change is not None
-            self._result_error = change.summary()
+            self._run.result_error = change.summary()
             self.get_logger().error(f'identification from {len(data)} measurements with prior '
                                     f'{prior}: {change.summary()}')
             self._publish_diagnostics(force=True)
@@ -599,7 +569,7 @@ class CalibrationNode(JobNode):
             # Never published as the calibration: the last good one stays on every topic
             # and in calibration.yaml; /diagnostics says ERROR with the reason.
             reason = ' | '.join(cal.problems)
-            self._result_error = f'calibration not published: {reason}'
+            self._run.result_error = f'calibration not published: {reason}'
             self.get_logger().error(f'identification from {len(data)} measurements not '
                                     f'valid, last good calibration kept: {reason}')
             self._publish_diagnostics(force=True)
@@ -608,16 +578,17 @@ class CalibrationNode(JobNode):
             self.get_logger().warning(e.text())
         for text in cal.robust.warnings:
             self.get_logger().warning(text)
-        self._robust = cal.robust
+        self._run.robust = cal.robust
         # Residual arrows: the fitted (kept) rows that are points; a tracked pose's
         # rotation row is no point to draw from.
         kept = np.asarray(cal.robust.kept, dtype=bool)
         points = (np.ones(len(data), dtype=bool) if data.reflector is None
                   else np.asarray(data.reflector) < cm.model.n_reflectors)
-        self._marker_rows = points[kept]
-        self._result, self._measured, self._identified_with = result, data.eta[kept], len(data)
+        self._run.marker_rows = points[kept]
+        self._run.result, self._run.measured = result, data.eta[kept]
+        self._run.identified_with = len(data)
         self._identifications += 1
-        self._result_error = ''
+        self._run.result_error = ''
         self._pub_calibration.publish(String(data=calibration))
         self._calibration_text = calibration
         self._identified_stamps = {int(s) for s in np.asarray(data.stamps_ns).ravel()}
@@ -642,12 +613,6 @@ class CalibrationNode(JobNode):
             + (f'prior {prior}; ' if prior else '') + ''.join(f'{n}; ' for n in notes)
             + f'written to {self.data_dir}')
 
-    def _campaign_inadequate(self) -> bool:
-        """The sequential campaign stopped as model inadequate: a calibration of its
-        measurements is never archived as the next cycle's prior."""
-        status = self._sequential_status
-        return status is not None and status.stop_reason == MODEL_INADEQUATE
-
     async def _diagnose(self) -> tuple[bool, str]:
         """Model diagnosis of the accepted measurements (as ``kpi-calib diagnose``): residual
         report, adequacy and the most likely missing effect; report files and ~/diagnosis."""
@@ -658,7 +623,7 @@ class CalibrationNode(JobNode):
         data = urdf_measurements(cm, pose_rows(cm, data, pairing))
         doc, text, verdict, report = await self._offload(jobs.diagnose_work, cm, data,
                                                          self.data_dir, child=True)
-        self._diagnosis = doc
+        self._run.diagnosis = doc
         self._pub_diagnosis.publish(String(data=text))
         self._publish_diagnostics(force=True)
         return True, f'{verdict} Report: {report}'
@@ -699,23 +664,18 @@ class CalibrationNode(JobNode):
     async def _reset(self) -> tuple[bool, str]:
         """Start a new campaign: archive (never delete) the logs and results."""
         count, archive = await self._offload(self.campaign.reset)
-        self._result, self._measured, self._result_error = None, None, ''
-        self._robust = None
-        self._identified_with, self._auto_pending, self._diagnosis = 0, False, None
-        self._sequential, self._sequential_status = None, None
-        self._sequential_stamps, self._sequential_initial = set(), 0
-        self._sequential_state, self._resume_pending, self._resumed = None, False, False
+        self._run = RunState()
         self._publish_markers()
         self._publish_diagnostics(force=True)
         return True, f'archived {count} measurement(s) and the results to {archive}'
 
     # ------------------------------------------------------------------ outputs
     def _publish_markers(self) -> None:
-        cm, result = self._cm, self._result
+        cm, result = self._cm, self._run.result
         if cm is None:
             return
-        measured, residuals = self._measured, None if result is None else result.residuals
-        rows = self._marker_rows
+        measured, residuals = self._run.measured, None if result is None else result.residuals
+        rows = self._run.marker_rows
         if (measured is not None and residuals is not None and rows is not None
                 and len(rows) == len(measured) == len(residuals)):
             measured, residuals = measured[rows], residuals[rows]
@@ -727,65 +687,13 @@ class CalibrationNode(JobNode):
             capsules=self._capsules, measured=measured, residuals=residuals))
 
     def status(self) -> tuple[str, str, dict[str, Any]]:
-        """(level, message, key values) as /diagnostics reports them."""
-        values: dict[str, Any] = {'state': self._job_name or (
-            'waiting for robot description' if self._cm is None else 'idle')}
-        values.update(self.campaign.counts())
-        values.update({'identified_with': self._identified_with,
-                       'identifications': self._identifications,
-                       'lost.joint_states': self._sequences['joint_states'].lost,
-                       'lost.points': (self._sequences['points'].lost
-                                       + self._sequences['poses'].lost
-                                       + self._sequences['sigma'].lost),
-                       'max_lag_ms.joint_states': round(
-                           self._sequences['joint_states'].max_lag_ns * 1e-6, 1),
-                       'log_file': str(self.campaign.log.path)})
-        lost = values['lost.joint_states'] + values['lost.points']
-        result, n, rejected = self._result, values['accepted'], values['rejected']
-        if result is not None:
-            values.update({'rms_um': round(result.rms_m * 1e6, 3),
-                           'p_value': float(result.p_value), 'converged': result.converged})
-        if self._robust is not None:
-            values.update({'sigma_robust_um': round(self._robust.sigma_robust * 1e6, 3),
-                           'excluded_measurements': len(self._robust.excluded)})
-        if self._diagnosis is not None:
-            best = next((c['spec'] for c in self._diagnosis['candidates'] if c['significant']),
-                        'none')
-            values.update({'model_adequate': self._diagnosis['model_adequate'],
-                           'suggested_effect': best})
-        seq, state = self._sequential_status, self._sequential_state
-        if state is not None:
-            # The campaign's own target (the one its status and stop rule use).
-            values.update({'campaign': 'sequential',
-                           'campaign.measurements': seq.measurements if seq else 0,
-                           'campaign.tcp_std_um': round(seq.statistic * 1e6, 3) if seq
-                           else float('inf'),
-                           'campaign.target_um': round(state.settings.target_std * 1e6, 3),
-                           'campaign.max_measurements': state.settings.max_measurements,
-                           'campaign.excluded': len(seq.excluded) if seq else 0,
-                           'campaign.resumed': self._resumed or self._resume_pending,
-                           'campaign.stop_reason': (
-                               'resuming' if self._resume_pending else
-                               (seq.stop_reason if seq else '') or 'running')})
-        error = self._model_error or self._result_error
-        if error or values['rejected.not_stored']:
-            return 'ERROR', error or 'accepted measurements could not be stored', values
-        if seq is not None and seq.stop_reason == MODEL_INADEQUATE:
-            return 'WARN', f'sequential campaign stopped: {MODEL_INADEQUATE}', values
-        if self._robust is not None and self._robust.warnings:
-            return 'WARN', self._robust.warnings[0], values
-        if result is not None and not is_adequate(result.p_value):
-            return 'WARN', f'model inadequate (p = {result.p_value:.2g})', values
-        if lost:
-            return 'WARN', (f"{values['lost.joint_states']} joint states and "
-                            f"{values['lost.points']} points lost before the node read them "
-                            '(queue overflow: the node fell behind)'), values
-        if rejected:
-            return 'WARN', f'{n} accepted, {rejected} rejected', values
-        if self._cm is None:
-            return 'OK', 'waiting for robot description', values
-        return 'OK', f'{n} accepted' + ('' if result is None else
-                                        f', rms {result.rms_m * 1e6:.1f} µm'), values
+        """(level, message, key values) as /diagnostics reports them (:func:`node_status`)."""
+        seq = self._sequences
+        return node_status(self._run, self.campaign.counts(), StreamHealth(
+            seq['joint_states'].lost, seq['points'].lost + seq['poses'].lost + seq['sigma'].lost,
+            seq['joint_states'].max_lag_ns), job=self._job_name, model_ready=self._cm is not None,
+            model_error=self._model_error, identifications=self._identifications,
+            log_file=str(self.campaign.log.path))
 
     def _publish_diagnostics(self, force: bool = False) -> None:
         level, message, values = self.status()
