@@ -21,6 +21,7 @@ then). A measurement without σ takes the cell's, as in a bag.
 """
 from __future__ import annotations
 
+import dataclasses
 import shutil
 import threading
 import time
@@ -30,7 +31,7 @@ from typing import Sequence
 
 import numpy as np
 
-from kpi_calib_ros.app.identify import stated_sigma
+from kpi_calib_ros.app.identify import pose_rows, stated_sigma, urdf_measurements
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.pairing import (
@@ -43,6 +44,7 @@ from kpi_calib_ros.core.pairing import (
     split_frame,
 )
 from kpi_calib_ros.core.streams import JointSample, PointSample
+from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.measurement_log import MeasurementLog, stored_pairing
 from kpi_calib_ros.io.names import DEFAULT_POINT_TOPIC, RESULT_FILES, point_sigma_topic
 
@@ -342,6 +344,18 @@ class Campaign:
             self.log.close()
 
 
+def model_measurements(campaign: Campaign, cm: CellModel
+                       ) -> tuple[Measurements, PairingResult]:
+    """Every accepted measurement of ``campaign`` as the model ``cm`` takes it: every row
+    of each pose (reflectors, tracked bodies' rotation rows), URDF joint values (from the
+    controller's readings), stamps as int64 ns, each row's stated σ (NaN: the cell's)."""
+    data, pairing = campaign.measurements(cm.joint_names, cm.cell.tracker_frame,
+                                          cm.cell.reflector_names or ('',))
+    data = urdf_measurements(cm, pose_rows(cm, data, pairing))
+    stamps = np.asarray(data.stamps_ns, dtype=np.int64).ravel()
+    return dataclasses.replace(data, stamps_ns=stamps), pairing
+
+
 def _sigma_key(stamp_ns: int, frame_id: str) -> tuple[int, str, str]:
     """A point's (stamp, tracker frame, reflector) as its σ is matched by (a leading '/'
     of the frame id does not count)."""
@@ -352,4 +366,5 @@ def _frame_id(key: tuple[int, str, str]) -> str:
     return key[1] + ('#' + key[2] if key[2] else '')
 
 
-__all__ = ['Campaign', 'NOT_STORED', 'REASONS', 'SIGMA_REASONS', 'SIGMA_WAIT_S']
+__all__ = ['Campaign', 'NOT_STORED', 'REASONS', 'SIGMA_REASONS', 'SIGMA_WAIT_S',
+           'model_measurements']

@@ -32,7 +32,6 @@ reason); the post-set callback applies the accepted values.
 """
 from __future__ import annotations
 
-import dataclasses
 import json
 import sys
 import time
@@ -65,7 +64,6 @@ from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import MarkerArray
 
-from kpi_calib_ros.app.identify import pose_rows, urdf_measurements
 from kpi_calib_ros.core.collision import Capsule
 from kpi_calib_ros.core.errors import ConfigError, DataError, KpiCalibError
 from kpi_calib_ros.core.measurement import Measurements
@@ -90,7 +88,7 @@ from kpi_calib_ros.io.names import (
 )
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros import jobs
-from kpi_calib_ros.ros.campaign import Campaign
+from kpi_calib_ros.ros.campaign import Campaign, model_measurements
 from kpi_calib_ros.ros.delivery import (
     JOINT_STATES_MAX_HZ,
     POINTS_MAX_HZ,
@@ -417,7 +415,7 @@ class CalibrationNode(JobNode):
         cm, state = self._model(), self._run.sequential_state
         assert state is not None
         self._run.resume_pending = False
-        data = self._campaign_data(cm)[0] if len(self.campaign) else Measurements(
+        data = model_measurements(self.campaign, cm)[0] if len(self.campaign) else Measurements(
             q=np.zeros((0, len(cm.joint_names))), eta=np.zeros((0, 3)),
             stamps_ns=np.zeros(0, np.int64))
         try:
@@ -450,16 +448,6 @@ class CalibrationNode(JobNode):
         self._publish_diagnostics(force=True)
         return True, f'sequential campaign resumed from {self.data_dir}: {message}'
 
-    def _campaign_data(self, cm: CellModel) -> tuple[Measurements, Any]:
-        """Every accepted measurement with its stamps, URDF joint values."""
-        data, pairing = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame,
-                                                   cm.cell.reflector_names or ('',))
-        # every row of each pose (reflectors, tracked bodies' rotation rows); controller
-        # readings -> URDF joint values
-        data = urdf_measurements(cm, pose_rows(cm, data, pairing))
-        stamps = np.asarray(data.stamps_ns, dtype=np.int64).ravel()
-        return dataclasses.replace(data, stamps_ns=stamps), pairing
-
     async def _sequential_step(self) -> tuple[bool, str]:
         """Add the accepted measurements the campaign has not seen, re-identify and
         publish the updated plan (next pose first) and ~/campaign_status; once the
@@ -467,7 +455,7 @@ class CalibrationNode(JobNode):
         cm, campaign, state = self._model(), self._run.sequential, self._run.sequential_state
         if campaign is None or state is None:
             raise DataError('no sequential campaign: call ~/design with campaign:=sequential')
-        data, pairing = self._campaign_data(cm)
+        data, pairing = model_measurements(self.campaign, cm)
         stamps = np.asarray(data.stamps_ns, dtype=np.int64)
         new = np.array([int(t) not in self._run.sequential_stamps for t in stamps], dtype=bool)
         fresh = data.subset(new)
@@ -505,15 +493,23 @@ class CalibrationNode(JobNode):
         campaign = self._run.sequential
         assert campaign is not None
         kept = np.asarray(cal.robust.kept, dtype=bool)
+        self._publish_calibration(cal, campaign.eta[kept], np.ones(int(kept.sum()), bool),
+                                  len(campaign.q), text, urdf, tcp, stamps)
+
+    def _publish_calibration(self, cal: Any, measured: np.ndarray, marker_rows: np.ndarray,
+                             identified_with: int, text: str, urdf: str, tcp: list,
+                             stamps: np.ndarray | None) -> None:
+        """Make ``cal`` (fitted to ``measured`` (m), of which ``marker_rows`` are points,
+        from ``identified_with`` measurements stamped ``stamps``) the published
+        calibration: ~/calibration, the calibrated URDF, ~/tcp and the markers."""
         self._run.robust, self._run.result = cal.robust, cal.result
-        self._run.measured = campaign.eta[kept]
-        self._run.marker_rows = np.ones(int(kept.sum()), bool)
-        self._run.identified_with = len(campaign.q)
+        self._run.measured, self._run.marker_rows = measured, marker_rows
+        self._run.identified_with = identified_with
         self._identifications += 1
         self._run.result_error = ''
         self._pub_calibration.publish(String(data=text))
         self._calibration_text = text
-        self._identified_stamps = {int(t) for t in stamps}
+        self._identified_stamps = {int(t) for t in np.asarray(stamps).ravel()}
         self._pub_urdf.publish(String(data=urdf))
         publisher = self._tcp_publisher(len(tcp))
         for msg in tcp:
@@ -529,10 +525,7 @@ class CalibrationNode(JobNode):
             raise DataError('a sequential campaign is running: its calibration is published '
                             'on ~/calibration when it stops (~/campaign_status); call '
                             '~/reset to end it')
-        data, pairing = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame,
-                                                   cm.cell.reflector_names or ('',))
-        # tracked poses' rotation rows; controller readings -> URDF joint values
-        data = urdf_measurements(cm, pose_rows(cm, data, pairing))
+        data, pairing = model_measurements(self.campaign, cm)
         try:
             cal, calibration, urdf, tcp, change, prior, notes = await self._offload(
                 jobs.identify_work, cm, data, pairing, self.data_dir,
@@ -578,25 +571,13 @@ class CalibrationNode(JobNode):
             self.get_logger().warning(e.text())
         for text in cal.robust.warnings:
             self.get_logger().warning(text)
-        self._run.robust = cal.robust
         # Residual arrows: the fitted (kept) rows that are points; a tracked pose's
         # rotation row is no point to draw from.
         kept = np.asarray(cal.robust.kept, dtype=bool)
         points = (np.ones(len(data), dtype=bool) if data.reflector is None
                   else np.asarray(data.reflector) < cm.model.n_reflectors)
-        self._run.marker_rows = points[kept]
-        self._run.result, self._run.measured = result, data.eta[kept]
-        self._run.identified_with = len(data)
-        self._identifications += 1
-        self._run.result_error = ''
-        self._pub_calibration.publish(String(data=calibration))
-        self._calibration_text = calibration
-        self._identified_stamps = {int(s) for s in np.asarray(data.stamps_ns).ravel()}
-        self._pub_urdf.publish(String(data=urdf))
-        publisher = self._tcp_publisher(len(tcp))
-        for msg in tcp:
-            publisher.publish(msg)
-        self._publish_markers()
+        self._publish_calibration(cal, data.eta[kept], points[kept], len(data), calibration,
+                                  urdf, tcp, data.stamps_ns)
         self._publish_diagnostics(force=True)
         tcp_um = np.sqrt(np.trace(result.tcp_covariance, axis1=1, axis2=2)).max() * 1e6
         # With the misfit of a model χ² rejects (core.precision.expected_tcp_error).
@@ -617,10 +598,7 @@ class CalibrationNode(JobNode):
         """Model diagnosis of the accepted measurements (as ``kpi-calib diagnose``): residual
         report, adequacy and the most likely missing effect; report files and ~/diagnosis."""
         cm = self._model()
-        data, pairing = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame,
-                                                   cm.cell.reflector_names or ('',))
-        # tracked poses' rotation rows; controller readings -> URDF joint values
-        data = urdf_measurements(cm, pose_rows(cm, data, pairing))
+        data, pairing = model_measurements(self.campaign, cm)
         doc, text, verdict, report = await self._offload(jobs.diagnose_work, cm, data,
                                                          self.data_dir, child=True)
         self._run.diagnosis = doc
@@ -634,17 +612,13 @@ class CalibrationNode(JobNode):
         cm = self._model()
         if not self._calibration_text:
             raise DataError('no calibration to validate yet: call ~/identify first')
-        data, pairing = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame,
-                                                   cm.cell.reflector_names or ('',))
-        # tracked poses' rotation rows; controller readings -> URDF joint values
-        data = urdf_measurements(cm, pose_rows(cm, data, pairing))
-        stamps = np.asarray(data.stamps_ns, dtype=np.int64).ravel()
-        new = np.isin(stamps, np.fromiter(self._identified_stamps, dtype=np.int64),
-                      invert=True)
+        data, pairing = model_measurements(self.campaign, cm)
+        new = np.isin(np.asarray(data.stamps_ns),
+                      np.fromiter(self._identified_stamps, dtype=np.int64), invert=True)
         if not new.any():
             raise DataError('no measurement accepted since the last identification; measure '
                             'new poses with auto_identify:=false, then call ~/validate')
-        fresh = dataclasses.replace(data, stamps_ns=stamps).subset(new)
+        fresh = data.subset(new)
         doc, text = await self._offload(jobs.validate_work, cm, self._calibration_text, fresh,
                                         self.data_dir, self.settings.validate_register or None)
         self._pub_validation.publish(String(data=text))
