@@ -1,22 +1,21 @@
 """kpi_calib_node: measurement design, live pairing, durable logging and re-identification.
 
 A thin layer over the core: it converts messages, calls the same functions as
-``kpi-calib`` and publishes. Live samples go to a
+``kpi-calib`` and publishes. Live samples and each point's stated σ go to a
 :class:`~kpi_calib_ros.ros.campaign.Campaign`, which pairs them with the code that
 pairs bags and logs every accepted measurement to disk before counting it, so a
 replayed bag and ``kpi-calib identify`` agree and a killed node loses nothing.
 
 Services (std_srvs/srv/Trigger): ``~/design``, ``~/identify``, ``~/diagnose``, ``~/validate``,
-``~/reset``.
-One executor thread serves callbacks in arrival order; long work (design,
-identification) runs in a worker thread while the job coroutine awaits it, so
-pairing continues, and a call while another job runs answers
-``success=False, message='busy: ...'``. (rclpy's MultiThreadedExecutor could not keep
-up with 1 kHz joint states on two cores.)
+``~/reset``, run as jobs one at a time (:mod:`~kpi_calib_ros.ros.job_node`; the sequential
+campaign's in :mod:`~kpi_calib_ros.ros.sequential_jobs`). One executor thread serves
+callbacks in arrival order; long work runs in a worker thread while the job coroutine
+awaits it, so pairing continues. (rclpy's MultiThreadedExecutor could not keep up with
+1 kHz joint states on two cores.)
 
-Threads: the executor thread owns the node. Every node attribute (robot model,
-result, diagnosis, design points, job name, settings) and every publisher is read
-and written on the executor thread only. A job is a coroutine on the executor: it
+Threads: the executor thread owns the node. Every node attribute (robot model, the run's
+results in one :class:`~kpi_calib_ros.ros.run_state.RunState`, design points, job name,
+settings) and every publisher is read and written on the executor thread only. A job
 takes what it needs from the node, hands plain inputs to a worker thread with
 ``await self._offload(fn, ...)``, and when the worker's value comes back (the
 coroutine resumes on the executor) it updates the state and publishes. Worker
@@ -25,6 +24,7 @@ see the node. The one object both sides touch is the :class:`Campaign`, which is
 thread-safe by its own lock. Hence no node lock: ``~/tcp`` is created when the first
 robot model gives its number of working poses and replaced (on the executor, where
 nothing else can be publishing on it) only if a later model has a different number.
+/diagnostics is :func:`~kpi_calib_ros.ros.status.node_status` of that state.
 
 Parameters follow ros2/demos ``set_parameters_callback.py``: the on-set callback only
 validates (every value, through :func:`settings_from_parameters`, and rejects with the
@@ -47,13 +47,8 @@ from geometry_msgs.msg import (
     PoseWithCovarianceStamped,
     Vector3Stamped,
 )
-from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.exceptions import (
-    InvalidParameterTypeException,
-    InvalidParameterValueException,
-    ParameterUninitializedException,
-)
 from rclpy.executors import ExternalShutdownException
 from rclpy.parameter import Parameter
 from rclpy.publisher import Publisher
@@ -68,12 +63,10 @@ from kpi_calib_ros.core.errors import ConfigError, DataError, KpiCalibError
 from kpi_calib_ros.core.pairing import Decision, Rejection
 from kpi_calib_ros.core.precision import precision_statement
 from kpi_calib_ros.core.prior import DriftSwing
-from kpi_calib_ros.io.campaign_io import read_campaign_state
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell, with_overrides
 from kpi_calib_ros.io.names import (
     CALIBRATED_URDF_TOPIC,
     CALIBRATION_TOPIC,
-    CAMPAIGN_STATE_FILE,
     CAMPAIGN_STATUS_TOPIC,
     CHANGE_TEST_TOPIC,
     DIAGNOSIS_TOPIC,
@@ -86,6 +79,7 @@ from kpi_calib_ros.io.names import (
 )
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros import jobs
+from kpi_calib_ros.ros.answers import design_answer, identify_answer, validate_answer
 from kpi_calib_ros.ros.campaign import Campaign, model_measurements
 from kpi_calib_ros.ros.delivery import (
     JOINT_STATES_MAX_HZ,
@@ -96,19 +90,16 @@ from kpi_calib_ros.ros.delivery import (
     stream_qos,
 )
 from kpi_calib_ros.ros.parameters import (
-    PARAMETERS,
+    declare_parameters,
+    parameter_values,
     settings_from_parameters,
-    type_error,
     working_poses,
 )
-from kpi_calib_ros.ros.run_state import RunState
+from kpi_calib_ros.ros.run_state import CAMPAIGN_FIXED, RunState
 from kpi_calib_ros.ros.sequential_jobs import SequentialCampaignJobs
 from kpi_calib_ros.ros.status import StreamHealth, node_status
 
 NODE_NAME = 'kpi_calib_node'
-# Parameters a running sequential campaign was started with: refused while it runs (its
-# status, plan and stop rule rest on them).
-CAMPAIGN_FIXED = ('campaign', 'target_tcp_std', 'max_measurements', 'design_seed')
 
 
 class CalibrationNode(SequentialCampaignJobs):
@@ -116,8 +107,8 @@ class CalibrationNode(SequentialCampaignJobs):
 
     def __init__(self, **kwargs) -> None:
         super().__init__(NODE_NAME, **kwargs)
-        self._declare_parameters()
-        self.settings = settings_from_parameters(self._parameter_values())
+        declare_parameters(self)
+        self.settings = settings_from_parameters(parameter_values(self))
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
         # The cell once, validated; the URDF comes from the parameter or the topic.
@@ -140,24 +131,9 @@ class CalibrationNode(SequentialCampaignJobs):
         self._design_points: np.ndarray | None = None
         self._capsules: list[Capsule] = []
         self._last_diagnostics: tuple[Any, float] = (None, 0.0)
-        # This campaign's results and sequential campaign, replaced whole by ~/reset. A
-        # sequential campaign data_dir/campaign_state.yaml keeps is resumed (_resume) once
-        # the robot model is known, before anything is identified.
+        # This campaign's results and sequential campaign, replaced whole by ~/reset.
         self._run = RunState()
-        state_path = self.data_dir / CAMPAIGN_STATE_FILE
-        if state_path.is_file():
-            try:
-                self._run.sequential_state = read_campaign_state(state_path)
-            except DataError as exc:
-                self._run.result_error = f'sequential campaign not resumed: {exc}'
-                self.get_logger().error(self._run.result_error)
-            else:
-                self._run.resume_pending = True
-                self.get_logger().info(
-                    f'sequential campaign found in {state_path} '
-                    f'({len(self._run.sequential_state.steps)} step(s), '
-                    f"{self._run.sequential_state.status.get('stop_reason', 'running')}): "
-                    'resuming it once the robot model is known')
+        self._find_campaign_state()
 
         # One executor thread: pairing callbacks run in arrival order; services await
         # their worker threads in a reentrant group so a second call gets 'busy'.
@@ -217,52 +193,22 @@ class CalibrationNode(SequentialCampaignJobs):
             self.get_logger().info(f'waiting for {self.settings.robot_description_topic}')
 
     # ------------------------------------------------------------------ parameters
-    def _declare_parameters(self) -> None:
-        """Declare every parameter; a start-up value of the wrong type (``-p
-        auto_identify:=maybe`` arrives as a string) is a ConfigError naming it."""
-        for name, (default, read_only, description) in PARAMETERS.items():
-            try:
-                self.declare_parameter(name, default, ParameterDescriptor(
-                    description=description, read_only=read_only))
-            except (InvalidParameterTypeException, InvalidParameterValueException) as exc:
-                given = getattr(self, '_parameter_overrides', {}).get(name)
-                raise type_error(name, exc if given is None else given.value) from None
-
-    def _parameter_values(self, changes: dict[str, Any] | None = None) -> dict[str, Any]:
-        values = {}
-        for name in PARAMETERS:
-            try:
-                values[name] = self.get_parameter(name).value
-            except ParameterUninitializedException:  # an array parameter left empty
-                values[name] = []
-        values.update(changes or {})
-        return values
-
     def _validate_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
         """On-set callback: judge the values as they would be after the change; no side
         effect (another callback may still reject the change)."""
         try:
-            settings_from_parameters(self._parameter_values(
-                {p.name: p.value for p in parameters}))
+            settings_from_parameters(parameter_values(
+                self, {p.name: p.value for p in parameters}))
         except ConfigError as exc:
             return SetParametersResult(successful=False, reason=str(exc))
-        fixed = [p.name for p in parameters if p.name in CAMPAIGN_FIXED
-                 and p.value != getattr(self.settings, p.name)]
-        if fixed and self._run.sequential_running():
-            state = self._run.sequential_state
-            now = ('' if state is None else
-                   f' (target_tcp_std {state.settings.target_std:g} m, max_measurements '
-                   f'{state.settings.max_measurements})')
-            return SetParametersResult(successful=False, reason=(
-                f"{', '.join(fixed)}: a sequential campaign is running{now}; it keeps the "
-                'values it started with, which ~/campaign_status and /diagnostics show. '
-                'Change them after it stops, or call ~/reset and ~/design to start a new '
-                'campaign'))
-        return SetParametersResult(successful=True)
+        refused = self._run.refused_change([p.name for p in parameters if p.name in
+                                            CAMPAIGN_FIXED and p.value != getattr(
+                                                self.settings, p.name)])
+        return SetParametersResult(successful=not refused, reason=refused)
 
     def _apply_parameters(self, parameters: list[Parameter]) -> None:
         """Post-set callback: the values are set (and were validated); use them."""
-        self.settings = settings_from_parameters(self._parameter_values())
+        self.settings = settings_from_parameters(parameter_values(self))
         self._run.auto_pending = self._auto_wanted()
 
     # ------------------------------------------------------------------ robot model
@@ -344,17 +290,10 @@ class CalibrationNode(SequentialCampaignJobs):
             self._create_task('resuming the sequential campaign', self._resume)
         if (self._run.sequential_due(len(self.campaign))
                 and self._claim_job('planning the next pose')):
-            executor = self.executor
-            if executor is None:  # timers fire only under an executor
-                raise RuntimeError('kpi_calib_node ticked without an executor')
-            executor.create_task(self._run_job, 'sequential campaign step',
-                                 self._sequential_step)
+            self._create_task('sequential campaign step', self._sequential_step)
         if self._run.auto_pending and self._claim_job('identifying (automatic)'):
             self._run.auto_pending = False
-            executor = self.executor
-            if executor is None:  # timers fire only under an executor
-                raise RuntimeError('kpi_calib_node ticked without an executor')
-            executor.create_task(self._run_job, 'automatic identification', self._identify)
+            self._create_task('automatic identification', self._identify)
         self._publish_diagnostics()
 
     def _model(self) -> CellModel:
@@ -376,12 +315,8 @@ class CalibrationNode(SequentialCampaignJobs):
         self._capsules = list(cm.robot_geometry().capsules) + [
             o for o in cm.cell.obstacles if isinstance(o, Capsule)]
         self._publish_markers()
-        tcp_um = np.sqrt((design.tcp_std ** 2).sum(axis=1)).max() * 1e6
-        return design.verification.ok and not not_estimable, (
-            f'{len(design.configurations)} poses ({design.criterion}), predicted TCP '
-            f'sqrt(trace) <= {tcp_um:.1f} µm; {design.status}; '
-            + (f'{not_estimable}; ' if not_estimable else '') + 'published on '
-            f'{self.resolve_topic_name(MEASUREMENT_POSES_TOPIC)}, written to {path}')
+        return design.verification.ok and not not_estimable, design_answer(
+            design, not_estimable, self.resolve_topic_name(MEASUREMENT_POSES_TOPIC), path)
 
     def _publish_calibration(self, cal: Any, measured: np.ndarray, marker_rows: np.ndarray,
                              identified_with: int, text: str, urdf: str, tcp: list,
@@ -466,20 +401,10 @@ class CalibrationNode(SequentialCampaignJobs):
         self._publish_calibration(cal, data.eta[kept], points[kept], len(data), calibration,
                                   urdf, tcp, data.stamps_ns)
         self._publish_diagnostics(force=True)
-        tcp_um = np.sqrt(np.trace(result.tcp_covariance, axis1=1, axis2=2)).max() * 1e6
-        # With the misfit of a model χ² rejects (core.precision.expected_tcp_error).
-        expected = ('' if cal.expected is None else
-                    f', expected TCP error <= '
-                    f'{np.max(cal.expected.expected_tcp_error_m) * 1e6:.1f} µm with the misfit')
-        precision = precision_statement(result.covariance_scale, result.joint_sigma)
         if result.covariance_scale != 1.0:
-            self.get_logger().warning(f'TCP and parameter std {precision}')
-        return True, (
-            f'identified from {len(data)} measurements: {result.message}; rms '
-            f'{result.rms_m * 1e6:.1f} µm, p = {result.p_value:.3g}, TCP sqrt(trace) <= '
-            f'{tcp_um:.1f} µm ({precision}){expected}; {len(cal.robust.excluded)} excluded; '
-            + (f'prior {prior}; ' if prior else '') + ''.join(f'{n}; ' for n in notes)
-            + f'written to {self.data_dir}')
+            self.get_logger().warning('TCP and parameter std ' + precision_statement(
+                result.covariance_scale, result.joint_sigma))
+        return True, identify_answer(len(data), cal, prior, notes, self.data_dir)
 
     async def _diagnose(self) -> tuple[bool, str]:
         """Model diagnosis of the accepted measurements (as ``kpi-calib diagnose``): residual
@@ -509,18 +434,7 @@ class CalibrationNode(SequentialCampaignJobs):
         doc, text = await self._offload(jobs.validate_work, cm, self._calibration_text, fresh,
                                         self.data_dir, self.settings.validate_register or None)
         self._pub_validation.publish(String(data=text))
-        return doc['holds'], (f"{doc['verdict']} on {doc['measurements']} new measurements: "
-                              f"rms {doc['rms_m'] * 1e6:.1f} µm"
-                              + (' after re-registering '
-                                 + '/'.join(doc['registration']['parameters'])
-                                 if doc.get('registration') else '')
-                              + f", chi2/dof {doc['chi2']:.1f}/"
-                              f"{doc['dof']}, p = {doc['p_value']:.3g}; "
-                              f"{doc['outside_training_range']} outside the training ranges"
-                              + (f"; {doc['repeated_from_training']} at training poses "
-                                 f"measured again, rms "
-                                 f"{doc['rms_repeated_from_training_m'] * 1e6:.1f} µm"
-                                 if doc['repeated_from_training'] else ''))
+        return doc['holds'], validate_answer(doc)
 
     async def _reset(self) -> tuple[bool, str]:
         """Start a new campaign: archive (never delete) the logs and results."""
@@ -535,11 +449,7 @@ class CalibrationNode(SequentialCampaignJobs):
         cm, result = self._cm, self._run.result
         if cm is None:
             return
-        measured, residuals = self._run.measured, None if result is None else result.residuals
-        rows = self._run.marker_rows
-        if (measured is not None and residuals is not None and rows is not None
-                and len(rows) == len(measured) == len(residuals)):
-            measured, residuals = measured[rows], residuals[rows]
+        measured, residuals = self._run.residual_arrows()
         # Stamp 0: RViz draws latched markers with the latest transforms.
         self._pub_markers.publish(cv.marker_array_msg(
             0, cm.cell.tracker_frame, cm.cell.base_frame, design_points=self._design_points,

@@ -17,6 +17,10 @@ from kpi_calib_ros.core.robust import RobustResult
 from kpi_calib_ros.core.sequential import MODEL_INADEQUATE, CampaignStatus, SequentialCampaign
 from kpi_calib_ros.io.campaign_io import CampaignState
 
+# Parameters a running sequential campaign was started with: refused while it runs (its
+# status, plan and stop rule rest on them).
+CAMPAIGN_FIXED = ('campaign', 'target_tcp_std', 'max_measurements', 'design_seed')
+
 
 @dataclass
 class RunState:
@@ -66,6 +70,31 @@ class RunState:
             return False
         return accepted >= self.sequential_initial and accepted > len(self.sequential_stamps)
 
+    def refused_change(self, fixed: list[str]) -> str:
+        """Why changing the parameters ``fixed`` (of :data:`CAMPAIGN_FIXED`, to new values)
+        is refused now ('' : it is not): a running sequential campaign keeps them."""
+        if not fixed or not self.sequential_running():
+            return ''
+        state = self.sequential_state
+        now = ('' if state is None else
+               f' (target_tcp_std {state.settings.target_std:g} m, max_measurements '
+               f'{state.settings.max_measurements})')
+        return (f"{', '.join(fixed)}: a sequential campaign is running{now}; it keeps the "
+                'values it started with, which ~/campaign_status and /diagnostics show. '
+                'Change them after it stops, or call ~/reset and ~/design to start a new '
+                'campaign')
+
+    def residual_arrows(self) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """The fitted points (m) and their residuals (m) to draw as arrows: the rows that
+        are points (``marker_rows``); (None, None) before an identification."""
+        result = self.result
+        measured, residuals = self.measured, None if result is None else result.residuals
+        rows = self.marker_rows
+        if (measured is not None and residuals is not None and rows is not None
+                and len(rows) == len(measured) == len(residuals)):
+            measured, residuals = measured[rows], residuals[rows]
+        return measured, residuals
+
     def campaign_inadequate(self) -> bool:
         """The sequential campaign stopped as model inadequate: a calibration of its
         measurements is never archived as the next cycle's prior."""
@@ -73,4 +102,4 @@ class RunState:
         return status is not None and status.stop_reason == MODEL_INADEQUATE
 
 
-__all__ = ['RunState']
+__all__ = ['CAMPAIGN_FIXED', 'RunState']

@@ -20,11 +20,12 @@ from std_msgs.msg import String
 
 from kpi_calib_ros.core.errors import DataError, KpiCalibError
 from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.io.campaign_io import CampaignState
+from kpi_calib_ros.io.campaign_io import CampaignState, read_campaign_state
 from kpi_calib_ros.io.cell import CellModel
-from kpi_calib_ros.io.names import MEASUREMENT_POSES_TOPIC
+from kpi_calib_ros.io.names import CAMPAIGN_STATE_FILE, MEASUREMENT_POSES_TOPIC
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros import jobs
+from kpi_calib_ros.ros.answers import campaign_progress
 from kpi_calib_ros.ros.campaign import Campaign, model_measurements
 from kpi_calib_ros.ros.job_node import JobNode
 from kpi_calib_ros.ros.parameters import NodeSettings
@@ -56,6 +57,24 @@ class SequentialCampaignJobs(JobNode):
                              identified_with: int, text: str, urdf: str, tcp: list,
                              stamps: np.ndarray | None) -> None:
         raise NotImplementedError
+
+    def _find_campaign_state(self) -> None:
+        """At start: a sequential campaign data_dir/campaign_state.yaml keeps is resumed
+        (_resume) once the robot model is known, before anything is identified."""
+        state_path = self.data_dir / CAMPAIGN_STATE_FILE
+        if state_path.is_file():
+            try:
+                self._run.sequential_state = read_campaign_state(state_path)
+            except DataError as exc:
+                self._run.result_error = f'sequential campaign not resumed: {exc}'
+                self.get_logger().error(self._run.result_error)
+            else:
+                self._run.resume_pending = True
+                self.get_logger().info(
+                    f'sequential campaign found in {state_path} '
+                    f'({len(self._run.sequential_state.steps)} step(s), '
+                    f"{self._run.sequential_state.status.get('stop_reason', 'running')}): "
+                    'resuming it once the robot model is known')
 
     async def _design_sequential(self, cm: CellModel) -> tuple[bool, str]:
         """Start a sequential campaign: publish its initial design on ~/measurement_poses.
@@ -112,11 +131,7 @@ class SequentialCampaignJobs(JobNode):
             if len(out.plan):
                 self._pub_poses.publish(cv.joint_trajectory_msg(cm.joint_names, out.plan))
             self._pub_campaign_status.publish(String(data=out.text))
-            message = (f'{out.status.measurements} measurements, largest TCP std '
-                       f'{out.status.statistic * 1e6:.2f} µm (target '
-                       f'{out.status.target_std * 1e6:.2f} µm), '
-                       + (f'stopped: {out.status.stop_reason}' if out.status.stopped
-                          else f'{len(out.plan)} poses planned'))
+            message = campaign_progress(out.status, len(out.plan))
         self._publish_diagnostics(force=True)
         return True, f'sequential campaign resumed from {self.data_dir}: {message}'
 
@@ -152,11 +167,7 @@ class SequentialCampaignJobs(JobNode):
         if status.stopped:
             self.get_logger().info(f'sequential campaign stopped after {status.measurements} '
                                    f'measurements: {status.stop_reason}')
-        return True, (f'{status.measurements} measurements, largest TCP std '
-                      f'{status.statistic * 1e6:.2f} µm (target '
-                      f'{status.target_std * 1e6:.2f} µm), '
-                      + (f'stopped: {status.stop_reason}' if status.stopped else
-                         f'{len(plan)} poses planned') + f', {status.step_seconds:.2f} s'
+        return True, (campaign_progress(status, len(plan)) + f', {status.step_seconds:.2f} s'
                       + (f', {len(status.excluded)} excluded' if status.excluded else ''))
 
     def _publish_campaign_calibration(self, cal: Any, text: str, urdf: str, tcp: list,
