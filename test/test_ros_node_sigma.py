@@ -1,6 +1,7 @@
-"""The tracker's stated σ of each point, live (in process, private context, real DDS): the
-node subscribes to '<point topic>/sigma', pairs each σ with its point whichever comes
-first, and identifies exactly as `kpi-calib identify` does on a bag of the same data."""
+"""The tracker's stated σ of each point, live: the node subscribes to '<point topic>/sigma',
+pairs each σ with its point whichever comes first, and identifies exactly as
+`kpi-calib identify` does on a bag of the same data (in process with a private context,
+and end to end with `kpi-calib replay` into the node as a process)."""
 from __future__ import annotations
 
 import threading
@@ -9,6 +10,7 @@ import time
 import numpy as np
 import pytest
 import rclpy
+import yaml
 from geometry_msgs.msg import PointStamped, Vector3Stamped
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
@@ -16,16 +18,18 @@ from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
+from kpi_calib_ros import cli
 from kpi_calib_ros.app.identify import measurements_from_bag
 from kpi_calib_ros.core.simulation import random_configurations, true_parameters
 from kpi_calib_ros.core.streams import synthesize_streams
 from kpi_calib_ros.io.bag_writing import BagStream
+from kpi_calib_ros.io.cell import DEFAULT_CELL
 from kpi_calib_ros.io.names import DEFAULT_POINT_TOPIC, point_sigma_topic
 from kpi_calib_ros.io.ros_messages import joint_state_msg, point_stamped_msg, vector3_stamped_msg
 from kpi_calib_ros.ros import jobs
 from kpi_calib_ros.ros.node import CalibrationNode
 
-from ros_helpers import KR15_URDF
+from ros_helpers import KR15_URDF, finish
 
 POSES = 40
 SIGMA_TOPIC = point_sigma_topic(DEFAULT_POINT_TOPIC)
@@ -44,9 +48,9 @@ def campaign(cm, seed: int = 8):
     return joints, points, sigma
 
 
-def offline_values(cm, joints, points, sigma, path):
-    """The parameters `kpi-calib identify` finds in a bag of these streams (with the σ
-    topic when ``sigma`` is given)."""
+def write_campaign_bag(joints, points, sigma, path):
+    """A recording of the streams, with each point's σ on the σ topic when ``sigma`` is
+    given (as ``kpi-calib import-csv`` writes it)."""
     with BagStream(path, sigma_topic=SIGMA_TOPIC if sigma is not None else None) as bag:
         stream = sorted([(j.stamp_ns, 0, j) for j in joints]
                         + [(p.stamp_ns, 1, k) for k, p in enumerate(points)],
@@ -58,12 +62,29 @@ def offline_values(cm, joints, points, sigma, path):
                 bag.write_point(points[item])
                 if sigma is not None:
                     bag.write_point_sigma(points[item], sigma[item])
-    data, pairing = measurements_from_bag(cm, path)
+    return path
+
+
+def offline_values(cm, joints, points, sigma, path):
+    """The parameters `kpi-calib identify` finds in a bag of these streams (with the σ
+    topic when ``sigma`` is given)."""
+    data, pairing = measurements_from_bag(cm, write_campaign_bag(joints, points, sigma, path))
     out = path.with_suffix('')
     out.mkdir()
     cal = jobs.identify_work(cm, data, pairing, out)[0]
     assert cal is not None and cal.valid, cal and cal.problems
     return cal.result.values
+
+
+def identify_cli(bag, out):
+    """The parameter values of `kpi-calib identify` on ``bag``."""
+    assert cli.main(['identify', '--cell', str(DEFAULT_CELL), '--bag', str(bag),
+                     '--out', str(out)]) == 0
+    return parameter_values(yaml.safe_load((out / 'calibration.yaml').read_text()))
+
+
+def parameter_values(doc):
+    return np.array([p['value'] for p in doc['parameters']])
 
 
 @pytest.mark.slow
@@ -141,3 +162,32 @@ def test_live_sigma_identifies_as_the_bag_with_sigma(tmp_path, ros_domain, cm):
     without = offline_values(cm, joints, points, None, tmp_path / 'plain.mcap')
     np.testing.assert_allclose(live, with_sigma, rtol=0, atol=1e-9)
     assert np.max(np.abs(without - with_sigma)) > 1e-6, np.max(np.abs(without - with_sigma))
+
+
+@pytest.mark.slow
+def test_kpi_calib_replay_carries_the_sigma_to_the_node_process(client, spawn, tmp_path, cm):
+    """End to end: `kpi-calib replay` of a bag with σ into the node as a process; the node
+    stores every σ and its ~/calibration equals `kpi-calib identify` of the bag to 1e-9,
+    not that of the bag without σ."""
+    joints, points, sigma = campaign(cm, seed=9)
+    bag = write_campaign_bag(joints, points, sigma, tmp_path / 'sigma.mcap')
+    with_sigma = identify_cli(bag, tmp_path / 'offline_sigma')
+    without = identify_cli(write_campaign_bag(joints, points, None, tmp_path / 'plain.mcap'),
+                           tmp_path / 'offline_plain')
+    node = spawn(tmp_path / 'data', 'node.log', 'auto_identify:=false')
+    try:
+        client.spin_until(lambda: client.diagnostics().get('state') == 'idle', 30,
+                          'the robot model')
+        output = finish(spawn.replay(bag, 1000.0), client, timeout=120)
+        assert f'with the stated sigma of {POSES} points on {SIGMA_TOPIC}' in output, output
+        client.spin_until(lambda: client.count('accepted') == POSES
+                          and client.count('stated_sigma') == POSES, 20, 'every point with σ')
+        assert client.count('received.sigma') == POSES and client.count('rejected') == 0
+        response = client.call('identify', timeout=120)
+        assert response.success, response.message
+        client.spin_until(lambda: client.received['calibration'], 10, '~/calibration')
+        live = parameter_values(client.received['calibration'][-1])
+    finally:
+        assert node.stop() == 0, node.output()
+    np.testing.assert_allclose(live, with_sigma, rtol=0, atol=1e-9)
+    assert np.max(np.abs(without - with_sigma)) > 1e-6

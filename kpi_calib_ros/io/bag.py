@@ -223,6 +223,19 @@ def read_bag(
         File missing or not MCAP, a topic absent (the topics present are listed),
         or a topic carrying another message type.
     """
+    joint_samples, point_samples, _ = read_bag_with_sigma(path, joint_topic, point_topic,
+                                                          pose_topic)
+    return joint_samples, point_samples
+
+
+def read_bag_with_sigma(
+    path: str | os.PathLike,
+    joint_topic: str = DEFAULT_JOINT_TOPIC,
+    point_topic: str = DEFAULT_POINT_TOPIC,
+    pose_topic: str = DEFAULT_POSE_TOPIC,
+) -> tuple[list[JointSample], list[PointSample], dict[tuple[int, str], np.ndarray]]:
+    """:func:`read_bag`, and the points' stated σ (3,) (m) by (stamp ns, frame id) from
+    ``point_sigma_topic(point_topic)`` ({} when the bag has none)."""
     path = _checked_path(path)
     opened = _open(path, joint_topic, point_topic, require_topics=True, pose_topic=pose_topic)
     assert opened is not None
@@ -230,7 +243,8 @@ def read_bag(
     bad: list[int] = []
     result = (_decode(path, bag, joints, *_indices(bag, joints)[:2], bad),
               _decode(path, bag, points, *_indices(bag, points)[:2], bad)
-              + _decode(path, bag, poses, *_indices(bag, poses)[:2], bad))
+              + _decode(path, bag, poses, *_indices(bag, poses)[:2], bad),
+              _point_sigma(path, bag, point_topic))
     _warn_undecodable(path, bad)
     return result
 
@@ -424,5 +438,5 @@ def read_log_with_sigma(path: str | os.PathLike, joint_topic: str = DEFAULT_JOIN
 __all__ = ['BagContents', 'BagError', 'BagWarning', 'LIBRARY', 'StreamEncoders',
            'DEFAULT_JOINT_TOPIC', 'DEFAULT_POINT_TOPIC', 'JOINT_STATE_TYPE', 'LOG_CONTENT',
            'LOG_METADATA', 'POINT_STAMPED_TYPE', 'is_measurement_log', 'message_definition',
-           'read_bag', 'read_for_pairing', 'read_log', 'read_log_with_sigma', 'type_hash',
-           'write_bag']
+           'read_bag', 'read_bag_with_sigma', 'read_for_pairing', 'read_log',
+           'read_log_with_sigma', 'type_hash', 'write_bag']
