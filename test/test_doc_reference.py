@@ -75,7 +75,7 @@ def test_node_page_lists_every_parameter_topic_and_service(pages):
 
 
 def test_effects_page_gives_every_library_effect_with_units_and_plausible_range(pages):
-    from kpi_calib_ros.core.effects import LIBRARY
+    from kpi_calib_ros.core.effect_library import LIBRARY
     text = pages.effects_page()
     for effect in LIBRARY:
         row = next(line for line in text.splitlines() if line.startswith(f'| `{effect.name}` |'))

@@ -19,7 +19,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
 from kpi_calib_ros import cli
-from kpi_calib_ros.app.identify import measurements_from_bag
+from kpi_calib_ros.app.measurements import measurements_from_bag
 from kpi_calib_ros.core.simulation import random_configurations, true_parameters
 from kpi_calib_ros.core.streams import synthesize_streams
 from kpi_calib_ros.io.bag_writing import BagStream

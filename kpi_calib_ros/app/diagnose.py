@@ -14,10 +14,11 @@ from kpi_calib_ros.app.identify import (
     calibrate_cell,
     cell_prior,
     identify_cell,
-    load_measurements,
     print_progress,
     with_effects,
 )
+from kpi_calib_ros.app.learned_residual import choose_residual
+from kpi_calib_ros.app.measurements import load_measurements
 from kpi_calib_ros.core.diagnosis import CellDiagnosis, compare_models, diagnose
 from kpi_calib_ros.core.effect_selection import effect_start
 from kpi_calib_ros.core.effects import implausible, parse_effect_spec
@@ -25,7 +26,7 @@ from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.model_selection import level_free
 from kpi_calib_ros.core.out_of_sample import out_of_sample_error
 from kpi_calib_ros.core.precision import expected_tcp_error
-from kpi_calib_ros.core.residuals import ADEQUACY_ALPHA
+from kpi_calib_ros.core.residuals import ADEQUACY_ALPHA, is_adequate
 from kpi_calib_ros.core.robust import subset
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.names import DIAGNOSIS_FILE
@@ -90,12 +91,20 @@ def run_diagnose(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
                  model: str | None = None, **options: Any) -> int:
     """``kpi-calib diagnose``: diagnosis.json, report.md and plots in ``out_dir``
     (checked first); ``model`` overrides the cell's ``identification.model``; ``options``
-    as for :func:`load_measurements`."""
+    as for :func:`load_measurements`. When the model is not adequate, the learned
+    residual's decision on the calibrated model is printed too
+    (:func:`kpi_calib_ros.app.learned_residual.choose_residual`)."""
     writable_folder(out_dir, '--out')
     cm, data, _ = load_measurements(cell_path, bag_path, effects, **options)
     cd = diagnose_cell(cm, data, folds=folds, alpha=alpha, model=model,
                        progress=print_progress)
     report = write_report(out_dir, cd)
     print(diagnosis_text(cd))
+    if not is_adequate(cd.result.p_value, alpha):
+        # Beside the library's answer (or when it has none): would the learned residual
+        # predict held-out poses better than the calibrated model?
+        choice = choose_residual(cm, cd.data, cd.result)
+        print(choice.reason + ('; kpi-calib identify --learned-residual writes it beside '
+                               'calibration.yaml' if choice.chosen else ''))
     print(f'written: {Path(out_dir) / DIAGNOSIS_FILE}, {report}')
     return 0

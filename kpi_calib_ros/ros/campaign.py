@@ -31,7 +31,7 @@ from typing import Sequence
 
 import numpy as np
 
-from kpi_calib_ros.app.identify import pose_rows, stated_sigma, urdf_measurements
+from kpi_calib_ros.app.measurements import pose_rows, stated_sigma, urdf_measurements
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.pairing import (

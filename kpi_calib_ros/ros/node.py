@@ -54,10 +54,10 @@ from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import MarkerArray
 
 from kpi_calib_ros.core.collision import Capsule
+from kpi_calib_ros.core.drift_state import DriftSwing
 from kpi_calib_ros.core.errors import ConfigError, DataError, KpiCalibError
 from kpi_calib_ros.core.pairing import Decision, Rejection
 from kpi_calib_ros.core.precision import precision_statement
-from kpi_calib_ros.core.prior import DriftSwing
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell, with_overrides
 from kpi_calib_ros.io.names import (
     CALIBRATED_URDF_TOPIC,
@@ -66,6 +66,7 @@ from kpi_calib_ros.io.names import (
     CHANGE_TEST_TOPIC,
     DIAGNOSIS_TOPIC,
     DIAGNOSTICS_TOPIC,
+    LEARNED_RESIDUAL_FILE,
     MARKERS_TOPIC,
     MEASUREMENT_POSES_TOPIC,
     TCP_TOPIC,
@@ -93,6 +94,7 @@ from kpi_calib_ros.ros.parameters import (
 from kpi_calib_ros.ros.run_state import CAMPAIGN_FIXED, RunState
 from kpi_calib_ros.ros.sequential_jobs import SequentialCampaignJobs
 from kpi_calib_ros.ros.status import StreamHealth, node_status
+from kpi_calib_ros.ros.tcp_query import TcpQuery
 
 NODE_NAME = 'kpi_calib_node'
 
@@ -178,6 +180,8 @@ class CalibrationNode(SequentialCampaignJobs):
                                   ('reset', 'resetting', self._reset)):
             self.create_service(Trigger, f'~/{name}', self._service(name, doing, work),
                                 callback_group=services)
+        self.tcp_query = TcpQuery(self, lambda: self._cm, lambda: self._run.result,
+                                  self.data_dir / LEARNED_RESIDUAL_FILE)
         self.create_timer(0.1, self._tick, callback_group=streams)
         if self.settings.robot_description:
             self._set_robot_description(self.settings.robot_description)

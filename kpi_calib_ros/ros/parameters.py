@@ -22,9 +22,10 @@ from rclpy.validate_topic_name import validate_topic_name
 
 from kpi_calib_ros.app.validate import REGISTER
 from kpi_calib_ros.core.design import DESIGN_CRITERIA
+from kpi_calib_ros.core.drift_state import DriftSwing
 from kpi_calib_ros.core.errors import ConfigError, DataError
-from kpi_calib_ros.core.prior import DriftSwing
-from kpi_calib_ros.io.cell import DEFAULT_CELL, WorkingPose, working_poses_from_arrays
+from kpi_calib_ros.io.cell import DEFAULT_CELL
+from kpi_calib_ros.io.cell_sections import WorkingPose, working_poses_from_arrays
 from kpi_calib_ros.io.names import (
     DEFAULT_JOINT_TOPIC,
     DEFAULT_POINT_TOPIC,
