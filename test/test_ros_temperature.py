@@ -22,9 +22,8 @@ from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.io.cell import DEFAULT_CELL
 from kpi_calib_ros.io.measurement_log import MeasurementLog
 from kpi_calib_ros.io.ros_messages import time_msg
-from kpi_calib_ros.ros.campaign import Campaign
+from kpi_calib_ros.ros.campaign import Campaign, with_temperature_readings
 from kpi_calib_ros.ros.node import CalibrationNode
-from kpi_calib_ros.ros.temperature import with_live_temperature
 
 from ros_helpers import KR15_URDF
 
@@ -80,7 +79,8 @@ def test_published_temperatures_are_logged_and_paired_to_the_points(tmp_path, ro
         offsets_s = np.array([3.0, 47.5, 119.0, 180.0])
         stamps = FIRST_NS + (offsets_s * S).astype(np.int64)
         data = Measurements(q=np.zeros((4, 6)), eta=np.zeros((4, 3)), stamps_ns=stamps)
-        paired = with_live_temperature(node, node._cm, node.campaign, data)
+        with pytest.warns(UserWarning, match='1 of 4 measurement rows refused'):
+            paired = with_temperature_readings(node.campaign, node._cm, data)
         assert len(paired) == 3
         np.testing.assert_allclose(paired.covariates['temperature.upper_arm'],
                                    22.0 + 0.05 * offsets_s[:3], atol=1e-12)

@@ -3,8 +3,8 @@ the measurements and paired to them by time when a job takes the campaign's data
 
 Readings go to the :class:`~kpi_calib_ros.ros.campaign.Campaign` (durably logged before
 they are kept); a job pairs them with the accepted measurements as a bag's are paired
-(:func:`kpi_calib_ros.app.measurements.paired_temperature`): interpolated at each point's
-stamp, a point outside the readings refused and logged.
+(:func:`kpi_calib_ros.ros.campaign.with_temperature_readings`): interpolated at each
+point's stamp, a point outside the readings refused with a warning.
 """
 from __future__ import annotations
 
@@ -14,9 +14,6 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile
 from sensor_msgs.msg import Temperature
 
-from kpi_calib_ros.app.measurements import paired_temperature, refused_text
-from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.ros_messages import temperature_sample_from_message
 from kpi_calib_ros.ros.campaign import Campaign
 
@@ -39,22 +36,3 @@ def subscribe_temperature(node: Node, campaign: Campaign, callback_group: Any = 
     return node.create_subscription(Temperature, topic, on_temperature,
                                      QoSProfile(depth=TEMPERATURE_DEPTH),
                                      callback_group=callback_group)
-
-
-def with_live_temperature(node: Node, cm: CellModel, campaign: Campaign,
-                          data: Measurements) -> Measurements:
-    """``data`` with the campaign's temperature readings paired to its rows (unchanged when
-    the cell reads no temperature); refused rows are logged as a warning.
-
-    Raises
-    ------
-    DataError
-        The cell reads a temperature but none has arrived (or a listed sensor never did).
-    """
-    if cm.cell.temperature is None or len(data) == 0:
-        return data
-    kept, refused = paired_temperature(cm, data, campaign.temperatures(),
-                                       f'topic {cm.cell.temperature.topic}')
-    if refused:
-        node.get_logger().warning(refused_text(cm, len(data), refused))
-    return kept
