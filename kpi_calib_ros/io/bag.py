@@ -25,6 +25,7 @@ from typing import Any, Callable
 import numpy as np
 from mcap_ros2.decoder import DecoderFactory
 
+from kpi_calib_ros.core.covariates import TemperatureSample
 from kpi_calib_ros.core.pairing import Pairer
 from kpi_calib_ros.core.streams import JointSample, PointSample
 from kpi_calib_ros.io.bag_writing import (
@@ -34,6 +35,7 @@ from kpi_calib_ros.io.bag_writing import (
     LIBRARY,
     POINT_STAMPED_TYPE,
     POSE_STAMPED_TYPE,
+    TEMPERATURE_TYPE,
     VECTOR3_STAMPED_TYPE,
     StreamEncoders,
     message_definition,
@@ -41,12 +43,17 @@ from kpi_calib_ros.io.bag_writing import (
     write_bag,
 )
 from kpi_calib_ros.io.mcap_scan import MAGIC, BagError, ScannedBag, scan
-from kpi_calib_ros.io.names import DEFAULT_POSE_TOPIC, point_sigma_topic
+from kpi_calib_ros.io.names import (
+    DEFAULT_POSE_TOPIC,
+    DEFAULT_TEMPERATURE_TOPIC,
+    point_sigma_topic,
+)
 from kpi_calib_ros.io.ros_messages import (
     JointStateDecoder,
     point_sample_from_message,
     point_sigma_from_message,
     pose_sample_from_message,
+    temperature_sample_from_message,
 )
 
 # The metadata record by which a measurement log marks itself (see read_for_pairing).
@@ -435,8 +442,45 @@ def read_log_with_sigma(path: str | os.PathLike, joint_topic: str = DEFAULT_JOIN
     return pairs, _point_sigma(path, bag, point_topic)
 
 
+def read_temperatures(path: str | os.PathLike,
+                      topic: str = DEFAULT_TEMPERATURE_TOPIC) -> list[TemperatureSample]:
+    """Every ``sensor_msgs/Temperature`` on ``topic`` (°C, each with its sensor's frame id),
+    in stamp order; [] when the bag has no such topic (a recording without temperature).
+
+    Raises
+    ------
+    BagError
+        File missing or not MCAP, or ``topic`` carrying another message type.
+    """
+    path = _checked_path(path)
+    with open(path, 'rb') as f:
+        size = os.fstat(f.fileno()).st_size
+        data = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) if size else b''
+    if data[:len(MAGIC)] != MAGIC:
+        raise BagError(f'{path} is not an MCAP file (no MCAP magic)')
+    bag = scan(path, data)
+    ids = sorted(c.id for c in bag.channels.values() if c.topic == topic)
+    if not ids:
+        return []
+    channel = bag.channels[ids[0]]
+    schema = bag.schemas.get(channel.schema_id)
+    if schema is None or schema.name != TEMPERATURE_TYPE:
+        raise BagError(f"{path}: topic '{topic}' carries "
+                       f"'{schema.name if schema else 'no schema'}', expected "
+                       f"'{TEMPERATURE_TYPE}'; set temperature.topic in the cell file to the "
+                       'topic of the temperature sensors')
+    decoder = DecoderFactory().decoder_for(channel.message_encoding, schema)
+    if decoder is None:
+        raise BagError(f"{path}: topic '{topic}' is not 'cdr' with a 'ros2msg' schema")
+    topic_ids = _Topic(ids, lambda raw: temperature_sample_from_message(decoder(raw)))
+    bad: list[int] = []
+    samples = _decode(path, bag, topic_ids, *_indices(bag, topic_ids)[:2], bad)
+    _warn_undecodable(path, bad)
+    return sorted(samples, key=lambda s: s.stamp_ns)
+
+
 __all__ = ['BagContents', 'BagError', 'BagWarning', 'LIBRARY', 'StreamEncoders',
            'DEFAULT_JOINT_TOPIC', 'DEFAULT_POINT_TOPIC', 'JOINT_STATE_TYPE', 'LOG_CONTENT',
            'LOG_METADATA', 'POINT_STAMPED_TYPE', 'is_measurement_log', 'message_definition',
            'read_bag', 'read_bag_with_sigma', 'read_for_pairing', 'read_log',
-           'read_log_with_sigma', 'type_hash', 'write_bag']
+           'read_log_with_sigma', 'read_temperatures', 'type_hash', 'write_bag']

@@ -29,6 +29,7 @@ from mcap.data_stream import RecordBuilder
 from mcap.records import Channel, Chunk, DataEnd, Footer, Header, Message, Metadata, Schema
 from mcap.well_known import MessageEncoding, SchemaEncoding
 
+from kpi_calib_ros.core.covariates import TemperatureSample
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.pairing import PairingResult, split_frame, stacked_rotations
 from kpi_calib_ros.core.streams import JointSample, PointSample
@@ -41,6 +42,7 @@ from kpi_calib_ros.io.bag import (
     BagError,
     StreamEncoders,
     read_log_with_sigma,
+    read_temperatures,
 )
 from kpi_calib_ros.io.mcap_scan import MAGIC
 from kpi_calib_ros.io.names import DEFAULT_POSE_TOPIC, point_sigma_topic
@@ -70,15 +72,21 @@ class MeasurementLog:
         Topics the paired joint state and point (a tracked 6-DoF pose: PoseStamped on
         ``pose_topic``) are stored under; a point's stated σ goes on
         ``point_sigma_topic(point_topic)`` (Vector3Stamped, as in bags).
+    temperature_topic : str, optional
+        With it, the temperature readings (:meth:`append_temperature`) are stored too, as
+        ``sensor_msgs/Temperature`` on that topic, and paired to the points by time when
+        the log is read (:func:`kpi_calib_ros.io.bag.read_temperatures`).
     """
 
     def __init__(self, directory: str | os.PathLike, joint_topic: str = DEFAULT_JOINT_TOPIC,
                  point_topic: str = DEFAULT_POINT_TOPIC,
-                 pose_topic: str = DEFAULT_POSE_TOPIC) -> None:
+                 pose_topic: str = DEFAULT_POSE_TOPIC,
+                 temperature_topic: str | None = None) -> None:
         self.directory = Path(directory)
         self.directory.mkdir(parents=True, exist_ok=True)
-        self._encoders = StreamEncoders(joint_topic, point_topic, pose_topic,
+        self._encoders = StreamEncoders(joint_topic, point_topic, pose_topic, temperature_topic,
                                         sigma_topic=point_sigma_topic(point_topic))
+        self.temperature_topic = temperature_topic
         files = _log_files(self.directory)
         last = _LOG_NAME.fullmatch(files[-1].name) if files else None  # files all match
         n = int(last.group(1)) + 1 if last else 1
@@ -201,6 +209,40 @@ class MeasurementLog:
               uncompressed_crc=zlib.crc32(body), uncompressed_size=len(body)).write(record)
         self._commit(record.end())
         self._sequence += len(messages)
+
+    def append_temperature(self, sample: TemperatureSample) -> None:
+        """Store one temperature reading durably before returning (its own chunk).
+
+        Raises
+        ------
+        ValueError
+            The log was opened without a temperature topic, or is closed.
+        OSError
+            Not stored; nothing of it is left in the file.
+        """
+        if self.closed or self.temperature_topic is None:
+            raise ValueError(f'MeasurementLog {self.path} is closed or stores no temperature')
+        stamp = int(sample.stamp_ns)
+        inner = RecordBuilder()
+        channel = [t for t, _ in self._encoders.topics].index(self.temperature_topic)
+        Message(channel_id=channel, sequence=self._sequence + 1, log_time=stamp, publish_time=stamp,
+                data=self._encoders.temperature(stamp, sample.frame_id, sample.celsius)
+                ).write(inner)
+        body = inner.end()
+        record = RecordBuilder()
+        Chunk(compression='', data=body, message_start_time=stamp, message_end_time=stamp,
+              uncompressed_crc=zlib.crc32(body), uncompressed_size=len(body)).write(record)
+        self._commit(record.end())
+        self._sequence += 1
+
+    @staticmethod
+    def load_temperatures(directory: str | os.PathLike,
+                          topic: str) -> list[TemperatureSample]:
+        """Every temperature reading on ``topic`` in ``directory``'s logs, in stamp order."""
+        samples: list[TemperatureSample] = []
+        for path in _log_files(Path(directory)):
+            samples += read_temperatures(path, topic)
+        return sorted(samples, key=lambda s: s.stamp_ns)
 
     def close(self) -> None:
         """Finalise the bag (data end and footer; the records are read linearly, so no

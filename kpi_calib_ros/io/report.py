@@ -274,7 +274,7 @@ def write_plots(out_dir: str | Path, cd: CellDiagnosis) -> list[Path]:
     # the point moves when that joint turns, divided by the lever. A compliance is a
     # line against torque, backlash a step at zero torque, a cyclic error a sine.
     lever = cd.model.joint_jacobian(cd.result.values, q, None, cd.data.reflector,
-                                    cd.data.rotation)
+                                    cd.data.rotation, cd.data.covariates)
     lever2 = np.sum(lever ** 2, axis=1)
     implied = np.einsum('nij,ni->nj', lever, res) / np.maximum(lever2, 1e-12)
     seen = lever2 > 0.05 * lever2.max(axis=0)

@@ -26,6 +26,7 @@ from geometry_msgs.msg import (
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Header
 
+from kpi_calib_ros.core.covariates import TemperatureSample
 from kpi_calib_ros.core.streams import JointSample, PointSample
 
 _NS = 1_000_000_000
@@ -101,6 +102,12 @@ def pose_sample_from_message(message: Any) -> PointSample:
 
 
 # ------------------------------------------------------------------ sample -> message
+def temperature_sample_from_message(message: Any) -> TemperatureSample:
+    """A ``sensor_msgs/Temperature`` (°C) as a sample: header stamp, frame id (the sensor)."""
+    return TemperatureSample(stamp_ns(message.header), str(message.header.frame_id),
+                             float(message.temperature))
+
+
 def joint_state_fields(sample: JointSample) -> dict[str, Any]:
     """A JointSample as the nested fields of a JointState (empty velocity when none)."""
     sec, nanosec = stamp_fields(sample.stamp_ns)

@@ -25,13 +25,21 @@ import dataclasses
 import shutil
 import threading
 import time
+import warnings
 from collections import Counter, deque
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
-from kpi_calib_ros.app.measurements import pose_rows, stated_sigma, urdf_measurements
+from kpi_calib_ros.app.measurements import (
+    paired_temperature,
+    pose_rows,
+    refused_text,
+    stated_sigma,
+    urdf_measurements,
+)
+from kpi_calib_ros.core.covariates import TemperatureSample
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.pairing import (
@@ -79,10 +87,14 @@ class Campaign:
         paired once it is.
     sigma_topic : str
         Where the stated σ comes from (named in the messages of its rejections).
+    temperature_topic : str, optional
+        The cell's temperature topic: readings (:meth:`receive_temperature`) are logged
+        under it and kept, those of earlier runs reloaded; None: none kept.
     """
 
     def __init__(self, data_dir: str | Path, early_limit: int = 20_000,
-                 sigma_topic: str = point_sigma_topic(DEFAULT_POINT_TOPIC)) -> None:
+                 sigma_topic: str = point_sigma_topic(DEFAULT_POINT_TOPIC),
+                 temperature_topic: str | None = None) -> None:
         self.data_dir = Path(data_dir)
         self.sigma_topic = sigma_topic
         self.lock = threading.RLock()
@@ -100,7 +112,11 @@ class Campaign:
             self._sigma = {k: v for k, v in ((_sigma_key(*key), s) for key, s in sigma.items())
                            if k in self._stored_frames}
         self.restored = len(self._measurements)
-        self.log = MeasurementLog(self.data_dir)
+        self.temperature_topic = temperature_topic
+        self._temperatures: list[TemperatureSample] = (
+            MeasurementLog.load_temperatures(self.data_dir, temperature_topic)
+            if temperature_topic and self.data_dir.is_dir() else [])
+        self.log = MeasurementLog(self.data_dir, temperature_topic=temperature_topic)
         self.pairer: Pairer | None = None
         self.rejections: Counter[str] = Counter()
         self.received = {'joint_states': 0, 'points': 0, 'sigma': 0}
@@ -331,12 +347,24 @@ class Campaign:
             self._stored_frames.clear()
             self.rejections.clear()
             self.restored = 0
-            self.log = MeasurementLog(self.data_dir)
+            self._temperatures.clear()
+            self.log = MeasurementLog(self.data_dir, temperature_topic=self.temperature_topic)
             if self.pairer is not None:
                 self.pairer.reset()
             self._clock = self._point_clock = None
             self._epoch = 0
             return count, archive
+
+    def receive_temperature(self, sample: TemperatureSample) -> None:
+        """Keep one temperature reading, logged durably first (OSError: not kept)."""
+        with self.lock:
+            self.log.append_temperature(sample)
+            self._temperatures.append(sample)
+
+    def temperatures(self) -> list[TemperatureSample]:
+        """The temperature readings kept (this run's and the reloaded ones), a copy."""
+        with self.lock:
+            return list(self._temperatures)
 
     def close(self) -> None:
         """Finalise the current log (idempotent)."""
@@ -353,7 +381,28 @@ def model_measurements(campaign: Campaign, cm: CellModel
                                           cm.cell.reflector_names or ('',))
     data = urdf_measurements(cm, pose_rows(cm, data, pairing))
     stamps = np.asarray(data.stamps_ns, dtype=np.int64).ravel()
-    return dataclasses.replace(data, stamps_ns=stamps), pairing
+    return with_temperature_readings(campaign, cm,
+                                     dataclasses.replace(data, stamps_ns=stamps)), pairing
+
+
+def with_temperature_readings(campaign: Campaign, cm: CellModel,
+                              data: Measurements) -> Measurements:
+    """``data`` with the campaign's temperature readings paired to its rows by stamp, as
+    a bag's are (:func:`kpi_calib_ros.app.measurements.paired_temperature`); unchanged when
+    the cell reads no temperature. A row outside the readings is refused with a warning.
+
+    Raises
+    ------
+    DataError
+        The cell reads a temperature but none has arrived (or a listed sensor never did).
+    """
+    if cm.cell.temperature is None or len(data) == 0:
+        return data
+    kept, refused = paired_temperature(cm, data, campaign.temperatures(),
+                                       f'topic {cm.cell.temperature.topic}')
+    if refused:
+        warnings.warn(refused_text(cm, len(data), refused), stacklevel=2)
+    return kept
 
 
 def _sigma_key(stamp_ns: int, frame_id: str) -> tuple[int, str, str]:

@@ -95,6 +95,7 @@ from kpi_calib_ros.ros.run_state import CAMPAIGN_FIXED, RunState
 from kpi_calib_ros.ros.sequential_jobs import SequentialCampaignJobs
 from kpi_calib_ros.ros.status import StreamHealth, node_status
 from kpi_calib_ros.ros.tcp_query import TcpQuery
+from kpi_calib_ros.ros.temperature import subscribe_temperature
 
 NODE_NAME = 'kpi_calib_node'
 
@@ -113,8 +114,10 @@ class CalibrationNode(SequentialCampaignJobs):
                                allow_code_effects=self.settings.allow_code_effects)
         self.data_dir = Path(self.settings.data_dir)
         try:
-            self.campaign = Campaign(self.data_dir,
-                                     sigma_topic=point_sigma_topic(self.settings.point_topic))
+            self.campaign = Campaign(
+                self.data_dir, sigma_topic=point_sigma_topic(self.settings.point_topic),
+                temperature_topic=(self._cell.temperature.topic if self._cell.temperature
+                                   else None))
         except OSError as exc:  # missing parent, read-only, a file in the way, no space
             raise ConfigError('data_dir', f'cannot log measurements in {str(self.data_dir)!r}: '
                               f'{exc.strerror or exc}; give a writable folder') from None
@@ -173,6 +176,7 @@ class CalibrationNode(SequentialCampaignJobs):
                                  self._on_point_sigma,  # type: ignore[arg-type]
                                  stream_qos(int(POINTS_MAX_HZ * STREAM_BUFFER_S)),
                                  callback_group=streams)
+        subscribe_temperature(self, self.campaign, callback_group=streams)
         for name, doing, work in (('design', 'designing', self._design),
                                   ('identify', 'identifying', self._identify),
                                   ('diagnose', 'diagnosing', self._diagnose),
