@@ -5,8 +5,9 @@
 """
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
@@ -22,9 +23,11 @@ from kpi_calib_ros.core.diagnosis import CellDiagnosis, compare_models, diagnose
 from kpi_calib_ros.core.effect_selection import effect_start
 from kpi_calib_ros.core.effects import implausible, parse_effect_spec
 from kpi_calib_ros.core.measurement import Measurements
+from kpi_calib_ros.core.misfit import answer_misfit
 from kpi_calib_ros.core.model_selection import level_free
 from kpi_calib_ros.core.out_of_sample import out_of_sample_error
 from kpi_calib_ros.core.precision import expected_tcp_error
+from kpi_calib_ros.core.residual_analysis import analyse_calibration
 from kpi_calib_ros.core.residuals import ADEQUACY_ALPHA
 from kpi_calib_ros.core.robust import subset
 from kpi_calib_ros.io.cell import CellModel
@@ -36,14 +39,18 @@ from kpi_calib_ros.io.results import writable_folder
 def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
                   alpha: float = ADEQUACY_ALPHA, add_best: bool = True,
                   model: str | None = None,
-                  progress: Callable[[str], None] | None = None) -> CellDiagnosis:
+                  progress: Callable[[str], None] | None = None,
+                  covariates: Mapping[str, tuple[np.ndarray, str]] | None = None
+                  ) -> CellDiagnosis:
     """Calibrate ``cm`` on ``data``, diagnose it and, when an effect is significant,
     add the top one and compare before/after (full nonlinear refit). ``model`` (or the
     cell's ``identification.model``) sets the model level the effects are screened
     against; the default geometric is the full model. Both calibrations carry their
     predicted out-of-sample error (:mod:`kpi_calib_ros.core.out_of_sample`). The points
     diagnosed are those :func:`~kpi_calib_ros.app.identify.calibrate_cell` keeps
-    (``kept``, ``excluded`` of the result); ``progress`` gets its exclusion rounds."""
+    (``kept``, ``excluded`` of the result); ``progress`` gets its exclusion rounds.
+    The residuals are also analysed model-free (:func:`with_misfit_answer`), with the
+    extra ``covariates`` (name -> ((M,) values of the given measurements, unit))."""
     # The points identify keeps, with its model level (outliers that are faults excluded,
     # core.outliers): the diagnosis describes the calibration the user gets.
     cal = calibrate_cell(cm, data, model, progress=progress)
@@ -61,8 +68,9 @@ def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
                               prior)
     expected = expected_tcp_error(cm.model, data, result)  # result: honest precision
     if not add_best or diag.best is None:
-        return CellDiagnosis(cm.model, data, result, diag, out_of_sample=oos, kept=kept,
-                             excluded=excluded, expected=expected)
+        return with_misfit_answer(CellDiagnosis(
+            cm.model, data, result, diag, out_of_sample=oos, kept=kept, excluded=excluded,
+            expected=expected), covariates)
     best = parse_effect_spec(diag.best.spec, cm.robot)
     richer = with_effects(cm, (best,))
     richer_free = None if free is None else level_free(richer.model.params, level,
@@ -81,8 +89,24 @@ def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
     comparison = compare_models((cm.model, result), (richer.model, after), data, folds=folds)
     after_oos = out_of_sample_error(richer.model, data, after,
                                     richer_free or list(richer.model.params.names), prior)
-    return CellDiagnosis(cm.model, data, result, diag, best, richer.model, after, comparison,
-                         oos, after_oos, kept, excluded, expected)
+    return with_misfit_answer(CellDiagnosis(
+        cm.model, data, result, diag, best, richer.model, after, comparison, oos, after_oos,
+        kept, excluded, expected), covariates)
+
+
+def with_misfit_answer(cd: CellDiagnosis,
+                       covariates: Mapping[str, tuple[np.ndarray, str]] | None = None
+                       ) -> CellDiagnosis:
+    """``cd`` with the residual analysis of its calibration (each joint, gravity torque,
+    tracker distance, time, reflector and ``covariates``, :mod:`~kpi_calib_ros.core.
+    residual_analysis`) and the four answers (:func:`~kpi_calib_ros.core.misfit.
+    answer_misfit`). Covariates are given per given measurement, the kept ones analysed."""
+    keep = np.ones(len(cd.data), bool) if cd.kept is None else cd.kept
+    kept_covariates = {name: (np.asarray(values)[keep], unit)
+                       for name, (values, unit) in (covariates or {}).items()}
+    analysis = analyse_calibration(cd.model, cd.data, cd.result, kept_covariates)
+    return dataclasses.replace(cd, residual_analysis=analysis, answer=answer_misfit(
+        cd.diagnosis, analysis, cd.comparison))
 
 
 def run_diagnose(cell_path: str | Path, bag_path: str | Path, out_dir: str | Path,

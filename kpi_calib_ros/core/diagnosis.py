@@ -22,6 +22,7 @@ Jacobian are exact (CasADi, from the augmented measurement model).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import casadi as ca
 import numpy as np
@@ -47,6 +48,10 @@ from kpi_calib_ros.core.residuals import (
     linearized_fit,
     residual_report,
 )
+
+if TYPE_CHECKING:  # annotations only: both modules build on this one
+    from kpi_calib_ros.core.misfit import MisfitAnswer
+    from kpi_calib_ros.core.residual_analysis import ResidualAnalysis
 
 __all__ = ['Candidate', 'CellDiagnosis', 'Diagnosis', 'ModelComparison', 'ResidualReport',
            'augmented_model', 'compare_models', 'cross_validated_rms', 'diagnose',
@@ -171,6 +176,10 @@ class CellDiagnosis:
         return [int(i) for i in (idx if self.kept is None else np.flatnonzero(self.kept)[idx])]
     # Expected TCP error at the working poses with the misfit (core.precision).
     expected: ExpectedTcpError | None = None
+    # Where the model fails, model-free (core.residual_analysis), and the four answers
+    # (core.misfit: where, what is missing, the command, held-out error before/after).
+    residual_analysis: ResidualAnalysis | None = None
+    answer: MisfitAnswer | None = None
 
 
 def screen_effects(model: MeasurementModel, data: Measurements, result: CalibrationResult,
