@@ -42,7 +42,10 @@ Choices, and why:
   also holds Fourier bases (harmonics 1..H of the turn), the natural smoother of a gear's
   errors at 3 or 40 cycles per turn, which a spline of a few dozen pieces cannot follow.
 * **Family of inputs.** Holm's step-down over the inputs: on data the model explains, the
-  probability that any input is flagged stays below ``alpha``.
+  probability that any input is flagged stays below ``alpha``. An input is flagged when
+  its test rejects *and* its cross-validated share is positive: a fit the F test finds but
+  that predicts held-out poses worse (a few rows at the end of a short lever) does not
+  say where the model fails.
 * **Cross-validated share.** Folds over poses (rows measured at one pose stay together,
   :func:`~kpi_calib_ros.core.residuals.identifiable_folds`); the held-out residuals of the
   refit are exact for a linear model (the PRESS identity). ``share`` is
@@ -160,7 +163,7 @@ class InputScore:
         F test of the spline columns (at the size with the smallest p), ``p_value_raw``
         Bonferroni over the sizes tried, ``p_value`` Holm-adjusted over the inputs.
     significant : bool
-        ``p_value`` < alpha.
+        ``p_value`` < alpha and ``share`` > 0 (NaN share: the test alone).
     x : (N,) ndarray
         The input's values.
     implied : (N, d) ndarray
@@ -388,25 +391,32 @@ def _candidate_bases(inp: ResidualInput, support: np.ndarray, cap: int, sizes: S
     return out
 
 
+_SHOWN = {'rad': (1e6, 'µrad'), 'm': (1e6, 'µm'), '': (1e6, 'ppm')}
+
+
 def _region(inp: ResidualInput, grid: np.ndarray, curve: np.ndarray) -> str:
-    """The input's range where the fitted function is at least half its largest size."""
+    """Where the fitted function is at least half its largest size: the widest (up to
+    three) ranges of the input, in degrees for a joint angle."""
     if not np.isfinite(curve).any():
         return ''
     k = int(np.nanargmax(np.nanmax(np.abs(curve), axis=0)))
     c = np.abs(curve[:, k])
     peak = float(np.nanmax(c))
-    high = c >= 0.5 * peak
+    high = np.append(c >= 0.5 * peak, False)
     runs, start = [], None
-    for i, h in enumerate(np.append(high, False)):
+    for i, h in enumerate(high):
         if h and start is None:
             start = i
         elif not h and start is not None:
             runs.append((grid[start], grid[i - 1]))
             start = None
-    where = ', '.join(f'{a:.4g} to {b:.4g}' if a != b else f'{a:.4g}' for a, b in runs[:3])
-    field_name = inp.field_names[k]
-    return (f'{field_name} up to {peak:.3g} {inp.field_units[k]} where {inp.name} is '
-            f'{where} {inp.unit}').replace('  ', ' ').strip()
+    runs = sorted(sorted(runs, key=lambda ab: ab[0] - ab[1])[:3])
+    scale, unit = (np.degrees(1.0), 'deg') if inp.periodic else (1.0, inp.unit)
+    where = ', '.join(f'{a * scale:.4g} to {b * scale:.4g}' if a != b else f'{a * scale:.4g}'
+                      for a, b in runs)
+    factor, shown = _SHOWN.get(inp.field_units[k], (1.0, inp.field_units[k]))
+    return (f'{inp.field_names[k]} up to {peak * factor:.3g} {shown} where {inp.name} is '
+            f'{where} {unit}').strip()
 
 
 def analyse_residuals(fit: LinearizedFit, residuals: np.ndarray,
@@ -501,8 +511,10 @@ def analyse_residuals(fit: LinearizedFit, residuals: np.ndarray,
         size = best['size'] if best else ('spline', 0)
         grid, curve = _curve(inp, implied, weight, size, support) if best else \
             (np.unique(support)[:1], np.full((1, inp.fields.shape[2]), np.nan))
-        significant = bool(best and p_adj < alpha)
         share = 1.0 - best['cv'] / base_sse if best else float('nan')
+        # Flagged: the test rejects and the smooth predicts held-out poses better than the
+        # geometry alone (a fit that only chases a few rows is not where the model fails).
+        significant = bool(best and p_adj < alpha and not share <= 0)
         scores.append(InputScore(
             name=inp.name, kind=inp.kind, unit=inp.unit, field_names=inp.field_names,
             field_units=inp.field_units, categorical=inp.categorical,
