@@ -19,11 +19,17 @@ from kpi_calib_ros.app.identify import (
     print_progress,
     with_effects,
 )
-from kpi_calib_ros.core.diagnosis import CellDiagnosis, compare_models, diagnose
+from kpi_calib_ros.core.diagnosis import (
+    CellDiagnosis,
+    Diagnosis,
+    ModelComparison,
+    compare_models,
+    diagnose,
+)
 from kpi_calib_ros.core.effect_selection import effect_start
 from kpi_calib_ros.core.effects import implausible, parse_effect_spec
 from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.misfit import answer_misfit
+from kpi_calib_ros.core.misfit import NAMED, Remedy, answer_misfit
 from kpi_calib_ros.core.model_selection import level_free
 from kpi_calib_ros.core.out_of_sample import out_of_sample_error
 from kpi_calib_ros.core.precision import expected_tcp_error
@@ -105,8 +111,27 @@ def with_misfit_answer(cd: CellDiagnosis,
     kept_covariates = {name: (np.asarray(values)[keep], unit)
                        for name, (values, unit) in (covariates or {}).items()}
     analysis = analyse_calibration(cd.model, cd.data, cd.result, kept_covariates)
+    diag = cd.diagnosis
     return dataclasses.replace(cd, residual_analysis=analysis, answer=answer_misfit(
-        cd.diagnosis, analysis, cd.comparison))
+        analysis, named_remedy(diag, cd.comparison), chi2_adequate=diag.residuals.adequate,
+        model_adequate=diag.model_adequate))
+
+
+def named_remedy(diag: Diagnosis, comparison: ModelComparison | None = None
+                 ) -> Remedy | None:
+    """The screen's significant named effect as a remedy: its option and the held-out
+    error before/after (of the full refit when ``comparison`` has it, else of the screen's
+    fit); None when no effect is significant."""
+    best = diag.best
+    if best is None:
+        return None
+    if comparison is not None:
+        return Remedy(NAMED, f'{best.spec}: {best.explanation}', f'--effects {best.spec}',
+                      comparison.validation_rms_before_m, comparison.validation_rms_after_m,
+                      'refit with the effect, the diagnosis\'s cross-validation')
+    return Remedy(NAMED, f'{best.spec}: {best.explanation}', f'--effects {best.spec}',
+                  diag.validation_rms_m, best.validation_rms_after_m,
+                  'screening fit, the diagnosis\'s cross-validation')
 
 
 def run_diagnose(cell_path: str | Path, bag_path: str | Path, out_dir: str | Path,

@@ -22,7 +22,6 @@ Jacobian are exact (CasADi, from the augmented measurement model).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import casadi as ca
 import numpy as np
@@ -31,6 +30,7 @@ import scipy.stats
 from kpi_calib_ros.core.effects import BoundEffect, candidate_effects, implausible
 from kpi_calib_ros.core.estimation import CalibrationResult, point_sigma_squares
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements, unweighted, weighted_rows
+from kpi_calib_ros.core.misfit import MisfitAnswer
 from kpi_calib_ros.core.out_of_sample import OutOfSample
 from kpi_calib_ros.core.precision import (
     JOINT_NOISE_CAUSE,
@@ -38,6 +38,7 @@ from kpi_calib_ros.core.precision import (
     chi2_scale,
     precision_statement,
 )
+from kpi_calib_ros.core.residual_analysis import ResidualAnalysis
 from kpi_calib_ros.core.residuals import (
     ADEQUACY_ALPHA,
     LinearizedFit,
@@ -48,10 +49,6 @@ from kpi_calib_ros.core.residuals import (
     linearized_fit,
     residual_report,
 )
-
-if TYPE_CHECKING:  # annotations only: both modules build on this one
-    from kpi_calib_ros.core.misfit import MisfitAnswer
-    from kpi_calib_ros.core.residual_analysis import ResidualAnalysis
 
 __all__ = ['Candidate', 'CellDiagnosis', 'Diagnosis', 'ModelComparison', 'ResidualReport',
            'augmented_model', 'compare_models', 'cross_validated_rms', 'diagnose',

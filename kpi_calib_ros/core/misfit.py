@@ -1,13 +1,15 @@
 """The four answers of a diagnosis: where the model fails, what is missing, the command
 that adds it, and the error before and after on held-out poses.
 
-:func:`answer_misfit` combines what the diagnosis found:
+:func:`answer_misfit` combines what the diagnosis found (it takes plain remedies, so the
+diagnosis's result type can hold the answer):
 
 * *where*: the inputs the residual analysis flags
   (:mod:`kpi_calib_ros.core.residual_analysis`), with their shares and the ranges where
   the misfit is largest -- model-free, so it answers even when no effect does;
 * *what*: of the remedies at hand -- the most likely named effect of the library when one
-  is significant (:func:`kpi_calib_ros.core.diagnosis.diagnose`) and the ``general`` ones
+  is significant (:func:`kpi_calib_ros.core.diagnosis.diagnose`; ``named``, built by
+  :func:`kpi_calib_ros.app.diagnose.named_remedy`) and the ``general`` ones
   offered (any :class:`Remedy`: a general effect, a learned correction, each with its own
   command and held-out figures) -- the one with the smallest held-out error; but when a
   smooth function of the flagged inputs removes more than twice the held-out mean square
@@ -23,7 +25,6 @@ from typing import Sequence
 
 import numpy as np
 
-from kpi_calib_ros.core.diagnosis import Diagnosis, ModelComparison
 from kpi_calib_ros.core.residual_analysis import ResidualAnalysis
 
 __all__ = ['MisfitAnswer', 'Remedy', 'answer_misfit']
@@ -95,39 +96,28 @@ class MisfitAnswer:
                 f'error on held-out poses before -> after: {held or "not estimable"}']
 
 
-def answer_misfit(diagnosis: Diagnosis, analysis: ResidualAnalysis | None,
-                  comparison: ModelComparison | None = None,
-                  general: Sequence[Remedy] = ()) -> MisfitAnswer:
-    """The four answers from a diagnosis, its residual analysis and, when the suggested
-    effect was added, the before/after comparison.
+def answer_misfit(analysis: ResidualAnalysis | None, named: Remedy | None = None,
+                  general: Sequence[Remedy] = (), chi2_adequate: bool = False,
+                  model_adequate: bool = False) -> MisfitAnswer:
+    """The four answers from the residual analysis and the remedies at hand.
 
     Parameters
     ----------
-    diagnosis : Diagnosis
-        The verdict and the screened named effects.
     analysis : ResidualAnalysis or None
-        The model-free analysis of the same residuals (None: not run).
-    comparison : ModelComparison, optional
-        Before/after the named effect (full refit), when it was added.
+        The model-free analysis of the calibration's residuals (None: not run).
+    named : Remedy, optional
+        The significant named effect of the screen, with its held-out figures
+        (:func:`kpi_calib_ros.app.diagnose.named_remedy`).
     general : sequence of Remedy
-        Other remedies (general effects, learned corrections) with their held-out figures;
-        the one with the smallest held-out error after is offered when no named effect
-        is significant and it lowers the error.
+        Other remedies (general effects, learned corrections) with their held-out figures.
+    chi2_adequate, model_adequate : bool
+        The χ² test passes; the diagnosis calls the model adequate.
     """
     flagged = analysis.significant if analysis is not None else ()
-    where = _where(diagnosis, analysis)
-    offered = [g for g in general if np.isfinite(g.held_out_after_m)
-               and g.held_out_after_m < g.held_out_before_m]
-    best = diagnosis.best
-    if best is not None:
-        if comparison is not None:
-            before, after = comparison.validation_rms_before_m, comparison.validation_rms_after_m
-            basis = 'refit with the effect, the diagnosis\'s cross-validation'
-        else:
-            before, after = diagnosis.validation_rms_m, best.validation_rms_after_m
-            basis = 'screening fit, the diagnosis\'s cross-validation'
-        offered.insert(0, Remedy(NAMED, f'{best.spec}: {best.explanation}',
-                                 f'--effects {best.spec}', before, after, basis))
+    where = _where(analysis, chi2_adequate)
+    offered = ([named] if named is not None else []) + [
+        g for g in general if np.isfinite(g.held_out_after_m)
+        and g.held_out_after_m < g.held_out_before_m]
     smooth = None
     if flagged and analysis is not None:
         smooth = Remedy(
@@ -141,14 +131,14 @@ def answer_misfit(diagnosis: Diagnosis, analysis: ResidualAnalysis | None,
         # A remedy that leaves most of what a smooth correction removes is only part of
         # the answer: the smooth misfit is what is missing, the remedy a partial step.
         if smooth is not None and _gain(smooth) > 2 * _gain(missing):
-            missing = Remedy(
-                SMOOTH, f'{smooth.what}; the best remedy at hand, {missing.command}, '
-                        f'lowers the held-out error only from {missing.held_out_before_m * 1e6:.1f}'
-                        f' to {missing.held_out_after_m * 1e6:.1f} µm',
-                '', smooth.held_out_before_m, smooth.held_out_after_m, smooth.basis)
+            partial = (f'{smooth.what}; the best remedy at hand, {missing.command}, lowers '
+                       f'the held-out error only from {missing.held_out_before_m * 1e6:.1f} '
+                       f'to {missing.held_out_after_m * 1e6:.1f} µm')
+            missing = Remedy(SMOOTH, partial, '', smooth.held_out_before_m,
+                             smooth.held_out_after_m, smooth.basis)
     elif smooth is not None:
         missing = smooth
-    elif diagnosis.model_adequate:
+    elif model_adequate:
         missing = Remedy(NONE, 'nothing: the residuals are as small as the stated σ predicts')
     else:
         missing = Remedy(NONE, 'no named effect and no smooth function of one input '
@@ -168,12 +158,12 @@ def _names(scores: Sequence) -> str:
     return names[0] if len(names) == 1 else ', '.join(names[:-1]) + ' and ' + names[-1]
 
 
-def _where(diagnosis: Diagnosis, analysis: ResidualAnalysis | None) -> str:
+def _where(analysis: ResidualAnalysis | None, chi2_adequate: bool) -> str:
     if analysis is None:
         return 'not analysed'
     flagged = analysis.significant
     if not flagged:
-        if diagnosis.residuals.adequate:
+        if chi2_adequate:
             return 'nowhere: no input explains more of the residuals than noise would'
         return ('no single input explains the misfit beyond noise (Holm over '
                 f'{len(analysis.scores)} inputs, α = {analysis.alpha:g})')
