@@ -16,8 +16,10 @@ one deviation the effect library does not have, added to the simulated points:
   ``temperature`` (the points scaled about the robot base).
 
 For each, over the seeds: how often the right input is ranked first and flagged (an input
-of the right joint for the two-joint map; temperature for the thermal growth), and the
-held-out rms before/after the top input. Clean data (no deviation): how often any input is
+of the right joint for the two-joint map; temperature for the thermal growth), the
+held-out rms before/after the top input, how often the interaction of the top two
+joint/torque inputs is flagged, and the held-out rms with all flagged inputs (and the
+interaction when flagged). Clean data (no deviation): how often any input is
 flagged (family-wise α = 0.01, Holm). Writes bench/results/residual_inputs.md.
 
     .venv/bin/python bench/residual_inputs.py [n_seeds] [n_clean]
@@ -97,9 +99,11 @@ def main(argv: list[str]) -> int:
              f'{n_seeds} {n_clean}`.', '',
              '| hidden deviation | right input first and flagged | top inputs (seed 0) | '
              'share of the top input (median) | held-out rms before -> after (median, µm) '
-             '| s per analysis |', '|---|---|---|---|---|---|']
+             '| interaction of two inputs flagged | held-out rms, all flagged (median, µm) '
+             '| s per analysis |', '|---|---|---|---|---|---|---|---|']
     for scenario, right in RIGHT.items():
         hits, shares, before, after, secs, tops = 0, [], [], [], [], ''
+        pairs, combined = 0, []
         for seed in range(n_seeds):
             data, result, cov = campaign(cm, scenario, 1000 + seed)
             start = time.perf_counter()
@@ -110,6 +114,8 @@ def main(argv: list[str]) -> int:
             shares.append(top.share)
             before.append(top.held_out_rms_before_m * 1e6)
             after.append(top.held_out_rms_after_m * 1e6)
+            pairs += bool(an.pair and an.pair.significant)
+            combined.append(an.combined_after_m * 1e6)
             if seed == 0:
                 tops = '; '.join(f'{s.name} ({s.share:.2f}, p {s.p_value:.1g})'
                                  for s in an.scores[:3])
@@ -117,6 +123,7 @@ def main(argv: list[str]) -> int:
                   f'p {top.p_value:.2g} sig {top.significant}', flush=True)
         lines.append(f'| {scenario} | {hits}/{n_seeds} | {tops} | {np.median(shares):.2f} | '
                      f'{np.median(before):.1f} -> {np.median(after):.1f} | '
+                     f'{pairs}/{n_seeds} | {np.median(combined):.1f} | '
                      f'{np.median(secs):.2f} |')
     flagged, secs = 0, []
     p_min = []

@@ -55,6 +55,9 @@ def campaign(cm, seed: int, hidden: str = '', n: int = N_POSES):
     dq = np.zeros_like(q)
     if hidden == 'periodic':
         dq[:, elbow] = 2e-4 * np.sin(3 * q[:, elbow] + 0.4)
+    if hidden == 'map':
+        lift = cm.robot.joint_names.index(LIFT)
+        dq[:, lift] = 2.5e-4 * np.sin(2 * q[:, lift]) * np.cos(q[:, elbow])
     points = model.predict(p_true, q + dq)
     if hidden == 'bending':
         lift = cm.robot.joint_names.index(LIFT)
@@ -93,6 +96,20 @@ def test_a_deflection_with_the_gravity_torque_is_found_on_the_torque(ur):
     top = an.scores[0]
     assert top.name == f'gravity torque {LIFT}' and top.significant and top.kind == 'torque'
     assert top.share > 0.5
+
+
+def test_a_map_of_two_joints_is_found_as_their_interaction(ur):
+    """A shoulder error that is a smooth map of shoulder and elbow angles: both joints are
+    flagged, and their interaction beyond the sum of one-joint smooths is found and brings
+    the held-out error to the noise floor σ√3 (within 20 %)."""
+    data, result, _ = campaign(ur, 5, 'map')
+    an = analyse_calibration(ur.model, data, result)
+    assert an.scores[0].name == LIFT and ELBOW in {s.name for s in an.significant}
+    pair = an.pair
+    assert pair is not None and set(pair.names) == {LIFT, ELBOW} and pair.significant
+    assert pair.held_out_rms_after_m < 0.8 * pair.held_out_rms_additive_m
+    floor = SIGMA * np.sqrt(3)
+    assert abs(an.combined_after_m - floor) < 0.2 * floor < an.combined_before_m - floor
 
 
 def test_the_f_test_is_exact_on_noise_and_holm_keeps_the_family_level():

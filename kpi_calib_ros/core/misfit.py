@@ -120,9 +120,12 @@ def answer_misfit(analysis: ResidualAnalysis | None, named: Remedy | None = None
         and g.held_out_after_m < g.held_out_before_m]
     smooth = None
     if flagged and analysis is not None:
+        pair = analysis.pair
+        depends = (f'{pair.names[0]} and {pair.names[1]} jointly (not a sum of one-input '
+                   f'functions, F test p = {pair.p_value:.2g})' if pair and pair.significant
+                   else _names(flagged))
         smooth = Remedy(
-            SMOOTH, f'a smooth misfit depending on {_names(flagged)} that none of our '
-                    'effects has',
+            SMOOTH, f'a smooth misfit depending on {depends} that none of our effects has',
             '', analysis.combined_before_m, analysis.combined_after_m,
             f'geometry refitted with a smooth function of {_names(flagged)}, '
             f'{analysis.folds} pose folds')

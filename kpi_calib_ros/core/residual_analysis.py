@@ -53,6 +53,11 @@ Choices, and why:
   sum of squares the input explains; ``share_systematic`` divides the same reduction by the
   held-out sum of squares beyond the noise the stated σ predicts (its exact expectation
   under the model, Σ_F tr((I − H_FF)⁻¹)).
+* **Two inputs jointly.** When two joint or torque inputs are flagged, a tensor product
+  (harmonics 1-2 of a joint's turn: the low orders on the torus of two angles; a cubic
+  spline of 5 for a torque) of the top two along the first one's direction is tested
+  (F) against the sum of their smooths: "a smooth misfit depending on joints X and Y"
+  that no sum of one-input functions is.
 * **Ranking.** Significant inputs first, then by the evidence (the p-value before Holm,
   then ``share``): with a few hundred poses a fast periodic error needs many spline
   functions, and its cross-validated share stays small while its F test is unmistakable;
@@ -83,9 +88,9 @@ from kpi_calib_ros.core.residuals import (
     orthonormal_basis,
 )
 
-__all__ = ['BASIS_SIZES', 'HARMONICS', 'InputScore', 'ResidualAnalysis', 'ResidualInput',
-           'analyse_calibration', 'analyse_residuals', 'fourier_basis', 'residual_inputs',
-           'spline_basis']
+__all__ = ['BASIS_SIZES', 'HARMONICS', 'InputScore', 'PairScore', 'ResidualAnalysis',
+           'ResidualInput', 'analyse_calibration', 'analyse_residuals', 'fourier_basis',
+           'residual_inputs', 'spline_basis']
 
 BASIS_SIZES = (4, 8, 16, 32, 64)   # spline functions per field tried; Bonferroni over them
 HARMONICS = (2, 4, 8, 16, 32, 48)  # highest harmonic of the Fourier bases of a periodic input
@@ -205,6 +210,38 @@ class InputScore:
 
 
 @dataclass(frozen=True)
+class PairScore:
+    """Does the misfit depend on two inputs jointly, beyond the sum of their smooths?
+
+    The top two flagged single-direction inputs (joint angles, gravity torques): a
+    tensor product of both (harmonics 1-2 of a joint's turn, else a cubic spline of 5
+    functions) along the first one's direction, tested (F) against the additive model of
+    their own smooths.
+
+    Attributes
+    ----------
+    names : tuple of str
+        The two inputs.
+    dof : int
+        Rank of the interaction columns beyond the additive model and the geometry.
+    f_statistic, p_value : float
+        F test of the interaction columns.
+    significant : bool
+        ``p_value`` < alpha and the pair predicts held-out poses better than the sum.
+    held_out_rms_additive_m, held_out_rms_after_m : float
+        Held-out rms (m) of the additive model of the two and of it with the interaction.
+    """
+
+    names: tuple[str, str]
+    dof: int
+    f_statistic: float
+    p_value: float
+    significant: bool
+    held_out_rms_additive_m: float
+    held_out_rms_after_m: float
+
+
+@dataclass(frozen=True)
 class ResidualAnalysis:
     """Inputs ranked by the misfit they explain, and all significant ones together.
 
@@ -221,7 +258,10 @@ class ResidualAnalysis:
     combined : tuple of str
         The significant inputs, fitted together (an additive model).
     combined_before_m, combined_after_m : float
-        Held-out rms (m) of the geometric refit alone and with the combined splines.
+        Held-out rms (m) of the geometric refit alone and with the combined splines (and
+        the interaction when ``pair`` is significant).
+    pair : PairScore or None
+        The interaction of the top two flagged joint or torque inputs (None: fewer).
     """
 
     scores: tuple[InputScore, ...]
@@ -232,6 +272,7 @@ class ResidualAnalysis:
     combined: tuple[str, ...] = ()
     combined_before_m: float = float('nan')
     combined_after_m: float = float('nan')
+    pair: PairScore | None = None
 
     @property
     def significant(self) -> tuple[InputScore, ...]:
@@ -536,15 +577,59 @@ def analyse_residuals(fit: LinearizedFit, residuals: np.ndarray,
     ranked = tuple(scores[i] for i in order)
 
     combined = tuple(i for i in order if scores[i].significant)
+    single = [i for i in combined if inputs[i].fields.shape[2] == 1][:2]
+    pair, extra = None, np.zeros((n_rows, 0))
+    if len(single) == 2:
+        pair, extra = _pair(inputs[single[0]], inputs[single[1]],
+                            [(chosen[i] or {})['u'] for i in single], r, geometry, fit.w,
+                            press, n_poses, alpha)
     after = float('nan')
     if combined and pose_folds is not None:
-        u = orthonormal_basis(np.hstack([(chosen[i] or {})['u'] for i in combined]))
+        u = orthonormal_basis(np.hstack([(chosen[i] or {})['u'] for i in combined]
+                                        + ([extra] if pair and pair.significant else [])))
         held = press.held_out(u, r)
         after = _rms_m(held[0], fit.w) if held else float('nan')
     return ResidualAnalysis(
         scores=ranked, alpha=alpha, folds=0 if pose_folds is None else folds, chi2=chi2,
         dof=dof0, combined=tuple(scores[i].name for i in combined),
-        combined_before_m=base_rms, combined_after_m=after)
+        combined_before_m=base_rms, combined_after_m=after, pair=pair)
+
+
+PAIR_FUNCTIONS = 5  # functions per input of the tensor product: a cubic spline of 5, or
+PAIR_HARMONICS = 2  # harmonics 1-2 of the turn for a joint angle (5 functions too)
+
+
+def _pair(a: ResidualInput, b: ResidualInput, additive: list[np.ndarray], r: np.ndarray,
+          geometry: np.ndarray, w: np.ndarray, press: _Press, n_poses: int,
+          alpha: float) -> tuple[PairScore | None, np.ndarray]:
+    """Interaction of ``a`` and ``b`` along ``a``'s direction beyond their additive fit,
+    and its columns (projected off the geometry and the additive fit)."""
+    if PAIR_FUNCTIONS ** 2 > n_poses // MIN_POSES_PER_COLUMN:
+        return None, np.zeros((len(r), 0))
+
+    def basis(inp: ResidualInput) -> np.ndarray:
+        x = np.asarray(inp.values, float)
+        return fourier_basis(x, PAIR_HARMONICS) if inp.periodic else \
+            spline_basis(x, PAIR_FUNCTIONS)
+    ba, bb = basis(a), basis(b)
+    tensor = (ba[:, :, None] * bb[:, None, :]).reshape(len(ba), -1)
+    add = orthonormal_basis(np.hstack(additive))
+    known = np.hstack([geometry, add])
+    u = _unique_basis(_design(a, tensor, w), known)
+    dof = len(r) - known.shape[1] - u.shape[1]
+    if u.shape[1] == 0 or dof <= 0:
+        return None, u
+    e = r - add @ (add.T @ r)
+    delta = float(np.sum((u.T @ e) ** 2))
+    f_stat = (delta / u.shape[1]) / max(float(e @ e) - delta, 1e-300) * dof
+    p = float(scipy.stats.f.sf(f_stat, u.shape[1], dof))
+    held_add = press.held_out(add, r) if press.rows is not None else None
+    held_pair = press.held_out(np.hstack([add, u]), r) if press.rows is not None else None
+    before = _rms_m(held_add[0], w) if held_add else float('nan')
+    after = _rms_m(held_pair[0], w) if held_pair else float('nan')
+    better = not after >= before  # NaN (no folds): the test alone
+    return PairScore((a.name, b.name), int(u.shape[1]), float(f_stat), p,
+                     bool(p < alpha and better), before, after), u
 
 
 def _holm(p: np.ndarray) -> np.ndarray:

@@ -34,6 +34,13 @@ def analysis_to_dict(analysis: ResidualAnalysis) -> dict[str, Any]:
             'combined': list(analysis.combined),
             'combined_held_out_rms_before_m': _finite(analysis.combined_before_m),
             'combined_held_out_rms_after_m': _finite(analysis.combined_after_m),
+            'pair': None if analysis.pair is None else {
+                'names': list(analysis.pair.names), 'dof': analysis.pair.dof,
+                'f_statistic': _finite(analysis.pair.f_statistic),
+                'p_value': float(analysis.pair.p_value),
+                'significant': bool(analysis.pair.significant),
+                'held_out_rms_additive_m': _finite(analysis.pair.held_out_rms_additive_m),
+                'held_out_rms_after_m': _finite(analysis.pair.held_out_rms_after_m)},
             'inputs': [{'name': s.name, 'kind': s.kind, 'unit': s.unit, 'basis': s.basis,
                         'dof': s.dof, 'share': _finite(s.share),
                         'share_systematic': _finite(s.share_systematic),
@@ -79,6 +86,14 @@ def analysis_lines(analysis: ResidualAnalysis, answer: MisfitAnswer | None) -> l
         lines.append(f'| {i} | {s.name} | {"yes" if s.significant else "no"} | '
                      f'{s.p_value:.2g} | {_share(s.share)} | {_share(s.share_systematic)} | '
                      f'{after} | {s.basis} | {s.region} |')
+    pair = analysis.pair
+    if pair is not None:
+        lines += ['', f'Interaction of {pair.names[0]} and {pair.names[1]} (tensor-product '
+                  f'spline along {pair.names[0]}\'s direction, beyond the sum of their '
+                  f'smooths): F test p = {pair.p_value:.2g} ({pair.dof} columns), held-out '
+                  f'rms {pair.held_out_rms_additive_m * 1e6:.1f} -> '
+                  f'{pair.held_out_rms_after_m * 1e6:.1f} µm; '
+                  f'{"flagged" if pair.significant else "not flagged"}.']
     if analysis.scores and np.isfinite(analysis.scores[0].held_out_rms_before_m):
         lines += ['', f'Held-out rms of the geometric model: '
                   f'{analysis.scores[0].held_out_rms_before_m * 1e6:.1f} µm.']
