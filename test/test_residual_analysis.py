@@ -21,13 +21,13 @@ from kpi_calib_ros.core.estimation import identify
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.misfit import NONE, SMOOTH
 from kpi_calib_ros.core.residual_analysis import (
-    ResidualInput,
     _holm,
     analyse_calibration,
     analyse_residuals,
     fourier_basis,
     spline_basis,
 )
+from kpi_calib_ros.core.residual_inputs import ResidualInput
 from kpi_calib_ros.core.residuals import LinearizedFit, orthonormal_basis
 from kpi_calib_ros.core.simulation import random_configurations, true_parameters
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell

@@ -9,15 +9,17 @@ The model of one input ``x`` with direction fields ``g_k`` (m per unit of ``f_k`
 
     r_i ≈ Σ_k g_k(i) f_k(x_i) + (geometric parameters refitted) + noise,
 
-``f_k`` a cubic regression spline. The fields say how the input moves the point: for joint
-``j`` (its angle or its gravity torque) the column ∂p/∂q_j of the position Jacobian, so
-``f`` is an error of the joint angle (rad) -- its component along the direction the point
-moves, divided by the lever, is what the partial-residual plot shows; for the distance the
-line of sight (``f`` a range error, m); for inputs with no direction of their own (time, a
-temperature, any covariate) the three tracker axes and the point's offset from the
-centroid of the points, so ``f`` is a drift (m) per axis and a scale (strain): a thermal
-growth of the links is a scale of the arm about its base, i.e. a scale about the centroid
-plus a translation. Reflector index: a constant per reflector (categorical) per axis.
+``f_k`` a cubic regression spline (or harmonics of a revolute joint's turn). The inputs
+and their fields come from :mod:`kpi_calib_ros.core.residual_inputs`. The fields say how
+the input moves the point: for joint ``j`` (its angle or its gravity torque) the column
+∂p/∂q_j of the position Jacobian, so ``f`` is an error of the joint angle (rad) -- its
+component along the direction the point moves, divided by the lever, is what the
+partial-residual plot shows; for the distance the line of sight (``f`` a range error, m);
+for inputs with no direction of their own (time, a temperature, any covariate) the three
+tracker axes and the point's offset from the centroid of the points, so ``f`` is a drift
+(m) per axis and a scale (strain): a thermal growth of the links is a scale of the arm
+about its base, i.e. a scale about the centroid plus a translation. Reflector index: a
+constant per reflector (categorical) per axis.
 
 Choices, and why:
 
@@ -39,8 +41,10 @@ Choices, and why:
   give smoother curves but only approximate tests (effective degrees of freedom) and cost
   an optimisation per input; scipy's B-spline design matrix is enough and fast (a few
   seconds for a thousand rows). A joint angle is periodic: for a revolute joint the grid
-  also holds Fourier bases (harmonics 1..H of the turn), the natural smoother of a gear's
-  errors at 3 or 40 cycles per turn, which a spline of a few dozen pieces cannot follow.
+  also holds Fourier bases (harmonics 1..H of the turn, and single frequencies of 2 to 48
+  cycles per turn of which only the strongest is cross-validated, a periodogram peak),
+  the natural smoother of a gear's errors at 3 or 40 cycles per turn, which a spline of a
+  few dozen pieces cannot follow.
 * **Family of inputs.** Holm's step-down over the inputs: on data the model explains, the
   probability that any input is flagged stays below ``alpha``. An input is flagged when
   its test rejects *and* its cross-validated share is positive: a fit the F test finds but
@@ -59,10 +63,12 @@ Choices, and why:
   (F) against the sum of their smooths: "a smooth misfit depending on joints X and Y"
   that no sum of one-input functions is.
 * **Ranking.** Significant inputs first, then by the evidence (the p-value before Holm,
-  then ``share``): with a few hundred poses a fast periodic error needs many spline
-  functions, and its cross-validated share stays small while its F test is unmistakable;
-  between two inputs that explain the same (a joint angle and its gravity torque) the
-  one that needs fewer functions wins.
+  then ``share``): a shape that needs many functions for few poses keeps a small
+  cross-validated share while its F test is unmistakable; between two inputs that explain
+  the same (a joint angle and its gravity torque) the one that needs fewer functions wins.
+* **Fields from the predicted points.** A field built from the measured point would hold
+  the residual itself (a cubic in the distance times the line of sight contains η, and
+  the geometry spans h(p̂)): every residual would be "explained".
 """
 from __future__ import annotations
 
@@ -80,6 +86,7 @@ from kpi_calib_ros.core.measurement import (
     unweighted,
     weighted_rows,
 )
+from kpi_calib_ros.core.residual_inputs import ResidualInput, residual_inputs
 from kpi_calib_ros.core.residuals import (
     ADEQUACY_ALPHA,
     LinearizedFit,
@@ -100,45 +107,6 @@ RANK_TOLERANCE = 1e-6              # singular value of the unit-column projected
 CURVE_POINTS = 200
 # A basis: ('spline', functions), ('harmonics', H), ('harmonic', k) or ('categories', 0).
 Basis = tuple[str, int]
-
-
-@dataclass(frozen=True)
-class ResidualInput:
-    """One input the misfit may depend on.
-
-    Attributes
-    ----------
-    name : str
-        Shown in tables and plots (``'elbow_joint'``, ``'gravity torque elbow_joint'``).
-    values : (N,) ndarray
-        The input at every measurement row, in ``unit``.
-    fields : (N, 3, d) ndarray
-        How a unit of each of its ``d`` functions moves each row's point (m per unit);
-        0 on rows it cannot move.
-    field_names : tuple of str
-        (d,) what each function is (``'joint error'``, ``'drift x'``, ``'scale'``).
-    field_units : tuple of str
-        (d,) the unit of each function's value (``'rad'``, ``'m'``, ``''``).
-    unit : str
-        Unit of ``values``.
-    kind : str
-        ``'joint'``, ``'torque'`` or ``'covariate'``.
-    categorical : bool
-        ``values`` are category codes (a constant per code, no smoothness).
-    periodic : bool
-        ``values`` are angles (rad) of a revolute joint: Fourier bases (harmonics of the
-        turn, as a gear's errors are) are tried beside the splines.
-    """
-
-    name: str
-    values: np.ndarray
-    fields: np.ndarray
-    field_names: tuple[str, ...]
-    field_units: tuple[str, ...]
-    unit: str
-    kind: str = 'covariate'
-    categorical: bool = False
-    periodic: bool = False
 
 
 @dataclass(frozen=True)
@@ -474,7 +442,8 @@ def analyse_residuals(fit: LinearizedFit, residuals: np.ndarray,
     residuals : (N, 3) ndarray
         η − h(p̂, q), m (for the implied values of the plots).
     inputs : sequence of ResidualInput
-        What the misfit may depend on (:func:`residual_inputs` builds the standard ones;
+        What the misfit may depend on (:func:`~kpi_calib_ros.core.residual_inputs.
+        residual_inputs` builds the standard ones;
         any other covariate is one more :class:`ResidualInput`).
     q : (N, n) ndarray
         Joint values, rad: rows with equal values are one pose (one fold).
@@ -577,11 +546,11 @@ def analyse_residuals(fit: LinearizedFit, residuals: np.ndarray,
     ranked = tuple(scores[i] for i in order)
 
     combined = tuple(i for i in order if scores[i].significant)
-    single = [i for i in combined if inputs[i].fields.shape[2] == 1][:2]
+    top2 = [i for i in combined if inputs[i].fields.shape[2] == 1][:2]
     pair, extra = None, np.zeros((n_rows, 0))
-    if len(single) == 2:
-        pair, extra = _pair(inputs[single[0]], inputs[single[1]],
-                            [(chosen[i] or {})['u'] for i in single], r, geometry, fit.w,
+    if len(top2) == 2:
+        pair, extra = _pair(inputs[top2[0]], inputs[top2[1]],
+                            [(chosen[i] or {})['u'] for i in top2], r, geometry, fit.w,
                             press, n_poses, alpha)
     after = float('nan')
     if combined and pose_folds is not None:
@@ -646,87 +615,14 @@ def _holm(p: np.ndarray) -> np.ndarray:
     return adj
 
 
-# ------------------------------------------------------------------ inputs
-def residual_inputs(model: MeasurementModel, data: Measurements, result: CalibrationResult,
-                    covariates: Mapping[str, tuple[np.ndarray, str]] | None = None,
-                    tau: np.ndarray | None = None) -> list[ResidualInput]:
-    """The standard inputs of a calibration's measurements.
-
-    Every joint angle and every loaded joint's gravity torque (field ∂p/∂q_j), the
-    distance to the tracker (line of sight), time since the first stamp when stamped, the
-    reflector when there are several (categorical), and each ``covariates`` entry
-    ``name -> ((N,) values, unit)`` (e.g. a temperature): the covariate fields (tracker
-    axes and the scale about the points' centroid). Distances and fields are those of the
-    predicted points h(p̂, q), free of the measurement noise.
-    """
-    q = np.atleast_2d(data.q)
-    n = len(q)
-    n_ref = model.n_reflectors
-    point = np.ones(n, bool) if data.reflector is None else np.asarray(data.reflector) < n_ref
-    jq = model.joint_jacobian(result.values, q, tau if tau is not None else data.tau,
-                              data.reflector, data.rotation)
-    robot = model.robot
-    revolute = [j.kind != 'prismatic' for j in robot.joints]
-    out = []
-    for j, name in enumerate(robot.joint_names):
-        unit = 'rad' if revolute[j] else 'm'
-        out.append(ResidualInput(name, q[:, j], jq[:, :, j:j + 1], ('joint error',), (unit,),
-                                 unit, 'joint', periodic=revolute[j]))
-    torque = robot.gravity_torques(q) if tau is None and data.tau is None else \
-        np.asarray(tau if tau is not None else data.tau, float)
-    for j, name in enumerate(robot.joint_names):
-        if np.ptp(torque[:, j]) > 1e-6:
-            out.append(ResidualInput(
-                f'gravity torque {name}', torque[:, j], jq[:, :, j:j + 1], ('joint error',),
-                ('rad' if revolute[j] else 'm',), 'N m' if revolute[j] else 'N', 'torque'))
-    # Predicted, not measured, points: a field built from the measured point would contain
-    # the residual itself (with a cubic in the distance, η = |η|·η/|η| is one column, and
-    # the geometry spans h(p̂), so the residual would be "explained" exactly).
-    eta = model.predict(result.values, q, torque, data.reflector, data.rotation)
-    distance = np.linalg.norm(eta, axis=1)
-    if point.any():
-        filler = float(np.median(distance[point]))
-        sight = np.zeros((n, 3, 1))
-        sight[point, :, 0] = eta[point] / distance[point, None]
-        out.append(ResidualInput('tracker distance', np.where(point, distance, filler), sight,
-                                 ('range error',), ('m',), 'm'))
-    fields = _covariate_fields(eta, point)
-    names = ('drift x', 'drift y', 'drift z', 'scale')
-    units = ('m', 'm', 'm', '')
-    if data.stamps_ns is not None and len(data.stamps_ns) == n:
-        stamps = np.asarray(data.stamps_ns, float)
-        out.append(ResidualInput('time', (stamps - stamps.min()) * 1e-9, fields, names, units,
-                                 's'))
-    for name, (values, unit) in (covariates or {}).items():
-        values = np.asarray(values, float)
-        if values.shape != (n,):
-            raise ValueError(f'covariate {name!r} must have one value per measurement '
-                             f'({n}), got shape {values.shape}')
-        if np.all(np.isfinite(values)) and np.ptp(values) > 0:
-            out.append(ResidualInput(name, values, fields, names, units, unit))
-    if data.reflector is not None and len(np.unique(np.asarray(data.reflector)[point])) > 1:
-        out.append(ResidualInput('reflector', np.asarray(data.reflector, float), fields[:, :, :3],
-                                 names[:3], units[:3], '', categorical=True))
-    return out
-
-
-def _covariate_fields(eta: np.ndarray, point: np.ndarray) -> np.ndarray:
-    """(N, 3, 4) fields of an input with no direction: each tracker axis and the offset
-    of the (predicted) points ``eta`` from their centroid; 0 on rotation rows."""
-    fields = np.zeros((len(eta), 3, 4))
-    fields[point, :, :3] = np.eye(3)
-    if point.any():
-        fields[point, :, 3] = eta[point] - eta[point].mean(axis=0)
-    return fields
-
-
 def analyse_calibration(model: MeasurementModel, data: Measurements,
                         result: CalibrationResult,
                         covariates: Mapping[str, tuple[np.ndarray, str]] | None = None,
                         folds: int = DEFAULT_FOLDS, alpha: float = ADEQUACY_ALPHA,
                         seed: int = 0) -> ResidualAnalysis:
     """:func:`analyse_residuals` of ``result`` over the standard inputs of ``data``
-    (:func:`residual_inputs`) and the extra ``covariates`` (name -> (values, unit))."""
+    (:func:`~kpi_calib_ros.core.residual_inputs.residual_inputs`) and the extra
+    ``covariates`` (name -> (values, unit))."""
     fit = linearized_fit(model, data, result)
     residuals = np.atleast_2d(data.eta) - model.predict(
         result.values, np.atleast_2d(data.q), fit.tau, data.reflector, data.rotation)
