@@ -18,7 +18,7 @@ one deviation the effect library does not have, added to the simulated points:
 For each, over the seeds: how often the right input is ranked first and flagged (an input
 of the right joint for the two-joint map; temperature for the thermal growth), the
 held-out rms before/after the top input, how often the interaction of the top two
-joint/torque inputs is flagged, and the held-out rms with all flagged inputs (and the
+joint angles is flagged, and the held-out rms with all flagged inputs (and the
 interaction when flagged). Clean data (no deviation): how often any input is
 flagged (family-wise α = 0.01, Holm). Writes bench/results/residual_inputs.md.
 

@@ -57,9 +57,9 @@ Choices, and why:
   sum of squares the input explains; ``share_systematic`` divides the same reduction by the
   held-out sum of squares beyond the noise the stated σ predicts (its exact expectation
   under the model, Σ_F tr((I − H_FF)⁻¹)).
-* **Two inputs jointly.** When two joint or torque inputs are flagged, a tensor product
-  (harmonics 1-2 of a joint's turn: the low orders on the torus of two angles; a cubic
-  spline of 5 for a torque) of the top two along the first one's direction is tested
+* **Two inputs jointly.** When two joint angles are flagged, a tensor product (harmonics
+  1-2 of each joint's turn: the low orders on the torus of two angles; a cubic spline of
+  5 for a prismatic joint) of the top two along the first one's direction is tested
   (F) against the sum of their smooths: "a smooth misfit depending on joints X and Y"
   that no sum of one-input functions is.
 * **Ranking.** Significant inputs first, then by the evidence (the p-value before Holm,
@@ -181,9 +181,9 @@ class InputScore:
 class PairScore:
     """Does the misfit depend on two inputs jointly, beyond the sum of their smooths?
 
-    The top two flagged single-direction inputs (joint angles, gravity torques): a
-    tensor product of both (harmonics 1-2 of a joint's turn, else a cubic spline of 5
-    functions) along the first one's direction, tested (F) against the additive model of
+    The top two flagged joint angles: a tensor product of both (harmonics 1-2 of a
+    revolute joint's turn, a cubic spline of 5 functions for a prismatic one) along the
+    first one's direction, tested (F) against the additive model of
     their own smooths.
 
     Attributes
@@ -229,7 +229,8 @@ class ResidualAnalysis:
         Held-out rms (m) of the geometric refit alone and with the combined splines (and
         the interaction when ``pair`` is significant).
     pair : PairScore or None
-        The interaction of the top two flagged joint or torque inputs (None: fewer).
+        The interaction of the top two flagged joint angles (None: fewer, or too few
+        poses for its 25 columns).
     """
 
     scores: tuple[InputScore, ...]
@@ -546,7 +547,9 @@ def analyse_residuals(fit: LinearizedFit, residuals: np.ndarray,
     ranked = tuple(scores[i] for i in order)
 
     combined = tuple(i for i in order if scores[i].significant)
-    top2 = [i for i in combined if inputs[i].fields.shape[2] == 1][:2]
+    # Two joint angles: a torque is itself a function of the angles, and an angle with its
+    # own joint's torque leaves most of their plane empty (wild held-out predictions).
+    top2 = [i for i in combined if inputs[i].kind == 'joint'][:2]
     pair, extra = None, np.zeros((n_rows, 0))
     if len(top2) == 2:
         pair, extra = _pair(inputs[top2[0]], inputs[top2[1]],

@@ -88,8 +88,8 @@ def analysis_lines(analysis: ResidualAnalysis, answer: MisfitAnswer | None) -> l
                      f'{after} | {s.basis} | {s.region} |')
     pair = analysis.pair
     if pair is not None:
-        lines += ['', f'Interaction of {pair.names[0]} and {pair.names[1]} (tensor-product '
-                  f'spline along {pair.names[0]}\'s direction, beyond the sum of their '
+        lines += ['', f'Interaction of {pair.names[0]} and {pair.names[1]} (tensor product '
+                  f'along {pair.names[0]}\'s direction, beyond the sum of their '
                   f'smooths): F test p = {pair.p_value:.2g} ({pair.dof} columns), held-out '
                   f'rms {pair.held_out_rms_additive_m * 1e6:.1f} -> '
                   f'{pair.held_out_rms_after_m * 1e6:.1f} µm; '
