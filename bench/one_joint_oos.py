@@ -15,7 +15,7 @@ sqrt(mean ‖h_true(q) − h(p̂, q)‖² + 3σ²) over 2000 fresh poses:
 Beside it, the figures it replaces against the like-measured truth: the 5-fold
 cross-validated rms of ``--model auto`` before (full nonlinear refits on random folds,
 ``core.model_selection.cross_validated_level_rms``) and the diagnosis' leave-one-pose-out
-rms (``core.residuals.cross_validated_rms``). Writes bench/results/one_joint_oos.md.
+rms (``core.residuals.validation_rms``). Writes bench/results/one_joint_oos.md.
 
     .venv/bin/python bench/one_joint_oos.py [n_seeds]
 """
@@ -33,7 +33,7 @@ from kpi_calib_ros.core.effects import parse_effect_spec
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.model_selection import cross_validated_level_rms
 from kpi_calib_ros.core.out_of_sample import DOMAINS, domain_configurations, out_of_sample_error
-from kpi_calib_ros.core.residuals import cross_validated_rms
+from kpi_calib_ros.core.residuals import validation_rms
 from kpi_calib_ros.core.simulation import (
     one_joint_at_a_time,
     random_configurations,
@@ -99,7 +99,7 @@ def run(cm, case: dict, seed: int) -> dict:
     def fit(d, names):
         return identify_cell(cm, d, free=names)
     kfold = cross_validated_level_rms(cm.model, data, fit, free, folds=5, seed=seed)
-    loo = cross_validated_rms(cm.model, data, result)
+    loo = validation_rms(cm.model, data, result)
     out = {'rms_m': result.rms_m, 'dof': result.dof,
            'kfold': np.nan if kfold is None else kfold / truth['like_measured'],
            'loo': loo / truth['like_measured'], 'adequate': oos.adequate}

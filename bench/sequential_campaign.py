@@ -59,12 +59,12 @@ from kpi_calib_ros.app.campaign import (
     simulate_sequential,
 )
 from kpi_calib_ros.core.design_exchange import exchange, information
-from kpi_calib_ros.core.effects import hidden_effects
 from kpi_calib_ros.core.identifiability import select_identifiable
 from kpi_calib_ros.core.measurement import weighted_rows
 from kpi_calib_ros.core.sequential import CampaignSettings
 from kpi_calib_ros.core.simulation import true_parameters
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.io.cell_settings import hidden_effects
 
 TARGET = 10e-6
 PRECISE_TARGET = 4.0e-6

@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 import yaml
 
-from kpi_calib_ros.app.identify import calibration_document, identify_cell, measurements_from_bag
+from kpi_calib_ros.app.calibration_document import calibration_document
+from kpi_calib_ros.app.identify import identify_cell
+from kpi_calib_ros.app.measurements import measurements_from_bag
 from kpi_calib_ros.cli import main
 from kpi_calib_ros.core.simulation import (
     random_configurations,
@@ -175,12 +177,12 @@ def test_a_mangled_drift_state_is_refused_like_the_covariance(made, tmp_path, ca
 
 
 def test_out_at_the_file_system_root_is_refused_before_computing(made, monkeypatch, capsys):
-    from kpi_calib_ros.app import identify as app_identify
+    from kpi_calib_ros.app import measurements as app_measurements
     from kpi_calib_ros.app import validate as app_validate
 
     def no_computing(*args, **kwargs):
         raise AssertionError('the bag was read before --out was checked')
-    monkeypatch.setattr(app_identify, 'measurements_from_bag', no_computing)
+    monkeypatch.setattr(app_measurements, 'measurements_from_bag', no_computing)
     monkeypatch.setattr(app_validate, 'measurements_from_bag', no_computing)
     tmp, _, new = made
     for command in (['identify'], ['validate', '--calibration',
@@ -235,7 +237,8 @@ def test_excluded_points_read_the_same_number_in_the_log_and_the_file(made, cm):
     distance_sigma that calibration.yaml stores, and the reason adds no other figure."""
     import re
 
-    from kpi_calib_ros.app.identify import add_robust_sections, calibrate_cell, robust_summary
+    from kpi_calib_ros.app.calibration_document import add_robust_sections, robust_summary
+    from kpi_calib_ros.app.identify import calibrate_cell
     tmp, _, _ = made
     data, pairing = measurements_from_bag(cm, tmp / 'train.mcap')
     eta = np.array(data.eta)

@@ -160,11 +160,11 @@ def test_identify_reads_renamed_topics_from_options_or_cell(renamed_bag, tmp_pat
 @pytest.mark.parametrize('command', ['identify', 'diagnose'])
 def test_an_unwritable_out_fails_before_computing(command, run_bag, tmp_path, capsys,
                                                   monkeypatch):
-    from kpi_calib_ros.app import identify as app_identify
+    from kpi_calib_ros.app import measurements as app_measurements
 
     def no_computing(*args, **kwargs):
         raise AssertionError('the bag was read before --out was checked')
-    monkeypatch.setattr(app_identify, 'measurements_from_bag', no_computing)
+    monkeypatch.setattr(app_measurements, 'measurements_from_bag', no_computing)
     blocker = tmp_path / 'a_file'
     blocker.write_text('in the way')
     for out in (blocker / 'result', Path('/proc/kpi_calib_result')):

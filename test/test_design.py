@@ -35,9 +35,9 @@ from kpi_calib_ros.io.cell import (
     DEFAULT_CELL,
     build_cell_model,
     cell_from_dict,
-    design_settings,
     load_cell,
 )
+from kpi_calib_ros.io.cell_settings import design_settings
 
 from cell_variants import KINDS, cell_document
 

@@ -70,11 +70,12 @@ def test_node_page_lists_every_parameter_topic_and_service(pages):
     for service in ('design', 'identify', 'diagnose', 'validate', 'reset'):
         assert f'| `~/{service}` | `std_srvs/srv/Trigger` |' in text
     assert '| `/joint_states` | `sensor_msgs/msg/JointState` |' in text
+    assert '| `/laser_tracker/point/sigma` | `geometry_msgs/msg/Vector3Stamped` |' in text
     assert '| `~/tcp` | `geometry_msgs/msg/PoseWithCovarianceStamped` |' in text
 
 
 def test_effects_page_gives_every_library_effect_with_units_and_plausible_range(pages):
-    from kpi_calib_ros.core.effects import LIBRARY
+    from kpi_calib_ros.core.effect_library import LIBRARY
     text = pages.effects_page()
     for effect in LIBRARY:
         row = next(line for line in text.splitlines() if line.startswith(f'| `{effect.name}` |'))

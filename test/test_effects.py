@@ -13,7 +13,6 @@ from kpi_calib_ros.core.diagnosis import augmented_model
 from kpi_calib_ros.core.effects import (
     EffectType,
     candidate_effects,
-    hidden_effects,
     implausible,
     parse_effect_spec,
     register_effect,
@@ -22,6 +21,7 @@ from kpi_calib_ros.core.effects import (
 )
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.simulation import random_configurations, true_parameters
+from kpi_calib_ros.io.cell_settings import hidden_effects
 
 
 @pytest.fixture

@@ -15,6 +15,7 @@ from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation import (
     FTOL,
     GTOL,
+    ITERATIONS_PER_PARAMETER,
     LINE_SEARCH_FAILED,
     MAX_ITERATIONS,
     PREDICTED_DECREASE,
@@ -225,6 +226,19 @@ def test_iteration_limit_is_status_zero_and_not_converged(cell, campaign):
     print(result.message)
     assert result.status == MAX_ITERATIONS and not result.converged
     assert 'maximum number of iterations (1)' in result.message
+
+
+def test_the_default_iteration_limit_is_100_per_identified_parameter(cell, campaign):
+    # SciPy's least_squares allows 100 evaluations per parameter. With every convergence
+    # test off the fit runs to the limit: 2 free parameters, 200 iterations.
+    _, _, data, _ = campaign
+    off = Tolerances(gtol=0.0, xtol=0.0, pred_tol=0.0, roundoff=0.0, stat_tol=0.0, ftol=0.0)
+    result = identify(cell.model, data, SIGMA, cell.q_work, tolerances=off,
+                      free=['joint_2.offset', 'joint_3.offset'])
+    print(result.message)
+    assert result.estimated == ('joint_2.offset', 'joint_3.offset')
+    assert ITERATIONS_PER_PARAMETER == 100 and result.iterations == 200
+    assert result.status == MAX_ITERATIONS and 'iterations (200)' in result.message
 
 
 def test_failed_line_search_is_its_own_status_not_convergence(cell, campaign):

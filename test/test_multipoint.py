@@ -6,12 +6,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kpi_calib_ros.app.identify import (
-    identify_cell,
-    measurements_from_bag,
-    print_rejections,
-    registered_start,
-)
+from kpi_calib_ros.app.identify import identify_cell, registered_start
+from kpi_calib_ros.app.measurements import measurements_from_bag, print_rejections
 from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.measurement import Measurements
 from kpi_calib_ros.core.pairing import pair_measurements

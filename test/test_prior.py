@@ -6,12 +6,13 @@ import pytest
 
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation import identify
-from kpi_calib_ros.core.prior import Prior, drift_widened, prior_from_calibration, tolerance_prior
+from kpi_calib_ros.core.prior import Prior, drift_widened, tolerance_prior
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,
     true_parameters,
 )
+from kpi_calib_ros.io.calibration_file import prior_from_calibration
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 from kpi_calib_ros.io.results import calibration_to_dict
 
@@ -163,7 +164,7 @@ def run_bag(tmp_path_factory):
 def test_previous_calibration_as_prior_from_the_cli(run_bag, tmp_path, capsys):
     import yaml
 
-    from kpi_calib_ros.app.identify import measurements_from_bag
+    from kpi_calib_ros.app.measurements import measurements_from_bag
     from kpi_calib_ros.cli import main
     cell = str(DEFAULT_CELL)
     assert main(['identify', '--cell', cell, '--bag', str(run_bag), '--out',

@@ -19,7 +19,7 @@ from kpi_calib_ros.app.diagnose import with_misfit_answer
 from kpi_calib_ros.core.diagnosis import CellDiagnosis, diagnose
 from kpi_calib_ros.core.estimation import identify
 from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.misfit import NONE, SMOOTH
+from kpi_calib_ros.core.misfit import GENERAL, NAMED, NONE, SMOOTH, Remedy, answer_misfit
 from kpi_calib_ros.core.residual_analysis import (
     _holm,
     analyse_calibration,
@@ -193,3 +193,18 @@ def test_clean_diagnosis_answers_nothing_is_missing(ur):
                                           diagnose(ur.model, data, result)))
     assert cd.answer is not None and cd.answer.inputs == ()
     assert cd.answer.missing.kind == NONE
+
+
+def test_a_general_remedy_that_gains_more_is_the_answer():
+    """The slot for remedies built elsewhere (the learned residual, general effects): the
+    one with the smallest held-out error is what is missing, a named effect that gains
+    less is not; a remedy that does not lower the error is never offered."""
+    named = Remedy(NAMED, 'joint_scale:elbow_joint', '--effects joint_scale:elbow_joint',
+                   100e-6, 90e-6)
+    learned = Remedy(GENERAL, 'a learned residual', 'kpi-calib identify --learned-residual',
+                     100e-6, 40e-6)
+    worse = Remedy(GENERAL, 'a worse one', 'kpi-calib x', 100e-6, 120e-6)
+    answer = answer_misfit(None, named, (learned, worse))
+    assert answer.missing is learned and answer.lines()[2].endswith(learned.command)
+    assert answer_misfit(None, named, (worse,)).missing is named
+    assert answer_misfit(None, None, (worse,), model_adequate=True).missing.kind == NONE

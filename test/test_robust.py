@@ -9,7 +9,8 @@ import pytest
 import scipy.stats
 import yaml
 
-from kpi_calib_ros.app.identify import add_robust_sections, calibrate_cell, calibration_document
+from kpi_calib_ros.app.calibration_document import add_robust_sections, calibration_document
+from kpi_calib_ros.app.identify import calibrate_cell
 from kpi_calib_ros.app.simulate import simulate_campaign
 from kpi_calib_ros.cli import main
 from kpi_calib_ros.core.errors import ConfigError
@@ -21,7 +22,8 @@ from kpi_calib_ros.core.simulation import (
     simulate_measurements,
     true_parameters,
 )
-from kpi_calib_ros.io.cell import DEFAULT_CELL, identification_settings
+from kpi_calib_ros.io.cell import DEFAULT_CELL
+from kpi_calib_ros.io.cell_settings import identification_settings
 from kpi_calib_ros.io.names import CALIBRATION_FILE, FAILED_CALIBRATION_FILE
 
 SIGMA = 20e-6

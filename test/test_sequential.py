@@ -10,7 +10,6 @@ import yaml
 from kpi_calib_ros.app.campaign import campaign_context, new_campaign, simulate_sequential
 from kpi_calib_ros.cli import main
 from kpi_calib_ros.core.design_exchange import exchange, information
-from kpi_calib_ros.core.effects import hidden_effects
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.sequential import (
     MAX_MEASUREMENTS,
@@ -31,6 +30,7 @@ from kpi_calib_ros.io.cell import (
     load_cell,
     read_cell_document,
 )
+from kpi_calib_ros.io.cell_settings import hidden_effects
 from kpi_calib_ros.io.design_io import read_design_poses
 
 from cell_variants import cell_document

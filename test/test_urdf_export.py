@@ -223,7 +223,7 @@ def test_cli_calibrated_urdf_of_the_stock_ur10_reproduces_the_fit(tmp_path):
     <transmission> elements; with them edited instead of the joints it missed by mm)."""
     import yaml
 
-    from kpi_calib_ros.app.identify import load_measurements
+    from kpi_calib_ros.app.measurements import load_measurements
     from kpi_calib_ros.app.simulate import simulate_campaign
     from kpi_calib_ros.cli import main
     from kpi_calib_ros.core.kinematics import pose6

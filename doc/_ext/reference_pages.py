@@ -4,7 +4,7 @@ The code is the source of these pages: the ``kpi-calib`` argparse parser
 (:func:`kpi_calib_ros.cli.build_parser`), the node's parameters
 (:data:`kpi_calib_ros.ros.parameters.PARAMETERS`), its topics and services (the names of
 :mod:`kpi_calib_ros.io.names`, the message types as ``ros/node.py`` creates them), the
-effect library (:data:`kpi_calib_ros.core.effects.LIBRARY`) and the cell keys
+effect library (:data:`kpi_calib_ros.core.effect_library.LIBRARY`) and the cell keys
 (:data:`kpi_calib_ros.io.cell_schema.CELL_KEYS`). Each page goes to
 ``doc/reference/_generated/`` (not committed); ``bench/results/*.md`` are copied to
 ``doc/_generated/bench/`` so the benchmark page links them.
@@ -97,14 +97,21 @@ def cli_page() -> str:
 
 
 # --------------------------------------------------------------------------- node
+# The node's modules that create its publishers, subscriptions and services.
+NODE_MODULES = ('node.py', 'tcp_query.py')
+
+
 def _node_calls() -> tuple[dict[str, str], dict[str, str], list[str]]:
-    """From ``ros/node.py``: publisher topic constant -> message type, subscription
-    setting -> message type, and the service names, as the node creates them."""
-    tree = ast.parse((REPO / 'kpi_calib_ros' / 'ros' / 'node.py').read_text())
+    """From the node's modules (:data:`NODE_MODULES`): publisher topic constant -> message
+    type, subscription setting, topic constant or ``function(setting)`` (a topic named
+    from a setting, such as ``point_sigma_topic(point_topic)``) -> message type, and the
+    service names, as the node creates them."""
     pubs: dict[str, str] = {}
     subs: dict[str, str] = {}
     services: list[str] = []
-    for node in ast.walk(tree):
+    nodes = [n for module in NODE_MODULES for n in ast.walk(
+        ast.parse((REPO / 'kpi_calib_ros' / 'ros' / module).read_text()))]
+    for node in nodes:
         if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and \
                 len(node.args) >= 2 and isinstance(node.args[0], ast.Name):
             kind, topic = node.func.attr, node.args[1]
@@ -112,6 +119,12 @@ def _node_calls() -> tuple[dict[str, str], dict[str, str], list[str]]:
                 pubs[topic.id] = node.args[0].id
             elif kind == 'create_subscription' and isinstance(topic, ast.Attribute):
                 subs[topic.attr] = node.args[0].id
+            elif (kind == 'create_subscription' and isinstance(topic, ast.Call)
+                  and isinstance(topic.func, ast.Name) and len(topic.args) == 1
+                  and isinstance(topic.args[0], ast.Attribute)):
+                subs[f'{topic.func.id}({topic.args[0].attr})'] = node.args[0].id
+            elif kind == 'create_subscription' and isinstance(topic, ast.Name):
+                subs[topic.id] = node.args[0].id
         if isinstance(node, ast.For) and isinstance(node.iter, ast.Tuple) and any(
                 isinstance(c, ast.Call) and isinstance(c.func, ast.Attribute) and
                 c.func.attr == 'create_service' for c in ast.walk(node)):
@@ -123,7 +136,8 @@ def _node_calls() -> tuple[dict[str, str], dict[str, str], list[str]]:
 _PACKAGES = {'JointTrajectory': 'trajectory_msgs', 'String': 'std_msgs',
              'MarkerArray': 'visualization_msgs', 'DiagnosticArray': 'diagnostic_msgs',
              'PoseWithCovarianceStamped': 'geometry_msgs', 'PoseStamped': 'geometry_msgs',
-             'PointStamped': 'geometry_msgs', 'JointState': 'sensor_msgs'}
+             'PointStamped': 'geometry_msgs', 'JointState': 'sensor_msgs',
+             'Vector3Stamped': 'geometry_msgs'}
 
 
 def _msg(name: str) -> str:
@@ -154,12 +168,20 @@ def node_page() -> str:
     topics = {'joint_states_topic': names.DEFAULT_JOINT_TOPIC,
               'point_topic': names.DEFAULT_POINT_TOPIC, 'pose_topic': names.DEFAULT_POSE_TOPIC,
               'robot_description_topic': names.ROBOT_DESCRIPTION_TOPIC}
+    constants = {k: v for k, v in vars(names).items() if k.endswith('_TOPIC')}
     rows = [[code(PARAMETERS[setting][0]), code(_msg(kind)), f'parameter {code(setting)}']
             for setting, kind in subs.items() if setting in topics]
+    for call, kind in subs.items():  # a topic named from a setting: function(setting)
+        function, _, setting = call.rstrip(')').partition('(')
+        if setting in topics and callable(getattr(names, function, None)):
+            rows.append([code(getattr(names, function)(PARAMETERS[setting][0])),
+                         code(_msg(kind)),
+                         f'parameter {code(setting)} ({code(f"io.names.{function}")})'])
+    rows += [[code(constants[const]), code(_msg(kind)), code(f'io.names.{const}')]
+             for const, kind in subs.items() if const in constants]
     out.append(table(['topic (default)', 'type', 'set by'], rows))
     out.append('## Published topics\n')
     out.append('`~/` names resolve under the node name, e.g. `/kpi_calib_node/calibration`.\n')
-    constants = {k: v for k, v in vars(names).items() if k.endswith('_TOPIC')}
     rows = [[code(constants[const]), code(_msg(kind)), code(f'io.names.{const}')]
             for const, kind in pubs.items() if const in constants]
     out.append(table(['topic', 'type', 'name in the code'], rows))
@@ -173,7 +195,8 @@ def node_page() -> str:
 
 # ------------------------------------------------------------------------ effects
 def effects_page() -> str:
-    from kpi_calib_ros.core.effects import CHAIN_EFFECTS, ENTRY_POINT_GROUP, LIBRARY
+    from kpi_calib_ros.core.effect_library import LIBRARY
+    from kpi_calib_ros.core.effects import CHAIN_EFFECTS, ENTRY_POINT_GROUP
 
     # The cell loader imports the chain effects (core.gravity_compliance registers itself).
     from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell

@@ -13,7 +13,11 @@ from pathlib import Path
 
 import numpy as np
 
-from kpi_calib_ros.app.identify import CellCalibration, add_robust_sections, calibration_document
+from kpi_calib_ros.app.calibration_document import (
+    CellCalibration,
+    add_robust_sections,
+    calibration_document,
+)
 from kpi_calib_ros.app.simulate import truth_cell_model
 from kpi_calib_ros.core.design import DesignContext, design_context
 from kpi_calib_ros.core.design_cell import DesignCell

@@ -17,14 +17,10 @@ from kpi_calib_ros.core.design import (
     design_measurements,
     tcp_std_on_drawn_robots,
 )
+from kpi_calib_ros.core.drift_state import DriftSwing
 from kpi_calib_ros.core.estimability import KpiEstimability, result_estimability
 from kpi_calib_ros.core.model_selection import level_free
-from kpi_calib_ros.core.prior import (
-    DRIFT_ANGLE_PER_SQRT_HOUR,
-    DRIFT_LENGTH_PER_SQRT_HOUR,
-    DriftSwing,
-    Prior,
-)
+from kpi_calib_ros.core.prior import DRIFT_ANGLE_PER_SQRT_HOUR, DRIFT_LENGTH_PER_SQRT_HOUR, Prior
 from kpi_calib_ros.io.calibration_file import read_calibration_document
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
 from kpi_calib_ros.io.design_io import plot_design, plot_ellipsoids, summary_text, write_design

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -15,10 +15,11 @@ from kpi_calib_ros.app.identify import (
     calibrate_cell,
     cell_prior,
     identify_cell,
-    load_measurements,
     print_progress,
     with_effects,
 )
+from kpi_calib_ros.app.learned_residual import choose_residual
+from kpi_calib_ros.app.measurements import load_measurements
 from kpi_calib_ros.core.diagnosis import (
     CellDiagnosis,
     Diagnosis,
@@ -28,13 +29,14 @@ from kpi_calib_ros.core.diagnosis import (
 )
 from kpi_calib_ros.core.effect_selection import effect_start
 from kpi_calib_ros.core.effects import implausible, parse_effect_spec
+from kpi_calib_ros.core.learned_residual import ResidualChoice
 from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.misfit import NAMED, Remedy, answer_misfit
+from kpi_calib_ros.core.misfit import GENERAL, NAMED, Remedy, answer_misfit
 from kpi_calib_ros.core.model_selection import level_free
 from kpi_calib_ros.core.out_of_sample import out_of_sample_error
 from kpi_calib_ros.core.precision import expected_tcp_error
 from kpi_calib_ros.core.residual_analysis import analyse_calibration
-from kpi_calib_ros.core.residuals import ADEQUACY_ALPHA
+from kpi_calib_ros.core.residuals import ADEQUACY_ALPHA, is_adequate
 from kpi_calib_ros.core.robust import subset
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.names import DIAGNOSIS_FILE
@@ -111,10 +113,30 @@ def with_misfit_answer(cd: CellDiagnosis,
     kept_covariates = {name: (np.asarray(values)[keep], unit)
                        for name, (values, unit) in (covariates or {}).items()}
     analysis = analyse_calibration(cd.model, cd.data, cd.result, kept_covariates)
+    return with_remedies(dataclasses.replace(cd, residual_analysis=analysis))
+
+
+def with_remedies(cd: CellDiagnosis, general: Sequence[Remedy] = ()) -> CellDiagnosis:
+    """``cd`` with its four answers given the named effect of its screen and the
+    ``general`` remedies (a learned residual, general effects; :func:`~kpi_calib_ros.core.
+    misfit.answer_misfit`)."""
     diag = cd.diagnosis
-    return dataclasses.replace(cd, residual_analysis=analysis, answer=answer_misfit(
-        analysis, named_remedy(diag, cd.comparison), chi2_adequate=diag.residuals.adequate,
-        model_adequate=diag.model_adequate))
+    return dataclasses.replace(cd, answer=answer_misfit(
+        cd.residual_analysis, named_remedy(diag, cd.comparison), general,
+        chi2_adequate=diag.residuals.adequate, model_adequate=diag.model_adequate))
+
+
+def learned_remedy(choice: ResidualChoice) -> Remedy | None:
+    """The learned residual as a remedy when its cross-validated test chose it: its
+    command and the held-out error of the calibrated model without and with it."""
+    if not choice.chosen:
+        return None
+    return Remedy(GENERAL, 'a learned residual (a Gaussian process of the misfit over joint '
+                           'space): the misfit is smooth in the joints but no effect of the '
+                           'library has its shape',
+                  'kpi-calib identify --learned-residual', choice.cv_rms_physical_m,
+                  choice.cv_rms_learned_m, f'{choice.folds} pose folds, the learned '
+                  'residual refitted without each fold')
 
 
 def named_remedy(diag: Diagnosis, comparison: ModelComparison | None = None
@@ -139,12 +161,26 @@ def run_diagnose(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
                  model: str | None = None, **options: Any) -> int:
     """``kpi-calib diagnose``: diagnosis.json, report.md and plots in ``out_dir``
     (checked first); ``model`` overrides the cell's ``identification.model``; ``options``
-    as for :func:`load_measurements`."""
+    as for :func:`load_measurements`. When the model is not adequate, the learned
+    residual's decision on the calibrated model is printed too
+    (:func:`kpi_calib_ros.app.learned_residual.choose_residual`)."""
     writable_folder(out_dir, '--out')
     cm, data, _ = load_measurements(cell_path, bag_path, effects, **options)
     cd = diagnose_cell(cm, data, folds=folds, alpha=alpha, model=model,
                        progress=print_progress)
+    choice = None
+    if not is_adequate(cd.result.p_value, alpha):
+        # Beside the library's answer (or when it has none): would the learned residual
+        # predict held-out poses better than the calibrated model? It is one more remedy
+        # of the four answers.
+        choice = choose_residual(cm, cd.data, cd.result)
+        learned = learned_remedy(choice)
+        if learned is not None:
+            cd = with_remedies(cd, (learned,))
     report = write_report(out_dir, cd)
     print(diagnosis_text(cd))
+    if choice is not None:
+        print(choice.reason + ('; kpi-calib identify --learned-residual writes it beside '
+                               'calibration.yaml' if choice.chosen else ''))
     print(f'written: {Path(out_dir) / DIAGNOSIS_FILE}, {report}')
     return 0

@@ -51,7 +51,7 @@ __all__ = ['CRITERIA', 'DESIGN_CRITERIA', 'DesignCell', 'DesignContext', 'Design
 @dataclass(frozen=True)
 class DesignSettings:
     """Options of :func:`design_measurements`; the cell file's ``design:`` section
-    (validated by :func:`kpi_calib_ros.io.cell.design_settings`).
+    (validated by :func:`kpi_calib_ros.io.cell_settings.design_settings`).
 
     Attributes
     ----------

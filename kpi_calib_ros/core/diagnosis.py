@@ -21,7 +21,7 @@ Jacobian are exact (CasADi, from the augmented measurement model).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import casadi as ca
 import numpy as np
@@ -43,15 +43,16 @@ from kpi_calib_ros.core.residuals import (
     ADEQUACY_ALPHA,
     LinearizedFit,
     ResidualReport,
-    cross_validated_rms,
-    cv_rms,
     identifiable_folds,
+    linear_validation_rms,
     linearized_fit,
     residual_report,
+    validation_rms,
 )
 
-__all__ = ['Candidate', 'CellDiagnosis', 'Diagnosis', 'ModelComparison', 'ResidualReport',
-           'augmented_model', 'compare_models', 'cross_validated_rms', 'diagnose',
+__all__ = ['Candidate', 'CandidateFit', 'CellDiagnosis', 'Diagnosis', 'ModelComparison',
+           'ResidualReport',
+           'augmented_model', 'compare_models', 'validation_rms', 'diagnose',
            'equivalent_joint_sigma',
            'residual_report', 'screen_effects']
 DEPENDENCE_TOLERANCE = 1e-4  # unique fraction of a signature below this: absorbed
@@ -96,6 +97,49 @@ class Candidate:
     # ``std`` are from the stated σ (1) or scaled by χ²/dof of the augmented fit when it
     # fails the χ² test, as identify reports (core.precision.chi2_scale).
     covariance_scale: float = 1.0
+
+
+@dataclass(frozen=True)
+class CandidateFit:
+    """The augmented fit of one candidate at one shape, before the candidates are ranked
+    (field names as in :class:`Candidate`; units of the effect's parameters).
+
+    Attributes
+    ----------
+    effect : BoundEffect
+    theta : (k,) ndarray
+        Fitted sizes, then the shape parameters held at their grid value.
+    std : (k,) ndarray
+        Their std from the stated σ (NaN for the held shape parameters).
+    rms_m, validation_rms_m : float
+        rms (m) of the augmented fit and its cross-validated rms over held-out poses.
+    chi2, dof : float, int
+        Weighted residual sum of the augmented fit and its degrees of freedom.
+    delta_chi2, f_statistic, p_value_raw : float
+        χ² reduction over the geometric fit, its F statistic and single-test p-value.
+    correlation, driver_correlation, unique_fraction : float
+        As in :class:`Candidate`.
+    unique : (3N, k) ndarray
+        The part of the effect's weighted columns the geometry does not reproduce.
+    merged : tuple of str
+        Specs of candidates with the same signature merged into this one.
+    """
+
+    effect: BoundEffect
+    theta: np.ndarray
+    std: np.ndarray
+    rms_m: float
+    chi2: float
+    dof: int
+    unique: np.ndarray
+    validation_rms_m: float
+    delta_chi2: float
+    f_statistic: float
+    p_value_raw: float
+    correlation: float
+    driver_correlation: float
+    unique_fraction: float
+    merged: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -213,13 +257,14 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
     r_perp = sys_.r - sys_.basis @ (sys_.basis.T @ sys_.r)
     chi2_base = float(r_perp @ r_perp)
     rms_base = float(np.sqrt(np.sum(unweighted(r_perp, sys_.w) ** 2) / n))
-    cv_base = cv_rms(sys_.jac, sys_.r, sys_.w, pose_folds)
+    cv_base = linear_validation_rms(sys_.jac, sys_.r, sys_.w, pose_folds)
     dof_base = 3 * n - sys_.basis.shape[1]
     q = np.atleast_2d(data.q)
     tau = sys_.tau if sys_.tau is not None else model.robot.gravity_torques(q)
     joint_jac = model.joint_jacobian(sys_.p, q, sys_.tau, sys_.reflector, sys_.rotation)
 
-    fits, rejected = [], []
+    fits: list[CandidateFit] = []
+    rejected = []
     for effect in candidates:
         # An effect nonlinear in its shape parameters is screened at each value of its
         # shape grid (the size parameters linear there); the best fit stands for it.
@@ -248,13 +293,13 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
         if tried:
             # The best physically plausible shape (a fit constrained to the plausible
             # region); only when none is plausible, the best of all (reported implausible).
-            plausible = [f for f in tried if not implausible(effect, f['theta'], tau)]
-            best = max(plausible or tried, key=lambda f: f['delta'])
+            plausible = [f for f in tried if not implausible(effect, f.theta, tau)]
+            best = max(plausible or tried, key=lambda f: f.delta_chi2)
             if len(tried) > 1:
                 # The best of several shapes is the best of several tests: its p-value is
                 # multiplied by their number (Bonferroni), so the screen's claims keep
                 # their level (the plain best-of-grid p-value is too small on clean data).
-                best = {**best, 'p_raw': min(1.0, best['p_raw'] * len(tried))}
+                best = replace(best, p_value_raw=min(1.0, best.p_value_raw * len(tried)))
             fits.append(best)
         elif why_not is not None:
             rejected.append(why_not)
@@ -265,30 +310,30 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
     m = max(len(fits), 1)
     out = []
     for fit in fits:
-        p_adj = min(1.0, fit['p_raw'] * m)
-        nested = simpler.get(fit['effect'].name, '')
+        p_adj = min(1.0, fit.p_value_raw * m)
+        nested = simpler.get(fit.effect.name, '')
         significant = bool(p_adj < alpha) and not nested
-        warning = implausible(fit['effect'], fit['theta'], tau)
-        merged = tuple(fit.get('merged', ()))
+        warning = implausible(fit.effect, fit.theta, tau)
+        merged = fit.merged
         extra = ''.join(f' {t}' for t in (
             warning and f'Warning: {warning}.',
             merged and f'The same signature is explained by {", ".join(merged)} '
                        '(one candidate: the data cannot tell them apart).',
-            nested, notes.get(fit['effect'].name, '')) if t)
+            nested, notes.get(fit.effect.name, '')) if t)
         out.append(Candidate(
-            effect=fit['effect'].kind.name, joint=fit['effect'].joint, spec=fit['effect'].name,
-            parameter_names=fit['effect'].parameter_names, units=fit['effect'].units,
-            distinguishable=True, values=fit['theta'],
-            std=fit['std'] * np.sqrt(chi2_scale(fit['chi2'], fit['dof'])),
-            covariance_scale=chi2_scale(fit['chi2'], fit['dof']),
-            rms_after_m=fit['rms'], validation_rms_after_m=fit['cv'],
-            delta_chi2=fit['delta'], f_statistic=fit['f'], p_value_raw=fit['p_raw'],
-            p_value=p_adj, significant=significant, correlation=fit['corr'],
-            driver_correlation=fit['driver_corr'], unique_fraction=fit['fraction'],
+            effect=fit.effect.kind.name, joint=fit.effect.joint, spec=fit.effect.name,
+            parameter_names=fit.effect.parameter_names, units=fit.effect.units,
+            distinguishable=True, values=fit.theta,
+            std=fit.std * np.sqrt(chi2_scale(fit.chi2, fit.dof)),
+            covariance_scale=chi2_scale(fit.chi2, fit.dof),
+            rms_after_m=fit.rms_m, validation_rms_after_m=fit.validation_rms_m,
+            delta_chi2=fit.delta_chi2, f_statistic=fit.f_statistic, p_value_raw=fit.p_value_raw,
+            p_value=p_adj, significant=significant, correlation=fit.correlation,
+            driver_correlation=fit.driver_correlation, unique_fraction=fit.unique_fraction,
             absorbed_by={},
             explanation=_explain(fit, significant, p_adj, m, rms_base, cv_base) + extra,
             plausible=not warning, plausibility=warning, also_explained_by=merged,
-            note=notes.get(fit['effect'].name, '')))
+            note=notes.get(fit.effect.name, '')))
     out.sort(key=lambda c: (not (c.significant and c.plausible), not c.significant,
                             c.validation_rms_after_m, c.p_value_raw))
     return tuple(out), tuple(rejected)
@@ -304,7 +349,7 @@ def diagnose(model: MeasurementModel, data: Measurements, result: CalibrationRes
     """
     report = residual_report(model, data, result, alpha)
     ranked, rejected = screen_effects(model, data, result, candidates, folds, alpha, seed)
-    cv = cross_validated_rms(model, data, result, folds, seed)
+    cv = validation_rms(model, data, result, folds, seed)
     best = ranked[0] if ranked and ranked[0].significant and ranked[0].plausible else None
     implausible_only = best is None and any(c.significant for c in ranked)
     adequate = report.adequate and best is None and not implausible_only
@@ -385,8 +430,8 @@ def compare_models(before: tuple[MeasurementModel, CalibrationResult],
     return ModelComparison(
         effects=tuple(e.name for e in new),
         rms_before_m=res_b.rms_m, rms_after_m=res_a.rms_m,
-        validation_rms_before_m=cross_validated_rms(model_b, data, res_b, folds, seed),
-        validation_rms_after_m=cross_validated_rms(model_a, data, res_a, folds, seed),
+        validation_rms_before_m=validation_rms(model_b, data, res_b, folds, seed),
+        validation_rms_after_m=validation_rms(model_a, data, res_a, folds, seed),
         p_value_before=res_b.p_value, p_value_after=res_a.p_value,
         effect_parameters=tuple(params),
         tcp_std_before_m=np.sqrt(np.diagonal(res_b.tcp_covariance, axis1=1, axis2=2)),
@@ -453,7 +498,7 @@ def _rejected(effect: BoundEffect, fraction: float, absorbed: dict[str, float],
 def _fit_candidate(effect: BoundEffect, cols: np.ndarray, sys_: LinearizedFit, r_perp: np.ndarray,
                    chi2_base: float, dof_base: int, pose_folds: np.ndarray | None,
                    joint_jac: np.ndarray, q: np.ndarray, tau: np.ndarray,
-                   fraction: float, shape: tuple[float, ...] = ()) -> dict:
+                   fraction: float, shape: tuple[float, ...] = ()) -> CandidateFit:
     """Augmented least squares [J E] from the geometric solution, its F-test and CV.
     Shape parameters held at ``shape`` (chosen from a grid) count as fitted in the
     F-test's degrees of freedom; their std is NaN."""
@@ -471,80 +516,81 @@ def _fit_candidate(effect: BoundEffect, cols: np.ndarray, sys_: LinearizedFit, r
     dof = dof_base - k
     f_stat = (delta / k) / (chi2_aug / dof)
     p_raw = float(scipy.stats.f.sf(f_stat, k, dof))
-    cv = cv_rms(np.hstack([sys_.jac, cols]), sys_.r, sys_.w, pose_folds)
+    cv = linear_validation_rms(np.hstack([sys_.jac, cols]), sys_.r, sys_.w, pose_folds)
     rms = float(np.sqrt(np.sum(unweighted(r_aug, sys_.w) ** 2) / n))
     corr = float(np.sqrt(max(delta, 0.0) / chi2_base)) if chi2_base > 0 else 0.0
-    return {'effect': effect, 'theta': theta, 'std': std, 'rms': rms,
-            'chi2': chi2_aug, 'dof': dof,
-            'unique': unique,
-            'cv': cv, 'delta': delta, 'f': f_stat, 'p_raw': p_raw, 'corr': corr,
-            'driver_corr': _driver_correlation(effect, theta, unique, size, r_aug, sys_.w,
+    return CandidateFit(
+        effect=effect, theta=theta, std=std, rms_m=rms, chi2=chi2_aug, dof=dof, unique=unique,
+        validation_rms_m=cv, delta_chi2=delta, f_statistic=f_stat, p_value_raw=p_raw,
+        correlation=corr,
+        driver_correlation=_driver_correlation(effect, theta, unique, size, r_aug, sys_.w,
                                                joint_jac, q, tau),
-            'fraction': fraction}
+        unique_fraction=fraction)
 
 
 SAME_SIGNATURE = 1e-6  # sin of the largest principal angle between two signatures
 
 
-def merge_same_signature(fits: list[dict]) -> list[dict]:
+def merge_same_signature(fits: list[CandidateFit]) -> list[CandidateFit]:
     """Merge candidates whose signatures (the part of their Jacobian columns the geometry
     does not reproduce) span the same subspace, i.e. the same column up to scale for one
     parameter. The best-fitting one stays, with the others' specs in ``'merged'``:
     the data cannot tell them apart, so they are one candidate, not several."""
-    bases = [np.linalg.qr(f['unique'])[0] for f in fits]
-    order = sorted(range(len(fits)), key=lambda i: -fits[i]['delta'])
+    bases = [np.linalg.qr(f.unique)[0] for f in fits]
+    order = sorted(range(len(fits)), key=lambda i: -fits[i].delta_chi2)
     taken: set[int] = set()
     out = []
     for i in order:
         if i in taken:
             continue
-        fit = dict(fits[i], merged=[])
+        merged: list[str] = []
         for j in order:
             if j == i or j in taken or bases[j].shape[1] != bases[i].shape[1]:
                 continue
             gap = bases[j] - bases[i] @ (bases[i].T @ bases[j])
             if np.linalg.norm(gap, 2) < SAME_SIGNATURE:
-                fit['merged'].append(fits[j]['effect'].name)
+                merged.append(fits[j].effect.name)
                 taken.add(j)
         taken.add(i)
-        out.append(fit)
+        out.append(replace(fits[i], merged=tuple(merged)))
     return out
 
 
-def nested_alternatives(fits: list[dict], alpha: float = ADEQUACY_ALPHA) -> dict[str, str]:
+def nested_alternatives(fits: list[CandidateFit], alpha: float = ADEQUACY_ALPHA
+                        ) -> dict[str, str]:
     """For an effect that contains simpler ones of the same joint (``EffectType.nests``:
     joint_play is joint_backlash as τ0 -> 0 and joint_compliance as τ0 -> ∞): is it
     significantly better than the best plausible simpler one (F-test of its extra
     parameters at ``alpha``)? If not, the simpler one is the explanation. Returns
     spec -> why it is not counted significant."""
-    by_joint: dict[tuple[str | None, str], dict] = {
-        (f['effect'].joint, f['effect'].kind.name): f for f in fits}
+    by_joint: dict[tuple[str | None, str], CandidateFit] = {
+        (f.effect.joint, f.effect.kind.name): f for f in fits}
     out = {}
     for fit in fits:
-        effect = fit['effect']
+        effect = fit.effect
         rivals = [by_joint[(effect.joint, name)] for name in effect.kind.nests
                   if (effect.joint, name) in by_joint]
-        rivals = [r for r in rivals if not implausible(r['effect'], r['theta'])]
+        rivals = [r for r in rivals if not implausible(r.effect, r.theta)]
         if not rivals:
             continue
-        rival = max(rivals, key=lambda r: r['delta'])
-        extra = len(fit['theta']) - len(rival['theta'])
-        f_stat = (fit['delta'] - rival['delta']) / extra / (fit['chi2'] / fit['dof'])
-        p = float(scipy.stats.f.sf(f_stat, extra, fit['dof'])) if f_stat > 0 else 1.0
+        rival = max(rivals, key=lambda r: r.delta_chi2)
+        extra = len(fit.theta) - len(rival.theta)
+        f_stat = (fit.delta_chi2 - rival.delta_chi2) / extra / (fit.chi2 / fit.dof)
+        p = float(scipy.stats.f.sf(f_stat, extra, fit.dof)) if f_stat > 0 else 1.0
         if p >= alpha:
-            out[effect.name] = (f'Not counted: the simpler {rival["effect"].name} explains '
+            out[effect.name] = (f'Not counted: the simpler {rival.effect.name} explains '
                                 f'as much (F-test of the extra parameter p = {p:.3g} >= '
                                 f'{alpha:g}).')
     return out
 
 
-def torque_effect_notes(fits: list[dict]) -> dict[str, str]:
+def torque_effect_notes(fits: list[CandidateFit]) -> dict[str, str]:
     """For a joint with both backlash (a step with the sign of the gravity torque) and
     compliance (in proportion to it) among the candidates: which fits better, by the
     χ² reduction of each (both have one parameter). Returns spec -> note."""
-    by_joint: dict[str, dict[str, dict]] = {}
+    by_joint: dict[str, dict[str, CandidateFit]] = {}
     for f in fits:
-        e = f['effect']
+        e = f.effect
         if e.kind.name in ('joint_backlash', 'joint_compliance') and e.joint is not None:
             by_joint.setdefault(e.joint, {})[e.kind.name] = f
     notes = {}
@@ -552,11 +598,11 @@ def torque_effect_notes(fits: list[dict]) -> dict[str, str]:
         if len(pair) < 2:
             continue
         b, c = pair['joint_backlash'], pair['joint_compliance']
-        better = 'backlash (a sign flip with the torque)' if b['delta'] > c['delta'] \
+        better = 'backlash (a sign flip with the torque)' if b.delta_chi2 > c.delta_chi2 \
             else 'compliance (in proportion to the torque)'
-        text = (f'On {joint}, {better} fits better: χ² reduction {b["delta"]:.1f} for '
-                f'backlash vs {c["delta"]:.1f} for compliance.')
-        notes[b['effect'].name] = notes[c['effect'].name] = text
+        text = (f'On {joint}, {better} fits better: χ² reduction {b.delta_chi2:.1f} for '
+                f'backlash vs {c.delta_chi2:.1f} for compliance.')
+        notes[b.effect.name] = notes[c.effect.name] = text
     return notes
 
 
@@ -599,23 +645,23 @@ def _joint_correction_values(effect: BoundEffect, q: np.ndarray, tau: np.ndarray
     return np.array(fn.map(len(q))(q.T, tau.T, theta)).T
 
 
-def _explain(fit: dict, significant: bool, p_adj: float, m: int, rms_base: float,
+def _explain(fit: CandidateFit, significant: bool, p_adj: float, m: int, rms_base: float,
              cv_base: float) -> str:
-    effect: BoundEffect = fit['effect']
+    effect: BoundEffect = fit.effect
     values = ', '.join(f'{name.rsplit(".", 1)[1]} = {v:.3g} '
                        + (f'± {s:.2g} {u}' if np.isfinite(s) else f'{u} (best of its grid)')
-                       for name, v, s, u in zip(effect.parameter_names, fit['theta'],
-                                                fit['std'], effect.units))
-    numbers = (f'rms {rms_base * 1e6:.1f} -> {fit["rms"] * 1e6:.1f} µm, validation rms '
-               f'{cv_base * 1e6:.1f} -> {fit["cv"] * 1e6:.1f} µm; {values}; '
+                       for name, v, s, u in zip(effect.parameter_names, fit.theta,
+                                                fit.std, effect.units))
+    numbers = (f'rms {rms_base * 1e6:.1f} -> {fit.rms_m * 1e6:.1f} µm, validation rms '
+               f'{cv_base * 1e6:.1f} -> {fit.validation_rms_m * 1e6:.1f} µm; {values}; '
                f'p = {p_adj:.3g} (F-test, Bonferroni over {m} candidates)')
     if not significant:
         return f'not significant: {numbers}.'
-    why = (f'the residuals correlate {fit["corr"]:.2f} with the part of its signature the '
+    why = (f'the residuals correlate {fit.correlation:.2f} with the part of its signature the '
            'geometry cannot absorb')
-    if np.isfinite(fit['driver_corr']):
+    if np.isfinite(fit.driver_correlation):
         direction = f'the residual along the {effect.joint} rotation direction' \
             if effect.joint_kind != 'prismatic' else f'the residual along the {effect.joint} axis'
-        why = (f'{direction} correlates {fit["driver_corr"]:.2f} with the '
+        why = (f'{direction} correlates {fit.driver_correlation:.2f} with the '
                f'{effect.signature()}, and {why}')
     return f'{effect.kind.description}: {why}; {numbers}.'

@@ -1,4 +1,4 @@
-"""Physical effects the geometric model lacks: a library, specs and a user API.
+"""Physical effects the geometric model lacks: the registry, specs and the user API.
 
 An effect is a small model with its own parameters that plugs into the
 measurement model (:class:`~kpi_calib_ros.core.measurement.MeasurementModel`)
@@ -6,8 +6,8 @@ either as an additive correction of one joint value or as a correction of the
 measured point. Its parameters get stable names (``joint_compliance.joint_2.c``)
 and nominal value 0, so "no effect" is the geometric model.
 
-Library (per joint ``j`` unless noted; ``τ_j`` is the gravity torque from
-Pinocchio, payload included)::
+Library (:mod:`kpi_calib_ros.core.effect_library`; per joint ``j`` unless noted; ``τ_j``
+is the gravity torque from Pinocchio, payload included)::
 
     joint_compliance      δq_j = c · τ_j                   c  rad/(N m)
     gravity_compliance    δq_j = Σ g_i ψ_i(q), link masses unknown (see
@@ -61,299 +61,18 @@ import importlib.util
 import math
 import sys
 import warnings
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Sequence
 
-import casadi as ca
 import numpy as np
 
+from kpi_calib_ros.core.effect_library import LIBRARY, PLAY_TORQUE_UNIT
+from kpi_calib_ros.core.effect_types import BoundEffect, EffectType
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.robot import RobotModel
 
 ENTRY_POINT_GROUP = 'kpi_calib_ros.effects'
-BACKLASH_TORQUE_SCALE = 0.01  # N m: below this a joint counts as unloaded
-PLAY_TORQUE_UNIT = 1.0        # N m (N for a prismatic joint): joint_play's τ0 = e^u of it
-# joint_play's screened transition torques τ0: 0.01 ... 10 N m, three per decade
-PLAY_GRID = tuple((math.log(t),) for t in (0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0,
-                                                5.0, 10.0))
 
-
-@dataclass(frozen=True)
-class EffectType:
-    """A kind of physical effect, before it is bound to a joint.
-
-    Parameters
-    ----------
-    name : str
-        Registry name, used in specs (``name:joint``) and parameter names.
-    parameters : tuple of str
-        Parameter suffixes, e.g. ``('c',)``; full names are
-        ``<name>.<joint>.<suffix>`` (per joint) or ``<name>.<suffix>`` (global).
-    units : tuple of str
-        Units of the parameters for a revolute joint (or a global effect).
-    joint_function : callable, optional
-        Per joint: ``f(q_j, tau_j, theta) -> SX scalar``, the additive
-        correction of joint j (rad, or m for a prismatic joint). Global:
-        ``f(q, tau, theta) -> SX (n,)``. Use CasADi operations.
-    point_function : callable, optional
-        ``g(point, theta) -> SX (3,)``: the measured point (tracker frame, m)
-        given the model point; for effects of the measuring instrument.
-    per_joint : bool
-        One instance per chain joint (``name:joint``) or one global instance.
-    uses_torque : bool
-        The function reads gravity torques; the model then supplies them.
-    typical : tuple of float
-        A realistic size of each parameter: used to simulate the effect and to
-        decide whether it changes the measurements at all.
-    prismatic_units : tuple of str, optional
-        Units for a prismatic joint (default: ``units`` with rad -> m, N m -> N).
-    description : str
-        One line for reports.
-    hint : str
-        What would make the effect distinguishable from the geometry when the
-        data cannot; ``{joint}`` is replaced by the joint name.
-    signature : str
-        What the fitted joint correction follows, for explanations
-        (``'gravity torque of {joint}'``).
-    screen : bool
-        Whether :func:`candidate_effects` includes it by default.
-    joint_kinds : tuple of str, optional
-        Joint kinds (``revolute``, ``continuous``, ``prismatic``) it applies to; None: any.
-        A cyclic error is a function of an angle: it has no meaning on a prismatic joint.
-    plausible : tuple of float
-        Largest physically plausible |value| of each parameter (revolute units); a fit
-        beyond it is flagged (see :func:`implausible`). Empty: no bound.
-    prismatic_plausible : tuple of float, optional
-        The same for a prismatic joint (its units); None: no bound there.
-    shape_grid : tuple of tuple of float
-        For an effect nonlinear in its last parameters (they set the shape, not the size:
-        their Jacobian column vanishes at zero size), the values of those shape parameters
-        the linear screening tries (:func:`kpi_calib_ros.core.diagnosis.screen_effects`
-        keeps the best, counting them in the F-test's degrees of freedom); the
-        identification then fits them from there. Empty: linear at zero (every column
-        non-zero at θ = 0).
-    nests : tuple of str
-        Simpler effects (names) this one contains as limits on the same joint; the
-        diagnosis counts it only when it fits significantly better than them.
-    """
-
-    name: str
-    parameters: tuple[str, ...]
-    units: tuple[str, ...]
-    joint_function: Callable | None = None
-    point_function: Callable | None = None
-    per_joint: bool = True
-    uses_torque: bool = False
-    typical: tuple[float, ...] = ()
-    prismatic_units: tuple[str, ...] | None = None
-    description: str = ''
-    hint: str = ''
-    signature: str = 'fitted correction of {joint}'
-    screen: bool = False
-    joint_kinds: tuple[str, ...] | None = None
-    plausible: tuple[float, ...] = ()
-    prismatic_plausible: tuple[float, ...] | None = None
-    shape_grid: tuple[tuple[float, ...], ...] = ()
-    nests: tuple[str, ...] = ()
-
-    def __post_init__(self) -> None:
-        if not self.name or ':' in self.name or '.' in self.name:
-            raise ValueError(f'effect name {self.name!r} must be non-empty without ":" or "."')
-        if (self.joint_function is None) == (self.point_function is None):
-            raise ValueError(f'effect {self.name!r}: give exactly one of joint_function '
-                             'and point_function')
-        if self.point_function is not None and self.per_joint:
-            raise ValueError(f'effect {self.name!r}: a point correction is global; '
-                             'set per_joint=False')
-        if len(self.units) != len(self.parameters) or not self.parameters:
-            raise ValueError(f'effect {self.name!r}: need one unit per parameter, '
-                             'at least one parameter')
-        if self.typical and len(self.typical) != len(self.parameters):
-            raise ValueError(f'effect {self.name!r}: typical needs one value per parameter')
-        if any(len(g) >= len(self.parameters) or len(g) != len(self.shape_grid[0])
-               for g in self.shape_grid):
-            raise ValueError(f'effect {self.name!r}: every shape_grid entry gives the same '
-                             'number of (last) parameters, fewer than all')
-        for bound in (self.plausible, self.prismatic_plausible or ()):
-            if bound and len(bound) != len(self.parameters):
-                raise ValueError(f'effect {self.name!r}: plausible bounds need one value per '
-                                 'parameter')
-
-    @property
-    def n_shape(self) -> int:
-        """Number of shape parameters (the last ones), see ``shape_grid``."""
-        return len(self.shape_grid[0]) if self.shape_grid else 0
-
-    def applies_to(self, joint_kind: str | None) -> bool:
-        """Whether the effect has a meaning on a joint of this kind (global: always)."""
-        return joint_kind is None or self.joint_kinds is None or joint_kind in self.joint_kinds
-
-    def units_for(self, joint_kind: str | None) -> tuple[str, ...]:
-        """Units of the parameters on a joint of this kind (rad -> m, N m -> N if prismatic)."""
-        if joint_kind != 'prismatic':
-            return self.units
-        if self.prismatic_units is not None:
-            return self.prismatic_units
-        return tuple(u.replace('N m', 'N').replace('rad', 'm') for u in self.units)
-
-
-@dataclass(frozen=True)
-class BoundEffect:
-    """An effect type bound to one joint (or global): implements the ``Effect`` protocol.
-
-    ``name`` is the spec (``joint_compliance:joint_2``), unique within a model.
-    """
-
-    kind: EffectType
-    joint: str | None
-    joint_index: int | None
-    n_joints: int
-    name: str = field(init=False)
-    parameter_names: tuple[str, ...] = field(init=False)
-    units: tuple[str, ...] = field(init=False)
-    uses_torque: bool = field(init=False)
-    joint_kind: str | None = None
-
-    def __post_init__(self) -> None:
-        prefix = self.kind.name if self.joint is None else f'{self.kind.name}.{self.joint}'
-        object.__setattr__(self, 'name', self.kind.name if self.joint is None
-                           else f'{self.kind.name}:{self.joint}')
-        object.__setattr__(self, 'parameter_names',
-                           tuple(f'{prefix}.{s}' for s in self.kind.parameters))
-        object.__setattr__(self, 'units', self.kind.units_for(self.joint_kind))
-        object.__setattr__(self, 'uses_torque', self.kind.uses_torque)
-
-    @property
-    def typical(self) -> tuple[float, ...]:
-        """Typical magnitude of each parameter (its units), 1 where the kind states none."""
-        return self.kind.typical or (1.0,) * len(self.kind.parameters)
-
-    @property
-    def shape_names(self) -> tuple[str, ...]:
-        """Names of its shape parameters (the last ``kind.n_shape``; empty when linear)."""
-        return self.parameter_names[len(self.parameter_names) - self.kind.n_shape:] \
-            if self.kind.n_shape else ()
-
-    def joint_correction(self, q: ca.SX, tau: ca.SX, theta: ca.SX) -> Any:
-        """Additive joint-value correction, SX (n,), or None for a point effect."""
-        fn = self.kind.joint_function
-        if fn is None:
-            return None
-        if self.joint_index is None:
-            return fn(q, tau, theta)
-        out = ca.SX.zeros(self.n_joints)
-        out[self.joint_index] = fn(q[self.joint_index], tau[self.joint_index], theta)
-        return out
-
-    def point_correction(self, point: ca.SX, theta: ca.SX) -> Any:
-        """Corrected measured point, SX (3,), or None for a joint effect."""
-        fn = self.kind.point_function
-        return None if fn is None else fn(point, theta)
-
-    def hint(self) -> str:
-        """What would make this effect distinguishable, with the joint named."""
-        return self.kind.hint.replace('{joint}', self.joint or 'the joint')
-
-    def signature(self) -> str:
-        """What the fitted correction follows, with the joint named."""
-        return self.kind.signature.replace('{joint}', self.joint or 'the joint')
-
-
-# ------------------------------------------------------------------ the library
-def _compliance(q_j: ca.SX, tau_j: ca.SX, theta: ca.SX) -> ca.SX:
-    return theta[0] * tau_j
-
-
-def _cyclic(q_j: ca.SX, tau_j: ca.SX, theta: ca.SX) -> ca.SX:
-    return theta[0] * ca.sin(q_j) + theta[1] * ca.cos(q_j)
-
-
-def _cyclic_h2(q_j: ca.SX, tau_j: ca.SX, theta: ca.SX) -> ca.SX:
-    return theta[0] * ca.sin(2 * q_j) + theta[1] * ca.cos(2 * q_j)
-
-
-def _backlash(q_j: ca.SX, tau_j: ca.SX, theta: ca.SX) -> ca.SX:
-    return theta[0] * ca.tanh(tau_j / BACKLASH_TORQUE_SCALE)
-
-
-def _play(q_j: ca.SX, tau_j: ca.SX, theta: ca.SX) -> ca.SX:
-    return theta[0] * ca.tanh(tau_j / (PLAY_TORQUE_UNIT * ca.exp(theta[1])))
-
-
-def _scale(q_j: ca.SX, tau_j: ca.SX, theta: ca.SX) -> ca.SX:
-    return theta[0] * q_j
-
-
-def _tracker_scale(point: ca.SX, theta: ca.SX) -> ca.SX:
-    return (1 + theta[0]) * point
-
-
-LIBRARY: tuple[EffectType, ...] = (
-    EffectType('joint_compliance', ('c',), ('rad/(N m)',), _compliance, uses_torque=True,
-               typical=(1e-6,), prismatic_units=('m/N',), screen=True,
-               # stiffness >= 1e4 N m/rad (a small cobot joint; industrial 1e5-1e7)
-               plausible=(1e-4,), prismatic_plausible=(1e-5,),
-               description='joint deflection proportional to its gravity torque',
-               hint='gravity must load {joint} with a torque that varies over the poses; '
-                    'a joint with a vertical axis or an unloaded wrist carries none '
-                    '(a tilted base or a heavier, off-axis payload would)',
-               signature='gravity torque of {joint}'),
-    EffectType('cyclic_joint_error', ('a', 'b'), ('rad', 'rad'), _cyclic,
-               typical=(2e-4, 2e-4), screen=True,
-               joint_kinds=('revolute', 'continuous'), plausible=(5e-3, 5e-3),
-               description='first-harmonic gear/encoder error a·sin q + b·cos q',
-               hint='spread {joint} over most of a revolution so sin q and cos q vary '
-                    'independently of the joint offset',
-               signature='first harmonic a·sin q + b·cos q of {joint}'),
-    EffectType('cyclic_joint_error_h2', ('a', 'b'), ('rad', 'rad'), _cyclic_h2,
-               typical=(1e-4, 1e-4),
-               joint_kinds=('revolute', 'continuous'), plausible=(5e-3, 5e-3),
-               description='second-harmonic gear/encoder error a·sin 2q + b·cos 2q',
-               hint='spread {joint} over at least half a revolution',
-               signature='second harmonic of {joint}'),
-    EffectType('joint_backlash', ('b',), ('rad',), _backlash, uses_torque=True,
-               typical=(2.5e-4,), screen=True,
-               # b is half the free play. Industrial gearboxes: below 1 mrad; service and
-               # cable/belt-driven arms show tens of mrad of play in their wrists (the TIAGo
-               # data's origin documents ~40 mrad in arm_6, b ~ 20 mrad). 50 mrad (a play
-               # of ~6 deg) is where a joint is broken rather than loose.
-               plausible=(5e-2,), prismatic_plausible=(5e-3,),
-               description='backlash: the joint settles on the side its gravity torque '
-                           'pushes to, b·sgn(τ)',
-               hint='measure poses where the gravity torque of {joint} changes sign '
-                    '(the arm on both sides of its balance point); with one sign only, '
-                    'backlash is a constant the joint offset absorbs',
-               signature='sign of the gravity torque of {joint}'),
-    EffectType('joint_play', ('b', 'u'), ('rad', '1'), _play, uses_torque=True,
-               typical=(2.5e-4, 0.0), screen=True, prismatic_units=('m', '1'),
-               # b as joint_backlash; τ0 from 1 mN m (a sharp step) to 1 kN m (never loaded
-               # out of its play), |u| <= ln 1000
-               plausible=(5e-2, 6.91), prismatic_plausible=(5e-3, 6.91),
-               shape_grid=PLAY_GRID, nests=('joint_backlash', 'joint_compliance'),
-               description='free play crossed smoothly with the gravity torque, '
-                           'b·tanh(τ/τ0), τ0 = e^u N m identified: the joint sits inside its '
-                           'play where the load is small (friction, a cable, the unmodelled '
-                           'part of the load decide) and at ±b where it is large',
-               hint='measure poses where the gravity torque of {joint} changes sign and '
-                    'poses where it is small and large, so the size b and the transition '
-                    'torque τ0 of the play show apart from the offset and a compliance',
-               signature='saturating function b·tanh(τ/τ0) of the gravity torque of {joint}'),
-    EffectType('joint_scale', ('k',), ('1',), _scale, typical=(1e-4,), screen=True,
-               prismatic_units=('1',), plausible=(1e-2,), prismatic_plausible=(1e-2,),
-               description='transmission-ratio error k·q',
-               hint='move {joint} over a wide range; over a narrow one k·q looks like '
-                    'the joint offset',
-               signature='angle of {joint}'),
-    EffectType('tracker_scale', ('s',), ('1',), point_function=_tracker_scale,
-               per_joint=False, typical=(1e-5,), screen=True,
-               plausible=(1e-3,),  # 1000 ppm: far beyond any tracker's or camera's scale
-               description='length scale error of the tracker (temperature, refractive '
-                           'index), η = (1 + s)·h',
-               hint='a global scale is absorbed by the free link lengths and the base '
-                    'distance; measure a reference length (a calibrated scale bar) or '
-                    'fix the link lengths'),
-)
 
 _REGISTRY: dict[str, EffectType] = {e.name: e for e in LIBRARY}
 _entry_points_loaded = False
@@ -552,7 +271,7 @@ def candidate_effects(robot: RobotModel, kinds: Sequence[str] | None = None,
     return out
 
 
-def implausible(effect: BoundEffect, values: Sequence[float],
+def implausible(effect: BoundEffect, values: Sequence[float] | np.ndarray,
                 tau: np.ndarray | None = None) -> str:
     """'' when every fitted value is within the effect's plausible range, else a warning
     naming the parameter, its value and the bound.
@@ -577,7 +296,7 @@ def implausible(effect: BoundEffect, values: Sequence[float],
 LINEAR_PLAY = 1.0 / 3.0
 
 
-def _compliance_limit(effect: BoundEffect, values: Sequence[float],
+def _compliance_limit(effect: BoundEffect, values: Sequence[float] | np.ndarray,
                       tau: np.ndarray) -> list[str]:
     compliance = _REGISTRY['joint_compliance']
     bound = (compliance.prismatic_plausible if effect.joint_kind == 'prismatic'
@@ -592,49 +311,3 @@ def _compliance_limit(effect: BoundEffect, values: Sequence[float],
     unit = 'm/N' if effect.joint_kind == 'prismatic' else 'rad/(N m)'
     return [f'at the measured torques (|τ| ≤ {largest:.3g}, τ0 = {tau0:.3g}) it is the '
             f'compliance b/τ0 = {c:.3g} {unit}, beyond the plausible ±{bound[0]:.3g}']
-
-
-# ----------------------------------------------------------------- simulation
-def hidden_effects(doc: Any, robot: RobotModel, key: str = 'simulation.hidden_effects',
-                   base_dir: str | Path | None = None, allow_code: bool = False
-                   ) -> tuple[tuple[BoundEffect, ...], dict[str, float]]:
-    """Effects the simulated "true" robot has and the model lacks.
-
-    ``doc`` maps specs to parameter values, as in a cell file::
-
-        simulation:
-          hidden_effects:
-            joint_compliance:joint_2: {c: 8.0e-7}
-            tracker_scale: {s: 5.0e-6}
-
-    A parameter left out takes the effect's typical size.
-
-    Returns
-    -------
-    effects : tuple of BoundEffect
-    overrides : dict
-        Parameter name -> true value, for :func:`~kpi_calib_ros.core.simulation.true_parameters`.
-    """
-    if not doc:
-        return (), {}
-    if not isinstance(doc, dict):
-        raise ConfigError(key, 'must be a mapping {effect:joint: {parameter: value}}')
-    effects, overrides = [], {}
-    for spec, values in doc.items():
-        effect = parse_effect_spec(str(spec), robot, f'{key}.{spec}', base_dir, allow_code)
-        values = values or {}
-        if not isinstance(values, dict):
-            raise ConfigError(f'{key}.{spec}',
-                              f'must map parameters {list(effect.kind.parameters)} to values')
-        unknown = set(values) - set(effect.kind.parameters)
-        if unknown:
-            raise ConfigError(f'{key}.{spec}.{sorted(unknown)[0]}', 'unknown parameter; '
-                              f'{effect.kind.name} has {list(effect.kind.parameters)}')
-        for suffix, name, typical in zip(effect.kind.parameters, effect.parameter_names,
-                                         effect.typical):
-            value = values.get(suffix, typical)
-            if not isinstance(value, (int, float)) or isinstance(value, bool):
-                raise ConfigError(f'{key}.{spec}.{suffix}', f'must be a number, got {value!r}')
-            overrides[name] = float(value)
-        effects.append(effect)
-    return tuple(effects), overrides

@@ -31,7 +31,7 @@ from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
 from kpi_calib_ros.core.out_of_sample import METHOD, out_of_sample_error
 from kpi_calib_ros.core.parameters import ParameterSet
 from kpi_calib_ros.core.prior import Prior
-from kpi_calib_ros.core.residuals import cross_validated_rms
+from kpi_calib_ros.core.residuals import validation_rms
 
 LEVELS = ('registration', 'joint_offsets', 'geometric')
 MODEL_CHOICES = ('auto',) + LEVELS
@@ -146,7 +146,7 @@ def choose_model(model: MeasurementModel, data: Measurements, fit: Fit, requeste
     ``requested`` is a level (used as given; the figures are still reported) or
     ``'auto'`` (the smallest level within `PARSIMONY` of the best). Beside it, the
     cross-validated rms over ``folds`` folds of poses
-    (:func:`kpi_calib_ros.core.residuals.cross_validated_rms`, folds that keep every
+    (:func:`kpi_calib_ros.core.residuals.validation_rms`, folds that keep every
     identified parameter determined, else None: not estimable from this design) is
     reported, not used.
 
@@ -177,7 +177,7 @@ def choose_model(model: MeasurementModel, data: Measurements, fit: Fit, requeste
                                   domains=('like_measured',)).domains['like_measured']
         predicted[level] = oos.rms_m if oos.estimable else None
         if used >= 2:
-            value = cross_validated_rms(model, data, result, used, seed)
+            value = validation_rms(model, data, result, used, seed)
             cv[level] = value if np.isfinite(value) else None
     if requested != 'auto':
         return ModelChoice(requested, requested, predicted, cv, used,

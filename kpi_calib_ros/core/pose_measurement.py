@@ -62,13 +62,25 @@ def rotation_residual_expression(measured9: Expr, predicted: Expr, scale: Expr) 
     return log3_expression(measured.T @ predicted) * ca.DM(np.asarray(scale, float))
 
 
-def rotation_from_rpy(rpy: Sequence[float]) -> np.ndarray:
+def rotation_from_rpy(rpy: Sequence[float] | np.ndarray) -> np.ndarray:
     """3x3 rotation of URDF roll, pitch, yaw (rad): Rz(yaw) · Ry(pitch) · Rx(roll)."""
     r, p, y = (float(a) for a in rpy)
     cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
     return np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
                      [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
                      [-sp, cp * sr, cp * cr]])
+
+
+def pose_matrix(pose: Sequence[float] | np.ndarray) -> np.ndarray:
+    """4x4 transform (m) of ``[x, y, z, roll, pitch, yaw]`` (m, rad, URDF convention): the
+    numeric twin of :func:`kpi_calib_ros.core.kinematics.pose6`, equal to it to the bit."""
+    v = np.asarray(pose, float).reshape(-1)
+    if v.shape != (6,):
+        raise ValueError(f'a pose is 6 numbers [x, y, z, roll, pitch, yaw], got {v.tolist()}')
+    out = np.eye(4)
+    out[:3, :3] = rotation_from_rpy(v[3:])
+    out[:3, 3] = v[:3]
+    return out
 
 
 def rotation_from_quaternion(xyzw: Sequence[float] | np.ndarray) -> np.ndarray:

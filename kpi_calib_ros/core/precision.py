@@ -31,8 +31,8 @@ from kpi_calib_ros.core.prior import Prior
 from kpi_calib_ros.core.residuals import (
     ADEQUACY_ALPHA,
     LEAVE_ONE_OUT,
-    cross_validated_rms,
     is_adequate,
+    validation_rms,
 )
 
 
@@ -192,7 +192,7 @@ def expected_tcp_error(model: MeasurementModel, data: Measurements, result: Cali
     if is_adequate(result.p_value, alpha):
         return ExpectedTcpError(result.working_pose_names, tcp_std, 0.0, tcp_std,
                                 float('nan'), noise, True)
-    cv = cross_validated_rms(model, data, result, LEAVE_ONE_OUT)
+    cv = validation_rms(model, data, result, LEAVE_ONE_OUT)
     misfit = float(np.sqrt(max(cv ** 2 - noise ** 2, 0.0))) if np.isfinite(cv) else np.nan
     return ExpectedTcpError(result.working_pose_names, tcp_std, misfit,
                             np.sqrt(tcp_std ** 2 + misfit ** 2), cv, noise, False)

@@ -291,7 +291,8 @@ def pose_index(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return q[np.sort(first)], rank[np.asarray(inverse).reshape(-1)]
 
 
-def cv_rms(a: np.ndarray, r: np.ndarray, w: np.ndarray, pose_folds: np.ndarray | None) -> float:
+def linear_validation_rms(a: np.ndarray, r: np.ndarray, w: np.ndarray,
+                          pose_folds: np.ndarray | None) -> float:
     """Cross-validated rms (m) of the linear model r ≈ a·δ, folds over poses.
 
     Each fold's held-out residual is exactly that of the refit without it,
@@ -362,7 +363,7 @@ def residual_report(model: MeasurementModel, data: Measurements, result: Calibra
         sigma_warning=warning)
 
 
-def cross_validated_rms(model: MeasurementModel, data: Measurements,
+def validation_rms(model: MeasurementModel, data: Measurements,
                         result: CalibrationResult, folds: int = LEAVE_ONE_OUT,
                         seed: int = 0) -> float:
     """Cross-validated rms (m) of the identified model over held-out poses.
@@ -379,5 +380,5 @@ def cross_validated_rms(model: MeasurementModel, data: Measurements,
         raise ValueError(f'folds must be 0 (leave one pose out) or in [2, {len(data)}] '
                          f'(number of poses), got {folds}')
     sys_ = linearized_fit(model, data, result)
-    return cv_rms(sys_.jac, sys_.r, sys_.w,
+    return linear_validation_rms(sys_.jac, sys_.r, sys_.w,
                   identifiable_folds(sys_.jac, np.atleast_2d(data.q), folds, seed))

@@ -49,7 +49,8 @@ from kpi_calib_ros.core.measurement import (
     noise_weights,
     weighted_residuals,
 )
-from kpi_calib_ros.core.outliers import judge, pose_groups
+from kpi_calib_ros.core.outliers import judge
+from kpi_calib_ros.core.replicates import pose_groups
 
 LOSSES = ('linear', 'huber', 'soft_l1')
 LOSS_SCALE = float(np.sqrt(scipy.stats.chi2.ppf(0.95, 3)))
@@ -68,7 +69,10 @@ class OutlierSettings:
 
     exclude : exclude outliers and refit (else only report them);
     threshold : distance in units of σ̂ above which a point is an outlier (None: Bonferroni);
-    max_fraction : at most this fraction of the measurements is excluded.
+    max_fraction : at most this fraction of the measurements is excluded as lone faults
+    (no other point at the pose to confirm them, rule 3 of :mod:`kpi_calib_ros.core.outliers`);
+    beyond it they are kept as model misfit. Faults the other points of their pose confirm
+    (rule 2) and gross points are excluded whatever their number.
     """
 
     exclude: bool = True
@@ -188,7 +192,7 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
     Raises
     ------
     DataError
-        When exclusion would leave fewer measurements than ``1 − max_fraction`` of them.
+        When the kept measurements are too few for the fit (it names the excluded ones).
     """
     if loss not in LOSSES:
         raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
@@ -205,7 +209,7 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
                                       'gross: farther than '
                                       f'{GROSS_DISTANCE:g} m from the nominal prediction'))
         kept &= ~gross
-    max_excluded = int(np.floor(outliers.max_fraction * n))
+    max_lone = int(np.floor(outliers.max_fraction * n))
     pose = pose_groups(q)
     p0 = None
     rounds = 0
@@ -240,8 +244,11 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
         # The faults within half the farthest one's distance: a batch a distorted fit
         # cannot have pushed good points into (swamping), then a refit.
         batch = fault & (t >= max(threshold, 0.5 * float(t[fault].max())))
-        too_many = len(excluded) + int(batch.sum()) > max_excluded
-        if too_many and not lone_misfit and (batch & verdict.lone).any():
+        # max_fraction caps the points excluded on no evidence but their distance (rule 3
+        # of core.outliers: no other point at the pose); a fault its pose's other points
+        # confirm (rule 2), or a gross point, is excluded whatever the fraction.
+        lone_count = len(lone_excluded) + int((batch & verdict.lone).sum())
+        if lone_count > max_lone and not lone_misfit:
             # More lone "faults" than faults happen: points no replicate confirms, this
             # many, are the model's misfit (real arms with an effect the model lacks), not
             # the tracker's faults. Keep them all, those excluded before too, and refit.
@@ -256,11 +263,6 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
                          'would be excluded with no replicate to confirm them: taken as '
                          f'model misfit; {len(restored)} restored, refitting')
             continue
-        if too_many:
-            raise DataError(f'more than {outliers.max_fraction:.0%} of the {n} measurements '
-                            f'lie beyond {threshold:.2f} σ̂ (σ̂ = {scale * 1e6:.1f} µm): the '
-                            'model or the data is wrong, not a few points; run kpi-calib '
-                            'diagnose, or raise identification.outliers.threshold')
         # The reason carries no distance of its own: distance_sigma (against the final
         # fit, below) is the one figure reported for the point.
         for i in np.flatnonzero(batch)[np.argsort(-t[batch])]:

@@ -65,6 +65,7 @@ from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.estimability import result_estimability
 from kpi_calib_ros.core.estimation import CalibrationResult, identify
 from kpi_calib_ros.core.measurement import Measurements
+from kpi_calib_ros.core.replicates import SAME_POSE_TOLERANCE, pose_groups
 from kpi_calib_ros.core.robust import (
     ExcludedMeasurement,
     Fit,
@@ -82,9 +83,6 @@ INITIAL_STARTS = 3
 # Size of the batch design the initial design and the first planned poses are nested in,
 # in multiples of the initial design's size.
 NESTED_FACTOR = 3
-# Joint values (rad, m) within which two measured poses are the same pose measured again:
-# above the averaged joint-state noise of a still robot, far below any two candidates.
-REPLICATE_TOLERANCE = 1e-4
 # Remove-and-replace sweeps over the plan at each measurement (the plan carries over, so
 # they accumulate): a count, not a time, so a campaign chooses the same poses on any
 # machine under any load. Measured on the default cell (30 planned poses, 2000 candidates,
@@ -262,23 +260,11 @@ def sigma_upper_limit(chi2: float, dof: int, sigma: float, confidence: float) ->
     return float(sigma * np.sqrt(chi2 / scipy.stats.chi2.ppf(1.0 - confidence, dof)))
 
 
-def pose_groups(q: np.ndarray, tolerance: float = REPLICATE_TOLERANCE) -> np.ndarray:
-    """Label (N,) of each row of ``q`` (N, n): rows whose joint values all differ by at
-    most ``tolerance`` (rad, m) from the group's first row share a label (replicates)."""
-    q = np.atleast_2d(q)
-    labels = np.full(len(q), -1)
-    for i in range(len(q)):
-        if labels[i] < 0:
-            same = (labels < 0) & np.all(np.abs(q - q[i]) <= tolerance, axis=1)
-            labels[same] = i
-    return labels
-
-
 def pure_error(q: np.ndarray, eta: np.ndarray, weight: np.ndarray,
                reflector: np.ndarray | None = None) -> tuple[float, int]:
     """Weighted sum of squares (σ units) and dof of the scatter of repeated poses
-    (:func:`pose_groups`): 3 (m − 1) dof per pose measured m times, per reflector
-    (``reflector`` (N,) the reflector of each point row; None: one)."""
+    (:func:`~kpi_calib_ros.core.replicates.pose_groups`): 3 (m − 1) dof per pose measured
+    m times, per reflector (``reflector`` (N,) the reflector of each point row; None: one)."""
     ss, dof = 0.0, 0
     labels = pose_groups(q)
     if reflector is not None:
@@ -407,7 +393,8 @@ class SequentialCampaign:
                               f'identifiable parameter and the TCP has {smallest}, + '
                               f'initial_margin {s.initial_margin}); give at least {size}')
 
-    def match_candidates(self, q: np.ndarray, tolerance: float = 1e-3) -> np.ndarray:
+    def match_candidates(self, q: np.ndarray,
+                         tolerance: float = SAME_POSE_TOLERANCE) -> np.ndarray:
         """Candidate index (N,) of each measured pose ``q`` (N, n): the candidate within
         ``tolerance`` (rad, m) on every joint, -1 if none (a robot that stopped off the
         planned pose)."""

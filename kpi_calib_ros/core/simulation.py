@@ -259,3 +259,18 @@ def equivalent_parameters(model: MeasurementModel, p_true: np.ndarray, kept: tup
             break
     residual = target - model.predict(p, q_samples)
     return p, float(np.max(np.linalg.norm(residual, axis=1)))
+
+
+def smooth_joint_map(q: np.ndarray, joints: tuple[int, int], amplitude_m: float,
+                     phase: np.ndarray) -> np.ndarray:
+    """A smooth displacement (N, 3) of the tool (m, tracker frame) that depends on two
+    joints only and no physical effect of the library describes: each axis a product of
+    sines of the two angles, ``amplitude_m`` its largest size, ``phase`` (6,) rad.
+
+    The unknown misfit the learned residual (:mod:`kpi_calib_ros.core.learned_residual`)
+    is tested on."""
+    q = np.atleast_2d(np.asarray(q, float))
+    a, b = q[:, joints[0]], q[:, joints[1]]
+    phase = np.asarray(phase, float).reshape(3, 2)
+    return amplitude_m * np.column_stack([np.sin(1.3 * a + ph[0]) * np.cos(1.1 * b + ph[1])
+                                          for ph in phase])

@@ -17,10 +17,10 @@ verdict is this test at the adequacy level.
 
 The new poses fall in three groups, reported apart (the groups of a held-out protocol):
 *outside* the joint ranges the calibration was identified on (extrapolation, where a
-geometric model fails first); *repeated*, inside them and within :data:`REPEATED_WITHIN`
-of a training pose on every joint (the same configuration measured again: their error is
-the robot's and the instrument's repeatability between the campaigns, which no model
-of the configuration removes); *new* poses inside the ranges (generalisation).
+geometric model fails first); *repeated*, inside them and the same pose as a training pose
+(:func:`~kpi_calib_ros.core.replicates.same_pose`: the same configuration measured again:
+their error is the robot's and the instrument's repeatability between the campaigns, which
+no model of the configuration removes); *new* poses inside the ranges (generalisation).
 
 A validation recording is usually made with the tracker (or the probe) set up again, so
 its points are in another tracker frame. With ``registered`` the base pose (and, if
@@ -44,11 +44,8 @@ import scipy.stats
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements, row_sigma
 from kpi_calib_ros.core.registration import Reregistration, reregister
+from kpi_calib_ros.core.replicates import same_pose
 from kpi_calib_ros.core.residuals import ADEQUACY_ALPHA
-
-# A new pose within this of a training pose on every joint (rad, or m for a prismatic
-# joint) repeats it: the peer toolbox's held-out protocol uses the same 0.01.
-REPEATED_WITHIN = 0.01
 
 
 @dataclass(frozen=True)
@@ -66,8 +63,9 @@ class Validation:
     outside : (N,) bool ndarray
         Pose beyond the training joint range of some joint.
     repeated : (N,) bool ndarray
-        Pose inside the ranges and within :data:`REPEATED_WITHIN` of a training pose on
-        every joint (all False when the training poses are not known).
+        Pose inside the ranges and the same pose as a training pose
+        (:func:`~kpi_calib_ros.core.replicates.same_pose`; all False when the training
+        poses are not known).
     chi2, dof, p_value : float, int, float
         dof is 3N less the degrees of freedom the re-registration took.
     holds : bool
@@ -185,10 +183,7 @@ def validate(model: MeasurementModel, p: np.ndarray, estimated: np.ndarray,
     outside = np.any((q < np.asarray(lower) - tol) | (q > np.asarray(upper) + tol), axis=1)
     repeated = np.zeros(len(q), dtype=bool)
     if training_q is not None and len(training_q):
-        poses, inverse = np.unique(q, axis=0, return_inverse=True)
-        near = np.array([np.any(np.all(np.abs(np.asarray(training_q) - pose)
-                                       <= REPEATED_WITHIN + tol, axis=1)) for pose in poses])
-        repeated = near[np.ravel(inverse)] & ~outside
+        repeated = same_pose(q, np.asarray(training_q, float)) & ~outside
     return Validation(residuals, np.sqrt(np.trace(cov, axis1=1, axis2=2) / 3), np.sqrt(d2),
                       outside, repeated, chi2, dof, float(scipy.stats.chi2.sf(chi2, dof)),
                       alpha, registration)

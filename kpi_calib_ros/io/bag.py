@@ -45,8 +45,8 @@ from kpi_calib_ros.io.names import DEFAULT_POSE_TOPIC, point_sigma_topic
 from kpi_calib_ros.io.ros_messages import (
     JointStateDecoder,
     point_sample_from_message,
+    point_sigma_from_message,
     pose_sample_from_message,
-    stamp_ns,
 )
 
 # The metadata record by which a measurement log marks itself (see read_for_pairing).
@@ -223,6 +223,19 @@ def read_bag(
         File missing or not MCAP, a topic absent (the topics present are listed),
         or a topic carrying another message type.
     """
+    joint_samples, point_samples, _ = read_bag_with_sigma(path, joint_topic, point_topic,
+                                                          pose_topic)
+    return joint_samples, point_samples
+
+
+def read_bag_with_sigma(
+    path: str | os.PathLike,
+    joint_topic: str = DEFAULT_JOINT_TOPIC,
+    point_topic: str = DEFAULT_POINT_TOPIC,
+    pose_topic: str = DEFAULT_POSE_TOPIC,
+) -> tuple[list[JointSample], list[PointSample], dict[tuple[int, str], np.ndarray]]:
+    """:func:`read_bag`, and the points' stated σ (3,) (m) by (stamp ns, frame id) from
+    ``point_sigma_topic(point_topic)`` ({} when the bag has none)."""
     path = _checked_path(path)
     opened = _open(path, joint_topic, point_topic, require_topics=True, pose_topic=pose_topic)
     assert opened is not None
@@ -230,7 +243,8 @@ def read_bag(
     bad: list[int] = []
     result = (_decode(path, bag, joints, *_indices(bag, joints)[:2], bad),
               _decode(path, bag, points, *_indices(bag, points)[:2], bad)
-              + _decode(path, bag, poses, *_indices(bag, poses)[:2], bad))
+              + _decode(path, bag, poses, *_indices(bag, poses)[:2], bad),
+              _point_sigma(path, bag, point_topic))
     _warn_undecodable(path, bad)
     return result
 
@@ -274,10 +288,8 @@ def _point_sigma(path: Path, bag: ScannedBag, point_topic: str
     out: dict[tuple[int, str], np.ndarray] = {}
     for c in (c for c in ids if c in bag.messages):
         for i in range(len(bag.messages[c])):
-            message = decoder(bag.payload(c, i))
-            v = message.vector
-            sigma = np.array([v.x, v.y, v.z], dtype=float)
-            key = (stamp_ns(message.header), str(message.header.frame_id))
+            stamp, frame_id, sigma = point_sigma_from_message(decoder(bag.payload(c, i)))
+            key = (stamp, frame_id)
             if not np.all(np.isfinite(sigma)) or np.any(sigma <= 0):
                 raise BagError(f"{path}: topic '{topic}', stamp {key[0]} ns, frame "
                                f"'{key[1]}': sigma {sigma.tolist()} is not > 0 and finite "
@@ -402,18 +414,29 @@ def read_log(path: str | os.PathLike, joint_topic: str = DEFAULT_JOINT_TOPIC,
              pose_topic: str = DEFAULT_POSE_TOPIC) -> list[tuple[JointSample, PointSample]]:
     """The measurements of one log file, in append order; torn appends skipped with a
     :class:`BagWarning`, a file killed before its header was written is empty."""
+    return read_log_with_sigma(path, joint_topic, point_topic, pose_topic)[0]
+
+
+def read_log_with_sigma(path: str | os.PathLike, joint_topic: str = DEFAULT_JOINT_TOPIC,
+                        point_topic: str = DEFAULT_POINT_TOPIC,
+                        pose_topic: str = DEFAULT_POSE_TOPIC
+                        ) -> tuple[list[tuple[JointSample, PointSample]],
+                                   dict[tuple[int, str], np.ndarray]]:
+    """:func:`read_log`, and the points' stated σ (3,) (m) by (stamp ns, frame id) the log
+    holds on ``point_sigma_topic(point_topic)`` ({} for a log written without any)."""
     path = Path(path)
     opened = _open(path, joint_topic, point_topic, require_topics=False, pose_topic=pose_topic)
     if opened is None:
-        return []
+        return [], {}
     bag, joints, points, poses = opened
     bad: list[int] = []
     pairs = list(zip(*_stored_pairs(path, bag, joints, points, bad, poses)))
     _warn_undecodable(path, bad)
-    return pairs
+    return pairs, _point_sigma(path, bag, point_topic)
 
 
 __all__ = ['BagContents', 'BagError', 'BagWarning', 'LIBRARY', 'StreamEncoders',
            'DEFAULT_JOINT_TOPIC', 'DEFAULT_POINT_TOPIC', 'JOINT_STATE_TYPE', 'LOG_CONTENT',
            'LOG_METADATA', 'POINT_STAMPED_TYPE', 'is_measurement_log', 'message_definition',
-           'read_bag', 'read_for_pairing', 'read_log', 'type_hash', 'write_bag']
+           'read_bag', 'read_bag_with_sigma', 'read_for_pairing', 'read_log',
+           'read_log_with_sigma', 'type_hash', 'write_bag']

@@ -187,8 +187,9 @@ CELL_KEYS: tuple[CellKey, ...] = (
        'outliers before the fit is refused, in [0, 1).', 0.1),
     _K('identification.cv_folds', 'integer', '', '5', 'Folds of the cross-validated rms '
        "reported beside `auto`'s choice, ≥ 2.", 5),
-    _K('identification.max_iterations', 'integer', '', '500', 'Iteration limit of every '
-       'fit (trust-region Gauss-Newton), ≥ 1; `identify --max-iterations` overrides it.', 200),
+    _K('identification.max_iterations', 'integer or null', '', 'null', 'Iteration limit of '
+       'every fit (trust-region Gauss-Newton), ≥ 1; null: 100 per identified parameter '
+       "(SciPy's max_nfev); `identify --max-iterations` overrides it.", 200),
     _K('identification.prior', 'mapping or null', '', 'null', 'Nominal tolerances: one std '
        'around the URDF for every joint placement and offset (a Gaussian prior).',
        {'translation': 1e-3, 'rotation': 1e-3, 'offset': 1e-3}),

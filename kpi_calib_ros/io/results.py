@@ -1,7 +1,7 @@
 """Result files: calibration.yaml and small helpers to write files atomically.
 
 :func:`calibration_to_dict` writes the identification itself; the application layer
-(:func:`kpi_calib_ros.app.identify.add_robust_sections`) adds ``valid`` /
+(:func:`kpi_calib_ros.app.calibration_document.add_robust_sections`) adds ``valid`` /
 ``invalid_reasons``, ``model`` (level, every level's ``predicted_rms_m`` and
 ``cv_rms_m``, reason), ``robust``
 (``sigma_stated_m``, ``sigma_robust_m``, ``sigma_ratio``, ``loss``, ``loss_scale``,

@@ -14,7 +14,15 @@ from typing import Any, Callable
 
 import numpy as np
 from builtin_interfaces.msg import Time
-from geometry_msgs.msg import Point, PointStamped, Pose, PoseStamped, Quaternion
+from geometry_msgs.msg import (
+    Point,
+    PointStamped,
+    Pose,
+    PoseStamped,
+    Quaternion,
+    Vector3,
+    Vector3Stamped,
+)
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Header
 
@@ -50,6 +58,14 @@ def time_msg(ns: int) -> Time:
 
 
 # ------------------------------------------------------------------ message -> sample
+def point_sigma_from_message(message: Any) -> tuple[int, str, np.ndarray]:
+    """A geometry_msgs/Vector3Stamped (rclpy message or decoded bag record) carrying a
+    point's stated σ per axis (m) as (stamp ns, frame id, σ (3,)); not validated here."""
+    v = message.vector
+    return (stamp_ns(message.header), str(message.header.frame_id),
+            np.array([v.x, v.y, v.z], dtype=float))
+
+
 def joint_sample_from_message(message: Any) -> JointSample:
     """A sensor_msgs/JointState (rclpy message or decoded bag record) as a JointSample.
 
@@ -145,6 +161,12 @@ def point_stamped_msg(sample: PointSample) -> PointStamped:
     """PointSample -> PointStamped."""
     f = point_stamped_fields(sample)
     return PointStamped(header=_header(f['header']), point=Point(**f['point']))
+
+
+def vector3_stamped_msg(stamp_ns: int, frame_id: str, xyz: np.ndarray) -> Vector3Stamped:
+    """A vector (3,) -> Vector3Stamped (a point's σ per axis, m, with its stamp and frame)."""
+    f = vector3_stamped_fields(stamp_ns, frame_id, xyz)
+    return Vector3Stamped(header=_header(f['header']), vector=Vector3(**f['vector']))
 
 
 def pose_stamped_msg(sample: PointSample) -> PoseStamped:
