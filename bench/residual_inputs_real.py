@@ -2,8 +2,9 @@
 
 UR10 (../shared/data/ipa_ur10, Series A, every ``STEP``-th posture of the overnight grid,
 with the cell temperature as a covariate) and TIAGo (../shared/data/tiago_mocap, the
-2021-11-30 session): ``kpi-calib diagnose``'s calibration, its named-effect screen and the
-residual analysis (core.residual_analysis); the four answers, the ranked inputs and the
+2021-11-30 session): ``kpi-calib diagnose``'s calibration, its named-effect screen, the
+residual analysis (core.residual_analysis) and the learned residual's decision; the four
+answers, the ranked inputs and the
 partial-residual plot. Writes bench/results/residual_inputs_real.md and the plots beside it.
 
     .venv/bin/python bench/residual_inputs_real.py [DATA_DIR]   # default ../shared/data
@@ -22,8 +23,9 @@ import numpy as np
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
-from kpi_calib_ros.app.diagnose import diagnose_cell
-from kpi_calib_ros.app.identify import measurements_from_bag
+from kpi_calib_ros.app.diagnose import diagnose_cell, learned_remedy, with_remedies
+from kpi_calib_ros.app.learned_residual import choose_residual
+from kpi_calib_ros.app.measurements import measurements_from_bag
 from kpi_calib_ros.cli import main
 from kpi_calib_ros.io.cell import build_cell_model, load_cell
 from kpi_calib_ros.io.names import DEFAULT_TEMPERATURE_TOPIC
@@ -66,6 +68,11 @@ def _run(name: str, cell: Path, bag: Path, covariates: bool, out: Path) -> list[
     with contextlib.redirect_stderr(io.StringIO()):
         cd = diagnose_cell(cm, data, add_best=False, covariates=cov)
     took = time.perf_counter() - start
+    # As kpi-calib diagnose does: the learned residual, when chosen, is one more remedy.
+    choice = choose_residual(cm, cd.data, cd.result)
+    learned = learned_remedy(choice)
+    if learned is not None:
+        cd = with_remedies(cd, (learned,))
     folder = out / name
     write_report(folder, cd)
     shutil.copy(folder / 'partial_residuals.png', RESULTS / f'residual_inputs_{name}.png')
@@ -75,6 +82,7 @@ def _run(name: str, cell: Path, bag: Path, covariates: bool, out: Path) -> list[
              f'validation rms {cd.diagnosis.validation_rms_m * 1e6:.1f} µm; diagnose '
              f'(calibration, screen, residual analysis) {took:.0f} s. Verdict of the '
              f'named-effect screen: {cd.diagnosis.verdict}', '',
+             f'Learned residual: {choice.reason}.', '',
              f'Plot: `residual_inputs_{name}.png`.']
     lines += analysis_lines(cd.residual_analysis, cd.answer)[1:]
     return lines + ['']

@@ -7,15 +7,17 @@ diagnosis's result type can hold the answer):
 * *where*: the inputs the residual analysis flags
   (:mod:`kpi_calib_ros.core.residual_analysis`), with their shares and the ranges where
   the misfit is largest -- model-free, so it answers even when no effect does;
-* *what*: of the remedies at hand -- the most likely named effect of the library when one
-  is significant (:func:`kpi_calib_ros.core.diagnosis.diagnose`; ``named``, built by
-  :func:`kpi_calib_ros.app.diagnose.named_remedy`) and the ``general`` ones
-  offered (any :class:`Remedy`: a general effect, a learned correction, each with its own
-  command and held-out figures) -- the one with the smallest held-out error; but when a
-  smooth function of the flagged inputs removes more than twice the held-out mean square
-  that remedy removes, or there is none, "a smooth misfit depending on X and Y that none
-  of our effects has", with what the smooth correction gains on held-out poses (a named
-  effect that explains a sliver of the misfit is not the answer);
+* *what*: the most likely named effect of the library when one is significant
+  (:func:`kpi_calib_ros.core.diagnosis.diagnose`; ``named``, built by
+  :func:`kpi_calib_ros.app.diagnose.named_remedy`), unless one of the ``general``
+  remedies offered (any :class:`Remedy`: the learned residual, a general effect, each with
+  its own command and held-out figures) removes more than twice the fraction of the
+  held-out mean square it removes; and when a smooth function of the flagged inputs
+  removes more than twice the fraction that remedy removes, or there is none, "a smooth
+  misfit depending on X and Y that none of our effects has", with what the smooth
+  correction gains on held-out poses (a named effect that explains a sliver of the misfit
+  is not the answer). Fractions, not differences: each remedy's 'before' comes from its
+  own cross-validation;
 * *command* and *before/after*: of the remedy chosen.
 """
 from __future__ import annotations
@@ -115,9 +117,8 @@ def answer_misfit(analysis: ResidualAnalysis | None, named: Remedy | None = None
     """
     flagged = analysis.significant if analysis is not None else ()
     where = _where(analysis, chi2_adequate)
-    offered = ([named] if named is not None else []) + [
-        g for g in general if np.isfinite(g.held_out_after_m)
-        and g.held_out_after_m < g.held_out_before_m]
+    offered = [g for g in general if np.isfinite(g.held_out_after_m)
+               and g.held_out_after_m < g.held_out_before_m]
     smooth = None
     if flagged and analysis is not None:
         pair = analysis.pair
@@ -129,8 +130,17 @@ def answer_misfit(analysis: ResidualAnalysis | None, named: Remedy | None = None
             '', analysis.combined_before_m, analysis.combined_after_m,
             f'geometry refitted with a smooth function of {_names(flagged)}, '
             f'{analysis.folds} pose folds')
+    # Remedies are compared by the fraction of the held-out mean square each removes (each
+    # states its own 'before': the screen's, the learned residual's and the analysis's
+    # cross-validations differ). A physical named effect stays the answer unless another
+    # remedy removes more than twice its fraction.
+    chosen = named
     if offered:
-        missing = min(offered, key=lambda g: np.nan_to_num(g.held_out_after_m, nan=np.inf))
+        best_general = max(offered, key=_gain)
+        if chosen is None or _gain(best_general) > 2 * _gain(chosen):
+            chosen = best_general
+    if chosen is not None:
+        missing = chosen
         # A remedy that leaves most of what a smooth correction removes is only part of
         # the answer: the smooth misfit is what is missing, the remedy a partial step.
         if smooth is not None and _gain(smooth) > 2 * _gain(missing):
@@ -151,8 +161,9 @@ def answer_misfit(analysis: ResidualAnalysis | None, named: Remedy | None = None
 
 
 def _gain(remedy: Remedy) -> float:
-    """Reduction of the held-out mean square (m²) a remedy brings (0 when unknown)."""
-    gain = remedy.held_out_before_m ** 2 - remedy.held_out_after_m ** 2
+    """Fraction of the held-out mean square a remedy removes, 1 − after²/before² (0 when
+    unknown)."""
+    gain = 1.0 - (remedy.held_out_after_m / remedy.held_out_before_m) ** 2
     return float(gain) if np.isfinite(gain) else 0.0
 
 
