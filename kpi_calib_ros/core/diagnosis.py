@@ -30,6 +30,7 @@ import scipy.stats
 from kpi_calib_ros.core.effects import BoundEffect, candidate_effects, implausible
 from kpi_calib_ros.core.estimation import CalibrationResult, point_sigma_squares
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements, unweighted, weighted_rows
+from kpi_calib_ros.core.misfit import MisfitAnswer
 from kpi_calib_ros.core.out_of_sample import OutOfSample
 from kpi_calib_ros.core.precision import (
     JOINT_NOISE_CAUSE,
@@ -37,6 +38,7 @@ from kpi_calib_ros.core.precision import (
     chi2_scale,
     precision_statement,
 )
+from kpi_calib_ros.core.residual_analysis import ResidualAnalysis
 from kpi_calib_ros.core.residuals import (
     ADEQUACY_ALPHA,
     LinearizedFit,
@@ -215,6 +217,10 @@ class CellDiagnosis:
         return [int(i) for i in (idx if self.kept is None else np.flatnonzero(self.kept)[idx])]
     # Expected TCP error at the working poses with the misfit (core.precision).
     expected: ExpectedTcpError | None = None
+    # Where the model fails, model-free (core.residual_analysis), and the four answers
+    # (core.misfit: where, what is missing, the command, held-out error before/after).
+    residual_analysis: ResidualAnalysis | None = None
+    answer: MisfitAnswer | None = None
 
 
 def screen_effects(model: MeasurementModel, data: Measurements, result: CalibrationResult,

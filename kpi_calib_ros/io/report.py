@@ -19,6 +19,13 @@ from kpi_calib_ros.core.diagnosis import Candidate, CellDiagnosis, ModelComparis
 from kpi_calib_ros.core.out_of_sample import DOMAIN_TEXT, NOT_ESTIMABLE, OutOfSample
 from kpi_calib_ros.core.precision import ExpectedTcpError, precision_statement
 from kpi_calib_ros.io.names import DIAGNOSIS_FILE, REPORT_FILE
+from kpi_calib_ros.io.residual_plots import (
+    analysis_lines,
+    analysis_text,
+    analysis_to_dict,
+    answer_to_dict,
+    write_partial_residual_plot,
+)
 from kpi_calib_ros.io.results import write_atomic
 
 _UM = 1e6
@@ -90,6 +97,10 @@ def diagnosis_to_dict(cd: CellDiagnosis) -> dict[str, Any]:
         doc['added_effect'] = comparison_to_dict(cd.comparison)
         if cd.after_out_of_sample is not None:
             doc['added_effect']['out_of_sample'] = cd.after_out_of_sample.to_dict()
+    if cd.residual_analysis is not None:
+        doc['residual_inputs'] = analysis_to_dict(cd.residual_analysis)
+    if cd.answer is not None:
+        doc['misfit'] = answer_to_dict(cd.answer)
     return doc
 
 
@@ -162,6 +173,8 @@ def diagnosis_text(cd: CellDiagnosis, top: int = 5) -> str:
             lines.append(f'{c.spec}: {c.explanation}')
     if cd.comparison is not None:
         lines.append(comparison_text(cd.comparison))
+    if cd.residual_analysis is not None:
+        lines += analysis_text(cd.residual_analysis, cd.answer)
     return '\n'.join(lines)
 
 
@@ -394,6 +407,8 @@ def write_report(out_dir: str | Path, cd: CellDiagnosis) -> Path:
     doc = diagnosis_to_dict(cd)
     write_diagnosis_json(out, doc)
     plots = write_plots(out, cd)
+    if cd.residual_analysis is not None:
+        plots.insert(0, write_partial_residual_plot(out, cd.residual_analysis))
     diag, rep = cd.diagnosis, cd.diagnosis.residuals
     lines = ['# Model diagnosis', '', f'**{diag.verdict}**', '',
              '## Residuals of the calibrated model', '',
@@ -414,6 +429,8 @@ def write_report(out_dir: str | Path, cd: CellDiagnosis) -> Path:
               f'{cd.given_index(rep.outlier)} |',
               f'| high leverage (> 3× mean) | {cd.given_index(rep.high_leverage)} |',
               f'| excluded by identify (not diagnosed) | {list(cd.excluded)} |']
+    if cd.residual_analysis is not None:
+        lines += analysis_lines(cd.residual_analysis, cd.answer)
     if cd.out_of_sample is not None:
         lines += out_of_sample_table(cd.out_of_sample)
     if cd.expected is not None:
