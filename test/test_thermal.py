@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from kpi_calib_ros.app.diagnose import diagnose_cell, recorded_covariates
 from kpi_calib_ros.app.identify import calibrate_cell
 from kpi_calib_ros.core.covariates import (
     DELTA_TEMPERATURE,
@@ -286,3 +287,16 @@ def test_at_one_temperature_a_thermal_effect_is_not_distinguishable(cm):
     ranked, rejected = screen_effects(cm.model, data, result, candidates)
     assert not ranked and {c.spec for c in rejected} == {e.name for e in candidates}
     assert all('temperature changes' in c.explanation for c in rejected)
+
+
+def test_diagnose_analyses_the_recorded_temperature_as_an_input(cm):
+    """The temperature the measurements carry reaches the model-free residual analysis of
+    ``diagnose`` without being passed: with a hidden link growth over a warm-up it is a
+    flagged input, and the geometric fit leaves it the largest share among the inputs."""
+    data, _, _ = _shift(cm, {'thermal_link_growth:joint_3': {'alpha': 60e-6}}, 2, n=120,
+                        rise=12.0)
+    assert set(recorded_covariates(data)) == {'temperature.arm'}
+    cd = diagnose_cell(cm, data, model='geometric', add_best=False)
+    scores = {s.name: s for s in cd.residual_analysis.scores}
+    assert 'temperature.arm' in scores
+    assert scores['temperature.arm'].significant

@@ -20,6 +20,7 @@ from kpi_calib_ros.app.identify import (
 )
 from kpi_calib_ros.app.learned_residual import choose_residual
 from kpi_calib_ros.app.measurements import load_measurements
+from kpi_calib_ros.core.covariates import TEMPERATURE_PREFIX
 from kpi_calib_ros.core.diagnosis import (
     CellDiagnosis,
     Diagnosis,
@@ -58,7 +59,10 @@ def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
     diagnosed are those :func:`~kpi_calib_ros.app.identify.calibrate_cell` keeps
     (``kept``, ``excluded`` of the result); ``progress`` gets its exclusion rounds.
     The residuals are also analysed model-free (:func:`with_misfit_answer`), with the
-    extra ``covariates`` (name -> ((M,) values of the given measurements, unit))."""
+    extra ``covariates`` (name -> ((M,) values of the given measurements, unit); default:
+    the temperatures ``data`` carries, :func:`recorded_covariates`)."""
+    if covariates is None:
+        covariates = recorded_covariates(data)
     # The points identify keeps, with its model level (outliers that are faults excluded,
     # core.outliers): the diagnosis describes the calibration the user gets.
     cal = calibrate_cell(cm, data, model, progress=progress)
@@ -100,6 +104,14 @@ def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
     return with_misfit_answer(CellDiagnosis(
         cm.model, data, result, diag, best, richer.model, after, comparison, oos, after_oos,
         kept, excluded, expected), covariates)
+
+
+def recorded_covariates(data: Measurements) -> dict[str, tuple[np.ndarray, str]]:
+    """The covariates the measurements carry for the residual analysis: each temperature
+    sensor's reading (``temperature.<frame id>``, °C; ΔT is the same input shifted)."""
+    return {name: (np.asarray(values, float), '°C')
+            for name, values in (data.covariates or {}).items()
+            if name.startswith(TEMPERATURE_PREFIX)}
 
 
 def with_misfit_answer(cd: CellDiagnosis,
