@@ -70,6 +70,7 @@ def test_node_page_lists_every_parameter_topic_and_service(pages):
     for service in ('design', 'identify', 'diagnose', 'validate', 'reset'):
         assert f'| `~/{service}` | `std_srvs/srv/Trigger` |' in text
     assert '| `/joint_states` | `sensor_msgs/msg/JointState` |' in text
+    assert '| `/laser_tracker/point/sigma` | `geometry_msgs/msg/Vector3Stamped` |' in text
     assert '| `~/tcp` | `geometry_msgs/msg/PoseWithCovarianceStamped` |' in text
 
 

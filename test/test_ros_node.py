@@ -387,11 +387,11 @@ def test_an_invalid_identification_keeps_the_last_good_calibration(in_process, m
     try:
         ok, message = run('good')
         assert ok, message
-        good, written = node._result, (node.data_dir / 'calibration.yaml').read_text()
+        good, written = node._run.result, (node.data_dir / 'calibration.yaml').read_text()
         assert node.status()[0] in ('OK', 'WARN')
         ok, message = run('one_pose')
         assert not ok and 'not estimable' in message.lower()
-        assert node._result is good
+        assert node._run.result is good
         assert (node.data_dir / 'calibration.yaml').read_text() == written
         level, text, _ = node.status()
         assert level == 'ERROR' and 'calibration not published' in text

@@ -103,8 +103,9 @@ NODE_MODULES = ('node.py', 'tcp_query.py')
 
 def _node_calls() -> tuple[dict[str, str], dict[str, str], list[str]]:
     """From the node's modules (:data:`NODE_MODULES`): publisher topic constant -> message
-    type, subscription setting or topic constant -> message type, and the service names,
-    as the node creates them."""
+    type, subscription setting, topic constant or ``function(setting)`` (a topic named
+    from a setting, such as ``point_sigma_topic(point_topic)``) -> message type, and the
+    service names, as the node creates them."""
     pubs: dict[str, str] = {}
     subs: dict[str, str] = {}
     services: list[str] = []
@@ -118,6 +119,10 @@ def _node_calls() -> tuple[dict[str, str], dict[str, str], list[str]]:
                 pubs[topic.id] = node.args[0].id
             elif kind == 'create_subscription' and isinstance(topic, ast.Attribute):
                 subs[topic.attr] = node.args[0].id
+            elif (kind == 'create_subscription' and isinstance(topic, ast.Call)
+                  and isinstance(topic.func, ast.Name) and len(topic.args) == 1
+                  and isinstance(topic.args[0], ast.Attribute)):
+                subs[f'{topic.func.id}({topic.args[0].attr})'] = node.args[0].id
             elif kind == 'create_subscription' and isinstance(topic, ast.Name):
                 subs[topic.id] = node.args[0].id
         if isinstance(node, ast.For) and isinstance(node.iter, ast.Tuple) and any(
@@ -131,7 +136,8 @@ def _node_calls() -> tuple[dict[str, str], dict[str, str], list[str]]:
 _PACKAGES = {'JointTrajectory': 'trajectory_msgs', 'String': 'std_msgs',
              'MarkerArray': 'visualization_msgs', 'DiagnosticArray': 'diagnostic_msgs',
              'PoseWithCovarianceStamped': 'geometry_msgs', 'PoseStamped': 'geometry_msgs',
-             'PointStamped': 'geometry_msgs', 'JointState': 'sensor_msgs'}
+             'PointStamped': 'geometry_msgs', 'JointState': 'sensor_msgs',
+             'Vector3Stamped': 'geometry_msgs'}
 
 
 def _msg(name: str) -> str:
@@ -165,6 +171,12 @@ def node_page() -> str:
     constants = {k: v for k, v in vars(names).items() if k.endswith('_TOPIC')}
     rows = [[code(PARAMETERS[setting][0]), code(_msg(kind)), f'parameter {code(setting)}']
             for setting, kind in subs.items() if setting in topics]
+    for call, kind in subs.items():  # a topic named from a setting: function(setting)
+        function, _, setting = call.rstrip(')').partition('(')
+        if setting in topics and callable(getattr(names, function, None)):
+            rows.append([code(getattr(names, function)(PARAMETERS[setting][0])),
+                         code(_msg(kind)),
+                         f'parameter {code(setting)} ({code(f"io.names.{function}")})'])
     rows += [[code(constants[const]), code(_msg(kind)), code(f'io.names.{const}')]
              for const, kind in subs.items() if const in constants]
     out.append(table(['topic (default)', 'type', 'set by'], rows))

@@ -66,7 +66,8 @@ def places_the_points(cm: CellModel, data: Measurements, p: np.ndarray) -> bool:
     If not, the placement is registered from the points before fitting."""
     tau = cm.robot.gravity_torques(data.q) if cm.model.uses_torque else None
     miss = np.linalg.norm(np.atleast_2d(data.eta)
-                          - cm.model.predict(p, data.q, tau, data.reflector, data.rotation),
+                          - cm.model.predict(p, data.q, tau, data.reflector, data.rotation,
+                                           data.covariates),
                           axis=1)
     return float(np.median(miss)) <= REGISTER_ABOVE_M
 

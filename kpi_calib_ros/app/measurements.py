@@ -11,17 +11,23 @@ from __future__ import annotations
 
 import dataclasses
 import sys
+import warnings
 from pathlib import Path
-from typing import Iterable, Mapping
+from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 
+from kpi_calib_ros.core.covariates import (
+    TemperatureSample,
+    temperature_covariates,
+    with_covariates,
+)
 from kpi_calib_ros.core.effects import split_specs
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.measurement import Measurements, with_rotation_rows
 from kpi_calib_ros.core.pairing import PairingResult, pair_measurements, split_frame
 from kpi_calib_ros.core.streams import JointSample, PointSample
-from kpi_calib_ros.io.bag import read_for_pairing
+from kpi_calib_ros.io.bag import read_for_pairing, read_temperatures
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
 from kpi_calib_ros.io.measurement_log import stored_pairing
 
@@ -131,9 +137,68 @@ def measurements_from_bag(cm: CellModel, path: str | Path,
     if contents.measurement_log:
         pairing = stored_pairing(zip(contents.joints, contents.points), list(cm.joint_names),
                                  cm.cell.tracker_frame)
-        return urdf_measurements(cm, to_measurements(cm, pairing, contents.point_sigma)), pairing
-    return measurements_from_samples(cm, contents.joints, contents.points,
-                                     point_sigma=contents.point_sigma, **pairer_options)
+        data = urdf_measurements(cm, to_measurements(cm, pairing, contents.point_sigma))
+    else:
+        data, pairing = measurements_from_samples(cm, contents.joints, contents.points,
+                                                  point_sigma=contents.point_sigma,
+                                                  **pairer_options)
+    return with_temperature(cm, data, path), pairing
+
+
+def with_temperature(cm: CellModel, data: Measurements, path: str | Path) -> Measurements:
+    """``data`` with the temperatures of the cell's ``temperature:`` topic in the bag
+    ``path`` paired to every row by its stamp (:mod:`kpi_calib_ros.core.covariates`); rows
+    without a temperature are refused with a warning. ``data`` unchanged without the
+    section.
+
+    Raises
+    ------
+    DataError
+        The section is there but the bag has no temperature on its topic, or a listed
+        sensor never published.
+    """
+    settings = cm.cell.temperature
+    if settings is None or len(data) == 0:
+        return data
+    kept, refused = paired_temperature(cm, data, read_temperatures(path, settings.topic),
+                                       str(path))
+    if refused:
+        warnings.warn(refused_text(cm, len(data), refused), stacklevel=2)
+    return kept
+
+
+def paired_temperature(cm: CellModel, data: Measurements, samples: Sequence[TemperatureSample],
+                       where: str = 'the recording'
+                       ) -> tuple[Measurements, list[tuple[int, str]]]:
+    """``data`` with the temperature readings ``samples`` paired to its rows by stamp, per
+    the cell's ``temperature:`` section, rows without one removed; [(row, reason)] of those.
+
+    Raises
+    ------
+    DataError
+        No reading at all, no stamps, or a listed sensor never published.
+    """
+    settings = cm.cell.temperature
+    assert settings is not None
+    if not samples:
+        raise DataError(f"{where}: no sensor_msgs/Temperature on '{settings.topic}' "
+                        '(temperature.topic in the cell file); record it, or remove the '
+                        'temperature: section')
+    if data.stamps_ns is None:
+        raise DataError('the measurements carry no stamps to pair temperatures with')
+    try:
+        cov = temperature_covariates(data.stamps_ns, samples, settings.sensors,
+                                     settings.reference_c, settings.max_gap_ns)
+    except ValueError as exc:
+        raise DataError(f'temperature.sensors: {exc}') from None
+    return with_covariates(data, cov)
+
+
+def refused_text(cm: CellModel, total: int, refused: list[tuple[int, str]]) -> str:
+    """One line on the rows refused for want of a temperature."""
+    gap = cm.cell.temperature.max_gap_s if cm.cell.temperature else float('nan')
+    return (f'{len(refused)} of {total} measurement rows refused: {refused[0][1]} '
+            f'(temperature.max_gap = {gap:g} s)')
 
 
 def load_measurements(cell_path: str | Path, bag_path: str | Path, effects: str = '',

@@ -114,7 +114,7 @@ def change_test(model: MeasurementModel, data: Measurements, sigma: float | np.n
     w = 1.0 / np.broadcast_to(np.asarray(sigma, float), (3,))
     q = np.atleast_2d(data.q)
     tau = model.robot.gravity_torques(q) if model.uses_torque else None
-    pred, jac = model.jacobian(p, q, tau, data.reflector, data.rotation)
+    pred, jac = model.jacobian(p, q, tau, data.reflector, data.rotation, data.covariates)
     r_data = ((np.atleast_2d(data.eta) - pred) * w).ravel()
     f_data = weighted_rows(jac, np.broadcast_to(w, (len(q), 3)), idx)
     l_full, lm = prior.rows(model.params)

@@ -31,6 +31,7 @@ from kpi_calib_ros.core.effects import BoundEffect, candidate_effects, implausib
 from kpi_calib_ros.core.estimation import CalibrationResult, point_sigma_squares
 from kpi_calib_ros.core.general_effects import general_candidates
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements, unweighted, weighted_rows
+from kpi_calib_ros.core.misfit import MisfitAnswer
 from kpi_calib_ros.core.model_selection import PARSIMONY
 from kpi_calib_ros.core.out_of_sample import OutOfSample
 from kpi_calib_ros.core.periodic_search import Periodogram, periodic_candidates, periodograms
@@ -40,6 +41,7 @@ from kpi_calib_ros.core.precision import (
     chi2_scale,
     precision_statement,
 )
+from kpi_calib_ros.core.residual_analysis import ResidualAnalysis
 from kpi_calib_ros.core.residuals import (
     ADEQUACY_ALPHA,
     LinearizedFit,
@@ -223,6 +225,10 @@ class CellDiagnosis:
         return [int(i) for i in (idx if self.kept is None else np.flatnonzero(self.kept)[idx])]
     # Expected TCP error at the working poses with the misfit (core.precision).
     expected: ExpectedTcpError | None = None
+    # Where the model fails, model-free (core.residual_analysis), and the four answers
+    # (core.misfit: where, what is missing, the command, held-out error before/after).
+    residual_analysis: ResidualAnalysis | None = None
+    answer: MisfitAnswer | None = None
 
 
 def screen_effects(model: MeasurementModel, data: Measurements, result: CalibrationResult,
@@ -252,7 +258,8 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
         Candidates the geometry absorbs or that change no measurement, with why.
     """
     if candidates is None:
-        candidates = candidate_effects(model.robot, exclude=[e.name for e in model.effects])
+        candidates = candidate_effects(model.robot, exclude=[e.name for e in model.effects],
+                                       covariates=data.covariates or ())
     sys_ = linearized_fit(model, data, result)
     n = len(data)
     pose_folds = identifiable_folds(sys_.jac, np.atleast_2d(data.q), folds, seed)
@@ -263,7 +270,8 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
     dof_base = 3 * n - sys_.basis.shape[1]
     q = np.atleast_2d(data.q)
     tau = sys_.tau if sys_.tau is not None else model.robot.gravity_torques(q)
-    joint_jac = model.joint_jacobian(sys_.p, q, sys_.tau, sys_.reflector, sys_.rotation)
+    joint_jac = model.joint_jacobian(sys_.p, q, sys_.tau, sys_.reflector, sys_.rotation,
+                                     sys_.covariates)
 
     fits: list[CandidateFit] = []
     rejected = []
@@ -416,7 +424,8 @@ def equivalent_joint_sigma(model: MeasurementModel, data: Measurements,
              else np.asarray(data.reflector) < model.n_reflectors)
     q = np.atleast_2d(data.q)[point]
     jq = model.joint_jacobian(result.values, q, None if data.tau is None else data.tau[point],
-                              None if data.reflector is None else data.reflector[point])
+                              None if data.reflector is None else data.reflector[point],
+                              covariates=data.subset(point).covariates)
     residuals = np.asarray(result.residuals)[point]
     n_rows = 3 * len(data)
     excess = (np.sum(residuals ** 2) * n_rows / max(result.dof, 1)
@@ -492,7 +501,7 @@ def _effect_columns(model: MeasurementModel, sys_: LinearizedFit, effect: BoundE
     aug = augmented_model(model, (effect,))
     k = len(effect.parameter_names) - len(shape)
     p = np.concatenate([sys_.p, np.zeros(k), shape])
-    _, jac = aug.jacobian(p, q, tau, sys_.reflector, sys_.rotation)
+    _, jac = aug.jacobian(p, q, tau, sys_.reflector, sys_.rotation, sys_.covariates)
     cols = jac[:, :, len(sys_.p):len(sys_.p) + k]
     disp = float(np.max(np.linalg.norm(cols @ np.asarray(effect.typical[:k]), axis=1)))
     return weighted_rows(cols, sys_.w), disp
@@ -643,8 +652,8 @@ def _driver_correlation(effect: BoundEffect, theta: np.ndarray, unique: np.ndarr
     implied angle error per pose; it is correlated (weighted by the squared
     lever) with the effect's fitted correction δq_j(q, τ, θ̂).
     """
-    if effect.joint_index is None:
-        return float('nan')
+    if effect.joint_index is None or effect.kind.joint_function is None or effect.inputs:
+        return float('nan')  # no correction of its joint's value from (q, τ) alone
     j = effect.joint_index
     explained = unweighted(r_aug + unique @ size, w)
     lever = joint_jac[:, :, j]

@@ -9,6 +9,7 @@ import math
 
 import casadi as ca
 
+from kpi_calib_ros.core.covariates import DELTA_TEMPERATURE
 from kpi_calib_ros.core.effect_types import EffectType
 
 BACKLASH_TORQUE_SCALE = 0.01  # N m: below this a joint counts as unloaded
@@ -45,6 +46,19 @@ def _scale(q_j: ca.SX, tau_j: ca.SX, theta: ca.SX) -> ca.SX:
 
 def _tracker_scale(point: ca.SX, theta: ca.SX) -> ca.SX:
     return (1 + theta[0]) * point
+
+
+# Linear expansion of the materials arms are made of, 1/K: steel 11-13e-6, cast iron ~10e-6,
+# aluminium 23-24e-6. A fitted α beyond THERMAL_EXPANSION_BOUND is flagged.
+THERMAL_EXPANSION_BOUND = 30e-6
+
+
+def _thermal_drift(q_j: ca.SX, tau_j: ca.SX, theta: ca.SX, z: ca.SX) -> ca.SX:
+    return theta[0] * z[0]
+
+
+def _thermal_growth(origin: ca.DM, theta: ca.SX, z: ca.SX) -> ca.SX:
+    return ca.vertcat(theta[0] * z[0] * origin, ca.SX.zeros(3))
 
 
 LIBRARY: tuple[EffectType, ...] = (
@@ -111,4 +125,30 @@ LIBRARY: tuple[EffectType, ...] = (
                hint='a global scale is absorbed by the free link lengths and the base '
                     'distance; measure a reference length (a calibrated scale bar) or '
                     'fix the link lengths'),
+    EffectType('thermal_zero_drift', ('d',), ('rad/K',), _thermal_drift, typical=(2e-6,),
+               screen=True, inputs=(DELTA_TEMPERATURE,), prismatic_units=('m/K',),
+               # 1e-4 rad/K: 2 mrad over a 20 K shift, far beyond a drifting encoder zero
+               plausible=(1e-4,), prismatic_plausible=(1e-4,),
+               description='joint-zero drift in proportion to the temperature change d·ΔT '
+                           '(screened where a temperature is recorded)',
+               hint='measure while the temperature changes (a warm-up, a shift), with '
+                    'the poses spread over the temperatures, not one temperature per region',
+               signature='temperature change (zero of {joint})'),
+    EffectType('thermal_link_growth', ('alpha',), ('1/K',),
+               placement_function=_thermal_growth, typical=(12e-6,), screen=True,
+               inputs=(DELTA_TEMPERATURE,), plausible=(THERMAL_EXPANSION_BOUND,),
+               prismatic_plausible=(THERMAL_EXPANSION_BOUND,), prismatic_units=('1/K',),
+               description='thermal growth α·ΔT of the link before the joint, its origin '
+                           'translation (screened where a temperature is recorded)',
+               hint='measure while the temperature changes, with poses that stretch the '
+                    'link before {joint} in different directions at each temperature',
+               signature='temperature change (length of the link before {joint})'),
+    EffectType('thermal_growth', ('alpha',), ('1/K',), placement_function=_thermal_growth,
+               per_joint=False, typical=(12e-6,), screen=True, inputs=(DELTA_TEMPERATURE,),
+               plausible=(THERMAL_EXPANSION_BOUND,),
+               description='thermal growth α·ΔT of every link, one material (screened where a '
+                           'temperature is recorded)',
+               hint='measure while the temperature changes, over a wide workspace at each '
+                    'temperature',
+               signature='temperature change (every link length)'),
 )

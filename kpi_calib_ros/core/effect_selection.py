@@ -136,7 +136,8 @@ def choose_effects(model: MeasurementModel, data: Measurements, fit_for: FitFor,
     reason = f'at most {max_effects} effects'
     for rnd in range(1, max_effects + 1):
         pool = {e.name: e for e in candidate_effects(
-            model.robot, exclude=[e.name for e in model.effects])}
+            model.robot, exclude=[e.name for e in model.effects],
+            covariates=data.covariates or ())}
         ranked, _ = screen_effects(model, data, current, list(pool.values()), alpha=alpha,
                                    seed=seed)
         passed = [c for c in ranked if c.significant and c.plausible]

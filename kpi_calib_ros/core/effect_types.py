@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable
 
 import casadi as ca
+import numpy as np
 
 
 @dataclass(frozen=True)
@@ -68,6 +69,16 @@ class EffectType:
     nests : tuple of str
         Simpler effects (names) this one contains as limits on the same joint; the
         diagnosis counts it only when it fits significantly better than them.
+    inputs : tuple of str
+        Covariates (``Measurements.covariates`` names) the effect reads; with any, its
+        functions take them as one more argument ``z`` (SX (len(inputs),), in this order):
+        ``joint_function(q_j, tau_j, theta, z)``, ``placement_function(t, theta, z)``. Every
+        input is 0 at the reference condition. Candidates only where the data carry them.
+    placement_function : callable, optional
+        ``f(t, theta[, z]) -> SX (6,)``: additive correction of a joint's placement error
+        (tx, ty, tz m in the joint's placement frame; rx, ry, rz rad) given ``t`` (3,), the
+        joint's nominal origin translation expressed in that frame (``M_jᵀ`` applied). Per
+        joint it moves its joint; global, every joint.
     general : bool
         A general effect (a periodic joint error at a frequency found from the data, link
         bending; :mod:`kpi_calib_ros.core.general_effects`) rather than a named mechanism:
@@ -92,14 +103,20 @@ class EffectType:
     prismatic_plausible: tuple[float, ...] | None = None
     shape_grid: tuple[tuple[float, ...], ...] = ()
     nests: tuple[str, ...] = ()
+    inputs: tuple[str, ...] = ()
+    placement_function: Callable | None = None
     general: bool = False
 
     def __post_init__(self) -> None:
         if not self.name or ':' in self.name or '.' in self.name:
             raise ValueError(f'effect name {self.name!r} must be non-empty without ":" or "."')
-        if (self.joint_function is None) == (self.point_function is None):
-            raise ValueError(f'effect {self.name!r}: give exactly one of joint_function '
-                             'and point_function')
+        given = [f for f in (self.joint_function, self.point_function,
+                             self.placement_function) if f is not None]
+        if len(given) != 1:
+            raise ValueError(f'effect {self.name!r}: give exactly one of joint_function, '
+                             'point_function and placement_function')
+        if self.point_function is not None and self.inputs:
+            raise ValueError(f'effect {self.name!r}: a point correction reads no covariates')
         if self.point_function is not None and self.per_joint:
             raise ValueError(f'effect {self.name!r}: a point correction is global; '
                              'set per_joint=False')
@@ -154,6 +171,9 @@ class BoundEffect:
     units: tuple[str, ...] = field(init=False)
     uses_torque: bool = field(init=False)
     joint_kind: str | None = None
+    # Nominal origin translation of every chain joint in its placement frame (M_jᵀ t_j),
+    # (n, 3), for a placement effect; set by bind_effect.
+    origins: np.ndarray | None = field(default=None, compare=False, repr=False)
     searched: int = field(default=1, compare=False)
 
     def __post_init__(self) -> None:
@@ -166,6 +186,11 @@ class BoundEffect:
         object.__setattr__(self, 'uses_torque', self.kind.uses_torque)
 
     @property
+    def inputs(self) -> tuple[str, ...]:
+        """Covariates the effect reads (``Measurements.covariates`` names)."""
+        return self.kind.inputs
+
+    @property
     def typical(self) -> tuple[float, ...]:
         """Typical magnitude of each parameter (its units), 1 where the kind states none."""
         return self.kind.typical or (1.0,) * len(self.kind.parameters)
@@ -176,16 +201,29 @@ class BoundEffect:
         return self.parameter_names[len(self.parameter_names) - self.kind.n_shape:] \
             if self.kind.n_shape else ()
 
-    def joint_correction(self, q: ca.SX, tau: ca.SX, theta: ca.SX) -> Any:
-        """Additive joint-value correction, SX (n,), or None for a point effect."""
+    def joint_correction(self, q: ca.SX, tau: ca.SX, theta: ca.SX, z: Any = None) -> Any:
+        """Additive joint-value correction, SX (n,), or None for a point or placement
+        effect; ``z`` the covariates :attr:`inputs` (SX, an effect with inputs only)."""
         fn = self.kind.joint_function
         if fn is None:
             return None
+        extra = (z,) if self.kind.inputs else ()
         if self.joint_index is None:
-            return fn(q, tau, theta)
+            return fn(q, tau, theta, *extra)
         out = ca.SX.zeros(self.n_joints)
-        out[self.joint_index] = fn(q[self.joint_index], tau[self.joint_index], theta)
+        out[self.joint_index] = fn(q[self.joint_index], tau[self.joint_index], theta, *extra)
         return out
+
+    def placement_correction(self, theta: ca.SX, z: Any = None) -> list[tuple[int, Any]]:
+        """Additive corrections of joint placement errors: [(joint index, SX (6,))]; empty
+        unless the kind has a ``placement_function``."""
+        fn = self.kind.placement_function
+        if fn is None or self.origins is None:
+            return []
+        extra = (z,) if self.kind.inputs else ()
+        joints = range(self.n_joints) if self.joint_index is None else (self.joint_index,)
+        return [(j, fn(ca.DM(self.origins[j]), theta, *extra)) for j in joints
+                if np.any(self.origins[j] != 0)]
 
     def point_correction(self, point: ca.SX, theta: ca.SX) -> Any:
         """Corrected measured point, SX (3,), or None for a joint effect."""

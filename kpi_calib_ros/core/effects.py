@@ -20,6 +20,19 @@ is the gravity torque from Pinocchio, payload included)::
     joint_scale           δq_j = k · q_j                   k  1 (transmission ratio)
     tracker_scale         η = (1 + s) · h  (global)        s  1 (tracker length scale)
 
+Thermal effects read the covariate ``delta_temperature`` (ΔT, K: the arm's temperature
+minus the cell's reference, :mod:`kpi_calib_ros.core.covariates`); they are candidates only
+where the measurements carry it::
+
+    thermal_zero_drift    δq_j = d · ΔT                    d  rad/K
+    thermal_link_growth   t_j -> (1 + α ΔT) · t_j          α  1/K (linear expansion)
+    thermal_growth        every t_j -> (1 + α ΔT) · t_j    α  1/K  (global: one material)
+
+``t_j`` is the nominal translation of joint j's origin from its parent (the URDF
+``<origin xyz>``: the link before the joint); the growth is written into that joint's
+placement error, so the geometric placement stays what it is at the reference temperature.
+Steel grows 11–13 µm/(m K), aluminium 23–24 µm/(m K): α outside ±30e-6 /K is flagged.
+
 Sign of ``joint_compliance``: τ_j is Pinocchio's generalised gravity g(q), the torque
 the drive must apply to *hold* the arm, and the model puts the joint at q + δq. A
 joint of stiffness k sags along gravity, against its holding torque, so a physical
@@ -139,11 +152,21 @@ def bind_effect(effect_type: EffectType, robot: RobotModel, joint: str | None,
             raise ConfigError(key, f'effect {effect_type.name!r} applies to '
                               f'{list(effect_type.joint_kinds or ())} joints; {joint!r} is '
                               f'{kind}')
-        return BoundEffect(effect_type, joint, index, len(names), kind)
+        return BoundEffect(effect_type, joint, index, len(names), kind,
+                           origins=_origins(effect_type, robot))
     if joint is not None:
         raise ConfigError(key, f'effect {effect_type.name!r} is global; write '
                           f'{effect_type.name!r} without a joint')
-    return BoundEffect(effect_type, None, None, len(names))
+    return BoundEffect(effect_type, None, None, len(names), origins=_origins(effect_type, robot))
+
+
+def _origins(effect_type: EffectType, robot: RobotModel) -> np.ndarray | None:
+    """(n, 3) nominal origin translation of every joint in its placement frame, m (for a
+    placement effect; None otherwise)."""
+    if effect_type.placement_function is None:
+        return None
+    return np.array([np.asarray(j.placement)[:3, :3].T @ np.asarray(j.placement)[:3, 3]
+                     for j in robot.joints])
 
 
 # Effects built from the whole chain rather than one joint's (q_j, τ_j): spec name ->
@@ -251,14 +274,18 @@ def split_specs(text: str) -> list[str]:
 
 
 def candidate_effects(robot: RobotModel, kinds: Sequence[str] | None = None,
-                      exclude: Iterable[str] = ()) -> list[BoundEffect]:
+                      exclude: Iterable[str] = (),
+                      covariates: Iterable[str] = ()) -> list[BoundEffect]:
     """Every (effect × joint) to screen: the ``screen`` library effects by default.
 
-    ``exclude`` holds effect names (specs) already in the model.
+    ``exclude`` holds effect names (specs) already in the model; ``covariates`` the names
+    the measurements carry: by default an effect that reads covariates is a candidate only
+    where all its inputs are among them.
     """
     known = available_effects()
     if kinds is None:
-        chosen = [t for t in known.values() if t.screen]
+        present = set(covariates)
+        chosen = [t for t in known.values() if t.screen and set(t.inputs) <= present]
     else:
         unknown = [k for k in kinds if k not in known]
         if unknown:

@@ -18,6 +18,7 @@ residual are what the data misses: measure poses that move them.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Mapping
 
 import numpy as np
 
@@ -138,12 +139,13 @@ def kpi_estimability(data_jacobian: np.ndarray, kpi_jacobian: np.ndarray,
 def information_rows(model: MeasurementModel, p: np.ndarray, q: np.ndarray,
                      sigma: float | np.ndarray, idx: np.ndarray, prior: Prior | None = None,
                      reflector: np.ndarray | None = None,
-                     rotation: np.ndarray | None = None) -> np.ndarray:
+                     rotation: np.ndarray | None = None,
+                     covariates: Mapping[str, np.ndarray] | None = None) -> np.ndarray:
     """Information of measured poses ``q`` (N, n) at ``p`` in columns ``idx``: the data
     Jacobian weighted by 1/σ, with a ``prior``'s L rows below (what it determines counts
-    as determined); ``reflector`` and ``rotation`` as for
+    as determined); ``reflector``, ``rotation`` and ``covariates`` as for
     :meth:`~kpi_calib_ros.core.measurement.MeasurementModel.jacobian`."""
-    _, jac = model.jacobian(p, np.atleast_2d(q), None, reflector, rotation)
+    _, jac = model.jacobian(p, np.atleast_2d(q), None, reflector, rotation, covariates)
     rows = weighted_rows(jac, 1.0 / np.broadcast_to(np.asarray(sigma, float), (3,)), idx)
     return rows if prior is None else np.vstack([rows, prior.rows(model.params)[0][:, idx]])
 

@@ -18,6 +18,7 @@ convergence test held.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Mapping
 
 import numpy as np
 import scipy.optimize
@@ -346,18 +347,23 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     free_idx = model.params.indices(free) if free else np.arange(len(p))
     ref = data.reflector  # (pose, reflector) rows; None: reflector 0 throughout
     rot = data.rotation   # measured rotations of the rotation rows (tracked poses)
+    cov = data.covariates  # per-row covariates the effects read (temperature, …)
+    try:
+        model.input_values(len(q), cov)  # a covariate the effects read is there and finite
+    except ValueError as exc:
+        raise DataError(str(exc)) from None
     rows = prior.rows(model.params) if prior is not None else None
 
     def reweighted(pp: np.ndarray) -> np.ndarray:
         """Row weights at ``pp``: fixed 1/σ, or whitening with joint-reading noise."""
         if model.joint_sigma is None:
             return w
-        return model.whitening(pp, q, sigma_rows, tau, ref, rot, point_weights)
+        return model.whitening(pp, q, sigma_rows, tau, ref, rot, point_weights, cov)
 
     def limit(idx: np.ndarray) -> int:
         return iteration_limit(max_iterations, len(idx))
 
-    pred, _ = model.jacobian(p, q, tau, ref, rot)
+    pred, _ = model.jacobian(p, q, tau, ref, rot, cov)
     start_error = float(np.median(np.linalg.norm(eta - pred, axis=1)))
     if start_error > MAX_START_ERROR:
         raise DataError(f'measured points are {start_error:.3g} m (median) from the nominal '
@@ -375,7 +381,7 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     ident, iterations, kept_before = None, 0, None
     w = reweighted(p)
     for _ in range(MAX_SELECTION_ROUNDS):
-        _, jac = model.jacobian(p, q, tau, ref, rot)
+        _, jac = model.jacobian(p, q, tau, ref, rot, cov)
         stacked = _with_prior(weighted_rows(jac, w, free_idx), rows, free_idx)
         ident = select_identifiable(stacked, free_names, method=identifiability_method,
                                     priority=priority)
@@ -396,7 +402,7 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
                             f'equations for {len(idx)} identifiable parameters; measure at '
                             f'least {len(idx) // 3 + 2} poses (better 3-5x that)')
         p, status, message, used = _gauss_newton(model, p, idx, q, eta, tau, w,
-                                                 limit(idx), tolerances, ref, rows, rot)
+                                                 limit(idx), tolerances, ref, rows, rot, cov)
         iterations += used
         kept_before = ident.kept
     if ident is None:
@@ -409,9 +415,9 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
         if change < REWEIGHT_RTOL:
             break
         p, status, message, used = _gauss_newton(model, p, idx, q, eta, tau, w,
-                                                 limit(idx), tolerances, ref, rows, rot)
+                                                 limit(idx), tolerances, ref, rows, rot, cov)
         iterations += used
-    pred, jac = model.jacobian(p, q, tau, ref, rot)
+    pred, jac = model.jacobian(p, q, tau, ref, rot, cov)
     residuals = eta - pred
     f_data = weighted_rows(jac, w, idx)
     tcp, tcp_jac = model.jacobian(p, q_work, tau_work)
@@ -499,7 +505,9 @@ def _gauss_newton(model: MeasurementModel, p: np.ndarray, idx: np.ndarray, q: np
                   eta: np.ndarray, tau: np.ndarray | None, w: np.ndarray, max_iterations: int,
                   tol: Tolerances = TOLERANCES, reflector: np.ndarray | None = None,
                   rows: PriorRows | None = None,
-                  rotation: np.ndarray | None = None) -> tuple[np.ndarray, int, str, int]:
+                  rotation: np.ndarray | None = None,
+                  covariates: Mapping[str, np.ndarray] | None = None
+                  ) -> tuple[np.ndarray, int, str, int]:
     """Gauss-Newton in a trust region (Levenberg-Marquardt), as SciPy's ``trf`` without bounds.
 
     The step z = D Δ lives in equilibrated units (D the largest column norms of F seen so
@@ -522,7 +530,7 @@ def _gauss_newton(model: MeasurementModel, p: np.ndarray, idx: np.ndarray, q: np
         Accepted steps (each may have needed several trials of λ).
     """
     def evaluate(pp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        pred, jac = model.jacobian(pp, q, tau, reflector, rotation)
+        pred, jac = model.jacobian(pp, q, tau, reflector, rotation, covariates)
         r = weighted_residuals(eta - pred, w)
         f = weighted_rows(jac, w, idx)
         if rows is not None:

@@ -79,7 +79,7 @@ class MassFreeCompliance(BoundEffect):
 
     basis: ca.Function | None = field(default=None, compare=False)
 
-    def joint_correction(self, q: ca.SX, tau: ca.SX, theta: ca.SX) -> ca.SX:
+    def joint_correction(self, q: ca.SX, tau: ca.SX, theta: ca.SX, z: Any = None) -> ca.SX:
         """Joint-value correction SX (n,): ``θ · ψ(q)`` (rad or m) on this effect's joint,
         0 elsewhere."""
         assert self.basis is not None and self.joint_index is not None  # set by the binder

@@ -106,6 +106,10 @@ class SymbolicChain:
         self._reflectors = [params.indices([f'{r}.x', f'{r}.y', f'{r}.z'])
                             for r in reflector_prefixes(params)]
 
+    def placement_indices(self, joint: int) -> list[int]:
+        """Indices in p of chain joint ``joint``'s placement error (tx, ty, tz, rx, ry, rz)."""
+        return [int(i) for i in self._placement[joint]]
+
     def link_transforms(self, p: Expr, q: Expr,
                         deflections: dict[int, Expr] | None = None) -> list:
         """Poses (4x4) of every chain joint frame in the base frame, base to tip.

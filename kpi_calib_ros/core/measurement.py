@@ -28,6 +28,17 @@ A tracker states its uncertainty per point (it grows with the distance, e.g. 15 
 above, every weight and every statistic in units of σ is that row's own
 (:func:`noise_weights`, the one place the weights of data rows are formed).
 
+Covariates: a cause the joint state does not carry (temperature of the arm, time into a
+shift) reaches an effect as a per-row input. ``Measurements.covariates`` maps a covariate
+name to its value (N,) per row (``temperature.<frame_id>`` in °C, ``delta_temperature`` in K,
+:mod:`kpi_calib_ros.core.covariates`); an effect names the covariates it reads in its
+``inputs`` and receives them, in that order, as a fourth argument of its corrections
+(``joint_correction(q, tau, theta, z)``, ``placement_correction(theta, z)``). The model's
+CasADi functions take them as one more input ``z`` (n_z,) after ``(p, q, tau)``
+(:attr:`MeasurementModel.inputs` gives the order). Every input is 0 where no covariates are
+given (the design, the KPI at the working poses, fresh poses): an input is a deviation from
+a reference condition (ΔT from the cell's reference temperature), so 0 is that condition.
+
 The KPI point of a working pose is ``h(p, q_work)`` of reflector 0 (the first
 reflector of the cell): the reflector/TCP centre at
 the working configuration expressed in the tracker frame. Unlike a TCP "in the
@@ -38,7 +49,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from typing import Mapping, Protocol, Sequence
+from typing import Any, Mapping, Protocol, Sequence, cast
 
 import casadi as ca
 import numpy as np
@@ -82,9 +93,18 @@ class Effect(Protocol):
     def point_correction(self, point: ca.SX, theta: ca.SX) -> ca.SX | None:
         """Measured point (3,) in the tracker frame after the effect, or None."""
 
+    # Optional (see the module docstring): ``inputs`` (tuple of covariate names, default
+    # ()) and ``placement_correction(theta, z) -> [(joint index, SX (6,))]``, additive
+    # corrections of joint placement errors (tx, ty, tz m; rx, ry, rz rad). An effect with
+    # inputs gets them as ``joint_correction(q, tau, theta, z)``, z SX (len(inputs),).
     # Optional: ``frame_correction(q, tau, theta) -> (joint index, SX (3, 3)) | None``, a
     # rotation of that joint's frame after its motion (link bending); read with getattr,
     # so an effect without it corrects joint values or the point only.
+
+
+def effect_inputs(effect: Effect) -> tuple[str, ...]:
+    """Names of the covariates ``effect`` reads (its optional ``inputs``; () if none)."""
+    return tuple(getattr(effect, 'inputs', ()) or ())
 
 
 @dataclass(frozen=True)
@@ -99,6 +119,9 @@ class Measurements:
     (ignored on point rows), or None when there are none.
     sigma : (N, 3) the tracker's stated standard deviation of each row per axis (m), NaN
     where a row states none (the cell's σ applies, :func:`row_sigma`), or None: none stated.
+    covariates : mapping {name: (N,) ndarray} of per-row inputs beside the joint state
+    (``temperature.<frame_id>`` °C, ``delta_temperature`` K, see
+    :mod:`kpi_calib_ros.core.covariates`), or None: none recorded.
     One pose measured by R reflectors is R rows with the same ``q``.
     """
 
@@ -109,6 +132,7 @@ class Measurements:
     reflector: np.ndarray | None = field(default=None)
     rotation: np.ndarray | None = field(default=None)
     sigma: np.ndarray | None = field(default=None)
+    covariates: Mapping[str, np.ndarray] | None = field(default=None)
 
     def __len__(self) -> int:
         return len(self.q)
@@ -120,7 +144,9 @@ class Measurements:
         return Measurements(q=np.atleast_2d(self.q)[keep], eta=np.atleast_2d(self.eta)[keep],
                             tau=pick(self.tau), stamps_ns=pick(self.stamps_ns),
                             reflector=pick(self.reflector), rotation=pick(self.rotation),
-                            sigma=pick(self.sigma))
+                            sigma=pick(self.sigma),
+                            covariates=None if self.covariates is None else {
+                                name: np.asarray(v)[keep] for name, v in self.covariates.items()})
 
 
 def row_sigma(sigma: float | np.ndarray, data_sigma: np.ndarray | None, n: int) -> np.ndarray:
@@ -195,16 +221,20 @@ class MeasurementModel:
         self.reflector_axis = np.asarray(reflector_axis, float)
         self.chain = SymbolicChain(robot, params)
         self.uses_torque = any(e.uses_torque for e in self.effects)
+        # Covariates the effects read, in the order of the functions' input z.
+        self.inputs: tuple[str, ...] = tuple(dict.fromkeys(
+            name for e in self.effects for name in effect_inputs(e)))
         n = robot.n_joints
         p = ca.SX.sym('p', len(params))
         q = ca.SX.sym('q', n)
         tau = ca.SX.sym('tau', n)
+        z = ca.SX.sym('z', len(self.inputs))
         self._h, self._hj, self._hq = [], [], []
         for k in range(self.chain.n_reflectors):
-            point = self.point_expression(p, q, tau, k)
-            self._h.append(ca.Function('h', [p, q, tau], [point]))
-            self._hj.append(ca.Function('hj', [p, q, tau], [point, ca.jacobian(point, p)]))
-            self._hq.append(ca.Function('hq', [p, q, tau], [ca.jacobian(point, q)]))
+            point = self.point_expression(p, q, tau, k, z)
+            self._h.append(ca.Function('h', [p, q, tau, z], [point]))
+            self._hj.append(ca.Function('hj', [p, q, tau, z], [point, ca.jacobian(point, p)]))
+            self._hq.append(ca.Function('hq', [p, q, tau, z], [ca.jacobian(point, q)]))
         self._cos = ca.Function('cos_incidence', [p, q], [self.incidence_cos_expression(p, q)])
         self.orientations = {int(k): np.asarray(r, float).reshape(3, 3)
                              for k, r in (orientations or {}).items()}
@@ -218,12 +248,13 @@ class MeasurementModel:
         measured = ca.SX.sym('rotation', 9)
         self._rot: dict[int, tuple[ca.Function, ca.Function, ca.Function, ca.Function]] = {}
         for k in self.orientations:
-            body = self.body_rotation_expression(p, q, tau, k)
+            body = self.body_rotation_expression(p, q, tau, k, z)
             row = rotation_residual_expression(measured, body, self.rotation_scale)
-            self._rot[k] = (ca.Function('hr', [p, q, tau, measured], [row]),
-                            ca.Function('hrj', [p, q, tau, measured], [row, ca.jacobian(row, p)]),
-                            ca.Function('hrq', [p, q, tau, measured], [ca.jacobian(row, q)]),
-                            ca.Function('body', [p, q, tau], [body]))
+            self._rot[k] = (ca.Function('hr', [p, q, tau, measured, z], [row]),
+                            ca.Function('hrj', [p, q, tau, measured, z],
+                                        [row, ca.jacobian(row, p)]),
+                            ca.Function('hrq', [p, q, tau, measured, z], [ca.jacobian(row, q)]),
+                            ca.Function('body', [p, q, tau, z], [body]))
 
     @property
     def n_reflectors(self) -> int:
@@ -238,19 +269,33 @@ class MeasurementModel:
         return self.n_reflectors + reflector
 
     # ------------------------------------------------------------ symbolic API
-    def _tool_pose(self, p: Expr, q: Expr, tau: Expr) -> tuple[Expr, list[Expr]]:
-        """Tip pose (4x4) in the tracker frame with the joint corrections and the frame
-        deflections (link bending) of the effects applied, and each effect's parameter
-        slice."""
+    def _tool_pose(self, p: Expr, q: Expr, tau: Expr, z: Expr = None
+                   ) -> tuple[Expr, list[Expr]]:
+        """Tip pose (4x4) in the tracker frame with the joint and placement corrections and
+        the frame deflections (link bending) of the effects applied, and each effect's
+        parameter slice; ``z`` (len(inputs),) the covariates (None: 0, the reference
+        condition)."""
         q_eff = q
         offset = len(self.geometric)
         thetas = []
+        if z is None:
+            z = ca.DM.zeros(len(self.inputs))
+        placement = None
         deflections: dict[int, Expr] = {}
         for effect in self.effects:
             theta = p[offset:offset + len(effect.parameter_names)]
             offset += len(effect.parameter_names)
             thetas.append(theta)
-            correction = effect.joint_correction(q, tau, theta)
+            names = effect_inputs(effect)
+            # the optional fourth argument of an effect with inputs (module docstring)
+            extra = (ca.vertcat(*[z[self.inputs.index(name)] for name in names]),) \
+                if names else ()
+            correction = cast(Any, effect).joint_correction(q, tau, theta, *extra)
+            moves = getattr(effect, 'placement_correction', None)
+            for joint, delta in (moves(theta, *extra) if moves is not None else ()):
+                placement = placement if placement is not None else ca.SX.zeros(p.shape[0])
+                idx = self.chain.placement_indices(joint)
+                placement[idx] = placement[idx] + delta
             if correction is not None:
                 q_eff = q_eff + correction
             frame = getattr(effect, 'frame_correction', None)
@@ -259,18 +304,21 @@ class MeasurementModel:
                 index, rotation = bent
                 deflections[index] = (deflections[index] @ rotation if index in deflections
                                       else rotation)
-        tip = self.chain.tip_transform(p, q_eff, deflections)
+        tip = self.chain.tip_transform(p if placement is None else p + placement, q_eff,
+                                       deflections)
         return self.chain.base_in_tracker(p) @ tip, thetas
 
-    def body_rotation_expression(self, p: Expr, q: Expr, tau: Expr, reflector: int) -> Expr:
+    def body_rotation_expression(self, p: Expr, q: Expr, tau: Expr, reflector: int,
+                                 z: Expr = None) -> Expr:
         """Rotation (3x3) of reflector ``reflector``'s tracked body in the tracker frame."""
-        world, _ = self._tool_pose(p, q, tau)
+        world, _ = self._tool_pose(p, q, tau, z)
         return world[0:3, 0:3] @ ca.DM(self.orientations[reflector])
 
     def point_expression(self, p: Expr, q: Expr, tau: Expr = None,
-                         reflector: int = 0) -> Expr:
-        """Centre of reflector ``reflector`` in the tracker frame, CasADi expression (3,)."""
-        world, thetas = self._tool_pose(p, q, tau)
+                         reflector: int = 0, z: Expr = None) -> Expr:
+        """Centre of reflector ``reflector`` in the tracker frame, CasADi expression (3,);
+        ``z`` the covariates :attr:`inputs` (None: 0)."""
+        world, thetas = self._tool_pose(p, q, tau, z)
         point = reflector_point(world, self.chain.reflector(p, reflector))
         for effect, theta in zip(self.effects, thetas):
             corrected = effect.point_correction(point, theta)
@@ -294,6 +342,29 @@ class MeasurementModel:
             return np.atleast_2d(self.robot.gravity_torques(q))
         return np.zeros_like(np.atleast_2d(q))
 
+    def input_values(self, n: int, covariates: Mapping[str, np.ndarray] | None) -> np.ndarray:
+        """The covariates the effects read, (n, len(inputs)) in :attr:`inputs` order; zeros
+        (the reference condition) where ``covariates`` is None.
+
+        Raises
+        ------
+        ValueError
+            A covariate the effects read is missing, of another length or not finite.
+        """
+        out = np.zeros((n, len(self.inputs)))
+        if covariates is None:
+            return out
+        for i, name in enumerate(self.inputs):
+            if name not in covariates:
+                raise ValueError(f'the effects read the covariate {name!r}; the measurements '
+                                 f'carry {sorted(covariates)}: record it (e.g. the cell\'s '
+                                 'temperature topic) or drop the effect')
+            values = np.asarray(covariates[name], float).reshape(-1)
+            if values.shape != (n,) or not np.all(np.isfinite(values)):
+                raise ValueError(f'covariate {name!r} must hold {n} finite values, one per row')
+            out[:, i] = values
+        return out
+
     def _groups(self, n: int, reflector: np.ndarray | None) -> list[tuple[int, np.ndarray]]:
         """(row channel, rows) pairs covering rows 0..n-1: a reflector index, or
         ``n_reflectors + k`` for the rotation row of reflector ``k``."""
@@ -311,67 +382,78 @@ class MeasurementModel:
         return [(int(k), np.flatnonzero(ref == k)) for k in np.unique(ref)]
 
     def _evaluate(self, which: int, channel: int, rows: np.ndarray, p: np.ndarray,
-                  q: np.ndarray, tau: np.ndarray, rotation: np.ndarray | None) -> list:
+                  q: np.ndarray, tau: np.ndarray, rotation: np.ndarray | None,
+                  z: np.ndarray) -> list:
         """Function ``which`` (0: h, 1: h and ∂h/∂p, 2: ∂h/∂q) of a row channel, mapped
-        over ``rows``; a rotation row takes its measured rotation as an input."""
+        over ``rows``; a rotation row takes its measured rotation as an input; ``z`` (N,
+        n_z) the covariates (:meth:`input_values`)."""
         m = len(rows)
         if channel < self.n_reflectors:
             fn = (self._h, self._hj, self._hq)[which][channel]
-            out = fn.map(m)(p, q[rows].T, tau[rows].T)
+            out = fn.map(m)(p, q[rows].T, tau[rows].T, z[rows].T)
         else:
             if rotation is None:
                 raise ValueError('rotation rows need the measured rotations (rotation=)')
             measured = measured_rotation_input(np.asarray(rotation)[rows])
             fn = self._rot[channel - self.n_reflectors][which]
-            out = fn.map(m)(p, q[rows].T, tau[rows].T, measured.T)
+            out = fn.map(m)(p, q[rows].T, tau[rows].T, measured.T, z[rows].T)
         return [np.array(o) for o in (out if isinstance(out, (list, tuple)) else [out])]
 
     def predict(self, p: np.ndarray, q: np.ndarray, tau: np.ndarray | None = None,
                 reflector: np.ndarray | None = None,
-                rotation: np.ndarray | None = None) -> np.ndarray:
+                rotation: np.ndarray | None = None,
+                covariates: Mapping[str, np.ndarray] | None = None) -> np.ndarray:
         """Predicted points (N, 3) in the tracker frame for joint values ``q`` (N, n)
         and reflector indices ``reflector`` (N,) (None: reflector 0); rotation rows
-        (see :class:`Measurements`) need ``rotation`` (N, 3, 3)."""
+        (see :class:`Measurements`) need ``rotation`` (N, 3, 3); ``covariates`` the
+        rows' covariates (:meth:`input_values`; None: the reference condition)."""
         q = np.atleast_2d(q)
         tau = self._torques(q, tau)
+        z = self.input_values(len(q), covariates)
         out = np.zeros((len(q), 3))
         for k, rows in self._groups(len(q), reflector):
             if len(rows):
-                out[rows] = self._evaluate(0, k, rows, p, q, tau, rotation)[0].T
+                out[rows] = self._evaluate(0, k, rows, p, q, tau, rotation, z)[0].T
         return out
 
     def jacobian(self, p: np.ndarray, q: np.ndarray, tau: np.ndarray | None = None,
                  reflector: np.ndarray | None = None,
-                 rotation: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 rotation: np.ndarray | None = None,
+                 covariates: Mapping[str, np.ndarray] | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
         """Predicted points (N, 3) and their Jacobian (N, 3, n_p) w.r.t. p."""
         q = np.atleast_2d(q)
         tau = self._torques(q, tau)
+        z = self.input_values(len(q), covariates)
         n_p = len(self.params)
         pts, jac = np.zeros((len(q), 3)), np.zeros((len(q), 3, n_p))
         for k, rows in self._groups(len(q), reflector):
             if len(rows):
-                h, j = self._evaluate(1, k, rows, p, q, tau, rotation)
+                h, j = self._evaluate(1, k, rows, p, q, tau, rotation, z)
                 pts[rows] = h.T
                 jac[rows] = j.reshape(3, len(rows), n_p).transpose(1, 0, 2)
         return pts, jac
 
     def joint_jacobian(self, p: np.ndarray, q: np.ndarray, tau: np.ndarray | None = None,
                        reflector: np.ndarray | None = None,
-                       rotation: np.ndarray | None = None) -> np.ndarray:
+                       rotation: np.ndarray | None = None,
+                       covariates: Mapping[str, np.ndarray] | None = None) -> np.ndarray:
         """Jacobian (N, 3, n) of the predicted points w.r.t. the joint values."""
         q = np.atleast_2d(q)
         tau = self._torques(q, tau)
+        z = self.input_values(len(q), covariates)
         out = np.zeros((len(q), 3, q.shape[1]))
         for k, rows in self._groups(len(q), reflector):
             if len(rows):
-                jac = self._evaluate(2, k, rows, p, q, tau, rotation)[0]
+                jac = self._evaluate(2, k, rows, p, q, tau, rotation, z)[0]
                 out[rows] = jac.reshape(3, len(rows), q.shape[1]).transpose(1, 0, 2)
         return out
 
     def whitening(self, p: np.ndarray, q: np.ndarray, sigma: np.ndarray,
                   tau: np.ndarray | None = None, reflector: np.ndarray | None = None,
                   rotation: np.ndarray | None = None,
-                  point_weights: np.ndarray | None = None) -> np.ndarray:
+                  point_weights: np.ndarray | None = None,
+                  covariates: Mapping[str, np.ndarray] | None = None) -> np.ndarray:
         """Weights of the residual rows at parameters ``p``, for :func:`weighted_rows`.
 
         Without joint-reading noise (``joint_sigma`` None): (N, 3) per-axis weights
@@ -394,7 +476,7 @@ class MeasurementModel:
                              f'{omega.shape}')
         if self.joint_sigma is None:
             return np.sqrt(omega)[:, None] / sigma
-        jq = self.joint_jacobian(p, q, tau, reflector, rotation) * self.joint_sigma
+        jq = self.joint_jacobian(p, q, tau, reflector, rotation, covariates) * self.joint_sigma
         cov = np.einsum('nak,nbk->nab', jq, jq) + sigma[:, :, None] ** 2 * np.eye(3)
         chol = np.linalg.cholesky(cov)
         inverse = np.linalg.solve(chol, np.broadcast_to(np.eye(3), chol.shape))
@@ -407,7 +489,8 @@ class MeasurementModel:
         q = np.atleast_2d(q)
         tau = self._torques(q, tau)
         fn = self._rot[reflector][3].map(len(q))
-        out = np.array(fn(p, q.T, tau.T))            # (3, 3N), one 3x3 block per row
+        # (3, 3N), one 3x3 block per row; at the reference condition (no covariates)
+        out = np.array(fn(p, q.T, tau.T, np.zeros((len(self.inputs), len(q)))))
         return out.reshape(3, len(q), 3).transpose(1, 0, 2)
 
     @property
@@ -516,7 +599,8 @@ def with_rotation_rows(model: MeasurementModel, data: Measurements,
     sigma = (None if expanded.sigma is None
              else np.where(rotation_row[:, None], np.nan, expanded.sigma))
     return Measurements(q=expanded.q, eta=eta, tau=expanded.tau, stamps_ns=expanded.stamps_ns,
-                        reflector=np.array(channel), rotation=rot, sigma=sigma)
+                        reflector=np.array(channel), rotation=rot, sigma=sigma,
+                        covariates=expanded.covariates)
 
 
 def noise_weights(model: MeasurementModel, p: np.ndarray, data: Measurements,
@@ -532,7 +616,7 @@ def noise_weights(model: MeasurementModel, p: np.ndarray, data: Measurements,
     if tau is None and model.uses_torque:
         tau = model.robot.gravity_torques(q)
     return model.whitening(np.asarray(p, float), q, rows, tau, data.reflector, data.rotation,
-                           point_weights)
+                           point_weights, data.covariates)
 
 
 def weighted_rows(jac: np.ndarray, w: np.ndarray, idx: np.ndarray | None = None) -> np.ndarray:

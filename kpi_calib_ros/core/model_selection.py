@@ -129,7 +129,8 @@ def cross_validated_level_rms(model: MeasurementModel, data: Measurements, fit: 
         held[test] = eta[test] - model.predict(
             result.values, q[test], None if data.tau is None else data.tau[test],
             None if data.reflector is None else data.reflector[test],
-            None if data.rotation is None else data.rotation[test])
+            None if data.rotation is None else data.rotation[test],
+            data.subset(test).covariates)
     return float(np.sqrt(np.mean(np.sum(held ** 2, axis=1))))
 
 

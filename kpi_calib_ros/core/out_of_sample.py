@@ -165,6 +165,23 @@ def joint_sweeps(q: np.ndarray) -> tuple[np.ndarray, dict[int, int]] | None:
     return campaign_home(q, SWEEP_ATOL), {int(j): int(c) for j, c in zip(joints, counts)}
 
 
+def _fresh_conditions(model: MeasurementModel, data: Measurements, domain: str,
+                      configs: np.ndarray, rng: np.random.Generator
+                      ) -> tuple[np.ndarray, dict[str, np.ndarray] | None]:
+    """Fresh poses under the campaign's conditions, for a model whose effects read
+    covariates (:attr:`MeasurementModel.inputs`): ``like_measured`` (not a sweep) measures
+    every measured row again at its own covariates; every other domain draws each fresh
+    pose's covariates from a random measured row. None (the reference condition) when the
+    model reads none or the data carry none."""
+    if not model.inputs or data.covariates is None:
+        return configs, None
+    values = {name: np.asarray(data.covariates[name], float) for name in model.inputs}
+    if domain == 'like_measured' and joint_sweeps(np.atleast_2d(data.q)) is None:
+        return np.atleast_2d(data.q), values
+    pick = rng.integers(len(data), size=len(configs))
+    return configs, {name: v[pick] for name, v in values.items()}
+
+
 def domain_configurations(model: MeasurementModel, q: np.ndarray, domain: str,
                           rng: np.random.Generator, n: int = FRESH_POSES) -> np.ndarray:
     """Fresh configurations (M, n_joints) of ``domain`` for a campaign measured at ``q``.
@@ -261,7 +278,7 @@ def out_of_sample_error(model: MeasurementModel, data: Measurements,
     scale = float(result.chi2 / dof) if dof > 0 else float('nan')
     c0 = np.asarray(result.covariance, float) / float(result.covariance_scale)
     data_jac = information_rows(model, p, q, sigma, free_idx, prior, data.reflector,
-                                data.rotation)
+                                data.rotation, data.covariates)
     # Fresh poses are predicted as points: rotation rows of tracked bodies (channels from
     # model.n_reflectors on) need a measured rotation and are no length.
     reflectors = (np.array([0]) if data.reflector is None
@@ -271,9 +288,13 @@ def out_of_sample_error(model: MeasurementModel, data: Measurements,
     out: dict[str, DomainError] = {}
     for domain in domains:
         configs = domain_configurations(model, q, domain, rng, fresh_poses)
+        configs, fresh_z = _fresh_conditions(model, data, domain, configs, rng)
         rows_q = np.repeat(configs, len(reflectors), axis=0)
         ref = np.tile(reflectors, len(configs))
-        _, jn = model.jacobian(p, rows_q, None, None if data.reflector is None else ref)
+        rows_z = None if fresh_z is None else {k: np.repeat(v, len(reflectors))
+                                                for k, v in fresh_z.items()}
+        _, jn = model.jacobian(p, rows_q, None, None if data.reflector is None else ref,
+                               covariates=rows_z)
         flat = jn.reshape(-1, jn.shape[2])
         if not np.isfinite(scale):
             out[domain] = DomainError(domain, False, float('nan'), (float('nan'),) * 2,
@@ -301,7 +322,8 @@ def out_of_sample_error(model: MeasurementModel, data: Measurements,
                                                      model.n_reflectors)))
         if model.joint_sigma is not None:
             # Joint-reading noise at the fresh poses: mean tr(J_q Σ_q J_qᵀ) per point.
-            jq = model.joint_jacobian(p, rows_q, None, None if data.reflector is None else ref)
+            jq = model.joint_jacobian(p, rows_q, None, None if data.reflector is None else ref,
+                                      covariates=rows_z)
             noise_ms += float(np.mean(np.sum((jq * model.joint_sigma) ** 2, axis=(1, 2))))
         ms_unit = param_ms + noise_ms                # mean square at s = 1
         lo, hi = _interval(c0, m, noise_ms, scale, dof)

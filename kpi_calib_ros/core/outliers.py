@@ -128,7 +128,8 @@ def hat_blocks(model: MeasurementModel, data: Measurements, p: np.ndarray,
     tau = data.tau
     if tau is None and model.uses_torque:
         tau = model.robot.gravity_torques(q)
-    pred, jac = model.jacobian(np.asarray(p, float), q, tau, data.reflector, data.rotation)
+    pred, jac = model.jacobian(np.asarray(p, float), q, tau, data.reflector, data.rotation,
+                               data.covariates)
     n = len(q)
     # The rows weighed as the fit weighs them: each point's σ (its own or the cell's), and
     # whitened (W_i, 3×3) with joint-reading noise.
@@ -207,7 +208,8 @@ def judge(model: MeasurementModel, data: Measurements, p: np.ndarray,
     rest = ~kept
     if rest.any():
         out = data.subset(rest)
-        pred = model.predict(p, np.atleast_2d(out.q), out.tau, out.reflector, out.rotation)
+        pred = model.predict(p, np.atleast_2d(out.q), out.tau, out.reflector, out.rotation,
+                             out.covariates)
         miss = np.atleast_2d(out.eta) - pred
         if model.joint_sigma is not None or out.sigma is not None:
             # In the stated σ's units, as the fit's σ̂ (core.robust.noise_units).
@@ -219,7 +221,7 @@ def judge(model: MeasurementModel, data: Measurements, p: np.ndarray,
     resid = np.zeros((n, 3))
     kq = data.subset(kept)
     miss_k = np.atleast_2d(kq.eta) - model.predict(
-        p, np.atleast_2d(kq.q), kq.tau, kq.reflector, kq.rotation)
+        p, np.atleast_2d(kq.q), kq.tau, kq.reflector, kq.rotation, kq.covariates)
     if kq.sigma is not None:
         # Each point in units of its own σ, at the stated σ as σ̂ (core.robust.noise_units).
         miss_k = weighted_residuals(miss_k, 1.0 / row_sigma(stated, kq.sigma, len(miss_k))

@@ -167,7 +167,8 @@ def measurement_noise_ms(model: MeasurementModel, data: Measurements,
              else np.asarray(data.reflector) < model.n_reflectors)
     jq = model.joint_jacobian(result.values, np.atleast_2d(data.q)[point],
                               None if data.tau is None else data.tau[point],
-                              None if data.reflector is None else data.reflector[point])
+                              None if data.reflector is None else data.reflector[point],
+                              covariates=data.subset(point).covariates)
     return noise + float(np.mean(np.sum((jq * model.joint_sigma) ** 2, axis=(1, 2))))
 
 

@@ -367,7 +367,7 @@ def reregister(model: MeasurementModel, p: np.ndarray, data: Measurements, index
             raise DataError(f're-registration needs at least 3 measured points, got '
                             f'{np.count_nonzero(points)}')
         pred = model.predict(p, q[points], None if data.tau is None else data.tau[points],
-                             ref[points])
+                             ref[points], covariates=data.subset(points).covariates)
         rot, trans = horn(pred, eta[points])
         old = pin.rpy.rpyToMatrix(*p[base[3:]])
         p[base[:3]] = rot @ p[base[:3]] + trans
@@ -397,7 +397,8 @@ def _refit(model: MeasurementModel, p: np.ndarray, data: Measurements, index: np
     steps, rank, chi2 = 0, 0, float('nan')
     while steps < iterations:
         steps += 1
-        pred, jac = model.jacobian(p, q, data.tau, data.reflector, data.rotation)
+        pred, jac = model.jacobian(p, q, data.tau, data.reflector, data.rotation,
+                                   data.covariates)
         rows = np.vstack([
             np.hstack([weighted_rows(jac, weight, index), weighted_rows(jac, weight, uncertain)]),
             np.hstack([np.zeros((k, r)), prior])])

@@ -12,7 +12,7 @@ with folds that keep every identified parameter determined.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Iterator
+from typing import Iterator, Mapping
 
 import numpy as np
 import scipy.stats
@@ -105,6 +105,7 @@ class LinearizedFit:
     p: np.ndarray
     reflector: np.ndarray | None = None  # (N,) reflector index of every row, None: all 0
     rotation: np.ndarray | None = None   # (N, 3, 3) measured rotations of rotation rows
+    covariates: Mapping[str, np.ndarray] | None = None  # per-row covariates of the data
 
 
 def is_adequate(p_value: float, alpha: float = ADEQUACY_ALPHA) -> bool:
@@ -157,12 +158,12 @@ def linearized_fit(model: MeasurementModel, data: Measurements, result: Calibrat
         tau = model.robot.gravity_torques(q)
     p = np.asarray(result.values, float)
     w = noise_weights(model, p, data, result.sigma, tau)
-    pred, jac = model.jacobian(p, q, tau, data.reflector, data.rotation)
+    pred, jac = model.jacobian(p, q, tau, data.reflector, data.rotation, data.covariates)
     r = weighted_residuals(np.atleast_2d(data.eta) - pred, w)
     idx = model.params.indices(result.estimated)
     f = weighted_rows(jac, w, idx)
     basis = orthonormal_basis(f)
-    return LinearizedFit(r, f, basis, w, tau, p, data.reflector, data.rotation)
+    return LinearizedFit(r, f, basis, w, tau, p, data.reflector, data.rotation, data.covariates)
 
 
 def orthonormal_basis(a: np.ndarray) -> np.ndarray:

@@ -226,7 +226,8 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
                             + '; '.join(f'{e.index}: {e.reason}' for e in excluded) + ')'
                             ) from None
         p0 = result.values
-        miss = eta - model.predict(result.values, q, data.tau, data.reflector, data.rotation)
+        miss = eta - model.predict(result.values, q, data.tau, data.reflector, data.rotation,
+                                   data.covariates)
         distances = np.linalg.norm(miss, axis=1)
         # What σ̂ and the reported distances see: the metric distances, or with joint-reading
         # noise the residuals at the stated σ (module text).
@@ -322,7 +323,7 @@ def gross_outliers(model: MeasurementModel, data: Measurements,
     q, eta = np.atleast_2d(data.q), np.atleast_2d(data.eta)
     p = np.asarray(model.params.nominal if p is None else p, float)
     nominal = np.linalg.norm(eta - model.predict(p, q, data.tau, data.reflector,
-                                               data.rotation), axis=1)
+                                               data.rotation, data.covariates), axis=1)
     return nominal > max(GROSS_DISTANCE, 20 * float(np.median(nominal))), nominal
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Mapping
 
 import numpy as np
 
@@ -191,20 +191,27 @@ def one_joint_at_a_time(model: MeasurementModel, home: np.ndarray, per_joint: in
 
 def simulate_measurements(model: MeasurementModel, p_true: np.ndarray, q: np.ndarray,
                           sigma: float | np.ndarray, rng: np.random.Generator,
-                          joint_sigma: float | np.ndarray | None = None) -> Measurements:
+                          joint_sigma: float | np.ndarray | None = None,
+                          covariates: Mapping[str, np.ndarray] | None = None,
+                          stamps_ns: np.ndarray | None = None) -> Measurements:
     """Tracker points h(p_true, q) + N(0, σ²) per axis.
 
     With ``joint_sigma`` (rad, scalar or (n,) in chain order) the joint readings are not
     exact: the measurements carry the readings q + N(0, joint_sigma²) of the true joints q
-    (drawn after the tracker noise, so the points are the same as without it)."""
+    (drawn after the tracker noise, so the points are the same as without it).
+    ``covariates`` (name -> (N,), e.g. a temperature ramp over a shift,
+    :func:`kpi_calib_ros.core.covariates.shift_temperature`) drive the true model's effects
+    that read them (a hidden thermal effect) and are recorded with the rows, as are
+    ``stamps_ns`` (N,)."""
     q = np.atleast_2d(q)
-    clean = model.predict(p_true, q)
+    clean = model.predict(p_true, q, covariates=covariates)
     noise = rng.normal(size=clean.shape) * np.broadcast_to(np.asarray(sigma, float), (3,))
-    if joint_sigma is None:
-        return Measurements(q=q, eta=clean + noise)
-    read = q + rng.normal(size=q.shape) * np.broadcast_to(np.asarray(joint_sigma, float),
-                                                          (q.shape[1],))
-    return Measurements(q=read, eta=clean + noise)
+    recorded = None if covariates is None else {k: np.asarray(v, float).copy()
+                                                for k, v in covariates.items()}
+    if joint_sigma is not None:
+        q = q + rng.normal(size=q.shape) * np.broadcast_to(np.asarray(joint_sigma, float),
+                                                           (q.shape[1],))
+    return Measurements(q=q, eta=clean + noise, stamps_ns=stamps_ns, covariates=recorded)
 
 
 def simulate_pose_measurements(model: MeasurementModel, p_true: np.ndarray, q: np.ndarray,

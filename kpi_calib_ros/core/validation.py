@@ -162,7 +162,8 @@ def validate(model: MeasurementModel, p: np.ndarray, estimated: np.ndarray,
         cov = (np.einsum('nak,kl,nbl->nab', j, covariance, j)
                + sigma_rows[:, :, None] ** 2 * np.eye(3))
         if model.joint_sigma is not None:
-            jq = (model.joint_jacobian(p_now, q, tau, data.reflector, data.rotation)
+            jq = (model.joint_jacobian(p_now, q, tau, data.reflector, data.rotation,
+                                       data.covariates)
                   * model.joint_sigma)
             cov = cov + noise_scale * np.einsum('nak,nbk->nab', jq, jq)
         return cov
@@ -172,7 +173,7 @@ def validate(model: MeasurementModel, p: np.ndarray, estimated: np.ndarray,
         registration = reregister(model, p, dataclasses.replace(data, tau=tau), registered,
                                   sigma_rows, estimated, covariance)
         p = registration.p
-    pred, jac = model.jacobian(p, q, tau, data.reflector, data.rotation)
+    pred, jac = model.jacobian(p, q, tau, data.reflector, data.rotation, data.covariates)
     residuals = np.atleast_2d(data.eta) - pred
     cov = point_covariance(jac, p)
     solved = np.linalg.solve(cov, residuals[:, :, None])[:, :, 0]

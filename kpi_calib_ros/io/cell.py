@@ -80,6 +80,7 @@ from kpi_calib_ros.io.cell_settings import (
     parse_topics,
     simulation_settings,
 )
+from kpi_calib_ros.io.cell_temperature import TemperatureSettings, temperature_settings
 from kpi_calib_ros.io.cell_values import (
     non_negative,
     number,
@@ -98,7 +99,7 @@ from kpi_calib_ros.io.yaml_bounded import read_yaml_file
 
 _TOP_KEYS = {'robot', 'tracker', 'reflector', 'reflectors', 'noise', 'payload', 'working_poses',
              'obstacles', 'collision', 'identification', 'effects', 'simulation', 'design',
-             'topics'}
+             'topics', 'temperature'}
 DEFAULT_CELL = Path(__file__).resolve().parent.parent / 'data' / 'cells' / 'default_cell.yaml'
 
 
@@ -155,6 +156,8 @@ class Cell:
     # noise.joint_sigma: a number (rad, every joint) or {joint name: rad}; None: exact
     # joint readings. Matched to the chain by name in build_cell_model.
     joint_sigma: float | Mapping[str, float] | None = None
+    # temperature: section (io.cell_temperature); None: no temperature read.
+    temperature: TemperatureSettings | None = None
 
     @property
     def offsets(self) -> np.ndarray:
@@ -315,6 +318,7 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None,
         joint_sigma=joint_sigma,
         joint_coupling=parse_coupling(robot.get('joint_coupling')),
         working_poses_in=parse_working_poses_in(robot.get('working_poses_in', 'controller')),
+        temperature=temperature_settings(doc.get('temperature')),
         allow_code_effects=allow_code_effects)
 
 

@@ -20,6 +20,13 @@ from kpi_calib_ros.core.out_of_sample import DOMAIN_TEXT, NOT_ESTIMABLE, OutOfSa
 from kpi_calib_ros.core.periodic_search import Periodogram
 from kpi_calib_ros.core.precision import ExpectedTcpError, precision_statement
 from kpi_calib_ros.io.names import DIAGNOSIS_FILE, REPORT_FILE
+from kpi_calib_ros.io.residual_plots import (
+    analysis_lines,
+    analysis_text,
+    analysis_to_dict,
+    answer_to_dict,
+    write_partial_residual_plot,
+)
 from kpi_calib_ros.io.results import write_atomic
 
 _UM = 1e6
@@ -92,6 +99,10 @@ def diagnosis_to_dict(cd: CellDiagnosis) -> dict[str, Any]:
         doc['added_effect'] = comparison_to_dict(cd.comparison)
         if cd.after_out_of_sample is not None:
             doc['added_effect']['out_of_sample'] = cd.after_out_of_sample.to_dict()
+    if cd.residual_analysis is not None:
+        doc['residual_inputs'] = analysis_to_dict(cd.residual_analysis)
+    if cd.answer is not None:
+        doc['misfit'] = answer_to_dict(cd.answer)
     return doc
 
 
@@ -183,6 +194,8 @@ def diagnosis_text(cd: CellDiagnosis, top: int = 5) -> str:
             lines.append(f'{c.spec}: {c.explanation}')
     if cd.comparison is not None:
         lines.append(comparison_text(cd.comparison))
+    if cd.residual_analysis is not None:
+        lines += analysis_text(cd.residual_analysis, cd.answer)
     return '\n'.join(lines)
 
 
@@ -295,7 +308,7 @@ def write_plots(out_dir: str | Path, cd: CellDiagnosis) -> list[Path]:
     # the point moves when that joint turns, divided by the lever. A compliance is a
     # line against torque, backlash a step at zero torque, a cyclic error a sine.
     lever = cd.model.joint_jacobian(cd.result.values, q, None, cd.data.reflector,
-                                    cd.data.rotation)
+                                    cd.data.rotation, cd.data.covariates)
     lever2 = np.sum(lever ** 2, axis=1)
     implied = np.einsum('nij,ni->nj', lever, res) / np.maximum(lever2, 1e-12)
     seen = lever2 > 0.05 * lever2.max(axis=0)
@@ -415,6 +428,8 @@ def write_report(out_dir: str | Path, cd: CellDiagnosis) -> Path:
     doc = diagnosis_to_dict(cd)
     write_diagnosis_json(out, doc)
     plots = write_plots(out, cd)
+    if cd.residual_analysis is not None:
+        plots.insert(0, write_partial_residual_plot(out, cd.residual_analysis))
     diag, rep = cd.diagnosis, cd.diagnosis.residuals
     lines = ['# Model diagnosis', '', f'**{diag.verdict}**', '',
              '## Residuals of the calibrated model', '',
@@ -435,6 +450,8 @@ def write_report(out_dir: str | Path, cd: CellDiagnosis) -> Path:
               f'{cd.given_index(rep.outlier)} |',
               f'| high leverage (> 3× mean) | {cd.given_index(rep.high_leverage)} |',
               f'| excluded by identify (not diagnosed) | {list(cd.excluded)} |']
+    if cd.residual_analysis is not None:
+        lines += analysis_lines(cd.residual_analysis, cd.answer)
     if cd.out_of_sample is not None:
         lines += out_of_sample_table(cd.out_of_sample)
     if cd.expected is not None:
