@@ -85,9 +85,13 @@ def test_effects_page_gives_every_library_effect_with_units_and_plausible_range(
             assert f'{bound:g}' in row
     from kpi_calib_ros.core.effects import CHAIN_EFFECTS
     assert 'gravity_compliance' in CHAIN_EFFECTS
-    for name in CHAIN_EFFECTS:
-        row = next(line for line in text.splitlines() if line.startswith(f'| `{name}:J` |'))
-        assert 'g0 [rad]' in row
+    row = next(line for line in text.splitlines() if line.startswith('| `gravity_compliance:J` |'))
+    assert 'g0 [rad]' in row
+    row = next(line for line in text.splitlines() if line.startswith('| `link_bending:J` |'))
+    assert 'cx [rad/(N m)], cz [rad/(N m)]' in row and '0.0001, 0.0001' in row
+    row = next(line for line in text.splitlines()
+               if line.startswith('| `periodic_joint_error:J:k=K` |'))
+    assert 'a [rad], b [rad]' in row and '0.005, 0.005' in row and '17' in row
 
 
 def test_cell_keys_page_lists_every_described_key(pages):

@@ -196,9 +196,10 @@ def node_page() -> str:
 # ------------------------------------------------------------------------ effects
 def effects_page() -> str:
     from kpi_calib_ros.core.effect_library import LIBRARY
-    from kpi_calib_ros.core.effects import CHAIN_EFFECTS, ENTRY_POINT_GROUP
+    from kpi_calib_ros.core.effects import ARGUMENT_EFFECTS, CHAIN_EFFECTS, ENTRY_POINT_GROUP
 
-    # The cell loader imports the chain effects (core.gravity_compliance registers itself).
+    # The cell loader imports the chain effects (core.gravity_compliance and
+    # core.general_effects register themselves).
     from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
     out = ['# Effect library\n', NOTE,
            'The physical effects `diagnose` screens and `--effects` / the cell file\'s '
@@ -229,13 +230,35 @@ def effects_page() -> str:
                'spec names them (not screened by `diagnose`). Shown bound to `joint_2` of the '
                'built-in cell (`kpi_calib_ros/data/cells/default_cell.yaml`).\n')
     robot = build_cell_model(load_cell(DEFAULT_CELL)).robot
-    chain = [(name, binder(robot, 'joint_2', 'effects')) for name, binder in CHAIN_EFFECTS.items()]
+    bound = [(name, binder(robot, 'joint_2', 'effects')) for name, binder in CHAIN_EFFECTS.items()]
+    chain = [(name, b) for name, b in bound if not b.kind.general]
     rows = [[code(f'{name}:J'), cell(', '.join(f'{p} [{u}]' for p, u in
                                               zip(b.kind.parameters, b.kind.units))),
              cell(b.kind.description)] for name, b in chain]
     out.append(table(['effect', 'parameters [unit] on joint_2', 'what it models'], rows))
+    out.append('## General effects\n')
+    out.append('When no named effect explains the misfit, `diagnose` offers general ones that '
+               'still mean something physical ({py:mod}`kpi_calib_ros.core.general_effects`): '
+               'the link bending of every joint that carries mass, and per revolute joint a '
+               'joint error periodic at the frequency (cycles per revolution) where the '
+               'periodogram of the residuals peaks '
+               '({py:mod}`kpi_calib_ros.core.periodic_search`; the search is counted in the '
+               'p-value). They pass the same screen, plausibility check and before/after as '
+               'the library, and rank after the significant, plausible named effects unless '
+               'they predict held-out poses 5 % better. Shown on `joint_2` of the built-in '
+               'cell (the periodic error at k = 17).\n')
+    general = [(f'{name}:J', b) for name, b in bound if b.kind.general]
+    general += [(f'{name}:J:k=K', binder(robot, 'joint_2', 'k=17', 'effects'))
+                for name, binder in ARGUMENT_EFFECTS.items()]
+    rows = [[code(name), cell(', '.join(f'{p} [{u}]' for p, u in
+                                        zip(b.kind.parameters, b.kind.units))),
+             ', '.join(f'{v:g}' for v in b.kind.typical),
+             ', '.join(f'{v:g}' for v in b.kind.plausible), cell(b.kind.description)]
+            for name, b in general]
+    out.append(table(['effect', 'parameters [unit] on joint_2', 'typical', 'plausible',
+                      'what it models'], rows))
     out.append('## What separates each effect from the geometry\n')
-    for e in LIBRARY + tuple(b.kind for _, b in chain):
+    for e in LIBRARY + tuple(b.kind for _, b in chain + general):
         out.append(f'- {code(e.name)}: {cell(e.hint.replace("{joint}", "the joint"))}')
     return '\n'.join(out) + '\n'
 

@@ -29,9 +29,12 @@ import scipy.stats
 
 from kpi_calib_ros.core.effects import BoundEffect, candidate_effects, implausible
 from kpi_calib_ros.core.estimation import CalibrationResult, point_sigma_squares
+from kpi_calib_ros.core.general_effects import general_candidates
 from kpi_calib_ros.core.measurement import MeasurementModel, Measurements, unweighted, weighted_rows
 from kpi_calib_ros.core.misfit import MisfitAnswer
+from kpi_calib_ros.core.model_selection import PARSIMONY
 from kpi_calib_ros.core.out_of_sample import OutOfSample
+from kpi_calib_ros.core.periodic_search import Periodogram, periodic_candidates, periodograms
 from kpi_calib_ros.core.precision import (
     JOINT_NOISE_CAUSE,
     ExpectedTcpError,
@@ -97,6 +100,9 @@ class Candidate:
     # ``std`` are from the stated σ (1) or scaled by χ²/dof of the augmented fit when it
     # fails the χ² test, as identify reports (core.precision.chi2_scale).
     covariance_scale: float = 1.0
+    # The number of frequencies searched when the effect's frequency was found on these
+    # residuals (core.periodic_search); its p-values are multiplied by it. 1: no search.
+    searched: int = 1
 
 
 @dataclass(frozen=True)
@@ -155,6 +161,8 @@ class Diagnosis:
     not_distinguishable: tuple[Candidate, ...]
     alpha: float
     folds: int
+    # The frequency search of the periodic joint errors (one per revolute joint searched).
+    periodograms: tuple[Periodogram, ...] = ()
 
     @property
     def best(self) -> Candidate | None:
@@ -302,6 +310,10 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
                 # multiplied by their number (Bonferroni), so the screen's claims keep
                 # their level (the plain best-of-grid p-value is too small on clean data).
                 best = replace(best, p_value_raw=min(1.0, best.p_value_raw * len(tried)))
+            if effect.searched > 1:
+                # A frequency found by a search on these residuals (core.periodic_search):
+                # the best of that many tests, counted the same way.
+                best = replace(best, p_value_raw=min(1.0, best.p_value_raw * effect.searched))
             fits.append(best)
         elif why_not is not None:
             rejected.append(why_not)
@@ -321,7 +333,7 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
             warning and f'Warning: {warning}.',
             merged and f'The same signature is explained by {", ".join(merged)} '
                        '(one candidate: the data cannot tell them apart).',
-            nested, notes.get(fit.effect.name, '')) if t)
+            nested, notes.get(fit.effect.name, ''), _searched(fit.effect)) if t)
         out.append(Candidate(
             effect=fit.effect.kind.name, joint=fit.effect.joint, spec=fit.effect.name,
             parameter_names=fit.effect.parameter_names, units=fit.effect.units,
@@ -335,21 +347,40 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
             absorbed_by={},
             explanation=_explain(fit, significant, p_adj, m, rms_base, cv_base) + extra,
             plausible=not warning, plausibility=warning, also_explained_by=merged,
-            note=notes.get(fit.effect.name, '')))
-    out.sort(key=lambda c: (not (c.significant and c.plausible), not c.significant,
-                            c.validation_rms_after_m, c.p_value_raw))
+            note=notes.get(fit.effect.name, ''), searched=fit.effect.searched))
+    # A general effect (core.general_effects) is offered when no named one fits: it ranks
+    # after the significant, plausible named effects unless it predicts held-out poses
+    # PARSIMONY better than the best of them.
+    general = {fit.effect.name: fit.effect.kind.general for fit in fits}
+    named = min((c.validation_rms_after_m for c in out if c.significant and c.plausible
+                 and not general[c.spec]), default=np.inf)
+    out.sort(key=lambda c: (not (c.significant and c.plausible),
+                            general[c.spec] and not c.validation_rms_after_m
+                            < (1 - PARSIMONY) * named,
+                            not c.significant, c.validation_rms_after_m, c.p_value_raw))
     return tuple(out), tuple(rejected)
 
 
 def diagnose(model: MeasurementModel, data: Measurements, result: CalibrationResult,
              candidates: list[BoundEffect] | None = None, folds: int = 0,
-             alpha: float = ADEQUACY_ALPHA, seed: int = 0) -> Diagnosis:
+             alpha: float = ADEQUACY_ALPHA, seed: int = 0, general: bool = True) -> Diagnosis:
     """Residual report, verdict and ranked candidate effects for one calibration.
 
     The model is adequate when the χ² test passes at ``alpha`` and no candidate
-    is significant at the family-wise level ``alpha``.
+    is significant at the family-wise level ``alpha``. With ``general`` (and the default
+    candidates), the general effects join the screen: ``link_bending`` of every joint
+    that carries mass and, per revolute joint, the periodic joint error at the peak of
+    its periodogram (:mod:`kpi_calib_ros.core.periodic_search`, the search counted in
+    its p-value); they rank after the significant, plausible named effects.
     """
     report = residual_report(model, data, result, alpha)
+    grams: tuple[Periodogram, ...] = ()
+    if candidates is None and general:
+        have = {e.name for e in model.effects}
+        grams = periodograms(model, data, result)
+        candidates = (candidate_effects(model.robot, exclude=have)
+                      + general_candidates(model.robot, have)
+                      + periodic_candidates(model, grams))
     ranked, rejected = screen_effects(model, data, result, candidates, folds, alpha, seed)
     cv = validation_rms(model, data, result, folds, seed)
     best = ranked[0] if ranked and ranked[0].significant and ranked[0].plausible else None
@@ -380,7 +411,8 @@ def diagnose(model: MeasurementModel, data: Measurements, result: CalibrationRes
                     + JOINT_NOISE_CAUSE[0].upper() + JOINT_NOISE_CAUSE[1:] + '.')
     return Diagnosis(model_adequate=adequate, verdict=verdict, residuals=report,
                      rms_m=report.rms_m, validation_rms_m=cv, candidates=ranked,
-                     not_distinguishable=rejected, alpha=alpha, folds=folds)
+                     not_distinguishable=rejected, alpha=alpha, folds=folds,
+                     periodograms=grams)
 
 
 def equivalent_joint_sigma(model: MeasurementModel, data: Measurements,
@@ -646,6 +678,14 @@ def _joint_correction_values(effect: BoundEffect, q: np.ndarray, tau: np.ndarray
     th = ca.SX.sym('theta', len(theta))
     fn = ca.Function('dq', [qs, ts, th], [effect.joint_correction(qs, ts, th)])
     return np.array(fn.map(len(q))(q.T, tau.T, theta)).T
+
+
+def _searched(effect: BoundEffect) -> str:
+    if effect.searched <= 1:
+        return ''
+    return (f'Its frequency is the peak of a search over {effect.searched} frequencies '
+            f'(cycles per revolution) on these residuals; its p-value counts them '
+            f'(× {effect.searched}).')
 
 
 def _explain(fit: CandidateFit, significant: bool, p_adj: float, m: int, rms_base: float,

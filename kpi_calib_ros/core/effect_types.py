@@ -79,6 +79,10 @@ class EffectType:
         (tx, ty, tz m in the joint's placement frame; rx, ry, rz rad) given ``t`` (3,), the
         joint's nominal origin translation expressed in that frame (``M_jᵀ`` applied). Per
         joint it moves its joint; global, every joint.
+    general : bool
+        A general effect (a periodic joint error at a frequency found from the data, link
+        bending; :mod:`kpi_calib_ros.core.general_effects`) rather than a named mechanism:
+        the diagnosis ranks it after the significant, plausible named effects.
     """
 
     name: str
@@ -101,6 +105,7 @@ class EffectType:
     nests: tuple[str, ...] = ()
     inputs: tuple[str, ...] = ()
     placement_function: Callable | None = None
+    general: bool = False
 
     def __post_init__(self) -> None:
         if not self.name or ':' in self.name or '.' in self.name:
@@ -152,6 +157,9 @@ class BoundEffect:
     """An effect type bound to one joint (or global): implements the ``Effect`` protocol.
 
     ``name`` is the spec (``joint_compliance:joint_2``), unique within a model.
+    ``searched``: the number of alternatives a search on the same data chose this
+    candidate from (a frequency of :mod:`kpi_calib_ros.core.periodic_search`); the screen
+    multiplies its p-value by it, so the search counts in the test's level.
     """
 
     kind: EffectType
@@ -166,6 +174,7 @@ class BoundEffect:
     # Nominal origin translation of every chain joint in its placement frame (M_jᵀ t_j),
     # (n, 3), for a placement effect; set by bind_effect.
     origins: np.ndarray | None = field(default=None, compare=False, repr=False)
+    searched: int = field(default=1, compare=False)
 
     def __post_init__(self) -> None:
         prefix = self.kind.name if self.joint is None else f'{self.kind.name}.{self.joint}'
@@ -220,6 +229,12 @@ class BoundEffect:
         """Corrected measured point, SX (3,), or None for a joint effect."""
         fn = self.kind.point_function
         return None if fn is None else fn(point, theta)
+
+    def frame_correction(self, q: ca.SX, tau: ca.SX, theta: ca.SX) -> Any:
+        """``(joint index, SX (3, 3) rotation)`` applied to that joint's frame after its
+        motion (link bending, :class:`kpi_calib_ros.core.general_effects.LinkBending`), or
+        None: the library's effects correct joint values or the point only."""
+        return None
 
     def hint(self) -> str:
         """What would make this effect distinguishable, with the joint named."""

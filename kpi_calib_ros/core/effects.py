@@ -172,6 +172,10 @@ def _origins(effect_type: EffectType, robot: RobotModel) -> np.ndarray | None:
 # Effects built from the whole chain rather than one joint's (q_j, τ_j): spec name ->
 # binder(robot, joint, key) -> BoundEffect. core.gravity_compliance registers its own.
 CHAIN_EFFECTS: dict[str, Callable[[RobotModel, str | None, str], BoundEffect]] = {}
+# Effects with a constant of their own in the spec, ``name:joint:argument``
+# (``periodic_joint_error:joint_2:k=17``): spec name -> binder(robot, joint, argument,
+# key) -> BoundEffect. core.general_effects registers its own.
+ARGUMENT_EFFECTS: dict[str, Callable[[RobotModel, str | None, str, str], BoundEffect]] = {}
 
 
 def parse_effect_spec(spec: str, robot: RobotModel, key: str = 'effects',
@@ -198,6 +202,9 @@ def parse_effect_spec(spec: str, robot: RobotModel, key: str = 'effects',
     where = f'{key}: {spec!r}'
     if parts[0] in CHAIN_EFFECTS and len(parts) <= 2:
         return CHAIN_EFFECTS[parts[0]](robot, parts[1] if len(parts) == 2 else None, where)
+    if parts[0] in ARGUMENT_EFFECTS:
+        return ARGUMENT_EFFECTS[parts[0]](robot, parts[1] if len(parts) > 1 else None,
+                                          ':'.join(parts[2:]), where)
     if parts[0] in known:
         if len(parts) > 2:
             raise ConfigError(key, f'{spec!r}: write effect:joint, e.g. {parts[0]}:'
@@ -211,8 +218,9 @@ def parse_effect_spec(spec: str, robot: RobotModel, key: str = 'effects',
                               f'it; built-in effects are {sorted(known)}')
         effect_type = _load_user_effect(parts[0], parts[1], key, spec, base_dir)
         return bind_effect(effect_type, robot, parts[2] if len(parts) == 3 else None, where)
+    every = sorted(set(known) | set(CHAIN_EFFECTS) | set(ARGUMENT_EFFECTS))
     raise ConfigError(key, f'{spec!r}: unknown effect {parts[0]!r}; valid effects are '
-                      f'{sorted(set(known) | set(CHAIN_EFFECTS))}, written effect:joint with a '
+                      f'{every}, written effect:joint with a '
                       'joint of '
                       f'{robot.joint_names} (global effects without a joint), or '
                       'module:EffectType[:joint] for your own')

@@ -110,8 +110,13 @@ class SymbolicChain:
         """Indices in p of chain joint ``joint``'s placement error (tx, ty, tz, rx, ry, rz)."""
         return [int(i) for i in self._placement[joint]]
 
-    def link_transforms(self, p: Expr, q: Expr) -> list:
-        """Poses (4x4) of every chain joint frame in the base frame, base to tip."""
+    def link_transforms(self, p: Expr, q: Expr,
+                        deflections: dict[int, Expr] | None = None) -> list:
+        """Poses (4x4) of every chain joint frame in the base frame, base to tip.
+
+        ``deflections``: {chain joint index: rotation (3x3)} applied to that joint's frame
+        after its motion (a link bent by its load; the physical effects supply them).
+        """
         transforms = []
         current = ca.DM.eye(4)
         for i, joint in enumerate(self.robot.joints):
@@ -123,6 +128,8 @@ class SymbolicChain:
             else:
                 motion = homogeneous(axis_rotation(joint.axis, value), ca.DM.zeros(3))
             current = current @ ca.DM(joint.placement) @ error @ motion
+            if deflections and i in deflections:
+                current = current @ homogeneous(deflections[i], ca.DM.zeros(3))
             transforms.append(current)
         return transforms
 
@@ -136,9 +143,11 @@ class SymbolicChain:
         poses.update(zip(self.robot.link_names[1:], transforms))
         return poses, transforms[-1] @ ca.DM(self.robot.tip_placement)
 
-    def tip_transform(self, p: Expr, q: Expr) -> Expr:
-        """Tip frame pose (4x4) in the base frame."""
-        return self.link_transforms(p, q)[-1] @ ca.DM(self.robot.tip_placement)
+    def tip_transform(self, p: Expr, q: Expr,
+                      deflections: dict[int, Expr] | None = None) -> Expr:
+        """Tip frame pose (4x4) in the base frame (``deflections``: see
+        :meth:`link_transforms`)."""
+        return self.link_transforms(p, q, deflections)[-1] @ ca.DM(self.robot.tip_placement)
 
     def base_in_tracker(self, p: Expr) -> Expr:
         """Base frame pose (4x4) in the tracker frame."""

@@ -97,6 +97,9 @@ class Effect(Protocol):
     # ()) and ``placement_correction(theta, z) -> [(joint index, SX (6,))]``, additive
     # corrections of joint placement errors (tx, ty, tz m; rx, ry, rz rad). An effect with
     # inputs gets them as ``joint_correction(q, tau, theta, z)``, z SX (len(inputs),).
+    # Optional: ``frame_correction(q, tau, theta) -> (joint index, SX (3, 3)) | None``, a
+    # rotation of that joint's frame after its motion (link bending); read with getattr,
+    # so an effect without it corrects joint values or the point only.
 
 
 def effect_inputs(effect: Effect) -> tuple[str, ...]:
@@ -268,15 +271,17 @@ class MeasurementModel:
     # ------------------------------------------------------------ symbolic API
     def _tool_pose(self, p: Expr, q: Expr, tau: Expr, z: Expr = None
                    ) -> tuple[Expr, list[Expr]]:
-        """Tip pose (4x4) in the tracker frame with the joint and placement corrections of
-        the effects applied, and each effect's parameter slice; ``z`` (len(inputs),) the
-        covariates (None: 0, the reference condition)."""
+        """Tip pose (4x4) in the tracker frame with the joint and placement corrections and
+        the frame deflections (link bending) of the effects applied, and each effect's
+        parameter slice; ``z`` (len(inputs),) the covariates (None: 0, the reference
+        condition)."""
         q_eff = q
         offset = len(self.geometric)
         thetas = []
         if z is None:
             z = ca.DM.zeros(len(self.inputs))
         placement = None
+        deflections: dict[int, Expr] = {}
         for effect in self.effects:
             theta = p[offset:offset + len(effect.parameter_names)]
             offset += len(effect.parameter_names)
@@ -293,7 +298,14 @@ class MeasurementModel:
                 placement[idx] = placement[idx] + delta
             if correction is not None:
                 q_eff = q_eff + correction
-        tip = self.chain.tip_transform(p if placement is None else p + placement, q_eff)
+            frame = getattr(effect, 'frame_correction', None)
+            bent = frame(q, tau, theta) if frame is not None else None
+            if bent is not None:
+                index, rotation = bent
+                deflections[index] = (deflections[index] @ rotation if index in deflections
+                                      else rotation)
+        tip = self.chain.tip_transform(p if placement is None else p + placement, q_eff,
+                                       deflections)
         return self.chain.base_in_tracker(p) @ tip, thetas
 
     def body_rotation_expression(self, p: Expr, q: Expr, tau: Expr, reflector: int,

@@ -49,6 +49,7 @@ from kpi_calib_ros.core.design import DesignSettings
 from kpi_calib_ros.core.design_cell import DesignCell
 from kpi_calib_ros.core.effects import resolve_effects
 from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.core.general_effects import general_candidates  # noqa: F401  (registers specs)
 from kpi_calib_ros.core.gravity_compliance import mass_warning
 from kpi_calib_ros.core.measurement import MeasurementModel
 from kpi_calib_ros.core.parameters import ParameterSet, geometric_parameters

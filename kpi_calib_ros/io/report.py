@@ -17,6 +17,7 @@ import numpy as np
 
 from kpi_calib_ros.core.diagnosis import Candidate, CellDiagnosis, ModelComparison
 from kpi_calib_ros.core.out_of_sample import DOMAIN_TEXT, NOT_ESTIMABLE, OutOfSample
+from kpi_calib_ros.core.periodic_search import Periodogram
 from kpi_calib_ros.core.precision import ExpectedTcpError, precision_statement
 from kpi_calib_ros.io.names import DIAGNOSIS_FILE, REPORT_FILE
 from kpi_calib_ros.io.residual_plots import (
@@ -45,7 +46,7 @@ def _candidate_dict(c: Candidate) -> dict[str, Any]:
             'std_basis': precision_statement(float(c.covariance_scale)),
             'explanation': c.explanation, 'plausible': bool(c.plausible),
             'plausibility': c.plausibility, 'also_explained_by': list(c.also_explained_by),
-            'note': c.note}
+            'note': c.note, 'frequencies_searched': int(c.searched)}
 
 
 def comparison_to_dict(cmp: ModelComparison) -> dict[str, Any]:
@@ -88,6 +89,7 @@ def diagnosis_to_dict(cd: CellDiagnosis) -> dict[str, Any]:
                       'high_leverage': cd.given_index(rep.high_leverage)},
         'not_distinguishable': [{'effect': c.effect, 'joint': c.joint, 'spec': c.spec,
                                  'reason': c.explanation} for c in diag.not_distinguishable],
+        'periodic_search': [periodogram_dict(g) for g in diag.periodograms],
     }
     if cd.out_of_sample is not None:
         doc['out_of_sample'] = cd.out_of_sample.to_dict()
@@ -139,6 +141,23 @@ def comparison_text(cmp: ModelComparison) -> str:
     return '\n'.join(lines)
 
 
+def periodogram_dict(gram: Periodogram) -> dict[str, Any]:
+    """One joint's frequency search (core.periodic_search) for diagnosis.json: the range
+    of cycles per revolution searched, the peak, its χ² reduction and p-value (× the
+    number searched)."""
+    return {'joint': gram.joint,
+            'cycles_searched': [int(gram.cycles[0]), int(gram.cycles[-1])],
+            'peak_cycles_per_revolution': int(gram.peak),
+            'peak_delta_chi2': float(np.max(gram.power)), 'p_value': float(gram.p_value)}
+
+
+def periodic_search_line(grams: tuple[Periodogram, ...]) -> str:
+    """One line: the peak of each joint's periodogram and its p-value."""
+    return ('periodic joint errors, peak of each periodogram (cycles/rev, p × frequencies '
+            'searched): ' + ', '.join(f'{g.joint} {g.peak} (p = {g.p_value:.2g})'
+                                      for g in grams))
+
+
 def diagnosis_text(cd: CellDiagnosis, top: int = 5) -> str:
     """Readable diagnosis summary for a terminal."""
     diag, rep = cd.diagnosis, cd.diagnosis.residuals
@@ -166,6 +185,8 @@ def diagnosis_text(cd: CellDiagnosis, top: int = 5) -> str:
         mark = '*' if c.significant else ' '
         lines.append(f' {mark}{i}. {c.spec:40s} validation rms '
                      f'{_validation(c.validation_rms_after_m, "6", " µm")}  p = {c.p_value:.2g}')
+    if diag.periodograms:
+        lines.append(periodic_search_line(diag.periodograms))
     if diag.best is not None:
         lines.append(f'why: {diag.best.explanation}')
     for c in diag.not_distinguishable:
@@ -457,6 +478,16 @@ def write_report(out_dir: str | Path, cd: CellDiagnosis) -> Path:
                      f'| {params} |')
     if diag.best is not None:
         lines += ['', f'Why {diag.best.spec}: {diag.best.explanation}']
+    if diag.periodograms:
+        lines += ['', '## Periodic joint errors: frequency search', '',
+                  'Lomb–Scargle periodogram of the residual along each joint\'s direction over '
+                  'cycles per revolution (geometry refitted at each frequency); the peak is '
+                  'screened as `periodic_joint_error:<joint>:k=<peak>`, its p-value multiplied '
+                  'by the number of frequencies searched.', '',
+                  '| joint | cycles/rev searched | peak | Δχ² at the peak | p |',
+                  '|---|---|---|---|---|']
+        lines += [f'| {g.joint} | {g.cycles[0]}–{g.cycles[-1]} | {g.peak} | '
+                  f'{np.max(g.power):.1f} | {g.p_value:.2g} |' for g in diag.periodograms]
     lines += ['', '## Not distinguishable with this data', '']
     lines += [f'- **{c.spec}**: {c.explanation}' for c in diag.not_distinguishable] or ['- none']
     if cd.comparison is not None:
