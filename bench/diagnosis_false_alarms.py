@@ -23,10 +23,10 @@ import numpy as np
 import scipy.stats
 import yaml
 
-from kpi_calib_ros.core.diagnosis import diagnose
-from kpi_calib_ros.core.effects import available_effects
-from kpi_calib_ros.core.estimation import identify
-from kpi_calib_ros.core.measurement import Measurements
+from kpi_calib_ros.core.diagnosis.candidates import diagnose
+from kpi_calib_ros.core.effects.registry import available_effects
+from kpi_calib_ros.core.estimation.least_squares import identify
+from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,

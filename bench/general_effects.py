@@ -27,9 +27,9 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from kpi_calib_ros.core.diagnosis import augmented_model, diagnose
-from kpi_calib_ros.core.effects import parse_effect_spec
-from kpi_calib_ros.core.estimation import identify
+from kpi_calib_ros.core.diagnosis.candidates import augmented_model, diagnose
+from kpi_calib_ros.core.effects.registry import parse_effect_spec
+from kpi_calib_ros.core.estimation.least_squares import identify
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,

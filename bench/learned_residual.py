@@ -40,10 +40,10 @@ from kpi_calib_ros.app.learned_residual import (
     predict_tcp,
 )
 from kpi_calib_ros.cli import main as cli
-from kpi_calib_ros.core.estimation import identify
-from kpi_calib_ros.core.learned_residual import corrected_tcp, fit_learned_residual
-from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.precision import honest_precision
+from kpi_calib_ros.core.diagnosis.learned_residual import corrected_tcp, fit_learned_residual
+from kpi_calib_ros.core.estimation.least_squares import identify
+from kpi_calib_ros.core.estimation.precision import honest_precision
+from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,

@@ -28,12 +28,16 @@ from pathlib import Path
 import numpy as np
 
 from kpi_calib_ros.app.identify import identify_cell
-from kpi_calib_ros.core.diagnosis import augmented_model
-from kpi_calib_ros.core.effects import parse_effect_spec
-from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.model_selection import cross_validated_level_rms
-from kpi_calib_ros.core.out_of_sample import DOMAINS, domain_configurations, out_of_sample_error
-from kpi_calib_ros.core.residuals import validation_rms
+from kpi_calib_ros.core.diagnosis.candidates import augmented_model
+from kpi_calib_ros.core.diagnosis.model_selection import cross_validated_level_rms
+from kpi_calib_ros.core.diagnosis.out_of_sample import (
+    DOMAINS,
+    domain_configurations,
+    out_of_sample_error,
+)
+from kpi_calib_ros.core.effects.registry import parse_effect_spec
+from kpi_calib_ros.core.estimation.residuals import validation_rms
+from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.simulation import (
     one_joint_at_a_time,
     random_configurations,
@@ -146,7 +150,8 @@ def main(seeds: int = 20) -> None:
     lines = ['# Predicted out-of-sample error vs the true error on fresh poses', '',
              f'{seeds} seeds per case (0..{seeds - 1}), σ = {SIGMA * 1e6:.0f} µm per axis, '
              'geometric model identified (`identify_cell`), prediction from the fit '
-             '(`core/out_of_sample.py`, no refits). Ratio = predicted / true rms error of a '
+             '(`core/diagnosis/out_of_sample.py`, no refits). '
+             'Ratio = predicted / true rms error of a '
              f'new measurement; truth exact in the noise over {FRESH} fresh poses per domain '
              '(see the script docstring). Circle: each joint swept alone over 60 % of its '
              'range around the first working pose, uniform angles; full span: evenly spaced '

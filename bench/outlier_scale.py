@@ -21,8 +21,8 @@ import numpy as np
 import kpi_calib_ros  # noqa: F401  (sets single-threaded BLAS before numpy loads)
 from kpi_calib_ros.app.diagnose import diagnose_cell
 from kpi_calib_ros.app.identify import calibrate_cell
-from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.robust import OutlierSettings
+from kpi_calib_ros.core.estimation.robust import OutlierSettings
+from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.simulation import random_configurations, true_parameters
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict, read_cell_document
 

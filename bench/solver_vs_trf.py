@@ -27,7 +27,7 @@ import numpy as np
 import scipy.optimize
 
 from kpi_calib_ros.app.identify import registered_start
-from kpi_calib_ros.core.estimation import (
+from kpi_calib_ros.core.estimation.least_squares import (
     DEFAULT_MAX_ITERATIONS,
     ITERATIONS_PER_PARAMETER,
     MAX_START_ERROR,
@@ -35,7 +35,7 @@ from kpi_calib_ros.core.estimation import (
     identify,
     weights,
 )
-from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,

@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from kpi_calib_ros.app.identify import calibrate_cell
-from kpi_calib_ros.core.covariates import DELTA_TEMPERATURE, shift_temperature
-from kpi_calib_ros.core.diagnosis import augmented_model
+from kpi_calib_ros.core.diagnosis.candidates import augmented_model
+from kpi_calib_ros.core.measurement.covariates import DELTA_TEMPERATURE, shift_temperature
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,

@@ -28,8 +28,8 @@ import numpy as np
 from kpi_calib_ros.app.identify import identify_cell, registered_start
 from kpi_calib_ros.app.measurements import load_measurements
 from kpi_calib_ros.cli import main as cli
-from kpi_calib_ros.core.model_selection import level_free
-from kpi_calib_ros.core.residuals import validation_rms
+from kpi_calib_ros.core.diagnosis.model_selection import level_free
+from kpi_calib_ros.core.estimation.residuals import validation_rms
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get('TIAGO_MOCAP_DIR') or ROOT.parent / 'shared' / 'data' / 'tiago_mocap')

@@ -39,11 +39,11 @@ import numpy as np
 from kpi_calib_ros.app.calibration_document import add_robust_sections, calibration_document
 from kpi_calib_ros.app.identify import calibrate_cell
 from kpi_calib_ros.app.reidentify import cycle_prior, reidentification_document, reidentify
-from kpi_calib_ros.core.design import design_context, design_measurements
-from kpi_calib_ros.core.drift_state import DriftSwing
+from kpi_calib_ros.core.design.optimum import design_context, design_measurements
+from kpi_calib_ros.core.diagnosis.model_selection import level_free
 from kpi_calib_ros.core.errors import DataError
-from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.model_selection import level_free
+from kpi_calib_ros.core.estimation.drift_state import DriftSwing
+from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,

@@ -12,15 +12,18 @@ import argparse
 import sys
 from pathlib import Path
 
-from kpi_calib_ros.core.drift_state import (
+from kpi_calib_ros.core.errors import DataError, KpiCalibError
+from kpi_calib_ros.core.estimation.drift_state import (
     DAY_HOURS,
     OFFSET_SWING_RAD,
     TEMPERATURE_SWING_K,
     DriftSwing,
 )
-from kpi_calib_ros.core.errors import DataError, KpiCalibError
-from kpi_calib_ros.core.estimation import ITERATIONS_PER_PARAMETER
-from kpi_calib_ros.core.prior import DRIFT_ANGLE_PER_SQRT_HOUR, DRIFT_LENGTH_PER_SQRT_HOUR
+from kpi_calib_ros.core.estimation.least_squares import ITERATIONS_PER_PARAMETER
+from kpi_calib_ros.core.estimation.prior import (
+    DRIFT_ANGLE_PER_SQRT_HOUR,
+    DRIFT_LENGTH_PER_SQRT_HOUR,
+)
 from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, DEFAULT_POSE_TOPIC
 
 CODE_EFFECTS_HELP = ("let the cell file's effects: name Python code ('file.py:Type:joint', "
@@ -78,7 +81,7 @@ SWING_HELP = ('drift state of a daily swing (core.drift_state.DriftSwing): the r
 
 def _swing(text: str) -> DriftSwing:
     """``--drift-velocity TEMPERATURE_K,OFFSET_RAD[,PERIOD_H]`` (checked by
-    :meth:`kpi_calib_ros.core.drift_state.DriftSwing.from_values`)."""
+    :meth:`kpi_calib_ros.core.estimation.drift_state.DriftSwing.from_values`)."""
     try:
         return DriftSwing.from_values([float(x) for x in text.split(',')])
     except (ValueError, DataError) as exc:
@@ -310,7 +313,7 @@ def _replay(args: argparse.Namespace) -> int:
 
 def _diagnose(args: argparse.Namespace) -> int:
     from kpi_calib_ros.app.diagnose import run_diagnose
-    from kpi_calib_ros.core.residuals import ADEQUACY_ALPHA
+    from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA
     alpha = ADEQUACY_ALPHA if args.alpha is None else args.alpha
     return run_diagnose(args.cell, args.bag, args.out, effects=args.effects, folds=args.folds,
                         alpha=alpha, model=args.model, joint_topic=args.joint_topic,
@@ -350,7 +353,7 @@ def _demo(args: argparse.Namespace) -> int:
 
 
 def _robots(args: argparse.Namespace) -> int:
-    from kpi_calib_ros.core.robot_library import DATA_DIR, write_shipped
+    from kpi_calib_ros.core.model.robot_library import DATA_DIR, write_shipped
     for path in write_shipped(Path(args.out) if args.out else DATA_DIR):
         print(path)
     return 0

@@ -14,12 +14,12 @@ from kpi_calib_ros.app.calibration_document import calibration_document
 from kpi_calib_ros.app.identify import identify_cell
 from kpi_calib_ros.app.measurements import measurements_from_bag
 from kpi_calib_ros.cli import main
+from kpi_calib_ros.core.acquisition.streams import synthesize_streams
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,
     true_parameters,
 )
-from kpi_calib_ros.core.streams import synthesize_streams
 from kpi_calib_ros.io.bag_writing import write_bag
 from kpi_calib_ros.io.calibration_file import load_yaml_bounded, read_calibration_document
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
@@ -267,7 +267,7 @@ def test_validate_takes_the_code_effects_opt_in_it_advises(made, tmp_path, capsy
     marker = tmp_path / 'ran.marker'
     (tmp_path / 'sag.py').write_text(
         f'from pathlib import Path\nPath({str(marker)!r}).write_text("ran")\n'
-        'from kpi_calib_ros.core.effects import EffectType\n'
+        'from kpi_calib_ros.core.effects.registry import EffectType\n'
         "SAG = EffectType('sag', ('g',), ('rad',), joint_function=lambda q, t, th: th[0] * q)\n")
     cell = yaml.safe_load(DEFAULT_CELL.read_text())
     cell['robot']['urdf'] = str((DEFAULT_CELL.parent / cell['robot']['urdf']).resolve())

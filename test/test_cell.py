@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import yaml
 
-from kpi_calib_ros.core.design import DesignSettings
+from kpi_calib_ros.core.design.optimum import DesignSettings
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.io.cell import (
     DEFAULT_CELL,

@@ -12,7 +12,7 @@ from typing import Any
 
 import pytest
 
-from kpi_calib_ros.core.design import DesignSettings
+from kpi_calib_ros.core.design.optimum import DesignSettings
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.io import cell, cell_sections, cell_settings, cell_temperature, cell_values
 from kpi_calib_ros.io.cell import DEFAULT_CELL, cell_from_dict, read_cell_document

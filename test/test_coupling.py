@@ -122,7 +122,7 @@ def test_coupled_publication_off_grid_gives_the_same_tcp(tmp_path):
 
 def test_design_poses_leave_in_controller_values(tmp_path):
     from kpi_calib_ros.app.design import controller_design
-    from kpi_calib_ros.core.design import DesignResult
+    from kpi_calib_ros.core.design.optimum import DesignResult
     cm = build_cell_model(load_cell(_cell_copy(tmp_path, joint_coupling=FANUC)))
     q = np.random.default_rng(1).uniform(-1, 1, (4, 6))
     fake = DesignResult.__new__(DesignResult)

@@ -6,8 +6,7 @@ import numpy as np
 import pytest
 
 from kpi_calib_ros.app.identify import identify_cell
-from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.residuals import (
+from kpi_calib_ros.core.estimation.residuals import (
     fold_ids,
     folds_keep_rank,
     identifiable_folds,
@@ -17,6 +16,7 @@ from kpi_calib_ros.core.residuals import (
     stratified_fold_ids,
     validation_rms,
 )
+from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.simulation import (
     one_joint_at_a_time,
     simulate_measurements,
@@ -123,7 +123,7 @@ def test_out_of_sample_estimate_within_1_5x_over_20_seeds(cm):
 
 def test_not_estimable_is_said_not_printed_as_a_number(cm):
     """Two poses per joint: the diagnosis text names the design instead of a figure."""
-    from kpi_calib_ros.core.diagnosis import compare_models
+    from kpi_calib_ros.core.diagnosis.candidates import compare_models
     from kpi_calib_ros.io.report import NOT_ESTIMABLE, comparison_text
     rng = np.random.default_rng(2)
     p_true = true_parameters(cm.model.params, rng)

@@ -17,16 +17,16 @@ import numpy as np
 import pytest
 import yaml
 
-from kpi_calib_ros.core.diagnosis import (
+from kpi_calib_ros.core.diagnosis.candidates import (
     augmented_model,
     compare_models,
     diagnose,
     residual_report,
     validation_rms,
 )
-from kpi_calib_ros.core.effects import parse_effect_spec
-from kpi_calib_ros.core.estimation import identify
-from kpi_calib_ros.core.measurement import Measurements
+from kpi_calib_ros.core.effects.registry import parse_effect_spec
+from kpi_calib_ros.core.estimation.least_squares import identify
+from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,

@@ -75,7 +75,7 @@ def test_node_page_lists_every_parameter_topic_and_service(pages):
 
 
 def test_effects_page_gives_every_library_effect_with_units_and_plausible_range(pages):
-    from kpi_calib_ros.core.effect_library import LIBRARY
+    from kpi_calib_ros.core.effects.library import LIBRARY
     text = pages.effects_page()
     for effect in LIBRARY:
         row = next(line for line in text.splitlines() if line.startswith(f'| `{effect.name}` |'))
@@ -83,7 +83,7 @@ def test_effects_page_gives_every_library_effect_with_units_and_plausible_range(
             assert f'{parameter} [{unit}]' in row
         for bound in effect.plausible:
             assert f'{bound:g}' in row
-    from kpi_calib_ros.core.effects import CHAIN_EFFECTS
+    from kpi_calib_ros.core.effects.registry import CHAIN_EFFECTS
     assert 'gravity_compliance' in CHAIN_EFFECTS
     row = next(line for line in text.splitlines() if line.startswith('| `gravity_compliance:J` |'))
     assert 'g0 [rad]' in row

@@ -5,14 +5,14 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from kpi_calib_ros.core.covariance import (
+from kpi_calib_ros.core.errors import DataError
+from kpi_calib_ros.core.estimation.covariance import (
     kkt_covariance,
     kpi_jacobians,
     nullspace_covariance,
     propagated_kpi_covariance,
 )
-from kpi_calib_ros.core.errors import DataError
-from kpi_calib_ros.core.estimation import (
+from kpi_calib_ros.core.estimation.least_squares import (
     FTOL,
     GTOL,
     ITERATIONS_PER_PARAMETER,
@@ -24,7 +24,7 @@ from kpi_calib_ros.core.estimation import (
     identify,
     weights,
 )
-from kpi_calib_ros.core.measurement import Measurements
+from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.simulation import (
     equivalent_parameters,
     random_configurations,
@@ -181,7 +181,7 @@ def test_points_in_millimetres_are_refused_with_the_reason(cell, campaign):
 
 @pytest.mark.parametrize('robot', ['odd_arm', 'ur_class'])
 def test_identification_is_general_across_robots(robot, odd_arm_urdf, tmp_path):
-    from kpi_calib_ros.core.robot_library import shipped_urdf_path
+    from kpi_calib_ros.core.model.robot_library import shipped_urdf_path
     from kpi_calib_ros.io.cell import cell_from_dict
     if robot == 'odd_arm':
         urdf, base, tip = odd_arm_urdf, 'mount', 'flange'
@@ -304,7 +304,7 @@ def test_priority_selection_converges_to_the_pivoted_fit(cell, seed):
 
 
 def test_priority_with_unknown_names_is_refused(cell, campaign):
-    from kpi_calib_ros.core.identifiability import select_identifiable
+    from kpi_calib_ros.core.estimation.identifiability import select_identifiable
     with pytest.raises(ValueError, match=r"\['joint_9.offset'\]"):
         select_identifiable(np.eye(3), ['a', 'b', 'c'], method='priority',
                             priority=['a', 'joint_9.offset'])

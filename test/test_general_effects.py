@@ -15,16 +15,16 @@ import numpy as np
 import pytest
 import yaml
 
-from kpi_calib_ros.core.diagnosis import augmented_model, diagnose, screen_effects
-from kpi_calib_ros.core.effects import parse_effect_spec, resolve_effects, split_specs
-from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.core.estimation import identify
-from kpi_calib_ros.core.general_effects import general_candidates, gravity_moment
-from kpi_calib_ros.core.periodic_search import (
+from kpi_calib_ros.core.diagnosis.candidates import augmented_model, diagnose, screen_effects
+from kpi_calib_ros.core.diagnosis.periodic_search import (
     periodic_candidates,
     periodograms,
     searched_cycles,
 )
+from kpi_calib_ros.core.effects.general import general_candidates, gravity_moment
+from kpi_calib_ros.core.effects.registry import parse_effect_spec, resolve_effects, split_specs
+from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.core.estimation.least_squares import identify
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,

@@ -17,11 +17,11 @@ from kpi_calib_ros.app.learned_residual import (
     predict_tcp,
 )
 from kpi_calib_ros.cli import main
+from kpi_calib_ros.core.diagnosis.learned_residual import fit_learned_residual
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.core.estimation import identify
-from kpi_calib_ros.core.learned_residual import fit_learned_residual
-from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.precision import honest_precision
+from kpi_calib_ros.core.estimation.least_squares import identify
+from kpi_calib_ros.core.estimation.precision import honest_precision
+from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,
@@ -207,7 +207,7 @@ def test_identify_writes_the_chosen_learned_residual_and_removes_a_stale_one(tmp
 def test_too_few_poses_are_never_chosen(smooth):
     """Fewer than MIN_POSES distinct poses (here 8, three reflectors each): no
     cross-validated choice, not chosen, said why."""
-    from kpi_calib_ros.core.learned_residual import MIN_POSES
+    from kpi_calib_ros.core.diagnosis.learned_residual import MIN_POSES
     _, choice, *_ = smooth
     q = np.repeat(choice.model.q[:MIN_POSES - 2], 3, axis=0)
     y = np.repeat(choice.model.residual_m[:MIN_POSES - 2], 3, axis=0)

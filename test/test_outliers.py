@@ -1,5 +1,5 @@
-"""Faults, not model misfit (core/outliers.py): a pose the model misfits is kept and named,
-a fault of one reflector is excluded, exclusion runs in batches and diagnose keeps the
+"""Faults, not model misfit (core/estimation/outliers.py): a pose the model misfits is kept and
+named, a fault of one reflector is excluded, exclusion runs in batches and diagnose keeps the
 points identify keeps. Simulated campaigns on the default cell (three reflectors unless
 said)."""
 from __future__ import annotations
@@ -16,15 +16,15 @@ from kpi_calib_ros.app.calibration_document import add_robust_sections, calibrat
 from kpi_calib_ros.app.diagnose import diagnose_cell
 from kpi_calib_ros.app.identify import calibrate_cell
 from kpi_calib_ros.cli import main
-from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.replicates import pose_groups
-from kpi_calib_ros.core.robust import OutlierSettings
+from kpi_calib_ros.core.acquisition.streams import synthesize_streams
+from kpi_calib_ros.core.estimation.robust import OutlierSettings
+from kpi_calib_ros.core.measurement.replicates import pose_groups
+from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.simulation import (
     one_joint_at_a_time,
     random_configurations,
     true_parameters,
 )
-from kpi_calib_ros.core.streams import synthesize_streams
 from kpi_calib_ros.io.bag_writing import write_bag
 from kpi_calib_ros.io.cell import (
     DEFAULT_CELL,

@@ -13,12 +13,12 @@ import yaml
 from geometry_msgs.msg import PoseStamped
 
 from kpi_calib_ros.cli import main
+from kpi_calib_ros.core.acquisition.pairing import pair_measurements
+from kpi_calib_ros.core.acquisition.streams import PointSample, synthesize_streams
+from kpi_calib_ros.core.diagnosis.validation import validate
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.core.estimation import identify
-from kpi_calib_ros.core.kinematics import pose6
-from kpi_calib_ros.core.measurement import Measurements, with_rotation_rows
-from kpi_calib_ros.core.pairing import pair_measurements
-from kpi_calib_ros.core.pose_measurement import (
+from kpi_calib_ros.core.estimation.least_squares import identify
+from kpi_calib_ros.core.measurement.pose import (
     log3_expression,
     noisy_rotations,
     pose_matrix,
@@ -26,9 +26,9 @@ from kpi_calib_ros.core.pose_measurement import (
     rotation_from_quaternion,
     rotation_from_rpy,
 )
+from kpi_calib_ros.core.measurement.tracker import Measurements, with_rotation_rows
+from kpi_calib_ros.core.model.kinematics import pose6
 from kpi_calib_ros.core.simulation import random_configurations, true_parameters
-from kpi_calib_ros.core.streams import PointSample, synthesize_streams
-from kpi_calib_ros.core.validation import validate
 from kpi_calib_ros.io.bag import read_bag, write_bag
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict, read_cell_document
 from kpi_calib_ros.io.ros_messages import pose_sample_from_message

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from kpi_calib_ros.core.errors import DataError
-from kpi_calib_ros.core.estimation import identify
-from kpi_calib_ros.core.prior import Prior, drift_widened, tolerance_prior
+from kpi_calib_ros.core.estimation.least_squares import identify
+from kpi_calib_ros.core.estimation.prior import Prior, drift_widened, tolerance_prior
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,
@@ -209,8 +209,8 @@ def test_cell_prior_key_is_validated(tmp_path):
 
 
 def test_cross_validation_holds_out_whole_poses(cell, campaign):
-    from kpi_calib_ros.core.measurement import Measurements
-    from kpi_calib_ros.core.model_selection import cross_validated_level_rms, level_free
+    from kpi_calib_ros.core.diagnosis.model_selection import cross_validated_level_rms, level_free
+    from kpi_calib_ros.core.measurement.tracker import Measurements
     data, _ = campaign
     # Each pose measured twice (as by two reflectors at the same joint values).
     twice = Measurements(q=np.repeat(data.q, 2, axis=0), eta=np.repeat(data.eta, 2, axis=0))
@@ -238,7 +238,7 @@ def test_d_tolerances_weigh_against_the_noise_the_data_show(cell):
     much. Balanced (core.precision.balanced_prior) the prior is tightened by the χ²/dof
     the residuals show (≈ 25), the estimate is the posterior of the true noise (smaller
     TCP error than the unbalanced MAP) and the scaled covariance matches Monte Carlo."""
-    from kpi_calib_ros.core.precision import balanced_prior, honest_precision
+    from kpi_calib_ros.core.estimation.precision import balanced_prior, honest_precision
     prior, rng, q, draw = _drawn_from_the_prior(cell, seed=12, poses=12)
     true_sigma = 5 * SIGMA
     scales, err_bal, err_plain, stated = [], [], [], []

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kpi_calib_ros.core.estimation import (
+from kpi_calib_ros.core.estimation.least_squares import (
     FTOL,
     STATISTICAL,
     Tolerances,
@@ -101,7 +101,7 @@ def test_the_previous_calibration_in_its_own_gauge_only_adds_information(cell, t
 def test_innovation_chi2_follows_its_distribution_when_the_truth_is_drawn_from_the_prior(
         cell, first_cycle):
     from kpi_calib_ros.app.reidentify import cycle_prior, cycle_start
-    from kpi_calib_ros.core.change_detection import change_test
+    from kpi_calib_ros.core.campaigns.change_detection import change_test
     cal, doc = first_cycle
     cp = cycle_prior(cell, doc, None, keep_placement=True, hours=2.0)
     start = cycle_start(cell, _cycle_data(cell, cal.result.values, 10, 0), cp)
@@ -181,8 +181,12 @@ def test_identify_with_prior_exits_3_on_a_different_robot_and_keeps_the_calibrat
 def test_design_with_the_prior_predicts_the_map_covariance_of_its_poses(cell, first_cycle):
     from kpi_calib_ros.app.design import design_free
     from kpi_calib_ros.app.reidentify import cycle_prior
-    from kpi_calib_ros.core.design import DesignSettings, design_context, design_measurements
-    from kpi_calib_ros.core.measurement import Measurements
+    from kpi_calib_ros.core.design.optimum import (
+        DesignSettings,
+        design_context,
+        design_measurements,
+    )
+    from kpi_calib_ros.core.measurement.tracker import Measurements
     _, doc = first_cycle
     cp = cycle_prior(cell, doc, None, keep_placement=True, hours=1.0)
     p = cell.model.params.with_values(cp.values)
@@ -212,13 +216,13 @@ def test_the_drift_state_filter_matches_monte_carlo_of_the_swing_process():
     (transition Φ, discrete noise Q), measured every cycle with noise; the posterior
     error of the parameters and of the rates after 12 cycles has the variance the filter
     states (χ²(1) means within 3 std over 400 trials) and no bias."""
-    from kpi_calib_ros.core.drift_state import (
+    from kpi_calib_ros.core.estimation.drift_state import (
         DriftSwing,
         state_predicted,
         state_updated,
         stationary_state,
     )
-    from kpi_calib_ros.core.prior import Prior
+    from kpi_calib_ros.core.estimation.prior import Prior
     swing = DriftSwing(10.0, 5e-5, 24.0)
     names = ('a', 'b')
     shape = np.array([[4e-8, 1e-8], [1e-8, 1e-8]])       # swing amplitudes 200, 100 µm
@@ -259,14 +263,14 @@ def test_the_drift_state_filter_matches_monte_carlo_of_the_swing_process():
 
 
 def test_the_stationary_drift_state_stays_stationary_and_bad_states_are_refused():
-    from kpi_calib_ros.core.drift_state import (
+    from kpi_calib_ros.core.errors import DataError
+    from kpi_calib_ros.core.estimation.drift_state import (
         DriftState,
         DriftSwing,
         state_predicted,
         stationary_state,
     )
-    from kpi_calib_ros.core.errors import DataError
-    from kpi_calib_ros.core.prior import Prior
+    from kpi_calib_ros.core.estimation.prior import Prior
     from kpi_calib_ros.io.calibration_file import drift_state_from_dict
     swing = DriftSwing(5.0, 5e-5)
     shape = np.diag([1e-8, 4e-8])
@@ -295,7 +299,7 @@ def test_a_cycle_with_a_drift_state_stores_it_and_the_next_prior_follows_its_rat
     import yaml
 
     from kpi_calib_ros.app.reidentify import cycle_prior, reidentification_document, reidentify
-    from kpi_calib_ros.core.drift_state import DriftSwing
+    from kpi_calib_ros.core.estimation.drift_state import DriftSwing
     from kpi_calib_ros.io.calibration_file import drift_state_from_dict
     p_true, _ = truth
     _, doc = first_cycle

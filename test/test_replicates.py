@@ -1,4 +1,5 @@
-"""The same pose measured again (core/replicates.py): one tolerance in joint space, checked
+"""The same pose measured again (core/measurement/replicates.py): one tolerance in joint space,
+checked
 against the re-reads of a real robot, and the grouping of replicates."""
 import csv
 import os
@@ -6,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kpi_calib_ros.core.replicates import SAME_POSE_TOLERANCE, pose_groups, same_pose
+from kpi_calib_ros.core.measurement.replicates import SAME_POSE_TOLERANCE, pose_groups, same_pose
 
 _BESIDE = Path(__file__).resolve().parents[2] / 'shared' / 'data' / 'tiago_mocap'
 TIAGO = Path(os.environ.get('TIAGO_MOCAP_DIR') or (

@@ -16,19 +16,19 @@ import pytest
 import scipy.stats
 
 from kpi_calib_ros.app.diagnose import with_misfit_answer
-from kpi_calib_ros.core.diagnosis import CellDiagnosis, diagnose
-from kpi_calib_ros.core.estimation import identify
-from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.misfit import GENERAL, NAMED, NONE, SMOOTH, Remedy, answer_misfit
-from kpi_calib_ros.core.residual_analysis import (
+from kpi_calib_ros.core.diagnosis.candidates import CellDiagnosis, diagnose
+from kpi_calib_ros.core.diagnosis.misfit import GENERAL, NAMED, NONE, SMOOTH, Remedy, answer_misfit
+from kpi_calib_ros.core.diagnosis.residual_analysis import (
     _holm,
     analyse_calibration,
     analyse_residuals,
     fourier_basis,
     spline_basis,
 )
-from kpi_calib_ros.core.residual_inputs import ResidualInput
-from kpi_calib_ros.core.residuals import LinearizedFit, orthonormal_basis
+from kpi_calib_ros.core.diagnosis.residual_inputs import ResidualInput
+from kpi_calib_ros.core.estimation.least_squares import identify
+from kpi_calib_ros.core.estimation.residuals import LinearizedFit, orthonormal_basis
+from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.simulation import random_configurations, true_parameters
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 from kpi_calib_ros.io.report import write_report

@@ -18,12 +18,12 @@ from rclpy.parameter import Parameter
 from visualization_msgs.msg import MarkerArray
 
 from kpi_calib_ros.app.identify import identify_cell
+from kpi_calib_ros.core.acquisition.streams import synthesize_streams
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,
     true_parameters,
 )
-from kpi_calib_ros.core.streams import synthesize_streams
 from kpi_calib_ros.io.cell import build_cell_model, load_cell
 from kpi_calib_ros.io.resources import resolve_uri
 from kpi_calib_ros.ros import conversions as cv

@@ -20,8 +20,8 @@ from sensor_msgs.msg import JointState
 
 from kpi_calib_ros import cli
 from kpi_calib_ros.app.measurements import measurements_from_bag
+from kpi_calib_ros.core.acquisition.streams import synthesize_streams
 from kpi_calib_ros.core.simulation import random_configurations, true_parameters
-from kpi_calib_ros.core.streams import synthesize_streams
 from kpi_calib_ros.io.bag_writing import BagStream
 from kpi_calib_ros.io.cell import DEFAULT_CELL
 from kpi_calib_ros.io.names import DEFAULT_POINT_TOPIC, point_sigma_topic

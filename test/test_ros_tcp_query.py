@@ -15,10 +15,10 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 
 from kpi_calib_ros.app.learned_residual import physical_covariance, predict_stored
-from kpi_calib_ros.core.estimation import identify
-from kpi_calib_ros.core.learned_residual import fit_learned_residual
-from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.precision import honest_precision
+from kpi_calib_ros.core.diagnosis.learned_residual import fit_learned_residual
+from kpi_calib_ros.core.estimation.least_squares import identify
+from kpi_calib_ros.core.estimation.precision import honest_precision
+from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,

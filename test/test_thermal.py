@@ -9,7 +9,9 @@ import pytest
 
 from kpi_calib_ros.app.diagnose import diagnose_cell, recorded_covariates
 from kpi_calib_ros.app.identify import calibrate_cell
-from kpi_calib_ros.core.covariates import (
+from kpi_calib_ros.core.diagnosis.candidates import augmented_model
+from kpi_calib_ros.core.effects.registry import candidate_effects, parse_effect_spec
+from kpi_calib_ros.core.measurement.covariates import (
     DELTA_TEMPERATURE,
     TemperatureSample,
     interpolate,
@@ -17,9 +19,7 @@ from kpi_calib_ros.core.covariates import (
     temperature_covariates,
     with_covariates,
 )
-from kpi_calib_ros.core.diagnosis import augmented_model
-from kpi_calib_ros.core.effects import candidate_effects, parse_effect_spec
-from kpi_calib_ros.core.measurement import Measurements
+from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,
@@ -168,7 +168,7 @@ def test_no_thermal_effect_on_a_warm_up_the_geometry_explains(cm):
 def _recorded(cm, tmp_path, temperatures, n=6, seed=3):
     """A bag of ``n`` poses (joint states, points) and ``temperatures`` [(stamp, frame, °C)]
     on the default temperature topic; the points' stamps."""
-    from kpi_calib_ros.core.streams import synthesize_streams
+    from kpi_calib_ros.core.acquisition.streams import synthesize_streams
     from kpi_calib_ros.io.bag_writing import BagStream
     from kpi_calib_ros.io.names import DEFAULT_TEMPERATURE_TOPIC
     rng = np.random.default_rng(seed)
@@ -274,8 +274,8 @@ def test_at_one_temperature_a_thermal_effect_is_not_distinguishable(cm):
     """ΔT the same at every pose: link growth is a fixed change of the link lengths and a
     drift a fixed zero offset, which the geometry reproduces; the screen says so and asks for
     measurements while the temperature changes."""
-    from kpi_calib_ros.core.diagnosis import screen_effects
-    from kpi_calib_ros.core.estimation import identify
+    from kpi_calib_ros.core.diagnosis.candidates import screen_effects
+    from kpi_calib_ros.core.estimation.least_squares import identify
     rng = np.random.default_rng(5)
     p_true = true_parameters(cm.model.params, rng)
     q = random_configurations(cm.model, cm.model.params.nominal, 40, rng)

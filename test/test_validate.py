@@ -19,14 +19,14 @@ from kpi_calib_ros.app.validate import (
     validation_to_dict,
 )
 from kpi_calib_ros.cli import main
-from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.replicates import SAME_POSE_TOLERANCE
+from kpi_calib_ros.core.acquisition.streams import synthesize_streams
+from kpi_calib_ros.core.measurement.replicates import SAME_POSE_TOLERANCE
+from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,
     true_parameters,
 )
-from kpi_calib_ros.core.streams import synthesize_streams
 from kpi_calib_ros.io.bag_writing import write_bag
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict, load_cell
 from kpi_calib_ros.io.csv_import import read_postures

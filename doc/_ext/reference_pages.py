@@ -4,7 +4,7 @@ The code is the source of these pages: the ``kpi-calib`` argparse parser
 (:func:`kpi_calib_ros.cli.build_parser`), the node's parameters
 (:data:`kpi_calib_ros.ros.parameters.PARAMETERS`), its topics and services (the names of
 :mod:`kpi_calib_ros.io.names`, the message types as ``ros/node.py`` creates them), the
-effect library (:data:`kpi_calib_ros.core.effect_library.LIBRARY`) and the cell keys
+effect library (:data:`kpi_calib_ros.core.effects.library.LIBRARY`) and the cell keys
 (:data:`kpi_calib_ros.io.cell_schema.CELL_KEYS`). Each page goes to
 ``doc/reference/_generated/`` (not committed); ``bench/results/*.md`` are copied to
 ``doc/_generated/bench/`` so the benchmark page links them.
@@ -195,8 +195,12 @@ def node_page() -> str:
 
 # ------------------------------------------------------------------------ effects
 def effects_page() -> str:
-    from kpi_calib_ros.core.effect_library import LIBRARY
-    from kpi_calib_ros.core.effects import ARGUMENT_EFFECTS, CHAIN_EFFECTS, ENTRY_POINT_GROUP
+    from kpi_calib_ros.core.effects.library import LIBRARY
+    from kpi_calib_ros.core.effects.registry import (
+        ARGUMENT_EFFECTS,
+        CHAIN_EFFECTS,
+        ENTRY_POINT_GROUP,
+    )
 
     # The cell loader imports the chain effects (core.gravity_compliance and
     # core.general_effects register themselves).
@@ -206,7 +210,8 @@ def effects_page() -> str:
            '`effects:` add, as `name:joint` (per joint) or `name` (global). Parameter names '
            'are `<name>.<joint>.<parameter>`. Plausible: the largest |value| a fit may take '
            'before it is flagged and never suggested. Your own effects: '
-           '{py:func}`kpi_calib_ros.core.effects.register_effect`, or the entry point group '
+           '{py:func}`kpi_calib_ros.core.effects.registry.register_effect`, '
+           'or the entry point group '
            f'`{ENTRY_POINT_GROUP}`.\n']
     rows = []
     for e in LIBRARY:
@@ -238,12 +243,12 @@ def effects_page() -> str:
     out.append(table(['effect', 'parameters [unit] on joint_2', 'what it models'], rows))
     out.append('## General effects\n')
     out.append('When no named effect explains the misfit, `diagnose` offers general ones that '
-               'still mean something physical ({py:mod}`kpi_calib_ros.core.general_effects`): '
+               'still mean something physical ({py:mod}`kpi_calib_ros.core.effects.general`): '
                'the link bending of every joint that carries mass, and per revolute joint a '
                'joint error periodic at the frequency (cycles per revolution) where the '
                'periodogram of the residuals peaks '
-               '({py:mod}`kpi_calib_ros.core.periodic_search`; the search is counted in the '
-               'p-value). They pass the same screen, plausibility check and before/after as '
+               '({py:mod}`kpi_calib_ros.core.diagnosis.periodic_search`; the search is counted '
+               'in the p-value). They pass the same screen, plausibility check and before/after as '
                'the library, and rank after the significant, plausible named effects unless '
                'they predict held-out poses 5 % better. Shown on `joint_2` of the built-in '
                'cell (the periodic error at k = 17).\n')

@@ -12,15 +12,15 @@ from typing import Any
 
 import numpy as np
 
-from kpi_calib_ros.core.dh import dh_table
-from kpi_calib_ros.core.estimability import KpiEstimability
-from kpi_calib_ros.core.estimation import CalibrationResult
-from kpi_calib_ros.core.gravity_compliance import compliance_warnings, mass_warning
-from kpi_calib_ros.core.model_selection import ModelChoice
-from kpi_calib_ros.core.pairing import PairingResult
-from kpi_calib_ros.core.precision import ExpectedTcpError
-from kpi_calib_ros.core.registration import Registration
-from kpi_calib_ros.core.robust import LOSS_SCALE, ExcludedMeasurement, RobustResult
+from kpi_calib_ros.core.acquisition.pairing import PairingResult
+from kpi_calib_ros.core.diagnosis.model_selection import ModelChoice
+from kpi_calib_ros.core.effects.gravity_compliance import compliance_warnings, mass_warning
+from kpi_calib_ros.core.estimation.estimability import KpiEstimability
+from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
+from kpi_calib_ros.core.estimation.precision import ExpectedTcpError
+from kpi_calib_ros.core.estimation.registration import Registration
+from kpi_calib_ros.core.estimation.robust import LOSS_SCALE, ExcludedMeasurement, RobustResult
+from kpi_calib_ros.core.model.dh import dh_table
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.names import CALIBRATED_URDF_FILE, FAILED_CALIBRATION_FILE
 from kpi_calib_ros.io.results import calibration_to_dict, write_atomic, write_calibration

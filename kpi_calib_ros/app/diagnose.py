@@ -20,25 +20,25 @@ from kpi_calib_ros.app.identify import (
 )
 from kpi_calib_ros.app.learned_residual import choose_residual
 from kpi_calib_ros.app.measurements import load_measurements
-from kpi_calib_ros.core.covariates import TEMPERATURE_PREFIX
-from kpi_calib_ros.core.diagnosis import (
+from kpi_calib_ros.core.diagnosis.candidates import (
     CellDiagnosis,
     Diagnosis,
     ModelComparison,
     compare_models,
     diagnose,
 )
-from kpi_calib_ros.core.effect_selection import effect_start
-from kpi_calib_ros.core.effects import implausible, parse_effect_spec
-from kpi_calib_ros.core.learned_residual import ResidualChoice
-from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.misfit import GENERAL, NAMED, Remedy, answer_misfit
-from kpi_calib_ros.core.model_selection import level_free
-from kpi_calib_ros.core.out_of_sample import out_of_sample_error
-from kpi_calib_ros.core.precision import expected_tcp_error
-from kpi_calib_ros.core.residual_analysis import analyse_calibration
-from kpi_calib_ros.core.residuals import ADEQUACY_ALPHA, is_adequate
-from kpi_calib_ros.core.robust import subset
+from kpi_calib_ros.core.diagnosis.effect_selection import effect_start
+from kpi_calib_ros.core.diagnosis.learned_residual import ResidualChoice
+from kpi_calib_ros.core.diagnosis.misfit import GENERAL, NAMED, Remedy, answer_misfit
+from kpi_calib_ros.core.diagnosis.model_selection import level_free
+from kpi_calib_ros.core.diagnosis.out_of_sample import out_of_sample_error
+from kpi_calib_ros.core.diagnosis.residual_analysis import analyse_calibration
+from kpi_calib_ros.core.effects.registry import implausible, parse_effect_spec
+from kpi_calib_ros.core.estimation.precision import expected_tcp_error
+from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA, is_adequate
+from kpi_calib_ros.core.estimation.robust import subset
+from kpi_calib_ros.core.measurement.covariates import TEMPERATURE_PREFIX
+from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.names import DIAGNOSIS_FILE
 from kpi_calib_ros.io.report import diagnosis_text, write_report
@@ -55,7 +55,7 @@ def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
     add the top one and compare before/after (full nonlinear refit). ``model`` (or the
     cell's ``identification.model``) sets the model level the effects are screened
     against; the default geometric is the full model. Both calibrations carry their
-    predicted out-of-sample error (:mod:`kpi_calib_ros.core.out_of_sample`). The points
+    predicted out-of-sample error (:mod:`kpi_calib_ros.core.diagnosis.out_of_sample`). The points
     diagnosed are those :func:`~kpi_calib_ros.app.identify.calibrate_cell` keeps
     (``kept``, ``excluded`` of the result); ``progress`` gets its exclusion rounds.
     The residuals are also analysed model-free (:func:`with_misfit_answer`), with the
@@ -119,7 +119,7 @@ def with_misfit_answer(cd: CellDiagnosis,
                        ) -> CellDiagnosis:
     """``cd`` with the residual analysis of its calibration (each joint, gravity torque,
     tracker distance, time, reflector and ``covariates``, :mod:`~kpi_calib_ros.core.
-    residual_analysis`) and the four answers (:func:`~kpi_calib_ros.core.misfit.
+    residual_analysis`) and the four answers (:func:`~kpi_calib_ros.core.diagnosis.misfit.
     answer_misfit`). Covariates are given per given measurement, the kept ones analysed."""
     keep = np.ones(len(cd.data), bool) if cd.kept is None else cd.kept
     kept_covariates = {name: (np.asarray(values)[keep], unit)

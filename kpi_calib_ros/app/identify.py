@@ -22,27 +22,27 @@ from kpi_calib_ros.app.calibration_document import (
     write_results,
 )
 from kpi_calib_ros.app.measurements import load_measurements
-from kpi_calib_ros.core.diagnosis import augmented_model, compare_models
-from kpi_calib_ros.core.effect_selection import choose_effects
-from kpi_calib_ros.core.effects import BoundEffect, parse_effect_spec
+from kpi_calib_ros.core.diagnosis.candidates import augmented_model, compare_models
+from kpi_calib_ros.core.diagnosis.effect_selection import choose_effects
+from kpi_calib_ros.core.diagnosis.model_selection import ModelChoice, choose_model, level_free
+from kpi_calib_ros.core.effects.registry import BoundEffect, parse_effect_spec
 from kpi_calib_ros.core.errors import ConfigError, DataError
-from kpi_calib_ros.core.estimability import result_estimability
-from kpi_calib_ros.core.estimation import CalibrationResult, identify
-from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
-from kpi_calib_ros.core.model_selection import ModelChoice, choose_model, level_free
-from kpi_calib_ros.core.precision import (
+from kpi_calib_ros.core.estimation.estimability import result_estimability
+from kpi_calib_ros.core.estimation.least_squares import CalibrationResult, identify
+from kpi_calib_ros.core.estimation.precision import (
     balanced_prior,
     expected_tcp_error,
     honest_precision,
 )
-from kpi_calib_ros.core.prior import Prior, tolerance_prior
-from kpi_calib_ros.core.registration import Registration, register
-from kpi_calib_ros.core.robust import (
+from kpi_calib_ros.core.estimation.prior import Prior, tolerance_prior
+from kpi_calib_ros.core.estimation.registration import Registration, register
+from kpi_calib_ros.core.estimation.robust import (
     RobustResult,
     gross_outliers,
     robust_identify,
     subset,
 )
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.names import LEARNED_RESIDUAL_FILE
 from kpi_calib_ros.io.report import comparison_text, comparison_to_dict
@@ -79,7 +79,7 @@ def registered_start(cm: CellModel, data: Measurements) -> tuple[np.ndarray, Reg
     offset is left out of the cell, or the nominal prediction misses the measured points
     by more than :data:`REGISTER_ABOVE_M` (median): then the base pose in the tracker
     frame and every reflector offset on the tip are registered from the points
-    (:func:`kpi_calib_ros.core.registration.register`) and replace the nominal ones.
+    (:func:`kpi_calib_ros.core.estimation.registration.register`) and replace the nominal ones.
     Returns the start vector and the registration (None if not run).
 
     Raises
@@ -152,9 +152,9 @@ def identify_cell(cm: CellModel, data: Measurements, p0: np.ndarray | None = Non
     Without ``p0`` the start is :func:`registered_start`: an unknown or far-off
     placement is registered from the data first. Covariances come from the stated σ when
     the χ² test accepts the model, else they are scaled by χ²/dof
-    (``result.covariance_scale``, see :mod:`kpi_calib_ros.core.precision`). ``prior``
+    (``result.covariance_scale``, see :mod:`kpi_calib_ros.core.estimation.precision`). ``prior``
     defaults to the cell's :func:`cell_prior`, weighed against the noise the data show
-    (:func:`kpi_calib_ros.core.precision.balanced_prior`).
+    (:func:`kpi_calib_ros.core.estimation.precision.balanced_prior`).
     """
     if len(data) == 0:
         raise DataError('no accepted measurement to identify from')
@@ -173,7 +173,7 @@ def _fit_function(cm: CellModel, start: np.ndarray | None = None,
     """``fit(data, free, p0=None, point_weights=None)``: identify with the cell's settings
     and ``prior``, from ``start`` (e.g. the registered placement) when no ``p0`` is given.
     ``balance``: ``prior`` is a tolerance prior, tightened for every fit by the noise
-    scale its data show (:func:`kpi_calib_ros.core.precision.balanced_prior`), the scale
+    scale its data show (:func:`kpi_calib_ros.core.estimation.precision.balanced_prior`), the scale
     appended to ``scales``."""
     def fit(d: Measurements, free: list[str], p0: np.ndarray | None = None,
             point_weights: np.ndarray | None = None) -> CalibrationResult:
@@ -198,7 +198,7 @@ def choose_level(cm: CellModel, data: Measurements, model: str | None = None,
                  fit: Callable[..., CalibrationResult] | None = None) -> ModelChoice:
     """The model level to identify: ``model`` or the cell's ``identification.model``;
     ``auto`` is decided by the predicted out-of-sample error on ``data`` (fits from
-    ``start``, or by ``fit``; :func:`kpi_calib_ros.core.model_selection.choose_model`)."""
+    ``start``, or by ``fit``; :func:`kpi_calib_ros.core.diagnosis.model_selection.choose_model`)."""
     requested = model or cm.cell.identification.model
     if requested == 'auto':
         return choose_model(cm.model, data, fit or _fit_function(cm, start, prior), 'auto',
@@ -278,8 +278,8 @@ def add_chosen_effects(cm: CellModel, data: Measurements, choice: ModelChoice,
                        ) -> tuple[CellModel, np.ndarray, ModelChoice]:
     """``auto``'s second step: the physical effects the diagnosis finds significant and
     plausible on ``data`` that predict new measurements better
-    (:func:`kpi_calib_ros.core.effect_selection.choose_effects`), added to ``cm``'s model at
-    the chosen level. Returns the cell model with them, the start vector extended with
+    (:func:`kpi_calib_ros.core.diagnosis.effect_selection.choose_effects`), added to ``cm``'s model
+    at the chosen level. Returns the cell model with them, the start vector extended with
     their nominal values (0) and the choice with the effects and the record."""
     n_geo = len(cm.geometric)
 

@@ -2,7 +2,7 @@
 TCP predicted with it (the CLI's ``identify --learned-residual`` and the node's
 ``~/tcp_query``).
 
-See :mod:`kpi_calib_ros.core.learned_residual` for the model and its choice; this module
+See :mod:`kpi_calib_ros.core.diagnosis.learned_residual` for the model and its choice; this module
 feeds it the point rows of a calibration, writes learned_residual.yaml and predicts the
 TCP at joint values with both parts of its uncertainty.
 """
@@ -13,8 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from kpi_calib_ros.core.estimation import CalibrationResult
-from kpi_calib_ros.core.learned_residual import (
+from kpi_calib_ros.core.diagnosis.learned_residual import (
     CorrectedTcp,
     LearnedResidual,
     ResidualChoice,
@@ -22,8 +21,9 @@ from kpi_calib_ros.core.learned_residual import (
     fit_learned_residual,
     residual_noise_scale,
 )
-from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
-from kpi_calib_ros.core.precision import expected_tcp_error
+from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
+from kpi_calib_ros.core.estimation.precision import expected_tcp_error
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.learned_residual_file import (
     StoredResidual,
@@ -62,7 +62,8 @@ def physical_covariance(result: CalibrationResult, residual: LearnedResidual | N
 def physical_misfit(model: MeasurementModel, data: Measurements,
                     result: CalibrationResult) -> float:
     """b (m): the physical model's held-out misfit
-    (:func:`kpi_calib_ros.core.precision.expected_tcp_error`), 0 when χ² accepts it or it is
+    (:func:`kpi_calib_ros.core.estimation.precision.expected_tcp_error`), 0 when χ² accepts it or it
+    is
     not estimable from the design."""
     misfit = expected_tcp_error(model, data, result).misfit_m
     return float(misfit) if np.isfinite(misfit) else 0.0
@@ -74,7 +75,7 @@ def predict_tcp(model: MeasurementModel, values: np.ndarray, estimated: tuple[st
                 misfit_m: float = 0.0) -> CorrectedTcp:
     """The TCP (KPI point) at URDF joint values ``q`` (M, n): the physical model at
     ``values`` plus the learned residual, with the covariance of both parts
-    (:func:`kpi_calib_ros.core.learned_residual.corrected_tcp`)."""
+    (:func:`kpi_calib_ros.core.diagnosis.learned_residual.corrected_tcp`)."""
     q = np.atleast_2d(np.asarray(q, float))
     tcp, jac = model.jacobian(np.asarray(values, float), q)
     idx = model.params.indices(list(estimated))

@@ -1,5 +1,5 @@
 """Measurements for identification: recorded or live samples paired into
-:class:`~kpi_calib_ros.core.measurement.Measurements` of a cell, the one path every front
+:class:`~kpi_calib_ros.core.measurement.tracker.Measurements` of a cell, the one path every front
 end uses (the CLI, the node and the demo), so a bag replayed into the node and the same bag
 read offline give the same rows.
 
@@ -17,16 +17,16 @@ from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 
-from kpi_calib_ros.core.covariates import (
+from kpi_calib_ros.core.acquisition.pairing import PairingResult, pair_measurements, split_frame
+from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
+from kpi_calib_ros.core.effects.registry import split_specs
+from kpi_calib_ros.core.errors import DataError
+from kpi_calib_ros.core.measurement.covariates import (
     TemperatureSample,
     temperature_covariates,
     with_covariates,
 )
-from kpi_calib_ros.core.effects import split_specs
-from kpi_calib_ros.core.errors import DataError
-from kpi_calib_ros.core.measurement import Measurements, with_rotation_rows
-from kpi_calib_ros.core.pairing import PairingResult, pair_measurements, split_frame
-from kpi_calib_ros.core.streams import JointSample, PointSample
+from kpi_calib_ros.core.measurement.tracker import Measurements, with_rotation_rows
 from kpi_calib_ros.io.bag import read_for_pairing, read_temperatures
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
 from kpi_calib_ros.io.measurement_log import stored_pairing
@@ -108,7 +108,7 @@ def stated_sigma(pairing: PairingResult,
 def pose_rows(cm: CellModel, data: Measurements,
               pairing: PairingResult | None) -> Measurements:
     """``data`` with the rotation row of every tracked 6-DoF pose of ``pairing`` (see
-    :func:`kpi_calib_ros.core.measurement.with_rotation_rows`); None: no pairing, as is."""
+    :func:`kpi_calib_ros.core.measurement.tracker.with_rotation_rows`); None: no pairing, as is."""
     if pairing is None or pairing.rotations is None:
         return data
     try:
@@ -147,8 +147,8 @@ def measurements_from_bag(cm: CellModel, path: str | Path,
 
 def with_temperature(cm: CellModel, data: Measurements, path: str | Path) -> Measurements:
     """``data`` with the temperatures of the cell's ``temperature:`` topic in the bag
-    ``path`` paired to every row by its stamp (:mod:`kpi_calib_ros.core.covariates`); rows
-    without a temperature are refused with a warning. ``data`` unchanged without the
+    ``path`` paired to every row by its stamp (:mod:`kpi_calib_ros.core.measurement.covariates`);
+    rows without a temperature are refused with a warning. ``data`` unchanged without the
     section.
 
     Raises

@@ -14,7 +14,7 @@ update a proper Kalman step:
   random poses and no drift the TCP std grew from 16 µm (prior) to 49-62 µm.
 * **the start is the prior mean** (every parameter at the previous calibration's value),
   not the nominal robot;
-* **a change is not blended** (:mod:`kpi_calib_ros.core.change_detection`): when the new
+* **a change is not blended** (:mod:`kpi_calib_ros.core.campaigns.change_detection`): when the new
   points contradict the prior beyond the drift model, nothing is updated; the document
   goes to calibration.failed.yaml with the ``change_test`` and the moved parameters, and
   ``kpi-calib identify`` exits with :data:`EXIT_CHANGE`.
@@ -44,20 +44,19 @@ from kpi_calib_ros.app.identify import (
 )
 from kpi_calib_ros.app.measurements import load_measurements
 from kpi_calib_ros.app.validate import calibration_noise_scale
-from kpi_calib_ros.core.change_detection import CHANGE_ALPHA, ChangeTest, change_test
-from kpi_calib_ros.core.drift_state import (
+from kpi_calib_ros.core.acquisition.pairing import PairingResult
+from kpi_calib_ros.core.campaigns.change_detection import CHANGE_ALPHA, ChangeTest, change_test
+from kpi_calib_ros.core.diagnosis.model_selection import level_free
+from kpi_calib_ros.core.errors import DataError
+from kpi_calib_ros.core.estimation.drift_state import (
     DriftState,
     DriftSwing,
     initial_state,
     state_predicted,
     state_updated,
 )
-from kpi_calib_ros.core.errors import DataError
-from kpi_calib_ros.core.estimation import CalibrationResult, identify
-from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.model_selection import level_free
-from kpi_calib_ros.core.pairing import PairingResult
-from kpi_calib_ros.core.prior import (
+from kpi_calib_ros.core.estimation.least_squares import CalibrationResult, identify
+from kpi_calib_ros.core.estimation.prior import (
     DRIFT_ANGLE_PER_SQRT_HOUR,
     DRIFT_LENGTH_PER_SQRT_HOUR,
     PLACEMENT_PREFIXES,
@@ -65,6 +64,7 @@ from kpi_calib_ros.core.prior import (
     drift_covariance,
     mapped_drift,
 )
+from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.simulation import random_configurations
 from kpi_calib_ros.io.calibration_file import (
     drift_state_from_dict,
@@ -159,7 +159,7 @@ def cycle_prior(cm: CellModel, doc: dict[str, Any], data: Measurements | None,
                 swing: DriftSwing | None = None) -> CyclePrior:
     """The previous calibration ``doc`` (calibration.yaml) as the prior of ``data``.
 
-    Drift (:func:`kpi_calib_ros.core.prior.drift_widened`) over the time from its
+    Drift (:func:`kpi_calib_ros.core.estimation.prior.drift_widened`) over the time from its
     ``identified_at_ns`` to the first measurement of ``data`` (or over ``hours``, e.g.
     for a design before the data exist): ``thermal`` grows each
     translation along its nominal vector (rank one, the physics of thermal expansion),
@@ -169,11 +169,11 @@ def cycle_prior(cm: CellModel, doc: dict[str, Any], data: Measurements | None,
     reflector offsets grow by ``placement_rate`` (relative, per √hour; default
     ``length_rate``: the floor between tracker and robot expands like the arm).
 
-    ``swing`` (:class:`~kpi_calib_ros.core.drift_state.DriftSwing`) adds a drift state: the
-    deviations and rates of the prior's parameters (``drift_state`` of ``doc``; the
+    ``swing`` (:class:`~kpi_calib_ros.core.estimation.drift_state.DriftSwing`) adds a drift state:
+    the deviations and rates of the prior's parameters (``drift_state`` of ``doc``; the
     swing's stationary state when it has none, backwards compatible) extrapolate the prior
-    over the drift time (:func:`~kpi_calib_ros.core.drift_state.state_predicted`), on top of the
-    random walks. The swing of link translations (along each link's vector for
+    over the drift time (:func:`~kpi_calib_ros.core.estimation.drift_state.state_predicted`), on top
+    of the random walks. The swing of link translations (along each link's vector for
     ``thermal``) and joint offsets is modelled, mapped onto the identified parameters as
     the random walk is; placement rotations, the base and the reflectors get none.
 
@@ -437,7 +437,7 @@ def run_reidentify(cell_path: str | Path, bag_path: str | Path, out_dir: str | P
     """``kpi-calib identify --prior OLD/calibration.yaml``.
 
     ``swing`` (``--drift-velocity``): the daily swing of the drift state
-    (:class:`~kpi_calib_ros.core.drift_state.DriftSwing`).
+    (:class:`~kpi_calib_ros.core.estimation.drift_state.DriftSwing`).
 
     Returns 0 for a valid calibration, 1 when it did not converge or the TCP is not
     estimable, :data:`EXIT_CHANGE` (3) when the new points contradict the prior beyond

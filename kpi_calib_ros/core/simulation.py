@@ -15,9 +15,9 @@ from typing import Callable, Mapping
 import numpy as np
 
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
-from kpi_calib_ros.core.parameters import ParameterSet
-from kpi_calib_ros.core.pose_measurement import noisy_rotations
+from kpi_calib_ros.core.measurement.pose import noisy_rotations
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements
+from kpi_calib_ros.core.model.parameters import ParameterSet
 
 _DEG = np.pi / 180.0
 
@@ -200,8 +200,8 @@ def simulate_measurements(model: MeasurementModel, p_true: np.ndarray, q: np.nda
     exact: the measurements carry the readings q + N(0, joint_sigma²) of the true joints q
     (drawn after the tracker noise, so the points are the same as without it).
     ``covariates`` (name -> (N,), e.g. a temperature ramp over a shift,
-    :func:`kpi_calib_ros.core.covariates.shift_temperature`) drive the true model's effects
-    that read them (a hidden thermal effect) and are recorded with the rows, as are
+    :func:`kpi_calib_ros.core.measurement.covariates.shift_temperature`) drive the true model's
+    effects that read them (a hidden thermal effect) and are recorded with the rows, as are
     ``stamps_ns`` (N,)."""
     q = np.atleast_2d(q)
     clean = model.predict(p_true, q, covariates=covariates)
@@ -274,7 +274,7 @@ def smooth_joint_map(q: np.ndarray, joints: tuple[int, int], amplitude_m: float,
     joints only and no physical effect of the library describes: each axis a product of
     sines of the two angles, ``amplitude_m`` its largest size, ``phase`` (6,) rad.
 
-    The unknown misfit the learned residual (:mod:`kpi_calib_ros.core.learned_residual`)
+    The unknown misfit the learned residual (:mod:`kpi_calib_ros.core.diagnosis.learned_residual`)
     is tested on."""
     q = np.atleast_2d(np.asarray(q, float))
     a, b = q[:, joints[0]], q[:, joints[1]]

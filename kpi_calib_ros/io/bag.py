@@ -25,9 +25,9 @@ from typing import Any, Callable
 import numpy as np
 from mcap_ros2.decoder import DecoderFactory
 
-from kpi_calib_ros.core.covariates import TemperatureSample
-from kpi_calib_ros.core.pairing import Pairer
-from kpi_calib_ros.core.streams import JointSample, PointSample
+from kpi_calib_ros.core.acquisition.pairing import Pairer
+from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
+from kpi_calib_ros.core.measurement.covariates import TemperatureSample
 from kpi_calib_ros.io.bag_writing import (
     DEFAULT_JOINT_TOPIC,
     DEFAULT_POINT_TOPIC,
@@ -382,7 +382,8 @@ def read_for_pairing(
     Parameters
     ----------
     window_ns : int, optional
-        The pairer's half-window (ns); default :class:`~kpi_calib_ros.core.pairing.Pairer`'s.
+        The pairer's half-window (ns); default
+        :class:`~kpi_calib_ros.core.acquisition.pairing.Pairer`'s.
     """
     if window_ns is None:
         window_ns = inspect.signature(Pairer).parameters['window_ns'].default

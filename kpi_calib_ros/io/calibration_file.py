@@ -18,9 +18,9 @@ from typing import Any
 
 import numpy as np
 
-from kpi_calib_ros.core.drift_state import DriftState
 from kpi_calib_ros.core.errors import ConfigError, DataError
-from kpi_calib_ros.core.prior import PLACEMENT_PREFIXES, Prior
+from kpi_calib_ros.core.estimation.drift_state import DriftState
+from kpi_calib_ros.core.estimation.prior import PLACEMENT_PREFIXES, Prior
 from kpi_calib_ros.io.yaml_bounded import load_yaml_bounded as _load_bounded
 from kpi_calib_ros.io.yaml_bounded import read_yaml_file
 

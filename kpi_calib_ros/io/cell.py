@@ -43,18 +43,18 @@ from typing import Any, Mapping
 import numpy as np
 import yaml
 
-from kpi_calib_ros.core.collision import Capsule, CollisionScene, HalfSpace
-from kpi_calib_ros.core.coupling import JointCoupling, identity_coupling
-from kpi_calib_ros.core.design import DesignSettings
-from kpi_calib_ros.core.design_cell import DesignCell
-from kpi_calib_ros.core.effects import resolve_effects
+from kpi_calib_ros.core.acquisition.coupling import JointCoupling, identity_coupling
+from kpi_calib_ros.core.collision.capsules import Capsule, CollisionScene, HalfSpace
+from kpi_calib_ros.core.design.cell import DesignCell
+from kpi_calib_ros.core.design.optimum import DesignSettings
+from kpi_calib_ros.core.effects.general import general_candidates  # noqa: F401  (registers specs)
+from kpi_calib_ros.core.effects.gravity_compliance import mass_warning
+from kpi_calib_ros.core.effects.registry import resolve_effects
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.core.general_effects import general_candidates  # noqa: F401  (registers specs)
-from kpi_calib_ros.core.gravity_compliance import mass_warning
-from kpi_calib_ros.core.measurement import MeasurementModel
-from kpi_calib_ros.core.parameters import ParameterSet, geometric_parameters
-from kpi_calib_ros.core.pose_measurement import pose_matrix
-from kpi_calib_ros.core.robot import Payload, RobotModel
+from kpi_calib_ros.core.measurement.pose import pose_matrix
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel
+from kpi_calib_ros.core.model.parameters import ParameterSet, geometric_parameters
+from kpi_calib_ros.core.model.robot import Payload, RobotModel
 from kpi_calib_ros.io.cell_sections import (
     WorkingPose,
     coupling_from_mapping,

@@ -8,10 +8,10 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from kpi_calib_ros.core.collision import Capsule, HalfSpace
-from kpi_calib_ros.core.coupling import JointCoupling
+from kpi_calib_ros.core.acquisition.coupling import JointCoupling
+from kpi_calib_ros.core.collision.capsules import Capsule, HalfSpace
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.core.pose_measurement import rotation_from_quaternion, rotation_from_rpy
+from kpi_calib_ros.core.measurement.pose import rotation_from_quaternion, rotation_from_rpy
 from kpi_calib_ros.io.cell_values import joint_value, non_negative, number, vector
 
 # Plausibility of SI values: beyond these a value is almost surely in other units.

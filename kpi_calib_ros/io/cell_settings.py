@@ -6,13 +6,16 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Mapping
 
-from kpi_calib_ros.core.design import DesignSettings
-from kpi_calib_ros.core.effects import BoundEffect, parse_effect_spec
+from kpi_calib_ros.core.design.optimum import DesignSettings
+from kpi_calib_ros.core.diagnosis.model_selection import DEFAULT_FOLDS, MODEL_CHOICES
+from kpi_calib_ros.core.effects.registry import BoundEffect, parse_effect_spec
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.core.estimation import DEFAULT_MAX_ITERATIONS, ITERATIONS_PER_PARAMETER
-from kpi_calib_ros.core.model_selection import DEFAULT_FOLDS, MODEL_CHOICES
-from kpi_calib_ros.core.robot import RobotModel
-from kpi_calib_ros.core.robust import LOSSES, OutlierSettings
+from kpi_calib_ros.core.estimation.least_squares import (
+    DEFAULT_MAX_ITERATIONS,
+    ITERATIONS_PER_PARAMETER,
+)
+from kpi_calib_ros.core.estimation.robust import LOSSES, OutlierSettings
+from kpi_calib_ros.core.model.robot import RobotModel
 from kpi_calib_ros.io.cell_values import non_negative, number, text_number_hint
 from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, DEFAULT_POSE_TOPIC
 
@@ -36,13 +39,13 @@ class IdentificationSettings:
     """The model size, loss and outlier keys of ``identification:``.
 
     model : ``auto`` (chosen by the predicted out-of-sample error) or a level of
-    :mod:`kpi_calib_ros.core.model_selection`; loss : ``linear``, ``huber`` or ``soft_l1``
-    (:mod:`kpi_calib_ros.core.robust`); outliers : exclusion settings; cv_folds : folds of
-    the cross-validated rms reported beside the model choice; prior : std (m, rad, rad)
+    :mod:`kpi_calib_ros.core.diagnosis.model_selection`; loss : ``linear``, ``huber`` or ``soft_l1``
+    (:mod:`kpi_calib_ros.core.estimation.robust`); outliers : exclusion settings; cv_folds : folds
+    of the cross-validated rms reported beside the model choice; prior : std (m, rad, rad)
     of the joint placement translations, rotations and joint offsets around the nominal
-    (:func:`kpi_calib_ros.core.prior.tolerance_prior`), None: no prior; max_iterations :
-    iteration limit of every fit (:func:`kpi_calib_ros.core.estimation.identify`), None:
-    100 per identified parameter.
+    (:func:`kpi_calib_ros.core.estimation.prior.tolerance_prior`), None: no prior; max_iterations :
+    iteration limit of every fit (:func:`kpi_calib_ros.core.estimation.least_squares.identify`),
+    None: 100 per identified parameter.
     """
 
     model: str = 'geometric'

@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from kpi_calib_ros.core.covariates import DEFAULT_MAX_GAP_NS, REFERENCE_TEMPERATURE_C
 from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.core.measurement.covariates import DEFAULT_MAX_GAP_NS, REFERENCE_TEMPERATURE_C
 from kpi_calib_ros.io.names import DEFAULT_TEMPERATURE_TOPIC
 
 TEMPERATURE_KEYS = ('topic', 'sensors', 'reference', 'max_gap')

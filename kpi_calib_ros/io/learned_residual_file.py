@@ -1,7 +1,7 @@
 """learned_residual.yaml: the learned residual stored beside calibration.yaml.
 
 The calibrated URDF cannot carry a correction over joint space, so the Gaussian process
-(:mod:`kpi_calib_ros.core.learned_residual`) is stored as plain numbers: its training
+(:mod:`kpi_calib_ros.core.diagnosis.learned_residual`) is stored as plain numbers: its training
 joint values and residuals and its kernel's hyperparameters (it is rebuilt exactly from
 them, no pickle), with the physical calibration it corrects (parameter values and the
 covariance of the estimated ones), so a TCP prediction needs this file and the cell
@@ -18,10 +18,10 @@ from typing import Any
 import numpy as np
 import yaml
 
+from kpi_calib_ros.core.diagnosis.learned_residual import LearnedResidual, ResidualChoice
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.core.estimation import CalibrationResult
-from kpi_calib_ros.core.learned_residual import LearnedResidual, ResidualChoice
-from kpi_calib_ros.core.measurement import MeasurementModel
+from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.io.names import LEARNED_RESIDUAL_FILE
 from kpi_calib_ros.io.results import write_atomic
 from kpi_calib_ros.io.yaml_bounded import read_yaml_file
@@ -45,7 +45,7 @@ class StoredResidual:
         The identified ones.
     covariance : (k, k) ndarray
         Their covariance with the noise the learned residual leaves
-        (:func:`kpi_calib_ros.core.learned_residual.residual_noise_scale`).
+        (:func:`kpi_calib_ros.core.diagnosis.learned_residual.residual_noise_scale`).
     covariance_outside : (k, k) ndarray
         Their covariance as reported without it (far from the training poses).
     misfit_m : float

@@ -29,10 +29,10 @@ from mcap.data_stream import RecordBuilder
 from mcap.records import Channel, Chunk, DataEnd, Footer, Header, Message, Metadata, Schema
 from mcap.well_known import MessageEncoding, SchemaEncoding
 
-from kpi_calib_ros.core.covariates import TemperatureSample
+from kpi_calib_ros.core.acquisition.pairing import PairingResult, split_frame, stacked_rotations
+from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
 from kpi_calib_ros.core.errors import DataError
-from kpi_calib_ros.core.pairing import PairingResult, split_frame, stacked_rotations
-from kpi_calib_ros.core.streams import JointSample, PointSample
+from kpi_calib_ros.core.measurement.covariates import TemperatureSample
 from kpi_calib_ros.io.bag import (
     DEFAULT_JOINT_TOPIC,
     DEFAULT_POINT_TOPIC,

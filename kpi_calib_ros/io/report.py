@@ -15,10 +15,10 @@ from typing import Any
 
 import numpy as np
 
-from kpi_calib_ros.core.diagnosis import Candidate, CellDiagnosis, ModelComparison
-from kpi_calib_ros.core.out_of_sample import DOMAIN_TEXT, NOT_ESTIMABLE, OutOfSample
-from kpi_calib_ros.core.periodic_search import Periodogram
-from kpi_calib_ros.core.precision import ExpectedTcpError, precision_statement
+from kpi_calib_ros.core.diagnosis.candidates import Candidate, CellDiagnosis, ModelComparison
+from kpi_calib_ros.core.diagnosis.out_of_sample import DOMAIN_TEXT, NOT_ESTIMABLE, OutOfSample
+from kpi_calib_ros.core.diagnosis.periodic_search import Periodogram
+from kpi_calib_ros.core.estimation.precision import ExpectedTcpError, precision_statement
 from kpi_calib_ros.io.names import DIAGNOSIS_FILE, REPORT_FILE
 from kpi_calib_ros.io.residual_plots import (
     analysis_lines,

@@ -1,11 +1,11 @@
 """Where the model fails: the ranked inputs, the four answers and partial-residual plots.
 
-Writes what :mod:`kpi_calib_ros.core.residual_analysis` and :mod:`kpi_calib_ros.core.misfit`
-compute: a ranked table (report.md and diagnosis.json) and ``partial_residuals.png`` -- for
-each of the top inputs, every row's residual along the direction the input moves the
-point, divided by the lever (the joint error it implies, a range error, a drift or a
-scale), against the input, with the smooth fit. Units: µrad, µm and ppm (10⁻⁶) in plots
-and text, SI in the JSON document.
+Writes what :mod:`kpi_calib_ros.core.diagnosis.residual_analysis` and
+:mod:`kpi_calib_ros.core.diagnosis.misfit` compute: a ranked table (report.md and diagnosis.json)
+and ``partial_residuals.png`` -- for each of the top inputs, every row's residual along the
+direction the input moves the point, divided by the lever (the joint error it implies, a range
+error, a drift or a scale), against the input, with the smooth fit. Units: µrad, µm and ppm (10⁻⁶)
+in plots and text, SI in the JSON document.
 """
 from __future__ import annotations
 
@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from kpi_calib_ros.core.misfit import MisfitAnswer
-from kpi_calib_ros.core.residual_analysis import InputScore, ResidualAnalysis
+from kpi_calib_ros.core.diagnosis.misfit import MisfitAnswer
+from kpi_calib_ros.core.diagnosis.residual_analysis import InputScore, ResidualAnalysis
 
 PLOT_FILE = 'partial_residuals.png'
 TOP = 6  # inputs plotted

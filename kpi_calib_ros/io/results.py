@@ -21,11 +21,11 @@ from typing import Any
 import numpy as np
 import yaml
 
+from kpi_calib_ros.core.acquisition.pairing import PairingResult
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.core.estimation import CalibrationResult
-from kpi_calib_ros.core.pairing import PairingResult
-from kpi_calib_ros.core.precision import precision_statement
-from kpi_calib_ros.core.residuals import (
+from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
+from kpi_calib_ros.core.estimation.precision import precision_statement
+from kpi_calib_ros.core.estimation.residuals import (
     SIGMA_OVERSTATED,
     is_adequate,
     noise_verdict,

@@ -26,8 +26,8 @@ from geometry_msgs.msg import (
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Header
 
-from kpi_calib_ros.core.covariates import TemperatureSample
-from kpi_calib_ros.core.streams import JointSample, PointSample
+from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
+from kpi_calib_ros.core.measurement.covariates import TemperatureSample
 
 _NS = 1_000_000_000
 

@@ -6,7 +6,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from kpi_calib_ros.core.precision import precision_statement
+from kpi_calib_ros.core.estimation.precision import precision_statement
 
 
 def design_answer(design: Any, not_estimable: str, topic: str, path: Path) -> str:

@@ -1,7 +1,7 @@
 """One calibration campaign as the node lives it: live pairing into a durable store.
 
 No rclpy here: the node converts messages to samples and hands them over; this
-class pairs them with :class:`~kpi_calib_ros.core.pairing.Pairer` (the code that
+class pairs them with :class:`~kpi_calib_ros.core.acquisition.pairing.Pairer` (the code that
 pairs bags), appends every accepted measurement to a
 :class:`~kpi_calib_ros.io.measurement_log.MeasurementLog` before counting it, reloads the logs
 of earlier runs in the same folder, and never counts a stamp twice. Thread-safe:
@@ -39,10 +39,7 @@ from kpi_calib_ros.app.measurements import (
     stated_sigma,
     urdf_measurements,
 )
-from kpi_calib_ros.core.covariates import TemperatureSample
-from kpi_calib_ros.core.errors import DataError
-from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.pairing import (
+from kpi_calib_ros.core.acquisition.pairing import (
     REJECTION_REASONS,
     Decision,
     PairedMeasurement,
@@ -51,7 +48,10 @@ from kpi_calib_ros.core.pairing import (
     Rejection,
     split_frame,
 )
-from kpi_calib_ros.core.streams import JointSample, PointSample
+from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
+from kpi_calib_ros.core.errors import DataError
+from kpi_calib_ros.core.measurement.covariates import TemperatureSample
+from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.measurement_log import MeasurementLog, stored_pairing
 from kpi_calib_ros.io.names import DEFAULT_POINT_TOPIC, RESULT_FILES, point_sigma_topic
@@ -133,7 +133,7 @@ class Campaign:
     def set_chain(self, joint_names: list[str], tracker_frame: str,
                   reflectors: Sequence[str] = ('',)) -> list[Decision]:
         """(Re)start pairing for a robot chain (and the cell's reflector names, see
-        :mod:`kpi_calib_ros.core.pairing`); pairs the samples held until now."""
+        :mod:`kpi_calib_ros.core.acquisition.pairing`); pairs the samples held until now."""
         with self.lock:
             decisions = self._handle(self.pairer.flush()) if self.pairer else []
             pairer = self.pairer = Pairer(joint_names, tracker_frame,

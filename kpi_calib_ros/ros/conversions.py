@@ -16,7 +16,7 @@ from std_msgs.msg import ColorRGBA, Header
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from visualization_msgs.msg import Marker, MarkerArray
 
-from kpi_calib_ros.core.collision import BASE, Capsule
+from kpi_calib_ros.core.collision.capsules import BASE, Capsule
 
 # The one message <-> sample and time conversion, shared with the bag reader and writer,
 # so live and recorded data agree.

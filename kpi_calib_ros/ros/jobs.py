@@ -34,18 +34,18 @@ from kpi_calib_ros.app.diagnose import diagnose_cell
 from kpi_calib_ros.app.identify import calibrate_cell
 from kpi_calib_ros.app.reidentify import cycle_prior, reidentification_document, reidentify
 from kpi_calib_ros.app.validate import validate_report
-from kpi_calib_ros.core.change_detection import ChangeTest
-from kpi_calib_ros.core.design import DesignResult
-from kpi_calib_ros.core.drift_state import DriftSwing
-from kpi_calib_ros.core.errors import DataError, KpiCalibError
-from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.pairing import PairingResult
-from kpi_calib_ros.core.sequential import (
+from kpi_calib_ros.core.acquisition.pairing import PairingResult
+from kpi_calib_ros.core.campaigns.change_detection import ChangeTest
+from kpi_calib_ros.core.campaigns.sequential import (
     MODEL_INADEQUATE,
     CampaignSettings,
     CampaignStatus,
     SequentialCampaign,
 )
+from kpi_calib_ros.core.design.optimum import DesignResult
+from kpi_calib_ros.core.errors import DataError, KpiCalibError
+from kpi_calib_ros.core.estimation.drift_state import DriftSwing
+from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.io.calibration_file import read_calibration_document
 from kpi_calib_ros.io.campaign_io import CampaignState, write_campaign_state, write_plan
 from kpi_calib_ros.io.cell import CellModel

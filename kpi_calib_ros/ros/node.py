@@ -53,11 +53,11 @@ from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import MarkerArray
 
-from kpi_calib_ros.core.collision import Capsule
-from kpi_calib_ros.core.drift_state import DriftSwing
+from kpi_calib_ros.core.acquisition.pairing import Decision, Rejection
+from kpi_calib_ros.core.collision.capsules import Capsule
 from kpi_calib_ros.core.errors import ConfigError, DataError, KpiCalibError
-from kpi_calib_ros.core.pairing import Decision, Rejection
-from kpi_calib_ros.core.precision import precision_statement
+from kpi_calib_ros.core.estimation.drift_state import DriftSwing
+from kpi_calib_ros.core.estimation.precision import precision_statement
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell, with_overrides
 from kpi_calib_ros.io.names import (
     CALIBRATED_URDF_TOPIC,

@@ -21,9 +21,9 @@ from rclpy.parameter import Parameter
 from rclpy.validate_topic_name import validate_topic_name
 
 from kpi_calib_ros.app.validate import REGISTER
-from kpi_calib_ros.core.design import DESIGN_CRITERIA
-from kpi_calib_ros.core.drift_state import DriftSwing
+from kpi_calib_ros.core.design.optimum import DESIGN_CRITERIA
 from kpi_calib_ros.core.errors import ConfigError, DataError
+from kpi_calib_ros.core.estimation.drift_state import DriftSwing
 from kpi_calib_ros.io.cell import DEFAULT_CELL
 from kpi_calib_ros.io.cell_sections import WorkingPose, working_poses_from_arrays
 from kpi_calib_ros.io.names import (

@@ -39,8 +39,8 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
+from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
 from kpi_calib_ros.core.errors import DataError
-from kpi_calib_ros.core.streams import JointSample, PointSample
 from kpi_calib_ros.io.bag import (
     DEFAULT_JOINT_TOPIC,
     DEFAULT_POINT_TOPIC,

@@ -12,9 +12,13 @@ from typing import Any
 
 import numpy as np
 
-from kpi_calib_ros.core.estimation import CalibrationResult
-from kpi_calib_ros.core.robust import RobustResult
-from kpi_calib_ros.core.sequential import MODEL_INADEQUATE, CampaignStatus, SequentialCampaign
+from kpi_calib_ros.core.campaigns.sequential import (
+    MODEL_INADEQUATE,
+    CampaignStatus,
+    SequentialCampaign,
+)
+from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
+from kpi_calib_ros.core.estimation.robust import RobustResult
 from kpi_calib_ros.io.campaign_io import CampaignState
 
 # Parameters a running sequential campaign was started with: refused while it runs (its

@@ -25,7 +25,7 @@ from sensor_msgs.msg import JointState
 
 from kpi_calib_ros.app.learned_residual import predict_stored, predict_tcp
 from kpi_calib_ros.core.errors import KpiCalibError
-from kpi_calib_ros.core.estimation import CalibrationResult
+from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.learned_residual_file import StoredResidual, read_residual
 from kpi_calib_ros.io.names import TCP_CORRECTED_TOPIC, TCP_QUERY_TOPIC

@@ -1,0 +1,1 @@
+"""Acquisition: timestamped streams, pairing points with joint states, coupled controller joints."""

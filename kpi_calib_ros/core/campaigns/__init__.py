@@ -1,0 +1,1 @@
+"""Campaigns over time: sequential measurement and change detection."""

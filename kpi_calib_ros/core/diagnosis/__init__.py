@@ -1,0 +1,3 @@
+"""Diagnosis: out-of-sample error, model and effect choice, candidate effects, validation on new
+data.
+"""

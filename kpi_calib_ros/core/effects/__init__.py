@@ -1,0 +1,1 @@
+"""Physical effects the geometric model lacks: the library and its special cases."""

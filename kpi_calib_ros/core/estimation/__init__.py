@@ -1,0 +1,3 @@
+"""Estimation: constrained least squares with KPI variables (eq. 13, 19), covariance, priors,
+robust statistics, outliers, precision.
+"""

@@ -1,0 +1,1 @@
+"""Measurement model: tracker points (eq. 3, 4) and tracked 6-DoF poses."""

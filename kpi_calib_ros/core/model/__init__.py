@@ -1,0 +1,1 @@
+"""Robot model: the URDF chain, error parameters, symbolic kinematics, DH report."""
