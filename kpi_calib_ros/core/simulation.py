@@ -19,6 +19,12 @@ from kpi_calib_ros.core.measurement.pose import noisy_rotations
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements
 from kpi_calib_ros.core.model.parameters import ParameterSet
 
+__all__ = [
+    'ErrorMagnitudes', 'true_parameters', 'sampling_bounds', 'random_configurations',
+    'measurable_batch', 'one_joint_at_a_time', 'simulate_measurements',
+    'simulate_pose_measurements', 'equivalent_parameters', 'smooth_joint_map',
+]
+
 _DEG = np.pi / 180.0
 
 

@@ -38,6 +38,12 @@ import numpy as np
 
 from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample, frozen_array
 
+__all__ = [
+    'REJECTION_REASONS', 'REFLECTOR_SEPARATOR', 'INDEX_CACHE_SIZE', 'EARLY_POINTS', 'NAMES_KEPT',
+    'split_frame', 'Rejection', 'PairedMeasurement', 'PairingResult', 'Pairer',
+    'pair_measurements', 'stacked_rotations',
+]
+
 REJECTION_REASONS = (
     'non_finite_point', 'wrong_frame', 'no_joint_state', 'robot_moving',
     'missing_joints', 'non_finite_joint_state', 'duplicate_stamp', 'oversized_joint_state',

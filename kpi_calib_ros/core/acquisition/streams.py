@@ -19,6 +19,8 @@ from numpy.typing import ArrayLike
 
 from kpi_calib_ros.core.measurement.pose import rotation_from_quaternion
 
+__all__ = ['frozen_array', 'JointSample', 'PointSample', 'checked_rotation', 'synthesize_streams']
+
 
 def frozen_array(values: ArrayLike, shape: tuple[int, ...], name: str) -> np.ndarray:
     """``values`` as a read-only float array of ``shape``; ValueError naming ``name``."""

@@ -34,6 +34,8 @@ from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.core.estimation.prior import Prior
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements, weighted_rows
 
+__all__ = ['CHANGE_ALPHA', 'ParameterShift', 'ChangeTest', 'change_test']
+
 # Family-wise false-alarm level of a change per cycle: over a day of 20 cycles a false
 # alarm in at most 2 % of days.
 CHANGE_ALPHA = 1e-3

@@ -74,6 +74,13 @@ from kpi_calib_ros.core.estimation.robust import (
 from kpi_calib_ros.core.measurement.replicates import SAME_POSE_TOLERANCE, pose_groups
 from kpi_calib_ros.core.measurement.tracker import Measurements
 
+__all__ = [
+    'TARGET_MET', 'MAX_HORIZON', 'INITIAL_STARTS', 'NESTED_FACTOR', 'PLAN_SWEEPS',
+    'REPLICATE_EVERY', 'MODEL_INADEQUATE', 'MAX_MEASUREMENTS', 'CampaignSettings',
+    'CampaignStatus', 'SimulatedRun', 'sigma_upper_limit', 'pure_error', 'lack_of_fit',
+    'SequentialCampaign', 'plan_ahead', 'nested_order',
+]
+
 TARGET_MET = 'target met'
 # Look-ahead of the plan (poses): the next-pose step must stay below 1 s on two cores.
 MAX_HORIZON = 30

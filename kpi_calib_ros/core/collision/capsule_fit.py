@@ -23,6 +23,8 @@ from kpi_calib_ros.core.collision.capsule_geometry import fit_capsules
 from kpi_calib_ros.core.collision.capsules import Capsule
 from kpi_calib_ros.core.errors import ConfigError
 
+__all__ = ['collision_vertices', 'capsules_from_urdf', 'collision_points']
+
 _PRIMITIVES = ('cylinder', 'box', 'sphere')
 
 

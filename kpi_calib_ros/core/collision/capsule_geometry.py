@@ -20,6 +20,11 @@ import numpy as np
 from scipy.optimize import minimize
 from scipy.spatial import ConvexHull, QhullError
 
+__all__ = [
+    'capsule_volume', 'outside_distance', 'convex_hull_volume', 'enclosing_capsule',
+    'fit_capsules',
+]
+
 # Added to every fitted radius (m): covers the round-off of the end-point formula.
 _SAFETY = 1e-9
 

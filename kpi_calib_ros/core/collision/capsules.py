@@ -19,6 +19,11 @@ from typing import AbstractSet, Any, Mapping, Sequence, Union
 import casadi as ca
 import numpy as np
 
+__all__ = [
+    'BASE', 'BEAM', 'Capsule', 'HalfSpace', 'segment_distance', 'capsule_margin',
+    'halfspace_margin', 'CollisionScene',
+]
+
 BASE = 'base'
 BEAM = 'beam'
 # Squared lengths below this (m^2) count as a point / as parallel: far below any

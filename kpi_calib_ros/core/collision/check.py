@@ -20,6 +20,8 @@ import pinocchio as pin
 from kpi_calib_ros.core.collision.capsules import BASE, Capsule, CollisionScene, HalfSpace
 from kpi_calib_ros.core.errors import ConfigError
 
+__all__ = ['Verification', 'verify_configuration', 'MeshCheck', 'mesh_collisions']
+
 
 @dataclass(frozen=True)
 class Verification:

@@ -35,6 +35,10 @@ import pinocchio as pin
 from kpi_calib_ros.core.collision.capsules import BEAM, Capsule, CollisionScene
 from kpi_calib_ros.core.model.robot import RobotModel
 
+__all__ = [
+    'SKIPPED_KINDS', 'PairClass', 'CollisionMatrix', 'link_transforms', 'classify_link_pairs',
+]
+
 SKIPPED_KINDS = ('adjacent', 'default', 'always')
 
 

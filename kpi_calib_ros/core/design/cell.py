@@ -13,6 +13,8 @@ from kpi_calib_ros.core.collision.capsules import CollisionScene
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.core.model.robot import RobotModel
 
+__all__ = ['DesignCell']
+
 
 @dataclass(frozen=True)
 class DesignCell:

@@ -24,6 +24,11 @@ from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.model.kinematics import reflector_point
 from kpi_calib_ros.core.simulation import measurable_batch, sampling_bounds
 
+__all__ = [
+    'feasibility_function', 'CandidateSet', 'generate_candidates', 'flag_pairs', 'scene_without',
+    'DesignVerification', 'verify_design',
+]
+
 
 def feasibility_function(cell: DesignCell, scene: CollisionScene | None) -> ca.Function:
     """CasADi ``q (n) -> [cos β; margins (count)]`` at the nominal parameters.

@@ -41,6 +41,8 @@ from kpi_calib_ros.core.estimation.identifiability import select_identifiable
 from kpi_calib_ros.core.estimation.prior import Prior
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel, weighted_rows
 
+__all__ = ['CRITERIA', 'NEGLIGIBLE_EFFECT', 'DesignProblem', 'scales', 'build_problem']
+
 CRITERIA = ('kpi', 'A', 'D', 'O1', 'cond')
 # Relative column norm below which a parameter counts as having no effect at all.
 NEGLIGIBLE_EFFECT = 1e-8

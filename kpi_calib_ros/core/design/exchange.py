@@ -23,6 +23,11 @@ from typing import Callable, Protocol, Sequence
 
 import numpy as np
 
+__all__ = [
+    'Loss', 'TraceLoss', 'LogDetLoss', 'ConditionLoss', 'ExchangeResult', 'information',
+    'exchange',
+]
+
 
 class Loss(Protocol):
     """A design criterion as the exchange algorithm uses it (smaller is better)."""

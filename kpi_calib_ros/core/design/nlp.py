@@ -23,6 +23,8 @@ from kpi_calib_ros.core.design.constraints import feasibility_function
 from kpi_calib_ros.core.design.criteria import DesignProblem
 from kpi_calib_ros.core.simulation import sampling_bounds
 
+__all__ = ['NlpResult', 'solve_design_nlp']
+
 
 @dataclass(frozen=True)
 class NlpResult:

@@ -40,6 +40,10 @@ from kpi_calib_ros.core.estimation.prior import Prior
 from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements
 
+__all__ = [
+    'MAX_EFFECTS', 'TRIALS', 'EffectTrial', 'EffectChoice', 'choose_effects', 'effect_start',
+]
+
 MAX_EFFECTS = 3  # rounds: more effects than this on one campaign is a model to rethink
 TRIALS = 3       # significant, plausible candidates refitted per round
 

@@ -33,6 +33,11 @@ from kpi_calib_ros.core.estimation.residuals import validation_rms
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements
 from kpi_calib_ros.core.model.parameters import ParameterSet
 
+__all__ = [
+    'LEVELS', 'MODEL_CHOICES', 'PARSIMONY', 'DEFAULT_FOLDS', 'level_free', 'ModelChoice',
+    'cross_validated_level_rms', 'choose_model',
+]
+
 LEVELS = ('registration', 'joint_offsets', 'geometric')
 MODEL_CHOICES = ('auto',) + LEVELS
 PARSIMONY = 0.05

@@ -47,6 +47,8 @@ from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA
 from kpi_calib_ros.core.measurement.replicates import same_pose
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements, row_sigma
 
+__all__ = ['Validation', 'validate']
+
 
 @dataclass(frozen=True)
 class Validation:

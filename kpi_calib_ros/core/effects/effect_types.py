@@ -11,6 +11,8 @@ from typing import Any, Callable
 import casadi as ca
 import numpy as np
 
+__all__ = ['EffectType', 'BoundEffect']
+
 
 @dataclass(frozen=True)
 class EffectType:

@@ -12,6 +12,11 @@ import casadi as ca
 from kpi_calib_ros.core.effects.effect_types import EffectType
 from kpi_calib_ros.core.measurement.covariates import DELTA_TEMPERATURE
 
+__all__ = [
+    'BACKLASH_TORQUE_SCALE', 'PLAY_TORQUE_UNIT', 'PLAY_GRID', 'THERMAL_EXPANSION_BOUND',
+    'LIBRARY',
+]
+
 BACKLASH_TORQUE_SCALE = 0.01  # N m: below this a joint counts as unloaded
 PLAY_TORQUE_UNIT = 1.0        # N m (N for a prismatic joint): joint_play's τ0 = e^u of it
 # joint_play's screened transition torques τ0: 0.01 ... 10 N m, three per decade

@@ -84,6 +84,12 @@ from kpi_calib_ros.core.effects.library import LIBRARY, PLAY_TORQUE_UNIT
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.model.robot import RobotModel
 
+__all__ = [
+    'ENTRY_POINT_GROUP', 'register_effect', 'available_effects', 'bind_effect', 'CHAIN_EFFECTS',
+    'ARGUMENT_EFFECTS', 'parse_effect_spec', 'resolve_effects', 'split_specs',
+    'candidate_effects', 'implausible', 'LINEAR_PLAY',
+]
+
 ENTRY_POINT_GROUP = 'kpi_calib_ros.effects'
 
 

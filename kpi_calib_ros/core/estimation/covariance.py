@@ -19,6 +19,11 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg
 
+__all__ = [
+    'kpi_jacobians', 'kkt_covariance', 'nullspace_covariance', 'parameter_covariance',
+    'propagated_kpi_covariance',
+]
+
 
 def kpi_jacobians(f1_p: np.ndarray, tcp_p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """F1 and F2 of eq. (14) for v = (p, s).

@@ -19,6 +19,11 @@ import scipy.linalg
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation.prior import THERMAL_EXPANSION_PER_K, Prior
 
+__all__ = [
+    'DAY_HOURS', 'TEMPERATURE_SWING_K', 'OFFSET_SWING_RAD', 'DriftSwing', 'DriftState',
+    'state_predicted', 'stationary_state', 'initial_state', 'state_updated',
+]
+
 # Drift state of a daily swing (a stochastic harmonic oscillator per parameter).
 DAY_HOURS = 24.0
 

@@ -26,6 +26,11 @@ from kpi_calib_ros.core.estimation.identifiability import DEFAULT_TOLERANCE
 from kpi_calib_ros.core.estimation.prior import Prior
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel, weighted_rows
 
+__all__ = [
+    'ESTIMABILITY_TOLERANCE', 'KpiEstimability', 'kpi_estimability', 'information_rows',
+    'result_estimability',
+]
+
 ESTIMABILITY_TOLERANCE = 1e-6
 
 

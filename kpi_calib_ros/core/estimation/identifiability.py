@@ -15,6 +15,11 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
+__all__ = [
+    'DEFAULT_TOLERANCE', 'ZERO_COLUMN', 'PRIORITY_PIVOT_FRACTION', 'DroppedParameter',
+    'Identifiability', 'select_identifiable',
+]
+
 DEFAULT_TOLERANCE = 1e-7
 ZERO_COLUMN = 1e-10
 # Threshold pivoting for method='priority': the next column in priority order is kept only

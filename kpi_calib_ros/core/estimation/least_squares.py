@@ -40,6 +40,14 @@ from kpi_calib_ros.core.measurement.tracker import (
     weighted_rows,
 )
 
+__all__ = [
+    'MAX_START_ERROR', 'MAX_SELECTION_ROUNDS', 'MAX_REWEIGHT_ROUNDS', 'REWEIGHT_RTOL',
+    'ITERATIONS_PER_PARAMETER', 'DEFAULT_MAX_ITERATIONS', 'Tolerances', 'TOLERANCES',
+    'LINE_SEARCH_FAILED', 'MAX_ITERATIONS', 'GTOL', 'FTOL', 'XTOL', 'PREDICTED_DECREASE',
+    'STATISTICAL', 'STATUS_MESSAGES', 'CalibrationResult', 'iteration_limit', 'weights',
+    'identify', 'point_sigma_squares',
+]
+
 # Prior rows over the full parameter vector: L (n_rows, n_p) and L m (n_rows,).
 PriorRows = tuple[np.ndarray, np.ndarray]
 

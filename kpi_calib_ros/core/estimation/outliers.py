@@ -81,6 +81,11 @@ from kpi_calib_ros.core.measurement.tracker import (
     weighted_rows,
 )
 
+__all__ = [
+    'HIGH_LEVERAGE', 'CONSISTENCY_ALPHA', 'RANK_TOLERANCE', 'SET_APART', 'LONE_FAULT',
+    'Judgement', 'hat_blocks', 'studentized', 'rigid_inconsistency', 'judge',
+]
+
 HIGH_LEVERAGE = 0.5
 CONSISTENCY_ALPHA = 0.01
 RANK_TOLERANCE = 1e-9

@@ -27,6 +27,12 @@ import scipy.linalg
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.model.parameters import ParameterSet
 
+__all__ = [
+    'THERMAL_EXPANSION_PER_K', 'KELVIN_PER_SQRT_HOUR', 'DRIFT_LENGTH_PER_SQRT_HOUR',
+    'DRIFT_ANGLE_PER_SQRT_HOUR', 'PLACEMENT_PREFIXES', 'Prior', 'tolerance_prior',
+    'drift_covariance', 'drift_widened', 'mapped_drift',
+]
+
 # Thermal expansion of steel/aluminium-steel arm structures, per metre and kelvin.
 THERMAL_EXPANSION_PER_K = 12e-6
 # Assumed temperature change of a shop floor: a random walk of 1 K per √hour.

@@ -30,6 +30,11 @@ import pinocchio as pin
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements, weighted_rows
 
+__all__ = [
+    'TRIM_FACTOR', 'TRIM_FLOOR_M', 'MAX_TRIM_ROUNDS', 'MIN_KEPT_FRACTION', 'Registration', 'horn',
+    'register', 'RANK_TOLERANCE', 'Reregistration', 'reregister',
+]
+
 # A point set whose second principal spread is below this fraction of the first
 # is a line: the rotation about it is undetermined.
 _COLLINEAR = 1e-3

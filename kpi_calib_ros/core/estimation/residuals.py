@@ -28,6 +28,15 @@ from kpi_calib_ros.core.measurement.tracker import (
     weighted_rows,
 )
 
+__all__ = [
+    'PERCENTILES', 'ADEQUACY_ALPHA', 'ResidualReport', 'LinearizedFit', 'is_adequate',
+    'SIGMA_OVERSTATED', 'SIGMA_CONSISTENT', 'SIGMA_NOT_TESTED', 'noise_verdict',
+    'sigma_overstated_text', 'linearized_fit', 'orthonormal_basis', 'fold_ids', 'campaign_home',
+    'moved_joints', 'stratified_fold_ids', 'RANK_TOLERANCE', 'LEAVE_ONE_OUT', 'folds_keep_rank',
+    'identifiable_folds', 'pose_index', 'linear_validation_rms', 'residual_report',
+    'validation_rms',
+]
+
 PERCENTILES = (50, 90, 95, 99)
 # Level of the χ² model-adequacy test everywhere a verdict is given (files, node status,
 # diagnosis): below it the residuals are larger than the stated σ explains.

@@ -53,6 +53,13 @@ from kpi_calib_ros.core.measurement.tracker import (
     weighted_residuals,
 )
 
+__all__ = [
+    'LOSSES', 'LOSS_SCALE', 'MAD_TO_SIGMA', 'OUTLIER_ALPHA', 'GROSS_DISTANCE',
+    'SIGMA_RATIO_WARNING', 'IRLS_ITERATIONS', 'OutlierSettings', 'ExcludedMeasurement',
+    'RobustResult', 'robust_sigma', 'outlier_threshold', 'loss_weights', 'subset',
+    'robust_identify', 'misfit_warning', 'gross_outliers', 'sigma_warning', 'noise_units',
+]
+
 LOSSES = ('linear', 'huber', 'soft_l1')
 LOSS_SCALE = float(np.sqrt(scipy.stats.chi2.ppf(0.95, 3)))
 MAD_TO_SIGMA = 1.4826

@@ -31,6 +31,12 @@ import numpy as np
 
 from kpi_calib_ros.core.measurement.tracker import Measurements
 
+__all__ = [
+    'TEMPERATURE_PREFIX', 'DELTA_TEMPERATURE', 'REFERENCE_TEMPERATURE_C', 'DEFAULT_MAX_GAP_NS',
+    'TemperatureSample', 'covariate_name', 'interpolate', 'temperature_covariates',
+    'with_covariates', 'shift_temperature',
+]
+
 TEMPERATURE_PREFIX = 'temperature.'
 DELTA_TEMPERATURE = 'delta_temperature'
 REFERENCE_TEMPERATURE_C = 20.0  # ISO 1: the reference temperature of length measurement

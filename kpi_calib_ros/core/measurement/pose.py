@@ -27,6 +27,12 @@ import numpy as np
 
 from kpi_calib_ros.core.model.kinematics import Expr
 
+__all__ = [
+    'log3_expression', 'measured_rotation_input', 'rotation_residual_expression',
+    'rotation_from_rpy', 'pose_matrix', 'rotation_from_quaternion', 'quaternion_from_rotation',
+    'rotation_exp', 'noisy_rotations',
+]
+
 # Below this sin²θ the logarithm uses its series: θ/sin θ = 1 + sin²θ/6 + O(θ⁴), with an
 # error below 1e-16 there, and neither branch divides by zero (both are evaluated).
 _SERIES_BELOW = 1e-8

@@ -62,6 +62,11 @@ from kpi_calib_ros.core.model.kinematics import Expr, SymbolicChain, reflector_p
 from kpi_calib_ros.core.model.parameters import ParameterSet
 from kpi_calib_ros.core.model.robot import RobotModel
 
+__all__ = [
+    'Effect', 'effect_inputs', 'Measurements', 'row_sigma', 'MeasurementModel',
+    'with_rotation_rows', 'noise_weights', 'weighted_rows', 'weighted_residuals', 'unweighted',
+]
+
 
 class Effect(Protocol):
     """A physical effect that the geometric model lacks.

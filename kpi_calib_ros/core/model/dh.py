@@ -25,6 +25,8 @@ from kpi_calib_ros.core.model.kinematics import link_poses_function
 from kpi_calib_ros.core.model.parameters import ParameterSet
 from kpi_calib_ros.core.model.robot import RobotModel
 
+__all__ = ['PARALLEL_SIN', 'FOOT_LIMIT', 'AxisPair', 'axis_lines', 'describe', 'dh_table']
+
 PARALLEL_SIN = 1e-2  # axes closer than ~0.57° are treated as parallel (Hayati)
 FOOT_LIMIT = 10.0  # DH normal foot farther than this many joint spacings: Hayati
 

@@ -16,6 +16,12 @@ import numpy as np
 from kpi_calib_ros.core.model.parameters import ParameterSet, reflector_prefixes
 from kpi_calib_ros.core.model.robot import RobotModel
 
+__all__ = [
+    'rot_x', 'rot_y', 'rot_z', 'rpy_matrix', 'homogeneous', 'axis_rotation', 'error_rotation',
+    'reflector_point', 'pose6', 'SymbolicChain', 'nominal_fk_function', 'link_poses_function',
+    'link_poses',
+]
+
 # A CasADi expression (SX symbolic, DM numeric) or a number: these functions serve the
 # symbolic model and its numeric checks alike.
 Expr = Any

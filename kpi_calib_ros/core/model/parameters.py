@@ -23,6 +23,11 @@ import numpy as np
 
 from kpi_calib_ros.core.model.robot import RobotModel
 
+__all__ = [
+    'PLACEMENT_COMPONENTS', 'BASE_COMPONENTS', 'ParameterSet', 'reflector_prefixes',
+    'geometric_parameters',
+]
+
 PLACEMENT_COMPONENTS = ('tx', 'ty', 'tz', 'rx', 'ry', 'rz')
 BASE_COMPONENTS = ('x', 'y', 'z', 'roll', 'pitch', 'yaw')
 

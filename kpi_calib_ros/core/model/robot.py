@@ -18,6 +18,8 @@ import pinocchio as pin
 
 from kpi_calib_ros.core.errors import ConfigError
 
+__all__ = ['MAX_URDF_ELEMENTS', 'ChainJoint', 'Payload', 'RobotModel']
+
 _REVOLUTE = {'JointModelRX', 'JointModelRY', 'JointModelRZ', 'JointModelRevoluteUnaligned'}
 _CONTINUOUS = {'JointModelRUBX', 'JointModelRUBY', 'JointModelRUBZ',
                'JointModelRevoluteUnboundedUnaligned'}

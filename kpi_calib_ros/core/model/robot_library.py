@@ -28,6 +28,12 @@ from numpy.typing import ArrayLike
 
 from kpi_calib_ros.core.errors import ConfigError
 
+__all__ = [
+    'DATA_DIR', 'SHIPPED_ROBOTS', 'KUKA_CONTROLLER_OFFSET', 'Industrial6RGeometry',
+    'industrial_6r_urdf', 'kr15_class', 'kr300_class', 'kr500_class', 'notional_manipulators',
+    'ur_class_urdf', 'shipped_urdfs', 'shipped_urdf_path', 'write_shipped',
+]
+
 DATA_DIR = Path(__file__).resolve().parents[2] / 'data' / 'robots'
 SHIPPED_ROBOTS = ('kr15_class', 'kr300_class', 'kr500_class', 'ur_class')
 KUKA_CONTROLLER_OFFSET = (0.0, math.pi / 2, -math.pi / 2, 0.0, 0.0, 0.0)
