@@ -1,6 +1,6 @@
 """Reading a campaign bag for pairing: time and peak memory, 50 Hz / 1 kHz / 2000 poses.
 
-Bags come from :func:`kpi_calib_ros.core.streams.synthesize_streams` (6 joints, 2 s
+Bags come from :func:`kpi_calib_ros.core.acquisition.streams.synthesize_streams` (6 joints, 2 s
 move + 2 s hold per pose, one tracker point per hold, joint noise 1e-5 rad) written
 with :func:`kpi_calib_ros.io.bag.write_bag` as ``ros2 bag record`` writes them. Each
 case is measured in a fresh process, so peak RSS (``ru_maxrss``) is that of reading
@@ -35,7 +35,7 @@ CASES = {'50hz': (60, 50.0), '1khz': (60, 1000.0), '2000poses': (2000, 50.0)}
 
 
 def make_bag(path: Path, poses: int, rate_hz: float) -> dict:
-    from kpi_calib_ros.core.streams import synthesize_streams
+    from kpi_calib_ros.core.acquisition.streams import synthesize_streams
     from kpi_calib_ros.io.bag import write_bag
     rng = np.random.default_rng(7)
     q = rng.uniform(-2.0, 2.0, (poses, len(NAMES)))
@@ -49,7 +49,7 @@ def make_bag(path: Path, poses: int, rate_hz: float) -> dict:
 
 def measure(path: Path, mode: str) -> dict:
     """One measurement in this (fresh) process."""
-    from kpi_calib_ros.core.pairing import pair_measurements
+    from kpi_calib_ros.core.acquisition.pairing import pair_measurements
     from kpi_calib_ros.io.bag import read_bag, read_for_pairing
     t0 = time.perf_counter()
     if mode == 'read_all':

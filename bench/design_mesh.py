@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from kpi_calib_ros.app.design import mesh_verified
-from kpi_calib_ros.core.design import design_measurements
+from kpi_calib_ros.core.design.optimum import design_measurements
 from kpi_calib_ros.io import robot_geometry
 from kpi_calib_ros.io.cell import build_cell_model, load_cell
 

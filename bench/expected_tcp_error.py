@@ -22,10 +22,10 @@ from pathlib import Path
 
 import numpy as np
 
-from kpi_calib_ros.core.diagnosis import augmented_model
-from kpi_calib_ros.core.effects import parse_effect_spec
-from kpi_calib_ros.core.estimation import identify
-from kpi_calib_ros.core.precision import expected_tcp_error, honest_precision
+from kpi_calib_ros.core.diagnosis.candidates import augmented_model
+from kpi_calib_ros.core.effects.registry import parse_effect_spec
+from kpi_calib_ros.core.estimation.least_squares import identify
+from kpi_calib_ros.core.estimation.precision import expected_tcp_error, honest_precision
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 import kpi_calib_ros  # noqa: F401  (sets single-threaded BLAS before numpy loads)
-from kpi_calib_ros.core.estimation import identify
+from kpi_calib_ros.core.estimation.least_squares import identify
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,

@@ -22,9 +22,9 @@ from pathlib import Path
 import numpy as np
 import scipy.stats
 
-from kpi_calib_ros.core.diagnosis import diagnose, equivalent_joint_sigma
-from kpi_calib_ros.core.estimation import identify
-from kpi_calib_ros.core.precision import honest_precision
+from kpi_calib_ros.core.diagnosis.candidates import diagnose, equivalent_joint_sigma
+from kpi_calib_ros.core.estimation.least_squares import identify
+from kpi_calib_ros.core.estimation.precision import honest_precision
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,

@@ -19,11 +19,15 @@ from pathlib import Path
 
 import numpy as np
 
-from kpi_calib_ros.core.capsule_fit import capsules_from_urdf, collision_vertices
-from kpi_calib_ros.core.capsule_geometry import capsule_volume, convex_hull_volume, outside_distance
-from kpi_calib_ros.core.collision_check import mesh_collisions
-from kpi_calib_ros.core.collision_matrix import classify_link_pairs
-from kpi_calib_ros.core.robot import RobotModel
+from kpi_calib_ros.core.collision.capsule_fit import capsules_from_urdf, collision_vertices
+from kpi_calib_ros.core.collision.capsule_geometry import (
+    capsule_volume,
+    convex_hull_volume,
+    outside_distance,
+)
+from kpi_calib_ros.core.collision.check import mesh_collisions
+from kpi_calib_ros.core.collision.matrix import classify_link_pairs
+from kpi_calib_ros.core.model.robot import RobotModel
 from kpi_calib_ros.io.resources import resolve_mesh_uris, resolve_uri
 
 ROBOTS = (('UR10', 'ur_description/urdf/ur10_robot.urdf', 'base_link', 'tool0'),

@@ -15,7 +15,7 @@ sqrt(mean ‖h_true(q) − h(p̂, q)‖² + 3σ²) over 2000 fresh poses:
 Beside it, the figures it replaces against the like-measured truth: the 5-fold
 cross-validated rms of ``--model auto`` before (full nonlinear refits on random folds,
 ``core.model_selection.cross_validated_level_rms``) and the diagnosis' leave-one-pose-out
-rms (``core.residuals.cross_validated_rms``). Writes bench/results/one_joint_oos.md.
+rms (``core.residuals.validation_rms``). Writes bench/results/one_joint_oos.md.
 
     .venv/bin/python bench/one_joint_oos.py [n_seeds]
 """
@@ -28,12 +28,16 @@ from pathlib import Path
 import numpy as np
 
 from kpi_calib_ros.app.identify import identify_cell
-from kpi_calib_ros.core.diagnosis import augmented_model
-from kpi_calib_ros.core.effects import parse_effect_spec
-from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.model_selection import cross_validated_level_rms
-from kpi_calib_ros.core.out_of_sample import DOMAINS, domain_configurations, out_of_sample_error
-from kpi_calib_ros.core.residuals import cross_validated_rms
+from kpi_calib_ros.core.diagnosis.candidates import augmented_model
+from kpi_calib_ros.core.diagnosis.model_selection import cross_validated_level_rms
+from kpi_calib_ros.core.diagnosis.out_of_sample import (
+    DOMAINS,
+    domain_configurations,
+    out_of_sample_error,
+)
+from kpi_calib_ros.core.effects.registry import parse_effect_spec
+from kpi_calib_ros.core.estimation.residuals import validation_rms
+from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.simulation import (
     one_joint_at_a_time,
     random_configurations,
@@ -99,7 +103,7 @@ def run(cm, case: dict, seed: int) -> dict:
     def fit(d, names):
         return identify_cell(cm, d, free=names)
     kfold = cross_validated_level_rms(cm.model, data, fit, free, folds=5, seed=seed)
-    loo = cross_validated_rms(cm.model, data, result)
+    loo = validation_rms(cm.model, data, result)
     out = {'rms_m': result.rms_m, 'dof': result.dof,
            'kfold': np.nan if kfold is None else kfold / truth['like_measured'],
            'loo': loo / truth['like_measured'], 'adequate': oos.adequate}
@@ -146,7 +150,8 @@ def main(seeds: int = 20) -> None:
     lines = ['# Predicted out-of-sample error vs the true error on fresh poses', '',
              f'{seeds} seeds per case (0..{seeds - 1}), σ = {SIGMA * 1e6:.0f} µm per axis, '
              'geometric model identified (`identify_cell`), prediction from the fit '
-             '(`core/out_of_sample.py`, no refits). Ratio = predicted / true rms error of a '
+             '(`core/diagnosis/out_of_sample.py`, no refits). '
+             'Ratio = predicted / true rms error of a '
              f'new measurement; truth exact in the noise over {FRESH} fresh poses per domain '
              '(see the script docstring). Circle: each joint swept alone over 60 % of its '
              'range around the first working pose, uniform angles; full span: evenly spaced '

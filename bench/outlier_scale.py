@@ -2,9 +2,9 @@
 
 A simulated campaign on the default cell with three reflectors per pose (the offsets of
 test_multipoint), σ = 20 µm, and 30 % of its 2700 points moved 0.5-5 mm in a random
-direction (faults; none is gross, so every one is found by the fits). The cell's
-``identification.outliers.max_fraction`` is raised to 0.4 (the default 0.2 would call
-30 % an error). Times ``calibrate_cell`` (what ``kpi-calib identify`` runs) with its
+direction (faults; none is gross, so every one is found by the fits), with the cell's
+default outlier settings: ``max_fraction`` 0.2 caps only the faults no other reflector of
+the pose confirms. Times ``calibrate_cell`` (what ``kpi-calib identify`` runs) with its
 progress lines, then ``diagnose_cell`` (no effect added), and checks that both keep the
 same points and that the excluded points are the faults. Writes
 bench/results/outlier_scale.md.
@@ -21,8 +21,8 @@ import numpy as np
 import kpi_calib_ros  # noqa: F401  (sets single-threaded BLAS before numpy loads)
 from kpi_calib_ros.app.diagnose import diagnose_cell
 from kpi_calib_ros.app.identify import calibrate_cell
-from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.robust import OutlierSettings
+from kpi_calib_ros.core.estimation.robust import OutlierSettings
+from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.simulation import random_configurations, true_parameters
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict, read_cell_document
 
@@ -36,9 +36,8 @@ def main() -> int:
     doc = copy.deepcopy(read_cell_document(DEFAULT_CELL))
     del doc['reflector']['offset']
     doc['reflectors'] = [{'name': n, 'offset': o} for n, o in zip('abc', OFFSETS)]
-    doc['identification']['outliers'] = {'max_fraction': 0.4}
     cm = build_cell_model(cell_from_dict(doc, DEFAULT_CELL.parent))
-    assert cm.cell.identification.outliers == OutlierSettings(max_fraction=0.4)
+    assert cm.cell.identification.outliers == OutlierSettings()
     rng = np.random.default_rng(SEED)
     p_true = true_parameters(cm.model.params, rng)
     q = np.repeat(random_configurations(cm.model, cm.geometric.nominal, POSES, rng), 3, axis=0)
@@ -84,7 +83,8 @@ def main() -> int:
     lines = ['# Outlier exclusion at scale', '',
              f'{POSES} random poses of the default cell, three reflectors each (σ = 20 µm), '
              f'{FRACTION:.0%} of the points moved 0.5-5 mm in a random direction '
-             f'(seed {SEED}); `identification.outliers.max_fraction: 0.4`. One run on the '
+             f'(seed {SEED}); default outlier settings (`max_fraction` 0.2, which caps only '
+             'the faults no other reflector of the pose confirms). One run on the '
              'shared 2-core machine, command: `.venv/bin/python bench/outlier_scale.py`.', '',
              '| figure | value |', '|---|---|'] + [f'| {k} | {v} |' for k, v in rows]
     out = Path(__file__).resolve().parent / 'results' / 'outlier_scale.md'

@@ -58,13 +58,13 @@ from kpi_calib_ros.app.campaign import (
     new_campaign,
     simulate_sequential,
 )
-from kpi_calib_ros.core.design_exchange import exchange, information
-from kpi_calib_ros.core.effects import hidden_effects
-from kpi_calib_ros.core.identifiability import select_identifiable
-from kpi_calib_ros.core.measurement import weighted_rows
-from kpi_calib_ros.core.sequential import CampaignSettings
+from kpi_calib_ros.core.campaigns.sequential import CampaignSettings
+from kpi_calib_ros.core.design.exchange import exchange, information
+from kpi_calib_ros.core.estimation.identifiability import select_identifiable
+from kpi_calib_ros.core.measurement.tracker import weighted_rows
 from kpi_calib_ros.core.simulation import true_parameters
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.io.cell_settings import hidden_effects
 
 TARGET = 10e-6
 PRECISE_TARGET = 4.0e-6
@@ -101,7 +101,8 @@ def fixed_designs(ctx, sizes: list[int], seed: int) -> dict[int, tuple[float, fl
 def calibration_unit_curve(cm, cell, ctx, designs: dict, p: np.ndarray) -> dict[int, float]:
     """Size -> statistic per unit σ of each fixed design as the calibration reports it at
     parameters ``p``: the identification's selection of the parameters it frees
-    (:func:`kpi_calib_ros.core.estimation.identify`) on the design's rows at ``p``, then
+    (:func:`kpi_calib_ros.core.estimation.least_squares.identify`) on the design's rows at ``p``,
+    then
     eq. (19) (the KPI block, J_s C_p J_sᵀ)."""
     model = cm.model
     free = campaign_free(cm)

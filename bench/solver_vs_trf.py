@@ -13,6 +13,9 @@ campaign passes when ``identify`` converged wherever TRF did, to the same cost (
 another iteration limit).
 
     .venv/bin/python bench/solver_vs_trf.py [n_campaigns [max_iterations [n_ur10_draws]]]
+
+``max_iterations`` ``default`` (or left out): identify's default limit, 100 per identified
+parameter.
 """
 from __future__ import annotations
 
@@ -24,14 +27,15 @@ import numpy as np
 import scipy.optimize
 
 from kpi_calib_ros.app.identify import registered_start
-from kpi_calib_ros.core.estimation import (
+from kpi_calib_ros.core.estimation.least_squares import (
     DEFAULT_MAX_ITERATIONS,
+    ITERATIONS_PER_PARAMETER,
     MAX_START_ERROR,
     CalibrationResult,
     identify,
     weights,
 )
-from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,
@@ -74,7 +78,8 @@ def ur10_cell():
     return build_cell_model(cell_from_dict(doc, Path('.')))
 
 
-def ur10_campaign(cm, seed: int, n: int = 120, max_iterations: int = DEFAULT_MAX_ITERATIONS
+def ur10_campaign(cm, seed: int, n: int = 120,
+                  max_iterations: int | None = DEFAULT_MAX_ITERATIONS
                   ) -> tuple[CalibrationResult, scipy.optimize.OptimizeResult]:
     """``n`` poses of Series A (``seed``), placement registered: ``identify`` and TRF from
     the registered start."""
@@ -116,7 +121,7 @@ def trf_fit(model: MeasurementModel, data: Measurements, sigma: float, p0: np.nd
                                         x_scale='jac')
 
 
-def campaign(cm, seed: int, max_iterations: int = DEFAULT_MAX_ITERATIONS
+def campaign(cm, seed: int, max_iterations: int | None = DEFAULT_MAX_ITERATIONS
              ) -> tuple[CalibrationResult, scipy.optimize.OptimizeResult]:
     """One simulated campaign ``seed``: ``identify`` and TRF from the same perturbed start."""
     rng = np.random.default_rng(seed)
@@ -143,10 +148,10 @@ def agrees(result: CalibrationResult, trf: scipy.optimize.OptimizeResult) -> boo
     return result.converged and 0.5 * result.chi2 <= (1 + SAME_COST) * trf.cost
 
 
-def table(runs, label: str) -> tuple[list[str], int, list[int]]:
-    """Markdown rows of ``runs`` (seed -> (result, trf)), how many agree, and the seeds
-    that disagree yet ended at or below TRF's cost."""
-    rows, passed, below = [], 0, []
+def table(runs, label: str) -> tuple[list[str], int, list[int], list[int]]:
+    """Markdown rows of ``runs`` (seed -> (result, trf)), how many agree, the seeds that
+    disagree yet ended at or below TRF's cost, and the seeds TRF did not converge on."""
+    rows, passed, below, open_ = [], 0, [], []
     for seed, run in runs:
         t = time.perf_counter()
         result, trf = run()
@@ -154,42 +159,51 @@ def table(runs, label: str) -> tuple[list[str], int, list[int]]:
         passed += ok
         if not ok and 0.5 * result.chi2 <= (1 + SAME_COST) * trf.cost:
             below.append(seed)
+        if trf.status <= 0:
+            open_.append(seed)
         rows.append(f'| {label} {seed} | {result.status} | {result.iterations} | '
                     f'{0.5 * result.chi2:.6g} | {result.rms_m * 1e6:.1f} | {trf.status} | '
                     f'{trf.nfev} | {trf.cost:.6g} | '
                     f'{(0.5 * result.chi2 - trf.cost) / trf.cost:.2e} | '
                     f'{"yes" if ok else "NO"} | {time.perf_counter() - t:.2f} |')
         print(rows[-1], flush=True)
-    return rows, passed, below
+    return rows, passed, below, open_
 
 
 HEADER = ['| run | status | iterations | ½χ² | rms (µm) | TRF status | TRF nfev | TRF cost | '
           'relative difference | agrees | s |', '|---|---|---|---|---|---|---|---|---|---|---|']
 
 
-def main(n: int = 50, max_iterations: int = DEFAULT_MAX_ITERATIONS, n_ur10: int = 10) -> int:
+def main(n: int = 50, max_iterations: int | None = DEFAULT_MAX_ITERATIONS,
+         n_ur10: int = 10) -> int:
     t0 = time.perf_counter()
     cm = build_cell_model(load_cell(DEFAULT_CELL))
-    rows, passed, below = table(
+    rows, passed, below, trf_open = table(
         [(seed, lambda seed=seed: campaign(cm, seed, max_iterations)) for seed in range(n)],
         'seed')
     ur10 = ur10_cell()
-    ur_rows, ur_passed, ur_below = table(
+    ur_rows, ur_passed, ur_below, _ = table(
         [(seed, lambda seed=seed: ur10_campaign(ur10, seed, max_iterations=max_iterations))
          for seed in range(n_ur10)], 'UR10 draw')
+    limit_text = (f'{max_iterations}' if max_iterations is not None else
+                  f'{ITERATIONS_PER_PARAMETER} per identified parameter, the default')
     text = '\n'.join([
         '# identify (trust-region Gauss-Newton) against SciPy least_squares TRF', '',
-        f'`.venv/bin/python bench/solver_vs_trf.py {n} {max_iterations} {n_ur10}` '
-        f'(iteration limit {max_iterations}; {time.perf_counter() - t0:.0f} s). Agrees: '
+        f'`.venv/bin/python bench/solver_vs_trf.py {n} {max_iterations or "default"} '
+        f'{n_ur10}` (iteration limit {limit_text}; {time.perf_counter() - t0:.0f} s). Agrees: '
         f'wherever TRF converged, identify converged to its cost within {SAME_COST:g} '
         'relative or below it (another, lower minimum). TRF: `x_scale=\'jac\'`, the same '
         'weighted residual over the parameters identify identified, from the same start.', '',
         f'## Simulated: default cell, {N_POSES} random poses, σ = {SIGMA * 1e6:g} µm, start '
         '5-20 mm / 10-50 mrad off the truth', '',
-        f'**{passed}/{n} campaigns agree**. Of the {n - passed} others, {len(below)} ended at '
-        'or below TRF\'s cost without a convergence test of identify holding (seeds '
-        f'{", ".join(map(str, below)) or "none"}): TRF stopped on its ftol while the cost '
-        'still fell; identify calls such a stop a stall or runs on to its limit.', '',
+        f'**{passed}/{n} campaigns agree**.'
+        + (f' Of the {n - passed} others, {len(below)} ended at or below TRF\'s cost without '
+           f'a convergence test of identify holding (seeds {", ".join(map(str, below))}): '
+           'TRF stopped on its ftol while the cost still fell; identify ran on to its '
+           'iteration limit.' if n > passed else '')
+        + (f' TRF reached its limit of evaluations without converging on seeds '
+           f'{", ".join(map(str, trf_open))} (status 0; these count as agreeing).'
+           if trf_open else ''), '',
         *HEADER, *rows, '',
         f'## Real: UR10 Series A, {n_ur10} seeded draws of 120 poses, placement registered', '',
         f'**{ur_passed}/{n_ur10} draws agree**'
@@ -204,4 +218,5 @@ def main(n: int = 50, max_iterations: int = DEFAULT_MAX_ITERATIONS, n_ur10: int 
 
 
 if __name__ == '__main__':
-    sys.exit(main(*(int(a) for a in sys.argv[1:4])))
+    args = sys.argv[1:4]
+    sys.exit(main(*(None if a == 'default' else int(a) for a in args)))

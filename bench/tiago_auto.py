@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from kpi_calib_ros.app.identify import measurements_from_bag
+from kpi_calib_ros.app.measurements import measurements_from_bag
 from kpi_calib_ros.cli import main
 from kpi_calib_ros.io.cell import build_cell_model, load_cell
 

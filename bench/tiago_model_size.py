@@ -4,7 +4,7 @@ Backward elimination on the 37-posture session (2021-11-30, four markers per pos
 with the rule fixed before any held-out figure was looked at: start from the full geometric
 model; at each step drop the geometric parameter (not the base or reflector placement) with
 the smallest |value / std|, refit; score every model by its leave-one-posture-out error
-(core.residuals.cross_validated_rms: PRESS over posture blocks of the linearised fit, all
+(core.residuals.validation_rms: PRESS over posture blocks of the linearised fit, all
 four markers of a posture held out together) and choose the smallest PRESS. Every step's
 error on the 2021-11-26 session and on the two other 2021-11-30 sessions (which none of the
 choices uses) is printed beside it.
@@ -25,10 +25,11 @@ from pathlib import Path
 
 import numpy as np
 
-from kpi_calib_ros.app.identify import identify_cell, load_measurements, registered_start
+from kpi_calib_ros.app.identify import identify_cell, registered_start
+from kpi_calib_ros.app.measurements import load_measurements
 from kpi_calib_ros.cli import main as cli
-from kpi_calib_ros.core.model_selection import level_free
-from kpi_calib_ros.core.residuals import cross_validated_rms
+from kpi_calib_ros.core.diagnosis.model_selection import level_free
+from kpi_calib_ros.core.estimation.residuals import validation_rms
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get('TIAGO_MOCAP_DIR') or ROOT.parent / 'shared' / 'data' / 'tiago_mocap')
@@ -66,7 +67,7 @@ def main() -> None:
     while True:
         result = identify_cell(cm, data, p0=start, free=free)
         row = {'n': len(result.estimated), 'train': result.rms_m,
-               'press': cross_validated_rms(cm.model, data, result),
+               'press': validation_rms(cm.model, data, result),
                **{s: _rms(cm, result.values, d) for s, d in held.items()}}
         t = {n: abs(result.values[names.index(n)]) / s
              for n, s in zip(result.estimated, result.std) if not n.startswith(PLACEMENT)}

@@ -14,7 +14,7 @@ Cycle 0: a full identification from a KPI-optimal 60-pose design. Cycles 1-20 me
 10 poses of a design that knows the prior (`design --prior`: the cycle-0 calibration of
 run 0 widened by one cycle of drift, designed once) and are identified with the last
 calibration as prior (Kalman chain: each cycle's posterior is the next prior). Drift
-models: the drift state of a daily swing (`--drift-velocity T,B`, core.prior.DriftSwing)
+models: the drift state of a daily swing (`--drift-velocity T,B`, core.drift_state.DriftSwing)
 with the swing the scenario states, T = the temperature amplitude that moves the longest
 link 100 µm and B = 0.05 mrad, and no random walk (`--drift-per-hour 0,0`); and, for
 comparison, the random walk alone matched to the simulated physics (thermal, std per
@@ -36,13 +36,14 @@ from pathlib import Path
 
 import numpy as np
 
-from kpi_calib_ros.app.identify import add_robust_sections, calibrate_cell, calibration_document
+from kpi_calib_ros.app.calibration_document import add_robust_sections, calibration_document
+from kpi_calib_ros.app.identify import calibrate_cell
 from kpi_calib_ros.app.reidentify import cycle_prior, reidentification_document, reidentify
-from kpi_calib_ros.core.design import design_context, design_measurements
+from kpi_calib_ros.core.design.optimum import design_context, design_measurements
+from kpi_calib_ros.core.diagnosis.model_selection import level_free
 from kpi_calib_ros.core.errors import DataError
-from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.model_selection import level_free
-from kpi_calib_ros.core.prior import DriftSwing
+from kpi_calib_ros.core.estimation.drift_state import DriftSwing
+from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,

@@ -10,7 +10,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from kpi_calib_ros.core.design import design_measurements
+from kpi_calib_ros.core.design.optimum import design_measurements
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 
 

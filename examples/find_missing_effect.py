@@ -12,7 +12,7 @@ from dataclasses import replace
 import numpy as np
 
 from kpi_calib_ros.app.diagnose import diagnose_cell
-from kpi_calib_ros.core.effects import parse_effect_spec
+from kpi_calib_ros.core.effects.registry import parse_effect_spec
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,

@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from kpi_calib_ros.app.identify import calibration_document, identify_cell
+from kpi_calib_ros.app.calibration_document import calibration_document
+from kpi_calib_ros.app.identify import identify_cell
 from kpi_calib_ros.app.reidentify import cycle_prior, reidentify
 from kpi_calib_ros.core.simulation import (
     random_configurations,

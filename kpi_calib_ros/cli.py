@@ -13,14 +13,16 @@ import sys
 from pathlib import Path
 
 from kpi_calib_ros.core.errors import DataError, KpiCalibError
-from kpi_calib_ros.core.estimation import DEFAULT_MAX_ITERATIONS
-from kpi_calib_ros.core.prior import (
+from kpi_calib_ros.core.estimation.drift_state import (
     DAY_HOURS,
-    DRIFT_ANGLE_PER_SQRT_HOUR,
-    DRIFT_LENGTH_PER_SQRT_HOUR,
     OFFSET_SWING_RAD,
     TEMPERATURE_SWING_K,
     DriftSwing,
+)
+from kpi_calib_ros.core.estimation.least_squares import ITERATIONS_PER_PARAMETER
+from kpi_calib_ros.core.estimation.prior import (
+    DRIFT_ANGLE_PER_SQRT_HOUR,
+    DRIFT_LENGTH_PER_SQRT_HOUR,
 )
 from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, DEFAULT_POSE_TOPIC
 
@@ -69,7 +71,7 @@ def _positive_int(text: str) -> int:
 
 
 DEFAULT_SWING = DriftSwing()  # the defaults: TEMPERATURE_SWING_K, OFFSET_SWING_RAD, DAY_HOURS
-SWING_HELP = ('drift state of a daily swing (core.prior.DriftSwing): the rates of the prior '
+SWING_HELP = ('drift state of a daily swing (core.drift_state.DriftSwing): the rates of the prior '
               'calibration (its drift_state) extrapolate it, and this cycle\'s calibration '
               'stores them; TEMPERATURE_K: ± temperature amplitude of the links (12 µm per m '
               'and K), OFFSET_RAD: ± joint offset amplitude, PERIOD_H: its period (default '
@@ -79,7 +81,7 @@ SWING_HELP = ('drift state of a daily swing (core.prior.DriftSwing): the rates o
 
 def _swing(text: str) -> DriftSwing:
     """``--drift-velocity TEMPERATURE_K,OFFSET_RAD[,PERIOD_H]`` (checked by
-    :meth:`kpi_calib_ros.core.prior.DriftSwing.from_values`)."""
+    :meth:`kpi_calib_ros.core.estimation.drift_state.DriftSwing.from_values`)."""
     try:
         return DriftSwing.from_values([float(x) for x in text.split(',')])
     except (ValueError, DataError) as exc:
@@ -120,7 +122,8 @@ def build_parser() -> argparse.ArgumentParser:
                      'effects that predict better)')
     ide.add_argument('--max-iterations', type=_positive_int, metavar='N',
                      help="iteration limit of every fit (overrides the cell's "
-                     f'identification.max_iterations; default {DEFAULT_MAX_ITERATIONS})')
+                     f'identification.max_iterations; default {ITERATIONS_PER_PARAMETER} '
+                     'per identified parameter)')
     ide.add_argument('--prior', metavar='OLD/calibration.yaml',
                      help="a previous calibration as Gaussian prior (its values and "
                      "parameter_covariance; replaces the cell's identification.prior)")
@@ -139,6 +142,10 @@ def build_parser() -> argparse.ArgumentParser:
                      'and reflector placement in the prior (default: identified anew)')
     ide.add_argument('--drift-velocity', type=_swing, nargs='?', const=DEFAULT_SWING,
                      metavar='TEMPERATURE_K,OFFSET_RAD[,PERIOD_H]', help=SWING_HELP)
+    ide.add_argument('--learned-residual', action='store_true',
+                     help='also learn what the physical model leaves as a Gaussian process '
+                     'over joint space; written as learned_residual.yaml beside '
+                     'calibration.yaml only when it lowers the cross-validated error')
     _bag_topics(ide)
     ide.add_argument('--allow-code-effects', action='store_true', help=CODE_EFFECTS_HELP)
 
@@ -265,6 +272,9 @@ def _identify(args: argparse.Namespace) -> int:
                'pose_topic': args.pose_topic,
                'allow_code_effects': args.allow_code_effects}
     if args.prior:
+        if args.learned_residual:
+            raise ValueError('--learned-residual is not available with --prior: identify '
+                             'without --prior to learn the residual')
         from kpi_calib_ros.app.reidentify import run_reidentify
         return run_reidentify(args.cell, args.bag, args.out, args.prior, effects=args.effects,
                               model=args.model, drift=args.drift_per_hour,
@@ -273,7 +283,8 @@ def _identify(args: argparse.Namespace) -> int:
                               max_iterations=args.max_iterations, **options)
     from kpi_calib_ros.app.identify import run_identify
     return run_identify(args.cell, args.bag, args.out, effects=args.effects, model=args.model,
-                        max_iterations=args.max_iterations, **options)
+                        max_iterations=args.max_iterations,
+                        learned_residual=args.learned_residual, **options)
 
 
 def _design(args: argparse.Namespace) -> int:
@@ -302,7 +313,7 @@ def _replay(args: argparse.Namespace) -> int:
 
 def _diagnose(args: argparse.Namespace) -> int:
     from kpi_calib_ros.app.diagnose import run_diagnose
-    from kpi_calib_ros.core.residuals import ADEQUACY_ALPHA
+    from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA
     alpha = ADEQUACY_ALPHA if args.alpha is None else args.alpha
     return run_diagnose(args.cell, args.bag, args.out, effects=args.effects, folds=args.folds,
                         alpha=alpha, model=args.model, joint_topic=args.joint_topic,
@@ -342,7 +353,7 @@ def _demo(args: argparse.Namespace) -> int:
 
 
 def _robots(args: argparse.Namespace) -> int:
-    from kpi_calib_ros.core.robot_library import DATA_DIR, write_shipped
+    from kpi_calib_ros.core.model.robot_library import DATA_DIR, write_shipped
     for path in write_shipped(Path(args.out) if args.out else DATA_DIR):
         print(path)
     return 0

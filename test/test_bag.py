@@ -17,8 +17,8 @@ from mcap.reader import make_reader
 from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
 
-from kpi_calib_ros.core.pairing import pair_measurements
-from kpi_calib_ros.core.streams import JointSample, PointSample, synthesize_streams
+from kpi_calib_ros.core.acquisition.pairing import pair_measurements
+from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample, synthesize_streams
 from kpi_calib_ros.io.bag import BagError, BagWarning, read_bag, read_for_pairing, write_bag
 from kpi_calib_ros.io.measurement_log import MeasurementLog
 

@@ -2,7 +2,7 @@
 import numpy as np
 from mcap.writer import CompressionType
 
-from kpi_calib_ros.core.streams import synthesize_streams
+from kpi_calib_ros.core.acquisition.streams import synthesize_streams
 from kpi_calib_ros.io import bag_writing as bag_module
 from kpi_calib_ros.io.bag import read_bag, write_bag
 

@@ -10,14 +10,16 @@ import numpy as np
 import pytest
 import yaml
 
-from kpi_calib_ros.app.identify import calibration_document, identify_cell, measurements_from_bag
+from kpi_calib_ros.app.calibration_document import calibration_document
+from kpi_calib_ros.app.identify import identify_cell
+from kpi_calib_ros.app.measurements import measurements_from_bag
 from kpi_calib_ros.cli import main
+from kpi_calib_ros.core.acquisition.streams import synthesize_streams
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,
     true_parameters,
 )
-from kpi_calib_ros.core.streams import synthesize_streams
 from kpi_calib_ros.io.bag_writing import write_bag
 from kpi_calib_ros.io.calibration_file import load_yaml_bounded, read_calibration_document
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
@@ -175,12 +177,12 @@ def test_a_mangled_drift_state_is_refused_like_the_covariance(made, tmp_path, ca
 
 
 def test_out_at_the_file_system_root_is_refused_before_computing(made, monkeypatch, capsys):
-    from kpi_calib_ros.app import identify as app_identify
+    from kpi_calib_ros.app import measurements as app_measurements
     from kpi_calib_ros.app import validate as app_validate
 
     def no_computing(*args, **kwargs):
         raise AssertionError('the bag was read before --out was checked')
-    monkeypatch.setattr(app_identify, 'measurements_from_bag', no_computing)
+    monkeypatch.setattr(app_measurements, 'measurements_from_bag', no_computing)
     monkeypatch.setattr(app_validate, 'measurements_from_bag', no_computing)
     tmp, _, new = made
     for command in (['identify'], ['validate', '--calibration',
@@ -235,7 +237,8 @@ def test_excluded_points_read_the_same_number_in_the_log_and_the_file(made, cm):
     distance_sigma that calibration.yaml stores, and the reason adds no other figure."""
     import re
 
-    from kpi_calib_ros.app.identify import add_robust_sections, calibrate_cell, robust_summary
+    from kpi_calib_ros.app.calibration_document import add_robust_sections, robust_summary
+    from kpi_calib_ros.app.identify import calibrate_cell
     tmp, _, _ = made
     data, pairing = measurements_from_bag(cm, tmp / 'train.mcap')
     eta = np.array(data.eta)
@@ -264,7 +267,7 @@ def test_validate_takes_the_code_effects_opt_in_it_advises(made, tmp_path, capsy
     marker = tmp_path / 'ran.marker'
     (tmp_path / 'sag.py').write_text(
         f'from pathlib import Path\nPath({str(marker)!r}).write_text("ran")\n'
-        'from kpi_calib_ros.core.effects import EffectType\n'
+        'from kpi_calib_ros.core.effects.registry import EffectType\n'
         "SAG = EffectType('sag', ('g',), ('rad',), joint_function=lambda q, t, th: th[0] * q)\n")
     cell = yaml.safe_load(DEFAULT_CELL.read_text())
     cell['robot']['urdf'] = str((DEFAULT_CELL.parent / cell['robot']['urdf']).resolve())

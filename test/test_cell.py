@@ -5,18 +5,17 @@ import numpy as np
 import pytest
 import yaml
 
-from kpi_calib_ros.core.design import DesignSettings
+from kpi_calib_ros.core.design.optimum import DesignSettings
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.io.cell import (
     DEFAULT_CELL,
-    WorkingPose,
     build_cell_model,
     cell_from_dict,
     load_cell,
-    simulation_settings,
     with_overrides,
-    working_poses_from_arrays,
 )
+from kpi_calib_ros.io.cell_sections import WorkingPose, working_poses_from_arrays
+from kpi_calib_ros.io.cell_settings import simulation_settings
 
 
 def _doc() -> dict:

@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from kpi_calib_ros.cli import main
-from kpi_calib_ros.core.streams import JointSample, PointSample
+from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
 from kpi_calib_ros.io.bag import read_bag, write_bag
 from kpi_calib_ros.io.cell import DEFAULT_CELL
 
@@ -160,11 +160,11 @@ def test_identify_reads_renamed_topics_from_options_or_cell(renamed_bag, tmp_pat
 @pytest.mark.parametrize('command', ['identify', 'diagnose'])
 def test_an_unwritable_out_fails_before_computing(command, run_bag, tmp_path, capsys,
                                                   monkeypatch):
-    from kpi_calib_ros.app import identify as app_identify
+    from kpi_calib_ros.app import measurements as app_measurements
 
     def no_computing(*args, **kwargs):
         raise AssertionError('the bag was read before --out was checked')
-    monkeypatch.setattr(app_identify, 'measurements_from_bag', no_computing)
+    monkeypatch.setattr(app_measurements, 'measurements_from_bag', no_computing)
     blocker = tmp_path / 'a_file'
     blocker.write_text('in the way')
     for out in (blocker / 'result', Path('/proc/kpi_calib_result')):
@@ -178,7 +178,7 @@ def test_a_cell_file_cannot_run_code_without_the_flag(run_bag, tmp_path, capsys)
     marker = tmp_path / 'ran.marker'
     (tmp_path / 'evil.py').write_text(
         f'from pathlib import Path\nPath({str(marker)!r}).write_text("ran")\n'
-        'from kpi_calib_ros.core.effects import EffectType\n'
+        'from kpi_calib_ros.core.effects.registry import EffectType\n'
         "SAG = EffectType('sag', ('g',), ('rad',), joint_function=lambda q, t, th: th[0] * q)\n")
     cell = _cell_copy(tmp_path, effects=['evil.py:SAG:joint_2'])
     for command in (['identify', '--bag', str(run_bag)], ['diagnose', '--bag', str(run_bag)],

@@ -7,8 +7,8 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from kpi_calib_ros.core.capsule_fit import capsules_from_urdf
-from kpi_calib_ros.core.collision import (
+from kpi_calib_ros.core.collision.capsule_fit import capsules_from_urdf
+from kpi_calib_ros.core.collision.capsules import (
     Capsule,
     CollisionScene,
     HalfSpace,
@@ -16,7 +16,7 @@ from kpi_calib_ros.core.collision import (
     halfspace_margin,
     segment_distance,
 )
-from kpi_calib_ros.core.collision_check import _coal_capsule, verify_configuration
+from kpi_calib_ros.core.collision.check import _coal_capsule, verify_configuration
 from kpi_calib_ros.core.errors import ConfigError
 
 # A 6R arm with one collision primitive per link, placed off the joint axes on

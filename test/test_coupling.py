@@ -9,13 +9,14 @@ import numpy as np
 import pytest
 import yaml
 
-from kpi_calib_ros.app.identify import identify_cell, measurements_from_samples
+from kpi_calib_ros.app.identify import identify_cell
+from kpi_calib_ros.app.measurements import measurements_from_samples
 from kpi_calib_ros.app.simulate import simulate_campaign
 from kpi_calib_ros.cli import main
-from kpi_calib_ros.core.coupling import coupling_from_mapping
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.io.bag import read_bag
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.io.cell_sections import coupling_from_mapping
 from kpi_calib_ros.io.names import CALIBRATED_URDF_FILE
 
 NAMES = [f'joint_{i}' for i in range(1, 7)]
@@ -121,7 +122,7 @@ def test_coupled_publication_off_grid_gives_the_same_tcp(tmp_path):
 
 def test_design_poses_leave_in_controller_values(tmp_path):
     from kpi_calib_ros.app.design import controller_design
-    from kpi_calib_ros.core.design import DesignResult
+    from kpi_calib_ros.core.design.optimum import DesignResult
     cm = build_cell_model(load_cell(_cell_copy(tmp_path, joint_coupling=FANUC)))
     q = np.random.default_rng(1).uniform(-1, 1, (4, 6))
     fake = DesignResult.__new__(DesignResult)
@@ -137,7 +138,7 @@ def test_design_poses_leave_in_controller_values(tmp_path):
 def test_cli_writes_the_node_calibrated_urdf(tmp_path, capsys):
     """kpi-calib identify writes the calibrated URDF beside calibration.yaml, and it is
     the node's byte for byte on the same data."""
-    from kpi_calib_ros.app.identify import load_measurements
+    from kpi_calib_ros.app.measurements import load_measurements
     from kpi_calib_ros.ros.jobs import identify_work
     bag = tmp_path / 'run.mcap'
     simulate_campaign(DEFAULT_CELL, 30, bag, seed=3)

@@ -6,17 +6,17 @@ import numpy as np
 import pytest
 
 from kpi_calib_ros.app.identify import identify_cell
-from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.residuals import (
-    cross_validated_rms,
-    cv_rms,
+from kpi_calib_ros.core.estimation.residuals import (
     fold_ids,
     folds_keep_rank,
     identifiable_folds,
+    linear_validation_rms,
     linearized_fit,
     moved_joints,
     stratified_fold_ids,
+    validation_rms,
 )
+from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.simulation import (
     one_joint_at_a_time,
     simulate_measurements,
@@ -46,8 +46,8 @@ def one_campaign(cm, seed: int, per_joint: int = POSES_PER_JOINT) -> dict[str, f
     err = fresh.eta - cm.model.predict(result.values, fresh.q)
     true_rms = float(np.sqrt(np.mean(np.sum(err ** 2, axis=1))))
     sys_ = linearized_fit(cm.model, data, result)
-    return {'loo': cross_validated_rms(cm.model, data, result) / true_rms,
-            'kfold': cross_validated_rms(cm.model, data, result, folds=5) / true_rms,
+    return {'loo': validation_rms(cm.model, data, result) / true_rms,
+            'kfold': validation_rms(cm.model, data, result, folds=5) / true_rms,
             'before': _unchecked(sys_) / true_rms}
 
 
@@ -65,7 +65,7 @@ def _unchecked(sys_) -> float:
 
 
 def test_held_out_residuals_equal_refits():
-    """The PRESS identity used by cv_rms equals refitting without each fold."""
+    """The PRESS identity used by linear_validation_rms equals refitting without each fold."""
     rng = np.random.default_rng(4)
     a, r = rng.normal(size=(60, 7)), rng.normal(size=60)
     folds = fold_ids(20, 4, 1)
@@ -77,7 +77,7 @@ def test_held_out_residuals_equal_refits():
         delta = np.linalg.lstsq(a[~t], r[~t], rcond=None)[0]
         held[t] = r[t] - a[t] @ delta
     expect = np.sqrt(np.mean(np.sum(held.reshape(-1, 3) ** 2, axis=1)))
-    assert cv_rms(a, r, w, folds) == pytest.approx(expect, rel=1e-10)
+    assert linear_validation_rms(a, r, w, folds) == pytest.approx(expect, rel=1e-10)
 
 
 def test_moved_joints_and_stratified_folds(cm):
@@ -99,7 +99,7 @@ def test_a_fold_without_a_joint_is_refused(cm):
     sys_ = linearized_fit(cm.model, data, identify_cell(cm, data))
     by_joint = np.argmax(moved_joints(data.q), axis=1) % 5   # a fold = one joint's sweep
     assert not folds_keep_rank(sys_.jac, by_joint)
-    assert np.isnan(cv_rms(sys_.jac, sys_.r, sys_.w, by_joint))
+    assert np.isnan(linear_validation_rms(sys_.jac, sys_.r, sys_.w, by_joint))
     folds = identifiable_folds(sys_.jac, data.q, 5, 0)
     assert folds is not None and folds_keep_rank(sys_.jac, folds)
     # Two poses per joint: every fold that holds one out loses that joint's excitation.
@@ -123,14 +123,14 @@ def test_out_of_sample_estimate_within_1_5x_over_20_seeds(cm):
 
 def test_not_estimable_is_said_not_printed_as_a_number(cm):
     """Two poses per joint: the diagnosis text names the design instead of a figure."""
-    from kpi_calib_ros.core.diagnosis import compare_models
+    from kpi_calib_ros.core.diagnosis.candidates import compare_models
     from kpi_calib_ros.io.report import NOT_ESTIMABLE, comparison_text
     rng = np.random.default_rng(2)
     p_true = true_parameters(cm.model.params, rng)
     data = simulate_measurements(cm.model, p_true, circle_point_poses(cm, rng, 5)[::3],
                                  cm.cell.sigma, rng)
     result = identify_cell(cm, data)
-    assert np.isnan(cross_validated_rms(cm.model, data, result))
+    assert np.isnan(validation_rms(cm.model, data, result))
     cmp = compare_models((cm.model, result), (cm.model, result), data)
     text = comparison_text(cmp)
     assert f'validation rms  {NOT_ESTIMABLE} -> {NOT_ESTIMABLE}' in text

@@ -7,37 +7,41 @@ import numpy as np
 import pytest
 import yaml
 
-from kpi_calib_ros.core.collision import CollisionScene
-from kpi_calib_ros.core.collision_matrix import SKIPPED_KINDS
-from kpi_calib_ros.core.covariance import kkt_covariance, kpi_jacobians, parameter_covariance
-from kpi_calib_ros.core.design import (
-    DesignSettings,
-    build_problem,
-    design_context,
-    design_measurements,
-    tcp_std_on_drawn_robots,
-)
-from kpi_calib_ros.core.design_constraints import feasibility_function, flag_pairs, verify_design
-from kpi_calib_ros.core.design_exchange import (
+from kpi_calib_ros.core.collision.capsules import CollisionScene
+from kpi_calib_ros.core.collision.matrix import SKIPPED_KINDS
+from kpi_calib_ros.core.design.constraints import feasibility_function, flag_pairs, verify_design
+from kpi_calib_ros.core.design.exchange import (
     ConditionLoss,
     LogDetLoss,
     TraceLoss,
     exchange,
     information,
 )
-from kpi_calib_ros.core.design_nlp import solve_design_nlp
+from kpi_calib_ros.core.design.nlp import solve_design_nlp
+from kpi_calib_ros.core.design.optimum import (
+    DesignSettings,
+    build_problem,
+    design_context,
+    design_measurements,
+    tcp_std_on_drawn_robots,
+)
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.core.estimation import identify
-from kpi_calib_ros.core.measurement import Measurements, with_rotation_rows
-from kpi_calib_ros.core.pose_measurement import noisy_rotations
+from kpi_calib_ros.core.estimation.covariance import (
+    kkt_covariance,
+    kpi_jacobians,
+    parameter_covariance,
+)
+from kpi_calib_ros.core.estimation.least_squares import identify
+from kpi_calib_ros.core.measurement.pose import noisy_rotations
+from kpi_calib_ros.core.measurement.tracker import Measurements, with_rotation_rows
 from kpi_calib_ros.core.simulation import sampling_bounds, true_parameters
 from kpi_calib_ros.io.cell import (
     DEFAULT_CELL,
     build_cell_model,
     cell_from_dict,
-    design_settings,
     load_cell,
 )
+from kpi_calib_ros.io.cell_settings import design_settings
 
 from cell_variants import KINDS, cell_document
 

@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from kpi_calib_ros.core.dh import describe, dh_table
-from kpi_calib_ros.core.robot_library import kr15_class
+from kpi_calib_ros.core.model.dh import describe, dh_table
+from kpi_calib_ros.core.model.robot_library import kr15_class
 
 
 def test_nominal_kr15_dh_equals_data_sheet(cm):

@@ -17,22 +17,23 @@ import numpy as np
 import pytest
 import yaml
 
-from kpi_calib_ros.core.diagnosis import (
+from kpi_calib_ros.core.diagnosis.candidates import (
     augmented_model,
     compare_models,
-    cross_validated_rms,
     diagnose,
     residual_report,
+    validation_rms,
 )
-from kpi_calib_ros.core.effects import hidden_effects, parse_effect_spec
-from kpi_calib_ros.core.estimation import identify
-from kpi_calib_ros.core.measurement import Measurements
+from kpi_calib_ros.core.effects.registry import parse_effect_spec
+from kpi_calib_ros.core.estimation.least_squares import identify
+from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,
     true_parameters,
 )
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict
+from kpi_calib_ros.io.cell_settings import hidden_effects
 
 SIGMA = 20e-6
 FLOOR = SIGMA * np.sqrt(3)
@@ -202,9 +203,9 @@ def test_injected_outliers_are_flagged_and_false_flags_stay_within_bonferroni():
 def test_cross_validated_rms_is_near_the_noise_floor():
     cm = _cell_model('ur')
     data, result, *_ = campaign(cm, {}, seed=8)
-    cv = cross_validated_rms(cm.model, data, result, folds=5)
+    cv = validation_rms(cm.model, data, result, folds=5)
     print(f'\nclean UR: rms {result.rms_m * 1e6:.1f} µm, 5-fold validation rms {cv * 1e6:.1f} µm, '
           f'σ√3 {FLOOR * 1e6:.1f} µm')
     assert result.rms_m < cv < 1.2 * FLOOR
     with pytest.raises(ValueError, match='folds'):
-        cross_validated_rms(cm.model, data, result, folds=1)
+        validation_rms(cm.model, data, result, folds=1)

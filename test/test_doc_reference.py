@@ -70,11 +70,12 @@ def test_node_page_lists_every_parameter_topic_and_service(pages):
     for service in ('design', 'identify', 'diagnose', 'validate', 'reset'):
         assert f'| `~/{service}` | `std_srvs/srv/Trigger` |' in text
     assert '| `/joint_states` | `sensor_msgs/msg/JointState` |' in text
+    assert '| `/laser_tracker/point/sigma` | `geometry_msgs/msg/Vector3Stamped` |' in text
     assert '| `~/tcp` | `geometry_msgs/msg/PoseWithCovarianceStamped` |' in text
 
 
 def test_effects_page_gives_every_library_effect_with_units_and_plausible_range(pages):
-    from kpi_calib_ros.core.effects import LIBRARY
+    from kpi_calib_ros.core.effects.library import LIBRARY
     text = pages.effects_page()
     for effect in LIBRARY:
         row = next(line for line in text.splitlines() if line.startswith(f'| `{effect.name}` |'))
@@ -82,11 +83,15 @@ def test_effects_page_gives_every_library_effect_with_units_and_plausible_range(
             assert f'{parameter} [{unit}]' in row
         for bound in effect.plausible:
             assert f'{bound:g}' in row
-    from kpi_calib_ros.core.effects import CHAIN_EFFECTS
+    from kpi_calib_ros.core.effects.registry import CHAIN_EFFECTS
     assert 'gravity_compliance' in CHAIN_EFFECTS
-    for name in CHAIN_EFFECTS:
-        row = next(line for line in text.splitlines() if line.startswith(f'| `{name}:J` |'))
-        assert 'g0 [rad]' in row
+    row = next(line for line in text.splitlines() if line.startswith('| `gravity_compliance:J` |'))
+    assert 'g0 [rad]' in row
+    row = next(line for line in text.splitlines() if line.startswith('| `link_bending:J` |'))
+    assert 'cx [rad/(N m)], cz [rad/(N m)]' in row and '0.0001, 0.0001' in row
+    row = next(line for line in text.splitlines()
+               if line.startswith('| `periodic_joint_error:J:k=K` |'))
+    assert 'a [rad], b [rad]' in row and '0.005, 0.005' in row and '17' in row
 
 
 def test_cell_keys_page_lists_every_described_key(pages):

@@ -7,14 +7,15 @@ import numpy as np
 import pytest
 
 from kpi_calib_ros.app.identify import calibrate_cell, identify_cell, with_effects
-from kpi_calib_ros.core.diagnosis import augmented_model, screen_effects
-from kpi_calib_ros.core.effects import available_effects, bind_effect, hidden_effects, implausible
-from kpi_calib_ros.core.measurement import Measurements
+from kpi_calib_ros.core.diagnosis.candidates import augmented_model, screen_effects
+from kpi_calib_ros.core.effects.registry import available_effects, bind_effect, implausible
+from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,
     true_parameters,
 )
+from kpi_calib_ros.io.cell_settings import hidden_effects
 
 SIGMA = 20e-6  # the default cell's tracker σ
 # Joint 3 of the KR15-class cell carries -130 ... +130 N m of gravity torque over random

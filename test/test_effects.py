@@ -8,12 +8,11 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from kpi_calib_ros.core import effects as fx
-from kpi_calib_ros.core.diagnosis import augmented_model
-from kpi_calib_ros.core.effects import (
+from kpi_calib_ros.core.diagnosis.candidates import augmented_model
+from kpi_calib_ros.core.effects import registry as fx
+from kpi_calib_ros.core.effects.registry import (
     EffectType,
     candidate_effects,
-    hidden_effects,
     implausible,
     parse_effect_spec,
     register_effect,
@@ -22,6 +21,7 @@ from kpi_calib_ros.core.effects import (
 )
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.simulation import random_configurations, true_parameters
+from kpi_calib_ros.io.cell_settings import hidden_effects
 
 
 @pytest.fixture
@@ -162,7 +162,7 @@ def test_registered_user_effect_plugs_into_model_and_specs(cell, clean_registry)
 def test_entry_point_discovery(cell, clean_registry, monkeypatch, tmp_path):
     (tmp_path / 'my_effects_plugin.py').write_text(textwrap.dedent('''
         import casadi as ca
-        from kpi_calib_ros.core.effects import EffectType
+        from kpi_calib_ros.core.effects.registry import EffectType
         def make():
             return EffectType('sag', ('s',), ('rad',),
                               joint_function=lambda q, t, th: th[0] * ca.sin(q) ** 2)
@@ -180,7 +180,7 @@ def test_entry_point_discovery(cell, clean_registry, monkeypatch, tmp_path):
 
 def test_cell_file_names_a_user_effect_file(cell, clean_registry, tmp_path):
     (tmp_path / 'cell_effects.py').write_text(textwrap.dedent('''
-        from kpi_calib_ros.core.effects import EffectType
+        from kpi_calib_ros.core.effects.registry import EffectType
         WARP = EffectType('warp', ('w',), ('rad',), joint_function=lambda q, t, th: th[0] * q ** 2)
     '''))
     effect = parse_effect_spec('cell_effects.py:WARP:joint_2', cell.robot, base_dir=tmp_path,
@@ -194,7 +194,7 @@ def test_cell_file_names_a_user_effect_file(cell, clean_registry, tmp_path):
 EVIL = '''
 from pathlib import Path
 Path({marker!r}).write_text('the cell file ran this code')
-from kpi_calib_ros.core.effects import EffectType
+from kpi_calib_ros.core.effects.registry import EffectType
 SAG = EffectType('sag', ('g',), ('rad',), joint_function=lambda q, t, th: th[0] * q)
 '''
 

@@ -5,16 +5,17 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from kpi_calib_ros.core.covariance import (
+from kpi_calib_ros.core.errors import DataError
+from kpi_calib_ros.core.estimation.covariance import (
     kkt_covariance,
     kpi_jacobians,
     nullspace_covariance,
     propagated_kpi_covariance,
 )
-from kpi_calib_ros.core.errors import DataError
-from kpi_calib_ros.core.estimation import (
+from kpi_calib_ros.core.estimation.least_squares import (
     FTOL,
     GTOL,
+    ITERATIONS_PER_PARAMETER,
     LINE_SEARCH_FAILED,
     MAX_ITERATIONS,
     PREDICTED_DECREASE,
@@ -23,7 +24,7 @@ from kpi_calib_ros.core.estimation import (
     identify,
     weights,
 )
-from kpi_calib_ros.core.measurement import Measurements
+from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.simulation import (
     equivalent_parameters,
     random_configurations,
@@ -180,7 +181,7 @@ def test_points_in_millimetres_are_refused_with_the_reason(cell, campaign):
 
 @pytest.mark.parametrize('robot', ['odd_arm', 'ur_class'])
 def test_identification_is_general_across_robots(robot, odd_arm_urdf, tmp_path):
-    from kpi_calib_ros.core.robot_library import shipped_urdf_path
+    from kpi_calib_ros.core.model.robot_library import shipped_urdf_path
     from kpi_calib_ros.io.cell import cell_from_dict
     if robot == 'odd_arm':
         urdf, base, tip = odd_arm_urdf, 'mount', 'flange'
@@ -225,6 +226,19 @@ def test_iteration_limit_is_status_zero_and_not_converged(cell, campaign):
     print(result.message)
     assert result.status == MAX_ITERATIONS and not result.converged
     assert 'maximum number of iterations (1)' in result.message
+
+
+def test_the_default_iteration_limit_is_100_per_identified_parameter(cell, campaign):
+    # SciPy's least_squares allows 100 evaluations per parameter. With every convergence
+    # test off the fit runs to the limit: 2 free parameters, 200 iterations.
+    _, _, data, _ = campaign
+    off = Tolerances(gtol=0.0, xtol=0.0, pred_tol=0.0, roundoff=0.0, stat_tol=0.0, ftol=0.0)
+    result = identify(cell.model, data, SIGMA, cell.q_work, tolerances=off,
+                      free=['joint_2.offset', 'joint_3.offset'])
+    print(result.message)
+    assert result.estimated == ('joint_2.offset', 'joint_3.offset')
+    assert ITERATIONS_PER_PARAMETER == 100 and result.iterations == 200
+    assert result.status == MAX_ITERATIONS and 'iterations (200)' in result.message
 
 
 def test_failed_line_search_is_its_own_status_not_convergence(cell, campaign):
@@ -290,7 +304,7 @@ def test_priority_selection_converges_to_the_pivoted_fit(cell, seed):
 
 
 def test_priority_with_unknown_names_is_refused(cell, campaign):
-    from kpi_calib_ros.core.identifiability import select_identifiable
+    from kpi_calib_ros.core.estimation.identifiability import select_identifiable
     with pytest.raises(ValueError, match=r"\['joint_9.offset'\]"):
         select_identifiable(np.eye(3), ['a', 'b', 'c'], method='priority',
                             priority=['a', 'joint_9.offset'])

@@ -9,11 +9,11 @@ import pytest
 import yaml
 
 from kpi_calib_ros.cli import main
-from kpi_calib_ros.core.diagnosis import augmented_model
-from kpi_calib_ros.core.effects import parse_effect_spec
-from kpi_calib_ros.core.estimation import identify
-from kpi_calib_ros.core.precision import expected_tcp_error, honest_precision
-from kpi_calib_ros.core.residuals import cross_validated_rms
+from kpi_calib_ros.core.diagnosis.candidates import augmented_model
+from kpi_calib_ros.core.effects.registry import parse_effect_spec
+from kpi_calib_ros.core.estimation.least_squares import identify
+from kpi_calib_ros.core.estimation.precision import expected_tcp_error, honest_precision
+from kpi_calib_ros.core.estimation.residuals import validation_rms
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,
@@ -65,7 +65,7 @@ def test_expected_error_is_the_parameter_part_plus_the_held_out_misfit(cm):
     """b² = (held-out rms)² − 3σ², the expected error √(tr C + b²); an adequate model has
     no misfit term and states its parameter part alone."""
     _, expected, result, data = hidden_run(cm, *HIDDEN[0], 7)
-    cv = cross_validated_rms(cm.model, data, result)
+    cv = validation_rms(cm.model, data, result)
     std = np.sqrt(np.trace(result.tcp_covariance, axis1=1, axis2=2))
     misfit = np.sqrt(cv ** 2 - np.sum(cm.cell.sigma ** 2))
     assert expected.misfit_m == pytest.approx(misfit)

@@ -12,12 +12,12 @@ import yaml
 
 from kpi_calib_ros.app.identify import identify_cell
 from kpi_calib_ros.app.simulate import truth_cell_model
-from kpi_calib_ros.core.gravity_compliance import (
+from kpi_calib_ros.core.effects.gravity_compliance import (
     compliance_warnings,
     massless_links,
     torque_regressor,
 )
-from kpi_calib_ros.core.robot import Payload, RobotModel
+from kpi_calib_ros.core.model.robot import Payload, RobotModel
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,

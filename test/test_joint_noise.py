@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from kpi_calib_ros.core.diagnosis import diagnose, equivalent_joint_sigma
+from kpi_calib_ros.core.diagnosis.candidates import diagnose, equivalent_joint_sigma
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.core.estimation import identify
-from kpi_calib_ros.core.measurement import unweighted, weighted_residuals, weighted_rows
-from kpi_calib_ros.core.precision import honest_precision, precision_statement
+from kpi_calib_ros.core.estimation.least_squares import identify
+from kpi_calib_ros.core.estimation.precision import honest_precision, precision_statement
+from kpi_calib_ros.core.measurement.tracker import unweighted, weighted_residuals, weighted_rows
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,
@@ -163,7 +163,7 @@ def test_out_of_sample_prediction_holds_the_joint_noise(exact, stated, cell):
     """One robot and design, 30 draws: the predicted like-measured error of a new
     measurement (tracker and joint noise, parameter error) equals the mean true square error
     ‖h_true − ĥ‖² + Σσ² + tr(J_q Σ_q J_qᵀ) at the measured poses."""
-    from kpi_calib_ros.core.out_of_sample import out_of_sample_error
+    from kpi_calib_ros.core.diagnosis.out_of_sample import out_of_sample_error
     p_true, q, _ = campaign(exact, 21)
     rng = np.random.default_rng(22)
     jq = stated.model.joint_jacobian(p_true, q) * JOINT_SIGMA
@@ -187,7 +187,7 @@ def test_validation_holds_new_points_with_the_joint_noise(exact, stated, cell):
     read with the same joint noise, within its own errors: the validation χ² holds over
     20 new campaigns at the level's rate (p-values uniform, KS); without the J_q Σ_q J_qᵀ
     term it fails every one."""
-    from kpi_calib_ros.core.validation import validate
+    from kpi_calib_ros.core.diagnosis.validation import validate
     p_true, q, rng = campaign(exact, 31)
     data = simulate_measurements(exact.model, p_true, q, cell.sigma, rng, JOINT_SIGMA)
     result = identify(stated.model, data, cell.sigma, stated.q_work)
@@ -242,8 +242,8 @@ def test_robust_statistics_take_the_joint_noise_as_stated(exact, stated, cell, l
     """With the joint noise stated, the robust σ̂ is the tracker σ (within 1.5×, no σ
     warning) and no good point is an outlier, where the metric residuals (0.5 mm of joint
     noise) would read as a σ 15-20× the stated one; the residual report agrees."""
-    from kpi_calib_ros.core.residuals import residual_report
-    from kpi_calib_ros.core.robust import OutlierSettings, robust_identify
+    from kpi_calib_ros.core.estimation.residuals import residual_report
+    from kpi_calib_ros.core.estimation.robust import OutlierSettings, robust_identify
 
     def fit(d, free=None, **kw):
         return identify(stated.model, d, cell.sigma, stated.q_work, **kw)

@@ -7,6 +7,7 @@ import ever runs.
 from __future__ import annotations
 
 import ast
+import importlib
 from pathlib import Path
 
 import pytest
@@ -75,6 +76,56 @@ def test_no_module_imports_a_higher_layer(path):
     upward = [f'line {line}: {name}' for line, name in _imports(path)
               if name.startswith('kpi_calib_ros.') and (_layer(name) or 0) > own]
     assert not upward, f'{path.name} (layer {own}) imports a higher layer: {upward}'
+
+
+# Inside core, each family may import only from those before it (and from itself).
+CORE_ORDER = {'errors': 0, 'model': 1, 'measurement': 2, 'effects': 3, 'acquisition': 4,
+              'collision': 5, 'estimation': 6, 'simulation': 7, 'diagnosis': 8, 'design': 9,
+              'campaigns': 10}
+
+
+def _core_rank(module: str) -> int | None:
+    """Rank of a ``kpi_calib_ros.core`` module in :data:`CORE_ORDER`; None outside core."""
+    parts = module.split('.')
+    if parts[:2] != ['kpi_calib_ros', 'core'] or len(parts) < 3:
+        return None
+    if parts[2] not in CORE_ORDER:
+        raise AssertionError(f'{module} is in no core family; add it to a sub-package of core '
+                             f'(and to CORE_ORDER if it is a new family)')
+    return CORE_ORDER[parts[2]]
+
+
+@pytest.mark.parametrize('path', sorted((PACKAGE / 'core').rglob('*.py')),
+                         ids=lambda p: str(p.relative_to(PACKAGE / 'core')))
+def test_core_families_import_only_earlier_ones(path):
+    own = _core_rank(_module_name(path))
+    if own is None:
+        return
+    later = [f'line {line}: {name}' for line, name in _imports(path)
+             if (_core_rank(name) or 0) > own]
+    assert not later, f'{path.name} (core rank {own}) imports a later core family: {later}'
+
+
+def test_the_core_order_checker_sees_a_later_family():
+    assert _core_rank('kpi_calib_ros.core.estimation.robust') > _core_rank(
+        'kpi_calib_ros.core.model.robot')
+    with pytest.raises(AssertionError, match='no core family'):
+        _core_rank('kpi_calib_ros.core.stray_module')
+
+
+@pytest.mark.parametrize('path', sorted((PACKAGE / 'core').rglob('*.py')),
+                         ids=lambda p: str(p.relative_to(PACKAGE / 'core')))
+def test_every_core_module_declares_its_public_names(path):
+    """``__all__`` in every core module and family package, and every name in it exists."""
+    if path == PACKAGE / 'core' / '__init__.py':
+        return
+    tree = ast.parse(path.read_text())
+    declared = [node for node in tree.body if isinstance(node, ast.Assign)
+                and any(isinstance(t, ast.Name) and t.id == '__all__' for t in node.targets)]
+    assert declared, f'{path.name} declares no __all__'
+    module = importlib.import_module(_module_name(path))
+    missing = [name for name in module.__all__ if not hasattr(module, name)]
+    assert not missing, f'{path.name}: __all__ names what it does not have: {missing}'
 
 
 @pytest.mark.parametrize('path', sorted((PACKAGE / 'core').rglob('*.py')),

@@ -5,23 +5,23 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pytest
 
-from kpi_calib_ros.core.capsule_fit import capsules_from_urdf, collision_vertices
-from kpi_calib_ros.core.capsule_geometry import (
+from kpi_calib_ros.core.collision.capsule_fit import capsules_from_urdf, collision_vertices
+from kpi_calib_ros.core.collision.capsule_geometry import (
     capsule_volume,
     enclosing_capsule,
     fit_capsules,
     outside_distance,
 )
-from kpi_calib_ros.core.collision import BEAM, CollisionScene
-from kpi_calib_ros.core.collision_check import mesh_collisions
-from kpi_calib_ros.core.collision_matrix import (
+from kpi_calib_ros.core.collision.capsules import BEAM, CollisionScene
+from kpi_calib_ros.core.collision.check import mesh_collisions
+from kpi_calib_ros.core.collision.matrix import (
     SKIPPED_KINDS,
     _margins,
     classify_link_pairs,
     link_transforms,
 )
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.core.robot import RobotModel
+from kpi_calib_ros.core.model.robot import RobotModel
 from kpi_calib_ros.io.resources import resolve_mesh_uris, resolve_uri
 
 ROBOTS = {'ur10': ('ur_description/urdf/ur10_robot.urdf', 'base_link', 'tool0'),
@@ -268,7 +268,8 @@ def test_a_chain_link_without_collision_geometry_is_named_not_refused(tmp_path):
     is simulated and identified, and the design summary names the links left unchecked."""
     import yaml
 
-    from kpi_calib_ros.app.identify import identify_cell, measurements_from_bag
+    from kpi_calib_ros.app.identify import identify_cell
+    from kpi_calib_ros.app.measurements import measurements_from_bag
     from kpi_calib_ros.app.simulate import simulate_campaign
     from kpi_calib_ros.io.cell import build_cell_model, load_cell
     from kpi_calib_ros.io.results import read_truth

@@ -7,18 +7,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kpi_calib_ros.app.identify import (
-    identify_cell,
-    measurements_from_bag,
-    print_rejections,
-    registered_start,
-)
+from kpi_calib_ros.app.identify import identify_cell, registered_start
+from kpi_calib_ros.app.measurements import measurements_from_bag, print_rejections
+from kpi_calib_ros.core.acquisition.pairing import pair_measurements
+from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
 from kpi_calib_ros.core.errors import ConfigError, DataError
-from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.pairing import pair_measurements
-from kpi_calib_ros.core.registration import register
+from kpi_calib_ros.core.estimation.registration import register
+from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.simulation import random_configurations, true_parameters
-from kpi_calib_ros.core.streams import JointSample, PointSample
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict, read_cell_document
 from kpi_calib_ros.io.csv_import import import_csv, mapping_from_dict
 
@@ -198,7 +194,7 @@ def test_csv_import_round_trip_through_a_bag(cm, tmp_path: Path):
 
 
 def test_design_rows_hold_every_reflector_of_a_pose(cm):
-    from kpi_calib_ros.core.design_criteria import build_problem
+    from kpi_calib_ros.core.design.criteria import build_problem
     q = random_configurations(cm.model, cm.geometric.nominal, 60, np.random.default_rng(4))
     problem = build_problem(cm.design_cell(), q)
     rows = problem.rows(cm.model, q[:5])

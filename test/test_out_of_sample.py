@@ -1,4 +1,4 @@
-"""Predicted out-of-sample error (core/out_of_sample.py) against the true error on fresh
+"""Predicted out-of-sample error (core/diagnosis/out_of_sample.py) against the true error on fresh
 poses, on one-joint-at-a-time (circle point) and random campaigns."""
 from __future__ import annotations
 
@@ -7,16 +7,16 @@ import pytest
 
 from kpi_calib_ros.app.diagnose import diagnose_cell
 from kpi_calib_ros.app.identify import _fit_function, identify_cell
-from kpi_calib_ros.core.diagnosis import augmented_model
-from kpi_calib_ros.core.effects import parse_effect_spec
-from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.model_selection import choose_model
-from kpi_calib_ros.core.out_of_sample import (
+from kpi_calib_ros.core.diagnosis.candidates import augmented_model
+from kpi_calib_ros.core.diagnosis.model_selection import choose_model
+from kpi_calib_ros.core.diagnosis.out_of_sample import (
     NOT_ESTIMABLE,
     domain_configurations,
     joint_sweeps,
     out_of_sample_error,
 )
+from kpi_calib_ros.core.effects.registry import parse_effect_spec
+from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.simulation import (
     one_joint_at_a_time,
     random_configurations,

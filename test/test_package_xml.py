@@ -30,6 +30,7 @@ ROSDEP_KEYS = {
     'hypothesis': 'python3-hypothesis',
     'lz4': 'python3-lz4',
     'zstandard': 'python3-zstandard',
+    'sklearn': 'python3-sklearn',
 }
 
 

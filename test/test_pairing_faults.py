@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kpi_calib_ros.core.pairing import (
+from kpi_calib_ros.core.acquisition.pairing import (
     INDEX_CACHE_SIZE,
     NAMES_KEPT,
     PairedMeasurement,
@@ -13,7 +13,7 @@ from kpi_calib_ros.core.pairing import (
     Rejection,
     pair_measurements,
 )
-from kpi_calib_ros.core.streams import JointSample, PointSample, synthesize_streams
+from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample, synthesize_streams
 from kpi_calib_ros.ros.campaign import Campaign
 
 NAMES = ('joint_1', 'joint_2', 'joint_3', 'joint_4', 'joint_5', 'joint_6')

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kpi_calib_ros.core.diagnosis import augmented_model, screen_effects
-from kpi_calib_ros.core.effects import (
+from kpi_calib_ros.core.diagnosis.candidates import augmented_model, screen_effects
+from kpi_calib_ros.core.effects.registry import (
     EffectType,
     available_effects,
     bind_effect,
@@ -14,8 +14,8 @@ from kpi_calib_ros.core.effects import (
     implausible,
 )
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.core.estimation import identify
-from kpi_calib_ros.core.robot import RobotModel
+from kpi_calib_ros.core.estimation.least_squares import identify
+from kpi_calib_ros.core.model.robot import RobotModel
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,

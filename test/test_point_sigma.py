@@ -12,11 +12,12 @@ import yaml
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
-from kpi_calib_ros.app.identify import measurements_from_bag, registered_start
+from kpi_calib_ros.app.identify import registered_start
+from kpi_calib_ros.app.measurements import measurements_from_bag
 from kpi_calib_ros.cli import main
 from kpi_calib_ros.core.errors import DataError
-from kpi_calib_ros.core.estimation import identify
-from kpi_calib_ros.core.measurement import Measurements, noise_weights, row_sigma
+from kpi_calib_ros.core.estimation.least_squares import identify
+from kpi_calib_ros.core.measurement.tracker import Measurements, noise_weights, row_sigma
 from kpi_calib_ros.core.simulation import random_configurations, true_parameters
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 from kpi_calib_ros.io.names import DEFAULT_POINT_TOPIC, DEFAULT_POSE_TOPIC, point_sigma_topic
@@ -122,8 +123,8 @@ def test_robust_statistics_count_each_point_in_its_own_sigma(cm, loss):
     """120 poses, the cell states 5 µm, the points their own 22-35 µm: the robust σ̂ reads the
     points' σ as stated (ratio within 1.5×, no σ warning) and no good point is an outlier;
     the residual report agrees. Taken as metres against 5 µm they read as 5-7× the σ."""
-    from kpi_calib_ros.core.residuals import residual_report
-    from kpi_calib_ros.core.robust import OutlierSettings, robust_identify
+    from kpi_calib_ros.core.estimation.residuals import residual_report
+    from kpi_calib_ros.core.estimation.robust import OutlierSettings, robust_identify
     cell_sigma = np.full(3, 5e-6)
 
     def fit(d, free=None, **kw):
@@ -144,7 +145,7 @@ def test_validation_holds_new_points_in_their_own_sigma(cm, cell):
     """20 robots, each calibrated and then validated on a new campaign whose points state
     their σ: the validation χ² p-values are uniform (KS); with the cell's 20 µm for the
     new points it fails most."""
-    from kpi_calib_ros.core.validation import validate
+    from kpi_calib_ros.core.diagnosis.validation import validate
     lower, upper = np.full(6, -np.inf), np.full(6, np.inf)
     own, single = [], []
     for seed in range(20):
@@ -164,7 +165,7 @@ def test_out_of_sample_error_holds_the_points_own_sigma(cm):
     """One robot and design, 30 draws, the cell stating 5 µm: the predicted like-measured
     error of a new measurement equals the mean true square error ‖h_true − ĥ‖² + Σσ_i²
     (the points' own σ, 22-35 µm) at the measured poses."""
-    from kpi_calib_ros.core.out_of_sample import out_of_sample_error
+    from kpi_calib_ros.core.diagnosis.out_of_sample import out_of_sample_error
     p_true, q, _ = campaign(cm, 21)
     rng = np.random.default_rng(22)
     predicted, true = [], []
@@ -265,7 +266,7 @@ def cm_joint_names() -> list[str]:
 def test_a_sequential_campaign_keeps_the_stated_sigma_of_its_rows(cm):
     """Rows appended to a campaign keep their stated σ; rows without one get NaN (the
     cell's σ), never a σ of another row."""
-    from kpi_calib_ros.core.sequential import _concatenate
+    from kpi_calib_ros.core.campaigns.sequential import _concatenate
     p_true, q, rng = campaign(cm, 6, 6)
     a = measure(cm, p_true, q[:4], rng)
     b = Measurements(q=q[4:], eta=cm.model.predict(p_true, q[4:]))

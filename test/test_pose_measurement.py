@@ -13,20 +13,22 @@ import yaml
 from geometry_msgs.msg import PoseStamped
 
 from kpi_calib_ros.cli import main
+from kpi_calib_ros.core.acquisition.pairing import pair_measurements
+from kpi_calib_ros.core.acquisition.streams import PointSample, synthesize_streams
+from kpi_calib_ros.core.diagnosis.validation import validate
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.core.estimation import identify
-from kpi_calib_ros.core.measurement import Measurements, with_rotation_rows
-from kpi_calib_ros.core.pairing import pair_measurements
-from kpi_calib_ros.core.pose_measurement import (
+from kpi_calib_ros.core.estimation.least_squares import identify
+from kpi_calib_ros.core.measurement.pose import (
     log3_expression,
     noisy_rotations,
+    pose_matrix,
     quaternion_from_rotation,
     rotation_from_quaternion,
     rotation_from_rpy,
 )
+from kpi_calib_ros.core.measurement.tracker import Measurements, with_rotation_rows
+from kpi_calib_ros.core.model.kinematics import pose6
 from kpi_calib_ros.core.simulation import random_configurations, true_parameters
-from kpi_calib_ros.core.streams import PointSample, synthesize_streams
-from kpi_calib_ros.core.validation import validate
 from kpi_calib_ros.io.bag import read_bag, write_bag
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict, read_cell_document
 from kpi_calib_ros.io.ros_messages import pose_sample_from_message
@@ -104,6 +106,16 @@ def test_quaternion_and_rpy_conversions_agree_with_pinocchio():
         assert np.allclose(rotation_from_rpy(rpy), pin.rpy.rpyToMatrix(*rpy), atol=1e-12)
     with pytest.raises(ValueError, match='length'):
         rotation_from_quaternion([0.0, 0.0, 0.0, 2.0])
+
+
+def test_the_numeric_pose_matrix_is_the_symbolic_pose_to_the_bit():
+    """The cell model's tracker pose is computed without CasADi; the numbers must be those
+    the symbolic model (pose6) gives, bit for bit, so results do not move."""
+    rng = np.random.default_rng(5)
+    for pose in rng.uniform(-np.pi, np.pi, (200, 6)):
+        assert np.array_equal(pose_matrix(pose), np.array(ca.DM(pose6(ca.DM(pose)))))
+    with pytest.raises(ValueError, match='6 numbers'):
+        pose_matrix([0.0, 1.0])
 
 
 def test_rotation_row_is_the_scaled_log_and_its_jacobian_is_exact(cm):

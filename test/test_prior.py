@@ -5,13 +5,14 @@ import numpy as np
 import pytest
 
 from kpi_calib_ros.core.errors import DataError
-from kpi_calib_ros.core.estimation import identify
-from kpi_calib_ros.core.prior import Prior, drift_widened, prior_from_calibration, tolerance_prior
+from kpi_calib_ros.core.estimation.least_squares import identify
+from kpi_calib_ros.core.estimation.prior import Prior, drift_widened, tolerance_prior
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,
     true_parameters,
 )
+from kpi_calib_ros.io.calibration_file import prior_from_calibration
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 from kpi_calib_ros.io.results import calibration_to_dict
 
@@ -163,7 +164,7 @@ def run_bag(tmp_path_factory):
 def test_previous_calibration_as_prior_from_the_cli(run_bag, tmp_path, capsys):
     import yaml
 
-    from kpi_calib_ros.app.identify import measurements_from_bag
+    from kpi_calib_ros.app.measurements import measurements_from_bag
     from kpi_calib_ros.cli import main
     cell = str(DEFAULT_CELL)
     assert main(['identify', '--cell', cell, '--bag', str(run_bag), '--out',
@@ -208,8 +209,8 @@ def test_cell_prior_key_is_validated(tmp_path):
 
 
 def test_cross_validation_holds_out_whole_poses(cell, campaign):
-    from kpi_calib_ros.core.measurement import Measurements
-    from kpi_calib_ros.core.model_selection import cross_validated_level_rms, level_free
+    from kpi_calib_ros.core.diagnosis.model_selection import cross_validated_level_rms, level_free
+    from kpi_calib_ros.core.measurement.tracker import Measurements
     data, _ = campaign
     # Each pose measured twice (as by two reflectors at the same joint values).
     twice = Measurements(q=np.repeat(data.q, 2, axis=0), eta=np.repeat(data.eta, 2, axis=0))
@@ -237,7 +238,7 @@ def test_d_tolerances_weigh_against_the_noise_the_data_show(cell):
     much. Balanced (core.precision.balanced_prior) the prior is tightened by the χ²/dof
     the residuals show (≈ 25), the estimate is the posterior of the true noise (smaller
     TCP error than the unbalanced MAP) and the scaled covariance matches Monte Carlo."""
-    from kpi_calib_ros.core.precision import balanced_prior, honest_precision
+    from kpi_calib_ros.core.estimation.precision import balanced_prior, honest_precision
     prior, rng, q, draw = _drawn_from_the_prior(cell, seed=12, poses=12)
     true_sigma = 5 * SIGMA
     scales, err_bal, err_plain, stated = [], [], [], []

@@ -12,7 +12,7 @@ Conversions (``kpi_calib_ros.ros.conversions``)
   * the quaternion of a rotation matrix is the quaternion the matrix was built from, up to
     the sign convention w >= 0 (Pinocchio builds the matrix: an independent reference).
 
-Pairer (``kpi_calib_ros.core.pairing``)
+Pairer (``kpi_calib_ros.core.acquisition.pairing``)
   * the batch result equals a brute-force reference written from the documented rule
     (window ±w inclusive, joint states strictly before and after, every joint present,
     spread < still_tol_rad and |velocity| < still_vel_tol; q the mean of the window);
@@ -35,8 +35,13 @@ from hypothesis import strategies as st
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Header
 
-from kpi_calib_ros.core.pairing import PairedMeasurement, Pairer, Rejection, pair_measurements
-from kpi_calib_ros.core.streams import JointSample, PointSample
+from kpi_calib_ros.core.acquisition.pairing import (
+    PairedMeasurement,
+    Pairer,
+    Rejection,
+    pair_measurements,
+)
+from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
 from kpi_calib_ros.ros import conversions as cv
 
 PROPERTY = settings(max_examples=100, deadline=None, derandomize=True, database=None)

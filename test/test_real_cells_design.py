@@ -73,8 +73,8 @@ def test_configurations_in_mesh_collision_are_violations_and_the_design_is_not_o
     import numpy as np
 
     from kpi_calib_ros.app.design import mesh_verified
-    from kpi_calib_ros.core.design import DesignResult
-    from kpi_calib_ros.core.design_constraints import DesignVerification
+    from kpi_calib_ros.core.design.constraints import DesignVerification
+    from kpi_calib_ros.core.design.optimum import DesignResult
     from kpi_calib_ros.io.robot_geometry import mesh_check
 
     cm = build_cell_model(load_cell(DATA / 'ur10_mesh_cell.yaml'))

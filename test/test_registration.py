@@ -4,8 +4,8 @@ import pinocchio as pin
 import pytest
 
 from kpi_calib_ros.core.errors import DataError
-from kpi_calib_ros.core.estimation import identify
-from kpi_calib_ros.core.registration import horn, register
+from kpi_calib_ros.core.estimation.least_squares import identify
+from kpi_calib_ros.core.estimation.registration import horn, register
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,

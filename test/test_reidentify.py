@@ -1,13 +1,12 @@
-"""Re-identification over work cycles: a previous calibration as prior, stalls, change
-detection."""
+"""Re-identification over work cycles: a previous calibration as prior, the cost test,
+change detection."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from kpi_calib_ros.core.estimation import (
+from kpi_calib_ros.core.estimation.least_squares import (
     FTOL,
-    STALLED,
     STATISTICAL,
     Tolerances,
     _gauss_newton,
@@ -29,23 +28,27 @@ def truth(cell):
     return true_parameters(cell.model.params, rng), rng
 
 
-def test_a_cost_test_while_the_step_still_promises_a_decrease_is_a_stall(cell, truth):
+def test_the_cost_test_stops_within_ftol_of_the_minimum(cell, truth):
     p_true, rng = truth
     q = random_configurations(cell.model, cell.model.params.nominal, 30, rng)
     data = simulate_measurements(cell.model, p_true, q, SIGMA, rng)
     plain = identify(cell.model, data, SIGMA, cell.q_work)
     assert plain.converged and plain.chi2 < 2 * plain.dof
-    # ftol = 1: every step "decreases the cost by less than ftol of it". From the nominal
-    # start (millimetres off) the first step still leaves a large predicted decrease:
-    # that is a stall, never convergence (it was reported as the cost test before).
+    # The cost test alone, ftol = 1e-3: it holds on the first step that gained and
+    # predicted less than 1e-3 of ½χ² with the linear model confirmed (gain ratio > 0.25).
+    # From the nominal start (millimetres off) that is a step near the minimum: what is
+    # left to gain is below ftol of the cost, not a stop on the way.
     idx = cell.model.params.indices(list(plain.estimated))
     w = np.full((len(q), 3), 1.0 / SIGMA)
-    p, status, message, _ = _gauss_newton(cell.model, cell.model.params.nominal.copy(), idx,
-                                          data.q, data.eta, None, w, 50,
-                                          Tolerances(ftol=1.0))
+    ftol = 1e-3
+    p, status, message, used = _gauss_newton(
+        cell.model, cell.model.params.nominal.copy(), idx, data.q, data.eta, None, w, 50,
+        Tolerances(ftol=ftol, gtol=0.0, xtol=0.0, pred_tol=0.0, roundoff=0.0, stat_tol=0.0))
     chi2 = float(np.sum(((data.eta - cell.model.predict(p, data.q)) / SIGMA) ** 2))
-    assert status == STALLED and 'stalled' in message
-    assert chi2 > 3 * plain.chi2  # stopped well above the minimum
+    print(message, used)
+    assert status == FTOL and message.startswith('converged: cost test')
+    assert used > 1  # the nominal start is far from the minimum: a step or more first
+    assert -1e-6 < 0.5 * (chi2 - plain.chi2) < ftol * 0.5 * chi2
     # At the minimum (nothing left to gain) the cost test is convergence.
     again = identify(cell.model, data, SIGMA, cell.q_work, p0=plain.values,
                      tolerances=Tolerances(ftol=1.0, gtol=0.0, xtol=0.0, pred_tol=0.0,
@@ -57,7 +60,8 @@ def test_a_cost_test_while_the_step_still_promises_a_decrease_is_a_stall(cell, t
 @pytest.fixture(scope='module')
 def first_cycle(cell, truth):
     """A 60-pose calibration (the previous cycle) and its document."""
-    from kpi_calib_ros.app.identify import add_robust_sections, calibrate_cell, calibration_document
+    from kpi_calib_ros.app.calibration_document import add_robust_sections, calibration_document
+    from kpi_calib_ros.app.identify import calibrate_cell
     p_true, _ = truth
     rng = np.random.default_rng(12)
     q = random_configurations(cell.model, cell.model.params.nominal, 60, rng)
@@ -97,7 +101,7 @@ def test_the_previous_calibration_in_its_own_gauge_only_adds_information(cell, t
 def test_innovation_chi2_follows_its_distribution_when_the_truth_is_drawn_from_the_prior(
         cell, first_cycle):
     from kpi_calib_ros.app.reidentify import cycle_prior, cycle_start
-    from kpi_calib_ros.core.change_detection import change_test
+    from kpi_calib_ros.core.campaigns.change_detection import change_test
     cal, doc = first_cycle
     cp = cycle_prior(cell, doc, None, keep_placement=True, hours=2.0)
     start = cycle_start(cell, _cycle_data(cell, cal.result.values, 10, 0), cp)
@@ -177,8 +181,12 @@ def test_identify_with_prior_exits_3_on_a_different_robot_and_keeps_the_calibrat
 def test_design_with_the_prior_predicts_the_map_covariance_of_its_poses(cell, first_cycle):
     from kpi_calib_ros.app.design import design_free
     from kpi_calib_ros.app.reidentify import cycle_prior
-    from kpi_calib_ros.core.design import DesignSettings, design_context, design_measurements
-    from kpi_calib_ros.core.measurement import Measurements
+    from kpi_calib_ros.core.design.optimum import (
+        DesignSettings,
+        design_context,
+        design_measurements,
+    )
+    from kpi_calib_ros.core.measurement.tracker import Measurements
     _, doc = first_cycle
     cp = cycle_prior(cell, doc, None, keep_placement=True, hours=1.0)
     p = cell.model.params.with_values(cp.values)
@@ -208,13 +216,13 @@ def test_the_drift_state_filter_matches_monte_carlo_of_the_swing_process():
     (transition Φ, discrete noise Q), measured every cycle with noise; the posterior
     error of the parameters and of the rates after 12 cycles has the variance the filter
     states (χ²(1) means within 3 std over 400 trials) and no bias."""
-    from kpi_calib_ros.core.prior import (
+    from kpi_calib_ros.core.estimation.drift_state import (
         DriftSwing,
-        Prior,
         state_predicted,
         state_updated,
         stationary_state,
     )
+    from kpi_calib_ros.core.estimation.prior import Prior
     swing = DriftSwing(10.0, 5e-5, 24.0)
     names = ('a', 'b')
     shape = np.array([[4e-8, 1e-8], [1e-8, 1e-8]])       # swing amplitudes 200, 100 µm
@@ -256,13 +264,14 @@ def test_the_drift_state_filter_matches_monte_carlo_of_the_swing_process():
 
 def test_the_stationary_drift_state_stays_stationary_and_bad_states_are_refused():
     from kpi_calib_ros.core.errors import DataError
-    from kpi_calib_ros.core.prior import (
+    from kpi_calib_ros.core.estimation.drift_state import (
         DriftState,
         DriftSwing,
-        Prior,
         state_predicted,
         stationary_state,
     )
+    from kpi_calib_ros.core.estimation.prior import Prior
+    from kpi_calib_ros.io.calibration_file import drift_state_from_dict
     swing = DriftSwing(5.0, 5e-5)
     shape = np.diag([1e-8, 4e-8])
     state = stationary_state(('a', 'b'), swing, shape)
@@ -278,9 +287,9 @@ def test_the_stationary_drift_state_stays_stationary_and_bad_states_are_refused(
     bad = state.to_dict()
     bad['covariance'] = bad['covariance'][:3]
     with pytest.raises(DataError, match='drift_state.covariance'):
-        DriftState.from_dict(bad)
+        drift_state_from_dict(bad)
     with pytest.raises(DataError, match='drift_state lacks'):
-        DriftState.from_dict({'names': ['a']})
+        drift_state_from_dict({'names': ['a']})
     with pytest.raises(DataError, match='period'):
         DriftSwing(5.0, 5e-5, 0.0)
 
@@ -290,7 +299,8 @@ def test_a_cycle_with_a_drift_state_stores_it_and_the_next_prior_follows_its_rat
     import yaml
 
     from kpi_calib_ros.app.reidentify import cycle_prior, reidentification_document, reidentify
-    from kpi_calib_ros.core.prior import DriftState, DriftSwing
+    from kpi_calib_ros.core.estimation.drift_state import DriftSwing
+    from kpi_calib_ros.io.calibration_file import drift_state_from_dict
     p_true, _ = truth
     _, doc = first_cycle
     swing = DriftSwing(8.0, 5e-5)
@@ -302,7 +312,7 @@ def test_a_cycle_with_a_drift_state_stores_it_and_the_next_prior_follows_its_rat
     out = reidentify(cell, data, cp)
     assert out.calibration is not None and out.state is not None
     new = yaml.safe_load(yaml.safe_dump(reidentification_document(cell, out, cp, 'old')))
-    stored = DriftState.from_dict(new['drift_state'])
+    stored = drift_state_from_dict(new['drift_state'])
     assert stored.names == cp.prior.names
     assert new['drift_state']['swing']['temperature_k'] == 8.0
     # The next cycle's prior mean is the calibration moved along its state.

@@ -4,9 +4,9 @@ import pinocchio as pin
 import pytest
 
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.core.kinematics import nominal_fk_function
-from kpi_calib_ros.core.parameters import geometric_parameters
-from kpi_calib_ros.core.robot import Payload, RobotModel
+from kpi_calib_ros.core.model.kinematics import nominal_fk_function
+from kpi_calib_ros.core.model.parameters import geometric_parameters
+from kpi_calib_ros.core.model.robot import Payload, RobotModel
 
 
 def test_chain_skips_fixed_joints_and_side_branches(odd_arm_urdf):
@@ -76,7 +76,7 @@ def test_a_urdf_with_more_links_than_any_robot_is_refused_before_parsing(odd_arm
     """20 000 fixed links took Pinocchio 7.9 s (200 000: no answer in 300 s); a bound far
     above any robot (MAX_URDF_ELEMENTS) refuses them with the count, and a robot with
     a few hundred extra fixed links still loads."""
-    from kpi_calib_ros.core.robot import MAX_URDF_ELEMENTS
+    from kpi_calib_ros.core.model.robot import MAX_URDF_ELEMENTS
 
     def with_fixed_links(n: int) -> str:
         extra = ''.join(f'<link name="extra_{i}"/><joint name="fix_{i}" type="fixed">'

@@ -8,8 +8,8 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from kpi_calib_ros.core import robot_library as rl
 from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.core.model import robot_library as rl
 
 KUKA = {'kr15_class': rl.kr15_class, 'kr300_class': rl.kr300_class,
         'kr500_class': rl.kr500_class}
@@ -54,7 +54,7 @@ def test_shipped_files_equal_generator_output():
     assert sorted(generated) == sorted(rl.SHIPPED_ROBOTS)
     for name, text in generated.items():
         assert rl.shipped_urdf_path(name).read_text(encoding='utf-8') == text, (
-            f'{name}.urdf drifted; run python -m kpi_calib_ros.core.robot_library --write')
+            f'{name}.urdf drifted; run python -m kpi_calib_ros.core.model.robot_library --write')
 
 
 def test_shipped_urdf_path_rejects_unknown_name():

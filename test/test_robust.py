@@ -9,19 +9,26 @@ import pytest
 import scipy.stats
 import yaml
 
-from kpi_calib_ros.app.identify import add_robust_sections, calibrate_cell, calibration_document
+from kpi_calib_ros.app.calibration_document import add_robust_sections, calibration_document
+from kpi_calib_ros.app.identify import calibrate_cell
 from kpi_calib_ros.app.simulate import simulate_campaign
 from kpi_calib_ros.cli import main
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.core.estimability import kpi_estimability
-from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.robust import OutlierSettings, loss_weights, outlier_threshold, robust_sigma
+from kpi_calib_ros.core.estimation.estimability import kpi_estimability
+from kpi_calib_ros.core.estimation.robust import (
+    OutlierSettings,
+    loss_weights,
+    outlier_threshold,
+    robust_sigma,
+)
+from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,
     true_parameters,
 )
-from kpi_calib_ros.io.cell import DEFAULT_CELL, identification_settings
+from kpi_calib_ros.io.cell import DEFAULT_CELL
+from kpi_calib_ros.io.cell_settings import identification_settings
 from kpi_calib_ros.io.names import CALIBRATION_FILE, FAILED_CALIBRATION_FILE
 
 SIGMA = 20e-6
@@ -235,8 +242,8 @@ def test_node_job_never_writes_an_invalid_calibration_over_the_last_good_one(cm,
 
 
 def test_diagnosis_outliers_against_the_robust_scale_when_sigma_is_understated(cm, truth):
-    from kpi_calib_ros.core.estimation import identify
-    from kpi_calib_ros.core.residuals import residual_report
+    from kpi_calib_ros.core.estimation.least_squares import identify
+    from kpi_calib_ros.core.estimation.residuals import residual_report
     p_true, q, _ = truth
     data = _campaign(cm, p_true, q, 12)
     small = SIGMA / 10  # stated σ 10× too small: against it nearly every point is "outlier"
@@ -250,7 +257,7 @@ def test_diagnosis_outliers_against_the_robust_scale_when_sigma_is_understated(c
 
 def test_diagnose_screens_against_the_chosen_model_level(cm, truth):
     from kpi_calib_ros.app.diagnose import diagnose_cell
-    from kpi_calib_ros.core.model_selection import level_free
+    from kpi_calib_ros.core.diagnosis.model_selection import level_free
     p_true, q, _ = truth
     cd = diagnose_cell(cm, _campaign(cm, p_true, q, 13), add_best=False, model='joint_offsets')
     free = set(level_free(cm.model.params, 'joint_offsets', len(cm.geometric)))

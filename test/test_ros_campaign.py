@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from kpi_calib_ros.core.acquisition.pairing import PairedMeasurement, Rejection, pair_measurements
+from kpi_calib_ros.core.acquisition.streams import synthesize_streams
 from kpi_calib_ros.core.errors import DataError
-from kpi_calib_ros.core.pairing import PairedMeasurement, Rejection, pair_measurements
-from kpi_calib_ros.core.streams import synthesize_streams
 from kpi_calib_ros.io.measurement_log import MeasurementLog
 from kpi_calib_ros.ros.campaign import Campaign
 
@@ -85,7 +85,7 @@ def test_samples_before_the_robot_model_are_paired_once_it_is_known(tmp_path):
 def test_oversized_joint_states_are_rejected_before_the_robot_model_too(tmp_path):
     """The early buffer (samples held until the chain is known) takes no absurd message:
     each is rejected and counted by reason; the campaign still pairs the rest."""
-    from kpi_calib_ros.core.streams import JointSample
+    from kpi_calib_ros.core.acquisition.streams import JointSample
     from kpi_calib_ros.ros.campaign import EARLY_MAX_NAMES
     joints, points = streams(3)
     campaign = Campaign(tmp_path)

@@ -10,8 +10,8 @@ from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
 from visualization_msgs.msg import Marker
 
-from kpi_calib_ros.core.collision import Capsule
-from kpi_calib_ros.core.streams import JointSample, PointSample, synthesize_streams
+from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample, synthesize_streams
+from kpi_calib_ros.core.collision.capsules import Capsule
 from kpi_calib_ros.io.bag import read_bag, write_bag
 from kpi_calib_ros.ros import conversions as cv
 

@@ -27,8 +27,8 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 
+from kpi_calib_ros.core.acquisition.streams import synthesize_streams
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.core.streams import synthesize_streams
 from kpi_calib_ros.io.bag import write_bag
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 from kpi_calib_ros.ros import conversions as cv
@@ -350,7 +350,7 @@ def test_an_invalid_identification_keeps_the_last_good_calibration(in_process, m
     """A campaign whose KPI is not estimable (60 points from one pose) is never published:
     the previous calibration stays (topics, calibration.yaml) and /diagnostics says ERROR
     with the reason."""
-    from kpi_calib_ros.core.measurement import Measurements
+    from kpi_calib_ros.core.measurement.tracker import Measurements
     from kpi_calib_ros.core.simulation import (
         random_configurations,
         simulate_measurements,
@@ -387,11 +387,11 @@ def test_an_invalid_identification_keeps_the_last_good_calibration(in_process, m
     try:
         ok, message = run('good')
         assert ok, message
-        good, written = node._result, (node.data_dir / 'calibration.yaml').read_text()
+        good, written = node._run.result, (node.data_dir / 'calibration.yaml').read_text()
         assert node.status()[0] in ('OK', 'WARN')
         ok, message = run('one_pose')
         assert not ok and 'not estimable' in message.lower()
-        assert node._result is good
+        assert node._run.result is good
         assert (node.data_dir / 'calibration.yaml').read_text() == written
         level, text, _ = node.status()
         assert level == 'ERROR' and 'calibration not published' in text

@@ -18,12 +18,12 @@ from rclpy.parameter import Parameter
 from visualization_msgs.msg import MarkerArray
 
 from kpi_calib_ros.app.identify import identify_cell
+from kpi_calib_ros.core.acquisition.streams import synthesize_streams
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,
     true_parameters,
 )
-from kpi_calib_ros.core.streams import synthesize_streams
 from kpi_calib_ros.io.cell import build_cell_model, load_cell
 from kpi_calib_ros.io.resources import resolve_uri
 from kpi_calib_ros.ros import conversions as cv
@@ -94,13 +94,13 @@ def test_node_identifies_from_a_stock_mesh_urdf_with_unknown_placement(tmp_path,
         # The same numbers as the offline path on the paired campaign.
         paired, _ = node.campaign.measurements(node._cm.joint_names, 'laser_tracker')
         offline = identify_cell(build_cell_model(load_cell(cell)), paired)
-        np.testing.assert_allclose(node._result.values, offline.values, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(node._run.result.values, offline.values, rtol=0, atol=1e-12)
         # The registered start led to the true robot: TCP within 5 σ of its prediction.
         tcp_true = truth.model.predict(p_true, truth.q_work)
-        err = np.linalg.norm(node._result.tcp - tcp_true, axis=1)
-        std = np.sqrt(np.trace(node._result.tcp_covariance, axis1=1, axis2=2))
+        err = np.linalg.norm(node._run.result.tcp - tcp_true, axis=1)
+        std = np.sqrt(np.trace(node._run.result.tcp_covariance, axis1=1, axis2=2))
         print(f'node: TCP error {np.round(err * 1e6, 2).tolist()} µm, std '
-              f'{np.round(std * 1e6, 2).tolist()} µm, rms {node._result.rms_m * 1e6:.2f} µm')
+              f'{np.round(std * 1e6, 2).tolist()} µm, rms {node._run.result.rms_m * 1e6:.2f} µm')
         assert np.all(err < 5 * std)
 
         # Without a tracker pose a design cannot know where the tracker is: it says so.

@@ -9,10 +9,7 @@ import yaml
 
 from kpi_calib_ros.app.campaign import campaign_context, new_campaign, simulate_sequential
 from kpi_calib_ros.cli import main
-from kpi_calib_ros.core.design_exchange import exchange, information
-from kpi_calib_ros.core.effects import hidden_effects
-from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.core.sequential import (
+from kpi_calib_ros.core.campaigns.sequential import (
     MAX_MEASUREMENTS,
     MODEL_INADEQUATE,
     TARGET_MET,
@@ -23,6 +20,8 @@ from kpi_calib_ros.core.sequential import (
     pure_error,
     sigma_upper_limit,
 )
+from kpi_calib_ros.core.design.exchange import exchange, information
+from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.simulation import simulate_pose_measurements, true_parameters
 from kpi_calib_ros.io.cell import (
     DEFAULT_CELL,
@@ -31,6 +30,7 @@ from kpi_calib_ros.io.cell import (
     load_cell,
     read_cell_document,
 )
+from kpi_calib_ros.io.cell_settings import hidden_effects
 from kpi_calib_ros.io.design_io import read_design_poses
 
 from cell_variants import cell_document

@@ -13,7 +13,7 @@ import pytest
 import yaml
 
 from kpi_calib_ros.cli import main
-from kpi_calib_ros.core.effects import implausible, parse_effect_spec
+from kpi_calib_ros.core.effects.registry import implausible, parse_effect_spec
 from kpi_calib_ros.io.cell import build_cell_model, load_cell
 
 # Beside the repository (../shared/data/tiago_mocap), or where TIAGO_MOCAP_DIR says.

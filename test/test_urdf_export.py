@@ -9,9 +9,9 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from kpi_calib_ros.core.kinematics import nominal_fk_function, rpy_matrix
-from kpi_calib_ros.core.parameters import geometric_parameters
-from kpi_calib_ros.core.robot import RobotModel
+from kpi_calib_ros.core.model.kinematics import nominal_fk_function, rpy_matrix
+from kpi_calib_ros.core.model.parameters import geometric_parameters
+from kpi_calib_ros.core.model.robot import RobotModel
 from kpi_calib_ros.io.cell import DEFAULT_CELL
 from kpi_calib_ros.io.resources import cmeel_prefixes
 from kpi_calib_ros.io.urdf_export import calibrated_urdf, rpy_from_matrix
@@ -223,10 +223,10 @@ def test_cli_calibrated_urdf_of_the_stock_ur10_reproduces_the_fit(tmp_path):
     <transmission> elements; with them edited instead of the joints it missed by mm)."""
     import yaml
 
-    from kpi_calib_ros.app.identify import load_measurements
+    from kpi_calib_ros.app.measurements import load_measurements
     from kpi_calib_ros.app.simulate import simulate_campaign
     from kpi_calib_ros.cli import main
-    from kpi_calib_ros.core.kinematics import pose6
+    from kpi_calib_ros.core.model.kinematics import pose6
     from kpi_calib_ros.io.names import CALIBRATED_URDF_FILE
     cell = Path(__file__).parent / 'data' / 'ur10_mesh_cell.yaml'
     bag = tmp_path / 'run.mcap'

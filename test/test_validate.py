@@ -9,7 +9,9 @@ import pytest
 import scipy.stats
 import yaml
 
-from kpi_calib_ros.app.identify import calibration_document, identify_cell, measurements_from_bag
+from kpi_calib_ros.app.calibration_document import calibration_document
+from kpi_calib_ros.app.identify import identify_cell
+from kpi_calib_ros.app.measurements import measurements_from_bag
 from kpi_calib_ros.app.validate import (
     calibration_noise_scale,
     parameter_vector,
@@ -17,13 +19,14 @@ from kpi_calib_ros.app.validate import (
     validation_to_dict,
 )
 from kpi_calib_ros.cli import main
-from kpi_calib_ros.core.measurement import Measurements
+from kpi_calib_ros.core.acquisition.streams import synthesize_streams
+from kpi_calib_ros.core.measurement.replicates import SAME_POSE_TOLERANCE
+from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,
     true_parameters,
 )
-from kpi_calib_ros.core.streams import synthesize_streams
 from kpi_calib_ros.io.bag_writing import write_bag
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict, load_cell
 from kpi_calib_ros.io.csv_import import read_postures
@@ -160,7 +163,8 @@ def test_poses_measured_again_are_told_from_new_ones(understated):
     inside the ranges is not, and neither is a pose outside them."""
     cm, doc, p_true, q_train, rng, sigma = understated
     fresh = random_configurations(cm.model, p_true, 20, rng)
-    again = q_train[:10] + rng.uniform(-0.009, 0.009, q_train[:10].shape)
+    near = 0.9 * SAME_POSE_TOLERANCE
+    again = q_train[:10] + rng.uniform(-near, near, q_train[:10].shape)
     q = np.vstack([again, fresh])
     new = simulate_measurements(cm.model, p_true, q, sigma, rng)
     out = validation_to_dict(validate_calibration(cm, parameter_vector(cm, doc), doc, new), new,
@@ -172,7 +176,7 @@ def test_poses_measured_again_are_told_from_new_ones(understated):
     assert 5 <= marked.sum() <= 10 and out['repeated_from_training'] == marked.sum()
     outside = np.array([p['outside_training_range'] for p in out['points']])
     assert np.array_equal(outside, ~inside) and not np.any(marked & outside)
-    # Repeated poses are at most 0.01 rad from a pose the fit saw: their rms is the noise
+    # Repeated poses are at most 0.001 rad from a pose the fit saw: their rms is the noise
     # (20 µm per axis) and the parameters' small share there.
     assert out['rms_repeated_from_training_m'] < 1.5 * np.sqrt(3) * sigma[0]
 

@@ -4,7 +4,7 @@ The code is the source of these pages: the ``kpi-calib`` argparse parser
 (:func:`kpi_calib_ros.cli.build_parser`), the node's parameters
 (:data:`kpi_calib_ros.ros.parameters.PARAMETERS`), its topics and services (the names of
 :mod:`kpi_calib_ros.io.names`, the message types as ``ros/node.py`` creates them), the
-effect library (:data:`kpi_calib_ros.core.effects.LIBRARY`) and the cell keys
+effect library (:data:`kpi_calib_ros.core.effects.library.LIBRARY`) and the cell keys
 (:data:`kpi_calib_ros.io.cell_schema.CELL_KEYS`). Each page goes to
 ``doc/reference/_generated/`` (not committed); ``bench/results/*.md`` are copied to
 ``doc/_generated/bench/`` so the benchmark page links them.
@@ -97,14 +97,21 @@ def cli_page() -> str:
 
 
 # --------------------------------------------------------------------------- node
+# The node's modules that create its publishers, subscriptions and services.
+NODE_MODULES = ('node.py', 'tcp_query.py')
+
+
 def _node_calls() -> tuple[dict[str, str], dict[str, str], list[str]]:
-    """From ``ros/node.py``: publisher topic constant -> message type, subscription
-    setting -> message type, and the service names, as the node creates them."""
-    tree = ast.parse((REPO / 'kpi_calib_ros' / 'ros' / 'node.py').read_text())
+    """From the node's modules (:data:`NODE_MODULES`): publisher topic constant -> message
+    type, subscription setting, topic constant or ``function(setting)`` (a topic named
+    from a setting, such as ``point_sigma_topic(point_topic)``) -> message type, and the
+    service names, as the node creates them."""
     pubs: dict[str, str] = {}
     subs: dict[str, str] = {}
     services: list[str] = []
-    for node in ast.walk(tree):
+    nodes = [n for module in NODE_MODULES for n in ast.walk(
+        ast.parse((REPO / 'kpi_calib_ros' / 'ros' / module).read_text()))]
+    for node in nodes:
         if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and \
                 len(node.args) >= 2 and isinstance(node.args[0], ast.Name):
             kind, topic = node.func.attr, node.args[1]
@@ -112,6 +119,12 @@ def _node_calls() -> tuple[dict[str, str], dict[str, str], list[str]]:
                 pubs[topic.id] = node.args[0].id
             elif kind == 'create_subscription' and isinstance(topic, ast.Attribute):
                 subs[topic.attr] = node.args[0].id
+            elif (kind == 'create_subscription' and isinstance(topic, ast.Call)
+                  and isinstance(topic.func, ast.Name) and len(topic.args) == 1
+                  and isinstance(topic.args[0], ast.Attribute)):
+                subs[f'{topic.func.id}({topic.args[0].attr})'] = node.args[0].id
+            elif kind == 'create_subscription' and isinstance(topic, ast.Name):
+                subs[topic.id] = node.args[0].id
         if isinstance(node, ast.For) and isinstance(node.iter, ast.Tuple) and any(
                 isinstance(c, ast.Call) and isinstance(c.func, ast.Attribute) and
                 c.func.attr == 'create_service' for c in ast.walk(node)):
@@ -123,7 +136,8 @@ def _node_calls() -> tuple[dict[str, str], dict[str, str], list[str]]:
 _PACKAGES = {'JointTrajectory': 'trajectory_msgs', 'String': 'std_msgs',
              'MarkerArray': 'visualization_msgs', 'DiagnosticArray': 'diagnostic_msgs',
              'PoseWithCovarianceStamped': 'geometry_msgs', 'PoseStamped': 'geometry_msgs',
-             'PointStamped': 'geometry_msgs', 'JointState': 'sensor_msgs'}
+             'PointStamped': 'geometry_msgs', 'JointState': 'sensor_msgs',
+             'Vector3Stamped': 'geometry_msgs'}
 
 
 def _msg(name: str) -> str:
@@ -154,12 +168,20 @@ def node_page() -> str:
     topics = {'joint_states_topic': names.DEFAULT_JOINT_TOPIC,
               'point_topic': names.DEFAULT_POINT_TOPIC, 'pose_topic': names.DEFAULT_POSE_TOPIC,
               'robot_description_topic': names.ROBOT_DESCRIPTION_TOPIC}
+    constants = {k: v for k, v in vars(names).items() if k.endswith('_TOPIC')}
     rows = [[code(PARAMETERS[setting][0]), code(_msg(kind)), f'parameter {code(setting)}']
             for setting, kind in subs.items() if setting in topics]
+    for call, kind in subs.items():  # a topic named from a setting: function(setting)
+        function, _, setting = call.rstrip(')').partition('(')
+        if setting in topics and callable(getattr(names, function, None)):
+            rows.append([code(getattr(names, function)(PARAMETERS[setting][0])),
+                         code(_msg(kind)),
+                         f'parameter {code(setting)} ({code(f"io.names.{function}")})'])
+    rows += [[code(constants[const]), code(_msg(kind)), code(f'io.names.{const}')]
+             for const, kind in subs.items() if const in constants]
     out.append(table(['topic (default)', 'type', 'set by'], rows))
     out.append('## Published topics\n')
     out.append('`~/` names resolve under the node name, e.g. `/kpi_calib_node/calibration`.\n')
-    constants = {k: v for k, v in vars(names).items() if k.endswith('_TOPIC')}
     rows = [[code(constants[const]), code(_msg(kind)), code(f'io.names.{const}')]
             for const, kind in pubs.items() if const in constants]
     out.append(table(['topic', 'type', 'name in the code'], rows))
@@ -173,16 +195,23 @@ def node_page() -> str:
 
 # ------------------------------------------------------------------------ effects
 def effects_page() -> str:
-    from kpi_calib_ros.core.effects import CHAIN_EFFECTS, ENTRY_POINT_GROUP, LIBRARY
+    from kpi_calib_ros.core.effects.library import LIBRARY
+    from kpi_calib_ros.core.effects.registry import (
+        ARGUMENT_EFFECTS,
+        CHAIN_EFFECTS,
+        ENTRY_POINT_GROUP,
+    )
 
-    # The cell loader imports the chain effects (core.gravity_compliance registers itself).
+    # The cell loader imports the chain effects (core.gravity_compliance and
+    # core.general_effects register themselves).
     from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
     out = ['# Effect library\n', NOTE,
            'The physical effects `diagnose` screens and `--effects` / the cell file\'s '
            '`effects:` add, as `name:joint` (per joint) or `name` (global). Parameter names '
            'are `<name>.<joint>.<parameter>`. Plausible: the largest |value| a fit may take '
            'before it is flagged and never suggested. Your own effects: '
-           '{py:func}`kpi_calib_ros.core.effects.register_effect`, or the entry point group '
+           '{py:func}`kpi_calib_ros.core.effects.registry.register_effect`, '
+           'or the entry point group '
            f'`{ENTRY_POINT_GROUP}`.\n']
     rows = []
     for e in LIBRARY:
@@ -206,13 +235,35 @@ def effects_page() -> str:
                'spec names them (not screened by `diagnose`). Shown bound to `joint_2` of the '
                'built-in cell (`kpi_calib_ros/data/cells/default_cell.yaml`).\n')
     robot = build_cell_model(load_cell(DEFAULT_CELL)).robot
-    chain = [(name, binder(robot, 'joint_2', 'effects')) for name, binder in CHAIN_EFFECTS.items()]
+    bound = [(name, binder(robot, 'joint_2', 'effects')) for name, binder in CHAIN_EFFECTS.items()]
+    chain = [(name, b) for name, b in bound if not b.kind.general]
     rows = [[code(f'{name}:J'), cell(', '.join(f'{p} [{u}]' for p, u in
                                               zip(b.kind.parameters, b.kind.units))),
              cell(b.kind.description)] for name, b in chain]
     out.append(table(['effect', 'parameters [unit] on joint_2', 'what it models'], rows))
+    out.append('## General effects\n')
+    out.append('When no named effect explains the misfit, `diagnose` offers general ones that '
+               'still mean something physical ({py:mod}`kpi_calib_ros.core.effects.general`): '
+               'the link bending of every joint that carries mass, and per revolute joint a '
+               'joint error periodic at the frequency (cycles per revolution) where the '
+               'periodogram of the residuals peaks '
+               '({py:mod}`kpi_calib_ros.core.diagnosis.periodic_search`; the search is counted '
+               'in the p-value). They pass the same screen, plausibility check and before/after as '
+               'the library, and rank after the significant, plausible named effects unless '
+               'they predict held-out poses 5 % better. Shown on `joint_2` of the built-in '
+               'cell (the periodic error at k = 17).\n')
+    general = [(f'{name}:J', b) for name, b in bound if b.kind.general]
+    general += [(f'{name}:J:k=K', binder(robot, 'joint_2', 'k=17', 'effects'))
+                for name, binder in ARGUMENT_EFFECTS.items()]
+    rows = [[code(name), cell(', '.join(f'{p} [{u}]' for p, u in
+                                        zip(b.kind.parameters, b.kind.units))),
+             ', '.join(f'{v:g}' for v in b.kind.typical),
+             ', '.join(f'{v:g}' for v in b.kind.plausible), cell(b.kind.description)]
+            for name, b in general]
+    out.append(table(['effect', 'parameters [unit] on joint_2', 'typical', 'plausible',
+                      'what it models'], rows))
     out.append('## What separates each effect from the geometry\n')
-    for e in LIBRARY + tuple(b.kind for _, b in chain):
+    for e in LIBRARY + tuple(b.kind for _, b in chain + general):
         out.append(f'- {code(e.name)}: {cell(e.hint.replace("{joint}", "the joint"))}')
     return '\n'.join(out) + '\n'
 

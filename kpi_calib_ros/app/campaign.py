@@ -1,8 +1,8 @@
 """Sequential campaign for a cell: the ``kpi-calib campaign`` command and its simulation.
 
 Builds the feasible candidates and the KPI design problem of the cell (the batch
-design's :func:`~kpi_calib_ros.core.design.design_context`, so every constraint of
-the batch design holds), runs :class:`~kpi_calib_ros.core.sequential.SequentialCampaign`
+design's :func:`~kpi_calib_ros.core.design.optimum.design_context`, so every constraint of
+the batch design holds), runs :class:`~kpi_calib_ros.core.campaigns.sequential.SequentialCampaign`
 against a simulated true robot (the cell's ``simulation.hidden_effects`` included),
 and compares it with fixed KPI designs of every size.
 """
@@ -13,22 +13,26 @@ from pathlib import Path
 
 import numpy as np
 
-from kpi_calib_ros.app.identify import CellCalibration, add_robust_sections, calibration_document
+from kpi_calib_ros.app.calibration_document import (
+    CellCalibration,
+    add_robust_sections,
+    calibration_document,
+)
 from kpi_calib_ros.app.simulate import truth_cell_model
-from kpi_calib_ros.core.design import DesignContext, design_context
-from kpi_calib_ros.core.design_cell import DesignCell
-from kpi_calib_ros.core.design_exchange import exchange
-from kpi_calib_ros.core.errors import ConfigError, DataError
-from kpi_calib_ros.core.estimability import result_estimability
-from kpi_calib_ros.core.model_selection import ModelChoice, level_free
-from kpi_calib_ros.core.pairing import PairingResult
-from kpi_calib_ros.core.sequential import (
+from kpi_calib_ros.core.acquisition.pairing import PairingResult
+from kpi_calib_ros.core.campaigns.sequential import (
     TARGET_MET,
     CampaignSettings,
     CampaignStatus,
     SequentialCampaign,
     SimulatedRun,
 )
+from kpi_calib_ros.core.design.cell import DesignCell
+from kpi_calib_ros.core.design.exchange import exchange
+from kpi_calib_ros.core.design.optimum import DesignContext, design_context
+from kpi_calib_ros.core.diagnosis.model_selection import ModelChoice, level_free
+from kpi_calib_ros.core.errors import ConfigError, DataError
+from kpi_calib_ros.core.estimation.estimability import result_estimability
 from kpi_calib_ros.core.simulation import simulate_pose_measurements, true_parameters
 from kpi_calib_ros.io.campaign_io import plot_campaign, write_campaign, write_plan
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell

@@ -12,8 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
+from kpi_calib_ros.app.calibration_document import calibration_document
 from kpi_calib_ros.app.diagnose import diagnose_cell
-from kpi_calib_ros.app.identify import calibration_document, identify_cell, measurements_from_bag
+from kpi_calib_ros.app.identify import identify_cell
+from kpi_calib_ros.app.measurements import measurements_from_bag
 from kpi_calib_ros.app.simulate import simulate_campaign
 from kpi_calib_ros.io.cell import (
     DEFAULT_CELL,

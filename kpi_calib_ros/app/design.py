@@ -11,18 +11,18 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from kpi_calib_ros.core.design import (
+from kpi_calib_ros.core.design.optimum import (
     DesignResult,
     design_context,
     design_measurements,
     tcp_std_on_drawn_robots,
 )
-from kpi_calib_ros.core.estimability import KpiEstimability, result_estimability
-from kpi_calib_ros.core.model_selection import level_free
-from kpi_calib_ros.core.prior import (
+from kpi_calib_ros.core.diagnosis.model_selection import level_free
+from kpi_calib_ros.core.estimation.drift_state import DriftSwing
+from kpi_calib_ros.core.estimation.estimability import KpiEstimability, result_estimability
+from kpi_calib_ros.core.estimation.prior import (
     DRIFT_ANGLE_PER_SQRT_HOUR,
     DRIFT_LENGTH_PER_SQRT_HOUR,
-    DriftSwing,
     Prior,
 )
 from kpi_calib_ros.io.calibration_file import read_calibration_document
@@ -102,7 +102,7 @@ def drawn_robots_section(cm: CellModel, design: DesignResult,
                          seed: int) -> tuple[dict[str, Any], str]:
     """design.yaml's ``drawn_robots`` section and a summary line: the TCP std the
     identification of ``design`` (URDF joint values) will report on robots drawn around
-    the nominal geometry (:func:`~kpi_calib_ros.core.design.tcp_std_on_drawn_robots`),
+    the nominal geometry (:func:`~kpi_calib_ros.core.design.optimum.tcp_std_on_drawn_robots`),
     where it may free parameters the nominal design problem cannot."""
     drawn = tcp_std_on_drawn_robots(cm.design_cell(), design.configurations,
                                     cm.cell.design.weights, np.random.default_rng([seed, 1]))

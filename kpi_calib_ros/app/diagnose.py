@@ -5,8 +5,9 @@
 """
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -14,19 +15,30 @@ from kpi_calib_ros.app.identify import (
     calibrate_cell,
     cell_prior,
     identify_cell,
-    load_measurements,
     print_progress,
     with_effects,
 )
-from kpi_calib_ros.core.diagnosis import CellDiagnosis, compare_models, diagnose
-from kpi_calib_ros.core.effect_selection import effect_start
-from kpi_calib_ros.core.effects import implausible, parse_effect_spec
-from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.model_selection import level_free
-from kpi_calib_ros.core.out_of_sample import out_of_sample_error
-from kpi_calib_ros.core.precision import expected_tcp_error
-from kpi_calib_ros.core.residuals import ADEQUACY_ALPHA
-from kpi_calib_ros.core.robust import subset
+from kpi_calib_ros.app.learned_residual import choose_residual
+from kpi_calib_ros.app.measurements import load_measurements
+from kpi_calib_ros.core.diagnosis.candidates import (
+    CellDiagnosis,
+    Diagnosis,
+    ModelComparison,
+    compare_models,
+    diagnose,
+)
+from kpi_calib_ros.core.diagnosis.effect_selection import effect_start
+from kpi_calib_ros.core.diagnosis.learned_residual import ResidualChoice
+from kpi_calib_ros.core.diagnosis.misfit import GENERAL, NAMED, Remedy, answer_misfit
+from kpi_calib_ros.core.diagnosis.model_selection import level_free
+from kpi_calib_ros.core.diagnosis.out_of_sample import out_of_sample_error
+from kpi_calib_ros.core.diagnosis.residual_analysis import analyse_calibration
+from kpi_calib_ros.core.effects.registry import implausible, parse_effect_spec
+from kpi_calib_ros.core.estimation.precision import expected_tcp_error
+from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA, is_adequate
+from kpi_calib_ros.core.estimation.robust import subset
+from kpi_calib_ros.core.measurement.covariates import TEMPERATURE_PREFIX
+from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.names import DIAGNOSIS_FILE
 from kpi_calib_ros.io.report import diagnosis_text, write_report
@@ -36,14 +48,21 @@ from kpi_calib_ros.io.results import writable_folder
 def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
                   alpha: float = ADEQUACY_ALPHA, add_best: bool = True,
                   model: str | None = None,
-                  progress: Callable[[str], None] | None = None) -> CellDiagnosis:
+                  progress: Callable[[str], None] | None = None,
+                  covariates: Mapping[str, tuple[np.ndarray, str]] | None = None
+                  ) -> CellDiagnosis:
     """Calibrate ``cm`` on ``data``, diagnose it and, when an effect is significant,
     add the top one and compare before/after (full nonlinear refit). ``model`` (or the
     cell's ``identification.model``) sets the model level the effects are screened
     against; the default geometric is the full model. Both calibrations carry their
-    predicted out-of-sample error (:mod:`kpi_calib_ros.core.out_of_sample`). The points
+    predicted out-of-sample error (:mod:`kpi_calib_ros.core.diagnosis.out_of_sample`). The points
     diagnosed are those :func:`~kpi_calib_ros.app.identify.calibrate_cell` keeps
-    (``kept``, ``excluded`` of the result); ``progress`` gets its exclusion rounds."""
+    (``kept``, ``excluded`` of the result); ``progress`` gets its exclusion rounds.
+    The residuals are also analysed model-free (:func:`with_misfit_answer`), with the
+    extra ``covariates`` (name -> ((M,) values of the given measurements, unit); default:
+    the temperatures ``data`` carries, :func:`recorded_covariates`)."""
+    if covariates is None:
+        covariates = recorded_covariates(data)
     # The points identify keeps, with its model level (outliers that are faults excluded,
     # core.outliers): the diagnosis describes the calibration the user gets.
     cal = calibrate_cell(cm, data, model, progress=progress)
@@ -61,8 +80,9 @@ def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
                               prior)
     expected = expected_tcp_error(cm.model, data, result)  # result: honest precision
     if not add_best or diag.best is None:
-        return CellDiagnosis(cm.model, data, result, diag, out_of_sample=oos, kept=kept,
-                             excluded=excluded, expected=expected)
+        return with_misfit_answer(CellDiagnosis(
+            cm.model, data, result, diag, out_of_sample=oos, kept=kept, excluded=excluded,
+            expected=expected), covariates)
     best = parse_effect_spec(diag.best.spec, cm.robot)
     richer = with_effects(cm, (best,))
     richer_free = None if free is None else level_free(richer.model.params, level,
@@ -81,8 +101,71 @@ def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
     comparison = compare_models((cm.model, result), (richer.model, after), data, folds=folds)
     after_oos = out_of_sample_error(richer.model, data, after,
                                     richer_free or list(richer.model.params.names), prior)
-    return CellDiagnosis(cm.model, data, result, diag, best, richer.model, after, comparison,
-                         oos, after_oos, kept, excluded, expected)
+    return with_misfit_answer(CellDiagnosis(
+        cm.model, data, result, diag, best, richer.model, after, comparison, oos, after_oos,
+        kept, excluded, expected), covariates)
+
+
+def recorded_covariates(data: Measurements) -> dict[str, tuple[np.ndarray, str]]:
+    """The covariates the measurements carry for the residual analysis: each temperature
+    sensor's reading (``temperature.<frame id>``, °C; ΔT is the same input shifted)."""
+    return {name: (np.asarray(values, float), '°C')
+            for name, values in (data.covariates or {}).items()
+            if name.startswith(TEMPERATURE_PREFIX)}
+
+
+def with_misfit_answer(cd: CellDiagnosis,
+                       covariates: Mapping[str, tuple[np.ndarray, str]] | None = None
+                       ) -> CellDiagnosis:
+    """``cd`` with the residual analysis of its calibration (each joint, gravity torque,
+    tracker distance, time, reflector and ``covariates``, :mod:`~kpi_calib_ros.core.
+    residual_analysis`) and the four answers (:func:`~kpi_calib_ros.core.diagnosis.misfit.
+    answer_misfit`). Covariates are given per given measurement, the kept ones analysed."""
+    keep = np.ones(len(cd.data), bool) if cd.kept is None else cd.kept
+    kept_covariates = {name: (np.asarray(values)[keep], unit)
+                       for name, (values, unit) in (covariates or {}).items()}
+    analysis = analyse_calibration(cd.model, cd.data, cd.result, kept_covariates)
+    return with_remedies(dataclasses.replace(cd, residual_analysis=analysis))
+
+
+def with_remedies(cd: CellDiagnosis, general: Sequence[Remedy] = ()) -> CellDiagnosis:
+    """``cd`` with its four answers given the named effect of its screen and the
+    ``general`` remedies (a learned residual, general effects; :func:`~kpi_calib_ros.core.
+    misfit.answer_misfit`)."""
+    diag = cd.diagnosis
+    return dataclasses.replace(cd, answer=answer_misfit(
+        cd.residual_analysis, named_remedy(diag, cd.comparison), general,
+        chi2_adequate=diag.residuals.adequate, model_adequate=diag.model_adequate))
+
+
+def learned_remedy(choice: ResidualChoice) -> Remedy | None:
+    """The learned residual as a remedy when its cross-validated test chose it: its
+    command and the held-out error of the calibrated model without and with it."""
+    if not choice.chosen:
+        return None
+    return Remedy(GENERAL, 'a learned residual (a Gaussian process of the misfit over joint '
+                           'space): the misfit is smooth in the joints but no effect of the '
+                           'library has its shape',
+                  'kpi-calib identify --learned-residual', choice.cv_rms_physical_m,
+                  choice.cv_rms_learned_m, f'{choice.folds} pose folds, the learned '
+                  'residual refitted without each fold')
+
+
+def named_remedy(diag: Diagnosis, comparison: ModelComparison | None = None
+                 ) -> Remedy | None:
+    """The screen's significant named effect as a remedy: its option and the held-out
+    error before/after (of the full refit when ``comparison`` has it, else of the screen's
+    fit); None when no effect is significant."""
+    best = diag.best
+    if best is None:
+        return None
+    if comparison is not None:
+        return Remedy(NAMED, f'{best.spec}: {best.explanation}', f'--effects {best.spec}',
+                      comparison.validation_rms_before_m, comparison.validation_rms_after_m,
+                      'refit with the effect, the diagnosis\'s cross-validation')
+    return Remedy(NAMED, f'{best.spec}: {best.explanation}', f'--effects {best.spec}',
+                  diag.validation_rms_m, best.validation_rms_after_m,
+                  'screening fit, the diagnosis\'s cross-validation')
 
 
 def run_diagnose(cell_path: str | Path, bag_path: str | Path, out_dir: str | Path,
@@ -90,12 +173,26 @@ def run_diagnose(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
                  model: str | None = None, **options: Any) -> int:
     """``kpi-calib diagnose``: diagnosis.json, report.md and plots in ``out_dir``
     (checked first); ``model`` overrides the cell's ``identification.model``; ``options``
-    as for :func:`load_measurements`."""
+    as for :func:`load_measurements`. When the model is not adequate, the learned
+    residual's decision on the calibrated model is printed too
+    (:func:`kpi_calib_ros.app.learned_residual.choose_residual`)."""
     writable_folder(out_dir, '--out')
     cm, data, _ = load_measurements(cell_path, bag_path, effects, **options)
     cd = diagnose_cell(cm, data, folds=folds, alpha=alpha, model=model,
                        progress=print_progress)
+    choice = None
+    if not is_adequate(cd.result.p_value, alpha):
+        # Beside the library's answer (or when it has none): would the learned residual
+        # predict held-out poses better than the calibrated model? It is one more remedy
+        # of the four answers.
+        choice = choose_residual(cm, cd.data, cd.result)
+        learned = learned_remedy(choice)
+        if learned is not None:
+            cd = with_remedies(cd, (learned,))
     report = write_report(out_dir, cd)
     print(diagnosis_text(cd))
+    if choice is not None:
+        print(choice.reason + ('; kpi-calib identify --learned-residual writes it beside '
+                               'calibration.yaml' if choice.chosen else ''))
     print(f'written: {Path(out_dir) / DIAGNOSIS_FILE}, {report}')
     return 0

@@ -9,53 +9,47 @@ from __future__ import annotations
 
 import dataclasses
 import sys
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterable, Mapping, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from kpi_calib_ros.core.dh import dh_table
-from kpi_calib_ros.core.diagnosis import augmented_model, compare_models
-from kpi_calib_ros.core.effect_selection import choose_effects
-from kpi_calib_ros.core.effects import BoundEffect, parse_effect_spec, split_specs
+from kpi_calib_ros.app.calibration_document import (
+    CellCalibration,
+    add_robust_sections,
+    calibration_document,
+    robust_summary,
+    write_results,
+)
+from kpi_calib_ros.app.measurements import load_measurements
+from kpi_calib_ros.core.diagnosis.candidates import augmented_model, compare_models
+from kpi_calib_ros.core.diagnosis.effect_selection import choose_effects
+from kpi_calib_ros.core.diagnosis.model_selection import ModelChoice, choose_model, level_free
+from kpi_calib_ros.core.effects.registry import BoundEffect, parse_effect_spec
 from kpi_calib_ros.core.errors import ConfigError, DataError
-from kpi_calib_ros.core.estimability import KpiEstimability, result_estimability
-from kpi_calib_ros.core.estimation import CalibrationResult, identify
-from kpi_calib_ros.core.gravity_compliance import compliance_warnings, mass_warning
-from kpi_calib_ros.core.measurement import MeasurementModel, Measurements, with_rotation_rows
-from kpi_calib_ros.core.model_selection import ModelChoice, choose_model, level_free
-from kpi_calib_ros.core.pairing import PairingResult, pair_measurements, split_frame
-from kpi_calib_ros.core.precision import (
-    ExpectedTcpError,
+from kpi_calib_ros.core.estimation.estimability import result_estimability
+from kpi_calib_ros.core.estimation.least_squares import CalibrationResult, identify
+from kpi_calib_ros.core.estimation.precision import (
     balanced_prior,
     expected_tcp_error,
     honest_precision,
 )
-from kpi_calib_ros.core.prior import Prior, tolerance_prior
-from kpi_calib_ros.core.registration import Registration, register
-from kpi_calib_ros.core.robust import (
-    LOSS_SCALE,
-    ExcludedMeasurement,
+from kpi_calib_ros.core.estimation.prior import Prior, tolerance_prior
+from kpi_calib_ros.core.estimation.registration import Registration, register
+from kpi_calib_ros.core.estimation.robust import (
     RobustResult,
     gross_outliers,
     robust_identify,
     subset,
 )
-from kpi_calib_ros.core.streams import JointSample, PointSample
-from kpi_calib_ros.io.bag import read_for_pairing
-from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
-from kpi_calib_ros.io.measurement_log import stored_pairing
-from kpi_calib_ros.io.names import CALIBRATED_URDF_FILE, FAILED_CALIBRATION_FILE
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements
+from kpi_calib_ros.io.cell import CellModel
+from kpi_calib_ros.io.names import LEARNED_RESIDUAL_FILE
 from kpi_calib_ros.io.report import comparison_text, comparison_to_dict
 from kpi_calib_ros.io.results import (
-    calibration_to_dict,
     summary_text,
     writable_folder,
-    write_atomic,
-    write_calibration,
 )
-from kpi_calib_ros.io.urdf_export import calibrated_urdf
 
 # Geometric errors of a robot and a surveyed placement move the predicted points by
 # millimetres to a centimetre or two (a base yaw of 4 mrad at 3 m is 12 mm); the
@@ -67,122 +61,13 @@ REGISTER_ABOVE_M = 0.05
 REGISTRATION_MAX_RMS_M = 0.02
 
 
-def measurements_from_samples(cm: CellModel, joint_samples: Iterable[JointSample],
-                              point_samples: Iterable[PointSample],
-                              point_sigma: Mapping[tuple[int, str], np.ndarray] | None = None,
-                              **pairer_options) -> tuple[Measurements, PairingResult]:
-    """Pair tracker points with still joint states, matching joints by name; the points'
-    stated σ by (stamp ns, frame id), if any, weigh their rows (:func:`to_measurements`).
-
-    Raises
-    ------
-    DataError
-        When no point could be paired because the joint states lack the
-        chain's joints (wrong robot or renamed joints): names both sets.
-    """
-    joint_samples = list(joint_samples)
-    pairer_options.setdefault('reflectors', reflector_names(cm))
-    pairing = pair_measurements(joint_samples, point_samples, cm.joint_names,
-                                cm.cell.tracker_frame, **pairer_options)
-    if len(pairing) == 0 and pairing.rejections.get('missing_joints'):
-        seen = sorted({n for s in joint_samples for n in s.names})
-        raise DataError(f'the joint states name joints {seen}, but the robot chain needs '
-                        f'{cm.joint_names}; record the right robot or fix the URDF joint names')
-    return urdf_measurements(cm, to_measurements(cm, pairing, point_sigma)), pairing
-
-
-def urdf_measurements(cm: CellModel, data: Measurements) -> Measurements:
-    """``data`` (paired joint states and points) with its joint values mapped from the
-    controller's readings to the URDF chain (``robot.joint_coupling``).
-
-    Every path from joint states to the model (bag, measurement log, live node) goes
-    through here, so coupled readings are converted once and only once.
-    """
-    if not len(data) or cm.joint_coupling.is_identity:
-        return data
-    return dataclasses.replace(data, q=cm.joint_coupling.to_urdf(data.q))
-
-
-def reflector_names(cm: CellModel) -> tuple[str, ...]:
-    """Reflector names points carry after '#' in their frame id ('' : single reflector)."""
-    return cm.cell.reflector_names or ('',)
-
-
-def to_measurements(cm: CellModel, pairing: PairingResult,
-                    point_sigma: Mapping[tuple[int, str], np.ndarray] | None = None
-                    ) -> Measurements:
-    """(pose, reflector) rows of a pairing, reflector indices in the cell's order
-    (controller joint values, as paired); ``point_sigma`` the tracker's stated σ (3,) (m)
-    by (stamp ns, frame id) (:attr:`kpi_calib_ros.io.bag.BagContents.point_sigma`): a row
-    without one takes the cell's noise.sigma."""
-    try:
-        ref = pairing.reflector_indices(reflector_names(cm))
-    except ValueError as exc:
-        raise DataError(f'{exc}: point frame ids are <tracker_frame>#<reflector name> for '
-                        "the cell's reflectors: list") from None
-    data = Measurements(q=pairing.q, eta=pairing.eta, stamps_ns=pairing.stamps_ns,
-                        reflector=ref if cm.cell.reflector_names else None,
-                        sigma=stated_sigma(pairing, point_sigma))
-    return pose_rows(cm, data, pairing)
-
-
-def stated_sigma(pairing: PairingResult,
-                 point_sigma: Mapping[tuple[int, str], np.ndarray] | None) -> np.ndarray | None:
-    """(N, 3) σ (m) of the pairing's rows, matched by stamp and reflector (the frame id's
-    part after '#'; the tracker frame is the pairing's), NaN where none was stated; None
-    when no row has one."""
-    if not point_sigma:
-        return None
-    by_row = {(stamp, split_frame(frame)[1]): s for (stamp, frame), s in point_sigma.items()}
-    names = pairing.reflectors or ('',) * len(pairing)
-    rows = np.array([by_row.get((int(t), name), np.full(3, np.nan))
-                     for t, name in zip(pairing.stamps_ns, names)], dtype=float).reshape(-1, 3)
-    return rows if np.isfinite(rows).any() else None
-
-
-def pose_rows(cm: CellModel, data: Measurements,
-              pairing: PairingResult | None) -> Measurements:
-    """``data`` with the rotation row of every tracked 6-DoF pose of ``pairing`` (see
-    :func:`kpi_calib_ros.core.measurement.with_rotation_rows`); None: no pairing, as is."""
-    if pairing is None or pairing.rotations is None:
-        return data
-    try:
-        return with_rotation_rows(cm.model, data, pairing.rotations)
-    except ValueError as exc:
-        names = reflector_names(cm)
-        raise DataError(f'{exc}; a PoseStamped was recorded for a reflector of the cell '
-                        f'{list(names)} that has no orientation: give the tracked body\'s '
-                        'orientation in the cell (reflectors[i].orientation: {rpy: [r, p, y]}) '
-                        'or record its position as a PointStamped') from None
-
-
-def measurements_from_bag(cm: CellModel, path: str | Path,
-                          joint_topic: str | None = None,
-                          point_topic: str | None = None,
-                          pose_topic: str | None = None,
-                          **pairer_options) -> tuple[Measurements, PairingResult]:
-    """Measurements from a recording (paired here) or from the node's measurement log
-    (paired when stored), reading only the joint states pairing needs. Topics default
-    to the cell's ``topics:``; tracked 6-DoF poses on the pose topic add rotation rows."""
-    cell = cm.cell
-    contents = read_for_pairing(path, joint_topic or cell.joint_topic,
-                                point_topic or cell.point_topic,
-                                window_ns=pairer_options.get('window_ns'),
-                                pose_topic=pose_topic or cell.pose_topic)
-    if contents.measurement_log:
-        pairing = stored_pairing(zip(contents.joints, contents.points), list(cm.joint_names),
-                                 cm.cell.tracker_frame)
-        return urdf_measurements(cm, to_measurements(cm, pairing, contents.point_sigma)), pairing
-    return measurements_from_samples(cm, contents.joints, contents.points,
-                                     point_sigma=contents.point_sigma, **pairer_options)
-
-
 def places_the_points(cm: CellModel, data: Measurements, p: np.ndarray) -> bool:
     """Do parameters ``p`` predict ``data`` within :data:`REGISTER_ABOVE_M` (median miss)?
     If not, the placement is registered from the points before fitting."""
     tau = cm.robot.gravity_torques(data.q) if cm.model.uses_torque else None
     miss = np.linalg.norm(np.atleast_2d(data.eta)
-                          - cm.model.predict(p, data.q, tau, data.reflector, data.rotation),
+                          - cm.model.predict(p, data.q, tau, data.reflector, data.rotation,
+                                           data.covariates),
                           axis=1)
     return float(np.median(miss)) <= REGISTER_ABOVE_M
 
@@ -194,7 +79,7 @@ def registered_start(cm: CellModel, data: Measurements) -> tuple[np.ndarray, Reg
     offset is left out of the cell, or the nominal prediction misses the measured points
     by more than :data:`REGISTER_ABOVE_M` (median): then the base pose in the tracker
     frame and every reflector offset on the tip are registered from the points
-    (:func:`kpi_calib_ros.core.registration.register`) and replace the nominal ones.
+    (:func:`kpi_calib_ros.core.estimation.registration.register`) and replace the nominal ones.
     Returns the start vector and the registration (None if not run).
 
     Raises
@@ -267,9 +152,9 @@ def identify_cell(cm: CellModel, data: Measurements, p0: np.ndarray | None = Non
     Without ``p0`` the start is :func:`registered_start`: an unknown or far-off
     placement is registered from the data first. Covariances come from the stated σ when
     the χ² test accepts the model, else they are scaled by χ²/dof
-    (``result.covariance_scale``, see :mod:`kpi_calib_ros.core.precision`). ``prior``
+    (``result.covariance_scale``, see :mod:`kpi_calib_ros.core.estimation.precision`). ``prior``
     defaults to the cell's :func:`cell_prior`, weighed against the noise the data show
-    (:func:`kpi_calib_ros.core.precision.balanced_prior`).
+    (:func:`kpi_calib_ros.core.estimation.precision.balanced_prior`).
     """
     if len(data) == 0:
         raise DataError('no accepted measurement to identify from')
@@ -282,50 +167,13 @@ def identify_cell(cm: CellModel, data: Measurements, p0: np.ndarray | None = Non
     return honest_precision(result)
 
 
-@dataclass(frozen=True)
-class CellCalibration:
-    """A calibration with its model choice, robust statistics and KPI estimability.
-
-    ``valid`` is what may be published as the calibration: converged and the TCP estimable
-    at every working pose; ``problems`` says why not.
-    """
-
-    result: CalibrationResult
-    robust: RobustResult
-    choice: ModelChoice
-    estimability: KpiEstimability
-    free: tuple[str, ...]
-    registration: Registration | None = None
-    # The cell's tolerance prior was tightened by this factor: the data weighed at the
-    # noise they show, √prior_scale × the stated σ (core.precision.balanced_prior).
-    prior_scale: float = 1.0
-    # The cell model the result belongs to: the given one with the effects ``auto`` added
-    # (core.effect_selection); documents and the calibrated URDF are written with it.
-    cell: CellModel | None = None
-    # Expected TCP error at the working poses with the misfit included (core.precision).
-    expected: ExpectedTcpError | None = None
-
-    @property
-    def problems(self) -> tuple[str, ...]:
-        out = []
-        if not self.result.converged:
-            out.append(f'identification did not converge: {self.result.message}')
-        if not self.estimability.all_estimable:
-            out.append(self.estimability.summary())
-        return tuple(out)
-
-    @property
-    def valid(self) -> bool:
-        return not self.problems
-
-
 def _fit_function(cm: CellModel, start: np.ndarray | None = None,
                   prior: Prior | None = None, balance: bool = False,
                   scales: list[float] | None = None):
     """``fit(data, free, p0=None, point_weights=None)``: identify with the cell's settings
     and ``prior``, from ``start`` (e.g. the registered placement) when no ``p0`` is given.
     ``balance``: ``prior`` is a tolerance prior, tightened for every fit by the noise
-    scale its data show (:func:`kpi_calib_ros.core.precision.balanced_prior`), the scale
+    scale its data show (:func:`kpi_calib_ros.core.estimation.precision.balanced_prior`), the scale
     appended to ``scales``."""
     def fit(d: Measurements, free: list[str], p0: np.ndarray | None = None,
             point_weights: np.ndarray | None = None) -> CalibrationResult:
@@ -350,7 +198,7 @@ def choose_level(cm: CellModel, data: Measurements, model: str | None = None,
                  fit: Callable[..., CalibrationResult] | None = None) -> ModelChoice:
     """The model level to identify: ``model`` or the cell's ``identification.model``;
     ``auto`` is decided by the predicted out-of-sample error on ``data`` (fits from
-    ``start``, or by ``fit``; :func:`kpi_calib_ros.core.model_selection.choose_model`)."""
+    ``start``, or by ``fit``; :func:`kpi_calib_ros.core.diagnosis.model_selection.choose_model`)."""
     requested = model or cm.cell.identification.model
     if requested == 'auto':
         return choose_model(cm.model, data, fit or _fit_function(cm, start, prior), 'auto',
@@ -430,8 +278,8 @@ def add_chosen_effects(cm: CellModel, data: Measurements, choice: ModelChoice,
                        ) -> tuple[CellModel, np.ndarray, ModelChoice]:
     """``auto``'s second step: the physical effects the diagnosis finds significant and
     plausible on ``data`` that predict new measurements better
-    (:func:`kpi_calib_ros.core.effect_selection.choose_effects`), added to ``cm``'s model at
-    the chosen level. Returns the cell model with them, the start vector extended with
+    (:func:`kpi_calib_ros.core.diagnosis.effect_selection.choose_effects`), added to ``cm``'s model
+    at the chosen level. Returns the cell model with them, the start vector extended with
     their nominal values (0) and the choice with the effects and the record."""
     n_geo = len(cm.geometric)
 
@@ -453,140 +301,6 @@ def add_chosen_effects(cm: CellModel, data: Measurements, choice: ModelChoice,
         choice, reason=f'{choice.reason}; {chosen.reason}',
         effects=tuple(e.name for e in chosen.effects), effect_selection=chosen.to_dict(),
         held=chosen.held)
-
-
-def calibration_document(cm: CellModel, result: CalibrationResult,
-                         pairing: PairingResult | None = None) -> dict:
-    """The calibration.yaml document: the result plus the DH/Hayati view of its axes.
-    Its training joint ranges and poses are URDF joint values (``robot.joint_coupling``
-    applied to the readings), as validate reads new joint states."""
-    if (pairing is not None and len(pairing) and not cm.joint_coupling.is_identity
-            and tuple(pairing.joint_names) == tuple(cm.joint_names)):
-        pairing = dataclasses.replace(pairing, q=cm.joint_coupling.to_urdf(pairing.q))
-    doc = calibration_to_dict(result, pairing)
-    std = dict(zip(result.estimated, result.std))
-    estimated = [n for n in result.names if n in std]
-    values = dict(zip(result.names, result.values))
-    notes = compliance_warnings(estimated, [values[n] for n in estimated],
-                                [std[n] for n in estimated])
-    missing_masses = mass_warning(cm.robot, cm.model.effects)
-    if missing_masses:
-        notes.insert(0, missing_masses)
-    if notes:
-        doc['warnings'] = notes
-    doc['effects'] = [e.name for e in cm.model.effects]  # validate rebuilds this model
-    doc['dh_hayati'] = dh_table(cm.robot, cm.geometric, cm.geometric.nominal,
-                                result.values[:len(cm.geometric)])
-    return doc
-
-
-def add_robust_sections(doc: dict[str, Any], cal: CellCalibration) -> dict[str, Any]:
-    """Add validity, model choice, robust statistics and KPI estimability to a calibration
-    document (see the README's calibration.yaml fields); TCP std of a pose whose TCP is
-    not estimable becomes null with ``determined: false``."""
-    rob = cal.robust
-    doc['valid'] = cal.valid
-    doc['invalid_reasons'] = list(cal.problems)
-    doc['model'] = {**cal.choice.to_dict(), 'free_parameters': len(cal.free)}
-    doc['robust'] = {
-        'sigma_stated_m': rob.sigma_stated, 'sigma_robust_m': rob.sigma_robust,
-        'sigma_ratio': rob.sigma_ratio, 'loss': rob.loss,
-        'loss_scale': ('c·σ̂ with c = %.3f' % LOSS_SCALE) if rob.loss != 'linear' else None,
-        'outlier_threshold_sigma': rob.threshold,
-        'excluded': [{'index': e.index, 'stamp_ns': e.stamp_ns, 'distance_m': e.distance_m,
-                      'distance_sigma': e.distance_sigma, 'reason': e.reason}
-                     for e in rob.excluded],
-        'outliers': list(rob.outliers),
-        # Over the threshold but kept: the model misfits their pose (core.outliers).
-        'misfit': list(rob.misfit),
-        'used_indices': [int(i) for i in np.flatnonzero(rob.kept)],
-        'warnings': list(rob.warnings)}
-    doc['tcp_estimable'] = cal.estimability.all_estimable
-    doc['tcp_estimability'] = cal.estimability.to_dict()
-    for entry, ok in zip(doc['tcp'], cal.estimability.estimable):
-        entry['determined'] = bool(ok)
-        if not ok:
-            entry.update(covariance=None, std=None, trace_m2=None)
-    if cal.expected is not None:
-        # tcp_std_m: the parameter part; expected_tcp_error_m: with the model's misfit.
-        expected = cal.expected.to_dict()
-        for name, ok in zip(cal.expected.working_pose_names, cal.estimability.estimable):
-            if not ok:
-                expected['tcp_std_m'][name] = expected['expected_tcp_error_m'][name] = None
-        doc['precision'].update(expected)
-    return doc
-
-
-def _um(metres: float | None) -> str:
-    return 'not estimable' if metres is None else f'{metres * 1e6:.1f} µm'
-
-
-def robust_summary(doc: dict[str, Any]) -> str:
-    """Summary lines of the sections :func:`add_robust_sections` adds."""
-    rob, model = doc['robust'], doc['model']
-    def per_level(values: dict, missing: str) -> str:
-        return ', '.join(f'{k} {missing if v is None else f"{v * 1e6:.1f} µm"}'
-                         for k, v in values.items())
-    lines = [f"model: {model['level']} ({model['free_parameters']} free parameters; "
-             f"{model['reason']})"]
-    if model.get('predicted_rms_m'):
-        lines.append('predicted out-of-sample rms per level (measured configurations): '
-                     + per_level(model['predicted_rms_m'], 'n/a'))
-    if model.get('cv_rms_m'):
-        lines.append(f"cross-validated rms per level ({model['folds']}-fold, folds that keep "
-                     'every parameter determined): '
-                     + per_level(model['cv_rms_m'], 'not estimable from this design'))
-    lines.append(f"noise σ: stated {rob['sigma_stated_m'] * 1e6:.3g} µm, robust estimate from "
-                 f"the residuals {rob['sigma_robust_m'] * 1e6:.3g} µm "
-                 f"(ratio {rob['sigma_ratio']:.3g}); loss {rob['loss']}")
-    lines += [ExcludedMeasurement(**e).text() for e in rob['excluded']]
-    lines += [f'WARNING: {w}' for w in rob['warnings']]
-    precision = doc.get('precision', {})
-    for name, error in precision.get('expected_tcp_error_m', {}).items():
-        std = precision['tcp_std_m'][name]
-        if std is not None:
-            lines.append(f'TCP {name}: expected error {_um(error)} (with the misfit), '
-                         f'parameter part tcp_std {_um(std)} (sqrt(trace))')
-    if precision.get('expected_tcp_error_m'):
-        lines.append(f"expected TCP error: {precision['expected_tcp_error_basis']}")
-    if doc['tcp_estimable'] and doc['tcp']:
-        lines.append('TCP estimable at every working pose')
-    if not doc['valid']:
-        lines.append('CALIBRATION NOT VALID: ' + ' | '.join(doc['invalid_reasons']))
-    return '\n'.join(lines)
-
-
-def write_calibration_checked(out_dir: str | Path, doc: dict[str, Any]) -> Path:
-    """calibration.yaml for a valid calibration; a failed one goes to
-    calibration.failed.yaml and never replaces the last good calibration.yaml."""
-    if doc.get('valid', True):
-        return write_calibration(out_dir, doc)
-    import yaml
-    return write_atomic(Path(out_dir) / FAILED_CALIBRATION_FILE,
-                        yaml.safe_dump(doc, sort_keys=False))
-
-
-def calibrated_robot_description(cm: CellModel, result: CalibrationResult) -> str:
-    """The calibrated URDF of ``result`` (identified joint errors folded into the joint
-    origins, see :mod:`kpi_calib_ros.io.urdf_export`); the CLI and the node write this."""
-    return calibrated_urdf(cm.cell.urdf_xml, cm.robot, dict(zip(result.names, result.values)))
-
-
-def write_results(cm: CellModel, result: CalibrationResult, doc: dict[str, Any],
-                  out_dir: str | Path) -> tuple[Path, Path | None, str]:
-    """Write a valid calibration as calibration.yaml and the calibrated URDF beside it
-    (atomically); an invalid one (``doc['valid']`` false) only as calibration.failed.yaml,
-    leaving the last good files as they were.
-
-    Returns the calibration document's path, the URDF's path (None when invalid) and the
-    URDF text ('' when invalid).
-    """
-    path = write_calibration_checked(out_dir, doc)
-    if not doc.get('valid', True):
-        return path, None, ''
-    urdf = calibrated_robot_description(cm, result)
-    urdf_path = write_atomic(Path(out_dir) / CALIBRATED_URDF_FILE, urdf)
-    return path, urdf_path, urdf
 
 
 def with_iteration_limit(cm: CellModel, max_iterations: int) -> CellModel:
@@ -626,35 +340,6 @@ def add_effect_comparison(doc: dict[str, Any], cm: CellModel, data: Measurements
     return comparison_text(cmp)
 
 
-def load_measurements(cell_path: str | Path, bag_path: str | Path, effects: str = '',
-                      joint_topic: str | None = None, point_topic: str | None = None,
-                      allow_code_effects: bool = False, pose_topic: str | None = None
-                      ) -> tuple[CellModel, Measurements, PairingResult]:
-    """Cell model (with the extra ``effects`` specs, comma-separated) and the paired
-    measurements of a bag; rejections are reported on stderr.
-
-    ``joint_topic`` / ``point_topic`` / ``pose_topic`` (``--joint-topic`` /
-    ``--point-topic`` / ``--pose-topic``) override the cell's ``topics:``;
-    ``allow_code_effects`` lets effects name Python code.
-    """
-    cell = load_cell(cell_path, allow_code_effects=allow_code_effects)
-    cm = build_cell_model(cell, effects=tuple(split_specs(effects)))
-    data, pairing = measurements_from_bag(cm, bag_path, joint_topic, point_topic, pose_topic)
-    print_rejections(pairing)
-    return cm, data, pairing
-
-
-def print_rejections(pairing: PairingResult) -> None:
-    """Every rejection reason on stderr with its count and the first one's detail (which
-    names what was received and the fix)."""
-    first: dict[str, str] = {}
-    for r in pairing.rejected:
-        first.setdefault(r.reason, r.detail)
-    for reason, count in sorted(pairing.rejections.items()):
-        detail = f' (first: {first[reason]})' if reason in first else ''
-        print(f'rejected {count} sample(s): {reason}{detail}', file=sys.stderr)
-
-
 def print_progress(line: str) -> None:
     """A progress line of a long identification, on stderr (stdout is the summary)."""
     print(line, file=sys.stderr, flush=True)
@@ -662,7 +347,8 @@ def print_progress(line: str) -> None:
 
 def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Path,
                  effects: str = '', model: str | None = None,
-                 max_iterations: int | None = None, **options: Any) -> int:
+                 max_iterations: int | None = None, learned_residual: bool = False,
+                 **options: Any) -> int:
     """``kpi-calib identify``: calibration.yaml and the calibrated URDF
     (:data:`~kpi_calib_ros.io.names.CALIBRATED_URDF_FILE`) in ``out_dir`` (checked first),
     a summary on stdout; ``options`` as for :func:`load_measurements`.
@@ -674,6 +360,11 @@ def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
     instead. Returns 0 for a valid calibration; 1 when it did not converge or the TCP is
     not estimable (then the document goes to calibration.failed.yaml, and an existing
     calibration.yaml is left as it was).
+
+    ``learned_residual`` (``--learned-residual``): a Gaussian process of what the model
+    leaves, written as learned_residual.yaml beside calibration.yaml when it predicts
+    held-out poses better (:mod:`kpi_calib_ros.app.learned_residual`); a valid calibration
+    removes an older learned_residual.yaml it does not replace.
     """
     writable_folder(out_dir, '--out')
     cm, data, pairing = load_measurements(cell_path, bag_path, effects, **options)
@@ -689,6 +380,13 @@ def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
     comparison = ''
     if cm.model.effects and cal.valid:
         comparison = add_effect_comparison(doc, cm, subset(data, cal.robust.kept), cal.result)
+    residual_text = ''
+    if cal.valid:
+        (Path(out_dir) / LEARNED_RESIDUAL_FILE).unlink(missing_ok=True)
+    if learned_residual:
+        from kpi_calib_ros.app.learned_residual import add_learned_residual
+        residual_text, _ = add_learned_residual(doc, cm, subset(data, cal.robust.kept),
+                                                cal.result, out_dir)
     path, urdf_path, _ = write_results(cm, cal.result, doc, out_dir)
     print(summary_text(doc))
     print(registration_text(cal.registration, cm))
@@ -697,6 +395,8 @@ def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
         print(how)
     if comparison:
         print(comparison)
+    if residual_text:
+        print(residual_text)
     print(f'written: {path}')
     if urdf_path is not None:
         print(f'calibrated robot description (URDF): {urdf_path}')

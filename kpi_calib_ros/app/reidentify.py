@@ -14,7 +14,7 @@ update a proper Kalman step:
   random poses and no drift the TCP std grew from 16 µm (prior) to 49-62 µm.
 * **the start is the prior mean** (every parameter at the previous calibration's value),
   not the nominal robot;
-* **a change is not blended** (:mod:`kpi_calib_ros.core.change_detection`): when the new
+* **a change is not blended** (:mod:`kpi_calib_ros.core.campaigns.change_detection`): when the new
   points contradict the prior beyond the drift model, nothing is updated; the document
   goes to calibration.failed.yaml with the ``change_test`` and the moved parameters, and
   ``kpi-calib identify`` exits with :data:`EXIT_CHANGE`.
@@ -29,41 +29,48 @@ from typing import Any
 
 import numpy as np
 
-from kpi_calib_ros.app.identify import (
+from kpi_calib_ros.app.calibration_document import (
     CellCalibration,
     add_robust_sections,
-    calibrate_cell,
     calibration_document,
-    load_measurements,
-    places_the_points,
-    registered_start,
     robust_summary,
-    with_iteration_limit,
     write_results,
 )
+from kpi_calib_ros.app.identify import (
+    calibrate_cell,
+    places_the_points,
+    registered_start,
+    with_iteration_limit,
+)
+from kpi_calib_ros.app.measurements import load_measurements
 from kpi_calib_ros.app.validate import calibration_noise_scale
-from kpi_calib_ros.core.change_detection import CHANGE_ALPHA, ChangeTest, change_test
+from kpi_calib_ros.core.acquisition.pairing import PairingResult
+from kpi_calib_ros.core.campaigns.change_detection import CHANGE_ALPHA, ChangeTest, change_test
+from kpi_calib_ros.core.diagnosis.model_selection import level_free
 from kpi_calib_ros.core.errors import DataError
-from kpi_calib_ros.core.estimation import CalibrationResult, identify
-from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.model_selection import level_free
-from kpi_calib_ros.core.pairing import PairingResult
-from kpi_calib_ros.core.prior import (
-    DRIFT_ANGLE_PER_SQRT_HOUR,
-    DRIFT_LENGTH_PER_SQRT_HOUR,
-    PLACEMENT_PREFIXES,
+from kpi_calib_ros.core.estimation.drift_state import (
     DriftState,
     DriftSwing,
-    Prior,
-    drift_covariance,
     initial_state,
-    mapped_drift,
-    prior_from_calibration,
     state_predicted,
     state_updated,
 )
+from kpi_calib_ros.core.estimation.least_squares import CalibrationResult, identify
+from kpi_calib_ros.core.estimation.prior import (
+    DRIFT_ANGLE_PER_SQRT_HOUR,
+    DRIFT_LENGTH_PER_SQRT_HOUR,
+    PLACEMENT_PREFIXES,
+    Prior,
+    drift_covariance,
+    mapped_drift,
+)
+from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.simulation import random_configurations
-from kpi_calib_ros.io.calibration_file import read_calibration_document
+from kpi_calib_ros.io.calibration_file import (
+    drift_state_from_dict,
+    prior_from_calibration,
+    read_calibration_document,
+)
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.results import writable_folder
 
@@ -152,7 +159,7 @@ def cycle_prior(cm: CellModel, doc: dict[str, Any], data: Measurements | None,
                 swing: DriftSwing | None = None) -> CyclePrior:
     """The previous calibration ``doc`` (calibration.yaml) as the prior of ``data``.
 
-    Drift (:func:`kpi_calib_ros.core.prior.drift_widened`) over the time from its
+    Drift (:func:`kpi_calib_ros.core.estimation.prior.drift_widened`) over the time from its
     ``identified_at_ns`` to the first measurement of ``data`` (or over ``hours``, e.g.
     for a design before the data exist): ``thermal`` grows each
     translation along its nominal vector (rank one, the physics of thermal expansion),
@@ -162,11 +169,11 @@ def cycle_prior(cm: CellModel, doc: dict[str, Any], data: Measurements | None,
     reflector offsets grow by ``placement_rate`` (relative, per √hour; default
     ``length_rate``: the floor between tracker and robot expands like the arm).
 
-    ``swing`` (:class:`~kpi_calib_ros.core.prior.DriftSwing`) adds a drift state: the
-    deviations and rates of the prior's parameters (``drift_state`` of ``doc``; the
+    ``swing`` (:class:`~kpi_calib_ros.core.estimation.drift_state.DriftSwing`) adds a drift state:
+    the deviations and rates of the prior's parameters (``drift_state`` of ``doc``; the
     swing's stationary state when it has none, backwards compatible) extrapolate the prior
-    over the drift time (:func:`~kpi_calib_ros.core.prior.state_predicted`), on top of the
-    random walks. The swing of link translations (along each link's vector for
+    over the drift time (:func:`~kpi_calib_ros.core.estimation.drift_state.state_predicted`), on top
+    of the random walks. The swing of link translations (along each link's vector for
     ``thermal``) and joint offsets is modelled, mapped onto the identified parameters as
     the random walk is; placement rotations, the base and the reflectors get none.
 
@@ -254,7 +261,7 @@ def cycle_prior(cm: CellModel, doc: dict[str, Any], data: Measurements | None,
         # for thermal), mapped onto the prior's parameters like the random walk.
         shape = on_prior(robot_drift(swing.length_amplitude, swing.offset_rad, 0.0))
         state = initial_state(prior.names, swing, shape,
-                              DriftState.from_dict(doc['drift_state'])
+                              drift_state_from_dict(doc['drift_state'])
                               if 'drift_state' in doc else None)
         widened, state = state_predicted(widened, state, swing, shape, hours)
         values = {**values, **dict(zip(prior.names, map(float, widened.mean)))}
@@ -415,7 +422,7 @@ def reidentification_document(cm: CellModel, out: Reidentification, cp: CyclePri
                     'warnings': list(cp.warnings)}
     doc['change_test'] = out.change.to_dict()
     if out.state is not None and cp.swing is not None:
-        # The drift state for the next cycle (core.prior.DriftState; rates per hour).
+        # The drift state for the next cycle (core.drift_state.DriftState; rates per hour).
         doc['drift_state'] = {'swing': cp.swing.to_dict(), **out.state.to_dict()}
     return doc
 
@@ -430,7 +437,7 @@ def run_reidentify(cell_path: str | Path, bag_path: str | Path, out_dir: str | P
     """``kpi-calib identify --prior OLD/calibration.yaml``.
 
     ``swing`` (``--drift-velocity``): the daily swing of the drift state
-    (:class:`~kpi_calib_ros.core.prior.DriftSwing`).
+    (:class:`~kpi_calib_ros.core.estimation.drift_state.DriftSwing`).
 
     Returns 0 for a valid calibration, 1 when it did not converge or the TCP is not
     estimable, :data:`EXIT_CHANGE` (3) when the new points contradict the prior beyond

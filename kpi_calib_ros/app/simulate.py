@@ -14,20 +14,20 @@ from pathlib import Path
 
 import numpy as np
 
-from kpi_calib_ros.core.collision_check import verify_configuration
-from kpi_calib_ros.core.effects import hidden_effects
+from kpi_calib_ros.core.acquisition.pairing import REFLECTOR_SEPARATOR
+from kpi_calib_ros.core.acquisition.streams import PointSample, synthesize_streams
+from kpi_calib_ros.core.collision.check import verify_configuration
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.core.kinematics import link_poses, link_poses_function, reflector_point
-from kpi_calib_ros.core.pairing import REFLECTOR_SEPARATOR
-from kpi_calib_ros.core.pose_measurement import noisy_rotations, quaternion_from_rotation
+from kpi_calib_ros.core.measurement.pose import noisy_rotations, quaternion_from_rotation
+from kpi_calib_ros.core.model.kinematics import link_poses, link_poses_function, reflector_point
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,
     true_parameters,
 )
-from kpi_calib_ros.core.streams import PointSample, synthesize_streams
 from kpi_calib_ros.io.bag import write_bag
 from kpi_calib_ros.io.cell import Cell, CellModel, build_cell_model, load_cell
+from kpi_calib_ros.io.cell_settings import hidden_effects
 from kpi_calib_ros.io.design_io import read_design_poses
 from kpi_calib_ros.io.names import truth_path
 from kpi_calib_ros.io.results import write_truth

@@ -6,7 +6,7 @@ reflector offsets too, are re-fitted on the new recording alone; the rms after t
 re-registration is the figure to compare, and χ² loses the dof the fit took.
 
 ``kpi-calib validate`` and the node's ``~/validate`` call :func:`validate_calibration`;
-the numerics are :mod:`kpi_calib_ros.core.validation`.
+the numerics are :mod:`kpi_calib_ros.core.diagnosis.validation`.
 """
 from __future__ import annotations
 
@@ -16,12 +16,17 @@ from typing import Any
 
 import numpy as np
 
-from kpi_calib_ros.app.identify import measurements_from_bag, print_rejections
+from kpi_calib_ros.app.measurements import measurements_from_bag, print_rejections
+from kpi_calib_ros.core.diagnosis.validation import Validation, validate
 from kpi_calib_ros.core.errors import ConfigError, DataError
-from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.parameters import BASE_COMPONENTS, reflector_prefixes
-from kpi_calib_ros.core.residuals import SIGMA_OVERSTATED, noise_verdict, sigma_overstated_text
-from kpi_calib_ros.core.validation import REPEATED_WITHIN, Validation, validate
+from kpi_calib_ros.core.estimation.residuals import (
+    SIGMA_OVERSTATED,
+    noise_verdict,
+    sigma_overstated_text,
+)
+from kpi_calib_ros.core.measurement.replicates import SAME_POSE_TOLERANCE
+from kpi_calib_ros.core.measurement.tracker import Measurements
+from kpi_calib_ros.core.model.parameters import BASE_COMPONENTS, reflector_prefixes
 from kpi_calib_ros.io.calibration_file import read_calibration_document
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
 from kpi_calib_ros.io.names import VALIDATION_FILE
@@ -194,7 +199,7 @@ def validation_text(doc: dict[str, Any]) -> str:
                                                          doc['lower_tail_p'], doc['alpha']))
     if doc.get('repeated_from_training'):
         lines.append(f"inside: poses repeated from training ({doc['repeated_from_training']} "
-                     f"points, every joint within {REPEATED_WITHIN:g} rad or m): rms "
+                     f"points, every joint within {SAME_POSE_TOLERANCE:g} rad or m): rms "
                      f"{mm(doc['rms_repeated_from_training_m'])} (repeatability between "
                      f"the campaigns); new poses: {mm(doc['rms_new_inside_training_range_m'])}")
     return '\n'.join(lines)

@@ -1,6 +1,8 @@
 """Exception types shared by the whole package."""
 from __future__ import annotations
 
+__all__ = ['KpiCalibError', 'ConfigError', 'DataError']
+
 
 class KpiCalibError(Exception):
     """Base class of every error this package raises on purpose."""

@@ -10,14 +10,20 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Mapping
 
 import numpy as np
 
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.core.measurement import MeasurementModel, Measurements
-from kpi_calib_ros.core.parameters import ParameterSet
-from kpi_calib_ros.core.pose_measurement import noisy_rotations
+from kpi_calib_ros.core.measurement.pose import noisy_rotations
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements
+from kpi_calib_ros.core.model.parameters import ParameterSet
+
+__all__ = [
+    'ErrorMagnitudes', 'true_parameters', 'sampling_bounds', 'random_configurations',
+    'measurable_batch', 'one_joint_at_a_time', 'simulate_measurements',
+    'simulate_pose_measurements', 'equivalent_parameters', 'smooth_joint_map',
+]
 
 _DEG = np.pi / 180.0
 
@@ -191,20 +197,27 @@ def one_joint_at_a_time(model: MeasurementModel, home: np.ndarray, per_joint: in
 
 def simulate_measurements(model: MeasurementModel, p_true: np.ndarray, q: np.ndarray,
                           sigma: float | np.ndarray, rng: np.random.Generator,
-                          joint_sigma: float | np.ndarray | None = None) -> Measurements:
+                          joint_sigma: float | np.ndarray | None = None,
+                          covariates: Mapping[str, np.ndarray] | None = None,
+                          stamps_ns: np.ndarray | None = None) -> Measurements:
     """Tracker points h(p_true, q) + N(0, σ²) per axis.
 
     With ``joint_sigma`` (rad, scalar or (n,) in chain order) the joint readings are not
     exact: the measurements carry the readings q + N(0, joint_sigma²) of the true joints q
-    (drawn after the tracker noise, so the points are the same as without it)."""
+    (drawn after the tracker noise, so the points are the same as without it).
+    ``covariates`` (name -> (N,), e.g. a temperature ramp over a shift,
+    :func:`kpi_calib_ros.core.measurement.covariates.shift_temperature`) drive the true model's
+    effects that read them (a hidden thermal effect) and are recorded with the rows, as are
+    ``stamps_ns`` (N,)."""
     q = np.atleast_2d(q)
-    clean = model.predict(p_true, q)
+    clean = model.predict(p_true, q, covariates=covariates)
     noise = rng.normal(size=clean.shape) * np.broadcast_to(np.asarray(sigma, float), (3,))
-    if joint_sigma is None:
-        return Measurements(q=q, eta=clean + noise)
-    read = q + rng.normal(size=q.shape) * np.broadcast_to(np.asarray(joint_sigma, float),
-                                                          (q.shape[1],))
-    return Measurements(q=read, eta=clean + noise)
+    recorded = None if covariates is None else {k: np.asarray(v, float).copy()
+                                                for k, v in covariates.items()}
+    if joint_sigma is not None:
+        q = q + rng.normal(size=q.shape) * np.broadcast_to(np.asarray(joint_sigma, float),
+                                                           (q.shape[1],))
+    return Measurements(q=q, eta=clean + noise, stamps_ns=stamps_ns, covariates=recorded)
 
 
 def simulate_pose_measurements(model: MeasurementModel, p_true: np.ndarray, q: np.ndarray,
@@ -259,3 +272,18 @@ def equivalent_parameters(model: MeasurementModel, p_true: np.ndarray, kept: tup
             break
     residual = target - model.predict(p, q_samples)
     return p, float(np.max(np.linalg.norm(residual, axis=1)))
+
+
+def smooth_joint_map(q: np.ndarray, joints: tuple[int, int], amplitude_m: float,
+                     phase: np.ndarray) -> np.ndarray:
+    """A smooth displacement (N, 3) of the tool (m, tracker frame) that depends on two
+    joints only and no physical effect of the library describes: each axis a product of
+    sines of the two angles, ``amplitude_m`` its largest size, ``phase`` (6,) rad.
+
+    The unknown misfit the learned residual (:mod:`kpi_calib_ros.core.diagnosis.learned_residual`)
+    is tested on."""
+    q = np.atleast_2d(np.asarray(q, float))
+    a, b = q[:, joints[0]], q[:, joints[1]]
+    phase = np.asarray(phase, float).reshape(3, 2)
+    return amplitude_m * np.column_stack([np.sin(1.3 * a + ph[0]) * np.cos(1.1 * b + ph[1])
+                                          for ph in phase])

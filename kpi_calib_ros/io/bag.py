@@ -25,8 +25,9 @@ from typing import Any, Callable
 import numpy as np
 from mcap_ros2.decoder import DecoderFactory
 
-from kpi_calib_ros.core.pairing import Pairer
-from kpi_calib_ros.core.streams import JointSample, PointSample
+from kpi_calib_ros.core.acquisition.pairing import Pairer
+from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
+from kpi_calib_ros.core.measurement.covariates import TemperatureSample
 from kpi_calib_ros.io.bag_writing import (
     DEFAULT_JOINT_TOPIC,
     DEFAULT_POINT_TOPIC,
@@ -34,6 +35,7 @@ from kpi_calib_ros.io.bag_writing import (
     LIBRARY,
     POINT_STAMPED_TYPE,
     POSE_STAMPED_TYPE,
+    TEMPERATURE_TYPE,
     VECTOR3_STAMPED_TYPE,
     StreamEncoders,
     message_definition,
@@ -41,12 +43,17 @@ from kpi_calib_ros.io.bag_writing import (
     write_bag,
 )
 from kpi_calib_ros.io.mcap_scan import MAGIC, BagError, ScannedBag, scan
-from kpi_calib_ros.io.names import DEFAULT_POSE_TOPIC, point_sigma_topic
+from kpi_calib_ros.io.names import (
+    DEFAULT_POSE_TOPIC,
+    DEFAULT_TEMPERATURE_TOPIC,
+    point_sigma_topic,
+)
 from kpi_calib_ros.io.ros_messages import (
     JointStateDecoder,
     point_sample_from_message,
+    point_sigma_from_message,
     pose_sample_from_message,
-    stamp_ns,
+    temperature_sample_from_message,
 )
 
 # The metadata record by which a measurement log marks itself (see read_for_pairing).
@@ -223,6 +230,19 @@ def read_bag(
         File missing or not MCAP, a topic absent (the topics present are listed),
         or a topic carrying another message type.
     """
+    joint_samples, point_samples, _ = read_bag_with_sigma(path, joint_topic, point_topic,
+                                                          pose_topic)
+    return joint_samples, point_samples
+
+
+def read_bag_with_sigma(
+    path: str | os.PathLike,
+    joint_topic: str = DEFAULT_JOINT_TOPIC,
+    point_topic: str = DEFAULT_POINT_TOPIC,
+    pose_topic: str = DEFAULT_POSE_TOPIC,
+) -> tuple[list[JointSample], list[PointSample], dict[tuple[int, str], np.ndarray]]:
+    """:func:`read_bag`, and the points' stated σ (3,) (m) by (stamp ns, frame id) from
+    ``point_sigma_topic(point_topic)`` ({} when the bag has none)."""
     path = _checked_path(path)
     opened = _open(path, joint_topic, point_topic, require_topics=True, pose_topic=pose_topic)
     assert opened is not None
@@ -230,7 +250,8 @@ def read_bag(
     bad: list[int] = []
     result = (_decode(path, bag, joints, *_indices(bag, joints)[:2], bad),
               _decode(path, bag, points, *_indices(bag, points)[:2], bad)
-              + _decode(path, bag, poses, *_indices(bag, poses)[:2], bad))
+              + _decode(path, bag, poses, *_indices(bag, poses)[:2], bad),
+              _point_sigma(path, bag, point_topic))
     _warn_undecodable(path, bad)
     return result
 
@@ -274,10 +295,8 @@ def _point_sigma(path: Path, bag: ScannedBag, point_topic: str
     out: dict[tuple[int, str], np.ndarray] = {}
     for c in (c for c in ids if c in bag.messages):
         for i in range(len(bag.messages[c])):
-            message = decoder(bag.payload(c, i))
-            v = message.vector
-            sigma = np.array([v.x, v.y, v.z], dtype=float)
-            key = (stamp_ns(message.header), str(message.header.frame_id))
+            stamp, frame_id, sigma = point_sigma_from_message(decoder(bag.payload(c, i)))
+            key = (stamp, frame_id)
             if not np.all(np.isfinite(sigma)) or np.any(sigma <= 0):
                 raise BagError(f"{path}: topic '{topic}', stamp {key[0]} ns, frame "
                                f"'{key[1]}': sigma {sigma.tolist()} is not > 0 and finite "
@@ -363,7 +382,8 @@ def read_for_pairing(
     Parameters
     ----------
     window_ns : int, optional
-        The pairer's half-window (ns); default :class:`~kpi_calib_ros.core.pairing.Pairer`'s.
+        The pairer's half-window (ns); default
+        :class:`~kpi_calib_ros.core.acquisition.pairing.Pairer`'s.
     """
     if window_ns is None:
         window_ns = inspect.signature(Pairer).parameters['window_ns'].default
@@ -402,18 +422,66 @@ def read_log(path: str | os.PathLike, joint_topic: str = DEFAULT_JOINT_TOPIC,
              pose_topic: str = DEFAULT_POSE_TOPIC) -> list[tuple[JointSample, PointSample]]:
     """The measurements of one log file, in append order; torn appends skipped with a
     :class:`BagWarning`, a file killed before its header was written is empty."""
+    return read_log_with_sigma(path, joint_topic, point_topic, pose_topic)[0]
+
+
+def read_log_with_sigma(path: str | os.PathLike, joint_topic: str = DEFAULT_JOINT_TOPIC,
+                        point_topic: str = DEFAULT_POINT_TOPIC,
+                        pose_topic: str = DEFAULT_POSE_TOPIC
+                        ) -> tuple[list[tuple[JointSample, PointSample]],
+                                   dict[tuple[int, str], np.ndarray]]:
+    """:func:`read_log`, and the points' stated σ (3,) (m) by (stamp ns, frame id) the log
+    holds on ``point_sigma_topic(point_topic)`` ({} for a log written without any)."""
     path = Path(path)
     opened = _open(path, joint_topic, point_topic, require_topics=False, pose_topic=pose_topic)
     if opened is None:
-        return []
+        return [], {}
     bag, joints, points, poses = opened
     bad: list[int] = []
     pairs = list(zip(*_stored_pairs(path, bag, joints, points, bad, poses)))
     _warn_undecodable(path, bad)
-    return pairs
+    return pairs, _point_sigma(path, bag, point_topic)
+
+
+def read_temperatures(path: str | os.PathLike,
+                      topic: str = DEFAULT_TEMPERATURE_TOPIC) -> list[TemperatureSample]:
+    """Every ``sensor_msgs/Temperature`` on ``topic`` (°C, each with its sensor's frame id),
+    in stamp order; [] when the bag has no such topic (a recording without temperature).
+
+    Raises
+    ------
+    BagError
+        File missing or not MCAP, or ``topic`` carrying another message type.
+    """
+    path = _checked_path(path)
+    with open(path, 'rb') as f:
+        size = os.fstat(f.fileno()).st_size
+        data = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) if size else b''
+    if data[:len(MAGIC)] != MAGIC:
+        raise BagError(f'{path} is not an MCAP file (no MCAP magic)')
+    bag = scan(path, data)
+    ids = sorted(c.id for c in bag.channels.values() if c.topic == topic)
+    if not ids:
+        return []
+    channel = bag.channels[ids[0]]
+    schema = bag.schemas.get(channel.schema_id)
+    if schema is None or schema.name != TEMPERATURE_TYPE:
+        raise BagError(f"{path}: topic '{topic}' carries "
+                       f"'{schema.name if schema else 'no schema'}', expected "
+                       f"'{TEMPERATURE_TYPE}'; set temperature.topic in the cell file to the "
+                       'topic of the temperature sensors')
+    decoder = DecoderFactory().decoder_for(channel.message_encoding, schema)
+    if decoder is None:
+        raise BagError(f"{path}: topic '{topic}' is not 'cdr' with a 'ros2msg' schema")
+    topic_ids = _Topic(ids, lambda raw: temperature_sample_from_message(decoder(raw)))
+    bad: list[int] = []
+    samples = _decode(path, bag, topic_ids, *_indices(bag, topic_ids)[:2], bad)
+    _warn_undecodable(path, bad)
+    return sorted(samples, key=lambda s: s.stamp_ns)
 
 
 __all__ = ['BagContents', 'BagError', 'BagWarning', 'LIBRARY', 'StreamEncoders',
            'DEFAULT_JOINT_TOPIC', 'DEFAULT_POINT_TOPIC', 'JOINT_STATE_TYPE', 'LOG_CONTENT',
            'LOG_METADATA', 'POINT_STAMPED_TYPE', 'is_measurement_log', 'message_definition',
-           'read_bag', 'read_for_pairing', 'read_log', 'type_hash', 'write_bag']
+           'read_bag', 'read_bag_with_sigma', 'read_for_pairing', 'read_log',
+           'read_log_with_sigma', 'read_temperatures', 'type_hash', 'write_bag']

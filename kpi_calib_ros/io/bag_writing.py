@@ -35,7 +35,7 @@ from mcap.writer import Writer as McapWriter
 # channel metadata, which rosbag2 readers expect.
 from mcap_ros2._dynamic import serialize_dynamic
 
-from kpi_calib_ros.core.streams import JointSample, PointSample
+from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
 from kpi_calib_ros.io.mcap_scan import BagError
 from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, DEFAULT_POSE_TOPIC
 from kpi_calib_ros.io.ros_messages import (

@@ -5,6 +5,10 @@ the file, the field and the fix, never a crash or a NaN in a result.
 The YAML load is bounded (:mod:`kpi_calib_ros.io.yaml_bounded`: the file size and the
 size of the document with every alias expanded), so an alias bomb in
 ``parameter_covariance.matrix`` is refused before anything is built.
+
+A checked document becomes the core's typed objects here: the prior of a previous
+calibration (:func:`prior_from_calibration`) and its drift state
+(:func:`drift_state_from_dict`).
 """
 from __future__ import annotations
 
@@ -14,7 +18,9 @@ from typing import Any
 
 import numpy as np
 
-from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.core.errors import ConfigError, DataError
+from kpi_calib_ros.core.estimation.drift_state import DriftState
+from kpi_calib_ros.core.estimation.prior import PLACEMENT_PREFIXES, Prior
 from kpi_calib_ros.io.yaml_bounded import load_yaml_bounded as _load_bounded
 from kpi_calib_ros.io.yaml_bounded import read_yaml_file
 
@@ -203,3 +209,65 @@ def _drift_state(state: Any, prior_names: list[str], bad: Any) -> None:
     cov = _matrix(state.get('covariance'), (2 * k, 2 * k), 'drift_state.covariance', bad)
     _covariance(cov, 'drift_state.covariance', bad)
     _matrix(state.get('cross_covariance'), (k, 2 * k), 'drift_state.cross_covariance', bad)
+
+
+def prior_from_calibration(doc: dict, keep_placement: bool = False) -> Prior:
+    """Prior from a calibration document (the dict of calibration.yaml): the identified
+    parameters' values and ``parameter_covariance``.
+
+    The base and reflector placements are left out unless ``keep_placement``: a tracker
+    or mocap frame moved between campaigns would otherwise pull the robot's parameters.
+
+    Raises
+    ------
+    DataError
+        The document lacks ``parameters`` or ``parameter_covariance``, or they disagree.
+    """
+    try:
+        values = {p['name']: float(p['value']) for p in doc['parameters']}
+        cov_doc = doc['parameter_covariance']
+        names = list(cov_doc['names'])
+        matrix = np.array(cov_doc['matrix'], dtype=float)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise DataError(f'prior calibration lacks or mangles {exc}: give a calibration.yaml '
+                        'written by `kpi-calib identify` (parameters, parameter_covariance)'
+                        ) from None
+    if matrix.shape != (len(names), len(names)) or any(n not in values for n in names):
+        raise DataError('prior calibration: parameter_covariance names and matrix do not '
+                        'fit the parameters; give an unedited calibration.yaml')
+    # A covariance computed through a KKT solve is symmetric to round-off only (relative
+    # to its correlation scale); a larger asymmetry is an edited or damaged file.
+    scale = np.sqrt(np.outer(np.abs(np.diag(matrix)), np.abs(np.diag(matrix))))
+    if not np.all(np.abs(matrix - matrix.T) <= 1e-6 * scale):
+        raise DataError('prior calibration: parameter_covariance is not symmetric; give an '
+                        'unedited calibration.yaml')
+    matrix = 0.5 * (matrix + matrix.T)
+    keep = [i for i, n in enumerate(names)
+            if keep_placement or not n.startswith(PLACEMENT_PREFIXES)]
+    if not keep:
+        raise DataError('prior calibration identified no robot parameter to use as prior')
+    kept = [names[i] for i in keep]
+    return Prior(tuple(kept), np.array([values[n] for n in kept]),
+                 matrix[np.ix_(keep, keep)])
+
+
+def drift_state_from_dict(section: Any) -> DriftState:
+    """The ``drift_state`` section of calibration.yaml; DataError names the field."""
+    if not isinstance(section, dict):
+        raise DataError('drift_state must be a mapping (names, values, covariance, '
+                        'cross_covariance); give an unedited calibration.yaml')
+    missing = [k for k in ('names', 'values', 'covariance', 'cross_covariance')
+               if k not in section]
+    if missing:
+        raise DataError(f'drift_state lacks {missing}; give an unedited calibration.yaml')
+    names = section['names']
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names) \
+            or len(set(names)) != len(names):
+        raise DataError('drift_state.names must be a list of unique parameter names')
+    try:
+        arrays = [np.array(section[k], dtype=float)
+                  for k in ('values', 'covariance', 'cross_covariance')]
+    except (TypeError, ValueError) as exc:
+        raise DataError(f'drift_state: values, covariance and cross_covariance must be '
+                        f'numbers ({exc})') from None
+    return DriftState(tuple(names), *arrays)

@@ -13,8 +13,8 @@ import matplotlib.pyplot as plt  # noqa: E402  (backend first)
 import numpy as np  # noqa: E402
 import yaml  # noqa: E402
 
+from kpi_calib_ros.core.campaigns.sequential import CampaignSettings, SimulatedRun  # noqa: E402
 from kpi_calib_ros.core.errors import DataError  # noqa: E402
-from kpi_calib_ros.core.sequential import CampaignSettings, SimulatedRun  # noqa: E402
 from kpi_calib_ros.io.results import write_atomic  # noqa: E402
 
 STATE_VERSION = 1

@@ -24,7 +24,7 @@ fix. Paths are relative to the cell file. Units are SI (m, rad, kg). Example::
       - {name: floor, type: halfspace, normal: [0, 0, 1], offset: -0.5}
       - {name: car_roof, type: capsule, a: [1.6, -1.5, 0.9], b: [1.6, 1.5, 0.9], radius: 0.5}
     collision: {capsules: [...], ignore_pairs: [[base_link, floor]], beam_radius: 0.005}
-    identification: {method: pivoted, model: geometric, loss: linear, max_iterations: 500,
+    identification: {method: pivoted, model: geometric, loss: linear, max_iterations: null,
                      outliers: {exclude: true, threshold: null}, cv_folds: 5,
                      prior: {translation: 1.0e-3, rotation: 1.0e-3, offset: 1.0e-3}}
     topics: {joint_states: /joint_states, point: /laser_tracker/point,   # bags read
@@ -38,27 +38,59 @@ import re
 import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Mapping
 
-import casadi as ca
 import numpy as np
 import yaml
 
-from kpi_calib_ros.core.collision import Capsule, CollisionScene, HalfSpace
-from kpi_calib_ros.core.coupling import JointCoupling, coupling_from_mapping, identity_coupling
-from kpi_calib_ros.core.design import DesignSettings
-from kpi_calib_ros.core.design_cell import DesignCell
-from kpi_calib_ros.core.effects import resolve_effects
+from kpi_calib_ros.core.acquisition.coupling import JointCoupling, identity_coupling
+from kpi_calib_ros.core.collision.capsules import Capsule, CollisionScene, HalfSpace
+from kpi_calib_ros.core.design.cell import DesignCell
+from kpi_calib_ros.core.design.optimum import DesignSettings
+from kpi_calib_ros.core.effects.general import general_candidates  # noqa: F401  (registers specs)
+from kpi_calib_ros.core.effects.gravity_compliance import mass_warning
+from kpi_calib_ros.core.effects.registry import resolve_effects
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.core.estimation import DEFAULT_MAX_ITERATIONS
-from kpi_calib_ros.core.gravity_compliance import mass_warning
-from kpi_calib_ros.core.kinematics import pose6
-from kpi_calib_ros.core.measurement import MeasurementModel
-from kpi_calib_ros.core.model_selection import DEFAULT_FOLDS, MODEL_CHOICES
-from kpi_calib_ros.core.parameters import ParameterSet, geometric_parameters
-from kpi_calib_ros.core.pose_measurement import rotation_from_quaternion, rotation_from_rpy
-from kpi_calib_ros.core.robot import Payload, RobotModel
-from kpi_calib_ros.core.robust import LOSSES, OutlierSettings
+from kpi_calib_ros.core.measurement.pose import pose_matrix
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel
+from kpi_calib_ros.core.model.parameters import ParameterSet, geometric_parameters
+from kpi_calib_ros.core.model.robot import Payload, RobotModel
+from kpi_calib_ros.io.cell_sections import (
+    WorkingPose,
+    coupling_from_mapping,
+    joint_sigma_vector,
+    parse_capsule,
+    parse_coupling,
+    parse_ignore_pair,
+    parse_joint_sigma,
+    parse_obstacle,
+    parse_package_dirs,
+    parse_reflectors,
+    parse_working_poses,
+    parse_working_poses_in,
+    plausible_offset,
+    plausible_pose,
+)
+from kpi_calib_ros.io.cell_settings import (
+    IdentificationSettings,
+    SimulationSettings,
+    design_settings,
+    identification_settings,
+    parse_priority,
+    parse_topics,
+    simulation_settings,
+)
+from kpi_calib_ros.io.cell_temperature import TemperatureSettings, temperature_settings
+from kpi_calib_ros.io.cell_values import (
+    non_negative,
+    number,
+    number_or_vector,
+    optional_mapping,
+    optional_vector,
+    required_mapping,
+    required_string,
+    vector,
+)
 from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, DEFAULT_POSE_TOPIC
 from kpi_calib_ros.io.resources import resolve_uri
 from kpi_calib_ros.io.results import write_atomic
@@ -67,54 +99,8 @@ from kpi_calib_ros.io.yaml_bounded import read_yaml_file
 
 _TOP_KEYS = {'robot', 'tracker', 'reflector', 'reflectors', 'noise', 'payload', 'working_poses',
              'obstacles', 'collision', 'identification', 'effects', 'simulation', 'design',
-             'topics'}
-_TOPIC_KEYS = {'joint_states': DEFAULT_JOINT_TOPIC, 'point': DEFAULT_POINT_TOPIC,
-               'pose': DEFAULT_POSE_TOPIC}
-# Plausibility of SI values: beyond these a value is almost surely in other units.
-MAX_TRACKER_RANGE_M = 50.0     # laser trackers measure to ~40-80 m; cells are far smaller
-MAX_REFLECTOR_OFFSET_M = 2.0   # reflector from the flange: a tool, not a second robot
+             'topics', 'temperature'}
 DEFAULT_CELL = Path(__file__).resolve().parent.parent / 'data' / 'cells' / 'default_cell.yaml'
-
-
-@dataclass(frozen=True)
-class WorkingPose:
-    """A working pose by joint name (``joints``) or in chain order (``values``, rad/m)."""
-
-    name: str
-    joints: dict[str, float]
-    values: tuple[float, ...] = ()
-
-
-@dataclass(frozen=True)
-class SimulationSettings:
-    """The ``simulation:`` section: what the simulated robot has beyond the model.
-
-    ``hidden_effects`` maps effect specs to their true parameter values; it is
-    checked against the robot by :func:`kpi_calib_ros.core.effects.hidden_effects`.
-    """
-
-    hidden_effects: Mapping[str, Any] = field(default_factory=dict)
-
-
-@dataclass(frozen=True)
-class IdentificationSettings:
-    """The model size, loss and outlier keys of ``identification:``.
-
-    model : ``auto`` (chosen by the predicted out-of-sample error) or a level of
-    :mod:`kpi_calib_ros.core.model_selection`; loss : ``linear``, ``huber`` or ``soft_l1``
-    (:mod:`kpi_calib_ros.core.robust`); outliers : exclusion settings; cv_folds : folds of
-    the cross-validated rms reported beside the model choice; prior : std (m, rad, rad)
-    of the joint placement translations, rotations and joint offsets around the nominal
-    (:func:`kpi_calib_ros.core.prior.tolerance_prior`), None: no prior; max_iterations :
-    iteration limit of every fit (:func:`kpi_calib_ros.core.estimation.identify`).
-    """
-
-    model: str = 'geometric'
-    loss: str = 'linear'
-    outliers: OutlierSettings = field(default_factory=OutlierSettings)
-    cv_folds: int = DEFAULT_FOLDS
-    prior: tuple[float, float, float] | None = None
-    max_iterations: int = DEFAULT_MAX_ITERATIONS
 
 
 @dataclass(frozen=True)
@@ -170,6 +156,8 @@ class Cell:
     # noise.joint_sigma: a number (rad, every joint) or {joint name: rad}; None: exact
     # joint readings. Matched to the chain by name in build_cell_model.
     joint_sigma: float | Mapping[str, float] | None = None
+    # temperature: section (io.cell_temperature); None: no temperature read.
+    temperature: TemperatureSettings | None = None
 
     @property
     def offsets(self) -> np.ndarray:
@@ -243,12 +231,12 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None,
     unknown = set(doc) - _TOP_KEYS
     if unknown:
         raise ConfigError(sorted(unknown)[0], f'unknown key; allowed keys are {sorted(_TOP_KEYS)}')
-    robot = _mapping(doc, 'robot')
+    robot = required_mapping(doc, 'robot')
     if urdf_xml is None:
-        urdf_rel = _str(robot, 'robot.urdf', 'urdf')
+        urdf_rel = required_string(robot, 'robot.urdf', 'urdf')
         urdf_path = (base_dir / urdf_rel).resolve()
         if urdf_rel.startswith(('package://', 'file://')):  # resolved the ROS way
-            urdf_path = resolve_uri(urdf_rel, _package_dirs(robot.get('package_dirs')),
+            urdf_path = resolve_uri(urdf_rel, parse_package_dirs(robot.get('package_dirs')),
                                     base_dir, key='robot.urdf', referenced_by='robot.urdf')
         if not urdf_path.is_file():
             raise ConfigError('robot.urdf', f'file {str(urdf_path)!r} does not exist; paths are '
@@ -257,17 +245,17 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None,
     else:
         urdf_path = Path('<robot_description>')
     tracker: dict[str, Any] = doc.get('tracker') or {}
-    names, offsets, orientations = _reflectors(doc)
+    names, offsets, orientations = parse_reflectors(doc)
     reflector: dict[str, Any] = doc.get('reflector') or {}
     for key, section in (('tracker', tracker), ('reflector', reflector)):
         if not isinstance(section, dict):
             raise ConfigError(key, 'must be a mapping')
-    noise = _mapping(doc, 'noise')
-    payload = _optional_mapping(doc, 'payload')
-    axis = _vector(reflector.get('axis', [0, 0, 1]), 'reflector.axis', 3)
+    noise = required_mapping(doc, 'noise')
+    payload = optional_mapping(doc, 'payload')
+    axis = vector(reflector.get('axis', [0, 0, 1]), 'reflector.axis', 3)
     if np.linalg.norm(axis) < 1e-9:
         raise ConfigError('reflector.axis', 'must be a non-zero vector in the tip frame')
-    sigma = np.broadcast_to(np.asarray(_number_or_vector(noise.get('sigma'), 'noise.sigma'),
+    sigma = np.broadcast_to(np.asarray(number_or_vector(noise.get('sigma'), 'noise.sigma'),
                                        float), (3,)).copy()
     if np.any(sigma <= 0) or np.any(sigma > 0.01):
         raise ConfigError('noise.sigma', f'{sigma.tolist()} must be in (0, 0.01] m per axis '
@@ -279,12 +267,12 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None,
             raise ConfigError('noise.sigma_rotation', f'{sigma_rotation!r} must be in (0, 0.1] '
                               'rad: the orientation noise of the tracked body (SI radians: '
                               '0.01° is 1.75e-4)')
-    joint_sigma = _joint_sigma(noise.get('joint_sigma'))
+    joint_sigma = parse_joint_sigma(noise.get('joint_sigma'))
     max_inc = number(reflector, 'max_incidence', 'reflector', np.deg2rad(30.0), 'rad')
     if not 0 < max_inc <= np.pi / 2:
         raise ConfigError('reflector.max_incidence', 'must be in (0, π/2] rad (30° = 0.5236)')
-    collision = _optional_mapping(doc, 'collision')
-    ident = _optional_mapping(doc, 'identification')
+    collision = optional_mapping(doc, 'collision')
+    ident = optional_mapping(doc, 'identification')
     method = ident.get('method', 'pivoted')
     if method not in ('pivoted', 'priority'):
         raise ConfigError('identification.method', "must be 'pivoted' or 'priority'")
@@ -293,34 +281,34 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None,
         raise ConfigError('payload.mass', 'must be >= 0 kg')
     return Cell(
         urdf_xml=urdf_xml, urdf_path=str(urdf_path),
-        base_frame=_str(robot, 'robot.base_frame', 'base_frame'),
-        tip_frame=_str(robot, 'robot.tip_frame', 'tip_frame'),
+        base_frame=required_string(robot, 'robot.base_frame', 'base_frame'),
+        tip_frame=required_string(robot, 'robot.tip_frame', 'tip_frame'),
         tracker_frame=str(tracker.get('frame_id', 'laser_tracker')),
-        base_in_tracker=_plausible_pose(_optional_vector(tracker.get('base_in_tracker'),
+        base_in_tracker=plausible_pose(optional_vector(tracker.get('base_in_tracker'),
                                                          'tracker.base_in_tracker', 6)),
-        reflector_offset=_plausible_offset(
+        reflector_offset=plausible_offset(
             np.nan_to_num(offsets[0]) if offsets is not None else
-            _optional_vector(reflector.get('offset'), 'reflector.offset', 3)),
+            optional_vector(reflector.get('offset'), 'reflector.offset', 3)),
         reflector_axis=axis / np.linalg.norm(axis), max_incidence=max_inc, sigma=sigma,
         payload_mass=mass,
-        payload_com=_vector(payload.get('com', [0, 0, 0]), 'payload.com', 3),
-        working_poses=_working_poses(doc.get('working_poses')),
-        obstacles=tuple(_obstacle(o, f'obstacles[{i}]')
+        payload_com=vector(payload.get('com', [0, 0, 0]), 'payload.com', 3),
+        working_poses=parse_working_poses(doc.get('working_poses')),
+        obstacles=tuple(parse_obstacle(o, f'obstacles[{i}]')
                         for i, o in enumerate(doc.get('obstacles') or [])),
-        robot_capsules=tuple(_capsule(c, f'collision.capsules[{i}]', frame_key='link')
+        robot_capsules=tuple(parse_capsule(c, f'collision.capsules[{i}]', frame_key='link')
                              for i, c in enumerate(collision.get('capsules') or [])),
-        ignore_pairs=tuple(_pair(p, f'collision.ignore_pairs[{i}]')
+        ignore_pairs=tuple(parse_ignore_pair(p, f'collision.ignore_pairs[{i}]')
                            for i, p in enumerate(collision.get('ignore_pairs') or [])),
-        beam_radius=_non_negative(number(collision, 'beam_radius', 'collision', 0.005, 'm'),
+        beam_radius=non_negative(number(collision, 'beam_radius', 'collision', 0.005, 'm'),
                                   'collision.beam_radius', 'm'),
         identification_method=method,
-        identification_priority=_priority(ident, method),
+        identification_priority=parse_priority(ident, method),
         effects=tuple(str(e) for e in (doc.get('effects') or [])),
-        **_topics(doc.get('topics')),
+        **parse_topics(doc.get('topics')),
         design=design_settings(doc.get('design')),
         simulation=simulation_settings(doc.get('simulation')),
         identification=identification_settings(ident), source_dir=str(base_dir),
-        package_dirs=_package_dirs(robot.get('package_dirs')),
+        package_dirs=parse_package_dirs(robot.get('package_dirs')),
         base_in_tracker_given=tracker.get('base_in_tracker') is not None,
         reflector_offset_given=(bool(not np.isnan(offsets).any()) if offsets is not None
                                 else reflector.get('offset') is not None),
@@ -328,90 +316,10 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None,
         reflector_offsets=np.nan_to_num(offsets) if offsets is not None else None,
         reflector_orientations=orientations, sigma_rotation=sigma_rotation,
         joint_sigma=joint_sigma,
-        joint_coupling=_coupling_mapping(robot.get('joint_coupling')),
-        working_poses_in=_working_poses_in(robot.get('working_poses_in', 'controller')),
+        joint_coupling=parse_coupling(robot.get('joint_coupling')),
+        working_poses_in=parse_working_poses_in(robot.get('working_poses_in', 'controller')),
+        temperature=temperature_settings(doc.get('temperature')),
         allow_code_effects=allow_code_effects)
-
-
-def _coupling_mapping(raw: Any) -> dict[str, Any]:
-    """``robot.joint_coupling`` as a plain mapping; names are checked against the chain
-    when the model is built (:func:`build_cell_model`)."""
-    if raw is None:
-        return {}
-    if not isinstance(raw, dict):
-        raise ConfigError('robot.joint_coupling', 'must map URDF joints to {controller_joint: '
-                          'factor}, e.g. {joint_3: {joint_3: 1.0, joint_2: 1.0}}')
-    return {str(k): v for k, v in raw.items()}
-
-
-def _working_poses_in(value: Any) -> str:
-    if value not in ('controller', 'urdf'):
-        raise ConfigError('robot.working_poses_in', "must be 'controller' (values as the "
-                          f"controller reports them) or 'urdf', got {value!r}")
-    return str(value)
-
-
-def _reflectors(doc: dict) -> tuple[tuple[str, ...], np.ndarray | None,
-                                     tuple[tuple[int, np.ndarray], ...]]:
-    """The ``reflectors:`` list: names, (R, 3) offsets (NaN row: offset omitted, to
-    be registered from the data) and the orientations of tracked bodies.
-    ``((), None, ())`` when the key is absent."""
-    items = doc.get('reflectors')
-    if items is None:
-        if 'orientation' in (doc.get('reflector') or {}):
-            raise ConfigError('reflector.orientation', 'a tracked 6-DoF body is a reflectors: '
-                              'entry: reflectors: [{name: probe, offset: [x, y, z], '
-                              'orientation: {rpy: [r, p, y]}}]')
-        return (), None, ()
-    if 'offset' in (doc.get('reflector') or {}):
-        raise ConfigError('reflector.offset', 'give the offsets in reflectors: only (the '
-                          'reflector: mapping then holds axis and max_incidence)')
-    if not isinstance(items, list) or not items:
-        raise ConfigError('reflectors', 'must be a list of {name, offset: [x, y, z]} (m, tip '
-                          'frame); the first is the KPI point')
-    names, offsets, orientations = [], [], []
-    for i, item in enumerate(items):
-        key = f'reflectors[{i}]'
-        if not isinstance(item, dict) or not isinstance(item.get('name'), str):
-            raise ConfigError(key, 'must be a mapping {name: str, offset: [x, y, z]}')
-        unknown = sorted(set(item) - {'name', 'offset', 'orientation'})
-        if unknown:
-            raise ConfigError(f'{key}.{unknown[0]}', 'unknown key; allowed: name, offset, '
-                              'orientation')
-        name = item['name']
-        if not name or not all(c.isalnum() or c == '_' for c in name) or name in names:
-            raise ConfigError(f'{key}.name', f'{name!r}: give a unique name of letters, digits '
-                              'and _ (it appears in parameter names reflector.<name>.x)')
-        names.append(name)
-        offset = item.get('offset')
-        offsets.append(np.full(3, np.nan) if offset is None
-                       else _plausible_offset(_vector(offset, f'{key}.offset', 3),
-                                              f'{key}.offset'))
-        if item.get('orientation') is not None:
-            orientations.append((i, _orientation(item['orientation'], f'{key}.orientation')))
-    return tuple(names), np.array(offsets), tuple(orientations)
-
-
-def _orientation(raw: Any, key: str) -> np.ndarray:
-    """A tracked body's orientation in the tip frame, ``{rpy: [roll, pitch, yaw]}`` (rad,
-    URDF convention) or ``{quaternion: [x, y, z, w]}``, as a (3, 3) rotation."""
-    if not isinstance(raw, dict) or len(raw) != 1 or next(iter(raw)) not in ('rpy',
-                                                                            'quaternion'):
-        raise ConfigError(key, 'must be {rpy: [roll, pitch, yaw]} (rad, URDF convention) or '
-                          f'{{quaternion: [x, y, z, w]}} of the tracked body in the tip frame, '
-                          f'got {raw!r}')
-    if 'rpy' in raw:
-        rpy = _vector(raw['rpy'], f'{key}.rpy', 3)
-        if np.any(np.abs(rpy) > 2 * np.pi):
-            raise ConfigError(f'{key}.rpy', f'{rpy.tolist()}: angles beyond 2π; give radians '
-                              '(degrees? multiply by π/180)')
-        return rotation_from_rpy(rpy.tolist())
-    quaternion = _vector(raw['quaternion'], f'{key}.quaternion', 4)
-    try:
-        return rotation_from_quaternion(quaternion.tolist())
-    except ValueError as exc:
-        raise ConfigError(f'{key}.quaternion', f'{exc}; give a unit quaternion in the '
-                          'order [x, y, z, w]') from None
 
 
 def with_overrides(cell: Cell, urdf_xml: str | None = None,
@@ -425,408 +333,6 @@ def with_overrides(cell: Cell, urdf_xml: str | None = None,
     if working_poses:
         changes['working_poses'] = tuple(working_poses)
     return replace(cell, **changes)
-
-
-def design_settings(raw: Mapping[str, Any] | None) -> DesignSettings:
-    """Validate the ``design:`` mapping of a cell file; errors name the key."""
-    raw = dict(raw or {})
-    defaults = DesignSettings()
-    known = set(defaults.__dataclass_fields__)
-    for key in raw:
-        if key not in known:
-            raise ConfigError(f'design.{key}', f'unknown key; allowed: {sorted(known)}')
-    values: dict[str, Any] = {}
-    for key, value in raw.items():
-        default = getattr(defaults, key)
-        path = f'design.{key}'
-        if key == 'weights':
-            if not isinstance(value, Mapping) or not all(
-                    isinstance(v, (int, float)) and v >= 0 for v in value.values()):
-                raise ConfigError(path, 'must map working pose names to weights >= 0')
-            values[key] = {str(k): float(v) for k, v in value.items()}
-        elif isinstance(default, bool):
-            if not isinstance(value, bool):
-                raise ConfigError(path, f'must be true or false, got {value!r}')
-            values[key] = value
-        elif isinstance(default, int):
-            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-                raise ConfigError(path, f'must be a positive integer, got {value!r}')
-            values[key] = value
-        else:
-            values[key] = _non_negative(number(raw, key, 'design'), path, '')
-    if values.get('flag_threshold', 0.5) > 1:
-        raise ConfigError('design.flag_threshold', 'must be a fraction in [0, 1]')
-    return replace(defaults, **values)
-
-
-_IDENT_KEYS = {'method', 'priority', 'model', 'loss', 'outliers', 'cv_folds', 'prior',
-               'max_iterations'}
-PRIOR_KEYS = ('translation', 'rotation', 'offset')
-
-
-def identification_settings(raw: Mapping[str, Any]) -> IdentificationSettings:
-    """Validate the model-size, loss and outlier keys of ``identification:``."""
-    unknown = set(raw) - _IDENT_KEYS
-    if unknown:
-        raise ConfigError(f'identification.{sorted(unknown)[0]}',
-                          f'unknown key; allowed: {sorted(_IDENT_KEYS)}')
-    model = raw.get('model', 'geometric')
-    if model not in MODEL_CHOICES:
-        raise ConfigError('identification.model', f'must be one of {list(MODEL_CHOICES)}, '
-                          f'got {model!r}')
-    loss = raw.get('loss', 'linear')
-    if loss not in LOSSES:
-        raise ConfigError('identification.loss', f'must be one of {list(LOSSES)}, got {loss!r}')
-    folds = raw.get('cv_folds', DEFAULT_FOLDS)
-    if isinstance(folds, bool) or not isinstance(folds, int) or folds < 2:
-        raise ConfigError('identification.cv_folds', f'must be an integer >= 2, got {folds!r}')
-    out = raw.get('outliers') or {}
-    if not isinstance(out, dict):
-        raise ConfigError('identification.outliers', 'must be a mapping {exclude: true, '
-                          'threshold: null}')
-    bad = set(out) - {'exclude', 'threshold', 'max_fraction'}
-    if bad:
-        raise ConfigError(f'identification.outliers.{sorted(bad)[0]}', 'unknown key; allowed: '
-                          "['exclude', 'max_fraction', 'threshold']")
-    exclude = out.get('exclude', True)
-    if not isinstance(exclude, bool):
-        raise ConfigError('identification.outliers.exclude', f'must be true or false, got '
-                          f'{exclude!r}')
-    threshold = out.get('threshold')
-    if threshold is not None and (isinstance(threshold, bool) or
-                                  not isinstance(threshold, (int, float)) or threshold <= 1):
-        raise ConfigError('identification.outliers.threshold', 'must be a distance in units of '
-                          f'the robust σ greater than 1 (e.g. 5.0), or null; got {threshold!r}')
-    fraction = out.get('max_fraction', 0.2)
-    if isinstance(fraction, bool) or not isinstance(fraction, (int, float)) or \
-            not 0 <= fraction < 1:
-        raise ConfigError('identification.outliers.max_fraction', f'must be in [0, 1), got '
-                          f'{fraction!r}')
-    limit = raw.get('max_iterations', DEFAULT_MAX_ITERATIONS)
-    if isinstance(limit, bool) or not isinstance(limit, int) or limit < 1:
-        raise ConfigError('identification.max_iterations', 'must be a positive integer (the '
-                          f'iteration limit of every fit, default {DEFAULT_MAX_ITERATIONS}), '
-                          f'got {limit!r}')
-    return IdentificationSettings(model, loss, OutlierSettings(
-        exclude, None if threshold is None else float(threshold), float(fraction)), folds,
-        _tolerance_prior(raw.get('prior')), limit)
-
-
-def _tolerance_prior(raw: Any) -> tuple[float, float, float] | None:
-    """``identification.prior``: {translation, rotation, offset} std (m, rad), or null."""
-    if raw is None:
-        return None
-    fix = ('a mapping {translation: 1.0e-3, rotation: 1.0e-3, offset: 1.0e-3} of the '
-           'tolerance std (m, rad, rad) of the joint placements and offsets, or null')
-    if not isinstance(raw, dict):
-        raise ConfigError('identification.prior', f'must be {fix}; got {raw!r}')
-    bad = set(raw) ^ set(PRIOR_KEYS)
-    if bad:
-        raise ConfigError(f'identification.prior.{sorted(bad)[0]}',
-                          f'unknown or missing key: give exactly {list(PRIOR_KEYS)}')
-    values = []
-    for key in PRIOR_KEYS:
-        v = raw[key]
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < float('inf'):
-            raise ConfigError(f'identification.prior.{key}', 'must be a positive std in m '
-                              f'or rad (e.g. 1.0e-3){_text_number_hint(v)}; got {v!r}')
-        values.append(float(v))
-    return values[0], values[1], values[2]
-
-
-def simulation_settings(raw: Any) -> SimulationSettings:
-    """Validate the ``simulation:`` mapping of a cell file."""
-    if raw is None:
-        return SimulationSettings()
-    if not isinstance(raw, dict):
-        raise ConfigError('simulation', 'must be a mapping, e.g. {hidden_effects: '
-                          '{joint_compliance:joint_2: {c: 5.0e-7}}}')
-    unknown = set(raw) - {'hidden_effects'}
-    if unknown:
-        raise ConfigError(f'simulation.{sorted(unknown)[0]}', "unknown key; allowed: "
-                          "['hidden_effects']")
-    hidden = raw.get('hidden_effects') or {}
-    if not isinstance(hidden, dict):
-        raise ConfigError('simulation.hidden_effects', 'must map effect specs to their '
-                          'parameters, e.g. {joint_compliance:joint_2: {c: 5.0e-7}}')
-    return SimulationSettings(dict(hidden))
-
-
-def number(section: Mapping[str, Any], name: str, path: str,
-           default: float | None = None, unit: str = '') -> float:
-    """The finite number ``section[name]`` (``default`` when absent); the one reader of
-    numeric cell values, so a wrong type (``beam_radius: wide``) names its key path
-    ``path.name`` and the unit."""
-    key = f'{path}.{name}' if path else name
-    value = section.get(name, default)
-    if value is None:
-        raise ConfigError(key, f'missing; give a number{f" ({unit})" if unit else ""}')
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
-        raise ConfigError(key, f'must be a finite number{f" in {unit}" if unit else ""} '
-                          f'(SI units), got {value!r}')
-    return float(value)
-
-
-def _non_negative(value: float, key: str, unit: str) -> float:
-    if value < 0:
-        raise ConfigError(key, f'must be >= 0 {unit}, got {value}')
-    return value
-
-
-def _plausible_pose(pose: np.ndarray) -> np.ndarray:
-    """``tracker.base_in_tracker`` in SI units, or a ConfigError with a units hint (a pose
-    in millimetres or degrees would otherwise end in a design with no feasible pose)."""
-    distance = float(np.linalg.norm(pose[:3]))
-    if distance > MAX_TRACKER_RANGE_M:
-        raise ConfigError('tracker.base_in_tracker', f'the robot base is {distance:g} m from '
-                          f'the tracker, beyond any tracker range ({MAX_TRACKER_RANGE_M:g} m); '
-                          'give x, y, z in SI metres (millimetres? divide by 1000)')
-    if np.any(np.abs(pose[3:]) > 2 * np.pi):
-        raise ConfigError('tracker.base_in_tracker', f'roll, pitch, yaw {pose[3:].tolist()} '
-                          'exceed 2π; give them in radians (degrees? multiply by π/180)')
-    return pose
-
-
-def _plausible_offset(offset: np.ndarray, key: str = 'reflector.offset') -> np.ndarray:
-    """A reflector offset (``key``) in SI metres, or a ConfigError with a units hint."""
-    length = float(np.linalg.norm(offset))
-    if length > MAX_REFLECTOR_OFFSET_M:
-        raise ConfigError(key, f'the reflector is {length:g} m from the tip '
-                          f'frame (at most {MAX_REFLECTOR_OFFSET_M:g} m is plausible); give '
-                          'it in SI metres (millimetres? divide by 1000; 30 mm is 0.03)')
-    return offset
-
-
-def _topics(raw: Any) -> dict[str, str]:
-    """The ``topics:`` section: which topics of a bag carry the joint states, the
-    tracker points and the tracked 6-DoF poses (``--joint-topic`` / ``--point-topic`` /
-    ``--pose-topic`` override it)."""
-    if raw is None:
-        raw = {}
-    if not isinstance(raw, dict):
-        raise ConfigError('topics', f'must be a mapping with keys {sorted(_TOPIC_KEYS)}')
-    unknown = set(raw) - set(_TOPIC_KEYS)
-    if unknown:
-        raise ConfigError(f'topics.{sorted(unknown)[0]}', f'unknown key; allowed: '
-                          f'{sorted(_TOPIC_KEYS)}')
-    names = {}
-    for key, default in _TOPIC_KEYS.items():
-        value = raw.get(key, default)
-        if not isinstance(value, str) or not value.strip() or ' ' in value:
-            raise ConfigError(f'topics.{key}', f'must be a topic name such as {default!r}, '
-                              f'got {value!r}')
-        names[key] = value
-    keys = list(names)
-    for i, key in enumerate(keys):
-        same = [k for k in keys[:i] if names[k] == names[key]]
-        if same:
-            raise ConfigError(f'topics.{key}', f'must differ from topics.{same[0]}')
-    return {'joint_topic': names['joint_states'], 'point_topic': names['point'],
-            'pose_topic': names['pose']}
-
-
-def _priority(ident: dict, method: str) -> tuple[str, ...]:
-    """``identification.priority``: parameter names, used only by ``method: priority``
-    (their existence is checked against the model in :func:`build_cell_model`)."""
-    raw = ident.get('priority')
-    if raw is None:
-        return ()
-    if not isinstance(raw, list) or not all(isinstance(n, str) for n in raw):
-        raise ConfigError('identification.priority', 'must be a list of parameter names, e.g. '
-                          '[joint_1.offset, joint_2.offset]')
-    if method != 'priority':
-        raise ConfigError('identification.priority', "is used only with method: priority; "
-                          'set it or remove the list')
-    return tuple(raw)
-
-
-MAX_JOINT_SIGMA = 0.01  # rad (0.57°); m for a prismatic joint
-
-
-def _joint_sigma(value: Any) -> float | dict[str, float] | None:
-    """noise.joint_sigma: None, a number for every joint or {joint name: number}, each in
-    [0, MAX_JOINT_SIGMA]."""
-    if value is None:
-        return None
-    fix = ('the standard deviation of the joint readings in rad (m for a prismatic joint), '
-           'one number for every joint or {joint_name: value}; 0.03° is 5.2e-4')
-    if isinstance(value, dict):
-        out = {}
-        for name, v in value.items():
-            out[str(name)] = number(value, name, 'noise.joint_sigma', None, 'rad')
-            if not 0 <= out[str(name)] <= MAX_JOINT_SIGMA:
-                raise ConfigError(f'noise.joint_sigma.{name}', f'{v!r} must be in '
-                                  f'[0, {MAX_JOINT_SIGMA}]: {fix}')
-        return out
-    sigma = number({'joint_sigma': value}, 'joint_sigma', 'noise', None, 'rad')
-    if not 0 <= sigma <= MAX_JOINT_SIGMA:
-        raise ConfigError('noise.joint_sigma', f'{value!r} must be in [0, {MAX_JOINT_SIGMA}]: '
-                          f'{fix}')
-    return sigma
-
-
-def joint_sigma_vector(value: float | Mapping[str, float] | None,
-                       joint_names: Sequence[str]) -> np.ndarray | None:
-    """noise.joint_sigma in chain order (n,) rad, matched by joint name; None when unstated."""
-    if value is None:
-        return None
-    if not isinstance(value, Mapping):
-        return np.full(len(joint_names), float(value))
-    unknown = [n for n in value if n not in joint_names]
-    if unknown:
-        raise ConfigError('noise.joint_sigma', f'unknown joint(s) {unknown}; the chain joints '
-                          f'are {list(joint_names)}')
-    return np.array([float(value.get(n, 0.0)) for n in joint_names])
-
-
-def _optional_mapping(doc: dict, key: str) -> dict:
-    value = doc.get(key)
-    if value is None:
-        return {}
-    if not isinstance(value, dict):
-        raise ConfigError(key, f'must be a mapping, got {value!r}')
-    return value
-
-
-def _mapping(doc: dict, key: str) -> dict:
-    value = doc.get(key)
-    if not isinstance(value, dict):
-        raise ConfigError(key, 'missing or not a mapping')
-    return value
-
-
-def _str(doc: dict, path: str, key: str) -> str:
-    value = doc.get(key)
-    if not isinstance(value, str) or not value:
-        raise ConfigError(path, 'missing; give a non-empty string')
-    return value
-
-
-def _vector(value: Any, path: str, n: int) -> np.ndarray:
-    try:
-        arr = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        arr = np.array([])
-    if value is None or arr.shape != (n,) or not np.all(np.isfinite(arr)):
-        raise ConfigError(path, f'must be a list of {n} finite numbers (SI units), got '
-                          f'{value!r}{_text_number_hint(value)}')
-    return arr
-
-
-def _optional_vector(value: Any, path: str, n: int) -> np.ndarray:
-    """``_vector``, or zeros when the key is left out (registered from the data later)."""
-    return np.zeros(n) if value is None else _vector(value, path, n)
-
-
-def _package_dirs(value: Any) -> tuple[str, ...]:
-    if value is None:
-        return ()
-    if not isinstance(value, list) or not all(isinstance(v, str) and v for v in value):
-        raise ConfigError('robot.package_dirs', 'must be a list of directories (relative to the '
-                          f'cell file) where package:// URIs are searched, got {value!r}')
-    return tuple(value)
-
-
-def _text_number_hint(value: Any) -> str:
-    """Why a number arrived as text: quoted, or YAML 1.1's float rule (``2e-06`` is a
-    string for PyYAML; ``2.0e-06`` a number), and the fix."""
-    try:
-        number = float(value) if isinstance(value, str) else None
-    except ValueError:
-        number = None
-    if number is None:
-        return ''
-    return (f' (a string: a quoted number, or YAML 1.1 reading an exponent without a '
-            f'decimal point as text; write {number:.1e} unquoted, e.g. sigma: {number:.1e})')
-
-
-def _number_or_vector(value: Any, path: str) -> Any:
-    if isinstance(value, (int, float)) and not isinstance(value, bool):
-        return float(value)
-    return _vector(value, path, 3)
-
-
-def _working_poses(value: Any) -> tuple[WorkingPose, ...]:
-    """``working_poses``: none (left out or empty: identify reports no TCP, design refuses),
-    or a list of named or chain-ordered poses."""
-    if value is None or value == []:
-        return ()
-    if not isinstance(value, list):
-        raise ConfigError('working_poses', 'must be a list of working poses as '
-                          '{name: ..., joints: {joint_name: value_rad, ...}} or as lists of '
-                          'joint values in chain order (or left out: no TCP is reported)')
-    poses = []
-    for i, item in enumerate(value):
-        key = f'working_poses[{i}]'
-        if isinstance(item, list):  # joint values in chain order; length checked on the robot
-            poses.append(WorkingPose(f'work_{i + 1}', {}, tuple(
-                _joint_value(v, f'{key}[{j}]') for j, v in enumerate(item))))
-            continue
-        if not isinstance(item, dict) or not isinstance(item.get('joints'), dict):
-            raise ConfigError(key, 'must be a mapping with a joints: {name: rad} mapping, or a '
-                              'list of joint values in chain order')
-        joints = {str(name): _joint_value(v, f'{key}.joints.{name}')
-                  for name, v in item['joints'].items()}
-        poses.append(WorkingPose(str(item.get('name', f'work_{i + 1}')), joints))
-    return tuple(poses)
-
-
-def working_poses_from_arrays(names: Sequence[str], values: Sequence[float],
-                              names_key: str = 'working_joint_names',
-                              values_key: str = 'working_poses') -> tuple[WorkingPose, ...]:
-    """Working poses from a flat list of joint values, one block of ``len(names)`` per
-    pose (the node's parameters); errors name ``names_key`` / ``values_key``."""
-    names = [str(n) for n in names]
-    if not names or len(set(names)) != len(names):
-        raise ConfigError(names_key, f'give the unique joint names of {values_key}, '
-                          f'got {names}')
-    if not len(values) or len(values) % len(names):
-        raise ConfigError(values_key, f'must hold finite values (rad), {len(names)} per pose '
-                          f'(one per {names_key}), got {len(values)} values')
-    poses = []
-    for i in range(len(values) // len(names)):
-        row = values[i * len(names):(i + 1) * len(names)]
-        joints = {n: _joint_value(v, f'{values_key}[{i * len(names) + j}]')
-                  for j, (n, v) in enumerate(zip(names, row))}
-        poses.append(WorkingPose(f'work_{i + 1}', joints))
-    return tuple(poses)
-
-
-def _joint_value(v: Any, key: str) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
-        raise ConfigError(key, f'must be a finite number (rad), got {v!r}')
-    return float(v)
-
-
-def _capsule(item: Any, key: str, frame_key: str = 'frame') -> Capsule:
-    if not isinstance(item, dict):
-        raise ConfigError(key, 'must be a mapping {name, a, b, radius}')
-    radius = _non_negative(number(item, 'radius', key, unit='m'), f'{key}.radius', 'm')
-    frame = str(item.get(frame_key, 'base'))
-    return Capsule(str(item.get('name', frame if frame_key == 'link' else key)), frame,
-                   _vector(item.get('a'), f'{key}.a', 3), _vector(item.get('b'), f'{key}.b', 3),
-                   radius)
-
-
-def _obstacle(item: Any, key: str) -> Capsule | HalfSpace:
-    if not isinstance(item, dict) or 'name' not in item:
-        raise ConfigError(key, 'must be a mapping with name and type (capsule or halfspace)')
-    kind = item.get('type', 'capsule')
-    if kind == 'halfspace':
-        normal = _vector(item.get('normal'), f'{key}.normal', 3)
-        if np.linalg.norm(normal) < 1e-9:
-            raise ConfigError(f'{key}.normal', 'must be non-zero')
-        return HalfSpace(str(item['name']), normal, number(item, 'offset', key, 0.0, 'm'))
-    if kind == 'capsule':
-        cap = _capsule(item, key)
-        return Capsule(cap.name, 'base', cap.a, cap.b, cap.radius)
-    raise ConfigError(f'{key}.type', f"must be 'capsule' or 'halfspace', got {kind!r}")
-
-
-def _pair(item: Any, key: str) -> frozenset:
-    if not isinstance(item, (list, tuple)) or len(item) != 2:
-        raise ConfigError(key, 'must be a pair [name_a, name_b] of links/capsules/obstacles')
-    return frozenset(str(x) for x in item)
 
 
 @dataclass(frozen=True)
@@ -941,8 +447,7 @@ def build_cell_model(cell: Cell, effects: tuple = ()) -> CellModel:
         bad = cell.working_poses[int(np.argmin(inside))].name
         raise ConfigError('working_poses', f'pose {bad!r} is outside the joint limits '
                           f'{robot.lower.round(3).tolist()} .. {robot.upper.round(3).tolist()}')
-    b = cell.base_in_tracker
-    base_in_tracker = np.array(ca.DM(pose6(ca.DM(b))))
+    base_in_tracker = pose_matrix(cell.base_in_tracker)
     return CellModel(cell, robot, geometric, model, q_work,
                      tuple(w.name for w in cell.working_poses), np.linalg.inv(base_in_tracker),
                      coupling)

@@ -187,8 +187,9 @@ CELL_KEYS: tuple[CellKey, ...] = (
        'outliers before the fit is refused, in [0, 1).', 0.1),
     _K('identification.cv_folds', 'integer', '', '5', 'Folds of the cross-validated rms '
        "reported beside `auto`'s choice, ≥ 2.", 5),
-    _K('identification.max_iterations', 'integer', '', '500', 'Iteration limit of every '
-       'fit (trust-region Gauss-Newton), ≥ 1; `identify --max-iterations` overrides it.', 200),
+    _K('identification.max_iterations', 'integer or null', '', 'null', 'Iteration limit of '
+       'every fit (trust-region Gauss-Newton), ≥ 1; null: 100 per identified parameter '
+       "(SciPy's max_nfev); `identify --max-iterations` overrides it.", 200),
     _K('identification.prior', 'mapping or null', '', 'null', 'Nominal tolerances: one std '
        'around the URDF for every joint placement and offset (a Gaussian prior).',
        {'translation': 1e-3, 'rotation': 1e-3, 'offset': 1e-3}),
@@ -238,6 +239,21 @@ CELL_KEYS: tuple[CellKey, ...] = (
        'topic of the tracker points.', '/tracker/point'),
     _K('topics.pose', 'string', '', '/laser_tracker/pose', 'geometry_msgs/PoseStamped topic '
        'of tracked 6-DoF bodies.', '/tracker/pose'),
+    # ------------------------------------------------------------ temperature
+    _K('temperature', 'mapping', '', NONE, 'Temperature of the arm, read with the joint states '
+       'and paired to every point by time; absent: no temperature read and no thermal '
+       'effect screened.', {'sensors': ['upper_arm']}),
+    _K('temperature.topic', 'string', '', '/cell/temperature', 'sensor_msgs/Temperature topic '
+       '(°C; `kpi-calib import-csv` writes a table\'s temperature column there).',
+       '/arm/temperature'),
+    _K('temperature.sensors', '[frame id, …]', '', '[] (every sensor)', 'Header frame ids of the '
+       'sensors whose mean is the arm\'s temperature (the covariate `delta_temperature`); every '
+       'sensor is kept as `temperature.<frame_id>`.', ['upper_arm', 'forearm']),
+    _K('temperature.reference', 'number', '°C', '20.0', 'Temperature the geometry is stated '
+       'at (ISO 1: 20 °C); thermal effects act on ΔT = temperature − reference.', 21.5),
+    _K('temperature.max_gap', 'number', 's', '120.0', 'Largest gap between temperature samples '
+       '(and beyond the first/last) bridged by interpolation; a point outside is refused.',
+       300.0),
 )
 
 

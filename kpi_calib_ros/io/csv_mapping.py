@@ -15,8 +15,8 @@ from typing import Any
 
 from scipy.spatial.transform import Rotation
 
+from kpi_calib_ros.core.acquisition.pairing import REFLECTOR_SEPARATOR
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.core.pairing import REFLECTOR_SEPARATOR
 from kpi_calib_ros.io.csv_table import DECIMALS, DELIMITERS
 from kpi_calib_ros.io.yaml_bounded import read_yaml_file
 

@@ -20,9 +20,9 @@ import numpy as np  # noqa: E402
 import scipy.stats  # noqa: E402
 import yaml  # noqa: E402
 
-from kpi_calib_ros.core.collision import Capsule, CollisionScene, HalfSpace  # noqa: E402
-from kpi_calib_ros.core.design import DesignResult  # noqa: E402
-from kpi_calib_ros.core.design_cell import DesignCell  # noqa: E402
+from kpi_calib_ros.core.collision.capsules import Capsule, CollisionScene, HalfSpace  # noqa: E402
+from kpi_calib_ros.core.design.cell import DesignCell  # noqa: E402
+from kpi_calib_ros.core.design.optimum import DesignResult  # noqa: E402
 from kpi_calib_ros.core.errors import ConfigError  # noqa: E402
 from kpi_calib_ros.io.results import write_atomic  # noqa: E402
 from kpi_calib_ros.io.yaml_bounded import read_yaml_file  # noqa: E402

@@ -1,13 +1,15 @@
 """The "nothing lost" store: accepted measurements appended durably as MCAP bags.
 
 Each process run opens the next ``measurements_<n>.mcap`` in the data directory.
-Every accepted measurement (the paired joint state and tracker point, same stamp) is
-one self-contained record: an MCAP chunk holding both messages and the CRC of its
-bytes. An append writes the chunk past the last good offset and fsyncs it before it
-counts; if writing or syncing fails (a full disk), the file is cut back to the last
-good offset and the error propagates, so what is acknowledged is exactly what is on
-disk. The reader skips a torn or damaged record with a warning, so a log stays
-readable whatever happened; :meth:`MeasurementLog.load_all` recovers every acknowledged measurement,
+Every accepted measurement (the paired joint state and tracker point, same stamp,
+and the point's stated σ when the tracker gave one) is one self-contained record: an
+MCAP chunk holding these messages and the CRC of its bytes; a σ that arrives after its
+measurement was stored is a record of its own. An append writes the chunk past the
+last good offset and fsyncs it before it counts; if writing or syncing fails (a full
+disk), the file is cut back to the last good offset and the error propagates, so what
+is acknowledged is exactly what is on disk. The reader skips a torn or damaged record
+with a warning, so a log stays readable whatever happened;
+:meth:`MeasurementLog.load_all` recovers every acknowledged measurement,
 including those of a process that was killed.
 
 The file marks itself as a log with a ``kpi_calib_ros`` metadata record, so every
@@ -27,9 +29,10 @@ from mcap.data_stream import RecordBuilder
 from mcap.records import Channel, Chunk, DataEnd, Footer, Header, Message, Metadata, Schema
 from mcap.well_known import MessageEncoding, SchemaEncoding
 
+from kpi_calib_ros.core.acquisition.pairing import PairingResult, split_frame, stacked_rotations
+from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
 from kpi_calib_ros.core.errors import DataError
-from kpi_calib_ros.core.pairing import PairingResult, split_frame, stacked_rotations
-from kpi_calib_ros.core.streams import JointSample, PointSample
+from kpi_calib_ros.core.measurement.covariates import TemperatureSample
 from kpi_calib_ros.io.bag import (
     DEFAULT_JOINT_TOPIC,
     DEFAULT_POINT_TOPIC,
@@ -38,10 +41,11 @@ from kpi_calib_ros.io.bag import (
     LOG_METADATA,
     BagError,
     StreamEncoders,
-    read_log,
+    read_log_with_sigma,
+    read_temperatures,
 )
 from kpi_calib_ros.io.mcap_scan import MAGIC
-from kpi_calib_ros.io.names import DEFAULT_POSE_TOPIC
+from kpi_calib_ros.io.names import DEFAULT_POSE_TOPIC, point_sigma_topic
 
 _LOG_NAME = re.compile(r'measurements_(\d+)\.mcap')
 
@@ -66,15 +70,23 @@ class MeasurementLog:
         Created if missing.
     joint_topic, point_topic, pose_topic : str
         Topics the paired joint state and point (a tracked 6-DoF pose: PoseStamped on
-        ``pose_topic``) are stored under.
+        ``pose_topic``) are stored under; a point's stated σ goes on
+        ``point_sigma_topic(point_topic)`` (Vector3Stamped, as in bags).
+    temperature_topic : str, optional
+        With it, the temperature readings (:meth:`append_temperature`) are stored too, as
+        ``sensor_msgs/Temperature`` on that topic, and paired to the points by time when
+        the log is read (:func:`kpi_calib_ros.io.bag.read_temperatures`).
     """
 
     def __init__(self, directory: str | os.PathLike, joint_topic: str = DEFAULT_JOINT_TOPIC,
                  point_topic: str = DEFAULT_POINT_TOPIC,
-                 pose_topic: str = DEFAULT_POSE_TOPIC) -> None:
+                 pose_topic: str = DEFAULT_POSE_TOPIC,
+                 temperature_topic: str | None = None) -> None:
         self.directory = Path(directory)
         self.directory.mkdir(parents=True, exist_ok=True)
-        self._encoders = StreamEncoders(joint_topic, point_topic, pose_topic)
+        self._encoders = StreamEncoders(joint_topic, point_topic, pose_topic, temperature_topic,
+                                        sigma_topic=point_sigma_topic(point_topic))
+        self.temperature_topic = temperature_topic
         files = _log_files(self.directory)
         last = _LOG_NAME.fullmatch(files[-1].name) if files else None  # files all match
         n = int(last.group(1)) + 1 if last else 1
@@ -134,7 +146,8 @@ class MeasurementLog:
     def closed(self) -> bool:
         return self._closed
 
-    def append(self, joint_sample: JointSample, point: PointSample) -> None:
+    def append(self, joint_sample: JointSample, point: PointSample,
+               sigma: np.ndarray | None = None) -> None:
         """Store one accepted measurement durably before returning.
 
         Parameters
@@ -143,6 +156,8 @@ class MeasurementLog:
             The configuration paired with the point (e.g.
             :meth:`PairedMeasurement.joint_sample`), stamped like ``point``.
         point : PointSample
+        sigma : (3,) ndarray, optional
+            The tracker's stated σ of the point per axis (m), > 0 and finite.
 
         Raises
         ------
@@ -154,21 +169,80 @@ class MeasurementLog:
         if joint_sample.stamp_ns != point.stamp_ns:
             raise ValueError(f'joint_sample.stamp_ns {joint_sample.stamp_ns} must equal '
                              f'point.stamp_ns {point.stamp_ns}')
-        stamp = point.stamp_ns
-        inner = RecordBuilder()
         measured = ((2, self._encoders.pose(point)) if point.rotation is not None
                     else (1, self._encoders.point(point)))
-        for channel, data in ((0, self._encoders.joint(joint_sample)), measured):
-            Message(channel_id=channel, sequence=self._sequence + 1 + min(channel, 1),
-                    log_time=stamp,
+        messages = [(0, self._encoders.joint(joint_sample)), measured]
+        if sigma is not None:
+            messages.append(self._sigma_message(point.stamp_ns, point.frame_id, sigma))
+        self._write_record(point.stamp_ns, messages)
+        self.count += 1
+
+    def append_sigma(self, stamp_ns: int, frame_id: str, sigma: np.ndarray) -> None:
+        """Store the stated σ (3,) (m) of a measurement already stored without one (it
+        arrived after its point was paired), durably before returning.
+
+        Raises
+        ------
+        OSError
+            Not stored; nothing of it is left in the file.
+        """
+        if self.closed:
+            raise ValueError(f'MeasurementLog {self.path} is closed')
+        self._write_record(stamp_ns, [self._sigma_message(stamp_ns, frame_id, sigma)])
+
+    def _sigma_message(self, stamp_ns: int, frame_id: str, sigma: np.ndarray
+                       ) -> tuple[int, bytes]:
+        sigma = np.asarray(sigma, dtype=float)
+        if sigma.shape != (3,) or not np.all(np.isfinite(sigma)) or np.any(sigma <= 0):
+            raise ValueError(f'sigma must be 3 finite values > 0 (m), got {sigma.tolist()}')
+        return 3, self._encoders.point_sigma(stamp_ns, frame_id, sigma)
+
+    def _write_record(self, stamp: int, messages: list[tuple[int, bytes]]) -> None:
+        """``messages`` (channel, CDR) as one chunk: on disk whole or not at all."""
+        inner = RecordBuilder()
+        for k, (channel, data) in enumerate(messages):
+            Message(channel_id=channel, sequence=self._sequence + 1 + k, log_time=stamp,
                     publish_time=stamp, data=data).write(inner)
         body = inner.end()
         record = RecordBuilder()
         Chunk(compression='', data=body, message_start_time=stamp, message_end_time=stamp,
               uncompressed_crc=zlib.crc32(body), uncompressed_size=len(body)).write(record)
         self._commit(record.end())
-        self._sequence += 2
-        self.count += 1
+        self._sequence += len(messages)
+
+    def append_temperature(self, sample: TemperatureSample) -> None:
+        """Store one temperature reading durably before returning (its own chunk).
+
+        Raises
+        ------
+        ValueError
+            The log was opened without a temperature topic, or is closed.
+        OSError
+            Not stored; nothing of it is left in the file.
+        """
+        if self.closed or self.temperature_topic is None:
+            raise ValueError(f'MeasurementLog {self.path} is closed or stores no temperature')
+        stamp = int(sample.stamp_ns)
+        inner = RecordBuilder()
+        channel = [t for t, _ in self._encoders.topics].index(self.temperature_topic)
+        Message(channel_id=channel, sequence=self._sequence + 1, log_time=stamp, publish_time=stamp,
+                data=self._encoders.temperature(stamp, sample.frame_id, sample.celsius)
+                ).write(inner)
+        body = inner.end()
+        record = RecordBuilder()
+        Chunk(compression='', data=body, message_start_time=stamp, message_end_time=stamp,
+              uncompressed_crc=zlib.crc32(body), uncompressed_size=len(body)).write(record)
+        self._commit(record.end())
+        self._sequence += 1
+
+    @staticmethod
+    def load_temperatures(directory: str | os.PathLike,
+                          topic: str) -> list[TemperatureSample]:
+        """Every temperature reading on ``topic`` in ``directory``'s logs, in stamp order."""
+        samples: list[TemperatureSample] = []
+        for path in _log_files(Path(directory)):
+            samples += read_temperatures(path, topic)
+        return sorted(samples, key=lambda s: s.stamp_ns)
 
     def close(self) -> None:
         """Finalise the bag (data end and footer; the records are read linearly, so no
@@ -202,13 +276,24 @@ class MeasurementLog:
         Logs of killed processes are included; a record torn by a kill or a full disk
         (never acknowledged) is skipped with a :class:`~kpi_calib_ros.io.bag.BagWarning`.
         """
+        return MeasurementLog.load(directory, joint_topic, point_topic, pose_topic)[0]
+
+    @staticmethod
+    def load(directory: str | os.PathLike, joint_topic: str = DEFAULT_JOINT_TOPIC,
+             point_topic: str = DEFAULT_POINT_TOPIC, pose_topic: str = DEFAULT_POSE_TOPIC
+             ) -> tuple[list[tuple[JointSample, PointSample]], dict[tuple[int, str], np.ndarray]]:
+        """:meth:`load_all`, and the points' stated σ (3,) (m) by (stamp ns, frame id)
+        (none in logs written before σ was stored: those points take the cell's σ)."""
         directory = Path(directory)
         if not directory.is_dir():
             raise BagError(f'{directory}: no such directory of measurement logs')
         pairs: list[tuple[JointSample, PointSample]] = []
+        sigma: dict[tuple[int, str], np.ndarray] = {}
         for path in _log_files(directory):
-            pairs += read_log(path, joint_topic, point_topic, pose_topic)
-        return pairs
+            more, stated = read_log_with_sigma(path, joint_topic, point_topic, pose_topic)
+            pairs += more
+            sigma.update(stated)
+        return pairs, sigma
 
 
 

@@ -14,6 +14,9 @@ CALIBRATION_FILE = 'calibration.yaml'
 # the last good calibration.yaml.
 FAILED_CALIBRATION_FILE = 'calibration.failed.yaml'
 CALIBRATED_URDF_FILE = 'robot_description_calibrated.urdf'
+# The learned residual (Gaussian process over joint space) beside calibration.yaml: the
+# calibrated URDF cannot carry it.
+LEARNED_RESIDUAL_FILE = 'learned_residual.yaml'
 DESIGN_FILE = 'design.yaml'
 CAMPAIGN_PLAN_FILE = 'campaign_plan.yaml'   # initial design of a sequential campaign
 CAMPAIGN_STATE_FILE = 'campaign_state.yaml'  # a node's sequential campaign, to resume it
@@ -26,7 +29,7 @@ VALIDATION_FILE = 'validation.json'
 # Every valid calibration of the node, kept by its identified_at_ns (not moved by reset).
 CALIBRATIONS_DIR = 'calibrations'
 RESULT_FILES = (CALIBRATION_FILE, FAILED_CALIBRATION_FILE, CALIBRATED_URDF_FILE, DIAGNOSIS_DIR,
-                VALIDATION_DIR, CAMPAIGN_STATE_FILE)
+                VALIDATION_DIR, CAMPAIGN_STATE_FILE, LEARNED_RESIDUAL_FILE)
 
 # ---------------------------------------------------------------------- topics
 DEFAULT_JOINT_TOPIC = '/joint_states'
@@ -53,6 +56,10 @@ TCP_TOPIC = '~/tcp'
 VALIDATION_TOPIC = '~/validation'
 CAMPAIGN_STATUS_TOPIC = '~/campaign_status'
 CHANGE_TEST_TOPIC = '~/change_test'
+# Joint positions in (sensor_msgs/JointState, joints by name), the TCP with the learned
+# residual and its covariance out (PoseWithCovarianceStamped, the query's stamp).
+TCP_QUERY_TOPIC = '~/tcp_query'
+TCP_CORRECTED_TOPIC = '~/tcp_corrected'
 
 
 def truth_path(bag_path: str | Path) -> Path:

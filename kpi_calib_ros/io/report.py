@@ -15,10 +15,18 @@ from typing import Any
 
 import numpy as np
 
-from kpi_calib_ros.core.diagnosis import Candidate, CellDiagnosis, ModelComparison
-from kpi_calib_ros.core.out_of_sample import DOMAIN_TEXT, NOT_ESTIMABLE, OutOfSample
-from kpi_calib_ros.core.precision import ExpectedTcpError, precision_statement
+from kpi_calib_ros.core.diagnosis.candidates import Candidate, CellDiagnosis, ModelComparison
+from kpi_calib_ros.core.diagnosis.out_of_sample import DOMAIN_TEXT, NOT_ESTIMABLE, OutOfSample
+from kpi_calib_ros.core.diagnosis.periodic_search import Periodogram
+from kpi_calib_ros.core.estimation.precision import ExpectedTcpError, precision_statement
 from kpi_calib_ros.io.names import DIAGNOSIS_FILE, REPORT_FILE
+from kpi_calib_ros.io.residual_plots import (
+    analysis_lines,
+    analysis_text,
+    analysis_to_dict,
+    answer_to_dict,
+    write_partial_residual_plot,
+)
 from kpi_calib_ros.io.results import write_atomic
 
 _UM = 1e6
@@ -38,7 +46,7 @@ def _candidate_dict(c: Candidate) -> dict[str, Any]:
             'std_basis': precision_statement(float(c.covariance_scale)),
             'explanation': c.explanation, 'plausible': bool(c.plausible),
             'plausibility': c.plausibility, 'also_explained_by': list(c.also_explained_by),
-            'note': c.note}
+            'note': c.note, 'frequencies_searched': int(c.searched)}
 
 
 def comparison_to_dict(cmp: ModelComparison) -> dict[str, Any]:
@@ -81,6 +89,7 @@ def diagnosis_to_dict(cd: CellDiagnosis) -> dict[str, Any]:
                       'high_leverage': cd.given_index(rep.high_leverage)},
         'not_distinguishable': [{'effect': c.effect, 'joint': c.joint, 'spec': c.spec,
                                  'reason': c.explanation} for c in diag.not_distinguishable],
+        'periodic_search': [periodogram_dict(g) for g in diag.periodograms],
     }
     if cd.out_of_sample is not None:
         doc['out_of_sample'] = cd.out_of_sample.to_dict()
@@ -90,6 +99,10 @@ def diagnosis_to_dict(cd: CellDiagnosis) -> dict[str, Any]:
         doc['added_effect'] = comparison_to_dict(cd.comparison)
         if cd.after_out_of_sample is not None:
             doc['added_effect']['out_of_sample'] = cd.after_out_of_sample.to_dict()
+    if cd.residual_analysis is not None:
+        doc['residual_inputs'] = analysis_to_dict(cd.residual_analysis)
+    if cd.answer is not None:
+        doc['misfit'] = answer_to_dict(cd.answer)
     return doc
 
 
@@ -128,6 +141,23 @@ def comparison_text(cmp: ModelComparison) -> str:
     return '\n'.join(lines)
 
 
+def periodogram_dict(gram: Periodogram) -> dict[str, Any]:
+    """One joint's frequency search (core.periodic_search) for diagnosis.json: the range
+    of cycles per revolution searched, the peak, its χ² reduction and p-value (× the
+    number searched)."""
+    return {'joint': gram.joint,
+            'cycles_searched': [int(gram.cycles[0]), int(gram.cycles[-1])],
+            'peak_cycles_per_revolution': int(gram.peak),
+            'peak_delta_chi2': float(np.max(gram.power)), 'p_value': float(gram.p_value)}
+
+
+def periodic_search_line(grams: tuple[Periodogram, ...]) -> str:
+    """One line: the peak of each joint's periodogram and its p-value."""
+    return ('periodic joint errors, peak of each periodogram (cycles/rev, p × frequencies '
+            'searched): ' + ', '.join(f'{g.joint} {g.peak} (p = {g.p_value:.2g})'
+                                      for g in grams))
+
+
 def diagnosis_text(cd: CellDiagnosis, top: int = 5) -> str:
     """Readable diagnosis summary for a terminal."""
     diag, rep = cd.diagnosis, cd.diagnosis.residuals
@@ -155,6 +185,8 @@ def diagnosis_text(cd: CellDiagnosis, top: int = 5) -> str:
         mark = '*' if c.significant else ' '
         lines.append(f' {mark}{i}. {c.spec:40s} validation rms '
                      f'{_validation(c.validation_rms_after_m, "6", " µm")}  p = {c.p_value:.2g}')
+    if diag.periodograms:
+        lines.append(periodic_search_line(diag.periodograms))
     if diag.best is not None:
         lines.append(f'why: {diag.best.explanation}')
     for c in diag.not_distinguishable:
@@ -162,6 +194,8 @@ def diagnosis_text(cd: CellDiagnosis, top: int = 5) -> str:
             lines.append(f'{c.spec}: {c.explanation}')
     if cd.comparison is not None:
         lines.append(comparison_text(cd.comparison))
+    if cd.residual_analysis is not None:
+        lines += analysis_text(cd.residual_analysis, cd.answer)
     return '\n'.join(lines)
 
 
@@ -274,7 +308,7 @@ def write_plots(out_dir: str | Path, cd: CellDiagnosis) -> list[Path]:
     # the point moves when that joint turns, divided by the lever. A compliance is a
     # line against torque, backlash a step at zero torque, a cyclic error a sine.
     lever = cd.model.joint_jacobian(cd.result.values, q, None, cd.data.reflector,
-                                    cd.data.rotation)
+                                    cd.data.rotation, cd.data.covariates)
     lever2 = np.sum(lever ** 2, axis=1)
     implied = np.einsum('nij,ni->nj', lever, res) / np.maximum(lever2, 1e-12)
     seen = lever2 > 0.05 * lever2.max(axis=0)
@@ -394,6 +428,8 @@ def write_report(out_dir: str | Path, cd: CellDiagnosis) -> Path:
     doc = diagnosis_to_dict(cd)
     write_diagnosis_json(out, doc)
     plots = write_plots(out, cd)
+    if cd.residual_analysis is not None:
+        plots.insert(0, write_partial_residual_plot(out, cd.residual_analysis))
     diag, rep = cd.diagnosis, cd.diagnosis.residuals
     lines = ['# Model diagnosis', '', f'**{diag.verdict}**', '',
              '## Residuals of the calibrated model', '',
@@ -414,6 +450,8 @@ def write_report(out_dir: str | Path, cd: CellDiagnosis) -> Path:
               f'{cd.given_index(rep.outlier)} |',
               f'| high leverage (> 3× mean) | {cd.given_index(rep.high_leverage)} |',
               f'| excluded by identify (not diagnosed) | {list(cd.excluded)} |']
+    if cd.residual_analysis is not None:
+        lines += analysis_lines(cd.residual_analysis, cd.answer)
     if cd.out_of_sample is not None:
         lines += out_of_sample_table(cd.out_of_sample)
     if cd.expected is not None:
@@ -440,6 +478,16 @@ def write_report(out_dir: str | Path, cd: CellDiagnosis) -> Path:
                      f'| {params} |')
     if diag.best is not None:
         lines += ['', f'Why {diag.best.spec}: {diag.best.explanation}']
+    if diag.periodograms:
+        lines += ['', '## Periodic joint errors: frequency search', '',
+                  'Lomb–Scargle periodogram of the residual along each joint\'s direction over '
+                  'cycles per revolution (geometry refitted at each frequency); the peak is '
+                  'screened as `periodic_joint_error:<joint>:k=<peak>`, its p-value multiplied '
+                  'by the number of frequencies searched.', '',
+                  '| joint | cycles/rev searched | peak | Δχ² at the peak | p |',
+                  '|---|---|---|---|---|']
+        lines += [f'| {g.joint} | {g.cycles[0]}–{g.cycles[-1]} | {g.peak} | '
+                  f'{np.max(g.power):.1f} | {g.p_value:.2g} |' for g in diag.periodograms]
     lines += ['', '## Not distinguishable with this data', '']
     lines += [f'- **{c.spec}**: {c.explanation}' for c in diag.not_distinguishable] or ['- none']
     if cd.comparison is not None:

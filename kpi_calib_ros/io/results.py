@@ -1,7 +1,7 @@
 """Result files: calibration.yaml and small helpers to write files atomically.
 
 :func:`calibration_to_dict` writes the identification itself; the application layer
-(:func:`kpi_calib_ros.app.identify.add_robust_sections`) adds ``valid`` /
+(:func:`kpi_calib_ros.app.calibration_document.add_robust_sections`) adds ``valid`` /
 ``invalid_reasons``, ``model`` (level, every level's ``predicted_rms_m`` and
 ``cv_rms_m``, reason), ``robust``
 (``sigma_stated_m``, ``sigma_robust_m``, ``sigma_ratio``, ``loss``, ``loss_scale``,
@@ -21,11 +21,11 @@ from typing import Any
 import numpy as np
 import yaml
 
+from kpi_calib_ros.core.acquisition.pairing import PairingResult
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.core.estimation import CalibrationResult
-from kpi_calib_ros.core.pairing import PairingResult
-from kpi_calib_ros.core.precision import precision_statement
-from kpi_calib_ros.core.residuals import (
+from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
+from kpi_calib_ros.core.estimation.precision import precision_statement
+from kpi_calib_ros.core.estimation.residuals import (
     SIGMA_OVERSTATED,
     is_adequate,
     noise_verdict,

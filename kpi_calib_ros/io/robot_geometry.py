@@ -4,7 +4,7 @@ From the URDF and the cell file: collision meshes resolved the ROS way
 (:mod:`kpi_calib_ros.io.resources`, the cell key ``robot.package_dirs``), capsules
 fitted to every chain link without hand-given capsules (hand-given ones win), the
 link pairs a design skips by a sampled collision matrix
-(:mod:`kpi_calib_ros.core.collision_matrix`: adjacent, in collision at the default
+(:mod:`kpi_calib_ros.core.collision.matrix`: adjacent, in collision at the default
 configuration, always in collision) and the pairs of a fixed link (one no joint
 moves, e.g. the base) with an obstacle it touches at rest (class ``fixed``: no
 configuration can change them). :func:`mesh_check` then verifies designed
@@ -22,16 +22,21 @@ from typing import Any, Sequence
 import numpy as np
 import pinocchio as pin
 
-from kpi_calib_ros.core.capsule_fit import capsules_from_urdf
-from kpi_calib_ros.core.collision import Capsule, HalfSpace, capsule_margin, halfspace_margin
-from kpi_calib_ros.core.collision_check import MeshCheck, mesh_collisions
-from kpi_calib_ros.core.collision_matrix import (
+from kpi_calib_ros.core.collision.capsule_fit import capsules_from_urdf
+from kpi_calib_ros.core.collision.capsules import (
+    Capsule,
+    HalfSpace,
+    capsule_margin,
+    halfspace_margin,
+)
+from kpi_calib_ros.core.collision.check import MeshCheck, mesh_collisions
+from kpi_calib_ros.core.collision.matrix import (
     CollisionMatrix,
     classify_link_pairs,
     link_transforms,
 )
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.core.robot import RobotModel
+from kpi_calib_ros.core.model.robot import RobotModel
 from kpi_calib_ros.io.resources import resolve_mesh_uris
 
 # Random configurations of the sampled collision matrix (MoveIt's setup assistant
@@ -263,7 +268,7 @@ def mesh_check(geometry: RobotGeometry, robot: RobotModel, configurations: np.nd
     """Self-collision of ``configurations`` against the collision MESHES (coal).
 
     Pairs skipped: parent/child bodies and rigidly joined ones (by
-    :func:`~kpi_calib_ros.core.collision_check.mesh_collisions`), pairs whose MESHES
+    :func:`~kpi_calib_ros.core.collision.check.mesh_collisions`), pairs whose MESHES
     touch at the default configuration (the middle of the joint ranges: overlap by
     construction, judged on the meshes, not the capsules) and ``ignore_pairs``.
 

@@ -14,11 +14,20 @@ from typing import Any, Callable
 
 import numpy as np
 from builtin_interfaces.msg import Time
-from geometry_msgs.msg import Point, PointStamped, Pose, PoseStamped, Quaternion
+from geometry_msgs.msg import (
+    Point,
+    PointStamped,
+    Pose,
+    PoseStamped,
+    Quaternion,
+    Vector3,
+    Vector3Stamped,
+)
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Header
 
-from kpi_calib_ros.core.streams import JointSample, PointSample
+from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
+from kpi_calib_ros.core.measurement.covariates import TemperatureSample
 
 _NS = 1_000_000_000
 
@@ -50,6 +59,14 @@ def time_msg(ns: int) -> Time:
 
 
 # ------------------------------------------------------------------ message -> sample
+def point_sigma_from_message(message: Any) -> tuple[int, str, np.ndarray]:
+    """A geometry_msgs/Vector3Stamped (rclpy message or decoded bag record) carrying a
+    point's stated σ per axis (m) as (stamp ns, frame id, σ (3,)); not validated here."""
+    v = message.vector
+    return (stamp_ns(message.header), str(message.header.frame_id),
+            np.array([v.x, v.y, v.z], dtype=float))
+
+
 def joint_sample_from_message(message: Any) -> JointSample:
     """A sensor_msgs/JointState (rclpy message or decoded bag record) as a JointSample.
 
@@ -85,6 +102,12 @@ def pose_sample_from_message(message: Any) -> PointSample:
 
 
 # ------------------------------------------------------------------ sample -> message
+def temperature_sample_from_message(message: Any) -> TemperatureSample:
+    """A ``sensor_msgs/Temperature`` (°C) as a sample: header stamp, frame id (the sensor)."""
+    return TemperatureSample(stamp_ns(message.header), str(message.header.frame_id),
+                             float(message.temperature))
+
+
 def joint_state_fields(sample: JointSample) -> dict[str, Any]:
     """A JointSample as the nested fields of a JointState (empty velocity when none)."""
     sec, nanosec = stamp_fields(sample.stamp_ns)
@@ -145,6 +168,12 @@ def point_stamped_msg(sample: PointSample) -> PointStamped:
     """PointSample -> PointStamped."""
     f = point_stamped_fields(sample)
     return PointStamped(header=_header(f['header']), point=Point(**f['point']))
+
+
+def vector3_stamped_msg(stamp_ns: int, frame_id: str, xyz: np.ndarray) -> Vector3Stamped:
+    """A vector (3,) -> Vector3Stamped (a point's σ per axis, m, with its stamp and frame)."""
+    f = vector3_stamped_fields(stamp_ns, frame_id, xyz)
+    return Vector3Stamped(header=_header(f['header']), vector=Vector3(**f['vector']))
 
 
 def pose_stamped_msg(sample: PointSample) -> PoseStamped:

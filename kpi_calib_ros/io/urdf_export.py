@@ -1,6 +1,6 @@
 """The calibrated robot as a URDF: identified joint errors folded into the joint origins.
 
-The calibrated chain is, per chain joint i (see :mod:`kpi_calib_ros.core.kinematics`),
+The calibrated chain is, per chain joint i (see :mod:`kpi_calib_ros.core.model.kinematics`),
 
     M_i · Trans(t_i) · error_rotation(axis_i, rx_i, ry_i, rz_i) · Motion_i(q_i + o_i)
 
@@ -29,9 +29,9 @@ import casadi as ca
 import numpy as np
 import pinocchio as pin
 
-from kpi_calib_ros.core.kinematics import axis_rotation, error_rotation, homogeneous, pose6
-from kpi_calib_ros.core.parameters import PLACEMENT_COMPONENTS
-from kpi_calib_ros.core.robot import RobotModel
+from kpi_calib_ros.core.model.kinematics import axis_rotation, error_rotation, homogeneous, pose6
+from kpi_calib_ros.core.model.parameters import PLACEMENT_COMPONENTS
+from kpi_calib_ros.core.model.robot import RobotModel
 
 
 def _numbers(text: str | None, default: tuple[float, float, float]) -> np.ndarray:

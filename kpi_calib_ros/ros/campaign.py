@@ -1,7 +1,7 @@
 """One calibration campaign as the node lives it: live pairing into a durable store.
 
 No rclpy here: the node converts messages to samples and hands them over; this
-class pairs them with :class:`~kpi_calib_ros.core.pairing.Pairer` (the code that
+class pairs them with :class:`~kpi_calib_ros.core.acquisition.pairing.Pairer` (the code that
 pairs bags), appends every accepted measurement to a
 :class:`~kpi_calib_ros.io.measurement_log.MeasurementLog` before counting it, reloads the logs
 of earlier runs in the same folder, and never counts a stamp twice. Thread-safe:
@@ -10,33 +10,64 @@ every public method takes the campaign's lock.
 Pairing clock: a point waits for joint states up to the pairer's timeout past its
 stamp on a clock that follows the joint stream (newest joint stamp + time since it
 arrived), so live streams, backlogs and replayed recordings (old stamps) behave alike.
+
+Stated σ: a point's σ (the tracker's, per axis, m) arrives on its own topic with the
+point's stamp and frame id, before or after the point. It is matched by both: stored
+with the measurement when it came first, appended to the log when it came after the
+measurement was stored, and dropped (``unmatched_sigma``) when no measurement has
+claimed it once it has waited ``SIGMA_WAIT_S`` and the pairing clock has passed its
+stamp by the pairer's window and timeout (its point, had it come, would be decided by
+then). A measurement without σ takes the cell's, as in a bag.
 """
 from __future__ import annotations
 
+import dataclasses
 import shutil
 import threading
 import time
+import warnings
 from collections import Counter, deque
 from pathlib import Path
 from typing import Sequence
 
-from kpi_calib_ros.core.errors import DataError
-from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.pairing import (
+import numpy as np
+
+from kpi_calib_ros.app.measurements import (
+    paired_temperature,
+    pose_rows,
+    refused_text,
+    stated_sigma,
+    urdf_measurements,
+)
+from kpi_calib_ros.core.acquisition.pairing import (
     REJECTION_REASONS,
     Decision,
     PairedMeasurement,
     Pairer,
     PairingResult,
     Rejection,
+    split_frame,
 )
-from kpi_calib_ros.core.streams import JointSample, PointSample
+from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
+from kpi_calib_ros.core.errors import DataError
+from kpi_calib_ros.core.measurement.covariates import TemperatureSample
+from kpi_calib_ros.core.measurement.tracker import Measurements
+from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.measurement_log import MeasurementLog, stored_pairing
-from kpi_calib_ros.io.names import RESULT_FILES
+from kpi_calib_ros.io.names import DEFAULT_POINT_TOPIC, RESULT_FILES, point_sigma_topic
 
 # Campaign-level reasons besides the pairer's: the measurement could not be written.
 NOT_STORED = 'not_stored'
-REASONS = REJECTION_REASONS + (NOT_STORED,)
+# A stated σ that is not finite and > 0, one no measurement claimed, a second one for
+# a measurement: dropped, counted, never used. Not pairing rejections (the point stays).
+SIGMA_REASONS = ('invalid_sigma', 'unmatched_sigma', 'duplicate_sigma')
+REASONS = REJECTION_REASONS + (NOT_STORED,) + SIGMA_REASONS
+# A σ waits this long after its arrival (and until the pairing clock has passed its
+# point's decision) for its measurement; a tracker driver sends both together.
+SIGMA_WAIT_S = 2.0
+# Stated σ held without a measurement (before the robot model is known, a σ topic
+# without points): far above what SIGMA_WAIT_S of 50 Hz points leaves.
+SIGMA_HELD_MAX = 20_000
 # Joint names a joint state may carry while the chain is not known yet (the pairer's
 # own limit, 4 x chain + 64, needs the chain): far above any robot cell's joint count,
 # far below a hostile message, so the early buffer of 20 000 samples stays small.
@@ -54,21 +85,41 @@ class Campaign:
     early_limit : int
         Samples kept while the robot model (joint names) is not known yet; they are
         paired once it is.
+    sigma_topic : str
+        Where the stated σ comes from (named in the messages of its rejections).
+    temperature_topic : str, optional
+        The cell's temperature topic: readings (:meth:`receive_temperature`) are logged
+        under it and kept, those of earlier runs reloaded; None: none kept.
     """
 
-    def __init__(self, data_dir: str | Path, early_limit: int = 20_000) -> None:
+    def __init__(self, data_dir: str | Path, early_limit: int = 20_000,
+                 sigma_topic: str = point_sigma_topic(DEFAULT_POINT_TOPIC),
+                 temperature_topic: str | None = None) -> None:
         self.data_dir = Path(data_dir)
+        self.sigma_topic = sigma_topic
         self.lock = threading.RLock()
         # Keyed by (stamp, frame id): the reflectors of one pose share a stamp.
         self._measurements: dict[tuple[int, str], tuple[JointSample, PointSample]] = {}
+        # Stated σ (3,) (m) of stored measurements, and σ waiting for theirs (with the
+        # monotonic ns of arrival); keyed by (stamp, tracker frame, reflector).
+        self._sigma: dict[tuple[int, str, str], np.ndarray] = {}
+        self._held_sigma: dict[tuple[int, str, str], tuple[np.ndarray, int]] = {}
+        self._stored_frames: dict[tuple[int, str, str], str] = {}  # σ key -> frame id
         if self.data_dir.is_dir():
-            for joint, point in MeasurementLog.load_all(self.data_dir):
-                self._measurements[(point.stamp_ns, point.frame_id)] = (joint, point)
+            pairs, sigma = MeasurementLog.load(self.data_dir)
+            for joint, point in pairs:
+                self._store(joint, point)
+            self._sigma = {k: v for k, v in ((_sigma_key(*key), s) for key, s in sigma.items())
+                           if k in self._stored_frames}
         self.restored = len(self._measurements)
-        self.log = MeasurementLog(self.data_dir)
+        self.temperature_topic = temperature_topic
+        self._temperatures: list[TemperatureSample] = (
+            MeasurementLog.load_temperatures(self.data_dir, temperature_topic)
+            if temperature_topic and self.data_dir.is_dir() else [])
+        self.log = MeasurementLog(self.data_dir, temperature_topic=temperature_topic)
         self.pairer: Pairer | None = None
         self.rejections: Counter[str] = Counter()
-        self.received = {'joint_states': 0, 'points': 0}
+        self.received = {'joint_states': 0, 'points': 0, 'sigma': 0}
         self._early: deque[JointSample | PointSample] = deque(maxlen=early_limit)
         self._clock: tuple[int, int] | None = None     # (stamp ns, monotonic ns of arrival)
         self._point_clock: tuple[int, int] | None = None
@@ -82,7 +133,7 @@ class Campaign:
     def set_chain(self, joint_names: list[str], tracker_frame: str,
                   reflectors: Sequence[str] = ('',)) -> list[Decision]:
         """(Re)start pairing for a robot chain (and the cell's reflector names, see
-        :mod:`kpi_calib_ros.core.pairing`); pairs the samples held until now."""
+        :mod:`kpi_calib_ros.core.acquisition.pairing`); pairs the samples held until now."""
         with self.lock:
             decisions = self._handle(self.pairer.flush()) if self.pairer else []
             pairer = self.pairer = Pairer(joint_names, tracker_frame,
@@ -121,14 +172,79 @@ class Campaign:
                 self._epoch, self._clock = self.pairer.epoch, (sample.stamp_ns, now_ns)
             return self.poll(now_ns)
 
+    def receive_sigma(self, stamp_ns: int, frame_id: str, sigma: np.ndarray,
+                      now_ns: int | None = None) -> list[Decision]:
+        """Take the stated σ (3,) (m) of the point with this stamp and frame id; returns
+        its rejection if it is refused (see the module docstring)."""
+        now_ns = time.monotonic_ns() if now_ns is None else now_ns
+        sigma = np.array(sigma, dtype=float).reshape(-1)
+        key = _sigma_key(stamp_ns, frame_id)
+        where = f"{self.sigma_topic}, stamp {stamp_ns} ns, frame '{frame_id}'"
+        with self.lock:
+            self.received['sigma'] += 1
+            if sigma.shape != (3,) or not np.all(np.isfinite(sigma)) or np.any(sigma <= 0):
+                return self._count([Rejection(stamp_ns, 'invalid_sigma',
+                                              f'{where}: sigma {sigma.tolist()} is not 3 '
+                                              'values > 0 and finite (m per axis)')])
+            if key in self._sigma or key in self._held_sigma:
+                return self._count([Rejection(stamp_ns, 'duplicate_sigma',
+                                              f'{where}: this point\'s sigma is already '
+                                              'given (a replay, or a restart re-receiving '
+                                              'it); the first one is kept')])
+            stored = self._stored_frames.get(key)
+            if stored is None:
+                out: list[Rejection] = []
+                if len(self._held_sigma) >= SIGMA_HELD_MAX:
+                    oldest = min(self._held_sigma, key=lambda k: self._held_sigma[k][1])
+                    del self._held_sigma[oldest]
+                    out.append(Rejection(oldest[0], 'unmatched_sigma',
+                                         f'{self.sigma_topic}: {SIGMA_HELD_MAX} sigma wait for '
+                                         'their points; the oldest is dropped'))
+                self._held_sigma[key] = (sigma, now_ns)
+                return self._count(out)
+            try:
+                self.log.append_sigma(stamp_ns, stored, sigma)  # on disk before it counts
+            except OSError as exc:
+                return self._count([Rejection(stamp_ns, NOT_STORED, f'{where}: sigma not '
+                                              f'written to {self.log.path}: {exc}')])
+            self._sigma[key] = sigma
+            return []
+
     def poll(self, now_ns: int | None = None) -> list[Decision]:
-        """Decide points whose joint states are overdue; see the module docstring."""
+        """Decide points whose joint states are overdue, and drop the stated σ no
+        measurement claimed in time; see the module docstring."""
         now_ns = time.monotonic_ns() if now_ns is None else now_ns
         with self.lock:
             clock = self._clock or self._point_clock
-            if self.pairer is None or clock is None:
+            if self.pairer is None:
                 return []
-            return self._handle(self.pairer.poll(clock[0] + now_ns - clock[1]))
+            pairing_now = None if clock is None else clock[0] + now_ns - clock[1]
+            decisions = ([] if pairing_now is None
+                         else self._handle(self.pairer.poll(pairing_now)))
+            return decisions + self._expire_sigma(now_ns, pairing_now)
+
+    def _expire_sigma(self, now_ns: int, pairing_now: int | None) -> list[Decision]:
+        pairer = self.pairer
+        assert pairer is not None
+        wait_ns = int(SIGMA_WAIT_S * 1e9)
+        decided = pairer.window_ns + pairer.timeout_ns
+        expired = [k for k, (_, arrived) in self._held_sigma.items()
+                   if now_ns - arrived >= wait_ns
+                   and (pairing_now is None or pairing_now >= k[0] + decided)]
+        out: list[Rejection] = []
+        for key in expired:
+            del self._held_sigma[key]
+            out.append(Rejection(key[0], 'unmatched_sigma',
+                                 f"{self.sigma_topic}, stamp {key[0]} ns, frame "
+                                 f"'{_frame_id(key)}': no accepted point with this stamp "
+                                 f'and frame id within {SIGMA_WAIT_S:g} s (its point was '
+                                 'rejected, or never came); dropped'))
+        return self._count(out)
+
+    def _count(self, rejections: list[Rejection]) -> list[Decision]:
+        for r in rejections:
+            self.rejections[r.reason] += 1
+        return list(rejections)
 
     @staticmethod
     def _add(pairer: Pairer, sample: JointSample | PointSample) -> None:
@@ -146,38 +262,52 @@ class Campaign:
                                   'stored (a replay, or a restart re-receiving it)')
                 else:
                     joint, point = d.joint_sample(), d.point_sample()
+                    key = _sigma_key(d.stamp_ns, d.frame_id)
+                    held = self._held_sigma.get(key)
+                    sigma = None if held is None else held[0]
                     try:
-                        self.log.append(joint, point)  # on disk before it counts
+                        self.log.append(joint, point, sigma)  # on disk before it counts
                     except OSError as exc:
                         d = Rejection(d.stamp_ns, NOT_STORED, f'not written to {self.log.path}: '
                                       f'{exc}')
                     else:
-                        self._measurements[(d.stamp_ns, d.frame_id)] = (joint, point)
+                        self._store(joint, point)
+                        if sigma is not None:
+                            self._sigma[key] = sigma
+                            del self._held_sigma[key]
             if isinstance(d, Rejection):
                 self.rejections[d.reason] += 1
             out.append(d)
         return out
 
+    def _store(self, joint: JointSample, point: PointSample) -> None:
+        self._measurements[(point.stamp_ns, point.frame_id)] = (joint, point)
+        self._stored_frames[_sigma_key(point.stamp_ns, point.frame_id)] = point.frame_id
+
     # ------------------------------------------------------------------ data
     def measurements(self, joint_names: list[str], tracker_frame: str,
                      reflectors: Sequence[str] = ('',)) -> tuple[Measurements, PairingResult]:
-        """Every accepted measurement in stamp order, ``q`` ordered as ``joint_names``;
-        with several ``reflectors`` (the cell's names), each row's reflector index."""
+        """Every accepted measurement in stamp order, ``q`` ordered as ``joint_names``,
+        with the stated σ of those that have one (``sigma``, NaN rows elsewhere); with
+        several ``reflectors`` (the cell's names), each row's reflector index."""
         with self.lock:
             pairs = [self._measurements[k] for k in sorted(self._measurements)]
-            rejections = {k: v for k, v in sorted(self.rejections.items())}
+            rejections = {k: v for k, v in sorted(self.rejections.items())
+                          if k not in SIGMA_REASONS}
+            point_sigma = {(k[0], _frame_id(k)): s for k, s in self._sigma.items()}
         if not pairs:
             raise DataError('no accepted measurement yet')
         pairing = stored_pairing(pairs, list(joint_names), tracker_frame, rejections)
         q, eta, stamps = pairing.q, pairing.eta, pairing.stamps_ns
+        sigma = stated_sigma(pairing, point_sigma)
         if tuple(reflectors) == ('',):
-            return Measurements(q=q, eta=eta, stamps_ns=stamps), pairing
+            return Measurements(q=q, eta=eta, stamps_ns=stamps, sigma=sigma), pairing
         try:
             ref = pairing.reflector_indices(reflectors)
         except ValueError as exc:
             raise DataError(f'stored measurements: {exc}; reset the campaign after changing '
                             'the reflectors of the cell') from None
-        return Measurements(q=q, eta=eta, stamps_ns=stamps, reflector=ref), pairing
+        return Measurements(q=q, eta=eta, stamps_ns=stamps, reflector=ref, sigma=sigma), pairing
 
     def counts(self) -> dict[str, int]:
         """Accepted, restored, received and rejected (total and per reason) counts."""
@@ -185,6 +315,9 @@ class Campaign:
             counts = {'accepted': len(self._measurements), 'restored': self.restored,
                       'received.joint_states': self.received['joint_states'],
                       'received.points': self.received['points'],
+                      'received.sigma': self.received['sigma'],
+                      'stated_sigma': len(self._sigma),
+                      'pending_sigma': len(self._held_sigma),
                       'rejected': sum(self.rejections.values())}
             counts.update({f'rejected.{r}': self.rejections.get(r, 0) for r in REASONS})
             counts.update({'ignored_joint_samples': self.pairer.ignored_joint_samples
@@ -209,14 +342,29 @@ class Campaign:
                 shutil.move(str(path), str(archive / path.name))
             count = len(self._measurements)
             self._measurements.clear()
+            self._sigma.clear()
+            self._held_sigma.clear()
+            self._stored_frames.clear()
             self.rejections.clear()
             self.restored = 0
-            self.log = MeasurementLog(self.data_dir)
+            self._temperatures.clear()
+            self.log = MeasurementLog(self.data_dir, temperature_topic=self.temperature_topic)
             if self.pairer is not None:
                 self.pairer.reset()
             self._clock = self._point_clock = None
             self._epoch = 0
             return count, archive
+
+    def receive_temperature(self, sample: TemperatureSample) -> None:
+        """Keep one temperature reading, logged durably first (OSError: not kept)."""
+        with self.lock:
+            self.log.append_temperature(sample)
+            self._temperatures.append(sample)
+
+    def temperatures(self) -> list[TemperatureSample]:
+        """The temperature readings kept (this run's and the reloaded ones), a copy."""
+        with self.lock:
+            return list(self._temperatures)
 
     def close(self) -> None:
         """Finalise the current log (idempotent)."""
@@ -224,4 +372,48 @@ class Campaign:
             self.log.close()
 
 
-__all__ = ['Campaign', 'NOT_STORED', 'REASONS']
+def model_measurements(campaign: Campaign, cm: CellModel
+                       ) -> tuple[Measurements, PairingResult]:
+    """Every accepted measurement of ``campaign`` as the model ``cm`` takes it: every row
+    of each pose (reflectors, tracked bodies' rotation rows), URDF joint values (from the
+    controller's readings), stamps as int64 ns, each row's stated σ (NaN: the cell's)."""
+    data, pairing = campaign.measurements(cm.joint_names, cm.cell.tracker_frame,
+                                          cm.cell.reflector_names or ('',))
+    data = urdf_measurements(cm, pose_rows(cm, data, pairing))
+    stamps = np.asarray(data.stamps_ns, dtype=np.int64).ravel()
+    return with_temperature_readings(campaign, cm,
+                                     dataclasses.replace(data, stamps_ns=stamps)), pairing
+
+
+def with_temperature_readings(campaign: Campaign, cm: CellModel,
+                              data: Measurements) -> Measurements:
+    """``data`` with the campaign's temperature readings paired to its rows by stamp, as
+    a bag's are (:func:`kpi_calib_ros.app.measurements.paired_temperature`); unchanged when
+    the cell reads no temperature. A row outside the readings is refused with a warning.
+
+    Raises
+    ------
+    DataError
+        The cell reads a temperature but none has arrived (or a listed sensor never did).
+    """
+    if cm.cell.temperature is None or len(data) == 0:
+        return data
+    kept, refused = paired_temperature(cm, data, campaign.temperatures(),
+                                       f'topic {cm.cell.temperature.topic}')
+    if refused:
+        warnings.warn(refused_text(cm, len(data), refused), stacklevel=2)
+    return kept
+
+
+def _sigma_key(stamp_ns: int, frame_id: str) -> tuple[int, str, str]:
+    """A point's (stamp, tracker frame, reflector) as its σ is matched by (a leading '/'
+    of the frame id does not count)."""
+    return (int(stamp_ns), *split_frame(frame_id))
+
+
+def _frame_id(key: tuple[int, str, str]) -> str:
+    return key[1] + ('#' + key[2] if key[2] else '')
+
+
+__all__ = ['Campaign', 'NOT_STORED', 'REASONS', 'SIGMA_REASONS', 'SIGMA_WAIT_S',
+           'model_measurements']

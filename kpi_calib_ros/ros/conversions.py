@@ -16,13 +16,14 @@ from std_msgs.msg import ColorRGBA, Header
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from visualization_msgs.msg import Marker, MarkerArray
 
-from kpi_calib_ros.core.collision import BASE, Capsule
+from kpi_calib_ros.core.collision.capsules import BASE, Capsule
 
 # The one message <-> sample and time conversion, shared with the bag reader and writer,
 # so live and recorded data agree.
 from kpi_calib_ros.io.ros_messages import joint_sample_from_message as joint_sample_from_msg
 from kpi_calib_ros.io.ros_messages import joint_state_msg, point_stamped_msg, stamp_ns, time_msg
 from kpi_calib_ros.io.ros_messages import point_sample_from_message as point_sample_from_msg
+from kpi_calib_ros.io.ros_messages import point_sigma_from_message as point_sigma_from_msg
 from kpi_calib_ros.io.ros_messages import pose_sample_from_message as pose_sample_from_msg
 
 # Orientation of a TCP point is not measured: this variance (rad²) says "unknown".
@@ -255,5 +256,6 @@ __all__ = ['DEFAULT_EXAGGERATION', 'POSE_INTERVAL_S', 'UNKNOWN_ORIENTATION_VARIA
            'capsule_markers', 'configurations_from_trajectory', 'diagnostic_array_msg',
            'diagnostic_values', 'ellipsoid_marker', 'joint_sample_from_msg',
            'joint_state_msg', 'joint_trajectory_msg', 'marker_array_msg',
-           'point_sample_from_msg', 'point_stamped_msg', 'pose_sample_from_msg',
+           'point_sample_from_msg', 'point_sigma_from_msg', 'point_stamped_msg',
+           'pose_sample_from_msg',
            'quaternion_from_matrix', 'stamp_ns', 'tcp_pose_msgs', 'time_msg']

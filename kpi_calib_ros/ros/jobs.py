@@ -17,6 +17,12 @@ import numpy as np
 import yaml
 from geometry_msgs.msg import PoseWithCovarianceStamped
 
+from kpi_calib_ros.app.calibration_document import (
+    CellCalibration,
+    add_robust_sections,
+    calibration_document,
+    write_results,
+)
 from kpi_calib_ros.app.campaign import campaign_calibration, campaign_context, new_campaign
 from kpi_calib_ros.app.design import (
     controller_design,
@@ -25,27 +31,21 @@ from kpi_calib_ros.app.design import (
     drawn_robots_section,
 )
 from kpi_calib_ros.app.diagnose import diagnose_cell
-from kpi_calib_ros.app.identify import (
-    CellCalibration,
-    add_robust_sections,
-    calibrate_cell,
-    calibration_document,
-    write_results,
-)
+from kpi_calib_ros.app.identify import calibrate_cell
 from kpi_calib_ros.app.reidentify import cycle_prior, reidentification_document, reidentify
 from kpi_calib_ros.app.validate import validate_report
-from kpi_calib_ros.core.change_detection import ChangeTest
-from kpi_calib_ros.core.design import DesignResult
-from kpi_calib_ros.core.errors import DataError, KpiCalibError
-from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.pairing import PairingResult
-from kpi_calib_ros.core.prior import DriftSwing
-from kpi_calib_ros.core.sequential import (
+from kpi_calib_ros.core.acquisition.pairing import PairingResult
+from kpi_calib_ros.core.campaigns.change_detection import ChangeTest
+from kpi_calib_ros.core.campaigns.sequential import (
     MODEL_INADEQUATE,
     CampaignSettings,
     CampaignStatus,
     SequentialCampaign,
 )
+from kpi_calib_ros.core.design.optimum import DesignResult
+from kpi_calib_ros.core.errors import DataError, KpiCalibError
+from kpi_calib_ros.core.estimation.drift_state import DriftSwing
+from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.io.calibration_file import read_calibration_document
 from kpi_calib_ros.io.campaign_io import CampaignState, write_campaign_state, write_plan
 from kpi_calib_ros.io.cell import CellModel

@@ -1,22 +1,21 @@
 """kpi_calib_node: measurement design, live pairing, durable logging and re-identification.
 
 A thin layer over the core: it converts messages, calls the same functions as
-``kpi-calib`` and publishes. Live samples go to a
+``kpi-calib`` and publishes. Live samples and each point's stated σ go to a
 :class:`~kpi_calib_ros.ros.campaign.Campaign`, which pairs them with the code that
 pairs bags and logs every accepted measurement to disk before counting it, so a
 replayed bag and ``kpi-calib identify`` agree and a killed node loses nothing.
 
 Services (std_srvs/srv/Trigger): ``~/design``, ``~/identify``, ``~/diagnose``, ``~/validate``,
-``~/reset``.
-One executor thread serves callbacks in arrival order; long work (design,
-identification) runs in a worker thread while the job coroutine awaits it, so
-pairing continues, and a call while another job runs answers
-``success=False, message='busy: ...'``. (rclpy's MultiThreadedExecutor could not keep
-up with 1 kHz joint states on two cores.)
+``~/reset``, run as jobs one at a time (:mod:`~kpi_calib_ros.ros.job_node`; the sequential
+campaign's in :mod:`~kpi_calib_ros.ros.sequential_jobs`). One executor thread serves
+callbacks in arrival order; long work runs in a worker thread while the job coroutine
+awaits it, so pairing continues. (rclpy's MultiThreadedExecutor could not keep up with
+1 kHz joint states on two cores.)
 
-Threads: the executor thread owns the node. Every node attribute (robot model,
-result, diagnosis, design points, job name, settings) and every publisher is read
-and written on the executor thread only. A job is a coroutine on the executor: it
+Threads: the executor thread owns the node. Every node attribute (robot model, the run's
+results in one :class:`~kpi_calib_ros.ros.run_state.RunState`, design points, job name,
+settings) and every publisher is read and written on the executor thread only. A job
 takes what it needs from the node, hands plain inputs to a worker thread with
 ``await self._offload(fn, ...)``, and when the worker's value comes back (the
 coroutine resumes on the executor) it updates the state and publishes. Worker
@@ -25,6 +24,7 @@ see the node. The one object both sides touch is the :class:`Campaign`, which is
 thread-safe by its own lock. Hence no node lock: ``~/tcp`` is created when the first
 robot model gives its number of working poses and replaced (on the executor, where
 nothing else can be publishing on it) only if a later model has a different number.
+/diagnostics is :func:`~kpi_calib_ros.ros.status.node_status` of that state.
 
 Parameters follow ros2/demos ``set_parameters_callback.py``: the on-set callback only
 validates (every value, through :func:`settings_from_parameters`, and rejects with the
@@ -32,127 +32,81 @@ reason); the post-set callback applies the accepted values.
 """
 from __future__ import annotations
 
-import dataclasses
 import json
 import sys
-import threading
 import time
 from pathlib import Path
-from typing import Any, Awaitable, Callable
+from typing import Any
 
 import numpy as np
 import rclpy
-import yaml
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PointStamped, PoseStamped, PoseWithCovarianceStamped
-from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from geometry_msgs.msg import PointStamped, PoseStamped, PoseWithCovarianceStamped, Vector3Stamped
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.exceptions import (
-    InvalidParameterTypeException,
-    InvalidParameterValueException,
-    ParameterUninitializedException,
-)
 from rclpy.executors import ExternalShutdownException
-from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.publisher import Publisher
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.task import Future
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import MarkerArray
 
-from kpi_calib_ros.app.identify import pose_rows, urdf_measurements
-from kpi_calib_ros.core.collision import Capsule
+from kpi_calib_ros.core.acquisition.pairing import Decision, Rejection
+from kpi_calib_ros.core.collision.capsules import Capsule
 from kpi_calib_ros.core.errors import ConfigError, DataError, KpiCalibError
-from kpi_calib_ros.core.estimation import CalibrationResult
-from kpi_calib_ros.core.measurement import Measurements
-from kpi_calib_ros.core.pairing import Decision, Rejection
-from kpi_calib_ros.core.precision import precision_statement
-from kpi_calib_ros.core.prior import DriftSwing
-from kpi_calib_ros.core.residuals import is_adequate
-from kpi_calib_ros.core.robust import RobustResult
-from kpi_calib_ros.core.sequential import MODEL_INADEQUATE, CampaignStatus, SequentialCampaign
-from kpi_calib_ros.io.campaign_io import CampaignState, read_campaign_state
+from kpi_calib_ros.core.estimation.drift_state import DriftSwing
+from kpi_calib_ros.core.estimation.precision import precision_statement
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell, with_overrides
 from kpi_calib_ros.io.names import (
     CALIBRATED_URDF_TOPIC,
     CALIBRATION_TOPIC,
-    CAMPAIGN_STATE_FILE,
     CAMPAIGN_STATUS_TOPIC,
     CHANGE_TEST_TOPIC,
     DIAGNOSIS_TOPIC,
     DIAGNOSTICS_TOPIC,
+    LEARNED_RESIDUAL_FILE,
     MARKERS_TOPIC,
     MEASUREMENT_POSES_TOPIC,
     TCP_TOPIC,
     VALIDATION_TOPIC,
+    point_sigma_topic,
 )
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros import jobs
-from kpi_calib_ros.ros.campaign import Campaign
-from kpi_calib_ros.ros.child_process import run_in_child
+from kpi_calib_ros.ros.answers import design_answer, identify_answer, validate_answer
+from kpi_calib_ros.ros.campaign import Campaign, model_measurements
+from kpi_calib_ros.ros.delivery import (
+    JOINT_STATES_MAX_HZ,
+    POINTS_MAX_HZ,
+    STREAM_BUFFER_S,
+    MessageSequence,
+    latched,
+    stream_qos,
+)
 from kpi_calib_ros.ros.parameters import (
-    PARAMETERS,
+    declare_parameters,
+    parameter_values,
     settings_from_parameters,
-    type_error,
     working_poses,
 )
+from kpi_calib_ros.ros.run_state import CAMPAIGN_FIXED, RunState
+from kpi_calib_ros.ros.sequential_jobs import SequentialCampaignJobs
+from kpi_calib_ros.ros.status import StreamHealth, node_status
+from kpi_calib_ros.ros.tcp_query import TcpQuery
+from kpi_calib_ros.ros.temperature import subscribe_temperature
 
 NODE_NAME = 'kpi_calib_node'
-# Parameters a running sequential campaign was started with: refused while it runs (its
-# status, plan and stop rule rest on them).
-CAMPAIGN_FIXED = ('campaign', 'target_tcp_std', 'max_measurements', 'design_seed')
 
 
-def _latched(depth: int = 1) -> QoSProfile:
-    return QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE,
-                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
-
-
-def _stream_qos(depth: int) -> QoSProfile:
-    return QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE)
-
-
-# Subscription queues sized in seconds at the highest expected rates: a stall of the
-# executor this long (a slow disk, a busy machine) loses nothing. Jobs run in a child
-# process (ros/child_process.py), so no job holds the executor back.
-JOINT_STATES_MAX_HZ = 1000.0
-POINTS_MAX_HZ = 50.0
-STREAM_BUFFER_S = 10.0
-
-
-class _Sequence:
-    """Messages lost before the node read them, from the publication sequence numbers
-    DDS gives each message (one publisher per topic; a number that goes back is a new
-    publisher, or the same one restarted)."""
-
-    def __init__(self) -> None:
-        self.last: int | None = None
-        self.lost = 0
-        self.max_lag_ns = 0  # publication to callback: how far the executor fell behind
-
-    def see(self, info: dict[str, Any]) -> None:
-        sent = info.get('source_timestamp')
-        if sent:
-            self.max_lag_ns = max(self.max_lag_ns, time.time_ns() - sent)
-        number = info.get('publication_sequence_number')
-        if not number:  # the middleware does not report them
-            return
-        if self.last is not None and number > self.last + 1:
-            self.lost += number - self.last - 1
-        self.last = number
-
-
-class CalibrationNode(Node):
+class CalibrationNode(SequentialCampaignJobs):
     """The calibration node; the README's "cell controller" section lists its interface."""
 
     def __init__(self, **kwargs) -> None:
         super().__init__(NODE_NAME, **kwargs)
-        self._declare_parameters()
-        self.settings = settings_from_parameters(self._parameter_values())
+        declare_parameters(self)
+        self.settings = settings_from_parameters(parameter_values(self))
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
         # The cell once, validated; the URDF comes from the parameter or the topic.
@@ -160,7 +114,10 @@ class CalibrationNode(Node):
                                allow_code_effects=self.settings.allow_code_effects)
         self.data_dir = Path(self.settings.data_dir)
         try:
-            self.campaign = Campaign(self.data_dir)
+            self.campaign = Campaign(
+                self.data_dir, sigma_topic=point_sigma_topic(self.settings.point_topic),
+                temperature_topic=(self._cell.temperature.topic if self._cell.temperature
+                                   else None))
         except OSError as exc:  # missing parent, read-only, a file in the way, no space
             raise ConfigError('data_dir', f'cannot log measurements in {str(self.data_dir)!r}: '
                               f'{exc.strerror or exc}; give a writable folder') from None
@@ -168,83 +125,58 @@ class CalibrationNode(Node):
                                f'{self.data_dir}; logging to {self.campaign.log.path}')
 
         # Executor-thread state (see the module docstring): never touched by a worker.
-        self._job_name = ''  # the running job ('' when idle): one long job at a time
         self._cm: CellModel | None = None
         self._urdf = ''
         self._model_error = ''
-        self._auto_pending = False
-        self._result: CalibrationResult | None = None
-        self._measured: np.ndarray | None = None
-        self._marker_rows: np.ndarray | None = None   # which fitted rows are points
-        self._result_error = ''
-        self._robust: RobustResult | None = None  # robust statistics of self._result
-        self._identified_with = 0
         self._design_points: np.ndarray | None = None
-        self._diagnosis: dict[str, Any] | None = None
         self._capsules: list[Capsule] = []
         self._last_diagnostics: tuple[Any, float] = (None, 0.0)
-        # Sequential campaign (campaign:=sequential): the campaign object is handed to the
-        # worker thread of a step job and back; the stamps it has been given.
-        self._sequential: SequentialCampaign | None = None
-        self._sequential_stamps: set[int] = set()
-        self._sequential_initial = 0
-        self._sequential_status: CampaignStatus | None = None
-        # The campaign as data_dir/campaign_state.yaml keeps it; one found at start is
-        # resumed (_resume) once the robot model is known, before anything is identified.
-        self._sequential_state: CampaignState | None = None
-        self._resume_pending = False
-        self._resumed = False
-        state_path = self.data_dir / CAMPAIGN_STATE_FILE
-        if state_path.is_file():
-            try:
-                self._sequential_state = read_campaign_state(state_path)
-            except DataError as exc:
-                self._result_error = f'sequential campaign not resumed: {exc}'
-                self.get_logger().error(self._result_error)
-            else:
-                self._resume_pending = True
-                self.get_logger().info(
-                    f'sequential campaign found in {state_path} '
-                    f'({len(self._sequential_state.steps)} step(s), '
-                    f"{self._sequential_state.status.get('stop_reason', 'running')}): "
-                    'resuming it once the robot model is known')
+        # This campaign's results and sequential campaign, replaced whole by ~/reset.
+        self._run = RunState()
+        self._find_campaign_state()
 
         # One executor thread: pairing callbacks run in arrival order; services await
         # their worker threads in a reentrant group so a second call gets 'busy'.
         streams = MutuallyExclusiveCallbackGroup()
         services = ReentrantCallbackGroup()
         self._pub_poses = self.create_publisher(JointTrajectory, MEASUREMENT_POSES_TOPIC,
-                                                _latched())
-        self._pub_calibration = self.create_publisher(String, CALIBRATION_TOPIC, _latched())
-        self._pub_change_test = self.create_publisher(String, CHANGE_TEST_TOPIC, _latched())
-        self._pub_urdf = self.create_publisher(String, CALIBRATED_URDF_TOPIC, _latched())
-        self._pub_markers = self.create_publisher(MarkerArray, MARKERS_TOPIC, _latched())
-        self._pub_diagnosis = self.create_publisher(String, DIAGNOSIS_TOPIC, _latched())
-        self._pub_validation = self.create_publisher(String, VALIDATION_TOPIC, _latched())
+                                                latched())
+        self._pub_calibration = self.create_publisher(String, CALIBRATION_TOPIC, latched())
+        self._pub_change_test = self.create_publisher(String, CHANGE_TEST_TOPIC, latched())
+        self._pub_urdf = self.create_publisher(String, CALIBRATED_URDF_TOPIC, latched())
+        self._pub_markers = self.create_publisher(MarkerArray, MARKERS_TOPIC, latched())
+        self._pub_diagnosis = self.create_publisher(String, DIAGNOSIS_TOPIC, latched())
+        self._pub_validation = self.create_publisher(String, VALIDATION_TOPIC, latched())
         self._pub_campaign_status = self.create_publisher(String, CAMPAIGN_STATUS_TOPIC,
-                                                          _latched())
+                                                          latched())
         self._calibration_text = ''            # the published calibration.yaml
         self._identified_stamps: set[int] = set()  # stamps the calibration was fitted to
         self._pub_diagnostics = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
         # Latched, one message per working pose: made when a model gives their number.
         self._pub_tcp: Publisher | None = None
         self._tcp_depth = 0
-        self._sequences = {'joint_states': _Sequence(), 'points': _Sequence(),
-                           'poses': _Sequence()}
+        self._sequences = {'joint_states': MessageSequence(), 'points': MessageSequence(),
+                           'poses': MessageSequence(), 'sigma': MessageSequence()}
         self._identifications = 0
         # Callbacks with (message, message info); rclpy 7.1's annotation omits that form.
         self.create_subscription(JointState, self.settings.joint_states_topic,
                                  self._on_joint_state,  # type: ignore[arg-type]
-                                 _stream_qos(int(JOINT_STATES_MAX_HZ * STREAM_BUFFER_S)),
+                                 stream_qos(int(JOINT_STATES_MAX_HZ * STREAM_BUFFER_S)),
                                  callback_group=streams)
         self.create_subscription(PointStamped, self.settings.point_topic,
                                  self._on_point,  # type: ignore[arg-type]
-                                 _stream_qos(int(POINTS_MAX_HZ * STREAM_BUFFER_S)),
+                                 stream_qos(int(POINTS_MAX_HZ * STREAM_BUFFER_S)),
                                  callback_group=streams)
         self.create_subscription(PoseStamped, self.settings.pose_topic,
                                  self._on_pose,  # type: ignore[arg-type]
-                                 _stream_qos(int(POINTS_MAX_HZ * STREAM_BUFFER_S)),
+                                 stream_qos(int(POINTS_MAX_HZ * STREAM_BUFFER_S)),
                                  callback_group=streams)
+        # Each point's stated σ, paired with it by stamp and frame id (ros/campaign.py).
+        self.create_subscription(Vector3Stamped, point_sigma_topic(self.settings.point_topic),
+                                 self._on_point_sigma,  # type: ignore[arg-type]
+                                 stream_qos(int(POINTS_MAX_HZ * STREAM_BUFFER_S)),
+                                 callback_group=streams)
+        subscribe_temperature(self, self.campaign, callback_group=streams)
         for name, doing, work in (('design', 'designing', self._design),
                                   ('identify', 'identifying', self._identify),
                                   ('diagnose', 'diagnosing', self._diagnose),
@@ -252,63 +184,35 @@ class CalibrationNode(Node):
                                   ('reset', 'resetting', self._reset)):
             self.create_service(Trigger, f'~/{name}', self._service(name, doing, work),
                                 callback_group=services)
+        self.tcp_query = TcpQuery(self, lambda: self._cm, lambda: self._run.result,
+                                  self.data_dir / LEARNED_RESIDUAL_FILE)
         self.create_timer(0.1, self._tick, callback_group=streams)
         if self.settings.robot_description:
             self._set_robot_description(self.settings.robot_description)
         else:
             self.create_subscription(String, self.settings.robot_description_topic,
-                                     self._on_robot_description, _latched(),
+                                     self._on_robot_description, latched(),
                                      callback_group=streams)
             self.get_logger().info(f'waiting for {self.settings.robot_description_topic}')
 
     # ------------------------------------------------------------------ parameters
-    def _declare_parameters(self) -> None:
-        """Declare every parameter; a start-up value of the wrong type (``-p
-        auto_identify:=maybe`` arrives as a string) is a ConfigError naming it."""
-        for name, (default, read_only, description) in PARAMETERS.items():
-            try:
-                self.declare_parameter(name, default, ParameterDescriptor(
-                    description=description, read_only=read_only))
-            except (InvalidParameterTypeException, InvalidParameterValueException) as exc:
-                given = getattr(self, '_parameter_overrides', {}).get(name)
-                raise type_error(name, exc if given is None else given.value) from None
-
-    def _parameter_values(self, changes: dict[str, Any] | None = None) -> dict[str, Any]:
-        values = {}
-        for name in PARAMETERS:
-            try:
-                values[name] = self.get_parameter(name).value
-            except ParameterUninitializedException:  # an array parameter left empty
-                values[name] = []
-        values.update(changes or {})
-        return values
-
     def _validate_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
         """On-set callback: judge the values as they would be after the change; no side
         effect (another callback may still reject the change)."""
         try:
-            settings_from_parameters(self._parameter_values(
-                {p.name: p.value for p in parameters}))
+            settings_from_parameters(parameter_values(
+                self, {p.name: p.value for p in parameters}))
         except ConfigError as exc:
             return SetParametersResult(successful=False, reason=str(exc))
-        fixed = [p.name for p in parameters if p.name in CAMPAIGN_FIXED
-                 and p.value != getattr(self.settings, p.name)]
-        if fixed and self._sequential_running():
-            state = self._sequential_state
-            now = ('' if state is None else
-                   f' (target_tcp_std {state.settings.target_std:g} m, max_measurements '
-                   f'{state.settings.max_measurements})')
-            return SetParametersResult(successful=False, reason=(
-                f"{', '.join(fixed)}: a sequential campaign is running{now}; it keeps the "
-                'values it started with, which ~/campaign_status and /diagnostics show. '
-                'Change them after it stops, or call ~/reset and ~/design to start a new '
-                'campaign'))
-        return SetParametersResult(successful=True)
+        refused = self._run.refused_change([p.name for p in parameters if p.name in
+                                            CAMPAIGN_FIXED and p.value != getattr(
+                                                self.settings, p.name)])
+        return SetParametersResult(successful=not refused, reason=refused)
 
     def _apply_parameters(self, parameters: list[Parameter]) -> None:
         """Post-set callback: the values are set (and were validated); use them."""
-        self.settings = settings_from_parameters(self._parameter_values())
-        self._auto_pending = self._auto_wanted()
+        self.settings = settings_from_parameters(parameter_values(self))
+        self._run.auto_pending = self._auto_wanted()
 
     # ------------------------------------------------------------------ robot model
     def _on_robot_description(self, msg: String) -> None:
@@ -329,7 +233,7 @@ class CalibrationNode(Node):
         self._cm, self._urdf, self._model_error = cm, urdf_xml, ''
         self._report(self.campaign.set_chain(cm.joint_names, cm.cell.tracker_frame,
                                              cm.cell.reflector_names or ('',)))
-        self._auto_pending = self._auto_wanted()
+        self._run.auto_pending = self._auto_wanted()
         self.get_logger().info(f'robot model ready: joints {cm.joint_names}, tracker frame '
                                f"'{cm.cell.tracker_frame}', working poses "
                                f'{list(cm.working_pose_names)}')
@@ -343,7 +247,7 @@ class CalibrationNode(Node):
                 self.destroy_publisher(self._pub_tcp)
             # A cell without working poses publishes no TCP; depth 0 is no valid history.
             self._pub_tcp = self.create_publisher(PoseWithCovarianceStamped, TCP_TOPIC,
-                                                  _latched(max(depth, 1)))
+                                                  latched(max(depth, 1)))
             self._tcp_depth = depth
         return self._pub_tcp
 
@@ -361,115 +265,39 @@ class CalibrationNode(Node):
         self._sequences['poses'].see(info)
         self._report(self.campaign.receive(cv.pose_sample_from_msg(msg)))
 
+    def _on_point_sigma(self, msg: Vector3Stamped, info: dict[str, Any]) -> None:
+        """A point's stated σ per axis (m): stored with its measurement, which then
+        weighs by it instead of the cell's noise.sigma."""
+        self._sequences['sigma'].see(info)
+        self._report(self.campaign.receive_sigma(*cv.point_sigma_from_msg(msg)))
+
     def _report(self, decisions: list[Decision]) -> None:
         for d in decisions:
             if isinstance(d, Rejection):
                 self.get_logger().warning(f'rejected ({d.reason}): {d.detail}',
                                           throttle_duration_sec=1.0)
             elif self._auto_wanted():
-                self._auto_pending = True
+                self._run.auto_pending = True
 
     def _auto_wanted(self) -> bool:
         # A sequential campaign re-identifies in its own steps and publishes its own
         # calibration when it stops (none after 'model inadequate').
         return (self.settings.auto_identify and self._cm is not None
-                and self._sequential is None and self._sequential_state is None
+                and self._run.sequential is None and self._run.sequential_state is None
                 and len(self.campaign) >= self.settings.min_measurements)
-
-    def _sequential_running(self) -> bool:
-        if self._resume_pending:
-            return self._sequential_state is not None and not self._sequential_state.stopped
-        status = self._sequential_status
-        return self._sequential is not None and (status is None or not status.stopped)
-
-    def _sequential_due(self) -> bool:
-        """A step is due: the campaign runs, the initial design is measured and some
-        accepted measurement has not been added yet."""
-        if self._resume_pending or not self._sequential_running():
-            return False
-        accepted = len(self.campaign)
-        return (accepted >= self._sequential_initial
-                and accepted > len(self._sequential_stamps))
 
     def _tick(self) -> None:
         self._report(self.campaign.poll())
-        if (self._resume_pending and self._cm is not None
+        if (self._run.resume_pending and self._cm is not None
                 and self._claim_job('resuming the sequential campaign')):
             self._create_task('resuming the sequential campaign', self._resume)
-        if self._sequential_due() and self._claim_job('planning the next pose'):
-            executor = self.executor
-            if executor is None:  # timers fire only under an executor
-                raise RuntimeError('kpi_calib_node ticked without an executor')
-            executor.create_task(self._run_job, 'sequential campaign step',
-                                 self._sequential_step)
-        if self._auto_pending and self._claim_job('identifying (automatic)'):
-            self._auto_pending = False
-            executor = self.executor
-            if executor is None:  # timers fire only under an executor
-                raise RuntimeError('kpi_calib_node ticked without an executor')
-            executor.create_task(self._run_job, 'automatic identification', self._identify)
+        if (self._run.sequential_due(len(self.campaign))
+                and self._claim_job('planning the next pose')):
+            self._create_task('sequential campaign step', self._sequential_step)
+        if self._run.auto_pending and self._claim_job('identifying (automatic)'):
+            self._run.auto_pending = False
+            self._create_task('automatic identification', self._identify)
         self._publish_diagnostics()
-
-    # ------------------------------------------------------------------ jobs
-    def _service(self, name: str, doing: str, work: Callable[[], Awaitable[tuple[bool, str]]]
-                 ) -> Callable[[Trigger.Request, Trigger.Response], Awaitable[Trigger.Response]]:
-        """A Trigger callback that runs job ``work`` and answers when it is done, or
-        answers 'busy' at once while another job runs. The executor keeps serving
-        meanwhile (the callback awaits, it does not block)."""
-        async def callback(request: Trigger.Request,
-                           response: Trigger.Response) -> Trigger.Response:
-            if not self._claim_job(doing):
-                response.success, response.message = False, f'busy: {self._job_name}'
-            else:
-                response.success, response.message = await self._run_job(name, work)
-            return response
-        return callback
-
-    def _claim_job(self, doing: str) -> bool:
-        """Take the one job slot if it is free. The check and the claim run on the
-        executor with no await between them, so no other callback interleaves."""
-        if self._job_name:
-            return False
-        self._job_name = doing
-        return True
-
-    async def _run_job(self, name: str,
-                       work: Callable[[], Awaitable[tuple[bool, str]]]) -> tuple[bool, str]:
-        """Run the claimed job ``work`` to its (success, message); free the slot after."""
-        try:
-            outcome = await work()
-        except Exception as exc:  # job boundary: answer, log, keep the node up
-            self.get_logger().error(f'{name} failed: {exc}')
-            outcome = (False, f'{name} failed: {exc}')
-        else:
-            self.get_logger().info(f'{name}: {outcome[1]}')
-        finally:
-            self._job_name = ''
-        return outcome
-
-    def _create_task(self, name: str, work: Callable[[], Awaitable[tuple[bool, str]]]) -> None:
-        executor = self.executor
-        if executor is None:  # timers fire only under an executor
-            raise RuntimeError('kpi_calib_node ticked without an executor')
-        executor.create_task(self._run_job, name, work)
-
-    def _offload(self, fn: Callable[..., Any], *args: Any, child: bool = False) -> Future:
-        """Run ``fn(*args)`` in a worker thread (``child``: in a forked child process that
-        the thread waits for, for pure computations that must not hold the GIL); awaiting
-        the returned future resumes the job on the executor with ``fn``'s value (or
-        raises its exception)."""
-        done = Future(executor=self.executor)
-        done.add_done_callback(lambda _: None)  # its scheduling wakes the executor
-
-        def run() -> None:
-            try:
-                value = run_in_child(fn, *args) if child else fn(*args)
-            except Exception as exc:  # handed to the awaiting job, which reports it
-                done.set_exception(exc)
-            else:
-                done.set_result(value)
-        threading.Thread(target=run, daemon=True).start()
-        return done
 
     def _model(self) -> CellModel:
         if self._cm is None:
@@ -490,139 +318,23 @@ class CalibrationNode(Node):
         self._capsules = list(cm.robot_geometry().capsules) + [
             o for o in cm.cell.obstacles if isinstance(o, Capsule)]
         self._publish_markers()
-        tcp_um = np.sqrt((design.tcp_std ** 2).sum(axis=1)).max() * 1e6
-        return design.verification.ok and not not_estimable, (
-            f'{len(design.configurations)} poses ({design.criterion}), predicted TCP '
-            f'sqrt(trace) <= {tcp_um:.1f} µm; {design.status}; '
-            + (f'{not_estimable}; ' if not_estimable else '') + 'published on '
-            f'{self.resolve_topic_name(MEASUREMENT_POSES_TOPIC)}, written to {path}')
+        return design.verification.ok and not not_estimable, design_answer(
+            design, not_estimable, self.resolve_topic_name(MEASUREMENT_POSES_TOPIC), path)
 
-    async def _design_sequential(self, cm: CellModel) -> tuple[bool, str]:
-        """Start a sequential campaign: publish its initial design on ~/measurement_poses.
-        Measurements accepted before it are part of the campaign (the first step adds
-        them all)."""
-        settings, seed = jobs.campaign_settings(self.settings), self.settings.design_seed
-        campaign, initial, points, path = await self._offload(
-            jobs.sequential_start_work, cm, settings, seed, self.data_dir)
-        self._sequential, self._sequential_status = campaign, None
-        self._sequential_state = CampaignState(settings, seed)
-        self._sequential_stamps, self._sequential_initial = set(), len(initial)
-        self._resume_pending, self._resumed = False, False
-        self._pub_poses.publish(cv.joint_trajectory_msg(cm.joint_names, initial))
-        self._design_points = points
-        self._publish_markers()
-        self._pub_campaign_status.publish(String(data=yaml.safe_dump({
-            'measurements': len(self.campaign), 'initial_design': len(initial),
-            'target_tcp_std_m': settings.target_std,
-            'stop_reason': 'running'}, sort_keys=False)))
-        return True, (f'sequential campaign: initial design of {len(initial)} poses '
-                      f'published on {self.resolve_topic_name(MEASUREMENT_POSES_TOPIC)}, '
-                      f'written to {path}; target TCP std {settings.target_std:g} m, '
-                      f'at most {settings.max_measurements} measurements')
-
-    async def _resume(self) -> tuple[bool, str]:
-        """Rebuild the campaign data_dir/campaign_state.yaml keeps, from the restored
-        measurements (the same steps, so the same status and plan), and publish its
-        plan and status again, saying it was resumed."""
-        cm, state = self._model(), self._sequential_state
-        assert state is not None
-        self._resume_pending = False
-        data = self._campaign_data(cm)[0] if len(self.campaign) else Measurements(
-            q=np.zeros((0, len(cm.joint_names))), eta=np.zeros((0, 3)),
-            stamps_ns=np.zeros(0, np.int64))
-        try:
-            campaign, initial, out = await self._offload(jobs.sequential_resume_work, cm,
-                                                         state, data, self.data_dir)
-        except KpiCalibError as exc:
-            self._result_error = f'sequential campaign not resumed: {exc}'
-            self._publish_diagnostics(force=True)
-            raise
-        self._sequential, self._sequential_initial = campaign, len(initial)
-        self._sequential_stamps = {t for step in state.steps for t in step}
-        self._resumed = True
-        if out is None:  # no step yet: the initial design is still the plan
-            self._pub_poses.publish(cv.joint_trajectory_msg(cm.joint_names, initial))
-            self._pub_campaign_status.publish(String(data=yaml.safe_dump({
-                'measurements': len(self.campaign), 'initial_design': len(initial),
-                'target_tcp_std_m': state.settings.target_std, 'stop_reason': 'running',
-                'resumed': True}, sort_keys=False)))
-            message = f'initial design of {len(initial)} poses published again'
-        else:
-            self._sequential_state, self._sequential_status = out.state, out.status
-            if len(out.plan):
-                self._pub_poses.publish(cv.joint_trajectory_msg(cm.joint_names, out.plan))
-            self._pub_campaign_status.publish(String(data=out.text))
-            message = (f'{out.status.measurements} measurements, largest TCP std '
-                       f'{out.status.statistic * 1e6:.2f} µm (target '
-                       f'{out.status.target_std * 1e6:.2f} µm), '
-                       + (f'stopped: {out.status.stop_reason}' if out.status.stopped
-                          else f'{len(out.plan)} poses planned'))
-        self._publish_diagnostics(force=True)
-        return True, f'sequential campaign resumed from {self.data_dir}: {message}'
-
-    def _campaign_data(self, cm: CellModel) -> tuple[Measurements, Any]:
-        """Every accepted measurement with its stamps, URDF joint values."""
-        data, pairing = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame,
-                                                   cm.cell.reflector_names or ('',))
-        # every row of each pose (reflectors, tracked bodies' rotation rows); controller
-        # readings -> URDF joint values
-        data = urdf_measurements(cm, pose_rows(cm, data, pairing))
-        stamps = np.asarray(data.stamps_ns, dtype=np.int64).ravel()
-        return dataclasses.replace(data, stamps_ns=stamps), pairing
-
-    async def _sequential_step(self) -> tuple[bool, str]:
-        """Add the accepted measurements the campaign has not seen, re-identify and
-        publish the updated plan (next pose first) and ~/campaign_status; once the
-        campaign stopped (target met or cap), publish its calibration."""
-        cm, campaign, state = self._model(), self._sequential, self._sequential_state
-        if campaign is None or state is None:
-            raise DataError('no sequential campaign: call ~/design with campaign:=sequential')
-        data, pairing = self._campaign_data(cm)
-        stamps = np.asarray(data.stamps_ns, dtype=np.int64)
-        new = np.array([int(t) not in self._sequential_stamps for t in stamps], dtype=bool)
-        fresh = data.subset(new)
-        out = await self._offload(jobs.sequential_step_work, campaign, cm, fresh, state,
-                                  self.data_dir, pairing,
-                                  {'resumed': True} if self._resumed else None)
-        status, plan = out.status, out.plan
-        self._sequential_stamps.update(int(t) for t in stamps[new])
-        self._sequential_status, self._sequential_state = status, out.state
-        for e in status.excluded:
-            self.get_logger().warning(f"measurement {e['measurement']} (stamp "
-                                      f"{e['stamp_ns']} ns) excluded: "
-                                      f"{e['distance_m'] * 1e6:.1f} µm from the fit; "
-                                      f"{e['reason']}")
-        if len(plan):
-            self._pub_poses.publish(cv.joint_trajectory_msg(cm.joint_names, plan))
-        self._pub_campaign_status.publish(String(data=out.text))
-        if out.calibration is not None and out.result is not None:
-            text, urdf, tcp = out.calibration
-            self._publish_campaign_calibration(out.result, text, urdf, tcp, stamps)
-        self._publish_diagnostics(force=True)
-        if status.stopped:
-            self.get_logger().info(f'sequential campaign stopped after {status.measurements} '
-                                   f'measurements: {status.stop_reason}')
-        return True, (f'{status.measurements} measurements, largest TCP std '
-                      f'{status.statistic * 1e6:.2f} µm (target '
-                      f'{status.target_std * 1e6:.2f} µm), '
-                      + (f'stopped: {status.stop_reason}' if status.stopped else
-                         f'{len(plan)} poses planned') + f', {status.step_seconds:.2f} s'
-                      + (f', {len(status.excluded)} excluded' if status.excluded else ''))
-
-    def _publish_campaign_calibration(self, cal: Any, text: str, urdf: str, tcp: list,
-                                      stamps: np.ndarray) -> None:
-        """Publish a stopped campaign's calibration as ~/identify publishes one."""
-        campaign = self._sequential
-        assert campaign is not None
-        kept = np.asarray(cal.robust.kept, dtype=bool)
-        self._robust, self._result = cal.robust, cal.result
-        self._measured, self._marker_rows = campaign.eta[kept], np.ones(int(kept.sum()), bool)
-        self._identified_with = len(campaign.q)
+    def _publish_calibration(self, cal: Any, measured: np.ndarray, marker_rows: np.ndarray,
+                             identified_with: int, text: str, urdf: str, tcp: list,
+                             stamps: np.ndarray | None) -> None:
+        """Make ``cal`` (fitted to ``measured`` (m), of which ``marker_rows`` are points,
+        from ``identified_with`` measurements stamped ``stamps``) the published
+        calibration: ~/calibration, the calibrated URDF, ~/tcp and the markers."""
+        self._run.robust, self._run.result = cal.robust, cal.result
+        self._run.measured, self._run.marker_rows = measured, marker_rows
+        self._run.identified_with = identified_with
         self._identifications += 1
-        self._result_error = ''
+        self._run.result_error = ''
         self._pub_calibration.publish(String(data=text))
         self._calibration_text = text
-        self._identified_stamps = {int(t) for t in stamps}
+        self._identified_stamps = {int(t) for t in np.asarray(stamps).ravel()}
         self._pub_urdf.publish(String(data=urdf))
         publisher = self._tcp_publisher(len(tcp))
         for msg in tcp:
@@ -634,26 +346,23 @@ class CalibrationNode(Node):
         write the results atomically and publish them. Refused while a sequential campaign
         runs: its calibration is published when it stops, never one of part of it."""
         cm = self._model()
-        if self._sequential_running():
+        if self._run.sequential_running():
             raise DataError('a sequential campaign is running: its calibration is published '
                             'on ~/calibration when it stops (~/campaign_status); call '
                             '~/reset to end it')
-        data, pairing = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame,
-                                                   cm.cell.reflector_names or ('',))
-        # tracked poses' rotation rows; controller readings -> URDF joint values
-        data = urdf_measurements(cm, pose_rows(cm, data, pairing))
+        data, pairing = model_measurements(self.campaign, cm)
         try:
             cal, calibration, urdf, tcp, change, prior, notes = await self._offload(
                 jobs.identify_work, cm, data, pairing, self.data_dir,
                 self.settings.reidentify_with_prior,
                 DriftSwing(*self.settings.drift_velocity) if self.settings.drift_velocity
                 else None,
-                not self._campaign_inadequate(),
+                not self._run.campaign_inadequate(),
                 child=True)
         except Exception as exc:  # job boundary: also a full disk or a lost data_dir
             where = (f' (results not written to {self.data_dir})'
                      if isinstance(exc, OSError) else '')
-            self._result_error = f'identification failed{where}: {exc}'
+            self._run.result_error = f'identification failed{where}: {exc}'
             self._publish_diagnostics(force=True)
             raise
         for note in notes:  # which prior, or why none; archived files skipped
@@ -666,7 +375,7 @@ class CalibrationNode(Node):
             # A change beyond the drift model: not blended, never published as the
             # calibration; the last good one stays; /diagnostics says ERROR.
             assert change is not None
-            self._result_error = change.summary()
+            self._run.result_error = change.summary()
             self.get_logger().error(f'identification from {len(data)} measurements with prior '
                                     f'{prior}: {change.summary()}')
             self._publish_diagnostics(force=True)
@@ -678,7 +387,7 @@ class CalibrationNode(Node):
             # Never published as the calibration: the last good one stays on every topic
             # and in calibration.yaml; /diagnostics says ERROR with the reason.
             reason = ' | '.join(cal.problems)
-            self._result_error = f'calibration not published: {reason}'
+            self._run.result_error = f'calibration not published: {reason}'
             self.get_logger().error(f'identification from {len(data)} measurements not '
                                     f'valid, last good calibration kept: {reason}')
             self._publish_diagnostics(force=True)
@@ -687,57 +396,27 @@ class CalibrationNode(Node):
             self.get_logger().warning(e.text())
         for text in cal.robust.warnings:
             self.get_logger().warning(text)
-        self._robust = cal.robust
         # Residual arrows: the fitted (kept) rows that are points; a tracked pose's
         # rotation row is no point to draw from.
         kept = np.asarray(cal.robust.kept, dtype=bool)
         points = (np.ones(len(data), dtype=bool) if data.reflector is None
                   else np.asarray(data.reflector) < cm.model.n_reflectors)
-        self._marker_rows = points[kept]
-        self._result, self._measured, self._identified_with = result, data.eta[kept], len(data)
-        self._identifications += 1
-        self._result_error = ''
-        self._pub_calibration.publish(String(data=calibration))
-        self._calibration_text = calibration
-        self._identified_stamps = {int(s) for s in np.asarray(data.stamps_ns).ravel()}
-        self._pub_urdf.publish(String(data=urdf))
-        publisher = self._tcp_publisher(len(tcp))
-        for msg in tcp:
-            publisher.publish(msg)
-        self._publish_markers()
+        self._publish_calibration(cal, data.eta[kept], points[kept], len(data), calibration,
+                                  urdf, tcp, data.stamps_ns)
         self._publish_diagnostics(force=True)
-        tcp_um = np.sqrt(np.trace(result.tcp_covariance, axis1=1, axis2=2)).max() * 1e6
-        # With the misfit of a model χ² rejects (core.precision.expected_tcp_error).
-        expected = ('' if cal.expected is None else
-                    f', expected TCP error <= '
-                    f'{np.max(cal.expected.expected_tcp_error_m) * 1e6:.1f} µm with the misfit')
-        precision = precision_statement(result.covariance_scale, result.joint_sigma)
         if result.covariance_scale != 1.0:
-            self.get_logger().warning(f'TCP and parameter std {precision}')
-        return True, (
-            f'identified from {len(data)} measurements: {result.message}; rms '
-            f'{result.rms_m * 1e6:.1f} µm, p = {result.p_value:.3g}, TCP sqrt(trace) <= '
-            f'{tcp_um:.1f} µm ({precision}){expected}; {len(cal.robust.excluded)} excluded; '
-            + (f'prior {prior}; ' if prior else '') + ''.join(f'{n}; ' for n in notes)
-            + f'written to {self.data_dir}')
-
-    def _campaign_inadequate(self) -> bool:
-        """The sequential campaign stopped as model inadequate: a calibration of its
-        measurements is never archived as the next cycle's prior."""
-        status = self._sequential_status
-        return status is not None and status.stop_reason == MODEL_INADEQUATE
+            self.get_logger().warning('TCP and parameter std ' + precision_statement(
+                result.covariance_scale, result.joint_sigma))
+        return True, identify_answer(len(data), cal, prior, notes, self.data_dir)
 
     async def _diagnose(self) -> tuple[bool, str]:
         """Model diagnosis of the accepted measurements (as ``kpi-calib diagnose``): residual
         report, adequacy and the most likely missing effect; report files and ~/diagnosis."""
         cm = self._model()
-        data, pairing = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame,
-                                                   cm.cell.reflector_names or ('',))
-        # tracked poses' rotation rows; controller readings -> URDF joint values
-        data = urdf_measurements(cm, pose_rows(cm, data, pairing))
+        data, pairing = model_measurements(self.campaign, cm)
         doc, text, verdict, report = await self._offload(jobs.diagnose_work, cm, data,
                                                          self.data_dir, child=True)
-        self._diagnosis = doc
+        self._run.diagnosis = doc
         self._pub_diagnosis.publish(String(data=text))
         self._publish_diagnostics(force=True)
         return True, f'{verdict} Report: {report}'
@@ -748,56 +427,32 @@ class CalibrationNode(Node):
         cm = self._model()
         if not self._calibration_text:
             raise DataError('no calibration to validate yet: call ~/identify first')
-        data, pairing = self.campaign.measurements(cm.joint_names, cm.cell.tracker_frame,
-                                                   cm.cell.reflector_names or ('',))
-        # tracked poses' rotation rows; controller readings -> URDF joint values
-        data = urdf_measurements(cm, pose_rows(cm, data, pairing))
-        stamps = np.asarray(data.stamps_ns, dtype=np.int64).ravel()
-        new = np.isin(stamps, np.fromiter(self._identified_stamps, dtype=np.int64),
-                      invert=True)
+        data, pairing = model_measurements(self.campaign, cm)
+        new = np.isin(np.asarray(data.stamps_ns),
+                      np.fromiter(self._identified_stamps, dtype=np.int64), invert=True)
         if not new.any():
             raise DataError('no measurement accepted since the last identification; measure '
                             'new poses with auto_identify:=false, then call ~/validate')
-        fresh = dataclasses.replace(data, stamps_ns=stamps).subset(new)
+        fresh = data.subset(new)
         doc, text = await self._offload(jobs.validate_work, cm, self._calibration_text, fresh,
                                         self.data_dir, self.settings.validate_register or None)
         self._pub_validation.publish(String(data=text))
-        return doc['holds'], (f"{doc['verdict']} on {doc['measurements']} new measurements: "
-                              f"rms {doc['rms_m'] * 1e6:.1f} µm"
-                              + (' after re-registering '
-                                 + '/'.join(doc['registration']['parameters'])
-                                 if doc.get('registration') else '')
-                              + f", chi2/dof {doc['chi2']:.1f}/"
-                              f"{doc['dof']}, p = {doc['p_value']:.3g}; "
-                              f"{doc['outside_training_range']} outside the training ranges"
-                              + (f"; {doc['repeated_from_training']} at training poses "
-                                 f"measured again, rms "
-                                 f"{doc['rms_repeated_from_training_m'] * 1e6:.1f} µm"
-                                 if doc['repeated_from_training'] else ''))
+        return doc['holds'], validate_answer(doc)
 
     async def _reset(self) -> tuple[bool, str]:
         """Start a new campaign: archive (never delete) the logs and results."""
         count, archive = await self._offload(self.campaign.reset)
-        self._result, self._measured, self._result_error = None, None, ''
-        self._robust = None
-        self._identified_with, self._auto_pending, self._diagnosis = 0, False, None
-        self._sequential, self._sequential_status = None, None
-        self._sequential_stamps, self._sequential_initial = set(), 0
-        self._sequential_state, self._resume_pending, self._resumed = None, False, False
+        self._run = RunState()
         self._publish_markers()
         self._publish_diagnostics(force=True)
         return True, f'archived {count} measurement(s) and the results to {archive}'
 
     # ------------------------------------------------------------------ outputs
     def _publish_markers(self) -> None:
-        cm, result = self._cm, self._result
+        cm, result = self._cm, self._run.result
         if cm is None:
             return
-        measured, residuals = self._measured, None if result is None else result.residuals
-        rows = self._marker_rows
-        if (measured is not None and residuals is not None and rows is not None
-                and len(rows) == len(measured) == len(residuals)):
-            measured, residuals = measured[rows], residuals[rows]
+        measured, residuals = self._run.residual_arrows()
         # Stamp 0: RViz draws latched markers with the latest transforms.
         self._pub_markers.publish(cv.marker_array_msg(
             0, cm.cell.tracker_frame, cm.cell.base_frame, design_points=self._design_points,
@@ -806,64 +461,13 @@ class CalibrationNode(Node):
             capsules=self._capsules, measured=measured, residuals=residuals))
 
     def status(self) -> tuple[str, str, dict[str, Any]]:
-        """(level, message, key values) as /diagnostics reports them."""
-        values: dict[str, Any] = {'state': self._job_name or (
-            'waiting for robot description' if self._cm is None else 'idle')}
-        values.update(self.campaign.counts())
-        values.update({'identified_with': self._identified_with,
-                       'identifications': self._identifications,
-                       'lost.joint_states': self._sequences['joint_states'].lost,
-                       'lost.points': (self._sequences['points'].lost
-                                       + self._sequences['poses'].lost),
-                       'max_lag_ms.joint_states': round(
-                           self._sequences['joint_states'].max_lag_ns * 1e-6, 1),
-                       'log_file': str(self.campaign.log.path)})
-        lost = values['lost.joint_states'] + values['lost.points']
-        result, n, rejected = self._result, values['accepted'], values['rejected']
-        if result is not None:
-            values.update({'rms_um': round(result.rms_m * 1e6, 3),
-                           'p_value': float(result.p_value), 'converged': result.converged})
-        if self._robust is not None:
-            values.update({'sigma_robust_um': round(self._robust.sigma_robust * 1e6, 3),
-                           'excluded_measurements': len(self._robust.excluded)})
-        if self._diagnosis is not None:
-            best = next((c['spec'] for c in self._diagnosis['candidates'] if c['significant']),
-                        'none')
-            values.update({'model_adequate': self._diagnosis['model_adequate'],
-                           'suggested_effect': best})
-        seq, state = self._sequential_status, self._sequential_state
-        if state is not None:
-            # The campaign's own target (the one its status and stop rule use).
-            values.update({'campaign': 'sequential',
-                           'campaign.measurements': seq.measurements if seq else 0,
-                           'campaign.tcp_std_um': round(seq.statistic * 1e6, 3) if seq
-                           else float('inf'),
-                           'campaign.target_um': round(state.settings.target_std * 1e6, 3),
-                           'campaign.max_measurements': state.settings.max_measurements,
-                           'campaign.excluded': len(seq.excluded) if seq else 0,
-                           'campaign.resumed': self._resumed or self._resume_pending,
-                           'campaign.stop_reason': (
-                               'resuming' if self._resume_pending else
-                               (seq.stop_reason if seq else '') or 'running')})
-        error = self._model_error or self._result_error
-        if error or values['rejected.not_stored']:
-            return 'ERROR', error or 'accepted measurements could not be stored', values
-        if seq is not None and seq.stop_reason == MODEL_INADEQUATE:
-            return 'WARN', f'sequential campaign stopped: {MODEL_INADEQUATE}', values
-        if self._robust is not None and self._robust.warnings:
-            return 'WARN', self._robust.warnings[0], values
-        if result is not None and not is_adequate(result.p_value):
-            return 'WARN', f'model inadequate (p = {result.p_value:.2g})', values
-        if lost:
-            return 'WARN', (f"{values['lost.joint_states']} joint states and "
-                            f"{values['lost.points']} points lost before the node read them "
-                            '(queue overflow: the node fell behind)'), values
-        if rejected:
-            return 'WARN', f'{n} accepted, {rejected} rejected', values
-        if self._cm is None:
-            return 'OK', 'waiting for robot description', values
-        return 'OK', f'{n} accepted' + ('' if result is None else
-                                        f', rms {result.rms_m * 1e6:.1f} µm'), values
+        """(level, message, key values) as /diagnostics reports them (:func:`node_status`)."""
+        seq = self._sequences
+        return node_status(self._run, self.campaign.counts(), StreamHealth(
+            seq['joint_states'].lost, seq['points'].lost + seq['poses'].lost + seq['sigma'].lost,
+            seq['joint_states'].max_lag_ns), job=self._job_name, model_ready=self._cm is not None,
+            model_error=self._model_error, identifications=self._identifications,
+            log_file=str(self.campaign.log.path))
 
     def _publish_diagnostics(self, force: bool = False) -> None:
         level, message, values = self.status()

@@ -9,15 +9,23 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from rclpy.exceptions import InvalidTopicNameException
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.exceptions import (
+    InvalidParameterTypeException,
+    InvalidParameterValueException,
+    InvalidTopicNameException,
+    ParameterUninitializedException,
+)
+from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.validate_topic_name import validate_topic_name
 
 from kpi_calib_ros.app.validate import REGISTER
-from kpi_calib_ros.core.design import DESIGN_CRITERIA
+from kpi_calib_ros.core.design.optimum import DESIGN_CRITERIA
 from kpi_calib_ros.core.errors import ConfigError, DataError
-from kpi_calib_ros.core.prior import DriftSwing
-from kpi_calib_ros.io.cell import DEFAULT_CELL, WorkingPose, working_poses_from_arrays
+from kpi_calib_ros.core.estimation.drift_state import DriftSwing
+from kpi_calib_ros.io.cell import DEFAULT_CELL
+from kpi_calib_ros.io.cell_sections import WorkingPose, working_poses_from_arrays
 from kpi_calib_ros.io.names import (
     DEFAULT_JOINT_TOPIC,
     DEFAULT_POINT_TOPIC,
@@ -211,5 +219,30 @@ def working_poses(settings: NodeSettings) -> tuple[WorkingPose, ...] | None:
     return working_poses_from_arrays(settings.working_joint_names, settings.working_poses)
 
 
-__all__ = ['NodeSettings', 'PARAMETERS', 'parameter_type', 'settings_from_parameters',
-           'type_error', 'working_poses']
+
+def declare_parameters(node: Node) -> None:
+    """Declare every parameter on ``node``; a start-up value of the wrong type (``-p
+    auto_identify:=maybe`` arrives as a string) is a ConfigError naming it."""
+    for name, (default, read_only, description) in PARAMETERS.items():
+        try:
+            node.declare_parameter(name, default, ParameterDescriptor(
+                description=description, read_only=read_only))
+        except (InvalidParameterTypeException, InvalidParameterValueException) as exc:
+            given = getattr(node, '_parameter_overrides', {}).get(name)
+            raise type_error(name, exc if given is None else given.value) from None
+
+
+def parameter_values(node: Node, changes: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Every parameter's value on ``node`` (an empty array parameter: []), with
+    ``changes`` applied."""
+    values = {}
+    for name in PARAMETERS:
+        try:
+            values[name] = node.get_parameter(name).value
+        except ParameterUninitializedException:  # an array parameter left empty
+            values[name] = []
+    values.update(changes or {})
+    return values
+
+__all__ = ['NodeSettings', 'PARAMETERS', 'declare_parameters', 'parameter_type',
+           'parameter_values', 'settings_from_parameters', 'type_error', 'working_poses']

@@ -1,7 +1,8 @@
 """kpi-calib replay: publish a recorded bag onto the live topics with its timing.
 
-Like ``ros2 bag play`` for the two topics the calibration uses: joint states and
-tracker points are published in stamp order, paced by their header stamps (which
+Like ``ros2 bag play`` for the topics the calibration uses: joint states and
+tracker points (each point's stated σ, if the bag has it, right after the point on
+``<point topic>/sigma``) are published in stamp order, paced by their header stamps (which
 equal the log time in bags recorded by ``ros2 bag record`` from the drivers and in
 simulated bags) divided by ``rate``. Message contents, stamps included, are
 published unchanged. Imported only by the ``replay`` subcommand, so the rest of
@@ -31,24 +32,24 @@ from typing import cast
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PointStamped, PoseStamped
+from geometry_msgs.msg import PointStamped, PoseStamped, Vector3Stamped
 from rclpy.duration import Duration
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
+from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
 from kpi_calib_ros.core.errors import DataError
-from kpi_calib_ros.core.streams import JointSample
 from kpi_calib_ros.io.bag import (
     DEFAULT_JOINT_TOPIC,
     DEFAULT_POINT_TOPIC,
     is_measurement_log,
-    read_bag,
+    read_bag_with_sigma,
 )
 from kpi_calib_ros.io.mcap_scan import MAGIC, scan
-from kpi_calib_ros.io.names import DEFAULT_POSE_TOPIC
-from kpi_calib_ros.io.ros_messages import pose_stamped_msg
+from kpi_calib_ros.io.names import DEFAULT_POSE_TOPIC, point_sigma_topic
+from kpi_calib_ros.io.ros_messages import pose_stamped_msg, vector3_stamped_msg
 from kpi_calib_ros.ros.conversions import diagnostic_values, joint_state_msg, point_stamped_msg
 
 # Publisher history at least this deep; it is sized to the whole recording when longer,
@@ -69,13 +70,15 @@ class ReplayReport:
 
     ``delivered`` is (joint states, points) the calibration node counted beyond its
     counts before the replay, or None when no node diagnostics were seen;
-    ``acknowledged`` says whether DDS acknowledged every message to every subscriber.
+    ``acknowledged`` says whether DDS acknowledged every message to every subscriber;
+    ``sigma_sent`` the points' stated σ published.
     """
 
     sent: tuple[int, int]
     delivered: tuple[int, int] | None
     acknowledged: bool
     seconds: float
+    sigma_sent: int = 0
 
     @property
     def lost(self) -> tuple[int, int] | None:
@@ -158,7 +161,7 @@ def replay(node: Node, path: str | Path, rate: float = 1.0,
     if not rate > 0:
         raise ValueError(f'rate must be > 0, got {rate}')
     refuse_measurement_log(path)
-    joints, points = read_bag(path, joint_topic, point_topic, pose_topic)
+    joints, points, sigma = read_bag_with_sigma(path, joint_topic, point_topic, pose_topic)
     stream = sorted([(s.stamp_ns, 0, s) for s in joints] + [(p.stamp_ns, 1, p) for p in points],
                     key=lambda item: item[:2])
     n_poses = sum(p.orientation is not None for p in points)
@@ -168,6 +171,12 @@ def replay(node: Node, path: str | Path, rate: float = 1.0,
     pubs = [node.create_publisher(kind, topic, QoSProfile(
         depth=max(QOS_DEPTH, n), reliability=ReliabilityPolicy.RELIABLE))
         for kind, topic, n in topics]
+    # The points' stated σ: not counted by the node's acknowledgement, each sent with its
+    # point (so at most POINT_WINDOW of them in flight).
+    sigma_pub = node.create_publisher(Vector3Stamped, point_sigma_topic(point_topic), QoSProfile(
+        depth=max(QOS_DEPTH, len(sigma)), reliability=ReliabilityPolicy.RELIABLE)) \
+        if sigma else None
+    sigma_sent = 0
     node_counts = _NodeCounts(node)
     log = node.get_logger()
     if not wait_for_subscribers(node, pubs, wait_s):
@@ -202,15 +211,22 @@ def replay(node: Node, path: str | Path, rate: float = 1.0,
             pubs[2].publish(pose_stamped_msg(sample))
         else:
             pubs[1].publish(point_stamped_msg(sample))
+        if (sigma_pub is not None and isinstance(sample, PointSample)
+                and (stamp, sample.frame_id) in sigma):
+            sigma_pub.publish(vector3_stamped_msg(stamp, sample.frame_id,
+                                                  sigma[(stamp, sample.frame_id)]))
+            sigma_sent += 1
         sent[kind] += 1
-    acknowledged = all(p.wait_for_all_acked(Duration(seconds=STALL_S)) for p in pubs)
+    acknowledged = all(p.wait_for_all_acked(Duration(seconds=STALL_S))
+                       for p in pubs + ([sigma_pub] if sigma_pub is not None else []))
     delivered = None
     if baseline is not None:
         _await(node_counts, lambda: all(node_counts.latest()[k] - baseline[k] >= sent[k]
                                         for k in (0, 1)))
         counts = node_counts.latest()
         delivered = (counts[0] - baseline[0], counts[1] - baseline[1])
-    return ReplayReport((sent[0], sent[1]), delivered, acknowledged, time.monotonic() - start)
+    return ReplayReport((sent[0], sent[1]), delivered, acknowledged, time.monotonic() - start,
+                        sigma_sent)
 
 
 def refuse_measurement_log(path: str | Path) -> None:
@@ -266,7 +282,9 @@ def run_replay(bag: str | Path, rate: float = 1.0, joint_topic: str = DEFAULT_JO
         rclpy.try_shutdown()
     (n_joints, n_points), seconds = report.sent, report.seconds
     print(f'sent {n_joints} joint states and {n_points} tracker points from {bag} in '
-          f'{seconds:.1f} s (rate {rate:g})')
+          f'{seconds:.1f} s (rate {rate:g})'
+          + (f', with the stated sigma of {report.sigma_sent} points on '
+             f'{point_sigma_topic(point_topic)}' if report.sigma_sent else ''))
     if report.delivered is None:
         print('no kpi_calib_node counts seen; DDS acknowledged '
               + ('every message' if report.acknowledged else 'NOT every message'))

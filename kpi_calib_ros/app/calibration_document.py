@@ -1,0 +1,198 @@
+"""The calibration document of an identification: :class:`CellCalibration` (a calibration
+with its model choice, robust statistics and KPI estimability), calibration.yaml's content
+made of it (the result, the DH/Hayati view, warnings, validity), its summary lines, and
+writing it with the calibrated URDF beside it.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from kpi_calib_ros.core.acquisition.pairing import PairingResult
+from kpi_calib_ros.core.diagnosis.model_selection import ModelChoice
+from kpi_calib_ros.core.effects.gravity_compliance import compliance_warnings, mass_warning
+from kpi_calib_ros.core.estimation.estimability import KpiEstimability
+from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
+from kpi_calib_ros.core.estimation.precision import ExpectedTcpError
+from kpi_calib_ros.core.estimation.registration import Registration
+from kpi_calib_ros.core.estimation.robust import LOSS_SCALE, ExcludedMeasurement, RobustResult
+from kpi_calib_ros.core.model.dh import dh_table
+from kpi_calib_ros.io.cell import CellModel
+from kpi_calib_ros.io.names import CALIBRATED_URDF_FILE, FAILED_CALIBRATION_FILE
+from kpi_calib_ros.io.results import calibration_to_dict, write_atomic, write_calibration
+from kpi_calib_ros.io.urdf_export import calibrated_urdf
+
+
+@dataclass(frozen=True)
+class CellCalibration:
+    """A calibration with its model choice, robust statistics and KPI estimability.
+
+    ``valid`` is what may be published as the calibration: converged and the TCP estimable
+    at every working pose; ``problems`` says why not.
+    """
+
+    result: CalibrationResult
+    robust: RobustResult
+    choice: ModelChoice
+    estimability: KpiEstimability
+    free: tuple[str, ...]
+    registration: Registration | None = None
+    # The cell's tolerance prior was tightened by this factor: the data weighed at the
+    # noise they show, √prior_scale × the stated σ (core.precision.balanced_prior).
+    prior_scale: float = 1.0
+    # The cell model the result belongs to: the given one with the effects ``auto`` added
+    # (core.effect_selection); documents and the calibrated URDF are written with it.
+    cell: CellModel | None = None
+    # Expected TCP error at the working poses with the misfit included (core.precision).
+    expected: ExpectedTcpError | None = None
+
+    @property
+    def problems(self) -> tuple[str, ...]:
+        out = []
+        if not self.result.converged:
+            out.append(f'identification did not converge: {self.result.message}')
+        if not self.estimability.all_estimable:
+            out.append(self.estimability.summary())
+        return tuple(out)
+
+    @property
+    def valid(self) -> bool:
+        return not self.problems
+
+
+def calibration_document(cm: CellModel, result: CalibrationResult,
+                         pairing: PairingResult | None = None) -> dict:
+    """The calibration.yaml document: the result plus the DH/Hayati view of its axes.
+    Its training joint ranges and poses are URDF joint values (``robot.joint_coupling``
+    applied to the readings), as validate reads new joint states."""
+    if (pairing is not None and len(pairing) and not cm.joint_coupling.is_identity
+            and tuple(pairing.joint_names) == tuple(cm.joint_names)):
+        pairing = dataclasses.replace(pairing, q=cm.joint_coupling.to_urdf(pairing.q))
+    doc = calibration_to_dict(result, pairing)
+    std = dict(zip(result.estimated, result.std))
+    estimated = [n for n in result.names if n in std]
+    values = dict(zip(result.names, result.values))
+    notes = compliance_warnings(estimated, [values[n] for n in estimated],
+                                [std[n] for n in estimated])
+    missing_masses = mass_warning(cm.robot, cm.model.effects)
+    if missing_masses:
+        notes.insert(0, missing_masses)
+    if notes:
+        doc['warnings'] = notes
+    doc['effects'] = [e.name for e in cm.model.effects]  # validate rebuilds this model
+    doc['dh_hayati'] = dh_table(cm.robot, cm.geometric, cm.geometric.nominal,
+                                result.values[:len(cm.geometric)])
+    return doc
+
+
+def add_robust_sections(doc: dict[str, Any], cal: CellCalibration) -> dict[str, Any]:
+    """Add validity, model choice, robust statistics and KPI estimability to a calibration
+    document (see the README's calibration.yaml fields); TCP std of a pose whose TCP is
+    not estimable becomes null with ``determined: false``."""
+    rob = cal.robust
+    doc['valid'] = cal.valid
+    doc['invalid_reasons'] = list(cal.problems)
+    doc['model'] = {**cal.choice.to_dict(), 'free_parameters': len(cal.free)}
+    doc['robust'] = {
+        'sigma_stated_m': rob.sigma_stated, 'sigma_robust_m': rob.sigma_robust,
+        'sigma_ratio': rob.sigma_ratio, 'loss': rob.loss,
+        'loss_scale': ('c·σ̂ with c = %.3f' % LOSS_SCALE) if rob.loss != 'linear' else None,
+        'outlier_threshold_sigma': rob.threshold,
+        'excluded': [{'index': e.index, 'stamp_ns': e.stamp_ns, 'distance_m': e.distance_m,
+                      'distance_sigma': e.distance_sigma, 'reason': e.reason}
+                     for e in rob.excluded],
+        'outliers': list(rob.outliers),
+        # Over the threshold but kept: the model misfits their pose (core.outliers).
+        'misfit': list(rob.misfit),
+        'used_indices': [int(i) for i in np.flatnonzero(rob.kept)],
+        'warnings': list(rob.warnings)}
+    doc['tcp_estimable'] = cal.estimability.all_estimable
+    doc['tcp_estimability'] = cal.estimability.to_dict()
+    for entry, ok in zip(doc['tcp'], cal.estimability.estimable):
+        entry['determined'] = bool(ok)
+        if not ok:
+            entry.update(covariance=None, std=None, trace_m2=None)
+    if cal.expected is not None:
+        # tcp_std_m: the parameter part; expected_tcp_error_m: with the model's misfit.
+        expected = cal.expected.to_dict()
+        for name, ok in zip(cal.expected.working_pose_names, cal.estimability.estimable):
+            if not ok:
+                expected['tcp_std_m'][name] = expected['expected_tcp_error_m'][name] = None
+        doc['precision'].update(expected)
+    return doc
+
+
+def _um(metres: float | None) -> str:
+    return 'not estimable' if metres is None else f'{metres * 1e6:.1f} µm'
+
+
+def robust_summary(doc: dict[str, Any]) -> str:
+    """Summary lines of the sections :func:`add_robust_sections` adds."""
+    rob, model = doc['robust'], doc['model']
+    def per_level(values: dict, missing: str) -> str:
+        return ', '.join(f'{k} {missing if v is None else f"{v * 1e6:.1f} µm"}'
+                         for k, v in values.items())
+    lines = [f"model: {model['level']} ({model['free_parameters']} free parameters; "
+             f"{model['reason']})"]
+    if model.get('predicted_rms_m'):
+        lines.append('predicted out-of-sample rms per level (measured configurations): '
+                     + per_level(model['predicted_rms_m'], 'n/a'))
+    if model.get('cv_rms_m'):
+        lines.append(f"cross-validated rms per level ({model['folds']}-fold, folds that keep "
+                     'every parameter determined): '
+                     + per_level(model['cv_rms_m'], 'not estimable from this design'))
+    lines.append(f"noise σ: stated {rob['sigma_stated_m'] * 1e6:.3g} µm, robust estimate from "
+                 f"the residuals {rob['sigma_robust_m'] * 1e6:.3g} µm "
+                 f"(ratio {rob['sigma_ratio']:.3g}); loss {rob['loss']}")
+    lines += [ExcludedMeasurement(**e).text() for e in rob['excluded']]
+    lines += [f'WARNING: {w}' for w in rob['warnings']]
+    precision = doc.get('precision', {})
+    for name, error in precision.get('expected_tcp_error_m', {}).items():
+        std = precision['tcp_std_m'][name]
+        if std is not None:
+            lines.append(f'TCP {name}: expected error {_um(error)} (with the misfit), '
+                         f'parameter part tcp_std {_um(std)} (sqrt(trace))')
+    if precision.get('expected_tcp_error_m'):
+        lines.append(f"expected TCP error: {precision['expected_tcp_error_basis']}")
+    if doc['tcp_estimable'] and doc['tcp']:
+        lines.append('TCP estimable at every working pose')
+    if not doc['valid']:
+        lines.append('CALIBRATION NOT VALID: ' + ' | '.join(doc['invalid_reasons']))
+    return '\n'.join(lines)
+
+
+def write_calibration_checked(out_dir: str | Path, doc: dict[str, Any]) -> Path:
+    """calibration.yaml for a valid calibration; a failed one goes to
+    calibration.failed.yaml and never replaces the last good calibration.yaml."""
+    if doc.get('valid', True):
+        return write_calibration(out_dir, doc)
+    import yaml
+    return write_atomic(Path(out_dir) / FAILED_CALIBRATION_FILE,
+                        yaml.safe_dump(doc, sort_keys=False))
+
+
+def calibrated_robot_description(cm: CellModel, result: CalibrationResult) -> str:
+    """The calibrated URDF of ``result`` (identified joint errors folded into the joint
+    origins, see :mod:`kpi_calib_ros.io.urdf_export`); the CLI and the node write this."""
+    return calibrated_urdf(cm.cell.urdf_xml, cm.robot, dict(zip(result.names, result.values)))
+
+
+def write_results(cm: CellModel, result: CalibrationResult, doc: dict[str, Any],
+                  out_dir: str | Path) -> tuple[Path, Path | None, str]:
+    """Write a valid calibration as calibration.yaml and the calibrated URDF beside it
+    (atomically); an invalid one (``doc['valid']`` false) only as calibration.failed.yaml,
+    leaving the last good files as they were.
+
+    Returns the calibration document's path, the URDF's path (None when invalid) and the
+    URDF text ('' when invalid).
+    """
+    path = write_calibration_checked(out_dir, doc)
+    if not doc.get('valid', True):
+        return path, None, ''
+    urdf = calibrated_robot_description(cm, result)
+    urdf_path = write_atomic(Path(out_dir) / CALIBRATED_URDF_FILE, urdf)
+    return path, urdf_path, urdf

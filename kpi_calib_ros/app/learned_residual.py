@@ -1,0 +1,152 @@
+"""The learned residual of a calibration: chosen, stored beside calibration.yaml, and the
+TCP predicted with it (the CLI's ``identify --learned-residual`` and the node's
+``~/tcp_query``).
+
+See :mod:`kpi_calib_ros.core.diagnosis.learned_residual` for the model and its choice; this module
+feeds it the point rows of a calibration, writes learned_residual.yaml and predicts the
+TCP at joint values with both parts of its uncertainty.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from kpi_calib_ros.core.diagnosis.learned_residual import (
+    CorrectedTcp,
+    LearnedResidual,
+    ResidualChoice,
+    corrected_tcp,
+    fit_learned_residual,
+    residual_noise_scale,
+)
+from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
+from kpi_calib_ros.core.estimation.precision import expected_tcp_error
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements
+from kpi_calib_ros.io.cell import CellModel
+from kpi_calib_ros.io.learned_residual_file import (
+    StoredResidual,
+    residual_document,
+    write_residual,
+)
+
+
+def point_rows(model: MeasurementModel, data: Measurements) -> np.ndarray:
+    """(N,) bool: the rows of ``data`` that are points (not rotation rows)."""
+    if data.reflector is None:
+        return np.ones(len(data), bool)
+    return np.asarray(data.reflector) < model.n_reflectors
+
+
+def choose_residual(cm: CellModel, data: Measurements, result: CalibrationResult,
+                    seed: int = 0) -> ResidualChoice:
+    """Fit and decide the learned residual on ``result``'s residuals of ``data`` (the
+    measurements it was identified from, outliers excluded), its point rows only."""
+    rows = point_rows(cm.model, data)
+    return fit_learned_residual(np.atleast_2d(data.q)[rows], result.residuals[rows],
+                                cm.cell.sigma, tuple(cm.joint_names), seed=seed)
+
+
+def physical_covariance(result: CalibrationResult, residual: LearnedResidual | None,
+                        sigma: float | np.ndarray) -> np.ndarray:
+    """(k, k) covariance of ``result.estimated``: as reported without a learned residual;
+    with one, from the stated σ scaled by the noise the learned residual leaves (the
+    misfit it explains no longer inflates it)."""
+    if residual is None:
+        return np.asarray(result.covariance, float)
+    return (np.asarray(result.covariance, float) / result.covariance_scale
+            * residual_noise_scale(residual, sigma))
+
+
+def physical_misfit(model: MeasurementModel, data: Measurements,
+                    result: CalibrationResult) -> float:
+    """b (m): the physical model's held-out misfit
+    (:func:`kpi_calib_ros.core.estimation.precision.expected_tcp_error`), 0 when χ² accepts it or it
+    is
+    not estimable from the design."""
+    misfit = expected_tcp_error(model, data, result).misfit_m
+    return float(misfit) if np.isfinite(misfit) else 0.0
+
+
+def predict_tcp(model: MeasurementModel, values: np.ndarray, estimated: tuple[str, ...],
+                covariance: np.ndarray, residual: LearnedResidual | None,
+                q: np.ndarray, covariance_outside: np.ndarray | None = None,
+                misfit_m: float = 0.0) -> CorrectedTcp:
+    """The TCP (KPI point) at URDF joint values ``q`` (M, n): the physical model at
+    ``values`` plus the learned residual, with the covariance of both parts
+    (:func:`kpi_calib_ros.core.diagnosis.learned_residual.corrected_tcp`)."""
+    q = np.atleast_2d(np.asarray(q, float))
+    tcp, jac = model.jacobian(np.asarray(values, float), q)
+    idx = model.params.indices(list(estimated))
+    return corrected_tcp(tcp, jac[:, :, idx], covariance, q, residual, covariance_outside,
+                         misfit_m)
+
+
+def predict_stored(model: MeasurementModel, stored: StoredResidual,
+                   q: np.ndarray) -> CorrectedTcp:
+    """:func:`predict_tcp` with a learned_residual.yaml read back."""
+    stored.check_model(model)
+    return predict_tcp(model, stored.values, stored.estimated, stored.covariance,
+                       stored.residual, q, stored.covariance_outside, stored.misfit_m)
+
+
+def add_learned_residual(doc: dict[str, Any], cm: CellModel, data: Measurements,
+                         result: CalibrationResult, out_dir: str | Path | None,
+                         seed: int = 0) -> tuple[str, Path | None]:
+    """Choose the learned residual for a calibration; when chosen and ``doc`` is valid,
+    write learned_residual.yaml in ``out_dir`` (None: not written).
+
+    Adds ``learned_residual`` to the calibration document ``doc``: the choice with its
+    figures and, when chosen, the TCP at every working pose with the correction, its
+    covariance and std (parameter part and learned part) and whether the pose lies inside
+    the fitted region. Returns the summary text and the file written (or None).
+    """
+    choice = choose_residual(cm, data, result, seed)
+    section: dict[str, Any] = {**choice.to_dict(), 'file': None}
+    lines = [choice.reason]
+    path = None
+    if choice.chosen:
+        cov = physical_covariance(result, choice.model, cm.cell.sigma)
+        misfit = physical_misfit(cm.model, data, result)
+        tcp = predict_tcp(cm.model, result.values, result.estimated, cov, choice.model,
+                          cm.q_work, result.covariance, misfit)
+        section['tcp'] = tcp_entries(cm.working_pose_names, tcp)
+        joints = ', '.join(f'{n} {v:.3g}' for n, v in
+                           list(choice.model.relevant_joints().items())[:3])
+        lines.append(f'learned residual: amplitude {np.sqrt(choice.model.amplitude_m2) * 1e6:.1f}'
+                     f' um, noise left {np.sqrt(choice.model.noise_m2) * 1e6:.1f} um, shortest '
+                     f'length scales {joints}')
+        for name, entry in section['tcp'].items():
+            where = 'inside' if entry['inside_fitted_region'] else 'OUTSIDE'
+            lines.append(f"TCP {name} with the learned residual: correction "
+                         f"{np.linalg.norm(entry['correction_m']) * 1e6:.1f} um, std "
+                         f"{entry['std_m'] * 1e6:.1f} um (parameter part "
+                         f"{entry['parameter_std_m'] * 1e6:.1f} um), {where} the fitted region "
+                         f"(distance {entry['distance']:.2g} length scales)")
+        if out_dir is not None and doc.get('valid', True):
+            path = write_residual(out_dir, residual_document(choice, result, cov, misfit))
+            section['file'] = path.name
+    doc['learned_residual'] = section
+    return '\n'.join(lines), path
+
+
+def tcp_entries(names: tuple[str, ...] | list[str], tcp: CorrectedTcp) -> dict[str, Any]:
+    """YAML-ready TCP predictions with the learned residual, by working pose name (m)."""
+    out = {}
+    corr = tcp.correction
+    for i, name in enumerate(names):
+        out[name] = {
+            'position_m': [float(x) for x in tcp.position[i]],
+            'covariance_m2': np.asarray(tcp.covariance[i]).tolist(),
+            'std_m': float(tcp.std_m[i]),
+            'parameter_std_m': float(np.sqrt(np.trace(tcp.physical_covariance[i]))),
+            'correction_m': [float(x) for x in corr.mean[i]] if corr is not None else None,
+            'distance': float(corr.distance[i]) if corr is not None else None,
+            'inside_fitted_region': bool(corr.inside[i]) if corr is not None else False}
+    return out
+
+
+__all__ = ['add_learned_residual', 'choose_residual', 'physical_covariance', 'physical_misfit',
+           'point_rows',
+           'predict_stored', 'predict_tcp', 'tcp_entries']

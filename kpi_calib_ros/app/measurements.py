@@ -1,0 +1,230 @@
+"""Measurements for identification: recorded or live samples paired into
+:class:`~kpi_calib_ros.core.measurement.tracker.Measurements` of a cell, the one path every front
+end uses (the CLI, the node and the demo), so a bag replayed into the node and the same bag
+read offline give the same rows.
+
+Joint values are mapped from the controller's readings to the URDF chain once, here
+(:func:`urdf_measurements`); the tracker's stated σ and tracked 6-DoF poses become row
+weights and rotation rows.
+"""
+from __future__ import annotations
+
+import dataclasses
+import sys
+import warnings
+from pathlib import Path
+from typing import Iterable, Mapping, Sequence
+
+import numpy as np
+
+from kpi_calib_ros.core.acquisition.pairing import PairingResult, pair_measurements, split_frame
+from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
+from kpi_calib_ros.core.effects.registry import split_specs
+from kpi_calib_ros.core.errors import DataError
+from kpi_calib_ros.core.measurement.covariates import (
+    TemperatureSample,
+    temperature_covariates,
+    with_covariates,
+)
+from kpi_calib_ros.core.measurement.tracker import Measurements, with_rotation_rows
+from kpi_calib_ros.io.bag import read_for_pairing, read_temperatures
+from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
+from kpi_calib_ros.io.measurement_log import stored_pairing
+
+
+def measurements_from_samples(cm: CellModel, joint_samples: Iterable[JointSample],
+                              point_samples: Iterable[PointSample],
+                              point_sigma: Mapping[tuple[int, str], np.ndarray] | None = None,
+                              **pairer_options) -> tuple[Measurements, PairingResult]:
+    """Pair tracker points with still joint states, matching joints by name; the points'
+    stated σ by (stamp ns, frame id), if any, weigh their rows (:func:`to_measurements`).
+
+    Raises
+    ------
+    DataError
+        When no point could be paired because the joint states lack the
+        chain's joints (wrong robot or renamed joints): names both sets.
+    """
+    joint_samples = list(joint_samples)
+    pairer_options.setdefault('reflectors', reflector_names(cm))
+    pairing = pair_measurements(joint_samples, point_samples, cm.joint_names,
+                                cm.cell.tracker_frame, **pairer_options)
+    if len(pairing) == 0 and pairing.rejections.get('missing_joints'):
+        seen = sorted({n for s in joint_samples for n in s.names})
+        raise DataError(f'the joint states name joints {seen}, but the robot chain needs '
+                        f'{cm.joint_names}; record the right robot or fix the URDF joint names')
+    return urdf_measurements(cm, to_measurements(cm, pairing, point_sigma)), pairing
+
+
+def urdf_measurements(cm: CellModel, data: Measurements) -> Measurements:
+    """``data`` (paired joint states and points) with its joint values mapped from the
+    controller's readings to the URDF chain (``robot.joint_coupling``).
+
+    Every path from joint states to the model (bag, measurement log, live node) goes
+    through here, so coupled readings are converted once and only once.
+    """
+    if not len(data) or cm.joint_coupling.is_identity:
+        return data
+    return dataclasses.replace(data, q=cm.joint_coupling.to_urdf(data.q))
+
+
+def reflector_names(cm: CellModel) -> tuple[str, ...]:
+    """Reflector names points carry after '#' in their frame id ('' : single reflector)."""
+    return cm.cell.reflector_names or ('',)
+
+
+def to_measurements(cm: CellModel, pairing: PairingResult,
+                    point_sigma: Mapping[tuple[int, str], np.ndarray] | None = None
+                    ) -> Measurements:
+    """(pose, reflector) rows of a pairing, reflector indices in the cell's order
+    (controller joint values, as paired); ``point_sigma`` the tracker's stated σ (3,) (m)
+    by (stamp ns, frame id) (:attr:`kpi_calib_ros.io.bag.BagContents.point_sigma`): a row
+    without one takes the cell's noise.sigma."""
+    try:
+        ref = pairing.reflector_indices(reflector_names(cm))
+    except ValueError as exc:
+        raise DataError(f'{exc}: point frame ids are <tracker_frame>#<reflector name> for '
+                        "the cell's reflectors: list") from None
+    data = Measurements(q=pairing.q, eta=pairing.eta, stamps_ns=pairing.stamps_ns,
+                        reflector=ref if cm.cell.reflector_names else None,
+                        sigma=stated_sigma(pairing, point_sigma))
+    return pose_rows(cm, data, pairing)
+
+
+def stated_sigma(pairing: PairingResult,
+                 point_sigma: Mapping[tuple[int, str], np.ndarray] | None) -> np.ndarray | None:
+    """(N, 3) σ (m) of the pairing's rows, matched by stamp and reflector (the frame id's
+    part after '#'; the tracker frame is the pairing's), NaN where none was stated; None
+    when no row has one."""
+    if not point_sigma:
+        return None
+    by_row = {(stamp, split_frame(frame)[1]): s for (stamp, frame), s in point_sigma.items()}
+    names = pairing.reflectors or ('',) * len(pairing)
+    rows = np.array([by_row.get((int(t), name), np.full(3, np.nan))
+                     for t, name in zip(pairing.stamps_ns, names)], dtype=float).reshape(-1, 3)
+    return rows if np.isfinite(rows).any() else None
+
+
+def pose_rows(cm: CellModel, data: Measurements,
+              pairing: PairingResult | None) -> Measurements:
+    """``data`` with the rotation row of every tracked 6-DoF pose of ``pairing`` (see
+    :func:`kpi_calib_ros.core.measurement.tracker.with_rotation_rows`); None: no pairing, as is."""
+    if pairing is None or pairing.rotations is None:
+        return data
+    try:
+        return with_rotation_rows(cm.model, data, pairing.rotations)
+    except ValueError as exc:
+        names = reflector_names(cm)
+        raise DataError(f'{exc}; a PoseStamped was recorded for a reflector of the cell '
+                        f'{list(names)} that has no orientation: give the tracked body\'s '
+                        'orientation in the cell (reflectors[i].orientation: {rpy: [r, p, y]}) '
+                        'or record its position as a PointStamped') from None
+
+
+def measurements_from_bag(cm: CellModel, path: str | Path,
+                          joint_topic: str | None = None,
+                          point_topic: str | None = None,
+                          pose_topic: str | None = None,
+                          **pairer_options) -> tuple[Measurements, PairingResult]:
+    """Measurements from a recording (paired here) or from the node's measurement log
+    (paired when stored), reading only the joint states pairing needs. Topics default
+    to the cell's ``topics:``; tracked 6-DoF poses on the pose topic add rotation rows."""
+    cell = cm.cell
+    contents = read_for_pairing(path, joint_topic or cell.joint_topic,
+                                point_topic or cell.point_topic,
+                                window_ns=pairer_options.get('window_ns'),
+                                pose_topic=pose_topic or cell.pose_topic)
+    if contents.measurement_log:
+        pairing = stored_pairing(zip(contents.joints, contents.points), list(cm.joint_names),
+                                 cm.cell.tracker_frame)
+        data = urdf_measurements(cm, to_measurements(cm, pairing, contents.point_sigma))
+    else:
+        data, pairing = measurements_from_samples(cm, contents.joints, contents.points,
+                                                  point_sigma=contents.point_sigma,
+                                                  **pairer_options)
+    return with_temperature(cm, data, path), pairing
+
+
+def with_temperature(cm: CellModel, data: Measurements, path: str | Path) -> Measurements:
+    """``data`` with the temperatures of the cell's ``temperature:`` topic in the bag
+    ``path`` paired to every row by its stamp (:mod:`kpi_calib_ros.core.measurement.covariates`);
+    rows without a temperature are refused with a warning. ``data`` unchanged without the
+    section.
+
+    Raises
+    ------
+    DataError
+        The section is there but the bag has no temperature on its topic, or a listed
+        sensor never published.
+    """
+    settings = cm.cell.temperature
+    if settings is None or len(data) == 0:
+        return data
+    kept, refused = paired_temperature(cm, data, read_temperatures(path, settings.topic),
+                                       str(path))
+    if refused:
+        warnings.warn(refused_text(cm, len(data), refused), stacklevel=2)
+    return kept
+
+
+def paired_temperature(cm: CellModel, data: Measurements, samples: Sequence[TemperatureSample],
+                       where: str = 'the recording'
+                       ) -> tuple[Measurements, list[tuple[int, str]]]:
+    """``data`` with the temperature readings ``samples`` paired to its rows by stamp, per
+    the cell's ``temperature:`` section, rows without one removed; [(row, reason)] of those.
+
+    Raises
+    ------
+    DataError
+        No reading at all, no stamps, or a listed sensor never published.
+    """
+    settings = cm.cell.temperature
+    assert settings is not None
+    if not samples:
+        raise DataError(f"{where}: no sensor_msgs/Temperature on '{settings.topic}' "
+                        '(temperature.topic in the cell file); record it, or remove the '
+                        'temperature: section')
+    if data.stamps_ns is None:
+        raise DataError('the measurements carry no stamps to pair temperatures with')
+    try:
+        cov = temperature_covariates(data.stamps_ns, samples, settings.sensors,
+                                     settings.reference_c, settings.max_gap_ns)
+    except ValueError as exc:
+        raise DataError(f'temperature.sensors: {exc}') from None
+    return with_covariates(data, cov)
+
+
+def refused_text(cm: CellModel, total: int, refused: list[tuple[int, str]]) -> str:
+    """One line on the rows refused for want of a temperature."""
+    gap = cm.cell.temperature.max_gap_s if cm.cell.temperature else float('nan')
+    return (f'{len(refused)} of {total} measurement rows refused: {refused[0][1]} '
+            f'(temperature.max_gap = {gap:g} s)')
+
+
+def load_measurements(cell_path: str | Path, bag_path: str | Path, effects: str = '',
+                      joint_topic: str | None = None, point_topic: str | None = None,
+                      allow_code_effects: bool = False, pose_topic: str | None = None
+                      ) -> tuple[CellModel, Measurements, PairingResult]:
+    """Cell model (with the extra ``effects`` specs, comma-separated) and the paired
+    measurements of a bag; rejections are reported on stderr.
+
+    ``joint_topic`` / ``point_topic`` / ``pose_topic`` (``--joint-topic`` /
+    ``--point-topic`` / ``--pose-topic``) override the cell's ``topics:``;
+    ``allow_code_effects`` lets effects name Python code.
+    """
+    cell = load_cell(cell_path, allow_code_effects=allow_code_effects)
+    cm = build_cell_model(cell, effects=tuple(split_specs(effects)))
+    data, pairing = measurements_from_bag(cm, bag_path, joint_topic, point_topic, pose_topic)
+    print_rejections(pairing)
+    return cm, data, pairing
+
+
+def print_rejections(pairing: PairingResult) -> None:
+    """Every rejection reason on stderr with its count and the first one's detail (which
+    names what was received and the fix)."""
+    first: dict[str, str] = {}
+    for r in pairing.rejected:
+        first.setdefault(r.reason, r.detail)
+    for reason, count in sorted(pairing.rejections.items()):
+        detail = f' (first: {first[reason]})' if reason in first else ''
+        print(f'rejected {count} sample(s): {reason}{detail}', file=sys.stderr)

@@ -1,0 +1,30 @@
+"""Acquisition: timestamped streams, pairing points with joint states, coupled controller joints."""
+from kpi_calib_ros.core.acquisition.coupling import JointCoupling, identity_coupling
+from kpi_calib_ros.core.acquisition.pairing import (
+    EARLY_POINTS,
+    INDEX_CACHE_SIZE,
+    NAMES_KEPT,
+    REFLECTOR_SEPARATOR,
+    REJECTION_REASONS,
+    PairedMeasurement,
+    Pairer,
+    PairingResult,
+    Rejection,
+    pair_measurements,
+    split_frame,
+    stacked_rotations,
+)
+from kpi_calib_ros.core.acquisition.streams import (
+    JointSample,
+    PointSample,
+    checked_rotation,
+    frozen_array,
+    synthesize_streams,
+)
+
+__all__ = [
+    'EARLY_POINTS', 'INDEX_CACHE_SIZE', 'JointCoupling', 'JointSample', 'NAMES_KEPT',
+    'PairedMeasurement', 'Pairer', 'PairingResult', 'PointSample', 'REFLECTOR_SEPARATOR',
+    'REJECTION_REASONS', 'Rejection', 'checked_rotation', 'frozen_array', 'identity_coupling',
+    'pair_measurements', 'split_frame', 'stacked_rotations', 'synthesize_streams',
+]

@@ -1,0 +1,264 @@
+"""Which physical effects ``auto`` adds to the chosen model level, from the training data.
+
+Forward selection, one effect per round, by the criterion that chose the level
+(:func:`kpi_calib_ros.core.diagnosis.model_selection.choose_model`): the predicted out-of-sample rms
+at the measured configurations (:mod:`kpi_calib_ros.core.diagnosis.out_of_sample`), which charges
+every added parameter its variance.
+
+Each round:
+
+1. the diagnosis screens every library effect × joint against the current fit
+   (:func:`kpi_calib_ros.core.diagnosis.candidates.screen_effects`: distinguishable from the
+   geometry, F-test Bonferroni-corrected over the candidates at the family-wise level
+   ``alpha``, candidates with the same signature merged); only candidates that are
+   **significant and physically plausible**
+   (:func:`kpi_calib_ros.core.effects.registry.implausible`) go on;
+2. the best :data:`TRIALS` of them (by their cross-validated rms) are fitted with the full
+   nonlinear identification at the chosen level; a fit that does not converge, leaves an
+   effect parameter unidentified or fits an implausible value is refused;
+3. the trial with the lowest predicted out-of-sample rms is added when it predicts new
+   measurements at least :data:`~kpi_calib_ros.core.diagnosis.model_selection.PARSIMONY` better
+   than the current model; otherwise selection stops.
+
+On data the geometric model explains, step 1 passes a candidate with probability at most
+``alpha`` per round, and step 3 then still asks for a 5 % better prediction.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Callable
+
+import numpy as np
+
+from kpi_calib_ros.core.diagnosis.candidates import augmented_model, screen_effects
+from kpi_calib_ros.core.diagnosis.model_selection import PARSIMONY, level_free
+from kpi_calib_ros.core.diagnosis.out_of_sample import out_of_sample_error
+from kpi_calib_ros.core.effects.registry import BoundEffect, candidate_effects, implausible
+from kpi_calib_ros.core.errors import DataError
+from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
+from kpi_calib_ros.core.estimation.prior import Prior
+from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements
+
+__all__ = [
+    'MAX_EFFECTS', 'TRIALS', 'EffectTrial', 'EffectChoice', 'choose_effects', 'effect_start',
+]
+
+MAX_EFFECTS = 3  # rounds: more effects than this on one campaign is a model to rethink
+TRIALS = 3       # significant, plausible candidates refitted per round
+
+# fit_for(model)(data, free) -> the identification of ``model`` with the cell's settings
+# (and a start vector p0 of ``model``'s parameters)
+FitFor = Callable[[MeasurementModel], Callable[..., CalibrationResult]]
+
+
+@dataclass(frozen=True)
+class EffectTrial:
+    """One candidate effect refitted in a round: its fitted values, the predicted
+    out-of-sample rms (m, None when refused before) and the outcome."""
+
+    spec: str
+    round: int
+    values: dict[str, float]
+    std: dict[str, float]
+    predicted_rms_m: float | None
+    added: bool
+    reason: str
+    # Shape parameters held at their screened value, and why the free fit was refused.
+    held: tuple[str, ...] = ()
+    previous: str = ''
+
+    def to_dict(self) -> dict:
+        """YAML-ready form of the trial (values and std in SI units)."""
+        return {'spec': self.spec, 'round': self.round, 'values': dict(self.values),
+                'std': dict(self.std),
+                'predicted_rms_m': None if self.predicted_rms_m is None
+                else float(self.predicted_rms_m),
+                'added': self.added, 'reason': self.reason, 'held': list(self.held),
+                'free_fit_refused': self.previous or None}
+
+
+@dataclass(frozen=True)
+class EffectChoice:
+    """The effects added (in order), the model with them, the predicted out-of-sample rms
+    (m) before and after, every trial and why selection stopped."""
+
+    effects: tuple[BoundEffect, ...]
+    model: MeasurementModel
+    values: dict[str, float]  # the added effects' fitted values (a start for the final fit)
+    predicted_before_m: float | None
+    predicted_after_m: float | None
+    trials: tuple[EffectTrial, ...]
+    reason: str
+    held: tuple[str, ...] = ()  # shape parameters held at their screened values
+
+    def to_dict(self) -> dict:
+        """YAML-ready form: the effects added, held, the trials and the predicted rms (m)."""
+        return {'added': [e.name for e in self.effects], 'held': list(self.held),
+                'predicted_rms_before_m': self.predicted_before_m,
+                'predicted_rms_after_m': self.predicted_after_m,
+                'trials': [t.to_dict() for t in self.trials], 'reason': self.reason}
+
+
+def _predicted(model: MeasurementModel, data: Measurements, result: CalibrationResult,
+               free: list[str], prior: Prior | None, seed: int) -> float | None:
+    if not np.all(np.isfinite(result.values)) or result.dof <= 0:
+        return None
+    oos = out_of_sample_error(model, data, result, free, prior, seed,
+                              domains=('like_measured',)).domains['like_measured']
+    return float(oos.rms_m) if oos.estimable else None
+
+
+def choose_effects(model: MeasurementModel, data: Measurements, fit_for: FitFor, level: str,
+                   n_geometric: int, prior: Prior | None = None,
+                   alpha: float = ADEQUACY_ALPHA, seed: int = 0,
+                   max_effects: int = MAX_EFFECTS) -> EffectChoice:
+    """Forward selection of physical effects on top of ``model`` at ``level`` (see the
+    module docstring). ``n_geometric``: the number of geometric parameters of ``model``
+    (its effects' parameters follow and are free at every level).
+
+    Returns the choice; ``choice.model`` is ``model`` with the added effects appended.
+    """
+    fit = fit_for(model)
+    free = level_free(model.params, level, n_geometric)
+    try:
+        current = fit(data, free)
+    except (DataError, np.linalg.LinAlgError) as exc:
+        return EffectChoice((), model, {}, None, None, (), f'no effect screened: {exc}')
+    if not current.converged:
+        return EffectChoice((), model, {}, None, None, (), 'no effect screened: the fit at '
+                            f'level {level} did not converge ({current.message}); effects are '
+                            'not compared against its last iterate')
+    first = _predicted(model, data, current, free, prior, seed)
+    if first is None:
+        return EffectChoice((), model, {}, None, None, (), 'no effect screened: the level leaves '
+                            'no degrees of freedom to judge an effect by')
+    best_rms = before = first
+    held: list[str] = []
+    added: list[BoundEffect] = []
+    trials: list[EffectTrial] = []
+    reason = f'at most {max_effects} effects'
+    for rnd in range(1, max_effects + 1):
+        pool = {e.name: e for e in candidate_effects(
+            model.robot, exclude=[e.name for e in model.effects],
+            covariates=data.covariates or ())}
+        ranked, _ = screen_effects(model, data, current, list(pool.values()), alpha=alpha,
+                                   seed=seed)
+        passed = [c for c in ranked if c.significant and c.plausible]
+        if not passed:
+            significant = [c.spec for c in ranked if c.significant]
+            reason = ('no candidate effect is significant and physically plausible'
+                      + (f' (significant but implausible: {", ".join(significant)})'
+                         if significant else ''))
+            break
+        round_trials: list[tuple[EffectTrial, MeasurementModel | None,
+                                 CalibrationResult | None]] = []
+        for cand in passed[:TRIALS]:
+            round_trials.append(_trial(model, data, fit_for, current, pool[cand.spec],
+                                       cand.values, level, n_geometric, held, prior, seed,
+                                       rnd))
+        usable = [t for t in round_trials if t[0].predicted_rms_m is not None]
+        if not usable:
+            trials += [t[0] for t in round_trials]
+            reason = 'no significant, plausible candidate survived its nonlinear fit'
+            break
+        best = min(usable, key=lambda t: t[0].predicted_rms_m or np.inf)
+        improves = (best[0].predicted_rms_m or np.inf) < (1 - PARSIMONY) * best_rms
+        for trial, *_ in round_trials:
+            if trial is best[0] and improves:
+                trial = replace(trial, added=True, reason=(
+                    f'added: predicted out-of-sample rms {best_rms * 1e6:.1f} -> '
+                    f'{(trial.predicted_rms_m or 0) * 1e6:.1f} µm'
+                    + (f'; {", ".join(trial.held)} held at the best plausible point of its '
+                       'grid (free fit refused: ' + trial.previous + ')' if trial.held else '')))
+            elif not trial.reason:
+                trial = replace(trial, reason='predicts new measurements less well than '
+                                + (best[0].spec if trial is not best[0] else
+                                   f'{1 - PARSIMONY:.0%} of the current model'))
+            trials.append(trial)
+        if not improves:
+            reason = (f'{best[0].spec} would predict new measurements '
+                      f'{(best[0].predicted_rms_m or 0) * 1e6:.1f} µm against '
+                      f'{best_rms * 1e6:.1f} µm: not {PARSIMONY:.0%} better')
+            break
+        trial, aug_model, aug_result = best
+        held += trial.held
+        assert aug_model is not None and aug_result is not None
+        model, current = aug_model, aug_result
+        added.append(pool[best[0].spec])
+        best_rms = best[0].predicted_rms_m or best_rms
+    text = (f'added {", ".join(e.name for e in added)} (predicted out-of-sample rms '
+            f'{before * 1e6:.1f} -> {best_rms * 1e6:.1f} µm); stopped: {reason}'
+            if added else f'no effect added: {reason}')
+    values = {n: float(current.value(n)) for e in added for n in e.parameter_names}
+    return EffectChoice(tuple(added), model, values, before, best_rms, tuple(trials), text,
+                        tuple(held))
+
+
+def _implausible_fit(effects: tuple, result: CalibrationResult,
+                     tau: np.ndarray | None) -> str:
+    """Why the fitted values of ``effects`` (the new one and those added before, which the
+    refit moves too) are not physically plausible at the measured torques, or ''."""
+    for e in reversed([e for e in effects if isinstance(e, BoundEffect)]):
+        why = implausible(e, [float(result.value(n)) for n in e.parameter_names], tau)
+        if why:
+            return why if e is effects[-1] else f'it moves {e.name} out of its plausible ' \
+                f'range ({why})'
+    return ''
+
+
+def effect_start(values: np.ndarray, effect: BoundEffect, screened: np.ndarray) -> np.ndarray:
+    """Start of a fit with ``effect`` appended to a fit's ``values``: its size parameters at
+    0 and its shape parameters at their ``screened`` values. The screened size came with a
+    geometry that moved too (the linear screen refits both); added to the old geometry it
+    starts far off (TIAGo: 5.9 mm rms from a 2.2 mm fit), while from size 0 the geometry and
+    the size are fitted together and the shape is freed once the size is not 0."""
+    k = effect.kind.n_shape
+    size = np.zeros(len(effect.parameter_names) - k)
+    return np.concatenate([values, size, np.asarray(screened, float)[len(size):]])
+
+
+def _trial(model: MeasurementModel, data: Measurements, fit_for: FitFor,
+           current: CalibrationResult, effect: BoundEffect, screened: np.ndarray, level: str,
+           n_geometric: int, held: list[str], prior: Prior | None, seed: int, rnd: int
+           ) -> tuple[EffectTrial, MeasurementModel | None, CalibrationResult | None]:
+    """Fit ``model`` + ``effect`` from the current fit and the screened values; judge it.
+
+    An effect with shape parameters (nonlinear, e.g. joint_play's τ0) is fitted with them
+    free first; when that fit does not converge or leaves the plausible range, they are
+    held at the screened value (the best plausible point of their grid) and only the size
+    is fitted: the plausible-constrained estimate on the grid."""
+    aug = augmented_model(model, (effect,))
+    names = list(effect.parameter_names)
+    shape = list(effect.shape_names)
+    p0 = effect_start(current.values, effect, screened)
+    tau = aug.robot.gravity_torques(np.atleast_2d(data.q)) if aug.uses_torque else None
+    attempts = [list(held), list(held) + shape] if shape else [list(held)]
+    trial: tuple[EffectTrial, MeasurementModel | None, CalibrationResult | None] = (
+        EffectTrial(effect.name, rnd, {}, {}, None, False, 'not fitted'), None, None)
+    for fixed in attempts:
+        free = [n for n in level_free(aug.params, level, n_geometric) if n not in fixed]
+        try:
+            res = fit_for(aug)(data, free, p0)
+        except (DataError, np.linalg.LinAlgError) as exc:
+            trial = (EffectTrial(effect.name, rnd, {}, {}, None, False, f'fit failed: {exc}'),
+                     None, None)
+            continue
+        values = {n: float(res.value(n)) for n in names}
+        std = {n: float(v) for n, v in zip(res.estimated, res.std) if n in names}
+        wanted = [n for n in names if n not in fixed]
+        if not res.converged:
+            why = f'the fit did not converge ({res.message})'
+        elif any(n not in std for n in wanted):
+            why = 'not identified with the geometry at this level'
+        else:
+            why = _implausible_fit(aug.effects, res, tau)
+        pred = None if why else _predicted(aug, data, res, free, prior, seed)
+        if not why and pred is None:
+            why = 'no degrees of freedom left'
+        now = [n for n in shape if n in fixed]
+        trial = (EffectTrial(effect.name, rnd, values, std, pred, False, why, tuple(now),
+                             previous=trial[0].reason if now else ''), aug, res)
+        if not why:
+            break
+    return trial

@@ -1,0 +1,425 @@
+"""A learned residual: the last layer when the physical model is exhausted.
+
+What the physical model (geometry and the effects it carries) leaves of the measured
+points is learned as a smooth function of the joint values by a Gaussian process
+(scikit-learn's :class:`~sklearn.gaussian_process.GaussianProcessRegressor`):
+``δ(q)``, a translation of the tool in the tracker frame (m), added to every point
+the physical model predicts at ``q``, the TCP included.
+
+Why a translation of the tool: the reflectors and the TCP are different points of one
+rigid tool, so only the part of the misfit that moves the whole tool transfers from the
+measured reflectors to the TCP. With several reflectors per pose every reflector's
+residual is one sample of δ(q) (the part that differs between them, a rotation of the
+tool, shows as noise); tracked rotations are not used.
+
+The kernel is ``c · RBF(ℓ_1 … ℓ_n) + w``: one length scale per joint (a long one says
+the misfit does not depend on that joint), the signal variance c (m²) and a white noise
+w (m², per axis), all by maximum likelihood. The prior mean is 0: the physical model.
+Far from the training poses the correction returns to 0 and its variance grows to c,
+so nothing is extrapolated silently; every prediction also states its distance to the
+nearest training pose in length-scale units and whether that is inside the fitted
+region (:data:`INSIDE_DISTANCE`). The length scales are bounded by
+:data:`SPAN_FACTOR` × each joint's training span, so even a joint the misfit does not
+depend on is not trusted beyond the range it was measured over.
+
+The learned residual is chosen only when it predicts held-out poses better: grouped
+(by pose) k-fold cross-validation of the whole Gaussian process (its hyperparameters
+refitted in every fold) against the physical model's residuals, with a one-sided paired
+t-test over the held-out poses (:data:`CHOICE_ALPHA`) and a least gain
+(:data:`MIN_GAIN`), so data the physical model explains add nothing.
+
+The predicted TCP then carries two independent parts of uncertainty: the physical
+parameters' (their covariance, with the noise the Gaussian process leaves, see
+:func:`residual_noise_scale`) and the Gaussian process's latent variance at that pose.
+"""
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.stats
+from sklearn.exceptions import ConvergenceWarning
+from sklearn.gaussian_process import GaussianProcessRegressor
+from sklearn.gaussian_process.kernels import RBF, ConstantKernel, Kernel, WhiteKernel
+
+from kpi_calib_ros.core.estimation.residuals import fold_ids, pose_index
+
+# Length scales are bounded above by this factor times each joint's training span
+# (span at least MIN_SPAN): beyond its range a joint is not trusted.
+SPAN_FACTOR = 2.0
+MIN_SPAN = 0.1  # rad (m for a prismatic joint)
+# ... and below by this fraction of the upper bound.
+MIN_LENGTH_FRACTION = 0.01
+# A query within this distance (length-scale units) of a training pose is inside the
+# fitted region: the kernel still correlates it with that pose by exp(-1/2) or more.
+INSIDE_DISTANCE = 1.0
+# Choice: one-sided paired t-test over held-out poses, and a least relative drop of the
+# held-out mean square.
+CHOICE_ALPHA = 0.01
+MIN_GAIN = 0.05
+DEFAULT_FOLDS = 5
+MIN_POSES = 10  # fewer: no cross-validated choice, never chosen
+# The white noise is not allowed below this fraction of the stated σ² (per axis): a
+# Gaussian process that explains the noise itself would promise more than the tracker.
+MIN_NOISE_FRACTION = 0.25
+MAX_VARIANCE_M2 = 1e-2  # (0.1 m)²: bound of the signal and noise variances
+MIN_VARIANCE_M2 = 1e-16
+
+
+@dataclass(frozen=True)
+class ResidualPrediction:
+    """The learned correction at query poses.
+
+    Attributes
+    ----------
+    mean : (M, 3) ndarray
+        δ(q), tracker frame, m.
+    covariance : (M, 3, 3) ndarray
+        Latent variance of δ(q) times I (m²): the uncertainty of the correction itself,
+        without the noise of a measurement.
+    distance : (M,) ndarray
+        Distance to the nearest training pose in length-scale units.
+    inside : (M,) ndarray of bool
+        ``distance <= INSIDE_DISTANCE``.
+    """
+
+    mean: np.ndarray
+    covariance: np.ndarray
+    distance: np.ndarray
+    inside: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class LearnedResidual:
+    """A fitted Gaussian process of the physical model's residuals over joint space.
+
+    Rebuilt exactly from these fields (the kernel's hyperparameters held fixed), so it
+    can be stored as plain numbers and read back without pickle.
+
+    Attributes
+    ----------
+    joint_names : tuple of str
+        The columns of ``q`` (URDF chain order).
+    q : (m, n) ndarray
+        Joint values of the training rows (rad, m for prismatic joints).
+    residual_m : (m, 3) ndarray
+        Physical model's residuals η − h(p̂, q) of those rows, tracker frame, m.
+    amplitude_m2 : float
+        Signal variance c of the kernel: the prior variance of δ far from data, m².
+    length_scales : (n,) ndarray
+        ARD length scale of each joint (rad, m).
+    noise_m2 : float
+        White noise variance w per axis, m².
+    """
+
+    joint_names: tuple[str, ...]
+    q: np.ndarray
+    residual_m: np.ndarray
+    amplitude_m2: float
+    length_scales: np.ndarray
+    noise_m2: float
+    _gp: GaussianProcessRegressor = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        q = np.atleast_2d(np.asarray(self.q, float))
+        y = np.asarray(self.residual_m, float).reshape(-1, 3)
+        ell = np.asarray(self.length_scales, float).reshape(-1)
+        if len(q) != len(y) or q.shape[1] != len(ell) or len(ell) != len(self.joint_names):
+            raise ValueError(f'shapes do not fit: q {q.shape}, residual_m {y.shape}, '
+                             f'length_scales {ell.shape}, {len(self.joint_names)} joint names')
+        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(y))):
+            raise ValueError('q and residual_m must be finite')
+        if not (self.amplitude_m2 > 0 and self.noise_m2 > 0 and np.all(ell > 0)
+                and np.all(np.isfinite(ell))):
+            raise ValueError('amplitude_m2, noise_m2 and length_scales must be positive '
+                             f'and finite, got {self.amplitude_m2}, {self.noise_m2}, {ell}')
+        object.__setattr__(self, 'q', q)
+        object.__setattr__(self, 'residual_m', y)
+        object.__setattr__(self, 'length_scales', ell)
+        gp = GaussianProcessRegressor(fixed_kernel(self.amplitude_m2, ell, self.noise_m2),
+                                      optimizer=None, normalize_y=False)
+        object.__setattr__(self, '_gp', gp.fit(q, y))
+
+    def predict(self, q: np.ndarray) -> ResidualPrediction:
+        """δ(q) with its latent variance, distance and inside flag at (M, n) joint values."""
+        q = np.atleast_2d(np.asarray(q, float))
+        if q.shape[1] != self.q.shape[1]:
+            raise ValueError(f'q must have {self.q.shape[1]} columns '
+                             f'({list(self.joint_names)}), got {q.shape}')
+        mean, std = self._gp.predict(q, return_std=True)
+        std = np.asarray(std).reshape(len(q), -1)[:, 0]
+        latent = np.maximum(std ** 2 - self.noise_m2, 0.0)
+        distance = self.distance(q)
+        return ResidualPrediction(np.asarray(mean).reshape(-1, 3),
+                                  latent[:, None, None] * np.eye(3), distance,
+                                  distance <= INSIDE_DISTANCE)
+
+    def distance(self, q: np.ndarray) -> np.ndarray:
+        """(M,) distance of each query to its nearest training pose, in length-scale
+        units: ‖(q − q_i)/ℓ‖ minimised over the training poses."""
+        q = np.atleast_2d(np.asarray(q, float))
+        diff = (q[:, None, :] - self.q[None, :, :]) / self.length_scales
+        return np.sqrt(np.min(np.sum(diff ** 2, axis=2), axis=1))
+
+    def relevant_joints(self) -> dict[str, float]:
+        """Length scale of each joint (rad, m), shortest (most relevant) first."""
+        order = np.argsort(self.length_scales)
+        return {self.joint_names[i]: float(self.length_scales[i]) for i in order}
+
+
+def fixed_kernel(amplitude_m2: float, length_scales: np.ndarray, noise_m2: float) -> Kernel:
+    """The kernel c · RBF(ℓ) + w with every hyperparameter held fixed."""
+    return (ConstantKernel(amplitude_m2, 'fixed') * RBF(length_scales, 'fixed')
+            + WhiteKernel(noise_m2, 'fixed'))
+
+
+def _kernel(q: np.ndarray, y: np.ndarray, noise_m2: float) -> Kernel:
+    """The kernel to optimise, its bounds from the training spans and the stated noise."""
+    upper = SPAN_FACTOR * np.maximum(np.ptp(q, axis=0), MIN_SPAN)
+    lower = MIN_LENGTH_FRACTION * upper
+    start = 0.3 * upper
+    floor = max(MIN_NOISE_FRACTION * noise_m2, MIN_VARIANCE_M2)
+    signal = float(np.clip(np.mean(y ** 2), MIN_VARIANCE_M2 * 10, MAX_VARIANCE_M2 / 10))
+    return (ConstantKernel(signal, (MIN_VARIANCE_M2, MAX_VARIANCE_M2))
+            * RBF(start, np.column_stack([lower, upper]))
+            + WhiteKernel(float(np.clip(noise_m2, floor * 1.01, MAX_VARIANCE_M2 / 10)),
+                          (floor, MAX_VARIANCE_M2)))
+
+
+def _optimised(q: np.ndarray, y: np.ndarray, kernel: Kernel, restarts: int,
+               seed: int) -> GaussianProcessRegressor:
+    """Maximum-likelihood fit; a hyperparameter at its bound is a result, not a warning."""
+    gp = GaussianProcessRegressor(kernel, n_restarts_optimizer=restarts, normalize_y=False,
+                                  random_state=seed)
+    with warnings.catch_warnings():
+        warnings.simplefilter('ignore', ConvergenceWarning)
+        return gp.fit(q, y)
+
+
+def _from_gp(gp: GaussianProcessRegressor, joint_names: tuple[str, ...], q: np.ndarray,
+             y: np.ndarray) -> LearnedResidual:
+    k = gp.kernel_
+    return LearnedResidual(joint_names, q, y, float(k.k1.k1.constant_value),
+                           np.atleast_1d(np.asarray(k.k1.k2.length_scale, float)),
+                           float(k.k2.noise_level))
+
+
+@dataclass(frozen=True)
+class ResidualChoice:
+    """Whether the learned residual predicts held-out poses better, and the model.
+
+    Attributes
+    ----------
+    chosen : bool
+        The cross-validated test passed: the learned residual is to be used.
+    model : LearnedResidual
+        Fitted on all rows (also when not chosen, for the record).
+    cv_rms_physical_m, cv_rms_learned_m : float
+        Held-out rms (m, per point) of the physical model's residuals and of what the
+        learned residual, fitted without the pose's fold, leaves of them.
+    p_value : float
+        One-sided paired t-test over held-out poses that the learned residual lowers the
+        squared error.
+    folds : int
+        Folds over poses.
+    reason : str
+        The decision in words with its figures.
+    """
+
+    chosen: bool
+    model: LearnedResidual
+    cv_rms_physical_m: float
+    cv_rms_learned_m: float
+    p_value: float
+    folds: int
+    reason: str
+
+    def to_dict(self) -> dict:
+        """YAML-ready summary (m)."""
+        return {'chosen': self.chosen, 'cv_rms_physical_m': self.cv_rms_physical_m,
+                'cv_rms_learned_m': self.cv_rms_learned_m, 'p_value': self.p_value,
+                'folds': self.folds, 'reason': self.reason,
+                'amplitude_m': float(np.sqrt(self.model.amplitude_m2)),
+                'noise_m': float(np.sqrt(self.model.noise_m2)),
+                'length_scales': self.model.relevant_joints()}
+
+
+def fit_learned_residual(q: np.ndarray, residual_m: np.ndarray, sigma_m: float | np.ndarray,
+                         joint_names: tuple[str, ...], folds: int = DEFAULT_FOLDS,
+                         seed: int = 0, restarts: int = 1,
+                         alpha: float = CHOICE_ALPHA) -> ResidualChoice:
+    """Fit the learned residual on a physical model's residuals and decide on it.
+
+    Parameters
+    ----------
+    q : (m, n) ndarray
+        Joint values of the point rows (rad, m); equal rows are one pose (several
+        reflectors) and stay in one fold.
+    residual_m : (m, 3) ndarray
+        η − h(p̂, q) of those rows, tracker frame, m.
+    sigma_m : float or (3,) ndarray
+        Stated noise σ per axis, m: the white noise is held above
+        :data:`MIN_NOISE_FRACTION` of its mean square.
+    joint_names : tuple of str
+        Names of the columns of ``q``.
+    folds : int
+        Folds over poses of the cross-validation (fewer poses: one per fold).
+    seed : int
+        Folds and optimiser restarts.
+    restarts : int
+        Extra random starts of the likelihood optimisation.
+    alpha : float
+        Level of the paired test.
+
+    Returns
+    -------
+    ResidualChoice
+    """
+    if folds < 2:
+        raise ValueError(f'folds must be at least 2, got {folds}')
+    q = np.atleast_2d(np.asarray(q, float))
+    y = np.asarray(residual_m, float).reshape(-1, 3)
+    if len(q) != len(y):
+        raise ValueError(f'q has {len(q)} rows, residual_m {len(y)}')
+    noise = float(np.mean(np.broadcast_to(np.asarray(sigma_m, float), (3,)) ** 2))
+    kernel = _kernel(q, y, noise)
+    full = _optimised(q, y, kernel, restarts, seed)
+    model = _from_gp(full, tuple(joint_names), q, y)
+    _, pose = pose_index(q)
+    n_poses = int(pose.max()) + 1
+    if n_poses < MIN_POSES:
+        return ResidualChoice(False, model, float('nan'), float('nan'), 1.0, 0,
+                              f'learned residual not chosen: {n_poses} poses, fewer than the '
+                              f'{MIN_POSES} a cross-validated choice needs')
+    k = min(folds, n_poses)
+    fold = fold_ids(n_poses, k, seed)[pose]
+    predicted = np.zeros_like(y)
+    for f in range(k):
+        test = fold == f
+        # Hyperparameters refitted without the fold, from the full fit's optimum.
+        gp = _optimised(q[~test], y[~test], _with_bounds(full.kernel_, kernel), 0, seed)
+        predicted[test] = gp.predict(q[test])
+    before = np.bincount(pose, np.sum(y ** 2, axis=1), n_poses)
+    after = np.bincount(pose, np.sum((y - predicted) ** 2, axis=1), n_poses)
+    gain = before - after
+    rms_before = float(np.sqrt(np.sum(before) / len(y)))
+    rms_after = float(np.sqrt(np.sum(after) / len(y)))
+    if np.all(gain == gain[0]):
+        p_value = 1.0 if gain[0] <= 0 else 0.0
+    else:
+        p_value = float(scipy.stats.ttest_1samp(gain, 0.0, alternative='greater').pvalue)
+    relative = 1.0 - rms_after ** 2 / rms_before ** 2 if rms_before > 0 else 0.0
+    chosen = bool(p_value < alpha and relative >= MIN_GAIN)
+    figures = (f'held-out rms {rms_before * 1e6:.1f} um (physical model) -> '
+               f'{rms_after * 1e6:.1f} um (with the learned residual), {k}-fold over '
+               f'{n_poses} poses, paired test p = {p_value:.2g}')
+    if chosen:
+        reason = f'learned residual chosen: {figures}'
+    else:
+        why = (f'p >= {alpha}' if p_value >= alpha
+               else f'mean square lowered by {relative:.1%} < {MIN_GAIN:.0%}')
+        reason = f'learned residual not chosen ({why}): {figures}'
+    return ResidualChoice(chosen, model, rms_before, rms_after, p_value, k, reason)
+
+
+def _with_bounds(fitted: Kernel, bounded: Kernel) -> Kernel:
+    """``bounded`` (the kernel with its bounds) started at ``fitted``'s hyperparameters."""
+    return bounded.clone_with_theta(fitted.theta)
+
+
+def residual_noise_scale(model: LearnedResidual, sigma_m: float | np.ndarray) -> float:
+    """Factor on the physical parameters' covariance (from the stated σ) with the learned
+    residual: the white noise it leaves over the stated σ² (mean per axis), at least 1."""
+    stated = float(np.mean(np.broadcast_to(np.asarray(sigma_m, float), (3,)) ** 2))
+    return max(1.0, model.noise_m2 / stated)
+
+
+@dataclass(frozen=True)
+class CorrectedTcp:
+    """TCP (KPI point) predictions with the learned residual.
+
+    Attributes
+    ----------
+    position : (M, 3) ndarray
+        Physical prediction + δ(q), tracker frame, m.
+    covariance : (M, 3, 3) ndarray
+        Parameter part + the learned residual's latent variance, m².
+    physical_covariance : (M, 3, 3) ndarray
+        The parameter part alone, m².
+    correction : ResidualPrediction
+        δ(q) with its variance, distance and inside flag (None: no learned residual).
+    """
+
+    position: np.ndarray
+    covariance: np.ndarray
+    physical_covariance: np.ndarray
+    correction: ResidualPrediction | None
+
+    @property
+    def std_m(self) -> np.ndarray:
+        """(M,) sqrt(trace) of ``covariance``, m."""
+        return np.sqrt(np.trace(self.covariance, axis1=1, axis2=2))
+
+
+def corrected_tcp(tcp: np.ndarray, tcp_jacobian: np.ndarray, covariance_inside: np.ndarray,
+                  q: np.ndarray, model: LearnedResidual | None,
+                  covariance_outside: np.ndarray | None = None,
+                  misfit_m: float = 0.0) -> CorrectedTcp:
+    """The physical TCP prediction plus the learned residual, with both uncertainties.
+
+    Inside the fitted region the learned residual explains the misfit, so the parameters'
+    covariance is the one with the noise it leaves (``covariance_inside``); far from
+    the training poses it explains nothing, and the physical model's own honest covariance
+    (``covariance_outside``: χ²-scaled when the model is not adequate,
+    :mod:`kpi_calib_ros.core.estimation.precision`) applies, with its systematic misfit b
+    (``misfit_m``, :class:`kpi_calib_ros.core.estimation.precision.ExpectedTcpError`) spread over
+    the three axes: the expected TCP error the project states without a learned residual,
+    beside the learned part's prior variance c.
+    Between the two the weight is the share of the prior variance the training poses
+    explain at the query, 1 − ((latent variance)/c)²: 1 where the learned residual knows
+    δ, 0 where it has returned to its prior.
+
+    Parameters
+    ----------
+    tcp : (M, 3) ndarray
+        Physical model's TCP at the query poses, tracker frame, m.
+    tcp_jacobian : (M, 3, k) ndarray
+        d tcp / d p of the k estimated parameters.
+    covariance_inside : (k, k) ndarray
+        Their covariance with the noise the learned residual leaves
+        (:func:`residual_noise_scale`); without a learned residual, the one reported.
+    q : (M, n) ndarray
+        The query poses (URDF chain order).
+    model : LearnedResidual or None
+        None: the physical prediction alone.
+    covariance_outside : (k, k) ndarray, optional
+        The covariance reported without the learned residual; default
+        ``covariance_inside``.
+    misfit_m : float
+        b, the physical model's held-out misfit level (m, 3D), added far from data.
+    """
+    tcp = np.asarray(tcp, float).reshape(-1, 3)
+    jac = np.asarray(tcp_jacobian, float).reshape(len(tcp), 3, -1)
+
+    def propagated(cov: np.ndarray) -> np.ndarray:
+        return np.einsum('mik,kl,mjl->mij', jac, cov, jac)
+    inside = propagated(covariance_inside)
+    if model is None:
+        return CorrectedTcp(tcp, inside, inside, None)
+    pred = model.predict(q)
+    physical = inside
+    if covariance_outside is not None:
+        latent = pred.covariance[:, 0, 0] / model.amplitude_m2
+        weight = np.clip(1.0 - latent ** 2, 0.0, 1.0)[:, None, None]
+        # Both parts, not the larger: c is the misfit the training residuals still show,
+        # b² the physical model's held-out misfit, which grows as it extrapolates (the
+        # larger alone covered 79-88 % of fresh poses outside the region, both 94-99 %).
+        outside = propagated(covariance_outside) + misfit_m ** 2 / 3.0 * np.eye(3)
+        physical = weight * inside + (1.0 - weight) * outside
+    return CorrectedTcp(tcp + pred.mean, physical + pred.covariance, physical, pred)
+
+
+__all__ = ['CHOICE_ALPHA', 'CorrectedTcp', 'INSIDE_DISTANCE', 'LearnedResidual', 'MIN_GAIN',
+           'ResidualChoice', 'ResidualPrediction', 'corrected_tcp', 'fit_learned_residual',
+           'fixed_kernel', 'residual_noise_scale']

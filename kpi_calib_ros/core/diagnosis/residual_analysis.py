@@ -1,0 +1,633 @@
+"""Where a calibration's model fails, without a model of the failure.
+
+For every *input* of a measurement (each joint angle, each joint's gravity torque, the
+distance to the tracker, time, the reflector, any recorded covariate such as a
+temperature): how much of the residual the geometric model leaves can a smooth function of
+that input alone explain on held-out poses, and is that more than noise would give?
+
+The model of one input ``x`` with direction fields ``g_k`` (m per unit of ``f_k``) is
+
+    r_i ≈ Σ_k g_k(i) f_k(x_i) + (geometric parameters refitted) + noise,
+
+``f_k`` a cubic regression spline (or harmonics of a revolute joint's turn). The inputs
+and their fields come from :mod:`kpi_calib_ros.core.diagnosis.residual_inputs`. The fields say how
+the input moves the point: for joint ``j`` (its angle or its gravity torque) the column
+∂p/∂q_j of the position Jacobian, so ``f`` is an error of the joint angle (rad) -- its
+component along the direction the point moves, divided by the lever, is what the
+partial-residual plot shows; for the distance the line of sight (``f`` a range error, m);
+for inputs with no direction of their own (time, a temperature, any covariate) the three
+tracker axes and the point's offset from the centroid of the points, so ``f`` is a drift
+(m) per axis and a scale (strain): a thermal growth of the links is a scale of the arm
+about its base, i.e. a scale about the centroid plus a translation. Reflector index: a
+constant per reflector (categorical) per axis.
+
+Choices, and why:
+
+* **Whitened residuals.** Everything runs on the fit's weighted rows
+  (:func:`~kpi_calib_ros.core.estimation.residuals.linearized_fit`: each row's stated σ,
+  joint-reading noise), so a noisy row counts as little as in the fit.
+* **The geometry refitted.** A constant joint error is an offset, a linear one a scale the
+  geometric parameters already absorb; the spline columns are projected off the span of the
+  identified parameters' Jacobian, so an input is credited only with the part of the misfit
+  no geometric parameter can reproduce.
+* **Regression splines, not penalised smoothers.** An unpenalised spline basis of a fixed
+  size makes the projected fit an ordinary linear least-squares problem: under the null
+  (residuals independent of the input) its F statistic is *exactly* F-distributed with the
+  rank of the projected columns, whatever the stated σ (the F test estimates the scale
+  from the residuals themselves, so a misstated σ does not flag every input). The basis
+  size is chosen from a small grid (``BASIS_SIZES``) by cross-validation; the p-value is
+  the smallest of the grid times its length (Bonferroni), so picking the best size keeps
+  the level. A penalised GAM or a Gaussian process with one length scale per input would
+  give smoother curves but only approximate tests (effective degrees of freedom) and cost
+  an optimisation per input; scipy's B-spline design matrix is enough and fast (a few
+  seconds for a thousand rows). A joint angle is periodic: for a revolute joint the grid
+  also holds Fourier bases (harmonics 1..H of the turn, and single frequencies of 2 to 48
+  cycles per turn of which only the strongest is cross-validated, a periodogram peak),
+  the natural smoother of a gear's errors at 3 or 40 cycles per turn, which a spline of a
+  few dozen pieces cannot follow.
+* **Family of inputs.** Holm's step-down over the inputs: on data the model explains, the
+  probability that any input is flagged stays below ``alpha``. An input is flagged when
+  its test rejects *and* its cross-validated share is positive: a fit the F test finds but
+  that predicts held-out poses worse (a few rows at the end of a short lever) does not
+  say where the model fails.
+* **Cross-validated share.** Folds over poses (rows measured at one pose stay together,
+  :func:`~kpi_calib_ros.core.estimation.residuals.identifiable_folds`); the held-out residuals of
+  the refit are exact for a linear model (the PRESS identity). ``share`` is
+  1 − CV-SSE(geometry + spline)/CV-SSE(geometry): the fraction of the held-out residual
+  sum of squares the input explains; ``share_systematic`` divides the same reduction by the
+  held-out sum of squares beyond the noise the stated σ predicts (its exact expectation
+  under the model, Σ_F tr((I − H_FF)⁻¹)).
+* **Two inputs jointly.** When two joint angles are flagged, a tensor product (harmonics
+  1-2 of each joint's turn: the low orders on the torus of two angles; a cubic spline of
+  5 for a prismatic joint) of the top two along the first one's direction is tested
+  (F) against the sum of their smooths: "a smooth misfit depending on joints X and Y"
+  that no sum of one-input functions is.
+* **Ranking.** Significant inputs first, then by the evidence (the p-value before Holm,
+  then ``share``): a shape that needs many functions for few poses keeps a small
+  cross-validated share while its F test is unmistakable; between two inputs that explain
+  the same (a joint angle and its gravity torque) the one that needs fewer functions wins.
+* **Fields from the predicted points.** A field built from the measured point would hold
+  the residual itself (a cubic in the distance times the line of sight contains η, and
+  the geometry spans h(p̂)): every residual would be "explained".
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+import scipy.interpolate
+import scipy.stats
+
+from kpi_calib_ros.core.diagnosis.residual_inputs import ResidualInput, residual_inputs
+from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
+from kpi_calib_ros.core.estimation.residuals import (
+    ADEQUACY_ALPHA,
+    LinearizedFit,
+    identifiable_folds,
+    linearized_fit,
+    orthonormal_basis,
+)
+from kpi_calib_ros.core.measurement.tracker import (
+    MeasurementModel,
+    Measurements,
+    unweighted,
+    weighted_rows,
+)
+
+__all__ = ['BASIS_SIZES', 'HARMONICS', 'InputScore', 'PairScore', 'ResidualAnalysis',
+           'ResidualInput', 'analyse_calibration', 'analyse_residuals', 'fourier_basis',
+           'residual_inputs', 'spline_basis']
+
+BASIS_SIZES = (4, 8, 16, 32, 64)   # spline functions per field tried; Bonferroni over them
+HARMONICS = (2, 4, 8, 16, 32, 48)  # highest harmonic of the Fourier bases of a periodic input
+DEFAULT_FOLDS = 10                 # pose folds of the cross-validated share
+MIN_POSES_PER_COLUMN = 3           # a basis with more columns than poses / 3 is not tried
+RANK_TOLERANCE = 1e-6              # singular value of the unit-column projected design
+CURVE_POINTS = 200
+# A basis: ('spline', functions), ('harmonics', H), ('harmonic', k) or ('categories', 0).
+Basis = tuple[str, int]
+
+
+@dataclass(frozen=True)
+class InputScore:
+    """How much of the misfit one input explains (see the module docstring).
+
+    Attributes
+    ----------
+    name, kind, unit, field_names, field_units, categorical
+        As the :class:`ResidualInput`.
+    basis : str
+        The basis chosen by cross-validation ('cubic spline, 16 functions', 'harmonics
+        1-32 of the turn', 'one constant per value'; '' when the geometry absorbs every
+        column).
+    dof : int
+        Rank of the spline columns the geometry cannot reproduce.
+    share : float
+        1 − CV-SSE(with the input)/CV-SSE(geometry alone), held-out poses (can be < 0).
+    share_systematic : float
+        The same reduction over the held-out sum of squares beyond the noise the stated σ
+        predicts; NaN when there is none beyond it.
+    held_out_rms_before_m, held_out_rms_after_m : float
+        Rms (m) of the held-out residual of the geometric refit alone and with the spline.
+    explained_rms_m : float
+        Rms (m) of the point displacement the input's fit explains (all data).
+    f_statistic, p_value_raw, p_value : float
+        F test of the spline columns (at the size with the smallest p), ``p_value_raw``
+        Bonferroni over the sizes tried, ``p_value`` Holm-adjusted over the inputs.
+    significant : bool
+        ``p_value`` < alpha and ``share`` > 0 (NaN share: the test alone).
+    x : (N,) ndarray
+        The input's values.
+    implied : (N, d) ndarray
+        Each row's residual along each field, divided by the field's squared norm: the
+        function value the residual implies (``field_units``); NaN where the field is 0.
+    weight : (N, d) ndarray
+        Whitened squared norm of each field (1/unit²): how much each implied value counts.
+    curve_x : (G,) ndarray
+        Input values of the plotted fit.
+    curve : (G, d) ndarray
+        Weighted spline fit of ``implied`` against ``x``, at ``curve_x``.
+    region : str
+        Where the fitted function is largest ('' when not significant).
+    """
+
+    name: str
+    kind: str
+    unit: str
+    field_names: tuple[str, ...]
+    field_units: tuple[str, ...]
+    categorical: bool
+    basis: str
+    dof: int
+    share: float
+    share_systematic: float
+    held_out_rms_before_m: float
+    held_out_rms_after_m: float
+    explained_rms_m: float
+    f_statistic: float
+    p_value_raw: float
+    p_value: float
+    significant: bool
+    x: np.ndarray = field(repr=False)
+    implied: np.ndarray = field(repr=False)
+    weight: np.ndarray = field(repr=False)
+    curve_x: np.ndarray = field(repr=False)
+    curve: np.ndarray = field(repr=False)
+    region: str = ''
+
+
+@dataclass(frozen=True)
+class PairScore:
+    """Does the misfit depend on two inputs jointly, beyond the sum of their smooths?
+
+    The top two flagged joint angles: a tensor product of both (harmonics 1-2 of a
+    revolute joint's turn, a cubic spline of 5 functions for a prismatic one) along the
+    first one's direction, tested (F) against the additive model of
+    their own smooths.
+
+    Attributes
+    ----------
+    names : tuple of str
+        The two inputs.
+    dof : int
+        Rank of the interaction columns beyond the additive model and the geometry.
+    f_statistic, p_value : float
+        F test of the interaction columns.
+    significant : bool
+        ``p_value`` < alpha and the pair predicts held-out poses better than the sum.
+    held_out_rms_additive_m, held_out_rms_after_m : float
+        Held-out rms (m) of the additive model of the two and of it with the interaction.
+    """
+
+    names: tuple[str, str]
+    dof: int
+    f_statistic: float
+    p_value: float
+    significant: bool
+    held_out_rms_additive_m: float
+    held_out_rms_after_m: float
+
+
+@dataclass(frozen=True)
+class ResidualAnalysis:
+    """Inputs ranked by the misfit they explain, and all significant ones together.
+
+    Attributes
+    ----------
+    scores : tuple of InputScore
+        Significant first, then by ``p_value_raw`` and ``share``.
+    alpha : float
+        Family-wise level (Holm over the inputs).
+    folds : int
+        Pose folds of the cross-validation (0: none possible with this design).
+    chi2, dof : float, int
+        Whitened residual sum of squares of the fit and its degrees of freedom.
+    combined : tuple of str
+        The significant inputs, fitted together (an additive model).
+    combined_before_m, combined_after_m : float
+        Held-out rms (m) of the geometric refit alone and with the combined splines (and
+        the interaction when ``pair`` is significant).
+    pair : PairScore or None
+        The interaction of the top two flagged joint angles (None: fewer, or too few
+        poses for its 25 columns).
+    """
+
+    scores: tuple[InputScore, ...]
+    alpha: float
+    folds: int
+    chi2: float
+    dof: int
+    combined: tuple[str, ...] = ()
+    combined_before_m: float = float('nan')
+    combined_after_m: float = float('nan')
+    pair: PairScore | None = None
+
+    @property
+    def significant(self) -> tuple[InputScore, ...]:
+        """The inputs flagged at the family-wise level, best first."""
+        return tuple(s for s in self.scores if s.significant)
+
+
+# ------------------------------------------------------------------ bases
+def spline_basis(x: np.ndarray, size: int, support: np.ndarray | None = None) -> np.ndarray:
+    """Cubic B-spline basis (M, size) at ``x`` (M,), interior knots at the quantiles of
+    ``support`` (default ``x``) so that every piece holds data; constant beyond the ends.
+
+    ``size`` is capped by the distinct values of ``support`` (fewer columns then)."""
+    support = np.asarray(x if support is None else support, float)
+    lo, hi = float(np.min(support)), float(np.max(support))
+    distinct = len(np.unique(support))
+    size = max(1, min(size, distinct))
+    if size < 4 or hi <= lo:  # too few values for a cubic: a polynomial of low degree
+        t = (np.clip(x, lo, hi) - lo) / (hi - lo) if hi > lo else np.zeros(len(x))
+        return np.vander(t, size, increasing=True)
+    inner = np.quantile(support, np.linspace(0, 1, size - 2)[1:-1])
+    inner = np.unique(inner)
+    knots = np.concatenate([[lo] * 4, inner, [hi] * 4])
+    xc = np.clip(np.asarray(x, float), lo, hi)
+    return scipy.interpolate.BSpline.design_matrix(xc, knots, 3).toarray()
+
+
+def _one_hot(codes: np.ndarray, support: np.ndarray) -> np.ndarray:
+    levels = np.unique(support)
+    return (np.asarray(codes)[:, None] == levels[None, :]).astype(float)
+
+
+# ---------------------------------------------------------------- analysis
+def _design(inp: ResidualInput, basis: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Whitened columns (3N, d·M): field k times basis function m, row by row."""
+    cols = []
+    for k in range(inp.fields.shape[2]):
+        g = weighted_rows(inp.fields[:, :, k:k + 1], w)[:, 0]   # (3N,)
+        cols.append(np.repeat(basis, 3, axis=0) * g[:, None])
+    return np.hstack(cols)
+
+
+def _unique_basis(design: np.ndarray, geometry: np.ndarray) -> np.ndarray:
+    """Orthonormal basis of the part of ``design``'s span the geometry cannot reproduce."""
+    norms = np.linalg.norm(design, axis=0)
+    keep = norms > 0
+    if not keep.any():
+        return np.zeros((design.shape[0], 0))
+    d = design[:, keep] / norms[keep]
+    d = d - geometry @ (geometry.T @ d)
+    u, s, _ = np.linalg.svd(d, full_matrices=False)
+    return u[:, s > RANK_TOLERANCE]
+
+
+class _Press:
+    """Held-out residuals of a linear refit, folds over poses (PRESS identity)."""
+
+    def __init__(self, geometry: np.ndarray, pose_folds: np.ndarray | None) -> None:
+        self.geometry = geometry
+        self.rows = None if pose_folds is None else np.repeat(pose_folds, 3)
+        self.folds = () if self.rows is None else [self.rows == k
+                                                   for k in np.unique(self.rows)]
+
+    def held_out(self, u: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, float] | None:
+        """Held-out residuals (3N,) of r ≈ [geometry, u]·δ and their expected sum of
+        squares under pure unit noise; None when a fold leaves a column undetermined."""
+        basis = np.hstack([self.geometry, u])
+        e = r - basis @ (basis.T @ r)
+        held = np.empty_like(r)
+        noise = 0.0
+        for test in self.folds:
+            b = basis[test]
+            m = np.eye(int(test.sum())) - b @ b.T
+            try:
+                chol = np.linalg.cholesky(m)
+            except np.linalg.LinAlgError:
+                return None
+            if np.min(np.diag(chol)) ** 2 < 1e-10:
+                return None
+            held[test] = np.linalg.solve(m, e[test])
+            inv = np.linalg.solve(chol, np.eye(len(chol)))
+            noise += float(np.sum(inv ** 2))   # tr(m⁻¹) = ‖L⁻¹‖_F²
+        return held, noise
+
+
+def _rms_m(held: np.ndarray, w: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.sum(unweighted(held, w) ** 2, axis=1))))
+
+
+def _implied(inp: ResidualInput, residuals: np.ndarray, w: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """Per row and field: the function value the residual implies and its weight."""
+    g = inp.fields
+    g2 = np.sum(g ** 2, axis=1)                                        # (N, d)
+    with np.errstate(invalid='ignore', divide='ignore'):
+        implied = np.where(g2 > 0, np.einsum('nak,na->nk', g, residuals) / g2, np.nan)
+    weight = np.stack([np.sum(weighted_rows(g[:, :, k:k + 1], w).reshape(-1, 3) ** 2, axis=1)
+                       for k in range(g.shape[2])], axis=1)
+    return implied, weight
+
+
+def _curve(inp: ResidualInput, implied: np.ndarray, weight: np.ndarray, size: Basis,
+           support: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted spline fit of each field's implied values, on a grid of the input."""
+    if inp.categorical:
+        grid = np.unique(support)
+    else:
+        grid = np.linspace(np.min(support), np.max(support), CURVE_POINTS)
+    out = np.full((len(grid), implied.shape[1]), np.nan)
+    for k in range(implied.shape[1]):
+        ok = weight[:, k] > 0
+        if ok.sum() < 2:
+            continue
+        b = _basis(inp.values[ok], size, support)
+        sw = np.sqrt(weight[ok, k])
+        coef, *_ = np.linalg.lstsq(b * sw[:, None], implied[ok, k] * sw, rcond=None)
+        out[:, k] = _basis(grid, size, support) @ coef
+    return grid, out
+
+
+def fourier_basis(x: np.ndarray, harmonics: int) -> np.ndarray:
+    """(M, 2H + 1) columns 1, cos(k x), sin(k x), k = 1..H, of angles ``x`` (rad)."""
+    k = np.arange(1, harmonics + 1)
+    kx = np.asarray(x, float)[:, None] * k[None, :]
+    return np.hstack([np.ones((len(kx), 1)), np.cos(kx), np.sin(kx)])
+
+
+def _basis(x: np.ndarray, size: Basis, support: np.ndarray) -> np.ndarray:
+    kind, m = size
+    if kind == 'categories':
+        return _one_hot(x, support)
+    if kind == 'harmonics':
+        return fourier_basis(x, m)
+    if kind == 'harmonic':
+        return np.stack([np.cos(m * np.asarray(x, float)), np.sin(m * np.asarray(x, float))],
+                        axis=1)
+    return spline_basis(x, m, support)
+
+
+def _basis_text(size: Basis) -> str:
+    kind, m = size
+    return {'categories': 'one constant per value',
+            'harmonics': f'harmonics 1-{m} of the turn',
+            'harmonic': f'{m} cycles per turn',
+            'spline': f'cubic spline, {m} functions'}[kind]
+
+
+def _candidate_bases(inp: ResidualInput, support: np.ndarray, cap: int, sizes: Sequence[int],
+                     harmonics: Sequence[int]) -> list[Basis]:
+    if inp.categorical:
+        return [('categories', 0)]
+    out: list[Basis] = [('spline', m) for m in
+                        sorted({min(s, cap, len(np.unique(support))) for s in sizes})]
+    if inp.periodic:
+        out += [('harmonics', h) for h in harmonics if 2 * h + 1 <= cap]
+        out += [('harmonic', k) for k in range(2, max(harmonics, default=1) + 1)]
+    return out
+
+
+_SHOWN = {'rad': (1e6, 'µrad'), 'm': (1e6, 'µm'), '': (1e6, 'ppm')}
+
+
+def _region(inp: ResidualInput, grid: np.ndarray, curve: np.ndarray) -> str:
+    """Where the fitted function is at least half its largest size: the widest (up to
+    three) ranges of the input, in degrees for a joint angle."""
+    if not np.isfinite(curve).any():
+        return ''
+    k = int(np.nanargmax(np.nanmax(np.abs(curve), axis=0)))
+    c = np.abs(curve[:, k])
+    peak = float(np.nanmax(c))
+    high = np.append(c >= 0.5 * peak, False)
+    runs, start = [], None
+    for i, h in enumerate(high):
+        if h and start is None:
+            start = i
+        elif not h and start is not None:
+            runs.append((grid[start], grid[i - 1]))
+            start = None
+    runs = sorted(sorted(runs, key=lambda ab: ab[0] - ab[1])[:3])
+    scale, unit = (np.degrees(1.0), 'deg') if inp.periodic else (1.0, inp.unit)
+    where = ', '.join(f'{a * scale:.4g} to {b * scale:.4g}' if a != b else f'{a * scale:.4g}'
+                      for a, b in runs)
+    factor, shown = _SHOWN.get(inp.field_units[k], (1.0, inp.field_units[k]))
+    return (f'{inp.field_names[k]} up to {peak * factor:.3g} {shown} where {inp.name} is '
+            f'{where} {unit}').strip()
+
+
+def analyse_residuals(fit: LinearizedFit, residuals: np.ndarray,
+                      inputs: Sequence[ResidualInput], q: np.ndarray,
+                      folds: int = DEFAULT_FOLDS, alpha: float = ADEQUACY_ALPHA,
+                      seed: int = 0, sizes: Sequence[int] = BASIS_SIZES,
+                      harmonics: Sequence[int] = HARMONICS) -> ResidualAnalysis:
+    """Score every input against the misfit of one calibration.
+
+    Parameters
+    ----------
+    fit : LinearizedFit
+        The calibration linearized at p̂ (whitened residuals, Jacobian, weights).
+    residuals : (N, 3) ndarray
+        η − h(p̂, q), m (for the implied values of the plots).
+    inputs : sequence of ResidualInput
+        What the misfit may depend on (:func:`~kpi_calib_ros.core.diagnosis.residual_inputs.
+        residual_inputs` builds the standard ones;
+        any other covariate is one more :class:`ResidualInput`).
+    q : (N, n) ndarray
+        Joint values, rad: rows with equal values are one pose (one fold).
+    folds : int
+        Pose folds of the cross-validated share (0: leave one pose out).
+    alpha : float
+        Family-wise level over the inputs (Holm).
+    sizes : sequence of int
+        Spline functions per field tried.
+    harmonics : sequence of int
+        Highest harmonics of the Fourier bases tried on periodic inputs.
+
+    Returns
+    -------
+    ResidualAnalysis
+    """
+    r = np.asarray(fit.r, float)
+    geometry = fit.basis
+    n_rows = len(r)
+    dof0 = n_rows - geometry.shape[1]
+    chi2 = float(r @ r)
+    n_poses = len(np.unique(np.atleast_2d(q), axis=0))
+    pose_folds = identifiable_folds(fit.jac, np.atleast_2d(q), folds, seed)
+    press = _Press(geometry, pose_folds)
+    base = press.held_out(np.zeros((n_rows, 0)), r) if pose_folds is not None else None
+    base_sse = float(base[0] @ base[0]) if base else float('nan')
+    base_noise = base[1] if base else float('nan')
+    base_rms = _rms_m(base[0], fit.w) if base else float('nan')
+
+    raw: list[float] = []
+    chosen: list[dict[str, Any] | None] = []
+    for inp in inputs:
+        active = np.any(inp.fields != 0, axis=(1, 2))
+        support = np.asarray(inp.values, float)[active]
+        cap = max(1, n_poses // (MIN_POSES_PER_COLUMN * inp.fields.shape[2]))
+        tests = []
+        for size in _candidate_bases(inp, support, cap, sizes, harmonics):
+            u = _unique_basis(_design(inp, _basis(np.asarray(inp.values, float), size,
+                                                  support), fit.w), geometry)
+            if u.shape[1] == 0 or dof0 - u.shape[1] <= 0:
+                continue
+            coef = u.T @ r
+            delta = float(coef @ coef)
+            dof = dof0 - u.shape[1]
+            f_stat = (delta / u.shape[1]) / max(chi2 - delta, 1e-300) * dof
+            tests.append({'size': size, 'u': u, 'coef': coef, 'f': f_stat,
+                          'p': float(scipy.stats.f.sf(f_stat, u.shape[1], dof))})
+        if not tests:
+            chosen.append(None)
+            raw.append(1.0)
+            continue
+        # Cross-validate every basis but the single harmonics, of which only the one with
+        # the strongest F test (a periodogram peak); the p-value is Bonferroni over all.
+        single = [t for t in tests if t['size'][0] == 'harmonic']
+        scored = [t for t in tests if t['size'][0] != 'harmonic'] + \
+            ([min(single, key=lambda t: t['p'])] if single else [])
+        for t in scored:
+            held = press.held_out(t['u'], r) if pose_folds is not None else None
+            t['cv'] = float(held[0] @ held[0]) if held else float('nan')
+            t['rms'] = _rms_m(held[0], fit.w) if held else float('nan')
+        finite = [t for t in scored if np.isfinite(t['cv'])]
+        best = min(finite, key=lambda t: t['cv']) if finite else min(scored,
+                                                                      key=lambda t: t['p'])
+        chosen.append(best)
+        raw.append(min(1.0, min(t['p'] for t in tests) * len(tests)))
+    adjusted = _holm(np.array(raw))
+
+    scores = []
+    excess = base_sse - base_noise
+    for inp, pick, p_raw, p_adj in zip(inputs, chosen, raw, adjusted):
+        best = pick or {}
+        implied, weight = _implied(inp, np.asarray(residuals, float), fit.w)
+        active = np.any(inp.fields != 0, axis=(1, 2))
+        support = np.asarray(inp.values, float)[active]
+        size = best['size'] if best else ('spline', 0)
+        grid, curve = _curve(inp, implied, weight, size, support) if best else \
+            (np.unique(support)[:1], np.full((1, inp.fields.shape[2]), np.nan))
+        share = 1.0 - best['cv'] / base_sse if best else float('nan')
+        # Flagged: the test rejects and the smooth predicts held-out poses better than the
+        # geometry alone (a fit that only chases a few rows is not where the model fails).
+        significant = bool(best and p_adj < alpha and not share <= 0)
+        scores.append(InputScore(
+            name=inp.name, kind=inp.kind, unit=inp.unit, field_names=inp.field_names,
+            field_units=inp.field_units, categorical=inp.categorical,
+            basis=_basis_text(size) if best else '',
+            dof=int(best['u'].shape[1]) if best else 0, share=float(share),
+            share_systematic=float((base_sse - best['cv']) / excess)
+            if best and excess > 0 else float('nan'),
+            held_out_rms_before_m=base_rms,
+            held_out_rms_after_m=best['rms'] if best else float('nan'),
+            explained_rms_m=_rms_m(best['u'] @ best['coef'], fit.w) if best else 0.0,
+            f_statistic=best['f'] if best else float('nan'), p_value_raw=float(p_raw),
+            p_value=float(p_adj), significant=significant,
+            x=np.asarray(inp.values, float), implied=implied, weight=weight,
+            curve_x=grid, curve=curve,
+            region=_region(inp, grid, curve) if significant else ''))
+    order = sorted(range(len(scores)), key=lambda i: (
+        not scores[i].significant, scores[i].p_value_raw,
+        -np.nan_to_num(scores[i].share, nan=-np.inf)))
+    ranked = tuple(scores[i] for i in order)
+
+    combined = tuple(i for i in order if scores[i].significant)
+    # Two joint angles: a torque is itself a function of the angles, and an angle with its
+    # own joint's torque leaves most of their plane empty (wild held-out predictions).
+    top2 = [i for i in combined if inputs[i].kind == 'joint'][:2]
+    pair, extra = None, np.zeros((n_rows, 0))
+    if len(top2) == 2:
+        pair, extra = _pair(inputs[top2[0]], inputs[top2[1]],
+                            [(chosen[i] or {})['u'] for i in top2], r, geometry, fit.w,
+                            press, n_poses, alpha)
+    after = float('nan')
+    if combined and pose_folds is not None:
+        u = orthonormal_basis(np.hstack([(chosen[i] or {})['u'] for i in combined]
+                                        + ([extra] if pair and pair.significant else [])))
+        held = press.held_out(u, r)
+        after = _rms_m(held[0], fit.w) if held else float('nan')
+    return ResidualAnalysis(
+        scores=ranked, alpha=alpha, folds=0 if pose_folds is None else folds, chi2=chi2,
+        dof=dof0, combined=tuple(scores[i].name for i in combined),
+        combined_before_m=base_rms, combined_after_m=after, pair=pair)
+
+
+PAIR_FUNCTIONS = 5  # functions per input of the tensor product: a cubic spline of 5, or
+PAIR_HARMONICS = 2  # harmonics 1-2 of the turn for a joint angle (5 functions too)
+
+
+def _pair(a: ResidualInput, b: ResidualInput, additive: list[np.ndarray], r: np.ndarray,
+          geometry: np.ndarray, w: np.ndarray, press: _Press, n_poses: int,
+          alpha: float) -> tuple[PairScore | None, np.ndarray]:
+    """Interaction of ``a`` and ``b`` along ``a``'s direction beyond their additive fit,
+    and its columns (projected off the geometry and the additive fit)."""
+    if PAIR_FUNCTIONS ** 2 > n_poses // MIN_POSES_PER_COLUMN:
+        return None, np.zeros((len(r), 0))
+
+    def basis(inp: ResidualInput) -> np.ndarray:
+        x = np.asarray(inp.values, float)
+        return fourier_basis(x, PAIR_HARMONICS) if inp.periodic else \
+            spline_basis(x, PAIR_FUNCTIONS)
+    ba, bb = basis(a), basis(b)
+    tensor = (ba[:, :, None] * bb[:, None, :]).reshape(len(ba), -1)
+    add = orthonormal_basis(np.hstack(additive))
+    known = np.hstack([geometry, add])
+    u = _unique_basis(_design(a, tensor, w), known)
+    dof = len(r) - known.shape[1] - u.shape[1]
+    if u.shape[1] == 0 or dof <= 0:
+        return None, u
+    e = r - add @ (add.T @ r)
+    delta = float(np.sum((u.T @ e) ** 2))
+    f_stat = (delta / u.shape[1]) / max(float(e @ e) - delta, 1e-300) * dof
+    p = float(scipy.stats.f.sf(f_stat, u.shape[1], dof))
+    held_add = press.held_out(add, r) if press.rows is not None else None
+    held_pair = press.held_out(np.hstack([add, u]), r) if press.rows is not None else None
+    before = _rms_m(held_add[0], w) if held_add else float('nan')
+    after = _rms_m(held_pair[0], w) if held_pair else float('nan')
+    better = not after >= before  # NaN (no folds): the test alone
+    return PairScore((a.name, b.name), int(u.shape[1]), float(f_stat), p,
+                     bool(p < alpha and better), before, after), u
+
+
+def _holm(p: np.ndarray) -> np.ndarray:
+    """Holm's step-down adjusted p-values (family-wise error control)."""
+    m = len(p)
+    if m == 0:
+        return p
+    order = np.argsort(p)
+    adj = np.empty(m)
+    running = 0.0
+    for rank, i in enumerate(order):
+        running = max(running, min(1.0, (m - rank) * p[i]))
+        adj[i] = running
+    return adj
+
+
+def analyse_calibration(model: MeasurementModel, data: Measurements,
+                        result: CalibrationResult,
+                        covariates: Mapping[str, tuple[np.ndarray, str]] | None = None,
+                        folds: int = DEFAULT_FOLDS, alpha: float = ADEQUACY_ALPHA,
+                        seed: int = 0) -> ResidualAnalysis:
+    """:func:`analyse_residuals` of ``result`` over the standard inputs of ``data``
+    (:func:`~kpi_calib_ros.core.diagnosis.residual_inputs.residual_inputs`) and the extra
+    ``covariates`` (name -> (values, unit))."""
+    fit = linearized_fit(model, data, result)
+    residuals = np.atleast_2d(data.eta) - model.predict(
+        result.values, np.atleast_2d(data.q), fit.tau, data.reflector, data.rotation)
+    inputs = residual_inputs(model, data, result, covariates, fit.tau)
+    return analyse_residuals(fit, residuals, inputs, data.q, folds, alpha, seed)

@@ -1,0 +1,250 @@
+"""General effects for a misfit no named effect explains: periodic joint errors, link bending.
+
+Both still mean something physical, and both go through the diagnosis's screen,
+plausibility check and before/after like the library (:mod:`kpi_calib_ros.core.effects.registry`)::
+
+    periodic_joint_error:<joint>:k=<k>   δq_j = a · sin k q_j + b · cos k q_j   a, b  rad
+    link_bending:<joint>                 the frame of <joint> turns by c_u·M_u about u
+                                         and c_v·M_v about v        c_u, c_v  rad/(N m)
+
+**Periodic joint error.** Gear stages, harmonic drives and encoders make joint-angle
+errors periodic in the joint angle at 10–30 and more cycles per revolution (k, an integer,
+a constant of the effect, not a parameter); ``cyclic_joint_error`` (k = 1) and
+``cyclic_joint_error_h2`` (k = 2) are its named first harmonics. The diagnosis finds k
+from the residuals (:mod:`kpi_calib_ros.core.diagnosis.periodic_search`). Parameters
+``periodic_joint_error.<joint>.k<k>.a`` and ``.b``.
+
+**Link bending.** The links beyond joint j load it with the static gravity moment
+M_j = Σ_k (p_k − o_j) × m_k a (a = +9.81 m/s² up, the holding convention of
+``joint_compliance``; masses and centres of mass from the URDF's ``<inertial>`` and the
+cell's payload, nominal geometry). Its component along the axis is the gravity torque
+(which the joint's compliance answers); the two components perpendicular to the axis bend
+the link (and tilt the joint's bearings). The effect turns joint j's frame, after its
+motion, by c_u·M_u about u and c_v·M_v about v, u and v the link frame's axes perpendicular
+to the joint axis (M in that frame). A link that sags along gravity turns against the
+holding moment: physical compliances are negative, c = −1/k with bending stiffnesses of
+industrial links and bearings k ≈ 1e4 … 1e7 N m/rad (|c| ≤ 1e-4 rad/(N m) plausible).
+Parameters ``link_bending.<joint>.c<u>``, ``.c<v>`` (``cx``, ``cy`` for a z axis).
+"""
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass, field
+from typing import Any
+
+import casadi as ca
+import numpy as np
+import pinocchio as pin
+
+from kpi_calib_ros.core.effects.registry import (
+    ARGUMENT_EFFECTS,
+    CHAIN_EFFECTS,
+    BoundEffect,
+    EffectType,
+)
+from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.core.model.kinematics import SymbolicChain, axis_rotation
+from kpi_calib_ros.core.model.parameters import geometric_parameters
+from kpi_calib_ros.core.model.robot import RobotModel
+
+PERIODIC = 'periodic_joint_error'
+BENDING = 'link_bending'
+MAX_CYCLES = 200  # cycles per revolution a spec may name
+HOLDING = np.array([0.0, 0.0, 9.81])  # m/s², URDF root frame: the force per kg that holds
+AXES = 'xyz'
+
+
+# ------------------------------------------------------------ periodic joint error
+@dataclass(frozen=True)
+class PeriodicJointError(BoundEffect):
+    """δq_j = a·sin(k q_j) + b·cos(k q_j) at ``cycles`` = k cycles per revolution."""
+
+    cycles: int = 1
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        object.__setattr__(self, 'name', f'{PERIODIC}:{self.joint}:k={self.cycles}')
+        object.__setattr__(self, 'parameter_names', tuple(
+            f'{PERIODIC}.{self.joint}.k{self.cycles}.{s}' for s in self.kind.parameters))
+
+
+@functools.lru_cache(maxsize=None)
+def periodic_kind(cycles: int) -> EffectType:
+    """The effect type of a periodic joint error at ``cycles`` cycles per revolution (one
+    object per k, so effects bound from the same spec compare equal)."""
+    k = int(cycles)
+
+    def correction(q_j: ca.SX, tau_j: ca.SX, theta: ca.SX) -> ca.SX:
+        return theta[0] * ca.sin(k * q_j) + theta[1] * ca.cos(k * q_j)
+
+    return EffectType(
+        PERIODIC, ('a', 'b'), ('rad', 'rad'), correction, typical=(1e-4, 1e-4),
+        joint_kinds=('revolute', 'continuous'), plausible=(5e-3, 5e-3), general=True,
+        description=f'joint-angle error periodic at {k} cycles per revolution, '
+                    f'a·sin {k}q + b·cos {k}q (a gear stage, a harmonic drive, an encoder)',
+        hint=f'spread {{joint}} over its range with several poses in each 1/{k} of a '
+             'revolution',
+        signature=f'{k}-cycle-per-revolution error of {{joint}}')
+
+
+def periodic_joint_error(robot: RobotModel, joint: str | None, cycles: int | str,
+                         key: str = 'effects') -> PeriodicJointError:
+    """Bind ``periodic_joint_error:<joint>:k=<cycles>`` to ``robot``.
+
+    Raises
+    ------
+    ConfigError
+        Unknown or prismatic joint, or k not an integer in 1..:data:`MAX_CYCLES`.
+    """
+    text = str(cycles).strip()
+    value = text[2:] if text.startswith('k=') else text
+    if not value.isdigit() or not 1 <= int(value) <= MAX_CYCLES:
+        raise ConfigError(key, f'{PERIODIC} needs its frequency: write {PERIODIC}:<joint>:k=<k> '
+                          f'with k an integer of cycles per revolution in 1..{MAX_CYCLES} '
+                          f'(not {text!r})')
+    names = robot.joint_names
+    if joint not in names:
+        raise ConfigError(key, f'effect {PERIODIC!r} acts on one joint: write '
+                          f'{PERIODIC}:<joint>:k=<k> with a joint of {names}'
+                          + (f' (not {joint!r})' if joint else ''))
+    index = names.index(joint)
+    kind = periodic_kind(int(value))
+    joint_kind = robot.joints[index].kind
+    if not kind.applies_to(joint_kind):
+        raise ConfigError(key, f'effect {PERIODIC!r} is periodic in an angle; {joint!r} is '
+                          f'{joint_kind}')
+    return PeriodicJointError(kind, joint, index, len(names), joint_kind, cycles=int(value))
+
+
+# ------------------------------------------------------------------- link bending
+def _no_joint_value(q_j: ca.SX, tau_j: ca.SX, theta: ca.SX) -> ca.SX:
+    return 0 * theta[0]  # link bending turns the frame (frame_correction), not the joint
+
+
+@dataclass(frozen=True)
+class LinkBending(BoundEffect):
+    """Joint j's frame turned by c_u·M_u about u and c_v·M_v about v (its link frame's
+    axes perpendicular to the joint axis), M the gravity moment of the links it carries."""
+
+    moment: ca.Function | None = field(default=None, compare=False)  # q (n,) -> M (3,), N m
+    bend_axes: tuple[tuple[float, ...], ...] = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0))
+
+    def frame_correction(self, q: ca.SX, tau: ca.SX, theta: ca.SX) -> Any:
+        """``(joint index, rotation (3x3))``: the bend of this joint's frame after its motion."""
+        assert self.moment is not None and self.joint_index is not None  # set by the binder
+        m = self.moment(q)
+        u, v = (np.array(a) for a in self.bend_axes)
+        rotation = (axis_rotation(u, theta[0] * ca.dot(ca.DM(u), m))
+                    @ axis_rotation(v, theta[1] * ca.dot(ca.DM(v), m)))
+        return self.joint_index, rotation
+
+
+def _carried_masses(robot: RobotModel) -> list[tuple[int, float, np.ndarray]]:
+    """(chain index a, mass kg, centre of mass (3,) in chain joint a's frame) of every
+    Pinocchio body a chain joint carries: the chain's links (the payload on the last) and
+    the branches hanging off them (at their neutral values)."""
+    model = robot.pin_model
+    data = model.createData()
+    pin.forwardKinematics(model, data, pin.neutral(model))
+    chain = {jid: i for i, jid in enumerate(robot._pin_joint_ids)}
+    out = []
+    for jid in range(1, model.njoints):
+        mass = float(model.inertias[jid].mass)
+        if mass <= 0.0:
+            continue
+        anc = jid
+        while anc not in chain and anc != 0:
+            anc = model.parents[anc]
+        if anc == 0:
+            continue  # not carried by the chain
+        relative = data.oMi[anc].inverse() * data.oMi[jid]
+        out.append((chain[anc], mass, np.array(relative.act(model.inertias[jid].lever))))
+    return out
+
+
+def gravity_moment(robot: RobotModel, joint: int) -> ca.Function:
+    """CasADi Function q (n,) -> (3,): the static gravity (holding) moment, N m, of the
+    bodies chain joint ``joint`` carries, about its origin, in its frame after its motion,
+    at the nominal geometry. Its component along the joint axis is
+    :meth:`~kpi_calib_ros.core.model.robot.RobotModel.gravity_torques`."""
+    chain = SymbolicChain(robot, geometric_parameters(robot, np.zeros(6), np.zeros(3)))
+    q = ca.SX.sym('q', robot.n_joints)
+    frames = chain.link_transforms(ca.DM(chain.params.nominal), q)
+    model = robot.pin_model
+    data = model.createData()
+    pin.framesForwardKinematics(model, data, pin.neutral(model))
+    base = data.oMf[model.getFrameId(robot.base_frame)].rotation
+    up = ca.DM(base.T @ HOLDING)  # the holding acceleration in the chain's base frame
+    origin = frames[joint][:3, 3]
+    moment = ca.SX.zeros(3)
+    for index, mass, com in _carried_masses(robot):
+        if index < joint:
+            continue
+        point = frames[index][:3, :3] @ ca.DM(com) + frames[index][:3, 3]
+        moment += ca.cross(point - origin, mass * up)
+    return ca.Function('gravity_moment', [q], [frames[joint][:3, :3].T @ moment])
+
+
+def _bend_axes(axis: np.ndarray) -> tuple[tuple[np.ndarray, str], tuple[np.ndarray, str]]:
+    """Two unit axes (joint frame) perpendicular to ``axis``, from the frame axes other than
+    the one closest to it, each with the letter of the frame axis it comes from."""
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    first, second = [k for k in range(3) if k != int(np.argmax(np.abs(axis)))]
+    u = np.eye(3)[first] - axis[first] * axis
+    u /= np.linalg.norm(u)
+    return (u, AXES[first]), (np.cross(axis, u), AXES[second])
+
+
+def link_bending(robot: RobotModel, joint: str | None, key: str = 'effects') -> LinkBending:
+    """Bind ``link_bending:<joint>`` to ``robot``.
+
+    Raises
+    ------
+    ConfigError
+        Unknown joint, or nothing with mass beyond it (no ``<inertial>``, no payload).
+    """
+    names = robot.joint_names
+    if joint not in names:
+        raise ConfigError(key, f'effect {BENDING!r} acts on one joint: write {BENDING}:<joint> '
+                          f'with a joint of {names}' + (f' (not {joint!r})' if joint else ''))
+    index = names.index(joint)
+    if not any(a >= index for a, _, _ in _carried_masses(robot)):
+        raise ConfigError(key, f'{BENDING}:{joint}: nothing with mass beyond {joint} (no '
+                          '<inertial> in the URDF, no payload), so no moment bends it; add '
+                          'the link inertials or the payload')
+    (u, lu), (v, lv) = _bend_axes(robot.joints[index].axis)
+    kind = EffectType(
+        BENDING, (f'c{lu}', f'c{lv}'), ('rad/(N m)', 'rad/(N m)'), _no_joint_value,
+        typical=(1e-6, 1e-6), plausible=(1e-4, 1e-4), prismatic_plausible=(1e-4, 1e-4),
+        prismatic_units=('rad/(N m)', 'rad/(N m)'), general=True,
+        description='link bending: the frame of the joint turns about the two axes '
+                    'perpendicular to it in proportion to the gravity moment the links beyond '
+                    'it exert',
+        hint='pose the arm so the moment on {joint} varies (stretched and folded, turned '
+             'about its axis)',
+        signature='gravity bending moment on {joint}')
+    return LinkBending(kind, joint, index, len(names), robot.joints[index].kind,
+                       moment=gravity_moment(robot, index),
+                       bend_axes=(tuple(u.tolist()), tuple(v.tolist())))
+
+
+def general_candidates(robot: RobotModel, exclude: set[str] | frozenset[str] = frozenset()
+                       ) -> list[BoundEffect]:
+    """The general effects screened without a search: ``link_bending`` of every chain
+    joint that carries mass (names in ``exclude`` left out)."""
+    out: list[BoundEffect] = []
+    for name in robot.joint_names:
+        try:
+            effect = link_bending(robot, name)
+        except ConfigError:
+            continue  # nothing with mass beyond it
+        if effect.name not in exclude:
+            out.append(effect)
+    return out
+
+
+CHAIN_EFFECTS[BENDING] = link_bending
+ARGUMENT_EFFECTS[PERIODIC] = periodic_joint_error
+
+__all__ = ['LinkBending', 'PeriodicJointError', 'general_candidates', 'gravity_moment',
+           'link_bending', 'periodic_joint_error', 'periodic_kind']

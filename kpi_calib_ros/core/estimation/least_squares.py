@@ -1,0 +1,625 @@
+"""Constrained least-squares identification with KPI variables, eq. (13) and (19).
+
+The estimate solves
+
+    min_v ½‖Σ⁻¹(η − h(p, q_meas))‖²  s.t.  s = h(p, q_work)
+
+over the identifiable parameters p and the KPI points s. Because s enters only
+the constraint, the minimiser is p̂ of the plain weighted least squares and
+ŝ = h(p̂, q_work); the covariance of v = (p, s) comes from the KKT matrix,
+eq. (19). A Gaussian prior (:class:`~kpi_calib_ros.core.estimation.prior.Prior`) adds the rows
+L (m − p), LᵀL = Λ, to the weighted residual: the estimate is then the maximum a
+posteriori one and C_p = (FᵀF + Λ)⁻¹ on the identified set. Non-convergence is
+reported as a status, not an exception: as in SciPy's ``least_squares``, the
+stopping tests are named tolerances with their formulas (`Tolerances`), the result
+carries an integer ``status`` with a ``message``, and ``converged`` is true only when a
+convergence test held.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Mapping
+
+import numpy as np
+import scipy.optimize
+import scipy.stats
+
+from kpi_calib_ros.core.errors import DataError
+from kpi_calib_ros.core.estimation.covariance import kkt_covariance, kpi_jacobians
+from kpi_calib_ros.core.estimation.identifiability import (
+    DroppedParameter,
+    Identifiability,
+    select_identifiable,
+)
+from kpi_calib_ros.core.estimation.prior import Prior
+from kpi_calib_ros.core.measurement.tracker import (
+    MeasurementModel,
+    Measurements,
+    row_sigma,
+    weighted_residuals,
+    weighted_rows,
+)
+
+__all__ = [
+    'MAX_START_ERROR', 'MAX_SELECTION_ROUNDS', 'MAX_REWEIGHT_ROUNDS', 'REWEIGHT_RTOL',
+    'ITERATIONS_PER_PARAMETER', 'DEFAULT_MAX_ITERATIONS', 'Tolerances', 'TOLERANCES',
+    'LINE_SEARCH_FAILED', 'MAX_ITERATIONS', 'GTOL', 'FTOL', 'XTOL', 'PREDICTED_DECREASE',
+    'STATISTICAL', 'STATUS_MESSAGES', 'CalibrationResult', 'iteration_limit', 'weights',
+    'identify', 'point_sigma_squares',
+]
+
+# Prior rows over the full parameter vector: L (n_rows, n_p) and L m (n_rows,).
+PriorRows = tuple[np.ndarray, np.ndarray]
+
+
+# A nominal model is off by millimetres, a wrong unit or frame by metres.
+MAX_START_ERROR = 0.1
+MAX_SELECTION_ROUNDS = 4
+# Joint-reading noise makes the row weights depend on p (core.measurement): they are
+# evaluated at the estimate and the fit repeated until no weight moves by more than
+# REWEIGHT_RTOL of the largest (a relative change ε of the weights moves the estimate by
+# about ε of its std).
+MAX_REWEIGHT_ROUNDS = 4
+REWEIGHT_RTOL = 1e-3
+# Trust-region iterations per selection round, by default 100 per identified parameter:
+# SciPy's least_squares allows 100 n evaluations (max_nfev of 'trf'), and an iteration here
+# is one accepted step. A well-posed fit converges in 3-20; a nearly dependent parameter set
+# follows a long curved valley: 120 real UR10 poses with an unknown probe offset took
+# 7-244, starts 5-20 mm off the truth 251-2479 in a wrong minimum (27 parameters)
+# (identification.max_iterations sets a fixed limit per cell).
+ITERATIONS_PER_PARAMETER = 100
+DEFAULT_MAX_ITERATIONS: int | None = None
+
+
+@dataclass(frozen=True)
+class Tolerances:
+    """Stopping tests of the Gauss-Newton iteration, as SciPy's ``least_squares`` names them.
+
+    Notation: r (m,) the weighted residual (η − h(p, q))/σ, dimensionless; F (m, k) its
+    Jacobian with respect to the identified parameters; D = diag(‖F_i‖) the column norms
+    (equilibration); C = ½‖r‖² the cost; Δ the Gauss-Newton step, so D Δ is the step in
+    equilibrated units. The tests run in the order below and the first that holds sets the
+    status code (see `STATUS_MESSAGES`).
+
+    Attributes
+    ----------
+    gtol : float
+        Gradient test, status 1: ``max_i |F_iᵀ r| / (‖F_i‖ ‖r‖) < gtol``, the largest cosine
+        between the residual and a Jacobian column (SciPy's ``'lm'`` gtol): r is orthogonal
+        to every direction the parameters can move it in.
+    xtol : float
+        Step test, status 3: ``‖D Δ‖∞ < xtol · max(1, ‖r‖)``. |Δ_i| ‖F_i‖ is the step of
+        parameter i against its own std, so this is a step far below the uncertainty.
+    pred_tol : float
+        Predicted-decrease test, status 4: ``½‖F Δ‖² < max(pred_tol, roundoff · ε_C)``.
+        ½‖F Δ‖² is the decrease of C the linear model promises, and also half the squared
+        Mahalanobis length of Δ against C_p = (FᵀF)⁻¹: 1e-9 is a step of 4.5e-5 std.
+        ε_C = eps · ‖r‖ · ‖w∘η‖ / √m is the round-off of the evaluated cost (each r_j is the
+        difference of two numbers of size |w_j η_j| and carries about eps times that; the
+        errors add in r·δr as a random walk; measured on the default cell, 60 and 500 poses,
+        residuals at and 20x the noise, over 200 relative perturbations of p by 1e-15: std
+        0.2-0.3 ε_C, range 1.0-1.7 ε_C). A decrease the cost cannot resolve is convergence,
+        never a line-search failure.
+    roundoff : float
+        Safety factor on ε_C in the predicted-decrease test.
+    ftol : float
+        Cost test, status 2, on an accepted step Δ whose gain ratio ρ (actual over
+        predicted decrease) exceeds 0.25, so the linear model held along it: both its actual
+        relative decrease ``(C_old − C_new) / C_old`` and its predicted relative decrease
+        ``(−∇Cᵀ Δ − ½‖F Δ‖²) / C_old`` are below ``ftol``. This is MINPACK's ``lmder`` ftol
+        test (info 1), with SciPy's ``least_squares`` condition ρ > 0.25 and its default
+        1e-8. Δ is the step taken (the Gauss-Newton step, or the damped step on the trust
+        region's boundary): in the trust region, where the model was just confirmed, no step
+        gains ``ftol`` of the cost. A step the cost test does not look at: a rejected trial
+        (it is no estimate), and an accepted step with ρ ≤ 0.25 (the model failed; the
+        region shrinks and the iteration goes on). Found on simulated starts 5-20 mm /
+        10-50 mrad off the truth (``bench/solver_vs_trf.py``): some end in a wrong minimum
+        (0.6-14 mm rms) on a nearly singular Jacobian, the Gauss-Newton step 10⁷-10⁹ in
+        equilibrated units and predicting the whole cost, while damped steps gain 1e-8 to
+        1e-7 of it each; no Gauss-Newton test can hold there, and SciPy's TRF stops on this
+        test. SciPy's other two tests are not taken over: its gtol is absolute in the units
+        of r (``gtol`` here is the scale-free cosine) and its xtol compares the step with
+        ‖p‖, which adds metres to radians (``xtol`` here is against the parameter std).
+    stat_tol : float
+        Statistical test, status 5: the last step had to be damped (the linear model
+        failed along the Gauss-Newton step) and the Gauss-Newton step now predicts
+        ``½‖F Δ‖² < stat_tol``: what is left to gain moves the estimate by less than
+        √(2 · stat_tol) = 0.14 of its std in the Mahalanobis sense, far below its
+        precision. Found on MAP fits with a previous calibration as prior and 10 poses,
+        where the re-selected parameter set is nearly dependent (smallest singular value
+        3e-7 of the equilibrated Jacobian): the remaining predicted decrease stayed at
+        0.0086 while damped steps gained 5e-10 each, 50 iterations without end.
+    armijo : float
+        Sufficient decrease for accepting a step Δ (Gauss-Newton or damped):
+        ``C(p + Δ) ≤ C(p) − armijo · (−∇Cᵀ Δ)``. A trial that fails it shrinks the trust
+        region to a quarter of its length; once the region is smaller than the step test's
+        ``xtol · max(1, ‖r‖)`` without a step that passes: status -1.
+    """
+
+    gtol: float = 1e-10
+    xtol: float = 1e-8
+    pred_tol: float = 1e-9
+    stat_tol: float = 1e-2
+    roundoff: float = 10.0
+    ftol: float = 1e-8
+    armijo: float = 1e-4
+
+
+TOLERANCES = Tolerances()
+
+# Status codes of an identification. Positive: a convergence test held (converged);
+# 0 and negative: the iteration stopped without converging.
+LINE_SEARCH_FAILED = -1
+MAX_ITERATIONS = 0
+GTOL = 1
+FTOL = 2
+XTOL = 3
+PREDICTED_DECREASE = 4
+STATISTICAL = 5
+STATUS_MESSAGES = {
+    LINE_SEARCH_FAILED: 'failed: neither the Gauss-Newton step nor a damped step in a '
+                        'trust region down to the step tolerance decreases the cost '
+                        '(predicted decrease {pred:.3g} above round-off)',
+    MAX_ITERATIONS: 'not converged: maximum number of iterations ({iterations}) reached',
+    GTOL: 'converged: gradient test, max cosine(residual, Jacobian column) < gtol {gtol:g}',
+    FTOL: 'converged: cost test, the last step (gain ratio {rho:.2f}) decreased ½χ² = '
+          '{cost:.6g} by {decrease:.3g} and predicted {model:.3g}, both < ftol {ftol:g} of it',
+    XTOL: 'converged: step test, step < xtol {xtol:g} of parameter std',
+    PREDICTED_DECREASE: 'converged: predicted decrease of ½χ² {pred:.3g} below '
+                        'max(pred_tol {pred_tol:g}, cost round-off)',
+    STATISTICAL: 'converged: statistical test, the remaining Gauss-Newton step predicts a '
+                 'decrease of ½χ² {pred:.3g} < stat_tol {stat_tol:g} (under 0.14 std) and '
+                 'the last step was damped by nonlinearity',
+}
+
+
+@dataclass(frozen=True)
+class CalibrationResult:
+    """Everything an identification produces.
+
+    Attributes
+    ----------
+    names : tuple of str
+        All parameter names of the model, in vector order.
+    values : (n_p,) ndarray
+        Estimated values (dropped parameters stay at their prior value).
+    estimated : tuple of str
+        Names of the identified parameters.
+    std : (k,) ndarray
+        Standard deviations of the identified parameters (from the stated σ).
+    covariance : (k, k) ndarray
+        C_p block of eq. (19).
+    residuals : (N, 3) ndarray
+        η − h(p̂, q) per measurement, tracker frame, m (a rotation row of a tracked
+        pose: rad × σ/σ_rot, see :mod:`kpi_calib_ros.core.measurement.pose`).
+    rms_m : float
+        sqrt(mean ‖r_i‖²) over the point rows, m.
+    tcp : (t, 3) ndarray
+        KPI points ŝ at the working poses, tracker frame, m.
+    tcp_covariance : (t, 3, 3) ndarray
+        C_s blocks of eq. (19), m².
+    chi2, dof, p_value : float, int, float
+        Weighted residual sum against σ, degrees of freedom, upper-tail probability.
+        With a prior, χ² counts the data rows only and dof = round(3N − k_eff) with
+        k_eff = tr(F C_p Fᵀ) (F the weighted data Jacobian), the number of parameters
+        the data rather than the prior determine: E[χ²] = 3N − k_eff when the truth is
+        drawn from the prior. Without a prior k_eff = k.
+    status : int
+        Why the last Gauss-Newton run stopped, one of `STATUS_MESSAGES`: 1-5 a convergence
+        test of `Tolerances` held, 0 the iteration limit, -1 no step (Gauss-Newton or
+        damped) decreased the cost.
+    message : str
+        The status in words, with the figure that decided it.
+    iterations : int
+        Gauss-Newton iterations over all identifiability-selection rounds.
+    covariance_scale : float
+        Factor applied to every covariance above: 1 (stated σ), or χ²/dof when the model
+        is not adequate (see :func:`kpi_calib_ros.core.estimation.precision.honest_precision`).
+    """
+
+    names: tuple[str, ...]
+    values: np.ndarray
+    units: tuple[str, ...]
+    estimated: tuple[str, ...]
+    std: np.ndarray
+    covariance: np.ndarray
+    residuals: np.ndarray
+    rms_m: float
+    tcp: np.ndarray
+    tcp_covariance: np.ndarray
+    working_pose_names: tuple[str, ...]
+    sigma: np.ndarray
+    chi2: float
+    dof: int
+    p_value: float
+    status: int
+    message: str
+    iterations: int
+    identifiability: Identifiability
+    # 1 when std/covariances come from the stated σ; χ²/dof when they were scaled to
+    # the estimated σ because the model failed the χ² test (core.precision).
+    covariance_scale: float = 1.0
+    # Joint-reading noise (rad, chain order) the row weights carried; None: exact readings.
+    joint_sigma: np.ndarray | None = None
+    # (N, 3) σ of every row and axis the weights carried (m): the tracker's stated σ per
+    # point where the data gave one, ``sigma`` elsewhere; None: ``sigma`` for every row.
+    point_sigma: np.ndarray | None = None
+
+    @property
+    def converged(self) -> bool:
+        """True only when a convergence test held (status 1-5)."""
+        return self.status > 0
+
+    @property
+    def correlation(self) -> np.ndarray:
+        """Correlation matrix (k, k) of the estimated parameters (dimensionless)."""
+        return self.covariance / np.outer(self.std, self.std)
+
+    @property
+    def dropped(self) -> tuple[DroppedParameter, ...]:
+        """Parameters left at their nominal value as not identifiable, with the reason."""
+        return self.identifiability.dropped
+
+    def value(self, name: str) -> float:
+        """Identified value of parameter ``name`` (its unit); ValueError if unknown."""
+        return float(self.values[self.names.index(name)])
+
+    def std_of(self, name: str) -> float:
+        """Standard deviation of estimated parameter ``name`` (its unit); ValueError if not
+        estimated."""
+        return float(self.std[self.estimated.index(name)])
+
+
+def iteration_limit(max_iterations: int | None, k: int) -> int:
+    """Iteration limit of a fit of ``k`` parameters: ``max_iterations``, or when None
+    `ITERATIONS_PER_PARAMETER` · k (SciPy's ``max_nfev`` of ``'trf'``)."""
+    return ITERATIONS_PER_PARAMETER * k if max_iterations is None else max_iterations
+
+
+def weights(sigma: float | np.ndarray) -> np.ndarray:
+    """Per-axis weights 1/σ (3,) from a scalar or (3,) σ in metres."""
+    sigma = np.broadcast_to(np.asarray(sigma, float), (3,))
+    if not np.all(np.isfinite(sigma)) or np.any(sigma <= 0):
+        raise ValueError(f'noise sigma must be positive and finite, got {sigma}')
+    return 1.0 / sigma
+
+
+def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndarray,
+             q_work: np.ndarray, working_pose_names: list[str] | None = None,
+             p0: np.ndarray | None = None, free: list[str] | None = None,
+             max_iterations: int | None = DEFAULT_MAX_ITERATIONS,
+             identifiability_method: str = 'pivoted',
+             priority: list[str] | None = None,
+             tolerances: Tolerances = TOLERANCES,
+             point_weights: np.ndarray | None = None,
+             prior: Prior | None = None) -> CalibrationResult:
+    """Identify the parameters of ``model`` from tracker data.
+
+    Parameters
+    ----------
+    model : MeasurementModel
+    data : Measurements
+        q (N, n) in chain order, eta (N, 3) in the tracker frame, m.
+    sigma : float or (3,) array
+        Tracker noise standard deviation per axis, m; a row whose ``data.sigma`` states
+        its own (the tracker's per-point uncertainty) is weighed by that one instead
+        (:func:`~kpi_calib_ros.core.measurement.tracker.row_sigma`). With joint-reading noise in the
+        model (``model.joint_sigma``) each measurement's covariance is
+        σ²I + J_q Σ_q J_qᵀ: its rows are whitened at the current estimate
+        (:meth:`MeasurementModel.whitening`), and after the fit the weights are evaluated
+        at the estimate and the fit repeated until they settle (`REWEIGHT_RTOL`).
+    q_work : (t, n) ndarray
+        Working configurations whose KPI points are estimated.
+    p0 : (n_p,) ndarray, optional
+        Start values; the model's nominal values by default.
+    free : list of str, optional
+        Parameters allowed to vary; all by default. The identifiable subset of
+        these is chosen by QR on the data Jacobian at ``p0``.
+    max_iterations : int, optional
+        Iteration limit of each trust-region Gauss-Newton run (status 0 when reached);
+        default `ITERATIONS_PER_PARAMETER` times the number of identified parameters.
+    tolerances : Tolerances, optional
+        Stopping tests of the Gauss-Newton iteration; the result's ``status`` says which held.
+    point_weights : (N,) ndarray, optional
+        Robustness weights ω_i in [0, 1] of the measurements (IRLS, see
+        :mod:`kpi_calib_ros.core.estimation.robust`): measurement i counts as if its σ were σ/√ω_i.
+        The covariance and χ² are those of that weighted problem. Default: all 1.
+    prior : Prior, optional
+        Gaussian prior on some parameters (maximum a posteriori estimate); parameters it
+        does not name are unconstrained. Its rows take part in the identifiability
+        selection, so a parameter the prior determines is identified; a prior on a
+        parameter that is not identified is conditioned on the held value.
+
+    Raises
+    ------
+    DataError
+        Non-finite data or too few measurements for the identifiable set.
+    """
+    w_axis = weights(sigma)
+    q, eta = np.atleast_2d(data.q), np.atleast_2d(data.eta)
+    if q.shape[0] != eta.shape[0] or eta.shape[1] != 3 or q.shape[1] != model.robot.n_joints:
+        raise DataError(f'measurement shapes do not fit: q {q.shape}, eta {eta.shape}, '
+                        f'{model.robot.n_joints} joints')
+    try:
+        sigma_rows = row_sigma(sigma, data.sigma, len(q))
+    except ValueError as exc:
+        raise DataError(f'{exc}; the per-point sigma comes from the tracker (m)') from None
+    w = _row_weights(1.0 / sigma_rows, point_weights, len(q))
+    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(eta))):
+        raise DataError('measurements contain NaN or inf; reject them before identification')
+    q_work = np.atleast_2d(np.asarray(q_work, float))
+    names = working_pose_names or [f'work_{i + 1}' for i in range(len(q_work))]
+    tau = model.robot.gravity_torques(q) if model.uses_torque else None
+    tau_work = model.robot.gravity_torques(q_work) if model.uses_torque else None
+    p = np.array(model.params.nominal if p0 is None else p0, dtype=float)
+    free_idx = model.params.indices(free) if free else np.arange(len(p))
+    ref = data.reflector  # (pose, reflector) rows; None: reflector 0 throughout
+    rot = data.rotation   # measured rotations of the rotation rows (tracked poses)
+    cov = data.covariates  # per-row covariates the effects read (temperature, …)
+    try:
+        model.input_values(len(q), cov)  # a covariate the effects read is there and finite
+    except ValueError as exc:
+        raise DataError(str(exc)) from None
+    rows = prior.rows(model.params) if prior is not None else None
+
+    def reweighted(pp: np.ndarray) -> np.ndarray:
+        """Row weights at ``pp``: fixed 1/σ, or whitening with joint-reading noise."""
+        if model.joint_sigma is None:
+            return w
+        return model.whitening(pp, q, sigma_rows, tau, ref, rot, point_weights, cov)
+
+    def limit(idx: np.ndarray) -> int:
+        return iteration_limit(max_iterations, len(idx))
+
+    pred, _ = model.jacobian(p, q, tau, ref, rot, cov)
+    start_error = float(np.median(np.linalg.norm(eta - pred, axis=1)))
+    if start_error > MAX_START_ERROR:
+        raise DataError(f'measured points are {start_error:.3g} m (median) from the nominal '
+                        'prediction; check that points are in metres, in the tracker frame, and '
+                        'that tracker.base_in_tracker and the joint order/units are right, that '
+                        'coupled controller joints are mapped (robot.joint_coupling), and that '
+                        'the point topic carries one reflector (several reflectors on one '
+                        'topic pair each pose with points of the others)')
+    free_names = [model.params.names[i] for i in free_idx]
+    # Identifiability depends on the geometry: at a nominal reflector exactly on the
+    # flange axis some directions vanish that the real (slightly off-axis) robot has.
+    # Select at the start, fit, and select again at the estimate until the set is stable.
+    # A parameter dropped in a later round keeps the value it was fitted to: the full
+    # vector stays one exact solution (one gauge); resetting it would restart the fit.
+    ident, iterations, kept_before = None, 0, None
+    w = reweighted(p)
+    for _ in range(MAX_SELECTION_ROUNDS):
+        _, jac = model.jacobian(p, q, tau, ref, rot, cov)
+        stacked = _with_prior(weighted_rows(jac, w, free_idx), rows, free_idx)
+        ident = select_identifiable(stacked, free_names, method=identifiability_method,
+                                    priority=priority)
+        if kept_before is not None and ident.rank == len(kept_before):
+            # Same rank: the fitted set still spans the identifiable directions (QR may
+            # merely prefer an equivalent subset here). Keep it; restate its reasons here.
+            kept_first = list(kept_before) + [n for n in free_names if n not in kept_before]
+            again = select_identifiable(stacked, free_names, method='priority',
+                                        priority=kept_first, pivot_fraction=0.0)
+            if again.kept == kept_before:
+                ident = again
+                break
+        if ident.kept == kept_before:
+            break
+        idx = model.params.indices(ident.kept)
+        if 3 * len(q) + (0 if rows is None else len(rows[0])) <= len(idx):
+            raise DataError(f'too few measurements: {len(q)} points give {3 * len(q)} '
+                            f'equations for {len(idx)} identifiable parameters; measure at '
+                            f'least {len(idx) // 3 + 2} poses (better 3-5x that)')
+        p, status, message, used = _gauss_newton(model, p, idx, q, eta, tau, w,
+                                                 limit(idx), tolerances, ref, rows, rot, cov)
+        iterations += used
+        kept_before = ident.kept
+    if ident is None:
+        raise RuntimeError(f'MAX_SELECTION_ROUNDS = {MAX_SELECTION_ROUNDS}: no round selected '
+                           'the identifiable parameters')
+    for _ in range(MAX_REWEIGHT_ROUNDS if model.joint_sigma is not None else 0):
+        new = reweighted(p)
+        change = float(np.max(np.abs(new - w)) / np.max(np.abs(w)))
+        w = new
+        if change < REWEIGHT_RTOL:
+            break
+        p, status, message, used = _gauss_newton(model, p, idx, q, eta, tau, w,
+                                                 limit(idx), tolerances, ref, rows, rot, cov)
+        iterations += used
+    pred, jac = model.jacobian(p, q, tau, ref, rot, cov)
+    residuals = eta - pred
+    f_data = weighted_rows(jac, w, idx)
+    tcp, tcp_jac = model.jacobian(p, q_work, tau_work)
+    f1, f2 = kpi_jacobians(_with_prior(f_data, rows, idx), tcp_jac.reshape(-1, len(p))[:, idx])
+    c_v = kkt_covariance(f1, f2)
+    k = len(idx)
+    c_p = c_v[:k, :k]
+    c_s = c_v[k:, k:]
+    t = len(q_work)
+    tcp_cov = np.array([c_s[3 * i:3 * i + 3, 3 * i:3 * i + 3] for i in range(t)])
+    chi2 = float(np.sum(weighted_residuals(residuals, w) ** 2))
+    # χ² of the data rows only; the prior rows are information, not measurements.
+    dof = 3 * len(q) - k
+    if rows is not None:
+        dof = int(round(3 * len(q) - float(np.sum((f_data @ c_p) * f_data))))
+    return CalibrationResult(
+        names=model.params.names, values=p, units=model.params.units,
+        estimated=ident.kept, std=np.sqrt(np.diag(c_p)), covariance=c_p,
+        residuals=residuals, rms_m=_point_rms(residuals, ref, model.n_reflectors),
+        tcp=tcp, tcp_covariance=tcp_cov, working_pose_names=tuple(names),
+        sigma=1.0 / w_axis, chi2=chi2, dof=dof, p_value=float(scipy.stats.chi2.sf(chi2, dof)),
+        status=status, message=message, iterations=iterations, identifiability=ident,
+        joint_sigma=model.joint_sigma, point_sigma=None if data.sigma is None else sigma_rows)
+
+
+def point_sigma_squares(result: CalibrationResult, reflector: np.ndarray | None,
+                        n_reflectors: int) -> np.ndarray:
+    """Σ_a σ_i,a² (m²) of every point row of the fit (rotation rows left out): each row's
+    stated σ (``result.point_sigma``) or the cell's σ; (N_points,), or (1,) when the fit
+    took the cell's σ for every row."""
+    if result.point_sigma is None:
+        return np.array([float(np.sum(np.asarray(result.sigma) ** 2))])
+    rows = np.asarray(result.point_sigma)
+    if reflector is not None:
+        rows = rows[np.asarray(reflector) < n_reflectors]
+    return np.sum(rows ** 2, axis=1)
+
+
+def _point_rms(residuals: np.ndarray, reflector: np.ndarray | None, n_reflectors: int) -> float:
+    """Root mean square (m) of the point rows' residuals; rotation rows (tracked poses)
+    are not lengths."""
+    points = residuals if reflector is None else residuals[np.asarray(reflector) < n_reflectors]
+    return float(np.sqrt(np.mean(np.sum(points ** 2, axis=1))))
+
+
+def _with_prior(f: np.ndarray, rows: PriorRows | None, idx: np.ndarray) -> np.ndarray:
+    """Weighted data Jacobian columns ``idx`` with the prior's L rows below."""
+    return f if rows is None else np.vstack([f, rows[0][:, idx]])
+
+
+def _row_weights(w_axis: np.ndarray, point_weights: np.ndarray | None, n: int) -> np.ndarray:
+    """(N, 3) weights w_i,a·√ω_i of every residual component (1/m); ``w_axis`` (3,) or
+    (N, 3)."""
+    w_axis = np.broadcast_to(w_axis, (n, 3))
+    if point_weights is None:
+        return w_axis.copy()
+    omega = np.asarray(point_weights, float)
+    if omega.shape != (n,) or not np.all(np.isfinite(omega)) or np.any(omega < 0):
+        raise ValueError(f'point_weights must be {n} finite numbers >= 0, got shape '
+                         f'{omega.shape}')
+    return w_axis * np.sqrt(omega)[:, None]
+
+
+# Trust-region radius updates (Nocedal & Wright, Algorithm 4.1; SciPy's ``trf``).
+SHRINK, GROW = 0.25, 2.0
+
+
+def _boundary_step(u: np.ndarray, s: np.ndarray, vt: np.ndarray, r: np.ndarray,
+                   radius: float) -> np.ndarray:
+    """The Levenberg-Marquardt step z(λ) = V diag(s / (s² + λ)) Uᵀ r of A = U diag(s) Vᵀ
+    with ‖z(λ)‖ = ``radius``, the minimiser of ‖r − A z‖ on the trust-region boundary
+    (valid when the Gauss-Newton step z(0) is longer than ``radius``)."""
+    sc = s * (u.T @ r)
+
+    def excess(lam: float) -> float:
+        return float(np.linalg.norm(sc / (s ** 2 + lam))) - radius
+    # ‖z(λ)‖ falls monotonically from ‖z(0)‖ > radius and is below ‖S c‖/λ.
+    upper = float(np.linalg.norm(sc)) / radius
+    lam = upper if excess(upper) >= 0 else scipy.optimize.brentq(excess, 0.0, upper,
+                                                                 xtol=1e-12 * upper, rtol=1e-10)
+    return vt.T @ (sc / (s ** 2 + lam))
+
+
+def _gauss_newton(model: MeasurementModel, p: np.ndarray, idx: np.ndarray, q: np.ndarray,
+                  eta: np.ndarray, tau: np.ndarray | None, w: np.ndarray, max_iterations: int,
+                  tol: Tolerances = TOLERANCES, reflector: np.ndarray | None = None,
+                  rows: PriorRows | None = None,
+                  rotation: np.ndarray | None = None,
+                  covariates: Mapping[str, np.ndarray] | None = None
+                  ) -> tuple[np.ndarray, int, str, int]:
+    """Gauss-Newton in a trust region (Levenberg-Marquardt), as SciPy's ``trf`` without bounds.
+
+    The step z = D Δ lives in equilibrated units (D the largest column norms of F seen so
+    far, SciPy's ``x_scale='jac'``). The Gauss-Newton step is taken whole while it lies in
+    the trust region (at the start the region is unbounded, so a well-behaved fit takes
+    exactly the Gauss-Newton steps); otherwise the damped step (AᵀA + λ I) z = Aᵀ r,
+    A = F D⁻¹, on the region's boundary. The region shrinks to a quarter of the step when
+    the gain ratio ρ (actual over predicted decrease) is below 0.25 and doubles when
+    ρ > 0.75 on the boundary (Nocedal & Wright, Algorithm 4.1). Unlike a line search
+    along the Gauss-Newton direction, the damped step turns towards the steepest descent,
+    which follows the curved valleys of a nearly dependent parameter set.
+
+    Returns
+    -------
+    p : (n_p,) ndarray
+        Last accepted parameters (only ``idx`` moved).
+    status, message : int, str
+        See `STATUS_MESSAGES` and `Tolerances`.
+    iterations : int
+        Accepted steps (each may have needed several trials of λ).
+    """
+    def evaluate(pp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        pred, jac = model.jacobian(pp, q, tau, reflector, rotation, covariates)
+        r = weighted_residuals(eta - pred, w)
+        f = weighted_rows(jac, w, idx)
+        if rows is not None:
+            # Prior rows: residual L(m − p), Jacobian L (as for h, F = ∂(Lp)/∂p).
+            r = np.concatenate([r, rows[1] - rows[0] @ pp])
+            f = np.vstack([f, rows[0][:, idx]])
+        return r, f
+
+    def stop(status: int, iteration: int, **figures: float) -> tuple[np.ndarray, int, str, int]:
+        text = STATUS_MESSAGES[status].format(**figures, **tol.__dict__,
+                                              iterations=max_iterations)
+        return p, status, text, iteration
+
+    # Size of the measured values the residuals are differences of (see Tolerances.pred_tol).
+    eta_scale = np.linalg.norm(weighted_residuals(eta, w)) / np.sqrt(eta.size)
+    r, f = evaluate(p)
+    cost = 0.5 * r @ r
+    # Whether the last accepted step was damped (the linear model failed along the
+    # Gauss-Newton step).
+    nonlinear = False
+    region: np.ndarray | None = None
+    radius = float(np.inf)  # trust region on the equilibrated step DΔ; none until a step fails
+    for iteration in range(1, max_iterations + 1):
+        # A column can vanish on the way (a saturating effect's shape parameter once
+        # tanh is flat at every pose): no step along it, not a NaN step.
+        scale = np.linalg.norm(f, axis=0)
+        scale[scale == 0] = 1.0
+        # The trust region lives in units D Δ with D the largest column norms so far (as
+        # SciPy's x_scale='jac'): a radius keeps its meaning from one iteration to the next.
+        region = scale if region is None else np.maximum(region, scale)
+        norm_r = np.sqrt(2 * cost)
+        gradient = f.T @ r  # = −∇C (F is ∂h/∂p weighted, r = w(η − h))
+        if np.max(np.abs(gradient) / scale) < tol.gtol * norm_r:
+            return stop(GTOL, iteration)
+        a = f / scale
+        step_scaled, *_ = np.linalg.lstsq(a, r, rcond=None)
+        if np.max(np.abs(step_scaled)) < tol.xtol * max(1.0, norm_r):
+            return stop(XTOL, iteration)
+        predicted = 0.5 * np.sum((a @ step_scaled) ** 2)
+        roundoff = np.finfo(float).eps * norm_r * eta_scale
+        if predicted < max(tol.pred_tol, tol.roundoff * roundoff):
+            return stop(PREDICTED_DECREASE, iteration, pred=predicted)
+        if nonlinear and predicted < tol.stat_tol:
+            return stop(STATISTICAL, iteration, pred=predicted)
+        gn_step = step_scaled / scale
+        gn_length = float(np.linalg.norm(region * gn_step))
+        svd = None
+        while True:
+            step = gn_step
+            if gn_length > radius:
+                # The Gauss-Newton step leaves the trust region: the damped step on its
+                # boundary, (AᵀA + λ I) z = Aᵀ r with ‖z‖ = radius, A = F D⁻¹.
+                if svd is None:
+                    svd = np.linalg.svd(f / region, full_matrices=False)
+                step = _boundary_step(*svd, r, radius) / region
+            length = float(np.linalg.norm(region * step))
+            linear = gradient @ step  # decrease of the cost along Δ to first order (> 0)
+            model_decrease = linear - 0.5 * np.sum((f @ step) ** 2)
+            trial = p.copy()
+            trial[idx] += step
+            r_try, f_try = evaluate(trial)
+            cost_try = 0.5 * r_try @ r_try
+            # A point where the Jacobian is not finite (a saturating effect's shape
+            # parameter driven to a sharp step) is no step to take.
+            if cost_try <= cost - tol.armijo * linear and np.all(np.isfinite(f_try)):
+                break
+            radius = SHRINK * length
+            if radius < tol.xtol * max(1.0, norm_r):
+                return stop(LINE_SEARCH_FAILED, iteration, pred=predicted)
+        nonlinear = bool(gn_length > radius)
+        rho = (cost - cost_try) / model_decrease if model_decrease > 0 else 0.0
+        if rho < 0.25:
+            radius = SHRINK * length
+        elif rho > 0.75 and nonlinear:
+            radius = GROW * radius
+        decrease = cost - cost_try
+        converged = (rho > 0.25 and decrease < tol.ftol * cost
+                     and model_decrease < tol.ftol * cost)
+        p, r, f, cost_old, cost = trial, r_try, f_try, cost, cost_try
+        if converged:
+            return stop(FTOL, iteration, rho=rho, cost=cost_old, decrease=decrease,
+                        model=model_decrease)
+    return p, MAX_ITERATIONS, STATUS_MESSAGES[MAX_ITERATIONS].format(
+        iterations=max_iterations), max_iterations

@@ -1,0 +1,48 @@
+"""Measurement model: tracker points (eq. 3, 4) and tracked 6-DoF poses."""
+from kpi_calib_ros.core.measurement.covariates import (
+    DEFAULT_MAX_GAP_NS,
+    DELTA_TEMPERATURE,
+    REFERENCE_TEMPERATURE_C,
+    TEMPERATURE_PREFIX,
+    TemperatureSample,
+    covariate_name,
+    interpolate,
+    shift_temperature,
+    temperature_covariates,
+    with_covariates,
+)
+from kpi_calib_ros.core.measurement.pose import (
+    log3_expression,
+    measured_rotation_input,
+    noisy_rotations,
+    pose_matrix,
+    quaternion_from_rotation,
+    rotation_exp,
+    rotation_from_quaternion,
+    rotation_from_rpy,
+    rotation_residual_expression,
+)
+from kpi_calib_ros.core.measurement.replicates import SAME_POSE_TOLERANCE, pose_groups, same_pose
+from kpi_calib_ros.core.measurement.tracker import (
+    Effect,
+    MeasurementModel,
+    Measurements,
+    effect_inputs,
+    noise_weights,
+    row_sigma,
+    unweighted,
+    weighted_residuals,
+    weighted_rows,
+    with_rotation_rows,
+)
+
+__all__ = [
+    'DEFAULT_MAX_GAP_NS', 'DELTA_TEMPERATURE', 'Effect', 'MeasurementModel', 'Measurements',
+    'REFERENCE_TEMPERATURE_C', 'SAME_POSE_TOLERANCE', 'TEMPERATURE_PREFIX', 'TemperatureSample',
+    'covariate_name', 'effect_inputs', 'interpolate', 'log3_expression',
+    'measured_rotation_input', 'noise_weights', 'noisy_rotations', 'pose_groups', 'pose_matrix',
+    'quaternion_from_rotation', 'rotation_exp', 'rotation_from_quaternion', 'rotation_from_rpy',
+    'rotation_residual_expression', 'row_sigma', 'same_pose', 'shift_temperature',
+    'temperature_covariates', 'unweighted', 'weighted_residuals', 'weighted_rows',
+    'with_covariates', 'with_rotation_rows',
+]

@@ -1,0 +1,167 @@
+"""Covariates: per-row causes beside the joint state (the arm's temperature), paired by time.
+
+A measurement row gets the value of a slowly changing quantity at its stamp, as joint
+states are paired (:mod:`kpi_calib_ros.core.acquisition.pairing`), and keeps it in
+``Measurements.covariates`` under a stable name:
+
+``temperature.<frame_id>``
+    A temperature sensor's reading (``sensor_msgs/Temperature``, °C) at the row's stamp.
+``delta_temperature``
+    ΔT, K: the mean of the cell's configured sensors minus the cell's reference temperature
+    (default 20 °C, the reference temperature of dimensional metrology, ISO 1). The
+    thermal effects (:mod:`kpi_calib_ros.core.effects.registry`) read this one; at ΔT = 0 they
+    vanish, so the geometric parameters are those of the arm at the reference temperature and a
+    prediction without covariates (a design, the KPI, fresh poses) is one at it.
+
+Only differences of temperature enter a model, so °C and K are interchangeable for ΔT; the
+raw readings stay in °C as the message carries them. A stamp is given the value linearly
+interpolated between the samples on either side. Temperature changes slowly, yet a value is
+never made up: a stamp whose neighbouring samples are more than ``max_gap_ns`` apart, or
+that lies beyond the first or last sample by more than ``max_gap_ns``, gets none (NaN) and
+its row is refused with the reason (within ``max_gap_ns`` beyond an end, the end value is
+held).
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Iterable, Mapping, Sequence
+
+import numpy as np
+
+from kpi_calib_ros.core.measurement.tracker import Measurements
+
+__all__ = [
+    'TEMPERATURE_PREFIX', 'DELTA_TEMPERATURE', 'REFERENCE_TEMPERATURE_C', 'DEFAULT_MAX_GAP_NS',
+    'TemperatureSample', 'covariate_name', 'interpolate', 'temperature_covariates',
+    'with_covariates', 'shift_temperature',
+]
+
+TEMPERATURE_PREFIX = 'temperature.'
+DELTA_TEMPERATURE = 'delta_temperature'
+REFERENCE_TEMPERATURE_C = 20.0  # ISO 1: the reference temperature of length measurement
+DEFAULT_MAX_GAP_NS = 120 * 10**9  # a temperature sample at least every 2 minutes
+
+
+@dataclass(frozen=True)
+class TemperatureSample:
+    """One temperature reading: header stamp (ns), the sensor's frame id, °C."""
+
+    stamp_ns: int
+    frame_id: str
+    celsius: float
+
+
+def covariate_name(frame_id: str) -> str:
+    """The covariate name of a temperature sensor: ``temperature.<frame_id>``."""
+    return TEMPERATURE_PREFIX + frame_id
+
+
+def interpolate(stamps_ns: np.ndarray, sample_stamps_ns: np.ndarray, values: np.ndarray,
+                max_gap_ns: int = DEFAULT_MAX_GAP_NS) -> np.ndarray:
+    """Values (N,) of a slowly varying signal at ``stamps_ns`` (N,), NaN where unknown.
+
+    Linear between the samples around a stamp when they are at most ``max_gap_ns`` apart;
+    the first/last value within ``max_gap_ns`` before/after the samples; NaN elsewhere
+    (a gap, outside the recording, no samples). Samples need not be sorted; samples of one
+    stamp are averaged.
+    """
+    stamps = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
+    out = np.full(len(stamps), np.nan)
+    t = np.asarray(sample_stamps_ns, dtype=np.int64).reshape(-1)
+    v = np.asarray(values, float).reshape(-1)
+    good = np.isfinite(v)
+    t, v = t[good], v[good]
+    if not len(t):
+        return out
+    t, inverse = np.unique(t, return_inverse=True)
+    v = np.bincount(inverse, weights=v) / np.bincount(inverse)
+    # offsets from the first sample keep the arithmetic exact in float64 (ns since 1970
+    # exceed its integer precision)
+    x, xs = (stamps - t[0]).astype(float), (t - t[0]).astype(float)
+    right = np.searchsorted(t, stamps, side='left')
+    inside = (right > 0) & (right < len(t))
+    exact = np.isin(stamps, t)
+    gap = np.full(len(stamps), np.inf)
+    gap[inside] = (t[right[inside]] - t[right[inside] - 1]).astype(float)
+    ok = exact | (inside & (gap <= max_gap_ns))
+    out[ok] = np.interp(x[ok], xs, v)
+    before = (stamps < t[0]) & (t[0] - stamps <= max_gap_ns)
+    after = (stamps > t[-1]) & (stamps - t[-1] <= max_gap_ns)
+    out[before], out[after] = v[0], v[-1]
+    return out
+
+
+def temperature_covariates(stamps_ns: np.ndarray, samples: Iterable[TemperatureSample],
+                           sensors: Sequence[str] = (),
+                           reference_c: float = REFERENCE_TEMPERATURE_C,
+                           max_gap_ns: int = DEFAULT_MAX_GAP_NS) -> dict[str, np.ndarray]:
+    """Covariates (N,) of rows stamped ``stamps_ns``: every sensor's ``temperature.<frame_id>``
+    (°C) and ``delta_temperature`` (K), the mean of ``sensors`` (frame ids; empty: every
+    sensor recorded) minus ``reference_c``. NaN where a value is unknown (:func:`interpolate`).
+
+    Raises
+    ------
+    ValueError
+        A sensor in ``sensors`` never published, or ``reference_c`` not finite.
+    """
+    if not np.isfinite(reference_c):
+        raise ValueError(f'reference temperature must be finite (°C), got {reference_c}')
+    by_sensor: dict[str, list[tuple[int, float]]] = {}
+    for s in samples:
+        by_sensor.setdefault(s.frame_id, []).append((int(s.stamp_ns), float(s.celsius)))
+    missing = [f for f in sensors if f not in by_sensor]
+    if missing:
+        raise ValueError(f'temperature sensors {missing} published nothing; recorded: '
+                         f'{sorted(by_sensor)}')
+    stamps = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
+    out: dict[str, np.ndarray] = {}
+    for frame_id, readings in sorted(by_sensor.items()):
+        arr = np.array(readings, dtype=object)
+        out[covariate_name(frame_id)] = interpolate(
+            stamps, arr[:, 0].astype(np.int64), arr[:, 1].astype(float), max_gap_ns)
+    used = list(sensors) or sorted(by_sensor)
+    if used:
+        out[DELTA_TEMPERATURE] = (np.mean([out[covariate_name(f)] for f in used], axis=0)
+                                  - reference_c)
+    return out
+
+
+def with_covariates(data: Measurements, covariates: Mapping[str, np.ndarray],
+                    required: Sequence[str] = (DELTA_TEMPERATURE,)
+                    ) -> tuple[Measurements, list[tuple[int, str]]]:
+    """``data`` with ``covariates`` (N,) added, rows without a finite value of every
+    ``required`` covariate removed; also [(row index in ``data``, reason)] of those.
+
+    Raises
+    ------
+    ValueError
+        A covariate of another length than ``data``.
+    """
+    n = len(data)
+    merged = dict(data.covariates or {})
+    for name, values in covariates.items():
+        values = np.asarray(values, float).reshape(-1)
+        if values.shape != (n,):
+            raise ValueError(f'covariate {name!r} must hold {n} values, one per row, got '
+                             f'{values.shape}')
+        merged[name] = values
+    keep = np.ones(n, bool)
+    for name in required:
+        if name in merged:
+            keep &= np.isfinite(merged[name])
+    refused = [(int(i), 'no temperature at its stamp (outside the temperature recording or '
+                'in a gap longer than the tolerance)') for i in np.flatnonzero(~keep)]
+    full = dataclasses.replace(data, covariates=merged)
+    return (full if keep.all() else full.subset(keep)), refused
+
+
+def shift_temperature(stamps_ns: np.ndarray, start_c: float, rise_k: float,
+                      hours: float, start_ns: int | None = None) -> np.ndarray:
+    """A shift's warm-up, °C at ``stamps_ns``: from ``start_c`` rising by ``rise_k`` towards
+    a plateau, ``start_c + rise_k (1 − e^{−t/τ})`` with τ = ``hours``/3 (95 % of the rise
+    reached after ``hours``); ``t`` from ``start_ns`` (default the first stamp)."""
+    stamps = np.asarray(stamps_ns, dtype=np.int64)
+    t0 = int(stamps.min()) if start_ns is None else int(start_ns)
+    t_h = (stamps - t0).astype(float) / 3.6e12
+    return start_c + rise_k * (1.0 - np.exp(-3.0 * t_h / hours))

@@ -1,0 +1,307 @@
+"""The physical sections of a cell file: reflectors and tracked bodies, the tracker pose,
+joint-reading noise, working poses, obstacles and capsules, joint coupling; each parsed and
+checked in SI units with the key path in every error."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from kpi_calib_ros.core.acquisition.coupling import JointCoupling
+from kpi_calib_ros.core.collision.capsules import Capsule, HalfSpace
+from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.core.measurement.pose import rotation_from_quaternion, rotation_from_rpy
+from kpi_calib_ros.io.cell_values import joint_value, non_negative, number, vector
+
+# Plausibility of SI values: beyond these a value is almost surely in other units.
+MAX_TRACKER_RANGE_M = 50.0     # laser trackers measure to ~40-80 m; cells are far smaller
+MAX_REFLECTOR_OFFSET_M = 2.0   # reflector from the flange: a tool, not a second robot
+
+
+@dataclass(frozen=True)
+class WorkingPose:
+    """A working pose by joint name (``joints``) or in chain order (``values``, rad/m)."""
+
+    name: str
+    joints: dict[str, float]
+    values: tuple[float, ...] = ()
+
+
+def plausible_pose(pose: np.ndarray) -> np.ndarray:
+    """``tracker.base_in_tracker`` in SI units, or a ConfigError with a units hint (a pose
+    in millimetres or degrees would otherwise end in a design with no feasible pose)."""
+    distance = float(np.linalg.norm(pose[:3]))
+    if distance > MAX_TRACKER_RANGE_M:
+        raise ConfigError('tracker.base_in_tracker', f'the robot base is {distance:g} m from '
+                          f'the tracker, beyond any tracker range ({MAX_TRACKER_RANGE_M:g} m); '
+                          'give x, y, z in SI metres (millimetres? divide by 1000)')
+    if np.any(np.abs(pose[3:]) > 2 * np.pi):
+        raise ConfigError('tracker.base_in_tracker', f'roll, pitch, yaw {pose[3:].tolist()} '
+                          'exceed 2π; give them in radians (degrees? multiply by π/180)')
+    return pose
+
+
+def plausible_offset(offset: np.ndarray, key: str = 'reflector.offset') -> np.ndarray:
+    """A reflector offset (``key``) in SI metres, or a ConfigError with a units hint."""
+    length = float(np.linalg.norm(offset))
+    if length > MAX_REFLECTOR_OFFSET_M:
+        raise ConfigError(key, f'the reflector is {length:g} m from the tip '
+                          f'frame (at most {MAX_REFLECTOR_OFFSET_M:g} m is plausible); give '
+                          'it in SI metres (millimetres? divide by 1000; 30 mm is 0.03)')
+    return offset
+
+
+def parse_package_dirs(value: Any) -> tuple[str, ...]:
+    if value is None:
+        return ()
+    if not isinstance(value, list) or not all(isinstance(v, str) and v for v in value):
+        raise ConfigError('robot.package_dirs', 'must be a list of directories (relative to the '
+                          f'cell file) where package:// URIs are searched, got {value!r}')
+    return tuple(value)
+
+
+def parse_reflectors(doc: dict) -> tuple[tuple[str, ...], np.ndarray | None,
+                                     tuple[tuple[int, np.ndarray], ...]]:
+    """The ``reflectors:`` list: names, (R, 3) offsets (NaN row: offset omitted, to
+    be registered from the data) and the orientations of tracked bodies.
+    ``((), None, ())`` when the key is absent."""
+    items = doc.get('reflectors')
+    if items is None:
+        if 'orientation' in (doc.get('reflector') or {}):
+            raise ConfigError('reflector.orientation', 'a tracked 6-DoF body is a reflectors: '
+                              'entry: reflectors: [{name: probe, offset: [x, y, z], '
+                              'orientation: {rpy: [r, p, y]}}]')
+        return (), None, ()
+    if 'offset' in (doc.get('reflector') or {}):
+        raise ConfigError('reflector.offset', 'give the offsets in reflectors: only (the '
+                          'reflector: mapping then holds axis and max_incidence)')
+    if not isinstance(items, list) or not items:
+        raise ConfigError('reflectors', 'must be a list of {name, offset: [x, y, z]} (m, tip '
+                          'frame); the first is the KPI point')
+    names, offsets, orientations = [], [], []
+    for i, item in enumerate(items):
+        key = f'reflectors[{i}]'
+        if not isinstance(item, dict) or not isinstance(item.get('name'), str):
+            raise ConfigError(key, 'must be a mapping {name: str, offset: [x, y, z]}')
+        unknown = sorted(set(item) - {'name', 'offset', 'orientation'})
+        if unknown:
+            raise ConfigError(f'{key}.{unknown[0]}', 'unknown key; allowed: name, offset, '
+                              'orientation')
+        name = item['name']
+        if not name or not all(c.isalnum() or c == '_' for c in name) or name in names:
+            raise ConfigError(f'{key}.name', f'{name!r}: give a unique name of letters, digits '
+                              'and _ (it appears in parameter names reflector.<name>.x)')
+        names.append(name)
+        offset = item.get('offset')
+        offsets.append(np.full(3, np.nan) if offset is None
+                       else plausible_offset(vector(offset, f'{key}.offset', 3),
+                                              f'{key}.offset'))
+        if item.get('orientation') is not None:
+            orientations.append((i, _orientation(item['orientation'], f'{key}.orientation')))
+    return tuple(names), np.array(offsets), tuple(orientations)
+
+
+def _orientation(raw: Any, key: str) -> np.ndarray:
+    """A tracked body's orientation in the tip frame, ``{rpy: [roll, pitch, yaw]}`` (rad,
+    URDF convention) or ``{quaternion: [x, y, z, w]}``, as a (3, 3) rotation."""
+    if not isinstance(raw, dict) or len(raw) != 1 or next(iter(raw)) not in ('rpy',
+                                                                            'quaternion'):
+        raise ConfigError(key, 'must be {rpy: [roll, pitch, yaw]} (rad, URDF convention) or '
+                          f'{{quaternion: [x, y, z, w]}} of the tracked body in the tip frame, '
+                          f'got {raw!r}')
+    if 'rpy' in raw:
+        rpy = vector(raw['rpy'], f'{key}.rpy', 3)
+        if np.any(np.abs(rpy) > 2 * np.pi):
+            raise ConfigError(f'{key}.rpy', f'{rpy.tolist()}: angles beyond 2π; give radians '
+                              '(degrees? multiply by π/180)')
+        return rotation_from_rpy(rpy.tolist())
+    quaternion = vector(raw['quaternion'], f'{key}.quaternion', 4)
+    try:
+        return rotation_from_quaternion(quaternion.tolist())
+    except ValueError as exc:
+        raise ConfigError(f'{key}.quaternion', f'{exc}; give a unit quaternion in the '
+                          'order [x, y, z, w]') from None
+
+
+MAX_JOINT_SIGMA = 0.01  # rad (0.57°); m for a prismatic joint
+
+
+def parse_joint_sigma(value: Any) -> float | dict[str, float] | None:
+    """noise.joint_sigma: None, a number for every joint or {joint name: number}, each in
+    [0, MAX_JOINT_SIGMA]."""
+    if value is None:
+        return None
+    fix = ('the standard deviation of the joint readings in rad (m for a prismatic joint), '
+           'one number for every joint or {joint_name: value}; 0.03° is 5.2e-4')
+    if isinstance(value, dict):
+        out = {}
+        for name, v in value.items():
+            out[str(name)] = number(value, name, 'noise.joint_sigma', None, 'rad')
+            if not 0 <= out[str(name)] <= MAX_JOINT_SIGMA:
+                raise ConfigError(f'noise.joint_sigma.{name}', f'{v!r} must be in '
+                                  f'[0, {MAX_JOINT_SIGMA}]: {fix}')
+        return out
+    sigma = number({'joint_sigma': value}, 'joint_sigma', 'noise', None, 'rad')
+    if not 0 <= sigma <= MAX_JOINT_SIGMA:
+        raise ConfigError('noise.joint_sigma', f'{value!r} must be in [0, {MAX_JOINT_SIGMA}]: '
+                          f'{fix}')
+    return sigma
+
+
+def joint_sigma_vector(value: float | Mapping[str, float] | None,
+                       joint_names: Sequence[str]) -> np.ndarray | None:
+    """noise.joint_sigma in chain order (n,) rad, matched by joint name; None when unstated."""
+    if value is None:
+        return None
+    if not isinstance(value, Mapping):
+        return np.full(len(joint_names), float(value))
+    unknown = [n for n in value if n not in joint_names]
+    if unknown:
+        raise ConfigError('noise.joint_sigma', f'unknown joint(s) {unknown}; the chain joints '
+                          f'are {list(joint_names)}')
+    return np.array([float(value.get(n, 0.0)) for n in joint_names])
+
+
+def parse_working_poses(value: Any) -> tuple[WorkingPose, ...]:
+    """``working_poses``: none (left out or empty: identify reports no TCP, design refuses),
+    or a list of named or chain-ordered poses."""
+    if value is None or value == []:
+        return ()
+    if not isinstance(value, list):
+        raise ConfigError('working_poses', 'must be a list of working poses as '
+                          '{name: ..., joints: {joint_name: value_rad, ...}} or as lists of '
+                          'joint values in chain order (or left out: no TCP is reported)')
+    poses = []
+    for i, item in enumerate(value):
+        key = f'working_poses[{i}]'
+        if isinstance(item, list):  # joint values in chain order; length checked on the robot
+            poses.append(WorkingPose(f'work_{i + 1}', {}, tuple(
+                joint_value(v, f'{key}[{j}]') for j, v in enumerate(item))))
+            continue
+        if not isinstance(item, dict) or not isinstance(item.get('joints'), dict):
+            raise ConfigError(key, 'must be a mapping with a joints: {name: rad} mapping, or a '
+                              'list of joint values in chain order')
+        joints = {str(name): joint_value(v, f'{key}.joints.{name}')
+                  for name, v in item['joints'].items()}
+        poses.append(WorkingPose(str(item.get('name', f'work_{i + 1}')), joints))
+    return tuple(poses)
+
+
+def working_poses_from_arrays(names: Sequence[str], values: Sequence[float],
+                              names_key: str = 'working_joint_names',
+                              values_key: str = 'working_poses') -> tuple[WorkingPose, ...]:
+    """Working poses from a flat list of joint values, one block of ``len(names)`` per
+    pose (the node's parameters); errors name ``names_key`` / ``values_key``."""
+    names = [str(n) for n in names]
+    if not names or len(set(names)) != len(names):
+        raise ConfigError(names_key, f'give the unique joint names of {values_key}, '
+                          f'got {names}')
+    if not len(values) or len(values) % len(names):
+        raise ConfigError(values_key, f'must hold finite values (rad), {len(names)} per pose '
+                          f'(one per {names_key}), got {len(values)} values')
+    poses = []
+    for i in range(len(values) // len(names)):
+        row = values[i * len(names):(i + 1) * len(names)]
+        joints = {n: joint_value(v, f'{values_key}[{i * len(names) + j}]')
+                  for j, (n, v) in enumerate(zip(names, row))}
+        poses.append(WorkingPose(f'work_{i + 1}', joints))
+    return tuple(poses)
+
+
+def parse_capsule(item: Any, key: str, frame_key: str = 'frame') -> Capsule:
+    if not isinstance(item, dict):
+        raise ConfigError(key, 'must be a mapping {name, a, b, radius}')
+    radius = non_negative(number(item, 'radius', key, unit='m'), f'{key}.radius', 'm')
+    frame = str(item.get(frame_key, 'base'))
+    return Capsule(str(item.get('name', frame if frame_key == 'link' else key)), frame,
+                   vector(item.get('a'), f'{key}.a', 3), vector(item.get('b'), f'{key}.b', 3),
+                   radius)
+
+
+def parse_obstacle(item: Any, key: str) -> Capsule | HalfSpace:
+    if not isinstance(item, dict) or 'name' not in item:
+        raise ConfigError(key, 'must be a mapping with name and type (capsule or halfspace)')
+    kind = item.get('type', 'capsule')
+    if kind == 'halfspace':
+        normal = vector(item.get('normal'), f'{key}.normal', 3)
+        if np.linalg.norm(normal) < 1e-9:
+            raise ConfigError(f'{key}.normal', 'must be non-zero')
+        return HalfSpace(str(item['name']), normal, number(item, 'offset', key, 0.0, 'm'))
+    if kind == 'capsule':
+        cap = parse_capsule(item, key)
+        return Capsule(cap.name, 'base', cap.a, cap.b, cap.radius)
+    raise ConfigError(f'{key}.type', f"must be 'capsule' or 'halfspace', got {kind!r}")
+
+
+def parse_ignore_pair(item: Any, key: str) -> frozenset:
+    if not isinstance(item, (list, tuple)) or len(item) != 2:
+        raise ConfigError(key, 'must be a pair [name_a, name_b] of links/capsules/obstacles')
+    return frozenset(str(x) for x in item)
+
+
+def parse_coupling(raw: Any) -> dict[str, Any]:
+    """``robot.joint_coupling`` as a plain mapping; names are checked against the chain
+    when the model is built (:func:`build_cell_model`)."""
+    if raw is None:
+        return {}
+    if not isinstance(raw, dict):
+        raise ConfigError('robot.joint_coupling', 'must map URDF joints to {controller_joint: '
+                          'factor}, e.g. {joint_3: {joint_3: 1.0, joint_2: 1.0}}')
+    return {str(k): v for k, v in raw.items()}
+
+
+def parse_working_poses_in(value: Any) -> str:
+    if value not in ('controller', 'urdf'):
+        raise ConfigError('robot.working_poses_in', "must be 'controller' (values as the "
+                          f"controller reports them) or 'urdf', got {value!r}")
+    return str(value)
+
+
+# Below this the map is too close to singular to invert at joint-reading precision
+# (1e-6 rad readings would come back with errors > 1e-6 · cond).
+MAX_CONDITION = 1e6
+
+
+def coupling_from_mapping(raw: Mapping[str, Any] | None, joint_names: Sequence[str],
+                          key: str = 'robot.joint_coupling') -> JointCoupling:
+    """Validate ``{urdf_joint: {controller_joint: factor, ...}, ...}``.
+
+    A listed URDF joint is exactly the given combination (list itself with 1.0 to keep
+    its own reading); an unlisted one equals its controller value.
+
+    Raises
+    ------
+    ConfigError
+        Unknown joint names, non-numeric factors, or a map that cannot be inverted.
+    """
+    names = list(joint_names)
+    matrix = np.eye(len(names))
+    if not raw:
+        return JointCoupling(tuple(names), matrix)
+    if not isinstance(raw, Mapping):
+        raise ConfigError(key, 'must map URDF joints to {controller_joint: factor}, e.g. '
+                          '{joint_3: {joint_3: 1.0, joint_2: 1.0}}')
+    for urdf_joint, row in raw.items():
+        if urdf_joint not in names:
+            raise ConfigError(f'{key}.{urdf_joint}', f'not a chain joint; joints are {names}')
+        if not isinstance(row, Mapping) or not row:
+            raise ConfigError(f'{key}.{urdf_joint}', 'must map controller joints to factors, '
+                              f'e.g. {{{urdf_joint}: 1.0, joint_2: 1.0}}')
+        i = names.index(urdf_joint)
+        matrix[i] = 0.0
+        for source, factor in row.items():
+            if source not in names:
+                raise ConfigError(f'{key}.{urdf_joint}.{source}',
+                                  f'not a chain joint; joints are {names}')
+            if isinstance(factor, bool) or not isinstance(factor, (int, float)) \
+                    or not np.isfinite(factor):
+                raise ConfigError(f'{key}.{urdf_joint}.{source}',
+                                  f'must be a finite number, got {factor!r}')
+            matrix[i, names.index(source)] = float(factor)
+    cond = np.linalg.cond(matrix)
+    if not np.isfinite(cond) or cond > MAX_CONDITION:
+        raise ConfigError(key, f'the map is not invertible (condition {cond:.3g}): each URDF '
+                          'joint must be recoverable from the controller joints and back; '
+                          'a listed joint usually keeps itself with factor 1.0')
+    return JointCoupling(tuple(names), matrix)

@@ -1,0 +1,64 @@
+"""The one-line answers of the node's services, from plain results (no rclpy)."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from kpi_calib_ros.core.estimation.precision import precision_statement
+
+
+def design_answer(design: Any, not_estimable: str, topic: str, path: Path) -> str:
+    """~/design: the poses, their criterion and predicted TCP precision, where they went."""
+    tcp_um = np.sqrt((design.tcp_std ** 2).sum(axis=1)).max() * 1e6
+    return (f'{len(design.configurations)} poses ({design.criterion}), predicted TCP '
+            f'sqrt(trace) <= {tcp_um:.1f} µm; {design.status}; '
+            + (f'{not_estimable}; ' if not_estimable else '') + 'published on '
+            f'{topic}, written to {path}')
+
+
+def identify_answer(measurements: int, cal: Any, prior: str, notes: Sequence[str],
+                    data_dir: Path) -> str:
+    """~/identify: the fit, its TCP precision (and expected error with the misfit of a
+    model χ² rejects, core.precision.expected_tcp_error), exclusions and prior."""
+    result = cal.result
+    tcp_um = np.sqrt(np.trace(result.tcp_covariance, axis1=1, axis2=2)).max() * 1e6
+    expected = ('' if cal.expected is None else
+                f', expected TCP error <= '
+                f'{np.max(cal.expected.expected_tcp_error_m) * 1e6:.1f} µm with the misfit')
+    precision = precision_statement(result.covariance_scale, result.joint_sigma)
+    return (
+        f'identified from {measurements} measurements: {result.message}; rms '
+        f'{result.rms_m * 1e6:.1f} µm, p = {result.p_value:.3g}, TCP sqrt(trace) <= '
+        f'{tcp_um:.1f} µm ({precision}){expected}; {len(cal.robust.excluded)} excluded; '
+        + (f'prior {prior}; ' if prior else '') + ''.join(f'{n}; ' for n in notes)
+        + f'written to {data_dir}')
+
+
+def validate_answer(doc: dict[str, Any]) -> str:
+    """~/validate: the verdict on the new measurements (the validation document)."""
+    return (f"{doc['verdict']} on {doc['measurements']} new measurements: "
+            f"rms {doc['rms_m'] * 1e6:.1f} µm"
+            + (' after re-registering ' + '/'.join(doc['registration']['parameters'])
+               if doc.get('registration') else '')
+            + f", chi2/dof {doc['chi2']:.1f}/"
+            f"{doc['dof']}, p = {doc['p_value']:.3g}; "
+            f"{doc['outside_training_range']} outside the training ranges"
+            + (f"; {doc['repeated_from_training']} at training poses "
+               f"measured again, rms "
+               f"{doc['rms_repeated_from_training_m'] * 1e6:.1f} µm"
+               if doc['repeated_from_training'] else ''))
+
+
+def campaign_progress(status: Any, planned: int) -> str:
+    """A sequential campaign's measurements, largest TCP std against its target, and
+    whether it stopped or how many poses are planned."""
+    return (f'{status.measurements} measurements, largest TCP std '
+            f'{status.statistic * 1e6:.2f} µm (target '
+            f'{status.target_std * 1e6:.2f} µm), '
+            + (f'stopped: {status.stop_reason}' if status.stopped
+               else f'{planned} poses planned'))
+
+
+__all__ = ['campaign_progress', 'design_answer', 'identify_answer', 'validate_answer']

@@ -1,0 +1,183 @@
+"""The node's sequential campaign (``campaign:=sequential``) as jobs.
+
+``~/design`` starts the campaign and publishes its initial design; each accepted
+measurement then makes a step due (:meth:`RunState.sequential_due
+<kpi_calib_ros.ros.run_state.RunState.sequential_due>`), which adds what the campaign
+has not seen, re-identifies and publishes the next poses and ``~/campaign_status``;
+a campaign data_dir/campaign_state.yaml keeps is resumed after a restart. The
+computation is in :mod:`kpi_calib_ros.ros.jobs` (worker threads); these coroutines
+run on the executor and update the node's :class:`~kpi_calib_ros.ros.run_state.RunState`.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from rclpy.publisher import Publisher
+from std_msgs.msg import String
+
+from kpi_calib_ros.core.errors import DataError, KpiCalibError
+from kpi_calib_ros.core.measurement.tracker import Measurements
+from kpi_calib_ros.io.campaign_io import CampaignState, read_campaign_state
+from kpi_calib_ros.io.cell import CellModel
+from kpi_calib_ros.io.names import CAMPAIGN_STATE_FILE, MEASUREMENT_POSES_TOPIC
+from kpi_calib_ros.ros import conversions as cv
+from kpi_calib_ros.ros import jobs
+from kpi_calib_ros.ros.answers import campaign_progress
+from kpi_calib_ros.ros.campaign import Campaign, model_measurements
+from kpi_calib_ros.ros.job_node import JobNode
+from kpi_calib_ros.ros.parameters import NodeSettings
+from kpi_calib_ros.ros.run_state import RunState
+
+
+class SequentialCampaignJobs(JobNode):
+    """The sequential campaign's jobs of :class:`~kpi_calib_ros.ros.node.CalibrationNode`,
+    which provides the state, publishers and methods declared here."""
+
+    campaign: Campaign
+    settings: NodeSettings
+    data_dir: Path
+    _run: RunState
+    _pub_poses: Publisher
+    _pub_campaign_status: Publisher
+    _design_points: np.ndarray | None
+
+    def _model(self) -> CellModel:
+        raise NotImplementedError
+
+    def _publish_markers(self) -> None:
+        raise NotImplementedError
+
+    def _publish_diagnostics(self, force: bool = False) -> None:
+        raise NotImplementedError
+
+    def _publish_calibration(self, cal: Any, measured: np.ndarray, marker_rows: np.ndarray,
+                             identified_with: int, text: str, urdf: str, tcp: list,
+                             stamps: np.ndarray | None) -> None:
+        raise NotImplementedError
+
+    def _find_campaign_state(self) -> None:
+        """At start: a sequential campaign data_dir/campaign_state.yaml keeps is resumed
+        (_resume) once the robot model is known, before anything is identified."""
+        state_path = self.data_dir / CAMPAIGN_STATE_FILE
+        if state_path.is_file():
+            try:
+                self._run.sequential_state = read_campaign_state(state_path)
+            except DataError as exc:
+                self._run.result_error = f'sequential campaign not resumed: {exc}'
+                self.get_logger().error(self._run.result_error)
+            else:
+                self._run.resume_pending = True
+                self.get_logger().info(
+                    f'sequential campaign found in {state_path} '
+                    f'({len(self._run.sequential_state.steps)} step(s), '
+                    f"{self._run.sequential_state.status.get('stop_reason', 'running')}): "
+                    'resuming it once the robot model is known')
+
+    async def _design_sequential(self, cm: CellModel) -> tuple[bool, str]:
+        """Start a sequential campaign: publish its initial design on ~/measurement_poses.
+        Measurements accepted before it are part of the campaign (the first step adds
+        them all)."""
+        settings, seed = jobs.campaign_settings(self.settings), self.settings.design_seed
+        campaign, initial, points, path = await self._offload(
+            jobs.sequential_start_work, cm, settings, seed, self.data_dir)
+        self._run.sequential, self._run.sequential_status = campaign, None
+        self._run.sequential_state = CampaignState(settings, seed)
+        self._run.sequential_stamps, self._run.sequential_initial = set(), len(initial)
+        self._run.resume_pending, self._run.resumed = False, False
+        self._pub_poses.publish(cv.joint_trajectory_msg(cm.joint_names, initial))
+        self._design_points = points
+        self._publish_markers()
+        self._pub_campaign_status.publish(String(data=yaml.safe_dump({
+            'measurements': len(self.campaign), 'initial_design': len(initial),
+            'target_tcp_std_m': settings.target_std,
+            'stop_reason': 'running'}, sort_keys=False)))
+        return True, (f'sequential campaign: initial design of {len(initial)} poses '
+                      f'published on {self.resolve_topic_name(MEASUREMENT_POSES_TOPIC)}, '
+                      f'written to {path}; target TCP std {settings.target_std:g} m, '
+                      f'at most {settings.max_measurements} measurements')
+
+    async def _resume(self) -> tuple[bool, str]:
+        """Rebuild the campaign data_dir/campaign_state.yaml keeps, from the restored
+        measurements (the same steps, so the same status and plan), and publish its
+        plan and status again, saying it was resumed."""
+        cm, state = self._model(), self._run.sequential_state
+        assert state is not None
+        self._run.resume_pending = False
+        data = model_measurements(self.campaign, cm)[0] if len(self.campaign) else Measurements(
+            q=np.zeros((0, len(cm.joint_names))), eta=np.zeros((0, 3)),
+            stamps_ns=np.zeros(0, np.int64))
+        try:
+            campaign, initial, out = await self._offload(jobs.sequential_resume_work, cm,
+                                                         state, data, self.data_dir)
+        except KpiCalibError as exc:
+            self._run.result_error = f'sequential campaign not resumed: {exc}'
+            self._publish_diagnostics(force=True)
+            raise
+        self._run.sequential, self._run.sequential_initial = campaign, len(initial)
+        self._run.sequential_stamps = {t for step in state.steps for t in step}
+        self._run.resumed = True
+        if out is None:  # no step yet: the initial design is still the plan
+            self._pub_poses.publish(cv.joint_trajectory_msg(cm.joint_names, initial))
+            self._pub_campaign_status.publish(String(data=yaml.safe_dump({
+                'measurements': len(self.campaign), 'initial_design': len(initial),
+                'target_tcp_std_m': state.settings.target_std, 'stop_reason': 'running',
+                'resumed': True}, sort_keys=False)))
+            message = f'initial design of {len(initial)} poses published again'
+        else:
+            self._run.sequential_state, self._run.sequential_status = out.state, out.status
+            if len(out.plan):
+                self._pub_poses.publish(cv.joint_trajectory_msg(cm.joint_names, out.plan))
+            self._pub_campaign_status.publish(String(data=out.text))
+            message = campaign_progress(out.status, len(out.plan))
+        self._publish_diagnostics(force=True)
+        return True, f'sequential campaign resumed from {self.data_dir}: {message}'
+
+    async def _sequential_step(self) -> tuple[bool, str]:
+        """Add the accepted measurements the campaign has not seen, re-identify and
+        publish the updated plan (next pose first) and ~/campaign_status; once the
+        campaign stopped (target met or cap), publish its calibration."""
+        cm, campaign, state = self._model(), self._run.sequential, self._run.sequential_state
+        if campaign is None or state is None:
+            raise DataError('no sequential campaign: call ~/design with campaign:=sequential')
+        data, pairing = model_measurements(self.campaign, cm)
+        stamps = np.asarray(data.stamps_ns, dtype=np.int64)
+        new = np.array([int(t) not in self._run.sequential_stamps for t in stamps], dtype=bool)
+        fresh = data.subset(new)
+        out = await self._offload(jobs.sequential_step_work, campaign, cm, fresh, state,
+                                  self.data_dir, pairing,
+                                  {'resumed': True} if self._run.resumed else None)
+        status, plan = out.status, out.plan
+        self._run.sequential_stamps.update(int(t) for t in stamps[new])
+        self._run.sequential_status, self._run.sequential_state = status, out.state
+        for e in status.excluded:
+            self.get_logger().warning(f"measurement {e['measurement']} (stamp "
+                                      f"{e['stamp_ns']} ns) excluded: "
+                                      f"{e['distance_m'] * 1e6:.1f} µm from the fit; "
+                                      f"{e['reason']}")
+        if len(plan):
+            self._pub_poses.publish(cv.joint_trajectory_msg(cm.joint_names, plan))
+        self._pub_campaign_status.publish(String(data=out.text))
+        if out.calibration is not None and out.result is not None:
+            text, urdf, tcp = out.calibration
+            self._publish_campaign_calibration(out.result, text, urdf, tcp, stamps)
+        self._publish_diagnostics(force=True)
+        if status.stopped:
+            self.get_logger().info(f'sequential campaign stopped after {status.measurements} '
+                                   f'measurements: {status.stop_reason}')
+        return True, (campaign_progress(status, len(plan)) + f', {status.step_seconds:.2f} s'
+                      + (f', {len(status.excluded)} excluded' if status.excluded else ''))
+
+    def _publish_campaign_calibration(self, cal: Any, text: str, urdf: str, tcp: list,
+                                      stamps: np.ndarray) -> None:
+        """Publish a stopped campaign's calibration as ~/identify publishes one."""
+        campaign = self._run.sequential
+        assert campaign is not None
+        kept = np.asarray(cal.robust.kept, dtype=bool)
+        self._publish_calibration(cal, campaign.eta[kept], np.ones(int(kept.sum()), bool),
+                                  len(campaign.q), text, urdf, tcp, stamps)
+
+
+__all__ = ['SequentialCampaignJobs']

@@ -1,0 +1,118 @@
+"""The node's health as /diagnostics reports it: a pure function of plain data.
+
+No rclpy here: :func:`node_status` takes the run state, the campaign's counts and what
+the subscriptions lost, and returns (level, message, key values); the node converts
+that into a ``diagnostic_msgs/DiagnosticArray``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Mapping
+
+from kpi_calib_ros.core.campaigns.sequential import MODEL_INADEQUATE
+from kpi_calib_ros.core.estimation.residuals import is_adequate
+from kpi_calib_ros.ros.run_state import RunState
+
+
+@dataclass(frozen=True)
+class StreamHealth:
+    """Messages lost before the node read them (joint states; points, tracked poses and
+    their σ together) and the largest publication-to-callback lag of joint states (ns)."""
+
+    lost_joint_states: int = 0
+    lost_points: int = 0
+    max_lag_ns_joint_states: int = 0
+
+
+def node_status(run: RunState, counts: Mapping[str, int], streams: StreamHealth, *,
+                job: str = '', model_ready: bool = True, model_error: str = '',
+                identifications: int = 0, log_file: str = ''
+                ) -> tuple[str, str, dict[str, Any]]:
+    """(level, message, key values) of the node.
+
+    Parameters
+    ----------
+    run : RunState
+        The current run's results and sequential campaign.
+    counts : mapping
+        :meth:`kpi_calib_ros.ros.campaign.Campaign.counts` (``accepted``, ``rejected``,
+        ``rejected.<reason>``, ...).
+    streams : StreamHealth
+    job : str
+        The running job ('' when idle).
+    model_ready : bool
+        The robot model is known.
+    model_error : str
+        Why the robot description was rejected ('' if it was not).
+    identifications : int
+        Calibrations published since the node started.
+    log_file : str
+        The measurement log being written.
+
+    Returns
+    -------
+    level : str
+        'OK', 'WARN' or 'ERROR'.
+    message : str
+        The first reason for the level.
+    values : dict
+        Key values in a stable order.
+    """
+    values: dict[str, Any] = {'state': job or (
+        'waiting for robot description' if not model_ready else 'idle')}
+    values.update(counts)
+    values.update({'identified_with': run.identified_with,
+                   'identifications': identifications,
+                   'lost.joint_states': streams.lost_joint_states,
+                   'lost.points': streams.lost_points,
+                   'max_lag_ms.joint_states': round(streams.max_lag_ns_joint_states * 1e-6, 1),
+                   'log_file': log_file})
+    lost = values['lost.joint_states'] + values['lost.points']
+    result, n, rejected = run.result, values['accepted'], values['rejected']
+    if result is not None:
+        values.update({'rms_um': round(result.rms_m * 1e6, 3),
+                       'p_value': float(result.p_value), 'converged': result.converged})
+    if run.robust is not None:
+        values.update({'sigma_robust_um': round(run.robust.sigma_robust * 1e6, 3),
+                       'excluded_measurements': len(run.robust.excluded)})
+    if run.diagnosis is not None:
+        best = next((c['spec'] for c in run.diagnosis['candidates'] if c['significant']),
+                    'none')
+        values.update({'model_adequate': run.diagnosis['model_adequate'],
+                       'suggested_effect': best})
+    seq, state = run.sequential_status, run.sequential_state
+    if state is not None:
+        # The campaign's own target (the one its status and stop rule use).
+        values.update({'campaign': 'sequential',
+                       'campaign.measurements': seq.measurements if seq else 0,
+                       'campaign.tcp_std_um': round(seq.statistic * 1e6, 3) if seq
+                       else float('inf'),
+                       'campaign.target_um': round(state.settings.target_std * 1e6, 3),
+                       'campaign.max_measurements': state.settings.max_measurements,
+                       'campaign.excluded': len(seq.excluded) if seq else 0,
+                       'campaign.resumed': run.resumed or run.resume_pending,
+                       'campaign.stop_reason': (
+                           'resuming' if run.resume_pending else
+                           (seq.stop_reason if seq else '') or 'running')})
+    error = model_error or run.result_error
+    if error or values['rejected.not_stored']:
+        return 'ERROR', error or 'accepted measurements could not be stored', values
+    if seq is not None and seq.stop_reason == MODEL_INADEQUATE:
+        return 'WARN', f'sequential campaign stopped: {MODEL_INADEQUATE}', values
+    if run.robust is not None and run.robust.warnings:
+        return 'WARN', run.robust.warnings[0], values
+    if result is not None and not is_adequate(result.p_value):
+        return 'WARN', f'model inadequate (p = {result.p_value:.2g})', values
+    if lost:
+        return 'WARN', (f"{values['lost.joint_states']} joint states and "
+                        f"{values['lost.points']} points lost before the node read them "
+                        '(queue overflow: the node fell behind)'), values
+    if rejected:
+        return 'WARN', f'{n} accepted, {rejected} rejected', values
+    if not model_ready:
+        return 'OK', 'waiting for robot description', values
+    return 'OK', f'{n} accepted' + ('' if result is None else
+                                    f', rms {result.rms_m * 1e6:.1f} µm'), values
+
+
+__all__ = ['StreamHealth', 'node_status']

@@ -1,0 +1,120 @@
+"""Corrected TCP predictions for queried joint positions.
+
+``~/tcp_query`` (sensor_msgs/JointState: the chain's joints matched by name, controller
+values as the robot reports them) is answered on ``~/tcp_corrected``
+(geometry_msgs/PoseWithCovarianceStamped in the tracker frame, the query's stamp echoed):
+the TCP (KPI point) the calibration predicts at those joints, with the learned residual
+of learned_residual.yaml in the node's ``data_dir`` when one is there
+(:mod:`kpi_calib_ros.app.learned_residual`), else the node's last calibration alone; the
+position block of the covariance holds both parts of the uncertainty (the orientation
+is not predicted: :data:`kpi_calib_ros.ros.conversions.UNKNOWN_ORIENTATION_VARIANCE`).
+A query outside the region the learned residual was fitted on is answered (the
+correction returns to the physical model there and the covariance grows) and logged.
+
+No custom service type: a topic pair keeps the package buildable as pure Python.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+
+from kpi_calib_ros.app.learned_residual import predict_stored, predict_tcp
+from kpi_calib_ros.core.errors import KpiCalibError
+from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
+from kpi_calib_ros.io.cell import CellModel
+from kpi_calib_ros.io.learned_residual_file import StoredResidual, read_residual
+from kpi_calib_ros.io.names import TCP_CORRECTED_TOPIC, TCP_QUERY_TOPIC
+from kpi_calib_ros.io.ros_messages import stamp_ns
+from kpi_calib_ros.ros.conversions import tcp_pose_msgs
+
+QUERY_DEPTH = 10
+LOG_THROTTLE_S = 5.0
+
+
+class TcpQuery:
+    """``~/tcp_query`` → ``~/tcp_corrected`` on ``node`` (executor thread only).
+
+    Parameters
+    ----------
+    node : Node
+    model, result : callables
+        The node's current robot model and calibration (None until there is one).
+    path : Path
+        learned_residual.yaml; read again whenever its modification time changes.
+    """
+
+    def __init__(self, node: Node, model: Callable[[], CellModel | None],
+                 result: Callable[[], CalibrationResult | None], path: Path) -> None:
+        self._node, self._model, self._result, self._path = node, model, result, Path(path)
+        self._stored: StoredResidual | None = None
+        self._stamp: int | None = None
+        self.publisher = node.create_publisher(PoseWithCovarianceStamped, TCP_CORRECTED_TOPIC,
+                                               QUERY_DEPTH)
+        node.create_subscription(JointState, TCP_QUERY_TOPIC, self.answer, QUERY_DEPTH)
+
+    def _warn(self, text: str) -> None:
+        self._node.get_logger().warning(text, throttle_duration_sec=LOG_THROTTLE_S)
+
+    def stored(self) -> StoredResidual | None:
+        """learned_residual.yaml as last read (None: no file); a changed file is read again,
+        a damaged one is logged and not used."""
+        try:
+            stamp = self._path.stat().st_mtime_ns
+        except FileNotFoundError:
+            self._stored, self._stamp = None, None
+            return None
+        if stamp != self._stamp:
+            self._stamp = stamp
+            try:
+                self._stored = read_residual(self._path)
+            except KpiCalibError as exc:
+                self._stored = None
+                self._node.get_logger().error(f'learned residual not used: {exc}')
+        return self._stored
+
+    def answer(self, msg: JointState) -> None:
+        """Publish the corrected TCP for the query ``msg`` (logged and dropped when the
+        robot model, the calibration or a chain joint is missing)."""
+        cm = self._model()
+        if cm is None:
+            self._warn('TCP query dropped: no robot model yet')
+            return
+        positions = dict(zip(msg.name, msg.position))
+        missing = [n for n in cm.joint_names if n not in positions]
+        if missing:
+            self._warn(f'TCP query dropped: joints {missing} missing (the chain needs '
+                       f'{list(cm.joint_names)})')
+            return
+        q = cm.joint_coupling.to_urdf(np.array([[positions[n] for n in cm.joint_names]],
+                                               dtype=float))
+        if not np.all(np.isfinite(q)):
+            self._warn('TCP query dropped: joint positions not finite')
+            return
+        stored = self.stored()
+        result = self._result()
+        try:
+            if stored is not None:
+                tcp = predict_stored(cm.model, stored, q)
+            elif result is not None:
+                tcp = predict_tcp(cm.model, result.values, result.estimated,
+                                  result.covariance, None, q)
+            else:
+                self._warn('TCP query dropped: no calibration yet (call ~/identify)')
+                return
+        except KpiCalibError as exc:
+            self._warn(f'TCP query dropped: {exc}')
+            return
+        if tcp.correction is not None and not tcp.correction.inside[0]:
+            self._warn(f'TCP query outside the region the learned residual was fitted on '
+                       f'(distance {tcp.correction.distance[0]:.2g} length scales): the '
+                       'correction returns to the physical model, the covariance grows')
+        self.publisher.publish(tcp_pose_msgs(tcp.position, tcp.covariance,
+                                             cm.cell.tracker_frame, stamp_ns(msg.header))[0])
+
+
+__all__ = ['TcpQuery']

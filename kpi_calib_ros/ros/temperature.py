@@ -1,0 +1,38 @@
+"""The node's temperature input: the cell's ``sensor_msgs/Temperature`` topic, logged with
+the measurements and paired to them by time when a job takes the campaign's data.
+
+Readings go to the :class:`~kpi_calib_ros.ros.campaign.Campaign` (durably logged before
+they are kept); a job pairs them with the accepted measurements as a bag's are paired
+(:func:`kpi_calib_ros.ros.campaign.with_temperature_readings`): interpolated at each
+point's stamp, a point outside the readings refused with a warning.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+from rclpy.node import Node
+from rclpy.qos import QoSProfile
+from sensor_msgs.msg import Temperature
+
+from kpi_calib_ros.io.ros_messages import temperature_sample_from_message
+from kpi_calib_ros.ros.campaign import Campaign
+
+TEMPERATURE_DEPTH = 100  # readings come at ~1 Hz: a buffer of minutes
+
+
+def subscribe_temperature(node: Node, campaign: Campaign, callback_group: Any = None) -> Any:
+    """Subscribe ``node`` to the campaign's temperature topic (None when it has none); each
+    reading is logged and kept, a reading that cannot be stored is logged as an error."""
+    topic = campaign.temperature_topic
+    if topic is None:
+        return None
+
+    def on_temperature(message: Temperature) -> None:
+        try:
+            campaign.receive_temperature(temperature_sample_from_message(message))
+        except (OSError, ValueError) as exc:
+            node.get_logger().error(f'temperature reading not stored: {exc}')
+
+    return node.create_subscription(Temperature, topic, on_temperature,
+                                     QoSProfile(depth=TEMPERATURE_DEPTH),
+                                     callback_group=callback_group)

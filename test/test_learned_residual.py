@@ -1,0 +1,217 @@
+"""The learned residual (core.learned_residual, app.learned_residual, io.learned_residual_file):
+a smooth map of two joints that no physical effect describes is learned down to the noise
+floor at fresh poses, clean data add nothing, the 95 % intervals hold inside and outside
+the fitted region, the prediction returns to the physical model far from data, and the
+stored model is rebuilt exactly. The full study: bench/learned_residual.py."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.stats
+import yaml
+
+from kpi_calib_ros.app.learned_residual import (
+    physical_covariance,
+    physical_misfit,
+    predict_stored,
+    predict_tcp,
+)
+from kpi_calib_ros.cli import main
+from kpi_calib_ros.core.diagnosis.learned_residual import fit_learned_residual
+from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.core.estimation.least_squares import identify
+from kpi_calib_ros.core.estimation.precision import honest_precision
+from kpi_calib_ros.core.measurement.tracker import Measurements
+from kpi_calib_ros.core.simulation import (
+    random_configurations,
+    simulate_measurements,
+    smooth_joint_map,
+    true_parameters,
+)
+from kpi_calib_ros.io.cell import DEFAULT_CELL
+from kpi_calib_ros.io.learned_residual_file import read_residual, residual_document, write_residual
+
+AMPLITUDE_M = 1e-4   # 5 σ of the built-in cell's tracker
+JOINTS = (1, 2)      # the map depends on joint_2 and joint_3
+N_TRAIN = 200
+
+
+def run(cm, seed: int, amplitude: float = AMPLITUDE_M, n_fresh: int = 200):
+    """Train on poses with joint_2 in the lower half of its range; fresh poses in that
+    half (inside) and in the upper half (outside)."""
+    rng = np.random.default_rng(seed)
+    p = true_parameters(cm.model.params, rng)
+    phase = rng.uniform(0, 2 * np.pi, 6)
+    pool = random_configurations(cm.model, p, 6 * N_TRAIN, rng)
+    mid = 0.5 * (cm.model.robot.lower[1] + cm.model.robot.upper[1])
+    low, high = pool[pool[:, 1] < mid], pool[pool[:, 1] >= mid]
+    q, fresh_in, fresh_out = low[:N_TRAIN], low[N_TRAIN:N_TRAIN + n_fresh], high[:n_fresh]
+    clean = simulate_measurements(cm.model, p, q, cm.cell.sigma, rng)
+    data = Measurements(q=q, eta=clean.eta + smooth_joint_map(q, JOINTS, amplitude, phase))
+    result = honest_precision(identify(cm.model, data, cm.cell.sigma, cm.q_work))
+    choice = fit_learned_residual(q, result.residuals, cm.cell.sigma, tuple(cm.joint_names),
+                                  seed=seed)
+
+    def truth(qq):
+        return cm.model.predict(p, qq) + smooth_joint_map(qq, JOINTS, amplitude, phase)
+    return result, choice, data, truth, fresh_in, fresh_out, rng
+
+
+@pytest.fixture(scope='module')
+def smooth(cm):
+    return run(cm, 0)
+
+
+def prediction(cm, result, choice, data, q):
+    cov = physical_covariance(result, choice.model, cm.cell.sigma)
+    return predict_tcp(cm.model, result.values, result.estimated, cov, choice.model, q,
+                       result.covariance, physical_misfit(cm.model, data, result))
+
+
+def rms(e):
+    return float(np.sqrt(np.mean(np.sum(e ** 2, axis=1))))
+
+
+def test_smooth_map_is_learned_to_the_noise_floor(cm, smooth):
+    """Chosen by the cross-validated test; at 200 fresh poses inside the fitted region the
+    measurement error falls to ≤ 1.5× the noise floor, from > 2× with the physical model."""
+    result, choice, data, truth, fresh, _, rng = smooth
+    assert choice.chosen, choice.reason
+    assert choice.cv_rms_learned_m < 0.7 * choice.cv_rms_physical_m
+    measured = truth(fresh) + rng.normal(size=(len(fresh), 3)) * cm.cell.sigma
+    floor = float(np.sqrt(np.sum(cm.cell.sigma ** 2)))
+    tcp = prediction(cm, result, choice, data, fresh)
+    physical = tcp.position - tcp.correction.mean
+    assert rms(measured - tcp.position) <= 1.5 * floor, rms(measured - tcp.position) / floor
+    assert rms(measured - physical) > 2.0 * floor
+    # The length scales say which joints the misfit depends on: joint_2 and joint_3 are
+    # among the three shortest.
+    assert {'joint_2', 'joint_3'} <= set(list(choice.model.relevant_joints())[:3])
+
+
+@pytest.mark.parametrize('where', ['inside', 'outside'])
+def test_95_percent_intervals_cover_the_true_tcp_error(cm, smooth, where):
+    """The true TCP error lies within the 95 % ellipsoid (χ²₃) at 90-98 % of 200 fresh
+    poses, inside the fitted region and outside it (joint_2 beyond the training half)."""
+    result, choice, data, truth, fresh_in, fresh_out, _ = smooth
+    fresh = fresh_in if where == 'inside' else fresh_out
+    tcp = prediction(cm, result, choice, data, fresh)
+    e = truth(fresh) - tcp.position
+    m2 = np.einsum('mi,mij,mj->m', e, np.linalg.inv(tcp.covariance), e)
+    coverage = float(np.mean(m2 <= scipy.stats.chi2.ppf(0.95, 3)))
+    assert 0.9 <= coverage <= 0.98, coverage
+    inside = float(np.mean(tcp.correction.inside))
+    assert inside > 0.95 if where == 'inside' else inside < 0.5
+
+
+def test_far_from_data_the_prediction_returns_to_the_physical_model(smooth):
+    """Far along joint_2 the correction goes to 0, its variance to the prior variance c,
+    and the query is reported outside the fitted region."""
+    _, choice, _, _, fresh, _, _ = smooth
+    model = choice.model
+    far = fresh[:5].copy()
+    far[:, 1] += 50 * model.length_scales[1]
+    pred = model.predict(far)
+    assert np.max(np.abs(pred.mean)) < 1e-6 * np.sqrt(model.amplitude_m2)
+    np.testing.assert_allclose(pred.covariance[:, 0, 0], model.amplitude_m2, rtol=1e-9)
+    assert not pred.inside.any() and np.all(pred.distance > 40)
+    near = model.predict(model.q[:5])
+    assert near.inside.all() and np.all(near.distance == 0)
+    assert np.all(near.covariance[:, 0, 0] < 0.2 * model.amplitude_m2)
+
+
+def test_clean_data_add_nothing(cm):
+    """No misfit: the learned residual is not chosen (2 seeds; 100 in the bench)."""
+    for seed in range(2):
+        _, choice, *_ = run(cm, 100 + seed, amplitude=0.0)
+        assert not choice.chosen, choice.reason
+        assert 'not chosen' in choice.reason
+
+
+def test_stored_model_is_rebuilt_exactly(cm, smooth, tmp_path):
+    """learned_residual.yaml round trip: the same TCP and covariance to 1e-12, no pickle."""
+    result, choice, data, _, fresh, fresh_out, _ = smooth
+    cov = physical_covariance(result, choice.model, cm.cell.sigma)
+    misfit = physical_misfit(cm.model, data, result)
+    path = write_residual(tmp_path, residual_document(choice, result, cov, misfit))
+    stored = read_residual(path)
+    q = np.vstack([fresh[:20], fresh_out[:20]])
+    before = predict_tcp(cm.model, result.values, result.estimated, cov, choice.model, q,
+                         result.covariance, misfit)
+    after = predict_stored(cm.model, stored, q)
+    np.testing.assert_allclose(after.position, before.position, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(after.covariance, before.covariance, rtol=1e-12, atol=0)
+    np.testing.assert_array_equal(after.correction.inside, before.correction.inside)
+
+
+def test_a_damaged_file_names_the_field(cm, smooth, tmp_path):
+    result, choice, data, *_ = smooth
+    doc = residual_document(choice, result, result.covariance, 0.0)
+    doc['kernel']['length_scales'][2] = -1.0
+    path = tmp_path / 'learned_residual.yaml'
+    path.write_text(yaml.safe_dump(doc))
+    with pytest.raises(ConfigError, match='kernel.length_scales'):
+        read_residual(path)
+    doc = residual_document(choice, result, result.covariance, 0.0)
+    doc['training']['residual_m'][3] = [0.0, float('nan'), 0.0]
+    path.write_text(yaml.safe_dump(doc))
+    with pytest.raises(ConfigError, match=r'training.residual_m\[3\]\[1\]'):
+        read_residual(path)
+
+
+def _cell(tmp_path, hidden: dict | None):
+    doc = yaml.safe_load(DEFAULT_CELL.read_text())
+    doc['robot']['urdf'] = str((DEFAULT_CELL.parent / doc['robot']['urdf']).resolve())
+    if hidden:
+        doc['simulation'] = {'hidden_effects': hidden}
+    cell = tmp_path / ('misfit.yaml' if hidden else 'clean.yaml')
+    cell.write_text(yaml.safe_dump(doc))
+    return cell
+
+
+@pytest.mark.slow
+def test_identify_writes_the_chosen_learned_residual_and_removes_a_stale_one(tmp_path, capsys):
+    """``identify --learned-residual`` on a robot with a second-harmonic error of joint_2 the
+    geometric model lacks: learned_residual.yaml beside calibration.yaml, the working pose's
+    TCP with it in calibration.yaml; then a clean robot identified into the same folder: not
+    chosen, and the older file is gone."""
+    misfit = _cell(tmp_path, {'cyclic_joint_error_h2:joint_2': {'a': 4e-4, 'b': 2e-4}})
+    clean = _cell(tmp_path, None)
+    out = tmp_path / 'out'
+    for cell, seed in ((misfit, 4), (clean, 5)):
+        bag = tmp_path / f'{cell.stem}.mcap'
+        assert main(['simulate', '--cell', str(cell), '--n', '90', '--out', str(bag),
+                     '--seed', str(seed)]) == 0
+    capsys.readouterr()
+    assert main(['identify', '--cell', str(misfit), '--bag', str(tmp_path / 'misfit.mcap'),
+                 '--out', str(out), '--model', 'geometric', '--learned-residual']) == 0
+    text = capsys.readouterr().out
+    section = yaml.safe_load((out / 'calibration.yaml').read_text())['learned_residual']
+    assert section['chosen'] and section['file'] == 'learned_residual.yaml', section['reason']
+    assert section['cv_rms_learned_m'] < section['cv_rms_physical_m']
+    entry = section['tcp']['car_roof_edge']
+    assert entry['std_m'] > entry['parameter_std_m'] > 0
+    assert 'learned residual chosen' in text and 'TCP car_roof_edge with the learned' in text
+    assert read_residual(out / 'learned_residual.yaml').residual.q.shape == (90, 6)
+    # diagnose states the learned residual's decision beside the library's candidates.
+    assert main(['diagnose', '--cell', str(misfit), '--bag', str(tmp_path / 'misfit.mcap'),
+                 '--out', str(tmp_path / 'diag'), '--model', 'geometric']) == 0
+    assert 'learned residual chosen' in capsys.readouterr().out
+    assert main(['identify', '--cell', str(clean), '--bag', str(tmp_path / 'clean.mcap'),
+                 '--out', str(out), '--model', 'geometric', '--learned-residual']) == 0
+    section = yaml.safe_load((out / 'calibration.yaml').read_text())['learned_residual']
+    assert not section['chosen'] and section['file'] is None
+    assert not (out / 'learned_residual.yaml').exists()
+
+
+def test_too_few_poses_are_never_chosen(smooth):
+    """Fewer than MIN_POSES distinct poses (here 8, three reflectors each): no
+    cross-validated choice, not chosen, said why."""
+    from kpi_calib_ros.core.diagnosis.learned_residual import MIN_POSES
+    _, choice, *_ = smooth
+    q = np.repeat(choice.model.q[:MIN_POSES - 2], 3, axis=0)
+    y = np.repeat(choice.model.residual_m[:MIN_POSES - 2], 3, axis=0)
+    few = fit_learned_residual(q, y, 2e-5, choice.model.joint_names)
+    assert not few.chosen and f'{MIN_POSES - 2} poses' in few.reason
+    with pytest.raises(ValueError, match='folds'):
+        fit_learned_residual(q, y, 2e-5, choice.model.joint_names, folds=0)

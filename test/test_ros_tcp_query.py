@@ -1,0 +1,113 @@
+"""kpi_calib_node ~/tcp_query -> ~/tcp_corrected, in process (private context, real rclpy):
+joint positions in any order are answered with the TCP and covariance the stored learned
+residual predicts, the query's stamp echoed; a changed learned_residual.yaml is read again."""
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+import rclpy
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import JointState
+
+from kpi_calib_ros.app.learned_residual import physical_covariance, predict_stored
+from kpi_calib_ros.core.diagnosis.learned_residual import fit_learned_residual
+from kpi_calib_ros.core.estimation.least_squares import identify
+from kpi_calib_ros.core.estimation.precision import honest_precision
+from kpi_calib_ros.core.measurement.tracker import Measurements
+from kpi_calib_ros.core.simulation import (
+    random_configurations,
+    simulate_measurements,
+    smooth_joint_map,
+    true_parameters,
+)
+from kpi_calib_ros.io.learned_residual_file import read_residual, residual_document, write_residual
+from kpi_calib_ros.io.ros_messages import time_msg
+from kpi_calib_ros.ros.conversions import UNKNOWN_ORIENTATION_VARIANCE
+from kpi_calib_ros.ros.node import CalibrationNode
+
+from ros_helpers import KR15_URDF
+
+
+@pytest.fixture
+def node(tmp_path, ros_domain):
+    context = Context()
+    rclpy.init(context=context, domain_id=ros_domain)
+    made = None
+    try:
+        made = CalibrationNode(context=context, parameter_overrides=[
+            Parameter('robot_description', value=KR15_URDF),
+            Parameter('data_dir', value=str(tmp_path)),
+            Parameter('auto_identify', value=False)])
+        yield made
+    finally:
+        if made is not None:
+            made.destroy_node()
+        rclpy.shutdown(context=context)
+
+
+def learned(cm, tmp_path, seed: int, amplitude: float) -> None:
+    """learned_residual.yaml in ``tmp_path`` for a robot with a smooth unknown map."""
+    rng = np.random.default_rng(seed)
+    p = true_parameters(cm.model.params, rng)
+    q = random_configurations(cm.model, p, 80, rng)
+    eta = simulate_measurements(cm.model, p, q, cm.cell.sigma, rng).eta
+    eta = eta + smooth_joint_map(q, (1, 2), amplitude, rng.uniform(0, 6, 6))
+    result = honest_precision(identify(cm.model, Measurements(q=q, eta=eta), cm.cell.sigma,
+                                       cm.q_work))
+    choice = fit_learned_residual(q, result.residuals, cm.cell.sigma, tuple(cm.joint_names))
+    cov = physical_covariance(result, choice.model, cm.cell.sigma)
+    write_residual(tmp_path, residual_document(choice, result, cov, 1e-5))
+
+
+def test_tcp_query_is_answered_with_the_learned_residual(node, tmp_path):
+    cm = node._cm
+    learned(cm, tmp_path, 5, 1e-4)
+    received: list[PoseWithCovarianceStamped] = []
+    got = threading.Event()
+    probe = rclpy.create_node('tcp_probe', context=node.context)
+    probe.create_subscription(PoseWithCovarianceStamped, '/kpi_calib_node/tcp_corrected',
+                              lambda m: (received.append(m), got.set()), 10)
+    query = probe.create_publisher(JointState, '/kpi_calib_node/tcp_query', 10)
+    executor = SingleThreadedExecutor(context=node.context)
+    executor.add_node(node)
+    executor.add_node(probe)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    q = np.array([0.3, -0.4, 0.5, 0.2, 0.6, -0.1])
+    order = [5, 2, 0, 4, 1, 3]  # joints by name, in any order
+    msg = JointState(name=[cm.joint_names[i] for i in order] + ['gripper'],
+                     position=[float(q[i]) for i in order] + [0.01])
+    msg.header.stamp = time_msg(1_234_567_890_123)
+    try:
+        for _ in range(100):  # until discovery: the query is re-sent, never slept on
+            query.publish(msg)
+            if got.wait(timeout=0.2):
+                break
+        assert received, 'no answer on ~/tcp_corrected'
+    finally:
+        executor.shutdown()
+        spinner.join(timeout=10)
+        probe.destroy_node()
+    answer = received[0]
+    expected = predict_stored(cm.model, read_residual(tmp_path / 'learned_residual.yaml'), q)
+    assert answer.header.stamp.sec == 1234 and answer.header.stamp.nanosec == 567_890_123
+    assert answer.header.frame_id == cm.cell.tracker_frame
+    position = answer.pose.pose.position
+    np.testing.assert_allclose([position.x, position.y, position.z], expected.position[0],
+                               rtol=0, atol=1e-12)
+    cov = np.array(answer.pose.covariance).reshape(6, 6)
+    np.testing.assert_allclose(cov[:3, :3], expected.covariance[0], rtol=1e-12, atol=0)
+    assert np.all(cov[3:, 3:] == np.eye(3) * UNKNOWN_ORIENTATION_VARIANCE)
+    # The learned correction is in the answer: it differs from the physical model alone.
+    assert np.linalg.norm(expected.correction.mean[0]) > 1e-6
+    # A new learned_residual.yaml is read again on the next query.
+    before = node.tcp_query.stored().residual.amplitude_m2
+    learned(cm, tmp_path, 6, 2e-4)
+    new = read_residual(tmp_path / 'learned_residual.yaml').residual.amplitude_m2
+    assert new != before
+    assert node.tcp_query.stored().residual.amplitude_m2 == new
