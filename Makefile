@@ -6,6 +6,11 @@ STAMP := $(VENV)/.installed
 # Small matrices: a multi-threaded BLAS only contends for the cores (see kpi_calib_ros/__init__.py).
 export OPENBLAS_NUM_THREADS ?= 1
 export OMP_NUM_THREADS ?= 1
+# The tests run on TEST_WORKERS processes (pytest-xdist), handed out two at a time so that
+# the long ones, collected first (test/conftest.py), spread over the workers; every worker
+# holds a ROS domain of its own (test/ros_helpers.py).
+TEST_WORKERS ?= 2
+PYTEST := $(PY) -m pytest -q -n $(TEST_WORKERS) --maxschedchunk 2 --durations=15
 
 .PHONY: install demo lint doc check test bench clean
 
@@ -31,12 +36,12 @@ doc: $(STAMP)
 
 # The quick loop while editing: lint, types, the documentation, the tests not marked slow.
 check: lint doc
-	$(PY) -m pytest -q -m "not slow" --durations=15 test
+	$(PYTEST) -m "not slow" test
 
 # Lint and types first: they fail in seconds (mypy ~40 s without its cache), then the
 # documentation (seconds), then every test (minutes); the 15 slowest are listed.
 test: lint doc
-	$(PY) -m pytest -q --durations=15 test
+	$(PYTEST) test
 
 bench: $(STAMP)
 	$(PY) bench/run_all.py

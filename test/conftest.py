@@ -2,6 +2,8 @@
 domain every ROS test runs on."""
 from __future__ import annotations
 
+from collections import Counter
+
 import pytest
 
 import kpi_calib_ros  # noqa: F401  (single-threaded BLAS before any test imports numpy)
@@ -52,6 +54,16 @@ ODD_ARM_URDF = """<?xml version="1.0"?>
     <limit lower="0" upper="0.04" effort="10" velocity="1"/></joint>
 </robot>
 """
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_collection_modifyitems(items):
+    """The modules with the most tests marked slow first, each module's tests kept together
+    and in order (its module fixtures are built once per worker): with pytest-xdist handing
+    out two tests at a time (Makefile), the long ones start early on every worker and the
+    short ones fill in at the end, so the workers finish together."""
+    slow = Counter(item.module.__name__ for item in items if item.get_closest_marker('slow'))
+    items.sort(key=lambda item: -slow[item.module.__name__])
 
 
 @pytest.fixture(scope='session')

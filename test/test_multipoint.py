@@ -1,6 +1,7 @@
 """Several reflectors per pose: cell key, measurement rows, pairing convention,
 identification, joint registration, CSV import."""
 import copy
+import pickle
 from pathlib import Path
 
 import numpy as np
@@ -292,3 +293,42 @@ def test_simulate_writes_every_reflector_and_identify_takes_them(tmp_path):
     error = np.array(result['tcp'][0]['position']) - np.array(truth['tcp_true'][0])
     cov = np.array(result['tcp'][0]['covariance'])
     assert error @ np.linalg.solve(cov, error) < 14.2  # 3σ of χ²₃
+
+
+def test_the_model_evaluates_each_reflector_exactly_as_its_own_point_expression(cm):
+    """The model builds one tool pose for all reflectors, ∂h/∂q and the incidence cosine on
+    first use, and each mapped function once per row count: every figure is bit for bit
+    what a function of the reflector's own point expression gives, pose by pose."""
+    import casadi as ca
+
+    from kpi_calib_ros.core.diagnosis import augmented_model
+    from kpi_calib_ros.core.effects import parse_effect_spec
+    model = augmented_model(cm.model, tuple(parse_effect_spec(s, cm.robot) for s in (
+        'joint_compliance:joint_2', 'cyclic_joint_error:joint_3', 'tracker_scale')))
+    rng = np.random.default_rng(4)
+    p = model.params.nominal + rng.normal(size=len(model.params)) * 1e-3
+    ps, qs, taus = (ca.SX.sym(n, k) for n, k in (('p', len(p)), ('q', cm.robot.n_joints),
+                                                 ('tau', cm.robot.n_joints)))
+    for n in (5, 8, 5):  # a row count again: the mapped functions kept from the first time
+        q = random_configurations(model, model.params.nominal, n, rng)
+        tau = model.robot.gravity_torques(q)
+        ref = rng.integers(0, len(NAMES), n)
+        pts, jac = model.jacobian(p, q, tau, ref)
+        jq = model.joint_jacobian(p, q, tau, ref)
+        cos = model.incidence_cos(p, q)
+        expected_cos = ca.Function('c', [ps, qs], [model.incidence_cos_expression(ps, qs)])
+        for i, k in enumerate(ref):
+            point = model.point_expression(ps, qs, taus, int(k))
+            own = ca.Function('own', [ps, qs, taus],
+                              [point, ca.jacobian(point, ps), ca.jacobian(point, qs)])
+            h, hp, hq = (np.array(o) for o in own(p, q[i], tau[i]))
+            np.testing.assert_array_equal(pts[i], h.ravel())
+            np.testing.assert_array_equal(jac[i], hp)
+            np.testing.assert_array_equal(jq[i], hq)
+            assert cos[i] == float(expected_cos(p, q[i]))
+        np.testing.assert_array_equal(model.predict(p, q, tau, ref), pts)
+        # A job's result crosses a process boundary pickled, its model with it.
+        copy_ = pickle.loads(pickle.dumps(model))
+        np.testing.assert_array_equal(copy_.jacobian(p, q, tau, ref)[1], jac)
+        np.testing.assert_array_equal(copy_.joint_jacobian(p, q, tau, ref), jq)
+        np.testing.assert_array_equal(copy_.incidence_cos(p, q), cos)

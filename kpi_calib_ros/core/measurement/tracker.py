@@ -234,13 +234,19 @@ class MeasurementModel:
         q = ca.SX.sym('q', n)
         tau = ca.SX.sym('tau', n)
         z = ca.SX.sym('z', len(self.inputs))
-        self._h, self._hj, self._hq = [], [], []
-        for k in range(self.chain.n_reflectors):
-            point = self.point_expression(p, q, tau, k, z)
-            self._h.append(ca.Function('h', [p, q, tau, z], [point]))
-            self._hj.append(ca.Function('hj', [p, q, tau, z], [point, ca.jacobian(point, p)]))
-            self._hq.append(ca.Function('hq', [p, q, tau, z], [ca.jacobian(point, q)]))
-        self._cos = ca.Function('cos_incidence', [p, q], [self.incidence_cos_expression(p, q)])
+        # One tool pose for every reflector; ∂h/∂q and the incidence cosine are built on
+        # first use (a model made for one Jacobian, as the diagnosis screen makes one per
+        # candidate effect, never needs them).
+        world, thetas = self._tool_pose(p, q, tau, z)
+        self._points = [self._reflector_point(world, thetas, p, k)
+                        for k in range(self.chain.n_reflectors)]
+        self._symbols = (p, q, tau, z)
+        self._h = [ca.Function('h', [p, q, tau, z], [point]) for point in self._points]
+        self._hj = [ca.Function('hj', [p, q, tau, z], [point, ca.jacobian(point, p)])
+                    for point in self._points]
+        self._hq_built: list[ca.Function] | None = None
+        self._cos_built: ca.Function | None = None
+        self._mapped: dict[tuple[int, int, int], ca.Function] = {}
         self.orientations = {int(k): np.asarray(r, float).reshape(3, 3)
                              for k, r in (orientations or {}).items()}
         if any(not 0 <= k < self.chain.n_reflectors for k in self.orientations):
@@ -324,6 +330,11 @@ class MeasurementModel:
         """Centre of reflector ``reflector`` in the tracker frame, CasADi expression (3,);
         ``z`` the covariates :attr:`inputs` (None: 0)."""
         world, thetas = self._tool_pose(p, q, tau, z)
+        return self._reflector_point(world, thetas, p, reflector)
+
+    def _reflector_point(self, world: Expr, thetas: list, p: Expr, reflector: int) -> Expr:
+        """Reflector ``reflector``'s centre from the tool pose ``world`` (4x4) and the
+        effects' parameters ``thetas`` of :meth:`_tool_pose`."""
         point = reflector_point(world, self.chain.reflector(p, reflector))
         for effect, theta in zip(self.effects, thetas):
             corrected = effect.point_correction(point, theta)
@@ -386,6 +397,41 @@ class MeasurementModel:
                              f'got {bad}')
         return [(int(k), np.flatnonzero(ref == k)) for k in np.unique(ref)]
 
+    def __getstate__(self) -> dict:
+        """Picklable state (a job's result crosses a process boundary): the functions built
+        on first use are built now; CasADi expressions and the mapped functions stay behind."""
+        return dict(self.__dict__, _hq_built=self._hq, _cos_built=self._cos, _symbols=None,
+                    _points=None, _mapped={})
+
+    @property
+    def _hq(self) -> list[ca.Function]:
+        """∂h/∂q of each reflector (built on first use)."""
+        if self._hq_built is None:
+            p, q, tau, z = self._symbols
+            self._hq_built = [ca.Function('hq', [p, q, tau, z], [ca.jacobian(point, q)])
+                              for point in self._points]
+        return self._hq_built
+
+    @property
+    def _cos(self) -> ca.Function:
+        """Cosine of the incidence angle (built on first use)."""
+        if self._cos_built is None:
+            p, q, _, _ = self._symbols
+            self._cos_built = ca.Function('cos_incidence', [p, q],
+                                          [self.incidence_cos_expression(p, q)])
+        return self._cos_built
+
+    def _map(self, which: int, channel: int, m: int) -> ca.Function:
+        """Function ``which`` of a row channel mapped over ``m`` rows (built once per m)."""
+        key = (which, channel, m)
+        if key not in self._mapped:
+            if channel < self.n_reflectors:
+                fn = (self._h, self._hj, self._hq)[which][channel]
+            else:
+                fn = self._rot[channel - self.n_reflectors][which]
+            self._mapped[key] = fn.map(m)
+        return self._mapped[key]
+
     def _evaluate(self, which: int, channel: int, rows: np.ndarray, p: np.ndarray,
                   q: np.ndarray, tau: np.ndarray, rotation: np.ndarray | None,
                   z: np.ndarray) -> list:
@@ -394,14 +440,13 @@ class MeasurementModel:
         n_z) the covariates (:meth:`input_values`)."""
         m = len(rows)
         if channel < self.n_reflectors:
-            fn = (self._h, self._hj, self._hq)[which][channel]
-            out = fn.map(m)(p, q[rows].T, tau[rows].T, z[rows].T)
+            out = self._map(which, channel, m)(p, q[rows].T, tau[rows].T, z[rows].T)
         else:
             if rotation is None:
                 raise ValueError('rotation rows need the measured rotations (rotation=)')
             measured = measured_rotation_input(np.asarray(rotation)[rows])
-            fn = self._rot[channel - self.n_reflectors][which]
-            out = fn.map(m)(p, q[rows].T, tau[rows].T, measured.T, z[rows].T)
+            out = self._map(which, channel, m)(p, q[rows].T, tau[rows].T, measured.T,
+                                               z[rows].T)
         return [np.array(o) for o in (out if isinstance(out, (list, tuple)) else [out])]
 
     def predict(self, p: np.ndarray, q: np.ndarray, tau: np.ndarray | None = None,
