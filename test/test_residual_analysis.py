@@ -162,21 +162,30 @@ def test_bases_span_what_they_claim():
 
 @pytest.mark.slow
 def test_diagnose_answers_where_what_command_and_held_out_error(ur, tmp_path):
-    """A 3-cycle elbow error, which no effect of the library has: the answer names the
-    elbow as where, a smooth misfit of it as what, no command, and a held-out error that
-    falls; the report carries the section, the table and the partial-residual plot."""
+    """A 3-cycle elbow error, which no named effect of the library has: the answer names
+    the elbow as where; the frequency search offers the periodic joint error at 3 cycles
+    per revolution as what is missing, with its command; without the general effects the
+    answer is a smooth misfit of the elbow with no command. The held-out error falls; the
+    report carries the section, the table and the partial-residual plot."""
     data, result, _ = campaign(ur, 3, 'periodic')
     diag = diagnose(ur.model, data, result)
     cd = with_misfit_answer(CellDiagnosis(ur.model, data, result, diag))
     answer = cd.answer
     assert answer is not None and answer.inputs[0] == ELBOW
-    assert answer.missing.kind == SMOOTH and ELBOW in answer.missing.what
-    assert answer.missing.command == ''
-    # The screen names a library effect that explains a sliver (a joint scale of the
-    # elbow): the answer names it as a partial step, not as what is missing.
-    assert diag.best is not None and f'--effects {diag.best.spec}' in answer.missing.what
+    spec = f'periodic_joint_error:{ELBOW}:k=3'
+    assert diag.best is not None and diag.best.spec == spec
+    assert answer.missing.command == f'--effects {spec}'
     before, after = answer.missing.held_out_before_m, answer.missing.held_out_after_m
     assert after < 0.7 * before
+    library = diagnose(ur.model, data, result, general=False)
+    plain = with_misfit_answer(CellDiagnosis(ur.model, data, result, library)).answer
+    assert plain is not None and plain.inputs[0] == ELBOW
+    assert plain.missing.kind == SMOOTH and ELBOW in plain.missing.what
+    assert plain.missing.command == ''
+    # The library's screen names an effect that explains a sliver (a joint scale of the
+    # elbow): the answer names it as a partial step, not as what is missing.
+    assert library.best is not None and f'--effects {library.best.spec}' in plain.missing.what
+    assert plain.missing.held_out_after_m < 0.7 * plain.missing.held_out_before_m
     write_report(tmp_path, cd)
     report = (tmp_path / 'report.md').read_text()
     assert '## Where the model fails' in report and '(partial_residuals.png)' in report
