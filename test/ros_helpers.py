@@ -27,6 +27,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
@@ -36,6 +37,7 @@ from visualization_msgs.msg import MarkerArray
 
 from kpi_calib_ros.io.cell import DEFAULT_CELL
 from kpi_calib_ros.ros import conversions as cv
+from kpi_calib_ros.ros.node import CalibrationNode
 
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
@@ -51,6 +53,24 @@ LATCHED = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
 DOMAIN_IDS = range(1, 102)
 LOCK_DIR = Path(tempfile.gettempdir())
 
+
+@contextlib.contextmanager
+def idle_node(data_dir: Path, domain: int) -> Iterator[CalibrationNode]:
+    """The KR15-class node in this process, on a private context in ``domain``, with
+    ``data_dir`` and no automatic identification; destroyed and shut down on exit."""
+    context = Context()
+    rclpy.init(context=context, domain_id=domain)
+    made = None
+    try:
+        made = CalibrationNode(context=context, parameter_overrides=[
+            Parameter('robot_description', value=KR15_URDF),
+            Parameter('data_dir', value=str(data_dir)),
+            Parameter('auto_identify', value=False)])
+        yield made
+    finally:
+        if made is not None:
+            made.destroy_node()
+        rclpy.shutdown(context=context)
 
 @contextlib.contextmanager
 def exclusive_ros_domain(lock_dir: Path = LOCK_DIR, ids: range = DOMAIN_IDS) -> Iterator[int]:

@@ -9,9 +9,7 @@ import numpy as np
 import pytest
 import rclpy
 from geometry_msgs.msg import PoseWithCovarianceStamped
-from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
-from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 
 from kpi_calib_ros.app.learned_residual import physical_covariance, predict_stored
@@ -28,26 +26,14 @@ from kpi_calib_ros.core.simulation import (
 from kpi_calib_ros.io.learned_residual_file import read_residual, residual_document, write_residual
 from kpi_calib_ros.io.ros_messages import time_msg
 from kpi_calib_ros.ros.conversions import UNKNOWN_ORIENTATION_VARIANCE
-from kpi_calib_ros.ros.node import CalibrationNode
 
-from ros_helpers import KR15_URDF
+from ros_helpers import idle_node
 
 
 @pytest.fixture
 def node(tmp_path, ros_domain):
-    context = Context()
-    rclpy.init(context=context, domain_id=ros_domain)
-    made = None
-    try:
-        made = CalibrationNode(context=context, parameter_overrides=[
-            Parameter('robot_description', value=KR15_URDF),
-            Parameter('data_dir', value=str(tmp_path)),
-            Parameter('auto_identify', value=False)])
+    with idle_node(tmp_path, ros_domain) as made:
         yield made
-    finally:
-        if made is not None:
-            made.destroy_node()
-        rclpy.shutdown(context=context)
 
 
 def learned(cm, tmp_path, seed: int, amplitude: float) -> None:

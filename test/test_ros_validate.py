@@ -7,8 +7,6 @@ import threading
 
 import numpy as np
 import pytest
-import rclpy
-from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile
@@ -21,26 +19,14 @@ from kpi_calib_ros.core.simulation import (
     true_parameters,
 )
 from kpi_calib_ros.io.ros_messages import joint_state_msg, point_stamped_msg
-from kpi_calib_ros.ros.node import CalibrationNode
 
-from ros_helpers import KR15_URDF
+from ros_helpers import idle_node
 
 
 @pytest.fixture
 def node(tmp_path, ros_domain):
-    context = Context()
-    rclpy.init(context=context, domain_id=ros_domain)
-    made = None
-    try:
-        made = CalibrationNode(context=context, parameter_overrides=[
-            Parameter('robot_description', value=KR15_URDF),
-            Parameter('data_dir', value=str(tmp_path)),
-            Parameter('auto_identify', value=False)])
+    with idle_node(tmp_path, ros_domain) as made:
         yield made
-    finally:
-        if made is not None:
-            made.destroy_node()
-        rclpy.shutdown(context=context)
 
 
 def _feed(node, joints, points):
