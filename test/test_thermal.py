@@ -8,8 +8,10 @@ import numpy as np
 import pytest
 
 from kpi_calib_ros.app.diagnose import diagnose_cell, recorded_covariates
-from kpi_calib_ros.app.identify import calibrate_cell
+from kpi_calib_ros.app.identify import calibrate_cell, identify_cell, with_effects
 from kpi_calib_ros.core.diagnosis.candidates import augmented_model
+from kpi_calib_ros.core.diagnosis.residual_analysis import analyse_calibration
+from kpi_calib_ros.core.diagnosis.residual_inputs import residual_inputs
 from kpi_calib_ros.core.effects.registry import candidate_effects, parse_effect_spec
 from kpi_calib_ros.core.measurement.covariates import (
     DELTA_TEMPERATURE,
@@ -300,3 +302,21 @@ def test_diagnose_analyses_the_recorded_temperature_as_an_input(cm):
     scores = {s.name: s for s in cd.residual_analysis.scores}
     assert 'temperature.arm' in scores
     assert scores['temperature.arm'].significant
+
+
+def test_the_residual_analysis_of_a_thermal_model_shows_its_own_residuals(cm):
+    """With a thermal effect in the model, the partial residuals the analysis plots are
+    the fit's own residuals (predicted at each row's temperature), not those of the model
+    at the reference temperature, which would put the modelled growth back."""
+    data, _, _ = _shift(cm, {'thermal_link_growth:joint_3': {'alpha': 60e-6}}, 2, n=60,
+                        rise=12.0)
+    rich = with_effects(cm, (parse_effect_spec('thermal_link_growth:joint_3', cm.robot),))
+    result = identify_cell(rich, data)
+    analysis = analyse_calibration(rich.model, data, result, recorded_covariates(data))
+    score = next(s for s in analysis.scores if s.name == 'temperature.arm')
+    fields = next(i for i in residual_inputs(rich.model, data, result,
+                                             recorded_covariates(data))
+                  if i.name == 'temperature.arm').fields
+    implied = (np.einsum('nak,na->nk', fields, result.residuals)
+               / np.sum(fields ** 2, axis=1))
+    np.testing.assert_allclose(score.implied, implied, rtol=1e-9, atol=1e-12)

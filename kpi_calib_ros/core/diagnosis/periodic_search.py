@@ -90,7 +90,8 @@ def periodograms(model: MeasurementModel, data: Measurements, result: Calibratio
     """
     sys_ = fit or linearized_fit(model, data, result)
     q = np.atleast_2d(data.q)
-    lever = model.joint_jacobian(sys_.p, q, sys_.tau, sys_.reflector, sys_.rotation)
+    lever = model.joint_jacobian(sys_.p, q, sys_.tau, sys_.reflector, sys_.rotation,
+                                 sys_.covariates)
     r = sys_.r - sys_.basis @ (sys_.basis.T @ sys_.r)
     chi2 = float(r @ r)
     dof = len(r) - sys_.basis.shape[1] - 2

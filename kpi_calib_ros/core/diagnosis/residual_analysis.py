@@ -628,6 +628,7 @@ def analyse_calibration(model: MeasurementModel, data: Measurements,
     ``covariates`` (name -> (values, unit))."""
     fit = linearized_fit(model, data, result)
     residuals = np.atleast_2d(data.eta) - model.predict(
-        result.values, np.atleast_2d(data.q), fit.tau, data.reflector, data.rotation)
+        result.values, np.atleast_2d(data.q), fit.tau, data.reflector, data.rotation,
+        fit.covariates)
     inputs = residual_inputs(model, data, result, covariates, fit.tau)
     return analyse_residuals(fit, residuals, inputs, data.q, folds, alpha, seed)

@@ -79,7 +79,7 @@ def residual_inputs(model: MeasurementModel, data: Measurements, result: Calibra
     n_ref = model.n_reflectors
     point = np.ones(n, bool) if data.reflector is None else np.asarray(data.reflector) < n_ref
     jq = model.joint_jacobian(result.values, q, tau if tau is not None else data.tau,
-                              data.reflector, data.rotation)
+                              data.reflector, data.rotation, data.covariates)
     robot = model.robot
     revolute = [j.kind != 'prismatic' for j in robot.joints]
     out = []
@@ -97,7 +97,8 @@ def residual_inputs(model: MeasurementModel, data: Measurements, result: Calibra
     # Predicted, not measured, points: a field built from the measured point would contain
     # the residual itself (with a cubic in the distance, η = |η|·η/|η| is one column, and
     # the geometry spans h(p̂), so the residual would be "explained" exactly).
-    eta = model.predict(result.values, q, torque, data.reflector, data.rotation)
+    eta = model.predict(result.values, q, torque, data.reflector, data.rotation,
+                        data.covariates)
     distance = np.linalg.norm(eta, axis=1)
     if point.any():
         filler = float(np.median(distance[point]))
