@@ -13,7 +13,7 @@ import dataclasses
 import sys
 import warnings
 from pathlib import Path
-from typing import Iterable, Mapping, Sequence
+from typing import Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
@@ -147,9 +147,7 @@ def measurements_from_bag(cm: CellModel, path: str | Path,
 
 def with_temperature(cm: CellModel, data: Measurements, path: str | Path) -> Measurements:
     """``data`` with the temperatures of the cell's ``temperature:`` topic in the bag
-    ``path`` paired to every row by its stamp (:mod:`kpi_calib_ros.core.measurement.covariates`);
-    rows without a temperature are refused with a warning. ``data`` unchanged without the
-    section.
+    ``path`` paired to every row by its stamp (:func:`with_readings`).
 
     Raises
     ------
@@ -157,13 +155,30 @@ def with_temperature(cm: CellModel, data: Measurements, path: str | Path) -> Mea
         The section is there but the bag has no temperature on its topic, or a listed
         sensor never published.
     """
+    return with_readings(cm, data, lambda topic: read_temperatures(path, topic), str(path))
+
+
+def with_readings(cm: CellModel, data: Measurements,
+                  read: Callable[[str], Sequence[TemperatureSample]],
+                  where: str | None = None) -> Measurements:
+    """``data`` with the temperature readings ``read(topic)`` of the cell's ``temperature:``
+    topic paired to every row by its stamp (:mod:`kpi_calib_ros.core.measurement.covariates`),
+    the bag's and the node's alike; rows without a temperature are refused with a warning.
+    ``data`` unchanged (nothing read) without the section. ``where`` names the source in
+    errors (default: the topic).
+
+    Raises
+    ------
+    DataError
+        No reading on the topic, or a listed sensor never published.
+    """
     settings = cm.cell.temperature
     if settings is None or len(data) == 0:
         return data
-    kept, refused = paired_temperature(cm, data, read_temperatures(path, settings.topic),
-                                       str(path))
+    kept, refused = paired_temperature(cm, data, read(settings.topic),
+                                       where or f'topic {settings.topic}')
     if refused:
-        warnings.warn(refused_text(cm, len(data), refused), stacklevel=2)
+        warnings.warn(refused_text(cm, len(data), refused), stacklevel=3)
     return kept
 
 

@@ -25,7 +25,6 @@ import dataclasses
 import shutil
 import threading
 import time
-import warnings
 from collections import Counter, deque
 from pathlib import Path
 from typing import Sequence
@@ -33,11 +32,10 @@ from typing import Sequence
 import numpy as np
 
 from kpi_calib_ros.app.measurements import (
-    paired_temperature,
     pose_rows,
-    refused_text,
     stated_sigma,
     urdf_measurements,
+    with_readings,
 )
 from kpi_calib_ros.core.acquisition.pairing import (
     REJECTION_REASONS,
@@ -388,7 +386,7 @@ def model_measurements(campaign: Campaign, cm: CellModel
 def with_temperature_readings(campaign: Campaign, cm: CellModel,
                               data: Measurements) -> Measurements:
     """``data`` with the campaign's temperature readings paired to its rows by stamp, as
-    a bag's are (:func:`kpi_calib_ros.app.measurements.paired_temperature`); unchanged when
+    a bag's are (:func:`kpi_calib_ros.app.measurements.with_readings`); unchanged when
     the cell reads no temperature. A row outside the readings is refused with a warning.
 
     Raises
@@ -396,13 +394,7 @@ def with_temperature_readings(campaign: Campaign, cm: CellModel,
     DataError
         The cell reads a temperature but none has arrived (or a listed sensor never did).
     """
-    if cm.cell.temperature is None or len(data) == 0:
-        return data
-    kept, refused = paired_temperature(cm, data, campaign.temperatures(),
-                                       f'topic {cm.cell.temperature.topic}')
-    if refused:
-        warnings.warn(refused_text(cm, len(data), refused), stacklevel=2)
-    return kept
+    return with_readings(cm, data, lambda _topic: campaign.temperatures())
 
 
 def _sigma_key(stamp_ns: int, frame_id: str) -> tuple[int, str, str]:
