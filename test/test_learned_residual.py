@@ -11,13 +11,17 @@ import scipy.stats
 import yaml
 
 from kpi_calib_ros.app.learned_residual import (
+    field_covariance,
     physical_covariance,
-    physical_misfit,
     predict_stored,
     predict_tcp,
 )
 from kpi_calib_ros.cli import main
-from kpi_calib_ros.core.diagnosis.learned_residual import fit_learned_residual
+from kpi_calib_ros.core.diagnosis.learned_residual import (
+    LearnedResidual,
+    field_parameter_covariance,
+    fit_learned_residual,
+)
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation.least_squares import identify
 from kpi_calib_ros.core.estimation.precision import honest_precision
@@ -65,7 +69,7 @@ def smooth(cm):
 def prediction(cm, result, choice, data, q):
     cov = physical_covariance(result, choice.model, cm.cell.sigma)
     return predict_tcp(cm.model, result.values, result.estimated, cov, choice.model, q,
-                       result.covariance, physical_misfit(cm.model, data, result))
+                       field_covariance(cm.model, data, result, choice.model, cm.cell.sigma))
 
 
 def rms(e):
@@ -132,12 +136,12 @@ def test_stored_model_is_rebuilt_exactly(cm, smooth, tmp_path):
     """learned_residual.yaml round trip: the same TCP and covariance to 1e-12, no pickle."""
     result, choice, data, _, fresh, fresh_out, _ = smooth
     cov = physical_covariance(result, choice.model, cm.cell.sigma)
-    misfit = physical_misfit(cm.model, data, result)
-    path = write_residual(tmp_path, residual_document(choice, result, cov, misfit))
+    outside = field_covariance(cm.model, data, result, choice.model, cm.cell.sigma)
+    path = write_residual(tmp_path, residual_document(choice, result, cov, outside))
     stored = read_residual(path)
     q = np.vstack([fresh[:20], fresh_out[:20]])
     before = predict_tcp(cm.model, result.values, result.estimated, cov, choice.model, q,
-                         result.covariance, misfit)
+                         outside)
     after = predict_stored(cm.model, stored, q)
     np.testing.assert_allclose(after.position, before.position, rtol=0, atol=1e-12)
     np.testing.assert_allclose(after.covariance, before.covariance, rtol=1e-12, atol=0)
@@ -146,13 +150,13 @@ def test_stored_model_is_rebuilt_exactly(cm, smooth, tmp_path):
 
 def test_a_damaged_file_names_the_field(cm, smooth, tmp_path):
     result, choice, data, *_ = smooth
-    doc = residual_document(choice, result, result.covariance, 0.0)
+    doc = residual_document(choice, result, result.covariance, result.covariance)
     doc['kernel']['length_scales'][2] = -1.0
     path = tmp_path / 'learned_residual.yaml'
     path.write_text(yaml.safe_dump(doc))
     with pytest.raises(ConfigError, match='kernel.length_scales'):
         read_residual(path)
-    doc = residual_document(choice, result, result.covariance, 0.0)
+    doc = residual_document(choice, result, result.covariance, result.covariance)
     doc['training']['residual_m'][3] = [0.0, float('nan'), 0.0]
     path.write_text(yaml.safe_dump(doc))
     with pytest.raises(ConfigError, match=r'training.residual_m\[3\]\[1\]'):
@@ -215,3 +219,30 @@ def test_too_few_poses_are_never_chosen(smooth):
     assert not few.chosen and f'{MIN_POSES - 2} poses' in few.reason
     with pytest.raises(ValueError, match='folds'):
         fit_learned_residual(q, y, 2e-5, choice.model.joint_names, folds=0)
+
+
+def test_field_parameter_covariance_matches_monte_carlo():
+    """Least squares on rows whose error is a smooth field over joint space plus white
+    noise: the parameters' spread over 4000 draws of the field equals
+    field_parameter_covariance (each variance within 10 %), and is far larger than the
+    covariance that takes the rows as independent."""
+    rng = np.random.default_rng(3)
+    m, n, k = 60, 2, 4
+    q = rng.uniform(-1.0, 1.0, (m, n))
+    jac = rng.normal(size=(m, 3, k)) * 1e-1
+    sigma = 2e-5
+    field = LearnedResidual(('a', 'b'), q, np.zeros((m, 3)), (1e-4) ** 2,
+                            np.array([0.5, 0.8]), sigma ** 2)
+    h = jac / sigma ** 2
+    c0 = np.linalg.inv(np.einsum('mak,mal->kl', jac, jac) / sigma ** 2)
+    predicted = field_parameter_covariance(field, q, h, c0, 1.0)
+    kq = field.amplitude_m2 * np.exp(-0.5 * np.sum(
+        ((q[:, None] - q[None]) / field.length_scales) ** 2, axis=2))
+    chol = np.linalg.cholesky(kq + 1e-18 * np.eye(m))
+    draws = []
+    for _ in range(4000):
+        error = chol @ rng.normal(size=(m, 3)) + sigma * rng.normal(size=(m, 3))
+        draws.append(c0 @ np.einsum('mak,ma->k', h, error))
+    empirical = np.cov(np.array(draws).T)
+    np.testing.assert_allclose(np.diag(empirical), np.diag(predicted), rtol=0.1)
+    assert np.all(np.diag(predicted) > 5 * np.diag(c0))

@@ -12,7 +12,7 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.executors import SingleThreadedExecutor
 from sensor_msgs.msg import JointState
 
-from kpi_calib_ros.app.learned_residual import physical_covariance, predict_stored
+from kpi_calib_ros.app.learned_residual import field_covariance, physical_covariance, predict_stored
 from kpi_calib_ros.core.diagnosis.learned_residual import fit_learned_residual
 from kpi_calib_ros.core.estimation.least_squares import identify
 from kpi_calib_ros.core.estimation.precision import honest_precision
@@ -43,11 +43,12 @@ def learned(cm, tmp_path, seed: int, amplitude: float) -> None:
     q = random_configurations(cm.model, p, 80, rng)
     eta = simulate_measurements(cm.model, p, q, cm.cell.sigma, rng).eta
     eta = eta + smooth_joint_map(q, (1, 2), amplitude, rng.uniform(0, 6, 6))
-    result = honest_precision(identify(cm.model, Measurements(q=q, eta=eta), cm.cell.sigma,
-                                       cm.q_work))
+    data = Measurements(q=q, eta=eta)
+    result = honest_precision(identify(cm.model, data, cm.cell.sigma, cm.q_work))
     choice = fit_learned_residual(q, result.residuals, cm.cell.sigma, tuple(cm.joint_names))
     cov = physical_covariance(result, choice.model, cm.cell.sigma)
-    write_residual(tmp_path, residual_document(choice, result, cov, 1e-5))
+    outside = field_covariance(cm.model, data, result, choice.model, cm.cell.sigma)
+    write_residual(tmp_path, residual_document(choice, result, cov, outside))
 
 
 def test_tcp_query_is_answered_with_the_learned_residual(node, tmp_path):

@@ -18,12 +18,12 @@ from kpi_calib_ros.core.diagnosis.learned_residual import (
     LearnedResidual,
     ResidualChoice,
     corrected_tcp,
+    field_parameter_covariance,
     fit_learned_residual,
     residual_noise_scale,
 )
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
-from kpi_calib_ros.core.estimation.precision import expected_tcp_error
-from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements, noise_weights
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.learned_residual_file import (
     StoredResidual,
@@ -59,28 +59,39 @@ def physical_covariance(result: CalibrationResult, residual: LearnedResidual | N
             * residual_noise_scale(residual, sigma))
 
 
-def physical_misfit(model: MeasurementModel, data: Measurements,
-                    result: CalibrationResult) -> float:
-    """b (m): the physical model's held-out misfit
-    (:func:`kpi_calib_ros.core.estimation.precision.expected_tcp_error`), 0 when χ² accepts it or it
-    is
-    not estimable from the design."""
-    misfit = expected_tcp_error(model, data, result).misfit_m
-    return float(misfit) if np.isfinite(misfit) else 0.0
+def field_covariance(model: MeasurementModel, data: Measurements, result: CalibrationResult,
+                     residual: LearnedResidual, sigma: float | np.ndarray) -> np.ndarray:
+    """(k, k) covariance of ``result.estimated`` when the misfit is ``residual``'s field
+    (:func:`kpi_calib_ros.core.diagnosis.learned_residual.field_parameter_covariance`),
+    from the point rows of ``data``, the measurements ``result`` was identified from."""
+    values = np.asarray(result.values, float)
+    q = np.atleast_2d(data.q)
+    tau = data.tau
+    if tau is None and model.uses_torque:
+        tau = model.robot.gravity_torques(q)
+    _, jac = model.jacobian(values, q, tau, data.reflector, data.rotation, data.covariates)
+    jac = jac[:, :, model.params.indices(list(result.estimated))]
+    w = np.asarray(noise_weights(model, values, data, sigma, tau), float)
+    if w.ndim == 3:
+        h = np.einsum('nba,nbc,nck->nak', w, w, jac)
+    else:
+        h = np.broadcast_to(w, (len(q), 3))[:, :, None] ** 2 * jac
+    rows = point_rows(model, data)
+    c0 = np.asarray(result.covariance, float) / result.covariance_scale
+    return field_parameter_covariance(residual, q[rows], h[rows], c0,
+                                      residual_noise_scale(residual, sigma))
 
 
 def predict_tcp(model: MeasurementModel, values: np.ndarray, estimated: tuple[str, ...],
                 covariance: np.ndarray, residual: LearnedResidual | None,
-                q: np.ndarray, covariance_outside: np.ndarray | None = None,
-                misfit_m: float = 0.0) -> CorrectedTcp:
+                q: np.ndarray, covariance_outside: np.ndarray | None = None) -> CorrectedTcp:
     """The TCP (KPI point) at URDF joint values ``q`` (M, n): the physical model at
     ``values`` plus the learned residual, with the covariance of both parts
     (:func:`kpi_calib_ros.core.diagnosis.learned_residual.corrected_tcp`)."""
     q = np.atleast_2d(np.asarray(q, float))
     tcp, jac = model.jacobian(np.asarray(values, float), q)
     idx = model.params.indices(list(estimated))
-    return corrected_tcp(tcp, jac[:, :, idx], covariance, q, residual, covariance_outside,
-                         misfit_m)
+    return corrected_tcp(tcp, jac[:, :, idx], covariance, q, residual, covariance_outside)
 
 
 def predict_stored(model: MeasurementModel, stored: StoredResidual,
@@ -88,7 +99,7 @@ def predict_stored(model: MeasurementModel, stored: StoredResidual,
     """:func:`predict_tcp` with a learned_residual.yaml read back."""
     stored.check_model(model)
     return predict_tcp(model, stored.values, stored.estimated, stored.covariance,
-                       stored.residual, q, stored.covariance_outside, stored.misfit_m)
+                       stored.residual, q, stored.covariance_outside)
 
 
 def add_learned_residual(doc: dict[str, Any], cm: CellModel, data: Measurements,
@@ -108,9 +119,9 @@ def add_learned_residual(doc: dict[str, Any], cm: CellModel, data: Measurements,
     path = None
     if choice.chosen:
         cov = physical_covariance(result, choice.model, cm.cell.sigma)
-        misfit = physical_misfit(cm.model, data, result)
+        outside = field_covariance(cm.model, data, result, choice.model, cm.cell.sigma)
         tcp = predict_tcp(cm.model, result.values, result.estimated, cov, choice.model,
-                          cm.q_work, result.covariance, misfit)
+                          cm.q_work, outside)
         section['tcp'] = tcp_entries(cm.working_pose_names, tcp)
         joints = ', '.join(f'{n} {v:.3g}' for n, v in
                            list(choice.model.relevant_joints().items())[:3])
@@ -125,7 +136,7 @@ def add_learned_residual(doc: dict[str, Any], cm: CellModel, data: Measurements,
                          f"{entry['parameter_std_m'] * 1e6:.1f} um), {where} the fitted region "
                          f"(distance {entry['distance']:.2g} length scales)")
         if out_dir is not None and doc.get('valid', True):
-            path = write_residual(out_dir, residual_document(choice, result, cov, misfit))
+            path = write_residual(out_dir, residual_document(choice, result, cov, outside))
             section['file'] = path.name
     doc['learned_residual'] = section
     return '\n'.join(lines), path
@@ -147,6 +158,6 @@ def tcp_entries(names: tuple[str, ...] | list[str], tcp: CorrectedTcp) -> dict[s
     return out
 
 
-__all__ = ['add_learned_residual', 'choose_residual', 'physical_covariance', 'physical_misfit',
+__all__ = ['add_learned_residual', 'choose_residual', 'field_covariance', 'physical_covariance',
            'point_rows',
            'predict_stored', 'predict_tcp', 'tcp_entries']

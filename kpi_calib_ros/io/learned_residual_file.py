@@ -26,7 +26,7 @@ from kpi_calib_ros.io.names import LEARNED_RESIDUAL_FILE
 from kpi_calib_ros.io.results import write_atomic
 from kpi_calib_ros.io.yaml_bounded import read_yaml_file
 
-FORMAT = 'kpi_calib_ros learned_residual 1'
+FORMAT = 'kpi_calib_ros learned_residual 2'
 FIX = 'give a learned_residual.yaml written by kpi-calib identify --learned-residual (unedited)'
 
 
@@ -47,9 +47,9 @@ class StoredResidual:
         Their covariance with the noise the learned residual leaves
         (:func:`kpi_calib_ros.core.diagnosis.learned_residual.residual_noise_scale`).
     covariance_outside : (k, k) ndarray
-        Their covariance as reported without it (far from the training poses).
-    misfit_m : float
-        The physical model's held-out misfit b (m), added far from the training poses.
+        Their covariance when the misfit is the learned field, which applies far from the
+        training poses
+        (:func:`kpi_calib_ros.core.diagnosis.learned_residual.field_parameter_covariance`).
     """
 
     residual: LearnedResidual
@@ -58,7 +58,6 @@ class StoredResidual:
     estimated: tuple[str, ...]
     covariance: np.ndarray
     covariance_outside: np.ndarray
-    misfit_m: float
 
     def check_model(self, model: MeasurementModel, key: str = LEARNED_RESIDUAL_FILE) -> None:
         """ConfigError unless ``model`` has these parameters (the cell and effects the
@@ -70,10 +69,10 @@ class StoredResidual:
 
 
 def residual_document(choice: ResidualChoice, result: CalibrationResult,
-                      covariance: np.ndarray, misfit_m: float) -> dict[str, Any]:
+                      covariance: np.ndarray, covariance_outside: np.ndarray) -> dict[str, Any]:
     """The learned_residual.yaml document of ``choice`` for calibration ``result``;
-    ``covariance`` (k, k) of ``result.estimated``, as used with the learned residual,
-    ``misfit_m`` the physical model's held-out misfit b (m)."""
+    ``covariance`` and ``covariance_outside`` (k, k) of ``result.estimated``, as used with
+    the learned residual inside and far from the fitted region."""
     model = choice.model
     return {
         'format': FORMAT,
@@ -88,8 +87,7 @@ def residual_document(choice: ResidualChoice, result: CalibrationResult,
                      'values': [float(x) for x in result.values],
                      'estimated': list(result.estimated),
                      'covariance': np.asarray(covariance, float).tolist(),
-                     'covariance_outside': np.asarray(result.covariance, float).tolist(),
-                     'misfit_m': float(misfit_m)}}
+                     'covariance_outside': np.asarray(covariance_outside, float).tolist()}}
 
 
 def write_residual(out_dir: str | Path, doc: dict[str, Any]) -> Path:
@@ -147,11 +145,8 @@ def read_residual(path: str | Path, key: str = 'learned_residual') -> StoredResi
         if not np.allclose(cov, cov.T, rtol=1e-9, atol=0.0) or np.any(np.diag(cov) < 0):
             raise bad(f'physical.{field}', 'must be symmetric with a non-negative diagonal')
         covs.append(cov)
-    misfit = _number(physical.get('misfit_m'), 'physical.misfit_m', bad)
-    if misfit < 0:
-        raise bad('physical.misfit_m', f'must be >= 0, got {misfit!r}')
     residual = LearnedResidual(joints, q, y, amplitude, scales, noise)
-    return StoredResidual(residual, names, values, estimated, covs[0], covs[1], misfit)
+    return StoredResidual(residual, names, values, estimated, covs[0], covs[1])
 
 
 def _names(value: Any, field: str, bad: Any) -> tuple[str, ...]:

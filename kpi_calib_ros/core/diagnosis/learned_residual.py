@@ -30,7 +30,9 @@ t-test over the held-out poses (:data:`CHOICE_ALPHA`) and a least gain
 
 The predicted TCP then carries two independent parts of uncertainty: the physical
 parameters' (their covariance, with the noise the Gaussian process leaves, see
-:func:`residual_noise_scale`) and the Gaussian process's latent variance at that pose.
+:func:`residual_noise_scale`; far from the training poses their covariance under the
+learned misfit field, :func:`field_parameter_covariance`) and the Gaussian process's latent
+variance at that pose.
 """
 from __future__ import annotations
 
@@ -335,6 +337,53 @@ def residual_noise_scale(model: LearnedResidual, sigma_m: float | np.ndarray) ->
     return max(1.0, model.noise_m2 / stated)
 
 
+def field_parameter_covariance(model: LearnedResidual, q: np.ndarray,
+                               precision_jacobian: np.ndarray, covariance: np.ndarray,
+                               noise_scale: float = 1.0) -> np.ndarray:
+    """Covariance of the estimated parameters when the misfit is the learned field.
+
+    Least squares treats every row's error as independent noise. The misfit the learned
+    residual found is not: it is a smooth field δ(q) over joint space, shared by nearby
+    poses, and the fit absorbed part of it into the parameters. With the estimate
+    p̂ − p = C₀ Fᵀ W ε (C₀ the covariance from the stated σ, F the Jacobian, W the rows'
+    weights) and ε the white noise w plus the field of covariance
+    c · k(q_i, q_j) I₃ (the fitted kernel), the parameters' covariance is
+
+        C = s C₀ + C₀ (Σ_ij k_ij c H_iᵀ H_j) C₀,   H_i = W_i J_i,
+
+    s the noise the learned residual leaves over the stated σ²
+    (:func:`residual_noise_scale`). Propagated to a pose far from the training poses it
+    is what the parameters' error adds there, where the correction has returned to 0.
+    With few, widely spread poses it stays near s C₀; with many correlated ones it says
+    what the χ² scaling cannot: correlated rows carry less information than their number.
+
+    Parameters
+    ----------
+    model : LearnedResidual
+        The fitted field (its kernel's c and ℓ).
+    q : (m, n) ndarray
+        Joint values of the point rows the parameters were identified from.
+    precision_jacobian : (m, 3, k) ndarray
+        W_iᵀ W_i J_i of those rows: the Jacobian of the k estimated parameters times the
+        rows' inverse noise covariance (1/m² per unit of each parameter and m).
+    covariance : (k, k) ndarray
+        C₀ = (Σ J_iᵀ W_iᵀ W_i J_i)⁻¹, the parameters' covariance from the stated σ.
+    noise_scale : float
+        s.
+
+    Returns
+    -------
+    (k, k) ndarray
+    """
+    q = np.atleast_2d(np.asarray(q, float))
+    h = np.asarray(precision_jacobian, float).reshape(len(q), 3, -1)
+    c0 = np.asarray(covariance, float)
+    kq = model.amplitude_m2 * RBF(model.length_scales)(q)
+    meat = sum(h[:, a, :].T @ kq @ h[:, a, :] for a in range(3))
+    field = c0 @ meat @ c0
+    return noise_scale * c0 + 0.5 * (field + field.T)
+
+
 @dataclass(frozen=True)
 class CorrectedTcp:
     """TCP (KPI point) predictions with the learned residual.
@@ -364,18 +413,16 @@ class CorrectedTcp:
 
 def corrected_tcp(tcp: np.ndarray, tcp_jacobian: np.ndarray, covariance_inside: np.ndarray,
                   q: np.ndarray, model: LearnedResidual | None,
-                  covariance_outside: np.ndarray | None = None,
-                  misfit_m: float = 0.0) -> CorrectedTcp:
+                  covariance_outside: np.ndarray | None = None) -> CorrectedTcp:
     """The physical TCP prediction plus the learned residual, with both uncertainties.
 
-    Inside the fitted region the learned residual explains the misfit, so the parameters'
-    covariance is the one with the noise it leaves (``covariance_inside``); far from
-    the training poses it explains nothing, and the physical model's own honest covariance
-    (``covariance_outside``: χ²-scaled when the model is not adequate,
-    :mod:`kpi_calib_ros.core.estimation.precision`) applies, with its systematic misfit b
-    (``misfit_m``, :class:`kpi_calib_ros.core.estimation.precision.ExpectedTcpError`) spread over
-    the three axes: the expected TCP error the project states without a learned residual,
-    beside the learned part's prior variance c.
+    Inside the fitted region the learned residual knows the misfit there, the part the
+    parameters absorbed included, so the parameters' covariance is the one with the noise
+    it leaves (``covariance_inside``). Far from the training poses the correction has
+    returned to 0 with its prior variance c, and the parameters' error shows in full: the
+    fit took part of the misfit field into them, and the field's correlation over nearby
+    poses leaves them less known than independent rows would
+    (``covariance_outside``, :func:`field_parameter_covariance`).
     Between the two the weight is the share of the prior variance the training poses
     explain at the query, 1 − ((latent variance)/c)²: 1 where the learned residual knows
     δ, 0 where it has returned to its prior.
@@ -394,10 +441,8 @@ def corrected_tcp(tcp: np.ndarray, tcp_jacobian: np.ndarray, covariance_inside: 
     model : LearnedResidual or None
         None: the physical prediction alone.
     covariance_outside : (k, k) ndarray, optional
-        The covariance reported without the learned residual; default
-        ``covariance_inside``.
-    misfit_m : float
-        b, the physical model's held-out misfit level (m, 3D), added far from data.
+        Their covariance when the misfit is the learned field
+        (:func:`field_parameter_covariance`); default ``covariance_inside``.
     """
     tcp = np.asarray(tcp, float).reshape(-1, 3)
     jac = np.asarray(tcp_jacobian, float).reshape(len(tcp), 3, -1)
@@ -412,14 +457,11 @@ def corrected_tcp(tcp: np.ndarray, tcp_jacobian: np.ndarray, covariance_inside: 
     if covariance_outside is not None:
         latent = pred.covariance[:, 0, 0] / model.amplitude_m2
         weight = np.clip(1.0 - latent ** 2, 0.0, 1.0)[:, None, None]
-        # Both parts, not the larger: c is the misfit the training residuals still show,
-        # b² the physical model's held-out misfit, which grows as it extrapolates (the
-        # larger alone covered 79-88 % of fresh poses outside the region, both 94-99 %).
-        outside = propagated(covariance_outside) + misfit_m ** 2 / 3.0 * np.eye(3)
-        physical = weight * inside + (1.0 - weight) * outside
+        physical = weight * inside + (1.0 - weight) * propagated(covariance_outside)
     return CorrectedTcp(tcp + pred.mean, physical + pred.covariance, physical, pred)
 
 
 __all__ = ['CHOICE_ALPHA', 'CorrectedTcp', 'INSIDE_DISTANCE', 'LearnedResidual', 'MIN_GAIN',
-           'ResidualChoice', 'ResidualPrediction', 'corrected_tcp', 'fit_learned_residual',
+           'ResidualChoice', 'ResidualPrediction', 'corrected_tcp', 'field_parameter_covariance',
+           'fit_learned_residual',
            'fixed_kernel', 'residual_noise_scale']
