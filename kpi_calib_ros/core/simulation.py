@@ -208,7 +208,8 @@ def simulate_measurements(model: MeasurementModel, p_true: np.ndarray, q: np.nda
     ``covariates`` (name -> (N,), e.g. a temperature ramp over a shift,
     :func:`kpi_calib_ros.core.measurement.covariates.shift_temperature`) drive the true model's
     effects that read them (a hidden thermal effect) and are recorded with the rows, as are
-    ``stamps_ns`` (N,)."""
+    ``stamps_ns`` (N,).
+    """
     q = np.atleast_2d(q)
     clean = model.predict(p_true, q, covariates=covariates)
     noise = rng.normal(size=clean.shape) * np.broadcast_to(np.asarray(sigma, float), (3,))
@@ -227,7 +228,8 @@ def simulate_pose_measurements(model: MeasurementModel, p_true: np.ndarray, q: n
     (:meth:`MeasurementModel.pose_measurements`), with noise: each reflector's point
     ``h(p_true, q) + N(0, σ²)`` per axis, each tracked body's rotation ``R · exp(ω)``,
     ``ω ~ N(0, σ_rot² I)`` (rad) in the body frame. For one reflector the same draws as
-    :func:`simulate_measurements`."""
+    :func:`simulate_measurements`.
+    """
     rows = model.pose_measurements(p_true, q)
     points = np.asarray(rows.reflector) < model.n_reflectors
     eta = rows.eta.copy()
@@ -281,7 +283,8 @@ def smooth_joint_map(q: np.ndarray, joints: tuple[int, int], amplitude_m: float,
     sines of the two angles, ``amplitude_m`` its largest size, ``phase`` (6,) rad.
 
     The unknown misfit the learned residual (:mod:`kpi_calib_ros.core.diagnosis.learned_residual`)
-    is tested on."""
+    is tested on.
+    """
     q = np.atleast_2d(np.asarray(q, float))
     a, b = q[:, joints[0]], q[:, joints[1]]
     phase = np.asarray(phase, float).reshape(3, 2)

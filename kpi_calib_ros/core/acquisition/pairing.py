@@ -58,7 +58,8 @@ _log = logging.getLogger(__name__)
 
 def split_frame(frame_id: str) -> tuple[str, str]:
     """``(frame, reflector name)`` of a point's frame id ``'<frame>#<name>'`` (name ''
-    when there is no ``#``); a leading '/' of the frame is dropped."""
+    when there is no ``#``); a leading '/' of the frame is dropped.
+    """
     frame, _, name = frame_id.partition(REFLECTOR_SEPARATOR)
     return frame.strip('/'), name
 
@@ -66,7 +67,8 @@ def split_frame(frame_id: str) -> tuple[str, str]:
 @dataclass(frozen=True)
 class Rejection:
     """A point or joint sample that did not become a measurement; ``reason`` is one of
-    :data:`REJECTION_REASONS`, ``detail`` says why in words."""
+    :data:`REJECTION_REASONS`, ``detail`` says why in words.
+    """
 
     stamp_ns: int
     reason: str
@@ -331,7 +333,8 @@ class Pairer:
     def _restart_epoch(self, stamp_ns: int, latest_ns: int) -> None:
         """The joint clock went back from ``latest_ns`` to ``stamp_ns``: close the epoch,
         pairing its points with its own joint states, and start a new one; points that were
-        waiting for it join it."""
+        waiting for it join it.
+        """
         back_s = (latest_ns - stamp_ns) * 1e-9
         note = (f' (joint-state clock jumped back {back_s:.3f} s after this point; '
                 'no later joint state of its epoch)')
@@ -409,7 +412,8 @@ class Pairer:
 
     def poll(self, now_ns: int) -> list[Decision]:
         """Decide points whose joint states are overdue at ``now_ns`` (same clock as the
-        stamps) and return every decision made since the last call, oldest first."""
+        stamps) and return every decision made since the last call, oldest first.
+        """
         while self._pending and now_ns >= self._pending[0][0] + self.window_ns + self.timeout_ns:
             self._decide(heapq.heappop(self._pending)[2])
         self._decide_early(lambda deadline: now_ns >= deadline)
@@ -574,7 +578,8 @@ def pair_measurements(
 
 def stacked_rotations(rotations: Sequence[np.ndarray | None]) -> np.ndarray | None:
     """(N, 3, 3) rotations of accepted rows, NaN where a row is a plain point; None when
-    no row carries one."""
+    no row carries one.
+    """
     if all(r is None for r in rotations):
         return None
     return np.array([np.full((3, 3), np.nan) if r is None else r for r in rotations])

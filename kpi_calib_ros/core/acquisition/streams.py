@@ -69,7 +69,8 @@ class PointSample:
 
     A tracked 6-DoF pose is a point with ``orientation``, the body's unit quaternion
     [x, y, z, w] in that frame, kept exactly as received so that a logged and restored
-    pose is bit for bit the live one; :attr:`rotation` is its matrix."""
+    pose is bit for bit the live one; :attr:`rotation` is its matrix.
+    """
 
     stamp_ns: int
     frame_id: str
@@ -86,7 +87,8 @@ class PointSample:
     @property
     def rotation(self) -> np.ndarray | None:
         """(3, 3) rotation of ``orientation`` (all NaN when it is not a finite unit
-        quaternion: rejected when paired); None for a plain point."""
+        quaternion: rejected when paired); None for a plain point.
+        """
         return None if self.orientation is None else checked_rotation(self.orientation)
 
 
@@ -100,7 +102,8 @@ def checked_rotation(quaternion: np.ndarray) -> np.ndarray:
 
 def _quintic(tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Rest-to-rest profile s(τ) and ds/dτ on τ ∈ [0, 1], zero velocity and acceleration
-    at both ends, so holds are genuinely still."""
+    at both ends, so holds are genuinely still.
+    """
     s = tau ** 3 * (10.0 - 15.0 * tau + 6.0 * tau ** 2)
     ds = 30.0 * tau ** 2 * (1.0 - tau) ** 2
     return s, ds

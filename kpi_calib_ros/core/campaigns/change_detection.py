@@ -56,7 +56,8 @@ class ParameterShift:
 @dataclass(frozen=True)
 class ChangeTest:
     """Outcome of :func:`change_test`; ``moved`` lists the parameters beyond the drift
-    model, largest likelihood ratio first."""
+    model, largest likelihood ratio first.
+    """
 
     consistent: bool
     alpha: float

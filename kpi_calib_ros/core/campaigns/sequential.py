@@ -261,7 +261,8 @@ class SimulatedRun:
 
 def sigma_upper_limit(chi2: float, dof: int, sigma: float, confidence: float) -> float:
     """Upper ``confidence`` limit of σ (m) from χ² against ``sigma`` with ``dof`` dof:
-    σ √(χ² / χ²_dof(1 − confidence)); inf without dof."""
+    σ √(χ² / χ²_dof(1 − confidence)); inf without dof.
+    """
     if dof <= 0:
         return float('inf')
     return float(sigma * np.sqrt(chi2 / scipy.stats.chi2.ppf(1.0 - confidence, dof)))
@@ -272,7 +273,8 @@ def pure_error(q: np.ndarray, eta: np.ndarray, weight: np.ndarray,
     """Weighted sum of squares (σ units) and dof of the scatter of repeated poses
     (:func:`~kpi_calib_ros.core.measurement.replicates.pose_groups`): 3 (m − 1) dof per pose
     measured
-    m times, per reflector (``reflector`` (N,) the reflector of each point row; None: one)."""
+    m times, per reflector (``reflector`` (N,) the reflector of each point row; None: one).
+    """
     ss, dof = 0.0, 0
     labels = pose_groups(q)
     if reflector is not None:
@@ -291,7 +293,8 @@ def lack_of_fit(chi2: float, dof: int, ss_pe: float, dof_pe: int, target_w: floa
 
     MS_lof = (χ² − SS_pe)/(dof − dof_pe) estimates σ² + b², MS_pe estimates σ²; the
     statistic (MS_lof − target²)/MS_pe is F(dof_lof, dof_pe) at b = target. Returns
-    ``bias_rms`` (σ units, ≥ 0), ``p_value`` and ``rejects`` (1.0: bias > target)."""
+    ``bias_rms`` (σ units, ≥ 0), ``p_value`` and ``rejects`` (1.0: bias > target).
+    """
     dof_lof = dof - dof_pe
     if dof_pe <= 0 or dof_lof <= 0 or ss_pe <= 0:
         return {}
@@ -359,7 +362,8 @@ class SequentialCampaign:
         of ``NESTED_FACTOR`` times that size, and the rest of that order is the start of
         the plan. A design optimal for its own small size is a poor subset of larger
         designs, and no choice of the later poses repairs it until the campaign has
-        about three times as many poses (bench/results/sequential_campaign.md)."""
+        about three times as many poses (bench/results/sequential_campaign.md).
+        """
         rows = self.problem.rows(self.cell.model, self.candidates)
         loss = self.problem.loss('kpi')
         for n in range(int(np.ceil(self.problem.k / 3)), len(self.candidates)):
@@ -391,7 +395,8 @@ class SequentialCampaign:
 
     def _check_cap(self, size: int, smallest: int) -> None:
         """ConfigError naming the cap and the initial design's size when the campaign may
-        not measure even its initial design."""
+        not measure even its initial design.
+        """
         s = self.settings
         if size > s.max_measurements or size > len(self.candidates):
             limit = ('max_measurements', s.max_measurements) if size > s.max_measurements \
@@ -405,7 +410,8 @@ class SequentialCampaign:
                          tolerance: float = SAME_POSE_TOLERANCE) -> np.ndarray:
         """Candidate index (N,) of each measured pose ``q`` (N, n): the candidate within
         ``tolerance`` (rad, m) on every joint, -1 if none (a robot that stopped off the
-        planned pose)."""
+        planned pose).
+        """
         out = np.full(len(q), -1)
         for i, row in enumerate(np.atleast_2d(q)):
             dist = np.max(np.abs(self.candidates - row), axis=1)
@@ -535,7 +541,8 @@ class SequentialCampaign:
     def _robust_fit(self) -> RobustResult:
         """The identification with the batch outlier rule (warm start). More outliers than
         the rule may exclude is no longer a few faults: every point is kept, and the
-        lack-of-fit test judges the model."""
+        lack-of-fit test judges the model.
+        """
         cell = self.cell
 
         def fit(data: Measurements, p0: np.ndarray | None = None,
@@ -561,7 +568,8 @@ class SequentialCampaign:
         """A pose measured more than once whose readings disagree: the reading whose
         removal lets the fit pass the χ² test is a fault (the replicate agrees with the
         model, the first reading does not); a misfit fails with either removed, so
-        nothing is excluded and the lack-of-fit test judges the model."""
+        nothing is excluded and the lack-of-fit test judges the model.
+        """
         kept = np.asarray(robust.kept, bool)
         labels = self._replicate_labels()
         best: tuple[float, int, RobustResult] | None = None
@@ -597,7 +605,8 @@ class SequentialCampaign:
     def _most_suspect(self, kept: np.ndarray) -> int:
         """The kept measurement with the largest studentized distance to the fit,
         r_iᵀ(I − H_ii)⁻¹r_i with H the hat matrix of the weighted Jacobian: a point the
-        fit is drawn towards (high leverage) counts its residual accordingly."""
+        fit is drawn towards (high leverage) counts its residual accordingly.
+        """
         model, res = self.cell.model, self.result
         assert res is not None
         idx = model.params.indices(list(res.estimated))
@@ -623,7 +632,8 @@ class SequentialCampaign:
         once only (a replicate tells a fault from a misfit); while χ² has rejected and
         the pure-error dof are short, a replicate of the measured pose that helps the KPI
         most, every third pose; then the candidates :func:`plan_ahead` chooses in
-        :meth:`_estimate_problem`."""
+        :meth:`_estimate_problem`.
+        """
         model = self.cell.model
         problem = self._estimate_problem()
         loss = problem.loss('kpi')
@@ -657,7 +667,8 @@ class SequentialCampaign:
 
     def _kept_q(self) -> np.ndarray:
         """Joint values of the poses whose every row the last fit kept (a pose with an
-        excluded row is measured again, and its information counted then)."""
+        excluded row is measured again, and its information counted then).
+        """
         if self.robust is None:
             return self.q
         lost = np.unique(self._row_pose[~np.asarray(self.robust.kept, bool)])
@@ -671,7 +682,8 @@ class SequentialCampaign:
 
     def _replicate_labels(self) -> np.ndarray:
         """(rows,) the same label for the rows of one reflector (or rotation channel) at
-        one pose measured again: replicates of each other, not the other reflectors."""
+        one pose measured again: replicates of each other, not the other reflectors.
+        """
         channel = np.asarray(self.rows.reflector)
         return pose_groups(self.rows.q) * (int(np.max(channel, initial=0)) + 1) + channel
 
@@ -682,7 +694,8 @@ class SequentialCampaign:
         exactly parallel) makes more of them identifiable, the calibration estimates
         them, and their variance is part of the statistic the campaign stops on (the
         batch KPI designs calibrate to an 8-9 % larger TCP std than the design problem
-        says, bench/results/sequential_campaign.md)."""
+        says, bench/results/sequential_campaign.md).
+        """
         model = self.cell.model
         assert self.result is not None
         idx = model.params.indices(list(self.result.estimated))
@@ -758,7 +771,8 @@ def nested_order(rows: np.ndarray, design: np.ndarray, loss: Loss, n_min: int) -
     prefix of at least ``n_min`` poses is a good design of its size: backward
     elimination, repeatedly removing the pose whose removal raises ``loss`` least (never
     one that makes the information singular) down to ``n_min``; the removed ones follow
-    the rest in reverse order of removal."""
+    the rest in reverse order of removal.
+    """
     kept = [int(i) for i in design]
     removed: list[int] = []
     while len(kept) > max(n_min, 1):
@@ -778,7 +792,8 @@ def _inverse(info: np.ndarray) -> np.ndarray:
 
 def _pose_starts(q: np.ndarray, channel: np.ndarray) -> np.ndarray:
     """First row (indices) of each pose among rows ``q`` (m, n) with row channels
-    ``channel`` (m,): a pose ends where ``q`` changes or a channel comes again."""
+    ``channel`` (m,): a pose ends where ``q`` changes or a channel comes again.
+    """
     starts: list[int] = []
     seen: set[int] = set()
     for i in range(len(q)):
@@ -791,7 +806,8 @@ def _pose_starts(q: np.ndarray, channel: np.ndarray) -> np.ndarray:
 
 def _concatenate(a: Measurements, b: Measurements) -> Measurements:
     """The rows of ``a`` then those of ``b`` (rotations identity where one has none,
-    stamps -1 and stated σ NaN, the cell's, where one has none)."""
+    stamps -1 and stated σ NaN, the cell's, where one has none).
+    """
     def rotations(m: Measurements) -> np.ndarray:
         return (np.broadcast_to(np.eye(3), (len(m), 3, 3)) if m.rotation is None
                 else np.asarray(m.rotation))

@@ -95,7 +95,8 @@ class DesignProblem:
     def rows(self, model: MeasurementModel, q: np.ndarray) -> np.ndarray:
         """Scaled weighted Jacobian rows W J D (N, 3R, k) of configurations ``q`` (N, n),
         every row a measured pose gives (every reflector's point, every tracked body's
-        rotation: R = ``model.rows_per_pose``, 1 for a single reflector)."""
+        rotation: R = ``model.rows_per_pose``, 1 for a single reflector).
+        """
         _, jac = model.pose_jacobian(self.p, np.atleast_2d(q))
         weight = np.tile(self.weight, model.rows_per_pose)
         return jac[:, :, self.index] * weight[None, :, None] * self.column_scale
@@ -157,7 +158,8 @@ def scales(jac: np.ndarray, weight_rows: np.ndarray) -> tuple[np.ndarray, np.nda
     """``(column_scale, physical_scale)`` of a :class:`DesignProblem` from the point
     Jacobians ``jac`` (R, 3·m, k) of its parameters over a pose set and the row weights
     ``weight_rows`` (3·m,) (1/σ per axis, per reflector): D = 1/rms of the weighted
-    columns, S = rms of ‖∂h/∂p_j‖."""
+    columns, S = rms of ‖∂h/∂p_j‖.
+    """
     rms = np.sqrt(np.mean(np.sum((jac * weight_rows[None, :, None]) ** 2, axis=1), axis=0))
     return 1.0 / rms, np.sqrt(np.mean(np.sum(jac ** 2, axis=1), axis=0))
 

@@ -328,7 +328,8 @@ class DrawnRobots:
     def to_dict(self, nominal_parameters: int, pose_names: Sequence[str],
                 nominal_std: np.ndarray) -> dict:
         """YAML-ready: counts, and per working pose the median and largest std (m) and
-        the median ratio of the largest axis to the nominal problem's."""
+        the median ratio of the largest axis to the nominal problem's.
+        """
         worst = np.max(self.tcp_std, axis=2) / np.max(nominal_std, axis=1)[None, :]
         return {
             'robots': len(self.parameters), 'parameters': list(self.parameters),
@@ -353,7 +354,8 @@ def tcp_std_on_drawn_robots(cell: DesignCell, configurations: np.ndarray,
     the design problem at each robot, its identifiable parameters selected from the
     designed poses themselves, as :func:`kpi_calib_ros.core.estimation.least_squares.identify`
     selects
-    them from the measured ones."""
+    them from the measured ones.
+    """
     q = np.atleast_2d(configurations)
     counts, stds = [], []
     for _ in range(draws):

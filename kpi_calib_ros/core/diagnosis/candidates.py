@@ -207,7 +207,8 @@ class ModelComparison:
 class CellDiagnosis:
     """Everything :func:`kpi_calib_ros.app.diagnose.diagnose_cell` computes.
 
-    ``after``/``comparison`` only when an effect was added."""
+    ``after``/``comparison`` only when an effect was added.
+    """
 
     model: MeasurementModel
     data: Measurements
@@ -428,7 +429,8 @@ def equivalent_joint_sigma(model: MeasurementModel, data: Measurements,
                            result: CalibrationResult) -> float:
     """Joint-reading noise σ_q (rad, the same on every joint) that explains the residual sum
     of squares beyond the stated tracker σ: Σ‖r_i‖² · 3N/dof = Σ_i (Σ_a σ_a² + σ_q² ‖J_q,i‖²)
-    (the fit leaves dof/3N of the noise in the residuals); 0 when σ explains them."""
+    (the fit leaves dof/3N of the noise in the residuals); 0 when σ explains them.
+    """
     point = (np.ones(len(data), bool) if data.reflector is None
              else np.asarray(data.reflector) < model.n_reflectors)
     q = np.atleast_2d(data.q)[point]
@@ -506,7 +508,8 @@ def _effect_columns(model: MeasurementModel, sys_: LinearizedFit, effect: BoundE
                     shape: tuple[float, ...] = ()) -> tuple[np.ndarray, float]:
     """Weighted Jacobian columns (3N, k) of the effect's size parameters at size 0 (shape
     parameters, the last ``len(shape)``, held at ``shape``) and the largest point
-    displacement (m) a typical-size effect causes."""
+    displacement (m) a typical-size effect causes.
+    """
     aug = augmented_model(model, (effect,))
     k = len(effect.parameter_names) - len(shape)
     p = np.concatenate([sys_.p, np.zeros(k), shape])
@@ -545,7 +548,8 @@ def _fit_candidate(effect: BoundEffect, cols: np.ndarray, sys_: LinearizedFit, r
                    fraction: float, shape: tuple[float, ...] = ()) -> CandidateFit:
     """Augmented least squares [J E] from the geometric solution, its F-test and CV.
     Shape parameters held at ``shape`` (chosen from a grid) count as fitted in the
-    F-test's degrees of freedom; their std is NaN."""
+    F-test's degrees of freedom; their std is NaN.
+    """
     n = len(q)
     k = cols.shape[1] + len(shape)
     unique = cols - sys_.basis @ (sys_.basis.T @ cols)
@@ -579,7 +583,8 @@ def merge_same_signature(fits: list[CandidateFit]) -> list[CandidateFit]:
     """Merge candidates whose signatures (the part of their Jacobian columns the geometry
     does not reproduce) span the same subspace, i.e. the same column up to scale for one
     parameter. The best-fitting one stays, with the others' specs in ``'merged'``:
-    the data cannot tell them apart, so they are one candidate, not several."""
+    the data cannot tell them apart, so they are one candidate, not several.
+    """
     bases = [np.linalg.qr(f.unique)[0] for f in fits]
     order = sorted(range(len(fits)), key=lambda i: -fits[i].delta_chi2)
     taken: set[int] = set()
@@ -606,7 +611,8 @@ def nested_alternatives(fits: list[CandidateFit], alpha: float = ADEQUACY_ALPHA
     joint_play is joint_backlash as τ0 -> 0 and joint_compliance as τ0 -> ∞): is it
     significantly better than the best plausible simpler one (F-test of its extra
     parameters at ``alpha``)? If not, the simpler one is the explanation. Returns
-    spec -> why it is not counted significant."""
+    spec -> why it is not counted significant.
+    """
     by_joint: dict[tuple[str | None, str], CandidateFit] = {
         (f.effect.joint, f.effect.kind.name): f for f in fits}
     out = {}
@@ -631,7 +637,8 @@ def nested_alternatives(fits: list[CandidateFit], alpha: float = ADEQUACY_ALPHA
 def torque_effect_notes(fits: list[CandidateFit]) -> dict[str, str]:
     """For a joint with both backlash (a step with the sign of the gravity torque) and
     compliance (in proportion to it) among the candidates: which fits better, by the
-    χ² reduction of each (both have one parameter). Returns spec -> note."""
+    χ² reduction of each (both have one parameter). Returns spec -> note.
+    """
     by_joint: dict[str, dict[str, CandidateFit]] = {}
     for f in fits:
         e = f.effect

@@ -55,7 +55,8 @@ FitFor = Callable[[MeasurementModel], Callable[..., CalibrationResult]]
 @dataclass(frozen=True)
 class EffectTrial:
     """One candidate effect refitted in a round: its fitted values, the predicted
-    out-of-sample rms (m, None when refused before) and the outcome."""
+    out-of-sample rms (m, None when refused before) and the outcome.
+    """
 
     spec: str
     round: int
@@ -81,7 +82,8 @@ class EffectTrial:
 @dataclass(frozen=True)
 class EffectChoice:
     """The effects added (in order), the model with them, the predicted out-of-sample rms
-    (m) before and after, every trial and why selection stopped."""
+    (m) before and after, every trial and why selection stopped.
+    """
 
     effects: tuple[BoundEffect, ...]
     model: MeasurementModel
@@ -198,7 +200,8 @@ def choose_effects(model: MeasurementModel, data: Measurements, fit_for: FitFor,
 def _implausible_fit(effects: tuple, result: CalibrationResult,
                      tau: np.ndarray | None) -> str:
     """Why the fitted values of ``effects`` (the new one and those added before, which the
-    refit moves too) are not physically plausible at the measured torques, or ''."""
+    refit moves too) are not physically plausible at the measured torques, or ''.
+    """
     for e in reversed([e for e in effects if isinstance(e, BoundEffect)]):
         why = implausible(e, [float(result.value(n)) for n in e.parameter_names], tau)
         if why:
@@ -212,7 +215,8 @@ def effect_start(values: np.ndarray, effect: BoundEffect, screened: np.ndarray) 
     0 and its shape parameters at their ``screened`` values. The screened size came with a
     geometry that moved too (the linear screen refits both); added to the old geometry it
     starts far off (TIAGo: 5.9 mm rms from a 2.2 mm fit), while from size 0 the geometry and
-    the size are fitted together and the shape is freed once the size is not 0."""
+    the size are fitted together and the shape is freed once the size is not 0.
+    """
     k = effect.kind.n_shape
     size = np.zeros(len(effect.parameter_names) - k)
     return np.concatenate([values, size, np.asarray(screened, float)[len(size):]])
@@ -227,7 +231,8 @@ def _trial(model: MeasurementModel, data: Measurements, fit_for: FitFor,
     An effect with shape parameters (nonlinear, e.g. joint_play's τ0) is fitted with them
     free first; when that fit does not converge or leaves the plausible range, they are
     held at the screened value (the best plausible point of their grid) and only the size
-    is fitted: the plausible-constrained estimate on the grid."""
+    is fitted: the plausible-constrained estimate on the grid.
+    """
     aug = augmented_model(model, (effect,))
     names = list(effect.parameter_names)
     shape = list(effect.shape_names)

@@ -162,7 +162,8 @@ def answer_misfit(analysis: ResidualAnalysis | None, named: Remedy | None = None
 
 def _gain(remedy: Remedy) -> float:
     """Fraction of the held-out mean square a remedy removes, 1 − after²/before² (0 when
-    unknown)."""
+    unknown).
+    """
     gain = 1.0 - (remedy.held_out_after_m / remedy.held_out_before_m) ** 2
     return float(gain) if np.isfinite(gain) else 0.0
 

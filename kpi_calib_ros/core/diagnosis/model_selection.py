@@ -76,7 +76,8 @@ def level_free(params: ParameterSet, level: str, n_geometric: int | None = None)
 class ModelChoice:
     """The chosen level, every level's predicted out-of-sample rms (m; None: not fitted or
     no degrees of freedom), its cross-validated rms where folds keep every identified
-    parameter determined (None: not estimable from this design) and why."""
+    parameter determined (None: not estimable from this design) and why.
+    """
 
     level: str
     requested: str
@@ -108,7 +109,8 @@ def cross_validated_level_rms(model: MeasurementModel, data: Measurements, fit: 
                               free: list[str], folds: int = DEFAULT_FOLDS,
                               seed: int = 0) -> float | None:
     """k-fold CV rms (m) of refitting ``free`` on the training folds and predicting the
-    held-out measurements; None when a fold cannot be fitted."""
+    held-out measurements; None when a fold cannot be fitted.
+    """
     q, eta = np.atleast_2d(data.q), np.atleast_2d(data.eta)
     # A pose's rows (one per reflector) share q: a fold holds out whole poses, else the
     # other reflectors of a held-out pose would be in the training set.

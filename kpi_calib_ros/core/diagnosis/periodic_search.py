@@ -60,7 +60,8 @@ class Periodogram:
 
 def searched_cycles(q_j: np.ndarray, max_cycles: int = MAX_SEARCHED) -> np.ndarray:
     """Frequencies (cycles per revolution) the poses' angles ``q_j`` (N,) support:
-    ``MIN_CYCLES`` … min(``max_cycles``, ⌊π N / Δ⌋), Δ the span of the angles (≤ 2π)."""
+    ``MIN_CYCLES`` … min(``max_cycles``, ⌊π N / Δ⌋), Δ the span of the angles (≤ 2π).
+    """
     q_j = np.asarray(q_j, float)
     span = min(float(np.ptp(q_j)) if len(q_j) else 0.0, 2.0 * math.pi)
     if span <= 0.0:
@@ -122,7 +123,8 @@ def periodic_candidates(model: MeasurementModel, found: tuple[Periodogram, ...]
                         ) -> list[BoundEffect]:
     """The peak of each periodogram as a candidate effect, ``searched`` = the number of
     frequencies tried (k = 2 is the named ``cyclic_joint_error_h2``); effects already in
-    ``model`` left out."""
+    ``model`` left out.
+    """
     have = {e.name for e in model.effects}
     out: list[BoundEffect] = []
     for gram in found:

@@ -128,7 +128,8 @@ def residual_inputs(model: MeasurementModel, data: Measurements, result: Calibra
 
 def _covariate_fields(eta: np.ndarray, point: np.ndarray) -> np.ndarray:
     """(N, 3, 4) fields of an input with no direction: each tracker axis and the offset
-    of the (predicted) points ``eta`` from their centroid; 0 on rotation rows."""
+    of the (predicted) points ``eta`` from their centroid; 0 on rotation rows.
+    """
     fields = np.zeros((len(eta), 3, 4))
     fields[point, :, :3] = np.eye(3)
     if point.any():

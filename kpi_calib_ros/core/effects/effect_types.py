@@ -205,7 +205,8 @@ class BoundEffect:
 
     def joint_correction(self, q: ca.SX, tau: ca.SX, theta: ca.SX, z: Any = None) -> Any:
         """Additive joint-value correction, SX (n,), or None for a point or placement
-        effect; ``z`` the covariates :attr:`inputs` (SX, an effect with inputs only)."""
+        effect; ``z`` the covariates :attr:`inputs` (SX, an effect with inputs only).
+        """
         fn = self.kind.joint_function
         if fn is None:
             return None
@@ -218,7 +219,8 @@ class BoundEffect:
 
     def placement_correction(self, theta: ca.SX, z: Any = None) -> list[tuple[int, Any]]:
         """Additive corrections of joint placement errors: [(joint index, SX (6,))]; empty
-        unless the kind has a ``placement_function``."""
+        unless the kind has a ``placement_function``.
+        """
         fn = self.kind.placement_function
         if fn is None or self.origins is None:
             return []
@@ -235,7 +237,8 @@ class BoundEffect:
     def frame_correction(self, q: ca.SX, tau: ca.SX, theta: ca.SX) -> Any:
         """``(joint index, SX (3, 3) rotation)`` applied to that joint's frame after its
         motion (link bending, :class:`kpi_calib_ros.core.effects.general.LinkBending`), or
-        None: the library's effects correct joint values or the point only."""
+        None: the library's effects correct joint values or the point only.
+        """
         return None
 
     def hint(self) -> str:

@@ -204,7 +204,8 @@ def state_predicted(prior: Prior, state: DriftState, swing: DriftSwing, shape: n
 def stationary_state(names: Sequence[str], swing: DriftSwing, shape: np.ndarray
                      ) -> DriftState:
     """The drift state of a calibration that has none: z = 0 with the stationary
-    covariance (the deviation and rate of the swing unknown), uncorrelated with p."""
+    covariance (the deviation and rate of the swing unknown), uncorrelated with p.
+    """
     k = len(names)
     cov = np.kron(swing.stationary(), 0.5 * np.asarray(shape, float))
     return DriftState(tuple(names), np.zeros(2 * k), cov, np.zeros((k, 2 * k)))
@@ -215,7 +216,8 @@ def initial_state(names: Sequence[str], swing: DriftSwing, shape: np.ndarray,
     """The drift state of the prior parameters ``names`` before extrapolation: ``stored``
     (a previous calibration's ``drift_state``) for the names it has; for the others, and
     for all without one, the stationary state of the swing (:func:`stationary_state`),
-    uncorrelated."""
+    uncorrelated.
+    """
     k = len(names)
     fresh = stationary_state(names, swing, shape)
     if stored is None:

@@ -149,7 +149,8 @@ def information_rows(model: MeasurementModel, p: np.ndarray, q: np.ndarray,
     """Information of measured poses ``q`` (N, n) at ``p`` in columns ``idx``: the data
     Jacobian weighted by 1/σ, with a ``prior``'s L rows below (what it determines counts
     as determined); ``reflector``, ``rotation`` and ``covariates`` as for
-    :meth:`~kpi_calib_ros.core.measurement.tracker.MeasurementModel.jacobian`."""
+    :meth:`~kpi_calib_ros.core.measurement.tracker.MeasurementModel.jacobian`.
+    """
     _, jac = model.jacobian(p, np.atleast_2d(q), None, reflector, rotation, covariates)
     rows = weighted_rows(jac, 1.0 / np.broadcast_to(np.asarray(sigma, float), (3,)), idx)
     return rows if prior is None else np.vstack([rows, prior.rows(model.params)[0][:, idx]])
@@ -167,7 +168,8 @@ def result_estimability(model: MeasurementModel, q: np.ndarray, sigma: np.ndarra
     (N, n), σ (3,) and working poses ``q_work`` (t, n); ``free`` names the free
     parameters (all by default); ``reflector`` (N,) the reflector each row measured. A
     ``rotation`` (N, 3, 3) the measured rotations of rotation rows. A
-    ``prior``'s rows count as information: what it determines is estimable."""
+    ``prior``'s rows count as information: what it determines is estimable.
+    """
     names = list(free) if free else list(model.params.names)
     idx = model.params.indices(names)
     data_jac = information_rows(model, p, q, sigma, idx, prior, reflector, rotation)

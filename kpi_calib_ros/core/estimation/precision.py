@@ -43,7 +43,8 @@ def noise_scale(result: CalibrationResult, alpha: float = ADEQUACY_ALPHA) -> flo
 
 def chi2_scale(chi2: float, dof: int, alpha: float = ADEQUACY_ALPHA) -> float:
     """χ²/dof when the χ² test (``dof`` degrees of freedom) rejects ``chi2`` and it exceeds
-    1, else 1: the factor on every covariance of a fit with that χ² (see the module)."""
+    1, else 1: the factor on every covariance of a fit with that χ² (see the module).
+    """
     if dof <= 0 or is_adequate(float(scipy.stats.chi2.sf(chi2, dof)), alpha):
         return 1.0
     return max(1.0, float(chi2 / dof))
@@ -85,7 +86,8 @@ def precision_statement(scale: float, joint_sigma: np.ndarray | None = None) -> 
     """How the reported std were obtained, for files, summaries and the node.
 
     ``joint_sigma``: the joint-reading noise the fit assumed (rad, chain order), None when
-    the cell stated none; then the joint readings are named as a cause of a rejection."""
+    the cell stated none; then the joint readings are named as a cause of a rejection.
+    """
     if scale == 1.0:
         return 'from the stated sigma (model adequate)'
     text = (f'scaled by chi2/dof = {scale:.4g} (estimated sigma = {np.sqrt(scale):.3g} x '
@@ -129,7 +131,8 @@ class ExpectedTcpError:
     @property
     def basis(self) -> str:
         """What the expected TCP error rests on: the parameter part alone, or with the
-        systematic misfit (and its figures in µm), or unknown."""
+        systematic misfit (and its figures in µm), or unknown.
+        """
         if self.adequate:
             return ('model adequate (chi2 accepts it): the expected TCP error is the '
                     'parameter part tcp_std_m alone')
@@ -159,7 +162,8 @@ def measurement_noise_ms(model: MeasurementModel, data: Measurements,
                          result: CalibrationResult) -> float:
     """Mean square noise (m²) of one point measurement: Σ_a σ_a² (the mean over the points
     of their own σ where the tracker stated it), plus the joint readings' mean
-    tr(J_q Σ_q J_qᵀ) when the model carries joint-reading noise."""
+    tr(J_q Σ_q J_qᵀ) when the model carries joint-reading noise.
+    """
     noise = float(np.mean(point_sigma_squares(result, data.reflector, model.n_reflectors)))
     if model.joint_sigma is None:
         return noise
@@ -205,7 +209,8 @@ BALANCE_RTOL = 0.02
 
 def tightened(prior: Prior, scale: float) -> Prior:
     """``prior`` with its covariance divided by ``scale`` (Λ → scale·Λ): at the stated σ, the
-    balance of the data weighed by σ·√scale against ``prior``."""
+    balance of the data weighed by σ·√scale against ``prior``.
+    """
     if scale == 1.0:
         return prior
     return Prior(prior.names, prior.mean, prior.covariance / scale)

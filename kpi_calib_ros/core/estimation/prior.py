@@ -193,7 +193,8 @@ def drift_widened(prior: Prior, hours: float, lengths: dict[str, float],
                   ) -> Prior:
     """``prior`` after ``hours`` of drift: C + Q·|hours| with Q of
     :func:`drift_covariance` on the prior's own parameters (see
-    :func:`mapped_drift` when those are a reduced, identified set)."""
+    :func:`mapped_drift` when those are a reduced, identified set).
+    """
     if not np.isfinite(hours):
         raise DataError(f'drift time must be finite, got {hours} h')
     q = drift_covariance(prior.names, lengths, length_rate, angle_rate, link_vectors)

@@ -395,7 +395,8 @@ def _refit(model: MeasurementModel, p: np.ndarray, data: Measurements, index: np
            tol: float) -> tuple[np.ndarray, float, int, int]:
     """Gauss-Newton on ``p[index]`` minimising ``‖W (η − h)‖²`` plus, with ``uncertain``
     parameters, a correction ``δ`` of them under the prior rows ``prior`` (profiled out,
-    never applied). Returns the values, the minimum, the rank of the system and the steps."""
+    never applied). Returns the values, the minimum, the rank of the system and the steps.
+    """
     p = p.copy()
     q, eta = np.atleast_2d(data.q), np.atleast_2d(data.eta)
     k, r = len(uncertain), len(index)

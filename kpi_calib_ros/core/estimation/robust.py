@@ -102,7 +102,8 @@ class ExcludedMeasurement:
     def text(self) -> str:
         """The one line the log and the summary print: ``distance_sigma`` is the number
         calibration.yaml stores (distance from the final fit over its σ̂), so a point
-        reads the same in both."""
+        reads the same in both.
+        """
         return (f'measurement {self.index} (stamp {self.stamp_ns} ns) excluded: '
                 f'{self.distance_m * 1e6:.1f} µm from the final fit, distance_sigma '
                 f'{self.distance_sigma:.2f} σ̂; {self.reason}')
@@ -312,7 +313,8 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
 def misfit_warning(misfit: tuple[int, ...], pose: np.ndarray, threshold: float,
                    too_many_lone: float | None = None) -> str:
     """The text naming the points over the threshold kept as model misfit;
-    ``too_many_lone``: the fraction beyond which lone points were taken as misfit."""
+    ``too_many_lone``: the fraction beyond which lone points were taken as misfit.
+    """
     poses = sorted({int(pose[i]) for i in misfit})
     shown = ', '.join(str(g) for g in poses[:12]) + (', …' if len(poses) > 12 else '')
     why = ('their pose\'s other points agree with them, or they carry information no other '
@@ -328,7 +330,8 @@ def misfit_warning(misfit: tuple[int, ...], pose: np.ndarray, threshold: float,
 def gross_outliers(model: MeasurementModel, data: Measurements,
                    p: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(N,) bool: points farther than `GROSS_DISTANCE` (and 20× the median) from the
-    prediction with ``p`` (default: the nominal parameters); and the (N,) distances, m."""
+    prediction with ``p`` (default: the nominal parameters); and the (N,) distances, m.
+    """
     q, eta = np.atleast_2d(data.q), np.atleast_2d(data.eta)
     p = np.asarray(model.params.nominal if p is None else p, float)
     nominal = np.linalg.norm(eta - model.predict(p, q, data.tau, data.reflector,
@@ -353,7 +356,8 @@ def noise_units(model: MeasurementModel, data: Measurements, p: np.ndarray,
     given without joint-reading noise and per-point σ; with either, W_i r_i times the mean
     stated σ, whose noise is the stated σ on every axis at every pose (a point's own σ
     from the tracker counts in units of itself, :func:`~kpi_calib_ros.core.measurement.tracker.
-    noise_weights`)."""
+    noise_weights`).
+    """
     if model.joint_sigma is None and data.sigma is None:
         return residuals
     sigma = np.broadcast_to(np.asarray(sigma, float), (3,))

@@ -160,7 +160,8 @@ def shift_temperature(stamps_ns: np.ndarray, start_c: float, rise_k: float,
                       hours: float, start_ns: int | None = None) -> np.ndarray:
     """A shift's warm-up, °C at ``stamps_ns``: from ``start_c`` rising by ``rise_k`` towards
     a plateau, ``start_c + rise_k (1 − e^{−t/τ})`` with τ = ``hours``/3 (95 % of the rise
-    reached after ``hours``); ``t`` from ``start_ns`` (default the first stamp)."""
+    reached after ``hours``); ``t`` from ``start_ns`` (default the first stamp).
+    """
     stamps = np.asarray(stamps_ns, dtype=np.int64)
     t0 = int(stamps.min()) if start_ns is None else int(start_ns)
     t_h = (stamps - t0).astype(float) / 3.6e12

@@ -285,7 +285,8 @@ class MeasurementModel:
         """Tip pose (4x4) in the tracker frame with the joint and placement corrections and
         the frame deflections (link bending) of the effects applied, and each effect's
         parameter slice; ``z`` (len(inputs),) the covariates (None: 0, the reference
-        condition)."""
+        condition).
+        """
         q_eff = q
         offset = len(self.geometric)
         thetas = []
@@ -328,13 +329,15 @@ class MeasurementModel:
     def point_expression(self, p: Expr, q: Expr, tau: Expr = None,
                          reflector: int = 0, z: Expr = None) -> Expr:
         """Centre of reflector ``reflector`` in the tracker frame, CasADi expression (3,);
-        ``z`` the covariates :attr:`inputs` (None: 0)."""
+        ``z`` the covariates :attr:`inputs` (None: 0).
+        """
         world, thetas = self._tool_pose(p, q, tau, z)
         return self._reflector_point(world, thetas, p, reflector)
 
     def _reflector_point(self, world: Expr, thetas: list, p: Expr, reflector: int) -> Expr:
         """Reflector ``reflector``'s centre from the tool pose ``world`` (4x4) and the
-        effects' parameters ``thetas`` of :meth:`_tool_pose`."""
+        effects' parameters ``thetas`` of :meth:`_tool_pose`.
+        """
         point = reflector_point(world, self.chain.reflector(p, reflector))
         for effect, theta in zip(self.effects, thetas):
             corrected = effect.point_correction(point, theta)
@@ -383,7 +386,8 @@ class MeasurementModel:
 
     def _groups(self, n: int, reflector: np.ndarray | None) -> list[tuple[int, np.ndarray]]:
         """(row channel, rows) pairs covering rows 0..n-1: a reflector index, or
-        ``n_reflectors + k`` for the rotation row of reflector ``k``."""
+        ``n_reflectors + k`` for the rotation row of reflector ``k``.
+        """
         if reflector is None:
             return [(0, np.arange(n))]
         ref = np.asarray(reflector, dtype=int).reshape(-1)
@@ -399,7 +403,8 @@ class MeasurementModel:
 
     def __getstate__(self) -> dict:
         """Picklable state (a job's result crosses a process boundary): the functions built
-        on first use are built now; CasADi expressions and the mapped functions stay behind."""
+        on first use are built now; CasADi expressions and the mapped functions stay behind.
+        """
         return dict(self.__dict__, _hq_built=self._hq, _cos_built=self._cos, _symbols=None,
                     _points=None, _mapped={})
 
@@ -437,7 +442,8 @@ class MeasurementModel:
                   z: np.ndarray) -> list:
         """Function ``which`` (0: h, 1: h and ∂h/∂p, 2: ∂h/∂q) of a row channel, mapped
         over ``rows``; a rotation row takes its measured rotation as an input; ``z`` (N,
-        n_z) the covariates (:meth:`input_values`)."""
+        n_z) the covariates (:meth:`input_values`).
+        """
         m = len(rows)
         if channel < self.n_reflectors:
             out = self._map(which, channel, m)(p, q[rows].T, tau[rows].T, z[rows].T)
@@ -456,7 +462,8 @@ class MeasurementModel:
         """Predicted points (N, 3) in the tracker frame for joint values ``q`` (N, n)
         and reflector indices ``reflector`` (N,) (None: reflector 0); rotation rows
         (see :class:`Measurements`) need ``rotation`` (N, 3, 3); ``covariates`` the
-        rows' covariates (:meth:`input_values`; None: the reference condition)."""
+        rows' covariates (:meth:`input_values`; None: the reference condition).
+        """
         q = np.atleast_2d(q)
         tau = self._torques(q, tau)
         z = self.input_values(len(q), covariates)
@@ -535,7 +542,8 @@ class MeasurementModel:
     def body_rotations(self, p: np.ndarray, q: np.ndarray, reflector: int,
                        tau: np.ndarray | None = None) -> np.ndarray:
         """Rotations (N, 3, 3) of reflector ``reflector``'s tracked body in the tracker
-        frame at joint values ``q`` (N, n) (what a 6-DoF tracker reports, noise-free)."""
+        frame at joint values ``q`` (N, n) (what a 6-DoF tracker reports, noise-free).
+        """
         q = np.atleast_2d(q)
         tau = self._torques(q, tau)
         fn = self._rot[reflector][3].map(len(q))
@@ -546,7 +554,8 @@ class MeasurementModel:
     @property
     def pose_channels(self) -> tuple[int, ...]:
         """Row channels every measured pose gives (``Measurements.reflector`` values):
-        each reflector's point, then each tracked body's rotation row."""
+        each reflector's point, then each tracked body's rotation row.
+        """
         return (tuple(range(self.n_reflectors))
                 + tuple(self.n_reflectors + k for k in sorted(self.orientations)))
 
@@ -560,7 +569,8 @@ class MeasurementModel:
         """The rows measuring configurations ``q`` (N, n) gives, noise-free at ``p``: for
         every pose, :attr:`pose_channels` in turn (pose ``i``, channel ``c`` in row
         ``i·B + c``); a rotation row carries the body rotation at ``p`` as measured, so
-        its residual is zero and its Jacobian the one identification takes there."""
+        its residual is zero and its Jacobian the one identification takes there.
+        """
         rows = self._pose_rows(p, q, tau)
         eta = self.predict(p, rows.q, rows.tau, rows.reflector, rows.rotation)
         return dataclasses.replace(rows, eta=eta)
@@ -585,7 +595,8 @@ class MeasurementModel:
                       tau: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Every row a measured pose gives, as the design sees a pose
         (:meth:`pose_measurements`): predictions (N, 3B) and Jacobian (N, 3B, n_p), channel
-        ``c`` of :attr:`pose_channels` in rows 3c..3c+2 (B = 1 for a single reflector)."""
+        ``c`` of :attr:`pose_channels` in rows 3c..3c+2 (B = 1 for a single reflector).
+        """
         q = np.atleast_2d(q)
         rows = self._pose_rows(p, q, tau)
         pts, jac = self.jacobian(p, rows.q, rows.tau, rows.reflector, rows.rotation)
@@ -597,7 +608,8 @@ class MeasurementModel:
         """Every row of a pose stacked (:attr:`pose_channels`), CasADi expression (3B,);
         a rotation row takes the body rotation at ``p_measured`` as the measured one (its
         Jacobian in ``p`` at ``p = p_measured`` is the design's; required with
-        tracked bodies)."""
+        tracked bodies).
+        """
         rows = [self.point_expression(p, q, tau, k) for k in range(self.n_reflectors)]
         if self.orientations and p_measured is None:
             raise ValueError('p_measured is needed for the rotation rows of tracked bodies')
@@ -658,7 +670,8 @@ def noise_weights(model: MeasurementModel, p: np.ndarray, data: Measurements,
                   point_weights: np.ndarray | None = None) -> np.ndarray:
     """Weights of ``data``'s rows at ``p`` for :func:`weighted_rows`: (N, 3) 1/σ_i,a (each
     row's stated σ or the cell's ``sigma``, :func:`row_sigma`) times √ω_i, or (N, 3, 3)
-    whitening with joint-reading noise (:meth:`MeasurementModel.whitening`)."""
+    whitening with joint-reading noise (:meth:`MeasurementModel.whitening`).
+    """
     q = np.atleast_2d(data.q)
     rows = row_sigma(sigma, data.sigma, len(q))
     if tau is None and data.tau is not None:
@@ -699,13 +712,15 @@ def weighted_rows(jac: np.ndarray, w: np.ndarray, idx: np.ndarray | None = None)
 
 def weighted_residuals(residuals: np.ndarray, w: np.ndarray) -> np.ndarray:
     """Stacked weighted residuals (3N,) of ``residuals`` (N, 3) in m, with the weights
-    ``w`` of :func:`weighted_rows` ((3,), (N, 3) or (N, 3, 3)): in units of σ."""
+    ``w`` of :func:`weighted_rows` ((3,), (N, 3) or (N, 3, 3)): in units of σ.
+    """
     return weighted_rows(np.asarray(residuals, float)[:, :, None], w)[:, 0]
 
 
 def unweighted(r: np.ndarray, w: np.ndarray) -> np.ndarray:
     """Residuals (N, 3) in m from weighted residuals ``r`` (3N,): the inverse of
-    :func:`weighted_residuals` (a row of weight 0 gives 0)."""
+    :func:`weighted_residuals` (a row of weight 0 gives 0).
+    """
     r = np.asarray(r, float).reshape(-1, 3)
     w = np.asarray(w, float)
     if w.ndim == 3:

@@ -152,7 +152,8 @@ class SymbolicChain:
     def tip_transform(self, p: Expr, q: Expr,
                       deflections: dict[int, Expr] | None = None) -> Expr:
         """Tip frame pose (4x4) in the base frame (``deflections``: see
-        :meth:`link_transforms`)."""
+        :meth:`link_transforms`).
+        """
         return self.link_transforms(p, q, deflections)[-1] @ ca.DM(self.robot.tip_placement)
 
     def base_in_tracker(self, p: Expr) -> Expr:
