@@ -54,8 +54,10 @@ FitFor = Callable[[MeasurementModel], Callable[..., CalibrationResult]]
 
 @dataclass(frozen=True)
 class EffectTrial:
-    """One candidate effect refitted in a round: its fitted values, the predicted
-    out-of-sample rms (m, None when refused before) and the outcome.
+    """One candidate effect refitted in a round.
+
+    Its fitted values, the predicted out-of-sample rms (m, None when refused before) and the
+    outcome.
     """
 
     spec: str
@@ -81,8 +83,9 @@ class EffectTrial:
 
 @dataclass(frozen=True)
 class EffectChoice:
-    """The effects added (in order), the model with them, the predicted out-of-sample rms
-    (m) before and after, every trial and why selection stopped.
+    """The effects added (in order), the model with them, and the predicted rms before and after.
+
+    The predicted out-of-sample rms is in m; also every trial and why selection stopped.
     """
 
     effects: tuple[BoundEffect, ...]
@@ -115,8 +118,9 @@ def choose_effects(model: MeasurementModel, data: Measurements, fit_for: FitFor,
                    n_geometric: int, prior: Prior | None = None,
                    alpha: float = ADEQUACY_ALPHA, seed: int = 0,
                    max_effects: int = MAX_EFFECTS) -> EffectChoice:
-    """Forward selection of physical effects on top of ``model`` at ``level`` (see the
-    module docstring). ``n_geometric``: the number of geometric parameters of ``model``
+    """Forward selection of physical effects on top of ``model`` at ``level``.
+
+    See the module docstring. ``n_geometric``: the number of geometric parameters of ``model``
     (its effects' parameters follow and are free at every level).
 
     Returns the choice; ``choice.model`` is ``model`` with the added effects appended.
@@ -199,8 +203,10 @@ def choose_effects(model: MeasurementModel, data: Measurements, fit_for: FitFor,
 
 def _implausible_fit(effects: tuple, result: CalibrationResult,
                      tau: np.ndarray | None) -> str:
-    """Why the fitted values of ``effects`` (the new one and those added before, which the
-    refit moves too) are not physically plausible at the measured torques, or ''.
+    """Why the fitted values of ``effects`` are not physically plausible at the measured torques.
+
+    ``effects`` are the new one and those added before, which the refit moves too; '' when they
+    are plausible.
     """
     for e in reversed([e for e in effects if isinstance(e, BoundEffect)]):
         why = implausible(e, [float(result.value(n)) for n in e.parameter_names], tau)
@@ -211,11 +217,12 @@ def _implausible_fit(effects: tuple, result: CalibrationResult,
 
 
 def effect_start(values: np.ndarray, effect: BoundEffect, screened: np.ndarray) -> np.ndarray:
-    """Start of a fit with ``effect`` appended to a fit's ``values``: its size parameters at
-    0 and its shape parameters at their ``screened`` values. The screened size came with a
-    geometry that moved too (the linear screen refits both); added to the old geometry it
-    starts far off (TIAGo: 5.9 mm rms from a 2.2 mm fit), while from size 0 the geometry and
-    the size are fitted together and the shape is freed once the size is not 0.
+    """Start of a fit with ``effect`` appended to a fit's ``values``.
+
+    Its size parameters at 0 and its shape parameters at their ``screened`` values. The screened
+    size came with a geometry that moved too (the linear screen refits both); added to the old
+    geometry it starts far off (TIAGo: 5.9 mm rms from a 2.2 mm fit), while from size 0 the
+    geometry and the size are fitted together and the shape is freed once the size is not 0.
     """
     k = effect.kind.n_shape
     size = np.zeros(len(effect.parameter_names) - k)

@@ -154,10 +154,11 @@ SWEEP_ATOL = 1e-6   # rad (m): a joint within this of its home value has not mov
 
 
 def joint_sweeps(q: np.ndarray) -> tuple[np.ndarray, dict[int, int]] | None:
-    """A one-joint-at-a-time campaign's home configuration
-    (:func:`~kpi_calib_ros.core.estimation.residuals.campaign_home`) and, per swept joint, its
-    number
-    of poses; None when some pose moves more than one joint from the home.
+    """Return a one-joint-at-a-time campaign's home configuration and poses per swept joint.
+
+    The home configuration as :func:`~kpi_calib_ros.core.estimation.residuals.campaign_home`
+    finds it and, per swept joint, its number of poses; None when some pose moves more than one
+    joint from the home.
     """
     q = np.atleast_2d(q)
     moved = moved_joints(q, SWEEP_ATOL)
@@ -170,11 +171,12 @@ def joint_sweeps(q: np.ndarray) -> tuple[np.ndarray, dict[int, int]] | None:
 def _fresh_conditions(model: MeasurementModel, data: Measurements, domain: str,
                       configs: np.ndarray, rng: np.random.Generator
                       ) -> tuple[np.ndarray, dict[str, np.ndarray] | None]:
-    """Fresh poses under the campaign's conditions, for a model whose effects read
-    covariates (:attr:`MeasurementModel.inputs`): ``like_measured`` (not a sweep) measures
-    every measured row again at its own covariates; every other domain draws each fresh
-    pose's covariates from a random measured row. None (the reference condition) when the
-    model reads none or the data carry none.
+    """Fresh poses under the campaign's conditions, for a model whose effects read covariates.
+
+    The covariates are :attr:`MeasurementModel.inputs`. ``like_measured`` (not a sweep) measures
+    every measured row again at its own covariates; every other domain draws each fresh pose's
+    covariates from a random measured row. None (the reference condition) when the model reads
+    none or the data carry none.
     """
     if not model.inputs or data.covariates is None:
         return configs, None

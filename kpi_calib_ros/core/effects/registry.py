@@ -167,8 +167,9 @@ def bind_effect(effect_type: EffectType, robot: RobotModel, joint: str | None,
 
 
 def _origins(effect_type: EffectType, robot: RobotModel) -> np.ndarray | None:
-    """(n, 3) nominal origin translation of every joint in its placement frame, m (for a
-    placement effect; None otherwise).
+    """(n, 3) nominal origin translation of every joint in its placement frame, m.
+
+    For a placement effect; None otherwise.
     """
     if effect_type.placement_function is None:
         return None
@@ -264,6 +265,7 @@ def resolve_effects(specs: Iterable[str | BoundEffect], robot: RobotModel,
                     key: str = 'effects', base_dir: str | Path | None = None,
                     allow_code: bool = False) -> tuple[BoundEffect, ...]:
     """Resolve specs (or pass bound effects through); duplicates are an error.
+
     ``allow_code``: see :func:`parse_effect_spec`.
     """
     out: list[BoundEffect] = []
@@ -316,8 +318,9 @@ def candidate_effects(robot: RobotModel, kinds: Sequence[str] | None = None,
 
 def implausible(effect: BoundEffect, values: Sequence[float] | np.ndarray,
                 tau: np.ndarray | None = None) -> str:
-    """'' when every fitted value is within the effect's plausible range, else a warning
-    naming the parameter, its value and the bound.
+    """Return '' when every fitted value is within the effect's plausible range, else a warning.
+
+    The warning names the parameter, its value and the bound.
 
     ``tau``: (N, n) gravity torques of the measured poses (N m); the effect's joint's are
     used. An effect that contains ``joint_compliance`` as a limit of its shape (``joint_play``) is
