@@ -509,10 +509,11 @@ def augmented_model(model: MeasurementModel, effects: tuple) -> MeasurementModel
 def _effect_columns(model: MeasurementModel, sys_: LinearizedFit, effect: BoundEffect,
                     q: np.ndarray, tau: np.ndarray,
                     shape: tuple[float, ...] = ()) -> tuple[np.ndarray, float]:
-    """Weighted Jacobian columns (3N, k) of the effect's size parameters at size 0, and a size (m).
+    """Weighted Jacobian columns (3N, k) of the size parameters at size 0, and the largest shift.
 
-    Shape parameters, the last ``len(shape)``, are held at ``shape``; the size is the largest
-    point displacement (m) a typical-size effect causes.
+    The columns are the effect's size parameters; shape parameters, the last ``len(shape)``, are
+    held at ``shape``. The shift is the largest point displacement (m) a typical-size effect
+    causes.
     """
     aug = augmented_model(model, (effect,))
     k = len(effect.parameter_names) - len(shape)
