@@ -121,7 +121,7 @@ def random_configurations(model: MeasurementModel, p: np.ndarray, n: int,
 
 def measurable_batch(model: MeasurementModel, p: np.ndarray, rng: np.random.Generator,
                      batch: int, cos_limit: float) -> np.ndarray:
-    """The measurable ones among ``batch`` uniform draws in the joint ranges.
+    """Return the measurable ones among ``batch`` uniform draws in the joint ranges.
 
     Draws (batch, n) configurations uniformly within :func:`sampling_bounds` and
     keeps those whose incidence cosine at parameters ``p`` is ``>= cos_limit``
@@ -137,8 +137,9 @@ def one_joint_at_a_time(model: MeasurementModel, home: np.ndarray, per_joint: in
                         rng: np.random.Generator | None = None, span: float = 1.0,
                         p: np.ndarray | None = None, max_incidence: float | None = None,
                         max_draws: int = 100_000) -> np.ndarray:
-    """A one-joint-at-a-time campaign (the circle point method): each joint swept alone
-    from ``home``, the other joints held at their home values.
+    """Draw a one-joint-at-a-time campaign (the circle point method).
+
+    Each joint is swept alone from ``home``, the other joints held at their home values.
 
     Parameters
     ----------
@@ -208,7 +209,8 @@ def simulate_measurements(model: MeasurementModel, p_true: np.ndarray, q: np.nda
     ``covariates`` (name -> (N,), e.g. a temperature ramp over a shift,
     :func:`kpi_calib_ros.core.measurement.covariates.shift_temperature`) drive the true model's
     effects that read them (a hidden thermal effect) and are recorded with the rows, as are
-    ``stamps_ns`` (N,)."""
+    ``stamps_ns`` (N,).
+    """
     q = np.atleast_2d(q)
     clean = model.predict(p_true, q, covariates=covariates)
     noise = rng.normal(size=clean.shape) * np.broadcast_to(np.asarray(sigma, float), (3,))
@@ -223,11 +225,13 @@ def simulate_measurements(model: MeasurementModel, p_true: np.ndarray, q: np.nda
 def simulate_pose_measurements(model: MeasurementModel, p_true: np.ndarray, q: np.ndarray,
                                sigma: float | np.ndarray, sigma_rotation: float,
                                rng: np.random.Generator) -> Measurements:
-    """Every row measuring the poses ``q`` (N, n) gives
-    (:meth:`MeasurementModel.pose_measurements`), with noise: each reflector's point
+    """Simulate every row measuring the poses ``q`` (N, n) gives, with noise.
+
+    The rows are those of :meth:`MeasurementModel.pose_measurements`: each reflector's point
     ``h(p_true, q) + N(0, σ²)`` per axis, each tracked body's rotation ``R · exp(ω)``,
     ``ω ~ N(0, σ_rot² I)`` (rad) in the body frame. For one reflector the same draws as
-    :func:`simulate_measurements`."""
+    :func:`simulate_measurements`.
+    """
     rows = model.pose_measurements(p_true, q)
     points = np.asarray(rows.reflector) < model.n_reflectors
     eta = rows.eta.copy()
@@ -244,7 +248,7 @@ def simulate_pose_measurements(model: MeasurementModel, p_true: np.ndarray, q: n
 def equivalent_parameters(model: MeasurementModel, p_true: np.ndarray, kept: tuple[str, ...],
                           p_start: np.ndarray, q_samples: np.ndarray,
                           iterations: int = 20) -> tuple[np.ndarray, float]:
-    """The true robot expressed in an identified (reduced) parameterisation.
+    """Express the true robot in an identified (reduced) parameterisation.
 
     Dropped parameters stay at ``p_start``; the kept ones absorb the true
     errors of the dropped ones. This is the truth an estimate of the kept
@@ -276,12 +280,14 @@ def equivalent_parameters(model: MeasurementModel, p_true: np.ndarray, kept: tup
 
 def smooth_joint_map(q: np.ndarray, joints: tuple[int, int], amplitude_m: float,
                      phase: np.ndarray) -> np.ndarray:
-    """A smooth displacement (N, 3) of the tool (m, tracker frame) that depends on two
-    joints only and no physical effect of the library describes: each axis a product of
-    sines of the two angles, ``amplitude_m`` its largest size, ``phase`` (6,) rad.
+    """Return a smooth tool displacement (N, 3) (m, tracker frame) that no library effect describes.
+
+    It depends on two joints only: each axis a product of sines of the two angles,
+    ``amplitude_m`` its largest size, ``phase`` (6,) rad.
 
     The unknown misfit the learned residual (:mod:`kpi_calib_ros.core.diagnosis.learned_residual`)
-    is tested on."""
+    is tested on.
+    """
     q = np.atleast_2d(np.asarray(q, float))
     a, b = q[:, joints[0]], q[:, joints[1]]
     phase = np.asarray(phase, float).reshape(3, 2)

@@ -1,5 +1,6 @@
-"""Coupled controller joints: the linear map from the joint values a controller reports
-to the joint values of the URDF chain.
+"""Coupled controller joints: from the joint values a controller reports to the URDF chain's.
+
+The linear map from the joint values a controller reports to the joint values of the URDF chain.
 
 Many industrial controllers do not report URDF joint angles. A FANUC arm reports J3
 against the horizontal, so the URDF ``joint_3`` is J3 + J2; parallelogram and
@@ -46,13 +47,13 @@ class JointCoupling:
         return q if self.is_identity else q @ self.matrix.T
 
     def to_controller(self, q: np.ndarray) -> np.ndarray:
-        """Controller values of URDF joint values ``q`` ((n,) or (N, n), chain order)."""
+        """Return the controller values of URDF joint values ``q`` ((n,) or (N, n), chain order)."""
         q = np.asarray(q, float)
         return q if self.is_identity else np.linalg.solve(self.matrix, q.T).T
 
 
 def identity_coupling(joint_names: Sequence[str]) -> JointCoupling:
-    """The uncoupled controller: it reports URDF joint values."""
+    """Return the uncoupled controller: it reports URDF joint values."""
     return JointCoupling(tuple(joint_names), np.eye(len(joint_names)))
 
 

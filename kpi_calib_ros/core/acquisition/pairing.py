@@ -57,16 +57,20 @@ _log = logging.getLogger(__name__)
 
 
 def split_frame(frame_id: str) -> tuple[str, str]:
-    """``(frame, reflector name)`` of a point's frame id ``'<frame>#<name>'`` (name ''
-    when there is no ``#``); a leading '/' of the frame is dropped."""
+    """Split a point's frame id ``'<frame>#<name>'`` into ``(frame, reflector name)``.
+
+    The name is '' when there is no ``#``; a leading '/' of the frame is dropped.
+    """
     frame, _, name = frame_id.partition(REFLECTOR_SEPARATOR)
     return frame.strip('/'), name
 
 
 @dataclass(frozen=True)
 class Rejection:
-    """A point or joint sample that did not become a measurement; ``reason`` is one of
-    :data:`REJECTION_REASONS`, ``detail`` says why in words."""
+    """A point or joint sample that did not become a measurement.
+
+    ``reason`` is one of :data:`REJECTION_REASONS`, ``detail`` says why in words.
+    """
 
     stamp_ns: int
     reason: str
@@ -92,11 +96,11 @@ class PairedMeasurement:
     orientation: np.ndarray | None = None   # quaternion of a tracked 6-DoF pose, else None
 
     def joint_sample(self) -> JointSample:
-        """The averaged configuration as a joint sample stamped like the point."""
+        """Return the averaged configuration as a joint sample stamped like the point."""
         return JointSample(self.stamp_ns, self.joint_names, self.q, None)
 
     def point_sample(self) -> PointSample:
-        """The tracker reading (point, and orientation of a 6-DoF pose) as a point sample."""
+        """Return the tracker reading (point, and orientation of a 6-DoF pose) as a point sample."""
         return PointSample(self.stamp_ns, self.frame_id, self.eta, self.orientation)
 
     @property
@@ -145,6 +149,7 @@ class PairingResult:
         return np.array([position[r] for r in rows], dtype=int)
 
     def __len__(self) -> int:
+        """Return the number of rows."""
         return len(self.stamps_ns)
 
 
@@ -329,9 +334,11 @@ class Pairer:
         self._insert(_Entry(sample.stamp_ns, q, v, missing, ()))
 
     def _restart_epoch(self, stamp_ns: int, latest_ns: int) -> None:
-        """The joint clock went back from ``latest_ns`` to ``stamp_ns``: close the epoch,
-        pairing its points with its own joint states, and start a new one; points that were
-        waiting for it join it."""
+        """Start a new epoch: the joint clock went back from ``latest_ns`` to ``stamp_ns``.
+
+        Close the epoch, pairing its points with its own joint states, and start a new one;
+        points that were waiting for it join it.
+        """
         back_s = (latest_ns - stamp_ns) * 1e-9
         note = (f' (joint-state clock jumped back {back_s:.3f} s after this point; '
                 'no later joint state of its epoch)')
@@ -408,8 +415,11 @@ class Pairer:
         self._decide_covered()
 
     def poll(self, now_ns: int) -> list[Decision]:
-        """Decide points whose joint states are overdue at ``now_ns`` (same clock as the
-        stamps) and return every decision made since the last call, oldest first."""
+        """Decide points whose joint states are overdue at ``now_ns``; return the new decisions.
+
+        ``now_ns`` is on the same clock as the stamps. Returns every decision made since the
+        last call, oldest first.
+        """
         while self._pending and now_ns >= self._pending[0][0] + self.window_ns + self.timeout_ns:
             self._decide(heapq.heappop(self._pending)[2])
         self._decide_early(lambda deadline: now_ns >= deadline)
@@ -573,8 +583,10 @@ def pair_measurements(
 
 
 def stacked_rotations(rotations: Sequence[np.ndarray | None]) -> np.ndarray | None:
-    """(N, 3, 3) rotations of accepted rows, NaN where a row is a plain point; None when
-    no row carries one."""
+    """(N, 3, 3) rotations of accepted rows, NaN where a row is a plain point.
+
+    None when no row carries one.
+    """
     if all(r is None for r in rotations):
         return None
     return np.array([np.full((3, 3), np.nan) if r is None else r for r in rotations])

@@ -53,6 +53,7 @@ class JointSample:
     velocities: np.ndarray | None = None
 
     def __post_init__(self) -> None:
+        """Store the stamp as int, positions and velocities as frozen (len(names),) arrays."""
         names = tuple(self.names)
         object.__setattr__(self, 'stamp_ns', int(self.stamp_ns))
         object.__setattr__(self, 'names', names)
@@ -69,7 +70,8 @@ class PointSample:
 
     A tracked 6-DoF pose is a point with ``orientation``, the body's unit quaternion
     [x, y, z, w] in that frame, kept exactly as received so that a logged and restored
-    pose is bit for bit the live one; :attr:`rotation` is its matrix."""
+    pose is bit for bit the live one; :attr:`rotation` is its matrix.
+    """
 
     stamp_ns: int
     frame_id: str
@@ -77,6 +79,7 @@ class PointSample:
     orientation: np.ndarray | None = None
 
     def __post_init__(self) -> None:
+        """Store the stamp as int, ``xyz`` (3,) and ``orientation`` (4,) as frozen arrays."""
         object.__setattr__(self, 'stamp_ns', int(self.stamp_ns))
         object.__setattr__(self, 'xyz', frozen_array(self.xyz, (3,), 'xyz'))
         if self.orientation is not None:
@@ -85,8 +88,10 @@ class PointSample:
 
     @property
     def rotation(self) -> np.ndarray | None:
-        """(3, 3) rotation of ``orientation`` (all NaN when it is not a finite unit
-        quaternion: rejected when paired); None for a plain point."""
+        """(3, 3) rotation of ``orientation``; None for a plain point.
+
+        All NaN when it is not a finite unit quaternion (rejected when paired).
+        """
         return None if self.orientation is None else checked_rotation(self.orientation)
 
 
@@ -99,8 +104,10 @@ def checked_rotation(quaternion: np.ndarray) -> np.ndarray:
 
 
 def _quintic(tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rest-to-rest profile s(τ) and ds/dτ on τ ∈ [0, 1], zero velocity and acceleration
-    at both ends, so holds are genuinely still."""
+    """Rest-to-rest profile s(τ) and ds/dτ on τ ∈ [0, 1].
+
+    Zero velocity and acceleration at both ends, so holds are genuinely still.
+    """
     s = tau ** 3 * (10.0 - 15.0 * tau + 6.0 * tau ** 2)
     ds = 30.0 * tau ** 2 * (1.0 - tau) ** 2
     return s, ds
@@ -119,7 +126,7 @@ def synthesize_streams(
     rng: np.random.Generator | None = None,
     home: np.ndarray | None = None,
 ) -> tuple[list[JointSample], list[PointSample]]:
-    """The streams a cell produces while the robot visits ``configurations``.
+    """Simulate the streams a cell produces while the robot visits ``configurations``.
 
     The robot starts at ``home`` at ``start_ns`` and, for each pose, moves there in
     ``move_time_s`` (quintic rest-to-rest profile) and holds for ``hold_time_s``.

@@ -1,4 +1,6 @@
-"""Is a new cycle's data consistent with the prior prediction? (innovation tests)
+"""Change detection: innovation tests of a new cycle's data against the prior prediction.
+
+Is a new cycle's data consistent with the prior prediction?
 
 A re-identification blends new points with a previous calibration (a Gaussian prior
 N(m, C), C widened by the drift model). That is only right while the robot moved no more
@@ -55,8 +57,10 @@ class ParameterShift:
 
 @dataclass(frozen=True)
 class ChangeTest:
-    """Outcome of :func:`change_test`; ``moved`` lists the parameters beyond the drift
-    model, largest likelihood ratio first."""
+    """Outcome of :func:`change_test`.
+
+    ``moved`` lists the parameters beyond the drift model, largest likelihood ratio first.
+    """
 
     consistent: bool
     alpha: float
@@ -96,8 +100,9 @@ class ChangeTest:
 def change_test(model: MeasurementModel, data: Measurements, sigma: float | np.ndarray,
                 result: CalibrationResult, prior: Prior,
                 alpha: float = CHANGE_ALPHA, sigma_dof: int | None = None) -> ChangeTest:
-    """Innovation tests of ``data`` against ``prior`` at the MAP estimate ``result``
-    (identified with that prior on the same data, all points weighted by ``sigma``).
+    """Innovation tests of ``data`` against ``prior`` at the MAP estimate ``result``.
+
+    ``result`` is identified with that prior on the same data, all points weighted by ``sigma``.
 
     ``sigma_dof``: ``sigma`` is itself an estimate on that many degrees of freedom (σ̂ of
     a previous calibration whose model was not adequate); the tests then use the F

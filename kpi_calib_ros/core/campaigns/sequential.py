@@ -137,6 +137,7 @@ class CampaignSettings:
     inadequacy_alpha: float = 0.001
 
     def __post_init__(self) -> None:
+        """Check target std, measurement cap, confidence, margin and replicates."""
         if not (np.isfinite(self.target_std) and self.target_std > 0):
             raise ConfigError('target_tcp_std', f'must be a positive length in m, got '
                               f'{self.target_std!r} (e.g. 1.0e-5 for 10 µm)')
@@ -260,8 +261,10 @@ class SimulatedRun:
 
 
 def sigma_upper_limit(chi2: float, dof: int, sigma: float, confidence: float) -> float:
-    """Upper ``confidence`` limit of σ (m) from χ² against ``sigma`` with ``dof`` dof:
-    σ √(χ² / χ²_dof(1 − confidence)); inf without dof."""
+    """Upper ``confidence`` limit of σ (m) from χ² against ``sigma`` with ``dof`` dof.
+
+    σ √(χ² / χ²_dof(1 − confidence)); inf without dof.
+    """
     if dof <= 0:
         return float('inf')
     return float(sigma * np.sqrt(chi2 / scipy.stats.chi2.ppf(1.0 - confidence, dof)))
@@ -269,10 +272,12 @@ def sigma_upper_limit(chi2: float, dof: int, sigma: float, confidence: float) ->
 
 def pure_error(q: np.ndarray, eta: np.ndarray, weight: np.ndarray,
                reflector: np.ndarray | None = None) -> tuple[float, int]:
-    """Weighted sum of squares (σ units) and dof of the scatter of repeated poses
-    (:func:`~kpi_calib_ros.core.measurement.replicates.pose_groups`): 3 (m − 1) dof per pose
-    measured
-    m times, per reflector (``reflector`` (N,) the reflector of each point row; None: one)."""
+    """Weighted sum of squares (σ units) and dof of the scatter of repeated poses.
+
+    Repeated poses as :func:`~kpi_calib_ros.core.measurement.replicates.pose_groups` finds them:
+    3 (m − 1) dof per pose measured m times, per reflector (``reflector`` (N,) the reflector of
+    each point row; None: one).
+    """
     ss, dof = 0.0, 0
     labels = pose_groups(q)
     if reflector is not None:
@@ -291,7 +296,8 @@ def lack_of_fit(chi2: float, dof: int, ss_pe: float, dof_pe: int, target_w: floa
 
     MS_lof = (χ² − SS_pe)/(dof − dof_pe) estimates σ² + b², MS_pe estimates σ²; the
     statistic (MS_lof − target²)/MS_pe is F(dof_lof, dof_pe) at b = target. Returns
-    ``bias_rms`` (σ units, ≥ 0), ``p_value`` and ``rejects`` (1.0: bias > target)."""
+    ``bias_rms`` (σ units, ≥ 0), ``p_value`` and ``rejects`` (1.0: bias > target).
+    """
     dof_lof = dof - dof_pe
     if dof_pe <= 0 or dof_lof <= 0 or ss_pe <= 0:
         return {}
@@ -350,16 +356,18 @@ class SequentialCampaign:
 
     # ------------------------------------------------------------------ initial design
     def initial_design(self) -> np.ndarray:
-        """Candidate indices of the initial design, n0 + ``initial_margin`` poses, n0 the
-        smallest size whose KPI exchange design has a nonsingular information and makes
-        every working pose's TCP estimable.
+        """Candidate indices of the initial design, n0 + ``initial_margin`` poses.
+
+        n0 is the smallest size whose KPI exchange design has a nonsingular information and
+        makes every working pose's TCP estimable.
 
         The poses are not the exchange design of that size: they are the first ones of
         the :func:`nested_order` of the best of ``INITIAL_STARTS`` KPI exchange designs
         of ``NESTED_FACTOR`` times that size, and the rest of that order is the start of
         the plan. A design optimal for its own small size is a poor subset of larger
         designs, and no choice of the later poses repairs it until the campaign has
-        about three times as many poses (bench/results/sequential_campaign.md)."""
+        about three times as many poses (bench/results/sequential_campaign.md).
+        """
         rows = self.problem.rows(self.cell.model, self.candidates)
         loss = self.problem.loss('kpi')
         for n in range(int(np.ceil(self.problem.k / 3)), len(self.candidates)):
@@ -390,8 +398,10 @@ class SequentialCampaign:
         return order[:size]
 
     def _check_cap(self, size: int, smallest: int) -> None:
-        """ConfigError naming the cap and the initial design's size when the campaign may
-        not measure even its initial design."""
+        """Raise a ConfigError when the campaign may not measure even its initial design.
+
+        The error names the cap and the initial design's size.
+        """
         s = self.settings
         if size > s.max_measurements or size > len(self.candidates):
             limit = ('max_measurements', s.max_measurements) if size > s.max_measurements \
@@ -403,9 +413,11 @@ class SequentialCampaign:
 
     def match_candidates(self, q: np.ndarray,
                          tolerance: float = SAME_POSE_TOLERANCE) -> np.ndarray:
-        """Candidate index (N,) of each measured pose ``q`` (N, n): the candidate within
-        ``tolerance`` (rad, m) on every joint, -1 if none (a robot that stopped off the
-        planned pose)."""
+        """Candidate index (N,) of each measured pose ``q`` (N, n).
+
+        The candidate within ``tolerance`` (rad, m) on every joint, -1 if none (a robot that
+        stopped off the planned pose).
+        """
         out = np.full(len(q), -1)
         for i, row in enumerate(np.atleast_2d(q)):
             dist = np.max(np.abs(self.candidates - row), axis=1)
@@ -533,9 +545,11 @@ class SequentialCampaign:
         return self.status
 
     def _robust_fit(self) -> RobustResult:
-        """The identification with the batch outlier rule (warm start). More outliers than
-        the rule may exclude is no longer a few faults: every point is kept, and the
-        lack-of-fit test judges the model."""
+        """Identify with the batch outlier rule (warm start).
+
+        More outliers than the rule may exclude is no longer a few faults: every point is kept,
+        and the lack-of-fit test judges the model.
+        """
         cell = self.cell
 
         def fit(data: Measurements, p0: np.ndarray | None = None,
@@ -558,10 +572,12 @@ class SequentialCampaign:
 
     def _replicate_fault(self, data: Measurements, robust: RobustResult,
                          fit: Fit) -> RobustResult:
-        """A pose measured more than once whose readings disagree: the reading whose
-        removal lets the fit pass the χ² test is a fault (the replicate agrees with the
-        model, the first reading does not); a misfit fails with either removed, so
-        nothing is excluded and the lack-of-fit test judges the model."""
+        """Judge a pose measured more than once whose readings disagree.
+
+        The reading whose removal lets the fit pass the χ² test is a fault (the replicate agrees
+        with the model, the first reading does not); a misfit fails with either removed, so
+        nothing is excluded and the lack-of-fit test judges the model.
+        """
         kept = np.asarray(robust.kept, bool)
         labels = self._replicate_labels()
         best: tuple[float, int, RobustResult] | None = None
@@ -595,9 +611,11 @@ class SequentialCampaign:
                                    excluded=tuple(robust.excluded) + (fault_entry,))
 
     def _most_suspect(self, kept: np.ndarray) -> int:
-        """The kept measurement with the largest studentized distance to the fit,
-        r_iᵀ(I − H_ii)⁻¹r_i with H the hat matrix of the weighted Jacobian: a point the
-        fit is drawn towards (high leverage) counts its residual accordingly."""
+        """Return the kept measurement with the largest studentized distance to the fit.
+
+        The distance is r_iᵀ(I − H_ii)⁻¹r_i with H the hat matrix of the weighted Jacobian: a
+        point the fit is drawn towards (high leverage) counts its residual accordingly.
+        """
         model, res = self.cell.model, self.result
         assert res is not None
         idx = model.params.indices(list(res.estimated))
@@ -618,12 +636,13 @@ class SequentialCampaign:
         return int(np.flatnonzero(kept)[int(np.argmax(score))])
 
     def _plan(self, dof_pe: int) -> tuple[np.ndarray, np.ndarray]:
-        """The plan, next pose first, and the candidate index of each (-1: not a
-        candidate): first the pose of a measurement the outlier rule excluded, measured
-        once only (a replicate tells a fault from a misfit); while χ² has rejected and
-        the pure-error dof are short, a replicate of the measured pose that helps the KPI
-        most, every third pose; then the candidates :func:`plan_ahead` chooses in
-        :meth:`_estimate_problem`."""
+        """Return the plan, next pose first, and the candidate index of each (-1: not a candidate).
+
+        First the pose of a measurement the outlier rule excluded, measured once only (a
+        replicate tells a fault from a misfit); while χ² has rejected and the pure-error dof are
+        short, a replicate of the measured pose that helps the KPI most, every third pose; then
+        the candidates :func:`plan_ahead` chooses in :meth:`_estimate_problem`.
+        """
         model = self.cell.model
         problem = self._estimate_problem()
         loss = problem.loss('kpi')
@@ -656,8 +675,10 @@ class SequentialCampaign:
         return q_plan, np.asarray(index, int)
 
     def _kept_q(self) -> np.ndarray:
-        """Joint values of the poses whose every row the last fit kept (a pose with an
-        excluded row is measured again, and its information counted then)."""
+        """Joint values of the poses whose every row the last fit kept.
+
+        A pose with an excluded row is measured again, and its information counted then.
+        """
         if self.robust is None:
             return self.q
         lost = np.unique(self._row_pose[~np.asarray(self.robust.kept, bool)])
@@ -670,19 +691,24 @@ class SequentialCampaign:
         return pure_error(self.rows.q[points], self.rows.eta[points], weight, channel[points])
 
     def _replicate_labels(self) -> np.ndarray:
-        """(rows,) the same label for the rows of one reflector (or rotation channel) at
-        one pose measured again: replicates of each other, not the other reflectors."""
+        """(rows,) one label per reflector (or rotation channel) and pose measured again.
+
+        The rows of one reflector (or rotation channel) at one pose measured again share a
+        label: they are replicates of each other, not of the other reflectors.
+        """
         channel = np.asarray(self.rows.reflector)
         return pose_groups(self.rows.q) * (int(np.max(channel, initial=0)) + 1) + channel
 
     def _estimate_problem(self) -> DesignProblem:
-        """The KPI design problem at the current estimate, for the parameters the
-        identification estimated there. The design problem of the batch design has the
-        parameters identifiable at the nominal geometry; a real robot's (J2 and J3 not
-        exactly parallel) makes more of them identifiable, the calibration estimates
-        them, and their variance is part of the statistic the campaign stops on (the
-        batch KPI designs calibrate to an 8-9 % larger TCP std than the design problem
-        says, bench/results/sequential_campaign.md)."""
+        """Return the KPI design problem at the current estimate.
+
+        Its parameters are those the identification estimated there. The design problem of the
+        batch design has the parameters identifiable at the nominal geometry; a real robot's (J2
+        and J3 not exactly parallel) makes more of them identifiable, the calibration estimates
+        them, and their variance is part of the statistic the campaign stops on (the batch KPI
+        designs calibrate to an 8-9 % larger TCP std than the design problem says,
+        bench/results/sequential_campaign.md).
+        """
         model = self.cell.model
         assert self.result is not None
         idx = model.params.indices(list(self.result.estimated))
@@ -708,14 +734,14 @@ class SequentialCampaign:
 def plan_ahead(rows: np.ndarray, info: np.ndarray, m: int, loss: Loss,
                exclude: np.ndarray, max_sweeps: int = PLAN_SWEEPS,
                start_plan: Sequence[int] = ()) -> np.ndarray:
-    """``m`` candidates that, added to the measured information ``info`` (k, k), lower
-    ``loss`` most together: greedy additions, then remove-and-replace sweeps over the
-    planned ones only (the measured ones are fixed), as steps 3-4 of
-    :func:`kpi_calib_ros.core.design.exchange.exchange`, until no exchange improves or
-    after ``max_sweeps`` sweeps. ``start_plan`` (the previous plan) is kept where still
-    allowed, so the sweeps continue from one measurement to the next instead of
-    starting over. Returns the indices (m,), the one whose single addition lowers the
-    loss most first.
+    """``m`` candidates that, added to the measured information ``info``, lower ``loss`` most.
+
+    ``info`` is (k, k). Greedy additions, then remove-and-replace sweeps over the planned ones
+    only (the measured ones are fixed), as steps 3-4 of
+    :func:`kpi_calib_ros.core.design.exchange.exchange`, until no exchange improves or after
+    ``max_sweeps`` sweeps. ``start_plan`` (the previous plan) is kept where still allowed, so
+    the sweeps continue from one measurement to the next instead of starting over. Returns the
+    indices (m,), the one whose single addition lowers the loss most first.
 
     Planning ahead rather than adding greedily one at a time is what keeps every prefix
     close to the batch design of its size: a greedy first choice for a criterion of rank
@@ -754,11 +780,13 @@ def plan_ahead(rows: np.ndarray, info: np.ndarray, m: int, loss: Loss,
 
 
 def nested_order(rows: np.ndarray, design: np.ndarray, loss: Loss, n_min: int) -> np.ndarray:
-    """The poses of ``design`` (indices into ``rows`` (c, 3, k)) ordered so that every
-    prefix of at least ``n_min`` poses is a good design of its size: backward
-    elimination, repeatedly removing the pose whose removal raises ``loss`` least (never
-    one that makes the information singular) down to ``n_min``; the removed ones follow
-    the rest in reverse order of removal."""
+    """Order the poses of ``design`` so that every prefix is a good design of its size.
+
+    ``design`` indexes ``rows`` (c, 3, k); every prefix of at least ``n_min`` poses counts.
+    Backward elimination, repeatedly removing the pose whose removal raises ``loss`` least
+    (never one that makes the information singular) down to ``n_min``; the removed ones follow
+    the rest in reverse order of removal.
+    """
     kept = [int(i) for i in design]
     removed: list[int] = []
     while len(kept) > max(n_min, 1):
@@ -777,8 +805,10 @@ def _inverse(info: np.ndarray) -> np.ndarray:
 
 
 def _pose_starts(q: np.ndarray, channel: np.ndarray) -> np.ndarray:
-    """First row (indices) of each pose among rows ``q`` (m, n) with row channels
-    ``channel`` (m,): a pose ends where ``q`` changes or a channel comes again."""
+    """First row (indices) of each pose among rows ``q`` (m, n) with row channels ``channel`` (m,).
+
+    A pose ends where ``q`` changes or a channel comes again.
+    """
     starts: list[int] = []
     seen: set[int] = set()
     for i in range(len(q)):
@@ -790,8 +820,11 @@ def _pose_starts(q: np.ndarray, channel: np.ndarray) -> np.ndarray:
 
 
 def _concatenate(a: Measurements, b: Measurements) -> Measurements:
-    """The rows of ``a`` then those of ``b`` (rotations identity where one has none,
-    stamps -1 and stated σ NaN, the cell's, where one has none)."""
+    """Return the rows of ``a`` then those of ``b``.
+
+    Rotations are identity where one has none, stamps -1 and stated σ NaN (the cell's) where one
+    has none.
+    """
     def rotations(m: Measurements) -> np.ndarray:
         return (np.broadcast_to(np.eye(3), (len(m), 3, 3)) if m.rotation is None
                 else np.asarray(m.rotation))

@@ -1,5 +1,6 @@
-"""Collision: capsules (eq. 20-22), their fit to URDF geometry, independent checks, link pairs to
-skip.
+"""Collision: capsules (eq. 20-22) and what works with them.
+
+Their fit to URDF geometry, independent checks, and the link pairs to skip.
 """
 from kpi_calib_ros.core.collision.capsule_fit import (
     capsules_from_urdf,

@@ -56,7 +56,7 @@ def _fit(shape: Any, name: str, link: str, placement: pin.SE3) -> Capsule:
 
 
 def _shape(col: ET.Element) -> ET.Element:
-    """The shape element of a ``<collision>`` that :func:`_prepare` kept."""
+    """Return the shape element of a ``<collision>`` that :func:`_prepare` kept."""
     geometry = col.find('geometry')
     if geometry is None or not len(geometry):
         raise RuntimeError('a <collision> without <geometry> was kept: _prepare drops those')

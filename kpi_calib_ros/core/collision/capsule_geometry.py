@@ -101,7 +101,7 @@ def _capsule_on_line(points: np.ndarray, c: np.ndarray, u: np.ndarray
 
 
 def enclosing_capsule(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """A small capsule holding every point of ``points`` (N, 3), in their frame (m).
+    """Return a small capsule holding every point of ``points`` (N, 3), in their frame (m).
 
     Starts from each principal axis through the bounding-box centre and refines
     the line (tilt and offset, 4 numbers) by Nelder-Mead on the volume; the

@@ -69,6 +69,7 @@ class Capsule:
     radius: float
 
     def __post_init__(self) -> None:
+        """Check the radius and store the end points as 3-tuples (m)."""
         object.__setattr__(self, 'a', _vec3(self.a, f'capsule {self.name}.a'))
         object.__setattr__(self, 'b', _vec3(self.b, f'capsule {self.name}.b'))
         if not np.isfinite(self.radius) or self.radius < 0:
@@ -95,6 +96,7 @@ class HalfSpace:
     offset: float
 
     def __post_init__(self) -> None:
+        """Check the normal and store the plane with a unit normal (offset scaled to match)."""
         n = np.array(_vec3(self.normal, f'half-space {self.name}.normal'))
         length = float(np.linalg.norm(n))
         if length < 1e-12:

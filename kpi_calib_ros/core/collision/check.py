@@ -50,7 +50,7 @@ class Verification:
 
 
 def _coal_capsule(a: np.ndarray, b: np.ndarray, radius: float) -> tuple[Any, Any]:
-    """A coal capsule (centred, along local z) and its pose for segment a-b."""
+    """Return a coal capsule (centred, along local z) and its pose for segment a-b."""
     axis = b - a
     length = float(np.linalg.norm(axis))
     z = axis / length if length > 1e-15 else np.array([0.0, 0.0, 1.0])

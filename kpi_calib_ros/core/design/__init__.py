@@ -1,5 +1,6 @@
-"""Optimum experimental design (eq. 24): problem, criteria, constraints, exchange algorithm, NLP
-refinement.
+"""Optimum experimental design (eq. 24): problem, criteria, constraints and algorithms.
+
+The exchange algorithm and the NLP refinement.
 """
 from kpi_calib_ros.core.design.cell import DesignCell
 from kpi_calib_ros.core.design.constraints import (

@@ -131,7 +131,7 @@ def flag_pairs(cell: DesignCell, scene: CollisionScene, rng: np.random.Generator
 
 
 def scene_without(scene: CollisionScene, labels: tuple[str, ...]) -> CollisionScene:
-    """The same scene with the pairs ``'a~b'`` in ``labels`` ignored."""
+    """Return the same scene with the pairs ``'a~b'`` in ``labels`` ignored."""
     extra = {frozenset(lab.split('~')) for lab in labels}
     return CollisionScene(scene.robot_capsules, scene.obstacles, scene.chain_links,
                           ignore_pairs=scene.ignore_pairs | extra,

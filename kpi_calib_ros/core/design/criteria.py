@@ -93,9 +93,11 @@ class DesignProblem:
         return len(self.index)
 
     def rows(self, model: MeasurementModel, q: np.ndarray) -> np.ndarray:
-        """Scaled weighted Jacobian rows W J D (N, 3R, k) of configurations ``q`` (N, n),
-        every row a measured pose gives (every reflector's point, every tracked body's
-        rotation: R = ``model.rows_per_pose``, 1 for a single reflector)."""
+        """Scaled weighted Jacobian rows W J D (N, 3R, k) of configurations ``q`` (N, n).
+
+        Every row a measured pose gives (every reflector's point, every tracked body's rotation:
+        R = ``model.rows_per_pose``, 1 for a single reflector).
+        """
         _, jac = model.pose_jacobian(self.p, np.atleast_2d(q))
         weight = np.tile(self.weight, model.rows_per_pose)
         return jac[:, :, self.index] * weight[None, :, None] * self.column_scale
@@ -154,10 +156,12 @@ class DesignProblem:
 
 
 def scales(jac: np.ndarray, weight_rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(column_scale, physical_scale)`` of a :class:`DesignProblem` from the point
-    Jacobians ``jac`` (R, 3·m, k) of its parameters over a pose set and the row weights
-    ``weight_rows`` (3·m,) (1/σ per axis, per reflector): D = 1/rms of the weighted
-    columns, S = rms of ‖∂h/∂p_j‖."""
+    """``(column_scale, physical_scale)`` of a :class:`DesignProblem`.
+
+    From the point Jacobians ``jac`` (R, 3·m, k) of its parameters over a pose set and the row
+    weights ``weight_rows`` (3·m,) (1/σ per axis, per reflector): D = 1/rms of the weighted
+    columns, S = rms of ‖∂h/∂p_j‖.
+    """
     rms = np.sqrt(np.mean(np.sum((jac * weight_rows[None, :, None]) ** 2, axis=1), axis=0))
     return 1.0 / rms, np.sqrt(np.mean(np.sum(jac ** 2, axis=1), axis=0))
 
@@ -166,7 +170,7 @@ def build_problem(cell: DesignCell, q_rich: np.ndarray,
                   weights: Mapping[str, float] | None = None, prior: Prior | None = None,
                   p: np.ndarray | None = None,
                   free: Sequence[str] | None = None) -> DesignProblem:
-    """Identifiable parameters, scalings and KPI Jacobians for a cell.
+    """Build the identifiable parameters, scalings and KPI Jacobians for a cell.
 
     Parameters
     ----------

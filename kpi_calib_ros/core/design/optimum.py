@@ -50,8 +50,9 @@ __all__ = ['CRITERIA', 'DESIGN_CRITERIA', 'DesignCell', 'DesignContext', 'Design
 # ------------------------------------------------------------------------ settings
 @dataclass(frozen=True)
 class DesignSettings:
-    """Options of :func:`design_measurements`; the cell file's ``design:`` section
-    (validated by :func:`kpi_calib_ros.io.cell_settings.design_settings`).
+    """Options of :func:`design_measurements`; the cell file's ``design:`` section.
+
+    Validated by :func:`kpi_calib_ros.io.cell_settings.design_settings`.
 
     Attributes
     ----------
@@ -327,8 +328,11 @@ class DrawnRobots:
 
     def to_dict(self, nominal_parameters: int, pose_names: Sequence[str],
                 nominal_std: np.ndarray) -> dict:
-        """YAML-ready: counts, and per working pose the median and largest std (m) and
-        the median ratio of the largest axis to the nominal problem's."""
+        """YAML-ready summary: counts, and per working pose the std figures.
+
+        The median and largest std (m) and the median ratio of the largest axis to the nominal
+        problem's.
+        """
         worst = np.max(self.tcp_std, axis=2) / np.max(nominal_std, axis=1)[None, :]
         return {
             'robots': len(self.parameters), 'parameters': list(self.parameters),
@@ -348,12 +352,13 @@ def tcp_std_on_drawn_robots(cell: DesignCell, configurations: np.ndarray,
                             weights: Mapping[str, float] | None,
                             rng: np.random.Generator,
                             draws: int = DRAWN_ROBOTS) -> DrawnRobots:
-    """The TCP std the identification of ``configurations`` (N, n) will report on
-    ``draws`` robots drawn from :class:`~kpi_calib_ros.core.simulation.ErrorMagnitudes`:
-    the design problem at each robot, its identifiable parameters selected from the
-    designed poses themselves, as :func:`kpi_calib_ros.core.estimation.least_squares.identify`
-    selects
-    them from the measured ones."""
+    """Predict the TCP std the identification of ``configurations`` (N, n) will report.
+
+    On ``draws`` robots drawn from :class:`~kpi_calib_ros.core.simulation.ErrorMagnitudes`: the
+    design problem at each robot, its identifiable parameters selected from the designed poses
+    themselves, as :func:`kpi_calib_ros.core.estimation.least_squares.identify` selects them
+    from the measured ones.
+    """
     q = np.atleast_2d(configurations)
     counts, stds = [], []
     for _ in range(draws):

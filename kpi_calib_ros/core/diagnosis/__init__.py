@@ -1,5 +1,6 @@
-"""Diagnosis: out-of-sample error, model and effect choice, candidate effects, validation on new
-data.
+"""Diagnosis: out-of-sample error, model and effect choice, candidate effects, validation.
+
+Validation is on new data.
 """
 from kpi_calib_ros.core.diagnosis.candidates import (
     Candidate,

@@ -116,8 +116,9 @@ class Candidate:
 
 @dataclass(frozen=True)
 class CandidateFit:
-    """The augmented fit of one candidate at one shape, before the candidates are ranked
-    (field names as in :class:`Candidate`; units of the effect's parameters).
+    """The augmented fit of one candidate at one shape, before the candidates are ranked.
+
+    Field names as in :class:`Candidate`; units of the effect's parameters.
 
     Attributes
     ----------
@@ -207,7 +208,8 @@ class ModelComparison:
 class CellDiagnosis:
     """Everything :func:`kpi_calib_ros.app.diagnose.diagnose_cell` computes.
 
-    ``after``/``comparison`` only when an effect was added."""
+    ``after``/``comparison`` only when an effect was added.
+    """
 
     model: MeasurementModel
     data: Measurements
@@ -228,7 +230,7 @@ class CellDiagnosis:
     excluded: tuple[int, ...] = ()
 
     def given_index(self, rows: np.ndarray) -> list[int]:
-        """Indices into the given measurements of rows (bool mask or indices) of ``data``."""
+        """Return indices into the given measurements of rows (bool mask or indices) of ``data``."""
         rows = np.asarray(rows)
         idx = np.flatnonzero(rows) if rows.dtype == bool else rows.astype(int)
         return [int(i) for i in (idx if self.kept is None else np.flatnonzero(self.kept)[idx])]
@@ -426,9 +428,12 @@ def diagnose(model: MeasurementModel, data: Measurements, result: CalibrationRes
 
 def equivalent_joint_sigma(model: MeasurementModel, data: Measurements,
                            result: CalibrationResult) -> float:
-    """Joint-reading noise σ_q (rad, the same on every joint) that explains the residual sum
-    of squares beyond the stated tracker σ: Σ‖r_i‖² · 3N/dof = Σ_i (Σ_a σ_a² + σ_q² ‖J_q,i‖²)
-    (the fit leaves dof/3N of the noise in the residuals); 0 when σ explains them."""
+    """Joint-reading noise σ_q (rad, the same on every joint) explaining the residuals beyond σ.
+
+    The residual sum of squares beyond the stated tracker σ: Σ‖r_i‖² · 3N/dof = Σ_i (Σ_a σ_a² +
+    σ_q² ‖J_q,i‖²) (the fit leaves dof/3N of the noise in the residuals); 0 when σ explains
+    them.
+    """
     point = (np.ones(len(data), bool) if data.reflector is None
              else np.asarray(data.reflector) < model.n_reflectors)
     q = np.atleast_2d(data.q)[point]
@@ -487,7 +492,7 @@ def compare_models(before: tuple[MeasurementModel, CalibrationResult],
 
 
 def unconverged_warning(result: CalibrationResult, which: str) -> str:
-    """What a comparison with ``result``, a fit that did not converge, is worth."""
+    """Say what a comparison with ``result``, a fit that did not converge, is worth."""
     return (f'the fit {which} did not converge ({result.message}): its figures are those of '
             'the last iterate, not of a minimum, and the comparison may favour the other '
             'side (identification.max_iterations / --max-iterations raises the limit)')
@@ -504,9 +509,12 @@ def augmented_model(model: MeasurementModel, effects: tuple) -> MeasurementModel
 def _effect_columns(model: MeasurementModel, sys_: LinearizedFit, effect: BoundEffect,
                     q: np.ndarray, tau: np.ndarray,
                     shape: tuple[float, ...] = ()) -> tuple[np.ndarray, float]:
-    """Weighted Jacobian columns (3N, k) of the effect's size parameters at size 0 (shape
-    parameters, the last ``len(shape)``, held at ``shape``) and the largest point
-    displacement (m) a typical-size effect causes."""
+    """Weighted Jacobian columns (3N, k) of the size parameters at size 0, and the largest shift.
+
+    The columns are the effect's size parameters; shape parameters, the last ``len(shape)``, are
+    held at ``shape``. The shift is the largest point displacement (m) a typical-size effect
+    causes.
+    """
     aug = augmented_model(model, (effect,))
     k = len(effect.parameter_names) - len(shape)
     p = np.concatenate([sys_.p, np.zeros(k), shape])
@@ -544,8 +552,10 @@ def _fit_candidate(effect: BoundEffect, cols: np.ndarray, sys_: LinearizedFit, r
                    joint_jac: np.ndarray, q: np.ndarray, tau: np.ndarray,
                    fraction: float, shape: tuple[float, ...] = ()) -> CandidateFit:
     """Augmented least squares [J E] from the geometric solution, its F-test and CV.
-    Shape parameters held at ``shape`` (chosen from a grid) count as fitted in the
-    F-test's degrees of freedom; their std is NaN."""
+
+    Shape parameters held at ``shape`` (chosen from a grid) count as fitted in the F-test's
+    degrees of freedom; their std is NaN.
+    """
     n = len(q)
     k = cols.shape[1] + len(shape)
     unique = cols - sys_.basis @ (sys_.basis.T @ cols)
@@ -576,10 +586,13 @@ SAME_SIGNATURE = 1e-6  # sin of the largest principal angle between two signatur
 
 
 def merge_same_signature(fits: list[CandidateFit]) -> list[CandidateFit]:
-    """Merge candidates whose signatures (the part of their Jacobian columns the geometry
-    does not reproduce) span the same subspace, i.e. the same column up to scale for one
-    parameter. The best-fitting one stays, with the others' specs in ``'merged'``:
-    the data cannot tell them apart, so they are one candidate, not several."""
+    """Merge candidates whose signatures span the same subspace.
+
+    A signature is the part of a candidate's Jacobian columns the geometry does not reproduce;
+    for one parameter, the same subspace is the same column up to scale. The best-fitting one
+    stays, with the others' specs in ``'merged'``: the data cannot tell them apart, so they are
+    one candidate, not several.
+    """
     bases = [np.linalg.qr(f.unique)[0] for f in fits]
     order = sorted(range(len(fits)), key=lambda i: -fits[i].delta_chi2)
     taken: set[int] = set()
@@ -602,11 +615,13 @@ def merge_same_signature(fits: list[CandidateFit]) -> list[CandidateFit]:
 
 def nested_alternatives(fits: list[CandidateFit], alpha: float = ADEQUACY_ALPHA
                         ) -> dict[str, str]:
-    """For an effect that contains simpler ones of the same joint (``EffectType.nests``:
-    joint_play is joint_backlash as τ0 -> 0 and joint_compliance as τ0 -> ∞): is it
-    significantly better than the best plausible simpler one (F-test of its extra
-    parameters at ``alpha``)? If not, the simpler one is the explanation. Returns
-    spec -> why it is not counted significant."""
+    """Test effects that nest simpler ones of the same joint against the best simpler one.
+
+    For an effect that contains simpler ones of the same joint (``EffectType.nests``: joint_play
+    is joint_backlash as τ0 -> 0 and joint_compliance as τ0 -> ∞): is it significantly better
+    than the best plausible simpler one (F-test of its extra parameters at ``alpha``)? If not,
+    the simpler one is the explanation. Returns spec -> why it is not counted significant.
+    """
     by_joint: dict[tuple[str | None, str], CandidateFit] = {
         (f.effect.joint, f.effect.kind.name): f for f in fits}
     out = {}
@@ -629,9 +644,12 @@ def nested_alternatives(fits: list[CandidateFit], alpha: float = ADEQUACY_ALPHA
 
 
 def torque_effect_notes(fits: list[CandidateFit]) -> dict[str, str]:
-    """For a joint with both backlash (a step with the sign of the gravity torque) and
-    compliance (in proportion to it) among the candidates: which fits better, by the
-    χ² reduction of each (both have one parameter). Returns spec -> note."""
+    """Compare backlash and compliance of a joint where both are candidates.
+
+    For a joint with both backlash (a step with the sign of the gravity torque) and compliance
+    (in proportion to it) among the candidates: which fits better, by the χ² reduction of each
+    (both have one parameter). Returns spec -> note.
+    """
     by_joint: dict[str, dict[str, CandidateFit]] = {}
     for f in fits:
         e = f.effect

@@ -54,8 +54,11 @@ FitFor = Callable[[MeasurementModel], Callable[..., CalibrationResult]]
 
 @dataclass(frozen=True)
 class EffectTrial:
-    """One candidate effect refitted in a round: its fitted values, the predicted
-    out-of-sample rms (m, None when refused before) and the outcome."""
+    """One candidate effect refitted in a round.
+
+    Its fitted values, the predicted out-of-sample rms (m, None when refused before) and the
+    outcome.
+    """
 
     spec: str
     round: int
@@ -80,8 +83,10 @@ class EffectTrial:
 
 @dataclass(frozen=True)
 class EffectChoice:
-    """The effects added (in order), the model with them, the predicted out-of-sample rms
-    (m) before and after, every trial and why selection stopped."""
+    """The effects added (in order), the model with them, and the predicted rms before and after.
+
+    The predicted out-of-sample rms is in m; also every trial and why selection stopped.
+    """
 
     effects: tuple[BoundEffect, ...]
     model: MeasurementModel
@@ -113,8 +118,9 @@ def choose_effects(model: MeasurementModel, data: Measurements, fit_for: FitFor,
                    n_geometric: int, prior: Prior | None = None,
                    alpha: float = ADEQUACY_ALPHA, seed: int = 0,
                    max_effects: int = MAX_EFFECTS) -> EffectChoice:
-    """Forward selection of physical effects on top of ``model`` at ``level`` (see the
-    module docstring). ``n_geometric``: the number of geometric parameters of ``model``
+    """Forward selection of physical effects on top of ``model`` at ``level``.
+
+    See the module docstring. ``n_geometric``: the number of geometric parameters of ``model``
     (its effects' parameters follow and are free at every level).
 
     Returns the choice; ``choice.model`` is ``model`` with the added effects appended.
@@ -197,8 +203,11 @@ def choose_effects(model: MeasurementModel, data: Measurements, fit_for: FitFor,
 
 def _implausible_fit(effects: tuple, result: CalibrationResult,
                      tau: np.ndarray | None) -> str:
-    """Why the fitted values of ``effects`` (the new one and those added before, which the
-    refit moves too) are not physically plausible at the measured torques, or ''."""
+    """Why the fitted values of ``effects`` are not physically plausible at the measured torques.
+
+    ``effects`` are the new one and those added before, which the refit moves too; '' when they
+    are plausible.
+    """
     for e in reversed([e for e in effects if isinstance(e, BoundEffect)]):
         why = implausible(e, [float(result.value(n)) for n in e.parameter_names], tau)
         if why:
@@ -208,11 +217,13 @@ def _implausible_fit(effects: tuple, result: CalibrationResult,
 
 
 def effect_start(values: np.ndarray, effect: BoundEffect, screened: np.ndarray) -> np.ndarray:
-    """Start of a fit with ``effect`` appended to a fit's ``values``: its size parameters at
-    0 and its shape parameters at their ``screened`` values. The screened size came with a
-    geometry that moved too (the linear screen refits both); added to the old geometry it
-    starts far off (TIAGo: 5.9 mm rms from a 2.2 mm fit), while from size 0 the geometry and
-    the size are fitted together and the shape is freed once the size is not 0."""
+    """Start of a fit with ``effect`` appended to a fit's ``values``.
+
+    Its size parameters at 0 and its shape parameters at their ``screened`` values. The screened
+    size came with a geometry that moved too (the linear screen refits both); added to the old
+    geometry it starts far off (TIAGo: 5.9 mm rms from a 2.2 mm fit), while from size 0 the
+    geometry and the size are fitted together and the shape is freed once the size is not 0.
+    """
     k = effect.kind.n_shape
     size = np.zeros(len(effect.parameter_names) - k)
     return np.concatenate([values, size, np.asarray(screened, float)[len(size):]])
@@ -227,7 +238,8 @@ def _trial(model: MeasurementModel, data: Measurements, fit_for: FitFor,
     An effect with shape parameters (nonlinear, e.g. joint_play's τ0) is fitted with them
     free first; when that fit does not converge or leaves the plausible range, they are
     held at the screened value (the best plausible point of their grid) and only the size
-    is fitted: the plausible-constrained estimate on the grid."""
+    is fitted: the plausible-constrained estimate on the grid.
+    """
     aug = augmented_model(model, (effect,))
     names = list(effect.parameter_names)
     shape = list(effect.shape_names)

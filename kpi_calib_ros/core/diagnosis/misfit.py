@@ -1,5 +1,7 @@
-"""The four answers of a diagnosis: where the model fails, what is missing, the command
-that adds it, and the error before and after on held-out poses.
+"""The four answers of a diagnosis.
+
+Where the model fails, what is missing, the command that adds it, and the error before and after
+on held-out poses.
 
 :func:`answer_misfit` combines what the diagnosis found (it takes plain remedies, so the
 diagnosis's result type can hold the answer):
@@ -81,7 +83,7 @@ class MisfitAnswer:
     missing: Remedy
 
     def lines(self) -> list[str]:
-        """The four answers as short lines for a terminal or a report."""
+        """Return the four answers as short lines for a terminal or a report."""
         m = self.missing
         held = ''
         if np.isfinite(m.held_out_before_m):
@@ -101,7 +103,7 @@ class MisfitAnswer:
 def answer_misfit(analysis: ResidualAnalysis | None, named: Remedy | None = None,
                   general: Sequence[Remedy] = (), chi2_adequate: bool = False,
                   model_adequate: bool = False) -> MisfitAnswer:
-    """The four answers from the residual analysis and the remedies at hand.
+    """Give the four answers from the residual analysis and the remedies at hand.
 
     Parameters
     ----------
@@ -161,8 +163,10 @@ def answer_misfit(analysis: ResidualAnalysis | None, named: Remedy | None = None
 
 
 def _gain(remedy: Remedy) -> float:
-    """Fraction of the held-out mean square a remedy removes, 1 − after²/before² (0 when
-    unknown)."""
+    """Fraction of the held-out mean square a remedy removes, 1 − after²/before².
+
+    0 when unknown.
+    """
     gain = 1.0 - (remedy.held_out_after_m / remedy.held_out_before_m) ** 2
     return float(gain) if np.isfinite(gain) else 0.0
 

@@ -45,8 +45,9 @@ DEFAULT_FOLDS = 5
 
 
 def level_free(params: ParameterSet, level: str, n_geometric: int | None = None) -> list[str]:
-    """Free parameter names of ``level``; the parameters after the first ``n_geometric``
-    (effects) are free at every level.
+    """Free parameter names of ``level``.
+
+    The parameters after the first ``n_geometric`` (effects) are free at every level.
 
     Parameters
     ----------
@@ -74,9 +75,12 @@ def level_free(params: ParameterSet, level: str, n_geometric: int | None = None)
 
 @dataclass(frozen=True)
 class ModelChoice:
-    """The chosen level, every level's predicted out-of-sample rms (m; None: not fitted or
-    no degrees of freedom), its cross-validated rms where folds keep every identified
-    parameter determined (None: not estimable from this design) and why."""
+    """The chosen level, every level's predicted and cross-validated rms, and why.
+
+    Predicted out-of-sample rms in m (None: not fitted or no degrees of freedom); the
+    cross-validated rms where folds keep every identified parameter determined (None: not
+    estimable from this design).
+    """
 
     level: str
     requested: str
@@ -107,8 +111,10 @@ Fit = Callable[[Measurements, list[str]], CalibrationResult]
 def cross_validated_level_rms(model: MeasurementModel, data: Measurements, fit: Fit,
                               free: list[str], folds: int = DEFAULT_FOLDS,
                               seed: int = 0) -> float | None:
-    """k-fold CV rms (m) of refitting ``free`` on the training folds and predicting the
-    held-out measurements; None when a fold cannot be fitted."""
+    """k-fold CV rms (m) of refitting ``free`` on the training folds.
+
+    The rms of predicting the held-out measurements; None when a fold cannot be fitted.
+    """
     q, eta = np.atleast_2d(data.q), np.atleast_2d(data.eta)
     # A pose's rows (one per reflector) share q: a fold holds out whole poses, else the
     # other reflectors of a held-out pose would be in the training set.

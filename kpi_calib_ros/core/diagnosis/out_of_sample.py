@@ -154,10 +154,12 @@ SWEEP_ATOL = 1e-6   # rad (m): a joint within this of its home value has not mov
 
 
 def joint_sweeps(q: np.ndarray) -> tuple[np.ndarray, dict[int, int]] | None:
-    """A one-joint-at-a-time campaign's home configuration
-    (:func:`~kpi_calib_ros.core.estimation.residuals.campaign_home`) and, per swept joint, its
-    number
-    of poses; None when some pose moves more than one joint from the home."""
+    """Return a one-joint-at-a-time campaign's home configuration and poses per swept joint.
+
+    The home configuration as :func:`~kpi_calib_ros.core.estimation.residuals.campaign_home`
+    finds it and, per swept joint, its number of poses; None when some pose moves more than one
+    joint from the home.
+    """
     q = np.atleast_2d(q)
     moved = moved_joints(q, SWEEP_ATOL)
     if len(q) < 2 or np.any(moved.sum(axis=1) > 1) or not moved.any():
@@ -169,11 +171,13 @@ def joint_sweeps(q: np.ndarray) -> tuple[np.ndarray, dict[int, int]] | None:
 def _fresh_conditions(model: MeasurementModel, data: Measurements, domain: str,
                       configs: np.ndarray, rng: np.random.Generator
                       ) -> tuple[np.ndarray, dict[str, np.ndarray] | None]:
-    """Fresh poses under the campaign's conditions, for a model whose effects read
-    covariates (:attr:`MeasurementModel.inputs`): ``like_measured`` (not a sweep) measures
-    every measured row again at its own covariates; every other domain draws each fresh
-    pose's covariates from a random measured row. None (the reference condition) when the
-    model reads none or the data carry none."""
+    """Fresh poses under the campaign's conditions, for a model whose effects read covariates.
+
+    The covariates are :attr:`MeasurementModel.inputs`. ``like_measured`` (not a sweep) measures
+    every measured row again at its own covariates; every other domain draws each fresh pose's
+    covariates from a random measured row. None (the reference condition) when the model reads
+    none or the data carry none.
+    """
     if not model.inputs or data.covariates is None:
         return configs, None
     values = {name: np.asarray(data.covariates[name], float) for name in model.inputs}
@@ -192,7 +196,8 @@ def domain_configurations(model: MeasurementModel, q: np.ndarray, domain: str,
     others at home, about ``n`` poses shared as the measured ones are); any other campaign
     gives its distinct measured configurations. ``within_measured_ranges`` /
     ``over_joint_ranges``: ``n`` uniform draws in the measured box / in the joint limits
-    (continuous joints on [-π, π])."""
+    (continuous joints on [-π, π]).
+    """
     q = np.atleast_2d(q)
     if domain == 'like_measured':
         sweeps = joint_sweeps(q)
@@ -225,7 +230,8 @@ def _interval(c0: np.ndarray, m: np.ndarray, noise_ms: float, scale: float,
     C^½ M C^½: it varies from calibration to calibration around its mean s Σλ, most where
     few parameter directions dominate (far from the measured poses). Its quantiles come
     from the two-moment (Satterthwaite) χ² match; s, from χ²(dof), at its own bounds
-    (conservative). The noise part is its expectation (many fresh measurements)."""
+    (conservative). The noise part is its expectation (many fresh measurements).
+    """
     w, v = np.linalg.eigh((c0 + c0.T) / 2)
     root = v * np.sqrt(np.clip(w, 0.0, None))
     lam = np.clip(np.linalg.eigvalsh(root.T @ m @ root), 0.0, None)

@@ -59,8 +59,10 @@ class Periodogram:
 
 
 def searched_cycles(q_j: np.ndarray, max_cycles: int = MAX_SEARCHED) -> np.ndarray:
-    """Frequencies (cycles per revolution) the poses' angles ``q_j`` (N,) support:
-    ``MIN_CYCLES`` … min(``max_cycles``, ⌊π N / Δ⌋), Δ the span of the angles (≤ 2π)."""
+    """Frequencies (cycles per revolution) the poses' angles ``q_j`` (N,) support.
+
+    ``MIN_CYCLES`` … min(``max_cycles``, ⌊π N / Δ⌋), Δ the span of the angles (≤ 2π).
+    """
     q_j = np.asarray(q_j, float)
     span = min(float(np.ptp(q_j)) if len(q_j) else 0.0, 2.0 * math.pi)
     if span <= 0.0:
@@ -72,7 +74,7 @@ def searched_cycles(q_j: np.ndarray, max_cycles: int = MAX_SEARCHED) -> np.ndarr
 def periodograms(model: MeasurementModel, data: Measurements, result: CalibrationResult,
                  max_cycles: int = MAX_SEARCHED, fit: LinearizedFit | None = None
                  ) -> tuple[Periodogram, ...]:
-    """The periodogram of every revolute joint of ``model`` at the fit ``result``.
+    """Return the periodogram of every revolute joint of ``model`` at the fit ``result``.
 
     Parameters
     ----------
@@ -120,9 +122,11 @@ def periodograms(model: MeasurementModel, data: Measurements, result: Calibratio
 
 def periodic_candidates(model: MeasurementModel, found: tuple[Periodogram, ...]
                         ) -> list[BoundEffect]:
-    """The peak of each periodogram as a candidate effect, ``searched`` = the number of
-    frequencies tried (k = 2 is the named ``cyclic_joint_error_h2``); effects already in
-    ``model`` left out."""
+    """Return the peak of each periodogram as a candidate effect.
+
+    ``searched`` = the number of frequencies tried (k = 2 is the named
+    ``cyclic_joint_error_h2``); effects already in ``model`` left out.
+    """
     have = {e.name for e in model.effects}
     out: list[BoundEffect] = []
     for gram in found:

@@ -179,7 +179,7 @@ class InputScore:
 
 @dataclass(frozen=True)
 class PairScore:
-    """Does the misfit depend on two inputs jointly, beyond the sum of their smooths?
+    """Whether the misfit depends on two inputs jointly, beyond the sum of their smooths.
 
     The top two flagged joint angles: a tensor product of both (harmonics 1-2 of a
     revolute joint's turn, a cubic spline of 5 functions for a prismatic one) along the
@@ -251,10 +251,13 @@ class ResidualAnalysis:
 
 # ------------------------------------------------------------------ bases
 def spline_basis(x: np.ndarray, size: int, support: np.ndarray | None = None) -> np.ndarray:
-    """Cubic B-spline basis (M, size) at ``x`` (M,), interior knots at the quantiles of
-    ``support`` (default ``x``) so that every piece holds data; constant beyond the ends.
+    """Cubic B-spline basis (M, size) at ``x`` (M,), constant beyond the ends.
 
-    ``size`` is capped by the distinct values of ``support`` (fewer columns then)."""
+    Interior knots at the quantiles of ``support`` (default ``x``) so that every piece holds
+    data.
+
+    ``size`` is capped by the distinct values of ``support`` (fewer columns then).
+    """
     support = np.asarray(x if support is None else support, float)
     lo, hi = float(np.min(support)), float(np.max(support))
     distinct = len(np.unique(support))
@@ -306,8 +309,11 @@ class _Press:
                                                    for k in np.unique(self.rows)]
 
     def held_out(self, u: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, float] | None:
-        """Held-out residuals (3N,) of r ≈ [geometry, u]·δ and their expected sum of
-        squares under pure unit noise; None when a fold leaves a column undetermined."""
+        """Held-out residuals (3N,) of r ≈ [geometry, u]·δ and their expected sum of squares.
+
+        The expected sum of squares under pure unit noise; None when a fold leaves a column
+        undetermined.
+        """
         basis = np.hstack([self.geometry, u])
         e = r - basis @ (basis.T @ r)
         held = np.empty_like(r)
@@ -405,8 +411,10 @@ _SHOWN = {'rad': (1e6, 'µrad'), 'm': (1e6, 'µm'), '': (1e6, 'ppm')}
 
 
 def _region(inp: ResidualInput, grid: np.ndarray, curve: np.ndarray) -> str:
-    """Where the fitted function is at least half its largest size: the widest (up to
-    three) ranges of the input, in degrees for a joint angle."""
+    """Where the fitted function is at least half its largest size.
+
+    The widest (up to three) ranges of the input, in degrees for a joint angle.
+    """
     if not np.isfinite(curve).any():
         return ''
     k = int(np.nanargmax(np.nanmax(np.abs(curve), axis=0)))
@@ -574,8 +582,10 @@ PAIR_HARMONICS = 2  # harmonics 1-2 of the turn for a joint angle (5 functions t
 def _pair(a: ResidualInput, b: ResidualInput, additive: list[np.ndarray], r: np.ndarray,
           geometry: np.ndarray, w: np.ndarray, press: _Press, n_poses: int,
           alpha: float) -> tuple[PairScore | None, np.ndarray]:
-    """Interaction of ``a`` and ``b`` along ``a``'s direction beyond their additive fit,
-    and its columns (projected off the geometry and the additive fit)."""
+    """Interaction of ``a`` and ``b`` along ``a``'s direction beyond their additive fit.
+
+    Also its columns (projected off the geometry and the additive fit).
+    """
     if PAIR_FUNCTIONS ** 2 > n_poses // MIN_POSES_PER_COLUMN:
         return None, np.zeros((len(r), 0))
 
@@ -623,9 +633,12 @@ def analyse_calibration(model: MeasurementModel, data: Measurements,
                         covariates: Mapping[str, tuple[np.ndarray, str]] | None = None,
                         folds: int = DEFAULT_FOLDS, alpha: float = ADEQUACY_ALPHA,
                         seed: int = 0) -> ResidualAnalysis:
-    """:func:`analyse_residuals` of ``result`` over the standard inputs of ``data``
-    (:func:`~kpi_calib_ros.core.diagnosis.residual_inputs.residual_inputs`) and the extra
-    ``covariates`` (name -> (values, unit))."""
+    """:func:`analyse_residuals` of ``result`` over the standard inputs of ``data`` and more.
+
+    The standard inputs are
+    :func:`~kpi_calib_ros.core.diagnosis.residual_inputs.residual_inputs`; the extra
+    ``covariates`` map name -> (values, unit).
+    """
     fit = linearized_fit(model, data, result)
     residuals = np.atleast_2d(data.eta) - model.predict(
         result.values, np.atleast_2d(data.q), fit.tau, data.reflector, data.rotation,

@@ -65,7 +65,7 @@ class ResidualInput:
 def residual_inputs(model: MeasurementModel, data: Measurements, result: CalibrationResult,
                     covariates: Mapping[str, tuple[np.ndarray, str]] | None = None,
                     tau: np.ndarray | None = None) -> list[ResidualInput]:
-    """The standard inputs of a calibration's measurements.
+    """Return the standard inputs of a calibration's measurements.
 
     Every joint angle and every loaded joint's gravity torque (field ∂p/∂q_j), the
     distance to the tracker (line of sight), time since the first stamp when stamped, the
@@ -127,8 +127,11 @@ def residual_inputs(model: MeasurementModel, data: Measurements, result: Calibra
 
 
 def _covariate_fields(eta: np.ndarray, point: np.ndarray) -> np.ndarray:
-    """(N, 3, 4) fields of an input with no direction: each tracker axis and the offset
-    of the (predicted) points ``eta`` from their centroid; 0 on rotation rows."""
+    """(N, 3, 4) fields of an input with no direction.
+
+    Each tracker axis and the offset of the (predicted) points ``eta`` from their centroid; 0 on
+    rotation rows.
+    """
     fields = np.zeros((len(eta), 3, 4))
     fields[point, :, :3] = np.eye(3)
     if point.any():

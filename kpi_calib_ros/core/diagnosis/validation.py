@@ -1,5 +1,6 @@
-"""Validation of a calibration on new measurements: do the new points fall within
-the errors the calibration itself predicts?
+"""Validation of a calibration on new measurements.
+
+Do the new points fall within the errors the calibration itself predicts?
 
 A new point ``η_i`` is predicted as ``h(p̂, q_i)``; its error is the measurement noise
 plus the propagated uncertainty of the identified parameters,

@@ -1,7 +1,9 @@
-"""Types of physical effects: :class:`EffectType`, a kind of effect before it is bound to a
-joint, and :class:`BoundEffect`, one bound to a joint of a robot (or global), the form the
-measurement model uses. The library of effects is :mod:`kpi_calib_ros.core.effects.library`;
-specs, the registry and the user API are :mod:`kpi_calib_ros.core.effects.registry`.
+"""Types of physical effects: :class:`EffectType` and :class:`BoundEffect`.
+
+:class:`EffectType` is a kind of effect before it is bound to a joint, and :class:`BoundEffect`
+one bound to a joint of a robot (or global), the form the measurement model uses. The library of
+effects is :mod:`kpi_calib_ros.core.effects.library`; specs, the registry and the user API are
+:mod:`kpi_calib_ros.core.effects.registry`.
 """
 from __future__ import annotations
 
@@ -110,6 +112,7 @@ class EffectType:
     general: bool = False
 
     def __post_init__(self) -> None:
+        """Check the name, the single correction function, parameters, units, sizes, bounds."""
         if not self.name or ':' in self.name or '.' in self.name:
             raise ValueError(f'effect name {self.name!r} must be non-empty without ":" or "."')
         given = [f for f in (self.joint_function, self.point_function,
@@ -179,6 +182,7 @@ class BoundEffect:
     searched: int = field(default=1, compare=False)
 
     def __post_init__(self) -> None:
+        """Derive the name, parameter names, units and torque use from the kind and joint."""
         prefix = self.kind.name if self.joint is None else f'{self.kind.name}.{self.joint}'
         object.__setattr__(self, 'name', self.kind.name if self.joint is None
                            else f'{self.kind.name}:{self.joint}')
@@ -204,8 +208,10 @@ class BoundEffect:
             if self.kind.n_shape else ()
 
     def joint_correction(self, q: ca.SX, tau: ca.SX, theta: ca.SX, z: Any = None) -> Any:
-        """Additive joint-value correction, SX (n,), or None for a point or placement
-        effect; ``z`` the covariates :attr:`inputs` (SX, an effect with inputs only)."""
+        """Additive joint-value correction, SX (n,), or None for a point or placement effect.
+
+        ``z`` the covariates :attr:`inputs` (SX, an effect with inputs only).
+        """
         fn = self.kind.joint_function
         if fn is None:
             return None
@@ -217,8 +223,10 @@ class BoundEffect:
         return out
 
     def placement_correction(self, theta: ca.SX, z: Any = None) -> list[tuple[int, Any]]:
-        """Additive corrections of joint placement errors: [(joint index, SX (6,))]; empty
-        unless the kind has a ``placement_function``."""
+        """Additive corrections of joint placement errors: [(joint index, SX (6,))].
+
+        Empty unless the kind has a ``placement_function``.
+        """
         fn = self.kind.placement_function
         if fn is None or self.origins is None:
             return []
@@ -233,15 +241,17 @@ class BoundEffect:
         return None if fn is None else fn(point, theta)
 
     def frame_correction(self, q: ca.SX, tau: ca.SX, theta: ca.SX) -> Any:
-        """``(joint index, SX (3, 3) rotation)`` applied to that joint's frame after its
-        motion (link bending, :class:`kpi_calib_ros.core.effects.general.LinkBending`), or
-        None: the library's effects correct joint values or the point only."""
+        """``(joint index, SX (3, 3) rotation)`` applied to that joint's frame after its motion.
+
+        For link bending (:class:`kpi_calib_ros.core.effects.general.LinkBending`); None
+        otherwise: the library's effects correct joint values or the point only.
+        """
         return None
 
     def hint(self) -> str:
-        """What would make this effect distinguishable, with the joint named."""
+        """Say what would make this effect distinguishable, with the joint named."""
         return self.kind.hint.replace('{joint}', self.joint or 'the joint')
 
     def signature(self) -> str:
-        """What the fitted correction follows, with the joint named."""
+        """Say what the fitted correction follows, with the joint named."""
         return self.kind.signature.replace('{joint}', self.joint or 'the joint')

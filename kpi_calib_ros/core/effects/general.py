@@ -62,6 +62,7 @@ class PeriodicJointError(BoundEffect):
     cycles: int = 1
 
     def __post_init__(self) -> None:
+        """Name the effect and its parameters after the joint and the number of cycles k."""
         super().__post_init__()
         object.__setattr__(self, 'name', f'{PERIODIC}:{self.joint}:k={self.cycles}')
         object.__setattr__(self, 'parameter_names', tuple(
@@ -70,8 +71,10 @@ class PeriodicJointError(BoundEffect):
 
 @functools.lru_cache(maxsize=None)
 def periodic_kind(cycles: int) -> EffectType:
-    """The effect type of a periodic joint error at ``cycles`` cycles per revolution (one
-    object per k, so effects bound from the same spec compare equal)."""
+    """Return the effect type of a periodic joint error at ``cycles`` cycles per revolution.
+
+    One object per k, so effects bound from the same spec compare equal.
+    """
     k = int(cycles)
 
     def correction(q_j: ca.SX, tau_j: ca.SX, theta: ca.SX) -> ca.SX:
@@ -123,8 +126,11 @@ def _no_joint_value(q_j: ca.SX, tau_j: ca.SX, theta: ca.SX) -> ca.SX:
 
 @dataclass(frozen=True)
 class LinkBending(BoundEffect):
-    """Joint j's frame turned by c_u·M_u about u and c_v·M_v about v (its link frame's
-    axes perpendicular to the joint axis), M the gravity moment of the links it carries."""
+    """Joint j's frame turned by c_u·M_u about u and c_v·M_v about v.
+
+    u and v are its link frame's axes perpendicular to the joint axis, M the gravity moment of
+    the links it carries.
+    """
 
     moment: ca.Function | None = field(default=None, compare=False)  # q (n,) -> M (3,), N m
     bend_axes: tuple[tuple[float, ...], ...] = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0))
@@ -140,9 +146,11 @@ class LinkBending(BoundEffect):
 
 
 def _carried_masses(robot: RobotModel) -> list[tuple[int, float, np.ndarray]]:
-    """(chain index a, mass kg, centre of mass (3,) in chain joint a's frame) of every
-    Pinocchio body a chain joint carries: the chain's links (the payload on the last) and
-    the branches hanging off them (at their neutral values)."""
+    """(chain index a, mass kg, centre of mass (3,) in chain joint a's frame) of carried bodies.
+
+    Every Pinocchio body a chain joint carries: the chain's links (the payload on the last) and
+    the branches hanging off them (at their neutral values).
+    """
     model = robot.pin_model
     data = model.createData()
     pin.forwardKinematics(model, data, pin.neutral(model))
@@ -163,10 +171,12 @@ def _carried_masses(robot: RobotModel) -> list[tuple[int, float, np.ndarray]]:
 
 
 def gravity_moment(robot: RobotModel, joint: int) -> ca.Function:
-    """CasADi Function q (n,) -> (3,): the static gravity (holding) moment, N m, of the
-    bodies chain joint ``joint`` carries, about its origin, in its frame after its motion,
-    at the nominal geometry. Its component along the joint axis is
-    :meth:`~kpi_calib_ros.core.model.robot.RobotModel.gravity_torques`."""
+    """CasADi Function q (n,) -> (3,): the static gravity (holding) moment, N m, of a joint.
+
+    The moment of the bodies chain joint ``joint`` carries, about its origin, in its frame after
+    its motion, at the nominal geometry. Its component along the joint axis is
+    :meth:`~kpi_calib_ros.core.model.robot.RobotModel.gravity_torques`.
+    """
     chain = SymbolicChain(robot, geometric_parameters(robot, np.zeros(6), np.zeros(3)))
     q = ca.SX.sym('q', robot.n_joints)
     frames = chain.link_transforms(ca.DM(chain.params.nominal), q)
@@ -186,8 +196,11 @@ def gravity_moment(robot: RobotModel, joint: int) -> ca.Function:
 
 
 def _bend_axes(axis: np.ndarray) -> tuple[tuple[np.ndarray, str], tuple[np.ndarray, str]]:
-    """Two unit axes (joint frame) perpendicular to ``axis``, from the frame axes other than
-    the one closest to it, each with the letter of the frame axis it comes from."""
+    """Two unit axes (joint frame) perpendicular to ``axis``.
+
+    From the frame axes other than the one closest to it, each with the letter of the frame axis
+    it comes from.
+    """
     axis = np.asarray(axis, float) / np.linalg.norm(axis)
     first, second = [k for k in range(3) if k != int(np.argmax(np.abs(axis)))]
     u = np.eye(3)[first] - axis[first] * axis
@@ -230,8 +243,10 @@ def link_bending(robot: RobotModel, joint: str | None, key: str = 'effects') -> 
 
 def general_candidates(robot: RobotModel, exclude: set[str] | frozenset[str] = frozenset()
                        ) -> list[BoundEffect]:
-    """The general effects screened without a search: ``link_bending`` of every chain
-    joint that carries mass (names in ``exclude`` left out)."""
+    """Return the general effects screened without a search.
+
+    ``link_bending`` of every chain joint that carries mass (names in ``exclude`` left out).
+    """
     out: list[BoundEffect] = []
     for name in robot.joint_names:
         try:

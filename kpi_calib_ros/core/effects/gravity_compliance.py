@@ -44,8 +44,10 @@ NAME = 'gravity_compliance'
 
 
 def torque_regressor(robot: RobotModel, joint: int) -> ca.Function:
-    """CasADi Function q (n,) -> (1, 4·m) with τ_joint = Y(q) · π, π = (m_k, h_k) of the
-    links k the joint carries (kg, kg m), at the nominal geometry."""
+    """CasADi Function q (n,) -> (1, 4·m) with τ_joint = Y(q) · π.
+
+    π = (m_k, h_k) of the links k the joint carries (kg, kg m), at the nominal geometry.
+    """
     chain = SymbolicChain(robot, geometric_parameters(robot, np.zeros(6), np.zeros(3)))
     q = ca.SX.sym('q', robot.n_joints)
     p = ca.DM(chain.params.nominal)
@@ -66,22 +68,28 @@ def torque_regressor(robot: RobotModel, joint: int) -> ca.Function:
 
 
 def _whole_configuration(q_j: ca.SX, tau_j: ca.SX, theta: ca.SX) -> ca.SX:
-    """Never called: the correction needs the whole configuration, so
-    :meth:`MassFreeCompliance.joint_correction` computes it."""
+    """Never called: :meth:`MassFreeCompliance.joint_correction` computes the correction.
+
+    The correction needs the whole configuration.
+    """
     raise TypeError(f'{NAME} needs the whole configuration (MassFreeCompliance)')
 
 
 @dataclass(frozen=True)
 class MassFreeCompliance(BoundEffect):
-    """δq_j = Σ_i g_i ψ_i(q): compliance of joint j under its gravity torque with unknown
-    link masses; ψ (r functions, dimensionless, rms 1 over the joint ranges) span the
-    torques the chain can produce."""
+    """δq_j = Σ_i g_i ψ_i(q): compliance of joint j under its gravity torque, link masses unknown.
+
+    ψ (r functions, dimensionless, rms 1 over the joint ranges) span the torques the chain can
+    produce.
+    """
 
     basis: ca.Function | None = field(default=None, compare=False)
 
     def joint_correction(self, q: ca.SX, tau: ca.SX, theta: ca.SX, z: Any = None) -> ca.SX:
-        """Joint-value correction SX (n,): ``θ · ψ(q)`` (rad or m) on this effect's joint,
-        0 elsewhere."""
+        """Joint-value correction SX (n,).
+
+        ``θ · ψ(q)`` (rad or m) on this effect's joint, 0 elsewhere.
+        """
         assert self.basis is not None and self.joint_index is not None  # set by the binder
         out = ca.SX.zeros(self.n_joints)
         out[self.joint_index] = ca.dot(self.basis(q), theta)
@@ -141,16 +149,20 @@ STIFFNESS_RANGE = (1e4, 1e8)
 
 
 def massless_links(robot: RobotModel) -> list[str]:
-    """Chain links (children of the chain joints) without mass: no ``<inertial>`` (the
-    cell payload counts as mass of the last link)."""
+    """Chain links (children of the chain joints) without mass.
+
+    Without mass means no ``<inertial>`` (the cell payload counts as mass of the last link).
+    """
     ids = robot._pin_joint_ids  # the chain's Pinocchio joints, base to tip
     return [name for name, jid in zip(robot.link_names[1:], ids)
             if float(robot.pin_model.inertias[jid].mass) <= 0.0]
 
 
 def mass_warning(robot: RobotModel, effects: Sequence[Any]) -> str:
-    """Why torque-driven effects (``joint_compliance``, ``joint_backlash``) are wrong on
-    this robot, or ''. Without link masses the gravity torque is the payload's alone."""
+    """Why torque-driven effects (``joint_compliance``, ``joint_backlash``) are wrong here, or ''.
+
+    Without link masses the gravity torque is the payload's alone.
+    """
     users = [e.name for e in effects if e.uses_torque]
     missing = massless_links(robot)
     if not users or not missing:
@@ -163,9 +175,11 @@ def mass_warning(robot: RobotModel, effects: Sequence[Any]) -> str:
 
 def compliance_warnings(names: Sequence[str], values: Sequence[float],
                         stds: Sequence[float]) -> list[str]:
-    """Fitted ``joint_compliance`` values outside physical sense: a positive c (the joint
-    deflecting along its holding torque, beyond 3 std) or |c| outside the stiffness
-    range of industrial joints (:data:`STIFFNESS_RANGE`)."""
+    """Fitted ``joint_compliance`` values outside physical sense.
+
+    A positive c (the joint deflecting along its holding torque, beyond 3 std) or |c| outside
+    the stiffness range of industrial joints (:data:`STIFFNESS_RANGE`).
+    """
     out = []
     lo, hi = 1.0 / STIFFNESS_RANGE[1], 1.0 / STIFFNESS_RANGE[0]
     for name, c, std in zip(names, values, stds):

@@ -1,7 +1,9 @@
-"""The library of physical effects: the joint and point corrections of each
-:class:`~kpi_calib_ros.core.effects.effect_types.EffectType` the package ships (their formulas and
-units in :mod:`kpi_calib_ros.core.effects.registry`), with the sizes a fit may take and the hints
-that tell a user how to make each distinguishable.
+"""The library of physical effects: the corrections of each shipped effect type.
+
+The joint and point corrections of each
+:class:`~kpi_calib_ros.core.effects.effect_types.EffectType` the package ships (their formulas
+and units in :mod:`kpi_calib_ros.core.effects.registry`), with the sizes a fit may take and the
+hints that tell a user how to make each distinguishable.
 """
 from __future__ import annotations
 

@@ -167,8 +167,10 @@ def bind_effect(effect_type: EffectType, robot: RobotModel, joint: str | None,
 
 
 def _origins(effect_type: EffectType, robot: RobotModel) -> np.ndarray | None:
-    """(n, 3) nominal origin translation of every joint in its placement frame, m (for a
-    placement effect; None otherwise)."""
+    """(n, 3) nominal origin translation of every joint in its placement frame, m.
+
+    For a placement effect; None otherwise.
+    """
     if effect_type.placement_function is None:
         return None
     return np.array([np.asarray(j.placement)[:3, :3].T @ np.asarray(j.placement)[:3, 3]
@@ -263,7 +265,9 @@ def resolve_effects(specs: Iterable[str | BoundEffect], robot: RobotModel,
                     key: str = 'effects', base_dir: str | Path | None = None,
                     allow_code: bool = False) -> tuple[BoundEffect, ...]:
     """Resolve specs (or pass bound effects through); duplicates are an error.
-    ``allow_code``: see :func:`parse_effect_spec`."""
+
+    ``allow_code``: see :func:`parse_effect_spec`.
+    """
     out: list[BoundEffect] = []
     for i, spec in enumerate(specs):
         effect = spec if not isinstance(spec, str) else parse_effect_spec(
@@ -314,13 +318,15 @@ def candidate_effects(robot: RobotModel, kinds: Sequence[str] | None = None,
 
 def implausible(effect: BoundEffect, values: Sequence[float] | np.ndarray,
                 tau: np.ndarray | None = None) -> str:
-    """'' when every fitted value is within the effect's plausible range, else a warning
-    naming the parameter, its value and the bound.
+    """Return '' when every fitted value is within the effect's plausible range, else a warning.
+
+    The warning names the parameter, its value and the bound.
 
     ``tau``: (N, n) gravity torques of the measured poses (N m); the effect's joint's are
     used. An effect that contains ``joint_compliance`` as a limit of its shape (``joint_play``) is
     that compliance, b·τ/τ0, where every torque is below :data:`LINEAR_PLAY` τ0 (tanh
-    within 4 % of linear): there b/τ0 must also be a plausible compliance."""
+    within 4 % of linear): there b/τ0 must also be a plausible compliance.
+    """
     kind = effect.kind
     bounds = kind.prismatic_plausible if effect.joint_kind == 'prismatic' else kind.plausible
     out = [f'{name} = {value:.3g} {unit} beyond the plausible ±{bound:.3g}'

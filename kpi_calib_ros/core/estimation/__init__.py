@@ -1,5 +1,6 @@
-"""Estimation: constrained least squares with KPI variables (eq. 13, 19), covariance, priors,
-robust statistics, outliers, precision.
+"""Estimation: constrained least squares with KPI variables (eq. 13, 19) and its statistics.
+
+Covariance, priors, robust statistics, outliers, precision.
 """
 from kpi_calib_ros.core.estimation.covariance import (
     kkt_covariance,

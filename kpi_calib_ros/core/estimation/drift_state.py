@@ -1,6 +1,7 @@
-"""Drift state of a daily swing: the deviation and rate of each parameter, carried from
-cycle to cycle so the prior of a re-identification follows a thermal trend instead of
-lagging it.
+"""Drift state of a daily swing: each parameter's deviation and rate, carried between cycles.
+
+The deviation and rate of each parameter are carried from cycle to cycle so the prior of a
+re-identification follows a thermal trend instead of lagging it.
 
 :class:`DriftSwing` is the physics (a lightly damped stochastic oscillator per
 parameter), :class:`DriftState` the state z = (d, ḋ) with its covariance and its
@@ -56,6 +57,7 @@ class DriftSwing:
     period_hours: float = DAY_HOURS
 
     def __post_init__(self) -> None:
+        """Check that the swings are finite and >= 0 and the period is positive."""
         for value, key in ((self.temperature_k, 'temperature swing (K)'),
                            (self.offset_rad, 'offset swing (rad)')):
             if not (np.isfinite(value) and value >= 0):
@@ -66,9 +68,10 @@ class DriftSwing:
 
     @classmethod
     def from_values(cls, values: Sequence[float]) -> DriftSwing:
-        """The swing of ``[temperature_K, offset_rad(, period_h)]`` (period default
-        `DAY_HOURS`), as the CLI's ``--drift-velocity`` and the node's ``drift_velocity`` give
-        it.
+        """Return the swing of ``[temperature_K, offset_rad(, period_h)]``.
+
+        The period defaults to `DAY_HOURS`; the values as the CLI's ``--drift-velocity`` and the
+        node's ``drift_velocity`` give them.
 
         Raises
         ------
@@ -139,6 +142,7 @@ class DriftState:
     cross: np.ndarray
 
     def __post_init__(self) -> None:
+        """Check shapes, finiteness and symmetry; store the arrays, the covariance symmetrised."""
         k = len(self.names)
         shapes = {'values': (2 * k,), 'covariance': (2 * k, 2 * k),
                   'cross_covariance': (k, 2 * k)}
@@ -173,7 +177,7 @@ class DriftState:
 
 def state_predicted(prior: Prior, state: DriftState, swing: DriftSwing, shape: np.ndarray,
                     hours: float) -> tuple[Prior, DriftState]:
-    """The prior and drift state of the same ``names`` after ``hours``.
+    """Return the prior and drift state of the same ``names`` after ``hours``.
 
     ``shape`` (k, k): the covariance of the parameters' swing amplitude (twice the
     stationary covariance of d). With Φ the oscillator's transition
@@ -203,8 +207,11 @@ def state_predicted(prior: Prior, state: DriftState, swing: DriftSwing, shape: n
 
 def stationary_state(names: Sequence[str], swing: DriftSwing, shape: np.ndarray
                      ) -> DriftState:
-    """The drift state of a calibration that has none: z = 0 with the stationary
-    covariance (the deviation and rate of the swing unknown), uncorrelated with p."""
+    """Return the drift state of a calibration that has none.
+
+    z = 0 with the stationary covariance (the deviation and rate of the swing unknown),
+    uncorrelated with p.
+    """
     k = len(names)
     cov = np.kron(swing.stationary(), 0.5 * np.asarray(shape, float))
     return DriftState(tuple(names), np.zeros(2 * k), cov, np.zeros((k, 2 * k)))
@@ -212,10 +219,12 @@ def stationary_state(names: Sequence[str], swing: DriftSwing, shape: np.ndarray
 
 def initial_state(names: Sequence[str], swing: DriftSwing, shape: np.ndarray,
                   stored: DriftState | None) -> DriftState:
-    """The drift state of the prior parameters ``names`` before extrapolation: ``stored``
-    (a previous calibration's ``drift_state``) for the names it has; for the others, and
-    for all without one, the stationary state of the swing (:func:`stationary_state`),
-    uncorrelated."""
+    """Return the drift state of the prior parameters ``names`` before extrapolation.
+
+    ``stored`` (a previous calibration's ``drift_state``) for the names it has; for the others,
+    and for all without one, the stationary state of the swing (:func:`stationary_state`),
+    uncorrelated.
+    """
     k = len(names)
     fresh = stationary_state(names, swing, shape)
     if stored is None:
@@ -237,7 +246,7 @@ def initial_state(names: Sequence[str], swing: DriftSwing, shape: np.ndarray,
 
 def state_updated(prior: Prior, state: DriftState, names: Sequence[str],
                   mean: np.ndarray, covariance: np.ndarray) -> DriftState:
-    """The drift state after a cycle's identification (its Kalman update).
+    """Return the drift state after a cycle's identification (its Kalman update).
 
     The data see the parameters only, so given the predicted joint Gaussian of the
     parameters p ~ N(m, C_pp) (``prior``) and the state z (``state``, cov(p, z) = C_pz)

@@ -1,4 +1,4 @@
-"""Estimability of the KPI: is each working pose's TCP determined by the measurements?
+"""Estimability of the KPI: whether each working pose's TCP is determined by the measurements.
 
 A TCP covariance is only meaningful when the TCP point s_w = h(p, q_w) is an estimable
 function of the parameters: its gradient with respect to ALL free parameters (not only the
@@ -146,10 +146,12 @@ def information_rows(model: MeasurementModel, p: np.ndarray, q: np.ndarray,
                      reflector: np.ndarray | None = None,
                      rotation: np.ndarray | None = None,
                      covariates: Mapping[str, np.ndarray] | None = None) -> np.ndarray:
-    """Information of measured poses ``q`` (N, n) at ``p`` in columns ``idx``: the data
-    Jacobian weighted by 1/σ, with a ``prior``'s L rows below (what it determines counts
-    as determined); ``reflector``, ``rotation`` and ``covariates`` as for
-    :meth:`~kpi_calib_ros.core.measurement.tracker.MeasurementModel.jacobian`."""
+    """Information of measured poses ``q`` (N, n) at ``p`` in columns ``idx``.
+
+    The data Jacobian weighted by 1/σ, with a ``prior``'s L rows below (what it determines
+    counts as determined); ``reflector``, ``rotation`` and ``covariates`` as for
+    :meth:`~kpi_calib_ros.core.measurement.tracker.MeasurementModel.jacobian`.
+    """
     _, jac = model.jacobian(p, np.atleast_2d(q), None, reflector, rotation, covariates)
     rows = weighted_rows(jac, 1.0 / np.broadcast_to(np.asarray(sigma, float), (3,)), idx)
     return rows if prior is None else np.vstack([rows, prior.rows(model.params)[0][:, idx]])
@@ -163,11 +165,13 @@ def result_estimability(model: MeasurementModel, q: np.ndarray, sigma: np.ndarra
                         prior: Prior | None = None,
                         reflector: np.ndarray | None = None,
                         rotation: np.ndarray | None = None) -> KpiEstimability:
-    """:func:`kpi_estimability` of a model at parameters ``p`` for measured poses ``q``
-    (N, n), σ (3,) and working poses ``q_work`` (t, n); ``free`` names the free
-    parameters (all by default); ``reflector`` (N,) the reflector each row measured. A
-    ``rotation`` (N, 3, 3) the measured rotations of rotation rows. A
-    ``prior``'s rows count as information: what it determines is estimable."""
+    """:func:`kpi_estimability` of a model at parameters ``p`` for measured poses ``q`` (N, n).
+
+    σ (3,) and working poses ``q_work`` (t, n); ``free`` names the free parameters (all by
+    default); ``reflector`` (N,) the reflector each row measured. A ``rotation`` (N, 3, 3) the
+    measured rotations of rotation rows. A ``prior``'s rows count as information: what it
+    determines is estimable.
+    """
     names = list(free) if free else list(model.params.names)
     idx = model.params.indices(names)
     data_jac = information_rows(model, p, q, sigma, idx, prior, reflector, rotation)

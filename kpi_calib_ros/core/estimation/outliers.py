@@ -126,9 +126,11 @@ class Judgement:
 def hat_blocks(model: MeasurementModel, data: Measurements, p: np.ndarray,
                estimated: tuple[str, ...], sigma: float | np.ndarray,
                point_weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Weighted residuals (N, 3) in σ units and hat-matrix blocks H_ii (N, 3, 3) of the
-    data Jacobian of the ``estimated`` parameters at ``p``; robustness weights ω_i scale
-    point i's rows by √ω_i, as in the fit."""
+    """Weighted residuals (N, 3) in σ units and hat-matrix blocks H_ii (N, 3, 3) at ``p``.
+
+    The hat matrix is that of the data Jacobian of the ``estimated`` parameters; robustness
+    weights ω_i scale point i's rows by √ω_i, as in the fit.
+    """
     q = np.atleast_2d(data.q)
     tau = data.tau
     if tau is None and model.uses_torque:
@@ -149,16 +151,20 @@ def hat_blocks(model: MeasurementModel, data: Measurements, p: np.ndarray,
 
 
 def studentized(r: np.ndarray, blocks: np.ndarray) -> np.ndarray:
-    """r_iᵀ (I − H_ii)⁺ r_i (N,) of weighted residuals r (N, 3) and hat blocks (N, 3, 3);
-    pinv: a point of leverage 1 along a direction has no residual there."""
+    """r_iᵀ (I − H_ii)⁺ r_i (N,) of weighted residuals r (N, 3) and hat blocks (N, 3, 3).
+
+    pinv: a point of leverage 1 along a direction has no residual there.
+    """
     inv = np.linalg.pinv(np.eye(3) - blocks, rcond=RANK_TOLERANCE, hermitian=True)
     return np.einsum('ni,nij,nj->n', r, inv, r)
 
 
 def rigid_inconsistency(residuals: np.ndarray, points: np.ndarray) -> tuple[float, int]:
-    """‖(I − P) r‖² and its degrees of freedom 3m − rank for the residuals (m, 3) of one
-    pose's points (m, 3): P projects on the rigid motions t + ω × (η_k − c); for two
-    points on the translations t alone (see the module text, rule 2)."""
+    """‖(I − P) r‖² and its degrees of freedom 3m − rank for one pose's points.
+
+    The residuals (m, 3) of one pose's points (m, 3): P projects on the rigid motions t + ω ×
+    (η_k − c); for two points on the translations t alone (see the module text, rule 2).
+    """
     m = len(points)
     c = points - points.mean(axis=0)
     a = np.zeros((3 * m, 6 if m > 2 else 3))
@@ -175,8 +181,9 @@ def judge(model: MeasurementModel, data: Measurements, p: np.ndarray,
           estimated: tuple[str, ...], sigma: float | np.ndarray, scale: float,
           threshold: float, kept: np.ndarray, pose: np.ndarray | None = None,
           point_weights: np.ndarray | None = None) -> Judgement:
-    """Fault or misfit for every point of ``data`` (N) against the fit ``p`` of the ``kept``
-    points (see the module text).
+    """Fault or misfit for every point of ``data`` (N) against the fit ``p`` of the ``kept`` points.
+
+    See the module text.
 
     Parameters
     ----------

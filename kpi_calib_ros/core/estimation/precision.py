@@ -42,8 +42,11 @@ def noise_scale(result: CalibrationResult, alpha: float = ADEQUACY_ALPHA) -> flo
 
 
 def chi2_scale(chi2: float, dof: int, alpha: float = ADEQUACY_ALPHA) -> float:
-    """χ²/dof when the χ² test (``dof`` degrees of freedom) rejects ``chi2`` and it exceeds
-    1, else 1: the factor on every covariance of a fit with that χ² (see the module)."""
+    """Factor on every covariance of a fit with this χ²: χ²/dof when the test rejects, else 1.
+
+    χ²/dof when the χ² test (``dof`` degrees of freedom) rejects ``chi2`` and it exceeds 1, else
+    1 (see the module).
+    """
     if dof <= 0 or is_adequate(float(scipy.stats.chi2.sf(chi2, dof)), alpha):
         return 1.0
     return max(1.0, float(chi2 / dof))
@@ -51,7 +54,7 @@ def chi2_scale(chi2: float, dof: int, alpha: float = ADEQUACY_ALPHA) -> float:
 
 def honest_precision(result: CalibrationResult,
                      alpha: float = ADEQUACY_ALPHA) -> CalibrationResult:
-    """``result`` with its covariances from the estimated σ when χ² rejects the model.
+    """Return ``result`` with its covariances from the estimated σ when χ² rejects the model.
 
     Parameters
     ----------
@@ -85,7 +88,8 @@ def precision_statement(scale: float, joint_sigma: np.ndarray | None = None) -> 
     """How the reported std were obtained, for files, summaries and the node.
 
     ``joint_sigma``: the joint-reading noise the fit assumed (rad, chain order), None when
-    the cell stated none; then the joint readings are named as a cause of a rejection."""
+    the cell stated none; then the joint readings are named as a cause of a rejection.
+    """
     if scale == 1.0:
         return 'from the stated sigma (model adequate)'
     text = (f'scaled by chi2/dof = {scale:.4g} (estimated sigma = {np.sqrt(scale):.3g} x '
@@ -128,8 +132,11 @@ class ExpectedTcpError:
 
     @property
     def basis(self) -> str:
-        """What the expected TCP error rests on: the parameter part alone, or with the
-        systematic misfit (and its figures in µm), or unknown."""
+        """What the expected TCP error rests on.
+
+        The parameter part alone, or with the systematic misfit (and its figures in µm), or
+        unknown.
+        """
         if self.adequate:
             return ('model adequate (chi2 accepts it): the expected TCP error is the '
                     'parameter part tcp_std_m alone')
@@ -157,9 +164,11 @@ class ExpectedTcpError:
 
 def measurement_noise_ms(model: MeasurementModel, data: Measurements,
                          result: CalibrationResult) -> float:
-    """Mean square noise (m²) of one point measurement: Σ_a σ_a² (the mean over the points
-    of their own σ where the tracker stated it), plus the joint readings' mean
-    tr(J_q Σ_q J_qᵀ) when the model carries joint-reading noise."""
+    """Mean square noise (m²) of one point measurement.
+
+    Σ_a σ_a² (the mean over the points of their own σ where the tracker stated it), plus the
+    joint readings' mean tr(J_q Σ_q J_qᵀ) when the model carries joint-reading noise.
+    """
     noise = float(np.mean(point_sigma_squares(result, data.reflector, model.n_reflectors)))
     if model.joint_sigma is None:
         return noise
@@ -174,8 +183,9 @@ def measurement_noise_ms(model: MeasurementModel, data: Measurements,
 
 def expected_tcp_error(model: MeasurementModel, data: Measurements, result: CalibrationResult,
                        alpha: float = ADEQUACY_ALPHA) -> ExpectedTcpError:
-    """Expected TCP error at every working pose, the misfit included (see
-    :class:`ExpectedTcpError`).
+    """Return the expected TCP error at every working pose, the misfit included.
+
+    See :class:`ExpectedTcpError`.
 
     Parameters
     ----------
@@ -204,8 +214,10 @@ BALANCE_RTOL = 0.02
 
 
 def tightened(prior: Prior, scale: float) -> Prior:
-    """``prior`` with its covariance divided by ``scale`` (Λ → scale·Λ): at the stated σ, the
-    balance of the data weighed by σ·√scale against ``prior``."""
+    """``prior`` with its covariance divided by ``scale`` (Λ → scale·Λ).
+
+    At the stated σ, the balance of the data weighed by σ·√scale against ``prior``.
+    """
     if scale == 1.0:
         return prior
     return Prior(prior.names, prior.mean, prior.covariance / scale)
@@ -213,7 +225,7 @@ def tightened(prior: Prior, scale: float) -> Prior:
 
 def balanced_prior(fit: Callable[[Prior], CalibrationResult], prior: Prior,
                    alpha: float = ADEQUACY_ALPHA) -> tuple[Prior, float, CalibrationResult]:
-    """A tolerance prior balanced against the noise the residuals show.
+    """Return a tolerance prior balanced against the noise the residuals show.
 
     ``fit(prior)`` identifies with the stated σ and the given prior. While the χ² test
     rejects the fit, the prior is tightened by s = χ²/dof of the fit with the tightened

@@ -63,6 +63,7 @@ class Prior:
     covariance: np.ndarray
 
     def __post_init__(self) -> None:
+        """Check names, shapes, finiteness, symmetry and definiteness; store the arrays."""
         k = len(self.names)
         mean = np.asarray(self.mean, float)
         cov = np.asarray(self.covariance, float)
@@ -191,9 +192,11 @@ def drift_widened(prior: Prior, hours: float, lengths: dict[str, float],
                   angle_rate: float = DRIFT_ANGLE_PER_SQRT_HOUR,
                   link_vectors: dict[tuple[str, str, str], np.ndarray] | None = None
                   ) -> Prior:
-    """``prior`` after ``hours`` of drift: C + Q·|hours| with Q of
-    :func:`drift_covariance` on the prior's own parameters (see
-    :func:`mapped_drift` when those are a reduced, identified set)."""
+    """``prior`` after ``hours`` of drift: C + Q·|hours|.
+
+    Q of :func:`drift_covariance` on the prior's own parameters (see :func:`mapped_drift` when
+    those are a reduced, identified set).
+    """
     if not np.isfinite(hours):
         raise DataError(f'drift time must be finite, got {hours} h')
     q = drift_covariance(prior.names, lengths, length_rate, angle_rate, link_vectors)
@@ -202,7 +205,7 @@ def drift_widened(prior: Prior, hours: float, lengths: dict[str, float],
 
 def mapped_drift(q_full: np.ndarray, jacobian: np.ndarray,
                  kept: Sequence[int] | np.ndarray) -> np.ndarray:
-    """The drift Q_full of every parameter mapped onto the identified ones ``kept``.
+    """Map the drift Q_full of every parameter onto the identified ones ``kept``.
 
     Position data cannot separate all parameters: an identification keeps a maximal
     independent set and holds the rest, whose physical drift then shows up in the kept

@@ -135,7 +135,7 @@ def _check_geometry(eta: np.ndarray, rotations: np.ndarray) -> None:
 def register(eta: np.ndarray, tip_poses: np.ndarray, max_rms: float = 0.02,
              alternations: int = 50, gauss_newton: int = 20, tol: float = 1e-12,
              reflector: np.ndarray | None = None) -> Registration:
-    """Base pose in the tracker frame and reflector offset on the tip from one campaign.
+    """Estimate base pose in the tracker frame and reflector offset on the tip from one campaign.
 
     Parameters
     ----------
@@ -212,7 +212,7 @@ def register(eta: np.ndarray, tip_poses: np.ndarray, max_rms: float = 0.02,
 
 def _fit(eta: np.ndarray, rotations: np.ndarray, positions: np.ndarray, ref: np.ndarray,
          n_ref: int, alternations: int, gauss_newton: int, tol: float) -> Registration:
-    """Closed form (Horn) alternating with the offsets, then Gauss-Newton, on these rows."""
+    """Solve in closed form (Horn) alternating with the offsets, then Gauss-Newton, on the rows."""
     offsets = np.zeros((n_ref, 3))
     rows = [np.flatnonzero(ref == k) for k in range(n_ref)]
     steps = 0
@@ -393,9 +393,12 @@ def reregister(model: MeasurementModel, p: np.ndarray, data: Measurements, index
 def _refit(model: MeasurementModel, p: np.ndarray, data: Measurements, index: np.ndarray,
            weight: np.ndarray, uncertain: np.ndarray, prior: np.ndarray, iterations: int,
            tol: float) -> tuple[np.ndarray, float, int, int]:
-    """Gauss-Newton on ``p[index]`` minimising ``‖W (η − h)‖²`` plus, with ``uncertain``
-    parameters, a correction ``δ`` of them under the prior rows ``prior`` (profiled out,
-    never applied). Returns the values, the minimum, the rank of the system and the steps."""
+    """Gauss-Newton on ``p[index]`` minimising ``‖W (η − h)‖²``, with a profiled prior correction.
+
+    With ``uncertain`` parameters, a correction ``δ`` of them under the prior rows ``prior`` is
+    added to the minimisation (profiled out, never applied). Returns the values, the minimum,
+    the rank of the system and the steps.
+    """
     p = p.copy()
     q, eta = np.atleast_2d(data.q), np.atleast_2d(data.eta)
     k, r = len(uncertain), len(index)

@@ -119,8 +119,10 @@ class LinearizedFit:
 
 
 def is_adequate(p_value: float, alpha: float = ADEQUACY_ALPHA) -> bool:
-    """The χ² adequacy verdict: True when ``p_value >= alpha`` (residuals as small as σ
-    predicts); NaN (no degrees of freedom) is never adequate."""
+    """Return the χ² adequacy verdict: True when ``p_value >= alpha``.
+
+    True means residuals as small as σ predicts; NaN (no degrees of freedom) is never adequate.
+    """
     return bool(p_value >= alpha)
 
 
@@ -131,7 +133,7 @@ SIGMA_NOT_TESTED = 'not tested'
 
 
 def noise_verdict(chi2: float, dof: int, alpha: float = ADEQUACY_ALPHA) -> tuple[str, float]:
-    """The lower tail of the χ² test: (verdict, P(χ²_dof <= chi2)).
+    """Return the lower tail of the χ² test: (verdict, P(χ²_dof <= chi2)).
 
     χ² far *below* its dof is a verdict too: the residuals are smaller than the stated σ
     allows, the σ is overstated (every std and covariance resting on it is too large)
@@ -148,7 +150,7 @@ def noise_verdict(chi2: float, dof: int, alpha: float = ADEQUACY_ALPHA) -> tuple
 
 def sigma_overstated_text(chi2: float, dof: int, lower_p: float,
                           alpha: float = ADEQUACY_ALPHA) -> str:
-    """The warning of :data:`SIGMA_OVERSTATED`, naming the key to fix."""
+    """Return the warning of :data:`SIGMA_OVERSTATED`, naming the key to fix."""
     return (f'{SIGMA_OVERSTATED}: chi2/dof = {chi2:.3g}/{dof} is far below its dof '
             f'(P(chi2 <= {chi2:.3g}) = {lower_p:.2g} < {alpha:g}): the residuals are '
             f'{np.sqrt(chi2 / dof):.3g} x the stated noise.sigma; every std and covariance '
@@ -158,11 +160,12 @@ def sigma_overstated_text(chi2: float, dof: int, lower_p: float,
 
 def linearized_fit(model: MeasurementModel, data: Measurements, result: CalibrationResult,
             tau: np.ndarray | None = None) -> LinearizedFit:
-    """The calibration ``result`` linearized at p̂ over ``data`` (N poses).
+    """Linearize the calibration ``result`` at p̂ over ``data`` (N poses).
 
     Residuals and Jacobian rows are whitened as in the fit (each point's stated σ where
     given); ``tau`` (N, n) are the gravity torques (computed from the model when it needs
-    them and None is given)."""
+    them and None is given).
+    """
     q = np.atleast_2d(data.q)
     if tau is None and model.uses_torque:
         tau = model.robot.gravity_torques(q)
@@ -180,7 +183,8 @@ def orthonormal_basis(a: np.ndarray) -> np.ndarray:
     """Orthonormal basis (m, r) of the column span of ``a`` (m, k), zero columns dropped.
 
     Columns are normalized first, so r is the numerical rank at 1e-9 of the largest
-    singular value whatever the columns' units."""
+    singular value whatever the columns' units.
+    """
     norms = np.linalg.norm(a, axis=0)
     a = a[:, norms > 0] / norms[norms > 0]
     u, s, _ = np.linalg.svd(a, full_matrices=False)
@@ -199,8 +203,10 @@ def fold_ids(n_poses: int, folds: int, seed: int) -> np.ndarray:
 
 
 def campaign_home(q: np.ndarray, atol: float = 1e-6) -> np.ndarray:
-    """(n,) the campaign's home configuration: the most frequent value of each joint
-    (to ``atol``)."""
+    """(n,) the campaign's home configuration.
+
+    The most frequent value of each joint (to ``atol``).
+    """
     q = np.atleast_2d(np.asarray(q, float))
     home = np.empty(q.shape[1])
     for j in range(q.shape[1]):
@@ -210,17 +216,21 @@ def campaign_home(q: np.ndarray, atol: float = 1e-6) -> np.ndarray:
 
 
 def moved_joints(q: np.ndarray, atol: float = 1e-6) -> np.ndarray:
-    """(N, n) bool: which joints of each pose differ from the campaign's home value
-    (:func:`campaign_home`). One-joint-at-a-time campaigns (the circle point method) give
-    rows with a single True."""
+    """(N, n) bool: which joints of each pose differ from the campaign's home value.
+
+    The home value is that of :func:`campaign_home`. One-joint-at-a-time campaigns (the circle
+    point method) give rows with a single True.
+    """
     q = np.atleast_2d(np.asarray(q, float))
     return np.abs(q - campaign_home(q, atol)) > atol
 
 
 def stratified_fold_ids(q: np.ndarray, folds: int, seed: int) -> np.ndarray:
-    """Folds stratified by the joints moved: each group of poses that move the same
-    joints is dealt round the folds, so every fold holds out a share of every group
-    and every training set keeps poses of every group."""
+    """Folds stratified by the joints moved.
+
+    Each group of poses that move the same joints is dealt round the folds, so every fold holds
+    out a share of every group and every training set keeps poses of every group.
+    """
     q = np.atleast_2d(q)
     n = len(q)
     if folds == LEAVE_ONE_OUT:
@@ -256,8 +266,10 @@ def _fold_blocks(a: np.ndarray, pose_folds: np.ndarray, u: np.ndarray | None = N
 
 
 def folds_keep_rank(a: np.ndarray, pose_folds: np.ndarray) -> bool:
-    """True when every fold's training rows (the other folds' poses) still determine every
-    column of ``a`` (3N, k): I − H_FF is nonsingular for every fold F."""
+    """Return True when every fold's training rows determine every column of ``a`` (3N, k).
+
+    The training rows are the other folds' poses: I − H_FF is nonsingular for every fold F.
+    """
     return all(np.linalg.eigvalsh(m)[0] > RANK_TOLERANCE for _, m in _fold_blocks(a, pose_folds))
 
 
@@ -292,8 +304,10 @@ def identifiable_folds(a: np.ndarray, q: np.ndarray, folds: int,
 
 
 def pose_index(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The distinct poses of ``q`` (N, n) in order of first appearance, and each row's
-    pose index (N,)."""
+    """Return the distinct poses of ``q`` (N, n) in order of first appearance.
+
+    Also each row's pose index (N,).
+    """
     q = np.atleast_2d(q)
     _, first, inverse = np.unique(q, axis=0, return_index=True, return_inverse=True)
     order = np.argsort(first)  # unique sorts; renumber by first appearance

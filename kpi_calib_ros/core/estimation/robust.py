@@ -100,9 +100,11 @@ class ExcludedMeasurement:
     reason: str
 
     def text(self) -> str:
-        """The one line the log and the summary print: ``distance_sigma`` is the number
-        calibration.yaml stores (distance from the final fit over its σ̂), so a point
-        reads the same in both."""
+        """Return the one line the log and the summary print.
+
+        ``distance_sigma`` is the number calibration.yaml stores (distance from the final fit
+        over its σ̂), so a point reads the same in both.
+        """
         return (f'measurement {self.index} (stamp {self.stamp_ns} ns) excluded: '
                 f'{self.distance_m * 1e6:.1f} µm from the final fit, distance_sigma '
                 f'{self.distance_sigma:.2f} σ̂; {self.reason}')
@@ -165,7 +167,7 @@ def loss_weights(loss: str, distances: np.ndarray, scale: float) -> np.ndarray:
 
 
 def subset(data: Measurements, keep: np.ndarray) -> Measurements:
-    """The measurements selected by the boolean or index array ``keep``."""
+    """Return the measurements selected by the boolean or index array ``keep``."""
     return data.subset(keep)
 
 
@@ -311,8 +313,10 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
 
 def misfit_warning(misfit: tuple[int, ...], pose: np.ndarray, threshold: float,
                    too_many_lone: float | None = None) -> str:
-    """The text naming the points over the threshold kept as model misfit;
-    ``too_many_lone``: the fraction beyond which lone points were taken as misfit."""
+    """Return the text naming the points over the threshold kept as model misfit.
+
+    ``too_many_lone``: the fraction beyond which lone points were taken as misfit.
+    """
     poses = sorted({int(pose[i]) for i in misfit})
     shown = ', '.join(str(g) for g in poses[:12]) + (', …' if len(poses) > 12 else '')
     why = ('their pose\'s other points agree with them, or they carry information no other '
@@ -327,8 +331,11 @@ def misfit_warning(misfit: tuple[int, ...], pose: np.ndarray, threshold: float,
 
 def gross_outliers(model: MeasurementModel, data: Measurements,
                    p: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(N,) bool: points farther than `GROSS_DISTANCE` (and 20× the median) from the
-    prediction with ``p`` (default: the nominal parameters); and the (N,) distances, m."""
+    """Gross points: (N,) bool, and the (N,) distances from the prediction, m.
+
+    A point is gross when farther than `GROSS_DISTANCE` (and 20× the median) from the prediction
+    with ``p`` (default: the nominal parameters).
+    """
     q, eta = np.atleast_2d(data.q), np.atleast_2d(data.eta)
     p = np.asarray(model.params.nominal if p is None else p, float)
     nominal = np.linalg.norm(eta - model.predict(p, q, data.tau, data.reflector,
@@ -337,7 +344,7 @@ def gross_outliers(model: MeasurementModel, data: Measurements,
 
 
 def sigma_warning(robust: float, stated: float) -> str:
-    """The warning text for a robust σ̂ more than 2× away from the stated σ."""
+    """Return the warning text for a robust σ̂ more than 2× away from the stated σ."""
     ratio = robust / stated
     side = 'smaller' if ratio < 1 else 'larger'
     return (f'noise σ estimated from the residuals ({robust * 1e6:.3g} µm) is {ratio:.3g}× the '
@@ -349,11 +356,13 @@ def sigma_warning(robust: float, stated: float) -> str:
 
 def noise_units(model: MeasurementModel, data: Measurements, p: np.ndarray,
                 residuals: np.ndarray, sigma: float | np.ndarray) -> np.ndarray:
-    """Residuals (N, 3) of ``data`` at ``p`` as the robust statistics take them (m): as
-    given without joint-reading noise and per-point σ; with either, W_i r_i times the mean
-    stated σ, whose noise is the stated σ on every axis at every pose (a point's own σ
-    from the tracker counts in units of itself, :func:`~kpi_calib_ros.core.measurement.tracker.
-    noise_weights`)."""
+    """Residuals (N, 3) of ``data`` at ``p`` as the robust statistics take them (m).
+
+    As given without joint-reading noise and per-point σ; with either, W_i r_i times the mean
+    stated σ, whose noise is the stated σ on every axis at every pose (a point's own σ from the
+    tracker counts in units of itself,
+    :func:`~kpi_calib_ros.core.measurement.tracker.noise_weights`).
+    """
     if model.joint_sigma is None and data.sigma is None:
         return residuals
     sigma = np.broadcast_to(np.asarray(sigma, float), (3,))

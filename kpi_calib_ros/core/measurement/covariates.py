@@ -53,7 +53,7 @@ class TemperatureSample:
 
 
 def covariate_name(frame_id: str) -> str:
-    """The covariate name of a temperature sensor: ``temperature.<frame_id>``."""
+    """Return the covariate name of a temperature sensor: ``temperature.<frame_id>``."""
     return TEMPERATURE_PREFIX + frame_id
 
 
@@ -96,9 +96,11 @@ def temperature_covariates(stamps_ns: np.ndarray, samples: Iterable[TemperatureS
                            sensors: Sequence[str] = (),
                            reference_c: float = REFERENCE_TEMPERATURE_C,
                            max_gap_ns: int = DEFAULT_MAX_GAP_NS) -> dict[str, np.ndarray]:
-    """Covariates (N,) of rows stamped ``stamps_ns``: every sensor's ``temperature.<frame_id>``
-    (°C) and ``delta_temperature`` (K), the mean of ``sensors`` (frame ids; empty: every
-    sensor recorded) minus ``reference_c``. NaN where a value is unknown (:func:`interpolate`).
+    """Return the covariates (N,) of rows stamped ``stamps_ns``.
+
+    Every sensor's ``temperature.<frame_id>`` (°C) and ``delta_temperature`` (K), the mean of
+    ``sensors`` (frame ids; empty: every sensor recorded) minus ``reference_c``. NaN where a
+    value is unknown (:func:`interpolate`).
 
     Raises
     ------
@@ -130,8 +132,10 @@ def temperature_covariates(stamps_ns: np.ndarray, samples: Iterable[TemperatureS
 def with_covariates(data: Measurements, covariates: Mapping[str, np.ndarray],
                     required: Sequence[str] = (DELTA_TEMPERATURE,)
                     ) -> tuple[Measurements, list[tuple[int, str]]]:
-    """``data`` with ``covariates`` (N,) added, rows without a finite value of every
-    ``required`` covariate removed; also [(row index in ``data``, reason)] of those.
+    """Add ``covariates`` (N,) to ``data`` and remove rows that lack a required one.
+
+    A row is removed when it has no finite value of every ``required`` covariate; also returns
+    [(row index in ``data``, reason)] of those rows.
 
     Raises
     ------
@@ -158,9 +162,12 @@ def with_covariates(data: Measurements, covariates: Mapping[str, np.ndarray],
 
 def shift_temperature(stamps_ns: np.ndarray, start_c: float, rise_k: float,
                       hours: float, start_ns: int | None = None) -> np.ndarray:
-    """A shift's warm-up, °C at ``stamps_ns``: from ``start_c`` rising by ``rise_k`` towards
-    a plateau, ``start_c + rise_k (1 − e^{−t/τ})`` with τ = ``hours``/3 (95 % of the rise
-    reached after ``hours``); ``t`` from ``start_ns`` (default the first stamp)."""
+    """Return a shift's warm-up, °C at ``stamps_ns``.
+
+    From ``start_c`` rising by ``rise_k`` towards a plateau, ``start_c + rise_k (1 − e^{−t/τ})``
+    with τ = ``hours``/3 (95 % of the rise reached after ``hours``); ``t`` from ``start_ns``
+    (default the first stamp).
+    """
     stamps = np.asarray(stamps_ns, dtype=np.int64)
     t0 = int(stamps.min()) if start_ns is None else int(start_ns)
     t_h = (stamps - t0).astype(float) / 3.6e12

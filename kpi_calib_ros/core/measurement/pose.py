@@ -61,9 +61,11 @@ def measured_rotation_input(rotations: np.ndarray) -> np.ndarray:
 
 
 def rotation_residual_expression(measured9: Expr, predicted: Expr, scale: Expr) -> ca.SX:
-    """Rotation row prediction ``log3(R_mᵀ R(p, q)) ⊙ scale`` (3,): with ``eta = 0`` the
-    residual ``eta - h`` is ``log3(R(p, q)ᵀ R_m) ⊙ scale``, the measured rotation relative
-    to the predicted one in the body frame (scale: σ/σ_rot per axis, m/rad)."""
+    """Rotation row prediction ``log3(R_mᵀ R(p, q)) ⊙ scale`` (3,).
+
+    With ``eta = 0`` the residual ``eta - h`` is ``log3(R(p, q)ᵀ R_m) ⊙ scale``, the measured
+    rotation relative to the predicted one in the body frame (scale: σ/σ_rot per axis, m/rad).
+    """
     measured = ca.reshape(measured9, 3, 3)
     return log3_expression(measured.T @ predicted) * ca.DM(np.asarray(scale, float))
 
@@ -78,8 +80,11 @@ def rotation_from_rpy(rpy: Sequence[float] | np.ndarray) -> np.ndarray:
 
 
 def pose_matrix(pose: Sequence[float] | np.ndarray) -> np.ndarray:
-    """4x4 transform (m) of ``[x, y, z, roll, pitch, yaw]`` (m, rad, URDF convention): the
-    numeric twin of :func:`kpi_calib_ros.core.model.kinematics.pose6`, equal to it to the bit."""
+    """4x4 transform (m) of ``[x, y, z, roll, pitch, yaw]`` (m, rad, URDF convention).
+
+    The numeric twin of :func:`kpi_calib_ros.core.model.kinematics.pose6`, equal to it to the
+    bit.
+    """
     v = np.asarray(pose, float).reshape(-1)
     if v.shape != (6,):
         raise ValueError(f'a pose is 6 numbers [x, y, z, roll, pitch, yaw], got {v.tolist()}')
@@ -108,7 +113,7 @@ def rotation_from_quaternion(xyzw: Sequence[float] | np.ndarray) -> np.ndarray:
 
 
 def quaternion_from_rotation(rotation: np.ndarray) -> np.ndarray:
-    """Unit quaternion [x, y, z, w] (w >= 0) of a 3x3 rotation."""
+    """Return the unit quaternion [x, y, z, w] (w >= 0) of a 3x3 rotation."""
     m = np.asarray(rotation, float)
     trace = np.trace(m)
     if trace > 0:
@@ -139,8 +144,10 @@ def rotation_exp(omega: np.ndarray) -> np.ndarray:
 
 def noisy_rotations(rotations: np.ndarray, sigma_rotation: float,
                     rng: np.random.Generator) -> np.ndarray:
-    """(N, 3, 3) rotations ``R · exp(ω)``, ω ~ N(0, σ_rot² I) in the body frame: what a
-    6-DoF tracker of orientation noise ``sigma_rotation`` (rad) reports."""
+    """Draw (N, 3, 3) rotations ``R · exp(ω)``, ω ~ N(0, σ_rot² I) in the body frame.
+
+    What a 6-DoF tracker of orientation noise ``sigma_rotation`` (rad) reports.
+    """
     rotations = np.asarray(rotations, float).reshape(-1, 3, 3)
     noise = rng.normal(size=(len(rotations), 3)) * float(sigma_rotation)
     return np.array([r @ rotation_exp(w) for r, w in zip(rotations, noise)])

@@ -46,9 +46,11 @@ def same_pose(q: np.ndarray, others: np.ndarray,
 
 
 def pose_groups(q: np.ndarray, tolerance: float = SAME_POSE_TOLERANCE) -> np.ndarray:
-    """Pose index (N,) of every row of ``q`` (N, n): rows that are the same pose as
-    another (:func:`same_pose`), directly or through a chain of others, share one,
-    numbered 0, 1, ... in order of first appearance."""
+    """Pose index (N,) of every row of ``q`` (N, n).
+
+    Rows that are the same pose as another (:func:`same_pose`), directly or through a chain of
+    others, share one, numbered 0, 1, ... in order of first appearance.
+    """
     q = np.atleast_2d(np.asarray(q, float))
     if not len(q):
         return np.zeros(0, int)

@@ -140,10 +140,11 @@ class Measurements:
     covariates: Mapping[str, np.ndarray] | None = field(default=None)
 
     def __len__(self) -> int:
+        """Return the number of rows."""
         return len(self.q)
 
     def subset(self, keep: np.ndarray) -> Measurements:
-        """The rows selected by the boolean or index array ``keep``, every field kept."""
+        """Return the rows selected by the boolean or index array ``keep``, every field kept."""
         def pick(values: np.ndarray | None) -> np.ndarray | None:
             return None if values is None else np.asarray(values)[keep]
         return Measurements(q=np.atleast_2d(self.q)[keep], eta=np.atleast_2d(self.eta)[keep],
@@ -155,8 +156,10 @@ class Measurements:
 
 
 def row_sigma(sigma: float | np.ndarray, data_sigma: np.ndarray | None, n: int) -> np.ndarray:
-    """Standard deviation (N, 3) of every row and axis, m: the stated per-row σ
-    ``data_sigma`` (N, 3) where finite, the cell's ``sigma`` (scalar or (3,)) elsewhere.
+    """Return the standard deviation (N, 3) of every row and axis, m.
+
+    The stated per-row σ ``data_sigma`` (N, 3) where finite, the cell's ``sigma`` (scalar or
+    (3,)) elsewhere.
 
     Raises
     ------
@@ -282,10 +285,12 @@ class MeasurementModel:
     # ------------------------------------------------------------ symbolic API
     def _tool_pose(self, p: Expr, q: Expr, tau: Expr, z: Expr = None
                    ) -> tuple[Expr, list[Expr]]:
-        """Tip pose (4x4) in the tracker frame with the joint and placement corrections and
-        the frame deflections (link bending) of the effects applied, and each effect's
-        parameter slice; ``z`` (len(inputs),) the covariates (None: 0, the reference
-        condition)."""
+        """Tip pose (4x4) in the tracker frame with the effects applied, and their parameter slices.
+
+        The joint and placement corrections and the frame deflections (link bending) of the
+        effects are applied; also returns each effect's parameter slice. ``z`` (len(inputs),)
+        the covariates (None: 0, the reference condition).
+        """
         q_eff = q
         offset = len(self.geometric)
         thetas = []
@@ -327,14 +332,18 @@ class MeasurementModel:
 
     def point_expression(self, p: Expr, q: Expr, tau: Expr = None,
                          reflector: int = 0, z: Expr = None) -> Expr:
-        """Centre of reflector ``reflector`` in the tracker frame, CasADi expression (3,);
-        ``z`` the covariates :attr:`inputs` (None: 0)."""
+        """Centre of reflector ``reflector`` in the tracker frame, CasADi expression (3,).
+
+        ``z`` the covariates :attr:`inputs` (None: 0).
+        """
         world, thetas = self._tool_pose(p, q, tau, z)
         return self._reflector_point(world, thetas, p, reflector)
 
     def _reflector_point(self, world: Expr, thetas: list, p: Expr, reflector: int) -> Expr:
-        """Reflector ``reflector``'s centre from the tool pose ``world`` (4x4) and the
-        effects' parameters ``thetas`` of :meth:`_tool_pose`."""
+        """Reflector ``reflector``'s centre from the tool pose ``world`` (4x4).
+
+        ``thetas`` are the effects' parameters of :meth:`_tool_pose`.
+        """
         point = reflector_point(world, self.chain.reflector(p, reflector))
         for effect, theta in zip(self.effects, thetas):
             corrected = effect.point_correction(point, theta)
@@ -359,8 +368,9 @@ class MeasurementModel:
         return np.zeros_like(np.atleast_2d(q))
 
     def input_values(self, n: int, covariates: Mapping[str, np.ndarray] | None) -> np.ndarray:
-        """The covariates the effects read, (n, len(inputs)) in :attr:`inputs` order; zeros
-        (the reference condition) where ``covariates`` is None.
+        """Return the covariates the effects read, (n, len(inputs)) in :attr:`inputs` order.
+
+        Zeros (the reference condition) where ``covariates`` is None.
 
         Raises
         ------
@@ -382,8 +392,11 @@ class MeasurementModel:
         return out
 
     def _groups(self, n: int, reflector: np.ndarray | None) -> list[tuple[int, np.ndarray]]:
-        """(row channel, rows) pairs covering rows 0..n-1: a reflector index, or
-        ``n_reflectors + k`` for the rotation row of reflector ``k``."""
+        """(row channel, rows) pairs covering rows 0..n-1.
+
+        A row channel is a reflector index, or ``n_reflectors + k`` for the rotation row of
+        reflector ``k``.
+        """
         if reflector is None:
             return [(0, np.arange(n))]
         ref = np.asarray(reflector, dtype=int).reshape(-1)
@@ -398,8 +411,11 @@ class MeasurementModel:
         return [(int(k), np.flatnonzero(ref == k)) for k in np.unique(ref)]
 
     def __getstate__(self) -> dict:
-        """Picklable state (a job's result crosses a process boundary): the functions built
-        on first use are built now; CasADi expressions and the mapped functions stay behind."""
+        """Picklable state (a job's result crosses a process boundary).
+
+        The functions built on first use are built now; CasADi expressions and the mapped
+        functions stay behind.
+        """
         return dict(self.__dict__, _hq_built=self._hq, _cos_built=self._cos, _symbols=None,
                     _points=None, _mapped={})
 
@@ -422,7 +438,7 @@ class MeasurementModel:
         return self._cos_built
 
     def _map(self, which: int, channel: int, m: int) -> ca.Function:
-        """Function ``which`` of a row channel mapped over ``m`` rows (built once per m)."""
+        """Return function ``which`` of a row channel mapped over ``m`` rows (built once per m)."""
         key = (which, channel, m)
         if key not in self._mapped:
             if channel < self.n_reflectors:
@@ -435,9 +451,11 @@ class MeasurementModel:
     def _evaluate(self, which: int, channel: int, rows: np.ndarray, p: np.ndarray,
                   q: np.ndarray, tau: np.ndarray, rotation: np.ndarray | None,
                   z: np.ndarray) -> list:
-        """Function ``which`` (0: h, 1: h and ∂h/∂p, 2: ∂h/∂q) of a row channel, mapped
-        over ``rows``; a rotation row takes its measured rotation as an input; ``z`` (N,
-        n_z) the covariates (:meth:`input_values`)."""
+        """Evaluate function ``which`` of a row channel over ``rows``.
+
+        ``which`` 0: h, 1: h and ∂h/∂p, 2: ∂h/∂q. A rotation row takes its measured rotation as
+        an input; ``z`` (N, n_z) the covariates (:meth:`input_values`).
+        """
         m = len(rows)
         if channel < self.n_reflectors:
             out = self._map(which, channel, m)(p, q[rows].T, tau[rows].T, z[rows].T)
@@ -453,10 +471,12 @@ class MeasurementModel:
                 reflector: np.ndarray | None = None,
                 rotation: np.ndarray | None = None,
                 covariates: Mapping[str, np.ndarray] | None = None) -> np.ndarray:
-        """Predicted points (N, 3) in the tracker frame for joint values ``q`` (N, n)
-        and reflector indices ``reflector`` (N,) (None: reflector 0); rotation rows
-        (see :class:`Measurements`) need ``rotation`` (N, 3, 3); ``covariates`` the
-        rows' covariates (:meth:`input_values`; None: the reference condition)."""
+        """Predicted points (N, 3) in the tracker frame for joint values ``q`` (N, n).
+
+        ``reflector`` (N,) the reflector indices (None: reflector 0); rotation rows (see
+        :class:`Measurements`) need ``rotation`` (N, 3, 3); ``covariates`` the rows' covariates
+        (:meth:`input_values`; None: the reference condition).
+        """
         q = np.atleast_2d(q)
         tau = self._torques(q, tau)
         z = self.input_values(len(q), covariates)
@@ -534,8 +554,10 @@ class MeasurementModel:
 
     def body_rotations(self, p: np.ndarray, q: np.ndarray, reflector: int,
                        tau: np.ndarray | None = None) -> np.ndarray:
-        """Rotations (N, 3, 3) of reflector ``reflector``'s tracked body in the tracker
-        frame at joint values ``q`` (N, n) (what a 6-DoF tracker reports, noise-free)."""
+        """Rotations (N, 3, 3) of reflector ``reflector``'s tracked body in the tracker frame.
+
+        At joint values ``q`` (N, n): what a 6-DoF tracker reports, noise-free.
+        """
         q = np.atleast_2d(q)
         tau = self._torques(q, tau)
         fn = self._rot[reflector][3].map(len(q))
@@ -545,8 +567,10 @@ class MeasurementModel:
 
     @property
     def pose_channels(self) -> tuple[int, ...]:
-        """Row channels every measured pose gives (``Measurements.reflector`` values):
-        each reflector's point, then each tracked body's rotation row."""
+        """Row channels every measured pose gives (``Measurements.reflector`` values).
+
+        Each reflector's point, then each tracked body's rotation row.
+        """
         return (tuple(range(self.n_reflectors))
                 + tuple(self.n_reflectors + k for k in sorted(self.orientations)))
 
@@ -557,10 +581,12 @@ class MeasurementModel:
 
     def pose_measurements(self, p: np.ndarray, q: np.ndarray,
                           tau: np.ndarray | None = None) -> Measurements:
-        """The rows measuring configurations ``q`` (N, n) gives, noise-free at ``p``: for
-        every pose, :attr:`pose_channels` in turn (pose ``i``, channel ``c`` in row
-        ``i·B + c``); a rotation row carries the body rotation at ``p`` as measured, so
-        its residual is zero and its Jacobian the one identification takes there."""
+        """Return the rows measuring configurations ``q`` (N, n) gives, noise-free at ``p``.
+
+        For every pose, :attr:`pose_channels` in turn (pose ``i``, channel ``c`` in row
+        ``i·B + c``); a rotation row carries the body rotation at ``p`` as measured, so its
+        residual is zero and its Jacobian the one identification takes there.
+        """
         rows = self._pose_rows(p, q, tau)
         eta = self.predict(p, rows.q, rows.tau, rows.reflector, rows.rotation)
         return dataclasses.replace(rows, eta=eta)
@@ -583,9 +609,11 @@ class MeasurementModel:
 
     def pose_jacobian(self, p: np.ndarray, q: np.ndarray,
                       tau: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Every row a measured pose gives, as the design sees a pose
-        (:meth:`pose_measurements`): predictions (N, 3B) and Jacobian (N, 3B, n_p), channel
-        ``c`` of :attr:`pose_channels` in rows 3c..3c+2 (B = 1 for a single reflector)."""
+        """Every row a measured pose gives, as the design sees a pose (:meth:`pose_measurements`).
+
+        Predictions (N, 3B) and Jacobian (N, 3B, n_p), channel ``c`` of :attr:`pose_channels` in
+        rows 3c..3c+2 (B = 1 for a single reflector).
+        """
         q = np.atleast_2d(q)
         rows = self._pose_rows(p, q, tau)
         pts, jac = self.jacobian(p, rows.q, rows.tau, rows.reflector, rows.rotation)
@@ -594,10 +622,11 @@ class MeasurementModel:
 
     def pose_point_expression(self, p: Expr, q: Expr, tau: Expr = None,
                               p_measured: Expr = None) -> Expr:
-        """Every row of a pose stacked (:attr:`pose_channels`), CasADi expression (3B,);
-        a rotation row takes the body rotation at ``p_measured`` as the measured one (its
-        Jacobian in ``p`` at ``p = p_measured`` is the design's; required with
-        tracked bodies)."""
+        """Every row of a pose stacked (:attr:`pose_channels`), CasADi expression (3B,).
+
+        A rotation row takes the body rotation at ``p_measured`` as the measured one (its
+        Jacobian in ``p`` at ``p = p_measured`` is the design's; required with tracked bodies).
+        """
         rows = [self.point_expression(p, q, tau, k) for k in range(self.n_reflectors)]
         if self.orientations and p_measured is None:
             raise ValueError('p_measured is needed for the rotation rows of tracked bodies')
@@ -616,8 +645,10 @@ class MeasurementModel:
 
 def with_rotation_rows(model: MeasurementModel, data: Measurements,
                        rotations: np.ndarray) -> Measurements:
-    """``data`` (point rows) with a rotation row after every row that carries a measured
-    body rotation: ``rotations`` (N, 3, 3), NaN where a row has none (a plain point).
+    """Return ``data`` (point rows) with a rotation row after every row with a body rotation.
+
+    ``rotations`` (N, 3, 3) are the measured body rotations, NaN where a row has none (a plain
+    point).
 
     The rotation row repeats the pose's ``q`` and stamp, has ``eta = 0`` and reflector
     index :meth:`MeasurementModel.rotation_channel` of its point's reflector.
@@ -656,9 +687,11 @@ def with_rotation_rows(model: MeasurementModel, data: Measurements,
 def noise_weights(model: MeasurementModel, p: np.ndarray, data: Measurements,
                   sigma: float | np.ndarray, tau: np.ndarray | None = None,
                   point_weights: np.ndarray | None = None) -> np.ndarray:
-    """Weights of ``data``'s rows at ``p`` for :func:`weighted_rows`: (N, 3) 1/σ_i,a (each
-    row's stated σ or the cell's ``sigma``, :func:`row_sigma`) times √ω_i, or (N, 3, 3)
-    whitening with joint-reading noise (:meth:`MeasurementModel.whitening`)."""
+    """Weights of ``data``'s rows at ``p`` for :func:`weighted_rows`.
+
+    (N, 3) 1/σ_i,a (each row's stated σ or the cell's ``sigma``, :func:`row_sigma`) times √ω_i,
+    or (N, 3, 3) whitening with joint-reading noise (:meth:`MeasurementModel.whitening`).
+    """
     q = np.atleast_2d(data.q)
     rows = row_sigma(sigma, data.sigma, len(q))
     if tau is None and data.tau is not None:
@@ -698,14 +731,18 @@ def weighted_rows(jac: np.ndarray, w: np.ndarray, idx: np.ndarray | None = None)
 
 
 def weighted_residuals(residuals: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """Stacked weighted residuals (3N,) of ``residuals`` (N, 3) in m, with the weights
-    ``w`` of :func:`weighted_rows` ((3,), (N, 3) or (N, 3, 3)): in units of σ."""
+    """Stacked weighted residuals (3N,) of ``residuals`` (N, 3) in m, in units of σ.
+
+    ``w`` are the weights of :func:`weighted_rows` ((3,), (N, 3) or (N, 3, 3)).
+    """
     return weighted_rows(np.asarray(residuals, float)[:, :, None], w)[:, 0]
 
 
 def unweighted(r: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """Residuals (N, 3) in m from weighted residuals ``r`` (3N,): the inverse of
-    :func:`weighted_residuals` (a row of weight 0 gives 0)."""
+    """Residuals (N, 3) in m from weighted residuals ``r`` (3N,).
+
+    The inverse of :func:`weighted_residuals` (a row of weight 0 gives 0).
+    """
     r = np.asarray(r, float).reshape(-1, 3)
     w = np.asarray(w, float)
     if w.ndim == 3:

@@ -113,7 +113,10 @@ class SymbolicChain:
                             for r in reflector_prefixes(params)]
 
     def placement_indices(self, joint: int) -> list[int]:
-        """Indices in p of chain joint ``joint``'s placement error (tx, ty, tz, rx, ry, rz)."""
+        """Return the indices in p of chain joint ``joint``'s placement error.
+
+        In the order tx, ty, tz, rx, ry, rz.
+        """
         return [int(i) for i in self._placement[joint]]
 
     def link_transforms(self, p: Expr, q: Expr,
@@ -151,12 +154,14 @@ class SymbolicChain:
 
     def tip_transform(self, p: Expr, q: Expr,
                       deflections: dict[int, Expr] | None = None) -> Expr:
-        """Tip frame pose (4x4) in the base frame (``deflections``: see
-        :meth:`link_transforms`)."""
+        """Tip frame pose (4x4) in the base frame.
+
+        ``deflections``: see :meth:`link_transforms`.
+        """
         return self.link_transforms(p, q, deflections)[-1] @ ca.DM(self.robot.tip_placement)
 
     def base_in_tracker(self, p: Expr) -> Expr:
-        """Base frame pose (4x4) in the tracker frame."""
+        """Return the base frame pose (4x4) in the tracker frame."""
         return pose6(p[self._base])
 
     @property

@@ -51,12 +51,14 @@ class ParameterSet:
     units: tuple[str, ...]
 
     def __post_init__(self) -> None:
+        """Check that the names are unique and names, nominal and units have one length."""
         if len(set(self.names)) != len(self.names):
             raise ValueError('parameter names must be unique')
         if not (len(self.names) == len(self.nominal) == len(self.units)):
             raise ValueError('names, nominal and units must have equal length')
 
     def __len__(self) -> int:
+        """Return the number of parameters."""
         return len(self.names)
 
     def index(self, name: str) -> int:
@@ -72,7 +74,7 @@ class ParameterSet:
 
     def extended(self, names: list[str], nominal: np.ndarray,
                  units: list[str]) -> 'ParameterSet':
-        """A new set with extra parameters appended (e.g. a physical effect's)."""
+        """Return a new set with extra parameters appended (e.g. a physical effect's)."""
         return ParameterSet(self.names + tuple(names),
                             np.concatenate([self.nominal, np.asarray(nominal, float)]),
                             self.units + tuple(units))
@@ -97,7 +99,7 @@ def reflector_prefixes(params: ParameterSet) -> list[str]:
 def geometric_parameters(robot: RobotModel, base_in_tracker: np.ndarray,
                          reflector_offset: np.ndarray,
                          reflector_names: tuple[str, ...] | None = None) -> ParameterSet:
-    """The full geometric parameter set of ``robot`` in a laser-tracker cell.
+    """Return the full geometric parameter set of ``robot`` in a laser-tracker cell.
 
     Parameters
     ----------

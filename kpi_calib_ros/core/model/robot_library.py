@@ -85,6 +85,7 @@ class Industrial6RGeometry:
     radius: float
 
     def __post_init__(self) -> None:
+        """Check dimensions, limits (which must contain q = 0), masses, velocities, efforts."""
         for key in ('d1', 'a1', 'a2', 'd4', 'd6', 'radius'):
             if not getattr(self, key) > 0.0:
                 raise ConfigError(f'geometry.{key}', f'must be > 0, got {getattr(self, key)}')
@@ -253,7 +254,7 @@ def industrial_6r_urdf(name: str, geometry: Industrial6RGeometry) -> str:
 
 
 def _kuka_limits(ranges_deg: list[tuple[float, float]]) -> tuple[tuple[float, ...], ...]:
-    """Controller axis ranges A (deg) -> (lower, upper) in q (rad), q = A + offset."""
+    """Convert controller axis ranges A (deg) to (lower, upper) in q (rad), q = A + offset."""
     q = [[math.radians(a) + o for a in ab] for ab, o in zip(ranges_deg, KUKA_CONTROLLER_OFFSET)]
     return tuple(lo for lo, _ in q), tuple(hi for _, hi in q)
 
@@ -309,7 +310,7 @@ def kr500_class() -> Industrial6RGeometry:
 
 
 def notional_manipulators() -> list[Industrial6RGeometry]:
-    """The 90 notional manipulators of Jost et al. (2017), Section 3.
+    """Return the 90 notional manipulators of Jost et al. (2017), Section 3.
 
     Segment two ``a2`` in 0.650 .. 1.100 m and segment four ``d4`` in
     0.600 .. 1.000 m, both in 0.050 m steps; everything else is the KR 15
@@ -371,7 +372,7 @@ def ur_class_urdf(name: str = 'ur_class') -> str:
 
 
 def shipped_urdfs() -> dict[str, str]:
-    """Generator output of every shipped robot, keyed by name (``SHIPPED_ROBOTS``)."""
+    """Return the generator output of every shipped robot, keyed by name (``SHIPPED_ROBOTS``)."""
     out = {g.name: industrial_6r_urdf(g.name, g)
            for g in (kr15_class(), kr300_class(), kr500_class())}
     out['ur_class'] = ur_class_urdf('ur_class')
