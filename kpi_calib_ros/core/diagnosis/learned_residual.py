@@ -124,6 +124,7 @@ class LearnedResidual:
     _gp: GaussianProcessRegressor = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
+        """Check the fields and fit the Gaussian process with the kernel held fixed."""
         q = np.atleast_2d(np.asarray(self.q, float))
         y = np.asarray(self.residual_m, float).reshape(-1, 3)
         ell = np.asarray(self.length_scales, float).reshape(-1)
@@ -158,8 +159,10 @@ class LearnedResidual:
                                   distance <= INSIDE_DISTANCE)
 
     def distance(self, q: np.ndarray) -> np.ndarray:
-        """(M,) distance of each query to its nearest training pose, in length-scale
-        units: ‖(q − q_i)/ℓ‖ minimised over the training poses."""
+        """Return the (M,) distance of each query to its nearest training pose.
+
+        In length-scale units: ‖(q − q_i)/ℓ‖ minimised over the training poses.
+        """
         q = np.atleast_2d(np.asarray(q, float))
         diff = (q[:, None, :] - self.q[None, :, :]) / self.length_scales
         return np.sqrt(np.min(np.sum(diff ** 2, axis=2), axis=1))
@@ -171,13 +174,13 @@ class LearnedResidual:
 
 
 def fixed_kernel(amplitude_m2: float, length_scales: np.ndarray, noise_m2: float) -> Kernel:
-    """The kernel c · RBF(ℓ) + w with every hyperparameter held fixed."""
+    """Return the kernel c · RBF(ℓ) + w with every hyperparameter held fixed."""
     return (ConstantKernel(amplitude_m2, 'fixed') * RBF(length_scales, 'fixed')
             + WhiteKernel(noise_m2, 'fixed'))
 
 
 def _kernel(q: np.ndarray, y: np.ndarray, noise_m2: float) -> Kernel:
-    """The kernel to optimise, its bounds from the training spans and the stated noise."""
+    """Return the kernel to optimise, bounded by the training spans and the stated noise."""
     upper = SPAN_FACTOR * np.maximum(np.ptp(q, axis=0), MIN_SPAN)
     lower = MIN_LENGTH_FRACTION * upper
     start = 0.3 * upper
@@ -331,8 +334,11 @@ def _with_bounds(fitted: Kernel, bounded: Kernel) -> Kernel:
 
 
 def residual_noise_scale(model: LearnedResidual, sigma_m: float | np.ndarray) -> float:
-    """Factor on the physical parameters' covariance (from the stated σ) with the learned
-    residual: the white noise it leaves over the stated σ² (mean per axis), at least 1."""
+    """Return the factor on the parameters' covariance with the learned residual.
+
+    The parameters' covariance from the stated σ is scaled by the white noise the learned
+    residual leaves over the stated σ² (mean per axis), at least 1.
+    """
     stated = float(np.mean(np.broadcast_to(np.asarray(sigma_m, float), (3,)) ** 2))
     return max(1.0, model.noise_m2 / stated)
 
@@ -414,7 +420,7 @@ class CorrectedTcp:
 def corrected_tcp(tcp: np.ndarray, tcp_jacobian: np.ndarray, covariance_inside: np.ndarray,
                   q: np.ndarray, model: LearnedResidual | None,
                   covariance_outside: np.ndarray | None = None) -> CorrectedTcp:
-    """The physical TCP prediction plus the learned residual, with both uncertainties.
+    """Predict the TCP: the physical model plus the learned residual, both uncertainties.
 
     Inside the fitted region the learned residual knows the misfit there, the part the
     parameters absorbed included, so the parameters' covariance is the one with the noise
