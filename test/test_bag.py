@@ -186,6 +186,7 @@ def unreadable_tail(messages: list[str], path: Path, size: int) -> int:
     return int(match.group(1))
 
 
+@pytest.mark.slow
 def test_unfinalised_bag_yields_every_complete_message(tmp_path):
     """A bag cut anywhere yields the beginning of the recording; a cut at a chunk end
     reads silently, any other cut warns once and names exactly the torn tail: the file
@@ -254,6 +255,7 @@ def test_measurement_log_round_trip_and_numbering(tmp_path):
         other.append(measurement(5)[0], measurement(6)[1])
 
 
+@pytest.mark.slow
 def test_measurement_log_torn_anywhere_loses_only_the_torn_append(tmp_path):
     with MeasurementLog(tmp_path) as log:
         for i in range(3):

@@ -63,6 +63,7 @@ def _through(batches: list[Measurements], k: int) -> Measurements:
                         stamps_ns=np.concatenate([b.stamps_ns for b in part]))
 
 
+@pytest.mark.slow
 def test_a_restarted_campaign_plans_the_same_next_pose(campaign_run, tmp_path):
     """A restart after step k: the campaign rebuilt from its state file and the restored
     measurements has the plan and status the running campaign had (next pose to 1e-9);

@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 import yaml
 
 from kpi_calib_ros.ros.parameters import PARAMETERS
@@ -18,6 +19,7 @@ PACKAGE_FILES = ('package.xml', 'setup.py', 'setup.cfg', 'resource', 'config', '
                  'kpi_calib_ros')
 
 
+@pytest.mark.slow
 def test_colcon_build_installs_the_ros_package(tmp_path):
     source = tmp_path / 'ws' / 'src' / 'kpi_calib_ros'
     source.mkdir(parents=True)

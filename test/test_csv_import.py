@@ -221,6 +221,7 @@ def _peak_bytes(tmp_path: Path, rows: int) -> int:
         tracemalloc.stop()
 
 
+@pytest.mark.slow
 def test_memory_does_not_grow_with_the_rows(tmp_path):
     # Both tables fill several 768 KiB chunks of the bag (about 480 bytes a row).
     small, large = _peak_bytes(tmp_path, 2000), _peak_bytes(tmp_path, 8000)

@@ -46,6 +46,7 @@ def test_auto_adds_no_effect_to_a_robot_without_hidden_effects(cm, seed):
     assert 'no effect added' in cal.choice.reason
 
 
+@pytest.mark.slow
 def test_auto_adds_a_hidden_compliance_with_its_value(cm):
     c_true = -8e-7  # rad/(N m): stiffness 1.25e6 N m/rad, an industrial joint
     data, truth = _campaign(cm, {'joint_compliance:joint_2': {'c': c_true}}, 7)
@@ -61,6 +62,7 @@ def test_auto_adds_a_hidden_compliance_with_its_value(cm):
         ['joint_compliance:joint_2']
 
 
+@pytest.mark.slow
 def test_auto_adds_a_hidden_play_and_recovers_it(cm):
     data, truth = _campaign(cm, PLAY, 3)
     cal = calibrate_cell(cm, data, model='auto')
@@ -82,6 +84,7 @@ def test_joint_play_is_recovered_within_3_sigma_from_a_zero_start(cm, seed):
         assert abs(result.value(name) - truth[name]) < 3 * result.std_of(name), name
 
 
+@pytest.mark.slow
 def test_screen_tells_a_sharp_backlash_from_a_play_and_a_compliance(cm):
     """joint_play contains backlash (τ0 -> 0) and compliance (τ0 -> ∞): with a hidden
     backlash or compliance the simpler effect is the candidate, the play merged into it or

@@ -81,6 +81,7 @@ def test_expected_error_is_the_parameter_part_plus_the_held_out_misfit(cm):
     np.testing.assert_allclose(plain.expected_tcp_error_m, plain.tcp_std_m)
 
 
+@pytest.mark.slow
 def test_identify_and_diagnose_state_both_figures(tmp_path, capsys):
     """calibration.yaml's precision section, the identify summary and the diagnosis report
     carry tcp_std_m (parameter part) and expected_tcp_error_m (with the misfit)."""

@@ -64,6 +64,7 @@ def test_whitening_gives_the_identity_covariance(stated, cell):
                                weighted_rows(r[:, :, None], w)[:, 0])
 
 
+@pytest.mark.slow
 def test_chi2_p_values_are_uniform_with_the_joint_noise_stated(exact, stated, cell):
     """100 campaigns with 0.03° joint noise: stated, χ²'s p-values are uniform (KS); unstated,
     χ² rejects every one (the joint noise moves the points by ~0.5 mm, σ is 20 µm)."""
@@ -77,6 +78,7 @@ def test_chi2_p_values_are_uniform_with_the_joint_noise_stated(exact, stated, ce
     assert max(p_unstated) < 0.01
 
 
+@pytest.mark.slow
 def test_diagnosis_suggests_no_effect_with_the_joint_noise_stated(exact, stated, cell):
     """The joint noise stated: the model is adequate and no effect is proposed. Unstated, the
     verdict names the joint readings and the noise they would need (0.03° ± 30 %)."""
@@ -95,6 +97,7 @@ def test_diagnosis_suggests_no_effect_with_the_joint_noise_stated(exact, stated,
                                                                               rel=0.3)
 
 
+@pytest.mark.slow
 def test_tcp_std_matches_monte_carlo_with_joint_noise(exact, stated, cell):
     """One robot and design, 100 draws of tracker and joint noise: the stated TCP std
     (sqrt(trace) at every working pose) equals the Monte Carlo spread within 20 %."""

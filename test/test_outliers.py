@@ -155,6 +155,7 @@ def _random_campaign_with_faults(cm, p_true, n_poses, fraction, seed):
     return dataclasses.replace(data, eta=eta), faults
 
 
+@pytest.mark.slow
 def test_identify_and_diagnose_exclude_the_same_points_the_faults_in_batches(cm, p_true):
     # 30 % faults, above the default max_fraction 0.2: that caps only the faults no other
     # reflector of the pose confirms; these the other reflectors confirm.
@@ -174,6 +175,7 @@ def test_identify_and_diagnose_exclude_the_same_points_the_faults_in_batches(cm,
                                                                  rel=0.05)
 
 
+@pytest.mark.slow
 def test_cli_identify_shows_rounds_and_diagnose_lists_the_same_excluded_points(
         tmp_path, capsys):
     """A bag of 60 random poses (default cell, one reflector) with three 1 mm faults:

@@ -67,6 +67,7 @@ def test_chi2_p_values_are_uniform_with_the_point_sigma(cm, cell):
     assert np.mean(np.array(single) < 0.01) > 0.8, np.round(single, 3)
 
 
+@pytest.mark.slow
 def test_tcp_std_matches_monte_carlo_with_the_point_sigma(cm, cell):
     """One robot and design, 100 draws of distance-dependent noise: the TCP std from the
     points' σ (sqrt(trace) at the working pose) equals the Monte Carlo spread within 20 %;

@@ -403,6 +403,7 @@ def test_validate_a_pose_calibration_on_a_new_pose_recording(pose_bag, tmp_path)
     assert 0.5 < ratio_points < 1.6 and 0.5 < ratio_rotation < 1.6
 
 
+@pytest.mark.slow
 def test_model_choice_and_diagnosis_take_a_pose_campaign(pose_bag, capsys):
     """The out-of-sample prediction (model choice, diagnose) uses the rotation rows as
     information and predicts fresh poses as points: a 40-pose pose campaign of a robot

@@ -153,6 +153,7 @@ def test_measurements_name_the_problem(tmp_path):
         campaign.measurements(NAMES[:2] + ['joint_9'], FRAME)
 
 
+@pytest.mark.slow
 def test_the_measurement_log_is_a_bag_every_command_reads(tmp_path, capsys):
     """identify and diagnose on the node's log give what they give on the recording."""
     import yaml

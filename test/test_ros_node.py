@@ -493,6 +493,7 @@ def test_joint_states_at_1khz_all_arrive_while_the_node_identifies(client, spawn
     assert int(counts['identifications']) >= 2  # jobs ran while the stream went on
 
 
+@pytest.mark.slow
 def test_campaign_parameters_are_refused_while_a_sequential_campaign_runs(tmp_path,
                                                                           ros_domain):
     """A running campaign keeps its target and cap: a change is refused with the reason, so

@@ -201,6 +201,7 @@ def test_hidden_compliance_stops_model_inadequate_before_max(setup):
     assert lof['pure_error_dof'] >= 3
 
 
+@pytest.mark.slow
 def test_understated_sigma_is_not_called_model_inadequate(setup):
     """True σ 2x the stated one, no missing effect: χ² rejects, replicates are taken, the
     lack-of-fit test stays quiet and the campaign goes on with the σ of the data."""
@@ -223,6 +224,7 @@ def test_understated_sigma_is_not_called_model_inadequate(setup):
     assert final.sigma_upper >= final.sigma_hat
 
 
+@pytest.mark.slow
 def test_cli_plan_and_simulated_campaign(tmp_path):
     assert main(['campaign', '--cell', str(DEFAULT_CELL), '--target-std', '15e-6',
                  '--out', str(tmp_path / 'plan')]) == 0
@@ -275,6 +277,7 @@ def several_rows(request):
     return request.param, cm, cell, ctx
 
 
+@pytest.mark.slow
 def test_the_campaign_counts_every_row_a_pose_gives(several_rows):
     """Three reflectors, or a tracked body's rotation: the initial design's predicted TCP
     covariance is the one its identification reports (noise-free at the nominal
@@ -298,6 +301,7 @@ def test_the_campaign_counts_every_row_a_pose_gives(several_rows):
     assert deviation < 1e-3
 
 
+@pytest.mark.slow
 def test_a_campaign_with_several_rows_per_pose_meets_the_target(several_rows):
     """The whole loop on a three-reflector and a tracked-pose cell against a true robot:
     the target is met and the true TCP error is within 4 std on every axis."""
@@ -313,6 +317,7 @@ def test_a_campaign_with_several_rows_per_pose_meets_the_target(several_rows):
     assert np.all(np.abs(run.tcp_estimated - run.tcp_true) <= 4 * run.tcp_std_true)
 
 
+@pytest.mark.slow
 def test_a_campaign_on_a_several_reflector_cell_plans_its_initial_design(tmp_path, capsys):
     """`kpi-calib campaign` on a two-reflector cell writes the initial plan (it was
     refused before: one reflector per pose)."""
@@ -347,6 +352,7 @@ def _campaign_with_outlier(campaign, cm, p_true, sigma, rng, outlier: int, offse
     return history
 
 
+@pytest.mark.slow
 def test_one_outlier_among_the_first_points_is_excluded_and_measured_again(setup):
     """A 1 mm fault among the initial design's points: the campaign applies the batch outlier
     rule, names the point, measures its pose again and meets the target; it never calls the

@@ -239,6 +239,7 @@ def test_a_recording_with_the_tracker_set_up_again_is_scored_after_re_registrati
     assert np.linalg.norm(moved - (p_new - p_true)[reflector]) < 2e-4
 
 
+@pytest.mark.slow
 def test_re_registration_chi2_follows_its_reduced_dof_over_calibrations(setup):
     """Over 40 campaigns (each calibrated, then validated with the tracker set up again and
     the reflector re-mounted), χ² after re-registration averages 3N − 9 within its
