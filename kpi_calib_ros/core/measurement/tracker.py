@@ -465,7 +465,7 @@ class MeasurementModel:
             measured = measured_rotation_input(np.asarray(rotation)[rows])
             out = self._map(which, channel, m)(p, q[rows].T, tau[rows].T, measured.T,
                                                z[rows].T)
-        return [np.array(o) for o in (out if isinstance(out, (list, tuple)) else [out])]
+        return [_dense(o) for o in (out if isinstance(out, (list, tuple)) else [out])]
 
     def predict(self, p: np.ndarray, q: np.ndarray, tau: np.ndarray | None = None,
                 reflector: np.ndarray | None = None,
@@ -682,6 +682,24 @@ def with_rotation_rows(model: MeasurementModel, data: Measurements,
     return Measurements(q=expanded.q, eta=eta, tau=expanded.tau, stamps_ns=expanded.stamps_ns,
                         reflector=np.array(channel), rotation=rot, sigma=sigma,
                         covariates=expanded.covariates)
+
+
+def _dense(value: ca.DM) -> np.ndarray:
+    """Return a CasADi matrix as a dense ndarray, from its nonzeros.
+
+    ``np.array`` of a DM builds the dense matrix element by element in Python; a mapped
+    Jacobian is mostly structural zeros (each row's block), so that took ten times as long
+    as the evaluation itself. The values are the same bits.
+    """
+    sparsity = value.sparsity()
+    rows, cols = sparsity.size1(), sparsity.size2()
+    nonzeros = np.asarray(value.nonzeros(), float)
+    if sparsity.is_dense():
+        return nonzeros.reshape(cols, rows).T
+    out = np.zeros((rows, cols))
+    r, c = sparsity.get_triplet()
+    out[r, c] = nonzeros
+    return out
 
 
 def noise_weights(model: MeasurementModel, p: np.ndarray, data: Measurements,
