@@ -14,6 +14,15 @@ reported as a status, not an exception: as in SciPy's ``least_squares``, the
 stopping tests are named tolerances with their formulas (`Tolerances`), the result
 carries an integer ``status`` with a ``message``, and ``converged`` is true only when a
 convergence test held.
+
+The identifiable set is selected at the start (QR with column pivoting,
+:mod:`~kpi_calib_ros.core.estimation.identifiability`), fitted, and selected again at the
+estimate until it is stable: a real robot off the nominal geometry has directions the
+nominal lacks. A direction the selection at the estimate adds
+is kept only when a Wald test says the truth has it
+(:func:`~kpi_calib_ros.core.estimation.identifiability.significant_rank`); the noise alone
+also moves the estimate off the nominal geometry, and a direction it made has a singular
+value of the size of its noise, along which the trust region crawls.
 """
 from __future__ import annotations
 
