@@ -97,7 +97,7 @@ class RankTest:
 
 def significant_rank(jacobian_at: Callable[[np.ndarray], np.ndarray], x: np.ndarray,
                      candidate: Sequence[int], estimated: Sequence[int],
-                     alpha: float = RANK_ALPHA) -> RankTest:
+                     alpha: float = RANK_ALPHA, step: float = 1.0) -> RankTest:
     """Rank of the Jacobian at the truth among the directions of ``candidate``, given the
     fit over ``estimated`` that reached ``x``.
 
@@ -112,10 +112,16 @@ def significant_rank(jacobian_at: Callable[[np.ndarray], np.ndarray], x: np.ndar
     (Robin & Smith's sequential test), or k.
 
     G comes from second derivatives of the model: ∂M_ab/∂x = ∇²(u_aᵀ h) d_b with
-    d_b = D⁻¹ v_b (D the column norms), a central difference of the Jacobian along d_b
-    with step 1 (a move of the predictions by about one σ: each column of A has norm 1).
-    The change of D with x moves s by terms proportional to s, negligible where the test
-    decides (s near zero).
+    d_b = D⁻¹ v_b (D the column norms at ``x``, held fixed: the hypothesis is then about
+    A = F D⁻¹ with one scaling, and the test does not depend on it), a central difference
+    of the Jacobian along d_b with step 1 (a move of the predictions by about one σ: each
+    column of A has norm 1). Measured on the default cell (noise only and drawn robots):
+    W the same to 6 digits for steps 0.01 to 100.
+
+    The directions tested are the smallest singular values of the *equilibrated*
+    Jacobian, those a trust region in these units crawls along. A single parameter whose
+    column vanishes at the truth but stands independent at the estimate has a unit column
+    there and is not small in these units; it is not tested (it does not slow the fit).
 
     Parameters
     ----------
@@ -130,6 +136,8 @@ def significant_rank(jacobian_at: Callable[[np.ndarray], np.ndarray], x: np.ndar
         Columns the fit that reached ``x`` was over; its rank is taken as established.
     alpha : float
         Level of each test.
+    step : float
+        Central-difference step along d_b, equilibrated units.
 
     Returns
     -------
@@ -150,8 +158,11 @@ def significant_rank(jacobian_at: Callable[[np.ndarray], np.ndarray], x: np.ndar
     hess = {}
     for b in weak:
         d = np.zeros_like(x)
-        d[candidate] = vt[b] / norms
-        diff = (jacobian_at(x + d) - jacobian_at(x - d))[:, estimated] / 2.0
+        d[candidate] = step * vt[b] / norms
+        diff = (jacobian_at(x + d) - jacobian_at(x - d))[:, estimated] / (2.0 * step)
+        if not np.all(np.isfinite(diff)):
+            # A saturating effect's Jacobian is not finite there: no test, as before.
+            return RankTest(k, float('nan'), 0, float('nan'))
         hess[b] = diff.T @ u[:, r0:]
     test = RankTest(k, float('nan'), 0, float('nan'))
     for r in range(r0, k):
