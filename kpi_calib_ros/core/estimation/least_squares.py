@@ -18,11 +18,11 @@ convergence test held.
 The identifiable set is selected at the start (QR with column pivoting,
 :mod:`~kpi_calib_ros.core.estimation.identifiability`), fitted, and selected again at the
 estimate until it is stable: a real robot off the nominal geometry has directions the
-nominal lacks. A direction the selection at the estimate adds
-is kept only when a Wald test says the truth has it
-(:func:`~kpi_calib_ros.core.estimation.identifiability.significant_rank`); the noise alone
-also moves the estimate off the nominal geometry, and a direction it made has a singular
-value of the size of its noise, along which the trust region crawls.
+nominal lacks. But the noise alone also moves the estimate off the nominal geometry, and a
+direction it made has a singular value of the size of its noise, along which the trust
+region crawls: a direction the selection at the estimate adds is kept only when a Wald
+test says the truth has it
+(:func:`~kpi_calib_ros.core.estimation.identifiability.significant_rank`).
 """
 from __future__ import annotations
 
@@ -400,8 +400,9 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     # estimate is kept only if a Wald test says the truth has it (`significant_rank`).
     # A direction only the noise made has a singular value of the size of its noise
     # (measured: nominal KR15 of the default cell, 30 designed poses, noise only: Wald
-    # p 0.04-0.6); fitting it, the trust region crawled 476-2702 iterations along a
-    # curved valley (Gauss-Newton step ~1e5 equilibrated units, predicted decrease ~1).
+    # p 0.18-0.96 over 20 fits); fitting it, the trust region crawled 658-2702 iterations
+    # along a curved valley (Gauss-Newton step ~1e5 equilibrated units, predicted
+    # decrease ~1).
     ident, iterations, kept_before = None, 0, None
     w = reweighted(p)
 
@@ -415,7 +416,8 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
         stacked = stacked_at(p[free_idx])
         ident = select_identifiable(stacked, free_names, method=identifiability_method,
                                     priority=priority)
-        max_rank, cut_reason = None, ''
+        max_rank: int | None = None
+        cut_reason = 'beyond the rank limit'
         if kept_before is not None and ident.rank > len(kept_before):
             test = significant_rank(stacked_at, p[free_idx],
                                     [free_names.index(n) for n in ident.kept],
@@ -431,8 +433,7 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
             kept_first = list(kept_before) + [n for n in free_names if n not in kept_before]
             again = select_identifiable(stacked, free_names, method='priority',
                                         priority=kept_first, pivot_fraction=0.0,
-                                        max_rank=max_rank, cut_reason=cut_reason or
-                                        'beyond the rank limit')
+                                        max_rank=max_rank, cut_reason=cut_reason)
             if again.kept == kept_before:
                 ident = again
                 break
