@@ -401,8 +401,8 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     # A direction only the noise made has a singular value of the size of its noise
     # (measured: nominal KR15 of the default cell, 30 designed poses, noise only: Wald
     # p 0.18-0.96 over 20 fits); fitting it, the trust region crawled 658-2702 iterations
-    # along a curved valley (Gauss-Newton step ~1e5 equilibrated units, predicted
-    # decrease ~1).
+    # along a curved valley (Gauss-Newton step 5e4-3e5 equilibrated units, predicted
+    # decrease 0.2-2.0).
     ident, iterations, kept_before = None, 0, None
     w = reweighted(p)
 
