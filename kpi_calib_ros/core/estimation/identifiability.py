@@ -90,7 +90,7 @@ class RankTest:
     p_value: float
 
     def reason(self, alpha: float = RANK_ALPHA) -> str:
-        """Why the directions above `rank` are left out, in words."""
+        """Say in words why the directions above `rank` are left out."""
         return (f'identifiable at the estimate only through its noise (Wald χ² '
                 f'{self.statistic:.3g} on {self.dof} dof, p = {self.p_value:.2g} ≥ {alpha:g})')
 
@@ -98,10 +98,10 @@ class RankTest:
 def significant_rank(jacobian_at: Callable[[np.ndarray], np.ndarray], x: np.ndarray,
                      candidate: Sequence[int], estimated: Sequence[int],
                      alpha: float = RANK_ALPHA, step: float = 1.0) -> RankTest:
-    """Rank of the Jacobian at the truth among the directions of ``candidate``, given the
-    fit over ``estimated`` that reached ``x``.
+    """Test how many directions of ``candidate`` the truth has, after a fit to ``x``.
 
-    The column-equilibrated Jacobian A (m, k) of the candidate set at the estimate has the
+    The fit over ``estimated`` reached ``x``, where the selection keeps ``candidate``. The
+    column-equilibrated Jacobian A (m, k) of the candidate set at the estimate has the
     singular value decomposition A = U diag(s) Vᵀ. That its directions ``r + 1 … k``
     vanish at the truth is the hypothesis M(x_true) = 0 for M = U₂ᵀ A V₂ (U₂, V₂ the last
     k − r singular vectors). The estimate is off the truth by δ ~ N(0, C), C = (F_EᵀF_E)⁻¹
