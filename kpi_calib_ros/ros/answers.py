@@ -19,9 +19,10 @@ def design_answer(design: Any, not_estimable: str, topic: str, path: Path) -> st
 
 
 def identify_answer(measurements: int, cal: Any, prior: str, notes: Sequence[str],
-                    data_dir: Path) -> str:
+                    data_dir: Path, learned: str = '') -> str:
     """~/identify: the fit, its TCP precision (and expected error with the misfit of a
-    model χ² rejects, core.precision.expected_tcp_error), exclusions and prior."""
+    model χ² rejects, core.precision.expected_tcp_error), exclusions and prior; ``learned``:
+    the learned residual's summary lines (the choice with its figures), joined by '; '."""
     result = cal.result
     tcp_um = np.sqrt(np.trace(result.tcp_covariance, axis1=1, axis2=2)).max() * 1e6
     expected = ('' if cal.expected is None else
@@ -33,6 +34,7 @@ def identify_answer(measurements: int, cal: Any, prior: str, notes: Sequence[str
         f'{result.rms_m * 1e6:.1f} µm, p = {result.p_value:.3g}, TCP sqrt(trace) <= '
         f'{tcp_um:.1f} µm ({precision}){expected}; {len(cal.robust.excluded)} excluded; '
         + (f'prior {prior}; ' if prior else '') + ''.join(f'{n}; ' for n in notes)
+        + ''.join(f'{line}; ' for line in learned.splitlines())
         + f'written to {data_dir}')
 
 

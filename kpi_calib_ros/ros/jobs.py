@@ -32,6 +32,7 @@ from kpi_calib_ros.app.design import (
 )
 from kpi_calib_ros.app.diagnose import diagnose_cell
 from kpi_calib_ros.app.identify import calibrate_cell
+from kpi_calib_ros.app.learned_residual import add_learned_residual
 from kpi_calib_ros.app.reidentify import cycle_prior, reidentification_document, reidentify
 from kpi_calib_ros.app.validate import validate_report
 from kpi_calib_ros.core.acquisition.pairing import PairingResult
@@ -45,6 +46,7 @@ from kpi_calib_ros.core.campaigns.sequential import (
 from kpi_calib_ros.core.design.optimum import DesignResult
 from kpi_calib_ros.core.errors import DataError, KpiCalibError
 from kpi_calib_ros.core.estimation.drift_state import DriftSwing
+from kpi_calib_ros.core.estimation.robust import subset
 from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.io.calibration_file import read_calibration_document
 from kpi_calib_ros.io.campaign_io import CampaignState, write_campaign_state, write_plan
@@ -56,6 +58,7 @@ from kpi_calib_ros.io.names import (
     CAMPAIGN_STATE_FILE,
     DESIGN_FILE,
     DIAGNOSIS_DIR,
+    LEARNED_RESIDUAL_FILE,
     VALIDATION_DIR,
 )
 from kpi_calib_ros.io.report import diagnosis_to_dict, write_report
@@ -149,9 +152,9 @@ def archive_calibration(data_dir: Path, doc: dict[str, Any], text: str) -> Path 
 
 def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, data_dir: Path,
                   with_prior: bool = False, swing: DriftSwing | None = None,
-                  archive: bool = True
+                  archive: bool = True, learned_residual: bool = False
                   ) -> tuple[CellCalibration | None, str, str, list[PoseWithCovarianceStamped],
-                             ChangeTest | None, str, list[str]]:
+                             ChangeTest | None, str, list[str], tuple[str, str]]:
     """Identify from ``data`` as ``kpi-calib identify`` does and write the calibration and
     the calibrated URDF atomically. An invalid calibration (not converged, TCP not
     estimable) is written to calibration.failed.yaml only: the last good calibration.yaml
@@ -165,6 +168,14 @@ def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, dat
     failed document's text (written to calibration.failed.yaml). ``archive`` false: a
     valid calibration is written and returned but not archived (never the next cycle's
     prior), e.g. from a campaign that stopped as model inadequate.
+
+    ``learned_residual``: the learned residual is chosen on the measurements the valid
+    calibration kept, as ``kpi-calib identify --learned-residual`` does
+    (:func:`~kpi_calib_ros.app.learned_residual.add_learned_residual`): written as
+    learned_residual.yaml in ``data_dir`` when chosen, its section in the document either
+    way. Not with a prior (as ``--learned-residual`` is not with ``--prior``). A valid
+    calibration removes an older learned_residual.yaml it does not replace, so the file
+    never corrects a calibration it was not fitted to.
 
     Returns
     -------
@@ -183,6 +194,10 @@ def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, dat
     notes : list of str
         With ``with_prior``: archived files skipped, why no prior was used, and the
         prior's drift-time warnings (clocks that disagree).
+    learned : (str, str)
+        With ``learned_residual`` and a valid calibration: the outcome (``chosen`` with the
+        file written, ``not chosen``, ``not fitted`` with a prior) and the choice in words
+        with its figures, the CLI's summary lines; ('', '') otherwise.
     """
     if data.stamps_ns is None:
         raise ValueError('data.stamps_ns is None: the TCP poses are stamped with the last '
@@ -204,15 +219,33 @@ def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, dat
         cal, change = out.calibration, out.change
         doc = reidentification_document(cm, out, cp, str(source), pairing)
         result = cal.result if cal is not None else out.fit
+    learned = ('', '')
+    if cal is not None and cal.valid:
+        drop_learned_residual(data_dir)
+        if learned_residual and source is not None:
+            learned = ('not fitted', f'learned residual not fitted: identified with the prior '
+                       f'{source} (identify --learned-residual is not available with --prior '
+                       'either); set reidentify_with_prior:=false to learn it')
+        elif learned_residual:
+            text, written = add_learned_residual(doc, cm, subset(data, cal.robust.kept),
+                                                 result, data_dir)
+            learned = (('chosen', f'{text}\nwritten: {written}') if written is not None
+                       else ('not chosen', text))
     path, _, urdf = write_results(cm, result, doc, data_dir)
     text = path.read_text()  # published as written
     if cal is None or not cal.valid:
-        return cal, text, '', [], change, str(source or ''), notes
+        return cal, text, '', [], change, str(source or ''), notes, ('', '')
     if archive:
         archive_calibration(data_dir, doc, text)
     tcp = cv.tcp_pose_msgs(result.tcp, result.tcp_covariance, cm.cell.tracker_frame,
                            int(data.stamps_ns[-1]))
-    return cal, text, urdf, tcp, change, str(source or ''), notes
+    return cal, text, urdf, tcp, change, str(source or ''), notes, learned
+
+
+def drop_learned_residual(data_dir: Path) -> None:
+    """Remove learned_residual.yaml from ``data_dir``: a new valid calibration replaces
+    the one it corrects (``~/tcp_query`` would otherwise answer with the old one)."""
+    (data_dir / LEARNED_RESIDUAL_FILE).unlink(missing_ok=True)
 
 
 def validate_work(cm: CellModel, calibration: str, data: Measurements,
@@ -341,6 +374,7 @@ def _step_output(campaign: SequentialCampaign, cm: CellModel, state: CampaignSta
         path, _, urdf = write_results(cm, cal.result, cal_doc, data_dir)
         cal_text = path.read_text()
         if cal.valid:
+            drop_learned_residual(data_dir)
             archive_calibration(data_dir, cal_doc, cal_text)
             stamp = int(np.max(campaign.stamps)) if len(campaign.stamps) else 0
             calibration = (cal_text, urdf, cv.tcp_pose_msgs(
@@ -390,5 +424,6 @@ def sequential_resume_work(cm: CellModel, state: CampaignState, data: Measuremen
 
 
 __all__ = ['StepOutput', 'archive_calibration', 'campaign_settings', 'design_work',
-           'diagnose_work', 'identify_work', 'previous_calibration', 'sequential_resume_work',
-           'sequential_start_work', 'sequential_step_work', 'validate_work']
+           'diagnose_work', 'drop_learned_residual', 'identify_work', 'previous_calibration',
+           'sequential_resume_work', 'sequential_start_work', 'sequential_step_work',
+           'validate_work']

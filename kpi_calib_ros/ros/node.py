@@ -184,7 +184,9 @@ class CalibrationNode(SequentialCampaignJobs):
                                   ('reset', 'resetting', self._reset)):
             self.create_service(Trigger, f'~/{name}', self._service(name, doing, work),
                                 callback_group=services)
-        self.tcp_query = TcpQuery(self, lambda: self._cm, lambda: self._run.result,
+        # The calibration's own model (with the effects identification.model auto added).
+        self.tcp_query = TcpQuery(self, lambda: self._run.cell or self._cm,
+                                  lambda: self._run.result,
                                   self.data_dir / LEARNED_RESIDUAL_FILE)
         self.create_timer(0.1, self._tick, callback_group=streams)
         if self.settings.robot_description:
@@ -328,6 +330,8 @@ class CalibrationNode(SequentialCampaignJobs):
         from ``identified_with`` measurements stamped ``stamps``) the published
         calibration: ~/calibration, the calibrated URDF, ~/tcp and the markers."""
         self._run.robust, self._run.result = cal.robust, cal.result
+        self._run.cell = cal.cell
+        self._run.learned_residual = ''  # data_dir/learned_residual.yaml was removed
         self._run.measured, self._run.marker_rows = measured, marker_rows
         self._run.identified_with = identified_with
         self._identifications += 1
@@ -352,12 +356,12 @@ class CalibrationNode(SequentialCampaignJobs):
                             '~/reset to end it')
         data, pairing = model_measurements(self.campaign, cm)
         try:
-            cal, calibration, urdf, tcp, change, prior, notes = await self._offload(
+            cal, calibration, urdf, tcp, change, prior, notes, learned = await self._offload(
                 jobs.identify_work, cm, data, pairing, self.data_dir,
                 self.settings.reidentify_with_prior,
                 DriftSwing(*self.settings.drift_velocity) if self.settings.drift_velocity
                 else None,
-                not self._run.campaign_inadequate(),
+                not self._run.campaign_inadequate(), self.settings.identify_learned_residual,
                 child=True)
         except Exception as exc:  # job boundary: also a full disk or a lost data_dir
             where = (f' (results not written to {self.data_dir})'
@@ -403,11 +407,13 @@ class CalibrationNode(SequentialCampaignJobs):
                   else np.asarray(data.reflector) < cm.model.n_reflectors)
         self._publish_calibration(cal, data.eta[kept], points[kept], len(data), calibration,
                                   urdf, tcp, data.stamps_ns)
+        # ~/tcp_query reads data_dir/learned_residual.yaml (written or removed above).
+        self._run.learned_residual = learned[0]
         self._publish_diagnostics(force=True)
         if result.covariance_scale != 1.0:
             self.get_logger().warning('TCP and parameter std ' + precision_statement(
                 result.covariance_scale, result.joint_sigma))
-        return True, identify_answer(len(data), cal, prior, notes, self.data_dir)
+        return True, identify_answer(len(data), cal, prior, notes, self.data_dir, learned[1])
 
     async def _diagnose(self) -> tuple[bool, str]:
         """Model diagnosis of the accepted measurements (as ``kpi-calib diagnose``): residual

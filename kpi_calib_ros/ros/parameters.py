@@ -59,6 +59,7 @@ class NodeSettings:
     reidentify_with_prior: bool = True
     drift_velocity: tuple[float, ...] = ()
     validate_register: str = ''
+    identify_learned_residual: bool = False
 
 
 CAMPAIGNS = ('fixed', 'sequential')
@@ -108,6 +109,12 @@ PARAMETERS: dict[str, tuple[Any, bool, str]] = {
                           "since the calibration: 'base' re-fits the base pose, "
                           "'base+reflector' also the reflector offsets, on the new measurements "
                           "alone (as validate --register); '' (default): none"),
+    'identify_learned_residual': (False, False, '~/identify also learns what the physical '
+                                  'model leaves as a Gaussian process over joint space (as '
+                                  'identify --learned-residual): written as '
+                                  'data_dir/learned_residual.yaml, which ~/tcp_query uses, '
+                                  'only when it predicts held-out poses better; not with a '
+                                  'prior calibration (reidentify_with_prior)'),
     'allow_code_effects': (False, True, "run the Python code a cell file's effects: name "
                            "('file.py:Type:joint', 'module:Type:joint'); off: only built-in "
                            'and installed (entry point) effects'),
@@ -177,7 +184,8 @@ def settings_from_parameters(values: dict[str, Any]) -> NodeSettings:
     if register not in ('', *REGISTER):
         raise ConfigError('validate_register', f"must be '' or one of {list(REGISTER)}, "
                           f'got {register!r}')
-    for key in ('auto_identify', 'allow_code_effects', 'reidentify_with_prior'):
+    for key in ('auto_identify', 'allow_code_effects', 'reidentify_with_prior',
+                'identify_learned_residual'):
         if not isinstance(values[key], bool):
             raise ConfigError(key, f'must be true or false, got {values[key]!r}')
     swing: tuple[float, ...] = ()
@@ -208,7 +216,8 @@ def settings_from_parameters(values: dict[str, Any]) -> NodeSettings:
         data_dir=str(Path(text('data_dir')).expanduser()), campaign=values['campaign'],
         target_tcp_std=float(target), max_measurements=integer('max_measurements', 1),
         reidentify_with_prior=values['reidentify_with_prior'], drift_velocity=swing,
-        validate_register=register, **topics)
+        validate_register=register,
+        identify_learned_residual=values['identify_learned_residual'], **topics)
 
 
 def working_poses(settings: NodeSettings) -> tuple[WorkingPose, ...] | None:

@@ -20,6 +20,7 @@ from kpi_calib_ros.core.campaigns.sequential import (
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.core.estimation.robust import RobustResult
 from kpi_calib_ros.io.campaign_io import CampaignState
+from kpi_calib_ros.io.cell import CellModel
 
 # Parameters a running sequential campaign was started with: refused while it runs (its
 # status, plan and stop rule rest on them).
@@ -30,11 +31,14 @@ CAMPAIGN_FIXED = ('campaign', 'target_tcp_std', 'max_measurements', 'design_seed
 class RunState:
     """The node's results and sequential campaign of the current run.
 
-    ``result``: the last published calibration's fit; ``measured`` its fitted points (m)
+    ``result``: the last published calibration's fit, ``cell`` the cell model it belongs
+    to (with the effects ``identification.model: auto`` added); ``measured`` its fitted points (m)
     and ``marker_rows`` which of them are points to draw residuals from; ``robust`` its
     robust statistics; ``result_error`` why the last identification failed ('' if it did
     not); ``identified_with`` the number of measurements it used; ``auto_pending`` an
-    automatic identification is due; ``diagnosis`` the last ~/diagnose document.
+    automatic identification is due; ``diagnosis`` the last ~/diagnose document;
+    ``learned_residual`` the learned residual of the last ~/identify with
+    ``identify_learned_residual`` (``chosen``, ``not chosen``, ``not fitted``; '' without).
 
     A sequential campaign (``campaign:=sequential``): ``sequential`` the campaign object
     (handed to the worker of a step job and back), ``sequential_status`` its last
@@ -45,6 +49,7 @@ class RunState:
     """
 
     result: CalibrationResult | None = None
+    cell: CellModel | None = None
     measured: np.ndarray | None = None
     marker_rows: np.ndarray | None = None
     result_error: str = ''
@@ -52,6 +57,7 @@ class RunState:
     identified_with: int = 0
     auto_pending: bool = False
     diagnosis: dict[str, Any] | None = None
+    learned_residual: str = ''
     sequential: SequentialCampaign | None = None
     sequential_status: CampaignStatus | None = None
     sequential_stamps: set[int] = field(default_factory=set)

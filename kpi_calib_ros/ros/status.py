@@ -75,6 +75,8 @@ def node_status(run: RunState, counts: Mapping[str, int], streams: StreamHealth,
     if run.robust is not None:
         values.update({'sigma_robust_um': round(run.robust.sigma_robust * 1e6, 3),
                        'excluded_measurements': len(run.robust.excluded)})
+    if run.learned_residual:
+        values['learned_residual'] = run.learned_residual
     if run.diagnosis is not None:
         best = next((c['spec'] for c in run.diagnosis['candidates'] if c['significant']),
                     'none')

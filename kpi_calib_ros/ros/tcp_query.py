@@ -45,14 +45,15 @@ class TcpQuery:
     model, result : callables
         The node's current robot model and calibration (None until there is one).
     path : Path
-        learned_residual.yaml; read again whenever its modification time changes.
+        learned_residual.yaml; read again whenever it is replaced or changes (inode,
+        modification time or size).
     """
 
     def __init__(self, node: Node, model: Callable[[], CellModel | None],
                  result: Callable[[], CalibrationResult | None], path: Path) -> None:
         self._node, self._model, self._result, self._path = node, model, result, Path(path)
         self._stored: StoredResidual | None = None
-        self._stamp: int | None = None
+        self._stamp: tuple[int, int, int] | None = None
         self.publisher = node.create_publisher(PoseWithCovarianceStamped, TCP_CORRECTED_TOPIC,
                                                QUERY_DEPTH)
         node.create_subscription(JointState, TCP_QUERY_TOPIC, self.answer, QUERY_DEPTH)
@@ -64,10 +65,13 @@ class TcpQuery:
         """learned_residual.yaml as last read (None: no file); a changed file is read again,
         a damaged one is logged and not used."""
         try:
-            stamp = self._path.stat().st_mtime_ns
+            info = self._path.stat()
         except FileNotFoundError:
             self._stored, self._stamp = None, None
             return None
+        # A new file is written atomically (a new inode): mtime alone may repeat within
+        # the file system's timestamp granularity.
+        stamp = (info.st_ino, info.st_mtime_ns, info.st_size)
         if stamp != self._stamp:
             self._stamp = stamp
             try:
