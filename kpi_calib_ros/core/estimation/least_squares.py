@@ -271,18 +271,23 @@ class CalibrationResult:
         return self.identifiability.dropped
 
     def value(self, name: str) -> float:
-        """Identified value of parameter ``name`` (its unit); ValueError if unknown."""
+        """Return the identified value of parameter ``name`` (its unit); ValueError if unknown."""
         return float(self.values[self.names.index(name)])
 
     def std_of(self, name: str) -> float:
-        """Standard deviation of estimated parameter ``name`` (its unit); ValueError if not
-        estimated."""
+        """Return the standard deviation of estimated parameter ``name`` (its unit).
+
+        ValueError if it was not estimated.
+        """
         return float(self.std[self.estimated.index(name)])
 
 
 def iteration_limit(max_iterations: int | None, k: int) -> int:
-    """Iteration limit of a fit of ``k`` parameters: ``max_iterations``, or when None
-    `ITERATIONS_PER_PARAMETER` · k (SciPy's ``max_nfev`` of ``'trf'``)."""
+    """Return the iteration limit of a fit of ``k`` parameters.
+
+    ``max_iterations``, or when None `ITERATIONS_PER_PARAMETER` · k (SciPy's ``max_nfev``
+    of ``'trf'``).
+    """
     return ITERATIONS_PER_PARAMETER * k if max_iterations is None else max_iterations
 
 
@@ -488,9 +493,11 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
 
 def point_sigma_squares(result: CalibrationResult, reflector: np.ndarray | None,
                         n_reflectors: int) -> np.ndarray:
-    """Σ_a σ_i,a² (m²) of every point row of the fit (rotation rows left out): each row's
-    stated σ (``result.point_sigma``) or the cell's σ; (N_points,), or (1,) when the fit
-    took the cell's σ for every row."""
+    """Return Σ_a σ_i,a² (m²) of every point row of the fit (rotation rows left out).
+
+    Each row's stated σ (``result.point_sigma``) or the cell's σ; (N_points,), or (1,) when
+    the fit took the cell's σ for every row.
+    """
     if result.point_sigma is None:
         return np.array([float(np.sum(np.asarray(result.sigma) ** 2))])
     rows = np.asarray(result.point_sigma)
@@ -500,8 +507,10 @@ def point_sigma_squares(result: CalibrationResult, reflector: np.ndarray | None,
 
 
 def _point_rms(residuals: np.ndarray, reflector: np.ndarray | None, n_reflectors: int) -> float:
-    """Root mean square (m) of the point rows' residuals; rotation rows (tracked poses)
-    are not lengths."""
+    """Return the root mean square (m) of the point rows' residuals.
+
+    Rotation rows (tracked poses) are not lengths.
+    """
     points = residuals if reflector is None else residuals[np.asarray(reflector) < n_reflectors]
     return float(np.sqrt(np.mean(np.sum(points ** 2, axis=1))))
 
@@ -512,8 +521,10 @@ def _with_prior(f: np.ndarray, rows: PriorRows | None, idx: np.ndarray) -> np.nd
 
 
 def _row_weights(w_axis: np.ndarray, point_weights: np.ndarray | None, n: int) -> np.ndarray:
-    """(N, 3) weights w_i,a·√ω_i of every residual component (1/m); ``w_axis`` (3,) or
-    (N, 3)."""
+    """Return the (N, 3) weights w_i,a·√ω_i of every residual component (1/m).
+
+    ``w_axis`` (3,) or (N, 3).
+    """
     w_axis = np.broadcast_to(w_axis, (n, 3))
     if point_weights is None:
         return w_axis.copy()
@@ -530,9 +541,12 @@ SHRINK, GROW = 0.25, 2.0
 
 def _boundary_step(u: np.ndarray, s: np.ndarray, vt: np.ndarray, r: np.ndarray,
                    radius: float) -> np.ndarray:
-    """The Levenberg-Marquardt step z(λ) = V diag(s / (s² + λ)) Uᵀ r of A = U diag(s) Vᵀ
-    with ‖z(λ)‖ = ``radius``, the minimiser of ‖r − A z‖ on the trust-region boundary
-    (valid when the Gauss-Newton step z(0) is longer than ``radius``)."""
+    """Return the Levenberg-Marquardt step on the trust-region boundary.
+
+    z(λ) = V diag(s / (s² + λ)) Uᵀ r of A = U diag(s) Vᵀ with ‖z(λ)‖ = ``radius``, the
+    minimiser of ‖r − A z‖ on the boundary (valid when the Gauss-Newton step z(0) is longer
+    than ``radius``).
+    """
     sc = s * (u.T @ r)
 
     def excess(lam: float) -> float:
