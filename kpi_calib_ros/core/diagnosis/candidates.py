@@ -387,7 +387,10 @@ def diagnose(model: MeasurementModel, data: Measurements, result: CalibrationRes
     if candidates is None and general:
         have = {e.name for e in model.effects}
         grams = periodograms(model, data, result)
-        candidates = (candidate_effects(model.robot, exclude=have)
+        # The library as screen_effects screens it: the effects that read a covariate
+        # (the thermal ones) where the measurements carry it.
+        candidates = (candidate_effects(model.robot, exclude=have,
+                                        covariates=data.covariates or ())
                       + general_candidates(model.robot, have)
                       + periodic_candidates(model, grams))
     ranked, rejected = screen_effects(model, data, result, candidates, folds, alpha, seed)
