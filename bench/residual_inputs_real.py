@@ -1,10 +1,12 @@
 """Real data: where the geometric model of the UR10 and the TIAGo fails, model-free.
 
 UR10 (../shared/data/ipa_ur10, Series A, every ``STEP``-th posture of the overnight grid,
-with the cell temperature as a covariate) and TIAGo (../shared/data/tiago_mocap, the
-2021-11-30 session): ``kpi-calib diagnose``'s calibration, its named-effect screen, the
-residual analysis (core.residual_analysis) and the learned residual's decision; the four
-answers, the ranked inputs and the
+with the cell temperature as a covariate: ``import-csv`` records it, the cell's
+``temperature:`` section reads it and pairs it to the measurements as ``kpi-calib
+diagnose`` does, :func:`kpi_calib_ros.app.measurements.with_readings`) and TIAGo
+(../shared/data/tiago_mocap, the 2021-11-30 session): ``kpi-calib diagnose``'s
+calibration, its named-effect screen, the residual analysis (core.residual_analysis) and
+the learned residual's decision; the four answers, the ranked inputs and the
 partial-residual plot. Writes bench/results/residual_inputs_real.md and the plots beside it.
 
     .venv/bin/python bench/residual_inputs_real.py [DATA_DIR]   # default ../shared/data
@@ -19,15 +21,13 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-from mcap.reader import make_reader
-from mcap_ros2.decoder import DecoderFactory
+import yaml
 
 from kpi_calib_ros.app.diagnose import diagnose_cell, learned_remedy, with_remedies
 from kpi_calib_ros.app.learned_residual import choose_residual
 from kpi_calib_ros.app.measurements import measurements_from_bag
 from kpi_calib_ros.cli import main
-from kpi_calib_ros.io.cell import build_cell_model, load_cell
+from kpi_calib_ros.io.cell import CellModel, build_cell_model, cell_from_dict
 from kpi_calib_ros.io.names import DEFAULT_TEMPERATURE_TOPIC
 from kpi_calib_ros.io.report import write_report
 from kpi_calib_ros.io.residual_plots import analysis_lines
@@ -44,29 +44,21 @@ def _subset(source: Path, target: Path, step: int) -> Path:
     return target
 
 
-def _temperatures(bag: Path, stamps_ns: np.ndarray) -> np.ndarray:
-    """The cell temperature (°C) of each measurement: the message nearest its stamp."""
-    with open(bag, 'rb') as f:
-        msgs = [m for _, _, _, m in make_reader(f, decoder_factories=[DecoderFactory()])
-                .iter_decoded_messages(topics=[DEFAULT_TEMPERATURE_TOPIC])]
-    t = np.array([m.header.stamp.sec * 10 ** 9 + m.header.stamp.nanosec for m in msgs])
-    value = np.array([m.temperature for m in msgs])
-    order = np.argsort(t)
-    t, value = t[order], value[order]
-    idx = np.clip(np.searchsorted(t, stamps_ns), 1, len(t) - 1)
-    nearer = np.where(np.abs(stamps_ns - t[idx - 1]) <= np.abs(t[idx] - stamps_ns), idx - 1, idx)
-    return value[nearer]
+def _cell(path: Path, temperature: dict | None = None) -> CellModel:
+    """The cell file's model, with ``temperature`` as its ``temperature:`` section."""
+    doc = yaml.safe_load(path.read_text())
+    if temperature is not None:
+        doc['temperature'] = temperature
+    return build_cell_model(cell_from_dict(doc, path.parent))
 
 
-def _run(name: str, cell: Path, bag: Path, covariates: bool, out: Path) -> list[str]:
-    cm = build_cell_model(load_cell(cell))
+def _run(name: str, cm: CellModel, bag: Path, out: Path) -> list[str]:
+    # The temperatures of the cell's temperature: section paired to every measurement
+    # (app.measurements.with_readings); diagnose_cell analyses the recorded ones.
     data, _ = measurements_from_bag(cm, bag)
-    cov = None
-    if covariates:
-        cov = {'temperature': (_temperatures(bag, np.asarray(data.stamps_ns)), '°C')}
     start = time.perf_counter()
     with contextlib.redirect_stderr(io.StringIO()):
-        cd = diagnose_cell(cm, data, add_best=False, covariates=cov)
+        cd = diagnose_cell(cm, data, add_best=False)
     took = time.perf_counter() - start
     # As kpi-calib diagnose does: the learned residual, when chosen, is one more remedy.
     choice = choose_residual(cm, cd.data, cd.result)
@@ -103,8 +95,12 @@ def main_(argv: list[str]) -> int:
             assert main(['import-csv', str(table), '--mapping',
                          str(ROOT / 'test' / 'data' / 'ipa_ur10_mapping.yaml'),
                          '--out', str(bag)]) == 0
-        lines += _run('ur10_series_a', ROOT / 'test' / 'data' / 'ipa_ur10_cell.yaml', bag,
-                      True, tmp_path)
+        # import-csv writes the table's temperature column on the default topic, frame id
+        # of the tracker: that sensor is the cell's temperature.
+        ur10 = _cell(ROOT / 'test' / 'data' / 'ipa_ur10_cell.yaml',
+                     {'topic': DEFAULT_TEMPERATURE_TOPIC, 'sensors': ['laser_tracker'],
+                      'reference': 20.0})
+        lines += _run('ur10_series_a', ur10, bag, tmp_path)
         print('\n'.join(lines), flush=True)
         tiago = data / 'tiago_mocap' / 'qualisys_2021-11-30_static_postures.csv'
         tbag = tmp_path / 'tiago.mcap'
@@ -112,8 +108,8 @@ def main_(argv: list[str]) -> int:
             assert main(['import-csv', str(tiago), '--mapping',
                          str(ROOT / 'test' / 'data' / 'tiago_mocap_mapping.yaml'),
                          '--out', str(tbag)]) == 0
-        lines += _run('tiago_2021_11_30', ROOT / 'test' / 'data' / 'tiago_mocap_cell.yaml',
-                      tbag, False, tmp_path)
+        lines += _run('tiago_2021_11_30', _cell(ROOT / 'test' / 'data' /
+                                                'tiago_mocap_cell.yaml'), tbag, tmp_path)
     text = '\n'.join(lines) + '\n'
     (RESULTS / 'residual_inputs_real.md').write_text(text)
     print(text)

@@ -27,16 +27,10 @@ from kpi_calib_ros.core.diagnosis.candidates import (
 from kpi_calib_ros.core.effects.registry import parse_effect_spec
 from kpi_calib_ros.core.estimation.least_squares import identify
 from kpi_calib_ros.core.measurement.tracker import Measurements
-from kpi_calib_ros.core.simulation import (
-    random_configurations,
-    simulate_measurements,
-    true_parameters,
-)
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict
-from kpi_calib_ros.io.cell_settings import hidden_effects
 
-SIGMA = 20e-6
-FLOOR = SIGMA * np.sqrt(3)
+from hidden_campaigns import FLOOR, SIGMA, campaign
+
 N_POSES = 80
 UR_CELL = DEFAULT_CELL.parent / 'ur_cell.yaml'
 
@@ -69,24 +63,12 @@ def cell(request):
     return request.param, _cell_model(request.param)
 
 
-def campaign(cm, hidden: dict, seed: int, n: int = N_POSES):
-    """Simulate a true robot (random geometric errors + ``hidden`` effects) and calibrate
-    it with the geometric model."""
-    effects, overrides = hidden_effects(hidden, cm.robot)
-    truth = augmented_model(cm.model, effects)
-    rng = np.random.default_rng(seed)
-    p_true = true_parameters(truth.params, rng, overrides=overrides)
-    q = random_configurations(cm.model, cm.model.params.nominal, n, rng)
-    data = simulate_measurements(truth, p_true, q, SIGMA, rng)
-    result = identify(cm.model, data, SIGMA, cm.q_work, max_iterations=25)
-    return data, result, p_true, truth
-
-
 @pytest.mark.parametrize('effect_index', range(4))
 def test_hidden_effect_is_top_candidate_and_adding_it_reaches_noise_floor(cell, effect_index):
     robot, cm = cell
     spec, values = list(HIDDEN[robot].items())[effect_index]
-    data, result, p_true, truth = campaign(cm, {spec: values}, seed=11 + effect_index)
+    data, result, p_true, truth, _ = campaign(cm, {spec: values}, seed=11 + effect_index,
+                                              n=N_POSES)
     diag = diagnose(cm.model, data, result)
     top = diag.candidates[0]
     effect = parse_effect_spec(spec, cm.robot)
@@ -114,7 +96,7 @@ def test_clean_data_claims_no_effect_in_19_of_20_seeds(cell):
     robot, cm = cell
     claims, inadequate, smallest = [], 0, []
     for seed in range(100, 120):
-        data, result, *_ = campaign(cm, {}, seed)
+        data, result, *_ = campaign(cm, {}, seed, N_POSES)
         diag = diagnose(cm.model, data, result)
         if diag.best is not None:
             claims.append((seed, diag.best.spec, diag.best.p_value))
@@ -130,7 +112,7 @@ def test_clean_data_claims_no_effect_in_19_of_20_seeds(cell):
 
 def test_tracker_scale_is_not_distinguishable_and_says_why(cell):
     robot, cm = cell
-    data, result, *_ = campaign(cm, {'tracker_scale': {'s': 2e-5}}, seed=5)
+    data, result, *_ = campaign(cm, {'tracker_scale': {'s': 2e-5}}, seed=5, n=N_POSES)
     diag = diagnose(cm.model, data, result)
     scale = next(c for c in diag.not_distinguishable if c.spec == 'tracker_scale')
     print(f'\n{robot}: {scale.explanation}')
@@ -202,7 +184,7 @@ def test_injected_outliers_are_flagged_and_false_flags_stay_within_bonferroni():
 
 def test_cross_validated_rms_is_near_the_noise_floor():
     cm = _cell_model('ur')
-    data, result, *_ = campaign(cm, {}, seed=8)
+    data, result, *_ = campaign(cm, {}, seed=8, n=N_POSES)
     cv = validation_rms(cm.model, data, result, folds=5)
     print(f'\nclean UR: rms {result.rms_m * 1e6:.1f} µm, 5-fold validation rms {cv * 1e6:.1f} µm, '
           f'σ√3 {FLOOR * 1e6:.1f} µm')

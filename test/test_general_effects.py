@@ -25,16 +25,10 @@ from kpi_calib_ros.core.effects.general import general_candidates, gravity_momen
 from kpi_calib_ros.core.effects.registry import parse_effect_spec, resolve_effects, split_specs
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation.least_squares import identify
-from kpi_calib_ros.core.simulation import (
-    random_configurations,
-    simulate_measurements,
-    true_parameters,
-)
+from kpi_calib_ros.core.simulation import random_configurations, simulate_measurements
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict
-from kpi_calib_ros.io.cell_settings import hidden_effects
 
-SIGMA = 20e-6
-FLOOR = SIGMA * np.sqrt(3)
+from hidden_campaigns import FLOOR, SIGMA, campaign
 
 
 @pytest.fixture(scope='module')
@@ -48,17 +42,6 @@ def kr15():
 def ur():
     path = Path(DEFAULT_CELL).parent / 'ur_cell.yaml'
     return build_cell_model(cell_from_dict(yaml.safe_load(path.read_text()), path.parent))
-
-
-def campaign(cm, hidden: dict, seed: int, n: int):
-    effects, overrides = hidden_effects(hidden, cm.robot)
-    truth = augmented_model(cm.model, effects)
-    rng = np.random.default_rng(seed)
-    p_true = true_parameters(truth.params, rng, overrides=overrides)
-    q = random_configurations(cm.model, cm.model.params.nominal, n, rng)
-    data = simulate_measurements(truth, p_true, q, SIGMA, rng)
-    result = identify(cm.model, data, SIGMA, cm.q_work, max_iterations=25)
-    return data, result, p_true, truth, rng
 
 
 def refit(cm, data, result, spec):

@@ -304,6 +304,22 @@ def test_diagnose_analyses_the_recorded_temperature_as_an_input(cm):
     assert scores['temperature.arm'].significant
 
 
+def test_diagnose_screens_the_thermal_effects_and_adds_a_hidden_growth(cm):
+    """``diagnose`` (with its general effects) screens the thermal effects where the
+    measurements carry a temperature, as ``auto`` does: a hidden link growth over a warm-up
+    is the effect it adds, and the refit at every row's temperature passes the χ² test."""
+    data, _, _ = _shift(cm, {'thermal_link_growth:joint_3': {'alpha': 23e-6}}, 1)
+    cd = diagnose_cell(cm, data, model='geometric')
+    thermal = {c.spec for c in cd.diagnosis.candidates if c.effect.startswith('thermal_')}
+    print(f'\nadded {cd.added.name if cd.added else None}; thermal candidates screened '
+          f'{len(thermal)}; χ² p after {cd.after.p_value if cd.after else None}')
+    assert 'thermal_zero_drift:joint_2' in thermal and 'thermal_growth' in thermal
+    # The growth of the longest link and of every link are nearly one signature.
+    assert cd.added is not None
+    assert cd.added.name in {'thermal_link_growth:joint_3', 'thermal_growth'}
+    assert cd.after.p_value > 1e-3
+
+
 def test_the_residual_analysis_of_a_thermal_model_shows_its_own_residuals(cm):
     """With a thermal effect in the model, the partial residuals the analysis plots are
     the fit's own residuals (predicted at each row's temperature), not those of the model

@@ -389,7 +389,10 @@ def diagnose(model: MeasurementModel, data: Measurements, result: CalibrationRes
     if candidates is None and general:
         have = {e.name for e in model.effects}
         grams = periodograms(model, data, result)
-        candidates = (candidate_effects(model.robot, exclude=have)
+        # The library as screen_effects screens it: the effects that read a covariate
+        # (the thermal ones) where the measurements carry it.
+        candidates = (candidate_effects(model.robot, exclude=have,
+                                        covariates=data.covariates or ())
                       + general_candidates(model.robot, have)
                       + periodic_candidates(model, grams))
     ranked, rejected = screen_effects(model, data, result, candidates, folds, alpha, seed)
@@ -483,12 +486,19 @@ def compare_models(before: tuple[MeasurementModel, CalibrationResult],
         validation_rms_after_m=validation_rms(model_a, data, res_a, folds, seed),
         p_value_before=res_b.p_value, p_value_after=res_a.p_value,
         effect_parameters=tuple(params),
-        tcp_std_before_m=np.sqrt(np.diagonal(res_b.tcp_covariance, axis1=1, axis2=2)),
-        tcp_std_after_m=np.sqrt(np.diagonal(res_a.tcp_covariance, axis1=1, axis2=2)),
+        tcp_std_before_m=_tcp_std(res_b),
+        tcp_std_after_m=_tcp_std(res_a),
         working_pose_names=res_a.working_pose_names,
         warnings=tuple(unconverged_warning(res, which) for res, which in
                        ((res_b, 'before'), (res_a, 'after')) if not res.converged),
         std_basis=precision_statement(res_a.covariance_scale))
+
+
+def _tcp_std(result: CalibrationResult) -> np.ndarray:
+    """(t, 3) standard deviations of the TCP at the working poses, m; (0, 3) for a cell
+    without working poses (its covariance is then an empty array)."""
+    cov = np.reshape(result.tcp_covariance, (-1, 3, 3))
+    return np.sqrt(np.diagonal(cov, axis1=1, axis2=2))
 
 
 def unconverged_warning(result: CalibrationResult, which: str) -> str:
