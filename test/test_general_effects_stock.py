@@ -94,6 +94,7 @@ def diagnosed(arm: str, case: str):
     return cd, before, after
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('arm, case', CASES, ids=[f'{a}-{c}' for a, c in CASES])
 def test_stock_arm_diagnosis_finds_the_hidden_general_effect(arm, case):
     cd, before, after = diagnosed(arm, case)

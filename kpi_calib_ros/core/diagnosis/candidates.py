@@ -495,8 +495,10 @@ def compare_models(before: tuple[MeasurementModel, CalibrationResult],
 
 
 def _tcp_std(result: CalibrationResult) -> np.ndarray:
-    """(t, 3) standard deviations of the TCP at the working poses, m; (0, 3) for a cell
-    without working poses (its covariance is then an empty array)."""
+    """Return the (t, 3) standard deviations of the TCP at the working poses, m.
+
+    (0, 3) for a cell without working poses (its covariance is then an empty array).
+    """
     cov = np.reshape(result.tcp_covariance, (-1, 3, 3))
     return np.sqrt(np.diagonal(cov, axis1=1, axis2=2))
 
