@@ -458,14 +458,13 @@ class MeasurementModel:
         """
         m = len(rows)
         if channel < self.n_reflectors:
-            out = self._map(which, channel, m)(p, q[rows].T, tau[rows].T, z[rows].T)
+            args = [p, q[rows].T, tau[rows].T, z[rows].T]
         else:
             if rotation is None:
                 raise ValueError('rotation rows need the measured rotations (rotation=)')
             measured = measured_rotation_input(np.asarray(rotation)[rows])
-            out = self._map(which, channel, m)(p, q[rows].T, tau[rows].T, measured.T,
-                                               z[rows].T)
-        return [_dense(o) for o in (out if isinstance(out, (list, tuple)) else [out])]
+            args = [p, q[rows].T, tau[rows].T, measured.T, z[rows].T]
+        return _call(self._map(which, channel, m), args)
 
     def predict(self, p: np.ndarray, q: np.ndarray, tau: np.ndarray | None = None,
                 reflector: np.ndarray | None = None,
@@ -684,22 +683,44 @@ def with_rotation_rows(model: MeasurementModel, data: Measurements,
                         covariates=expanded.covariates)
 
 
-def _dense(value: ca.DM) -> np.ndarray:
-    """Return a CasADi matrix as a dense ndarray, from its nonzeros.
+def _call(fn: ca.Function, args: list[np.ndarray]) -> list[np.ndarray]:
+    """Evaluate ``fn`` at numeric ``args`` into dense ndarrays, through its buffers.
 
-    ``np.array`` of a DM builds the dense matrix element by element in Python; a mapped
-    Jacobian is mostly structural zeros (each row's block), so that took ten times as long
-    as the evaluation itself. The values are the same bits.
+    Calling a Function with arrays returns CasADi matrices, and reading a mapped Jacobian
+    (mostly structural zeros, each row's block) back into numpy element by element took
+    ten times as long as the evaluation. Here the inputs are handed over as column-major
+    buffers (a column broadcast over the mapped rows) and each output's nonzeros written
+    straight into an array, then placed at its sparsity. The values are the same bits.
+    A buffer is made per call, so calls from several threads do not share one.
     """
-    sparsity = value.sparsity()
-    rows, cols = sparsity.size1(), sparsity.size2()
-    nonzeros = np.asarray(value.nonzeros(), float)
-    if sparsity.is_dense():
-        return nonzeros.reshape(cols, rows).T
-    out = np.zeros((rows, cols))
-    r, c = sparsity.get_triplet()
-    out[r, c] = nonzeros
-    return out
+    # CasADi's stubs name a size argument its Python binding does not take.
+    buffer, evaluate = cast(Any, fn).buffer()
+    keep = []
+    for i, value in enumerate(args):
+        shape = (fn.size1_in(i), fn.size2_in(i))
+        if not fn.sparsity_in(i).is_dense():
+            raise ValueError(f'input {i} of {fn.name()} is sparse; only dense inputs are read')
+        array = np.asarray(value, float)
+        column = array[:, None] if array.ndim == 1 else array
+        column_major = np.broadcast_to(column, shape).ravel(order='F')
+        keep.append(column_major)
+        buffer.set_arg(i, column_major.data)
+    nonzeros = [np.zeros(fn.nnz_out(j)) for j in range(fn.n_out())]
+    for j, out in enumerate(nonzeros):
+        buffer.set_res(j, out.data)
+    evaluate()
+    dense = []
+    for j, out in enumerate(nonzeros):
+        sparsity = fn.sparsity_out(j)
+        rows, cols = sparsity.size1(), sparsity.size2()
+        if sparsity.is_dense():
+            dense.append(out.reshape(cols, rows).T)
+            continue
+        full = np.zeros((rows, cols))
+        r, c = sparsity.get_triplet()
+        full[r, c] = out
+        dense.append(full)
+    return dense
 
 
 def noise_weights(model: MeasurementModel, p: np.ndarray, data: Measurements,
