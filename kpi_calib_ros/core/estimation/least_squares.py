@@ -537,11 +537,18 @@ def _row_weights(w_axis: np.ndarray, point_weights: np.ndarray | None, n: int) -
 
 # Trust-region radius updates (Nocedal & Wright, Algorithm 4.1; SciPy's ``trf``).
 SHRINK, GROW = 0.25, 2.0
+# Geodesic acceleration of a damped step (Transtrum & Sethna 2012, arXiv:1207.4999): the
+# residuals' curvature along the step from one more prediction at this fraction of it, and
+# the largest 2‖a‖/‖v‖ it is used at. On a curved valley (a TIAGo MAP fit with three
+# joint plays, 79 parameters) the trust region took 2984 steps without it, 434 with it,
+# to a cost 1e-2 lower; SciPy's TRF stopped after 1047 evaluations 0.23 above.
+ACCELERATION_PROBE = 0.1
+ACCELERATION_RATIO = 0.75
 
 
 def _boundary_step(u: np.ndarray, s: np.ndarray, vt: np.ndarray, r: np.ndarray,
-                   radius: float) -> np.ndarray:
-    """Return the Levenberg-Marquardt step on the trust-region boundary.
+                   radius: float) -> tuple[np.ndarray, float]:
+    """Return the Levenberg-Marquardt step on the trust-region boundary and its λ.
 
     z(λ) = V diag(s / (s² + λ)) Uᵀ r of A = U diag(s) Vᵀ with ‖z(λ)‖ = ``radius``, the
     minimiser of ‖r − A z‖ on the boundary (valid when the Gauss-Newton step z(0) is longer
@@ -555,7 +562,13 @@ def _boundary_step(u: np.ndarray, s: np.ndarray, vt: np.ndarray, r: np.ndarray,
     upper = float(np.linalg.norm(sc)) / radius
     lam = upper if excess(upper) >= 0 else scipy.optimize.brentq(excess, 0.0, upper,
                                                                  xtol=1e-12 * upper, rtol=1e-10)
-    return vt.T @ (sc / (s ** 2 + lam))
+    return vt.T @ (sc / (s ** 2 + lam)), lam
+
+
+def _damped_solve(u: np.ndarray, s: np.ndarray, vt: np.ndarray, b: np.ndarray,
+                  lam: float) -> np.ndarray:
+    """Return z = (AᵀA + λ I)⁻¹ Aᵀ b of A = U diag(s) Vᵀ."""
+    return vt.T @ (s * (u.T @ b) / (s ** 2 + lam))
 
 
 def _gauss_newton(model: MeasurementModel, p: np.ndarray, idx: np.ndarray, q: np.ndarray,
@@ -595,6 +608,29 @@ def _gauss_newton(model: MeasurementModel, p: np.ndarray, idx: np.ndarray, q: np
             r = np.concatenate([r, rows[1] - rows[0] @ pp])
             f = np.vstack([f, rows[0][:, idx]])
         return r, f
+
+    def acceleration(velocity: np.ndarray, svd: tuple[np.ndarray, np.ndarray, np.ndarray],
+                     lam: float) -> np.ndarray:
+        """Geodesic acceleration of the damped step ``velocity`` (Δ units), equilibrated.
+
+        The second directional derivative of the residuals along the step, from one more
+        prediction at ``ACCELERATION_PROBE`` of it, solved with the step's own damping;
+        zero where it is not small beside the step (``ACCELERATION_RATIO``) or not finite.
+        """
+        probe = p.copy()
+        probe[idx] += ACCELERATION_PROBE * velocity
+        r_probe = weighted_residuals(
+            eta - model.predict(probe, q, tau, reflector, rotation, covariates), w)
+        if rows is not None:
+            r_probe = np.concatenate([r_probe, rows[1] - rows[0] @ probe])
+        h = ACCELERATION_PROBE
+        second = 2.0 * (r_probe - r + h * (f @ velocity)) / h ** 2
+        z_a = _damped_solve(svd[0], svd[1], svd[2], second, lam)
+        z_v = region * velocity
+        if not (np.all(np.isfinite(z_a))
+                and 2.0 * np.linalg.norm(z_a) <= ACCELERATION_RATIO * np.linalg.norm(z_v)):
+            return np.zeros_like(z_v)
+        return z_a
 
     def stop(status: int, iteration: int, **figures: float) -> tuple[np.ndarray, int, str, int]:
         text = STATUS_MESSAGES[status].format(**figures, **tol.__dict__,
@@ -642,7 +678,8 @@ def _gauss_newton(model: MeasurementModel, p: np.ndarray, idx: np.ndarray, q: np
                 # boundary, (AᵀA + λ I) z = Aᵀ r with ‖z‖ = radius, A = F D⁻¹.
                 if svd is None:
                     svd = np.linalg.svd(f / region, full_matrices=False)
-                step = _boundary_step(*svd, r, radius) / region
+                velocity, lam = _boundary_step(*svd, r, radius)
+                step = (velocity + 0.5 * acceleration(velocity / region, svd, lam)) / region
             length = float(np.linalg.norm(region * step))
             linear = gradient @ step  # decrease of the cost along Δ to first order (> 0)
             model_decrease = linear - 0.5 * np.sum((f @ step) ** 2)
