@@ -34,7 +34,8 @@ from kpi_calib_ros.ros import conversions as cv
 
 from ros_helpers import KR15_URDF, Client, NodeProcess, Spawner, finish
 
-pytestmark = pytest.mark.slow
+# One worker runs the module: its scenario (two node processes, two replays) is set up once.
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group('ros_node_campaign')]
 N_POSES = 30
 
 
