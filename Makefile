@@ -6,12 +6,11 @@ STAMP := $(VENV)/.installed
 # Small matrices: a multi-threaded BLAS only contends for the cores (see kpi_calib_ros/__init__.py).
 export OPENBLAS_NUM_THREADS ?= 1
 export OMP_NUM_THREADS ?= 1
-# The tests run on TEST_WORKERS processes (pytest-xdist), handed out one at a time so that
-# the long ones, collected first (test/conftest.py), spread over the workers; a module
-# marked xdist_group runs on one worker, so its module fixture is set up once; every worker
+# The tests run on TEST_WORKERS processes (pytest-xdist), handed out two at a time so that
+# the long ones, collected first (test/conftest.py), spread over the workers; every worker
 # holds a ROS domain of its own (test/ros_helpers.py).
 TEST_WORKERS ?= 2
-PYTEST := $(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadgroup --durations=15
+PYTEST := $(PY) -m pytest -q -n $(TEST_WORKERS) --maxschedchunk 2 --durations=15
 
 .PHONY: install demo lint doc check test bench clean
 

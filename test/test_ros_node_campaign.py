@@ -34,8 +34,7 @@ from kpi_calib_ros.ros import conversions as cv
 
 from ros_helpers import KR15_URDF, Client, NodeProcess, Spawner, finish
 
-# One worker runs the module: its scenario (two node processes, two replays) is set up once.
-pytestmark = [pytest.mark.slow, pytest.mark.xdist_group('ros_node_campaign')]
+pytestmark = pytest.mark.slow
 N_POSES = 30
 
 
