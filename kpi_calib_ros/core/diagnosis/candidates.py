@@ -21,6 +21,7 @@ Jacobian are exact (CasADi, from the augmented measurement model).
 """
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass, field, replace
 
 import casadi as ca
@@ -518,6 +519,23 @@ def augmented_model(model: MeasurementModel, effects: tuple) -> MeasurementModel
                             model.joint_sigma)
 
 
+# Candidate models of a base model, by effect name: the screen builds one per candidate
+# (the CasADi expressions and their Jacobians, most of a screen's time), and one base model
+# is screened again for every campaign, seed or round.
+_CANDIDATE_MODELS: weakref.WeakKeyDictionary[MeasurementModel, dict[str, MeasurementModel]] = \
+    weakref.WeakKeyDictionary()
+
+
+def _candidate_model(model: MeasurementModel, effect: BoundEffect) -> MeasurementModel:
+    """Return ``model`` with ``effect`` appended, built once per base model and effect."""
+    built = _CANDIDATE_MODELS.setdefault(model, {})
+    aug = built.get(effect.name)
+    if aug is None or aug.effects[-1] != effect:
+        aug = augmented_model(model, (effect,))
+        built[effect.name] = aug
+    return aug
+
+
 def _effect_columns(model: MeasurementModel, sys_: LinearizedFit, effect: BoundEffect,
                     q: np.ndarray, tau: np.ndarray,
                     shape: tuple[float, ...] = ()) -> tuple[np.ndarray, float]:
@@ -527,7 +545,7 @@ def _effect_columns(model: MeasurementModel, sys_: LinearizedFit, effect: BoundE
     held at ``shape``. The shift is the largest point displacement (m) a typical-size effect
     causes.
     """
-    aug = augmented_model(model, (effect,))
+    aug = _candidate_model(model, effect)
     k = len(effect.parameter_names) - len(shape)
     p = np.concatenate([sys_.p, np.zeros(k), shape])
     _, jac = aug.jacobian(p, q, tau, sys_.reflector, sys_.rotation, sys_.covariates)
