@@ -23,7 +23,8 @@ from kpi_calib_ros.core.diagnosis.learned_residual import (
     residual_noise_scale,
 )
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
-from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements, noise_weights
+from kpi_calib_ros.core.estimation.residuals import linearized_fit
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.learned_residual_file import (
     StoredResidual,
@@ -64,21 +65,16 @@ def field_covariance(model: MeasurementModel, data: Measurements, result: Calibr
     """(k, k) covariance of ``result.estimated`` when the misfit is ``residual``'s field
     (:func:`kpi_calib_ros.core.diagnosis.learned_residual.field_parameter_covariance`),
     from the point rows of ``data``, the measurements ``result`` was identified from."""
-    values = np.asarray(result.values, float)
-    q = np.atleast_2d(data.q)
-    tau = data.tau
-    if tau is None and model.uses_torque:
-        tau = model.robot.gravity_torques(q)
-    _, jac = model.jacobian(values, q, tau, data.reflector, data.rotation, data.covariates)
-    jac = jac[:, :, model.params.indices(list(result.estimated))]
-    w = np.asarray(noise_weights(model, values, data, sigma, tau), float)
+    fit = linearized_fit(model, data, result)
+    weighted = fit.jac.reshape(len(data), 3, -1)  # W_i J_i
+    w = np.asarray(fit.w, float)
     if w.ndim == 3:
-        h = np.einsum('nba,nbc,nck->nak', w, w, jac)
+        h = np.einsum('nba,nbk->nak', w, weighted)
     else:
-        h = np.broadcast_to(w, (len(q), 3))[:, :, None] ** 2 * jac
+        h = np.broadcast_to(w, (len(data), 3))[:, :, None] * weighted
     rows = point_rows(model, data)
     c0 = np.asarray(result.covariance, float) / result.covariance_scale
-    return field_parameter_covariance(residual, q[rows], h[rows], c0,
+    return field_parameter_covariance(residual, np.atleast_2d(data.q)[rows], h[rows], c0,
                                       residual_noise_scale(residual, sigma))
 
 
