@@ -599,15 +599,17 @@ def _gauss_newton(model: MeasurementModel, p: np.ndarray, idx: np.ndarray, q: np
     iterations : int
         Accepted steps (each may have needed several trials of λ).
     """
+    def residual(pp: np.ndarray, pred: np.ndarray) -> np.ndarray:
+        r = weighted_residuals(eta - pred, w)
+        # Prior rows: residual L(m − p), Jacobian L (as for h, F = ∂(Lp)/∂p).
+        return r if rows is None else np.concatenate([r, rows[1] - rows[0] @ pp])
+
     def evaluate(pp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         pred, jac = model.jacobian(pp, q, tau, reflector, rotation, covariates)
-        r = weighted_residuals(eta - pred, w)
         f = weighted_rows(jac, w, idx)
         if rows is not None:
-            # Prior rows: residual L(m − p), Jacobian L (as for h, F = ∂(Lp)/∂p).
-            r = np.concatenate([r, rows[1] - rows[0] @ pp])
             f = np.vstack([f, rows[0][:, idx]])
-        return r, f
+        return residual(pp, pred), f
 
     def acceleration(velocity: np.ndarray, svd: tuple[np.ndarray, np.ndarray, np.ndarray],
                      lam: float) -> np.ndarray:
@@ -619,10 +621,7 @@ def _gauss_newton(model: MeasurementModel, p: np.ndarray, idx: np.ndarray, q: np
         """
         probe = p.copy()
         probe[idx] += ACCELERATION_PROBE * velocity
-        r_probe = weighted_residuals(
-            eta - model.predict(probe, q, tau, reflector, rotation, covariates), w)
-        if rows is not None:
-            r_probe = np.concatenate([r_probe, rows[1] - rows[0] @ probe])
+        r_probe = residual(probe, model.predict(probe, q, tau, reflector, rotation, covariates))
         h = ACCELERATION_PROBE
         second = 2.0 * (r_probe - r + h * (f @ velocity)) / h ** 2
         z_a = _damped_solve(svd[0], svd[1], svd[2], second, lam)
