@@ -65,7 +65,8 @@ from kpi_calib_ros.core.measurement.tracker import (
 
 __all__ = ['Candidate', 'CandidateFit', 'CellDiagnosis', 'Diagnosis', 'ModelComparison',
            'ResidualReport',
-           'augmented_model', 'compare_models', 'validation_rms', 'diagnose',
+           'augmented_model', 'compare_models', 'default_candidates', 'diagnose',
+           'validation_rms',
            'equivalent_joint_sigma',
            'residual_report', 'screen_effects']
 DEPENDENCE_TOLERANCE = 1e-4  # unique fraction of a signature below this: absorbed
@@ -373,6 +374,26 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
     return tuple(out), tuple(rejected)
 
 
+def default_candidates(model: MeasurementModel, data: Measurements, result: CalibrationResult,
+                       general: bool = True
+                       ) -> tuple[list[BoundEffect], tuple[Periodogram, ...]]:
+    """Return the effects the diagnosis and ``auto`` screen against the fit ``result``.
+
+    The library (:func:`~kpi_calib_ros.core.effects.registry.candidate_effects`: the effects
+    that read a covariate, the thermal ones, where the measurements carry it) and, with
+    ``general``, the general effects: ``link_bending`` of every joint that carries mass and
+    the periodic joint error at the peak of each revolute joint's periodogram. Effects
+    already in ``model`` are left out. Returns the candidates and the periodograms searched.
+    """
+    have = {e.name for e in model.effects}
+    library = candidate_effects(model.robot, exclude=have, covariates=data.covariates or ())
+    if not general:
+        return library, ()
+    grams = periodograms(model, data, result)
+    return (library + general_candidates(model.robot, have) + periodic_candidates(model, grams),
+            grams)
+
+
 def diagnose(model: MeasurementModel, data: Measurements, result: CalibrationResult,
              candidates: list[BoundEffect] | None = None, folds: int = 0,
              alpha: float = ADEQUACY_ALPHA, seed: int = 0, general: bool = True) -> Diagnosis:
@@ -388,14 +409,7 @@ def diagnose(model: MeasurementModel, data: Measurements, result: CalibrationRes
     report = residual_report(model, data, result, alpha)
     grams: tuple[Periodogram, ...] = ()
     if candidates is None and general:
-        have = {e.name for e in model.effects}
-        grams = periodograms(model, data, result)
-        # The library as screen_effects screens it: the effects that read a covariate
-        # (the thermal ones) where the measurements carry it.
-        candidates = (candidate_effects(model.robot, exclude=have,
-                                        covariates=data.covariates or ())
-                      + general_candidates(model.robot, have)
-                      + periodic_candidates(model, grams))
+        candidates, grams = default_candidates(model, data, result)
     ranked, rejected = screen_effects(model, data, result, candidates, folds, alpha, seed)
     cv = validation_rms(model, data, result, folds, seed)
     best = ranked[0] if ranked and ranked[0].significant and ranked[0].plausible else None

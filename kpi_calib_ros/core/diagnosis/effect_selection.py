@@ -7,7 +7,9 @@ every added parameter its variance.
 
 Each round:
 
-1. the diagnosis screens every library effect × joint against the current fit
+1. the diagnosis screens every library effect × joint and the general effects (link bending,
+   the periodic joint error at each joint's periodogram peak, the search counted in its
+   p-value) against the current fit
    (:func:`kpi_calib_ros.core.diagnosis.candidates.screen_effects`: distinguishable from the
    geometry, F-test Bonferroni-corrected over the candidates at the family-wise level
    ``alpha``, candidates with the same signature merged); only candidates that are
@@ -30,10 +32,14 @@ from typing import Callable
 
 import numpy as np
 
-from kpi_calib_ros.core.diagnosis.candidates import augmented_model, screen_effects
+from kpi_calib_ros.core.diagnosis.candidates import (
+    augmented_model,
+    default_candidates,
+    screen_effects,
+)
 from kpi_calib_ros.core.diagnosis.model_selection import PARSIMONY, level_free
 from kpi_calib_ros.core.diagnosis.out_of_sample import out_of_sample_error
-from kpi_calib_ros.core.effects.registry import BoundEffect, candidate_effects, implausible
+from kpi_calib_ros.core.effects.registry import BoundEffect, implausible
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.core.estimation.prior import Prior
@@ -117,11 +123,13 @@ def _predicted(model: MeasurementModel, data: Measurements, result: CalibrationR
 def choose_effects(model: MeasurementModel, data: Measurements, fit_for: FitFor, level: str,
                    n_geometric: int, prior: Prior | None = None,
                    alpha: float = ADEQUACY_ALPHA, seed: int = 0,
-                   max_effects: int = MAX_EFFECTS) -> EffectChoice:
+                   max_effects: int = MAX_EFFECTS, general: bool = True) -> EffectChoice:
     """Forward selection of physical effects on top of ``model`` at ``level``.
 
     See the module docstring. ``n_geometric``: the number of geometric parameters of ``model``
-    (its effects' parameters follow and are free at every level).
+    (its effects' parameters follow and are free at every level). With ``general``, the
+    general effects join each round's screen as they join the diagnosis's
+    (:func:`~kpi_calib_ros.core.diagnosis.candidates.default_candidates`).
 
     Returns the choice; ``choice.model`` is ``model`` with the added effects appended.
     """
@@ -145,9 +153,7 @@ def choose_effects(model: MeasurementModel, data: Measurements, fit_for: FitFor,
     trials: list[EffectTrial] = []
     reason = f'at most {max_effects} effects'
     for rnd in range(1, max_effects + 1):
-        pool = {e.name: e for e in candidate_effects(
-            model.robot, exclude=[e.name for e in model.effects],
-            covariates=data.covariates or ())}
+        pool = {e.name: e for e in default_candidates(model, data, current, general)[0]}
         ranked, _ = screen_effects(model, data, current, list(pool.values()), alpha=alpha,
                                    seed=seed)
         passed = [c for c in ranked if c.significant and c.plausible]
