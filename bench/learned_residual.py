@@ -219,10 +219,10 @@ def ur10(lines: list[str]) -> None:
                           outside)
         physical = (tcp.position - tcp.correction.mean) if tcp.correction is not None \
             else tcp.position
-        noise = (choice.model.noise_m2 if model is not None
+        noise = (choice.model.noise_covariance_m2 if model is not None
                  else float(np.mean(np.broadcast_to(cm.cell.sigma, (3,)) ** 2)) *
-                 result.covariance_scale)
-        cover = covered(eta - tcp.position, tcp.covariance + noise * np.eye(3))
+                 result.covariance_scale * np.eye(3))
+        cover = covered(eta - tcp.position, tcp.covariance + noise)
         inside = (f'{np.mean(tcp.correction.inside):.2f}' if tcp.correction is not None
                   else 'n/a (not chosen)')
         ratio = rms(eta - tcp.position) / rms(eta - physical)
@@ -264,10 +264,10 @@ def tiago(lines: list[str]) -> None:
     misfit = physical_misfit(cm.model, kept, result)
     outside = field_covariance(cm.model, kept, result, choice.model, cm.cell.sigma)
     tcp = corrected_tcp(pred, jac[:, :, idx], cov, new.q, model, outside)
-    noise = (choice.model.noise_m2 if model is not None
+    noise = (choice.model.noise_covariance_m2 if model is not None
              else float(np.mean(np.broadcast_to(cm.cell.sigma, (3,)) ** 2))
-             * result.covariance_scale)
-    cover = covered(new.eta - tcp.position, tcp.covariance + noise * np.eye(3))
+             * result.covariance_scale * np.eye(3))
+    cover = covered(new.eta - tcp.position, tcp.covariance + noise)
     inside = f'{np.mean(tcp.correction.inside):.2f}' if model is not None else 'n/a (not chosen)'
     e_phys, e_learned = new.eta - pred, new.eta - tcp.position
     own = physical_coverage(e_phys, jac[:, :, idx], result, misfit, cm.cell.sigma)

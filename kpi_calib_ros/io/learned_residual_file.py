@@ -1,11 +1,11 @@
 """learned_residual.yaml: the learned residual stored beside calibration.yaml.
 
 The calibrated URDF cannot carry a correction over joint space, so the Gaussian process
-(:mod:`kpi_calib_ros.core.diagnosis.learned_residual`) is stored as plain numbers: its training
-joint values and residuals and its kernel's hyperparameters (it is rebuilt exactly from
-them, no pickle), with the physical calibration it corrects (parameter values and the
-covariance of the estimated ones), so a TCP prediction needs this file and the cell
-alone. Every field is checked on reading: a damaged or edited file is a
+(:mod:`kpi_calib_ros.core.diagnosis.learned_residual`) is stored as plain numbers: its
+training joint values and residuals, its kernel's hyperparameters and its output and noise
+shapes (it is rebuilt exactly from them, no pickle), with the physical calibration it
+corrects (parameter values and the covariance of the estimated ones), so a TCP prediction
+needs this file and the cell alone. Every field is checked on reading: a damaged or edited file is a
 :class:`ConfigError` naming the field.
 """
 from __future__ import annotations
@@ -18,7 +18,11 @@ from typing import Any
 import numpy as np
 import yaml
 
-from kpi_calib_ros.core.diagnosis.learned_residual import LearnedResidual, ResidualChoice
+from kpi_calib_ros.core.diagnosis.learned_residual import (
+    LearnedResidual,
+    ResidualChoice,
+    checked_shape,
+)
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
@@ -26,7 +30,7 @@ from kpi_calib_ros.io.names import LEARNED_RESIDUAL_FILE
 from kpi_calib_ros.io.results import write_atomic
 from kpi_calib_ros.io.yaml_bounded import read_yaml_file
 
-FORMAT = 'kpi_calib_ros learned_residual 2'
+FORMAT = 'kpi_calib_ros learned_residual 3'
 FIX = 'give a learned_residual.yaml written by kpi-calib identify --learned-residual (unedited)'
 
 
@@ -78,10 +82,13 @@ def residual_document(choice: ResidualChoice, result: CalibrationResult,
         'format': FORMAT,
         'choice': choice.to_dict(),
         'joint_names': list(model.joint_names),
-        'kernel': {'type': 'ConstantKernel * RBF (one length scale per joint) + WhiteKernel',
+        'kernel': {'type': '(ConstantKernel * RBF (one length scale per joint) + WhiteKernel)'
+                           ' * output_shape',
                    'amplitude_m2': model.amplitude_m2,
                    'length_scales': [float(x) for x in model.length_scales],
-                   'noise_m2': model.noise_m2},
+                   'noise_m2': model.noise_m2,
+                   'output_shape': np.asarray(model.output_shape, float).tolist(),
+                   'noise_shape': np.asarray(model.noise_shape, float).tolist()},
         'training': {'q': model.q.tolist(), 'residual_m': model.residual_m.tolist()},
         'physical': {'names': list(result.names),
                      'values': [float(x) for x in result.values],
@@ -123,6 +130,13 @@ def read_residual(path: str | Path, key: str = 'learned_residual') -> StoredResi
     scales = _vector(kernel.get('length_scales'), len(joints), 'kernel.length_scales', bad)
     if np.any(scales <= 0):
         raise bad('kernel.length_scales', 'must be positive')
+    shapes = []
+    for field in ('output_shape', 'noise_shape'):
+        shape = _matrix(kernel.get(field), (3, 3), f'kernel.{field}', bad)
+        try:
+            shapes.append(checked_shape(shape))
+        except ValueError as exc:
+            raise bad(f'kernel.{field}', str(exc)) from None
     training = doc.get('training')
     if not isinstance(training, dict) or not isinstance(training.get('q'), list) \
             or not training['q']:
@@ -145,7 +159,7 @@ def read_residual(path: str | Path, key: str = 'learned_residual') -> StoredResi
         if not np.allclose(cov, cov.T, rtol=1e-9, atol=0.0) or np.any(np.diag(cov) < 0):
             raise bad(f'physical.{field}', 'must be symmetric with a non-negative diagonal')
         covs.append(cov)
-    residual = LearnedResidual(joints, q, y, amplitude, scales, noise)
+    residual = LearnedResidual(joints, q, y, amplitude, scales, noise, *shapes)
     return StoredResidual(residual, names, values, estimated, covs[0], covs[1])
 
 

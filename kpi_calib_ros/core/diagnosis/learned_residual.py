@@ -12,9 +12,15 @@ measured reflectors to the TCP. With several reflectors per pose every reflector
 residual is one sample of δ(q) (the part that differs between them, a rotation of the
 tool, shows as noise); tracked rotations are not used.
 
-The kernel is ``c · RBF(ℓ_1 … ℓ_n) + w``: one length scale per joint (a long one says
+The kernel is ``(c · RBF(ℓ_1 … ℓ_n) + w) · A``: one length scale per joint (a long one says
 the misfit does not depend on that joint), the signal variance c (m²) and a white noise
-w (m², per axis), all by maximum likelihood. The prior mean is 0: the physical model.
+w (m², per axis), all by maximum likelihood, and the output shape A, a 3 × 3 matrix of mean
+eigenvalue 1 shared by the field and the noise (an intrinsic coregionalisation model): the
+shape of the residuals' second moment. A misfit is rarely isotropic (it lies along the
+directions the joints move the point, and a tracker's range noise differs from its angle
+noise); the outputs are whitened by A before the fit, and the field's covariance carries A.
+The noise a measurement carries is stated with its own shape N, that of what the field leaves
+at the training rows. The prior mean is 0: the physical model.
 Far from the training poses the correction returns to 0 and its variance grows to c,
 so nothing is extrapolated silently; every prediction also states its distance to the
 nearest training pose in length-scale units and whether that is inside the fitted
@@ -37,7 +43,7 @@ variance at that pose.
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import scipy.stats
@@ -66,6 +72,8 @@ MIN_POSES = 10  # fewer: no cross-validated choice, never chosen
 # Gaussian process that explains the noise itself would promise more than the tracker.
 MIN_NOISE_FRACTION = 0.25
 MAX_VARIANCE_M2 = 1e-2  # (0.1 m)²: bound of the signal and noise variances
+# The output shape's eigenvalues are held above this fraction of the largest.
+MIN_SHAPE = 0.01
 MIN_VARIANCE_M2 = 1e-16
 
 
@@ -78,7 +86,8 @@ class ResidualPrediction:
     mean : (M, 3) ndarray
         δ(q), tracker frame, m.
     covariance : (M, 3, 3) ndarray
-        Latent variance of δ(q) times I (m²): the uncertainty of the correction itself,
+        Latent variance of δ(q) times the output shape A (m²): the uncertainty of the
+        correction itself,
         without the noise of a measurement.
     distance : (M,) ndarray
         Distance to the nearest training pose in length-scale units.
@@ -112,7 +121,14 @@ class LearnedResidual:
     length_scales : (n,) ndarray
         ARD length scale of each joint (rad, m).
     noise_m2 : float
-        White noise variance w per axis, m².
+        White noise variance w per axis (mean over the axes), m².
+    output_shape : (3, 3) ndarray, optional
+        A, symmetric positive definite with mean eigenvalue 1: the field's covariance is
+        c · k · A, and the fit takes the noise's as w · A. Default the identity (isotropic).
+    noise_shape : (3, 3) ndarray, optional
+        N, the same kind of matrix: the shape of what the fitted field leaves at the
+        training rows, so the noise a measurement carries is stated as w · N (a tracker's
+        noise and a misfit need not share a shape). Default ``output_shape``.
     """
 
     joint_names: tuple[str, ...]
@@ -121,7 +137,11 @@ class LearnedResidual:
     amplitude_m2: float
     length_scales: np.ndarray
     noise_m2: float
+    output_shape: np.ndarray | None = None
+    noise_shape: np.ndarray | None = None
     _gp: GaussianProcessRegressor = field(init=False, repr=False, compare=False)
+    _whiten: np.ndarray = field(init=False, repr=False, compare=False)
+    _colour: np.ndarray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         """Check the fields and fit the Gaussian process with the kernel held fixed."""
@@ -137,12 +157,24 @@ class LearnedResidual:
                 and np.all(np.isfinite(ell))):
             raise ValueError('amplitude_m2, noise_m2 and length_scales must be positive '
                              f'and finite, got {self.amplitude_m2}, {self.noise_m2}, {ell}')
+        shape = checked_shape(np.eye(3) if self.output_shape is None else self.output_shape)
         object.__setattr__(self, 'q', q)
         object.__setattr__(self, 'residual_m', y)
         object.__setattr__(self, 'length_scales', ell)
+        object.__setattr__(self, 'output_shape', shape)
+        object.__setattr__(self, 'noise_shape', shape if self.noise_shape is None
+                           else checked_shape(self.noise_shape))
+        whiten, colour = _roots(shape)
+        object.__setattr__(self, '_whiten', whiten)
+        object.__setattr__(self, '_colour', colour)
         gp = GaussianProcessRegressor(fixed_kernel(self.amplitude_m2, ell, self.noise_m2),
                                       optimizer=None, normalize_y=False)
-        object.__setattr__(self, '_gp', gp.fit(q, y))
+        object.__setattr__(self, '_gp', gp.fit(q, y @ whiten))
+
+    @property
+    def noise_covariance_m2(self) -> np.ndarray:
+        """(3, 3) covariance of the white noise the learned residual leaves, w · N, m²."""
+        return self.noise_m2 * np.asarray(self.noise_shape)
 
     def predict(self, q: np.ndarray) -> ResidualPrediction:
         """δ(q) with its latent variance, distance and inside flag at (M, n) joint values."""
@@ -154,9 +186,9 @@ class LearnedResidual:
         std = np.asarray(std).reshape(len(q), -1)[:, 0]
         latent = np.maximum(std ** 2 - self.noise_m2, 0.0)
         distance = self.distance(q)
-        return ResidualPrediction(np.asarray(mean).reshape(-1, 3),
-                                  latent[:, None, None] * np.eye(3), distance,
-                                  distance <= INSIDE_DISTANCE)
+        return ResidualPrediction(np.asarray(mean).reshape(-1, 3) @ self._colour,
+                                  latent[:, None, None] * np.asarray(self.output_shape),
+                                  distance, distance <= INSIDE_DISTANCE)
 
     def distance(self, q: np.ndarray) -> np.ndarray:
         """Return the (M,) distance of each query to its nearest training pose.
@@ -171,6 +203,44 @@ class LearnedResidual:
         """Length scale of each joint (rad, m), shortest (most relevant) first."""
         order = np.argsort(self.length_scales)
         return {self.joint_names[i]: float(self.length_scales[i]) for i in order}
+
+
+def checked_shape(shape: np.ndarray) -> np.ndarray:
+    """Return the output shape A as a symmetric (3, 3) array; raise if it is not one.
+
+    A must be symmetric positive definite with mean eigenvalue 1 (trace 3).
+    """
+    a = np.asarray(shape, float)
+    if a.shape != (3, 3) or not np.all(np.isfinite(a)):
+        raise ValueError(f'output_shape must be a finite 3 x 3 matrix, got shape {a.shape}')
+    a = 0.5 * (a + a.T)
+    eig = np.linalg.eigvalsh(a)
+    if eig[0] <= 0 or abs(np.trace(a) - 3.0) > 1e-6:
+        raise ValueError(f'output_shape must be positive definite with trace 3, got '
+                         f'eigenvalues {eig}')
+    return a
+
+
+def _roots(shape: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A^(-1/2) and A^(1/2) of a symmetric positive definite A (row vectors: y @ root)."""
+    eig, vec = np.linalg.eigh(shape)
+    return (vec / np.sqrt(eig)) @ vec.T, (vec * np.sqrt(eig)) @ vec.T
+
+
+def output_shape(residual_m: np.ndarray) -> np.ndarray:
+    """Return A, the shape of the residuals' second moment, scaled to mean eigenvalue 1.
+
+    Its eigenvalues are held above :data:`MIN_SHAPE` of the largest, so that no direction
+    is whitened by more than the residuals can show.
+    """
+    y = np.asarray(residual_m, float).reshape(-1, 3)
+    moment = y.T @ y / max(len(y), 1)
+    eig, vec = np.linalg.eigh(0.5 * (moment + moment.T))
+    if not np.all(np.isfinite(eig)) or eig[-1] <= 0:
+        return np.eye(3)
+    eig = np.maximum(eig, MIN_SHAPE * eig[-1])
+    eig = 3.0 * eig / np.sum(eig)
+    return (vec * eig) @ vec.T
 
 
 def fixed_kernel(amplitude_m2: float, length_scales: np.ndarray, noise_m2: float) -> Kernel:
@@ -203,11 +273,15 @@ def _optimised(q: np.ndarray, y: np.ndarray, kernel: Kernel, restarts: int,
 
 
 def _from_gp(gp: GaussianProcessRegressor, joint_names: tuple[str, ...], q: np.ndarray,
-             y: np.ndarray) -> LearnedResidual:
+             y: np.ndarray, shape: np.ndarray) -> LearnedResidual:
     k = gp.kernel_
     return LearnedResidual(joint_names, q, y, float(k.k1.k1.constant_value),
                            np.atleast_1d(np.asarray(k.k1.k2.length_scale, float)),
-                           float(k.k2.noise_level))
+                           float(k.k2.noise_level), shape)
+
+
+def _whitened(y: np.ndarray, shape: np.ndarray) -> np.ndarray:
+    return y @ _roots(shape)[0]
 
 
 @dataclass(frozen=True)
@@ -288,9 +362,13 @@ def fit_learned_residual(q: np.ndarray, residual_m: np.ndarray, sigma_m: float |
     if len(q) != len(y):
         raise ValueError(f'q has {len(q)} rows, residual_m {len(y)}')
     noise = float(np.mean(np.broadcast_to(np.asarray(sigma_m, float), (3,)) ** 2))
-    kernel = _kernel(q, y, noise)
-    full = _optimised(q, y, kernel, restarts, seed)
-    model = _from_gp(full, tuple(joint_names), q, y)
+    shape = output_shape(y)
+    kernel = _kernel(q, _whitened(y, shape), noise)
+    full = _optimised(q, _whitened(y, shape), kernel, restarts, seed)
+    model = _from_gp(full, tuple(joint_names), q, y, shape)
+    # What the field leaves at the training rows is the noise; its shape is the noise's.
+    left = y - model.predict(q).mean
+    model = replace(model, noise_shape=output_shape(left))
     _, pose = pose_index(q)
     n_poses = int(pose.max()) + 1
     if n_poses < MIN_POSES:
@@ -302,9 +380,13 @@ def fit_learned_residual(q: np.ndarray, residual_m: np.ndarray, sigma_m: float |
     predicted = np.zeros_like(y)
     for f in range(k):
         test = fold == f
-        # Hyperparameters refitted without the fold, from the full fit's optimum.
-        gp = _optimised(q[~test], y[~test], _with_bounds(full.kernel_, kernel), 0, seed)
-        predicted[test] = gp.predict(q[test])
+        # The shape and the hyperparameters refitted without the fold, from the full
+        # fit's optimum.
+        fold_shape = output_shape(y[~test])
+        gp = _optimised(q[~test], _whitened(y[~test], fold_shape),
+                        _with_bounds(full.kernel_, kernel), 0, seed)
+        predicted[test] = np.asarray(gp.predict(q[test])).reshape(-1, 3) \
+            @ _roots(fold_shape)[1]
     before = np.bincount(pose, np.sum(y ** 2, axis=1), n_poses)
     after = np.bincount(pose, np.sum((y - predicted) ** 2, axis=1), n_poses)
     gain = before - after
@@ -353,9 +435,9 @@ def field_parameter_covariance(model: LearnedResidual, q: np.ndarray,
     poses, and the fit absorbed part of it into the parameters. With the estimate
     p̂ − p = C₀ Fᵀ W ε (C₀ the covariance from the stated σ, F the Jacobian, W the rows'
     weights) and ε the white noise w plus the field of covariance
-    c · k(q_i, q_j) I₃ (the fitted kernel), the parameters' covariance is
+    c · k(q_i, q_j) A (the fitted kernel and output shape), the parameters' covariance is
 
-        C = s C₀ + C₀ (Σ_ij k_ij c H_iᵀ H_j) C₀,   H_i = W_i J_i,
+        C = s C₀ + C₀ (Σ_ij k_ij c H_iᵀ A H_j) C₀,   H_i = W_iᵀ W_i J_i,
 
     s the noise the learned residual leaves over the stated σ²
     (:func:`residual_noise_scale`). Propagated to a pose far from the training poses it
@@ -385,7 +467,9 @@ def field_parameter_covariance(model: LearnedResidual, q: np.ndarray,
     h = np.asarray(precision_jacobian, float).reshape(len(q), 3, -1)
     c0 = np.asarray(covariance, float)
     kq = model.amplitude_m2 * RBF(model.length_scales)(q)
-    meat = sum(h[:, a, :].T @ kq @ h[:, a, :] for a in range(3))
+    shape = np.asarray(model.output_shape)
+    meat = sum(shape[a, b] * (h[:, a, :].T @ kq @ h[:, b, :])
+               for a in range(3) for b in range(3))
     field = c0 @ meat @ c0
     return noise_scale * c0 + 0.5 * (field + field.T)
 
@@ -461,7 +545,7 @@ def corrected_tcp(tcp: np.ndarray, tcp_jacobian: np.ndarray, covariance_inside: 
     pred = model.predict(q)
     physical = inside
     if covariance_outside is not None:
-        latent = pred.covariance[:, 0, 0] / model.amplitude_m2
+        latent = np.trace(pred.covariance, axis1=1, axis2=2) / (3.0 * model.amplitude_m2)
         weight = np.clip(1.0 - latent ** 2, 0.0, 1.0)[:, None, None]
         physical = weight * inside + (1.0 - weight) * propagated(covariance_outside)
     return CorrectedTcp(tcp + pred.mean, physical + pred.covariance, physical, pred)
@@ -469,5 +553,5 @@ def corrected_tcp(tcp: np.ndarray, tcp_jacobian: np.ndarray, covariance_inside: 
 
 __all__ = ['CHOICE_ALPHA', 'CorrectedTcp', 'INSIDE_DISTANCE', 'LearnedResidual', 'MIN_GAIN',
            'ResidualChoice', 'ResidualPrediction', 'corrected_tcp', 'field_parameter_covariance',
-           'fit_learned_residual',
-           'fixed_kernel', 'residual_noise_scale']
+           'checked_shape', 'fit_learned_residual', 'fixed_kernel', 'output_shape',
+           'residual_noise_scale']
