@@ -12,11 +12,13 @@ import pytest
 import scipy.stats
 import yaml
 
+from kpi_calib_ros.app.identify import with_effects
 from kpi_calib_ros.app.learned_residual import (
     field_covariance,
     physical_covariance,
     predict_stored,
     predict_tcp,
+    stored_cell_model,
 )
 from kpi_calib_ros.cli import main
 from kpi_calib_ros.core.diagnosis.learned_residual import (
@@ -140,7 +142,7 @@ def test_stored_model_is_rebuilt_exactly(cm, smooth, tmp_path):
     result, choice, data, _, fresh, fresh_out, _ = smooth
     cov = physical_covariance(result, choice.model, cm.cell.sigma)
     outside = field_covariance(cm.model, data, result, choice.model, cm.cell.sigma)
-    path = write_residual(tmp_path, residual_document(choice, result, cov, outside))
+    path = write_residual(tmp_path, residual_document(choice, result, cov, outside, ()))
     stored = read_residual(path)
     q = np.vstack([fresh[:20], fresh_out[:20]])
     before = predict_tcp(cm.model, result.values, result.estimated, cov, choice.model, q,
@@ -151,20 +153,52 @@ def test_stored_model_is_rebuilt_exactly(cm, smooth, tmp_path):
     np.testing.assert_array_equal(after.correction.inside, before.correction.inside)
 
 
+def test_the_stored_file_rebuilds_the_model_auto_augmented(cm, tmp_path):
+    """A learned residual of a model with an effect (as ``auto`` adds one) carries the
+    effects: the cell's model without them is rebuilt with them, the same parameters in
+    the same order, and predicts what the augmented model does; a file without them, or a
+    learned residual over other joints, is refused, naming what differs."""
+    rich = with_effects(cm, ('joint_compliance:joint_2',))
+    rng = np.random.default_rng(4)
+    p = true_parameters(rich.model.params, rng)
+    q = random_configurations(rich.model, p, 60, rng)
+    data = Measurements(q=q, eta=simulate_measurements(rich.model, p, q, cm.cell.sigma,
+                                                       rng).eta)
+    result = honest_precision(identify(rich.model, data, cm.cell.sigma, rich.q_work))
+    choice = fit_learned_residual(q, result.residuals, cm.cell.sigma, tuple(cm.joint_names))
+    doc = residual_document(choice, result, result.covariance, result.covariance,
+                            [e.name for e in rich.model.effects])
+    stored = read_residual(write_residual(tmp_path, doc))
+    assert stored.effects == ('joint_compliance:joint_2',)
+    rebuilt = stored_cell_model(cm, stored)
+    assert rebuilt.model.params.names == rich.model.params.names
+    assert stored_cell_model(rich, stored) is rich
+    fresh = random_configurations(rich.model, p, 5, rng)
+    np.testing.assert_allclose(predict_stored(rebuilt.model, stored, fresh).position,
+                               predict_stored(rich.model, stored, fresh).position,
+                               rtol=0, atol=1e-12)
+    with pytest.raises(ConfigError, match=r'physical.effects'):
+        read_residual(write_residual(tmp_path, {**doc, 'physical': {
+            k: v for k, v in doc['physical'].items() if k != 'effects'}}))
+    other = dict(doc, joint_names=list(reversed(cm.joint_names)))
+    with pytest.raises(ConfigError, match=r'was learned over the joints'):
+        stored_cell_model(rich, read_residual(write_residual(tmp_path, other)))
+
+
 def test_a_damaged_file_names_the_field(cm, smooth, tmp_path):
     result, choice, data, *_ = smooth
-    doc = residual_document(choice, result, result.covariance, result.covariance)
+    doc = residual_document(choice, result, result.covariance, result.covariance, ())
     doc['kernel']['length_scales'][2] = -1.0
     path = tmp_path / 'learned_residual.yaml'
     path.write_text(yaml.safe_dump(doc))
     with pytest.raises(ConfigError, match='kernel.length_scales'):
         read_residual(path)
-    doc = residual_document(choice, result, result.covariance, result.covariance)
+    doc = residual_document(choice, result, result.covariance, result.covariance, ())
     doc['training']['residual_m'][3] = [0.0, float('nan'), 0.0]
     path.write_text(yaml.safe_dump(doc))
     with pytest.raises(ConfigError, match=r'training.residual_m\[3\]\[1\]'):
         read_residual(path)
-    doc = residual_document(choice, result, result.covariance, result.covariance)
+    doc = residual_document(choice, result, result.covariance, result.covariance, ())
     doc['kernel']['noise_shape'] = np.diag([2.0, 1.0, -0.5]).tolist()
     path.write_text(yaml.safe_dump(doc))
     with pytest.raises(ConfigError, match='kernel.noise_shape.*positive definite'):

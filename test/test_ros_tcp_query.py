@@ -1,6 +1,8 @@
 """kpi_calib_node ~/tcp_query -> ~/tcp_corrected, in process (private context, real rclpy):
 joint positions in any order are answered with the TCP and covariance the stored learned
-residual predicts, the query's stamp echoed; a changed learned_residual.yaml is read again."""
+residual predicts, the query's stamp echoed; a changed learned_residual.yaml is read again;
+one written for a model with an effect ``auto`` added is answered with that model by a
+node that has only the cell's (as after a restart)."""
 from __future__ import annotations
 
 import threading
@@ -12,6 +14,7 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.executors import SingleThreadedExecutor
 from sensor_msgs.msg import JointState
 
+from kpi_calib_ros.app.identify import with_effects
 from kpi_calib_ros.app.learned_residual import field_covariance, physical_covariance, predict_stored
 from kpi_calib_ros.core.diagnosis.learned_residual import fit_learned_residual
 from kpi_calib_ros.core.estimation.least_squares import identify
@@ -37,7 +40,8 @@ def node(tmp_path, ros_domain):
 
 
 def learned(cm, tmp_path, seed: int, amplitude: float) -> None:
-    """learned_residual.yaml in ``tmp_path`` for a robot with a smooth unknown map."""
+    """learned_residual.yaml in ``tmp_path`` for a robot with a smooth unknown map, fitted
+    with ``cm``'s model (its effects stored with it)."""
     rng = np.random.default_rng(seed)
     p = true_parameters(cm.model.params, rng)
     q = random_configurations(cm.model, p, 80, rng)
@@ -48,12 +52,12 @@ def learned(cm, tmp_path, seed: int, amplitude: float) -> None:
     choice = fit_learned_residual(q, result.residuals, cm.cell.sigma, tuple(cm.joint_names))
     cov = physical_covariance(result, choice.model, cm.cell.sigma)
     outside = field_covariance(cm.model, data, result, choice.model, cm.cell.sigma)
-    write_residual(tmp_path, residual_document(choice, result, cov, outside))
+    write_residual(tmp_path, residual_document(choice, result, cov, outside,
+                                               [e.name for e in cm.model.effects]))
 
 
-def test_tcp_query_is_answered_with_the_learned_residual(node, tmp_path):
-    cm = node._cm
-    learned(cm, tmp_path, 5, 1e-4)
+def ask(node, msg: JointState) -> PoseWithCovarianceStamped:
+    """``node``'s answer on ~/tcp_corrected to the query ``msg``."""
     received: list[PoseWithCovarianceStamped] = []
     got = threading.Event()
     probe = rclpy.create_node('tcp_probe', context=node.context)
@@ -65,11 +69,6 @@ def test_tcp_query_is_answered_with_the_learned_residual(node, tmp_path):
     executor.add_node(probe)
     spinner = threading.Thread(target=executor.spin, daemon=True)
     spinner.start()
-    q = np.array([0.3, -0.4, 0.5, 0.2, 0.6, -0.1])
-    order = [5, 2, 0, 4, 1, 3]  # joints by name, in any order
-    msg = JointState(name=[cm.joint_names[i] for i in order] + ['gripper'],
-                     position=[float(q[i]) for i in order] + [0.01])
-    msg.header.stamp = time_msg(1_234_567_890_123)
     try:
         for _ in range(100):  # until discovery: the query is re-sent, never slept on
             query.publish(msg)
@@ -80,7 +79,23 @@ def test_tcp_query_is_answered_with_the_learned_residual(node, tmp_path):
         executor.shutdown()
         spinner.join(timeout=10)
         probe.destroy_node()
-    answer = received[0]
+    return received[0]
+
+
+def query(cm, q: np.ndarray) -> JointState:
+    """A query of joints ``q`` (chain order): by name, in another order, a gripper too."""
+    order = [5, 2, 0, 4, 1, 3]
+    msg = JointState(name=[cm.joint_names[i] for i in order] + ['gripper'],
+                     position=[float(q[i]) for i in order] + [0.01])
+    msg.header.stamp = time_msg(1_234_567_890_123)
+    return msg
+
+
+def test_tcp_query_is_answered_with_the_learned_residual(node, tmp_path):
+    cm = node._cm
+    learned(cm, tmp_path, 5, 1e-4)
+    q = np.array([0.3, -0.4, 0.5, 0.2, 0.6, -0.1])
+    answer = ask(node, query(cm, q))
     expected = predict_stored(cm.model, read_residual(tmp_path / 'learned_residual.yaml'), q)
     assert answer.header.stamp.sec == 1234 and answer.header.stamp.nanosec == 567_890_123
     assert answer.header.frame_id == cm.cell.tracker_frame
@@ -98,3 +113,21 @@ def test_tcp_query_is_answered_with_the_learned_residual(node, tmp_path):
     new = read_residual(tmp_path / 'learned_residual.yaml').residual.amplitude_m2
     assert new != before
     assert node.tcp_query.stored().residual.amplitude_m2 == new
+
+
+def test_a_learned_residual_of_a_model_auto_augmented_is_answered_after_a_restart(node,
+                                                                                   tmp_path):
+    """The node has only the cell's model and no calibration (as after a restart);
+    learned_residual.yaml was written for the model with joint_2's compliance, as
+    ``identification.model: auto`` adds it: the answer is that model's prediction."""
+    rich = with_effects(node._cm, ('joint_compliance:joint_2',))
+    learned(rich, tmp_path, 5, 1e-4)
+    assert node._run.result is None and node._run.cell is None
+    q = np.array([0.3, -0.4, 0.5, 0.2, 0.6, -0.1])
+    answer = ask(node, query(node._cm, q))
+    expected = predict_stored(rich.model, read_residual(tmp_path / 'learned_residual.yaml'), q)
+    position = answer.pose.pose.position
+    np.testing.assert_allclose([position.x, position.y, position.z], expected.position[0],
+                               rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.array(answer.pose.covariance).reshape(6, 6)[:3, :3],
+                               expected.covariance[0], rtol=1e-12, atol=0)

@@ -25,7 +25,7 @@ from kpi_calib_ros.core.diagnosis.learned_residual import (
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.core.estimation.residuals import linearized_fit
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements
-from kpi_calib_ros.io.cell import CellModel
+from kpi_calib_ros.io.cell import CellModel, build_cell_model
 from kpi_calib_ros.io.learned_residual_file import (
     StoredResidual,
     residual_document,
@@ -90,9 +90,21 @@ def predict_tcp(model: MeasurementModel, values: np.ndarray, estimated: tuple[st
     return corrected_tcp(tcp, jac[:, :, idx], covariance, q, residual, covariance_outside)
 
 
+def stored_cell_model(cm: CellModel, stored: StoredResidual) -> CellModel:
+    """The cell model ``stored`` corrects: ``cm`` when it has the stored effects, else
+    ``cm``'s cell with them (the cell's and those ``identification.model: auto`` added),
+    as ``validate`` rebuilds a calibration's model; ConfigError unless its parameters are
+    the stored ones (:meth:`StoredResidual.check_model`)."""
+    if tuple(e.name for e in cm.model.effects) != stored.effects:
+        cm = build_cell_model(cm.cell, effects=stored.effects)
+    stored.check_model(cm.model)
+    return cm
+
+
 def predict_stored(model: MeasurementModel, stored: StoredResidual,
                    q: np.ndarray) -> CorrectedTcp:
-    """:func:`predict_tcp` with a learned_residual.yaml read back."""
+    """:func:`predict_tcp` with a learned_residual.yaml read back, ``model`` the one it
+    was written for (:func:`stored_cell_model`)."""
     stored.check_model(model)
     return predict_tcp(model, stored.values, stored.estimated, stored.covariance,
                        stored.residual, q, stored.covariance_outside)
@@ -132,7 +144,8 @@ def add_learned_residual(doc: dict[str, Any], cm: CellModel, data: Measurements,
                          f"{entry['parameter_std_m'] * 1e6:.1f} um), {where} the fitted region "
                          f"(distance {entry['distance']:.2g} length scales)")
         if out_dir is not None and doc.get('valid', True):
-            path = write_residual(out_dir, residual_document(choice, result, cov, outside))
+            path = write_residual(out_dir, residual_document(
+                choice, result, cov, outside, [e.name for e in cm.model.effects]))
             section['file'] = path.name
     doc['learned_residual'] = section
     return '\n'.join(lines), path
@@ -156,4 +169,4 @@ def tcp_entries(names: tuple[str, ...] | list[str], tcp: CorrectedTcp) -> dict[s
 
 __all__ = ['add_learned_residual', 'choose_residual', 'field_covariance', 'physical_covariance',
            'point_rows',
-           'predict_stored', 'predict_tcp', 'tcp_entries']
+           'predict_stored', 'predict_tcp', 'stored_cell_model', 'tcp_entries']

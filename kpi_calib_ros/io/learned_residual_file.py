@@ -4,8 +4,9 @@ The calibrated URDF cannot carry a correction over joint space, so the Gaussian 
 (:mod:`kpi_calib_ros.core.diagnosis.learned_residual`) is stored as plain numbers: its
 training joint values and residuals, its kernel's hyperparameters and its output and noise
 shapes (it is rebuilt exactly from them, no pickle), with the physical calibration it
-corrects (parameter values and the covariance of the estimated ones), so a TCP prediction
-needs this file and the cell alone. Every field is checked on reading: a damaged or edited file is a
+corrects (the effects of its model, those ``identification.model: auto`` added included,
+parameter values and the covariance of the estimated ones), so a TCP prediction needs this
+file and the cell alone. Every field is checked on reading: a damaged or edited file is a
 :class:`ConfigError` naming the field.
 """
 from __future__ import annotations
@@ -13,7 +14,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 import yaml
@@ -54,6 +55,9 @@ class StoredResidual:
         Their covariance when the misfit is the learned field, which applies far from the
         training poses
         (:func:`kpi_calib_ros.core.diagnosis.learned_residual.field_parameter_covariance`).
+    effects : tuple of str
+        The effect specs of the physical model, in its order: the cell's and those
+        ``identification.model: auto`` added.
     """
 
     residual: LearnedResidual
@@ -62,21 +66,31 @@ class StoredResidual:
     estimated: tuple[str, ...]
     covariance: np.ndarray
     covariance_outside: np.ndarray
+    effects: tuple[str, ...] = ()
 
     def check_model(self, model: MeasurementModel, key: str = LEARNED_RESIDUAL_FILE) -> None:
-        """ConfigError unless ``model`` has these parameters (the cell and effects the
-        file was written with)."""
+        """ConfigError unless ``model`` has these parameters, in this order, and the
+        learned residual's joints (the cell and effects the file was written with)."""
+        effects = [e.name for e in model.effects]
         if tuple(model.params.names) != self.names:
             raise ConfigError(key, f'was written for a model with parameters '
-                              f'{list(self.names)[:4]}... ({len(self.names)}), the cell gives '
-                              f'{len(model.params.names)}: identify again with this cell')
+                              f'{list(self.names)[:4]}... ({len(self.names)}) and effects '
+                              f'{list(self.effects)}, the '
+                              f'cell gives {len(model.params.names)} with effects {effects}: '
+                              'identify again with this cell')
+        if tuple(model.robot.joint_names) != tuple(self.residual.joint_names):
+            raise ConfigError(key, f'was learned over the joints '
+                              f'{list(self.residual.joint_names)}, the cell\'s chain has '
+                              f'{list(model.robot.joint_names)}: identify again with this cell')
 
 
 def residual_document(choice: ResidualChoice, result: CalibrationResult,
-                      covariance: np.ndarray, covariance_outside: np.ndarray) -> dict[str, Any]:
+                      covariance: np.ndarray, covariance_outside: np.ndarray,
+                      effects: Sequence[str]) -> dict[str, Any]:
     """The learned_residual.yaml document of ``choice`` for calibration ``result``;
     ``covariance`` and ``covariance_outside`` (k, k) of ``result.estimated``, as used with
-    the learned residual inside and far from the fitted region."""
+    the learned residual inside and far from the fitted region; ``effects`` the specs of
+    the effects of ``result``'s model, in its order (the cell's and those ``auto`` added)."""
     model = choice.model
     return {
         'format': FORMAT,
@@ -90,7 +104,8 @@ def residual_document(choice: ResidualChoice, result: CalibrationResult,
                    'output_shape': np.asarray(model.output_shape, float).tolist(),
                    'noise_shape': np.asarray(model.noise_shape, float).tolist()},
         'training': {'q': model.q.tolist(), 'residual_m': model.residual_m.tolist()},
-        'physical': {'names': list(result.names),
+        'physical': {'effects': [str(e) for e in effects],
+                     'names': list(result.names),
                      'values': [float(x) for x in result.values],
                      'estimated': list(result.estimated),
                      'covariance': np.asarray(covariance, float).tolist(),
@@ -147,6 +162,9 @@ def read_residual(path: str | Path, key: str = 'learned_residual') -> StoredResi
     physical = doc.get('physical')
     if not isinstance(physical, dict):
         raise bad('physical', 'must be a mapping')
+    effects = physical.get('effects')
+    if not isinstance(effects, list) or not all(isinstance(e, str) for e in effects):
+        raise bad('physical.effects', 'must be a list of effect specs (text; [] for none)')
     names = _names(physical.get('names'), 'physical.names', bad)
     values = _vector(physical.get('values'), len(names), 'physical.values', bad)
     estimated = _names(physical.get('estimated'), 'physical.estimated', bad)
@@ -160,7 +178,8 @@ def read_residual(path: str | Path, key: str = 'learned_residual') -> StoredResi
             raise bad(f'physical.{field}', 'must be symmetric with a non-negative diagonal')
         covs.append(cov)
     residual = LearnedResidual(joints, q, y, amplitude, scales, noise, *shapes)
-    return StoredResidual(residual, names, values, estimated, covs[0], covs[1])
+    return StoredResidual(residual, names, values, estimated, covs[0], covs[1],
+                          tuple(effects))
 
 
 def _names(value: Any, field: str, bad: Any) -> tuple[str, ...]:

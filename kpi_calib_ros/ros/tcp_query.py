@@ -5,7 +5,9 @@ values as the robot reports them) is answered on ``~/tcp_corrected``
 (geometry_msgs/PoseWithCovarianceStamped in the tracker frame, the query's stamp echoed):
 the TCP (KPI point) the calibration predicts at those joints, with the learned residual
 of learned_residual.yaml in the node's ``data_dir`` when one is there
-(:mod:`kpi_calib_ros.app.learned_residual`), else the node's last calibration alone; the
+(:mod:`kpi_calib_ros.app.learned_residual`; with the model it was written for, the
+effects ``identification.model: auto`` added included, also after a restart), else the
+node's last calibration alone; the
 position block of the covariance holds both parts of the uncertainty (the orientation
 is not predicted: :data:`kpi_calib_ros.ros.conversions.UNKNOWN_ORIENTATION_VARIANCE`).
 A query outside the region the learned residual was fitted on is answered (the
@@ -23,7 +25,7 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
-from kpi_calib_ros.app.learned_residual import predict_stored, predict_tcp
+from kpi_calib_ros.app.learned_residual import predict_stored, predict_tcp, stored_cell_model
 from kpi_calib_ros.core.errors import KpiCalibError
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.io.cell import CellModel
@@ -54,6 +56,9 @@ class TcpQuery:
         self._node, self._model, self._result, self._path = node, model, result, Path(path)
         self._stored: StoredResidual | None = None
         self._stamp: tuple[int, int, int] | None = None
+        # The cell model of the stored residual, built once per file and node model.
+        self._stored_cell: tuple[StoredResidual, CellModel, CellModel | KpiCalibError] | None \
+            = None
         self.publisher = node.create_publisher(PoseWithCovarianceStamped, TCP_CORRECTED_TOPIC,
                                                QUERY_DEPTH)
         node.create_subscription(JointState, TCP_QUERY_TOPIC, self.answer, QUERY_DEPTH)
@@ -81,6 +86,21 @@ class TcpQuery:
                 self._node.get_logger().error(f'learned residual not used: {exc}')
         return self._stored
 
+    def stored_model(self, cm: CellModel, stored: StoredResidual) -> CellModel:
+        """The cell model ``stored`` was written for (:func:`stored_cell_model`): ``cm``
+        or its cell with the stored effects, built once per file (KpiCalibError: it
+        does not fit this cell)."""
+        cached = self._stored_cell
+        if cached is None or cached[0] is not stored or cached[1] is not cm:
+            try:
+                built: CellModel | KpiCalibError = stored_cell_model(cm, stored)
+            except KpiCalibError as exc:
+                built = exc
+            cached = self._stored_cell = (stored, cm, built)
+        if isinstance(cached[2], KpiCalibError):
+            raise cached[2].with_traceback(None)  # the same error, no traceback piled up
+        return cached[2]
+
     def answer(self, msg: JointState) -> None:
         """Publish the corrected TCP for the query ``msg`` (logged and dropped when the
         robot model, the calibration or a chain joint is missing)."""
@@ -103,7 +123,7 @@ class TcpQuery:
         result = self._result()
         try:
             if stored is not None:
-                tcp = predict_stored(cm.model, stored, q)
+                tcp = predict_stored(self.stored_model(cm, stored).model, stored, q)
             elif result is not None:
                 tcp = predict_tcp(cm.model, result.values, result.estimated,
                                   result.covariance, None, q)
