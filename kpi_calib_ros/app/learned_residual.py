@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import scipy.stats
 
 from kpi_calib_ros.core.diagnosis.learned_residual import (
     CorrectedTcp,
@@ -22,8 +23,9 @@ from kpi_calib_ros.core.diagnosis.learned_residual import (
     fit_learned_residual,
     residual_noise_scale,
 )
+from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
-from kpi_calib_ros.core.estimation.residuals import linearized_fit
+from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA, linearized_fit
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements
 from kpi_calib_ros.io.cell import CellModel, build_cell_model
 from kpi_calib_ros.io.learned_residual_file import (
@@ -31,6 +33,7 @@ from kpi_calib_ros.io.learned_residual_file import (
     residual_document,
     write_residual,
 )
+from kpi_calib_ros.io.names import LEARNED_RESIDUAL_FILE
 
 
 def point_rows(model: MeasurementModel, data: Measurements) -> np.ndarray:
@@ -110,6 +113,58 @@ def predict_stored(model: MeasurementModel, stored: StoredResidual,
                        stored.residual, q, stored.covariance_outside)
 
 
+def validate_learned(cm: CellModel, stored: StoredResidual, data: Measurements,
+                     alpha: float = ADEQUACY_ALPHA) -> dict[str, Any]:
+    """Does the learned residual predict a new recording within its own uncertainty?
+
+    Every point of ``data`` is predicted by the physical model ``stored`` corrects plus the
+    learned δ(q), with the covariance it states (parameters, δ's latent variance and the
+    noise it leaves, w · N). Returns a YAML-ready dict (m): the rms with and without δ, the
+    share of the points inside their stated 95 % ellipsoid and of the poses inside the
+    fitted region, and χ² of the points against their statements with its p-value;
+    ``holds`` when p ≥ ``alpha``. A recording of another day, in which the arm changed by
+    more than the training session showed, fails it: the learned residual is then to be
+    learned again on the conditions it is used in.
+    """
+    model = stored_cell_model(cm, stored).model
+    rows = point_rows(model, data)
+    new = data.subset(rows)
+    if len(new) == 0:
+        raise DataError('no point measurement to validate the learned residual on')
+    idx = model.params.indices(list(stored.estimated))
+    pred, jac = model.jacobian(np.asarray(stored.values, float), np.atleast_2d(new.q), None,
+                               new.reflector, covariates=new.covariates)
+    tcp = corrected_tcp(pred, jac[:, :, idx], stored.covariance, np.atleast_2d(new.q),
+                        stored.residual, stored.covariance_outside)
+    error = np.atleast_2d(new.eta) - tcp.position
+    cov = tcp.covariance + stored.residual.noise_covariance_m2
+    m2 = np.einsum('mi,mij,mj->m', error, np.linalg.inv(cov), error)
+    chi2, dof = float(np.sum(m2)), 3 * len(new)
+    p_value = float(scipy.stats.chi2.sf(chi2, dof))
+
+    def rms(e: np.ndarray) -> float:
+        return float(np.sqrt(np.mean(np.sum(e ** 2, axis=1))))
+    assert tcp.correction is not None
+    return {'file': LEARNED_RESIDUAL_FILE, 'points': int(len(new)),
+            'rms_m': rms(error), 'rms_physical_m': rms(np.atleast_2d(new.eta) - pred),
+            'inside_95_share': float(np.mean(m2 <= scipy.stats.chi2.ppf(0.95, 3))),
+            'inside_fitted_region_share': float(np.mean(tcp.correction.inside)),
+            'chi2': chi2, 'dof': dof, 'p_value': p_value, 'alpha': alpha,
+            'holds': bool(p_value >= alpha)}
+
+
+def learned_validation_text(doc: dict[str, Any]) -> str:
+    """A terminal line of :func:`validate_learned`'s figures."""
+    verdict = ('its uncertainty holds' if doc['holds'] else
+               'its uncertainty does NOT hold: the arm differs from the training session by '
+               'more than that session showed; learn it again on the conditions it is used in')
+    return (f"with the learned residual ({doc['file']}): rms {doc['rms_m'] * 1e3:.3f} mm "
+            f"(physical model {doc['rms_physical_m'] * 1e3:.3f} mm); "
+            f"{doc['inside_95_share']:.1%} of the points inside their stated 95 % ellipsoid, "
+            f"{doc['inside_fitted_region_share']:.0%} inside its fitted region; chi2/dof = "
+            f"{doc['chi2']:.1f}/{doc['dof']}, p = {doc['p_value']:.3g}: {verdict}")
+
+
 def add_learned_residual(doc: dict[str, Any], cm: CellModel, data: Measurements,
                          result: CalibrationResult, out_dir: str | Path | None,
                          seed: int = 0) -> tuple[str, Path | None]:
@@ -167,6 +222,6 @@ def tcp_entries(names: tuple[str, ...] | list[str], tcp: CorrectedTcp) -> dict[s
     return out
 
 
-__all__ = ['add_learned_residual', 'choose_residual', 'field_covariance', 'physical_covariance',
-           'point_rows',
-           'predict_stored', 'predict_tcp', 'stored_cell_model', 'tcp_entries']
+__all__ = ['add_learned_residual', 'choose_residual', 'field_covariance',
+           'learned_validation_text', 'physical_covariance', 'point_rows', 'predict_stored',
+           'predict_tcp', 'stored_cell_model', 'tcp_entries', 'validate_learned']

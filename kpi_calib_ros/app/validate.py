@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from kpi_calib_ros.app.learned_residual import learned_validation_text, validate_learned
 from kpi_calib_ros.app.measurements import measurements_from_bag, print_rejections
 from kpi_calib_ros.core.diagnosis.validation import Validation, validate
 from kpi_calib_ros.core.errors import ConfigError, DataError
@@ -29,7 +30,8 @@ from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.model.parameters import BASE_COMPONENTS, reflector_prefixes
 from kpi_calib_ros.io.calibration_file import read_calibration_document
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
-from kpi_calib_ros.io.names import VALIDATION_FILE
+from kpi_calib_ros.io.learned_residual_file import read_residual
+from kpi_calib_ros.io.names import LEARNED_RESIDUAL_FILE, VALIDATION_FILE
 from kpi_calib_ros.io.report import write_validation_plots
 from kpi_calib_ros.io.results import writable_folder, write_atomic
 
@@ -197,6 +199,10 @@ def validation_text(doc: dict[str, Any]) -> str:
     if doc.get('noise_verdict') == SIGMA_OVERSTATED:
         lines.append('WARNING: ' + sigma_overstated_text(doc['chi2'], doc['dof'],
                                                          doc['lower_tail_p'], doc['alpha']))
+    learned = doc.get('learned_residual')
+    if learned is not None:
+        lines.append(f"learned residual ({learned['file']}) {learned['skipped']}"
+                     if 'skipped' in learned else learned_validation_text(learned))
     if doc.get('repeated_from_training'):
         lines.append(f"inside: poses repeated from training ({doc['repeated_from_training']} "
                      f"points, every joint within {SAME_POSE_TOLERANCE:g} rad or m): rms "
@@ -206,17 +212,45 @@ def validation_text(doc: dict[str, Any]) -> str:
 
 
 def validate_report(cm: CellModel, doc: dict[str, Any], data: Measurements,
-                    out_dir: str | Path, register: str | None = None) -> dict[str, Any]:
+                    out_dir: str | Path, register: str | None = None,
+                    learned: Path | None = None) -> dict[str, Any]:
     """Validate ``doc`` on ``data`` (re-fitting ``register`` first, :data:`REGISTER`) and
-    write validation.json and the plot to ``out_dir``; returns the validation document."""
+    write validation.json and the plot to ``out_dir``; returns the validation document.
+
+    ``learned``: the calibration's learned_residual.yaml, when it has one; its predictions
+    are validated too (``learned_residual`` in the document,
+    :func:`~kpi_calib_ros.app.learned_residual.validate_learned`)."""
     if len(data) == 0:
         raise DataError('no new measurement to validate the calibration on')
-    v = validate_calibration(cm, parameter_vector(cm, doc), doc, data, register)
+    p = parameter_vector(cm, doc)
+    v = validate_calibration(cm, p, doc, data, register)
     out = validation_to_dict(v, data, doc.get('rms_m'), cm, calibration_noise_scale(doc))
+    if learned is not None:
+        out['learned_residual'] = learned_section(cm, p, learned, data, register)
     write_atomic(Path(out_dir) / VALIDATION_FILE, json.dumps(out, indent=1))
     write_validation_plots(out_dir, cm.robot, np.atleast_2d(data.q), v.residuals, v.outside,
                            v.repeated)
     return out
+
+
+def learned_section(cm: CellModel, p: np.ndarray, path: Path, data: Measurements,
+                    register: str | None) -> dict[str, Any]:
+    """The learned residual at ``path`` validated on ``data``, or why it was not."""
+    stored = read_residual(path, 'learned residual')
+    if register is not None:
+        return {'file': path.name, 'skipped': 'not validated with --register: the learned '
+                'residual is a correction in the training recording\'s tracker frame'}
+    if stored.names != tuple(cm.model.params.names) or not np.allclose(
+            stored.values, p, rtol=0.0, atol=1e-12):
+        return {'file': path.name, 'skipped': 'written for another calibration than the one '
+                'validated (its parameter values differ): identify again'}
+    return validate_learned(cm, stored, data)
+
+
+def learned_file(calibration_path: str | Path) -> Path | None:
+    """The learned_residual.yaml written beside ``calibration_path``, if there is one."""
+    path = Path(calibration_path).parent / LEARNED_RESIDUAL_FILE
+    return path if path.is_file() else None
 
 
 def run_validate(cell_path: str | Path, calibration_path: str | Path, bag_path: str | Path,
@@ -235,7 +269,7 @@ def run_validate(cell_path: str | Path, calibration_path: str | Path, bag_path: 
     cm, _ = calibrated_model(load_cell(cell_path, allow_code_effects=allow_code_effects), doc)
     data, pairing = measurements_from_bag(cm, bag_path)
     print_rejections(pairing)
-    out = validate_report(cm, doc, data, out_dir, register)
+    out = validate_report(cm, doc, data, out_dir, register, learned_file(calibration_path))
     print(validation_text(out))
     print(f"written: {Path(out_dir) / VALIDATION_FILE}, "
           f"{Path(out_dir) / 'validation_residuals.png'}")

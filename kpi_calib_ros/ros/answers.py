@@ -50,7 +50,20 @@ def validate_answer(doc: dict[str, Any]) -> str:
             + (f"; {doc['repeated_from_training']} at training poses "
                f"measured again, rms "
                f"{doc['rms_repeated_from_training_m'] * 1e6:.1f} µm"
-               if doc['repeated_from_training'] else ''))
+               if doc['repeated_from_training'] else '')
+            + learned_answer(doc.get('learned_residual')))
+
+
+def learned_answer(learned: dict[str, Any] | None) -> str:
+    """~/validate: the learned residual's part of the answer ('' without one)."""
+    if learned is None:
+        return ''
+    if 'skipped' in learned:
+        return f"; learned residual {learned['skipped']}"
+    return (f"; with the learned residual rms {learned['rms_m'] * 1e6:.1f} µm, "
+            f"{learned['inside_95_share']:.1%} in the stated 95 % ellipsoid, p = "
+            f"{learned['p_value']:.3g}: its uncertainty "
+            + ('holds' if learned['holds'] else 'does not hold, learn it again'))
 
 
 def campaign_progress(status: Any, planned: int) -> str:

@@ -258,8 +258,9 @@ def validate_work(cm: CellModel, calibration: str, data: Measurements,
     doc : dict
         ``validation.json``'s document; ``text`` : str, it as JSON.
     """
+    learned = data_dir / LEARNED_RESIDUAL_FILE
     doc = validate_report(cm, yaml.safe_load(calibration), data, data_dir / VALIDATION_DIR,
-                          register)
+                          register, learned if learned.is_file() else None)
     return doc, json.dumps(doc)
 
 
