@@ -415,7 +415,10 @@ def build_cell_model(cell: Cell, effects: tuple = ()) -> CellModel:
 
     The model holds the cell file's ``effects:`` followed by ``effects`` (specs
     such as ``'joint_compliance:joint_2'`` or bound effects); one given in both
-    counts once.
+    counts once. Specs are bound with the cell's ``temperature.sensors`` mapping (joint names
+    checked against the chain): a listed joint's thermal effects read its sensor's ΔT, and
+    the model keeps the mapping (``MeasurementModel.joint_temperatures``) for effects bound
+    later.
     """
     if not cell.urdf_xml:
         raise ConfigError('robot.urdf', 'no robot description yet; give robot.urdf or the '
