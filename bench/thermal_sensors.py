@@ -6,8 +6,8 @@ aluminium α = 23e-6 /K) warms by 10 K (``shift_temperature``, 95 % after 4 h); 
 (joint_4's origin, 0.67 m, steel α = 12e-6 /K) swings ±3 K over the shift and warms by 2 K in
 its first hour; each link grows with its own sensor. Both cells hold
 ``thermal_link_growth:joint_3`` and ``thermal_link_growth:joint_4``; one maps the sensors to
-their joints (``temperature.sensors: {upper_arm: [joint_2, joint_3], forearm: [joint_4,
-joint_5]}``), the other lists them (their mean for every joint). Per seed: ``identify_cell``
+their joints (``temperature.sensors: {upper_arm: [joint_3], forearm: [joint_4, joint_5]}``),
+the other lists them (their mean for every joint). Per seed: ``identify_cell``
 with each; the α's against the truth in units of their reported σ, the χ² test, and the
 fresh poses' rms (predicted with their temperatures). ``test/test_thermal_sensors.py`` asserts
 seeds 0 and 3 of the same scenario. Writes bench/results/thermal_sensors.md.
@@ -37,7 +37,7 @@ SIGMA = 20e-6
 S = 10**9
 EFFECTS = ['thermal_link_growth:joint_3', 'thermal_link_growth:joint_4']
 TRUTH = {'thermal_link_growth.joint_3.alpha': 23e-6, 'thermal_link_growth.joint_4.alpha': 12e-6}
-BY_LINK = {'upper_arm': ['joint_2', 'joint_3'], 'forearm': ['joint_4', 'joint_5']}
+BY_LINK = {'upper_arm': ['joint_3'], 'forearm': ['joint_4', 'joint_5']}
 
 
 def cell_model(sensors):

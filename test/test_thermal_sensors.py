@@ -32,7 +32,7 @@ SIGMA = 20e-6  # the default cell's tracker σ
 S = 10**9
 UPPER, FORE = delta_temperature_name('upper_arm'), delta_temperature_name('forearm')
 # The KR15-class arm: joint_3's origin is the upper arm (0.68 m), joint_4's the forearm (0.67 m).
-BY_LINK = {'upper_arm': ['joint_2', 'joint_3'], 'forearm': ['joint_4', 'joint_5']}
+BY_LINK = {'upper_arm': ['joint_3'], 'forearm': ['joint_4', 'joint_5']}
 
 
 @pytest.fixture(scope='module')
@@ -76,8 +76,7 @@ def test_a_bad_sensor_mapping_is_refused_naming_the_key_and_the_fix(doc, sensors
 def test_the_mapping_names_the_sensors_of_the_mean_and_the_joints_of_each(doc):
     cm = _cell_model(doc, BY_LINK)
     assert cm.cell.temperature.sensors == ('upper_arm', 'forearm')
-    assert cm.model.joint_temperatures == {'joint_2': UPPER, 'joint_3': UPPER,
-                                           'joint_4': FORE, 'joint_5': FORE}
+    assert cm.model.joint_temperatures == {'joint_3': UPPER, 'joint_4': FORE, 'joint_5': FORE}
     # the list form keeps its meaning: every joint reads the mean
     assert _cell_model(doc, ['upper_arm', 'forearm']).model.joint_temperatures == {}
 
@@ -90,7 +89,8 @@ def test_a_joint_reads_its_sensor_with_the_spec_and_parameter_names_unchanged(do
     assert (growth.name, growth.inputs) == ('thermal_link_growth:joint_3', (UPPER,))
     assert growth.parameter_names == ('thermal_link_growth.joint_3.alpha',)
     assert drift.inputs == (DELTA_TEMPERATURE,)              # joint_6 is not listed: the mean
-    # one material, each link at its own temperature: the mean (joint_1), then the sensors
+    # one material, each link at its own temperature: the mean (joint_1, joint_2), then the
+    # sensors (joint_5 and joint_6 have no link before them to grow)
     assert every.inputs == (DELTA_TEMPERATURE, UPPER, FORE)
     assert cm.model.inputs == (UPPER, DELTA_TEMPERATURE, FORE)
     # an effect added by name later reads the cell's sensors too

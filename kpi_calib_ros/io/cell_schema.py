@@ -253,7 +253,7 @@ CELL_KEYS: tuple[CellKey, ...] = (
        'joints (URDF names) whose thermal effects read its ΔT: `thermal_link_growth:J` and '
        '`thermal_growth` grow the link before J, `thermal_zero_drift:J` drifts J\'s zero; a '
        'joint under one sensor at most, a list never empty; joints not listed read the mean.',
-       {'upper_arm': ['joint_2', 'joint_3'], 'forearm': ['joint_4']}),
+       {'upper_arm': ['joint_3'], 'forearm': ['joint_4', 'joint_5']}),
     _K('temperature.reference', 'number', '°C', '20.0', 'Temperature the geometry is stated '
        'at (ISO 1: 20 °C); thermal effects act on ΔT = temperature − reference.', 21.5),
     _K('temperature.max_gap', 'number', 's', '120.0', 'Largest gap between temperature samples '

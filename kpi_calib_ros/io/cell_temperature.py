@@ -12,9 +12,9 @@ which sensors (by frame id) stand for it, and the reference it is counted from.
 ``sensors`` may also say which joints each sensor stands for, frame id -> joint names::
 
     temperature:
-      sensors:
-        upper_arm: [shoulder_lift_joint]   # the link before it grows with this sensor
-        forearm: [elbow_joint, wrist_1_joint]
+      sensors:                       # a UR arm: the link before a joint is its origin
+        upper_arm: [elbow_joint]     # the upper arm, shoulder to elbow
+        forearm: [wrist_1_joint]     # the forearm, elbow to wrist
 
 The thermal effects of a listed joint read that sensor's own ΔT
 (``delta_temperature.<frame_id>``): ``thermal_link_growth:J`` and ``thermal_growth`` grow the
