@@ -9,8 +9,10 @@ its first hour; each link grows with its own sensor. Both cells hold
 their joints (``temperature.sensors: {upper_arm: [joint_3], forearm: [joint_4, joint_5]}``),
 the other lists them (their mean for every joint). Per seed: ``identify_cell``
 with each; the α's against the truth in units of their reported σ, the χ² test, and the
-fresh poses' rms (predicted with their temperatures). ``test/test_thermal_sensors.py`` asserts
-seeds 0 and 3 of the same scenario. Writes bench/results/thermal_sensors.md.
+fresh poses' rms (predicted with their temperatures); and ``calibrate_cell(model='auto')`` on
+each cell without effects: what it adds, its χ² test and fresh rms.
+``test/test_thermal_sensors.py`` asserts seeds 0 and 3 of the same scenario (and ``auto`` on
+seed 0). Slow (~5 min). Writes bench/results/thermal_sensors.md.
 
     .venv/bin/python bench/thermal_sensors.py [n_seeds]
 """
@@ -23,7 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from kpi_calib_ros.app.identify import identify_cell
+from kpi_calib_ros.app.identify import calibrate_cell, identify_cell
+from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA
 from kpi_calib_ros.core.measurement.covariates import shift_temperature
 from kpi_calib_ros.core.simulation import (
     random_configurations,
@@ -40,11 +43,11 @@ TRUTH = {'thermal_link_growth.joint_3.alpha': 23e-6, 'thermal_link_growth.joint_
 BY_LINK = {'upper_arm': ['joint_3'], 'forearm': ['joint_4', 'joint_5']}
 
 
-def cell_model(sensors):
+def cell_model(sensors, effects=tuple(EFFECTS)):
     doc = read_cell_document(DEFAULT_CELL)
     doc['robot']['urdf'] = str((DEFAULT_CELL.parent / doc['robot']['urdf']).resolve())
     doc['temperature'] = {'sensors': copy.deepcopy(sensors)}
-    doc['effects'] = list(EFFECTS)
+    doc['effects'] = list(effects)
     return build_cell_model(cell_from_dict(doc, DEFAULT_CELL.parent))
 
 
@@ -71,9 +74,12 @@ def fresh_rms(cm, result, fresh):
 
 
 def main(n_seeds: int = 10) -> str:
-    cells = {'per sensor': cell_model(BY_LINK), 'mean': cell_model(['upper_arm', 'forearm'])}
+    sensors = {'per sensor': BY_LINK, 'mean': ['upper_arm', 'forearm']}
+    cells = {name: cell_model(v) for name, v in sensors.items()}
+    plain = {name: cell_model(v, ()) for name, v in sensors.items()}
     floor = np.sqrt(3) * SIGMA
-    rows = {name: {'z': [], 'p': [], 'fresh': [], 's': []} for name in cells}
+    rows = {name: {'z': [], 'p': [], 'fresh': [], 's': [], 'both': 0, 'auto_ok': 0,
+                   'auto_fresh': []} for name in cells}
     details = []
     for seed in range(n_seeds):
         data, fresh = shift(cells['per sensor'], seed)
@@ -89,7 +95,15 @@ def main(n_seeds: int = 10) -> str:
             line.append(f'{name}: α3 {result.value(EFFECTS[0].replace(":", ".") + ".alpha"):.3g},'
                         f' α4 {result.value(EFFECTS[1].replace(":", ".") + ".alpha"):.3g} '
                         f'(largest {max(z):.1f}σ), χ²/dof {result.chi2:.1f}/{result.dof} '
-                        f'(p {result.p_value:.2g}), fresh {rows[name]["fresh"][-1] * 1e6:.1f} µm;')
+                        f'(p {result.p_value:.2g}), fresh {rows[name]["fresh"][-1] * 1e6:.1f} µm')
+            auto = calibrate_cell(plain[name], data, model='auto')
+            rows[name]['both'] += set(auto.choice.effects) == set(EFFECTS)
+            rows[name]['auto_ok'] += auto.result.p_value > ADEQUACY_ALPHA
+            auto_cm = auto.cell or plain[name]
+            rows[name]['auto_fresh'].append(fresh_rms(auto_cm, auto.result, fresh))
+            line.append(f'(auto adds {", ".join(auto.choice.effects) or "none"}: p '
+                        f'{auto.result.p_value:.2g}, fresh '
+                        f'{rows[name]["auto_fresh"][-1] * 1e6:.1f} µm);')
         details.append(' '.join(line))
         print(details[-1], flush=True)
     ratio = np.array(rows['mean']['fresh']) / np.array(rows['per sensor']['fresh'])
@@ -97,13 +111,16 @@ def main(n_seeds: int = 10) -> str:
              __doc__.split('\n\n')[1].replace('\n', ' '), '',
              f'{n_seeds} seeds (0..{n_seeds - 1}); noise floor √3 σ = {floor * 1e6:.1f} µm.', '',
              '| ΔT each link reads | both α within 3σ | largest error / σ | χ² p (min, max) | '
-             'fresh rms / floor (median, max) | s per fit |',
-             '|---|---|---|---|---|---|']
+             'fresh rms / floor (median, max) | s per fit | auto adds both growths | '
+             f'auto χ² passed (p > {ADEQUACY_ALPHA:g}) | auto fresh rms / floor (median) |',
+             '|---|---|---|---|---|---|---|---|---|']
     for name, r in rows.items():
         z, p, f = np.array(r['z']), np.array(r['p']), np.array(r['fresh']) / floor
         lines.append(f'| {name} | {int(np.sum(z < 3))}/{n_seeds} | {z.max():.2f} | '
                      f'{p.min():.2g}, {p.max():.2g} | {np.median(f):.2f}, {f.max():.2f} | '
-                     f'{np.median(r["s"]):.1f} |')
+                     f'{np.median(r["s"]):.1f} | {r["both"]}/{n_seeds} | '
+                     f'{r["auto_ok"]}/{n_seeds} | '
+                     f'{np.median(np.array(r["auto_fresh"]) / floor):.2f} |')
     lines += ['', f'Fresh rms of the mean over the per-sensor one: {ratio.min():.2f}–'
               f'{ratio.max():.2f} (median {np.median(ratio):.2f}). The α of the mean fit are '
               'reported with σ scaled by χ²/dof (the model rejected), which is why they can '

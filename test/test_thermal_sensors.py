@@ -232,3 +232,21 @@ def test_the_diagnosis_screens_each_link_at_its_own_temperature(doc):
     assert found['thermal_link_growth:joint_3'] == (UPPER,)
     assert found['thermal_link_growth:joint_4'] == (FORE,)
     assert found['thermal_zero_drift:joint_1'] == (DELTA_TEMPERATURE,)
+
+
+@pytest.mark.slow
+def test_auto_adds_each_links_growth_at_its_own_temperature(doc):
+    """``auto`` on a cell with the sensors mapped and no effects: the screen offers each
+    link's growth at its own sensor, both are added and the χ² test passes; on the cell with
+    the mean it finds no model the χ² test accepts (seed 0; ``bench/thermal_sensors.py``
+    gives 10 seeds)."""
+    from kpi_calib_ros.app.identify import calibrate_cell
+    data, fresh, _ = _two_sensor_shift(doc, 0)
+    own = calibrate_cell(_cell_model(doc, BY_LINK), data, model='auto')
+    assert set(own.choice.effects) == {'thermal_link_growth:joint_3',
+                                       'thermal_link_growth:joint_4'}, own.choice.effects
+    assert [e.inputs for e in own.cell.model.effects] in ([(UPPER,), (FORE,)],
+                                                         [(FORE,), (UPPER,)])
+    assert own.result.p_value > ADEQUACY_ALPHA
+    mean = calibrate_cell(_cell_model(doc, ['upper_arm', 'forearm']), data, model='auto')
+    assert mean.result.p_value < 1e-5, (mean.choice.effects, mean.result.p_value)
