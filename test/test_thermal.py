@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from kpi_calib_ros.app.diagnose import diagnose_cell, recorded_covariates
-from kpi_calib_ros.app.identify import calibrate_cell, identify_cell, with_effects
+from kpi_calib_ros.app.identify import calibrate_cell, geometric_only, identify_cell, with_effects
 from kpi_calib_ros.core.diagnosis.candidates import augmented_model
 from kpi_calib_ros.core.diagnosis.residual_analysis import analyse_calibration
 from kpi_calib_ros.core.diagnosis.residual_inputs import residual_inputs
@@ -58,6 +58,13 @@ def test_temperature_covariates_per_sensor_mean_and_refused_rows():
     cov = temperature_covariates(points, samples, reference_c=20.0, max_gap_ns=120 * S)
     np.testing.assert_allclose(cov['temperature.arm'][:2], 22.0 + 1e-3 * points[:2] / S)
     np.testing.assert_allclose(cov[DELTA_TEMPERATURE][:2], 3.0 + 1e-3 * points[:2] / S)
+    # each sensor's own ΔT beside the mean; only the sensors of the mean get one
+    np.testing.assert_allclose(cov['delta_temperature.arm'][:2], 2.0 + 1e-3 * points[:2] / S)
+    np.testing.assert_allclose(cov['delta_temperature.base'][:2], 4.0 + 1e-3 * points[:2] / S)
+    one = temperature_covariates(points, samples, sensors=['base'], reference_c=20.0,
+                                 max_gap_ns=120 * S)
+    assert 'delta_temperature.arm' not in one and 'temperature.arm' in one
+    np.testing.assert_array_equal(one[DELTA_TEMPERATURE], one['delta_temperature.base'])
     data = Measurements(q=np.zeros((3, 6)), eta=np.zeros((3, 3)), stamps_ns=points)
     kept, refused = with_covariates(data, cov)
     assert len(kept) == 2 and [i for i, _ in refused] == [2]
@@ -216,8 +223,56 @@ def test_temperature_messages_in_a_bag_are_paired_to_the_points(cm, tmp_path):
                                rtol=0, atol=1e-9)
     np.testing.assert_allclose(data.covariates[DELTA_TEMPERATURE],
                                (22.0 + 0.02 * t + 25.0 - 0.01 * t) / 2 - 21.0, atol=1e-9)
+    # and each sensor's own ΔT beside the mean
+    np.testing.assert_allclose(data.covariates['delta_temperature.upper_arm'],
+                               22.0 + 0.02 * t - 21.0, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(data.covariates['delta_temperature.forearm'],
+                               25.0 - 0.01 * t - 21.0, rtol=0, atol=1e-9)
     # without the section nothing is read
     assert measurements_from_bag(cm, path)[0].covariates is None
+
+
+def test_a_cell_that_maps_sensors_to_joints_reads_each_link_from_a_bag(tmp_path):
+    """A cell file whose ``temperature.sensors`` maps the upper-arm and forearm sensors to
+    their joints, a bag with both sensors, effects given as on the command line
+    (``--effects``): each point carries each sensor's ΔT, and the effects the model holds
+    read them, so its prediction grows the upper arm with the upper-arm temperature alone."""
+    import yaml
+
+    from kpi_calib_ros.app.measurements import load_measurements
+    from kpi_calib_ros.io.cell import DEFAULT_CELL
+    doc = yaml.safe_load(DEFAULT_CELL.read_text())
+    doc['robot']['urdf'] = str((DEFAULT_CELL.parent / doc['robot']['urdf']).resolve())
+    doc['temperature'] = {'reference': 21.0, 'sensors': {'upper_arm': ['joint_2', 'joint_3'],
+                                                         'forearm': ['joint_4']}}
+    cell_path = tmp_path / 'cell.yaml'
+    cell_path.write_text(yaml.safe_dump(doc))
+    start = 1_700_000_000 * S
+    ticks = start + np.arange(-7, 80, 7) * S
+    temps = [(int(t), f, base + rate * (t - start) / S) for t in ticks
+             for f, base, rate in (('upper_arm', 22.0, 0.02), ('forearm', 25.0, -0.01))]
+    from kpi_calib_ros.io.cell import build_cell_model, load_cell
+    path, point_stamps = _recorded(build_cell_model(load_cell(cell_path)), tmp_path, temps)
+    cm, data, _ = load_measurements(cell_path, path,
+                                    'thermal_link_growth:joint_3,thermal_zero_drift:joint_4')
+    assert len(data) == len(point_stamps)
+    t = (np.asarray(data.stamps_ns) - start) / S
+    upper, fore = 22.0 + 0.02 * t - 21.0, 25.0 - 0.01 * t - 21.0
+    np.testing.assert_allclose(data.covariates['delta_temperature.upper_arm'], upper, atol=1e-9)
+    np.testing.assert_allclose(data.covariates['delta_temperature.forearm'], fore, atol=1e-9)
+    growth, drift = cm.model.effects
+    assert growth.inputs == ('delta_temperature.upper_arm',)
+    assert drift.inputs == ('delta_temperature.forearm',)
+    # the model's prediction: the upper arm grown by α ΔT_upper (the mean would differ)
+    p = cm.model.params.nominal.copy()
+    p[cm.model.params.names.index('thermal_link_growth.joint_3.alpha')] = 20e-6
+    grown = cm.model.predict(p, data.q, covariates=data.covariates)
+    one = augmented_model(geometric_only(cm).model, (
+        parse_effect_spec('thermal_link_growth:joint_3', cm.robot),))
+    expected = one.predict(np.concatenate([cm.geometric.nominal, [20e-6]]), data.q,
+                           covariates={DELTA_TEMPERATURE: upper})
+    np.testing.assert_allclose(grown, expected, rtol=0, atol=1e-12)
+    assert np.max(np.abs(data.covariates[DELTA_TEMPERATURE] - upper)) > 1.0
 
 
 def test_points_beyond_the_temperature_recording_are_refused(cm, tmp_path):

@@ -83,7 +83,7 @@ def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
         return with_misfit_answer(CellDiagnosis(
             cm.model, data, result, diag, out_of_sample=oos, kept=kept, excluded=excluded,
             expected=expected), covariates)
-    best = parse_effect_spec(diag.best.spec, cm.robot)
+    best = parse_effect_spec(diag.best.spec, cm.robot, temperatures=cm.model.joint_temperatures)
     richer = with_effects(cm, (best,))
     richer_free = None if free is None else level_free(richer.model.params, level,
                                                        len(cm.geometric))

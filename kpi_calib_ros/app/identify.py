@@ -317,12 +317,14 @@ def geometric_only(cm: CellModel) -> CellModel:
     """``cm`` with the geometric model only (no effects)."""
     return dataclasses.replace(cm, model=MeasurementModel(
         cm.robot, cm.geometric, (), cm.cell.reflector_axis, cm.model.orientations,
-        cm.model.rotation_scale, cm.model.joint_sigma))
+        cm.model.rotation_scale, cm.model.joint_sigma, cm.model.joint_temperatures))
 
 
 def with_effects(cm: CellModel, effects: tuple) -> CellModel:
-    """``cm`` with ``effects`` (specs or bound effects) appended to its model."""
-    bound = tuple(parse_effect_spec(e, cm.robot) if isinstance(e, str) else e for e in effects)
+    """``cm`` with ``effects`` (specs or bound effects) appended to its model; a spec reads the
+    cell's temperature sensors as the model's own effects do."""
+    bound = tuple(parse_effect_spec(e, cm.robot, temperatures=cm.model.joint_temperatures)
+                  if isinstance(e, str) else e for e in effects)
     return dataclasses.replace(cm, model=augmented_model(cm.model, bound))
 
 

@@ -58,7 +58,8 @@ def truth_cell_model(cell: Cell) -> tuple[CellModel, dict[str, float]]:
     cm = build_cell_model(cell)
     effects, overrides = hidden_effects(cell.simulation.hidden_effects or None, cm.robot,
                                         base_dir=cell.source_dir or None,
-                                        allow_code=cell.allow_code_effects)
+                                        allow_code=cell.allow_code_effects,
+                                        temperatures=cm.model.joint_temperatures)
     if effects:
         cm = build_cell_model(cell, effects=effects)
     return cm, overrides

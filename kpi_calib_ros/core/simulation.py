@@ -15,6 +15,11 @@ from typing import Callable, Mapping
 import numpy as np
 
 from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.core.measurement.covariates import (
+    REFERENCE_TEMPERATURE_C,
+    TemperatureSample,
+    temperature_covariates,
+)
 from kpi_calib_ros.core.measurement.pose import noisy_rotations
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements
 from kpi_calib_ros.core.model.parameters import ParameterSet
@@ -23,6 +28,7 @@ __all__ = [
     'ErrorMagnitudes', 'true_parameters', 'sampling_bounds', 'random_configurations',
     'measurable_batch', 'one_joint_at_a_time', 'simulate_measurements',
     'simulate_pose_measurements', 'equivalent_parameters', 'smooth_joint_map',
+    'sensor_temperatures',
 ]
 
 _DEG = np.pi / 180.0
@@ -220,6 +226,35 @@ def simulate_measurements(model: MeasurementModel, p_true: np.ndarray, q: np.nda
         q = q + rng.normal(size=q.shape) * np.broadcast_to(np.asarray(joint_sigma, float),
                                                            (q.shape[1],))
     return Measurements(q=q, eta=clean + noise, stamps_ns=stamps_ns, covariates=recorded)
+
+
+def sensor_temperatures(stamps_ns: np.ndarray, celsius: Mapping[str, np.ndarray],
+                        reference_c: float = REFERENCE_TEMPERATURE_C) -> dict[str, np.ndarray]:
+    """Return the covariates of rows stamped ``stamps_ns`` (N,) from several sensors' readings.
+
+    ``celsius`` maps each sensor's frame id to its reading at every stamp, °C (N,) (e.g.
+    :func:`~kpi_calib_ros.core.measurement.covariates.shift_temperature` with a rise of its
+    own per link). The readings go through
+    :func:`~kpi_calib_ros.core.measurement.covariates.temperature_covariates` as recorded
+    samples at the rows' stamps, so the covariates are those a recording of the same readings
+    gives: ``temperature.<frame_id>``, each sensor's ``delta_temperature.<frame_id>`` and their
+    mean ``delta_temperature`` (K). Readings of one sensor at one stamp are averaged.
+    Pass them as ``covariates`` to :func:`simulate_measurements`.
+
+    Raises
+    ------
+    ValueError
+        A reading array of another length than the stamps, or not finite.
+    """
+    stamps = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
+    samples = []
+    for frame_id, values in celsius.items():
+        values = np.asarray(values, float).reshape(-1)
+        if values.shape != stamps.shape or not np.all(np.isfinite(values)):
+            raise ValueError(f'sensor {frame_id!r} needs {len(stamps)} finite readings (°C), '
+                             f'one per stamp, got {values.shape}')
+        samples += [TemperatureSample(int(t), frame_id, float(c)) for t, c in zip(stamps, values)]
+    return temperature_covariates(stamps, samples, tuple(celsius), reference_c)
 
 
 def simulate_pose_measurements(model: MeasurementModel, p_true: np.ndarray, q: np.ndarray,

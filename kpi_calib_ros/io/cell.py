@@ -80,7 +80,11 @@ from kpi_calib_ros.io.cell_settings import (
     parse_topics,
     simulation_settings,
 )
-from kpi_calib_ros.io.cell_temperature import TemperatureSettings, temperature_settings
+from kpi_calib_ros.io.cell_temperature import (
+    TemperatureSettings,
+    joint_temperatures,
+    temperature_settings,
+)
 from kpi_calib_ros.io.cell_values import (
     non_negative,
     number,
@@ -411,7 +415,10 @@ def build_cell_model(cell: Cell, effects: tuple = ()) -> CellModel:
 
     The model holds the cell file's ``effects:`` followed by ``effects`` (specs
     such as ``'joint_compliance:joint_2'`` or bound effects); one given in both
-    counts once.
+    counts once. Specs are bound with the cell's ``temperature.sensors`` mapping (joint names
+    checked against the chain): a listed joint's thermal effects read its sensor's ΔT, and
+    the model keeps the mapping (``MeasurementModel.joint_temperatures``) for effects bound
+    later.
     """
     if not cell.urdf_xml:
         raise ConfigError('robot.urdf', 'no robot description yet; give robot.urdf or the '
@@ -422,14 +429,19 @@ def build_cell_model(cell: Cell, effects: tuple = ()) -> CellModel:
     geometric = geometric_parameters(robot, cell.base_in_tracker, cell.offsets,
                                      cell.reflector_names or None)
     code = cell.allow_code_effects
-    resolved = resolve_effects(cell.effects, robot, 'effects', cell.source_dir or None, code)
-    extra = resolve_effects(effects, robot, 'extra effects', cell.source_dir or None, code)
+    # the temperature each joint's thermal effects read (temperature.sensors mapping)
+    temperatures = joint_temperatures(cell.temperature, robot.joint_names)
+    resolved = resolve_effects(cell.effects, robot, 'effects', cell.source_dir or None, code,
+                               temperatures)
+    extra = resolve_effects(effects, robot, 'extra effects', cell.source_dir or None, code,
+                            temperatures)
     resolved += tuple(e for e in extra if e.name not in {r.name for r in resolved})
     model = MeasurementModel(robot, geometric, resolved, cell.reflector_axis,
                              dict(cell.reflector_orientations),
                              None if cell.sigma_rotation is None
                              else cell.sigma / cell.sigma_rotation,
-                             joint_sigma_vector(cell.joint_sigma, robot.joint_names))
+                             joint_sigma_vector(cell.joint_sigma, robot.joint_names),
+                             temperatures)
     unknown = [n for n in cell.identification_priority if n not in model.params.names]
     if unknown:
         raise ConfigError('identification.priority', f'unknown parameter(s) {unknown}; valid '

@@ -246,9 +246,14 @@ CELL_KEYS: tuple[CellKey, ...] = (
     _K('temperature.topic', 'string', '', '/cell/temperature', 'sensor_msgs/Temperature topic '
        '(°C; `kpi-calib import-csv` writes a table\'s temperature column there).',
        '/arm/temperature'),
-    _K('temperature.sensors', '[frame id, …]', '', '[] (every sensor)', 'Header frame ids of the '
-       'sensors whose mean is the arm\'s temperature (the covariate `delta_temperature`); every '
-       'sensor is kept as `temperature.<frame_id>`.', ['upper_arm', 'forearm']),
+    _K('temperature.sensors', '[frame id, …] or {frame id: [joint, …]}', '', '[] (every sensor)',
+       'Header frame ids of the sensors whose mean is the arm\'s temperature (the covariate '
+       '`delta_temperature`); every sensor is kept as `temperature.<frame_id>` and, when named '
+       'here, its ΔT as `delta_temperature.<frame_id>`. As a mapping, each sensor lists the '
+       'joints (URDF names) whose thermal effects read its ΔT: `thermal_link_growth:J` and '
+       '`thermal_growth` grow the link before J, `thermal_zero_drift:J` drifts J\'s zero; a '
+       'joint under one sensor at most, a list never empty; joints not listed read the mean.',
+       {'upper_arm': ['joint_3'], 'forearm': ['joint_4', 'joint_5']}),
     _K('temperature.reference', 'number', '°C', '20.0', 'Temperature the geometry is stated '
        'at (ISO 1: 20 °C); thermal effects act on ΔT = temperature − reference.', 21.5),
     _K('temperature.max_gap', 'number', 's', '120.0', 'Largest gap between temperature samples '

@@ -229,7 +229,8 @@ def parse_priority(ident: dict, method: str) -> tuple[str, ...]:
 
 # ----------------------------------------------------------------- simulation
 def hidden_effects(doc: Any, robot: RobotModel, key: str = 'simulation.hidden_effects',
-                   base_dir: str | Path | None = None, allow_code: bool = False
+                   base_dir: str | Path | None = None, allow_code: bool = False,
+                   temperatures: Mapping[str, str] | None = None
                    ) -> tuple[tuple[BoundEffect, ...], dict[str, float]]:
     """Effects the simulated "true" robot has and the model lacks.
 
@@ -240,7 +241,9 @@ def hidden_effects(doc: Any, robot: RobotModel, key: str = 'simulation.hidden_ef
             joint_compliance:joint_2: {c: 8.0e-7}
             tracker_scale: {s: 5.0e-6}
 
-    A parameter left out takes the effect's typical size.
+    A parameter left out takes the effect's typical size. ``temperatures``: the temperature
+    each joint's thermal effects read (the cell model's ``joint_temperatures``, see
+    :func:`~kpi_calib_ros.core.effects.registry.bind_effect`).
 
     Returns
     -------
@@ -254,7 +257,8 @@ def hidden_effects(doc: Any, robot: RobotModel, key: str = 'simulation.hidden_ef
         raise ConfigError(key, 'must be a mapping {effect:joint: {parameter: value}}')
     effects, overrides = [], {}
     for spec, values in doc.items():
-        effect = parse_effect_spec(str(spec), robot, f'{key}.{spec}', base_dir, allow_code)
+        effect = parse_effect_spec(str(spec), robot, f'{key}.{spec}', base_dir, allow_code,
+                                   temperatures)
         values = values or {}
         if not isinstance(values, dict):
             raise ConfigError(f'{key}.{spec}',

@@ -9,17 +9,35 @@ which sensors (by frame id) stand for it, and the reference it is counted from.
       reference: 20.0                 # °C; ΔT = mean − reference (ISO 1: 20 °C)
       max_gap: 120.0                  # s: the largest gap bridged by interpolation
 
+``sensors`` may also say which joints each sensor stands for, frame id -> joint names::
+
+    temperature:
+      sensors:                       # a UR arm: the link before a joint is its origin
+        upper_arm: [elbow_joint]     # the upper arm, shoulder to elbow
+        forearm: [wrist_1_joint]     # the forearm, elbow to wrist
+
+The thermal effects of a listed joint read that sensor's own ΔT
+(``delta_temperature.<frame_id>``): ``thermal_link_growth:J`` and ``thermal_growth`` grow the
+link before joint J, ``thermal_zero_drift:J`` drifts J's zero, with the temperature where they
+are. Joints not listed read the mean of every sensor named (the keys), which stays the arm's
+temperature ``delta_temperature``. A joint name is matched against the robot's chain when the
+cell model is built (:func:`joint_temperatures`); a joint may stand under one sensor only.
+
 Without the section no temperature is read and the thermal effects are not candidates.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.core.measurement.covariates import DEFAULT_MAX_GAP_NS, REFERENCE_TEMPERATURE_C
+from kpi_calib_ros.core.measurement.covariates import (
+    DEFAULT_MAX_GAP_NS,
+    REFERENCE_TEMPERATURE_C,
+    delta_temperature_name,
+)
 from kpi_calib_ros.io.names import DEFAULT_TEMPERATURE_TOPIC
 
 TEMPERATURE_KEYS = ('topic', 'sensors', 'reference', 'max_gap')
@@ -27,17 +45,46 @@ TEMPERATURE_KEYS = ('topic', 'sensors', 'reference', 'max_gap')
 
 @dataclass(frozen=True)
 class TemperatureSettings:
-    """The validated ``temperature:`` section (°C, s)."""
+    """The validated ``temperature:`` section (°C, s).
+
+    ``joints``: the mapping form of ``sensors``, (frame id, joint names) per sensor that
+    stands for joints; () in the list form. Its joint names are checked against the chain by
+    :func:`joint_temperatures`.
+    """
 
     topic: str = DEFAULT_TEMPERATURE_TOPIC
     sensors: tuple[str, ...] = ()          # empty: every sensor on the topic
     reference_c: float = REFERENCE_TEMPERATURE_C
     max_gap_s: float = DEFAULT_MAX_GAP_NS / 1e9
+    joints: tuple[tuple[str, tuple[str, ...]], ...] = ()
 
     @property
     def max_gap_ns(self) -> int:
         """The largest gap bridged by interpolation, ns."""
         return int(round(self.max_gap_s * 1e9))
+
+
+def joint_temperatures(settings: TemperatureSettings | None,
+                       joint_names: Sequence[str]) -> dict[str, str]:
+    """Joint name -> the ΔT covariate its thermal effects read (``delta_temperature.<frame>``).
+
+    Empty without a section or in the list form (every joint reads the mean).
+
+    Raises
+    ------
+    ConfigError
+        ``temperature.sensors.<frame_id>`` naming a joint not on the chain, with the chain's
+        joints.
+    """
+    out: dict[str, str] = {}
+    for frame_id, joints in (settings.joints if settings is not None else ()):
+        for joint in joints:
+            if joint not in joint_names:
+                raise ConfigError(f'temperature.sensors.{frame_id}', f'{joint!r} is not a '
+                                  f'joint of the robot chain; name joints of '
+                                  f'{list(joint_names)}')
+            out[joint] = delta_temperature_name(frame_id)
+    return out
 
 
 def temperature_settings(raw: Any) -> TemperatureSettings | None:
@@ -61,12 +108,7 @@ def temperature_settings(raw: Any) -> TemperatureSettings | None:
         raise ConfigError('temperature.topic', 'must be a topic name such as '
                           f'{DEFAULT_TEMPERATURE_TOPIC!r} (sensor_msgs/Temperature), got '
                           f'{topic!r}')
-    sensors = raw.get('sensors') or []
-    if isinstance(sensors, str):
-        sensors = [sensors]
-    if not isinstance(sensors, list) or not all(isinstance(s, str) and s for s in sensors):
-        raise ConfigError('temperature.sensors', 'must be a list of frame ids (the header '
-                          f'frame_id of each sensor\'s messages), got {sensors!r}')
+    sensors, joints = _sensors(raw.get('sensors'))
     values = {}
     for key, default, unit, low, high in (('reference', REFERENCE_TEMPERATURE_C, '°C', -50, 150),
                                           ('max_gap', DEFAULT_MAX_GAP_NS / 1e9, 's', 0, 86400)):
@@ -76,4 +118,49 @@ def temperature_settings(raw: Any) -> TemperatureSettings | None:
             raise ConfigError(f'temperature.{key}', f'must be a number in [{low}, {high}] '
                               f'{unit}, got {value!r}')
         values[key] = float(value)
-    return TemperatureSettings(topic, tuple(sensors), values['reference'], values['max_gap'])
+    return TemperatureSettings(topic, sensors, values['reference'], values['max_gap'], joints)
+
+
+def _sensors(raw: Any) -> tuple[tuple[str, ...], tuple[tuple[str, tuple[str, ...]], ...]]:
+    """``temperature.sensors``: the frame ids, and (frame id, joint names) in the mapping form."""
+    if isinstance(raw, dict):
+        if not raw:
+            raise ConfigError('temperature.sensors', 'an empty mapping names no sensor: give '
+                              'frame_id: [joint names], or leave the key out (every sensor)')
+        joints: list[tuple[str, tuple[str, ...]]] = []
+        seen: dict[str, str] = {}
+        for frame_id, names in raw.items():
+            if not _is_frame_id(frame_id):
+                raise ConfigError('temperature.sensors', f'{frame_id!r} is not a frame id: a key '
+                                  'is the header frame_id of a sensor\'s messages (text without '
+                                  'spaces), its value the joints it stands for')
+            key = f'temperature.sensors.{frame_id}'
+            if not isinstance(names, list) or not names:
+                raise ConfigError(key, 'must be a non-empty list of joint names (the joints '
+                                  'whose thermal effects read this sensor), got '
+                                  f'{names!r}; a sensor that stands for no joint goes in the '
+                                  'mean only: list it in the list form')
+            for name in names:
+                if not isinstance(name, str) or not name.strip():
+                    raise ConfigError(key, f'{name!r} is not a joint name; give the URDF '
+                                      'joint names as text')
+                if name in seen:
+                    raise ConfigError(key, f'joint {name!r} is given twice (also under '
+                                      f'{seen[name]!r}); a joint reads one sensor: keep it '
+                                      'under the sensor on its link')
+                seen[name] = frame_id
+            joints.append((frame_id, tuple(names)))
+        return tuple(f for f, _ in joints), tuple(joints)
+    sensors = raw or []
+    if isinstance(sensors, str):
+        sensors = [sensors]
+    if not isinstance(sensors, list) or not all(_is_frame_id(s) for s in sensors):
+        raise ConfigError('temperature.sensors', 'must be a list of frame ids (the header '
+                          f'frame_id of each sensor\'s messages), or a mapping frame_id: '
+                          f'[joint names], got {sensors!r}')
+    return tuple(sensors), ()
+
+
+def _is_frame_id(value: Any) -> bool:
+    """A header frame id: non-empty text without whitespace."""
+    return isinstance(value, str) and bool(value) and not any(c.isspace() for c in value)

@@ -272,7 +272,8 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
     """
     if candidates is None:
         candidates = candidate_effects(model.robot, exclude=[e.name for e in model.effects],
-                                       covariates=data.covariates or ())
+                                       covariates=data.covariates or (),
+                                       temperatures=model.joint_temperatures)
     sys_ = linearized_fit(model, data, result)
     n = len(data)
     pose_folds = identifiable_folds(sys_.jac, np.atleast_2d(data.q), folds, seed)
@@ -386,7 +387,8 @@ def default_candidates(model: MeasurementModel, data: Measurements, result: Cali
     already in ``model`` are left out. Returns the candidates and the periodograms searched.
     """
     have = {e.name for e in model.effects}
-    library = candidate_effects(model.robot, exclude=have, covariates=data.covariates or ())
+    library = candidate_effects(model.robot, exclude=have, covariates=data.covariates or (),
+                                temperatures=model.joint_temperatures)
     if not general:
         return library, ()
     grams = periodograms(model, data, result)
@@ -530,7 +532,7 @@ def augmented_model(model: MeasurementModel, effects: tuple) -> MeasurementModel
     """``model`` with ``effects`` appended (their parameters after the existing ones)."""
     return MeasurementModel(model.robot, model.geometric, model.effects + tuple(effects),
                             model.reflector_axis, model.orientations, model.rotation_scale,
-                            model.joint_sigma)
+                            model.joint_sigma, model.joint_temperatures)
 
 
 # Candidate models of a base model, by effect name: the screen builds one per candidate

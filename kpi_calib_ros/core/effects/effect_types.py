@@ -165,6 +165,11 @@ class BoundEffect:
     ``searched``: the number of alternatives a search on the same data chose this
     candidate from (a frequency of :mod:`kpi_calib_ros.core.diagnosis.periodic_search`); the screen
     multiplies its p-value by it, so the search counts in the test's level.
+    ``joint_inputs``: the covariates each chain joint's correction reads in place of the
+    kind's ``inputs`` (one tuple per joint, in the order of ``kind.inputs``), or None: the
+    kind's inputs at every joint. :func:`~kpi_calib_ros.core.effects.registry.bind_effect` sets
+    it from the cell's temperature sensors (a joint's thermal effect reads the ΔT of the sensor
+    on its link); the spec and the parameter names stay those of the kind and joint.
     """
 
     kind: EffectType
@@ -180,6 +185,7 @@ class BoundEffect:
     # (n, 3), for a placement effect; set by bind_effect.
     origins: np.ndarray | None = field(default=None, compare=False, repr=False)
     searched: int = field(default=1, compare=False)
+    joint_inputs: tuple[tuple[str, ...], ...] | None = None
 
     def __post_init__(self) -> None:
         """Derive the name, parameter names, units and torque use from the kind and joint."""
@@ -190,11 +196,35 @@ class BoundEffect:
                            tuple(f'{prefix}.{s}' for s in self.kind.parameters))
         object.__setattr__(self, 'units', self.kind.units_for(self.joint_kind))
         object.__setattr__(self, 'uses_torque', self.kind.uses_torque)
+        if self.joint_inputs is not None and (
+                len(self.joint_inputs) != self.n_joints
+                or any(len(names) != len(self.kind.inputs) for names in self.joint_inputs)):
+            raise ValueError(f'effect {self.name!r}: joint_inputs needs one tuple of '
+                             f'{len(self.kind.inputs)} covariate names per joint '
+                             f'({self.n_joints})')
+
+    def _joints(self) -> tuple[int, ...]:
+        """Chain indices of the joints the correction acts on."""
+        if self.joint_index is not None:
+            return (self.joint_index,)
+        if self.kind.placement_function is not None and self.origins is not None:
+            return tuple(j for j in range(self.n_joints) if np.any(self.origins[j] != 0))
+        return tuple(range(self.n_joints))
+
+    def inputs_at(self, joint: int) -> tuple[str, ...]:
+        """Covariates the correction of chain joint ``joint`` reads (``kind.inputs`` order)."""
+        return self.kind.inputs if self.joint_inputs is None else self.joint_inputs[joint]
 
     @property
     def inputs(self) -> tuple[str, ...]:
-        """Covariates the effect reads (``Measurements.covariates`` names)."""
-        return self.kind.inputs
+        """Covariates the effect reads (``Measurements.covariates`` names).
+
+        The kind's, or with ``joint_inputs`` those its joints read, each once, in chain
+        order: the order of the argument ``z`` of its corrections.
+        """
+        if self.joint_inputs is None or not self.kind.inputs:
+            return self.kind.inputs
+        return tuple(dict.fromkeys(n for j in self._joints() for n in self.inputs_at(j)))
 
     @property
     def typical(self) -> tuple[float, ...]:
@@ -217,6 +247,7 @@ class BoundEffect:
             return None
         extra = (z,) if self.kind.inputs else ()
         if self.joint_index is None:
+            # a global joint correction reads the kind's inputs (bind_effect maps none)
             return fn(q, tau, theta, *extra)
         out = ca.SX.zeros(self.n_joints)
         out[self.joint_index] = fn(q[self.joint_index], tau[self.joint_index], theta, *extra)
@@ -230,10 +261,16 @@ class BoundEffect:
         fn = self.kind.placement_function
         if fn is None or self.origins is None:
             return []
-        extra = (z,) if self.kind.inputs else ()
-        joints = range(self.n_joints) if self.joint_index is None else (self.joint_index,)
-        return [(j, fn(ca.DM(self.origins[j]), theta, *extra)) for j in joints
-                if np.any(self.origins[j] != 0)]
+        names = self.inputs
+        out = []
+        for j in self._joints():
+            if not np.any(self.origins[j] != 0):
+                continue
+            # each joint's own covariates, picked from z (in the order of ``inputs``)
+            extra = (ca.vertcat(*[z[names.index(n)] for n in self.inputs_at(j)]),) \
+                if self.kind.inputs else ()
+            out.append((j, fn(ca.DM(self.origins[j]), theta, *extra)))
+        return out
 
     def point_correction(self, point: ca.SX, theta: ca.SX) -> Any:
         """Corrected measured point, SX (3,), or None for a joint effect."""

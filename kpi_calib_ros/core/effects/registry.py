@@ -24,13 +24,17 @@ Thermal effects read the covariate ``delta_temperature`` (ΔT, K: the arm's temp
 minus the cell's reference, :mod:`kpi_calib_ros.core.measurement.covariates`); they are candidates
 only where the measurements carry it::
 
-    thermal_zero_drift    δq_j = d · ΔT                    d  rad/K
-    thermal_link_growth   t_j -> (1 + α ΔT) · t_j          α  1/K (linear expansion)
-    thermal_growth        every t_j -> (1 + α ΔT) · t_j    α  1/K  (global: one material)
+    thermal_zero_drift    δq_j = d · ΔT_j                  d  rad/K
+    thermal_link_growth   t_j -> (1 + α ΔT_j) · t_j        α  1/K (linear expansion)
+    thermal_growth        every t_j -> (1 + α ΔT_j) · t_j  α  1/K  (global: one material)
 
 ``t_j`` is the nominal translation of joint j's origin from its parent (the URDF
 ``<origin xyz>``: the link before the joint); the growth is written into that joint's
 placement error, so the geometric placement stays what it is at the reference temperature.
+``ΔT_j`` is the mean ΔT, or, where the cell assigns joint j to a temperature sensor (its
+``temperature.sensors`` mapping), that sensor's own ΔT (``delta_temperature.<frame_id>``):
+binding with ``temperatures`` (joint name -> covariate name; :func:`bind_effect`) puts any
+effect input ``delta_temperature`` of joint j onto it. The spec stays ``name:joint``.
 Steel grows 11–13 µm/(m K), aluminium 23–24 µm/(m K): α outside ±30e-6 /K is flagged.
 
 Sign of ``joint_compliance``: τ_j is Pinocchio's generalised gravity g(q), the torque
@@ -75,13 +79,14 @@ import math
 import sys
 import warnings
 from pathlib import Path
-from typing import Any, Callable, Iterable, Sequence
+from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
 from kpi_calib_ros.core.effects.effect_types import BoundEffect, EffectType
 from kpi_calib_ros.core.effects.library import LIBRARY, PLAY_TORQUE_UNIT
 from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.core.measurement.covariates import DELTA_TEMPERATURE
 from kpi_calib_ros.core.model.robot import RobotModel
 
 __all__ = [
@@ -144,8 +149,16 @@ def _as_effect_types(obj: Any, where: str) -> list[EffectType]:
 
 # ------------------------------------------------------------------------ specs
 def bind_effect(effect_type: EffectType, robot: RobotModel, joint: str | None,
-                key: str = 'effects') -> BoundEffect:
-    """Bind ``effect_type`` to ``joint`` of ``robot`` (None for a global effect)."""
+                key: str = 'effects', temperatures: Mapping[str, str] | None = None
+                ) -> BoundEffect:
+    """Bind ``effect_type`` to ``joint`` of ``robot`` (None for a global effect).
+
+    ``temperatures`` maps joint names to the covariate their thermal effects read in place of
+    the arm's mean ``delta_temperature`` (``delta_temperature.<frame_id>`` of the sensor on
+    that joint's link, the cell's ``temperature.sensors`` mapping): an input
+    ``delta_temperature`` of the effect at such a joint reads it (per joint; for a global
+    placement effect, at each joint it moves). Joints left out read the mean.
+    """
     names = robot.joint_names
     if effect_type.per_joint:
         if joint not in names:
@@ -159,11 +172,37 @@ def bind_effect(effect_type: EffectType, robot: RobotModel, joint: str | None,
                               f'{list(effect_type.joint_kinds or ())} joints; {joint!r} is '
                               f'{kind}')
         return BoundEffect(effect_type, joint, index, len(names), kind,
-                           origins=_origins(effect_type, robot))
+                           origins=_origins(effect_type, robot),
+                           joint_inputs=_joint_inputs(effect_type, names, temperatures,
+                                                      joint))
     if joint is not None:
         raise ConfigError(key, f'effect {effect_type.name!r} is global; write '
                           f'{effect_type.name!r} without a joint')
-    return BoundEffect(effect_type, None, None, len(names), origins=_origins(effect_type, robot))
+    return BoundEffect(effect_type, None, None, len(names), origins=_origins(effect_type, robot),
+                       joint_inputs=_joint_inputs(effect_type, names, temperatures))
+
+
+def _joint_inputs(effect_type: EffectType, names: Sequence[str],
+                  temperatures: Mapping[str, str] | None, joint: str | None = None
+                  ) -> tuple[tuple[str, ...], ...] | None:
+    """Return the covariates each joint reads with ``temperatures`` (see :func:`bind_effect`).
+
+    None where nothing changes: no temperature input, no assignment, or (per joint) its joint
+    not assigned; a global joint correction is one function of every joint and reads the
+    kind's inputs. Per joint, the other joints keep the kind's inputs, so one effect bound
+    for two cells that assign its joint alike is the same effect.
+    """
+    if not temperatures or DELTA_TEMPERATURE not in effect_type.inputs:
+        return None
+    if joint is None and effect_type.placement_function is None:
+        return None
+    unknown = sorted(set(temperatures) - set(names))
+    if unknown:
+        raise ValueError(f'temperatures name joints {unknown} not on the chain {list(names)}')
+    out = tuple(tuple(temperatures.get(name, i)
+                      if i == DELTA_TEMPERATURE and joint in (None, name) else i
+                      for i in effect_type.inputs) for name in names)
+    return None if all(t == effect_type.inputs for t in out) else out
 
 
 def _origins(effect_type: EffectType, robot: RobotModel) -> np.ndarray | None:
@@ -188,7 +227,8 @@ ARGUMENT_EFFECTS: dict[str, Callable[[RobotModel, str | None, str, str], BoundEf
 
 def parse_effect_spec(spec: str, robot: RobotModel, key: str = 'effects',
                       base_dir: str | Path | None = None,
-                      allow_code: bool = False) -> BoundEffect:
+                      allow_code: bool = False,
+                      temperatures: Mapping[str, str] | None = None) -> BoundEffect:
     """Resolve ``'effect[:joint]'`` or ``'module:attribute[:joint]'`` to an effect.
 
     ``module`` is an importable module or a ``.py`` file (relative to
@@ -196,7 +236,9 @@ def parse_effect_spec(spec: str, robot: RobotModel, key: str = 'effects',
     :class:`EffectType` or a callable returning one. Loading it runs its code, so
     this form needs ``allow_code=True`` (``--allow-code-effects`` on the command
     line, ``allow_code_effects`` on the node): a data file alone never runs code.
-    Built-in effects and installed entry points need no opt-in.
+    Built-in effects and installed entry points need no opt-in. ``temperatures``: the
+    temperature each joint's thermal effects read (:func:`bind_effect`; a cell's model keeps
+    it as ``MeasurementModel.joint_temperatures``).
 
     Raises
     ------
@@ -217,7 +259,8 @@ def parse_effect_spec(spec: str, robot: RobotModel, key: str = 'effects',
         if len(parts) > 2:
             raise ConfigError(key, f'{spec!r}: write effect:joint, e.g. {parts[0]}:'
                               f'{robot.joint_names[min(1, robot.n_joints - 1)]}')
-        return bind_effect(known[parts[0]], robot, parts[1] if len(parts) == 2 else None, where)
+        return bind_effect(known[parts[0]], robot, parts[1] if len(parts) == 2 else None, where,
+                           temperatures)
     if len(parts) in (2, 3) and ('.' in parts[0] or parts[0].endswith('.py')):
         if not allow_code:
             raise ConfigError(key, f'{spec!r} names Python code ({parts[0]}), which is not run '
@@ -225,7 +268,8 @@ def parse_effect_spec(spec: str, robot: RobotModel, key: str = 'effects',
                               'the node parameter allow_code_effects:=true, if you trust '
                               f'it; built-in effects are {sorted(known)}')
         effect_type = _load_user_effect(parts[0], parts[1], key, spec, base_dir)
-        return bind_effect(effect_type, robot, parts[2] if len(parts) == 3 else None, where)
+        return bind_effect(effect_type, robot, parts[2] if len(parts) == 3 else None, where,
+                           temperatures)
     every = sorted(set(known) | set(CHAIN_EFFECTS) | set(ARGUMENT_EFFECTS))
     raise ConfigError(key, f'{spec!r}: unknown effect {parts[0]!r}; valid effects are '
                       f'{every}, written effect:joint with a '
@@ -263,15 +307,16 @@ def _load_user_effect(module: str, attribute: str, key: str, spec: str,
 
 def resolve_effects(specs: Iterable[str | BoundEffect], robot: RobotModel,
                     key: str = 'effects', base_dir: str | Path | None = None,
-                    allow_code: bool = False) -> tuple[BoundEffect, ...]:
+                    allow_code: bool = False, temperatures: Mapping[str, str] | None = None
+                    ) -> tuple[BoundEffect, ...]:
     """Resolve specs (or pass bound effects through); duplicates are an error.
 
-    ``allow_code``: see :func:`parse_effect_spec`.
+    ``allow_code``, ``temperatures``: see :func:`parse_effect_spec`.
     """
     out: list[BoundEffect] = []
     for i, spec in enumerate(specs):
         effect = spec if not isinstance(spec, str) else parse_effect_spec(
-            spec, robot, f'{key}[{i}]', base_dir, allow_code)
+            spec, robot, f'{key}[{i}]', base_dir, allow_code, temperatures)
         if any(e.name == effect.name for e in out):
             raise ConfigError(f'{key}[{i}]', f'effect {effect.name!r} is given twice')
         out.append(effect)
@@ -285,17 +330,19 @@ def split_specs(text: str) -> list[str]:
 
 def candidate_effects(robot: RobotModel, kinds: Sequence[str] | None = None,
                       exclude: Iterable[str] = (),
-                      covariates: Iterable[str] = ()) -> list[BoundEffect]:
+                      covariates: Iterable[str] = (),
+                      temperatures: Mapping[str, str] | None = None) -> list[BoundEffect]:
     """Every (effect × joint) to screen: the ``screen`` library effects by default.
 
     ``exclude`` holds effect names (specs) already in the model; ``covariates`` the names
     the measurements carry: by default an effect that reads covariates is a candidate only
-    where all its inputs are among them.
+    where all the inputs it reads as bound are among them. ``temperatures``: the temperature
+    each joint's thermal effects read (:func:`bind_effect`).
     """
     known = available_effects()
+    present = set(covariates)
     if kinds is None:
-        present = set(covariates)
-        chosen = [t for t in known.values() if t.screen and set(t.inputs) <= present]
+        chosen = [t for t in known.values() if t.screen]
     else:
         unknown = [k for k in kinds if k not in known]
         if unknown:
@@ -310,9 +357,10 @@ def candidate_effects(robot: RobotModel, kinds: Sequence[str] | None = None,
             if joint is not None and not effect_type.applies_to(
                     robot.joints[robot.joint_names.index(joint)].kind):
                 continue  # e.g. no cyclic (angle) error on a prismatic joint
-            effect = bind_effect(effect_type, robot, joint)
-            if effect.name not in skip:
-                out.append(effect)
+            effect = bind_effect(effect_type, robot, joint, temperatures=temperatures)
+            if effect.name in skip or (kinds is None and not set(effect.inputs) <= present):
+                continue
+            out.append(effect)
     return out
 
 

@@ -6,6 +6,7 @@ from kpi_calib_ros.core.measurement.covariates import (
     TEMPERATURE_PREFIX,
     TemperatureSample,
     covariate_name,
+    delta_temperature_name,
     interpolate,
     shift_temperature,
     temperature_covariates,
@@ -39,7 +40,7 @@ from kpi_calib_ros.core.measurement.tracker import (
 __all__ = [
     'DEFAULT_MAX_GAP_NS', 'DELTA_TEMPERATURE', 'Effect', 'MeasurementModel', 'Measurements',
     'REFERENCE_TEMPERATURE_C', 'SAME_POSE_TOLERANCE', 'TEMPERATURE_PREFIX', 'TemperatureSample',
-    'covariate_name', 'effect_inputs', 'interpolate', 'log3_expression',
+    'covariate_name', 'delta_temperature_name', 'effect_inputs', 'interpolate', 'log3_expression',
     'measured_rotation_input', 'noise_weights', 'noisy_rotations', 'pose_groups', 'pose_matrix',
     'quaternion_from_rotation', 'rotation_exp', 'rotation_from_quaternion', 'rotation_from_rpy',
     'rotation_residual_expression', 'row_sigma', 'same_pose', 'shift_temperature',

@@ -12,6 +12,11 @@ states are paired (:mod:`kpi_calib_ros.core.acquisition.pairing`), and keeps it 
     thermal effects (:mod:`kpi_calib_ros.core.effects.registry`) read this one; at ΔT = 0 they
     vanish, so the geometric parameters are those of the arm at the reference temperature and a
     prediction without covariates (a design, the KPI, fresh poses) is one at it.
+``delta_temperature.<frame_id>``
+    ΔT of one configured sensor alone, K (its reading minus the reference). A thermal effect
+    of a joint the cell assigns to that sensor reads this one in place of the mean (the cell's
+    ``temperature.sensors`` mapping; :func:`kpi_calib_ros.core.effects.registry.bind_effect`):
+    the upper arm and the forearm warm differently, and a link grows with its own temperature.
 
 Only differences of temperature enter a model, so °C and K are interchangeable for ΔT; the
 raw readings stay in °C as the message carries them. A stamp is given the value linearly
@@ -33,8 +38,8 @@ from kpi_calib_ros.core.measurement.tracker import Measurements
 
 __all__ = [
     'TEMPERATURE_PREFIX', 'DELTA_TEMPERATURE', 'REFERENCE_TEMPERATURE_C', 'DEFAULT_MAX_GAP_NS',
-    'TemperatureSample', 'covariate_name', 'interpolate', 'temperature_covariates',
-    'with_covariates', 'shift_temperature',
+    'TemperatureSample', 'covariate_name', 'delta_temperature_name', 'interpolate',
+    'temperature_covariates', 'with_covariates', 'shift_temperature',
 ]
 
 TEMPERATURE_PREFIX = 'temperature.'
@@ -55,6 +60,11 @@ class TemperatureSample:
 def covariate_name(frame_id: str) -> str:
     """Return the covariate name of a temperature sensor: ``temperature.<frame_id>``."""
     return TEMPERATURE_PREFIX + frame_id
+
+
+def delta_temperature_name(frame_id: str) -> str:
+    """Return the covariate name of one sensor's ΔT: ``delta_temperature.<frame_id>``."""
+    return f'{DELTA_TEMPERATURE}.{frame_id}'
 
 
 def interpolate(stamps_ns: np.ndarray, sample_stamps_ns: np.ndarray, values: np.ndarray,
@@ -98,9 +108,11 @@ def temperature_covariates(stamps_ns: np.ndarray, samples: Iterable[TemperatureS
                            max_gap_ns: int = DEFAULT_MAX_GAP_NS) -> dict[str, np.ndarray]:
     """Return the covariates (N,) of rows stamped ``stamps_ns``.
 
-    Every sensor's ``temperature.<frame_id>`` (°C) and ``delta_temperature`` (K), the mean of
-    ``sensors`` (frame ids; empty: every sensor recorded) minus ``reference_c``. NaN where a
-    value is unknown (:func:`interpolate`).
+    Every sensor's ``temperature.<frame_id>`` (°C); ``delta_temperature`` (K), the mean of
+    ``sensors`` (frame ids; empty: every sensor recorded) minus ``reference_c``; and for each
+    of those sensors its own ``delta_temperature.<frame_id>`` (K), its reading minus
+    ``reference_c``. NaN where a value is unknown (:func:`interpolate`); the mean is NaN
+    where any of its sensors is.
 
     Raises
     ------
@@ -126,6 +138,8 @@ def temperature_covariates(stamps_ns: np.ndarray, samples: Iterable[TemperatureS
     if used:
         out[DELTA_TEMPERATURE] = (np.mean([out[covariate_name(f)] for f in used], axis=0)
                                   - reference_c)
+    for frame_id in used:
+        out[delta_temperature_name(frame_id)] = out[covariate_name(frame_id)] - reference_c
     return out
 
 

@@ -204,6 +204,13 @@ class MeasurementModel:
     joint_sigma : (n,) array, optional
         Standard deviation of each joint reading (rad, m for prismatic joints) in chain
         order; None (default): exact joint readings, every row weighted by 1/σ alone.
+    joint_temperatures : mapping {joint name: covariate name}, optional
+        The temperature each joint's thermal effects read, where it is not the arm's mean
+        ``delta_temperature`` (the cell's ``temperature.sensors`` mapping, e.g.
+        ``{'joint_3': 'delta_temperature.upper_arm'}``). The model keeps it so that effects
+        bound later for it (the diagnosis's candidates, an effect added by name) read the same
+        sensors as its own; its effects are bound with it already
+        (:func:`kpi_calib_ros.core.effects.registry.bind_effect`).
     """
 
     def __init__(self, robot: RobotModel, geometric: ParameterSet,
@@ -211,8 +218,14 @@ class MeasurementModel:
                  reflector_axis: np.ndarray | Sequence[float] = (0.0, 0.0, 1.0),
                  orientations: Mapping[int, np.ndarray] | None = None,
                  rotation_scale: np.ndarray | Sequence[float] | None = None,
-                 joint_sigma: np.ndarray | Sequence[float] | None = None) -> None:
+                 joint_sigma: np.ndarray | Sequence[float] | None = None,
+                 joint_temperatures: Mapping[str, str] | None = None) -> None:
         self.robot = robot
+        self.joint_temperatures: dict[str, str] = dict(joint_temperatures or {})
+        unknown = sorted(set(self.joint_temperatures) - set(robot.joint_names))
+        if unknown:
+            raise ValueError(f'joint_temperatures name joints {unknown} not on the chain '
+                             f'{robot.joint_names}')
         self.joint_sigma = None if joint_sigma is None else np.asarray(joint_sigma, float)
         if self.joint_sigma is not None and (
                 self.joint_sigma.shape != (robot.n_joints,)
