@@ -61,6 +61,8 @@ class CalibrationRestore(JobNode):
         """Read data_dir/calibration.yaml back for this cell and publish it as the
         calibration; DataError (logged by the job) names the file and why it is not used."""
         cm, path = self._model(), self.data_dir / CALIBRATION_FILE
+        if self._run.result is not None:  # a job of this run published one first
+            return True, f'{path} not restored: this run has published a newer calibration'
         try:
             stored = await self._offload(read_stored_calibration, cm, path)
         except KpiCalibError as exc:
