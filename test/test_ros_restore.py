@@ -3,13 +3,17 @@
 restart, a late subscriber gets the same ~/calibration and ~/tcp, /diagnostics says
 where it came from and ~/tcp_query answers with the same TCP; a calibration.yaml of
 another robot, or a damaged one, is refused with the file and the reason in the log,
-and the node runs without a calibration."""
+and the node runs without a calibration. In process: ~/validate tests the restored
+calibration on the measurements stamped after it, and ~/reset drops it."""
 from __future__ import annotations
+
+import threading
 
 import numpy as np
 import pytest
 import yaml
 from geometry_msgs.msg import PoseWithCovarianceStamped
+from rclpy.executors import SingleThreadedExecutor
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 
@@ -26,7 +30,7 @@ from kpi_calib_ros.io.measurement_log import MeasurementLog
 from kpi_calib_ros.io.ros_messages import time_msg
 from kpi_calib_ros.ros import jobs
 
-from ros_helpers import LATCHED, NS
+from ros_helpers import LATCHED, NS, idle_node
 
 N_POSES = 30
 N_QUERIES = 3
@@ -86,6 +90,16 @@ class Queries:
                                         'TCP query dropped: no calibration yet'
                                         in node.output())[1], 20, 'the query dropped')
         assert 7 not in self.answers
+
+
+def _call(node, executor, name, work):
+    """Run the job ``work`` on the node's executor (as a service would) to its answer."""
+    assert node._claim_job(name)
+    task = executor.create_task(node._run_job, name, work)
+    done = threading.Event()
+    task.add_done_callback(lambda _: done.set())
+    assert done.wait(timeout=60), f'{name} did not finish'
+    return task.result()
 
 
 @pytest.mark.slow
@@ -193,3 +207,42 @@ def test_a_calibration_of_another_robot_or_a_damaged_one_is_not_used(cm, client,
         client.spin_until(lambda: not queries.publisher.get_subscription_count(), 20,
                           'the node gone')
         client.received.clear()
+
+
+def test_validate_and_reset_after_a_restore(cm, tmp_path, ros_domain):
+    """In process: the restored calibration is validated on the measurements stamped after
+    it (those it was fitted to are not new), and ~/reset drops it with the run's results
+    (calibration.yaml archived)."""
+    q, eta, stamps, _ = simulated(cm, seed=10)
+    train = slice(0, 24)
+    pairing = PairingResult(cm.joint_names, cm.cell.tracker_frame, q[train], eta[train],
+                            stamps[train])
+    cal, text, *_ = jobs.identify_work(cm, Measurements(q=q[train], eta=eta[train],
+                                                       stamps_ns=stamps[train]),
+                                       pairing, tmp_path)
+    assert cal is not None and cal.valid
+    with MeasurementLog(tmp_path) as log:  # the training poses and 6 measured after
+        for qi, ei, t in zip(q, eta, stamps):
+            log.append(JointSample(int(t), tuple(cm.joint_names), qi),
+                       PointSample(int(t), cm.cell.tracker_frame, ei))
+    with idle_node(tmp_path, ros_domain) as node:
+        assert node._run.restore_pending
+        node._run.restore_pending = False  # run here rather than by the node's timer
+        executor = SingleThreadedExecutor(context=node.context)
+        executor.add_node(node)
+        spinner = threading.Thread(target=executor.spin, daemon=True)
+        spinner.start()
+        try:
+            ok, message = _call(node, executor, 'restoring', node._restore)
+            assert ok and message.startswith(f'restored from {tmp_path / "calibration.yaml"}')
+            assert node._calibration_text == text and node._run.result is None
+            ok, message = _call(node, executor, 'validating', node._validate)
+            assert ok and message.startswith(f'calibration holds on {N_POSES - 24} new '
+                                             'measurements'), message
+            ok, message = _call(node, executor, 'resetting', node._reset)
+            assert ok, message
+            assert node._run.restored is None and node._run.published_tcp() == (None, None)
+            assert not (tmp_path / 'calibration.yaml').exists()
+        finally:
+            executor.shutdown()
+            spinner.join(timeout=10)
