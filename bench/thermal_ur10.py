@@ -98,6 +98,7 @@ def main() -> str:
                  f' | {cal.result.rms_m * 1e3:.3f} | {rms(chosen, cal.result, later) * 1e3:.3f} | '
                  f'{time.perf_counter() - t0:.0f} |')
     print(lines[-1], flush=True)
+    lines += ['', f'auto: {cal.choice.reason}']
     text = '\n'.join(lines) + '\n'
     (HERE / 'results' / 'thermal_ur10.md').write_text(text)
     print(text)

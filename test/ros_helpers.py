@@ -35,6 +35,7 @@ from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import MarkerArray
 
+from kpi_calib_ros.core.acquisition.streams import synthesize_streams
 from kpi_calib_ros.io.cell import DEFAULT_CELL
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros.node import CalibrationNode
@@ -172,6 +173,29 @@ class Client:
         self.executor.spin_until_future_complete(future, timeout_sec=timeout)
         assert future.done(), f'{NS}/{service} did not answer within {timeout} s'
         return future.result()
+
+    def publish_measurements(self, q: Any, joint_names: Any, eta: Any, frame: str,
+                             accepted: int, timeout: float = 60.0) -> None:
+        """Publish static poses ``q`` with their points ``eta`` as a robot and a tracker
+        would (joint states at 20 Hz, a point while each pose is held) on the node's
+        measurement topics, and wait until it has accepted ``accepted`` measurements."""
+        joints, points = synthesize_streams(q, joint_names, eta, frame, rate_hz=20.0,
+                                            move_time_s=0.2, hold_time_s=0.6)
+        stream = sorted([(s.stamp_ns, 0, cv.joint_state_msg(s)) for s in joints]
+                        + [(s.stamp_ns, 1, cv.point_stamped_msg(s)) for s in points],
+                        key=lambda item: item[:2])
+        # Deep enough for every message: a reliable writer never drops an unacknowledged one.
+        depth = QoSProfile(depth=len(stream), reliability=ReliabilityPolicy.RELIABLE)
+        publishers = (self.node.create_publisher(JointState, '/joint_states', depth),
+                      self.node.create_publisher(PointStamped, '/laser_tracker/point', depth))
+        self.spin_until(lambda: all(p.get_subscription_count() for p in publishers), 20,
+                        'the node on the measurement topics')
+        for i, (_, kind, msg) in enumerate(stream):
+            publishers[kind].publish(msg)
+            if not i % 200:
+                self.executor.spin_once(timeout_sec=0.0)
+        self.spin_until(lambda: self.count('accepted') == accepted, timeout,
+                        f'{accepted} accepted measurements')
 
     def close(self) -> None:
         self.executor.shutdown()

@@ -10,16 +10,14 @@ import numpy as np
 import pytest
 import rclpy
 import yaml
-from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
+from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.context import Context
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
-from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
 from kpi_calib_ros.app.learned_residual import predict_stored
 from kpi_calib_ros.core.acquisition.pairing import PairingResult
-from kpi_calib_ros.core.acquisition.streams import synthesize_streams
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.simulation import (
@@ -31,7 +29,6 @@ from kpi_calib_ros.core.simulation import (
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 from kpi_calib_ros.io.learned_residual_file import read_residual
 from kpi_calib_ros.io.ros_messages import time_msg
-from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros import jobs
 from kpi_calib_ros.ros.node import CalibrationNode
 from kpi_calib_ros.ros.parameters import PARAMETERS, settings_from_parameters
@@ -123,16 +120,6 @@ def test_identify_learns_the_residual_and_tcp_query_uses_it(client, spawn, tmp_p
     data_dir = tmp_path / 'data'
     learned_file = data_dir / 'learned_residual.yaml'
     node = spawn(data_dir, 'node.log', 'auto_identify:=false')
-    joints, points = synthesize_streams(q, cm.joint_names, eta, cm.cell.tracker_frame,
-                                        rate_hz=20.0, move_time_s=0.2, hold_time_s=0.6)
-    stream = sorted([(s.stamp_ns, 0, cv.joint_state_msg(s)) for s in joints]
-                    + [(s.stamp_ns, 1, cv.point_stamped_msg(s)) for s in points],
-                    key=lambda item: item[:2])
-    # Deep enough for every message: a reliable writer never drops an unacknowledged one.
-    depth = QoSProfile(depth=len(stream), reliability=ReliabilityPolicy.RELIABLE)
-    publishers = (client.node.create_publisher(JointState, '/joint_states', depth),
-                  client.node.create_publisher(PointStamped, '/laser_tracker/point',
-                                               depth))
     answers: dict[int, PoseWithCovarianceStamped] = {}
     answered = client.node.create_subscription(
         PoseWithCovarianceStamped, f'{NS}/tcp_corrected',
@@ -143,12 +130,7 @@ def test_identify_learns_the_residual_and_tcp_query_uses_it(client, spawn, tmp_p
                       and query.get_subscription_count() and answered.get_publisher_count(),
                       60, 'the model and the TCP query topics')
     try:
-        for i, (_, kind, msg) in enumerate(stream):
-            publishers[kind].publish(msg)
-            if not i % 200:
-                client.executor.spin_once(timeout_sec=0.0)
-        client.spin_until(lambda: client.count('accepted') == N_POSES, 60,
-                          f'{N_POSES} accepted measurements')
+        client.publish_measurements(q, cm.joint_names, eta, cm.cell.tracker_frame, N_POSES)
 
         def tcp_answers(round_: int) -> np.ndarray:
             """The node's TCP (m) at the fresh poses: one query each, as a client asks

@@ -19,16 +19,14 @@ import numpy as np
 import pytest
 import scipy.stats
 import yaml
-from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
+from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
-from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 
 from kpi_calib_ros.app.learned_residual import predict_stored
 from kpi_calib_ros.app.validate import calibrated_model
-from kpi_calib_ros.core.acquisition.streams import synthesize_streams
 from kpi_calib_ros.core.diagnosis.candidates import augmented_model
 from kpi_calib_ros.core.simulation import (
     random_configurations,
@@ -41,7 +39,6 @@ from kpi_calib_ros.io.cell_settings import hidden_effects
 from kpi_calib_ros.io.learned_residual_file import read_residual
 from kpi_calib_ros.io.resources import resolve_uri
 from kpi_calib_ros.io.ros_messages import time_msg
-from kpi_calib_ros.ros import conversions as cv
 
 from ros_helpers import NS, Client
 
@@ -134,23 +131,7 @@ def test_auto_effects_and_the_learned_residual_on_a_stock_arm(ros_domain, spawn,
                           60, 'the robot model and the TCP query topics')
     try:
         ready()
-        joints, points = synthesize_streams(q, cm.joint_names, eta, cm.cell.tracker_frame,
-                                            rate_hz=20.0, move_time_s=0.2, hold_time_s=0.6)
-        stream = sorted([(s.stamp_ns, 0, cv.joint_state_msg(s)) for s in joints]
-                        + [(s.stamp_ns, 1, cv.point_stamped_msg(s)) for s in points],
-                        key=lambda item: item[:2])
-        # Deep enough for every message: a reliable writer never drops an unacknowledged one.
-        depth = QoSProfile(depth=len(stream), reliability=ReliabilityPolicy.RELIABLE)
-        publishers = (client.node.create_publisher(JointState, '/joint_states', depth),
-                      client.node.create_publisher(PointStamped, '/laser_tracker/point', depth))
-        client.spin_until(lambda: all(p.get_subscription_count() for p in publishers), 20,
-                          'the node on the measurement topics')
-        for i, (_, kind, msg) in enumerate(stream):
-            publishers[kind].publish(msg)
-            if not i % 200:
-                client.executor.spin_once(timeout_sec=0.0)
-        client.spin_until(lambda: client.count('accepted') == N_POSES, 60,
-                          f'{N_POSES} accepted measurements')
+        client.publish_measurements(q, cm.joint_names, eta, cm.cell.tracker_frame, N_POSES)
 
         done = client.call('identify', timeout=120)
         print('identify:', done.message)

@@ -435,15 +435,20 @@ def field_parameter_covariance(model: LearnedResidual, q: np.ndarray,
     poses, and the fit absorbed part of it into the parameters. With the estimate
     p̂ − p = C₀ Fᵀ W ε (C₀ the covariance from the stated σ, F the Jacobian, W the rows'
     weights) and ε the white noise w plus the field of covariance
-    c · k(q_i, q_j) A (the fitted kernel and output shape), the parameters' covariance is
+    c · k(q_i, q_j) I₃ (the fitted kernel), the parameters' covariance is
 
-        C = s C₀ + C₀ (Σ_ij k_ij c H_iᵀ A H_j) C₀,   H_i = W_iᵀ W_i J_i,
+        C = s C₀ + C₀ (Σ_ij k_ij c H_iᵀ H_j) C₀,   H_i = W_iᵀ W_i J_i,
 
     s the noise the learned residual leaves over the stated σ²
     (:func:`residual_noise_scale`). Propagated to a pose far from the training poses it
     is what the parameters' error adds there, where the correction has returned to 0.
     With few, widely spread poses it stays near s C₀; with many correlated ones it says
     what the χ² scaling cannot: correlated rows carry less information than their number.
+
+    The field is taken isotropic here, not with the output shape A: A is the shape of the
+    residuals, which lack the part of the field the parameters absorbed (the projection
+    onto the Jacobian's columns), so it tells nothing of that part's shape; c, the
+    field's variance per axis, is kept.
 
     Parameters
     ----------
@@ -467,9 +472,7 @@ def field_parameter_covariance(model: LearnedResidual, q: np.ndarray,
     h = np.asarray(precision_jacobian, float).reshape(len(q), 3, -1)
     c0 = np.asarray(covariance, float)
     kq = model.amplitude_m2 * RBF(model.length_scales)(q)
-    shape = np.asarray(model.output_shape)
-    meat = sum(shape[a, b] * (h[:, a, :].T @ kq @ h[:, b, :])
-               for a in range(3) for b in range(3))
+    meat = sum(h[:, a, :].T @ kq @ h[:, a, :] for a in range(3))
     field = c0 @ meat @ c0
     return noise_scale * c0 + 0.5 * (field + field.T)
 
