@@ -7,7 +7,8 @@ no effect describes. ~/identify with identify_learned_residual adds the complian
 the rest and writes learned_residual.yaml for the augmented model; ~/tcp_query (joints by
 name, in any order, the fingers too) answers at fresh poses in the training region closer
 to the truth than the calibration's physical model, the truth inside the stated 95 %
-ellipsoid at a plausible share; a node restarted on the same data_dir answers the same;
+ellipsoid at a plausible share; a node restarted on the same data_dir restores its
+calibration (the augmented model) and answers the same;
 switched off, the next calibration removes the file and the physical model (with the
 compliance) answers."""
 from __future__ import annotations
@@ -178,6 +179,10 @@ def test_auto_effects_and_the_learned_residual_on_a_stock_arm(ros_domain, spawn,
         client.received['diagnostics'].clear()
         node = spawn(data_dir, 'node_restarted.log', *overrides)
         ready()
+        # Its calibration, the model auto augmented, is restored with it (ros/restore.py).
+        client.spin_until(lambda: 'calibration' in client.diagnostics(), 30, 'the restore')
+        assert client.diagnostics()['calibration'].startswith(
+            f"restored from {data_dir / 'calibration.yaml'}, identified at"), node.output()
         again = ask(fresh[0], 10 ** 9)
         np.testing.assert_allclose(again[0], corrected[0], rtol=0, atol=1e-9)
         np.testing.assert_allclose(again[1], covariance[0], rtol=1e-9, atol=0)

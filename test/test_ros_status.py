@@ -55,6 +55,30 @@ def test_an_identified_run_reports_its_fit_and_the_running_job():
     assert list(values)[:3] == ['state', 'accepted', 'restored']
 
 
+def restored(p_value: float) -> SimpleNamespace:
+    """A calibration.yaml read back at start (app.stored_calibration.StoredCalibration)."""
+    return SimpleNamespace(rms_m=2.5e-5, p_value=p_value,
+                           summary=lambda: 'restored from /d/calibration.yaml, identified '
+                                           'at 17 ns')
+
+
+def test_a_restored_calibration_is_reported_until_a_fit_replaces_it():
+    level, message, values = node_status(RunState(restored=restored(0.4), identified_with=30),
+                                         counts(30), StreamHealth())
+    assert (level, message) == ('OK', '30 accepted, calibration restored from '
+                                '/d/calibration.yaml, identified at 17 ns')
+    assert values['rms_um'] == 25.0 and values['p_value'] == 0.4
+    assert 'converged' not in values and values['identifications'] == 0
+    # Restored, a model that was not adequate warns as it did when it was identified.
+    level, message, _ = node_status(RunState(restored=restored(1e-9)), counts(30),
+                                    StreamHealth())
+    assert (level, message) == ('WARN', 'model inadequate (p = 1e-09)')
+    # A fit of this run is the calibration: the restored one is no longer reported.
+    _, message, values = node_status(RunState(result=fit(), restored=restored(0.4)),
+                                     counts(30), StreamHealth())
+    assert message == '30 accepted, rms 25.0 µm' and 'calibration' not in values
+
+
 @pytest.mark.parametrize('run, c, streams, model_error, expected', [
     (RunState(result_error='identification failed: disk full', result=fit(p_value=1e-9)),
      counts(5, rejected=2), StreamHealth(lost_points=1), '',

@@ -8,7 +8,8 @@ replayed bag and ``kpi-calib identify`` agree and a killed node loses nothing.
 
 Services (std_srvs/srv/Trigger): ``~/design``, ``~/identify``, ``~/diagnose``, ``~/validate``,
 ``~/reset``, run as jobs one at a time (:mod:`~kpi_calib_ros.ros.job_node`; the sequential
-campaign's in :mod:`~kpi_calib_ros.ros.sequential_jobs`). One executor thread serves
+campaign's in :mod:`~kpi_calib_ros.ros.sequential_jobs`; the last valid calibration.yaml
+is restored at start by :mod:`~kpi_calib_ros.ros.restore`). One executor thread serves
 callbacks in arrival order; long work runs in a worker thread while the job coroutine
 awaits it, so pairing continues. (rclpy's MultiThreadedExecutor could not keep up with
 1 kHz joint states on two cores.)
@@ -91,6 +92,7 @@ from kpi_calib_ros.ros.parameters import (
     settings_from_parameters,
     working_poses,
 )
+from kpi_calib_ros.ros.restore import CalibrationRestore
 from kpi_calib_ros.ros.run_state import CAMPAIGN_FIXED, RunState
 from kpi_calib_ros.ros.sequential_jobs import SequentialCampaignJobs
 from kpi_calib_ros.ros.status import StreamHealth, node_status
@@ -100,7 +102,7 @@ from kpi_calib_ros.ros.temperature import subscribe_temperature
 NODE_NAME = 'kpi_calib_node'
 
 
-class CalibrationNode(SequentialCampaignJobs):
+class CalibrationNode(CalibrationRestore, SequentialCampaignJobs):
     """The calibration node; the README's "cell controller" section lists its interface."""
 
     def __init__(self, **kwargs) -> None:
@@ -134,6 +136,7 @@ class CalibrationNode(SequentialCampaignJobs):
         # This campaign's results and sequential campaign, replaced whole by ~/reset.
         self._run = RunState()
         self._find_campaign_state()
+        self._find_calibration()  # the last valid calibration.yaml, restored (ros/restore.py)
 
         # One executor thread: pairing callbacks run in arrival order; services await
         # their worker threads in a reentrant group so a second call gets 'busy'.
@@ -186,7 +189,7 @@ class CalibrationNode(SequentialCampaignJobs):
                                 callback_group=services)
         # The calibration's own model (with the effects identification.model auto added).
         self.tcp_query = TcpQuery(self, lambda: self._run.cell or self._cm,
-                                  lambda: self._run.result,
+                                  lambda: self._run.result or self._run.restored,
                                   self.data_dir / LEARNED_RESIDUAL_FILE)
         self.create_timer(0.1, self._tick, callback_group=streams)
         if self.settings.robot_description:
@@ -290,6 +293,11 @@ class CalibrationNode(SequentialCampaignJobs):
 
     def _tick(self) -> None:
         self._report(self.campaign.poll())
+        # Before anything is identified: a new calibration replaces the restored one.
+        if (self._run.restore_pending and self._cm is not None
+                and self._claim_job('restoring the calibration')):
+            self._run.restore_pending = False
+            self._create_task('restoring the calibration', self._restore)
         if (self._run.resume_pending and self._cm is not None
                 and self._claim_job('resuming the sequential campaign')):
             self._create_task('resuming the sequential campaign', self._resume)
@@ -330,7 +338,7 @@ class CalibrationNode(SequentialCampaignJobs):
         from ``identified_with`` measurements stamped ``stamps``) the published
         calibration: ~/calibration, the calibrated URDF, ~/tcp and the markers."""
         self._run.robust, self._run.result = cal.robust, cal.result
-        self._run.cell = cal.cell
+        self._run.cell, self._run.restored = cal.cell, None
         self._run.learned_residual = ''  # data_dir/learned_residual.yaml was removed
         self._run.measured, self._run.marker_rows = measured, marker_rows
         self._run.identified_with = identified_with
@@ -455,15 +463,15 @@ class CalibrationNode(SequentialCampaignJobs):
 
     # ------------------------------------------------------------------ outputs
     def _publish_markers(self) -> None:
-        cm, result = self._cm, self._run.result
+        cm = self._cm
         if cm is None:
             return
+        tcp, tcp_covariance = self._run.published_tcp()
         measured, residuals = self._run.residual_arrows()
         # Stamp 0: RViz draws latched markers with the latest transforms.
         self._pub_markers.publish(cv.marker_array_msg(
             0, cm.cell.tracker_frame, cm.cell.base_frame, design_points=self._design_points,
-            tcp=None if result is None else result.tcp,
-            tcp_covariance=None if result is None else result.tcp_covariance,
+            tcp=tcp, tcp_covariance=tcp_covariance,
             capsules=self._capsules, measured=measured, residuals=residuals))
 
     def status(self) -> tuple[str, str, dict[str, Any]]:

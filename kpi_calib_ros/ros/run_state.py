@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from kpi_calib_ros.app.stored_calibration import StoredCalibration
 from kpi_calib_ros.core.campaigns.sequential import (
     MODEL_INADEQUATE,
     CampaignStatus,
@@ -40,6 +41,10 @@ class RunState:
     ``learned_residual`` the learned residual of the last ~/identify with
     ``identify_learned_residual`` (``chosen``, ``not chosen``, ``not fitted``; '' without).
 
+After a restart, ``restored`` is data_dir/calibration.yaml read back for this cell
+(``restore_pending`` until the robot model is known): the published calibration until
+a new one replaces it (``result`` stays None, no fit of this run).
+
     A sequential campaign (``campaign:=sequential``): ``sequential`` the campaign object
     (handed to the worker of a step job and back), ``sequential_status`` its last
     status, ``sequential_stamps`` the measurement stamps it has been given,
@@ -58,6 +63,8 @@ class RunState:
     auto_pending: bool = False
     diagnosis: dict[str, Any] | None = None
     learned_residual: str = ''
+    restored: StoredCalibration | None = None
+    restore_pending: bool = False
     sequential: SequentialCampaign | None = None
     sequential_status: CampaignStatus | None = None
     sequential_stamps: set[int] = field(default_factory=set)
@@ -93,6 +100,15 @@ class RunState:
                 'values it started with, which ~/campaign_status and /diagnostics show. '
                 'Change them after it stops, or call ~/reset and ~/design to start a new '
                 'campaign')
+
+    def published_tcp(self) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """The published calibration's TCP (t, 3) (m) and its covariance (t, 3, 3) (m²):
+        of this run's fit, else of the restored calibration; (None, None) without."""
+        if self.result is not None:
+            return self.result.tcp, self.result.tcp_covariance
+        if self.restored is not None:
+            return self.restored.tcp, self.restored.tcp_covariance
+        return None, None
 
     def residual_arrows(self) -> tuple[np.ndarray | None, np.ndarray | None]:
         """The fitted points (m) and their residuals (m) to draw as arrows: the rows that

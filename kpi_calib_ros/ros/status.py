@@ -72,6 +72,14 @@ def node_status(run: RunState, counts: Mapping[str, int], streams: StreamHealth,
     if result is not None:
         values.update({'rms_um': round(result.rms_m * 1e6, 3),
                        'p_value': float(result.p_value), 'converged': result.converged})
+    restored = run.restored if result is None else None
+    if restored is not None:
+        # The calibration of an earlier run, read back at start (no fit of this run).
+        values['calibration'] = restored.summary()
+        if restored.rms_m is not None:
+            values['rms_um'] = round(restored.rms_m * 1e6, 3)
+        if restored.p_value is not None:
+            values['p_value'] = restored.p_value
     if run.robust is not None:
         values.update({'sigma_robust_um': round(run.robust.sigma_robust * 1e6, 3),
                        'excluded_measurements': len(run.robust.excluded)})
@@ -103,8 +111,10 @@ def node_status(run: RunState, counts: Mapping[str, int], streams: StreamHealth,
         return 'WARN', f'sequential campaign stopped: {MODEL_INADEQUATE}', values
     if run.robust is not None and run.robust.warnings:
         return 'WARN', run.robust.warnings[0], values
-    if result is not None and not is_adequate(result.p_value):
-        return 'WARN', f'model inadequate (p = {result.p_value:.2g})', values
+    p_value = result.p_value if result is not None else (
+        restored.p_value if restored is not None else None)
+    if p_value is not None and not is_adequate(p_value):
+        return 'WARN', f'model inadequate (p = {p_value:.2g})', values
     if lost:
         return 'WARN', (f"{values['lost.joint_states']} joint states and "
                         f"{values['lost.points']} points lost before the node read them "
@@ -113,6 +123,8 @@ def node_status(run: RunState, counts: Mapping[str, int], streams: StreamHealth,
         return 'WARN', f'{n} accepted, {rejected} rejected', values
     if not model_ready:
         return 'OK', 'waiting for robot description', values
+    if restored is not None:
+        return 'OK', f"{n} accepted, calibration {values['calibration']}", values
     return 'OK', f'{n} accepted' + ('' if result is None else
                                     f', rms {result.rms_m * 1e6:.1f} µm'), values
 

@@ -7,7 +7,8 @@ the TCP (KPI point) the calibration predicts at those joints, with the learned r
 of learned_residual.yaml in the node's ``data_dir`` when one is there
 (:mod:`kpi_calib_ros.app.learned_residual`; with the model it was written for, the
 effects ``identification.model: auto`` added included, also after a restart), else the
-node's last calibration alone; the
+node's last calibration alone (after a restart, the one restored from calibration.yaml:
+:mod:`kpi_calib_ros.app.stored_calibration`); the
 position block of the covariance holds both parts of the uncertainty (the orientation
 is not predicted: :data:`kpi_calib_ros.ros.conversions.UNKNOWN_ORIENTATION_VARIANCE`).
 A query outside the region the learned residual was fitted on is answered (the
@@ -18,7 +19,7 @@ No custom service type: a topic pair keeps the package buildable as pure Python.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Protocol
 
 import numpy as np
 from geometry_msgs.msg import PoseWithCovarianceStamped
@@ -27,7 +28,6 @@ from sensor_msgs.msg import JointState
 
 from kpi_calib_ros.app.learned_residual import predict_stored, predict_tcp, stored_cell_model
 from kpi_calib_ros.core.errors import KpiCalibError
-from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.learned_residual_file import StoredResidual, read_residual
 from kpi_calib_ros.io.names import TCP_CORRECTED_TOPIC, TCP_QUERY_TOPIC
@@ -38,6 +38,23 @@ QUERY_DEPTH = 10
 LOG_THROTTLE_S = 5.0
 
 
+class Fit(Protocol):
+    """A calibration's parameters as the query needs them: every parameter's value
+    (n_p,), the identified ones' names and their covariance (k, k); a
+    :class:`~kpi_calib_ros.core.estimation.least_squares.CalibrationResult` or a
+    calibration.yaml read back
+    (:class:`~kpi_calib_ros.app.stored_calibration.StoredCalibration`)."""
+
+    @property
+    def values(self) -> np.ndarray: ...
+
+    @property
+    def estimated(self) -> tuple[str, ...]: ...
+
+    @property
+    def covariance(self) -> np.ndarray: ...
+
+
 class TcpQuery:
     """``~/tcp_query`` → ``~/tcp_corrected`` on ``node`` (executor thread only).
 
@@ -45,14 +62,15 @@ class TcpQuery:
     ----------
     node : Node
     model, result : callables
-        The node's current robot model and calibration (None until there is one).
+        The node's current robot model and calibration (None until there is one; the
+        one restored from calibration.yaml after a restart).
     path : Path
         learned_residual.yaml; read again whenever it is replaced or changes (inode,
         modification time or size).
     """
 
     def __init__(self, node: Node, model: Callable[[], CellModel | None],
-                 result: Callable[[], CalibrationResult | None], path: Path) -> None:
+                 result: Callable[[], Fit | None], path: Path) -> None:
         self._node, self._model, self._result, self._path = node, model, result, Path(path)
         self._stored: StoredResidual | None = None
         self._stamp: tuple[int, int, int] | None = None
