@@ -11,7 +11,11 @@ import numpy as np
 import pytest
 
 from kpi_calib_ros.app.identify import identify_cell, with_effects
-from kpi_calib_ros.core.diagnosis.candidates import augmented_model, default_candidates
+from kpi_calib_ros.core.diagnosis.candidates import (
+    augmented_model,
+    default_candidates,
+    screen_effects,
+)
 from kpi_calib_ros.core.effects.registry import candidate_effects, parse_effect_spec
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA
@@ -232,6 +236,11 @@ def test_the_diagnosis_screens_each_link_at_its_own_temperature(doc):
     assert found['thermal_link_growth:joint_3'] == (UPPER,)
     assert found['thermal_link_growth:joint_4'] == (FORE,)
     assert found['thermal_zero_drift:joint_1'] == (DELTA_TEMPERATURE,)
+    # The report says which sensor a candidate read.
+    ranked, _ = screen_effects(per.model, data, result)
+    said = {c.spec: c.explanation for c in ranked}
+    assert f'reads {FORE}' in said['thermal_link_growth:joint_4'], said
+    assert 'reads' not in said['thermal_zero_drift:joint_1'], said
 
 
 @pytest.mark.slow

@@ -771,6 +771,8 @@ def _explain(fit: CandidateFit, significant: bool, p_adj: float, m: int, rms_bas
     numbers = (f'rms {rms_base * 1e6:.1f} -> {fit.rms_m * 1e6:.1f} µm, validation rms '
                f'{cv_base * 1e6:.1f} -> {fit.validation_rms_m * 1e6:.1f} µm; {values}; '
                f'p = {p_adj:.3g} (F-test, Bonferroni over {m} candidates)')
+    if effect.inputs != effect.kind.inputs:  # a sensor of the cell's own (thermal effects)
+        numbers += f'; reads {", ".join(effect.inputs)}'
     if not significant:
         return f'not significant: {numbers}.'
     why = (f'the residuals correlate {fit.correlation:.2f} with the part of its signature the '
