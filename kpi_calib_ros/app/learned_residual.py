@@ -156,8 +156,9 @@ def validate_learned(cm: CellModel, stored: StoredResidual, data: Measurements,
 def learned_validation_text(doc: dict[str, Any]) -> str:
     """A terminal line of :func:`validate_learned`'s figures."""
     verdict = ('its uncertainty holds' if doc['holds'] else
-               'its uncertainty does NOT hold: the arm differs from the training session by '
-               'more than that session showed; learn it again on the conditions it is used in')
+               'its uncertainty does NOT hold on this recording: the arm differs from the '
+               'training session by more than that session showed, or too few poses taught '
+               'it; learn it again, on more poses, in the conditions it is used in')
     return (f"with the learned residual ({doc['file']}): rms {doc['rms_m'] * 1e3:.3f} mm "
             f"(physical model {doc['rms_physical_m'] * 1e3:.3f} mm); "
             f"{doc['inside_95_share']:.1%} of the points inside their stated 95 % ellipsoid, "
