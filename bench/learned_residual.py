@@ -208,8 +208,9 @@ def ur10(lines: list[str]) -> None:
               + ', '.join(f'{k} {v:.3g}' for k, v in choice.model.relevant_joints().items())
               + f'; fit and choice {fit_s:.0f} s.', '',
               '| held out | poses | physical rms | with learned residual | ratio | inside fitted '
-              'region | 95 % coverage (measured) | physical model\'s own 95 % coverage |',
-              '|---|---|---|---|---|---|---|---|']
+              'region | 95 % coverage (measured) | χ²/dof (measured) | physical model\'s own '
+              '95 % coverage |',
+              '|---|---|---|---|---|---|---|---|---|']
     for name, idx in (('same quarter and region, not trained on', same_time),
                       ('later, same region', later_same), ('other region (any time)', other)):
         q, eta = q_all[idx], eta_all[idx]
@@ -223,6 +224,7 @@ def ur10(lines: list[str]) -> None:
                  else float(np.mean(np.broadcast_to(cm.cell.sigma, (3,)) ** 2)) *
                  result.covariance_scale * np.eye(3))
         cover = covered(eta - tcp.position, tcp.covariance + noise)
+        chi2 = float(np.mean(mahalanobis(eta - tcp.position, tcp.covariance + noise)) / 3.0)
         inside = (f'{np.mean(tcp.correction.inside):.2f}' if tcp.correction is not None
                   else 'n/a (not chosen)')
         ratio = rms(eta - tcp.position) / rms(eta - physical)
@@ -231,7 +233,7 @@ def ur10(lines: list[str]) -> None:
             list(result.estimated))], result, misfit, cm.cell.sigma)
         lines.append(f'| {name} | {len(idx)} | {rms(eta - physical) * 1e6:.0f} µm | '
                      f'{rms(eta - tcp.position) * 1e6:.0f} µm | {ratio:.4f} | {inside} | '
-                     f'{cover:.3f} | {own:.3f} |')
+                     f'{cover:.3f} | {chi2:.2f} | {own:.3f} |')
     lines.append('')
     print('\n'.join(lines[-7:]), flush=True)
 
@@ -268,6 +270,7 @@ def tiago(lines: list[str]) -> None:
              else float(np.mean(np.broadcast_to(cm.cell.sigma, (3,)) ** 2))
              * result.covariance_scale * np.eye(3))
     cover = covered(new.eta - tcp.position, tcp.covariance + noise)
+    chi2 = float(np.mean(mahalanobis(new.eta - tcp.position, tcp.covariance + noise)) / 3.0)
     inside = f'{np.mean(tcp.correction.inside):.2f}' if model is not None else 'n/a (not chosen)'
     e_phys, e_learned = new.eta - pred, new.eta - tcp.position
     own = physical_coverage(e_phys, jac[:, :, idx], result, misfit, cm.cell.sigma)
@@ -275,11 +278,12 @@ def tiago(lines: list[str]) -> None:
               f'Geometric calibration on the 37-posture session 2021-11-30 ({len(kept)} marker '
               f'points kept); {choice.reason}.', '',
               '| held out | points | physical rms | with learned residual | ratio | inside '
-              'fitted region | 95 % coverage (measured) | physical model\'s own 95 % coverage |',
-              '|---|---|---|---|---|---|---|---|',
+              'fitted region | 95 % coverage (measured) | χ²/dof (measured) | physical model\'s '
+              'own 95 % coverage |',
+              '|---|---|---|---|---|---|---|---|---|',
               f'| 2021-11-26 | {len(new)} | {rms(e_phys) * 1e3:.3f} mm | '
               f'{rms(e_learned) * 1e3:.3f} mm | {rms(e_learned) / rms(e_phys):.4f} | {inside} | '
-              f'{cover:.3f} | {own:.3f} |', '']
+              f'{cover:.3f} | {chi2:.2f} | {own:.3f} |', '']
     print('\n'.join(lines[-6:]), flush=True)
 
 
