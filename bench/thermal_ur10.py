@@ -41,7 +41,7 @@ def series_a() -> Measurements:
     rows = list(read_postures(DATA / 'Series_A' / 'measurements_grid.csv',
                               mapping_from_dict(yaml.safe_load(MAPPING.read_text()))))
     rows.sort(key=lambda r: r.stamp_ns)
-    celsius = np.array([r.temperature for r in rows], float)
+    celsius = np.array([r.temperatures['laser_tracker'] for r in rows], float)
     return Measurements(q=np.array([r.q for r in rows]),
                         eta=np.array([r.points[0][1] for r in rows]),
                         stamps_ns=np.array([r.stamp_ns for r in rows], np.int64),

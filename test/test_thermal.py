@@ -319,7 +319,7 @@ def test_an_imported_table_carries_its_temperature_column_to_every_row(tmp_path)
     warm = dataclasses.replace(cm, cell=dataclasses.replace(
         cm.cell, temperature=TemperatureSettings()))
     data, _ = measurements_from_bag(warm, bag)
-    rows = {r.stamp_ns: r.temperature for r in read_postures(
+    rows = {r.stamp_ns: r.temperatures['laser_tracker'] for r in read_postures(
         table, load_mapping(here / 'ipa_ur10_mapping.yaml'))}
     expected = np.array([rows[int(t)] for t in data.stamps_ns])
     assert len(data) == 2 * len(rows)  # a point and a rotation row per posture

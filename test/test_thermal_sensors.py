@@ -259,3 +259,44 @@ def test_auto_adds_each_links_growth_at_its_own_temperature(doc):
     assert own.result.p_value > ADEQUACY_ALPHA
     mean = calibrate_cell(_cell_model(doc, ['upper_arm', 'forearm']), data, model='auto')
     assert mean.result.p_value < 1e-5, (mean.choice.effects, mean.result.p_value)
+
+
+def test_a_table_with_a_column_per_sensor_reaches_each_links_temperature(doc, tmp_path):
+    """A shop-floor table with a temperature column per sensor: the mapping's
+    ``temperature: {frame id: column}`` writes each on the temperature topic with its frame
+    id, and the cell's sensor-per-link mapping gives every posture its sensors' ΔT back,
+    exactly as simulated."""
+    import csv
+
+    import yaml
+
+    from kpi_calib_ros.app.measurements import load_measurements
+    from kpi_calib_ros.cli import main
+    data, _, _ = _two_sensor_shift(doc, 7, n=12, n_fresh=1)
+    cm = _cell_model(doc, BY_LINK)
+    table = tmp_path / 'postures.csv'
+    with table.open('w', newline='') as f:
+        out = csv.writer(f)
+        out.writerow([*cm.joint_names, 'x', 'y', 'z', 't', 'T_upper', 'T_fore'])
+        for i in range(len(data)):
+            out.writerow([*data.q[i], *data.eta[i], data.stamps_ns[i] / 1e9,
+                          data.covariates['temperature.upper_arm'][i],
+                          data.covariates['temperature.forearm'][i]])
+    mapping = tmp_path / 'columns.yaml'
+    mapping.write_text(yaml.safe_dump({
+        'frame_id': cm.cell.tracker_frame, 'joints': list(cm.joint_names),
+        'markers': {'probe': ['x', 'y', 'z']}, 'stamp_columns': ['t'],
+        'temperature': {'upper_arm': 'T_upper', 'forearm': 'T_fore'}}))
+    cell = copy.deepcopy(doc)
+    cell['temperature'] = {'sensors': BY_LINK}
+    cell['reflectors'] = [{'name': 'probe', 'offset': cell['reflector'].pop('offset')}]
+    (tmp_path / 'cell.yaml').write_text(yaml.safe_dump(cell))
+    bag = tmp_path / 'postures.mcap'
+    assert main(['import-csv', str(table), '--mapping', str(mapping), '--out', str(bag)]) == 0
+    _, read, _ = load_measurements(tmp_path / 'cell.yaml', bag)
+    order = np.searchsorted(data.stamps_ns, read.stamps_ns)
+    assert len(read) == len(data)
+    for name in (UPPER, FORE, DELTA_TEMPERATURE):
+        np.testing.assert_allclose(read.covariates[name], data.covariates[name][order],
+                                   rtol=0, atol=1e-9)
+    assert not np.allclose(read.covariates[UPPER], read.covariates[FORE])

@@ -65,7 +65,7 @@ class Posture:
     stamp_ns: int | None
     q: np.ndarray
     points: tuple[tuple[str, np.ndarray, np.ndarray | None, np.ndarray | None], ...]
-    temperature: float | None
+    temperatures: dict[str, float]  # sensor frame id -> °C
 
 
 def read_postures(path: str | Path, mapping: CsvMapping, fmt: TableFormat | None = None
@@ -114,7 +114,8 @@ def read_postures(path: str | Path, mapping: CsvMapping, fmt: TableFormat | None
                                        for c in mapping.stamp_columns]) * 1e9))
         yield Posture(path, line, stamp,
                       cell.vector(tuple(mapping.joints.values())) * joint_scale, tuple(points),
-                      cell.value(mapping.temperature) if mapping.temperature else None)
+                      {sensor: cell.value(column)
+                       for sensor, column in mapping.temperatures.items()})
 
 
 @dataclass(frozen=True)
@@ -185,7 +186,7 @@ class ImportSummary:
     reordered: list[str] = field(default_factory=list)
     sigma_mean_m: dict[str, np.ndarray] = field(default_factory=dict)
     sigma_max_m: dict[str, np.ndarray] = field(default_factory=dict)
-    temperature_range_c: tuple[float, float] | None = None
+    temperature_range_c: dict[str, tuple[float, float]] = field(default_factory=dict)
     sigma_topic: str = ''
 
     def lines(self) -> list[str]:
@@ -201,9 +202,8 @@ class ImportSummary:
             out.append(f"per-point σ of {name}: mean {np.round(mean * 1e6, 1).tolist()} µm, "
                        f'max {np.round(self.sigma_max_m[name] * 1e6, 1).tolist()} µm (x, y, '
                        f'z), written to {self.sigma_topic}: identify weighs each point by it')
-        if self.temperature_range_c:
-            low, high = self.temperature_range_c
-            out.append(f'cell temperature: {low:.2f} to {high:.2f} °C')
+        for sensor, (low, high) in self.temperature_range_c.items():
+            out.append(f'temperature {sensor}: {low:.2f} to {high:.2f} °C')
         return out
 
 
@@ -252,7 +252,6 @@ def import_csv(csv_path: str | Path | list, out_path: str | Path, mapping: CsvMa
     offsets = np.arange(-hold, hold + 1, period)
     zeros = np.zeros(len(names))
     sigma_sum: dict[str, np.ndarray] = {}
-    temperatures = [np.inf, -np.inf]
     stamps = _Stamps(paths)
     out = Path(out_path)
     if not out.parent.is_dir() or out.is_dir() or not os.access(out.parent, os.W_OK):
@@ -264,7 +263,7 @@ def import_csv(csv_path: str | Path | list, out_path: str | Path, mapping: CsvMa
     summary.sigma_topic = point_sigma_topic(point_topic)
     with BagStream(out_path, joint_topic, point_topic,
                    pose_topic if mapping.has_poses else None,
-                   temperature_topic if mapping.temperature else None,
+                   temperature_topic if mapping.temperatures else None,
                    sigma_topic=point_sigma_topic(point_topic) if has_sigma else None) as bag:
         for i, row in enumerate(rows):
             t = row.stamp_ns if row.stamp_ns is not None else _START_NS + i * _PERIOD_NS
@@ -282,10 +281,10 @@ def import_csv(csv_path: str | Path | list, out_path: str | Path, mapping: CsvMa
                     sigma_sum[name] = sigma_sum.get(name, 0.0) + sigma
                     summary.sigma_max_m[name] = np.maximum(
                         summary.sigma_max_m.get(name, sigma), sigma)
-            if row.temperature is not None:
-                bag.write_temperature(t, mapping.frame_id, row.temperature)
-                temperatures = [min(temperatures[0], row.temperature),
-                                max(temperatures[1], row.temperature)]
+            for sensor, celsius in row.temperatures.items():
+                bag.write_temperature(t, sensor, celsius)
+                low, high = summary.temperature_range_c.get(sensor, (np.inf, -np.inf))
+                summary.temperature_range_c[sensor] = (min(low, celsius), max(high, celsius))
             bag.write_joint_held(held, (int(t + dt) for dt in offsets[offsets > 0]))
             summary.postures += 1
         if not summary.postures:
@@ -293,8 +292,6 @@ def import_csv(csv_path: str | Path | list, out_path: str | Path, mapping: CsvMa
         first, last = stamps.check(hold_s)
     summary.reordered = stamps.reordered
     summary.sigma_mean_m = {k: v / summary.postures for k, v in sigma_sum.items()}
-    if mapping.temperature:
-        summary.temperature_range_c = (temperatures[0], temperatures[1])
     summary.time_axis = _time_axis(mapping, first, last)
     return summary
 

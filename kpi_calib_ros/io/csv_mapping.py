@@ -8,7 +8,7 @@ and the fix. Nothing about a robot is built in.
 from __future__ import annotations
 
 import zoneinfo
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import tzinfo
 from pathlib import Path
 from typing import Any
@@ -62,8 +62,10 @@ class CsvMapping:
         IANA zone of stamps written without an offset (``Europe/Berlin``); UTC default.
     point_unit, joint_unit, angle_unit : str
         ``m`` or ``mm``; ``rad`` or ``deg``; ``rad`` or ``deg`` (Euler angles).
-    temperature : str or None
-        Column of the cell temperature (°C), written to its own topic.
+    temperatures : dict of str to str
+        Temperature sensor frame id -> its column (°C), each reading written to the
+        temperature topic with that frame id; {} for none. The document's ``temperature:``
+        is one column (the sensor is then named by ``frame_id``) or ``{frame id: column}``.
     delimiter, decimal : str or None
         Separator and decimal mark; None: detected.
     """
@@ -77,7 +79,7 @@ class CsvMapping:
     stamp_format: str = 'unix'
     stamp_timezone: str = 'UTC'
     angle_unit: str = 'rad'
-    temperature: str | None = None
+    temperatures: dict[str, str] = field(default_factory=dict)
     delimiter: str | None = None
     decimal: str | None = None
 
@@ -85,7 +87,7 @@ class CsvMapping:
     def columns(self) -> list[str]:
         return (list(self.joints.values()) + [c for m in self.markers.values()
                                               for c in m.columns]
-                + list(self.stamp_columns) + ([self.temperature] if self.temperature else []))
+                + list(self.stamp_columns) + list(self.temperatures.values()))
 
     @property
     def has_poses(self) -> bool:
@@ -110,7 +112,8 @@ def mapping_from_dict(doc: Any) -> CsvMapping:
         point_unit: m                                 # m | mm
         joint_unit: rad                               # rad | deg
         angle_unit: rad                               # rad | deg (Euler angles)
-        temperature: t_cell                           # optional, °C
+        temperature: t_cell                           # optional, °C; several sensors:
+                                                      # {upper_arm: t_upper, forearm: t_fore}
         delimiter: ';'                                # optional: detected
         decimal: ','                                  # optional: detected
     """
@@ -149,9 +152,7 @@ def mapping_from_dict(doc: Any) -> CsvMapping:
                           f"{list(STAMP_FORMATS)} or a strptime pattern such as '%Y%m%d%H%M%S'")
     zone = str(doc.get('stamp_timezone', 'UTC'))
     time_zone(zone)
-    temperature = doc.get('temperature')
-    if temperature is not None and (not isinstance(temperature, str) or not temperature):
-        raise ConfigError('mapping.temperature', 'the column of the cell temperature (°C)')
+    temperatures = _temperatures(doc.get('temperature'), frame)
     delimiter, decimal = doc.get('delimiter'), doc.get('decimal')
     if delimiter is not None and delimiter not in DELIMITERS:
         raise ConfigError('mapping.delimiter', f'{delimiter!r}: one of {list(DELIMITERS)}')
@@ -159,7 +160,28 @@ def mapping_from_dict(doc: Any) -> CsvMapping:
         raise ConfigError('mapping.decimal', f'{decimal!r}: one of {list(DECIMALS)}')
     return CsvMapping({str(k): str(v) for k, v in joints.items()}, out_markers, frame,
                       tuple(str(s) for s in stamps), units['point_unit'], units['joint_unit'],
-                      stamp_format, zone, units['angle_unit'], temperature, delimiter, decimal)
+                      stamp_format, zone, units['angle_unit'], temperatures, delimiter, decimal)
+
+
+def _temperatures(raw: Any, frame_id: str) -> dict[str, str]:
+    """The ``temperature:`` key: one column (the sensor named ``frame_id``) or
+    ``{sensor frame id: column}``."""
+    if raw is None:
+        return {}
+    if isinstance(raw, str) and raw:
+        return {frame_id: raw}
+    fix = ('the column of the cell temperature (°C), or {sensor frame id: column} for several '
+           'sensors (the frame ids the cell\'s temperature.sensors names)')
+    if not isinstance(raw, dict) or not raw:
+        raise ConfigError('mapping.temperature', fix)
+    out = {}
+    for sensor, column in raw.items():
+        if not isinstance(sensor, str) or not sensor.strip() or ' ' in sensor:
+            raise ConfigError('mapping.temperature', f'{sensor!r} is not a frame id; {fix}')
+        if not isinstance(column, str) or not column:
+            raise ConfigError(f'mapping.temperature.{sensor}', f'give its column; {fix}')
+        out[sensor] = column
+    return out
 
 
 def _marker(name: str, cols: Any) -> MarkerColumns:
