@@ -43,7 +43,7 @@ variance at that pose.
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.stats
@@ -140,7 +140,6 @@ class LearnedResidual:
     output_shape: np.ndarray | None = None
     noise_shape: np.ndarray | None = None
     _gp: GaussianProcessRegressor = field(init=False, repr=False, compare=False)
-    _whiten: np.ndarray = field(init=False, repr=False, compare=False)
     _colour: np.ndarray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -165,7 +164,6 @@ class LearnedResidual:
         object.__setattr__(self, 'noise_shape', shape if self.noise_shape is None
                            else checked_shape(self.noise_shape))
         whiten, colour = _roots(shape)
-        object.__setattr__(self, '_whiten', whiten)
         object.__setattr__(self, '_colour', colour)
         gp = GaussianProcessRegressor(fixed_kernel(self.amplitude_m2, ell, self.noise_m2),
                                       optimizer=None, normalize_y=False)
@@ -273,15 +271,27 @@ def _optimised(q: np.ndarray, y: np.ndarray, kernel: Kernel, restarts: int,
 
 
 def _from_gp(gp: GaussianProcessRegressor, joint_names: tuple[str, ...], q: np.ndarray,
-             y: np.ndarray, shape: np.ndarray) -> LearnedResidual:
+             y: np.ndarray, shape: np.ndarray, noise_shape: np.ndarray) -> LearnedResidual:
     k = gp.kernel_
     return LearnedResidual(joint_names, q, y, float(k.k1.k1.constant_value),
                            np.atleast_1d(np.asarray(k.k1.k2.length_scale, float)),
-                           float(k.k2.noise_level), shape)
+                           float(k.k2.noise_level), shape, noise_shape)
 
 
-def _whitened(y: np.ndarray, shape: np.ndarray) -> np.ndarray:
-    return y @ _roots(shape)[0]
+def _fitted(q: np.ndarray, y: np.ndarray, kernel: Kernel | None, restarts: int, seed: int,
+            noise_m2: float = 0.0) -> tuple[GaussianProcessRegressor, Kernel, np.ndarray,
+                                               np.ndarray]:
+    """Fit the Gaussian process to ``y`` whitened by its output shape A.
+
+    ``kernel`` None: :func:`_kernel` of the whitened rows with the stated noise ``noise_m2``.
+    Returns the fitted process, the kernel it started from, A and A^(1/2) (to colour its
+    predictions: ``mean @ colour``).
+    """
+    shape = output_shape(y)
+    whiten, colour = _roots(shape)
+    white = y @ whiten
+    kernel = _kernel(q, white, noise_m2) if kernel is None else kernel
+    return _optimised(q, white, kernel, restarts, seed), kernel, shape, colour
 
 
 @dataclass(frozen=True)
@@ -362,13 +372,10 @@ def fit_learned_residual(q: np.ndarray, residual_m: np.ndarray, sigma_m: float |
     if len(q) != len(y):
         raise ValueError(f'q has {len(q)} rows, residual_m {len(y)}')
     noise = float(np.mean(np.broadcast_to(np.asarray(sigma_m, float), (3,)) ** 2))
-    shape = output_shape(y)
-    kernel = _kernel(q, _whitened(y, shape), noise)
-    full = _optimised(q, _whitened(y, shape), kernel, restarts, seed)
-    model = _from_gp(full, tuple(joint_names), q, y, shape)
+    full, kernel, shape, colour = _fitted(q, y, None, restarts, seed, noise)
     # What the field leaves at the training rows is the noise; its shape is the noise's.
-    left = y - model.predict(q).mean
-    model = replace(model, noise_shape=output_shape(left))
+    left = y - np.asarray(full.predict(q)).reshape(-1, 3) @ colour
+    model = _from_gp(full, tuple(joint_names), q, y, shape, output_shape(left))
     _, pose = pose_index(q)
     n_poses = int(pose.max()) + 1
     if n_poses < MIN_POSES:
@@ -382,11 +389,9 @@ def fit_learned_residual(q: np.ndarray, residual_m: np.ndarray, sigma_m: float |
         test = fold == f
         # The shape and the hyperparameters refitted without the fold, from the full
         # fit's optimum.
-        fold_shape = output_shape(y[~test])
-        gp = _optimised(q[~test], _whitened(y[~test], fold_shape),
-                        _with_bounds(full.kernel_, kernel), 0, seed)
-        predicted[test] = np.asarray(gp.predict(q[test])).reshape(-1, 3) \
-            @ _roots(fold_shape)[1]
+        gp, _, _, fold_colour = _fitted(q[~test], y[~test], _with_bounds(full.kernel_, kernel),
+                                        0, seed)
+        predicted[test] = np.asarray(gp.predict(q[test])).reshape(-1, 3) @ fold_colour
     before = np.bincount(pose, np.sum(y ** 2, axis=1), n_poses)
     after = np.bincount(pose, np.sum((y - predicted) ** 2, axis=1), n_poses)
     gain = before - after
