@@ -9,7 +9,7 @@ TCP at joint values with both parts of its uncertainty.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 import scipy.stats
@@ -83,12 +83,16 @@ def field_covariance(model: MeasurementModel, data: Measurements, result: Calibr
 
 def predict_tcp(model: MeasurementModel, values: np.ndarray, estimated: tuple[str, ...],
                 covariance: np.ndarray, residual: LearnedResidual | None,
-                q: np.ndarray, covariance_outside: np.ndarray | None = None) -> CorrectedTcp:
+                q: np.ndarray, covariance_outside: np.ndarray | None = None,
+                reflector: np.ndarray | None = None,
+                covariates: Mapping[str, np.ndarray] | None = None) -> CorrectedTcp:
     """The TCP (KPI point) at URDF joint values ``q`` (M, n): the physical model at
     ``values`` plus the learned residual, with the covariance of both parts
-    (:func:`kpi_calib_ros.core.diagnosis.learned_residual.corrected_tcp`)."""
+    (:func:`kpi_calib_ros.core.diagnosis.learned_residual.corrected_tcp`). With
+    ``reflector`` (M,) the measured points instead, at their ``covariates``."""
     q = np.atleast_2d(np.asarray(q, float))
-    tcp, jac = model.jacobian(np.asarray(values, float), q)
+    tcp, jac = model.jacobian(np.asarray(values, float), q, None, reflector,
+                              covariates=covariates)
     idx = model.params.indices(list(estimated))
     return corrected_tcp(tcp, jac[:, :, idx], covariance, q, residual, covariance_outside)
 
@@ -104,13 +108,14 @@ def stored_cell_model(cm: CellModel, stored: StoredResidual) -> CellModel:
     return cm
 
 
-def predict_stored(model: MeasurementModel, stored: StoredResidual,
-                   q: np.ndarray) -> CorrectedTcp:
+def predict_stored(model: MeasurementModel, stored: StoredResidual, q: np.ndarray,
+                   reflector: np.ndarray | None = None,
+                   covariates: Mapping[str, np.ndarray] | None = None) -> CorrectedTcp:
     """:func:`predict_tcp` with a learned_residual.yaml read back, ``model`` the one it
     was written for (:func:`stored_cell_model`)."""
     stored.check_model(model)
     return predict_tcp(model, stored.values, stored.estimated, stored.covariance,
-                       stored.residual, q, stored.covariance_outside)
+                       stored.residual, q, stored.covariance_outside, reflector, covariates)
 
 
 def validate_learned(cm: CellModel, stored: StoredResidual, data: Measurements,
@@ -131,11 +136,8 @@ def validate_learned(cm: CellModel, stored: StoredResidual, data: Measurements,
     new = data.subset(rows)
     if len(new) == 0:
         raise DataError('no point measurement to validate the learned residual on')
-    idx = model.params.indices(list(stored.estimated))
-    pred, jac = model.jacobian(np.asarray(stored.values, float), np.atleast_2d(new.q), None,
-                               new.reflector, covariates=new.covariates)
-    tcp = corrected_tcp(pred, jac[:, :, idx], stored.covariance, np.atleast_2d(new.q),
-                        stored.residual, stored.covariance_outside)
+    tcp = predict_stored(model, stored, new.q, new.reflector, new.covariates)
+    assert tcp.correction is not None
     error = np.atleast_2d(new.eta) - tcp.position
     cov = tcp.covariance + stored.residual.noise_covariance_m2
     m2 = np.einsum('mi,mij,mj->m', error, np.linalg.inv(cov), error)
@@ -144,9 +146,8 @@ def validate_learned(cm: CellModel, stored: StoredResidual, data: Measurements,
 
     def rms(e: np.ndarray) -> float:
         return float(np.sqrt(np.mean(np.sum(e ** 2, axis=1))))
-    assert tcp.correction is not None
     return {'file': LEARNED_RESIDUAL_FILE, 'points': int(len(new)),
-            'rms_m': rms(error), 'rms_physical_m': rms(np.atleast_2d(new.eta) - pred),
+            'rms_m': rms(error), 'rms_physical_m': rms(error + tcp.correction.mean),
             'inside_95_share': float(np.mean(m2 <= scipy.stats.chi2.ppf(0.95, 3))),
             'inside_fitted_region_share': float(np.mean(tcp.correction.inside)),
             'chi2': chi2, 'dof': dof, 'p_value': p_value, 'alpha': alpha,
