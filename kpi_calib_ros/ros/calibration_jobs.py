@@ -13,54 +13,24 @@ child process); these coroutines run on the executor and update the node's
 from __future__ import annotations
 
 import json
-from pathlib import Path
 from typing import Any
 
 import numpy as np
-from rclpy.publisher import Publisher
 from std_msgs.msg import String
 
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation.drift_state import DriftSwing
 from kpi_calib_ros.core.estimation.precision import precision_statement
-from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.ros import jobs
 from kpi_calib_ros.ros.answers import identify_answer, validate_answer
-from kpi_calib_ros.ros.campaign import Campaign, model_measurements
-from kpi_calib_ros.ros.job_node import JobNode
-from kpi_calib_ros.ros.parameters import NodeSettings
-from kpi_calib_ros.ros.run_state import RunState
+from kpi_calib_ros.ros.campaign import model_measurements
+from kpi_calib_ros.ros.node_parts import NodeParts
 
 
-class CalibrationJobs(JobNode):
+class CalibrationJobs(NodeParts):
     """The identify, diagnose and validate jobs of
-    :class:`~kpi_calib_ros.ros.node.CalibrationNode`, which provides the state,
-    publishers and methods declared here."""
-
-    campaign: Campaign
-    settings: NodeSettings
-    data_dir: Path
-    _run: RunState
-    _pub_calibration: Publisher
-    _pub_change_test: Publisher
-    _pub_urdf: Publisher
-    _pub_diagnosis: Publisher
-    _pub_validation: Publisher
-    _calibration_text: str
-    _identified_stamps: set[int]
-    _identifications: int
-
-    def _model(self) -> CellModel:
-        raise NotImplementedError
-
-    def _tcp_publisher(self, depth: int) -> Publisher:
-        raise NotImplementedError
-
-    def _publish_markers(self) -> None:
-        raise NotImplementedError
-
-    def _publish_diagnostics(self, force: bool = False) -> None:
-        raise NotImplementedError
+    :class:`~kpi_calib_ros.ros.node.CalibrationNode`, on the state, publishers and methods
+    :class:`~kpi_calib_ros.ros.node_parts.NodeParts` declares."""
 
     def _publish_calibration(self, cal: Any, measured: np.ndarray, marker_rows: np.ndarray,
                              identified_with: int, text: str, urdf: str, tcp: list,
