@@ -18,6 +18,7 @@ incidence). Writes bench/results/auto_false_alarms.md (about 1 s per seed and ce
 """
 from __future__ import annotations
 
+import os
 import sys
 import time
 from collections import Counter
@@ -57,6 +58,16 @@ def upper_bound(k: int, n: int) -> float:
     return 1.0 if k == n else float(scipy.stats.beta.ppf(0.95, k + 1, n - k))
 
 
+def _gain(record: dict) -> str:
+    """The first round's predicted out-of-sample rms: the level's, and its best trial's (µm)."""
+    before = record.get('predicted_rms_before_m')
+    trials = [t['predicted_rms_m'] for t in record.get('trials', [])
+              if t['round'] == 1 and t['predicted_rms_m'] is not None]
+    if before is None or not trials:
+        return ''
+    return f'{before * 1e6:.1f} → {min(trials) * 1e6:.1f} µm ({1 - min(trials) / before:.1%})'
+
+
 def study(name: str, seeds: int) -> dict:
     cm, incidence = cell(name)
     added, passed, levels, seconds = [], [], Counter(), []
@@ -75,9 +86,9 @@ def study(name: str, seeds: int) -> dict:
         # the ones refitted as trials in round 1.
         first = [t['spec'] for t in record.get('trials', []) if t['round'] == 1]
         if first:
-            passed.append((seed, first))
+            passed.append((seed, first, _gain(record)))
         if choice.effects:
-            added.append((seed, list(choice.effects)))
+            added.append((seed, list(choice.effects), _gain(record)))
             print(f'{name} seed {seed}: added {list(choice.effects)} ({choice.reason})',
                   flush=True)
         elif first:
@@ -99,7 +110,7 @@ def study(name: str, seeds: int) -> dict:
 
 def families(rows: list[dict], key: str) -> str:
     """How often each candidate family (the spec before its first ':') appears."""
-    count = Counter(spec.split(':', 1)[0] for r in rows for _, specs in r[key]
+    count = Counter(spec.split(':', 1)[0] for r in rows for _, specs, _ in r[key]
                     for spec in specs)
     return ', '.join(f'{f} {n}' for f, n in count.most_common()) or '–'
 
@@ -107,7 +118,9 @@ def families(rows: list[dict], key: str) -> str:
 def main(argv: list[str]) -> int:
     seeds = int(argv[0]) if argv else 100
     names = argv[1:] or list(CELLS)
+    load = os.getloadavg()[0]
     rows = [study(name, seeds) for name in names]
+    load = max(load, os.getloadavg()[0])
     alpha = ADEQUACY_ALPHA
     lines = ['# False alarms of `auto`\'s effect selection on clean data', '',
              f'{N_POSES} random poses, σ = 20 µm, random geometric errors, no hidden effect, '
@@ -119,7 +132,10 @@ def main(argv: list[str]) -> int:
              f'of at least as many at α. `default`: {DEFAULT_CELL.name} (KR15-class); `ur10`: '
              'the stock UR10 of example-robot-data in the cell of '
              'bench/general_effects_stock.py, poses at every incidence. Command: '
-             f'`.venv/bin/python bench/auto_false_alarms.py {seeds}`', '',
+             f'`.venv/bin/python bench/auto_false_alarms.py {seeds}` (load average up to '
+             f'{load:.1f} on 2 cores, at its start and end). Round 1\'s predicted '
+             'out-of-sample rms: the level\'s → its best trial\'s (improvement; 5 % needed to '
+             'add).', '',
              '| cell | effect added | 95 % upper | P(≥ k \\| α) | screen passed | 95 % upper '
              '| P(≥ k \\| α) | level chosen | s per seed (median) | s total |',
              '|---|---|---|---|---|---|---|---|---|---|']
@@ -134,9 +150,10 @@ def main(argv: list[str]) -> int:
               f"screen: {families(rows, 'passed')}.", '']
     for r in rows:
         for key, what in (('added', 'added'), ('passed', 'passed by the screen')):
-            for seed, specs in r[key]:
+            for seed, specs, gain in r[key]:
                 lines.append(f"- {r['cell']} seed {seed}: {what} "
-                             + ', '.join(f'`{s}`' for s in specs))
+                             + ', '.join(f'`{s}`' for s in specs)
+                             + (f'; predicted out-of-sample rms {gain}' if gain else ''))
     out = Path(__file__).resolve().parent / 'results' / 'auto_false_alarms.md'
     out.parent.mkdir(exist_ok=True)
     out.write_text('\n'.join(lines) + '\n')
