@@ -40,6 +40,7 @@ from kpi_calib_ros.core.simulation import (
     simulate_measurements,
     true_parameters,
 )
+from kpi_calib_ros.io.arm_cell import arm_cell_document
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, cell_from_dict
 from kpi_calib_ros.io.cell_settings import hidden_effects
 
@@ -80,12 +81,7 @@ ARMS = {
 
 def stock_cell(arm: str) -> CellModel:
     path, base, tip, _ = ARMS[arm]
-    doc = {'robot': {'urdf': f'package://example-robot-data/robots/{path}',
-                     'base_frame': base, 'tip_frame': tip},
-           'tracker': {'frame_id': 'laser_tracker',
-                       'base_in_tracker': [2.5, 0.3, -0.3, 0.0, 0.0, 3.0]},
-           'reflector': {'offset': [0.03, 0.02, 0.05], 'axis': [0, 0, 1]},
-           'noise': {'sigma': SIGMA}}
+    doc = arm_cell_document(f'package://example-robot-data/robots/{path}', base, tip, SIGMA)
     return build_cell_model(cell_from_dict(doc, Path('.')))
 
 

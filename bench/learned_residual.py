@@ -16,6 +16,11 @@ the real UR10 and TIAGo splits.
 4. TIAGo mocap (real): calibrated on the 37-posture session (2021-11-30), validated on
    2021-11-26.
 
+Every held-out set is also tested against its joint statement (its poses share the
+parameters' error and the learned field; core.diagnosis.shared_error): the range the 95 %
+share takes over recordings that agree with the statement, the independent points the set
+is worth, and p; in simulation the p-values over seeds should be uniform.
+
     .venv/bin/python bench/learned_residual.py [n_smooth_seeds [n_clean_seeds]]
 
 Writes bench/results/learned_residual.md.
@@ -41,6 +46,11 @@ from kpi_calib_ros.app.learned_residual import (
 )
 from kpi_calib_ros.cli import main as cli
 from kpi_calib_ros.core.diagnosis.learned_residual import corrected_tcp, fit_learned_residual
+from kpi_calib_ros.core.diagnosis.shared_error import (
+    joint_test_points,
+    shared_error_test,
+    statement_covariance,
+)
 from kpi_calib_ros.core.estimation.least_squares import identify
 from kpi_calib_ros.core.estimation.precision import expected_tcp_error, honest_precision
 from kpi_calib_ros.core.measurement.tracker import Measurements
@@ -90,6 +100,19 @@ def covered(e: np.ndarray, cov: np.ndarray) -> float:
     return float(np.mean(mahalanobis(e, cov) <= CHI2_95))
 
 
+def joint_check(e: np.ndarray, jac: np.ndarray, cov: np.ndarray, q: np.ndarray, model,
+                outside: np.ndarray | None, noise: np.ndarray | None) -> str:
+    """The errors e (M, 3) against their joint statement (points sharing the parameters'
+    error and the learned field; core.diagnosis.shared_error) as table cells: the range of
+    the 95 % share over recordings that agree with it, the independent points the tested
+    ones are worth, and p."""
+    idx = joint_test_points(len(e))
+    joint = statement_covariance(jac[idx], cov, q[idx], model, outside, noise)
+    out = shared_error_test(e[idx], joint)
+    return (f'{out.share_range[0]:.3f}-{out.share_range[1]:.3f} | '
+            f'{out.effective_points:.1f} of {out.points} | {out.p_value:.2g}')
+
+
 def physical_coverage(e: np.ndarray, jac: np.ndarray, result, misfit: float,
                       sigma: np.ndarray) -> float:
     """Coverage of the physical model's own statement: its (χ²-scaled) TCP covariance, its
@@ -128,6 +151,10 @@ def smooth_seed(cm, seed: int, amplitude: float, n_train: int) -> dict:
         out[f'{name}_learned'] = rms(measured - tcp.position) / floor
         out[f'{name}_cover'] = covered(truth - tcp.position, tcp.covariance)
         out[f'{name}_m2'] = mahalanobis(truth - tcp.position, tcp.covariance)
+        _, jac = cm.model.jacobian(result.values, fresh)
+        joint = statement_covariance(jac[:, :, cm.model.params.indices(list(result.estimated))],
+                                     cov, fresh, choice.model, outside)
+        out[f'{name}_joint'] = shared_error_test(truth - tcp.position, joint)
         out[f'{name}_inside'] = float(np.mean(tcp.correction.inside))
     return out
 
@@ -160,7 +187,21 @@ def simulated(n_smooth: int, n_clean: int, lines: list[str]) -> None:
               f"{np.mean(np.concatenate([r['out_m2'] for r in rows]) <= CHI2_95):.3f} outside "
               '(one calibration\'s poses share its errors, so one seed\'s share spreads '
               f'around the pooled one); {time.perf_counter() - t0:.0f} s.', '']
-    print('\n'.join(lines[-4:]), flush=True)
+    for where, label in (('in', 'inside'), ('out', 'outside')):
+        tests = [r[f'{where}_joint'] for r in rows if f'{where}_joint' in r]
+        p = [t.p_value for t in tests]
+        held = sum(t.share_range[0] <= t.share <= t.share_range[1] for t in tests)
+        lines.append(f'Joint statement (the poses share the parameters\' error and the field), '
+                     f'{label}: share of the true errors in their 95 % ellipsoids within the '
+                     f'range the statement gives it in {held} of {len(tests)} seeds (range '
+                     f'{min(t.share_range[0] for t in tests):.3f}-'
+                     f'{max(t.share_range[1] for t in tests):.3f}); {N_FRESH} poses worth '
+                     f'{np.median([t.effective_points for t in tests]):.0f} independent ones '
+                     f'(median); p per seed {", ".join(f"{x:.2f}" for x in p)} '
+                     f'(below 0.05 in {sum(x < 0.05 for x in p)}; Kolmogorov-Smirnov against '
+                     f'uniform p = {scipy.stats.kstest(p, "uniform").pvalue:.2f}).')
+        lines.append('')
+    print('\n'.join(lines[-8:]), flush=True)
     t0 = time.perf_counter()
     clean = [smooth_seed(cm, 1000 + seed, 0.0, N_CLEAN) for seed in range(n_clean)]
     alarms = [1000 + s for s, r in enumerate(clean) if r['chosen']]
@@ -209,8 +250,9 @@ def ur10(lines: list[str]) -> None:
               + f'; fit and choice {fit_s:.0f} s.', '',
               '| held out | poses | physical rms | with learned residual | ratio | inside fitted '
               'region | 95 % coverage (measured) | χ²/dof (measured) | physical model\'s own '
-              '95 % coverage |',
-              '|---|---|---|---|---|---|---|---|---|']
+              '95 % coverage | coverage range under the joint statement | worth (independent '
+              'points) | p (joint statement) |',
+              '|---|---|---|---|---|---|---|---|---|---|---|---|']
     for name, idx in (('same quarter and region, not trained on', same_time),
                       ('later, same region', later_same), ('other region (any time)', other)):
         q, eta = q_all[idx], eta_all[idx]
@@ -231,9 +273,12 @@ def ur10(lines: list[str]) -> None:
         _, jac = cm.model.jacobian(result.values, q)
         own = physical_coverage(eta - physical, jac[:, :, cm.model.params.indices(
             list(result.estimated))], result, misfit, cm.cell.sigma)
+        est = jac[:, :, cm.model.params.indices(list(result.estimated))]
+        check = joint_check(eta - tcp.position, est, cov if model is not None
+                            else result.covariance, q, model, outside, noise)
         lines.append(f'| {name} | {len(idx)} | {rms(eta - physical) * 1e6:.0f} µm | '
                      f'{rms(eta - tcp.position) * 1e6:.0f} µm | {ratio:.4f} | {inside} | '
-                     f'{cover:.3f} | {chi2:.2f} | {own:.3f} |')
+                     f'{cover:.3f} | {chi2:.2f} | {own:.3f} | {check} |')
     lines.append('')
     print('\n'.join(lines[-7:]), flush=True)
 
@@ -279,11 +324,14 @@ def tiago(lines: list[str]) -> None:
               f'points kept); {choice.reason}.', '',
               '| held out | points | physical rms | with learned residual | ratio | inside '
               'fitted region | 95 % coverage (measured) | χ²/dof (measured) | physical model\'s '
-              'own 95 % coverage |',
-              '|---|---|---|---|---|---|---|---|---|',
+              'own 95 % coverage | coverage range under the joint statement | worth '
+              '(independent points) | p (joint statement) |',
+              '|---|---|---|---|---|---|---|---|---|---|---|---|',
               f'| 2021-11-26 | {len(new)} | {rms(e_phys) * 1e3:.3f} mm | '
               f'{rms(e_learned) * 1e3:.3f} mm | {rms(e_learned) / rms(e_phys):.4f} | {inside} | '
-              f'{cover:.3f} | {chi2:.2f} | {own:.3f} |', '']
+              f'{cover:.3f} | {chi2:.2f} | {own:.3f} | '
+              + joint_check(e_learned, jac[:, :, idx], cov, np.atleast_2d(new.q), model,
+                            outside, noise) + ' |', '']
     print('\n'.join(lines[-6:]), flush=True)
 
 

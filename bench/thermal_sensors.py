@@ -27,17 +27,10 @@ import numpy as np
 
 from kpi_calib_ros.app.identify import calibrate_cell, identify_cell
 from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA
-from kpi_calib_ros.core.measurement.covariates import shift_temperature
-from kpi_calib_ros.core.simulation import (
-    random_configurations,
-    sensor_temperatures,
-    simulate_measurements,
-    true_parameters,
-)
+from kpi_calib_ros.core.simulation import simulate_two_sensor_shift, true_parameters
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict, read_cell_document
 
 SIGMA = 20e-6
-S = 10**9
 EFFECTS = ['thermal_link_growth:joint_3', 'thermal_link_growth:joint_4']
 TRUTH = {'thermal_link_growth.joint_3.alpha': 23e-6, 'thermal_link_growth.joint_4.alpha': 12e-6}
 BY_LINK = {'upper_arm': ['joint_3'], 'forearm': ['joint_4', 'joint_5']}
@@ -54,18 +47,8 @@ def cell_model(sensors, effects=tuple(EFFECTS)):
 def shift(truth_cm, seed, n=60, n_fresh=40):
     rng = np.random.default_rng(seed)
     p_true = np.concatenate([true_parameters(truth_cm.geometric, rng), list(TRUTH.values())])
-
-    def measure(count):
-        q = random_configurations(truth_cm.model, truth_cm.model.params.nominal, count, rng)
-        stamps = (np.sort(rng.uniform(0, 8, count)) * 3600 * S).astype(np.int64)
-        hours = stamps / 3.6e12
-        upper = shift_temperature(stamps, 20.0, 10.0, 4.0, start_ns=0)
-        fore = (20.0 + 3.0 * np.sin(2 * np.pi * hours / 8.0)
-                + shift_temperature(stamps, 0.0, 2.0, 1.0, start_ns=0))
-        cov = sensor_temperatures(stamps, {'upper_arm': upper, 'forearm': fore})
-        return simulate_measurements(truth_cm.model, p_true, q, SIGMA, rng, covariates=cov,
-                                     stamps_ns=stamps)
-    return measure(n), measure(n_fresh)
+    return (simulate_two_sensor_shift(truth_cm.model, p_true, n, SIGMA, rng),
+            simulate_two_sensor_shift(truth_cm.model, p_true, n_fresh, SIGMA, rng))
 
 
 def fresh_rms(cm, result, fresh):

@@ -27,6 +27,7 @@ import pytest
 from kpi_calib_ros.app.diagnose import diagnose_cell
 from kpi_calib_ros.core.effects.general import gravity_moment
 from kpi_calib_ros.core.simulation import random_configurations, sampling_bounds
+from kpi_calib_ros.io.arm_cell import arm_cell_document
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, cell_from_dict
 
 from hidden_campaigns import SIGMA, campaign
@@ -64,12 +65,7 @@ CASES = [(arm, case) for arm in DIAGNOSED for case in ('periodic', 'bending', 'c
 def stock_cell(arm: str) -> CellModel:
     """The arm in a tracker cell 2.5 m away, the reflector off the last joint's axis."""
     path, base, tip, *_ = ARMS[arm]
-    doc = {'robot': {'urdf': f'package://example-robot-data/robots/{path}',
-                     'base_frame': base, 'tip_frame': tip},
-           'tracker': {'frame_id': 'laser_tracker',
-                       'base_in_tracker': [2.5, 0.3, -0.3, 0.0, 0.0, 3.0]},
-           'reflector': {'offset': [0.03, 0.02, 0.05], 'axis': [0, 0, 1]},
-           'noise': {'sigma': SIGMA}}
+    doc = arm_cell_document(f'package://example-robot-data/robots/{path}', base, tip, SIGMA)
     return build_cell_model(cell_from_dict(doc, Path('.')))
 
 

@@ -331,8 +331,9 @@ def test_anisotropic_noise_is_stated_with_its_shape(cm):
 def test_validate_tells_whether_the_learned_residual_still_holds(tmp_path, capsys):
     """``validate`` with a calibration that has learned_residual.yaml beside it checks the
     learned residual too: on fresh poses of the same robot it predicts better than the
-    physical model and its uncertainty holds (χ² at 0.01, the 95 % ellipsoids at ~95 %;
-    200 training poses: from 90, χ² fails in 3 of 10 seeds, bench/learned_residual_poses.py);
+    physical model and its uncertainty holds (χ² under the joint statement at 0.01, the
+    95 % ellipsoids at ~95 %; 200 training poses: from 90 it fails in 1 of 10 seeds,
+    bench/learned_residual_poses.py);
     on a recording where the arm changed (joint_2's zero moved by 0.5 mrad, as between days)
     it says the uncertainty no longer holds."""
     misfit = _cell(tmp_path, {'cyclic_joint_error_h2:joint_2': {'a': 4e-4, 'b': 2e-4}})
@@ -360,4 +361,8 @@ def test_validate_tells_whether_the_learned_residual_still_holds(tmp_path, capsy
     same, changed = found['same']['learned_residual'], found['changed']['learned_residual']
     assert same['holds'] and same['rms_m'] < 0.8 * same['rms_physical_m'], same
     assert 0.88 <= same['inside_95_share'] <= 1.0, same
+    low, high = same['inside_95_share_range']
+    assert low <= same['inside_95_share'] <= high, same
+    assert 1 < same['effective_points'] < same['tested_points'] == same['points'], same
     assert not changed['holds'] and changed['p_value'] < 1e-6, changed
+    assert changed['inside_95_share'] < changed['inside_95_share_range'][0], changed

@@ -34,6 +34,7 @@ from kpi_calib_ros.core.simulation import (
     smooth_joint_map,
     true_parameters,
 )
+from kpi_calib_ros.io.arm_cell import arm_cell_document
 from kpi_calib_ros.io.cell import build_cell_model, load_cell
 from kpi_calib_ros.io.cell_settings import hidden_effects
 from kpi_calib_ros.io.learned_residual_file import read_residual
@@ -56,13 +57,9 @@ FINGERS = ('panda_finger_joint1', 'panda_finger_joint2')  # not in the chain
 
 def cell_file(tmp_path: Path) -> Path:
     """The Panda 2.5 m from the tracker, the reflector off the flange axis, ``auto``."""
-    doc = {'robot': {'urdf': PANDA, 'base_frame': 'panda_link0', 'tip_frame': 'panda_hand'},
-           'tracker': {'frame_id': 'laser_tracker',
-                       'base_in_tracker': [2.5, 0.3, -0.3, 0.0, 0.0, 3.0]},
-           'reflector': {'offset': [0.03, 0.02, 0.05], 'axis': [0, 0, 1]},
-           'noise': {'sigma': SIGMA},
-           'identification': {'model': 'auto'},
-           'working_poses': [[0.0, -0.3, 0.0, -2.0, 0.0, 1.7, 0.8]]}
+    doc = arm_cell_document(PANDA, 'panda_link0', 'panda_hand', SIGMA)
+    doc['identification'] = {'model': 'auto'}
+    doc['working_poses'] = [[0.0, -0.3, 0.0, -2.0, 0.0, 1.7, 0.8]]
     path = tmp_path / 'panda_cell.yaml'
     path.write_text(yaml.safe_dump(doc))
     return path

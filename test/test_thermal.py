@@ -29,6 +29,8 @@ from kpi_calib_ros.core.simulation import (
 )
 from kpi_calib_ros.io.cell_settings import hidden_effects
 
+from jacobian_checks import assert_jacobian_equals_finite_differences
+
 SIGMA = 20e-6  # the default cell's tracker σ
 S = 10**9
 
@@ -117,14 +119,8 @@ def test_thermal_jacobian_equals_finite_differences(cm, spec):
     q = random_configurations(cm.model, cm.model.params.nominal, 4, rng)
     cov = {DELTA_TEMPERATURE: rng.uniform(-5, 10, len(q))}
     p = np.concatenate([true_parameters(cm.model.params, rng), [1e-5]])
-    _, jac = model.jacobian(p, q, covariates=cov)
-    h = 1e-7
-    for i in (len(p) - 1, model.params.names.index('joint_3.placement.tx')):
-        step = np.zeros(len(p))
-        step[i] = h
-        fd = (model.predict(p + step, q, covariates=cov)
-              - model.predict(p - step, q, covariates=cov)) / (2 * h)
-        np.testing.assert_allclose(jac[:, :, i], fd, atol=1e-7)
+    assert_jacobian_equals_finite_differences(
+        model, p, q, cov, (len(p) - 1, model.params.names.index('joint_3.placement.tx')))
     with pytest.raises(ValueError, match='delta_temperature'):
         model.predict(p, q, covariates={'temperature.arm': np.zeros(len(q))})
 

@@ -19,21 +19,17 @@ from kpi_calib_ros.core.diagnosis.candidates import (
 from kpi_calib_ros.core.effects.registry import candidate_effects, parse_effect_spec
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA
-from kpi_calib_ros.core.measurement.covariates import (
-    DELTA_TEMPERATURE,
-    delta_temperature_name,
-    shift_temperature,
-)
+from kpi_calib_ros.core.measurement.covariates import DELTA_TEMPERATURE, delta_temperature_name
 from kpi_calib_ros.core.simulation import (
     random_configurations,
-    sensor_temperatures,
-    simulate_measurements,
+    simulate_two_sensor_shift,
     true_parameters,
 )
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict, read_cell_document
 
+from jacobian_checks import assert_jacobian_equals_finite_differences
+
 SIGMA = 20e-6  # the default cell's tracker σ
-S = 10**9
 UPPER, FORE = delta_temperature_name('upper_arm'), delta_temperature_name('forearm')
 # The KR15-class arm: joint_3's origin is the upper arm (0.68 m), joint_4's the forearm (0.67 m).
 BY_LINK = {'upper_arm': ['joint_3'], 'forearm': ['joint_4', 'joint_5']}
@@ -141,14 +137,8 @@ def test_the_jacobian_of_a_growth_per_sensor_equals_finite_differences(cm):
     q = random_configurations(cm.model, cm.model.params.nominal, 4, rng)
     cov = {name: rng.uniform(-5, 10, len(q)) for name in (DELTA_TEMPERATURE, UPPER, FORE)}
     p = np.concatenate([true_parameters(cm.model.params, rng), [2e-5]])
-    _, jac = model.jacobian(p, q, covariates=cov)
-    h = 1e-7
-    for i in (len(p) - 1, model.params.names.index('joint_4.placement.tx')):
-        step = np.zeros(len(p))
-        step[i] = h
-        fd = (model.predict(p + step, q, covariates=cov)
-              - model.predict(p - step, q, covariates=cov)) / (2 * h)
-        np.testing.assert_allclose(jac[:, :, i], fd, atol=1e-7)
+    assert_jacobian_equals_finite_differences(
+        model, p, q, cov, (len(p) - 1, model.params.names.index('joint_4.placement.tx')))
     with pytest.raises(ValueError, match='delta_temperature.forearm'):
         model.predict(p, q, covariates={DELTA_TEMPERATURE: cov[DELTA_TEMPERATURE],
                                         UPPER: cov[UPPER]})
@@ -172,28 +162,19 @@ def test_a_candidate_is_offered_only_where_the_data_carry_what_it_reads(cm):
 
 # ------------------------------------------------------------- the campaign
 def _two_sensor_shift(doc, seed, n=60, n_fresh=40):
-    """``n`` poses over an 8 h shift, and ``n_fresh`` more at fresh times of it: the upper arm
-    (aluminium, α 23e-6 /K) warms by 10 K (95 % after 4 h), the forearm (steel, 12e-6 /K)
-    swings ±3 K over the shift and warms by 2 K within the first hour: a sensor each,
-    histories that differ, each link growing with its own."""
+    """``n`` poses over an 8 h shift, and ``n_fresh`` more at fresh times of it
+    (:func:`simulate_two_sensor_shift`): the upper arm (aluminium, α 23e-6 /K) warms by 10 K
+    (95 % after 4 h), the forearm (steel, 12e-6 /K) swings ±3 K over the shift and warms by
+    2 K within the first hour: a sensor each, histories that differ, each link growing with
+    its own."""
     truth_cm = _cell_model(doc, BY_LINK, ['thermal_link_growth:joint_3',
                                           'thermal_link_growth:joint_4'])
     rng = np.random.default_rng(seed)
     truth = {'thermal_link_growth.joint_3.alpha': 23e-6,
              'thermal_link_growth.joint_4.alpha': 12e-6}
     p_true = np.concatenate([true_parameters(truth_cm.geometric, rng), list(truth.values())])
-
-    def measure(count):
-        q = random_configurations(truth_cm.model, truth_cm.model.params.nominal, count, rng)
-        stamps = (np.sort(rng.uniform(0, 8, count)) * 3600 * S).astype(np.int64)
-        hours = stamps / 3.6e12
-        upper = shift_temperature(stamps, 20.0, 10.0, 4.0, start_ns=0)
-        fore = (20.0 + 3.0 * np.sin(2 * np.pi * hours / 8.0)
-                + shift_temperature(stamps, 0.0, 2.0, 1.0, start_ns=0))
-        cov = sensor_temperatures(stamps, {'upper_arm': upper, 'forearm': fore})
-        return simulate_measurements(truth_cm.model, p_true, q, SIGMA, rng, covariates=cov,
-                                     stamps_ns=stamps)
-    return measure(n), measure(n_fresh), truth
+    return (simulate_two_sensor_shift(truth_cm.model, p_true, n, SIGMA, rng),
+            simulate_two_sensor_shift(truth_cm.model, p_true, n_fresh, SIGMA, rng), truth)
 
 
 @pytest.mark.parametrize('seed', [0, 3])

@@ -20,6 +20,7 @@ from kpi_calib_ros.app.validate import (
 )
 from kpi_calib_ros.cli import main
 from kpi_calib_ros.core.acquisition.streams import synthesize_streams
+from kpi_calib_ros.core.diagnosis.validation import shared_chi2
 from kpi_calib_ros.core.measurement.replicates import SAME_POSE_TOLERANCE
 from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.simulation import (
@@ -336,3 +337,49 @@ def test_the_real_ur10_series_with_the_tracker_and_probe_set_up_again_is_scored(
     assert unregistered.rms_m > 0.1 and not unregistered.holds
     assert registered.dof == 3 * len(series_d) - 9
     assert registered.rms_m < 1.05 * same_set_up.rms_m
+
+
+def test_shared_chi2_is_that_of_the_joint_covariance():
+    """eᵀ V⁻¹ e with V = blockdiag(noise) + J C Jᵀ formed explicitly, C singular too."""
+    rng = np.random.default_rng(5)
+    n, k = 12, 4
+    jac = rng.normal(size=(n, 3, k))
+    root = rng.normal(size=(k, k - 1))
+    noise = np.array([a @ a.T + 0.1 * np.eye(3) for a in rng.normal(size=(n, 3, 3))])
+    e = rng.normal(size=(n, 3))
+    for cov in (root @ root.T, root @ root.T + np.eye(k)):
+        v = np.zeros((3 * n, 3 * n))
+        for i in range(n):
+            v[3 * i:3 * i + 3, 3 * i:3 * i + 3] = noise[i]
+        flat = jac.reshape(3 * n, k)
+        v += flat @ cov @ flat.T
+        direct = float(e.reshape(-1) @ np.linalg.solve(v, e.reshape(-1)))
+        assert shared_chi2(e, jac, cov, noise) == pytest.approx(direct, rel=1e-9)
+
+
+@pytest.mark.slow
+def test_a_calibration_validated_far_from_its_poses_holds_at_its_level(setup):
+    """60 calibrations from 40 poses in one half of joint_1's range, each validated on 300
+    poses of the other half: the new points share the calibration's parameter error, and
+    with it in the joint covariance the p-values are uniform (at most 3 of 60 below 0.01).
+    Summed point by point, as if the points were independent, χ² rejects far more."""
+    _, _, cm = setup
+    p_values, independent = [], []
+    mid = 0.5 * (cm.model.robot.lower[0] + cm.model.robot.upper[0])
+    for seed in range(60):
+        rng = np.random.default_rng(500 + seed)
+        p_true = true_parameters(cm.model.params, rng)
+        pool = random_configurations(cm.model, p_true, 1400, rng)
+        q, q_new = pool[pool[:, 0] < mid][:40], pool[pool[:, 0] >= mid][:300]
+        doc = calibration_document(cm, identify_cell(cm, simulate_measurements(
+            cm.model, p_true, q, cm.cell.sigma, rng)))
+        new = simulate_measurements(cm.model, p_true, q_new, cm.cell.sigma, rng)
+        v = validate_calibration(cm, parameter_vector(cm, doc), doc, new)
+        p_values.append(v.p_value)
+        independent.append(scipy.stats.chi2.sf(np.sum(v.mahalanobis ** 2), v.dof))
+    p_values, independent = np.array(p_values), np.array(independent)
+    print(f'KS p {scipy.stats.kstest(p_values, "uniform").pvalue:.3f}; below 0.01: '
+          f'{np.sum(p_values < 0.01)} of 60, as if independent {np.sum(independent < 0.01)}')
+    assert scipy.stats.kstest(p_values, 'uniform').pvalue > 0.01
+    assert np.sum(p_values < 0.01) <= 3
+    assert np.sum(independent < 0.01) >= 6

@@ -23,6 +23,11 @@ from kpi_calib_ros.core.diagnosis.learned_residual import (
     fit_learned_residual,
     residual_noise_scale,
 )
+from kpi_calib_ros.core.diagnosis.shared_error import (
+    joint_test_points,
+    shared_error_test,
+    statement_covariance,
+)
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA, linearized_fit
@@ -126,10 +131,15 @@ def validate_learned(cm: CellModel, stored: StoredResidual, data: Measurements,
     learned δ(q), with the covariance it states (parameters, δ's latent variance and the
     noise it leaves, w · N). Returns a YAML-ready dict (m): the rms with and without δ, the
     share of the points inside their stated 95 % ellipsoid and of the poses inside the
-    fitted region, and χ² of the points against their statements with its p-value;
-    ``holds`` when p ≥ ``alpha``. A recording of another day, in which the arm changed by
-    more than the training session showed, fails it: the learned residual is then to be
-    learned again on the conditions it is used in.
+    fitted region, and the points' χ² with two p-values: as if the points were independent
+    (``p_value_independent``) and under the joint statement, in which they share the
+    parameters' error and the learned field
+    (:func:`kpi_calib_ros.core.diagnosis.shared_error.shared_error_test`, on at most
+    :data:`~kpi_calib_ros.core.diagnosis.shared_error.MAX_POINTS` points: ``p_value``, the
+    independent points the recording is worth, and the range of the share over recordings
+    that agree with the statement). ``holds`` when ``p_value`` ≥ ``alpha``. A recording of
+    another day, in which the arm changed by more than the training session showed, fails
+    it: the learned residual is then to be learned again on the conditions it is used in.
     """
     model = stored_cell_model(cm, stored).model
     rows = point_rows(model, data)
@@ -139,10 +149,18 @@ def validate_learned(cm: CellModel, stored: StoredResidual, data: Measurements,
     tcp = predict_stored(model, stored, new.q, new.reflector, new.covariates)
     assert tcp.correction is not None
     error = np.atleast_2d(new.eta) - tcp.position
-    cov = tcp.covariance + stored.residual.noise_covariance_m2
+    noise = stored.residual.noise_covariance_m2
+    cov = tcp.covariance + noise
     m2 = np.einsum('mi,mij,mj->m', error, np.linalg.inv(cov), error)
     chi2, dof = float(np.sum(m2)), 3 * len(new)
-    p_value = float(scipy.stats.chi2.sf(chi2, dof))
+    subset = joint_test_points(len(new))
+    tested = new.subset(subset)
+    _, jac = model.jacobian(stored.values, tested.q, None, tested.reflector,
+                            covariates=tested.covariates)
+    joint = statement_covariance(jac[:, :, model.params.indices(list(stored.estimated))],
+                                 stored.covariance, np.atleast_2d(tested.q), stored.residual,
+                                 stored.covariance_outside, noise)
+    shared = shared_error_test(error[subset], joint)
 
     def rms(e: np.ndarray) -> float:
         return float(np.sqrt(np.mean(np.sum(e ** 2, axis=1))))
@@ -150,8 +168,11 @@ def validate_learned(cm: CellModel, stored: StoredResidual, data: Measurements,
             'rms_m': rms(error), 'rms_physical_m': rms(error + tcp.correction.mean),
             'inside_95_share': float(np.mean(m2 <= scipy.stats.chi2.ppf(0.95, 3))),
             'inside_fitted_region_share': float(np.mean(tcp.correction.inside)),
-            'chi2': chi2, 'dof': dof, 'p_value': p_value, 'alpha': alpha,
-            'holds': bool(p_value >= alpha)}
+            'chi2': chi2, 'dof': dof,
+            'p_value_independent': float(scipy.stats.chi2.sf(chi2, dof)),
+            'tested_points': shared.points, 'effective_points': shared.effective_points,
+            'inside_95_share_range': list(shared.share_range),
+            'p_value': shared.p_value, 'alpha': alpha, 'holds': bool(shared.p_value >= alpha)}
 
 
 def learned_validation_text(doc: dict[str, Any]) -> str:
@@ -160,11 +181,16 @@ def learned_validation_text(doc: dict[str, Any]) -> str:
                'its uncertainty does NOT hold on this recording: the arm differs from the '
                'training session by more than that session showed, or too few poses taught '
                'it; learn it again, on more poses, in the conditions it is used in')
+    low, high = doc['inside_95_share_range']
     return (f"with the learned residual ({doc['file']}): rms {doc['rms_m'] * 1e3:.3f} mm "
             f"(physical model {doc['rms_physical_m'] * 1e3:.3f} mm); "
-            f"{doc['inside_95_share']:.1%} of the points inside their stated 95 % ellipsoid, "
+            f"{doc['inside_95_share']:.1%} of the points inside their stated 95 % ellipsoid "
+            f"(a recording that agrees with the statement: {low:.1%} to {high:.1%}), "
             f"{doc['inside_fitted_region_share']:.0%} inside its fitted region; chi2/dof = "
-            f"{doc['chi2']:.1f}/{doc['dof']}, p = {doc['p_value']:.3g}: {verdict}")
+            f"{doc['chi2']:.1f}/{doc['dof']}; the points share the parameters' error and the "
+            f"learned field, {doc['tested_points']} tested are worth "
+            f"{doc['effective_points']:.0f} independent ones: p = {doc['p_value']:.3g} "
+            f"(as if independent {doc['p_value_independent']:.3g}): {verdict}")
 
 
 def add_learned_residual(doc: dict[str, Any], cm: CellModel, data: Measurements,

@@ -18,6 +18,7 @@ from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.measurement.covariates import (
     REFERENCE_TEMPERATURE_C,
     TemperatureSample,
+    shift_temperature,
     temperature_covariates,
 )
 from kpi_calib_ros.core.measurement.pose import noisy_rotations
@@ -28,7 +29,7 @@ __all__ = [
     'ErrorMagnitudes', 'true_parameters', 'sampling_bounds', 'random_configurations',
     'measurable_batch', 'one_joint_at_a_time', 'simulate_measurements',
     'simulate_pose_measurements', 'equivalent_parameters', 'smooth_joint_map',
-    'sensor_temperatures',
+    'sensor_temperatures', 'simulate_two_sensor_shift',
 ]
 
 _DEG = np.pi / 180.0
@@ -255,6 +256,52 @@ def sensor_temperatures(stamps_ns: np.ndarray, celsius: Mapping[str, np.ndarray]
                              f'one per stamp, got {values.shape}')
         samples += [TemperatureSample(int(t), frame_id, float(c)) for t, c in zip(stamps, values)]
     return temperature_covariates(stamps, samples, tuple(celsius), reference_c)
+
+
+def simulate_two_sensor_shift(model: MeasurementModel, p_true: np.ndarray, n: int,
+                              sigma: float | np.ndarray,
+                              rng: np.random.Generator) -> Measurements:
+    """Simulate ``n`` random poses measured over an 8 h shift in which two links warm differently.
+
+    The poses are drawn by :func:`random_configurations` (at ``model``'s nominal
+    parameters) and stamped at uniform random times of the shift (ns from its start,
+    sorted). A sensor per link reads its temperature (°C): ``upper_arm`` warms from
+    20 °C by 10 K, 95 % of it after 4 h
+    (:func:`~kpi_calib_ros.core.measurement.covariates.shift_temperature`); ``forearm``
+    swings ±3 K around 20 °C once over the shift and warms by 2 K, 95 % of it after
+    1 h. Their covariates (:func:`sensor_temperatures`: ``temperature.<frame_id>``,
+    ``delta_temperature.<frame_id>`` and the mean ``delta_temperature``, K) drive the
+    effects of ``model`` that read them and are recorded with the rows
+    (:func:`simulate_measurements`). The scenario of the thermal link growth read per
+    sensor against the mean of the sensors (``bench/thermal_sensors.py`` and its test).
+
+    Parameters
+    ----------
+    model : MeasurementModel
+        The true model (geometry and effects).
+    p_true : (n_p,) ndarray
+        Its true parameters.
+    n : int
+        Number of poses.
+    sigma : float or (3,) ndarray
+        Tracker σ per axis, m.
+    rng : numpy.random.Generator
+        Drawn from in order: poses, stamps, tracker noise.
+
+    Returns
+    -------
+    Measurements
+        ``n`` rows with their stamps and temperature covariates.
+    """
+    q = random_configurations(model, model.params.nominal, n, rng)
+    stamps = (np.sort(rng.uniform(0, 8, n)) * 3600 * 10**9).astype(np.int64)
+    hours = stamps / 3.6e12
+    upper = shift_temperature(stamps, 20.0, 10.0, 4.0, start_ns=0)
+    fore = (20.0 + 3.0 * np.sin(2 * np.pi * hours / 8.0)
+            + shift_temperature(stamps, 0.0, 2.0, 1.0, start_ns=0))
+    cov = sensor_temperatures(stamps, {'upper_arm': upper, 'forearm': fore})
+    return simulate_measurements(model, p_true, q, sigma, rng, covariates=cov,
+                                 stamps_ns=stamps)
 
 
 def simulate_pose_measurements(model: MeasurementModel, p_true: np.ndarray, q: np.ndarray,

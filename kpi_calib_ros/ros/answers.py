@@ -62,7 +62,8 @@ def learned_answer(learned: dict[str, Any] | None) -> str:
         return f"; learned residual {learned['skipped']}"
     return (f"; with the learned residual rms {learned['rms_m'] * 1e6:.1f} µm, "
             f"{learned['inside_95_share']:.1%} in the stated 95 % ellipsoid, p = "
-            f"{learned['p_value']:.3g}: its uncertainty "
+            f"{learned['p_value']:.3g} ({learned['tested_points']} points worth "
+            f"{learned['effective_points']:.0f} independent ones): its uncertainty "
             + ('holds' if learned['holds'] else 'does not hold, learn it again'))
 
 

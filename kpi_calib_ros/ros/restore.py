@@ -12,45 +12,19 @@ the reason, and the node starts without a calibration, as it would without the f
 """
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
-from rclpy.publisher import Publisher
 from std_msgs.msg import String
 
 from kpi_calib_ros.app.stored_calibration import read_stored_calibration
 from kpi_calib_ros.core.errors import DataError, KpiCalibError
-from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.names import CALIBRATION_FILE, LEARNED_RESIDUAL_FILE
 from kpi_calib_ros.ros import conversions as cv
-from kpi_calib_ros.ros.campaign import Campaign
-from kpi_calib_ros.ros.job_node import JobNode
-from kpi_calib_ros.ros.run_state import RunState
+from kpi_calib_ros.ros.node_parts import NodeParts
 
 
-class CalibrationRestore(JobNode):
-    """The restore job of :class:`~kpi_calib_ros.ros.node.CalibrationNode`, which
-    provides the state, publishers and methods declared here."""
-
-    campaign: Campaign
-    data_dir: Path
-    _run: RunState
-    _pub_calibration: Publisher
-    _pub_urdf: Publisher
-    _calibration_text: str
-    _identified_stamps: set[int]
-
-    def _model(self) -> CellModel:
-        raise NotImplementedError
-
-    def _tcp_publisher(self, depth: int) -> Publisher:
-        raise NotImplementedError
-
-    def _publish_markers(self) -> None:
-        raise NotImplementedError
-
-    def _publish_diagnostics(self, force: bool = False) -> None:
-        raise NotImplementedError
+class CalibrationRestore(NodeParts):
+    """The restore job of :class:`~kpi_calib_ros.ros.node.CalibrationNode`, on the state,
+    publishers and methods :class:`~kpi_calib_ros.ros.node_parts.NodeParts` declares."""
 
     def _find_calibration(self) -> None:
         """At start: a calibration.yaml in data_dir is restored once the robot model is

@@ -10,12 +10,10 @@ run on the executor and update the node's :class:`~kpi_calib_ros.ros.run_state.R
 """
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import yaml
-from rclpy.publisher import Publisher
 from std_msgs.msg import String
 
 from kpi_calib_ros.core.errors import DataError, KpiCalibError
@@ -26,37 +24,14 @@ from kpi_calib_ros.io.names import CAMPAIGN_STATE_FILE, MEASUREMENT_POSES_TOPIC
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros import jobs
 from kpi_calib_ros.ros.answers import campaign_progress
-from kpi_calib_ros.ros.campaign import Campaign, model_measurements
-from kpi_calib_ros.ros.job_node import JobNode
-from kpi_calib_ros.ros.parameters import NodeSettings
-from kpi_calib_ros.ros.run_state import RunState
+from kpi_calib_ros.ros.campaign import model_measurements
+from kpi_calib_ros.ros.node_parts import NodeParts
 
 
-class SequentialCampaignJobs(JobNode):
+class SequentialCampaignJobs(NodeParts):
     """The sequential campaign's jobs of :class:`~kpi_calib_ros.ros.node.CalibrationNode`,
-    which provides the state, publishers and methods declared here."""
-
-    campaign: Campaign
-    settings: NodeSettings
-    data_dir: Path
-    _run: RunState
-    _pub_poses: Publisher
-    _pub_campaign_status: Publisher
-    _design_points: np.ndarray | None
-
-    def _model(self) -> CellModel:
-        raise NotImplementedError
-
-    def _publish_markers(self) -> None:
-        raise NotImplementedError
-
-    def _publish_diagnostics(self, force: bool = False) -> None:
-        raise NotImplementedError
-
-    def _publish_calibration(self, cal: Any, measured: np.ndarray, marker_rows: np.ndarray,
-                             identified_with: int, text: str, urdf: str, tcp: list,
-                             stamps: np.ndarray | None) -> None:
-        raise NotImplementedError
+    on the state, publishers and methods :class:`~kpi_calib_ros.ros.node_parts.NodeParts`
+    declares."""
 
     def _find_campaign_state(self) -> None:
         """At start: a sequential campaign data_dir/campaign_state.yaml keeps is resumed

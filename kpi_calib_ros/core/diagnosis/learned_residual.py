@@ -188,6 +188,19 @@ class LearnedResidual:
                                   latent[:, None, None] * np.asarray(self.output_shape),
                                   distance, distance <= INSIDE_DISTANCE)
 
+    def latent_covariance(self, q: np.ndarray) -> np.ndarray:
+        """(M, M) posterior covariance of δ between the queries, per whitened axis.
+
+        The field's covariance between query points i and j is this times the output shape
+        A; its diagonal is the latent variance of :meth:`predict`.
+        """
+        q = np.atleast_2d(np.asarray(q, float))
+        _, cov = self._gp.predict(q, return_cov=True)
+        cov = np.asarray(cov)
+        cov = (cov[:, :, 0] if cov.ndim == 3 else cov) - self.noise_m2 * np.eye(len(q))
+        np.fill_diagonal(cov, np.maximum(np.diag(cov), 0.0))
+        return 0.5 * (cov + cov.T)
+
     def distance(self, q: np.ndarray) -> np.ndarray:
         """Return the (M,) distance of each query to its nearest training pose.
 
@@ -509,6 +522,16 @@ class CorrectedTcp:
         return np.sqrt(np.trace(self.covariance, axis1=1, axis2=2))
 
 
+def outside_weight(model: LearnedResidual, prediction: ResidualPrediction) -> np.ndarray:
+    """Return the (M,) weight of the inside covariance at each query (:func:`corrected_tcp`).
+
+    1 − ((latent variance)/c)²: 1 at the training poses, 0 where the learned residual has
+    returned to its prior.
+    """
+    latent = np.trace(prediction.covariance, axis1=1, axis2=2) / (3.0 * model.amplitude_m2)
+    return np.clip(1.0 - latent ** 2, 0.0, 1.0)
+
+
 def corrected_tcp(tcp: np.ndarray, tcp_jacobian: np.ndarray, covariance_inside: np.ndarray,
                   q: np.ndarray, model: LearnedResidual | None,
                   covariance_outside: np.ndarray | None = None) -> CorrectedTcp:
@@ -553,8 +576,7 @@ def corrected_tcp(tcp: np.ndarray, tcp_jacobian: np.ndarray, covariance_inside: 
     pred = model.predict(q)
     physical = inside
     if covariance_outside is not None:
-        latent = np.trace(pred.covariance, axis1=1, axis2=2) / (3.0 * model.amplitude_m2)
-        weight = np.clip(1.0 - latent ** 2, 0.0, 1.0)[:, None, None]
+        weight = outside_weight(model, pred)[:, None, None]
         physical = weight * inside + (1.0 - weight) * propagated(covariance_outside)
     return CorrectedTcp(tcp + pred.mean, physical + pred.covariance, physical, pred)
 
@@ -562,4 +584,4 @@ def corrected_tcp(tcp: np.ndarray, tcp_jacobian: np.ndarray, covariance_inside: 
 __all__ = ['CHOICE_ALPHA', 'CorrectedTcp', 'INSIDE_DISTANCE', 'LearnedResidual', 'MIN_GAIN',
            'ResidualChoice', 'ResidualPrediction', 'corrected_tcp', 'field_parameter_covariance',
            'checked_shape', 'fit_learned_residual', 'fixed_kernel', 'output_shape',
-           'residual_noise_scale']
+           'outside_weight', 'residual_noise_scale']

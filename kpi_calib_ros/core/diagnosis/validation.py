@@ -9,8 +9,15 @@ plus the propagated uncertainty of the identified parameters,
 
 plus J_q Σ_q J_qᵀ when the model states joint-reading noise,
 
-so ``χ² = Σ_i r_iᵀ C_i⁻¹ r_i`` follows χ²(3N) when the calibration holds (new data
-are independent of the fit). Σ is the noise the calibration showed: the stated σ, or
+per point. The new points' noise is independent of the fit, but every new point carries
+the same error of the identified parameters, so the points are not independent of each
+other: χ² is ``eᵀ V⁻¹ e``, ``e`` every residual stacked (3N) and
+``V = blockdiag(C_i − J_i C_p J_iᵀ) + J C_p Jᵀ`` their joint covariance (the noise per point
+plus the shared parameters' part), which follows χ²(3N) when the calibration holds. Summed
+point by point (``Σ_i r_iᵀ C_i⁻¹ r_i``) it would not: a calibration from few poses, or
+validated far from them, would fail on many new points for no fault of its own.
+
+Σ is the noise the calibration showed: the stated σ, or
 σ̂ = σ·√(χ²/dof) when its model was not adequate and its covariance was scaled by that
 (:mod:`kpi_calib_ros.core.estimation.precision`), as its predicted out-of-sample error
 (:mod:`kpi_calib_ros.core.diagnosis.out_of_sample`) and a re-identification from it take it. The
@@ -48,7 +55,7 @@ from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA
 from kpi_calib_ros.core.measurement.replicates import same_pose
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements, row_sigma
 
-__all__ = ['Validation', 'validate']
+__all__ = ['Validation', 'shared_chi2', 'validate']
 
 
 @dataclass(frozen=True)
@@ -105,6 +112,40 @@ class Validation:
 
 def _rms(r: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum(r ** 2, axis=1))))
+
+
+def shared_chi2(residuals: np.ndarray, jacobian: np.ndarray, covariance: np.ndarray,
+                noise: np.ndarray) -> float:
+    """Return ``eᵀ V⁻¹ e`` of points that share the parameters' error.
+
+    ``V = blockdiag(noise_i) + J C Jᵀ``; computed as the least-squares minimum over a
+    correction ``δ = R u`` of the parameters (``C = R Rᵀ``) of
+    ``Σ_i ‖L_i⁻¹ (e_i − J_i R u)‖² + ‖u‖²`` (``noise_i = L_i L_iᵀ``), which equals it
+    without forming V.
+
+    Parameters
+    ----------
+    residuals : (N, 3) ndarray
+        e_i, m.
+    jacobian : (N, 3, k) ndarray
+        J_i of the k identified parameters.
+    covariance : (k, k) ndarray
+        C, their covariance.
+    noise : (N, 3, 3) ndarray
+        Each point's own noise covariance, m².
+    """
+    e = np.asarray(residuals, float).reshape(-1, 3)
+    jac = np.asarray(jacobian, float).reshape(len(e), 3, -1)
+    eig, vec = np.linalg.eigh(0.5 * (covariance + np.transpose(covariance)))
+    root = vec * np.sqrt(np.clip(eig, 0.0, None))
+    whiten = np.linalg.inv(np.linalg.cholesky(noise))
+    rows = np.einsum('nab,nbk->nak', whiten, jac @ root).reshape(3 * len(e), -1)
+    rhs = np.einsum('nab,nb->na', whiten, e).reshape(-1)
+    k = rows.shape[1]
+    system = np.vstack([rows, np.eye(k)])
+    target = np.concatenate([rhs, np.zeros(k)])
+    step = np.linalg.lstsq(system, target, rcond=None)[0]
+    return float(np.sum((target - system @ step) ** 2))
 
 
 def validate(model: MeasurementModel, p: np.ndarray, estimated: np.ndarray,
@@ -181,7 +222,10 @@ def validate(model: MeasurementModel, p: np.ndarray, estimated: np.ndarray,
     cov = point_covariance(jac, p)
     solved = np.linalg.solve(cov, residuals[:, :, None])[:, :, 0]
     d2 = np.sum(residuals * solved, axis=1)
-    chi2 = float(np.sum(d2)) if registration is None else registration.chi2
+    chi2 = (shared_chi2(residuals, jac[:, :, estimated], covariance,
+                        cov - np.einsum('nak,kl,nbl->nab', jac[:, :, estimated], covariance,
+                                        jac[:, :, estimated]))
+            if registration is None else registration.chi2)
     dof = 3 * len(q) - (registration.dof if registration is not None else 0)
     tol = 1e-9
     outside = np.any((q < np.asarray(lower) - tol) | (q > np.asarray(upper) + tol), axis=1)
