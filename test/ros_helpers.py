@@ -21,6 +21,8 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
+import numpy as np
+import pytest
 import rclpy
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray
@@ -36,7 +38,9 @@ from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import MarkerArray
 
 from kpi_calib_ros.core.acquisition.streams import synthesize_streams
+from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.io.cell import DEFAULT_CELL
+from kpi_calib_ros.io.ros_messages import time_msg
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros.node import CalibrationNode
 
@@ -280,6 +284,79 @@ class Spawner:
                 item._out.close()
             elif process.stdout is not None:
                 process.stdout.close()
+
+
+def tcp_of(msg: PoseWithCovarianceStamped) -> tuple[Any, Any]:
+    """The position (3,) and position covariance (3, 3) of a ~/tcp_corrected answer."""
+    p = msg.pose.pose.position
+    return np.array([p.x, p.y, p.z]), np.reshape(msg.pose.covariance, (6, 6))[:3, :3]
+
+
+class Queries:
+    """~/tcp_query from the test client, answers on ~/tcp_corrected by query stamp.
+
+    ``names``: the joint names the queries give, in their order (default the chain's);
+    ``extra``: the values of those not on the chain (e.g. gripper fingers).
+    """
+
+    def __init__(self, client: Client, cm: Any, depth: int = 10,
+                 names: list[str] | None = None, extra: dict[str, float] | None = None
+                 ) -> None:
+        self.client, self.cm, self.answers = client, cm, {}
+        self.names = list(names or cm.joint_names)
+        self.extra = dict(extra or {})
+        self.publisher = client.node.create_publisher(JointState, f'{NS}/tcp_query', depth)
+        self.subscription = client.node.create_subscription(
+            PoseWithCovarianceStamped, f'{NS}/tcp_corrected',
+            lambda m: self.answers.setdefault(
+                m.header.stamp.sec * 10 ** 9 + m.header.stamp.nanosec, m), depth)
+
+    def message(self, q: Any, stamp: int) -> JointState:
+        chain = list(self.cm.joint_names)
+        msg = JointState(name=self.names, position=[
+            float(q[chain.index(n)]) if n in chain else self.extra[n] for n in self.names])
+        msg.header.stamp = time_msg(stamp)
+        return msg
+
+    def connected(self) -> bool:
+        return bool(self.publisher.get_subscription_count()
+                    and self.subscription.get_publisher_count())
+
+    def ready(self) -> None:
+        self.client.spin_until(self.connected, 30, 'the TCP query topics')
+
+    def ask(self, poses: Any, first_stamp: int, timeout: float = 10.0
+            ) -> list[tuple[Any, Any]]:
+        """The answers at ``poses``, one query at a time."""
+        out = []
+        for i, q in enumerate(poses):
+            stamp = first_stamp + i
+            self.publisher.publish(self.message(q, stamp))
+            self.client.spin_until(lambda s=stamp: s in self.answers, timeout, f'answer {i}')
+            out.append(tcp_of(self.answers[stamp]))
+        return out
+
+    def unanswered(self, node: NodeProcess, q: Any) -> None:
+        """Sent until the node logs that it has no calibration to answer with."""
+        msg = self.message(q, 7)
+        self.client.spin_until(lambda: (self.publisher.publish(msg),
+                                        'TCP query dropped: no calibration yet'
+                                        in node.output())[1], 20, 'the query dropped')
+        assert 7 not in self.answers
+
+
+def start_error(data_dir: Path, domain: int, *overrides: Parameter) -> ConfigError:
+    """The ConfigError a node started in process with ``overrides`` stops with."""
+    context = Context()
+    rclpy.init(context=context, domain_id=domain)
+    try:
+        with pytest.raises(ConfigError) as info:
+            CalibrationNode(context=context, parameter_overrides=[
+                Parameter('robot_description', value=KR15_URDF),
+                Parameter('data_dir', value=str(data_dir)), *overrides])
+    finally:
+        rclpy.shutdown(context=context)
+    return info.value
 
 
 def finish(replay: subprocess.Popen, client: Client, timeout: float = 60.0) -> str:
