@@ -6,9 +6,10 @@ whatever bytecode the main thread runs next. While rclpy takes a message, that i
 message class's constructor or a field setter, which rclpy's C code calls to build the
 Python message: the exception makes the conversion fail, pybind11 replaces it with
 ``RuntimeError: Unable to convert call argument '0' to Python object`` and the node
-ended with exit code 1 and a traceback instead of stopping: 16 of 24 stops while
-another process flooded ``~/tcp_query`` with large queries (``test_ros_node_stop.py``),
-now and then under load with ordinary ones.
+ended with exit code 1 and a traceback instead of stopping: 8 of 12 stops while
+another process flooded ``~/tcp_query`` with 35 000-name queries
+(``test_ros_node_stop.py``), and rarely in ROS tests that stop the node right after a
+query.
 
 Here a signal only records the request; the spin loop polls it every
 :data:`POLL_S` and ends with the context still valid. A second signal ends the process
