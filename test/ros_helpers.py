@@ -21,6 +21,8 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
+import numpy as np
+import pytest
 import rclpy
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray
@@ -36,7 +38,9 @@ from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import MarkerArray
 
 from kpi_calib_ros.core.acquisition.streams import synthesize_streams
+from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.io.cell import DEFAULT_CELL
+from kpi_calib_ros.io.ros_messages import time_msg
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros.node import CalibrationNode
 
@@ -46,6 +50,7 @@ PARAMS_FILE = REPO / 'config' / 'kpi_calib.params.yaml'
 KR15_URDF = (DEFAULT_CELL.parent.parent / 'robots' / 'kr15_class.urdf').read_text()
 NS = '/kpi_calib_node'
 RATE = 20.0
+CHUNK_S = 5.0  # stream time publish_measurements sends unpaced (half the node's buffer)
 LATCHED = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
@@ -134,8 +139,11 @@ class Client:
         self.node.create_subscription(DiagnosticArray, '/diagnostics',
                                       self._recorder('diagnostics'), 50)
         self.description = self.node.create_publisher(String, '/robot_description', LATCHED)
-        self.joints = self.node.create_publisher(JointState, '/joint_states', 100)
-        self.points = self.node.create_publisher(PointStamped, '/laser_tracker/point', 100)
+        # Made once, before any node starts (one made just before a burst counts the node's
+        # subscription at once, while the node may not have matched it yet).
+        burst = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+        self.joints = self.node.create_publisher(JointState, '/joint_states', burst)
+        self.points = self.node.create_publisher(PointStamped, '/laser_tracker/point', burst)
         self.clients: dict[str, Any] = {}
 
     def _recorder(self, topic: str) -> Callable[[Any], None]:
@@ -178,22 +186,36 @@ class Client:
                              accepted: int, timeout: float = 60.0) -> None:
         """Publish static poses ``q`` with their points ``eta`` as a robot and a tracker
         would (joint states at 20 Hz, a point while each pose is held) on the node's
-        measurement topics, and wait until it has accepted ``accepted`` measurements."""
+        measurement topics, and wait until it has accepted ``accepted`` measurements.
+
+        Faster than real time, in chunks of :data:`CHUNK_S` of stream time, each received
+        whole by the node before the next is sent: the node pairs a point with the last
+        STREAM_BUFFER_S of joint states, so the points must never trail the joint states
+        by more stream time than that. Sent unpaced, 80 s of stream took well under a
+        second: one topic's first messages arriving 3 s late came after all of the
+        other's, and the first point was rejected (no_joint_state).
+        """
         joints, points = synthesize_streams(q, joint_names, eta, frame, rate_hz=20.0,
                                             move_time_s=0.2, hold_time_s=0.6)
         stream = sorted([(s.stamp_ns, 0, cv.joint_state_msg(s)) for s in joints]
                         + [(s.stamp_ns, 1, cv.point_stamped_msg(s)) for s in points],
                         key=lambda item: item[:2])
-        # Deep enough for every message: a reliable writer never drops an unacknowledged one.
-        depth = QoSProfile(depth=len(stream), reliability=ReliabilityPolicy.RELIABLE)
-        publishers = (self.node.create_publisher(JointState, '/joint_states', depth),
-                      self.node.create_publisher(PointStamped, '/laser_tracker/point', depth))
+        publishers = (self.joints, self.points)
         self.spin_until(lambda: all(p.get_subscription_count() for p in publishers), 20,
                         'the node on the measurement topics')
-        for i, (_, kind, msg) in enumerate(stream):
+        keys = ('received.joint_states', 'received.points')
+        sent = [self.count(key) for key in keys]  # what the node had received before
+
+        def received() -> bool:
+            return all(self.count(key) >= n for key, n in zip(keys, sent))
+
+        chunk_start = stream[0][0]
+        for stamp, kind, msg in stream:
+            if stamp - chunk_start > CHUNK_S * 1e9:
+                self.spin_until(received, timeout, f'the node to receive {sent} messages')
+                chunk_start = stamp
             publishers[kind].publish(msg)
-            if not i % 200:
-                self.executor.spin_once(timeout_sec=0.0)
+            sent[kind] += 1
         self.spin_until(lambda: self.count('accepted') == accepted, timeout,
                         f'{accepted} accepted measurements')
 
@@ -262,6 +284,79 @@ class Spawner:
                 item._out.close()
             elif process.stdout is not None:
                 process.stdout.close()
+
+
+def tcp_of(msg: PoseWithCovarianceStamped) -> tuple[Any, Any]:
+    """The position (3,) and position covariance (3, 3) of a ~/tcp_corrected answer."""
+    p = msg.pose.pose.position
+    return np.array([p.x, p.y, p.z]), np.reshape(msg.pose.covariance, (6, 6))[:3, :3]
+
+
+class Queries:
+    """~/tcp_query from the test client, answers on ~/tcp_corrected by query stamp.
+
+    ``names``: the joint names the queries give, in their order (default the chain's);
+    ``extra``: the values of those not on the chain (e.g. gripper fingers).
+    """
+
+    def __init__(self, client: Client, cm: Any, depth: int = 10,
+                 names: list[str] | None = None, extra: dict[str, float] | None = None
+                 ) -> None:
+        self.client, self.cm, self.answers = client, cm, {}
+        self.names = list(names or cm.joint_names)
+        self.extra = dict(extra or {})
+        self.publisher = client.node.create_publisher(JointState, f'{NS}/tcp_query', depth)
+        self.subscription = client.node.create_subscription(
+            PoseWithCovarianceStamped, f'{NS}/tcp_corrected',
+            lambda m: self.answers.setdefault(
+                m.header.stamp.sec * 10 ** 9 + m.header.stamp.nanosec, m), depth)
+
+    def message(self, q: Any, stamp: int) -> JointState:
+        chain = list(self.cm.joint_names)
+        msg = JointState(name=self.names, position=[
+            float(q[chain.index(n)]) if n in chain else self.extra[n] for n in self.names])
+        msg.header.stamp = time_msg(stamp)
+        return msg
+
+    def connected(self) -> bool:
+        return bool(self.publisher.get_subscription_count()
+                    and self.subscription.get_publisher_count())
+
+    def ready(self) -> None:
+        self.client.spin_until(self.connected, 30, 'the TCP query topics')
+
+    def ask(self, poses: Any, first_stamp: int, timeout: float = 10.0
+            ) -> list[tuple[Any, Any]]:
+        """The answers at ``poses``, one query at a time."""
+        out = []
+        for i, q in enumerate(poses):
+            stamp = first_stamp + i
+            self.publisher.publish(self.message(q, stamp))
+            self.client.spin_until(lambda s=stamp: s in self.answers, timeout, f'answer {i}')
+            out.append(tcp_of(self.answers[stamp]))
+        return out
+
+    def unanswered(self, node: NodeProcess, q: Any) -> None:
+        """Sent until the node logs that it has no calibration to answer with."""
+        msg = self.message(q, 7)
+        self.client.spin_until(lambda: (self.publisher.publish(msg),
+                                        'TCP query dropped: no calibration yet'
+                                        in node.output())[1], 20, 'the query dropped')
+        assert 7 not in self.answers
+
+
+def start_error(data_dir: Path, domain: int, *overrides: Parameter) -> ConfigError:
+    """The ConfigError a node started in process with ``overrides`` stops with."""
+    context = Context()
+    rclpy.init(context=context, domain_id=domain)
+    try:
+        with pytest.raises(ConfigError) as info:
+            CalibrationNode(context=context, parameter_overrides=[
+                Parameter('robot_description', value=KR15_URDF),
+                Parameter('data_dir', value=str(data_dir)), *overrides])
+    finally:
+        rclpy.shutdown(context=context)
+    return info.value
 
 
 def finish(replay: subprocess.Popen, client: Client, timeout: float = 60.0) -> str:

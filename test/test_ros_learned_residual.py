@@ -8,13 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import rclpy
 import yaml
-from geometry_msgs.msg import PoseWithCovarianceStamped
-from rclpy.context import Context
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
-from sensor_msgs.msg import JointState
 
 from kpi_calib_ros.app.learned_residual import predict_stored
 from kpi_calib_ros.core.acquisition.pairing import PairingResult
@@ -28,12 +24,10 @@ from kpi_calib_ros.core.simulation import (
 )
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 from kpi_calib_ros.io.learned_residual_file import read_residual
-from kpi_calib_ros.io.ros_messages import time_msg
 from kpi_calib_ros.ros import jobs
-from kpi_calib_ros.ros.node import CalibrationNode
 from kpi_calib_ros.ros.parameters import PARAMETERS, settings_from_parameters
 
-from ros_helpers import KR15_URDF, NS
+from ros_helpers import Queries, start_error
 
 N_POSES = 100
 N_FRESH = 30
@@ -78,16 +72,8 @@ def test_the_parameter_is_validated_by_name(tmp_path, ros_domain):
     with pytest.raises(ConfigError) as info:
         settings_from_parameters({**values, PARAMETER: 'yes'})
     assert info.value.key == PARAMETER and 'true or false' in str(info.value)
-    context = Context()
-    rclpy.init(context=context, domain_id=ros_domain)
-    try:
-        with pytest.raises(ConfigError) as info:
-            CalibrationNode(context=context, parameter_overrides=[
-                Parameter('robot_description', value=KR15_URDF),
-                Parameter('data_dir', value=str(tmp_path)), Parameter(PARAMETER, value=1)])
-    finally:
-        rclpy.shutdown(context=context)
-    assert info.value.key == PARAMETER and 'true or false' in str(info.value), info.value
+    error = start_error(tmp_path, ros_domain, Parameter(PARAMETER, value=1))
+    assert error.key == PARAMETER and 'true or false' in str(error), error
 
 
 def test_a_prior_calibration_fits_no_learned_residual_and_removes_the_older_one(tmp_path):
@@ -120,31 +106,17 @@ def test_identify_learns_the_residual_and_tcp_query_uses_it(client, spawn, tmp_p
     data_dir = tmp_path / 'data'
     learned_file = data_dir / 'learned_residual.yaml'
     node = spawn(data_dir, 'node.log', 'auto_identify:=false')
-    answers: dict[int, PoseWithCovarianceStamped] = {}
-    answered = client.node.create_subscription(
-        PoseWithCovarianceStamped, f'{NS}/tcp_corrected',
-        lambda m: answers.setdefault(m.header.stamp.sec * 10 ** 9 + m.header.stamp.nanosec, m),
-        N_FRESH)
-    query = client.node.create_publisher(JointState, f'{NS}/tcp_query', N_FRESH)
+    queries = Queries(client, cm, N_FRESH)
     client.spin_until(lambda: client.diagnostics().get('state') == 'idle'
-                      and query.get_subscription_count() and answered.get_publisher_count(),
-                      60, 'the model and the TCP query topics')
+                      and queries.connected(), 60, 'the model and the TCP query topics')
     try:
         client.publish_measurements(q, cm.joint_names, eta, cm.cell.tracker_frame, N_POSES)
 
         def tcp_answers(round_: int) -> np.ndarray:
             """The node's TCP (m) at the fresh poses: one query each, as a client asks
             (the next once the last is answered), stamps of this round."""
-            out = []
-            for i, row in enumerate(fresh):
-                stamp = (round_ * 1000 + i + 1) * 10 ** 6
-                msg = JointState(name=list(cm.joint_names), position=[float(x) for x in row])
-                msg.header.stamp = time_msg(stamp)
-                query.publish(msg)
-                client.spin_until(lambda s=stamp: s in answers, 10, f'the answer to query {i}')
-                p = answers[stamp].pose.pose.position
-                out.append([p.x, p.y, p.z])
-            return np.array(out)
+            return np.array([position for position, _ in
+                             queries.ask(fresh, (round_ * 1000 + 1) * 10 ** 6)])
 
         # Off (the default): nothing learned, nothing written; the physical model answers.
         off = client.call('identify')

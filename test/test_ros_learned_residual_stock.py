@@ -19,10 +19,8 @@ import numpy as np
 import pytest
 import scipy.stats
 import yaml
-from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
-from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 
 from kpi_calib_ros.app.learned_residual import predict_stored
@@ -39,9 +37,8 @@ from kpi_calib_ros.io.cell import build_cell_model, load_cell
 from kpi_calib_ros.io.cell_settings import hidden_effects
 from kpi_calib_ros.io.learned_residual_file import read_residual
 from kpi_calib_ros.io.resources import resolve_uri
-from kpi_calib_ros.io.ros_messages import time_msg
 
-from ros_helpers import NS, Client
+from ros_helpers import Client, Queries
 
 PANDA = 'package://example-robot-data/robots/panda_description/urdf/panda.urdf'
 SIGMA = 20e-6
@@ -100,32 +97,17 @@ def test_auto_effects_and_the_learned_residual_on_a_stock_arm(ros_domain, spawn,
     assert 'package://' in urdf and '<mimic' in urdf
     client.description.publish(String(data=urdf))
     node = spawn(data_dir, 'node.log', *overrides)
-    answers: dict[int, PoseWithCovarianceStamped] = {}
-    answered = client.node.create_subscription(
-        PoseWithCovarianceStamped, f'{NS}/tcp_corrected',
-        lambda m: answers.setdefault(m.header.stamp.sec * 10 ** 9 + m.header.stamp.nanosec, m),
-        N_FRESH)
-    query = client.node.create_publisher(JointState, f'{NS}/tcp_query', N_FRESH)
     # The query names the joints in another order than the chain's, the fingers among them.
     names = [*reversed(cm.joint_names[:4]), FINGERS[0], *cm.joint_names[4:], FINGERS[1]]
-    order = [list(cm.joint_names).index(n) if n in cm.joint_names else -1 for n in names]
+    queries = Queries(client, cm, N_FRESH, names, {finger: 0.02 for finger in FINGERS})
 
     def ask(row: np.ndarray, stamp: int) -> tuple[np.ndarray, np.ndarray]:
         """The node's TCP (m) and its position covariance (m²) at URDF joints ``row``."""
-        msg = JointState(name=names, position=[float(row[i]) if i >= 0 else 0.02
-                                               for i in order])
-        msg.header.stamp = time_msg(stamp)
-        query.publish(msg)
-        client.spin_until(lambda: stamp in answers, 20, f'the answer to query {stamp}')
-        answer = answers[stamp].pose
-        position = answer.pose.position
-        return (np.array([position.x, position.y, position.z]),
-                np.array(answer.covariance).reshape(6, 6)[:3, :3])
+        return queries.ask([row], stamp, timeout=20)[0]
 
     def ready() -> None:
         client.spin_until(lambda: client.diagnostics().get('state') == 'idle'
-                          and query.get_subscription_count() and answered.get_publisher_count(),
-                          60, 'the robot model and the TCP query topics')
+                          and queries.connected(), 60, 'the robot model and the TCP query topics')
     try:
         ready()
         client.publish_measurements(q, cm.joint_names, eta, cm.cell.tracker_frame, N_POSES)
@@ -172,7 +154,8 @@ def test_auto_effects_and_the_learned_residual_on_a_stock_arm(ros_domain, spawn,
 
         # Restarted on the same data_dir (nothing identified since): the same answer.
         assert node.stop() == 0, node.output()
-        client.spin_until(lambda: not query.get_subscription_count(), 20, 'the node gone')
+        client.spin_until(lambda: not queries.publisher.get_subscription_count(), 20,
+                          'the node gone')
         client.received['diagnostics'].clear()
         node = spawn(data_dir, 'node_restarted.log', *overrides)
         ready()

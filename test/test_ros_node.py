@@ -35,7 +35,7 @@ from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros.node import CalibrationNode
 from kpi_calib_ros.ros.parameters import PARAMETERS, settings_from_parameters
 
-from ros_helpers import KR15_URDF, finish
+from ros_helpers import KR15_URDF, finish, start_error
 
 
 @pytest.mark.slow
@@ -180,16 +180,7 @@ def test_working_poses_parameters_override_the_cell(tmp_path, ros_domain):
 
 def _start_error(tmp_path, ros_domain, *overrides: Parameter) -> ConfigError:
     """The ConfigError a node started with ``overrides`` stops with."""
-    context = Context()
-    rclpy.init(context=context, domain_id=ros_domain)
-    try:
-        with pytest.raises(ConfigError) as info:
-            CalibrationNode(context=context, parameter_overrides=[
-                Parameter('robot_description', value=KR15_URDF),
-                Parameter('data_dir', value=str(tmp_path / 'data')), *overrides])
-    finally:
-        rclpy.shutdown(context=context)
-    return info.value
+    return start_error(tmp_path / 'data', ros_domain, *overrides)
 
 
 @pytest.mark.parametrize('name, value, words', [

@@ -14,7 +14,6 @@ import pytest
 import yaml
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.executors import SingleThreadedExecutor
-from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 
 from kpi_calib_ros.core.acquisition.pairing import PairingResult
@@ -27,10 +26,9 @@ from kpi_calib_ros.core.simulation import (
 )
 from kpi_calib_ros.io.cell import DEFAULT_CELL
 from kpi_calib_ros.io.measurement_log import MeasurementLog
-from kpi_calib_ros.io.ros_messages import time_msg
 from kpi_calib_ros.ros import jobs
 
-from ros_helpers import LATCHED, NS, idle_node
+from ros_helpers import LATCHED, NS, Queries, idle_node, tcp_of
 
 N_POSES = 30
 N_QUERIES = 3
@@ -45,51 +43,6 @@ def simulated(cm, seed: int = 8):
     eta = simulate_measurements(cm.model, p, q[:N_POSES], cm.cell.sigma, rng).eta
     stamps = 10 ** 18 + np.arange(N_POSES, dtype=np.int64) * 10 ** 9
     return q[:N_POSES], eta, stamps, q[N_POSES:]
-
-
-def tcp_of(msg: PoseWithCovarianceStamped) -> tuple[np.ndarray, np.ndarray]:
-    p = msg.pose.pose.position
-    return np.array([p.x, p.y, p.z]), np.reshape(msg.pose.covariance, (6, 6))[:3, :3]
-
-
-class Queries:
-    """~/tcp_query from the test client, answers on ~/tcp_corrected by query stamp."""
-
-    def __init__(self, client, cm) -> None:
-        self.client, self.cm, self.answers = client, cm, {}
-        self.publisher = client.node.create_publisher(JointState, f'{NS}/tcp_query', 10)
-        self.subscription = client.node.create_subscription(
-            PoseWithCovarianceStamped, f'{NS}/tcp_corrected',
-            lambda m: self.answers.setdefault(
-                m.header.stamp.sec * 10 ** 9 + m.header.stamp.nanosec, m), 10)
-
-    def message(self, q: np.ndarray, stamp: int) -> JointState:
-        msg = JointState(name=list(self.cm.joint_names), position=[float(x) for x in q])
-        msg.header.stamp = time_msg(stamp)
-        return msg
-
-    def ready(self) -> None:
-        self.client.spin_until(lambda: self.publisher.get_subscription_count()
-                               and self.subscription.get_publisher_count(), 30,
-                               'the TCP query topics')
-
-    def ask(self, poses: np.ndarray, first_stamp: int) -> list[tuple[np.ndarray, np.ndarray]]:
-        """The answers at ``poses``, one query at a time."""
-        out = []
-        for i, q in enumerate(poses):
-            stamp = first_stamp + i
-            self.publisher.publish(self.message(q, stamp))
-            self.client.spin_until(lambda s=stamp: s in self.answers, 10, f'answer {i}')
-            out.append(tcp_of(self.answers[stamp]))
-        return out
-
-    def unanswered(self, node, q: np.ndarray) -> None:
-        """Sent until the node logs that it has no calibration to answer with."""
-        msg = self.message(q, 7)
-        self.client.spin_until(lambda: (self.publisher.publish(msg),
-                                        'TCP query dropped: no calibration yet'
-                                        in node.output())[1], 20, 'the query dropped')
-        assert 7 not in self.answers
 
 
 def _call(node, executor, name, work):

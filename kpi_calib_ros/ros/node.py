@@ -45,9 +45,10 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped, PoseStamped, PoseWithCovarianceStamped, Vector3Stamped
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.executors import ExternalShutdownException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.publisher import Publisher
+from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
@@ -95,6 +96,7 @@ from kpi_calib_ros.ros.restore import CalibrationRestore
 from kpi_calib_ros.ros.run_state import CAMPAIGN_FIXED, RunState
 from kpi_calib_ros.ros.sequential_jobs import SequentialCampaignJobs
 from kpi_calib_ros.ros.status import StreamHealth, node_status
+from kpi_calib_ros.ros.stop_request import POLL_S, StopRequest
 from kpi_calib_ros.ros.tcp_query import TcpQuery
 from kpi_calib_ros.ros.temperature import subscribe_temperature
 
@@ -376,12 +378,18 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
 
 
 def main(args: list[str] | None = None) -> int:
-    rclpy.init(args=args)
+    # SIGINT/SIGTERM end the spin between callbacks (ros/stop_request.py says why not
+    # rclpy's handlers and KeyboardInterrupt).
+    stop = StopRequest()
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     try:
         node = CalibrationNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        while not stop.requested:
+            executor.spin_once(timeout_sec=POLL_S)
+    except ExternalShutdownException:  # the context shut down by another part of the process
         pass
     except KpiCalibError as exc:
         print(f'{NODE_NAME}: error: {exc}', file=sys.stderr)
