@@ -24,10 +24,12 @@ node that receives nothing else.
 from __future__ import annotations
 
 import mmap
+import signal
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from types import FrameType
 from typing import cast
 
 import rclpy
@@ -271,15 +273,29 @@ def run_replay(bag: str | Path, rate: float = 1.0, joint_topic: str = DEFAULT_JO
                pose_topic: str = DEFAULT_POSE_TOPIC) -> int:
     """The ``kpi-calib replay`` subcommand: 0 if every message was delivered, 1 if not."""
     refuse_measurement_log(bag)  # before joining the ROS graph
+    interrupted: list[int] = []
+
+    def interrupt(signum: int, frame: FrameType | None) -> None:
+        interrupted.append(signum)
+        raise KeyboardInterrupt
+    # Installed before rclpy's handler, which calls it after waking the executor.
+    previous = signal.signal(signal.SIGINT, interrupt)
     rclpy.init()
     node = rclpy.create_node('kpi_calib_replay')
     try:
         report = replay(node, bag, rate, joint_topic, point_topic, wait_s, pose_topic)
     except KeyboardInterrupt:
         return 130
+    except RuntimeError:
+        # Ctrl-C while rclpy took a /diagnostics message: KeyboardInterrupt was raised in
+        # the message constructor rclpy calls, and pybind11 replaced it with a RuntimeError.
+        if interrupted:
+            return 130
+        raise
     finally:
         node.destroy_node()
         rclpy.try_shutdown()
+        signal.signal(signal.SIGINT, previous)
     (n_joints, n_points), seconds = report.sent, report.seconds
     print(f'sent {n_joints} joint states and {n_points} tracker points from {bag} in '
           f'{seconds:.1f} s (rate {rate:g})'
