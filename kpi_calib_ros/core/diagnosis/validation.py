@@ -201,16 +201,15 @@ def validate(model: MeasurementModel, p: np.ndarray, estimated: np.ndarray,
     except ValueError as exc:
         raise DataError(f'{exc}; the per-point sigma of the validation data') from None
 
-    def point_covariance(jac: np.ndarray, p_now: np.ndarray) -> np.ndarray:
-        j = jac[:, :, estimated]
-        cov = (np.einsum('nak,kl,nbl->nab', j, covariance, j)
-               + sigma_rows[:, :, None] ** 2 * np.eye(3))
+    def noise_covariance(p_now: np.ndarray) -> np.ndarray:
+        """(N, 3, 3) each point's own noise: the tracker's and the joint readings'."""
+        noise = sigma_rows[:, :, None] ** 2 * np.eye(3)
         if model.joint_sigma is not None:
             jq = (model.joint_jacobian(p_now, q, tau, data.reflector, data.rotation,
                                        data.covariates)
                   * model.joint_sigma)
-            cov = cov + noise_scale * np.einsum('nak,nbk->nab', jq, jq)
-        return cov
+            noise = noise + noise_scale * np.einsum('nak,nbk->nab', jq, jq)
+        return noise
 
     registration = None
     if registered is not None and len(registered):
@@ -219,13 +218,13 @@ def validate(model: MeasurementModel, p: np.ndarray, estimated: np.ndarray,
         p = registration.p
     pred, jac = model.jacobian(p, q, tau, data.reflector, data.rotation, data.covariates)
     residuals = np.atleast_2d(data.eta) - pred
-    cov = point_covariance(jac, p)
+    j = jac[:, :, estimated]
+    noise = noise_covariance(p)
+    cov = np.einsum('nak,kl,nbl->nab', j, covariance, j) + noise
     solved = np.linalg.solve(cov, residuals[:, :, None])[:, :, 0]
     d2 = np.sum(residuals * solved, axis=1)
-    chi2 = (shared_chi2(residuals, jac[:, :, estimated], covariance,
-                        cov - np.einsum('nak,kl,nbl->nab', jac[:, :, estimated], covariance,
-                                        jac[:, :, estimated]))
-            if registration is None else registration.chi2)
+    chi2 = (shared_chi2(residuals, j, covariance, noise) if registration is None
+            else registration.chi2)
     dof = 3 * len(q) - (registration.dof if registration is not None else 0)
     tol = 1e-9
     outside = np.any((q < np.asarray(lower) - tol) | (q > np.asarray(upper) + tol), axis=1)
