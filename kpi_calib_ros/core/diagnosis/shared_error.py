@@ -154,10 +154,8 @@ def shared_error_test(errors: np.ndarray, covariance: np.ndarray, draws: int = D
     inv_roots = np.linalg.inv(np.linalg.cholesky(blocks))
     z = np.einsum('mij,mj->mi', inv_roots, e)
     m2 = np.sum(z ** 2, axis=1)
-    blockwise = np.zeros((m, 3, m, 3))
-    blockwise[idx, :, idx, :] = inv_roots
-    white = blockwise.reshape(3 * m, 3 * m)
-    r = white @ joint @ white.T
+    r = np.einsum('mab,mbnc,ndc->mand', inv_roots, joint.reshape(m, 3, m, 3),
+                  inv_roots, optimize=True).reshape(3 * m, 3 * m)
     r = 0.5 * (r + r.T)
     frobenius = float(np.sum(r ** 2))
     dof = 3 * m
