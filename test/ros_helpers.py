@@ -16,6 +16,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections import defaultdict
 from pathlib import Path
@@ -343,6 +344,18 @@ class Queries:
                                         'TCP query dropped: no calibration yet'
                                         in node.output())[1], 20, 'the query dropped')
         assert 7 not in self.answers
+
+
+def run_job(node: CalibrationNode, executor: SingleThreadedExecutor, name: str,
+            work: Callable[[], Any], timeout: float) -> Any:
+    """Run the node's job ``work`` on ``executor`` (as its service would) to its answer,
+    within ``timeout`` s."""
+    assert node._claim_job(name)
+    task = executor.create_task(node._run_job, name, work)
+    done = threading.Event()
+    task.add_done_callback(lambda _: done.set())
+    assert done.wait(timeout=timeout), f'{name} did not finish'
+    return task.result()
 
 
 def start_error(data_dir: Path, domain: int, *overrides: Parameter) -> ConfigError:

@@ -29,20 +29,12 @@ from kpi_calib_ros.io.resources import resolve_uri
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros.node import CalibrationNode
 
-from ros_helpers import LATCHED
+from ros_helpers import LATCHED, run_job
 
 DATA = Path(__file__).resolve().parent / 'data'
 UR10 = 'package://example-robot-data/robots/ur_description/urdf/ur10_robot.urdf'
 SIGMA = 2.0e-5
 
-
-def _run(node: CalibrationNode, executor: SingleThreadedExecutor, name: str, work):
-    assert node._claim_job(name)
-    task = executor.create_task(node._run_job, name, work)
-    done = threading.Event()
-    task.add_done_callback(lambda _: done.set())
-    assert done.wait(timeout=300), f'{name} did not finish'
-    return task.result()
 
 
 @pytest.mark.slow
@@ -89,7 +81,7 @@ def test_node_identifies_from_a_stock_mesh_urdf_with_unknown_placement(tmp_path,
         executor.add_node(node)
         spinner = threading.Thread(target=executor.spin, daemon=True)
         spinner.start()
-        ok, message = _run(node, executor, 'identifying', node._identify)
+        ok, message = run_job(node, executor, 'identifying', node._identify, 300)
         assert ok, message
         # The same numbers as the offline path on the paired campaign.
         paired, _ = node.campaign.measurements(node._cm.joint_names, 'laser_tracker')
@@ -104,7 +96,7 @@ def test_node_identifies_from_a_stock_mesh_urdf_with_unknown_placement(tmp_path,
         assert np.all(err < 5 * std)
 
         # Without a tracker pose a design cannot know where the tracker is: it says so.
-        ok, message = _run(node, executor, 'designing', node._design)
+        ok, message = run_job(node, executor, 'designing', node._design, 300)
         assert not ok and 'tracker.base_in_tracker' in message
     finally:
         if executor is not None:
@@ -134,7 +126,7 @@ def test_node_draws_the_fitted_capsules_after_a_design(tmp_path, ros_domain):
         executor.add_node(node)
         spinner = threading.Thread(target=executor.spin, daemon=True)
         spinner.start()
-        ok, message = _run(node, executor, 'designing', node._design)
+        ok, message = run_job(node, executor, 'designing', node._design, 300)
         assert ok, message
         written = yaml.safe_load((tmp_path / 'data' / 'design.yaml').read_text())
         assert written['verification']['ok']
@@ -181,7 +173,7 @@ def test_node_accepts_a_description_whose_meshes_cannot_be_found(tmp_path, ros_d
         executor.add_node(node)
         spinner = threading.Thread(target=executor.spin, daemon=True)
         spinner.start()
-        ok, message = _run(node, executor, 'designing', node._design)
+        ok, message = run_job(node, executor, 'designing', node._design, 300)
         assert not ok and 'package://no_such_pkg/meshes/base.stl' in message
         assert 'tried' in message
     finally:

@@ -28,7 +28,7 @@ from kpi_calib_ros.io.cell import DEFAULT_CELL
 from kpi_calib_ros.io.measurement_log import MeasurementLog
 from kpi_calib_ros.ros import jobs
 
-from ros_helpers import LATCHED, NS, Queries, idle_node, tcp_of
+from ros_helpers import LATCHED, NS, Queries, idle_node, run_job, tcp_of
 
 N_POSES = 30
 N_QUERIES = 3
@@ -44,15 +44,6 @@ def simulated(cm, seed: int = 8):
     stamps = 10 ** 18 + np.arange(N_POSES, dtype=np.int64) * 10 ** 9
     return q[:N_POSES], eta, stamps, q[N_POSES:]
 
-
-def _call(node, executor, name, work):
-    """Run the job ``work`` on the node's executor (as a service would) to its answer."""
-    assert node._claim_job(name)
-    task = executor.create_task(node._run_job, name, work)
-    done = threading.Event()
-    task.add_done_callback(lambda _: done.set())
-    assert done.wait(timeout=60), f'{name} did not finish'
-    return task.result()
 
 
 @pytest.mark.slow
@@ -186,13 +177,13 @@ def test_validate_and_reset_after_a_restore(cm, tmp_path, ros_domain):
         spinner = threading.Thread(target=executor.spin, daemon=True)
         spinner.start()
         try:
-            ok, message = _call(node, executor, 'restoring', node._restore)
+            ok, message = run_job(node, executor, 'restoring', node._restore, 60)
             assert ok and message.startswith(f'restored from {tmp_path / "calibration.yaml"}')
             assert node._calibration_text == text and node._run.result is None
-            ok, message = _call(node, executor, 'validating', node._validate)
+            ok, message = run_job(node, executor, 'validating', node._validate, 60)
             assert ok and message.startswith(f'calibration holds on {N_POSES - 24} new '
                                              'measurements'), message
-            ok, message = _call(node, executor, 'resetting', node._reset)
+            ok, message = run_job(node, executor, 'resetting', node._reset, 60)
             assert ok, message
             assert node._run.restored is None and node._run.published_tcp() == (None, None)
             assert not (tmp_path / 'calibration.yaml').exists()

@@ -20,7 +20,7 @@ from kpi_calib_ros.core.simulation import (
 )
 from kpi_calib_ros.io.ros_messages import joint_state_msg, point_stamped_msg
 
-from ros_helpers import idle_node
+from ros_helpers import idle_node, run_job
 
 
 @pytest.fixture
@@ -38,14 +38,6 @@ def _feed(node, joints, points):
         else:
             node._on_joint_state(joint_state_msg(sample), {})
 
-
-def _call(node, executor, name, work):
-    assert node._claim_job(name)
-    task = executor.create_task(node._run_job, name, work)
-    done = threading.Event()
-    task.add_done_callback(lambda _: done.set())
-    assert done.wait(timeout=120), f'{name} did not finish'
-    return task.result()
 
 
 @pytest.mark.slow
@@ -66,15 +58,15 @@ def test_validate_service_tests_the_calibration_on_the_new_measurements(node, tm
     spinner = threading.Thread(target=executor.spin, daemon=True)
     spinner.start()
     try:
-        ok, message = _call(node, executor, 'validating', node._validate)
+        ok, message = run_job(node, executor, 'validating', node._validate, 120)
         assert not ok and 'no calibration' in message
         _feed(node, [j for j in joints if j.stamp_ns < cut], points[:35])
-        ok, message = _call(node, executor, 'identifying', node._identify)
+        ok, message = run_job(node, executor, 'identifying', node._identify, 120)
         assert ok, message
-        ok, message = _call(node, executor, 'validating', node._validate)
+        ok, message = run_job(node, executor, 'validating', node._validate, 120)
         assert not ok and 'since the last identification' in message
         _feed(node, [j for j in joints if j.stamp_ns >= cut], points[35:])
-        ok, message = _call(node, executor, 'validating', node._validate)
+        ok, message = run_job(node, executor, 'validating', node._validate, 120)
         assert ok and message.startswith('calibration holds on 10 new measurements'), message
         assert '; 3 at training poses measured again' in message, message
         assert got.wait(timeout=30), 'no message on ~/validation'
@@ -110,15 +102,15 @@ def test_validate_service_re_registers_a_tracker_set_up_again(node, tmp_path, cm
     spinner.start()
     try:
         _feed(node, [j for j in joints if j.stamp_ns < cut], points[:35])
-        ok, message = _call(node, executor, 'identifying', node._identify)
+        ok, message = run_job(node, executor, 'identifying', node._identify, 120)
         assert ok, message
         _feed(node, [j for j in joints if j.stamp_ns >= cut], points[35:])
-        ok, message = _call(node, executor, 'validating', node._validate)
+        ok, message = run_job(node, executor, 'validating', node._validate, 120)
         assert not ok and 're-registering' not in message, message
         result = node.set_parameters([Parameter('validate_register', value='bad')])
         assert not result[0].successful and 'validate_register' in result[0].reason
         assert node.set_parameters([Parameter('validate_register', value='base')])[0].successful
-        ok, message = _call(node, executor, 'validating', node._validate)
+        ok, message = run_job(node, executor, 'validating', node._validate, 120)
         assert ok and 'after re-registering base.x/base.y/base.z/' in message, message
         assert 'chi2/dof' in message and f'/{3 * 12 - 6},' in message, message
     finally:
