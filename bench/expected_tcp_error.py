@@ -3,7 +3,7 @@
 For each hidden effect a true robot (random geometric errors plus the effect, which the
 identified geometric model lacks) is measured at random measurable poses of the default
 cell with σ = 20 µm per axis; the geometric model is identified (χ²-scaled precision,
-``core.precision.honest_precision``) and its stated figures at every working pose are
+``core.estimation.precision.honest_precision``) and its stated figures at every working pose are
 compared with the truth ‖h_true(q_w) − ĥ(q_w)‖:
 
 * ``tcp_std_m``: sqrt(trace) of the TCP covariance, the parameter part;

@@ -1,5 +1,5 @@
-"""The learned residual (core.learned_residual): simulated maps, false alarms, coverage, and
-the real UR10 and TIAGo splits.
+"""The learned residual (core.diagnosis.learned_residual): simulated maps, false alarms, coverage,
+and the real UR10 and TIAGo splits.
 
 1. Smooth unknown map of two joints (joint_2, joint_3; 100 µm, 5 σ) on the built-in KR15
    cell: 200 training poses with joint_2 in the lower half of its range, 200 fresh poses

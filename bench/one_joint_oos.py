@@ -3,7 +3,7 @@
 For each case a true robot (random geometric errors, optionally a hidden joint
 compliance the identified model lacks) is measured with σ = 20 µm per axis, the
 geometric model is identified, and the error of new measurements is predicted from the
-fit (``core.out_of_sample``, three domains). The truth per domain is exact in the noise:
+fit (``core.diagnosis.out_of_sample``, three domains). The truth per domain is exact in the noise:
 sqrt(mean ‖h_true(q) − h(p̂, q)‖² + 3σ²) over 2000 fresh poses:
 
 * like measured: fresh poses of the same distribution (a new campaign of the same kind:
@@ -14,8 +14,8 @@ sqrt(mean ‖h_true(q) − h(p̂, q)‖² + 3σ²) over 2000 fresh poses:
 
 Beside it, the figures it replaces against the like-measured truth: the 5-fold
 cross-validated rms of ``--model auto`` before (full nonlinear refits on random folds,
-``core.model_selection.cross_validated_level_rms``) and the diagnosis' leave-one-pose-out
-rms (``core.residuals.validation_rms``). Writes bench/results/one_joint_oos.md.
+``core.diagnosis.model_selection.cross_validated_level_rms``) and the diagnosis' leave-one-pose-out
+rms (``core.estimation.residuals.validation_rms``). Writes bench/results/one_joint_oos.md.
 
     .venv/bin/python bench/one_joint_oos.py [n_seeds]
 """

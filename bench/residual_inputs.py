@@ -94,7 +94,7 @@ def main(argv: list[str]) -> int:
     lines = ['# Residual analysis: the input that explains a hidden deviation', '',
              f'UR-class cell, σ = {SIGMA * 1e6:.0f} µm, {N_POSES} random poses over '
              f'{HOURS:g} h, geometric calibration, inputs ranked by '
-             '`core.residual_analysis` (10 pose folds, Holm over the inputs, α = 0.01). '
+             '`core.diagnosis.residual_analysis` (10 pose folds, Holm over the inputs, α = 0.01). '
              'Command: `.venv/bin/python bench/residual_inputs.py '
              f'{n_seeds} {n_clean}`.', '',
              '| hidden deviation | right input first and flagged | top inputs (seed 0) | '

@@ -5,7 +5,7 @@ with the cell temperature as a covariate: ``import-csv`` records it, the cell's
 ``temperature:`` section reads it and pairs it to the measurements as ``kpi-calib
 diagnose`` does, :func:`kpi_calib_ros.app.measurements.with_readings`) and TIAGo
 (../shared/data/tiago_mocap, the 2021-11-30 session): ``kpi-calib diagnose``'s
-calibration, its named-effect screen, the residual analysis (core.residual_analysis) and
+calibration, its named-effect screen, the residual analysis (core.diagnosis.residual_analysis) and
 the learned residual's decision; the four answers, the ranked inputs and the
 partial-residual plot. Writes bench/results/residual_inputs_real.md and the plots beside it.
 

@@ -4,7 +4,7 @@ Backward elimination on the 37-posture session (2021-11-30, four markers per pos
 with the rule fixed before any held-out figure was looked at: start from the full geometric
 model; at each step drop the geometric parameter (not the base or reflector placement) with
 the smallest |value / std|, refit; score every model by its leave-one-posture-out error
-(core.residuals.validation_rms: PRESS over posture blocks of the linearised fit, all
+(core.estimation.residuals.validation_rms: PRESS over posture blocks of the linearised fit, all
 four markers of a posture held out together) and choose the smallest PRESS. Every step's
 error on the 2021-11-26 session and on the two other 2021-11-30 sessions (which none of the
 choices uses) is printed beside it.

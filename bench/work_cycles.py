@@ -14,7 +14,8 @@ Cycle 0: a full identification from a KPI-optimal 60-pose design. Cycles 1-20 me
 10 poses of a design that knows the prior (`design --prior`: the cycle-0 calibration of
 run 0 widened by one cycle of drift, designed once) and are identified with the last
 calibration as prior (Kalman chain: each cycle's posterior is the next prior). Drift
-models: the drift state of a daily swing (`--drift-velocity T,B`, core.drift_state.DriftSwing)
+models: the drift state of a daily swing (`--drift-velocity T,B`,
+core.estimation.drift_state.DriftSwing)
 with the swing the scenario states, T = the temperature amplitude that moves the longest
 link 100 µm and B = 0.05 mrad, and no random walk (`--drift-per-hour 0,0`); and, for
 comparison, the random walk alone matched to the simulated physics (thermal, std per

@@ -71,7 +71,8 @@ def _positive_int(text: str) -> int:
 
 
 DEFAULT_SWING = DriftSwing()  # the defaults: TEMPERATURE_SWING_K, OFFSET_SWING_RAD, DAY_HOURS
-SWING_HELP = ('drift state of a daily swing (core.drift_state.DriftSwing): the rates of the prior '
+SWING_HELP = ('drift state of a daily swing (core.estimation.drift_state.DriftSwing): the rates '
+              'of the prior '
               'calibration (its drift_state) extrapolate it, and this cycle\'s calibration '
               'stores them; TEMPERATURE_K: ± temperature amplitude of the links (12 µm per m '
               'and K), OFFSET_RAD: ± joint offset amplitude, PERIOD_H: its period (default '
@@ -178,6 +179,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help='the tracker (or probe) was set up again: re-fit the base pose '
                      '(base+reflector: and the reflector offsets) on the new recording alone '
                      'first; the rms after it is the figure to compare, chi2 loses its dof')
+    _bag_topics(val)
 
     imp = sub.add_parser('import-csv', help='a table of static postures (CSV) into an MCAP bag')
     imp.add_argument('csv', nargs='+', help='one row per posture: joint values and marker '
@@ -324,7 +326,9 @@ def _diagnose(args: argparse.Namespace) -> int:
 def _validate(args: argparse.Namespace) -> int:
     from kpi_calib_ros.app.validate import run_validate
     return run_validate(args.cell, args.calibration, args.bag, args.out, args.register,
-                        allow_code_effects=args.allow_code_effects)
+                        allow_code_effects=args.allow_code_effects,
+                        joint_topic=args.joint_topic, point_topic=args.point_topic,
+                        pose_topic=args.pose_topic)
 
 
 def _import_csv(args: argparse.Namespace) -> int:

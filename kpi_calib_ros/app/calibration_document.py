@@ -42,12 +42,12 @@ class CellCalibration:
     free: tuple[str, ...]
     registration: Registration | None = None
     # The cell's tolerance prior was tightened by this factor: the data weighed at the
-    # noise they show, √prior_scale × the stated σ (core.precision.balanced_prior).
+    # noise they show, √prior_scale × the stated σ (core.estimation.precision.balanced_prior).
     prior_scale: float = 1.0
     # The cell model the result belongs to: the given one with the effects ``auto`` added
-    # (core.effect_selection); documents and the calibrated URDF are written with it.
+    # (core.diagnosis.effect_selection); documents and the calibrated URDF are written with it.
     cell: CellModel | None = None
-    # Expected TCP error at the working poses with the misfit included (core.precision).
+    # Expected TCP error at the working poses with the misfit included (core.estimation.precision).
     expected: ExpectedTcpError | None = None
 
     @property
@@ -106,7 +106,7 @@ def add_robust_sections(doc: dict[str, Any], cal: CellCalibration) -> dict[str, 
                       'distance_sigma': e.distance_sigma, 'reason': e.reason}
                      for e in rob.excluded],
         'outliers': list(rob.outliers),
-        # Over the threshold but kept: the model misfits their pose (core.outliers).
+        # Over the threshold but kept: the model misfits their pose (core.estimation.outliers).
         'misfit': list(rob.misfit),
         'used_indices': [int(i) for i in np.flatnonzero(rob.kept)],
         'warnings': list(rob.warnings)}

@@ -64,7 +64,7 @@ def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
     if covariates is None:
         covariates = recorded_covariates(data)
     # The points identify keeps, with its model level (outliers that are faults excluded,
-    # core.outliers): the diagnosis describes the calibration the user gets.
+    # core.estimation.outliers): the diagnosis describes the calibration the user gets.
     cal = calibrate_cell(cm, data, model, progress=progress)
     level = cal.choice.level
     free = None if level == 'geometric' else level_free(cm.model.params, level,

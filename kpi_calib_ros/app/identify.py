@@ -163,7 +163,7 @@ def identify_cell(cm: CellModel, data: Measurements, p0: np.ndarray | None = Non
     tolerance = cell_prior(cm) if prior is None else None
     result = _fit_function(cm, p0, prior or tolerance, balance=tolerance is not None)(
         data, free or list(cm.model.params.names))
-    # A model that fails χ² must not report the stated σ's precision (core.precision).
+    # A model that fails χ² must not report the stated σ's precision (core.estimation.precision).
     return honest_precision(result)
 
 
@@ -232,7 +232,7 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
     screened = subset(data, ~gross_outliers(cm.model, data, start)[0]) \
         if settings.outliers.exclude else data
     # Every fit weighs the cell's tolerances against the noise its data show
-    # (core.precision.balanced_prior); ``scales`` keeps the last balance.
+    # (core.estimation.precision.balanced_prior); ``scales`` keeps the last balance.
     scales = [1.0]
     balance = tolerance is not None
     fit = _fit_function(cm, start, prior, balance=balance, scales=scales)
@@ -266,7 +266,7 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
     est = result_estimability(cm.model, kept.q, cm.cell.sigma, robust.result.values,
                               cm.q_work, cm.working_pose_names, free, prior=prior,
                               reflector=kept.reflector, rotation=kept.rotation)
-    # A model that fails χ² must not report the stated σ's precision (core.precision).
+    # A model that fails χ² must not report the stated σ's precision (core.estimation.precision).
     result = honest_precision(robust.result)
     return CellCalibration(result, robust, choice, est, tuple(free),
                            registration, scales[-1], cm,

@@ -224,7 +224,7 @@ def cycle_prior(cm: CellModel, doc: dict[str, Any], data: Measurements | None,
                     if n in old_identified or n not in values
                     or (not keep_placement and n.startswith(PLACEMENT_PREFIXES)))
     # The drift of every parameter, mapped onto the identified ones (the held ones' drift
-    # shows in them; core.prior.mapped_drift), on the configurations the robot reaches.
+    # shows in them; core.estimation.prior.mapped_drift), on the configurations the robot reaches.
     geometric = set(cm.geometric.names)
     thermal = drift_model == 'thermal'
     placed = {n for triple in vectors for n in triple if n.startswith(PLACEMENT_PREFIXES)}
@@ -251,7 +251,7 @@ def cycle_prior(cm: CellModel, doc: dict[str, Any], data: Measurements | None,
     where = [list(allowed).index(n) for n in prior.names]
 
     def on_prior(q: np.ndarray) -> np.ndarray:
-        # Mapped onto the identified parameters (core.prior.mapped_drift), the prior's.
+        # Mapped onto the identified parameters (core.estimation.prior.mapped_drift), the prior's.
         return mapped_drift(q, jac.reshape(-1, len(params.names)), kept)[np.ix_(where, where)]
     q_prior = on_prior(q_full)
     widened = Prior(prior.names, prior.mean, prior.covariance + q_prior * abs(hours))
@@ -422,7 +422,8 @@ def reidentification_document(cm: CellModel, out: Reidentification, cp: CyclePri
                     'warnings': list(cp.warnings)}
     doc['change_test'] = out.change.to_dict()
     if out.state is not None and cp.swing is not None:
-        # The drift state for the next cycle (core.drift_state.DriftState; rates per hour).
+        # The drift state for the next cycle (core.estimation.drift_state.DriftState; rates
+        # per hour).
         doc['drift_state'] = {'swing': cp.swing.to_dict(), **out.state.to_dict()}
     return doc
 

@@ -161,7 +161,8 @@ def validation_to_dict(v: Validation, data: Measurements, training_rms_m: float 
         'training_rms_m': training_rms_m,
         'predicted_std_median_m': float(np.median(v.predicted_std)),
         'chi2': v.chi2, 'dof': v.dof, 'p_value': v.p_value, 'alpha': v.alpha,
-        # The lower tail at the same level: 'sigma overstated' (core.residuals.noise_verdict).
+        # The lower tail at the same level: 'sigma overstated'
+        # (core.estimation.residuals.noise_verdict).
         **dict(zip(('noise_verdict', 'lower_tail_p'), noise_verdict(v.chi2, v.dof, v.alpha))),
         'points': [{'stamp_ns': int(s) if data.stamps_ns is not None else None,
                     'reflector': int(data.reflector[i]) if data.reflector is not None else 0,
@@ -255,19 +256,21 @@ def learned_file(calibration_path: str | Path) -> Path | None:
 
 def run_validate(cell_path: str | Path, calibration_path: str | Path, bag_path: str | Path,
                  out_dir: str | Path, register: str | None = None,
-                 allow_code_effects: bool = False) -> int:
+                 allow_code_effects: bool = False, joint_topic: str | None = None,
+                 point_topic: str | None = None, pose_topic: str | None = None) -> int:
     """``kpi-calib validate``: validation.json and a plot in ``out_dir``; ``register``
     (:data:`REGISTER`) re-fits the placement on the new recording first.
 
     ``allow_code_effects``: the cell's (and the calibration's) effects may name Python
-    code, as for identify.
+    code, as for identify. ``joint_topic`` / ``point_topic`` / ``pose_topic``: the bag's
+    topics when they are not the cell's (``--joint-topic`` …, as for identify).
 
     Returns 0 when the calibration holds, 1 when it does not.
     """
     writable_folder(out_dir, '--out')
     doc = read_calibration(calibration_path)
     cm, _ = calibrated_model(load_cell(cell_path, allow_code_effects=allow_code_effects), doc)
-    data, pairing = measurements_from_bag(cm, bag_path)
+    data, pairing = measurements_from_bag(cm, bag_path, joint_topic, point_topic, pose_topic)
     print_rejections(pairing)
     out = validate_report(cm, doc, data, out_dir, register, learned_file(calibration_path))
     print(validation_text(out))

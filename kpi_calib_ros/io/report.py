@@ -110,7 +110,7 @@ def diagnosis_to_dict(cd: CellDiagnosis) -> dict[str, Any]:
 
 def _validation(rms_m: float, width: str = '', unit: str = '') -> str:
     """A cross-validated rms in µm, or why there is none: NaN when no folds keep
-    every identified parameter determined (core.residuals.identifiable_folds)."""
+    every identified parameter determined (core.estimation.residuals.identifiable_folds)."""
     if not np.isfinite(rms_m):
         return NOT_ESTIMABLE
     return f'{rms_m * _UM:{width}.1f}{unit}'
@@ -142,7 +142,7 @@ def comparison_text(cmp: ModelComparison) -> str:
 
 
 def periodogram_dict(gram: Periodogram) -> dict[str, Any]:
-    """One joint's frequency search (core.periodic_search) for diagnosis.json: the range
+    """One joint's frequency search (core.diagnosis.periodic_search) for diagnosis.json: the range
     of cycles per revolution searched, the peak, its χ² reduction and p-value (× the
     number searched)."""
     return {'joint': gram.joint,

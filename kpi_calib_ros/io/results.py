@@ -130,12 +130,12 @@ def calibration_to_dict(result: CalibrationResult,
         'noise_joint_sigma_rad': (None if result.joint_sigma is None
                                   else [float(s) for s in result.joint_sigma]),
         # `adequate`: the upper tail (the model); `noise_verdict`: the lower tail (the
-        # stated σ; core.residuals.noise_verdict), each at the adequacy level.
+        # stated σ; core.estimation.residuals.noise_verdict), each at the adequacy level.
         'model_adequacy': {'chi2': float(result.chi2), 'dof': int(result.dof),
                            'p_value': float(result.p_value),
                            'adequate': is_adequate(result.p_value),
                            'noise_verdict': verdict, 'lower_tail_p': lower_p},
-        # Which σ the std and covariances below rest on (core.precision).
+        # Which σ the std and covariances below rest on (core.estimation.precision).
         'precision': {'covariance_scale': float(result.covariance_scale),
                       'basis': precision_statement(float(result.covariance_scale),
                                                    result.joint_sigma)},
@@ -156,7 +156,7 @@ def calibration_to_dict(result: CalibrationResult,
                           'rejected': {k: int(v) for k, v in sorted(pairing.rejections.items())}}
         if len(pairing):
             # When the robot was as calibrated: a later campaign widens this calibration,
-            # used as its prior, by the drift since then (core.prior.drift_widened).
+            # used as its prior, by the drift since then (core.estimation.prior.drift_widened).
             doc['identified_at_ns'] = int(np.max(pairing.stamps_ns))
             # The joint ranges the calibration has seen: validation marks poses beyond them.
             doc['training_joint_ranges'] = {

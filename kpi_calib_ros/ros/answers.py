@@ -21,8 +21,9 @@ def design_answer(design: Any, not_estimable: str, topic: str, path: Path) -> st
 def identify_answer(measurements: int, cal: Any, prior: str, notes: Sequence[str],
                     data_dir: Path, learned: str = '') -> str:
     """~/identify: the fit, its TCP precision (and expected error with the misfit of a
-    model χ² rejects, core.precision.expected_tcp_error), exclusions and prior; ``learned``:
-    the learned residual's summary lines (the choice with its figures), joined by '; '."""
+    model χ² rejects, core.estimation.precision.expected_tcp_error), exclusions and prior;
+    ``learned``: the learned residual's summary lines (the choice with its figures), joined by
+    '; '."""
     result = cal.result
     tcp_um = np.sqrt(np.trace(result.tcp_covariance, axis1=1, axis2=2)).max() * 1e6
     expected = ('' if cal.expected is None else

@@ -109,10 +109,10 @@ class Candidate:
     also_explained_by: tuple[str, ...] = ()
     note: str = ''
     # ``std`` are from the stated σ (1) or scaled by χ²/dof of the augmented fit when it
-    # fails the χ² test, as identify reports (core.precision.chi2_scale).
+    # fails the χ² test, as identify reports (core.estimation.precision.chi2_scale).
     covariance_scale: float = 1.0
     # The number of frequencies searched when the effect's frequency was found on these
-    # residuals (core.periodic_search); its p-values are multiplied by it. 1: no search.
+    # residuals (core.diagnosis.periodic_search); its p-values are multiplied by it. 1: no search.
     searched: int = 1
 
 
@@ -201,7 +201,7 @@ class ModelComparison:
     # A fit that did not converge, named with its stop: its figures are those of the last
     # iterate, not of a minimum, and the comparison says so.
     warnings: tuple[str, ...] = field(default=())
-    # How the after-fit's std were obtained (core.precision.precision_statement).
+    # How the after-fit's std were obtained (core.estimation.precision.precision_statement).
     std_basis: str = ''
 
 
@@ -221,7 +221,7 @@ class CellDiagnosis:
     after_model: MeasurementModel | None = None
     after: CalibrationResult | None = None
     comparison: ModelComparison | None = None
-    # Predicted error of new measurements at fresh poses (core.out_of_sample), of the
+    # Predicted error of new measurements at fresh poses (core.diagnosis.out_of_sample), of the
     # calibration diagnosed and of the one with the added effect.
     out_of_sample: OutOfSample | None = None
     after_out_of_sample: OutOfSample | None = None
@@ -236,10 +236,10 @@ class CellDiagnosis:
         rows = np.asarray(rows)
         idx = np.flatnonzero(rows) if rows.dtype == bool else rows.astype(int)
         return [int(i) for i in (idx if self.kept is None else np.flatnonzero(self.kept)[idx])]
-    # Expected TCP error at the working poses with the misfit (core.precision).
+    # Expected TCP error at the working poses with the misfit (core.estimation.precision).
     expected: ExpectedTcpError | None = None
-    # Where the model fails, model-free (core.residual_analysis), and the four answers
-    # (core.misfit: where, what is missing, the command, held-out error before/after).
+    # Where the model fails, model-free (core.diagnosis.residual_analysis), and the four answers
+    # (core.diagnosis.misfit: where, what is missing, the command, held-out error before/after).
     residual_analysis: ResidualAnalysis | None = None
     answer: MisfitAnswer | None = None
 
@@ -325,7 +325,7 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
                 # their level (the plain best-of-grid p-value is too small on clean data).
                 best = replace(best, p_value_raw=min(1.0, best.p_value_raw * len(tried)))
             if effect.searched > 1:
-                # A frequency found by a search on these residuals (core.periodic_search):
+                # A frequency found by a search on these residuals (core.diagnosis.periodic_search):
                 # the best of that many tests, counted the same way.
                 best = replace(best, p_value_raw=min(1.0, best.p_value_raw * effect.searched))
             fits.append(best)
@@ -362,7 +362,7 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
             explanation=_explain(fit, significant, p_adj, m, rms_base, cv_base) + extra,
             plausible=not warning, plausibility=warning, also_explained_by=merged,
             note=notes.get(fit.effect.name, ''), searched=fit.effect.searched))
-    # A general effect (core.general_effects) is offered when no named one fits: it ranks
+    # A general effect (core.effects.general) is offered when no named one fits: it ranks
     # after the significant, plausible named effects unless it predicts held-out poses
     # PARSIMONY better than the best of them.
     general = {fit.effect.name: fit.effect.kind.general for fit in fits}

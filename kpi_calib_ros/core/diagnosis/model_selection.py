@@ -89,7 +89,7 @@ class ModelChoice:
     folds: int
     reason: str
     method: str = ''
-    # Effects ``auto`` added on the training data (core.effect_selection) and its record.
+    # Effects ``auto`` added on the training data (core.diagnosis.effect_selection) and its record.
     effects: tuple[str, ...] = ()
     effect_selection: dict | None = None
     held: tuple[str, ...] = ()  # effect shape parameters held at their selected values

@@ -217,11 +217,11 @@ def _origins(effect_type: EffectType, robot: RobotModel) -> np.ndarray | None:
 
 
 # Effects built from the whole chain rather than one joint's (q_j, τ_j): spec name ->
-# binder(robot, joint, key) -> BoundEffect. core.gravity_compliance registers its own.
+# binder(robot, joint, key) -> BoundEffect. core.effects.gravity_compliance registers its own.
 CHAIN_EFFECTS: dict[str, Callable[[RobotModel, str | None, str], BoundEffect]] = {}
 # Effects with a constant of their own in the spec, ``name:joint:argument``
 # (``periodic_joint_error:joint_2:k=17``): spec name -> binder(robot, joint, argument,
-# key) -> BoundEffect. core.general_effects registers its own.
+# key) -> BoundEffect. core.effects.general registers its own.
 ARGUMENT_EFFECTS: dict[str, Callable[[RobotModel, str | None, str, str], BoundEffect]] = {}
 
 

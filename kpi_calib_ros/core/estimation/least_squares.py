@@ -247,7 +247,7 @@ class CalibrationResult:
     iterations: int
     identifiability: Identifiability
     # 1 when std/covariances come from the stated σ; χ²/dof when they were scaled to
-    # the estimated σ because the model failed the χ² test (core.precision).
+    # the estimated σ because the model failed the χ² test (core.estimation.precision).
     covariance_scale: float = 1.0
     # Joint-reading noise (rad, chain order) the row weights carried; None: exact readings.
     joint_sigma: np.ndarray | None = None

@@ -224,7 +224,7 @@ def judge(model: MeasurementModel, data: Measurements, p: np.ndarray,
                              out.covariates)
         miss = np.atleast_2d(out.eta) - pred
         if model.joint_sigma is not None or out.sigma is not None:
-            # In the stated σ's units, as the fit's σ̂ (core.robust.noise_units).
+            # In the stated σ's units, as the fit's σ̂ (core.estimation.robust.noise_units).
             white = noise_weights(model, p, out, stated)
             miss = weighted_residuals(miss, white).reshape(-1, 3) * float(np.mean(stated))
         t[rest] = np.linalg.norm(miss, axis=1) / scale
@@ -235,7 +235,8 @@ def judge(model: MeasurementModel, data: Measurements, p: np.ndarray,
     miss_k = np.atleast_2d(kq.eta) - model.predict(
         p, np.atleast_2d(kq.q), kq.tau, kq.reflector, kq.rotation, kq.covariates)
     if kq.sigma is not None:
-        # Each point in units of its own σ, at the stated σ as σ̂ (core.robust.noise_units).
+        # Each point in units of its own σ, at the stated σ as σ̂
+        # (core.estimation.robust.noise_units).
         miss_k = weighted_residuals(miss_k, 1.0 / row_sigma(stated, kq.sigma, len(miss_k))
                                     ).reshape(-1, 3) * float(np.mean(stated))
     resid[kept] = miss_k / scale

@@ -368,7 +368,7 @@ def residual_report(model: MeasurementModel, data: Measurements, result: Calibra
     dof = 3 * n - k
     stated = float(np.mean(result.sigma))
     # With joint-reading noise σ̂ is that of the whitened residuals at the stated σ: the
-    # joints' share of the scatter is stated, not a misfit (core.robust).
+    # joints' share of the scatter is stated, not a misfit (core.estimation.robust).
     sigma_hat = robust_sigma(residuals if model.joint_sigma is None and data.sigma is None
                              else sys_.r.reshape(n, 3) * stated, dof)
     inflation = max(1.0, sigma_hat / stated) if np.isfinite(sigma_hat) else 1.0

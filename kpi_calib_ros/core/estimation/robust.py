@@ -117,7 +117,7 @@ class RobustResult:
     result : the final fit (on the kept measurements, with the loss's weights);
     kept : (N,) bool, measurements used; excluded : the others, in order of exclusion;
     outliers : indices over the threshold (excluded or, with exclude false, only reported);
-    misfit : indices over the threshold kept as model misfit (core.outliers), not faults;
+    misfit : indices over the threshold kept as model misfit (core.estimation.outliers), not faults;
     sigma_robust : σ̂ (m, per axis) from the final residuals; sigma_stated : mean stated σ;
     threshold : outlier threshold in σ̂; loss : the loss used; warnings : texts for the user.
     """
@@ -257,7 +257,7 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
         # cannot have pushed good points into (swamping), then a refit.
         batch = fault & (t >= max(threshold, 0.5 * float(t[fault].max())))
         # max_fraction caps the points excluded on no evidence but their distance (rule 3
-        # of core.outliers: no other point at the pose); a fault its pose's other points
+        # of core.estimation.outliers: no other point at the pose); a fault its pose's other points
         # confirm (rule 2), or a gross point, is excluded whatever the fraction.
         lone_count = len(lone_excluded) + int((batch & verdict.lone).sum())
         if lone_count > max_lone and not lone_misfit:
