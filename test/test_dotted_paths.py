@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 from kpi_calib_ros import cli
+from kpi_calib_ros.core.effects.registry import ENTRY_POINT_GROUP
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / 'kpi_calib_ros'
@@ -21,7 +22,9 @@ LAYERS = ('core', 'io', 'app', 'ros', 'cli')
 
 # A dotted path starts at the package or at one of its layers; it is not the tail of a
 # longer name (``foo.core.x``) or of a file path (``test/core.x``).
-DOTTED = re.compile(r'(?<![\w./-])((?:kpi_calib_ros\.)?(?:%s)(?:\.[A-Za-z_]\w*)+)' % '|'.join(LAYERS))
+DOTTED = re.compile(r'(?<![\w./-])((?:kpi_calib_ros|%s)(?:\.[A-Za-z_]\w*)+)' % '|'.join(LAYERS))
+# Dotted names that are not module paths: the entry point group of user effects.
+NOT_MODULES = {ENTRY_POINT_GROUP}
 FILE = re.compile(r'(?<![\w./-])((?:kpi_calib_ros/)?(?:core|io|app|ros)/[\w/]+\.py)\b')
 
 
@@ -53,7 +56,7 @@ def broken_paths(text: str) -> list[str]:
     for match in DOTTED.finditer(text):
         dotted = match.group(1)
         head, _, name = dotted.partition('.')
-        if dotted.endswith('.py'):
+        if dotted.endswith('.py') or dotted in NOT_MODULES:
             continue  # a file name (``cli.py``): the file pattern's, or a bare name
         if head == 'io' and hasattr(io, name.split('.')[0]):
             continue  # the standard library's io (``io.StringIO``)
