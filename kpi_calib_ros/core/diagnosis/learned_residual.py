@@ -75,6 +75,13 @@ MAX_VARIANCE_M2 = 1e-2  # (0.1 m)²: bound of the signal and noise variances
 # The output shape's eigenvalues are held above this fraction of the largest.
 MIN_SHAPE = 0.01
 MIN_VARIANCE_M2 = 1e-16
+# The most training rows a learned residual is fitted on and read back with: a campaign of
+# 1000 poses with three reflectors. Fitting costs m³ per likelihood step (1000 rows: ~16 s
+# in all, so 3000 some 27 times that) and m² × (number of hyperparameters) memory for its
+# gradient (3000 rows, seven joints: 0.6 GiB); reading one back factors its m × m kernel
+# matrix once (3000 rows: 69 MiB). Above it identify fits none and says why, so the bound
+# covers every file identify writes.
+MAX_TRAINING_ROWS = 3000
 
 
 @dataclass(frozen=True)
@@ -99,6 +106,10 @@ class ResidualPrediction:
     covariance: np.ndarray
     distance: np.ndarray
     inside: np.ndarray
+
+
+class SingularKernelError(ValueError):
+    """The kernel matrix of a learned residual's training rows is not positive definite."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -163,11 +174,22 @@ class LearnedResidual:
         object.__setattr__(self, 'output_shape', shape)
         object.__setattr__(self, 'noise_shape', shape if self.noise_shape is None
                            else checked_shape(self.noise_shape))
+        if len(q) > MAX_TRAINING_ROWS:
+            raise ValueError(f'{len(q)} training rows, more than the {MAX_TRAINING_ROWS} a '
+                             'learned residual may have')
         whiten, colour = _roots(shape)
         object.__setattr__(self, '_colour', colour)
         gp = GaussianProcessRegressor(fixed_kernel(self.amplitude_m2, ell, self.noise_m2),
                                       optimizer=None, normalize_y=False)
-        object.__setattr__(self, '_gp', gp.fit(q, y @ whiten))
+        try:
+            # The kernel matrix of the training rows is factored here, once (Cholesky).
+            fitted = gp.fit(q, y @ whiten)
+        except np.linalg.LinAlgError:
+            raise SingularKernelError(
+                f'the kernel matrix of the {len(q)} training rows is not positive definite '
+                f'(amplitude_m2 {self.amplitude_m2:.3g} against noise_m2 '
+                f'{self.noise_m2:.3g}: numerically singular)') from None
+        object.__setattr__(self, '_gp', fitted)
 
     @property
     def noise_covariance_m2(self) -> np.ndarray:
@@ -384,6 +406,9 @@ def fit_learned_residual(q: np.ndarray, residual_m: np.ndarray, sigma_m: float |
     y = np.asarray(residual_m, float).reshape(-1, 3)
     if len(q) != len(y):
         raise ValueError(f'q has {len(q)} rows, residual_m {len(y)}')
+    if len(q) > MAX_TRAINING_ROWS:
+        raise ValueError(f'{len(q)} rows, more than the {MAX_TRAINING_ROWS} a learned residual '
+                         'is fitted on (MAX_TRAINING_ROWS)')
     noise = float(np.mean(np.broadcast_to(np.asarray(sigma_m, float), (3,)) ** 2))
     full, kernel, shape, colour = _fitted(q, y, None, restarts, seed, noise)
     # What the field leaves at the training rows is the noise; its shape is the noise's.
@@ -566,7 +591,9 @@ def corrected_tcp(tcp: np.ndarray, tcp_jacobian: np.ndarray, covariance_inside: 
         (:func:`field_parameter_covariance`); default ``covariance_inside``.
     """
     tcp = np.asarray(tcp, float).reshape(-1, 3)
-    jac = np.asarray(tcp_jacobian, float).reshape(len(tcp), 3, -1)
+    # The parameter count from the covariance: with no query (a cell without working
+    # poses) the Jacobian is empty and its last axis cannot be inferred.
+    jac = np.asarray(tcp_jacobian, float).reshape(len(tcp), 3, len(covariance_inside))
 
     def propagated(cov: np.ndarray) -> np.ndarray:
         return np.einsum('mik,kl,mjl->mij', jac, cov, jac)
@@ -582,6 +609,7 @@ def corrected_tcp(tcp: np.ndarray, tcp_jacobian: np.ndarray, covariance_inside: 
 
 
 __all__ = ['CHOICE_ALPHA', 'CorrectedTcp', 'INSIDE_DISTANCE', 'LearnedResidual', 'MIN_GAIN',
-           'ResidualChoice', 'ResidualPrediction', 'corrected_tcp', 'field_parameter_covariance',
+           'MAX_TRAINING_ROWS', 'ResidualChoice', 'ResidualPrediction', 'SingularKernelError',
+           'corrected_tcp', 'field_parameter_covariance',
            'checked_shape', 'fit_learned_residual', 'fixed_kernel', 'output_shape',
            'outside_weight', 'residual_noise_scale']
