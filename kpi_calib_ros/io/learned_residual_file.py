@@ -46,15 +46,17 @@ FIX = 'give a learned_residual.yaml written by kpi-calib identify --learned-resi
 # A covariance is symmetric when |C_ij - C_ji| <= SYMMETRY_RTOL * sqrt(C_ii C_jj): the
 # arithmetic of identify leaves ~1e-11 of it (the file is written symmetrised).
 SYMMETRY_RTOL = 1e-8
-# What identify writes at MAX_TRAINING_ROWS: each row's joint values and residual, ~30 bytes
-# and one or two YAML items a number (1.3 MB at 3000 rows of seven joints), and two
-# covariances of the estimated parameters (k^2 numbers each: 0.3 MB at k = 70). Twice and
-# more; a hostile file of 2-byte items at the item bound parses in a few seconds.
+# What identify writes at MAX_TRAINING_ROWS: each row's joint values and residual (~30
+# bytes and one or two YAML items a number) and two covariances of the k estimated
+# parameters (k^2 numbers each). Seven joints and k = 70: 1.1 MB and 46 000 items; ten
+# joints and k = 150: 2.3 MB and 91 000 items. Parsing costs per item, and a hostile item
+# costs two bytes, so the items bound the time to read a file (about that of the largest
+# honest one), the bytes what is read to count them.
 MAX_FILE_BYTES = 8 * 2 ** 20
+MAX_FILE_ITEMS = 120_000
 # The parameter values of the calibration it corrects, as written (exact round trip):
 # any larger difference is another calibration.
 VALUES_ATOL = 1e-12
-MAX_FILE_ITEMS = 150_000
 
 
 @dataclass(frozen=True)

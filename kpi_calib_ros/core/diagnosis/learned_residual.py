@@ -2,9 +2,10 @@
 
 What the physical model (geometry and the effects it carries) leaves of the measured
 points is learned as a smooth function of the joint values by a Gaussian process
-(scikit-learn's :class:`~sklearn.gaussian_process.GaussianProcessRegressor`):
-``δ(q)``, a translation of the tool in the tracker frame (m), added to every point
-the physical model predicts at ``q``, the TCP included.
+(fitted by scikit-learn's :class:`~sklearn.gaussian_process.GaussianProcessRegressor`;
+a :class:`LearnedResidual` rebuilt from its numbers factors its kernel matrix once and
+predicts with that factor): ``δ(q)``, a translation of the tool in the tracker frame (m),
+added to every point the physical model predicts at ``q``, the TCP included.
 
 Why a translation of the tool: the reflectors and the TCP are different points of one
 rigid tool, so only the part of the misfit that moves the whole tool transfers from the
@@ -46,6 +47,8 @@ import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.linalg
+import scipy.spatial.distance
 import scipy.stats
 from sklearn.exceptions import ConvergenceWarning
 from sklearn.gaussian_process import GaussianProcessRegressor
@@ -75,6 +78,9 @@ MAX_VARIANCE_M2 = 1e-2  # (0.1 m)²: bound of the signal and noise variances
 # The output shape's eigenvalues are held above this fraction of the largest.
 MIN_SHAPE = 0.01
 MIN_VARIANCE_M2 = 1e-16
+# Added to the kernel matrix's diagonal, as scikit-learn's GaussianProcessRegressor does
+# (its ``alpha``) in the fit that chose the hyperparameters: the same posterior.
+FIT_JITTER_M2 = 1e-10
 # The most training rows a learned residual is fitted on and read back with: a campaign of
 # 1000 poses with three reflectors. Fitting costs m³ per likelihood step (1000 rows: ~16 s
 # in all, so 3000 some 27 times that) and m² × (number of hyperparameters) memory for its
@@ -150,11 +156,16 @@ class LearnedResidual:
     noise_m2: float
     output_shape: np.ndarray | None = None
     noise_shape: np.ndarray | None = None
-    _gp: GaussianProcessRegressor = field(init=False, repr=False, compare=False)
+    _factor: np.ndarray = field(init=False, repr=False, compare=False)  # Cholesky, lower
+    _weights: np.ndarray = field(init=False, repr=False, compare=False)  # K⁻¹ y, whitened
     _colour: np.ndarray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        """Check the fields and fit the Gaussian process with the kernel held fixed."""
+        """Check the fields and factor the kernel matrix of the training rows (Cholesky).
+
+        :class:`SingularKernelError` when it is not positive definite, ValueError for
+        fields of the wrong shape or range or more than :data:`MAX_TRAINING_ROWS` rows.
+        """
         q = np.atleast_2d(np.asarray(self.q, float))
         y = np.asarray(self.residual_m, float).reshape(-1, 3)
         ell = np.asarray(self.length_scales, float).reshape(-1)
@@ -179,17 +190,22 @@ class LearnedResidual:
                              'learned residual may have')
         whiten, colour = _roots(shape)
         object.__setattr__(self, '_colour', colour)
-        gp = GaussianProcessRegressor(fixed_kernel(self.amplitude_m2, ell, self.noise_m2),
-                                      optimizer=None, normalize_y=False)
+        # The posterior with the kernel held fixed, as scikit-learn's fit computes it (the
+        # same jitter on the diagonal), but the kernel matrix factored once: its fit
+        # factors it a second time for the likelihood, which nothing here needs.
+        kernel = self.amplitude_m2 * self._correlation(q, q)
+        kernel[np.diag_indices_from(kernel)] += self.noise_m2 + FIT_JITTER_M2
         try:
-            # The kernel matrix of the training rows is factored here, once (Cholesky).
-            fitted = gp.fit(q, y @ whiten)
+            factor = scipy.linalg.cholesky(kernel, lower=True, check_finite=False)
         except np.linalg.LinAlgError:
             raise SingularKernelError(
                 f'the kernel matrix of the {len(q)} training rows is not positive definite '
                 f'(amplitude_m2 {self.amplitude_m2:.3g} against noise_m2 '
                 f'{self.noise_m2:.3g}: numerically singular)') from None
-        object.__setattr__(self, '_gp', fitted)
+        del kernel
+        object.__setattr__(self, '_factor', factor)
+        object.__setattr__(self, '_weights', scipy.linalg.cho_solve(
+            (factor, True), y @ whiten, check_finite=False))
 
     @property
     def noise_covariance_m2(self) -> np.ndarray:
@@ -202,11 +218,12 @@ class LearnedResidual:
         if q.shape[1] != self.q.shape[1]:
             raise ValueError(f'q must have {self.q.shape[1]} columns '
                              f'({list(self.joint_names)}), got {q.shape}')
-        mean, std = self._gp.predict(q, return_std=True)
-        std = np.asarray(std).reshape(len(q), -1)[:, 0]
-        latent = np.maximum(std ** 2 - self.noise_m2, 0.0)
+        cross = self.amplitude_m2 * self._correlation(q, self.q)  # (M, m)
+        v = scipy.linalg.solve_triangular(self._factor, cross.T, lower=True,
+                                          check_finite=False)
+        latent = np.maximum(self.amplitude_m2 - np.einsum('ij,ij->j', v, v), 0.0)
         distance = self.distance(q)
-        return ResidualPrediction(np.asarray(mean).reshape(-1, 3) @ self._colour,
+        return ResidualPrediction((cross @ self._weights) @ self._colour,
                                   latent[:, None, None] * np.asarray(self.output_shape),
                                   distance, distance <= INSIDE_DISTANCE)
 
@@ -217,11 +234,17 @@ class LearnedResidual:
         A; its diagonal is the latent variance of :meth:`predict`.
         """
         q = np.atleast_2d(np.asarray(q, float))
-        _, cov = self._gp.predict(q, return_cov=True)
-        cov = np.asarray(cov)
-        cov = (cov[:, :, 0] if cov.ndim == 3 else cov) - self.noise_m2 * np.eye(len(q))
+        v = scipy.linalg.solve_triangular(
+            self._factor, self.amplitude_m2 * self._correlation(self.q, q), lower=True,
+            check_finite=False)
+        cov = self.amplitude_m2 * self._correlation(q, q) - v.T @ v
         np.fill_diagonal(cov, np.maximum(np.diag(cov), 0.0))
         return 0.5 * (cov + cov.T)
+
+    def _correlation(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """(len(a), len(b)) RBF correlation exp(-½ ‖(a_i − b_j)/ℓ‖²) of joint values."""
+        return np.exp(-0.5 * scipy.spatial.distance.cdist(
+            a / self.length_scales, b / self.length_scales, 'sqeuclidean'))
 
     def distance(self, q: np.ndarray) -> np.ndarray:
         """Return the (M,) distance of each query to its nearest training pose.
