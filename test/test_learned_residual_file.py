@@ -111,13 +111,15 @@ def test_a_kernel_that_cannot_be_factored_is_refused(choice, tmp_path):
 
 def test_a_training_set_above_the_bound_is_refused_by_name(choice, tmp_path):
     rows = MAX_TRAINING_ROWS + 1
-    path = write_residual(tmp_path, repeated(document(choice, rounded_covariance()), rows))
+    path = tmp_path / 'learned_residual.yaml'
+    path.write_text(dumped(repeated(document(choice, rounded_covariance()), rows)))
     assert path.stat().st_size < MAX_FILE_BYTES
     with pytest.raises(ConfigError, match=rf'training\.q.*{path}.*has {rows} rows, more than '
                                           rf'the {MAX_TRAINING_ROWS}'):
         read_residual(path)
 
 
+@pytest.mark.slow
 def test_a_file_above_the_byte_or_item_bound_is_refused_before_it_is_parsed(choice,
                                                                             tmp_path):
     """60 000 training rows as identify would write them: refused by size at once (they
