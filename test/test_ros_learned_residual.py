@@ -6,13 +6,18 @@ the learned residual is chosen, written and used by ~/tcp_query, whose TCP at fr
 poses is far closer to the truth; off again, a new calibration removes the older file."""
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 import yaml
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
+from test_learned_residual_file import dumped, fitted, hostile_files
+from test_ros_tcp_query import learned
 
-from kpi_calib_ros.app.learned_residual import predict_stored
+from kpi_calib_ros.app.learned_residual import predict_stored, predict_tcp
+from kpi_calib_ros.app.validate import calibrated_model
 from kpi_calib_ros.core.acquisition.pairing import PairingResult
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.measurement.tracker import Measurements
@@ -169,6 +174,82 @@ def test_identify_learns_the_residual_and_tcp_query_uses_it(client, spawn, tmp_p
         client.spin_until(lambda: 'learned_residual' not in client.diagnostics(), 10,
                           'learned_residual gone from /diagnostics')
         np.testing.assert_allclose(tcp_answers(2), physical, rtol=0, atol=1e-9)
+    finally:
+        code = node.stop()
+    assert code == 0, node.output()
+
+
+def replace_file(path, text: str) -> None:
+    """Write ``path`` as identify does: a new file moved over the old one."""
+    part = path.with_suffix('.part')
+    part.write_text(text)
+    os.replace(part, path)
+
+
+@pytest.mark.slow
+def test_a_foreign_or_hostile_learned_residual_is_not_used(client, spawn, tmp_path):
+    """The node identifies its calibration; a learned_residual.yaml then written into its
+    data_dir for another robot (as ``identify --learned-residual --out data_dir`` would
+    while it runs) is the check validate makes: ~/tcp_query answers with the node's own
+    physical calibration, and the log and /diagnostics (``tcp_query``) say why. Hostile
+    files (a kernel that cannot be factored, a training set above the bound, 60 000 rows,
+    a non-finite number) are refused by name: the node stays alive and answers the same."""
+    cm, q, eta, fresh, _ = robot()
+    fresh = fresh[:3]
+    data_dir = tmp_path / 'data'
+    learned_file = data_dir / 'learned_residual.yaml'
+    node = spawn(data_dir, 'node.log', 'auto_identify:=false')
+    queries = Queries(client, cm, 10)
+    client.spin_until(lambda: client.diagnostics().get('state') == 'idle'
+                      and queries.connected(), 60, 'the model and the TCP query topics')
+    try:
+        client.publish_measurements(q, cm.joint_names, eta, cm.cell.tracker_frame, N_POSES)
+        done = client.call('identify')
+        assert done.success, done.message
+        doc = yaml.safe_load((data_dir / 'calibration.yaml').read_text())
+        cal_cm, values = calibrated_model(load_cell(DEFAULT_CELL), doc)
+        cov = doc['parameter_covariance']
+        physical = predict_tcp(cal_cm.model, values, tuple(cov['names']),
+                               np.array(cov['matrix'], float), None, fresh)
+
+        def answers_physical(round_: int) -> None:
+            answered = queries.ask(fresh, (round_ * 1000 + 1) * 10 ** 6)
+            np.testing.assert_allclose([p for p, _ in answered], physical.position,
+                                       rtol=0, atol=1e-12)
+            np.testing.assert_allclose([c for _, c in answered], physical.covariance,
+                                       rtol=1e-9, atol=0)
+
+        def said(text: str) -> str:
+            client.spin_until(lambda: text in client.diagnostics().get('tcp_query', ''), 10,
+                              f'{text!r} in tcp_query on /diagnostics')
+            return client.diagnostics()['tcp_query']
+
+        answers_physical(0)
+        assert said('physical calibration') == 'physical calibration'
+        # Another robot's learned residual (same cell, other parameter values).
+        other = tmp_path / 'other'
+        other.mkdir()
+        learned(cm, other, 5, 1e-4)
+        replace_file(learned_file, (other / 'learned_residual.yaml').read_text())
+        foreign = predict_stored(cm.model, read_residual(learned_file), fresh).position
+        print(f'the foreign file would move the TCP by '
+              f'{np.abs(foreign - physical.position).max() * 1e3:.1f} mm')
+        answers_physical(1)
+        assert said('written for another calibration').startswith(
+            'physical calibration only, learned residual not used: learned_residual.yaml '
+            'was written for another calibration than the one in use'), client.diagnostics()
+        assert 'TCP query answered with the physical calibration only, learned residual not ' \
+               'used: learned_residual.yaml was written for another calibration' \
+               in node.output()
+        # Hostile files: refused by name, the node alive and answering.
+        choice = fitted()
+        for i, (name, (hostile, field)) in enumerate(hostile_files(choice).items()):
+            replace_file(learned_file, dumped(hostile))
+            answers_physical(2 + i)
+            text = said(field)
+            assert str(learned_file) in text, (name, text)
+            assert 'learned residual not used: ' in node.output()
+            assert node.process.poll() is None, node.output()
     finally:
         code = node.stop()
     assert code == 0, node.output()

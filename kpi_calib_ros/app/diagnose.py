@@ -18,7 +18,7 @@ from kpi_calib_ros.app.identify import (
     print_progress,
     with_effects,
 )
-from kpi_calib_ros.app.learned_residual import choose_residual
+from kpi_calib_ros.app.learned_residual import choose_residual, too_many_rows
 from kpi_calib_ros.app.measurements import load_measurements
 from kpi_calib_ros.core.diagnosis.candidates import (
     CellDiagnosis,
@@ -180,17 +180,20 @@ def run_diagnose(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
     cm, data, _ = load_measurements(cell_path, bag_path, effects, **options)
     cd = diagnose_cell(cm, data, folds=folds, alpha=alpha, model=model,
                        progress=print_progress)
-    choice = None
+    choice, refused = None, ''
     if not is_adequate(cd.result.p_value, alpha):
         # Beside the library's answer (or when it has none): would the learned residual
         # predict held-out poses better than the calibrated model? It is one more remedy
         # of the four answers.
-        choice = choose_residual(cm, cd.data, cd.result)
-        learned = learned_remedy(choice)
+        refused = too_many_rows(cm, cd.data)
+        choice = None if refused else choose_residual(cm, cd.data, cd.result)
+        learned = learned_remedy(choice) if choice is not None else None
         if learned is not None:
             cd = with_remedies(cd, (learned,))
     report = write_report(out_dir, cd)
     print(diagnosis_text(cd))
+    if refused:
+        print(refused)
     if choice is not None:
         print(choice.reason + ('; kpi-calib identify --learned-residual writes it beside '
                                'calibration.yaml' if choice.chosen else ''))

@@ -15,6 +15,7 @@ import numpy as np
 import scipy.stats
 
 from kpi_calib_ros.core.diagnosis.learned_residual import (
+    MAX_TRAINING_ROWS,
     CorrectedTcp,
     LearnedResidual,
     ResidualChoice,
@@ -46,6 +47,17 @@ def point_rows(model: MeasurementModel, data: Measurements) -> np.ndarray:
     if data.reflector is None:
         return np.ones(len(data), bool)
     return np.asarray(data.reflector) < model.n_reflectors
+
+
+def too_many_rows(cm: CellModel, data: Measurements) -> str:
+    """Why no learned residual is fitted on ``data`` ('' : one is): more point rows than
+    :data:`~kpi_calib_ros.core.diagnosis.learned_residual.MAX_TRAINING_ROWS`."""
+    rows = int(np.count_nonzero(point_rows(cm.model, data)))
+    if rows <= MAX_TRAINING_ROWS:
+        return ''
+    return (f'learned residual not fitted: {rows} point measurements, more than the '
+            f'{MAX_TRAINING_ROWS} a learned residual is fitted on (its cost grows with the '
+            'cube of their number); identify --learned-residual on fewer poses')
 
 
 def choose_residual(cm: CellModel, data: Measurements, result: CalibrationResult,
@@ -204,6 +216,10 @@ def add_learned_residual(doc: dict[str, Any], cm: CellModel, data: Measurements,
     covariance and std (parameter part and learned part) and whether the pose lies inside
     the fitted region. Returns the summary text and the file written (or None).
     """
+    refused = too_many_rows(cm, data)
+    if refused:
+        doc['learned_residual'] = {'chosen': False, 'reason': refused, 'file': None}
+        return refused, None
     choice = choose_residual(cm, data, result, seed)
     section: dict[str, Any] = {**choice.to_dict(), 'file': None}
     lines = [choice.reason]
@@ -252,4 +268,5 @@ def tcp_entries(names: tuple[str, ...] | list[str], tcp: CorrectedTcp) -> dict[s
 
 __all__ = ['add_learned_residual', 'choose_residual', 'field_covariance',
            'learned_validation_text', 'physical_covariance', 'point_rows', 'predict_stored',
-           'predict_tcp', 'stored_cell_model', 'tcp_entries', 'validate_learned']
+           'predict_tcp', 'stored_cell_model', 'tcp_entries', 'too_many_rows',
+           'validate_learned']

@@ -236,15 +236,18 @@ def validate_report(cm: CellModel, doc: dict[str, Any], data: Measurements,
 
 def learned_section(cm: CellModel, p: np.ndarray, path: Path, data: Measurements,
                     register: str | None) -> dict[str, Any]:
-    """The learned residual at ``path`` validated on ``data``, or why it was not."""
-    stored = read_residual(path, 'learned residual')
+    """The learned residual at ``path`` validated on ``data``, or why it was not.
+
+    With ``register`` it is not read at all (the file is not used); one written for another
+    calibration (:meth:`~kpi_calib_ros.io.learned_residual_file.StoredResidual.
+    other_calibration`) is skipped, said why."""
     if register is not None:
         return {'file': path.name, 'skipped': 'not validated with --register: the learned '
                 'residual is a correction in the training recording\'s tracker frame'}
-    if stored.names != tuple(cm.model.params.names) or not np.allclose(
-            stored.values, p, rtol=0.0, atol=1e-12):
-        return {'file': path.name, 'skipped': 'written for another calibration than the one '
-                'validated (its parameter values differ): identify again'}
+    stored = read_residual(path, 'learned residual')
+    other = stored.other_calibration(cm.model.params.names, p)
+    if other:
+        return {'file': path.name, 'skipped': f'not validated: {other}'}
     return validate_learned(cm, stored, data)
 
 

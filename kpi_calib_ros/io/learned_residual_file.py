@@ -8,6 +8,13 @@ corrects (the effects of its model, those ``identification.model: auto`` added i
 parameter values and the covariance of the estimated ones), so a TCP prediction needs this
 file and the cell alone. Every field is checked on reading: a damaged or edited file is a
 :class:`ConfigError` naming the field.
+
+The covariances are written symmetrised and read with a tolerance relative to their
+diagonal (:data:`SYMMETRY_RTOL`), so the file identify writes is always read back. A file
+is bounded before it is parsed (:data:`MAX_FILE_BYTES`, :data:`MAX_FILE_ITEMS`) and its
+training rows after (:data:`~kpi_calib_ros.core.diagnosis.learned_residual.MAX_TRAINING_ROWS`,
+which identify fits at most); the kernel matrix is factored once when it is read, and a
+singular one is refused by name.
 """
 from __future__ import annotations
 
@@ -20,8 +27,11 @@ import numpy as np
 import yaml
 
 from kpi_calib_ros.core.diagnosis.learned_residual import (
+    MAX_TRAINING_ROWS,
+    MAX_VARIANCE_M2,
     LearnedResidual,
     ResidualChoice,
+    SingularKernelError,
     checked_shape,
 )
 from kpi_calib_ros.core.errors import ConfigError
@@ -33,6 +43,20 @@ from kpi_calib_ros.io.yaml_bounded import read_yaml_file
 
 FORMAT = 'kpi_calib_ros learned_residual 3'
 FIX = 'give a learned_residual.yaml written by kpi-calib identify --learned-residual (unedited)'
+# A covariance is symmetric when |C_ij - C_ji| <= SYMMETRY_RTOL * sqrt(C_ii C_jj): the
+# arithmetic of identify leaves ~1e-11 of it (the file is written symmetrised).
+SYMMETRY_RTOL = 1e-8
+# What identify writes at MAX_TRAINING_ROWS: each row's joint values and residual (~30
+# bytes and one or two YAML items a number) and two covariances of the k estimated
+# parameters (k^2 numbers each). Seven joints and k = 70: 1.1 MB and 46 000 items; ten
+# joints and k = 150: 2.3 MB and 91 000 items. Parsing costs per item, and a hostile item
+# costs two bytes, so the items bound the time to read a file (about that of the largest
+# honest one), the bytes what is read to count them.
+MAX_FILE_BYTES = 8 * 2 ** 20
+MAX_FILE_ITEMS = 120_000
+# The parameter values of the calibration it corrects, as written (exact round trip):
+# any larger difference is another calibration.
+VALUES_ATOL = 1e-12
 
 
 @dataclass(frozen=True)
@@ -67,6 +91,24 @@ class StoredResidual:
     covariance: np.ndarray
     covariance_outside: np.ndarray
     effects: tuple[str, ...] = ()
+
+    def other_calibration(self, names: Sequence[str], values: np.ndarray) -> str:
+        """Why this learned residual does not correct the calibration of parameters
+        ``names`` with ``values`` ('' : it does): it was written for another model or
+        other parameter values (another robot, or a later identification)."""
+        values = np.asarray(values, float).reshape(-1)
+        if tuple(names) != self.names:
+            return (f'{LEARNED_RESIDUAL_FILE} was written for another calibration than the '
+                    f'one in use (its model has {len(self.names)} parameters and effects '
+                    f'{list(self.effects)}, the calibration\'s {len(names)}): identify again')
+        # Both are the numbers identify wrote (YAML floats read back exactly).
+        differ = np.flatnonzero(np.abs(values - self.values) > VALUES_ATOL)
+        if len(differ):
+            i = int(differ[0])
+            return (f'{LEARNED_RESIDUAL_FILE} was written for another calibration than the '
+                    f'one in use ({len(differ)} parameter values differ, e.g. {names[i]} '
+                    f'{self.values[i]:.6g} against {values[i]:.6g}): identify again')
+        return ''
 
     def check_model(self, model: MeasurementModel, key: str = LEARNED_RESIDUAL_FILE) -> None:
         """ConfigError unless ``model`` has these parameters, in this order, and the
@@ -108,8 +150,13 @@ def residual_document(choice: ResidualChoice, result: CalibrationResult,
                      'names': list(result.names),
                      'values': [float(x) for x in result.values],
                      'estimated': list(result.estimated),
-                     'covariance': np.asarray(covariance, float).tolist(),
-                     'covariance_outside': np.asarray(covariance_outside, float).tolist()}}
+                     # Symmetrised: the product that made them leaves ~1e-11 of asymmetry.
+                     'covariance': _symmetrised(covariance),
+                     'covariance_outside': _symmetrised(covariance_outside)}}
+
+
+# libyaml's parser when PyYAML has it (4 to 5 times faster on the training rows).
+_LOADER: type[yaml.SafeLoader] = getattr(yaml, 'CSafeLoader', yaml.SafeLoader)
 
 
 def write_residual(out_dir: str | Path, doc: dict[str, Any]) -> Path:
@@ -129,7 +176,8 @@ def read_residual(path: str | Path, key: str = 'learned_residual') -> StoredResi
     path = Path(path)
     if not path.is_file():
         raise ConfigError(key, f'file {str(path)!r} does not exist; {FIX}')
-    doc = read_yaml_file(path, key, FIX)
+    doc = read_yaml_file(path, key, FIX, loader=_LOADER, max_bytes=MAX_FILE_BYTES,
+                         max_nodes=2 * MAX_FILE_ITEMS + 1, max_items=MAX_FILE_ITEMS)
 
     def bad(field: str, what: str) -> ConfigError:
         return ConfigError(field, f'in {key} {path}: {what}; {FIX}')
@@ -140,8 +188,8 @@ def read_residual(path: str | Path, key: str = 'learned_residual') -> StoredResi
     kernel = doc.get('kernel')
     if not isinstance(kernel, dict):
         raise bad('kernel', 'must be a mapping')
-    amplitude = _positive(kernel.get('amplitude_m2'), 'kernel.amplitude_m2', bad)
-    noise = _positive(kernel.get('noise_m2'), 'kernel.noise_m2', bad)
+    amplitude = _variance(kernel.get('amplitude_m2'), 'kernel.amplitude_m2', bad)
+    noise = _variance(kernel.get('noise_m2'), 'kernel.noise_m2', bad)
     scales = _vector(kernel.get('length_scales'), len(joints), 'kernel.length_scales', bad)
     if np.any(scales <= 0):
         raise bad('kernel.length_scales', 'must be positive')
@@ -157,6 +205,9 @@ def read_residual(path: str | Path, key: str = 'learned_residual') -> StoredResi
             or not training['q']:
         raise bad('training.q', 'must be a non-empty list of joint-value rows')
     m = len(training['q'])
+    if m > MAX_TRAINING_ROWS:
+        raise bad('training.q', f'has {m} rows, more than the {MAX_TRAINING_ROWS} a learned '
+                  'residual is fitted on')
     q = _matrix(training['q'], (m, len(joints)), 'training.q', bad)
     y = _matrix(training.get('residual_m'), (m, 3), 'training.residual_m', bad)
     physical = doc.get('physical')
@@ -174,12 +225,33 @@ def read_residual(path: str | Path, key: str = 'learned_residual') -> StoredResi
     for field in ('covariance', 'covariance_outside'):
         cov = _matrix(physical.get(field), (len(estimated), len(estimated)),
                       f'physical.{field}', bad)
-        if not np.allclose(cov, cov.T, rtol=1e-9, atol=0.0) or np.any(np.diag(cov) < 0):
-            raise bad(f'physical.{field}', 'must be symmetric with a non-negative diagonal')
-        covs.append(cov)
-    residual = LearnedResidual(joints, q, y, amplitude, scales, noise, *shapes)
+        if not symmetric(cov):
+            raise bad(f'physical.{field}', 'must be symmetric (to a relative '
+                      f'{SYMMETRY_RTOL:g} of sqrt(C_ii C_jj)) with a non-negative diagonal')
+        covs.append(0.5 * (cov + cov.T))
+    try:
+        residual = LearnedResidual(joints, q, y, amplitude, scales, noise, *shapes)
+    except SingularKernelError as exc:
+        raise bad('kernel', f'{exc}: kernel.amplitude_m2, kernel.length_scales and '
+                  'kernel.noise_m2 do not make a kernel over training.q that can be '
+                  'factored') from None
     return StoredResidual(residual, names, values, estimated, covs[0], covs[1],
                           tuple(effects))
+
+
+def symmetric(cov: np.ndarray) -> bool:
+    """A covariance's diagonal is non-negative and it is symmetric to
+    :data:`SYMMETRY_RTOL` of sqrt(C_ii C_jj) (the scale of each entry)."""
+    diag = np.diag(cov)
+    if np.any(diag < 0):
+        return False
+    scale = np.sqrt(np.outer(diag, diag))
+    return bool(np.all(np.abs(cov - cov.T) <= SYMMETRY_RTOL * scale))
+
+
+def _symmetrised(cov: np.ndarray) -> list[list[float]]:
+    cov = np.asarray(cov, float)
+    return (0.5 * (cov + cov.T)).tolist()
 
 
 def _names(value: Any, field: str, bad: Any) -> tuple[str, ...]:
@@ -204,6 +276,14 @@ def _positive(value: Any, field: str, bad: Any) -> float:
     return number
 
 
+def _variance(value: Any, field: str, bad: Any) -> float:
+    number = _positive(value, field, bad)
+    if number > MAX_VARIANCE_M2:
+        raise bad(field, f'must be at most {MAX_VARIANCE_M2:g} m^2 (the bound identify fits '
+                  f'it within), got {number!r}')
+    return number
+
+
 def _vector(value: Any, n: int, field: str, bad: Any) -> np.ndarray:
     if not isinstance(value, list) or len(value) != n:
         raise bad(field, f'must be a list of {n} numbers')
@@ -219,4 +299,5 @@ def _matrix(value: Any, shape: tuple[int, int], field: str, bad: Any) -> np.ndar
                      for i, row in enumerate(value)]).reshape(rows, cols)
 
 
-__all__ = ['FORMAT', 'StoredResidual', 'read_residual', 'residual_document', 'write_residual']
+__all__ = ['FORMAT', 'MAX_FILE_BYTES', 'MAX_FILE_ITEMS', 'SYMMETRY_RTOL', 'StoredResidual',
+           'read_residual', 'residual_document', 'symmetric', 'write_residual']

@@ -26,7 +26,7 @@ class StreamHealth:
 
 def node_status(run: RunState, counts: Mapping[str, int], streams: StreamHealth, *,
                 job: str = '', model_ready: bool = True, model_error: str = '',
-                identifications: int = 0, log_file: str = ''
+                identifications: int = 0, log_file: str = '', tcp_query: str = ''
                 ) -> tuple[str, str, dict[str, Any]]:
     """(level, message, key values) of the node.
 
@@ -48,6 +48,10 @@ def node_status(run: RunState, counts: Mapping[str, int], streams: StreamHealth,
         Calibrations published since the node started.
     log_file : str
         The measurement log being written.
+    tcp_query : str
+        What ``~/tcp_query`` last answered with, and why not with the learned residual
+        when there is one (:attr:`kpi_calib_ros.ros.tcp_query.TcpQuery.source`; '' before
+        the first answer).
 
     Returns
     -------
@@ -85,6 +89,8 @@ def node_status(run: RunState, counts: Mapping[str, int], streams: StreamHealth,
                        'excluded_measurements': len(run.robust.excluded)})
     if run.learned_residual:
         values['learned_residual'] = run.learned_residual
+    if tcp_query:
+        values['tcp_query'] = tcp_query
     if run.diagnosis is not None:
         best = next((c['spec'] for c in run.diagnosis['candidates'] if c['significant']),
                     'none')

@@ -4,11 +4,18 @@
 values as the robot reports them) is answered on ``~/tcp_corrected``
 (geometry_msgs/PoseWithCovarianceStamped in the tracker frame, the query's stamp echoed):
 the TCP (KPI point) the calibration predicts at those joints, with the learned residual
-of learned_residual.yaml in the node's ``data_dir`` when one is there
+of learned_residual.yaml in the node's ``data_dir`` when one is there and corrects the
+node's calibration, the one it publishes on ``~/tcp``
 (:mod:`kpi_calib_ros.app.learned_residual`; with the model it was written for, the
 effects ``identification.model: auto`` added included, also after a restart), else the
 node's last calibration alone (after a restart, the one restored from calibration.yaml:
-:mod:`kpi_calib_ros.app.stored_calibration`); the
+:mod:`kpi_calib_ros.app.stored_calibration`). A learned_residual.yaml written for another
+calibration (another robot, or ``kpi-calib identify --learned-residual`` into the
+data_dir: :meth:`~kpi_calib_ros.io.learned_residual_file.StoredResidual.other_calibration`,
+the check ``validate`` makes) or one that cannot be read is not used: the answer is the
+physical calibration's, and why is logged and shown as ``tcp_query`` on /diagnostics
+(:attr:`TcpQuery.source`). Before any calibration the learned residual's own (the one it
+was written with) answers. The
 position block of the covariance holds both parts of the uncertainty (the orientation
 is not predicted: :data:`kpi_calib_ros.ros.conversions.UNKNOWN_ORIENTATION_VARIANCE`).
 A query outside the region the learned residual was fitted on is answered (the
@@ -74,6 +81,10 @@ class TcpQuery:
         self._node, self._model, self._result, self._path = node, model, result, Path(path)
         self._stored: StoredResidual | None = None
         self._stamp: tuple[int, int, int] | None = None
+        self._read_error = ''  # why the file as last read is not used ('' : it is)
+        # What the last answer was predicted with, and why the learned residual was not
+        # used when there is one ('' before the first answer): /diagnostics shows it.
+        self.source = ''
         # The cell model of the stored residual, built once per file and node model.
         self._stored_cell: tuple[StoredResidual, CellModel, CellModel | KpiCalibError] | None \
             = None
@@ -96,12 +107,16 @@ class TcpQuery:
         # the file system's timestamp granularity.
         stamp = (info.st_ino, info.st_mtime_ns, info.st_size)
         if stamp != self._stamp:
-            self._stamp = stamp
+            self._stamp, self._read_error = stamp, ''
             try:
                 self._stored = read_residual(self._path)
             except KpiCalibError as exc:
+                self._stored, self._read_error = None, str(exc)
+            except Exception as exc:  # noqa: BLE001 - a file from outside never stops the node
                 self._stored = None
-                self._node.get_logger().error(f'learned residual not used: {exc}')
+                self._read_error = f'{self._path} cannot be read: {type(exc).__name__}: {exc}'
+            if self._read_error:
+                self._node.get_logger().error(f'learned residual not used: {self._read_error}')
         return self._stored
 
     def stored_model(self, cm: CellModel, stored: StoredResidual) -> CellModel:
@@ -139,18 +154,31 @@ class TcpQuery:
             return
         stored = self.stored()
         result = self._result()
+        unused = self._read_error
+        if stored is not None and result is not None:
+            # Only a learned residual of the calibration the node publishes corrects it.
+            unused = stored.other_calibration(cm.model.params.names, result.values)
+            if unused:
+                stored = None
         try:
             if stored is not None:
                 tcp = predict_stored(self.stored_model(cm, stored).model, stored, q)
+                source = 'learned residual' + ('' if result is not None else
+                                               ' with the calibration it was written with')
             elif result is not None:
                 tcp = predict_tcp(cm.model, result.values, result.estimated,
                                   result.covariance, None, q)
+                source = ('physical calibration' if not unused else
+                          f'physical calibration only, learned residual not used: {unused}')
             else:
                 self._warn('TCP query dropped: no calibration yet (call ~/identify)')
                 return
         except KpiCalibError as exc:
             self._warn(f'TCP query dropped: {exc}')
             return
+        if source != self.source and unused:
+            self._node.get_logger().warning(f'TCP query answered with the {source}')
+        self.source = source
         if tcp.correction is not None and not tcp.correction.inside[0]:
             self._warn(f'TCP query outside the region the learned residual was fitted on '
                        f'(distance {tcp.correction.distance[0]:.2g} length scales): the '

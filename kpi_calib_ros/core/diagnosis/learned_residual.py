@@ -2,9 +2,10 @@
 
 What the physical model (geometry and the effects it carries) leaves of the measured
 points is learned as a smooth function of the joint values by a Gaussian process
-(scikit-learn's :class:`~sklearn.gaussian_process.GaussianProcessRegressor`):
-``δ(q)``, a translation of the tool in the tracker frame (m), added to every point
-the physical model predicts at ``q``, the TCP included.
+(fitted by scikit-learn's :class:`~sklearn.gaussian_process.GaussianProcessRegressor`;
+a :class:`LearnedResidual` rebuilt from its numbers factors its kernel matrix once and
+predicts with that factor): ``δ(q)``, a translation of the tool in the tracker frame (m),
+added to every point the physical model predicts at ``q``, the TCP included.
 
 Why a translation of the tool: the reflectors and the TCP are different points of one
 rigid tool, so only the part of the misfit that moves the whole tool transfers from the
@@ -46,6 +47,8 @@ import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.linalg
+import scipy.spatial.distance
 import scipy.stats
 from sklearn.exceptions import ConvergenceWarning
 from sklearn.gaussian_process import GaussianProcessRegressor
@@ -75,6 +78,16 @@ MAX_VARIANCE_M2 = 1e-2  # (0.1 m)²: bound of the signal and noise variances
 # The output shape's eigenvalues are held above this fraction of the largest.
 MIN_SHAPE = 0.01
 MIN_VARIANCE_M2 = 1e-16
+# Added to the kernel matrix's diagonal, as scikit-learn's GaussianProcessRegressor does
+# (its ``alpha``) in the fit that chose the hyperparameters: the same posterior.
+FIT_JITTER_M2 = 1e-10
+# The most training rows a learned residual is fitted on and read back with: a campaign of
+# 1000 poses with three reflectors. Fitting costs m³ per likelihood step (1000 rows: ~16 s
+# in all, so 3000 some 27 times that) and m² × (number of hyperparameters) memory for its
+# gradient (3000 rows, seven joints: 0.6 GiB); reading one back factors its m × m kernel
+# matrix once (3000 rows: 69 MiB). Above it identify fits none and says why, so the bound
+# covers every file identify writes.
+MAX_TRAINING_ROWS = 3000
 
 
 @dataclass(frozen=True)
@@ -99,6 +112,10 @@ class ResidualPrediction:
     covariance: np.ndarray
     distance: np.ndarray
     inside: np.ndarray
+
+
+class SingularKernelError(ValueError):
+    """The kernel matrix of a learned residual's training rows is not positive definite."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -139,11 +156,16 @@ class LearnedResidual:
     noise_m2: float
     output_shape: np.ndarray | None = None
     noise_shape: np.ndarray | None = None
-    _gp: GaussianProcessRegressor = field(init=False, repr=False, compare=False)
+    _factor: np.ndarray = field(init=False, repr=False, compare=False)  # Cholesky, lower
+    _weights: np.ndarray = field(init=False, repr=False, compare=False)  # K⁻¹ y, whitened
     _colour: np.ndarray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        """Check the fields and fit the Gaussian process with the kernel held fixed."""
+        """Check the fields and factor the kernel matrix of the training rows (Cholesky).
+
+        :class:`SingularKernelError` when it is not positive definite, ValueError for
+        fields of the wrong shape or range or more than :data:`MAX_TRAINING_ROWS` rows.
+        """
         q = np.atleast_2d(np.asarray(self.q, float))
         y = np.asarray(self.residual_m, float).reshape(-1, 3)
         ell = np.asarray(self.length_scales, float).reshape(-1)
@@ -163,11 +185,27 @@ class LearnedResidual:
         object.__setattr__(self, 'output_shape', shape)
         object.__setattr__(self, 'noise_shape', shape if self.noise_shape is None
                            else checked_shape(self.noise_shape))
+        if len(q) > MAX_TRAINING_ROWS:
+            raise ValueError(f'{len(q)} training rows, more than the {MAX_TRAINING_ROWS} a '
+                             'learned residual may have')
         whiten, colour = _roots(shape)
         object.__setattr__(self, '_colour', colour)
-        gp = GaussianProcessRegressor(fixed_kernel(self.amplitude_m2, ell, self.noise_m2),
-                                      optimizer=None, normalize_y=False)
-        object.__setattr__(self, '_gp', gp.fit(q, y @ whiten))
+        # The posterior with the kernel held fixed, as scikit-learn's fit computes it (the
+        # same jitter on the diagonal), but the kernel matrix factored once: its fit
+        # factors it a second time for the likelihood, which nothing here needs.
+        kernel = self.amplitude_m2 * self._correlation(q, q)
+        kernel[np.diag_indices_from(kernel)] += self.noise_m2 + FIT_JITTER_M2
+        try:
+            factor = scipy.linalg.cholesky(kernel, lower=True, check_finite=False)
+        except np.linalg.LinAlgError:
+            raise SingularKernelError(
+                f'the kernel matrix of the {len(q)} training rows is not positive definite '
+                f'(amplitude_m2 {self.amplitude_m2:.3g} against noise_m2 '
+                f'{self.noise_m2:.3g}: numerically singular)') from None
+        del kernel
+        object.__setattr__(self, '_factor', factor)
+        object.__setattr__(self, '_weights', scipy.linalg.cho_solve(
+            (factor, True), y @ whiten, check_finite=False))
 
     @property
     def noise_covariance_m2(self) -> np.ndarray:
@@ -180,11 +218,12 @@ class LearnedResidual:
         if q.shape[1] != self.q.shape[1]:
             raise ValueError(f'q must have {self.q.shape[1]} columns '
                              f'({list(self.joint_names)}), got {q.shape}')
-        mean, std = self._gp.predict(q, return_std=True)
-        std = np.asarray(std).reshape(len(q), -1)[:, 0]
-        latent = np.maximum(std ** 2 - self.noise_m2, 0.0)
+        cross = self.amplitude_m2 * self._correlation(q, self.q)  # (M, m)
+        v = scipy.linalg.solve_triangular(self._factor, cross.T, lower=True,
+                                          check_finite=False)
+        latent = np.maximum(self.amplitude_m2 - np.einsum('ij,ij->j', v, v), 0.0)
         distance = self.distance(q)
-        return ResidualPrediction(np.asarray(mean).reshape(-1, 3) @ self._colour,
+        return ResidualPrediction((cross @ self._weights) @ self._colour,
                                   latent[:, None, None] * np.asarray(self.output_shape),
                                   distance, distance <= INSIDE_DISTANCE)
 
@@ -195,11 +234,17 @@ class LearnedResidual:
         A; its diagonal is the latent variance of :meth:`predict`.
         """
         q = np.atleast_2d(np.asarray(q, float))
-        _, cov = self._gp.predict(q, return_cov=True)
-        cov = np.asarray(cov)
-        cov = (cov[:, :, 0] if cov.ndim == 3 else cov) - self.noise_m2 * np.eye(len(q))
+        v = scipy.linalg.solve_triangular(
+            self._factor, self.amplitude_m2 * self._correlation(self.q, q), lower=True,
+            check_finite=False)
+        cov = self.amplitude_m2 * self._correlation(q, q) - v.T @ v
         np.fill_diagonal(cov, np.maximum(np.diag(cov), 0.0))
         return 0.5 * (cov + cov.T)
+
+    def _correlation(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """(len(a), len(b)) RBF correlation exp(-½ ‖(a_i − b_j)/ℓ‖²) of joint values."""
+        return np.exp(-0.5 * scipy.spatial.distance.cdist(
+            a / self.length_scales, b / self.length_scales, 'sqeuclidean'))
 
     def distance(self, q: np.ndarray) -> np.ndarray:
         """Return the (M,) distance of each query to its nearest training pose.
@@ -384,6 +429,9 @@ def fit_learned_residual(q: np.ndarray, residual_m: np.ndarray, sigma_m: float |
     y = np.asarray(residual_m, float).reshape(-1, 3)
     if len(q) != len(y):
         raise ValueError(f'q has {len(q)} rows, residual_m {len(y)}')
+    if len(q) > MAX_TRAINING_ROWS:
+        raise ValueError(f'{len(q)} rows, more than the {MAX_TRAINING_ROWS} a learned residual '
+                         'is fitted on (MAX_TRAINING_ROWS)')
     noise = float(np.mean(np.broadcast_to(np.asarray(sigma_m, float), (3,)) ** 2))
     full, kernel, shape, colour = _fitted(q, y, None, restarts, seed, noise)
     # What the field leaves at the training rows is the noise; its shape is the noise's.
@@ -566,7 +614,9 @@ def corrected_tcp(tcp: np.ndarray, tcp_jacobian: np.ndarray, covariance_inside: 
         (:func:`field_parameter_covariance`); default ``covariance_inside``.
     """
     tcp = np.asarray(tcp, float).reshape(-1, 3)
-    jac = np.asarray(tcp_jacobian, float).reshape(len(tcp), 3, -1)
+    # The parameter count from the covariance: with no query (a cell without working
+    # poses) the Jacobian is empty and its last axis cannot be inferred.
+    jac = np.asarray(tcp_jacobian, float).reshape(len(tcp), 3, len(covariance_inside))
 
     def propagated(cov: np.ndarray) -> np.ndarray:
         return np.einsum('mik,kl,mjl->mij', jac, cov, jac)
@@ -582,6 +632,7 @@ def corrected_tcp(tcp: np.ndarray, tcp_jacobian: np.ndarray, covariance_inside: 
 
 
 __all__ = ['CHOICE_ALPHA', 'CorrectedTcp', 'INSIDE_DISTANCE', 'LearnedResidual', 'MIN_GAIN',
-           'ResidualChoice', 'ResidualPrediction', 'corrected_tcp', 'field_parameter_covariance',
+           'MAX_TRAINING_ROWS', 'ResidualChoice', 'ResidualPrediction', 'SingularKernelError',
+           'corrected_tcp', 'field_parameter_covariance',
            'checked_shape', 'fit_learned_residual', 'fixed_kernel', 'output_shape',
            'outside_weight', 'residual_noise_scale']

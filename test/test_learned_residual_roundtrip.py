@@ -1,0 +1,117 @@
+"""``identify --learned-residual`` → ``validate``, through the command line, on campaigns of
+real size: validate reads every learned_residual.yaml identify writes, with and without
+``--register``.
+
+Three stock arms of example-robot-data (UR5 100 poses, Panda 300, UR10 200) with a
+second-harmonic error of their second joint that the geometric model lacks (so the learned
+residual is chosen and written), validated on a new recording of the same robot; and 1000
+poses of the real UR10 of ../shared/data/ipa_ur10 Series A (imported as import-csv does),
+validated on 100 others. Above MAX_TRAINING_ROWS identify fits no learned residual and says
+why."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from kpi_calib_ros.app.learned_residual import too_many_rows
+from kpi_calib_ros.app.simulate import simulate_campaign, truth_cell_model
+from kpi_calib_ros.cli import main
+from kpi_calib_ros.core.diagnosis.learned_residual import MAX_TRAINING_ROWS
+from kpi_calib_ros.core.measurement.tracker import Measurements
+from kpi_calib_ros.io.arm_cell import arm_cell_document
+from kpi_calib_ros.io.cell import load_cell
+from kpi_calib_ros.io.learned_residual_file import read_residual
+from kpi_calib_ros.io.results import read_truth
+
+HERE = Path(__file__).parent / 'data'
+_BESIDE = Path(__file__).resolve().parents[2] / 'shared' / 'data' / 'ipa_ur10'
+UR10_DATA = _BESIDE if _BESIDE.is_dir() else Path('/work/shared/data/ipa_ur10')
+ROBOTS = 'package://example-robot-data/robots/'
+UR_POSE = [0.0, -1.2, 1.7, -2.07, -1.57, 0.0]
+# id: (URDF, base, tip, the joint of the hidden error, working pose, training poses)
+ARMS = {
+    'ur5': ('ur_description/urdf/ur5_robot.urdf', 'base_link', 'tool0', 'shoulder_lift_joint',
+            UR_POSE, 100),
+    'panda': ('panda_description/urdf/panda.urdf', 'panda_link0', 'panda_hand', 'panda_joint2',
+              [0.0, -0.3, 0.0, -2.0, 0.0, 1.7, 0.8], 300),
+    'ur10': ('ur_description/urdf/ur10_robot.urdf', 'base_link', 'tool0',
+             'shoulder_lift_joint', UR_POSE, 200),
+}
+NEW_POSES = 50
+
+
+def round_trip(cell: Path, train: Path, new: Path, out: Path, capsys) -> None:
+    """identify --learned-residual writes the file; validate reads it (exit 0 or 1, never
+    2), and with --register does not use it."""
+    capsys.readouterr()
+    assert main(['identify', '--cell', str(cell), '--bag', str(train), '--out', str(out / 'cal'),
+                 '--learned-residual']) == 0, capsys.readouterr()
+    text = capsys.readouterr().out
+    assert 'learned residual chosen' in text, text
+    path = out / 'cal' / 'learned_residual.yaml'
+    written = yaml.safe_load(path.read_text())['physical']
+    for field in ('covariance', 'covariance_outside'):
+        matrix = np.array(written[field])
+        np.testing.assert_array_equal(matrix, matrix.T)
+    stored = read_residual(path)
+    args = ['validate', '--cell', str(cell), '--calibration', str(out / 'cal' / 'calibration.yaml'),
+            '--bag', str(new)]
+    assert main(args + ['--out', str(out / 'val')]) in (0, 1)
+    captured = capsys.readouterr()
+    assert 'with the learned residual (learned_residual.yaml): rms' in captured.out, captured
+    assert main(args + ['--out', str(out / 'val_reg'), '--register', 'base']) in (0, 1)
+    captured = capsys.readouterr()
+    assert 'not validated with --register' in captured.out, captured
+    print(f'{len(stored.residual.q)} training rows, {len(stored.estimated)} parameters: read back')
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize('arm', ARMS)
+def test_validate_reads_what_identify_writes_on_a_stock_arm(arm, tmp_path, capsys):
+    path, base, tip, joint, pose, n = ARMS[arm]
+    doc = arm_cell_document(ROBOTS + path, base, tip, 2e-5)
+    doc['working_poses'] = [pose]
+    doc['identification'] = {'model': 'geometric'}
+    doc['simulation'] = {'hidden_effects': {f'cyclic_joint_error_h2:{joint}':
+                                            {'a': 4e-4, 'b': 2e-4}}}
+    cell = tmp_path / 'cell.yaml'
+    cell.write_text(yaml.safe_dump(doc))
+    train, new = tmp_path / 'train.mcap', tmp_path / 'new.mcap'
+    assert main(['simulate', '--cell', str(cell), '--n', str(n), '--out', str(train),
+                 '--seed', '1']) == 0
+    cm, _ = truth_cell_model(load_cell(cell))
+    truth = read_truth(train)['parameters']
+    simulate_campaign(cell, NEW_POSES, new, 2, cm=cm,
+                      p_true=np.array([truth[name] for name in cm.model.params.names]))
+    round_trip(cell, train, new, tmp_path, capsys)
+
+
+@pytest.mark.slow
+def test_validate_reads_what_identify_writes_on_the_real_ur10(tmp_path, capsys):
+    """1000 poses of Series A (a posture: a point and a probe rotation), 100 others to
+    validate on."""
+    lines = (UR10_DATA / 'Series_A' / 'measurements_grid.csv').read_bytes().split(b'\r\n')
+    rows = [line for line in lines[1:] if line]
+    pick = np.random.default_rng(0).permutation(len(rows))
+    for name, chosen in (('train', pick[:1000]), ('new', pick[1000:1100])):
+        table = tmp_path / f'{name}.csv'
+        table.write_bytes(b'\r\n'.join([lines[0], *[rows[i] for i in sorted(chosen)]]) + b'\r\n')
+        assert main(['import-csv', str(table), '--mapping', str(HERE / 'ipa_ur10_mapping.yaml'),
+                     '--out', str(tmp_path / f'{name}.mcap')]) == 0
+    round_trip(HERE / 'ipa_ur10_cell.yaml', tmp_path / 'train.mcap', tmp_path / 'new.mcap',
+               tmp_path, capsys)
+
+
+def test_above_the_training_bound_no_learned_residual_is_fitted(cm):
+    """identify fits none above MAX_TRAINING_ROWS point rows (so the reader's bound covers
+    every file it writes), and says why."""
+    q = np.zeros((MAX_TRAINING_ROWS + 1, 6))
+    eta = np.zeros((MAX_TRAINING_ROWS + 1, 3))
+    assert too_many_rows(cm, Measurements(q=q[:-1], eta=eta[:-1])) == ''
+    assert too_many_rows(cm, Measurements(q=q, eta=eta)) == (
+        f'learned residual not fitted: {MAX_TRAINING_ROWS + 1} point measurements, more than '
+        f'the {MAX_TRAINING_ROWS} a learned residual is fitted on (its cost grows with the '
+        'cube of their number); identify --learned-residual on fewer poses')
