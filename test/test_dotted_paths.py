@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import inspect
 import io
 import re
 from pathlib import Path
@@ -42,12 +43,19 @@ def _resolves(dotted: str) -> bool:
             if hasattr(obj, name):
                 obj = getattr(obj, name)
             elif name in getattr(obj, '__dataclass_fields__', {}) or \
-                    name in getattr(obj, '__annotations__', {}):
+                    name in getattr(obj, '__annotations__', {}) or _instance_attribute(obj, name):
                 obj = None
             else:
                 return False
         return True
     return False
+
+
+def _instance_attribute(obj: object, name: str) -> bool:
+    """Whether the class ``obj`` sets ``self.<name>`` in one of its methods."""
+    if not inspect.isclass(obj):
+        return False
+    return re.search(rf'\bself\.{name}\s*(:[^=]*)?=', inspect.getsource(obj)) is not None
 
 
 def broken_paths(text: str) -> list[str]:
@@ -70,8 +78,11 @@ def broken_paths(text: str) -> list[str]:
 
 
 def _sources() -> list[Path]:
-    return sorted([*ROOT.glob('doc/**/*.md'), ROOT / 'README.md', *PACKAGE.rglob('*.py'),
-                   *ROOT.glob('examples/*.py'), *ROOT.glob('bench/*.py')])
+    # doc/_generated holds the build's copies of bench/results/*.md: their sources are read.
+    pages = [p for p in ROOT.glob('doc/**/*.md') if '_generated' not in p.parts]
+    return sorted([*pages, ROOT / 'README.md', *PACKAGE.rglob('*.py'),
+                   *ROOT.glob('examples/*.py'), *ROOT.glob('bench/*.py'),
+                   *ROOT.glob('bench/results/*.md')])
 
 
 def _help_texts() -> dict[str, str]:
