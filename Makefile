@@ -12,7 +12,7 @@ export OMP_NUM_THREADS ?= 1
 TEST_WORKERS ?= 2
 PYTEST := $(PY) -m pytest -q -n $(TEST_WORKERS) --maxschedchunk 2 --durations=15
 
-.PHONY: install demo lint doc check test bench clean
+.PHONY: install demo lint doc pictures check test bench clean
 
 install: $(STAMP)
 
@@ -33,6 +33,12 @@ lint: $(STAMP)
 # The documentation (doc/, reference pages generated from the code) with warnings as errors.
 doc: $(STAMP)
 	$(VENV)/bin/sphinx-build -q -W --keep-going -b html doc build/doc
+
+# The pictures of the documentation, drawn by the tool on the simulated cell and on the
+# real data of ../shared/data (minutes; not part of `make test`, whose
+# test/test_doc_pictures.py fails when the plotting code changed after they were made).
+pictures: $(STAMP)
+	$(PY) doc/pictures.py
 
 # The quick loop while editing: lint, types, the documentation, the tests not marked slow.
 check: lint doc

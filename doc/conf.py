@@ -24,7 +24,12 @@ myst_heading_anchors = 3
 numpydoc_show_class_members = False
 numpydoc_class_members_toctree = False
 autodoc_member_order = 'bysource'
-html_theme = 'alabaster'
+# Furo: a theme made for technical documentation (pinned in requirements.txt); the code
+# blocks show 88 characters without scrolling (test/test_doc_pictures.py keeps them so).
+html_theme = 'furo'
+html_title = f'kpi_calib_ros {release}'
+# The pictures (doc/_static/pictures/, `make pictures`) reach the site through the pages'
+# figures, which Sphinx copies; no other static file is published.
 html_static_path: list[str] = []
 
 

@@ -50,6 +50,8 @@ def test_identify_recovers_truth_from_a_simulated_bag(run_bag, tmp_path, capsys)
     assert 'reflector.z' in {p['name'] for p in doc['parameters']}
     assert len(names) + len(doc['dropped_parameters']) == len(doc['parameters'])
     assert 'rms residual' in capsys.readouterr().out
+    # Its picture: the residuals and the TCP's 95 % region (first tutorial).
+    assert (tmp_path / 'identification.png').stat().st_size > 10_000
 
 
 def _identify_error(cell: Path | str, bag: Path, out: Path, capsys) -> str:

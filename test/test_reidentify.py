@@ -176,6 +176,8 @@ def test_identify_with_prior_exits_3_on_a_different_robot_and_keeps_the_calibrat
     assert failed['valid'] is False and failed['change_test']['consistent'] is False
     assert failed['change_test']['moved'] and failed['change_test']['p_value'] < 1e-3
     assert failed['change_test']['moved'][0]['name'] in text.err
+    # The test drawn beside it (what the work cycles tutorial shows).
+    assert (out / 'change_test.png').read_bytes()[:4] == b'\x89PNG'
 
 
 def test_design_with_the_prior_predicts_the_map_covariance_of_its_poses(cell, first_cycle):

@@ -46,9 +46,11 @@ def test_diagnose_writes_ranked_json_report_and_plots(campaign, tmp_path, capsys
     assert added['validation_rms_after_m'] < 0.5 * added['validation_rms_before_m']
     report = (tmp_path / 'report.md').read_text()
     for png in ('residuals_vs_joints', 'residuals_vs_torque', 'residuals_vs_time_distance',
-                'measured_vs_predicted_3d', 'joint_errors', 'before_after'):
+                'measured_vs_predicted_3d', 'joint_errors', 'before_after', 'periodogram'):
         assert (tmp_path / f'{png}.png').stat().st_size > 10_000
         assert f'({png}.png)' in report
+    # χ² rejects the geometric model: the learned residual it fitted is drawn too.
+    assert (tmp_path / 'learned_residual.png').stat().st_size > 10_000
     out = capsys.readouterr().out
     assert f'Add it with --effects {HIDDEN}' in out and 'validation rms' in out
 

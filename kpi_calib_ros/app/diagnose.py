@@ -42,6 +42,7 @@ from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.names import DIAGNOSIS_FILE
 from kpi_calib_ros.io.report import diagnosis_text, write_report
+from kpi_calib_ros.io.residual_plots import write_learned_residual_plot
 from kpi_calib_ros.io.results import writable_folder
 
 
@@ -191,6 +192,8 @@ def run_diagnose(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
         if learned is not None:
             cd = with_remedies(cd, (learned,))
     report = write_report(out_dir, cd)
+    if choice is not None:
+        write_learned_residual_plot(out_dir, choice.model, choice.chosen)
     print(diagnosis_text(cd))
     if refused:
         print(refused)

@@ -45,7 +45,11 @@ from kpi_calib_ros.core.estimation.robust import (
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.names import LEARNED_RESIDUAL_FILE
-from kpi_calib_ros.io.report import comparison_text, comparison_to_dict
+from kpi_calib_ros.io.report import (
+    comparison_text,
+    comparison_to_dict,
+    write_identification_plot,
+)
 from kpi_calib_ros.io.results import (
     summary_text,
     writable_folder,
@@ -390,6 +394,12 @@ def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
         residual_text, _ = add_learned_residual(doc, cm, subset(data, cal.robust.kept),
                                                 cal.result, out_dir)
     path, urdf_path, _ = write_results(cm, cal.result, doc, out_dir)
+    kept = subset(data, cal.robust.kept)
+    points = (None if kept.reflector is None or len(kept) != len(cal.result.residuals)
+              else np.asarray(kept.reflector) < cm.model.n_reflectors)
+    write_identification_plot(out_dir, cal.result.residuals, cal.result.sigma,
+                              cal.result.tcp_covariance, cal.result.working_pose_names,
+                              points)
     print(summary_text(doc))
     print(registration_text(cal.registration, cm))
     print(robust_summary(doc))

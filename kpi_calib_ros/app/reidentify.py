@@ -461,6 +461,8 @@ def run_reidentify(cell_path: str | Path, bag_path: str | Path, out_dir: str | P
     doc = reidentification_document(cm, out, cp, str(prior_path), pairing)
     path, urdf_path, _ = write_results(cm, (out.calibration.result if out.calibration
                                             else out.fit), doc, out_dir)
+    from kpi_calib_ros.io.campaign_io import CHANGE_PLOT_FILE, plot_change  # matplotlib
+    plot_change(Path(out_dir) / CHANGE_PLOT_FILE, out.change)
     print(cp.description)
     print(out.change.summary())
     if out.calibration is None:

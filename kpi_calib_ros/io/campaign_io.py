@@ -1,5 +1,6 @@
-"""Files of a sequential campaign: the plan, campaign.yaml, the TCP-std plot, and the
-node's campaign state (``campaign_state.yaml``: what a restarted node resumes from)."""
+"""Files of a sequential campaign: the plan, campaign.yaml, the TCP-std plot, the node's
+campaign state (``campaign_state.yaml``: what a restarted node resumes from), and the
+change-test plot of a work cycle (``identify --prior``)."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -13,11 +14,13 @@ import matplotlib.pyplot as plt  # noqa: E402  (backend first)
 import numpy as np  # noqa: E402
 import yaml  # noqa: E402
 
+from kpi_calib_ros.core.campaigns.change_detection import ChangeTest  # noqa: E402
 from kpi_calib_ros.core.campaigns.sequential import CampaignSettings, SimulatedRun  # noqa: E402
 from kpi_calib_ros.core.errors import DataError  # noqa: E402
 from kpi_calib_ros.io.results import write_atomic  # noqa: E402
 
 STATE_VERSION = 1
+CHANGE_PLOT_FILE = 'change_test.png'
 
 
 def write_plan(path: str | Path, joint_names: Sequence[str], q: np.ndarray,
@@ -104,6 +107,36 @@ class CampaignState:
     @property
     def stopped(self) -> bool:
         return self.status.get('stop_reason', 'running') != 'running'
+
+
+def plot_change(path: str | Path, change: ChangeTest, top: int = 14) -> Path:
+    """What moved since the last calibration: the likelihood ratio of each prior
+    parameter's shift (the ``top`` largest) against the per-parameter threshold of the
+    drift model, the moved ones red, each labelled with its shift ± std (mm or mrad)."""
+    shifts = sorted(change.parameters, key=lambda m: -m.lr)[:top]
+    moved = {m.name for m in change.moved}
+    fig, ax = plt.subplots(figsize=(8, 0.28 * max(len(shifts), 4) + 1.4))
+    names = [m.name for m in shifts][::-1]
+    lr = np.maximum([m.lr for m in shifts][::-1], 1e-3)
+    ax.barh(names, lr, color=['tab:red' if n in moved else 'tab:gray' for n in names])
+    for y, m in enumerate(shifts[::-1]):
+        ax.text(lr[y] * 1.1, y, f'{m.shift * 1e3:+.3g} ± {m.shift_std * 1e3:.2g}',
+                va='center', fontsize=6)
+    ax.axvline(change.lr_threshold, color='k', ls='--', lw=1,
+               label=f'threshold (family-wise α = {change.alpha:g})')
+    ax.set_xscale('log')
+    ax.set_xlim(right=float(np.max(lr)) * 20 if len(lr) else 10)
+    ax.set_xlabel('likelihood ratio of the shift since the prior (shift in mm or mrad)')
+    ax.tick_params(axis='y', labelsize=7)
+    verdict = ('consistent with the drift model' if change.consistent
+               else 'CHANGE: not blended')
+    ax.set_title(f'Work cycle against the last calibration: {verdict} '
+                 f'(χ² {change.chi2:.1f} / {change.dof})', fontsize=9)
+    ax.legend(fontsize=7, loc='lower right')
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return Path(path)
 
 
 def write_campaign_state(path: str | Path, state: CampaignState) -> Path:

@@ -4,8 +4,10 @@ Writes what :func:`kpi_calib_ros.app.diagnose.diagnose_cell` computes (calibrate
 diagnose, add the suggested effect, compare) with :func:`write_report`. The
 plots (matplotlib, Agg) show the residuals against each joint angle, each
 joint's gravity torque, time and tracker distance, the measured points with
-magnified residual vectors in 3-D, and the error before/after adding the
-effect. Units in files are SI; plots and text use µm for residuals.
+magnified residual vectors in 3-D, the error before/after adding the
+effect and the periodogram of each joint's periodic search; and, for ``identify``,
+the residuals and the TCP's 95 % region (:func:`write_identification_plot`). Units in
+files are SI; plots and text use µm for residuals.
 """
 from __future__ import annotations
 
@@ -14,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import scipy.stats
 
 from kpi_calib_ros.core.diagnosis.candidates import Candidate, CellDiagnosis, ModelComparison
 from kpi_calib_ros.core.diagnosis.out_of_sample import DOMAIN_TEXT, NOT_ESTIMABLE, OutOfSample
@@ -30,6 +33,8 @@ from kpi_calib_ros.io.residual_plots import (
 from kpi_calib_ros.io.results import write_atomic
 
 _UM = 1e6
+IDENTIFICATION_PLOT_FILE = 'identification.png'
+PERIODOGRAM_PLOT_FILE = 'periodogram.png'
 _AXES = ('x', 'y', 'z')
 _COLOURS = ('tab:red', 'tab:green', 'tab:blue')
 
@@ -261,6 +266,76 @@ def write_validation_plots(out_dir: str | Path, robot: Any, q: np.ndarray,
     return path
 
 
+def write_identification_plot(out_dir: str | Path, residuals: np.ndarray,
+                              sigma: np.ndarray, tcp_covariance: np.ndarray,
+                              working_pose_names: tuple[str, ...] | list[str],
+                              points: np.ndarray | None = None) -> Path:
+    """``identification.png``: the residual (N, 3) m of every measurement the calibration
+    used against its index, with ±3 of the stated σ (3,) m, and the 95 % region of the TCP
+    at each working pose from its covariance (T, 3, 3) m² (eq. 19), projected on x-y, x-z
+    and y-z (µm, tracker frame, centred on the TCP). ``points`` (N,) bool: the rows that
+    are points (the others, rotations of a tracked body in rad, are left out)."""
+    plt = _pyplot()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    res = np.atleast_2d(np.asarray(residuals, float))
+    if points is not None:
+        res = res[np.asarray(points, bool)]
+    sig = np.broadcast_to(np.asarray(sigma, float).reshape(-1)[:3], (3,)) * _UM
+    fig, axes = plt.subplots(1, 4, figsize=(13.5, 3.3),
+                             gridspec_kw={'width_ratios': [1.6, 1, 1, 1]})
+    index = np.arange(len(res))
+    for k in range(3):
+        axes[0].plot(index, res[:, k] * _UM, '.', ms=4, color=_COLOURS[k], label=f'r_{_AXES[k]}')
+    axes[0].axhline(3 * float(np.max(sig)), color='k', ls='--', lw=0.8, label='±3σ stated')
+    axes[0].axhline(-3 * float(np.max(sig)), color='k', ls='--', lw=0.8)
+    axes[0].axhline(0.0, color='0.6', lw=0.8)
+    axes[0].set(xlabel='measurement', ylabel='residual (µm)',
+                title=f'Residuals: rms |r| {np.sqrt(np.mean(np.sum(res ** 2, 1))) * _UM:.1f} µm')
+    axes[0].legend(fontsize=7, ncol=2)
+    axes[0].grid(alpha=0.3)
+    scale = float(np.sqrt(scipy.stats.chi2.ppf(0.95, 3))) * _UM
+    circle = np.stack([np.cos(np.linspace(0, 2 * np.pi, 100)),
+                       np.sin(np.linspace(0, 2 * np.pi, 100))])
+    cov_all = np.asarray(tcp_covariance, float).reshape(-1, 3, 3)
+    for ax, (i, j) in zip(axes[1:], [(0, 1), (0, 2), (1, 2)]):
+        for t, (cov, name) in enumerate(zip(cov_all, working_pose_names)):
+            w, v = np.linalg.eigh(cov[np.ix_([i, j], [i, j])])
+            ax.plot(*((v * np.sqrt(np.maximum(w, 0.0)) * scale) @ circle),
+                    color=f'C{t % 10}', label=name)
+        ax.set(xlabel=f'TCP {_AXES[i]} (µm)', ylabel=f'TCP {_AXES[j]} (µm)', aspect='equal')
+        ax.grid(alpha=0.3)
+    axes[1].set_title('TCP 95 % region (eq. 19)', fontsize=9)
+    if len(cov_all):
+        axes[1].legend(fontsize=7)
+    else:
+        axes[1].text(0.5, 0.5, 'no working poses: no TCP', ha='center', va='center',
+                     transform=axes[1].transAxes)
+    fig.tight_layout()
+    path = out / IDENTIFICATION_PLOT_FILE
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def _periodogram_plot(plt, grams: tuple[Periodogram, ...]):
+    """The χ² reduction of a sinusoid at each frequency searched, one line per joint."""
+    fig, ax = plt.subplots(figsize=(8, 3.4))
+    for k, g in enumerate(grams):
+        ax.plot(g.cycles, np.maximum(g.power, 1e-3), '.-', ms=4, lw=0.8, color=f'C{k % 10}',
+                label=f'{g.joint}: peak {g.peak} (p = {g.p_value:.2g})')
+        ax.plot([g.peak], [max(float(np.max(g.power)), 1e-3)], 'o', mfc='none',
+                color=f'C{k % 10}')
+    ax.set_yscale('log')
+    ax.set_xlabel('cycles per revolution')
+    ax.set_ylabel('χ² reduction (σ²)')
+    ax.set_title('Periodic joint errors: the frequency search of each joint (p × frequencies '
+                 'searched)', fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, ncol=2)
+    return fig
+
+
 def write_plots(out_dir: str | Path, cd: CellDiagnosis) -> list[Path]:
     """PNG plots of the residuals of ``cd`` into ``out_dir``; returns their paths."""
     plt = _pyplot()
@@ -388,6 +463,8 @@ def write_plots(out_dir: str | Path, cd: CellDiagnosis) -> list[Path]:
     axes[1].set_xlabel('|residual| (µm)')
     axes[1].legend(fontsize=7)
     save(fig, 'before_after.png')
+    if cd.diagnosis.periodograms:
+        save(_periodogram_plot(plt, cd.diagnosis.periodograms), PERIODOGRAM_PLOT_FILE)
     return paths
 
 

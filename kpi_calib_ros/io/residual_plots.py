@@ -4,18 +4,22 @@ Writes what :mod:`kpi_calib_ros.core.diagnosis.residual_analysis` and
 :mod:`kpi_calib_ros.core.diagnosis.misfit` compute: a ranked table (report.md and diagnosis.json)
 and ``partial_residuals.png`` -- for each of the top inputs, every row's residual along the
 direction the input moves the point, divided by the lever (the joint error it implies, a range
-error, a drift or a scale), against the input, with the smooth fit. Units: µrad, µm and ppm (10⁻⁶)
-in plots and text, SI in the JSON document.
+error, a drift or a scale), against the input, with the smooth fit; and ``learned_residual.png``,
+the learned residual's field and its uncertainty along its most relevant joints. Units: µrad,
+µm and ppm (10⁻⁶) in plots and text, SI in the JSON document.
 """
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from kpi_calib_ros.core.diagnosis.misfit import MisfitAnswer
 from kpi_calib_ros.core.diagnosis.residual_analysis import InputScore, ResidualAnalysis
+
+if TYPE_CHECKING:  # scikit-learn is imported only where a residual is learned
+    from kpi_calib_ros.core.diagnosis.learned_residual import LearnedResidual
 
 PLOT_FILE = 'partial_residuals.png'
 TOP = 6  # inputs plotted
@@ -168,6 +172,56 @@ def write_partial_residual_plot(out_dir: str | Path, analysis: ResidualAnalysis,
                  'point, over the lever, with the smooth fit', fontsize=9)
     fig.tight_layout()
     path = Path(out_dir) / PLOT_FILE
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+LEARNED_PLOT_FILE = 'learned_residual.png'
+
+
+def write_learned_residual_plot(out_dir: str | Path, residual: LearnedResidual, chosen: bool,
+                                top: int = 2) -> Path:
+    """``learned_residual.png``: the learned residual δ(q) along each of its ``top`` most
+    relevant joints (shortest length scale), the other joints at the training poses'
+    median: its mean per axis (µm), ± 2 std of the field itself shaded, the training
+    residuals as dots and the training values of the joint as ticks."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    names = list(residual.joint_names)
+    order = [names.index(n) for n in residual.relevant_joints()][:top]
+    centre = np.median(residual.q, axis=0)
+    fig, axes = plt.subplots(1, len(order), figsize=(5.2 * len(order), 3.5), squeeze=False)
+    for ax, j in zip(axes[0], order):
+        lo, hi = float(np.min(residual.q[:, j])), float(np.max(residual.q[:, j]))
+        pad = 0.1 * (hi - lo) + 1e-6
+        sweep = np.linspace(lo - pad, hi + pad, 150)
+        q = np.repeat(centre[None], len(sweep), axis=0)
+        q[:, j] = sweep
+        pred = residual.predict(q)
+        std = np.sqrt(np.maximum(np.diagonal(pred.covariance, axis1=1, axis2=2), 0.0))
+        for k, axis in enumerate('xyz'):
+            colour = _COLOURS[k]
+            ax.plot(residual.q[:, j], residual.residual_m[:, k] * 1e6, '.', ms=3, alpha=0.35,
+                    color=colour)
+            ax.plot(sweep, pred.mean[:, k] * 1e6, '-', lw=1.6, color=colour, label=f'δ_{axis}')
+            ax.fill_between(sweep, (pred.mean[:, k] - 2 * std[:, k]) * 1e6,
+                            (pred.mean[:, k] + 2 * std[:, k]) * 1e6, color=colour, alpha=0.15)
+        ax.plot(residual.q[:, j], np.full(len(residual.q), ax.get_ylim()[0]), '|', color='k',
+                ms=8, label='training poses')
+        ax.axhline(0.0, color='0.6', lw=0.8)
+        ax.set_xlabel(f'{names[j]} (rad, m if prismatic); length scale '
+                      f'{residual.length_scales[j]:.3g}', fontsize=8)
+        ax.set_ylabel('residual (µm)', fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=6, ncol=2)
+    fig.suptitle(f'Learned residual ({"chosen" if chosen else "not chosen"}): the field ± 2 '
+                 'std along its most relevant joints, the others at the median pose',
+                 fontsize=9)
+    fig.tight_layout()
+    path = Path(out_dir) / LEARNED_PLOT_FILE
     fig.savefig(path, dpi=90)
     plt.close(fig)
     return path
