@@ -30,9 +30,9 @@ from kpi_calib_ros.core.simulation import (
     simulate_measurements,
     true_parameters,
 )
+from kpi_calib_ros.io.bag_writing import write_bag
 from kpi_calib_ros.io.cell import DEFAULT_CELL
 from kpi_calib_ros.io.cell_settings import identification_settings
-from kpi_calib_ros.io.bag_writing import write_bag
 from kpi_calib_ros.io.names import CALIBRATION_FILE, DIAGNOSIS_FILE, FAILED_CALIBRATION_FILE
 
 SIGMA = 20e-6

@@ -456,10 +456,13 @@ def diagnose(model: MeasurementModel, data: Measurements, result: CalibrationRes
 
 
 def with_estimability(diag: Diagnosis, estimability: KpiEstimability) -> Diagnosis:
-    """``diag`` judged with identify's estimability verdict: where the measurements do not
-    determine the TCP, the residuals cannot show what the calibration misses (every
-    parameter vector of the unmeasured directions fits them equally well), so the model is
-    not called adequate and the verdict says the TCP is not estimable first."""
+    """Return ``diag`` judged with identify's estimability verdict.
+
+    Where the measurements do not determine the TCP, the residuals cannot show what the
+    calibration misses (every parameter vector of the unmeasured directions fits them
+    equally well), so the model is not called adequate and the verdict says the TCP is not
+    estimable first.
+    """
     if estimability.all_estimable:
         return diag
     rep = diag.residuals
