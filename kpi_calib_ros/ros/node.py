@@ -120,7 +120,9 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
             self.campaign = Campaign(
                 self.data_dir, sigma_topic=point_sigma_topic(self.settings.point_topic),
                 temperature_topic=(self._cell.temperature.topic if self._cell.temperature
-                                   else None))
+                                   else None),
+                **({'temperature_range_c': self._cell.temperature.valid_range_c}
+                   if self._cell.temperature else {}))
         except OSError as exc:  # missing parent, read-only, a file in the way, no space
             raise ConfigError('data_dir', f'cannot log measurements in {str(self.data_dir)!r}: '
                               f'{exc.strerror or exc}; give a writable folder') from None
