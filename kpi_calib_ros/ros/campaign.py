@@ -17,7 +17,9 @@ with the measurement when it came first, appended to the log when it came after 
 measurement was stored, and dropped (``unmatched_sigma``) when no measurement has
 claimed it once it has waited ``SIGMA_WAIT_S`` and the pairing clock has passed its
 stamp by the pairer's window and timeout (its point, had it come, would be decided by
-then). A measurement without σ takes the cell's, as in a bag.
+then). Before the first joint state or point there is no pairing clock and nothing is
+decided, so a σ waits (bounded by ``SIGMA_HELD_MAX``); a σ whose point is still waiting for
+its joint states waits with it. A measurement without σ takes the cell's, as in a bag.
 """
 from __future__ import annotations
 
@@ -234,11 +236,18 @@ class Campaign:
     def _expire_sigma(self, now_ns: int, pairing_now: int | None) -> list[Decision]:
         pairer = self.pairer
         assert pairer is not None
+        if pairing_now is None:
+            # No joint state or point yet: nothing is decided, so no σ is unmatched (a σ
+            # may come first, in either order; SIGMA_HELD_MAX bounds the wait).
+            return []
         wait_ns = int(SIGMA_WAIT_S * 1e9)
         decided = pairer.window_ns + pairer.timeout_ns
+        # A point still waiting for its joint states (before the first one of its epoch)
+        # keeps its σ however long it waits.
+        waiting = {_sigma_key(*key) for key in pairer.waiting()} if self._held_sigma else set()
         expired = [k for k, (_, arrived) in self._held_sigma.items()
-                   if now_ns - arrived >= wait_ns
-                   and (pairing_now is None or pairing_now >= k[0] + decided)]
+                   if now_ns - arrived >= wait_ns and pairing_now >= k[0] + decided
+                   and k not in waiting]
         out: list[Rejection] = []
         for key in expired:
             del self._held_sigma[key]
