@@ -176,6 +176,16 @@ def test_identify_with_prior_exits_3_on_a_different_robot_and_keeps_the_calibrat
     assert failed['valid'] is False and failed['change_test']['consistent'] is False
     assert failed['change_test']['moved'] and failed['change_test']['p_value'] < 1e-3
     assert failed['change_test']['moved'][0]['name'] in text.err
+    # The failed cycle is no prior for the next one, nor for a design: refused, exit 2.
+    for command in (['identify', '--bag', str(new_bag), '--out', str(tmp_path / 'next')],
+                    ['design', '--n', '5', '--out', str(tmp_path / 'design.yaml')]):
+        assert main([command[0], '--cell', cell, *command[1:], '--prior',
+                     str(out / 'calibration.failed.yaml')]) == 2
+        err = capsys.readouterr().err
+        assert (f"--prior: {out / 'calibration.failed.yaml'} is not a valid calibration "
+                '(valid: false: CHANGE DETECTED') in err
+        assert 'give the last valid calibration.yaml' in err
+    assert not (tmp_path / 'next').exists() or not any((tmp_path / 'next').iterdir())
 
 
 def test_design_with_the_prior_predicts_the_map_covariance_of_its_poses(cell, first_cycle):

@@ -47,7 +47,7 @@ from kpi_calib_ros.app.validate import calibration_noise_scale
 from kpi_calib_ros.core.acquisition.pairing import PairingResult
 from kpi_calib_ros.core.campaigns.change_detection import CHANGE_ALPHA, ChangeTest, change_test
 from kpi_calib_ros.core.diagnosis.model_selection import level_free
-from kpi_calib_ros.core.errors import DataError
+from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.estimation.drift_state import (
     DriftState,
     DriftSwing,
@@ -131,6 +131,27 @@ class CyclePrior:
     state: DriftState | None = None
     swing: DriftSwing | None = None
     warnings: tuple[str, ...] = ()
+
+
+def read_prior_calibration(path: str | Path, key: str = '--prior') -> dict[str, Any]:
+    """A previous calibration to start a cycle from: checked field by field
+    (:func:`~kpi_calib_ros.io.calibration_file.read_calibration_document`) and valid.
+
+    Raises
+    ------
+    ConfigError
+        Naming ``key`` and the file: it says ``valid: false`` (a failed identification,
+        calibration.failed.yaml: not converged, the TCP not estimable, a change detected),
+        with its reasons. Its values are no knowledge to weigh new measurements with.
+    """
+    doc = read_calibration_document(path, key)
+    if doc.get('valid', True) is not True:  # files older than the key were all valid
+        reasons = ' | '.join(str(r) for r in doc.get('invalid_reasons') or ()) or (
+            'no reason given')
+        raise ConfigError(key, f'{path} is not a valid calibration (valid: false: '
+                          f'{reasons}); a failed identification is no prior: give the last '
+                          'valid calibration.yaml, or identify without a prior')
+    return doc
 
 
 def link_vectors(cm: CellModel) -> dict[tuple[str, str, str], np.ndarray]:
@@ -445,7 +466,7 @@ def run_reidentify(cell_path: str | Path, bag_path: str | Path, out_dir: str | P
     existing calibration.yaml is left as it was.
     """
     writable_folder(out_dir, '--out')
-    old = read_calibration_document(prior_path, '--prior')
+    old = read_prior_calibration(prior_path)
     cm, data, pairing = load_measurements(cell_path, bag_path, effects, **options)
     if max_iterations is not None:
         cm = with_iteration_limit(cm, max_iterations)
