@@ -301,9 +301,9 @@ def import_csv(csv_path: str | Path | list, out_path: str | Path, mapping: CsvMa
                         summary.sigma_max_m.get(name, sigma), sigma)
             for sensor, celsius in row.temperatures.items():
                 if not plausible_temperature(celsius, PHYSICAL_RANGE_C):
-                    count, first = summary.temperature_rejected.get(
+                    count, where = summary.temperature_rejected.get(
                         sensor, (0, f'{row.path}: line {row.line}, {celsius:g} °C'))
-                    summary.temperature_rejected[sensor] = (count + 1, first)
+                    summary.temperature_rejected[sensor] = (count + 1, where)
                     continue
                 bag.write_temperature(t, sensor, celsius)
                 low, high = summary.temperature_range_c.get(sensor, (np.inf, -np.inf))
