@@ -33,6 +33,7 @@ from kpi_calib_ros.app.calibration_document import (
     CellCalibration,
     add_robust_sections,
     calibration_document,
+    require_valid,
     robust_summary,
     write_results,
 )
@@ -47,7 +48,7 @@ from kpi_calib_ros.app.validate import calibration_noise_scale
 from kpi_calib_ros.core.acquisition.pairing import PairingResult
 from kpi_calib_ros.core.campaigns.change_detection import CHANGE_ALPHA, ChangeTest, change_test
 from kpi_calib_ros.core.diagnosis.model_selection import level_free
-from kpi_calib_ros.core.errors import ConfigError, DataError
+from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation.drift_state import (
     DriftState,
     DriftSwing,
@@ -135,22 +136,17 @@ class CyclePrior:
 
 def read_prior_calibration(path: str | Path, key: str = '--prior') -> dict[str, Any]:
     """A previous calibration to start a cycle from: checked field by field
-    (:func:`~kpi_calib_ros.io.calibration_file.read_calibration_document`) and valid.
+    (:func:`~kpi_calib_ros.io.calibration_file.read_calibration_document`) and valid
+    (:func:`~kpi_calib_ros.app.calibration_document.require_valid`: its values are no
+    knowledge to weigh new measurements with when its identification failed).
 
     Raises
     ------
     ConfigError
-        Naming ``key`` and the file: it says ``valid: false`` (a failed identification,
-        calibration.failed.yaml: not converged, the TCP not estimable, a change detected),
-        with its reasons. Its values are no knowledge to weigh new measurements with.
+        Naming ``key`` and the file: unreadable, or ``valid: false`` with its reasons.
     """
     doc = read_calibration_document(path, key)
-    if doc.get('valid', True) is not True:  # files older than the key were all valid
-        reasons = ' | '.join(str(r) for r in doc.get('invalid_reasons') or ()) or (
-            'no reason given')
-        raise ConfigError(key, f'{path} is not a valid calibration (valid: false: '
-                          f'{reasons}); a failed identification is no prior: give the last '
-                          'valid calibration.yaml, or identify without a prior')
+    require_valid(doc, key, path, 'prior (or identify without --prior)')
     return doc
 
 
