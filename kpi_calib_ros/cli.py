@@ -151,7 +151,8 @@ def build_parser() -> argparse.ArgumentParser:
     ide.add_argument('--allow-code-effects', action='store_true', help=CODE_EFFECTS_HELP)
 
     dia = sub.add_parser('diagnose', help='residual report, model adequacy and the most likely '
-                         'missing physical effect')
+                         'missing physical effect; exit 0, 1 when the TCP is not estimable '
+                         'from the measurements (as identify)')
     dia.add_argument('--cell', required=True)
     dia.add_argument('--bag', required=True, help='MCAP bag with joint states and tracker points')
     dia.add_argument('--out', required=True, help='output folder: diagnosis.json, report.md, plots')

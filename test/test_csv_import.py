@@ -242,3 +242,23 @@ def test_delimiter_and_decimal_given_read_a_tab_table_with_decimal_commas(tmp_pa
     out = capsys.readouterr().out
     assert "separator '\\t', decimal ','" in out and 'detected' not in out.split('tab.csv')[-1]
     assert (tmp_path / 'plain.mcap').read_bytes() == (tmp_path / 'tab.mcap').read_bytes()
+
+
+def test_a_temperature_no_arm_can_have_is_not_written_and_counted(tmp_path, capsys):
+    # A sensor fault among plausible readings: below absolute zero and 1e12 °C.
+    table = tmp_path / 'warm.csv'
+    rows = [(22.0, ''), (-500.0, ''), (22.2, ''), (1e12, ''), (22.4, '')]
+    table.write_text('t;j;x;y;z;temp\n' + ''.join(
+        f'{1592481600 + 10 * k};0.{k};1;2;3;{c!r}\n' for k, (c, _) in enumerate(rows)))
+    mapping = tmp_path / 'mapping.yaml'
+    mapping.write_text(yaml.safe_dump({
+        'frame_id': 'f', 'joints': ['j'], 'markers': {'r': ['x', 'y', 'z']},
+        'stamp_columns': ['t'], 'stamp_format': 'unix', 'temperature': 'temp'}))
+    bag = tmp_path / 'warm.mcap'
+    assert main(['import-csv', str(table), '--mapping', str(mapping), '--out', str(bag)]) == 0
+    out = capsys.readouterr().out
+    assert ('temperature f: 2 reading(s) outside [-273.15, 1000] °C not written (first: '
+            f'{table}: line 3, -500 °C)') in out
+    assert 'temperature f: 22.00 to 22.40 °C' in out
+    assert [m.temperature for m in _messages(bag, DEFAULT_TEMPERATURE_TOPIC)] == [22.0, 22.2,
+                                                                                 22.4]

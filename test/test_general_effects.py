@@ -184,3 +184,14 @@ def test_a_physical_bending_sags_the_arm_along_gravity(kr15):
         drop = moved @ up
         print(f'\n{spec}: tip height change {np.round(drop * 1e6, 1).tolist()} µm')
         assert np.all(drop <= 1e-9) and np.mean(drop) < -1e-6
+
+
+@pytest.mark.parametrize('k', ['²', '٣', '3.0', '-3'])
+def test_a_frequency_that_is_not_ascii_digits_is_a_config_error_naming_the_spec(kr15, k):
+    robot = kr15.robot
+    spec = f'periodic_joint_error:joint_2:k={k}'
+    with pytest.raises(ConfigError) as err:
+        parse_effect_spec(spec, robot)
+    assert str(err.value).startswith(f'effects: {spec!r}: periodic_joint_error needs its '
+                                     'frequency: write periodic_joint_error:<joint>:k=<k> '
+                                     'with k an integer of cycles per revolution in 1..')

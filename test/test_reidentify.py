@@ -178,6 +178,22 @@ def test_identify_with_prior_exits_3_on_a_different_robot_and_keeps_the_calibrat
     assert failed['change_test']['moved'][0]['name'] in text.err
     # The test drawn beside it (what the work cycles tutorial shows).
     assert (out / 'change_test.png').read_bytes()[:4] == b'\x89PNG'
+    # The failed cycle is no prior for the next one, nor for a design: refused, exit 2.
+    for command in (['identify', '--bag', str(new_bag), '--out', str(tmp_path / 'next')],
+                    ['design', '--n', '5', '--out', str(tmp_path / 'design.yaml')]):
+        assert main([command[0], '--cell', cell, *command[1:], '--prior',
+                     str(out / 'calibration.failed.yaml')]) == 2
+        err = capsys.readouterr().err
+        assert (f"--prior: {out / 'calibration.failed.yaml'} is not a valid calibration "
+                '(valid: false: CHANGE DETECTED') in err
+        assert 'give the last valid calibration.yaml' in err
+    assert not (tmp_path / 'next').exists() or not any((tmp_path / 'next').iterdir())
+    # Nor is it validated: it was never published, so whether it holds is no question.
+    assert main(['validate', '--cell', cell, '--calibration',
+                 str(out / 'calibration.failed.yaml'), '--bag', str(new_bag), '--out',
+                 str(tmp_path / 'validation')]) == 2
+    assert (f"--calibration: {out / 'calibration.failed.yaml'} is not a valid calibration "
+            '(valid: false: CHANGE DETECTED') in capsys.readouterr().err
 
 
 def test_design_with_the_prior_predicts_the_map_covariance_of_its_poses(cell, first_cycle):

@@ -3,6 +3,8 @@ KPI estimability, model size by cross-validation (simulated faults on the defaul
 from __future__ import annotations
 
 import dataclasses
+import json
+import sys
 
 import numpy as np
 import pytest
@@ -13,6 +15,7 @@ from kpi_calib_ros.app.calibration_document import add_robust_sections, calibrat
 from kpi_calib_ros.app.identify import calibrate_cell
 from kpi_calib_ros.app.simulate import simulate_campaign
 from kpi_calib_ros.cli import main
+from kpi_calib_ros.core.acquisition.streams import synthesize_streams
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation.estimability import kpi_estimability
 from kpi_calib_ros.core.estimation.robust import (
@@ -27,9 +30,10 @@ from kpi_calib_ros.core.simulation import (
     simulate_measurements,
     true_parameters,
 )
+from kpi_calib_ros.io.bag_writing import write_bag
 from kpi_calib_ros.io.cell import DEFAULT_CELL
 from kpi_calib_ros.io.cell_settings import identification_settings
-from kpi_calib_ros.io.names import CALIBRATION_FILE, FAILED_CALIBRATION_FILE
+from kpi_calib_ros.io.names import CALIBRATION_FILE, DIAGNOSIS_FILE, FAILED_CALIBRATION_FILE
 
 SIGMA = 20e-6
 CELL = str(DEFAULT_CELL)
@@ -277,3 +281,56 @@ def test_too_few_after_exclusion_names_the_excluded_measurements(cm, truth):
     with pytest.raises(DataError, match=r'too few measurements: 9 points') as info:
         calibrate_cell(cm, dataclasses.replace(data, eta=eta))
     assert 'after excluding 1 of the 10 measurements: 2: gross' in str(info.value)
+
+
+def _joint_1_only(cm, n):
+    """Poses that turn joint_1 alone, every other joint at a random pose's value."""
+    q = np.repeat(random_configurations(cm.model, cm.model.params.nominal, 1,
+                                        np.random.default_rng(5)), n, axis=0)
+    q[:, 0] = np.linspace(-1.5, 1.5, n)
+    return q
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize('design', ['one pose ten times', 'joint_1 only'])
+def test_diagnose_says_the_tcp_is_not_estimable_where_identify_does(cm, tmp_path, capsys,
+                                                                     design):
+    if design == 'joint_1 only':
+        q = _joint_1_only(cm, 12)
+    else:
+        q = np.repeat(random_configurations(cm.model, cm.model.params.nominal, 1,
+                                            np.random.default_rng(3)), 10, axis=0)
+    bag = tmp_path / 'design.mcap'
+    simulate_campaign(CELL, len(q), bag, 3, poses=(cm.joint_names, q))
+    assert main(['identify', '--cell', CELL, '--bag', str(bag), '--out',
+                 str(tmp_path / 'identify')]) == 1
+    assert 'TCP NOT estimable' in capsys.readouterr().out
+    assert main(['diagnose', '--cell', CELL, '--bag', str(bag), '--out',
+                 str(tmp_path / 'diagnose')]) == 1
+    out = capsys.readouterr().out
+    assert out.splitlines()[0].startswith('TCP NOT estimable')
+    assert 'expected error' not in out and 'model adequate' not in out
+    assert 'what is missing: poses that determine the TCP' in out
+    doc = json.loads((tmp_path / 'diagnose' / DIAGNOSIS_FILE).read_text())
+    assert doc['tcp_estimability']['tcp_estimable'] is False
+    assert doc['model_adequate'] is False and 'expected_tcp_error' not in doc
+
+
+@pytest.mark.slow
+def test_diagnose_prints_its_verdict_before_the_outlier_rounds(cm, truth, tmp_path, capsys,
+                                                              monkeypatch):
+    # One terminal: stderr's progress lines and stdout's summary in the order written.
+    monkeypatch.setattr(sys, 'stderr', sys.stdout)
+    p_true, q, _ = truth
+    data = _campaign(cm, p_true, q, 11)
+    eta = data.eta.copy()
+    eta[7] += [5e-3, 0.0, 0.0]  # a 5 mm fault identify excludes
+    joints, points = synthesize_streams(data.q, cm.joint_names, eta, cm.cell.tracker_frame)
+    bag = tmp_path / 'fault.mcap'
+    write_bag(bag, joints, points)
+    assert main(['diagnose', '--cell', CELL, '--bag', str(bag), '--out',
+                 str(tmp_path / 'out')]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith('model ')
+    assert 'excluded as outliers: [7]' in '\n'.join(lines)
+    assert any(line.startswith('outliers: round 1') for line in lines[1:])

@@ -152,3 +152,23 @@ def test_a_log_written_before_sigma_was_stored_still_loads(tmp_path, monkeypatch
     np.testing.assert_array_equal(rows[2], np.full(3, 3e-5))
     assert np.isnan(rows[[0, 1, 3]]).all()
     again.close()
+
+
+def test_sigma_given_before_the_first_joint_state_waits_for_its_point(tmp_path):
+    """The tracker's σ arrive, then nothing for longer than SIGMA_WAIT_S (no joint state,
+    no point: no pairing clock, nothing decided), then the stream: every row keeps its σ."""
+    joints, points = streams(3)
+    sigma = stated(3)
+    campaign = Campaign(tmp_path, sigma_topic=TOPIC)
+    campaign.set_chain(NAMES, FRAME)
+    t0 = 10 * SECOND
+    for i, p in enumerate(points):
+        assert campaign.receive_sigma(p.stamp_ns, p.frame_id, sigma[i], now_ns=t0) == []
+    assert campaign.poll(t0 + 3 * int(SIGMA_WAIT_S * SECOND)) == []
+    later = t0 + 3 * int(SIGMA_WAIT_S * SECOND)
+    for k, sample in enumerate(live_order(joints, points)):
+        campaign.receive(sample, now_ns=later + k)
+    assert len(campaign) == 3
+    np.testing.assert_array_equal(campaign.measurements(NAMES, FRAME)[0].sigma, sigma)
+    counts = campaign.counts()
+    assert counts['rejected.unmatched_sigma'] == 0 and counts['stated_sigma'] == 3

@@ -131,3 +131,73 @@ def test_a_learned_residual_of_a_model_auto_augmented_is_answered_after_a_restar
                                rtol=0, atol=1e-12)
     np.testing.assert_allclose(np.array(answer.pose.covariance).reshape(6, 6)[:3, :3],
                                expected.covariance[0], rtol=1e-12, atol=0)
+
+
+class _Log:
+    """A logger that keeps what it is given."""
+
+    def __init__(self) -> None:
+        self.lines: list[str] = []
+
+    def warning(self, text: str) -> None:
+        self.lines.append(text)
+
+
+@pytest.mark.parametrize('value', [100.0, 1e300, float('nan')])
+def test_a_query_beyond_the_joint_limits_is_dropped_naming_the_joint(node, monkeypatch, value):
+    cm = node._cm
+    log, published = _Log(), []
+    monkeypatch.setattr(node.tcp_query, '_logger', log)
+    monkeypatch.setattr(node.tcp_query.publisher, 'publish', published.append)
+    q = np.array([0.3, value, 0.5, 0.2, 0.6, -0.1])
+    node.tcp_query.answer(query(cm, q))
+    assert published == [] and node.tcp_query.warnings['joint_range'] == 1
+    joint = cm.robot.joints[1]
+    if np.isfinite(value):
+        assert log.lines == [f'TCP query dropped: joint {joint.name} at {value:.6g} rad is '
+                             f'outside its URDF limits [{joint.lower:.6g}, {joint.upper:.6g}] '
+                             'rad (tolerance 0.01 rad)']
+    else:
+        assert log.lines == [f'TCP query dropped: joint {joint.name} position is not finite']
+    # Within the tolerance of a limit: not a range problem (the query goes on, here to the
+    # missing calibration).
+    q[1] = joint.upper + 0.005
+    node.tcp_query.answer(query(cm, q))
+    assert node.tcp_query.warnings['joint_range'] == 1
+    assert log.lines[-1] == 'TCP query dropped: no calibration yet (call ~/identify)'
+
+
+def test_each_kind_of_tcp_query_warning_has_its_own_throttle(node, monkeypatch):
+    cm = node._cm
+    log = _Log()
+    monkeypatch.setattr(node.tcp_query, '_logger', log)
+    far = np.array([0.3, 100.0, 0.5, 0.2, 0.6, -0.1])
+    for _ in range(3):  # one problem repeated: logged once in 5 s, counted every time
+        node.tcp_query.answer(query(cm, far))
+    missing = JointState(name=list(cm.joint_names[:5]), position=[0.0] * 5)
+    node.tcp_query.answer(missing)  # another problem at once: logged, not hidden
+    node.tcp_query.answer(query(cm, np.array([0.3, -0.4, 0.5, 0.2, 0.6, -0.1])))
+    assert node.tcp_query.warnings == {'joint_range': 3, 'missing_joints': 1,
+                                       'no_calibration': 1}
+    assert len(log.lines) == 3
+    assert log.lines[0].startswith(f'TCP query dropped: joint {cm.joint_names[1]} at 100 rad '
+                                   'is outside its URDF limits')
+    assert log.lines[1].startswith(f"TCP query dropped: joints ['{cm.joint_names[5]}'] "
+                                   'missing')
+    assert log.lines[2] == 'TCP query dropped: no calibration yet (call ~/identify)'
+
+
+def test_a_continuous_joint_is_checked_for_absurd_magnitudes_only(node):
+    import dataclasses
+    from types import SimpleNamespace
+
+    from kpi_calib_ros.ros.tcp_query import CONTINUOUS_MAX_RAD, joint_range_problem
+    joints = [dataclasses.replace(j, kind='continuous', lower=-np.inf, upper=np.inf)
+              if i == 5 else j for i, j in enumerate(node._cm.robot.joints)]
+    cm = SimpleNamespace(robot=SimpleNamespace(joints=joints))
+    q = np.array([0.3, -0.4, 0.5, 0.2, 0.6, 40.0])
+    assert joint_range_problem(cm, q) == ''  # six turns of a continuous wrist
+    q[5] = 1e6
+    assert joint_range_problem(cm, q) == (
+        f'joint {joints[5].name} (continuous) at 1e+06 rad is beyond ±{CONTINUOUS_MAX_RAD:.4g} '
+        'rad (16 turns): a unit or driver fault')

@@ -64,10 +64,16 @@ def test_published_temperatures_are_logged_and_paired_to_the_points(tmp_path, ro
             publisher.publish(Temperature(header=Header(stamp=time_msg(stamp),
                                                         frame_id='upper_arm'),
                                           temperature=celsius, variance=0.0))
-        while len(node.campaign.temperatures()) < len(readings) and time.monotonic() < deadline:
+        # a sensor fault: counted in /diagnostics, never kept nor logged
+        publisher.publish(Temperature(header=Header(stamp=time_msg(FIRST_NS + 5 * S),
+                                                    frame_id='upper_arm'),
+                                      temperature=1e300, variance=0.0))
+        while node.campaign.counts()['received.temperatures'] < len(readings) + 1 \
+                and time.monotonic() < deadline:
             executor.spin_once(timeout_sec=0.05)
         got = node.campaign.temperatures()
         assert [(s.stamp_ns, s.celsius) for s in got] == readings
+        assert node.status()[2]['rejected_temperatures'] == 1
         # durably logged: a new campaign in the same folder reloads them
         assert [(s.stamp_ns, s.celsius) for s in MeasurementLog.load_temperatures(
             tmp_path / 'data', TOPIC)] == readings
@@ -102,3 +108,43 @@ def test_a_cell_without_temperature_reads_none(tmp_path):
             campaign.log.append_temperature(None)  # type: ignore[arg-type]
     finally:
         campaign.close()
+
+
+def test_an_implausible_reading_is_counted_not_logged_and_one_in_an_old_log_is_set_aside(
+        tmp_path):
+    from kpi_calib_ros.core.measurement.covariates import TemperatureSample
+    from kpi_calib_ros.io.cell import build_cell_model, load_cell
+    cm = build_cell_model(load_cell(_cell(tmp_path), urdf_xml=KR15_URDF))
+    good = [TemperatureSample(FIRST_NS + k * 10 * S, 'upper_arm', 22.0 + 0.5 * k)
+            for k in range(7)]
+    campaign = Campaign(tmp_path / 'data', temperature_topic=TOPIC,
+                        temperature_range_c=cm.cell.temperature.valid_range_c)
+    try:
+        for sample in good[:3]:
+            assert campaign.receive_temperature(sample) == ''
+        refused = campaign.receive_temperature(TemperatureSample(FIRST_NS + 25 * S,
+                                                                 'upper_arm', -500.0))
+        assert refused == (f"{TOPIC}: reading -500 °C of sensor 'upper_arm' (stamp "
+                           f'{FIRST_NS + 25 * S} ns) outside temperature.valid_range '
+                           '[-50, 150] °C: not used (1 so far); check the sensor')
+        assert campaign.counts()['rejected_temperatures'] == 1
+        assert [s.celsius for s in campaign.temperatures()] == [22.0, 22.5, 23.0]
+        # an older log that stored a fault (written before readings were checked)
+        campaign.log.append_temperature(TemperatureSample(FIRST_NS + 35 * S, 'upper_arm',
+                                                          1e300))
+        for sample in good[3:]:
+            campaign.receive_temperature(sample)
+    finally:
+        campaign.close()
+    assert len(MeasurementLog.load_temperatures(tmp_path / 'data', TOPIC)) == 8
+    again = Campaign(tmp_path / 'data', temperature_topic=TOPIC,
+                     temperature_range_c=cm.cell.temperature.valid_range_c)
+    try:
+        stamps = FIRST_NS + np.array([5, 33, 38, 55]) * S
+        data = Measurements(q=np.zeros((4, 6)), eta=np.zeros((4, 3)), stamps_ns=stamps)
+        with pytest.warns(UserWarning, match=r'1 temperature reading\(s\) outside '):
+            paired = with_temperature_readings(again, cm, data)
+        np.testing.assert_allclose(paired.covariates['temperature.upper_arm'],
+                                   22.0 + 0.05 * np.array([5, 33, 38, 55]), atol=1e-12)
+    finally:
+        again.close()

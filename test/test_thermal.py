@@ -4,6 +4,8 @@ a hidden thermal growth under a shift's warm-up found, recovered within 3σ and 
 fresh poses at the noise floor; no thermal effect on data the geometry explains."""
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -387,3 +389,96 @@ def test_the_residual_analysis_of_a_thermal_model_shows_its_own_residuals(cm):
     implied = (np.einsum('nak,na->nk', fields, result.residuals)
                / np.sum(fields ** 2, axis=1))
     np.testing.assert_allclose(score.implied, implied, rtol=1e-9, atol=1e-12)
+
+
+def _warm_cell(tmp_path, **temperature):
+    """The default cell reading sensor ``upper_arm`` (``temperature`` keys added), as a file."""
+    import yaml
+
+    from kpi_calib_ros.io.cell import DEFAULT_CELL
+    doc = yaml.safe_load(DEFAULT_CELL.read_text())
+    doc['robot']['urdf'] = str((DEFAULT_CELL.parent / doc['robot']['urdf']).resolve())
+    doc['temperature'] = {'sensors': ['upper_arm'], **temperature}
+    path = tmp_path / 'cell.yaml'
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+def _faulty_readings(bad):
+    """A reading every 10 s over 200 s rising 0.01 K/s; the 6th (50 s) replaced by ``bad``."""
+    start = 1_700_000_000 * S
+    ticks = start + np.arange(-10, 200, 10) * S
+    return [(int(t), 'upper_arm', bad if k == 6 else 22.0 + 0.01 * (t - start) / S)
+            for k, t in enumerate(ticks)]
+
+
+@pytest.mark.parametrize('bad', [1e12, 1e300, -500.0, 151.0])
+def test_a_temperature_reading_no_cell_can_have_is_counted_and_never_used(cm, tmp_path, bad):
+    from kpi_calib_ros.app.measurements import measurements_from_bag
+    from kpi_calib_ros.io.cell import build_cell_model, load_cell
+    warm = build_cell_model(load_cell(_warm_cell(tmp_path)))
+    path, _ = _recorded(cm, tmp_path, _faulty_readings(bad), n=8)
+    with pytest.warns(UserWarning, match=r'1 temperature reading\(s\) outside '
+                      r'temperature.valid_range \[-50, 150\] °C not used \(first: '
+                      + re.escape(f'{bad:g} °C from sensor \'upper_arm\'')):
+        data, _ = measurements_from_bag(warm, path)
+    # the points are paired with the plausible readings around the fault (the linear rise)
+    t = (np.asarray(data.stamps_ns) - 1_700_000_000 * S) / S
+    np.testing.assert_allclose(data.covariates['temperature.upper_arm'], 22.0 + 0.01 * t,
+                               rtol=0, atol=1e-9)
+
+
+@pytest.mark.slow
+def test_identify_with_a_temperature_of_1e300_gives_the_calibration_without_it(cm, tmp_path,
+                                                                             capsys):
+    import yaml
+
+    from kpi_calib_ros.cli import main
+    from kpi_calib_ros.io.names import CALIBRATION_FILE
+    cell = str(_warm_cell(tmp_path))
+    tcp = {}
+    for name, bad in (('clean', None), ('faulty', 1e300)):
+        readings = [r for r in _faulty_readings(bad) if r[2] is not None]
+        folder = tmp_path / name
+        folder.mkdir()
+        path, _ = _recorded(cm, folder, readings, n=30, seed=4)
+        out = folder / 'out'
+        if bad is None:
+            assert main(['identify', '--cell', cell, '--bag', str(path), '--out', str(out),
+                         '--effects', 'thermal_growth']) == 0
+        else:
+            with pytest.warns(UserWarning, match='1 temperature reading'):
+                assert main(['identify', '--cell', cell, '--bag', str(path), '--out',
+                             str(out), '--effects', 'thermal_growth']) == 0
+        doc = yaml.safe_load((out / CALIBRATION_FILE).read_text())
+        assert doc['valid'] is True
+        tcp[name] = np.array(doc['tcp'][0]['position'], float)
+    np.testing.assert_allclose(tcp['faulty'], tcp['clean'], rtol=0, atol=1e-6)
+
+
+def test_a_recording_whose_every_temperature_is_implausible_is_exit_2(cm, tmp_path, capsys):
+    from kpi_calib_ros.cli import main
+    cell = str(_warm_cell(tmp_path, valid_range=[0.0, 60.0]))
+    readings = [(t, f, 1e12) for t, f, _ in _faulty_readings(None)]
+    path, _ = _recorded(cm, tmp_path, readings, n=8)
+    assert main(['identify', '--cell', cell, '--bag', str(path), '--out',
+                 str(tmp_path / 'out')]) == 2
+    err = capsys.readouterr().err
+    assert ('all 21 temperature readings on \'/cell/temperature\' lie outside '
+            'temperature.valid_range [0.0, 60.0] °C (first: 1e+12 °C') in err
+
+
+@pytest.mark.parametrize('valid_range, message', [
+    ([-500, 100], 'low -500 °C is below absolute zero'),
+    ([0, 2000], '[0, 2000] °C is not a range a robot cell can read'),
+    ([60, 0], '[60, 0] °C is not a range a robot cell can read'),
+    ('hot', "give [low, high] in °C with -273.15 <= low < high <= 1000 (default [-50.0, "
+            "150.0]), got 'hot'"),
+])
+def test_the_valid_temperature_range_is_checked_naming_the_key(valid_range, message):
+    from kpi_calib_ros.core.errors import ConfigError
+    from kpi_calib_ros.io.cell_temperature import temperature_settings
+    with pytest.raises(ConfigError, match='temperature.valid_range') as err:
+        temperature_settings({'valid_range': valid_range})
+    assert message in str(err.value)
+    assert temperature_settings({}).valid_range_c == (-50.0, 150.0)

@@ -15,6 +15,7 @@ import numpy as np
 from kpi_calib_ros.core.acquisition.pairing import PairingResult
 from kpi_calib_ros.core.diagnosis.model_selection import ModelChoice
 from kpi_calib_ros.core.effects.gravity_compliance import compliance_warnings, mass_warning
+from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation.estimability import KpiEstimability
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.core.estimation.precision import ExpectedTcpError
@@ -124,6 +125,23 @@ def add_robust_sections(doc: dict[str, Any], cal: CellCalibration) -> dict[str, 
                 expected['tcp_std_m'][name] = expected['expected_tcp_error_m'][name] = None
         doc['precision'].update(expected)
     return doc
+
+
+def require_valid(doc: dict[str, Any], key: str, path: str | Path, use: str) -> None:
+    """Refuse a calibration document that says ``valid: false`` (calibration.failed.yaml:
+    not converged, the TCP not estimable, a change detected) for ``use``.
+
+    Raises
+    ------
+    ConfigError
+        Naming ``key`` (the option that gave ``path``), the file, its reasons and the fix.
+    """
+    if doc.get('valid', True) is True:  # files older than the key were all valid
+        return
+    reasons = ' | '.join(str(r) for r in doc.get('invalid_reasons') or ()) or 'no reason given'
+    raise ConfigError(key, f'{path} is not a valid calibration (valid: false: {reasons}); a '
+                      f'failed identification is no {use}: give the last valid '
+                      'calibration.yaml')
 
 
 def _um(metres: float | None) -> str:

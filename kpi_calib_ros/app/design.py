@@ -25,7 +25,6 @@ from kpi_calib_ros.core.estimation.prior import (
     DRIFT_LENGTH_PER_SQRT_HOUR,
     Prior,
 )
-from kpi_calib_ros.io.calibration_file import read_calibration_document
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
 from kpi_calib_ros.io.design_io import plot_design, plot_ellipsoids, summary_text, write_design
 from kpi_calib_ros.io.robot_geometry import mesh_check
@@ -152,8 +151,8 @@ def run_design(cell_path: str | Path, n: int, criterion: str, out: str | Path,
     rng = np.random.default_rng(seed)
     prior, p, allowed, prior_doc = None, None, None, None
     if prior_path is not None:
-        from kpi_calib_ros.app.reidentify import cycle_prior
-        old = read_calibration_document(prior_path, '--prior')
+        from kpi_calib_ros.app.reidentify import cycle_prior, read_prior_calibration
+        old = read_prior_calibration(prior_path)
         cp = cycle_prior(cm, old, None, drift[0], drift[1], keep_placement=keep_placement,
                          drift_model=drift_model, hours=hours,
                          rotation_rate=drift[2] if len(drift) > 2 else None,

@@ -26,6 +26,7 @@ from kpi_calib_ros.core.diagnosis.candidates import (
     ModelComparison,
     compare_models,
     diagnose,
+    with_estimability,
 )
 from kpi_calib_ros.core.diagnosis.effect_selection import effect_start
 from kpi_calib_ros.core.diagnosis.learned_residual import ResidualChoice
@@ -75,15 +76,20 @@ def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
     # Without effects auto added, identify's fit is the one on the kept points.
     result = cal.result if cal.cell is None or cal.cell is cm else \
         identify_cell(cm, data, free=free)
-    diag = diagnose(cm.model, data, result, folds=folds, alpha=alpha)
+    # One estimability verdict for identify and the diagnosis: where the measurements do not
+    # determine the TCP, no expected error is stated and no effect is added (the residuals
+    # cannot judge what the data leave free).
+    est = cal.estimability
+    diag = with_estimability(diagnose(cm.model, data, result, folds=folds, alpha=alpha), est)
     prior = cell_prior(cm)
     oos = out_of_sample_error(cm.model, data, result, free or list(cm.model.params.names),
                               prior)
-    expected = expected_tcp_error(cm.model, data, result)  # result: honest precision
-    if not add_best or diag.best is None:
+    # result: honest precision
+    expected = expected_tcp_error(cm.model, data, result) if est.all_estimable else None
+    if not add_best or diag.best is None or not est.all_estimable:
         return with_misfit_answer(CellDiagnosis(
             cm.model, data, result, diag, out_of_sample=oos, kept=kept, excluded=excluded,
-            expected=expected), covariates)
+            expected=expected, estimability=est), covariates)
     best = parse_effect_spec(diag.best.spec, cm.robot, temperatures=cm.model.joint_temperatures)
     richer = with_effects(cm, (best,))
     richer_free = None if free is None else level_free(richer.model.params, level,
@@ -104,7 +110,7 @@ def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
                                     richer_free or list(richer.model.params.names), prior)
     return with_misfit_answer(CellDiagnosis(
         cm.model, data, result, diag, best, richer.model, after, comparison, oos, after_oos,
-        kept, excluded, expected), covariates)
+        kept, excluded, expected, estimability=est), covariates)
 
 
 def recorded_covariates(data: Measurements) -> dict[str, tuple[np.ndarray, str]]:
@@ -136,7 +142,8 @@ def with_remedies(cd: CellDiagnosis, general: Sequence[Remedy] = ()) -> CellDiag
     diag = cd.diagnosis
     return dataclasses.replace(cd, answer=answer_misfit(
         cd.residual_analysis, named_remedy(diag, cd.comparison), general,
-        chi2_adequate=diag.residuals.adequate, model_adequate=diag.model_adequate))
+        chi2_adequate=diag.residuals.adequate, model_adequate=diag.model_adequate,
+        tcp_estimable=cd.tcp_estimable))
 
 
 def learned_remedy(choice: ResidualChoice) -> Remedy | None:
@@ -176,13 +183,18 @@ def run_diagnose(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
     (checked first); ``model`` overrides the cell's ``identification.model``; ``options``
     as for :func:`load_measurements`. When the model is not adequate, the learned
     residual's decision on the calibrated model is printed too
-    (:func:`kpi_calib_ros.app.learned_residual.choose_residual`)."""
+    (:func:`kpi_calib_ros.app.learned_residual.choose_residual`). The verdict is printed
+    first; identify's outlier rounds follow on stderr. Returns 0, or 1 when the TCP is not
+    estimable from the measurements (as identify does; no expected error is stated)."""
     writable_folder(out_dir, '--out')
     cm, data, _ = load_measurements(cell_path, bag_path, effects, **options)
+    # The exclusion rounds come before the verdict in time, not in importance: kept and
+    # printed after it.
+    rounds: list[str] = []
     cd = diagnose_cell(cm, data, folds=folds, alpha=alpha, model=model,
-                       progress=print_progress)
+                       progress=rounds.append)
     choice, refused = None, ''
-    if not is_adequate(cd.result.p_value, alpha):
+    if cd.tcp_estimable and not is_adequate(cd.result.p_value, alpha):
         # Beside the library's answer (or when it has none): would the learned residual
         # predict held-out poses better than the calibrated model? It is one more remedy
         # of the four answers.
@@ -194,11 +206,13 @@ def run_diagnose(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
     report = write_report(out_dir, cd)
     if choice is not None:
         write_learned_residual_plot(out_dir, choice.model, choice.chosen)
-    print(diagnosis_text(cd))
+    print(diagnosis_text(cd), flush=True)
+    for line in rounds:
+        print_progress(line)
     if refused:
         print(refused)
     if choice is not None:
         print(choice.reason + ('; kpi-calib identify --learned-residual writes it beside '
                                'calibration.yaml' if choice.chosen else ''))
     print(f'written: {Path(out_dir) / DIAGNOSIS_FILE}, {report}')
-    return 0
+    return 0 if cd.tcp_estimable else 1

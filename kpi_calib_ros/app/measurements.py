@@ -23,6 +23,8 @@ from kpi_calib_ros.core.effects.registry import split_specs
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.measurement.covariates import (
     TemperatureSample,
+    plausible_readings,
+    range_text,
     temperature_covariates,
     with_covariates,
 )
@@ -201,11 +203,27 @@ def paired_temperature(cm: CellModel, data: Measurements, samples: Sequence[Temp
                         'temperature: section')
     if data.stamps_ns is None:
         raise DataError('the measurements carry no stamps to pair temperatures with')
+    # A reading no arm can have (a sensor fault, a driver's 1e12) is never used: it would be
+    # a ΔT that decides the thermal effects alone.
+    plausible, implausible = plausible_readings(samples, settings.valid_range_c)
+    if implausible:
+        if not plausible:
+            raise DataError(f'{where}: all {len(implausible)} temperature readings on '
+                            f"'{settings.topic}' lie outside temperature.valid_range "
+                            f'{list(settings.valid_range_c)} °C (first: '
+                            f'{implausible[0].celsius:g} °C from sensor '
+                            f'{implausible[0].frame_id!r}): fix the sensor, or set '
+                            'temperature.valid_range to what the cell can read')
+        warnings.warn(f'{where}: {range_text(implausible, settings.valid_range_c)}',
+                      stacklevel=3)
     try:
-        cov = temperature_covariates(data.stamps_ns, samples, settings.sensors,
+        cov = temperature_covariates(data.stamps_ns, plausible, settings.sensors,
                                      settings.reference_c, settings.max_gap_ns)
     except ValueError as exc:
-        raise DataError(f'temperature.sensors: {exc}') from None
+        raise DataError(f'temperature.sensors: {exc}'
+                        + (' (plausible readings; temperature.valid_range '
+                           f'{list(settings.valid_range_c)} °C)' if implausible else '')
+                        ) from None
     return with_covariates(data, cov)
 
 

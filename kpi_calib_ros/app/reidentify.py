@@ -33,6 +33,7 @@ from kpi_calib_ros.app.calibration_document import (
     CellCalibration,
     add_robust_sections,
     calibration_document,
+    require_valid,
     robust_summary,
     write_results,
 )
@@ -131,6 +132,22 @@ class CyclePrior:
     state: DriftState | None = None
     swing: DriftSwing | None = None
     warnings: tuple[str, ...] = ()
+
+
+def read_prior_calibration(path: str | Path, key: str = '--prior') -> dict[str, Any]:
+    """A previous calibration to start a cycle from: checked field by field
+    (:func:`~kpi_calib_ros.io.calibration_file.read_calibration_document`) and valid
+    (:func:`~kpi_calib_ros.app.calibration_document.require_valid`: its values are no
+    knowledge to weigh new measurements with when its identification failed).
+
+    Raises
+    ------
+    ConfigError
+        Naming ``key`` and the file: unreadable, or ``valid: false`` with its reasons.
+    """
+    doc = read_calibration_document(path, key)
+    require_valid(doc, key, path, 'prior (or identify without --prior)')
+    return doc
 
 
 def link_vectors(cm: CellModel) -> dict[tuple[str, str, str], np.ndarray]:
@@ -446,7 +463,7 @@ def run_reidentify(cell_path: str | Path, bag_path: str | Path, out_dir: str | P
     existing calibration.yaml is left as it was.
     """
     writable_folder(out_dir, '--out')
-    old = read_calibration_document(prior_path, '--prior')
+    old = read_prior_calibration(prior_path)
     cm, data, pairing = load_measurements(cell_path, bag_path, effects, **options)
     if max_iterations is not None:
         cm = with_iteration_limit(cm, max_iterations)

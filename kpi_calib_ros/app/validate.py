@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from kpi_calib_ros.app.calibration_document import require_valid
 from kpi_calib_ros.app.learned_residual import learned_validation_text, validate_learned
 from kpi_calib_ros.app.measurements import measurements_from_bag, print_rejections
 from kpi_calib_ros.core.diagnosis.validation import Validation, validate
@@ -268,10 +269,13 @@ def run_validate(cell_path: str | Path, calibration_path: str | Path, bag_path: 
     code, as for identify. ``joint_topic`` / ``point_topic`` / ``pose_topic``: the bag's
     topics when they are not the cell's (``--joint-topic`` …, as for identify).
 
-    Returns 0 when the calibration holds, 1 when it does not.
+    Returns 0 when the calibration holds, 1 when it does not. A calibration whose
+    ``valid:`` is false (calibration.failed.yaml) is refused (ConfigError): whether it holds
+    is no question for a calibration that was never published.
     """
     writable_folder(out_dir, '--out')
     doc = read_calibration(calibration_path)
+    require_valid(doc, '--calibration', calibration_path, 'calibration to validate')
     cm, _ = calibrated_model(load_cell(cell_path, allow_code_effects=allow_code_effects), doc)
     data, pairing = measurements_from_bag(cm, bag_path, joint_topic, point_topic, pose_topic)
     print_rejections(pairing)

@@ -259,6 +259,10 @@ CELL_KEYS: tuple[CellKey, ...] = (
     _K('temperature.max_gap', 'number', 's', '120.0', 'Largest gap between temperature samples '
        '(and beyond the first/last) bridged by interpolation; a point outside is refused.',
        300.0),
+    _K('temperature.valid_range', '[low, high]', '°C', '[-50.0, 150.0]', 'Plausible readings: '
+       'one outside (or not finite) is a fault of the sensor or its driver, never used '
+       '(counted and warned; the node does not log it); low at or above absolute zero '
+       '(-273.15), high at most 1000, low < high.', [0.0, 60.0]),
 )
 
 

@@ -8,6 +8,7 @@ which sensors (by frame id) stand for it, and the reference it is counted from.
       sensors: [upper_arm, forearm]   # frame ids; their mean is the arm's temperature
       reference: 20.0                 # °C; ΔT = mean − reference (ISO 1: 20 °C)
       max_gap: 120.0                  # s: the largest gap bridged by interpolation
+      valid_range: [-50.0, 150.0]     # °C: a reading outside is a sensor fault, never used
 
 ``sensors`` may also say which joints each sensor stands for, frame id -> joint names::
 
@@ -23,6 +24,10 @@ are. Joints not listed read the mean of every sensor named (the keys), which sta
 temperature ``delta_temperature``. A joint name is matched against the robot's chain when the
 cell model is built (:func:`joint_temperatures`); a joint may stand under one sensor only.
 
+A reading outside ``valid_range`` (or not finite) is set aside with a count and a warning
+(:func:`kpi_calib_ros.core.measurement.covariates.plausible_readings`); the node does not log
+it, and one already in a log is set aside when the readings are paired.
+
 Without the section no temperature is read and the thermal effects are not candidates.
 """
 from __future__ import annotations
@@ -34,13 +39,16 @@ import numpy as np
 
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.measurement.covariates import (
+    ABSOLUTE_ZERO_C,
     DEFAULT_MAX_GAP_NS,
     REFERENCE_TEMPERATURE_C,
+    TEMPERATURE_LIMIT_C,
+    TEMPERATURE_RANGE_C,
     delta_temperature_name,
 )
 from kpi_calib_ros.io.names import DEFAULT_TEMPERATURE_TOPIC
 
-TEMPERATURE_KEYS = ('topic', 'sensors', 'reference', 'max_gap')
+TEMPERATURE_KEYS = ('topic', 'sensors', 'reference', 'max_gap', 'valid_range')
 
 
 @dataclass(frozen=True)
@@ -57,6 +65,7 @@ class TemperatureSettings:
     reference_c: float = REFERENCE_TEMPERATURE_C
     max_gap_s: float = DEFAULT_MAX_GAP_NS / 1e9
     joints: tuple[tuple[str, tuple[str, ...]], ...] = ()
+    valid_range_c: tuple[float, float] = TEMPERATURE_RANGE_C
 
     @property
     def max_gap_ns(self) -> int:
@@ -118,7 +127,26 @@ def temperature_settings(raw: Any) -> TemperatureSettings | None:
             raise ConfigError(f'temperature.{key}', f'must be a number in [{low}, {high}] '
                               f'{unit}, got {value!r}')
         values[key] = float(value)
-    return TemperatureSettings(topic, sensors, values['reference'], values['max_gap'], joints)
+    return TemperatureSettings(topic, sensors, values['reference'], values['max_gap'], joints,
+                               _valid_range(raw.get('valid_range', list(TEMPERATURE_RANGE_C))))
+
+
+def _valid_range(raw: Any) -> tuple[float, float]:
+    """``temperature.valid_range``: [low, high] °C, physically possible, low < high."""
+    fix = (f'give [low, high] in °C with {ABSOLUTE_ZERO_C} <= low < high <= '
+           f'{TEMPERATURE_LIMIT_C:g} (default {list(TEMPERATURE_RANGE_C)})')
+    if not isinstance(raw, (list, tuple)) or len(raw) != 2 or any(
+            isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v)
+            for v in raw):
+        raise ConfigError('temperature.valid_range', f'{fix}, got {raw!r}')
+    low, high = float(raw[0]), float(raw[1])
+    if low < ABSOLUTE_ZERO_C:
+        raise ConfigError('temperature.valid_range', f'low {low:g} °C is below absolute zero; '
+                          f'{fix}')
+    if high > TEMPERATURE_LIMIT_C or not low < high:
+        raise ConfigError('temperature.valid_range', f'[{low:g}, {high:g}] °C is not a range '
+                          f'a robot cell can read; {fix}')
+    return low, high
 
 
 def _sensors(raw: Any) -> tuple[tuple[str, ...], tuple[tuple[str, tuple[str, ...]], ...]]:

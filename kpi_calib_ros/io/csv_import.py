@@ -29,6 +29,11 @@ from scipy.spatial.transform import Rotation
 from kpi_calib_ros.core.acquisition.pairing import REFLECTOR_SEPARATOR
 from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
 from kpi_calib_ros.core.errors import DataError
+from kpi_calib_ros.core.measurement.covariates import (
+    ABSOLUTE_ZERO_C,
+    TEMPERATURE_LIMIT_C,
+    plausible_temperature,
+)
 from kpi_calib_ros.io.bag_writing import BagStream
 from kpi_calib_ros.io.csv_mapping import (
     CsvMapping,
@@ -53,6 +58,12 @@ _UNITS = {'m': 1.0, 'mm': 1e-3, 'rad': 1.0, 'deg': np.pi / 180.0}
 _EPOCH = datetime(1970, 1, 1, tzinfo=timezone.utc)
 _SPREADSHEET_EPOCH = datetime(1899, 12, 30)  # serial day 0 of Excel / LibreOffice dates
 _MAX_S = 2 ** 31 - 1     # builtin_interfaces/Time: int32 seconds
+
+
+# What a table's temperature may be, whatever the cell (which may read a narrower
+# ``temperature.valid_range`` when the bag is identified): absolute zero to the limit no
+# cell's range exceeds. A reading outside is not written.
+PHYSICAL_RANGE_C = (ABSOLUTE_ZERO_C, TEMPERATURE_LIMIT_C)
 
 
 @dataclass(frozen=True)
@@ -187,6 +198,8 @@ class ImportSummary:
     sigma_mean_m: dict[str, np.ndarray] = field(default_factory=dict)
     sigma_max_m: dict[str, np.ndarray] = field(default_factory=dict)
     temperature_range_c: dict[str, tuple[float, float]] = field(default_factory=dict)
+    # Readings no arm can have, not written: sensor -> (count, the first one's line and value).
+    temperature_rejected: dict[str, tuple[int, str]] = field(default_factory=dict)
     sigma_topic: str = ''
 
     def lines(self) -> list[str]:
@@ -204,6 +217,11 @@ class ImportSummary:
                        f'z), written to {self.sigma_topic}: identify weighs each point by it')
         for sensor, (low, high) in self.temperature_range_c.items():
             out.append(f'temperature {sensor}: {low:.2f} to {high:.2f} °C')
+        for sensor, (count, first) in self.temperature_rejected.items():
+            out.append(f'temperature {sensor}: {count} reading(s) outside '
+                       f'[{PHYSICAL_RANGE_C[0]:g}, {PHYSICAL_RANGE_C[1]:g}] °C not written '
+                       f'(first: {first}): a fault of the sensor; the points are paired with '
+                       'the readings around them')
         return out
 
 
@@ -282,6 +300,11 @@ def import_csv(csv_path: str | Path | list, out_path: str | Path, mapping: CsvMa
                     summary.sigma_max_m[name] = np.maximum(
                         summary.sigma_max_m.get(name, sigma), sigma)
             for sensor, celsius in row.temperatures.items():
+                if not plausible_temperature(celsius, PHYSICAL_RANGE_C):
+                    count, where = summary.temperature_rejected.get(
+                        sensor, (0, f'{row.path}: line {row.line}, {celsius:g} °C'))
+                    summary.temperature_rejected[sensor] = (count + 1, where)
+                    continue
                 bag.write_temperature(t, sensor, celsius)
                 low, high = summary.temperature_range_c.get(sensor, (np.inf, -np.inf))
                 summary.temperature_range_c[sensor] = (min(low, celsius), max(high, celsius))

@@ -100,6 +100,8 @@ def diagnosis_to_dict(cd: CellDiagnosis) -> dict[str, Any]:
         doc['out_of_sample'] = cd.out_of_sample.to_dict()
     if cd.expected is not None:
         doc['expected_tcp_error'] = cd.expected.to_dict()
+    if cd.estimability is not None:
+        doc['tcp_estimability'] = cd.estimability.to_dict()
     if cd.comparison is not None:
         doc['added_effect'] = comparison_to_dict(cd.comparison)
         if cd.after_out_of_sample is not None:

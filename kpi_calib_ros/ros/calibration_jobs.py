@@ -134,7 +134,9 @@ class CalibrationJobs(NodeParts):
         self._run.diagnosis = doc
         self._pub_diagnosis.publish(String(data=text))
         self._publish_diagnostics(force=True)
-        return True, f'{verdict} Report: {report}'
+        # As ~/identify: a design that does not determine the TCP is no success.
+        return doc.get('tcp_estimability', {}).get('tcp_estimable', True), \
+            f'{verdict} Report: {report}'
 
     async def _validate(self) -> tuple[bool, str]:
         """Validate the last calibration on the measurements accepted since it was

@@ -17,7 +17,9 @@ with the measurement when it came first, appended to the log when it came after 
 measurement was stored, and dropped (``unmatched_sigma``) when no measurement has
 claimed it once it has waited ``SIGMA_WAIT_S`` and the pairing clock has passed its
 stamp by the pairer's window and timeout (its point, had it come, would be decided by
-then). A measurement without σ takes the cell's, as in a bag.
+then). Before the first joint state or point there is no pairing clock and nothing is
+decided, so a σ waits (bounded by ``SIGMA_HELD_MAX``); a σ whose point is still waiting for
+its joint states waits with it. A measurement without σ takes the cell's, as in a bag.
 """
 from __future__ import annotations
 
@@ -48,7 +50,11 @@ from kpi_calib_ros.core.acquisition.pairing import (
 )
 from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
 from kpi_calib_ros.core.errors import DataError
-from kpi_calib_ros.core.measurement.covariates import TemperatureSample
+from kpi_calib_ros.core.measurement.covariates import (
+    TEMPERATURE_RANGE_C,
+    TemperatureSample,
+    plausible_temperature,
+)
 from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.measurement_log import MeasurementLog, stored_pairing
@@ -88,11 +94,15 @@ class Campaign:
     temperature_topic : str, optional
         The cell's temperature topic: readings (:meth:`receive_temperature`) are logged
         under it and kept, those of earlier runs reloaded; None: none kept.
+    temperature_range_c : (low, high)
+        The cell's ``temperature.valid_range`` (°C): a reading outside is counted
+        (``rejected_temperatures``), never logged nor kept.
     """
 
     def __init__(self, data_dir: str | Path, early_limit: int = 20_000,
                  sigma_topic: str = point_sigma_topic(DEFAULT_POINT_TOPIC),
-                 temperature_topic: str | None = None) -> None:
+                 temperature_topic: str | None = None,
+                 temperature_range_c: tuple[float, float] = TEMPERATURE_RANGE_C) -> None:
         self.data_dir = Path(data_dir)
         self.sigma_topic = sigma_topic
         self.lock = threading.RLock()
@@ -111,13 +121,15 @@ class Campaign:
                            if k in self._stored_frames}
         self.restored = len(self._measurements)
         self.temperature_topic = temperature_topic
+        self.temperature_range_c = temperature_range_c
+        self.rejected_temperatures = 0
         self._temperatures: list[TemperatureSample] = (
             MeasurementLog.load_temperatures(self.data_dir, temperature_topic)
             if temperature_topic and self.data_dir.is_dir() else [])
         self.log = MeasurementLog(self.data_dir, temperature_topic=temperature_topic)
         self.pairer: Pairer | None = None
         self.rejections: Counter[str] = Counter()
-        self.received = {'joint_states': 0, 'points': 0, 'sigma': 0}
+        self.received = {'joint_states': 0, 'points': 0, 'sigma': 0, 'temperatures': 0}
         self._early: deque[JointSample | PointSample] = deque(maxlen=early_limit)
         self._clock: tuple[int, int] | None = None     # (stamp ns, monotonic ns of arrival)
         self._point_clock: tuple[int, int] | None = None
@@ -224,11 +236,18 @@ class Campaign:
     def _expire_sigma(self, now_ns: int, pairing_now: int | None) -> list[Decision]:
         pairer = self.pairer
         assert pairer is not None
+        if pairing_now is None:
+            # No joint state or point yet: nothing is decided, so no σ is unmatched (a σ
+            # may come first, in either order; SIGMA_HELD_MAX bounds the wait).
+            return []
         wait_ns = int(SIGMA_WAIT_S * 1e9)
         decided = pairer.window_ns + pairer.timeout_ns
+        # A point still waiting for its joint states (before the first one of its epoch)
+        # keeps its σ however long it waits.
+        waiting = {_sigma_key(*key) for key in pairer.waiting()} if self._held_sigma else set()
         expired = [k for k, (_, arrived) in self._held_sigma.items()
-                   if now_ns - arrived >= wait_ns
-                   and (pairing_now is None or pairing_now >= k[0] + decided)]
+                   if now_ns - arrived >= wait_ns and pairing_now >= k[0] + decided
+                   and k not in waiting]
         out: list[Rejection] = []
         for key in expired:
             del self._held_sigma[key]
@@ -314,6 +333,8 @@ class Campaign:
                       'received.joint_states': self.received['joint_states'],
                       'received.points': self.received['points'],
                       'received.sigma': self.received['sigma'],
+                      'received.temperatures': self.received['temperatures'],
+                      'rejected_temperatures': self.rejected_temperatures,
                       'stated_sigma': len(self._sigma),
                       'pending_sigma': len(self._held_sigma),
                       'rejected': sum(self.rejections.values())}
@@ -344,6 +365,7 @@ class Campaign:
             self._held_sigma.clear()
             self._stored_frames.clear()
             self.rejections.clear()
+            self.rejected_temperatures = 0
             self.restored = 0
             self._temperatures.clear()
             self.log = MeasurementLog(self.data_dir, temperature_topic=self.temperature_topic)
@@ -353,11 +375,23 @@ class Campaign:
             self._epoch = 0
             return count, archive
 
-    def receive_temperature(self, sample: TemperatureSample) -> None:
-        """Keep one temperature reading, logged durably first (OSError: not kept)."""
+    def receive_temperature(self, sample: TemperatureSample) -> str:
+        """Keep one temperature reading, logged durably first (OSError: not kept); returns
+        '' when kept, else why not: a reading outside ``temperature_range_c`` (or not
+        finite) is a sensor fault, counted and neither logged nor kept (in a log it would
+        reach every later identification)."""
         with self.lock:
+            self.received['temperatures'] += 1
+            if not plausible_temperature(sample.celsius, self.temperature_range_c):
+                self.rejected_temperatures += 1
+                low, high = self.temperature_range_c
+                return (f"{self.temperature_topic}: reading {sample.celsius:g} °C of sensor "
+                        f"'{sample.frame_id}' (stamp {sample.stamp_ns} ns) outside "
+                        f'temperature.valid_range [{low:g}, {high:g}] °C: not used '
+                        f'({self.rejected_temperatures} so far); check the sensor')
             self.log.append_temperature(sample)
             self._temperatures.append(sample)
+            return ''
 
     def temperatures(self) -> list[TemperatureSample]:
         """The temperature readings kept (this run's and the reloaded ones), a copy."""

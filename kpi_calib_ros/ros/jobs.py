@@ -33,7 +33,12 @@ from kpi_calib_ros.app.design import (
 from kpi_calib_ros.app.diagnose import diagnose_cell
 from kpi_calib_ros.app.identify import calibrate_cell
 from kpi_calib_ros.app.learned_residual import add_learned_residual
-from kpi_calib_ros.app.reidentify import cycle_prior, reidentification_document, reidentify
+from kpi_calib_ros.app.reidentify import (
+    cycle_prior,
+    read_prior_calibration,
+    reidentification_document,
+    reidentify,
+)
 from kpi_calib_ros.app.validate import validate_report
 from kpi_calib_ros.core.acquisition.pairing import PairingResult
 from kpi_calib_ros.core.campaigns.change_detection import ChangeTest
@@ -48,7 +53,6 @@ from kpi_calib_ros.core.errors import DataError, KpiCalibError
 from kpi_calib_ros.core.estimation.drift_state import DriftSwing
 from kpi_calib_ros.core.estimation.robust import subset
 from kpi_calib_ros.core.measurement.tracker import Measurements
-from kpi_calib_ros.io.calibration_file import read_calibration_document
 from kpi_calib_ros.io.campaign_io import CampaignState, write_campaign_state, write_plan
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.design_io import write_design
@@ -121,7 +125,7 @@ def previous_calibration(data_dir: Path, first_stamp_ns: int
     before = sorted((d for d in dated if d[0] < first_stamp_ns), reverse=True)
     for _, path in before:
         try:
-            return path, read_calibration_document(path, 'prior calibration'), notes
+            return path, read_prior_calibration(path, 'prior calibration'), notes
         except KpiCalibError as exc:
             notes.append(f'{path} skipped: {exc}')
     after = len(dated) - len(before)

@@ -58,6 +58,7 @@ from visualization_msgs.msg import MarkerArray
 from kpi_calib_ros.core.acquisition.pairing import Decision, Rejection
 from kpi_calib_ros.core.collision.capsules import Capsule
 from kpi_calib_ros.core.errors import ConfigError, DataError, KpiCalibError
+from kpi_calib_ros.core.measurement.covariates import TEMPERATURE_RANGE_C
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell, with_overrides
 from kpi_calib_ros.io.names import (
     CALIBRATED_URDF_TOPIC,
@@ -120,7 +121,9 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
             self.campaign = Campaign(
                 self.data_dir, sigma_topic=point_sigma_topic(self.settings.point_topic),
                 temperature_topic=(self._cell.temperature.topic if self._cell.temperature
-                                   else None))
+                                   else None),
+                temperature_range_c=(self._cell.temperature.valid_range_c
+                                     if self._cell.temperature else TEMPERATURE_RANGE_C))
         except OSError as exc:  # missing parent, read-only, a file in the way, no space
             raise ConfigError('data_dir', f'cannot log measurements in {str(self.data_dir)!r}: '
                               f'{exc.strerror or exc}; give a writable folder') from None

@@ -21,12 +21,20 @@ is not predicted: :data:`kpi_calib_ros.ros.conversions.UNKNOWN_ORIENTATION_VARIA
 A query outside the region the learned residual was fitted on is answered (the
 correction returns to the physical model there and the covariance grows) and logged.
 
+A query the robot cannot stand in is dropped and logged, naming the joint: a position not
+finite, beyond a joint's URDF limits by more than :data:`LIMIT_TOLERANCE_RAD` (rad;
+:data:`LIMIT_TOLERANCE_M` for a prismatic joint), or, on a continuous joint (no limits),
+beyond ±:data:`CONTINUOUS_MAX_RAD`. Each kind of warning has its own 5 s log throttle, so a
+repeated problem does not hide a different one.
+
 No custom service type: a topic pair keeps the package buildable as pure Python.
 """
 from __future__ import annotations
 
+import time
+from collections import Counter
 from pathlib import Path
-from typing import Callable, Protocol
+from typing import Any, Callable, Protocol
 
 import numpy as np
 from geometry_msgs.msg import PoseWithCovarianceStamped
@@ -43,6 +51,32 @@ from kpi_calib_ros.ros.conversions import tcp_pose_msgs
 
 QUERY_DEPTH = 10
 LOG_THROTTLE_S = 5.0
+# How far beyond its URDF limits a queried joint may be: encoder noise and a controller's
+# overshoot at a limit, not a pose the calibration has any knowledge of.
+LIMIT_TOLERANCE_RAD = 0.01
+LIMIT_TOLERANCE_M = 0.001
+# A continuous joint has no limit; beyond 16 turns a value is a unit or driver fault.
+CONTINUOUS_MAX_RAD = 32 * np.pi
+
+
+def joint_range_problem(cm: CellModel, q: np.ndarray) -> str:
+    """Why the URDF joint values ``q`` (n,) cannot be a pose of ``cm``'s robot ('' when they
+    can): the first joint not finite, beyond its limits by more than the tolerance, or a
+    continuous joint beyond ±CONTINUOUS_MAX_RAD, named with its value and range."""
+    for joint, value in zip(cm.robot.joints, np.asarray(q, float).reshape(-1)):
+        if not np.isfinite(value):
+            return f'joint {joint.name} position {value} is not finite'
+        if joint.kind == 'continuous':
+            if abs(value) > CONTINUOUS_MAX_RAD:
+                return (f'joint {joint.name} (continuous) at {value:.6g} rad is beyond '
+                        f'±{CONTINUOUS_MAX_RAD:.4g} rad (16 turns): a unit or driver fault')
+            continue
+        tol = LIMIT_TOLERANCE_M if joint.kind == 'prismatic' else LIMIT_TOLERANCE_RAD
+        unit = 'm' if joint.kind == 'prismatic' else 'rad'
+        if not joint.lower - tol <= value <= joint.upper + tol:
+            return (f'joint {joint.name} at {value:.6g} {unit} is outside its URDF limits '
+                    f'[{joint.lower:.6g}, {joint.upper:.6g}] {unit} (tolerance {tol:g} {unit})')
+    return ''
 
 
 class Fit(Protocol):
@@ -91,9 +125,21 @@ class TcpQuery:
         self.publisher = node.create_publisher(PoseWithCovarianceStamped, TCP_CORRECTED_TOPIC,
                                                QUERY_DEPTH)
         node.create_subscription(JointState, TCP_QUERY_TOPIC, self.answer, QUERY_DEPTH)
+        # Queries dropped (or answered with a warning) per kind of problem, and when each
+        # kind was last logged (monotonic s): one throttle per kind.
+        self.warnings: Counter[str] = Counter()
+        self._logged: dict[str, float] = {}
+        self._logger: Any = node.get_logger()
 
-    def _warn(self, text: str) -> None:
-        self._node.get_logger().warning(text, throttle_duration_sec=LOG_THROTTLE_S)
+    def _warn(self, kind: str, text: str) -> None:
+        """Count a ``kind`` of problem and log ``text`` unless that kind was logged within
+        LOG_THROTTLE_S (another kind is never held back by it)."""
+        self.warnings[kind] += 1
+        now = time.monotonic()
+        last = self._logged.get(kind)
+        if last is None or now - last >= LOG_THROTTLE_S:
+            self._logged[kind] = now
+            self._logger.warning(text)
 
     def stored(self) -> StoredResidual | None:
         """learned_residual.yaml as last read (None: no file); a changed file is read again,
@@ -139,18 +185,22 @@ class TcpQuery:
         robot model, the calibration or a chain joint is missing)."""
         cm = self._model()
         if cm is None:
-            self._warn('TCP query dropped: no robot model yet')
+            self._warn('no_model', 'TCP query dropped: no robot model yet')
             return
         positions = dict(zip(msg.name, msg.position))
         missing = [n for n in cm.joint_names if n not in positions]
         if missing:
-            self._warn(f'TCP query dropped: joints {missing} missing (the chain needs '
-                       f'{list(cm.joint_names)})')
+            self._warn('missing_joints', f'TCP query dropped: joints {missing} missing (the '
+                       f'chain needs {list(cm.joint_names)})')
             return
-        q = cm.joint_coupling.to_urdf(np.array([[positions[n] for n in cm.joint_names]],
-                                               dtype=float))
-        if not np.all(np.isfinite(q)):
-            self._warn('TCP query dropped: joint positions not finite')
+        controller = np.array([[positions[n] for n in cm.joint_names]], dtype=float)
+        with np.errstate(all='ignore'):  # a non-finite reading is named below
+            q = cm.joint_coupling.to_urdf(controller)
+        problem = joint_range_problem(cm, q[0]) if np.all(np.isfinite(controller)) else (
+            f'joint {cm.joint_names[int(np.argmin(np.isfinite(controller[0])))]} position '
+            'is not finite')
+        if problem:
+            self._warn('joint_range', f'TCP query dropped: {problem}')
             return
         stored = self.stored()
         result = self._result()
@@ -171,20 +221,23 @@ class TcpQuery:
                 source = ('physical calibration' if not unused else
                           f'physical calibration only, learned residual not used: {unused}')
             else:
-                self._warn('TCP query dropped: no calibration yet (call ~/identify)')
+                self._warn('no_calibration', 'TCP query dropped: no calibration yet (call '
+                           '~/identify)')
                 return
         except KpiCalibError as exc:
-            self._warn(f'TCP query dropped: {exc}')
+            self._warn('model', f'TCP query dropped: {exc}')
             return
         if source != self.source and unused:
             self._node.get_logger().warning(f'TCP query answered with the {source}')
         self.source = source
         if tcp.correction is not None and not tcp.correction.inside[0]:
-            self._warn(f'TCP query outside the region the learned residual was fitted on '
-                       f'(distance {tcp.correction.distance[0]:.2g} length scales): the '
-                       'correction returns to the physical model, the covariance grows')
+            self._warn('outside_learned_region', f'TCP query outside the region the learned '
+                       f'residual was fitted on (distance {tcp.correction.distance[0]:.2g} '
+                       'length scales): the correction returns to the physical model, the '
+                       'covariance grows')
         self.publisher.publish(tcp_pose_msgs(tcp.position, tcp.covariance,
                                              cm.cell.tracker_frame, stamp_ns(msg.header))[0])
 
 
-__all__ = ['TcpQuery']
+__all__ = ['CONTINUOUS_MAX_RAD', 'LIMIT_TOLERANCE_M', 'LIMIT_TOLERANCE_RAD', 'TcpQuery',
+           'joint_range_problem']

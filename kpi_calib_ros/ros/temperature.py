@@ -22,16 +22,21 @@ TEMPERATURE_DEPTH = 100  # readings come at ~1 Hz: a buffer of minutes
 
 def subscribe_temperature(node: Node, campaign: Campaign, callback_group: Any = None) -> Any:
     """Subscribe ``node`` to the campaign's temperature topic (None when it has none); each
-    reading is logged and kept, a reading that cannot be stored is logged as an error."""
+    reading is logged and kept, a reading that cannot be stored is logged as an error, one
+    outside the cell's ``temperature.valid_range`` as a warning (counted in /diagnostics as
+    ``rejected_temperatures``, never stored)."""
     topic = campaign.temperature_topic
     if topic is None:
         return None
 
     def on_temperature(message: Temperature) -> None:
         try:
-            campaign.receive_temperature(temperature_sample_from_message(message))
+            refused = campaign.receive_temperature(temperature_sample_from_message(message))
         except (OSError, ValueError) as exc:
             node.get_logger().error(f'temperature reading not stored: {exc}')
+            return
+        if refused:
+            node.get_logger().warning(refused, throttle_duration_sec=5.0)
 
     return node.create_subscription(Temperature, topic, on_temperature,
                                      QoSProfile(depth=TEMPERATURE_DEPTH),

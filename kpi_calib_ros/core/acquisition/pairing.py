@@ -287,6 +287,11 @@ class Pairer:
         """Points waiting for joint states."""
         return len(self._pending) + len(self._early)
 
+    def waiting(self) -> set[tuple[int, str]]:
+        """(stamp ns, frame id) of every point still waiting for joint states (undecided)."""
+        return ({(stamp, point.frame_id) for stamp, _, point in self._pending}
+                | {(point.stamp_ns, point.frame_id) for _, point in self._early})
+
     @property
     def index_cache_size(self) -> int:
         """Distinct joint-name lists currently cached (at most ``INDEX_CACHE_SIZE``)."""

@@ -39,6 +39,7 @@ from kpi_calib_ros.core.diagnosis.periodic_search import (
 from kpi_calib_ros.core.diagnosis.residual_analysis import ResidualAnalysis
 from kpi_calib_ros.core.effects.general import general_candidates
 from kpi_calib_ros.core.effects.registry import BoundEffect, candidate_effects, implausible
+from kpi_calib_ros.core.estimation.estimability import KpiEstimability
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult, point_sigma_squares
 from kpi_calib_ros.core.estimation.precision import (
     JOINT_NOISE_CAUSE,
@@ -242,6 +243,14 @@ class CellDiagnosis:
     # (core.diagnosis.misfit: where, what is missing, the command, held-out error before/after).
     residual_analysis: ResidualAnalysis | None = None
     answer: MisfitAnswer | None = None
+    # Whether the measurements determine the TCP at the working poses, identify's verdict
+    # (core.estimability); when they do not, ``expected`` is None and the verdict says so.
+    estimability: KpiEstimability | None = None
+
+    @property
+    def tcp_estimable(self) -> bool:
+        """Whether the TCP is estimable at every working pose (True when not checked)."""
+        return self.estimability is None or self.estimability.all_estimable
 
 
 def screen_effects(model: MeasurementModel, data: Measurements, result: CalibrationResult,
@@ -444,6 +453,24 @@ def diagnose(model: MeasurementModel, data: Measurements, result: CalibrationRes
                      rms_m=report.rms_m, validation_rms_m=cv, candidates=ranked,
                      not_distinguishable=rejected, alpha=alpha, folds=folds,
                      periodograms=grams)
+
+
+def with_estimability(diag: Diagnosis, estimability: KpiEstimability) -> Diagnosis:
+    """Return ``diag`` judged with identify's estimability verdict.
+
+    Where the measurements do not determine the TCP, the residuals cannot show what the
+    calibration misses (every parameter vector of the unmeasured directions fits them
+    equally well), so the model is not called adequate and the verdict says the TCP is not
+    estimable first.
+    """
+    if estimability.all_estimable:
+        return diag
+    rep = diag.residuals
+    verdict = (f'{estimability.summary()}. No expected TCP error is stated and the model is '
+               f'not judged: the residuals describe only the fit of the measured poses '
+               f'(χ²/dof = {rep.chi2:.1f}/{rep.dof}, p = {rep.p_value:.3g}), which cannot show '
+               f'the error where the data do not reach.')
+    return replace(diag, model_adequate=False, verdict=verdict)
 
 
 def equivalent_joint_sigma(model: MeasurementModel, data: Measurements,

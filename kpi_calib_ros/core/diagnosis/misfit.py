@@ -34,6 +34,11 @@ from kpi_calib_ros.core.diagnosis.residual_analysis import ResidualAnalysis
 __all__ = ['MisfitAnswer', 'Remedy', 'answer_misfit']
 
 NAMED, GENERAL, SMOOTH, NONE = 'named effect', 'general effect', 'smooth misfit', 'none'
+POSES = 'poses'
+# What a design whose measurements do not determine the TCP misses, and what adds it.
+POSES_WHAT = ('poses that determine the TCP: these measurements leave it undetermined, so no '
+              'residual can show what the calibration misses there')
+POSES_COMMAND = 'kpi-calib design (poses that spread every joint), then measure them'
 
 
 @dataclass(frozen=True)
@@ -45,7 +50,7 @@ class Remedy:
     kind : str
         ``'named effect'`` (of the library), ``'general effect'`` (a general or learned
         correction), ``'smooth misfit'`` (found by the residual analysis, no command adds
-        it) or ``'none'``.
+        it), ``'poses'`` (the measurements do not determine the TCP) or ``'none'``.
     what : str
         One sentence naming it.
     command : str
@@ -102,7 +107,7 @@ class MisfitAnswer:
 
 def answer_misfit(analysis: ResidualAnalysis | None, named: Remedy | None = None,
                   general: Sequence[Remedy] = (), chi2_adequate: bool = False,
-                  model_adequate: bool = False) -> MisfitAnswer:
+                  model_adequate: bool = False, tcp_estimable: bool = True) -> MisfitAnswer:
     """Give the four answers from the residual analysis and the remedies at hand.
 
     Parameters
@@ -116,6 +121,10 @@ def answer_misfit(analysis: ResidualAnalysis | None, named: Remedy | None = None
         Other remedies (general effects, learned corrections) with their held-out figures.
     chi2_adequate, model_adequate : bool
         The χ² test passes; the diagnosis calls the model adequate.
+    tcp_estimable : bool
+        The measurements determine the TCP at every working pose
+        (:mod:`kpi_calib_ros.core.estimation.estimability`); when they do not, what is
+        missing is poses, not an effect.
     """
     flagged = analysis.significant if analysis is not None else ()
     where = _where(analysis, chi2_adequate)
@@ -141,7 +150,11 @@ def answer_misfit(analysis: ResidualAnalysis | None, named: Remedy | None = None
         best_general = max(offered, key=_gain)
         if chosen is None or _gain(best_general) > 2 * _gain(chosen):
             chosen = best_general
-    if chosen is not None:
+    if not tcp_estimable:
+        # No effect is the answer while the data leave the TCP free: each would be judged
+        # on residuals that cannot show the error where the data do not reach.
+        missing = Remedy(POSES, POSES_WHAT, POSES_COMMAND)
+    elif chosen is not None:
         missing = chosen
         # A remedy that leaves most of what a smooth correction removes is only part of
         # the answer: the smooth misfit is what is missing, the remedy a partial step.

@@ -101,7 +101,8 @@ def periodic_joint_error(robot: RobotModel, joint: str | None, cycles: int | str
     """
     text = str(cycles).strip()
     value = text[2:] if text.startswith('k=') else text
-    if not value.isdigit() or not 1 <= int(value) <= MAX_CYCLES:
+    # ASCII digits only: str.isdigit also accepts '²' or '٣', which int() refuses.
+    if not (value.isascii() and value.isdigit()) or not 1 <= int(value) <= MAX_CYCLES:
         raise ConfigError(key, f'{PERIODIC} needs its frequency: write {PERIODIC}:<joint>:k=<k> '
                           f'with k an integer of cycles per revolution in 1..{MAX_CYCLES} '
                           f'(not {text!r})')

@@ -18,6 +18,12 @@ states are paired (:mod:`kpi_calib_ros.core.acquisition.pairing`), and keeps it 
     ``temperature.sensors`` mapping; :func:`kpi_calib_ros.core.effects.registry.bind_effect`):
     the upper arm and the forearm warm differently, and a link grows with its own temperature.
 
+A reading is only used when it is plausible: finite and inside the cell's valid range
+(``temperature.valid_range``, default :data:`TEMPERATURE_RANGE_C`, -50 to 150 °C; no range
+reaches below absolute zero or above :data:`TEMPERATURE_LIMIT_C`). :func:`plausible_readings`
+sets the others aside, counted: a broken sensor's 1e12 °C would otherwise become a ΔT that
+decides the thermal effects alone.
+
 Only differences of temperature enter a model, so °C and K are interchangeable for ΔT; the
 raw readings stay in °C as the message carries them. A stamp is given the value linearly
 interpolated between the samples on either side. Temperature changes slowly, yet a value is
@@ -38,7 +44,9 @@ from kpi_calib_ros.core.measurement.tracker import Measurements
 
 __all__ = [
     'TEMPERATURE_PREFIX', 'DELTA_TEMPERATURE', 'REFERENCE_TEMPERATURE_C', 'DEFAULT_MAX_GAP_NS',
+    'ABSOLUTE_ZERO_C', 'TEMPERATURE_LIMIT_C', 'TEMPERATURE_RANGE_C',
     'TemperatureSample', 'covariate_name', 'delta_temperature_name', 'interpolate',
+    'plausible_readings', 'plausible_temperature', 'range_text',
     'temperature_covariates', 'with_covariates', 'shift_temperature',
 ]
 
@@ -46,6 +54,12 @@ TEMPERATURE_PREFIX = 'temperature.'
 DELTA_TEMPERATURE = 'delta_temperature'
 REFERENCE_TEMPERATURE_C = 20.0  # ISO 1: the reference temperature of length measurement
 DEFAULT_MAX_GAP_NS = 120 * 10**9  # a temperature sample at least every 2 minutes
+ABSOLUTE_ZERO_C = -273.15
+# What a robot cell's arm may read: a cold hall in winter to a hot drive housing, with
+# margin. A reading outside is a fault of the sensor or its driver, never a temperature.
+TEMPERATURE_RANGE_C = (-50.0, 150.0)
+# No cell's range reaches above: far beyond what any arm's grease, cables or encoders stand.
+TEMPERATURE_LIMIT_C = 1000.0
 
 
 @dataclass(frozen=True)
@@ -65,6 +79,39 @@ def covariate_name(frame_id: str) -> str:
 def delta_temperature_name(frame_id: str) -> str:
     """Return the covariate name of one sensor's ΔT: ``delta_temperature.<frame_id>``."""
     return f'{DELTA_TEMPERATURE}.{frame_id}'
+
+
+def plausible_temperature(celsius: float,
+                          valid_range_c: tuple[float, float] = TEMPERATURE_RANGE_C) -> bool:
+    """Return whether a reading (°C) is finite and inside ``valid_range_c`` (low, high)."""
+    low, high = valid_range_c
+    return bool(np.isfinite(celsius) and low <= celsius <= high)
+
+
+def plausible_readings(samples: Iterable[TemperatureSample],
+                       valid_range_c: tuple[float, float] = TEMPERATURE_RANGE_C
+                       ) -> tuple[list[TemperatureSample], list[TemperatureSample]]:
+    """Split readings into the plausible ones and the others.
+
+    The others (:func:`plausible_temperature` false) are never used: each would be a ΔT no
+    arm can have.
+    """
+    kept: list[TemperatureSample] = []
+    rejected: list[TemperatureSample] = []
+    for s in samples:
+        (kept if plausible_temperature(s.celsius, valid_range_c) else rejected).append(s)
+    return kept, rejected
+
+
+def range_text(rejected: Sequence[TemperatureSample],
+               valid_range_c: tuple[float, float] = TEMPERATURE_RANGE_C) -> str:
+    """One line on readings set aside: their count, the range and the first one."""
+    first = rejected[0]
+    return (f'{len(rejected)} temperature reading(s) outside temperature.valid_range '
+            f'[{valid_range_c[0]:g}, {valid_range_c[1]:g}] °C not used (first: '
+            f'{first.celsius:g} °C from sensor {first.frame_id!r} at stamp {first.stamp_ns} '
+            'ns): a fault of the sensor or its driver; the points are paired with the '
+            'plausible readings around them')
 
 
 def interpolate(stamps_ns: np.ndarray, sample_stamps_ns: np.ndarray, values: np.ndarray,
