@@ -244,7 +244,8 @@ class CellDiagnosis:
     residual_analysis: ResidualAnalysis | None = None
     answer: MisfitAnswer | None = None
     # Whether the measurements determine the TCP at the working poses, identify's verdict
-    # (core.estimability); when they do not, ``expected`` is None and the verdict says so.
+    # (core.estimation.estimability); when they do not, ``expected`` is None and the
+    # verdict says so.
     estimability: KpiEstimability | None = None
 
     @property
