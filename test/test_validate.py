@@ -497,3 +497,28 @@ def test_the_predicted_std_of_a_new_point_is_the_same_in_every_gauge(setup, tmp_
     assert saved == json.loads(json.dumps(out)) and out['not_determined_by_training'] == 20
     assert out['predicted_std_median_m'] is None and out['verdict'] == 'cannot test'
     assert 'not determined by the training poses' in out['predicted_std_median_m_reason']
+
+
+def test_residuals_above_the_stated_noise_are_not_called_sigma_overstated(understated):
+    """The calibration's cell states σ 5× below the noise its fit showed, its covariance is
+    scaled by χ²/dof (about 25). New points scattering by 2.5× the stated σ (half the noise
+    it showed) give a χ² far below its dof: the prediction is wider than the new points,
+    not σ overstated. The text gives their ratio to the stated noise as measured (rms of
+    r/σ per component: the noise and the calibration's own error, above 1), not √(χ²/dof)
+    (below 1), and does not send the user to noise.sigma."""
+    from kpi_calib_ros.app.validate import validation_text
+    cm, doc, p_true, _, rng, _ = understated
+    stated = np.asarray(cm.cell.sigma)
+    q = random_configurations(cm.model, p_true, 40, rng)
+    new = simulate_measurements(cm.model, p_true, q, 2.5 * stated, rng)
+    out = validation_to_dict(validate_calibration(cm, parameter_vector(cm, doc), doc, new), new,
+                             doc['rms_m'], cm, calibration_noise_scale(doc))
+    assert out['chi2'] / out['dof'] < 0.5 and out['lower_tail_p'] < out['alpha']
+    residuals = np.array([p['residual_m'] for p in out['points']])
+    measured = float(np.sqrt(np.mean((residuals / stated) ** 2)))
+    assert out['residual_to_noise_ratio'] == pytest.approx(measured, rel=1e-9)
+    assert np.sqrt(out['chi2'] / out['dof']) < 1 < 2.5 < measured
+    assert out['noise_verdict'] == 'predicted error overstated'
+    text = validation_text(out)
+    assert 'sigma overstated' not in text and 'check noise.sigma' not in text
+    assert f"residuals are {out['residual_to_noise_ratio']:.3g} x the stated noise" in text

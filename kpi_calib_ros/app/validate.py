@@ -198,8 +198,9 @@ def validation_to_dict(v: Validation, data: Measurements, training_rms_m: float 
     }
 
 
-# χ² far below its dof while the residuals are not below the noise: the calibration's
-# predicted parameter error, not σ, is too large (it extrapolates where it is not determined).
+# χ² far below its dof while the residuals are not below the stated noise: the calibration's
+# prediction (the noise it showed, σ·√covariance_scale, and its parameters' part), not σ, is
+# wider than the new points.
 PREDICTION_OVERSTATED = 'predicted error overstated'
 
 
@@ -216,14 +217,17 @@ def validation_noise_verdict(v: Validation) -> tuple[str, float]:
 
 def prediction_overstated_text(doc: dict[str, Any]) -> str:
     """The warning of :data:`PREDICTION_OVERSTATED` from the validation document."""
+    scale = float(doc.get('noise_scale', 1.0))
     return (f"{PREDICTION_OVERSTATED}: chi2/dof = {doc['chi2']:.3g}/{doc['dof']} is far below "
             f"its dof while the residuals are {doc['residual_to_noise_ratio']:.3g} x the "
-            'stated noise: the calibration\'s predicted parameter error'
-            + (f" (median {doc['predicted_std_median_m'] * 1e3:.3g} mm per axis)"
+            'stated noise: the calibration predicts them wider'
+            + (f", with the noise it showed ({np.sqrt(scale):.3g} x the stated sigma, its "
+               'model not adequate)' if scale != 1.0 else '')
+            + (f" and its parameters' error (predicted std median "
+               f"{doc['predicted_std_median_m'] * 1e3:.3g} mm per axis)"
                if doc.get('predicted_std_median_m') is not None else '')
-            + ' is larger than their misses and the test cannot fail: the training poses '
-            'determine the parameters poorly at these poses; measure poses like them and '
-            'identify again')
+            + ', and the test cannot fail; noise.sigma is not the cause (the residuals are '
+            'not below it): a better model or more poses like these narrow the prediction')
 
 
 def verdict(v: Validation) -> str:

@@ -170,11 +170,11 @@ class Validation:
         estimable combination); an undetermined point has NaN ``predicted_std`` and
         ``mahalanobis`` and no part in χ². All True without the training poses.
     noise_ratio : float
-        sqrt(Σ r_iᵀ N_i⁻¹ r_i / dof), N_i the point's noise alone (the tracker's and the
-        joint readings', without the parameters' part): how many times the noise the
-        calibration states the residuals are (NaN without dof). χ²/dof cannot say it: its
-        covariance holds the parameters' part too, which a calibration that extrapolates
-        makes large.
+        sqrt(Σ r_iᵀ N_i⁻¹ r_i / dof), N_i the point's stated noise alone (the tracker's and
+        the joint readings', without ``noise_scale`` and the parameters' part): how many
+        times the stated noise the residuals are (NaN without dof). χ²/dof cannot say it: its
+        covariance holds the noise the calibration showed (σ·√scale) and the parameters'
+        part too.
     """
 
     residuals: np.ndarray
@@ -370,7 +370,8 @@ def validate(model: MeasurementModel, p: np.ndarray, estimated: np.ndarray,
         repeated = same_pose(q, np.asarray(training_q, float)) & ~outside
     p_value = float(scipy.stats.chi2.sf(chi2, dof)) if dof > 0 else float('nan')
     noise_d2 = np.sum((residuals * np.linalg.solve(noise, residuals[:, :, None])[:, :, 0])[tested])
-    noise_ratio = float(np.sqrt(noise_d2 / dof)) if dof > 0 else float('nan')
+    # Against the stated noise: ``noise`` holds it times noise_scale.
+    noise_ratio = float(np.sqrt(noise_d2 * noise_scale / dof)) if dof > 0 else float('nan')
     std = np.where(determined, np.sqrt(np.trace(cov, axis1=1, axis2=2) / 3), np.nan)
     return Validation(residuals, std, np.sqrt(d2), outside, repeated, chi2, dof, p_value,
                       alpha, registration, noise_ratio, determined)
