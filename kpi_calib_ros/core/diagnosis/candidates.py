@@ -586,10 +586,9 @@ def _absorbed_by(model: MeasurementModel, result: CalibrationResult, sys_: Linea
 
 
 def backlash_unloaded(effect: BoundEffect, tau: np.ndarray) -> str:
-    """Why ``joint_backlash`` of a joint whose gravity torques ``tau`` (N, n) stay below
-    its torque scale is no backlash, or ''.
+    """Return why ``joint_backlash`` is no backlash on this data, or ''.
 
-    Its b·tanh(τ/τ_b) (τ_b = :data:`~kpi_calib_ros.core.effects.library.BACKLASH_TORQUE_SCALE`)
+    With the joint's gravity torques ``tau`` (N, n) below its torque scale, its b·tanh(τ/τ_b) (τ_b = :data:`~kpi_calib_ros.core.effects.library.BACKLASH_TORQUE_SCALE`)
     is (b/τ_b)·τ there: a compliance of the joint, never a step. A torque of exactly 0
     everywhere is left to the no-effect test.
     """

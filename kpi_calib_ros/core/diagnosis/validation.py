@@ -52,8 +52,8 @@ new point's ``J_i C_p J_iᵀ`` is the same in every gauge only for the part of i
 (``free`` and ``training_q`` of :func:`validate`, :func:`training_row_space`) the gradient
 is projected on that row space first and only the projection enters ``C_i``: a joint read
 1e-4 rad off its training value gives no gauge a lever on the prediction (one fit gave 1.58
-and 81.9 mm of predicted std in two gauges). A point whose gradient leaves the row space by more than
-:data:`PREDICTION_TOLERANCE` (relative) is *not determined* by the training poses: the
+and 81.9 mm of predicted std in two gauges). A point whose gradient leaves the row space by
+more than :data:`PREDICTION_TOLERANCE` (relative) is *not determined* by the training poses: the
 calibration does not predict it, it gets no predicted std and no part in χ², and is
 counted apart.
 """
