@@ -588,8 +588,9 @@ def _absorbed_by(model: MeasurementModel, result: CalibrationResult, sys_: Linea
 def backlash_unloaded(effect: BoundEffect, tau: np.ndarray) -> str:
     """Return why ``joint_backlash`` is no backlash on this data, or ''.
 
-    With the joint's gravity torques ``tau`` (N, n) below its torque scale, its b·tanh(τ/τ_b) (τ_b = :data:`~kpi_calib_ros.core.effects.library.BACKLASH_TORQUE_SCALE`)
-    is (b/τ_b)·τ there: a compliance of the joint, never a step. A torque of exactly 0
+    With the joint's gravity torques ``tau`` (N, n) below its torque scale τ_b
+    (:data:`~kpi_calib_ros.core.effects.library.BACKLASH_TORQUE_SCALE`), its b·tanh(τ/τ_b) is
+    (b/τ_b)·τ there: a compliance of the joint, never a step. A torque of exactly 0
     everywhere is left to the no-effect test.
     """
     if effect.kind.name != 'joint_backlash' or effect.joint_index is None:
