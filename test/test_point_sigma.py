@@ -149,12 +149,7 @@ def test_the_robust_sigma_with_point_sigma_is_the_noise_of_the_residuals(cm):
     20.9 µm (within 10 %), 2.09× the stated 10 µm, in the fit's robust statistics, the
     residual report and the warning; not 41.8 µm, 2.09× the cell's 20 µm."""
     from kpi_calib_ros.core.estimation.residuals import residual_report
-    from kpi_calib_ros.core.estimation.robust import (
-        OutlierSettings,
-        robust_identify,
-        sigma_warning,
-        stated_source,
-    )
+    from kpi_calib_ros.core.estimation.robust import OutlierSettings, robust_identify
     cell_sigma, stated, noise = np.full(3, 20e-6), 10e-6, 20.9e-6
 
     def fit(d, free=None, **kw):
@@ -168,9 +163,10 @@ def test_the_robust_sigma_with_point_sigma_is_the_noise_of_the_residuals(cm):
     report = residual_report(cm.model, data, robust.result)
     for sigma_hat in (robust.sigma_robust, report.sigma_robust_m):
         assert abs(sigma_hat / noise - 1) < 0.1, sigma_hat
-    assert robust.sigma_stated == pytest.approx(stated) == report.sigma_stated_m
     assert abs(robust.sigma_ratio / (noise / stated) - 1) < 0.1
+    assert robust.sigma_stated == pytest.approx(stated) == report.sigma_stated_m
     # Below the 2× of a warning; one that warns names the points' σ, not noise.sigma.
+    from kpi_calib_ros.core.estimation.robust import sigma_warning, stated_source
     assert not report.sigma_warning and not robust.warnings
     assert "stated the points' own stated sigma (10 µm)" in sigma_warning(
         25e-6, report.sigma_stated_m, stated_source(data))

@@ -484,8 +484,8 @@ def test_the_predicted_std_of_a_new_point_is_the_same_in_every_gauge(setup, tmp_
     again = q + rng.uniform(-1e-4, 1e-4, q.shape)
     new = simulate_measurements(cm.model, p, again, cm.cell.sigma, rng)
     a, b = (validate_calibration(cm, p, g, new) for g in (first, second))
-    assert a.determined.all() and b.determined.all()
     np.testing.assert_allclose(a.predicted_std, b.predicted_std, rtol=1e-6)
+    assert a.determined.all() and b.determined.all()
     assert a.p_value == pytest.approx(b.p_value, rel=1e-6)
     turned = simulate_measurements(cm.model, p, random_configurations(cm.model, p, 20, rng),
                                    cm.cell.sigma, rng)
@@ -514,6 +514,7 @@ def test_residuals_above_the_stated_noise_are_not_called_sigma_overstated(unders
     out = validation_to_dict(validate_calibration(cm, parameter_vector(cm, doc), doc, new), new,
                              doc['rms_m'], cm, calibration_noise_scale(doc))
     assert out['chi2'] / out['dof'] < 0.5 and out['lower_tail_p'] < out['alpha']
+    assert out['noise_verdict'] == 'predicted error overstated'
     residuals = np.array([p['residual_m'] for p in out['points']])
     measured = float(np.sqrt(np.mean((residuals / stated) ** 2)))
     assert out['residual_to_noise_ratio'] == pytest.approx(measured, rel=1e-9)
