@@ -72,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--measure', nargs=2, metavar=('BAG', 'MODE'), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.measure:
-        print(json.dumps(measure(Path(args.measure[0]), args.measure[1])))
+        print(json.dumps(measure(Path(args.measure[0]), args.measure[1]), allow_nan=False))
         return 0
     directory = Path(args.keep or tempfile.mkdtemp(prefix='bag_reading_'))
     directory.mkdir(parents=True, exist_ok=True)
@@ -86,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
             info = json.loads(info_path.read_text())
         else:
             info = make_bag(path, poses, rate)
-            info_path.write_text(json.dumps(info))
+            info_path.write_text(json.dumps(info, allow_nan=False))
         print(f'{case}: {poses} poses, joint states at {rate:g} Hz: {info} '
               f'(ready in {time.perf_counter() - t0:.1f} s)', flush=True)
         for mode in ('for_pairing', 'read_all'):

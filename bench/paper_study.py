@@ -305,7 +305,7 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             t0 = time.perf_counter()
             result = run_robot(geometry, args)
-            path.write_text(json.dumps(result, indent=1))
+            path.write_text(json.dumps(result, indent=1, allow_nan=False))
             d = result['variants']['collision']['designs']
             print(f'[{i + 1}/{len(robots)}] {geometry.name}: '
                   f'V_h {d["heuristic"]["tcp_variance_m2"] * 1e12:.1f}, '

@@ -191,3 +191,45 @@ def test_cross_validated_rms_is_near_the_noise_floor():
     assert result.rms_m < cv < 1.2 * FLOOR
     with pytest.raises(ValueError, match='folds'):
         validation_rms(cm.model, data, result, folds=1)
+
+
+def test_backlash_is_not_proposed_where_the_joint_torque_stays_below_its_scale():
+    """A 0.5 kg payload 1 mm off joint_6's axis: its gravity torque stays below 5 mN m,
+    under the backlash's τ_b = 0.01 N m, where b·tanh(τ/τ_b) is a compliance. A hidden
+    b·tanh(τ/τ_b) there (b = 3 mrad) is found at joint_6 as a load-driven effect that may
+    stay inside its play (joint_play, its τ0 from the data, or the compliance); the
+    backlash is listed as not distinguishable, naming the scale and the compliance, and is
+    never proposed."""
+    doc = yaml.safe_load(DEFAULT_CELL.read_text())
+    doc['reflector']['offset'] = [0.05, 0.0, 0.06]
+    doc['payload'] = {'mass': 0.5, 'com': [0.001, 0.0, 0.05]}
+    cm = build_cell_model(cell_from_dict(doc, DEFAULT_CELL.parent))
+    data, result, *_ = campaign(cm, {'joint_backlash:joint_6': {'b': 3e-3}}, seed=2, n=60)
+    assert 0 < np.abs(cm.robot.gravity_torques(data.q)[:, 5]).max() < 0.005
+    diag = diagnose(cm.model, data, result)
+    assert 'joint_backlash:joint_6' not in {c.spec for c in diag.candidates}
+    rejected = {c.spec: c for c in diag.not_distinguishable}
+    why = rejected['joint_backlash:joint_6'].explanation
+    assert why.startswith('not a backlash with this data') and '0.01 N m' in why
+    assert 'joint_compliance:joint_6' in why
+    assert diag.best is not None and diag.best.spec in ('joint_compliance:joint_6',
+                                                        'joint_play:joint_6')
+
+
+def test_the_documented_backlash_formula_is_the_one_the_code_computes():
+    """joint_backlash is b·tanh(τ/τ_b), τ_b = 0.01 N m, in the code, its description and
+    the diagnosis guide: a model rebuilt from the text predicts what the code does (at
+    τ = τ_b the sign would be 31 % too large)."""
+    import casadi as ca
+
+    from kpi_calib_ros.core.effects.library import BACKLASH_TORQUE_SCALE, LIBRARY
+    kind = next(k for k in LIBRARY if k.name == 'joint_backlash')
+    tau = np.array([-0.05, -0.01, -0.003, 0.0, 0.002, 0.01, 0.02, 1.0])
+    code = np.array([float(kind.joint_function(ca.DM(0.0), ca.DM(t), ca.DM([2e-3])))
+                     for t in tau])
+    np.testing.assert_allclose(code, 2e-3 * np.tanh(tau / 0.01), rtol=1e-12, atol=0)
+    assert BACKLASH_TORQUE_SCALE == 0.01 and 'b·tanh(τ/τ_b) with τ_b = 0.01 N m' in \
+        kind.description
+    guide = (Path(__file__).resolve().parents[1] / 'doc' / 'guide' / 'diagnosis.md').read_text()
+    assert '| `joint_backlash:J` | δq_J = b·tanh(τ_J/τ_b), τ_b = 0.01 N m' in guide
+    assert 'b·sgn τ_J |' not in guide

@@ -138,8 +138,38 @@ def test_robust_statistics_count_each_point_in_its_own_sigma(cm, loss):
         assert not robust.warnings and not robust.excluded, robust.warnings
         report = residual_report(cm.model, data, robust.result)
         assert not report.sigma_warning and not report.outlier.any()
-        assert 1 / 1.5 < report.sigma_robust_m / cell_sigma[0] < 1.5
+        # σ̂ in metres against the σ the points state (their rms), not the cell's 5 µm.
+        assert 1 / 1.5 < report.sigma_robust_m / report.sigma_stated_m < 1.5
+        assert report.sigma_stated_m == pytest.approx(robust.sigma_stated, rel=1e-12)
         assert robust.result.p_value > 1e-3
+
+
+def test_the_robust_sigma_with_point_sigma_is_the_noise_of_the_residuals(cm):
+    """The points state 10 µm, the cell 20 µm, the noise is 20.9 µm per axis: σ̂ reads
+    20.9 µm (within 10 %), 2.09× the stated 10 µm, in the fit's robust statistics, the
+    residual report and the warning; not 41.8 µm, 2.09× the cell's 20 µm."""
+    from kpi_calib_ros.core.estimation.residuals import residual_report
+    from kpi_calib_ros.core.estimation.robust import OutlierSettings, robust_identify
+    cell_sigma, stated, noise = np.full(3, 20e-6), 10e-6, 20.9e-6
+
+    def fit(d, free=None, **kw):
+        return identify(cm.model, d, cell_sigma, cm.q_work, **kw)
+    p_true, q, rng = campaign(cm, 61, 120)
+    clean = cm.model.predict(p_true, q)
+    data = Measurements(q=q, eta=clean + rng.normal(size=clean.shape) * noise,
+                        sigma=np.full(clean.shape, stated))
+    robust = robust_identify(cm.model, data, cell_sigma, fit, 'linear',
+                             OutlierSettings(exclude=False))
+    report = residual_report(cm.model, data, robust.result)
+    for sigma_hat in (robust.sigma_robust, report.sigma_robust_m):
+        assert abs(sigma_hat / noise - 1) < 0.1, sigma_hat
+    assert abs(robust.sigma_ratio / (noise / stated) - 1) < 0.1
+    assert robust.sigma_stated == pytest.approx(stated) == report.sigma_stated_m
+    # Below the 2× of a warning; one that warns names the points' σ, not noise.sigma.
+    from kpi_calib_ros.core.estimation.robust import sigma_warning, stated_source
+    assert not report.sigma_warning and not robust.warnings
+    assert "stated the points' own stated sigma (10 µm)" in sigma_warning(
+        25e-6, report.sigma_stated_m, stated_source(data))
 
 
 def test_validation_holds_new_points_in_their_own_sigma(cm, cell):

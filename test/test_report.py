@@ -33,7 +33,12 @@ def campaign(tmp_path_factory):
 def test_diagnose_writes_ranked_json_report_and_plots(campaign, tmp_path, capsys):
     cell, bag = campaign
     assert main(['diagnose', '--cell', str(cell), '--bag', str(bag), '--out', str(tmp_path)]) == 0
-    doc = json.loads((tmp_path / 'diagnosis.json').read_text())
+    def refuse(constant):
+        raise ValueError(f'diagnosis.json holds {constant}: not valid JSON')
+    doc = json.loads((tmp_path / 'diagnosis.json').read_text(), parse_constant=refuse)
+    # A shape parameter held at its grid value has no std: null, with the reason.
+    held = [p for c in doc['candidates'] for p in c['parameters'] if p['std'] is None]
+    assert held and all('grid' in p['std_reason'] for p in held)
     assert doc['model_adequate'] is False and doc['rms_m'] > 1.5 * doc['noise_floor_m']
     top = doc['candidates'][0]
     assert (top['effect'], top['joint']) == ('joint_compliance', 'shoulder_lift_joint')

@@ -107,8 +107,9 @@ def test_poses_beyond_the_training_ranges_are_marked(setup):
     out = json.loads((tmp / 'val_narrow' / 'validation.json').read_text())
     new, _ = measurements_from_bag(cm, tmp / 'new.mcap')
     full = np.array([doc['training_joint_ranges'][n] for n in cm.joint_names])
-    expected = ((new.q[:, 0] > 0.5 * (lo + hi) + 1e-9) | np.any(new.q < full[:, 0] - 1e-9, axis=1)
-                | np.any(new.q > full[:, 1] + 1e-9, axis=1))
+    tol = SAME_POSE_TOLERANCE  # a reading's tolerance (core.validation.range_tolerance)
+    expected = ((new.q[:, 0] > 0.5 * (lo + hi) + tol) | np.any(new.q < full[:, 0] - tol, axis=1)
+                | np.any(new.q > full[:, 1] + tol, axis=1))
     marked = np.array([p['outside_training_range'] for p in out['points']])
     assert 0 < expected.sum() < 30 and np.array_equal(marked, expected)
     assert out['outside_training_range'] == int(expected.sum())
@@ -171,9 +172,12 @@ def test_poses_measured_again_are_told_from_new_ones(understated):
     out = validation_to_dict(validate_calibration(cm, parameter_vector(cm, doc), doc, new), new,
                              doc['rms_m'], cm, calibration_noise_scale(doc))
     ranges = np.array([doc['training_joint_ranges'][n] for n in cm.joint_names])
-    inside = np.all((q >= ranges[:, 0]) & (q <= ranges[:, 1]), axis=1)
+    # Inside within a joint reading's tolerance (core.validation.range_tolerance): a training
+    # pose read again is inside, even at the end of a range.
+    tol = SAME_POSE_TOLERANCE
+    inside = np.all((q >= ranges[:, 0] - tol) & (q <= ranges[:, 1] + tol), axis=1)
     marked = np.array([p['repeated_from_training'] for p in out['points']])
-    assert np.array_equal(marked, inside & (np.arange(30) < 10))
+    assert np.array_equal(marked, inside & (np.arange(30) < 10)) and inside[:10].all()
     assert 5 <= marked.sum() <= 10 and out['repeated_from_training'] == marked.sum()
     outside = np.array([p['outside_training_range'] for p in out['points']])
     assert np.array_equal(outside, ~inside) and not np.any(marked & outside)
@@ -383,3 +387,139 @@ def test_a_calibration_validated_far_from_its_poses_holds_at_its_level(setup):
     assert scipy.stats.kstest(p_values, 'uniform').pvalue > 0.01
     assert np.sum(p_values < 0.01) <= 3
     assert np.sum(independent < 0.01) >= 6
+
+
+def _strict_json(path):
+    """The JSON document at ``path``; NaN or Infinity in it (not JSON) is an error."""
+    def refuse(constant):
+        raise ValueError(f'{path.name} holds {constant}: not valid JSON')
+    return json.loads(path.read_text(), parse_constant=refuse)
+
+
+def test_a_re_registration_that_takes_every_dof_cannot_test_the_calibration(setup, capsys):
+    """`validate --register base+reflector` on 3 points: the 9 re-fitted parameters take
+    all 9 residual components, χ² = 0 on 0 dof tests nothing. The verdict is 'cannot test'
+    (exit 1, not 'does not hold'), validation.json is valid JSON with a null p-value and
+    the reason, and the text says how many points a test needs."""
+    tmp, _, cm = setup
+    rng = np.random.default_rng(8)
+    doc = yaml.safe_load((tmp / 'good' / 'calibration.yaml').read_text())
+    p_new = _tracker_set_up_again(cm, parameter_vector(cm, doc), rng)
+    q = random_configurations(cm.model, p_new, 3, rng)
+    eta = simulate_measurements(cm.model, p_new, q, cm.cell.sigma, rng).eta
+    joints, points = synthesize_streams(q, cm.joint_names, eta, cm.cell.tracker_frame)
+    write_bag(tmp / 'three.mcap', joints, points)
+    code = main(['validate', '--cell', str(DEFAULT_CELL), '--calibration',
+                 str(tmp / 'good' / 'calibration.yaml'), '--bag', str(tmp / 'three.mcap'),
+                 '--out', str(tmp / 'val_three'), '--register', 'base+reflector'])
+    text = capsys.readouterr().out
+    out = _strict_json(tmp / 'val_three' / 'validation.json')
+    assert code == 1 and out['dof'] == 0 and out['registration']['dof'] == 9
+    assert out['verdict'] == 'cannot test' and out['holds'] is None and not out['tested']
+    assert out['p_value'] is None and out['lower_tail_p'] is None
+    assert out['noise_verdict'] == 'not tested'
+    assert 'no degrees of freedom left' in out['not_tested_reason']
+    assert 'does not hold' not in text and 'nan' not in text
+    assert 'at least 4' in text
+
+
+def test_training_poses_read_again_with_jitter_are_inside_the_training_ranges(setup):
+    """The training poses measured again, every joint read within 1e-4 rad of its training
+    value (encoder counts, servo settling), joint_6 held at 0 throughout training (its
+    range [0, 0]): none is outside the training ranges. Without the reading's tolerance
+    most would be. A joint read 0.05 rad beyond its range is outside."""
+    _, doc, cm = setup
+    held = yaml.safe_load(yaml.safe_dump(doc))
+    held['training_joint_ranges']['joint_6'] = [0.0, 0.0]
+    rng = np.random.default_rng(21)
+    p = parameter_vector(cm, held)
+    q = np.array(held['training_configurations']['q'])
+    q[:, 5] = 0.0
+    q = q + rng.uniform(-1e-4, 1e-4, q.shape)
+    v = validate_calibration(cm, p, held, simulate_measurements(cm.model, p, q, cm.cell.sigma,
+                                                                rng))
+    assert len(q) == 40 and not v.outside.any()
+    q[:, 5] = 0.05
+    v = validate_calibration(cm, p, held, simulate_measurements(cm.model, p, q, cm.cell.sigma,
+                                                                rng))
+    assert v.outside.all()
+
+
+def test_the_predicted_std_of_a_new_point_is_the_same_in_every_gauge(setup, tmp_path):
+    """Training held joint_6 at 0: identify holds some parameters for identifiability (a
+    gauge). The same fit in another gauge (reflector.z held, joint_5.offset identified
+    instead; the covariance from the same training Jacobian) predicts the training poses
+    read again (every joint within 1e-4 rad) with the same std, to 1e-6 relative: only the
+    estimable combination of the parameters enters it. Poses that turn joint_6 are not
+    determined by the training: no predicted std in either gauge (22 µm in one, 1.1 mm in
+    the other before), no part in χ², counted, and validation.json stays valid JSON."""
+    from kpi_calib_ros.app.validate import validate_report
+    _, _, cm = setup
+    rng = np.random.default_rng(4)
+    p_true = true_parameters(cm.model.params, rng)
+    q = random_configurations(cm.model, p_true, 40, rng)
+    q[:, 5] = 0.0
+    doc = calibration_document(cm, identify_cell(cm, simulate_measurements(
+        cm.model, p_true, q, cm.cell.sigma, rng)))
+    doc['training_configurations'] = {'joints': list(cm.joint_names), 'q': q.tolist()}
+    p = parameter_vector(cm, doc)
+    kept = list(doc['parameter_covariance']['names'])
+    held = [d['name'] for d in doc['dropped_parameters']]
+    assert 'reflector.z' in kept and 'joint_5.offset' in held
+    other = [n if n != 'reflector.z' else 'joint_5.offset' for n in kept]
+    free = kept + held
+    _, jac = cm.model.jacobian(p, q)
+    rows = (jac / np.asarray(cm.cell.sigma)[:, None]).reshape(-1, len(p))
+
+    def gauge(names):
+        f = rows[:, cm.model.params.indices(names)]
+        assert np.linalg.matrix_rank(f) == len(names)
+        out = yaml.safe_load(yaml.safe_dump(doc))
+        out['parameter_covariance'] = {'names': names,
+                                       'matrix': np.linalg.inv(f.T @ f).tolist()}
+        out['dropped_parameters'] = [{'name': n, 'reason': 'held'} for n in free
+                                     if n not in names]
+        return out
+    first, second = gauge(kept), gauge(other)
+    again = q + rng.uniform(-1e-4, 1e-4, q.shape)
+    new = simulate_measurements(cm.model, p, again, cm.cell.sigma, rng)
+    a, b = (validate_calibration(cm, p, g, new) for g in (first, second))
+    np.testing.assert_allclose(a.predicted_std, b.predicted_std, rtol=1e-6)
+    assert a.determined.all() and b.determined.all()
+    assert a.p_value == pytest.approx(b.p_value, rel=1e-6)
+    turned = simulate_measurements(cm.model, p, random_configurations(cm.model, p, 20, rng),
+                                   cm.cell.sigma, rng)
+    for g in (first, second):
+        v = validate_calibration(cm, p, g, turned)
+        assert not v.determined.any() and np.isnan(v.predicted_std).all() and v.dof == 0
+    out = validate_report(cm, second, turned, tmp_path)
+    saved = _strict_json(tmp_path / 'validation.json')
+    assert saved == json.loads(json.dumps(out)) and out['not_determined_by_training'] == 20
+    assert out['predicted_std_median_m'] is None and out['verdict'] == 'cannot test'
+    assert 'not determined by the training poses' in out['predicted_std_median_m_reason']
+
+
+def test_residuals_above_the_stated_noise_are_not_called_sigma_overstated(understated):
+    """The calibration's cell states σ 5× below the noise its fit showed, its covariance is
+    scaled by χ²/dof (about 25). New points scattering by 2.5× the stated σ (half the noise
+    it showed) give a χ² far below its dof: the prediction is wider than the new points,
+    not σ overstated. The text gives their ratio to the stated noise as measured (rms of
+    r/σ per component: the noise and the calibration's own error, above 1), not √(χ²/dof)
+    (below 1), and does not send the user to noise.sigma."""
+    from kpi_calib_ros.app.validate import validation_text
+    cm, doc, p_true, _, rng, _ = understated
+    stated = np.asarray(cm.cell.sigma)
+    q = random_configurations(cm.model, p_true, 40, rng)
+    new = simulate_measurements(cm.model, p_true, q, 2.5 * stated, rng)
+    out = validation_to_dict(validate_calibration(cm, parameter_vector(cm, doc), doc, new), new,
+                             doc['rms_m'], cm, calibration_noise_scale(doc))
+    assert out['chi2'] / out['dof'] < 0.5 and out['lower_tail_p'] < out['alpha']
+    assert out['noise_verdict'] == 'predicted error overstated'
+    residuals = np.array([p['residual_m'] for p in out['points']])
+    measured = float(np.sqrt(np.mean((residuals / stated) ** 2)))
+    assert out['residual_to_noise_ratio'] == pytest.approx(measured, rel=1e-9)
+    assert np.sqrt(out['chi2'] / out['dof']) < 1 < 2.5 < measured
+    assert out['noise_verdict'] == 'predicted error overstated'
+    text = validation_text(out)
+    assert 'sigma overstated' not in text and 'check noise.sigma' not in text
+    assert f"residuals are {out['residual_to_noise_ratio']:.3g} x the stated noise" in text

@@ -109,10 +109,23 @@ def validate_calibration(cm: CellModel, p: np.ndarray, doc: dict[str, Any],
     upper = np.array([ranges.get(n, [-np.inf, np.inf])[1] for n in cm.joint_names])
     scale = calibration_noise_scale(doc)
     sigma = np.array(doc['noise_sigma_m'], dtype=float) * np.sqrt(scale)
+    training_q = training_poses(cm, doc)
     return validate(cm.model, p, estimated, np.array(cov['matrix'], dtype=float).reshape(
         len(estimated), len(estimated)), sigma, data, lower, upper,
-        training_q=training_poses(cm, doc), noise_scale=scale,
-        registered=cm.model.params.indices(registered) if registered else None)
+        training_q=training_q, noise_scale=scale,
+        registered=cm.model.params.indices(registered) if registered else None,
+        free=free_parameters(cm, doc))
+
+
+def free_parameters(cm: CellModel, doc: dict[str, Any]) -> np.ndarray | None:
+    """Indices of the calibration's free parameters: those it identified and those it held
+    for identifiability (``dropped_parameters``, a choice of gauge); None when it held none
+    (one gauge only: its covariance is gauge-free as it is)."""
+    held = [str(d['name']) for d in doc.get('dropped_parameters') or ()
+            if str(d['name']) in cm.model.params.names]
+    if not held:
+        return None
+    return cm.model.params.indices(list(doc['parameter_covariance']['names']) + held)
 
 
 def validation_to_dict(v: Validation, data: Measurements, training_rms_m: float | None,
@@ -128,6 +141,8 @@ def validation_to_dict(v: Validation, data: Measurements, training_rms_m: float 
     n_points = cm.model.n_reflectors if cm is not None else int(ref.max(initial=0)) + 1
     points = ref < n_points
     inside = ~v.outside
+    determined = (np.ones(len(v.residuals), dtype=bool) if v.determined is None
+                  else v.determined)
     extra: dict[str, Any] = {}
     if v.registration is not None and cm is not None:
         names = [cm.model.params.names[i] for i in v.registration.index]
@@ -147,8 +162,11 @@ def validation_to_dict(v: Validation, data: Measurements, training_rms_m: float 
                     if np.any(ref == n_points + k) else float('nan'))
                 for k in sorted(cm.model.orientations)}
     return {
-        'holds': v.holds,
-        'verdict': 'calibration holds' if v.holds else 'calibration does not hold',
+        # None when no test could be made (no dof left): not 'does not hold'.
+        'holds': v.holds if v.tested else None,
+        'tested': v.tested,
+        'verdict': verdict(v),
+        **({} if v.tested else {'not_tested_reason': not_tested_reason(v)}),
         'measurements': int(len(v.residuals)),
         'rms_m': _num(v.rms_where(points)),
         'rms_inside_training_range_m': _num(v.rms_where(inside & points)),
@@ -160,15 +178,21 @@ def validation_to_dict(v: Validation, data: Measurements, training_rms_m: float 
         'repeated_from_training': int(np.count_nonzero(v.repeated)),
         'noise_scale': noise_scale,
         'training_rms_m': training_rms_m,
-        'predicted_std_median_m': float(np.median(v.predicted_std)),
-        'chi2': v.chi2, 'dof': v.dof, 'p_value': v.p_value, 'alpha': v.alpha,
+        **_with_reason('predicted_std_median_m', float(np.median(v.predicted_std[determined]))
+                       if determined.any() else float('nan'), NOT_DETERMINED),
+        # Points whose prediction the training poses do not determine (any gauge would give
+        # another number): no predicted std, no part in chi2.
+        'not_determined_by_training': int(np.count_nonzero(~determined)),
+        'chi2': v.chi2, 'dof': v.dof, 'p_value': _num(v.p_value), 'alpha': v.alpha,
         # The lower tail at the same level: 'sigma overstated'
         # (core.estimation.residuals.noise_verdict).
-        **dict(zip(('noise_verdict', 'lower_tail_p'), noise_verdict(v.chi2, v.dof, v.alpha))),
+        **dict(zip(('noise_verdict', 'lower_tail_p'), _numbers(validation_noise_verdict(v)))),
+        'residual_to_noise_ratio': _num(v.noise_ratio),
         'points': [{'stamp_ns': int(s) if data.stamps_ns is not None else None,
                     'reflector': int(data.reflector[i]) if data.reflector is not None else 0,
                     'residual_m': [float(x) for x in v.residuals[i]],
-                    'mahalanobis': float(v.mahalanobis[i]),
+                    'mahalanobis': _num(v.mahalanobis[i]),
+                    'determined_by_training': bool(determined[i]),
                     'outside_training_range': bool(v.outside[i]),
                     'repeated_from_training': bool(v.repeated[i])}
                    for i, s in enumerate(data.stamps_ns if data.stamps_ns is not None
@@ -176,8 +200,71 @@ def validation_to_dict(v: Validation, data: Measurements, training_rms_m: float 
     }
 
 
+# χ² far below its dof while the residuals are not below the stated noise: the calibration's
+# prediction (the noise it showed, σ·√covariance_scale, and its parameters' part), not σ, is
+# wider than the new points.
+PREDICTION_OVERSTATED = 'predicted error overstated'
+
+
+def validation_noise_verdict(v: Validation) -> tuple[str, float]:
+    """The lower tail of the validation's χ² (:func:`noise_verdict`), told apart:
+    :data:`SIGMA_OVERSTATED` only when the residuals are smaller than the stated noise
+    (``v.noise_ratio`` < 1); a χ² far below its dof with residuals at or above the noise
+    says the parameters' predicted part is too large, :data:`PREDICTION_OVERSTATED`."""
+    verdict_, lower = noise_verdict(v.chi2, v.dof, v.alpha)
+    if verdict_ == SIGMA_OVERSTATED and not v.noise_ratio < 1.0:
+        return PREDICTION_OVERSTATED, lower
+    return verdict_, lower
+
+
+def prediction_overstated_text(doc: dict[str, Any]) -> str:
+    """The warning of :data:`PREDICTION_OVERSTATED` from the validation document."""
+    scale = float(doc.get('noise_scale', 1.0))
+    return (f"{PREDICTION_OVERSTATED}: chi2/dof = {doc['chi2']:.3g}/{doc['dof']} is far below "
+            f"its dof while the residuals are {doc['residual_to_noise_ratio']:.3g} x the "
+            'stated noise: the calibration predicts them wider'
+            + (f", with the noise it showed ({np.sqrt(scale):.3g} x the stated sigma, its "
+               'model not adequate)' if scale != 1.0 else '')
+            + (f" and its parameters' error (predicted std median "
+               f"{doc['predicted_std_median_m'] * 1e3:.3g} mm per axis)"
+               if doc.get('predicted_std_median_m') is not None else '')
+            + ', and the test cannot fail; noise.sigma is not the cause (the residuals are '
+            'not below it): a better model or more poses like these narrow the prediction')
+
+
+def verdict(v: Validation) -> str:
+    """The validation's verdict: holds, does not hold, or cannot test."""
+    if not v.tested:
+        return 'cannot test'
+    return 'calibration holds' if v.holds else 'calibration does not hold'
+
+
+def not_tested_reason(v: Validation) -> str:
+    """Why ``v`` could make no test (its degrees of freedom)."""
+    taken = v.registration.dof if v.registration is not None else 0
+    if v.determined is not None and not v.determined.any():
+        return ('no point determined by the training poses: the calibration predicts none '
+                'of them (measure poses like them and identify again)')
+    return (f'no degrees of freedom left: {3 * len(v.residuals)} residual components, '
+            f'{taken} taken by the re-registration; measure more points (at least '
+            f'{taken // 3 + 1}) or re-register less')
+
+
 def _num(x: float) -> float | None:
     return None if not np.isfinite(x) else float(x)
+
+
+NOT_DETERMINED = ('not determined by the training poses: the calibration does not predict '
+                  'these points (measure poses like them and identify again)')
+
+
+def _with_reason(key: str, x: float, reason: str) -> dict[str, Any]:
+    """{key: x} as a JSON number, or {key: None, key_reason: reason} when not finite."""
+    return {key: float(x)} if np.isfinite(x) else {key: None, f'{key}_reason': reason}
+
+
+def _numbers(values: tuple[str, float]) -> tuple[str, float | None]:
+    return values[0], _num(values[1])
 
 
 def validation_text(doc: dict[str, Any]) -> str:
@@ -185,10 +272,12 @@ def validation_text(doc: dict[str, Any]) -> str:
     def mm(x: float | None) -> str:
         return 'n/a' if x is None else f'{x * 1e3:.3f} mm'
     lines = [f"{doc['verdict']}: chi2/dof = {doc['chi2']:.1f}/{doc['dof']}, "
-             f"p = {doc['p_value']:.3g} (level {doc['alpha']})",
+             + (f"p = {doc['p_value']:.3g} (level {doc['alpha']})" if doc.get('tested', True)
+                else doc['not_tested_reason']),
              f"new measurements: {doc['measurements']}, rms {mm(doc['rms_m'])} "
              f"(training rms {mm(doc['training_rms_m'])}, predicted std per axis "
-             f"{mm(doc['predicted_std_median_m'])} median"
+             + (f"{mm(doc['predicted_std_median_m'])} median" if doc['predicted_std_median_m']
+                is not None else 'none: ' + doc['predicted_std_median_m_reason'])
              + (f", with the noise the calibration showed, {np.sqrt(doc['noise_scale']):.3g} x "
                 'the stated sigma' if doc.get('noise_scale', 1.0) != 1.0 else '') + ')',
              *(['re-registered on the new recording: '
@@ -198,9 +287,17 @@ def validation_text(doc: dict[str, Any]) -> str:
              f"inside the training joint ranges: rms {mm(doc['rms_inside_training_range_m'])}; "
              f"outside ({doc['outside_training_range']} points): "
              f"{mm(doc['rms_outside_training_range_m'])}"]
+    if doc.get('not_determined_by_training'):
+        lines.append(f"not determined by the training poses: {doc['not_determined_by_training']} "
+                     'points (their prediction depends on the parameters the calibration held '
+                     'for identifiability; no predicted std, not in chi2): measure poses like '
+                     'them and identify again')
     if doc.get('noise_verdict') == SIGMA_OVERSTATED:
         lines.append('WARNING: ' + sigma_overstated_text(doc['chi2'], doc['dof'],
-                                                         doc['lower_tail_p'], doc['alpha']))
+                                                         doc['lower_tail_p'], doc['alpha'],
+                                                         doc['residual_to_noise_ratio']))
+    elif doc.get('noise_verdict') == PREDICTION_OVERSTATED:
+        lines.append('WARNING: ' + prediction_overstated_text(doc))
     learned = doc.get('learned_residual')
     if learned is not None:
         lines.append(f"learned residual ({learned['file']}) {learned['skipped']}"
@@ -229,7 +326,7 @@ def validate_report(cm: CellModel, doc: dict[str, Any], data: Measurements,
     out = validation_to_dict(v, data, doc.get('rms_m'), cm, calibration_noise_scale(doc))
     if learned is not None:
         out['learned_residual'] = learned_section(cm, p, learned, data, register)
-    write_atomic(Path(out_dir) / VALIDATION_FILE, json.dumps(out, indent=1))
+    write_atomic(Path(out_dir) / VALIDATION_FILE, json.dumps(out, indent=1, allow_nan=False))
     write_validation_plots(out_dir, cm.robot, np.atleast_2d(data.q), v.residuals, v.outside,
                            v.repeated)
     return out
@@ -269,9 +366,10 @@ def run_validate(cell_path: str | Path, calibration_path: str | Path, bag_path: 
     code, as for identify. ``joint_topic`` / ``point_topic`` / ``pose_topic``: the bag's
     topics when they are not the cell's (``--joint-topic`` …, as for identify).
 
-    Returns 0 when the calibration holds, 1 when it does not. A calibration whose
-    ``valid:`` is false (calibration.failed.yaml) is refused (ConfigError): whether it holds
-    is no question for a calibration that was never published.
+    Returns 0 when the calibration holds, 1 when it does not or cannot be tested (no
+    degrees of freedom left after the re-registration). A calibration whose ``valid:`` is
+    false (calibration.failed.yaml) is refused (ConfigError): whether it holds is no
+    question for a calibration that was never published.
     """
     writable_folder(out_dir, '--out')
     doc = read_calibration(calibration_path)
@@ -283,4 +381,4 @@ def run_validate(cell_path: str | Path, calibration_path: str | Path, bag_path: 
     print(validation_text(out))
     print(f"written: {Path(out_dir) / VALIDATION_FILE}, "
           f"{Path(out_dir) / 'validation_residuals.png'}")
-    return 0 if out['holds'] else 1
+    return 0 if out['holds'] is True else 1

@@ -40,13 +40,38 @@ _COLOURS = ('tab:red', 'tab:green', 'tab:blue')
 
 
 # ------------------------------------------------------------------ documents
+# Why a figure of diagnosis.json is null (JSON has no NaN): what it would need.
+HELD_SHAPE = ('held at its screened grid value (a shape parameter chosen from a grid, not '
+              'fitted): no std')
+NO_DOF = 'no degrees of freedom left: no test'
+
+
+def finite(x: float) -> float | None:
+    """``x`` as a JSON number, None when it is not finite (JSON has no NaN)."""
+    return float(x) if np.isfinite(x) else None
+
+
+def _with_reason(doc: dict[str, Any], key: str, x: float, reason: str) -> dict[str, Any]:
+    """``doc[key]`` = :func:`finite` of ``x``; ``doc[key + '_reason']`` when it is None."""
+    doc[key] = finite(x)
+    if doc[key] is None:
+        doc[f'{key}_reason'] = reason
+    return doc
+
+
+def _parameter_dict(name: str, value: float, std: float, unit: str) -> dict[str, Any]:
+    return _with_reason({'name': name, 'value': float(value)}, 'std', std, HELD_SHAPE) | {
+        'unit': unit}
+
+
 def _candidate_dict(c: Candidate) -> dict[str, Any]:
-    return {'effect': c.effect, 'joint': c.joint, 'spec': c.spec,
-            'rms_after_m': float(c.rms_after_m),
-            'validation_rms_after_m': float(c.validation_rms_after_m),
-            'p_value': float(c.p_value), 'p_value_raw': float(c.p_value_raw),
+    doc: dict[str, Any] = {'effect': c.effect, 'joint': c.joint, 'spec': c.spec,
+                           'rms_after_m': float(c.rms_after_m)}
+    _with_reason(doc, 'validation_rms_after_m', c.validation_rms_after_m, NOT_ESTIMABLE)
+    return doc | {
+            'p_value': finite(c.p_value), 'p_value_raw': finite(c.p_value_raw),
             'significant': bool(c.significant),
-            'parameters': [{'name': n, 'value': float(v), 'std': float(s), 'unit': u}
+            'parameters': [_parameter_dict(n, v, s, u)
                            for n, v, s, u in zip(c.parameter_names, c.values, c.std, c.units)],
             'std_basis': precision_statement(float(c.covariance_scale)),
             'explanation': c.explanation, 'plausible': bool(c.plausible),
@@ -56,13 +81,17 @@ def _candidate_dict(c: Candidate) -> dict[str, Any]:
 
 def comparison_to_dict(cmp: ModelComparison) -> dict[str, Any]:
     """YAML/JSON-ready before/after numbers (SI units)."""
-    return {'effects': list(cmp.effects),
-            'rms_before_m': float(cmp.rms_before_m), 'rms_after_m': float(cmp.rms_after_m),
-            'validation_rms_before_m': float(cmp.validation_rms_before_m),
-            'validation_rms_after_m': float(cmp.validation_rms_after_m),
-            'chi2_p_value_before': float(cmp.p_value_before),
-            'chi2_p_value_after': float(cmp.p_value_after),
-            'effect_parameters': [dict(p) for p in cmp.effect_parameters],
+    doc: dict[str, Any] = {'effects': list(cmp.effects),
+                           'rms_before_m': float(cmp.rms_before_m),
+                           'rms_after_m': float(cmp.rms_after_m)}
+    _with_reason(doc, 'validation_rms_before_m', cmp.validation_rms_before_m, NOT_ESTIMABLE)
+    _with_reason(doc, 'validation_rms_after_m', cmp.validation_rms_after_m, NOT_ESTIMABLE)
+    _with_reason(doc, 'chi2_p_value_before', cmp.p_value_before, NO_DOF)
+    _with_reason(doc, 'chi2_p_value_after', cmp.p_value_after, NO_DOF)
+    return doc | {
+            'effect_parameters': [
+                {k: (finite(v) if isinstance(v, float) else v) for k, v in p.items()}
+                for p in cmp.effect_parameters],
             'tcp_std_m': [{'name': n, 'before': [float(x) for x in b],
                            'after': [float(x) for x in a]}
                           for n, b, a in zip(cmp.working_pose_names, cmp.tcp_std_before_m,
@@ -77,7 +106,7 @@ def diagnosis_to_dict(cd: CellDiagnosis) -> dict[str, Any]:
         'model_adequate': bool(diag.model_adequate),
         'converged': bool(cd.result.converged), 'status': cd.result.message,
         'rms_m': float(diag.rms_m),
-        'validation_rms_m': float(diag.validation_rms_m),
+        **_with_reason({}, 'validation_rms_m', diag.validation_rms_m, NOT_ESTIMABLE),
         'noise_floor_m': float(np.sqrt(np.sum(cd.result.sigma ** 2))),
         'candidates': [_candidate_dict(c) for c in diag.candidates],
         'verdict': diag.verdict,
@@ -85,11 +114,12 @@ def diagnosis_to_dict(cd: CellDiagnosis) -> dict[str, Any]:
         'residuals': {'measurements': int(len(rep.norms)), 'max_m': float(rep.max_m),
                       'percentiles_m': {str(k): float(v) for k, v in rep.percentiles_m.items()},
                       'chi2': float(rep.chi2), 'dof': int(rep.dof),
-                      'p_value': float(rep.p_value), 'adequate': bool(rep.adequate),
+                      **_with_reason({}, 'p_value', rep.p_value, NO_DOF),
+                      'adequate': bool(rep.adequate),
                       'outliers': cd.given_index(rep.outlier),
                       'excluded': list(cd.excluded),
-                      'sigma_stated_m': float(np.mean(cd.result.sigma)),
-                      'sigma_robust_m': float(rep.sigma_robust_m),
+                      'sigma_stated_m': float(rep.sigma_stated_m),
+                      **_with_reason({}, 'sigma_robust_m', rep.sigma_robust_m, NO_DOF),
                       'sigma_warning': rep.sigma_warning,
                       'high_leverage': cd.given_index(rep.high_leverage)},
         'not_distinguishable': [{'effect': c.effect, 'joint': c.joint, 'spec': c.spec,
@@ -155,7 +185,7 @@ def periodogram_dict(gram: Periodogram) -> dict[str, Any]:
     return {'joint': gram.joint,
             'cycles_searched': [int(gram.cycles[0]), int(gram.cycles[-1])],
             'peak_cycles_per_revolution': int(gram.peak),
-            'peak_delta_chi2': float(np.max(gram.power)), 'p_value': float(gram.p_value)}
+            'peak_delta_chi2': float(np.max(gram.power)), 'p_value': finite(gram.p_value)}
 
 
 def periodic_search_line(grams: tuple[Periodogram, ...]) -> str:
@@ -177,7 +207,7 @@ def diagnosis_text(cd: CellDiagnosis, top: int = 5) -> str:
              f'{_validation(diag.validation_rms_m, "", " µm")} '
              f'(noise floor σ√3 {np.sqrt(np.sum(cd.result.sigma ** 2)) * _UM:.1f} µm); '
              f'|r| {pct}, max {rep.max_m * _UM:.1f} µm',
-             f'noise σ: stated {np.mean(cd.result.sigma) * _UM:.3g} µm, robust estimate '
+             f'noise σ: stated {rep.sigma_stated_m * _UM:.3g} µm, robust estimate '
              f'from the residuals {rep.sigma_robust_m * _UM:.3g} µm',
              *([f'WARNING: {rep.sigma_warning}'] if rep.sigma_warning else []),
              *([cd.out_of_sample.text()] if cd.out_of_sample is not None else []),
@@ -207,7 +237,9 @@ def diagnosis_text(cd: CellDiagnosis, top: int = 5) -> str:
 
 
 def write_diagnosis_json(out_dir: str | Path, doc: dict[str, Any]) -> Path:
-    return write_atomic(Path(out_dir) / DIAGNOSIS_FILE, json.dumps(doc, indent=2) + '\n')
+    # allow_nan=False: a figure that is not a number is null with its reason, never NaN.
+    return write_atomic(Path(out_dir) / DIAGNOSIS_FILE,
+                        json.dumps(doc, indent=2, allow_nan=False) + '\n')
 
 
 # --------------------------------------------------------------------- plots

@@ -45,9 +45,10 @@ def validate_answer(doc: dict[str, Any]) -> str:
             f"rms {doc['rms_m'] * 1e6:.1f} µm"
             + (' after re-registering ' + '/'.join(doc['registration']['parameters'])
                if doc.get('registration') else '')
-            + f", chi2/dof {doc['chi2']:.1f}/"
-            f"{doc['dof']}, p = {doc['p_value']:.3g}; "
-            f"{doc['outside_training_range']} outside the training ranges"
+            + f", chi2/dof {doc['chi2']:.1f}/{doc['dof']}, "
+            + (f"p = {doc['p_value']:.3g}; " if doc.get('tested', True)
+               else f"{doc['not_tested_reason']}; ")
+            + f"{doc['outside_training_range']} outside the training ranges"
             + (f"; {doc['repeated_from_training']} at training poses "
                f"measured again, rms "
                f"{doc['rms_repeated_from_training_m'] * 1e6:.1f} µm"

@@ -83,7 +83,7 @@ class CalibrationJobs(NodeParts):
         if change is not None:
             # Latched: the last re-identification's innovation test, consistent or not.
             self._pub_change_test.publish(String(data=json.dumps(
-                {'prior': prior, 'measurements': len(data), **change.to_dict()})))
+                {'prior': prior, 'measurements': len(data), **change.to_dict()}, allow_nan=False)))
         if cal is None:
             # A change beyond the drift model: not blended, never published as the
             # calibration; the last good one stays; /diagnostics says ERROR.
@@ -154,7 +154,7 @@ class CalibrationJobs(NodeParts):
         doc, text = await self._offload(jobs.validate_work, cm, self._calibration_text, fresh,
                                         self.data_dir, self.settings.validate_register or None)
         self._pub_validation.publish(String(data=text))
-        return doc['holds'], validate_answer(doc)
+        return doc['holds'] is True, validate_answer(doc)
 
 
 __all__ = ['CalibrationJobs']

@@ -265,7 +265,7 @@ def validate_work(cm: CellModel, calibration: str, data: Measurements,
     learned = data_dir / LEARNED_RESIDUAL_FILE
     doc = validate_report(cm, yaml.safe_load(calibration), data, data_dir / VALIDATION_DIR,
                           register, learned if learned.is_file() else None)
-    return doc, json.dumps(doc)
+    return doc, json.dumps(doc, allow_nan=False)
 
 
 def diagnose_work(cm: CellModel, data: Measurements,
@@ -281,7 +281,7 @@ def diagnose_work(cm: CellModel, data: Measurements,
     cd = diagnose_cell(cm, data)
     report = write_report(data_dir / DIAGNOSIS_DIR, cd)
     doc = diagnosis_to_dict(cd)
-    return doc, json.dumps(doc), cd.diagnosis.verdict, report
+    return doc, json.dumps(doc, allow_nan=False), cd.diagnosis.verdict, report
 
 
 def campaign_settings(settings: NodeSettings) -> CampaignSettings:

@@ -38,6 +38,7 @@ from kpi_calib_ros.core.diagnosis.periodic_search import (
 )
 from kpi_calib_ros.core.diagnosis.residual_analysis import ResidualAnalysis
 from kpi_calib_ros.core.effects.general import general_candidates
+from kpi_calib_ros.core.effects.library import BACKLASH_TORQUE_SCALE
 from kpi_calib_ros.core.effects.registry import BoundEffect, candidate_effects, implausible
 from kpi_calib_ros.core.estimation.estimability import KpiEstimability
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult, point_sigma_squares
@@ -66,7 +67,8 @@ from kpi_calib_ros.core.measurement.tracker import (
 
 __all__ = ['Candidate', 'CandidateFit', 'CellDiagnosis', 'Diagnosis', 'ModelComparison',
            'ResidualReport',
-           'augmented_model', 'compare_models', 'default_candidates', 'diagnose',
+           'augmented_model', 'backlash_unloaded', 'compare_models', 'default_candidates',
+           'diagnose',
            'validation_rms',
            'equivalent_joint_sigma',
            'residual_report', 'screen_effects']
@@ -303,7 +305,10 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
         # An effect nonlinear in its shape parameters is screened at each value of its
         # shape grid (the size parameters linear there); the best fit stands for it.
         tried, why_not = [], None
-        for shape in effect.kind.shape_grid or ((),):
+        unloaded = backlash_unloaded(effect, tau)
+        if unloaded:
+            why_not = _rejected(effect, 0.0, {}, unloaded)
+        for shape in (effect.kind.shape_grid or ((),)) if not unloaded else ():
             cols, disp = _effect_columns(model, sys_, effect, q, tau, shape)
             norms = np.linalg.norm(cols, axis=0)
             if disp < NO_EFFECT_M or np.any(norms == 0):
@@ -606,6 +611,26 @@ def _absorbed_by(model: MeasurementModel, result: CalibrationResult, sys_: Linea
     names = [n for n, keep in zip(result.estimated, ok) if keep]
     top = np.argsort(-np.abs(coef))[:4]
     return {names[t]: float(coef[t]) for t in top if abs(coef[t]) > 1e-3}
+
+
+def backlash_unloaded(effect: BoundEffect, tau: np.ndarray) -> str:
+    """Return why ``joint_backlash`` is no backlash on this data, or ''.
+
+    With the joint's gravity torques ``tau`` (N, n) below its torque scale τ_b
+    (:data:`~kpi_calib_ros.core.effects.library.BACKLASH_TORQUE_SCALE`), its b·tanh(τ/τ_b) is
+    (b/τ_b)·τ there: a compliance of the joint, never a step. A torque of exactly 0
+    everywhere is left to the no-effect test.
+    """
+    if effect.kind.name != 'joint_backlash' or effect.joint_index is None:
+        return ''
+    top = float(np.max(np.abs(np.asarray(tau)[:, effect.joint_index]), initial=0.0))
+    if top == 0.0 or top >= BACKLASH_TORQUE_SCALE:
+        return ''
+    return (f'not a backlash with this data: the gravity torque of {effect.joint} stays below '
+            f'{top:.2g} N m, under the backlash\'s torque scale τ_b = '
+            f'{BACKLASH_TORQUE_SCALE:g} N m, where b·tanh(τ/τ_b) is (b/τ_b)·τ, a compliance '
+            f'(joint_compliance:{effect.joint} is its candidate). To see it: '
+            f'{effect.hint()}.')
 
 
 def _rejected(effect: BoundEffect, fraction: float, absorbed: dict[str, float],

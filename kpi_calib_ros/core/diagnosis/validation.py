@@ -24,8 +24,10 @@ validated far from them, would fail on many new points for no fault of its own.
 verdict is this test at the adequacy level.
 
 The new poses fall in three groups, reported apart (the groups of a held-out protocol):
-*outside* the joint ranges the calibration was identified on (extrapolation, where a
-geometric model fails first); *repeated*, inside them and the same pose as a training pose
+*outside* the joint ranges the calibration was identified on, beyond a reading's
+tolerance (:func:`range_tolerance`: a joint held at one angle reads a little differently each
+time) (extrapolation, where a geometric model fails first); *repeated*, inside them and the
+same pose as a training pose
 (:func:`~kpi_calib_ros.core.measurement.replicates.same_pose`: the same configuration measured
 again: their error is the robot's and the instrument's repeatability between the campaigns, which
 no model of the configuration removes); *new* poses inside the ranges (generalisation).
@@ -40,6 +42,20 @@ parameters is absorbed by the fit, that of the others is common to every new poi
 (noise plus ``J_u C_u J_uᵀ`` across all points), which follows χ²(3N − r), r the rank
 of the re-fitted parameters' Jacobian: the degrees of freedom the registration costs.
 The per-point distances keep the per-point ``C_i`` of the other parameters.
+
+*The estimable combination.* Position data cannot separate every parameter: identify held
+some fixed (``dropped_parameters``, a choice of gauge) and ``C_p`` is that of the others. The
+same fit in another gauge (other parameters held) predicts the training points alike, but a
+new point's ``J_i C_p J_iᵀ`` is the same in every gauge only for the part of its gradient
+(over every free parameter, the held ones too) in the row space of the training Jacobian F
+(:mod:`kpi_calib_ros.core.estimation.estimability`). With the training poses known
+(``free`` and ``training_q`` of :func:`validate`, :func:`training_row_space`) the gradient
+is projected on that row space first and only the projection enters ``C_i``: a joint read
+1e-4 rad off its training value gives no gauge a lever on the prediction (one fit gave 1.58
+and 81.9 mm of predicted std in two gauges). A point whose gradient leaves the row space by
+more than :data:`PREDICTION_TOLERANCE` (relative) is *not determined* by the training poses: the
+calibration does not predict it, it gets no predicted std and no part in χ², and is
+counted apart.
 """
 from __future__ import annotations
 
@@ -50,12 +66,77 @@ import numpy as np
 import scipy.stats
 
 from kpi_calib_ros.core.errors import DataError
+from kpi_calib_ros.core.estimation.identifiability import DEFAULT_TOLERANCE
 from kpi_calib_ros.core.estimation.registration import Reregistration, reregister
 from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA
-from kpi_calib_ros.core.measurement.replicates import same_pose
+from kpi_calib_ros.core.measurement.replicates import SAME_POSE_TOLERANCE, same_pose
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements, row_sigma
 
-__all__ = ['Validation', 'shared_chi2', 'validate']
+__all__ = ['PREDICTION_TOLERANCE', 'TrainingSpan', 'Validation', 'range_tolerance',
+           'shared_chi2', 'training_row_space', 'validate']
+
+# Largest relative part of a new point's gradient outside the training row space (column-
+# equilibrated, as core.estimability) for its prediction to count as determined. A joint read
+# 1e-4 rad from its training value leaves ~1e-4 (estimable: the calibration was made there);
+# a motion no training pose made (a joint held in training) leaves O(0.1-1).
+PREDICTION_TOLERANCE = 1e-3
+
+
+@dataclass(frozen=True)
+class TrainingSpan:
+    """The row space of a calibration's training Jacobian over its free parameters.
+
+    free : (f,) int ndarray, parameter indices (the identified ones and those held by the
+    identifiability selection); scale : (f,) column norms of the training Jacobian (the
+    equilibration); basis : (r, f) orthonormal rows spanning its row space in equilibrated
+    coordinates.
+    """
+
+    free: np.ndarray
+    scale: np.ndarray
+    basis: np.ndarray
+
+    def project(self, jac: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Split new points' Jacobians (N, 3, n_p) into the estimable part and a verdict.
+
+        Returns the (N, 3, n_p) Jacobian whose free columns are projected on the row space
+        (other columns unchanged: fixed parameters carry no covariance), and per point the
+        largest relative residual (N,) of its three rows.
+        """
+        g = jac[:, :, self.free] / self.scale
+        inside = (g @ self.basis.T) @ self.basis
+        norms = np.linalg.norm(g, axis=2)
+        rel = np.linalg.norm(g - inside, axis=2) / np.where(norms > 0, norms, 1.0)
+        out = np.array(jac, dtype=float, copy=True)
+        out[:, :, self.free] = inside * self.scale
+        return out, rel.max(axis=1)
+
+
+def training_row_space(model: MeasurementModel, p: np.ndarray, q: np.ndarray,
+                       free: np.ndarray,
+                       rank_tolerance: float = DEFAULT_TOLERANCE) -> TrainingSpan | None:
+    """Return the :class:`TrainingSpan` of training poses ``q`` (M, n) at ``p`` over ``free``.
+
+    Every reflector is taken at every pose (the calibration file keeps the poses, not which
+    reflector each point was): a row space at least as wide as the training's. None when the
+    model's effects read covariates or it measures orientations (the training's covariate
+    values and rotations are not kept), or no pose is given.
+    """
+    q = np.atleast_2d(np.asarray(q, float))
+    if not q.size or model.inputs or model.orientations:
+        return None
+    n_ref = max(model.n_reflectors, 1)
+    poses = np.repeat(q, n_ref, axis=0)
+    reflector = np.tile(np.arange(n_ref), len(q))
+    tau = model.robot.gravity_torques(poses) if model.uses_torque else None
+    _, jac = model.jacobian(np.asarray(p, float), poses, tau, reflector)
+    free = np.asarray(free, dtype=int)
+    f = jac[:, :, free].reshape(-1, len(free))
+    col = np.linalg.norm(f, axis=0)
+    scale = np.where(col > 0, col, 1.0)
+    _, sv, vt = np.linalg.svd(f / scale, full_matrices=False)
+    basis = vt[sv > rank_tolerance * sv[0]] if len(sv) and sv[0] > 0 else vt[:0]
+    return TrainingSpan(free, scale, basis)
 
 
 @dataclass(frozen=True)
@@ -77,11 +158,23 @@ class Validation:
         (:func:`~kpi_calib_ros.core.measurement.replicates.same_pose`; all False when the training
         poses are not known).
     chi2, dof, p_value : float, int, float
-        dof is 3N less the degrees of freedom the re-registration took.
+        dof is 3N less the degrees of freedom the re-registration took; with none left
+        (a re-registration as large as the recording) p_value is NaN: the test cannot be
+        made (``tested`` False).
     holds : bool
-        p_value >= alpha.
+        Tested and p_value >= alpha.
     registration : Reregistration or None
         The placement re-fitted on the new recording (``registered`` of :func:`validate`).
+    determined : (N,) bool ndarray
+        The point's prediction is determined by the training poses (module text, the
+        estimable combination); an undetermined point has NaN ``predicted_std`` and
+        ``mahalanobis`` and no part in χ². All True without the training poses.
+    noise_ratio : float
+        sqrt(Σ r_iᵀ N_i⁻¹ r_i / dof), N_i the point's stated noise alone (the tracker's and
+        the joint readings', without ``noise_scale`` and the parameters' part): how many
+        times the stated noise the residuals are (NaN without dof). χ²/dof cannot say it: its
+        covariance holds the noise the calibration showed (σ·√scale) and the parameters'
+        part too.
     """
 
     residuals: np.ndarray
@@ -94,11 +187,23 @@ class Validation:
     p_value: float
     alpha: float
     registration: Reregistration | None = None
+    noise_ratio: float = float('nan')
+    determined: np.ndarray | None = None
+
+    @property
+    def tested(self) -> bool:
+        """Whether the χ² test could be made.
+
+        It needs degrees of freedom left after the re-registration (with none, the re-fit
+        absorbs every residual and χ² = 0 says nothing about the calibration) and a point
+        the training determines.
+        """
+        return bool(self.dof > 0 and np.isfinite(self.p_value))
 
     @property
     def holds(self) -> bool:
-        """Whether the calibration passes: p-value at least ``alpha``."""
-        return bool(self.p_value >= self.alpha)
+        """Whether the calibration passes: tested, p-value at least ``alpha``."""
+        return bool(self.tested and self.p_value >= self.alpha)
 
     @property
     def rms_m(self) -> float:
@@ -108,6 +213,21 @@ class Validation:
     def rms_where(self, mask: np.ndarray) -> float:
         """Root mean square (m) over the points of ``mask`` (NaN when there are none)."""
         return _rms(self.residuals[mask]) if np.any(mask) else float('nan')
+
+
+def range_tolerance(model: MeasurementModel) -> np.ndarray:
+    """(n,) how far (rad, m) beyond a training joint range a reading still lies inside it.
+
+    A joint read again at the same angle differs by the reading's own scatter (encoder
+    counts, servo settling): a joint held at 0 in training reads 1e-4 rad in the new
+    recording and is not outside. The tolerance of a reading is that of the same pose
+    (:data:`~kpi_calib_ros.core.measurement.replicates.SAME_POSE_TOLERANCE`), or three
+    times the joint's stated reading noise (``noise.joint_sigma``) when that is larger.
+    """
+    tol = np.full(model.robot.n_joints, SAME_POSE_TOLERANCE)
+    if model.joint_sigma is not None:
+        tol = np.maximum(tol, 3.0 * model.joint_sigma)
+    return tol
 
 
 def _rms(r: np.ndarray) -> float:
@@ -154,7 +274,8 @@ def validate(model: MeasurementModel, p: np.ndarray, estimated: np.ndarray,
              alpha: float = ADEQUACY_ALPHA,
              training_q: np.ndarray | None = None,
              noise_scale: float = 1.0,
-             registered: np.ndarray | None = None) -> Validation:
+             registered: np.ndarray | None = None,
+             free: np.ndarray | None = None) -> Validation:
     """Predict ``data`` with the calibration ``p`` and test the residuals.
 
     Parameters
@@ -187,6 +308,13 @@ def validate(model: MeasurementModel, p: np.ndarray, estimated: np.ndarray,
         The factor ``sigma`` was scaled by (χ²/dof of a calibration whose model was not
         adequate); the joint-reading noise of the model, ``J_q Σ_q J_qᵀ`` per point, is
         added scaled by it as well.
+    free : (f,) int ndarray, optional
+        Indices in ``p`` of the calibration's free parameters: the identified ones and
+        those it held for identifiability. With ``training_q`` the predicted error is that
+        of the estimable combination (:func:`training_row_space` of the training poses at
+        the final ``p``, the re-registered one too: estimability does not depend on where
+        the tracker stands), and points the training does not determine are marked (module
+        text). Without them every point is taken as determined.
     """
     q = np.atleast_2d(data.q)
     tau = model.robot.gravity_torques(q) if model.uses_torque else None
@@ -218,19 +346,32 @@ def validate(model: MeasurementModel, p: np.ndarray, estimated: np.ndarray,
         p = registration.p
     pred, jac = model.jacobian(p, q, tau, data.reflector, data.rotation, data.covariates)
     residuals = np.atleast_2d(data.eta) - pred
+    determined = np.ones(len(q), dtype=bool)
+    training = (None if free is None or training_q is None
+                else training_row_space(model, p, training_q, free))
+    if training is not None:
+        # Only the estimable combination has a gauge-free covariance (module text).
+        jac, leaving = training.project(jac)
+        determined = leaving < PREDICTION_TOLERANCE
     j = jac[:, :, estimated]
     noise = noise_covariance(p)
     cov = np.einsum('nak,kl,nbl->nab', j, covariance, j) + noise
     solved = np.linalg.solve(cov, residuals[:, :, None])[:, :, 0]
-    d2 = np.sum(residuals * solved, axis=1)
-    chi2 = (shared_chi2(residuals, j, covariance, noise) if registration is None
-            else registration.chi2)
-    dof = 3 * len(q) - (registration.dof if registration is not None else 0)
-    tol = 1e-9
+    d2 = np.where(determined, np.sum(residuals * solved, axis=1), np.nan)
+    tested = determined if registration is None else np.ones(len(q), dtype=bool)
+    chi2 = (registration.chi2 if registration is not None
+            else shared_chi2(residuals[tested], j[tested], covariance, noise[tested])
+            if tested.any() else 0.0)
+    dof = 3 * int(tested.sum()) - (registration.dof if registration is not None else 0)
+    tol = range_tolerance(model)
     outside = np.any((q < np.asarray(lower) - tol) | (q > np.asarray(upper) + tol), axis=1)
     repeated = np.zeros(len(q), dtype=bool)
     if training_q is not None and len(training_q):
         repeated = same_pose(q, np.asarray(training_q, float)) & ~outside
-    return Validation(residuals, np.sqrt(np.trace(cov, axis1=1, axis2=2) / 3), np.sqrt(d2),
-                      outside, repeated, chi2, dof, float(scipy.stats.chi2.sf(chi2, dof)),
-                      alpha, registration)
+    p_value = float(scipy.stats.chi2.sf(chi2, dof)) if dof > 0 else float('nan')
+    noise_d2 = np.sum((residuals * np.linalg.solve(noise, residuals[:, :, None])[:, :, 0])[tested])
+    # Against the stated noise: ``noise`` holds it times noise_scale.
+    noise_ratio = float(np.sqrt(noise_d2 * noise_scale / dof)) if dof > 0 else float('nan')
+    std = np.where(determined, np.sqrt(np.trace(cov, axis1=1, axis2=2) / 3), np.nan)
+    return Validation(residuals, std, np.sqrt(d2), outside, repeated, chi2, dof, p_value,
+                      alpha, registration, noise_ratio, determined)

@@ -19,7 +19,14 @@ __all__ = [
     'LIBRARY',
 ]
 
-BACKLASH_TORQUE_SCALE = 0.01  # N m: below this a joint counts as unloaded
+# joint_backlash is b·tanh(τ/τ_b) with τ_b = BACKLASH_TORQUE_SCALE, N m (N for a prismatic
+# joint): a smooth sign. Physically the joint settles on the side its load pushes to (b·sgn τ)
+# once the load overcomes the friction in the play; near zero load the side is undecided, and
+# a differentiable step keeps the Gauss-Newton fit well posed. Wherever |τ| > 3 τ_b it is the
+# sign within 0.5 %; a joint whose gravity torque stays below τ_b is never loaded out of its
+# play, and there b·tanh(τ/τ_b) ≈ (b/τ_b)·τ is a compliance, not a backlash: the screen does
+# not propose it there (core.candidates, backlash_unloaded).
+BACKLASH_TORQUE_SCALE = 0.01
 PLAY_TORQUE_UNIT = 1.0        # N m (N for a prismatic joint): joint_play's τ0 = e^u of it
 # joint_play's screened transition torques τ0: 0.01 ... 10 N m, three per decade
 PLAY_GRID = tuple((math.log(t),) for t in (0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0,
@@ -99,10 +106,12 @@ LIBRARY: tuple[EffectType, ...] = (
                # of ~6 deg) is where a joint is broken rather than loose.
                plausible=(5e-2,), prismatic_plausible=(5e-3,),
                description='backlash: the joint settles on the side its gravity torque '
-                           'pushes to, b·sgn(τ)',
+                           'pushes to, b·tanh(τ/τ_b) with τ_b = 0.01 N m (a smooth sgn τ: '
+                           'the sign within 0.5 % where |τ| > 0.03 N m)',
                hint='measure poses where the gravity torque of {joint} changes sign '
-                    '(the arm on both sides of its balance point); with one sign only, '
-                    'backlash is a constant the joint offset absorbs',
+                    '(the arm on both sides of its balance point) and exceeds 0.01 N m '
+                    'in size; with one sign only, backlash is a constant the joint offset '
+                    'absorbs, and below 0.01 N m it is a compliance',
                signature='sign of the gravity torque of {joint}'),
     EffectType('joint_play', ('b', 'u'), ('rad', '1'), _play, uses_torque=True,
                typical=(2.5e-4, 0.0), screen=True, prismatic_units=('m', '1'),

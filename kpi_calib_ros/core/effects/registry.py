@@ -14,7 +14,7 @@ is the gravity torque from Pinocchio, payload included)::
                           :mod:`kpi_calib_ros.core.effects.gravity_compliance`)  g_i  rad
     cyclic_joint_error    δq_j = a · sin q_j + b · cos q_j  a, b  rad
     cyclic_joint_error_h2 δq_j = a · sin 2q_j + b · cos 2q_j
-    joint_backlash        δq_j = b · sgn(τ_j)              b  rad
+    joint_backlash        δq_j = b · tanh(τ_j / τ_b),      b  rad, τ_b = 0.01 N m
     joint_play            δq_j = b · tanh(τ_j / τ0),       b  rad, u = ln(τ0 / 1 N m)
                           τ0 = e^u N m identified
     joint_scale           δq_j = k · q_j                   k  1 (transmission ratio)
@@ -43,9 +43,12 @@ joint of stiffness k sags along gravity, against its holding torque, so a physic
 compliance is c = −1/k < 0. Industrial joints have k ≈ 1e4 … 1e7 N m/rad, hence
 |c| ≈ 1e-7 … 1e-4 rad/(N m); :func:`compliance_warnings` flags fitted values outside.
 
-``sgn`` is ``tanh(τ/τ0)`` with τ0 = 0.01 N m: the sign wherever gravity loads
-the joint measurably, and 0 where it exerts no torque at all (a vertical first
-axis), so a joint without load shows no backlash instead of numerical noise.
+``joint_backlash`` is ``b·tanh(τ/τ_b)`` with τ_b = 0.01 N m (0.01 N for a prismatic joint,
+:data:`~kpi_calib_ros.core.effects.library.BACKLASH_TORQUE_SCALE`), a smooth sgn τ: the sign
+within 0.5 % wherever |τ| > 3 τ_b, and 0 where gravity exerts no torque at all (a vertical
+first axis), so a joint without load shows no backlash instead of numerical noise. A joint
+whose gravity torque stays below τ_b is never loaded out of its play: there the formula is
+(b/τ_b)·τ, a compliance, and the diagnosis does not propose a backlash for it.
 
 User effects
 ------------

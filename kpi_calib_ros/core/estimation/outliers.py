@@ -77,6 +77,7 @@ from kpi_calib_ros.core.measurement.tracker import (
     Measurements,
     noise_weights,
     row_sigma,
+    stated_sigma,
     weighted_residuals,
     weighted_rows,
 )
@@ -207,14 +208,17 @@ def judge(model: MeasurementModel, data: Measurements, p: np.ndarray,
     kept = np.asarray(kept, bool)
     pose = pose_groups(data.q) if pose is None else np.asarray(pose)
     stated = np.broadcast_to(np.asarray(sigma, float), (3,))
+    # The σ whitened rows are multiplied by to compare with σ̂ (core.robust.noise_units):
+    # the cell's, or the points' own.
+    reference = stated_sigma(stated, data.sigma, n)
     # A noise-free fit (simulated) has a σ̂ of round-off, or 0: floored far below any
     # real noise, so its residuals stay far below the threshold instead of 0/0.
-    scale = max(float(scale), 1e-9 * float(np.mean(stated)))
-    ratio = stated / scale  # σ units -> σ̂ units
+    scale = max(float(scale), 1e-9 * reference)
+    ratio = reference / scale  # σ units -> σ̂ units
     t = np.zeros(n)
     lev = np.zeros(n)
     r_k, blocks = hat_blocks(model, data.subset(kept), p, estimated, sigma, point_weights)
-    t[kept] = np.sqrt(studentized(r_k, blocks)) * float(np.mean(ratio))
+    t[kept] = np.sqrt(studentized(r_k, blocks)) * ratio
     lev[kept] = np.linalg.eigvalsh(blocks)[:, -1]
     # Excluded points: plain distance in σ̂ (no leverage: they are not in the fit).
     rest = ~kept
@@ -226,7 +230,7 @@ def judge(model: MeasurementModel, data: Measurements, p: np.ndarray,
         if model.joint_sigma is not None or out.sigma is not None:
             # In the stated σ's units, as the fit's σ̂ (core.estimation.robust.noise_units).
             white = noise_weights(model, p, out, stated)
-            miss = weighted_residuals(miss, white).reshape(-1, 3) * float(np.mean(stated))
+            miss = weighted_residuals(miss, white).reshape(-1, 3) * reference
         t[rest] = np.linalg.norm(miss, axis=1) / scale
     over = kept & (t > threshold)
     # Residuals in σ̂ units of every kept point (unweighted by ω: consistency is geometry).
@@ -238,7 +242,7 @@ def judge(model: MeasurementModel, data: Measurements, p: np.ndarray,
         # Each point in units of its own σ, at the stated σ as σ̂
         # (core.estimation.robust.noise_units).
         miss_k = weighted_residuals(miss_k, 1.0 / row_sigma(stated, kq.sigma, len(miss_k))
-                                    ).reshape(-1, 3) * float(np.mean(stated))
+                                    ).reshape(-1, 3) * reference
     resid[kept] = miss_k / scale
     is_point = np.ones(n, bool) if data.reflector is None else \
         np.asarray(data.reflector) < model.n_reflectors

@@ -18,11 +18,17 @@ import numpy as np
 import scipy.stats
 
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
-from kpi_calib_ros.core.estimation.robust import SIGMA_RATIO_WARNING, robust_sigma, sigma_warning
+from kpi_calib_ros.core.estimation.robust import (
+    SIGMA_RATIO_WARNING,
+    robust_sigma,
+    sigma_warning,
+    stated_source,
+)
 from kpi_calib_ros.core.measurement.tracker import (
     MeasurementModel,
     Measurements,
     noise_weights,
+    stated_sigma,
     unweighted,
     weighted_residuals,
     weighted_rows,
@@ -74,6 +80,9 @@ class ResidualReport:
         m.
     sigma_warning : str
         '' or the warning that σ̂ and the stated σ differ by more than 2×.
+    sigma_stated_m : float
+        The σ per axis the rows state (m): the cell's, or the rms of the points' own
+        (:func:`~kpi_calib_ros.core.measurement.tracker.stated_sigma`), what σ̂ compares with.
     """
 
     residuals: np.ndarray
@@ -92,6 +101,7 @@ class ResidualReport:
     alpha: float
     sigma_robust_m: float = float('nan')
     sigma_warning: str = ''
+    sigma_stated_m: float = float('nan')
 
 
 
@@ -149,11 +159,16 @@ def noise_verdict(chi2: float, dof: int, alpha: float = ADEQUACY_ALPHA) -> tuple
 
 
 def sigma_overstated_text(chi2: float, dof: int, lower_p: float,
-                          alpha: float = ADEQUACY_ALPHA) -> str:
-    """Return the warning of :data:`SIGMA_OVERSTATED`, naming the key to fix."""
+                          alpha: float = ADEQUACY_ALPHA, ratio: float | None = None) -> str:
+    """Return the warning of :data:`SIGMA_OVERSTATED`, naming the key to fix.
+
+    ``ratio``: the residuals over the stated noise alone, when χ² holds more than the noise
+    (validation: the parameters' part too); default √(χ²/dof), a fit's own residuals.
+    """
+    ratio = float(np.sqrt(chi2 / dof)) if ratio is None else ratio
     return (f'{SIGMA_OVERSTATED}: chi2/dof = {chi2:.3g}/{dof} is far below its dof '
             f'(P(chi2 <= {chi2:.3g}) = {lower_p:.2g} < {alpha:g}): the residuals are '
-            f'{np.sqrt(chi2 / dof):.3g} x the stated noise.sigma; every std and covariance '
+            f'{ratio:.3g} x the stated noise.sigma; every std and covariance '
             'resting on it is too large and the adequacy test cannot fail; check '
             'noise.sigma (units: m)')
 
@@ -366,7 +381,8 @@ def residual_report(model: MeasurementModel, data: Measurements, result: Calibra
                              for ri, h in zip(sys_.r.reshape(n, 3), blocks)])
     k = sys_.basis.shape[1]
     dof = 3 * n - k
-    stated = float(np.mean(result.sigma))
+    # The σ the rows state: the cell's, or the points' own (core.robust.noise_units).
+    stated = stated_sigma(result.sigma, data.sigma, n)
     # With joint-reading noise σ̂ is that of the whitened residuals at the stated σ: the
     # joints' share of the scatter is stated, not a misfit (core.estimation.robust).
     sigma_hat = robust_sigma(residuals if model.joint_sigma is None and data.sigma is None
@@ -374,7 +390,7 @@ def residual_report(model: MeasurementModel, data: Measurements, result: Calibra
     inflation = max(1.0, sigma_hat / stated) if np.isfinite(sigma_hat) else 1.0
     outlier = scipy.stats.chi2.sf(standardized / inflation ** 2, 3) * n < alpha
     ratio = sigma_hat / stated
-    warning = sigma_warning(sigma_hat, stated) if np.isfinite(ratio) and not (
+    warning = sigma_warning(sigma_hat, stated, stated_source(data)) if np.isfinite(ratio) and not (
         1 / SIGMA_RATIO_WARNING <= ratio <= SIGMA_RATIO_WARNING) else ''
     chi2 = float(sys_.r @ sys_.r)
     p_value = float(scipy.stats.chi2.sf(chi2, dof)) if dof > 0 else float('nan')
@@ -385,7 +401,7 @@ def residual_report(model: MeasurementModel, data: Measurements, result: Calibra
         chi2=chi2, dof=dof, p_value=p_value, adequate=is_adequate(p_value, alpha),
         leverage=leverage, standardized=standardized, outlier=outlier,
         high_leverage=leverage > 3 * k / n, alpha=alpha, sigma_robust_m=sigma_hat,
-        sigma_warning=warning)
+        sigma_warning=warning, sigma_stated_m=stated)
 
 
 def validation_rms(model: MeasurementModel, data: Measurements,

@@ -11,7 +11,9 @@ larger where the joints' lever is long: σ̂ and the distances reported then tak
 residual whitened (W_i r_i,
 :meth:`~kpi_calib_ros.core.measurement.tracker.MeasurementModel.whitening`) times the stated σ, a
 residual whose noise is the stated σ on every axis at every pose, and the studentized distances
-below come from the whitened rows.
+below come from the whitened rows. With per-point σ (the tracker's own) the stated σ is that
+of the points (their rms, :func:`~kpi_calib_ros.core.measurement.tracker.stated_sigma`), not
+the cell's ``noise.sigma``.
 
 *Outliers.* A measurement is over the threshold when its studentized distance
 t_i = √(r_iᵀ (I − H_ii)⁺ r_i) / σ̂ exceeds ``threshold``. The default threshold is the
@@ -50,6 +52,7 @@ from kpi_calib_ros.core.measurement.tracker import (
     MeasurementModel,
     Measurements,
     noise_weights,
+    stated_sigma,
     weighted_residuals,
 )
 
@@ -58,6 +61,7 @@ __all__ = [
     'SIGMA_RATIO_WARNING', 'IRLS_ITERATIONS', 'OutlierSettings', 'ExcludedMeasurement',
     'RobustResult', 'robust_sigma', 'outlier_threshold', 'loss_weights', 'subset',
     'robust_identify', 'misfit_warning', 'gross_outliers', 'sigma_warning', 'noise_units',
+    'POINT_SIGMA', 'stated_source',
 ]
 
 LOSSES = ('linear', 'huber', 'soft_l1')
@@ -296,11 +300,12 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
     flagged = tuple(int(i) for i in np.flatnonzero(t > threshold))
     misfit = tuple(int(i) for i in np.flatnonzero(
         verdict.misfit | (verdict.fault & verdict.lone & lone_misfit)))
-    stated = float(np.mean(np.broadcast_to(np.asarray(sigma, float), (3,))))
+    # With per-point σ the σ they state, not the cell's noise.sigma (noise_units).
+    stated = stated_sigma(sigma, data.sigma, n)
     warnings = []
     ratio = scale / stated
     if not (1 / SIGMA_RATIO_WARNING <= ratio <= SIGMA_RATIO_WARNING):
-        warnings.append(sigma_warning(scale, stated))
+        warnings.append(sigma_warning(scale, stated, stated_source(data)))
     if flagged and not outliers.exclude:
         warnings.append(f'{len(flagged)} outlier(s) beyond {threshold:.2f} σ̂ kept in the fit '
                         '(identification.outliers.exclude is false)')
@@ -343,31 +348,47 @@ def gross_outliers(model: MeasurementModel, data: Measurements,
     return nominal > max(GROSS_DISTANCE, 20 * float(np.median(nominal))), nominal
 
 
-def sigma_warning(robust: float, stated: float) -> str:
-    """Return the warning text for a robust σ̂ more than 2× away from the stated σ."""
+POINT_SIGMA = "the points' own stated sigma"
+
+
+def sigma_warning(robust: float, stated: float, source: str = 'noise.sigma') -> str:
+    """Return the warning text for a robust σ̂ more than 2× away from the stated σ.
+
+    ``source``: what stated it, the cell's ``noise.sigma`` or :data:`POINT_SIGMA` (the rms
+    of the σ the tracker stated per point, :func:`stated_source`).
+    """
     ratio = robust / stated
     side = 'smaller' if ratio < 1 else 'larger'
     return (f'noise σ estimated from the residuals ({robust * 1e6:.3g} µm) is {ratio:.3g}× the '
-            f'stated noise.sigma ({stated * 1e6:.3g} µm), {side} by more than '
+            f'stated {source} ({stated * 1e6:.3g} µm), {side} by more than '
             f'{SIGMA_RATIO_WARNING:g}×: the stated σ sets the χ² test (and every reported std '
             'while the model passes it); '
-            'check noise.sigma (units: m) or the model (kpi-calib diagnose)')
+            f'check {source} (units: m) or the model (kpi-calib diagnose)')
+
+
+def stated_source(data: Measurements) -> str:
+    """Return what states the σ of ``data``'s rows: the cell's noise.sigma or the points'."""
+    return 'noise.sigma' if data.sigma is None else POINT_SIGMA
 
 
 def noise_units(model: MeasurementModel, data: Measurements, p: np.ndarray,
                 residuals: np.ndarray, sigma: float | np.ndarray) -> np.ndarray:
     """Residuals (N, 3) of ``data`` at ``p`` as the robust statistics take them (m).
 
-    As given without joint-reading noise and per-point σ; with either, W_i r_i times the mean
-    stated σ, whose noise is the stated σ on every axis at every pose (a point's own σ from the
-    tracker counts in units of itself,
-    :func:`~kpi_calib_ros.core.measurement.tracker.noise_weights`).
+    As given without joint-reading noise and per-point σ; with either, W_i r_i times the
+    stated σ (:func:`~kpi_calib_ros.core.measurement.tracker.stated_sigma`: the cell's, or the
+    rms of the points' own), whose noise is that σ on every axis at every pose (a point's own
+    σ from the tracker counts in units of itself,
+    :func:`~kpi_calib_ros.core.measurement.tracker.noise_weights`). Scaled by the points' own
+    σ, not the cell's: a robust σ̂ of 20.9 µm noise on points stating 10 µm reads 20.9 µm
+    (2.09× the stated), not 2.09× the cell's noise.sigma.
     """
     if model.joint_sigma is None and data.sigma is None:
         return residuals
     sigma = np.broadcast_to(np.asarray(sigma, float), (3,))
     w = noise_weights(model, p, data, sigma)
-    return weighted_residuals(residuals, w).reshape(-1, 3) * float(np.mean(sigma))
+    return (weighted_residuals(residuals, w).reshape(-1, 3)
+            * stated_sigma(sigma, data.sigma, len(residuals)))
 
 
 def _fit_with_loss(fit: Fit, data: Measurements, loss: str, p0: np.ndarray | None,

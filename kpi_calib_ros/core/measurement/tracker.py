@@ -63,7 +63,7 @@ from kpi_calib_ros.core.model.parameters import ParameterSet
 from kpi_calib_ros.core.model.robot import RobotModel
 
 __all__ = [
-    'Effect', 'effect_inputs', 'Measurements', 'row_sigma', 'MeasurementModel',
+    'Effect', 'effect_inputs', 'Measurements', 'row_sigma', 'stated_sigma', 'MeasurementModel',
     'with_rotation_rows', 'noise_weights', 'weighted_rows', 'weighted_residuals', 'unweighted',
 ]
 
@@ -182,6 +182,21 @@ def row_sigma(sigma: float | np.ndarray, data_sigma: np.ndarray | None, n: int) 
                          f'cell\'s sigma), got {given[stated & ~(given > 0)][:3]}')
     out[stated] = given[stated]
     return out
+
+
+def stated_sigma(sigma: float | np.ndarray, data_sigma: np.ndarray | None, n: int) -> float:
+    """Return the one σ per axis (m) the rows state together.
+
+    The mean over the axes of the cell's ``sigma`` without per-row σ; with it, of each
+    axis's root mean square over the rows (:func:`row_sigma`). Whitened residuals (each
+    row in units of its own σ) times this are residuals in metres of the size the rows'
+    noise has: a robust σ̂ computed from them compares with it, and with the residuals'
+    rms, whatever the cell's ``noise.sigma`` says.
+    """
+    if data_sigma is None or n == 0:
+        return float(np.mean(np.broadcast_to(np.asarray(sigma, float), (3,))))
+    rows = row_sigma(sigma, data_sigma, n)
+    return float(np.mean(np.sqrt(np.mean(rows ** 2, axis=0))))
 
 
 class MeasurementModel:
