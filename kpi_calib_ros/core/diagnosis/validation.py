@@ -75,9 +75,10 @@ from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurement
 __all__ = ['PREDICTION_TOLERANCE', 'TrainingSpan', 'Validation', 'range_tolerance',
            'shared_chi2', 'training_row_space', 'validate']
 
-# Largest relative part of a new point's gradient outside the training row space (column-
-# equilibrated, as core.estimability) for its prediction to count as determined. A joint read
-# 1e-4 rad from its training value leaves ~1e-4 (estimable: the calibration was made there);
+# Largest relative part of a new point's gradient outside the training row space
+# (column-equilibrated, as core.estimation.estimability) for its prediction to count as
+# determined. A joint read 1e-4 rad from its training value leaves ~1e-4 (estimable: the
+# calibration was made there);
 # a motion no training pose made (a joint held in training) leaves O(0.1-1).
 PREDICTION_TOLERANCE = 1e-3
 

@@ -208,7 +208,7 @@ def judge(model: MeasurementModel, data: Measurements, p: np.ndarray,
     kept = np.asarray(kept, bool)
     pose = pose_groups(data.q) if pose is None else np.asarray(pose)
     stated = np.broadcast_to(np.asarray(sigma, float), (3,))
-    # The σ whitened rows are multiplied by to compare with σ̂ (core.robust.noise_units):
+    # The σ whitened rows are multiplied by to compare with σ̂ (core.estimation.robust.noise_units):
     # the cell's, or the points' own.
     reference = stated_sigma(stated, data.sigma, n)
     # A noise-free fit (simulated) has a σ̂ of round-off, or 0: floored far below any

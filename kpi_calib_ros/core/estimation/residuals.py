@@ -381,7 +381,7 @@ def residual_report(model: MeasurementModel, data: Measurements, result: Calibra
                              for ri, h in zip(sys_.r.reshape(n, 3), blocks)])
     k = sys_.basis.shape[1]
     dof = 3 * n - k
-    # The σ the rows state: the cell's, or the points' own (core.robust.noise_units).
+    # The σ the rows state: the cell's, or the points' own (core.estimation.robust.noise_units).
     stated = stated_sigma(result.sigma, data.sigma, n)
     # With joint-reading noise σ̂ is that of the whitened residuals at the stated σ: the
     # joints' share of the scatter is stated, not a misfit (core.estimation.robust).
