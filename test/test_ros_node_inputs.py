@@ -86,6 +86,20 @@ def test_junk_in_the_archive_is_skipped_and_the_answer_says_why_no_prior(node):
     assert 'clock' in message and 'prior /' not in message
 
 
+def test_a_nul_byte_in_an_archived_calibration_is_skipped_by_name(node):
+    """A damaged archived calibration (a NUL byte, e.g. data_dir/calibrations/1.yaml):
+    ~/identify goes on, without it, and the answer names the file and why."""
+    archive = node.data_dir / 'calibrations'
+    archive.mkdir()
+    damaged = archive / '1.yaml'
+    damaged.write_text('parameters: []\n\x00\n')
+    ok, message = node.identify()
+    assert ok, message
+    assert f'{damaged} skipped' in message and 'character YAML does not allow' in message
+    ok, message = node.identify()  # and again: nothing blocks the next one
+    assert ok, message
+
+
 def test_a_full_disk_during_identify_is_an_error_on_diagnostics(node, monkeypatch):
     """[Errno 28] from writing the results: the service answers it and /diagnostics says
     ERROR with it (it stayed OK); a later successful identification clears it."""

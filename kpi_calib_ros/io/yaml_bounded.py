@@ -23,9 +23,10 @@ MAX_DOCUMENT_BYTES = 32 * 2 ** 20
 # Scalars and collections of the document with every alias expanded: ~10 per measurement
 # (residuals, training poses), so a million measurements fit.
 MAX_DOCUMENT_NODES = 10_000_000
+FIX = 'give a calibration.yaml written by kpi-calib identify (unedited)'
 
 
-def load_yaml_bounded(text: str, where: str, key: str, fix: str,
+def load_yaml_bounded(text: str, where: str, key: str, fix: str = FIX,
                       loader: type[yaml.SafeLoader] = yaml.SafeLoader,
                       max_bytes: int = MAX_DOCUMENT_BYTES,
                       max_nodes: int = MAX_DOCUMENT_NODES) -> Any:
@@ -41,7 +42,8 @@ def load_yaml_bounded(text: str, where: str, key: str, fix: str,
     key : str
         The ConfigError key (the option or setting that named the file).
     fix : str
-        What the user should give instead, ending each message.
+        What the user should give instead, ending each message (default: a calibration
+        written by ``kpi-calib identify``, the document most read back).
     loader : yaml.SafeLoader subclass
         E.g. the cell loader with its YAML 1.2 float rule.
     """
@@ -49,8 +51,11 @@ def load_yaml_bounded(text: str, where: str, key: str, fix: str,
     if size > max_bytes:
         raise ConfigError(key, f'{where} is {size} bytes, more than the {max_bytes} bytes '
                           f'such a document may have; {fix}')
-    reader = loader(text)
+    # The loader checks the characters as it is built (a control character, e.g. a NUL
+    # byte of a damaged disk, is a ReaderError there): built inside the try.
+    reader = None
     try:
+        reader = loader(text)
         node = reader.get_single_node()
         if node is None:
             return None
@@ -59,12 +64,17 @@ def load_yaml_bounded(text: str, where: str, key: str, fix: str,
             raise ConfigError(key, f'{where}: its YAML aliases (*name) expand to more than '
                               f'{max_nodes} nodes; {fix}')
         return reader.construct_document(node)
+    except yaml.reader.ReaderError as exc:
+        raise ConfigError(key, f'{where} holds a character YAML does not allow ('
+                          f'#x{exc.character:04x}, a control character, at character '
+                          f'{exc.position}): the file is damaged or not text; {fix}') from None
     except yaml.YAMLError as exc:
-        raise ConfigError(key, f'{where} is not valid YAML: {exc}') from None
+        raise ConfigError(key, f'{where} is not valid YAML: {exc}; {fix}') from None
     except RecursionError:
         raise ConfigError(key, f'{where} nests deeper than YAML can be read; {fix}') from None
     finally:
-        reader.dispose()
+        if reader is not None:
+            reader.dispose()
 
 
 def read_yaml_file(path: str | Path, key: str, fix: str,
@@ -121,4 +131,4 @@ def _expanded_nodes(root: yaml.Node, key: str, where: str, fix: str, max_nodes: 
     return done[id(root)]
 
 
-__all__ = ['MAX_DOCUMENT_BYTES', 'MAX_DOCUMENT_NODES', 'load_yaml_bounded', 'read_yaml_file']
+__all__ = ['FIX', 'MAX_DOCUMENT_BYTES', 'MAX_DOCUMENT_NODES', 'load_yaml_bounded', 'read_yaml_file']
