@@ -112,10 +112,14 @@ def residual_document(choice: ResidualChoice, result: CalibrationResult,
                      'covariance_outside': np.asarray(covariance_outside, float).tolist()}}
 
 
+def residual_text(doc: dict[str, Any]) -> str:
+    """learned_residual.yaml's text of ``doc``."""
+    return yaml.safe_dump(doc, sort_keys=False)
+
+
 def write_residual(out_dir: str | Path, doc: dict[str, Any]) -> Path:
     """Write ``doc`` atomically as learned_residual.yaml in ``out_dir``."""
-    return write_atomic(Path(out_dir) / LEARNED_RESIDUAL_FILE,
-                        yaml.safe_dump(doc, sort_keys=False))
+    return write_atomic(Path(out_dir) / LEARNED_RESIDUAL_FILE, residual_text(doc))
 
 
 def read_residual(path: str | Path, key: str = 'learned_residual') -> StoredResidual:
@@ -219,4 +223,5 @@ def _matrix(value: Any, shape: tuple[int, int], field: str, bad: Any) -> np.ndar
                      for i, row in enumerate(value)]).reshape(rows, cols)
 
 
-__all__ = ['FORMAT', 'StoredResidual', 'read_residual', 'residual_document', 'write_residual']
+__all__ = ['FORMAT', 'StoredResidual', 'read_residual', 'residual_document', 'residual_text',
+           'write_residual']
