@@ -88,6 +88,26 @@ def writable_folder(path: str | Path, key: str = 'out') -> Path:
     return path
 
 
+def writable_file(path: str | Path, key: str = 'out', example: str = 'out') -> Path:
+    """Check that file ``path`` can be written (its folder created if needed), before a
+    command computes it: a folder (``/``, an existing directory) is refused, so is a
+    folder that cannot be written (read-only, permissions). ConfigError names ``key`` and
+    suggests ``example`` (a file name) in the folder given."""
+    path = Path(path)
+    if str(path).endswith(('/', os.sep)) or path.is_dir():
+        raise ConfigError(key, f'{str(path)!r} is a folder: give the file to write, e.g. '
+                          f'{str(path / example)!r}')
+    parent = path.parent
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=parent, prefix='.write_test.'):
+            pass
+    except OSError as exc:
+        raise ConfigError(key, f'cannot write {str(path)!r}: {exc.strerror or exc}; give a '
+                          'file in a writable folder') from None
+    return path
+
+
 def _point_sigma_summary(result: CalibrationResult) -> dict[str, Any] | None:
     if result.point_sigma is None:
         return None
