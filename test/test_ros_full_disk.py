@@ -99,6 +99,7 @@ def node(disk, ros_domain, monkeypatch):
         rclpy.shutdown(context=context)
 
 
+@pytest.mark.slow
 def test_a_full_disk_keeps_the_old_calibration_served_whole(node, disk):
     data_dir = node.data_dir
     ok, message = node.identify()
