@@ -9,7 +9,9 @@ Results go to files; a summary to stdout.
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
+import threading
 from pathlib import Path
 
 from kpi_calib_ros.core.errors import DataError, KpiCalibError
@@ -254,14 +256,61 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# What each subcommand's --out names: a folder of results or the one file written
+# (with an example name for the message).
+OUT_FOLDER = ''
+OUTPUTS = {'identify': OUT_FOLDER, 'diagnose': OUT_FOLDER, 'validate': OUT_FOLDER,
+           'campaign': OUT_FOLDER, 'demo': OUT_FOLDER, 'robots': OUT_FOLDER,
+           'simulate': 'bag.mcap', 'import-csv': 'bag.mcap', 'design': 'design.yaml'}
+
+
+def check_output(command: str, out: str | None) -> None:
+    """The one check of a subcommand's ``--out``, before anything is computed: a folder
+    of results must be writable and not a file system's root
+    (:func:`~kpi_calib_ros.io.results.writable_folder`), a file must not be a folder
+    (:func:`~kpi_calib_ros.io.results.writable_file`). ConfigError names ``--out``."""
+    if out is None or command not in OUTPUTS:
+        return
+    from kpi_calib_ros.io.results import writable_file, writable_folder
+    if OUTPUTS[command] == OUT_FOLDER:
+        writable_folder(out, '--out')
+    else:
+        writable_file(out, '--out', OUTPUTS[command])
+
+
+class Stopped(KeyboardInterrupt):
+    """SIGTERM, raised as SIGINT's KeyboardInterrupt is: what a command was writing is
+    removed on the way out (temporary files of atomic writes, a bag's ``.partial``)."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+
+def _raise_stopped(signum: int, frame: object) -> None:
+    raise Stopped(signum)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    # Only the main thread may set a handler (main() is also called from tests' threads).
+    installed = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _raise_stopped) if installed else None
     try:
+        check_output(args.command, getattr(args, 'out', None))
         return _COMMANDS[args.command](args)
     except (KpiCalibError, ValueError, FileNotFoundError) as exc:
         print(f'kpi-calib {args.command}: error: {exc}', file=sys.stderr)
         return 2
+    except KeyboardInterrupt as exc:
+        signum = exc.signum if isinstance(exc, Stopped) else signal.SIGINT
+        print(f'kpi-calib {args.command}: stopped by {signal.Signals(signum).name}; the '
+              'temporary files it was writing are removed', file=sys.stderr)
+        return 128 + signum
+    finally:
+        if installed:
+            signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
 
 
 def _simulate(args: argparse.Namespace) -> int:

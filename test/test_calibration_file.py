@@ -21,10 +21,10 @@ from kpi_calib_ros.core.simulation import (
     true_parameters,
 )
 from kpi_calib_ros.io.bag_writing import write_bag
-from kpi_calib_ros.io.calibration_file import load_yaml_bounded, read_calibration_document
+from kpi_calib_ros.io.calibration_file import read_calibration_document
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 from kpi_calib_ros.io.results import write_calibration
-from kpi_calib_ros.io.yaml_bounded import MAX_DOCUMENT_NODES
+from kpi_calib_ros.io.yaml_bounded import MAX_DOCUMENT_NODES, load_yaml_bounded
 
 CELL = str(DEFAULT_CELL)
 HOUR_NS = 3_600_000_000_000
@@ -344,3 +344,45 @@ def test_a_column_mapping_with_an_alias_bomb_is_refused(tmp_path, capsys):
                  '--out', str(tmp_path / 'o.mcap')])
     err = capsys.readouterr().err
     assert code == 2 and 'aliases' in err and str(mapping) in err, err
+
+
+def _with_nul(source: Path, target: Path) -> Path:
+    """``source`` copied to ``target`` with a NUL byte (a damaged disk block) inside."""
+    text = source.read_text()
+    target.parent.mkdir(parents=True, exist_ok=True)
+    target.write_text(text[:len(text) // 2] + '\x00' + text[len(text) // 2:])
+    return target
+
+
+def test_a_control_character_in_any_yaml_file_is_a_named_error(made, tmp_path, capsys):
+    """A NUL byte in the cell, a calibration, a --prior, a column mapping or a learned
+    residual: exit 2 naming the file and the fix, never a yaml ReaderError traceback."""
+    tmp, _, new = made
+    good = tmp / 'good' / 'calibration.yaml'
+    cell = _with_nul(Path(CELL), tmp_path / 'cell' / 'cell.yaml')
+    calibration = _with_nul(good, tmp_path / 'cal' / 'calibration.yaml')
+    beside = tmp_path / 'learned' / 'calibration.yaml'
+    beside.parent.mkdir()
+    beside.write_text(good.read_text())
+    learned = beside.parent / 'learned_residual.yaml'
+    learned.write_text('version: 1\n\x00\n')
+    mapping = tmp_path / 'mapping.yaml'
+    mapping.write_text('frame_id: laser_tracker\n\x00joints: [a]\n')
+    table = tmp_path / 't.csv'
+    table.write_text('a,b\n1,2\n')
+    out = str(tmp_path / 'out')
+    cases = [(cell, ['identify', '--cell', str(cell), '--bag', str(new), '--out', out]),
+             (calibration, ['validate', '--cell', CELL, '--calibration', str(calibration),
+                            '--bag', str(new), '--out', out]),
+             (calibration, ['identify', '--cell', CELL, '--prior', str(calibration),
+                            '--bag', str(new), '--out', out]),
+             (mapping, ['import-csv', str(table), '--mapping', str(mapping),
+                        '--out', str(tmp_path / 'o.mcap')]),
+             (learned, ['validate', '--cell', CELL, '--calibration', str(beside),
+                        '--bag', str(new), '--out', out])]
+    for path, command in cases:
+        code = main(command)
+        err = capsys.readouterr().err
+        assert code == 2, (command, err)
+        assert f'{path} holds a character YAML does not allow (#x0000' in err, err
+        assert 'give a' in err.splitlines()[-1], err

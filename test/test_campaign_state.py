@@ -158,6 +158,7 @@ def test_a_campaign_stopped_model_inadequate_publishes_and_archives_nothing(tmp_
     data = Measurements(q=campaign.q, eta=campaign.eta, stamps_ns=campaign.stamps)
     pairing = PairingResult(tuple(cm.joint_names), cm.cell.tracker_frame, campaign.q,
                             campaign.eta, campaign.stamps)
-    cal, text, *_ = jobs.identify_work(cm, data, pairing, tmp_path, archive=False)
+    out = jobs.identify_work(cm, data, pairing, tmp_path, archive=False)
+    cal, text = out.calibration, out.text
     assert cal is not None and cal.valid and yaml.safe_load(text)['identified_at_ns'] > 0
     assert not (tmp_path / CALIBRATIONS_DIR).exists()

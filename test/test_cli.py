@@ -185,7 +185,7 @@ def test_a_cell_file_cannot_run_code_without_the_flag(run_bag, tmp_path, capsys)
     cell = _cell_copy(tmp_path, effects=['evil.py:SAG:joint_2'])
     for command in (['identify', '--bag', str(run_bag)], ['diagnose', '--bag', str(run_bag)],
                     ['design', '--n', '3'], ['simulate', '--n', '3']):
-        code = main(command + ['--cell', str(cell), '--out', str(tmp_path / 'out.x')])
+        code = main(command + ['--cell', str(cell), '--out', str(tmp_path / f'{command[0]}.x')])
         err = capsys.readouterr().err
         assert code == 2 and '--allow-code-effects' in err and 'effects[0]' in err, command
         assert not marker.exists(), command

@@ -151,7 +151,7 @@ def test_cli_writes_the_node_calibrated_urdf(tmp_path, capsys):
     cli_urdf = out_cli / CALIBRATED_URDF_FILE
     assert f'calibrated robot description (URDF): {cli_urdf}' in text
     cm, data, pairing = load_measurements(DEFAULT_CELL, bag)
-    _, _, urdf, *_ = identify_work(cm, data, pairing, out_node)
+    urdf = identify_work(cm, data, pairing, out_node).urdf
     assert cli_urdf.read_text() == urdf == (out_node / CALIBRATED_URDF_FILE).read_text()
     assert (out_cli / 'calibration.yaml').read_text() == (out_node / 'calibration.yaml').read_text()
 

@@ -165,7 +165,7 @@ def test_an_out_path_that_is_a_folder_is_exit_2_naming_out(tmp_path, capsys):
     table.write_text('\n'.join(_plain_table(3)) + '\n')
     (tmp_path / 'folder.mcap').mkdir()
     assert main(['import-csv', str(table), *_PLAIN, '--out', str(tmp_path / 'folder.mcap')]) == 2
-    assert f"--out {tmp_path / 'folder.mcap'}" in capsys.readouterr().err
+    assert f"--out: '{tmp_path / 'folder.mcap'}' is a folder" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ['folder.mcap', 'plain.csv']
 
 

@@ -234,13 +234,13 @@ def test_node_job_never_writes_an_invalid_calibration_over_the_last_good_one(cm,
     from kpi_calib_ros.ros.jobs import identify_work
     p_true, q, _ = truth
     good = _campaign(cm, p_true, q, 10)
-    cal, text, urdf, tcp, *_ = identify_work(cm, good, None, tmp_path)
-    assert cal.valid and urdf and len(tcp) == 1
+    out = identify_work(cm, good, None, tmp_path)
+    assert out.calibration.valid and out.urdf and len(out.tcp) == 1
     before = (tmp_path / CALIBRATION_FILE).read_text()
-    assert text == before
+    assert out.text == before
     bad = _campaign(cm, p_true, np.repeat(q[:1], 60, axis=0), 11)
-    cal, text, urdf, tcp, *_ = identify_work(cm, bad, None, tmp_path)
-    assert not cal.valid and urdf == '' and tcp == []
+    out = identify_work(cm, bad, None, tmp_path)
+    assert not out.calibration.valid and out.urdf == '' and out.tcp == ()
     assert (tmp_path / CALIBRATION_FILE).read_text() == before
     assert yaml.safe_load((tmp_path / FAILED_CALIBRATION_FILE).read_text())['valid'] is False
 

@@ -222,6 +222,16 @@ def test_the_node_runs_no_code_named_by_the_cell_without_the_opt_in(tmp_path, ro
     assert marker.exists() and 'SAG' in str(error)
 
 
+def test_a_control_character_in_the_cell_file_is_a_config_error_naming_it(tmp_path,
+                                                                          ros_domain):
+    text = DEFAULT_CELL.read_text()
+    cell = tmp_path / 'cell.yaml'
+    cell.write_text(text[:100] + '\x00' + text[100:])
+    error = _start_error(tmp_path, ros_domain, Parameter('cell_file', value=str(cell)))
+    assert error.key == 'cell' and f'{cell} holds a character YAML does not allow' \
+        in str(error), str(error)
+
+
 @pytest.mark.slow
 def test_bad_command_line_parameters_exit_2_naming_them(spawn, tmp_path, ros_domain):
     blocker = tmp_path / 'a_file'

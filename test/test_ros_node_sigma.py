@@ -71,7 +71,7 @@ def offline_values(cm, joints, points, sigma, path):
     data, pairing = measurements_from_bag(cm, write_campaign_bag(joints, points, sigma, path))
     out = path.with_suffix('')
     out.mkdir()
-    cal = jobs.identify_work(cm, data, pairing, out)[0]
+    cal = jobs.identify_work(cm, data, pairing, out).calibration
     assert cal is not None and cal.valid, cal and cal.problems
     return cal.result.values
 

@@ -39,9 +39,9 @@ def identified(tmp_path_factory):
     eta = simulate_measurements(cm.model, p, q[:N_POSES], cm.cell.sigma, rng).eta
     stamps = 10 ** 18 + np.arange(N_POSES, dtype=np.int64) * 10 ** 9
     pairing = PairingResult(cm.joint_names, cm.cell.tracker_frame, q[:N_POSES], eta, stamps)
-    cal, text, urdf, *_ = jobs.identify_work(cm, Measurements(q=q[:N_POSES], eta=eta,
-                                                              stamps_ns=stamps),
-                                             pairing, data_dir)
+    out = jobs.identify_work(cm, Measurements(q=q[:N_POSES], eta=eta, stamps_ns=stamps),
+                             pairing, data_dir)
+    cal, text, urdf = out.calibration, out.text, out.urdf
     assert cal is not None and cal.valid
     return cm, cal.result, text, urdf, data_dir / 'calibration.yaml', q[N_POSES:]
 

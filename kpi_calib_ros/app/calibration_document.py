@@ -1,14 +1,14 @@
 """The calibration document of an identification: :class:`CellCalibration` (a calibration
 with its model choice, robust statistics and KPI estimability), calibration.yaml's content
-made of it (the result, the DH/Hayati view, warnings, validity), its summary lines, and
-writing it with the calibrated URDF beside it.
+made of it (the result, the DH/Hayati view, warnings, validity), its summary lines and
+the calibrated URDF; :mod:`kpi_calib_ros.app.finish` writes them.
 """
 from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
+from pathlib import Path
 
 import numpy as np
 
@@ -23,8 +23,7 @@ from kpi_calib_ros.core.estimation.registration import Registration
 from kpi_calib_ros.core.estimation.robust import LOSS_SCALE, ExcludedMeasurement, RobustResult
 from kpi_calib_ros.core.model.dh import dh_table
 from kpi_calib_ros.io.cell import CellModel
-from kpi_calib_ros.io.names import CALIBRATED_URDF_FILE, FAILED_CALIBRATION_FILE
-from kpi_calib_ros.io.results import calibration_to_dict, write_atomic, write_calibration
+from kpi_calib_ros.io.results import calibration_to_dict
 from kpi_calib_ros.io.urdf_export import calibrated_urdf
 
 
@@ -183,34 +182,7 @@ def robust_summary(doc: dict[str, Any]) -> str:
     return '\n'.join(lines)
 
 
-def write_calibration_checked(out_dir: str | Path, doc: dict[str, Any]) -> Path:
-    """calibration.yaml for a valid calibration; a failed one goes to
-    calibration.failed.yaml and never replaces the last good calibration.yaml."""
-    if doc.get('valid', True):
-        return write_calibration(out_dir, doc)
-    import yaml
-    return write_atomic(Path(out_dir) / FAILED_CALIBRATION_FILE,
-                        yaml.safe_dump(doc, sort_keys=False))
-
-
 def calibrated_robot_description(cm: CellModel, result: CalibrationResult) -> str:
     """The calibrated URDF of ``result`` (identified joint errors folded into the joint
     origins, see :mod:`kpi_calib_ros.io.urdf_export`); the CLI and the node write this."""
     return calibrated_urdf(cm.cell.urdf_xml, cm.robot, dict(zip(result.names, result.values)))
-
-
-def write_results(cm: CellModel, result: CalibrationResult, doc: dict[str, Any],
-                  out_dir: str | Path) -> tuple[Path, Path | None, str]:
-    """Write a valid calibration as calibration.yaml and the calibrated URDF beside it
-    (atomically); an invalid one (``doc['valid']`` false) only as calibration.failed.yaml,
-    leaving the last good files as they were.
-
-    Returns the calibration document's path, the URDF's path (None when invalid) and the
-    URDF text ('' when invalid).
-    """
-    path = write_calibration_checked(out_dir, doc)
-    if not doc.get('valid', True):
-        return path, None, ''
-    urdf = calibrated_robot_description(cm, result)
-    urdf_path = write_atomic(Path(out_dir) / CALIBRATED_URDF_FILE, urdf)
-    return path, urdf_path, urdf

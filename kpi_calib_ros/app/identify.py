@@ -19,8 +19,8 @@ from kpi_calib_ros.app.calibration_document import (
     add_robust_sections,
     calibration_document,
     robust_summary,
-    write_results,
 )
+from kpi_calib_ros.app.finish import finish_calibration
 from kpi_calib_ros.app.measurements import load_measurements
 from kpi_calib_ros.core.diagnosis.candidates import augmented_model, compare_models
 from kpi_calib_ros.core.diagnosis.effect_selection import choose_effects
@@ -44,7 +44,6 @@ from kpi_calib_ros.core.estimation.robust import (
 )
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements
 from kpi_calib_ros.io.cell import CellModel
-from kpi_calib_ros.io.names import LEARNED_RESIDUAL_FILE
 from kpi_calib_ros.io.report import (
     comparison_text,
     comparison_to_dict,
@@ -370,7 +369,9 @@ def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
     ``learned_residual`` (``--learned-residual``): a Gaussian process of what the model
     leaves, written as learned_residual.yaml beside calibration.yaml when it predicts
     held-out poses better (:mod:`kpi_calib_ros.app.learned_residual`); a valid calibration
-    removes an older learned_residual.yaml it does not replace.
+    removes an older learned_residual.yaml it does not replace. The files are written as
+    one set (:func:`kpi_calib_ros.app.finish.finish_calibration`): a full disk leaves the
+    previous set intact and is a ConfigError naming ``out_dir`` (exit 2).
     """
     writable_folder(out_dir, '--out')
     cm, data, pairing = load_measurements(cell_path, bag_path, effects, **options)
@@ -386,14 +387,12 @@ def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
     comparison = ''
     if cm.model.effects and cal.valid:
         comparison = add_effect_comparison(doc, cm, subset(data, cal.robust.kept), cal.result)
-    residual_text = ''
-    if cal.valid:
-        (Path(out_dir) / LEARNED_RESIDUAL_FILE).unlink(missing_ok=True)
+    residual_text, learned = '', None
     if learned_residual:
-        from kpi_calib_ros.app.learned_residual import add_learned_residual
-        residual_text, _ = add_learned_residual(doc, cm, subset(data, cal.robust.kept),
-                                                cal.result, out_dir)
-    path, urdf_path, _ = write_results(cm, cal.result, doc, out_dir)
+        from kpi_calib_ros.app.learned_residual import learned_residual_section
+        residual_text, learned = learned_residual_section(
+            doc, cm, subset(data, cal.robust.kept), cal.result)
+    done = finish_calibration(cm, cal.result, doc, out_dir, learned)
     kept = subset(data, cal.robust.kept)
     points = (None if kept.reflector is None or len(kept) != len(cal.result.residuals)
               else np.asarray(kept.reflector) < cm.model.n_reflectors)
@@ -409,7 +408,7 @@ def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
         print(comparison)
     if residual_text:
         print(residual_text)
-    print(f'written: {path}')
-    if urdf_path is not None:
-        print(f'calibrated robot description (URDF): {urdf_path}')
+    print(f'written: {done.path}')
+    if done.urdf_path is not None:
+        print(f'calibrated robot description (URDF): {done.urdf_path}')
     return 0 if cal.valid else 1

@@ -3,12 +3,11 @@ TCP predicted with it (the CLI's ``identify --learned-residual`` and the node's
 ``~/tcp_query``).
 
 See :mod:`kpi_calib_ros.core.diagnosis.learned_residual` for the model and its choice; this module
-feeds it the point rows of a calibration, writes learned_residual.yaml and predicts the
+feeds it the point rows of a calibration, makes learned_residual.yaml and predicts the
 TCP at joint values with both parts of its uncertainty.
 """
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
@@ -37,7 +36,7 @@ from kpi_calib_ros.io.cell import CellModel, build_cell_model
 from kpi_calib_ros.io.learned_residual_file import (
     StoredResidual,
     residual_document,
-    write_residual,
+    residual_text,
 )
 from kpi_calib_ros.io.names import LEARNED_RESIDUAL_FILE
 
@@ -205,16 +204,16 @@ def learned_validation_text(doc: dict[str, Any]) -> str:
             f"(as if independent {doc['p_value_independent']:.3g}): {verdict}")
 
 
-def add_learned_residual(doc: dict[str, Any], cm: CellModel, data: Measurements,
-                         result: CalibrationResult, out_dir: str | Path | None,
-                         seed: int = 0) -> tuple[str, Path | None]:
-    """Choose the learned residual for a calibration; when chosen and ``doc`` is valid,
-    write learned_residual.yaml in ``out_dir`` (None: not written).
+def learned_residual_section(doc: dict[str, Any], cm: CellModel, data: Measurements,
+                             result: CalibrationResult, seed: int = 0
+                             ) -> tuple[str, str | None]:
+    """Choose the learned residual for a calibration.
 
     Adds ``learned_residual`` to the calibration document ``doc``: the choice with its
     figures and, when chosen, the TCP at every working pose with the correction, its
     covariance and std (parameter part and learned part) and whether the pose lies inside
-    the fitted region. Returns the summary text and the file written (or None).
+    the fitted region. Returns the summary text and, when chosen and ``doc`` is valid,
+    learned_residual.yaml's text (``section.file`` names it), else None.
     """
     refused = too_many_rows(cm, data)
     if refused:
@@ -223,7 +222,7 @@ def add_learned_residual(doc: dict[str, Any], cm: CellModel, data: Measurements,
     choice = choose_residual(cm, data, result, seed)
     section: dict[str, Any] = {**choice.to_dict(), 'file': None}
     lines = [choice.reason]
-    path = None
+    content = None
     if choice.chosen:
         cov = physical_covariance(result, choice.model, cm.cell.sigma)
         outside = field_covariance(cm.model, data, result, choice.model, cm.cell.sigma)
@@ -242,12 +241,12 @@ def add_learned_residual(doc: dict[str, Any], cm: CellModel, data: Measurements,
                          f"{entry['std_m'] * 1e6:.1f} um (parameter part "
                          f"{entry['parameter_std_m'] * 1e6:.1f} um), {where} the fitted region "
                          f"(distance {entry['distance']:.2g} length scales)")
-        if out_dir is not None and doc.get('valid', True):
-            path = write_residual(out_dir, residual_document(
+        if doc.get('valid', True):
+            content = residual_text(residual_document(
                 choice, result, cov, outside, [e.name for e in cm.model.effects]))
-            section['file'] = path.name
+            section['file'] = LEARNED_RESIDUAL_FILE
     doc['learned_residual'] = section
-    return '\n'.join(lines), path
+    return '\n'.join(lines), content
 
 
 def tcp_entries(names: tuple[str, ...] | list[str], tcp: CorrectedTcp) -> dict[str, Any]:
@@ -266,7 +265,7 @@ def tcp_entries(names: tuple[str, ...] | list[str], tcp: CorrectedTcp) -> dict[s
     return out
 
 
-__all__ = ['add_learned_residual', 'choose_residual', 'field_covariance',
+__all__ = ['choose_residual', 'field_covariance', 'learned_residual_section',
            'learned_validation_text', 'physical_covariance', 'point_rows', 'predict_stored',
            'predict_tcp', 'stored_cell_model', 'tcp_entries', 'too_many_rows',
            'validate_learned']

@@ -35,8 +35,8 @@ from kpi_calib_ros.app.calibration_document import (
     calibration_document,
     require_valid,
     robust_summary,
-    write_results,
 )
+from kpi_calib_ros.app.finish import finish_calibration
 from kpi_calib_ros.app.identify import (
     calibrate_cell,
     places_the_points,
@@ -460,7 +460,9 @@ def run_reidentify(cell_path: str | Path, bag_path: str | Path, out_dir: str | P
     Returns 0 for a valid calibration, 1 when it did not converge or the TCP is not
     estimable, :data:`EXIT_CHANGE` (3) when the new points contradict the prior beyond
     its drift model: then calibration.failed.yaml holds the ``change_test`` and an
-    existing calibration.yaml is left as it was.
+    existing calibration.yaml is left as it was. A valid calibration is written as one set
+    of files (:func:`kpi_calib_ros.app.finish.finish_calibration`), which removes an older
+    learned_residual.yaml as plain identify does.
     """
     writable_folder(out_dir, '--out')
     old = read_prior_calibration(prior_path)
@@ -476,8 +478,9 @@ def run_reidentify(cell_path: str | Path, bag_path: str | Path, out_dir: str | P
         print(f'WARNING: {warning}', file=sys.stderr)
     out = reidentify(cm, data, cp, model)
     doc = reidentification_document(cm, out, cp, str(prior_path), pairing)
-    path, urdf_path, _ = write_results(cm, (out.calibration.result if out.calibration
-                                            else out.fit), doc, out_dir)
+    done = finish_calibration(cm, out.calibration.result if out.calibration else out.fit,
+                              doc, out_dir)
+    path, urdf_path = done.path, done.urdf_path
     from kpi_calib_ros.io.campaign_io import CHANGE_PLOT_FILE, plot_change  # matplotlib
     plot_change(Path(out_dir) / CHANGE_PLOT_FILE, out.change)
     print(cp.description)

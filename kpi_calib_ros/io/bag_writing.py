@@ -291,12 +291,14 @@ class BagStream:
             return
         try:
             self._recorder.finish()
+            self._file.close()
+            os.chmod(self._tmp, 0o666 & ~_umask())
+            # Fails for a folder (IsADirectoryError) or a mount point (EBUSY): no
+            # hidden .partial may stay behind either way.
+            os.replace(self._tmp, self.path)
         except BaseException:
             self._discard()
             raise
-        self._file.close()
-        os.chmod(self._tmp, 0o666 & ~_umask())
-        os.replace(self._tmp, self.path)
 
 
 def _umask() -> int:

@@ -21,22 +21,14 @@ import numpy as np
 from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.estimation.drift_state import DriftState
 from kpi_calib_ros.core.estimation.prior import PLACEMENT_PREFIXES, Prior
-from kpi_calib_ros.io.yaml_bounded import load_yaml_bounded as _load_bounded
-from kpi_calib_ros.io.yaml_bounded import read_yaml_file
-
-FIX = 'give a calibration.yaml written by kpi-calib identify (unedited)'
-
-
-def load_yaml_bounded(text: str, where: str, key: str) -> Any:
-    """A calibration document loaded with the bounds of
-    :func:`kpi_calib_ros.io.yaml_bounded.load_yaml_bounded`."""
-    return _load_bounded(text, where, key, FIX)
+from kpi_calib_ros.io.yaml_bounded import FIX, read_yaml_file
 
 
 def read_calibration_document(path: str | Path, key: str = 'calibration',
                               required: tuple[str, ...] = ('parameter_covariance',)
                               ) -> dict[str, Any]:
-    """A calibration.yaml as a dict, loaded bounded (:func:`load_yaml_bounded`) and checked
+    """A calibration.yaml as a dict, loaded bounded
+    (:func:`kpi_calib_ros.io.yaml_bounded.read_yaml_file`) and checked
     field by field (:func:`check_calibration_document`); ``required``: the sections the
     caller computes with. ConfigError names ``key`` (the option that gave the path), the
     file and the field."""

@@ -159,10 +159,14 @@ def residual_document(choice: ResidualChoice, result: CalibrationResult,
 _LOADER: type[yaml.SafeLoader] = getattr(yaml, 'CSafeLoader', yaml.SafeLoader)
 
 
+def residual_text(doc: dict[str, Any]) -> str:
+    """learned_residual.yaml's text of ``doc``."""
+    return yaml.safe_dump(doc, sort_keys=False)
+
+
 def write_residual(out_dir: str | Path, doc: dict[str, Any]) -> Path:
     """Write ``doc`` atomically as learned_residual.yaml in ``out_dir``."""
-    return write_atomic(Path(out_dir) / LEARNED_RESIDUAL_FILE,
-                        yaml.safe_dump(doc, sort_keys=False))
+    return write_atomic(Path(out_dir) / LEARNED_RESIDUAL_FILE, residual_text(doc))
 
 
 def read_residual(path: str | Path, key: str = 'learned_residual') -> StoredResidual:
@@ -300,4 +304,4 @@ def _matrix(value: Any, shape: tuple[int, int], field: str, bad: Any) -> np.ndar
 
 
 __all__ = ['FORMAT', 'MAX_FILE_BYTES', 'MAX_FILE_ITEMS', 'SYMMETRY_RTOL', 'StoredResidual',
-           'read_residual', 'residual_document', 'symmetric', 'write_residual']
+           'read_residual', 'residual_document', 'residual_text', 'symmetric', 'write_residual']

@@ -88,6 +88,32 @@ def writable_folder(path: str | Path, key: str = 'out') -> Path:
     return path
 
 
+def writable_file(path: str | Path, key: str = 'out', example: str = 'out') -> Path:
+    """Check that file ``path`` can be written, before a command computes it: a folder
+    (``/``, an existing directory) is refused, so is a folder that cannot be written
+    (read-only, permissions; the nearest existing one when the folder is still to be
+    made), and a file in the way. ConfigError names ``key`` and
+    suggests ``example`` (a file name) in the folder given."""
+    path = Path(path)
+    if str(path).endswith(('/', os.sep)) or path.is_dir():
+        inside = Path(example) if path.resolve() == path.resolve().parent else path / example
+        raise ConfigError(key, f'{str(path)!r} is a folder: give the file to write, e.g. '
+                          f'{str(inside)!r}')
+    # Nothing is created here: the nearest existing folder must take a new file.
+    parent = path.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    try:
+        if not parent.is_dir():
+            raise NotADirectoryError(0, f'{parent} is a file, not a folder')
+        with tempfile.TemporaryFile(dir=parent, prefix='.write_test.'):
+            pass
+    except OSError as exc:
+        raise ConfigError(key, f'cannot write {str(path)!r}: {exc.strerror or exc}; give a '
+                          'file in a writable folder') from None
+    return path
+
+
 def _point_sigma_summary(result: CalibrationResult) -> dict[str, Any] | None:
     if result.point_sigma is None:
         return None

@@ -30,6 +30,7 @@ MAX_DOCUMENT_BYTES = 32 * 2 ** 20
 # Scalars and collections of the document with every alias expanded: ~10 per measurement
 # (residuals, training poses), so a million measurements fit.
 MAX_DOCUMENT_NODES = 10_000_000
+FIX = 'give a calibration.yaml written by kpi-calib identify (unedited)'
 
 
 def indicator_count(text: str) -> int:
@@ -40,7 +41,7 @@ def indicator_count(text: str) -> int:
             + sum(text.count(c) for c in ':,[{?'))
 
 
-def load_yaml_bounded(text: str, where: str, key: str, fix: str,
+def load_yaml_bounded(text: str, where: str, key: str, fix: str = FIX,
                       loader: type[yaml.SafeLoader] = yaml.SafeLoader,
                       max_bytes: int = MAX_DOCUMENT_BYTES,
                       max_nodes: int = MAX_DOCUMENT_NODES,
@@ -59,7 +60,8 @@ def load_yaml_bounded(text: str, where: str, key: str, fix: str,
     key : str
         The ConfigError key (the option or setting that named the file).
     fix : str
-        What the user should give instead, ending each message.
+        What the user should give instead, ending each message (default: a calibration
+        written by ``kpi-calib identify``, the document most read back).
     loader : yaml.SafeLoader subclass
         E.g. the cell loader with its YAML 1.2 float rule.
     """
@@ -73,8 +75,11 @@ def load_yaml_bounded(text: str, where: str, key: str, fix: str,
             raise ConfigError(key, f'{where} has {items} YAML items (entries, keys and '
                               f'values), more than the {max_items} such a document may have; '
                               f'{fix}')
-    reader = loader(text)
+    # The loader checks the characters as it is built (a control character, e.g. a NUL
+    # byte of a damaged disk, is a ReaderError there): built inside the try.
+    reader = None
     try:
+        reader = loader(text)
         node = reader.get_single_node()
         if node is None:
             return None
@@ -83,12 +88,17 @@ def load_yaml_bounded(text: str, where: str, key: str, fix: str,
             raise ConfigError(key, f'{where}: its YAML aliases (*name) expand to more than '
                               f'{max_nodes} nodes; {fix}')
         return reader.construct_document(node)
+    except yaml.reader.ReaderError as exc:
+        raise ConfigError(key, f'{where} holds a character YAML does not allow ('
+                          f'#x{exc.character:04x}, a control character, at character '
+                          f'{exc.position}): the file is damaged or not text; {fix}') from None
     except yaml.YAMLError as exc:
-        raise ConfigError(key, f'{where} is not valid YAML: {exc}') from None
+        raise ConfigError(key, f'{where} is not valid YAML: {exc}; {fix}') from None
     except RecursionError:
         raise ConfigError(key, f'{where} nests deeper than YAML can be read; {fix}') from None
     finally:
-        reader.dispose()
+        if reader is not None:
+            reader.dispose()
 
 
 def read_yaml_file(path: str | Path, key: str, fix: str,
@@ -147,5 +157,5 @@ def _expanded_nodes(root: yaml.Node, key: str, where: str, fix: str, max_nodes: 
     return done[id(root)]
 
 
-__all__ = ['MAX_DOCUMENT_BYTES', 'MAX_DOCUMENT_NODES', 'indicator_count', 'load_yaml_bounded',
-           'read_yaml_file']
+__all__ = ['FIX', 'MAX_DOCUMENT_BYTES', 'MAX_DOCUMENT_NODES', 'indicator_count',
+           'load_yaml_bounded', 'read_yaml_file']

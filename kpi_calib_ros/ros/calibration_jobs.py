@@ -65,7 +65,7 @@ class CalibrationJobs(NodeParts):
                             '~/reset to end it')
         data, pairing = model_measurements(self.campaign, cm)
         try:
-            cal, calibration, urdf, tcp, change, prior, notes, learned = await self._offload(
+            out = await self._offload(
                 jobs.identify_work, cm, data, pairing, self.data_dir,
                 self.settings.reidentify_with_prior,
                 DriftSwing(*self.settings.drift_velocity) if self.settings.drift_velocity
@@ -78,6 +78,8 @@ class CalibrationJobs(NodeParts):
             self._run.result_error = f'identification failed{where}: {exc}'
             self._publish_diagnostics(force=True)
             raise
+        cal, change, prior, notes, learned = (out.calibration, out.change, out.prior,
+                                              out.notes, out.learned)
         for note in notes:  # which prior, or why none; archived files skipped
             self.get_logger().warning(note)
         if change is not None:
@@ -114,9 +116,9 @@ class CalibrationJobs(NodeParts):
         kept = np.asarray(cal.robust.kept, dtype=bool)
         points = (np.ones(len(data), dtype=bool) if data.reflector is None
                   else np.asarray(data.reflector) < cm.model.n_reflectors)
-        self._publish_calibration(cal, data.eta[kept], points[kept], len(data), calibration,
-                                  urdf, tcp, data.stamps_ns)
-        # ~/tcp_query reads data_dir/learned_residual.yaml (written or removed above).
+        self._publish_calibration(cal, data.eta[kept], points[kept], len(data), out.text,
+                                  out.urdf, list(out.tcp), data.stamps_ns)
+        # ~/tcp_query reads data_dir/learned_residual.yaml (written or removed with the set).
         self._run.learned_residual = learned[0]
         self._publish_diagnostics(force=True)
         if result.covariance_scale != 1.0:

@@ -21,7 +21,6 @@ from kpi_calib_ros.app.calibration_document import (
     CellCalibration,
     add_robust_sections,
     calibration_document,
-    write_results,
 )
 from kpi_calib_ros.app.campaign import campaign_calibration, campaign_context, new_campaign
 from kpi_calib_ros.app.design import (
@@ -31,8 +30,9 @@ from kpi_calib_ros.app.design import (
     drawn_robots_section,
 )
 from kpi_calib_ros.app.diagnose import diagnose_cell
+from kpi_calib_ros.app.finish import finish_calibration
 from kpi_calib_ros.app.identify import calibrate_cell
-from kpi_calib_ros.app.learned_residual import add_learned_residual
+from kpi_calib_ros.app.learned_residual import learned_residual_section
 from kpi_calib_ros.app.reidentify import (
     cycle_prior,
     read_prior_calibration,
@@ -66,7 +66,6 @@ from kpi_calib_ros.io.names import (
     VALIDATION_DIR,
 )
 from kpi_calib_ros.io.report import diagnosis_to_dict, write_report
-from kpi_calib_ros.io.results import write_atomic
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros.parameters import NodeSettings
 
@@ -146,24 +145,51 @@ def previous_calibration(data_dir: Path, first_stamp_ns: int
     return None, None, notes
 
 
-def archive_calibration(data_dir: Path, doc: dict[str, Any], text: str) -> Path | None:
-    """Keep a valid calibration as ``data_dir/calibrations/<identified_at_ns>.yaml``."""
-    stamp = doc.get('identified_at_ns')
-    if stamp is None:
-        return None
-    return write_atomic(data_dir / CALIBRATIONS_DIR / f'{int(stamp)}.yaml', text)
+@dataclass(frozen=True)
+class IdentifyOutput:
+    """What ``~/identify`` gives the node to publish (:func:`identify_work`).
+
+    calibration : CellCalibration or None
+        None when a change was detected (nothing blended).
+    text : str
+        The document exactly as written.
+    urdf : str
+        The calibrated robot description, as written ('' when invalid).
+    tcp : tuple of PoseWithCovarianceStamped
+        One per working pose, stamped with the last measurement (empty when invalid).
+    change : ChangeTest or None
+        The innovation test against the prior (None without a prior).
+    prior : str
+        The prior calibration's path ('' without).
+    notes : tuple of str
+        With ``with_prior``: archived files skipped, why no prior was used, and the
+        prior's drift-time warnings (clocks that disagree).
+    learned : (str, str)
+        With ``learned_residual`` and a valid calibration: the outcome (``chosen`` with the
+        file written, ``not chosen``, ``not fitted`` with a prior) and the choice in words
+        with its figures, the CLI's summary lines; ('', '') otherwise.
+    """
+
+    calibration: CellCalibration | None
+    text: str
+    urdf: str = ''
+    tcp: tuple[PoseWithCovarianceStamped, ...] = ()
+    change: ChangeTest | None = None
+    prior: str = ''
+    notes: tuple[str, ...] = ()
+    learned: tuple[str, str] = ('', '')
 
 
 def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, data_dir: Path,
                   with_prior: bool = False, swing: DriftSwing | None = None,
-                  archive: bool = True, learned_residual: bool = False
-                  ) -> tuple[CellCalibration | None, str, str, list[PoseWithCovarianceStamped],
-                             ChangeTest | None, str, list[str], tuple[str, str]]:
-    """Identify from ``data`` as ``kpi-calib identify`` does and write the calibration and
-    the calibrated URDF atomically. An invalid calibration (not converged, TCP not
-    estimable) is written to calibration.failed.yaml only: the last good calibration.yaml
-    and URDF stay, and nothing is returned to publish but its text. A valid one is also
-    archived as ``data_dir/calibrations/<identified_at_ns>.yaml``.
+                  archive: bool = True, learned_residual: bool = False) -> IdentifyOutput:
+    """Identify from ``data`` as ``kpi-calib identify`` does and finish the calibration as
+    it does (:func:`~kpi_calib_ros.app.finish.finish_calibration`): calibration.yaml, the
+    calibrated URDF, learned_residual.yaml when chosen and the archived copy
+    ``data_dir/calibrations/<identified_at_ns>.yaml`` written as one set, so a full disk
+    leaves the previous set whole (ConfigError naming ``data_dir``). An invalid
+    calibration (not converged, TCP not estimable) is written to calibration.failed.yaml
+    only: the last good set stays, and nothing is returned to publish but its text.
 
     ``with_prior``: the last archived calibration of an earlier cycle
     (:func:`previous_calibration`) is the prior (``identify --prior``, default drift;
@@ -175,33 +201,11 @@ def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, dat
 
     ``learned_residual``: the learned residual is chosen on the measurements the valid
     calibration kept, as ``kpi-calib identify --learned-residual`` does
-    (:func:`~kpi_calib_ros.app.learned_residual.add_learned_residual`): written as
+    (:func:`~kpi_calib_ros.app.learned_residual.learned_residual_section`): written as
     learned_residual.yaml in ``data_dir`` when chosen, its section in the document either
     way. Not with a prior (as ``--learned-residual`` is not with ``--prior``). A valid
-    calibration removes an older learned_residual.yaml it does not replace, so the file
-    never corrects a calibration it was not fitted to.
-
-    Returns
-    -------
-    calibration : CellCalibration or None
-        None when a change was detected (nothing blended).
-    text : str
-        The document exactly as written.
-    urdf : str
-        The calibrated robot description, as written ('' when invalid).
-    tcp : list of PoseWithCovarianceStamped
-        One per working pose, stamped with the last measurement (empty when invalid).
-    change : ChangeTest or None
-        The innovation test against the prior (None without a prior).
-    prior : str
-        The prior calibration's path ('' without).
-    notes : list of str
-        With ``with_prior``: archived files skipped, why no prior was used, and the
-        prior's drift-time warnings (clocks that disagree).
-    learned : (str, str)
-        With ``learned_residual`` and a valid calibration: the outcome (``chosen`` with the
-        file written, ``not chosen``, ``not fitted`` with a prior) and the choice in words
-        with its figures, the CLI's summary lines; ('', '') otherwise.
+    calibration without one removes an older learned_residual.yaml with its set, so the
+    file never corrects a calibration it was not fitted to.
     """
     if data.stamps_ns is None:
         raise ValueError('data.stamps_ns is None: the TCP poses are stamped with the last '
@@ -223,33 +227,25 @@ def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, dat
         cal, change = out.calibration, out.change
         doc = reidentification_document(cm, out, cp, str(source), pairing)
         result = cal.result if cal is not None else out.fit
-    learned = ('', '')
+    learned, content = ('', ''), None
     if cal is not None and cal.valid:
-        drop_learned_residual(data_dir)
         if learned_residual and source is not None:
             learned = ('not fitted', f'learned residual not fitted: identified with the prior '
                        f'{source} (identify --learned-residual is not available with --prior '
                        'either); set reidentify_with_prior:=false to learn it')
         elif learned_residual:
-            text, written = add_learned_residual(doc, cm, subset(data, cal.robust.kept),
-                                                 result, data_dir)
-            learned = (('chosen', f'{text}\nwritten: {written}') if written is not None
-                       else ('not chosen', text))
-    path, _, urdf = write_results(cm, result, doc, data_dir)
-    text = path.read_text()  # published as written
+            text, content = learned_residual_section(doc, cm, subset(data, cal.robust.kept),
+                                                     result)
+            learned = ('not chosen', text) if content is None else (
+                'chosen', f'{text}\nwritten: {data_dir / LEARNED_RESIDUAL_FILE}')
+    done = finish_calibration(cm, result, doc, data_dir, content, archive, key='data_dir')
     if cal is None or not cal.valid:
-        return cal, text, '', [], change, str(source or ''), notes, ('', '')
-    if archive:
-        archive_calibration(data_dir, doc, text)
+        return IdentifyOutput(cal, done.text, change=change, prior=str(source or ''),
+                              notes=tuple(notes))
     tcp = cv.tcp_pose_msgs(result.tcp, result.tcp_covariance, cm.cell.tracker_frame,
                            int(data.stamps_ns[-1]))
-    return cal, text, urdf, tcp, change, str(source or ''), notes, learned
-
-
-def drop_learned_residual(data_dir: Path) -> None:
-    """Remove learned_residual.yaml from ``data_dir``: a new valid calibration replaces
-    the one it corrects (``~/tcp_query`` would otherwise answer with the old one)."""
-    (data_dir / LEARNED_RESIDUAL_FILE).unlink(missing_ok=True)
+    return IdentifyOutput(cal, done.text, done.urdf, tuple(tcp), change, str(source or ''),
+                          tuple(notes), learned)
 
 
 def validate_work(cm: CellModel, calibration: str, data: Measurements,
@@ -376,13 +372,11 @@ def _step_output(campaign: SequentialCampaign, cm: CellModel, state: CampaignSta
     # killed in between repeats this step on restart and writes it again.
     if publish and status.stopped and status.stop_reason != MODEL_INADEQUATE:
         cal, cal_doc = campaign_calibration(cm, campaign, pairing)
-        path, _, urdf = write_results(cm, cal.result, cal_doc, data_dir)
-        cal_text = path.read_text()
+        done = finish_calibration(cm, cal.result, cal_doc, data_dir, archive=True,
+                                  key='data_dir')
         if cal.valid:
-            drop_learned_residual(data_dir)
-            archive_calibration(data_dir, cal_doc, cal_text)
             stamp = int(np.max(campaign.stamps)) if len(campaign.stamps) else 0
-            calibration = (cal_text, urdf, cv.tcp_pose_msgs(
+            calibration = (done.text, done.urdf, cv.tcp_pose_msgs(
                 cal.result.tcp, cal.result.tcp_covariance, cm.cell.tracker_frame, stamp))
             result = cal
     state = dataclasses.replace(state, status=doc)
@@ -428,7 +422,7 @@ def sequential_resume_work(cm: CellModel, state: CampaignState, data: Measuremen
                                               {'resumed': True}, publish=False)
 
 
-__all__ = ['StepOutput', 'archive_calibration', 'campaign_settings', 'design_work',
-           'diagnose_work', 'drop_learned_residual', 'identify_work', 'previous_calibration',
+__all__ = ['IdentifyOutput', 'StepOutput', 'campaign_settings', 'design_work',
+           'diagnose_work', 'identify_work', 'previous_calibration',
            'sequential_resume_work', 'sequential_start_work', 'sequential_step_work',
            'validate_work']

@@ -18,6 +18,7 @@ from std_msgs.msg import String
 from kpi_calib_ros.app.stored_calibration import read_stored_calibration
 from kpi_calib_ros.core.errors import DataError, KpiCalibError
 from kpi_calib_ros.io.names import CALIBRATION_FILE, LEARNED_RESIDUAL_FILE
+from kpi_calib_ros.io.result_set import complete_pending
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros.node_parts import NodeParts
 
@@ -28,7 +29,9 @@ class CalibrationRestore(NodeParts):
 
     def _find_calibration(self) -> None:
         """At start: a calibration.yaml in data_dir is restored once the robot model is
-        known (``restore_pending``)."""
+        known (``restore_pending``). A result set a killed job had committed but not
+        moved into place is completed first (:mod:`kpi_calib_ros.io.result_set`)."""
+        complete_pending(self.data_dir)
         self._run.restore_pending = (self.data_dir / CALIBRATION_FILE).is_file()
 
     async def _restore(self) -> tuple[bool, str]:
