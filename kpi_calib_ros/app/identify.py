@@ -18,6 +18,7 @@ from kpi_calib_ros.app.calibration_document import (
     CellCalibration,
     add_robust_sections,
     calibration_document,
+    plausibility_gate,
     robust_summary,
     write_results,
 )
@@ -78,8 +79,12 @@ def registered_start(cm: CellModel, data: Measurements) -> tuple[np.ndarray, Reg
     The cell's nominal values, except when ``tracker.base_in_tracker`` or a reflector
     offset is left out of the cell, or the nominal prediction misses the measured points
     by more than :data:`REGISTER_ABOVE_M` (median): then the base pose in the tracker
-    frame and every reflector offset on the tip are registered from the points
-    (:func:`kpi_calib_ros.core.estimation.registration.register`) and replace the nominal ones.
+    frame is registered from the points
+    (:func:`kpi_calib_ros.core.estimation.registration.register`) and replaces the nominal
+    one, with the reflector offsets the cell states held (a stated offset is a prior with a
+    tolerance: postures that never turn the tool would register it anywhere), or registered
+    too when the cell leaves one out or the stated ones miss the points by more than
+    :data:`REGISTRATION_MAX_RMS_M` (the plausibility gate then judges the offset found).
     Returns the start vector and the registration (None if not run).
 
     Raises
@@ -96,7 +101,15 @@ def registered_start(cm: CellModel, data: Measurements) -> tuple[np.ndarray, Reg
     if data.reflector is not None:  # rotation rows (tracked poses) carry no point
         data = data.subset(np.asarray(data.reflector) < cm.model.n_reflectors)
     tips = np.array([cm.robot.pin_tip_pose(row) for row in np.atleast_2d(data.q)])
-    reg = register(data.eta, tips, max_rms=REGISTRATION_MAX_RMS_M, reflector=data.reflector)
+    reg = None
+    if cm.cell.reflector_offset_given:
+        try:
+            reg = register(data.eta, tips, max_rms=REGISTRATION_MAX_RMS_M,
+                           reflector=data.reflector, offsets=cm.cell.offsets)
+        except DataError:
+            reg = None  # the stated offsets miss the points: register them too
+    if reg is None:
+        reg = register(data.eta, tips, max_rms=REGISTRATION_MAX_RMS_M, reflector=data.reflector)
     offsets = (reg.reflector_offsets if reg.reflector_offsets is not None
                else reg.reflector_offset.reshape(1, 3))
     values = {f'base.{c}': float(v) for c, v in
@@ -113,9 +126,11 @@ def registration_text(reg: Registration | None, cm: CellModel) -> str:
         return 'placement: the cell\'s tracker.base_in_tracker and reflector.offset'
     why = ('left out of the cell' if cm.needs_registration
            else f'the nominal missed the points by more than {REGISTER_ABOVE_M} m')
+    held = reg.offset_std_m is not None and not np.any(reg.offset_std_m)
     return (f'placement registered from the points ({why}): base_in_tracker '
             f'{np.round(reg.base_in_tracker, 5).tolist()}, reflector offset '
-            f'{np.round(reg.reflector_offset, 5).tolist()} m, registered miss '
+            f'{np.round(reg.reflector_offset, 5).tolist()} m'
+            + (" (the cell's, held)" if held else '') + ', registered miss '
             f'{reg.rms_m * 1e3:.3g} mm rms'
             + (f'; measurements {list(reg.trimmed)} missed by far more and were left out of '
                'the registration' if reg.trimmed else ''))
@@ -268,9 +283,11 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
                               reflector=kept.reflector, rotation=kept.rotation)
     # A model that fails χ² must not report the stated σ's precision (core.precision).
     result = honest_precision(robust.result)
+    implausible = plausibility_gate(cm, result, start, np.atleast_2d(kept.q), kept.tau,
+                                    kept.reflector)
     return CellCalibration(result, robust, choice, est, tuple(free),
                            registration, scales[-1], cm,
-                           expected_tcp_error(cm.model, kept, result))
+                           expected_tcp_error(cm.model, kept, result), implausible)
 
 
 def add_chosen_effects(cm: CellModel, data: Measurements, choice: ModelChoice,
