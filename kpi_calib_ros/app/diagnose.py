@@ -74,7 +74,8 @@ def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
     # Without effects auto added, identify's fit is the one on the kept points.
     result = cal.result if cal.cell is None or cal.cell is cm else \
         identify_cell(cm, data, free=free)
-    diag = diagnose(cm.model, data, result, folds=folds, alpha=alpha)
+    diag = diagnose(cm.model, data, result, folds=folds, alpha=alpha,
+                    tolerances=cm.cell.identification.tolerances)
     prior = cell_prior(cm)
     oos = out_of_sample_error(cm.model, data, result, free or list(cm.model.params.names),
                               prior)

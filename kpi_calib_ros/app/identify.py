@@ -284,7 +284,7 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
     # A model that fails χ² must not report the stated σ's precision (core.precision).
     result = honest_precision(robust.result)
     implausible = plausibility_gate(cm, result, start, np.atleast_2d(kept.q), kept.tau,
-                                    kept.reflector)
+                                    kept.reflector, free)
     return CellCalibration(result, robust, choice, est, tuple(free),
                            registration, scales[-1], cm,
                            expected_tcp_error(cm.model, kept, result), implausible)
@@ -304,7 +304,9 @@ def add_chosen_effects(cm: CellModel, data: Measurements, choice: ModelChoice,
         extra = np.zeros(len(model.params.names) - len(start))
         return _fit_function(dataclasses.replace(cm, model=model),
                              np.concatenate([start, extra]), prior, balance=balance)
-    chosen = choose_effects(cm.model, data, fit_for, choice.level, n_geo, prior)
+    chosen = choose_effects(cm.model, data, fit_for, choice.level, n_geo, prior,
+                            tolerances=cm.cell.identification.tolerances,
+                            reference=start[:n_geo])
     if not chosen.effects:
         return cm, start, dataclasses.replace(
             choice, reason=f'{choice.reason}; {chosen.reason}',

@@ -372,8 +372,10 @@ Bounds = Mapping[str, Sequence[float]]
 
 
 def bound_key(effect: BoundEffect) -> str:
-    """The cell key that widens ``effect``'s bounds at its joint
-    (``identification.bounds.joint_compliance:joint_2``; the kind alone for a global effect)."""
+    """Return the cell key that widens ``effect``'s bounds at its joint.
+
+    ``identification.bounds.joint_compliance:joint_2``; the kind alone for a global effect.
+    """
     kind = effect.kind.name
     return 'identification.bounds.' + (kind if effect.joint is None else f'{kind}:{effect.joint}')
 
@@ -420,7 +422,7 @@ def implausible(effect: BoundEffect, values: Sequence[float] | np.ndarray,
                                  bounds)
     return ('physically implausible: ' + '; '.join(out) +
             ' (the fit uses the effect to absorb something else, or the bound is too '
-            f'tight for this arm: {bound_key(effect)})') if out else ''
+            'tight for this arm)') if out else ''
 
 
 LINEAR_PLAY = 1.0 / 3.0

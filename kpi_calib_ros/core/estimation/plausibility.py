@@ -1,4 +1,4 @@
-"""The plausibility gate: is every identified quantity physically possible and determined?
+"""The plausibility gate: every identified quantity physically possible and determined.
 
 A fit can converge, pass χ² and estimate the TCP while a quantity in it is impossible: a
 reflector 2.6 m from the one the cell states, a link origin moved by metres, a joint play
@@ -56,7 +56,8 @@ class Tolerances:
     """How far an identified quantity may be from what the cell states (m, rad).
 
     ``bounds``: the cell's ``identification.bounds`` (effect spec, ``kind:joint`` or kind ->
-    the largest |value| of each parameter), :func:`~kpi_calib_ros.core.effects.registry.effect_bounds`.
+    the largest |value| of each parameter; see
+    :func:`~kpi_calib_ros.core.effects.registry.effect_bounds`).
     """
 
     base_translation: float = 0.1
@@ -88,8 +89,9 @@ STRUCTURAL_POSES = 60
 def observed_std(model: MeasurementModel, result: CalibrationResult, names: Sequence[str],
                  q: np.ndarray, reflector: np.ndarray | None = None,
                  tau: np.ndarray | None = None, seed: int = 0) -> dict[str, float]:
-    """Std (parameter units) with which the poses ``q`` (N, n) determine each of ``names``
-    beside every other direction of the model that poses spread over every joint determine.
+    """Std (parameter units) of each of ``names`` as the poses ``q`` (N, n) determine it.
+
+    Beside every other direction of the model that poses spread over every joint determine.
 
     The parameters those spread poses identify (:func:`~kpi_calib_ros.core.estimation.
     identifiability.select_identifiable` on :data:`STRUCTURAL_POSES` joint values drawn in
@@ -136,7 +138,7 @@ def _wrapped(d: float, unit: str) -> float:
 
 
 def _tool_joints(model: MeasurementModel, q: np.ndarray | None) -> str:
-    """The wrist joints to turn, with the ranges the data gave them."""
+    """Name the wrist joints to turn, with the ranges the data gave them."""
     revolute = [i for i, j in enumerate(model.robot.joints) if j.kind != 'prismatic'][-3:]
     names = model.robot.joint_names
     if q is None or not len(q):
@@ -186,7 +188,7 @@ def geometric_violations(model: MeasurementModel, result: CalibrationResult,
     out: list[Violation] = []
     turn = (f'turn the tool: measure poses that turn the wrist ({_tool_joints(model, q)}) '
             'over wide ranges')
-    for k, prefix in enumerate(reflector_prefixes(params)):
+    for prefix in reflector_prefixes(params):
         names = [f'{prefix}.{c}' for c in 'xyz']
         idx = params.indices(names)
         label = f'reflector offset {prefix} ({", ".join(names)})'
@@ -236,10 +238,15 @@ def geometric_violations(model: MeasurementModel, result: CalibrationResult,
 
 def effect_violations(effects: Sequence[BoundEffect], result: CalibrationResult,
                       bounds: Mapping[str, tuple[float, ...]] | None = None,
-                      tau: np.ndarray | None = None) -> list[Violation]:
-    """Violations of the effect parameters of ``result``: beyond their bounds, or
-    undetermined (std above the bound). ``tau`` (N, n): the measured gravity torques (a play
-    inside its linear range is judged as the compliance it is)."""
+                      tau: np.ndarray | None = None,
+                      free: Sequence[str] | None = None) -> list[Violation]:
+    """Violations of the effect parameters of ``result``.
+
+    Beyond their bounds, or undetermined (std above the bound). ``tau`` (N, n): the measured
+    gravity torques (a play inside its linear range is judged as the compliance it is).
+    ``free``: the parameters the fit was asked to identify; one of them the data left out
+    (the identifiability selection found no direction for it) is undetermined as well.
+    """
     values = dict(zip(result.names, result.values))
     std = dict(zip(result.estimated, result.std))
     out: list[Violation] = []
@@ -251,6 +258,9 @@ def effect_violations(effects: Sequence[BoundEffect], result: CalibrationResult,
         loose = [f'{n} std {std[n]:.3g} {u} > its bound {b:.3g}'
                  for n, u, b in zip(effect.parameter_names, effect.units, limits)
                  if n in std and std[n] > b]
+        loose += [f'{n} not determined by the data (left out of the fit)'
+                  for n in effect.parameter_names if free is not None and n in free
+                  and n not in std]
         if loose:
             out.append(Violation(effect.name, 'undetermined: ' + '; '.join(loose),
                                  f'{effect.hint()}; or leave the effect out'))
@@ -258,20 +268,23 @@ def effect_violations(effects: Sequence[BoundEffect], result: CalibrationResult,
         why = implausible(effect, [values[n] for n in effect.parameter_names], tau, bounds)
         if why:
             out.append(Violation(effect.name, why,
-                                 f'{key} widens the bound if this arm is that soft or loose '
-                                 '(servo-stiff or cable-driven joints: compliance ~1e-3 '
-                                 'rad/(N m)); else leave the effect out'))
+                                 f'widen {key} if this arm is that soft or loose (servo-stiff '
+                                 'or cable-driven joints: compliance ~1e-3 rad/(N m)); else '
+                                 'leave the effect out'))
     return out
 
 
 def gate(model: MeasurementModel, result: CalibrationResult, reference: np.ndarray,
          tolerances: Tolerances = Tolerances(), reflector_stated: bool = True,
          q: np.ndarray | None = None, tau: np.ndarray | None = None,
-         n_geometric: int | None = None, reflector: np.ndarray | None = None
-         ) -> tuple[Violation, ...]:
-    """Every violation of ``result`` (:func:`geometric_violations`, :func:`effect_violations`);
+         n_geometric: int | None = None, reflector: np.ndarray | None = None,
+         free: Sequence[str] | None = None) -> tuple[Violation, ...]:
+    """Every violation of ``result`` (:func:`geometric_violations`, :func:`effect_violations`).
+
     () when every identified quantity is plausible and determined. ``q``, ``tau``,
-    ``reflector``: the measured rows (joint values, gravity torques, reflector index)."""
+    ``reflector``: the measured rows (joint values, gravity torques, reflector index);
+    ``free``: the parameters the fit was asked to identify (:func:`effect_violations`).
+    """
     return tuple(geometric_violations(model, result, reference, tolerances, reflector_stated,
                                       q, n_geometric, reflector, tau)
-                 + effect_violations(model.effects, result, tolerances.bounds, tau))
+                 + effect_violations(model.effects, result, tolerances.bounds, tau, free))

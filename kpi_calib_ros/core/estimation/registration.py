@@ -230,7 +230,8 @@ def _fit(eta: np.ndarray, rotations: np.ndarray, positions: np.ndarray, ref: np.
          held: np.ndarray | None = None) -> Registration:
     """Solve in closed form (Horn) alternating with the offsets, then Gauss-Newton, on the rows.
 
-    ``held`` (R, 3): offsets held at these values, only the base pose fitted."""
+    ``held`` (R, 3): offsets held at these values, only the base pose fitted.
+    """
     offsets = np.zeros((n_ref, 3)) if held is None else held[:n_ref].copy()
     rows = [np.flatnonzero(ref == k) for k in range(n_ref)]
     steps = 0
@@ -286,9 +287,12 @@ def _gauss_newton_rows(rot: np.ndarray, trans: np.ndarray, offsets: np.ndarray,
 def _offset_std(rot: np.ndarray, trans: np.ndarray, offsets: np.ndarray, eta: np.ndarray,
                 rotations: np.ndarray, positions: np.ndarray, ref: np.ndarray,
                 rows: list[np.ndarray]) -> np.ndarray:
-    """(R, 3) std of the registered offsets (m), the noise per axis taken from the registered
-    miss (nominal kinematics: the robot's errors count as noise); inf along a direction the
-    postures cannot tell from the base (a singular value below 1e-9 of the largest)."""
+    """(R, 3) std of the registered offsets (m).
+
+    The noise per axis taken from the registered miss (nominal kinematics: the robot's errors
+    count as noise); inf along a direction the postures cannot tell from the base (a singular
+    value below 1e-9 of the largest).
+    """
     residual, jac = _gauss_newton_rows(rot, trans, offsets, eta, rotations, positions, ref, rows)
     dof = max(len(residual) - jac.shape[1], 1)
     scale = float(residual @ residual) / dof
