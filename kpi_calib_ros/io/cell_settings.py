@@ -20,7 +20,7 @@ from kpi_calib_ros.core.estimation.least_squares import (
     DEFAULT_MAX_ITERATIONS,
     ITERATIONS_PER_PARAMETER,
 )
-from kpi_calib_ros.core.estimation.plausibility import TOLERANCE_KEYS, Tolerances
+from kpi_calib_ros.core.estimation.plausibility import Tolerances
 from kpi_calib_ros.core.estimation.robust import LOSSES, OutlierSettings
 from kpi_calib_ros.core.model.robot import RobotModel
 from kpi_calib_ros.io.cell_values import non_negative, number, text_number_hint
@@ -104,6 +104,10 @@ _IDENT_KEYS = {'method', 'priority', 'model', 'loss', 'outliers', 'cv_folds', 'p
                'max_iterations', 'tolerances', 'bounds'}
 
 PRIOR_KEYS = ('translation', 'rotation', 'offset')
+# identification.tolerances: the fields of core.estimation.plausibility.Tolerances but its
+# bounds (identification.bounds).
+TOLERANCE_KEYS = ('base_translation', 'base_rotation', 'reflector_offset', 'translation',
+                  'rotation')
 
 
 def identification_settings(raw: Mapping[str, Any]) -> IdentificationSettings:

@@ -30,7 +30,7 @@ few cm (10 cm, 0.1 rad allowed); a reflector nest on a drawn tool to a few mm (2
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -41,11 +41,8 @@ from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.core.model.parameters import reflector_prefixes
 
 __all__ = ['Tolerances', 'Violation', 'gate', 'geometric_violations', 'effect_violations',
-           'observed_std', 'TOLERANCE_KEYS', 'TURN_RANGE_RAD', 'STRUCTURAL_POSES']
+           'observed_std', 'TURN_RANGE_RAD', 'STRUCTURAL_POSES']
 
-# identification.tolerances keys, in the order of the Tolerances fields.
-TOLERANCE_KEYS = ('base_translation', 'base_rotation', 'reflector_offset', 'translation',
-                  'rotation')
 # A wrist joint measured over less than this range (rad) hardly turns the tool: named in the
 # fix of an undetermined reflector offset.
 TURN_RANGE_RAD = 1.0
@@ -236,7 +233,7 @@ def geometric_violations(model: MeasurementModel, result: CalibrationResult,
     return out
 
 
-def effect_violations(effects: Sequence[BoundEffect], result: CalibrationResult,
+def effect_violations(effects: Sequence[Any], result: CalibrationResult,
                       bounds: Mapping[str, tuple[float, ...]] | None = None,
                       tau: np.ndarray | None = None,
                       free: Sequence[str] | None = None) -> list[Violation]:
