@@ -4,11 +4,19 @@ from __future__ import annotations
 
 import dataclasses
 
+import casadi as ca
 import numpy as np
 import pytest
 
 from kpi_calib_ros.app.identify import calibrate_cell, identify_cell
-from kpi_calib_ros.core.effects.registry import bound_key, effect_bounds, parse_effect_spec
+from kpi_calib_ros.core.diagnosis.candidates import augmented_model, screen_effects
+from kpi_calib_ros.core.effects.effect_types import EffectType
+from kpi_calib_ros.core.effects.registry import (
+    bind_effect,
+    bound_key,
+    effect_bounds,
+    parse_effect_spec,
+)
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation.plausibility import Tolerances, effect_violations, gate
 from kpi_calib_ros.core.estimation.registration import register
@@ -218,3 +226,26 @@ def test_the_cell_states_tolerances_and_bounds():
     with pytest.raises(ConfigError, match=r"identification\.bounds\.joint_compliance:elbow.*"
                                           r"not on the chain"):
         build_cell_model(cell_from_dict(doc, DEFAULT_CELL.parent))
+
+
+def _nearly_an_offset(q_j, tau_j, theta):
+    return theta[0] * (1.0 + 0.01 * ca.sin(q_j))
+
+
+def test_a_candidate_that_leaves_the_geometry_undetermined_is_not_plausible(cm, truth):
+    """An effect that is the joint offset but for a 1 % ripple: significant where the truth has
+    it, but beside it the offset is determined only through the ripple. With a tolerance
+    tighter than the offset's std beside it, the screen refuses it naming the offset."""
+    kind = EffectType('nearly_offset', ('g',), ('rad',), _nearly_an_offset, typical=(1e-3,))
+    effect = bind_effect(kind, cm.robot, 'joint_2')
+    p_true, q = truth
+    aug = augmented_model(cm.model, (effect,))
+    truth_aug = np.concatenate([p_true, [0.05]])
+    data = simulate_measurements(aug, truth_aug, q, SIGMA, np.random.default_rng(1))
+    result = identify_cell(cm, data)
+    (free,), _ = screen_effects(cm.model, data, result, [effect])
+    assert free.significant and free.plausible, free.explanation
+    (tight,), _ = screen_effects(cm.model, data, result, [effect],
+                                 tolerances=Tolerances(rotation=1e-4))
+    assert tight.significant and not tight.plausible
+    assert tight.plausibility.startswith('it leaves the geometry undetermined: joint_2.offset std')

@@ -235,7 +235,6 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
     if len(data) == 0:
         raise DataError('no accepted measurement to identify from')
     settings = cm.cell.identification
-    n_geo = len(cm.geometric)
     # An unknown or far-off placement is registered from the points first (the median
     # decides whether it is needed, so a few gross points do not trigger it).
     registration = None
@@ -252,9 +251,44 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
     balance = tolerance is not None
     fit = _fit_function(cm, start, prior, balance=balance, scales=scales)
     choice = choose_level(cm, screened, model, start, prior, fit)
-    if choice.requested == 'auto' and allowed is None:
+    chosen = choice.requested == 'auto' and allowed is None
+    if chosen:
         cm, start, choice = add_chosen_effects(cm, screened, choice, start, prior, balance)
-        fit = _fit_function(cm, start, prior, balance=balance, scales=scales)
+    cal = _final_fit(cm, data, choice, start, prior, balance, scales, registration, allowed,
+                     progress)
+    # An effect auto added in its trials that the final fit (other points kept) leaves
+    # undetermined or beyond its bound is refused, and the calibration fitted without it.
+    refused = [e for e in choice.effects if any(v.startswith(f'{e}:') for v in cal.implausible)]
+    if chosen and refused:
+        why = next(v for v in cal.implausible if v.startswith(f'{refused[0]}:'))
+        cm, start = without_effects(cm, start, refused)
+        choice = dataclasses.replace(
+            choice, effects=tuple(e for e in choice.effects if e not in refused),
+            held=tuple(n for n in choice.held if n in cm.model.params.names),
+            reason=f'{choice.reason}; refused in the final fit: {why}')
+        cal = _final_fit(cm, data, choice, start, prior, balance, scales, registration,
+                         allowed, progress)
+    return cal
+
+
+def without_effects(cm: CellModel, start: np.ndarray, names: Sequence[str]
+                    ) -> tuple[CellModel, np.ndarray]:
+    """``cm`` without the effects ``names`` (specs), and ``start`` without their parameters."""
+    keep = tuple(e for e in cm.model.effects if e.name not in set(names))
+    smaller = with_effects(geometric_only(cm), keep)
+    values = dict(zip(cm.model.params.names, start))
+    return smaller, np.array([values[n] for n in smaller.model.params.names])
+
+
+def _final_fit(cm: CellModel, data: Measurements, choice: ModelChoice, start: np.ndarray,
+               prior: Prior | None, balance: bool, scales: list[float],
+               registration: Registration | None, allowed: Sequence[str] | None,
+               progress: Callable[[str], None] | None) -> CellCalibration:
+    """The final identification of :func:`calibrate_cell` at ``choice``'s level, from
+    ``start``, with outlier exclusion, KPI estimability and the plausibility gate."""
+    settings = cm.cell.identification
+    n_geo = len(cm.geometric)
+    fit = _fit_function(cm, start, prior, balance=balance, scales=scales)
     free = [n for n in level_free(cm.model.params, choice.level, n_geo)
             if n not in choice.held]
     if allowed is not None:

@@ -212,9 +212,12 @@ CELL_KEYS: tuple[CellKey, ...] = (
        'placement is registered); an offset left out must be observed by the poses (the '
        'tool turned).', 0.02),
     _K('identification.tolerances.translation', 'number', 'm', '0.05', 'Every joint placement '
-       'translation (link origin) correction, and prismatic joint offsets.', 0.05),
+       'translation (link origin) correction.', 0.05),
     _K('identification.tolerances.rotation', 'number', 'rad', '0.05', 'Every joint placement '
-       'rotation and revolute joint offset correction (0.05 rad ≈ 3°).', 0.05),
+       'rotation correction (0.05 rad ≈ 3°).', 0.05),
+    _K('identification.tolerances.offset', 'number', 'rad (m for prismatic joints)', '0.2',
+       'Every joint zero offset correction: homing or mastering leaves degrees, not more '
+       'than ~11°.', 0.2),
     _K('identification.bounds', 'mapping of effect (`kind`, `kind:joint` or spec) to a number '
        'or a list, one per parameter', "the effect's units", "{} (the library's plausible "
        'sizes)', 'Largest |value| of an effect parameter before the calibration is refused; '

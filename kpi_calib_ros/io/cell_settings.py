@@ -107,7 +107,7 @@ PRIOR_KEYS = ('translation', 'rotation', 'offset')
 # identification.tolerances: the fields of core.estimation.plausibility.Tolerances but its
 # bounds (identification.bounds).
 TOLERANCE_KEYS = ('base_translation', 'base_rotation', 'reflector_offset', 'translation',
-                  'rotation')
+                  'rotation', 'offset')
 
 
 def identification_settings(raw: Mapping[str, Any]) -> IdentificationSettings:
@@ -183,7 +183,8 @@ def _tolerances(raw: Any, bounds: Any) -> Tolerances:
         raise ConfigError(f'identification.tolerances.{sorted(unknown)[0]}',
                           f'unknown key; allowed: {list(TOLERANCE_KEYS)}')
     values = {k: _positive(v, f'identification.tolerances.{k}',
-                           'rad' if k.endswith('rotation') else 'm', '0.05')
+                           'm' if k.endswith(('translation', 'reflector_offset')) else 'rad',
+                           '0.05')
               for k, v in raw.items()}
     bounds = {} if bounds is None else bounds
     if not isinstance(bounds, dict):

@@ -446,6 +446,8 @@ def _is_geometric(name: str) -> bool:
 def _tolerance_of(name: str, unit: str, tolerances: Tolerances) -> float:
     if name.startswith('reflector.'):
         return tolerances.reflector_offset
+    if name.endswith('.offset'):
+        return tolerances.offset
     prefix = 'base_' if name.startswith('base.') else ''
     return getattr(tolerances, prefix + ('translation' if unit == 'm' else 'rotation'))
 

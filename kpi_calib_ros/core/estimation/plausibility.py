@@ -12,8 +12,8 @@ checks every identified quantity against what the cell states about it:
 * every reflector offset (``reflector[.<name>].{x,y,z}``): within ``reflector_offset`` of the
   cell's ``reflector.offset`` (a prior with a tolerance, never a start to throw away); when
   the cell leaves it out, determined by the postures (the registration's std);
-* every joint placement and zero-offset correction: within ``translation`` (m) /
-  ``rotation`` (rad) of the URDF;
+* every joint placement correction: within ``translation`` (m) / ``rotation`` (rad) of the
+  URDF; every joint zero offset within ``offset`` (rad, m for a prismatic joint);
 * every effect parameter: within its bound
   (:func:`kpi_calib_ros.core.effects.registry.effect_bounds`: the library's ``plausible``
   sizes, widened per effect and joint by the cell's ``identification.bounds``).
@@ -23,9 +23,11 @@ where it is, whatever its value. Each violation names the quantity, why, and the
 (poses of a kind, a tolerance key, a bound key). A calibration with any is not valid.
 
 Defaults (:class:`Tolerances`) are what a calibration engineer accepts from a nominal model:
-an arm built to its drawing is off by millimetres and tenths of a degree, so a correction of
-5 cm or 0.05 rad (~3°) is a wrong model, not a calibration; a surveyed base pose is good to a
-few cm (10 cm, 0.1 rad allowed); a reflector nest on a drawn tool to a few mm (2 cm allowed).
+an arm built to its drawing is off by millimetres and tenths of a degree, so a placement
+correction of 5 cm or 0.05 rad (~3°) is a wrong model, not a calibration; a joint zero is set
+by homing or mastering and may be off by degrees (a TIAGo wrist: 3.2°), not by more than 0.2
+rad (~11°); a surveyed base pose is good to a few cm (10 cm, 0.1 rad allowed); a reflector
+nest on a drawn tool to a few mm (2 cm allowed).
 """
 from __future__ import annotations
 
@@ -62,6 +64,7 @@ class Tolerances:
     reflector_offset: float = 0.02
     translation: float = 0.05
     rotation: float = 0.05
+    offset: float = 0.2
     bounds: Mapping[str, tuple[float, ...]] = field(default_factory=dict)
 
 
@@ -214,7 +217,8 @@ def geometric_violations(model: MeasurementModel, result: CalibrationResult,
         if name.startswith('reflector.') or name not in values:
             continue
         base = name.startswith('base.')
-        key = ('base_' if base else '') + ('translation' if unit == 'm' else 'rotation')
+        key = ('offset' if name.endswith('.offset') and not base else
+               ('base_' if base else '') + ('translation' if unit == 'm' else 'rotation'))
         tol = getattr(tolerances, key)
         moved = abs(_wrapped(values[name] - reference[i], unit))
         where = ('the placement the identification started from' if base else 'the URDF')
