@@ -171,11 +171,15 @@ def test_geometric_corrections_beyond_tolerance_or_undetermined_are_named(cm, tr
     assert v.quantity == name and 'moved 0.3 m from the URDF' in v.reason
     assert 'identification.tolerances.translation' in v.fix
     assert gate(cm.model, moved, start, Tolerances(translation=0.5), q=q) == ()
+    # A link origin at 94 m ± 58 m: undetermined; ± 58 m at the URDF's value: a plausible
+    # robot the data pin loosely.
     k = result.estimated.index(name)
-    loose = dataclasses.replace(result, std=np.where(np.arange(len(result.std)) == k, 58.0,
-                                                     result.std))
-    (v,) = gate(cm.model, loose, start, q=q)
-    assert v.quantity == name and v.reason.startswith('undetermined: std 58 m')
+    std = np.where(np.arange(len(result.std)) == k, 58.0, result.std)
+    far = dataclasses.replace(result, values=result.values + 94.0 * (np.arange(len(
+        result.values)) == i), std=std)
+    (v,) = gate(cm.model, far, start, q=q)
+    assert v.quantity == name and v.reason.startswith('undetermined: moved 94 ± 58 m')
+    assert gate(cm.model, dataclasses.replace(result, std=std), start, q=q) == ()
 
 
 def test_every_effect_is_held_to_its_bound_which_the_cell_widens(cm):

@@ -18,9 +18,12 @@ checks every identified quantity against what the cell states about it:
   (:func:`kpi_calib_ros.core.effects.registry.effect_bounds`: the library's ``plausible``
   sizes, widened per effect and joint by the cell's ``identification.bounds``).
 
-A quantity whose std exceeds its tolerance or bound is *undetermined*: the data cannot say
-where it is, whatever its value. Each violation names the quantity, why, and the fix
-(poses of a kind, a tolerance key, a bound key). A calibration with any is not valid.
+An effect parameter whose std exceeds its bound is *undetermined*: the data cannot say where
+it is, whatever its value; a placement or geometric parameter moved beyond its tolerance with
+a std beyond it too is undetermined as well (within its tolerance it is a plausible robot,
+however loosely a near-gauge pair of parameters is pinned). Each violation names the
+quantity, why, and the fix (poses of a kind, a tolerance key, a bound key). A calibration with
+any is not valid.
 
 Defaults (:class:`Tolerances`) are what a calibration engineer accepts from a nominal model:
 an arm built to its drawing is off by millimetres and tenths of a degree, so a placement
@@ -222,13 +225,19 @@ def geometric_violations(model: MeasurementModel, result: CalibrationResult,
         tol = getattr(tolerances, key)
         moved = abs(_wrapped(values[name] - reference[i], unit))
         where = ('the placement the identification started from' if base else 'the URDF')
+        if moved <= tol:
+            # Within its tolerance it is a plausible robot, however loosely the data pin it
+            # (a near-gauge pair such as a placement translation and rotation the points
+            # hardly tell apart): what cannot be is a joint the fit moved beyond it.
+            continue
         if name in std and std[name] > tol:
-            out.append(Violation(name, f'undetermined: std {std[name]:.3g} {unit} > the '
-                                 f'tolerance {tol:g} {unit}',
+            out.append(Violation(name, f'undetermined: moved {moved:.3g} ± {std[name]:.3g} '
+                                 f'{unit} from {where}, the std above the tolerance {tol:g} '
+                                 f'{unit}',
                                  'measure poses that move it (spread every joint over its range), '
                                  'or identify fewer parameters (identification.model); '
                                  f'identification.tolerances.{key} widens the tolerance'))
-        elif moved > tol:
+        else:
             out.append(Violation(name, f'moved {moved:.3g} {unit} from {where}, beyond the '
                                  f'tolerance {tol:g} {unit}',
                                  'check the URDF and the cell (joint order, units, tip frame), '
