@@ -23,6 +23,7 @@ UNKNOWN = 'zz_not_a_key'
 STRICT = {'': (), 'identification': ('identification',),
           'identification.outliers': ('identification', 'outliers'),
           'identification.prior': ('identification', 'prior'),
+          'identification.tolerances': ('identification', 'tolerances'),
           'simulation': ('simulation',), 'topics': ('topics',), 'design': ('design',),
           'reflectors[]': ('reflectors', 0)}
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -18,10 +18,12 @@ from kpi_calib_ros.core.effects.gravity_compliance import compliance_warnings, m
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation.estimability import KpiEstimability
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
+from kpi_calib_ros.core.estimation.plausibility import gate
 from kpi_calib_ros.core.estimation.precision import ExpectedTcpError
 from kpi_calib_ros.core.estimation.registration import Registration
 from kpi_calib_ros.core.estimation.robust import LOSS_SCALE, ExcludedMeasurement, RobustResult
 from kpi_calib_ros.core.model.dh import dh_table
+from kpi_calib_ros.core.model.parameters import reflector_prefixes
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.results import calibration_to_dict
 from kpi_calib_ros.io.urdf_export import calibrated_urdf
@@ -49,6 +51,9 @@ class CellCalibration:
     cell: CellModel | None = None
     # Expected TCP error at the working poses with the misfit included (core.estimation.precision).
     expected: ExpectedTcpError | None = None
+    # Identified quantities the plausibility gate refuses (core.estimation.plausibility):
+    # each names the quantity, why, and the fix.
+    implausible: tuple[str, ...] = ()
 
     @property
     def problems(self) -> tuple[str, ...]:
@@ -57,11 +62,38 @@ class CellCalibration:
             out.append(f'identification did not converge: {self.result.message}')
         if not self.estimability.all_estimable:
             out.append(self.estimability.summary())
+        out += [f'not plausible: {text}' for text in self.implausible]
         return tuple(out)
 
     @property
     def valid(self) -> bool:
         return not self.problems
+
+
+def plausibility_gate(cm: CellModel, result: CalibrationResult, start: np.ndarray,
+                      q: np.ndarray, tau: np.ndarray | None = None,
+                      reflector: np.ndarray | None = None,
+                      free: Sequence[str] | None = None) -> tuple[str, ...]:
+    """The plausibility gate of ``result`` with the cell's ``identification.tolerances`` and
+    ``identification.bounds`` (:func:`kpi_calib_ros.core.estimation.plausibility.gate`): the
+    base pose against ``start`` (the cell's or registered placement), the reflector offsets
+    against the cell's (or, left out, whether the measured rows determine them), the joint
+    corrections against the URDF, the effects against their bounds, at the measured joint
+    values ``q`` (N, n), gravity torques ``tau`` and reflector indices ``reflector`` (N,);
+    an effect parameter in ``free`` the fit left out is undetermined. Returns one line per
+    violation."""
+    n_geo = len(cm.geometric)
+    params = cm.model.params
+    reference = np.array(start[:n_geo], dtype=float)
+    stated = cm.cell.reflector_offset_given
+    if stated:
+        for prefix, offset in zip(reflector_prefixes(params), cm.cell.offsets):
+            reference[params.indices([f'{prefix}.{c}' for c in 'xyz'])] = offset
+    if tau is None and cm.model.uses_torque and len(q):
+        tau = cm.robot.gravity_torques(np.atleast_2d(q))
+    return tuple(v.text() for v in gate(cm.model, result, reference,
+                                        cm.cell.identification.tolerances, stated,
+                                        q, tau, n_geo, reflector, free))
 
 
 def calibration_document(cm: CellModel, result: CalibrationResult,

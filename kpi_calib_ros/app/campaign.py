@@ -17,6 +17,7 @@ from kpi_calib_ros.app.calibration_document import (
     CellCalibration,
     add_robust_sections,
     calibration_document,
+    plausibility_gate,
 )
 from kpi_calib_ros.app.simulate import truth_cell_model
 from kpi_calib_ros.core.acquisition.pairing import PairingResult
@@ -95,8 +96,10 @@ def campaign_calibration(cm: CellModel, campaign: SequentialCampaign,
     choice = ModelChoice(level='geometric' if level == 'auto' else level, requested=level,
                          predicted_rms_m={}, cv_rms_m={}, folds=0,
                          reason='the sequential campaign\'s model (no model selection)')
+    implausible = plausibility_gate(cm, result, cm.model.params.nominal,
+                                    np.atleast_2d(campaign.q[kept]))
     cal = CellCalibration(result, dataclasses.replace(robust, result=result), choice, est, free,
-                          cell=cm)
+                          cell=cm, implausible=implausible)
     doc = add_robust_sections(calibration_document(cm, result, pairing), cal)
     if 'identified_at_ns' not in doc and len(campaign.stamps) and campaign.stamps.min() >= 0:
         doc['identified_at_ns'] = int(campaign.stamps.max())  # when the robot was measured

@@ -80,7 +80,8 @@ def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
     # determine the TCP, no expected error is stated and no effect is added (the residuals
     # cannot judge what the data leave free).
     est = cal.estimability
-    diag = with_estimability(diagnose(cm.model, data, result, folds=folds, alpha=alpha), est)
+    diag = with_estimability(diagnose(cm.model, data, result, folds=folds, alpha=alpha,
+                                      tolerances=cm.cell.identification.tolerances), est)
     prior = cell_prior(cm)
     oos = out_of_sample_error(cm.model, data, result, free or list(cm.model.params.names),
                               prior)

@@ -18,6 +18,7 @@ from kpi_calib_ros.app.calibration_document import (
     CellCalibration,
     add_robust_sections,
     calibration_document,
+    plausibility_gate,
     robust_summary,
 )
 from kpi_calib_ros.app.finish import finish_calibration
@@ -81,8 +82,12 @@ def registered_start(cm: CellModel, data: Measurements) -> tuple[np.ndarray, Reg
     The cell's nominal values, except when ``tracker.base_in_tracker`` or a reflector
     offset is left out of the cell, or the nominal prediction misses the measured points
     by more than :data:`REGISTER_ABOVE_M` (median): then the base pose in the tracker
-    frame and every reflector offset on the tip are registered from the points
-    (:func:`kpi_calib_ros.core.estimation.registration.register`) and replace the nominal ones.
+    frame is registered from the points
+    (:func:`kpi_calib_ros.core.estimation.registration.register`) and replaces the nominal
+    one, with the reflector offsets the cell states held (a stated offset is a prior with a
+    tolerance: postures that never turn the tool would register it anywhere), or registered
+    too when the cell leaves one out or the stated ones miss the points by more than
+    :data:`REGISTRATION_MAX_RMS_M` (the plausibility gate then judges the offset found).
     Returns the start vector and the registration (None if not run).
 
     Raises
@@ -99,7 +104,15 @@ def registered_start(cm: CellModel, data: Measurements) -> tuple[np.ndarray, Reg
     if data.reflector is not None:  # rotation rows (tracked poses) carry no point
         data = data.subset(np.asarray(data.reflector) < cm.model.n_reflectors)
     tips = np.array([cm.robot.pin_tip_pose(row) for row in np.atleast_2d(data.q)])
-    reg = register(data.eta, tips, max_rms=REGISTRATION_MAX_RMS_M, reflector=data.reflector)
+    reg = None
+    if cm.cell.reflector_offset_given:
+        try:
+            reg = register(data.eta, tips, max_rms=REGISTRATION_MAX_RMS_M,
+                           reflector=data.reflector, offsets=cm.cell.offsets)
+        except DataError:
+            reg = None  # the stated offsets miss the points: register them too
+    if reg is None:
+        reg = register(data.eta, tips, max_rms=REGISTRATION_MAX_RMS_M, reflector=data.reflector)
     offsets = (reg.reflector_offsets if reg.reflector_offsets is not None
                else reg.reflector_offset.reshape(1, 3))
     values = {f'base.{c}': float(v) for c, v in
@@ -116,9 +129,11 @@ def registration_text(reg: Registration | None, cm: CellModel) -> str:
         return 'placement: the cell\'s tracker.base_in_tracker and reflector.offset'
     why = ('left out of the cell' if cm.needs_registration
            else f'the nominal missed the points by more than {REGISTER_ABOVE_M} m')
+    held = reg.offset_std_m is not None and not np.any(reg.offset_std_m)
     return (f'placement registered from the points ({why}): base_in_tracker '
             f'{np.round(reg.base_in_tracker, 5).tolist()}, reflector offset '
-            f'{np.round(reg.reflector_offset, 5).tolist()} m, registered miss '
+            f'{np.round(reg.reflector_offset, 5).tolist()} m'
+            + (" (the cell's, held)" if held else '') + ', registered miss '
             f'{reg.rms_m * 1e3:.3g} mm rms'
             + (f'; measurements {list(reg.trimmed)} missed by far more and were left out of '
                'the registration' if reg.trimmed else ''))
@@ -223,7 +238,6 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
     if len(data) == 0:
         raise DataError('no accepted measurement to identify from')
     settings = cm.cell.identification
-    n_geo = len(cm.geometric)
     # An unknown or far-off placement is registered from the points first (the median
     # decides whether it is needed, so a few gross points do not trigger it).
     registration = None
@@ -240,9 +254,44 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
     balance = tolerance is not None
     fit = _fit_function(cm, start, prior, balance=balance, scales=scales)
     choice = choose_level(cm, screened, model, start, prior, fit)
-    if choice.requested == 'auto' and allowed is None:
+    chosen = choice.requested == 'auto' and allowed is None
+    if chosen:
         cm, start, choice = add_chosen_effects(cm, screened, choice, start, prior, balance)
-        fit = _fit_function(cm, start, prior, balance=balance, scales=scales)
+    cal = _final_fit(cm, data, choice, start, prior, balance, scales, registration, allowed,
+                     progress)
+    # An effect auto added in its trials that the final fit (other points kept) leaves
+    # undetermined or beyond its bound is refused, and the calibration fitted without it.
+    refused = [e for e in choice.effects if any(v.startswith(f'{e}:') for v in cal.implausible)]
+    if chosen and refused:
+        why = next(v for v in cal.implausible if v.startswith(f'{refused[0]}:'))
+        cm, start = without_effects(cm, start, refused)
+        choice = dataclasses.replace(
+            choice, effects=tuple(e for e in choice.effects if e not in refused),
+            held=tuple(n for n in choice.held if n in cm.model.params.names),
+            reason=f'{choice.reason}; refused in the final fit: {why}')
+        cal = _final_fit(cm, data, choice, start, prior, balance, scales, registration,
+                         allowed, progress)
+    return cal
+
+
+def without_effects(cm: CellModel, start: np.ndarray, names: Sequence[str]
+                    ) -> tuple[CellModel, np.ndarray]:
+    """``cm`` without the effects ``names`` (specs), and ``start`` without their parameters."""
+    keep = tuple(e for e in cm.model.effects if e.name not in set(names))
+    smaller = with_effects(geometric_only(cm), keep)
+    values = dict(zip(cm.model.params.names, start))
+    return smaller, np.array([values[n] for n in smaller.model.params.names])
+
+
+def _final_fit(cm: CellModel, data: Measurements, choice: ModelChoice, start: np.ndarray,
+               prior: Prior | None, balance: bool, scales: list[float],
+               registration: Registration | None, allowed: Sequence[str] | None,
+               progress: Callable[[str], None] | None) -> CellCalibration:
+    """The final identification of :func:`calibrate_cell` at ``choice``'s level, from
+    ``start``, with outlier exclusion, KPI estimability and the plausibility gate."""
+    settings = cm.cell.identification
+    n_geo = len(cm.geometric)
+    fit = _fit_function(cm, start, prior, balance=balance, scales=scales)
     free = [n for n in level_free(cm.model.params, choice.level, n_geo)
             if n not in choice.held]
     if allowed is not None:
@@ -271,9 +320,11 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
                               reflector=kept.reflector, rotation=kept.rotation)
     # A model that fails χ² must not report the stated σ's precision (core.estimation.precision).
     result = honest_precision(robust.result)
+    implausible = plausibility_gate(cm, result, start, np.atleast_2d(kept.q), kept.tau,
+                                    kept.reflector, free)
     return CellCalibration(result, robust, choice, est, tuple(free),
                            registration, scales[-1], cm,
-                           expected_tcp_error(cm.model, kept, result))
+                           expected_tcp_error(cm.model, kept, result), implausible)
 
 
 def add_chosen_effects(cm: CellModel, data: Measurements, choice: ModelChoice,
@@ -290,7 +341,9 @@ def add_chosen_effects(cm: CellModel, data: Measurements, choice: ModelChoice,
         extra = np.zeros(len(model.params.names) - len(start))
         return _fit_function(dataclasses.replace(cm, model=model),
                              np.concatenate([start, extra]), prior, balance=balance)
-    chosen = choose_effects(cm.model, data, fit_for, choice.level, n_geo, prior)
+    chosen = choose_effects(cm.model, data, fit_for, choice.level, n_geo, prior,
+                            tolerances=cm.cell.identification.tolerances,
+                            reference=start[:n_geo])
     if not chosen.effects:
         return cm, start, dataclasses.replace(
             choice, reason=f'{choice.reason}; {chosen.reason}',

@@ -442,6 +442,11 @@ def build_cell_model(cell: Cell, effects: tuple = ()) -> CellModel:
                              else cell.sigma / cell.sigma_rotation,
                              joint_sigma_vector(cell.joint_sigma, robot.joint_names),
                              temperatures)
+    for spec in cell.identification.tolerances.bounds:
+        parts = spec.split(':')
+        if len(parts) > 1 and parts[1] not in robot.joint_names:
+            raise ConfigError(f'identification.bounds.{spec}', f'joint {parts[1]!r} is not on '
+                              f'the chain; write kind:joint with a joint of {robot.joint_names}')
     unknown = [n for n in cell.identification_priority if n not in model.params.names]
     if unknown:
         raise ConfigError('identification.priority', f'unknown parameter(s) {unknown}; valid '

@@ -199,6 +199,32 @@ CELL_KEYS: tuple[CellKey, ...] = (
        'Std of each joint placement rotation.', 5.0e-3),
     _K('identification.prior.offset', 'number', 'rad (m for prismatic joints)',
        REQUIRED + ' (with prior)', 'Std of each joint zero offset.', 5.0e-2),
+    _K('identification.tolerances', 'mapping', '', '{}', 'How far an identified quantity may '
+       'be from what the cell states before the calibration is refused as not plausible '
+       '(a std above it: undetermined). A nominal arm is off by mm and 0.1°; centimetres and '
+       'degrees are a wrong model, not a calibration.', {'translation': 0.05}),
+    _K('identification.tolerances.base_translation', 'number', 'm', '0.1', 'Base position in '
+       'the tracker frame, from `tracker.base_in_tracker` or its registration.', 0.1),
+    _K('identification.tolerances.base_rotation', 'number', 'rad', '0.1', 'Base orientation '
+       'in the tracker frame, as `base_translation`.', 0.1),
+    _K('identification.tolerances.reflector_offset', 'number', 'm', '0.02', 'Reflector offset '
+       'from `reflector.offset` (a stated offset is a prior with this tolerance, held when the '
+       'placement is registered); an offset left out must be observed by the poses (the '
+       'tool turned).', 0.02),
+    _K('identification.tolerances.translation', 'number', 'm', '0.05', 'Every joint placement '
+       'translation (link origin) correction.', 0.05),
+    _K('identification.tolerances.rotation', 'number', 'rad', '0.05', 'Every joint placement '
+       'rotation correction (0.05 rad ≈ 3°).', 0.05),
+    _K('identification.tolerances.offset', 'number', 'rad (m for prismatic joints)', '0.2',
+       'Every joint zero offset correction: homing or mastering leaves degrees, not more '
+       'than ~11°.', 0.2),
+    _K('identification.bounds', 'mapping of effect (`kind`, `kind:joint` or spec) to a number '
+       'or a list, one per parameter', "the effect's units", "{} (the library's plausible "
+       'sizes)', 'Largest |value| of an effect parameter before the calibration is refused; '
+       'widen it for an arm that is softer or looser than an industrial one: servo-stiff or '
+       'cable-driven joints yield to their position servo, 1/kp ≈ 1e-3 rad/(N m) '
+       '(`joint_compliance` default 2e-4, harmonic drives 1e4–1e5 N m/rad); gear cyclic '
+       'errors are a few mrad (default 5e-3).', {'joint_compliance:joint_2': 2.0e-3}),
     # ---------------------------------------------------------------- effects
     _K('effects', 'list of effect specs', '', '[]', 'Physical effects in the model, '
        '`effect:joint` (see the effect library); code effects need the opt-in.',

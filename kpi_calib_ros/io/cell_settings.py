@@ -8,12 +8,19 @@ from typing import Any, Mapping
 
 from kpi_calib_ros.core.design.optimum import DesignSettings
 from kpi_calib_ros.core.diagnosis.model_selection import DEFAULT_FOLDS, MODEL_CHOICES
-from kpi_calib_ros.core.effects.registry import BoundEffect, parse_effect_spec
+from kpi_calib_ros.core.effects.registry import (
+    ARGUMENT_EFFECTS,
+    CHAIN_EFFECTS,
+    BoundEffect,
+    available_effects,
+    parse_effect_spec,
+)
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation.least_squares import (
     DEFAULT_MAX_ITERATIONS,
     ITERATIONS_PER_PARAMETER,
 )
+from kpi_calib_ros.core.estimation.plausibility import Tolerances
 from kpi_calib_ros.core.estimation.robust import LOSSES, OutlierSettings
 from kpi_calib_ros.core.model.robot import RobotModel
 from kpi_calib_ros.io.cell_values import non_negative, number, text_number_hint
@@ -45,7 +52,9 @@ class IdentificationSettings:
     of the joint placement translations, rotations and joint offsets around the nominal
     (:func:`kpi_calib_ros.core.estimation.prior.tolerance_prior`), None: no prior; max_iterations :
     iteration limit of every fit (:func:`kpi_calib_ros.core.estimation.least_squares.identify`),
-    None: 100 per identified parameter.
+    None: 100 per identified parameter; tolerances : how far identified quantities may be from
+    the cell's and the bounds of effect parameters
+    (:class:`kpi_calib_ros.core.estimation.plausibility.Tolerances`).
     """
 
     model: str = 'geometric'
@@ -54,6 +63,9 @@ class IdentificationSettings:
     cv_folds: int = DEFAULT_FOLDS
     prior: tuple[float, float, float] | None = None
     max_iterations: int | None = DEFAULT_MAX_ITERATIONS
+    # identification.tolerances and identification.bounds: the plausibility gate
+    # (core.estimation.plausibility).
+    tolerances: Tolerances = field(default_factory=Tolerances)
 
 
 def design_settings(raw: Mapping[str, Any] | None) -> DesignSettings:
@@ -89,9 +101,13 @@ def design_settings(raw: Mapping[str, Any] | None) -> DesignSettings:
 
 
 _IDENT_KEYS = {'method', 'priority', 'model', 'loss', 'outliers', 'cv_folds', 'prior',
-               'max_iterations'}
+               'max_iterations', 'tolerances', 'bounds'}
 
 PRIOR_KEYS = ('translation', 'rotation', 'offset')
+# identification.tolerances: the fields of core.estimation.plausibility.Tolerances but its
+# bounds (identification.bounds).
+TOLERANCE_KEYS = ('base_translation', 'base_rotation', 'reflector_offset', 'translation',
+                  'rotation', 'offset')
 
 
 def identification_settings(raw: Mapping[str, Any]) -> IdentificationSettings:
@@ -141,7 +157,56 @@ def identification_settings(raw: Mapping[str, Any]) -> IdentificationSettings:
                           f'{limit!r}')
     return IdentificationSettings(model, loss, OutlierSettings(
         exclude, None if threshold is None else float(threshold), float(fraction)), folds,
-        _tolerance_prior(raw.get('prior')), limit)
+        _tolerance_prior(raw.get('prior')), limit,
+        _tolerances(raw.get('tolerances'), raw.get('bounds')))
+
+
+def _positive(value: Any, key: str, unit: str, example: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) \
+            or not 0 < value < float('inf'):
+        raise ConfigError(key, f'must be a positive number in {unit} (e.g. {example})'
+                          f'{text_number_hint(value)}; got {value!r}')
+    return float(value)
+
+
+def _tolerances(raw: Any, bounds: Any) -> Tolerances:
+    """``identification.tolerances`` ({base_translation, base_rotation, reflector_offset,
+    translation, rotation}: m or rad, each optional) and ``identification.bounds`` (effect spec,
+    ``kind:joint`` or kind -> a bound or a list of one per parameter); joints are checked
+    against the chain when the cell model is built."""
+    raw = {} if raw is None else raw
+    if not isinstance(raw, dict):
+        raise ConfigError('identification.tolerances', 'must be a mapping, e.g. '
+                          '{translation: 0.05, rotation: 0.05, reflector_offset: 0.02}')
+    unknown = set(raw) - set(TOLERANCE_KEYS)
+    if unknown:
+        raise ConfigError(f'identification.tolerances.{sorted(unknown)[0]}',
+                          f'unknown key; allowed: {list(TOLERANCE_KEYS)}')
+    values = {k: _positive(v, f'identification.tolerances.{k}',
+                           'm' if k.endswith(('translation', 'reflector_offset')) else 'rad',
+                           '0.05')
+              for k, v in raw.items()}
+    bounds = {} if bounds is None else bounds
+    if not isinstance(bounds, dict):
+        raise ConfigError('identification.bounds', 'must map effects to bounds, e.g. '
+                          '{joint_compliance:joint_2: 2.0e-3}')
+    known = available_effects()
+    every = set(known) | set(CHAIN_EFFECTS) | set(ARGUMENT_EFFECTS)
+    parsed: dict[str, tuple[float, ...]] = {}
+    for spec, value in bounds.items():
+        key = f'identification.bounds.{spec}'
+        kind = str(spec).split(':')[0]
+        if kind not in every:
+            raise ConfigError(key, f'unknown effect {kind!r}; write kind or kind:joint with a '
+                              f'kind of {sorted(every)}')
+        items = value if isinstance(value, list) else [value]
+        n = len(known[kind].parameters) if kind in known else None
+        if not items or (n is not None and len(items) not in (1, n)):
+            raise ConfigError(key, f'give one bound (every parameter) or {n}, one per '
+                              f'parameter {list(known[kind].parameters)}')
+        parsed[str(spec)] = tuple(_positive(v, key, 'the effect\'s units', '2.0e-3')
+                                  for v in items)
+    return Tolerances(**values, bounds=parsed)
 
 
 def _tolerance_prior(raw: Any) -> tuple[float, float, float] | None:

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import weakref
 from dataclasses import dataclass, field, replace
+from typing import Mapping
 
 import casadi as ca
 import numpy as np
@@ -39,9 +40,15 @@ from kpi_calib_ros.core.diagnosis.periodic_search import (
 from kpi_calib_ros.core.diagnosis.residual_analysis import ResidualAnalysis
 from kpi_calib_ros.core.effects.general import general_candidates
 from kpi_calib_ros.core.effects.library import BACKLASH_TORQUE_SCALE
-from kpi_calib_ros.core.effects.registry import BoundEffect, candidate_effects, implausible
+from kpi_calib_ros.core.effects.registry import (
+    BoundEffect,
+    candidate_effects,
+    effect_bounds,
+    implausible,
+)
 from kpi_calib_ros.core.estimation.estimability import KpiEstimability
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult, point_sigma_squares
+from kpi_calib_ros.core.estimation.plausibility import Tolerances
 from kpi_calib_ros.core.estimation.precision import (
     JOINT_NOISE_CAUSE,
     ExpectedTcpError,
@@ -55,6 +62,7 @@ from kpi_calib_ros.core.estimation.residuals import (
     identifiable_folds,
     linear_validation_rms,
     linearized_fit,
+    orthonormal_basis,
     residual_report,
     validation_rms,
 )
@@ -258,7 +266,8 @@ class CellDiagnosis:
 
 def screen_effects(model: MeasurementModel, data: Measurements, result: CalibrationResult,
                    candidates: list[BoundEffect] | None = None, folds: int = 0,
-                   alpha: float = ADEQUACY_ALPHA, seed: int = 0
+                   alpha: float = ADEQUACY_ALPHA, seed: int = 0,
+                   tolerances: Tolerances | None = None
                    ) -> tuple[tuple[Candidate, ...], tuple[Candidate, ...]]:
     """Fit and score every candidate effect against the geometric fit ``result``.
 
@@ -274,6 +283,11 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
     alpha : float
         Family-wise false-alarm level: a candidate is significant when its
         F-test p-value times the number of distinguishable candidates is below.
+    tolerances : Tolerances, optional
+        The cell's tolerances and effect bounds (default: the library's bounds and the
+        default tolerances): a candidate beyond its bounds, undetermined (std above its
+        bound), or one that leaves a geometric parameter undetermined (its std with the
+        candidate beside it above its tolerance) is not plausible, with that reason.
 
     Returns
     -------
@@ -301,6 +315,8 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
 
     fits: list[CandidateFit] = []
     rejected = []
+    tolerances = tolerances or Tolerances()
+    bounds = tolerances.bounds
     for effect in candidates:
         # An effect nonlinear in its shape parameters is screened at each value of its
         # shape grid (the size parameters linear there); the best fit stands for it.
@@ -332,7 +348,7 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
         if tried:
             # The best physically plausible shape (a fit constrained to the plausible
             # region); only when none is plausible, the best of all (reported implausible).
-            plausible = [f for f in tried if not implausible(effect, f.theta, tau)]
+            plausible = [f for f in tried if not implausible(effect, f.theta, tau, bounds)]
             best = max(plausible or tried, key=lambda f: f.delta_chi2)
             if len(tried) > 1:
                 # The best of several shapes is the best of several tests: its p-value is
@@ -356,7 +372,10 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
         p_adj = min(1.0, fit.p_value_raw * m)
         nested = simpler.get(fit.effect.name, '')
         significant = bool(p_adj < alpha) and not nested
-        warning = implausible(fit.effect, fit.theta, tau)
+        warning = implausible(fit.effect, fit.theta, tau, bounds) \
+            or _undetermined(fit.effect, fit.std * np.sqrt(chi2_scale(fit.chi2, fit.dof)), bounds)
+        if significant and not warning:
+            warning = _geometry_undetermined(model, sys_, result, fit, q, tau, tolerances)
         merged = fit.merged
         extra = ''.join(f' {t}' for t in (
             warning and f'Warning: {warning}.',
@@ -390,6 +409,64 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
     return tuple(out), tuple(rejected)
 
 
+def _undetermined(effect: BoundEffect, std: np.ndarray, bounds: Mapping[str, tuple[float, ...]]
+                  ) -> str:
+    """Why a screened effect is undetermined (a std above its bound), '' when it is not."""
+    loose = [f'{n} std {v:.3g} {u} > its bound {b:.3g}' for n, v, u, b in
+             zip(effect.parameter_names, std, effect.units, effect_bounds(effect, bounds))
+             if np.isfinite(v) and v > b]
+    return ('undetermined: ' + '; '.join(loose) + f' (to determine it: {effect.hint()})'
+            if loose else '')
+
+
+def _geometry_undetermined(model: MeasurementModel, sys_: LinearizedFit,
+                           result: CalibrationResult, fit: CandidateFit, q: np.ndarray,
+                           tau: np.ndarray, tolerances: Tolerances) -> str:
+    """Which identified geometric parameters a candidate leaves undetermined, '' for none.
+
+    With the candidate's columns beside the geometry, the std of each identified geometric
+    parameter is that of the fit [J E] (Schur complement, at the candidate's χ²/dof); one above
+    its tolerance (m or rad, :class:`~kpi_calib_ros.core.estimation.plausibility.Tolerances`)
+    that was within it without the candidate is undetermined by the effect: the data cannot
+    tell the effect from that direction of the geometry (link bending turning a column's
+    placement by 0.2 rad).
+    """
+    k = len(fit.effect.parameter_names) - fit.effect.kind.n_shape
+    shape = tuple(fit.theta[k:]) if fit.effect.kind.n_shape else ()
+    cols, _ = _effect_columns(model, sys_, fit.effect, q, tau, shape)
+    basis = orthonormal_basis(cols)
+    perp = sys_.jac - basis @ (basis.T @ sys_.jac)
+    scale = chi2_scale(fit.chi2, fit.dof)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        std = np.sqrt(np.abs(np.diag(np.linalg.pinv(perp.T @ perp, hermitian=True))) * scale)
+    before = dict(zip(result.estimated, result.std))
+    units = dict(zip(model.params.names, model.params.units))
+    out = []
+    for name, s in zip(result.estimated, std):
+        if name not in units or not _is_geometric(name):
+            continue
+        tol = _tolerance_of(name, units[name], tolerances)
+        if s > tol >= before.get(name, 0.0):
+            out.append(f'{name} std {s:.3g} {units[name]} > its tolerance {tol:g}')
+    return ('it leaves the geometry undetermined: ' + '; '.join(out[:4])
+            + (f' and {len(out) - 4} more' if len(out) > 4 else '')
+            + ' (the data cannot tell the effect from these directions)') if out else ''
+
+
+def _is_geometric(name: str) -> bool:
+    return name.startswith(('base.', 'reflector.')) or '.placement.' in name \
+        or (name.endswith('.offset') and name.count('.') == 1)
+
+
+def _tolerance_of(name: str, unit: str, tolerances: Tolerances) -> float:
+    if name.startswith('reflector.'):
+        return tolerances.reflector_offset
+    if name.endswith('.offset'):
+        return tolerances.offset
+    prefix = 'base_' if name.startswith('base.') else ''
+    return getattr(tolerances, prefix + ('translation' if unit == 'm' else 'rotation'))
+
+
 def default_candidates(model: MeasurementModel, data: Measurements, result: CalibrationResult,
                        general: bool = True
                        ) -> tuple[list[BoundEffect], tuple[Periodogram, ...]]:
@@ -413,7 +490,8 @@ def default_candidates(model: MeasurementModel, data: Measurements, result: Cali
 
 def diagnose(model: MeasurementModel, data: Measurements, result: CalibrationResult,
              candidates: list[BoundEffect] | None = None, folds: int = 0,
-             alpha: float = ADEQUACY_ALPHA, seed: int = 0, general: bool = True) -> Diagnosis:
+             alpha: float = ADEQUACY_ALPHA, seed: int = 0, general: bool = True,
+             tolerances: Tolerances | None = None) -> Diagnosis:
     """Residual report, verdict and ranked candidate effects for one calibration.
 
     The model is adequate when the χ² test passes at ``alpha`` and no candidate
@@ -421,13 +499,15 @@ def diagnose(model: MeasurementModel, data: Measurements, result: CalibrationRes
     candidates), the general effects join the screen: ``link_bending`` of every joint
     that carries mass and, per revolute joint, the periodic joint error at the peak of
     its periodogram (:mod:`kpi_calib_ros.core.diagnosis.periodic_search`, the search counted in
-    its p-value); they rank after the significant, plausible named effects.
+    its p-value); they rank after the significant, plausible named effects. ``tolerances``:
+    the cell's tolerances and effect bounds (:func:`screen_effects`).
     """
     report = residual_report(model, data, result, alpha)
     grams: tuple[Periodogram, ...] = ()
     if candidates is None and general:
         candidates, grams = default_candidates(model, data, result)
-    ranked, rejected = screen_effects(model, data, result, candidates, folds, alpha, seed)
+    ranked, rejected = screen_effects(model, data, result, candidates, folds, alpha, seed,
+                                      tolerances)
     cv = validation_rms(model, data, result, folds, seed)
     best = ranked[0] if ranked and ranked[0].significant and ranked[0].plausible else None
     implausible_only = best is None and any(c.significant for c in ranked)

@@ -28,7 +28,7 @@ On data the geometric model explains, step 1 passes a candidate with probability
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Callable
+from typing import Callable, Mapping
 
 import numpy as np
 
@@ -42,6 +42,7 @@ from kpi_calib_ros.core.diagnosis.out_of_sample import out_of_sample_error
 from kpi_calib_ros.core.effects.registry import BoundEffect, implausible
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
+from kpi_calib_ros.core.estimation.plausibility import Tolerances, Violation, gate
 from kpi_calib_ros.core.estimation.prior import Prior
 from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements
@@ -123,7 +124,9 @@ def _predicted(model: MeasurementModel, data: Measurements, result: CalibrationR
 def choose_effects(model: MeasurementModel, data: Measurements, fit_for: FitFor, level: str,
                    n_geometric: int, prior: Prior | None = None,
                    alpha: float = ADEQUACY_ALPHA, seed: int = 0,
-                   max_effects: int = MAX_EFFECTS, general: bool = True) -> EffectChoice:
+                   max_effects: int = MAX_EFFECTS, general: bool = True,
+                   tolerances: Tolerances | None = None,
+                   reference: np.ndarray | None = None) -> EffectChoice:
     """Forward selection of physical effects on top of ``model`` at ``level``.
 
     See the module docstring. ``n_geometric``: the number of geometric parameters of ``model``
@@ -131,8 +134,18 @@ def choose_effects(model: MeasurementModel, data: Measurements, fit_for: FitFor,
     general effects join each round's screen as they join the diagnosis's
     (:func:`~kpi_calib_ros.core.diagnosis.candidates.default_candidates`).
 
+    ``tolerances`` (the cell's; default ones when None) and ``reference`` (n_geometric,) (the
+    placement and geometry the identification started from; default the model's nominal):
+    a trial whose fit moves a placement or geometric parameter beyond its tolerance or leaves
+    it undetermined, or whose effects are beyond their bounds or undetermined
+    (:func:`kpi_calib_ros.core.estimation.plausibility.gate`), is refused with that reason
+    (quantities the current model already breaks do not count against it).
+
     Returns the choice; ``choice.model`` is ``model`` with the added effects appended.
     """
+    tolerances = tolerances or Tolerances()
+    reference = (np.asarray(model.params.nominal[:n_geometric], float) if reference is None
+                 else np.asarray(reference, float))
     fit = fit_for(model)
     free = level_free(model.params, level, n_geometric)
     try:
@@ -155,7 +168,9 @@ def choose_effects(model: MeasurementModel, data: Measurements, fit_for: FitFor,
     for rnd in range(1, max_effects + 1):
         pool = {e.name: e for e in default_candidates(model, data, current, general)[0]}
         ranked, _ = screen_effects(model, data, current, list(pool.values()), alpha=alpha,
-                                   seed=seed)
+                                   seed=seed, tolerances=tolerances)
+        known = {v.quantity for v in _violations(model, data, current, reference, tolerances,
+                                                 n_geometric)}
         passed = [c for c in ranked if c.significant and c.plausible]
         if not passed:
             significant = [c.spec for c in ranked if c.significant]
@@ -168,7 +183,7 @@ def choose_effects(model: MeasurementModel, data: Measurements, fit_for: FitFor,
         for cand in passed[:TRIALS]:
             round_trials.append(_trial(model, data, fit_for, current, pool[cand.spec],
                                        cand.values, level, n_geometric, held, prior, seed,
-                                       rnd))
+                                       rnd, (tolerances, reference, known)))
         usable = [t for t in round_trials if t[0].predicted_rms_m is not None]
         if not usable:
             trials += [t[0] for t in round_trials]
@@ -207,15 +222,25 @@ def choose_effects(model: MeasurementModel, data: Measurements, fit_for: FitFor,
                         tuple(held))
 
 
+def _violations(model: MeasurementModel, data: Measurements, result: CalibrationResult,
+                reference: np.ndarray, tolerances: Tolerances, n_geometric: int
+                ) -> tuple[Violation, ...]:
+    """Return the plausibility gate of a fit (reflector offsets judged against ``reference``)."""
+    q = np.atleast_2d(data.q)
+    tau = model.robot.gravity_torques(q) if model.uses_torque else None
+    return gate(model, result, reference, tolerances, True, q, tau, n_geometric)
+
+
 def _implausible_fit(effects: tuple, result: CalibrationResult,
-                     tau: np.ndarray | None) -> str:
+                     tau: np.ndarray | None, bounds: Mapping[str, tuple[float, ...]] | None = None
+                     ) -> str:
     """Why the fitted values of ``effects`` are not physically plausible at the measured torques.
 
     ``effects`` are the new one and those added before, which the refit moves too; '' when they
-    are plausible.
+    are plausible. ``bounds``: the cell's ``identification.bounds``.
     """
     for e in reversed([e for e in effects if isinstance(e, BoundEffect)]):
-        why = implausible(e, [float(result.value(n)) for n in e.parameter_names], tau)
+        why = implausible(e, [float(result.value(n)) for n in e.parameter_names], tau, bounds)
         if why:
             return why if e is effects[-1] else f'it moves {e.name} out of its plausible ' \
                 f'range ({why})'
@@ -237,14 +262,17 @@ def effect_start(values: np.ndarray, effect: BoundEffect, screened: np.ndarray) 
 
 def _trial(model: MeasurementModel, data: Measurements, fit_for: FitFor,
            current: CalibrationResult, effect: BoundEffect, screened: np.ndarray, level: str,
-           n_geometric: int, held: list[str], prior: Prior | None, seed: int, rnd: int
+           n_geometric: int, held: list[str], prior: Prior | None, seed: int, rnd: int,
+           gating: tuple[Tolerances, np.ndarray, set[str]] | None = None
            ) -> tuple[EffectTrial, MeasurementModel | None, CalibrationResult | None]:
     """Fit ``model`` + ``effect`` from the current fit and the screened values; judge it.
 
     An effect with shape parameters (nonlinear, e.g. joint_play's τ0) is fitted with them
     free first; when that fit does not converge or leaves the plausible range, they are
     held at the screened value (the best plausible point of their grid) and only the size
-    is fitted: the plausible-constrained estimate on the grid.
+    is fitted: the plausible-constrained estimate on the grid. ``gating``: the tolerances,
+    the reference geometry and the quantities the current fit already breaks; a fit that
+    breaks another (:func:`_violations`) is refused with the first.
     """
     aug = augmented_model(model, (effect,))
     names = list(effect.parameter_names)
@@ -270,7 +298,12 @@ def _trial(model: MeasurementModel, data: Measurements, fit_for: FitFor,
         elif any(n not in std for n in wanted):
             why = 'not identified with the geometry at this level'
         else:
-            why = _implausible_fit(aug.effects, res, tau)
+            why = _implausible_fit(aug.effects, res, tau,
+                                   None if gating is None else gating[0].bounds)
+        if not why and gating is not None:
+            new = [v for v in _violations(aug, data, res, gating[1], gating[0], n_geometric)
+                   if v.quantity not in gating[2]]
+            why = f'not plausible: {new[0].text()}' if new else ''
         pred = None if why else _predicted(aug, data, res, free, prior, seed)
         if not why and pred is None:
             why = 'no degrees of freedom left'

@@ -143,9 +143,10 @@ def mass_free_compliance(robot: RobotModel, joint: str | None,
 CHAIN_EFFECTS[NAME] = mass_free_compliance
 
 
-# Joint stiffness of industrial arms, N m/rad: a small wrist ~1e4, a heavy-payload
-# shoulder ~1e7. Outside, a fitted compliance more likely absorbs something else.
-STIFFNESS_RANGE = (1e4, 1e8)
+# Joint stiffness of industrial arms, N m/rad: a small harmonic-drive wrist ~5e3-1e4, a
+# heavy-payload shoulder ~1e7 (as joint_compliance's default bound). Outside, a fitted
+# compliance more likely absorbs something else (or the arm is servo-stiff: a cell bound).
+STIFFNESS_RANGE = (5e3, 1e8)
 
 
 def massless_links(robot: RobotModel) -> list[str]:

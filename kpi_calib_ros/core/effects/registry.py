@@ -40,8 +40,10 @@ Steel grows 11–13 µm/(m K), aluminium 23–24 µm/(m K): α outside ±30e-6 /
 Sign of ``joint_compliance``: τ_j is Pinocchio's generalised gravity g(q), the torque
 the drive must apply to *hold* the arm, and the model puts the joint at q + δq. A
 joint of stiffness k sags along gravity, against its holding torque, so a physical
-compliance is c = −1/k < 0. Industrial joints have k ≈ 1e4 … 1e7 N m/rad, hence
-|c| ≈ 1e-7 … 1e-4 rad/(N m); :func:`compliance_warnings` flags fitted values outside.
+compliance is c = −1/k < 0. Industrial joints have k ≈ 1e4 … 1e7 N m/rad, harmonic drives
+of small arms 5e3 … 1e5, hence |c| ≤ 2e-4 rad/(N m) plausible by default; a servo-stiff or
+cable-driven arm yields to its position servo, 1/kp ≈ 1e-3 rad/(N m): the cell's
+``identification.bounds`` widens the bound per effect and joint (:func:`effect_bounds`).
 
 ``joint_backlash`` is ``b·tanh(τ/τ_b)`` with τ_b = 0.01 N m (0.01 N for a prismatic joint,
 :data:`~kpi_calib_ros.core.effects.library.BACKLASH_TORQUE_SCALE`), a smooth sgn τ: the sign
@@ -95,7 +97,7 @@ from kpi_calib_ros.core.model.robot import RobotModel
 __all__ = [
     'ENTRY_POINT_GROUP', 'register_effect', 'available_effects', 'bind_effect', 'CHAIN_EFFECTS',
     'ARGUMENT_EFFECTS', 'parse_effect_spec', 'resolve_effects', 'split_specs',
-    'candidate_effects', 'implausible', 'LINEAR_PLAY',
+    'candidate_effects', 'implausible', 'LINEAR_PLAY', 'effect_bounds', 'bound_key',
 ]
 
 ENTRY_POINT_GROUP = 'kpi_calib_ros.effects'
@@ -367,8 +369,41 @@ def candidate_effects(robot: RobotModel, kinds: Sequence[str] | None = None,
     return out
 
 
+# A cell's ``identification.bounds``: an effect spec (``joint_play:joint_4``), a kind and
+# joint, or a kind alone -> the largest plausible |value| of each of its parameters.
+Bounds = Mapping[str, Sequence[float]]
+
+
+def bound_key(effect: BoundEffect) -> str:
+    """Return the cell key that widens ``effect``'s bounds at its joint.
+
+    ``identification.bounds.joint_compliance:joint_2``; the kind alone for a global effect.
+    """
+    kind = effect.kind.name
+    return 'identification.bounds.' + (kind if effect.joint is None else f'{kind}:{effect.joint}')
+
+
+def effect_bounds(effect: BoundEffect, overrides: Bounds | None = None) -> tuple[float, ...]:
+    """Largest physically plausible |value| of each parameter of ``effect`` (its units).
+
+    The cell's ``overrides`` (``identification.bounds``) first: the effect's own spec
+    (``periodic_joint_error:joint_2:k=17``), then its kind at its joint
+    (``joint_compliance:joint_2``), then its kind (``joint_compliance``, every joint); one
+    number stands for every parameter. Else the kind's ``plausible`` (``prismatic_plausible``
+    on a prismatic joint); () when the kind states none.
+    """
+    kind = effect.kind
+    for key in (effect.name, None if effect.joint is None else f'{kind.name}:{effect.joint}',
+                kind.name):
+        if key is not None and overrides and key in overrides:
+            given = tuple(float(b) for b in overrides[key])
+            return given * len(effect.parameter_names) if len(given) == 1 else given
+    bounds = kind.prismatic_plausible if effect.joint_kind == 'prismatic' else kind.plausible
+    return tuple(bounds or ())
+
+
 def implausible(effect: BoundEffect, values: Sequence[float] | np.ndarray,
-                tau: np.ndarray | None = None) -> str:
+                tau: np.ndarray | None = None, bounds: Bounds | None = None) -> str:
     """Return '' when every fitted value is within the effect's plausible range, else a warning.
 
     The warning names the parameter, its value and the bound.
@@ -376,29 +411,31 @@ def implausible(effect: BoundEffect, values: Sequence[float] | np.ndarray,
     ``tau``: (N, n) gravity torques of the measured poses (N m); the effect's joint's are
     used. An effect that contains ``joint_compliance`` as a limit of its shape (``joint_play``) is
     that compliance, b·τ/τ0, where every torque is below :data:`LINEAR_PLAY` τ0 (tanh
-    within 4 % of linear): there b/τ0 must also be a plausible compliance.
+    within 4 % of linear): there b/τ0 must also be a plausible compliance. ``bounds``: the
+    cell's ``identification.bounds`` (:func:`effect_bounds`).
     """
     kind = effect.kind
-    bounds = kind.prismatic_plausible if effect.joint_kind == 'prismatic' else kind.plausible
     out = [f'{name} = {value:.3g} {unit} beyond the plausible ±{bound:.3g}'
            for name, value, unit, bound in zip(effect.parameter_names, values, effect.units,
-                                               bounds or ())
+                                               effect_bounds(effect, bounds))
            if abs(value) > bound]
     if not out and tau is not None and effect.joint_index is not None and len(tau) \
             and 'joint_compliance' in kind.nests and kind.n_shape == 1:
-        out += _compliance_limit(effect, values, np.atleast_2d(tau)[:, effect.joint_index])
+        out += _compliance_limit(effect, values, np.atleast_2d(tau)[:, effect.joint_index],
+                                 bounds)
     return ('physically implausible: ' + '; '.join(out) +
-            ' (the fit uses the effect to absorb something else)') if out else ''
+            ' (the fit uses the effect to absorb something else, or the bound is too '
+            'tight for this arm)') if out else ''
 
 
 LINEAR_PLAY = 1.0 / 3.0
 
 
 def _compliance_limit(effect: BoundEffect, values: Sequence[float] | np.ndarray,
-                      tau: np.ndarray) -> list[str]:
-    compliance = _REGISTRY['joint_compliance']
-    bound = (compliance.prismatic_plausible if effect.joint_kind == 'prismatic'
-             else compliance.plausible)
+                      tau: np.ndarray, bounds: Bounds | None = None) -> list[str]:
+    compliance = BoundEffect(_REGISTRY['joint_compliance'], effect.joint, effect.joint_index,
+                             effect.n_joints, effect.joint_kind)
+    bound = effect_bounds(compliance, bounds)
     tau0 = PLAY_TORQUE_UNIT * math.exp(float(values[-1]))
     largest = float(np.max(np.abs(tau)))
     if not bound or largest >= LINEAR_PLAY * tau0:

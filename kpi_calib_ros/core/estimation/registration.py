@@ -67,6 +67,10 @@ class Registration:
     trimmed : tuple of int
         Points left out of the final registration because they missed by far more than
         the others (see :func:`register`); their residuals are still in ``residuals_m``.
+    offset_std_m : (R, 3) ndarray or None
+        Std of every registered offset component (m) at the noise the registered miss
+        shows; 0 where the offsets were held (the cell states them), inf along a direction
+        the postures cannot tell from the base position (the tool never turns about it).
     """
 
     base_in_tracker: np.ndarray
@@ -75,6 +79,7 @@ class Registration:
     iterations: int
     reflector_offsets: np.ndarray | None = None
     trimmed: tuple[int, ...] = ()
+    offset_std_m: np.ndarray | None = None
 
     @property
     def rms_m(self) -> float:
@@ -134,7 +139,8 @@ def _check_geometry(eta: np.ndarray, rotations: np.ndarray) -> None:
 
 def register(eta: np.ndarray, tip_poses: np.ndarray, max_rms: float = 0.02,
              alternations: int = 50, gauss_newton: int = 20, tol: float = 1e-12,
-             reflector: np.ndarray | None = None) -> Registration:
+             reflector: np.ndarray | None = None,
+             offsets: np.ndarray | None = None) -> Registration:
     """Estimate base pose in the tracker frame and reflector offset on the tip from one campaign.
 
     Parameters
@@ -153,6 +159,11 @@ def register(eta: np.ndarray, tip_poses: np.ndarray, max_rms: float = 0.02,
     reflector : (N,) int array_like, optional
         Reflector index of every row (several reflectors on the tool, each with its
         own offset); None: one reflector.
+    offsets : (R, 3) array_like, optional
+        Reflector offsets the cell states (m): held, and only the base pose registered. A
+        stated offset is a prior, not a start to throw away: postures that never turn the
+        tool cannot tell an offset from the base position, and registering it there moves
+        it anywhere (metres) with the base moved to match.
 
     Returns
     -------
@@ -180,12 +191,16 @@ def register(eta: np.ndarray, tip_poses: np.ndarray, max_rms: float = 0.02,
     if len(ref) != len(eta) or ref.min() < 0:
         raise ValueError(f'reflector must hold one index >= 0 per point ({len(eta)})')
     n_ref = int(ref.max()) + 1
+    held = None if offsets is None else np.asarray(offsets, dtype=float).reshape(-1, 3)
+    if held is not None and (len(held) < n_ref or not np.all(np.isfinite(held))):
+        raise ValueError(f'offsets must hold a finite offset for each of the {n_ref} reflectors')
     rotations, positions = poses[:, :3, :3], poses[:, :3, 3]
     for k in range(n_ref):
         if np.count_nonzero(ref == k) < 2:
             raise ValueError(f'reflector: index {k} has fewer than 2 points; every reflector '
                              'needs several postures to register its offset')
-        _check_geometry(eta[ref == k], rotations[ref == k])
+        if held is None:
+            _check_geometry(eta[ref == k], rotations[ref == k])
 
     # A gross point (a reflector lost mid-shot, a wrong pairing) drags the closed form;
     # register again without the points that miss by far more than the median (trimmed
@@ -194,7 +209,7 @@ def register(eta: np.ndarray, tip_poses: np.ndarray, max_rms: float = 0.02,
     kept = np.ones(len(eta), bool)
     for _ in range(MAX_TRIM_ROUNDS):
         result = _fit(eta[kept], rotations[kept], positions[kept], ref[kept], n_ref,
-                      alternations, gauss_newton, tol)
+                      alternations, gauss_newton, tol, held)
         residuals = _residuals(result, eta, rotations, positions, ref)
         far = residuals > max(TRIM_FACTOR * float(np.median(residuals[kept])), TRIM_FLOOR_M)
         enough = all(np.count_nonzero(~far & (ref == k)) >= 2 for k in range(n_ref))
@@ -204,21 +219,27 @@ def register(eta: np.ndarray, tip_poses: np.ndarray, max_rms: float = 0.02,
         kept = ~far
     result = Registration(result.base_in_tracker, result.reflector_offset, residuals,
                           result.iterations, result.reflector_offsets,
-                          tuple(int(i) for i in np.flatnonzero(~kept)))
+                          tuple(int(i) for i in np.flatnonzero(~kept)), result.offset_std_m)
     if result.rms_m > max_rms:
         raise DataError(_miss_message(result, eta, positions, max_rms))
     return result
 
 
 def _fit(eta: np.ndarray, rotations: np.ndarray, positions: np.ndarray, ref: np.ndarray,
-         n_ref: int, alternations: int, gauss_newton: int, tol: float) -> Registration:
-    """Solve in closed form (Horn) alternating with the offsets, then Gauss-Newton, on the rows."""
-    offsets = np.zeros((n_ref, 3))
+         n_ref: int, alternations: int, gauss_newton: int, tol: float,
+         held: np.ndarray | None = None) -> Registration:
+    """Solve in closed form (Horn) alternating with the offsets, then Gauss-Newton, on the rows.
+
+    ``held`` (R, 3): offsets held at these values, only the base pose fitted.
+    """
+    offsets = np.zeros((n_ref, 3)) if held is None else held[:n_ref].copy()
     rows = [np.flatnonzero(ref == k) for k in range(n_ref)]
     steps = 0
-    for _ in range(alternations):
+    for _ in range(alternations if held is None else 1):
         steps += 1
         rot, trans = horn(np.einsum('nij,nj->ni', rotations, offsets[ref]) + positions, eta)
+        if held is not None:
+            break
         # R^T (η_i - t) - p_i = R_i o_k, stacked over the rows of reflector k: linear in o_k.
         rhs = (eta - trans) @ rot - positions
         new = np.array([np.linalg.lstsq(rotations[r].reshape(-1, 3), rhs[r].reshape(-1),
@@ -227,16 +248,12 @@ def _fit(eta: np.ndarray, rotations: np.ndarray, positions: np.ndarray, ref: np.
         offsets = new
         if change < tol:
             break
+    free = 6 + (0 if held is not None else 3 * n_ref)
     for _ in range(gauss_newton):
-        points = np.einsum('nij,nj->ni', rotations, offsets[ref]) + positions
-        world = points @ rot.T
-        residual = (world + trans - eta).reshape(-1)
-        jac = np.zeros((len(eta), 3, 6 + 3 * n_ref))
-        jac[:, :, :3] = -_skew(world)
-        jac[:, :, 3:6] = np.eye(3)
-        for k, r in enumerate(rows):
-            jac[r, :, 6 + 3 * k:9 + 3 * k] = rot @ rotations[r]
-        step = np.linalg.lstsq(jac.reshape(-1, 6 + 3 * n_ref), -residual, rcond=None)[0]
+        residual, jac = _gauss_newton_rows(rot, trans, offsets, eta, rotations, positions,
+                                           ref, rows)
+        step = np.linalg.lstsq(jac[:, :free], -residual, rcond=None)[0]
+        step = np.concatenate([step, np.zeros(6 + 3 * n_ref - free)])
         rot = pin.exp3(step[:3]) @ rot
         trans, offsets = trans + step[3:6], offsets + step[6:].reshape(n_ref, 3)
         steps += 1
@@ -244,9 +261,47 @@ def _fit(eta: np.ndarray, rotations: np.ndarray, positions: np.ndarray, ref: np.
             break
     points = np.einsum('nij,nj->ni', rotations, offsets[ref]) + positions
     residuals = np.linalg.norm(points @ rot.T + trans - eta, axis=1)
-    result = Registration(np.concatenate([trans, pin.rpy.matrixToRpy(rot)]), offsets[0],
-                          residuals, steps, offsets)
-    return result
+    return Registration(np.concatenate([trans, pin.rpy.matrixToRpy(rot)]), offsets[0],
+                        residuals, steps, offsets,
+                        offset_std_m=(np.zeros((n_ref, 3)) if held is not None else
+                                      _offset_std(rot, trans, offsets, eta, rotations,
+                                                  positions, ref, rows)))
+
+
+def _gauss_newton_rows(rot: np.ndarray, trans: np.ndarray, offsets: np.ndarray,
+                       eta: np.ndarray, rotations: np.ndarray, positions: np.ndarray,
+                       ref: np.ndarray, rows: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Stacked residual (3N,) and Jacobian (3N, 6 + 3R) over [rotation, translation, offsets]."""
+    n_ref = len(offsets)
+    points = np.einsum('nij,nj->ni', rotations, offsets[ref]) + positions
+    world = points @ rot.T
+    residual = (world + trans - eta).reshape(-1)
+    jac = np.zeros((len(eta), 3, 6 + 3 * n_ref))
+    jac[:, :, :3] = -_skew(world)
+    jac[:, :, 3:6] = np.eye(3)
+    for k, r in enumerate(rows):
+        jac[r, :, 6 + 3 * k:9 + 3 * k] = rot @ rotations[r]
+    return residual, jac.reshape(-1, 6 + 3 * n_ref)
+
+
+def _offset_std(rot: np.ndarray, trans: np.ndarray, offsets: np.ndarray, eta: np.ndarray,
+                rotations: np.ndarray, positions: np.ndarray, ref: np.ndarray,
+                rows: list[np.ndarray]) -> np.ndarray:
+    """(R, 3) std of the registered offsets (m).
+
+    The noise per axis taken from the registered miss (nominal kinematics: the robot's errors
+    count as noise); inf along a direction the postures cannot tell from the base (a singular
+    value below 1e-9 of the largest).
+    """
+    residual, jac = _gauss_newton_rows(rot, trans, offsets, eta, rotations, positions, ref, rows)
+    dof = max(len(residual) - jac.shape[1], 1)
+    scale = float(residual @ residual) / dof
+    _, sv, vt = np.linalg.svd(jac, full_matrices=False)
+    weak = sv < 1e-9 * sv[0]
+    inverse = np.where(weak, 0.0, 1.0 / np.where(weak, 1.0, sv) ** 2)
+    var = scale * (vt.T ** 2) @ inverse
+    var[np.any(np.abs(vt[weak]) > 1e-6, axis=0)] = np.inf
+    return np.sqrt(var[6:]).reshape(-1, 3)
 
 
 def _residuals(result: Registration, eta: np.ndarray, rotations: np.ndarray,

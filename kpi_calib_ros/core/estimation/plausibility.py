@@ -1,0 +1,300 @@
+"""The plausibility gate: every identified quantity physically possible and determined.
+
+A fit can converge, pass χ² and estimate the TCP while a quantity in it is impossible: a
+reflector 2.6 m from the one the cell states, a link origin moved by metres, a joint play
+of b = −0.56 ± 820 rad. Such a model predicts the measured poses and nothing else (the
+quantities trade against each other along a direction the poses do not determine). The gate
+checks every identified quantity against what the cell states about it:
+
+* the base pose in the tracker frame (``base.*``): within ``base_translation`` /
+  ``base_rotation`` of the placement the identification started from (the cell's
+  ``tracker.base_in_tracker``, or its registration from the points);
+* every reflector offset (``reflector[.<name>].{x,y,z}``): within ``reflector_offset`` of the
+  cell's ``reflector.offset`` (a prior with a tolerance, never a start to throw away); when
+  the cell leaves it out, determined by the postures (the registration's std);
+* every joint placement correction: within ``translation`` (m) / ``rotation`` (rad) of the
+  URDF; every joint zero offset within ``offset`` (rad, m for a prismatic joint);
+* every effect parameter: within its bound
+  (:func:`kpi_calib_ros.core.effects.registry.effect_bounds`: the library's ``plausible``
+  sizes, widened per effect and joint by the cell's ``identification.bounds``).
+
+An effect parameter whose std exceeds its bound is *undetermined*: the data cannot say where
+it is, whatever its value; a placement or geometric parameter moved beyond its tolerance with
+a std beyond it too is undetermined as well (within its tolerance it is a plausible robot,
+however loosely a near-gauge pair of parameters is pinned). Each violation names the
+quantity, why, and the fix (poses of a kind, a tolerance key, a bound key). A calibration with
+any is not valid.
+
+Defaults (:class:`Tolerances`) are what a calibration engineer accepts from a nominal model:
+an arm built to its drawing is off by millimetres and tenths of a degree, so a placement
+correction of 5 cm or 0.05 rad (~3°) is a wrong model, not a calibration; a joint zero is set
+by homing or mastering and may be off by degrees (a TIAGo wrist: 3.2°), not by more than 0.2
+rad (~11°); a surveyed base pose is good to a few cm (10 cm, 0.1 rad allowed); a reflector
+nest on a drawn tool to a few mm (2 cm allowed).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from kpi_calib_ros.core.effects.registry import BoundEffect, bound_key, effect_bounds, implausible
+from kpi_calib_ros.core.estimation.identifiability import select_identifiable
+from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel
+from kpi_calib_ros.core.model.parameters import reflector_prefixes
+
+__all__ = ['Tolerances', 'Violation', 'gate', 'geometric_violations', 'effect_violations',
+           'observed_std', 'TURN_RANGE_RAD', 'STRUCTURAL_POSES']
+
+# A wrist joint measured over less than this range (rad) hardly turns the tool: named in the
+# fix of an undetermined reflector offset.
+TURN_RANGE_RAD = 1.0
+
+
+@dataclass(frozen=True)
+class Tolerances:
+    """How far an identified quantity may be from what the cell states (m, rad).
+
+    ``bounds``: the cell's ``identification.bounds`` (effect spec, ``kind:joint`` or kind ->
+    the largest |value| of each parameter; see
+    :func:`~kpi_calib_ros.core.effects.registry.effect_bounds`).
+    """
+
+    base_translation: float = 0.1
+    base_rotation: float = 0.1
+    reflector_offset: float = 0.02
+    translation: float = 0.05
+    rotation: float = 0.05
+    offset: float = 0.2
+    bounds: Mapping[str, tuple[float, ...]] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Violation:
+    """A quantity the gate refuses: which, why and the fix."""
+
+    quantity: str
+    reason: str
+    fix: str
+
+    def text(self) -> str:
+        """One line: the quantity, why, and what to do."""
+        return f'{self.quantity}: {self.reason}; fix: {self.fix}'
+
+
+# Poses drawn uniformly in the joint limits that stand for "poses spread over every joint"
+# (the structural rank of the model), and the seed they are drawn with.
+STRUCTURAL_POSES = 60
+
+
+def observed_std(model: MeasurementModel, result: CalibrationResult, names: Sequence[str],
+                 q: np.ndarray, reflector: np.ndarray | None = None,
+                 tau: np.ndarray | None = None, seed: int = 0) -> dict[str, float]:
+    """Std (parameter units) of each of ``names`` as the poses ``q`` (N, n) determine it.
+
+    Beside every other direction of the model that poses spread over every joint determine.
+
+    The parameters those spread poses identify (:func:`~kpi_calib_ros.core.estimation.
+    identifiability.select_identifiable` on :data:`STRUCTURAL_POSES` joint values drawn in
+    the limits, ``names`` first) are fitted, in the linearisation at the estimate, to the
+    measured poses at the result's σ: the std of a name is its std in that fit, inf when the
+    measured poses cannot tell it from the others at all. A name the spread poses do not
+    identify either (a gauge another parameter carries) is left out. Unlike the fit's own std
+    this does not depend on which parameters the fit kept: a reflector offset the fit kept in
+    place of the wrist geometry the poses never moved is as undetermined as one it dropped.
+    ``reflector``: (N,) reflector index of each row; ``tau``: (N, n) gravity torques.
+    """
+    robot, params = model.robot, model.params
+    values = np.asarray(result.values, float)
+    lower = np.where(np.isfinite(robot.lower), robot.lower, -np.pi)
+    upper = np.where(np.isfinite(robot.upper), robot.upper, np.pi)
+    spread = np.random.default_rng(seed).uniform(lower, upper, (STRUCTURAL_POSES, robot.n_joints))
+    n_ref = max(model.n_reflectors, 1)
+    ref_s = np.repeat(np.arange(n_ref), len(spread))
+    _, jac_s = model.jacobian(values, np.tile(spread, (n_ref, 1)), None,
+                              ref_s if n_ref > 1 else None)
+    structural = select_identifiable(jac_s.reshape(-1, len(params)), params.names,
+                                     method='priority', priority=list(names)).kept
+    wanted = [n for n in names if n in structural]
+    if not wanted:
+        return {}
+    q = np.atleast_2d(q)
+    rows = np.ones(len(q), bool) if reflector is None else np.asarray(reflector) < n_ref
+    _, jac = model.jacobian(values, q[rows], None if tau is None else np.atleast_2d(tau)[rows],
+                            None if reflector is None else np.asarray(reflector)[rows])
+    sigma = np.broadcast_to(np.asarray(result.sigma, float), (int(rows.sum()), 3))
+    f = (jac / sigma[:, :, None]).reshape(-1, len(params))[:, params.indices(list(structural))]
+    norms = np.linalg.norm(f, axis=0)
+    norms[norms == 0] = 1.0
+    _, sv, vt = np.linalg.svd(f / norms, full_matrices=False)
+    weak = sv < 1e-10 * sv[0]
+    inverse = np.where(weak, 0.0, 1.0 / np.where(weak, 1.0, sv) ** 2)
+    var = (vt.T ** 2) @ inverse / norms ** 2
+    var[np.any(np.abs(vt[weak]) > 1e-6, axis=0)] = np.inf
+    return {n: float(np.sqrt(var[structural.index(n)])) for n in wanted}
+
+
+def _wrapped(d: float, unit: str) -> float:
+    return float((d + np.pi) % (2 * np.pi) - np.pi) if unit == 'rad' else float(d)
+
+
+def _tool_joints(model: MeasurementModel, q: np.ndarray | None) -> str:
+    """Name the wrist joints to turn, with the ranges the data gave them."""
+    revolute = [i for i, j in enumerate(model.robot.joints) if j.kind != 'prismatic'][-3:]
+    names = model.robot.joint_names
+    if q is None or not len(q):
+        return ', '.join(names[i] for i in revolute)
+    span = np.ptp(np.atleast_2d(q)[:, revolute], axis=0)
+    narrow = [f'{names[i]} (measured over {s:.2g} rad)' for i, s in zip(revolute, span)
+              if s < TURN_RANGE_RAD]
+    return ', '.join(narrow) if narrow else ', '.join(names[i] for i in revolute)
+
+
+def geometric_violations(model: MeasurementModel, result: CalibrationResult,
+                         reference: np.ndarray, tolerances: Tolerances = Tolerances(),
+                         reflector_stated: bool = True,
+                         q: np.ndarray | None = None,
+                         n_geometric: int | None = None,
+                         reflector: np.ndarray | None = None,
+                         tau: np.ndarray | None = None) -> list[Violation]:
+    """Violations of the placement and geometric quantities of ``result``.
+
+    Parameters
+    ----------
+    model : MeasurementModel
+        The model ``result`` belongs to.
+    result : CalibrationResult
+    reference : (n_geometric,) ndarray
+        What each geometric quantity is compared with (m, rad): the start of the
+        identification (the cell's or registered base pose), the cell's reflector offsets,
+        0 for the joint corrections.
+    tolerances : Tolerances
+    reflector_stated : bool
+        The cell states the reflector offsets; False: they were registered from the points,
+        and the measured poses ``q`` must determine them (:func:`observed_std`).
+    q : (N, n) ndarray, optional
+        Measured joint values (the fix of an undetermined reflector names the wrist joints
+        the data hardly turned).
+    n_geometric : int, optional
+        Number of geometric parameters (default: those of ``model.params`` before its
+        effects).
+    reflector, tau : ndarray, optional
+        (N,) reflector index and (N, n) gravity torques of the rows of ``q``.
+    """
+    params = model.params
+    n_geo = len(params) - sum(len(e.parameter_names) for e in model.effects) \
+        if n_geometric is None else n_geometric
+    values = dict(zip(result.names, result.values))
+    std = dict(zip(result.estimated, result.std))
+    out: list[Violation] = []
+    turn = (f'turn the tool: measure poses that turn the wrist ({_tool_joints(model, q)}) '
+            'over wide ranges')
+    for prefix in reflector_prefixes(params):
+        names = [f'{prefix}.{c}' for c in 'xyz']
+        idx = params.indices(names)
+        label = f'reflector offset {prefix} ({", ".join(names)})'
+        moved = float(np.linalg.norm([values[n] - reference[i] for n, i in zip(names, idx)]))
+        spread = max((std.get(n, 0.0) for n in names), default=0.0)
+        tol = tolerances.reflector_offset
+        determined = ({} if reflector_stated or q is None
+                      else observed_std(model, result, names, q, reflector, tau))
+        loose = max(determined.values(), default=0.0)
+        if loose > tol:
+            out.append(Violation(label, 'undetermined: these poses cannot tell it from the '
+                                 f'geometry of the arm (std {loose:.3g} m > {tol:g} m with every '
+                                 'direction that poses spread over every joint determine), and '
+                                 'the cell does not state it: its value is a guess',
+                                 f'{turn}, or state reflector.offset in the cell'))
+        elif spread > tol:
+            out.append(Violation(label, f'undetermined: std {spread:.3g} m > the tolerance '
+                                 f'{tol:g} m', f'{turn} (identification.tolerances.'
+                                 'reflector_offset widens the tolerance)'))
+        elif reflector_stated and moved > tol:
+            out.append(Violation(label, f'identified {moved:.3g} m from the offset the cell '
+                                 f'states, beyond the tolerance {tol:g} m',
+                                 'check reflector.offset (units, the tip frame) or widen '
+                                 'identification.tolerances.reflector_offset'))
+    for i, (name, unit) in enumerate(zip(params.names[:n_geo], params.units[:n_geo])):
+        if name.startswith('reflector.') or name not in values:
+            continue
+        base = name.startswith('base.')
+        key = ('offset' if name.endswith('.offset') and not base else
+               ('base_' if base else '') + ('translation' if unit == 'm' else 'rotation'))
+        tol = getattr(tolerances, key)
+        moved = abs(_wrapped(values[name] - reference[i], unit))
+        where = ('the placement the identification started from' if base else 'the URDF')
+        if moved <= tol:
+            # Within its tolerance it is a plausible robot, however loosely the data pin it
+            # (a near-gauge pair such as a placement translation and rotation the points
+            # hardly tell apart): what cannot be is a joint the fit moved beyond it.
+            continue
+        if name in std and std[name] > tol:
+            out.append(Violation(name, f'undetermined: moved {moved:.3g} ± {std[name]:.3g} '
+                                 f'{unit} from {where}, the std above the tolerance {tol:g} '
+                                 f'{unit}',
+                                 'measure poses that move it (spread every joint over its range), '
+                                 'or identify fewer parameters (identification.model); '
+                                 f'identification.tolerances.{key} widens the tolerance'))
+        else:
+            out.append(Violation(name, f'moved {moved:.3g} {unit} from {where}, beyond the '
+                                 f'tolerance {tol:g} {unit}',
+                                 'check the URDF and the cell (joint order, units, tip frame), '
+                                 'or an effect in the model absorbs the geometry; if the nominal '
+                                 f'is truly this far off, widen identification.tolerances.{key}'))
+    return out
+
+
+def effect_violations(effects: Sequence[Any], result: CalibrationResult,
+                      bounds: Mapping[str, tuple[float, ...]] | None = None,
+                      tau: np.ndarray | None = None,
+                      free: Sequence[str] | None = None) -> list[Violation]:
+    """Violations of the effect parameters of ``result``.
+
+    Beyond their bounds, or undetermined (std above the bound). ``tau`` (N, n): the measured
+    gravity torques (a play inside its linear range is judged as the compliance it is).
+    ``free``: the parameters the fit was asked to identify; one of them the data left out
+    (the identifiability selection found no direction for it) is undetermined as well.
+    """
+    values = dict(zip(result.names, result.values))
+    std = dict(zip(result.estimated, result.std))
+    out: list[Violation] = []
+    for effect in effects:
+        if not isinstance(effect, BoundEffect):
+            continue
+        limits = effect_bounds(effect, bounds)
+        key = bound_key(effect)
+        loose = [f'{n} std {std[n]:.3g} {u} > its bound {b:.3g}'
+                 for n, u, b in zip(effect.parameter_names, effect.units, limits)
+                 if n in std and std[n] > b]
+        loose += [f'{n} not determined by the data (left out of the fit)'
+                  for n in effect.parameter_names if free is not None and n in free
+                  and n not in std]
+        if loose:
+            out.append(Violation(effect.name, 'undetermined: ' + '; '.join(loose),
+                                 f'{effect.hint()}; or leave the effect out'))
+            continue
+        why = implausible(effect, [values[n] for n in effect.parameter_names], tau, bounds)
+        if why:
+            out.append(Violation(effect.name, why,
+                                 f'widen {key} if this arm is that soft or loose (servo-stiff '
+                                 'or cable-driven joints: compliance ~1e-3 rad/(N m)); else '
+                                 'leave the effect out'))
+    return out
+
+
+def gate(model: MeasurementModel, result: CalibrationResult, reference: np.ndarray,
+         tolerances: Tolerances = Tolerances(), reflector_stated: bool = True,
+         q: np.ndarray | None = None, tau: np.ndarray | None = None,
+         n_geometric: int | None = None, reflector: np.ndarray | None = None,
+         free: Sequence[str] | None = None) -> tuple[Violation, ...]:
+    """Every violation of ``result`` (:func:`geometric_violations`, :func:`effect_violations`).
+
+    () when every identified quantity is plausible and determined. ``q``, ``tau``,
+    ``reflector``: the measured rows (joint values, gravity torques, reflector index);
+    ``free``: the parameters the fit was asked to identify (:func:`effect_violations`).
+    """
+    return tuple(geometric_violations(model, result, reference, tolerances, reflector_stated,
+                                      q, n_geometric, reflector, tau)
+                 + effect_violations(model.effects, result, tolerances.bounds, tau, free))
