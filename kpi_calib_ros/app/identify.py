@@ -24,7 +24,13 @@ from kpi_calib_ros.app.calibration_document import (
 from kpi_calib_ros.app.measurements import load_measurements
 from kpi_calib_ros.core.diagnosis.candidates import augmented_model, compare_models
 from kpi_calib_ros.core.diagnosis.effect_selection import choose_effects
-from kpi_calib_ros.core.diagnosis.model_selection import ModelChoice, choose_model, level_free
+from kpi_calib_ros.core.diagnosis.model_selection import (
+    ModelChoice,
+    NominalComparison,
+    against_nominal,
+    choose_model,
+    level_free,
+)
 from kpi_calib_ros.core.effects.registry import BoundEffect, parse_effect_spec
 from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.estimation.estimability import result_estimability
@@ -32,7 +38,9 @@ from kpi_calib_ros.core.estimation.least_squares import CalibrationResult, ident
 from kpi_calib_ros.core.estimation.precision import (
     balanced_prior,
     expected_tcp_error,
+    fit_prior,
     honest_precision,
+    tightened,
 )
 from kpi_calib_ros.core.estimation.prior import Prior, tolerance_prior
 from kpi_calib_ros.core.estimation.registration import Registration, register
@@ -195,14 +203,18 @@ def _fit_function(cm: CellModel, start: np.ndarray | None = None,
 
 def choose_level(cm: CellModel, data: Measurements, model: str | None = None,
                  start: np.ndarray | None = None, prior: Prior | None = None,
-                 fit: Callable[..., CalibrationResult] | None = None) -> ModelChoice:
+                 fit: Callable[..., CalibrationResult] | None = None,
+                 balanced: bool = False) -> ModelChoice:
     """The model level to identify: ``model`` or the cell's ``identification.model``;
-    ``auto`` is decided by the predicted out-of-sample error on ``data`` (fits from
-    ``start``, or by ``fit``; :func:`kpi_calib_ros.core.diagnosis.model_selection.choose_model`)."""
+    ``auto`` is decided by the cross-validated error over held-out regions of joint space
+    on ``data`` (fits from ``start``, or by ``fit``, with ``prior``, ``balanced`` when
+    ``fit`` balances it against the noise;
+    :func:`kpi_calib_ros.core.diagnosis.model_selection.choose_model`)."""
     requested = model or cm.cell.identification.model
     if requested == 'auto':
         return choose_model(cm.model, data, fit or _fit_function(cm, start, prior), 'auto',
-                            len(cm.geometric), cm.cell.identification.cv_folds, prior=prior)
+                            len(cm.geometric), cm.cell.identification.cv_folds, prior=prior,
+                            balanced=balanced)
     return ModelChoice(requested, requested, {}, {}, 0, f'{requested} as configured '
                        '(identification.model / --model; auto compares the levels)')
 
@@ -236,7 +248,7 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
     scales = [1.0]
     balance = tolerance is not None
     fit = _fit_function(cm, start, prior, balance=balance, scales=scales)
-    choice = choose_level(cm, screened, model, start, prior, fit)
+    choice = choose_level(cm, screened, model, start, prior, fit, balance)
     if choice.requested == 'auto' and allowed is None:
         cm, start, choice = add_chosen_effects(cm, screened, choice, start, prior, balance)
         fit = _fit_function(cm, start, prior, balance=balance, scales=scales)
@@ -263,6 +275,8 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
             f'{choice.reason}; the final fit did not converge with '
             f'{", ".join(shapes)} free: held at the selected values'))
     kept = subset(data, robust.kept)
+    nominal = nominal_comparison(cm, kept, robust.result, free, start, prior, balance,
+                                 scales[-1])
     est = result_estimability(cm.model, kept.q, cm.cell.sigma, robust.result.values,
                               cm.q_work, cm.working_pose_names, free, prior=prior,
                               reflector=kept.reflector, rotation=kept.rotation)
@@ -270,7 +284,38 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
     result = honest_precision(robust.result)
     return CellCalibration(result, robust, choice, est, tuple(free),
                            registration, scales[-1], cm,
-                           expected_tcp_error(cm.model, kept, result))
+                           expected_tcp_error(cm.model, kept, result), nominal)
+
+
+def nominal_comparison(cm: CellModel, data: Measurements, result: CalibrationResult,
+                       free: list[str], start: np.ndarray, prior: Prior | None,
+                       balance: bool, scale: float) -> NominalComparison | None:
+    """The calibration ``result`` against the nominal robot with the placement registered.
+
+    The nominal fit frees only ``base.*`` and ``reflector.*`` of the geometric model, from
+    ``start``'s placement and the nominal robot, with the same prior (balanced as the
+    calibration's, its noise ``scale``); both are cross-validated on the same folds
+    (:func:`kpi_calib_ros.core.diagnosis.model_selection.against_nominal`). None when the
+    calibration is that nominal fit (no other parameter free) or the nominal fit fails.
+    """
+    base = geometric_only(cm)
+    placement = level_free(base.model.params, 'registration')
+    if not cm.model.effects and set(free) <= set(placement):
+        return None
+    names = base.model.params.names
+    p0 = np.array(base.model.params.nominal, float)
+    for i, name in enumerate(names):
+        if name in placement:
+            p0[i] = start[i]
+    try:
+        nominal = _fit_function(base, p0, prior, balance=balance)(data, placement)
+    except (DataError, np.linalg.LinAlgError):
+        return None
+    if not np.all(np.isfinite(nominal.values)) or not np.all(np.isfinite(result.values)):
+        return None
+    used = tightened(prior, scale) if balance and prior is not None else prior
+    return against_nominal(cm.model, data, result, base.model, nominal, used,
+                           fit_prior(prior, nominal, balance))
 
 
 def add_chosen_effects(cm: CellModel, data: Measurements, choice: ModelChoice,
@@ -287,7 +332,8 @@ def add_chosen_effects(cm: CellModel, data: Measurements, choice: ModelChoice,
         extra = np.zeros(len(model.params.names) - len(start))
         return _fit_function(dataclasses.replace(cm, model=model),
                              np.concatenate([start, extra]), prior, balance=balance)
-    chosen = choose_effects(cm.model, data, fit_for, choice.level, n_geo, prior)
+    chosen = choose_effects(cm.model, data, fit_for, choice.level, n_geo, prior,
+                            balanced=balance)
     if not chosen.effects:
         return cm, start, dataclasses.replace(
             choice, reason=f'{choice.reason}; {chosen.reason}',

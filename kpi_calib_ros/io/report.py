@@ -148,14 +148,20 @@ def periodogram_dict(gram: Periodogram) -> dict[str, Any]:
     return {'joint': gram.joint,
             'cycles_searched': [int(gram.cycles[0]), int(gram.cycles[-1])],
             'peak_cycles_per_revolution': int(gram.peak),
-            'peak_delta_chi2': float(np.max(gram.power)), 'p_value': float(gram.p_value)}
+            'peak_delta_chi2': float(np.max(gram.power)), 'p_value': float(gram.p_value),
+            'resolution_cycles_per_revolution': float(gram.resolution),
+            'refused_as_aliased': [int(k) for k in gram.refused],
+            'periodic_errors_in_model': [int(k) for k in gram.near]}
 
 
 def periodic_search_line(grams: tuple[Periodogram, ...]) -> str:
     """One line: the peak of each joint's periodogram and its p-value."""
     return ('periodic joint errors, peak of each periodogram (cycles/rev, p × frequencies '
-            'searched): ' + ', '.join(f'{g.joint} {g.peak} (p = {g.p_value:.2g})'
-                                      for g in grams))
+            'searched; resolution 2π/Δq): '
+            + ', '.join(f'{g.joint} {g.peak} (p = {g.p_value:.2g}; ±{g.resolution:.3g}'
+                        + (f'; {len(g.refused)} frequencies within it of k = '
+                           f'{", ".join(map(str, g.near))} refused as aliased' if g.refused
+                           else '') + ')' for g in grams))
 
 
 def diagnosis_text(cd: CellDiagnosis, top: int = 5) -> str:
@@ -484,9 +490,14 @@ def write_report(out_dir: str | Path, cd: CellDiagnosis) -> Path:
                   'cycles per revolution (geometry refitted at each frequency); the peak is '
                   'screened as `periodic_joint_error:<joint>:k=<peak>`, its p-value multiplied '
                   'by the number of frequencies searched.', '',
-                  '| joint | cycles/rev searched | peak | Δχ² at the peak | p |',
-                  '|---|---|---|---|---|']
-        lines += [f'| {g.joint} | {g.cycles[0]}–{g.cycles[-1]} | {g.peak} | '
+                  'Frequencies within the resolution 2π/Δq (Δq the joint\'s measured range) of a '
+                  'periodic error the model has on the joint are refused: over that range they '
+                  'are its peak aliased.', '',
+                  '| joint | cycles/rev searched | resolution 2π/Δq | refused as aliased | peak '
+                  '| Δχ² at the peak | p |',
+                  '|---|---|---|---|---|---|---|']
+        lines += [f'| {g.joint} | {g.cycles[0]}–{g.cycles[-1]} | {g.resolution:.3g} | '
+                  f'{", ".join(map(str, g.refused)) or "none"} | {g.peak} | '
                   f'{np.max(g.power):.1f} | {g.p_value:.2g} |' for g in diag.periodograms]
     lines += ['', '## Not distinguishable with this data', '']
     lines += [f'- **{c.spec}**: {c.explanation}' for c in diag.not_distinguishable] or ['- none']

@@ -37,7 +37,7 @@ from kpi_calib_ros.core.diagnosis.periodic_search import (
     periodograms,
 )
 from kpi_calib_ros.core.diagnosis.residual_analysis import ResidualAnalysis
-from kpi_calib_ros.core.effects.general import general_candidates
+from kpi_calib_ros.core.effects.general import aliased_frequency, general_candidates
 from kpi_calib_ros.core.effects.registry import BoundEffect, candidate_effects, implausible
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult, point_sigma_squares
 from kpi_calib_ros.core.estimation.precision import (
@@ -389,6 +389,11 @@ def default_candidates(model: MeasurementModel, data: Measurements, result: Cali
     have = {e.name for e in model.effects}
     library = candidate_effects(model.robot, exclude=have, covariates=data.covariates or (),
                                 temperatures=model.joint_temperatures)
+    q = np.atleast_2d(data.q)
+    # A second frequency within the resolution of one the model has on a joint is that
+    # one aliased (core.effects.general.aliased_frequency): never a candidate.
+    library = [e for e in library if e.joint_index is None
+               or not aliased_frequency(e, model.effects, q[:, e.joint_index])]
     if not general:
         return library, ()
     grams = periodograms(model, data, result)

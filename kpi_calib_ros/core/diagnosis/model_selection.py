@@ -9,17 +9,22 @@ level):
 * ``joint_offsets`` -- registration and every ``<joint>.offset``;
 * ``geometric``     -- every geometric parameter (placements too): the full model.
 
-``auto`` fits every level once and predicts its rms error of new measurements from the
-fit itself (:mod:`kpi_calib_ros.core.diagnosis.out_of_sample`, no refits), and picks the smallest
-level whose predicted rms is within `PARSIMONY` of the best: a larger model must predict
-new measurements measurably better to be chosen. A level that leaves no degrees of freedom
-has no figure and is not chosen. K-fold refits are not used for the choice: on a
-one-joint-at-a-time campaign a fold holding out one joint's poses leaves parameters
-without excitation and judged the model 7x too pessimistically.
-:func:`cross_validated_level_rms` (full nonlinear k-fold refits) remains for comparison.
+``auto`` fits every level once and judges it by where the robot works next: the
+cross-validated rms of folds that hold out whole regions of joint space
+(:func:`~kpi_calib_ros.core.estimation.residuals.region_validation`, k-means blocks in
+normalised joint space that keep every identified parameter determined, the fit's prior
+kept in every refit). It starts from the smallest level and takes a larger one only when
+its other-region rms is lower by :data:`REGION_MARGIN` (:func:`holds_elsewhere`): a model
+that fits the measured region better and predicts the others worse is not chosen. Where no
+level has an other-region figure (too few poses to hold a region out), the predicted rms
+from the fit itself decides (:mod:`kpi_calib_ros.core.diagnosis.out_of_sample`, the smallest
+level within `PARSIMONY` of the best), and the reason says so. The predicted rms and the
+in-region cross-validated rms are reported beside it. :func:`cross_validated_level_rms`
+(full nonlinear k-fold refits) remains for comparison.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Callable
 
@@ -29,19 +34,42 @@ from kpi_calib_ros.core.diagnosis.out_of_sample import METHOD, out_of_sample_err
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.core.estimation.prior import Prior
-from kpi_calib_ros.core.estimation.residuals import validation_rms
+from kpi_calib_ros.core.estimation.precision import fit_prior
+from kpi_calib_ros.core.estimation.residuals import (
+    RegionValidation,
+    region_validation,
+    validation_folds,
+    validation_rms,
+)
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements
 from kpi_calib_ros.core.model.parameters import ParameterSet
 
 __all__ = [
-    'LEVELS', 'MODEL_CHOICES', 'PARSIMONY', 'DEFAULT_FOLDS', 'level_free', 'ModelChoice',
-    'cross_validated_level_rms', 'choose_model',
+    'LEVELS', 'MODEL_CHOICES', 'PARSIMONY', 'DEFAULT_FOLDS', 'REGION_MARGIN', 'level_free',
+    'ModelChoice', 'cross_validated_level_rms', 'choose_model', 'holds_elsewhere',
+    'NominalComparison', 'against_nominal',
 ]
 
 LEVELS = ('registration', 'joint_offsets', 'geometric')
 MODEL_CHOICES = ('auto',) + LEVELS
 PARSIMONY = 0.05
 DEFAULT_FOLDS = 5
+# A larger model (a level, an effect) is taken only when its other-region cross-validated
+# rms is this fraction lower than the current one's. On clean data the effect screen's
+# F-test (family-wise α) already bounds the false alarms; the margin keeps a model whose
+# region figure is lower by the noise of the estimate alone from being taken
+# (bench/auto_false_alarms.py shows the level on clean data).
+REGION_MARGIN = 0.02
+
+
+def holds_elsewhere(new: RegionValidation, old: RegionValidation,
+                    margin: float = REGION_MARGIN) -> bool:
+    """Does ``new`` predict other regions of joint space better than ``old`` by ``margin``?
+
+    False when either figure is not estimable.
+    """
+    a, b = new.other_region_m, old.other_region_m
+    return bool(np.isfinite(a) and np.isfinite(b) and a < (1 - margin) * b)
 
 
 def level_free(params: ParameterSet, level: str, n_geometric: int | None = None) -> list[str]:
@@ -93,6 +121,10 @@ class ModelChoice:
     effects: tuple[str, ...] = ()
     effect_selection: dict | None = None
     held: tuple[str, ...] = ()  # effect shape parameters held at their selected values
+    # Cross-validated rms (m) of folds that hold out whole regions of joint space, per
+    # level (None: not estimable), and the number of regions.
+    other_region_rms_m: dict[str, float | None] = dataclasses.field(default_factory=dict)
+    region_blocks: int = 0
 
     def to_dict(self) -> dict:
         """YAML-ready form: the level chosen, its reason and the rms figures (m) per level."""
@@ -100,7 +132,9 @@ class ModelChoice:
             return {k: (None if v is None else float(v)) for k, v in values.items()}
         return {'level': self.level, 'requested': self.requested, 'method': self.method,
                 'predicted_rms_m': figures(self.predicted_rms_m), 'folds': self.folds,
-                'cv_rms_m': figures(self.cv_rms_m), 'reason': self.reason,
+                'cv_rms_m': figures(self.cv_rms_m),
+                'other_region_rms_m': figures(self.other_region_rms_m),
+                'region_blocks': self.region_blocks, 'reason': self.reason,
                 'effects': list(self.effects), 'held': list(self.held),
                 'effect_selection': self.effect_selection}
 
@@ -147,20 +181,23 @@ def cross_validated_level_rms(model: MeasurementModel, data: Measurements, fit: 
 
 def choose_model(model: MeasurementModel, data: Measurements, fit: Fit, requested: str,
                  n_geometric: int | None = None, folds: int = DEFAULT_FOLDS,
-                 seed: int = 0, prior: Prior | None = None) -> ModelChoice:
-    """Every level's predicted out-of-sample rms and the level to use.
+                 seed: int = 0, prior: Prior | None = None,
+                 balanced: bool = False) -> ModelChoice:
+    """Every level's out-of-sample figures and the level to use.
 
-    Each level is fitted once on all of ``data``; its predicted rms error of new
-    measurements at the measured configurations
-    (:func:`kpi_calib_ros.core.diagnosis.out_of_sample.out_of_sample_error`, domain
-    ``like_measured``: σ̂² (3 + tr(J C Jᵀ)/σ²) with σ̂² from χ²/dof, an FPE-like criterion
-    that charges a larger model its extra parameters and a smaller one its misfit) decides.
-    ``requested`` is a level (used as given; the figures are still reported) or
-    ``'auto'`` (the smallest level within `PARSIMONY` of the best). Beside it, the
+    Each level is fitted once on all of ``data``. ``requested`` is a level (used as given;
+    the figures are still reported) or ``'auto'``: from the smallest level, a larger one is
+    taken when its cross-validated rms over held-out regions of joint space is lower by
+    :data:`REGION_MARGIN` (:func:`holds_elsewhere`; every level on the regions of the
+    largest fitted level, which keep the rank of the smaller ones). Where no level has that
+    figure, the predicted rms error of new measurements at the measured configurations
+    (:func:`kpi_calib_ros.core.diagnosis.out_of_sample.out_of_sample_error`, ``like_measured``)
+    decides: the smallest level within `PARSIMONY` of the best. Beside them, the
     cross-validated rms over ``folds`` folds of poses
-    (:func:`kpi_calib_ros.core.estimation.residuals.validation_rms`, folds that keep every
-    identified parameter determined, else None: not estimable from this design) is
-    reported, not used.
+    (:func:`kpi_calib_ros.core.estimation.residuals.validation_rms`) is reported. ``prior``:
+    the prior ``fit`` uses (``balanced``: a tolerance prior ``fit`` balances against the
+    noise, :func:`~kpi_calib_ros.core.estimation.precision.fit_prior`); every fold's refit
+    keeps it.
 
     Raises
     ------
@@ -171,10 +208,12 @@ def choose_model(model: MeasurementModel, data: Measurements, fit: Fit, requeste
         raise ValueError(f'model must be one of {MODEL_CHOICES}, got {requested!r}')
     predicted: dict[str, float | None] = {}
     cv: dict[str, float | None] = {}
+    region: dict[str, RegionValidation] = {}
     n_poses = len(np.unique(np.atleast_2d(data.q), axis=0))
     used = min(folds, n_poses)
     unconverged: dict[str, str] = {}  # level: why its fit stopped
-    for level in LEVELS:
+    same_folds = None
+    for level in reversed(LEVELS):  # the largest first: its region folds serve every level
         free = level_free(model.params, level, n_geometric)
         predicted[level] = cv[level] = None
         try:
@@ -185,15 +224,26 @@ def choose_model(model: MeasurementModel, data: Measurements, fit: Fit, requeste
             continue
         if not result.converged:
             unconverged[level] = result.message
+        used_prior = fit_prior(prior, result, balanced)
         oos = out_of_sample_error(model, data, result, free, prior, seed,
                                   domains=('like_measured',)).domains['like_measured']
         predicted[level] = oos.rms_m if oos.estimable else None
         if used >= 2:
-            value = validation_rms(model, data, result, used, seed)
+            value = validation_rms(model, data, result, used, seed, used_prior)
             cv[level] = value if np.isfinite(value) else None
+        if same_folds is None or same_folds[1] is None:
+            same_folds = validation_folds(model, data, result, used_prior, seed=seed)
+        region[level] = region_validation(model, data, result, used_prior, seed=seed,
+                                          pose_folds=same_folds)
+    predicted = {k: predicted[k] for k in LEVELS}
+    cv = {k: cv[k] for k in LEVELS}
+    other = {k: (float(region[k].other_region_m) if k in region
+                 and np.isfinite(region[k].other_region_m) else None) for k in LEVELS}
+    blocks = max((v.blocks for v in region.values()), default=0)
     if requested != 'auto':
         return ModelChoice(requested, requested, predicted, cv, used,
-                           f'{requested} as configured', METHOD)
+                           f'{requested} as configured', METHOD,
+                           other_region_rms_m=other, region_blocks=blocks)
     # A level whose fit did not converge is judged by its last iterate, not its minimum:
     # it is neither chosen nor the best the others are measured against.
     finite = {k: v for k, v in predicted.items() if v is not None and k not in unconverged}
@@ -203,20 +253,35 @@ def choose_model(model: MeasurementModel, data: Measurements, fit: Fit, requeste
     if not finite:
         raise DataError(f'{len(data)} measurements are too few to fit even the registration '
                         'model with degrees of freedom left; measure more poses')
-    best = min(finite.values())
-    level = next(k for k in LEVELS if k in finite and finite[k] <= (1 + PARSIMONY) * best)
+    judged = [k for k in LEVELS if k in finite and other[k] is not None]
     figures = ', '.join(f'{k} {"n/a" if v is None else f"{v * 1e6:.1f} µm"}'
-                        for k, v in predicted.items())
-    larger = [k for k in LEVELS[LEVELS.index(level) + 1:]]
-    why = (f'smallest level within {PARSIMONY:.0%} of the best predicted out-of-sample rms '
-           f'at the measured configurations ({figures})')
-    if larger:
-        unfit = [k for k in larger if predicted[k] is None]
-        worse = [k for k in larger if predicted[k] is not None and k in finite]
-        if unfit:
-            why += f'; {", ".join(unfit)} leaves no degrees of freedom (too few poses)'
+                        for k, v in other.items())
+    if judged:
+        level = judged[0]
+        for k in judged[1:]:
+            if holds_elsewhere(region[k], region[level]):
+                level = k
+        why = (f'smallest level no larger one beats by {REGION_MARGIN:.0%} on held-out regions '
+               f'of joint space ({blocks} regions; cross-validated rms {figures})')
+        worse = [k for k in LEVELS[LEVELS.index(level) + 1:] if k in judged]
         if worse:
-            why += f'; {", ".join(worse)} predicts new measurements no better'
+            why += f'; {", ".join(worse)} predicts the other regions no better'
+        unjudged = [k for k in finite if k not in judged]
+        if unjudged:
+            why += (f'; {", ".join(unjudged)} not judged: no region folds keep its '
+                    'parameters determined')
+    else:
+        best = min(finite.values())
+        level = next(k for k in LEVELS if k in finite and finite[k] <= (1 + PARSIMONY) * best)
+        pfig = ', '.join(f'{k} {"n/a" if v is None else f"{v * 1e6:.1f} µm"}'
+                         for k, v in predicted.items())
+        why = (f'no level has a cross-validated rms over held-out regions (too few poses); '
+               f'smallest level within {PARSIMONY:.0%} of the best predicted out-of-sample '
+               f'rms at the measured configurations ({pfig})')
+    larger = [k for k in LEVELS[LEVELS.index(level) + 1:]]
+    unfit = [k for k in larger if predicted[k] is None]
+    if unfit:
+        why += f'; {", ".join(unfit)} leaves no degrees of freedom (too few poses)'
     if compared_unconverged and unconverged:
         why = ('WARNING: no level\'s fit converged; compared by their last iterates, not '
                'their minima (raise identification.max_iterations / --max-iterations): '
@@ -224,4 +289,75 @@ def choose_model(model: MeasurementModel, data: Measurements, fit: Fit, requeste
     else:
         for k, message in unconverged.items():
             why += f'; {k} not compared: its fit did not converge ({message})'
-    return ModelChoice(level, 'auto', predicted, cv, used, why, METHOD)
+    return ModelChoice(level, 'auto', predicted, cv, used, why, METHOD,
+                       other_region_rms_m=other, region_blocks=blocks)
+
+
+
+@dataclass(frozen=True)
+class NominalComparison:
+    """A calibration's cross-validated rms against the nominal model with the placement
+    registered (base in the tracker and reflector offsets fitted, the robot nominal), on
+    the same folds: where measured (``in_region``) and over held-out regions of joint space.
+
+    ``better``: the calibration predicts held-out poses better than the nominal model in
+    every figure both have; a calibration that does not is worse than none.
+    """
+
+    calibrated: RegionValidation
+    nominal: RegionValidation
+
+    @property
+    def compared(self) -> tuple[str, ...]:
+        """The figures both models have: 'in_region', 'other_region'."""
+        out = []
+        for key in ('in_region', 'other_region'):
+            a = getattr(self.calibrated, f'{key}_m')
+            b = getattr(self.nominal, f'{key}_m')
+            if np.isfinite(a) and np.isfinite(b):
+                out.append(key)
+        return tuple(out)
+
+    @property
+    def better(self) -> bool:
+        """True unless a compared figure of the calibration is not below the nominal's."""
+        return all(getattr(self.calibrated, f'{k}_m') < getattr(self.nominal, f'{k}_m')
+                   for k in self.compared)
+
+    def text(self) -> str:
+        """One line: both figures of both models."""
+        def um(v: float) -> str:
+            return f'{v * 1e6:.1f} µm' if np.isfinite(v) else 'not estimable'
+        c, n = self.calibrated, self.nominal
+        verdict = ('predicts held-out poses better than' if self.better else
+                   'does NOT predict held-out poses better than')
+        return (f'the calibration {verdict} the nominal robot with the placement registered: '
+                f'cross-validated rms where measured {um(c.in_region_m)} (nominal '
+                f'{um(n.in_region_m)}), over held-out regions of joint space '
+                f'{um(c.other_region_m)} (nominal {um(n.other_region_m)}; {c.blocks or n.blocks} '
+                'regions, same folds)')
+
+    def to_dict(self) -> dict:
+        """YAML-ready figures (m)."""
+        return {'better': self.better, 'compared': list(self.compared),
+                'calibrated': self.calibrated.to_dict(), 'nominal': self.nominal.to_dict(),
+                'text': self.text()}
+
+
+def against_nominal(model: MeasurementModel, data: Measurements, result: CalibrationResult,
+                    nominal_model: MeasurementModel, nominal: CalibrationResult,
+                    prior: Prior | None = None, nominal_prior: Prior | None = None,
+                    seed: int = 0) -> NominalComparison:
+    """Compare the calibration ``result`` with the ``nominal`` fit (the placement only).
+
+    Both are cross-validated (linear refits, each fit's prior kept) on the folds of the
+    calibration, which keep the rank of the placement it contains; where those folds do not
+    keep the nominal fit's rank, on its own.
+    """
+    folds = validation_folds(model, data, result, prior, seed=seed)
+    cal = region_validation(model, data, result, prior, seed=seed, pose_folds=folds)
+    nom = region_validation(nominal_model, data, nominal, nominal_prior, seed=seed,
+                            pose_folds=folds)
+    if not (np.isfinite(nom.in_region_m) and np.isfinite(nom.other_region_m)):
+        nom = region_validation(nominal_model, data, nominal, nominal_prior, seed=seed)
+    return NominalComparison(cal, nom)

@@ -245,6 +245,15 @@ def balanced_prior(fit: Callable[[Prior], CalibrationResult], prior: Prior,
     return tightened(prior, scale), scale, result
 
 
-__all__ = ['ExpectedTcpError', 'JOINT_NOISE_CAUSE', 'balanced_prior', 'chi2_scale',
+def fit_prior(prior: Prior | None, result: CalibrationResult, balanced: bool) -> Prior | None:
+    """The prior ``result`` was fitted with: ``prior`` tightened by the noise scale of
+    ``result`` when the fit balanced it (:func:`balanced_prior`: at its fixed point the
+    scale is that of the last fit), else ``prior`` as given."""
+    if prior is None or not balanced:
+        return prior
+    return tightened(prior, noise_scale(result))
+
+
+__all__ = ['ExpectedTcpError', 'JOINT_NOISE_CAUSE', 'balanced_prior', 'chi2_scale', 'fit_prior',
            'expected_tcp_error', 'measurement_noise_ms', 'honest_precision', 'noise_scale',
            'precision_statement', 'tightened']
