@@ -19,7 +19,6 @@ from kpi_calib_ros.core.estimation.least_squares import identify
 from kpi_calib_ros.core.estimation.prior import tolerance_prior
 from kpi_calib_ros.core.estimation.residuals import (
     folds_keep_rank,
-    linearized_fit,
     region_fold_ids,
     region_folds,
     validation_rms,

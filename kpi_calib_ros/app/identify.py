@@ -284,7 +284,8 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
     result = honest_precision(robust.result)
     return CellCalibration(result, robust, choice, est, tuple(free),
                            registration, scales[-1], cm,
-                           expected_tcp_error(cm.model, kept, result), nominal)
+                           expected_tcp_error(cm.model, kept, result, prior=fit_prior(
+                               prior, robust.result, balance)), nominal)
 
 
 def nominal_comparison(cm: CellModel, data: Measurements, result: CalibrationResult,
@@ -383,7 +384,9 @@ def add_effect_comparison(doc: dict[str, Any], cm: CellModel, data: Measurements
     """
     base = geometric_only(cm)
     before = identify_cell(base, data)
-    cmp = compare_models((base.model, before), (cm.model, result), data, folds=folds)
+    prior = cell_prior(cm)
+    cmp = compare_models((base.model, before), (cm.model, result), data, folds=folds,
+                         prior=prior, balanced=prior is not None)
     doc['effects_comparison'] = comparison_to_dict(cmp)
     return comparison_text(cmp)
 

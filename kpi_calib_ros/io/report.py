@@ -62,7 +62,30 @@ def comparison_to_dict(cmp: ModelComparison) -> dict[str, Any]:
                            'after': [float(x) for x in a]}
                           for n, b, a in zip(cmp.working_pose_names, cmp.tcp_std_before_m,
                                              cmp.tcp_std_after_m)],
-            'warnings': list(cmp.warnings), 'std_basis': cmp.std_basis}
+            'warnings': list(cmp.warnings), 'std_basis': cmp.std_basis,
+            'other_region_rms_before_m': _finite(cmp.other_region_rms_before_m),
+            'other_region_rms_after_m': _finite(cmp.other_region_rms_after_m),
+            'region_blocks': int(cmp.region_blocks),
+            'holds_elsewhere': cmp.holds_elsewhere,
+            'recommended': cmp.holds_elsewhere}
+
+
+def _finite(value: float) -> float | None:
+    return float(value) if np.isfinite(value) else None
+
+
+def region_verdict(cmp: ModelComparison) -> str:
+    """Whether the richer model is recommended: only when it predicts held-out regions of
+    joint space better (as ``auto`` asks)."""
+    figures = (f'{_validation(cmp.other_region_rms_before_m, "", " µm")} -> '
+               f'{_validation(cmp.other_region_rms_after_m, "", " µm")} over held-out regions '
+               f'of joint space ({cmp.region_blocks} regions), '
+               f'{_validation(cmp.validation_rms_before_m, "", " µm")} -> '
+               f'{_validation(cmp.validation_rms_after_m, "", " µm")} where measured')
+    if cmp.holds_elsewhere:
+        return f'recommended: {", ".join(cmp.effects)} holds where no pose was measured ({figures})'
+    return (f'NOT recommended: {", ".join(cmp.effects)} does not predict held-out regions of '
+            f'joint space better ({figures}); keep the model without it')
 
 
 def diagnosis_to_dict(cd: CellDiagnosis) -> dict[str, Any]:
@@ -126,6 +149,10 @@ def comparison_text(cmp: ModelComparison) -> str:
              f'  rms             {cmp.rms_before_m * _UM:7.1f} -> {cmp.rms_after_m * _UM:7.1f} µm',
              f'  validation rms  {_validation(cmp.validation_rms_before_m, "7", " µm")} -> '
              f'{_validation(cmp.validation_rms_after_m, "7", " µm")} (held-out poses)',
+             f'  other regions   {_validation(cmp.other_region_rms_before_m, "7", " µm")} -> '
+             f'{_validation(cmp.other_region_rms_after_m, "7", " µm")} (held-out regions of '
+             f'joint space, {cmp.region_blocks} regions)',
+             f'  {region_verdict(cmp)}',
              f'  χ² p-value      {cmp.p_value_before:9.3g} -> {cmp.p_value_after:9.3g}']
     if cmp.std_basis and cmp.effect_parameters:
         lines.append(f'  std {cmp.std_basis}')
@@ -508,12 +535,15 @@ def write_report(out_dir: str | Path, cd: CellDiagnosis) -> Path:
                   f'| rms (µm) | {cmp.rms_before_m * _UM:.1f} | {cmp.rms_after_m * _UM:.1f} |',
                   f'| validation rms (µm) | {_validation(cmp.validation_rms_before_m)} | '
                   f'{_validation(cmp.validation_rms_after_m)} |',
+                  f'| validation rms, held-out regions of joint space (µm) | '
+                  f'{_validation(cmp.other_region_rms_before_m)} | '
+                  f'{_validation(cmp.other_region_rms_after_m)} |',
                   f'| χ² p-value | {cmp.p_value_before:.3g} | {cmp.p_value_after:.3g} |']
         for name, b, a in zip(cmp.working_pose_names, cmp.tcp_std_before_m,
                               cmp.tcp_std_after_m):
             lines.append(f'| TCP {name} std (µm) | {", ".join(f"{x * _UM:.1f}" for x in b)} | '
                          f'{", ".join(f"{x * _UM:.1f}" for x in a)} |')
-        lines += ['', 'Effect parameters:', '']
+        lines += ['', region_verdict(cmp) + '.', '', 'Effect parameters:', '']
         lines += [f"- {p['name']} = {p['value']:.4g} ± {p['std']:.2g} {p['unit']}"
                   if 'std' in p else f"- {p['name']}: not estimated ({p['dropped']})"
                   for p in cmp.effect_parameters]

@@ -270,7 +270,7 @@ def _um(metres: float) -> str:
 
 
 def _region_text(trial: EffectTrial) -> str:
-    """The trial's cross-validated rms before -> after, in region and in other regions."""
+    """Say the trial's cross-validated rms before -> after, in other regions and in region."""
     b, a = trial.region_before, trial.region_after
     if a is None or b is None:
         return 'no cross-validated rms'
@@ -283,7 +283,7 @@ def _judged(trial: tuple[EffectTrial, MeasurementModel | None, CalibrationResult
             model: MeasurementModel, data: Measurements, current: CalibrationResult,
             prior: Prior | None, balanced: bool, seed: int
             ) -> tuple[EffectTrial, MeasurementModel | None, CalibrationResult | None]:
-    """The trial with the region figures of the current model and its own, on its folds.
+    """Return the trial with the region figures of the current model and its own, same folds.
 
     The folds of the larger model (with the effect) keep the rank of the current one.
     """

@@ -33,8 +33,12 @@ import numpy as np
 from kpi_calib_ros.core.diagnosis.out_of_sample import METHOD, out_of_sample_error
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
+from kpi_calib_ros.core.estimation.precision import (
+    expected_tcp_error,
+    fit_prior,
+    honest_precision,
+)
 from kpi_calib_ros.core.estimation.prior import Prior
-from kpi_calib_ros.core.estimation.precision import fit_prior
 from kpi_calib_ros.core.estimation.residuals import (
     RegionValidation,
     region_validation,
@@ -64,9 +68,10 @@ REGION_MARGIN = 0.02
 
 def holds_elsewhere(new: RegionValidation, old: RegionValidation,
                     margin: float = REGION_MARGIN) -> bool:
-    """Does ``new`` predict other regions of joint space better than ``old`` by ``margin``?
+    """Return whether ``new`` predicts other regions of joint space better than ``old``.
 
-    False when either figure is not estimable.
+    Better by ``margin`` (a fraction of ``old``'s rms); False when either figure is not
+    estimable.
     """
     a, b = new.other_region_m, old.other_region_m
     return bool(np.isfinite(a) and np.isfinite(b) and a < (1 - margin) * b)
@@ -296,9 +301,11 @@ def choose_model(model: MeasurementModel, data: Measurements, fit: Fit, requeste
 
 @dataclass(frozen=True)
 class NominalComparison:
-    """A calibration's cross-validated rms against the nominal model with the placement
-    registered (base in the tracker and reflector offsets fitted, the robot nominal), on
-    the same folds: where measured (``in_region``) and over held-out regions of joint space.
+    """A calibration's cross-validated rms against the nominal model, placement registered.
+
+    The nominal model: base in the tracker and reflector offsets fitted, the robot nominal;
+    both on the same folds, where measured (``in_region``) and over held-out regions of
+    joint space.
 
     ``better``: the calibration predicts held-out poses better than the nominal model in
     every figure both have; a calibration that does not is worse than none.
@@ -306,23 +313,30 @@ class NominalComparison:
 
     calibrated: RegionValidation
     nominal: RegionValidation
+    # rms over the working poses of the expected TCP error (parameter part and misfit,
+    # core.precision.expected_tcp_error) of each, m; NaN: no working pose or no figure.
+    calibrated_working_m: float = float('nan')
+    nominal_working_m: float = float('nan')
 
     @property
     def compared(self) -> tuple[str, ...]:
         """The figures both models have: 'in_region', 'other_region'."""
         out = []
-        for key in ('in_region', 'other_region'):
-            a = getattr(self.calibrated, f'{key}_m')
-            b = getattr(self.nominal, f'{key}_m')
+        for key in ('in_region', 'other_region', 'working'):
+            a, b = self._figures(key)
             if np.isfinite(a) and np.isfinite(b):
                 out.append(key)
         return tuple(out)
 
+    def _figures(self, key: str) -> tuple[float, float]:
+        if key == 'working':
+            return self.calibrated_working_m, self.nominal_working_m
+        return getattr(self.calibrated, f'{key}_m'), getattr(self.nominal, f'{key}_m')
+
     @property
     def better(self) -> bool:
         """True unless a compared figure of the calibration is not below the nominal's."""
-        return all(getattr(self.calibrated, f'{k}_m') < getattr(self.nominal, f'{k}_m')
-                   for k in self.compared)
+        return all(self._figures(k)[0] < self._figures(k)[1] for k in self.compared)
 
     def text(self) -> str:
         """One line: both figures of both models."""
@@ -335,12 +349,18 @@ class NominalComparison:
                 f'cross-validated rms where measured {um(c.in_region_m)} (nominal '
                 f'{um(n.in_region_m)}), over held-out regions of joint space '
                 f'{um(c.other_region_m)} (nominal {um(n.other_region_m)}; {c.blocks or n.blocks} '
-                'regions, same folds)')
+                f'regions, same folds), expected TCP error over the working poses '
+                f'{um(self.calibrated_working_m)} (nominal {um(self.nominal_working_m)})')
 
     def to_dict(self) -> dict:
         """YAML-ready figures (m)."""
+        def m(v: float) -> float | None:
+            return float(v) if np.isfinite(v) else None
         return {'better': self.better, 'compared': list(self.compared),
-                'calibrated': self.calibrated.to_dict(), 'nominal': self.nominal.to_dict(),
+                'calibrated': {**self.calibrated.to_dict(),
+                               'working_poses_expected_rms_m': m(self.calibrated_working_m)},
+                'nominal': {**self.nominal.to_dict(),
+                            'working_poses_expected_rms_m': m(self.nominal_working_m)},
                 'text': self.text()}
 
 
@@ -360,4 +380,13 @@ def against_nominal(model: MeasurementModel, data: Measurements, result: Calibra
                             pose_folds=folds)
     if not (np.isfinite(nom.in_region_m) and np.isfinite(nom.other_region_m)):
         nom = region_validation(nominal_model, data, nominal, nominal_prior, seed=seed)
-    return NominalComparison(cal, nom)
+    return NominalComparison(cal, nom, _working(model, data, result, prior),
+                             _working(nominal_model, data, nominal, nominal_prior))
+
+
+def _working(model: MeasurementModel, data: Measurements, result: CalibrationResult,
+             prior: Prior | None) -> float:
+    """Rms over the working poses of the expected TCP error (m), NaN without one."""
+    errors = expected_tcp_error(model, data, honest_precision(result), prior=prior)
+    values = np.asarray(errors.expected_tcp_error_m, float)
+    return float(np.sqrt(np.mean(values ** 2))) if len(values) else float('nan')

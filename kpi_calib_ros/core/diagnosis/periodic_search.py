@@ -117,8 +117,8 @@ def periodograms(model: MeasurementModel, data: Measurements, result: Calibratio
             continue
         cycles = searched_cycles(q[:, j], max_cycles)
         resolution = frequency_resolution(q[:, j])
-        have = [k0 for e in model.effects if e.joint == joint.name
-                for k0 in (periodic_cycles(e),) if k0 is not None]
+        have = [k0 for e in model.effects if isinstance(e, BoundEffect)
+                and e.joint == joint.name for k0 in (periodic_cycles(e),) if k0 is not None]
         aliased = np.array([any(abs(k - k0) < resolution for k0 in have) for k in cycles],
                            bool)
         refused = tuple(int(k) for k in cycles[aliased])

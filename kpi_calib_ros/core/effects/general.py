@@ -95,9 +95,11 @@ NAMED_CYCLES = {'cyclic_joint_error': 1, 'cyclic_joint_error_h2': 2}
 
 
 def periodic_cycles(effect: BoundEffect) -> int | None:
-    """Cycles per revolution k of a periodic joint error (``periodic_joint_error`` or its
-    named harmonics ``cyclic_joint_error`` k = 1, ``cyclic_joint_error_h2`` k = 2); None for
-    any other effect."""
+    """Return the cycles per revolution k of a periodic joint error.
+
+    ``periodic_joint_error`` or its named harmonics ``cyclic_joint_error`` k = 1,
+    ``cyclic_joint_error_h2`` k = 2; None for any other effect.
+    """
     if isinstance(effect, PeriodicJointError):
         return effect.cycles
     return NAMED_CYCLES.get(effect.kind.name)
@@ -127,6 +129,8 @@ def aliased_frequency(effect: BoundEffect, others: Any, q_j: np.ndarray) -> str:
         return ''
     resolution = frequency_resolution(q_j)
     for other in others:
+        if not isinstance(other, BoundEffect):
+            continue
         k0 = periodic_cycles(other)
         if k0 is None or other.joint != effect.joint or other.name == effect.name:
             continue

@@ -182,7 +182,8 @@ def measurement_noise_ms(model: MeasurementModel, data: Measurements,
 
 
 def expected_tcp_error(model: MeasurementModel, data: Measurements, result: CalibrationResult,
-                       alpha: float = ADEQUACY_ALPHA) -> ExpectedTcpError:
+                       alpha: float = ADEQUACY_ALPHA,
+                       prior: Prior | None = None) -> ExpectedTcpError:
     """Return the expected TCP error at every working pose, the misfit included.
 
     See :class:`ExpectedTcpError`.
@@ -193,6 +194,8 @@ def expected_tcp_error(model: MeasurementModel, data: Measurements, result: Cali
         The model ``result`` was identified with and its measurements.
     result : CalibrationResult
         Its TCP covariance as reported (after :func:`honest_precision`).
+    prior : Prior, optional
+        The prior the fit used, kept in the held-out refits of the misfit's estimate.
     """
     covariance = np.asarray(result.tcp_covariance, float).reshape(-1, 3, 3)  # (0, 3, 3): no
     tcp_std = np.sqrt(np.trace(covariance, axis1=1, axis2=2))              # working pose
@@ -203,7 +206,7 @@ def expected_tcp_error(model: MeasurementModel, data: Measurements, result: Cali
     if is_adequate(result.p_value, alpha):
         return ExpectedTcpError(result.working_pose_names, tcp_std, 0.0, tcp_std,
                                 float('nan'), noise, True)
-    cv = validation_rms(model, data, result, LEAVE_ONE_OUT)
+    cv = validation_rms(model, data, result, LEAVE_ONE_OUT, prior=prior)
     misfit = float(np.sqrt(max(cv ** 2 - noise ** 2, 0.0))) if np.isfinite(cv) else np.nan
     return ExpectedTcpError(result.working_pose_names, tcp_std, misfit,
                             np.sqrt(tcp_std ** 2 + misfit ** 2), cv, noise, False)
@@ -246,9 +249,12 @@ def balanced_prior(fit: Callable[[Prior], CalibrationResult], prior: Prior,
 
 
 def fit_prior(prior: Prior | None, result: CalibrationResult, balanced: bool) -> Prior | None:
-    """The prior ``result`` was fitted with: ``prior`` tightened by the noise scale of
-    ``result`` when the fit balanced it (:func:`balanced_prior`: at its fixed point the
-    scale is that of the last fit), else ``prior`` as given."""
+    """Return the prior ``result`` was fitted with.
+
+    ``prior`` tightened by the noise scale of ``result`` when the fit balanced it
+    (:func:`balanced_prior`: at its fixed point the scale is that of the last fit), else
+    ``prior`` as given.
+    """
     if prior is None or not balanced:
         return prior
     return tightened(prior, noise_scale(result))

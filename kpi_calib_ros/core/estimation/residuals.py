@@ -433,7 +433,7 @@ def validation_rms(model: MeasurementModel, data: Measurements,
 
 def prior_system(model: MeasurementModel, result: CalibrationResult, prior: Prior | None
                  ) -> tuple[np.ndarray, np.ndarray]:
-    """The prior's rows in the identified parameters of ``result``: (L (m, k), lm − L p̂).
+    """Return the prior's rows in the identified parameters of ``result``: L (m, k), lm − L p̂.
 
     Whitened as the data rows are (LᵀL = C⁻¹), so they stack below the weighted Jacobian
     of :func:`linearized_fit`; rows on no identified parameter are left out. (0, k) and
@@ -512,9 +512,12 @@ def validation_folds(model: MeasurementModel, data: Measurements, result: Calibr
                      blocks: int = REGION_BLOCKS, seed: int = 0,
                      fit: LinearizedFit | None = None
                      ) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """The in-region (:func:`identifiable_folds`) and region-blocked (:func:`region_folds`)
-    pose folds (N,) of ``result``, each None when no folds keep its rank. Those of a model
-    keep the rank of every model it nests: judge them on the same folds."""
+    """Return the in-region and region-blocked pose folds (N,) of ``result``.
+
+    :func:`identifiable_folds` and :func:`region_folds`, each None when no folds keep its
+    rank. Those of a model keep the rank of every model it nests: judge them on the same
+    folds.
+    """
     sys_ = fit or linearized_fit(model, data, result)
     a = np.vstack([sys_.jac, prior_system(model, result, prior)[0]])
     q = np.atleast_2d(data.q)
