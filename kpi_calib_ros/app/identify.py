@@ -275,8 +275,10 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
             f'{choice.reason}; the final fit did not converge with '
             f'{", ".join(shapes)} free: held at the selected values'))
     kept = subset(data, robust.kept)
+    # The prior the final fit used: the tolerances as its last balance tightened them.
+    used_prior = tightened(prior, scales[-1]) if balance and prior is not None else prior
     nominal = nominal_comparison(cm, kept, robust.result, free, start, prior, balance,
-                                 scales[-1])
+                                 used_prior)
     est = result_estimability(cm.model, kept.q, cm.cell.sigma, robust.result.values,
                               cm.q_work, cm.working_pose_names, free, prior=prior,
                               reflector=kept.reflector, rotation=kept.rotation)
@@ -284,18 +286,19 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
     result = honest_precision(robust.result)
     return CellCalibration(result, robust, choice, est, tuple(free),
                            registration, scales[-1], cm,
-                           expected_tcp_error(cm.model, kept, result, prior=fit_prior(
-                               prior, robust.result, balance)), nominal)
+                           expected_tcp_error(cm.model, kept, result, prior=used_prior),
+                           nominal)
 
 
 def nominal_comparison(cm: CellModel, data: Measurements, result: CalibrationResult,
                        free: list[str], start: np.ndarray, prior: Prior | None,
-                       balance: bool, scale: float) -> NominalComparison | None:
+                       balance: bool, used_prior: Prior | None) -> NominalComparison | None:
     """The calibration ``result`` against the nominal robot with the placement registered.
 
     The nominal fit frees only ``base.*`` and ``reflector.*`` of the geometric model, from
-    ``start``'s placement and the nominal robot, with the same prior (balanced as the
-    calibration's, its noise ``scale``); both are cross-validated on the same folds
+    ``start``'s placement and the nominal robot, with the same prior (``balance``: balanced
+    against its noise as the calibration's is; ``used_prior`` is the prior ``result`` was
+    fitted with); both are cross-validated on the same folds
     (:func:`kpi_calib_ros.core.diagnosis.model_selection.against_nominal`). None when the
     calibration is that nominal fit (no other parameter free) or the nominal fit fails.
     """
@@ -314,8 +317,7 @@ def nominal_comparison(cm: CellModel, data: Measurements, result: CalibrationRes
         return None
     if not np.all(np.isfinite(nominal.values)) or not np.all(np.isfinite(result.values)):
         return None
-    used = tightened(prior, scale) if balance and prior is not None else prior
-    return against_nominal(cm.model, data, result, base.model, nominal, used,
+    return against_nominal(cm.model, data, result, base.model, nominal, used_prior,
                            fit_prior(prior, nominal, balance))
 
 
