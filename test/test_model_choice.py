@@ -138,3 +138,38 @@ def test_no_second_frequency_within_the_resolution_of_one_in_the_model(cm):
 def test_level_free_of_registration_is_the_placement(cm):
     names = level_free(cm.model.params, 'registration')
     assert names and all(n.startswith(('base.', 'reflector.')) for n in names)
+
+
+@pytest.mark.slow
+def test_an_effect_that_helps_only_where_measured_is_not_recommended(cm):
+    """A joint-2 error that grows only in the top quarter of joint 1's range: the screen
+    calls cyclic_joint_error:joint_2 significant and its refit lowers the error where the
+    poses were measured (200.0 -> 195.5 µm), but not over held-out regions of joint space
+    (220.6 -> 220.0 µm, less than the 2 % margin): diagnose does not recommend it and offers
+    no command for it."""
+    from kpi_calib_ros.app.diagnose import named_remedy
+    from kpi_calib_ros.core.diagnosis.candidates import compare_models, diagnose
+    from kpi_calib_ros.core.effects.registry import parse_effect_spec
+    from kpi_calib_ros.core.measurement.tracker import Measurements
+    from kpi_calib_ros.core.simulation import sampling_bounds
+    from kpi_calib_ros.io.report import comparison_text
+    lo, hi = sampling_bounds(cm.model)
+    rng = np.random.default_rng(1)
+    p = true_parameters(cm.model.params, rng)
+    q = random_configurations(cm.model, cm.model.params.nominal, 100, rng)
+    dq = np.zeros_like(q)
+    dq[:, 1] = 3e-3 * np.clip((q[:, 0] - lo[0]) / (hi[0] - lo[0]) - 0.75, 0, None)
+    data = Measurements(q=q, eta=cm.model.predict(p, q + dq)
+                        + rng.normal(size=(len(q), 3)) * 20e-6)
+    before = identify(cm.model, data, 20e-6, cm.q_work, max_iterations=25)
+    diag = diagnose(cm.model, data, before)
+    assert diag.best is not None and diag.best.spec == 'cyclic_joint_error:joint_2'
+    effect = parse_effect_spec(diag.best.spec, cm.robot)
+    richer = augmented_model(cm.model, (effect,))
+    after = identify(richer, data, 20e-6, cm.q_work, max_iterations=25,
+                     p0=np.concatenate([before.values, np.zeros(2)]))
+    cmp = compare_models((cm.model, before), (richer, after), data)
+    assert cmp.validation_rms_after_m < 0.98 * cmp.validation_rms_before_m
+    assert not cmp.holds_elsewhere
+    assert named_remedy(diag, cmp) is None
+    assert 'NOT recommended' in comparison_text(cmp)
