@@ -318,7 +318,8 @@ def nominal_comparison(cm: CellModel, data: Measurements, result: CalibrationRes
     if not np.all(np.isfinite(nominal.values)) or not np.all(np.isfinite(result.values)):
         return None
     return against_nominal(cm.model, data, result, base.model, nominal, used_prior,
-                           fit_prior(prior, nominal, balance))
+                           fit_prior(prior, nominal, balance), free=list(free),
+                           nominal_free=placement)
 
 
 def add_chosen_effects(cm: CellModel, data: Measurements, choice: ModelChoice,

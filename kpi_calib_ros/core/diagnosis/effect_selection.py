@@ -20,13 +20,13 @@ Each round:
    effect parameter unidentified or fits an implausible value is refused;
 3. each trial and the current model are cross-validated on the same folds that hold out
    whole regions of joint space (:func:`~kpi_calib_ros.core.estimation.residuals.
-   region_validation`, the fit's prior kept in every refit); the trial that predicts the
-   held-out regions best is added when it does so
-   :data:`~kpi_calib_ros.core.diagnosis.model_selection.REGION_MARGIN` better than the current
-   model (:func:`~kpi_calib_ros.core.diagnosis.model_selection.holds_elsewhere`); otherwise
-   selection stops. An effect that lowers the error where the poses were measured and
-   raises it elsewhere (a scale error only a grid's corner needs, an aliased second
-   frequency) is not added.
+   region_validation`, the fit's prior kept in every refit); a trial that predicts the
+   held-out regions :data:`~kpi_calib_ros.core.diagnosis.model_selection.REGION_MARGIN`
+   better than the current model passes
+   (:func:`~kpi_calib_ros.core.diagnosis.model_selection.holds_elsewhere`), and of those the
+   one with the lowest predicted out-of-sample rms is added; none passing, selection stops.
+   An effect that lowers the error where the poses were measured and raises it elsewhere
+   (a scale error only a grid's corner needs, an aliased second frequency) is not added.
 
 On data the geometric model explains, step 1 passes a candidate with probability at most
 ``alpha`` per round, and step 3 then still asks for a better prediction of other regions.
@@ -216,7 +216,14 @@ def choose_effects(model: MeasurementModel, data: Measurements, fit_for: FitFor,
             reason = ('no significant, plausible candidate survived its nonlinear fit with '
                       'an error over held-out regions of joint space')
             break
-        best = min(usable, key=lambda t: _ratio(t[0]))
+        # The gate is the held-out regions; among the trials that pass it, the one the fit
+        # predicts best (a lower-variance figure: thermal_growth and thermal_link_growth of
+        # one link hold elsewhere alike, the prediction tells the link).
+        passing = [t for t in usable if t[0].region_after is not None
+                   and t[0].region_before is not None
+                   and holds_elsewhere(t[0].region_after, t[0].region_before)]
+        best = (min(passing, key=lambda t: t[0].predicted_rms_m or np.inf) if passing
+                else min(usable, key=lambda t: _ratio(t[0])))
         after_region, before_region = best[0].region_after, best[0].region_before
         assert after_region is not None and before_region is not None
         improves = holds_elsewhere(after_region, before_region)

@@ -307,8 +307,15 @@ class NominalComparison:
     both on the same folds, where measured (``in_region``) and over held-out regions of
     joint space.
 
-    ``better``: the calibration predicts held-out poses better than the nominal model in
-    every figure both have; a calibration that does not is worse than none.
+    ``better``: False (worse than no calibration) when the cross-validated figures (where
+    measured, over held-out regions, the expected TCP error over the working poses) do not
+    all favour the calibration *and* the error predicted from the fit itself at the
+    measured configurations (:mod:`~kpi_calib_ros.core.diagnosis.out_of_sample`, no refits)
+    does not either. Both are asked because each errs alone on real data: with 37 TIAGo
+    postures of 4 markers and millimetre play, the leave-one-out refits of the geometric
+    model (4.9 mm) are above the nominal robot's (4.5 mm), yet it predicts the other day
+    with 4.2 mm against the nominal's 5.9 mm, as its predicted error (2.4 against 4.1 mm)
+    says; the prediction from the fit is itself low where the model misfits.
     """
 
     calibrated: RegionValidation
@@ -317,6 +324,10 @@ class NominalComparison:
     # core.precision.expected_tcp_error) of each, m; NaN: no working pose or no figure.
     calibrated_working_m: float = float('nan')
     nominal_working_m: float = float('nan')
+    # Predicted rms of new measurements at the measured configurations, from each fit
+    # (core.out_of_sample, like_measured), m; NaN: not estimable.
+    calibrated_predicted_m: float = float('nan')
+    nominal_predicted_m: float = float('nan')
 
     @property
     def compared(self) -> tuple[str, ...]:
@@ -335,22 +346,32 @@ class NominalComparison:
 
     @property
     def better(self) -> bool:
-        """True unless a compared figure of the calibration is not below the nominal's."""
-        return all(self._figures(k)[0] < self._figures(k)[1] for k in self.compared)
+        """False when the cross-validated and the predicted figures both favour the nominal."""
+        cv_better = all(self._figures(k)[0] < self._figures(k)[1] for k in self.compared)
+        a, b = self.calibrated_predicted_m, self.nominal_predicted_m
+        predicted_better = bool(np.isfinite(a) and np.isfinite(b) and a < b)
+        return cv_better or predicted_better
 
     def text(self) -> str:
         """One line: both figures of both models."""
         def um(v: float) -> str:
             return f'{v * 1e6:.1f} µm' if np.isfinite(v) else 'not estimable'
         c, n = self.calibrated, self.nominal
-        verdict = ('predicts held-out poses better than' if self.better else
+        split = self.better and not all(self._figures(k)[0] < self._figures(k)[1]
+                                        for k in self.compared)
+        verdict = ('is not refused against' if split else
+                   'predicts held-out poses better than' if self.better else
                    'does NOT predict held-out poses better than')
         return (f'the calibration {verdict} the nominal robot with the placement registered: '
                 f'cross-validated rms where measured {um(c.in_region_m)} (nominal '
                 f'{um(n.in_region_m)}), over held-out regions of joint space '
                 f'{um(c.other_region_m)} (nominal {um(n.other_region_m)}; {c.blocks or n.blocks} '
                 f'regions, same folds), expected TCP error over the working poses '
-                f'{um(self.calibrated_working_m)} (nominal {um(self.nominal_working_m)})')
+                f'{um(self.calibrated_working_m)} (nominal {um(self.nominal_working_m)}); '
+                f'predicted from the fit at the measured configurations '
+                f'{um(self.calibrated_predicted_m)} (nominal {um(self.nominal_predicted_m)})'
+                + ('; the cross-validated figures favour the nominal robot, the prediction from '
+                   'the fit the calibration' if split else ''))
 
     def to_dict(self) -> dict:
         """YAML-ready figures (m)."""
@@ -358,21 +379,25 @@ class NominalComparison:
             return float(v) if np.isfinite(v) else None
         return {'better': self.better, 'compared': list(self.compared),
                 'calibrated': {**self.calibrated.to_dict(),
-                               'working_poses_expected_rms_m': m(self.calibrated_working_m)},
+                               'working_poses_expected_rms_m': m(self.calibrated_working_m),
+                               'predicted_rms_m': m(self.calibrated_predicted_m)},
                 'nominal': {**self.nominal.to_dict(),
-                            'working_poses_expected_rms_m': m(self.nominal_working_m)},
+                            'working_poses_expected_rms_m': m(self.nominal_working_m),
+                            'predicted_rms_m': m(self.nominal_predicted_m)},
                 'text': self.text()}
 
 
 def against_nominal(model: MeasurementModel, data: Measurements, result: CalibrationResult,
                     nominal_model: MeasurementModel, nominal: CalibrationResult,
                     prior: Prior | None = None, nominal_prior: Prior | None = None,
-                    seed: int = 0) -> NominalComparison:
+                    seed: int = 0, free: list[str] | None = None,
+                    nominal_free: list[str] | None = None) -> NominalComparison:
     """Compare the calibration ``result`` with the ``nominal`` fit (the placement only).
 
     Both are cross-validated (linear refits, each fit's prior kept) on the folds of the
     calibration, which keep the rank of the placement it contains; where those folds do not
-    keep the nominal fit's rank, on its own.
+    keep the nominal fit's rank, on its own. ``free``, ``nominal_free``: the free parameters
+    of each fit (default: its estimated ones), for the error predicted from the fit.
     """
     folds = validation_folds(model, data, result, prior, seed=seed)
     cal = region_validation(model, data, result, prior, seed=seed, pose_folds=folds)
@@ -380,8 +405,22 @@ def against_nominal(model: MeasurementModel, data: Measurements, result: Calibra
                             pose_folds=folds)
     if not (np.isfinite(nom.in_region_m) and np.isfinite(nom.other_region_m)):
         nom = region_validation(nominal_model, data, nominal, nominal_prior, seed=seed)
-    return NominalComparison(cal, nom, _working(model, data, result, prior),
-                             _working(nominal_model, data, nominal, nominal_prior))
+    return NominalComparison(
+        cal, nom, _working(model, data, result, prior),
+        _working(nominal_model, data, nominal, nominal_prior),
+        _predicted(model, data, result, free or list(result.estimated), prior, seed),
+        _predicted(nominal_model, data, nominal, nominal_free or list(nominal.estimated),
+                   nominal_prior, seed))
+
+
+def _predicted(model: MeasurementModel, data: Measurements, result: CalibrationResult,
+               free: list[str], prior: Prior | None, seed: int) -> float:
+    """Predicted rms (m) of new measurements at the measured configurations, NaN if none."""
+    if result.dof <= 0:
+        return float('nan')
+    oos = out_of_sample_error(model, data, result, free, prior, seed,
+                              domains=('like_measured',)).domains['like_measured']
+    return float(oos.rms_m) if oos.estimable else float('nan')
 
 
 def _working(model: MeasurementModel, data: Measurements, result: CalibrationResult,
