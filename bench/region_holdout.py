@@ -158,8 +158,11 @@ def write(path: Path, rows: list, seeds: int, clean: int) -> None:
         scr = np.array([r['screen_best_m'] if r['screen_best_m'] is not None
                         else r['geometric_m'] for r in out])
         text.append(
-            f"| {kind} | {n} | {sum(r['proposed'] == r['hidden'] for r in out)}/{n} | "
-            f"{sum(r['found'] for r in out)}/{n} | {int(np.sum(dia > WORSE * geo))}/{n} | "
+            f"| {kind} | {n} | "
+            + (f"{sum(r['proposed'] is not None for r in out)}/{n} (any proposal) | "
+               if kind == 'clean' else
+               f"{sum(r['proposed'] == r['hidden'] for r in out)}/{n} | ")
+            + f"{sum(r['found'] for r in out)}/{n} | {int(np.sum(dia > WORSE * geo))}/{n} | "
             f"{int(np.sum(aut > WORSE * geo))}/{n} | {int(np.sum(scr > WORSE * geo))}/{n} | "
             f"{sum(bool(r['auto_effects']) for r in out)}/{n} | "
             f"{np.median(geo) * 1e6:.1f} / {np.median(dia) * 1e6:.1f} / "

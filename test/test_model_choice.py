@@ -145,7 +145,7 @@ def test_an_effect_that_helps_only_where_measured_is_not_recommended(cm):
     """A joint-2 error that grows only in the top quarter of joint 1's range: the screen
     calls cyclic_joint_error:joint_2 significant and its refit lowers the error where the
     poses were measured (200.0 -> 195.5 µm), but not over held-out regions of joint space
-    (220.6 -> 220.0 µm, less than the 2 % margin): diagnose does not recommend it and offers
+    (220.6 -> 220.0 µm, less than the 5 % margin): diagnose does not recommend it and offers
     no command for it."""
     from kpi_calib_ros.app.diagnose import named_remedy
     from kpi_calib_ros.core.diagnosis.candidates import compare_models, diagnose

@@ -60,10 +60,12 @@ PARSIMONY = 0.05
 DEFAULT_FOLDS = 5
 # A larger model (a level, an effect) is taken only when its other-region cross-validated
 # rms is this fraction lower than the current one's. On clean data the effect screen's
-# F-test (family-wise α) already bounds the false alarms; the margin keeps a model whose
-# region figure is lower by the noise of the estimate alone from being taken
-# (bench/auto_false_alarms.py shows the level on clean data).
-REGION_MARGIN = 0.02
+# F-test (family-wise α) passes a candidate in up to 1.8 % of seeds (stock UR10, 9/500), and
+# such a candidate fitted to noise lowers the other-region rms too (4.5 %, UR10 seed 1019,
+# added at a 2 % margin): 5 % keeps auto's false alarms at the 1 % level
+# (bench/auto_false_alarms.py), while the hidden effects of bench/region_holdout.py lower it
+# by 50-80 %.
+REGION_MARGIN = 0.05
 
 
 def holds_elsewhere(new: RegionValidation, old: RegionValidation,
