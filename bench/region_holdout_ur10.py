@@ -43,7 +43,7 @@ from kpi_calib_ros.io.csv_mapping import mapping_from_dict
 
 ROOT = Path(__file__).resolve().parents[1]
 REGIONS = 4
-N_TRAIN = 300
+N_TRAIN = 200
 
 
 def series(path: Path) -> Measurements:
@@ -62,8 +62,13 @@ def rms(cm, p: np.ndarray, data: Measurements) -> float:
 
 
 def on_d(cm, p: np.ndarray, d: Measurements, result) -> float:
+    """Rms on Series D with the placement re-registered; NaN when validate cannot (its
+    re-registration needs a positive definite placement covariance)."""
     doc = calibration_document(cm, result)
-    return float(validate_calibration(cm, p, doc, d, 'base+reflector').rms_m)
+    try:
+        return float(validate_calibration(cm, p, doc, d, 'base+reflector').rms_m)
+    except np.linalg.LinAlgError:
+        return float('nan')
 
 
 def main(argv: list[str]) -> int:

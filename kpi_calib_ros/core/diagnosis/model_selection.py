@@ -9,17 +9,16 @@ level):
 * ``joint_offsets`` -- registration and every ``<joint>.offset``;
 * ``geometric``     -- every geometric parameter (placements too): the full model.
 
-``auto`` fits every level once and judges it by where the robot works next: the
-cross-validated rms of folds that hold out whole regions of joint space
-(:func:`~kpi_calib_ros.core.estimation.residuals.region_validation`, k-means blocks in
-normalised joint space that keep every identified parameter determined, the fit's prior
-kept in every refit). It starts from the smallest level and takes a larger one only when
-its other-region rms is lower by :data:`REGION_MARGIN` (:func:`holds_elsewhere`): a model
-that fits the measured region better and predicts the others worse is not chosen. Where no
-level has an other-region figure (too few poses to hold a region out), the predicted rms
-from the fit itself decides (:mod:`kpi_calib_ros.core.diagnosis.out_of_sample`, the smallest
-level within `PARSIMONY` of the best), and the reason says so. The predicted rms and the
-in-region cross-validated rms are reported beside it. :func:`cross_validated_level_rms`
+``auto`` fits every level once and predicts its rms error of new measurements from the
+fit itself (:mod:`kpi_calib_ros.core.diagnosis.out_of_sample`, no refits), and picks the
+smallest level whose predicted rms is within `PARSIMONY` of the best. Beside it, each
+level's cross-validated rms where measured and over folds that hold out whole regions of
+joint space (:func:`~kpi_calib_ros.core.estimation.residuals.region_validation`, k-means
+blocks in normalised joint space that keep every identified parameter determined, the
+fit's prior kept in every refit) are reported. The region figure decides the *effects*
+(:mod:`~kpi_calib_ros.core.diagnosis.effect_selection`, :func:`holds_elsewhere`), not the
+level: on the real TIAGo's 37 postures it put the registration before the geometric level,
+which predicts the held-out days far better. :func:`cross_validated_level_rms`
 (full nonlinear k-fold refits) remains for comparison.
 """
 from __future__ import annotations
@@ -260,31 +259,23 @@ def choose_model(model: MeasurementModel, data: Measurements, fit: Fit, requeste
     if not finite:
         raise DataError(f'{len(data)} measurements are too few to fit even the registration '
                         'model with degrees of freedom left; measure more poses')
-    judged = [k for k in LEVELS if k in finite and other[k] is not None]
+    # The level by the error predicted from the fit (the smallest within PARSIMONY of the
+    # best); not by the region-blocked figure, which misjudged the real TIAGo: on its 37
+    # postures it put registration (4.9 mm) before the geometric level (6.2 mm), while the
+    # geometric level with the plays auto adds predicts the held-out days 3.1 / 2.6 / 2.2 mm
+    # and the registered nominal robot 5.9 mm on the first. The region figures are reported.
+    best = min(finite.values())
+    level = next(k for k in LEVELS if k in finite and finite[k] <= (1 + PARSIMONY) * best)
+    pfig = ', '.join(f'{k} {"n/a" if v is None else f"{v * 1e6:.1f} µm"}'
+                     for k, v in predicted.items())
     figures = ', '.join(f'{k} {"n/a" if v is None else f"{v * 1e6:.1f} µm"}'
                         for k, v in other.items())
-    if judged:
-        level = judged[0]
-        for k in judged[1:]:
-            if holds_elsewhere(region[k], region[level]):
-                level = k
-        why = (f'smallest level no larger one beats by {REGION_MARGIN:.0%} on held-out regions '
-               f'of joint space ({blocks} regions; cross-validated rms {figures})')
-        worse = [k for k in LEVELS[LEVELS.index(level) + 1:] if k in judged]
-        if worse:
-            why += f'; {", ".join(worse)} predicts the other regions no better'
-        unjudged = [k for k in finite if k not in judged]
-        if unjudged:
-            why += (f'; {", ".join(unjudged)} not judged: no region folds keep its '
-                    'parameters determined')
-    else:
-        best = min(finite.values())
-        level = next(k for k in LEVELS if k in finite and finite[k] <= (1 + PARSIMONY) * best)
-        pfig = ', '.join(f'{k} {"n/a" if v is None else f"{v * 1e6:.1f} µm"}'
-                         for k, v in predicted.items())
-        why = (f'no level has a cross-validated rms over held-out regions (too few poses); '
-               f'smallest level within {PARSIMONY:.0%} of the best predicted out-of-sample '
-               f'rms at the measured configurations ({pfig})')
+    why = (f'smallest level within {PARSIMONY:.0%} of the best predicted out-of-sample rms '
+           f'at the measured configurations ({pfig}); cross-validated rms over held-out '
+           f'regions of joint space ({blocks} regions): {figures}')
+    worse = [k for k in LEVELS[LEVELS.index(level) + 1:] if k in finite]
+    if worse:
+        why += f'; {", ".join(worse)} predicts new measurements no better'
     larger = [k for k in LEVELS[LEVELS.index(level) + 1:]]
     unfit = [k for k in larger if predicted[k] is None]
     if unfit:
