@@ -29,7 +29,7 @@ import numpy as np
 import scipy.stats
 
 from kpi_calib_ros.core.diagnosis.misfit import MisfitAnswer
-from kpi_calib_ros.core.diagnosis.model_selection import PARSIMONY, REGION_MARGIN
+from kpi_calib_ros.core.diagnosis.model_selection import PARSIMONY, region_test
 from kpi_calib_ros.core.diagnosis.out_of_sample import OutOfSample
 from kpi_calib_ros.core.diagnosis.periodic_search import (
     Periodogram,
@@ -216,13 +216,14 @@ class ModelComparison:
 
     @property
     def holds_elsewhere(self) -> bool:
-        """Return whether the richer model predicts held-out regions of joint space better.
+        """Return whether the richer model holds over held-out regions of joint space.
 
-        Better by :data:`~kpi_calib_ros.core.diagnosis.model_selection.REGION_MARGIN`, as
-        ``auto`` asks; only then is it recommended.
+        The test ``auto`` applies
+        (:func:`~kpi_calib_ros.core.diagnosis.model_selection.holds_elsewhere`); only then is
+        it recommended.
         """
-        a, b = self.other_region_rms_after_m, self.other_region_rms_before_m
-        return bool(np.isfinite(a) and np.isfinite(b) and a < (1 - REGION_MARGIN) * b)
+        return region_test(self.other_region_rms_after_m, self.other_region_rms_before_m,
+                           self.validation_rms_after_m, self.validation_rms_before_m)
 
 
 # ---------------------------------------------------------------- screening

@@ -21,8 +21,9 @@ Each round:
 3. each trial and the current model are cross-validated on the same folds that hold out
    whole regions of joint space (:func:`~kpi_calib_ros.core.estimation.residuals.
    region_validation`, the fit's prior kept in every refit); a trial that predicts the
-   held-out regions :data:`~kpi_calib_ros.core.diagnosis.model_selection.REGION_MARGIN`
-   better than the current model passes
+   held-out regions better than the current model, and by
+   :data:`~kpi_calib_ros.core.diagnosis.model_selection.REGION_MARGIN` there or where
+   measured, passes
    (:func:`~kpi_calib_ros.core.diagnosis.model_selection.holds_elsewhere`), and of those the
    one with the lowest predicted out-of-sample rms is added; none passing, selection stops.
    An effect that lowers the error where the poses were measured and raises it elsewhere
@@ -237,12 +238,14 @@ def choose_effects(model: MeasurementModel, data: Measurements, fit_for: FitFor,
                 trial = replace(trial, reason=(
                     f'predicts held-out regions less well than {best[0].spec}'
                     if trial is not best[0] else
-                    f'not {REGION_MARGIN:.0%} better on held-out regions of joint space: '
+                    f'not better on held-out regions of joint space (and {REGION_MARGIN:.0%} there '
+                    'or where measured): '
                     + _region_text(trial)))
             trials.append(trial)
         if not improves:
             reason = (f'{best[0].spec} would not predict held-out regions of joint space '
-                      f'{REGION_MARGIN:.0%} better ({_region_text(best[0])})')
+                      f'better, and {REGION_MARGIN:.0%} better there or where measured '
+                      f'({_region_text(best[0])})')
             break
         if region_first is None:
             region_first = before_region

@@ -50,6 +50,7 @@ from kpi_calib_ros.core.model.parameters import ParameterSet
 __all__ = [
     'LEVELS', 'MODEL_CHOICES', 'PARSIMONY', 'DEFAULT_FOLDS', 'REGION_MARGIN', 'level_free',
     'ModelChoice', 'cross_validated_level_rms', 'choose_model', 'holds_elsewhere',
+    'region_test',
     'NominalComparison', 'against_nominal',
 ]
 
@@ -57,25 +58,40 @@ LEVELS = ('registration', 'joint_offsets', 'geometric')
 MODEL_CHOICES = ('auto',) + LEVELS
 PARSIMONY = 0.05
 DEFAULT_FOLDS = 5
-# A larger model (a level, an effect) is taken only when its other-region cross-validated
-# rms is this fraction lower than the current one's. On clean data the effect screen's
+# An effect is added only when its other-region cross-validated rms is lower, and lower by
+# this fraction there or where measured (holds_elsewhere). On clean data the effect screen's
 # F-test (family-wise α) passes a candidate in up to 1.8 % of seeds (stock UR10, 9/500), and
 # such a candidate fitted to noise lowers the other-region rms too (4.5 %, UR10 seed 1019,
 # added at a 2 % margin): 5 % keeps auto's false alarms at the 1 % level
 # (bench/auto_false_alarms.py), while the hidden effects of bench/region_holdout.py lower it
-# by 50-80 %.
+# by 50-80 %. Lower where measured by 5 % with any gain elsewhere also counts: the real
+# TIAGo's arm_6 play (37 postures) lowers the in-region rms 10 % and the other-region 2.3 %,
+# and predicts the held-out days 25 % better.
 REGION_MARGIN = 0.05
 
 
 def holds_elsewhere(new: RegionValidation, old: RegionValidation,
                     margin: float = REGION_MARGIN) -> bool:
-    """Return whether ``new`` predicts other regions of joint space better than ``old``.
+    """Return whether ``new`` holds where no pose was measured and is clearly better.
 
-    Better by ``margin`` (a fraction of ``old``'s rms); False when either figure is not
-    estimable.
+    Its cross-validated rms over held-out regions of joint space is lower than ``old``'s, and
+    lower by ``margin`` there or where measured: never worse elsewhere, clearly better
+    somewhere. False when an other-region figure is not estimable.
     """
-    a, b = new.other_region_m, old.other_region_m
-    return bool(np.isfinite(a) and np.isfinite(b) and a < (1 - margin) * b)
+    return region_test(new.other_region_m, old.other_region_m, new.in_region_m,
+                       old.in_region_m, margin)
+
+
+def region_test(other_after: float, other_before: float, in_after: float, in_before: float,
+                margin: float = REGION_MARGIN) -> bool:
+    """:func:`holds_elsewhere` on the four figures (m)."""
+    if not (np.isfinite(other_after) and np.isfinite(other_before)):
+        return False
+    if other_after >= other_before:
+        return False
+    inside = bool(np.isfinite(in_after) and np.isfinite(in_before)
+                  and in_after < (1 - margin) * in_before)
+    return bool(other_after < (1 - margin) * other_before or inside)
 
 
 def level_free(params: ParameterSet, level: str, n_geometric: int | None = None) -> list[str]:
