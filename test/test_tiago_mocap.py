@@ -144,11 +144,14 @@ def test_auto_with_tolerances_on_the_smallest_session_predicts_new_days_better(t
     other day and on the two later sessions of the same day (never used for a choice).
     With the cell's tolerances (weighed against the noise the residuals show) auto keeps
     the geometric level and adds the free play the training data show (significant,
-    plausible, better predicted), the documented arm_6 play among them; every held-out
-    session is predicted better than by the full geometric model without tolerances
-    (measured 3.12 / 2.56 / 2.19 mm against 4.30 / 3.74 / 3.15). The issue's 3.1 mm is the
-    peer's one-marker figure: on its protocol, the test below; over the four markers
-    2021-11-26 is 0.02 mm above it (README, Real data)."""
+    plausible, holding over held-out regions of the postures), the documented arm_6 play
+    among them; every held-out session is predicted better than by the full geometric model
+    without tolerances (measured 3.69 / 3.14 / 2.68 mm against 4.20 / 3.62 / 3.03). With the
+    former 5 % step on the error predicted at the measured postures auto also added the
+    arm_3 play (3.12 / 2.56 / 2.19 mm); it now fails the held-out region test (where
+    measured 3.81 -> 4.24 mm), so the bound is 0.9, not 0.8, of the full model's. The
+    issue's 3.1 mm is the peer's one-marker figure: on its protocol, the test below (with
+    the arm_3 play the four markers' 2021-11-26 was 0.02 mm above it)."""
     docs = _calibrated_and_validated(tmp_path, MAPPING, (('full', CELL, 'geometric'),
                                                          ('auto', TOLERANCES, 'auto')))
     cal = yaml.safe_load((tmp_path / 'auto' / 'calibration.yaml').read_text())
@@ -164,7 +167,7 @@ def test_auto_with_tolerances_on_the_smallest_session_predicts_new_days_better(t
     assert 'joint_play:arm_6_joint' in cal['effects']
     assert 0.01 < -values['joint_play.arm_6_joint.b'] < 0.05
     for session in HELD_OUT:
-        assert docs['auto', session]['rms_m'] < 0.8 * docs['full', session]['rms_m'], session
+        assert docs['auto', session]['rms_m'] < 0.9 * docs['full', session]['rms_m'], session
 
 
 def _one_marker(path, out):

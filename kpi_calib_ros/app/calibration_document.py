@@ -13,7 +13,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from kpi_calib_ros.core.acquisition.pairing import PairingResult
-from kpi_calib_ros.core.diagnosis.model_selection import ModelChoice
+from kpi_calib_ros.core.diagnosis.model_selection import ModelChoice, NominalComparison
 from kpi_calib_ros.core.effects.gravity_compliance import compliance_warnings, mass_warning
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation.estimability import KpiEstimability
@@ -54,6 +54,9 @@ class CellCalibration:
     # Identified quantities the plausibility gate refuses (core.estimation.plausibility):
     # each names the quantity, why, and the fix.
     implausible: tuple[str, ...] = ()
+    # Cross-validated rms against the nominal robot with the placement registered
+    # (core.diagnosis.model_selection.against_nominal); None: the calibration is that fit.
+    nominal: NominalComparison | None = None
 
     @property
     def problems(self) -> tuple[str, ...]:
@@ -63,6 +66,8 @@ class CellCalibration:
         if not self.estimability.all_estimable:
             out.append(self.estimability.summary())
         out += [f'not plausible: {text}' for text in self.implausible]
+        if self.nominal is not None and not self.nominal.better:
+            out.append('worse than no calibration: ' + self.nominal.text())
         return tuple(out)
 
     @property
@@ -129,6 +134,8 @@ def add_robust_sections(doc: dict[str, Any], cal: CellCalibration) -> dict[str, 
     doc['valid'] = cal.valid
     doc['invalid_reasons'] = list(cal.problems)
     doc['model'] = {**cal.choice.to_dict(), 'free_parameters': len(cal.free)}
+    if cal.nominal is not None:
+        doc['against_nominal'] = cal.nominal.to_dict()
     doc['robust'] = {
         'sigma_stated_m': rob.sigma_stated, 'sigma_robust_m': rob.sigma_robust,
         'sigma_ratio': rob.sigma_ratio, 'loss': rob.loss,
@@ -194,6 +201,12 @@ def robust_summary(doc: dict[str, Any]) -> str:
         lines.append(f"cross-validated rms per level ({model['folds']}-fold, folds that keep "
                      'every parameter determined): '
                      + per_level(model['cv_rms_m'], 'not estimable from this design'))
+    if model.get('other_region_rms_m'):
+        lines.append(f"cross-validated rms per level over held-out regions of joint space "
+                     f"({model['region_blocks']} regions): "
+                     + per_level(model['other_region_rms_m'], 'not estimable from this design'))
+    if doc.get('against_nominal'):
+        lines.append(doc['against_nominal']['text'])
     lines.append(f"noise σ: stated {rob['sigma_stated_m'] * 1e6:.3g} µm, robust estimate from "
                  f"the residuals {rob['sigma_robust_m'] * 1e6:.3g} µm "
                  f"(ratio {rob['sigma_ratio']:.3g}); loss {rob['loss']}")

@@ -106,7 +106,8 @@ def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
             best, [after.value(n) for n in best.parameter_names], tau)):
         richer_free = [n for n in (richer_free or richer.model.params.names) if n not in shape]
         after = identify_cell(richer, data, p0=p0, free=richer_free)
-    comparison = compare_models((cm.model, result), (richer.model, after), data, folds=folds)
+    comparison = compare_models((cm.model, result), (richer.model, after), data, folds=folds,
+                                prior=prior, balanced=prior is not None)
     after_oos = out_of_sample_error(richer.model, data, after,
                                     richer_free or list(richer.model.params.names), prior)
     return with_misfit_answer(CellDiagnosis(
@@ -164,9 +165,13 @@ def named_remedy(diag: Diagnosis, comparison: ModelComparison | None = None
                  ) -> Remedy | None:
     """The screen's significant named effect as a remedy: its option and the held-out
     error before/after (of the full refit when ``comparison`` has it, else of the screen's
-    fit); None when no effect is significant."""
+    fit); None when no effect is significant, or when the refit does not predict held-out
+    regions of joint space better (``comparison.holds_elsewhere``)."""
     best = diag.best
     if best is None:
+        return None
+    if comparison is not None and not comparison.holds_elsewhere:
+        # Lower where measured but not where the robot works next: not a remedy.
         return None
     if comparison is not None:
         return Remedy(NAMED, f'{best.spec}: {best.explanation}', f'--effects {best.spec}',

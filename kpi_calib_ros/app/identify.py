@@ -25,7 +25,13 @@ from kpi_calib_ros.app.finish import finish_calibration
 from kpi_calib_ros.app.measurements import load_measurements
 from kpi_calib_ros.core.diagnosis.candidates import augmented_model, compare_models
 from kpi_calib_ros.core.diagnosis.effect_selection import choose_effects
-from kpi_calib_ros.core.diagnosis.model_selection import ModelChoice, choose_model, level_free
+from kpi_calib_ros.core.diagnosis.model_selection import (
+    ModelChoice,
+    NominalComparison,
+    against_nominal,
+    choose_model,
+    level_free,
+)
 from kpi_calib_ros.core.effects.registry import BoundEffect, parse_effect_spec
 from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.estimation.estimability import result_estimability
@@ -33,7 +39,9 @@ from kpi_calib_ros.core.estimation.least_squares import CalibrationResult, ident
 from kpi_calib_ros.core.estimation.precision import (
     balanced_prior,
     expected_tcp_error,
+    fit_prior,
     honest_precision,
+    tightened,
 )
 from kpi_calib_ros.core.estimation.prior import Prior, tolerance_prior
 from kpi_calib_ros.core.estimation.registration import Registration, register
@@ -213,14 +221,18 @@ def _fit_function(cm: CellModel, start: np.ndarray | None = None,
 
 def choose_level(cm: CellModel, data: Measurements, model: str | None = None,
                  start: np.ndarray | None = None, prior: Prior | None = None,
-                 fit: Callable[..., CalibrationResult] | None = None) -> ModelChoice:
+                 fit: Callable[..., CalibrationResult] | None = None,
+                 balanced: bool = False) -> ModelChoice:
     """The model level to identify: ``model`` or the cell's ``identification.model``;
-    ``auto`` is decided by the predicted out-of-sample error on ``data`` (fits from
-    ``start``, or by ``fit``; :func:`kpi_calib_ros.core.diagnosis.model_selection.choose_model`)."""
+    ``auto`` is decided by the cross-validated error over held-out regions of joint space
+    on ``data`` (fits from ``start``, or by ``fit``, with ``prior``, ``balanced`` when
+    ``fit`` balances it against the noise;
+    :func:`kpi_calib_ros.core.diagnosis.model_selection.choose_model`)."""
     requested = model or cm.cell.identification.model
     if requested == 'auto':
         return choose_model(cm.model, data, fit or _fit_function(cm, start, prior), 'auto',
-                            len(cm.geometric), cm.cell.identification.cv_folds, prior=prior)
+                            len(cm.geometric), cm.cell.identification.cv_folds, prior=prior,
+                            balanced=balanced)
     return ModelChoice(requested, requested, {}, {}, 0, f'{requested} as configured '
                        '(identification.model / --model; auto compares the levels)')
 
@@ -253,7 +265,7 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
     scales = [1.0]
     balance = tolerance is not None
     fit = _fit_function(cm, start, prior, balance=balance, scales=scales)
-    choice = choose_level(cm, screened, model, start, prior, fit)
+    choice = choose_level(cm, screened, model, start, prior, fit, balance)
     chosen = choice.requested == 'auto' and allowed is None
     if chosen:
         cm, start, choice = add_chosen_effects(cm, screened, choice, start, prior, balance)
@@ -315,6 +327,10 @@ def _final_fit(cm: CellModel, data: Measurements, choice: ModelChoice, start: np
             f'{choice.reason}; the final fit did not converge with '
             f'{", ".join(shapes)} free: held at the selected values'))
     kept = subset(data, robust.kept)
+    # The prior the final fit used: the tolerances as its last balance tightened them.
+    used_prior = tightened(prior, scales[-1]) if balance and prior is not None else prior
+    nominal = nominal_comparison(cm, kept, robust.result, free, start, prior, balance,
+                                 used_prior)
     est = result_estimability(cm.model, kept.q, cm.cell.sigma, robust.result.values,
                               cm.q_work, cm.working_pose_names, free, prior=prior,
                               reflector=kept.reflector, rotation=kept.rotation)
@@ -324,7 +340,40 @@ def _final_fit(cm: CellModel, data: Measurements, choice: ModelChoice, start: np
                                     kept.reflector, free)
     return CellCalibration(result, robust, choice, est, tuple(free),
                            registration, scales[-1], cm,
-                           expected_tcp_error(cm.model, kept, result), implausible)
+                           expected_tcp_error(cm.model, kept, result, prior=used_prior),
+                           implausible=implausible, nominal=nominal)
+
+
+def nominal_comparison(cm: CellModel, data: Measurements, result: CalibrationResult,
+                       free: list[str], start: np.ndarray, prior: Prior | None,
+                       balance: bool, used_prior: Prior | None) -> NominalComparison | None:
+    """The calibration ``result`` against the nominal robot with the placement registered.
+
+    The nominal fit frees only ``base.*`` and ``reflector.*`` of the geometric model, from
+    ``start``'s placement and the nominal robot, with the same prior (``balance``: balanced
+    against its noise as the calibration's is; ``used_prior`` is the prior ``result`` was
+    fitted with); both are cross-validated on the same folds
+    (:func:`kpi_calib_ros.core.diagnosis.model_selection.against_nominal`). None when the
+    calibration is that nominal fit (no other parameter free) or the nominal fit fails.
+    """
+    base = geometric_only(cm)
+    placement = level_free(base.model.params, 'registration')
+    if not cm.model.effects and set(free) <= set(placement):
+        return None
+    names = base.model.params.names
+    p0 = np.array(base.model.params.nominal, float)
+    for i, name in enumerate(names):
+        if name in placement:
+            p0[i] = start[i]
+    try:
+        nominal = _fit_function(base, p0, prior, balance=balance)(data, placement)
+    except (DataError, np.linalg.LinAlgError):
+        return None
+    if not np.all(np.isfinite(nominal.values)) or not np.all(np.isfinite(result.values)):
+        return None
+    return against_nominal(cm.model, data, result, base.model, nominal, used_prior,
+                           fit_prior(prior, nominal, balance), free=list(free),
+                           nominal_free=placement)
 
 
 def add_chosen_effects(cm: CellModel, data: Measurements, choice: ModelChoice,
@@ -343,7 +392,7 @@ def add_chosen_effects(cm: CellModel, data: Measurements, choice: ModelChoice,
                              np.concatenate([start, extra]), prior, balance=balance)
     chosen = choose_effects(cm.model, data, fit_for, choice.level, n_geo, prior,
                             tolerances=cm.cell.identification.tolerances,
-                            reference=start[:n_geo])
+                            reference=start[:n_geo], balanced=balance)
     if not chosen.effects:
         return cm, start, dataclasses.replace(
             choice, reason=f'{choice.reason}; {chosen.reason}',
@@ -393,7 +442,9 @@ def add_effect_comparison(doc: dict[str, Any], cm: CellModel, data: Measurements
     """
     base = geometric_only(cm)
     before = identify_cell(base, data)
-    cmp = compare_models((base.model, before), (cm.model, result), data, folds=folds)
+    prior = cell_prior(cm)
+    cmp = compare_models((base.model, before), (cm.model, result), data, folds=folds,
+                         prior=prior, balanced=prior is not None)
     doc['effects_comparison'] = comparison_to_dict(cmp)
     return comparison_text(cmp)
 

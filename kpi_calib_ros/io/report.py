@@ -96,7 +96,30 @@ def comparison_to_dict(cmp: ModelComparison) -> dict[str, Any]:
                            'after': [float(x) for x in a]}
                           for n, b, a in zip(cmp.working_pose_names, cmp.tcp_std_before_m,
                                              cmp.tcp_std_after_m)],
-            'warnings': list(cmp.warnings), 'std_basis': cmp.std_basis}
+            'warnings': list(cmp.warnings), 'std_basis': cmp.std_basis,
+            'other_region_rms_before_m': _finite(cmp.other_region_rms_before_m),
+            'other_region_rms_after_m': _finite(cmp.other_region_rms_after_m),
+            'region_blocks': int(cmp.region_blocks),
+            'holds_elsewhere': cmp.holds_elsewhere,
+            'recommended': cmp.holds_elsewhere}
+
+
+def _finite(value: float) -> float | None:
+    return float(value) if np.isfinite(value) else None
+
+
+def region_verdict(cmp: ModelComparison) -> str:
+    """Whether the richer model is recommended: only when it predicts held-out regions of
+    joint space better (as ``auto`` asks)."""
+    figures = (f'{_validation(cmp.other_region_rms_before_m, "", " µm")} -> '
+               f'{_validation(cmp.other_region_rms_after_m, "", " µm")} over held-out regions '
+               f'of joint space ({cmp.region_blocks} regions), '
+               f'{_validation(cmp.validation_rms_before_m, "", " µm")} -> '
+               f'{_validation(cmp.validation_rms_after_m, "", " µm")} where measured')
+    if cmp.holds_elsewhere:
+        return f'recommended: {", ".join(cmp.effects)} holds where no pose was measured ({figures})'
+    return (f'NOT recommended: {", ".join(cmp.effects)} does not predict held-out regions of '
+            f'joint space better ({figures}); keep the model without it')
 
 
 def diagnosis_to_dict(cd: CellDiagnosis) -> dict[str, Any]:
@@ -163,6 +186,10 @@ def comparison_text(cmp: ModelComparison) -> str:
              f'  rms             {cmp.rms_before_m * _UM:7.1f} -> {cmp.rms_after_m * _UM:7.1f} µm',
              f'  validation rms  {_validation(cmp.validation_rms_before_m, "7", " µm")} -> '
              f'{_validation(cmp.validation_rms_after_m, "7", " µm")} (held-out poses)',
+             f'  other regions   {_validation(cmp.other_region_rms_before_m, "7", " µm")} -> '
+             f'{_validation(cmp.other_region_rms_after_m, "7", " µm")} (held-out regions of '
+             f'joint space, {cmp.region_blocks} regions)',
+             f'  {region_verdict(cmp)}',
              f'  χ² p-value      {cmp.p_value_before:9.3g} -> {cmp.p_value_after:9.3g}']
     if cmp.std_basis and cmp.effect_parameters:
         lines.append(f'  std {cmp.std_basis}')
@@ -185,14 +212,20 @@ def periodogram_dict(gram: Periodogram) -> dict[str, Any]:
     return {'joint': gram.joint,
             'cycles_searched': [int(gram.cycles[0]), int(gram.cycles[-1])],
             'peak_cycles_per_revolution': int(gram.peak),
-            'peak_delta_chi2': float(np.max(gram.power)), 'p_value': finite(gram.p_value)}
+            'peak_delta_chi2': float(np.max(gram.power)), 'p_value': finite(gram.p_value),
+            'resolution_cycles_per_revolution': finite(gram.resolution),
+            'refused_as_aliased': [int(k) for k in gram.refused],
+            'periodic_errors_in_model': [int(k) for k in gram.near]}
 
 
 def periodic_search_line(grams: tuple[Periodogram, ...]) -> str:
     """One line: the peak of each joint's periodogram and its p-value."""
     return ('periodic joint errors, peak of each periodogram (cycles/rev, p × frequencies '
-            'searched): ' + ', '.join(f'{g.joint} {g.peak} (p = {g.p_value:.2g})'
-                                      for g in grams))
+            'searched; resolution 2π/Δq): '
+            + ', '.join(f'{g.joint} {g.peak} (p = {g.p_value:.2g}; ±{g.resolution:.3g}'
+                        + (f'; {len(g.refused)} frequencies within it of k = '
+                           f'{", ".join(map(str, g.near))} refused as aliased' if g.refused
+                           else '') + ')' for g in grams))
 
 
 def diagnosis_text(cd: CellDiagnosis, top: int = 5) -> str:
@@ -595,9 +628,14 @@ def write_report(out_dir: str | Path, cd: CellDiagnosis) -> Path:
                   'cycles per revolution (geometry refitted at each frequency); the peak is '
                   'screened as `periodic_joint_error:<joint>:k=<peak>`, its p-value multiplied '
                   'by the number of frequencies searched.', '',
-                  '| joint | cycles/rev searched | peak | Δχ² at the peak | p |',
-                  '|---|---|---|---|---|']
-        lines += [f'| {g.joint} | {g.cycles[0]}–{g.cycles[-1]} | {g.peak} | '
+                  'Frequencies within the resolution 2π/Δq (Δq the joint\'s measured range) of a '
+                  'periodic error the model has on the joint are refused: over that range they '
+                  'are its peak aliased.', '',
+                  '| joint | cycles/rev searched | resolution 2π/Δq | refused as aliased | peak '
+                  '| Δχ² at the peak | p |',
+                  '|---|---|---|---|---|---|---|']
+        lines += [f'| {g.joint} | {g.cycles[0]}–{g.cycles[-1]} | {g.resolution:.3g} | '
+                  f'{", ".join(map(str, g.refused)) or "none"} | {g.peak} | '
                   f'{np.max(g.power):.1f} | {g.p_value:.2g} |' for g in diag.periodograms]
     lines += ['', '## Not distinguishable with this data', '']
     lines += [f'- **{c.spec}**: {c.explanation}' for c in diag.not_distinguishable] or ['- none']
@@ -608,12 +646,15 @@ def write_report(out_dir: str | Path, cd: CellDiagnosis) -> Path:
                   f'| rms (µm) | {cmp.rms_before_m * _UM:.1f} | {cmp.rms_after_m * _UM:.1f} |',
                   f'| validation rms (µm) | {_validation(cmp.validation_rms_before_m)} | '
                   f'{_validation(cmp.validation_rms_after_m)} |',
+                  f'| validation rms, held-out regions of joint space (µm) | '
+                  f'{_validation(cmp.other_region_rms_before_m)} | '
+                  f'{_validation(cmp.other_region_rms_after_m)} |',
                   f'| χ² p-value | {cmp.p_value_before:.3g} | {cmp.p_value_after:.3g} |']
         for name, b, a in zip(cmp.working_pose_names, cmp.tcp_std_before_m,
                               cmp.tcp_std_after_m):
             lines.append(f'| TCP {name} std (µm) | {", ".join(f"{x * _UM:.1f}" for x in b)} | '
                          f'{", ".join(f"{x * _UM:.1f}" for x in a)} |')
-        lines += ['', 'Effect parameters:', '']
+        lines += ['', region_verdict(cmp) + '.', '', 'Effect parameters:', '']
         lines += [f"- {p['name']} = {p['value']:.4g} ± {p['std']:.2g} {p['unit']}"
                   if 'std' in p else f"- {p['name']}: not estimated ({p['dropped']})"
                   for p in cmp.effect_parameters]

@@ -30,7 +30,7 @@ import numpy as np
 import scipy.stats
 
 from kpi_calib_ros.core.diagnosis.misfit import MisfitAnswer
-from kpi_calib_ros.core.diagnosis.model_selection import PARSIMONY
+from kpi_calib_ros.core.diagnosis.model_selection import PARSIMONY, region_test
 from kpi_calib_ros.core.diagnosis.out_of_sample import OutOfSample
 from kpi_calib_ros.core.diagnosis.periodic_search import (
     Periodogram,
@@ -38,7 +38,7 @@ from kpi_calib_ros.core.diagnosis.periodic_search import (
     periodograms,
 )
 from kpi_calib_ros.core.diagnosis.residual_analysis import ResidualAnalysis
-from kpi_calib_ros.core.effects.general import general_candidates
+from kpi_calib_ros.core.effects.general import aliased_frequency, general_candidates
 from kpi_calib_ros.core.effects.library import BACKLASH_TORQUE_SCALE
 from kpi_calib_ros.core.effects.registry import (
     BoundEffect,
@@ -53,8 +53,10 @@ from kpi_calib_ros.core.estimation.precision import (
     JOINT_NOISE_CAUSE,
     ExpectedTcpError,
     chi2_scale,
+    fit_prior,
     precision_statement,
 )
+from kpi_calib_ros.core.estimation.prior import Prior
 from kpi_calib_ros.core.estimation.residuals import (
     ADEQUACY_ALPHA,
     LinearizedFit,
@@ -63,7 +65,9 @@ from kpi_calib_ros.core.estimation.residuals import (
     linear_validation_rms,
     linearized_fit,
     orthonormal_basis,
+    region_validation,
     residual_report,
+    validation_folds,
     validation_rms,
 )
 from kpi_calib_ros.core.measurement.tracker import (
@@ -214,6 +218,23 @@ class ModelComparison:
     warnings: tuple[str, ...] = field(default=())
     # How the after-fit's std were obtained (core.estimation.precision.precision_statement).
     std_basis: str = ''
+    # Cross-validated rms over held-out regions of joint space (whole k-means blocks of
+    # poses, core.estimation.residuals.region_validation) before/after, on the same folds; NaN where
+    # not estimable. ``validation_rms_*`` are the figures where the poses were measured.
+    other_region_rms_before_m: float = float('nan')
+    other_region_rms_after_m: float = float('nan')
+    region_blocks: int = 0
+
+    @property
+    def holds_elsewhere(self) -> bool:
+        """Return whether the richer model holds over held-out regions of joint space.
+
+        The test ``auto`` applies
+        (:func:`~kpi_calib_ros.core.diagnosis.model_selection.holds_elsewhere`); only then is
+        it recommended.
+        """
+        return region_test(self.other_region_rms_after_m, self.other_region_rms_before_m,
+                           self.validation_rms_after_m, self.validation_rms_before_m)
 
 
 # ---------------------------------------------------------------- screening
@@ -481,6 +502,11 @@ def default_candidates(model: MeasurementModel, data: Measurements, result: Cali
     have = {e.name for e in model.effects}
     library = candidate_effects(model.robot, exclude=have, covariates=data.covariates or (),
                                 temperatures=model.joint_temperatures)
+    q = np.atleast_2d(data.q)
+    # A second frequency within the resolution of one the model has on a joint is that
+    # one aliased (core.effects.general.aliased_frequency): never a candidate.
+    library = [e for e in library if e.joint_index is None
+               or not aliased_frequency(e, model.effects, q[:, e.joint_index])]
     if not general:
         return library, ()
     grams = periodograms(model, data, result)
@@ -589,14 +615,25 @@ def _micro(rms_m: float) -> str:
 
 def compare_models(before: tuple[MeasurementModel, CalibrationResult],
                    after: tuple[MeasurementModel, CalibrationResult], data: Measurements,
-                   folds: int = 0, seed: int = 0) -> ModelComparison:
+                   folds: int = 0, seed: int = 0, prior: Prior | None = None,
+                   balanced: bool = False) -> ModelComparison:
     """Rms, validation rms, effect parameters and TCP std before/after adding effects.
 
     ``after``'s model must contain the effects (its extra parameters are the
-    effect parameters reported).
+    effect parameters reported). The validation rms are those of ``folds`` folds of poses
+    (where measured) and of folds that hold out whole regions of joint space, both models on
+    the folds of ``after`` (which keep the rank of ``before``), every fold refitted with the
+    fits' ``prior`` (``balanced``: balanced against the noise by the fits,
+    :func:`~kpi_calib_ros.core.estimation.precision.fit_prior`).
     """
     model_b, res_b = before
     model_a, res_a = after
+    prior_b, prior_a = fit_prior(prior, res_b, balanced), fit_prior(prior, res_a, balanced)
+    same = validation_folds(model_a, data, res_a, prior_a, folds, seed=seed)
+    region_b = region_validation(model_b, data, res_b, prior_b, folds, seed=seed,
+                                 pose_folds=same)
+    region_a = region_validation(model_a, data, res_a, prior_a, folds, seed=seed,
+                                 pose_folds=same)
     new = [e for e in model_a.effects if e.name not in {x.name for x in model_b.effects}]
     std = dict(zip(res_a.estimated, res_a.std))
     params = []
@@ -612,8 +649,11 @@ def compare_models(before: tuple[MeasurementModel, CalibrationResult],
     return ModelComparison(
         effects=tuple(e.name for e in new),
         rms_before_m=res_b.rms_m, rms_after_m=res_a.rms_m,
-        validation_rms_before_m=validation_rms(model_b, data, res_b, folds, seed),
-        validation_rms_after_m=validation_rms(model_a, data, res_a, folds, seed),
+        validation_rms_before_m=region_b.in_region_m,
+        validation_rms_after_m=region_a.in_region_m,
+        other_region_rms_before_m=region_b.other_region_m,
+        other_region_rms_after_m=region_a.other_region_m,
+        region_blocks=region_a.blocks,
         p_value_before=res_b.p_value, p_value_after=res_a.p_value,
         effect_parameters=tuple(params),
         tcp_std_before_m=_tcp_std(res_b),

@@ -18,12 +18,19 @@ Each round:
 2. the best :data:`TRIALS` of them (by their cross-validated rms) are fitted with the full
    nonlinear identification at the chosen level; a fit that does not converge, leaves an
    effect parameter unidentified or fits an implausible value is refused;
-3. the trial with the lowest predicted out-of-sample rms is added when it predicts new
-   measurements at least :data:`~kpi_calib_ros.core.diagnosis.model_selection.PARSIMONY` better
-   than the current model; otherwise selection stops.
+3. each trial and the current model are cross-validated on the same folds that hold out
+   whole regions of joint space (:func:`~kpi_calib_ros.core.estimation.residuals.
+   region_validation`, the fit's prior kept in every refit); a trial that predicts the
+   held-out regions better than the current model, and by
+   :data:`~kpi_calib_ros.core.diagnosis.model_selection.REGION_MARGIN` there or where
+   measured, passes
+   (:func:`~kpi_calib_ros.core.diagnosis.model_selection.holds_elsewhere`), and of those the
+   one with the lowest predicted out-of-sample rms is added; none passing, selection stops.
+   An effect that lowers the error where the poses were measured and raises it elsewhere
+   (a scale error only a grid's corner needs, an aliased second frequency) is not added.
 
 On data the geometric model explains, step 1 passes a candidate with probability at most
-``alpha`` per round, and step 3 then still asks for a 5 % better prediction.
+``alpha`` per round, and step 3 then still asks for a better prediction of other regions.
 """
 from __future__ import annotations
 
@@ -37,14 +44,24 @@ from kpi_calib_ros.core.diagnosis.candidates import (
     default_candidates,
     screen_effects,
 )
-from kpi_calib_ros.core.diagnosis.model_selection import PARSIMONY, level_free
+from kpi_calib_ros.core.diagnosis.model_selection import (
+    REGION_MARGIN,
+    holds_elsewhere,
+    level_free,
+)
 from kpi_calib_ros.core.diagnosis.out_of_sample import out_of_sample_error
 from kpi_calib_ros.core.effects.registry import BoundEffect, implausible
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.core.estimation.plausibility import Tolerances, Violation, gate
+from kpi_calib_ros.core.estimation.precision import fit_prior
 from kpi_calib_ros.core.estimation.prior import Prior
-from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA
+from kpi_calib_ros.core.estimation.residuals import (
+    ADEQUACY_ALPHA,
+    RegionValidation,
+    region_validation,
+    validation_folds,
+)
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements
 
 __all__ = [
@@ -77,6 +94,10 @@ class EffectTrial:
     # Shape parameters held at their screened value, and why the free fit was refused.
     held: tuple[str, ...] = ()
     previous: str = ''
+    # Cross-validated rms of the model before and with the trial, on the same folds
+    # (in-region and over held-out regions of joint space).
+    region_before: RegionValidation | None = None
+    region_after: RegionValidation | None = None
 
     def to_dict(self) -> dict:
         """YAML-ready form of the trial (values and std in SI units)."""
@@ -84,6 +105,10 @@ class EffectTrial:
                 'std': dict(self.std),
                 'predicted_rms_m': None if self.predicted_rms_m is None
                 else float(self.predicted_rms_m),
+                'cross_validated_before': None if self.region_before is None
+                else self.region_before.to_dict(),
+                'cross_validated_after': None if self.region_after is None
+                else self.region_after.to_dict(),
                 'added': self.added, 'reason': self.reason, 'held': list(self.held),
                 'free_fit_refused': self.previous or None}
 
@@ -103,12 +128,20 @@ class EffectChoice:
     trials: tuple[EffectTrial, ...]
     reason: str
     held: tuple[str, ...] = ()  # shape parameters held at their screened values
+    # The cross-validated rms (in-region, other regions) before the first effect and of the
+    # model chosen, each on the folds of its own comparison.
+    region_before: RegionValidation | None = None
+    region_after: RegionValidation | None = None
 
     def to_dict(self) -> dict:
         """YAML-ready form: the effects added, held, the trials and the predicted rms (m)."""
         return {'added': [e.name for e in self.effects], 'held': list(self.held),
                 'predicted_rms_before_m': self.predicted_before_m,
                 'predicted_rms_after_m': self.predicted_after_m,
+                'cross_validated_before': None if self.region_before is None
+                else self.region_before.to_dict(),
+                'cross_validated_after': None if self.region_after is None
+                else self.region_after.to_dict(),
                 'trials': [t.to_dict() for t in self.trials], 'reason': self.reason}
 
 
@@ -126,13 +159,16 @@ def choose_effects(model: MeasurementModel, data: Measurements, fit_for: FitFor,
                    alpha: float = ADEQUACY_ALPHA, seed: int = 0,
                    max_effects: int = MAX_EFFECTS, general: bool = True,
                    tolerances: Tolerances | None = None,
-                   reference: np.ndarray | None = None) -> EffectChoice:
+                   reference: np.ndarray | None = None,
+                   balanced: bool = False) -> EffectChoice:
     """Forward selection of physical effects on top of ``model`` at ``level``.
 
     See the module docstring. ``n_geometric``: the number of geometric parameters of ``model``
     (its effects' parameters follow and are free at every level). With ``general``, the
     general effects join each round's screen as they join the diagnosis's
-    (:func:`~kpi_calib_ros.core.diagnosis.candidates.default_candidates`).
+    (:func:`~kpi_calib_ros.core.diagnosis.candidates.default_candidates`). ``prior``: the
+    prior the fits use (``balanced``: balanced against the noise by them,
+    :func:`~kpi_calib_ros.core.estimation.precision.fit_prior`), kept in every fold's refit.
 
     ``tolerances`` (the cell's; default ones when None) and ``reference`` (n_geometric,) (the
     placement and geometry the identification started from; default the model's nominal):
@@ -161,6 +197,8 @@ def choose_effects(model: MeasurementModel, data: Measurements, fit_for: FitFor,
         return EffectChoice((), model, {}, None, None, (), 'no effect screened: the level leaves '
                             'no degrees of freedom to judge an effect by')
     best_rms = before = first
+    region_first: RegionValidation | None = None
+    region_now: RegionValidation | None = None
     held: list[str] = []
     added: list[BoundEffect] = []
     trials: list[EffectTrial] = []
@@ -181,45 +219,108 @@ def choose_effects(model: MeasurementModel, data: Measurements, fit_for: FitFor,
         round_trials: list[tuple[EffectTrial, MeasurementModel | None,
                                  CalibrationResult | None]] = []
         for cand in passed[:TRIALS]:
-            round_trials.append(_trial(model, data, fit_for, current, pool[cand.spec],
-                                       cand.values, level, n_geometric, held, prior, seed,
-                                       rnd, (tolerances, reference, known)))
-        usable = [t for t in round_trials if t[0].predicted_rms_m is not None]
+            round_trials.append(_judged(_trial(
+                model, data, fit_for, current, pool[cand.spec], cand.values, level,
+                n_geometric, held, prior, seed, rnd, (tolerances, reference, known)),
+                model, data, current, prior, balanced, seed))
+        usable = [t for t in round_trials if t[0].predicted_rms_m is not None
+                  and t[0].region_after is not None and t[0].region_before is not None
+                  and np.isfinite(t[0].region_after.other_region_m)
+                  and np.isfinite(t[0].region_before.other_region_m)]
         if not usable:
             trials += [t[0] for t in round_trials]
-            reason = 'no significant, plausible candidate survived its nonlinear fit'
+            reason = ('no significant, plausible candidate survived its nonlinear fit with '
+                      'an error over held-out regions of joint space')
             break
-        best = min(usable, key=lambda t: t[0].predicted_rms_m or np.inf)
-        improves = (best[0].predicted_rms_m or np.inf) < (1 - PARSIMONY) * best_rms
+        # The gate is the held-out regions; among the trials that pass it, the one the fit
+        # predicts best (a lower-variance figure: thermal_growth and thermal_link_growth of
+        # one link hold elsewhere alike, the prediction tells the link).
+        passing = [t for t in usable if t[0].region_after is not None
+                   and t[0].region_before is not None
+                   and holds_elsewhere(t[0].region_after, t[0].region_before)]
+        best = (min(passing, key=lambda t: t[0].predicted_rms_m or np.inf) if passing
+                else min(usable, key=lambda t: _ratio(t[0])))
+        after_region, before_region = best[0].region_after, best[0].region_before
+        assert after_region is not None and before_region is not None
+        improves = holds_elsewhere(after_region, before_region)
         for trial, *_ in round_trials:
             if trial is best[0] and improves:
                 trial = replace(trial, added=True, reason=(
-                    f'added: predicted out-of-sample rms {best_rms * 1e6:.1f} -> '
-                    f'{(trial.predicted_rms_m or 0) * 1e6:.1f} µm'
+                    f'added: {_region_text(trial)}'
                     + (f'; {", ".join(trial.held)} held at the best plausible point of its '
                        'grid (free fit refused: ' + trial.previous + ')' if trial.held else '')))
             elif not trial.reason:
-                trial = replace(trial, reason='predicts new measurements less well than '
-                                + (best[0].spec if trial is not best[0] else
-                                   f'{1 - PARSIMONY:.0%} of the current model'))
+                trial = replace(trial, reason=(
+                    f'predicts held-out regions less well than {best[0].spec}'
+                    if trial is not best[0] else
+                    f'not better on held-out regions of joint space (and {REGION_MARGIN:.0%} there '
+                    'or where measured): '
+                    + _region_text(trial)))
             trials.append(trial)
         if not improves:
-            reason = (f'{best[0].spec} would predict new measurements '
-                      f'{(best[0].predicted_rms_m or 0) * 1e6:.1f} µm against '
-                      f'{best_rms * 1e6:.1f} µm: not {PARSIMONY:.0%} better')
+            reason = (f'{best[0].spec} would not predict held-out regions of joint space '
+                      f'better, and {REGION_MARGIN:.0%} better there or where measured '
+                      f'({_region_text(best[0])})')
             break
+        if region_first is None:
+            region_first = before_region
+        region_now = after_region
         trial, aug_model, aug_result = best
         held += trial.held
         assert aug_model is not None and aug_result is not None
         model, current = aug_model, aug_result
         added.append(pool[best[0].spec])
         best_rms = best[0].predicted_rms_m or best_rms
-    text = (f'added {", ".join(e.name for e in added)} (predicted out-of-sample rms '
+    regions = ('' if region_first is None or region_now is None else
+               f'cross-validated rms over held-out regions of joint space '
+               f'{_um(region_first.other_region_m)} -> {_um(region_now.other_region_m)} µm, '
+               f'where measured {_um(region_first.in_region_m)} -> '
+               f'{_um(region_now.in_region_m)} µm; ')
+    text = (f'added {", ".join(e.name for e in added)} ({regions}predicted out-of-sample rms '
             f'{before * 1e6:.1f} -> {best_rms * 1e6:.1f} µm); stopped: {reason}'
             if added else f'no effect added: {reason}')
     values = {n: float(current.value(n)) for e in added for n in e.parameter_names}
     return EffectChoice(tuple(added), model, values, before, best_rms, tuple(trials), text,
-                        tuple(held))
+                        tuple(held), region_first, region_now)
+
+
+def _ratio(trial: EffectTrial) -> float:
+    """Other-region rms with the trial over that without (on the same folds)."""
+    assert trial.region_after is not None and trial.region_before is not None
+    return trial.region_after.other_region_m / trial.region_before.other_region_m
+
+
+def _um(metres: float) -> str:
+    return f'{metres * 1e6:.1f}' if np.isfinite(metres) else 'n/a'
+
+
+def _region_text(trial: EffectTrial) -> str:
+    """Say the trial's cross-validated rms before -> after, in other regions and in region."""
+    b, a = trial.region_before, trial.region_after
+    if a is None or b is None:
+        return 'no cross-validated rms'
+    return (f'cross-validated rms over held-out regions of joint space '
+            f'{_um(b.other_region_m)} -> {_um(a.other_region_m)} µm ({a.blocks} regions), '
+            f'where measured {_um(b.in_region_m)} -> {_um(a.in_region_m)} µm')
+
+
+def _judged(trial: tuple[EffectTrial, MeasurementModel | None, CalibrationResult | None],
+            model: MeasurementModel, data: Measurements, current: CalibrationResult,
+            prior: Prior | None, balanced: bool, seed: int
+            ) -> tuple[EffectTrial, MeasurementModel | None, CalibrationResult | None]:
+    """Return the trial with the region figures of the current model and its own, same folds.
+
+    The folds of the larger model (with the effect) keep the rank of the current one.
+    """
+    record, aug, res = trial
+    if aug is None or res is None or record.predicted_rms_m is None:
+        return trial
+    aug_prior = fit_prior(prior, res, balanced)
+    folds = validation_folds(aug, data, res, aug_prior, seed=seed)
+    after = region_validation(aug, data, res, aug_prior, seed=seed, pose_folds=folds)
+    before = region_validation(model, data, current, fit_prior(prior, current, balanced),
+                               seed=seed, pose_folds=folds)
+    return replace(record, region_before=before, region_after=after), aug, res
 
 
 def _violations(model: MeasurementModel, data: Measurements, result: CalibrationResult,

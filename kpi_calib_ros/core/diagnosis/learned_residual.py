@@ -29,8 +29,10 @@ region (:data:`INSIDE_DISTANCE`). The length scales are bounded by
 :data:`SPAN_FACTOR` × each joint's training span, so even a joint the misfit does not
 depend on is not trusted beyond the range it was measured over.
 
-The learned residual is chosen only when it predicts held-out poses better: grouped
-(by pose) k-fold cross-validation of the whole Gaussian process (its hyperparameters
+The learned residual is chosen only when it predicts held-out regions of joint space
+better: cross-validation over folds that hold out whole k-means blocks of poses in
+normalised joint space (:func:`~kpi_calib_ros.core.estimation.residuals.region_fold_ids`;
+a pose's rows stay together) of the whole Gaussian process (its hyperparameters
 refitted in every fold) against the physical model's residuals, with a one-sided paired
 t-test over the held-out poses (:data:`CHOICE_ALPHA`) and a least gain
 (:data:`MIN_GAIN`), so data the physical model explains add nothing.
@@ -54,7 +56,7 @@ from sklearn.exceptions import ConvergenceWarning
 from sklearn.gaussian_process import GaussianProcessRegressor
 from sklearn.gaussian_process.kernels import RBF, ConstantKernel, Kernel, WhiteKernel
 
-from kpi_calib_ros.core.estimation.residuals import fold_ids, pose_index
+from kpi_calib_ros.core.estimation.residuals import pose_index, region_fold_ids
 
 # Length scales are bounded above by this factor times each joint's training span
 # (span at least MIN_SPAN): beyond its range a joint is not trusted.
@@ -437,14 +439,17 @@ def fit_learned_residual(q: np.ndarray, residual_m: np.ndarray, sigma_m: float |
     # What the field leaves at the training rows is the noise; its shape is the noise's.
     left = y - np.asarray(full.predict(q)).reshape(-1, 3) @ colour
     model = _from_gp(full, tuple(joint_names), q, y, shape, output_shape(left))
-    _, pose = pose_index(q)
+    poses, pose = pose_index(q)
     n_poses = int(pose.max()) + 1
     if n_poses < MIN_POSES:
         return ResidualChoice(False, model, float('nan'), float('nan'), 1.0, 0,
                               f'learned residual not chosen: {n_poses} poses, fewer than the '
                               f'{MIN_POSES} a cross-validated choice needs')
     k = min(folds, n_poses)
-    fold = fold_ids(n_poses, k, seed)[pose]
+    # Each fold a region of joint space held out whole (k-means blocks): the correction is
+    # chosen only when it predicts where no pose was measured, not only between poses.
+    fold = region_fold_ids(poses, k, seed)[pose]
+    k = int(fold.max()) + 1
     predicted = np.zeros_like(y)
     for f in range(k):
         test = fold == f
@@ -465,8 +470,9 @@ def fit_learned_residual(q: np.ndarray, residual_m: np.ndarray, sigma_m: float |
     relative = 1.0 - rms_after ** 2 / rms_before ** 2 if rms_before > 0 else 0.0
     chosen = bool(p_value < alpha and relative >= MIN_GAIN)
     figures = (f'held-out rms {rms_before * 1e6:.1f} um (physical model) -> '
-               f'{rms_after * 1e6:.1f} um (with the learned residual), {k}-fold over '
-               f'{n_poses} poses, paired test p = {p_value:.2g}')
+               f'{rms_after * 1e6:.1f} um (with the learned residual), {k} regions of '
+               f'joint space held out in turn over {n_poses} poses, paired test '
+               f'p = {p_value:.2g}')
     if chosen:
         reason = f'learned residual chosen: {figures}'
     else:

@@ -10,16 +10,20 @@ level):
 * ``geometric``     -- every geometric parameter (placements too): the full model.
 
 ``auto`` fits every level once and predicts its rms error of new measurements from the
-fit itself (:mod:`kpi_calib_ros.core.diagnosis.out_of_sample`, no refits), and picks the smallest
-level whose predicted rms is within `PARSIMONY` of the best: a larger model must predict
-new measurements measurably better to be chosen. A level that leaves no degrees of freedom
-has no figure and is not chosen. K-fold refits are not used for the choice: on a
-one-joint-at-a-time campaign a fold holding out one joint's poses leaves parameters
-without excitation and judged the model 7x too pessimistically.
-:func:`cross_validated_level_rms` (full nonlinear k-fold refits) remains for comparison.
+fit itself (:mod:`kpi_calib_ros.core.diagnosis.out_of_sample`, no refits), and picks the
+smallest level whose predicted rms is within `PARSIMONY` of the best. Beside it, each
+level's cross-validated rms where measured and over folds that hold out whole regions of
+joint space (:func:`~kpi_calib_ros.core.estimation.residuals.region_validation`, k-means
+blocks in normalised joint space that keep every identified parameter determined, the
+fit's prior kept in every refit) are reported. The region figure decides the *effects*
+(:mod:`~kpi_calib_ros.core.diagnosis.effect_selection`, :func:`holds_elsewhere`), not the
+level: on the real TIAGo's 37 postures it put the registration before the geometric level,
+which predicts the held-out days far better. :func:`cross_validated_level_rms`
+(full nonlinear k-fold refits) remains for comparison.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Callable
 
@@ -28,20 +32,66 @@ import numpy as np
 from kpi_calib_ros.core.diagnosis.out_of_sample import METHOD, out_of_sample_error
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
+from kpi_calib_ros.core.estimation.precision import (
+    expected_tcp_error,
+    fit_prior,
+    honest_precision,
+)
 from kpi_calib_ros.core.estimation.prior import Prior
-from kpi_calib_ros.core.estimation.residuals import validation_rms
+from kpi_calib_ros.core.estimation.residuals import (
+    RegionValidation,
+    region_validation,
+    validation_folds,
+    validation_rms,
+)
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements
 from kpi_calib_ros.core.model.parameters import ParameterSet
 
 __all__ = [
-    'LEVELS', 'MODEL_CHOICES', 'PARSIMONY', 'DEFAULT_FOLDS', 'level_free', 'ModelChoice',
-    'cross_validated_level_rms', 'choose_model',
+    'LEVELS', 'MODEL_CHOICES', 'PARSIMONY', 'DEFAULT_FOLDS', 'REGION_MARGIN', 'level_free',
+    'ModelChoice', 'cross_validated_level_rms', 'choose_model', 'holds_elsewhere',
+    'region_test',
+    'NominalComparison', 'against_nominal',
 ]
 
 LEVELS = ('registration', 'joint_offsets', 'geometric')
 MODEL_CHOICES = ('auto',) + LEVELS
 PARSIMONY = 0.05
 DEFAULT_FOLDS = 5
+# An effect is added only when its other-region cross-validated rms is lower, and lower by
+# this fraction there or where measured (holds_elsewhere). On clean data the effect screen's
+# F-test (family-wise α) passes a candidate in up to 1.8 % of seeds (stock UR10, 9/500), and
+# such a candidate fitted to noise lowers the other-region rms too (4.5 %, UR10 seed 1019,
+# added at a 2 % margin): 5 % keeps auto's false alarms at the 1 % level
+# (bench/auto_false_alarms.py), while the hidden effects of bench/region_holdout.py lower it
+# by 50-80 %. Lower where measured by 5 % with any gain elsewhere also counts: the real
+# TIAGo's arm_6 play (37 postures) lowers the in-region rms 10 % and the other-region 2.3 %,
+# and predicts the held-out days 25 % better.
+REGION_MARGIN = 0.05
+
+
+def holds_elsewhere(new: RegionValidation, old: RegionValidation,
+                    margin: float = REGION_MARGIN) -> bool:
+    """Return whether ``new`` holds where no pose was measured and is clearly better.
+
+    Its cross-validated rms over held-out regions of joint space is lower than ``old``'s, and
+    lower by ``margin`` there or where measured: never worse elsewhere, clearly better
+    somewhere. False when an other-region figure is not estimable.
+    """
+    return region_test(new.other_region_m, old.other_region_m, new.in_region_m,
+                       old.in_region_m, margin)
+
+
+def region_test(other_after: float, other_before: float, in_after: float, in_before: float,
+                margin: float = REGION_MARGIN) -> bool:
+    """:func:`holds_elsewhere` on the four figures (m)."""
+    if not (np.isfinite(other_after) and np.isfinite(other_before)):
+        return False
+    if other_after >= other_before:
+        return False
+    inside = bool(np.isfinite(in_after) and np.isfinite(in_before)
+                  and in_after < (1 - margin) * in_before)
+    return bool(other_after < (1 - margin) * other_before or inside)
 
 
 def level_free(params: ParameterSet, level: str, n_geometric: int | None = None) -> list[str]:
@@ -93,6 +143,10 @@ class ModelChoice:
     effects: tuple[str, ...] = ()
     effect_selection: dict | None = None
     held: tuple[str, ...] = ()  # effect shape parameters held at their selected values
+    # Cross-validated rms (m) of folds that hold out whole regions of joint space, per
+    # level (None: not estimable), and the number of regions.
+    other_region_rms_m: dict[str, float | None] = dataclasses.field(default_factory=dict)
+    region_blocks: int = 0
 
     def to_dict(self) -> dict:
         """YAML-ready form: the level chosen, its reason and the rms figures (m) per level."""
@@ -100,7 +154,9 @@ class ModelChoice:
             return {k: (None if v is None else float(v)) for k, v in values.items()}
         return {'level': self.level, 'requested': self.requested, 'method': self.method,
                 'predicted_rms_m': figures(self.predicted_rms_m), 'folds': self.folds,
-                'cv_rms_m': figures(self.cv_rms_m), 'reason': self.reason,
+                'cv_rms_m': figures(self.cv_rms_m),
+                'other_region_rms_m': figures(self.other_region_rms_m),
+                'region_blocks': self.region_blocks, 'reason': self.reason,
                 'effects': list(self.effects), 'held': list(self.held),
                 'effect_selection': self.effect_selection}
 
@@ -147,20 +203,23 @@ def cross_validated_level_rms(model: MeasurementModel, data: Measurements, fit: 
 
 def choose_model(model: MeasurementModel, data: Measurements, fit: Fit, requested: str,
                  n_geometric: int | None = None, folds: int = DEFAULT_FOLDS,
-                 seed: int = 0, prior: Prior | None = None) -> ModelChoice:
-    """Every level's predicted out-of-sample rms and the level to use.
+                 seed: int = 0, prior: Prior | None = None,
+                 balanced: bool = False) -> ModelChoice:
+    """Every level's out-of-sample figures and the level to use.
 
-    Each level is fitted once on all of ``data``; its predicted rms error of new
-    measurements at the measured configurations
-    (:func:`kpi_calib_ros.core.diagnosis.out_of_sample.out_of_sample_error`, domain
-    ``like_measured``: σ̂² (3 + tr(J C Jᵀ)/σ²) with σ̂² from χ²/dof, an FPE-like criterion
-    that charges a larger model its extra parameters and a smaller one its misfit) decides.
-    ``requested`` is a level (used as given; the figures are still reported) or
-    ``'auto'`` (the smallest level within `PARSIMONY` of the best). Beside it, the
+    Each level is fitted once on all of ``data``. ``requested`` is a level (used as given;
+    the figures are still reported) or ``'auto'``: from the smallest level, a larger one is
+    taken when its cross-validated rms over held-out regions of joint space is lower by
+    :data:`REGION_MARGIN` (:func:`holds_elsewhere`; every level on the regions of the
+    largest fitted level, which keep the rank of the smaller ones). Where no level has that
+    figure, the predicted rms error of new measurements at the measured configurations
+    (:func:`kpi_calib_ros.core.diagnosis.out_of_sample.out_of_sample_error`, ``like_measured``)
+    decides: the smallest level within `PARSIMONY` of the best. Beside them, the
     cross-validated rms over ``folds`` folds of poses
-    (:func:`kpi_calib_ros.core.estimation.residuals.validation_rms`, folds that keep every
-    identified parameter determined, else None: not estimable from this design) is
-    reported, not used.
+    (:func:`kpi_calib_ros.core.estimation.residuals.validation_rms`) is reported. ``prior``:
+    the prior ``fit`` uses (``balanced``: a tolerance prior ``fit`` balances against the
+    noise, :func:`~kpi_calib_ros.core.estimation.precision.fit_prior`); every fold's refit
+    keeps it.
 
     Raises
     ------
@@ -171,10 +230,12 @@ def choose_model(model: MeasurementModel, data: Measurements, fit: Fit, requeste
         raise ValueError(f'model must be one of {MODEL_CHOICES}, got {requested!r}')
     predicted: dict[str, float | None] = {}
     cv: dict[str, float | None] = {}
+    region: dict[str, RegionValidation] = {}
     n_poses = len(np.unique(np.atleast_2d(data.q), axis=0))
     used = min(folds, n_poses)
     unconverged: dict[str, str] = {}  # level: why its fit stopped
-    for level in LEVELS:
+    same_folds = None
+    for level in reversed(LEVELS):  # the largest first: its region folds serve every level
         free = level_free(model.params, level, n_geometric)
         predicted[level] = cv[level] = None
         try:
@@ -185,15 +246,26 @@ def choose_model(model: MeasurementModel, data: Measurements, fit: Fit, requeste
             continue
         if not result.converged:
             unconverged[level] = result.message
+        used_prior = fit_prior(prior, result, balanced)
         oos = out_of_sample_error(model, data, result, free, prior, seed,
                                   domains=('like_measured',)).domains['like_measured']
         predicted[level] = oos.rms_m if oos.estimable else None
         if used >= 2:
-            value = validation_rms(model, data, result, used, seed)
+            value = validation_rms(model, data, result, used, seed, used_prior)
             cv[level] = value if np.isfinite(value) else None
+        if same_folds is None or same_folds[1] is None:
+            same_folds = validation_folds(model, data, result, used_prior, seed=seed)
+        region[level] = region_validation(model, data, result, used_prior, seed=seed,
+                                          pose_folds=same_folds)
+    predicted = {k: predicted[k] for k in LEVELS}
+    cv = {k: cv[k] for k in LEVELS}
+    other = {k: (float(region[k].other_region_m) if k in region
+                 and np.isfinite(region[k].other_region_m) else None) for k in LEVELS}
+    blocks = max((v.blocks for v in region.values()), default=0)
     if requested != 'auto':
         return ModelChoice(requested, requested, predicted, cv, used,
-                           f'{requested} as configured', METHOD)
+                           f'{requested} as configured', METHOD,
+                           other_region_rms_m=other, region_blocks=blocks)
     # A level whose fit did not converge is judged by its last iterate, not its minimum:
     # it is neither chosen nor the best the others are measured against.
     finite = {k: v for k, v in predicted.items() if v is not None and k not in unconverged}
@@ -203,20 +275,27 @@ def choose_model(model: MeasurementModel, data: Measurements, fit: Fit, requeste
     if not finite:
         raise DataError(f'{len(data)} measurements are too few to fit even the registration '
                         'model with degrees of freedom left; measure more poses')
+    # The level by the error predicted from the fit (the smallest within PARSIMONY of the
+    # best); not by the region-blocked figure, which misjudged the real TIAGo: on its 37
+    # postures it put registration (4.9 mm) before the geometric level (6.2 mm), while the
+    # geometric level with the plays auto adds predicts the held-out days 3.1 / 2.6 / 2.2 mm
+    # and the registered nominal robot 5.9 mm on the first. The region figures are reported.
     best = min(finite.values())
     level = next(k for k in LEVELS if k in finite and finite[k] <= (1 + PARSIMONY) * best)
+    pfig = ', '.join(f'{k} {"n/a" if v is None else f"{v * 1e6:.1f} µm"}'
+                     for k, v in predicted.items())
     figures = ', '.join(f'{k} {"n/a" if v is None else f"{v * 1e6:.1f} µm"}'
-                        for k, v in predicted.items())
-    larger = [k for k in LEVELS[LEVELS.index(level) + 1:]]
+                        for k, v in other.items())
     why = (f'smallest level within {PARSIMONY:.0%} of the best predicted out-of-sample rms '
-           f'at the measured configurations ({figures})')
-    if larger:
-        unfit = [k for k in larger if predicted[k] is None]
-        worse = [k for k in larger if predicted[k] is not None and k in finite]
-        if unfit:
-            why += f'; {", ".join(unfit)} leaves no degrees of freedom (too few poses)'
-        if worse:
-            why += f'; {", ".join(worse)} predicts new measurements no better'
+           f'at the measured configurations ({pfig}); cross-validated rms over held-out '
+           f'regions of joint space ({blocks} regions): {figures}')
+    worse = [k for k in LEVELS[LEVELS.index(level) + 1:] if k in finite]
+    if worse:
+        why += f'; {", ".join(worse)} predicts new measurements no better'
+    larger = [k for k in LEVELS[LEVELS.index(level) + 1:]]
+    unfit = [k for k in larger if predicted[k] is None]
+    if unfit:
+        why += f'; {", ".join(unfit)} leaves no degrees of freedom (too few poses)'
     if compared_unconverged and unconverged:
         why = ('WARNING: no level\'s fit converged; compared by their last iterates, not '
                'their minima (raise identification.max_iterations / --max-iterations): '
@@ -224,4 +303,138 @@ def choose_model(model: MeasurementModel, data: Measurements, fit: Fit, requeste
     else:
         for k, message in unconverged.items():
             why += f'; {k} not compared: its fit did not converge ({message})'
-    return ModelChoice(level, 'auto', predicted, cv, used, why, METHOD)
+    return ModelChoice(level, 'auto', predicted, cv, used, why, METHOD,
+                       other_region_rms_m=other, region_blocks=blocks)
+
+
+
+@dataclass(frozen=True)
+class NominalComparison:
+    """A calibration's cross-validated rms against the nominal model, placement registered.
+
+    The nominal model: base in the tracker and reflector offsets fitted, the robot nominal;
+    both on the same folds, where measured (``in_region``) and over held-out regions of
+    joint space.
+
+    ``better``: False (worse than no calibration) when the cross-validated figures (where
+    measured, over held-out regions, the expected TCP error over the working poses) do not
+    all favour the calibration *and* the error predicted from the fit itself at the
+    measured configurations (:mod:`~kpi_calib_ros.core.diagnosis.out_of_sample`, no refits)
+    does not either. Both are asked because each errs alone on real data: with 37 TIAGo
+    postures of 4 markers and millimetre play, the leave-one-out refits of the geometric
+    model (4.9 mm) are above the nominal robot's (4.5 mm), yet it predicts the other day
+    with 4.2 mm against the nominal's 5.9 mm, as its predicted error (2.4 against 4.1 mm)
+    says; the prediction from the fit is itself low where the model misfits.
+    """
+
+    calibrated: RegionValidation
+    nominal: RegionValidation
+    # rms over the working poses of the expected TCP error (parameter part and misfit,
+    # core.estimation.precision.expected_tcp_error) of each, m; NaN: no working pose or no figure.
+    calibrated_working_m: float = float('nan')
+    nominal_working_m: float = float('nan')
+    # Predicted rms of new measurements at the measured configurations, from each fit
+    # (core.diagnosis.out_of_sample, like_measured), m; NaN: not estimable.
+    calibrated_predicted_m: float = float('nan')
+    nominal_predicted_m: float = float('nan')
+
+    @property
+    def compared(self) -> tuple[str, ...]:
+        """The figures both models have: 'in_region', 'other_region'."""
+        out = []
+        for key in ('in_region', 'other_region', 'working'):
+            a, b = self._figures(key)
+            if np.isfinite(a) and np.isfinite(b):
+                out.append(key)
+        return tuple(out)
+
+    def _figures(self, key: str) -> tuple[float, float]:
+        if key == 'working':
+            return self.calibrated_working_m, self.nominal_working_m
+        return getattr(self.calibrated, f'{key}_m'), getattr(self.nominal, f'{key}_m')
+
+    @property
+    def better(self) -> bool:
+        """False when the cross-validated and the predicted figures both favour the nominal."""
+        cv_better = all(self._figures(k)[0] < self._figures(k)[1] for k in self.compared)
+        a, b = self.calibrated_predicted_m, self.nominal_predicted_m
+        predicted_better = bool(np.isfinite(a) and np.isfinite(b) and a < b)
+        return cv_better or predicted_better
+
+    def text(self) -> str:
+        """One line: both figures of both models."""
+        def um(v: float) -> str:
+            return f'{v * 1e6:.1f} µm' if np.isfinite(v) else 'not estimable'
+        c, n = self.calibrated, self.nominal
+        split = self.better and not all(self._figures(k)[0] < self._figures(k)[1]
+                                        for k in self.compared)
+        verdict = ('is not refused against' if split else
+                   'predicts held-out poses better than' if self.better else
+                   'does NOT predict held-out poses better than')
+        return (f'the calibration {verdict} the nominal robot with the placement registered: '
+                f'cross-validated rms where measured {um(c.in_region_m)} (nominal '
+                f'{um(n.in_region_m)}), over held-out regions of joint space '
+                f'{um(c.other_region_m)} (nominal {um(n.other_region_m)}; {c.blocks or n.blocks} '
+                f'regions, same folds), expected TCP error over the working poses '
+                f'{um(self.calibrated_working_m)} (nominal {um(self.nominal_working_m)}); '
+                f'predicted from the fit at the measured configurations '
+                f'{um(self.calibrated_predicted_m)} (nominal {um(self.nominal_predicted_m)})'
+                + ('; the cross-validated figures favour the nominal robot, the prediction from '
+                   'the fit the calibration' if split else ''))
+
+    def to_dict(self) -> dict:
+        """YAML-ready figures (m)."""
+        def m(v: float) -> float | None:
+            return float(v) if np.isfinite(v) else None
+        return {'better': self.better, 'compared': list(self.compared),
+                'calibrated': {**self.calibrated.to_dict(),
+                               'working_poses_expected_rms_m': m(self.calibrated_working_m),
+                               'predicted_rms_m': m(self.calibrated_predicted_m)},
+                'nominal': {**self.nominal.to_dict(),
+                            'working_poses_expected_rms_m': m(self.nominal_working_m),
+                            'predicted_rms_m': m(self.nominal_predicted_m)},
+                'text': self.text()}
+
+
+def against_nominal(model: MeasurementModel, data: Measurements, result: CalibrationResult,
+                    nominal_model: MeasurementModel, nominal: CalibrationResult,
+                    prior: Prior | None = None, nominal_prior: Prior | None = None,
+                    seed: int = 0, free: list[str] | None = None,
+                    nominal_free: list[str] | None = None) -> NominalComparison:
+    """Compare the calibration ``result`` with the ``nominal`` fit (the placement only).
+
+    Both are cross-validated (linear refits, each fit's prior kept) on the folds of the
+    calibration, which keep the rank of the placement it contains; where those folds do not
+    keep the nominal fit's rank, on its own. ``free``, ``nominal_free``: the free parameters
+    of each fit (default: its estimated ones), for the error predicted from the fit.
+    """
+    folds = validation_folds(model, data, result, prior, seed=seed)
+    cal = region_validation(model, data, result, prior, seed=seed, pose_folds=folds)
+    nom = region_validation(nominal_model, data, nominal, nominal_prior, seed=seed,
+                            pose_folds=folds)
+    if not (np.isfinite(nom.in_region_m) and np.isfinite(nom.other_region_m)):
+        nom = region_validation(nominal_model, data, nominal, nominal_prior, seed=seed)
+    return NominalComparison(
+        cal, nom, _working(model, data, result, prior),
+        _working(nominal_model, data, nominal, nominal_prior),
+        _predicted(model, data, result, free or list(result.estimated), prior, seed),
+        _predicted(nominal_model, data, nominal, nominal_free or list(nominal.estimated),
+                   nominal_prior, seed))
+
+
+def _predicted(model: MeasurementModel, data: Measurements, result: CalibrationResult,
+               free: list[str], prior: Prior | None, seed: int) -> float:
+    """Predicted rms (m) of new measurements at the measured configurations, NaN if none."""
+    if result.dof <= 0:
+        return float('nan')
+    oos = out_of_sample_error(model, data, result, free, prior, seed,
+                              domains=('like_measured',)).domains['like_measured']
+    return float(oos.rms_m) if oos.estimable else float('nan')
+
+
+def _working(model: MeasurementModel, data: Measurements, result: CalibrationResult,
+             prior: Prior | None) -> float:
+    """Rms over the working poses of the expected TCP error (m), NaN without one."""
+    errors = expected_tcp_error(model, data, honest_precision(result), prior=prior)
+    values = np.asarray(errors.expected_tcp_error_m, float)
+    return float(np.sqrt(np.mean(values ** 2))) if len(values) else float('nan')

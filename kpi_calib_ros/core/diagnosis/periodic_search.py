@@ -18,6 +18,11 @@ Frequencies searched: k = 2 … K_j for each revolute joint (k = 1 is ``cyclic_j
 screened by name; k = 2 is ``cyclic_joint_error_h2``), K_j the pseudo-Nyquist frequency
 of the poses along the joint, π N / Δ_j cycles per revolution (N poses over the span Δ_j
 ≤ 2π of its angles: two samples per period on average), at most :data:`MAX_SEARCHED`.
+Frequencies within the search's resolution 2π/Δq (Δq the joint's measured range,
+:func:`~kpi_calib_ros.core.effects.general.frequency_resolution`) of a periodic error the
+model already has on that joint are not searched: over the measured range they are that
+error's own peak, aliased, not a second gear stage. Each periodogram reports the resolution
+and the frequencies it refused.
 The peak of each joint becomes a candidate whose ``searched`` is the number of k tried
 there: the screen multiplies its p-value by it (Bonferroni over the search; the peak's
 p-value is the smallest of the K_j − 1 tests), and then by the number of candidates, so
@@ -32,7 +37,11 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.stats
 
-from kpi_calib_ros.core.effects.general import periodic_joint_error
+from kpi_calib_ros.core.effects.general import (
+    frequency_resolution,
+    periodic_cycles,
+    periodic_joint_error,
+)
 from kpi_calib_ros.core.effects.registry import BoundEffect, available_effects, bind_effect
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.core.estimation.residuals import LinearizedFit, linearized_fit
@@ -56,6 +65,11 @@ class Periodogram:
     power: np.ndarray
     peak: int
     p_value: float
+    # 2π/Δq (cycles per revolution) and the frequencies left out as within it of a periodic
+    # error the model has on this joint (its k's).
+    resolution: float = float('nan')
+    refused: tuple[int, ...] = ()
+    near: tuple[int, ...] = ()
 
 
 def searched_cycles(q_j: np.ndarray, max_cycles: int = MAX_SEARCHED) -> np.ndarray:
@@ -102,6 +116,13 @@ def periodograms(model: MeasurementModel, data: Measurements, result: Calibratio
         if joint.kind == 'prismatic':
             continue
         cycles = searched_cycles(q[:, j], max_cycles)
+        resolution = frequency_resolution(q[:, j])
+        have = [k0 for e in model.effects if isinstance(e, BoundEffect)
+                and e.joint == joint.name for k0 in (periodic_cycles(e),) if k0 is not None]
+        aliased = np.array([any(abs(k - k0) < resolution for k0 in have) for k in cycles],
+                           bool)
+        refused = tuple(int(k) for k in cycles[aliased])
+        cycles = cycles[~aliased]
         if not len(cycles) or dof <= 0:
             continue
         column = lever[:, :, j]
@@ -116,7 +137,8 @@ def periodograms(model: MeasurementModel, data: Measurements, result: Calibratio
         f_stat = (power[best] / 2) / max((chi2 - power[best]) / dof, 1e-300)
         p_raw = float(scipy.stats.f.sf(f_stat, 2, dof))
         out.append(Periodogram(joint.name, cycles, power, int(cycles[best]),
-                               min(1.0, p_raw * len(cycles))))
+                               min(1.0, p_raw * len(cycles)), resolution, refused,
+                               tuple(have)))
     return tuple(out)
 
 

@@ -90,6 +90,60 @@ def periodic_kind(cycles: int) -> EffectType:
         signature=f'{k}-cycle-per-revolution error of {{joint}}')
 
 
+# Periodic effects of the library and their frequency (cycles per revolution).
+NAMED_CYCLES = {'cyclic_joint_error': 1, 'cyclic_joint_error_h2': 2}
+
+
+def periodic_cycles(effect: BoundEffect) -> int | None:
+    """Return the cycles per revolution k of a periodic joint error.
+
+    ``periodic_joint_error`` or its named harmonics ``cyclic_joint_error`` k = 1,
+    ``cyclic_joint_error_h2`` k = 2; None for any other effect.
+    """
+    if isinstance(effect, PeriodicJointError):
+        return effect.cycles
+    return NAMED_CYCLES.get(effect.kind.name)
+
+
+def frequency_resolution(q_j: np.ndarray) -> float:
+    """Resolution (cycles per revolution) of a frequency search over the angles ``q_j`` (rad).
+
+    2π/Δq, Δq the measured range of the joint: over that range sin(k q) and sin(k' q) with
+    |k − k'| below it differ by less than one period, so the data see them as one peak
+    (a second frequency that close is the first one aliased, not a second gear stage).
+    Infinite when the joint does not move.
+    """
+    span = float(np.ptp(np.asarray(q_j, float))) if len(q_j) else 0.0
+    return 2.0 * np.pi / span if span > 0 else float('inf')
+
+
+def aliased_frequency(effect: BoundEffect, others: Any, q_j: np.ndarray) -> str:
+    """Why the periodic ``effect`` is refused next to the periodic ``others`` of its joint.
+
+    '' when ``effect`` is not periodic or its frequency is at least the resolution
+    (:func:`frequency_resolution`) away from every periodic effect of ``others`` on the same
+    joint.
+    """
+    k = periodic_cycles(effect)
+    if k is None:
+        return ''
+    resolution = frequency_resolution(q_j)
+    for other in others:
+        if not isinstance(other, BoundEffect):
+            continue
+        k0 = periodic_cycles(other)
+        if k0 is None or other.joint != effect.joint or other.name == effect.name:
+            continue
+        if abs(k - k0) < resolution:
+            return (f'{effect.name} is within the frequency resolution of {other.name}: '
+                    f'|{k} - {k0}| < 2π/Δq = {resolution:.3g} cycles per revolution '
+                    f'(Δq = {2 * np.pi / resolution:.3g} rad measured on {effect.joint}); '
+                    'over that range the two are one aliased peak, not two gear stages. '
+                    f'To tell them apart, measure {effect.joint} over a range of at least '
+                    f'2π/|{k} - {k0}| = {2 * np.pi / max(abs(k - k0), 1e-9):.3g} rad')
+    return ''
+
+
 def periodic_joint_error(robot: RobotModel, joint: str | None, cycles: int | str,
                          key: str = 'effects') -> PeriodicJointError:
     """Bind ``periodic_joint_error:<joint>:k=<cycles>`` to ``robot``.

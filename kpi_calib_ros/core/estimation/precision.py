@@ -35,6 +35,7 @@ from kpi_calib_ros.core.estimation.residuals import (
     is_adequate,
     linearized_fit,
     orthonormal_basis,
+    prior_system,
 )
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements, unweighted
 
@@ -204,7 +205,8 @@ def measurement_noise_ms(model: MeasurementModel, data: Measurements,
 
 
 def expected_tcp_error(model: MeasurementModel, data: Measurements, result: CalibrationResult,
-                       alpha: float = ADEQUACY_ALPHA) -> ExpectedTcpError:
+                       alpha: float = ADEQUACY_ALPHA,
+                       prior: Prior | None = None) -> ExpectedTcpError:
     """Return the expected TCP error at every working pose, the misfit included.
 
     See :class:`ExpectedTcpError`.
@@ -215,6 +217,8 @@ def expected_tcp_error(model: MeasurementModel, data: Measurements, result: Cali
         The model ``result`` was identified with and its measurements.
     result : CalibrationResult
         Its TCP covariance as reported (after :func:`honest_precision`).
+    prior : Prior, optional
+        The prior the fit used, kept in the held-out refits of the misfit's estimate.
     """
     covariance = np.asarray(result.tcp_covariance, float).reshape(-1, 3, 3)  # (0, 3, 3): no
     tcp_std = np.sqrt(np.trace(covariance, axis1=1, axis2=2))              # working pose
@@ -225,15 +229,15 @@ def expected_tcp_error(model: MeasurementModel, data: Measurements, result: Cali
     if is_adequate(result.p_value, alpha):
         return ExpectedTcpError(result.working_pose_names, tcp_std, 0.0, tcp_std,
                                 float('nan'), noise, True)
-    cv, left_out = typical_held_out_rms(model, data, result)
+    cv, left_out = typical_held_out_rms(model, data, result, prior=prior)
     misfit = float(np.sqrt(max(cv ** 2 - noise ** 2, 0.0))) if np.isfinite(cv) else np.nan
     return ExpectedTcpError(result.working_pose_names, tcp_std, misfit,
                             np.sqrt(tcp_std ** 2 + misfit ** 2), cv, noise, False, left_out)
 
 
 def typical_held_out_rms(model: MeasurementModel, data: Measurements,
-                         result: CalibrationResult,
-                         leverage_limit: float = LEVERAGE_LIMIT) -> tuple[float, tuple[int, ...]]:
+                         result: CalibrationResult, leverage_limit: float = LEVERAGE_LIMIT,
+                         prior: Prior | None = None) -> tuple[float, tuple[int, ...]]:
     """Leave-one-pose-out rms (m) over the poses like the measured ones, and those left out.
 
     As :func:`~kpi_calib_ros.core.estimation.residuals.validation_rms` (the PRESS identity:
@@ -242,15 +246,22 @@ def typical_held_out_rms(model: MeasurementModel, data: Measurements,
     some direction of the parameters: its held-out residual is amplified by up to 1/(1 − h)
     (one such pose made the held-out rms 22× the others' and the expected TCP error 13 mm
     against 0.6 mm). Returns NaN when no folds keep the parameters determined or every pose is
-    left out, and the indices of the first measurement of each pose left out.
+    left out, and the indices of the first measurement of each pose left out. ``prior``: the
+    prior the fit used, whose rows stay in every refit (never held out).
     """
     sys_ = linearized_fit(model, data, result)
     q = np.atleast_2d(data.q)
-    folds = identifiable_folds(sys_.jac, q, LEAVE_ONE_OUT, 0)
+    prior_rows, prior_r = prior_system(model, result, prior)
+    a = np.vstack([sys_.jac, prior_rows])
+    folds = identifiable_folds(a, q, LEAVE_ONE_OUT, 0)
     if folds is None:
         return float('nan'), ()
-    u = orthonormal_basis(sys_.jac)
-    r = sys_.r - u @ (u.T @ sys_.r)
+    # PRESS of the stacked system: the prior's rows are in the hat matrix, not in the folds.
+    n_data = len(sys_.r)
+    u_all = orthonormal_basis(a)
+    b = np.concatenate([sys_.r, prior_r])
+    r = (b - u_all @ (u_all.T @ b))[:n_data]
+    u = u_all[:n_data]
     rows = np.repeat(folds, 3)
     held = np.full_like(r, np.nan)
     left: list[int] = []
@@ -307,6 +318,19 @@ def balanced_prior(fit: Callable[[Prior], CalibrationResult], prior: Prior,
     return tightened(prior, scale), scale, result
 
 
+def fit_prior(prior: Prior | None, result: CalibrationResult, balanced: bool) -> Prior | None:
+    """Return the prior ``result`` was fitted with.
+
+    ``prior`` tightened by the noise scale of ``result`` when the fit balanced it
+    (:func:`balanced_prior`: at its fixed point the scale is that of the last fit), else
+    ``prior`` as given.
+    """
+    if prior is None or not balanced:
+        return prior
+    return tightened(prior, noise_scale(result))
+
+
 __all__ = ['ExpectedTcpError', 'JOINT_NOISE_CAUSE', 'LEVERAGE_LIMIT', 'balanced_prior',
-           'chi2_scale', 'expected_tcp_error', 'measurement_noise_ms', 'honest_precision',
-           'noise_scale', 'precision_statement', 'tightened', 'typical_held_out_rms']
+           'chi2_scale', 'expected_tcp_error', 'fit_prior', 'measurement_noise_ms',
+           'honest_precision', 'noise_scale', 'precision_statement', 'tightened',
+           'typical_held_out_rms']

@@ -7,7 +7,10 @@ hat matrix H = U Uᵀ (U an orthonormal basis of the Jacobian's columns) gives
 each pose's leverage and the covariance I − H_ii of its residual; cross-validation
 (leave one pose out by default, or k-fold) refits on the other poses and predicts the
 held-out ones (exact for the linear model, which a converged fit is to far below σ),
-with folds that keep every identified parameter determined.
+with folds that keep every identified parameter determined. Region-blocked folds
+(:func:`region_folds`) hold out whole clusters of poses in joint space: the error where
+no pose was measured. A fit with a prior keeps it in every fold's refit
+(:func:`prior_system`): the prior's rows are training rows of every fold.
 """
 from __future__ import annotations
 
@@ -18,6 +21,7 @@ import numpy as np
 import scipy.stats
 
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
+from kpi_calib_ros.core.estimation.prior import Prior
 from kpi_calib_ros.core.estimation.robust import (
     SIGMA_RATIO_WARNING,
     robust_sigma,
@@ -40,7 +44,8 @@ __all__ = [
     'sigma_overstated_text', 'linearized_fit', 'orthonormal_basis', 'fold_ids', 'campaign_home',
     'moved_joints', 'stratified_fold_ids', 'RANK_TOLERANCE', 'LEAVE_ONE_OUT', 'folds_keep_rank',
     'identifiable_folds', 'pose_index', 'linear_validation_rms', 'residual_report',
-    'validation_rms',
+    'validation_rms', 'REGION_BLOCKS', 'region_fold_ids', 'region_folds', 'prior_system',
+    'RegionValidation', 'region_validation', 'validation_folds',
 ]
 
 PERCENTILES = (50, 90, 95, 99)
@@ -271,11 +276,15 @@ LEAVE_ONE_OUT = 0  # ``folds`` value: every pose its own fold (exact, the defaul
 
 def _fold_blocks(a: np.ndarray, pose_folds: np.ndarray, u: np.ndarray | None = None
                  ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-    """(rows, I − H_FF) of each fold F, H = U Uᵀ the hat matrix of span(a)."""
+    """(rows, I − H_FF) of each fold F, H = U Uᵀ the hat matrix of span(a).
+
+    Rows of ``a`` after the 3N of the measurements (a prior's) are in every training set.
+    """
     u = orthonormal_basis(a) if u is None else u
-    rows = np.repeat(pose_folds, 3)
+    rows = np.concatenate([np.repeat(pose_folds, 3),
+                           np.full(a.shape[0] - 3 * len(pose_folds), -1)])
     for k in np.unique(pose_folds):
-        test = rows == k
+        test = rows == k  # never a prior row (-1)
         uf = u[test]
         yield test, np.eye(int(test.sum())) - uf @ uf.T
 
@@ -332,8 +341,13 @@ def pose_index(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def linear_validation_rms(a: np.ndarray, r: np.ndarray, w: np.ndarray,
-                          pose_folds: np.ndarray | None) -> float:
+                          pose_folds: np.ndarray | None,
+                          prior_rows: tuple[np.ndarray, np.ndarray] | None = None) -> float:
     """Cross-validated rms (m) of the linear model r ≈ a·δ, folds over poses.
+
+    ``prior_rows`` (L (m, k), its residual (m,), :func:`prior_system`): a prior the fit
+    used, kept in every fold's refit (without it a fold refits a weaker, unregularised
+    model and the figure can fall below the fit's own rms).
 
     Each fold's held-out residual is exactly that of the refit without it,
     (I − H_FF)⁻¹ e_F with e = (I − H) r the full-data residual (the PRESS identity; H
@@ -344,6 +358,10 @@ def linear_validation_rms(a: np.ndarray, r: np.ndarray, w: np.ndarray,
     """
     if pose_folds is None:
         return float('nan')
+    n_rows = len(r)
+    if prior_rows is not None and len(prior_rows[1]):
+        a = np.vstack([a, prior_rows[0]])
+        r = np.concatenate([r, prior_rows[1]])
     u = orthonormal_basis(a)
     r = r - u @ (u.T @ r)  # the full-data fit of r ≈ a·δ (r need not be converged on a)
     held = np.empty_like(r)
@@ -351,7 +369,7 @@ def linear_validation_rms(a: np.ndarray, r: np.ndarray, w: np.ndarray,
         if np.linalg.eigvalsh(m)[0] <= RANK_TOLERANCE:
             return float('nan')
         held[test] = np.linalg.solve(m, r[test])
-    metres = unweighted(held, w)
+    metres = unweighted(held[:n_rows], w)
     return float(np.sqrt(np.mean(np.sum(metres ** 2, axis=1))))
 
 
@@ -405,8 +423,8 @@ def residual_report(model: MeasurementModel, data: Measurements, result: Calibra
 
 
 def validation_rms(model: MeasurementModel, data: Measurements,
-                        result: CalibrationResult, folds: int = LEAVE_ONE_OUT,
-                        seed: int = 0) -> float:
+                   result: CalibrationResult, folds: int = LEAVE_ONE_OUT,
+                   seed: int = 0, prior: Prior | None = None) -> float:
     """Cross-validated rms (m) of the identified model over held-out poses.
 
     Each fold refits the identified parameters on the other poses (exact for the
@@ -415,11 +433,155 @@ def validation_rms(model: MeasurementModel, data: Measurements,
     differ least from the fit being judged, where k-fold refits on (k−1)/k of a small
     design would judge a weaker model. Compare with the noise floor σ√3. The folds keep
     every identified parameter determined (:func:`identifiable_folds`); NaN when no
-    such folds exist ("not estimable from this design").
+    such folds exist ("not estimable from this design"). ``prior``: the prior the fit
+    used (with a tolerance prior, the balanced one), kept in every fold's refit.
     """
     if folds != LEAVE_ONE_OUT and not 2 <= folds <= len(data):
         raise ValueError(f'folds must be 0 (leave one pose out) or in [2, {len(data)}] '
                          f'(number of poses), got {folds}')
     sys_ = linearized_fit(model, data, result)
+    rows = prior_system(model, result, prior)
+    a = np.vstack([sys_.jac, rows[0]])
     return linear_validation_rms(sys_.jac, sys_.r, sys_.w,
-                  identifiable_folds(sys_.jac, np.atleast_2d(data.q), folds, seed))
+                                 identifiable_folds(a, np.atleast_2d(data.q), folds, seed),
+                                 rows)
+
+
+def prior_system(model: MeasurementModel, result: CalibrationResult, prior: Prior | None
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Return the prior's rows in the identified parameters of ``result``: L (m, k), lm − L p̂.
+
+    Whitened as the data rows are (LᵀL = C⁻¹), so they stack below the weighted Jacobian
+    of :func:`linearized_fit`; rows on no identified parameter are left out. (0, k) and
+    (0,) without a prior.
+    """
+    k = len(result.estimated)
+    if prior is None:
+        return np.zeros((0, k)), np.zeros(0)
+    full, lm = prior.rows(model.params)
+    rows = full[:, model.params.indices(list(result.estimated))]
+    keep = np.any(rows != 0, axis=1)
+    return rows[keep], (lm - full @ np.asarray(result.values, float))[keep]
+
+
+# Region blocks of joint space a region-blocked cross-validation holds out in turn.
+REGION_BLOCKS = 5
+_KMEANS_ROUNDS = 50
+
+
+def region_fold_ids(q: np.ndarray, blocks: int = REGION_BLOCKS, seed: int = 0) -> np.ndarray:
+    """Region of each pose, (n_poses,) ints in [0, blocks): k-means in normalised joint space.
+
+    ``q`` (n_poses, n) are distinct poses (rad, m). Each joint is scaled to [0, 1] over its
+    measured range (a joint that does not move is left out), the seeded k-means++ start is
+    refined by Lloyd's iterations. A fold is then a region of joint space held out whole:
+    its prediction is the model's error where no pose was measured.
+    """
+    q = np.atleast_2d(np.asarray(q, float))
+    n = len(q)
+    if not 2 <= blocks <= n:
+        raise ValueError(f'blocks must be in [2, {n}] (number of poses), got {blocks}')
+    span = np.ptp(q, axis=0)
+    x = (q[:, span > 0] - q[:, span > 0].min(axis=0)) / span[span > 0]
+    rng = np.random.default_rng(seed)
+    centres = [x[rng.integers(n)]]
+    for _ in range(1, blocks):
+        d2 = np.min([np.sum((x - c) ** 2, axis=1) for c in centres], axis=0)
+        total = float(d2.sum())
+        centres.append(x[rng.choice(n, p=d2 / total)] if total > 0 else x[rng.integers(n)])
+    c = np.array(centres)
+    label = np.zeros(n, int)
+    for _ in range(_KMEANS_ROUNDS):
+        label = np.argmin(((x[:, None, :] - c[None]) ** 2).sum(axis=2), axis=1)
+        new = np.array([x[label == b].mean(axis=0) if np.any(label == b) else c[b]
+                        for b in range(blocks)])
+        if np.allclose(new, c):
+            break
+        c = new
+    _, label = np.unique(label, return_inverse=True)  # empty clusters dropped
+    return np.asarray(label).reshape(-1)
+
+
+def region_folds(a: np.ndarray, q: np.ndarray, blocks: int = REGION_BLOCKS, seed: int = 0
+                 ) -> tuple[np.ndarray, int] | None:
+    """Region-blocked folds over the rows of ``q`` (N, n) that keep the rank of ``a``.
+
+    ``a`` (3N (+ prior rows), k): the weighted Jacobian of the identified parameters.
+    :func:`region_fold_ids` with ``blocks`` regions first; when a region's training poses
+    leave an identified parameter undetermined (one region holds every pose that moves a
+    joint), more and smaller regions (twice as many each time). Returns the pose folds and
+    the number of regions, or None when not even one pose per region keeps the rank.
+    """
+    poses, pose = pose_index(q)
+    n = len(poses)
+    b = blocks
+    while 2 <= b < n:
+        ids = region_fold_ids(poses, b, seed)[pose]
+        if folds_keep_rank(a, ids):
+            return ids, int(ids.max()) + 1
+        b *= 2
+    return (pose, n) if n >= 2 and folds_keep_rank(a, pose) else None
+
+
+def validation_folds(model: MeasurementModel, data: Measurements, result: CalibrationResult,
+                     prior: Prior | None = None, folds: int = LEAVE_ONE_OUT,
+                     blocks: int = REGION_BLOCKS, seed: int = 0,
+                     fit: LinearizedFit | None = None
+                     ) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Return the in-region and region-blocked pose folds (N,) of ``result``.
+
+    :func:`identifiable_folds` and :func:`region_folds`, each None when no folds keep its
+    rank. Those of a model keep the rank of every model it nests: judge them on the same
+    folds.
+    """
+    sys_ = fit or linearized_fit(model, data, result)
+    a = np.vstack([sys_.jac, prior_system(model, result, prior)[0]])
+    q = np.atleast_2d(data.q)
+    found = region_folds(a, q, blocks, seed)
+    return identifiable_folds(a, q, folds, seed), None if found is None else found[0]
+
+
+@dataclass(frozen=True)
+class RegionValidation:
+    """Cross-validated rms of a calibration where it was measured and in other regions.
+
+    ``in_region_m``: folds drawn like the measured poses (``folds``, 0 leave one pose out);
+    ``other_region_m``: region-blocked folds (``blocks`` regions of joint space held out
+    whole, :func:`region_folds`); NaN when not estimable from this design. Both refit
+    with the fit's prior (m).
+    """
+
+    in_region_m: float
+    other_region_m: float
+    folds: int
+    blocks: int
+
+    def to_dict(self) -> dict:
+        """YAML-ready figures (m; None where not estimable)."""
+        def m(v: float) -> float | None:
+            return float(v) if np.isfinite(v) else None
+        return {'in_region_rms_m': m(self.in_region_m),
+                'other_region_rms_m': m(self.other_region_m),
+                'folds': self.folds, 'region_blocks': self.blocks}
+
+
+def region_validation(model: MeasurementModel, data: Measurements, result: CalibrationResult,
+                      prior: Prior | None = None, folds: int = LEAVE_ONE_OUT,
+                      blocks: int = REGION_BLOCKS, seed: int = 0,
+                      pose_folds: tuple[np.ndarray | None, np.ndarray | None] | None = None
+                      ) -> RegionValidation:
+    """In-region and other-region cross-validated rms of ``result`` (linear refits, prior kept).
+
+    ``pose_folds`` (in-region, region-blocked ids, each (N,) or None): given folds, so that
+    two models are judged on the same ones (those of the larger model keep the rank of
+    every model it nests); default: chosen here for this model.
+    """
+    sys_ = linearized_fit(model, data, result)
+    rows = prior_system(model, result, prior)
+    if pose_folds is None:
+        pose_folds = validation_folds(model, data, result, prior, folds, blocks, seed, sys_)
+    inside, region_ids = pose_folds
+    used = 0 if region_ids is None else int(region_ids.max()) + 1
+    return RegionValidation(
+        linear_validation_rms(sys_.jac, sys_.r, sys_.w, inside, rows),
+        linear_validation_rms(sys_.jac, sys_.r, sys_.w, region_ids, rows), folds, used)
