@@ -18,7 +18,13 @@ from kpi_calib_ros.core.effects.registry import (
     parse_effect_spec,
 )
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.core.estimation.plausibility import Tolerances, effect_violations, gate
+from kpi_calib_ros.core.estimation.plausibility import (
+    Tolerances,
+    effect_violations,
+    gate,
+    gauge_free_deviation,
+    structural_jacobian,
+)
 from kpi_calib_ros.core.estimation.registration import register
 from kpi_calib_ros.core.simulation import (
     equivalent_parameters,
@@ -180,6 +186,44 @@ def test_geometric_corrections_beyond_tolerance_or_undetermined_are_named(cm, tr
     (v,) = gate(cm.model, far, start, q=q)
     assert v.quantity == name and v.reason.startswith('undetermined: moved 94 ± 58 m')
     assert gate(cm.model, dataclasses.replace(result, std=std), start, q=q) == ()
+
+
+def test_a_deviation_no_pose_can_see_is_no_physical_deviation(cm, truth):
+    """A design that leaves a parameter out moves its part onto an equivalent one (the
+    stock UR10's joint-6 zero and reflector offset as a 0.14 rad tilt of joint 6's
+    placement): the robot is judged on the equivalent parameters closest to the URDF."""
+    p_true, q = truth
+    data = simulate_measurements(cm.model, p_true, q, SIGMA, np.random.default_rng(1))
+    result = identify_cell(cm, data)
+    start = np.asarray(cm.model.params.nominal, float)
+    n_geo = len(cm.geometric)
+    jac = structural_jacobian(cm.model, start)[:, :n_geo]
+    _, sv, vt = np.linalg.svd(jac, full_matrices=False)
+    null = vt[sv < 1e-9 * sv[0]]
+    assert len(null)
+    # A step along a direction no pose sees, sized so that some quantity moves 0.3 (m or
+    # rad, six times a tolerance): every point predicted alike, so nothing is implausible.
+    step = null[0] / np.abs(null[0]).max() * 0.3
+    shifted = result.values.copy()
+    shifted[:n_geo] += step
+    # To first order no pose tells the two apart: a step 1e-4 of it moves no point by
+    # more than 1e-2 of what the same step along the direction the poses see most does
+    small = result.values.copy()
+    small[:n_geo] += step * 1e-4
+    along = result.values.copy()
+    along[:n_geo] += vt[0] / np.abs(vt[0]).max() * 0.3 * 1e-4
+    base = cm.model.predict(result.values, q)
+    assert (np.abs(cm.model.predict(small, q) - base).max()
+            < 1e-2 * np.abs(cm.model.predict(along, q) - base).max())
+    assert gate(cm.model, dataclasses.replace(result, values=shifted), start, q=q) == ()
+    # The same size along a direction the poses see is refused.
+    seen = vt[0] / np.abs(vt[0]).max() * 0.3
+    moved = result.values.copy()
+    moved[:n_geo] += seen
+    assert gate(cm.model, dataclasses.replace(result, values=moved), start, q=q) != ()
+    assert np.allclose(gauge_free_deviation(cm.model, shifted, start, np.ones(n_geo), n_geo),
+                       gauge_free_deviation(cm.model, result.values, start, np.ones(n_geo),
+                                            n_geo), atol=1e-9)
 
 
 def test_every_effect_is_held_to_its_bound_which_the_cell_widens(cm):

@@ -46,7 +46,8 @@ from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.core.model.parameters import reflector_prefixes
 
 __all__ = ['Tolerances', 'Violation', 'gate', 'geometric_violations', 'effect_violations',
-           'observed_std', 'TURN_RANGE_RAD', 'STRUCTURAL_POSES']
+           'gauge_free_deviation', 'observed_std', 'structural_jacobian', 'TURN_RANGE_RAD',
+           'STRUCTURAL_POSES']
 
 # A wrist joint measured over less than this range (rad) hardly turns the tool: named in the
 # fix of an undetermined reflector offset.
@@ -89,6 +90,52 @@ class Violation:
 STRUCTURAL_POSES = 60
 
 
+def structural_jacobian(model: MeasurementModel, values: np.ndarray, seed: int = 0
+                        ) -> np.ndarray:
+    """Return the Jacobian (3 M, P) of every parameter at ``values`` over spread poses.
+
+    :data:`STRUCTURAL_POSES` joint values drawn uniformly in the limits (each reflector at
+    each): the directions poses spread over every joint determine; its null space is what no
+    pose can see.
+    """
+    robot = model.robot
+    lower = np.where(np.isfinite(robot.lower), robot.lower, -np.pi)
+    upper = np.where(np.isfinite(robot.upper), robot.upper, np.pi)
+    spread = np.random.default_rng(seed).uniform(lower, upper, (STRUCTURAL_POSES, robot.n_joints))
+    n_ref = max(model.n_reflectors, 1)
+    ref_s = np.repeat(np.arange(n_ref), len(spread))
+    _, jac = model.jacobian(np.asarray(values, float), np.tile(spread, (n_ref, 1)), None,
+                            ref_s if n_ref > 1 else None)
+    return jac.reshape(-1, len(model.params))
+
+
+def gauge_free_deviation(model: MeasurementModel, values: np.ndarray, reference: np.ndarray,
+                         scale: np.ndarray, n_geometric: int) -> np.ndarray:
+    """Return the geometric deviation ``values − reference`` (n_geometric,) closest to zero.
+
+    Closest in units of ``scale`` (the tolerances), among the parameter vectors no pose can
+    tell apart. Where a design leaves a parameter out (held at its nominal value), a structurally
+    equivalent one carries its part: a joint-6 zero and a reflector offset along its
+    circle show up as a tilt of joint 6's placement of 0.14 rad that predicts every point to
+    the noise. The physics is judged on the representative of the whole equivalence class:
+    the deviation minus its component in the null space of the
+    :func:`structural_jacobian` of the geometric parameters (at the reference robot), the
+    least-squares one in tolerance units.
+    """
+    d = np.asarray(values[:n_geometric], float) - np.asarray(reference[:n_geometric], float)
+    units = model.params.units[:n_geometric]
+    d = np.array([_wrapped(x, u) for x, u in zip(d, units)])
+    # The null space of the reference robot: where the structure is the one the URDF
+    # describes (at an estimate metres off, the linearisation would be of another robot).
+    at = np.array(values, float)
+    at[:n_geometric] = reference[:n_geometric]
+    jac = structural_jacobian(model, at)[:, :n_geometric] * scale
+    _, sv, vt = np.linalg.svd(jac, full_matrices=False)
+    null = vt[sv < 1e-9 * sv[0]] if len(sv) and sv[0] > 0 else vt[:0]
+    u = d / scale
+    return (u - null.T @ (null @ u)) * scale
+
+
 def observed_std(model: MeasurementModel, result: CalibrationResult, names: Sequence[str],
                  q: np.ndarray, reflector: np.ndarray | None = None,
                  tau: np.ndarray | None = None, seed: int = 0) -> dict[str, float]:
@@ -106,16 +153,10 @@ def observed_std(model: MeasurementModel, result: CalibrationResult, names: Sequ
     place of the wrist geometry the poses never moved is as undetermined as one it dropped.
     ``reflector``: (N,) reflector index of each row; ``tau``: (N, n) gravity torques.
     """
-    robot, params = model.robot, model.params
+    params = model.params
     values = np.asarray(result.values, float)
-    lower = np.where(np.isfinite(robot.lower), robot.lower, -np.pi)
-    upper = np.where(np.isfinite(robot.upper), robot.upper, np.pi)
-    spread = np.random.default_rng(seed).uniform(lower, upper, (STRUCTURAL_POSES, robot.n_joints))
     n_ref = max(model.n_reflectors, 1)
-    ref_s = np.repeat(np.arange(n_ref), len(spread))
-    _, jac_s = model.jacobian(values, np.tile(spread, (n_ref, 1)), None,
-                              ref_s if n_ref > 1 else None)
-    structural = select_identifiable(jac_s.reshape(-1, len(params)), params.names,
+    structural = select_identifiable(structural_jacobian(model, values, seed), params.names,
                                      method='priority', priority=list(names)).kept
     wanted = [n for n in names if n in structural]
     if not wanted:
@@ -138,6 +179,20 @@ def observed_std(model: MeasurementModel, result: CalibrationResult, names: Sequ
 
 def _wrapped(d: float, unit: str) -> float:
     return float((d + np.pi) % (2 * np.pi) - np.pi) if unit == 'rad' else float(d)
+
+
+def _tolerance_key(name: str, unit: str) -> str:
+    """Return the :class:`Tolerances` field of a geometric parameter."""
+    if name.startswith('reflector'):
+        return 'reflector_offset'
+    base = name.startswith('base.')
+    if name.endswith('.offset') and not base:
+        return 'offset'
+    return ('base_' if base else '') + ('translation' if unit == 'm' else 'rotation')
+
+
+def _tolerance(tolerances: Tolerances, name: str, unit: str) -> float:
+    return float(getattr(tolerances, _tolerance_key(name, unit)))
 
 
 def _tool_joints(model: MeasurementModel, q: np.ndarray | None) -> str:
@@ -188,6 +243,12 @@ def geometric_violations(model: MeasurementModel, result: CalibrationResult,
         if n_geometric is None else n_geometric
     values = dict(zip(result.names, result.values))
     std = dict(zip(result.estimated, result.std))
+    # How far each geometric quantity moved, judged on the equivalent robot closest to the
+    # reference (a gauge the design left free is no physical deviation).
+    scale = np.array([_tolerance(tolerances, n, u)
+                      for n, u in zip(params.names[:n_geo], params.units[:n_geo])])
+    deviation = gauge_free_deviation(model, np.asarray(result.values, float),
+                                     np.asarray(reference, float), scale, n_geo)
     out: list[Violation] = []
     turn = (f'turn the tool: measure poses that turn the wrist ({_tool_joints(model, q)}) '
             'over wide ranges')
@@ -195,7 +256,7 @@ def geometric_violations(model: MeasurementModel, result: CalibrationResult,
         names = [f'{prefix}.{c}' for c in 'xyz']
         idx = params.indices(names)
         label = f'reflector offset {prefix} ({", ".join(names)})'
-        moved = float(np.linalg.norm([values[n] - reference[i] for n, i in zip(names, idx)]))
+        moved = float(np.linalg.norm(deviation[idx]))
         spread = max((std.get(n, 0.0) for n in names), default=0.0)
         tol = tolerances.reflector_offset
         determined = ({} if reflector_stated or q is None
@@ -220,10 +281,9 @@ def geometric_violations(model: MeasurementModel, result: CalibrationResult,
         if name.startswith('reflector.') or name not in values:
             continue
         base = name.startswith('base.')
-        key = ('offset' if name.endswith('.offset') and not base else
-               ('base_' if base else '') + ('translation' if unit == 'm' else 'rotation'))
+        key = _tolerance_key(name, unit)
         tol = getattr(tolerances, key)
-        moved = abs(_wrapped(values[name] - reference[i], unit))
+        moved = abs(float(deviation[i]))
         where = ('the placement the identification started from' if base else 'the URDF')
         if moved <= tol:
             # Within its tolerance it is a plausible robot, however loosely the data pin it
