@@ -2,7 +2,7 @@
 real size: validate reads every learned_residual.yaml identify writes, with and without
 ``--register``.
 
-Three stock arms of example-robot-data (UR5 100 poses, Panda 300, UR10 200) with a
+Three stock arms of example-robot-data (UR5 200 poses, Panda 300, UR10 200) with a
 second-harmonic error of their second joint that the geometric model lacks (so the learned
 residual is chosen and written), validated on a new recording of the same robot; and 1000
 poses of the real UR10 of ../shared/data/ipa_ur10 Series A (imported as import-csv does),
@@ -34,7 +34,7 @@ UR_POSE = [0.0, -1.2, 1.7, -2.07, -1.57, 0.0]
 # id: (URDF, base, tip, the joint of the hidden error, working pose, training poses)
 ARMS = {
     'ur5': ('ur_description/urdf/ur5_robot.urdf', 'base_link', 'tool0', 'shoulder_lift_joint',
-            UR_POSE, 100),
+            UR_POSE, 200),
     'panda': ('panda_description/urdf/panda.urdf', 'panda_link0', 'panda_hand', 'panda_joint2',
               [0.0, -0.3, 0.0, -2.0, 0.0, 1.7, 0.8], 300),
     'ur10': ('ur_description/urdf/ur10_robot.urdf', 'base_link', 'tool0',

@@ -121,10 +121,12 @@ def _bag(cm, path: Path, n: int, seed: int, start_ns: int) -> Path:
 
 
 def _result_names(folder: Path) -> set[str]:
-    """The files a finished calibration left (an archived copy as calibrations/*)."""
+    """The files a finished calibration left (an archived copy as calibrations/*); the
+    plots the CLI draws beside them (identification.png, change_test.png) are reports, not
+    part of the result set."""
     names = set()
     for name in snapshot(folder):
-        if name in (CAMPAIGN_PLAN_FILE, CAMPAIGN_STATE_FILE):
+        if name in (CAMPAIGN_PLAN_FILE, CAMPAIGN_STATE_FILE) or name.endswith('.png'):
             continue
         names.add(f'{CALIBRATIONS_DIR}/*' if name.startswith(CALIBRATIONS_DIR) else name)
     return names

@@ -108,7 +108,7 @@ def test_a_full_disk_keeps_the_old_calibration_served_whole(node, disk):
     assert {CALIBRATION_FILE, LEARNED_RESIDUAL_FILE} <= set(before)
     served = node._calibration_text
     assert served == before[CALIBRATION_FILE].decode()
-    q = np.array([0.3, -1.1, 1.2, 0.2, 0.6, -0.4])
+    q = np.array([0.3, -1.1, 1.0, 0.2, 0.6, -0.4])  # inside the KR15's joint limits
     tcp = node.tcp_query_at(q)
     # Room for little more than a new learned residual once the old one is gone.
     filler = fill(disk, 32 * 1024)

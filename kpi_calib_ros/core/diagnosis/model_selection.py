@@ -308,6 +308,16 @@ def choose_model(model: MeasurementModel, data: Measurements, fit: Fit, requeste
 
 
 
+# Two rms figures closer than this (m) are a tie, not a verdict: far below any tracker's
+# resolution, it keeps the rounding of two fits that predict alike from deciding.
+TIE_M = 1e-9
+
+
+def _not_above(calibrated_m: float, nominal_m: float) -> bool:
+    """Whether the calibration's figure is lower than the nominal's, or tied with it."""
+    return calibrated_m < nominal_m or abs(calibrated_m - nominal_m) <= TIE_M
+
+
 @dataclass(frozen=True)
 class NominalComparison:
     """A calibration's cross-validated rms against the nominal model, placement registered.
@@ -355,19 +365,25 @@ class NominalComparison:
 
     @property
     def better(self) -> bool:
-        """False when the cross-validated and the predicted figures both favour the nominal."""
-        cv_better = all(self._figures(k)[0] < self._figures(k)[1] for k in self.compared)
+        """False when the cross-validated and the predicted figures both favour the nominal.
+
+        A figure favours the nominal only when it is lower by more than
+        :data:`TIE_M` (noise-free data of a robot built to its URDF predict both at 0).
+        """
         a, b = self.calibrated_predicted_m, self.nominal_predicted_m
-        predicted_better = bool(np.isfinite(a) and np.isfinite(b) and a < b)
-        return cv_better or predicted_better
+        predicted_better = bool(np.isfinite(a) and np.isfinite(b) and _not_above(a, b))
+        return self._cv_better or predicted_better
+
+    @property
+    def _cv_better(self) -> bool:
+        return all(_not_above(*self._figures(k)) for k in self.compared)
 
     def text(self) -> str:
         """One line: both figures of both models."""
         def um(v: float) -> str:
             return f'{v * 1e6:.1f} µm' if np.isfinite(v) else 'not estimable'
         c, n = self.calibrated, self.nominal
-        split = self.better and not all(self._figures(k)[0] < self._figures(k)[1]
-                                        for k in self.compared)
+        split = self.better and not self._cv_better
         verdict = ('is not refused against' if split else
                    'predicts held-out poses better than' if self.better else
                    'does NOT predict held-out poses better than')
