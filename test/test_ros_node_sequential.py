@@ -231,7 +231,9 @@ def test_campaign_survives_a_fault_a_kill_and_a_parameter_change(ros_domain, tmp
                                   and client.diagnostics().get('state') == 'idle', 90,
                                   'the resumed campaign')
                 # The resumed campaign publishes the plan the killed one had published.
-                client.spin_until(lambda: client.received['measurement_poses'], 10,
+                # 30 s: the latched plan reaches a loaded machine's subscription late (10 s
+                # timed out once in a full `make test` with both workers busy).
+                client.spin_until(lambda: client.received['measurement_poses'], 30,
                                   'the plan of the resumed campaign')
                 resumed = client.received['measurement_poses'][0]
                 np.testing.assert_allclose([p.positions for p in resumed.points], before,
