@@ -15,6 +15,7 @@ inside every limit. The Panda's mimic finger loads whether or not the chain hold
 """
 from __future__ import annotations
 
+import pickle
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -31,39 +32,16 @@ from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.model.kinematics import nominal_fk_function
 from kpi_calib_ros.core.model.parameters import geometric_parameters
 from kpi_calib_ros.core.model.robot import RobotModel
-from kpi_calib_ros.core.model.robot_library import with_lifting_column
 from kpi_calib_ros.core.simulation import equivalent_parameters
-from kpi_calib_ros.io.arm_cell import arm_cell_document
 from kpi_calib_ros.io.cell import build_cell_model, load_cell
 from kpi_calib_ros.io.cell_sections import coupling_from_mapping
 from kpi_calib_ros.io.names import CALIBRATED_URDF_FILE
 from kpi_calib_ros.io.resources import resolve_uri
 from kpi_calib_ros.io.urdf_export import calibrated_urdf
 
-UR5 = 'package://example-robot-data/robots/ur_description/urdf/ur5_robot.urdf'
+from mimic_column import ARM, SIGMA, STAGES, column_urdf, write_cell
+
 PANDA = 'package://example-robot-data/robots/panda_description/urdf/panda.urdf'
-ARM = ('shoulder_pan_joint', 'shoulder_lift_joint', 'elbow_joint', 'wrist_1_joint',
-       'wrist_2_joint', 'wrist_3_joint')
-STAGES = ('stage_1', 'stage_2')
-SIGMA = 2e-5
-REACH = {'lift': 0.3, 'shoulder_pan_joint': 0.0, 'shoulder_lift_joint': -1.2,
-         'elbow_joint': 1.4, 'wrist_1_joint': -1.0, 'wrist_2_joint': -1.5, 'wrist_3_joint': 0.0}
-
-
-def column_urdf() -> str:
-    return with_lifting_column(resolve_uri(UR5).read_text(), 'base_link')
-
-
-def write_cell(directory: Path, **extra) -> Path:
-    """The column UR5 2.5 m from a tracker, one working pose; ``extra`` top-level keys."""
-    urdf = directory / 'column_ur5.urdf'
-    urdf.write_text(column_urdf())
-    doc = arm_cell_document(str(urdf), 'column_base', 'tool0', SIGMA)
-    doc['working_poses'] = [{'name': 'reach', 'joints': dict(REACH)}]
-    doc.update(extra)
-    path = directory / f'cell_{len(extra)}.yaml'
-    path.write_text(yaml.safe_dump(doc))
-    return path
 
 
 @pytest.fixture(scope='module')
@@ -107,6 +85,9 @@ def test_actuated_joints_limits_and_kinematics_of_a_mimic_column():
         worst = max(worst, np.abs(np.array(fk(p, qi)) - expected).max(),
                     np.abs(robot.pin_tip_pose(qi) - expected).max())
     assert worst < 1e-12
+    # The node's jobs hand the model to a worker process: it pickles, the drive included.
+    again = pickle.loads(pickle.dumps(robot))
+    assert np.abs(again.pin_tip_pose(q[0]) - robot.pin_tip_pose(q[0])).max() == 0.0
 
 
 @pytest.mark.parametrize('tip, mimic_in_chain', [('panda_hand', False),

@@ -334,9 +334,11 @@ class RobotModel:
         self._mimic_matrix, self._mimic_offset = matrix, offset
         self._actuated_bounds = (lower, upper)
         self._recover = recover
-        # Off-chain masters, set in Pinocchio configurations as the relation gives them.
-        self._off_chain = [(model.joints[model.getJointId(name)], k)
-                           for k, name in enumerate(names) if name not in by_name]
+        # Off-chain masters, set in Pinocchio configurations as the relation gives them:
+        # (idx_q, nq, actuated index); plain numbers, so the model pickles (worker jobs).
+        self._off_chain = [(int(j.idx_q), int(j.nq), k) for k, j in (
+            (k, model.joints[model.getJointId(name)]) for k, name in enumerate(names)
+            if name not in by_name)]
 
     def _chain_joint(self, jid: int, first: bool, base: pin.Frame,
                      mimic: Mimic | None = None) -> ChainJoint:
@@ -391,11 +393,11 @@ class RobotModel:
         q_pin = pin.neutral(self.pin_model)
         if self._off_chain:
             x = self.actuated_values(q)
-            for jmodel, k in self._off_chain:
-                if jmodel.nq == 1:
-                    q_pin[jmodel.idx_q] = x[k]
-                elif jmodel.nq == 2:  # continuous
-                    q_pin[jmodel.idx_q:jmodel.idx_q + 2] = np.cos(x[k]), np.sin(x[k])
+            for idx, nq, k in self._off_chain:
+                if nq == 1:
+                    q_pin[idx] = x[k]
+                elif nq == 2:  # continuous
+                    q_pin[idx:idx + 2] = np.cos(x[k]), np.sin(x[k])
         for jid, value, joint in zip(self._pin_joint_ids, q, self.joints):
             idx = self.pin_model.joints[jid].idx_q
             if joint.kind == 'continuous':
