@@ -142,7 +142,7 @@ class Campaign:
     # ------------------------------------------------------------------ pairing
     def set_chain(self, joint_names: list[str], tracker_frame: str,
                   reflectors: Sequence[str] = ('',),
-                  derived: Mapping[str, tuple[Sequence[float], float]] | None = None
+                  derived: Mapping[str, tuple[np.ndarray, float]] | None = None
                   ) -> list[Decision]:
         """(Re)start pairing for a robot's joints (and the cell's reflector names and the
         mimic joints' relations, see :mod:`kpi_calib_ros.core.acquisition.pairing`); pairs

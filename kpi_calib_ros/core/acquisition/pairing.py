@@ -233,7 +233,7 @@ class Pairer:
         jump_ns: int = 1_000_000_000,
         max_names: int | None = None,
         reflectors: Sequence[str] = ('',),
-        derived: Mapping[str, tuple[Sequence[float], float]] | None = None,
+        derived: Mapping[str, tuple[np.ndarray, float]] | None = None,
         derived_tol: float = MIMIC_TOL,
     ) -> None:
         names = tuple(joint_names)
