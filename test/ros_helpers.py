@@ -184,10 +184,14 @@ class Client:
         return future.result()
 
     def publish_measurements(self, q: Any, joint_names: Any, eta: Any, frame: str,
-                             accepted: int, timeout: float = 60.0) -> None:
+                             accepted: int, timeout: float = 60.0,
+                             edit: Callable[[list], list] | None = None,
+                             start_ns: int = 1_700_000_000_000_000_000) -> None:
         """Publish static poses ``q`` with their points ``eta`` as a robot and a tracker
         would (joint states at 20 Hz, a point while each pose is held) on the node's
         measurement topics, and wait until it has accepted ``accepted`` measurements.
+        ``edit`` changes the joint samples before they are sent (e.g. adds joints);
+        ``start_ns`` stamps the first (a later campaign of one run starts later).
 
         Faster than real time, in chunks of :data:`CHUNK_S` of stream time, each received
         whole by the node before the next is sent: the node pairs a point with the last
@@ -197,7 +201,10 @@ class Client:
         other's, and the first point was rejected (no_joint_state).
         """
         joints, points = synthesize_streams(q, joint_names, eta, frame, rate_hz=20.0,
-                                            move_time_s=0.2, hold_time_s=0.6)
+                                            move_time_s=0.2, hold_time_s=0.6,
+                                            start_ns=start_ns)
+        if edit is not None:  # the joint states as a particular driver sends them
+            joints = edit(joints)
         stream = sorted([(s.stamp_ns, 0, cv.joint_state_msg(s)) for s in joints]
                         + [(s.stamp_ns, 1, cv.point_stamped_msg(s)) for s in points],
                         key=lambda item: item[:2])

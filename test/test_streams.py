@@ -19,6 +19,8 @@ NAMES = ('joint_1', 'joint_2', 'joint_3', 'joint_4', 'joint_5', 'joint_6')
 FRAME = 'tracker'
 N_POSES = 8
 NOISE = 1e-5
+# A mimic joint the joint states may also carry: stage = 0.5 · joint_1 − 0.1.
+DERIVED = {'stage': (np.r_[0.5, np.zeros(5)], -0.1)}
 
 
 def make_cell(seed: int = 7, noise: float = NOISE):
@@ -172,6 +174,15 @@ def bad_input_cases():
         extra = tuple(f'x{i}' for i in range(100))
         return j + [JointSample(s.stamp_ns + 1, s.names + extra, np.zeros(106))], p
 
+    def mimic_mismatch(j, p):
+        # Around pose 7 the joint states also carry the mimic joint, 10 mm off its relation.
+        for i, s in enumerate(j):
+            if abs(s.stamp_ns - p[7].stamp_ns) <= 200_000_000:
+                value = 0.5 * s.positions[0] - 0.1 + 0.01
+                j[i] = JointSample(s.stamp_ns, s.names + ('stage',), np.r_[s.positions, value],
+                                   np.r_[s.velocities, 0.0])
+        return j, p
+
     return [('nan_point', nan_point, 'non_finite_point', 1),
             ('wrong_frame', wrong_frame, 'wrong_frame', 1),
             ('during_motion', during_motion, 'robot_moving', 0),
@@ -181,7 +192,8 @@ def bad_input_cases():
             ('duplicate', duplicate, 'duplicate_stamp', 0),
             ('oversized', oversized, 'oversized_joint_state', 0),
             ('unknown_reflector', unknown_reflector, 'unknown_reflector', 0),
-            ('invalid_orientation', invalid_orientation, 'invalid_orientation', 0)]
+            ('invalid_orientation', invalid_orientation, 'invalid_orientation', 0),
+            ('mimic_mismatch', mimic_mismatch, 'mimic_mismatch', 1)]
 
 
 @pytest.mark.parametrize('name, mutate, reason, lost', bad_input_cases(),
@@ -189,7 +201,7 @@ def bad_input_cases():
 def test_each_bad_input_is_rejected_with_its_reason(name, mutate, reason, lost):
     q, _, joints, points = make_cell()
     joints, points = mutate(list(joints), list(points))
-    result = pair_measurements(joints, points, NAMES, FRAME)
+    result = pair_measurements(joints, points, NAMES, FRAME, derived=DERIVED)
     assert result.rejections == {reason: 1}
     assert [r.reason for r in result.rejected] == [reason] and result.rejected[0].detail
     assert len(result) == N_POSES - lost
@@ -206,9 +218,9 @@ def test_all_bad_inputs_together_are_all_counted():
     joints, points = list(joints), list(points)
     for _, mutate, _, _ in bad_input_cases():
         joints, points = mutate(joints, points)
-    result = pair_measurements(joints, points, NAMES, FRAME)
+    result = pair_measurements(joints, points, NAMES, FRAME, derived=DERIVED)
     assert result.rejections == {reason: 1 for reason in REJECTION_REASONS}
-    assert len(result) == N_POSES - 3
+    assert len(result) == N_POSES - 4
 
 
 def test_velocity_alone_reveals_motion():

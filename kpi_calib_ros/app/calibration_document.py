@@ -108,7 +108,8 @@ def calibration_document(cm: CellModel, result: CalibrationResult,
     applied to the readings), as validate reads new joint states."""
     if (pairing is not None and len(pairing) and not cm.joint_coupling.is_identity
             and tuple(pairing.joint_names) == tuple(cm.joint_names)):
-        pairing = dataclasses.replace(pairing, q=cm.joint_coupling.to_urdf(pairing.q))
+        pairing = dataclasses.replace(pairing, q=cm.joint_coupling.to_urdf(pairing.q),
+                                      joint_names=tuple(cm.robot.joint_names))
     doc = calibration_to_dict(result, pairing)
     std = dict(zip(result.estimated, result.std))
     estimated = [n for n in result.names if n in std]

@@ -124,7 +124,7 @@ def controller_design(cm: CellModel, design: DesignResult) -> DesignResult:
     if cm.joint_coupling.is_identity:
         return design
     return dataclasses.replace(design, configurations=cm.joint_coupling.to_controller(
-        design.configurations))
+        design.configurations), joint_names=tuple(cm.joint_names))
 
 
 def run_design(cell_path: str | Path, n: int, criterion: str, out: str | Path,

@@ -65,7 +65,7 @@ def choose_residual(cm: CellModel, data: Measurements, result: CalibrationResult
     measurements it was identified from, outliers excluded), its point rows only."""
     rows = point_rows(cm.model, data)
     return fit_learned_residual(np.atleast_2d(data.q)[rows], result.residuals[rows],
-                                cm.cell.sigma, tuple(cm.joint_names), seed=seed)
+                                cm.cell.sigma, tuple(cm.robot.joint_names), seed=seed)
 
 
 def physical_covariance(result: CalibrationResult, residual: LearnedResidual | None,

@@ -49,6 +49,7 @@ def measurements_from_samples(cm: CellModel, joint_samples: Iterable[JointSample
     """
     joint_samples = list(joint_samples)
     pairer_options.setdefault('reflectors', reflector_names(cm))
+    pairer_options.setdefault('derived', cm.joint_coupling.derived())
     pairing = pair_measurements(joint_samples, point_samples, cm.joint_names,
                                 cm.cell.tracker_frame, **pairer_options)
     if len(pairing) == 0 and pairing.rejections.get('missing_joints'):

@@ -116,9 +116,9 @@ def read_stored_calibration(cm: CellModel, path: str | Path) -> StoredCalibratio
             'it does not say valid: true')
         raise _refused(path, f'not a valid calibration ({reasons})')
     joints = list((doc.get('training_configurations') or {}).get('joints') or ())
-    if joints and sorted(joints) != sorted(cm.joint_names):
+    if joints and sorted(joints) != sorted(cm.robot.joint_names):
         raise _refused(path, f'identified for the joints {joints}; this robot has '
-                       f'{list(cm.joint_names)}')
+                       f'{list(cm.robot.joint_names)}')
     try:
         cal_cm, values = calibrated_model(cm.cell, doc)
     except KpiCalibError as exc:  # an effect or parameter this cell's robot lacks

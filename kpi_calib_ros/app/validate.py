@@ -91,10 +91,11 @@ def training_poses(cm: CellModel, doc: dict[str, Any]) -> np.ndarray | None:
     list them (written before ``training_configurations``) or lacks one of the joints."""
     conf = doc.get('training_configurations') or {}
     names = list(conf.get('joints') or ())
-    if not names or any(n not in names for n in cm.joint_names):
+    chain = cm.robot.joint_names
+    if not names or any(n not in names for n in chain):
         return None
     q = np.array(conf.get('q') or (), dtype=float).reshape(-1, len(names))
-    return q[:, [names.index(n) for n in cm.joint_names]]
+    return q[:, [names.index(n) for n in chain]]
 
 
 def validate_calibration(cm: CellModel, p: np.ndarray, doc: dict[str, Any],
@@ -105,8 +106,8 @@ def validate_calibration(cm: CellModel, p: np.ndarray, doc: dict[str, Any],
     cov = doc['parameter_covariance']
     estimated = cm.model.params.indices(list(cov['names']))
     ranges = doc.get('training_joint_ranges') or {}
-    lower = np.array([ranges.get(n, [-np.inf, np.inf])[0] for n in cm.joint_names])
-    upper = np.array([ranges.get(n, [-np.inf, np.inf])[1] for n in cm.joint_names])
+    lower = np.array([ranges.get(n, [-np.inf, np.inf])[0] for n in cm.robot.joint_names])
+    upper = np.array([ranges.get(n, [-np.inf, np.inf])[1] for n in cm.robot.joint_names])
     scale = calibration_noise_scale(doc)
     sigma = np.array(doc['noise_sigma_m'], dtype=float) * np.sqrt(scale)
     training_q = training_poses(cm, doc)

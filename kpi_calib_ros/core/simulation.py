@@ -135,8 +135,7 @@ def measurable_batch(model: MeasurementModel, p: np.ndarray, rng: np.random.Gene
     (eq. 4). The one sampler of the simulator, the design candidates and the
     collision-pair screening.
     """
-    lower, upper = sampling_bounds(model)
-    q = rng.uniform(lower, upper, size=(batch, len(lower)))
+    q = model.robot.sample_configurations(rng, batch)  # mimic joints follow their masters
     return q[model.incidence_cos(p, q) >= cos_limit]
 
 

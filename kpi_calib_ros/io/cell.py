@@ -43,7 +43,7 @@ from typing import Any, Mapping
 import numpy as np
 import yaml
 
-from kpi_calib_ros.core.acquisition.coupling import JointCoupling, identity_coupling
+from kpi_calib_ros.core.acquisition.coupling import JointCoupling, mimic_coupling
 from kpi_calib_ros.core.collision.capsules import Capsule, CollisionScene, HalfSpace
 from kpi_calib_ros.core.design.cell import DesignCell
 from kpi_calib_ros.core.design.optimum import DesignSettings
@@ -359,12 +359,15 @@ class CellModel:
 
     @property
     def joint_names(self) -> list[str]:
-        return self.robot.joint_names
+        """The joints the controller reports (joint states, designed poses, plans): the
+        robot's actuated joints, the chain's when nothing mimics."""
+        return list(self.joint_coupling.controller_names)
 
     @property
     def joint_coupling(self) -> JointCoupling:
-        """``robot.joint_coupling`` of the cell; the identity when it has none."""
-        return self.coupling or identity_coupling(self.robot.joint_names)
+        """``robot.joint_coupling`` of the cell followed by the URDF's mimic relations;
+        the identity when it has neither."""
+        return self.coupling or mimic_coupling(self.robot)
 
     @property
     def needs_registration(self) -> bool:
@@ -454,11 +457,16 @@ def build_cell_model(cell: Cell, effects: tuple = ()) -> CellModel:
     missing_masses = mass_warning(robot, resolved)
     if missing_masses:
         warnings.warn(missing_masses, stacklevel=2)
-    coupling = coupling_from_mapping(cell.joint_coupling, robot.joint_names)
-    q_work = np.array([_ordered(w, robot, f'working_poses[{i}].joints')
-                       for i, w in enumerate(cell.working_poses)]).reshape(-1, robot.n_joints)
-    if cell.working_poses_in == 'controller':
-        q_work = coupling.to_urdf(q_work)
+    mimic = mimic_coupling(robot)
+    coupling = coupling_from_mapping(cell.joint_coupling, robot.actuated_names,
+                                     mimics={j.name: j.mimic for j in robot.joints
+                                             if j.mimic is not None}).then(mimic)
+    names = list(robot.actuated_names)
+    q_work = np.array([_ordered(w, names, f'working_poses[{i}].joints')
+                       for i, w in enumerate(cell.working_poses)]).reshape(-1, len(names))
+    # Values as the controller reports them, or the URDF's actuated joints' (mimic
+    # joints follow either way).
+    q_work = (coupling if cell.working_poses_in == 'controller' else mimic).to_urdf(q_work)
     inside = robot.within_limits(q_work)
     if not inside.all():
         bad = cell.working_poses[int(np.argmin(inside))].name
@@ -470,12 +478,11 @@ def build_cell_model(cell: Cell, effects: tuple = ()) -> CellModel:
                      coupling)
 
 
-def _ordered(pose: WorkingPose, robot: RobotModel, key: str) -> list[float]:
-    names = robot.joint_names
+def _ordered(pose: WorkingPose, names: list[str], key: str) -> list[float]:
     if pose.values:
         if len(pose.values) != len(names):
             raise ConfigError(key.rsplit('.', 1)[0], f'{len(pose.values)} joint values given; '
-                              f'the chain has {len(names)} joints, in this order: {names}')
+                              f'the robot has {len(names)} joints, in this order: {names}')
         return list(pose.values)
     missing = [n for n in names if n not in pose.joints]
     extra = [n for n in pose.joints if n not in names]

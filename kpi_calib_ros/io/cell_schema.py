@@ -65,9 +65,11 @@ CELL_KEYS: tuple[CellKey, ...] = (
        'reflector offsets are in its frame.', 'tool0'),
     _K('robot.package_dirs', 'list of string', '', '[]', 'Folders (relative to the cell file) '
        'searched first for `package://` URIs of the URDF and its meshes.', ['../src']),
-    _K('robot.joint_coupling', 'mapping', '', '{} (identity)', 'Linear map from the '
-       "controller's joint values to the URDF's, `{urdf_joint: {controller_joint: factor}}`; "
-       'unlisted joints map to themselves; must be invertible.',
+    _K('robot.joint_coupling', 'mapping', '', '{} (identity)', 'Affine map from the '
+       "controller's joint values to the URDF's actuated joints, `{urdf_joint: "
+       "{controller_joint: factor, offset: value}}` (offset in rad or m, default 0); "
+       'unlisted joints map to themselves; must be invertible; mimic joints follow from '
+       'their masters by the URDF and are not listed.',
        {'joint_3': {'joint_3': 1.0, 'joint_2': 1.0}}),
     _K('robot.working_poses_in', '`controller` or `urdf`', '', 'controller', 'How the '
        'working poses are written: controller values (mapped by `joint_coupling`) or URDF '

@@ -12,6 +12,7 @@ from kpi_calib_ros.core.acquisition.coupling import JointCoupling
 from kpi_calib_ros.core.collision.capsules import Capsule, HalfSpace
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.measurement.pose import rotation_from_quaternion, rotation_from_rpy
+from kpi_calib_ros.core.model.robot import Mimic
 from kpi_calib_ros.io.cell_values import joint_value, non_negative, number, vector
 
 # Plausibility of SI values: beyond these a value is almost surely in other units.
@@ -247,7 +248,7 @@ def parse_coupling(raw: Any) -> dict[str, Any]:
         return {}
     if not isinstance(raw, dict):
         raise ConfigError('robot.joint_coupling', 'must map URDF joints to {controller_joint: '
-                          'factor}, e.g. {joint_3: {joint_3: 1.0, joint_2: 1.0}}')
+                          'factor, offset: value}, e.g. {joint_3: {joint_3: 1.0, joint_2: 1.0}}')
     return {str(k): v for k, v in raw.items()}
 
 
@@ -264,44 +265,64 @@ MAX_CONDITION = 1e6
 
 
 def coupling_from_mapping(raw: Mapping[str, Any] | None, joint_names: Sequence[str],
-                          key: str = 'robot.joint_coupling') -> JointCoupling:
-    """Validate ``{urdf_joint: {controller_joint: factor, ...}, ...}``.
+                          key: str = 'robot.joint_coupling',
+                          mimics: Mapping[str, Mimic] | None = None) -> JointCoupling:
+    """Validate ``{urdf_joint: {controller_joint: factor, ..., offset: value}, ...}``.
 
-    A listed URDF joint is exactly the given combination (list itself with 1.0 to keep
-    its own reading); an unlisted one equals its controller value.
+    A listed URDF joint is exactly the given combination plus ``offset`` (rad or m,
+    default 0; list the joint itself with 1.0 to keep its own reading); an unlisted one
+    equals its controller value. ``joint_names`` are the robot's actuated joints (the
+    chain's when nothing mimics): the master of a mimic joint is one of them, on the
+    chain or not. ``mimics`` ({joint: its URDF relation}) names the mimic joints, which
+    are neither targets nor sources: their values follow from their masters'.
 
     Raises
     ------
     ConfigError
-        Unknown joint names, non-numeric factors, or a map that cannot be inverted.
+        Unknown joint names, a mimic joint, non-numeric factors, or a map that cannot be
+        inverted.
     """
     names = list(joint_names)
+    mimics = mimics or {}
     matrix = np.eye(len(names))
+    offset = np.zeros(len(names))
     if not raw:
         return JointCoupling(tuple(names), matrix)
     if not isinstance(raw, Mapping):
         raise ConfigError(key, 'must map URDF joints to {controller_joint: factor}, e.g. '
-                          '{joint_3: {joint_3: 1.0, joint_2: 1.0}}')
+                          '{joint_3: {joint_3: 1.0, joint_2: 1.0, offset: 0.0}}')
+
+    def check_name(name: str, where: str) -> None:
+        if name in mimics:
+            m = mimics[name]
+            raise ConfigError(where, f'{name!r} is a mimic joint: the URDF states its value, '
+                              f'{m.multiplier:g} · {m.master} {m.offset:+g}, and the tool '
+                              f'applies it; couple its master {m.master!r} instead (or edit '
+                              'the <mimic> tag)')
+        if name not in names:
+            raise ConfigError(where, f'not a chain joint; joints are {names}')
+
     for urdf_joint, row in raw.items():
-        if urdf_joint not in names:
-            raise ConfigError(f'{key}.{urdf_joint}', f'not a chain joint; joints are {names}')
+        check_name(urdf_joint, f'{key}.{urdf_joint}')
         if not isinstance(row, Mapping) or not row:
             raise ConfigError(f'{key}.{urdf_joint}', 'must map controller joints to factors, '
-                              f'e.g. {{{urdf_joint}: 1.0, joint_2: 1.0}}')
+                              f'e.g. {{{urdf_joint}: 1.0, joint_2: 1.0, offset: 0.0}}')
         i = names.index(urdf_joint)
         matrix[i] = 0.0
         for source, factor in row.items():
-            if source not in names:
-                raise ConfigError(f'{key}.{urdf_joint}.{source}',
-                                  f'not a chain joint; joints are {names}')
+            if source != 'offset':
+                check_name(source, f'{key}.{urdf_joint}.{source}')
             if isinstance(factor, bool) or not isinstance(factor, (int, float)) \
                     or not np.isfinite(factor):
                 raise ConfigError(f'{key}.{urdf_joint}.{source}',
                                   f'must be a finite number, got {factor!r}')
-            matrix[i, names.index(source)] = float(factor)
+            if source == 'offset':
+                offset[i] = float(factor)
+            else:
+                matrix[i, names.index(source)] = float(factor)
     cond = np.linalg.cond(matrix)
     if not np.isfinite(cond) or cond > MAX_CONDITION:
         raise ConfigError(key, f'the map is not invertible (condition {cond:.3g}): each URDF '
                           'joint must be recoverable from the controller joints and back; '
                           'a listed joint usually keeps itself with factor 1.0')
-    return JointCoupling(tuple(names), matrix)
+    return JointCoupling(tuple(names), matrix, tuple(names), offset)

@@ -175,9 +175,7 @@ def robot_geometry(robot: RobotModel, urdf_xml: str, given: Sequence[Capsule],
     fitted = capsules_from_urdf(resolved, to_fit) if to_fit else []
     attached = _attached_capsules(robot, resolved)
     capsules = tuple(given) + tuple(fitted) + tuple(attached)
-    lower = np.where(np.isfinite(robot.lower), robot.lower, -np.pi)
-    upper = np.where(np.isfinite(robot.upper), robot.upper, np.pi)
-    q_default = 0.5 * (lower + upper)
+    q_default = robot.middle_configuration()
     matrix = classify_link_pairs(robot, capsules, samples=MATRIX_SAMPLES, seed=MATRIX_SEED,
                                  q_default=q_default)
     covered = {c.frame for c in fitted}
@@ -241,9 +239,7 @@ def _fixed_pairs(robot: RobotModel, capsules: Sequence[Capsule],
         return ()
     frames = list(dict.fromkeys(links))
     rng = np.random.default_rng(MATRIX_SEED)
-    lower = np.where(np.isfinite(robot.lower), robot.lower, -np.pi)
-    upper = np.where(np.isfinite(robot.upper), robot.upper, np.pi)
-    q = np.vstack([q_default, rng.uniform(lower, upper, size=(3, robot.n_joints))])
+    q = np.vstack([q_default, robot.sample_configurations(rng, 3)])
     poses = link_transforms(robot, q, frames)
     fixed = {f for j, f in enumerate(frames) if np.allclose(poses[:, j], poses[0, j], atol=1e-12)}
     out: list[tuple[str, str]] = []
@@ -277,9 +273,7 @@ def mesh_check(geometry: RobotGeometry, robot: RobotModel, configurations: np.nd
     (MeshCheck, list of (str, str))
         The check and the link pairs skipped as touching at the default configuration.
     """
-    lower = np.where(np.isfinite(robot.lower), robot.lower, -np.pi)
-    upper = np.where(np.isfinite(robot.upper), robot.upper, np.pi)
-    q = np.vstack([0.5 * (lower + upper), np.atleast_2d(configurations)])
+    q = np.vstack([robot.middle_configuration(), np.atleast_2d(configurations)])
     first = mesh_collisions(geometry.urdf_xml, (), robot.base_frame, robot.joint_names, q[:1],
                             skip_pairs=ignore_pairs)
     at_default = list(first.collisions[0])

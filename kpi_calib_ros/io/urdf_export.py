@@ -15,6 +15,9 @@ Limits of the representation
 * URDF has no joint zero offset: ``<joint>.offset`` is folded into the origin (a
   rotation about the axis, or a translation along it for prismatic joints). Joint
   limits stay in reading units and are not shifted.
+* A mimic joint (``<mimic joint=... multiplier=... offset=...>``) keeps its tag: its
+  ``<joint>.offset`` is added to the tag's ``offset`` (the relation's calibrated zero),
+  not folded into the origin; the multiplier is the URDF's (not calibrated).
 * The robot base pose in the tracker frame (``base.*``) is a property of the cell, not
   of the robot; publish it as a static transform tracker -> base from the calibration.
 * The reflector offset (``reflector.*``) belongs to the tool, not to the URDF.
@@ -122,6 +125,12 @@ def calibrated_urdf(urdf_xml: str, robot: RobotModel, parameters: Mapping[str, f
         error = np.array(ca.DM(homogeneous(error_rotation(joint.axis, e[3], e[4], e[5]),
                                            ca.DM(e[:3]))))
         offset = float(parameters.get(f'{joint.name}.offset', 0.0))
+        mimic = element.find('mimic')
+        if joint.mimic is not None and mimic is not None:
+            # A mimic joint's value is m · q_master + o: its calibrated zero is the
+            # relation's offset, written there (the tag stays, the origin takes no motion).
+            mimic.set('offset', repr(joint.mimic.offset + offset + 0.0))
+            offset = 0.0
         if joint.kind == 'prismatic':
             motion = np.eye(4)
             motion[:3, 3] = joint.axis * offset

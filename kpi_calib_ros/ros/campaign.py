@@ -29,7 +29,7 @@ import threading
 import time
 from collections import Counter, deque
 from pathlib import Path
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -141,13 +141,16 @@ class Campaign:
 
     # ------------------------------------------------------------------ pairing
     def set_chain(self, joint_names: list[str], tracker_frame: str,
-                  reflectors: Sequence[str] = ('',)) -> list[Decision]:
-        """(Re)start pairing for a robot chain (and the cell's reflector names, see
-        :mod:`kpi_calib_ros.core.acquisition.pairing`); pairs the samples held until now."""
+                  reflectors: Sequence[str] = ('',),
+                  derived: Mapping[str, tuple[np.ndarray, float]] | None = None
+                  ) -> list[Decision]:
+        """(Re)start pairing for a robot's joints (and the cell's reflector names and the
+        mimic joints' relations, see :mod:`kpi_calib_ros.core.acquisition.pairing`); pairs
+        the samples held until now."""
         with self.lock:
             decisions = self._handle(self.pairer.flush()) if self.pairer else []
             pairer = self.pairer = Pairer(joint_names, tracker_frame,
-                                          reflectors=tuple(reflectors))
+                                          reflectors=tuple(reflectors), derived=derived)
             early, self._early = list(self._early), deque(maxlen=self._early.maxlen)
             for sample in early:  # all of them before any timeout is judged
                 self._add(pairer, sample)

@@ -241,7 +241,8 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
         self._tcp_publisher(len(cm.working_pose_names))
         self._cm, self._urdf, self._model_error = cm, urdf_xml, ''
         self._report(self.campaign.set_chain(cm.joint_names, cm.cell.tracker_frame,
-                                             cm.cell.reflector_names or ('',)))
+                                             cm.cell.reflector_names or ('',),
+                                             cm.joint_coupling.derived()))
         self._run.auto_pending = self._auto_wanted()
         self.get_logger().info(f'robot model ready: joints {cm.joint_names}, tracker frame '
                                f"'{cm.cell.tracker_frame}', working poses "

@@ -1,5 +1,9 @@
 """Acquisition: timestamped streams, pairing points with joint states, coupled controller joints."""
-from kpi_calib_ros.core.acquisition.coupling import JointCoupling, identity_coupling
+from kpi_calib_ros.core.acquisition.coupling import (
+    JointCoupling,
+    identity_coupling,
+    mimic_coupling,
+)
 from kpi_calib_ros.core.acquisition.pairing import (
     EARLY_POINTS,
     INDEX_CACHE_SIZE,
@@ -26,5 +30,5 @@ __all__ = [
     'EARLY_POINTS', 'INDEX_CACHE_SIZE', 'JointCoupling', 'JointSample', 'NAMES_KEPT',
     'PairedMeasurement', 'Pairer', 'PairingResult', 'PointSample', 'REFLECTOR_SEPARATOR',
     'REJECTION_REASONS', 'Rejection', 'checked_rotation', 'frozen_array', 'identity_coupling',
-    'pair_measurements', 'split_frame', 'stacked_rotations', 'synthesize_streams',
+    'mimic_coupling', 'pair_measurements', 'split_frame', 'stacked_rotations', 'synthesize_streams',
 ]

@@ -32,7 +32,7 @@ import heapq
 import logging
 from collections import Counter, OrderedDict, deque
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterable, Sequence, Union
+from typing import Any, Callable, Iterable, Mapping, Sequence, Union
 
 import numpy as np
 
@@ -40,6 +40,7 @@ from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample, fro
 
 __all__ = [
     'REJECTION_REASONS', 'REFLECTOR_SEPARATOR', 'INDEX_CACHE_SIZE', 'EARLY_POINTS', 'NAMES_KEPT',
+    'MIMIC_TOL',
     'split_frame', 'Rejection', 'PairedMeasurement', 'PairingResult', 'Pairer',
     'pair_measurements', 'stacked_rotations',
 ]
@@ -47,12 +48,16 @@ __all__ = [
 REJECTION_REASONS = (
     'non_finite_point', 'wrong_frame', 'no_joint_state', 'robot_moving',
     'missing_joints', 'non_finite_joint_state', 'duplicate_stamp', 'oversized_joint_state',
-    'unknown_reflector', 'invalid_orientation',
+    'unknown_reflector', 'invalid_orientation', 'mimic_mismatch',
 )
 REFLECTOR_SEPARATOR = '#'
 INDEX_CACHE_SIZE = 16   # distinct joint-name lists remembered (LRU); drivers use one or two
 EARLY_POINTS = 1000      # points kept waiting for a clock jump
 NAMES_KEPT = 16         # names of a foreign joint state kept for the missing_joints message
+# A mimic joint's reading may differ this much from what its master gives (rad or m): the
+# readings of one driver agree to round-off, and a disagreement beyond it is a stage that
+# did not follow (a slipped belt) or a description that is not the robot's.
+MIMIC_TOL = 1e-4
 _log = logging.getLogger(__name__)
 
 
@@ -160,6 +165,7 @@ class _Entry:
     v: np.ndarray | None   # (n,) or None                None: names none of them
     missing: tuple[str, ...]
     names: tuple[str, ...]  # foreign joint states only (at most NAMES_KEPT), else ()
+    mismatch: str = ''      # a mimic joint's reading off its relation: why, else ''
 
 
 class Pairer:
@@ -208,6 +214,11 @@ class Pairer:
         Reflector names a point may carry after ``#`` in its frame id (see the module
         doc); ``('',)``, the default, is the single-reflector cell. Others are rejected
         as ``unknown_reflector``.
+    derived : mapping, optional
+        ``{joint: (coefficients (n,), offset)}``: joints a joint state may also carry whose
+        value follows from ``joint_names``' (mimic joints: ``coefficients @ q + offset``).
+        A joint state whose reading of one differs by more than ``derived_tol`` (rad or
+        m) marks the points around it ``mimic_mismatch``; one without them is as good.
     """
 
     def __init__(
@@ -222,6 +233,8 @@ class Pairer:
         jump_ns: int = 1_000_000_000,
         max_names: int | None = None,
         reflectors: Sequence[str] = ('',),
+        derived: Mapping[str, tuple[np.ndarray, float]] | None = None,
+        derived_tol: float = MIMIC_TOL,
     ) -> None:
         names = tuple(joint_names)
         if not names or len(set(names)) != len(names) or not all(
@@ -251,6 +264,12 @@ class Pairer:
         self.max_names = max_names
         self._frame = tracker_frame.strip('/')
         self.reflectors = tuple(reflectors)
+        self.derived = {str(k): (np.asarray(c, float).reshape(len(names)), float(o))
+                        for k, (c, o) in (derived or {}).items()}
+        if set(self.derived) & set(names) or not derived_tol > 0:
+            raise ValueError('derived joints must not be among joint_names, and derived_tol '
+                             'must be positive')
+        self.derived_tol = float(derived_tol)
         self._index_cache: OrderedDict[tuple[str, ...], tuple[np.ndarray, np.ndarray,
                                                               tuple[str, ...]]] = OrderedDict()
         self.reset()
@@ -336,7 +355,24 @@ class Pairer:
             return
         if self._latest is not None and sample.stamp_ns < self._latest - self.jump_ns:
             self._restart_epoch(sample.stamp_ns, self._latest)
-        self._insert(_Entry(sample.stamp_ns, q, v, missing, ()))
+        mismatch = self._mimic_mismatch(sample, q) if self.derived and not missing else ''
+        self._insert(_Entry(sample.stamp_ns, q, v, missing, (), mismatch))
+
+    def _mimic_mismatch(self, sample: JointSample, q: np.ndarray) -> str:
+        """Why a derived (mimic) joint's reading in ``sample`` is off its relation, or ''."""
+        for i, name in enumerate(sample.names):
+            relation = self.derived.get(name)
+            if relation is None:
+                continue
+            expected = float(relation[0] @ q + relation[1])
+            value = float(sample.positions[i])
+            if not abs(value - expected) <= self.derived_tol:
+                _log.warning('joint state at %d ns: mimic joint %s reads %.6g, its master '
+                             'gives %.6g', sample.stamp_ns, name, value, expected)
+                return (f"mimic joint '{name}' reads {value:.6g}, the URDF's relation to its "
+                        f'master gives {expected:.6g} (tolerance {self.derived_tol:g}); the '
+                        'stage did not follow its drive, or the URDF is not this robot')
+        return ''
 
     def _restart_epoch(self, stamp_ns: int, latest_ns: int) -> None:
         """Start a new epoch: the joint clock went back from ``latest_ns`` to ``stamp_ns``.
@@ -508,6 +544,10 @@ class Pairer:
         missing = sorted({n for e in window for n in e.missing})
         if missing:
             self._reject(t, 'missing_joints', f'joint states around the point lack {missing}')
+            return
+        mismatch = next((e.mismatch for e in window if e.mismatch), '')
+        if mismatch:
+            self._reject(t, 'mimic_mismatch', mismatch)
             return
         q = np.stack([e.q for e in window if e.q is not None])  # window has no None q
         spread = q.max(axis=0) - q.min(axis=0)

@@ -148,13 +148,11 @@ def classify_link_pairs(robot: RobotModel, capsules: Sequence[Capsule], samples:
                            ignore_pairs={frozenset({BEAM, c.name}) for c in capsules})
     frame_of = {c.name: c.frame for c in capsules}
 
-    lower = np.where(np.isfinite(robot.lower), robot.lower, -np.pi)
-    upper = np.where(np.isfinite(robot.upper), robot.upper, np.pi)
     rng = np.random.default_rng(seed)
     if q_default is None:
-        q_default = 0.5 * (lower + upper)
+        q_default = robot.middle_configuration()
     q = np.vstack([np.asarray(q_default, dtype=float).reshape(1, -1),
-                   rng.uniform(lower, upper, size=(samples, robot.n_joints))])
+                   robot.sample_configurations(rng, samples)])
     margins = _margins(scene, link_transforms(robot, q, scene.frames))  # (count, 1 + samples)
 
     hit: dict[frozenset[str], np.ndarray] = {}

@@ -201,6 +201,10 @@ def verify_design(cell: DesignCell, scene: CollisionScene | None, q: np.ndarray,
         for j in np.flatnonzero((qi < lower - 1e-9) | (qi > upper + 1e-9)):
             violations.append(f'configuration {i}: {robot.joint_names[j]} = {qi[j]:.4f} rad '
                               f'outside [{lower[j]:.4f}, {upper[j]:.4f}]')
+        off = robot.mimic_residual(qi)
+        for j in np.flatnonzero(off > 1e-9):
+            violations.append(f'configuration {i}: mimic joint {robot.joint_names[j]} is '
+                              f'{off[j]:.3g} off its relation to {robot.joints[j].mimic}')
         if scene is not None and scene.count:
             check = verify_configuration(scene, poses, tracker, reflector)
             margins[i] = check.min_distance

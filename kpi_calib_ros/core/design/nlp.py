@@ -21,7 +21,6 @@ from kpi_calib_ros.core.collision.capsules import CollisionScene
 from kpi_calib_ros.core.design.cell import DesignCell
 from kpi_calib_ros.core.design.constraints import feasibility_function
 from kpi_calib_ros.core.design.criteria import DesignProblem
-from kpi_calib_ros.core.simulation import sampling_bounds
 
 __all__ = ['NlpResult', 'solve_design_nlp']
 
@@ -131,7 +130,13 @@ def solve_design_nlp(problem: DesignProblem, cell: DesignCell, scene: CollisionS
     rows = ca.diag(ca.DM(weight)) @ rows_fun(ca.DM(problem.p), q) @ ca.diag(
         ca.DM(problem.column_scale))
     info_fun = ca.Function('info', [q], [ca.mtimes(rows.T, rows)])
-    x = ca.MX.sym('x', n, n_conf)
+    # The variables are the actuated joints: mimic joints follow them (q = M x_a + d).
+    robot = model.robot
+    n_act = len(robot.actuated_names)
+    x_act = ca.MX.sym('x', n_act, n_conf)
+    x = x_act if not robot.has_mimic else (
+        ca.DM(robot.mimic_matrix) @ x_act + ca.repmat(ca.DM(robot.mimic_offset), 1, n_conf))
+    a0 = robot.actuated_values(q0)
     info = info_fun.map('info_sum', 'serial', n_conf, [], [0])(x)
     if problem.prior_information is not None:
         info = info + ca.DM(problem.prior_information)
@@ -142,8 +147,8 @@ def solve_design_nlp(problem: DesignProblem, cell: DesignCell, scene: CollisionS
         loss = -ca.log(ca.det(info))
     else:
         raise ValueError(f"the NLP handles 'kpi', 'A', 'D' and 'O1', not {criterion!r}")
-    loss_fun = ca.Function('loss', [x], [loss])
-    loss_start = float(loss_fun(q0.T))
+    loss_fun = ca.Function('loss', [x_act], [loss])
+    loss_start = float(loss_fun(a0.T))
     if criterion in ('kpi', 'A'):
         scale, objective = loss_start, loss / loss_start
     else:
@@ -154,7 +159,7 @@ def solve_design_nlp(problem: DesignProblem, cell: DesignCell, scene: CollisionS
     g = feas.map('feasibility_all', 'serial', n_conf, [], [])(x)
     g = ca.reshape(g, per * n_conf, 1)
     lbg = np.tile(np.r_[cos_max, np.full(per - 1, clearance)], n_conf)
-    lower, upper = sampling_bounds(model)
+    lower, upper = robot.sampling_bounds()
     opts: dict[str, Any]  # values of several types, and the iteration callback below
     opts = {'ipopt.print_level': 0, 'print_time': False, 'ipopt.sb': 'yes',
             'ipopt.max_iter': int(max_iterations),
@@ -166,10 +171,10 @@ def solve_design_nlp(problem: DesignProblem, cell: DesignCell, scene: CollisionS
             'ipopt.constr_viol_tol': 1e-6, 'ipopt.acceptable_constr_viol_tol': 1e-6,
             'ipopt.mu_strategy': 'adaptive'}
     # Kept referenced until the solve ends: IPOPT calls back into it.
-    monitor = _Monitor(n * n_conf, lbg, progress, every, scale)
+    monitor = _Monitor(n_act * n_conf, lbg, progress, every, scale)
     opts['iteration_callback'] = monitor
-    solver = ca.nlpsol('design', 'ipopt', {'x': ca.vec(x), 'f': objective, 'g': g}, opts)
-    sol = solver(x0=q0.ravel(),  # vec of the (n, N) matrix = rows of q0 in turn
+    solver = ca.nlpsol('design', 'ipopt', {'x': ca.vec(x_act), 'f': objective, 'g': g}, opts)
+    sol = solver(x0=a0.ravel(),  # vec of the (m, N) matrix = rows of a0 in turn
                  lbx=np.tile(lower, n_conf), ubx=np.tile(upper, n_conf),
                  lbg=lbg, ubg=np.inf)
     stats = solver.stats()
@@ -182,7 +187,8 @@ def solve_design_nlp(problem: DesignProblem, cell: DesignCell, scene: CollisionS
         return NlpResult(q0, loss_start, loss_start, False, 'no feasible iterate: '
                          + str(stats['return_status']), int(stats['iter_count']),
                          time.perf_counter() - start)
-    q_opt = np.clip(final.reshape(n_conf, n), lower, upper)
-    return NlpResult(q_opt, loss_start, float(loss_fun(q_opt.T)), bool(stats['success']),
+    a_opt = np.clip(final.reshape(n_conf, n_act), lower, upper)
+    q_opt = robot.chain_values(a_opt)
+    return NlpResult(q_opt, loss_start, float(loss_fun(a_opt.T)), bool(stats['success']),
                      str(stats['return_status']), int(stats['iter_count']),
                      time.perf_counter() - start)

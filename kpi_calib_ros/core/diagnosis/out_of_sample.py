@@ -54,7 +54,7 @@ from kpi_calib_ros.core.estimation.least_squares import CalibrationResult, point
 from kpi_calib_ros.core.estimation.prior import Prior
 from kpi_calib_ros.core.estimation.residuals import campaign_home, is_adequate, moved_joints
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements
-from kpi_calib_ros.core.simulation import sampling_bounds
+from kpi_calib_ros.core.model.robot import RobotModel
 
 DOMAINS = ('like_measured', 'within_measured_ranges', 'over_joint_ranges')
 DOMAIN_TEXT = {'like_measured': 'like measured (the measured poses or sweeps)',
@@ -198,7 +198,15 @@ def domain_configurations(model: MeasurementModel, q: np.ndarray, domain: str,
     ``over_joint_ranges``: ``n`` uniform draws in the measured box / in the joint limits
     (continuous joints on [-π, π]).
     """
-    q = np.atleast_2d(q)
+    # Drawn in the actuated joints: mimic joints follow their masters.
+    robot = model.robot
+    return robot.chain_values(_actuated_configurations(
+        robot, robot.actuated_values(np.atleast_2d(q)), domain, rng, n))
+
+
+def _actuated_configurations(robot: RobotModel, q: np.ndarray, domain: str,
+                             rng: np.random.Generator, n: int) -> np.ndarray:
+    """:func:`domain_configurations` in the actuated joints ``q`` (N, m)."""
     if domain == 'like_measured':
         sweeps = joint_sweeps(q)
         if sweeps is None:
@@ -216,7 +224,7 @@ def domain_configurations(model: MeasurementModel, q: np.ndarray, domain: str,
     if domain == 'within_measured_ranges':
         lower, upper = measured_box(q)
     elif domain == 'over_joint_ranges':
-        lower, upper = sampling_bounds(model)
+        lower, upper = robot.sampling_bounds()
     else:
         raise ValueError(f'domain must be one of {DOMAINS}, got {domain!r}')
     return rng.uniform(lower, upper, size=(n, len(lower)))

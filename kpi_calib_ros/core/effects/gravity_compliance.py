@@ -112,9 +112,9 @@ def mass_free_compliance(robot: RobotModel, joint: str | None,
     index = names.index(joint)
     regressor = torque_regressor(robot, index)
     rng = np.random.default_rng(0)
-    lower = np.maximum(robot.lower, -np.pi)
-    upper = np.minimum(robot.upper, np.pi)
-    samples = rng.uniform(lower, upper, (BASIS_SAMPLES, robot.n_joints))
+    lower = np.maximum(robot.actuated_lower, -np.pi)
+    upper = np.minimum(robot.actuated_upper, np.pi)
+    samples = robot.chain_values(rng.uniform(lower, upper, (BASIS_SAMPLES, len(lower))))
     y = np.vstack([np.array(regressor(s)).ravel() for s in samples])
     _, s, vt = np.linalg.svd(y, full_matrices=False)
     rank = int(np.sum(s > BASIS_TOLERANCE * s[0])) if s.size and s[0] > 0 else 0

@@ -99,9 +99,7 @@ def structural_jacobian(model: MeasurementModel, values: np.ndarray, seed: int =
     pose can see.
     """
     robot = model.robot
-    lower = np.where(np.isfinite(robot.lower), robot.lower, -np.pi)
-    upper = np.where(np.isfinite(robot.upper), robot.upper, np.pi)
-    spread = np.random.default_rng(seed).uniform(lower, upper, (STRUCTURAL_POSES, robot.n_joints))
+    spread = robot.sample_configurations(np.random.default_rng(seed), STRUCTURAL_POSES)
     n_ref = max(model.n_reflectors, 1)
     ref_s = np.repeat(np.arange(n_ref), len(spread))
     _, jac = model.jacobian(np.asarray(values, float), np.tile(spread, (n_ref, 1)), None,

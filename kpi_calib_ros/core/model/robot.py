@@ -7,10 +7,21 @@ best: reference forward kinematics and gravity torques (with the payload).
 
 Conventions: SI units, a joint value is one scalar per chain joint (rad for
 revolute/continuous, m for prismatic), in chain order from base to tip.
+
+Mimic joints (``<mimic joint="master" multiplier="m" offset="o"/>``) are chain joints
+like any other here (each keeps its own placement and error parameters), but they are
+not independent: their value is ``m · q_master + o`` (URDF semantics). The robot's
+*actuated* joints are the independent ones: the chain's non-mimic joints and the
+masters of its mimic joints (a master may lie off the chain, e.g. the drive of a
+lifting column whose two stages both mimic it). :attr:`RobotModel.mimic_matrix` and
+:attr:`RobotModel.mimic_offset` map actuated values to chain values; configurations
+are drawn in the actuated joints (:meth:`RobotModel.sample_configurations`), so
+every chain configuration the tool makes respects the relation.
 """
 from __future__ import annotations
 
 import re
+import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 
 import numpy as np
@@ -18,7 +29,7 @@ import pinocchio as pin
 
 from kpi_calib_ros.core.errors import ConfigError
 
-__all__ = ['MAX_URDF_ELEMENTS', 'ChainJoint', 'Payload', 'RobotModel']
+__all__ = ['MAX_URDF_ELEMENTS', 'ChainJoint', 'Mimic', 'Payload', 'RobotModel', 'urdf_mimics']
 
 _REVOLUTE = {'JointModelRX', 'JointModelRY', 'JointModelRZ', 'JointModelRevoluteUnaligned'}
 _CONTINUOUS = {'JointModelRUBX', 'JointModelRUBY', 'JointModelRUBZ',
@@ -29,6 +40,19 @@ _PRISMATIC = {'JointModelPX', 'JointModelPY', 'JointModelPZ', 'JointModelPrismat
 # bound far above any robot keeps a generated or hostile file from hanging the tool.
 MAX_URDF_ELEMENTS = 5000
 _ELEMENT = re.compile(r'<\s*(link|joint)[\s/>]')
+
+
+@dataclass(frozen=True)
+class Mimic:
+    """A URDF ``<mimic>``: the joint's value is ``multiplier · q_master + offset``.
+
+    ``offset`` in the joint's unit (rad or m); ``multiplier`` in its unit per the
+    master's.
+    """
+
+    master: str
+    multiplier: float = 1.0
+    offset: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -50,6 +74,8 @@ class ChainJoint:
         Joint limits (rad or m); +-inf for continuous joints.
     child_link : str
         Name of the link this joint moves.
+    mimic : Mimic or None
+        The URDF's mimic relation of this joint; None for an independent joint.
     """
 
     name: str
@@ -59,6 +85,7 @@ class ChainJoint:
     lower: float
     upper: float
     child_link: str
+    mimic: Mimic | None = None
 
 
 @dataclass(frozen=True)
@@ -124,8 +151,14 @@ class RobotModel:
             raise ConfigError('robot.tip_frame', f'no actuated joint between {base_frame!r} '
                               f'and {tip_frame!r}')
         self._pin_joint_ids = path
-        self.joints = tuple(self._chain_joint(jid, first=(i == 0), base=base)
+        # A <mimic> naming a joint the URDF does not have states no relation (stock hand
+        # descriptions ship such tags, and urdfdom reads them): the joint stays independent.
+        mimics = {name: m for name, m in urdf_mimics(urdf_xml).items()
+                  if model.existJointName(m.master)}
+        self.joints = tuple(self._chain_joint(jid, first=(i == 0), base=base,
+                                              mimic=mimics.get(model.names[jid]))
                             for i, jid in enumerate(path))
+        self._actuated()
         self.tip_placement = np.array(tip.placement.homogeneous)
         self._pin_data = model.createData()
         self._add_payload(tip)
@@ -152,13 +185,163 @@ class RobotModel:
         return np.array([j.upper for j in self.joints])
 
     @property
+    def has_mimic(self) -> bool:
+        """Whether a chain joint mimics another (its value follows the master's)."""
+        return any(j.mimic is not None for j in self.joints)
+
+    @property
+    def actuated_names(self) -> tuple[str, ...]:
+        """The independent joints, base to tip.
+
+        Each non-mimic chain joint and, at its first mimic joint, each master (on the
+        chain or off it); the chain's joint names when nothing mimics.
+        """
+        return self._actuated_names
+
+    @property
+    def actuated_lower(self) -> np.ndarray:
+        """Lower limits (m,) of the actuated joints.
+
+        Their own, narrowed by the limits of the joints that mimic them (through the
+        relation).
+        """
+        return self._actuated_bounds[0].copy()
+
+    @property
+    def actuated_upper(self) -> np.ndarray:
+        """Upper limits (m,) of the actuated joints (see :attr:`actuated_lower`)."""
+        return self._actuated_bounds[1].copy()
+
+    @property
+    def mimic_matrix(self) -> np.ndarray:
+        """(n, m) map of actuated joint values to chain values: ``q = M @ x + d``."""
+        return self._mimic_matrix.copy()
+
+    @property
+    def mimic_offset(self) -> np.ndarray:
+        """(n,) offsets ``d`` of :attr:`mimic_matrix` (the URDF mimic offsets, else 0)."""
+        return self._mimic_offset.copy()
+
+    def chain_values(self, x: np.ndarray) -> np.ndarray:
+        """Chain joint values (n,) or (N, n) of actuated values ``x`` ((m,) or (N, m))."""
+        x = np.asarray(x, dtype=float)
+        return x if not self.has_mimic else x @ self._mimic_matrix.T + self._mimic_offset
+
+    def actuated_values(self, q: np.ndarray) -> np.ndarray:
+        """Actuated values (m,) or (N, m) of chain values ``q``.
+
+        A master off the chain is read from its first mimic joint (exact for
+        configurations that respect the relation).
+        """
+        q = np.asarray(q, dtype=float)
+        if not self.has_mimic:
+            return q
+        return (q - self._mimic_offset) @ self._recover.T
+
+    def mimic_residual(self, q: np.ndarray) -> np.ndarray:
+        """Return |q − (M x + d)| (n,) or (N, n).
+
+        How far chain values ``q`` are from respecting every mimic relation (0 when they
+        do).
+        """
+        q = np.asarray(q, dtype=float)
+        return np.abs(q - self.chain_values(self.actuated_values(q)))
+
+    def sampling_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Actuated joint ranges (m,) to draw configurations from.
+
+        The limits, continuous joints on [-π, π].
+        """
+        lower, upper = self._actuated_bounds
+        return np.where(np.isfinite(lower), lower, -np.pi), np.where(np.isfinite(upper),
+                                                                      upper, np.pi)
+
+    def middle_configuration(self) -> np.ndarray:
+        """Return the (n,) chain configuration with every actuated joint mid-range.
+
+        Mid-range of :meth:`sampling_bounds`.
+        """
+        lower, upper = self.sampling_bounds()
+        return self.chain_values(0.5 * (lower + upper))
+
+    def sample_configurations(self, rng: np.random.Generator, size: int) -> np.ndarray:
+        """Return (size, n) chain configurations uniform in the actuated joints' ranges.
+
+        Ranges of :meth:`sampling_bounds`; mimic joints follow their masters.
+        """
+        lower, upper = self.sampling_bounds()
+        return self.chain_values(rng.uniform(lower, upper, size=(size, len(lower))))
+
+    @property
     def link_names(self) -> list[str]:
         """Links moved by each chain joint, base to tip (the base link first)."""
         model = self.pin_model
         base_link = model.frames[model.getFrameId(self.base_frame)].name
         return [base_link] + [j.child_link for j in self.joints]
 
-    def _chain_joint(self, jid: int, first: bool, base: pin.Frame) -> ChainJoint:
+    def _actuated(self) -> None:
+        """Find the actuated joints and the map from their values to the chain's."""
+        model = self.pin_model
+        by_name = {j.name: i for i, j in enumerate(self.joints)}
+        names: list[str] = []
+        for joint in self.joints:
+            source = joint.mimic.master if joint.mimic is not None else joint.name
+            if joint.mimic is not None:
+                master = by_name.get(source)
+                if master is not None and self.joints[master].mimic is not None:
+                    raise ConfigError('robot.urdf', f'joint {joint.name!r} mimics {source!r}, '
+                                      'which mimics another joint itself; let it mimic the '
+                                      'independent joint directly')
+                if joint.mimic.multiplier == 0.0:
+                    raise ConfigError('robot.urdf', f'joint {joint.name!r}: <mimic '
+                                      'multiplier="0"> makes it a fixed joint; write it as '
+                                      'type="fixed" with its origin')
+            if source not in names:
+                names.append(source)
+        self._actuated_names = tuple(names)
+        n, m = len(self.joints), len(names)
+        matrix, offset = np.zeros((n, m)), np.zeros(n)
+        lower = np.full(m, -np.inf)
+        upper = np.full(m, np.inf)
+        recover = np.zeros((m, n))
+        for i, joint in enumerate(self.joints):
+            if joint.mimic is None:
+                k = names.index(joint.name)
+                matrix[i, k] = 1.0
+                lower[k], upper[k] = max(lower[k], joint.lower), min(upper[k], joint.upper)
+                recover[k] = 0.0
+                recover[k, i] = 1.0
+                continue
+            k = names.index(joint.mimic.master)
+            mult, off = joint.mimic.multiplier, joint.mimic.offset
+            matrix[i, k], offset[i] = mult, off
+            # The mimic joint's own limits bound its master through the relation.
+            ends = sorted(((joint.lower - off) / mult, (joint.upper - off) / mult))
+            lower[k], upper[k] = max(lower[k], ends[0]), min(upper[k], ends[1])
+            if not recover[k].any():
+                recover[k, i] = 1.0 / mult
+        for k, name in enumerate(names):
+            if name in by_name:
+                continue
+            jmodel = model.joints[model.getJointId(name)]  # an off-chain master's own limits
+            if jmodel.nq == 1:
+                lower[k] = max(lower[k], float(model.lowerPositionLimit[jmodel.idx_q]))
+                upper[k] = min(upper[k], float(model.upperPositionLimit[jmodel.idx_q]))
+        bad = [names[k] for k in range(m) if not lower[k] <= upper[k]]
+        if bad:
+            raise ConfigError('robot.urdf', f'joint(s) {bad}: the limits of the joints that '
+                              'mimic them leave no value; check the <limit> and <mimic> tags')
+        self._mimic_matrix, self._mimic_offset = matrix, offset
+        self._actuated_bounds = (lower, upper)
+        self._recover = recover
+        # Off-chain masters, set in Pinocchio configurations as the relation gives them:
+        # (idx_q, nq, actuated index); plain numbers, so the model pickles (worker jobs).
+        self._off_chain = [(int(j.idx_q), int(j.nq), k) for k, j in (
+            (k, model.joints[model.getJointId(name)]) for k, name in enumerate(names)
+            if name not in by_name)]
+
+    def _chain_joint(self, jid: int, first: bool, base: pin.Frame,
+                     mimic: Mimic | None = None) -> ChainJoint:
         model = self.pin_model
         jmodel = model.joints[jid]
         kind_name = jmodel.shortname()
@@ -188,7 +371,7 @@ class RobotModel:
             upper = float(model.upperPositionLimit[jmodel.idx_q])
         child = next(f.name for f in model.frames
                      if f.parentJoint == jid and f.type == pin.FrameType.BODY)
-        return ChainJoint(name, kind, placement, axis, lower, upper, child)
+        return ChainJoint(name, kind, placement, axis, lower, upper, child, mimic)
 
     def _add_payload(self, tip: pin.Frame) -> None:
         if self.payload.mass <= 0.0:
@@ -203,10 +386,18 @@ class RobotModel:
     def pin_configuration(self, q: np.ndarray) -> np.ndarray:
         """Pinocchio configuration vector for chain joint values ``q`` (n,).
 
-        Joints outside the chain stay at their neutral value.
+        Joints outside the chain stay at their neutral value, except the masters of
+        mimic joints, which take the value the relation gives.
         """
         q = np.asarray(q, dtype=float)
         q_pin = pin.neutral(self.pin_model)
+        if self._off_chain:
+            x = self.actuated_values(q)
+            for idx, nq, k in self._off_chain:
+                if nq == 1:
+                    q_pin[idx] = x[k]
+                elif nq == 2:  # continuous
+                    q_pin[idx:idx + 2] = np.cos(x[k]), np.sin(x[k])
         for jid, value, joint in zip(self._pin_joint_ids, q, self.joints):
             idx = self.pin_model.joints[jid].idx_q
             if joint.kind == 'continuous':
@@ -263,6 +454,47 @@ class RobotModel:
         """Boolean mask: rows of ``q`` (N, n) strictly inside the limits shrunk by ``margin``."""
         q = np.atleast_2d(q)
         return np.all((q >= self.lower + margin) & (q <= self.upper - margin), axis=1)
+
+
+def urdf_mimics(urdf_xml: str) -> dict[str, Mimic]:
+    """Return {joint name: its :class:`Mimic`} of every ``<joint>`` with a ``<mimic>``.
+
+    Multiplier 1 and offset 0 by default, as the URDF specification says.
+
+    Raises
+    ------
+    ConfigError
+        A ``<mimic>`` without a ``joint`` or with a multiplier/offset that is not a
+        finite number.
+    """
+    try:
+        root = ET.fromstring(urdf_xml)
+    except ET.ParseError as exc:
+        raise ConfigError('robot.urdf', f'not a valid URDF ({exc}); check the file with '
+                          'check_urdf') from exc
+    out: dict[str, Mimic] = {}
+    for element in root.findall('joint'):
+        tag = element.find('mimic')
+        if tag is None:
+            continue
+        name = str(element.get('name'))
+        master = tag.get('joint')
+        if not master:
+            raise ConfigError('robot.urdf', f'joint {name!r}: <mimic> names no joint; write '
+                              '<mimic joint="master" multiplier="1" offset="0"/>')
+        values = []
+        for attr, default in (('multiplier', 1.0), ('offset', 0.0)):
+            text = tag.get(attr)
+            try:
+                value = default if text is None else float(text)
+            except ValueError:
+                value = float('nan')
+            if not np.isfinite(value):
+                raise ConfigError('robot.urdf', f'joint {name!r}: <mimic {attr}="{text}"> is '
+                                  'not a finite number')
+            values.append(value)
+        out[name] = Mimic(master, values[0], values[1])
+    return out
 
 
 def _joint_path(model: pin.Model, base_joint: int, tip_joint: int) -> list[int] | None:

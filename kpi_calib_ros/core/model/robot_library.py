@@ -1,7 +1,9 @@
 """Robot library: URDFs of the arms this package is developed and tested against.
 
 Three KUKA-class industrial arms (KR 15, KR 300, KR 500), the 90 notional
-manipulators of Jost et al. (2017) and a UR5e-class collaborative arm. Geometry
+manipulators of Jost et al. (2017) and a UR5e-class collaborative arm; any arm's URDF
+set on a two-stage lifting column whose stages are mimic joints of one drive
+(:func:`with_lifting_column`), as construction and mobile robots ship them. Geometry
 is given by data-sheet values; every link has an inertial computed from box and
 cylinder primitives that also serve as its visual and collision geometry, so
 gravity torques and collision checks use one consistent body.
@@ -32,6 +34,7 @@ __all__ = [
     'DATA_DIR', 'SHIPPED_ROBOTS', 'KUKA_CONTROLLER_OFFSET', 'Industrial6RGeometry',
     'industrial_6r_urdf', 'kr15_class', 'kr300_class', 'kr500_class', 'notional_manipulators',
     'ur_class_urdf', 'shipped_urdfs', 'shipped_urdf_path', 'write_shipped',
+    'COLUMN_JOINTS', 'with_lifting_column',
 ]
 
 DATA_DIR = Path(__file__).resolve().parents[2] / 'data' / 'robots'
@@ -402,3 +405,68 @@ def write_shipped(directory: Path = DATA_DIR) -> list[Path]:
         path.write_text(text, encoding='utf-8')
         paths.append(path)
     return paths
+
+
+COLUMN_JOINTS = ('lift', 'stage_1', 'stage_2')
+
+
+def with_lifting_column(urdf_xml: str, base_link: str, travel: float = 0.8,
+                        stage_offset: float = 0.1, stage_upper: float = 0.25) -> str:
+    """``urdf_xml`` with its ``base_link`` set on a two-stage telescopic lifting column.
+
+    A new root link ``column_base`` carries the column drive ``lift`` (prismatic along
+    z, ``[0, travel]`` m, moving the off-chain link ``column_drive``) and the stages
+    ``stage_1`` (link ``column_stage_1`` on ``column_base``) and ``stage_2`` (link
+    ``column_stage_2`` on stage 1), both
+    prismatic along z and both ``<mimic joint="lift" multiplier="0.5"
+    offset="-stage_offset"/>``: each stage rises by half the drive's stroke, the column
+    by all of it. A stage's own range ``[-stage_offset, stage_upper]`` m narrows the
+    drive's to ``[0, 2 (stage_upper + stage_offset)]`` when that is shorter than
+    ``travel``. ``base_link`` sits on top of stage 2 by a fixed joint; a joint that held
+    ``base_link`` (a ``world`` link's) holds ``column_base`` instead.
+
+    Raises
+    ------
+    ConfigError
+        ``base_link`` is not a link of ``urdf_xml``, or a column name is taken.
+    """
+    import xml.etree.ElementTree as ET
+
+    root = ET.fromstring(urdf_xml)
+    links = {e.get('name') for e in root.findall('link')}
+    if base_link not in links:
+        raise ConfigError('base_link', f'{base_link!r} is not a link of the URDF')
+    taken = ({'column_base', 'column_drive', 'column_stage_1', 'column_stage_2'} & links) | (
+        set(COLUMN_JOINTS) & {e.get('name') for e in root.findall('joint')})
+    if taken:
+        raise ConfigError('base_link', f'the URDF already has {sorted(taken)}')
+    body = [_link_xml('column_base', 60.0, [_cyl(2, 0.0, 0.3, 0.16)]),
+            _link_xml('column_drive', 2.0, [_box((-0.05, -0.05, 0.0), (0.05, 0.05, 0.1))]),
+            _link_xml('column_stage_1', 25.0, [_cyl(2, 0.0, 0.4, 0.13)]),
+            _link_xml('column_stage_2', 20.0, [_cyl(2, 0.0, 0.3, 0.10)])]
+    mimic = f'<mimic joint="lift" multiplier="0.5" offset="{_f(-stage_offset)}"/>'
+
+    def prismatic(name: str, parent: str, child: str, z: float, lo: float, hi: float,
+                  extra: str = '') -> str:
+        return '\n'.join([f'  <joint name="{name}" type="prismatic">',
+                          f'    <parent link="{parent}"/>', f'    <child link="{child}"/>',
+                          f'    <origin xyz="0 0 {_f(z)}" rpy="0 0 0"/>',
+                          '    <axis xyz="0 0 1"/>',
+                          f'    <limit lower="{_f(lo)}" upper="{_f(hi)}" effort="5000" '
+                          'velocity="0.2"/>'] + ([f'    {extra}'] if extra else [])
+                         + ['  </joint>'])
+
+    body += [prismatic('lift', 'column_base', 'column_drive', 0.1, 0.0, travel),
+             prismatic('stage_1', 'column_base', 'column_stage_1', 0.3,
+                       -stage_offset, stage_upper, mimic),
+             prismatic('stage_2', 'column_stage_1', 'column_stage_2', 0.4,
+                       -stage_offset, stage_upper, mimic),
+             _joint_xml('column_top', 'column_stage_2', base_link, (0, 0, 0.3), (0, 0, 0))]
+    for joint in root.findall('joint'):  # a joint that held the base now holds the column
+        child = joint.find('child')
+        if child is not None and child.get('link') == base_link:
+            child.set('link', 'column_base')
+    wrapper = ET.fromstring('<robot>' + '\n'.join(body) + '</robot>')
+    for k, element in enumerate(wrapper):
+        root.insert(k, element)
+    return '<?xml version="1.0"?>\n' + ET.tostring(root, encoding='unicode') + '\n'
