@@ -105,6 +105,9 @@ class Effect(Protocol):
     # Optional: ``frame_correction(q, tau, theta) -> (joint index, SX (3, 3)) | None``, a
     # rotation of that joint's frame after its motion (link bending); read with getattr,
     # so an effect without it corrects joint values or the point only.
+    # Optional: ``tilt_correction(theta[, z]) -> (joint index, SX (3, 3)) | None``, a rotation
+    # in the base frame's axes of that joint's frame as placed, before its motion, about its
+    # origin (a measured tilt, :mod:`kpi_calib_ros.core.effects.tilt`).
 
 
 def effect_inputs(effect: Effect) -> tuple[str, ...]:
@@ -326,6 +329,7 @@ class MeasurementModel:
             z = ca.DM.zeros(len(self.inputs))
         placement = None
         deflections: dict[int, Expr] = {}
+        tilts: dict[int, Expr] = {}
         for effect in self.effects:
             theta = p[offset:offset + len(effect.parameter_names)]
             offset += len(effect.parameter_names)
@@ -348,8 +352,13 @@ class MeasurementModel:
                 index, rotation = bent
                 deflections[index] = (deflections[index] @ rotation if index in deflections
                                       else rotation)
+            tilt = getattr(effect, 'tilt_correction', None)
+            turned = tilt(theta, *extra) if tilt is not None else None
+            if turned is not None:
+                index, rotation = turned
+                tilts[index] = tilts[index] @ rotation if index in tilts else rotation
         tip = self.chain.tip_transform(p if placement is None else p + placement, q_eff,
-                                       deflections)
+                                       deflections, tilts)
         return self.chain.base_in_tracker(p) @ tip, thetas
 
     def body_rotation_expression(self, p: Expr, q: Expr, tau: Expr, reflector: int,
