@@ -362,6 +362,20 @@ class CellModel:
         return self.robot.joint_names
 
     @property
+    def tau_work(self) -> np.ndarray | None:
+        """Gravity torques (t, n) at the working poses, each with the payload the cell states
+        for it (``working_poses[i].payload``, else the cell's); None when no effect reads a
+        torque or no working pose states its own payload (the cell's is the robot's)."""
+        poses = self.cell.working_poses
+        if not self.model.uses_torque or not any(w.payload for w in poses) \
+                or len(poses) != len(self.q_work):
+            return None
+        cell_payload = self.robot.payload
+        payloads = [cell_payload if w.payload is None else
+                    Payload(w.payload[0], w.payload[1] or cell_payload.com) for w in poses]
+        return np.atleast_2d(self.robot.gravity_torques(self.q_work, payloads))
+
+    @property
     def joint_coupling(self) -> JointCoupling:
         """``robot.joint_coupling`` of the cell; the identity when it has none."""
         return self.coupling or identity_coupling(self.robot.joint_names)

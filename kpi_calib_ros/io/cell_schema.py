@@ -125,6 +125,13 @@ CELL_KEYS: tuple[CellKey, ...] = (
     _K('working_poses[].joints', 'mapping of joint name to number', 'rad (m)', REQUIRED,
        'Joint values by name.', {'joint_1': 0.0, 'joint_2': 0.45, 'joint_3': -0.35,
                                  'joint_4': 0.0, 'joint_5': 0.9, 'joint_6': 0.0}),
+    _K('working_poses[].payload', 'mapping', '', 'the cell\'s `payload`', 'The load the robot '
+       'carries at this pose: its TCP is predicted with the gravity torques of this payload '
+       '(torque-driven effects such as `joint_compliance`).', {'mass': 2.5}),
+    _K('working_poses[].payload.mass', 'number', 'kg', REQUIRED, 'Payload mass at this pose, '
+       '0 to 5000.', 2.5),
+    _K('working_poses[].payload.com', '[x, y, z]', 'm', 'the cell\'s `payload.com`', 'Its centre '
+       'of mass in the tip frame.', [0.0, 0.0, 0.08]),
     # -------------------------------------------------------------- obstacles
     _K('obstacles', 'list', '', '[]', 'Obstacles in the robot base frame, kept clear by the '
        'design (and the tracker beam).', [{'name': 'floor', 'type': 'halfspace',

@@ -46,7 +46,7 @@ GAIN_BOUND = 3.0
 
 
 def tilt_covariates(sensor: str) -> tuple[str, str]:
-    """The covariate names of a tilt sensor: ``tilt.<sensor>.x``, ``tilt.<sensor>.y``.
+    """Return the covariate names of a tilt sensor: ``tilt.<sensor>.x``, ``tilt.<sensor>.y``.
 
     ``tilt.x``, ``tilt.y`` for the unnamed sensor ``''``.
     """
@@ -55,7 +55,7 @@ def tilt_covariates(sensor: str) -> tuple[str, str]:
 
 
 def tilt_sensors(covariates: Iterable[str]) -> list[str]:
-    """The tilt sensors whose two angles are among ``covariates`` (``''``: unnamed)."""
+    """Return the tilt sensors whose two angles are among ``covariates`` (``''``: unnamed)."""
     names = set(covariates)
     found = {name[len(TILT_PREFIX):-2] for name in names
              if name.startswith(TILT_PREFIX) and name.endswith('.x')}
