@@ -20,14 +20,14 @@ import os
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 from mcap_ros2.decoder import DecoderFactory
 
 from kpi_calib_ros.core.acquisition.pairing import Pairer
 from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
-from kpi_calib_ros.core.measurement.covariates import TemperatureSample
+from kpi_calib_ros.core.measurement.covariates import InputSample, TemperatureSample
 from kpi_calib_ros.io.bag_writing import (
     DEFAULT_JOINT_TOPIC,
     DEFAULT_POINT_TOPIC,
@@ -49,7 +49,10 @@ from kpi_calib_ros.io.names import (
     point_sigma_topic,
 )
 from kpi_calib_ros.io.ros_messages import (
+    FieldPath,
     JointStateDecoder,
+    input_samples_from_message,
+    named_values_from_message,
     point_sample_from_message,
     point_sigma_from_message,
     pose_sample_from_message,
@@ -480,8 +483,71 @@ def read_temperatures(path: str | os.PathLike,
     return sorted(samples, key=lambda s: s.stamp_ns)
 
 
+def read_inputs(path: str | os.PathLike, named_topic: str,
+                sources: Sequence[tuple[str, str, tuple[tuple[str, FieldPath], ...]]] = ()
+                ) -> tuple[list[InputSample], set[str]]:
+    """Every measured input reading of a bag, in stamp order, and the topics it has.
+
+    ``named_topic``: named values (``sensor_msgs/msg/JointState``, name = covariate, position
+    = value), read when the bag has the topic. ``sources``: (topic, ROS type, ((covariate
+    name, field path), ...)) of other stamped messages, each field one input
+    (:func:`~kpi_calib_ros.io.ros_messages.field_value`). A topic the bag lacks gives nothing
+    (the caller says what is missing).
+
+    Raises
+    ------
+    BagError
+        File missing or not MCAP, a topic carrying another type than stated, or a field the
+        type does not have.
+    """
+    path = _checked_path(path)
+    with open(path, 'rb') as f:
+        size = os.fstat(f.fileno()).st_size
+        data = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) if size else b''
+    if data[:len(MAGIC)] != MAGIC:
+        raise BagError(f'{path} is not an MCAP file (no MCAP magic)')
+    bag = scan(path, data)
+    present = {c.topic for c in bag.channels.values()}
+    wanted: list[tuple[str, str, Callable[[Any], list[InputSample]], str]] = []
+    if named_topic in present:
+        wanted.append((named_topic, JOINT_STATE_TYPE, named_values_from_message,
+                       f'inputs.topic {named_topic}'))
+    for topic, type_name, fields in sources:
+        if topic in present:
+            wanted.append((topic, type_name,
+                           lambda m, fields=fields: input_samples_from_message(m, fields),
+                           f'the inputs source on {topic}'))
+    out: list[InputSample] = []
+    bad: list[int] = []
+    for topic, type_name, convert, what in wanted:
+        ids = sorted(c.id for c in bag.channels.values() if c.topic == topic)
+        channel = bag.channels[ids[0]]
+        schema = bag.schemas.get(channel.schema_id)
+        name = schema.name if schema else 'no schema'
+        if name.replace('/msg/', '/') != type_name.replace('/msg/', '/') or schema is None:
+            raise BagError(f"{path}: topic '{topic}' carries '{name}', but {what} states "
+                           f"'{type_name}'; give the topic's type in the cell's inputs:")
+        decoder = DecoderFactory().decoder_for(channel.message_encoding, schema)
+        if decoder is None:
+            raise BagError(f"{path}: topic '{topic}' is not 'cdr' with a 'ros2msg' schema")
+        channel_ids, index = _indices(bag, _Topic(ids, decoder))[:2]
+        if len(index):
+            try:  # a field the type lacks is an error of the cell, not of one message
+                convert(decoder(bag.payload(int(channel_ids[0]), int(index[0]))))
+            except ValueError as exc:
+                raise BagError(f"{path}: topic '{topic}' ({type_name}): {exc}; fix the field "
+                               "paths of the cell's inputs: source") from None
+            except Exception:  # a corrupt first message: counted with the others below
+                pass
+        decoded = _decode(path, bag, _Topic(ids, lambda raw, convert=convert, decoder=decoder:
+                                            convert(decoder(raw))), channel_ids, index, bad)
+        out += [s for batch in decoded for s in batch]
+    _warn_undecodable(path, bad)
+    return sorted(out, key=lambda s: s.stamp_ns), present
+
+
 __all__ = ['BagContents', 'BagError', 'BagWarning', 'LIBRARY', 'StreamEncoders',
            'DEFAULT_JOINT_TOPIC', 'DEFAULT_POINT_TOPIC', 'JOINT_STATE_TYPE', 'LOG_CONTENT',
            'LOG_METADATA', 'POINT_STAMPED_TYPE', 'is_measurement_log', 'message_definition',
            'read_bag', 'read_bag_with_sigma', 'read_for_pairing', 'read_log',
-           'read_log_with_sigma', 'read_temperatures', 'type_hash', 'write_bag']
+           'read_inputs', 'read_log_with_sigma', 'read_temperatures', 'type_hash', 'write_bag']

@@ -296,6 +296,35 @@ CELL_KEYS: tuple[CellKey, ...] = (
        'one outside (or not finite) is a fault of the sensor or its driver, never used '
        '(counted and warned; the node does not log it); low at or above absolute zero '
        '(-273.15), high at most 1000, low < high.', [0.0, 60.0]),
+    # ----------------------------------------------------------------- inputs
+    _K('inputs', 'mapping', '', '{}', 'Measured inputs beyond temperature (a tilt, a payload '
+       'mass, any recorded quantity), each a covariate paired to every point by time; the '
+       'named-values topic is read whenever a recording has it.', {'max_gap': 5.0}),
+    _K('inputs.topic', 'string', '', '/kpi_calib/inputs', 'Named values '
+       '(sensor_msgs/JointState: name = covariate, position = value, SI) that `import-csv` '
+       'writes from a table\'s covariates and the node logs.', '/cell/inputs'),
+    _K('inputs.max_gap', 'number', 's', '10.0', 'Largest gap between readings of an input (and '
+       'beyond the first/last) bridged by interpolation; a point outside is refused.', 2.0),
+    _K('inputs.sources', 'list', '', '[]', 'Other topics whose fields are inputs, each '
+       '{topic, type, fields}.', [{'topic': '/column_tilt',
+                                   'type': 'geometry_msgs/msg/Vector3Stamped',
+                                   'fields': {'tilt.column.x': 'vector.x'}}]),
+    _K('inputs.sources[].topic', 'string', '', REQUIRED, 'The topic (absolute name).',
+       '/column_tilt'),
+    _K('inputs.sources[].type', 'string', '', REQUIRED, 'Its ROS message type, a stamped one '
+       '(with a header): pkg/msg/Type.', 'geometry_msgs/msg/Vector3Stamped'),
+    _K('inputs.sources[].fields', 'mapping of covariate name to field path', '', REQUIRED,
+       'Each input and where it is in the message: attributes joined by `.`, an element as '
+       '`[i]` or `[name]` (of the message\'s `name` list). Tilts `tilt.<sensor>.x/.y` in rad '
+       'feed `measured_tilt`; `payload.mass` (kg) and `payload.com.x/.y/.z` (m) the rows\' '
+       'gravity torques.', {'tilt.column.x': 'vector.x', 'tilt.column.y': 'vector.y'}),
+    # ------------------------------------------------------------- compliance
+    _K('compliance', 'mapping', '', '{}', 'Which torques the torque-driven effects read.',
+       {'torque_source': 'model'}),
+    _K('compliance.torque_source', '`model` or `measured`', '', 'model', '`model`: the gravity '
+       'torques of the URDF with each row\'s payload; `measured`: the joint states\' effort '
+       '(every chain joint named, one finite effort each), paired to every point by time as '
+       '`effort.<joint>` (N m).', 'measured'),
 )
 
 
