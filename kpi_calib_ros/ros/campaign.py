@@ -37,6 +37,7 @@ from kpi_calib_ros.app.measurements import (
     pose_rows,
     stated_sigma,
     urdf_measurements,
+    with_inputs,
     with_readings,
 )
 from kpi_calib_ros.core.acquisition.pairing import (
@@ -52,6 +53,7 @@ from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.measurement.covariates import (
     TEMPERATURE_RANGE_C,
+    InputSample,
     TemperatureSample,
     plausible_temperature,
 )
@@ -97,12 +99,17 @@ class Campaign:
     temperature_range_c : (low, high)
         The cell's ``temperature.valid_range`` (°C): a reading outside is counted
         (``rejected_temperatures``), never logged nor kept.
+    inputs_topic : str, optional
+        Where measured input readings (:meth:`receive_inputs`) are logged (the cell's
+        ``inputs.topic``, named values) and kept, those of earlier runs reloaded; None: none
+        kept.
     """
 
     def __init__(self, data_dir: str | Path, early_limit: int = 20_000,
                  sigma_topic: str = point_sigma_topic(DEFAULT_POINT_TOPIC),
                  temperature_topic: str | None = None,
-                 temperature_range_c: tuple[float, float] = TEMPERATURE_RANGE_C) -> None:
+                 temperature_range_c: tuple[float, float] = TEMPERATURE_RANGE_C,
+                 inputs_topic: str | None = None) -> None:
         self.data_dir = Path(data_dir)
         self.sigma_topic = sigma_topic
         self.lock = threading.RLock()
@@ -126,10 +133,17 @@ class Campaign:
         self._temperatures: list[TemperatureSample] = (
             MeasurementLog.load_temperatures(self.data_dir, temperature_topic)
             if temperature_topic and self.data_dir.is_dir() else [])
-        self.log = MeasurementLog(self.data_dir, temperature_topic=temperature_topic)
+        self.inputs_topic = inputs_topic
+        self.rejected_inputs = 0
+        self._inputs: list[InputSample] = (
+            MeasurementLog.load_inputs(self.data_dir, inputs_topic)
+            if inputs_topic and self.data_dir.is_dir() else [])
+        self.log = MeasurementLog(self.data_dir, temperature_topic=temperature_topic,
+                                  inputs_topic=inputs_topic)
         self.pairer: Pairer | None = None
         self.rejections: Counter[str] = Counter()
-        self.received = {'joint_states': 0, 'points': 0, 'sigma': 0, 'temperatures': 0}
+        self.received = {'joint_states': 0, 'points': 0, 'sigma': 0, 'temperatures': 0,
+                         'inputs': 0}
         self._early: deque[JointSample | PointSample] = deque(maxlen=early_limit)
         self._clock: tuple[int, int] | None = None     # (stamp ns, monotonic ns of arrival)
         self._point_clock: tuple[int, int] | None = None
@@ -335,6 +349,8 @@ class Campaign:
                       'received.sigma': self.received['sigma'],
                       'received.temperatures': self.received['temperatures'],
                       'rejected_temperatures': self.rejected_temperatures,
+                      'received.inputs': self.received['inputs'],
+                      'rejected_inputs': self.rejected_inputs,
                       'stated_sigma': len(self._sigma),
                       'pending_sigma': len(self._held_sigma),
                       'rejected': sum(self.rejections.values())}
@@ -366,9 +382,12 @@ class Campaign:
             self._stored_frames.clear()
             self.rejections.clear()
             self.rejected_temperatures = 0
+            self.rejected_inputs = 0
             self.restored = 0
             self._temperatures.clear()
-            self.log = MeasurementLog(self.data_dir, temperature_topic=self.temperature_topic)
+            self._inputs.clear()
+            self.log = MeasurementLog(self.data_dir, temperature_topic=self.temperature_topic,
+                                      inputs_topic=self.inputs_topic)
             if self.pairer is not None:
                 self.pairer.reset()
             self._clock = self._point_clock = None
@@ -393,6 +412,33 @@ class Campaign:
             self._temperatures.append(sample)
             return ''
 
+    def receive_inputs(self, samples: Sequence[InputSample]) -> str:
+        """Keep the measured input readings of one message, logged durably first (OSError:
+        not kept); returns '' when all are kept, else why not: a reading that is not finite
+        is counted (``rejected_inputs``) and neither logged nor kept."""
+        with self.lock:
+            self.received['inputs'] += 1
+            good = [s for s in samples if np.isfinite(s.value)]
+            bad = [s for s in samples if not np.isfinite(s.value)]
+            by_stamp: dict[int, list[InputSample]] = {}
+            for s in good:
+                by_stamp.setdefault(int(s.stamp_ns), []).append(s)
+            for stamp, group in sorted(by_stamp.items()):
+                self.log.append_inputs(stamp, tuple(s.name for s in group),
+                                       np.array([s.value for s in group]))
+                self._inputs += group
+            if not bad:
+                return ''
+            self.rejected_inputs += len(bad)
+            return (f'measured input {bad[0].name} = {bad[0].value!r} (stamp '
+                    f'{bad[0].stamp_ns} ns) not finite: not used ({self.rejected_inputs} so '
+                    'far); check the sensor or the message\'s names and counts')
+
+    def inputs(self) -> list[InputSample]:
+        """The measured input readings kept (this run's and the reloaded ones), a copy."""
+        with self.lock:
+            return list(self._inputs)
+
     def temperatures(self) -> list[TemperatureSample]:
         """The temperature readings kept (this run's and the reloaded ones), a copy."""
         with self.lock:
@@ -413,8 +459,26 @@ def model_measurements(campaign: Campaign, cm: CellModel
                                           cm.cell.reflector_names or ('',))
     data = urdf_measurements(cm, pose_rows(cm, data, pairing))
     stamps = np.asarray(data.stamps_ns, dtype=np.int64).ravel()
-    return with_temperature_readings(campaign, cm,
-                                     dataclasses.replace(data, stamps_ns=stamps)), pairing
+    data = with_temperature_readings(campaign, cm, dataclasses.replace(data, stamps_ns=stamps))
+    return with_input_readings(campaign, cm, data), pairing
+
+
+def with_input_readings(campaign: Campaign, cm: CellModel, data: Measurements) -> Measurements:
+    """``data`` with the campaign's measured input readings paired to its rows by stamp, as
+    a bag's are (:func:`kpi_calib_ros.app.measurements.with_inputs`).
+
+    Raises
+    ------
+    DataError
+        A source of the cell gave no finite reading, or the cell asks for measured torques
+        (the node does not record efforts: identify such a recording from its bag).
+    """
+    if cm.cell.inputs.torque_source == 'measured':
+        raise DataError('compliance.torque_source: measured: the node does not record the joint '
+                        'states\' efforts; record a bag (ros2 bag record) and run kpi-calib '
+                        'identify on it, or set compliance.torque_source: model')
+    return with_inputs(cm, data, campaign.inputs(), 'the node\'s measured inputs',
+                       [s.topic for s in cm.cell.inputs.sources])
 
 
 def with_temperature_readings(campaign: Campaign, cm: CellModel,

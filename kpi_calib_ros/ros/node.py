@@ -87,6 +87,7 @@ from kpi_calib_ros.ros.delivery import (
     latched,
     stream_qos,
 )
+from kpi_calib_ros.ros.inputs import subscribe_inputs
 from kpi_calib_ros.ros.parameters import (
     declare_parameters,
     parameter_values,
@@ -123,7 +124,8 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
                 temperature_topic=(self._cell.temperature.topic if self._cell.temperature
                                    else None),
                 temperature_range_c=(self._cell.temperature.valid_range_c
-                                     if self._cell.temperature else TEMPERATURE_RANGE_C))
+                                     if self._cell.temperature else TEMPERATURE_RANGE_C),
+                inputs_topic=(self._cell.inputs.topic if self._cell.inputs.sources else None))
         except OSError as exc:  # missing parent, read-only, a file in the way, no space
             raise ConfigError('data_dir', f'cannot log measurements in {str(self.data_dir)!r}: '
                               f'{exc.strerror or exc}; give a writable folder') from None
@@ -184,6 +186,7 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
                                  stream_qos(int(POINTS_MAX_HZ * STREAM_BUFFER_S)),
                                  callback_group=streams)
         subscribe_temperature(self, self.campaign, callback_group=streams)
+        subscribe_inputs(self, self.campaign, self._cell.inputs.sources, callback_group=streams)
         for name, doing, work in (('design', 'designing', self._design),
                                   ('identify', 'identifying', self._identify),
                                   ('diagnose', 'diagnosing', self._diagnose),
