@@ -14,6 +14,7 @@ the stored configurations of its points, already paired.
 """
 from __future__ import annotations
 
+import functools
 import inspect
 import mmap
 import os
@@ -483,6 +484,16 @@ def read_temperatures(path: str | os.PathLike,
     return sorted(samples, key=lambda s: s.stamp_ns)
 
 
+def _source_samples(fields: tuple[tuple[str, FieldPath], ...], message: Any
+                    ) -> list[InputSample]:
+    return input_samples_from_message(message, fields)
+
+
+def _converted(convert: Callable[[Any], list[InputSample]], decoder: Callable[[bytes], Any],
+               raw: bytes) -> list[InputSample]:
+    return convert(decoder(raw))
+
+
 def read_inputs(path: str | os.PathLike, named_topic: str,
                 sources: Sequence[tuple[str, str, tuple[tuple[str, FieldPath], ...]]] = ()
                 ) -> tuple[list[InputSample], set[str]]:
@@ -514,8 +525,7 @@ def read_inputs(path: str | os.PathLike, named_topic: str,
                        f'inputs.topic {named_topic}'))
     for topic, type_name, fields in sources:
         if topic in present:
-            wanted.append((topic, type_name,
-                           lambda m, fields=fields: input_samples_from_message(m, fields),
+            wanted.append((topic, type_name, functools.partial(_source_samples, fields),
                            f'the inputs source on {topic}'))
     out: list[InputSample] = []
     bad: list[int] = []
@@ -539,8 +549,8 @@ def read_inputs(path: str | os.PathLike, named_topic: str,
                                "paths of the cell's inputs: source") from None
             except Exception:  # a corrupt first message: counted with the others below
                 pass
-        decoded = _decode(path, bag, _Topic(ids, lambda raw, convert=convert, decoder=decoder:
-                                            convert(decoder(raw))), channel_ids, index, bad)
+        decoded = _decode(path, bag, _Topic(ids, functools.partial(_converted, convert, decoder)),
+                          channel_ids, index, bad)
         out += [s for batch in decoded for s in batch]
     _warn_undecodable(path, bad)
     return sorted(out, key=lambda s: s.stamp_ns), present
