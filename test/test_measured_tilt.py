@@ -9,6 +9,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from kpi_calib_ros.app.diagnose import diagnose_cell, recorded_covariates
 from kpi_calib_ros.app.identify import calibrate_cell
 from kpi_calib_ros.core.diagnosis.candidates import augmented_model
 from kpi_calib_ros.core.effects.registry import candidate_effects, parse_effect_spec
@@ -110,3 +111,20 @@ def test_a_column_leaning_by_a_recorded_angle_is_found_and_recovered(cm):
     miss = fresh.eta - cal.cell.model.predict(cal.result.values, fresh.q,
                                               covariates=fresh.covariates)
     assert np.sqrt(np.mean(np.sum(miss ** 2, axis=1))) <= 1.2 * np.sqrt(3) * SIGMA
+
+
+@pytest.mark.slow
+def test_diagnose_ranks_the_recorded_tilt_and_payload_as_inputs(cm):
+    """Every measured input the rows carry reaches the model-free residual analysis with its
+    unit, without being passed: a hidden lean makes the recorded tilt a flagged input; a
+    payload constant over the rows is carried but has nothing to rank."""
+    data, _ = _leaning(cm, 3, (1.0, 1.0), 80)
+    data = dataclasses.replace(data, covariates={**data.covariates,
+                                                 'payload.mass': np.full(len(data), 5.0)})
+    recorded = recorded_covariates(data)
+    assert {k: u for k, (_, u) in recorded.items()} == {
+        'tilt.column.x': 'rad', 'tilt.column.y': 'rad', 'payload.mass': 'kg'}
+    cd = diagnose_cell(cm, data, model='geometric', add_best=False)
+    scores = {s.name: s for s in cd.residual_analysis.scores}
+    assert scores['tilt.column.x'].significant or scores['tilt.column.y'].significant
+    assert 'payload.mass' not in scores
