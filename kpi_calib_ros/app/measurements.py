@@ -152,7 +152,10 @@ def measurements_from_bag(cm: CellModel, path: str | Path,
                                                   point_sigma=contents.point_sigma,
                                                   **pairer_options)
     data = with_temperature(cm, data, path)
-    samples, topics = read_inputs(path, cm.cell.inputs.topic, input_sources(cm))
+    sources = input_sources(cm)
+    if not sources and cm.cell.inputs.topic not in contents.topics:
+        return data, pairing  # no measured input in the cell or the recording
+    samples, topics = read_inputs(path, cm.cell.inputs.topic, sources)
     return with_inputs(cm, data, samples, str(path), topics), pairing
 
 

@@ -270,6 +270,7 @@ class BagContents:
     ``unreadable_bytes``: bytes of a cut or damaged file that could not be used.
     ``point_sigma``: the tracker's stated σ (3,) (m) of points by (stamp ns, frame id),
     from the point topic's companion ``<point topic>/sigma`` (empty when the bag has none).
+    ``topics``: every topic the bag has (whether to read measured inputs).
     """
 
     joints: list[JointSample]
@@ -277,6 +278,7 @@ class BagContents:
     measurement_log: bool
     unreadable_bytes: int
     point_sigma: dict[tuple[int, str], np.ndarray] = field(default_factory=dict)
+    topics: frozenset[str] = frozenset()
 
 
 def _point_sigma(path: Path, bag: ScannedBag, point_topic: str
@@ -400,7 +402,8 @@ def read_for_pairing(
     if is_measurement_log(bag):
         stored_joints, stored_points = _stored_pairs(path, bag, joints, points, bad, poses)
         _warn_undecodable(path, bad)
-        return BagContents(stored_joints, stored_points, True, bag.unreadable_bytes, sigma)
+        return BagContents(stored_joints, stored_points, True, bag.unreadable_bytes, sigma,
+                           _topics(bag))
     point_samples = (_decode(path, bag, points, *_indices(bag, points)[:2], bad)
                      + _decode(path, bag, poses, *_indices(bag, poses)[:2], bad))
     channel, index, _ = _indices(bag, joints)
@@ -418,7 +421,12 @@ def read_for_pairing(
     _warn_undecodable(path, bad)
     joint_samples.sort(key=lambda j: j.stamp_ns)
     point_samples.sort(key=lambda p: p.stamp_ns)
-    return BagContents(joint_samples, point_samples, False, bag.unreadable_bytes, sigma)
+    return BagContents(joint_samples, point_samples, False, bag.unreadable_bytes, sigma,
+                       _topics(bag))
+
+
+def _topics(bag: ScannedBag) -> frozenset[str]:
+    return frozenset(c.topic for c in bag.channels.values())
 
 
 def read_log(path: str | os.PathLike, joint_topic: str = DEFAULT_JOINT_TOPIC,
