@@ -115,3 +115,15 @@ def test_compliance_is_identified_from_two_loads_and_predicts_a_third(cm):
     tcp_true = truth.predict(p_true, loaded.q_work, covariates={'payload.mass': np.array([2.5])})
     error = cal.result.tcp[0] - tcp_true[0]
     assert error @ np.linalg.solve(cal.result.tcp_covariance[0], error) < 16.27  # χ²₃ 99.9 %
+
+
+def test_the_design_and_the_campaign_take_the_working_pose_payload():
+    """The KPI rows of the design (and of a sequential campaign) are those of the working
+    pose with the payload the cell states for it."""
+    cell = _cell_with_working_payload({'mass': 2.5, 'com': [0.0, 0.0, 0.1]})
+    cm = build_cell_model(cell, effects=('joint_compliance:joint_2',))
+    expected = cm.robot.gravity_torques(cm.q_work, [Payload(2.5, (0.0, 0.0, 0.1))])
+    np.testing.assert_allclose(cm.tau_work, expected, atol=1e-12)
+    np.testing.assert_allclose(cm.design_cell().tau_work, expected, atol=1e-12)
+    assert not np.allclose(expected, cm.robot.gravity_torques(cm.q_work))  # not the 5 kg
+    assert build_cell_model(cell).tau_work is None  # no effect reads a torque

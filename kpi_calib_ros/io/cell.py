@@ -425,7 +425,7 @@ class CellModel:
                           self.tracker_in_base, self.cell.reflector_offset,
                           self.cell.max_incidence, self.cell.sigma,
                           self.cell.identification_method, self.cell.identification_priority,
-                          self.collision_scene())
+                          self.collision_scene(), self.tau_work)
 
 
 def build_cell_model(cell: Cell, effects: tuple = ()) -> CellModel:
