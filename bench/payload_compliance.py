@@ -95,7 +95,8 @@ def main(n_seeds: int = 10) -> str:
         print(details[-1], flush=True)
     lines = ['# Joint compliance from two payloads', '',
              __doc__.split('\n\n')[1].replace('\n', ' '), '',
-             f'{n_seeds} seeds (4000..{3999 + n_seeds}); noise floor √3 σ = {floor * 1e6:.1f} µm.',
+             f'{n_seeds} seeds (4000..{3999 + n_seeds}); noise floor √3 σ = {floor * 1e6:.1f} µm. '
+             f'Command: `nice -n 19 .venv/bin/python bench/payload_compliance.py {n_seeds}`.',
              '', '| compliances within 3σ | fresh 2.5 kg rms / floor, per-row payload (median, '
              'max) | fresh rms / floor, one payload (median, max) | working-pose TCP d² '
              '(median, max; χ²₃ 99 % = 11.3) | s per seed |', '|---|---|---|---|---|',
