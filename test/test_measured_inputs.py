@@ -252,3 +252,37 @@ def test_compliance_reads_the_measured_torques(cm, tmp_path):
     model = with_effects(cm, (effect,))
     plain = calibrate_cell(model, measurements_from_bag(model, bag)[0], model='geometric')
     assert abs(plain.result.value(name) + 3e-6) > 3 * plain.result.std_of(name)
+
+
+def test_the_node_campaign_logs_each_measurements_efforts_and_pairs_them(cm, tmp_path):
+    """With measured torques the node's campaign buffers the joint states' efforts and logs,
+    per accepted measurement, every chain joint's effort at its stamp (one record, not one per
+    joint state); its jobs pair them as the rows' torques, as identify does from a bag."""
+    from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
+    from kpi_calib_ros.io.measurement_log import MeasurementLog
+    from kpi_calib_ros.ros.campaign import Campaign, model_measurements
+    q, eta, torque, _ = _loaded(cm, 12, 5)
+    measured = build_cell_model(cell_from_dict(read_cell_document(
+        _cell(tmp_path, compliance={'torque_source': 'measured'})), tmp_path))
+    joints, points = synthesize_streams(q, cm.joint_names, eta, cm.cell.tracker_frame)
+    campaign = Campaign(tmp_path / 'data', inputs_topic=measured.cell.inputs.topic,
+                        record_efforts=True)
+    try:
+        campaign.set_chain(cm.joint_names, cm.cell.tracker_frame)
+        stream: list[JointSample | PointSample] = sorted(
+            joints + points, key=lambda s: (s.stamp_ns, isinstance(s, PointSample)))
+        for sample in stream:
+            if isinstance(sample, JointSample):
+                campaign.receive_efforts(sample.stamp_ns, sample.names,
+                                         torque(sample.positions)[0])
+            campaign.receive(sample)
+        campaign.poll(2**62)
+        assert len(campaign) == 5
+        data, _ = model_measurements(campaign, measured)
+        np.testing.assert_allclose(data.tau, torque(q), rtol=1e-9, atol=1e-9)
+    finally:
+        campaign.close()
+    logged = MeasurementLog.load_inputs(tmp_path / 'data', measured.cell.inputs.topic)
+    assert len(logged) == 5 * len(cm.joint_names)
+    with pytest.raises(ValueError, match='record_efforts needs an inputs_topic'):
+        Campaign(tmp_path / 'other', record_efforts=True)

@@ -55,6 +55,8 @@ from kpi_calib_ros.core.measurement.covariates import (
     TEMPERATURE_RANGE_C,
     InputSample,
     TemperatureSample,
+    effort_name,
+    interpolate,
     plausible_temperature,
 )
 from kpi_calib_ros.core.measurement.tracker import Measurements
@@ -80,6 +82,12 @@ SIGMA_HELD_MAX = 20_000
 EARLY_MAX_NAMES = 256
 
 
+# Joint states' efforts kept for the measurements they belong to: 20 s at 500 Hz (the pairer
+# decides a point within seconds of its stamp); an effort is bridged over at most 1 s.
+EFFORT_BUFFER_SAMPLES = 10_000
+EFFORT_BUFFER_S = 20.0
+EFFORT_MAX_GAP_NS = 10**9
+
 class Campaign:
     """Accepted measurements of one campaign in ``data_dir``, and what was rejected.
 
@@ -103,13 +111,21 @@ class Campaign:
         Where measured input readings (:meth:`receive_inputs`) are logged (the cell's
         ``inputs.topic``, named values) and kept, those of earlier runs reloaded; None: none
         kept.
+    record_efforts : bool
+        The cell reads measured torques (``compliance.torque_source: measured``): the joint
+        states' efforts (:meth:`receive_efforts`) are buffered for the last
+        :data:`EFFORT_BUFFER_S` of stream time, and each accepted measurement logs the chain
+        joints' efforts interpolated at its stamp as ``effort.<joint>`` on ``inputs_topic``
+        (one record per measurement, not per joint state).
     """
 
     def __init__(self, data_dir: str | Path, early_limit: int = 20_000,
                  sigma_topic: str = point_sigma_topic(DEFAULT_POINT_TOPIC),
                  temperature_topic: str | None = None,
                  temperature_range_c: tuple[float, float] = TEMPERATURE_RANGE_C,
-                 inputs_topic: str | None = None) -> None:
+                 inputs_topic: str | None = None, record_efforts: bool = False) -> None:
+        if record_efforts and inputs_topic is None:
+            raise ValueError('record_efforts needs an inputs_topic to log them on')
         self.data_dir = Path(data_dir)
         self.sigma_topic = sigma_topic
         self.lock = threading.RLock()
@@ -134,6 +150,12 @@ class Campaign:
             MeasurementLog.load_temperatures(self.data_dir, temperature_topic)
             if temperature_topic and self.data_dir.is_dir() else [])
         self.inputs_topic = inputs_topic
+        self.record_efforts = record_efforts
+        # (stamp ns, names, efforts) of the recent joint states; the chain's joint names
+        self._efforts: deque[tuple[int, tuple[str, ...], np.ndarray]] = deque(
+            maxlen=EFFORT_BUFFER_SAMPLES)
+        self._chain: tuple[str, ...] = ()
+        self._effort_stamps: set[int] = set()
         self.rejected_inputs = 0
         self._inputs: list[InputSample] = (
             MeasurementLog.load_inputs(self.data_dir, inputs_topic)
@@ -162,6 +184,7 @@ class Campaign:
             decisions = self._handle(self.pairer.flush()) if self.pairer else []
             pairer = self.pairer = Pairer(joint_names, tracker_frame,
                                           reflectors=tuple(reflectors))
+            self._chain = tuple(joint_names)
             early, self._early = list(self._early), deque(maxlen=self._early.maxlen)
             for sample in early:  # all of them before any timeout is judged
                 self._add(pairer, sample)
@@ -303,6 +326,8 @@ class Campaign:
                                       f'{exc}')
                     else:
                         self._store(joint, point)
+                        if self.record_efforts:
+                            self._log_efforts(d.stamp_ns)
                         if sigma is not None:
                             self._sigma[key] = sigma
                             del self._held_sigma[key]
@@ -310,6 +335,41 @@ class Campaign:
                 self.rejections[d.reason] += 1
             out.append(d)
         return out
+
+    def receive_efforts(self, stamp_ns: int, names: Sequence[str], efforts: np.ndarray) -> None:
+        """Buffer one joint state's efforts (N m, N; in the order of ``names``) for the
+        measurements it may belong to; ignored unless ``record_efforts``."""
+        if not self.record_efforts:
+            return
+        efforts = np.asarray(efforts, float).reshape(-1)
+        if efforts.shape != (len(names),):
+            efforts = np.full(len(names), np.nan)  # counts differ: no effort of this state
+        with self.lock:
+            self._efforts.append((int(stamp_ns), tuple(names), efforts))
+
+    def _log_efforts(self, stamp_ns: int) -> None:
+        """Log the chain joints' efforts at an accepted measurement's stamp (interpolated in
+        the buffer within :data:`EFFORT_MAX_GAP_NS`); those not known there are not logged
+        (the measurement is then refused when paired, for want of them)."""
+        if stamp_ns in self._effort_stamps or not self._chain:
+            return  # the other reflectors of one pose share its stamp
+        names, values = [], []
+        for joint in self._chain:
+            rows = [(t, e[n.index(joint)]) for t, n, e in self._efforts if joint in n]
+            value = float('nan')
+            if rows:
+                t = np.array([r[0] for r in rows], dtype=np.int64)
+                v = np.array([r[1] for r in rows], dtype=float)
+                value = float(interpolate(np.array([stamp_ns]), t, v, EFFORT_MAX_GAP_NS)[0])
+            if np.isfinite(value):
+                names.append(effort_name(joint))
+                values.append(value)
+            else:
+                self.rejected_inputs += 1
+        if names:
+            self.log.append_inputs(stamp_ns, tuple(names), np.array(values))
+            self._inputs += [InputSample(stamp_ns, n, v) for n, v in zip(names, values)]
+            self._effort_stamps.add(stamp_ns)
 
     def _store(self, joint: JointSample, point: PointSample) -> None:
         self._measurements[(point.stamp_ns, point.frame_id)] = (joint, point)
@@ -386,6 +446,8 @@ class Campaign:
             self.restored = 0
             self._temperatures.clear()
             self._inputs.clear()
+            self._efforts.clear()
+            self._effort_stamps.clear()
             self.log = MeasurementLog(self.data_dir, temperature_topic=self.temperature_topic,
                                       inputs_topic=self.inputs_topic)
             if self.pairer is not None:
@@ -470,13 +532,9 @@ def with_input_readings(campaign: Campaign, cm: CellModel, data: Measurements) -
     Raises
     ------
     DataError
-        A source of the cell gave no finite reading, or the cell asks for measured torques
-        (the node does not record efforts: identify such a recording from its bag).
+        A source of the cell gave no finite reading (with ``compliance.torque_source:
+        measured``: no effort of every chain joint at the measurements).
     """
-    if cm.cell.inputs.torque_source == 'measured':
-        raise DataError('compliance.torque_source: measured: the node does not record the joint '
-                        'states\' efforts; record a bag (ros2 bag record) and run kpi-calib '
-                        'identify on it, or set compliance.torque_source: model')
     return with_inputs(cm, data, campaign.inputs(), 'the node\'s measured inputs',
                        [s.topic for s in cm.cell.inputs.sources])
 

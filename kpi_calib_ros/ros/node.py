@@ -118,6 +118,7 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
         self._cell = load_cell(self.settings.cell_file, urdf_xml='',
                                allow_code_effects=self.settings.allow_code_effects)
         self.data_dir = Path(self.settings.data_dir)
+        measured_torques = self._cell.inputs.torque_source == 'measured'
         try:
             self.campaign = Campaign(
                 self.data_dir, sigma_topic=point_sigma_topic(self.settings.point_topic),
@@ -125,7 +126,9 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
                                    else None),
                 temperature_range_c=(self._cell.temperature.valid_range_c
                                      if self._cell.temperature else TEMPERATURE_RANGE_C),
-                inputs_topic=(self._cell.inputs.topic if self._cell.inputs.sources else None))
+                inputs_topic=(self._cell.inputs.topic if self._cell.inputs.sources
+                              or measured_torques else None),
+                record_efforts=measured_torques)
         except OSError as exc:  # missing parent, read-only, a file in the way, no space
             raise ConfigError('data_dir', f'cannot log measurements in {str(self.data_dir)!r}: '
                               f'{exc.strerror or exc}; give a writable folder') from None
@@ -266,7 +269,10 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
     # ------------------------------------------------------------------ live pairing
     def _on_joint_state(self, msg: JointState, info: dict[str, Any]) -> None:
         self._sequences['joint_states'].see(info)
-        self._report(self.campaign.receive(cv.joint_sample_from_msg(msg)))
+        sample = cv.joint_sample_from_msg(msg)
+        if self.campaign.record_efforts:  # before the point it may complete is paired
+            self.campaign.receive_efforts(sample.stamp_ns, sample.names, np.asarray(msg.effort))
+        self._report(self.campaign.receive(sample))
 
     def _on_point(self, msg: PointStamped, info: dict[str, Any]) -> None:
         self._sequences['points'].see(info)
