@@ -14,7 +14,14 @@ import pytest
 
 from kpi_calib_ros.core.design.optimum import DesignSettings
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.io import cell, cell_sections, cell_settings, cell_temperature, cell_values
+from kpi_calib_ros.io import (
+    cell,
+    cell_inputs,
+    cell_sections,
+    cell_settings,
+    cell_temperature,
+    cell_values,
+)
 from kpi_calib_ros.io.cell import DEFAULT_CELL, cell_from_dict, read_cell_document
 from kpi_calib_ros.io.cell_schema import CELL_KEYS, REQUIRED, cell_key
 
@@ -132,7 +139,8 @@ def test_an_undescribed_value_in_a_described_key_is_still_refused():
 def test_every_described_key_is_read_by_the_loader():
     # io/cell.py and the section readers it delegates to
     source = ''.join(Path(m.__file__).read_text()
-                     for m in (cell, cell_sections, cell_settings, cell_values, cell_temperature))
+                     for m in (cell, cell_sections, cell_settings, cell_values, cell_temperature,
+                               cell_inputs))
     design = {f.name for f in fields(DesignSettings)}
     for key in CELL_KEYS:
         leaf = key.path.split('.')[-1].rstrip('[]')

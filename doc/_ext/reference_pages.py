@@ -206,6 +206,7 @@ def effects_page() -> str:
         CHAIN_EFFECTS,
         ENTRY_POINT_GROUP,
     )
+    from kpi_calib_ros.core.effects.tilt import MEASURED_TILT
 
     # The cell loader imports the chain effects (core.gravity_compliance and
     # core.general_effects register themselves).
@@ -259,7 +260,7 @@ def effects_page() -> str:
                'cell (the periodic error at k = 17).\n')
     general = [(f'{name}:J', b) for name, b in bound if b.kind.general]
     general += [(f'{name}:J:k=K', binder(robot, 'joint_2', 'k=17', 'effects'))
-                for name, binder in ARGUMENT_EFFECTS.items()]
+                for name, binder in ARGUMENT_EFFECTS.items() if name != MEASURED_TILT]
     rows = [[code(name), cell(', '.join(f'{p} [{u}]' for p, u in
                                         zip(b.kind.parameters, b.kind.units))),
              ', '.join(f'{v:g}' for v in b.kind.typical),
@@ -267,8 +268,23 @@ def effects_page() -> str:
             for name, b in general]
     out.append(table(['effect', 'parameters [unit] on joint_2', 'typical', 'plausible',
                       'what it models'], rows))
+    out.append('## Effects of measured inputs\n')
+    out.append('Proposed by `diagnose` and `auto` only where the measurements carry the '
+               'covariates they read (a tilt sensor\'s two angles `tilt.<S>.x`, `tilt.<S>.y`, '
+               'rad; the cell\'s `inputs:` section or a table\'s `covariates:`), at every '
+               'joint. Shown on `joint_1` with the sensor `column`.\n')
+    tilt = ARGUMENT_EFFECTS[MEASURED_TILT](robot, 'joint_1', 'column', 'effects')
+    out.append(table(['effect', 'parameters [unit]', 'reads', 'typical', 'plausible',
+                      'what it models'],
+                     [[code(f'{MEASURED_TILT}:J[:S]'),
+                       cell(', '.join(f'{p} [{u}]' for p, u in zip(tilt.kind.parameters,
+                                                                   tilt.kind.units))),
+                       cell(', '.join(code(i) for i in tilt.inputs)),
+                       ', '.join(f'{v:g}' for v in tilt.kind.typical),
+                       ', '.join(f'{v:g}' for v in tilt.kind.plausible),
+                       cell(tilt.kind.description)]]))
     out.append('## What separates each effect from the geometry\n')
-    for e in LIBRARY + tuple(b.kind for _, b in chain + general):
+    for e in LIBRARY + tuple(b.kind for _, b in chain + general) + (tilt.kind,):
         out.append(f'- {code(e.name)}: {cell(e.hint.replace("{joint}", "the joint"))}')
     return '\n'.join(out) + '\n'
 

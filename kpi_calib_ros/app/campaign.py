@@ -137,7 +137,7 @@ def simulate_sequential(campaign: SequentialCampaign, truth: CellModel, p_true: 
                            history[-1].next_candidates[:1]))
     res = campaign.result
     assert res is not None
-    tcp_true = truth.model.predict(p_true, truth.q_work)
+    tcp_true = truth.model.predict(p_true, truth.q_work, truth.tau_work)
     scale = (sigma_true / campaign.sigma) ** 2
     std_true = np.sqrt(np.diagonal(res.tcp_covariance, axis1=1, axis2=2) * scale)
     return SimulatedRun(tuple(history), campaign.q.copy(), np.array(campaign.used),

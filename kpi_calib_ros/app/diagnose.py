@@ -38,8 +38,8 @@ from kpi_calib_ros.core.effects.registry import implausible, parse_effect_spec
 from kpi_calib_ros.core.estimation.precision import expected_tcp_error
 from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA, is_adequate
 from kpi_calib_ros.core.estimation.robust import subset
-from kpi_calib_ros.core.measurement.covariates import TEMPERATURE_PREFIX
-from kpi_calib_ros.core.measurement.tracker import Measurements
+from kpi_calib_ros.core.measurement.covariates import measured_covariates
+from kpi_calib_ros.core.measurement.tracker import Measurements, row_torques
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.names import DIAGNOSIS_FILE
 from kpi_calib_ros.io.report import diagnosis_text, write_report
@@ -100,8 +100,7 @@ def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
     p0 = effect_start(result.values, best, diag.best.values)
     after = identify_cell(richer, data, p0=p0, free=richer_free)
     shape = best.shape_names
-    tau = (richer.robot.gravity_torques(np.atleast_2d(data.q)) if richer.model.uses_torque
-           else None)
+    tau = row_torques(richer.model, data)
     if shape and (not after.converged or implausible(
             best, [after.value(n) for n in best.parameter_names], tau)):
         richer_free = [n for n in (richer_free or richer.model.params.names) if n not in shape]
@@ -117,10 +116,11 @@ def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
 
 def recorded_covariates(data: Measurements) -> dict[str, tuple[np.ndarray, str]]:
     """The covariates the measurements carry for the residual analysis: each temperature
-    sensor's reading (``temperature.<frame id>``, °C; ΔT is the same input shifted)."""
-    return {name: (np.asarray(values, float), '°C')
-            for name, values in (data.covariates or {}).items()
-            if name.startswith(TEMPERATURE_PREFIX)}
+    sensor's reading (``temperature.<frame id>``, °C; ΔT is the same input shifted) and every
+    measured input (a tilt, a payload mass, any recorded quantity; measured torques are the
+    rows' torques, analysed as such), each with its unit
+    (:func:`~kpi_calib_ros.core.measurement.covariates.measured_covariates`)."""
+    return measured_covariates(data.covariates)
 
 
 def with_misfit_answer(cd: CellDiagnosis,

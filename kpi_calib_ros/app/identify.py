@@ -51,7 +51,7 @@ from kpi_calib_ros.core.estimation.robust import (
     robust_identify,
     subset,
 )
-from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements, row_torques
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.report import (
     comparison_text,
@@ -76,7 +76,7 @@ REGISTRATION_MAX_RMS_M = 0.02
 def places_the_points(cm: CellModel, data: Measurements, p: np.ndarray) -> bool:
     """Do parameters ``p`` predict ``data`` within :data:`REGISTER_ABOVE_M` (median miss)?
     If not, the placement is registered from the points before fitting."""
-    tau = cm.robot.gravity_torques(data.q) if cm.model.uses_torque else None
+    tau = row_torques(cm.model, data)
     miss = np.linalg.norm(np.atleast_2d(data.eta)
                           - cm.model.predict(p, data.q, tau, data.reflector, data.rotation,
                                            data.covariates),
@@ -209,7 +209,8 @@ def _fit_function(cm: CellModel, start: np.ndarray | None = None,
                             identifiability_method=cm.cell.identification_method,
                             priority=list(cm.cell.identification_priority) or None,
                             point_weights=point_weights, prior=pr,
-                            max_iterations=cm.cell.identification.max_iterations)
+                            max_iterations=cm.cell.identification.max_iterations,
+                            tau_work=cm.tau_work)
         if not balance or prior is None:
             return with_prior(prior)
         _, scale, result = balanced_prior(with_prior, prior)
@@ -336,7 +337,8 @@ def _final_fit(cm: CellModel, data: Measurements, choice: ModelChoice, start: np
                               reflector=kept.reflector, rotation=kept.rotation)
     # A model that fails χ² must not report the stated σ's precision (core.estimation.precision).
     result = honest_precision(robust.result)
-    implausible = plausibility_gate(cm, result, start, np.atleast_2d(kept.q), kept.tau,
+    implausible = plausibility_gate(cm, result, start, np.atleast_2d(kept.q),
+                                    row_torques(cm.model, kept),
                                     kept.reflector, free)
     return CellCalibration(result, robust, choice, est, tuple(free),
                            registration, scales[-1], cm,

@@ -22,16 +22,23 @@ from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
 from kpi_calib_ros.core.effects.registry import split_specs
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.measurement.covariates import (
+    EFFORT_PREFIX,
+    InputSample,
     TemperatureSample,
+    effort_name,
+    input_covariates,
     plausible_readings,
     range_text,
     temperature_covariates,
     with_covariates,
 )
+from kpi_calib_ros.core.measurement.payload import row_payloads
 from kpi_calib_ros.core.measurement.tracker import Measurements, with_rotation_rows
-from kpi_calib_ros.io.bag import read_for_pairing, read_temperatures
+from kpi_calib_ros.io.bag import JOINT_STATE_TYPE, read_for_pairing, read_inputs, read_temperatures
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
+from kpi_calib_ros.io.cell_inputs import field_path
 from kpi_calib_ros.io.measurement_log import stored_pairing
+from kpi_calib_ros.io.ros_messages import FieldPath
 
 
 def measurements_from_samples(cm: CellModel, joint_samples: Iterable[JointSample],
@@ -145,7 +152,84 @@ def measurements_from_bag(cm: CellModel, path: str | Path,
         data, pairing = measurements_from_samples(cm, contents.joints, contents.points,
                                                   point_sigma=contents.point_sigma,
                                                   **pairer_options)
-    return with_temperature(cm, data, path), pairing
+    data = with_temperature(cm, data, path)
+    sources = input_sources(cm)
+    if not sources and cm.cell.inputs.topic not in contents.topics:
+        return data, pairing  # no measured input in the cell or the recording
+    samples, topics = read_inputs(path, cm.cell.inputs.topic, sources)
+    return with_inputs(cm, data, samples, str(path), topics), pairing
+
+
+def input_sources(cm: CellModel) -> list[tuple[str, str, tuple[tuple[str, FieldPath], ...]]]:
+    """The cell's measured-input sources as (topic, ROS type, ((covariate, field path), ...)),
+    with the joint states' efforts (``effort.<joint>`` of every chain joint) when
+    ``compliance.torque_source`` is ``measured``."""
+    settings = cm.cell.inputs
+    out = [(s.topic, s.type, tuple((name, field_path(path, f'inputs.sources.{name}'))
+                                   for name, path in s.fields)) for s in settings.sources]
+    if settings.torque_source == 'measured':
+        out.append((cm.cell.joint_topic, JOINT_STATE_TYPE,
+                    tuple((effort_name(j), (('effort', j),)) for j in cm.joint_names)))
+    return out
+
+
+def expected_inputs(cm: CellModel) -> list[str]:
+    """The covariate names the cell's sources must give (:func:`input_sources`)."""
+    return [name for _, _, fields in input_sources(cm) for name, _ in fields]
+
+
+def with_inputs(cm: CellModel, data: Measurements, samples: Sequence[InputSample],
+                where: str, topics: Iterable[str] = ()) -> Measurements:
+    """``data`` with the measured input readings ``samples`` paired to its rows by stamp
+    (:func:`~kpi_calib_ros.core.measurement.covariates.input_covariates`, the cell's
+    ``inputs.max_gap``), the bag's and the node's alike.
+
+    A reading that is not finite is never used (warned with its count); a row with no value
+    of an input is refused (warned). Row payloads (``payload.mass``) are checked; with
+    ``compliance.torque_source: measured`` the efforts become the rows' torques
+    (``Measurements.tau``). ``data`` unchanged without readings or sources.
+
+    Raises
+    ------
+    DataError
+        A source of the cell gave no finite reading (``topics``: the topics the recording
+        has, for the message), the rows carry no stamps, or a payload is none.
+    """
+    expected = expected_inputs(cm)
+    if len(data) == 0 or (not samples and not expected):
+        return data
+    if data.stamps_ns is None:
+        raise DataError('the measurements carry no stamps to pair measured inputs with')
+    settings = cm.cell.inputs
+    cov, rejected = input_covariates(data.stamps_ns, samples, settings.max_gap_ns)
+    if rejected:
+        first = rejected[0]
+        warnings.warn(f'{where}: {len(rejected)} measured input reading(s) not finite, never '
+                      f'used (first: {first.name} = {first.value!r} at stamp {first.stamp_ns} '
+                      'ns)', stacklevel=3)
+    missing = [name for name in expected if name not in cov]
+    if missing:
+        efforts = [n for n in missing if n.startswith(EFFORT_PREFIX)]
+        fix = (f'the joint states on {cm.cell.joint_topic} must name every chain joint '
+               f'{list(cm.joint_names)} with one finite effort each, or set '
+               'compliance.torque_source: model' if efforts else
+               'record the topic of each inputs.sources entry, or remove the source')
+        raise DataError(f'{where}: no finite reading of the measured input(s) {missing} '
+                        f'(topics recorded: {sorted(topics)}); {fix}')
+    kept, refused = with_covariates(data, cov, required=sorted(cov), what='measured input')
+    if refused:
+        warnings.warn(f'{len(refused)} of {len(data)} measurement rows refused: '
+                      f'{refused[0][1]} (inputs.max_gap = {settings.max_gap_s:g} s)',
+                      stacklevel=3)
+    try:
+        row_payloads(kept.covariates, len(kept), cm.robot.payload)
+    except ValueError as exc:
+        raise DataError(f'{where}: payload.mass / payload.com: {exc}') from None
+    if settings.torque_source == 'measured' and len(kept):
+        assert kept.covariates is not None
+        tau = np.column_stack([kept.covariates[effort_name(j)] for j in cm.joint_names])
+        kept = dataclasses.replace(kept, tau=tau)
+    return kept
 
 
 def with_temperature(cm: CellModel, data: Measurements, path: str | Path) -> Measurements:

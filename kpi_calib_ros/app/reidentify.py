@@ -365,7 +365,7 @@ def reidentify(cm: CellModel, data: Measurements, cp: CyclePrior, model: str | N
     fit = identify(cm.model, data, cm.cell.sigma, cm.q_work, list(cm.working_pose_names),
                    p0=start, free=free, identifiability_method=cm.cell.identification_method,
                    priority=list(cm.cell.identification_priority) or None, prior=cp.prior,
-                   max_iterations=cm.cell.identification.max_iterations)
+                   max_iterations=cm.cell.identification.max_iterations, tau_work=cm.tau_work)
     change = change_test(cm.model, data, cm.cell.sigma, fit, cp.prior, alpha,
                          sigma_dof=cp.noise_dof)
     if not change.consistent and cp.noise_scale != 1.0:

@@ -117,7 +117,7 @@ def simulate_campaign(cell_path: str | Path, n: int, out: str | Path, seed: int,
     truth = {'seed': seed, 'parameters': {name: float(v) for name, v in
                                           zip(cm.model.params.names, p_true)},
              'tcp_true': [[float(x) for x in row]
-                          for row in cm.model.predict(p_true, cm.q_work)],
+                          for row in cm.model.predict(p_true, cm.q_work, cm.tau_work)],
              'working_poses': list(cm.working_pose_names)}
     write_truth(out, truth)
     return (f'simulated {len(q)} poses ({len(joints)} joint states, {len(points)} tracker '

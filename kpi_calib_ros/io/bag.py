@@ -14,20 +14,21 @@ the stored configurations of its points, already paired.
 """
 from __future__ import annotations
 
+import functools
 import inspect
 import mmap
 import os
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 from mcap_ros2.decoder import DecoderFactory
 
 from kpi_calib_ros.core.acquisition.pairing import Pairer
 from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
-from kpi_calib_ros.core.measurement.covariates import TemperatureSample
+from kpi_calib_ros.core.measurement.covariates import InputSample, TemperatureSample
 from kpi_calib_ros.io.bag_writing import (
     DEFAULT_JOINT_TOPIC,
     DEFAULT_POINT_TOPIC,
@@ -49,7 +50,10 @@ from kpi_calib_ros.io.names import (
     point_sigma_topic,
 )
 from kpi_calib_ros.io.ros_messages import (
+    FieldPath,
     JointStateDecoder,
+    input_samples_from_message,
+    named_values_from_message,
     point_sample_from_message,
     point_sigma_from_message,
     pose_sample_from_message,
@@ -266,6 +270,7 @@ class BagContents:
     ``unreadable_bytes``: bytes of a cut or damaged file that could not be used.
     ``point_sigma``: the tracker's stated σ (3,) (m) of points by (stamp ns, frame id),
     from the point topic's companion ``<point topic>/sigma`` (empty when the bag has none).
+    ``topics``: every topic the bag has (whether to read measured inputs).
     """
 
     joints: list[JointSample]
@@ -273,6 +278,7 @@ class BagContents:
     measurement_log: bool
     unreadable_bytes: int
     point_sigma: dict[tuple[int, str], np.ndarray] = field(default_factory=dict)
+    topics: frozenset[str] = frozenset()
 
 
 def _point_sigma(path: Path, bag: ScannedBag, point_topic: str
@@ -396,7 +402,8 @@ def read_for_pairing(
     if is_measurement_log(bag):
         stored_joints, stored_points = _stored_pairs(path, bag, joints, points, bad, poses)
         _warn_undecodable(path, bad)
-        return BagContents(stored_joints, stored_points, True, bag.unreadable_bytes, sigma)
+        return BagContents(stored_joints, stored_points, True, bag.unreadable_bytes, sigma,
+                           _topics(bag))
     point_samples = (_decode(path, bag, points, *_indices(bag, points)[:2], bad)
                      + _decode(path, bag, poses, *_indices(bag, poses)[:2], bad))
     channel, index, _ = _indices(bag, joints)
@@ -414,7 +421,12 @@ def read_for_pairing(
     _warn_undecodable(path, bad)
     joint_samples.sort(key=lambda j: j.stamp_ns)
     point_samples.sort(key=lambda p: p.stamp_ns)
-    return BagContents(joint_samples, point_samples, False, bag.unreadable_bytes, sigma)
+    return BagContents(joint_samples, point_samples, False, bag.unreadable_bytes, sigma,
+                       _topics(bag))
+
+
+def _topics(bag: ScannedBag) -> frozenset[str]:
+    return frozenset(c.topic for c in bag.channels.values())
 
 
 def read_log(path: str | os.PathLike, joint_topic: str = DEFAULT_JOINT_TOPIC,
@@ -480,8 +492,80 @@ def read_temperatures(path: str | os.PathLike,
     return sorted(samples, key=lambda s: s.stamp_ns)
 
 
+def _source_samples(fields: tuple[tuple[str, FieldPath], ...], message: Any
+                    ) -> list[InputSample]:
+    return input_samples_from_message(message, fields)
+
+
+def _converted(convert: Callable[[Any], list[InputSample]], decoder: Callable[[bytes], Any],
+               raw: bytes) -> list[InputSample]:
+    return convert(decoder(raw))
+
+
+def read_inputs(path: str | os.PathLike, named_topic: str,
+                sources: Sequence[tuple[str, str, tuple[tuple[str, FieldPath], ...]]] = ()
+                ) -> tuple[list[InputSample], set[str]]:
+    """Every measured input reading of a bag, in stamp order, and the topics it has.
+
+    ``named_topic``: named values (``sensor_msgs/msg/JointState``, name = covariate, position
+    = value), read when the bag has the topic. ``sources``: (topic, ROS type, ((covariate
+    name, field path), ...)) of other stamped messages, each field one input
+    (:func:`~kpi_calib_ros.io.ros_messages.field_value`). A topic the bag lacks gives nothing
+    (the caller says what is missing).
+
+    Raises
+    ------
+    BagError
+        File missing or not MCAP, a topic carrying another type than stated, or a field the
+        type does not have.
+    """
+    path = _checked_path(path)
+    with open(path, 'rb') as f:
+        size = os.fstat(f.fileno()).st_size
+        data = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) if size else b''
+    if data[:len(MAGIC)] != MAGIC:
+        raise BagError(f'{path} is not an MCAP file (no MCAP magic)')
+    bag = scan(path, data)
+    present = {c.topic for c in bag.channels.values()}
+    wanted: list[tuple[str, str, Callable[[Any], list[InputSample]], str]] = []
+    if named_topic in present:
+        wanted.append((named_topic, JOINT_STATE_TYPE, named_values_from_message,
+                       f'inputs.topic {named_topic}'))
+    for topic, type_name, fields in sources:
+        if topic in present:
+            wanted.append((topic, type_name, functools.partial(_source_samples, fields),
+                           f'the inputs source on {topic}'))
+    out: list[InputSample] = []
+    bad: list[int] = []
+    for topic, type_name, convert, what in wanted:
+        ids = sorted(c.id for c in bag.channels.values() if c.topic == topic)
+        channel = bag.channels[ids[0]]
+        schema = bag.schemas.get(channel.schema_id)
+        name = schema.name if schema else 'no schema'
+        if name.replace('/msg/', '/') != type_name.replace('/msg/', '/') or schema is None:
+            raise BagError(f"{path}: topic '{topic}' carries '{name}', but {what} states "
+                           f"'{type_name}'; give the topic's type in the cell's inputs:")
+        decoder = DecoderFactory().decoder_for(channel.message_encoding, schema)
+        if decoder is None:
+            raise BagError(f"{path}: topic '{topic}' is not 'cdr' with a 'ros2msg' schema")
+        channel_ids, index = _indices(bag, _Topic(ids, decoder))[:2]
+        if len(index):
+            try:  # a field the type lacks is an error of the cell, not of one message
+                convert(decoder(bag.payload(int(channel_ids[0]), int(index[0]))))
+            except ValueError as exc:
+                raise BagError(f"{path}: topic '{topic}' ({type_name}): {exc}; fix the field "
+                               "paths of the cell's inputs: source") from None
+            except Exception:  # a corrupt first message: counted with the others below
+                pass
+        decoded = _decode(path, bag, _Topic(ids, functools.partial(_converted, convert, decoder)),
+                          channel_ids, index, bad)
+        out += [s for batch in decoded for s in batch]
+    _warn_undecodable(path, bad)
+    return sorted(out, key=lambda s: s.stamp_ns), present
+
+
 __all__ = ['BagContents', 'BagError', 'BagWarning', 'LIBRARY', 'StreamEncoders',
            'DEFAULT_JOINT_TOPIC', 'DEFAULT_POINT_TOPIC', 'JOINT_STATE_TYPE', 'LOG_CONTENT',
            'LOG_METADATA', 'POINT_STAMPED_TYPE', 'is_measurement_log', 'message_definition',
            'read_bag', 'read_bag_with_sigma', 'read_for_pairing', 'read_log',
-           'read_log_with_sigma', 'read_temperatures', 'type_hash', 'write_bag']
+           'read_inputs', 'read_log_with_sigma', 'read_temperatures', 'type_hash', 'write_bag']

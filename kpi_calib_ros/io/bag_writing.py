@@ -3,8 +3,9 @@
 Tracked 6-DoF poses (point samples with a rotation) go to a third topic as
 ``geometry_msgs/msg/PoseStamped``; a bag without any has no such channel. Cell
 temperatures, where a table gives them, go to their own ``sensor_msgs/msg/Temperature``
-topic. A bag is written under a temporary name beside ``path`` and renamed when
-complete, so a failed write leaves nothing behind.
+topic, measured inputs (named values) to the inputs topic as ``sensor_msgs/msg/JointState``
+(name = covariate, position = value). A bag is written under a temporary name beside
+``path`` and renamed when complete, so a failed write leaves nothing behind.
 
 Profile ``ros2``, one ``ros2msg`` schema per type holding the complete message
 definition (the ``.msg`` texts of the type and of every type it uses, joined with
@@ -40,6 +41,7 @@ from kpi_calib_ros.io.mcap_scan import BagError
 from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, DEFAULT_POSE_TOPIC
 from kpi_calib_ros.io.ros_messages import (
     joint_state_fields,
+    named_values_fields,
     point_stamped_fields,
     pose_stamped_fields,
     stamp_fields,
@@ -137,10 +139,11 @@ def type_hash(type_name: str) -> str:
 
 class StreamEncoders:
     """Schema texts, channel metadata and CDR encoders of the stream topics (the pose,
-    temperature and point-σ topics only when given)."""
+    temperature, point-σ and inputs topics only when given)."""
 
     def __init__(self, joint_topic: str, point_topic: str, pose_topic: str | None = None,
-                 temperature_topic: str | None = None, sigma_topic: str | None = None) -> None:
+                 temperature_topic: str | None = None, sigma_topic: str | None = None,
+                 inputs_topic: str | None = None) -> None:
         if joint_topic == point_topic:
             raise ValueError(f"joint_topic and point_topic must differ, both are '{joint_topic}'")
         if pose_topic in (joint_topic, point_topic):
@@ -153,6 +156,9 @@ class StreamEncoders:
         if sigma_topic is not None and sigma_topic in (joint_topic, point_topic, pose_topic,
                                                        temperature_topic):
             raise ValueError(f"sigma_topic '{sigma_topic}' must differ from the other topics")
+        if inputs_topic is not None and inputs_topic in (joint_topic, point_topic, pose_topic,
+                                                         temperature_topic, sigma_topic):
+            raise ValueError(f"inputs_topic '{inputs_topic}' must differ from the other topics")
         self.topics: tuple[tuple[str, str], ...] = (
             (joint_topic, JOINT_STATE_TYPE), (point_topic, POINT_STAMPED_TYPE))
         if pose_topic is not None:
@@ -161,6 +167,8 @@ class StreamEncoders:
             self.topics += ((temperature_topic, TEMPERATURE_TYPE),)
         if sigma_topic is not None:
             self.topics += ((sigma_topic, VECTOR3_STAMPED_TYPE),)
+        if inputs_topic is not None:
+            self.topics += ((inputs_topic, JOINT_STATE_TYPE),)
         self.text = {t: message_definition(t) for _, t in self.topics}
         self.metadata = {t: {'offered_qos_profiles': _OFFERED_QOS, 'topic_type_hash': type_hash(t)}
                          for _, t in self.topics}
@@ -182,27 +190,40 @@ class StreamEncoders:
         return self._encode[VECTOR3_STAMPED_TYPE](vector3_stamped_fields(stamp_ns, frame_id,
                                                                          sigma))
 
+    def inputs(self, stamp_ns: int, names: tuple[str, ...], values: np.ndarray) -> bytes:
+        return self._encode[JOINT_STATE_TYPE](named_values_fields(stamp_ns, names, values))
+
 
 class _Recorder:
     """Writes JointState and PointStamped messages to one chunked MCAP stream."""
 
     def __init__(self, stream, joint_topic: str, point_topic: str,
                  chunk_size: int = _ROSBAG2_CHUNK_SIZE, pose_topic: str | None = None,
-                 temperature_topic: str | None = None, sigma_topic: str | None = None) -> None:
+                 temperature_topic: str | None = None, sigma_topic: str | None = None,
+                 inputs_topic: str | None = None) -> None:
         self.encoders = StreamEncoders(joint_topic, point_topic, pose_topic, temperature_topic,
-                                       sigma_topic)
+                                       sigma_topic, inputs_topic)
+        self.inputs_topic = inputs_topic
         self._writer = McapWriter(stream, chunk_size=chunk_size,
                                   compression=CompressionType.NONE, use_chunking=True)
         self._writer.start(profile='ros2', library=LIBRARY)
-        self._channels = {}
+        # channels by topic; the stream topics by their type (the first topic of a type: the
+        # joint states before the inputs topic)
+        self._channels: dict[str, list[int]] = {}
+        self._topic_of: dict[str, str] = {}
+        schemas: dict[str, int] = {}
         for topic, type_name in self.encoders.topics:
-            schema_id = self._writer.register_schema(type_name, SchemaEncoding.ROS2,
-                                                     self.encoders.text[type_name].encode())
-            self._channels[type_name] = [self._writer.register_channel(
-                topic, MessageEncoding.CDR, schema_id, self.encoders.metadata[type_name]), 0]
+            if type_name not in schemas:
+                schemas[type_name] = self._writer.register_schema(
+                    type_name, SchemaEncoding.ROS2, self.encoders.text[type_name].encode())
+            self._channels[topic] = [self._writer.register_channel(
+                topic, MessageEncoding.CDR, schemas[type_name],
+                self.encoders.metadata[type_name]), 0]
+            self._topic_of.setdefault(type_name, topic)
 
-    def _write(self, type_name: str, stamp_ns: int, data: bytes) -> None:
-        entry = self._channels[type_name]
+    def _write(self, type_name: str, stamp_ns: int, data: bytes, topic: str | None = None
+               ) -> None:
+        entry = self._channels[topic or self._topic_of[type_name]]
         entry[1] += 1
         self._writer.add_message(channel_id=entry[0], log_time=int(stamp_ns),
                                  publish_time=int(stamp_ns), sequence=entry[1], data=data)
@@ -238,6 +259,14 @@ class _Recorder:
         self._write(VECTOR3_STAMPED_TYPE, sample.stamp_ns,
                     self.encoders.point_sigma(sample.stamp_ns, sample.frame_id, sigma))
 
+    def write_inputs(self, stamp_ns: int, names: tuple[str, ...], values: np.ndarray) -> None:
+        """Measured inputs ``names`` (covariate names) = ``values`` (SI) at ``stamp_ns``, on the
+        inputs topic as named values."""
+        if self.inputs_topic is None:
+            raise ValueError('this bag was opened without an inputs topic')
+        self._write(JOINT_STATE_TYPE, stamp_ns, self.encoders.inputs(stamp_ns, names, values),
+                    self.inputs_topic)
+
     def finish(self) -> None:
         self._writer.finish()
 
@@ -256,16 +285,18 @@ class BagStream:
     def __init__(self, path: str | os.PathLike, joint_topic: str = DEFAULT_JOINT_TOPIC,
                  point_topic: str = DEFAULT_POINT_TOPIC, pose_topic: str | None = None,
                  temperature_topic: str | None = None,
-                 chunk_size: int = _ROSBAG2_CHUNK_SIZE, sigma_topic: str | None = None) -> None:
+                 chunk_size: int = _ROSBAG2_CHUNK_SIZE, sigma_topic: str | None = None,
+                 inputs_topic: str | None = None) -> None:
         self.path = Path(path)
         self._options = (joint_topic, point_topic, chunk_size, pose_topic, temperature_topic,
-                         sigma_topic)
+                         sigma_topic, inputs_topic)
 
     def __enter__(self) -> _Recorder:
         (joint_topic, point_topic, chunk_size, pose_topic, temperature_topic,
-         sigma_topic) = self._options
+         sigma_topic, inputs_topic) = self._options
         # Checked before any file is created: bad topics leave nothing behind.
-        StreamEncoders(joint_topic, point_topic, pose_topic, temperature_topic, sigma_topic)
+        StreamEncoders(joint_topic, point_topic, pose_topic, temperature_topic, sigma_topic,
+                       inputs_topic)
         fd, name = tempfile.mkstemp(prefix=f'.{self.path.name}.', suffix='.partial',
                                     dir=self.path.parent)
         self._tmp = Path(name)
@@ -274,7 +305,7 @@ class BagStream:
             self._recorder = _Recorder(self._file, joint_topic, point_topic,
                                        chunk_size=chunk_size, pose_topic=pose_topic,
                                        temperature_topic=temperature_topic,
-                                       sigma_topic=sigma_topic)
+                                       sigma_topic=sigma_topic, inputs_topic=inputs_topic)
             return self._recorder
         except BaseException:
             self._discard()

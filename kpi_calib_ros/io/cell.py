@@ -55,6 +55,7 @@ from kpi_calib_ros.core.measurement.pose import pose_matrix
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.core.model.parameters import ParameterSet, geometric_parameters
 from kpi_calib_ros.core.model.robot import Payload, RobotModel
+from kpi_calib_ros.io.cell_inputs import InputSettings, input_settings
 from kpi_calib_ros.io.cell_sections import (
     WorkingPose,
     coupling_from_mapping,
@@ -103,7 +104,7 @@ from kpi_calib_ros.io.yaml_bounded import read_yaml_file
 
 _TOP_KEYS = {'robot', 'tracker', 'reflector', 'reflectors', 'noise', 'payload', 'working_poses',
              'obstacles', 'collision', 'identification', 'effects', 'simulation', 'design',
-             'topics', 'temperature'}
+             'topics', 'temperature', 'inputs', 'compliance'}
 DEFAULT_CELL = Path(__file__).resolve().parent.parent / 'data' / 'cells' / 'default_cell.yaml'
 
 
@@ -162,6 +163,8 @@ class Cell:
     joint_sigma: float | Mapping[str, float] | None = None
     # temperature: section (io.cell_temperature); None: no temperature read.
     temperature: TemperatureSettings | None = None
+    # inputs: and compliance: sections (io.cell_inputs): measured inputs, torque source.
+    inputs: InputSettings = field(default_factory=InputSettings)
 
     @property
     def offsets(self) -> np.ndarray:
@@ -323,6 +326,7 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None,
         joint_coupling=parse_coupling(robot.get('joint_coupling')),
         working_poses_in=parse_working_poses_in(robot.get('working_poses_in', 'controller')),
         temperature=temperature_settings(doc.get('temperature')),
+        inputs=input_settings(doc.get('inputs'), doc.get('compliance')),
         allow_code_effects=allow_code_effects)
 
 
@@ -362,6 +366,20 @@ class CellModel:
         """The joints the controller reports (joint states, designed poses, plans): the
         robot's actuated joints, the chain's when nothing mimics."""
         return list(self.joint_coupling.controller_names)
+
+    @property
+    def tau_work(self) -> np.ndarray | None:
+        """Gravity torques (t, n) at the working poses, each with the payload the cell states
+        for it (``working_poses[i].payload``, else the cell's); None when no effect reads a
+        torque or no working pose states its own payload (the cell's is the robot's)."""
+        poses = self.cell.working_poses
+        if not self.model.uses_torque or not any(w.payload for w in poses) \
+                or len(poses) != len(self.q_work):
+            return None
+        cell_payload = self.robot.payload
+        payloads = [cell_payload if w.payload is None else
+                    Payload(w.payload[0], w.payload[1] or cell_payload.com) for w in poses]
+        return np.atleast_2d(self.robot.gravity_torques(self.q_work, payloads))
 
     @property
     def joint_coupling(self) -> JointCoupling:
@@ -410,7 +428,7 @@ class CellModel:
                           self.tracker_in_base, self.cell.reflector_offset,
                           self.cell.max_incidence, self.cell.sigma,
                           self.cell.identification_method, self.cell.identification_priority,
-                          self.collision_scene())
+                          self.collision_scene(), self.tau_work)
 
 
 def build_cell_model(cell: Cell, effects: tuple = ()) -> CellModel:

@@ -127,6 +127,13 @@ CELL_KEYS: tuple[CellKey, ...] = (
     _K('working_poses[].joints', 'mapping of joint name to number', 'rad (m)', REQUIRED,
        'Joint values by name.', {'joint_1': 0.0, 'joint_2': 0.45, 'joint_3': -0.35,
                                  'joint_4': 0.0, 'joint_5': 0.9, 'joint_6': 0.0}),
+    _K('working_poses[].payload', 'mapping', '', 'the cell\'s `payload`', 'The load the robot '
+       'carries at this pose: its TCP is predicted with the gravity torques of this payload '
+       '(torque-driven effects such as `joint_compliance`).', {'mass': 2.5}),
+    _K('working_poses[].payload.mass', 'number', 'kg', REQUIRED, 'Payload mass at this pose, '
+       '0 to 5000.', 2.5),
+    _K('working_poses[].payload.com', '[x, y, z]', 'm', 'the cell\'s `payload.com`', 'Its centre '
+       'of mass in the tip frame.', [0.0, 0.0, 0.08]),
     # -------------------------------------------------------------- obstacles
     _K('obstacles', 'list', '', '[]', 'Obstacles in the robot base frame, kept clear by the '
        'design (and the tracker beam).', [{'name': 'floor', 'type': 'halfspace',
@@ -291,6 +298,35 @@ CELL_KEYS: tuple[CellKey, ...] = (
        'one outside (or not finite) is a fault of the sensor or its driver, never used '
        '(counted and warned; the node does not log it); low at or above absolute zero '
        '(-273.15), high at most 1000, low < high.', [0.0, 60.0]),
+    # ----------------------------------------------------------------- inputs
+    _K('inputs', 'mapping', '', '{}', 'Measured inputs beyond temperature (a tilt, a payload '
+       'mass, any recorded quantity), each a covariate paired to every point by time; the '
+       'named-values topic is read whenever a recording has it.', {'max_gap': 5.0}),
+    _K('inputs.topic', 'string', '', '/kpi_calib/inputs', 'Named values '
+       '(sensor_msgs/JointState: name = covariate, position = value, SI) that `import-csv` '
+       'writes from a table\'s covariates and the node logs.', '/cell/inputs'),
+    _K('inputs.max_gap', 'number', 's', '10.0', 'Largest gap between readings of an input (and '
+       'beyond the first/last) bridged by interpolation; a point outside is refused.', 2.0),
+    _K('inputs.sources', 'list', '', '[]', 'Other topics whose fields are inputs, each '
+       '{topic, type, fields}.', [{'topic': '/column_tilt',
+                                   'type': 'geometry_msgs/msg/Vector3Stamped',
+                                   'fields': {'tilt.column.x': 'vector.x'}}]),
+    _K('inputs.sources[].topic', 'string', '', REQUIRED, 'The topic (absolute name).',
+       '/column_tilt'),
+    _K('inputs.sources[].type', 'string', '', REQUIRED, 'Its ROS message type, a stamped one '
+       '(with a header): pkg/msg/Type.', 'geometry_msgs/msg/Vector3Stamped'),
+    _K('inputs.sources[].fields', 'mapping of covariate name to field path', '', REQUIRED,
+       'Each input and where it is in the message: attributes joined by `.`, an element as '
+       '`[i]` or `[name]` (of the message\'s `name` list). Tilts `tilt.<sensor>.x/.y` in rad '
+       'feed `measured_tilt`; `payload.mass` (kg) and `payload.com.x/.y/.z` (m) the rows\' '
+       'gravity torques.', {'tilt.column.x': 'vector.x', 'tilt.column.y': 'vector.y'}),
+    # ------------------------------------------------------------- compliance
+    _K('compliance', 'mapping', '', '{}', 'Which torques the torque-driven effects read.',
+       {'torque_source': 'model'}),
+    _K('compliance.torque_source', '`model` or `measured`', '', 'model', '`model`: the gravity '
+       'torques of the URDF with each row\'s payload; `measured`: the joint states\' effort '
+       '(every chain joint named, one finite effort each), paired to every point by time as '
+       '`effort.<joint>` (N m).', 'measured'),
 )
 
 

@@ -22,11 +22,16 @@ MAX_REFLECTOR_OFFSET_M = 2.0   # reflector from the flange: a tool, not a second
 
 @dataclass(frozen=True)
 class WorkingPose:
-    """A working pose by joint name (``joints``) or in chain order (``values``, rad/m)."""
+    """A working pose by joint name (``joints``) or in chain order (``values``, rad/m).
+
+    ``payload``: (mass kg, centre of mass (3,) m in the tip frame or None for the cell's
+    payload centre) the robot carries at this pose; None: the cell's payload.
+    """
 
     name: str
     joints: dict[str, float]
     values: tuple[float, ...] = ()
+    payload: tuple[float, tuple[float, float, float] | None] | None = None
 
 
 def plausible_pose(pose: np.ndarray) -> np.ndarray:
@@ -185,8 +190,34 @@ def parse_working_poses(value: Any) -> tuple[WorkingPose, ...]:
                               'list of joint values in chain order')
         joints = {str(name): joint_value(v, f'{key}.joints.{name}')
                   for name, v in item['joints'].items()}
-        poses.append(WorkingPose(str(item.get('name', f'work_{i + 1}')), joints))
+        unknown = set(item) - {'name', 'joints', 'payload'}
+        if unknown:
+            raise ConfigError(f'{key}.{sorted(unknown)[0]}', 'unknown key; a working pose has '
+                              'name, joints and payload')
+        poses.append(WorkingPose(str(item.get('name', f'work_{i + 1}')), joints,
+                                 payload=_working_payload(item.get('payload'), key)))
     return tuple(poses)
+
+
+def _working_payload(value: Any, key: str
+                     ) -> tuple[float, tuple[float, float, float] | None] | None:
+    """A working pose's ``payload: {mass: kg, com: [x, y, z] m}`` (com optional: the cell's
+    payload centre); None when left out (the cell's payload)."""
+    if value is None:
+        return None
+    key = f'{key}.payload'
+    if not isinstance(value, dict) or 'mass' not in value or set(value) - {'mass', 'com'}:
+        raise ConfigError(key, 'must be {mass: kg, com: [x, y, z] m in the tip frame} (com '
+                          'optional: the cell payload\'s centre), the load the robot carries '
+                          'at this pose')
+    mass = number(value, 'mass', key, None, 'kg')
+    if not 0.0 <= mass <= 5000.0:
+        raise ConfigError(f'{key}.mass', f'{mass!r} kg: a payload is 0 to 5000 kg (SI kg; '
+                          'grams? divide by 1000)')
+    if value.get('com') is None:
+        return float(mass), None
+    com = vector(value['com'], f'{key}.com', 3)
+    return float(mass), (float(com[0]), float(com[1]), float(com[2]))
 
 
 def working_poses_from_arrays(names: Sequence[str], values: Sequence[float],

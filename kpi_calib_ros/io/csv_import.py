@@ -7,7 +7,9 @@ writes, for every row, joint states held still (zero velocity, ``rate_hz``) for
 (a ``PoseStamped`` on the pose topic for a marker with orientation columns), with
 ``header.frame_id = '<frame_id>#<marker name>'`` (the several-points convention of
 :mod:`kpi_calib_ros.core.acquisition.pairing`), and the row's cell temperature, if mapped, as a
-``sensor_msgs/Temperature``. Which columns mean what is given by a
+``sensor_msgs/Temperature``, and its measured inputs (covariates: a tilt, a payload mass,
+any recorded quantity; converted to SI) as named values on the inputs topic
+(:data:`~kpi_calib_ros.io.names.DEFAULT_INPUTS_TOPIC`). Which columns mean what is given by a
 :class:`~kpi_calib_ros.io.csv_mapping.CsvMapping` (flags or a small YAML file). Separator, decimal
 mark and encoding are detected (:mod:`kpi_calib_ros.io.csv_table`). Rows stream into
 the bag (memory grows only by a 16-byte stamp index a row: 142 MiB peak RSS for 1e6
@@ -32,6 +34,7 @@ from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.measurement.covariates import (
     ABSOLUTE_ZERO_C,
     TEMPERATURE_LIMIT_C,
+    covariate_unit,
     plausible_temperature,
 )
 from kpi_calib_ros.io.bag_writing import BagStream
@@ -44,6 +47,7 @@ from kpi_calib_ros.io.csv_mapping import (
 )
 from kpi_calib_ros.io.csv_table import TableFormat, detect_format, read_table
 from kpi_calib_ros.io.names import (
+    DEFAULT_INPUTS_TOPIC,
     DEFAULT_JOINT_TOPIC,
     DEFAULT_POINT_TOPIC,
     DEFAULT_POSE_TOPIC,
@@ -77,6 +81,7 @@ class Posture:
     q: np.ndarray
     points: tuple[tuple[str, np.ndarray, np.ndarray | None, np.ndarray | None], ...]
     temperatures: dict[str, float]  # sensor frame id -> °C
+    inputs: dict[str, float] = field(default_factory=dict)  # covariate name -> value, SI
 
 
 def read_postures(path: str | Path, mapping: CsvMapping, fmt: TableFormat | None = None
@@ -126,7 +131,27 @@ def read_postures(path: str | Path, mapping: CsvMapping, fmt: TableFormat | None
         yield Posture(path, line, stamp,
                       cell.vector(tuple(mapping.joints.values())) * joint_scale, tuple(points),
                       {sensor: cell.value(column)
-                       for sensor, column in mapping.temperatures.items()})
+                       for sensor, column in mapping.temperatures.items()},
+                      {name: _plausible_input(cell, name, c.column, c.unit,
+                                              cell.value(c.column) * c.scale)
+                       for name, c in mapping.covariates.items()})
+
+
+# The size a measured input of a known kind may have (SI): beyond, a unit slip or a fault.
+_INPUT_LIMITS = (('tilt.', -0.5, 0.5, 'rad: a column leaning by more than 0.5 rad is no '
+                  'lean'), ('payload.mass', 0.0, 5000.0, 'kg'),
+                 ('payload.com.', -2.0, 2.0, 'm from the tip frame'))
+
+
+def _plausible_input(cell: _Cells, name: str, column: str, unit: str, value: float) -> float:
+    """``value`` (SI) of covariate ``name``, or DataError naming line, column and range."""
+    for prefix, low, high, what in _INPUT_LIMITS:
+        if name.startswith(prefix) and not low <= value <= high:
+            raise DataError(f'{cell.path}: line {cell.line}, column {column!r}: {name} = '
+                            f'{value:g} in SI, outside [{low:g}, {high:g}] {what}; give the '
+                            f"column's unit in mapping.covariates.{name}.unit (now "
+                            f'{unit or "SI"})')
+    return value
 
 
 @dataclass(frozen=True)
@@ -201,6 +226,9 @@ class ImportSummary:
     # Readings no arm can have, not written: sensor -> (count, the first one's line and value).
     temperature_rejected: dict[str, tuple[int, str]] = field(default_factory=dict)
     sigma_topic: str = ''
+    # measured inputs: name -> (lowest, highest) in SI, and the topic they were written to
+    input_range: dict[str, tuple[float, float]] = field(default_factory=dict)
+    inputs_topic: str = ''
 
     def lines(self) -> list[str]:
         out = [f'written: {self.path} ({self.postures} postures, {self.points} points'
@@ -217,6 +245,9 @@ class ImportSummary:
                        f'z), written to {self.sigma_topic}: identify weighs each point by it')
         for sensor, (low, high) in self.temperature_range_c.items():
             out.append(f'temperature {sensor}: {low:.2f} to {high:.2f} °C')
+        for name, (low, high) in self.input_range.items():
+            out.append(f'input {name}: {low:.6g} to {high:.6g} {covariate_unit(name)}'.rstrip()
+                       + f', written to {self.inputs_topic}')
         for sensor, (count, first) in self.temperature_rejected.items():
             out.append(f'temperature {sensor}: {count} reading(s) outside '
                        f'[{PHYSICAL_RANGE_C[0]:g}, {PHYSICAL_RANGE_C[1]:g}] °C not written '
@@ -231,7 +262,8 @@ def import_csv(csv_path: str | Path | list, out_path: str | Path, mapping: CsvMa
                point_topic: str = DEFAULT_POINT_TOPIC,
                pose_topic: str = DEFAULT_POSE_TOPIC,
                temperature_topic: str = DEFAULT_TEMPERATURE_TOPIC,
-               delimiter: str | None = None, decimal: str | None = None) -> ImportSummary:
+               delimiter: str | None = None, decimal: str | None = None,
+               inputs_topic: str = DEFAULT_INPUTS_TOPIC) -> ImportSummary:
     """Write the postures of ``csv_path`` (one table, or a list of tables of one
     campaign, e.g. several sessions) as an MCAP bag, row by row.
 
@@ -282,7 +314,9 @@ def import_csv(csv_path: str | Path | list, out_path: str | Path, mapping: CsvMa
     with BagStream(out_path, joint_topic, point_topic,
                    pose_topic if mapping.has_poses else None,
                    temperature_topic if mapping.temperatures else None,
-                   sigma_topic=point_sigma_topic(point_topic) if has_sigma else None) as bag:
+                   sigma_topic=point_sigma_topic(point_topic) if has_sigma else None,
+                   inputs_topic=inputs_topic if mapping.covariates else None) as bag:
+        summary.inputs_topic = inputs_topic
         for i, row in enumerate(rows):
             t = row.stamp_ns if row.stamp_ns is not None else _START_NS + i * _PERIOD_NS
             stamps.add(t, row, table[row.path])
@@ -308,6 +342,11 @@ def import_csv(csv_path: str | Path | list, out_path: str | Path, mapping: CsvMa
                 bag.write_temperature(t, sensor, celsius)
                 low, high = summary.temperature_range_c.get(sensor, (np.inf, -np.inf))
                 summary.temperature_range_c[sensor] = (min(low, celsius), max(high, celsius))
+            if row.inputs:
+                bag.write_inputs(t, tuple(row.inputs), np.array(list(row.inputs.values())))
+                for name, value in row.inputs.items():
+                    low, high = summary.input_range.get(name, (np.inf, -np.inf))
+                    summary.input_range[name] = (min(low, value), max(high, value))
             bag.write_joint_held(held, (int(t + dt) for dt in offsets[offsets > 0]))
             summary.postures += 1
         if not summary.postures:

@@ -1,5 +1,6 @@
 """The column mapping of a posture table: which columns are joints, points, 6-DoF
-orientations, per-point σ, stamps (and their format) and the cell temperature.
+orientations, per-point σ, stamps (and their format), the cell temperature and measured
+inputs (covariates: a tilt, a payload mass, any recorded quantity).
 
 A small YAML file (``kpi-calib import-csv --mapping``) or flags, validated here in one
 place; every error is a :class:`~kpi_calib_ros.core.errors.ConfigError` naming the key
@@ -7,6 +8,7 @@ and the fix. Nothing about a robot is built in.
 """
 from __future__ import annotations
 
+import math
 import zoneinfo
 from dataclasses import dataclass, field
 from datetime import tzinfo
@@ -17,10 +19,27 @@ from scipy.spatial.transform import Rotation
 
 from kpi_calib_ros.core.acquisition.pairing import REFLECTOR_SEPARATOR
 from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.io.cell_inputs import check_covariate_name
 from kpi_calib_ros.io.csv_table import DECIMALS, DELIMITERS
 from kpi_calib_ros.io.yaml_bounded import read_yaml_file
 
 STAMP_FORMATS = ('unix', 'iso8601', 'serial')
+# The units a table may give a covariate in, by the covariate's kind (its name's start), each
+# with its factor to SI; a covariate of another kind is written as the table gives it.
+COVARIATE_UNITS = {
+    'tilt.': {'rad': 1.0, 'mrad': 1e-3, 'urad': 1e-6, 'µrad': 1e-6, 'deg': math.pi / 180},
+    'payload.mass': {'kg': 1.0, 'g': 1e-3},
+    'payload.com.': {'m': 1.0, 'mm': 1e-3},
+}
+
+
+@dataclass(frozen=True)
+class CovariateColumn:
+    """A measured input's column, its unit as written and the factor to SI."""
+
+    column: str
+    unit: str = ''
+    scale: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -68,6 +87,9 @@ class CsvMapping:
         is one column (the sensor is then named by ``frame_id``) or ``{frame id: column}``.
     delimiter, decimal : str or None
         Separator and decimal mark; None: detected.
+    covariates : dict of str to CovariateColumn
+        Measured inputs: covariate name (``tilt.column.x``, ``payload.mass``) -> its column
+        and unit, each row's value written (SI) to the inputs topic; {} for none.
     """
 
     joints: dict[str, str]
@@ -82,12 +104,14 @@ class CsvMapping:
     temperatures: dict[str, str] = field(default_factory=dict)
     delimiter: str | None = None
     decimal: str | None = None
+    covariates: dict[str, CovariateColumn] = field(default_factory=dict)
 
     @property
     def columns(self) -> list[str]:
         return (list(self.joints.values()) + [c for m in self.markers.values()
                                               for c in m.columns]
-                + list(self.stamp_columns) + list(self.temperatures.values()))
+                + list(self.stamp_columns) + list(self.temperatures.values())
+                + [c.column for c in self.covariates.values()])
 
     @property
     def has_poses(self) -> bool:
@@ -95,7 +119,8 @@ class CsvMapping:
 
 
 _KEYS = ('frame_id', 'joints', 'markers', 'stamp_columns', 'stamp_format', 'stamp_timezone',
-         'point_unit', 'joint_unit', 'angle_unit', 'temperature', 'delimiter', 'decimal')
+         'point_unit', 'joint_unit', 'angle_unit', 'temperature', 'delimiter', 'decimal',
+         'covariates')
 
 
 def mapping_from_dict(doc: Any) -> CsvMapping:
@@ -116,6 +141,10 @@ def mapping_from_dict(doc: Any) -> CsvMapping:
                                                       # {upper_arm: t_upper, forearm: t_fore}
         delimiter: ';'                                # optional: detected
         decimal: ','                                  # optional: detected
+        covariates:                                   # optional: measured inputs per row
+          tilt.column.x: {column: incl_x, unit: mrad} # tilt.*: rad | mrad | urad | deg
+          payload.mass: {column: load, unit: kg}      # kg | g; payload.com.*: m | mm
+          shift_hours: hours                          # any other quantity, as written
     """
     if not isinstance(doc, dict):
         raise ConfigError('mapping', 'must be a mapping with joints, markers, frame_id')
@@ -160,7 +189,41 @@ def mapping_from_dict(doc: Any) -> CsvMapping:
         raise ConfigError('mapping.decimal', f'{decimal!r}: one of {list(DECIMALS)}')
     return CsvMapping({str(k): str(v) for k, v in joints.items()}, out_markers, frame,
                       tuple(str(s) for s in stamps), units['point_unit'], units['joint_unit'],
-                      stamp_format, zone, units['angle_unit'], temperatures, delimiter, decimal)
+                      stamp_format, zone, units['angle_unit'], temperatures, delimiter, decimal,
+                      _covariates(doc.get('covariates')))
+
+
+def _covariates(raw: Any) -> dict[str, CovariateColumn]:
+    """The ``covariates:`` key: {covariate name: column, or {column: ..., unit: ...}}."""
+    if raw is None:
+        return {}
+    fix = ('{covariate name: column} or {covariate name: {column: ..., unit: ...}}, e.g. '
+           '{tilt.column.x: {column: incl_x, unit: mrad}}')
+    if not isinstance(raw, dict) or not raw:
+        raise ConfigError('mapping.covariates', fix)
+    out = {}
+    for name, spec in raw.items():
+        key = f'mapping.covariates.{name}'
+        check_covariate_name(name, 'mapping.covariates')
+        if isinstance(spec, str):
+            spec = {'column': spec}
+        if not isinstance(spec, dict) or set(spec) - {'column', 'unit'} \
+                or not isinstance(spec.get('column'), str) or not spec['column']:
+            raise ConfigError(key, fix)
+        unit = spec.get('unit')
+        kind = next((units for prefix, units in COVARIATE_UNITS.items()
+                     if name.startswith(prefix)), None)
+        if kind is None:
+            if unit is not None and not isinstance(unit, str):
+                raise ConfigError(f'{key}.unit', f'{unit!r}: the unit as text')
+            out[name] = CovariateColumn(spec['column'], unit or '', 1.0)
+            continue
+        unit = next(iter(kind)) if unit is None else unit
+        if unit not in kind:
+            raise ConfigError(f'{key}.unit', f'{unit!r}: {name} is given in one of '
+                              f'{list(kind)} (written in SI, {next(iter(kind))})')
+        out[name] = CovariateColumn(spec['column'], unit, kind[unit])
+    return out
 
 
 def _temperatures(raw: Any, frame_id: str) -> dict[str, str]:
@@ -234,5 +297,5 @@ def load_mapping(path: str | Path) -> CsvMapping:
 
 
 
-__all__ = ['CsvMapping', 'MarkerColumns', 'STAMP_FORMATS', 'load_mapping', 'mapping_from_dict',
-           'time_zone']
+__all__ = ['COVARIATE_UNITS', 'CovariateColumn', 'CsvMapping', 'MarkerColumns', 'STAMP_FORMATS',
+           'load_mapping', 'mapping_from_dict', 'time_zone']

@@ -32,7 +32,7 @@ from mcap.well_known import MessageEncoding, SchemaEncoding
 from kpi_calib_ros.core.acquisition.pairing import PairingResult, split_frame, stacked_rotations
 from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
 from kpi_calib_ros.core.errors import DataError
-from kpi_calib_ros.core.measurement.covariates import TemperatureSample
+from kpi_calib_ros.core.measurement.covariates import InputSample, TemperatureSample
 from kpi_calib_ros.io.bag import (
     DEFAULT_JOINT_TOPIC,
     DEFAULT_POINT_TOPIC,
@@ -41,6 +41,7 @@ from kpi_calib_ros.io.bag import (
     LOG_METADATA,
     BagError,
     StreamEncoders,
+    read_inputs,
     read_log_with_sigma,
     read_temperatures,
 )
@@ -76,17 +77,25 @@ class MeasurementLog:
         With it, the temperature readings (:meth:`append_temperature`) are stored too, as
         ``sensor_msgs/Temperature`` on that topic, and paired to the points by time when
         the log is read (:func:`kpi_calib_ros.io.bag.read_temperatures`).
+    inputs_topic : str, optional
+        With it, measured input readings (:meth:`append_inputs`) are stored too, as named
+        values (``sensor_msgs/JointState``) on that topic (the cell's ``inputs.topic``), and
+        paired to the points by time when the log is read (:func:`kpi_calib_ros.io.bag.
+        read_inputs`).
     """
 
     def __init__(self, directory: str | os.PathLike, joint_topic: str = DEFAULT_JOINT_TOPIC,
                  point_topic: str = DEFAULT_POINT_TOPIC,
                  pose_topic: str = DEFAULT_POSE_TOPIC,
-                 temperature_topic: str | None = None) -> None:
+                 temperature_topic: str | None = None,
+                 inputs_topic: str | None = None) -> None:
         self.directory = Path(directory)
         self.directory.mkdir(parents=True, exist_ok=True)
         self._encoders = StreamEncoders(joint_topic, point_topic, pose_topic, temperature_topic,
-                                        sigma_topic=point_sigma_topic(point_topic))
+                                        sigma_topic=point_sigma_topic(point_topic),
+                                        inputs_topic=inputs_topic)
         self.temperature_topic = temperature_topic
+        self.inputs_topic = inputs_topic
         files = _log_files(self.directory)
         last = _LOG_NAME.fullmatch(files[-1].name) if files else None  # files all match
         n = int(last.group(1)) + 1 if last else 1
@@ -234,6 +243,31 @@ class MeasurementLog:
               uncompressed_crc=zlib.crc32(body), uncompressed_size=len(body)).write(record)
         self._commit(record.end())
         self._sequence += 1
+
+    def append_inputs(self, stamp_ns: int, names: tuple[str, ...], values: np.ndarray) -> None:
+        """Store measured input readings of one stamp (covariate names, SI values) durably
+        before returning (their own chunk).
+
+        Raises
+        ------
+        ValueError
+            The log was opened without an inputs topic, or is closed.
+        OSError
+            Not stored; nothing of it is left in the file.
+        """
+        if self.closed or self.inputs_topic is None:
+            raise ValueError(f'MeasurementLog {self.path} is closed or stores no inputs')
+        channel = [t for t, _ in self._encoders.topics].index(self.inputs_topic)
+        self._write_record(int(stamp_ns), [(channel, self._encoders.inputs(
+            int(stamp_ns), tuple(names), np.asarray(values, float)))])
+
+    @staticmethod
+    def load_inputs(directory: str | os.PathLike, topic: str) -> list[InputSample]:
+        """Every measured input reading on ``topic`` in ``directory``'s logs, in stamp order."""
+        samples: list[InputSample] = []
+        for path in _log_files(Path(directory)):
+            samples += read_inputs(path, topic)[0]
+        return sorted(samples, key=lambda s: s.stamp_ns)
 
     @staticmethod
     def load_temperatures(directory: str | os.PathLike,

@@ -36,6 +36,9 @@ DEFAULT_JOINT_TOPIC = '/joint_states'
 DEFAULT_POINT_TOPIC = '/laser_tracker/point'
 DEFAULT_POSE_TOPIC = '/laser_tracker/pose'   # tracked 6-DoF bodies (PoseStamped)
 DEFAULT_TEMPERATURE_TOPIC = '/cell/temperature'   # sensor_msgs/Temperature of imported tables
+# Measured inputs as named values (sensor_msgs/JointState: name = covariate, position = value,
+# SI): what import-csv writes from a table's covariates and the node logs of its input topics.
+DEFAULT_INPUTS_TOPIC = '/kpi_calib/inputs'
 # The tracker's stated σ of a point, per axis (m), as geometry_msgs/Vector3Stamped on
 # '<point topic>/sigma', with the point's stamp and frame id (paired by both); it covers the
 # points of the point topic and the positions of tracked poses.

@@ -27,7 +27,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Header
 
 from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
-from kpi_calib_ros.core.measurement.covariates import TemperatureSample
+from kpi_calib_ros.core.measurement.covariates import InputSample, TemperatureSample
 
 _NS = 1_000_000_000
 
@@ -108,6 +108,64 @@ def temperature_sample_from_message(message: Any) -> TemperatureSample:
                              float(message.temperature))
 
 
+def named_values_from_message(message: Any) -> list[InputSample]:
+    """The named values of a ``sensor_msgs/JointState`` on the inputs topic (name = covariate,
+    position = value, SI) as samples; a message whose counts differ gives NaN values (never
+    used, counted)."""
+    names = [str(n) for n in message.name]
+    values = np.asarray(message.position, dtype=float)
+    if values.shape != (len(names),):
+        values = np.full(len(names), np.nan)
+    stamp = stamp_ns(message.header)
+    return [InputSample(stamp, n, float(v)) for n, v in zip(names, values)]
+
+
+FieldPath = tuple[tuple[str, 'str | None'], ...]
+
+
+def field_value(message: Any, path: FieldPath) -> float:
+    """The number at ``path`` (steps (attribute, index | name | None), see
+    :func:`kpi_calib_ros.io.cell_inputs.field_path`) of ``message``; NaN where this message
+    lacks the element (an index past the end, a name it does not list, counts that differ).
+
+    Raises
+    ------
+    ValueError
+        The message type has no such attribute, or the field is not a number.
+    """
+    value: Any = message
+    for attribute, index in path:
+        parent = value
+        try:
+            value = getattr(parent, attribute)
+        except AttributeError:
+            raise ValueError(f'{type(parent).__name__} has no field {attribute!r}') from None
+        if index is None:
+            continue
+        items = list(value)
+        if index.isdigit():
+            position = int(index)
+        else:
+            names = [str(n) for n in getattr(parent, 'name', ())]
+            if index not in names or len(names) != len(items):
+                return float('nan')
+            position = names.index(index)
+        if position >= len(items):
+            return float('nan')
+        value = items[position]
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
+        raise ValueError(f'the field is a {type(value).__name__}, not a number')
+    return float(value)
+
+
+def input_samples_from_message(message: Any, fields: tuple[tuple[str, FieldPath], ...]
+                               ) -> list[InputSample]:
+    """A stamped message of an input source as one sample per (covariate name, field path),
+    stamped with its header (:func:`field_value`)."""
+    stamp = stamp_ns(message.header)
+    return [InputSample(stamp, name, field_value(message, path)) for name, path in fields]
+
+
 def joint_state_fields(sample: JointSample) -> dict[str, Any]:
     """A JointSample as the nested fields of a JointState (empty velocity when none)."""
     sec, nanosec = stamp_fields(sample.stamp_ns)
@@ -115,6 +173,12 @@ def joint_state_fields(sample: JointSample) -> dict[str, Any]:
             'name': list(sample.names), 'position': [float(x) for x in sample.positions],
             'velocity': [] if sample.velocities is None else
             [float(x) for x in sample.velocities], 'effort': []}
+
+
+def named_values_fields(stamp_ns: int, names: tuple[str, ...], values: np.ndarray
+                        ) -> dict[str, Any]:
+    """Named values (the inputs topic) as the fields of a JointState: name, position."""
+    return joint_state_fields(JointSample(stamp_ns, names, np.asarray(values, float)))
 
 
 def point_stamped_fields(sample: PointSample) -> dict[str, Any]:
@@ -313,7 +377,9 @@ def _joint_sample(stamp: int, names: tuple[str, ...], positions: np.ndarray,
                        velocities if velocities.shape == (len(names),) else None)
 
 
-__all__ = ['JointStateDecoder', 'joint_sample_from_message', 'joint_state_fields',
+__all__ = ['FieldPath', 'field_value', 'input_samples_from_message', 'named_values_from_message',
+           'named_values_fields', 'JointStateDecoder', 'joint_sample_from_message',
+           'joint_state_fields',
            'joint_state_msg', 'point_sample_from_message', 'point_stamped_fields',
            'point_stamped_msg', 'pose_sample_from_message', 'pose_stamped_fields',
            'pose_stamped_msg', 'stamp_fields', 'stamp_ns', 'temperature_fields', 'time_msg']

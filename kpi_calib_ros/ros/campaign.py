@@ -37,6 +37,7 @@ from kpi_calib_ros.app.measurements import (
     pose_rows,
     stated_sigma,
     urdf_measurements,
+    with_inputs,
     with_readings,
 )
 from kpi_calib_ros.core.acquisition.pairing import (
@@ -52,7 +53,10 @@ from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.measurement.covariates import (
     TEMPERATURE_RANGE_C,
+    InputSample,
     TemperatureSample,
+    effort_name,
+    interpolate,
     plausible_temperature,
 )
 from kpi_calib_ros.core.measurement.tracker import Measurements
@@ -78,6 +82,12 @@ SIGMA_HELD_MAX = 20_000
 EARLY_MAX_NAMES = 256
 
 
+# Joint states' efforts kept for the measurements they belong to: 20 s at 500 Hz (the pairer
+# decides a point within seconds of its stamp); an effort is bridged over at most 1 s.
+EFFORT_BUFFER_SAMPLES = 10_000
+EFFORT_BUFFER_S = 20.0
+EFFORT_MAX_GAP_NS = 10**9
+
 class Campaign:
     """Accepted measurements of one campaign in ``data_dir``, and what was rejected.
 
@@ -97,12 +107,25 @@ class Campaign:
     temperature_range_c : (low, high)
         The cell's ``temperature.valid_range`` (°C): a reading outside is counted
         (``rejected_temperatures``), never logged nor kept.
+    inputs_topic : str, optional
+        Where measured input readings (:meth:`receive_inputs`) are logged (the cell's
+        ``inputs.topic``, named values) and kept, those of earlier runs reloaded; None: none
+        kept.
+    record_efforts : bool
+        The cell reads measured torques (``compliance.torque_source: measured``): the joint
+        states' efforts (:meth:`receive_efforts`) are buffered for the last
+        :data:`EFFORT_BUFFER_S` of stream time, and each accepted measurement logs the chain
+        joints' efforts interpolated at its stamp as ``effort.<joint>`` on ``inputs_topic``
+        (one record per measurement, not per joint state).
     """
 
     def __init__(self, data_dir: str | Path, early_limit: int = 20_000,
                  sigma_topic: str = point_sigma_topic(DEFAULT_POINT_TOPIC),
                  temperature_topic: str | None = None,
-                 temperature_range_c: tuple[float, float] = TEMPERATURE_RANGE_C) -> None:
+                 temperature_range_c: tuple[float, float] = TEMPERATURE_RANGE_C,
+                 inputs_topic: str | None = None, record_efforts: bool = False) -> None:
+        if record_efforts and inputs_topic is None:
+            raise ValueError('record_efforts needs an inputs_topic to log them on')
         self.data_dir = Path(data_dir)
         self.sigma_topic = sigma_topic
         self.lock = threading.RLock()
@@ -126,10 +149,23 @@ class Campaign:
         self._temperatures: list[TemperatureSample] = (
             MeasurementLog.load_temperatures(self.data_dir, temperature_topic)
             if temperature_topic and self.data_dir.is_dir() else [])
-        self.log = MeasurementLog(self.data_dir, temperature_topic=temperature_topic)
+        self.inputs_topic = inputs_topic
+        self.record_efforts = record_efforts
+        # (stamp ns, names, efforts) of the recent joint states; the chain's joint names
+        self._efforts: deque[tuple[int, tuple[str, ...], np.ndarray]] = deque(
+            maxlen=EFFORT_BUFFER_SAMPLES)
+        self._chain: tuple[str, ...] = ()
+        self._effort_stamps: set[int] = set()
+        self.rejected_inputs = 0
+        self._inputs: list[InputSample] = (
+            MeasurementLog.load_inputs(self.data_dir, inputs_topic)
+            if inputs_topic and self.data_dir.is_dir() else [])
+        self.log = MeasurementLog(self.data_dir, temperature_topic=temperature_topic,
+                                  inputs_topic=inputs_topic)
         self.pairer: Pairer | None = None
         self.rejections: Counter[str] = Counter()
-        self.received = {'joint_states': 0, 'points': 0, 'sigma': 0, 'temperatures': 0}
+        self.received = {'joint_states': 0, 'points': 0, 'sigma': 0, 'temperatures': 0,
+                         'inputs': 0}
         self._early: deque[JointSample | PointSample] = deque(maxlen=early_limit)
         self._clock: tuple[int, int] | None = None     # (stamp ns, monotonic ns of arrival)
         self._point_clock: tuple[int, int] | None = None
@@ -151,6 +187,7 @@ class Campaign:
             decisions = self._handle(self.pairer.flush()) if self.pairer else []
             pairer = self.pairer = Pairer(joint_names, tracker_frame,
                                           reflectors=tuple(reflectors), derived=derived)
+            self._chain = tuple(joint_names)
             early, self._early = list(self._early), deque(maxlen=self._early.maxlen)
             for sample in early:  # all of them before any timeout is judged
                 self._add(pairer, sample)
@@ -292,6 +329,8 @@ class Campaign:
                                       f'{exc}')
                     else:
                         self._store(joint, point)
+                        if self.record_efforts:
+                            self._log_efforts(d.stamp_ns)
                         if sigma is not None:
                             self._sigma[key] = sigma
                             del self._held_sigma[key]
@@ -299,6 +338,41 @@ class Campaign:
                 self.rejections[d.reason] += 1
             out.append(d)
         return out
+
+    def receive_efforts(self, stamp_ns: int, names: Sequence[str], efforts: np.ndarray) -> None:
+        """Buffer one joint state's efforts (N m, N; in the order of ``names``) for the
+        measurements it may belong to; ignored unless ``record_efforts``."""
+        if not self.record_efforts:
+            return
+        efforts = np.asarray(efforts, float).reshape(-1)
+        if efforts.shape != (len(names),):
+            efforts = np.full(len(names), np.nan)  # counts differ: no effort of this state
+        with self.lock:
+            self._efforts.append((int(stamp_ns), tuple(names), efforts))
+
+    def _log_efforts(self, stamp_ns: int) -> None:
+        """Log the chain joints' efforts at an accepted measurement's stamp (interpolated in
+        the buffer within :data:`EFFORT_MAX_GAP_NS`); those not known there are not logged
+        (the measurement is then refused when paired, for want of them)."""
+        if stamp_ns in self._effort_stamps or not self._chain:
+            return  # the other reflectors of one pose share its stamp
+        names, values = [], []
+        for joint in self._chain:
+            rows = [(t, e[n.index(joint)]) for t, n, e in self._efforts if joint in n]
+            value = float('nan')
+            if rows:
+                t = np.array([r[0] for r in rows], dtype=np.int64)
+                v = np.array([r[1] for r in rows], dtype=float)
+                value = float(interpolate(np.array([stamp_ns]), t, v, EFFORT_MAX_GAP_NS)[0])
+            if np.isfinite(value):
+                names.append(effort_name(joint))
+                values.append(value)
+            else:
+                self.rejected_inputs += 1
+        if names:
+            self.log.append_inputs(stamp_ns, tuple(names), np.array(values))
+            self._inputs += [InputSample(stamp_ns, n, v) for n, v in zip(names, values)]
+            self._effort_stamps.add(stamp_ns)
 
     def _store(self, joint: JointSample, point: PointSample) -> None:
         self._measurements[(point.stamp_ns, point.frame_id)] = (joint, point)
@@ -338,6 +412,8 @@ class Campaign:
                       'received.sigma': self.received['sigma'],
                       'received.temperatures': self.received['temperatures'],
                       'rejected_temperatures': self.rejected_temperatures,
+                      'received.inputs': self.received['inputs'],
+                      'rejected_inputs': self.rejected_inputs,
                       'stated_sigma': len(self._sigma),
                       'pending_sigma': len(self._held_sigma),
                       'rejected': sum(self.rejections.values())}
@@ -369,9 +445,14 @@ class Campaign:
             self._stored_frames.clear()
             self.rejections.clear()
             self.rejected_temperatures = 0
+            self.rejected_inputs = 0
             self.restored = 0
             self._temperatures.clear()
-            self.log = MeasurementLog(self.data_dir, temperature_topic=self.temperature_topic)
+            self._inputs.clear()
+            self._efforts.clear()
+            self._effort_stamps.clear()
+            self.log = MeasurementLog(self.data_dir, temperature_topic=self.temperature_topic,
+                                      inputs_topic=self.inputs_topic)
             if self.pairer is not None:
                 self.pairer.reset()
             self._clock = self._point_clock = None
@@ -396,6 +477,33 @@ class Campaign:
             self._temperatures.append(sample)
             return ''
 
+    def receive_inputs(self, samples: Sequence[InputSample]) -> str:
+        """Keep the measured input readings of one message, logged durably first (OSError:
+        not kept); returns '' when all are kept, else why not: a reading that is not finite
+        is counted (``rejected_inputs``) and neither logged nor kept."""
+        with self.lock:
+            self.received['inputs'] += 1
+            good = [s for s in samples if np.isfinite(s.value)]
+            bad = [s for s in samples if not np.isfinite(s.value)]
+            by_stamp: dict[int, list[InputSample]] = {}
+            for s in good:
+                by_stamp.setdefault(int(s.stamp_ns), []).append(s)
+            for stamp, group in sorted(by_stamp.items()):
+                self.log.append_inputs(stamp, tuple(s.name for s in group),
+                                       np.array([s.value for s in group]))
+                self._inputs += group
+            if not bad:
+                return ''
+            self.rejected_inputs += len(bad)
+            return (f'measured input {bad[0].name} = {bad[0].value!r} (stamp '
+                    f'{bad[0].stamp_ns} ns) not finite: not used ({self.rejected_inputs} so '
+                    'far); check the sensor or the message\'s names and counts')
+
+    def inputs(self) -> list[InputSample]:
+        """The measured input readings kept (this run's and the reloaded ones), a copy."""
+        with self.lock:
+            return list(self._inputs)
+
     def temperatures(self) -> list[TemperatureSample]:
         """The temperature readings kept (this run's and the reloaded ones), a copy."""
         with self.lock:
@@ -416,8 +524,22 @@ def model_measurements(campaign: Campaign, cm: CellModel
                                           cm.cell.reflector_names or ('',))
     data = urdf_measurements(cm, pose_rows(cm, data, pairing))
     stamps = np.asarray(data.stamps_ns, dtype=np.int64).ravel()
-    return with_temperature_readings(campaign, cm,
-                                     dataclasses.replace(data, stamps_ns=stamps)), pairing
+    data = with_temperature_readings(campaign, cm, dataclasses.replace(data, stamps_ns=stamps))
+    return with_input_readings(campaign, cm, data), pairing
+
+
+def with_input_readings(campaign: Campaign, cm: CellModel, data: Measurements) -> Measurements:
+    """``data`` with the campaign's measured input readings paired to its rows by stamp, as
+    a bag's are (:func:`kpi_calib_ros.app.measurements.with_inputs`).
+
+    Raises
+    ------
+    DataError
+        A source of the cell gave no finite reading (with ``compliance.torque_source:
+        measured``: no effort of every chain joint at the measurements).
+    """
+    return with_inputs(cm, data, campaign.inputs(), 'the node\'s measured inputs',
+                       [s.topic for s in cm.cell.inputs.sources])
 
 
 def with_temperature_readings(campaign: Campaign, cm: CellModel,

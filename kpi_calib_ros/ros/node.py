@@ -87,6 +87,7 @@ from kpi_calib_ros.ros.delivery import (
     latched,
     stream_qos,
 )
+from kpi_calib_ros.ros.inputs import subscribe_inputs
 from kpi_calib_ros.ros.parameters import (
     declare_parameters,
     parameter_values,
@@ -117,13 +118,17 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
         self._cell = load_cell(self.settings.cell_file, urdf_xml='',
                                allow_code_effects=self.settings.allow_code_effects)
         self.data_dir = Path(self.settings.data_dir)
+        measured_torques = self._cell.inputs.torque_source == 'measured'
         try:
             self.campaign = Campaign(
                 self.data_dir, sigma_topic=point_sigma_topic(self.settings.point_topic),
                 temperature_topic=(self._cell.temperature.topic if self._cell.temperature
                                    else None),
                 temperature_range_c=(self._cell.temperature.valid_range_c
-                                     if self._cell.temperature else TEMPERATURE_RANGE_C))
+                                     if self._cell.temperature else TEMPERATURE_RANGE_C),
+                inputs_topic=(self._cell.inputs.topic if self._cell.inputs.sources
+                              or measured_torques else None),
+                record_efforts=measured_torques)
         except OSError as exc:  # missing parent, read-only, a file in the way, no space
             raise ConfigError('data_dir', f'cannot log measurements in {str(self.data_dir)!r}: '
                               f'{exc.strerror or exc}; give a writable folder') from None
@@ -184,6 +189,7 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
                                  stream_qos(int(POINTS_MAX_HZ * STREAM_BUFFER_S)),
                                  callback_group=streams)
         subscribe_temperature(self, self.campaign, callback_group=streams)
+        subscribe_inputs(self, self.campaign, self._cell.inputs.sources, callback_group=streams)
         for name, doing, work in (('design', 'designing', self._design),
                                   ('identify', 'identifying', self._identify),
                                   ('diagnose', 'diagnosing', self._diagnose),
@@ -264,7 +270,10 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
     # ------------------------------------------------------------------ live pairing
     def _on_joint_state(self, msg: JointState, info: dict[str, Any]) -> None:
         self._sequences['joint_states'].see(info)
-        self._report(self.campaign.receive(cv.joint_sample_from_msg(msg)))
+        sample = cv.joint_sample_from_msg(msg)
+        if self.campaign.record_efforts:  # before the point it may complete is paired
+            self.campaign.receive_efforts(sample.stamp_ns, sample.names, np.asarray(msg.effort))
+        self._report(self.campaign.receive(sample))
 
     def _on_point(self, msg: PointStamped, info: dict[str, Any]) -> None:
         self._sequences['points'].see(info)

@@ -716,7 +716,7 @@ class SequentialCampaign:
         _, jac = model.pose_jacobian(self._p, self._kept_q())  # every row of each pose
         column_scale, physical_scale = scales(jac[:, :, idx],
                                               np.tile(weight, model.rows_per_pose))
-        kpi = model.jacobian(self._p, self.cell.q_work)[1][:, :, idx]
+        kpi = model.jacobian(self._p, self.cell.q_work, self.cell.tau_work)[1][:, :, idx]
         return DesignProblem(tuple(self.result.estimated), idx, self._p.copy(), weight,
                              column_scale, physical_scale, kpi, self.problem.kpi_weights)
 

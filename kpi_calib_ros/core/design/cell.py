@@ -40,6 +40,9 @@ class DesignCell:
         Parameter order of the ``'priority'`` selection.
     scene : CollisionScene
         Robot capsules and obstacles (all pairs; the design may ignore some).
+    tau_work : (t, n) ndarray or None
+        Torques at the working poses, each with the payload it carries there (N m); None:
+        the gravity torques with the cell's payload.
     """
 
     model: MeasurementModel
@@ -52,6 +55,7 @@ class DesignCell:
     identification_method: str
     identification_priority: tuple[str, ...]
     scene: CollisionScene
+    tau_work: np.ndarray | None = None
 
     @property
     def robot(self) -> RobotModel:

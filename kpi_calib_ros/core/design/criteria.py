@@ -229,7 +229,7 @@ def build_problem(cell: DesignCell, q_rich: np.ndarray,
     omega = np.array([weights.get(n, 1.0) for n in poses], float)
     if omega.sum() <= 0:
         raise ConfigError('design.weights', 'at least one working pose needs a weight > 0')
-    _, kpi_jac = model.jacobian(p, cell.q_work)
+    _, kpi_jac = model.jacobian(p, cell.q_work, cell.tau_work)
     prior_info = None
     if rows_prior is not None:
         scaled = rows_prior[:, idx] * column_scale  # D, the column scale of the rows

@@ -70,6 +70,7 @@ from kpi_calib_ros.core.estimation.residuals import (
     validation_folds,
     validation_rms,
 )
+from kpi_calib_ros.core.measurement.payload import payload_torques
 from kpi_calib_ros.core.measurement.tracker import (
     MeasurementModel,
     Measurements,
@@ -330,7 +331,7 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
     cv_base = linear_validation_rms(sys_.jac, sys_.r, sys_.w, pose_folds)
     dof_base = 3 * n - sys_.basis.shape[1]
     q = np.atleast_2d(data.q)
-    tau = sys_.tau if sys_.tau is not None else model.robot.gravity_torques(q)
+    tau = sys_.tau if sys_.tau is not None else payload_torques(model.robot, q, data.covariates)
     joint_jac = model.joint_jacobian(sys_.p, q, sys_.tau, sys_.reflector, sys_.rotation,
                                      sys_.covariates)
 

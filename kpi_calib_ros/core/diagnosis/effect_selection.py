@@ -62,7 +62,7 @@ from kpi_calib_ros.core.estimation.residuals import (
     region_validation,
     validation_folds,
 )
-from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements, row_torques
 
 __all__ = [
     'MAX_EFFECTS', 'TRIALS', 'EffectTrial', 'EffectChoice', 'choose_effects', 'effect_start',
@@ -328,7 +328,7 @@ def _violations(model: MeasurementModel, data: Measurements, result: Calibration
                 ) -> tuple[Violation, ...]:
     """Return the plausibility gate of a fit (reflector offsets judged against ``reference``)."""
     q = np.atleast_2d(data.q)
-    tau = model.robot.gravity_torques(q) if model.uses_torque else None
+    tau = row_torques(model, data)
     return gate(model, result, reference, tolerances, True, q, tau, n_geometric)
 
 
@@ -379,7 +379,7 @@ def _trial(model: MeasurementModel, data: Measurements, fit_for: FitFor,
     names = list(effect.parameter_names)
     shape = list(effect.shape_names)
     p0 = effect_start(current.values, effect, screened)
-    tau = aug.robot.gravity_torques(np.atleast_2d(data.q)) if aug.uses_torque else None
+    tau = row_torques(aug, data)
     attempts = [list(held), list(held) + shape] if shape else [list(held)]
     trial: tuple[EffectTrial, MeasurementModel | None, CalibrationResult | None] = (
         EffectTrial(effect.name, rnd, {}, {}, None, False, 'not fitted'), None, None)

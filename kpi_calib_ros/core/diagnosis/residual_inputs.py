@@ -17,6 +17,7 @@ from typing import Mapping
 import numpy as np
 
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
+from kpi_calib_ros.core.measurement.payload import payload_torques
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements
 
 __all__ = ['ResidualInput', 'residual_inputs']
@@ -87,8 +88,8 @@ def residual_inputs(model: MeasurementModel, data: Measurements, result: Calibra
         unit = 'rad' if revolute[j] else 'm'
         out.append(ResidualInput(name, q[:, j], jq[:, :, j:j + 1], ('joint error',), (unit,),
                                  unit, 'joint', periodic=revolute[j]))
-    torque = robot.gravity_torques(q) if tau is None and data.tau is None else \
-        np.asarray(tau if tau is not None else data.tau, float)
+    torque = payload_torques(robot, q, data.covariates) if tau is None and data.tau is None \
+        else np.asarray(tau if tau is not None else data.tau, float)
     for j, name in enumerate(robot.joint_names):
         if np.ptp(torque[:, j]) > 1e-6:
             out.append(ResidualInput(

@@ -70,7 +70,12 @@ from kpi_calib_ros.core.estimation.identifiability import DEFAULT_TOLERANCE
 from kpi_calib_ros.core.estimation.registration import Reregistration, reregister
 from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA
 from kpi_calib_ros.core.measurement.replicates import SAME_POSE_TOLERANCE, same_pose
-from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements, row_sigma
+from kpi_calib_ros.core.measurement.tracker import (
+    MeasurementModel,
+    Measurements,
+    row_sigma,
+    row_torques,
+)
 
 __all__ = ['PREDICTION_TOLERANCE', 'TrainingSpan', 'Validation', 'range_tolerance',
            'shared_chi2', 'training_row_space', 'validate']
@@ -318,7 +323,7 @@ def validate(model: MeasurementModel, p: np.ndarray, estimated: np.ndarray,
         text). Without them every point is taken as determined.
     """
     q = np.atleast_2d(data.q)
-    tau = model.robot.gravity_torques(q) if model.uses_torque else None
+    tau = row_torques(model, data)
     estimated = np.asarray(estimated, dtype=int)
     covariance = np.asarray(covariance, dtype=float)
     keep = ~np.isin(estimated, [] if registered is None else registered)

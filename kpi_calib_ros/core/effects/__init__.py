@@ -27,6 +27,7 @@ from kpi_calib_ros.core.effects.library import (
 from kpi_calib_ros.core.effects.registry import (
     ARGUMENT_EFFECTS,
     CHAIN_EFFECTS,
+    COVARIATE_CANDIDATES,
     ENTRY_POINT_GROUP,
     LINEAR_PLAY,
     available_effects,
@@ -38,9 +39,19 @@ from kpi_calib_ros.core.effects.registry import (
     resolve_effects,
     split_specs,
 )
+from kpi_calib_ros.core.effects.tilt import (
+    MEASURED_TILT,
+    MeasuredTilt,
+    measured_tilt,
+    tilt_candidates,
+    tilt_covariates,
+    tilt_sensors,
+)
 
 __all__ = [
     'ARGUMENT_EFFECTS', 'BACKLASH_TORQUE_SCALE', 'BoundEffect', 'CHAIN_EFFECTS',
+    'COVARIATE_CANDIDATES', 'MEASURED_TILT', 'MeasuredTilt', 'measured_tilt', 'tilt_candidates',
+    'tilt_covariates', 'tilt_sensors',
     'ENTRY_POINT_GROUP', 'EffectType', 'LIBRARY', 'LINEAR_PLAY', 'LinkBending',
     'MassFreeCompliance', 'PLAY_GRID', 'PLAY_TORQUE_UNIT', 'PeriodicJointError',
     'THERMAL_EXPANSION_BOUND', 'available_effects', 'bind_effect', 'candidate_effects',

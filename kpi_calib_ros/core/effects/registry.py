@@ -98,6 +98,7 @@ __all__ = [
     'ENTRY_POINT_GROUP', 'register_effect', 'available_effects', 'bind_effect', 'CHAIN_EFFECTS',
     'ARGUMENT_EFFECTS', 'parse_effect_spec', 'resolve_effects', 'split_specs',
     'candidate_effects', 'implausible', 'LINEAR_PLAY', 'effect_bounds', 'bound_key',
+    'COVARIATE_CANDIDATES',
 ]
 
 ENTRY_POINT_GROUP = 'kpi_calib_ros.effects'
@@ -228,6 +229,10 @@ CHAIN_EFFECTS: dict[str, Callable[[RobotModel, str | None, str], BoundEffect]] =
 # (``periodic_joint_error:joint_2:k=17``): spec name -> binder(robot, joint, argument,
 # key) -> BoundEffect. core.effects.general registers its own.
 ARGUMENT_EFFECTS: dict[str, Callable[[RobotModel, str | None, str, str], BoundEffect]] = {}
+# Effects proposed only where the measurements carry the covariates they read, with names
+# derived from those covariates (a tilt sensor's): candidates(robot, covariate names) ->
+# bound effects. core.effects.tilt registers its own.
+COVARIATE_CANDIDATES: list[Callable[[RobotModel, Iterable[str]], list[BoundEffect]]] = []
 
 
 def parse_effect_spec(spec: str, robot: RobotModel, key: str = 'effects',
@@ -341,7 +346,9 @@ def candidate_effects(robot: RobotModel, kinds: Sequence[str] | None = None,
 
     ``exclude`` holds effect names (specs) already in the model; ``covariates`` the names
     the measurements carry: by default an effect that reads covariates is a candidate only
-    where all the inputs it reads as bound are among them. ``temperatures``: the temperature
+    where all the inputs it reads as bound are among them, and the effects named after the
+    covariates (:data:`COVARIATE_CANDIDATES`: a tilt sensor's) are proposed where they are
+    recorded. ``temperatures``: the temperature
     each joint's thermal effects read (:func:`bind_effect`).
     """
     known = available_effects()
@@ -366,6 +373,9 @@ def candidate_effects(robot: RobotModel, kinds: Sequence[str] | None = None,
             if effect.name in skip or (kinds is None and not set(effect.inputs) <= present):
                 continue
             out.append(effect)
+    if kinds is None:
+        out += [effect for propose in COVARIATE_CANDIDATES for effect in propose(robot, present)
+                if effect.name not in skip]
     return out
 
 

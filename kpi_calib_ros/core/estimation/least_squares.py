@@ -46,6 +46,7 @@ from kpi_calib_ros.core.measurement.tracker import (
     MeasurementModel,
     Measurements,
     row_sigma,
+    row_torques,
     weighted_residuals,
     weighted_rows,
 )
@@ -307,7 +308,8 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
              priority: list[str] | None = None,
              tolerances: Tolerances = TOLERANCES,
              point_weights: np.ndarray | None = None,
-             prior: Prior | None = None) -> CalibrationResult:
+             prior: Prior | None = None,
+             tau_work: np.ndarray | None = None) -> CalibrationResult:
     """Identify the parameters of ``model`` from tracker data.
 
     Parameters
@@ -364,8 +366,10 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
         raise DataError('measurements contain NaN or inf; reject them before identification')
     q_work = np.atleast_2d(np.asarray(q_work, float))
     names = working_pose_names or [f'work_{i + 1}' for i in range(len(q_work))]
-    tau = model.robot.gravity_torques(q) if model.uses_torque else None
-    tau_work = model.robot.gravity_torques(q_work) if model.uses_torque else None
+    # each row's torques: measured, or the gravity torques with its own payload
+    tau = row_torques(model, data)
+    if tau_work is None and model.uses_torque:
+        tau_work = model.robot.gravity_torques(q_work)
     p = np.array(model.params.nominal if p0 is None else p0, dtype=float)
     free_idx = model.params.indices(free) if free else np.arange(len(p))
     ref = data.reflector  # (pose, reflector) rows; None: reflector 0 throughout

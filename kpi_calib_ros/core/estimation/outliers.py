@@ -77,6 +77,7 @@ from kpi_calib_ros.core.measurement.tracker import (
     Measurements,
     noise_weights,
     row_sigma,
+    row_torques,
     stated_sigma,
     weighted_residuals,
     weighted_rows,
@@ -133,9 +134,7 @@ def hat_blocks(model: MeasurementModel, data: Measurements, p: np.ndarray,
     weights ω_i scale point i's rows by √ω_i, as in the fit.
     """
     q = np.atleast_2d(data.q)
-    tau = data.tau
-    if tau is None and model.uses_torque:
-        tau = model.robot.gravity_torques(q)
+    tau = row_torques(model, data)
     pred, jac = model.jacobian(np.asarray(p, float), q, tau, data.reflector, data.rotation,
                                data.covariates)
     n = len(q)

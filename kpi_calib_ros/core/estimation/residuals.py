@@ -32,6 +32,7 @@ from kpi_calib_ros.core.measurement.tracker import (
     MeasurementModel,
     Measurements,
     noise_weights,
+    row_torques,
     stated_sigma,
     unweighted,
     weighted_residuals,
@@ -187,8 +188,8 @@ def linearized_fit(model: MeasurementModel, data: Measurements, result: Calibrat
     them and None is given).
     """
     q = np.atleast_2d(data.q)
-    if tau is None and model.uses_torque:
-        tau = model.robot.gravity_torques(q)
+    if tau is None:
+        tau = row_torques(model, data)
     p = np.asarray(result.values, float)
     w = noise_weights(model, p, data, result.sigma, tau)
     pred, jac = model.jacobian(p, q, tau, data.reflector, data.rotation, data.covariates)

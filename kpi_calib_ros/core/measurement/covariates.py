@@ -24,6 +24,13 @@ reaches below absolute zero or above :data:`TEMPERATURE_LIMIT_C`). :func:`plausi
 sets the others aside, counted: a broken sensor's 1e12 °C would otherwise become a ΔT that
 decides the thermal effects alone.
 
+Measured inputs beyond temperature (an inclinometer's tilt ``tilt.<sensor>.x``, a payload
+mass ``payload.mass`` from the cell controller, measured joint torques ``effort.<joint>``,
+any named quantity) arrive as :class:`InputSample` (stamp, covariate name, value in SI
+units) and are paired the same way (:func:`input_covariates`): interpolated at each row's
+stamp within ``max_gap_ns``, a reading that is not finite set aside and counted, a row with no
+value of an input refused with the reason, never filled in.
+
 Only differences of temperature enter a model, so °C and K are interchangeable for ΔT; the
 raw readings stay in °C as the message carries them. A stamp is given the value linearly
 interpolated between the samples on either side. Temperature changes slowly, yet a value is
@@ -48,6 +55,8 @@ __all__ = [
     'TemperatureSample', 'covariate_name', 'delta_temperature_name', 'interpolate',
     'plausible_readings', 'plausible_temperature', 'range_text',
     'temperature_covariates', 'with_covariates', 'shift_temperature',
+    'InputSample', 'DEFAULT_INPUT_MAX_GAP_NS', 'EFFORT_PREFIX', 'effort_name', 'input_covariates',
+    'covariate_unit', 'measured_covariates',
 ]
 
 TEMPERATURE_PREFIX = 'temperature.'
@@ -60,6 +69,73 @@ ABSOLUTE_ZERO_C = -273.15
 TEMPERATURE_RANGE_C = (-50.0, 150.0)
 # No cell's range reaches above: far beyond what any arm's grease, cables or encoders stand.
 TEMPERATURE_LIMIT_C = 1000.0
+
+
+# A measured input is bridged over at most this gap between its samples (and beyond the
+# first/last): an inclinometer or a controller publishes at 1 Hz or faster.
+DEFAULT_INPUT_MAX_GAP_NS = 10 * 10**9
+EFFORT_PREFIX = 'effort.'
+
+
+@dataclass(frozen=True)
+class InputSample:
+    """One reading of a measured input: header stamp (ns), covariate name, value (SI)."""
+
+    stamp_ns: int
+    name: str
+    value: float
+
+
+def effort_name(joint: str) -> str:
+    """Return the covariate name of a joint's measured torque: ``effort.<joint>`` (N m)."""
+    return EFFORT_PREFIX + joint
+
+
+def input_covariates(stamps_ns: np.ndarray, samples: Iterable[InputSample],
+                     max_gap_ns: int = DEFAULT_INPUT_MAX_GAP_NS
+                     ) -> tuple[dict[str, np.ndarray], list[InputSample]]:
+    """Return the covariates (N,) of rows stamped ``stamps_ns`` from measured input readings.
+
+    One covariate per name among ``samples``, :func:`interpolate` d at the stamps (NaN where
+    no reading lies within ``max_gap_ns``); readings that are not finite are never used and
+    returned as the second value (in the order given).
+    """
+    by_name: dict[str, list[tuple[int, float]]] = {}
+    rejected: list[InputSample] = []
+    for s in samples:
+        if not np.isfinite(s.value):
+            rejected.append(s)
+            continue
+        by_name.setdefault(s.name, []).append((int(s.stamp_ns), float(s.value)))
+    stamps = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
+    out = {}
+    for name, readings in sorted(by_name.items()):
+        t = np.array([r[0] for r in readings], dtype=np.int64)
+        v = np.array([r[1] for r in readings], dtype=float)
+        out[name] = interpolate(stamps, t, v, max_gap_ns)
+    return out, rejected
+
+
+# The unit of a covariate, from its name (measured inputs are stored in SI units).
+_UNITS = ((TEMPERATURE_PREFIX, '°C'), (DELTA_TEMPERATURE, 'K'), ('tilt.', 'rad'),
+          ('payload.mass', 'kg'), ('payload.com.', 'm'), (EFFORT_PREFIX, 'N m'))
+
+
+def covariate_unit(name: str) -> str:
+    """Return the unit of covariate ``name`` by its kind ('' for a quantity of its own)."""
+    return next((unit for prefix, unit in _UNITS if name.startswith(prefix)), '')
+
+
+def measured_covariates(covariates: Mapping[str, np.ndarray] | None
+                        ) -> dict[str, tuple[np.ndarray, str]]:
+    """Return the measured covariates of rows as (values, unit).
+
+    Every one but the derived ΔT (``delta_temperature``, the temperature shifted) and
+    measured torques (``effort.*``, the rows' torques themselves).
+    """
+    return {name: (np.asarray(values, float), covariate_unit(name))
+            for name, values in (covariates or {}).items()
+            if not name.startswith(DELTA_TEMPERATURE) and not name.startswith(EFFORT_PREFIX)}
 
 
 @dataclass(frozen=True)
@@ -191,12 +267,13 @@ def temperature_covariates(stamps_ns: np.ndarray, samples: Iterable[TemperatureS
 
 
 def with_covariates(data: Measurements, covariates: Mapping[str, np.ndarray],
-                    required: Sequence[str] = (DELTA_TEMPERATURE,)
+                    required: Sequence[str] = (DELTA_TEMPERATURE,),
+                    what: str = 'temperature'
                     ) -> tuple[Measurements, list[tuple[int, str]]]:
     """Add ``covariates`` (N,) to ``data`` and remove rows that lack a required one.
 
     A row is removed when it has no finite value of every ``required`` covariate; also returns
-    [(row index in ``data``, reason)] of those rows.
+    [(row index in ``data``, reason)] of those rows (``what`` names the quantity in it).
 
     Raises
     ------
@@ -212,10 +289,13 @@ def with_covariates(data: Measurements, covariates: Mapping[str, np.ndarray],
                              f'{values.shape}')
         merged[name] = values
     keep = np.ones(n, bool)
+    lacking = np.full(n, '', dtype=object)
     for name in required:
         if name in merged:
-            keep &= np.isfinite(merged[name])
-    refused = [(int(i), 'no temperature at its stamp (outside the temperature recording or '
+            finite = np.isfinite(merged[name])
+            lacking[~finite & keep] = name
+            keep &= finite
+    refused = [(int(i), f'no {what} at its stamp ({lacking[i]}: outside its recording or '
                 'in a gap longer than the tolerance)') for i in np.flatnonzero(~keep)]
     full = dataclasses.replace(data, covariates=merged)
     return (full if keep.all() else full.subset(keep)), refused

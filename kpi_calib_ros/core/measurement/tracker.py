@@ -54,6 +54,7 @@ from typing import Any, Mapping, Protocol, Sequence, cast
 import casadi as ca
 import numpy as np
 
+from kpi_calib_ros.core.measurement.payload import payload_torques
 from kpi_calib_ros.core.measurement.pose import (
     measured_rotation_input,
     rotation_residual_expression,
@@ -63,7 +64,8 @@ from kpi_calib_ros.core.model.parameters import ParameterSet
 from kpi_calib_ros.core.model.robot import RobotModel
 
 __all__ = [
-    'Effect', 'effect_inputs', 'Measurements', 'row_sigma', 'stated_sigma', 'MeasurementModel',
+    'Effect', 'effect_inputs', 'Measurements', 'row_sigma', 'row_torques', 'stated_sigma',
+    'MeasurementModel',
     'with_rotation_rows', 'noise_weights', 'weighted_rows', 'weighted_residuals', 'unweighted',
 ]
 
@@ -105,6 +107,9 @@ class Effect(Protocol):
     # Optional: ``frame_correction(q, tau, theta) -> (joint index, SX (3, 3)) | None``, a
     # rotation of that joint's frame after its motion (link bending); read with getattr,
     # so an effect without it corrects joint values or the point only.
+    # Optional: ``tilt_correction(theta[, z]) -> (joint index, SX (3, 3)) | None``, a rotation
+    # in the base frame's axes of that joint's frame as placed, before its motion, about its
+    # origin (a measured tilt, :mod:`kpi_calib_ros.core.effects.tilt`).
 
 
 def effect_inputs(effect: Effect) -> tuple[str, ...]:
@@ -326,6 +331,7 @@ class MeasurementModel:
             z = ca.DM.zeros(len(self.inputs))
         placement = None
         deflections: dict[int, Expr] = {}
+        tilts: dict[int, Expr] = {}
         for effect in self.effects:
             theta = p[offset:offset + len(effect.parameter_names)]
             offset += len(effect.parameter_names)
@@ -348,8 +354,13 @@ class MeasurementModel:
                 index, rotation = bent
                 deflections[index] = (deflections[index] @ rotation if index in deflections
                                       else rotation)
+            tilt = getattr(effect, 'tilt_correction', None)
+            turned = tilt(theta, *extra) if tilt is not None else None
+            if turned is not None:
+                index, rotation = turned
+                tilts[index] = tilts[index] @ rotation if index in tilts else rotation
         tip = self.chain.tip_transform(p if placement is None else p + placement, q_eff,
-                                       deflections)
+                                       deflections, tilts)
         return self.chain.base_in_tracker(p) @ tip, thetas
 
     def body_rotation_expression(self, p: Expr, q: Expr, tau: Expr, reflector: int,
@@ -388,11 +399,12 @@ class MeasurementModel:
         return ca.dot(axis, beam) / ca.norm_2(axis)
 
     # ------------------------------------------------------------- numerics
-    def _torques(self, q: np.ndarray, tau: np.ndarray | None) -> np.ndarray:
+    def _torques(self, q: np.ndarray, tau: np.ndarray | None,
+                 covariates: Mapping[str, np.ndarray] | None = None) -> np.ndarray:
         if tau is not None:
             return np.atleast_2d(tau)
         if self.uses_torque:
-            return np.atleast_2d(self.robot.gravity_torques(q))
+            return payload_torques(self.robot, q, covariates)
         return np.zeros_like(np.atleast_2d(q))
 
     def input_values(self, n: int, covariates: Mapping[str, np.ndarray] | None) -> np.ndarray:
@@ -505,7 +517,7 @@ class MeasurementModel:
         (:meth:`input_values`; None: the reference condition).
         """
         q = np.atleast_2d(q)
-        tau = self._torques(q, tau)
+        tau = self._torques(q, tau, covariates)
         z = self.input_values(len(q), covariates)
         out = np.zeros((len(q), 3))
         for k, rows in self._groups(len(q), reflector):
@@ -520,7 +532,7 @@ class MeasurementModel:
                  ) -> tuple[np.ndarray, np.ndarray]:
         """Predicted points (N, 3) and their Jacobian (N, 3, n_p) w.r.t. p."""
         q = np.atleast_2d(q)
-        tau = self._torques(q, tau)
+        tau = self._torques(q, tau, covariates)
         z = self.input_values(len(q), covariates)
         n_p = len(self.params)
         pts, jac = np.zeros((len(q), 3)), np.zeros((len(q), 3, n_p))
@@ -537,7 +549,7 @@ class MeasurementModel:
                        covariates: Mapping[str, np.ndarray] | None = None) -> np.ndarray:
         """Jacobian (N, 3, n) of the predicted points w.r.t. the joint values."""
         q = np.atleast_2d(q)
-        tau = self._torques(q, tau)
+        tau = self._torques(q, tau, covariates)
         z = self.input_values(len(q), covariates)
         out = np.zeros((len(q), 3, q.shape[1]))
         for k, rows in self._groups(len(q), reflector):
@@ -751,6 +763,21 @@ def _call(fn: ca.Function, args: list[np.ndarray]) -> list[np.ndarray]:
     return dense
 
 
+def row_torques(model: MeasurementModel, data: Measurements) -> np.ndarray | None:
+    """Return the torques (N, n) the effects of ``model`` read at ``data``'s rows, or None.
+
+    ``data.tau`` where recorded (measured joint torques); else, when an effect reads the
+    gravity torque, the robot's at every row with that row's payload
+    (:mod:`kpi_calib_ros.core.measurement.payload`: ``payload.mass`` among the covariates, else
+    the cell's payload); None when no effect reads a torque.
+    """
+    if data.tau is not None:
+        return np.atleast_2d(np.asarray(data.tau, float))
+    if not model.uses_torque:
+        return None
+    return payload_torques(model.robot, np.atleast_2d(data.q), data.covariates)
+
+
 def noise_weights(model: MeasurementModel, p: np.ndarray, data: Measurements,
                   sigma: float | np.ndarray, tau: np.ndarray | None = None,
                   point_weights: np.ndarray | None = None) -> np.ndarray:
@@ -761,10 +788,8 @@ def noise_weights(model: MeasurementModel, p: np.ndarray, data: Measurements,
     """
     q = np.atleast_2d(data.q)
     rows = row_sigma(sigma, data.sigma, len(q))
-    if tau is None and data.tau is not None:
-        tau = data.tau
-    if tau is None and model.uses_torque:
-        tau = model.robot.gravity_torques(q)
+    if tau is None:
+        tau = row_torques(model, data)
     return model.whitening(np.asarray(p, float), q, rows, tau, data.reflector, data.rotation,
                            point_weights, data.covariates)
 

@@ -120,11 +120,15 @@ class SymbolicChain:
         return [int(i) for i in self._placement[joint]]
 
     def link_transforms(self, p: Expr, q: Expr,
-                        deflections: dict[int, Expr] | None = None) -> list:
+                        deflections: dict[int, Expr] | None = None,
+                        tilts: dict[int, Expr] | None = None) -> list:
         """Poses (4x4) of every chain joint frame in the base frame, base to tip.
 
         ``deflections``: {chain joint index: rotation (3x3)} applied to that joint's frame
         after its motion (a link bent by its load; the physical effects supply them).
+        ``tilts``: {chain joint index: rotation (3x3) in the base frame's axes} turning that
+        joint's frame, as placed and before its motion, about its own origin (a column
+        leaning by a measured angle): everything from that joint on turns with it.
         """
         transforms = []
         current = ca.DM.eye(4)
@@ -136,7 +140,10 @@ class SymbolicChain:
                 motion = homogeneous(ca.DM.eye(3), ca.DM(joint.axis) * value)
             else:
                 motion = homogeneous(axis_rotation(joint.axis, value), ca.DM.zeros(3))
-            current = current @ ca.DM(joint.placement) @ error @ motion
+            current = current @ ca.DM(joint.placement) @ error
+            if tilts and i in tilts:
+                current = homogeneous(tilts[i] @ current[0:3, 0:3], current[0:3, 3])
+            current = current @ motion
             if deflections and i in deflections:
                 current = current @ homogeneous(deflections[i], ca.DM.zeros(3))
             transforms.append(current)
@@ -153,12 +160,14 @@ class SymbolicChain:
         return poses, transforms[-1] @ ca.DM(self.robot.tip_placement)
 
     def tip_transform(self, p: Expr, q: Expr,
-                      deflections: dict[int, Expr] | None = None) -> Expr:
+                      deflections: dict[int, Expr] | None = None,
+                      tilts: dict[int, Expr] | None = None) -> Expr:
         """Tip frame pose (4x4) in the base frame.
 
-        ``deflections``: see :meth:`link_transforms`.
+        ``deflections``, ``tilts``: see :meth:`link_transforms`.
         """
-        return self.link_transforms(p, q, deflections)[-1] @ ca.DM(self.robot.tip_placement)
+        return (self.link_transforms(p, q, deflections, tilts)[-1]
+                @ ca.DM(self.robot.tip_placement))
 
     def base_in_tracker(self, p: Expr) -> Expr:
         """Return the base frame pose (4x4) in the tracker frame."""

@@ -23,6 +23,7 @@ from __future__ import annotations
 import re
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 import pinocchio as pin
@@ -374,13 +375,34 @@ class RobotModel:
         return ChainJoint(name, kind, placement, axis, lower, upper, child, mimic)
 
     def _add_payload(self, tip: pin.Frame) -> None:
+        jid = self._pin_joint_ids[-1]
+        # the tip body without payload, and the tip frame in its joint: other payloads
+        # (:meth:`gravity_torques` per row) are added to it
+        self._bare_tip = pin.Inertia(self.pin_model.inertias[jid])
+        self._tip_in_joint = pin.SE3(tip.placement)
+        self._loaded: dict[Payload, tuple[pin.Model, pin.Data]] = {}
         if self.payload.mass <= 0.0:
             return
-        com_in_joint = tip.placement.act(np.asarray(self.payload.com, dtype=float))
-        added = pin.Inertia.FromSphere(self.payload.mass, 0.0)
-        added = pin.Inertia(added.mass, com_in_joint, added.inertia)
-        jid = self._pin_joint_ids[-1]
-        self.pin_model.inertias[jid] = self.pin_model.inertias[jid] + added
+        self.pin_model.inertias[jid] = self._bare_tip + self._payload_inertia(self.payload)
+
+    def _payload_inertia(self, payload: Payload) -> pin.Inertia:
+        com_in_joint = self._tip_in_joint.act(np.asarray(payload.com, dtype=float))
+        return pin.Inertia(float(payload.mass), com_in_joint, np.zeros((3, 3)))
+
+    def _model_with(self, payload: Payload) -> tuple[pin.Model, pin.Data]:
+        """Return the Pinocchio model (and its data) with ``payload`` in place of the cell's."""
+        if payload == self.payload:
+            return self.pin_model, self._pin_data
+        loaded = self._loaded.get(payload)
+        if loaded is None:
+            model = pin.Model(self.pin_model)
+            model.inertias[self._pin_joint_ids[-1]] = (
+                self._bare_tip + self._payload_inertia(payload) if payload.mass > 0.0
+                else pin.Inertia(self._bare_tip))
+            loaded = model, model.createData()
+            if len(self._loaded) < 64:  # a campaign has a few loads, not one per row
+                self._loaded[payload] = loaded
+        return loaded
 
     # ------------------------------------------------------------------ numerics
     def pin_configuration(self, q: np.ndarray) -> np.ndarray:
@@ -425,28 +447,48 @@ class RobotModel:
         """Nominal tip pose (4, 4) in the base frame, computed by Pinocchio."""
         return self.pin_link_poses(q)[1]
 
-    def gravity_torques(self, q: np.ndarray) -> np.ndarray:
+    def gravity_torques(self, q: np.ndarray,
+                        payloads: Sequence[Payload] | None = None) -> np.ndarray:
         """Gravity torque (N m, or N for prismatic) of each chain joint.
 
         Parameters
         ----------
         q : (n,) or (N, n) ndarray
             Chain joint values.
+        payloads : sequence of N Payload, optional
+            The payload each row carries on the tip in place of the cell's (a campaign that
+            mixes loads); None: the cell's payload on every row.
 
         Returns
         -------
         (n,) or (N, n) ndarray
             Generalised gravity forces including the payload, with the URDF
             root frame taken as level (gravity along its -z).
+
+        Raises
+        ------
+        ValueError
+            ``payloads`` not one per row, or a mass that is negative or not finite.
         """
         q = np.asarray(q, dtype=float)
         single = q.ndim == 1
         rows = np.atleast_2d(q)
+        if payloads is not None:
+            payloads = list(payloads)
+            if len(payloads) != len(rows):
+                raise ValueError(f'payloads must give one payload per row ({len(rows)}), got '
+                                 f'{len(payloads)}')
+            bad = [p for p in payloads if not (np.isfinite(p.mass) and p.mass >= 0.0
+                                               and np.all(np.isfinite(p.com)))]
+            if bad:
+                raise ValueError(f'a payload mass must be finite and >= 0 kg with a finite '
+                                 f'centre of mass, got {bad[0]}')
         v_idx = [self.pin_model.joints[j].idx_v for j in self._pin_joint_ids]
         out = np.empty_like(rows)
         for k, row in enumerate(rows):
-            tau = pin.computeGeneralizedGravity(self.pin_model, self._pin_data,
-                                                self.pin_configuration(row))
+            model, data = ((self.pin_model, self._pin_data) if payloads is None
+                           else self._model_with(payloads[k]))
+            tau = pin.computeGeneralizedGravity(model, data, self.pin_configuration(row))
             out[k] = np.asarray(tau)[v_idx]
         return out[0] if single else out
 

@@ -1,0 +1,76 @@
+"""The payload of each row: a campaign that mixes loads, and the gravity torques it makes.
+
+A row may carry its own payload as covariates (``Measurements.covariates``, the names a
+recording puts on every row it measured with that load)::
+
+    payload.mass                              kg, >= 0
+    payload.com.x, payload.com.y, payload.com.z   m, its centre of mass in the tip frame
+
+A row without ``payload.com.*`` takes the cell's payload centre. The gravity torques of such
+a row are the robot's with that payload on the tip in place of the cell's
+(:meth:`~kpi_calib_ros.core.model.robot.RobotModel.gravity_torques`), so an effect that reads
+the gravity torque (``joint_compliance``) is identified from the difference between the
+loads: the way a compliance is proved, the same poses measured unloaded and loaded.
+"""
+from __future__ import annotations
+
+from typing import Mapping
+
+import numpy as np
+
+from kpi_calib_ros.core.model.robot import Payload, RobotModel
+
+__all__ = ['PAYLOAD_MASS', 'PAYLOAD_COM', 'PAYLOAD_MASS_LIMIT_KG', 'row_payloads',
+           'payload_torques']
+
+PAYLOAD_MASS = 'payload.mass'
+PAYLOAD_COM = ('payload.com.x', 'payload.com.y', 'payload.com.z')
+# What any arm a tracker calibrates may lift, with margin (the largest industrial arms carry
+# 2.3 t): a value beyond is a unit slip (grams) or a fault of the controller's report.
+PAYLOAD_MASS_LIMIT_KG = 5000.0
+
+
+def row_payloads(covariates: Mapping[str, np.ndarray] | None, n: int,
+                 default: Payload) -> list[Payload] | None:
+    """Return the payload of each of ``n`` rows from ``covariates``; None when they carry no mass.
+
+    ``payload.mass`` (kg) per row, ``payload.com.*`` (m, tip frame) where given, else the
+    centre of ``default`` (the cell's payload).
+
+    Raises
+    ------
+    ValueError
+        A mass negative, beyond :data:`PAYLOAD_MASS_LIMIT_KG` or not finite, a centre not
+        finite, only some of the three centre coordinates, or another length than ``n``.
+    """
+    if not covariates or PAYLOAD_MASS not in covariates:
+        return None
+    mass = np.asarray(covariates[PAYLOAD_MASS], float).reshape(-1)
+    given = [name for name in PAYLOAD_COM if name in covariates]
+    if given and len(given) != 3:
+        raise ValueError(f'the payload centre needs all of {list(PAYLOAD_COM)} (m, tip frame), '
+                         f'got only {given}')
+    com = (np.column_stack([np.asarray(covariates[c], float).reshape(-1) for c in PAYLOAD_COM])
+           if given else np.tile(np.asarray(default.com, float), (len(mass), 1)))
+    if mass.shape != (n,) or com.shape != (n, 3):
+        raise ValueError(f'{PAYLOAD_MASS} must hold one value per row ({n}), got {mass.shape}')
+    bad = ~(np.isfinite(mass) & (mass >= 0) & (mass <= PAYLOAD_MASS_LIMIT_KG)
+            & np.all(np.isfinite(com), axis=1))
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ValueError(f'row {i}: payload {float(mass[i])!r} kg at {com[i].tolist()} m is not a '
+                         f'payload (finite, 0 to {PAYLOAD_MASS_LIMIT_KG:g} kg, SI units)')
+    return [Payload(float(m), (float(c[0]), float(c[1]), float(c[2])))
+            for m, c in zip(mass, com)]
+
+
+def payload_torques(robot: RobotModel, q: np.ndarray,
+                    covariates: Mapping[str, np.ndarray] | None = None) -> np.ndarray:
+    """Return the gravity torques (N, n) of rows ``q`` (N, n).
+
+    Each with its own payload where ``covariates`` carry one (:func:`row_payloads`), else
+    with the cell's.
+    """
+    q = np.atleast_2d(q)
+    return np.atleast_2d(robot.gravity_torques(q, row_payloads(covariates, len(q),
+                                                                robot.payload)))

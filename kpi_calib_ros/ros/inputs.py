@@ -1,0 +1,78 @@
+"""The node's measured inputs: the cell's ``inputs.sources`` topics, each reading logged with
+the measurements and paired to them by time when a job takes the campaign's data.
+
+Each source topic is subscribed with its stated type; every field the cell names becomes one
+reading (covariate name, value, the message's header stamp) that goes to the
+:class:`~kpi_calib_ros.ros.campaign.Campaign` (durably logged on the cell's ``inputs.topic``
+before it is kept; a reading that is not finite is counted and warned, never kept). A job
+pairs them with the accepted measurements as a bag's are
+(:func:`kpi_calib_ros.ros.campaign.with_input_readings`): interpolated at each point's stamp
+within ``inputs.max_gap``, a point without a reading refused with a warning.
+"""
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+from rclpy.node import Node
+from rclpy.qos import QoSProfile
+
+from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.io.cell_inputs import InputSource, field_path
+from kpi_calib_ros.io.ros_messages import input_samples_from_message
+from kpi_calib_ros.ros.campaign import Campaign
+
+INPUT_DEPTH = 100  # an inclinometer at 10-100 Hz: a buffer of a second or more
+
+
+def message_class(type_name: str) -> Any:
+    """The Python class of ROS message type ``pkg/msg/Type`` (as ``ros2 topic`` finds it)."""
+    package, middle, name = type_name.split('/')
+    kind = getattr(importlib.import_module(f'{package}.{middle}'), name)
+    if not hasattr(kind, '_TYPE_SUPPORT') and not hasattr(kind, 'get_fields_and_field_types'):
+        raise ValueError(f'{type_name} is not a message class')
+    return kind
+
+
+def subscribe_inputs(node: Node, campaign: Campaign, sources: tuple[InputSource, ...],
+                     callback_group: Any = None) -> list[Any]:
+    """Subscribe ``node`` to every input source; returns the subscriptions.
+
+    Raises
+    ------
+    ConfigError
+        A source's type is not an installed message type.
+    """
+    out = []
+    for i, source in enumerate(sources):
+        key = f'inputs.sources[{i}]'
+        try:
+            kind = message_class(source.type)
+        except (AttributeError, ModuleNotFoundError, ValueError) as exc:
+            raise ConfigError(f'{key}.type', f'{source.type!r} is not an installed message '
+                              f'type ({exc}); give pkg/msg/Type of the topic') from None
+        fields = tuple((name, field_path(path, f'{key}.fields.{name}'))
+                       for name, path in source.fields)
+        out.append(node.create_subscription(kind, source.topic, _receiver(node, campaign, source,
+                                                                           fields),
+                                            QoSProfile(depth=INPUT_DEPTH),
+                                            callback_group=callback_group))
+    return out
+
+
+def _receiver(node: Node, campaign: Campaign, source: InputSource, fields: tuple) -> Any:
+    def on_message(message: Any) -> None:
+        try:
+            samples = input_samples_from_message(message, fields)
+        except (ValueError, AttributeError) as exc:
+            node.get_logger().error(f'{source.topic} ({source.type}): {exc}; fix the field '
+                                    "paths of the cell's inputs.sources", throttle_duration_sec=5.0)
+            return
+        try:
+            refused = campaign.receive_inputs(samples)
+        except (OSError, ValueError) as exc:
+            node.get_logger().error(f'measured input not stored: {exc}')
+            return
+        if refused:
+            node.get_logger().warning(f'{source.topic}: {refused}', throttle_duration_sec=5.0)
+    return on_message

@@ -1,0 +1,129 @@
+"""Payloads per row: the gravity torques of each row with its own load (``payload.mass``,
+``payload.com.*``), validated; joint compliance identified from two loads within 3σ, a third
+load predicted at the noise floor, and the TCP of a working pose with the payload the cell
+states for it."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from kpi_calib_ros.app.identify import calibrate_cell, with_effects
+from kpi_calib_ros.core.diagnosis.candidates import augmented_model
+from kpi_calib_ros.core.effects.registry import parse_effect_spec
+from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.core.measurement.payload import row_payloads
+from kpi_calib_ros.core.measurement.tracker import Measurements, row_torques
+from kpi_calib_ros.core.model.robot import Payload, RobotModel
+from kpi_calib_ros.core.simulation import random_configurations, true_parameters
+from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict, read_cell_document
+
+SIGMA = 20e-6
+COMPLIANCE = {'joint_2': -2e-6, 'joint_3': -3e-6}
+
+
+def test_each_row_carries_its_own_payload(cm):
+    rng = np.random.default_rng(0)
+    q = random_configurations(cm.model, cm.model.params.nominal, 6, rng)
+    robot = cm.robot
+    assert robot.payload.mass == 5.0  # the default cell's
+    bare = RobotModel(cm.cell.urdf_xml, cm.cell.base_frame, cm.cell.tip_frame)
+    com = robot.payload.com
+    loads = [Payload(0.0, com), Payload(5.0, com), Payload(2.5, com)] * 2
+    tau = robot.gravity_torques(q, loads)
+    np.testing.assert_allclose(tau[[0, 3]], bare.gravity_torques(q[[0, 3]]), atol=1e-9)
+    np.testing.assert_allclose(tau[[1, 4]], robot.gravity_torques(q[[1, 4]]), atol=1e-9)
+    # linear in the mass: 2.5 kg is half-way between 0 and 5 kg
+    half = 0.5 * (bare.gravity_torques(q[[2, 5]]) + robot.gravity_torques(q[[2, 5]]))
+    np.testing.assert_allclose(tau[[2, 5]], half, atol=1e-9)
+    # the rows' torques follow their covariates; without, the cell's payload
+    data = Measurements(q=q, eta=np.zeros((6, 3)),
+                        covariates={'payload.mass': np.array([0.0, 5.0, 2.5] * 2)})
+    model = augmented_model(cm.model, (parse_effect_spec('joint_compliance:joint_2', robot),))
+    np.testing.assert_allclose(row_torques(model, data), tau, atol=1e-12)
+    np.testing.assert_allclose(row_torques(model, dataclasses.replace(data, covariates=None)),
+                               robot.gravity_torques(q), atol=1e-12)
+    assert row_torques(cm.model, data) is None  # no effect reads a torque
+
+
+def test_a_payload_that_is_none_is_refused():
+    default = Payload(5.0, (0.0, 0.0, 0.05))
+    with pytest.raises(ValueError, match='row 1: payload -1.0 kg'):
+        row_payloads({'payload.mass': np.array([0.0, -1.0])}, 2, default)
+    with pytest.raises(ValueError, match='row 0: payload nan kg'):
+        row_payloads({'payload.mass': np.array([np.nan, 1.0])}, 2, default)
+    with pytest.raises(ValueError, match=r"needs all of \['payload.com.x'"):
+        row_payloads({'payload.mass': np.ones(2), 'payload.com.z': np.ones(2)}, 2, default)
+    got = row_payloads({'payload.mass': np.array([1.0, 2.0])}, 2, default)
+    assert got == [Payload(1.0, (0.0, 0.0, 0.05)), Payload(2.0, (0.0, 0.0, 0.05))]
+
+
+def _cell_with_working_payload(payload):
+    doc = read_cell_document(DEFAULT_CELL)
+    doc['robot']['urdf'] = str((DEFAULT_CELL.parent / doc['robot']['urdf']).resolve())
+    doc['working_poses'] = [{'name': 'half_load', 'payload': payload,
+                             'joints': {'joint_1': 0.0, 'joint_2': 0.45, 'joint_3': -0.35,
+                                        'joint_4': 0.0, 'joint_5': 0.9, 'joint_6': 0.0}}]
+    return cell_from_dict(doc, DEFAULT_CELL.parent)
+
+
+def test_a_working_pose_states_its_payload():
+    cell = _cell_with_working_payload({'mass': 2.5})
+    assert cell.working_poses[0].payload == (2.5, None)
+    for bad, key in (({'mass': -1}, 'working_poses[0].payload.mass'),
+                     ({'mass': 2.0, 'colour': 1}, 'working_poses[0].payload'),
+                     ({'mass': 2.0, 'com': [0, 0]}, 'working_poses[0].payload.com')):
+        with pytest.raises(ConfigError, match=key.replace('[', r'\[').replace(']', r'\]')):
+            _cell_with_working_payload(bad)
+
+
+def _two_loads(cm, seed):
+    """The same 40 poses measured without and with 5 kg, 40 fresh poses with 2.5 kg."""
+    rng = np.random.default_rng(seed)
+    effects = tuple(parse_effect_spec(f'joint_compliance:{j}', cm.robot) for j in COMPLIANCE)
+    truth = augmented_model(cm.model, effects)
+    p_true = np.concatenate([true_parameters(cm.model.params, rng), list(COMPLIANCE.values())])
+
+    def measure(q, mass):
+        cov = {'payload.mass': np.full(len(q), mass)}
+        clean = truth.predict(p_true, q, covariates=cov)
+        return Measurements(q=q, eta=clean + rng.normal(0.0, SIGMA, clean.shape),
+                            covariates=cov)
+    q = random_configurations(cm.model, cm.model.params.nominal, 40, rng)
+    both = [measure(q, 0.0), measure(q, 5.0)]
+    data = Measurements(q=np.vstack([d.q for d in both]), eta=np.vstack([d.eta for d in both]),
+                        covariates={'payload.mass': np.concatenate(
+                            [d.covariates['payload.mass'] for d in both])})
+    fresh = measure(random_configurations(cm.model, cm.model.params.nominal, 40, rng), 2.5)
+    return data, fresh, effects, truth, p_true
+
+
+@pytest.mark.slow
+def test_compliance_is_identified_from_two_loads_and_predicts_a_third(cm):
+    data, fresh, effects, truth, p_true = _two_loads(cm, 4)
+    cell = _cell_with_working_payload({'mass': 2.5})
+    loaded = with_effects(build_cell_model(cell), effects)
+    cal = calibrate_cell(loaded, data, model='geometric')
+    for joint, c in COMPLIANCE.items():
+        name = f'joint_compliance.{joint}.c'
+        assert abs(cal.result.value(name) - c) < 3 * cal.result.std_of(name), name
+    miss = fresh.eta - loaded.model.predict(cal.result.values, fresh.q,
+                                            covariates=fresh.covariates)
+    assert np.sqrt(np.mean(np.sum(miss ** 2, axis=1))) <= 1.2 * np.sqrt(3) * SIGMA
+    # the working pose's TCP is the one with its 2.5 kg, within its stated covariance
+    tcp_true = truth.predict(p_true, loaded.q_work, covariates={'payload.mass': np.array([2.5])})
+    error = cal.result.tcp[0] - tcp_true[0]
+    assert error @ np.linalg.solve(cal.result.tcp_covariance[0], error) < 16.27  # χ²₃ 99.9 %
+
+
+def test_the_design_and_the_campaign_take_the_working_pose_payload():
+    """The KPI rows of the design (and of a sequential campaign) are those of the working
+    pose with the payload the cell states for it."""
+    cell = _cell_with_working_payload({'mass': 2.5, 'com': [0.0, 0.0, 0.1]})
+    cm = build_cell_model(cell, effects=('joint_compliance:joint_2',))
+    expected = cm.robot.gravity_torques(cm.q_work, [Payload(2.5, (0.0, 0.0, 0.1))])
+    np.testing.assert_allclose(cm.tau_work, expected, atol=1e-12)
+    np.testing.assert_allclose(cm.design_cell().tau_work, expected, atol=1e-12)
+    assert not np.allclose(expected, cm.robot.gravity_torques(cm.q_work))  # not the 5 kg
+    assert build_cell_model(cell).tau_work is None  # no effect reads a torque
