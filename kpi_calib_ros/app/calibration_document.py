@@ -8,7 +8,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -78,15 +78,17 @@ class CellCalibration:
 def plausibility_gate(cm: CellModel, result: CalibrationResult, start: np.ndarray,
                       q: np.ndarray, tau: np.ndarray | None = None,
                       reflector: np.ndarray | None = None,
-                      free: Sequence[str] | None = None) -> tuple[str, ...]:
+                      free: Sequence[str] | None = None,
+                      covariates: Mapping[str, np.ndarray] | None = None) -> tuple[str, ...]:
     """The plausibility gate of ``result`` with the cell's ``identification.tolerances`` and
     ``identification.bounds`` (:func:`kpi_calib_ros.core.estimation.plausibility.gate`): the
     base pose against ``start`` (the cell's or registered placement), the reflector offsets
     against the cell's (or, left out, whether the measured rows determine them), the joint
     corrections against the URDF, the effects against their bounds, at the measured joint
     values ``q`` (N, n), gravity torques ``tau`` and reflector indices ``reflector`` (N,);
-    an effect parameter in ``free`` the fit left out is undetermined. Returns one line per
-    violation."""
+    an effect parameter in ``free`` the fit left out is undetermined; ``covariates`` the rows'
+    (their recording: each further recording's placement is judged against its own
+    registration in ``start``). Returns one line per violation."""
     n_geo = len(cm.geometric)
     params = cm.model.params
     reference = np.array(start[:n_geo], dtype=float)
@@ -98,7 +100,7 @@ def plausibility_gate(cm: CellModel, result: CalibrationResult, start: np.ndarra
         tau = cm.robot.gravity_torques(np.atleast_2d(q))
     return tuple(v.text() for v in gate(cm.model, result, reference,
                                         cm.cell.identification.tolerances, stated,
-                                        q, tau, n_geo, reflector, free))
+                                        q, tau, n_geo, reflector, free, covariates))
 
 
 def calibration_document(cm: CellModel, result: CalibrationResult,

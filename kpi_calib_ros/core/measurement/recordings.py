@@ -26,7 +26,12 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements
+from kpi_calib_ros.core.measurement.tracker import (
+    MeasurementModel,
+    Measurements,
+    noise_weights,
+    weighted_rows,
+)
 from kpi_calib_ros.core.model.parameters import (
     BASE_COMPONENTS,
     RECORDING_PREFIX,
@@ -38,7 +43,7 @@ from kpi_calib_ros.core.model.parameters import (
 __all__ = [
     'PREFIX', 'NAME_PATTERN', 'Recording', 'covariate', 'base_names', 'reflector_names',
     'recording_parameters', 'recording_names', 'placed_model', 'combine', 'row_recording',
-    'row_covariates',
+    'row_covariates', 'Contribution', 'contributions', 'placement_names',
 ]
 
 PREFIX = RECORDING_PREFIX
@@ -202,3 +207,93 @@ def combine(parts: Sequence[Measurements], recordings: Sequence[Recording]) -> M
                         tau=stack('tau'), stamps_ns=stack('stamps_ns'),
                         reflector=stack('reflector'), rotation=stack('rotation'),
                         sigma=stack('sigma'), covariates=covariates or None)
+
+
+def placement_names(params: ParameterSet, index: int, names: Sequence[str]) -> list[str]:
+    """The placement parameters of recording ``index`` of ``names`` (all, first included).
+
+    The first: ``base.*`` and ``reflector.*``; a further one: its ``recording.<name>.*``.
+    """
+    if index == 0:
+        return [n for n in params.names if n.startswith(('base.', 'reflector.'))]
+    return [n for n in params.names if n.startswith(f'{PREFIX}{names[index]}.')]
+
+
+@dataclass(frozen=True)
+class Contribution:
+    """What one recording contributed to a joint identification.
+
+    ``poses``: its point rows; ``rms_m``: the rms of their residual distance (m);
+    ``placement``: {parameter name: value} of its base pose (and reflector, remounted),
+    ``placement_std``: their std (NaN: not identified); ``tcp_variance_ratio``: the trace of
+    the TCP covariance at the working poses in the robot's base frame (its placement not
+    counted) without this recording's rows over the one with every recording (≥ 1; inf:
+    without it the identified robot is not determined); None when there are no working poses.
+    """
+
+    name: str
+    poses: int
+    rms_m: float
+    placement: dict[str, float]
+    placement_std: dict[str, float]
+    tcp_variance_ratio: float | None
+
+
+def contributions(model: MeasurementModel, data: Measurements, values: np.ndarray,
+                  estimated: Sequence[str], std: Sequence[float], sigma: np.ndarray,
+                  q_work: np.ndarray, names: Sequence[str]) -> list[Contribution]:
+    """Per recording of ``names`` (all, first included): :class:`Contribution`.
+
+    ``data`` the rows the fit kept, ``values`` (n_p,) its estimate, ``estimated`` and ``std``
+    the identified parameters and their std, ``sigma`` the noise (3,) or (N, 3) (m),
+    ``q_work`` (t, n) the working poses. The TCP information is linearised at ``values``
+    with the same identified parameters: the robot's (every placement held) TCP covariance
+    with the rows of every recording and without those of one.
+    """
+    params = model.params
+    values = np.asarray(values, float)
+    index = row_recording(data, names)
+    ref = (np.zeros(len(data), int) if data.reflector is None
+           else np.asarray(data.reflector, int))
+    points = ref < model.n_reflectors
+    predicted = model.predict(values, data.q, data.tau, data.reflector, data.rotation,
+                              data.covariates)
+    miss = np.linalg.norm(np.atleast_2d(data.eta) - predicted, axis=1)
+    own = [set(placement_names(params, i, names)) for i in range(len(names))]
+    placements = set().union(*own)
+    robot = [n for n in estimated if n not in placements]
+    idx = params.indices(list(estimated))
+    w = noise_weights(model, values, data, sigma)
+    _, jac = model.jacobian(values, data.q, data.tau, data.reflector, data.rotation,
+                            data.covariates)
+    rows = weighted_rows(jac, w, idx).reshape(len(data), 3, len(idx))
+    ratio: list[float | None] = [None] * len(names)
+    if len(q_work) and robot:
+        _, kpi = model.jacobian(values, np.atleast_2d(q_work))
+        kpi = kpi.reshape(-1, len(values))[:, idx]
+        keep = np.array([n in robot for n in estimated])
+        kpi = np.where(keep[None, :], kpi, 0.0)
+
+        def tcp_trace(mask: np.ndarray, drop: set[str]) -> float:
+            cols = np.array([n not in drop for n in estimated])
+            a = rows[mask][:, :, cols].reshape(-1, int(cols.sum()))
+            info = a.T @ a
+            if np.linalg.matrix_rank(info) < info.shape[0]:
+                return float('inf')
+            k = kpi[:, cols]
+            return float(np.trace(k @ np.linalg.solve(info, k.T)))
+        every = tcp_trace(np.ones(len(data), bool), set())
+        for i in range(len(names)):
+            ratio[i] = tcp_trace(index != i, own[i]) / every
+    stds = dict(zip(estimated, std))
+    value = dict(zip(params.names, values))
+    out = []
+    for i, name in enumerate(names):
+        mine = (index == i) & points
+        placed = placement_names(params, i, names)
+        out.append(Contribution(
+            name, int(np.count_nonzero(mine)),
+            float(np.sqrt(np.mean(miss[mine] ** 2))) if mine.any() else float('nan'),
+            {n: float(value[n]) for n in placed},
+            {n: float(stds.get(n, float('nan'))) for n in placed}, ratio[i]))
+    return out
