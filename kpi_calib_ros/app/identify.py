@@ -19,6 +19,8 @@ from kpi_calib_ros.app.calibration_document import (
     add_robust_sections,
     calibration_document,
     plausibility_gate,
+    recordings_section,
+    recordings_text,
     robust_summary,
 )
 from kpi_calib_ros.app.finish import finish_calibration
@@ -61,6 +63,7 @@ from kpi_calib_ros.core.measurement.recordings import (
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements
 from kpi_calib_ros.core.model.parameters import RECORDING_PREFIX, reflector_prefixes
 from kpi_calib_ros.io.cell import CellModel
+from kpi_calib_ros.io.recordings_manifest import RecordingSource
 from kpi_calib_ros.io.report import (
     comparison_text,
     comparison_to_dict,
@@ -513,7 +516,8 @@ def print_progress(line: str) -> None:
     print(line, file=sys.stderr, flush=True)
 
 
-def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Path,
+def run_identify(cell_path: str | Path, bag_path: str | Path | Sequence[RecordingSource],
+                 out_dir: str | Path,
                  effects: str = '', model: str | None = None,
                  max_iterations: int | None = None, learned_residual: bool = False,
                  **options: Any) -> int:
@@ -535,6 +539,10 @@ def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
     removes an older learned_residual.yaml it does not replace. The files are written as
     one set (:func:`kpi_calib_ros.app.finish.finish_calibration`): a full disk leaves the
     previous set intact and is a ConfigError naming ``out_dir`` (exit 2).
+
+    ``bag_path`` a sequence of recordings (``--bag`` repeated, ``--recordings``): identified
+    together (:func:`kpi_calib_ros.app.measurements.load_recordings`), each with its own
+    placement; calibration.yaml's ``recordings:`` states what each contributed.
     """
     writable_folder(out_dir, '--out')
     cm, data, pairing = load_measurements(cell_path, bag_path, effects, **options)
@@ -550,6 +558,12 @@ def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
     comparison = ''
     if cm.model.effects and cal.valid:
         comparison = add_effect_comparison(doc, cm, subset(data, cal.robust.kept), cal.result)
+    recordings_lines = ''
+    if not isinstance(bag_path, (str, Path)):
+        doc['recordings'] = recordings_section(
+            cm, subset(data, cal.robust.kept), cal.result,
+            [s.recording for s in bag_path], [str(s.bag) for s in bag_path])
+        recordings_lines = recordings_text(doc['recordings'])
     residual_text, learned = '', None
     if learned_residual:
         from kpi_calib_ros.app.learned_residual import learned_residual_section
@@ -569,6 +583,8 @@ def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
         print(how)
     if comparison:
         print(comparison)
+    if recordings_lines:
+        print(recordings_lines)
     if residual_text:
         print(residual_text)
     print(f'written: {done.path}')

@@ -241,17 +241,22 @@ def refused_text(cm: CellModel, total: int, refused: list[tuple[int, str]]) -> s
             f'(temperature.max_gap = {gap:g} s)')
 
 
-def load_measurements(cell_path: str | Path, bag_path: str | Path, effects: str = '',
+def load_measurements(cell_path: str | Path,
+                      bag_path: str | Path | Sequence[RecordingSource], effects: str = '',
                       joint_topic: str | None = None, point_topic: str | None = None,
                       allow_code_effects: bool = False, pose_topic: str | None = None
                       ) -> tuple[CellModel, Measurements, PairingResult]:
     """Cell model (with the extra ``effects`` specs, comma-separated) and the paired
-    measurements of a bag; rejections are reported on stderr.
+    measurements of a bag; rejections are reported on stderr. ``bag_path`` a sequence of
+    recordings: :func:`load_recordings` (several set-ups identified together).
 
     ``joint_topic`` / ``point_topic`` / ``pose_topic`` (``--joint-topic`` /
     ``--point-topic`` / ``--pose-topic``) override the cell's ``topics:``;
     ``allow_code_effects`` lets effects name Python code.
     """
+    if not isinstance(bag_path, (str, Path)):
+        return load_recordings(cell_path, bag_path, effects, joint_topic, point_topic,
+                               allow_code_effects, pose_topic)
     cell = load_cell(cell_path, allow_code_effects=allow_code_effects)
     cm = build_cell_model(cell, effects=tuple(split_specs(effects)))
     data, pairing = measurements_from_bag(cm, bag_path, joint_topic, point_topic, pose_topic)

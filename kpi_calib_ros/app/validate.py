@@ -18,7 +18,11 @@ import numpy as np
 
 from kpi_calib_ros.app.calibration_document import require_valid
 from kpi_calib_ros.app.learned_residual import learned_validation_text, validate_learned
-from kpi_calib_ros.app.measurements import measurements_from_bag, print_rejections
+from kpi_calib_ros.app.measurements import (
+    measurements_from_bag,
+    print_rejections,
+    with_recordings,
+)
 from kpi_calib_ros.core.diagnosis.validation import Validation, validate
 from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.estimation.residuals import (
@@ -29,7 +33,7 @@ from kpi_calib_ros.core.estimation.residuals import (
 from kpi_calib_ros.core.measurement.replicates import SAME_POSE_TOLERANCE
 from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.model.parameters import BASE_COMPONENTS, reflector_prefixes
-from kpi_calib_ros.io.calibration_file import read_calibration_document
+from kpi_calib_ros.io.calibration_file import calibration_recordings, read_calibration_document
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
 from kpi_calib_ros.io.learned_residual_file import read_residual
 from kpi_calib_ros.io.names import LEARNED_RESIDUAL_FILE, VALIDATION_FILE
@@ -61,8 +65,11 @@ def read_calibration(path: str | Path) -> dict[str, Any]:
 
 
 def calibrated_model(cell: Any, doc: dict[str, Any]) -> tuple[CellModel, np.ndarray]:
-    """The cell model with the calibration's effects and its parameter vector."""
+    """The cell model with the calibration's effects and recordings (each further one's
+    placement, :mod:`kpi_calib_ros.core.measurement.recordings`) and its parameter vector.
+    A new recording's rows carry no recording covariate: they are placed by ``base.*``."""
     cm = build_cell_model(cell, effects=tuple(doc.get('effects') or ()))
+    cm = with_recordings(cm, calibration_recordings(doc, 'calibration'))
     return cm, parameter_vector(cm, doc)
 
 

@@ -72,7 +72,7 @@ class Recording:
 
 
 def covariate(name: str) -> str:
-    """The one-hot covariate of recording ``name`` (1 on its rows)."""
+    """Return the one-hot covariate of recording ``name`` (1 on its rows)."""
     return f'{PREFIX}{name}'
 
 
@@ -150,7 +150,7 @@ def row_recording(data: Measurements, names: Sequence[str]) -> np.ndarray:
 
 
 def row_covariates(names: Sequence[str], index: np.ndarray) -> dict[str, np.ndarray]:
-    """The one-hot covariates of the recordings after the first for rows of ``index`` (N,)."""
+    """Return the one-hot covariates of the recordings after the first, rows ``index`` (N,)."""
     index = np.asarray(index, dtype=int)
     return {covariate(name): (index == i).astype(float) for i, name in enumerate(names)
             if i > 0}
@@ -210,7 +210,7 @@ def combine(parts: Sequence[Measurements], recordings: Sequence[Recording]) -> M
 
 
 def placement_names(params: ParameterSet, index: int, names: Sequence[str]) -> list[str]:
-    """The placement parameters of recording ``index`` of ``names`` (all, first included).
+    """Return the placement parameters of recording ``index`` of ``names`` (first included).
 
     The first: ``base.*`` and ``reflector.*``; a further one: its ``recording.<name>.*``.
     """

@@ -368,9 +368,10 @@ class MeasurementModel:
         return z[self.inputs.index(f'{RECORDING_PREFIX}{name}')] > 0.5
 
     def _base_pose(self, p: Expr, z: Expr) -> Expr:
-        """Base pose (4x4) in the tracker frame of the row's recording (the first: ``base.*``).
+        """Return the base pose (4x4) in the tracker frame of the row's recording.
 
-        Selected exactly (``if_else``), so every derivative is that recording's own.
+        The first recording's is ``base.*``; selected exactly (``if_else``), so every
+        derivative is that recording's own.
         """
         base = self.chain.base_in_tracker(p)
         for name in self.recordings:
