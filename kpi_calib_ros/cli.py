@@ -179,10 +179,13 @@ def build_parser() -> argparse.ArgumentParser:
     val.add_argument('--bag', required=True, help='new MCAP bag (not used for the calibration)')
     val.add_argument('--out', required=True, help='output folder: validation.json, plot')
     val.add_argument('--allow-code-effects', action='store_true', help=CODE_EFFECTS_HELP)
-    val.add_argument('--register', nargs='?', const='base', choices=['base', 'base+reflector'],
+    val.add_argument('--register', nargs='?', const='base',
+                     choices=['base', 'base+reflector', 'reflector'],
                      help='the tracker (or probe) was set up again: re-fit the base pose '
-                     '(base+reflector: and the reflector offsets) on the new recording alone '
-                     'first; the rms after it is the figure to compare, chi2 loses its dof')
+                     '(base+reflector: and the reflector offsets; reflector: the offsets '
+                     'alone, the probe remounted) on the new recording alone first; the rms '
+                     'after it is the figure to compare, chi2 loses its dof; a learned '
+                     'residual is carried into the registered set-up')
     _bag_topics(val)
 
     imp = sub.add_parser('import-csv', help='a table of static postures (CSV) into an MCAP bag')

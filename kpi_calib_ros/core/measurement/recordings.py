@@ -32,6 +32,7 @@ from kpi_calib_ros.core.measurement.tracker import (
     noise_weights,
     weighted_rows,
 )
+from kpi_calib_ros.core.model.kinematics import rpy_matrix
 from kpi_calib_ros.core.model.parameters import (
     BASE_COMPONENTS,
     RECORDING_PREFIX,
@@ -43,7 +44,7 @@ from kpi_calib_ros.core.model.parameters import (
 __all__ = [
     'PREFIX', 'NAME_PATTERN', 'Recording', 'covariate', 'base_names', 'reflector_names',
     'recording_parameters', 'recording_names', 'placed_model', 'combine', 'row_recording',
-    'row_covariates', 'Contribution', 'contributions', 'placement_names',
+    'row_covariates', 'Contribution', 'contributions', 'placement_names', 'to_first_frame',
 ]
 
 PREFIX = RECORDING_PREFIX
@@ -132,6 +133,32 @@ def placed_model(model: MeasurementModel, recordings: Sequence[Recording]
     return MeasurementModel(model.robot, geometric, model.effects, model.reflector_axis,
                             model.orientations, model.rotation_scale, model.joint_sigma,
                             model.joint_temperatures)
+
+
+def to_first_frame(model: MeasurementModel, values: np.ndarray, data: Measurements,
+                   vectors: np.ndarray) -> np.ndarray:
+    """Turn ``vectors`` (N, 3) of ``data``'s rows into the first recording's tracker frame.
+
+    Each is in its own recording's frame: turned by R_first R_rowᵀ (the base rotations at
+    ``values``).
+    A residual (a displacement of the tool) compares across recordings only in one frame;
+    without recordings ``vectors`` is returned as it is.
+    """
+    vectors = np.asarray(vectors, float)
+    if not model.recordings:
+        return vectors
+    params = model.params
+    values = np.asarray(values, float)
+
+    def rotation(names: list[str]) -> np.ndarray:
+        return np.array(rpy_matrix(*values[params.indices(names[3:])]), float)
+    first = rotation([f'base.{c}' for c in BASE_COMPONENTS])
+    index = row_recording(data, ('',) + tuple(model.recordings))
+    out = vectors.copy()
+    for i, name in enumerate(model.recordings, 1):
+        rows = index == i
+        out[rows] = vectors[rows] @ (first @ rotation(base_names(name)).T).T
+    return out
 
 
 def row_recording(data: Measurements, names: Sequence[str]) -> np.ndarray:
