@@ -267,7 +267,8 @@ class Contribution:
 
 
 def contributions(model: MeasurementModel, data: Measurements, values: np.ndarray,
-                  estimated: Sequence[str], std: Sequence[float], sigma: np.ndarray,
+                  estimated: Sequence[str], std: Sequence[float] | np.ndarray,
+                  sigma: np.ndarray,
                   q_work: np.ndarray, names: Sequence[str]) -> list[Contribution]:
     """Per recording of ``names`` (all, first included): :class:`Contribution`.
 
