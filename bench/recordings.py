@@ -5,7 +5,9 @@ are 1.9–2.1 m and 29–34° apart (ground tilts of 36–41 mrad), 40 poses eac
 probe remounted by 1.1 cm; each set-up's placement started from its own registration on the
 nominal robot. The joint identification (geometric model) is compared with the equivalent
 truth (the true robot in the kept parameters: a noise-free fit to 300 fresh poses of each
-set-up): the worst |error|/σ over every identified parameter (placements included). A fourth
+set-up): the worst |error|/σ over every identified parameter (placements included), and the
+error's χ² with the fit's covariance (χ² of as many dof as parameters when the covariance
+is right: of 42 parameters, one beyond 3σ in 11 % of fits). A fourth
 set-up (another station, 40 poses) is registered on 6 of its points (the base pose re-fitted,
 the calibration held: its first 6 poses, random, or 6 spread over its points by
 farthest-point selection, as one places registration points) and its other 34 points
@@ -14,9 +16,9 @@ with set-up A alone calibrated (40 poses).
 
 Real (../shared/data/ipa_ur10): 400 poses of Series A (random, seed 0) and half of Series D
 (316 poses, random, seed 0: months later, tracker set up again and the probe remounted)
-identified together, D's reflector its own; the other 316 poses of D predicted after
-registration (base and probe offset re-fitted on them, ``validate --register
-base+reflector``), against the same prediction from A alone.
+identified together, D's reflector its own, at the geometric and the joint-offset level;
+the other 316 poses of D predicted after registration (base and probe offset re-fitted on
+them, ``validate --register base+reflector``), against the same prediction from A alone.
 
 Writes bench/results/recordings.md.
 
@@ -30,6 +32,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import scipy.stats
 import yaml
 
 from kpi_calib_ros.app.calibration_document import calibration_document
@@ -59,6 +62,7 @@ MOVES = {'b': np.array([-1.2, 1.5, 0.1, 0.02, -0.03, 0.6]),
 REMOUNT = np.array([0.004, -0.003, 0.01])
 RECORDINGS = [rec.Recording('a'), rec.Recording('b'), rec.Recording('c', True)]
 BASE = [f'base.{c}' for c in ('x', 'y', 'z', 'roll', 'pitch', 'yaw')]
+LEVELS = ('geometric', 'joint_offsets')  # model levels of the real calibrations
 
 
 def set_up_rows(cm, p_robot: np.ndarray, name: str, n: int, rng, sigma: float = SIGMA,
@@ -124,7 +128,9 @@ def simulated(seed: int, cm) -> dict:
     equivalent = identify(placed.model, dense, SIGMA, cm.q_work, p0=result.values,
                           free=list(result.estimated))
     idx = placed.model.params.indices(list(result.estimated))
-    z = (result.values[idx] - equivalent.values[idx]) / result.std
+    error = result.values[idx] - equivalent.values[idx]
+    z = error / result.std
+    chi2 = float(error @ np.linalg.solve(result.covariance, error))
     worst = int(np.argmax(np.abs(z)))
     placement = [i for i, n in enumerate(result.estimated)
                  if n.startswith(('base.', 'reflector.', 'recording.'))]
@@ -133,6 +139,7 @@ def simulated(seed: int, cm) -> dict:
     alone = calibrate_cell(cm, parts[0], model='geometric').result
     return {'seed': seed, 'valid': joint.valid, 'implausible': len(joint.implausible),
             'parameters': len(result.estimated), 'worst_z': float(abs(z[worst])),
+            'chi2': chi2, 'chi2_p': float(scipy.stats.chi2.sf(chi2, len(z))),
             'worst_name': result.estimated[worst],
             'worst_placement_z': float(np.max(np.abs(z[placement]))),
             'equivalent_rms_m': equivalent.rms_m, 'seconds': seconds,
@@ -166,20 +173,21 @@ def real(data_dir: Path) -> dict:
     order = np.random.default_rng(0).permutation(len(d))
     d_train, d_test = d.subset(order[:len(d) // 2]), d.subset(order[len(d) // 2:])
     out: dict = {'a': len(a_train), 'd_train': len(d_train), 'd_test': len(d_test)}
-    for label, cal_cm, data in (
-            ('A alone', cm, a_train),
-            ('A and half of D', with_recordings(cm, [rec.Recording('A'),
-                                                     rec.Recording('D', True)]),
-             rec.combine([a_train, d_train], [rec.Recording('A'), rec.Recording('D', True)]))):
-        start = time.perf_counter()
-        cal = calibrate_cell(cal_cm, data, model='geometric')
-        seconds = time.perf_counter() - start
-        calibration = calibration_document(cal_cm, cal.result)
-        v = validate_calibration(cal_cm, cal.result.values, calibration, d_test,
-                                 'base+reflector')
-        out[label] = {'valid': cal.valid, 'training_rms_m': cal.result.rms_m,
-                      'implausible': list(cal.implausible), 'd_rms_m': v.rms_m,
-                      'seconds': seconds}
+    both = [rec.Recording('A'), rec.Recording('D', True)]
+    for level in LEVELS:
+        for label, cal_cm, data in (
+                ('A alone', cm, a_train),
+                ('A and half of D', with_recordings(cm, both),
+                 rec.combine([a_train, d_train], both))):
+            start = time.perf_counter()
+            cal = calibrate_cell(cal_cm, data, model=level)
+            seconds = time.perf_counter() - start
+            calibration = calibration_document(cal_cm, cal.result)
+            v = validate_calibration(cal_cm, cal.result.values, calibration, d_test,
+                                     'base+reflector')
+            out[(level, label)] = {'valid': cal.valid, 'training_rms_m': cal.result.rms_m,
+                                   'implausible': list(cal.implausible), 'd_rms_m': v.rms_m,
+                                   'seconds': seconds}
     return out
 
 
@@ -204,13 +212,15 @@ def main(argv: list[str]) -> int:
              '1.9 m / 2.1 m and 34° / 29° from A (tilts 36 / 41 mrad), C with the probe '
              'remounted (11 mm); the fourth set-up D 1.8 m and 32° from A (tilt 32 mrad), '
              f'registered on {REGISTER_ON} points, its other {POSES - REGISTER_ON} predicted.', '',
-             '| seed | valid | gate violations | identified | worst \\|error\\|/σ (which) | '
+             '| seed | valid | gate violations | identified | χ² of the error (p) | '
+             'worst \\|error\\|/σ (which) | '
              'worst over placements | D, 6 random points: joint (µm, × floor) | A alone | '
              'D, 6 spread points: joint | A alone | joint fit (s) |',
-             '|---|---|---|---|---|---|---|---|---|---|---|']
+             '|---|---|---|---|---|---|---|---|---|---|---|---|']
     for r in rows:
         lines.append(
             f"| {r['seed']} | {r['valid']} | {r['implausible']} | {r['parameters']} | "
+            f"{r['chi2']:.1f} ({r['chi2_p']:.2f}) | "
             f"{r['worst_z']:.2f} ({r['worst_name']}) | {r['worst_placement_z']:.2f} | "
             f"{r['joint_rms_m'] * 1e6:.1f} ({r['joint_rms_m'] / floor:.3f}) | "
             f"{r['alone_rms_m'] * 1e6:.1f} ({r['alone_rms_m'] / floor:.3f}) | "
@@ -230,16 +240,19 @@ def main(argv: list[str]) -> int:
               f"({mean('alone_spread_m') / floor:.3f} × floor).", '',
               '## Real: UR10 Series A and D in one identification', '',
               f"{ur10['a']} poses of Series A and {ur10['d_train']} of Series D (probe "
-              f"remounted, its own reflector offset) identified together (geometric model); "
+              f"remounted, its own reflector offset) identified together, at two model levels; "
               f"the other {ur10['d_test']} poses of D predicted after registration (base "
               'and probe offset re-fitted on them).', '',
-              '| calibration | valid | training rms (µm) | D predicted (µm) | gate | fit (s) |',
-              '|---|---|---|---|---|---|']
-    for label in ('A alone', 'A and half of D'):
-        r = ur10[label]
-        lines.append(f"| {label} | {r['valid']} | {r['training_rms_m'] * 1e6:.1f} | "
-                     f"{r['d_rms_m'] * 1e6:.1f} | {'; '.join(r['implausible']) or 'passes'} | "
-                     f"{r['seconds']:.1f} |")
+              '| model level | calibration | valid | training rms (µm) | D predicted (µm) | '
+              'plausibility gate | fit (s) |',
+              '|---|---|---|---|---|---|---|']
+    for level in LEVELS:
+        for label in ('A alone', 'A and half of D'):
+            r = ur10[(level, label)]
+            lines.append(f"| {level} | {label} | {r['valid']} | "
+                         f"{r['training_rms_m'] * 1e6:.1f} | {r['d_rms_m'] * 1e6:.1f} | "
+                         f"{'; '.join(v.split(';')[0] for v in r['implausible']) or 'passes'} "
+                         f"| {r['seconds']:.1f} |")
     (ROOT / 'bench' / 'results' / 'recordings.md').write_text('\n'.join(lines) + '\n')
     print('\n'.join(lines))
     return 0

@@ -173,12 +173,22 @@ def recordings_start(cm: CellModel, data: Measurements
             rows = rows.subset(np.asarray(rows.reflector) < cm.model.n_reflectors)
         prefixes = reflector_prefixes(params)
         remounted = f'{RECORDING_PREFIX}{name}.{prefixes[0]}.x' in params.names
-        held = None if remounted else np.array(
-            [p0[params.indices([f'{prefix}.{c}' for c in 'xyz'])] for prefix in prefixes])
         tips = np.array([cm.robot.pin_tip_pose(row) for row in np.atleast_2d(rows.q)])
+        first = np.array([p0[params.indices([f'{prefix}.{c}' for c in 'xyz'])]
+                          for prefix in prefixes])
+        held = None if remounted else first
         try:
-            own = register(rows.eta, tips, max_rms=REGISTRATION_MAX_RMS_M,
-                           reflector=rows.reflector, offsets=held)
+            try:
+                own = register(rows.eta, tips, max_rms=REGISTRATION_MAX_RMS_M,
+                               reflector=rows.reflector, offsets=held)
+            except DataError:
+                if not remounted:
+                    raise
+                # Postures that hardly turn the tool cannot register the remounted offset:
+                # it starts at the first recording's, and the joint fit takes what they
+                # determine of it.
+                own = register(rows.eta, tips, max_rms=REGISTRATION_MAX_RMS_M,
+                               reflector=rows.reflector, offsets=first)
         except (DataError, ValueError) as exc:
             raise DataError(f'recording {name!r}: {exc}') from None
         values = dict(zip(base_names(name), own.base_in_tracker))

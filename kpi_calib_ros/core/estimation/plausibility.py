@@ -8,9 +8,10 @@ checks every identified quantity against what the cell states about it:
 
 * the base pose in the tracker frame (``base.*``): within ``base_translation`` /
   ``base_rotation`` of the placement the identification started from (the cell's
-  ``tracker.base_in_tracker``, or its registration from the points); the placement of every
-  further recording (``recording.<name>.base.*``, ``recording.<name>.reflector.*``) likewise
-  within those tolerances of its own registration;
+  ``tracker.base_in_tracker``, or its registration from the points); the base pose of every
+  further recording (``recording.<name>.base.*``) likewise within those tolerances of its own
+  registration, and a remounted probe's offsets (``recording.<name>.reflector.*``, registered,
+  not stated) determined by the data (std within ``reflector_offset``);
 * every reflector offset (``reflector[.<name>].{x,y,z}``): within ``reflector_offset`` of the
   cell's ``reflector.offset`` (a prior with a tolerance, never a start to throw away); when
   the cell leaves it out, determined by the postures (the registration's std);
@@ -308,6 +309,15 @@ def geometric_violations(model: MeasurementModel, result: CalibrationResult,
         where = ('the placement the identification started from' if base else 'the URDF')
         if name.startswith(RECORDING_PREFIX):
             where = 'the registration of its recording'
+            if key == 'reflector_offset':
+                # A remounted probe is registered, not stated (as a reflector the cell
+                # leaves out): where it sits is the data's to say; undetermined it is not.
+                if name in std and std[name] > tol:
+                    out.append(Violation(name, f'undetermined: std {std[name]:.3g} m > the '
+                                         f'tolerance {tol:g} m', f'{turn} in this recording '
+                                         '(identification.tolerances.reflector_offset widens '
+                                         'the tolerance)'))
+                continue
         if moved <= tol:
             # Within its tolerance it is a plausible robot, however loosely the data pin it
             # (a near-gauge pair such as a placement translation and rotation the points
