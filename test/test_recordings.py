@@ -203,3 +203,31 @@ def test_combine_refuses_a_condition_stated_for_some_recordings_only():
     np.testing.assert_array_equal(both.covariates['recording.b'], [0, 0, 1, 1])
     with pytest.raises(ValueError, match='must start with a letter'):
         rec.Recording('2nd station')
+
+
+def test_a_remounted_probe_the_postures_cannot_register_starts_at_the_first_offset(cm):
+    """Set-up C's postures turn the tool about one axis only (joint 1 and q2 + q3 fixed, the
+    wrist still): its own offset cannot be registered, so its placement is registered with the
+    first's offset and the offset starts there (as Series D of the real UR10); before, the
+    identification stopped naming the degenerate postures."""
+    rng = np.random.default_rng(8)
+    p_robot = true_parameters(cm.model.params, rng)
+    a, _ = _campaign(cm, RECORDINGS[:1], p_robot, 30, rng)
+    q = np.tile(cm.q_work[0], (30, 1))
+    q[:, 0] = rng.uniform(-0.5, 0.5, 30)
+    q[:, 1] += rng.uniform(-0.3, 0.3, 30)
+    q[:, 2] -= q[:, 1] - cm.q_work[0, 1]  # q2 + q3 fixed: the tool turns about joint 1 only
+    single = p_robot.copy()
+    single[:6] += MOVES['c']
+    single[-3:] += REMOUNT
+    c = simulate_measurements(cm.model, single, q, SIGMA, rng)
+    both = [RECORDINGS[0], RECORDINGS[2]]
+    placed = with_recordings(cm, both)
+    start, _ = recordings_start(placed, rec.combine([a, c], both))
+    params = placed.model.params
+    np.testing.assert_array_equal(start[params.indices(rec.reflector_names('c', 'reflector'))],
+                                  start[params.indices(['reflector.x', 'reflector.y',
+                                                        'reflector.z'])])
+    # its base registered with that offset: within the remount (1.1 cm) of the truth
+    base = start[params.indices(rec.base_names('c'))]
+    assert np.linalg.norm(base[:3] - single[:3]) < 0.05
