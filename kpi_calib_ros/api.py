@@ -204,8 +204,8 @@ def validate(cell: CellModel, calibration: CellCalibration | str | Path,
     ``kpi-calib validate`` does.
 
     ``calibration``: what :func:`calibrate` returned, or a calibration.yaml.
-    ``register`` (``'base'`` or ``'base+reflector'``): re-fit the placement on the new
-    recording first, for a tracker set up again.
+    ``register`` (``'base'``, ``'base+reflector'`` or ``'reflector'``): re-fit the placement on
+    the new recording first, for a tracker (or probe) set up again.
     """
     doc: dict[str, Any]
     if isinstance(calibration, CellCalibration):

@@ -13,8 +13,9 @@ import signal
 import sys
 import threading
 from pathlib import Path
+from typing import Any
 
-from kpi_calib_ros.core.errors import DataError, KpiCalibError
+from kpi_calib_ros.core.errors import ConfigError, DataError, KpiCalibError
 from kpi_calib_ros.core.estimation.drift_state import (
     DAY_HOURS,
     OFFSET_SWING_RAD,
@@ -113,7 +114,7 @@ def build_parser() -> argparse.ArgumentParser:
                          'not valid, 2 error, 3 (with --prior) a change beyond the drift '
                          'model: not blended')
     ide.add_argument('--cell', required=True)
-    ide.add_argument('--bag', required=True, help='MCAP bag with joint states and tracker points')
+    _recordings(ide)
     ide.add_argument('--out', required=True, help='output folder')
     ide.add_argument('--effects', default='', metavar='EFFECT:JOINT,...',
                      help="physical effects added to the cell file's effects: (e.g. "
@@ -156,7 +157,7 @@ def build_parser() -> argparse.ArgumentParser:
                          'missing physical effect; exit 0, 1 when the TCP is not estimable '
                          'from the measurements (as identify)')
     dia.add_argument('--cell', required=True)
-    dia.add_argument('--bag', required=True, help='MCAP bag with joint states and tracker points')
+    _recordings(dia)
     dia.add_argument('--out', required=True, help='output folder: diagnosis.json, report.md, plots')
     dia.add_argument('--effects', default='', metavar='EFFECT:JOINT,...',
                      help='effects already in the model, as for identify')
@@ -178,10 +179,13 @@ def build_parser() -> argparse.ArgumentParser:
     val.add_argument('--bag', required=True, help='new MCAP bag (not used for the calibration)')
     val.add_argument('--out', required=True, help='output folder: validation.json, plot')
     val.add_argument('--allow-code-effects', action='store_true', help=CODE_EFFECTS_HELP)
-    val.add_argument('--register', nargs='?', const='base', choices=['base', 'base+reflector'],
+    val.add_argument('--register', nargs='?', const='base',
+                     choices=['base', 'base+reflector', 'reflector'],
                      help='the tracker (or probe) was set up again: re-fit the base pose '
-                     '(base+reflector: and the reflector offsets) on the new recording alone '
-                     'first; the rms after it is the figure to compare, chi2 loses its dof')
+                     '(base+reflector: and the reflector offsets; reflector: the offsets '
+                     'alone, the probe remounted) on the new recording alone first; the rms '
+                     'after it is the figure to compare, chi2 loses its dof; a learned '
+                     'residual is carried into the registered set-up')
     _bag_topics(val)
 
     imp = sub.add_parser('import-csv', help='a table of static postures (CSV) into an MCAP bag')
@@ -313,6 +317,39 @@ def main(argv: list[str] | None = None) -> int:
             signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
 
 
+def _recordings(parser: argparse.ArgumentParser) -> None:
+    """``--bag`` (once, or once per recording), ``--remounted`` and ``--recordings``."""
+    parser.add_argument('--bag', action='append', default=[],
+                        help='MCAP bag with joint states and tracker points; repeated: several '
+                        'recordings (tracker set-ups) identified together, each with its own '
+                        'base placement, named by its file stem')
+    parser.add_argument('--remounted', action='append', default=[], metavar='NAME',
+                        help='a recording (file stem of a --bag after the first) whose probe '
+                        'was mounted again: its reflector offset is identified for it alone')
+    parser.add_argument('--recordings', metavar='MANIFEST.yaml',
+                        help='the recordings as a manifest instead of --bag: a list of {bag, '
+                        'name, reflector_remounted, covariates: {name: value}}')
+
+
+def _sources(args: argparse.Namespace) -> Any:
+    """The bag (one, as before) or the recordings of ``--bag`` / ``--recordings``."""
+    from kpi_calib_ros.io.recordings_manifest import read_manifest, sources_from_bags
+    if args.recordings and args.bag:
+        raise ConfigError('--recordings', 'give the recordings either as --bag or in a '
+                          'manifest, not both')
+    if args.recordings:
+        if args.remounted:
+            raise ConfigError('--remounted', 'with --recordings, state reflector_remounted in '
+                              'the manifest')
+        return read_manifest(args.recordings)
+    if not args.bag:
+        raise ConfigError('--bag', 'give the MCAP bag (--bag FILE, repeated for several '
+                          'recordings) or a manifest (--recordings FILE)')
+    if len(args.bag) == 1 and not args.remounted:
+        return args.bag[0]
+    return sources_from_bags(args.bag, args.remounted)
+
+
 def _simulate(args: argparse.Namespace) -> int:
     from kpi_calib_ros.app.simulate import run_simulate
     return run_simulate(args.cell, args.n, args.out, args.seed, poses_path=args.poses,
@@ -323,18 +360,22 @@ def _identify(args: argparse.Namespace) -> int:
     options = {'joint_topic': args.joint_topic, 'point_topic': args.point_topic,
                'pose_topic': args.pose_topic,
                'allow_code_effects': args.allow_code_effects}
+    bags = _sources(args)
     if args.prior:
+        if not isinstance(bags, str):
+            raise ConfigError('--prior', 'a previous calibration as prior takes one recording '
+                              '(--bag once); identify several recordings without --prior')
         if args.learned_residual:
             raise ValueError('--learned-residual is not available with --prior: identify '
                              'without --prior to learn the residual')
         from kpi_calib_ros.app.reidentify import run_reidentify
-        return run_reidentify(args.cell, args.bag, args.out, args.prior, effects=args.effects,
+        return run_reidentify(args.cell, bags, args.out, args.prior, effects=args.effects,
                               model=args.model, drift=args.drift_per_hour,
                               keep_placement=args.keep_placement,
                               drift_model=args.drift_model, swing=args.drift_velocity,
                               max_iterations=args.max_iterations, **options)
     from kpi_calib_ros.app.identify import run_identify
-    return run_identify(args.cell, args.bag, args.out, effects=args.effects, model=args.model,
+    return run_identify(args.cell, bags, args.out, effects=args.effects, model=args.model,
                         max_iterations=args.max_iterations,
                         learned_residual=args.learned_residual, **options)
 
@@ -367,7 +408,8 @@ def _diagnose(args: argparse.Namespace) -> int:
     from kpi_calib_ros.app.diagnose import run_diagnose
     from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA
     alpha = ADEQUACY_ALPHA if args.alpha is None else args.alpha
-    return run_diagnose(args.cell, args.bag, args.out, effects=args.effects, folds=args.folds,
+    return run_diagnose(args.cell, _sources(args), args.out, effects=args.effects,
+                        folds=args.folds,
                         alpha=alpha, model=args.model, joint_topic=args.joint_topic,
                         point_topic=args.point_topic, pose_topic=args.pose_topic,
                         allow_code_effects=args.allow_code_effects)

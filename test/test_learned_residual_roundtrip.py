@@ -1,6 +1,6 @@
 """``identify --learned-residual`` → ``validate``, through the command line, on campaigns of
 real size: validate reads every learned_residual.yaml identify writes, with and without
-``--register``.
+``--register`` (which carries it into the registered set-up).
 
 Three stock arms of example-robot-data (UR5 200 poses, Panda 300, UR10 200) with a
 second-harmonic error of their second joint that the geometric model lacks (so the learned
@@ -45,7 +45,7 @@ NEW_POSES = 50
 
 def round_trip(cell: Path, train: Path, new: Path, out: Path, capsys) -> None:
     """identify --learned-residual writes the file; validate reads it (exit 0 or 1, never
-    2), and with --register does not use it."""
+    2), and with --register carries it into the registered set-up."""
     capsys.readouterr()
     assert main(['identify', '--cell', str(cell), '--bag', str(train), '--out', str(out / 'cal'),
                  '--learned-residual']) == 0, capsys.readouterr()
@@ -64,7 +64,7 @@ def round_trip(cell: Path, train: Path, new: Path, out: Path, capsys) -> None:
     assert 'with the learned residual (learned_residual.yaml): rms' in captured.out, captured
     assert main(args + ['--out', str(out / 'val_reg'), '--register', 'base']) in (0, 1)
     captured = capsys.readouterr()
-    assert 'not validated with --register' in captured.out, captured
+    assert 'with the learned residual (learned_residual.yaml): rms' in captured.out, captured
     print(f'{len(stored.residual.q)} training rows, {len(stored.estimated)} parameters: read back')
 
 

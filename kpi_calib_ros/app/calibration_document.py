@@ -8,7 +8,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -22,6 +22,8 @@ from kpi_calib_ros.core.estimation.plausibility import gate
 from kpi_calib_ros.core.estimation.precision import ExpectedTcpError
 from kpi_calib_ros.core.estimation.registration import Registration
 from kpi_calib_ros.core.estimation.robust import LOSS_SCALE, ExcludedMeasurement, RobustResult
+from kpi_calib_ros.core.measurement.recordings import Recording, contributions
+from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.model.dh import dh_table
 from kpi_calib_ros.core.model.parameters import reflector_prefixes
 from kpi_calib_ros.io.cell import CellModel
@@ -78,15 +80,17 @@ class CellCalibration:
 def plausibility_gate(cm: CellModel, result: CalibrationResult, start: np.ndarray,
                       q: np.ndarray, tau: np.ndarray | None = None,
                       reflector: np.ndarray | None = None,
-                      free: Sequence[str] | None = None) -> tuple[str, ...]:
+                      free: Sequence[str] | None = None,
+                      covariates: Mapping[str, np.ndarray] | None = None) -> tuple[str, ...]:
     """The plausibility gate of ``result`` with the cell's ``identification.tolerances`` and
     ``identification.bounds`` (:func:`kpi_calib_ros.core.estimation.plausibility.gate`): the
     base pose against ``start`` (the cell's or registered placement), the reflector offsets
     against the cell's (or, left out, whether the measured rows determine them), the joint
     corrections against the URDF, the effects against their bounds, at the measured joint
     values ``q`` (N, n), gravity torques ``tau`` and reflector indices ``reflector`` (N,);
-    an effect parameter in ``free`` the fit left out is undetermined. Returns one line per
-    violation."""
+    an effect parameter in ``free`` the fit left out is undetermined; ``covariates`` the rows'
+    (their recording: each further recording's placement is judged against its own
+    registration in ``start``). Returns one line per violation."""
     n_geo = len(cm.geometric)
     params = cm.model.params
     reference = np.array(start[:n_geo], dtype=float)
@@ -98,7 +102,7 @@ def plausibility_gate(cm: CellModel, result: CalibrationResult, start: np.ndarra
         tau = cm.robot.gravity_torques(np.atleast_2d(q))
     return tuple(v.text() for v in gate(cm.model, result, reference,
                                         cm.cell.identification.tolerances, stated,
-                                        q, tau, n_geo, reflector, free))
+                                        q, tau, n_geo, reflector, free, covariates))
 
 
 def calibration_document(cm: CellModel, result: CalibrationResult,
@@ -232,3 +236,53 @@ def calibrated_robot_description(cm: CellModel, result: CalibrationResult) -> st
     """The calibrated URDF of ``result`` (identified joint errors folded into the joint
     origins, see :mod:`kpi_calib_ros.io.urdf_export`); the CLI and the node write this."""
     return calibrated_urdf(cm.cell.urdf_xml, cm.robot, dict(zip(result.names, result.values)))
+
+
+def recordings_section(cm: CellModel, data: Measurements, result: CalibrationResult,
+                       recordings: Sequence[Recording], bags: Sequence[str]
+                       ) -> list[dict[str, Any]]:
+    """calibration.yaml's ``recordings:``: per recording (``data`` the rows the fit kept) its
+    bag, whether its probe was remounted, its constant covariates, and what it contributed
+    (:func:`kpi_calib_ros.core.measurement.recordings.contributions`): poses, rms, its
+    placement with std, and the TCP variance without its rows over the one with them."""
+    names = [r.name for r in recordings]
+    found = contributions(cm.model, data, result.values, result.estimated, result.std,
+                          result.sigma, cm.q_work, names)
+    out = []
+    for rec, bag, c in zip(recordings, bags, found):
+        ratio = c.tcp_variance_ratio
+        entry: dict[str, Any] = {
+            'name': rec.name, 'bag': str(bag), 'reflector_remounted': rec.reflector_remounted,
+            'covariates': {k: float(v) for k, v in rec.covariates.items()},
+            'poses': c.poses, 'rms_m': _finite(c.rms_m),
+            'placement': {n: {'value': float(v), 'std': _finite(c.placement_std[n])}
+                          for n, v in c.placement.items()},
+            'tcp_variance_ratio_without': (None if ratio is None or not np.isfinite(ratio)
+                                           else float(ratio))}
+        if ratio is not None and not np.isfinite(ratio):
+            entry['tcp_variance_ratio_without_reason'] = (
+                'without this recording the identified robot is not determined')
+        out.append(entry)
+    return out
+
+
+def recordings_text(section: Sequence[Mapping[str, Any]]) -> str:
+    """One line per recording of :func:`recordings_section`."""
+    lines = []
+    for entry in section:
+        base = [v['value'] for n, v in entry['placement'].items() if '.reflector' not in n
+                and not n.startswith('reflector')]
+        ratio = entry['tcp_variance_ratio_without']
+        lines.append(
+            f"recording {entry['name']}: {entry['poses']} poses, rms "
+            + ('n/a' if entry['rms_m'] is None else f"{entry['rms_m'] * 1e3:.3f} mm")
+            + f", base in tracker {np.round(base, 4).tolist()}"
+            + (' (reflector remounted)' if entry['reflector_remounted'] else '')
+            + ('; TCP variance without it: '
+               + ('not determined' if ratio is None and 'tcp_variance_ratio_without_reason'
+                  in entry else 'n/a' if ratio is None else f'{ratio:.3g} x')))
+    return '\n'.join(lines)
+
+
+def _finite(x: float) -> float | None:
+    return float(x) if np.isfinite(x) else None

@@ -19,6 +19,8 @@ from kpi_calib_ros.app.calibration_document import (
     add_robust_sections,
     calibration_document,
     plausibility_gate,
+    recordings_section,
+    recordings_text,
     robust_summary,
 )
 from kpi_calib_ros.app.finish import finish_calibration
@@ -51,8 +53,17 @@ from kpi_calib_ros.core.estimation.robust import (
     robust_identify,
     subset,
 )
+from kpi_calib_ros.core.measurement.recordings import (
+    base_names,
+    row_recording,
+)
+from kpi_calib_ros.core.measurement.recordings import (
+    reflector_names as recording_reflector_names,
+)
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements, row_torques
+from kpi_calib_ros.core.model.parameters import RECORDING_PREFIX, reflector_prefixes
 from kpi_calib_ros.io.cell import CellModel
+from kpi_calib_ros.io.recordings_manifest import RecordingSource
 from kpi_calib_ros.io.report import (
     comparison_text,
     comparison_to_dict,
@@ -105,6 +116,14 @@ def registered_start(cm: CellModel, data: Measurements) -> tuple[np.ndarray, Reg
         rms: the message gives the distances and the likely causes (units, joint
         order, tip frame).
     """
+    if cm.model.recordings:
+        return recordings_start(cm, data)
+    return _single_start(cm, data)
+
+
+def _single_start(cm: CellModel, data: Measurements
+                  ) -> tuple[np.ndarray, Registration | None]:
+    """:func:`registered_start` of one recording (the rows of the first, with several)."""
     params = cm.model.params
     p0 = np.array(params.nominal, dtype=float)
     if not cm.needs_registration and len(data) and places_the_points(cm, data, p0):
@@ -129,6 +148,58 @@ def registered_start(cm: CellModel, data: Measurements) -> tuple[np.ndarray, Reg
     for prefix, offset in zip(prefixes, offsets):
         values.update({f'{prefix}.{c}': float(v) for c, v in zip('xyz', offset)})
     return params.with_values(values), reg
+
+
+def recordings_start(cm: CellModel, data: Measurements
+                     ) -> tuple[np.ndarray, Registration | None]:
+    """:func:`registered_start` of several recordings: the first recording's rows as one
+    recording's, then every further recording registered on its own rows on the nominal
+    robot (a station metres and tens of degrees away needs no start), with the first's
+    reflector offsets held unless its probe was remounted. Returns the start vector and
+    the first recording's registration.
+
+    Raises
+    ------
+    DataError
+        A recording has too few points or its registered nominal points miss (named).
+    """
+    names = ('',) + cm.model.recordings
+    index = row_recording(data, names)
+    p0, reg = _single_start(cm, data.subset(index == 0))
+    params = cm.model.params
+    for i, name in enumerate(names[1:], 1):
+        rows = data.subset(index == i)
+        if rows.reflector is not None:
+            rows = rows.subset(np.asarray(rows.reflector) < cm.model.n_reflectors)
+        prefixes = reflector_prefixes(params)
+        remounted = f'{RECORDING_PREFIX}{name}.{prefixes[0]}.x' in params.names
+        tips = np.array([cm.robot.pin_tip_pose(row) for row in np.atleast_2d(rows.q)])
+        first = np.array([p0[params.indices([f'{prefix}.{c}' for c in 'xyz'])]
+                          for prefix in prefixes])
+        held = None if remounted else first
+        try:
+            try:
+                own = register(rows.eta, tips, max_rms=REGISTRATION_MAX_RMS_M,
+                               reflector=rows.reflector, offsets=held)
+            except DataError:
+                if not remounted:
+                    raise
+                # Postures that hardly turn the tool cannot register the remounted offset:
+                # it starts at the first recording's, and the joint fit takes what they
+                # determine of it.
+                own = register(rows.eta, tips, max_rms=REGISTRATION_MAX_RMS_M,
+                               reflector=rows.reflector, offsets=first)
+        except (DataError, ValueError) as exc:
+            raise DataError(f'recording {name!r}: {exc}') from None
+        values = dict(zip(base_names(name), own.base_in_tracker))
+        if remounted:
+            offsets = (own.reflector_offsets if own.reflector_offsets is not None
+                       else own.reflector_offset.reshape(1, 3))
+            for prefix, offset in zip(prefixes, offsets):
+                values.update(zip(recording_reflector_names(name, prefix), offset))
+        for key, value in values.items():
+            p0[params.index(key)] = float(value)
+    return p0, reg
 
 
 def registration_text(reg: Registration | None, cm: CellModel) -> str:
@@ -334,12 +405,13 @@ def _final_fit(cm: CellModel, data: Measurements, choice: ModelChoice, start: np
                                  used_prior)
     est = result_estimability(cm.model, kept.q, cm.cell.sigma, robust.result.values,
                               cm.q_work, cm.working_pose_names, free, prior=prior,
-                              reflector=kept.reflector, rotation=kept.rotation)
+                              reflector=kept.reflector, rotation=kept.rotation,
+                              covariates=kept.covariates)
     # A model that fails χ² must not report the stated σ's precision (core.estimation.precision).
     result = honest_precision(robust.result)
     implausible = plausibility_gate(cm, result, start, np.atleast_2d(kept.q),
                                     row_torques(cm.model, kept),
-                                    kept.reflector, free)
+                                    kept.reflector, free, kept.covariates)
     return CellCalibration(result, robust, choice, est, tuple(free),
                            registration, scales[-1], cm,
                            expected_tcp_error(cm.model, kept, result, prior=used_prior),
@@ -456,7 +528,8 @@ def print_progress(line: str) -> None:
     print(line, file=sys.stderr, flush=True)
 
 
-def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Path,
+def run_identify(cell_path: str | Path, bag_path: str | Path | Sequence[RecordingSource],
+                 out_dir: str | Path,
                  effects: str = '', model: str | None = None,
                  max_iterations: int | None = None, learned_residual: bool = False,
                  **options: Any) -> int:
@@ -478,6 +551,10 @@ def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
     removes an older learned_residual.yaml it does not replace. The files are written as
     one set (:func:`kpi_calib_ros.app.finish.finish_calibration`): a full disk leaves the
     previous set intact and is a ConfigError naming ``out_dir`` (exit 2).
+
+    ``bag_path`` a sequence of recordings (``--bag`` repeated, ``--recordings``): identified
+    together (:func:`kpi_calib_ros.app.measurements.load_recordings`), each with its own
+    placement; calibration.yaml's ``recordings:`` states what each contributed.
     """
     writable_folder(out_dir, '--out')
     cm, data, pairing = load_measurements(cell_path, bag_path, effects, **options)
@@ -493,6 +570,12 @@ def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
     comparison = ''
     if cm.model.effects and cal.valid:
         comparison = add_effect_comparison(doc, cm, subset(data, cal.robust.kept), cal.result)
+    recordings_lines = ''
+    if not isinstance(bag_path, (str, Path)):
+        doc['recordings'] = recordings_section(
+            cm, subset(data, cal.robust.kept), cal.result,
+            [s.recording for s in bag_path], [str(s.bag) for s in bag_path])
+        recordings_lines = recordings_text(doc['recordings'])
     residual_text, learned = '', None
     if learned_residual:
         from kpi_calib_ros.app.learned_residual import learned_residual_section
@@ -512,6 +595,8 @@ def run_identify(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
         print(how)
     if comparison:
         print(comparison)
+    if recordings_lines:
+        print(recordings_lines)
     if residual_text:
         print(residual_text)
     print(f'written: {done.path}')

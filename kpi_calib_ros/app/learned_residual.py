@@ -31,6 +31,7 @@ from kpi_calib_ros.core.diagnosis.shared_error import (
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA, linearized_fit
+from kpi_calib_ros.core.measurement.recordings import to_first_frame
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements
 from kpi_calib_ros.io.cell import CellModel, build_cell_model
 from kpi_calib_ros.io.learned_residual_file import (
@@ -62,9 +63,13 @@ def too_many_rows(cm: CellModel, data: Measurements) -> str:
 def choose_residual(cm: CellModel, data: Measurements, result: CalibrationResult,
                     seed: int = 0) -> ResidualChoice:
     """Fit and decide the learned residual on ``result``'s residuals of ``data`` (the
-    measurements it was identified from, outliers excluded), its point rows only."""
+    measurements it was identified from, outliers excluded), its point rows only; with
+    several recordings each one's residuals turned into the first's tracker frame."""
     rows = point_rows(cm.model, data)
-    return fit_learned_residual(np.atleast_2d(data.q)[rows], result.residuals[rows],
+    # Several recordings: every residual in the first recording's tracker frame, where the
+    # field is stored and predicted (core.measurement.recordings).
+    residuals = to_first_frame(cm.model, result.values, data, result.residuals)
+    return fit_learned_residual(np.atleast_2d(data.q)[rows], residuals[rows],
                                 cm.cell.sigma, tuple(cm.robot.joint_names), seed=seed)
 
 

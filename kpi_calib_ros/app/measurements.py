@@ -20,7 +20,7 @@ import numpy as np
 from kpi_calib_ros.core.acquisition.pairing import PairingResult, pair_measurements, split_frame
 from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
 from kpi_calib_ros.core.effects.registry import split_specs
-from kpi_calib_ros.core.errors import DataError
+from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.measurement.covariates import (
     EFFORT_PREFIX,
     InputSample,
@@ -33,11 +33,18 @@ from kpi_calib_ros.core.measurement.covariates import (
     with_covariates,
 )
 from kpi_calib_ros.core.measurement.payload import row_payloads
+from kpi_calib_ros.core.measurement.recordings import (
+    Recording,
+    combine,
+    placed_model,
+    recording_parameters,
+)
 from kpi_calib_ros.core.measurement.tracker import Measurements, with_rotation_rows
 from kpi_calib_ros.io.bag import JOINT_STATE_TYPE, read_for_pairing, read_inputs, read_temperatures
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
 from kpi_calib_ros.io.cell_inputs import field_path
 from kpi_calib_ros.io.measurement_log import stored_pairing
+from kpi_calib_ros.io.recordings_manifest import RecordingSource
 from kpi_calib_ros.io.ros_messages import FieldPath
 
 
@@ -319,22 +326,96 @@ def refused_text(cm: CellModel, total: int, refused: list[tuple[int, str]]) -> s
             f'(temperature.max_gap = {gap:g} s)')
 
 
-def load_measurements(cell_path: str | Path, bag_path: str | Path, effects: str = '',
+def load_measurements(cell_path: str | Path,
+                      bag_path: str | Path | Sequence[RecordingSource], effects: str = '',
                       joint_topic: str | None = None, point_topic: str | None = None,
                       allow_code_effects: bool = False, pose_topic: str | None = None
                       ) -> tuple[CellModel, Measurements, PairingResult]:
     """Cell model (with the extra ``effects`` specs, comma-separated) and the paired
-    measurements of a bag; rejections are reported on stderr.
+    measurements of a bag; rejections are reported on stderr. ``bag_path`` a sequence of
+    recordings: :func:`load_recordings` (several set-ups identified together).
 
     ``joint_topic`` / ``point_topic`` / ``pose_topic`` (``--joint-topic`` /
     ``--point-topic`` / ``--pose-topic``) override the cell's ``topics:``;
     ``allow_code_effects`` lets effects name Python code.
     """
+    if not isinstance(bag_path, (str, Path)):
+        return load_recordings(cell_path, bag_path, effects, joint_topic, point_topic,
+                               allow_code_effects, pose_topic)
     cell = load_cell(cell_path, allow_code_effects=allow_code_effects)
     cm = build_cell_model(cell, effects=tuple(split_specs(effects)))
     data, pairing = measurements_from_bag(cm, bag_path, joint_topic, point_topic, pose_topic)
     print_rejections(pairing)
     return cm, data, pairing
+
+
+def with_recordings(cm: CellModel, recordings: Sequence[Recording]) -> CellModel:
+    """``cm`` with a placement of its own for every recording after the first
+    (:mod:`kpi_calib_ros.core.measurement.recordings`); ``cm`` itself for one."""
+    if len(recordings) <= 1:
+        return cm
+    return dataclasses.replace(cm, geometric=recording_parameters(cm.geometric, recordings),
+                               model=placed_model(cm.model, recordings))
+
+
+def merged_pairing(pairings: Sequence[PairingResult]) -> PairingResult:
+    """The pairings of several recordings as one (rows in recording order, counts summed)."""
+    if len(pairings) == 1:
+        return pairings[0]
+    first = pairings[0]
+    rejections: dict[str, int] = {}
+    for p in pairings:
+        for k, v in p.rejections.items():
+            rejections[k] = rejections.get(k, 0) + v
+    reflectors: tuple[str, ...] = ()
+    if any(p.reflectors for p in pairings):
+        reflectors = tuple(r for p in pairings for r in (p.reflectors or ('',) * len(p)))
+    rotations = None
+    if any(p.rotations is not None for p in pairings):
+        rotations = np.concatenate([np.full((len(p), 3, 3), np.nan) if p.rotations is None
+                                    else p.rotations for p in pairings])
+    return PairingResult(first.joint_names, first.tracker_frame,
+                         np.concatenate([p.q for p in pairings]),
+                         np.concatenate([p.eta for p in pairings]),
+                         np.concatenate([p.stamps_ns for p in pairings]), rejections,
+                         [r for p in pairings for r in p.rejected], reflectors, rotations)
+
+
+def load_recordings(cell_path: str | Path, sources: Sequence[RecordingSource],
+                    effects: str = '', joint_topic: str | None = None,
+                    point_topic: str | None = None, allow_code_effects: bool = False,
+                    pose_topic: str | None = None
+                    ) -> tuple[CellModel, Measurements, PairingResult]:
+    """:func:`load_measurements` of several recordings identified together: the cell model
+    with each further recording's placement (:func:`with_recordings`), the rows of every bag
+    in order with their recording and constant covariates
+    (:func:`kpi_calib_ros.core.measurement.recordings.combine`), and the pairings merged.
+
+    Raises
+    ------
+    DataError
+        A recording gives no measurement (named).
+    ConfigError
+        The recordings' covariates do not fit together.
+    """
+    cell = load_cell(cell_path, allow_code_effects=allow_code_effects)
+    cm = build_cell_model(cell, effects=tuple(split_specs(effects)))
+    parts, pairings = [], []
+    for source in sources:
+        data, pairing = measurements_from_bag(cm, source.bag, joint_topic, point_topic,
+                                              pose_topic)
+        print_rejections(pairing)
+        if len(data) == 0:
+            raise DataError(f'recording {source.recording.name!r} ({source.bag}) gives no '
+                            'paired measurement: check its topics and the cell\'s joint names')
+        parts.append(data)
+        pairings.append(pairing)
+    recordings = [s.recording for s in sources]
+    try:
+        data = combine(parts, recordings)
+    except ValueError as exc:
+        raise ConfigError('recordings', f'{exc}') from None
+    return with_recordings(cm, recordings), data, merged_pairing(pairings)
 
 
 def print_rejections(pairing: PairingResult) -> None:

@@ -2,14 +2,17 @@
 
 A recording made with the tracker (or the probe) set up again is validated with
 ``register`` (:data:`REGISTER`): the base pose, and with ``'base+reflector'`` the
-reflector offsets too, are re-fitted on the new recording alone; the rms after that
-re-registration is the figure to compare, and χ² loses the dof the fit took.
+reflector offsets too (``'reflector'``: the offsets alone, the probe remounted and the
+tracker where it was), are re-fitted on the new recording alone; the rms after that
+re-registration is the figure to compare, and χ² loses the dof the fit took. A learned
+residual is carried into the registered set-up (it moves with the robot).
 
 ``kpi-calib validate`` and the node's ``~/validate`` call :func:`validate_calibration`;
 the numerics are :mod:`kpi_calib_ros.core.diagnosis.validation`.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from typing import Any
@@ -18,7 +21,11 @@ import numpy as np
 
 from kpi_calib_ros.app.calibration_document import require_valid
 from kpi_calib_ros.app.learned_residual import learned_validation_text, validate_learned
-from kpi_calib_ros.app.measurements import measurements_from_bag, print_rejections
+from kpi_calib_ros.app.measurements import (
+    measurements_from_bag,
+    print_rejections,
+    with_recordings,
+)
 from kpi_calib_ros.core.diagnosis.validation import Validation, validate
 from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.estimation.residuals import (
@@ -28,16 +35,19 @@ from kpi_calib_ros.core.estimation.residuals import (
 )
 from kpi_calib_ros.core.measurement.replicates import SAME_POSE_TOLERANCE
 from kpi_calib_ros.core.measurement.tracker import Measurements
+from kpi_calib_ros.core.model.kinematics import rpy_matrix
 from kpi_calib_ros.core.model.parameters import BASE_COMPONENTS, reflector_prefixes
-from kpi_calib_ros.io.calibration_file import read_calibration_document
+from kpi_calib_ros.io.calibration_file import calibration_recordings, read_calibration_document
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
-from kpi_calib_ros.io.learned_residual_file import read_residual
+from kpi_calib_ros.io.learned_residual_file import StoredResidual, read_residual
 from kpi_calib_ros.io.names import LEARNED_RESIDUAL_FILE, VALIDATION_FILE
 from kpi_calib_ros.io.report import write_validation_plots
 from kpi_calib_ros.io.results import writable_folder, write_atomic
 
-# What ``validate --register`` re-fits on the new recording.
-REGISTER = ('base', 'base+reflector')
+# What ``validate --register`` re-fits on the new recording: the base pose, the base pose
+# and the reflector offsets, or the reflector offsets alone (the probe remounted, the
+# tracker where it was).
+REGISTER = ('base', 'base+reflector', 'reflector')
 
 
 def registered_names(cm: CellModel, register: str | None) -> list[str]:
@@ -46,8 +56,8 @@ def registered_names(cm: CellModel, register: str | None) -> list[str]:
         return []
     if register not in REGISTER:
         raise ConfigError('register', f'must be one of {list(REGISTER)}, not {register!r}')
-    names = [f'base.{c}' for c in BASE_COMPONENTS]
-    if register == 'base+reflector':
+    names = [] if register == 'reflector' else [f'base.{c}' for c in BASE_COMPONENTS]
+    if register in ('base+reflector', 'reflector'):
         names += [f'{prefix}.{c}' for prefix in reflector_prefixes(cm.model.params)
                   for c in 'xyz']
     return names
@@ -61,8 +71,11 @@ def read_calibration(path: str | Path) -> dict[str, Any]:
 
 
 def calibrated_model(cell: Any, doc: dict[str, Any]) -> tuple[CellModel, np.ndarray]:
-    """The cell model with the calibration's effects and its parameter vector."""
+    """The cell model with the calibration's effects and recordings (each further one's
+    placement, :mod:`kpi_calib_ros.core.measurement.recordings`) and its parameter vector.
+    A new recording's rows carry no recording covariate: they are placed by ``base.*``."""
     cm = build_cell_model(cell, effects=tuple(doc.get('effects') or ()))
+    cm = with_recordings(cm, calibration_recordings(doc, 'calibration'))
     return cm, parameter_vector(cm, doc)
 
 
@@ -326,7 +339,8 @@ def validate_report(cm: CellModel, doc: dict[str, Any], data: Measurements,
     v = validate_calibration(cm, p, doc, data, register)
     out = validation_to_dict(v, data, doc.get('rms_m'), cm, calibration_noise_scale(doc))
     if learned is not None:
-        out['learned_residual'] = learned_section(cm, p, learned, data, register)
+        out['learned_residual'] = learned_section(
+            cm, p, learned, data, None if v.registration is None else v.registration.p)
     write_atomic(Path(out_dir) / VALIDATION_FILE, json.dumps(out, indent=1, allow_nan=False))
     write_validation_plots(out_dir, cm.robot, np.atleast_2d(data.q), v.residuals, v.outside,
                            v.repeated)
@@ -334,20 +348,37 @@ def validate_report(cm: CellModel, doc: dict[str, Any], data: Measurements,
 
 
 def learned_section(cm: CellModel, p: np.ndarray, path: Path, data: Measurements,
-                    register: str | None) -> dict[str, Any]:
+                    registered: np.ndarray | None = None) -> dict[str, Any]:
     """The learned residual at ``path`` validated on ``data``, or why it was not.
 
-    With ``register`` it is not read at all (the file is not used); one written for another
-    calibration (:meth:`~kpi_calib_ros.io.learned_residual_file.StoredResidual.
-    other_calibration`) is skipped, said why."""
-    if register is not None:
-        return {'file': path.name, 'skipped': 'not validated with --register: the learned '
-                'residual is a correction in the training recording\'s tracker frame'}
+    One written for another calibration than ``p`` (:meth:`~kpi_calib_ros.io.
+    learned_residual_file.StoredResidual.other_calibration`) is skipped, said why.
+    ``registered``: the values after ``--register`` re-fitted the placement on ``data``. The
+    learned field lives in the robot's joint space and moves with the robot: it is carried
+    into the new set-up turned by the registered base rotation relative to the calibration's
+    (:func:`carried_residual`), and predicts with the registered placement.
+    """
     stored = read_residual(path, 'learned residual')
     other = stored.other_calibration(cm.model.params.names, p)
     if other:
         return {'file': path.name, 'skipped': f'not validated: {other}'}
+    if registered is not None:
+        stored = carried_residual(cm, stored, p, registered)
     return validate_learned(cm, stored, data)
+
+
+def carried_residual(cm: CellModel, stored: StoredResidual, p: np.ndarray,
+                     registered: np.ndarray) -> StoredResidual:
+    """``stored`` (written for the calibration ``p``) in a set-up registered as
+    ``registered``: its values the registered ones, its field turned by R_new R_calᵀ (the
+    base rotations in the tracker frame; the identity when only the reflector was
+    re-fitted), exactly (:meth:`~kpi_calib_ros.core.diagnosis.learned_residual.
+    LearnedResidual.rotated`)."""
+    base = cm.model.params.indices([f'base.{c}' for c in BASE_COMPONENTS[3:]])
+    old = np.array(rpy_matrix(*np.asarray(p, float)[base]), float)
+    new = np.array(rpy_matrix(*np.asarray(registered, float)[base]), float)
+    return dataclasses.replace(stored, residual=stored.residual.rotated(new @ old.T),
+                               values=np.asarray(registered, float).copy())
 
 
 def learned_file(calibration_path: str | Path) -> Path | None:

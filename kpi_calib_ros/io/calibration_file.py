@@ -21,6 +21,8 @@ import numpy as np
 from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.estimation.drift_state import DriftState
 from kpi_calib_ros.core.estimation.prior import PLACEMENT_PREFIXES, Prior
+from kpi_calib_ros.core.measurement.recordings import NAME_PATTERN, Recording
+from kpi_calib_ros.core.model.parameters import RECORDING_PREFIX
 from kpi_calib_ros.io.yaml_bounded import FIX, read_yaml_file
 
 
@@ -41,6 +43,32 @@ def read_calibration_document(path: str | Path, key: str = 'calibration',
         raise ConfigError(key, f'{path} is not a calibration document (no parameters:)')
     check_calibration_document(doc, f'{key} {path}', required)
     return doc
+
+
+def calibration_recordings(doc: dict[str, Any], where: str) -> list[Recording]:
+    """The recordings a calibration was identified from (its ``recordings:`` section), each
+    with whether its probe was remounted; [] for a calibration of one recording. ConfigError
+    names the field."""
+    section = doc.get('recordings')
+    if section is None:
+        return []
+    if not isinstance(section, list) or not section:
+        raise ConfigError('recordings', f'in {where}: must be a non-empty list; {FIX}')
+    out = []
+    for i, entry in enumerate(section):
+        if not isinstance(entry, dict) or not isinstance(entry.get('name'), str) \
+                or not NAME_PATTERN.match(entry['name']):
+            raise ConfigError(f'recordings[{i}].name', f'in {where}: must be a recording name '
+                              f'(a letter, then letters, digits, _ or -); {FIX}')
+        remounted = entry.get('reflector_remounted', False)
+        if not isinstance(remounted, bool):
+            raise ConfigError(f'recordings[{i}].reflector_remounted', f'in {where}: must be '
+                              f'true or false; {FIX}')
+        out.append(Recording(entry['name'], remounted))
+    names = [r.name for r in out]
+    if len(set(names)) != len(names):
+        raise ConfigError('recordings', f'in {where}: names a recording twice; {FIX}')
+    return out
 
 
 def check_calibration_document(doc: dict[str, Any], where: str,
@@ -74,6 +102,10 @@ def check_calibration_document(doc: dict[str, Any], where: str,
     if len(set(names)) != len(names):
         raise bad('parameters', 'names a parameter twice')
     known = set(names)
+    placed = {f'{RECORDING_PREFIX}{r.name}.base.x' for r in calibration_recordings(doc, where)[1:]}
+    if placed - known:
+        raise bad('recordings', f'lists recordings whose placement {sorted(placed - known)} '
+                  'is not among the parameters')
     if 'parameter_covariance' in doc:
         cov = doc['parameter_covariance']
         if not isinstance(cov, dict) or not isinstance(cov.get('names'), list) \
@@ -234,8 +266,9 @@ def prior_from_calibration(doc: dict, keep_placement: bool = False) -> Prior:
         raise DataError('prior calibration: parameter_covariance is not symmetric; give an '
                         'unedited calibration.yaml')
     matrix = 0.5 * (matrix + matrix.T)
-    keep = [i for i, n in enumerate(names)
-            if keep_placement or not n.startswith(PLACEMENT_PREFIXES)]
+    # A further recording's placement belongs to that campaign's set-up only.
+    keep = [i for i, n in enumerate(names) if not n.startswith(RECORDING_PREFIX)
+            and (keep_placement or not n.startswith(PLACEMENT_PREFIXES))]
     if not keep:
         raise DataError('prior calibration identified no robot parameter to use as prior')
     kept = [names[i] for i in keep]

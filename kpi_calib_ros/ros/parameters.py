@@ -107,7 +107,8 @@ PARAMETERS: dict[str, tuple[Any, bool, str]] = {
                        'next cycle; empty (default): the random-walk drift model only'),
     'validate_register': ('', False, "~/validate with the tracker (or probe) set up again "
                           "since the calibration: 'base' re-fits the base pose, "
-                          "'base+reflector' also the reflector offsets, on the new measurements "
+                          "'base+reflector' also the reflector offsets, 'reflector' the offsets "
+                          "alone, on the new measurements "
                           "alone (as validate --register); '' (default): none"),
     'identify_learned_residual': (False, False, '~/identify also learns what the physical '
                                   'model leaves as a Gaussian process over joint space (as '

@@ -257,6 +257,23 @@ class LearnedResidual:
         diff = (q[:, None, :] - self.q[None, :, :]) / self.length_scales
         return np.sqrt(np.min(np.sum(diff ** 2, axis=2), axis=1))
 
+    def rotated(self, rotation: np.ndarray) -> LearnedResidual:
+        """Return the same field in a tracker frame turned by ``rotation`` (3, 3): R δ(q).
+
+        The field lives in the robot's joint space and moves with the robot; a tracker set up
+        again (its base pose re-registered, rotated by R relative to the calibration's) sees
+        it turned. Exact: the training residuals turned, the output and noise shapes
+        conjugated (R A Rᵀ), so every prediction's mean is R times the old one and its
+        covariance R C Rᵀ.
+        """
+        r = np.asarray(rotation, float).reshape(3, 3)
+        if not np.allclose(r @ r.T, np.eye(3), atol=1e-9) or np.linalg.det(r) < 0:
+            raise ValueError('rotation must be a proper rotation matrix (3, 3)')
+        return LearnedResidual(self.joint_names, self.q, self.residual_m @ r.T,
+                               self.amplitude_m2, self.length_scales, self.noise_m2,
+                               r @ np.asarray(self.output_shape) @ r.T,
+                               r @ np.asarray(self.noise_shape) @ r.T)
+
     def relevant_joints(self) -> dict[str, float]:
         """Length scale of each joint (rad, m), shortest (most relevant) first."""
         order = np.argsort(self.length_scales)

@@ -117,7 +117,7 @@ def level_free(params: ParameterSet, level: str, n_geometric: int | None = None)
     def wanted(name: str) -> bool:
         if level == 'geometric':
             return True
-        if name.startswith(('base.', 'reflector.')):
+        if name.startswith(('base.', 'reflector.', 'recording.')):
             return True
         return level == 'joint_offsets' and name.endswith('.offset')
     return [n for n in geometric if wanted(n)] + effects

@@ -164,17 +164,18 @@ def result_estimability(model: MeasurementModel, q: np.ndarray, sigma: np.ndarra
                         tolerance: float = ESTIMABILITY_TOLERANCE,
                         prior: Prior | None = None,
                         reflector: np.ndarray | None = None,
-                        rotation: np.ndarray | None = None) -> KpiEstimability:
+                        rotation: np.ndarray | None = None,
+                        covariates: Mapping[str, np.ndarray] | None = None) -> KpiEstimability:
     """:func:`kpi_estimability` of a model at parameters ``p`` for measured poses ``q`` (N, n).
 
     σ (3,) and working poses ``q_work`` (t, n); ``free`` names the free parameters (all by
     default); ``reflector`` (N,) the reflector each row measured. A ``rotation`` (N, 3, 3) the
-    measured rotations of rotation rows. A ``prior``'s rows count as information: what it
-    determines is estimable.
+    measured rotations of rotation rows; ``covariates`` the rows' covariates (their recording).
+    A ``prior``'s rows count as information: what it determines is estimable.
     """
     names = list(free) if free else list(model.params.names)
     idx = model.params.indices(names)
-    data_jac = information_rows(model, p, q, sigma, idx, prior, reflector, rotation)
+    data_jac = information_rows(model, p, q, sigma, idx, prior, reflector, rotation, covariates)
     _, kpi = model.jacobian(p, np.atleast_2d(q_work))
     return kpi_estimability(data_jac, kpi.reshape(-1, len(p))[:, idx], names,
                             working_pose_names, tolerance)

@@ -188,7 +188,8 @@ def select_identifiable(jacobian: np.ndarray, names: list[str] | tuple[str, ...]
                         zero_column: float = ZERO_COLUMN,
                         pivot_fraction: float = PRIORITY_PIVOT_FRACTION,
                         max_rank: int | None = None,
-                        cut_reason: str = 'beyond the rank limit') -> Identifiability:
+                        cut_reason: str = 'beyond the rank limit',
+                        first: Sequence[str] = ()) -> Identifiability:
     """Choose a maximal identifiable subset of parameters.
 
     Parameters
@@ -220,6 +221,11 @@ def select_identifiable(jacobian: np.ndarray, names: list[str] | tuple[str, ...]
         is reported with ``cut_reason``.
     cut_reason : str
         Why a column is left out by ``max_rank``.
+    first : sequence of str
+        Columns kept before any other, in this order, each one independent of those before
+        it (the placements of several recordings: each set-up's own, never a gauge the
+        robot's parameters carry); ``method`` then chooses among the others with these
+        projected out. Empty (default): ``method`` alone.
 
     Raises
     ------
@@ -239,17 +245,33 @@ def select_identifiable(jacobian: np.ndarray, names: list[str] | tuple[str, ...]
     unseen = [n for n, v in zip(names, norms) if v <= floor]
     cols = [i for i, v in enumerate(norms) if v > floor]
     a = jacobian[:, cols] / norms[cols]
-    if method == 'pivoted':
-        _, r, perm = scipy.linalg.qr(a, mode='economic', pivoting=True)
-        diag = np.abs(np.diag(r))
-        kept_pos = perm[:len(diag)][diag > tolerance * diag[0]]
-        kept_diag = diag[diag > tolerance * diag[0]]
-    elif method == 'priority':
-        kept_pos, kept_diag = _threshold_pivoting(
-            a, _priority_order([names[i] for i in cols], priority or []), tolerance,
-            pivot_fraction)
-    else:
+    if method not in ('pivoted', 'priority'):
         raise ValueError(f"method must be 'pivoted' or 'priority', not {method!r}")
+    head = [cols.index(names.index(n)) for n in first if names.index(n) in cols]
+    head_pos, head_diag = _threshold_pivoting(a[:, head], list(range(len(head))), tolerance,
+                                              0.0) if head else (np.zeros(0, int), np.zeros(0))
+    head_pos = np.array([head[i] for i in head_pos], dtype=int)
+    rest = [i for i in range(a.shape[1]) if i not in set(head_pos.tolist())]
+    b = a[:, rest]
+    if len(head_pos):
+        basis_q, _ = np.linalg.qr(a[:, head_pos])
+        b = b - basis_q @ (basis_q.T @ b)
+    if not rest:
+        kept_pos, kept_diag = np.zeros(0, int), np.zeros(0)
+    elif method == 'pivoted':
+        _, r, perm = scipy.linalg.qr(b, mode='economic', pivoting=True)
+        diag = np.abs(np.diag(r))
+        # unit columns: the first pivot of the whole matrix is 1
+        reference = 1.0 if len(head_pos) else diag[0]
+        kept_pos = np.array(rest)[perm[:len(diag)][diag > tolerance * reference]]
+        kept_diag = diag[diag > tolerance * reference]
+    else:
+        found, kept_diag = _threshold_pivoting(
+            b, _priority_order([names[cols[i]] for i in rest], priority or []), tolerance,
+            pivot_fraction)
+        kept_pos = np.array(rest)[found] if len(found) else np.zeros(0, int)
+    kept_pos = np.concatenate([head_pos, kept_pos]).astype(int)
+    kept_diag = np.concatenate([head_diag, kept_diag])
     if max_rank is not None:
         kept_pos, kept_diag = kept_pos[:max_rank], kept_diag[:max_rank]
     kept_cols = [cols[i] for i in sorted(kept_pos)]

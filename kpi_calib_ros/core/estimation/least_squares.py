@@ -50,6 +50,7 @@ from kpi_calib_ros.core.measurement.tracker import (
     weighted_residuals,
     weighted_rows,
 )
+from kpi_calib_ros.core.model.parameters import RECORDING_PREFIX
 
 __all__ = [
     'MAX_START_ERROR', 'MAX_SELECTION_ROUNDS', 'MAX_REWEIGHT_ROUNDS', 'REWEIGHT_RTOL',
@@ -414,6 +415,11 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     # decrease 0.2-2.0).
     ident, iterations, kept_before = None, 0, None
     w = reweighted(p)
+    # Several recordings: every set-up's placement is kept first, so the gauge they share
+    # with the robot (a change of the base frame) is carried by the robot's parameters,
+    # never by one set-up's placement (core.measurement.recordings).
+    first = ([n for n in free_names if n.startswith(('base.', RECORDING_PREFIX))]
+             if model.recordings else [])
 
     def stacked_at(x: np.ndarray) -> np.ndarray:
         pp = p.copy()
@@ -424,7 +430,7 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     for _ in range(MAX_SELECTION_ROUNDS):
         stacked = stacked_at(p[free_idx])
         ident = select_identifiable(stacked, free_names, method=identifiability_method,
-                                    priority=priority)
+                                    priority=priority, first=first)
         max_rank: int | None = None
         cut_reason = 'beyond the rank limit'
         if kept_before is not None and ident.rank > len(kept_before):
@@ -435,7 +441,7 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
                 max_rank, cut_reason = test.rank, test.reason()
                 ident = select_identifiable(stacked, free_names, method=identifiability_method,
                                             priority=priority, max_rank=max_rank,
-                                            cut_reason=cut_reason)
+                                            cut_reason=cut_reason, first=first)
         if kept_before is not None and ident.rank == len(kept_before):
             # Same rank: the fitted set still spans the identifiable directions (QR may
             # merely prefer an equivalent subset here). Keep it; restate its reasons here.

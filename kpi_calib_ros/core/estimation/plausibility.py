@@ -8,7 +8,10 @@ checks every identified quantity against what the cell states about it:
 
 * the base pose in the tracker frame (``base.*``): within ``base_translation`` /
   ``base_rotation`` of the placement the identification started from (the cell's
-  ``tracker.base_in_tracker``, or its registration from the points);
+  ``tracker.base_in_tracker``, or its registration from the points); the base pose of every
+  further recording (``recording.<name>.base.*``) likewise within those tolerances of its own
+  registration, and a remounted probe's offsets (``recording.<name>.reflector.*``, registered,
+  not stated) determined by the data (std within ``reflector_offset``);
 * every reflector offset (``reflector[.<name>].{x,y,z}``): within ``reflector_offset`` of the
   cell's ``reflector.offset`` (a prior with a tolerance, never a start to throw away); when
   the cell leaves it out, determined by the postures (the registration's std);
@@ -43,7 +46,7 @@ from kpi_calib_ros.core.effects.registry import BoundEffect, bound_key, effect_b
 from kpi_calib_ros.core.estimation.identifiability import select_identifiable
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
-from kpi_calib_ros.core.model.parameters import reflector_prefixes
+from kpi_calib_ros.core.model.parameters import RECORDING_PREFIX, reflector_prefixes
 
 __all__ = ['Tolerances', 'Violation', 'gate', 'geometric_violations', 'effect_violations',
            'gauge_free_deviation', 'observed_std', 'structural_jacobian', 'TURN_RANGE_RAD',
@@ -102,9 +105,15 @@ def structural_jacobian(model: MeasurementModel, values: np.ndarray, seed: int =
     spread = robot.sample_configurations(np.random.default_rng(seed), STRUCTURAL_POSES)
     n_ref = max(model.n_reflectors, 1)
     ref_s = np.repeat(np.arange(n_ref), len(spread))
-    _, jac = model.jacobian(np.asarray(values, float), np.tile(spread, (n_ref, 1)), None,
-                            ref_s if n_ref > 1 else None)
-    return jac.reshape(-1, len(model.params))
+    blocks = []
+    # Every recording at every spread pose: each one's placement is seen by its own rows.
+    for k in range(len(model.recordings) + 1):
+        z = {f'{RECORDING_PREFIX}{name}': np.full(len(ref_s), float(i + 1 == k))
+             for i, name in enumerate(model.recordings)}
+        _, jac = model.jacobian(np.asarray(values, float), np.tile(spread, (n_ref, 1)), None,
+                                ref_s if n_ref > 1 else None, covariates=z or None)
+        blocks.append(jac.reshape(-1, len(model.params)))
+    return np.vstack(blocks)
 
 
 def gauge_free_deviation(model: MeasurementModel, values: np.ndarray, reference: np.ndarray,
@@ -136,7 +145,8 @@ def gauge_free_deviation(model: MeasurementModel, values: np.ndarray, reference:
 
 def observed_std(model: MeasurementModel, result: CalibrationResult, names: Sequence[str],
                  q: np.ndarray, reflector: np.ndarray | None = None,
-                 tau: np.ndarray | None = None, seed: int = 0) -> dict[str, float]:
+                 tau: np.ndarray | None = None, seed: int = 0,
+                 covariates: Mapping[str, np.ndarray] | None = None) -> dict[str, float]:
     """Std (parameter units) of each of ``names`` as the poses ``q`` (N, n) determine it.
 
     Beside every other direction of the model that poses spread over every joint determine.
@@ -149,7 +159,8 @@ def observed_std(model: MeasurementModel, result: CalibrationResult, names: Sequ
     identify either (a gauge another parameter carries) is left out. Unlike the fit's own std
     this does not depend on which parameters the fit kept: a reflector offset the fit kept in
     place of the wrist geometry the poses never moved is as undetermined as one it dropped.
-    ``reflector``: (N,) reflector index of each row; ``tau``: (N, n) gravity torques.
+    ``reflector``: (N,) reflector index of each row; ``tau``: (N, n) gravity torques;
+    ``covariates``: the rows' covariates (their recording, :attr:`MeasurementModel.inputs`).
     """
     params = model.params
     values = np.asarray(result.values, float)
@@ -162,7 +173,9 @@ def observed_std(model: MeasurementModel, result: CalibrationResult, names: Sequ
     q = np.atleast_2d(q)
     rows = np.ones(len(q), bool) if reflector is None else np.asarray(reflector) < n_ref
     _, jac = model.jacobian(values, q[rows], None if tau is None else np.atleast_2d(tau)[rows],
-                            None if reflector is None else np.asarray(reflector)[rows])
+                            None if reflector is None else np.asarray(reflector)[rows],
+                            covariates=None if covariates is None else {
+                                k: np.asarray(v)[rows] for k, v in covariates.items()})
     sigma = np.broadcast_to(np.asarray(result.sigma, float), (int(rows.sum()), 3))
     f = (jac / sigma[:, :, None]).reshape(-1, len(params))[:, params.indices(list(structural))]
     norms = np.linalg.norm(f, axis=0)
@@ -181,6 +194,10 @@ def _wrapped(d: float, unit: str) -> float:
 
 def _tolerance_key(name: str, unit: str) -> str:
     """Return the :class:`Tolerances` field of a geometric parameter."""
+    if name.startswith(RECORDING_PREFIX):
+        # a further recording's placement: its base pose or its remounted reflector
+        return ('reflector_offset' if '.reflector' in name
+                else 'base_' + ('translation' if unit == 'm' else 'rotation'))
     if name.startswith('reflector'):
         return 'reflector_offset'
     base = name.startswith('base.')
@@ -211,7 +228,9 @@ def geometric_violations(model: MeasurementModel, result: CalibrationResult,
                          q: np.ndarray | None = None,
                          n_geometric: int | None = None,
                          reflector: np.ndarray | None = None,
-                         tau: np.ndarray | None = None) -> list[Violation]:
+                         tau: np.ndarray | None = None,
+                         covariates: Mapping[str, np.ndarray] | None = None
+                         ) -> list[Violation]:
     """Violations of the placement and geometric quantities of ``result``.
 
     Parameters
@@ -235,6 +254,8 @@ def geometric_violations(model: MeasurementModel, result: CalibrationResult,
         effects).
     reflector, tau : ndarray, optional
         (N,) reflector index and (N, n) gravity torques of the rows of ``q``.
+    covariates : mapping, optional
+        The rows' covariates (their recording, :attr:`MeasurementModel.inputs`).
     """
     params = model.params
     n_geo = len(params) - sum(len(e.parameter_names) for e in model.effects) \
@@ -258,7 +279,8 @@ def geometric_violations(model: MeasurementModel, result: CalibrationResult,
         spread = max((std.get(n, 0.0) for n in names), default=0.0)
         tol = tolerances.reflector_offset
         determined = ({} if reflector_stated or q is None
-                      else observed_std(model, result, names, q, reflector, tau))
+                      else observed_std(model, result, names, q, reflector, tau,
+                                        covariates=covariates))
         loose = max(determined.values(), default=0.0)
         if loose > tol:
             out.append(Violation(label, 'undetermined: these poses cannot tell it from the '
@@ -278,11 +300,22 @@ def geometric_violations(model: MeasurementModel, result: CalibrationResult,
     for i, (name, unit) in enumerate(zip(params.names[:n_geo], params.units[:n_geo])):
         if name.startswith('reflector.') or name not in values:
             continue
-        base = name.startswith('base.')
+        base = name.startswith(('base.', RECORDING_PREFIX))
         key = _tolerance_key(name, unit)
         tol = getattr(tolerances, key)
         moved = abs(float(deviation[i]))
         where = ('the placement the identification started from' if base else 'the URDF')
+        if name.startswith(RECORDING_PREFIX):
+            where = 'the registration of its recording'
+            if key == 'reflector_offset':
+                # A remounted probe is registered, not stated (as a reflector the cell
+                # leaves out): where it sits is the data's to say; undetermined it is not.
+                if name in std and std[name] > tol:
+                    out.append(Violation(name, f'undetermined: std {std[name]:.3g} m > the '
+                                         f'tolerance {tol:g} m', f'{turn} in this recording '
+                                         '(identification.tolerances.reflector_offset widens '
+                                         'the tolerance)'))
+                continue
         if moved <= tol:
             # Within its tolerance it is a plausible robot, however loosely the data pin it
             # (a near-gauge pair such as a placement translation and rotation the points
@@ -346,13 +379,15 @@ def gate(model: MeasurementModel, result: CalibrationResult, reference: np.ndarr
          tolerances: Tolerances = Tolerances(), reflector_stated: bool = True,
          q: np.ndarray | None = None, tau: np.ndarray | None = None,
          n_geometric: int | None = None, reflector: np.ndarray | None = None,
-         free: Sequence[str] | None = None) -> tuple[Violation, ...]:
+         free: Sequence[str] | None = None,
+         covariates: Mapping[str, np.ndarray] | None = None) -> tuple[Violation, ...]:
     """Every violation of ``result`` (:func:`geometric_violations`, :func:`effect_violations`).
 
     () when every identified quantity is plausible and determined. ``q``, ``tau``,
     ``reflector``: the measured rows (joint values, gravity torques, reflector index);
-    ``free``: the parameters the fit was asked to identify (:func:`effect_violations`).
+    ``free``: the parameters the fit was asked to identify (:func:`effect_violations`);
+    ``covariates``: the rows' covariates (their recording).
     """
     return tuple(geometric_violations(model, result, reference, tolerances, reflector_stated,
-                                      q, n_geometric, reflector, tau)
+                                      q, n_geometric, reflector, tau, covariates)
                  + effect_violations(model.effects, result, tolerances.bounds, tau, free))

@@ -42,7 +42,8 @@ KELVIN_PER_SQRT_HOUR = 1.0
 # (encoder/reducer settling, 20 µrad ≈ 20 µm at 1 m).
 DRIFT_LENGTH_PER_SQRT_HOUR = THERMAL_EXPANSION_PER_K * KELVIN_PER_SQRT_HOUR
 DRIFT_ANGLE_PER_SQRT_HOUR = 2e-5
-PLACEMENT_PREFIXES = ('base.', 'reflector.')
+# Placement parameters: the base pose, the reflector offsets and a further recording's.
+PLACEMENT_PREFIXES = ('base.', 'reflector.', 'recording.')
 
 
 @dataclass(frozen=True)

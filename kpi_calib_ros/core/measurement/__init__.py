@@ -1,4 +1,4 @@
-"""Measurement model: tracker points (eq. 3, 4) and tracked 6-DoF poses."""
+"""Measurement model: tracker points (eq. 3, 4), tracked 6-DoF poses, several recordings."""
 from kpi_calib_ros.core.measurement.covariates import (
     DEFAULT_MAX_GAP_NS,
     DELTA_TEMPERATURE,
@@ -23,6 +23,15 @@ from kpi_calib_ros.core.measurement.pose import (
     rotation_from_rpy,
     rotation_residual_expression,
 )
+from kpi_calib_ros.core.measurement.recordings import (
+    Contribution,
+    Recording,
+    combine,
+    contributions,
+    placed_model,
+    recording_parameters,
+    to_first_frame,
+)
 from kpi_calib_ros.core.measurement.replicates import SAME_POSE_TOLERANCE, pose_groups, same_pose
 from kpi_calib_ros.core.measurement.tracker import (
     Effect,
@@ -38,7 +47,9 @@ from kpi_calib_ros.core.measurement.tracker import (
 )
 
 __all__ = [
-    'DEFAULT_MAX_GAP_NS', 'DELTA_TEMPERATURE', 'Effect', 'MeasurementModel', 'Measurements',
+    'Contribution', 'Recording', 'combine', 'contributions', 'placed_model',
+    'recording_parameters', 'to_first_frame', 'DEFAULT_MAX_GAP_NS', 'DELTA_TEMPERATURE',
+    'Effect', 'MeasurementModel', 'Measurements',
     'REFERENCE_TEMPERATURE_C', 'SAME_POSE_TOLERANCE', 'TEMPERATURE_PREFIX', 'TemperatureSample',
     'covariate_name', 'delta_temperature_name', 'effect_inputs', 'interpolate', 'log3_expression',
     'measured_rotation_input', 'noise_weights', 'noisy_rotations', 'pose_groups', 'pose_matrix',

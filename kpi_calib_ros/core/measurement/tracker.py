@@ -59,8 +59,14 @@ from kpi_calib_ros.core.measurement.pose import (
     measured_rotation_input,
     rotation_residual_expression,
 )
-from kpi_calib_ros.core.model.kinematics import Expr, SymbolicChain, reflector_point
-from kpi_calib_ros.core.model.parameters import ParameterSet
+from kpi_calib_ros.core.model.kinematics import Expr, SymbolicChain, pose6, reflector_point
+from kpi_calib_ros.core.model.parameters import (
+    BASE_COMPONENTS,
+    RECORDING_PREFIX,
+    ParameterSet,
+    recording_names,
+    reflector_prefixes,
+)
 from kpi_calib_ros.core.model.robot import RobotModel
 
 __all__ = [
@@ -262,9 +268,14 @@ class MeasurementModel:
         self.reflector_axis = np.asarray(reflector_axis, float)
         self.chain = SymbolicChain(robot, params)
         self.uses_torque = any(e.uses_torque for e in self.effects)
-        # Covariates the effects read, in the order of the functions' input z.
+        # Recordings after the first with their own placement (core.measurement.recordings):
+        # each row selects its recording's by the one-hot covariate recording.<name>.
+        self.recordings: tuple[str, ...] = tuple(recording_names(params))
+        # Covariates the effects read, then the recordings', in the order of the functions'
+        # input z.
         self.inputs: tuple[str, ...] = tuple(dict.fromkeys(
-            name for e in self.effects for name in effect_inputs(e)))
+            [name for e in self.effects for name in effect_inputs(e)]
+            + [f'{RECORDING_PREFIX}{r}' for r in self.recordings]))
         n = robot.n_joints
         p = ca.SX.sym('p', len(params))
         q = ca.SX.sym('q', n)
@@ -274,7 +285,7 @@ class MeasurementModel:
         # first use (a model made for one Jacobian, as the diagnosis screen makes one per
         # candidate effect, never needs them).
         world, thetas = self._tool_pose(p, q, tau, z)
-        self._points = [self._reflector_point(world, thetas, p, k)
+        self._points = [self._reflector_point(world, thetas, p, k, z)
                         for k in range(self.chain.n_reflectors)]
         self._symbols = (p, q, tau, z)
         self._h = [ca.Function('h', [p, q, tau, z], [point]) for point in self._points]
@@ -361,7 +372,40 @@ class MeasurementModel:
                 tilts[index] = tilts[index] @ rotation if index in tilts else rotation
         tip = self.chain.tip_transform(p if placement is None else p + placement, q_eff,
                                        deflections, tilts)
-        return self.chain.base_in_tracker(p) @ tip, thetas
+        return self._base_pose(p, z) @ tip, thetas
+
+    def _recording_selects(self, name: str, z: Expr) -> Expr:
+        """Whether a row belongs to recording ``name`` (its one-hot covariate in ``z``)."""
+        return z[self.inputs.index(f'{RECORDING_PREFIX}{name}')] > 0.5
+
+    def _base_pose(self, p: Expr, z: Expr) -> Expr:
+        """Return the base pose (4x4) in the tracker frame of the row's recording.
+
+        The first recording's is ``base.*``; selected exactly (``if_else``), so every
+        derivative is that recording's own.
+        """
+        base = self.chain.base_in_tracker(p)
+        for name in self.recordings:
+            own = pose6(p[self.params.indices(
+                [f'{RECORDING_PREFIX}{name}.base.{c}' for c in BASE_COMPONENTS]).tolist()])
+            base = ca.if_else(self._recording_selects(name, z), own, base)
+        return base
+
+    def _reflector_offset(self, p: Expr, reflector: int, z: Expr) -> Expr:
+        """Reflector ``reflector``'s centre (3,) in the tip frame for the row's recording.
+
+        A recording with its probe remounted has its own offsets; the others the first's.
+        """
+        offset = self.chain.reflector(p, reflector)
+        if not self.recordings:
+            return offset
+        prefix = reflector_prefixes(self.params)[reflector]
+        for name in self.recordings:
+            names = [f'{RECORDING_PREFIX}{name}.{prefix}.{c}' for c in 'xyz']
+            if names[0] in self.params.names:
+                offset = ca.if_else(self._recording_selects(name, z),
+                                    p[self.params.indices(names).tolist()], offset)
+        return offset
 
     def body_rotation_expression(self, p: Expr, q: Expr, tau: Expr, reflector: int,
                                  z: Expr = None) -> Expr:
@@ -376,14 +420,18 @@ class MeasurementModel:
         ``z`` the covariates :attr:`inputs` (None: 0).
         """
         world, thetas = self._tool_pose(p, q, tau, z)
-        return self._reflector_point(world, thetas, p, reflector)
+        return self._reflector_point(world, thetas, p, reflector, z)
 
-    def _reflector_point(self, world: Expr, thetas: list, p: Expr, reflector: int) -> Expr:
+    def _reflector_point(self, world: Expr, thetas: list, p: Expr, reflector: int,
+                         z: Expr = None) -> Expr:
         """Reflector ``reflector``'s centre from the tool pose ``world`` (4x4).
 
-        ``thetas`` are the effects' parameters of :meth:`_tool_pose`.
+        ``thetas`` are the effects' parameters of :meth:`_tool_pose`; ``z`` the covariates
+        (None: 0, the first recording's reflector).
         """
-        point = reflector_point(world, self.chain.reflector(p, reflector))
+        if z is None:
+            z = ca.DM.zeros(len(self.inputs))
+        point = reflector_point(world, self._reflector_offset(p, reflector, z))
         for effect, theta in zip(self.effects, thetas):
             corrected = effect.point_correction(point, theta)
             if corrected is not None:

@@ -10,7 +10,10 @@ reports. The geometric set is general for any URDF chain:
 * ``<joint>.offset`` -- joint zero offset, 1 per joint;
 * ``reflector.{x,y,z}`` -- reflector centre in the tip frame (full values), 3;
   with several reflectors (or mocap markers) on the tool, one triple per
-  reflector: ``reflector.<name>.{x,y,z}``, in the cell's order.
+  reflector: ``reflector.<name>.{x,y,z}``, in the cell's order;
+* ``recording.<name>.base.*`` (and ``recording.<name>.<reflector prefix>.*``) -- the
+  placement of a further recording (tracker set-up) identified with the first
+  (:mod:`kpi_calib_ros.core.measurement.recordings`), appended after the reflectors.
 
 Many of these are redundant for position-only tracker data; the identifiable
 subset is chosen by :mod:`kpi_calib_ros.core.estimation.identifiability`.
@@ -24,12 +27,14 @@ import numpy as np
 from kpi_calib_ros.core.model.robot import RobotModel
 
 __all__ = [
-    'PLACEMENT_COMPONENTS', 'BASE_COMPONENTS', 'ParameterSet', 'reflector_prefixes',
-    'geometric_parameters',
+    'PLACEMENT_COMPONENTS', 'BASE_COMPONENTS', 'RECORDING_PREFIX', 'ParameterSet',
+    'reflector_prefixes', 'recording_names', 'geometric_parameters',
 ]
 
 PLACEMENT_COMPONENTS = ('tx', 'ty', 'tz', 'rx', 'ry', 'rz')
 BASE_COMPONENTS = ('x', 'y', 'z', 'roll', 'pitch', 'yaw')
+# Parameters of the recordings after the first (kpi_calib_ros.core.measurement.recordings).
+RECORDING_PREFIX = 'recording.'
 
 
 @dataclass(frozen=True)
@@ -94,6 +99,13 @@ def reflector_prefixes(params: ParameterSet) -> list[str]:
     for named reflectors; reflector index ``k`` everywhere is position ``k`` here.
     """
     return [n[:-2] for n in params.names if n.startswith('reflector.') and n.endswith('.x')]
+
+
+def recording_names(params: ParameterSet) -> list[str]:
+    """Names of the recordings after the first that ``params`` places, in vector order."""
+    suffix = '.base.x'
+    return [n[len(RECORDING_PREFIX):-len(suffix)] for n in params.names
+            if n.startswith(RECORDING_PREFIX) and n.endswith(suffix)]
 
 
 def geometric_parameters(robot: RobotModel, base_in_tracker: np.ndarray,

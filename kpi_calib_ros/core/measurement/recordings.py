@@ -1,0 +1,327 @@
+"""Several recordings (tracker set-ups) of one robot in one identification.
+
+A robot measured from several tracker stations, or with its probe remounted between
+recordings, is one robot in several placements. The robot's parameters are shared; each
+recording after the first has its own base pose in the tracker frame (6 DoF, a station
+metres and tens of degrees away) and, when the probe was remounted, its own reflector
+offsets:
+
+* ``recording.<name>.base.{x,y,z,roll,pitch,yaw}`` -- the base frame in that recording's
+  tracker frame (full values, URDF roll-pitch-yaw convention, as ``base.*``);
+* ``recording.<name>.<reflector prefix>.{x,y,z}`` (``recording.<name>.reflector.x`` for one
+  reflector) -- its reflector centres in the tip frame, only when ``reflector_remounted``.
+
+The first recording keeps ``base.*`` and ``reflector.*``: with one recording the model is
+the one of a single bag, parameter for parameter. Rows say which recording they belong to
+through the one-hot covariate ``recording.<name>`` (1 on its rows, 0 elsewhere), so the
+model's CasADi functions select that recording's placement row by row, exactly (a selection,
+not a linearisation). Everything that takes no covariates (the design, the KPI at the
+working poses, fresh poses) is in the first recording's tracker frame.
+"""
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from kpi_calib_ros.core.measurement.tracker import (
+    MeasurementModel,
+    Measurements,
+    noise_weights,
+    weighted_rows,
+)
+from kpi_calib_ros.core.model.kinematics import rpy_matrix
+from kpi_calib_ros.core.model.parameters import (
+    BASE_COMPONENTS,
+    RECORDING_PREFIX,
+    ParameterSet,
+    recording_names,
+    reflector_prefixes,
+)
+
+__all__ = [
+    'PREFIX', 'NAME_PATTERN', 'Recording', 'covariate', 'base_names', 'reflector_names',
+    'recording_parameters', 'recording_names', 'placed_model', 'combine', 'row_recording',
+    'row_covariates', 'Contribution', 'contributions', 'placement_names', 'to_first_frame',
+]
+
+PREFIX = RECORDING_PREFIX
+# A recording's name is part of parameter names and YAML keys: letters, digits, _ and -.
+NAME_PATTERN = re.compile(r'^[A-Za-z][A-Za-z0-9_\-]*$')
+
+
+@dataclass(frozen=True)
+class Recording:
+    """One recording of a campaign over several set-ups.
+
+    ``name`` (from the bag's file stem or the manifest), ``reflector_remounted``: the probe
+    was mounted again (its own reflector offsets), ``covariates``: constant per-row inputs of
+    every row of this recording ({covariate name: value}, e.g. ``payload.mass: 5.0``).
+    """
+
+    name: str
+    reflector_remounted: bool = False
+    covariates: Mapping[str, float] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        """Check the name (it becomes part of parameter names)."""
+        if not isinstance(self.name, str) or not NAME_PATTERN.match(self.name):
+            raise ValueError(f'recording name {self.name!r} must start with a letter and hold '
+                             'letters, digits, _ or - only')
+
+
+def covariate(name: str) -> str:
+    """Return the one-hot covariate of recording ``name`` (1 on its rows)."""
+    return f'{PREFIX}{name}'
+
+
+def base_names(name: str) -> list[str]:
+    """``recording.<name>.base.{x,y,z,roll,pitch,yaw}``."""
+    return [f'{PREFIX}{name}.base.{c}' for c in BASE_COMPONENTS]
+
+
+def reflector_names(name: str, prefix: str) -> list[str]:
+    """``recording.<name>.<prefix>.{x,y,z}`` of the reflector ``prefix`` (e.g. ``reflector``)."""
+    return [f'{PREFIX}{name}.{prefix}.{c}' for c in 'xyz']
+
+
+def recording_parameters(geometric: ParameterSet, recordings: Sequence[Recording]
+                         ) -> ParameterSet:
+    """``geometric`` with the placement parameters of ``recordings[1:]`` appended.
+
+    Each starts at the first recording's nominal values (``base.*``, ``reflector.*``); the
+    identification starts from each recording's own registration.
+
+    Raises
+    ------
+    ValueError
+        Two recordings share a name, or ``geometric`` already places recordings.
+    """
+    names = [r.name for r in recordings]
+    if len(set(names)) != len(names):
+        raise ValueError(f'recording names must be unique, got {names}')
+    if recording_names(geometric):
+        raise ValueError('the parameter set places recordings already')
+    nominal = dict(zip(geometric.names, geometric.nominal))
+    out = geometric
+    for rec in recordings[1:]:
+        extra = base_names(rec.name)
+        values = [nominal[f'base.{c}'] for c in BASE_COMPONENTS]
+        units = ['m'] * 3 + ['rad'] * 3
+        if rec.reflector_remounted:
+            for prefix in reflector_prefixes(geometric):
+                extra += reflector_names(rec.name, prefix)
+                values += [nominal[f'{prefix}.{c}'] for c in 'xyz']
+                units += ['m'] * 3
+        out = out.extended(extra, np.array(values), units)
+    return out
+
+
+def placed_model(model: MeasurementModel, recordings: Sequence[Recording]
+                 ) -> MeasurementModel:
+    """``model`` (one placement) with the placements of ``recordings[1:]`` added.
+
+    Its geometric parameters extended by :func:`recording_parameters`, everything else
+    (effects, reflector axis, tracked bodies, joint noise, temperature sensors) kept. One
+    recording returns ``model`` itself.
+    """
+    if len(recordings) <= 1:
+        return model
+    geometric = recording_parameters(model.geometric, recordings)
+    return MeasurementModel(model.robot, geometric, model.effects, model.reflector_axis,
+                            model.orientations, model.rotation_scale, model.joint_sigma,
+                            model.joint_temperatures)
+
+
+def to_first_frame(model: MeasurementModel, values: np.ndarray, data: Measurements,
+                   vectors: np.ndarray) -> np.ndarray:
+    """Turn ``vectors`` (N, 3) of ``data``'s rows into the first recording's tracker frame.
+
+    Each is in its own recording's frame: turned by R_first R_rowᵀ (the base rotations at
+    ``values``).
+    A residual (a displacement of the tool) compares across recordings only in one frame;
+    without recordings ``vectors`` is returned as it is.
+    """
+    vectors = np.asarray(vectors, float)
+    if not model.recordings:
+        return vectors
+    params = model.params
+    values = np.asarray(values, float)
+
+    def rotation(names: list[str]) -> np.ndarray:
+        return np.array(rpy_matrix(*values[params.indices(names[3:])]), float)
+    first = rotation([f'base.{c}' for c in BASE_COMPONENTS])
+    index = row_recording(data, ('',) + tuple(model.recordings))
+    out = vectors.copy()
+    for i, name in enumerate(model.recordings, 1):
+        rows = index == i
+        out[rows] = vectors[rows] @ (first @ rotation(base_names(name)).T).T
+    return out
+
+
+def row_recording(data: Measurements, names: Sequence[str]) -> np.ndarray:
+    """Index (N,) into ``names`` (all recordings, first included) of every row of ``data``.
+
+    A row with no recording covariate set belongs to the first.
+    """
+    out = np.zeros(len(data), dtype=int)
+    if data.covariates is None:
+        return out
+    for i, name in enumerate(names):
+        values = data.covariates.get(covariate(name))
+        if values is not None:
+            out[np.asarray(values) > 0.5] = i
+    return out
+
+
+def row_covariates(names: Sequence[str], index: np.ndarray) -> dict[str, np.ndarray]:
+    """Return the one-hot covariates of the recordings after the first, rows ``index`` (N,)."""
+    index = np.asarray(index, dtype=int)
+    return {covariate(name): (index == i).astype(float) for i, name in enumerate(names)
+            if i > 0}
+
+
+def combine(parts: Sequence[Measurements], recordings: Sequence[Recording]) -> Measurements:
+    """One :class:`Measurements` of every recording's rows, in order, with their covariates.
+
+    Each row carries the one-hot ``recording.<name>`` of the recordings after the first and
+    every constant covariate of its recording; a covariate a bag carries is kept. One
+    recording is returned as it is, covariates of its own added.
+
+    Raises
+    ------
+    ValueError
+        Lengths differ, or a covariate is given for some recordings and not others (a
+        condition of one recording must be stated for every one: 0 is a condition too).
+    """
+    if len(parts) != len(recordings) or not parts:
+        raise ValueError('one Measurements per recording, at least one')
+    stated = [set(r.covariates) | set(p.covariates or {}) for r, p in zip(recordings, parts)]
+    every = set().union(*stated)
+    for rec, have in zip(recordings, stated):
+        if have != every:
+            raise ValueError(f'recording {rec.name!r} states no covariate '
+                             f'{sorted(every - have)}: give it for every recording')
+    index = np.concatenate([np.full(len(p), i) for i, p in enumerate(parts)])
+    covariates: dict[str, np.ndarray] = {}
+    for name in sorted(every):
+        covariates[name] = np.concatenate([
+            np.full(len(p), float(r.covariates[name])) if name in r.covariates
+            else np.asarray((p.covariates or {})[name], float)
+            for r, p in zip(recordings, parts)])
+    covariates.update(row_covariates([r.name for r in recordings], index))
+
+    def stack(field_name: str) -> np.ndarray | None:
+        values = [getattr(p, field_name) for p in parts]
+        if all(v is None for v in values):
+            return None
+        if field_name == 'reflector':
+            return np.concatenate([np.zeros(len(p), int) if v is None else np.asarray(v)
+                                   for p, v in zip(parts, values)])
+        if field_name == 'sigma':
+            return np.concatenate([np.full((len(p), 3), np.nan) if v is None else v
+                                   for p, v in zip(parts, values)])
+        if field_name == 'rotation':
+            return np.concatenate([np.broadcast_to(np.eye(3), (len(p), 3, 3)) if v is None
+                                   else v for p, v in zip(parts, values)])
+        if any(v is None for v in values):
+            return None  # tau, stamps: recomputed where missing
+        return np.concatenate(values)
+    return Measurements(q=np.concatenate([np.atleast_2d(p.q) for p in parts]),
+                        eta=np.concatenate([np.atleast_2d(p.eta) for p in parts]),
+                        tau=stack('tau'), stamps_ns=stack('stamps_ns'),
+                        reflector=stack('reflector'), rotation=stack('rotation'),
+                        sigma=stack('sigma'), covariates=covariates or None)
+
+
+def placement_names(params: ParameterSet, index: int, names: Sequence[str]) -> list[str]:
+    """Return the placement parameters of recording ``index`` of ``names`` (first included).
+
+    The first: ``base.*`` and ``reflector.*``; a further one: its ``recording.<name>.*``.
+    """
+    if index == 0:
+        return [n for n in params.names if n.startswith(('base.', 'reflector.'))]
+    return [n for n in params.names if n.startswith(f'{PREFIX}{names[index]}.')]
+
+
+@dataclass(frozen=True)
+class Contribution:
+    """What one recording contributed to a joint identification.
+
+    ``poses``: its point rows; ``rms_m``: the rms of their residual distance (m);
+    ``placement``: {parameter name: value} of its base pose (and reflector, remounted),
+    ``placement_std``: their std (NaN: not identified); ``tcp_variance_ratio``: the trace of
+    the TCP covariance at the working poses in the robot's base frame (its placement not
+    counted) without this recording's rows over the one with every recording (≥ 1; inf:
+    without it the identified robot is not determined); None when there are no working poses.
+    """
+
+    name: str
+    poses: int
+    rms_m: float
+    placement: dict[str, float]
+    placement_std: dict[str, float]
+    tcp_variance_ratio: float | None
+
+
+def contributions(model: MeasurementModel, data: Measurements, values: np.ndarray,
+                  estimated: Sequence[str], std: Sequence[float] | np.ndarray,
+                  sigma: np.ndarray,
+                  q_work: np.ndarray, names: Sequence[str]) -> list[Contribution]:
+    """Per recording of ``names`` (all, first included): :class:`Contribution`.
+
+    ``data`` the rows the fit kept, ``values`` (n_p,) its estimate, ``estimated`` and ``std``
+    the identified parameters and their std, ``sigma`` the noise (3,) or (N, 3) (m),
+    ``q_work`` (t, n) the working poses. The TCP information is linearised at ``values``
+    with the same identified parameters: the robot's (every placement held) TCP covariance
+    with the rows of every recording and without those of one.
+    """
+    params = model.params
+    values = np.asarray(values, float)
+    index = row_recording(data, names)
+    ref = (np.zeros(len(data), int) if data.reflector is None
+           else np.asarray(data.reflector, int))
+    points = ref < model.n_reflectors
+    predicted = model.predict(values, data.q, data.tau, data.reflector, data.rotation,
+                              data.covariates)
+    miss = np.linalg.norm(np.atleast_2d(data.eta) - predicted, axis=1)
+    own = [set(placement_names(params, i, names)) for i in range(len(names))]
+    placements = set().union(*own)
+    robot = [n for n in estimated if n not in placements]
+    idx = params.indices(list(estimated))
+    w = noise_weights(model, values, data, sigma)
+    _, jac = model.jacobian(values, data.q, data.tau, data.reflector, data.rotation,
+                            data.covariates)
+    rows = weighted_rows(jac, w, idx).reshape(len(data), 3, len(idx))
+    ratio: list[float | None] = [None] * len(names)
+    if len(q_work) and robot:
+        _, kpi = model.jacobian(values, np.atleast_2d(q_work))
+        kpi = kpi.reshape(-1, len(values))[:, idx]
+        keep = np.array([n in robot for n in estimated])
+        kpi = np.where(keep[None, :], kpi, 0.0)
+
+        def tcp_trace(mask: np.ndarray, drop: set[str]) -> float:
+            cols = np.array([n not in drop for n in estimated])
+            a = rows[mask][:, :, cols].reshape(-1, int(cols.sum()))
+            info = a.T @ a
+            if np.linalg.matrix_rank(info) < info.shape[0]:
+                return float('inf')
+            k = kpi[:, cols]
+            return float(np.trace(k @ np.linalg.solve(info, k.T)))
+        every = tcp_trace(np.ones(len(data), bool), set())
+        for i in range(len(names)):
+            ratio[i] = tcp_trace(index != i, own[i]) / every
+    stds = dict(zip(estimated, std))
+    value = dict(zip(params.names, values))
+    out = []
+    for i, name in enumerate(names):
+        mine = (index == i) & points
+        placed = placement_names(params, i, names)
+        out.append(Contribution(
+            name, int(np.count_nonzero(mine)),
+            float(np.sqrt(np.mean(miss[mine] ** 2))) if mine.any() else float('nan'),
+            {n: float(value[n]) for n in placed},
+            {n: float(stds.get(n, float('nan'))) for n in placed}, ratio[i]))
+    return out

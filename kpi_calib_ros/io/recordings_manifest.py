@@ -1,0 +1,156 @@
+"""Which bags are the recordings of one identification: ``--bag`` repeated, or a manifest.
+
+A manifest (``--recordings manifest.yaml``) lists the recordings, each a mapping::
+
+    recordings:
+      - bag: station_a.mcap          # relative to the manifest's folder
+        name: station_a              # default: the bag's file stem
+        reflector_remounted: false   # the probe was mounted again for this recording
+        covariates: {payload.mass: 5.0}   # constant on every row of this recording
+
+(a bare list of such mappings is read the same). Every field is checked here; a bad one is
+a :class:`ConfigError` naming ``recordings[i].<field>`` and the fix.
+"""
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.core.measurement.recordings import NAME_PATTERN, Recording
+from kpi_calib_ros.io.yaml_bounded import read_yaml_file
+
+__all__ = ['RecordingSource', 'sources_from_bags', 'read_manifest', 'MANIFEST_FIX']
+
+MANIFEST_FIX = ('give recordings: a list of {bag: file.mcap, name: text, '
+                'reflector_remounted: true|false, covariates: {name: number}}')
+# A covariate name as effects read them: dotted words (payload.mass, temperature.link_2).
+_COVARIATE = re.compile(r'^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z0-9_\-]+)*$')
+_FIELDS = ('bag', 'name', 'reflector_remounted', 'covariates')
+
+
+@dataclass(frozen=True)
+class RecordingSource:
+    """A recording's bag and what is stated about it."""
+
+    bag: Path
+    recording: Recording
+
+
+def _name_from_stem(path: Path, key: str) -> str:
+    stem = path.stem if path.suffix else path.name
+    name = re.sub(r'[^A-Za-z0-9_\-]', '_', stem)
+    if not name or not name[0].isalpha():
+        name = f'r_{name}'
+    if not NAME_PATTERN.match(name):
+        raise ConfigError(key, f'cannot name a recording after {str(path)!r}; give names in a '
+                          'manifest (--recordings)')
+    return name
+
+
+def _unique(sources: list[RecordingSource], key: str) -> list[RecordingSource]:
+    names = [s.recording.name for s in sources]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise ConfigError(key, f'recordings named {twice} more than once (a name comes from '
+                          'the file stem): rename the bags or name them in a manifest '
+                          '(--recordings)')
+    return sources
+
+
+def sources_from_bags(bags: Sequence[str | Path], remounted: Sequence[str] = ()
+                      ) -> list[RecordingSource]:
+    """The recordings of ``--bag`` given once or more, named by their file stems.
+
+    ``remounted`` (``--remounted``): names of the recordings whose probe was mounted again.
+
+    Raises
+    ------
+    ConfigError
+        Two bags with one name (``--bag``), or ``--remounted`` names no recording, or names
+        the first (the first recording's reflector is the cell's).
+    """
+    paths = [Path(b) for b in bags]
+    names = [_name_from_stem(p, '--bag') for p in paths]
+    unknown = sorted(set(remounted) - set(names))
+    if unknown:
+        raise ConfigError('--remounted', f'names no recording: {unknown}; the recordings are '
+                          f'{names} (the bags\' file stems)')
+    if names and names[0] in remounted:
+        raise ConfigError('--remounted', f'{names[0]!r} is the first recording, whose reflector '
+                          'is the cell\'s: list a later one, or give the bags in another order')
+    return _unique([RecordingSource(p, Recording(n, n in remounted))
+                    for p, n in zip(paths, names)], '--bag')
+
+
+def read_manifest(path: str | Path) -> list[RecordingSource]:
+    """The recordings a manifest lists, bags relative to its folder (module docstring).
+
+    Raises
+    ------
+    ConfigError
+        The file, a field or a value is not as the module docstring says; the key names the
+        field (``recordings[1].covariates.payload.mass``) and the fix.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError('--recordings', f'file {str(path)!r} does not exist; {MANIFEST_FIX}')
+    doc = read_yaml_file(path, '--recordings', MANIFEST_FIX)
+    entries: Any = doc.get('recordings') if isinstance(doc, dict) else doc
+    if not isinstance(entries, list) or not entries:
+        raise ConfigError('recordings', f'in {path}: must be a non-empty list; {MANIFEST_FIX}')
+    out = []
+    for i, entry in enumerate(entries):
+        key = f'recordings[{i}]'
+        if not isinstance(entry, dict):
+            raise ConfigError(key, f'in {path}: must be a mapping; {MANIFEST_FIX}')
+        extra = sorted(set(map(str, entry)) - set(_FIELDS))
+        if extra:
+            raise ConfigError(f'{key}.{extra[0]}', f'in {path}: unknown field; the fields are '
+                              f'{list(_FIELDS)}')
+        bag = entry.get('bag')
+        if not isinstance(bag, str) or not bag:
+            raise ConfigError(f'{key}.bag', f'in {path}: give the bag file (text)')
+        bag_path = Path(bag) if Path(bag).is_absolute() else path.parent / bag
+        if not bag_path.exists():
+            raise ConfigError(f'{key}.bag', f'in {path}: {str(bag_path)!r} does not exist')
+        name = entry.get('name', _name_from_stem(bag_path, f'{key}.bag'))
+        if not isinstance(name, str) or not NAME_PATTERN.match(name):
+            raise ConfigError(f'{key}.name', f'in {path}: {name!r} must start with a letter '
+                              'and hold letters, digits, _ or - only')
+        remounted = entry.get('reflector_remounted', False)
+        if not isinstance(remounted, bool):
+            raise ConfigError(f'{key}.reflector_remounted', f'in {path}: must be true or '
+                              f'false, got {remounted!r}')
+        if remounted and i == 0:
+            raise ConfigError(f'{key}.reflector_remounted', f'in {path}: the first '
+                              'recording\'s reflector is the cell\'s; list a remounted '
+                              'recording after it')
+        covariates = entry.get('covariates') or {}
+        if not isinstance(covariates, dict):
+            raise ConfigError(f'{key}.covariates', f'in {path}: must be a mapping '
+                              '{name: number}, e.g. {payload.mass: 5.0}')
+        values = {}
+        for cname, value in covariates.items():
+            if not isinstance(cname, str) or not _COVARIATE.match(cname) \
+                    or cname.startswith('recording.'):
+                raise ConfigError(f'{key}.covariates', f'in {path}: {cname!r} is no covariate '
+                                  'name (dotted words, e.g. payload.mass; recording.* is '
+                                  'the recordings\' own)')
+            if isinstance(value, bool) or not isinstance(value, (int, float)) \
+                    or not math.isfinite(value):
+                raise ConfigError(f'{key}.covariates.{cname}', f'in {path}: must be a finite '
+                                  f'number (in the covariate\'s unit, e.g. kg), got {value!r}')
+            values[cname] = float(value)
+        out.append(RecordingSource(bag_path, Recording(name, remounted, values)))
+    stated = [set(s.recording.covariates) for s in out]
+    every = set().union(*stated)
+    for i, have in enumerate(stated):
+        if have != every:
+            raise ConfigError(f'recordings[{i}].covariates', f'in {path}: lacks '
+                              f'{sorted(every - have)}, given for other recordings: a '
+                              'condition must be stated for every recording (0 is one too)')
+    return _unique(out, 'recordings')

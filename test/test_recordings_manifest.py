@@ -1,0 +1,99 @@
+"""The recordings manifest and ``--bag`` names: every bad field a named error (exit 2)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+from kpi_calib_ros.cli import main
+from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.io.cell import DEFAULT_CELL
+from kpi_calib_ros.io.recordings_manifest import read_manifest, sources_from_bags
+
+
+@pytest.fixture
+def bags(tmp_path: Path) -> Path:
+    for name in ('station_a', 'station_b'):
+        (tmp_path / f'{name}.mcap').write_bytes(b'')
+    return tmp_path
+
+
+def _manifest(folder: Path, entries) -> Path:
+    path = folder / 'manifest.yaml'
+    path.write_text(yaml.safe_dump({'recordings': entries}))
+    return path
+
+
+def test_a_manifest_gives_names_mounts_and_constant_conditions(bags):
+    path = _manifest(bags, [{'bag': 'station_a.mcap', 'covariates': {'payload.mass': 5.0}},
+                            {'bag': 'station_b.mcap', 'name': 'B-2',
+                             'reflector_remounted': True,
+                             'covariates': {'payload.mass': 0}}])
+    a, b = read_manifest(path)
+    assert a.bag == bags / 'station_a.mcap' and a.recording.name == 'station_a'
+    assert a.recording.covariates == {'payload.mass': 5.0} and not a.recording.reflector_remounted
+    assert b.recording.name == 'B-2' and b.recording.reflector_remounted
+    assert b.recording.covariates == {'payload.mass': 0.0}
+
+
+BAD = {
+    'unknown field': ([{'bag': 'station_a.mcap', 'remounted': True}],
+                      'recordings[0].remounted'),
+    'missing bag': ([{'bag': 'nowhere.mcap'}], 'recordings[0].bag'),
+    'bad name': ([{'bag': 'station_a.mcap', 'name': '1st station'}], 'recordings[0].name'),
+    'remounted not a bool': ([{'bag': 'station_a.mcap'},
+                              {'bag': 'station_b.mcap', 'reflector_remounted': 'yes'}],
+                             'recordings[1].reflector_remounted'),
+    'first remounted': ([{'bag': 'station_a.mcap', 'reflector_remounted': True}],
+                        'recordings[0].reflector_remounted'),
+    'covariate not a number': ([{'bag': 'station_a.mcap', 'covariates': {'payload.mass': 'five'}}],
+                               'recordings[0].covariates.payload.mass'),
+    'covariate not finite': ([{'bag': 'station_a.mcap',
+                               'covariates': {'payload.mass': float('nan')}}],
+                             'recordings[0].covariates.payload.mass'),
+    'covariate of the recordings': ([{'bag': 'station_a.mcap',
+                                      'covariates': {'recording.x': 1.0}}],
+                                    'recordings[0].covariates'),
+    'condition of some only': ([{'bag': 'station_a.mcap', 'covariates': {'payload.mass': 5.0}},
+                                {'bag': 'station_b.mcap'}], 'recordings[1].covariates'),
+    'one name twice': ([{'bag': 'station_a.mcap', 'name': 'x'},
+                        {'bag': 'station_b.mcap', 'name': 'x'}], 'recordings'),
+    'not a list': ({'bag': 'station_a.mcap'}, 'recordings'),
+}
+
+
+@pytest.mark.parametrize('case', BAD)
+def test_a_bad_manifest_is_a_named_error_and_exit_2(case, bags, capsys):
+    entries, field = BAD[case]
+    path = _manifest(bags, entries)
+    with pytest.raises(ConfigError) as caught:
+        read_manifest(path)
+    assert caught.value.key == field, caught.value
+    code = main(['identify', '--cell', str(DEFAULT_CELL), '--recordings', str(path), '--out',
+                 str(bags / 'out')])
+    err = capsys.readouterr().err
+    assert code == 2 and field in err and 'Traceback' not in err, err
+
+
+def test_bag_names_come_from_the_file_stems_and_must_differ(bags, capsys):
+    a, b = sources_from_bags([bags / 'station_a.mcap', bags / 'station_b.mcap'], ['station_b'])
+    assert (a.recording.name, b.recording.name) == ('station_a', 'station_b')
+    assert b.recording.reflector_remounted and not a.recording.reflector_remounted
+    for bags_given, remounted, key in (
+            ([bags / 'station_a.mcap', bags / 'other' / 'station_a.mcap'], [], '--bag'),
+            ([bags / 'station_a.mcap', bags / 'station_b.mcap'], ['station_c'], '--remounted'),
+            ([bags / 'station_a.mcap', bags / 'station_b.mcap'], ['station_a'], '--remounted')):
+        with pytest.raises(ConfigError) as caught:
+            sources_from_bags(bags_given, remounted)
+        assert caught.value.key == key
+    for argv, key in ((['--bag', str(bags / 'station_a.mcap'), '--recordings',
+                        str(bags / 'm.yaml')], '--recordings'),
+                      ([], '--bag'),
+                      (['--bag', str(bags / 'station_a.mcap'), '--bag',
+                        str(bags / 'station_b.mcap'), '--prior', str(bags / 'c.yaml')],
+                       '--prior')):
+        code = main(['identify', '--cell', str(DEFAULT_CELL), '--out', str(bags / 'out')]
+                    + argv)
+        err = capsys.readouterr().err
+        assert code == 2 and key in err and 'Traceback' not in err, err
