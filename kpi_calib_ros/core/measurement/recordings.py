@@ -30,6 +30,7 @@ from kpi_calib_ros.core.measurement.tracker import (
     MeasurementModel,
     Measurements,
     noise_weights,
+    row_torques,
     weighted_rows,
 )
 from kpi_calib_ros.core.model.kinematics import rpy_matrix
@@ -284,15 +285,16 @@ def contributions(model: MeasurementModel, data: Measurements, values: np.ndarra
     ref = (np.zeros(len(data), int) if data.reflector is None
            else np.asarray(data.reflector, int))
     points = ref < model.n_reflectors
-    predicted = model.predict(values, data.q, data.tau, data.reflector, data.rotation,
+    tau = row_torques(model, data)
+    predicted = model.predict(values, data.q, tau, data.reflector, data.rotation,
                               data.covariates)
     miss = np.linalg.norm(np.atleast_2d(data.eta) - predicted, axis=1)
     own = [set(placement_names(params, i, names)) for i in range(len(names))]
     placements = set().union(*own)
     robot = [n for n in estimated if n not in placements]
     idx = params.indices(list(estimated))
-    w = noise_weights(model, values, data, sigma)
-    _, jac = model.jacobian(values, data.q, data.tau, data.reflector, data.rotation,
+    w = noise_weights(model, values, data, sigma, tau)
+    _, jac = model.jacobian(values, data.q, tau, data.reflector, data.rotation,
                             data.covariates)
     rows = weighted_rows(jac, w, idx).reshape(len(data), 3, len(idx))
     ratio: list[float | None] = [None] * len(names)
