@@ -19,7 +19,7 @@ from kpi_calib_ros.io.campaign_io import CampaignState, read_campaign_state, wri
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 from kpi_calib_ros.io.cell_settings import hidden_effects
 from kpi_calib_ros.io.names import CALIBRATIONS_DIR, CAMPAIGN_STATE_FILE
-from kpi_calib_ros.ros import jobs
+from kpi_calib_ros.ros import job_work
 
 SECOND = 1_000_000_000
 TARGET = 16e-6
@@ -33,7 +33,7 @@ def campaign_run(tmp_path_factory):
     cm = build_cell_model(load_cell(DEFAULT_CELL))
     data_dir = tmp_path_factory.mktemp('campaign') / 'data'
     settings = CampaignSettings(target_std=TARGET, max_measurements=60)
-    campaign, initial, _, _ = jobs.sequential_start_work(cm, settings, 0, data_dir)
+    campaign, initial, _, _ = job_work.sequential_start_work(cm, settings, 0, data_dir)
     state = read_campaign_state(data_dir / CAMPAIGN_STATE_FILE)
     assert state == CampaignState(settings, 0)
     rng = np.random.default_rng(4)
@@ -47,11 +47,11 @@ def campaign_run(tmp_path_factory):
         batches.append(Measurements(q=q, eta=eta,
                                     stamps_ns=start + SECOND * np.arange(1, len(q) + 1)))
         return batches[-1]
-    outs = [jobs.sequential_step_work(campaign, cm, measure(cm.joint_coupling.to_urdf(initial)),
+    outs = [job_work.sequential_step_work(campaign, cm, measure(cm.joint_coupling.to_urdf(initial)),
                                       state, data_dir)]
     while not outs[-1].status.stopped:
         q_next = cm.joint_coupling.to_urdf(outs[-1].plan[:1])
-        outs.append(jobs.sequential_step_work(campaign, cm, measure(q_next), outs[-1].state,
+        outs.append(job_work.sequential_step_work(campaign, cm, measure(q_next), outs[-1].state,
                                               data_dir))
     return cm, data_dir, outs, batches
 
@@ -74,13 +74,13 @@ def test_a_restarted_campaign_plans_the_same_next_pose(campaign_run, tmp_path):
     k = 2
     state = outs[k].state
     assert len(state.steps) == k + 1
-    rebuilt, _, out = jobs.sequential_resume_work(cm, state, _through(batches, k + 1), tmp_path)
+    rebuilt, _, out = job_work.sequential_resume_work(cm, state, _through(batches, k + 1), tmp_path)
     assert out is not None and out.calibration is None
     np.testing.assert_allclose(out.plan[0], outs[k].plan[0], atol=1e-9)
     assert out.status.statistic == pytest.approx(outs[k].status.statistic, rel=1e-12)
     assert yaml.safe_load(out.text)['resumed'] is True
     assert read_campaign_state(tmp_path / CAMPAIGN_STATE_FILE).steps == state.steps
-    after = jobs.sequential_step_work(rebuilt, cm, batches[k + 1], out.state, tmp_path)
+    after = job_work.sequential_step_work(rebuilt, cm, batches[k + 1], out.state, tmp_path)
     np.testing.assert_allclose(after.plan[0], outs[k + 1].plan[0], atol=1e-9)
     assert after.state.steps == outs[k + 1].state.steps
 
@@ -89,7 +89,7 @@ def test_a_state_whose_measurements_are_gone_is_refused_by_name(campaign_run, tm
     cm, _, outs, batches = campaign_run
     data = _through(batches, 1)
     with pytest.raises(DataError, match='campaign_state.yaml: steps: .*~/reset'):
-        jobs.sequential_resume_work(cm, outs[1].state, data.subset(np.arange(len(data)) > 0),
+        job_work.sequential_resume_work(cm, outs[1].state, data.subset(np.arange(len(data)) > 0),
                                     tmp_path)
     (tmp_path / CAMPAIGN_STATE_FILE).write_text('version: 1\nsettings: {}\n')
     with pytest.raises(DataError, match='campaign_state.yaml: field .*~/reset'):
@@ -145,7 +145,7 @@ def test_a_campaign_stopped_model_inadequate_publishes_and_archives_nothing(tmp_
         eta = simulate_measurements(truth.model, p_true, q, sigma, rng).eta
         stamps = SECOND * np.arange(n + 1, n + len(q) + 1)
         n += len(q)
-        out = jobs.sequential_step_work(campaign, cm, Measurements(q=q, eta=eta,
+        out = job_work.sequential_step_work(campaign, cm, Measurements(q=q, eta=eta,
                                                                    stamps_ns=stamps),
                                         state, tmp_path)
         state = out.state
@@ -158,7 +158,7 @@ def test_a_campaign_stopped_model_inadequate_publishes_and_archives_nothing(tmp_
     data = Measurements(q=campaign.q, eta=campaign.eta, stamps_ns=campaign.stamps)
     pairing = PairingResult(tuple(cm.joint_names), cm.cell.tracker_frame, campaign.q,
                             campaign.eta, campaign.stamps)
-    out = jobs.identify_work(cm, data, pairing, tmp_path, archive=False)
+    out = job_work.identify_work(cm, data, pairing, tmp_path, archive=False)
     cal, text = out.calibration, out.text
     assert cal is not None and cal.valid and yaml.safe_load(text)['identified_at_ns'] > 0
     assert not (tmp_path / CALIBRATIONS_DIR).exists()

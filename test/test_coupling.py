@@ -139,7 +139,7 @@ def test_cli_writes_the_node_calibrated_urdf(tmp_path, capsys):
     """kpi-calib identify writes the calibrated URDF beside calibration.yaml, and it is
     the node's byte for byte on the same data."""
     from kpi_calib_ros.app.measurements import load_measurements
-    from kpi_calib_ros.ros.jobs import identify_work
+    from kpi_calib_ros.ros.job_work import identify_work
     bag = tmp_path / 'run.mcap'
     simulate_campaign(DEFAULT_CELL, 30, bag, seed=3)
     out_cli, out_node = tmp_path / 'cli', tmp_path / 'node'

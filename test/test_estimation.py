@@ -310,6 +310,26 @@ def test_priority_with_unknown_names_is_refused(cell, campaign):
                             priority=['a', 'joint_9.offset'])
 
 
+@pytest.mark.parametrize('method', ['pivoted', 'priority'])
+def test_the_selection_without_reasons_keeps_the_same_parameters(cell, campaign, method):
+    """``explain=False`` (the identification's rounds) keeps the same set, rank and
+    conditioning and gives no reasons; the identification's dropped parameters are those of
+    the full selection at its estimate, each with its reason."""
+    from kpi_calib_ros.core.estimation.identifiability import select_identifiable
+    from kpi_calib_ros.core.measurement.tracker import weighted_rows
+    _, q, data, result = campaign
+    names = list(cell.model.params.names)
+    _, jac = cell.model.jacobian(result.values, q)
+    stacked = weighted_rows(jac, np.full((len(q), 3), 1 / SIGMA), np.arange(len(names)))
+    full = select_identifiable(stacked, names, method=method)
+    bare = select_identifiable(stacked, names, method=method, explain=False)
+    assert (bare.kept, bare.rank, bare.singular_ratio) == (full.kept, full.rank,
+                                                          full.singular_ratio)
+    assert bare.dropped == () and len(full.dropped) == len(names) - full.rank > 0
+    assert all(d.reason for d in result.dropped)
+    assert {d.name for d in result.dropped} == set(names) - set(result.estimated)
+
+
 def test_directions_only_the_noise_makes_are_not_identified(cell):
     """At the nominal robot (reflector on the flange axis) two directions vanish; at any
     noisy estimate they are there, barely above the QR tolerance. The re-selection at the

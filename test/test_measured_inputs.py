@@ -260,12 +260,12 @@ def test_the_node_campaign_logs_each_measurements_efforts_and_pairs_them(cm, tmp
     joint state); its jobs pair them as the rows' torques, as identify does from a bag."""
     from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
     from kpi_calib_ros.io.measurement_log import MeasurementLog
-    from kpi_calib_ros.ros.campaign import Campaign, model_measurements
+    from kpi_calib_ros.ros.measurement_store import MeasurementStore, model_measurements
     q, eta, torque, _ = _loaded(cm, 12, 5)
     measured = build_cell_model(cell_from_dict(read_cell_document(
         _cell(tmp_path, compliance={'torque_source': 'measured'})), tmp_path))
     joints, points = synthesize_streams(q, cm.joint_names, eta, cm.cell.tracker_frame)
-    campaign = Campaign(tmp_path / 'data', inputs_topic=measured.cell.inputs.topic,
+    campaign = MeasurementStore(tmp_path / 'data', inputs_topic=measured.cell.inputs.topic,
                         record_efforts=True)
     try:
         campaign.set_chain(cm.joint_names, cm.cell.tracker_frame)
@@ -285,4 +285,4 @@ def test_the_node_campaign_logs_each_measurements_efforts_and_pairs_them(cm, tmp
     logged = MeasurementLog.load_inputs(tmp_path / 'data', measured.cell.inputs.topic)
     assert len(logged) == 5 * len(cm.joint_names)
     with pytest.raises(ValueError, match='record_efforts needs an inputs_topic'):
-        Campaign(tmp_path / 'other', record_efforts=True)
+        MeasurementStore(tmp_path / 'other', record_efforts=True)

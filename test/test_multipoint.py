@@ -217,9 +217,9 @@ def test_a_design_for_three_reflectors_predicts_a_smaller_tcp_covariance(cm):
 
 
 def test_the_node_store_keeps_every_reflector_of_a_pose_and_restores_them(tmp_path):
-    from kpi_calib_ros.ros.campaign import Campaign
+    from kpi_calib_ros.ros.measurement_store import MeasurementStore
     joints, pts = _streams(np.eye(3), ['mocap#a', 'mocap#b', 'mocap#a'])
-    store = Campaign(tmp_path)
+    store = MeasurementStore(tmp_path)
     store.set_chain(['j1'], 'mocap', ('a', 'b'))
     for sample in sorted(joints + pts[:2], key=lambda s: s.stamp_ns):
         store.receive(sample, now_ns=0)
@@ -229,7 +229,7 @@ def test_the_node_store_keeps_every_reflector_of_a_pose_and_restores_them(tmp_pa
     assert len(data) == 2 and data.reflector.tolist() == [0, 1]
     assert store.rejections['duplicate_stamp'] == 1
     store.close()
-    again, _ = Campaign(tmp_path).measurements(['j1'], 'mocap', ('b', 'a'))
+    again, _ = MeasurementStore(tmp_path).measurements(['j1'], 'mocap', ('b', 'a'))
     assert sorted(again.reflector.tolist()) == [0, 1]
     assert np.allclose(sorted(map(tuple, again.eta)), sorted(map(tuple, data.eta)))
 

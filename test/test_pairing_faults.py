@@ -14,7 +14,7 @@ from kpi_calib_ros.core.acquisition.pairing import (
     pair_measurements,
 )
 from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample, synthesize_streams
-from kpi_calib_ros.ros.campaign import Campaign
+from kpi_calib_ros.ros.measurement_store import MeasurementStore
 
 NAMES = ('joint_1', 'joint_2', 'joint_3', 'joint_4', 'joint_5', 'joint_6')
 FRAME = 'tracker'
@@ -156,16 +156,16 @@ def test_reset_forgets_the_clock_and_the_counts():
     assert len(accepted(live(pairer, joints, points))) == N_POSES and pairer.clock_jumps == 0
 
 
-def replay_into(campaign: Campaign, joints, points, start_mono_ns: int, rate: float) -> list:
-    """Feed a campaign as the node does: arrival times on the monotonic clock, polled."""
+def replay_into(store: MeasurementStore, joints, points, start_mono_ns: int, rate: float) -> list:
+    """Feed a measurement store as the node does: arrival times on the monotonic clock, polled."""
     t0 = joints[0].stamp_ns
     arrivals = sorted([(s.stamp_ns, 0, s) for s in joints] + [(p.stamp_ns, 1, p) for p in points],
                       key=lambda a: a[:2])
     decided = []
     for stamp, _, item in arrivals:
         now = start_mono_ns + int((stamp - t0) / rate)
-        decided += campaign.receive(item, now)
-        decided += campaign.poll(now)
+        decided += store.receive(item, now)
+        decided += store.poll(now)
     return decided
 
 
@@ -174,20 +174,20 @@ def test_campaign_survives_a_wall_clock_joint_state_and_its_reset(tmp_path, rate
     """The node's path: a stray wall-clock joint state, then a replayed recording, is all
     accepted; after ~/reset an older recording is accepted too."""
     _, joints, points = recording(10, RECORDED + 7_200_000_000_000)
-    campaign = Campaign(tmp_path)
-    campaign.set_chain(list(NAMES), FRAME)
-    campaign.receive(still_sample(WALL), 0)
-    decided = replay_into(campaign, joints, points, 1_000_000, rate)
-    assert len(accepted(decided)) == N_POSES == len(campaign)
-    assert campaign.counts()['rejected'] == 0 and campaign.counts()['clock_jumps'] == 1
-    campaign.reset()
-    assert campaign.counts()['clock_jumps'] == 0 and len(campaign) == 0
+    store = MeasurementStore(tmp_path)
+    store.set_chain(list(NAMES), FRAME)
+    store.receive(still_sample(WALL), 0)
+    decided = replay_into(store, joints, points, 1_000_000, rate)
+    assert len(accepted(decided)) == N_POSES == len(store)
+    assert store.counts()['rejected'] == 0 and store.counts()['clock_jumps'] == 1
+    store.reset()
+    assert store.counts()['clock_jumps'] == 0 and len(store) == 0
     _, joints, points = recording(11)
-    decided = replay_into(campaign, joints, points, 10**12, rate)
-    assert len(accepted(decided)) == N_POSES == len(campaign)
+    decided = replay_into(store, joints, points, 10**12, rate)
+    assert len(accepted(decided)) == N_POSES == len(store)
     # Reset forgot the wall-clock stamp: the older recording is no jump any more.
-    assert campaign.counts()['rejected'] == 0 and campaign.counts()['clock_jumps'] == 0
-    campaign.close()
+    assert store.counts()['rejected'] == 0 and store.counts()['clock_jumps'] == 0
+    store.close()
 
 
 # ------------------------------------------------------------------ hostile joint states

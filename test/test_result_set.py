@@ -32,7 +32,7 @@ from kpi_calib_ros.io.names import (
     LEARNED_RESIDUAL_FILE,
 )
 from kpi_calib_ros.io.result_set import PENDING_DIR, complete_pending, write_result_set
-from kpi_calib_ros.ros import jobs
+from kpi_calib_ros.ros import job_work
 
 from full_disk import fill, small_tmpfs, snapshot
 
@@ -151,9 +151,9 @@ def test_every_way_to_finish_a_calibration_writes_the_same_set(tmp_path, capsys)
                  '--out', str(folders['prior'])]) == 0
     capsys.readouterr()
     data, pairing = measurements_from_bag(cm, bag)
-    out = jobs.identify_work(cm, data, pairing, folders['node'])
+    out = job_work.identify_work(cm, data, pairing, folders['node'])
     assert out.calibration is not None and out.calibration.valid
-    campaign, initial, _, _ = jobs.sequential_start_work(
+    campaign, initial, _, _ = job_work.sequential_start_work(
         cm, CampaignSettings(target_std=1.0, max_measurements=60), 0, folders['campaign'])
     q = cm.joint_coupling.to_urdf(initial)
     rng = np.random.default_rng(5)
@@ -161,7 +161,7 @@ def test_every_way_to_finish_a_calibration_writes_the_same_set(tmp_path, capsys)
     eta = simulate_measurements(cm.model, p_true, q, cm.cell.sigma, rng).eta
     from kpi_calib_ros.core.measurement.tracker import Measurements
     from kpi_calib_ros.io.campaign_io import CampaignState
-    step = jobs.sequential_step_work(
+    step = job_work.sequential_step_work(
         campaign, cm, Measurements(q=q, eta=eta, stamps_ns=START_NS + 10 ** 9 * np.arange(
             1, len(q) + 1)), CampaignState(campaign.settings, 0), folders['campaign'])
     assert step.status.stopped and step.calibration is not None

@@ -231,7 +231,7 @@ def test_design_estimability_says_when_the_kpi_is_not_determined(cm, truth):
 
 def test_node_job_never_writes_an_invalid_calibration_over_the_last_good_one(cm, truth,
                                                                              tmp_path):
-    from kpi_calib_ros.ros.jobs import identify_work
+    from kpi_calib_ros.ros.job_work import identify_work
     p_true, q, _ = truth
     good = _campaign(cm, p_true, q, 10)
     out = identify_work(cm, good, None, tmp_path)

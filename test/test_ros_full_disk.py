@@ -65,7 +65,7 @@ def node(disk, ros_domain, monkeypatch):
             stamps = FIRST_NS + 3_600_000_000_000 * k + 10 ** 9 * np.arange(N_POSES)
             cycles.append(Measurements(q=q, eta=eta, stamps_ns=stamps))
         made.cycle = 0
-        monkeypatch.setattr(made.campaign, 'measurements',
+        monkeypatch.setattr(made.store, 'measurements',
                             lambda *a, **k: (cycles[made.cycle], None))
         executor.add_node(made)
         spinner = threading.Thread(target=executor.spin, daemon=True)

@@ -29,7 +29,7 @@ from kpi_calib_ros.core.simulation import (
 )
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 from kpi_calib_ros.io.learned_residual_file import read_residual
-from kpi_calib_ros.ros import jobs
+from kpi_calib_ros.ros import job_work
 from kpi_calib_ros.ros.parameters import PARAMETERS, settings_from_parameters
 
 from ros_helpers import Queries, start_error
@@ -93,10 +93,10 @@ def test_a_prior_calibration_fits_no_learned_residual_and_removes_the_older_one(
                                 stamps)
         return Measurements(q=q[rows], eta=eta[rows], stamps_ns=stamps), pairing
     first = measured(slice(0, 60), 10 ** 18)
-    learned = jobs.identify_work(cm, *first, tmp_path, learned_residual=True).learned
+    learned = job_work.identify_work(cm, *first, tmp_path, learned_residual=True).learned
     assert learned[0] == 'chosen' and (tmp_path / 'learned_residual.yaml').is_file(), learned
     cycle = measured(slice(60, N_POSES), 2 * 10 ** 18)
-    out = jobs.identify_work(cm, *cycle, tmp_path, with_prior=True, learned_residual=True)
+    out = job_work.identify_work(cm, *cycle, tmp_path, with_prior=True, learned_residual=True)
     cal, text, prior, learned = out.calibration, out.text, out.prior, out.learned
     assert cal is not None and cal.valid and prior, (prior, learned)
     assert learned[0] == 'not fitted' and 'reidentify_with_prior:=false' in learned[1]

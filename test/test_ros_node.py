@@ -370,7 +370,7 @@ def test_an_invalid_identification_keeps_the_last_good_calibration(in_process, m
         stamps = 10 ** 9 * (np.arange(len(data)) + 1)
         return Measurements(q=data.q, eta=data.eta, stamps_ns=stamps), None
 
-    monkeypatch.setattr(node.campaign, 'measurements', measurements)
+    monkeypatch.setattr(node.store, 'measurements', measurements)
     executor = SingleThreadedExecutor(context=node.context)
     executor.add_node(node)
     spinner = threading.Thread(target=executor.spin, daemon=True)

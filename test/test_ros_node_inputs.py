@@ -44,7 +44,7 @@ def node(tmp_path, ros_domain, monkeypatch):
         q = random_configurations(cm.model, cm.model.params.nominal, 40, rng)
         data = simulate_measurements(cm.model, p_true, q, 2e-5, rng)
         stamps = FIRST_NS + 10 ** 9 * np.arange(len(data))
-        monkeypatch.setattr(made.campaign, 'measurements', lambda *a, **k: (
+        monkeypatch.setattr(made.store, 'measurements', lambda *a, **k: (
             Measurements(q=data.q, eta=data.eta, stamps_ns=stamps), None))
         executor.add_node(made)
         spinner = threading.Thread(target=executor.spin, daemon=True)

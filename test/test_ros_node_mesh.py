@@ -75,7 +75,7 @@ def test_node_identifies_from_a_stock_mesh_urdf_with_unknown_placement(tmp_path,
                 node._on_joint_state(cv.joint_state_msg(sample), {})
             else:
                 node._on_point(cv.point_stamped_msg(sample), {})
-        assert len(node.campaign) == 30
+        assert len(node.store) == 30
 
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(node)
@@ -84,7 +84,7 @@ def test_node_identifies_from_a_stock_mesh_urdf_with_unknown_placement(tmp_path,
         ok, message = run_job(node, executor, 'identifying', node._identify, 300)
         assert ok, message
         # The same numbers as the offline path on the paired campaign.
-        paired, _ = node.campaign.measurements(node._cm.joint_names, 'laser_tracker')
+        paired, _ = node.store.measurements(node._cm.joint_names, 'laser_tracker')
         offline = identify_cell(build_cell_model(load_cell(cell)), paired)
         np.testing.assert_allclose(node._run.result.values, offline.values, rtol=0, atol=1e-12)
         # The registered start led to the true robot: TCP within 5 σ of its prediction.

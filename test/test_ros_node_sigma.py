@@ -26,7 +26,7 @@ from kpi_calib_ros.io.bag_writing import BagStream
 from kpi_calib_ros.io.cell import DEFAULT_CELL
 from kpi_calib_ros.io.names import DEFAULT_POINT_TOPIC, point_sigma_topic
 from kpi_calib_ros.io.ros_messages import joint_state_msg, point_stamped_msg, vector3_stamped_msg
-from kpi_calib_ros.ros import jobs
+from kpi_calib_ros.ros import job_work
 from kpi_calib_ros.ros.node import CalibrationNode
 
 from ros_helpers import KR15_URDF, finish
@@ -71,7 +71,7 @@ def offline_values(cm, joints, points, sigma, path):
     data, pairing = measurements_from_bag(cm, write_campaign_bag(joints, points, sigma, path))
     out = path.with_suffix('')
     out.mkdir()
-    cal = jobs.identify_work(cm, data, pairing, out).calibration
+    cal = job_work.identify_work(cm, data, pairing, out).calibration
     assert cal is not None and cal.valid, cal and cal.problems
     return cal.result.values
 
@@ -136,9 +136,9 @@ def test_live_sigma_identifies_as_the_bag_with_sigma(tmp_path, ros_domain, cm):
                 pub_sigma.publish(sigma_msg)
             if n % 50 == 0:
                 executor.spin_once(timeout_sec=0)
-        spin_until(lambda: node.campaign.counts()['stated_sigma'] == POSES
-                   and len(node.campaign) == POSES, 'every point with its sigma')
-        counts = node.campaign.counts()
+        spin_until(lambda: node.store.counts()['stated_sigma'] == POSES
+                   and len(node.store) == POSES, 'every point with its sigma')
+        counts = node.store.counts()
         assert counts['rejected'] == 0 and counts['received.sigma'] == POSES, counts
 
         spinner = threading.Thread(target=executor.spin, daemon=True)

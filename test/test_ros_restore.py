@@ -26,7 +26,7 @@ from kpi_calib_ros.core.simulation import (
 )
 from kpi_calib_ros.io.cell import DEFAULT_CELL
 from kpi_calib_ros.io.measurement_log import MeasurementLog
-from kpi_calib_ros.ros import jobs
+from kpi_calib_ros.ros import job_work
 
 from ros_helpers import LATCHED, NS, Queries, idle_node, run_job, tcp_of
 
@@ -120,7 +120,7 @@ def test_a_calibration_of_another_robot_or_a_damaged_one_is_not_used(cm, client,
     data_dir = tmp_path / 'data'
     q, eta, stamps, fresh = simulated(cm, seed=9)
     pairing = PairingResult(cm.joint_names, cm.cell.tracker_frame, q, eta, stamps)
-    cal = jobs.identify_work(cm, Measurements(q=q, eta=eta, stamps_ns=stamps), pairing,
+    cal = job_work.identify_work(cm, Measurements(q=q, eta=eta, stamps_ns=stamps), pairing,
                              data_dir).calibration  # the KR15's valid calibration.yaml
     assert cal is not None and cal.valid
     path = data_dir / 'calibration.yaml'
@@ -163,7 +163,7 @@ def test_validate_and_reset_after_a_restore(cm, tmp_path, ros_domain):
     train = slice(0, 24)
     pairing = PairingResult(cm.joint_names, cm.cell.tracker_frame, q[train], eta[train],
                             stamps[train])
-    out = jobs.identify_work(cm, Measurements(q=q[train], eta=eta[train],
+    out = job_work.identify_work(cm, Measurements(q=q[train], eta=eta[train],
                                              stamps_ns=stamps[train]), pairing, tmp_path)
     cal, text = out.calibration, out.text
     assert cal is not None and cal.valid

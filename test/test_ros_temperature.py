@@ -22,7 +22,7 @@ from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.io.cell import DEFAULT_CELL
 from kpi_calib_ros.io.measurement_log import MeasurementLog
 from kpi_calib_ros.io.ros_messages import time_msg
-from kpi_calib_ros.ros.campaign import Campaign, with_temperature_readings
+from kpi_calib_ros.ros.measurement_store import MeasurementStore, with_temperature_readings
 from kpi_calib_ros.ros.node import CalibrationNode
 
 from ros_helpers import KR15_URDF
@@ -68,16 +68,16 @@ def test_published_temperatures_are_logged_and_paired_to_the_points(tmp_path, ro
         publisher.publish(Temperature(header=Header(stamp=time_msg(FIRST_NS + 5 * S),
                                                     frame_id='upper_arm'),
                                       temperature=1e300, variance=0.0))
-        while node.campaign.counts()['received.temperatures'] < len(readings) + 1 \
+        while node.store.counts()['received.temperatures'] < len(readings) + 1 \
                 and time.monotonic() < deadline:
             executor.spin_once(timeout_sec=0.05)
-        got = node.campaign.temperatures()
+        got = node.store.temperatures()
         assert [(s.stamp_ns, s.celsius) for s in got] == readings
         assert node.status()[2]['rejected_temperatures'] == 1
         # durably logged: a new campaign in the same folder reloads them
         assert [(s.stamp_ns, s.celsius) for s in MeasurementLog.load_temperatures(
             tmp_path / 'data', TOPIC)] == readings
-        again = Campaign(tmp_path / 'data', temperature_topic=TOPIC)
+        again = MeasurementStore(tmp_path / 'data', temperature_topic=TOPIC)
         assert len(again.temperatures()) == len(readings)
         again.close()
         # paired to the measurements by time: exact for a linear rise; the last point is
@@ -86,7 +86,7 @@ def test_published_temperatures_are_logged_and_paired_to_the_points(tmp_path, ro
         stamps = FIRST_NS + (offsets_s * S).astype(np.int64)
         data = Measurements(q=np.zeros((4, 6)), eta=np.zeros((4, 3)), stamps_ns=stamps)
         with pytest.warns(UserWarning, match='1 of 4 measurement rows refused'):
-            paired = with_temperature_readings(node.campaign, node._cm, data)
+            paired = with_temperature_readings(node.store, node._cm, data)
         assert len(paired) == 3
         np.testing.assert_allclose(paired.covariates['temperature.upper_arm'],
                                    22.0 + 0.05 * offsets_s[:3], atol=1e-12)
@@ -101,7 +101,7 @@ def test_published_temperatures_are_logged_and_paired_to_the_points(tmp_path, ro
 
 
 def test_a_cell_without_temperature_reads_none(tmp_path):
-    campaign = Campaign(tmp_path)
+    campaign = MeasurementStore(tmp_path)
     try:
         assert campaign.temperature_topic is None and campaign.temperatures() == []
         with pytest.raises(ValueError, match='no temperature'):
@@ -117,7 +117,7 @@ def test_an_implausible_reading_is_counted_not_logged_and_one_in_an_old_log_is_s
     cm = build_cell_model(load_cell(_cell(tmp_path), urdf_xml=KR15_URDF))
     good = [TemperatureSample(FIRST_NS + k * 10 * S, 'upper_arm', 22.0 + 0.5 * k)
             for k in range(7)]
-    campaign = Campaign(tmp_path / 'data', temperature_topic=TOPIC,
+    campaign = MeasurementStore(tmp_path / 'data', temperature_topic=TOPIC,
                         temperature_range_c=cm.cell.temperature.valid_range_c)
     try:
         for sample in good[:3]:
@@ -137,7 +137,7 @@ def test_an_implausible_reading_is_counted_not_logged_and_one_in_an_old_log_is_s
     finally:
         campaign.close()
     assert len(MeasurementLog.load_temperatures(tmp_path / 'data', TOPIC)) == 8
-    again = Campaign(tmp_path / 'data', temperature_topic=TOPIC,
+    again = MeasurementStore(tmp_path / 'data', temperature_topic=TOPIC,
                      temperature_range_c=cm.cell.temperature.valid_range_c)
     try:
         stamps = FIRST_NS + np.array([5, 33, 38, 55]) * S

@@ -21,7 +21,7 @@ from kpi_calib_ros.core.simulation import (
     true_parameters,
 )
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell, with_overrides
-from kpi_calib_ros.ros import jobs
+from kpi_calib_ros.ros import job_work
 
 N_POSES = 30
 ROBOTS = DEFAULT_CELL.parent.parent / 'robots'
@@ -39,7 +39,7 @@ def identified(tmp_path_factory):
     eta = simulate_measurements(cm.model, p, q[:N_POSES], cm.cell.sigma, rng).eta
     stamps = 10 ** 18 + np.arange(N_POSES, dtype=np.int64) * 10 ** 9
     pairing = PairingResult(cm.joint_names, cm.cell.tracker_frame, q[:N_POSES], eta, stamps)
-    out = jobs.identify_work(cm, Measurements(q=q[:N_POSES], eta=eta, stamps_ns=stamps),
+    out = job_work.identify_work(cm, Measurements(q=q[:N_POSES], eta=eta, stamps_ns=stamps),
                              pairing, data_dir)
     cal, text, urdf = out.calibration, out.text, out.urdf
     assert cal is not None and cal.valid

@@ -37,7 +37,6 @@ from kpi_calib_ros.core.diagnosis.residual_analysis import analyse_calibration
 from kpi_calib_ros.core.effects.registry import implausible, parse_effect_spec
 from kpi_calib_ros.core.estimation.precision import expected_tcp_error
 from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA, is_adequate
-from kpi_calib_ros.core.estimation.robust import subset
 from kpi_calib_ros.core.measurement.covariates import measured_covariates
 from kpi_calib_ros.core.measurement.tracker import Measurements, row_torques
 from kpi_calib_ros.io.cell import CellModel
@@ -72,7 +71,7 @@ def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
     free = None if level == 'geometric' else level_free(cm.model.params, level,
                                                          len(cm.geometric))
     kept, excluded = cal.robust.kept, tuple(e.index for e in cal.robust.excluded)
-    data = subset(data, kept)
+    data = data.subset(kept)
     # Without effects auto added, identify's fit is the one on the kept points.
     result = cal.result if cal.cell is None or cal.cell is cm else \
         identify_cell(cm, data, free=free)

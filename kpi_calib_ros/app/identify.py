@@ -51,7 +51,6 @@ from kpi_calib_ros.core.estimation.robust import (
     RobustResult,
     gross_outliers,
     robust_identify,
-    subset,
 )
 from kpi_calib_ros.core.measurement.recordings import (
     base_names,
@@ -330,7 +329,7 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
     tolerance = cell_prior(cm) if prior is None else None
     prior = prior or tolerance
     # Model choice on the data without gross points (a 10 m point would decide it alone).
-    screened = subset(data, ~gross_outliers(cm.model, data, start)[0]) \
+    screened = data.subset(~gross_outliers(cm.model, data, start)[0]) \
         if settings.outliers.exclude else data
     # Every fit weighs the cell's tolerances against the noise its data show
     # (core.estimation.precision.balanced_prior); ``scales`` keeps the last balance.
@@ -398,7 +397,7 @@ def _final_fit(cm: CellModel, data: Measurements, choice: ModelChoice, start: np
         choice = dataclasses.replace(choice, held=tuple(choice.held) + tuple(shapes), reason=(
             f'{choice.reason}; the final fit did not converge with '
             f'{", ".join(shapes)} free: held at the selected values'))
-    kept = subset(data, robust.kept)
+    kept = data.subset(robust.kept)
     # The prior the final fit used: the tolerances as its last balance tightened them.
     used_prior = tightened(prior, scales[-1]) if balance and prior is not None else prior
     nominal = nominal_comparison(cm, kept, robust.result, free, start, prior, balance,
@@ -569,20 +568,20 @@ def run_identify(cell_path: str | Path, bag_path: str | Path | Sequence[Recordin
                         'noise_scale': cal.prior_scale}
     comparison = ''
     if cm.model.effects and cal.valid:
-        comparison = add_effect_comparison(doc, cm, subset(data, cal.robust.kept), cal.result)
+        comparison = add_effect_comparison(doc, cm, data.subset(cal.robust.kept), cal.result)
     recordings_lines = ''
     if not isinstance(bag_path, (str, Path)):
         doc['recordings'] = recordings_section(
-            cm, subset(data, cal.robust.kept), cal.result,
+            cm, data.subset(cal.robust.kept), cal.result,
             [s.recording for s in bag_path], [str(s.bag) for s in bag_path])
         recordings_lines = recordings_text(doc['recordings'])
     residual_text, learned = '', None
     if learned_residual:
         from kpi_calib_ros.app.learned_residual import learned_residual_section
         residual_text, learned = learned_residual_section(
-            doc, cm, subset(data, cal.robust.kept), cal.result)
+            doc, cm, data.subset(cal.robust.kept), cal.result)
     done = finish_calibration(cm, cal.result, doc, out_dir, learned)
-    kept = subset(data, cal.robust.kept)
+    kept = data.subset(cal.robust.kept)
     points = (None if kept.reflector is None or len(kept) != len(cal.result.residuals)
               else np.asarray(kept.reflector) < cm.model.n_reflectors)
     write_identification_plot(out_dir, cal.result.residuals, cal.result.sigma,

@@ -104,11 +104,11 @@ def to_measurements(cm: CellModel, pairing: PairingResult,
                         "the cell's reflectors: list") from None
     data = Measurements(q=pairing.q, eta=pairing.eta, stamps_ns=pairing.stamps_ns,
                         reflector=ref if cm.cell.reflector_names else None,
-                        sigma=stated_sigma(pairing, point_sigma))
+                        sigma=paired_sigma(pairing, point_sigma))
     return pose_rows(cm, data, pairing)
 
 
-def stated_sigma(pairing: PairingResult,
+def paired_sigma(pairing: PairingResult,
                  point_sigma: Mapping[tuple[int, str], np.ndarray] | None) -> np.ndarray | None:
     """(N, 3) σ (m) of the pairing's rows, matched by stamp and reflector (the frame id's
     part after '#'; the tracker frame is the pairing's), NaN where none was stated; None

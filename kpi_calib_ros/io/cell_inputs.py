@@ -26,8 +26,8 @@ warned), a point with no reading of an input within ``max_gap`` is refused with 
 ``torque_source: measured`` records each chain joint's ``effort`` from the joint-state topic
 as ``effort.<joint>`` and uses them as the rows' torques (``Measurements.tau``) in place of the
 model's gravity torques: the joint states must name every chain joint with one effort each.
-The node logs them per accepted measurement (:class:`kpi_calib_ros.ros.campaign.Campaign`,
-``record_efforts``).
+The node logs them per accepted measurement
+(:class:`kpi_calib_ros.ros.measurement_store.MeasurementStore`, ``record_efforts``).
 """
 from __future__ import annotations
 

@@ -6,7 +6,7 @@ results atomically and publishes them (:meth:`CalibrationJobs._publish_calibrati
 a stopped sequential campaign also uses); a fit that is not valid, or a change beyond the
 drift model, is not published and the last good calibration stays. ``~/diagnose`` and
 ``~/validate`` run ``kpi-calib diagnose`` and ``kpi-calib validate`` on the same
-measurements. The computation is in :mod:`kpi_calib_ros.ros.jobs` (worker threads or a
+measurements. The computation is in :mod:`kpi_calib_ros.ros.job_work` (worker threads or a
 child process); these coroutines run on the executor and update the node's
 :class:`~kpi_calib_ros.ros.run_state.RunState` and publishers.
 """
@@ -21,9 +21,9 @@ from std_msgs.msg import String
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation.drift_state import DriftSwing
 from kpi_calib_ros.core.estimation.precision import precision_statement
-from kpi_calib_ros.ros import jobs
+from kpi_calib_ros.ros import job_work
 from kpi_calib_ros.ros.answers import identify_answer, validate_answer
-from kpi_calib_ros.ros.campaign import model_measurements
+from kpi_calib_ros.ros.measurement_store import model_measurements
 from kpi_calib_ros.ros.node_parts import NodeParts
 
 
@@ -63,10 +63,10 @@ class CalibrationJobs(NodeParts):
             raise DataError('a sequential campaign is running: its calibration is published '
                             'on ~/calibration when it stops (~/campaign_status); call '
                             '~/reset to end it')
-        data, pairing = model_measurements(self.campaign, cm)
+        data, pairing = model_measurements(self.store, cm)
         try:
             out = await self._offload(
-                jobs.identify_work, cm, data, pairing, self.data_dir,
+                job_work.identify_work, cm, data, pairing, self.data_dir,
                 self.settings.reidentify_with_prior,
                 DriftSwing(*self.settings.drift_velocity) if self.settings.drift_velocity
                 else None,
@@ -130,8 +130,8 @@ class CalibrationJobs(NodeParts):
         """Model diagnosis of the accepted measurements (as ``kpi-calib diagnose``): residual
         report, adequacy and the most likely missing effect; report files and ~/diagnosis."""
         cm = self._model()
-        data, pairing = model_measurements(self.campaign, cm)
-        doc, text, verdict, report = await self._offload(jobs.diagnose_work, cm, data,
+        data, pairing = model_measurements(self.store, cm)
+        doc, text, verdict, report = await self._offload(job_work.diagnose_work, cm, data,
                                                          self.data_dir, child=True)
         self._run.diagnosis = doc
         self._pub_diagnosis.publish(String(data=text))
@@ -146,14 +146,14 @@ class CalibrationJobs(NodeParts):
         cm = self._model()
         if not self._calibration_text:
             raise DataError('no calibration to validate yet: call ~/identify first')
-        data, pairing = model_measurements(self.campaign, cm)
+        data, pairing = model_measurements(self.store, cm)
         new = np.isin(np.asarray(data.stamps_ns),
                       np.fromiter(self._identified_stamps, dtype=np.int64), invert=True)
         if not new.any():
             raise DataError('no measurement accepted since the last identification; measure '
                             'new poses with auto_identify:=false, then call ~/validate')
         fresh = data.subset(new)
-        doc, text = await self._offload(jobs.validate_work, cm, self._calibration_text, fresh,
+        doc, text = await self._offload(job_work.validate_work, cm, self._calibration_text, fresh,
                                         self.data_dir, self.settings.validate_register or None)
         self._pub_validation.publish(String(data=text))
         return doc['holds'] is True, validate_answer(doc)

@@ -1,13 +1,13 @@
 """The node's measured inputs: the cell's ``inputs.sources`` topics, each reading logged with
-the measurements and paired to them by time when a job takes the campaign's data.
+the measurements and paired to them by time when a job takes the stored data.
 
 Each source topic is subscribed with its stated type; every field the cell names becomes one
 reading (covariate name, value, the message's header stamp) that goes to the
-:class:`~kpi_calib_ros.ros.campaign.Campaign` (durably logged on the cell's ``inputs.topic``
-before it is kept; a reading that is not finite is counted and warned, never kept). A job
-pairs them with the accepted measurements as a bag's are
-(:func:`kpi_calib_ros.ros.campaign.with_input_readings`): interpolated at each point's stamp
-within ``inputs.max_gap``, a point without a reading refused with a warning.
+:class:`~kpi_calib_ros.ros.measurement_store.MeasurementStore` (durably logged on the cell's
+``inputs.topic`` before it is kept; a reading that is not finite is counted and warned, never
+kept). A job pairs them with the accepted measurements as a bag's are
+(:func:`kpi_calib_ros.ros.measurement_store.with_input_readings`): interpolated at each
+point's stamp within ``inputs.max_gap``, a point without a reading refused with a warning.
 """
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ from rclpy.qos import QoSProfile
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.io.cell_inputs import InputSource, field_path
 from kpi_calib_ros.io.ros_messages import input_samples_from_message
-from kpi_calib_ros.ros.campaign import Campaign
+from kpi_calib_ros.ros.measurement_store import MeasurementStore
 
 INPUT_DEPTH = 100  # an inclinometer at 10-100 Hz: a buffer of a second or more
 
@@ -34,7 +34,7 @@ def message_class(type_name: str) -> Any:
     return kind
 
 
-def subscribe_inputs(node: Node, campaign: Campaign, sources: tuple[InputSource, ...],
+def subscribe_inputs(node: Node, store: MeasurementStore, sources: tuple[InputSource, ...],
                      callback_group: Any = None) -> list[Any]:
     """Subscribe ``node`` to every input source; returns the subscriptions.
 
@@ -53,14 +53,14 @@ def subscribe_inputs(node: Node, campaign: Campaign, sources: tuple[InputSource,
                               f'type ({exc}); give pkg/msg/Type of the topic') from None
         fields = tuple((name, field_path(path, f'{key}.fields.{name}'))
                        for name, path in source.fields)
-        out.append(node.create_subscription(kind, source.topic, _receiver(node, campaign, source,
+        out.append(node.create_subscription(kind, source.topic, _receiver(node, store, source,
                                                                            fields),
                                             QoSProfile(depth=INPUT_DEPTH),
                                             callback_group=callback_group))
     return out
 
 
-def _receiver(node: Node, campaign: Campaign, source: InputSource, fields: tuple) -> Any:
+def _receiver(node: Node, store: MeasurementStore, source: InputSource, fields: tuple) -> Any:
     def on_message(message: Any) -> None:
         try:
             samples = input_samples_from_message(message, fields)
@@ -69,7 +69,7 @@ def _receiver(node: Node, campaign: Campaign, source: InputSource, fields: tuple
                                     "paths of the cell's inputs.sources", throttle_duration_sec=5.0)
             return
         try:
-            refused = campaign.receive_inputs(samples)
+            refused = store.receive_inputs(samples)
         except (OSError, ValueError) as exc:
             node.get_logger().error(f'measured input not stored: {exc}')
             return

@@ -2,7 +2,7 @@
 
 A thin layer over the core: it converts messages, calls the same functions as
 ``kpi-calib`` and publishes. Live samples and each point's stated σ go to a
-:class:`~kpi_calib_ros.ros.campaign.Campaign`, which pairs them with the code that
+:class:`~kpi_calib_ros.ros.measurement_store.MeasurementStore`, which pairs them with the code that
 pairs bags and logs every accepted measurement to disk before counting it, so a
 replayed bag and ``kpi-calib identify`` agree and a killed node loses nothing.
 
@@ -21,8 +21,8 @@ settings) and every publisher is read and written on the executor thread only. A
 takes what it needs from the node, hands plain inputs to a worker thread with
 ``await self._offload(fn, ...)``, and when the worker's value comes back (the
 coroutine resumes on the executor) it updates the state and publishes. Worker
-functions (:mod:`kpi_calib_ros.ros.jobs`) compute and write result files, and never
-see the node. The one object both sides touch is the :class:`Campaign`, which is
+functions (:mod:`kpi_calib_ros.ros.job_work`) compute and write result files, and never
+see the node. The one object both sides touch is the :class:`MeasurementStore`, which is
 thread-safe by its own lock. Hence no node lock: ``~/tcp`` is created when the first
 robot model gives its number of working poses and replaced (on the executor, where
 nothing else can be publishing on it) only if a later model has a different number.
@@ -75,10 +75,9 @@ from kpi_calib_ros.io.names import (
     point_sigma_topic,
 )
 from kpi_calib_ros.ros import conversions as cv
-from kpi_calib_ros.ros import jobs
+from kpi_calib_ros.ros import job_work
 from kpi_calib_ros.ros.answers import design_answer
 from kpi_calib_ros.ros.calibration_jobs import CalibrationJobs
-from kpi_calib_ros.ros.campaign import Campaign
 from kpi_calib_ros.ros.delivery import (
     JOINT_STATES_MAX_HZ,
     POINTS_MAX_HZ,
@@ -88,6 +87,7 @@ from kpi_calib_ros.ros.delivery import (
     stream_qos,
 )
 from kpi_calib_ros.ros.inputs import subscribe_inputs
+from kpi_calib_ros.ros.measurement_store import MeasurementStore
 from kpi_calib_ros.ros.parameters import (
     declare_parameters,
     parameter_values,
@@ -120,7 +120,7 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
         self.data_dir = Path(self.settings.data_dir)
         measured_torques = self._cell.inputs.torque_source == 'measured'
         try:
-            self.campaign = Campaign(
+            self.store = MeasurementStore(
                 self.data_dir, sigma_topic=point_sigma_topic(self.settings.point_topic),
                 temperature_topic=(self._cell.temperature.topic if self._cell.temperature
                                    else None),
@@ -132,8 +132,8 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
         except OSError as exc:  # missing parent, read-only, a file in the way, no space
             raise ConfigError('data_dir', f'cannot log measurements in {str(self.data_dir)!r}: '
                               f'{exc.strerror or exc}; give a writable folder') from None
-        self.get_logger().info(f'{self.campaign.restored} measurement(s) restored from '
-                               f'{self.data_dir}; logging to {self.campaign.log.path}')
+        self.get_logger().info(f'{self.store.restored} measurement(s) restored from '
+                               f'{self.data_dir}; logging to {self.store.log.path}')
 
         # Executor-thread state (see the module docstring): never touched by a worker.
         self._cm: CellModel | None = None
@@ -183,13 +183,13 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
                                  self._on_pose,  # type: ignore[arg-type]
                                  stream_qos(int(POINTS_MAX_HZ * STREAM_BUFFER_S)),
                                  callback_group=streams)
-        # Each point's stated σ, paired with it by stamp and frame id (ros/campaign.py).
+        # Each point's stated σ, paired with it by stamp and frame id (ros/measurement_store.py).
         self.create_subscription(Vector3Stamped, point_sigma_topic(self.settings.point_topic),
                                  self._on_point_sigma,  # type: ignore[arg-type]
                                  stream_qos(int(POINTS_MAX_HZ * STREAM_BUFFER_S)),
                                  callback_group=streams)
-        subscribe_temperature(self, self.campaign, callback_group=streams)
-        subscribe_inputs(self, self.campaign, self._cell.inputs.sources, callback_group=streams)
+        subscribe_temperature(self, self.store, callback_group=streams)
+        subscribe_inputs(self, self.store, self._cell.inputs.sources, callback_group=streams)
         for name, doing, work in (('design', 'designing', self._design),
                                   ('identify', 'identifying', self._identify),
                                   ('diagnose', 'diagnosing', self._diagnose),
@@ -246,9 +246,9 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
         self._capsules = [o for o in cm.cell.obstacles if isinstance(o, Capsule)]
         self._tcp_publisher(len(cm.working_pose_names))
         self._cm, self._urdf, self._model_error = cm, urdf_xml, ''
-        self._report(self.campaign.set_chain(cm.joint_names, cm.cell.tracker_frame,
-                                             cm.cell.reflector_names or ('',),
-                                             cm.joint_coupling.derived()))
+        self._report(self.store.set_chain(cm.joint_names, cm.cell.tracker_frame,
+                                          cm.cell.reflector_names or ('',),
+                                          cm.joint_coupling.derived()))
         self._run.auto_pending = self._auto_wanted()
         self.get_logger().info(f'robot model ready: joints {cm.joint_names}, tracker frame '
                                f"'{cm.cell.tracker_frame}', working poses "
@@ -271,24 +271,24 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
     def _on_joint_state(self, msg: JointState, info: dict[str, Any]) -> None:
         self._sequences['joint_states'].see(info)
         sample = cv.joint_sample_from_msg(msg)
-        if self.campaign.record_efforts:  # before the point it may complete is paired
-            self.campaign.receive_efforts(sample.stamp_ns, sample.names, np.asarray(msg.effort))
-        self._report(self.campaign.receive(sample))
+        if self.store.record_efforts:  # before the point it may complete is paired
+            self.store.receive_efforts(sample.stamp_ns, sample.names, np.asarray(msg.effort))
+        self._report(self.store.receive(sample))
 
     def _on_point(self, msg: PointStamped, info: dict[str, Any]) -> None:
         self._sequences['points'].see(info)
-        self._report(self.campaign.receive(cv.point_sample_from_msg(msg)))
+        self._report(self.store.receive(cv.point_sample_from_msg(msg)))
 
     def _on_pose(self, msg: PoseStamped, info: dict[str, Any]) -> None:
         """A tracked 6-DoF body: a point with its orientation, paired like any point."""
         self._sequences['poses'].see(info)
-        self._report(self.campaign.receive(cv.pose_sample_from_msg(msg)))
+        self._report(self.store.receive(cv.pose_sample_from_msg(msg)))
 
     def _on_point_sigma(self, msg: Vector3Stamped, info: dict[str, Any]) -> None:
         """A point's stated σ per axis (m): stored with its measurement, which then
         weighs by it instead of the cell's noise.sigma."""
         self._sequences['sigma'].see(info)
-        self._report(self.campaign.receive_sigma(*cv.point_sigma_from_msg(msg)))
+        self._report(self.store.receive_sigma(*cv.point_sigma_from_msg(msg)))
 
     def _report(self, decisions: list[Decision]) -> None:
         for d in decisions:
@@ -303,10 +303,10 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
         # calibration when it stops (none after 'model inadequate').
         return (self.settings.auto_identify and self._cm is not None
                 and self._run.sequential is None and self._run.sequential_state is None
-                and len(self.campaign) >= self.settings.min_measurements)
+                and len(self.store) >= self.settings.min_measurements)
 
     def _tick(self) -> None:
-        self._report(self.campaign.poll())
+        self._report(self.store.poll())
         # Before anything is identified: a new calibration replaces the restored one.
         if (self._run.restore_pending and self._cm is not None
                 and self._claim_job('restoring the calibration')):
@@ -315,7 +315,7 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
         if (self._run.resume_pending and self._cm is not None
                 and self._claim_job('resuming the sequential campaign')):
             self._create_task('resuming the sequential campaign', self._resume)
-        if (self._run.sequential_due(len(self.campaign))
+        if (self._run.sequential_due(len(self.store))
                 and self._claim_job('planning the next pose')):
             self._create_task('sequential campaign step', self._sequential_step)
         if self._run.auto_pending and self._claim_job('identifying (automatic)'):
@@ -334,7 +334,7 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
         if self.settings.campaign == 'sequential':
             return await self._design_sequential(cm)
         design, points, path, not_estimable = await self._offload(
-            jobs.design_work, cm, self.settings, self.data_dir, child=True)
+            job_work.design_work, cm, self.settings, self.data_dir, child=True)
         self._pub_poses.publish(cv.joint_trajectory_msg(design.joint_names,
                                                         design.configurations))
         self._design_points = points
@@ -347,7 +347,7 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
 
     async def _reset(self) -> tuple[bool, str]:
         """Start a new campaign: archive (never delete) the logs and results."""
-        count, archive = await self._offload(self.campaign.reset)
+        count, archive = await self._offload(self.store.reset)
         self._run = RunState()
         self._publish_markers()
         self._publish_diagnostics(force=True)
@@ -369,11 +369,11 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
     def status(self) -> tuple[str, str, dict[str, Any]]:
         """(level, message, key values) as /diagnostics reports them (:func:`node_status`)."""
         seq = self._sequences
-        return node_status(self._run, self.campaign.counts(), StreamHealth(
+        return node_status(self._run, self.store.counts(), StreamHealth(
             seq['joint_states'].lost, seq['points'].lost + seq['poses'].lost + seq['sigma'].lost,
             seq['joint_states'].max_lag_ns), job=self._job_name, model_ready=self._cm is not None,
             model_error=self._model_error, identifications=self._identifications,
-            log_file=str(self.campaign.log.path), tcp_query=self.tcp_query.source)
+            log_file=str(self.store.log.path), tcp_query=self.tcp_query.source)
 
     def _publish_diagnostics(self, force: bool = False) -> None:
         level, message, values = self.status()
@@ -386,7 +386,7 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
                 message, values, hardware_id='laser_tracker'))
 
     def destroy_node(self) -> None:
-        self.campaign.close()  # finalise the log; it is complete on disk anyway
+        self.store.close()  # finalise the log; it is complete on disk anyway
         super().destroy_node()
 
 

@@ -16,8 +16,8 @@ import numpy as np
 from rclpy.publisher import Publisher
 
 from kpi_calib_ros.io.cell import CellModel
-from kpi_calib_ros.ros.campaign import Campaign
 from kpi_calib_ros.ros.job_node import JobNode
+from kpi_calib_ros.ros.measurement_store import MeasurementStore
 from kpi_calib_ros.ros.parameters import NodeSettings
 from kpi_calib_ros.ros.run_state import RunState
 
@@ -27,7 +27,7 @@ class NodeParts(JobNode):
     :class:`~kpi_calib_ros.ros.node.CalibrationNode` its job modules use (executor thread
     only, as the node's module docstring says)."""
 
-    campaign: Campaign
+    store: MeasurementStore
     settings: NodeSettings
     data_dir: Path
     _run: RunState

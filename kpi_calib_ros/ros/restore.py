@@ -48,9 +48,9 @@ class CalibrationRestore(NodeParts):
         # ~/validate tests on what was measured after it: the restored measurements
         # stamped up to the calibration's last one are those it was fitted to.
         stamp, fitted = stored.identified_at_ns, set()
-        if stamp is not None and len(self.campaign):
+        if stamp is not None and len(self.store):
             # The stamps alone: no temperature reading needed (none may have arrived yet).
-            stamps = np.asarray(self.campaign.measurements(
+            stamps = np.asarray(self.store.measurements(
                 cm.joint_names, cm.cell.tracker_frame, cm.cell.reflector_names or ('',)
             )[0].stamps_ns).ravel()
             fitted = {int(t) for t in stamps if t <= stamp}

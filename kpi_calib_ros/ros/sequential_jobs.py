@@ -5,7 +5,7 @@ measurement then makes a step due (:meth:`RunState.sequential_due
 <kpi_calib_ros.ros.run_state.RunState.sequential_due>`), which adds what the campaign
 has not seen, re-identifies and publishes the next poses and ``~/campaign_status``;
 a campaign data_dir/campaign_state.yaml keeps is resumed after a restart. The
-computation is in :mod:`kpi_calib_ros.ros.jobs` (worker threads); these coroutines
+computation is in :mod:`kpi_calib_ros.ros.job_work` (worker threads); these coroutines
 run on the executor and update the node's :class:`~kpi_calib_ros.ros.run_state.RunState`.
 """
 from __future__ import annotations
@@ -22,9 +22,9 @@ from kpi_calib_ros.io.campaign_io import CampaignState, read_campaign_state
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.names import CAMPAIGN_STATE_FILE, MEASUREMENT_POSES_TOPIC
 from kpi_calib_ros.ros import conversions as cv
-from kpi_calib_ros.ros import jobs
+from kpi_calib_ros.ros import job_work
 from kpi_calib_ros.ros.answers import campaign_progress
-from kpi_calib_ros.ros.campaign import model_measurements
+from kpi_calib_ros.ros.measurement_store import model_measurements
 from kpi_calib_ros.ros.node_parts import NodeParts
 
 
@@ -55,9 +55,9 @@ class SequentialCampaignJobs(NodeParts):
         """Start a sequential campaign: publish its initial design on ~/measurement_poses.
         Measurements accepted before it are part of the campaign (the first step adds
         them all)."""
-        settings, seed = jobs.campaign_settings(self.settings), self.settings.design_seed
+        settings, seed = job_work.campaign_settings(self.settings), self.settings.design_seed
         campaign, initial, points, path = await self._offload(
-            jobs.sequential_start_work, cm, settings, seed, self.data_dir)
+            job_work.sequential_start_work, cm, settings, seed, self.data_dir)
         self._run.sequential, self._run.sequential_status = campaign, None
         self._run.sequential_state = CampaignState(settings, seed)
         self._run.sequential_stamps, self._run.sequential_initial = set(), len(initial)
@@ -66,7 +66,7 @@ class SequentialCampaignJobs(NodeParts):
         self._design_points = points
         self._publish_markers()
         self._pub_campaign_status.publish(String(data=yaml.safe_dump({
-            'measurements': len(self.campaign), 'initial_design': len(initial),
+            'measurements': len(self.store), 'initial_design': len(initial),
             'target_tcp_std_m': settings.target_std,
             'stop_reason': 'running'}, sort_keys=False)))
         return True, (f'sequential campaign: initial design of {len(initial)} poses '
@@ -81,11 +81,11 @@ class SequentialCampaignJobs(NodeParts):
         cm, state = self._model(), self._run.sequential_state
         assert state is not None
         self._run.resume_pending = False
-        data = model_measurements(self.campaign, cm)[0] if len(self.campaign) else Measurements(
+        data = model_measurements(self.store, cm)[0] if len(self.store) else Measurements(
             q=np.zeros((0, len(cm.joint_names))), eta=np.zeros((0, 3)),
             stamps_ns=np.zeros(0, np.int64))
         try:
-            campaign, initial, out = await self._offload(jobs.sequential_resume_work, cm,
+            campaign, initial, out = await self._offload(job_work.sequential_resume_work, cm,
                                                          state, data, self.data_dir)
         except KpiCalibError as exc:
             self._run.result_error = f'sequential campaign not resumed: {exc}'
@@ -97,7 +97,7 @@ class SequentialCampaignJobs(NodeParts):
         if out is None:  # no step yet: the initial design is still the plan
             self._pub_poses.publish(cv.joint_trajectory_msg(cm.joint_names, initial))
             self._pub_campaign_status.publish(String(data=yaml.safe_dump({
-                'measurements': len(self.campaign), 'initial_design': len(initial),
+                'measurements': len(self.store), 'initial_design': len(initial),
                 'target_tcp_std_m': state.settings.target_std, 'stop_reason': 'running',
                 'resumed': True}, sort_keys=False)))
             message = f'initial design of {len(initial)} poses published again'
@@ -117,11 +117,11 @@ class SequentialCampaignJobs(NodeParts):
         cm, campaign, state = self._model(), self._run.sequential, self._run.sequential_state
         if campaign is None or state is None:
             raise DataError('no sequential campaign: call ~/design with campaign:=sequential')
-        data, pairing = model_measurements(self.campaign, cm)
+        data, pairing = model_measurements(self.store, cm)
         stamps = np.asarray(data.stamps_ns, dtype=np.int64)
         new = np.array([int(t) not in self._run.sequential_stamps for t in stamps], dtype=bool)
         fresh = data.subset(new)
-        out = await self._offload(jobs.sequential_step_work, campaign, cm, fresh, state,
+        out = await self._offload(job_work.sequential_step_work, campaign, cm, fresh, state,
                                   self.data_dir, pairing,
                                   {'resumed': True} if self._run.resumed else None)
         status, plan = out.status, out.plan

@@ -35,8 +35,8 @@ def node_status(run: RunState, counts: Mapping[str, int], streams: StreamHealth,
     run : RunState
         The current run's results and sequential campaign.
     counts : mapping
-        :meth:`kpi_calib_ros.ros.campaign.Campaign.counts` (``accepted``, ``rejected``,
-        ``rejected.<reason>``, ...).
+        :meth:`kpi_calib_ros.ros.measurement_store.MeasurementStore.counts` (``accepted``,
+        ``rejected``, ``rejected.<reason>``, ...).
     streams : StreamHealth
     job : str
         The running job ('' when idle).

@@ -217,7 +217,7 @@ def build_problem(cell: DesignCell, q_rich: np.ndarray,
     ident = select_identifiable(stacked, names,
                                 method=cell.identification_method,
                                 priority=list(cell.identification_priority) or None,
-                                zero_column=NEGLIGIBLE_EFFECT)
+                                zero_column=NEGLIGIBLE_EFFECT, explain=False)
     idx = model.params.indices(ident.kept)
     column_scale, effect = scales(jac[:, :, idx], wr)
     poses = cell.working_pose_names

@@ -148,7 +148,6 @@ from kpi_calib_ros.core.estimation.robust import (
     robust_identify,
     robust_sigma,
     sigma_warning,
-    subset,
 )
 
 __all__ = [
@@ -178,5 +177,5 @@ __all__ = [
     'residual_report', 'result_estimability', 'rigid_inconsistency', 'robust_identify',
     'robust_sigma', 'select_identifiable', 'sigma_overstated_text', 'sigma_warning',
     'state_predicted', 'state_updated', 'stationary_state', 'stratified_fold_ids', 'studentized',
-    'subset', 'tightened', 'tolerance_prior', 'validation_rms', 'weights',
+    'tightened', 'tolerance_prior', 'validation_rms', 'weights',
 ]

@@ -189,7 +189,7 @@ def select_identifiable(jacobian: np.ndarray, names: list[str] | tuple[str, ...]
                         pivot_fraction: float = PRIORITY_PIVOT_FRACTION,
                         max_rank: int | None = None,
                         cut_reason: str = 'beyond the rank limit',
-                        first: Sequence[str] = ()) -> Identifiability:
+                        first: Sequence[str] = (), explain: bool = True) -> Identifiability:
     """Choose a maximal identifiable subset of parameters.
 
     Parameters
@@ -226,6 +226,10 @@ def select_identifiable(jacobian: np.ndarray, names: list[str] | tuple[str, ...]
         it (the placements of several recordings: each set-up's own, never a gauge the
         robot's parameters carry); ``method`` then chooses among the others with these
         projected out. Empty (default): ``method`` alone.
+    explain : bool
+        Give every dropped parameter its reason (a least-squares fit of its column on the
+        kept ones, the most of the time here); False: ``dropped`` is empty, the rest the
+        same, for a caller that needs the kept set only.
 
     Raises
     ------
@@ -277,10 +281,10 @@ def select_identifiable(jacobian: np.ndarray, names: list[str] | tuple[str, ...]
     kept_cols = [cols[i] for i in sorted(kept_pos)]
     kept_local = sorted(kept_pos)
     dropped = [DroppedParameter(n, 'no effect on the measurements at the nominal geometry', {})
-               for n in unseen]
+               for n in unseen] if explain else []
     basis = a[:, kept_local]
     for local in range(a.shape[1]):
-        if local in kept_local:
+        if local in kept_local or not explain:
             continue
         coef, *_ = np.linalg.lstsq(basis, a[:, local], rcond=None)
         top = np.argsort(-np.abs(coef))[:4]

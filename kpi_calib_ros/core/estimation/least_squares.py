@@ -27,7 +27,7 @@ test says the truth has it
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Mapping
+from typing import Any, Mapping
 
 import numpy as np
 import scipy.optimize
@@ -420,6 +420,15 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     # never by one set-up's placement (core.measurement.recordings).
     first = ([n for n in free_names if n.startswith(('base.', RECORDING_PREFIX))]
              if model.recordings else [])
+    # The rounds select without the dropped parameters' reasons (most of the time of a
+    # selection); the selection kept is made again with them at the end, the same call.
+    chosen: tuple[np.ndarray, dict[str, Any]] | None = None
+
+    def select(matrix: np.ndarray, **options: Any
+               ) -> tuple[Identifiability, tuple[np.ndarray, dict[str, Any]]]:
+        return (select_identifiable(matrix, free_names, explain=False, first=first,
+                                    **options),
+                (matrix, options))
 
     def stacked_at(x: np.ndarray) -> np.ndarray:
         pp = p.copy()
@@ -429,8 +438,7 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
 
     for _ in range(MAX_SELECTION_ROUNDS):
         stacked = stacked_at(p[free_idx])
-        ident = select_identifiable(stacked, free_names, method=identifiability_method,
-                                    priority=priority, first=first)
+        ident, chosen = select(stacked, method=identifiability_method, priority=priority)
         max_rank: int | None = None
         cut_reason = 'beyond the rank limit'
         if kept_before is not None and ident.rank > len(kept_before):
@@ -439,18 +447,17 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
                                     [free_names.index(n) for n in kept_before])
             if test.rank < ident.rank:
                 max_rank, cut_reason = test.rank, test.reason()
-                ident = select_identifiable(stacked, free_names, method=identifiability_method,
-                                            priority=priority, max_rank=max_rank,
-                                            cut_reason=cut_reason, first=first)
+                ident, chosen = select(stacked, method=identifiability_method,
+                                       priority=priority, max_rank=max_rank,
+                                       cut_reason=cut_reason)
         if kept_before is not None and ident.rank == len(kept_before):
             # Same rank: the fitted set still spans the identifiable directions (QR may
             # merely prefer an equivalent subset here). Keep it; restate its reasons here.
             kept_first = list(kept_before) + [n for n in free_names if n not in kept_before]
-            again = select_identifiable(stacked, free_names, method='priority',
-                                        priority=kept_first, pivot_fraction=0.0,
-                                        max_rank=max_rank, cut_reason=cut_reason)
+            again, how = select(stacked, method='priority', priority=kept_first,
+                                pivot_fraction=0.0, max_rank=max_rank, cut_reason=cut_reason)
             if again.kept == kept_before:
-                ident = again
+                ident, chosen = again, how
                 break
         if ident.kept == kept_before:
             break
@@ -463,9 +470,10 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
                                                  limit(idx), tolerances, ref, rows, rot, cov)
         iterations += used
         kept_before = ident.kept
-    if ident is None:
+    if ident is None or chosen is None:
         raise RuntimeError(f'MAX_SELECTION_ROUNDS = {MAX_SELECTION_ROUNDS}: no round selected '
                            'the identifiable parameters')
+    ident = select_identifiable(chosen[0], free_names, **chosen[1])
     for _ in range(MAX_REWEIGHT_ROUNDS if model.joint_sigma is not None else 0):
         new = reweighted(p)
         change = float(np.max(np.abs(new - w)) / np.max(np.abs(w)))

@@ -166,7 +166,8 @@ def observed_std(model: MeasurementModel, result: CalibrationResult, names: Sequ
     values = np.asarray(result.values, float)
     n_ref = max(model.n_reflectors, 1)
     structural = select_identifiable(structural_jacobian(model, values, seed), params.names,
-                                     method='priority', priority=list(names)).kept
+                                     method='priority', priority=list(names),
+                                     explain=False).kept
     wanted = [n for n in names if n in structural]
     if not wanted:
         return {}

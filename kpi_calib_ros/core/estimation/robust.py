@@ -59,7 +59,7 @@ from kpi_calib_ros.core.measurement.tracker import (
 __all__ = [
     'LOSSES', 'LOSS_SCALE', 'MAD_TO_SIGMA', 'OUTLIER_ALPHA', 'GROSS_DISTANCE',
     'SIGMA_RATIO_WARNING', 'IRLS_ITERATIONS', 'OutlierSettings', 'ExcludedMeasurement',
-    'RobustResult', 'robust_sigma', 'outlier_threshold', 'loss_weights', 'subset',
+    'RobustResult', 'robust_sigma', 'outlier_threshold', 'loss_weights',
     'robust_identify', 'misfit_warning', 'gross_outliers', 'sigma_warning', 'noise_units',
     'POINT_SIGMA', 'stated_source',
 ]
@@ -170,11 +170,6 @@ def loss_weights(loss: str, distances: np.ndarray, scale: float) -> np.ndarray:
     return np.ones_like(u)
 
 
-def subset(data: Measurements, keep: np.ndarray) -> Measurements:
-    """Return the measurements selected by the boolean or index array ``keep``."""
-    return data.subset(keep)
-
-
 Fit = Callable[..., CalibrationResult]
 
 
@@ -232,7 +227,7 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
     lone_excluded: set[int] = set()
     while True:
         try:
-            result, omega = _fit_with_loss(fit, subset(data, kept), loss, p0, model, sigma)
+            result, omega = _fit_with_loss(fit, data.subset(kept), loss, p0, model, sigma)
         except DataError as exc:
             if not excluded:
                 raise

@@ -1,11 +1,11 @@
-"""One calibration campaign as the node lives it: live pairing into a durable store.
+"""The node's measurement store: live pairing of its streams into a durable log.
 
 No rclpy here: the node converts messages to samples and hands them over; this
 class pairs them with :class:`~kpi_calib_ros.core.acquisition.pairing.Pairer` (the code that
 pairs bags), appends every accepted measurement to a
 :class:`~kpi_calib_ros.io.measurement_log.MeasurementLog` before counting it, reloads the logs
 of earlier runs in the same folder, and never counts a stamp twice. Thread-safe:
-every public method takes the campaign's lock.
+every public method takes the store's lock.
 
 Pairing clock: a point waits for joint states up to the pairer's timeout past its
 stamp on a clock that follows the joint stream (newest joint stamp + time since it
@@ -34,8 +34,8 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from kpi_calib_ros.app.measurements import (
+    paired_sigma,
     pose_rows,
-    stated_sigma,
     urdf_measurements,
     with_inputs,
     with_readings,
@@ -64,7 +64,7 @@ from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.measurement_log import MeasurementLog, stored_pairing
 from kpi_calib_ros.io.names import DEFAULT_POINT_TOPIC, RESULT_FILES, point_sigma_topic
 
-# Campaign-level reasons besides the pairer's: the measurement could not be written.
+# The store's reasons besides the pairer's: the measurement could not be written.
 NOT_STORED = 'not_stored'
 # A stated σ that is not finite and > 0, one no measurement claimed, a second one for
 # a measurement: dropped, counted, never used. Not pairing rejections (the point stays).
@@ -88,7 +88,8 @@ EFFORT_BUFFER_SAMPLES = 10_000
 EFFORT_BUFFER_S = 20.0
 EFFORT_MAX_GAP_NS = 10**9
 
-class Campaign:
+
+class MeasurementStore:
     """Accepted measurements of one campaign in ``data_dir``, and what was rejected.
 
     Parameters
@@ -393,7 +394,7 @@ class Campaign:
             raise DataError('no accepted measurement yet')
         pairing = stored_pairing(pairs, list(joint_names), tracker_frame, rejections)
         q, eta, stamps = pairing.q, pairing.eta, pairing.stamps_ns
-        sigma = stated_sigma(pairing, point_sigma)
+        sigma = paired_sigma(pairing, point_sigma)
         if tuple(reflectors) == ('',):
             return Measurements(q=q, eta=eta, stamps_ns=stamps, sigma=sigma), pairing
         try:
@@ -515,21 +516,22 @@ class Campaign:
             self.log.close()
 
 
-def model_measurements(campaign: Campaign, cm: CellModel
+def model_measurements(store: MeasurementStore, cm: CellModel
                        ) -> tuple[Measurements, PairingResult]:
-    """Every accepted measurement of ``campaign`` as the model ``cm`` takes it: every row
+    """Every accepted measurement in ``store`` as the model ``cm`` takes it: every row
     of each pose (reflectors, tracked bodies' rotation rows), URDF joint values (from the
     controller's readings), stamps as int64 ns, each row's stated σ (NaN: the cell's)."""
-    data, pairing = campaign.measurements(cm.joint_names, cm.cell.tracker_frame,
-                                          cm.cell.reflector_names or ('',))
+    data, pairing = store.measurements(cm.joint_names, cm.cell.tracker_frame,
+                                       cm.cell.reflector_names or ('',))
     data = urdf_measurements(cm, pose_rows(cm, data, pairing))
     stamps = np.asarray(data.stamps_ns, dtype=np.int64).ravel()
-    data = with_temperature_readings(campaign, cm, dataclasses.replace(data, stamps_ns=stamps))
-    return with_input_readings(campaign, cm, data), pairing
+    data = with_temperature_readings(store, cm, dataclasses.replace(data, stamps_ns=stamps))
+    return with_input_readings(store, cm, data), pairing
 
 
-def with_input_readings(campaign: Campaign, cm: CellModel, data: Measurements) -> Measurements:
-    """``data`` with the campaign's measured input readings paired to its rows by stamp, as
+def with_input_readings(store: MeasurementStore, cm: CellModel,
+                        data: Measurements) -> Measurements:
+    """``data`` with the store's measured input readings paired to its rows by stamp, as
     a bag's are (:func:`kpi_calib_ros.app.measurements.with_inputs`).
 
     Raises
@@ -538,13 +540,13 @@ def with_input_readings(campaign: Campaign, cm: CellModel, data: Measurements) -
         A source of the cell gave no finite reading (with ``compliance.torque_source:
         measured``: no effort of every chain joint at the measurements).
     """
-    return with_inputs(cm, data, campaign.inputs(), 'the node\'s measured inputs',
+    return with_inputs(cm, data, store.inputs(), 'the node\'s measured inputs',
                        [s.topic for s in cm.cell.inputs.sources])
 
 
-def with_temperature_readings(campaign: Campaign, cm: CellModel,
+def with_temperature_readings(store: MeasurementStore, cm: CellModel,
                               data: Measurements) -> Measurements:
-    """``data`` with the campaign's temperature readings paired to its rows by stamp, as
+    """``data`` with the store's temperature readings paired to its rows by stamp, as
     a bag's are (:func:`kpi_calib_ros.app.measurements.with_readings`); unchanged when
     the cell reads no temperature. A row outside the readings is refused with a warning.
 
@@ -553,7 +555,7 @@ def with_temperature_readings(campaign: Campaign, cm: CellModel,
     DataError
         The cell reads a temperature but none has arrived (or a listed sensor never did).
     """
-    return with_readings(cm, data, lambda _topic: campaign.temperatures())
+    return with_readings(cm, data, lambda _topic: store.temperatures())
 
 
 def _sigma_key(stamp_ns: int, frame_id: str) -> tuple[int, str, str]:
@@ -566,5 +568,5 @@ def _frame_id(key: tuple[int, str, str]) -> str:
     return key[1] + ('#' + key[2] if key[2] else '')
 
 
-__all__ = ['Campaign', 'NOT_STORED', 'REASONS', 'SIGMA_REASONS', 'SIGMA_WAIT_S',
+__all__ = ['MeasurementStore', 'NOT_STORED', 'REASONS', 'SIGMA_REASONS', 'SIGMA_WAIT_S',
            'model_measurements']

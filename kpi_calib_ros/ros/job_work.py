@@ -51,7 +51,6 @@ from kpi_calib_ros.core.campaigns.sequential import (
 from kpi_calib_ros.core.design.optimum import DesignResult
 from kpi_calib_ros.core.errors import DataError, KpiCalibError
 from kpi_calib_ros.core.estimation.drift_state import DriftSwing
-from kpi_calib_ros.core.estimation.robust import subset
 from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.io.campaign_io import CampaignState, write_campaign_state, write_plan
 from kpi_calib_ros.io.cell import CellModel
@@ -234,7 +233,7 @@ def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, dat
                        f'{source} (identify --learned-residual is not available with --prior '
                        'either); set reidentify_with_prior:=false to learn it')
         elif learned_residual:
-            text, content = learned_residual_section(doc, cm, subset(data, cal.robust.kept),
+            text, content = learned_residual_section(doc, cm, data.subset(cal.robust.kept),
                                                      result)
             learned = ('not chosen', text) if content is None else (
                 'chosen', f'{text}\nwritten: {data_dir / LEARNED_RESIDUAL_FILE}')

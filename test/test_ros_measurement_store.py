@@ -1,4 +1,4 @@
-"""The node's campaign store without ROS: live pairing equals batch pairing, nothing lost or
+"""The node's measurement store without ROS: live pairing equals batch pairing, nothing lost or
 counted twice across restarts, the pairing clock follows the joint stream."""
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from kpi_calib_ros.core.acquisition.pairing import PairedMeasurement, Rejection,
 from kpi_calib_ros.core.acquisition.streams import synthesize_streams
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.io.measurement_log import MeasurementLog
-from kpi_calib_ros.ros.campaign import Campaign
+from kpi_calib_ros.ros.measurement_store import MeasurementStore
 
 NAMES = ['joint_1', 'joint_2', 'joint_3']
 FRAME = 'laser_tracker'
@@ -29,37 +29,37 @@ def live_order(joints, points):
                                     key=lambda item: item[:2])]
 
 
-def feed(campaign: Campaign, samples) -> list:
+def feed(store: MeasurementStore, samples) -> list:
     decisions = []
     for sample in samples:
-        decisions += campaign.receive(sample)
+        decisions += store.receive(sample)
     return decisions
 
 
 def test_live_campaign_equals_batch_pairing(tmp_path):
     joints, points = streams()
-    campaign = Campaign(tmp_path)
-    campaign.set_chain(NAMES, FRAME)
-    decisions = feed(campaign, live_order(joints, points))
+    store = MeasurementStore(tmp_path)
+    store.set_chain(NAMES, FRAME)
+    decisions = feed(store, live_order(joints, points))
     assert all(isinstance(d, PairedMeasurement) for d in decisions) and len(decisions) == 6
-    data, pairing = campaign.measurements(NAMES, FRAME)
+    data, pairing = store.measurements(NAMES, FRAME)
     batch = pair_measurements(joints, points, NAMES, FRAME)
     np.testing.assert_array_equal(data.q, batch.q)
     np.testing.assert_array_equal(data.eta, batch.eta)
     np.testing.assert_array_equal(data.stamps_ns, batch.stamps_ns)
-    assert campaign.counts()['accepted'] == 6 and campaign.counts()['rejected'] == 0
+    assert store.counts()['accepted'] == 6 and store.counts()['rejected'] == 0
 
 
 def test_restart_restores_everything_and_counts_nothing_twice(tmp_path):
     joints, points = streams()
     order = live_order(joints, points)
-    first = Campaign(tmp_path)
+    first = MeasurementStore(tmp_path)
     first.set_chain(NAMES, FRAME)
     feed(first, order[:len(order) // 2])
     accepted = len(first)
     assert 0 < accepted < 6
     # Killed: no close(). The next process on the same folder restores what was accepted.
-    second = Campaign(tmp_path)
+    second = MeasurementStore(tmp_path)
     assert second.restored == len(second) == accepted
     second.set_chain(NAMES, FRAME)
     decisions = feed(second, order)  # the whole recording again
@@ -71,14 +71,14 @@ def test_restart_restores_everything_and_counts_nothing_twice(tmp_path):
     np.testing.assert_array_equal(data.q, batch.q)
     np.testing.assert_array_equal(data.stamps_ns, batch.stamps_ns)
     second.close()
-    assert len(Campaign(tmp_path)) == 6
+    assert len(MeasurementStore(tmp_path)) == 6
 
 
 def test_samples_before_the_robot_model_are_paired_once_it_is_known(tmp_path):
     joints, points = streams(3)
-    campaign = Campaign(tmp_path)
-    assert feed(campaign, live_order(joints, points)) == []
-    decisions = campaign.set_chain(NAMES, FRAME)
+    store = MeasurementStore(tmp_path)
+    assert feed(store, live_order(joints, points)) == []
+    decisions = store.set_chain(NAMES, FRAME)
     assert sum(isinstance(d, PairedMeasurement) for d in decisions) == 3
 
 
@@ -86,17 +86,17 @@ def test_oversized_joint_states_are_rejected_before_the_robot_model_too(tmp_path
     """The early buffer (samples held until the chain is known) takes no absurd message:
     each is rejected and counted by reason; the campaign still pairs the rest."""
     from kpi_calib_ros.core.acquisition.streams import JointSample
-    from kpi_calib_ros.ros.campaign import EARLY_MAX_NAMES
+    from kpi_calib_ros.ros.measurement_store import EARLY_MAX_NAMES
     joints, points = streams(3)
-    campaign = Campaign(tmp_path)
+    store = MeasurementStore(tmp_path)
     names = tuple(f'fake_{i}' for i in range(EARLY_MAX_NAMES + 1))
     huge = [JointSample(joints[0].stamp_ns + k, names, np.zeros(len(names)))
             for k in range(50)]
-    decisions = feed(campaign, huge + live_order(joints, points))
+    decisions = feed(store, huge + live_order(joints, points))
     assert [d.reason for d in decisions] == ['oversized_joint_state'] * 50
-    assert campaign.counts()['rejected.oversized_joint_state'] == 50
-    assert len(campaign._early) == len(joints) + len(points)  # nothing of the 50 held
-    paired = campaign.set_chain(NAMES, FRAME)
+    assert store.counts()['rejected.oversized_joint_state'] == 50
+    assert len(store._early) == len(joints) + len(points)  # nothing of the 50 held
+    paired = store.set_chain(NAMES, FRAME)
     assert sum(isinstance(d, PairedMeasurement) for d in paired) == 3
 
 
@@ -106,7 +106,7 @@ def test_pairing_clock_follows_the_joint_stream(tmp_path):
     k = order.index(points[0])
     # A backlog: the joint states after the first point arrive over a minute of wall
     # time; while they keep coming, the points wait for them instead of timing out.
-    backlog = Campaign(tmp_path / 'backlog')
+    backlog = MeasurementStore(tmp_path / 'backlog')
     backlog.set_chain(NAMES, FRAME)
     wall, decisions = 0, []
     for i, sample in enumerate(order):
@@ -115,7 +115,7 @@ def test_pairing_clock_follows_the_joint_stream(tmp_path):
     assert [type(d) for d in decisions] == [PairedMeasurement, PairedMeasurement]
     # When the joint stream stops, a point is decided after the pairer's timeout
     # (window 0.2 s + timeout 1 s), not before.
-    stopped = Campaign(tmp_path / 'stopped')
+    stopped = MeasurementStore(tmp_path / 'stopped')
     stopped.set_chain(NAMES, FRAME)
     for sample in order[:k + 1]:
         stopped.receive(sample, now_ns=0)
@@ -125,32 +125,32 @@ def test_pairing_clock_follows_the_joint_stream(tmp_path):
 
 def test_reset_archives_instead_of_deleting(tmp_path):
     joints, points = streams(2)
-    campaign = Campaign(tmp_path)
-    campaign.set_chain(NAMES, FRAME)
-    feed(campaign, live_order(joints, points))
+    store = MeasurementStore(tmp_path)
+    store.set_chain(NAMES, FRAME)
+    feed(store, live_order(joints, points))
     (tmp_path / 'calibration.yaml').write_text('rms_m: 1\n')
     (tmp_path / 'diagnosis').mkdir()
     (tmp_path / 'diagnosis' / 'report.md').write_text('# Model diagnosis\n')
     (tmp_path / 'design.yaml').write_text('criterion: kpi\n')
-    count, archive = campaign.reset()
-    assert count == 2 and len(campaign) == 0 and campaign.counts()['rejected'] == 0
+    count, archive = store.reset()
+    assert count == 2 and len(store) == 0 and store.counts()['rejected'] == 0
     assert (archive / 'calibration.yaml').exists() and list(archive.glob('measurements_*.mcap'))
     assert (archive / 'diagnosis' / 'report.md').exists()
     assert not (tmp_path / 'calibration.yaml').exists() and not (tmp_path / 'diagnosis').exists()
     assert (tmp_path / 'design.yaml').exists()  # the plan stays for the next campaign
-    assert len(Campaign(tmp_path)) == 0  # a restart does not bring archived data back
+    assert len(MeasurementStore(tmp_path)) == 0  # a restart does not bring archived data back
     assert len(MeasurementLog.load_all(archive)) == 2
 
 
 def test_measurements_name_the_problem(tmp_path):
-    campaign = Campaign(tmp_path)
+    store = MeasurementStore(tmp_path)
     with pytest.raises(DataError, match='no accepted measurement'):
-        campaign.measurements(NAMES, FRAME)
-    campaign.set_chain(NAMES, FRAME)
+        store.measurements(NAMES, FRAME)
+    store.set_chain(NAMES, FRAME)
     joints, points = streams(1)
-    feed(campaign, live_order(joints, points))
+    feed(store, live_order(joints, points))
     with pytest.raises(DataError, match='joint_9'):
-        campaign.measurements(NAMES[:2] + ['joint_9'], FRAME)
+        store.measurements(NAMES[:2] + ['joint_9'], FRAME)
 
 
 @pytest.mark.slow
@@ -165,10 +165,10 @@ def test_the_measurement_log_is_a_bag_every_command_reads(tmp_path, capsys):
     bag = tmp_path / 'run.mcap'
     assert main(['simulate', '--cell', cell, '--n', '30', '--out', str(bag), '--seed', '5']) == 0
     cm = build_cell_model(load_cell(cell))
-    campaign = Campaign(tmp_path / 'data')
-    campaign.set_chain(list(cm.joint_names), cm.cell.tracker_frame)
-    feed(campaign, live_order(*read_bag(bag)))
-    campaign.close()
+    store = MeasurementStore(tmp_path / 'data')
+    store.set_chain(list(cm.joint_names), cm.cell.tracker_frame)
+    feed(store, live_order(*read_bag(bag)))
+    store.close()
     log = tmp_path / 'data' / 'measurements_1.mcap'
     for source, out in ((bag, tmp_path / 'from_bag'), (log, tmp_path / 'from_log')):
         assert main(['identify', '--cell', cell, '--bag', str(source), '--out', str(out)]) == 0
@@ -197,17 +197,17 @@ def _umask() -> int:
 def test_disk_full_then_restart_restores_exactly_what_was_acknowledged(tmp_path, monkeypatch):
     from test_bag import DiskFull
     joints, points = streams(12)
-    campaign = Campaign(tmp_path)
-    campaign.set_chain(NAMES, FRAME)
+    store = MeasurementStore(tmp_path)
+    store.set_chain(NAMES, FRAME)
     # The disk fills after a few measurements (torn writes, failed syncs), then is freed.
     DiskFull(monkeypatch, fail_writes={3, 4, 5, 9}, fail_syncs={7})
-    decisions = feed(campaign, live_order(joints, points))
+    decisions = feed(store, live_order(joints, points))
     monkeypatch.undo()
     acknowledged = sorted(d.stamp_ns for d in decisions if isinstance(d, PairedMeasurement))
-    not_stored = campaign.counts()['rejected.not_stored']
+    not_stored = store.counts()['rejected.not_stored']
     assert not_stored >= 4 and len(acknowledged) + not_stored == 12 == len(decisions)
-    campaign.close()
-    restarted = Campaign(tmp_path)
+    store.close()
+    restarted = MeasurementStore(tmp_path)
     assert restarted.restored == len(acknowledged)
     data, _ = restarted.measurements(NAMES, FRAME)
     assert data.stamps_ns.tolist() == acknowledged
