@@ -130,8 +130,8 @@ def test_a_log_written_before_sigma_was_stored_still_loads(tmp_path, monkeypatch
     """A log without the σ channel (as the node wrote it before): restored, no row
     states a σ, and kpi-calib identify reads it as before."""
     monkeypatch.setattr(measurement_log, 'StreamEncoders',
-                        lambda joint, point, pose, *channels, sigma_topic=None:
-                        StreamEncoders(joint, point, pose, *channels))
+                        lambda joint, point, pose, *channels, sigma_topic=None, **others:
+                        StreamEncoders(joint, point, pose, *channels, **others))
     joints, points = streams(4)
     old = MeasurementStore(tmp_path)
     old.set_chain(NAMES, FRAME)
