@@ -48,11 +48,11 @@ def campaign_run(tmp_path_factory):
                                     stamps_ns=start + SECOND * np.arange(1, len(q) + 1)))
         return batches[-1]
     outs = [job_work.sequential_step_work(campaign, cm, measure(cm.joint_coupling.to_urdf(initial)),
-                                      state, data_dir)]
+                                          state, data_dir)]
     while not outs[-1].status.stopped:
         q_next = cm.joint_coupling.to_urdf(outs[-1].plan[:1])
         outs.append(job_work.sequential_step_work(campaign, cm, measure(q_next), outs[-1].state,
-                                              data_dir))
+                                                  data_dir))
     return cm, data_dir, outs, batches
 
 
@@ -90,7 +90,7 @@ def test_a_state_whose_measurements_are_gone_is_refused_by_name(campaign_run, tm
     data = _through(batches, 1)
     with pytest.raises(DataError, match='campaign_state.yaml: steps: .*~/reset'):
         job_work.sequential_resume_work(cm, outs[1].state, data.subset(np.arange(len(data)) > 0),
-                                    tmp_path)
+                                        tmp_path)
     (tmp_path / CAMPAIGN_STATE_FILE).write_text('version: 1\nsettings: {}\n')
     with pytest.raises(DataError, match='campaign_state.yaml: field .*~/reset'):
         read_campaign_state(tmp_path / CAMPAIGN_STATE_FILE)
@@ -146,8 +146,8 @@ def test_a_campaign_stopped_model_inadequate_publishes_and_archives_nothing(tmp_
         stamps = SECOND * np.arange(n + 1, n + len(q) + 1)
         n += len(q)
         out = job_work.sequential_step_work(campaign, cm, Measurements(q=q, eta=eta,
-                                                                   stamps_ns=stamps),
-                                        state, tmp_path)
+                                                                       stamps_ns=stamps),
+                                            state, tmp_path)
         state = out.state
         if out.status.stopped:
             break

@@ -121,7 +121,7 @@ def test_a_calibration_of_another_robot_or_a_damaged_one_is_not_used(cm, client,
     q, eta, stamps, fresh = simulated(cm, seed=9)
     pairing = PairingResult(cm.joint_names, cm.cell.tracker_frame, q, eta, stamps)
     cal = job_work.identify_work(cm, Measurements(q=q, eta=eta, stamps_ns=stamps), pairing,
-                             data_dir).calibration  # the KR15's valid calibration.yaml
+                                 data_dir).calibration  # the KR15's valid calibration.yaml
     assert cal is not None and cal.valid
     path = data_dir / 'calibration.yaml'
     robot = client.node.create_publisher(String, '/other_robot_description', LATCHED)
@@ -164,7 +164,7 @@ def test_validate_and_reset_after_a_restore(cm, tmp_path, ros_domain):
     pairing = PairingResult(cm.joint_names, cm.cell.tracker_frame, q[train], eta[train],
                             stamps[train])
     out = job_work.identify_work(cm, Measurements(q=q[train], eta=eta[train],
-                                             stamps_ns=stamps[train]), pairing, tmp_path)
+                                                 stamps_ns=stamps[train]), pairing, tmp_path)
     cal, text = out.calibration, out.text
     assert cal is not None and cal.valid
     with MeasurementLog(tmp_path) as log:  # the training poses and 6 measured after

@@ -40,7 +40,7 @@ def identified(tmp_path_factory):
     stamps = 10 ** 18 + np.arange(N_POSES, dtype=np.int64) * 10 ** 9
     pairing = PairingResult(cm.joint_names, cm.cell.tracker_frame, q[:N_POSES], eta, stamps)
     out = job_work.identify_work(cm, Measurements(q=q[:N_POSES], eta=eta, stamps_ns=stamps),
-                             pairing, data_dir)
+                                 pairing, data_dir)
     cal, text, urdf = out.calibration, out.text, out.urdf
     assert cal is not None and cal.valid
     return cm, cal.result, text, urdf, data_dir / 'calibration.yaml', q[N_POSES:]

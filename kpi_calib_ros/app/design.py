@@ -26,12 +26,7 @@ from kpi_calib_ros.core.estimation.prior import (
     Prior,
 )
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
-from kpi_calib_ros.io.design_io import (
-    design_summary_text,
-    plot_design,
-    plot_ellipsoids,
-    write_design,
-)
+from kpi_calib_ros.io.design_io import plot_design, plot_ellipsoids, summary_text, write_design
 from kpi_calib_ros.io.robot_geometry import mesh_check
 
 
@@ -189,7 +184,7 @@ def run_design(cell_path: str | Path, n: int, criterion: str, out: str | Path,
     shown = [baseline] if result is baseline else [baseline, result]
     names = ['heuristic'] if result is baseline else ['heuristic', f'{criterion}-optimal']
     ell_png = plot_ellipsoids(shown, names, f'{stem}_ellipsoids.png')
-    print(design_summary_text(result, None if result is baseline else baseline))
+    print(summary_text(result, None if result is baseline else baseline))
     if drawn_text:
         print(drawn_text)
     print('\n'.join(cm.robot_geometry().summary_lines()))

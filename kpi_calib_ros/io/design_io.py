@@ -195,7 +195,7 @@ def plot_ellipsoids(results: list[DesignResult], labels: list[str], path: str | 
 
 
 # ------------------------------------------------------------------------- summary
-def design_summary_text(result: DesignResult, baseline: DesignResult | None = None) -> str:
+def summary_text(result: DesignResult, baseline: DesignResult | None = None) -> str:
     """Readable summary for stdout."""
     lines = [f'criterion {result.criterion}: objective {result.objective:.4g} '
              f'(exchange {result.exchange_objective:.4g}), {len(result.configurations)} '
