@@ -42,24 +42,24 @@ from kpi_calib_ros.app.calibration_document import (
     add_robust_sections,
     calibration_document,
 )
-from kpi_calib_ros.app.design import design_cell_model
 from kpi_calib_ros.app.campaign import (
     campaign_context,
     new_campaign,
     simulate_sequential,
 )
+from kpi_calib_ros.app.design import design_cell_model
 from kpi_calib_ros.app.diagnose import CellDiagnosis, diagnose_cell
 from kpi_calib_ros.app.identify import calibrate_cell
 from kpi_calib_ros.app.learned_residual import choose_residual
 from kpi_calib_ros.app.measurements import measurements_from_bag, with_recordings
 from kpi_calib_ros.app.simulate import simulate_campaign
-from kpi_calib_ros.core.campaigns.sequential import CampaignSettings, SimulatedRun
 from kpi_calib_ros.app.validate import (
     calibrated_model,
     parameter_vector,
     read_calibration,
     validate_calibration,
 )
+from kpi_calib_ros.core.campaigns.sequential import CampaignSettings, SimulatedRun
 from kpi_calib_ros.core.design.optimum import DesignResult
 from kpi_calib_ros.core.diagnosis.learned_residual import ResidualChoice
 from kpi_calib_ros.core.diagnosis.validation import Validation
