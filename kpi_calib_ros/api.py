@@ -52,6 +52,7 @@ from kpi_calib_ros.app.diagnose import CellDiagnosis, diagnose_cell
 from kpi_calib_ros.app.identify import calibrate_cell
 from kpi_calib_ros.app.learned_residual import choose_residual
 from kpi_calib_ros.app.measurements import measurements_from_bag, with_recordings
+from kpi_calib_ros.app.reidentify import Reidentification, cycle_prior, reidentify
 from kpi_calib_ros.app.simulate import simulate_campaign
 from kpi_calib_ros.app.validate import (
     calibrated_model,
@@ -74,7 +75,7 @@ from kpi_calib_ros.io.cell import DEFAULT_CELL, CellModel, build_cell_model
 from kpi_calib_ros.io.cell import load_cell as _read_cell
 
 __all__ = ['Campaign', 'calibrate', 'design', 'diagnose', 'learn_residual', 'load_cell',
-           'read_bag', 'sequential_campaign', 'simulate', 'validate', 'write_bag']
+           'read_bag', 'recalibrate', 'sequential_campaign', 'simulate', 'validate', 'write_bag']
 
 
 @dataclass(frozen=True)
@@ -283,13 +284,31 @@ def validate(cell: CellModel, calibration: CellCalibration | str | Path,
     ``register`` (``'base'``, ``'base+reflector'`` or ``'reflector'``): re-fit the placement on
     the new recording first, for a tracker (or probe) set up again.
     """
-    doc: dict[str, Any]
+    cm, doc = _document(cell, calibration)
+    p = (calibration.result.values if isinstance(calibration, CellCalibration)
+         else parameter_vector(cm, doc))
+    return validate_calibration(cm, p, doc, data, register)
+
+
+def recalibrate(cell: CellModel, previous: CellCalibration | str | Path, data: Measurements,
+                hours: float | None = None) -> Reidentification:
+    """A work cycle, as ``identify --prior``: the ``previous`` calibration (what
+    :func:`calibrate` returned, or a calibration.yaml) as Gaussian prior, widened by the
+    default drift model over ``hours`` (default: from its ``identified_at_ns`` to the
+    first stamp of ``data``); the change test first (``.change.consistent``, ``.change.moved``
+    largest likelihood ratio first), then, when the new points agree with the prior, the
+    calibration identified with it (``.calibration``; None when a change was found:
+    nothing is blended)."""
+    cm, doc = _document(cell, previous)
+    return reidentify(cm, data, cycle_prior(cm, doc, data, hours=hours))
+
+
+def _document(cell: CellModel, calibration: CellCalibration | str | Path
+              ) -> tuple[CellModel, dict[str, Any]]:
+    """The cell model and calibration.yaml document of ``calibration``."""
     if isinstance(calibration, CellCalibration):
         cm = calibration.cell or cell
-        doc = add_robust_sections(calibration_document(cm, calibration.result), calibration)
-        p = calibration.result.values
-    else:
-        doc = read_calibration(calibration)
-        cm, _ = calibrated_model(cell.cell, doc)
-        p = parameter_vector(cm, doc)
-    return validate_calibration(cm, p, doc, data, register)
+        return cm, add_robust_sections(calibration_document(cm, calibration.result),
+                                       calibration)
+    doc = read_calibration(calibration)
+    return calibrated_model(cell.cell, doc)[0], doc
