@@ -7,36 +7,17 @@ candidate effect and the rms before and after adding it.
 """
 from __future__ import annotations
 
-from dataclasses import replace
-
-import numpy as np
-
-from kpi_calib_ros.app.diagnose import diagnose_cell
-from kpi_calib_ros.core.effects.registry import parse_effect_spec
-from kpi_calib_ros.core.simulation import (
-    random_configurations,
-    simulate_measurements,
-    true_parameters,
-)
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros import api
 
 HIDDEN = 'joint_compliance:joint_2'
+C_NAME = 'joint_compliance.joint_2.c'
 C_TRUE = -1.0e-6   # rad/(N m): joint 2 sags along gravity, stiffness 1e6 N m/rad
 
 
 def main(seed: int = 3, n: int = 60) -> dict[str, object]:
-    # The reflector on an adapter, off the flange axis: joint 6 then moves it and the
-    # wrist's placement errors stay identifiable.
-    cell = replace(load_cell(DEFAULT_CELL), reflector_offset=np.array([0.05, 0.0, 0.06]))
-    cm = build_cell_model(cell)                                      # geometric model
-    truth = build_cell_model(cell, effects=(parse_effect_spec(HIDDEN, cm.robot),))
-    rng = np.random.default_rng(seed)
-    p_true = true_parameters(truth.model.params, rng,
-                             overrides={f'{HIDDEN.replace(":", ".")}.c': C_TRUE})
-    q = random_configurations(truth.model, truth.model.params.nominal, n, rng,
-                              cm.cell.max_incidence)
-    data = simulate_measurements(truth.model, p_true, q, cm.cell.sigma, rng)
-    cd = diagnose_cell(cm, data)                                     # calibrate + diagnose
+    cell = api.load_cell()                                           # geometric model
+    campaign = api.simulate(cell, n, seed=seed, hidden=HIDDEN, values={C_NAME: C_TRUE})
+    cd = api.diagnose(cell, campaign.data)                           # calibrate + diagnose
     best = cd.diagnosis.best
     print(f'geometric model adequate: {cd.diagnosis.model_adequate}, '
           f'rms {cd.result.rms_m * 1e6:.1f} µm')
@@ -48,8 +29,7 @@ def main(seed: int = 3, n: int = 60) -> dict[str, object]:
     result: dict[str, object] = {'best': best.spec, 'adequate': cd.diagnosis.model_adequate,
                                  'rms_before': cd.result.rms_m, 'rms_after': cd.after.rms_m}
     if best.spec == HIDDEN:
-        name = f'{HIDDEN.replace(":", ".")}.c'
-        result.update(c=cd.after.value(name), c_std=cd.after.std_of(name))
+        result.update(c=cd.after.value(C_NAME), c_std=cd.after.std_of(C_NAME))
         print(f'identified c = {result["c"]:.3e} ± {result["c_std"]:.1e} rad/(N m), '
               f'true {C_TRUE:.1e}')
     return result

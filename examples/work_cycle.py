@@ -8,49 +8,36 @@ tested: the change test refuses them and names what moved most.
 """
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
-from kpi_calib_ros.app.calibration_document import calibration_document
-from kpi_calib_ros.app.identify import identify_cell
-from kpi_calib_ros.app.reidentify import cycle_prior, reidentify
-from kpi_calib_ros.core.simulation import (
-    random_configurations,
-    simulate_measurements,
-    true_parameters,
-)
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros import api
 
 BENT = 'joint_2.placement.tx'
 BEND_M = 1.0e-3
 
 
 def main(seed: int = 5) -> dict[str, object]:
-    cm = build_cell_model(load_cell(DEFAULT_CELL))
-    rng = np.random.default_rng(seed)
-    p_true = true_parameters(cm.model.params, rng)
+    cell = api.load_cell()
+    campaign = api.simulate(cell, 60, seed=seed)                    # the full campaign
+    first = api.calibrate(cell, campaign.data)
+    print(f'cycle 0: 60 poses, TCP std {_worst_std(first.result.tcp_covariance) * 1e6:.1f} µm')
 
-    def measure(p: np.ndarray, n: int):
-        q = random_configurations(cm.model, cm.model.params.nominal, n, rng,
-                                  cm.cell.max_incidence)
-        return simulate_measurements(cm.model, p, q, cm.cell.sigma, rng)
-
-    first = identify_cell(cm, measure(p_true, 60))                 # the full campaign
-    doc = calibration_document(cm, first)                           # as calibration.yaml
-    tcp_true = cm.model.predict(p_true, cm.q_work)
-    print(f'cycle 0: 60 poses, TCP std {_worst_std(first.tcp_covariance) * 1e6:.1f} µm')
-
-    data = measure(p_true, 10)                                      # same robot, 1 h later
-    cycle = reidentify(cm, data, cycle_prior(cm, doc, data, hours=1.0))
+    data = api.simulate(cell, 10, seed + 1, truth=campaign).data    # same robot, 1 h later
+    cycle = api.recalibrate(cell, first, data, hours=1.0)
     fit = cycle.calibration.result if cycle.calibration is not None else cycle.fit
-    z = (fit.tcp - tcp_true) / np.sqrt(np.diagonal(fit.tcp_covariance, axis1=1, axis2=2))
+    z = (fit.tcp - campaign.true_tcp) / np.sqrt(
+        np.diagonal(fit.tcp_covariance, axis1=1, axis2=2))
     print(f'cycle 1: 10 poses, consistent: {cycle.change.consistent}, '
           f'TCP std {_worst_std(fit.tcp_covariance) * 1e6:.1f} µm, '
           f'TCP error z [{", ".join(f"{v:+.2f}" for v in z.ravel())}]')
 
-    p_bent = p_true.copy()
-    p_bent[cm.model.params.names.index(BENT)] += BEND_M             # a collision bent a link
-    data = measure(p_bent, 10)
-    bent = reidentify(cm, data, cycle_prior(cm, doc, data, hours=2.0))
+    p_bent = campaign.true_values.copy()
+    p_bent[cell.model.params.index(BENT)] += BEND_M                 # a collision bent a link
+    bent_robot = replace(campaign, true_values=p_bent)
+    bent = api.recalibrate(cell, first, api.simulate(cell, 10, seed + 2, truth=bent_robot).data,
+                           hours=2.0)
     moved = bent.change.moved                                       # largest LR first
     print(f'cycle 2: 10 poses after a {BEND_M * 1e3:g} mm bend of {BENT}, consistent: '
           f'{bent.change.consistent}')
@@ -58,6 +45,8 @@ def main(seed: int = 5) -> dict[str, object]:
         print(f'moved most: {moved[0].name} by {moved[0].shift * 1e3:+.2f} ± '
               f'{moved[0].shift_std * 1e3:.2f} mm (LR {moved[0].lr:.0f}); '
               f'{len(moved) - 1} more beyond the threshold; not blended')
+    assert cycle.change.consistent and np.abs(z).max() < 3.0
+    assert not bent.change.consistent and moved and moved[0].name == BENT
     return {'consistent': cycle.change.consistent, 'z': z, 'bent_consistent':
             bent.change.consistent, 'moved': [m.name for m in moved]}
 

@@ -30,6 +30,7 @@ readings in rad, tracker points in m); :func:`read_bag` makes them from a record
 """
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -41,18 +42,29 @@ from kpi_calib_ros.app.calibration_document import (
     add_robust_sections,
     calibration_document,
 )
+from kpi_calib_ros.app.campaign import (
+    campaign_context,
+    new_campaign,
+    simulate_sequential,
+)
 from kpi_calib_ros.app.design import design_cell_model
 from kpi_calib_ros.app.diagnose import CellDiagnosis, diagnose_cell
 from kpi_calib_ros.app.identify import calibrate_cell
-from kpi_calib_ros.app.measurements import measurements_from_bag
+from kpi_calib_ros.app.learned_residual import choose_residual
+from kpi_calib_ros.app.measurements import measurements_from_bag, with_recordings
+from kpi_calib_ros.app.reidentify import Reidentification, cycle_prior, reidentify
+from kpi_calib_ros.app.simulate import simulate_campaign
 from kpi_calib_ros.app.validate import (
     calibrated_model,
     parameter_vector,
     read_calibration,
     validate_calibration,
 )
+from kpi_calib_ros.core.campaigns.sequential import CampaignSettings, SimulatedRun
 from kpi_calib_ros.core.design.optimum import DesignResult
+from kpi_calib_ros.core.diagnosis.learned_residual import ResidualChoice
 from kpi_calib_ros.core.diagnosis.validation import Validation
+from kpi_calib_ros.core.measurement.recordings import Recording, combine
 from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.simulation import (
     random_configurations,
@@ -62,8 +74,8 @@ from kpi_calib_ros.core.simulation import (
 from kpi_calib_ros.io.cell import DEFAULT_CELL, CellModel, build_cell_model
 from kpi_calib_ros.io.cell import load_cell as _read_cell
 
-__all__ = ['Campaign', 'calibrate', 'design', 'diagnose', 'load_cell', 'read_bag',
-           'simulate', 'validate']
+__all__ = ['Campaign', 'calibrate', 'design', 'diagnose', 'learn_residual', 'load_cell',
+           'read_bag', 'recalibrate', 'sequential_campaign', 'simulate', 'validate', 'write_bag']
 
 
 @dataclass(frozen=True)
@@ -121,16 +133,29 @@ def read_bag(cell: CellModel, path: str | Path, joint_topic: str | None = None,
     return measurements_from_bag(cell, path, joint_topic, point_topic, pose_topic)[0]
 
 
+def write_bag(campaign: Campaign, path: str | Path, seed: int = 0) -> str:
+    """Record ``campaign``'s poses as an MCAP bag, as ``kpi-calib simulate`` does: joint
+    states held still around each tracker point (new tracker noise, seeded), the truth
+    beside it (``<bag>.truth.yaml``). Returns the summary line."""
+    q = campaign.data.q
+    return simulate_campaign('', len(q), path, seed, poses=(campaign.model.joint_names, q),
+                             cm=campaign.model, p_true=campaign.true_values)
+
+
 def simulate(cell: CellModel, n: int, seed: int = 0, hidden: str = '',
              values: dict[str, float] | None = None,
-             truth: Campaign | None = None) -> Campaign:
+             truth: Campaign | None = None,
+             inputs: Mapping[str, float | np.ndarray] | None = None) -> Campaign:
     """``n`` measurable poses of a robot drawn near the cell's nominal one, measured with
     the cell's noise.
 
     ``hidden``: effects the true robot has and ``cell`` may lack (an effect spec, as
     ``--effects``), ``values`` the true values of some parameters (name -> SI value;
     the others drawn from the cell's simulated error magnitudes). ``truth``: measure
-    the robot of an earlier campaign again (new poses, same robot).
+    the robot of an earlier campaign again (new poses, same robot). ``inputs``: the
+    measured inputs of every row (name -> value or (n,) values in SI, e.g.
+    ``{'payload.mass': 5.0}``), which drive the true robot's effects and are recorded
+    with the rows, as the cell's ``inputs:`` or a manifest's ``covariates`` record them.
 
     >>> from kpi_calib_ros import api
     >>> cell = api.load_cell()
@@ -149,12 +174,15 @@ def simulate(cell: CellModel, n: int, seed: int = 0, hidden: str = '',
         model, p_true = truth.model, truth.true_values
     q = random_configurations(model.model, model.model.params.nominal, n, rng,
                               cell.cell.max_incidence)
-    data = simulate_measurements(model.model, p_true, q, cell.cell.sigma, rng)
+    covariates = None if inputs is None else {
+        name: np.broadcast_to(np.asarray(v, float), (n,)).copy() for name, v in inputs.items()}
+    data = simulate_measurements(model.model, p_true, q, cell.cell.sigma, rng,
+                                 covariates=covariates)
     return Campaign(data, model, p_true, model.model.predict(p_true, model.q_work))
 
 
-def calibrate(cell: CellModel, data: Measurements, model: str | None = None
-              ) -> CellCalibration:
+def calibrate(cell: CellModel, data: Measurements | Mapping[str, Measurements],
+              model: str | None = None, remounted: Sequence[str] = ()) -> CellCalibration:
     """Identify the robot from ``data`` as ``kpi-calib identify`` does: placement
     registered, outliers that are faults excluded, the model level ``model`` (or the
     cell's ``identification.model``; ``'auto'`` adds the effects that predict new poses
@@ -162,8 +190,57 @@ def calibrate(cell: CellModel, data: Measurements, model: str | None = None
 
     ``.valid`` says whether it may be published, ``.problems`` why not;
     ``.result`` holds the parameters, their std, the TCP and its covariance.
+
+    ``data`` may be several recordings (tracker set-ups), ``{name: Measurements}`` in
+    order, as ``identify --bag a.mcap --bag b.mcap``: the robot shared, every recording
+    after the first with its own base pose ``recording.<name>.base.*`` (and, named in
+    ``remounted``, its own reflector offsets); ``.cell`` is then the model of them all.
+
+    >>> from kpi_calib_ros import api
+    >>> cell = api.load_cell()
+    >>> a = api.simulate(cell, 30, seed=1)
+    >>> b = api.simulate(cell, 30, seed=2, truth=a)   # the same robot, another set-up
+    >>> cal = api.calibrate(cell, {'a': a.data, 'b': b.data}, model='geometric')
+    >>> [n for n in cal.result.estimated if n.startswith('recording.')][:2]
+    ['recording.b.base.x', 'recording.b.base.y']
     """
-    return calibrate_cell(cell, data, model)
+    if isinstance(data, Measurements):
+        return calibrate_cell(cell, data, model)
+    if not data:
+        raise ValueError('calibrate: no recording given')
+    recordings = [Recording(name, name in remounted) for name in data]
+    unknown = sorted(set(remounted) - set(data))
+    if unknown:
+        raise ValueError(f'calibrate: remounted names no recording: {unknown}')
+    return calibrate_cell(with_recordings(cell, recordings),
+                          combine(list(data.values()), recordings), model)
+
+
+def learn_residual(cell: CellModel, calibration: CellCalibration, data: Measurements,
+                   seed: int = 0) -> ResidualChoice:
+    """Fit a learned residual (a Gaussian process over the joints) to what
+    ``calibration`` leaves of ``data`` and decide, by cross-validation over poses, whether
+    it predicts held-out poses better (``.chosen``, ``.reason``, ``.cv_rms_physical_m``,
+    ``.cv_rms_learned_m``), as ``identify --learned-residual`` does; ``.model.predict(q)``
+    is the correction at new joint values (tracker frame, m)."""
+    rows = data.subset(np.asarray(calibration.robust.kept, bool))
+    return choose_residual(calibration.cell or cell, rows, calibration.result, seed=seed)
+
+
+def sequential_campaign(cell: CellModel, target_std: float, truth: Campaign,
+                        seed: int = 0, candidates: int = 400,
+                        max_measurements: int = 200) -> SimulatedRun:
+    """Measure ``truth``'s robot pose by pose until the largest TCP std at the working
+    poses is below ``target_std`` (m, at the upper confidence limit of the noise) or
+    ``max_measurements`` are taken, as ``kpi-calib campaign --simulate`` does: an initial
+    KPI design, then each next pose the one that lowers the KPI most among ``candidates``
+    feasible ones. ``.history[-1]`` holds the final status (``stop_reason``,
+    ``tcp_std``, ``measurements``), ``.tcp_estimated`` / ``.tcp_true`` the TCP."""
+    design_cell, ctx = campaign_context(cell, seed, candidates)
+    settings = CampaignSettings(target_std=target_std, max_measurements=max_measurements)
+    campaign = new_campaign(cell, design_cell, ctx, settings, seed)
+    return simulate_sequential(campaign, truth.model, truth.true_values,
+                               float(np.max(cell.cell.sigma)), np.random.default_rng(seed))
 
 
 def diagnose(cell: CellModel, data: Measurements) -> CellDiagnosis:
@@ -207,13 +284,31 @@ def validate(cell: CellModel, calibration: CellCalibration | str | Path,
     ``register`` (``'base'``, ``'base+reflector'`` or ``'reflector'``): re-fit the placement on
     the new recording first, for a tracker (or probe) set up again.
     """
-    doc: dict[str, Any]
+    cm, doc = _document(cell, calibration)
+    p = (calibration.result.values if isinstance(calibration, CellCalibration)
+         else parameter_vector(cm, doc))
+    return validate_calibration(cm, p, doc, data, register)
+
+
+def recalibrate(cell: CellModel, previous: CellCalibration | str | Path, data: Measurements,
+                hours: float | None = None) -> Reidentification:
+    """A work cycle, as ``identify --prior``: the ``previous`` calibration (what
+    :func:`calibrate` returned, or a calibration.yaml) as Gaussian prior, widened by the
+    default drift model over ``hours`` (default: from its ``identified_at_ns`` to the
+    first stamp of ``data``); the change test first (``.change.consistent``, ``.change.moved``
+    largest likelihood ratio first), then, when the new points agree with the prior, the
+    calibration identified with it (``.calibration``; None when a change was found:
+    nothing is blended)."""
+    cm, doc = _document(cell, previous)
+    return reidentify(cm, data, cycle_prior(cm, doc, data, hours=hours))
+
+
+def _document(cell: CellModel, calibration: CellCalibration | str | Path
+              ) -> tuple[CellModel, dict[str, Any]]:
+    """The cell model and calibration.yaml document of ``calibration``."""
     if isinstance(calibration, CellCalibration):
         cm = calibration.cell or cell
-        doc = add_robust_sections(calibration_document(cm, calibration.result), calibration)
-        p = calibration.result.values
-    else:
-        doc = read_calibration(calibration)
-        cm, _ = calibrated_model(cell.cell, doc)
-        p = parameter_vector(cm, doc)
-    return validate_calibration(cm, p, doc, data, register)
+        return cm, add_robust_sections(calibration_document(cm, calibration.result),
+                                       calibration)
+    doc = read_calibration(calibration)
+    return calibrated_model(cell.cell, doc)[0], doc

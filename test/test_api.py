@@ -5,6 +5,7 @@ shapes."""
 from __future__ import annotations
 
 import doctest
+import re
 
 import pytest
 
@@ -25,3 +26,11 @@ def test_every_public_name_of_the_front_door_is_documented_with_an_example():
     examples = doctest.DocTestFinder().find(api)
     assert {t.name.rsplit('.', 1)[-1] for t in examples if t.examples} >= {
         'api', 'load_cell', 'simulate', 'design'}
+
+
+def test_the_api_page_documents_every_public_name():
+    from pathlib import Path
+    page = (Path(__file__).resolve().parents[1] / 'doc' / 'reference' / 'api.md').read_text()
+    members = page.split('.. automodule:: kpi_calib_ros.api', 1)[1].split('```', 1)[0]
+    listed = set(re.findall(r'\w+', members.split(':members:', 1)[1]))
+    assert set(api.__all__) <= listed, set(api.__all__) - listed

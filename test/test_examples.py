@@ -81,3 +81,71 @@ def test_a_work_cycle_blends_the_same_robot_and_refuses_a_bent_one(capsys):
                                  out).groups()
     assert name == 'joint_2.placement.tx'            # the bent parameter, named first
     assert abs(float(shift) - 1.0) < 3 * float(std)  # by the 1 mm it was bent
+
+
+def test_the_examples_index_lists_every_script_by_task():
+    """examples/README.md and doc/examples.md each name every script once, in a table row
+    that says its task."""
+    scripts = sorted(p.name for p in EXAMPLES.glob('*.py'))
+    for index in (EXAMPLES / 'README.md', EXAMPLES.parent / 'doc' / 'examples.md'):
+        rows = [line for line in index.read_text().splitlines() if line.startswith('| ')]
+        listed = [m for line in rows for m in re.findall(r'examples/([a-z_]+\.py)', line)]
+        assert sorted(set(listed)) == scripts, f'{index.name}: {set(scripts) ^ set(listed)}'
+
+
+@pytest.mark.slow
+def test_a_bag_written_and_read_back_calibrates_the_tcp_within_3_sigma(capsys):
+    out = _run('calibrate_from_bag.py', capsys)
+    paired = re.search(r'(\d+) measurements paired, valid: True', out)
+    assert paired and int(paired.group(1)) == 50, out    # every point paired
+    z = float(re.search(rf'largest \|z\| ({NUMBER})', out).group(1))
+    assert z < 3.0
+
+
+@pytest.mark.slow
+def test_the_sequential_campaign_stops_at_its_target_with_the_tcp_within_3_sigma(capsys):
+    out = _run('sequential_campaign.py', capsys)
+    poses, initial, std = re.search(
+        rf'(\d+) poses \((\d+) initial\), stopped: target met; largest TCP std ({NUMBER})',
+        out).groups()
+    assert int(initial) < int(poses) <= 200 and float(std) < 15.0
+    assert float(re.search(rf'largest \|z\| ({NUMBER})', out).group(1)) < 3.0
+
+
+@pytest.mark.slow
+def test_the_learned_residual_brings_fresh_poses_to_the_noise(capsys):
+    out = _run('learned_residual.py', capsys)
+    assert out.startswith('learned residual chosen'), out
+    physical, learned = (float(v) for v in re.search(
+        rf'rms ({NUMBER}) µm physical, ({NUMBER}) µm with the learned', out).groups())
+    # σ = 20 µm per axis: a point's rms is √3·20 = 35 µm; the 0.2 mm field is well above.
+    assert physical > 100.0 and learned < 70.0 and learned < physical / 2
+
+
+@pytest.mark.slow
+def test_a_moved_tracker_fails_validation_as_is_and_holds_re_registered(capsys):
+    out = _run('validate_new_recording.py', capsys)
+    holds = dict(re.findall(r'^\s*(.+?): holds (True|False)', out, flags=re.M))
+    assert holds == {'same set-up': 'True', 'set up again, as is': 'False',
+                     'set up again, registered': 'True'}, out
+
+
+@pytest.mark.slow
+def test_two_tracker_stations_give_the_tcp_within_3_sigma_and_better_than_one(capsys):
+    out = _run('several_recordings.py', capsys)
+    assert 'recording.b.base.yaw = ' in out                 # station b's own placement
+    z, both, alone = (float(v) for v in re.search(
+        rf'within ({NUMBER})σ; largest TCP std ({NUMBER}) µm \(station a alone: ({NUMBER})',
+        out).groups())
+    assert z < 3.0 and both < alone
+
+
+@pytest.mark.slow
+def test_a_payload_recorded_per_row_recovers_the_compliance(capsys):
+    out = _run('measured_inputs.py', capsys)
+    c, c_std, c_true = (float(v) for v in re.search(
+        rf'c = ({NUMBER}) ± ({NUMBER}) rad/\(N m\), true ({NUMBER})', out).groups())
+    assert abs(c - c_true) < 3 * c_std
+    rms = float(re.search(rf'rms ({NUMBER}) µm\n', out).group(1))
+    blind = float(re.search(rf'one payload: rms ({NUMBER})', out).group(1))
+    assert rms < 45.0 < 2 * rms < blind
