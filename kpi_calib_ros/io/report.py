@@ -119,8 +119,8 @@ def region_verdict(cmp: ModelComparison) -> str:
                f'of joint space ({cmp.region_blocks} regions), '
                f'{_validation(cmp.validation_rms_before_m, "", " µm")} -> '
                f'{_validation(cmp.validation_rms_after_m, "", " µm")} where measured; worse '
-               f'in {cmp.worse_folds[0]} of {cmp.worse_folds[1]} held-out folds (region blocks '
-               'and joint range ends)')
+               f'beyond the noise in {cmp.worse_folds[0]} of {cmp.worse_folds[1]} held-out folds '
+               '(region blocks and joint range ends)')
     if cmp.holds_elsewhere:
         return f'recommended: {", ".join(cmp.effects)} holds where no pose was measured ({figures})'
     return (f'NOT recommended: {", ".join(cmp.effects)} does not predict held-out regions of '

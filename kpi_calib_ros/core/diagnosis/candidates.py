@@ -228,6 +228,7 @@ class ModelComparison:
     # (core.estimation.residuals.RegionValidation.held_out_folds_m), m.
     held_out_folds_before_m: tuple[float, ...] = ()
     held_out_folds_after_m: tuple[float, ...] = ()
+    held_out_noise_m: tuple[float, ...] = ()  # each fold's rms spread by the noise alone
 
     @property
     def holds_elsewhere(self) -> bool:
@@ -240,12 +241,14 @@ class ModelComparison:
         return region_test(self.other_region_rms_after_m, self.other_region_rms_before_m,
                            self.validation_rms_after_m, self.validation_rms_before_m,
                            folds_after=self.held_out_folds_after_m,
-                           folds_before=self.held_out_folds_before_m)
+                           folds_before=self.held_out_folds_before_m,
+                           noise=self.held_out_noise_m)
 
     @property
     def worse_folds(self) -> tuple[int, int]:
         """(held-out folds the richer model predicts worse, folds compared)."""
-        return worse_folds(self.held_out_folds_after_m, self.held_out_folds_before_m)
+        return worse_folds(self.held_out_folds_after_m, self.held_out_folds_before_m,
+                           self.held_out_noise_m)
 
 
 # ---------------------------------------------------------------- screening
@@ -667,6 +670,7 @@ def compare_models(before: tuple[MeasurementModel, CalibrationResult],
         region_blocks=region_a.blocks,
         held_out_folds_before_m=region_b.held_out_folds_m,
         held_out_folds_after_m=region_a.held_out_folds_m,
+        held_out_noise_m=region_a.held_out_noise_m,
         p_value_before=res_b.p_value, p_value_after=res_a.p_value,
         effect_parameters=tuple(params),
         tcp_std_before_m=_tcp_std(res_b),

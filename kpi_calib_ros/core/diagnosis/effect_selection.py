@@ -302,11 +302,13 @@ def _region_text(trial: EffectTrial) -> str:
     b, a = trial.region_before, trial.region_after
     if a is None or b is None:
         return 'no cross-validated rms'
-    worse, compared = worse_folds(a.held_out_folds_m, b.held_out_folds_m)
+    worse, compared = worse_folds(a.held_out_folds_m, b.held_out_folds_m,
+                                  a.held_out_noise_m)
     return (f'cross-validated rms over held-out regions of joint space '
             f'{_um(b.other_region_m)} -> {_um(a.other_region_m)} µm ({a.blocks} regions), '
             f'where measured {_um(b.in_region_m)} -> {_um(a.in_region_m)} µm, worse in '
-            f'{worse} of {compared} held-out folds (region blocks and joint range ends)')
+            f'{worse} of {compared} held-out folds beyond their noise (region blocks and joint '
+            'range ends)')
 
 
 def _judged(trial: tuple[EffectTrial, MeasurementModel | None, CalibrationResult | None],

@@ -74,15 +74,21 @@ REGION_MARGIN = 0.05
 TIE_M = 1e-9
 
 
-def worse_folds(after: tuple[float, ...], before: tuple[float, ...]) -> tuple[int, int]:
+def worse_folds(after: tuple[float, ...], before: tuple[float, ...],
+                noise: tuple[float, ...] = ()) -> tuple[int, int]:
     """Return (folds where ``after`` is above ``before``, folds compared), paired figures (m).
 
-    A fold is compared where both figures are finite; above by more than :data:`TIE_M`.
+    A fold is compared where both figures are finite; above when by more than its
+    ``noise`` (what the stated noise alone spreads the fold's rms by,
+    :func:`~kpi_calib_ros.core.estimation.residuals.fold_rms`; default none) and
+    :data:`TIE_M`: a fold the effect predicts worse by less than its noise is a tie.
     """
     if len(after) != len(before):
         raise ValueError(f'fold figures must pair: {len(after)} after, {len(before)} before')
-    pairs = [(a, b) for a, b in zip(after, before) if np.isfinite(a) and np.isfinite(b)]
-    return sum(a > b + TIE_M for a, b in pairs), len(pairs)
+    noise = tuple(noise) or (0.0,) * len(after)
+    pairs = [(a, b, s) for a, b, s in zip(after, before, noise)
+             if np.isfinite(a) and np.isfinite(b)]
+    return sum(a > b + max(s, 0.0) + TIE_M for a, b, s in pairs), len(pairs)
 
 
 def holds_elsewhere(new: RegionValidation, old: RegionValidation,
@@ -91,23 +97,25 @@ def holds_elsewhere(new: RegionValidation, old: RegionValidation,
 
     Its cross-validated rms over held-out regions of joint space is lower than ``old``'s, and
     lower by ``margin`` there or where measured: clearly better somewhere; and it is worse
-    in NO held-out fold (each region block, each joint's range end,
-    :attr:`RegionValidation.held_out_folds_m`): one fold that a new effect fits cannot carry
-    it while it hurts the others. False when an other-region figure is not estimable.
+    beyond the noise in NO held-out fold (each region block, each joint's range end,
+    :attr:`RegionValidation.held_out_folds_m`, :func:`worse_folds`): one fold that a new
+    effect fits cannot carry it while it hurts another. False when an other-region figure
+    is not estimable.
     """
     return region_test(new.other_region_m, old.other_region_m, new.in_region_m,
-                       old.in_region_m, margin, new.held_out_folds_m, old.held_out_folds_m)
+                       old.in_region_m, margin, new.held_out_folds_m, old.held_out_folds_m,
+                       new.held_out_noise_m)
 
 
 def region_test(other_after: float, other_before: float, in_after: float, in_before: float,
                 margin: float = REGION_MARGIN, folds_after: tuple[float, ...] = (),
-                folds_before: tuple[float, ...] = ()) -> bool:
+                folds_before: tuple[float, ...] = (), noise: tuple[float, ...] = ()) -> bool:
     """:func:`holds_elsewhere` on the four figures (m) and the paired held-out folds' (m)."""
     if not (np.isfinite(other_after) and np.isfinite(other_before)):
         return False
     if other_after >= other_before:
         return False
-    if worse_folds(folds_after, folds_before)[0]:
+    if worse_folds(folds_after, folds_before, noise)[0]:
         return False
     inside = bool(np.isfinite(in_after) and np.isfinite(in_before)
                   and in_after < (1 - margin) * in_before)

@@ -570,13 +570,16 @@ def range_end_folds(q: np.ndarray, fraction: float = RANGE_END) -> list[np.ndarr
 
 
 def fold_rms(a: np.ndarray, r: np.ndarray, w: np.ndarray, masks: list[np.ndarray],
-             prior_rows: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
-    """Held-out rms (m) of each fold of the linear model r ≈ a·δ, (len(masks),).
+             prior_rows: tuple[np.ndarray, np.ndarray] | None = None
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """Held-out rms (m) of each fold of the linear model r ≈ a·δ, and its noise, (len(masks),).
 
-    ``masks``: held-out measurements (N,) bool per fold (folds may overlap). Each figure is
+    ``masks``: held-out measurements (N,) bool per fold (folds may overlap). Each rms is
     that of the refit without the fold (the PRESS identity, as
     :func:`linear_validation_rms`, ``prior_rows`` kept); NaN for a fold whose training rows
-    leave a column of ``a`` undetermined.
+    leave a column of ``a`` undetermined. The noise: the standard deviation the stated
+    noise alone gives the rms of the fold's n points, σ_p/√(6n) with σ_p² the mean of the
+    points' total variance (σ/√(2n) per axis σ; an rms of 3-D noise over n points).
     """
     if prior_rows is not None and len(prior_rows[1]):
         a = np.vstack([a, prior_rows[0]])
@@ -584,8 +587,15 @@ def fold_rms(a: np.ndarray, r: np.ndarray, w: np.ndarray, masks: list[np.ndarray
     u = orthonormal_basis(a)
     e = r - u @ (u.T @ r)
     w = np.asarray(w, float)
-    out = np.full(len(masks), np.nan)
+    if not masks:
+        return np.zeros(0), np.zeros(0)
+    if w.ndim == 3:  # whitening matrices W: the point's covariance (WᵀW)⁻¹
+        variance = np.trace(np.linalg.inv(np.einsum('nba,nbc->nac', w, w)), axis1=1, axis2=2)
+    else:
+        variance = np.sum(unweighted(np.ones(3 * len(masks[0])), w) ** 2, axis=1)
+    out, noise = np.full(len(masks), np.nan), np.full(len(masks), np.nan)
     for i, mask in enumerate(masks):
+        noise[i] = float(np.sqrt(np.mean(variance[mask]) / (6 * mask.sum())))
         test = np.concatenate([np.repeat(mask, 3), np.zeros(len(r) - 3 * len(mask), bool)])
         uf = u[test]
         m = np.eye(int(test.sum())) - uf @ uf.T
@@ -593,7 +603,7 @@ def fold_rms(a: np.ndarray, r: np.ndarray, w: np.ndarray, masks: list[np.ndarray
             continue
         metres = unweighted(np.linalg.solve(m, e[test]), w if w.ndim == 1 else w[mask])
         out[i] = float(np.sqrt(np.mean(np.sum(metres ** 2, axis=1))))
-    return out
+    return out, noise
 
 
 @dataclass(frozen=True)
@@ -613,8 +623,9 @@ class RegionValidation:
     # Held-out rms (m) of every fold that asks for a prediction away from the training
     # poses: each region block, then each range-end fold (:func:`range_end_folds`); NaN
     # where a fold leaves a parameter undetermined. Two models judged on the same folds
-    # pair figure by figure.
+    # pair figure by figure; and what the stated noise alone spreads each by (m, fold_rms).
     held_out_folds_m: tuple[float, ...] = ()
+    held_out_noise_m: tuple[float, ...] = ()
 
     def to_dict(self) -> dict:
         """YAML-ready figures (m; None where not estimable)."""
@@ -623,7 +634,8 @@ class RegionValidation:
         return {'in_region_rms_m': m(self.in_region_m),
                 'other_region_rms_m': m(self.other_region_m),
                 'folds': self.folds, 'region_blocks': self.blocks,
-                'held_out_fold_rms_m': [m(v) for v in self.held_out_folds_m]}
+                'held_out_fold_rms_m': [m(v) for v in self.held_out_folds_m],
+                'held_out_fold_noise_m': [m(v) for v in self.held_out_noise_m]}
 
 
 def region_validation(model: MeasurementModel, data: Measurements, result: CalibrationResult,
@@ -646,7 +658,8 @@ def region_validation(model: MeasurementModel, data: Measurements, result: Calib
     poses, pose = pose_index(np.atleast_2d(data.q))
     masks = ([] if region_ids is None else [region_ids == b for b in range(used)]) + [
         m[pose] for m in range_end_folds(poses)]
+    held, noise = fold_rms(sys_.jac, sys_.r, sys_.w, masks, rows)
     return RegionValidation(
         linear_validation_rms(sys_.jac, sys_.r, sys_.w, inside, rows),
         linear_validation_rms(sys_.jac, sys_.r, sys_.w, region_ids, rows), folds, used,
-        tuple(float(v) for v in fold_rms(sys_.jac, sys_.r, sys_.w, masks, rows)))
+        tuple(float(v) for v in held), tuple(float(v) for v in noise))
