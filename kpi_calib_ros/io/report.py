@@ -121,6 +121,10 @@ def region_verdict(cmp: ModelComparison) -> str:
                f'{_validation(cmp.validation_rms_after_m, "", " µm")} where measured; worse '
                f'beyond the noise in {cmp.worse_folds[0]} of {cmp.worse_folds[1]} held-out folds '
                '(region blocks and joint range ends)')
+    if cmp.warnings:
+        return (f'NOT recommended: a fit did not converge, so its cross-validated figures '
+                f'judge a last iterate, not a minimum ({figures}); raise '
+                'identification.max_iterations / --max-iterations and compare again')
     if cmp.holds_elsewhere:
         return f'recommended: {", ".join(cmp.effects)} holds where no pose was measured ({figures})'
     return (f'NOT recommended: {", ".join(cmp.effects)} does not predict held-out regions of '

@@ -236,8 +236,12 @@ class ModelComparison:
 
         The test ``auto`` applies
         (:func:`~kpi_calib_ros.core.diagnosis.model_selection.holds_elsewhere`); only then is
-        it recommended.
+        it recommended. Never when a fit did not converge (``warnings``): its cross-validated
+        figures linearise a last iterate, not a minimum, as ``auto`` neither screens from nor
+        adds such a fit.
         """
+        if self.warnings:
+            return False
         return region_test(self.other_region_rms_after_m, self.other_region_rms_before_m,
                            self.validation_rms_after_m, self.validation_rms_before_m,
                            folds_after=self.held_out_folds_after_m,
