@@ -7,7 +7,8 @@ do (``calibrate_cell`` with ``model='auto'``: the level chosen, then
 joint's periodic error at its periodogram peak). Its stated level: a round's screen passes a
 candidate with probability at most α = 0.01 (family-wise, Bonferroni over the candidates, the
 frequency search counted), and an added effect must then predict held-out regions of joint
-space 5 % better (core.diagnosis.model_selection.REGION_MARGIN).
+space 5 % better (core.diagnosis.model_selection.REGION_MARGIN) and be worse in no held-out
+fold beyond its noise (region blocks and each joint's range ends, ``worse_folds``).
 Counts the seeds where the screen passes a candidate and where an effect is added (which),
 with an exact one-sided 95 % upper bound (Clopper-Pearson) and the binomial probability of
 at least as many at α. Cells: the built-in cell (DEFAULT_CELL, KR15-class) and the stock UR10
@@ -131,7 +132,8 @@ def main(argv: list[str]) -> int:
              '(the level, then `choose_effects` with the general effects). Stated level: '
              f'a round\'s screen passes a candidate with probability ≤ α = {alpha} '
              '(family-wise), and an added effect must predict held-out regions of joint '
-             'space 5 % better (`REGION_MARGIN`). Upper bound: '
+             'space 5 % better (`REGION_MARGIN`) and be worse in no held-out fold beyond its '
+             'noise (region blocks and each joint\'s range ends, `worse_folds`). Upper bound: '
              'exact one-sided 95 % (Clopper-Pearson); P(≥ k | α): the binomial probability '
              f'of at least as many at α. `default`: {DEFAULT_CELL.name} (KR15-class); `ur10`: '
              'the stock UR10 of example-robot-data in the cell of '

@@ -11,7 +11,8 @@ Hidden effects, one per seed, as bench/general_effects.py draws them (``3cpr``,
 Per seed, the geometric calibration and the model the tool recommends:
 
 * diagnose path: the screen's best effect refitted; recommended when it predicts held-out
-  regions of joint space better (``ModelComparison.holds_elsewhere``), else the geometric
+  regions of joint space better and is worse in no held-out fold, region blocks and joint
+  range ends (``ModelComparison.holds_elsewhere``), else the geometric
   model;
 * ``auto``: ``calibrate_cell(model='auto')`` (the level and the effects, chosen by the
   cross-validated rms over held-out regions).
@@ -140,7 +141,8 @@ def write(path: Path, rows: list, seeds: int, clean: int) -> None:
             f'periodic amplitude {AMPLITUDE * 1e3:.2f} mrad. "worse": held-out rms above '
             f'{WORSE:g} × the geometric model\'s. Diagnose path: the screen\'s best effect, '
             'recommended only when it predicts held-out regions of joint space better '
-            '(region-blocked cross-validation on the training half); auto: '
+            '(region-blocked cross-validation on the training half) and worse in no '
+            'held-out fold beyond its noise (region blocks and each joint\'s range ends); auto: '
             '`calibrate_cell(model=\'auto\')`. Seeds from 3000. Command: '
             f'`nice -n 19 .venv/bin/python bench/region_holdout.py {seeds} {clean}`.', '',
             '| hidden | seeds | screen proposes the hidden effect | found (proposed and '

@@ -6,7 +6,8 @@ region in turn, up to ``N_TRAIN`` of its poses (random, seed 0) calibrate:
 
 * geometric: the full geometric model;
 * diagnose path: ``diagnose`` (α = 0.01, general effects on), its best effect refitted;
-  recommended only when it predicts held-out regions of the training poses better
+  recommended only when it predicts held-out regions of the training poses better and is
+  worse in no held-out fold, region blocks and joint range ends
   (``ModelComparison.holds_elsewhere``), else the geometric model;
 * screen's best, unchecked: the refit with the screen's best effect, whatever its regions say
   (what the diagnose path recommended before);
@@ -104,7 +105,8 @@ def main(argv: list[str]) -> int:
                          f'{cmp.other_region_rms_before_m * 1e6:.1f} -> '
                          f'{cmp.other_region_rms_after_m * 1e6:.1f} µm, where measured '
                          f'{cmp.validation_rms_before_m * 1e6:.1f} -> '
-                         f'{cmp.validation_rms_after_m * 1e6:.1f} µm: '
+                         f'{cmp.validation_rms_after_m * 1e6:.1f} µm, worse in '
+                         f'{cmp.worse_folds[0]} of {cmp.worse_folds[1]} held-out folds: '
                          f'{"recommended" if cmp.holds_elsewhere else "NOT recommended"}')
         models['diagnose path'] = models[recommended]
         auto = calibrate_cell(base, train, 'auto')

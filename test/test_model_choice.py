@@ -173,3 +173,82 @@ def test_an_effect_that_helps_only_where_measured_is_not_recommended(cm):
     assert not cmp.holds_elsewhere
     assert named_remedy(diag, cmp) is None
     assert 'NOT recommended' in comparison_text(cmp)
+
+
+def _corner_case(seed: int = 0):
+    """A linear campaign whose true error is a bump in one corner of joint space (joint 1
+    in the top tenth of its range) and a candidate effect that is a ramp along joint 1.
+
+    Returns the joint values (N, 2), the weighted Jacobians without and with the ramp,
+    the weighted residuals and the weights (σ = 1 mm).
+    """
+    rng = np.random.default_rng(seed)
+    n, sigma = 120, 1e-3
+    q = rng.uniform(0.0, 1.0, size=(n, 2))
+    bump = np.where(q[:, 0] > 0.9, 20e-3, 0.0)  # along x, in the corner only
+    eta = np.zeros((n, 3))
+    eta[:, 0] = bump
+    eta += rng.normal(size=(n, 3)) * sigma
+    offsets = np.tile(np.eye(3), (n, 1))  # a constant offset: the model without the effect
+    ramp = np.zeros((3 * n, 1))
+    ramp[0::3, 0] = q[:, 0]
+    w = np.full(3, 1 / sigma)
+    before = offsets / sigma
+    after = np.hstack([offsets, ramp]) / sigma
+    return q, before, after, eta.reshape(-1) / sigma, w
+
+
+def test_an_effect_that_fits_one_corner_and_hurts_the_other_folds_is_refused():
+    """The ramp lowers the error over held-out regions as a whole (it fits the corner's bump,
+    which dominates the rms) and by more than the 5 % margin, so the pooled figure alone
+    recommends it; but it predicts held-out folds away from the corner worse, beyond what
+    the noise alone spreads their rms by (2 of the 9 region blocks and joint range ends):
+    refused."""
+    from kpi_calib_ros.core.diagnosis.model_selection import region_test, worse_folds
+    from kpi_calib_ros.core.estimation.residuals import (
+        fold_rms,
+        linear_validation_rms,
+        pose_index,
+        range_end_folds,
+    )
+    q, before, after, r, w = _corner_case()
+    found = region_folds(after, q, 5, seed=0)
+    assert found is not None
+    ids, blocks = found
+    masks = [ids == b for b in range(blocks)] + range_end_folds(pose_index(q)[0])
+    pooled = [linear_validation_rms(a, r, w, ids) for a in (after, before)]
+    inside = [linear_validation_rms(a, r, w, np.arange(len(q))) for a in (after, before)]
+    (after_folds, noise), (before_folds, _) = (fold_rms(a, r, w, masks) for a in (after, before))
+    assert pooled[0] < 0.95 * pooled[1]  # the pooled figures recommend it
+    assert region_test(pooled[0], pooled[1], inside[0], inside[1])
+    # σ/√(2n) of each fold's rms: 1 mm over ~24 held-out poses
+    assert np.allclose(noise, 1e-3 / np.sqrt(2 * np.array([m.sum() for m in masks])))
+    worse, compared = worse_folds(tuple(after_folds), tuple(before_folds), tuple(noise))
+    assert compared == len(masks) == 9 and worse == 2
+    assert not region_test(pooled[0], pooled[1], inside[0], inside[1],
+                           folds_after=tuple(after_folds), folds_before=tuple(before_folds),
+                           noise=tuple(noise))
+
+
+def test_an_effect_that_holds_everywhere_is_not_refused_by_the_folds():
+    """The same campaign with a true ramp along joint 1 (no corner bump): the ramp lowers
+    the error in every held-out fold and passes."""
+    from kpi_calib_ros.core.diagnosis.model_selection import region_test, worse_folds
+    from kpi_calib_ros.core.estimation.residuals import (
+        fold_rms,
+        linear_validation_rms,
+        pose_index,
+        range_end_folds,
+    )
+    q, before, after, _, w = _corner_case()
+    rng = np.random.default_rng(1)
+    r = (after[:, 3] * 5e-3 + rng.normal(size=after.shape[0]))  # 5 mm per unit of joint 1
+    ids, blocks = region_folds(after, q, 5, seed=0) or (None, 0)
+    assert ids is not None
+    masks = [ids == b for b in range(blocks)] + range_end_folds(pose_index(q)[0])
+    pooled = [linear_validation_rms(a, r, w, ids) for a in (after, before)]
+    inside = [linear_validation_rms(a, r, w, np.arange(len(q))) for a in (after, before)]
+    folds = [tuple(fold_rms(a, r, w, masks)[0]) for a in (after, before)]
+    assert worse_folds(*folds) == (0, len(masks))
+    assert region_test(pooled[0], pooled[1], inside[0], inside[1],
+                       folds_after=folds[0], folds_before=folds[1])

@@ -100,6 +100,9 @@ def comparison_to_dict(cmp: ModelComparison) -> dict[str, Any]:
             'other_region_rms_before_m': _finite(cmp.other_region_rms_before_m),
             'other_region_rms_after_m': _finite(cmp.other_region_rms_after_m),
             'region_blocks': int(cmp.region_blocks),
+            'held_out_fold_rms_before_m': [_finite(v) for v in cmp.held_out_folds_before_m],
+            'held_out_fold_rms_after_m': [_finite(v) for v in cmp.held_out_folds_after_m],
+            'held_out_folds_worse': cmp.worse_folds[0],
             'holds_elsewhere': cmp.holds_elsewhere,
             'recommended': cmp.holds_elsewhere}
 
@@ -115,11 +118,17 @@ def region_verdict(cmp: ModelComparison) -> str:
                f'{_validation(cmp.other_region_rms_after_m, "", " µm")} over held-out regions '
                f'of joint space ({cmp.region_blocks} regions), '
                f'{_validation(cmp.validation_rms_before_m, "", " µm")} -> '
-               f'{_validation(cmp.validation_rms_after_m, "", " µm")} where measured')
+               f'{_validation(cmp.validation_rms_after_m, "", " µm")} where measured; worse '
+               f'beyond the noise in {cmp.worse_folds[0]} of {cmp.worse_folds[1]} held-out folds '
+               '(region blocks and joint range ends)')
+    if cmp.warnings:
+        return (f'NOT recommended: a fit did not converge, so its cross-validated figures '
+                f'judge a last iterate, not a minimum ({figures}); raise '
+                'identification.max_iterations / --max-iterations and compare again')
     if cmp.holds_elsewhere:
         return f'recommended: {", ".join(cmp.effects)} holds where no pose was measured ({figures})'
     return (f'NOT recommended: {", ".join(cmp.effects)} does not predict held-out regions of '
-            f'joint space better ({figures}); keep the model without it')
+            f'joint space better in every held-out fold ({figures}); keep the model without it')
 
 
 def diagnosis_to_dict(cd: CellDiagnosis) -> dict[str, Any]:

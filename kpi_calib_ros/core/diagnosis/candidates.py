@@ -30,7 +30,7 @@ import numpy as np
 import scipy.stats
 
 from kpi_calib_ros.core.diagnosis.misfit import MisfitAnswer
-from kpi_calib_ros.core.diagnosis.model_selection import PARSIMONY, region_test
+from kpi_calib_ros.core.diagnosis.model_selection import PARSIMONY, region_test, worse_folds
 from kpi_calib_ros.core.diagnosis.out_of_sample import OutOfSample
 from kpi_calib_ros.core.diagnosis.periodic_search import (
     Periodogram,
@@ -225,6 +225,11 @@ class ModelComparison:
     other_region_rms_before_m: float = float('nan')
     other_region_rms_after_m: float = float('nan')
     region_blocks: int = 0
+    # Held-out rms of each region block and each joint's range end, before/after, paired
+    # (core.estimation.residuals.RegionValidation.held_out_folds_m), m.
+    held_out_folds_before_m: tuple[float, ...] = ()
+    held_out_folds_after_m: tuple[float, ...] = ()
+    held_out_noise_m: tuple[float, ...] = ()  # each fold's rms spread by the noise alone
 
     @property
     def holds_elsewhere(self) -> bool:
@@ -232,10 +237,23 @@ class ModelComparison:
 
         The test ``auto`` applies
         (:func:`~kpi_calib_ros.core.diagnosis.model_selection.holds_elsewhere`); only then is
-        it recommended.
+        it recommended. Never when a fit did not converge (``warnings``): its cross-validated
+        figures linearise a last iterate, not a minimum, as ``auto`` neither screens from nor
+        adds such a fit.
         """
+        if self.warnings:
+            return False
         return region_test(self.other_region_rms_after_m, self.other_region_rms_before_m,
-                           self.validation_rms_after_m, self.validation_rms_before_m)
+                           self.validation_rms_after_m, self.validation_rms_before_m,
+                           folds_after=self.held_out_folds_after_m,
+                           folds_before=self.held_out_folds_before_m,
+                           noise=self.held_out_noise_m)
+
+    @property
+    def worse_folds(self) -> tuple[int, int]:
+        """(held-out folds the richer model predicts worse, folds compared)."""
+        return worse_folds(self.held_out_folds_after_m, self.held_out_folds_before_m,
+                           self.held_out_noise_m)
 
 
 # ---------------------------------------------------------------- screening
@@ -655,6 +673,9 @@ def compare_models(before: tuple[MeasurementModel, CalibrationResult],
         other_region_rms_before_m=region_b.other_region_m,
         other_region_rms_after_m=region_a.other_region_m,
         region_blocks=region_a.blocks,
+        held_out_folds_before_m=region_b.held_out_folds_m,
+        held_out_folds_after_m=region_a.held_out_folds_m,
+        held_out_noise_m=region_a.held_out_noise_m,
         p_value_before=res_b.p_value, p_value_after=res_a.p_value,
         effect_parameters=tuple(params),
         tcp_std_before_m=_tcp_std(res_b),

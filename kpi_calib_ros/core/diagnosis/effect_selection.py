@@ -19,9 +19,10 @@ Each round:
    nonlinear identification at the chosen level; a fit that does not converge, leaves an
    effect parameter unidentified or fits an implausible value is refused;
 3. each trial and the current model are cross-validated on the same folds that hold out
-   whole regions of joint space (:func:`~kpi_calib_ros.core.estimation.residuals.
-   region_validation`, the fit's prior kept in every refit); a trial that predicts the
-   held-out regions better than the current model, and by
+   whole regions of joint space and each joint's range ends
+   (:func:`~kpi_calib_ros.core.estimation.residuals.region_validation`, the fit's prior kept
+   in every refit); a trial that predicts the held-out regions better than the current
+   model, worse in no held-out fold, and by
    :data:`~kpi_calib_ros.core.diagnosis.model_selection.REGION_MARGIN` there or where
    measured, passes
    (:func:`~kpi_calib_ros.core.diagnosis.model_selection.holds_elsewhere`), and of those the
@@ -48,6 +49,7 @@ from kpi_calib_ros.core.diagnosis.model_selection import (
     REGION_MARGIN,
     holds_elsewhere,
     level_free,
+    worse_folds,
 )
 from kpi_calib_ros.core.diagnosis.out_of_sample import out_of_sample_error
 from kpi_calib_ros.core.effects.registry import BoundEffect, implausible
@@ -253,13 +255,14 @@ def choose_effects(model: MeasurementModel, data: Measurements, fit_for: FitFor,
                 trial = replace(trial, reason=(
                     f'predicts held-out regions less well than {best[0].spec}'
                     if trial is not best[0] else
-                    f'not better on held-out regions of joint space (and {REGION_MARGIN:.0%} there '
-                    'or where measured): '
+                    f'not better on held-out regions of joint space in every held-out fold '
+                    f'(and {REGION_MARGIN:.0%} there or where measured): '
                     + _region_text(trial)))
             trials.append(trial)
         if not improves:
             reason = (f'{best[0].spec} would not predict held-out regions of joint space '
-                      f'better, and {REGION_MARGIN:.0%} better there or where measured '
+                      f'better in every held-out fold, and {REGION_MARGIN:.0%} better there or '
+                      'where measured '
                       f'({_region_text(best[0])})')
             break
         if region_first is None:
@@ -299,9 +302,13 @@ def _region_text(trial: EffectTrial) -> str:
     b, a = trial.region_before, trial.region_after
     if a is None or b is None:
         return 'no cross-validated rms'
+    worse, compared = worse_folds(a.held_out_folds_m, b.held_out_folds_m,
+                                  a.held_out_noise_m)
     return (f'cross-validated rms over held-out regions of joint space '
             f'{_um(b.other_region_m)} -> {_um(a.other_region_m)} µm ({a.blocks} regions), '
-            f'where measured {_um(b.in_region_m)} -> {_um(a.in_region_m)} µm')
+            f'where measured {_um(b.in_region_m)} -> {_um(a.in_region_m)} µm, worse in '
+            f'{worse} of {compared} held-out folds beyond their noise (region blocks and joint '
+            'range ends)')
 
 
 def _judged(trial: tuple[EffectTrial, MeasurementModel | None, CalibrationResult | None],

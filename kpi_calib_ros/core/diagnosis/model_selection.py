@@ -50,7 +50,7 @@ from kpi_calib_ros.core.model.parameters import ParameterSet
 __all__ = [
     'LEVELS', 'MODEL_CHOICES', 'PARSIMONY', 'DEFAULT_FOLDS', 'REGION_MARGIN', 'level_free',
     'ModelChoice', 'cross_validated_level_rms', 'choose_model', 'holds_elsewhere',
-    'region_test',
+    'region_test', 'worse_folds', 'TIE_M',
     'NominalComparison', 'against_nominal',
 ]
 
@@ -69,25 +69,53 @@ DEFAULT_FOLDS = 5
 # and predicts the held-out days 25 % better.
 REGION_MARGIN = 0.05
 
+# Two rms figures closer than this (m) are a tie, not a verdict: far below any tracker's
+# resolution, it keeps the rounding of two fits that predict alike from deciding.
+TIE_M = 1e-9
+
+
+def worse_folds(after: tuple[float, ...], before: tuple[float, ...],
+                noise: tuple[float, ...] = ()) -> tuple[int, int]:
+    """Return (folds where ``after`` is above ``before``, folds compared), paired figures (m).
+
+    A fold is compared where both figures are finite; above when by more than its
+    ``noise`` (what the stated noise alone spreads the fold's rms by,
+    :func:`~kpi_calib_ros.core.estimation.residuals.fold_rms`; default none) and
+    :data:`TIE_M`: a fold the effect predicts worse by less than its noise is a tie.
+    """
+    if len(after) != len(before):
+        raise ValueError(f'fold figures must pair: {len(after)} after, {len(before)} before')
+    noise = tuple(noise) or (0.0,) * len(after)
+    pairs = [(a, b, s) for a, b, s in zip(after, before, noise)
+             if np.isfinite(a) and np.isfinite(b)]
+    return sum(a > b + max(s, 0.0) + TIE_M for a, b, s in pairs), len(pairs)
+
 
 def holds_elsewhere(new: RegionValidation, old: RegionValidation,
                     margin: float = REGION_MARGIN) -> bool:
     """Return whether ``new`` holds where no pose was measured and is clearly better.
 
     Its cross-validated rms over held-out regions of joint space is lower than ``old``'s, and
-    lower by ``margin`` there or where measured: never worse elsewhere, clearly better
-    somewhere. False when an other-region figure is not estimable.
+    lower by ``margin`` there or where measured: clearly better somewhere; and it is worse
+    beyond the noise in NO held-out fold (each region block, each joint's range end,
+    :attr:`RegionValidation.held_out_folds_m`, :func:`worse_folds`): one fold that a new
+    effect fits cannot carry it while it hurts another. False when an other-region figure
+    is not estimable.
     """
     return region_test(new.other_region_m, old.other_region_m, new.in_region_m,
-                       old.in_region_m, margin)
+                       old.in_region_m, margin, new.held_out_folds_m, old.held_out_folds_m,
+                       new.held_out_noise_m)
 
 
 def region_test(other_after: float, other_before: float, in_after: float, in_before: float,
-                margin: float = REGION_MARGIN) -> bool:
-    """:func:`holds_elsewhere` on the four figures (m)."""
+                margin: float = REGION_MARGIN, folds_after: tuple[float, ...] = (),
+                folds_before: tuple[float, ...] = (), noise: tuple[float, ...] = ()) -> bool:
+    """:func:`holds_elsewhere` on the four figures (m) and the paired held-out folds' (m)."""
     if not (np.isfinite(other_after) and np.isfinite(other_before)):
         return False
     if other_after >= other_before:
+        return False
+    if worse_folds(folds_after, folds_before, noise)[0]:
         return False
     inside = bool(np.isfinite(in_after) and np.isfinite(in_before)
                   and in_after < (1 - margin) * in_before)
@@ -306,11 +334,6 @@ def choose_model(model: MeasurementModel, data: Measurements, fit: Fit, requeste
     return ModelChoice(level, 'auto', predicted, cv, used, why, METHOD,
                        other_region_rms_m=other, region_blocks=blocks)
 
-
-
-# Two rms figures closer than this (m) are a tie, not a verdict: far below any tracker's
-# resolution, it keeps the rounding of two fits that predict alike from deciding.
-TIE_M = 1e-9
 
 
 def _not_above(calibrated_m: float, nominal_m: float) -> bool:

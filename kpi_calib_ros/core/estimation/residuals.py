@@ -46,7 +46,8 @@ __all__ = [
     'moved_joints', 'stratified_fold_ids', 'RANK_TOLERANCE', 'LEAVE_ONE_OUT', 'folds_keep_rank',
     'identifiable_folds', 'pose_index', 'linear_validation_rms', 'residual_report',
     'validation_rms', 'REGION_BLOCKS', 'region_fold_ids', 'region_folds', 'prior_system',
-    'RegionValidation', 'region_validation', 'validation_folds',
+    'RegionValidation', 'region_validation', 'validation_folds', 'RANGE_END',
+    'range_end_folds', 'fold_rms',
 ]
 
 PERCENTILES = (50, 90, 95, 99)
@@ -542,6 +543,70 @@ def validation_folds(model: MeasurementModel, data: Measurements, result: Calibr
     return identifiable_folds(a, q, folds, seed), None if found is None else found[0]
 
 
+# Fraction of each joint's measured range a range-end fold holds out (its lowest and its
+# highest fifth): the poses beyond the rest's range of that joint, which an effect of the
+# joint (a periodic error, a scale, a bending) must predict by extrapolation.
+RANGE_END = 0.2
+
+
+def range_end_folds(q: np.ndarray, fraction: float = RANGE_END) -> list[np.ndarray]:
+    """Pose masks (N,) bool of the range-end folds of ``q`` (N, n) (rad, m).
+
+    For every joint that moves, the poses in the lowest ``fraction`` of its measured range
+    and those in the highest; each is held out in turn. Unlike the k-means regions, which
+    lie inside the measured ranges, these ask every joint's effect to extrapolate.
+    """
+    if not 0 < fraction < 0.5:
+        raise ValueError(f'fraction must be in (0, 0.5), got {fraction}')
+    q = np.atleast_2d(np.asarray(q, float))
+    masks = []
+    for j in range(q.shape[1]):
+        lo, hi = float(q[:, j].min()), float(q[:, j].max())
+        if hi - lo <= 0:
+            continue
+        for mask in (q[:, j] <= lo + fraction * (hi - lo), q[:, j] >= hi - fraction * (hi - lo)):
+            if 0 < mask.sum() < len(q):
+                masks.append(mask)
+    return masks
+
+
+def fold_rms(a: np.ndarray, r: np.ndarray, w: np.ndarray, masks: list[np.ndarray],
+             prior_rows: tuple[np.ndarray, np.ndarray] | None = None
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """Held-out rms (m) of each fold of the linear model r ≈ a·δ, and its noise, (len(masks),).
+
+    ``masks``: held-out measurements (N,) bool per fold (folds may overlap). Each rms is
+    that of the refit without the fold (the PRESS identity, as
+    :func:`linear_validation_rms`, ``prior_rows`` kept); NaN for a fold whose training rows
+    leave a column of ``a`` undetermined. The noise: the standard deviation the stated
+    noise alone gives the rms of the fold's n points, σ_p/√(6n) with σ_p² the mean of the
+    points' total variance (σ/√(2n) per axis σ; an rms of 3-D noise over n points).
+    """
+    if prior_rows is not None and len(prior_rows[1]):
+        a = np.vstack([a, prior_rows[0]])
+        r = np.concatenate([r, prior_rows[1]])
+    u = orthonormal_basis(a)
+    e = r - u @ (u.T @ r)
+    w = np.asarray(w, float)
+    if not masks:
+        return np.zeros(0), np.zeros(0)
+    if w.ndim == 3:  # whitening matrices W: the point's covariance (WᵀW)⁻¹
+        variance = np.trace(np.linalg.inv(np.einsum('nba,nbc->nac', w, w)), axis1=1, axis2=2)
+    else:
+        variance = np.sum(unweighted(np.ones(3 * len(masks[0])), w) ** 2, axis=1)
+    out, noise = np.full(len(masks), np.nan), np.full(len(masks), np.nan)
+    for i, mask in enumerate(masks):
+        noise[i] = float(np.sqrt(np.mean(variance[mask]) / (6 * mask.sum())))
+        test = np.concatenate([np.repeat(mask, 3), np.zeros(len(r) - 3 * len(mask), bool)])
+        uf = u[test]
+        m = np.eye(int(test.sum())) - uf @ uf.T
+        if np.linalg.eigvalsh(m)[0] <= RANK_TOLERANCE:
+            continue
+        metres = unweighted(np.linalg.solve(m, e[test]), w if w.ndim == 1 else w[mask])
+        out[i] = float(np.sqrt(np.mean(np.sum(metres ** 2, axis=1))))
+    return out, noise
+
+
 @dataclass(frozen=True)
 class RegionValidation:
     """Cross-validated rms of a calibration where it was measured and in other regions.
@@ -556,6 +621,12 @@ class RegionValidation:
     other_region_m: float
     folds: int
     blocks: int
+    # Held-out rms (m) of every fold that asks for a prediction away from the training
+    # poses: each region block, then each range-end fold (:func:`range_end_folds`); NaN
+    # where a fold leaves a parameter undetermined. Two models judged on the same folds
+    # pair figure by figure; and what the stated noise alone spreads each by (m, fold_rms).
+    held_out_folds_m: tuple[float, ...] = ()
+    held_out_noise_m: tuple[float, ...] = ()
 
     def to_dict(self) -> dict:
         """YAML-ready figures (m; None where not estimable)."""
@@ -563,7 +634,9 @@ class RegionValidation:
             return float(v) if np.isfinite(v) else None
         return {'in_region_rms_m': m(self.in_region_m),
                 'other_region_rms_m': m(self.other_region_m),
-                'folds': self.folds, 'region_blocks': self.blocks}
+                'folds': self.folds, 'region_blocks': self.blocks,
+                'held_out_fold_rms_m': [m(v) for v in self.held_out_folds_m],
+                'held_out_fold_noise_m': [m(v) for v in self.held_out_noise_m]}
 
 
 def region_validation(model: MeasurementModel, data: Measurements, result: CalibrationResult,
@@ -583,6 +656,11 @@ def region_validation(model: MeasurementModel, data: Measurements, result: Calib
         pose_folds = validation_folds(model, data, result, prior, folds, blocks, seed, sys_)
     inside, region_ids = pose_folds
     used = 0 if region_ids is None else int(region_ids.max()) + 1
+    poses, pose = pose_index(np.atleast_2d(data.q))
+    masks = ([] if region_ids is None else [region_ids == b for b in range(used)]) + [
+        m[pose] for m in range_end_folds(poses)]
+    held, noise = fold_rms(sys_.jac, sys_.r, sys_.w, masks, rows)
     return RegionValidation(
         linear_validation_rms(sys_.jac, sys_.r, sys_.w, inside, rows),
-        linear_validation_rms(sys_.jac, sys_.r, sys_.w, region_ids, rows), folds, used)
+        linear_validation_rms(sys_.jac, sys_.r, sys_.w, region_ids, rows), folds, used,
+        tuple(float(v) for v in held), tuple(float(v) for v in noise))
