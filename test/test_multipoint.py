@@ -9,6 +9,7 @@ import pytest
 
 from kpi_calib_ros.app.identify import identify_cell, registered_start
 from kpi_calib_ros.app.measurements import measurements_from_bag, print_rejections
+from kpi_calib_ros.cli import main
 from kpi_calib_ros.core.acquisition.pairing import pair_measurements
 from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
 from kpi_calib_ros.core.errors import ConfigError, DataError
@@ -16,7 +17,6 @@ from kpi_calib_ros.core.estimation.registration import register
 from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.simulation import random_configurations, true_parameters
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict, read_cell_document
-from kpi_calib_ros.cli import main
 from kpi_calib_ros.io.csv_import import import_csv, mapping_from_dict
 
 OFFSETS = [[0.0, 0.0, 0.03], [0.06, 0.0, 0.03], [0.0, 0.05, 0.02]]
