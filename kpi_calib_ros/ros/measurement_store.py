@@ -503,6 +503,7 @@ class MeasurementStore:
                       'received.inputs': self.received['inputs'],
                       'rejected_inputs': self.rejected_inputs,
                       'stated_sigma': len(self._sigma),
+                      'stations': len(self._stations),
                       'pending_sigma': len(self._held_sigma),
                       'rejected': sum(self.rejections.values())}
             counts.update({f'rejected.{r}': self.rejections.get(r, 0) for r in REASONS})

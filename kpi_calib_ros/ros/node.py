@@ -404,7 +404,8 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
             seq['joint_states'].lost, seq['points'].lost + seq['poses'].lost + seq['sigma'].lost,
             seq['joint_states'].max_lag_ns), job=self._job_name, model_ready=self._cm is not None,
             model_error=self._model_error, identifications=self._identifications,
-            log_file=str(self.store.log.path), tcp_query=self.tcp_query.source)
+            log_file=str(self.store.log.path), tcp_query=self.tcp_query.source,
+            station=self.store.station[0])
 
     def _publish_diagnostics(self, force: bool = False) -> None:
         level, message, values = self.status()
