@@ -84,12 +84,20 @@ def test_two_stations_metres_apart_are_identified_together_across_a_restart(cm, 
         assert 'recording far: 30 poses' in answer.message, answer.message
         client.spin_until(lambda: client.received['calibration'], 10, 'the calibration')
         doc = client.received['calibration'][-1]
+        # The calibration of both stations is served again after a restart.
+        assert node.stop() == 0, node.output()
+        client.received.clear()
+        node = spawn(data_dir, 'node_3.log', 'auto_identify:=false')
+        client.spin_until(lambda: client.diagnostics().get('calibration', '').startswith(
+            'restored from'), 60, 'the restored calibration')
+        client.spin_until(lambda: client.received['calibration'], 10, 'the calibration')
+        assert client.received['calibration'][-1] == doc
     finally:
         code = node.stop()
     assert code == 0, node.output()
     assert "station 'far'" in node.output()
     logs = sorted(data_dir.glob('measurements_*.mcap'))
-    assert [log_station(p)[0] for p in logs] == ['near', 'far', 'far']
+    assert [log_station(p)[0] for p in logs] == ['near', 'far', 'far', 'far']
     assert [r['name'] for r in doc['recordings']] == ['near', 'far']
     assert [r['poses'] for r in doc['recordings']] == [N_POSES, N_POSES]
 
