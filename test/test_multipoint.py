@@ -9,6 +9,7 @@ import pytest
 
 from kpi_calib_ros.app.identify import identify_cell, registered_start
 from kpi_calib_ros.app.measurements import measurements_from_bag, print_rejections
+from kpi_calib_ros.cli import main
 from kpi_calib_ros.core.acquisition.pairing import pair_measurements
 from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
 from kpi_calib_ros.core.errors import ConfigError, DataError
@@ -332,3 +333,55 @@ def test_the_model_evaluates_each_reflector_exactly_as_its_own_point_expression(
         np.testing.assert_array_equal(copy_.jacobian(p, q, tau, ref)[1], jac)
         np.testing.assert_array_equal(copy_.joint_jacobian(p, q, tau, ref), jq)
         np.testing.assert_array_equal(copy_.incidence_cos(p, q), cos)
+
+
+def test_a_table_of_two_marker_mounts_gives_each_row_the_markers_it_has(cm, tmp_path: Path,
+                                                                         capsys):
+    """Two marker mounts in one table (rows of mount 1 carry marker a, rows of mount 2
+    markers b and c; the others' fields empty or NaN): import-csv writes each row's points
+    only, the bag pairs without a rejection, each row is predicted exactly with its own
+    reflector, and the identification from the noisy rows converges with an rms at the
+    noise; a row with no marker at all is exit 2 naming the line."""
+    rng = np.random.default_rng(4)
+    p_true = true_parameters(cm.model.params, rng)
+    q = random_configurations(cm.model, p_true, 40, rng)
+    names = cm.joint_names
+    header = [f'{c}{k}' for k in (1, 2, 3) for c in 'xyz'] + [f'col_{n}' for n in names]
+    lines = [','.join(header)]
+    sigma = float(np.max(cm.cell.sigma))
+    for i, row in enumerate(q):
+        carried = (0,) if i < 20 else (1, 2)
+        fields = []
+        for k in range(3):
+            if k in carried:
+                xyz = cm.model.predict(p_true, row, reflector=[k])[0]
+                fields += [repr(float(v)) for v in (xyz + rng.normal(size=3) * sigma) * 1e3]
+            else:
+                fields += ['', '', ''] if i % 2 else ['nan', 'NaN', 'nan']
+        lines.append(','.join(fields + [repr(float(v)) for v in np.degrees(row)]))
+    table = tmp_path / 'two_mounts.csv'
+    table.write_text('\n'.join(lines) + '\n')
+    mapping = tmp_path / 'mapping.yaml'
+    mapping.write_text(
+        f'frame_id: {cm.cell.tracker_frame}\n'
+        f'joints: {{{", ".join(f"{n}: col_{n}" for n in names)}}}\n'
+        'markers: {a: [x1, y1, z1], b: [x2, y2, z2], c: [x3, y3, z3]}\n'
+        'point_unit: mm\njoint_unit: deg\n')
+    bag = tmp_path / 'two_mounts.mcap'
+    assert main(['import-csv', str(table), '--mapping', str(mapping), '--out', str(bag)]) == 0
+    assert '(40 postures, 60 points)' in capsys.readouterr().out
+    data, pairing = measurements_from_bag(cm, bag)
+    assert len(data) == 60 and sum(pairing.rejections.values()) == 0
+    assert np.bincount(data.reflector).tolist() == [20, 20, 20]
+    assert np.abs(cm.model.predict(p_true, data.q, reflector=data.reflector)
+                  - data.eta).max() < 6 * sigma
+    result = identify_cell(cm, data)
+    assert result.converged
+    assert 0.7 * sigma < result.rms_m / np.sqrt(3) < 1.3 * sigma, result.rms_m
+    # A row that carries no marker is refused, naming it.
+    lines.append(','.join([''] * 9 + [repr(float(v)) for v in np.degrees(q[0])]))
+    table.write_text('\n'.join(lines) + '\n')
+    assert main(['import-csv', str(table), '--mapping', str(mapping), '--out',
+                 str(tmp_path / 'none.mcap')]) == 2
+    err = capsys.readouterr().err
+    assert f'{table}: line 42: no marker has a value' in err, err

@@ -51,7 +51,7 @@ from kpi_calib_ros.core.effects.general import general_candidates  # noqa: F401 
 from kpi_calib_ros.core.effects.gravity_compliance import mass_warning
 from kpi_calib_ros.core.effects.registry import resolve_effects
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.core.measurement.pose import pose_matrix
+from kpi_calib_ros.core.measurement.pose import orientation_names, pose_matrix
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.core.model.parameters import ParameterSet, geometric_parameters
 from kpi_calib_ros.core.model.robot import Payload, RobotModel
@@ -59,6 +59,7 @@ from kpi_calib_ros.io.cell_inputs import InputSettings, input_settings
 from kpi_calib_ros.io.cell_sections import (
     WorkingPose,
     coupling_from_mapping,
+    identified_orientations,
     joint_sigma_vector,
     parse_capsule,
     parse_coupling,
@@ -158,6 +159,9 @@ class Cell:
     reflector_orientations: tuple[tuple[int, np.ndarray], ...] = field(default=(),
                                                                         compare=False)
     sigma_rotation: float | None = None
+    # Reflectors whose body orientation is identified (reflectors[].orientation: identify):
+    # three parameters reflector.<name>.r{x,y,z} after the stated rotation.
+    identified_orientations: tuple[int, ...] = ()
     # noise.joint_sigma: a number (rad, every joint) or {joint name: rad}; None: exact
     # joint readings. Matched to the chain by name in build_cell_model.
     joint_sigma: float | Mapping[str, float] | None = None
@@ -322,6 +326,7 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None,
         reflector_names=names,
         reflector_offsets=np.nan_to_num(offsets) if offsets is not None else None,
         reflector_orientations=orientations, sigma_rotation=sigma_rotation,
+        identified_orientations=identified_orientations(doc),
         joint_sigma=joint_sigma,
         joint_coupling=parse_coupling(robot.get('joint_coupling')),
         working_poses_in=parse_working_poses_in(robot.get('working_poses_in', 'controller')),
@@ -449,6 +454,9 @@ def build_cell_model(cell: Cell, effects: tuple = ()) -> CellModel:
     # Placements left out are zeros here; identification registers them first.
     geometric = geometric_parameters(robot, cell.base_in_tracker, cell.offsets,
                                      cell.reflector_names or None)
+    for k in cell.identified_orientations:  # a tracked body's orientation identified
+        names = orientation_names(f'reflector.{cell.reflector_names[k]}')
+        geometric = geometric.extended(names, np.zeros(3), ['rad'] * 3)
     code = cell.allow_code_effects
     # the temperature each joint's thermal effects read (temperature.sensors mapping)
     temperatures = joint_temperatures(cell.temperature, robot.joint_names)

@@ -97,9 +97,12 @@ CELL_KEYS: tuple[CellKey, ...] = (
        "in parameter names (`reflector.<name>.x`) and frame ids (`<tracker>#<name>`).", 'm1'),
     _K('reflectors[].offset', '[x, y, z]', 'm', NONE, 'Centre in the tip frame; absent: '
        'registered from the points.', [0.05, 0.0, 0.03]),
-    _K('reflectors[].orientation', '{rpy: [r, p, y]} or {quaternion: [x, y, z, w]}', 'rad',
+    _K('reflectors[].orientation', '{rpy: [r, p, y]} or {quaternion: [x, y, z, w]}, '
+       '`identify: true` in either, or identify', 'rad',
        NONE, 'A tracked 6-DoF body: its axes in the tip frame (URDF rpy, or a unit '
-       'quaternion); measured as PoseStamped; needs `noise.sigma_rotation`.',
+       'quaternion); measured as PoseStamped; needs `noise.sigma_rotation`. `identify` (or '
+       '`identify: true` beside a stated guess): identified as `reflector.<name>.r{x,y,z}`, '
+       'the rotation vector after the guess (the identity without one).',
        {'rpy': [0.1, -0.2, 0.3]}),
     # ------------------------------------------------------------------ noise
     _K('noise', 'mapping', '', REQUIRED, 'Measurement noise of the tracker.', {'sigma': 2e-5}),

@@ -104,27 +104,56 @@ def parse_reflectors(doc: dict) -> tuple[tuple[str, ...], np.ndarray | None,
                        else plausible_offset(vector(offset, f'{key}.offset', 3),
                                               f'{key}.offset'))
         if item.get('orientation') is not None:
-            orientations.append((i, _orientation(item['orientation'], f'{key}.orientation')))
+            orientations.append((i, _orientation(item['orientation'], f'{key}.orientation')[0]))
     return tuple(names), np.array(offsets), tuple(orientations)
 
 
-def _orientation(raw: Any, key: str) -> np.ndarray:
+def identified_orientations(doc: Mapping[str, Any]) -> tuple[int, ...]:
+    """The reflectors (indices) whose tracked body's orientation is identified
+    (``orientation: identify``, or a stated guess with ``identify: true``); the document
+    checked by :func:`parse_reflectors` first."""
+    out = []
+    for i, item in enumerate(doc.get('reflectors') or []):
+        raw = item.get('orientation') if isinstance(item, dict) else None
+        if raw == IDENTIFY or (isinstance(raw, dict) and raw.get(IDENTIFY) is True):
+            out.append(i)
+    return tuple(out)
+
+
+# ``reflectors[].orientation: identify``: the body's orientation is three identified
+# parameters (reflector.<name>.r{x,y,z}, a rotation vector after the stated guess).
+IDENTIFY = 'identify'
+
+
+def _orientation(raw: Any, key: str) -> tuple[np.ndarray, bool]:
     """A tracked body's orientation in the tip frame, ``{rpy: [roll, pitch, yaw]}`` (rad,
-    URDF convention) or ``{quaternion: [x, y, z, w]}``, as a (3, 3) rotation."""
+    URDF convention) or ``{quaternion: [x, y, z, w]}``, as a (3, 3) rotation, and whether it
+    is identified: ``identify`` (starting at the identity) or either form with
+    ``identify: true`` (starting at it)."""
+    if raw == IDENTIFY:
+        return np.eye(3), True
+    identify = False
+    if isinstance(raw, dict) and IDENTIFY in raw:
+        if not isinstance(raw[IDENTIFY], bool):
+            raise ConfigError(f'{key}.{IDENTIFY}', f'must be true or false, got '
+                              f'{raw[IDENTIFY]!r}')
+        identify = raw[IDENTIFY]
+        raw = {k: v for k, v in raw.items() if k != IDENTIFY}
     if not isinstance(raw, dict) or len(raw) != 1 or next(iter(raw)) not in ('rpy',
                                                                             'quaternion'):
         raise ConfigError(key, 'must be {rpy: [roll, pitch, yaw]} (rad, URDF convention) or '
-                          f'{{quaternion: [x, y, z, w]}} of the tracked body in the tip frame, '
-                          f'got {raw!r}')
+                          f'{{quaternion: [x, y, z, w]}} of the tracked body in the tip frame '
+                          "(with identify: true to identify it from there), or 'identify' "
+                          f'(identified, starting at the tip frame\'s axes), got {raw!r}')
     if 'rpy' in raw:
         rpy = vector(raw['rpy'], f'{key}.rpy', 3)
         if np.any(np.abs(rpy) > 2 * np.pi):
             raise ConfigError(f'{key}.rpy', f'{rpy.tolist()}: angles beyond 2π; give radians '
                               '(degrees? multiply by π/180)')
-        return rotation_from_rpy(rpy.tolist())
+        return rotation_from_rpy(rpy.tolist()), identify
     quaternion = vector(raw['quaternion'], f'{key}.quaternion', 4)
     try:
-        return rotation_from_quaternion(quaternion.tolist())
+        return rotation_from_quaternion(quaternion.tolist()), identify
     except ValueError as exc:
         raise ConfigError(f'{key}.quaternion', f'{exc}; give a unit quaternion in the '
                           'order [x, y, z, w]') from None

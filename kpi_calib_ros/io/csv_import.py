@@ -1,7 +1,9 @@
 """Static-posture tables (CSV) into MCAP bags every command reads.
 
 A posture table has one row per still posture: joint values and the points (or 6-DoF
-poses) of one or several reflectors / markers measured there. :func:`import_csv`
+poses) of one or several reflectors / markers measured there. A row may carry only some of
+the markers (two marker mounts in one table): a marker whose position fields are empty (or
+NaN) on a row has no point there; a row with no marker at all is refused. :func:`import_csv`
 writes, for every row, joint states held still (zero velocity, ``rate_hz``) for
 ``±hold_s`` around the row's stamp and one ``PointStamped`` per marker at that stamp
 (a ``PoseStamped`` on the pose topic for a marker with orientation columns), with
@@ -110,6 +112,8 @@ def read_postures(path: str | Path, mapping: CsvMapping, fmt: TableFormat | None
         cell = _Cells(path, line, row, fmt)
         points = []
         for name, m in mapping.markers.items():
+            if cell.missing(m.position):
+                continue  # this row's mount does not carry the marker: no point for it
             quaternion = None
             if len(m.orientation) == 3:
                 quaternion = Rotation.from_euler(m.euler, cell.vector(m.orientation),
@@ -124,6 +128,11 @@ def read_postures(path: str | Path, mapping: CsvMapping, fmt: TableFormat | None
                                 "tracker's stated standard deviation); leave the sigma "
                                 'columns out of the mapping if the table has none')
             points.append((name, cell.vector(m.position) * point_scale, quaternion, sigma))
+        if not points:
+            columns = [c for m in mapping.markers.values() for c in m.position]
+            raise DataError(f'{path}: line {line}: no marker has a value (columns {columns} '
+                            'all empty): a row needs the point of at least one marker; '
+                            'remove the row, or fill in its marker')
         stamp = None
         if mapping.stamp_columns:
             stamp = int(round(np.mean([_stamp_s(path, line, c, row[c], mapping, fmt, zone)
@@ -173,6 +182,20 @@ class _Cells:
                             f'{self.row[column]!r} is not a finite number (read as '
                             f'{self.fmt.describe()})')
         return v
+
+    def missing(self, columns: tuple[str, ...]) -> bool:
+        """Every field of ``columns`` is empty or NaN: the row has no value for them."""
+        for column in columns:
+            text = self.row[column].strip()
+            if not text:
+                continue
+            try:
+                if np.isnan(self.fmt.number(text)):
+                    continue
+            except ValueError:
+                pass
+            return False
+        return True
 
     def vector(self, columns: tuple[str, ...]) -> np.ndarray:
         return np.array([self.value(c) for c in columns])
@@ -302,6 +325,7 @@ def import_csv(csv_path: str | Path | list, out_path: str | Path, mapping: CsvMa
     offsets = np.arange(-hold, hold + 1, period)
     zeros = np.zeros(len(names))
     sigma_sum: dict[str, np.ndarray] = {}
+    sigma_rows: dict[str, int] = {}
     stamps = _Stamps(paths)
     out = Path(out_path)
     if not out.parent.is_dir() or out.is_dir() or not os.access(out.parent, os.W_OK):
@@ -331,6 +355,7 @@ def import_csv(csv_path: str | Path | list, out_path: str | Path, mapping: CsvMa
                 if sigma is not None:
                     bag.write_point_sigma(sample, sigma)
                     sigma_sum[name] = sigma_sum.get(name, 0.0) + sigma
+                    sigma_rows[name] = sigma_rows.get(name, 0) + 1
                     summary.sigma_max_m[name] = np.maximum(
                         summary.sigma_max_m.get(name, sigma), sigma)
             for sensor, celsius in row.temperatures.items():
@@ -353,7 +378,7 @@ def import_csv(csv_path: str | Path | list, out_path: str | Path, mapping: CsvMa
             raise DataError(f'{", ".join(map(str, paths))}: no data rows')
         first, last = stamps.check(hold_s)
     summary.reordered = stamps.reordered
-    summary.sigma_mean_m = {k: v / summary.postures for k, v in sigma_sum.items()}
+    summary.sigma_mean_m = {k: v / sigma_rows[k] for k, v in sigma_sum.items()}
     summary.time_axis = _time_axis(mapping, first, last)
     return summary
 

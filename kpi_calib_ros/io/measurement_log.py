@@ -14,7 +14,11 @@ including those of a process that was killed.
 
 The file marks itself as a log with a ``kpi_calib_ros`` metadata record, so every
 command reading a bag takes its measurements as already paired
-(:func:`kpi_calib_ros.io.bag.read_for_pairing`).
+(:func:`kpi_calib_ros.io.bag.read_for_pairing`). The record also names the tracker
+station (set-up) every measurement of the file was taken from, and whether the probe was
+remounted for it (``station``, ``reflector_remounted``): a new station starts a new file.
+A log written before stations were stored holds neither: its measurements belong to
+:data:`DEFAULT_STATION`.
 """
 from __future__ import annotations
 
@@ -45,10 +49,12 @@ from kpi_calib_ros.io.bag import (
     read_log_with_sigma,
     read_temperatures,
 )
-from kpi_calib_ros.io.mcap_scan import MAGIC
+from kpi_calib_ros.io.mcap_scan import MAGIC, scan
 from kpi_calib_ros.io.names import DEFAULT_POSE_TOPIC, point_sigma_topic
 
 _LOG_NAME = re.compile(r'measurements_(\d+)\.mcap')
+# The station of a log that names none (written before stations were stored).
+DEFAULT_STATION = 'station_1'
 
 
 def _log_files(directory: Path) -> list[Path]:
@@ -82,14 +88,21 @@ class MeasurementLog:
         values (``sensor_msgs/JointState``) on that topic (the cell's ``inputs.topic``), and
         paired to the points by time when the log is read (:func:`kpi_calib_ros.io.bag.
         read_inputs`).
+    station : str
+        The tracker station (set-up) of every measurement of this file (a recording's name,
+        :data:`kpi_calib_ros.core.measurement.recordings.NAME_PATTERN`).
+    reflector_remounted : bool
+        The probe was remounted for this station (its reflector offsets its own).
     """
 
     def __init__(self, directory: str | os.PathLike, joint_topic: str = DEFAULT_JOINT_TOPIC,
                  point_topic: str = DEFAULT_POINT_TOPIC,
                  pose_topic: str = DEFAULT_POSE_TOPIC,
                  temperature_topic: str | None = None,
-                 inputs_topic: str | None = None) -> None:
+                 inputs_topic: str | None = None, station: str = DEFAULT_STATION,
+                 reflector_remounted: bool = False) -> None:
         self.directory = Path(directory)
+        self.station, self.reflector_remounted = station, bool(reflector_remounted)
         self.directory.mkdir(parents=True, exist_ok=True)
         self._encoders = StreamEncoders(joint_topic, point_topic, pose_topic, temperature_topic,
                                         sigma_topic=point_sigma_topic(point_topic),
@@ -120,7 +133,10 @@ class MeasurementLog:
                     metadata=self._encoders.metadata[type_name]).write(builder)
         Metadata(name=LOG_METADATA, metadata={'content': LOG_CONTENT, 'joint_topic': joint_topic,
                                               'point_topic': point_topic,
-                                              'pose_topic': pose_topic}).write(builder)
+                                              'pose_topic': pose_topic, 'station': station,
+                                              'reflector_remounted': str(
+                                                  self.reflector_remounted).lower()}
+                 ).write(builder)
         try:
             self._commit(MAGIC + builder.end())
             fd = os.open(self.directory, os.O_RDONLY)
@@ -329,6 +345,37 @@ class MeasurementLog:
             sigma.update(stated)
         return pairs, sigma
 
+    @staticmethod
+    def load_stations(directory: str | os.PathLike, joint_topic: str = DEFAULT_JOINT_TOPIC,
+                      point_topic: str = DEFAULT_POINT_TOPIC,
+                      pose_topic: str = DEFAULT_POSE_TOPIC
+                      ) -> list[tuple[str, bool, list[tuple[JointSample, PointSample]]]]:
+        """Per log file of ``directory``, oldest first: its station, whether the probe was
+        remounted for it (:func:`log_station`) and its measurements."""
+        out = []
+        for path in _log_files(Path(directory)):
+            pairs, _ = read_log_with_sigma(path, joint_topic, point_topic, pose_topic)
+            out.append((*log_station(path), pairs))
+        return out
+
+
+def log_station(path: str | os.PathLike) -> tuple[str, bool]:
+    """The station a measurement log names and whether the probe was remounted for it;
+    (:data:`DEFAULT_STATION`, False) for a log that names none (written before stations were
+    stored) or a file that is not a log."""
+    path = Path(path)
+    try:
+        with open(path, 'rb') as f:
+            data = f.read()
+        bag = scan(path, data)
+    except (OSError, BagError):
+        return DEFAULT_STATION, False
+    for m in bag.metadata:
+        if m.name == LOG_METADATA and m.metadata.get('content') == LOG_CONTENT:
+            station = m.metadata.get('station') or DEFAULT_STATION
+            return station, m.metadata.get('reflector_remounted') == 'true'
+    return DEFAULT_STATION, False
+
 
 
 def stored_pairing(pairs: Iterable[tuple[JointSample, PointSample]], joint_names: list[str],
@@ -373,4 +420,4 @@ def stored_pairing(pairs: Iterable[tuple[JointSample, PointSample]], joint_names
                          reflectors=tuple(reflectors), rotations=stacked_rotations(rotations))
 
 
-__all__ = ['MeasurementLog', 'stored_pairing']
+__all__ = ['DEFAULT_STATION', 'MeasurementLog', 'log_station', 'stored_pairing']

@@ -23,7 +23,7 @@ from kpi_calib_ros.core.estimation.drift_state import DriftSwing
 from kpi_calib_ros.core.estimation.precision import precision_statement
 from kpi_calib_ros.ros import job_work
 from kpi_calib_ros.ros.answers import identify_answer, validate_answer
-from kpi_calib_ros.ros.measurement_store import model_measurements
+from kpi_calib_ros.ros.measurement_store import model_measurements, station_measurements
 from kpi_calib_ros.ros.node_parts import NodeParts
 
 
@@ -63,7 +63,7 @@ class CalibrationJobs(NodeParts):
             raise DataError('a sequential campaign is running: its calibration is published '
                             'on ~/calibration when it stops (~/campaign_status); call '
                             '~/reset to end it')
-        data, pairing = model_measurements(self.store, cm)
+        cm, data, pairing, stations = station_measurements(self.store, cm)
         try:
             out = await self._offload(
                 job_work.identify_work, cm, data, pairing, self.data_dir,
@@ -71,7 +71,7 @@ class CalibrationJobs(NodeParts):
                 DriftSwing(*self.settings.drift_velocity) if self.settings.drift_velocity
                 else None,
                 not self._run.campaign_inadequate(), self.settings.identify_learned_residual,
-                child=True)
+                stations, child=True)
         except Exception as exc:  # job boundary: also a full disk or a lost data_dir
             where = (f' (results not written to {self.data_dir})'
                      if isinstance(exc, OSError) else '')
@@ -124,13 +124,15 @@ class CalibrationJobs(NodeParts):
         if result.covariance_scale != 1.0:
             self.get_logger().warning('TCP and parameter std ' + precision_statement(
                 result.covariance_scale, result.joint_sigma))
-        return True, identify_answer(len(data), cal, prior, notes, self.data_dir, learned[1])
+        if out.stations:
+            self.get_logger().info(out.stations)
+        answer = identify_answer(len(data), cal, prior, notes, self.data_dir, learned[1])
+        return True, answer + (f'\n{out.stations}' if out.stations else '')
 
     async def _diagnose(self) -> tuple[bool, str]:
         """Model diagnosis of the accepted measurements (as ``kpi-calib diagnose``): residual
         report, adequacy and the most likely missing effect; report files and ~/diagnosis."""
-        cm = self._model()
-        data, pairing = model_measurements(self.store, cm)
+        cm, data, _, _ = station_measurements(self.store, self._model())
         doc, text, verdict, report = await self._offload(job_work.diagnose_work, cm, data,
                                                          self.data_dir, child=True)
         self._run.diagnosis = doc
@@ -153,6 +155,12 @@ class CalibrationJobs(NodeParts):
             raise DataError('no measurement accepted since the last identification; measure '
                             'new poses with auto_identify:=false, then call ~/validate')
         fresh = data.subset(new)
+        stations, _ = self.store.stations(np.asarray(fresh.stamps_ns))
+        if len(stations) > 1:
+            raise DataError('the measurements since the last identification come from '
+                            f"{len(stations)} stations ({', '.join(r.name for r in stations)}): "
+                            'validate one station at a time (validate_register registers a '
+                            'new one); call ~/identify to identify them together')
         doc, text = await self._offload(job_work.validate_work, cm, self._calibration_text, fresh,
                                         self.data_dir, self.settings.validate_register or None)
         self._pub_validation.publish(String(data=text))

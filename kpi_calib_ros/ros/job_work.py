@@ -11,7 +11,7 @@ import dataclasses
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 import yaml
@@ -21,6 +21,8 @@ from kpi_calib_ros.app.calibration_document import (
     CellCalibration,
     add_robust_sections,
     calibration_document,
+    recordings_section,
+    recordings_text,
 )
 from kpi_calib_ros.app.campaign import campaign_calibration, campaign_context, new_campaign
 from kpi_calib_ros.app.design import (
@@ -51,6 +53,7 @@ from kpi_calib_ros.core.campaigns.sequential import (
 from kpi_calib_ros.core.design.optimum import DesignResult
 from kpi_calib_ros.core.errors import DataError, KpiCalibError
 from kpi_calib_ros.core.estimation.drift_state import DriftSwing
+from kpi_calib_ros.core.measurement.recordings import Recording
 from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.io.campaign_io import CampaignState, write_campaign_state, write_plan
 from kpi_calib_ros.io.cell import CellModel
@@ -177,11 +180,13 @@ class IdentifyOutput:
     prior: str = ''
     notes: tuple[str, ...] = ()
     learned: tuple[str, str] = ('', '')
+    stations: str = ''
 
 
 def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, data_dir: Path,
                   with_prior: bool = False, swing: DriftSwing | None = None,
-                  archive: bool = True, learned_residual: bool = False) -> IdentifyOutput:
+                  archive: bool = True, learned_residual: bool = False,
+                  stations: Sequence[Recording] = ()) -> IdentifyOutput:
     """Identify from ``data`` as ``kpi-calib identify`` does and finish the calibration as
     it does (:func:`~kpi_calib_ros.app.finish.finish_calibration`): calibration.yaml, the
     calibrated URDF, learned_residual.yaml when chosen and the archived copy
@@ -205,12 +210,23 @@ def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, dat
     way. Not with a prior (as ``--learned-residual`` is not with ``--prior``). A valid
     calibration without one removes an older learned_residual.yaml with its set, so the
     file never corrects a calibration it was not fitted to.
+
+    ``stations``: the tracker stations of ``data``'s rows as recordings (``cm`` and ``data``
+    from :func:`~kpi_calib_ros.ros.measurement_store.station_measurements`); with several,
+    each has its own placement, the document states what each contributed
+    (``recordings:``, as ``identify --bag a --bag b``) and no prior is used (a prior
+    calibration places one station).
     """
     if data.stamps_ns is None:
         raise ValueError('data.stamps_ns is None: the TCP poses are stamped with the last '
                          'measurement')
+    several = len(stations) > 1
     source, old, notes = (previous_calibration(data_dir, int(np.min(data.stamps_ns)))
-                          if with_prior and len(data) else (None, None, []))
+                          if with_prior and len(data) and not several else (None, None, []))
+    if with_prior and several:
+        notes = [f'no prior: measurements from {len(stations)} stations '
+                 f"({', '.join(r.name for r in stations)}) are identified together, each "
+                 'with its own placement, without a prior']
     change = None
     if source is None:
         cal: CellCalibration | None = calibrate_cell(cm, data)
@@ -218,6 +234,10 @@ def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, dat
         cm = cal.cell or cm  # with the effects identification.model auto added
         doc = add_robust_sections(calibration_document(cm, cal.result, pairing), cal)
         result = cal.result
+        if several and cal.valid:
+            doc['recordings'] = recordings_section(
+                cm, data.subset(cal.robust.kept), result, stations,
+                [f'{data_dir} station {r.name}' for r in stations])
     else:
         assert old is not None
         cp = cycle_prior(cm, old, data, swing=swing)
@@ -244,7 +264,8 @@ def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, dat
     tcp = cv.tcp_pose_msgs(result.tcp, result.tcp_covariance, cm.cell.tracker_frame,
                            int(data.stamps_ns[-1]))
     return IdentifyOutput(cal, done.text, done.urdf, tuple(tcp), change, str(source or ''),
-                          tuple(notes), learned)
+                          tuple(notes), learned,
+                          recordings_text(doc['recordings']) if 'recordings' in doc else '')
 
 
 def validate_work(cm: CellModel, calibration: str, data: Measurements,

@@ -39,6 +39,7 @@ from kpi_calib_ros.app.measurements import (
     urdf_measurements,
     with_inputs,
     with_readings,
+    with_recordings,
 )
 from kpi_calib_ros.core.acquisition.pairing import (
     REJECTION_REASONS,
@@ -59,9 +60,10 @@ from kpi_calib_ros.core.measurement.covariates import (
     interpolate,
     plausible_temperature,
 )
+from kpi_calib_ros.core.measurement.recordings import NAME_PATTERN, Recording, row_covariates
 from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.io.cell import CellModel
-from kpi_calib_ros.io.measurement_log import MeasurementLog, stored_pairing
+from kpi_calib_ros.io.measurement_log import DEFAULT_STATION, MeasurementLog, stored_pairing
 from kpi_calib_ros.io.names import DEFAULT_POINT_TOPIC, RESULT_FILES, point_sigma_topic
 
 # The store's reasons besides the pairer's: the measurement could not be written.
@@ -118,13 +120,20 @@ class MeasurementStore:
         :data:`EFFORT_BUFFER_S` of stream time, and each accepted measurement logs the chain
         joints' efforts interpolated at its stamp as ``effort.<joint>`` on ``inputs_topic``
         (one record per measurement, not per joint state).
+    station : str
+        The tracker station the measurements arriving now belong to (:meth:`set_station`);
+        '' : the station of the newest log in ``data_dir`` (a restart continues it), else
+        :data:`~kpi_calib_ros.io.measurement_log.DEFAULT_STATION`.
+    reflector_remounted : bool
+        With ``station``: the probe was remounted for it.
     """
 
     def __init__(self, data_dir: str | Path, early_limit: int = 20_000,
                  sigma_topic: str = point_sigma_topic(DEFAULT_POINT_TOPIC),
                  temperature_topic: str | None = None,
                  temperature_range_c: tuple[float, float] = TEMPERATURE_RANGE_C,
-                 inputs_topic: str | None = None, record_efforts: bool = False) -> None:
+                 inputs_topic: str | None = None, record_efforts: bool = False,
+                 station: str = '', reflector_remounted: bool = False) -> None:
         if record_efforts and inputs_topic is None:
             raise ValueError('record_efforts needs an inputs_topic to log them on')
         self.data_dir = Path(data_dir)
@@ -137,12 +146,28 @@ class MeasurementStore:
         self._sigma: dict[tuple[int, str, str], np.ndarray] = {}
         self._held_sigma: dict[tuple[int, str, str], tuple[np.ndarray, int]] = {}
         self._stored_frames: dict[tuple[int, str, str], str] = {}  # σ key -> frame id
+        # Stations in the order first measured: name -> probe remounted; each stamp's station.
+        self._stations: dict[str, bool] = {}
+        self._station_of: dict[int, str] = {}
+        current = (DEFAULT_STATION, False)
         if self.data_dir.is_dir():
             pairs, sigma = MeasurementLog.load(self.data_dir)
+            for name, remounted, logged in MeasurementLog.load_stations(self.data_dir):
+                current = (name, remounted)
+                for _, point in logged:
+                    self._stations.setdefault(name, remounted)
+                    self._station_of.setdefault(int(point.stamp_ns), name)
             for joint, point in pairs:
                 self._store(joint, point)
             self._sigma = {k: v for k, v in ((_sigma_key(*key), s) for key, s in sigma.items())
                            if k in self._stored_frames}
+        self.station: tuple[str, bool] = current
+        if station:
+            check_station(station)
+            why = self.station_conflict(station, reflector_remounted)
+            if why:
+                raise ValueError(why)
+            self.station = (station, bool(reflector_remounted))
         self.restored = len(self._measurements)
         self.temperature_topic = temperature_topic
         self.temperature_range_c = temperature_range_c
@@ -161,8 +186,7 @@ class MeasurementStore:
         self._inputs: list[InputSample] = (
             MeasurementLog.load_inputs(self.data_dir, inputs_topic)
             if inputs_topic and self.data_dir.is_dir() else [])
-        self.log = MeasurementLog(self.data_dir, temperature_topic=temperature_topic,
-                                  inputs_topic=inputs_topic)
+        self.log = self._new_log()
         self.pairer: Pairer | None = None
         self.rejections: Counter[str] = Counter()
         self.received = {'joint_states': 0, 'points': 0, 'sigma': 0, 'temperatures': 0,
@@ -175,6 +199,67 @@ class MeasurementStore:
     def __len__(self) -> int:
         with self.lock:
             return len(self._measurements)
+
+    def _new_log(self) -> MeasurementLog:
+        return MeasurementLog(self.data_dir, temperature_topic=self.temperature_topic,
+                              inputs_topic=self.inputs_topic, station=self.station[0],
+                              reflector_remounted=self.station[1])
+
+    # ------------------------------------------------------------------ stations
+    def station_conflict(self, name: str, reflector_remounted: bool) -> str:
+        """Why the station cannot become (``name``, ``reflector_remounted``) now ('' : it
+        can): a station already measured keeps whether its probe was remounted."""
+        with self.lock:
+            name = name or self.station[0]
+            known = self._stations.get(name)
+            if known is None or known == bool(reflector_remounted):
+                return ''
+            return (f'station {name!r} was measured with station_reflector_remounted '
+                    f'{str(known).lower()}: a station keeps it; name a new station for a '
+                    'new set-up of the probe')
+
+    def set_station(self, name: str, reflector_remounted: bool = False) -> bool:
+        """Make (``name``, ``reflector_remounted``) the station of the measurements stored
+        from now on ('' : keep the current name); returns whether it changed. A change
+        starts a new log file that names it (OSError: not changed, the old log stays).
+
+        Raises
+        ------
+        ValueError
+            ``name`` is not a station name, or :meth:`station_conflict`.
+        """
+        with self.lock:
+            name = name or self.station[0]
+            check_station(name)
+            why = self.station_conflict(name, reflector_remounted)
+            if why:
+                raise ValueError(why)
+            wanted = (name, bool(reflector_remounted))
+            if wanted == self.station:
+                return False
+            before = self.station
+            self.station = wanted
+            try:
+                log = self._new_log()
+            except OSError:
+                self.station = before
+                raise
+            self.log.close()
+            self.log = log
+            return True
+
+    def stations(self, stamps_ns: np.ndarray) -> tuple[list[Recording], np.ndarray]:
+        """The stations of the measurements stamped ``stamps_ns`` (N,), as recordings in
+        the order first measured (the probe's remount as each states it), and each row's
+        index into them."""
+        with self.lock:
+            names = [self._station_of.get(int(t), self.station[0])
+                     for t in np.asarray(stamps_ns).ravel()]
+            order = [n for n in self._stations if n in set(names)]
+            order += [n for n in dict.fromkeys(names) if n not in order]
+            recordings = [Recording(n, self._stations.get(n, False)) for n in order]
+        index = np.array([order.index(n) for n in names], dtype=int)
+        return recordings, index
 
     # ------------------------------------------------------------------ pairing
     def set_chain(self, joint_names: list[str], tracker_frame: str,
@@ -330,6 +415,8 @@ class MeasurementStore:
                                       f'{exc}')
                     else:
                         self._store(joint, point)
+                        self._stations.setdefault(*self.station)
+                        self._station_of.setdefault(int(d.stamp_ns), self.station[0])
                         if self.record_efforts:
                             self._log_efforts(d.stamp_ns)
                         if sigma is not None:
@@ -416,6 +503,7 @@ class MeasurementStore:
                       'received.inputs': self.received['inputs'],
                       'rejected_inputs': self.rejected_inputs,
                       'stated_sigma': len(self._sigma),
+                      'stations': len(self._stations),
                       'pending_sigma': len(self._held_sigma),
                       'rejected': sum(self.rejections.values())}
             counts.update({f'rejected.{r}': self.rejections.get(r, 0) for r in REASONS})
@@ -452,8 +540,9 @@ class MeasurementStore:
             self._inputs.clear()
             self._efforts.clear()
             self._effort_stamps.clear()
-            self.log = MeasurementLog(self.data_dir, temperature_topic=self.temperature_topic,
-                                      inputs_topic=self.inputs_topic)
+            self._stations.clear()
+            self._station_of.clear()
+            self.log = self._new_log()
             if self.pairer is not None:
                 self.pairer.reset()
             self._clock = self._point_clock = None
@@ -529,6 +618,37 @@ def model_measurements(store: MeasurementStore, cm: CellModel
     return with_input_readings(store, cm, data), pairing
 
 
+def station_measurements(store: MeasurementStore, cm: CellModel
+                         ) -> tuple[CellModel, Measurements, PairingResult, list[Recording]]:
+    """:func:`model_measurements` over every station: with measurements from several, the
+    cell model with each further station's placement
+    (:func:`kpi_calib_ros.app.measurements.with_recordings`) and each row's one-hot
+    ``recording.<station>``, as ``kpi-calib identify`` takes several recordings; the stations
+    as recordings, in the order first measured."""
+    data, pairing = model_measurements(store, cm)
+    recordings, index = store.stations(np.asarray(data.stamps_ns))
+    if len(recordings) <= 1:
+        return cm, data, pairing, recordings
+    covariates = dict(data.covariates or {})
+    covariates.update(row_covariates([r.name for r in recordings], index))
+    return (with_recordings(cm, recordings), dataclasses.replace(data, covariates=covariates),
+            pairing, recordings)
+
+
+def check_station(name: str) -> str:
+    """``name`` if it can name a station (it becomes part of parameter names).
+
+    Raises
+    ------
+    ValueError
+        It cannot: says which characters it may hold.
+    """
+    if not isinstance(name, str) or not NAME_PATTERN.match(name):
+        raise ValueError(f'station name {name!r} must start with a letter and hold letters, '
+                         'digits, _ or - only')
+    return name
+
+
 def with_input_readings(store: MeasurementStore, cm: CellModel,
                         data: Measurements) -> Measurements:
     """``data`` with the store's measured input readings paired to its rows by stamp, as
@@ -569,4 +689,4 @@ def _frame_id(key: tuple[int, str, str]) -> str:
 
 
 __all__ = ['MeasurementStore', 'NOT_STORED', 'REASONS', 'SIGMA_REASONS', 'SIGMA_WAIT_S',
-           'model_measurements']
+           'check_station', 'model_measurements', 'station_measurements']

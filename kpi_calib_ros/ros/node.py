@@ -105,6 +105,10 @@ from kpi_calib_ros.ros.temperature import subscribe_temperature
 NODE_NAME = 'kpi_calib_node'
 
 
+# The parameters that name the station of the arriving measurements.
+STATION_PARAMETERS = {'station', 'station_reflector_remounted'}
+
+
 class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJobs):
     """The calibration node; the README's "cell controller" section lists its interface."""
 
@@ -128,12 +132,16 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
                                      if self._cell.temperature else TEMPERATURE_RANGE_C),
                 inputs_topic=(self._cell.inputs.topic if self._cell.inputs.sources
                               or measured_torques else None),
-                record_efforts=measured_torques)
+                record_efforts=measured_torques, station=self.settings.station,
+                reflector_remounted=self.settings.station_reflector_remounted)
         except OSError as exc:  # missing parent, read-only, a file in the way, no space
             raise ConfigError('data_dir', f'cannot log measurements in {str(self.data_dir)!r}: '
                               f'{exc.strerror or exc}; give a writable folder') from None
+        except ValueError as exc:  # a station measured before with the other remount
+            raise ConfigError('station_reflector_remounted', str(exc)) from None
         self.get_logger().info(f'{self.store.restored} measurement(s) restored from '
-                               f'{self.data_dir}; logging to {self.store.log.path}')
+                               f'{self.data_dir}; logging to {self.store.log.path} (station '
+                               f'{self.store.station[0]!r})')
 
         # Executor-thread state (see the module docstring): never touched by a worker.
         self._cm: CellModel | None = None
@@ -222,11 +230,34 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
         refused = self._run.refused_change([p.name for p in parameters if p.name in
                                             CAMPAIGN_FIXED and p.value != getattr(
                                                 self.settings, p.name)])
+        changes = {p.name: p.value for p in parameters}
+        if not refused and STATION_PARAMETERS & set(changes) and self._run.sequential_running():
+            refused = ('station: a sequential campaign is running, and it plans from one '
+                       'station; change the station after it stops, or call ~/reset')
+        elif not refused and STATION_PARAMETERS & set(changes):
+            refused = self.store.station_conflict(
+                changes.get('station', self.settings.station),
+                changes.get('station_reflector_remounted',
+                            self.settings.station_reflector_remounted))
         return SetParametersResult(successful=not refused, reason=refused)
 
     def _apply_parameters(self, parameters: list[Parameter]) -> None:
-        """Post-set callback: the values are set (and were validated); use them."""
+        """Post-set callback: the values are set (and were validated); use them. A new
+        station (or remount) starts its log file now: the measurements stored from here on
+        belong to it."""
         self.settings = settings_from_parameters(parameter_values(self))
+        if STATION_PARAMETERS & {p.name for p in parameters}:
+            try:
+                changed = self.store.set_station(self.settings.station,
+                                                 self.settings.station_reflector_remounted)
+            except (OSError, ValueError) as exc:  # validated: only a disk that fails now
+                self.get_logger().error(f'station not changed, still '
+                                        f'{self.store.station[0]!r}: {exc}')
+            else:
+                if changed:
+                    self.get_logger().info(f'station {self.store.station[0]!r} (probe '
+                                           f'remounted: {self.store.station[1]}) from now on; '
+                                           f'logging to {self.store.log.path}')
         self._run.auto_pending = self._auto_wanted()
 
     # ------------------------------------------------------------------ robot model
@@ -373,7 +404,8 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
             seq['joint_states'].lost, seq['points'].lost + seq['poses'].lost + seq['sigma'].lost,
             seq['joint_states'].max_lag_ns), job=self._job_name, model_ready=self._cm is not None,
             model_error=self._model_error, identifications=self._identifications,
-            log_file=str(self.store.log.path), tcp_query=self.tcp_query.source)
+            log_file=str(self.store.log.path), tcp_query=self.tcp_query.source,
+            station=self.store.station[0])
 
     def _publish_diagnostics(self, force: bool = False) -> None:
         level, message, values = self.status()

@@ -24,6 +24,7 @@ from kpi_calib_ros.app.validate import REGISTER
 from kpi_calib_ros.core.design.optimum import DESIGN_CRITERIA
 from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.estimation.drift_state import DriftSwing
+from kpi_calib_ros.core.measurement.recordings import NAME_PATTERN
 from kpi_calib_ros.io.cell import DEFAULT_CELL
 from kpi_calib_ros.io.cell_sections import WorkingPose, working_poses_from_arrays
 from kpi_calib_ros.io.names import (
@@ -60,6 +61,8 @@ class NodeSettings:
     drift_velocity: tuple[float, ...] = ()
     validate_register: str = ''
     identify_learned_residual: bool = False
+    station: str = ''
+    station_reflector_remounted: bool = False
 
 
 CAMPAIGNS = ('fixed', 'sequential')
@@ -116,6 +119,16 @@ PARAMETERS: dict[str, tuple[Any, bool, str]] = {
                                   'data_dir/learned_residual.yaml, which ~/tcp_query uses, '
                                   'only when it predicts held-out poses better; not with a '
                                   'prior calibration (reidentify_with_prior)'),
+    'station': ('', False, 'the tracker station (set-up) the measurements arriving now are '
+                'taken from: setting a new name starts a new station (the tracker was moved, '
+                'or the robot), each with its own base placement in one identification; '
+                "letters, digits, _ or -, starting with a letter; '' (default): the station "
+                'of the last measurement log in data_dir (a restart continues it), else '
+                'station_1'),
+    'station_reflector_remounted': (False, False, 'the probe was remounted for this station: '
+                                    'its reflector offsets are identified for it alone; set '
+                                    'it with station, before the station\'s first '
+                                    'measurement'),
     'allow_code_effects': (False, True, "run the Python code a cell file's effects: name "
                            "('file.py:Type:joint', 'module:Type:joint'); off: only built-in "
                            'and installed (entry point) effects'),
@@ -185,8 +198,12 @@ def settings_from_parameters(values: dict[str, Any]) -> NodeSettings:
     if register not in ('', *REGISTER):
         raise ConfigError('validate_register', f"must be '' or one of {list(REGISTER)}, "
                           f'got {register!r}')
+    station = values.get('station', '')
+    if station != '' and (not isinstance(station, str) or not NAME_PATTERN.match(station)):
+        raise ConfigError('station', f"must be '' or a name that starts with a letter and holds "
+                          f"letters, digits, _ or - only (e.g. 'station_2'), got {station!r}")
     for key in ('auto_identify', 'allow_code_effects', 'reidentify_with_prior',
-                'identify_learned_residual'):
+                'identify_learned_residual', 'station_reflector_remounted'):
         if not isinstance(values[key], bool):
             raise ConfigError(key, f'must be true or false, got {values[key]!r}')
     swing: tuple[float, ...] = ()
@@ -218,7 +235,8 @@ def settings_from_parameters(values: dict[str, Any]) -> NodeSettings:
         target_tcp_std=float(target), max_measurements=integer('max_measurements', 1),
         reidentify_with_prior=values['reidentify_with_prior'], drift_velocity=swing,
         validate_register=register,
-        identify_learned_residual=values['identify_learned_residual'], **topics)
+        identify_learned_residual=values['identify_learned_residual'], station=station,
+        station_reflector_remounted=values['station_reflector_remounted'], **topics)
 
 
 def working_poses(settings: NodeSettings) -> tuple[WorkingPose, ...] | None:

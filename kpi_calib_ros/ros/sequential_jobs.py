@@ -119,6 +119,13 @@ class SequentialCampaignJobs(NodeParts):
             raise DataError('no sequential campaign: call ~/design with campaign:=sequential')
         data, pairing = model_measurements(self.store, cm)
         stamps = np.asarray(data.stamps_ns, dtype=np.int64)
+        stations = self.store.stations(stamps)[0]
+        if len(stations) > 1:
+            named = ', '.join(r.name for r in stations)
+            raise DataError(f'measurements from {len(stations)} stations ({named}): a '
+                            'sequential campaign plans from one station; call ~/reset and '
+                            'measure the campaign from one station, or ~/identify them '
+                            'together')
         new = np.array([int(t) not in self._run.sequential_stamps for t in stamps], dtype=bool)
         fresh = data.subset(new)
         out = await self._offload(job_work.sequential_step_work, campaign, cm, fresh, state,

@@ -26,8 +26,8 @@ class StreamHealth:
 
 def node_status(run: RunState, counts: Mapping[str, int], streams: StreamHealth, *,
                 job: str = '', model_ready: bool = True, model_error: str = '',
-                identifications: int = 0, log_file: str = '', tcp_query: str = ''
-                ) -> tuple[str, str, dict[str, Any]]:
+                identifications: int = 0, log_file: str = '', tcp_query: str = '',
+                station: str = '') -> tuple[str, str, dict[str, Any]]:
     """(level, message, key values) of the node.
 
     Parameters
@@ -48,6 +48,8 @@ def node_status(run: RunState, counts: Mapping[str, int], streams: StreamHealth,
         Calibrations published since the node started.
     log_file : str
         The measurement log being written.
+    station : str
+        The tracker station the arriving measurements belong to ('' : not given).
     tcp_query : str
         What ``~/tcp_query`` last answered with, and why not with the learned residual
         when there is one (:attr:`kpi_calib_ros.ros.tcp_query.TcpQuery.source`; '' before
@@ -71,6 +73,8 @@ def node_status(run: RunState, counts: Mapping[str, int], streams: StreamHealth,
                    'lost.points': streams.lost_points,
                    'max_lag_ms.joint_states': round(streams.max_lag_ns_joint_states * 1e-6, 1),
                    'log_file': log_file})
+    if station:
+        values['station'] = station
     lost = values['lost.joint_states'] + values['lost.points']
     result, n, rejected = run.result, values['accepted'], values['rejected']
     if result is not None:

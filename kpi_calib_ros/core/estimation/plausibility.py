@@ -45,6 +45,7 @@ import numpy as np
 from kpi_calib_ros.core.effects.registry import BoundEffect, bound_key, effect_bounds, implausible
 from kpi_calib_ros.core.estimation.identifiability import select_identifiable
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
+from kpi_calib_ros.core.measurement.pose import orientation_names
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.core.model.parameters import RECORDING_PREFIX, reflector_prefixes
 
@@ -199,8 +200,8 @@ def _tolerance_key(name: str, unit: str) -> str:
         # a further recording's placement: its base pose or its remounted reflector
         return ('reflector_offset' if '.reflector' in name
                 else 'base_' + ('translation' if unit == 'm' else 'rotation'))
-    if name.startswith('reflector'):
-        return 'reflector_offset'
+    if name.startswith('reflector'):  # an offset, or a tracked body's orientation (rad)
+        return 'reflector_offset' if unit == 'm' else 'rotation'
     base = name.startswith('base.')
     if name.endswith('.offset') and not base:
         return 'offset'
@@ -298,6 +299,24 @@ def geometric_violations(model: MeasurementModel, result: CalibrationResult,
                                  f'states, beyond the tolerance {tol:g} m',
                                  'check reflector.offset (units, the tip frame) or widen '
                                  'identification.tolerances.reflector_offset'))
+    for prefix in reflector_prefixes(params):
+        names = orientation_names(prefix)
+        if names[0] not in params.names:
+            continue
+        if not all(n in std for n in names):
+            out.append(Violation(
+                f'body orientation {prefix} ({", ".join(names)})',
+                'not identified: the data hold no rotation of this body that determines it, '
+                'so it stays at the stated guess', 'record its 6-DoF poses (PoseStamped) over '
+                'poses that turn the tool, or state its orientation'))
+            continue
+        spread = max(std[n] for n in names)
+        if spread > tolerances.rotation:  # identified (orientation: identify), not determined
+            out.append(Violation(
+                f'body orientation {prefix} ({", ".join(names)})',
+                f'undetermined: std {spread:.3g} rad > the tolerance {tolerances.rotation:g} '
+                'rad', 'measure poses of the tracked body (6-DoF) that turn the tool, or state '
+                'its orientation (identification.tolerances.rotation widens the tolerance)'))
     for i, (name, unit) in enumerate(zip(params.names[:n_geo], params.units[:n_geo])):
         if name.startswith('reflector.') or name not in values:
             continue

@@ -17,6 +17,11 @@ tracked pose is one position row and one rotation row (6 residuals).
 
 The measured rotation ``R_m`` is data, so the rotation row's prediction takes it as an
 input (``Measurements.rotation``); the row's ``eta`` is zero.
+
+A body whose orientation in the tip frame is not known (``orientation: identify`` in the
+cell) has three parameters ``reflector.<name>.r{x,y,z}`` (rad, nominal 0): the rotation
+vector ω of ``R_tip_body = R_stated · exp(ω)`` (:func:`body_orientation`), ``R_stated`` the
+cell's guess (the identity when it gives none).
 """
 from __future__ import annotations
 
@@ -30,8 +35,12 @@ from kpi_calib_ros.core.model.kinematics import Expr
 __all__ = [
     'log3_expression', 'measured_rotation_input', 'rotation_residual_expression',
     'rotation_from_rpy', 'pose_matrix', 'rotation_from_quaternion', 'quaternion_from_rotation',
-    'rotation_exp', 'noisy_rotations',
+    'rotation_exp', 'noisy_rotations', 'ORIENTATION_COMPONENTS', 'orientation_names',
+    'exp3_expression', 'body_orientation',
 ]
+
+# The components of an identified body orientation: a rotation vector (rad).
+ORIENTATION_COMPONENTS = ('rx', 'ry', 'rz')
 
 # Below this sin²θ the logarithm uses its series: θ/sin θ = 1 + sin²θ/6 + O(θ⁴), with an
 # error below 1e-16 there, and neither branch divides by zero (both are evaluated).
@@ -52,6 +61,44 @@ def log3_expression(rotation: ca.SX) -> ca.SX:
     s = ca.sqrt(ca.fmax(s2, _SERIES_BELOW))
     factor = ca.if_else(s2 < _SERIES_BELOW, 1.0 + s2 / 6.0, ca.atan2(s, c) / s)
     return factor * v
+
+
+def exp3_expression(omega: Expr) -> ca.SX:
+    """SO(3) exponential (3x3) of a rotation vector ``omega`` (3,) rad (Rodrigues).
+
+    Smooth at 0 (series below :data:`_SERIES_BELOW` in θ²).
+    """
+    w = ca.vertcat(omega[0], omega[1], omega[2])
+    t2 = ca.dot(w, w)
+    t = ca.sqrt(ca.fmax(t2, _SERIES_BELOW))
+    a = ca.if_else(t2 < _SERIES_BELOW, 1.0 - t2 / 6.0, ca.sin(t) / t)
+    b = ca.if_else(t2 < _SERIES_BELOW, 0.5 - t2 / 24.0, (1.0 - ca.cos(t)) / (t * t))
+    skew = ca.vertcat(ca.horzcat(0, -w[2], w[1]), ca.horzcat(w[2], 0, -w[0]),
+                      ca.horzcat(-w[1], w[0], 0))
+    return ca.DM.eye(3) + a * skew + b * (skew @ skew)
+
+
+def orientation_names(prefix: str) -> list[str]:
+    """Return ``<prefix>.r{x,y,z}``, the identified orientation of reflector ``prefix``'s body.
+
+    ``prefix`` e.g. ``reflector.probe``.
+    """
+    return [f'{prefix}.{c}' for c in ORIENTATION_COMPONENTS]
+
+
+def body_orientation(names: Sequence[str], p: Expr, stated: np.ndarray,
+                     prefix: str) -> Expr:
+    """Return ``R_tip_body`` (3x3) of reflector ``prefix``.
+
+    ``stated`` times ``exp(ω)``, ω the parameters :func:`orientation_names` when ``names``
+    (the model's parameter names) has them, else ``stated``.
+    """
+    wanted = orientation_names(prefix)
+    if wanted[0] not in names:
+        return ca.DM(np.asarray(stated, float))
+    index = [list(names).index(n) for n in wanted]
+    return ca.DM(np.asarray(stated, float)) @ exp3_expression(
+        ca.vertcat(*[p[i] for i in index]))
 
 
 def measured_rotation_input(rotations: np.ndarray) -> np.ndarray:

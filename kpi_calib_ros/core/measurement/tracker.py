@@ -56,6 +56,7 @@ import numpy as np
 
 from kpi_calib_ros.core.measurement.payload import payload_torques
 from kpi_calib_ros.core.measurement.pose import (
+    body_orientation,
     measured_rotation_input,
     rotation_residual_expression,
 )
@@ -411,7 +412,8 @@ class MeasurementModel:
                                  z: Expr = None) -> Expr:
         """Rotation (3x3) of reflector ``reflector``'s tracked body in the tracker frame."""
         world, _ = self._tool_pose(p, q, tau, z)
-        return world[0:3, 0:3] @ ca.DM(self.orientations[reflector])
+        return world[0:3, 0:3] @ body_orientation(self.params.names, p, self.orientations[
+            reflector], reflector_prefixes(self.params)[reflector])
 
     def point_expression(self, p: Expr, q: Expr, tau: Expr = None,
                          reflector: int = 0, z: Expr = None) -> Expr:

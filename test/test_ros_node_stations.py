@@ -1,0 +1,150 @@
+"""kpi_calib_node over several tracker stations, end to end (the node a separate process,
+real rclpy and Fast DDS): the cell controller names the station with the ``station``
+parameter; every accepted measurement keeps its station in the measurement log, so it
+survives a restart; ``~/identify`` identifies every station together, each with its own
+placement, and the calibration says what each contributed."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from rclpy.parameter import Parameter
+from rclpy.parameter_client import AsyncParameterClient
+
+from kpi_calib_ros.app.measurements import with_recordings
+from kpi_calib_ros.core.estimation.least_squares import identify
+from kpi_calib_ros.core.measurement import recordings as rec
+from kpi_calib_ros.core.simulation import (
+    random_configurations,
+    simulate_measurements,
+    true_parameters,
+)
+from kpi_calib_ros.io.measurement_log import DEFAULT_STATION, MeasurementLog, log_station
+from kpi_calib_ros.ros.measurement_store import MeasurementStore
+
+N_POSES = 30
+# The far station: the tracker 3.2 m and 0.7 rad away from the near one, ground tilted.
+MOVE = np.array([2.5, -2.0, 0.15, 0.03, -0.02, 0.7])
+STATIONS = [rec.Recording('near'), rec.Recording('far')]
+
+
+def _station(cm, p_robot, move, n, rng, sigma):
+    single = p_robot.copy()
+    single[:6] += move
+    q = random_configurations(cm.model, single, n, rng)
+    return simulate_measurements(cm.model, single, q, sigma, rng)
+
+
+def _truth(cm, p_robot):
+    """The true vector of the two-station model."""
+    model = rec.placed_model(cm.model, STATIONS)
+    truth = np.concatenate([p_robot, np.zeros(len(model.params) - len(p_robot))])
+    truth[model.params.indices(rec.base_names('far'))] = p_robot[:6] + MOVE
+    return truth
+
+
+def _set_station(client, name: str) -> None:
+    params = AsyncParameterClient(client.node, 'kpi_calib_node')
+    assert params.wait_for_services(timeout_sec=10)
+    future = params.set_parameters([Parameter('station', value=name)])
+    client.executor.spin_until_future_complete(future, timeout_sec=10)
+    result = future.result().results[0]
+    assert result.successful, result.reason
+
+
+@pytest.mark.slow
+def test_two_stations_metres_apart_are_identified_together_across_a_restart(cm, client,
+                                                                           spawn, tmp_path):
+    rng = np.random.default_rng(5)
+    sigma = float(np.max(cm.cell.sigma))
+    p_robot = true_parameters(cm.model.params, rng)
+    near = _station(cm, p_robot, np.zeros(6), N_POSES, rng, sigma)
+    far = _station(cm, p_robot, MOVE, N_POSES, rng, sigma)
+    data_dir = tmp_path / 'data'
+    frame = cm.cell.tracker_frame
+    node = spawn(data_dir, 'node_1.log', 'auto_identify:=false', 'station:=near')
+    try:
+        client.publish_measurements(near.q, cm.joint_names, near.eta, frame, N_POSES)
+        _set_station(client, 'far')  # the tracker was moved
+        client.publish_measurements(far.q, cm.joint_names, far.eta, frame, 2 * N_POSES,
+                                    start_ns=1_700_000_100_000_000_000)
+        assert node.stop() == 0, node.output()
+        # A restart without the parameter continues the last station; the log keeps each.
+        client.received.clear()
+        node = spawn(data_dir, 'node_2.log', 'auto_identify:=false')
+        client.spin_until(lambda: client.count('accepted') == 2 * N_POSES
+                          and client.diagnostics().get('station') == 'far'
+                          and client.count('stations') == 2, 60,
+                          'the restored measurements of both stations, the last one current')
+        answer = client.call('identify', timeout=180)
+        assert answer.success, answer.message
+        print(answer.message)
+        assert 'recording near: 30 poses' in answer.message, answer.message
+        assert 'recording far: 30 poses' in answer.message, answer.message
+        client.spin_until(lambda: client.received['calibration'], 10, 'the calibration')
+        doc = client.received['calibration'][-1]
+        # The calibration of both stations is served again after a restart.
+        assert node.stop() == 0, node.output()
+        client.received.clear()
+        node = spawn(data_dir, 'node_3.log', 'auto_identify:=false')
+        client.spin_until(lambda: client.diagnostics().get('calibration', '').startswith(
+            'restored from'), 60, 'the restored calibration')
+        client.spin_until(lambda: client.received['calibration'], 10, 'the calibration')
+        assert client.received['calibration'][-1] == doc
+    finally:
+        code = node.stop()
+    assert code == 0, node.output()
+    assert "station 'far'" in node.output()
+    logs = sorted(data_dir.glob('measurements_*.mcap'))
+    assert [log_station(p)[0] for p in logs] == ['near', 'far', 'far', 'far']
+    assert [r['name'] for r in doc['recordings']] == ['near', 'far']
+    assert [r['poses'] for r in doc['recordings']] == [N_POSES, N_POSES]
+
+    # Every identified parameter within 3σ of the equivalent truth (the true robot in the
+    # kept parameters: a noise-free fit to 300 fresh poses of each station).
+    placed = with_recordings(cm, STATIONS)
+    names = [p['name'] for p in doc['parameters']]
+    assert names == list(placed.model.params.names)
+    values = np.array([p['value'] for p in doc['parameters']])
+    estimated = [p['name'] for p in doc['parameters'] if p['estimated']]
+    std = np.array([p['std'] for p in doc['parameters'] if p['estimated']])
+    assert set(rec.base_names('far')) <= set(estimated)
+    dense = rec.combine([_station(cm, p_robot, np.zeros(6), 300, rng, 1e-300),
+                         _station(cm, p_robot, MOVE, 300, rng, 1e-300)], STATIONS)
+    truth = _truth(cm, p_robot)
+    dense = dataclasses.replace(dense, eta=placed.model.predict(truth, dense.q,
+                                                                covariates=dense.covariates))
+    equivalent = identify(placed.model, dense, sigma, cm.q_work, p0=values, free=estimated)
+    assert equivalent.rms_m < 1e-9
+    idx = placed.model.params.indices(estimated)
+    z = (values[idx] - equivalent.values[idx]) / std
+    worst = int(np.argmax(np.abs(z)))
+    far_base = placed.model.params.indices(rec.base_names('far'))
+    print(f'worst |error|/sigma {abs(z[worst]):.2f} ({estimated[worst]}) of {len(z)}; far '
+          f'station base error {np.abs(values[far_base] - truth[far_base]).max():.2e}')
+    assert np.all(np.abs(z) < 3), estimated[worst]
+
+
+def test_an_old_log_without_station_loads_as_one_station_and_a_new_station_starts_a_file(
+        cm, tmp_path):
+    """A log written before stations were stored (no station in its metadata) is one
+    station; a station measured before keeps whether its probe was remounted."""
+    from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
+    old = tmp_path / 'old'
+    with MeasurementLog(old, station='') as log:  # as before: no station named
+        log.append(JointSample(1, tuple(cm.joint_names), np.zeros(len(cm.joint_names))),
+                   PointSample(1, cm.cell.tracker_frame, np.ones(3)))
+    assert log_station(old / 'measurements_1.mcap') == (DEFAULT_STATION, False)
+    store = MeasurementStore(old)
+    try:
+        recordings, index = store.stations(np.array([1]))
+        assert recordings == [rec.Recording(DEFAULT_STATION)] and index.tolist() == [0]
+        assert store.set_station('b', True)
+        assert log_station(store.log.path) == ('b', True)
+        assert store.station_conflict(DEFAULT_STATION, True).startswith(
+            f"station '{DEFAULT_STATION}' was measured with station_reflector_remounted false")
+        with pytest.raises(ValueError, match='must start with a letter'):
+            store.set_station('2nd station')
+    finally:
+        store.close()
