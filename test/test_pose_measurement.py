@@ -477,3 +477,28 @@ def test_a_body_turned_from_the_stated_orientation_is_identified_within_3_sigma(
     alone = calibrate_cell(cm, points, model='geometric')
     assert any('body orientation reflector.probe' in v and 'not identified' in v
                for v in alone.implausible), alone.implausible
+
+
+def test_an_identified_body_orientation_is_drawn_and_judged_in_radians():
+    """The three orientation parameters of ``orientation: identify`` are angles: the
+    simulation draws their errors as a mounting's rotation (0.1–0.5°), never the reflector
+    offset's millimetres read as milliradians, and the diagnosis's identifiability check
+    judges them against ``identification.tolerances.rotation``, not the offset's metres."""
+    from kpi_calib_ros.core.diagnosis.candidates import _tolerance_of
+    from kpi_calib_ros.core.estimation.plausibility import Tolerances
+    from kpi_calib_ros.core.measurement.pose import orientation_names
+    from kpi_calib_ros.core.simulation import ErrorMagnitudes
+
+    cm = build_cell_model(cell_from_dict(pose_doc('identify'), DEFAULT_CELL.parent))
+    names = orientation_names('reflector.probe')
+    idx = cm.model.params.indices(names)
+    drawn = np.array([true_parameters(cm.model.params, np.random.default_rng(seed))[idx]
+                      for seed in range(50)])
+    low, high = ErrorMagnitudes().base_rotation
+    assert np.all(np.abs(drawn) >= low - 1e-15) and np.all(np.abs(drawn) <= high + 1e-15)
+    units = dict(zip(cm.model.params.names, cm.model.params.units))
+    tolerances = Tolerances(reflector_offset=0.002, rotation=0.05)
+    assert [_tolerance_of(n, units[n], tolerances) for n in names] == [0.05] * 3
+    offset = [n for n in cm.model.params.names
+              if n.startswith('reflector.') and n not in names][0]
+    assert _tolerance_of(offset, units[offset], tolerances) == 0.002

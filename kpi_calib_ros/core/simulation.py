@@ -51,7 +51,9 @@ def _range_for(name: str, mag: ErrorMagnitudes) -> tuple[float, float] | None:
     if name.startswith('base.'):
         return mag.base_translation if name[5:] in ('x', 'y', 'z') else mag.base_rotation
     if name.startswith('reflector.'):
-        return mag.reflector
+        # a tracked body's identified orientation (reflector.<name>.rx/ry/rz, rad) is off by
+        # a mounting's rotation, its offset (m) by a few millimetres
+        return mag.base_rotation if name.endswith(('.rx', '.ry', '.rz')) else mag.reflector
     if '.placement.t' in name:
         return mag.placement_translation
     if '.placement.r' in name:

@@ -500,7 +500,8 @@ def _is_geometric(name: str) -> bool:
 
 def _tolerance_of(name: str, unit: str, tolerances: Tolerances) -> float:
     if name.startswith('reflector.'):
-        return tolerances.reflector_offset
+        # an offset (m), or the identified orientation of a tracked body (rad)
+        return tolerances.reflector_offset if unit == 'm' else tolerances.rotation
     if name.endswith('.offset'):
         return tolerances.offset
     prefix = 'base_' if name.startswith('base.') else ''
