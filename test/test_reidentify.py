@@ -204,7 +204,7 @@ def test_design_with_the_prior_predicts_the_map_covariance_of_its_poses(cell, fi
         design_context,
         design_measurements,
     )
-    from kpi_calib_ros.core.measurement.tracker import Measurements
+    from kpi_calib_ros.core.measurement.data import Measurements
     _, doc = first_cycle
     cp = cycle_prior(cell, doc, None, keep_placement=True, hours=1.0)
     p = cell.model.params.with_values(cp.values)

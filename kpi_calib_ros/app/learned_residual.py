@@ -31,8 +31,9 @@ from kpi_calib_ros.core.diagnosis.shared_error import (
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA, linearized_fit
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.recordings import to_first_frame
-from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.io.cell import CellModel, build_cell_model
 from kpi_calib_ros.io.learned_residual_file import (
     StoredResidual,

@@ -51,7 +51,7 @@ from kpi_calib_ros.core.campaigns.sequential import (
 from kpi_calib_ros.core.design.optimum import DesignResult
 from kpi_calib_ros.core.errors import DataError, KpiCalibError
 from kpi_calib_ros.core.estimation.drift_state import DriftSwing
-from kpi_calib_ros.core.measurement.tracker import Measurements
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.io.campaign_io import CampaignState, write_campaign_state, write_plan
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.design_io import write_design

@@ -71,8 +71,8 @@ from kpi_calib_ros.core.estimation.robust import (
     RobustResult,
     robust_identify,
 )
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.replicates import SAME_POSE_TOLERANCE, pose_groups
-from kpi_calib_ros.core.measurement.tracker import Measurements
 
 __all__ = [
     'TARGET_MET', 'MAX_HORIZON', 'INITIAL_STARTS', 'NESTED_FACTOR', 'PLAN_SWEEPS',
@@ -452,7 +452,7 @@ class SequentialCampaign:
             stamps_ns: Sequence[int] | np.ndarray | None = None) -> CampaignStatus:
         """Add measurements (rows q (m, n), eta (m, 3) tracker frame, m) and update the plan.
 
-        As :class:`~kpi_calib_ros.core.measurement.tracker.Measurements`: ``reflector`` (m,) the
+        As :class:`~kpi_calib_ros.core.measurement.data.Measurements`: ``reflector`` (m,) the
         row channel of each row (None: reflector 0 throughout) and ``rotation`` (m, 3, 3)
         the measured rotations of rotation rows. A pose is the consecutive rows with the
         same ``q`` and no channel twice (each reflector's point, each tracked body's

@@ -88,12 +88,9 @@ from kpi_calib_ros.core.estimation.residuals import (
     linearized_fit,
     orthonormal_basis,
 )
-from kpi_calib_ros.core.measurement.tracker import (
-    MeasurementModel,
-    Measurements,
-    unweighted,
-    weighted_rows,
-)
+from kpi_calib_ros.core.measurement.data import Measurements
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel
+from kpi_calib_ros.core.measurement.weighting import unweighted, weighted_rows
 
 __all__ = ['BASIS_SIZES', 'HARMONICS', 'InputScore', 'PairScore', 'ResidualAnalysis',
            'ResidualInput', 'analyse_calibration', 'analyse_residuals', 'fourier_basis',

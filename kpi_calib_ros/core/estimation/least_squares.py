@@ -42,14 +42,9 @@ from kpi_calib_ros.core.estimation.identifiability import (
     significant_rank,
 )
 from kpi_calib_ros.core.estimation.prior import Prior
-from kpi_calib_ros.core.measurement.tracker import (
-    MeasurementModel,
-    Measurements,
-    row_sigma,
-    row_torques,
-    weighted_residuals,
-    weighted_rows,
-)
+from kpi_calib_ros.core.measurement.data import Measurements, row_sigma
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel
+from kpi_calib_ros.core.measurement.weighting import row_torques, weighted_residuals, weighted_rows
 from kpi_calib_ros.core.model.parameters import RECORDING_PREFIX
 
 __all__ = [
@@ -321,7 +316,7 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     sigma : float or (3,) array
         Tracker noise standard deviation per axis, m; a row whose ``data.sigma`` states
         its own (the tracker's per-point uncertainty) is weighed by that one instead
-        (:func:`~kpi_calib_ros.core.measurement.tracker.row_sigma`). With joint-reading noise in the
+        (:func:`~kpi_calib_ros.core.measurement.data.row_sigma`). With joint-reading noise in the
         model (``model.joint_sigma``) each measurement's covariance is
         σ²I + J_q Σ_q J_qᵀ: its rows are whitened at the current estimate
         (:meth:`MeasurementModel.whitening`), and after the fit the weights are evaluated
