@@ -58,7 +58,7 @@ from kpi_calib_ros.app.campaign import (
     new_campaign,
     simulate_sequential,
 )
-from kpi_calib_ros.core.campaigns.sequential import CampaignSettings
+from kpi_calib_ros.core.campaigns.settings import CampaignSettings
 from kpi_calib_ros.core.design.exchange import exchange, information
 from kpi_calib_ros.core.estimation.identifiability import select_identifiable
 from kpi_calib_ros.core.measurement.weighting import weighted_rows

@@ -13,7 +13,7 @@ import yaml
 from kpi_calib_ros.app.measurements import measurements_from_bag
 from kpi_calib_ros.cli import main
 from kpi_calib_ros.core.acquisition.streams import synthesize_streams
-from kpi_calib_ros.core.campaigns.sequential import CampaignSettings
+from kpi_calib_ros.core.campaigns.settings import CampaignSettings
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.simulation import (
     random_configurations,

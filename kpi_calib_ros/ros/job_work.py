@@ -42,12 +42,8 @@ from kpi_calib_ros.app.reidentify import (
 from kpi_calib_ros.app.validate import validate_report
 from kpi_calib_ros.core.acquisition.pairing import PairingResult
 from kpi_calib_ros.core.campaigns.change_detection import ChangeTest
-from kpi_calib_ros.core.campaigns.sequential import (
-    MODEL_INADEQUATE,
-    CampaignSettings,
-    CampaignStatus,
-    SequentialCampaign,
-)
+from kpi_calib_ros.core.campaigns.sequential import SequentialCampaign
+from kpi_calib_ros.core.campaigns.settings import MODEL_INADEQUATE, CampaignSettings, CampaignStatus
 from kpi_calib_ros.core.design.optimum import DesignResult
 from kpi_calib_ros.core.errors import DataError, KpiCalibError
 from kpi_calib_ros.core.estimation.drift_state import DriftSwing
