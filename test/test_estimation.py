@@ -12,18 +12,16 @@ from kpi_calib_ros.core.estimation.covariance import (
     nullspace_covariance,
     propagated_kpi_covariance,
 )
-from kpi_calib_ros.core.estimation.least_squares import (
+from kpi_calib_ros.core.estimation.gauss_newton import (
     FTOL,
     GTOL,
-    ITERATIONS_PER_PARAMETER,
     LINE_SEARCH_FAILED,
     MAX_ITERATIONS,
     PREDICTED_DECREASE,
     XTOL,
     Tolerances,
-    identify,
-    weights,
 )
+from kpi_calib_ros.core.estimation.least_squares import ITERATIONS_PER_PARAMETER, identify, weights
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.simulation import (
     equivalent_parameters,
