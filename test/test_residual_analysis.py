@@ -22,9 +22,8 @@ from kpi_calib_ros.core.diagnosis.residual_analysis import (
     _holm,
     analyse_calibration,
     analyse_residuals,
-    fourier_basis,
-    spline_basis,
 )
+from kpi_calib_ros.core.diagnosis.residual_bases import fourier_basis, spline_basis
 from kpi_calib_ros.core.diagnosis.residual_inputs import ResidualInput
 from kpi_calib_ros.core.estimation.least_squares import identify
 from kpi_calib_ros.core.estimation.residuals import LinearizedFit, orthonormal_basis

@@ -73,9 +73,8 @@ from kpi_calib_ros.core.diagnosis.residual_analysis import (
     ResidualAnalysis,
     analyse_calibration,
     analyse_residuals,
-    fourier_basis,
-    spline_basis,
 )
+from kpi_calib_ros.core.diagnosis.residual_bases import fourier_basis, spline_basis
 from kpi_calib_ros.core.diagnosis.residual_inputs import ResidualInput, residual_inputs
 from kpi_calib_ros.core.diagnosis.validation import Validation, validate
 
