@@ -45,7 +45,8 @@ from kpi_calib_ros.app.learned_residual import (
     predict_tcp,
 )
 from kpi_calib_ros.cli import main as cli
-from kpi_calib_ros.core.diagnosis.learned_residual import corrected_tcp, fit_learned_residual
+from kpi_calib_ros.core.diagnosis.corrected_tcp import corrected_tcp
+from kpi_calib_ros.core.diagnosis.learned_residual import fit_learned_residual
 from kpi_calib_ros.core.diagnosis.shared_error import (
     joint_test_points,
     shared_error_test,

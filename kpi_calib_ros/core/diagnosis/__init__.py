@@ -17,6 +17,7 @@ from kpi_calib_ros.core.diagnosis.candidates import (
     screen_effects,
     validation_rms,
 )
+from kpi_calib_ros.core.diagnosis.corrected_tcp import CorrectedTcp, corrected_tcp
 from kpi_calib_ros.core.diagnosis.effect_selection import (
     MAX_EFFECTS,
     TRIALS,
@@ -29,11 +30,9 @@ from kpi_calib_ros.core.diagnosis.learned_residual import (
     CHOICE_ALPHA,
     INSIDE_DISTANCE,
     MIN_GAIN,
-    CorrectedTcp,
     LearnedResidual,
     ResidualChoice,
     ResidualPrediction,
-    corrected_tcp,
     fit_learned_residual,
     fixed_kernel,
     residual_noise_scale,
