@@ -26,7 +26,7 @@ import yaml
 from kpi_calib_ros.core.diagnosis.candidates import diagnose
 from kpi_calib_ros.core.effects.registry import available_effects
 from kpi_calib_ros.core.estimation.least_squares import identify
-from kpi_calib_ros.core.measurement.tracker import Measurements
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,

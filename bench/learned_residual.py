@@ -45,7 +45,8 @@ from kpi_calib_ros.app.learned_residual import (
     predict_tcp,
 )
 from kpi_calib_ros.cli import main as cli
-from kpi_calib_ros.core.diagnosis.learned_residual import corrected_tcp, fit_learned_residual
+from kpi_calib_ros.core.diagnosis.corrected_tcp import corrected_tcp
+from kpi_calib_ros.core.diagnosis.learned_residual import fit_learned_residual
 from kpi_calib_ros.core.diagnosis.shared_error import (
     joint_test_points,
     shared_error_test,
@@ -53,7 +54,7 @@ from kpi_calib_ros.core.diagnosis.shared_error import (
 )
 from kpi_calib_ros.core.estimation.least_squares import identify
 from kpi_calib_ros.core.estimation.precision import expected_tcp_error, honest_precision
-from kpi_calib_ros.core.measurement.tracker import Measurements
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,

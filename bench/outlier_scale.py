@@ -22,7 +22,7 @@ import kpi_calib_ros  # noqa: F401  (sets single-threaded BLAS before numpy load
 from kpi_calib_ros.app.diagnose import diagnose_cell
 from kpi_calib_ros.app.identify import calibrate_cell
 from kpi_calib_ros.core.estimation.robust import OutlierSettings
-from kpi_calib_ros.core.measurement.tracker import Measurements
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.simulation import random_configurations, true_parameters
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict, read_cell_document
 

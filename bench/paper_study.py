@@ -43,7 +43,7 @@ import numpy as np
 
 from kpi_calib_ros.core.design.optimum import DesignSettings, design_context, design_measurements
 from kpi_calib_ros.core.estimation.least_squares import identify
-from kpi_calib_ros.core.measurement.tracker import Measurements
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.model.robot_library import (
     industrial_6r_urdf,
     kr15_class,

@@ -43,7 +43,7 @@ from kpi_calib_ros.app.validate import validate_calibration
 from kpi_calib_ros.core.estimation.least_squares import identify
 from kpi_calib_ros.core.estimation.registration import reregister
 from kpi_calib_ros.core.measurement import recordings as rec
-from kpi_calib_ros.core.measurement.tracker import Measurements
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,

@@ -37,7 +37,7 @@ from kpi_calib_ros.core.diagnosis.candidates import compare_models, diagnose
 from kpi_calib_ros.core.diagnosis.effect_selection import effect_start
 from kpi_calib_ros.core.effects.registry import parse_effect_spec
 from kpi_calib_ros.core.estimation.residuals import pose_index, region_fold_ids
-from kpi_calib_ros.core.measurement.tracker import Measurements
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.io.cell import build_cell_model, cell_from_dict
 from kpi_calib_ros.io.csv_import import read_postures
 from kpi_calib_ros.io.csv_mapping import mapping_from_dict

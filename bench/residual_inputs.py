@@ -34,7 +34,7 @@ import numpy as np
 
 from kpi_calib_ros.core.diagnosis.residual_analysis import analyse_calibration
 from kpi_calib_ros.core.estimation.least_squares import identify
-from kpi_calib_ros.core.measurement.tracker import Measurements
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.simulation import random_configurations, true_parameters
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 

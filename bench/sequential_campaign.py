@@ -58,10 +58,10 @@ from kpi_calib_ros.app.campaign import (
     new_campaign,
     simulate_sequential,
 )
-from kpi_calib_ros.core.campaigns.sequential import CampaignSettings
+from kpi_calib_ros.core.campaigns.settings import CampaignSettings
 from kpi_calib_ros.core.design.exchange import exchange, information
 from kpi_calib_ros.core.estimation.identifiability import select_identifiable
-from kpi_calib_ros.core.measurement.tracker import weighted_rows
+from kpi_calib_ros.core.measurement.weighting import weighted_rows
 from kpi_calib_ros.core.simulation import true_parameters
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 from kpi_calib_ros.io.cell_settings import hidden_effects

@@ -35,7 +35,8 @@ from kpi_calib_ros.core.estimation.least_squares import (
     identify,
     weights,
 )
-from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements
+from kpi_calib_ros.core.measurement.data import Measurements
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,

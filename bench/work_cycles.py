@@ -44,7 +44,7 @@ from kpi_calib_ros.core.design.optimum import design_context, design_measurement
 from kpi_calib_ros.core.diagnosis.model_selection import level_free
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation.drift_state import DriftSwing
-from kpi_calib_ros.core.measurement.tracker import Measurements
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,

@@ -25,7 +25,7 @@ True
 
 Every function takes the cell model :func:`load_cell` returns (a
 :class:`~kpi_calib_ros.io.cell.CellModel`: robot, tracker, working poses, settings) and
-measurements as :class:`~kpi_calib_ros.core.measurement.tracker.Measurements` (joint
+measurements as :class:`~kpi_calib_ros.core.measurement.data.Measurements` (joint
 readings in rad, tracker points in m); :func:`read_bag` makes them from a recording.
 """
 from __future__ import annotations
@@ -60,12 +60,12 @@ from kpi_calib_ros.app.validate import (
     read_calibration,
     validate_calibration,
 )
-from kpi_calib_ros.core.campaigns.sequential import CampaignSettings, SimulatedRun
+from kpi_calib_ros.core.campaigns.settings import CampaignSettings, SimulatedRun
 from kpi_calib_ros.core.design.optimum import DesignResult
 from kpi_calib_ros.core.diagnosis.learned_residual import ResidualChoice
 from kpi_calib_ros.core.diagnosis.validation import Validation
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.recordings import Recording, combine
-from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,

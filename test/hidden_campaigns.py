@@ -8,7 +8,8 @@ import numpy as np
 
 from kpi_calib_ros.core.diagnosis.candidates import augmented_model
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult, identify
-from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements
+from kpi_calib_ros.core.measurement.data import Measurements
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,

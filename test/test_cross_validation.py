@@ -16,7 +16,7 @@ from kpi_calib_ros.core.estimation.residuals import (
     stratified_fold_ids,
     validation_rms,
 )
-from kpi_calib_ros.core.measurement.tracker import Measurements
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.simulation import (
     one_joint_at_a_time,
     simulate_measurements,

@@ -32,8 +32,9 @@ from kpi_calib_ros.core.estimation.covariance import (
     parameter_covariance,
 )
 from kpi_calib_ros.core.estimation.least_squares import identify
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.pose import noisy_rotations
-from kpi_calib_ros.core.measurement.tracker import Measurements, with_rotation_rows
+from kpi_calib_ros.core.measurement.pose_rows import with_rotation_rows
 from kpi_calib_ros.core.simulation import sampling_bounds, true_parameters
 from kpi_calib_ros.io.cell import (
     DEFAULT_CELL,

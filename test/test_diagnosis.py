@@ -26,7 +26,7 @@ from kpi_calib_ros.core.diagnosis.candidates import (
 )
 from kpi_calib_ros.core.effects.registry import parse_effect_spec
 from kpi_calib_ros.core.estimation.least_squares import identify
-from kpi_calib_ros.core.measurement.tracker import Measurements
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict
 
 from hidden_campaigns import FLOOR, SIGMA, campaign

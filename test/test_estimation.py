@@ -12,19 +12,17 @@ from kpi_calib_ros.core.estimation.covariance import (
     nullspace_covariance,
     propagated_kpi_covariance,
 )
-from kpi_calib_ros.core.estimation.least_squares import (
+from kpi_calib_ros.core.estimation.gauss_newton import (
     FTOL,
     GTOL,
-    ITERATIONS_PER_PARAMETER,
     LINE_SEARCH_FAILED,
     MAX_ITERATIONS,
     PREDICTED_DECREASE,
     XTOL,
     Tolerances,
-    identify,
-    weights,
 )
-from kpi_calib_ros.core.measurement.tracker import Measurements
+from kpi_calib_ros.core.estimation.least_squares import ITERATIONS_PER_PARAMETER, identify, weights
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.simulation import (
     equivalent_parameters,
     random_configurations,
@@ -316,7 +314,7 @@ def test_the_selection_without_reasons_keeps_the_same_parameters(cell, campaign,
     conditioning and gives no reasons; the identification's dropped parameters are those of
     the full selection at its estimate, each with its reason."""
     from kpi_calib_ros.core.estimation.identifiability import select_identifiable
-    from kpi_calib_ros.core.measurement.tracker import weighted_rows
+    from kpi_calib_ros.core.measurement.weighting import weighted_rows
     _, q, data, result = campaign
     names = list(cell.model.params.names)
     _, jac = cell.model.jacobian(result.values, q)

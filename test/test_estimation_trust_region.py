@@ -16,7 +16,7 @@ import pytest
 
 from kpi_calib_ros.app.identify import registered_start
 from kpi_calib_ros.core.estimation.least_squares import identify
-from kpi_calib_ros.core.measurement.tracker import Measurements
+from kpi_calib_ros.core.measurement.data import Measurements
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'bench'))
 from solver_vs_trf import SAME_COST, UR10_SIGMA, trf_fit, ur10_cell, ur10_series_a  # noqa: E402,E501

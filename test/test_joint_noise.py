@@ -13,7 +13,7 @@ from kpi_calib_ros.core.diagnosis.candidates import diagnose, equivalent_joint_s
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation.least_squares import identify
 from kpi_calib_ros.core.estimation.precision import honest_precision, precision_statement
-from kpi_calib_ros.core.measurement.tracker import unweighted, weighted_residuals, weighted_rows
+from kpi_calib_ros.core.measurement.weighting import unweighted, weighted_residuals, weighted_rows
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,

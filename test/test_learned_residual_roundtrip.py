@@ -20,7 +20,7 @@ from kpi_calib_ros.app.learned_residual import too_many_rows
 from kpi_calib_ros.app.simulate import simulate_campaign, truth_cell_model
 from kpi_calib_ros.cli import main
 from kpi_calib_ros.core.diagnosis.learned_residual import MAX_TRAINING_ROWS
-from kpi_calib_ros.core.measurement.tracker import Measurements
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.io.arm_cell import arm_cell_document
 from kpi_calib_ros.io.cell import load_cell
 from kpi_calib_ros.io.learned_residual_file import read_residual

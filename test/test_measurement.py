@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from kpi_calib_ros.core.measurement.tracker import weighted_rows
+from kpi_calib_ros.core.measurement.weighting import weighted_rows
 from kpi_calib_ros.core.model.kinematics import reflector_point
 from kpi_calib_ros.core.simulation import measurable_batch, sampling_bounds
 

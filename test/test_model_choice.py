@@ -150,7 +150,7 @@ def test_an_effect_that_helps_only_where_measured_is_not_recommended(cm):
     from kpi_calib_ros.app.diagnose import named_remedy
     from kpi_calib_ros.core.diagnosis.candidates import compare_models, diagnose
     from kpi_calib_ros.core.effects.registry import parse_effect_spec
-    from kpi_calib_ros.core.measurement.tracker import Measurements
+    from kpi_calib_ros.core.measurement.data import Measurements
     from kpi_calib_ros.core.simulation import sampling_bounds
     from kpi_calib_ros.io.report import comparison_text
     lo, hi = sampling_bounds(cm.model)

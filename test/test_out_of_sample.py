@@ -16,7 +16,7 @@ from kpi_calib_ros.core.diagnosis.out_of_sample import (
     out_of_sample_error,
 )
 from kpi_calib_ros.core.effects.registry import parse_effect_spec
-from kpi_calib_ros.core.measurement.tracker import Measurements
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.simulation import (
     one_joint_at_a_time,
     random_configurations,

@@ -18,8 +18,8 @@ from kpi_calib_ros.app.identify import calibrate_cell
 from kpi_calib_ros.cli import main
 from kpi_calib_ros.core.acquisition.streams import synthesize_streams
 from kpi_calib_ros.core.estimation.robust import OutlierSettings
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.replicates import pose_groups
-from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.simulation import (
     one_joint_at_a_time,
     random_configurations,

@@ -13,8 +13,9 @@ from kpi_calib_ros.app.identify import calibrate_cell, with_effects
 from kpi_calib_ros.core.diagnosis.candidates import augmented_model
 from kpi_calib_ros.core.effects.registry import parse_effect_spec
 from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.payload import row_payloads
-from kpi_calib_ros.core.measurement.tracker import Measurements, row_torques
+from kpi_calib_ros.core.measurement.weighting import row_torques
 from kpi_calib_ros.core.model.robot import Payload, RobotModel
 from kpi_calib_ros.core.simulation import random_configurations, true_parameters
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict, read_cell_document

@@ -17,7 +17,8 @@ from kpi_calib_ros.app.measurements import measurements_from_bag
 from kpi_calib_ros.cli import main
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation.least_squares import identify
-from kpi_calib_ros.core.measurement.tracker import Measurements, noise_weights, row_sigma
+from kpi_calib_ros.core.measurement.data import Measurements, row_sigma
+from kpi_calib_ros.core.measurement.weighting import noise_weights
 from kpi_calib_ros.core.simulation import random_configurations, true_parameters
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 from kpi_calib_ros.io.names import DEFAULT_POINT_TOPIC, DEFAULT_POSE_TOPIC, point_sigma_topic

@@ -18,6 +18,7 @@ from kpi_calib_ros.core.acquisition.streams import PointSample, synthesize_strea
 from kpi_calib_ros.core.diagnosis.validation import validate
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation.least_squares import identify
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.pose import (
     log3_expression,
     noisy_rotations,
@@ -26,7 +27,7 @@ from kpi_calib_ros.core.measurement.pose import (
     rotation_from_quaternion,
     rotation_from_rpy,
 )
-from kpi_calib_ros.core.measurement.tracker import Measurements, with_rotation_rows
+from kpi_calib_ros.core.measurement.pose_rows import with_rotation_rows
 from kpi_calib_ros.core.model.kinematics import pose6
 from kpi_calib_ros.core.simulation import random_configurations, true_parameters
 from kpi_calib_ros.io.bag import read_bag, write_bag

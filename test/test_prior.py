@@ -210,7 +210,7 @@ def test_cell_prior_key_is_validated(tmp_path):
 
 def test_cross_validation_holds_out_whole_poses(cell, campaign):
     from kpi_calib_ros.core.diagnosis.model_selection import cross_validated_level_rms, level_free
-    from kpi_calib_ros.core.measurement.tracker import Measurements
+    from kpi_calib_ros.core.measurement.data import Measurements
     data, _ = campaign
     # Each pose measured twice (as by two reflectors at the same joint values).
     twice = Measurements(q=np.repeat(data.q, 2, axis=0), eta=np.repeat(data.eta, 2, axis=0))

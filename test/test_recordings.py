@@ -13,7 +13,7 @@ from kpi_calib_ros.app.measurements import with_recordings
 from kpi_calib_ros.core.diagnosis.learned_residual import LearnedResidual
 from kpi_calib_ros.core.estimation.least_squares import identify
 from kpi_calib_ros.core.measurement import recordings as rec
-from kpi_calib_ros.core.measurement.tracker import Measurements
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,

@@ -5,13 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kpi_calib_ros.core.estimation.least_squares import (
-    FTOL,
-    STATISTICAL,
-    Tolerances,
-    _gauss_newton,
-    identify,
-)
+from kpi_calib_ros.core.estimation.gauss_newton import FTOL, STATISTICAL, Tolerances, gauss_newton
+from kpi_calib_ros.core.estimation.least_squares import identify
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,
@@ -41,7 +36,7 @@ def test_the_cost_test_stops_within_ftol_of_the_minimum(cell, truth):
     idx = cell.model.params.indices(list(plain.estimated))
     w = np.full((len(q), 3), 1.0 / SIGMA)
     ftol = 1e-3
-    p, status, message, used = _gauss_newton(
+    p, status, message, used = gauss_newton(
         cell.model, cell.model.params.nominal.copy(), idx, data.q, data.eta, None, w, 50,
         Tolerances(ftol=ftol, gtol=0.0, xtol=0.0, pred_tol=0.0, roundoff=0.0, stat_tol=0.0))
     chi2 = float(np.sum(((data.eta - cell.model.predict(p, data.q)) / SIGMA) ** 2))
@@ -204,7 +199,7 @@ def test_design_with_the_prior_predicts_the_map_covariance_of_its_poses(cell, fi
         design_context,
         design_measurements,
     )
-    from kpi_calib_ros.core.measurement.tracker import Measurements
+    from kpi_calib_ros.core.measurement.data import Measurements
     _, doc = first_cycle
     cp = cycle_prior(cell, doc, None, keep_placement=True, hours=1.0)
     p = cell.model.params.with_values(cp.values)

@@ -22,13 +22,12 @@ from kpi_calib_ros.core.diagnosis.residual_analysis import (
     _holm,
     analyse_calibration,
     analyse_residuals,
-    fourier_basis,
-    spline_basis,
 )
+from kpi_calib_ros.core.diagnosis.residual_bases import fourier_basis, spline_basis
 from kpi_calib_ros.core.diagnosis.residual_inputs import ResidualInput
 from kpi_calib_ros.core.estimation.least_squares import identify
 from kpi_calib_ros.core.estimation.residuals import LinearizedFit, orthonormal_basis
-from kpi_calib_ros.core.measurement.tracker import Measurements
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.simulation import random_configurations, true_parameters
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
 from kpi_calib_ros.io.report import write_report

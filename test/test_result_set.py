@@ -13,7 +13,7 @@ import yaml
 from kpi_calib_ros.app.measurements import measurements_from_bag
 from kpi_calib_ros.cli import main
 from kpi_calib_ros.core.acquisition.streams import synthesize_streams
-from kpi_calib_ros.core.campaigns.sequential import CampaignSettings
+from kpi_calib_ros.core.campaigns.settings import CampaignSettings
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.simulation import (
     random_configurations,
@@ -159,7 +159,7 @@ def test_every_way_to_finish_a_calibration_writes_the_same_set(tmp_path, capsys)
     rng = np.random.default_rng(5)
     p_true = true_parameters(cm.model.params, np.random.default_rng(1))
     eta = simulate_measurements(cm.model, p_true, q, cm.cell.sigma, rng).eta
-    from kpi_calib_ros.core.measurement.tracker import Measurements
+    from kpi_calib_ros.core.measurement.data import Measurements
     from kpi_calib_ros.io.campaign_io import CampaignState
     step = job_work.sequential_step_work(
         campaign, cm, Measurements(q=q, eta=eta, stamps_ns=START_NS + 10 ** 9 * np.arange(

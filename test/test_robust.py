@@ -24,7 +24,7 @@ from kpi_calib_ros.core.estimation.robust import (
     outlier_threshold,
     robust_sigma,
 )
-from kpi_calib_ros.core.measurement.tracker import Measurements
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,

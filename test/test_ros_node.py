@@ -351,7 +351,7 @@ def test_an_invalid_identification_keeps_the_last_good_calibration(in_process, m
     """A campaign whose KPI is not estimable (60 points from one pose) is never published:
     the previous calibration stays (topics, calibration.yaml) and /diagnostics says ERROR
     with the reason."""
-    from kpi_calib_ros.core.measurement.tracker import Measurements
+    from kpi_calib_ros.core.measurement.data import Measurements
     from kpi_calib_ros.core.simulation import (
         random_configurations,
         simulate_measurements,

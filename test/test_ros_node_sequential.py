@@ -20,7 +20,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Header, String
 
 from kpi_calib_ros.app.campaign import campaign_context, new_campaign
-from kpi_calib_ros.core.campaigns.sequential import MODEL_INADEQUATE, TARGET_MET, CampaignSettings
+from kpi_calib_ros.core.campaigns.settings import MODEL_INADEQUATE, TARGET_MET, CampaignSettings
 from kpi_calib_ros.core.simulation import true_parameters
 from kpi_calib_ros.ros import conversions as cv
 

@@ -18,7 +18,7 @@ from std_msgs.msg import String
 
 from kpi_calib_ros.core.acquisition.pairing import PairingResult
 from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
-from kpi_calib_ros.core.measurement.tracker import Measurements
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,

@@ -7,7 +7,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from kpi_calib_ros.core.campaigns.sequential import MODEL_INADEQUATE, CampaignSettings
+from kpi_calib_ros.core.campaigns.settings import MODEL_INADEQUATE, CampaignSettings
 from kpi_calib_ros.io.campaign_io import CampaignState
 from kpi_calib_ros.ros.run_state import RunState
 from kpi_calib_ros.ros.status import StreamHealth, node_status

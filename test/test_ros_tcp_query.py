@@ -19,7 +19,7 @@ from kpi_calib_ros.app.learned_residual import field_covariance, physical_covari
 from kpi_calib_ros.core.diagnosis.learned_residual import fit_learned_residual
 from kpi_calib_ros.core.estimation.least_squares import identify
 from kpi_calib_ros.core.estimation.precision import honest_precision
-from kpi_calib_ros.core.measurement.tracker import Measurements
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,

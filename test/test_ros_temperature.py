@@ -18,7 +18,7 @@ from sensor_msgs.msg import Temperature
 from std_msgs.msg import Header
 
 from kpi_calib_ros.core.measurement.covariates import DELTA_TEMPERATURE
-from kpi_calib_ros.core.measurement.tracker import Measurements
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.io.cell import DEFAULT_CELL
 from kpi_calib_ros.io.measurement_log import MeasurementLog
 from kpi_calib_ros.io.ros_messages import time_msg

@@ -9,17 +9,14 @@ import yaml
 
 from kpi_calib_ros.app.campaign import campaign_context, new_campaign, simulate_sequential
 from kpi_calib_ros.cli import main
-from kpi_calib_ros.core.campaigns.sequential import (
+from kpi_calib_ros.core.campaigns.plan_order import nested_order, plan_ahead
+from kpi_calib_ros.core.campaigns.settings import (
     MAX_MEASUREMENTS,
     MODEL_INADEQUATE,
     TARGET_MET,
     CampaignSettings,
-    lack_of_fit,
-    nested_order,
-    plan_ahead,
-    pure_error,
-    sigma_upper_limit,
 )
+from kpi_calib_ros.core.campaigns.statistics import lack_of_fit, pure_error, sigma_upper_limit
 from kpi_calib_ros.core.design.exchange import exchange, information
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.simulation import simulate_pose_measurements, true_parameters

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from kpi_calib_ros.core.diagnosis.learned_residual import LearnedResidual, corrected_tcp
+from kpi_calib_ros.core.diagnosis.corrected_tcp import corrected_tcp
+from kpi_calib_ros.core.diagnosis.learned_residual import LearnedResidual
 from kpi_calib_ros.core.diagnosis.shared_error import (
     joint_test_points,
     shared_error_test,

@@ -23,7 +23,7 @@ from kpi_calib_ros.core.measurement.covariates import (
     temperature_covariates,
     with_covariates,
 )
-from kpi_calib_ros.core.measurement.tracker import Measurements
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,

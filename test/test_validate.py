@@ -21,8 +21,8 @@ from kpi_calib_ros.app.validate import (
 from kpi_calib_ros.cli import main
 from kpi_calib_ros.core.acquisition.streams import synthesize_streams
 from kpi_calib_ros.core.diagnosis.validation import shared_chi2
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.replicates import SAME_POSE_TOLERANCE
-from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,

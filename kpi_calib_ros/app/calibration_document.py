@@ -22,8 +22,8 @@ from kpi_calib_ros.core.estimation.plausibility import gate
 from kpi_calib_ros.core.estimation.precision import ExpectedTcpError
 from kpi_calib_ros.core.estimation.registration import Registration
 from kpi_calib_ros.core.estimation.robust import LOSS_SCALE, ExcludedMeasurement, RobustResult
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.recordings import Recording, contributions
-from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.model.dh import dh_table
 from kpi_calib_ros.core.model.parameters import reflector_prefixes
 from kpi_calib_ros.io.cell import CellModel

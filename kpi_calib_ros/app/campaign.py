@@ -21,11 +21,11 @@ from kpi_calib_ros.app.calibration_document import (
 )
 from kpi_calib_ros.app.simulate import truth_cell_model
 from kpi_calib_ros.core.acquisition.pairing import PairingResult
-from kpi_calib_ros.core.campaigns.sequential import (
+from kpi_calib_ros.core.campaigns.sequential import SequentialCampaign
+from kpi_calib_ros.core.campaigns.settings import (
     TARGET_MET,
     CampaignSettings,
     CampaignStatus,
-    SequentialCampaign,
     SimulatedRun,
 )
 from kpi_calib_ros.core.design.cell import DesignCell

@@ -38,7 +38,8 @@ from kpi_calib_ros.core.effects.registry import implausible, parse_effect_spec
 from kpi_calib_ros.core.estimation.precision import expected_tcp_error
 from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA, is_adequate
 from kpi_calib_ros.core.measurement.covariates import measured_covariates
-from kpi_calib_ros.core.measurement.tracker import Measurements, row_torques
+from kpi_calib_ros.core.measurement.data import Measurements
+from kpi_calib_ros.core.measurement.weighting import row_torques
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.names import DIAGNOSIS_FILE
 from kpi_calib_ros.io.report import diagnosis_text, write_report

@@ -52,6 +52,7 @@ from kpi_calib_ros.core.estimation.robust import (
     gross_outliers,
     robust_identify,
 )
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.recordings import (
     base_names,
     row_recording,
@@ -59,7 +60,8 @@ from kpi_calib_ros.core.measurement.recordings import (
 from kpi_calib_ros.core.measurement.recordings import (
     reflector_names as recording_reflector_names,
 )
-from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements, row_torques
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel
+from kpi_calib_ros.core.measurement.weighting import row_torques
 from kpi_calib_ros.core.model.parameters import RECORDING_PREFIX, reflector_prefixes
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.recordings_manifest import RecordingSource

@@ -13,12 +13,11 @@ from typing import Any, Mapping
 import numpy as np
 import scipy.stats
 
+from kpi_calib_ros.core.diagnosis.corrected_tcp import CorrectedTcp, corrected_tcp
 from kpi_calib_ros.core.diagnosis.learned_residual import (
     MAX_TRAINING_ROWS,
-    CorrectedTcp,
     LearnedResidual,
     ResidualChoice,
-    corrected_tcp,
     field_parameter_covariance,
     fit_learned_residual,
     residual_noise_scale,
@@ -31,8 +30,9 @@ from kpi_calib_ros.core.diagnosis.shared_error import (
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA, linearized_fit
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.recordings import to_first_frame
-from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.io.cell import CellModel, build_cell_model
 from kpi_calib_ros.io.learned_residual_file import (
     StoredResidual,
@@ -109,7 +109,7 @@ def predict_tcp(model: MeasurementModel, values: np.ndarray, estimated: tuple[st
                 covariates: Mapping[str, np.ndarray] | None = None) -> CorrectedTcp:
     """The TCP (KPI point) at URDF joint values ``q`` (M, n): the physical model at
     ``values`` plus the learned residual, with the covariance of both parts
-    (:func:`kpi_calib_ros.core.diagnosis.learned_residual.corrected_tcp`). With
+    (:func:`kpi_calib_ros.core.diagnosis.corrected_tcp.corrected_tcp`). With
     ``reflector`` (M,) the measured points instead, at their ``covariates``."""
     q = np.atleast_2d(np.asarray(q, float))
     tcp, jac = model.jacobian(np.asarray(values, float), q, None, reflector,

@@ -1,5 +1,5 @@
 """Measurements for identification: recorded or live samples paired into
-:class:`~kpi_calib_ros.core.measurement.tracker.Measurements` of a cell, the one path every front
+:class:`~kpi_calib_ros.core.measurement.data.Measurements` of a cell, the one path every front
 end uses (the CLI, the node and the demo), so a bag replayed into the node and the same bag
 read offline give the same rows.
 
@@ -32,14 +32,15 @@ from kpi_calib_ros.core.measurement.covariates import (
     temperature_covariates,
     with_covariates,
 )
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.payload import row_payloads
+from kpi_calib_ros.core.measurement.pose_rows import with_rotation_rows
 from kpi_calib_ros.core.measurement.recordings import (
     Recording,
     combine,
     placed_model,
     recording_parameters,
 )
-from kpi_calib_ros.core.measurement.tracker import Measurements, with_rotation_rows
 from kpi_calib_ros.io.bag import JOINT_STATE_TYPE, read_for_pairing, read_inputs, read_temperatures
 from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
 from kpi_calib_ros.io.cell_inputs import field_path
@@ -124,8 +125,10 @@ def paired_sigma(pairing: PairingResult,
 
 def pose_rows(cm: CellModel, data: Measurements,
               pairing: PairingResult | None) -> Measurements:
-    """``data`` with the rotation row of every tracked 6-DoF pose of ``pairing`` (see
-    :func:`kpi_calib_ros.core.measurement.tracker.with_rotation_rows`); None: no pairing, as is."""
+    """``data`` with the rotation row of every tracked 6-DoF pose of ``pairing``.
+
+    See :func:`kpi_calib_ros.core.measurement.pose_rows.with_rotation_rows`; None: no pairing,
+    as is."""
     if pairing is None or pairing.rotations is None:
         return data
     try:

@@ -65,7 +65,7 @@ from kpi_calib_ros.core.estimation.prior import (
     drift_covariance,
     mapped_drift,
 )
-from kpi_calib_ros.core.measurement.tracker import Measurements
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.simulation import random_configurations
 from kpi_calib_ros.io.calibration_file import (
     drift_state_from_dict,

@@ -33,8 +33,8 @@ from kpi_calib_ros.core.estimation.residuals import (
     noise_verdict,
     sigma_overstated_text,
 )
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.replicates import SAME_POSE_TOLERANCE
-from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.core.model.kinematics import rpy_matrix
 from kpi_calib_ros.core.model.parameters import BASE_COMPONENTS, reflector_prefixes
 from kpi_calib_ros.io.calibration_file import calibration_recordings, read_calibration_document

@@ -21,8 +21,9 @@ from kpi_calib_ros.core.measurement.covariates import (
     shift_temperature,
     temperature_covariates,
 )
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.pose import noisy_rotations
-from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.core.model.parameters import ParameterSet
 
 __all__ = [

@@ -15,7 +15,7 @@ import numpy as np  # noqa: E402
 import yaml  # noqa: E402
 
 from kpi_calib_ros.core.campaigns.change_detection import ChangeTest  # noqa: E402
-from kpi_calib_ros.core.campaigns.sequential import CampaignSettings, SimulatedRun  # noqa: E402
+from kpi_calib_ros.core.campaigns.settings import CampaignSettings, SimulatedRun
 from kpi_calib_ros.core.errors import DataError  # noqa: E402
 from kpi_calib_ros.io.results import write_atomic  # noqa: E402
 

@@ -44,17 +44,13 @@ from kpi_calib_ros.app.reidentify import (
 from kpi_calib_ros.app.validate import validate_report
 from kpi_calib_ros.core.acquisition.pairing import PairingResult
 from kpi_calib_ros.core.campaigns.change_detection import ChangeTest
-from kpi_calib_ros.core.campaigns.sequential import (
-    MODEL_INADEQUATE,
-    CampaignSettings,
-    CampaignStatus,
-    SequentialCampaign,
-)
+from kpi_calib_ros.core.campaigns.sequential import SequentialCampaign
+from kpi_calib_ros.core.campaigns.settings import MODEL_INADEQUATE, CampaignSettings, CampaignStatus
 from kpi_calib_ros.core.design.optimum import DesignResult
 from kpi_calib_ros.core.errors import DataError, KpiCalibError
 from kpi_calib_ros.core.estimation.drift_state import DriftSwing
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.recordings import Recording
-from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.io.campaign_io import CampaignState, write_campaign_state, write_plan
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.design_io import write_design

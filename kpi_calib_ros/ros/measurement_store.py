@@ -60,8 +60,8 @@ from kpi_calib_ros.core.measurement.covariates import (
     interpolate,
     plausible_temperature,
 )
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.recordings import NAME_PATTERN, Recording, row_covariates
-from kpi_calib_ros.core.measurement.tracker import Measurements
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.measurement_log import DEFAULT_STATION, MeasurementLog, stored_pairing
 from kpi_calib_ros.io.names import DEFAULT_POINT_TOPIC, RESULT_FILES, point_sigma_topic

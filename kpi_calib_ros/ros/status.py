@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Mapping
 
-from kpi_calib_ros.core.campaigns.sequential import MODEL_INADEQUATE
+from kpi_calib_ros.core.campaigns.settings import MODEL_INADEQUATE
 from kpi_calib_ros.core.estimation.residuals import is_adequate
 from kpi_calib_ros.ros.run_state import RunState
 

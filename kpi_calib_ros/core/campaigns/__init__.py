@@ -5,25 +5,23 @@ from kpi_calib_ros.core.campaigns.change_detection import (
     ParameterShift,
     change_test,
 )
+from kpi_calib_ros.core.campaigns.plan_order import PLAN_SWEEPS, nested_order, plan_ahead
 from kpi_calib_ros.core.campaigns.sequential import (
     INITIAL_STARTS,
     MAX_HORIZON,
+    NESTED_FACTOR,
+    REPLICATE_EVERY,
+    SequentialCampaign,
+)
+from kpi_calib_ros.core.campaigns.settings import (
     MAX_MEASUREMENTS,
     MODEL_INADEQUATE,
-    NESTED_FACTOR,
-    PLAN_SWEEPS,
-    REPLICATE_EVERY,
     TARGET_MET,
     CampaignSettings,
     CampaignStatus,
-    SequentialCampaign,
     SimulatedRun,
-    lack_of_fit,
-    nested_order,
-    plan_ahead,
-    pure_error,
-    sigma_upper_limit,
 )
+from kpi_calib_ros.core.campaigns.statistics import lack_of_fit, pure_error, sigma_upper_limit
 
 __all__ = [
     'CHANGE_ALPHA', 'CampaignSettings', 'CampaignStatus', 'ChangeTest', 'INITIAL_STARTS',

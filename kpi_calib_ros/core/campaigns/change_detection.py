@@ -34,7 +34,9 @@ import scipy.stats
 
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.core.estimation.prior import Prior
-from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements, weighted_rows
+from kpi_calib_ros.core.measurement.data import Measurements
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel
+from kpi_calib_ros.core.measurement.weighting import weighted_rows
 
 __all__ = ['CHANGE_ALPHA', 'ParameterShift', 'ChangeTest', 'change_test']
 

@@ -4,7 +4,8 @@ A fixed design fixes N in advance from a stated tracker σ and a model that may 
 wrong. Here the campaign starts with the smallest design that makes every
 identifiable parameter and every working pose's TCP estimable (plus
 ``initial_margin`` poses), the first poses of a batch KPI design three times that size
-ordered so that its prefixes are good designs (:func:`nested_order`), and after every
+ordered so that its prefixes are good designs
+(:func:`~kpi_calib_ros.core.campaigns.plan_order.nested_order`), and after every
 measurement
 
 1. re-identifies (:func:`kpi_calib_ros.core.estimation.least_squares.identify`, warm start);
@@ -12,7 +13,8 @@ measurement
    limit σ_u² = σ_s² χ² / χ²_dof(1 − confidence): with probability ``confidence`` the
    true σ is below σ_u (never below what the data say: σ_u ≥ σ̂). ``confidence`` is
    0.975 by default so that the target holds in ≥ 95 % of campaigns despite the test
-   being repeated after every measurement (see :class:`CampaignSettings`);
+   being repeated after every measurement (see
+   :class:`~kpi_calib_ros.core.campaigns.settings.CampaignSettings`);
 3. predicts the TCP covariance (eq. 19) with σ_u, and stops when the statistic — the
    largest per-axis TCP std over the working poses — is ≤ the target. The largest, not
    the mean: a tolerance holds at every working pose and on every axis, and the worst
@@ -52,15 +54,22 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
-import scipy.stats
 
+from kpi_calib_ros.core.campaigns.plan_order import inverse, nested_order, plan_ahead
+from kpi_calib_ros.core.campaigns.settings import (
+    MAX_MEASUREMENTS,
+    MODEL_INADEQUATE,
+    TARGET_MET,
+    CampaignSettings,
+    CampaignStatus,
+)
+from kpi_calib_ros.core.campaigns.statistics import lack_of_fit, pure_error, sigma_upper_limit
 from kpi_calib_ros.core.design.cell import DesignCell
 from kpi_calib_ros.core.design.criteria import DesignProblem, scales
-from kpi_calib_ros.core.design.exchange import Loss, exchange, information
+from kpi_calib_ros.core.design.exchange import exchange, information
 from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.estimation.estimability import result_estimability
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult, identify
@@ -71,17 +80,12 @@ from kpi_calib_ros.core.estimation.robust import (
     RobustResult,
     robust_identify,
 )
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.replicates import SAME_POSE_TOLERANCE, pose_groups
-from kpi_calib_ros.core.measurement.tracker import Measurements
 
-__all__ = [
-    'TARGET_MET', 'MAX_HORIZON', 'INITIAL_STARTS', 'NESTED_FACTOR', 'PLAN_SWEEPS',
-    'REPLICATE_EVERY', 'MODEL_INADEQUATE', 'MAX_MEASUREMENTS', 'CampaignSettings',
-    'CampaignStatus', 'SimulatedRun', 'sigma_upper_limit', 'pure_error', 'lack_of_fit',
-    'SequentialCampaign', 'plan_ahead', 'nested_order',
-]
+__all__ = ['MAX_HORIZON', 'INITIAL_STARTS', 'NESTED_FACTOR', 'REPLICATE_EVERY',
+           'SequentialCampaign']
 
-TARGET_MET = 'target met'
 # Look-ahead of the plan (poses): the next-pose step must stay below 1 s on two cores.
 MAX_HORIZON = 30
 # Random starts of the exchange algorithm for the initial design (its quality is the
@@ -90,224 +94,8 @@ INITIAL_STARTS = 3
 # Size of the batch design the initial design and the first planned poses are nested in,
 # in multiples of the initial design's size.
 NESTED_FACTOR = 3
-# Remove-and-replace sweeps over the plan at each measurement (the plan carries over, so
-# they accumulate): a count, not a time, so a campaign chooses the same poses on any
-# machine under any load. Measured on the default cell (30 planned poses, 2000 candidates,
-# 27 parameters; targets 5 and 4 µm, seed 0): every plan converged within 4 sweeps, at
-# most 0.27 s on an idle core.
-PLAN_SWEEPS = 6
 # While replicates are due, one replicate after every REPLICATE_EVERY - 1 new poses.
 REPLICATE_EVERY = 3
-MODEL_INADEQUATE = 'model inadequate: call ~/diagnose'
-MAX_MEASUREMENTS = 'max_measurements reached'
-
-
-@dataclass(frozen=True)
-class CampaignSettings:
-    """Options of a sequential campaign.
-
-    Attributes
-    ----------
-    target_std : float
-        Target of the largest per-axis TCP std over the working poses (m).
-    max_measurements : int
-        Hard cap on the number of measurements.
-    confidence : float
-        One-sided confidence of the σ upper limit. The limit is checked after every
-        measurement and the campaign stops at the first crossing, which favours runs
-        whose σ̂ happens to be low: at 0.95 the target was met in 47 of 50 simulated
-        campaigns (bench/results/sequential_campaign.md), so the default is 0.975 for
-        "target met in ≥ 95 % of campaigns".
-    initial_margin : int
-        Poses added to the smallest estimable initial design (σ needs some dof).
-    replicates : int
-        Poses measured again for the pure-error estimate once χ² rejects.
-    adequacy_alpha : float
-        Level of the χ² test against the stated σ that triggers the replicates.
-    inadequacy_alpha : float
-        Level of the lack-of-fit test "bias > target" (repeated after every measurement).
-    """
-
-    target_std: float
-    max_measurements: int = 200
-    confidence: float = 0.975
-    initial_margin: int = 2
-    replicates: int = 5
-    adequacy_alpha: float = 0.01
-    inadequacy_alpha: float = 0.001
-
-    def __post_init__(self) -> None:
-        """Check target std, measurement cap, confidence, margin and replicates."""
-        if not (np.isfinite(self.target_std) and self.target_std > 0):
-            raise ConfigError('target_tcp_std', f'must be a positive length in m, got '
-                              f'{self.target_std!r} (e.g. 1.0e-5 for 10 µm)')
-        if self.max_measurements < 1:
-            raise ConfigError('max_measurements', f'must be >= 1, got {self.max_measurements}')
-        if not 0.5 <= self.confidence < 1.0:
-            raise ConfigError('confidence', f'must be in [0.5, 1), got {self.confidence}')
-        if self.initial_margin < 0 or self.replicates < 1:
-            raise ConfigError('initial_margin', 'initial_margin must be >= 0 and replicates '
-                              f'>= 1, got {self.initial_margin}, {self.replicates}')
-
-
-@dataclass(frozen=True)
-class CampaignStatus:
-    """State of the campaign after the last measurement.
-
-    Attributes
-    ----------
-    measurements : int
-    tcp_std : (t, 3) ndarray
-        Per-axis TCP std at each working pose from the conservative σ (m).
-    statistic : float
-        ``tcp_std.max()`` (m); inf before the TCP is estimable.
-    target_std : float
-    sigma_stated, sigma_hat, sigma_upper : float
-        Stated σ, σ̂ from χ²/dof and its upper confidence limit (m, per axis).
-    chi2, dof, p_value : float, int, float
-        χ² against the stated σ.
-    lack_of_fit : dict
-        The F test once replicates exist (``pure_error_dof``, ``bias_rms_m``, ``p_value``).
-    stop_reason : str
-        '' while running; :data:`TARGET_MET`, :data:`MODEL_INADEQUATE` or
-        :data:`MAX_MEASUREMENTS`.
-    next_configurations : (m, n) ndarray
-        The plan: next pose first (empty once stopped).
-    next_candidates : (m,) ndarray of int
-        Candidate index of each planned pose (-1: not a candidate).
-    step_seconds : float
-        Time of the last re-identification and next-pose choice.
-    excluded : tuple of dict
-        Measurements the outlier rule left out: ``measurement`` (0-based, campaign
-        order), ``stamp_ns`` (None without stamps), ``distance_m``, ``reason``.
-    confidence : float
-        Confidence of ``sigma_upper``.
-    """
-
-    measurements: int
-    tcp_std: np.ndarray
-    statistic: float
-    target_std: float
-    sigma_stated: float
-    sigma_hat: float
-    sigma_upper: float
-    chi2: float
-    dof: int
-    p_value: float
-    lack_of_fit: dict
-    stop_reason: str
-    next_configurations: np.ndarray
-    next_candidates: np.ndarray
-    step_seconds: float
-    excluded: tuple[dict, ...] = ()
-    confidence: float = 0.975
-
-    @property
-    def stopped(self) -> bool:
-        """Whether the campaign has a stop reason."""
-        return bool(self.stop_reason)
-
-    def to_dict(self, working_pose_names: Sequence[str]) -> dict:
-        """YAML-ready form (``~/campaign_status``)."""
-        return {
-            'measurements': int(self.measurements), 'target_tcp_std_m': float(self.target_std),
-            'statistic_m': float(self.statistic),
-            'statistic': 'largest per-axis TCP std over the working poses, from the upper '
-                         f'{100 * self.confidence:g} % confidence limit of sigma',
-            'tcp_std_m': {n: [float(x) for x in row]
-                          for n, row in zip(working_pose_names, self.tcp_std)},
-            'sigma_m': {'stated': float(self.sigma_stated), 'estimated': float(self.sigma_hat),
-                        'upper_limit': float(self.sigma_upper)},
-            'chi2': float(self.chi2), 'dof': int(self.dof), 'p_value': float(self.p_value),
-            'lack_of_fit': {k: float(v) for k, v in self.lack_of_fit.items()},
-            'excluded': [dict(e) for e in self.excluded],
-            'stop_reason': self.stop_reason or 'running',
-            'next_poses': len(self.next_configurations),
-            'step_seconds': float(self.step_seconds)}
-
-
-@dataclass(frozen=True)
-class SimulatedRun:
-    """One simulated sequential campaign.
-
-    Attributes
-    ----------
-    history : tuple of CampaignStatus
-        Status after the initial design and after every further measurement.
-    configurations : (N, n) ndarray
-        Measured poses in order (URDF joint values, rad).
-    candidates : (N,) ndarray
-        Candidate index of each (-1: none).
-    initial : int
-        Size of the initial design.
-    tcp_true, tcp_estimated : (t, 3) ndarray
-        True and finally estimated KPI points (tracker frame, m).
-    tcp_std_true : (t, 3) ndarray
-        Per-axis TCP std of the final design with the TRUE σ (at the estimate), m.
-    """
-
-    history: tuple[CampaignStatus, ...]
-    configurations: np.ndarray
-    candidates: np.ndarray
-    initial: int
-    tcp_true: np.ndarray
-    tcp_estimated: np.ndarray
-    tcp_std_true: np.ndarray
-
-    @property
-    def final(self) -> CampaignStatus:
-        """The last status of the campaign."""
-        return self.history[-1]
-
-
-def sigma_upper_limit(chi2: float, dof: int, sigma: float, confidence: float) -> float:
-    """Upper ``confidence`` limit of σ (m) from χ² against ``sigma`` with ``dof`` dof.
-
-    σ √(χ² / χ²_dof(1 − confidence)); inf without dof.
-    """
-    if dof <= 0:
-        return float('inf')
-    return float(sigma * np.sqrt(chi2 / scipy.stats.chi2.ppf(1.0 - confidence, dof)))
-
-
-def pure_error(q: np.ndarray, eta: np.ndarray, weight: np.ndarray,
-               reflector: np.ndarray | None = None) -> tuple[float, int]:
-    """Weighted sum of squares (σ units) and dof of the scatter of repeated poses.
-
-    Repeated poses as :func:`~kpi_calib_ros.core.measurement.replicates.pose_groups` finds them:
-    3 (m − 1) dof per pose measured m times, per reflector (``reflector`` (N,) the reflector of
-    each point row; None: one).
-    """
-    ss, dof = 0.0, 0
-    labels = pose_groups(q)
-    if reflector is not None:
-        labels = labels * (int(np.max(reflector, initial=0)) + 1) + np.asarray(reflector)
-    for g in np.unique(labels):
-        pts = eta[labels == g] * weight
-        if len(pts) > 1:
-            ss += float(np.sum((pts - pts.mean(axis=0)) ** 2))
-            dof += 3 * (len(pts) - 1)
-    return ss, dof
-
-
-def lack_of_fit(chi2: float, dof: int, ss_pe: float, dof_pe: int, target_w: float,
-                alpha: float) -> dict:
-    """F test of "systematic residual rms per axis > target" (σ units throughout).
-
-    MS_lof = (χ² − SS_pe)/(dof − dof_pe) estimates σ² + b², MS_pe estimates σ²; the
-    statistic (MS_lof − target²)/MS_pe is F(dof_lof, dof_pe) at b = target. Returns
-    ``bias_rms`` (σ units, ≥ 0), ``p_value`` and ``rejects`` (1.0: bias > target).
-    """
-    dof_lof = dof - dof_pe
-    if dof_pe <= 0 or dof_lof <= 0 or ss_pe <= 0:
-        return {}
-    ms_pe, ms_lof = ss_pe / dof_pe, max(chi2 - ss_pe, 0.0) / dof_lof
-    f = (ms_lof - target_w ** 2) / ms_pe
-    p = float(scipy.stats.f.sf(f, dof_lof, dof_pe))
-    return {'pure_error_dof': float(dof_pe), 'lack_of_fit_dof': float(dof_lof),
-            'bias_rms_sigma': float(np.sqrt(max(ms_lof - ms_pe, 0.0))),
-            'sigma_pure_error_sigma': float(np.sqrt(ms_pe)),
-            'p_value': p, 'rejects': float(p < alpha)}
 
 
 class SequentialCampaign:
@@ -452,7 +240,7 @@ class SequentialCampaign:
             stamps_ns: Sequence[int] | np.ndarray | None = None) -> CampaignStatus:
         """Add measurements (rows q (m, n), eta (m, 3) tracker frame, m) and update the plan.
 
-        As :class:`~kpi_calib_ros.core.measurement.tracker.Measurements`: ``reflector`` (m,) the
+        As :class:`~kpi_calib_ros.core.measurement.data.Measurements`: ``reflector`` (m,) the
         row channel of each row (None: reflector 0 throughout) and ``rotation`` (m, 3, 3)
         the measured rotations of rotation rows. A pose is the consecutive rows with the
         same ``q`` and no channel twice (each reflector's point, each tracked body's
@@ -668,7 +456,7 @@ class SequentialCampaign:
                 and np.all(counts[-REPLICATE_EVERY + 1:] == 1)):
             once = np.flatnonzero(counts == 1)
             if len(once):
-                gain = loss.delta(_inverse(info), problem.rows(model, self.q[once]), +1.0)
+                gain = loss.delta(inverse(info), problem.rows(model, self.q[once]), +1.0)
                 pick = int(once[int(np.argmin(gain))])
                 q_plan = np.vstack([self.q[pick], q_plan])
                 index = np.concatenate([[self.used[pick]], index])
@@ -729,79 +517,6 @@ class SequentialCampaign:
             return max(1, min(left, n))
         need = n * (status_stat / self.settings.target_std) ** 2 - n
         return int(np.clip(np.ceil(need), 1, max(1, min(left, MAX_HORIZON))))
-
-
-def plan_ahead(rows: np.ndarray, info: np.ndarray, m: int, loss: Loss,
-               exclude: np.ndarray, max_sweeps: int = PLAN_SWEEPS,
-               start_plan: Sequence[int] = ()) -> np.ndarray:
-    """``m`` candidates that, added to the measured information ``info``, lower ``loss`` most.
-
-    ``info`` is (k, k). Greedy additions, then remove-and-replace sweeps over the planned ones
-    only (the measured ones are fixed), as steps 3-4 of
-    :func:`kpi_calib_ros.core.design.exchange.exchange`, until no exchange improves or after
-    ``max_sweeps`` sweeps. ``start_plan`` (the previous plan) is kept where still allowed, so
-    the sweeps continue from one measurement to the next instead of starting over. Returns the
-    indices (m,), the one whose single addition lowers the loss most first.
-
-    Planning ahead rather than adding greedily one at a time is what keeps every prefix
-    close to the batch design of its size: a greedy first choice for a criterion of rank
-    3 (one working pose) is often not a member of a good larger design.
-    """
-    banned = np.zeros(len(rows), bool)
-    banned[exclude] = True
-    chosen = [int(i) for i in start_plan if not banned[i]][:m]
-    current = info.copy()
-    for i in chosen:
-        current = current + rows[i].T @ rows[i]
-    for _ in range(min(m, int(np.sum(~banned))) - len(chosen)):
-        gain = loss.delta(_inverse(current), rows, +1.0)
-        gain[banned] = np.inf
-        gain[chosen] = np.inf
-        best = int(np.argmin(gain))
-        chosen.append(best)
-        current = current + rows[best].T @ rows[best]
-    value = loss.value(current)
-    improved, sweeps = True, 0
-    while improved and sweeps < max_sweeps:
-        improved, sweeps = False, sweeps + 1
-        for pos in range(len(chosen)):
-            a = rows[chosen[pos]]
-            rest = current - a.T @ a
-            gain = loss.delta(_inverse(rest), rows, +1.0)
-            gain[banned] = np.inf
-            gain[chosen] = np.inf
-            best = int(np.argmin(gain))
-            trial = rest + rows[best].T @ rows[best]
-            trial_value = loss.value(trial)
-            if trial_value < value - 1e-9 * abs(value):
-                chosen[pos], current, value, improved = best, trial, trial_value, True
-    first = loss.delta(_inverse(info), rows[chosen], +1.0)
-    return np.array(chosen)[np.argsort(first, kind='stable')]
-
-
-def nested_order(rows: np.ndarray, design: np.ndarray, loss: Loss, n_min: int) -> np.ndarray:
-    """Order the poses of ``design`` so that every prefix is a good design of its size.
-
-    ``design`` indexes ``rows`` (c, 3, k); every prefix of at least ``n_min`` poses counts.
-    Backward elimination, repeatedly removing the pose whose removal raises ``loss`` least
-    (never one that makes the information singular) down to ``n_min``; the removed ones follow
-    the rest in reverse order of removal.
-    """
-    kept = [int(i) for i in design]
-    removed: list[int] = []
-    while len(kept) > max(n_min, 1):
-        raise_ = loss.delta(_inverse(information(rows[kept])), rows[kept], -1.0)
-        if not np.any(np.isfinite(raise_)):
-            break
-        removed.append(kept.pop(int(np.argmin(raise_))))
-    return np.array(kept + removed[::-1], int)
-
-
-def _inverse(info: np.ndarray) -> np.ndarray:
-    try:
-        return np.linalg.inv(info)
-    except np.linalg.LinAlgError:
-        return np.linalg.pinv(info)
 
 
 def _pose_starts(q: np.ndarray, channel: np.ndarray) -> np.ndarray:

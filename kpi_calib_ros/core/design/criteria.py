@@ -39,7 +39,8 @@ from kpi_calib_ros.core.design.exchange import (
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation.identifiability import select_identifiable
 from kpi_calib_ros.core.estimation.prior import Prior
-from kpi_calib_ros.core.measurement.tracker import MeasurementModel, weighted_rows
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel
+from kpi_calib_ros.core.measurement.weighting import weighted_rows
 
 __all__ = ['CRITERIA', 'NEGLIGIBLE_EFFECT', 'DesignProblem', 'scales', 'build_problem']
 

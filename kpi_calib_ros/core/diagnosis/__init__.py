@@ -17,6 +17,7 @@ from kpi_calib_ros.core.diagnosis.candidates import (
     screen_effects,
     validation_rms,
 )
+from kpi_calib_ros.core.diagnosis.corrected_tcp import CorrectedTcp, corrected_tcp
 from kpi_calib_ros.core.diagnosis.effect_selection import (
     MAX_EFFECTS,
     TRIALS,
@@ -29,11 +30,9 @@ from kpi_calib_ros.core.diagnosis.learned_residual import (
     CHOICE_ALPHA,
     INSIDE_DISTANCE,
     MIN_GAIN,
-    CorrectedTcp,
     LearnedResidual,
     ResidualChoice,
     ResidualPrediction,
-    corrected_tcp,
     fit_learned_residual,
     fixed_kernel,
     residual_noise_scale,
@@ -73,9 +72,8 @@ from kpi_calib_ros.core.diagnosis.residual_analysis import (
     ResidualAnalysis,
     analyse_calibration,
     analyse_residuals,
-    fourier_basis,
-    spline_basis,
 )
+from kpi_calib_ros.core.diagnosis.residual_bases import fourier_basis, spline_basis
 from kpi_calib_ros.core.diagnosis.residual_inputs import ResidualInput, residual_inputs
 from kpi_calib_ros.core.diagnosis.validation import Validation, validate
 

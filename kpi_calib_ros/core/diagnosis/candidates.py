@@ -70,13 +70,10 @@ from kpi_calib_ros.core.estimation.residuals import (
     validation_folds,
     validation_rms,
 )
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.payload import payload_torques
-from kpi_calib_ros.core.measurement.tracker import (
-    MeasurementModel,
-    Measurements,
-    unweighted,
-    weighted_rows,
-)
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel
+from kpi_calib_ros.core.measurement.weighting import unweighted, weighted_rows
 
 __all__ = ['Candidate', 'CandidateFit', 'CellDiagnosis', 'Diagnosis', 'ModelComparison',
            'ResidualReport',

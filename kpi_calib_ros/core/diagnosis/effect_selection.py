@@ -64,7 +64,9 @@ from kpi_calib_ros.core.estimation.residuals import (
     region_validation,
     validation_folds,
 )
-from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements, row_torques
+from kpi_calib_ros.core.measurement.data import Measurements
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel
+from kpi_calib_ros.core.measurement.weighting import row_torques
 
 __all__ = [
     'MAX_EFFECTS', 'TRIALS', 'EffectTrial', 'EffectChoice', 'choose_effects', 'effect_start',

@@ -44,7 +44,8 @@ from kpi_calib_ros.core.estimation.residuals import (
     validation_folds,
     validation_rms,
 )
-from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements
+from kpi_calib_ros.core.measurement.data import Measurements
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.core.model.parameters import ParameterSet
 
 __all__ = [

@@ -53,7 +53,8 @@ from kpi_calib_ros.core.estimation.estimability import information_rows, kpi_est
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult, point_sigma_squares
 from kpi_calib_ros.core.estimation.prior import Prior
 from kpi_calib_ros.core.estimation.residuals import campaign_home, is_adequate, moved_joints
-from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements
+from kpi_calib_ros.core.measurement.data import Measurements
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.core.model.robot import RobotModel
 
 DOMAINS = ('like_measured', 'within_measured_ranges', 'over_joint_ranges')

@@ -45,7 +45,9 @@ from kpi_calib_ros.core.effects.general import (
 from kpi_calib_ros.core.effects.registry import BoundEffect, available_effects, bind_effect
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.core.estimation.residuals import LinearizedFit, linearized_fit
-from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements, weighted_rows
+from kpi_calib_ros.core.measurement.data import Measurements
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel
+from kpi_calib_ros.core.measurement.weighting import weighted_rows
 
 MAX_SEARCHED = 64  # cycles per revolution searched at most
 MIN_CYCLES = 2     # k = 1 is cyclic_joint_error, screened by name

@@ -79,6 +79,18 @@ import numpy as np
 import scipy.interpolate
 import scipy.stats
 
+from kpi_calib_ros.core.diagnosis.residual_bases import (
+    basis_columns,
+    basis_text,
+    candidate_bases,
+    fourier_basis,
+    spline_basis,
+)
+from kpi_calib_ros.core.diagnosis.residual_curves import (
+    curve_region,
+    fitted_curve,
+    implied_values,
+)
 from kpi_calib_ros.core.diagnosis.residual_inputs import ResidualInput, residual_inputs
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.core.estimation.residuals import (
@@ -88,25 +100,18 @@ from kpi_calib_ros.core.estimation.residuals import (
     linearized_fit,
     orthonormal_basis,
 )
-from kpi_calib_ros.core.measurement.tracker import (
-    MeasurementModel,
-    Measurements,
-    unweighted,
-    weighted_rows,
-)
+from kpi_calib_ros.core.measurement.data import Measurements
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel
+from kpi_calib_ros.core.measurement.weighting import unweighted, weighted_rows
 
 __all__ = ['BASIS_SIZES', 'HARMONICS', 'InputScore', 'PairScore', 'ResidualAnalysis',
-           'ResidualInput', 'analyse_calibration', 'analyse_residuals', 'fourier_basis',
-           'residual_inputs', 'spline_basis']
+           'ResidualInput', 'analyse_calibration', 'analyse_residuals', 'residual_inputs']
 
 BASIS_SIZES = (4, 8, 16, 32, 64)   # spline functions per field tried; Bonferroni over them
 HARMONICS = (2, 4, 8, 16, 32, 48)  # highest harmonic of the Fourier bases of a periodic input
 DEFAULT_FOLDS = 10                 # pose folds of the cross-validated share
 MIN_POSES_PER_COLUMN = 3           # a basis with more columns than poses / 3 is not tried
 RANK_TOLERANCE = 1e-6              # singular value of the unit-column projected design
-CURVE_POINTS = 200
-# A basis: ('spline', functions), ('harmonics', H), ('harmonic', k) or ('categories', 0).
-Basis = tuple[str, int]
 
 
 @dataclass(frozen=True)
@@ -249,34 +254,6 @@ class ResidualAnalysis:
         return tuple(s for s in self.scores if s.significant)
 
 
-# ------------------------------------------------------------------ bases
-def spline_basis(x: np.ndarray, size: int, support: np.ndarray | None = None) -> np.ndarray:
-    """Cubic B-spline basis (M, size) at ``x`` (M,), constant beyond the ends.
-
-    Interior knots at the quantiles of ``support`` (default ``x``) so that every piece holds
-    data.
-
-    ``size`` is capped by the distinct values of ``support`` (fewer columns then).
-    """
-    support = np.asarray(x if support is None else support, float)
-    lo, hi = float(np.min(support)), float(np.max(support))
-    distinct = len(np.unique(support))
-    size = max(1, min(size, distinct))
-    if size < 4 or hi <= lo:  # too few values for a cubic: a polynomial of low degree
-        t = (np.clip(x, lo, hi) - lo) / (hi - lo) if hi > lo else np.zeros(len(x))
-        return np.vander(t, size, increasing=True)
-    inner = np.quantile(support, np.linspace(0, 1, size - 2)[1:-1])
-    inner = np.unique(inner)
-    knots = np.concatenate([[lo] * 4, inner, [hi] * 4])
-    xc = np.clip(np.asarray(x, float), lo, hi)
-    return scipy.interpolate.BSpline.design_matrix(xc, knots, 3).toarray()
-
-
-def _one_hot(codes: np.ndarray, support: np.ndarray) -> np.ndarray:
-    levels = np.unique(support)
-    return (np.asarray(codes)[:, None] == levels[None, :]).astype(float)
-
-
 # ---------------------------------------------------------------- analysis
 def _design(inp: ResidualInput, basis: np.ndarray, w: np.ndarray) -> np.ndarray:
     """Whitened columns (3N, d·M): field k times basis function m, row by row."""
@@ -337,130 +314,6 @@ def _rms_m(held: np.ndarray, w: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum(unweighted(held, w) ** 2, axis=1))))
 
 
-def _implied(inp: ResidualInput, residuals: np.ndarray, w: np.ndarray
-             ) -> tuple[np.ndarray, np.ndarray]:
-    """Per row and field: the function value the residual implies and its weight."""
-    g = inp.fields
-    g2 = np.sum(g ** 2, axis=1)                                        # (N, d)
-    with np.errstate(invalid='ignore', divide='ignore'):
-        implied = np.where(g2 > 0, np.einsum('nak,na->nk', g, residuals) / g2, np.nan)
-    weight = np.stack([np.sum(weighted_rows(g[:, :, k:k + 1], w).reshape(-1, 3) ** 2, axis=1)
-                       for k in range(g.shape[2])], axis=1)
-    return implied, weight
-
-
-# The size of a fitted function is read only where it is determined: at least this many
-# standard errors (from the stated σ) from zero. Elsewhere (rows where the input barely moves
-# the point: a short lever, a small field) the implied value is noise over a tiny field, and
-# a spline piece fitted to such rows alone reached 7.4e7 µrad.
-DETERMINED_SE = 3.0
-
-
-def _curve(inp: ResidualInput, implied: np.ndarray, weight: np.ndarray, size: Basis,
-           support: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Weighted spline fit of each field's implied values, on a grid of the input.
-
-    Returns the grid, the fit (grid, d) and the fit where it is determined (NaN where it is
-    within :data:`DETERMINED_SE` standard errors of zero). ``weight`` is the inverse variance
-    of each implied value under the stated σ, so (BᵀWB)⁻¹ is the coefficients' covariance.
-    """
-    if inp.categorical:
-        grid = np.unique(support)
-    else:
-        grid = np.linspace(np.min(support), np.max(support), CURVE_POINTS)
-    out = np.full((len(grid), implied.shape[1]), np.nan)
-    determined = np.full_like(out, np.nan)
-    for k in range(implied.shape[1]):
-        ok = weight[:, k] > 0
-        if ok.sum() < 2:
-            continue
-        b = _basis(inp.values[ok], size, support)
-        sw = np.sqrt(weight[ok, k])
-        coef, *_ = np.linalg.lstsq(b * sw[:, None], implied[ok, k] * sw, rcond=None)
-        at = _basis(grid, size, support)
-        out[:, k] = at @ coef
-        # The coefficients' covariance from the SVD of the weighted design (as lstsq solves
-        # it): a direction it cannot resolve leaves the grid points it touches undetermined.
-        _, sv, vt = np.linalg.svd(b * sw[:, None], full_matrices=False)
-        keep = sv > np.finfo(float).eps * max(b.shape) * sv[0]
-        se = np.sqrt(np.sum((at @ vt[keep].T / sv[keep]) ** 2, axis=1))
-        unresolved = np.linalg.norm(at @ vt[~keep].T, axis=1) > 1e-9 * np.linalg.norm(at, axis=1)
-        se[unresolved] = np.inf
-        determined[:, k] = np.where(np.abs(out[:, k]) >= DETERMINED_SE * se, out[:, k], np.nan)
-    return grid, out, determined
-
-
-def fourier_basis(x: np.ndarray, harmonics: int) -> np.ndarray:
-    """(M, 2H + 1) columns 1, cos(k x), sin(k x), k = 1..H, of angles ``x`` (rad)."""
-    k = np.arange(1, harmonics + 1)
-    kx = np.asarray(x, float)[:, None] * k[None, :]
-    return np.hstack([np.ones((len(kx), 1)), np.cos(kx), np.sin(kx)])
-
-
-def _basis(x: np.ndarray, size: Basis, support: np.ndarray) -> np.ndarray:
-    kind, m = size
-    if kind == 'categories':
-        return _one_hot(x, support)
-    if kind == 'harmonics':
-        return fourier_basis(x, m)
-    if kind == 'harmonic':
-        return np.stack([np.cos(m * np.asarray(x, float)), np.sin(m * np.asarray(x, float))],
-                        axis=1)
-    return spline_basis(x, m, support)
-
-
-def _basis_text(size: Basis) -> str:
-    kind, m = size
-    return {'categories': 'one constant per value',
-            'harmonics': f'harmonics 1-{m} of the turn',
-            'harmonic': f'{m} cycles per turn',
-            'spline': f'cubic spline, {m} functions'}[kind]
-
-
-def _candidate_bases(inp: ResidualInput, support: np.ndarray, cap: int, sizes: Sequence[int],
-                     harmonics: Sequence[int]) -> list[Basis]:
-    if inp.categorical:
-        return [('categories', 0)]
-    out: list[Basis] = [('spline', m) for m in
-                        sorted({min(s, cap, len(np.unique(support))) for s in sizes})]
-    if inp.periodic:
-        out += [('harmonics', h) for h in harmonics if 2 * h + 1 <= cap]
-        out += [('harmonic', k) for k in range(2, max(harmonics, default=1) + 1)]
-    return out
-
-
-_SHOWN = {'rad': (1e6, 'µrad'), 'm': (1e6, 'µm'), '': (1e6, 'ppm')}
-
-
-def _region(inp: ResidualInput, grid: np.ndarray, curve: np.ndarray) -> str:
-    """Where the fitted function is at least half its largest size.
-
-    The widest (up to three) ranges of the input, in degrees for a joint angle. ``curve``
-    is NaN where the fit is not determined (:func:`_curve`): its size there says nothing.
-    """
-    if not np.isfinite(curve).any():
-        return ''
-    size = np.where(np.isfinite(curve), np.abs(curve), -1.0)
-    k = int(np.argmax(size.max(axis=0)))
-    c = size[:, k]
-    peak = float(c.max())
-    high = np.append(c >= 0.5 * peak, False)
-    runs, start = [], None
-    for i, h in enumerate(high):
-        if h and start is None:
-            start = i
-        elif not h and start is not None:
-            runs.append((grid[start], grid[i - 1]))
-            start = None
-    runs = sorted(sorted(runs, key=lambda ab: ab[0] - ab[1])[:3])
-    scale, unit = (np.degrees(1.0), 'deg') if inp.periodic else (1.0, inp.unit)
-    where = ', '.join(f'{a * scale:.4g} to {b * scale:.4g}' if a != b else f'{a * scale:.4g}'
-                      for a, b in runs)
-    factor, shown = _SHOWN.get(inp.field_units[k], (1.0, inp.field_units[k]))
-    return (f'{inp.field_names[k]} up to {peak * factor:.3g} {shown} where {inp.name} is '
-            f'{where} {unit}').strip()
-
-
 def analyse_residuals(fit: LinearizedFit, residuals: np.ndarray,
                       inputs: Sequence[ResidualInput], q: np.ndarray,
                       folds: int = DEFAULT_FOLDS, alpha: float = ADEQUACY_ALPHA,
@@ -513,8 +366,8 @@ def analyse_residuals(fit: LinearizedFit, residuals: np.ndarray,
         support = np.asarray(inp.values, float)[active]
         cap = max(1, n_poses // (MIN_POSES_PER_COLUMN * inp.fields.shape[2]))
         tests = []
-        for size in _candidate_bases(inp, support, cap, sizes, harmonics):
-            u = _unique_basis(_design(inp, _basis(np.asarray(inp.values, float), size,
+        for size in candidate_bases(inp, support, cap, sizes, harmonics):
+            u = _unique_basis(_design(inp, basis_columns(np.asarray(inp.values, float), size,
                                                   support), fit.w), geometry)
             if u.shape[1] == 0 or dof0 - u.shape[1] <= 0:
                 continue
@@ -548,11 +401,11 @@ def analyse_residuals(fit: LinearizedFit, residuals: np.ndarray,
     excess = base_sse - base_noise
     for inp, pick, p_raw, p_adj in zip(inputs, chosen, raw, adjusted):
         best = pick or {}
-        implied, weight = _implied(inp, np.asarray(residuals, float), fit.w)
+        implied, weight = implied_values(inp, np.asarray(residuals, float), fit.w)
         active = np.any(inp.fields != 0, axis=(1, 2))
         support = np.asarray(inp.values, float)[active]
         size = best['size'] if best else ('spline', 0)
-        grid, curve, determined = _curve(inp, implied, weight, size, support) if best else \
+        grid, curve, determined = fitted_curve(inp, implied, weight, size, support) if best else \
             (np.unique(support)[:1], np.full((1, inp.fields.shape[2]), np.nan),
              np.full((1, inp.fields.shape[2]), np.nan))
         share = 1.0 - best['cv'] / base_sse if best else float('nan')
@@ -562,7 +415,7 @@ def analyse_residuals(fit: LinearizedFit, residuals: np.ndarray,
         scores.append(InputScore(
             name=inp.name, kind=inp.kind, unit=inp.unit, field_names=inp.field_names,
             field_units=inp.field_units, categorical=inp.categorical,
-            basis=_basis_text(size) if best else '',
+            basis=basis_text(size) if best else '',
             dof=int(best['u'].shape[1]) if best else 0, share=float(share),
             share_systematic=float((base_sse - best['cv']) / excess)
             if best and excess > 0 else float('nan'),
@@ -573,7 +426,7 @@ def analyse_residuals(fit: LinearizedFit, residuals: np.ndarray,
             p_value=float(p_adj), significant=significant,
             x=np.asarray(inp.values, float), implied=implied, weight=weight,
             curve_x=grid, curve=curve,
-            region=_region(inp, grid, determined) if significant else ''))
+            region=curve_region(inp, grid, determined) if significant else ''))
     order = sorted(range(len(scores)), key=lambda i: (
         not scores[i].significant, scores[i].p_value_raw,
         -np.nan_to_num(scores[i].share, nan=-np.inf)))

@@ -17,8 +17,9 @@ from typing import Mapping
 import numpy as np
 
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
+from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.payload import payload_torques
-from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 
 __all__ = ['ResidualInput', 'residual_inputs']
 

@@ -3,7 +3,7 @@
 A calibration's predictions at many poses are not independent. Every point carries the same
 error of the estimated parameters (propagated through its own Jacobian), and with a learned
 residual the same smooth field δ(q) over nearby poses. The per-point covariance
-(:func:`kpi_calib_ros.core.diagnosis.learned_residual.corrected_tcp`) is right for each point,
+(:func:`kpi_calib_ros.core.diagnosis.corrected_tcp.corrected_tcp`) is right for each point,
 but summing the points' χ² as if they were independent overstates the evidence of a large
 recording: 600 poses far from the training region may all sit on one draw of the parameters'
 error and carry the evidence of a handful of independent points.
@@ -29,7 +29,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.stats
 
-from kpi_calib_ros.core.diagnosis.learned_residual import LearnedResidual, outside_weight
+from kpi_calib_ros.core.diagnosis.corrected_tcp import outside_weight
+from kpi_calib_ros.core.diagnosis.learned_residual import LearnedResidual
 
 ELLIPSOID_95 = float(scipy.stats.chi2.ppf(0.95, 3))
 DRAWS = 1000  # draws of the joint statement for the share's range
@@ -42,7 +43,7 @@ def statement_covariance(tcp_jacobian: np.ndarray, covariance_inside: np.ndarray
                          noise_m2: np.ndarray | None = None) -> np.ndarray:
     """Joint covariance of the prediction errors at M points, cross-pose terms included.
 
-    The statement of :func:`~kpi_calib_ros.core.diagnosis.learned_residual.corrected_tcp`
+    The statement of :func:`~kpi_calib_ros.core.diagnosis.corrected_tcp.corrected_tcp`
     over all points at once. The parameters' error is shared: with w_m the weight of the
     inside covariance at point m, the parameter part is
     √(w_m w_n) J_m C_in J_nᵀ + √((1 − w_m)(1 − w_n)) J_m C_out J_nᵀ (one error drawn inside,

@@ -69,13 +69,10 @@ from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation.identifiability import DEFAULT_TOLERANCE
 from kpi_calib_ros.core.estimation.registration import Reregistration, reregister
 from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA
+from kpi_calib_ros.core.measurement.data import Measurements, row_sigma
 from kpi_calib_ros.core.measurement.replicates import SAME_POSE_TOLERANCE, same_pose
-from kpi_calib_ros.core.measurement.tracker import (
-    MeasurementModel,
-    Measurements,
-    row_sigma,
-    row_torques,
-)
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel
+from kpi_calib_ros.core.measurement.weighting import row_torques
 
 __all__ = ['PREDICTION_TOLERANCE', 'TrainingSpan', 'Validation', 'range_tolerance',
            'shared_chi2', 'training_row_space', 'validate']

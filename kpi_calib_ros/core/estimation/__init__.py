@@ -27,6 +27,18 @@ from kpi_calib_ros.core.estimation.estimability import (
     kpi_estimability,
     result_estimability,
 )
+from kpi_calib_ros.core.estimation.gauss_newton import (
+    FTOL,
+    GTOL,
+    LINE_SEARCH_FAILED,
+    MAX_ITERATIONS,
+    PREDICTED_DECREASE,
+    STATISTICAL,
+    STATUS_MESSAGES,
+    TOLERANCES,
+    XTOL,
+    Tolerances,
+)
 from kpi_calib_ros.core.estimation.identifiability import (
     DEFAULT_TOLERANCE,
     PRIORITY_PIVOT_FRACTION,
@@ -37,22 +49,12 @@ from kpi_calib_ros.core.estimation.identifiability import (
 )
 from kpi_calib_ros.core.estimation.least_squares import (
     DEFAULT_MAX_ITERATIONS,
-    FTOL,
-    GTOL,
     ITERATIONS_PER_PARAMETER,
-    LINE_SEARCH_FAILED,
-    MAX_ITERATIONS,
     MAX_REWEIGHT_ROUNDS,
     MAX_SELECTION_ROUNDS,
     MAX_START_ERROR,
-    PREDICTED_DECREASE,
     REWEIGHT_RTOL,
-    STATISTICAL,
-    STATUS_MESSAGES,
-    TOLERANCES,
-    XTOL,
     CalibrationResult,
-    Tolerances,
     identify,
     iteration_limit,
     point_sigma_squares,

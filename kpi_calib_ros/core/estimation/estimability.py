@@ -24,7 +24,8 @@ import numpy as np
 
 from kpi_calib_ros.core.estimation.identifiability import DEFAULT_TOLERANCE
 from kpi_calib_ros.core.estimation.prior import Prior
-from kpi_calib_ros.core.measurement.tracker import MeasurementModel, weighted_rows
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel
+from kpi_calib_ros.core.measurement.weighting import weighted_rows
 
 __all__ = [
     'ESTIMABILITY_TOLERANCE', 'KpiEstimability', 'kpi_estimability', 'information_rows',

@@ -71,14 +71,12 @@ import numpy as np
 import scipy.linalg
 import scipy.stats
 
+from kpi_calib_ros.core.measurement.data import Measurements, row_sigma, stated_sigma
 from kpi_calib_ros.core.measurement.replicates import pose_groups
-from kpi_calib_ros.core.measurement.tracker import (
-    MeasurementModel,
-    Measurements,
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel
+from kpi_calib_ros.core.measurement.weighting import (
     noise_weights,
-    row_sigma,
     row_torques,
-    stated_sigma,
     weighted_residuals,
     weighted_rows,
 )

@@ -37,7 +37,9 @@ from kpi_calib_ros.core.estimation.residuals import (
     orthonormal_basis,
     prior_system,
 )
-from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements, unweighted
+from kpi_calib_ros.core.measurement.data import Measurements
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel
+from kpi_calib_ros.core.measurement.weighting import unweighted
 
 # A pose whose hat-matrix block has an eigenvalue this close to 1 is the only one that
 # determines some direction of the parameters: leaving it out is an extrapolation, not a

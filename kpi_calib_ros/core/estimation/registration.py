@@ -28,7 +28,9 @@ import numpy as np
 import pinocchio as pin
 
 from kpi_calib_ros.core.errors import DataError
-from kpi_calib_ros.core.measurement.tracker import MeasurementModel, Measurements, weighted_rows
+from kpi_calib_ros.core.measurement.data import Measurements
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel
+from kpi_calib_ros.core.measurement.weighting import weighted_rows
 
 __all__ = [
     'TRIM_FACTOR', 'TRIM_FLOOR_M', 'MAX_TRIM_ROUNDS', 'MIN_KEPT_FRACTION', 'Registration', 'horn',

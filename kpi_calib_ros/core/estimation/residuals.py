@@ -28,12 +28,11 @@ from kpi_calib_ros.core.estimation.robust import (
     sigma_warning,
     stated_source,
 )
-from kpi_calib_ros.core.measurement.tracker import (
-    MeasurementModel,
-    Measurements,
+from kpi_calib_ros.core.measurement.data import Measurements, stated_sigma
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel
+from kpi_calib_ros.core.measurement.weighting import (
     noise_weights,
     row_torques,
-    stated_sigma,
     unweighted,
     weighted_residuals,
     weighted_rows,
@@ -89,7 +88,7 @@ class ResidualReport:
         '' or the warning that σ̂ and the stated σ differ by more than 2×.
     sigma_stated_m : float
         The σ per axis the rows state (m): the cell's, or the rms of the points' own
-        (:func:`~kpi_calib_ros.core.measurement.tracker.stated_sigma`), what σ̂ compares with.
+        (:func:`~kpi_calib_ros.core.measurement.data.stated_sigma`), what σ̂ compares with.
     """
 
     residuals: np.ndarray

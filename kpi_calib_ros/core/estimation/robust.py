@@ -12,7 +12,7 @@ residual whitened (W_i r_i,
 :meth:`~kpi_calib_ros.core.measurement.tracker.MeasurementModel.whitening`) times the stated σ, a
 residual whose noise is the stated σ on every axis at every pose, and the studentized distances
 below come from the whitened rows. With per-point σ (the tracker's own) the stated σ is that
-of the points (their rms, :func:`~kpi_calib_ros.core.measurement.tracker.stated_sigma`), not
+of the points (their rms, :func:`~kpi_calib_ros.core.measurement.data.stated_sigma`), not
 the cell's ``noise.sigma``.
 
 *Outliers.* A measurement is over the threshold when its studentized distance
@@ -47,14 +47,10 @@ import scipy.stats
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation.least_squares import MAX_START_ERROR, CalibrationResult
 from kpi_calib_ros.core.estimation.outliers import judge
+from kpi_calib_ros.core.measurement.data import Measurements, stated_sigma
 from kpi_calib_ros.core.measurement.replicates import pose_groups
-from kpi_calib_ros.core.measurement.tracker import (
-    MeasurementModel,
-    Measurements,
-    noise_weights,
-    stated_sigma,
-    weighted_residuals,
-)
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel
+from kpi_calib_ros.core.measurement.weighting import noise_weights, weighted_residuals
 
 __all__ = [
     'LOSSES', 'LOSS_SCALE', 'MAD_TO_SIGMA', 'OUTLIER_ALPHA', 'GROSS_DISTANCE',
@@ -371,10 +367,10 @@ def noise_units(model: MeasurementModel, data: Measurements, p: np.ndarray,
     """Residuals (N, 3) of ``data`` at ``p`` as the robust statistics take them (m).
 
     As given without joint-reading noise and per-point σ; with either, W_i r_i times the
-    stated σ (:func:`~kpi_calib_ros.core.measurement.tracker.stated_sigma`: the cell's, or the
+    stated σ (:func:`~kpi_calib_ros.core.measurement.data.stated_sigma`: the cell's, or the
     rms of the points' own), whose noise is that σ on every axis at every pose (a point's own
     σ from the tracker counts in units of itself,
-    :func:`~kpi_calib_ros.core.measurement.tracker.noise_weights`). Scaled by the points' own
+    :func:`~kpi_calib_ros.core.measurement.weighting.noise_weights`). Scaled by the points' own
     σ, not the cell's: a robust σ̂ of 20.9 µm noise on points stating 10 µm reads 20.9 µm
     (2.09× the stated), not 2.09× the cell's noise.sigma.
     """

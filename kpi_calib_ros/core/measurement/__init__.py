@@ -12,6 +12,8 @@ from kpi_calib_ros.core.measurement.covariates import (
     temperature_covariates,
     with_covariates,
 )
+from kpi_calib_ros.core.measurement.data import Measurements, row_sigma
+from kpi_calib_ros.core.measurement.effect_protocol import Effect, effect_inputs
 from kpi_calib_ros.core.measurement.pose import (
     log3_expression,
     measured_rotation_input,
@@ -23,6 +25,7 @@ from kpi_calib_ros.core.measurement.pose import (
     rotation_from_rpy,
     rotation_residual_expression,
 )
+from kpi_calib_ros.core.measurement.pose_rows import with_rotation_rows
 from kpi_calib_ros.core.measurement.recordings import (
     Contribution,
     Recording,
@@ -33,17 +36,12 @@ from kpi_calib_ros.core.measurement.recordings import (
     to_first_frame,
 )
 from kpi_calib_ros.core.measurement.replicates import SAME_POSE_TOLERANCE, pose_groups, same_pose
-from kpi_calib_ros.core.measurement.tracker import (
-    Effect,
-    MeasurementModel,
-    Measurements,
-    effect_inputs,
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel
+from kpi_calib_ros.core.measurement.weighting import (
     noise_weights,
-    row_sigma,
     unweighted,
     weighted_residuals,
     weighted_rows,
-    with_rotation_rows,
 )
 
 __all__ = [

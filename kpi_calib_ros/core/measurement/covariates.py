@@ -47,7 +47,7 @@ from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 
-from kpi_calib_ros.core.measurement.tracker import Measurements
+from kpi_calib_ros.core.measurement.data import Measurements
 
 __all__ = [
     'TEMPERATURE_PREFIX', 'DELTA_TEMPERATURE', 'REFERENCE_TEMPERATURE_C', 'DEFAULT_MAX_GAP_NS',

@@ -26,13 +26,9 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from kpi_calib_ros.core.measurement.tracker import (
-    MeasurementModel,
-    Measurements,
-    noise_weights,
-    row_torques,
-    weighted_rows,
-)
+from kpi_calib_ros.core.measurement.data import Measurements
+from kpi_calib_ros.core.measurement.tracker import MeasurementModel
+from kpi_calib_ros.core.measurement.weighting import noise_weights, row_torques, weighted_rows
 from kpi_calib_ros.core.model.kinematics import rpy_matrix
 from kpi_calib_ros.core.model.parameters import (
     BASE_COMPONENTS,

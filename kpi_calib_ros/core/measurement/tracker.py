@@ -22,11 +22,9 @@ whitened with W_i = L_i⁻¹, L_i L_iᵀ = Σ_i (:meth:`MeasurementModel.whiteni
 the current estimate. Rows of one pose measured by several reflectors share that pose's
 joint readings; their correlation is not modelled (each row carries its own J_q Σ_q J_qᵀ).
 
-A tracker states its uncertainty per point (it grows with the distance, e.g. 15 µm + 6 µm/m):
-``Measurements.sigma`` (N, 3) holds it per row and axis (m), NaN where a row states none;
-:func:`row_sigma` puts it in place of the cell's σ row by row, so that σ in the covariance
-above, every weight and every statistic in units of σ is that row's own
-(:func:`noise_weights`, the one place the weights of data rows are formed).
+A tracker states its uncertainty per point: each row's own σ
+(:mod:`kpi_calib_ros.core.measurement.data`) is σ in the covariance above and in every weight
+(:mod:`kpi_calib_ros.core.measurement.weighting`).
 
 Covariates: a cause the joint state does not carry (temperature of the arm, time into a
 shift) reaches an effect as a per-row input. ``Measurements.covariates`` maps a covariate
@@ -48,12 +46,18 @@ parameters the identifiability analysis keeps (a gauge-free quantity).
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field
-from typing import Any, Mapping, Protocol, Sequence, cast
+from typing import Any, Mapping, Sequence, cast
 
 import casadi as ca
 import numpy as np
 
+from kpi_calib_ros.core.measurement.buffers import Mapped, call_mapped
+from kpi_calib_ros.core.measurement.data import Measurements
+from kpi_calib_ros.core.measurement.effect_protocol import (
+    Effect,
+    effect_inputs,
+    optional_correction,
+)
 from kpi_calib_ros.core.measurement.payload import payload_torques
 from kpi_calib_ros.core.measurement.pose import (
     body_orientation,
@@ -70,145 +74,7 @@ from kpi_calib_ros.core.model.parameters import (
 )
 from kpi_calib_ros.core.model.robot import RobotModel
 
-__all__ = [
-    'Effect', 'effect_inputs', 'Measurements', 'row_sigma', 'row_torques', 'stated_sigma',
-    'MeasurementModel',
-    'with_rotation_rows', 'noise_weights', 'weighted_rows', 'weighted_residuals', 'unweighted',
-]
-
-
-class Effect(Protocol):
-    """A physical effect that the geometric model lacks.
-
-    Implementations give parameter names/units/nominal values and CasADi
-    expressions; see :mod:`kpi_calib_ros.core.effects.registry` for the library.
-    """
-
-    # Read-only: implementations may be frozen dataclasses.
-    @property
-    def name(self) -> str:
-        """Stable name, the prefix of its parameters' names."""
-
-    @property
-    def parameter_names(self) -> tuple[str, ...]:
-        """Names of its parameters, in the order of their slice of p."""
-
-    @property
-    def units(self) -> tuple[str, ...]:
-        """Unit of each parameter."""
-
-    @property
-    def uses_torque(self) -> bool:
-        """Whether its expressions read the gravity torques (the model then supplies them)."""
-
-    def joint_correction(self, q: ca.SX, tau: ca.SX, theta: ca.SX) -> ca.SX | None:
-        """Additive joint-value correction (n,) or None."""
-
-    def point_correction(self, point: ca.SX, theta: ca.SX) -> ca.SX | None:
-        """Measured point (3,) in the tracker frame after the effect, or None."""
-
-    # Optional (see the module docstring): ``inputs`` (tuple of covariate names, default
-    # ()) and ``placement_correction(theta, z) -> [(joint index, SX (6,))]``, additive
-    # corrections of joint placement errors (tx, ty, tz m; rx, ry, rz rad). An effect with
-    # inputs gets them as ``joint_correction(q, tau, theta, z)``, z SX (len(inputs),).
-    # Optional: ``frame_correction(q, tau, theta) -> (joint index, SX (3, 3)) | None``, a
-    # rotation of that joint's frame after its motion (link bending); read with getattr,
-    # so an effect without it corrects joint values or the point only.
-    # Optional: ``tilt_correction(theta[, z]) -> (joint index, SX (3, 3)) | None``, a rotation
-    # in the base frame's axes of that joint's frame as placed, before its motion, about its
-    # origin (a measured tilt, :mod:`kpi_calib_ros.core.effects.tilt`).
-
-
-def effect_inputs(effect: Effect) -> tuple[str, ...]:
-    """Names of the covariates ``effect`` reads (its optional ``inputs``; () if none)."""
-    return tuple(getattr(effect, 'inputs', ()) or ())
-
-
-@dataclass(frozen=True)
-class Measurements:
-    """Paired measurement data.
-
-    q : (N, n) joint values in chain order; eta : (N, 3) measured points in the
-    tracker frame (m); tau : (N, n) gravity torques or None; stamps_ns : (N,);
-    reflector : (N,) int index of the reflector each row measured, or None (all 0);
-    ``n_reflectors + k`` marks the rotation row of reflector ``k``'s tracked body.
-    rotation : (N, 3, 3) measured body rotations in the tracker frame on rotation rows
-    (ignored on point rows), or None when there are none.
-    sigma : (N, 3) the tracker's stated standard deviation of each row per axis (m), NaN
-    where a row states none (the cell's σ applies, :func:`row_sigma`), or None: none stated.
-    covariates : mapping {name: (N,) ndarray} of per-row inputs beside the joint state
-    (``temperature.<frame_id>`` °C, ``delta_temperature`` K, see
-    :mod:`kpi_calib_ros.core.measurement.covariates`), or None: none recorded.
-    One pose measured by R reflectors is R rows with the same ``q``.
-    """
-
-    q: np.ndarray
-    eta: np.ndarray
-    tau: np.ndarray | None = None
-    stamps_ns: np.ndarray | None = field(default=None)
-    reflector: np.ndarray | None = field(default=None)
-    rotation: np.ndarray | None = field(default=None)
-    sigma: np.ndarray | None = field(default=None)
-    covariates: Mapping[str, np.ndarray] | None = field(default=None)
-
-    def __len__(self) -> int:
-        """Return the number of rows."""
-        return len(self.q)
-
-    def subset(self, keep: np.ndarray) -> Measurements:
-        """Return the rows selected by the boolean or index array ``keep``, every field kept."""
-        def pick(values: np.ndarray | None) -> np.ndarray | None:
-            return None if values is None else np.asarray(values)[keep]
-        return Measurements(q=np.atleast_2d(self.q)[keep], eta=np.atleast_2d(self.eta)[keep],
-                            tau=pick(self.tau), stamps_ns=pick(self.stamps_ns),
-                            reflector=pick(self.reflector), rotation=pick(self.rotation),
-                            sigma=pick(self.sigma),
-                            covariates=None if self.covariates is None else {
-                                name: np.asarray(v)[keep] for name, v in self.covariates.items()})
-
-
-def row_sigma(sigma: float | np.ndarray, data_sigma: np.ndarray | None, n: int) -> np.ndarray:
-    """Return the standard deviation (N, 3) of every row and axis, m.
-
-    The stated per-row σ ``data_sigma`` (N, 3) where finite, the cell's ``sigma`` (scalar or
-    (3,)) elsewhere.
-
-    Raises
-    ------
-    ValueError
-        ``sigma`` not positive, ``data_sigma`` of another shape or a stated σ <= 0 / inf.
-    """
-    cell = np.broadcast_to(np.asarray(sigma, float), (3,))
-    if not np.all(np.isfinite(cell)) or np.any(cell <= 0):
-        raise ValueError(f'noise sigma must be positive and finite, got {cell}')
-    out = np.broadcast_to(cell, (n, 3)).copy()
-    if data_sigma is None:
-        return out
-    given = np.asarray(data_sigma, float)
-    if given.shape != (n, 3):
-        raise ValueError(f'per-row sigma must be ({n}, 3) (m, NaN: none stated), got '
-                         f'{given.shape}')
-    stated = ~np.isnan(given)
-    if np.any(given[stated] <= 0) or not np.all(np.isfinite(given[stated])):
-        raise ValueError('per-row sigma must be positive and finite where stated (NaN: the '
-                         f'cell\'s sigma), got {given[stated & ~(given > 0)][:3]}')
-    out[stated] = given[stated]
-    return out
-
-
-def stated_sigma(sigma: float | np.ndarray, data_sigma: np.ndarray | None, n: int) -> float:
-    """Return the one σ per axis (m) the rows state together.
-
-    The mean over the axes of the cell's ``sigma`` without per-row σ; with it, of each
-    axis's root mean square over the rows (:func:`row_sigma`). Whitened residuals (each
-    row in units of its own σ) times this are residuals in metres of the size the rows'
-    noise has: a robust σ̂ computed from them compares with it, and with the residuals'
-    rms, whatever the cell's ``noise.sigma`` says.
-    """
-    if data_sigma is None or n == 0:
-        return float(np.mean(np.broadcast_to(np.asarray(sigma, float), (3,))))
-    rows = row_sigma(sigma, data_sigma, n)
-    return float(np.mean(np.sqrt(np.mean(rows ** 2, axis=0))))
+__all__ = ['MeasurementModel']
 
 
 class MeasurementModel:
@@ -294,7 +160,7 @@ class MeasurementModel:
                     for point in self._points]
         self._hq_built: list[ca.Function] | None = None
         self._cos_built: ca.Function | None = None
-        self._mapped: dict[tuple[int, int, int], _Mapped] = {}
+        self._mapped: dict[tuple[int, int, int], Mapped] = {}
         self.orientations = {int(k): np.asarray(r, float).reshape(3, 3)
                              for k, r in (orientations or {}).items()}
         if any(not 0 <= k < self.chain.n_reflectors for k in self.orientations):
@@ -353,20 +219,20 @@ class MeasurementModel:
             extra = (ca.vertcat(*[z[self.inputs.index(name)] for name in names]),) \
                 if names else ()
             correction = cast(Any, effect).joint_correction(q, tau, theta, *extra)
-            moves = getattr(effect, 'placement_correction', None)
+            moves = optional_correction(effect, 'placement_correction')
             for joint, delta in (moves(theta, *extra) if moves is not None else ()):
                 placement = placement if placement is not None else ca.SX.zeros(p.shape[0])
                 idx = self.chain.placement_indices(joint)
                 placement[idx] = placement[idx] + delta
             if correction is not None:
                 q_eff = q_eff + correction
-            frame = getattr(effect, 'frame_correction', None)
+            frame = optional_correction(effect, 'frame_correction')
             bent = frame(q, tau, theta) if frame is not None else None
             if bent is not None:
                 index, rotation = bent
                 deflections[index] = (deflections[index] @ rotation if index in deflections
                                       else rotation)
-            tilt = getattr(effect, 'tilt_correction', None)
+            tilt = optional_correction(effect, 'tilt_correction')
             turned = tilt(theta, *extra) if tilt is not None else None
             if turned is not None:
                 index, rotation = turned
@@ -527,7 +393,7 @@ class MeasurementModel:
                                           [self.incidence_cos_expression(p, q)])
         return self._cos_built
 
-    def _map(self, which: int, channel: int, m: int) -> _Mapped:
+    def _map(self, which: int, channel: int, m: int) -> Mapped:
         """Return function ``which`` of a row channel mapped over ``m`` rows (built once per m)."""
         key = (which, channel, m)
         if key not in self._mapped:
@@ -535,7 +401,7 @@ class MeasurementModel:
                 fn = (self._h, self._hj, self._hq)[which][channel]
             else:
                 fn = self._rot[channel - self.n_reflectors][which]
-            self._mapped[key] = _Mapped.of(fn.map(m))
+            self._mapped[key] = Mapped.of(fn.map(m))
         return self._mapped[key]
 
     def _evaluate(self, which: int, channel: int, rows: np.ndarray, p: np.ndarray,
@@ -554,7 +420,7 @@ class MeasurementModel:
                 raise ValueError('rotation rows need the measured rotations (rotation=)')
             measured = measured_rotation_input(np.asarray(rotation)[rows])
             args = [p, q[rows].T, tau[rows].T, measured.T, z[rows].T]
-        return _call(self._map(which, channel, m), args)
+        return call_mapped(self._map(which, channel, m), args)
 
     def predict(self, p: np.ndarray, q: np.ndarray, tau: np.ndarray | None = None,
                 reflector: np.ndarray | None = None,
@@ -730,192 +596,3 @@ class MeasurementModel:
         """Cosine of the incidence angle (N,) at joint values ``q`` (N, n)."""
         q = np.atleast_2d(q)
         return np.array(self._cos.map(len(q))(p, q.T)).ravel()
-
-
-def with_rotation_rows(model: MeasurementModel, data: Measurements,
-                       rotations: np.ndarray) -> Measurements:
-    """Return ``data`` (point rows) with a rotation row after every row with a body rotation.
-
-    ``rotations`` (N, 3, 3) are the measured body rotations, NaN where a row has none (a plain
-    point).
-
-    The rotation row repeats the pose's ``q`` and stamp, has ``eta = 0`` and reflector
-    index :meth:`MeasurementModel.rotation_channel` of its point's reflector.
-
-    Raises
-    ------
-    ValueError
-        A row carries a rotation but its reflector has no orientation in the model.
-    """
-    rotations = np.asarray(rotations, float).reshape(len(data), 3, 3)
-    has = np.all(np.isfinite(rotations), axis=(1, 2))
-    if not has.any():
-        return data
-    ref = (np.zeros(len(data), dtype=int) if data.reflector is None
-           else np.asarray(data.reflector, dtype=int))
-    order, channel = [], []
-    for i in range(len(data)):
-        order.append(i)
-        channel.append(ref[i])
-        if has[i]:
-            order.append(i)
-            channel.append(model.rotation_channel(int(ref[i])))
-    rows = np.array(order)
-    rotation_row = np.array(channel) >= model.n_reflectors
-    expanded = data.subset(rows)
-    eta = np.where(rotation_row[:, None], 0.0, expanded.eta)
-    rot = np.where(rotation_row[:, None, None], rotations[rows], np.eye(3))
-    # A rotation row is in metres at the cell's σ (rotation_scale): no stated point σ.
-    sigma = (None if expanded.sigma is None
-             else np.where(rotation_row[:, None], np.nan, expanded.sigma))
-    return Measurements(q=expanded.q, eta=eta, tau=expanded.tau, stamps_ns=expanded.stamps_ns,
-                        reflector=np.array(channel), rotation=rot, sigma=sigma,
-                        covariates=expanded.covariates)
-
-
-@dataclass(frozen=True)
-class _Mapped:
-    """A mapped function, its inputs' shapes and where each output's nonzeros go.
-
-    Read from its sparsity once: reading an output's triplet on every call cost an eighth
-    of the evaluation of a fit's Jacobian.
-    """
-
-    fn: ca.Function
-    # (rows, columns) of every input, all dense.
-    inputs: tuple[tuple[int, int], ...]
-    # (rows, columns, nonzero rows and columns; None: dense) of every output.
-    outputs: tuple[tuple[int, int, tuple[np.ndarray, np.ndarray] | None], ...]
-
-    @classmethod
-    def of(cls, fn: ca.Function) -> _Mapped:
-        """Return ``fn`` with its layout; only dense inputs are read."""
-        for i in range(fn.n_in()):
-            if not fn.sparsity_in(i).is_dense():
-                raise ValueError(f'input {i} of {fn.name()} is sparse; only dense inputs are '
-                                 'read')
-        outputs = []
-        for j in range(fn.n_out()):
-            sparsity = fn.sparsity_out(j)
-            placed = None
-            if not sparsity.is_dense():
-                r, c = sparsity.get_triplet()
-                placed = (np.asarray(r, dtype=np.intp), np.asarray(c, dtype=np.intp))
-            outputs.append((sparsity.size1(), sparsity.size2(), placed))
-        return cls(fn, tuple((fn.size1_in(i), fn.size2_in(i)) for i in range(fn.n_in())),
-                   tuple(outputs))
-
-
-def _call(mapped: _Mapped, args: list[np.ndarray]) -> list[np.ndarray]:
-    """Evaluate the mapped function at numeric ``args`` into dense ndarrays, by its buffers.
-
-    Calling a Function with arrays returns CasADi matrices, and reading a mapped Jacobian
-    (mostly structural zeros, each row's block) back into numpy element by element took
-    ten times as long as the evaluation. Here the inputs are handed over as column-major
-    buffers (a column broadcast over the mapped rows) and each output's nonzeros written
-    straight into an array, then placed at its sparsity. The values are the same bits.
-    A buffer is made per call, so calls from several threads do not share one.
-    """
-    # CasADi's stubs name a size argument its Python binding does not take.
-    buffer, evaluate = cast(Any, mapped.fn).buffer()
-    keep = []
-    for i, (value, shape) in enumerate(zip(args, mapped.inputs)):
-        array = np.asarray(value, float)
-        column = array[:, None] if array.ndim == 1 else array
-        column_major = np.broadcast_to(column, shape).ravel(order='F')
-        keep.append(column_major)
-        buffer.set_arg(i, column_major.data)
-    nonzeros = [np.zeros(rows * cols if placed is None else len(placed[0]))
-                for rows, cols, placed in mapped.outputs]
-    for j, out in enumerate(nonzeros):
-        buffer.set_res(j, out.data)
-    evaluate()
-    dense = []
-    for out, (rows, cols, placed) in zip(nonzeros, mapped.outputs):
-        if placed is None:
-            dense.append(out.reshape(cols, rows).T)
-            continue
-        full = np.zeros((rows, cols))
-        full[placed] = out
-        dense.append(full)
-    return dense
-
-
-def row_torques(model: MeasurementModel, data: Measurements) -> np.ndarray | None:
-    """Return the torques (N, n) the effects of ``model`` read at ``data``'s rows, or None.
-
-    ``data.tau`` where recorded (measured joint torques); else, when an effect reads the
-    gravity torque, the robot's at every row with that row's payload
-    (:mod:`kpi_calib_ros.core.measurement.payload`: ``payload.mass`` among the covariates, else
-    the cell's payload); None when no effect reads a torque.
-    """
-    if data.tau is not None:
-        return np.atleast_2d(np.asarray(data.tau, float))
-    if not model.uses_torque:
-        return None
-    return payload_torques(model.robot, np.atleast_2d(data.q), data.covariates)
-
-
-def noise_weights(model: MeasurementModel, p: np.ndarray, data: Measurements,
-                  sigma: float | np.ndarray, tau: np.ndarray | None = None,
-                  point_weights: np.ndarray | None = None) -> np.ndarray:
-    """Weights of ``data``'s rows at ``p`` for :func:`weighted_rows`.
-
-    (N, 3) 1/σ_i,a (each row's stated σ or the cell's ``sigma``, :func:`row_sigma`) times √ω_i,
-    or (N, 3, 3) whitening with joint-reading noise (:meth:`MeasurementModel.whitening`).
-    """
-    q = np.atleast_2d(data.q)
-    rows = row_sigma(sigma, data.sigma, len(q))
-    if tau is None:
-        tau = row_torques(model, data)
-    return model.whitening(np.asarray(p, float), q, rows, tau, data.reflector, data.rotation,
-                           point_weights, data.covariates)
-
-
-def weighted_rows(jac: np.ndarray, w: np.ndarray, idx: np.ndarray | None = None) -> np.ndarray:
-    """Stacked weighted Jacobian ``W J`` (3N, k) of point Jacobians ``jac`` (N, 3, n_p).
-
-    Parameters
-    ----------
-    jac : (N, 3, n_p) ndarray
-        d h_i / d p per measurement (m per unit of each parameter).
-    w : (3,), (3R,), (N, 3) or (N, 3, 3) ndarray
-        1/σ per tracker axis (1/m); (3R,) for rows of ``MeasurementModel.pose_jacobian``;
-        (N, 3) per measurement and axis (robustness weights); (N, 3, 3) a whitening
-        matrix per measurement (joint-reading noise, :meth:`MeasurementModel.whitening`).
-    idx : (k,) int ndarray, optional
-        Parameter columns to keep (default all).
-
-    Returns
-    -------
-    (3N, k) ndarray
-        Row 3i + a is axis a of measurement i, in units of σ.
-    """
-    w = np.asarray(w)
-    if w.ndim == 3:
-        rows = np.einsum('nab,nbk->nak', w, jac).reshape(-1, jac.shape[2])
-    else:
-        rows = (jac * (w[None, :, None] if w.ndim == 1 else w[:, :, None])
-                ).reshape(-1, jac.shape[2])
-    return rows if idx is None else rows[:, idx]
-
-
-def weighted_residuals(residuals: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """Stacked weighted residuals (3N,) of ``residuals`` (N, 3) in m, in units of σ.
-
-    ``w`` are the weights of :func:`weighted_rows` ((3,), (N, 3) or (N, 3, 3)).
-    """
-    return weighted_rows(np.asarray(residuals, float)[:, :, None], w)[:, 0]
-
-
-def unweighted(r: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """Residuals (N, 3) in m from weighted residuals ``r`` (3N,).
-
-    The inverse of :func:`weighted_residuals` (a row of weight 0 gives 0).
-    """
-    r = np.asarray(r, float).reshape(-1, 3)
-    w = np.asarray(w, float)
-    if w.ndim == 3:
-        return np.einsum('nab,nb->na', np.linalg.pinv(w), r)
-    return np.divide(r, w, out=np.zeros_like(r), where=w != 0)
-
