@@ -106,7 +106,11 @@ def test_a_stopped_import_leaves_no_partial_bag(signum, tmp_path):
         [sys.executable, '-m', 'kpi_calib_ros.cli', 'import-csv', str(table), '--out',
          str(out / 'bag.mcap'), '--frame', 'laser_tracker', '--joints',
          'j1,j2,j3,j4,j5,j6', '--marker', 'm=x,y,z'],
-        env=env, stderr=subprocess.PIPE, text=True)
+        env=env, stderr=subprocess.PIPE, text=True,
+        # A user's terminal delivers SIGINT to a command that handles it; a test worker may
+        # run with SIGINT ignored at the C level (a library's handler left behind), which a
+        # child would inherit and never see the signal: start it as a terminal would.
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         deadline = time.monotonic() + 120
         # Polls for the file the import writes into (a condition, not a fixed wait).
