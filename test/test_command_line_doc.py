@@ -7,6 +7,8 @@ import argparse
 import re
 from pathlib import Path
 
+from doc_sections import h2_sections
+
 from kpi_calib_ros.cli import build_parser
 
 PAGE = Path(__file__).resolve().parents[1] / 'doc' / 'guide' / 'command_line.md'
@@ -19,23 +21,9 @@ def _subcommands() -> dict[str, argparse.ArgumentParser]:
     raise AssertionError('kpi-calib has no subcommands')
 
 
-def _sections(text: str) -> dict[str, str]:
-    """H2 title -> its text up to the next H2 (code blocks skipped when finding H2s)."""
-    sections: dict[str, str] = {}
-    title, fenced = None, False
-    for line in text.splitlines():
-        if line.startswith('```'):
-            fenced = not fenced
-        if not fenced and line.startswith('## '):
-            title = line[3:].strip()
-            sections[title] = ''
-        elif title is not None:
-            sections[title] += line + '\n'
-    return sections
-
 
 def test_every_subcommand_has_its_section_naming_every_option():
-    sections = _sections(PAGE.read_text())
+    sections = h2_sections(PAGE.read_text())
     missing_sections, missing_options = [], {}
     for name, parser in _subcommands().items():
         body = sections.get(f'`kpi-calib {name}`')
@@ -53,7 +41,7 @@ def test_every_subcommand_has_its_section_naming_every_option():
 
 
 def test_every_section_states_its_exit_codes():
-    sections = _sections(PAGE.read_text())
+    sections = h2_sections(PAGE.read_text())
     silent = [name for name in _subcommands()
               if 'exit' not in sections.get(f'`kpi-calib {name}`', '').lower()]
     assert silent == [], f'sections without exit codes: {silent}'

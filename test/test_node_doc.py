@@ -6,6 +6,8 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
+from doc_sections import h2_sections
+
 from kpi_calib_ros.io import names
 from kpi_calib_ros.ros.parameters import PARAMETERS
 
@@ -46,19 +48,6 @@ def created_services() -> set[str]:
     return found
 
 
-def _sections(text: str) -> dict[str, str]:
-    sections: dict[str, str] = {}
-    title, fenced = None, False
-    for line in text.splitlines():
-        if line.startswith('```'):
-            fenced = not fenced
-        if not fenced and line.startswith('## '):
-            title = line[3:].strip()
-            sections[title] = ''
-        elif title is not None:
-            sections[title] += line + '\n'
-    return sections
-
 
 def test_the_services_are_found():
     assert created_services() >= {'~/design', '~/identify', '~/diagnose', '~/validate',
@@ -66,14 +55,14 @@ def test_the_services_are_found():
 
 
 def test_every_service_has_its_section():
-    titles = list(_sections(PAGE.read_text()))
+    titles = list(h2_sections(PAGE.read_text()))
     missing = [s for s in sorted(created_services())
                if not any(t.startswith(f'`{s}`') for t in titles)]
     assert missing == [], f'no "## `~/NAME` ..." section for {missing}'
 
 
 def test_every_node_topic_is_named_in_a_service_section():
-    sections = _sections(PAGE.read_text())
+    sections = h2_sections(PAGE.read_text())
     services = {t: body for t, body in sections.items() if t.startswith('`~/')}
     topics = sorted(v for k, v in vars(names).items()
                     if k.endswith('_TOPIC') and isinstance(v, str) and v.startswith('~/'))

@@ -455,6 +455,24 @@ def read_log_with_sigma(path: str | os.PathLike, joint_topic: str = DEFAULT_JOIN
     return pairs, _point_sigma(path, bag, point_topic)
 
 
+
+def _scanned(path: str | os.PathLike) -> tuple[Path, ScannedBag]:
+    """The checked path and the record-level scan of the MCAP bag at ``path`` (mapped, not
+    read), for the readers of one side topic (temperatures, measured inputs).
+
+    Raises
+    ------
+    BagError
+        File missing or not MCAP.
+    """
+    path = _checked_path(path)
+    with open(path, 'rb') as f:
+        size = os.fstat(f.fileno()).st_size
+        data = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) if size else b''
+    if data[:len(MAGIC)] != MAGIC:
+        raise BagError(f'{path} is not an MCAP file (no MCAP magic)')
+    return path, scan(path, data)
+
 def read_temperatures(path: str | os.PathLike,
                       topic: str = DEFAULT_TEMPERATURE_TOPIC) -> list[TemperatureSample]:
     """Every ``sensor_msgs/Temperature`` on ``topic`` (°C, each with its sensor's frame id),
@@ -465,13 +483,7 @@ def read_temperatures(path: str | os.PathLike,
     BagError
         File missing or not MCAP, or ``topic`` carrying another message type.
     """
-    path = _checked_path(path)
-    with open(path, 'rb') as f:
-        size = os.fstat(f.fileno()).st_size
-        data = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) if size else b''
-    if data[:len(MAGIC)] != MAGIC:
-        raise BagError(f'{path} is not an MCAP file (no MCAP magic)')
-    bag = scan(path, data)
+    path, bag = _scanned(path)
     ids = sorted(c.id for c in bag.channels.values() if c.topic == topic)
     if not ids:
         return []
@@ -519,13 +531,7 @@ def read_inputs(path: str | os.PathLike, named_topic: str,
         File missing or not MCAP, a topic carrying another type than stated, or a field the
         type does not have.
     """
-    path = _checked_path(path)
-    with open(path, 'rb') as f:
-        size = os.fstat(f.fileno()).st_size
-        data = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) if size else b''
-    if data[:len(MAGIC)] != MAGIC:
-        raise BagError(f'{path} is not an MCAP file (no MCAP magic)')
-    bag = scan(path, data)
+    path, bag = _scanned(path)
     present = {c.topic for c in bag.channels.values()}
     wanted: list[tuple[str, str, Callable[[Any], list[InputSample]], str]] = []
     if named_topic in present:

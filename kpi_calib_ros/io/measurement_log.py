@@ -248,17 +248,9 @@ class MeasurementLog:
         if self.closed or self.temperature_topic is None:
             raise ValueError(f'MeasurementLog {self.path} is closed or stores no temperature')
         stamp = int(sample.stamp_ns)
-        inner = RecordBuilder()
         channel = [t for t, _ in self._encoders.topics].index(self.temperature_topic)
-        Message(channel_id=channel, sequence=self._sequence + 1, log_time=stamp, publish_time=stamp,
-                data=self._encoders.temperature(stamp, sample.frame_id, sample.celsius)
-                ).write(inner)
-        body = inner.end()
-        record = RecordBuilder()
-        Chunk(compression='', data=body, message_start_time=stamp, message_end_time=stamp,
-              uncompressed_crc=zlib.crc32(body), uncompressed_size=len(body)).write(record)
-        self._commit(record.end())
-        self._sequence += 1
+        self._write_record(stamp, [(channel, self._encoders.temperature(
+            stamp, sample.frame_id, sample.celsius))])
 
     def append_inputs(self, stamp_ns: int, names: tuple[str, ...], values: np.ndarray) -> None:
         """Store measured input readings of one stamp (covariate names, SI values) durably
