@@ -233,6 +233,34 @@ class Client:
         rclpy.shutdown(context=self.context)
 
 
+class SpinThread(threading.Thread):
+    """``executor`` spun in a thread of its own until :meth:`stop`.
+
+    It spins one callback at a time with a short wait, so a stop is seen between waits, and
+    :meth:`stop` shuts the executor down from the caller's thread only once the spin has
+    ended: an ``Executor.shutdown`` from another thread while ``spin`` waits races the
+    executor's wait set (ros2/rclpy#968) and left an exception in the spin thread of
+    one full run in about ten.
+    """
+
+    def __init__(self, executor: SingleThreadedExecutor) -> None:
+        super().__init__(daemon=True)
+        self.executor = executor
+        self._stopped = threading.Event()
+
+    def run(self) -> None:
+        while not self._stopped.is_set() and self.executor.context.ok():
+            self.executor.spin_once(timeout_sec=0.05)
+
+    def stop(self) -> None:
+        """End the spin, wait for it, then shut the executor down."""
+        self._stopped.set()
+        if self.is_alive():
+            self.join(timeout=10)
+        assert not self.is_alive(), 'the spin thread did not end within 10 s'
+        self.executor.shutdown()
+
+
 class NodeProcess:
     """kpi_calib_node started as a cell controller would, output kept in a file."""
 

@@ -27,7 +27,7 @@ from kpi_calib_ros.io.names import CALIBRATION_FILE, LEARNED_RESIDUAL_FILE
 from kpi_calib_ros.ros.node import CalibrationNode
 
 from full_disk import fill, small_tmpfs, snapshot
-from ros_helpers import KR15_URDF
+from ros_helpers import KR15_URDF, SpinThread
 
 FIRST_NS = 1_700_000_000_000_000_000
 N_POSES = 100
@@ -46,7 +46,7 @@ def node(disk, ros_domain, monkeypatch):
     smooth map its model lacks, each cycle other poses."""
     context = Context()
     rclpy.init(context=context, domain_id=ros_domain)
-    made = None
+    made = spinner = None
     executor = SingleThreadedExecutor(context=context)
     try:
         made = CalibrationNode(context=context, parameter_overrides=[
@@ -68,7 +68,7 @@ def node(disk, ros_domain, monkeypatch):
         monkeypatch.setattr(made.store, 'measurements',
                             lambda *a, **k: (cycles[made.cycle], None))
         executor.add_node(made)
-        spinner = threading.Thread(target=executor.spin, daemon=True)
+        spinner = SpinThread(executor)
         spinner.start()
 
         def run(work, *args):
@@ -93,7 +93,10 @@ def node(disk, ros_domain, monkeypatch):
         made.identify, made.tcp_query_at = identify, tcp_query
         yield made
     finally:
-        executor.shutdown()
+        if spinner is not None:
+            spinner.stop()
+        else:
+            executor.shutdown()
         if made is not None:
             made.destroy_node()
         rclpy.shutdown(context=context)

@@ -35,7 +35,7 @@ from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros.node import CalibrationNode
 from kpi_calib_ros.ros.parameters import PARAMETERS, settings_from_parameters
 
-from ros_helpers import KR15_URDF, finish, start_error
+from ros_helpers import KR15_URDF, SpinThread, finish, start_error
 
 
 @pytest.mark.slow
@@ -309,7 +309,7 @@ def test_jobs_compute_in_a_worker_and_touch_the_node_on_the_executor(in_process)
     node = in_process
     executor = SingleThreadedExecutor(context=node.context)
     executor.add_node(node)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner = SpinThread(executor)
     release, threads, seen = threading.Event(), {}, {}
 
     def compute(x: float) -> float:
@@ -343,8 +343,7 @@ def test_jobs_compute_in_a_worker_and_touch_the_node_on_the_executor(in_process)
         assert threads['before'] == threads['after'] == spinner.ident != threads['worker']
         assert node._claim_job('next')  # freed after the job
     finally:
-        executor.shutdown()
-        spinner.join(timeout=10)
+        spinner.stop()
 
 
 def test_an_invalid_identification_keeps_the_last_good_calibration(in_process, monkeypatch):
@@ -373,7 +372,7 @@ def test_an_invalid_identification_keeps_the_last_good_calibration(in_process, m
     monkeypatch.setattr(node.store, 'measurements', measurements)
     executor = SingleThreadedExecutor(context=node.context)
     executor.add_node(node)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner = SpinThread(executor)
     spinner.start()
 
     def run(name: str) -> tuple[bool, str]:
@@ -397,8 +396,7 @@ def test_an_invalid_identification_keeps_the_last_good_calibration(in_process, m
         level, text, _ = node.status()
         assert level == 'ERROR' and 'calibration not published' in text
     finally:
-        executor.shutdown()
-        spinner.join(timeout=10)
+        spinner.stop()
 
 
 def test_heavy_jobs_compute_in_a_child_process_that_holds_no_gil_of_the_node(in_process,

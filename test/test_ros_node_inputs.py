@@ -20,7 +20,7 @@ from kpi_calib_ros.core.simulation import (
 )
 from kpi_calib_ros.ros.node import CalibrationNode
 
-from ros_helpers import KR15_URDF
+from ros_helpers import KR15_URDF, SpinThread
 
 FIRST_NS = 1_700_000_000_000_000_000
 
@@ -31,7 +31,7 @@ def node(tmp_path, ros_domain, monkeypatch):
     simulated points stamped from FIRST_NS on, and a runner of its ~/identify job."""
     context = Context()
     rclpy.init(context=context, domain_id=ros_domain)
-    made = None
+    made = spinner = None
     executor = SingleThreadedExecutor(context=context)
     try:
         made = CalibrationNode(context=context, parameter_overrides=[
@@ -47,7 +47,7 @@ def node(tmp_path, ros_domain, monkeypatch):
         monkeypatch.setattr(made.store, 'measurements', lambda *a, **k: (
             Measurements(q=data.q, eta=data.eta, stamps_ns=stamps), None))
         executor.add_node(made)
-        spinner = threading.Thread(target=executor.spin, daemon=True)
+        spinner = SpinThread(executor)
         spinner.start()
 
         def identify() -> tuple[bool, str]:
@@ -60,7 +60,10 @@ def node(tmp_path, ros_domain, monkeypatch):
         made.identify = identify
         yield made
     finally:
-        executor.shutdown()
+        if spinner is not None:
+            spinner.stop()
+        else:
+            executor.shutdown()
         if made is not None:
             made.destroy_node()
         rclpy.shutdown(context=context)

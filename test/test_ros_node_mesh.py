@@ -29,7 +29,7 @@ from kpi_calib_ros.io.resources import resolve_uri
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros.node import CalibrationNode
 
-from ros_helpers import LATCHED, run_job
+from ros_helpers import LATCHED, SpinThread, run_job
 
 DATA = Path(__file__).resolve().parent / 'data'
 UR10 = 'package://example-robot-data/robots/ur_description/urdf/ur10_robot.urdf'
@@ -79,7 +79,7 @@ def test_node_identifies_from_a_stock_mesh_urdf_with_unknown_placement(tmp_path,
 
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(node)
-        spinner = threading.Thread(target=executor.spin, daemon=True)
+        spinner = SpinThread(executor)
         spinner.start()
         ok, message = run_job(node, executor, 'identifying', node._identify, 300)
         assert ok, message
@@ -99,10 +99,10 @@ def test_node_identifies_from_a_stock_mesh_urdf_with_unknown_placement(tmp_path,
         ok, message = run_job(node, executor, 'designing', node._design, 300)
         assert not ok and 'tracker.base_in_tracker' in message
     finally:
-        if executor is not None:
-            executor.shutdown()
         if spinner is not None:
-            spinner.join(timeout=10)
+            spinner.stop()
+        elif executor is not None:
+            executor.shutdown()
         if node is not None:
             node.destroy_node()
         rclpy.shutdown(context=context)
@@ -124,7 +124,7 @@ def test_node_draws_the_fitted_capsules_after_a_design(tmp_path, ros_domain):
         node.create_subscription(MarkerArray, '~/markers', markers.append, LATCHED)
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(node)
-        spinner = threading.Thread(target=executor.spin, daemon=True)
+        spinner = SpinThread(executor)
         spinner.start()
         ok, message = run_job(node, executor, 'designing', node._design, 300)
         assert ok, message
@@ -143,10 +143,10 @@ def test_node_draws_the_fitted_capsules_after_a_design(tmp_path, ros_domain):
         # Two spheres per capsule (a cylinder too when it has a length).
         assert sum(m.type == m.SPHERE for m in capsules) == 2 * len(fitted)
     finally:
-        if executor is not None:
-            executor.shutdown()
         if spinner is not None:
-            spinner.join(timeout=10)
+            spinner.stop()
+        elif executor is not None:
+            executor.shutdown()
         if node is not None:
             node.destroy_node()
         rclpy.shutdown(context=context)
@@ -171,16 +171,16 @@ def test_node_accepts_a_description_whose_meshes_cannot_be_found(tmp_path, ros_d
         assert node.status()[2]['state'] == 'idle' and node._cm.joint_names == ['j1', 'j2']
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(node)
-        spinner = threading.Thread(target=executor.spin, daemon=True)
+        spinner = SpinThread(executor)
         spinner.start()
         ok, message = run_job(node, executor, 'designing', node._design, 300)
         assert not ok and 'package://no_such_pkg/meshes/base.stl' in message
         assert 'tried' in message
     finally:
-        if executor is not None:
-            executor.shutdown()
         if spinner is not None:
-            spinner.join(timeout=10)
+            spinner.stop()
+        elif executor is not None:
+            executor.shutdown()
         if node is not None:
             node.destroy_node()
         rclpy.shutdown(context=context)

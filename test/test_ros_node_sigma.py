@@ -29,7 +29,7 @@ from kpi_calib_ros.io.ros_messages import joint_state_msg, point_stamped_msg, ve
 from kpi_calib_ros.ros import job_work
 from kpi_calib_ros.ros.node import CalibrationNode
 
-from ros_helpers import KR15_URDF, finish
+from ros_helpers import KR15_URDF, SpinThread, finish
 
 POSES = 40
 SIGMA_TOPIC = point_sigma_topic(DEFAULT_POINT_TOPIC)
@@ -96,7 +96,7 @@ def test_live_sigma_identifies_as_the_bag_with_sigma(tmp_path, ros_domain, cm):
     joints, points, sigma = campaign(cm)
     context = Context()
     rclpy.init(context=context, domain_id=ros_domain)
-    node = source = None
+    node = source = spinner = None
     executor = SingleThreadedExecutor(context=context)
     try:
         node = CalibrationNode(context=context, parameter_overrides=[
@@ -141,7 +141,7 @@ def test_live_sigma_identifies_as_the_bag_with_sigma(tmp_path, ros_domain, cm):
         counts = node.store.counts()
         assert counts['rejected'] == 0 and counts['received.sigma'] == POSES, counts
 
-        spinner = threading.Thread(target=executor.spin, daemon=True)
+        spinner = SpinThread(executor)
         spinner.start()
         assert node._claim_job('identifying')
         task = executor.create_task(node._run_job, 'identify', node._identify)
@@ -152,7 +152,10 @@ def test_live_sigma_identifies_as_the_bag_with_sigma(tmp_path, ros_domain, cm):
         assert ok, message
         live = node._run.result.values
     finally:
-        executor.shutdown()
+        if spinner is not None:
+            spinner.stop()
+        else:
+            executor.shutdown()
         for made in (source, node):
             if made is not None:
                 made.destroy_node()

@@ -7,8 +7,6 @@ and the node runs without a calibration. In process: ~/validate tests the restor
 calibration on the measurements stamped after it, and ~/reset drops it."""
 from __future__ import annotations
 
-import threading
-
 import numpy as np
 import pytest
 import yaml
@@ -28,7 +26,7 @@ from kpi_calib_ros.io.cell import DEFAULT_CELL
 from kpi_calib_ros.io.measurement_log import MeasurementLog
 from kpi_calib_ros.ros import job_work
 
-from ros_helpers import LATCHED, NS, Queries, idle_node, run_job, tcp_of
+from ros_helpers import LATCHED, NS, Queries, SpinThread, idle_node, run_job, tcp_of
 
 N_POSES = 30
 N_QUERIES = 3
@@ -176,7 +174,7 @@ def test_validate_and_reset_after_a_restore(cm, tmp_path, ros_domain):
         node._run.restore_pending = False  # run here rather than by the node's timer
         executor = SingleThreadedExecutor(context=node.context)
         executor.add_node(node)
-        spinner = threading.Thread(target=executor.spin, daemon=True)
+        spinner = SpinThread(executor)
         spinner.start()
         try:
             ok, message = run_job(node, executor, 'restoring', node._restore, 60)
@@ -190,5 +188,4 @@ def test_validate_and_reset_after_a_restore(cm, tmp_path, ros_domain):
             assert node._run.restored is None and node._run.published_tcp() == (None, None)
             assert not (tmp_path / 'calibration.yaml').exists()
         finally:
-            executor.shutdown()
-            spinner.join(timeout=10)
+            spinner.stop()

@@ -30,7 +30,7 @@ from kpi_calib_ros.io.learned_residual_file import read_residual, residual_docum
 from kpi_calib_ros.io.ros_messages import time_msg
 from kpi_calib_ros.ros.conversions import UNKNOWN_ORIENTATION_VARIANCE
 
-from ros_helpers import idle_node
+from ros_helpers import SpinThread, idle_node
 
 
 @pytest.fixture
@@ -67,7 +67,7 @@ def ask(node, msg: JointState) -> PoseWithCovarianceStamped:
     executor = SingleThreadedExecutor(context=node.context)
     executor.add_node(node)
     executor.add_node(probe)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner = SpinThread(executor)
     spinner.start()
     try:
         for _ in range(100):  # until discovery: the query is re-sent, never slept on
@@ -76,8 +76,7 @@ def ask(node, msg: JointState) -> PoseWithCovarianceStamped:
                 break
         assert received, 'no answer on ~/tcp_corrected'
     finally:
-        executor.shutdown()
-        spinner.join(timeout=10)
+        spinner.stop()
         probe.destroy_node()
     return received[0]
 

@@ -20,7 +20,7 @@ from kpi_calib_ros.core.simulation import (
 )
 from kpi_calib_ros.io.ros_messages import joint_state_msg, point_stamped_msg
 
-from ros_helpers import idle_node, run_job
+from ros_helpers import SpinThread, idle_node, run_job
 
 
 @pytest.fixture
@@ -55,7 +55,7 @@ def test_validate_service_tests_the_calibration_on_the_new_measurements(node, tm
                              QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL))
     executor = SingleThreadedExecutor(context=node.context)
     executor.add_node(node)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner = SpinThread(executor)
     spinner.start()
     try:
         ok, message = run_job(node, executor, 'validating', node._validate, 120)
@@ -71,8 +71,7 @@ def test_validate_service_tests_the_calibration_on_the_new_measurements(node, tm
         assert '; 3 at training poses measured again' in message, message
         assert got.wait(timeout=30), 'no message on ~/validation'
     finally:
-        executor.shutdown()
-        spinner.join(timeout=10)
+        spinner.stop()
     doc = json.loads((tmp_path / 'validation' / 'validation.json').read_text())
     assert doc['holds'] and doc['measurements'] == 10 and doc['repeated_from_training'] == 3
     assert received and json.loads(received[-1]) == doc
@@ -98,7 +97,7 @@ def test_validate_service_re_registers_a_tracker_set_up_again(node, tmp_path, cm
     cut = points[35].stamp_ns - 1_000_000_000
     executor = SingleThreadedExecutor(context=node.context)
     executor.add_node(node)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner = SpinThread(executor)
     spinner.start()
     try:
         _feed(node, [j for j in joints if j.stamp_ns < cut], points[:35])
@@ -114,7 +113,6 @@ def test_validate_service_re_registers_a_tracker_set_up_again(node, tmp_path, cm
         assert ok and 'after re-registering base.x/base.y/base.z/' in message, message
         assert 'chi2/dof' in message and f'/{3 * 12 - 6},' in message, message
     finally:
-        executor.shutdown()
-        spinner.join(timeout=10)
+        spinner.stop()
     doc = json.loads((tmp_path / 'validation' / 'validation.json').read_text())
     assert doc['holds'] and doc['registration']['dof'] == 6 and doc['rms_m'] < 1e-4
