@@ -12,7 +12,7 @@ export OMP_NUM_THREADS ?= 1
 TEST_WORKERS ?= 2
 PYTEST := $(PY) -m pytest -q -n $(TEST_WORKERS) --maxschedchunk 2 --durations=15
 
-.PHONY: install demo lint doc pictures check test bench clean
+.PHONY: install demo lint doc pictures check test test-slow bench clean
 
 install: $(STAMP)
 
@@ -40,14 +40,21 @@ doc: $(STAMP)
 pictures: $(STAMP)
 	$(PY) doc/pictures.py
 
-# The quick loop while editing: lint, types, the documentation, the tests not marked slow.
-check: lint doc
+# The quick loop while editing: lint, types, the tests not marked slow.
+check: lint
 	$(PYTEST) -m "not slow" test
 
-# Lint and types first: they fail in seconds (mypy ~40 s without its cache), then the
-# documentation (seconds), then every test (minutes); the 15 slowest are listed.
+# What every change passes: lint and types first (they fail in seconds; mypy ~40 s without
+# its cache), then the documentation (seconds), then every test not marked slow (minutes);
+# the 15 slowest are listed.
 test: lint doc
-	$(PYTEST) test
+	$(PYTEST) -m "not slow" test
+
+# The long studies: the tests marked slow (Monte Carlo, many seeds, the real campaigns, the
+# node as a process through kills and restarts; about 13 minutes). CI runs them after
+# `make test` (.ci/run).
+test-slow: $(STAMP)
+	$(PYTEST) -m slow test
 
 bench: $(STAMP)
 	$(PY) bench/run_all.py

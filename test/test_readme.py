@@ -30,6 +30,17 @@ def test_the_two_commands_are_make_targets():
         assert re.search(rf'^{target}:', makefile, flags=re.M), target
 
 
+def test_ci_runs_the_readme_test_command_then_the_slow_studies():
+    """CI calls the README's test command, so a missing install step fails there, and then
+    the tests marked slow that `make test` leaves out."""
+    ci = [line.strip() for line in (REPO / '.ci' / 'run').read_text().splitlines()
+          if line.strip().startswith('make ')]
+    assert ci == ['make test', 'make test-slow']
+    makefile = (REPO / 'Makefile').read_text()
+    recipe = re.search(r'^test-slow:.*\n\t(.*)$', makefile, flags=re.M).group(1)
+    assert recipe.endswith('-m slow test')
+
+
 @pytest.mark.slow
 def test_the_demo_summary_the_readme_quotes_is_what_the_demo_prints(tmp_path, capsys):
     from kpi_calib_ros.app.demo import run_demo
