@@ -386,7 +386,7 @@ class NominalComparison:
         return tuple(r for r in self.recordings if r.harmed)
 
     def named(self, names: Sequence[str]) -> NominalComparison:
-        """This comparison with the recordings' ``names`` (first included); itself with one."""
+        """Return the comparison with the recordings' ``names`` (first included)."""
         if not self.recordings:
             return self
         return dataclasses.replace(self, recordings=named(self.recordings, names))

@@ -82,18 +82,22 @@ class RecordingComparison:
 
     @property
     def harmed(self) -> bool:
-        """Whether the calibration predicts this recording's held-out rows worse than the
-        nominal robot by more than the noise (False when a figure is not estimable)."""
+        """Whether the calibration predicts the recording's held-out rows worse than nominal.
+
+        Worse than the nominal robot by more than the noise; False when a figure is not
+        estimable.
+        """
         a, b = self.calibrated_in_region_m, self.nominal_in_region_m
         return bool(np.isfinite(a) and np.isfinite(b)
                     and a > b + max(self.noise_m, 0.0) + _TIE_M)
 
     @property
     def label(self) -> str:
+        """The recording's name as the text names it."""
         return repr(self.name) if self.name else 'the first'
 
     def named(self, name: str) -> RecordingComparison:
-        """This comparison with the recording's ``name``."""
+        """Return the comparison with the recording's ``name``."""
         return replace(self, name=name)
 
     def text(self) -> str:
@@ -172,10 +176,10 @@ def recording_comparisons(model: MeasurementModel, data: Measurements,
                           folds: tuple[np.ndarray | None, np.ndarray | None],
                           nominal_folds: tuple[np.ndarray | None, np.ndarray | None] | None = None
                           ) -> tuple[RecordingComparison, ...]:
-    """Per recording of ``model`` (the first, then ``model.recordings``): the calibration
-    ``result`` against the ``nominal`` fit on its own rows, by the rule of this module.
+    """Judge the calibration ``result`` against the ``nominal`` fit on each recording's rows.
 
-    ``folds`` (in-region, region-blocked pose folds (N,), each None when none keep the
+    Per recording of ``model`` (the first, then ``model.recordings``), by the rule of this
+    module. ``folds`` (in-region, region-blocked pose folds (N,), each None when none keep the
     rank): those of the overall comparison; ``nominal_folds``: the nominal's when those
     do not keep its rank (default ``folds``). () with one recording.
     """
