@@ -30,7 +30,17 @@ share its noise, so this margin is wide for a difference of them: a recording is
 for a systematic loss. The figure over held-out regions of joint space is reported beside
 it, not judged: its regions are drawn over every recording's poses together, and a region
 may hold out most of a small recording, where the placement-only nominal model
-extrapolates by construction better than a robot fitted on the rest.
+extrapolates by construction better than a robot fitted on the rest. The overall verdict's
+second figure, the error predicted from the fit, is one figure over all rows (its χ²/dof
+pooled) and cannot see a recording: the recording's verdict rests on cross-validation.
+
+Measured (default cell, set-ups of 40 and 20 poses, σ 20 µm, 10 seeds per row): with the
+simulator's geometric errors scaled by 1, 0.1, 0.03 or 0.01 no recording is named (0 of
+40); with a robot built exactly to its URDF 6 of 10 name one, all but one of them already
+refused over all rows (the geometric fit's refits are above the nominal's), and none named
+where the overall verdict holds. A set-up of 20 poses measuring a robot built to its URDF
+beside 40 poses of the robot with errors, better over all rows in 10 of 10 seeds: that set-up
+alone named in 10 of 10, predicted 2.7-9.2x worse than by the nominal robot.
 """
 from __future__ import annotations
 
