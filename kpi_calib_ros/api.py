@@ -41,6 +41,7 @@ from kpi_calib_ros.app.calibration_document import (
     CellCalibration,
     add_robust_sections,
     calibration_document,
+    with_recording_names,
 )
 from kpi_calib_ros.app.campaign import (
     campaign_context,
@@ -212,8 +213,9 @@ def calibrate(cell: CellModel, data: Measurements | Mapping[str, Measurements],
     unknown = sorted(set(remounted) - set(data))
     if unknown:
         raise ValueError(f'calibrate: remounted names no recording: {unknown}')
-    return calibrate_cell(with_recordings(cell, recordings),
-                          combine(list(data.values()), recordings), model)
+    return with_recording_names(calibrate_cell(
+        with_recordings(cell, recordings), combine(list(data.values()), recordings), model),
+        recordings)
 
 
 def learn_residual(cell: CellModel, calibration: CellCalibration, data: Measurements,

@@ -15,6 +15,7 @@ from kpi_calib_ros.app.simulate import simulate_campaign, truth_cell_model
 from kpi_calib_ros.cli import main
 from kpi_calib_ros.core.model.kinematics import pose6
 from kpi_calib_ros.core.simulation import true_parameters
+from kpi_calib_ros.io.calibration_file import calibration_recordings, read_calibration_document
 from kpi_calib_ros.io.cell import DEFAULT_CELL, load_cell
 
 # Each set-up: the base moved against the tracker (m, rad), the probe offset moved (m).
@@ -34,9 +35,12 @@ def _cell_document(hidden: dict | None = None) -> dict:
     return doc
 
 
-def _set_ups(folder: Path, doc: dict, poses: dict[str, int], seed: int) -> dict[str, np.ndarray]:
+def _set_ups(folder: Path, doc: dict, poses: dict[str, int], seed: int,
+             built_to_urdf: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
     """One robot measured in each set-up of ``poses`` into ``folder/<name>.mcap``; the cell
-    of set-up A is ``folder/cell.yaml``. Returns each set-up's true parameter vector."""
+    of set-up A is ``folder/cell.yaml``. Returns each set-up's true parameter vector. The
+    set-ups ``built_to_urdf`` measure a robot built to its URDF instead (another unit of
+    the type), placed and probed as the others."""
     folder.mkdir(parents=True, exist_ok=True)
     cell = folder / 'cell.yaml'
     cell.write_text(yaml.safe_dump(doc))
@@ -55,6 +59,8 @@ def _set_ups(folder: Path, doc: dict, poses: dict[str, int], seed: int) -> dict[
         path.write_text(yaml.safe_dump(here))
         cm_here, _ = truth_cell_model(load_cell(path))
         truth = robot.copy()
+        if name in built_to_urdf:
+            truth[6:n_geo - 3] = cm.model.params.nominal[6:n_geo - 3]
         truth[:6] += moved
         truth[n_geo - 3:n_geo] += remount
         simulate_campaign(path, n, folder / f'{name}.mcap', seed + 1 + i, cm=cm_here,
@@ -94,6 +100,14 @@ def test_identify_two_set_ups_with_repeated_bag_and_read_it_back(set_ups, capsys
     for entry in doc['recordings']:
         assert entry['poses'] == 40 and entry['rms_m'] < 3 * np.sqrt(3) * 2e-5
         assert entry['tcp_variance_ratio_without'] > 1.0
+        # never worse than nominal on its own rows: held-out rms near σ√3, the nominal
+        # robot's (its placement registered) millimetres
+        versus = entry['against_nominal']
+        assert versus['worse_than_nominal'] is False and versus['rows'] == 40
+        assert versus['in_region_rms_m'] < 1.5 * np.sqrt(3) * 2e-5
+        assert versus['nominal_in_region_rms_m'] > 10 * versus['in_region_rms_m']
+        assert f"held-out rms {versus['in_region_rms_m'] * 1e6:.1f} µm against the " \
+            f"nominal robot's {versus['nominal_in_region_rms_m'] * 1e6:.1f} µm" in text
     # the transform from station A's frame to B's: the same whatever gauge the fit chose
     def pose(v: np.ndarray) -> np.ndarray:
         return np.array(pose6(v), float)
@@ -113,6 +127,37 @@ def test_identify_two_set_ups_with_repeated_bag_and_read_it_back(set_ups, capsys
                  str(folder / 'a.mcap'), '--prior', calibration, '--out',
                  str(folder / 'again')]) in (0, 1), capsys.readouterr()
     assert 'Traceback' not in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_identify_refuses_a_set_up_it_predicts_worse_than_nominal(tmp_path, capsys):
+    """The first bag measures a robot built to its URDF (20 poses), the second the robot
+    with geometric errors (40 poses): better than nominal over all rows, several times worse
+    on the first set-up. Exit 1, calibration.failed.yaml names that set-up (the first, by
+    its bag's name) with both figures and the fix, its ``recordings:`` entry says so; the
+    file reads back."""
+    _set_ups(tmp_path, _cell_document(), {'b': 20, 'a': 40}, 5, built_to_urdf=('b',))
+    out = tmp_path / 'joint'
+    argv = ['identify', '--cell', str(tmp_path / 'cell.yaml'), '--bag', str(tmp_path / 'b.mcap'),
+            '--bag', str(tmp_path / 'a.mcap'), '--out', str(out)]
+    assert main(argv) == 1, capsys.readouterr()
+    text = capsys.readouterr().out
+    doc = yaml.safe_load((out / 'calibration.failed.yaml').read_text())
+    assert not (out / 'calibration.yaml').exists() and doc['valid'] is False
+    assert doc['against_nominal']['better'] is True  # the overall verdict alone holds
+    harmed, kept = doc['recordings']
+    assert harmed['against_nominal']['worse_than_nominal'] is True
+    assert kept['against_nominal']['worse_than_nominal'] is False
+    figures = harmed['against_nominal']
+    assert figures['in_region_rms_m'] > 3 * figures['nominal_in_region_rms_m']
+    reasons = [r for r in doc['invalid_reasons'] if 'set-up' in r]
+    assert len(reasons) == 1 and "recording 'b'" in reasons[0], doc['invalid_reasons']
+    assert f"{figures['in_region_rms_m'] * 1e6:.1f} µm" in reasons[0]
+    assert 'register it separately' in reasons[0] and reasons[0] in text
+    assert '(WORSE than nominal beyond the noise)' in text
+    # read back as validate and --prior read a calibration document
+    back = read_calibration_document(out / 'calibration.failed.yaml')
+    assert [r.name for r in calibration_recordings(back, 'test')] == ['b', 'a']
 
 
 @pytest.mark.slow

@@ -27,6 +27,7 @@ from kpi_calib_ros.core.measurement.recordings import Recording, contributions
 from kpi_calib_ros.core.model.dh import dh_table
 from kpi_calib_ros.core.model.parameters import reflector_prefixes
 from kpi_calib_ros.io.cell import CellModel
+from kpi_calib_ros.io.recordings_manifest import RecordingSource
 from kpi_calib_ros.io.results import calibration_to_dict
 from kpi_calib_ros.io.urdf_export import calibrated_urdf
 
@@ -70,11 +71,26 @@ class CellCalibration:
         out += [f'not plausible: {text}' for text in self.implausible]
         if self.nominal is not None and not self.nominal.better:
             out.append('worse than no calibration: ' + self.nominal.text())
+        if self.nominal is not None:
+            out += [f'worse than no calibration on one set-up: {r.text()}'
+                    for r in self.nominal.harmed]
         return tuple(out)
 
     @property
     def valid(self) -> bool:
         return not self.problems
+
+
+def with_recording_names(cal: CellCalibration,
+                         recordings: str | Path | Sequence[Recording | RecordingSource]
+                         ) -> CellCalibration:
+    """``cal`` with the names of its ``recordings`` (every recording, first included; or
+    their sources; one bag's path: none) in the per-recording comparison with the nominal
+    robot; ``cal`` itself with one recording."""
+    if cal.nominal is None or not cal.nominal.recordings or isinstance(recordings, (str, Path)):
+        return cal
+    return dataclasses.replace(cal, nominal=cal.nominal.named([
+        r.recording.name if isinstance(r, RecordingSource) else r.name for r in recordings]))
 
 
 def plausibility_gate(cm: CellModel, result: CalibrationResult, start: np.ndarray,
@@ -238,18 +254,23 @@ def calibrated_robot_description(cm: CellModel, result: CalibrationResult) -> st
     return calibrated_urdf(cm.cell.urdf_xml, cm.robot, dict(zip(result.names, result.values)))
 
 
-def recordings_section(cm: CellModel, data: Measurements, result: CalibrationResult,
+def recordings_section(cm: CellModel, data: Measurements, cal: CellCalibration,
                        recordings: Sequence[Recording], bags: Sequence[str]
                        ) -> list[dict[str, Any]]:
-    """calibration.yaml's ``recordings:``: per recording (``data`` the rows the fit kept) its
-    bag, whether its probe was remounted, its constant covariates, and what it contributed
-    (:func:`kpi_calib_ros.core.measurement.recordings.contributions`): poses, rms, its
-    placement with std, and the TCP variance without its rows over the one with them."""
+    """calibration.yaml's ``recordings:``: per recording (``data`` the rows the calibration
+    ``cal`` kept) its bag, whether its probe was remounted, its constant covariates, what it
+    contributed (:func:`kpi_calib_ros.core.measurement.recordings.contributions`): poses,
+    rms, its placement with std, and the TCP variance without its rows over the one with
+    them; and its own figures against the nominal robot (``against_nominal``,
+    :mod:`kpi_calib_ros.core.diagnosis.recording_verdict`)."""
+    result, nominal = cal.result, cal.nominal
     names = [r.name for r in recordings]
     found = contributions(cm.model, data, result.values, result.estimated, result.std,
                           result.sigma, cm.q_work, names)
+    verdicts = (nominal.recordings if nominal is not None
+                and len(nominal.recordings) == len(names) else ())
     out = []
-    for rec, bag, c in zip(recordings, bags, found):
+    for i, (rec, bag, c) in enumerate(zip(recordings, bags, found)):
         ratio = c.tcp_variance_ratio
         entry: dict[str, Any] = {
             'name': rec.name, 'bag': str(bag), 'reflector_remounted': rec.reflector_remounted,
@@ -262,6 +283,8 @@ def recordings_section(cm: CellModel, data: Measurements, result: CalibrationRes
         if ratio is not None and not np.isfinite(ratio):
             entry['tcp_variance_ratio_without_reason'] = (
                 'without this recording the identified robot is not determined')
+        if verdicts:
+            entry['against_nominal'] = verdicts[i].to_dict()
         out.append(entry)
     return out
 
@@ -273,6 +296,7 @@ def recordings_text(section: Sequence[Mapping[str, Any]]) -> str:
         base = [v['value'] for n, v in entry['placement'].items() if '.reflector' not in n
                 and not n.startswith('reflector')]
         ratio = entry['tcp_variance_ratio_without']
+        versus = entry.get('against_nominal')
         lines.append(
             f"recording {entry['name']}: {entry['poses']} poses, rms "
             + ('n/a' if entry['rms_m'] is None else f"{entry['rms_m'] * 1e3:.3f} mm")
@@ -280,7 +304,12 @@ def recordings_text(section: Sequence[Mapping[str, Any]]) -> str:
             + (' (reflector remounted)' if entry['reflector_remounted'] else '')
             + ('; TCP variance without it: '
                + ('not determined' if ratio is None and 'tcp_variance_ratio_without_reason'
-                  in entry else 'n/a' if ratio is None else f'{ratio:.3g} x')))
+                  in entry else 'n/a' if ratio is None else f'{ratio:.3g} x'))
+            + ('' if not versus else
+               f"; held-out rms {_um(versus['in_region_rms_m'])} against the nominal robot's "
+               f"{_um(versus['nominal_in_region_rms_m'])}"
+               + (' (WORSE than nominal beyond the noise)' if versus['worse_than_nominal']
+                  else '')))
     return '\n'.join(lines)
 
 

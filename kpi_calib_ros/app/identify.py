@@ -22,6 +22,7 @@ from kpi_calib_ros.app.calibration_document import (
     recordings_section,
     recordings_text,
     robust_summary,
+    with_recording_names,
 )
 from kpi_calib_ros.app.finish import finish_calibration
 from kpi_calib_ros.app.measurements import load_measurements
@@ -561,7 +562,7 @@ def run_identify(cell_path: str | Path, bag_path: str | Path | Sequence[Recordin
     cm, data, pairing = load_measurements(cell_path, bag_path, effects, **options)
     if max_iterations is not None:
         cm = with_iteration_limit(cm, max_iterations)
-    cal = calibrate_cell(cm, data, model, progress=print_progress)
+    cal = with_recording_names(calibrate_cell(cm, data, model, progress=print_progress), bag_path)
     cm = cal.cell or cm  # with the effects auto added
     how = tolerance_text(cm, cal.prior_scale)
     doc = add_robust_sections(calibration_document(cm, cal.result, pairing), cal)
@@ -573,9 +574,8 @@ def run_identify(cell_path: str | Path, bag_path: str | Path | Sequence[Recordin
         comparison = add_effect_comparison(doc, cm, data.subset(cal.robust.kept), cal.result)
     recordings_lines = ''
     if not isinstance(bag_path, (str, Path)):
-        doc['recordings'] = recordings_section(
-            cm, data.subset(cal.robust.kept), cal.result,
-            [s.recording for s in bag_path], [str(s.bag) for s in bag_path])
+        doc['recordings'] = recordings_section(cm, data.subset(cal.robust.kept), cal, [
+            s.recording for s in bag_path], [str(s.bag) for s in bag_path])
         recordings_lines = recordings_text(doc['recordings'])
     residual_text, learned = '', None
     if learned_residual:

@@ -23,6 +23,7 @@ from kpi_calib_ros.app.calibration_document import (
     calibration_document,
     recordings_section,
     recordings_text,
+    with_recording_names,
 )
 from kpi_calib_ros.app.campaign import campaign_calibration, campaign_context, new_campaign
 from kpi_calib_ros.app.design import (
@@ -225,14 +226,14 @@ def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, dat
                  'with its own placement, without a prior']
     change = None
     if source is None:
-        cal: CellCalibration | None = calibrate_cell(cm, data)
+        cal: CellCalibration | None = with_recording_names(calibrate_cell(cm, data), stations)
         assert cal is not None
         cm = cal.cell or cm  # with the effects identification.model auto added
         doc = add_robust_sections(calibration_document(cm, cal.result, pairing), cal)
         result = cal.result
         if several and cal.valid:
             doc['recordings'] = recordings_section(
-                cm, data.subset(cal.robust.kept), result, stations,
+                cm, data.subset(cal.robust.kept), cal, stations,
                 [f'{data_dir} station {r.name}' for r in stations])
     else:
         assert old is not None

@@ -25,11 +25,16 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 
 from kpi_calib_ros.core.diagnosis.out_of_sample import METHOD, out_of_sample_error
+from kpi_calib_ros.core.diagnosis.recording_verdict import (
+    RecordingComparison,
+    named,
+    recording_comparisons,
+)
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.core.estimation.precision import (
@@ -371,6 +376,20 @@ class NominalComparison:
     # (core.diagnosis.out_of_sample, like_measured), m; NaN: not estimable.
     calibrated_predicted_m: float = float('nan')
     nominal_predicted_m: float = float('nan')
+    # With several recordings, each one's figures on its own rows, first included
+    # (core.diagnosis.recording_verdict); () with one.
+    recordings: tuple[RecordingComparison, ...] = ()
+
+    @property
+    def harmed(self) -> tuple[RecordingComparison, ...]:
+        """The recordings the calibration predicts worse than nominal beyond the noise."""
+        return tuple(r for r in self.recordings if r.harmed)
+
+    def named(self, names: Sequence[str]) -> NominalComparison:
+        """Return the comparison with the recordings' ``names`` (first included)."""
+        if not self.recordings:
+            return self
+        return dataclasses.replace(self, recordings=named(self.recordings, names))
 
     @property
     def compared(self) -> tuple[str, ...]:
@@ -446,20 +465,27 @@ def against_nominal(model: MeasurementModel, data: Measurements, result: Calibra
     Both are cross-validated (linear refits, each fit's prior kept) on the folds of the
     calibration, which keep the rank of the placement it contains; where those folds do not
     keep the nominal fit's rank, on its own. ``free``, ``nominal_free``: the free parameters
-    of each fit (default: its estimated ones), for the error predicted from the fit.
+    of each fit (default: its estimated ones), for the error predicted from the fit. With
+    several recordings each is also judged on its own rows, on the same folds
+    (:func:`~kpi_calib_ros.core.diagnosis.recording_verdict.recording_comparisons`).
     """
     folds = validation_folds(model, data, result, prior, seed=seed)
     cal = region_validation(model, data, result, prior, seed=seed, pose_folds=folds)
     nom = region_validation(nominal_model, data, nominal, nominal_prior, seed=seed,
                             pose_folds=folds)
+    nominal_folds = folds
     if not (np.isfinite(nom.in_region_m) and np.isfinite(nom.other_region_m)):
-        nom = region_validation(nominal_model, data, nominal, nominal_prior, seed=seed)
+        nominal_folds = validation_folds(nominal_model, data, nominal, nominal_prior, seed=seed)
+        nom = region_validation(nominal_model, data, nominal, nominal_prior, seed=seed,
+                                pose_folds=nominal_folds)
     return NominalComparison(
         cal, nom, _working(model, data, result, prior),
         _working(nominal_model, data, nominal, nominal_prior),
         _predicted(model, data, result, free or list(result.estimated), prior, seed),
         _predicted(nominal_model, data, nominal, nominal_free or list(nominal.estimated),
-                   nominal_prior, seed))
+                   nominal_prior, seed),
+        recording_comparisons(model, data, result, prior, nominal_model, nominal,
+                              nominal_prior, folds, nominal_folds))
 
 
 def _predicted(model: MeasurementModel, data: Measurements, result: CalibrationResult,
