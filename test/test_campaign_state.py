@@ -85,6 +85,7 @@ def test_a_restarted_campaign_plans_the_same_next_pose(campaign_run, tmp_path):
     assert after.state.steps == outs[k + 1].state.steps
 
 
+@pytest.mark.slow
 def test_a_state_whose_measurements_are_gone_is_refused_by_name(campaign_run, tmp_path):
     cm, _, outs, batches = campaign_run
     data = _through(batches, 1)
@@ -104,6 +105,7 @@ def test_state_round_trip(tmp_path):
     assert stopped.stopped and not state.stopped
 
 
+@pytest.mark.slow
 def test_the_published_calibration_states_the_precision_the_campaign_stopped_on(campaign_run):
     """One statistic: the stopped campaign's calibration states per-axis TCP std equal to
     the campaign's (σ upper limit), its largest is the stop statistic, the document says
@@ -124,6 +126,7 @@ def test_the_published_calibration_states_the_precision_the_campaign_stopped_on(
     assert read_campaign_state(data_dir / CAMPAIGN_STATE_FILE).stopped
 
 
+@pytest.mark.slow
 def test_a_campaign_stopped_model_inadequate_publishes_and_archives_nothing(tmp_path):
     """Hidden joint compliance the model lacks: the campaign stops 'model inadequate'; the
     step gives no calibration to publish, nothing is archived as the next cycle's prior,

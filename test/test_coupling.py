@@ -92,6 +92,7 @@ def _coupled_pair(tmp_path: Path, poses=None):
     return ref, r_ref, r_cpl
 
 
+@pytest.mark.slow
 def test_coupled_publication_gives_the_uncoupled_calibration(tmp_path):
     """A FANUC-like controller publishes J3 against the horizontal; with
     robot.joint_coupling the calibration is the uncoupled one to 1e-9 (relative).

@@ -46,6 +46,7 @@ def _messages(bag: Path, topic: str) -> list:
             f, decoder_factories=[DecoderFactory()]).iter_decoded_messages(topics=[topic])]
 
 
+@pytest.mark.slow
 def test_ur10_series_a_as_exported_is_imported_and_identified(tmp_path, capsys):
     table = _subset(DATA / 'Series_A' / 'measurements_grid.csv', tmp_path / 'grid.csv',
                     149, 80)

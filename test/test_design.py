@@ -340,6 +340,7 @@ def test_design_command_writes_yaml_and_plots(tmp_path):
     assert (tmp_path / 'design_ellipsoids.png').stat().st_size > 10_000
 
 
+@pytest.mark.slow
 def test_exchange_at_the_smallest_size_completes_when_a_removal_is_singular(cm):
     """9 poses for 25 parameters: without one pose 24 equations remain, and round-off let
     the loss of that singular information look finite (the inverse then raised); the

@@ -22,6 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'bench'))
 from solver_vs_trf import SAME_COST, UR10_SIGMA, trf_fit, ur10_cell, ur10_series_a  # noqa: E402,E501
 
 
+@pytest.mark.slow
 def test_real_ur10_series_converges_to_the_cost_of_scipy_trf():
     cm = ur10_cell()
     q, eta = ur10_series_a(120, seed=3)

@@ -111,6 +111,7 @@ def test_identify_and_diagnose_state_both_figures(tmp_path, capsys):
     assert 'expected_tcp_error_m' in report
 
 
+@pytest.mark.slow
 def test_one_high_leverage_pose_does_not_inflate_the_expected_error(cm):
     """40 poses turn joint_6 by less than 0.05 rad, one more by 1 rad: that pose alone
     determines some parameters (leverage 1 − 1e-5), and its held-out residual, the others'

@@ -209,6 +209,7 @@ def test_validation_holds_new_points_with_the_joint_noise(exact, stated, cell):
     assert max(without) < 0.01
 
 
+@pytest.mark.slow
 def test_simulate_and_identify_carry_the_cell_joint_noise(tmp_path, capsys):
     """kpi-calib simulate reads the joints with the cell's noise.joint_sigma; identify with
     that cell accepts the model and writes the joint noise it carried; with the joint

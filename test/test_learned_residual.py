@@ -132,6 +132,7 @@ def test_far_from_data_the_prediction_returns_to_the_physical_model(smooth):
     assert np.all(np.trace(near.covariance, axis1=1, axis2=2) < 0.6 * model.amplitude_m2)
 
 
+@pytest.mark.slow
 def test_clean_data_add_nothing(cm):
     """No misfit: the learned residual is not chosen (2 seeds; 100 in the bench)."""
     for seed in range(2):

@@ -54,6 +54,7 @@ def measure(cm, p_true, q, rng) -> Measurements:
     return Measurements(q=q, eta=clean + rng.normal(size=clean.shape) * sigma, sigma=sigma)
 
 
+@pytest.mark.slow
 def test_chi2_p_values_are_uniform_with_the_point_sigma(cm, cell):
     """50 campaigns, noise 15 µm + 6 µm/m (22-35 µm here): weighed by each point's σ the
     χ² p-values are uniform (KS); weighed by the cell's single 20 µm, χ² rejects most."""

@@ -146,6 +146,7 @@ def test_a_bend_is_detected_and_the_moved_parameter_named(cell, truth, first_cyc
     assert 'CHANGE DETECTED' in out.change.summary() and moved in out.change.summary()
 
 
+@pytest.mark.slow
 def test_identify_with_prior_exits_3_on_a_different_robot_and_keeps_the_calibration(
         tmp_path, capsys):
     import yaml
@@ -223,6 +224,7 @@ def test_design_with_the_prior_predicts_the_map_covariance_of_its_poses(cell, fi
                                                                   rel=1e-9)
 
 
+@pytest.mark.slow
 def test_the_drift_state_filter_matches_monte_carlo_of_the_swing_process():
     """The drift state's prediction and update (core.prior) against the process they
     model: the parameters' deviation d and rate ḋ follow the swing's oscillator exactly

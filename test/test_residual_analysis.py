@@ -111,6 +111,7 @@ def test_a_map_of_two_joints_is_found_as_their_interaction(ur):
     assert abs(an.combined_after_m - floor) < 0.2 * floor < an.combined_before_m - floor
 
 
+@pytest.mark.slow
 def test_the_f_test_is_exact_on_noise_and_holm_keeps_the_family_level():
     """Pure unit noise projected off a random 'geometry': the raw p-value of one input
     with one basis is uniform (Kolmogorov-Smirnov), and over 100 draws of 4 inputs with

@@ -77,6 +77,7 @@ def test_validate_service_tests_the_calibration_on_the_new_measurements(node, tm
     assert received and json.loads(received[-1]) == doc
 
 
+@pytest.mark.slow
 def test_validate_service_re_registers_a_tracker_set_up_again(node, tmp_path, cm):
     """With ``validate_register: base`` the node scores new measurements from a moved
     tracker after re-fitting the base pose on them (as ``validate --register``): the

@@ -122,6 +122,7 @@ def test_the_plan_does_not_depend_on_how_long_it_takes(setup, monkeypatch):
         info + information(rows[greedy]))
 
 
+@pytest.mark.slow
 def test_nested_order_makes_every_prefix_nearly_as_good_as_the_batch_design(setup):
     """Issue 12, plan nested: the backward-elimination order of a 30-pose KPI design has
     prefixes within 1.15 of the exchange design of each size; the exchange design of the
@@ -376,6 +377,7 @@ def test_one_outlier_among_the_first_points_is_excluded_and_measured_again(setup
     assert np.all(np.abs(error) <= 4 * final.tcp_std)
 
 
+@pytest.mark.slow
 def test_a_cap_below_the_initial_design_names_the_cap_and_the_size(tmp_path, capsys):
     capsys.readouterr()
     rc = main(['campaign', '--cell', str(DEFAULT_CELL), '--target-std', '15e-6', '--max', '1',

@@ -65,6 +65,7 @@ def test_without_shared_terms_it_is_the_chi2_test():
     assert out.p_value == pytest.approx(scipy.stats.chi2.sf(chi2, 3 * m), rel=1e-8)
 
 
+@pytest.mark.slow
 def test_p_values_are_uniform_when_the_points_share_an_error():
     """100 points share the error of 4 parameters (10× the noise): over 300 recordings drawn
     from that statement the test's p-values are uniform and the share of points inside

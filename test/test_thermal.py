@@ -344,6 +344,7 @@ def test_at_one_temperature_a_thermal_effect_is_not_distinguishable(cm):
     assert all('temperature changes' in c.explanation for c in rejected)
 
 
+@pytest.mark.slow
 def test_diagnose_analyses_the_recorded_temperature_as_an_input(cm):
     """The temperature the measurements carry reaches the model-free residual analysis of
     ``diagnose`` without being passed: with a hidden link growth over a warm-up it is a

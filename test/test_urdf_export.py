@@ -221,6 +221,7 @@ def test_stock_description_exports_the_calibrated_kinematics(case):
     assert {n for n in after if after[n] != before[n]} <= set(robot.joint_names)
 
 
+@pytest.mark.slow
 def test_cli_calibrated_urdf_of_the_stock_ur10_reproduces_the_fit(tmp_path):
     """As a user uses it: the written URDF, the base pose and reflector of calibration.yaml
     predict every measured point with the identification's own residual (the stock UR10 has
