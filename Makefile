@@ -6,6 +6,9 @@ STAMP := $(VENV)/.installed
 # Small matrices: a multi-threaded BLAS only contends for the cores (see kpi_calib_ros/__init__.py).
 export OPENBLAS_NUM_THREADS ?= 1
 export OMP_NUM_THREADS ?= 1
+# Byte code and pytest's rewritten test modules are cached (__pycache__/), whatever the
+# shell says: rewriting the tests' asserts takes a worker seconds at every start.
+unexport PYTHONDONTWRITEBYTECODE
 # The tests run on TEST_WORKERS processes (pytest-xdist), handed out two at a time so that
 # the long ones, collected first (test/conftest.py), spread over the workers; every worker
 # holds a ROS domain of its own (test/ros_helpers.py).
