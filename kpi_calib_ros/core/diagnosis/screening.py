@@ -53,7 +53,6 @@ from kpi_calib_ros.core.measurement.weighting import unweighted
 __all__ = ['DEPENDENCE_TOLERANCE', 'NO_EFFECT_M', 'Candidate', 'default_candidates',
            'screen_effects']
 
-
 DEPENDENCE_TOLERANCE = 1e-4  # unique fraction of a signature below this: absorbed
 NO_EFFECT_M = 1e-9           # a typical-size effect moving no point by 1 nm has no effect
 
