@@ -23,7 +23,7 @@ import numpy as np
 import scipy.stats
 import yaml
 
-from kpi_calib_ros.core.diagnosis.candidates import diagnose
+from kpi_calib_ros.core.diagnosis.verdict import diagnose
 from kpi_calib_ros.core.effects.registry import available_effects
 from kpi_calib_ros.core.estimation.least_squares import identify
 from kpi_calib_ros.core.measurement.data import Measurements

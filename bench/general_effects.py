@@ -27,7 +27,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from kpi_calib_ros.core.diagnosis.candidates import augmented_model, diagnose
+from kpi_calib_ros.core.diagnosis.effect_signature import augmented_model
+from kpi_calib_ros.core.diagnosis.verdict import diagnose
 from kpi_calib_ros.core.effects.registry import parse_effect_spec
 from kpi_calib_ros.core.estimation.least_squares import identify
 from kpi_calib_ros.core.simulation import (

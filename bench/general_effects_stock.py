@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from kpi_calib_ros.app.diagnose import diagnose_cell
-from kpi_calib_ros.core.diagnosis.candidates import augmented_model
+from kpi_calib_ros.core.diagnosis.effect_signature import augmented_model
 from kpi_calib_ros.core.effects.registry import parse_effect_spec
 from kpi_calib_ros.core.estimation.least_squares import identify
 from kpi_calib_ros.core.estimation.residuals import linearized_fit, orthonormal_basis

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from kpi_calib_ros.app.identify import identify_cell
-from kpi_calib_ros.core.diagnosis.candidates import augmented_model
+from kpi_calib_ros.core.diagnosis.effect_signature import augmented_model
 from kpi_calib_ros.core.diagnosis.model_selection import cross_validated_level_rms
 from kpi_calib_ros.core.diagnosis.out_of_sample import (
     DOMAINS,

@@ -37,7 +37,9 @@ import numpy as np
 from general_effects import AMPLITUDE, SIGMA, cell, hidden
 
 from kpi_calib_ros.app.identify import calibrate_cell
-from kpi_calib_ros.core.diagnosis.candidates import augmented_model, compare_models, diagnose
+from kpi_calib_ros.core.diagnosis.effect_signature import augmented_model
+from kpi_calib_ros.core.diagnosis.model_comparison import compare_models
+from kpi_calib_ros.core.diagnosis.verdict import diagnose
 from kpi_calib_ros.core.effects.registry import parse_effect_spec
 from kpi_calib_ros.core.estimation.least_squares import identify
 from kpi_calib_ros.core.simulation import (

@@ -33,8 +33,9 @@ from general_effects_ur10 import CELL, MAPPING
 from kpi_calib_ros.app.calibration_document import calibration_document
 from kpi_calib_ros.app.identify import calibrate_cell, identify_cell, with_effects
 from kpi_calib_ros.app.validate import validate_calibration
-from kpi_calib_ros.core.diagnosis.candidates import compare_models, diagnose
 from kpi_calib_ros.core.diagnosis.effect_selection import effect_start
+from kpi_calib_ros.core.diagnosis.model_comparison import compare_models
+from kpi_calib_ros.core.diagnosis.verdict import diagnose
 from kpi_calib_ros.core.effects.registry import parse_effect_spec
 from kpi_calib_ros.core.estimation.residuals import pose_index, region_fold_ids
 from kpi_calib_ros.core.measurement.data import Measurements

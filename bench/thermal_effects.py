@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from kpi_calib_ros.app.identify import calibrate_cell
-from kpi_calib_ros.core.diagnosis.candidates import augmented_model
+from kpi_calib_ros.core.diagnosis.effect_signature import augmented_model
 from kpi_calib_ros.core.measurement.covariates import DELTA_TEMPERATURE, shift_temperature
 from kpi_calib_ros.core.simulation import (
     random_configurations,

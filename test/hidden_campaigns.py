@@ -6,7 +6,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from kpi_calib_ros.core.diagnosis.candidates import augmented_model
+from kpi_calib_ros.core.diagnosis.effect_signature import augmented_model
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult, identify
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel

@@ -123,7 +123,7 @@ def test_out_of_sample_estimate_within_1_5x_over_20_seeds(cm):
 
 def test_not_estimable_is_said_not_printed_as_a_number(cm):
     """Two poses per joint: the diagnosis text names the design instead of a figure."""
-    from kpi_calib_ros.core.diagnosis.candidates import compare_models
+    from kpi_calib_ros.core.diagnosis.model_comparison import compare_models
     from kpi_calib_ros.io.report import NOT_ESTIMABLE, comparison_text
     rng = np.random.default_rng(2)
     p_true = true_parameters(cm.model.params, rng)

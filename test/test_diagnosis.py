@@ -17,15 +17,12 @@ import numpy as np
 import pytest
 import yaml
 
-from kpi_calib_ros.core.diagnosis.candidates import (
-    augmented_model,
-    compare_models,
-    diagnose,
-    residual_report,
-    validation_rms,
-)
+from kpi_calib_ros.core.diagnosis.effect_signature import augmented_model
+from kpi_calib_ros.core.diagnosis.model_comparison import compare_models
+from kpi_calib_ros.core.diagnosis.verdict import diagnose
 from kpi_calib_ros.core.effects.registry import parse_effect_spec
 from kpi_calib_ros.core.estimation.least_squares import identify
+from kpi_calib_ros.core.estimation.residuals import residual_report, validation_rms
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict
 

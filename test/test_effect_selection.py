@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from kpi_calib_ros.app.identify import calibrate_cell, identify_cell, with_effects
-from kpi_calib_ros.core.diagnosis.candidates import augmented_model, screen_effects
+from kpi_calib_ros.core.diagnosis.effect_signature import augmented_model
+from kpi_calib_ros.core.diagnosis.screening import screen_effects
 from kpi_calib_ros.core.effects.registry import available_effects, bind_effect, implausible
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.simulation import (

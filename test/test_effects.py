@@ -8,7 +8,7 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from kpi_calib_ros.core.diagnosis.candidates import augmented_model
+from kpi_calib_ros.core.diagnosis.effect_signature import augmented_model
 from kpi_calib_ros.core.effects import registry as fx
 from kpi_calib_ros.core.effects.registry import (
     EffectType,

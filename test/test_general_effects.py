@@ -15,12 +15,14 @@ import numpy as np
 import pytest
 import yaml
 
-from kpi_calib_ros.core.diagnosis.candidates import augmented_model, diagnose, screen_effects
+from kpi_calib_ros.core.diagnosis.effect_signature import augmented_model
 from kpi_calib_ros.core.diagnosis.periodic_search import (
     periodic_candidates,
     periodograms,
     searched_cycles,
 )
+from kpi_calib_ros.core.diagnosis.screening import screen_effects
+from kpi_calib_ros.core.diagnosis.verdict import diagnose
 from kpi_calib_ros.core.effects.general import general_candidates, gravity_moment
 from kpi_calib_ros.core.effects.registry import parse_effect_spec, resolve_effects, split_specs
 from kpi_calib_ros.core.errors import ConfigError

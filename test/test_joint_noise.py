@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from kpi_calib_ros.core.diagnosis.candidates import diagnose, equivalent_joint_sigma
+from kpi_calib_ros.core.diagnosis.verdict import diagnose, equivalent_joint_sigma
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation.least_squares import identify
 from kpi_calib_ros.core.estimation.precision import honest_precision, precision_statement

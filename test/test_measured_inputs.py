@@ -16,7 +16,7 @@ from kpi_calib_ros.app.identify import calibrate_cell, with_effects
 from kpi_calib_ros.app.measurements import measurements_from_bag
 from kpi_calib_ros.cli import main
 from kpi_calib_ros.core.acquisition.streams import synthesize_streams
-from kpi_calib_ros.core.diagnosis.candidates import augmented_model
+from kpi_calib_ros.core.diagnosis.effect_signature import augmented_model
 from kpi_calib_ros.core.effects.registry import parse_effect_spec
 from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.model.robot import Payload

@@ -11,7 +11,7 @@ import pytest
 
 from kpi_calib_ros.app.diagnose import diagnose_cell, recorded_covariates
 from kpi_calib_ros.app.identify import calibrate_cell
-from kpi_calib_ros.core.diagnosis.candidates import augmented_model
+from kpi_calib_ros.core.diagnosis.effect_signature import augmented_model
 from kpi_calib_ros.core.effects.registry import candidate_effects, parse_effect_spec
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation.plausibility import effect_violations

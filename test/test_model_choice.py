@@ -7,9 +7,10 @@ import numpy as np
 import pytest
 
 from kpi_calib_ros.app.identify import calibrate_cell, identify_cell
-from kpi_calib_ros.core.diagnosis.candidates import augmented_model, default_candidates
+from kpi_calib_ros.core.diagnosis.effect_signature import augmented_model
 from kpi_calib_ros.core.diagnosis.model_selection import choose_model, level_free
 from kpi_calib_ros.core.diagnosis.periodic_search import periodograms
+from kpi_calib_ros.core.diagnosis.screening import default_candidates
 from kpi_calib_ros.core.effects.general import (
     frequency_resolution,
     periodic_cycles,
@@ -148,7 +149,8 @@ def test_an_effect_that_helps_only_where_measured_is_not_recommended(cm):
     (220.6 -> 220.0 µm, less than the 5 % margin): diagnose does not recommend it and offers
     no command for it."""
     from kpi_calib_ros.app.diagnose import named_remedy
-    from kpi_calib_ros.core.diagnosis.candidates import compare_models, diagnose
+    from kpi_calib_ros.core.diagnosis.model_comparison import compare_models
+    from kpi_calib_ros.core.diagnosis.verdict import diagnose
     from kpi_calib_ros.core.effects.registry import parse_effect_spec
     from kpi_calib_ros.core.measurement.data import Measurements
     from kpi_calib_ros.core.simulation import sampling_bounds

@@ -7,7 +7,7 @@ import pytest
 
 from kpi_calib_ros.app.diagnose import diagnose_cell
 from kpi_calib_ros.app.identify import _fit_function, identify_cell
-from kpi_calib_ros.core.diagnosis.candidates import augmented_model
+from kpi_calib_ros.core.diagnosis.effect_signature import augmented_model
 from kpi_calib_ros.core.diagnosis.model_selection import choose_model
 from kpi_calib_ros.core.diagnosis.out_of_sample import (
     NOT_ESTIMABLE,

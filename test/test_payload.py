@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from kpi_calib_ros.app.identify import calibrate_cell, with_effects
-from kpi_calib_ros.core.diagnosis.candidates import augmented_model
+from kpi_calib_ros.core.diagnosis.effect_signature import augmented_model
 from kpi_calib_ros.core.effects.registry import parse_effect_spec
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.measurement.data import Measurements

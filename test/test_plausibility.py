@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from kpi_calib_ros.app.identify import calibrate_cell, identify_cell
-from kpi_calib_ros.core.diagnosis.candidates import augmented_model, screen_effects
+from kpi_calib_ros.core.diagnosis.effect_signature import augmented_model
+from kpi_calib_ros.core.diagnosis.screening import screen_effects
 from kpi_calib_ros.core.effects.effect_types import EffectType
 from kpi_calib_ros.core.effects.registry import (
     bind_effect,

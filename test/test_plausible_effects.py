@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kpi_calib_ros.core.diagnosis.candidates import augmented_model, screen_effects
+from kpi_calib_ros.core.diagnosis.effect_signature import augmented_model
+from kpi_calib_ros.core.diagnosis.screening import screen_effects
 from kpi_calib_ros.core.effects.registry import (
     EffectType,
     available_effects,

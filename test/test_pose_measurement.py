@@ -485,7 +485,7 @@ def test_an_identified_body_orientation_is_drawn_and_judged_in_radians():
     simulation draws their errors as a mounting's rotation (0.1–0.5°), never the reflector
     offset's millimetres read as milliradians, and the diagnosis's identifiability check
     judges them against ``identification.tolerances.rotation``, not the offset's metres."""
-    from kpi_calib_ros.core.diagnosis.candidates import _tolerance_of
+    from kpi_calib_ros.core.diagnosis.candidate_plausibility import _tolerance_of
     from kpi_calib_ros.core.estimation.plausibility import Tolerances
     from kpi_calib_ros.core.measurement.pose import orientation_names
     from kpi_calib_ros.core.simulation import ErrorMagnitudes

@@ -9,7 +9,7 @@ import yaml
 from kpi_calib_ros.app.diagnose import diagnose_cell
 from kpi_calib_ros.app.identify import identify_cell, with_effects
 from kpi_calib_ros.app.simulate import truth_cell_model
-from kpi_calib_ros.core.diagnosis.candidates import compare_models
+from kpi_calib_ros.core.diagnosis.model_comparison import compare_models
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,

@@ -16,7 +16,7 @@ import pytest
 import scipy.stats
 
 from kpi_calib_ros.app.diagnose import with_misfit_answer
-from kpi_calib_ros.core.diagnosis.candidates import CellDiagnosis, diagnose
+from kpi_calib_ros.core.diagnosis.cell_diagnosis import CellDiagnosis
 from kpi_calib_ros.core.diagnosis.misfit import GENERAL, NAMED, NONE, SMOOTH, Remedy, answer_misfit
 from kpi_calib_ros.core.diagnosis.residual_analysis import (
     _holm,
@@ -25,6 +25,7 @@ from kpi_calib_ros.core.diagnosis.residual_analysis import (
 )
 from kpi_calib_ros.core.diagnosis.residual_bases import fourier_basis, spline_basis
 from kpi_calib_ros.core.diagnosis.residual_inputs import ResidualInput
+from kpi_calib_ros.core.diagnosis.verdict import diagnose
 from kpi_calib_ros.core.estimation.least_squares import identify
 from kpi_calib_ros.core.estimation.residuals import LinearizedFit, orthonormal_basis
 from kpi_calib_ros.core.measurement.data import Measurements

@@ -25,7 +25,7 @@ from std_msgs.msg import String
 
 from kpi_calib_ros.app.learned_residual import predict_stored
 from kpi_calib_ros.app.validate import calibrated_model
-from kpi_calib_ros.core.diagnosis.candidates import augmented_model
+from kpi_calib_ros.core.diagnosis.effect_signature import augmented_model
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,

@@ -11,7 +11,7 @@ import pytest
 
 from kpi_calib_ros.app.diagnose import diagnose_cell, recorded_covariates
 from kpi_calib_ros.app.identify import calibrate_cell, geometric_only, identify_cell, with_effects
-from kpi_calib_ros.core.diagnosis.candidates import augmented_model
+from kpi_calib_ros.core.diagnosis.effect_signature import augmented_model
 from kpi_calib_ros.core.diagnosis.residual_analysis import analyse_calibration
 from kpi_calib_ros.core.diagnosis.residual_inputs import residual_inputs
 from kpi_calib_ros.core.effects.registry import candidate_effects, parse_effect_spec
@@ -329,7 +329,7 @@ def test_at_one_temperature_a_thermal_effect_is_not_distinguishable(cm):
     """ΔT the same at every pose: link growth is a fixed change of the link lengths and a
     drift a fixed zero offset, which the geometry reproduces; the screen says so and asks for
     measurements while the temperature changes."""
-    from kpi_calib_ros.core.diagnosis.candidates import screen_effects
+    from kpi_calib_ros.core.diagnosis.screening import screen_effects
     from kpi_calib_ros.core.estimation.least_squares import identify
     rng = np.random.default_rng(5)
     p_true = true_parameters(cm.model.params, rng)

@@ -11,11 +11,8 @@ import numpy as np
 import pytest
 
 from kpi_calib_ros.app.identify import identify_cell, with_effects
-from kpi_calib_ros.core.diagnosis.candidates import (
-    augmented_model,
-    default_candidates,
-    screen_effects,
-)
+from kpi_calib_ros.core.diagnosis.effect_signature import augmented_model
+from kpi_calib_ros.core.diagnosis.screening import default_candidates, screen_effects
 from kpi_calib_ros.core.effects.registry import candidate_effects, parse_effect_spec
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA

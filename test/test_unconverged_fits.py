@@ -8,8 +8,8 @@ import pytest
 
 from kpi_calib_ros.app.diagnose import diagnose_cell
 from kpi_calib_ros.app.identify import with_iteration_limit
-from kpi_calib_ros.core.diagnosis.candidates import compare_models
 from kpi_calib_ros.core.diagnosis.effect_selection import choose_effects
+from kpi_calib_ros.core.diagnosis.model_comparison import compare_models
 from kpi_calib_ros.core.diagnosis.model_selection import choose_model
 from kpi_calib_ros.core.estimation.least_squares import identify
 from kpi_calib_ros.core.simulation import (

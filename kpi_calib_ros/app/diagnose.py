@@ -20,20 +20,15 @@ from kpi_calib_ros.app.identify import (
 )
 from kpi_calib_ros.app.learned_residual import choose_residual, too_many_rows
 from kpi_calib_ros.app.measurements import load_measurements
-from kpi_calib_ros.core.diagnosis.candidates import (
-    CellDiagnosis,
-    Diagnosis,
-    ModelComparison,
-    compare_models,
-    diagnose,
-    with_estimability,
-)
+from kpi_calib_ros.core.diagnosis.cell_diagnosis import CellDiagnosis
 from kpi_calib_ros.core.diagnosis.effect_selection import effect_start
 from kpi_calib_ros.core.diagnosis.learned_residual import ResidualChoice
 from kpi_calib_ros.core.diagnosis.misfit import GENERAL, NAMED, Remedy, answer_misfit
+from kpi_calib_ros.core.diagnosis.model_comparison import ModelComparison, compare_models
 from kpi_calib_ros.core.diagnosis.model_selection import level_free
 from kpi_calib_ros.core.diagnosis.out_of_sample import out_of_sample_error
 from kpi_calib_ros.core.diagnosis.residual_analysis import analyse_calibration
+from kpi_calib_ros.core.diagnosis.verdict import Diagnosis, diagnose, with_estimability
 from kpi_calib_ros.core.effects.registry import implausible, parse_effect_spec
 from kpi_calib_ros.core.estimation.precision import expected_tcp_error
 from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA, is_adequate

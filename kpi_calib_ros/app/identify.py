@@ -26,7 +26,7 @@ from kpi_calib_ros.app.calibration_document import (
 )
 from kpi_calib_ros.app.finish import finish_calibration
 from kpi_calib_ros.app.measurements import load_measurements
-from kpi_calib_ros.core.diagnosis.candidates import augmented_model, compare_models
+from kpi_calib_ros.core.diagnosis import augmented_model, compare_models
 from kpi_calib_ros.core.diagnosis.effect_selection import choose_effects
 from kpi_calib_ros.core.diagnosis.model_selection import (
     ModelChoice,

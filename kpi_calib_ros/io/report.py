@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import scipy.stats
 
-from kpi_calib_ros.core.diagnosis.candidates import Candidate, CellDiagnosis, ModelComparison
+from kpi_calib_ros.core.diagnosis import Candidate, CellDiagnosis, ModelComparison
 from kpi_calib_ros.core.diagnosis.out_of_sample import DOMAIN_TEXT, NOT_ESTIMABLE, OutOfSample
 from kpi_calib_ros.core.diagnosis.periodic_search import Periodogram
 from kpi_calib_ros.core.estimation.precision import ExpectedTcpError, precision_statement

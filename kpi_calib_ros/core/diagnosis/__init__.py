@@ -2,21 +2,8 @@
 
 Validation is on new data.
 """
-from kpi_calib_ros.core.diagnosis.candidates import (
-    Candidate,
-    CandidateFit,
-    CellDiagnosis,
-    Diagnosis,
-    ModelComparison,
-    ResidualReport,
-    augmented_model,
-    compare_models,
-    diagnose,
-    equivalent_joint_sigma,
-    residual_report,
-    screen_effects,
-    validation_rms,
-)
+from kpi_calib_ros.core.diagnosis.candidate_fit import CandidateFit
+from kpi_calib_ros.core.diagnosis.cell_diagnosis import CellDiagnosis
 from kpi_calib_ros.core.diagnosis.corrected_tcp import CorrectedTcp, corrected_tcp
 from kpi_calib_ros.core.diagnosis.effect_selection import (
     MAX_EFFECTS,
@@ -26,6 +13,7 @@ from kpi_calib_ros.core.diagnosis.effect_selection import (
     choose_effects,
     effect_start,
 )
+from kpi_calib_ros.core.diagnosis.effect_signature import augmented_model
 from kpi_calib_ros.core.diagnosis.learned_residual import (
     CHOICE_ALPHA,
     INSIDE_DISTANCE,
@@ -38,6 +26,7 @@ from kpi_calib_ros.core.diagnosis.learned_residual import (
     residual_noise_scale,
 )
 from kpi_calib_ros.core.diagnosis.misfit import MisfitAnswer, Remedy, answer_misfit
+from kpi_calib_ros.core.diagnosis.model_comparison import ModelComparison, compare_models
 from kpi_calib_ros.core.diagnosis.model_selection import (
     DEFAULT_FOLDS,
     LEVELS,
@@ -75,7 +64,10 @@ from kpi_calib_ros.core.diagnosis.residual_analysis import (
 )
 from kpi_calib_ros.core.diagnosis.residual_bases import fourier_basis, spline_basis
 from kpi_calib_ros.core.diagnosis.residual_inputs import ResidualInput, residual_inputs
+from kpi_calib_ros.core.diagnosis.screening import Candidate, screen_effects
 from kpi_calib_ros.core.diagnosis.validation import Validation, validate
+from kpi_calib_ros.core.diagnosis.verdict import Diagnosis, diagnose, equivalent_joint_sigma
+from kpi_calib_ros.core.estimation.residuals import ResidualReport, residual_report, validation_rms
 
 __all__ = [
     'BASIS_SIZES', 'CHOICE_ALPHA', 'Candidate', 'CandidateFit', 'CellDiagnosis', 'CorrectedTcp',

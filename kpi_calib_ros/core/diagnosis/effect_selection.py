@@ -10,7 +10,7 @@ Each round:
 1. the diagnosis screens every library effect × joint and the general effects (link bending,
    the periodic joint error at each joint's periodogram peak, the search counted in its
    p-value) against the current fit
-   (:func:`kpi_calib_ros.core.diagnosis.candidates.screen_effects`: distinguishable from the
+   (:func:`kpi_calib_ros.core.diagnosis.screening.screen_effects`: distinguishable from the
    geometry, F-test Bonferroni-corrected over the candidates at the family-wise level
    ``alpha``, candidates with the same signature merged); only candidates that are
    **significant and physically plausible**
@@ -40,11 +40,7 @@ from typing import Callable, Mapping
 
 import numpy as np
 
-from kpi_calib_ros.core.diagnosis.candidates import (
-    augmented_model,
-    default_candidates,
-    screen_effects,
-)
+from kpi_calib_ros.core.diagnosis.effect_signature import augmented_model
 from kpi_calib_ros.core.diagnosis.model_selection import (
     REGION_MARGIN,
     holds_elsewhere,
@@ -52,6 +48,7 @@ from kpi_calib_ros.core.diagnosis.model_selection import (
     worse_folds,
 )
 from kpi_calib_ros.core.diagnosis.out_of_sample import out_of_sample_error
+from kpi_calib_ros.core.diagnosis.screening import default_candidates, screen_effects
 from kpi_calib_ros.core.effects.registry import BoundEffect, implausible
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
@@ -170,7 +167,7 @@ def choose_effects(model: MeasurementModel, data: Measurements, fit_for: FitFor,
     See the module docstring. ``n_geometric``: the number of geometric parameters of ``model``
     (its effects' parameters follow and are free at every level). With ``general``, the
     general effects join each round's screen as they join the diagnosis's
-    (:func:`~kpi_calib_ros.core.diagnosis.candidates.default_candidates`). ``prior``: the
+    (:func:`~kpi_calib_ros.core.diagnosis.screening.default_candidates`). ``prior``: the
     prior the fits use (``balanced``: balanced against the noise by them,
     :func:`~kpi_calib_ros.core.estimation.precision.fit_prior`), kept in every fold's refit.
 

@@ -10,7 +10,7 @@ diagnosis's result type can hold the answer):
   (:mod:`kpi_calib_ros.core.diagnosis.residual_analysis`), with their shares and the ranges where
   the misfit is largest -- model-free, so it answers even when no effect does;
 * *what*: the most likely named effect of the library when one is significant
-  (:func:`kpi_calib_ros.core.diagnosis.candidates.diagnose`; ``named``, built by
+  (:func:`kpi_calib_ros.core.diagnosis.verdict.diagnose`; ``named``, built by
   :func:`kpi_calib_ros.app.diagnose.named_remedy`), unless one of the ``general``
   remedies offered (any :class:`Remedy`: the learned residual, a general effect, each with
   its own command and held-out figures) removes more than twice the fraction of the

@@ -66,7 +66,7 @@ class EffectType:
     shape_grid : tuple of tuple of float
         For an effect nonlinear in its last parameters (they set the shape, not the size:
         their Jacobian column vanishes at zero size), the values of those shape parameters
-        the linear screening tries (:func:`kpi_calib_ros.core.diagnosis.candidates.screen_effects`
+        the linear screening tries (:func:`kpi_calib_ros.core.diagnosis.screening.screen_effects`
         keeps the best, counting them in the F-test's degrees of freedom); the
         identification then fits them from there. Empty: linear at zero (every column
         non-zero at θ = 0).

@@ -25,7 +25,7 @@ __all__ = [
 # a differentiable step keeps the Gauss-Newton fit well posed. Wherever |τ| > 3 τ_b it is the
 # sign within 0.5 %; a joint whose gravity torque stays below τ_b is never loaded out of its
 # play, and there b·tanh(τ/τ_b) ≈ (b/τ_b)·τ is a compliance, not a backlash: the screen does
-# not propose it there (core.diagnosis.candidates, backlash_unloaded).
+# not propose it there (core.diagnosis.candidate_plausibility.backlash_unloaded).
 BACKLASH_TORQUE_SCALE = 0.01
 PLAY_TORQUE_UNIT = 1.0        # N m (N for a prismatic joint): joint_play's τ0 = e^u of it
 # joint_play's screened transition torques τ0: 0.01 ... 10 N m, three per decade
