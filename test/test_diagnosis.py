@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 import yaml
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.core.diagnosis.candidates import (
     augmented_model,
     compare_models,
@@ -27,7 +28,7 @@ from kpi_calib_ros.core.diagnosis.candidates import (
 from kpi_calib_ros.core.effects.registry import parse_effect_spec
 from kpi_calib_ros.core.estimation.least_squares import identify
 from kpi_calib_ros.core.measurement.data import Measurements
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict
+from kpi_calib_ros.io.cell import DEFAULT_CELL, cell_from_dict
 
 from hidden_campaigns import FLOOR, SIGMA, campaign
 

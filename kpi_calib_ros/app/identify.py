@@ -23,6 +23,7 @@ from kpi_calib_ros.app.calibration_document import (
     recordings_text,
     robust_summary,
 )
+from kpi_calib_ros.app.cell_model import CellModel
 from kpi_calib_ros.app.finish import finish_calibration
 from kpi_calib_ros.app.measurements import load_measurements
 from kpi_calib_ros.core.diagnosis.candidates import augmented_model, compare_models
@@ -63,7 +64,6 @@ from kpi_calib_ros.core.measurement.recordings import (
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.core.measurement.weighting import row_torques
 from kpi_calib_ros.core.model.parameters import RECORDING_PREFIX, reflector_prefixes
-from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.recordings_manifest import RecordingSource
 from kpi_calib_ros.io.report import (
     comparison_text,
