@@ -30,6 +30,7 @@ import numpy as np
 import scipy.stats
 import yaml
 
+from kpi_calib_ros.app.cell_model import CellModel, build_cell_model
 from kpi_calib_ros.app.identify import calibrate_cell
 from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA
 from kpi_calib_ros.core.simulation import (
@@ -37,7 +38,7 @@ from kpi_calib_ros.core.simulation import (
     simulate_measurements,
     true_parameters,
 )
-from kpi_calib_ros.io.cell import DEFAULT_CELL, CellModel, build_cell_model, cell_from_dict
+from kpi_calib_ros.io.cell import DEFAULT_CELL, cell_from_dict
 
 from general_effects_stock import stock_cell
 

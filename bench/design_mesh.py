@@ -17,10 +17,11 @@ from pathlib import Path
 
 import numpy as np
 
+from kpi_calib_ros.app import robot_geometry
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.design import mesh_verified
 from kpi_calib_ros.core.design.optimum import design_measurements
-from kpi_calib_ros.io import robot_geometry
-from kpi_calib_ros.io.cell import build_cell_model, load_cell
+from kpi_calib_ros.io.cell import load_cell
 
 DATA = Path(__file__).resolve().parents[1] / 'test' / 'data'
 N = 24
@@ -34,7 +35,7 @@ def run(cell_file: Path) -> dict:
     geometry = cm.robot_geometry()
     t2 = time.perf_counter()
     result = design_measurements(cm.design_cell(), N, 'kpi', np.random.default_rng(0),
-                                 cm.cell.design)
+                                 cm.design_settings)
     t3 = time.perf_counter()
     result, doc = mesh_verified(cm, result)
     t4 = time.perf_counter()

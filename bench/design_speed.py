@@ -18,9 +18,10 @@ from pathlib import Path
 
 import numpy as np
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.core.design.exchange import exchange
 from kpi_calib_ros.core.design.optimum import DesignSettings, design_context, design_measurements
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.io.cell import DEFAULT_CELL, load_cell
 
 SEEDS = (1, 2, 3)
 N = 60

@@ -23,6 +23,7 @@ import numpy as np
 import scipy.stats
 import yaml
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.core.diagnosis.verdict import diagnose
 from kpi_calib_ros.core.effects.registry import available_effects
 from kpi_calib_ros.core.estimation.least_squares import identify
@@ -32,7 +33,7 @@ from kpi_calib_ros.core.simulation import (
     simulate_measurements,
     true_parameters,
 )
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict
+from kpi_calib_ros.io.cell import DEFAULT_CELL, cell_from_dict
 
 SIGMA = 20e-6
 N_POSES = 80

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.core.diagnosis.effect_signature import augmented_model
 from kpi_calib_ros.core.effects.registry import parse_effect_spec
 from kpi_calib_ros.core.estimation.least_squares import identify
@@ -31,7 +32,7 @@ from kpi_calib_ros.core.simulation import (
     simulate_measurements,
     true_parameters,
 )
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.io.cell import DEFAULT_CELL, load_cell
 
 # Hidden effects and the size range their value is drawn from (uniform, random sign):
 # from about what χ² starts to reject with 40 poses to several times that.

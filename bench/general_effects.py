@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.core.diagnosis.effect_signature import augmented_model
 from kpi_calib_ros.core.diagnosis.verdict import diagnose
 from kpi_calib_ros.core.effects.registry import parse_effect_spec
@@ -36,7 +37,7 @@ from kpi_calib_ros.core.simulation import (
     simulate_measurements,
     true_parameters,
 )
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict
+from kpi_calib_ros.io.cell import DEFAULT_CELL, cell_from_dict
 from kpi_calib_ros.io.cell_settings import hidden_effects
 
 SIGMA = 20e-6

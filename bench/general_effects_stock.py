@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from kpi_calib_ros.app.cell_model import CellModel, build_cell_model
 from kpi_calib_ros.app.diagnose import diagnose_cell
 from kpi_calib_ros.core.diagnosis.effect_signature import augmented_model
 from kpi_calib_ros.core.effects.registry import parse_effect_spec
@@ -41,7 +42,7 @@ from kpi_calib_ros.core.simulation import (
     true_parameters,
 )
 from kpi_calib_ros.io.arm_cell import arm_cell_document
-from kpi_calib_ros.io.cell import CellModel, build_cell_model, cell_from_dict
+from kpi_calib_ros.io.cell import cell_from_dict
 from kpi_calib_ros.io.cell_settings import hidden_effects
 
 SIGMA = 20e-6

@@ -13,13 +13,14 @@ from pathlib import Path
 import numpy as np
 
 import kpi_calib_ros  # noqa: F401  (sets single-threaded BLAS before numpy loads)
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.core.estimation.least_squares import identify
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,
     true_parameters,
 )
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.io.cell import DEFAULT_CELL, load_cell
 
 SIGMA = 20e-6
 SIZES = (30, 60, 120, 250, 500)

@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 import scipy.stats
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.identify import calibrate_cell, load_measurements, registered_start
 from kpi_calib_ros.app.learned_residual import (
     choose_residual,
@@ -61,7 +62,7 @@ from kpi_calib_ros.core.simulation import (
     smooth_joint_map,
     true_parameters,
 )
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict, load_cell
+from kpi_calib_ros.io.cell import DEFAULT_CELL, cell_from_dict, load_cell
 from kpi_calib_ros.io.csv_import import read_postures
 from kpi_calib_ros.io.csv_mapping import load_mapping
 

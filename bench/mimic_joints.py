@@ -27,13 +27,14 @@ import numpy as np
 import pinocchio as pin
 import yaml
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.validate import calibrated_model
 from kpi_calib_ros.cli import main as cli
 from kpi_calib_ros.core.model.kinematics import nominal_fk_function
 from kpi_calib_ros.core.model.robot_library import with_lifting_column
 from kpi_calib_ros.core.simulation import equivalent_parameters
 from kpi_calib_ros.io.arm_cell import arm_cell_document
-from kpi_calib_ros.io.cell import build_cell_model, load_cell
+from kpi_calib_ros.io.cell import load_cell
 from kpi_calib_ros.io.names import CALIBRATED_URDF_FILE
 from kpi_calib_ros.io.resources import resolve_uri
 

@@ -23,13 +23,14 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
 import kpi_calib_ros  # noqa: F401  (single-threaded BLAS before numpy loads)
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.core.acquisition.streams import synthesize_streams
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,
     true_parameters,
 )
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.io.cell import DEFAULT_CELL, load_cell
 from kpi_calib_ros.ros.conversions import joint_state_msg, point_stamped_msg
 
 from _live_node import LiveNode

@@ -25,7 +25,8 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Header
 
 import kpi_calib_ros  # noqa: F401  (single-threaded BLAS before numpy loads)
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.app.cell_model import build_cell_model
+from kpi_calib_ros.io.cell import DEFAULT_CELL, load_cell
 from kpi_calib_ros.ros import conversions as cv
 
 from _live_node import LiveNode

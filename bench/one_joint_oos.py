@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.identify import identify_cell
 from kpi_calib_ros.core.diagnosis.effect_signature import augmented_model
 from kpi_calib_ros.core.diagnosis.model_selection import cross_validated_level_rms
@@ -43,7 +44,7 @@ from kpi_calib_ros.core.simulation import (
     random_configurations,
     true_parameters,
 )
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.io.cell import DEFAULT_CELL, load_cell
 
 SIGMA = 20e-6
 FRESH = 2000

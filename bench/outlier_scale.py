@@ -19,12 +19,13 @@ from pathlib import Path
 import numpy as np
 
 import kpi_calib_ros  # noqa: F401  (sets single-threaded BLAS before numpy loads)
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.diagnose import diagnose_cell
 from kpi_calib_ros.app.identify import calibrate_cell
 from kpi_calib_ros.core.estimation.robust import OutlierSettings
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.simulation import random_configurations, true_parameters
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict, read_cell_document
+from kpi_calib_ros.io.cell import DEFAULT_CELL, cell_from_dict, read_cell_document
 
 OFFSETS = [[0.0, 0.0, 0.03], [0.06, 0.0, 0.03], [0.0, 0.05, 0.02]]
 POSES = 900

@@ -41,6 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.core.design.optimum import DesignSettings, design_context, design_measurements
 from kpi_calib_ros.core.estimation.least_squares import identify
 from kpi_calib_ros.core.measurement.data import Measurements
@@ -52,7 +53,7 @@ from kpi_calib_ros.core.model.robot_library import (
     notional_manipulators,
 )
 from kpi_calib_ros.core.simulation import true_parameters
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict
+from kpi_calib_ros.io.cell import DEFAULT_CELL, cell_from_dict
 
 HERE = Path(__file__).resolve().parent
 OUT = HERE / 'out' / 'paper_study'

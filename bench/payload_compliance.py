@@ -23,12 +23,13 @@ from pathlib import Path
 
 import numpy as np
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.identify import calibrate_cell, with_effects
 from kpi_calib_ros.core.diagnosis.effect_signature import augmented_model
 from kpi_calib_ros.core.effects.registry import parse_effect_spec
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.simulation import random_configurations, true_parameters
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict, read_cell_document
+from kpi_calib_ros.io.cell import DEFAULT_CELL, cell_from_dict, read_cell_document
 
 SIGMA = 20e-6
 COMPLIANCE = {'joint_2': -2e-6, 'joint_3': -3e-6}

@@ -37,6 +37,7 @@ import scipy.stats
 import yaml
 
 from kpi_calib_ros.app.calibration_document import calibration_document
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.identify import calibrate_cell
 from kpi_calib_ros.app.measurements import with_recordings
 from kpi_calib_ros.app.validate import validate_calibration
@@ -49,7 +50,7 @@ from kpi_calib_ros.core.simulation import (
     simulate_measurements,
     true_parameters,
 )
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict, load_cell
+from kpi_calib_ros.io.cell import DEFAULT_CELL, cell_from_dict, load_cell
 from kpi_calib_ros.io.csv_import import read_postures
 from kpi_calib_ros.io.csv_mapping import mapping_from_dict
 

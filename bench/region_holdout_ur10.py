@@ -31,6 +31,7 @@ import yaml
 from general_effects_ur10 import CELL, MAPPING
 
 from kpi_calib_ros.app.calibration_document import calibration_document
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.identify import calibrate_cell, identify_cell, with_effects
 from kpi_calib_ros.app.validate import validate_calibration
 from kpi_calib_ros.core.diagnosis.effect_selection import effect_start
@@ -39,7 +40,7 @@ from kpi_calib_ros.core.diagnosis.verdict import diagnose
 from kpi_calib_ros.core.effects.registry import parse_effect_spec
 from kpi_calib_ros.core.estimation.residuals import pose_index, region_fold_ids
 from kpi_calib_ros.core.measurement.data import Measurements
-from kpi_calib_ros.io.cell import build_cell_model, cell_from_dict
+from kpi_calib_ros.io.cell import cell_from_dict
 from kpi_calib_ros.io.csv_import import read_postures
 from kpi_calib_ros.io.csv_mapping import mapping_from_dict
 

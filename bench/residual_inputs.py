@@ -32,11 +32,12 @@ from pathlib import Path
 
 import numpy as np
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.core.diagnosis.residual_analysis import analyse_calibration
 from kpi_calib_ros.core.estimation.least_squares import identify
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.simulation import random_configurations, true_parameters
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.io.cell import DEFAULT_CELL, load_cell
 
 SIGMA = 20e-6
 N_POSES = 300

@@ -23,11 +23,12 @@ from pathlib import Path
 
 import yaml
 
+from kpi_calib_ros.app.cell_model import CellModel, build_cell_model
 from kpi_calib_ros.app.diagnose import diagnose_cell, learned_remedy, with_remedies
 from kpi_calib_ros.app.learned_residual import choose_residual
 from kpi_calib_ros.app.measurements import measurements_from_bag
 from kpi_calib_ros.cli import main
-from kpi_calib_ros.io.cell import CellModel, build_cell_model, cell_from_dict
+from kpi_calib_ros.io.cell import cell_from_dict
 from kpi_calib_ros.io.names import DEFAULT_TEMPERATURE_TOPIC
 from kpi_calib_ros.io.report import write_report
 from kpi_calib_ros.io.residual_plots import analysis_lines

@@ -58,12 +58,13 @@ from kpi_calib_ros.app.campaign import (
     new_campaign,
     simulate_sequential,
 )
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.core.campaigns.settings import CampaignSettings
 from kpi_calib_ros.core.design.exchange import exchange, information
 from kpi_calib_ros.core.estimation.identifiability import select_identifiable
 from kpi_calib_ros.core.measurement.weighting import weighted_rows
 from kpi_calib_ros.core.simulation import true_parameters
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.io.cell import DEFAULT_CELL, load_cell
 from kpi_calib_ros.io.cell_settings import hidden_effects
 
 TARGET = 10e-6

@@ -19,9 +19,10 @@ from pathlib import Path
 import numpy as np
 
 from kpi_calib_ros.app.campaign import campaign_context, new_campaign
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.core.campaigns.settings import TARGET_MET, CampaignSettings
 from kpi_calib_ros.core.simulation import true_parameters
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.io.cell import DEFAULT_CELL, load_cell
 
 
 def run(cm, cell, ctx, seed: int, fault: float) -> tuple[str, int, list[int], int]:

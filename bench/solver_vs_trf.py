@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import scipy.optimize
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.identify import registered_start
 from kpi_calib_ros.core.estimation.least_squares import (
     DEFAULT_MAX_ITERATIONS,
@@ -42,7 +43,7 @@ from kpi_calib_ros.core.simulation import (
     simulate_measurements,
     true_parameters,
 )
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict, load_cell
+from kpi_calib_ros.io.cell import DEFAULT_CELL, cell_from_dict, load_cell
 from kpi_calib_ros.io.csv_import import read_postures
 from kpi_calib_ros.io.csv_mapping import load_mapping
 

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.identify import calibrate_cell
 from kpi_calib_ros.core.diagnosis.effect_signature import augmented_model
 from kpi_calib_ros.core.measurement.covariates import DELTA_TEMPERATURE, shift_temperature
@@ -28,7 +29,7 @@ from kpi_calib_ros.core.simulation import (
     simulate_measurements,
     true_parameters,
 )
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.io.cell import DEFAULT_CELL, load_cell
 from kpi_calib_ros.io.cell_settings import hidden_effects
 
 SIGMA = 20e-6

@@ -21,10 +21,11 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.identify import calibrate_cell, identify_cell, with_effects
 from kpi_calib_ros.core.measurement.covariates import DELTA_TEMPERATURE
 from kpi_calib_ros.core.measurement.data import Measurements
-from kpi_calib_ros.io.cell import build_cell_model, cell_from_dict
+from kpi_calib_ros.io.cell import cell_from_dict
 from kpi_calib_ros.io.csv_import import read_postures
 from kpi_calib_ros.io.csv_mapping import mapping_from_dict
 

@@ -26,9 +26,10 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.measurements import measurements_from_bag
 from kpi_calib_ros.cli import main
-from kpi_calib_ros.io.cell import build_cell_model, load_cell
+from kpi_calib_ros.io.cell import load_cell
 
 ROOT = Path(__file__).resolve().parents[1]
 CELL = ROOT / 'test' / 'data' / 'tiago_mocap_cell.yaml'

@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from kpi_calib_ros.app.calibration_document import add_robust_sections, calibration_document
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.identify import calibrate_cell
 from kpi_calib_ros.app.reidentify import cycle_prior, reidentification_document, reidentify
 from kpi_calib_ros.core.design.optimum import design_context, design_measurements
@@ -50,7 +51,7 @@ from kpi_calib_ros.core.simulation import (
     simulate_measurements,
     true_parameters,
 )
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.io.cell import DEFAULT_CELL, load_cell
 
 CYCLES = 20
 HOURS = 1.2                      # between cycles
@@ -128,7 +129,7 @@ def main(runs: int, quick: bool) -> None:
     length_rate = ALPHA * amplitude_k * OMEGA * np.sqrt(HOURS) / 2
     angle_rate = OFFSET_DRIFT * OMEGA * np.sqrt(HOURS) / 2
     cell = cm.design_cell()
-    settings = cm.cell.design
+    settings = cm.design_settings
     rng = np.random.default_rng(0)
     t = time.perf_counter()
     d60 = design_measurements(cell, 60, 'kpi', rng, settings).configurations

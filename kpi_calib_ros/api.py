@@ -24,7 +24,7 @@ Its check on new poses of the same robot:
 True
 
 Every function takes the cell model :func:`load_cell` returns (a
-:class:`~kpi_calib_ros.io.cell.CellModel`: robot, tracker, working poses, settings) and
+:class:`~kpi_calib_ros.app.cell_model.CellModel`: robot, tracker, working poses, settings) and
 measurements as :class:`~kpi_calib_ros.core.measurement.data.Measurements` (joint
 readings in rad, tracker points in m); :func:`read_bag` makes them from a recording.
 """
@@ -48,6 +48,7 @@ from kpi_calib_ros.app.campaign import (
     new_campaign,
     simulate_sequential,
 )
+from kpi_calib_ros.app.cell_model import CellModel, build_cell_model
 from kpi_calib_ros.app.design import design_cell_model
 from kpi_calib_ros.app.diagnose import CellDiagnosis, diagnose_cell
 from kpi_calib_ros.app.identify import calibrate_cell
@@ -72,7 +73,7 @@ from kpi_calib_ros.core.simulation import (
     simulate_measurements,
     true_parameters,
 )
-from kpi_calib_ros.io.cell import DEFAULT_CELL, CellModel, build_cell_model
+from kpi_calib_ros.io.cell import DEFAULT_CELL
 from kpi_calib_ros.io.cell import load_cell as _read_cell
 
 __all__ = ['Campaign', 'calibrate', 'design', 'diagnose', 'learn_residual', 'load_cell',
@@ -267,11 +268,11 @@ def design(cell: CellModel, n: int, criterion: str = 'kpi', seed: int = 0,
     >>> poses.configurations.shape
     (20, 6)
     """
-    settings = cell.cell.design
+    settings = dict(cell.cell.design)
     if candidates is not None:
-        settings = replace(settings, candidates=candidates)
+        settings['candidates'] = candidates
     if refine is not None:
-        settings = replace(settings, nlp=refine)
+        settings['nlp'] = refine
     return design_cell_model(replace(cell, cell=replace(cell.cell, design=settings)), n,
                              criterion, seed)
 

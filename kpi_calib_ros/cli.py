@@ -449,7 +449,8 @@ def _demo(args: argparse.Namespace) -> int:
 
 
 def _robots(args: argparse.Namespace) -> int:
-    from kpi_calib_ros.core.model.robot_library import DATA_DIR, write_shipped
+    from kpi_calib_ros.core.model.robot_library import DATA_DIR
+    from kpi_calib_ros.io.shipped_robots import write_shipped
     for path in write_shipped(Path(args.out) if args.out else DATA_DIR):
         print(path)
     return 0

@@ -70,7 +70,8 @@ def pytest_collection_modifyitems(items):
 def cm():
     """The built-in simulated cell's model (KR15-class), built once for the whole run and
     shared: a frozen CellModel that no test changes (a variant is a new model)."""
-    from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+    from kpi_calib_ros.app.cell_model import build_cell_model
+    from kpi_calib_ros.io.cell import DEFAULT_CELL, load_cell
     return build_cell_model(load_cell(DEFAULT_CELL))
 
 

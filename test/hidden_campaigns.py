@@ -6,6 +6,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from kpi_calib_ros.app.cell_model import CellModel
 from kpi_calib_ros.core.diagnosis.effect_signature import augmented_model
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult, identify
 from kpi_calib_ros.core.measurement.data import Measurements
@@ -15,7 +16,6 @@ from kpi_calib_ros.core.simulation import (
     simulate_measurements,
     true_parameters,
 )
-from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.cell_settings import hidden_effects
 
 SIGMA = 20e-6           # tracker σ per axis, m

@@ -11,6 +11,7 @@ import pytest
 import yaml
 
 from kpi_calib_ros.app.calibration_document import calibration_document
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.identify import identify_cell
 from kpi_calib_ros.app.measurements import measurements_from_bag
 from kpi_calib_ros.cli import main
@@ -22,7 +23,7 @@ from kpi_calib_ros.core.simulation import (
 )
 from kpi_calib_ros.io.bag_writing import write_bag
 from kpi_calib_ros.io.calibration_file import read_calibration_document
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.io.cell import DEFAULT_CELL, load_cell
 from kpi_calib_ros.io.results import write_calibration
 from kpi_calib_ros.io.yaml_bounded import MAX_DOCUMENT_NODES, load_yaml_bounded
 

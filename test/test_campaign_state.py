@@ -10,13 +10,14 @@ import pytest
 import yaml
 
 from kpi_calib_ros.app.campaign import campaign_context, new_campaign
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.core.acquisition.pairing import PairingResult
 from kpi_calib_ros.core.campaigns.settings import MODEL_INADEQUATE, TARGET_MET, CampaignSettings
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.simulation import simulate_measurements, true_parameters
 from kpi_calib_ros.io.campaign_io import CampaignState, read_campaign_state, write_campaign_state
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.io.cell import DEFAULT_CELL, load_cell
 from kpi_calib_ros.io.cell_settings import hidden_effects
 from kpi_calib_ros.io.names import CALIBRATIONS_DIR, CAMPAIGN_STATE_FILE
 from kpi_calib_ros.ros import job_work

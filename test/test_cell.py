@@ -1,21 +1,25 @@
-"""Cell file validation in io/cell.py: sections, working poses and overrides."""
+"""Cell file validation in io/cell.py: sections, working poses and overrides; the cell
+model (app/cell_model.py) built from it."""
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 import pytest
 import yaml
 
+from kpi_calib_ros.app.cell_model import build_cell_model
+from kpi_calib_ros.core.collision.capsules import Capsule, HalfSpace
 from kpi_calib_ros.core.design.optimum import DesignSettings
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.io.cell import (
-    DEFAULT_CELL,
-    build_cell_model,
-    cell_from_dict,
-    load_cell,
-    with_overrides,
+from kpi_calib_ros.io.cell import DEFAULT_CELL, cell_from_dict, load_cell, with_overrides
+from kpi_calib_ros.io.cell_sections import (
+    CapsuleSpec,
+    HalfSpaceSpec,
+    WorkingPose,
+    working_poses_from_arrays,
 )
-from kpi_calib_ros.io.cell_sections import WorkingPose, working_poses_from_arrays
-from kpi_calib_ros.io.cell_settings import simulation_settings
+from kpi_calib_ros.io.cell_settings import DESIGN_KEYS, simulation_settings
 
 
 def _doc() -> dict:
@@ -27,9 +31,43 @@ def test_design_and_simulation_sections_are_typed():
     doc['design'] = {'candidates': 123, 'weights': {'car_roof_edge': 2}}
     doc['simulation'] = {'hidden_effects': {'joint_compliance:joint_2': {'c': 4e-7}}}
     cell = cell_from_dict(doc, DEFAULT_CELL.parent)
-    assert cell.design == DesignSettings(candidates=123, weights={'car_roof_edge': 2.0})
+    assert cell.design == {'candidates': 123, 'weights': {'car_roof_edge': 2.0}}
+    assert build_cell_model(cell).design_settings == DesignSettings(
+        candidates=123, weights={'car_roof_edge': 2.0})
     assert cell.simulation.hidden_effects == {'joint_compliance:joint_2': {'c': 4e-7}}
     assert load_cell(DEFAULT_CELL).simulation.hidden_effects == {}
+
+
+def test_the_design_keys_the_file_reads_are_the_design_settings():
+    """io checks ``design:`` against its own key table; the table is DesignSettings' fields
+    with the kind of each default, so every checked section builds a DesignSettings."""
+    defaults = DesignSettings()
+    assert DESIGN_KEYS == {f.name: type(getattr(defaults, f.name))
+                           for f in dataclasses.fields(DesignSettings)}
+
+
+def test_obstacles_are_read_as_written_and_built_as_collision_objects():
+    """The file's shapes stay as written in the Cell (plain data); the cell model builds
+    the collision objects from them: a half-space normalised, a capsule in the base frame,
+    robot capsules in their link frames."""
+    doc = _doc()
+    doc['obstacles'] = [
+        {'name': 'floor', 'type': 'halfspace', 'normal': [0, 0, 2], 'offset': -1.2},
+        {'name': 'box', 'frame': 'link_2', 'a': [1, 0, 0], 'b': [1, 1, 0], 'radius': 0.2}]
+    doc['collision'] = {'capsules': [{'link': 'link_3', 'a': [0, 0, 0], 'b': [0.5, 0, 0],
+                                      'radius': 0.1}]}
+    cell = cell_from_dict(doc, DEFAULT_CELL.parent)
+    assert cell.obstacles == (HalfSpaceSpec('floor', (0.0, 0.0, 2.0), -1.2),
+                              CapsuleSpec('box', 'base', (1.0, 0.0, 0.0), (1.0, 1.0, 0.0), 0.2))
+    assert cell.robot_capsules == (
+        CapsuleSpec('link_3', 'link_3', (0.0, 0.0, 0.0), (0.5, 0.0, 0.0), 0.1),)
+    cm = build_cell_model(cell)
+    assert cm.obstacles == (HalfSpace('floor', (0, 0, 1), -0.6),
+                            Capsule('box', 'base', (1, 0, 0), (1, 1, 0), 0.2))
+    assert cm.robot_capsules == (Capsule('link_3', 'link_3', (0, 0, 0), (0.5, 0, 0), 0.1),)
+    scene = cm.collision_scene()
+    assert scene.obstacles == list(cm.obstacles)
+    assert scene.robot_capsules[0] == cm.robot_capsules[0]
 
 
 @pytest.mark.parametrize('section, key', [

@@ -9,13 +9,14 @@ import numpy as np
 import pytest
 import yaml
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.identify import identify_cell
 from kpi_calib_ros.app.measurements import measurements_from_samples
 from kpi_calib_ros.app.simulate import simulate_campaign
 from kpi_calib_ros.cli import main
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.io.bag import read_bag
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.io.cell import DEFAULT_CELL, load_cell
 from kpi_calib_ros.io.cell_sections import coupling_from_mapping
 from kpi_calib_ros.io.names import CALIBRATED_URDF_FILE
 

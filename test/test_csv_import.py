@@ -17,10 +17,11 @@ from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 from scipy.spatial.transform import Rotation
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.identify import registered_start
 from kpi_calib_ros.app.measurements import measurements_from_bag
 from kpi_calib_ros.cli import main
-from kpi_calib_ros.io.cell import build_cell_model, load_cell
+from kpi_calib_ros.io.cell import load_cell
 from kpi_calib_ros.io.csv_import import import_csv, load_mapping, mapping_from_dict, read_postures
 from kpi_calib_ros.io.names import DEFAULT_POSE_TOPIC, DEFAULT_TEMPERATURE_TOPIC
 

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import yaml
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.core.collision.capsules import CollisionScene
 from kpi_calib_ros.core.collision.matrix import SKIPPED_KINDS
 from kpi_calib_ros.core.design.constraints import feasibility_function, flag_pairs, verify_design
@@ -36,12 +37,7 @@ from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.pose import noisy_rotations
 from kpi_calib_ros.core.measurement.pose_rows import with_rotation_rows
 from kpi_calib_ros.core.simulation import sampling_bounds, true_parameters
-from kpi_calib_ros.io.cell import (
-    DEFAULT_CELL,
-    build_cell_model,
-    cell_from_dict,
-    load_cell,
-)
+from kpi_calib_ros.io.cell import DEFAULT_CELL, cell_from_dict, load_cell
 from kpi_calib_ros.io.cell_settings import design_settings
 
 from cell_variants import KINDS, cell_document
@@ -307,7 +303,7 @@ def test_pairs_violated_almost_always_are_flagged(cell):
 
 
 def test_design_settings_are_validated():
-    assert design_settings({'candidates': 100, 'weights': {'roof': 2.0}}).candidates == 100
+    assert design_settings({'candidates': 100, 'weights': {'roof': 2.0}})['candidates'] == 100
     with pytest.raises(ConfigError, match='design.candidates'):
         design_settings({'candidates': 0})
     with pytest.raises(ConfigError, match='design.colision'):

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 import scipy.stats
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation.covariance import (
     kkt_covariance,
@@ -30,7 +31,6 @@ from kpi_calib_ros.core.simulation import (
     simulate_measurements,
     true_parameters,
 )
-from kpi_calib_ros.io.cell import build_cell_model
 
 SIGMA = 20e-6
 

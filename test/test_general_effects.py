@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import yaml
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.core.diagnosis.effect_signature import augmented_model
 from kpi_calib_ros.core.diagnosis.periodic_search import (
     periodic_candidates,
@@ -28,7 +29,7 @@ from kpi_calib_ros.core.effects.registry import parse_effect_spec, resolve_effec
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation.least_squares import identify
 from kpi_calib_ros.core.simulation import random_configurations, simulate_measurements
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict
+from kpi_calib_ros.io.cell import DEFAULT_CELL, cell_from_dict
 
 from hidden_campaigns import FLOOR, SIGMA, campaign
 

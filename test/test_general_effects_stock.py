@@ -24,11 +24,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from kpi_calib_ros.app.cell_model import CellModel, build_cell_model
 from kpi_calib_ros.app.diagnose import diagnose_cell
 from kpi_calib_ros.core.effects.general import gravity_moment
 from kpi_calib_ros.core.simulation import random_configurations, sampling_bounds
 from kpi_calib_ros.io.arm_cell import arm_cell_document
-from kpi_calib_ros.io.cell import CellModel, build_cell_model, cell_from_dict
+from kpi_calib_ros.io.cell import cell_from_dict
 
 from hidden_campaigns import SIGMA, campaign
 

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import yaml
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.identify import identify_cell
 from kpi_calib_ros.app.simulate import truth_cell_model
 from kpi_calib_ros.core.effects.gravity_compliance import (
@@ -23,7 +24,7 @@ from kpi_calib_ros.core.simulation import (
     simulate_measurements,
     true_parameters,
 )
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.io.cell import DEFAULT_CELL, load_cell
 
 SIGMA = 2.0e-5
 FLOOR = SIGMA * np.sqrt(3)

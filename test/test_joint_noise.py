@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import scipy.stats
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.core.diagnosis.verdict import diagnose, equivalent_joint_sigma
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation.least_squares import identify
@@ -19,7 +20,7 @@ from kpi_calib_ros.core.simulation import (
     simulate_measurements,
     true_parameters,
 )
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.io.cell import DEFAULT_CELL, load_cell
 
 JOINT_SIGMA = np.deg2rad(0.03)   # a controller read-back (the real-data issue: 0.02-0.05°)
 POSES = 30

@@ -2,7 +2,9 @@
 
 Every ``import`` of every module is read with :mod:`ast` (function-level imports
 included), so a lower layer importing a higher one fails here whether or not the
-import ever runs.
+import ever runs. Two rules beyond the order: io reads and writes files and topics but
+builds no design or collision problem (it imports neither ``core.design`` nor
+``core.collision``), and core computes but writes no file.
 """
 from __future__ import annotations
 
@@ -54,9 +56,10 @@ def _imports(path: Path) -> list[tuple[int, str]]:
             else:
                 name = node.module or ''
             found.append((node.lineno, name))
-            # ``from kpi_calib_ros import io`` names a sub-package, not just the root.
-            found += [(node.lineno, f'{name}.{a.name}') for a in node.names
-                      if name == 'kpi_calib_ros']
+            # ``from kpi_calib_ros import io`` or ``from kpi_calib_ros.core import design``
+            # names a sub-package or module of a package, not just the package.
+            if (PACKAGE.parent / name.replace('.', '/')).is_dir():
+                found += [(node.lineno, f'{name}.{a.name}') for a in node.names]
     return found
 
 
@@ -166,7 +169,7 @@ def test_the_checker_sees_upward_and_relative_imports(tmp_path, monkeypatch):
         'from kpi_calib_ros.app.identify import run_identify\n'
         'def f():\n    from ..ros import node\n'))
     names = [n for _, n in _imports(fake)]
-    assert names == ['kpi_calib_ros.app.identify', 'kpi_calib_ros.ros']
+    assert names == ['kpi_calib_ros.app.identify', 'kpi_calib_ros.ros', 'kpi_calib_ros.ros.node']
     assert all(_layer(n) > _layer(_module_name(fake)) for n in names)
 
 
@@ -239,3 +242,125 @@ def test_no_module_grows_past_its_limit():
     assert too_long == {}, f'modules over their line limit (split them): {too_long}'
     split = sorted(name for name in OVER_THE_LIMIT if lengths.get(name, 0) <= MODULE_LINES)
     assert split == [], f'now within {MODULE_LINES} lines, drop from OVER_THE_LIMIT: {split}'
+
+
+# io turns files into plain data and back; the design and collision objects are built in app.
+MODEL_BUILDING = {'kpi_calib_ros.core.design', 'kpi_calib_ros.core.collision'}
+
+
+def _builds_models(module: str) -> bool:
+    return '.'.join(module.split('.')[:3]) in MODEL_BUILDING
+
+
+@pytest.mark.parametrize('path', sorted((PACKAGE / 'io').rglob('*.py')),
+                         ids=lambda p: str(p.relative_to(PACKAGE / 'io')))
+def test_io_imports_no_design_or_collision_code(path):
+    found = [f'line {line}: {name}' for line, name in _imports(path) if _builds_models(name)]
+    assert not found, f'io module {path.name} imports design/collision code (build those ' \
+                      f'objects in app): {found}'
+
+
+def test_the_io_checker_sees_a_design_import(monkeypatch):
+    fake = PACKAGE / 'io' / 'zz_fake_module.py'
+    monkeypatch.setattr(Path, 'read_text', lambda self, *a, **k: (
+        'from kpi_calib_ros.core import collision\n'
+        'def f():\n    from ..core.design.cell import DesignCell\n'))
+    names = [n for _, n in _imports(fake) if _builds_models(n)]
+    assert names == ['kpi_calib_ros.core.collision', 'kpi_calib_ros.core.design.cell']
+
+
+# What writes a file, read off the call: the rule core is checked against.
+# ``open(...)`` / ``<path>.open(...)`` with a mode holding w, a, x or + (or a mode not
+# written out); these module functions; these methods (Path's and matplotlib's writers);
+# yaml's dumpers given a stream; and importing tempfile or shutil at all.
+WRITING_FUNCTIONS = {
+    'os.replace', 'os.rename', 'os.remove', 'os.unlink', 'os.mkdir', 'os.makedirs',
+    'os.rmdir', 'os.truncate', 'os.symlink', 'os.link', 'os.open', 'os.fdopen',
+    'numpy.save', 'numpy.savez', 'numpy.savez_compressed', 'numpy.savetxt',
+    'json.dump', 'pickle.dump', 'io.open'}
+WRITING_METHODS = {'write_text', 'write_bytes', 'savefig', 'mkdir', 'touch', 'unlink', 'rmdir',
+                   'rename', 'symlink_to', 'hardlink_to', 'tofile', 'to_csv'}
+YAML_DUMPERS = {'yaml.dump', 'yaml.safe_dump', 'yaml.dump_all', 'yaml.safe_dump_all'}
+WRITING_MODULES = ('tempfile', 'shutil')
+
+
+def _dotted(node: ast.AST, aliases: dict[str, str]) -> str:
+    """``np.save`` as ``numpy.save`` (import aliases resolved); '' when not a plain name."""
+    parts = []
+    while isinstance(node, ast.Attribute):
+        parts.append(node.attr)
+        node = node.value
+    if not isinstance(node, ast.Name):
+        return ''
+    parts.append(aliases.get(node.id, node.id))
+    return '.'.join(reversed(parts))
+
+
+def _writes_mode(mode: ast.AST | None) -> bool:
+    if mode is None:
+        return False
+    if isinstance(mode, ast.Constant) and isinstance(mode.value, str):
+        return any(c in mode.value for c in 'wax+')
+    return True  # a mode computed at run time may write
+
+
+def _file_writes(tree: ast.AST) -> list[str]:
+    """``line N: what`` for every file write in ``tree`` by the rule above."""
+    aliases: dict[str, str] = {}
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            aliases.update({a.asname or a.name: a.name for a in node.names})
+            found += [f'line {node.lineno}: import {a.name}' for a in node.names
+                      if a.name.split('.')[0] in WRITING_MODULES]
+        elif isinstance(node, ast.ImportFrom) and not node.level:
+            aliases.update({a.asname or a.name: f'{node.module}.{a.name}' for a in node.names})
+            if (node.module or '').split('.')[0] in WRITING_MODULES:
+                found.append(f'line {node.lineno}: from {node.module} import')
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.Call):
+            continue
+        name = _dotted(node.func, aliases)
+        keywords = {k.arg: k.value for k in node.keywords}
+        if name in ('open', 'builtins.open'):
+            mode = node.args[1] if len(node.args) > 1 else keywords.get('mode')
+            writes = _writes_mode(mode)
+        elif isinstance(node.func, ast.Attribute) and node.func.attr == 'open' \
+                and name not in WRITING_FUNCTIONS:
+            writes = _writes_mode(node.args[0] if node.args else keywords.get('mode'))
+        elif name in YAML_DUMPERS:
+            writes = len(node.args) > 1 or keywords.get('stream') is not None
+        else:
+            writes = name in WRITING_FUNCTIONS or (
+                isinstance(node.func, ast.Attribute) and node.func.attr in WRITING_METHODS)
+        if writes:
+            found.append(f'line {node.lineno}: {name or ast.unparse(node.func)}(...)')
+    return found
+
+
+@pytest.mark.parametrize('path', sorted((PACKAGE / 'core').rglob('*.py')),
+                         ids=lambda p: str(p.relative_to(PACKAGE / 'core')))
+def test_core_writes_no_file(path):
+    writes = _file_writes(ast.parse(path.read_text(), str(path)))
+    assert not writes, f'core module {path.name} writes a file (do that in io): {writes}'
+
+
+def test_the_write_checker_sees_every_kind_of_write():
+    source = '\n'.join([
+        'import numpy as np, yaml, json',
+        'import tempfile',
+        'from os import replace as swap',
+        'from pathlib import Path',
+        'def f(p, doc, fig, a, mode):',
+        '    open(p, "w"); open(p, mode=mode); Path(p).open("a")',
+        '    Path(p).write_text("x"); fig.savefig(p); np.savez(p, a=a)',
+        '    yaml.safe_dump(doc, stream=p); json.dump(doc, p); swap(p, p)',
+        # reads and text: none of these writes
+        '    open(p); open(p, "rb"); Path(p).open(); Path(p).read_text()',
+        '    yaml.safe_dump(doc); json.dumps(doc); "ab".replace("a", "b")',
+    ])
+    found = _file_writes(ast.parse(source))
+    assert [w.split(': ', 1)[1] for w in found] == [
+        'import tempfile', 'open(...)', 'open(...)', 'Path(p).open(...)',
+        'Path(p).write_text(...)', 'fig.savefig(...)', 'numpy.savez(...)',
+        'yaml.safe_dump(...)', 'json.dump(...)', 'os.replace(...)']

@@ -12,6 +12,7 @@ import yaml
 from mcap.writer import CompressionType
 from mcap_ros2.writer import Writer
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.identify import calibrate_cell, with_effects
 from kpi_calib_ros.app.measurements import measurements_from_bag
 from kpi_calib_ros.cli import main
@@ -27,7 +28,7 @@ from kpi_calib_ros.io.bag_writing import (
     VECTOR3_STAMPED_TYPE,
     message_definition,
 )
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict, read_cell_document
+from kpi_calib_ros.io.cell import DEFAULT_CELL, cell_from_dict, read_cell_document
 from kpi_calib_ros.io.csv_import import import_csv, mapping_from_dict
 from kpi_calib_ros.io.mcap_scan import BagError
 from kpi_calib_ros.io.ros_messages import (

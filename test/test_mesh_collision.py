@@ -268,10 +268,11 @@ def test_a_chain_link_without_collision_geometry_is_named_not_refused(tmp_path):
     is simulated and identified, and the design summary names the links left unchecked."""
     import yaml
 
+    from kpi_calib_ros.app.cell_model import build_cell_model
     from kpi_calib_ros.app.identify import identify_cell
     from kpi_calib_ros.app.measurements import measurements_from_bag
     from kpi_calib_ros.app.simulate import simulate_campaign
-    from kpi_calib_ros.io.cell import build_cell_model, load_cell
+    from kpi_calib_ros.io.cell import load_cell
     from kpi_calib_ros.io.results import read_truth
     uri = 'package://example-robot-data/robots/z1_description/urdf/z1.urdf'
     cell = {'robot': {'urdf': uri, 'base_frame': 'link00', 'tip_frame': 'link06'},

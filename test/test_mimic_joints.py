@@ -24,6 +24,7 @@ import pinocchio as pin
 import pytest
 import yaml
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.measurements import measurements_from_samples
 from kpi_calib_ros.app.validate import calibrated_model
 from kpi_calib_ros.cli import main
@@ -33,7 +34,7 @@ from kpi_calib_ros.core.model.kinematics import nominal_fk_function
 from kpi_calib_ros.core.model.parameters import geometric_parameters
 from kpi_calib_ros.core.model.robot import RobotModel
 from kpi_calib_ros.core.simulation import equivalent_parameters
-from kpi_calib_ros.io.cell import build_cell_model, load_cell
+from kpi_calib_ros.io.cell import load_cell
 from kpi_calib_ros.io.cell_sections import coupling_from_mapping
 from kpi_calib_ros.io.names import CALIBRATED_URDF_FILE
 from kpi_calib_ros.io.resources import resolve_uri

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.identify import identify_cell, registered_start
 from kpi_calib_ros.app.measurements import measurements_from_bag, print_rejections
 from kpi_calib_ros.cli import main
@@ -16,7 +17,7 @@ from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.estimation.registration import register
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.simulation import random_configurations, true_parameters
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict, read_cell_document
+from kpi_calib_ros.io.cell import DEFAULT_CELL, cell_from_dict, read_cell_document
 from kpi_calib_ros.io.csv_import import import_csv, mapping_from_dict
 
 OFFSETS = [[0.0, 0.0, 0.03], [0.06, 0.0, 0.03], [0.0, 0.05, 0.02]]

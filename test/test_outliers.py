@@ -13,6 +13,7 @@ import pytest
 import yaml
 
 from kpi_calib_ros.app.calibration_document import add_robust_sections, calibration_document
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.diagnose import diagnose_cell
 from kpi_calib_ros.app.identify import calibrate_cell
 from kpi_calib_ros.cli import main
@@ -26,13 +27,7 @@ from kpi_calib_ros.core.simulation import (
     true_parameters,
 )
 from kpi_calib_ros.io.bag_writing import write_bag
-from kpi_calib_ros.io.cell import (
-    DEFAULT_CELL,
-    build_cell_model,
-    cell_from_dict,
-    load_cell,
-    read_cell_document,
-)
+from kpi_calib_ros.io.cell import DEFAULT_CELL, cell_from_dict, load_cell, read_cell_document
 from kpi_calib_ros.io.names import CALIBRATION_FILE, DIAGNOSIS_FILE
 
 OFFSETS = [[0.0, 0.0, 0.03], [0.06, 0.0, 0.03], [0.0, 0.05, 0.02]]

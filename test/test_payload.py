@@ -9,6 +9,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.identify import calibrate_cell, with_effects
 from kpi_calib_ros.core.diagnosis.effect_signature import augmented_model
 from kpi_calib_ros.core.effects.registry import parse_effect_spec
@@ -18,7 +19,7 @@ from kpi_calib_ros.core.measurement.payload import row_payloads
 from kpi_calib_ros.core.measurement.weighting import row_torques
 from kpi_calib_ros.core.model.robot import Payload, RobotModel
 from kpi_calib_ros.core.simulation import random_configurations, true_parameters
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict, read_cell_document
+from kpi_calib_ros.io.cell import DEFAULT_CELL, cell_from_dict, read_cell_document
 
 SIGMA = 20e-6
 COMPLIANCE = {'joint_2': -2e-6, 'joint_3': -3e-6}

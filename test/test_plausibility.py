@@ -8,6 +8,7 @@ import casadi as ca
 import numpy as np
 import pytest
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.identify import calibrate_cell, identify_cell
 from kpi_calib_ros.core.diagnosis.effect_signature import augmented_model
 from kpi_calib_ros.core.diagnosis.screening import screen_effects
@@ -33,13 +34,7 @@ from kpi_calib_ros.core.simulation import (
     simulate_measurements,
     true_parameters,
 )
-from kpi_calib_ros.io.cell import (
-    DEFAULT_CELL,
-    build_cell_model,
-    cell_from_dict,
-    load_cell,
-    read_cell_document,
-)
+from kpi_calib_ros.io.cell import DEFAULT_CELL, cell_from_dict, load_cell, read_cell_document
 
 SIGMA = 20e-6
 WRIST = np.arange(6) >= 3  # joints 4-6 of the built-in cell

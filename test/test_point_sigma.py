@@ -12,6 +12,7 @@ import yaml
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.identify import registered_start
 from kpi_calib_ros.app.measurements import measurements_from_bag
 from kpi_calib_ros.cli import main
@@ -20,7 +21,7 @@ from kpi_calib_ros.core.estimation.least_squares import identify
 from kpi_calib_ros.core.measurement.data import Measurements, row_sigma
 from kpi_calib_ros.core.measurement.weighting import noise_weights
 from kpi_calib_ros.core.simulation import random_configurations, true_parameters
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.io.cell import DEFAULT_CELL, load_cell
 from kpi_calib_ros.io.names import DEFAULT_POINT_TOPIC, DEFAULT_POSE_TOPIC, point_sigma_topic
 
 # An AT960's maximum permissible error, per axis: 15 µm + 6 µm/m of distance.

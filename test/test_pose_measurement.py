@@ -12,6 +12,7 @@ import pytest
 import yaml
 from geometry_msgs.msg import PoseStamped
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.cli import main
 from kpi_calib_ros.core.acquisition.pairing import pair_measurements
 from kpi_calib_ros.core.acquisition.streams import PointSample, synthesize_streams
@@ -31,7 +32,7 @@ from kpi_calib_ros.core.measurement.pose_rows import with_rotation_rows
 from kpi_calib_ros.core.model.kinematics import pose6
 from kpi_calib_ros.core.simulation import random_configurations, true_parameters
 from kpi_calib_ros.io.bag import read_bag, write_bag
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict, read_cell_document
+from kpi_calib_ros.io.cell import DEFAULT_CELL, cell_from_dict, read_cell_document
 from kpi_calib_ros.io.ros_messages import pose_sample_from_message
 
 SIGMA = 2e-5            # m per axis, the default cell's

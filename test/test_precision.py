@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import yaml
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.diagnose import diagnose_cell
 from kpi_calib_ros.app.identify import identify_cell, with_effects
 from kpi_calib_ros.app.simulate import truth_cell_model
@@ -15,7 +16,7 @@ from kpi_calib_ros.core.simulation import (
     simulate_measurements,
     true_parameters,
 )
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.io.cell import DEFAULT_CELL, load_cell
 from kpi_calib_ros.io.report import comparison_text, diagnosis_to_dict
 from kpi_calib_ros.io.results import calibration_to_dict, summary_text
 

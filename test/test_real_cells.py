@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import yaml
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.identify import (
     REGISTER_ABOVE_M,
     identify_cell,
@@ -23,7 +24,7 @@ from kpi_calib_ros.core.simulation import (
     true_parameters,
 )
 from kpi_calib_ros.io.bag import write_bag
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict, read_cell_document
+from kpi_calib_ros.io.cell import DEFAULT_CELL, cell_from_dict, read_cell_document
 
 DATA = DEFAULT_CELL.parent  # relative paths of the default cell resolve here
 SIGMA = 2.0e-5

@@ -8,8 +8,9 @@ from pathlib import Path
 import pytest
 import yaml
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.design import run_design
-from kpi_calib_ros.io.cell import build_cell_model, load_cell
+from kpi_calib_ros.io.cell import load_cell
 
 DATA = Path(__file__).resolve().parent / 'data'
 N = 24
@@ -23,7 +24,7 @@ def test_hand_given_capsules_win_over_fitted_ones_link_by_link():
     partial = build_cell_model(replace(cell, robot_capsules=cell.robot_capsules[2:3]))
     geometry = partial.robot_geometry()
     given = [c for c in geometry.capsules if c.frame == 'upper_arm_link']
-    assert given == [cell.robot_capsules[2]]
+    assert given == [cm.robot_capsules[2]]
     assert set(geometry.fitted_links) == set(cm.robot.link_names) - {'upper_arm_link'}
     sources = {c['link']: c['source'] for c in geometry.summary()['capsules']}
     assert sources['upper_arm_link'] == 'cell' and sources['forearm_link'] == 'fitted'
@@ -73,9 +74,9 @@ def test_configurations_in_mesh_collision_are_violations_and_the_design_is_not_o
     import numpy as np
 
     from kpi_calib_ros.app.design import mesh_verified
+    from kpi_calib_ros.app.robot_geometry import mesh_check
     from kpi_calib_ros.core.design.constraints import DesignVerification
     from kpi_calib_ros.core.design.optimum import DesignResult
-    from kpi_calib_ros.io.robot_geometry import mesh_check
 
     cm = build_cell_model(load_cell(DATA / 'ur10_mesh_cell.yaml'))
     lower, upper = np.maximum(cm.robot.lower, -np.pi), np.minimum(cm.robot.upper, np.pi)

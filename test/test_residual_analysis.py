@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import scipy.stats
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.diagnose import with_misfit_answer
 from kpi_calib_ros.core.diagnosis.cell_diagnosis import CellDiagnosis
 from kpi_calib_ros.core.diagnosis.misfit import GENERAL, NAMED, NONE, SMOOTH, Remedy, answer_misfit
@@ -30,7 +31,7 @@ from kpi_calib_ros.core.estimation.least_squares import identify
 from kpi_calib_ros.core.estimation.residuals import LinearizedFit, orthonormal_basis
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.simulation import random_configurations, true_parameters
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.io.cell import DEFAULT_CELL, load_cell
 from kpi_calib_ros.io.report import write_report
 
 SIGMA = 20e-6

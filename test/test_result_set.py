@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import yaml
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.measurements import measurements_from_bag
 from kpi_calib_ros.cli import main
 from kpi_calib_ros.core.acquisition.streams import synthesize_streams
@@ -22,7 +23,7 @@ from kpi_calib_ros.core.simulation import (
 )
 from kpi_calib_ros.io import result_set
 from kpi_calib_ros.io.bag_writing import write_bag
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.io.cell import DEFAULT_CELL, load_cell
 from kpi_calib_ros.io.names import (
     CALIBRATED_URDF_FILE,
     CALIBRATION_FILE,

@@ -54,7 +54,15 @@ def test_shipped_files_equal_generator_output():
     assert sorted(generated) == sorted(rl.SHIPPED_ROBOTS)
     for name, text in generated.items():
         assert rl.shipped_urdf_path(name).read_text(encoding='utf-8') == text, (
-            f'{name}.urdf drifted; run python -m kpi_calib_ros.core.model.robot_library --write')
+            f'{name}.urdf drifted; run kpi-calib robots')
+
+
+def test_written_shipped_files_are_the_generated_text(tmp_path):
+    from kpi_calib_ros.io.shipped_robots import write_shipped
+    paths = write_shipped(tmp_path / 'robots')
+    assert sorted(p.stem for p in paths) == sorted(rl.SHIPPED_ROBOTS)
+    generated = rl.shipped_urdfs()
+    assert all(p.read_text(encoding='utf-8') == generated[p.stem] for p in paths)
 
 
 def test_shipped_urdf_path_rejects_unknown_name():

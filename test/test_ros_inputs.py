@@ -12,10 +12,11 @@ from geometry_msgs.msg import Vector3, Vector3Stamped
 from rclpy.qos import QoSProfile
 from std_msgs.msg import Header, String
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.measurements import measurements_from_bag
 from kpi_calib_ros.core.acquisition.streams import synthesize_streams
 from kpi_calib_ros.core.simulation import random_configurations, true_parameters
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.io.cell import DEFAULT_CELL, load_cell
 from kpi_calib_ros.io.measurement_log import MeasurementLog
 from kpi_calib_ros.io.ros_messages import time_msg
 

@@ -16,6 +16,7 @@ from rclpy.parameter_client import AsyncParameterClient
 from test_learned_residual_file import dumped, fitted, hostile_files
 from test_ros_tcp_query import learned
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.learned_residual import predict_stored, predict_tcp
 from kpi_calib_ros.app.validate import calibrated_model
 from kpi_calib_ros.core.acquisition.pairing import PairingResult
@@ -27,7 +28,7 @@ from kpi_calib_ros.core.simulation import (
     smooth_joint_map,
     true_parameters,
 )
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.io.cell import DEFAULT_CELL, load_cell
 from kpi_calib_ros.io.learned_residual_file import read_residual
 from kpi_calib_ros.ros import job_work
 from kpi_calib_ros.ros.parameters import PARAMETERS, settings_from_parameters

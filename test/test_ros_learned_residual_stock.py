@@ -23,6 +23,7 @@ from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
 from std_msgs.msg import String
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.learned_residual import predict_stored
 from kpi_calib_ros.app.validate import calibrated_model
 from kpi_calib_ros.core.diagnosis.effect_signature import augmented_model
@@ -33,7 +34,7 @@ from kpi_calib_ros.core.simulation import (
     true_parameters,
 )
 from kpi_calib_ros.io.arm_cell import arm_cell_document
-from kpi_calib_ros.io.cell import build_cell_model, load_cell
+from kpi_calib_ros.io.cell import load_cell
 from kpi_calib_ros.io.cell_settings import hidden_effects
 from kpi_calib_ros.io.learned_residual_file import read_residual
 from kpi_calib_ros.io.resources import resolve_uri

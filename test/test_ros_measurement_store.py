@@ -158,9 +158,10 @@ def test_the_measurement_log_is_a_bag_every_command_reads(tmp_path, capsys):
     """identify and diagnose on the node's log give what they give on the recording."""
     import yaml
 
+    from kpi_calib_ros.app.cell_model import build_cell_model
     from kpi_calib_ros.cli import main
     from kpi_calib_ros.io.bag import read_bag
-    from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+    from kpi_calib_ros.io.cell import DEFAULT_CELL, load_cell
     cell = str(DEFAULT_CELL)
     bag = tmp_path / 'run.mcap'
     assert main(['simulate', '--cell', cell, '--n', '30', '--out', str(bag), '--seed', '5']) == 0

@@ -27,10 +27,11 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.core.acquisition.streams import synthesize_streams
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.io.bag import write_bag
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+from kpi_calib_ros.io.cell import DEFAULT_CELL, load_cell
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros.node import CalibrationNode
 from kpi_calib_ros.ros.parameters import PARAMETERS, settings_from_parameters

@@ -19,13 +19,14 @@ import scipy.stats
 import yaml
 from std_msgs.msg import String
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.core.acquisition.streams import JointSample
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,
     true_parameters,
 )
-from kpi_calib_ros.io.cell import build_cell_model, load_cell
+from kpi_calib_ros.io.cell import load_cell
 
 from mimic_column import STAGES, column_urdf, write_cell
 from ros_helpers import Client

@@ -12,10 +12,11 @@ from geometry_msgs.msg import PoseStamped
 from std_msgs.msg import String
 
 from kpi_calib_ros import cli
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.core.acquisition.streams import PointSample, synthesize_streams
 from kpi_calib_ros.core.measurement.pose import noisy_rotations, quaternion_from_rotation
 from kpi_calib_ros.core.simulation import random_configurations, true_parameters
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict, read_cell_document
+from kpi_calib_ros.io.cell import DEFAULT_CELL, cell_from_dict, read_cell_document
 from kpi_calib_ros.io.ros_messages import joint_state_msg, pose_stamped_msg
 
 from ros_helpers import KR15_URDF, Client, Spawner, finish

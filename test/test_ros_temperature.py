@@ -112,8 +112,9 @@ def test_a_cell_without_temperature_reads_none(tmp_path):
 
 def test_an_implausible_reading_is_counted_not_logged_and_one_in_an_old_log_is_set_aside(
         tmp_path):
+    from kpi_calib_ros.app.cell_model import build_cell_model
     from kpi_calib_ros.core.measurement.covariates import TemperatureSample
-    from kpi_calib_ros.io.cell import build_cell_model, load_cell
+    from kpi_calib_ros.io.cell import load_cell
     cm = build_cell_model(load_cell(_cell(tmp_path), urdf_xml=KR15_URDF))
     good = [TemperatureSample(FIRST_NS + k * 10 * S, 'upper_arm', 22.0 + 0.5 * k)
             for k in range(7)]

@@ -8,6 +8,7 @@ import scipy.stats
 import yaml
 
 from kpi_calib_ros.app.campaign import campaign_context, new_campaign, simulate_sequential
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.cli import main
 from kpi_calib_ros.core.campaigns.plan_order import nested_order, plan_ahead
 from kpi_calib_ros.core.campaigns.settings import (
@@ -20,13 +21,7 @@ from kpi_calib_ros.core.campaigns.statistics import lack_of_fit, pure_error, sig
 from kpi_calib_ros.core.design.exchange import exchange, information
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.simulation import simulate_pose_measurements, true_parameters
-from kpi_calib_ros.io.cell import (
-    DEFAULT_CELL,
-    build_cell_model,
-    cell_from_dict,
-    load_cell,
-    read_cell_document,
-)
+from kpi_calib_ros.io.cell import DEFAULT_CELL, cell_from_dict, load_cell, read_cell_document
 from kpi_calib_ros.io.cell_settings import hidden_effects
 from kpi_calib_ros.io.design_io import read_design_poses
 

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import yaml
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.learned_residual import predict_tcp
 from kpi_calib_ros.app.stored_calibration import read_stored_calibration
 from kpi_calib_ros.core.acquisition.pairing import PairingResult
@@ -20,7 +21,7 @@ from kpi_calib_ros.core.simulation import (
     simulate_measurements,
     true_parameters,
 )
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell, with_overrides
+from kpi_calib_ros.io.cell import DEFAULT_CELL, load_cell, with_overrides
 from kpi_calib_ros.ros import job_work
 
 N_POSES = 30

@@ -249,7 +249,8 @@ def test_a_cell_that_maps_sensors_to_joints_reads_each_link_from_a_bag(tmp_path)
     ticks = start + np.arange(-7, 80, 7) * S
     temps = [(int(t), f, base + rate * (t - start) / S) for t in ticks
              for f, base, rate in (('upper_arm', 22.0, 0.02), ('forearm', 25.0, -0.01))]
-    from kpi_calib_ros.io.cell import build_cell_model, load_cell
+    from kpi_calib_ros.app.cell_model import build_cell_model
+    from kpi_calib_ros.io.cell import load_cell
     path, point_stamps = _recorded(build_cell_model(load_cell(cell_path)), tmp_path, temps)
     cm, data, _ = load_measurements(cell_path, path,
                                     'thermal_link_growth:joint_3,thermal_zero_drift:joint_4')
@@ -296,9 +297,10 @@ def test_an_imported_table_carries_its_temperature_column_to_every_row(tmp_path)
     import dataclasses
     from pathlib import Path
 
+    from kpi_calib_ros.app.cell_model import build_cell_model
     from kpi_calib_ros.app.measurements import measurements_from_bag
     from kpi_calib_ros.cli import main
-    from kpi_calib_ros.io.cell import build_cell_model, load_cell
+    from kpi_calib_ros.io.cell import load_cell
     from kpi_calib_ros.io.cell_temperature import TemperatureSettings
     from kpi_calib_ros.io.csv_import import read_postures
     from kpi_calib_ros.io.csv_mapping import load_mapping
@@ -415,8 +417,9 @@ def _faulty_readings(bad):
 
 @pytest.mark.parametrize('bad', [1e12, 1e300, -500.0, 151.0])
 def test_a_temperature_reading_no_cell_can_have_is_counted_and_never_used(cm, tmp_path, bad):
+    from kpi_calib_ros.app.cell_model import build_cell_model
     from kpi_calib_ros.app.measurements import measurements_from_bag
-    from kpi_calib_ros.io.cell import build_cell_model, load_cell
+    from kpi_calib_ros.io.cell import load_cell
     warm = build_cell_model(load_cell(_warm_cell(tmp_path)))
     path, _ = _recorded(cm, tmp_path, _faulty_readings(bad), n=8)
     with pytest.warns(UserWarning, match=r'1 temperature reading\(s\) outside '

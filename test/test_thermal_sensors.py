@@ -10,6 +10,7 @@ import copy
 import numpy as np
 import pytest
 
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.identify import identify_cell, with_effects
 from kpi_calib_ros.core.diagnosis.effect_signature import augmented_model
 from kpi_calib_ros.core.diagnosis.screening import default_candidates, screen_effects
@@ -22,7 +23,7 @@ from kpi_calib_ros.core.simulation import (
     simulate_two_sensor_shift,
     true_parameters,
 )
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict, read_cell_document
+from kpi_calib_ros.io.cell import DEFAULT_CELL, cell_from_dict, read_cell_document
 
 from jacobian_checks import assert_jacobian_equals_finite_differences
 

@@ -10,6 +10,7 @@ import scipy.stats
 import yaml
 
 from kpi_calib_ros.app.calibration_document import calibration_document
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.identify import identify_cell
 from kpi_calib_ros.app.measurements import measurements_from_bag
 from kpi_calib_ros.app.validate import (
@@ -29,7 +30,7 @@ from kpi_calib_ros.core.simulation import (
     true_parameters,
 )
 from kpi_calib_ros.io.bag_writing import write_bag
-from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict, load_cell
+from kpi_calib_ros.io.cell import DEFAULT_CELL, cell_from_dict, load_cell
 from kpi_calib_ros.io.csv_import import read_postures
 from kpi_calib_ros.io.csv_mapping import mapping_from_dict
 from kpi_calib_ros.io.results import write_calibration

@@ -200,6 +200,7 @@ def node_page() -> str:
 
 # ------------------------------------------------------------------------ effects
 def effects_page() -> str:
+    from kpi_calib_ros.app.cell_model import build_cell_model
     from kpi_calib_ros.core.effects.library import LIBRARY
     from kpi_calib_ros.core.effects.registry import (
         ARGUMENT_EFFECTS,
@@ -210,7 +211,7 @@ def effects_page() -> str:
 
     # The cell loader imports the chain effects (core.gravity_compliance and
     # core.general_effects register themselves).
-    from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, load_cell
+    from kpi_calib_ros.io.cell import DEFAULT_CELL, load_cell
     out = ['# Effect library\n', NOTE,
            'The physical effects `diagnose` screens and `--effects` / the cell file\'s '
            '`effects:` add, as `name:joint` (per joint) or `name` (global). Parameter names '

@@ -12,6 +12,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from kpi_calib_ros.app.cell_model import CellModel
 from kpi_calib_ros.core.acquisition.pairing import PairingResult
 from kpi_calib_ros.core.diagnosis.model_selection import ModelChoice, NominalComparison
 from kpi_calib_ros.core.effects.gravity_compliance import compliance_warnings, mass_warning
@@ -26,7 +27,6 @@ from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.recordings import Recording, contributions
 from kpi_calib_ros.core.model.dh import dh_table
 from kpi_calib_ros.core.model.parameters import reflector_prefixes
-from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.recordings_manifest import RecordingSource
 from kpi_calib_ros.io.results import calibration_to_dict
 from kpi_calib_ros.io.urdf_export import calibrated_urdf

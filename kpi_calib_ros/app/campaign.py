@@ -19,6 +19,7 @@ from kpi_calib_ros.app.calibration_document import (
     calibration_document,
     plausibility_gate,
 )
+from kpi_calib_ros.app.cell_model import CellModel, build_cell_model
 from kpi_calib_ros.app.simulate import truth_cell_model
 from kpi_calib_ros.core.acquisition.pairing import PairingResult
 from kpi_calib_ros.core.campaigns.sequential import SequentialCampaign
@@ -36,7 +37,7 @@ from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.estimation.estimability import result_estimability
 from kpi_calib_ros.core.simulation import simulate_pose_measurements, true_parameters
 from kpi_calib_ros.io.campaign_io import plot_campaign, write_campaign, write_plan
-from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
+from kpi_calib_ros.io.cell import load_cell
 
 # Candidates of a campaign: fewer than a batch design's, so that re-evaluating every
 # candidate's Jacobian at the current estimate fits the 1 s next-pose budget.
@@ -54,7 +55,7 @@ def campaign_context(cm: CellModel, seed: int,
                      candidates: int = CAMPAIGN_CANDIDATES) -> tuple[DesignCell, DesignContext]:
     """The cell's design problem and ``candidates`` feasible configurations."""
     cell = cm.design_cell()
-    settings = dataclasses.replace(cm.cell.design, candidates=candidates)
+    settings = dataclasses.replace(cm.design_settings, candidates=candidates)
     return cell, design_context(cell, np.random.default_rng(seed), settings)
 
 

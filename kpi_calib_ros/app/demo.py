@@ -13,17 +13,12 @@ from pathlib import Path
 import numpy as np
 
 from kpi_calib_ros.app.calibration_document import calibration_document
+from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.diagnose import diagnose_cell
 from kpi_calib_ros.app.identify import identify_cell
 from kpi_calib_ros.app.measurements import measurements_from_bag
 from kpi_calib_ros.app.simulate import simulate_campaign
-from kpi_calib_ros.io.cell import (
-    DEFAULT_CELL,
-    build_cell_model,
-    load_cell,
-    read_cell_document,
-    write_cell_document,
-)
+from kpi_calib_ros.io.cell import DEFAULT_CELL, load_cell, read_cell_document, write_cell_document
 from kpi_calib_ros.io.report import diagnosis_text, write_report
 from kpi_calib_ros.io.results import read_truth, summary_text, write_calibration
 

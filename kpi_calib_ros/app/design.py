@@ -11,6 +11,8 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from kpi_calib_ros.app.cell_model import CellModel, build_cell_model
+from kpi_calib_ros.app.robot_geometry import mesh_check
 from kpi_calib_ros.core.design.optimum import (
     DesignResult,
     design_context,
@@ -25,9 +27,8 @@ from kpi_calib_ros.core.estimation.prior import (
     DRIFT_LENGTH_PER_SQRT_HOUR,
     Prior,
 )
-from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
+from kpi_calib_ros.io.cell import load_cell
 from kpi_calib_ros.io.design_io import plot_design, plot_ellipsoids, summary_text, write_design
-from kpi_calib_ros.io.robot_geometry import mesh_check
 
 
 def design_cell_model(cm: CellModel, n: int, criterion: str, seed: int,
@@ -35,7 +36,7 @@ def design_cell_model(cm: CellModel, n: int, criterion: str, seed: int,
     """N configurations optimal for ``criterion`` in the cell of ``cm`` (its ``design:``
     settings), drawn with ``numpy.random.default_rng(seed)``, verified on the meshes."""
     result = design_measurements(cm.design_cell(), n, criterion, np.random.default_rng(seed),
-                                 cm.cell.design, progress=progress)
+                                 cm.design_settings, progress=progress)
     return mesh_verified(cm, result)[0]
 
 
@@ -104,7 +105,7 @@ def drawn_robots_section(cm: CellModel, design: DesignResult,
     the nominal geometry (:func:`~kpi_calib_ros.core.design.optimum.tcp_std_on_drawn_robots`),
     where it may free parameters the nominal design problem cannot."""
     drawn = tcp_std_on_drawn_robots(cm.design_cell(), design.configurations,
-                                    cm.cell.design.weights, np.random.default_rng([seed, 1]))
+                                    cm.design_settings.weights, np.random.default_rng([seed, 1]))
     doc = drawn.to_dict(len(design.parameter_names), design.working_pose_names,
                         design.tcp_std)
     counts = sorted(set(drawn.parameters))
@@ -147,7 +148,7 @@ def run_design(cell_path: str | Path, n: int, criterion: str, out: str | Path,
     prior) leaves the KPI not estimable.
     """
     cm = build_cell_model(load_cell(cell_path, allow_code_effects=allow_code_effects))
-    cell, settings = cm.design_cell(), cm.cell.design
+    cell, settings = cm.design_cell(), cm.design_settings
     rng = np.random.default_rng(seed)
     prior, p, allowed, prior_doc = None, None, None, None
     if prior_path is not None:

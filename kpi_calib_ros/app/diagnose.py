@@ -11,6 +11,7 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
+from kpi_calib_ros.app.cell_model import CellModel
 from kpi_calib_ros.app.identify import (
     calibrate_cell,
     cell_prior,
@@ -35,7 +36,6 @@ from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA, is_adequate
 from kpi_calib_ros.core.measurement.covariates import measured_covariates
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.weighting import row_torques
-from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.names import DIAGNOSIS_FILE
 from kpi_calib_ros.io.report import diagnosis_text, write_report
 from kpi_calib_ros.io.residual_plots import write_learned_residual_plot

@@ -20,8 +20,8 @@ from typing import Any
 import yaml
 
 from kpi_calib_ros.app.calibration_document import calibrated_robot_description
+from kpi_calib_ros.app.cell_model import CellModel
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
-from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.names import (
     CALIBRATED_URDF_FILE,
     CALIBRATION_FILE,

@@ -24,6 +24,7 @@ from kpi_calib_ros.app.calibration_document import (
     robust_summary,
     with_recording_names,
 )
+from kpi_calib_ros.app.cell_model import CellModel
 from kpi_calib_ros.app.finish import finish_calibration
 from kpi_calib_ros.app.measurements import load_measurements
 from kpi_calib_ros.core.diagnosis import augmented_model, compare_models
@@ -64,7 +65,6 @@ from kpi_calib_ros.core.measurement.recordings import (
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.core.measurement.weighting import row_torques
 from kpi_calib_ros.core.model.parameters import RECORDING_PREFIX, reflector_prefixes
-from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.recordings_manifest import RecordingSource
 from kpi_calib_ros.io.report import (
     comparison_text,

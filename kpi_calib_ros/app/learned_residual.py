@@ -13,6 +13,7 @@ from typing import Any, Mapping
 import numpy as np
 import scipy.stats
 
+from kpi_calib_ros.app.cell_model import CellModel, build_cell_model
 from kpi_calib_ros.core.diagnosis.corrected_tcp import CorrectedTcp, corrected_tcp
 from kpi_calib_ros.core.diagnosis.learned_residual import (
     MAX_TRAINING_ROWS,
@@ -33,7 +34,6 @@ from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA, linearized_f
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.recordings import to_first_frame
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
-from kpi_calib_ros.io.cell import CellModel, build_cell_model
 from kpi_calib_ros.io.learned_residual_file import (
     StoredResidual,
     residual_document,

@@ -17,6 +17,7 @@ from typing import Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
+from kpi_calib_ros.app.cell_model import CellModel, build_cell_model
 from kpi_calib_ros.core.acquisition.pairing import PairingResult, pair_measurements, split_frame
 from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
 from kpi_calib_ros.core.effects.registry import split_specs
@@ -42,7 +43,7 @@ from kpi_calib_ros.core.measurement.recordings import (
     recording_parameters,
 )
 from kpi_calib_ros.io.bag import JOINT_STATE_TYPE, read_for_pairing, read_inputs, read_temperatures
-from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
+from kpi_calib_ros.io.cell import load_cell
 from kpi_calib_ros.io.cell_inputs import field_path
 from kpi_calib_ros.io.measurement_log import stored_pairing
 from kpi_calib_ros.io.recordings_manifest import RecordingSource

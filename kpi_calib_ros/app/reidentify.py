@@ -36,6 +36,7 @@ from kpi_calib_ros.app.calibration_document import (
     require_valid,
     robust_summary,
 )
+from kpi_calib_ros.app.cell_model import CellModel
 from kpi_calib_ros.app.finish import finish_calibration
 from kpi_calib_ros.app.identify import (
     calibrate_cell,
@@ -72,7 +73,6 @@ from kpi_calib_ros.io.calibration_file import (
     prior_from_calibration,
     read_calibration_document,
 )
-from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.results import writable_folder
 
 # Exit code of `kpi-calib identify --prior` when the new cycle contradicts the prior.

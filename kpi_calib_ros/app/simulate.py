@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from kpi_calib_ros.app.cell_model import CellModel, build_cell_model
 from kpi_calib_ros.core.acquisition.pairing import REFLECTOR_SEPARATOR
 from kpi_calib_ros.core.acquisition.streams import PointSample, synthesize_streams
 from kpi_calib_ros.core.collision.check import verify_configuration
@@ -26,7 +27,7 @@ from kpi_calib_ros.core.simulation import (
     true_parameters,
 )
 from kpi_calib_ros.io.bag import write_bag
-from kpi_calib_ros.io.cell import Cell, CellModel, build_cell_model, load_cell
+from kpi_calib_ros.io.cell import Cell, load_cell
 from kpi_calib_ros.io.cell_settings import hidden_effects
 from kpi_calib_ros.io.design_io import read_design_poses
 from kpi_calib_ros.io.names import truth_path

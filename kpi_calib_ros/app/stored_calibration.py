@@ -18,10 +18,10 @@ from typing import Any
 
 import numpy as np
 
+from kpi_calib_ros.app.cell_model import CellModel
 from kpi_calib_ros.app.validate import calibrated_model, read_calibration
 from kpi_calib_ros.core.errors import DataError, KpiCalibError
 from kpi_calib_ros.core.model.dh import dh_table
-from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.urdf_export import calibrated_urdf
 
 # DH/Hayati values (m, rad) of the robot computed again must equal the written ones to

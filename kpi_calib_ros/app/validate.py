@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from kpi_calib_ros.app.calibration_document import require_valid
+from kpi_calib_ros.app.cell_model import CellModel, build_cell_model
 from kpi_calib_ros.app.learned_residual import learned_validation_text, validate_learned
 from kpi_calib_ros.app.measurements import (
     measurements_from_bag,
@@ -38,7 +39,7 @@ from kpi_calib_ros.core.measurement.replicates import SAME_POSE_TOLERANCE
 from kpi_calib_ros.core.model.kinematics import rpy_matrix
 from kpi_calib_ros.core.model.parameters import BASE_COMPONENTS, reflector_prefixes
 from kpi_calib_ros.io.calibration_file import calibration_recordings, read_calibration_document
-from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell
+from kpi_calib_ros.io.cell import load_cell
 from kpi_calib_ros.io.learned_residual_file import StoredResidual, read_residual
 from kpi_calib_ros.io.names import LEARNED_RESIDUAL_FILE, VALIDATION_FILE
 from kpi_calib_ros.io.report import write_validation_plots

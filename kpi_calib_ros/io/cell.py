@@ -1,7 +1,9 @@
 """Cell file: the robot, tracker, reflector, noise, payload, working poses and obstacles.
 
-A YAML document validated in one place; every error names the key path and the
-fix. Paths are relative to the cell file. Units are SI (m, rad, kg). Example::
+A YAML document validated in one place into plain data (:class:`Cell`); every error names
+the key path and the fix. Paths are relative to the cell file. Units are SI (m, rad, kg).
+The numerical objects (robot, measurement model, design and collision problems) are built
+from a :class:`Cell` by :mod:`kpi_calib_ros.app.cell_model`. Example::
 
     robot: {urdf: ../robots/kr15_class.urdf, base_frame: base_link, tip_frame: tool0,
             package_dirs: [../src],    # optional: where package:// meshes are searched first
@@ -35,7 +37,6 @@ fix. Paths are relative to the cell file. Units are SI (m, rad, kg). Example::
 from __future__ import annotations
 
 import re
-import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Mapping
@@ -43,24 +44,14 @@ from typing import Any, Mapping
 import numpy as np
 import yaml
 
-from kpi_calib_ros.core.acquisition.coupling import JointCoupling, mimic_coupling
-from kpi_calib_ros.core.collision.capsules import Capsule, CollisionScene, HalfSpace
-from kpi_calib_ros.core.design.cell import DesignCell
-from kpi_calib_ros.core.design.optimum import DesignSettings
 from kpi_calib_ros.core.effects.general import general_candidates  # noqa: F401  (registers specs)
-from kpi_calib_ros.core.effects.gravity_compliance import mass_warning
-from kpi_calib_ros.core.effects.registry import resolve_effects
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.core.measurement.pose import orientation_names, pose_matrix
-from kpi_calib_ros.core.measurement.tracker import MeasurementModel
-from kpi_calib_ros.core.model.parameters import ParameterSet, geometric_parameters
-from kpi_calib_ros.core.model.robot import Payload, RobotModel
 from kpi_calib_ros.io.cell_inputs import InputSettings, input_settings
 from kpi_calib_ros.io.cell_sections import (
+    CapsuleSpec,
+    HalfSpaceSpec,
     WorkingPose,
-    coupling_from_mapping,
     identified_orientations,
-    joint_sigma_vector,
     parse_capsule,
     parse_coupling,
     parse_ignore_pair,
@@ -84,7 +75,6 @@ from kpi_calib_ros.io.cell_settings import (
 )
 from kpi_calib_ros.io.cell_temperature import (
     TemperatureSettings,
-    joint_temperatures,
     temperature_settings,
 )
 from kpi_calib_ros.io.cell_values import (
@@ -100,7 +90,6 @@ from kpi_calib_ros.io.cell_values import (
 from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, DEFAULT_POSE_TOPIC
 from kpi_calib_ros.io.resources import resolve_uri
 from kpi_calib_ros.io.results import write_atomic
-from kpi_calib_ros.io.robot_geometry import RobotGeometry, robot_geometry
 from kpi_calib_ros.io.yaml_bounded import read_yaml_file
 
 _TOP_KEYS = {'robot', 'tracker', 'reflector', 'reflectors', 'noise', 'payload', 'working_poses',
@@ -126,8 +115,8 @@ class Cell:
     payload_mass: float
     payload_com: np.ndarray
     working_poses: tuple[WorkingPose, ...]
-    obstacles: tuple[Capsule | HalfSpace, ...]
-    robot_capsules: tuple[Capsule, ...]
+    obstacles: tuple[CapsuleSpec | HalfSpaceSpec, ...]
+    robot_capsules: tuple[CapsuleSpec, ...]
     ignore_pairs: tuple[frozenset, ...]
     beam_radius: float
     identification_method: str
@@ -136,7 +125,9 @@ class Cell:
     joint_topic: str = DEFAULT_JOINT_TOPIC   # bag topics (topics: section)
     point_topic: str = DEFAULT_POINT_TOPIC
     pose_topic: str = DEFAULT_POSE_TOPIC
-    design: DesignSettings = field(default_factory=DesignSettings)
+    # design: keys given in the file, checked (io.cell_settings.DESIGN_KEYS); the cell model
+    # makes them a core.design.optimum.DesignSettings (CellModel.design_settings).
+    design: Mapping[str, Any] = field(default_factory=dict)
     simulation: SimulationSettings = field(default_factory=SimulationSettings)
     identification: IdentificationSettings = field(default_factory=IdentificationSettings)
     source_dir: str = field(default='', compare=False)  # folder of the cell file
@@ -339,180 +330,11 @@ def with_overrides(cell: Cell, urdf_xml: str | None = None,
                    working_poses: tuple[WorkingPose, ...] | None = None) -> Cell:
     """``cell`` with a URDF document (e.g. from ``/robot_description``) and/or working
     poses (e.g. node parameters) in place of the cell file's; both are checked against
-    the robot when the cell model is built (:func:`build_cell_model`)."""
+    the robot when the cell model is built
+    (:func:`~kpi_calib_ros.app.cell_model.build_cell_model`)."""
     changes: dict[str, Any] = {}
     if urdf_xml is not None:
         changes.update(urdf_xml=urdf_xml, urdf_path='<robot_description>')
     if working_poses:
         changes['working_poses'] = tuple(working_poses)
     return replace(cell, **changes)
-
-
-@dataclass(frozen=True)
-class CellModel:
-    """Numerical objects built from a :class:`Cell`.
-
-    ``q_work`` (t, n) is in chain order, URDF values; ``tracker_in_base`` (4, 4) is the
-    nominal tracker pose in the robot base frame (inverse of ``base_in_tracker``);
-    ``coupling`` maps the controller's joint values to URDF values (``None``: uncoupled).
-    """
-
-    cell: Cell
-    robot: RobotModel
-    geometric: ParameterSet
-    model: MeasurementModel
-    q_work: np.ndarray
-    working_pose_names: tuple[str, ...]
-    tracker_in_base: np.ndarray
-    coupling: JointCoupling | None = None
-
-    @property
-    def joint_names(self) -> list[str]:
-        """The joints the controller reports (joint states, designed poses, plans): the
-        robot's actuated joints, the chain's when nothing mimics."""
-        return list(self.joint_coupling.controller_names)
-
-    @property
-    def tau_work(self) -> np.ndarray | None:
-        """Gravity torques (t, n) at the working poses, each with the payload the cell states
-        for it (``working_poses[i].payload``, else the cell's); None when no effect reads a
-        torque or no working pose states its own payload (the cell's is the robot's)."""
-        poses = self.cell.working_poses
-        if not self.model.uses_torque or not any(w.payload for w in poses) \
-                or len(poses) != len(self.q_work):
-            return None
-        cell_payload = self.robot.payload
-        payloads = [cell_payload if w.payload is None else
-                    Payload(w.payload[0], w.payload[1] or cell_payload.com) for w in poses]
-        return np.atleast_2d(self.robot.gravity_torques(self.q_work, payloads))
-
-    @property
-    def joint_coupling(self) -> JointCoupling:
-        """``robot.joint_coupling`` of the cell followed by the URDF's mimic relations;
-        the identity when it has neither."""
-        return self.coupling or mimic_coupling(self.robot)
-
-    @property
-    def needs_registration(self) -> bool:
-        """The cell leaves the base pose or a reflector offset out: register them from
-        the data before identifying."""
-        return not (self.cell.base_in_tracker_given and self.cell.reflector_offset_given)
-
-    def collision_scene(self) -> CollisionScene:
-        """Robot capsules (cell file first, else fitted to URDF collision geometry) and
-        obstacles; pairs skipped by the sampled collision matrix and ``ignore_pairs``."""
-        geometry = self.robot_geometry()
-        return CollisionScene(list(geometry.capsules), list(self.cell.obstacles),
-                              self.robot.link_names,
-                              ignore_pairs=set(self.cell.ignore_pairs) | geometry.skip_pairs(),
-                              beam_radius=self.cell.beam_radius)
-
-    def robot_geometry(self) -> RobotGeometry:
-        """Capsules, collision matrix and resolved meshes (built on first use, cached)."""
-        links = self.robot.link_names
-        for cap in self.cell.robot_capsules:
-            if cap.frame not in links:
-                raise ConfigError('collision.capsules', f'link {cap.frame!r} is not on the chain '
-                                  f'{links}')
-        return robot_geometry(self.robot, self.cell.urdf_xml, self.cell.robot_capsules,
-                              self.cell.obstacles, self.cell.package_dirs,
-                              self.cell.source_dir or None, referenced_by=self.cell.urdf_path)
-
-    def design_cell(self) -> DesignCell:
-        """The typed design problem of this cell (core input of the design modules)."""
-        if not self.cell.base_in_tracker_given:
-            raise ConfigError('tracker.base_in_tracker', 'a design needs to know where the '
-                              'tracker stands: give the robot base pose in the tracker frame '
-                              '[x, y, z, roll, pitch, yaw] (m, rad) in the cell file (a tape '
-                              'measure is enough; identification refines it from the data)')
-        if not len(self.q_work):
-            raise ConfigError('working_poses', 'a design optimises the TCP precision at the '
-                              'working poses: give at least one as {name: ..., joints: '
-                              '{joint_name: value_rad, ...}} (identify needs none)')
-        return DesignCell(self.model, self.q_work, self.working_pose_names,
-                          self.tracker_in_base, self.cell.reflector_offset,
-                          self.cell.max_incidence, self.cell.sigma,
-                          self.cell.identification_method, self.cell.identification_priority,
-                          self.collision_scene(), self.tau_work)
-
-
-def build_cell_model(cell: Cell, effects: tuple = ()) -> CellModel:
-    """Robot, parameters, measurement model and working poses of ``cell``.
-
-    The model holds the cell file's ``effects:`` followed by ``effects`` (specs
-    such as ``'joint_compliance:joint_2'`` or bound effects); one given in both
-    counts once. Specs are bound with the cell's ``temperature.sensors`` mapping (joint names
-    checked against the chain): a listed joint's thermal effects read its sensor's ΔT, and
-    the model keeps the mapping (``MeasurementModel.joint_temperatures``) for effects bound
-    later.
-    """
-    if not cell.urdf_xml:
-        raise ConfigError('robot.urdf', 'no robot description yet; give robot.urdf or the '
-                          'URDF document (with_overrides)')
-    robot = RobotModel(cell.urdf_xml, cell.base_frame, cell.tip_frame,
-                       Payload(cell.payload_mass, tuple(cell.payload_com)))
-    # Placements left out are zeros here; identification registers them first.
-    geometric = geometric_parameters(robot, cell.base_in_tracker, cell.offsets,
-                                     cell.reflector_names or None)
-    for k in cell.identified_orientations:  # a tracked body's orientation identified
-        names = orientation_names(f'reflector.{cell.reflector_names[k]}')
-        geometric = geometric.extended(names, np.zeros(3), ['rad'] * 3)
-    code = cell.allow_code_effects
-    # the temperature each joint's thermal effects read (temperature.sensors mapping)
-    temperatures = joint_temperatures(cell.temperature, robot.joint_names)
-    resolved = resolve_effects(cell.effects, robot, 'effects', cell.source_dir or None, code,
-                               temperatures)
-    extra = resolve_effects(effects, robot, 'extra effects', cell.source_dir or None, code,
-                            temperatures)
-    resolved += tuple(e for e in extra if e.name not in {r.name for r in resolved})
-    model = MeasurementModel(robot, geometric, resolved, cell.reflector_axis,
-                             dict(cell.reflector_orientations),
-                             None if cell.sigma_rotation is None
-                             else cell.sigma / cell.sigma_rotation,
-                             joint_sigma_vector(cell.joint_sigma, robot.joint_names),
-                             temperatures)
-    for spec in cell.identification.tolerances.bounds:
-        parts = spec.split(':')
-        if len(parts) > 1 and parts[1] not in robot.joint_names:
-            raise ConfigError(f'identification.bounds.{spec}', f'joint {parts[1]!r} is not on '
-                              f'the chain; write kind:joint with a joint of {robot.joint_names}')
-    unknown = [n for n in cell.identification_priority if n not in model.params.names]
-    if unknown:
-        raise ConfigError('identification.priority', f'unknown parameter(s) {unknown}; valid '
-                          f'names: {list(model.params.names)}')
-    missing_masses = mass_warning(robot, resolved)
-    if missing_masses:
-        warnings.warn(missing_masses, stacklevel=2)
-    mimic = mimic_coupling(robot)
-    coupling = coupling_from_mapping(cell.joint_coupling, robot.actuated_names,
-                                     mimics={j.name: j.mimic for j in robot.joints
-                                             if j.mimic is not None}).then(mimic)
-    names = list(robot.actuated_names)
-    q_work = np.array([_ordered(w, names, f'working_poses[{i}].joints')
-                       for i, w in enumerate(cell.working_poses)]).reshape(-1, len(names))
-    # Values as the controller reports them, or the URDF's actuated joints' (mimic
-    # joints follow either way).
-    q_work = (coupling if cell.working_poses_in == 'controller' else mimic).to_urdf(q_work)
-    inside = robot.within_limits(q_work)
-    if not inside.all():
-        bad = cell.working_poses[int(np.argmin(inside))].name
-        raise ConfigError('working_poses', f'pose {bad!r} is outside the joint limits '
-                          f'{robot.lower.round(3).tolist()} .. {robot.upper.round(3).tolist()}')
-    base_in_tracker = pose_matrix(cell.base_in_tracker)
-    return CellModel(cell, robot, geometric, model, q_work,
-                     tuple(w.name for w in cell.working_poses), np.linalg.inv(base_in_tracker),
-                     coupling)
-
-
-def _ordered(pose: WorkingPose, names: list[str], key: str) -> list[float]:
-    if pose.values:
-        if len(pose.values) != len(names):
-            raise ConfigError(key.rsplit('.', 1)[0], f'{len(pose.values)} joint values given; '
-                              f'the robot has {len(names)} joints, in this order: {names}')
-        return list(pose.values)
-    missing = [n for n in names if n not in pose.joints]
-    extra = [n for n in pose.joints if n not in names]
-    if missing or extra:
-        raise ConfigError(key, f'joint names must be exactly {names}; missing {missing}, '
-                          f'unknown {extra}')
-    return [pose.joints[n] for n in names]

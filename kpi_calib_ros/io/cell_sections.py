@@ -1,6 +1,8 @@
 """The physical sections of a cell file: reflectors and tracked bodies, the tracker pose,
 joint-reading noise, working poses, obstacles and capsules, joint coupling; each parsed and
-checked in SI units with the key path in every error."""
+checked in SI units with the key path in every error. Obstacles and capsules are plain
+shapes here (:class:`CapsuleSpec`, :class:`HalfSpaceSpec`); the collision objects are built
+from them with the cell model (:mod:`kpi_calib_ros.app.cell_model`)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -9,7 +11,6 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from kpi_calib_ros.core.acquisition.coupling import JointCoupling
-from kpi_calib_ros.core.collision.capsules import Capsule, HalfSpace
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.measurement.pose import rotation_from_quaternion, rotation_from_rpy
 from kpi_calib_ros.core.model.robot import Mimic
@@ -270,17 +271,46 @@ def working_poses_from_arrays(names: Sequence[str], values: Sequence[float],
     return tuple(poses)
 
 
-def parse_capsule(item: Any, key: str, frame_key: str = 'frame') -> Capsule:
+Point3 = tuple[float, float, float]
+
+
+def _point(value: np.ndarray) -> Point3:
+    return (float(value[0]), float(value[1]), float(value[2]))
+
+
+@dataclass(frozen=True)
+class CapsuleSpec:
+    """A capsule as the cell file states it: segment ``a``-``b`` (m, in ``frame``: a link,
+    or ``'base'`` for an obstacle) swept by a ball of ``radius`` (m, >= 0)."""
+
+    name: str
+    frame: str
+    a: Point3
+    b: Point3
+    radius: float
+
+
+@dataclass(frozen=True)
+class HalfSpaceSpec:
+    """An obstacle half-space as the cell file states it: free side ``normal · x >= offset``
+    in the base frame (``normal`` non-zero, as written; ``offset`` m along it)."""
+
+    name: str
+    normal: Point3
+    offset: float
+
+
+def parse_capsule(item: Any, key: str, frame_key: str = 'frame') -> CapsuleSpec:
     if not isinstance(item, dict):
         raise ConfigError(key, 'must be a mapping {name, a, b, radius}')
     radius = non_negative(number(item, 'radius', key, unit='m'), f'{key}.radius', 'm')
     frame = str(item.get(frame_key, 'base'))
-    return Capsule(str(item.get('name', frame if frame_key == 'link' else key)), frame,
-                   vector(item.get('a'), f'{key}.a', 3), vector(item.get('b'), f'{key}.b', 3),
-                   radius)
+    return CapsuleSpec(str(item.get('name', frame if frame_key == 'link' else key)), frame,
+                       _point(vector(item.get('a'), f'{key}.a', 3)),
+                       _point(vector(item.get('b'), f'{key}.b', 3)), float(radius))
 
 
-def parse_obstacle(item: Any, key: str) -> Capsule | HalfSpace:
+def parse_obstacle(item: Any, key: str) -> CapsuleSpec | HalfSpaceSpec:
     if not isinstance(item, dict) or 'name' not in item:
         raise ConfigError(key, 'must be a mapping with name and type (capsule or halfspace)')
     kind = item.get('type', 'capsule')
@@ -288,10 +318,11 @@ def parse_obstacle(item: Any, key: str) -> Capsule | HalfSpace:
         normal = vector(item.get('normal'), f'{key}.normal', 3)
         if np.linalg.norm(normal) < 1e-9:
             raise ConfigError(f'{key}.normal', 'must be non-zero')
-        return HalfSpace(str(item['name']), normal, number(item, 'offset', key, 0.0, 'm'))
+        return HalfSpaceSpec(str(item['name']), _point(normal),
+                             float(number(item, 'offset', key, 0.0, 'm')))
     if kind == 'capsule':
         cap = parse_capsule(item, key)
-        return Capsule(cap.name, 'base', cap.a, cap.b, cap.radius)
+        return CapsuleSpec(cap.name, 'base', cap.a, cap.b, cap.radius)
     raise ConfigError(f'{key}.type', f"must be 'capsule' or 'halfspace', got {kind!r}")
 
 
@@ -303,7 +334,7 @@ def parse_ignore_pair(item: Any, key: str) -> frozenset:
 
 def parse_coupling(raw: Any) -> dict[str, Any]:
     """``robot.joint_coupling`` as a plain mapping; names are checked against the chain
-    when the model is built (:func:`build_cell_model`)."""
+    when the model is built (:func:`~kpi_calib_ros.app.cell_model.build_cell_model`)."""
     if raw is None:
         return {}
     if not isinstance(raw, dict):

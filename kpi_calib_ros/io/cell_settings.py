@@ -2,11 +2,10 @@
 ``simulation:`` and ``topics:``, each validated with the key path in every error."""
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
 
-from kpi_calib_ros.core.design.optimum import DesignSettings
 from kpi_calib_ros.core.diagnosis.model_selection import DEFAULT_FOLDS, MODEL_CHOICES
 from kpi_calib_ros.core.effects.registry import (
     ARGUMENT_EFFECTS,
@@ -68,28 +67,36 @@ class IdentificationSettings:
     tolerances: Tolerances = field(default_factory=Tolerances)
 
 
-def design_settings(raw: Mapping[str, Any] | None) -> DesignSettings:
-    """Validate the ``design:`` mapping of a cell file; errors name the key."""
+# The keys of ``design:`` and the kind of value each takes: the fields of
+# core.design.optimum.DesignSettings, which the cell model builds from them.
+DESIGN_KEYS: dict[str, type] = {
+    'candidates': int, 'weights': dict, 'collision': bool, 'clearance': float,
+    'incidence_clearance': float, 'nlp': bool, 'exchange_starts': int, 'max_iterations': int,
+    'ignore_flagged': bool, 'flag_threshold': float}
+
+
+def design_settings(raw: Mapping[str, Any] | None) -> dict[str, Any]:
+    """Validate the ``design:`` mapping of a cell file; errors name the key. Returns the
+    given keys with their checked values (the rest take DesignSettings' defaults)."""
     raw = dict(raw or {})
-    defaults = DesignSettings()
-    known = set(defaults.__dataclass_fields__)
+    known = set(DESIGN_KEYS)
     for key in raw:
         if key not in known:
             raise ConfigError(f'design.{key}', f'unknown key; allowed: {sorted(known)}')
     values: dict[str, Any] = {}
     for key, value in raw.items():
-        default = getattr(defaults, key)
+        kind = DESIGN_KEYS[key]
         path = f'design.{key}'
         if key == 'weights':
             if not isinstance(value, Mapping) or not all(
                     isinstance(v, (int, float)) and v >= 0 for v in value.values()):
                 raise ConfigError(path, 'must map working pose names to weights >= 0')
             values[key] = {str(k): float(v) for k, v in value.items()}
-        elif isinstance(default, bool):
+        elif kind is bool:
             if not isinstance(value, bool):
                 raise ConfigError(path, f'must be true or false, got {value!r}')
             values[key] = value
-        elif isinstance(default, int):
+        elif kind is int:
             if not isinstance(value, int) or isinstance(value, bool) or value < 1:
                 raise ConfigError(path, f'must be a positive integer, got {value!r}')
             values[key] = value
@@ -97,7 +104,7 @@ def design_settings(raw: Mapping[str, Any] | None) -> DesignSettings:
             values[key] = non_negative(number(raw, key, 'design'), path, '')
     if values.get('flag_threshold', 0.5) > 1:
         raise ConfigError('design.flag_threshold', 'must be a fraction in [0, 1]')
-    return replace(defaults, **values)
+    return values
 
 
 _IDENT_KEYS = {'method', 'priority', 'model', 'loss', 'outliers', 'cv_folds', 'prior',
@@ -279,7 +286,8 @@ def parse_topics(raw: Any) -> dict[str, str]:
 
 def parse_priority(ident: dict, method: str) -> tuple[str, ...]:
     """``identification.priority``: parameter names, used only by ``method: priority``
-    (their existence is checked against the model in :func:`build_cell_model`)."""
+    (their existence is checked against the model in
+    :func:`~kpi_calib_ros.app.cell_model.build_cell_model`)."""
     raw = ident.get('priority')
     if raw is None:
         return ()

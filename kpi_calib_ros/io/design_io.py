@@ -6,11 +6,16 @@ the predicted TCP standard deviation per working pose, constraint margins and
 the independent verification. Two PNGs go next to it: the poses in the cell
 (tracker, obstacles) and the 95 % TCP confidence ellipsoids of the heuristic
 against the optimal design (Jost et al. 2017, Fig. 7).
+
+This module writes what a design holds and builds none: it reads the fields of a
+:class:`~kpi_calib_ros.core.design.optimum.DesignResult`, of its design problem and of the
+obstacles through the shapes below (:class:`DesignRecord`, :class:`DrawnCell`,
+:class:`CapsuleShape`, :class:`PlaneShape`), which those objects have.
 """
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping, Protocol, Sequence, runtime_checkable
 
 import matplotlib
 
@@ -20,17 +25,108 @@ import numpy as np  # noqa: E402
 import scipy.stats  # noqa: E402
 import yaml  # noqa: E402
 
-from kpi_calib_ros.core.collision.capsules import Capsule, CollisionScene, HalfSpace  # noqa: E402
-from kpi_calib_ros.core.design.cell import DesignCell  # noqa: E402
-from kpi_calib_ros.core.design.optimum import DesignResult  # noqa: E402
 from kpi_calib_ros.core.errors import ConfigError  # noqa: E402
+from kpi_calib_ros.core.model.robot import RobotModel  # noqa: E402
 from kpi_calib_ros.io.results import write_atomic  # noqa: E402
 from kpi_calib_ros.io.yaml_bounded import read_yaml_file  # noqa: E402
 
 CHI2_95_3D = float(scipy.stats.chi2.ppf(0.95, 3))
 
 
-def design_to_dict(result: DesignResult) -> dict[str, Any]:
+class Verification(Protocol):
+    """The independent check of a design: ``ok`` and one line per violation."""
+
+    @property
+    def ok(self) -> bool: ...
+    @property
+    def violations(self) -> Sequence[str]: ...
+
+
+class DesignRecord(Protocol):
+    """The fields of a design that design.yaml, the plots and the summary show (SI units;
+    see :class:`~kpi_calib_ros.core.design.optimum.DesignResult`)."""
+
+    @property
+    def configurations(self) -> np.ndarray: ...
+    @property
+    def joint_names(self) -> tuple[str, ...]: ...
+    @property
+    def criterion(self) -> str: ...
+    @property
+    def objective(self) -> float: ...
+    @property
+    def criteria(self) -> Mapping[str, float]: ...
+    @property
+    def exchange_objective(self) -> float: ...
+    @property
+    def tcp_covariance(self) -> np.ndarray: ...
+    @property
+    def tcp_std(self) -> np.ndarray: ...
+    @property
+    def working_pose_names(self) -> tuple[str, ...]: ...
+    @property
+    def parameter_names(self) -> tuple[str, ...]: ...
+    @property
+    def min_margin(self) -> np.ndarray: ...
+    @property
+    def incidence_deg(self) -> np.ndarray: ...
+    @property
+    def constraint_count(self) -> int: ...
+    @property
+    def verification(self) -> Verification: ...
+    @property
+    def flagged_pairs(self) -> Mapping[str, float]: ...
+    @property
+    def status(self) -> str: ...
+    @property
+    def candidates(self) -> int: ...
+    @property
+    def timings(self) -> Mapping[str, float]: ...
+
+
+class DrawnCell(Protocol):
+    """What the pose plot draws of a design problem (robot base frame, m)."""
+
+    @property
+    def robot(self) -> RobotModel: ...
+    @property
+    def tracker_in_base(self) -> np.ndarray: ...
+    @property
+    def q_work(self) -> np.ndarray: ...
+    @property
+    def working_pose_names(self) -> tuple[str, ...]: ...
+
+
+@runtime_checkable
+class CapsuleShape(Protocol):
+    """An obstacle capsule: segment ``a``-``b`` swept by a ball of ``radius`` (m)."""
+
+    @property
+    def a(self) -> Sequence[float]: ...
+    @property
+    def b(self) -> Sequence[float]: ...
+    @property
+    def radius(self) -> float: ...
+
+
+@runtime_checkable
+class PlaneShape(Protocol):
+    """An obstacle half-space bounded by the plane ``normal · x = offset`` (m)."""
+
+    @property
+    def normal(self) -> Sequence[float]: ...
+    @property
+    def offset(self) -> float: ...
+
+
+class Obstacles(Protocol):
+    """A scene's obstacles (capsules and half-spaces in the robot base frame)."""
+
+    @property
+    def obstacles(self) -> Sequence[Any]: ...
+
+
+def design_to_dict(result: DesignRecord) -> dict[str, Any]:
     """YAML-ready description of a design (SI units: rad, m)."""
     unit = {'kpi': 'm^2', 'A': 'm^2', 'D': 'm^2', 'O1': '1', 'cond': '1', 'random': 'm^2'}
     return {
@@ -61,7 +157,7 @@ def design_to_dict(result: DesignResult) -> dict[str, Any]:
     }
 
 
-def write_design(path: str | Path, result: DesignResult,
+def write_design(path: str | Path, result: DesignRecord,
                  extra: dict[str, Any] | None = None) -> Path:
     """Write design.yaml atomically; ``extra`` adds top-level sections (e.g. ``geometry``)."""
     doc = design_to_dict(result)
@@ -103,7 +199,7 @@ def _draw_capsule(ax, a: np.ndarray, b: np.ndarray, radius: float, color: str,
     ax.plot_wireframe(pts[0], pts[1], pts[2], color=color, alpha=alpha, linewidth=0.4)
 
 
-def plot_design(cell: DesignCell, scene: CollisionScene | None, result: DesignResult,
+def plot_design(cell: DrawnCell, scene: Obstacles | None, result: DesignRecord,
                 path: str | Path) -> Path:
     """PNG of the design poses (link origins joined), tracker and obstacles, base frame."""
     fig = plt.figure(figsize=(8, 7))
@@ -127,9 +223,9 @@ def plot_design(cell: DesignCell, scene: CollisionScene | None, result: DesignRe
     lim = np.max(np.abs(np.r_[tips, tracker[None]])) * 1.1
     if scene is not None:
         for obs in scene.obstacles:
-            if isinstance(obs, Capsule):
+            if isinstance(obs, CapsuleShape):
                 _draw_capsule(ax, np.array(obs.a), np.array(obs.b), obs.radius, 'tab:blue', 0.4)
-            elif isinstance(obs, HalfSpace):
+            elif isinstance(obs, PlaneShape):
                 _draw_plane(ax, obs, lim)
     ax.set(xlabel='x (m)', ylabel='y (m)', zlabel='z (m)', xlim=(-lim, lim), ylim=(-lim, lim),
            zlim=(-lim / 2, lim), title=f'{result.criterion} design, base frame')
@@ -141,7 +237,7 @@ def plot_design(cell: DesignCell, scene: CollisionScene | None, result: DesignRe
     return path
 
 
-def _draw_plane(ax, plane: HalfSpace, lim: float) -> None:
+def _draw_plane(ax, plane: PlaneShape, lim: float) -> None:
     n = np.array(plane.normal)
     u = np.cross(n, [0.0, 0.0, 1.0] if abs(n[2]) < 0.9 else [1.0, 0.0, 0.0])
     u /= np.linalg.norm(u)
@@ -151,7 +247,7 @@ def _draw_plane(ax, plane: HalfSpace, lim: float) -> None:
     ax.plot_surface(pts[0], pts[1], pts[2], color='grey', alpha=0.12)
 
 
-def plot_ellipsoids(results: list[DesignResult], labels: list[str], path: str | Path,
+def plot_ellipsoids(results: Sequence[DesignRecord], labels: list[str], path: str | Path,
                     pose: int = 0) -> Path:
     """95 % confidence ellipsoids of the TCP at one working pose (µm), like Fig. 7.
 
@@ -195,7 +291,7 @@ def plot_ellipsoids(results: list[DesignResult], labels: list[str], path: str | 
 
 
 # ------------------------------------------------------------------------- summary
-def summary_text(result: DesignResult, baseline: DesignResult | None = None) -> str:
+def summary_text(result: DesignRecord, baseline: DesignRecord | None = None) -> str:
     """Readable summary for stdout."""
     lines = [f'criterion {result.criterion}: objective {result.objective:.4g} '
              f'(exchange {result.exchange_objective:.4g}), {len(result.configurations)} '

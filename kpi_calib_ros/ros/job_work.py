@@ -26,6 +26,7 @@ from kpi_calib_ros.app.calibration_document import (
     with_recording_names,
 )
 from kpi_calib_ros.app.campaign import campaign_calibration, campaign_context, new_campaign
+from kpi_calib_ros.app.cell_model import CellModel
 from kpi_calib_ros.app.design import (
     controller_design,
     design_cell_model,
@@ -53,7 +54,6 @@ from kpi_calib_ros.core.estimation.drift_state import DriftSwing
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.recordings import Recording
 from kpi_calib_ros.io.campaign_io import CampaignState, write_campaign_state, write_plan
-from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.design_io import write_design
 from kpi_calib_ros.io.names import (
     CALIBRATIONS_DIR,

@@ -33,6 +33,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from kpi_calib_ros.app.cell_model import CellModel
 from kpi_calib_ros.app.measurements import (
     paired_sigma,
     pose_rows,
@@ -62,7 +63,6 @@ from kpi_calib_ros.core.measurement.covariates import (
 )
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.recordings import NAME_PATTERN, Recording, row_covariates
-from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.measurement_log import DEFAULT_STATION, MeasurementLog, stored_pairing
 from kpi_calib_ros.io.names import DEFAULT_POINT_TOPIC, RESULT_FILES, point_sigma_topic
 

@@ -55,11 +55,12 @@ from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import MarkerArray
 
+from kpi_calib_ros.app.cell_model import CellModel, build_cell_model
 from kpi_calib_ros.core.acquisition.pairing import Decision, Rejection
 from kpi_calib_ros.core.collision.capsules import Capsule
 from kpi_calib_ros.core.errors import ConfigError, DataError, KpiCalibError
 from kpi_calib_ros.core.measurement.covariates import TEMPERATURE_RANGE_C
-from kpi_calib_ros.io.cell import CellModel, build_cell_model, load_cell, with_overrides
+from kpi_calib_ros.io.cell import load_cell, with_overrides
 from kpi_calib_ros.io.names import (
     CALIBRATED_URDF_TOPIC,
     CALIBRATION_TOPIC,
@@ -274,7 +275,7 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
                                              working_poses=working_poses(self.settings)))
         # Robot capsules need the collision geometry, which only a design needs (and may
         # not be findable): drawn once a design has built them (see _design).
-        self._capsules = [o for o in cm.cell.obstacles if isinstance(o, Capsule)]
+        self._capsules = [o for o in cm.obstacles if isinstance(o, Capsule)]
         self._tcp_publisher(len(cm.working_pose_names))
         self._cm, self._urdf, self._model_error = cm, urdf_xml, ''
         self._report(self.store.set_chain(cm.joint_names, cm.cell.tracker_frame,
@@ -371,7 +372,7 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
         self._design_points = points
         # Built (and cached) by the design: fitted and hand-given robot capsules.
         self._capsules = list(cm.robot_geometry().capsules) + [
-            o for o in cm.cell.obstacles if isinstance(o, Capsule)]
+            o for o in cm.obstacles if isinstance(o, Capsule)]
         self._publish_markers()
         return design.verification.ok and not not_estimable, design_answer(
             design, not_estimable, self.resolve_topic_name(MEASUREMENT_POSES_TOPIC), path)

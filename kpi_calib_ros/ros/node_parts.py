@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 from rclpy.publisher import Publisher
 
-from kpi_calib_ros.io.cell import CellModel
+from kpi_calib_ros.app.cell_model import CellModel
 from kpi_calib_ros.ros.job_node import JobNode
 from kpi_calib_ros.ros.measurement_store import MeasurementStore
 from kpi_calib_ros.ros.parameters import NodeSettings

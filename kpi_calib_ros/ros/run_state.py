@@ -12,13 +12,13 @@ from typing import Any
 
 import numpy as np
 
+from kpi_calib_ros.app.cell_model import CellModel
 from kpi_calib_ros.app.stored_calibration import StoredCalibration
 from kpi_calib_ros.core.campaigns.sequential import SequentialCampaign
 from kpi_calib_ros.core.campaigns.settings import MODEL_INADEQUATE, CampaignStatus
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.core.estimation.robust import RobustResult
 from kpi_calib_ros.io.campaign_io import CampaignState
-from kpi_calib_ros.io.cell import CellModel
 
 # Parameters a running sequential campaign was started with: refused while it runs (its
 # status, plan and stop rule rest on them).

@@ -16,10 +16,10 @@ import numpy as np
 import yaml
 from std_msgs.msg import String
 
+from kpi_calib_ros.app.cell_model import CellModel
 from kpi_calib_ros.core.errors import DataError, KpiCalibError
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.io.campaign_io import CampaignState, read_campaign_state
-from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.names import CAMPAIGN_STATE_FILE, MEASUREMENT_POSES_TOPIC
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros import job_work

@@ -41,9 +41,9 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
+from kpi_calib_ros.app.cell_model import CellModel
 from kpi_calib_ros.app.learned_residual import predict_stored, predict_tcp, stored_cell_model
 from kpi_calib_ros.core.errors import KpiCalibError
-from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.learned_residual_file import StoredResidual, read_residual
 from kpi_calib_ros.io.names import TCP_CORRECTED_TOPIC, TCP_QUERY_TOPIC
 from kpi_calib_ros.io.ros_messages import stamp_ns

@@ -1,6 +1,6 @@
 """The typed problem a measurement design is computed for: one cell, numerically.
 
-Built by :meth:`kpi_calib_ros.io.cell.CellModel.design_cell` from a validated
+Built by :meth:`kpi_calib_ros.app.cell_model.CellModel.design_cell` from a validated
 cell file; the design modules take this object and nothing from the YAML.
 """
 from __future__ import annotations

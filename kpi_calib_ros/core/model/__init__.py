@@ -43,7 +43,6 @@ from kpi_calib_ros.core.model.robot_library import (
     shipped_urdf_path,
     shipped_urdfs,
     ur_class_urdf,
-    write_shipped,
 )
 
 __all__ = [
@@ -54,5 +53,5 @@ __all__ = [
     'homogeneous', 'industrial_6r_urdf', 'kr15_class', 'kr300_class', 'kr500_class', 'link_poses',
     'link_poses_function', 'nominal_fk_function', 'notional_manipulators', 'pose6',
     'reflector_point', 'reflector_prefixes', 'rot_x', 'rot_y', 'rot_z', 'rpy_matrix',
-    'shipped_urdf_path', 'shipped_urdfs', 'ur_class_urdf', 'write_shipped',
+    'shipped_urdf_path', 'shipped_urdfs', 'ur_class_urdf',
 ]

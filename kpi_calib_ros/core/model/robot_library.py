@@ -33,7 +33,7 @@ from kpi_calib_ros.core.errors import ConfigError
 __all__ = [
     'DATA_DIR', 'SHIPPED_ROBOTS', 'KUKA_CONTROLLER_OFFSET', 'Industrial6RGeometry',
     'industrial_6r_urdf', 'kr15_class', 'kr300_class', 'kr500_class', 'notional_manipulators',
-    'ur_class_urdf', 'shipped_urdfs', 'shipped_urdf_path', 'write_shipped',
+    'ur_class_urdf', 'shipped_urdfs', 'shipped_urdf_path',
     'COLUMN_JOINTS', 'with_lifting_column',
 ]
 
@@ -394,17 +394,6 @@ def shipped_urdf_path(name: str) -> Path:
     if stem not in SHIPPED_ROBOTS:
         raise ConfigError('robot.name', f'unknown robot {name!r}; shipped: {SHIPPED_ROBOTS}')
     return DATA_DIR / f'{stem}.urdf'
-
-
-def write_shipped(directory: Path = DATA_DIR) -> list[Path]:
-    """Regenerate the shipped URDF files into ``directory``; returns the written paths."""
-    directory.mkdir(parents=True, exist_ok=True)
-    paths = []
-    for stem, text in shipped_urdfs().items():
-        path = directory / f'{stem}.urdf'
-        path.write_text(text, encoding='utf-8')
-        paths.append(path)
-    return paths
 
 
 COLUMN_JOINTS = ('lift', 'stage_1', 'stage_2')
