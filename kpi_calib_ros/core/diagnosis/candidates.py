@@ -46,7 +46,14 @@ from kpi_calib_ros.core.effects.registry import (
     effect_bounds,
     implausible,
 )
+from kpi_calib_ros.core.estimation.cross_validation import (
+    linear_validation_rms,
+    region_validation,
+    validation_folds,
+    validation_rms,
+)
 from kpi_calib_ros.core.estimation.estimability import KpiEstimability
+from kpi_calib_ros.core.estimation.folds import identifiable_folds
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult, point_sigma_squares
 from kpi_calib_ros.core.estimation.plausibility import Tolerances
 from kpi_calib_ros.core.estimation.precision import (
@@ -61,14 +68,9 @@ from kpi_calib_ros.core.estimation.residuals import (
     ADEQUACY_ALPHA,
     LinearizedFit,
     ResidualReport,
-    identifiable_folds,
-    linear_validation_rms,
     linearized_fit,
     orthonormal_basis,
-    region_validation,
     residual_report,
-    validation_folds,
-    validation_rms,
 )
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.payload import payload_torques
@@ -217,13 +219,13 @@ class ModelComparison:
     # How the after-fit's std were obtained (core.estimation.precision.precision_statement).
     std_basis: str = ''
     # Cross-validated rms over held-out regions of joint space (whole k-means blocks of
-    # poses, core.estimation.residuals.region_validation) before/after, on the same folds; NaN where
-    # not estimable. ``validation_rms_*`` are the figures where the poses were measured.
+    # poses, core.estimation.cross_validation.region_validation) before/after, on the same
+    # folds; NaN where not estimable. ``validation_rms_*``: where the poses were measured.
     other_region_rms_before_m: float = float('nan')
     other_region_rms_after_m: float = float('nan')
     region_blocks: int = 0
     # Held-out rms of each region block and each joint's range end, before/after, paired
-    # (core.estimation.residuals.RegionValidation.held_out_folds_m), m.
+    # (core.estimation.cross_validation.RegionValidation.held_out_folds_m), m.
     held_out_folds_before_m: tuple[float, ...] = ()
     held_out_folds_after_m: tuple[float, ...] = ()
     held_out_noise_m: tuple[float, ...] = ()  # each fold's rms spread by the noise alone
@@ -316,7 +318,7 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
         Default: every screened library effect × joint not already in ``model``.
     folds : int
         Folds (over poses) of the cross-validation; 0 leaves one pose out
-        (see :func:`kpi_calib_ros.core.estimation.residuals.identifiable_folds`).
+        (see :func:`kpi_calib_ros.core.estimation.folds.identifiable_folds`).
     alpha : float
         Family-wise false-alarm level: a candidate is significant when its
         F-test p-value times the number of distinguishable candidates is below.
