@@ -224,7 +224,6 @@ OVER_THE_LIMIT = {
     'kpi_calib_ros/core/diagnosis/candidates.py': 980,
     'kpi_calib_ros/ros/measurement_store.py': 692,
     'kpi_calib_ros/io/report.py': 672,
-    'kpi_calib_ros/core/acquisition/pairing.py': 637,
     'kpi_calib_ros/app/identify.py': 606,
 }
 
