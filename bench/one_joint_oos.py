@@ -15,7 +15,7 @@ sqrt(mean ‖h_true(q) − h(p̂, q)‖² + 3σ²) over 2000 fresh poses:
 Beside it, the figures it replaces against the like-measured truth: the 5-fold
 cross-validated rms of ``--model auto`` before (full nonlinear refits on random folds,
 ``core.diagnosis.model_selection.cross_validated_level_rms``) and the diagnosis' leave-one-pose-out
-rms (``core.estimation.residuals.validation_rms``). Writes bench/results/one_joint_oos.md.
+rms (``core.estimation.cross_validation.validation_rms``). Writes bench/results/one_joint_oos.md.
 
     .venv/bin/python bench/one_joint_oos.py [n_seeds]
 """
@@ -37,7 +37,7 @@ from kpi_calib_ros.core.diagnosis.out_of_sample import (
     out_of_sample_error,
 )
 from kpi_calib_ros.core.effects.registry import parse_effect_spec
-from kpi_calib_ros.core.estimation.residuals import validation_rms
+from kpi_calib_ros.core.estimation.cross_validation import validation_rms
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.simulation import (
     one_joint_at_a_time,

@@ -1,7 +1,7 @@
 """Real UR10: calibrate on one region of joint space, validate on the others and on Series D.
 
 Series A (laser tracker, one night) is cut into ``REGIONS`` regions of joint space
-(k-means in normalised joint space, ``core.estimation.residuals.region_fold_ids``, seed 0). For each
+(k-means in normalised joint space, ``core.estimation.folds.region_fold_ids``, seed 0). For each
 region in turn, up to ``N_TRAIN`` of its poses (random, seed 0) calibrate:
 
 * geometric: the full geometric model;
@@ -38,7 +38,7 @@ from kpi_calib_ros.core.diagnosis.effect_selection import effect_start
 from kpi_calib_ros.core.diagnosis.model_comparison import compare_models
 from kpi_calib_ros.core.diagnosis.verdict import diagnose
 from kpi_calib_ros.core.effects.registry import parse_effect_spec
-from kpi_calib_ros.core.estimation.residuals import pose_index, region_fold_ids
+from kpi_calib_ros.core.estimation.folds import pose_index, region_fold_ids
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.io.cell import cell_from_dict
 from kpi_calib_ros.io.csv_import import read_postures

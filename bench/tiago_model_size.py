@@ -4,9 +4,9 @@ Backward elimination on the 37-posture session (2021-11-30, four markers per pos
 with the rule fixed before any held-out figure was looked at: start from the full geometric
 model; at each step drop the geometric parameter (not the base or reflector placement) with
 the smallest |value / std|, refit; score every model by its leave-one-posture-out error
-(core.estimation.residuals.validation_rms: PRESS over posture blocks of the linearised fit, all
-four markers of a posture held out together) and choose the smallest PRESS. Every step's
-error on the 2021-11-26 session and on the two other 2021-11-30 sessions (which none of the
+(core.estimation.cross_validation.validation_rms: PRESS over posture blocks of the linearised
+fit, all four markers of a posture held out together) and choose the smallest PRESS. Every
+step's error on the 2021-11-26 session and on the two other 2021-11-30 sessions (which none of the
 choices uses) is printed beside it.
 
     .venv/bin/python bench/tiago_model_size.py
@@ -29,7 +29,7 @@ from kpi_calib_ros.app.identify import identify_cell, registered_start
 from kpi_calib_ros.app.measurements import load_measurements
 from kpi_calib_ros.cli import main as cli
 from kpi_calib_ros.core.diagnosis.model_selection import level_free
-from kpi_calib_ros.core.estimation.residuals import validation_rms
+from kpi_calib_ros.core.estimation.cross_validation import validation_rms
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get('TIAGO_MOCAP_DIR') or ROOT.parent / 'shared' / 'data' / 'tiago_mocap')

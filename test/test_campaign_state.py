@@ -11,7 +11,7 @@ import yaml
 
 from kpi_calib_ros.app.campaign import campaign_context, new_campaign
 from kpi_calib_ros.app.cell_model import build_cell_model
-from kpi_calib_ros.core.acquisition.pairing import PairingResult
+from kpi_calib_ros.core.acquisition.outcomes import PairingResult
 from kpi_calib_ros.core.campaigns.settings import MODEL_INADEQUATE, TARGET_MET, CampaignSettings
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.measurement.data import Measurements

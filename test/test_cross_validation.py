@@ -6,16 +6,15 @@ import numpy as np
 import pytest
 
 from kpi_calib_ros.app.identify import identify_cell
-from kpi_calib_ros.core.estimation.residuals import (
+from kpi_calib_ros.core.estimation.cross_validation import linear_validation_rms, validation_rms
+from kpi_calib_ros.core.estimation.folds import (
     fold_ids,
     folds_keep_rank,
     identifiable_folds,
-    linear_validation_rms,
-    linearized_fit,
     moved_joints,
     stratified_fold_ids,
-    validation_rms,
 )
+from kpi_calib_ros.core.estimation.residuals import linearized_fit
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.simulation import (
     one_joint_at_a_time,

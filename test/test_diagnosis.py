@@ -22,8 +22,9 @@ from kpi_calib_ros.core.diagnosis.effect_signature import augmented_model
 from kpi_calib_ros.core.diagnosis.model_comparison import compare_models
 from kpi_calib_ros.core.diagnosis.verdict import diagnose
 from kpi_calib_ros.core.effects.registry import parse_effect_spec
+from kpi_calib_ros.core.estimation.cross_validation import validation_rms
 from kpi_calib_ros.core.estimation.least_squares import identify
-from kpi_calib_ros.core.estimation.residuals import residual_report, validation_rms
+from kpi_calib_ros.core.estimation.residuals import residual_report
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.io.cell import DEFAULT_CELL, cell_from_dict
 

@@ -11,9 +11,9 @@ import yaml
 from kpi_calib_ros.cli import main
 from kpi_calib_ros.core.diagnosis.effect_signature import augmented_model
 from kpi_calib_ros.core.effects.registry import parse_effect_spec
+from kpi_calib_ros.core.estimation.cross_validation import validation_rms
 from kpi_calib_ros.core.estimation.least_squares import identify
 from kpi_calib_ros.core.estimation.precision import expected_tcp_error, honest_precision
-from kpi_calib_ros.core.estimation.residuals import validation_rms
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,

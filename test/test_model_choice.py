@@ -16,14 +16,10 @@ from kpi_calib_ros.core.effects.general import (
     periodic_cycles,
     periodic_joint_error,
 )
+from kpi_calib_ros.core.estimation.cross_validation import validation_rms
+from kpi_calib_ros.core.estimation.folds import folds_keep_rank, region_fold_ids, region_folds
 from kpi_calib_ros.core.estimation.least_squares import identify
 from kpi_calib_ros.core.estimation.prior import tolerance_prior
-from kpi_calib_ros.core.estimation.residuals import (
-    folds_keep_rank,
-    region_fold_ids,
-    region_folds,
-    validation_rms,
-)
 from kpi_calib_ros.core.simulation import (
     random_configurations,
     simulate_measurements,
@@ -207,12 +203,8 @@ def test_an_effect_that_fits_one_corner_and_hurts_the_other_folds_is_refused():
     the noise alone spreads their rms by (2 of the 9 region blocks and joint range ends):
     refused."""
     from kpi_calib_ros.core.diagnosis.model_selection import region_test, worse_folds
-    from kpi_calib_ros.core.estimation.residuals import (
-        fold_rms,
-        linear_validation_rms,
-        pose_index,
-        range_end_folds,
-    )
+    from kpi_calib_ros.core.estimation.cross_validation import fold_rms, linear_validation_rms
+    from kpi_calib_ros.core.estimation.folds import pose_index, range_end_folds
     q, before, after, r, w = _corner_case()
     found = region_folds(after, q, 5, seed=0)
     assert found is not None
@@ -236,12 +228,8 @@ def test_an_effect_that_holds_everywhere_is_not_refused_by_the_folds():
     """The same campaign with a true ramp along joint 1 (no corner bump): the ramp lowers
     the error in every held-out fold and passes."""
     from kpi_calib_ros.core.diagnosis.model_selection import region_test, worse_folds
-    from kpi_calib_ros.core.estimation.residuals import (
-        fold_rms,
-        linear_validation_rms,
-        pose_index,
-        range_end_folds,
-    )
+    from kpi_calib_ros.core.estimation.cross_validation import fold_rms, linear_validation_rms
+    from kpi_calib_ros.core.estimation.folds import pose_index, range_end_folds
     q, before, after, _, w = _corner_case()
     rng = np.random.default_rng(1)
     r = (after[:, 3] * 5e-3 + rng.normal(size=after.shape[0]))  # 5 mm per unit of joint 1

@@ -5,12 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from kpi_calib_ros.core.acquisition.outcomes import PairedMeasurement, Rejection
 from kpi_calib_ros.core.acquisition.pairing import (
     INDEX_CACHE_SIZE,
     NAMES_KEPT,
-    PairedMeasurement,
     Pairer,
-    Rejection,
     pair_measurements,
 )
 from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample, synthesize_streams

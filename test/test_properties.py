@@ -35,12 +35,8 @@ from hypothesis import strategies as st
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Header
 
-from kpi_calib_ros.core.acquisition.pairing import (
-    PairedMeasurement,
-    Pairer,
-    Rejection,
-    pair_measurements,
-)
+from kpi_calib_ros.core.acquisition.outcomes import PairedMeasurement, Rejection
+from kpi_calib_ros.core.acquisition.pairing import Pairer, pair_measurements
 from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
 from kpi_calib_ros.ros import conversions as cv
 

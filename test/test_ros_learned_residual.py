@@ -19,7 +19,7 @@ from test_ros_tcp_query import learned
 from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.learned_residual import predict_stored, predict_tcp
 from kpi_calib_ros.app.validate import calibrated_model
-from kpi_calib_ros.core.acquisition.pairing import PairingResult
+from kpi_calib_ros.core.acquisition.outcomes import PairingResult
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.simulation import (

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kpi_calib_ros.core.acquisition.pairing import PairedMeasurement, Rejection, pair_measurements
+from kpi_calib_ros.core.acquisition.outcomes import PairedMeasurement, Rejection
+from kpi_calib_ros.core.acquisition.pairing import pair_measurements
 from kpi_calib_ros.core.acquisition.streams import synthesize_streams
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.io.measurement_log import MeasurementLog

@@ -14,7 +14,7 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.executors import SingleThreadedExecutor
 from std_msgs.msg import String
 
-from kpi_calib_ros.core.acquisition.pairing import PairingResult
+from kpi_calib_ros.core.acquisition.outcomes import PairingResult
 from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.simulation import (

@@ -13,7 +13,7 @@ import yaml
 from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.learned_residual import predict_tcp
 from kpi_calib_ros.app.stored_calibration import read_stored_calibration
-from kpi_calib_ros.core.acquisition.pairing import PairingResult
+from kpi_calib_ros.core.acquisition.outcomes import PairingResult
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.simulation import (

@@ -6,13 +6,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from kpi_calib_ros.core.acquisition.pairing import (
-    REJECTION_REASONS,
-    PairedMeasurement,
-    Pairer,
-    Rejection,
-    pair_measurements,
-)
+from kpi_calib_ros.core.acquisition.outcomes import REJECTION_REASONS, PairedMeasurement, Rejection
+from kpi_calib_ros.core.acquisition.pairing import Pairer, pair_measurements
 from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample, synthesize_streams
 
 NAMES = ('joint_1', 'joint_2', 'joint_3', 'joint_4', 'joint_5', 'joint_6')

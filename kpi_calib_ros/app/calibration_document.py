@@ -13,7 +13,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from kpi_calib_ros.app.cell_model import CellModel
-from kpi_calib_ros.core.acquisition.pairing import PairingResult
+from kpi_calib_ros.core.acquisition.outcomes import PairingResult
 from kpi_calib_ros.core.diagnosis.model_selection import ModelChoice, NominalComparison
 from kpi_calib_ros.core.effects.gravity_compliance import compliance_warnings, mass_warning
 from kpi_calib_ros.core.errors import ConfigError

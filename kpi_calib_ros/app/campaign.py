@@ -21,7 +21,7 @@ from kpi_calib_ros.app.calibration_document import (
 )
 from kpi_calib_ros.app.cell_model import CellModel, build_cell_model
 from kpi_calib_ros.app.simulate import truth_cell_model
-from kpi_calib_ros.core.acquisition.pairing import PairingResult
+from kpi_calib_ros.core.acquisition.outcomes import PairingResult
 from kpi_calib_ros.core.campaigns.sequential import SequentialCampaign
 from kpi_calib_ros.core.campaigns.settings import (
     TARGET_MET,

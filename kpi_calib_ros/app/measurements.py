@@ -18,7 +18,9 @@ from typing import Callable, Iterable, Mapping, Sequence
 import numpy as np
 
 from kpi_calib_ros.app.cell_model import CellModel, build_cell_model
-from kpi_calib_ros.core.acquisition.pairing import PairingResult, pair_measurements, split_frame
+from kpi_calib_ros.core.acquisition.outcomes import PairingResult
+from kpi_calib_ros.core.acquisition.pairing import pair_measurements
+from kpi_calib_ros.core.acquisition.reflector_frames import split_frame
 from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
 from kpi_calib_ros.core.effects.registry import split_specs
 from kpi_calib_ros.core.errors import ConfigError, DataError

@@ -46,7 +46,7 @@ from kpi_calib_ros.app.identify import (
 )
 from kpi_calib_ros.app.measurements import load_measurements
 from kpi_calib_ros.app.validate import calibration_noise_scale
-from kpi_calib_ros.core.acquisition.pairing import PairingResult
+from kpi_calib_ros.core.acquisition.outcomes import PairingResult
 from kpi_calib_ros.core.campaigns.change_detection import CHANGE_ALPHA, ChangeTest, change_test
 from kpi_calib_ros.core.diagnosis.model_selection import level_free
 from kpi_calib_ros.core.errors import DataError

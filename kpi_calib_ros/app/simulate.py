@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from kpi_calib_ros.app.cell_model import CellModel, build_cell_model
-from kpi_calib_ros.core.acquisition.pairing import REFLECTOR_SEPARATOR
+from kpi_calib_ros.core.acquisition.reflector_frames import REFLECTOR_SEPARATOR
 from kpi_calib_ros.core.acquisition.streams import PointSample, synthesize_streams
 from kpi_calib_ros.core.collision.check import verify_configuration
 from kpi_calib_ros.core.errors import ConfigError

@@ -8,9 +8,9 @@ writes, for every row, joint states held still (zero velocity, ``rate_hz``) for
 ``±hold_s`` around the row's stamp and one ``PointStamped`` per marker at that stamp
 (a ``PoseStamped`` on the pose topic for a marker with orientation columns), with
 ``header.frame_id = '<frame_id>#<marker name>'`` (the several-points convention of
-:mod:`kpi_calib_ros.core.acquisition.pairing`), and the row's cell temperature, if mapped, as a
-``sensor_msgs/Temperature``, and its measured inputs (covariates: a tilt, a payload mass,
-any recorded quantity; converted to SI) as named values on the inputs topic
+:mod:`kpi_calib_ros.core.acquisition.reflector_frames`), and the row's cell temperature, if
+mapped, as a ``sensor_msgs/Temperature``, and its measured inputs (covariates: a tilt, a
+payload mass, any recorded quantity; converted to SI) as named values on the inputs topic
 (:data:`~kpi_calib_ros.io.names.DEFAULT_INPUTS_TOPIC`). Which columns mean what is given by a
 :class:`~kpi_calib_ros.io.csv_mapping.CsvMapping` (flags or a small YAML file). Separator, decimal
 mark and encoding are detected (:mod:`kpi_calib_ros.io.csv_table`). Rows stream into
@@ -30,7 +30,7 @@ from typing import Iterator
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from kpi_calib_ros.core.acquisition.pairing import REFLECTOR_SEPARATOR
+from kpi_calib_ros.core.acquisition.reflector_frames import REFLECTOR_SEPARATOR
 from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.measurement.covariates import (

@@ -17,7 +17,7 @@ from typing import Any
 
 from scipy.spatial.transform import Rotation
 
-from kpi_calib_ros.core.acquisition.pairing import REFLECTOR_SEPARATOR
+from kpi_calib_ros.core.acquisition.reflector_frames import REFLECTOR_SEPARATOR
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.io.cell_inputs import check_covariate_name
 from kpi_calib_ros.io.csv_table import DECIMALS, DELIMITERS

@@ -33,7 +33,8 @@ from mcap.data_stream import RecordBuilder
 from mcap.records import Channel, Chunk, DataEnd, Footer, Header, Message, Metadata, Schema
 from mcap.well_known import MessageEncoding, SchemaEncoding
 
-from kpi_calib_ros.core.acquisition.pairing import PairingResult, split_frame, stacked_rotations
+from kpi_calib_ros.core.acquisition.outcomes import PairingResult, stacked_rotations
+from kpi_calib_ros.core.acquisition.reflector_frames import split_frame
 from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.measurement.covariates import InputSample, TemperatureSample

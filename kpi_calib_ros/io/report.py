@@ -179,7 +179,7 @@ def diagnosis_to_dict(cd: CellDiagnosis) -> dict[str, Any]:
 
 def _validation(rms_m: float, width: str = '', unit: str = '') -> str:
     """A cross-validated rms in µm, or why there is none: NaN when no folds keep
-    every identified parameter determined (core.estimation.residuals.identifiable_folds)."""
+    every identified parameter determined (core.estimation.folds.identifiable_folds)."""
     if not np.isfinite(rms_m):
         return NOT_ESTIMABLE
     return f'{rms_m * _UM:{width}.1f}{unit}'

@@ -44,7 +44,7 @@ from kpi_calib_ros.app.reidentify import (
     reidentify,
 )
 from kpi_calib_ros.app.validate import validate_report
-from kpi_calib_ros.core.acquisition.pairing import PairingResult
+from kpi_calib_ros.core.acquisition.outcomes import PairingResult
 from kpi_calib_ros.core.campaigns.change_detection import ChangeTest
 from kpi_calib_ros.core.campaigns.sequential import SequentialCampaign
 from kpi_calib_ros.core.campaigns.settings import MODEL_INADEQUATE, CampaignSettings, CampaignStatus

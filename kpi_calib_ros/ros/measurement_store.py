@@ -42,15 +42,15 @@ from kpi_calib_ros.app.measurements import (
     with_readings,
     with_recordings,
 )
-from kpi_calib_ros.core.acquisition.pairing import (
+from kpi_calib_ros.core.acquisition.outcomes import (
     REJECTION_REASONS,
     Decision,
     PairedMeasurement,
-    Pairer,
     PairingResult,
     Rejection,
-    split_frame,
 )
+from kpi_calib_ros.core.acquisition.pairing import Pairer
+from kpi_calib_ros.core.acquisition.reflector_frames import split_frame
 from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.measurement.covariates import (

@@ -56,7 +56,7 @@ from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import MarkerArray
 
 from kpi_calib_ros.app.cell_model import CellModel, build_cell_model
-from kpi_calib_ros.core.acquisition.pairing import Decision, Rejection
+from kpi_calib_ros.core.acquisition.outcomes import Decision, Rejection
 from kpi_calib_ros.core.collision.capsules import Capsule
 from kpi_calib_ros.core.errors import ConfigError, DataError, KpiCalibError
 from kpi_calib_ros.core.measurement.covariates import TEMPERATURE_RANGE_C

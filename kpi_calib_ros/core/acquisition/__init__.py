@@ -4,20 +4,21 @@ from kpi_calib_ros.core.acquisition.coupling import (
     identity_coupling,
     mimic_coupling,
 )
+from kpi_calib_ros.core.acquisition.outcomes import (
+    REJECTION_REASONS,
+    PairedMeasurement,
+    PairingResult,
+    Rejection,
+    stacked_rotations,
+)
 from kpi_calib_ros.core.acquisition.pairing import (
     EARLY_POINTS,
     INDEX_CACHE_SIZE,
     NAMES_KEPT,
-    REFLECTOR_SEPARATOR,
-    REJECTION_REASONS,
-    PairedMeasurement,
     Pairer,
-    PairingResult,
-    Rejection,
     pair_measurements,
-    split_frame,
-    stacked_rotations,
 )
+from kpi_calib_ros.core.acquisition.reflector_frames import REFLECTOR_SEPARATOR, split_frame
 from kpi_calib_ros.core.acquisition.streams import (
     JointSample,
     PointSample,

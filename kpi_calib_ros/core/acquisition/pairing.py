@@ -15,12 +15,11 @@ Memory: a joint state naming far more joints than the chain is rejected as
 ``oversized_joint_state`` before it is buffered; only the chain's columns are kept,
 and the name-index cache is a small LRU, so hostile input cannot grow the pairer.
 
-Several reflectors per pose: every reflector (or mocap marker) point is its own
-``PointStamped`` with ``header.frame_id = '<tracker_frame>#<reflector name>'`` (the
-point is expressed in ``<tracker_frame>``; the part after ``#``, a character no ROS
-frame name contains, names the reflector of the cell's ``reflectors:`` list). One
-topic, one log and one replay carry every reflector, and points of one pose may share
-a stamp. A plain ``<tracker_frame>`` is the single ``reflector:`` of a cell.
+Several reflectors per pose: a point names its reflector in its frame id,
+``'<tracker_frame>#<reflector name>'``
+(:mod:`kpi_calib_ros.core.acquisition.reflector_frames`). What the pairer decides (a
+measurement or a rejection per point) and a batch's result are the types of
+:mod:`kpi_calib_ros.core.acquisition.outcomes`.
 
 Units: stamps in integer nanoseconds, joint positions in rad (m for prismatic
 joints), velocities in rad/s (m/s), points in metres.
@@ -31,26 +30,24 @@ import bisect
 import heapq
 import logging
 from collections import Counter, OrderedDict, deque
-from dataclasses import dataclass, field
-from typing import Any, Callable, Iterable, Mapping, Sequence, Union
+from dataclasses import dataclass
+from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
+from kpi_calib_ros.core.acquisition.outcomes import (
+    Decision,
+    PairedMeasurement,
+    PairingResult,
+    Rejection,
+    stacked_rotations,
+)
+from kpi_calib_ros.core.acquisition.reflector_frames import split_frame, unknown_reflector
 from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample, frozen_array
 
-__all__ = [
-    'REJECTION_REASONS', 'REFLECTOR_SEPARATOR', 'INDEX_CACHE_SIZE', 'EARLY_POINTS', 'NAMES_KEPT',
-    'MIMIC_TOL',
-    'split_frame', 'Rejection', 'PairedMeasurement', 'PairingResult', 'Pairer',
-    'pair_measurements', 'stacked_rotations',
-]
+__all__ = ['INDEX_CACHE_SIZE', 'EARLY_POINTS', 'NAMES_KEPT', 'MIMIC_TOL', 'Pairer',
+           'pair_measurements']
 
-REJECTION_REASONS = (
-    'non_finite_point', 'wrong_frame', 'no_joint_state', 'robot_moving',
-    'missing_joints', 'non_finite_joint_state', 'duplicate_stamp', 'oversized_joint_state',
-    'unknown_reflector', 'invalid_orientation', 'mimic_mismatch',
-)
-REFLECTOR_SEPARATOR = '#'
 INDEX_CACHE_SIZE = 16   # distinct joint-name lists remembered (LRU); drivers use one or two
 EARLY_POINTS = 1000      # points kept waiting for a clock jump
 NAMES_KEPT = 16         # names of a foreign joint state kept for the missing_joints message
@@ -59,103 +56,6 @@ NAMES_KEPT = 16         # names of a foreign joint state kept for the missing_jo
 # did not follow (a slipped belt) or a description that is not the robot's.
 MIMIC_TOL = 1e-4
 _log = logging.getLogger(__name__)
-
-
-def split_frame(frame_id: str) -> tuple[str, str]:
-    """Split a point's frame id ``'<frame>#<name>'`` into ``(frame, reflector name)``.
-
-    The name is '' when there is no ``#``; a leading '/' of the frame is dropped.
-    """
-    frame, _, name = frame_id.partition(REFLECTOR_SEPARATOR)
-    return frame.strip('/'), name
-
-
-@dataclass(frozen=True)
-class Rejection:
-    """A point or joint sample that did not become a measurement.
-
-    ``reason`` is one of :data:`REJECTION_REASONS`, ``detail`` says why in words.
-    """
-
-    stamp_ns: int
-    reason: str
-    detail: str
-
-
-@dataclass(frozen=True, eq=False)
-class PairedMeasurement:
-    """An accepted point with the robot configuration it was measured at.
-
-    ``q`` (n,) is the mean of the still joint states within ±window of ``stamp_ns``,
-    ordered as ``joint_names``; ``eta`` (3,) is the point (m) in ``frame_id``;
-    ``spread_rad`` is the largest joint position spread seen in the window.
-    """
-
-    stamp_ns: int
-    joint_names: tuple[str, ...]
-    q: np.ndarray
-    eta: np.ndarray
-    frame_id: str
-    n_joint_samples: int
-    spread_rad: float
-    orientation: np.ndarray | None = None   # quaternion of a tracked 6-DoF pose, else None
-
-    def joint_sample(self) -> JointSample:
-        """Return the averaged configuration as a joint sample stamped like the point."""
-        return JointSample(self.stamp_ns, self.joint_names, self.q, None)
-
-    def point_sample(self) -> PointSample:
-        """Return the tracker reading (point, and orientation of a 6-DoF pose) as a point sample."""
-        return PointSample(self.stamp_ns, self.frame_id, self.eta, self.orientation)
-
-    @property
-    def rotation(self) -> np.ndarray | None:
-        """(3, 3) body rotation of a tracked 6-DoF pose, None for a point."""
-        return self.point_sample().rotation
-
-    @property
-    def reflector(self) -> str:
-        """Reflector name of the point ('' for a cell's single reflector)."""
-        return split_frame(self.frame_id)[1]
-
-
-Decision = Union[PairedMeasurement, Rejection]
-
-
-@dataclass(frozen=True, eq=False)
-class PairingResult:
-    """Outcome of :func:`pair_measurements`.
-
-    ``q`` (N, n) rad ordered as ``joint_names``, ``eta`` (N, 3) m, ``stamps_ns`` (N,)
-    int64, sorted by stamp. ``rejections`` counts reasons that occurred;
-    ``rejected`` lists every rejection in stamp order; ``reflectors`` (N,) names the
-    reflector of every row ('' the single one; empty tuple: all ''); ``rotations``
-    (N, 3, 3) the measured body rotation of tracked 6-DoF poses (NaN on plain points),
-    None when no row has one.
-    """
-
-    joint_names: tuple[str, ...]
-    tracker_frame: str
-    q: np.ndarray
-    eta: np.ndarray
-    stamps_ns: np.ndarray
-    rejections: dict[str, int] = field(default_factory=dict)
-    rejected: list[Rejection] = field(default_factory=list)
-    reflectors: tuple[str, ...] = ()
-    rotations: np.ndarray | None = None
-
-    def reflector_indices(self, names: Sequence[str]) -> np.ndarray:
-        """(N,) index of every row's reflector in ``names`` (the cell's order)."""
-        rows = self.reflectors or ('',) * len(self)
-        position = {n: i for i, n in enumerate(names)}
-        unknown = sorted({r for r in rows if r not in position})
-        if unknown:
-            raise ValueError(f'reflectors {unknown} are not among {list(names)}')
-        return np.array([position[r] for r in rows], dtype=int)
-
-    def __len__(self) -> int:
-        """Return the number of rows."""
-        return len(self.stamps_ns)
 
 
 @dataclass(frozen=True)
@@ -211,9 +111,9 @@ class Pairer:
         Joint states naming more joints than this are rejected as
         ``oversized_joint_state``; default ``4 * len(joint_names) + 64``.
     reflectors : sequence of str
-        Reflector names a point may carry after ``#`` in its frame id (see the module
-        doc); ``('',)``, the default, is the single-reflector cell. Others are rejected
-        as ``unknown_reflector``.
+        Reflector names a point may carry after ``#`` in its frame id
+        (:mod:`~kpi_calib_ros.core.acquisition.reflector_frames`); ``('',)``, the default,
+        is the single-reflector cell. Others are rejected as ``unknown_reflector``.
     derived : mapping, optional
         ``{joint: (coefficients (n,), offset)}``: joints a joint state may also carry whose
         value follows from ``joint_names``' (mimic joints: ``coefficients @ q + offset``).
@@ -421,7 +321,7 @@ class Pairer:
                          f"point in frame '{point.frame_id}', expected '{self.tracker_frame}'")
             return
         if reflector not in self.reflectors:
-            self._reject(stamp, 'unknown_reflector', _unknown_reflector(
+            self._reject(stamp, 'unknown_reflector', unknown_reflector(
                 point.frame_id, self.tracker_frame, self.reflectors))
             return
         # _first and _latest are set together, by the epoch's first joint state.
@@ -568,25 +468,6 @@ class Pairer:
             spread_rad=float(spread.max()), orientation=point.orientation))
 
 
-def _unknown_reflector(frame_id: str, tracker_frame: str, reflectors: Sequence[str]) -> str:
-    expected = [tracker_frame if not r else f'{tracker_frame}{REFLECTOR_SEPARATOR}{r}'
-                for r in reflectors]
-    _, name = split_frame(frame_id)
-    if not name:
-        fix = (f"send the points with frame_id '{expected[0]}', or their reflector name "
-               "after the '#'")
-    elif tuple(reflectors) == ('',):
-        fix = (f'the cell has one reflector: (no names); name it as the points do: '
-               f'reflectors: [{{name: {name}}}] (offset and orientation as in reflector:)')
-    else:
-        fix = (f"add {{name: {name}}} to the cell's reflectors: list, or send the points "
-               'with one of the names above')
-    return (f"point frame_id '{frame_id}' names a reflector the cell does not have; "
-            f"frame ids are '<tracker_frame>{REFLECTOR_SEPARATOR}<reflector name>' for the cell's "
-            f'reflectors: list (a plain tracker frame for a single reflector:), expected one '
-            f'of {expected}; {fix}')
-
-
 def pair_measurements(
     joint_samples: Iterable[JointSample],
     point_samples: Iterable[PointSample],
@@ -625,13 +506,3 @@ def pair_measurements(
         reflectors=tuple(m.reflector for m in accepted),
         rotations=stacked_rotations([m.rotation for m in accepted]),
     )
-
-
-def stacked_rotations(rotations: Sequence[np.ndarray | None]) -> np.ndarray | None:
-    """(N, 3, 3) rotations of accepted rows, NaN where a row is a plain point.
-
-    None when no row carries one.
-    """
-    if all(r is None for r in rotations):
-        return None
-    return np.array([np.full((3, 3), np.nan) if r is None else r for r in rotations])

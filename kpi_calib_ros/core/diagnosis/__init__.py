@@ -67,7 +67,8 @@ from kpi_calib_ros.core.diagnosis.residual_inputs import ResidualInput, residual
 from kpi_calib_ros.core.diagnosis.screening import Candidate, screen_effects
 from kpi_calib_ros.core.diagnosis.validation import Validation, validate
 from kpi_calib_ros.core.diagnosis.verdict import Diagnosis, diagnose, equivalent_joint_sigma
-from kpi_calib_ros.core.estimation.residuals import ResidualReport, residual_report, validation_rms
+from kpi_calib_ros.core.estimation.cross_validation import validation_rms
+from kpi_calib_ros.core.estimation.residuals import ResidualReport, residual_report
 
 __all__ = [
     'BASIS_SIZES', 'CHOICE_ALPHA', 'Candidate', 'CandidateFit', 'CellDiagnosis', 'CorrectedTcp',

@@ -20,11 +20,8 @@ import numpy as np
 import scipy.stats
 
 from kpi_calib_ros.core.effects.registry import BoundEffect, implausible
-from kpi_calib_ros.core.estimation.residuals import (
-    ADEQUACY_ALPHA,
-    LinearizedFit,
-    linear_validation_rms,
-)
+from kpi_calib_ros.core.estimation.cross_validation import linear_validation_rms
+from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA, LinearizedFit
 from kpi_calib_ros.core.measurement.weighting import unweighted
 
 __all__ = ['SAME_SIGNATURE', 'CandidateFit', 'fit_candidate', 'merge_same_signature',

@@ -20,7 +20,7 @@ Each round:
    effect parameter unidentified or fits an implausible value is refused;
 3. each trial and the current model are cross-validated on the same folds that hold out
    whole regions of joint space and each joint's range ends
-   (:func:`~kpi_calib_ros.core.estimation.residuals.region_validation`, the fit's prior kept
+   (:func:`~kpi_calib_ros.core.estimation.cross_validation.region_validation`, the fit's prior kept
    in every refit); a trial that predicts the held-out regions better than the current
    model, worse in no held-out fold, and by
    :data:`~kpi_calib_ros.core.diagnosis.model_selection.REGION_MARGIN` there or where
@@ -51,16 +51,16 @@ from kpi_calib_ros.core.diagnosis.out_of_sample import out_of_sample_error
 from kpi_calib_ros.core.diagnosis.screening import default_candidates, screen_effects
 from kpi_calib_ros.core.effects.registry import BoundEffect, implausible
 from kpi_calib_ros.core.errors import DataError
-from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
-from kpi_calib_ros.core.estimation.plausibility import Tolerances, Violation, gate
-from kpi_calib_ros.core.estimation.precision import fit_prior
-from kpi_calib_ros.core.estimation.prior import Prior
-from kpi_calib_ros.core.estimation.residuals import (
-    ADEQUACY_ALPHA,
+from kpi_calib_ros.core.estimation.cross_validation import (
     RegionValidation,
     region_validation,
     validation_folds,
 )
+from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
+from kpi_calib_ros.core.estimation.plausibility import Tolerances, Violation, gate
+from kpi_calib_ros.core.estimation.precision import fit_prior
+from kpi_calib_ros.core.estimation.prior import Prior
+from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.core.measurement.weighting import row_torques

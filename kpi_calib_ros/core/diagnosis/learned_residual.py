@@ -31,7 +31,7 @@ depend on is not trusted beyond the range it was measured over.
 
 The learned residual is chosen only when it predicts held-out regions of joint space
 better: cross-validation over folds that hold out whole k-means blocks of poses in
-normalised joint space (:func:`~kpi_calib_ros.core.estimation.residuals.region_fold_ids`;
+normalised joint space (:func:`~kpi_calib_ros.core.estimation.folds.region_fold_ids`;
 a pose's rows stay together) of the whole Gaussian process (its hyperparameters
 refitted in every fold) against the physical model's residuals, with a one-sided paired
 t-test over the held-out poses (:data:`CHOICE_ALPHA`) and a least gain
@@ -56,7 +56,7 @@ from sklearn.exceptions import ConvergenceWarning
 from sklearn.gaussian_process import GaussianProcessRegressor
 from sklearn.gaussian_process.kernels import RBF, ConstantKernel, Kernel, WhiteKernel
 
-from kpi_calib_ros.core.estimation.residuals import pose_index, region_fold_ids
+from kpi_calib_ros.core.estimation.folds import pose_index, region_fold_ids
 
 # Length scales are bounded above by this factor times each joint's training span
 # (span at least MIN_SPAN): beyond its range a joint is not trusted.

@@ -11,10 +11,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from kpi_calib_ros.core.diagnosis.model_selection import region_test, worse_folds
+from kpi_calib_ros.core.estimation.cross_validation import region_validation, validation_folds
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.core.estimation.precision import fit_prior, precision_statement
 from kpi_calib_ros.core.estimation.prior import Prior
-from kpi_calib_ros.core.estimation.residuals import region_validation, validation_folds
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 
@@ -42,13 +42,13 @@ class ModelComparison:
     # How the after-fit's std were obtained (core.estimation.precision.precision_statement).
     std_basis: str = ''
     # Cross-validated rms over held-out regions of joint space (whole k-means blocks of
-    # poses, core.estimation.residuals.region_validation) before/after, on the same folds; NaN where
-    # not estimable. ``validation_rms_*`` are the figures where the poses were measured.
+    # poses, core.estimation.cross_validation.region_validation) before/after, on the
+    # same folds; NaN where not estimable. ``validation_rms_*`` are the figures where the poses were measured.
     other_region_rms_before_m: float = float('nan')
     other_region_rms_after_m: float = float('nan')
     region_blocks: int = 0
     # Held-out rms of each region block and each joint's range end, before/after, paired
-    # (core.estimation.residuals.RegionValidation.held_out_folds_m), m.
+    # (core.estimation.cross_validation.RegionValidation.held_out_folds_m), m.
     held_out_folds_before_m: tuple[float, ...] = ()
     held_out_folds_after_m: tuple[float, ...] = ()
     held_out_noise_m: tuple[float, ...] = ()  # each fold's rms spread by the noise alone

@@ -13,7 +13,7 @@ level):
 fit itself (:mod:`kpi_calib_ros.core.diagnosis.out_of_sample`, no refits), and picks the
 smallest level whose predicted rms is within `PARSIMONY` of the best. Beside it, each
 level's cross-validated rms where measured and over folds that hold out whole regions of
-joint space (:func:`~kpi_calib_ros.core.estimation.residuals.region_validation`, k-means
+joint space (:func:`~kpi_calib_ros.core.estimation.cross_validation.region_validation`, k-means
 blocks in normalised joint space that keep every identified parameter determined, the
 fit's prior kept in every refit) are reported. The region figure decides the *effects*
 (:mod:`~kpi_calib_ros.core.diagnosis.effect_selection`, :func:`holds_elsewhere`), not the
@@ -36,6 +36,12 @@ from kpi_calib_ros.core.diagnosis.recording_verdict import (
     recording_comparisons,
 )
 from kpi_calib_ros.core.errors import DataError
+from kpi_calib_ros.core.estimation.cross_validation import (
+    RegionValidation,
+    region_validation,
+    validation_folds,
+    validation_rms,
+)
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.core.estimation.precision import (
     expected_tcp_error,
@@ -43,12 +49,6 @@ from kpi_calib_ros.core.estimation.precision import (
     honest_precision,
 )
 from kpi_calib_ros.core.estimation.prior import Prior
-from kpi_calib_ros.core.estimation.residuals import (
-    RegionValidation,
-    region_validation,
-    validation_folds,
-    validation_rms,
-)
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.core.model.parameters import ParameterSet
@@ -86,7 +86,7 @@ def worse_folds(after: tuple[float, ...], before: tuple[float, ...],
 
     A fold is compared where both figures are finite; above when by more than its
     ``noise`` (what the stated noise alone spreads the fold's rms by,
-    :func:`~kpi_calib_ros.core.estimation.residuals.fold_rms`; default none) and
+    :func:`~kpi_calib_ros.core.estimation.cross_validation.fold_rms`; default none) and
     :data:`TIE_M`: a fold the effect predicts worse by less than its noise is a tie.
     """
     if len(after) != len(before):
@@ -250,7 +250,7 @@ def choose_model(model: MeasurementModel, data: Measurements, fit: Fit, requeste
     (:func:`kpi_calib_ros.core.diagnosis.out_of_sample.out_of_sample_error`, ``like_measured``)
     decides: the smallest level within `PARSIMONY` of the best. Beside them, the
     cross-validated rms over ``folds`` folds of poses
-    (:func:`kpi_calib_ros.core.estimation.residuals.validation_rms`) is reported. ``prior``:
+    (:func:`kpi_calib_ros.core.estimation.cross_validation.validation_rms`) is reported. ``prior``:
     the prior ``fit`` uses (``balanced``: a tolerance prior ``fit`` balances against the
     noise, :func:`~kpi_calib_ros.core.estimation.precision.fit_prior`); every fold's refit
     keeps it.

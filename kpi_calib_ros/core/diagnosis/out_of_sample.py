@@ -50,9 +50,10 @@ import numpy as np
 import scipy.stats
 
 from kpi_calib_ros.core.estimation.estimability import information_rows, kpi_estimability
+from kpi_calib_ros.core.estimation.folds import campaign_home, moved_joints
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult, point_sigma_squares
 from kpi_calib_ros.core.estimation.prior import Prior
-from kpi_calib_ros.core.estimation.residuals import campaign_home, is_adequate, moved_joints
+from kpi_calib_ros.core.estimation.residuals import is_adequate
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.core.model.robot import RobotModel
@@ -157,7 +158,7 @@ SWEEP_ATOL = 1e-6   # rad (m): a joint within this of its home value has not mov
 def joint_sweeps(q: np.ndarray) -> tuple[np.ndarray, dict[int, int]] | None:
     """Return a one-joint-at-a-time campaign's home configuration and poses per swept joint.
 
-    The home configuration as :func:`~kpi_calib_ros.core.estimation.residuals.campaign_home`
+    The home configuration as :func:`~kpi_calib_ros.core.estimation.folds.campaign_home`
     finds it and, per swept joint, its number of poses; None when some pose moves more than one
     joint from the home.
     """

@@ -23,7 +23,7 @@ A recording is *harmed* when the calibration's figure where measured (folds draw
 the measured poses) is above the nominal's by more than the noise: what the stated noise
 alone spreads an rms of the recording's n rows by, σ_p/√(6n) with σ_p² the mean total
 variance of its points (the margin of every held-out fold,
-:func:`kpi_calib_ros.core.estimation.residuals.fold_rms`,
+:func:`kpi_calib_ros.core.estimation.cross_validation.fold_rms`,
 :func:`kpi_calib_ros.core.diagnosis.model_selection.worse_folds`), plus
 :data:`~kpi_calib_ros.core.diagnosis.model_selection.TIE_M`. The two figures of one row
 share its noise, so this margin is wide for a difference of them: a recording is named only
@@ -49,14 +49,11 @@ from typing import Sequence
 
 import numpy as np
 
+from kpi_calib_ros.core.estimation.cross_validation import prior_system
+from kpi_calib_ros.core.estimation.folds import RANK_TOLERANCE
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.core.estimation.prior import Prior
-from kpi_calib_ros.core.estimation.residuals import (
-    RANK_TOLERANCE,
-    linearized_fit,
-    orthonormal_basis,
-    prior_system,
-)
+from kpi_calib_ros.core.estimation.residuals import linearized_fit, orthonormal_basis
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.recordings import row_recording
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
@@ -143,7 +140,7 @@ def held_out_residuals(model: MeasurementModel, data: Measurements, result: Cali
 
     The residual of the linear refit of ``result``'s identified parameters without the fold
     (``pose_folds`` (N,)) that holds the row, ``prior`` kept in every refit (the PRESS
-    identity, as :func:`kpi_calib_ros.core.estimation.residuals.linear_validation_rms`); the
+    identity, as :func:`kpi_calib_ros.core.estimation.cross_validation.linear_validation_rms`); the
     variance the stated noise gives the row's point (its three axes). None when there are
     no folds or a fold's training rows leave an identified parameter undetermined.
     """

@@ -51,7 +51,7 @@ Choices, and why:
   that predicts held-out poses worse (a few rows at the end of a short lever) does not
   say where the model fails.
 * **Cross-validated share.** Folds over poses (rows measured at one pose stay together,
-  :func:`~kpi_calib_ros.core.estimation.residuals.identifiable_folds`); the held-out residuals of
+  :func:`~kpi_calib_ros.core.estimation.folds.identifiable_folds`); the held-out residuals of
   the refit are exact for a linear model (the PRESS identity). ``share`` is
   1 − CV-SSE(geometry + spline)/CV-SSE(geometry): the fraction of the held-out residual
   sum of squares the input explains; ``share_systematic`` divides the same reduction by the
@@ -92,11 +92,11 @@ from kpi_calib_ros.core.diagnosis.residual_curves import (
     implied_values,
 )
 from kpi_calib_ros.core.diagnosis.residual_inputs import ResidualInput, residual_inputs
+from kpi_calib_ros.core.estimation.folds import identifiable_folds
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.core.estimation.residuals import (
     ADEQUACY_ALPHA,
     LinearizedFit,
-    identifiable_folds,
     linearized_fit,
     orthonormal_basis,
 )

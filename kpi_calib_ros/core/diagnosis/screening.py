@@ -36,15 +36,12 @@ from kpi_calib_ros.core.diagnosis.periodic_search import (
 )
 from kpi_calib_ros.core.effects.general import aliased_frequency, general_candidates
 from kpi_calib_ros.core.effects.registry import BoundEffect, candidate_effects, implausible
+from kpi_calib_ros.core.estimation.cross_validation import linear_validation_rms
+from kpi_calib_ros.core.estimation.folds import identifiable_folds
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.core.estimation.plausibility import Tolerances
 from kpi_calib_ros.core.estimation.precision import chi2_scale
-from kpi_calib_ros.core.estimation.residuals import (
-    ADEQUACY_ALPHA,
-    identifiable_folds,
-    linear_validation_rms,
-    linearized_fit,
-)
+from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA, linearized_fit
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.payload import payload_torques
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
@@ -115,7 +112,7 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
         Default: every screened library effect × joint not already in ``model``.
     folds : int
         Folds (over poses) of the cross-validation; 0 leaves one pose out
-        (see :func:`kpi_calib_ros.core.estimation.residuals.identifiable_folds`).
+        (see :func:`kpi_calib_ros.core.estimation.folds.identifiable_folds`).
     alpha : float
         Family-wise false-alarm level: a candidate is significant when its
         F-test p-value times the number of distinguishable candidates is below.

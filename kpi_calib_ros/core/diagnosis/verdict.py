@@ -25,16 +25,12 @@ import numpy as np
 from kpi_calib_ros.core.diagnosis.periodic_search import Periodogram
 from kpi_calib_ros.core.diagnosis.screening import Candidate, default_candidates, screen_effects
 from kpi_calib_ros.core.effects.registry import BoundEffect
+from kpi_calib_ros.core.estimation.cross_validation import validation_rms
 from kpi_calib_ros.core.estimation.estimability import KpiEstimability
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult, point_sigma_squares
 from kpi_calib_ros.core.estimation.plausibility import Tolerances
 from kpi_calib_ros.core.estimation.precision import JOINT_NOISE_CAUSE
-from kpi_calib_ros.core.estimation.residuals import (
-    ADEQUACY_ALPHA,
-    ResidualReport,
-    residual_report,
-    validation_rms,
-)
+from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA, ResidualReport, residual_report
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 

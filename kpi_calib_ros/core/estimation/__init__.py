@@ -9,6 +9,7 @@ from kpi_calib_ros.core.estimation.covariance import (
     parameter_covariance,
     propagated_kpi_covariance,
 )
+from kpi_calib_ros.core.estimation.cross_validation import linear_validation_rms, validation_rms
 from kpi_calib_ros.core.estimation.drift_state import (
     DAY_HOURS,
     OFFSET_SWING_RAD,
@@ -26,6 +27,16 @@ from kpi_calib_ros.core.estimation.estimability import (
     information_rows,
     kpi_estimability,
     result_estimability,
+)
+from kpi_calib_ros.core.estimation.folds import (
+    LEAVE_ONE_OUT,
+    campaign_home,
+    fold_ids,
+    folds_keep_rank,
+    identifiable_folds,
+    moved_joints,
+    pose_index,
+    stratified_fold_ids,
 )
 from kpi_calib_ros.core.estimation.gauss_newton import (
     FTOL,
@@ -108,28 +119,18 @@ from kpi_calib_ros.core.estimation.registration import (
 )
 from kpi_calib_ros.core.estimation.residuals import (
     ADEQUACY_ALPHA,
-    LEAVE_ONE_OUT,
     PERCENTILES,
     SIGMA_CONSISTENT,
     SIGMA_NOT_TESTED,
     SIGMA_OVERSTATED,
     LinearizedFit,
     ResidualReport,
-    campaign_home,
-    fold_ids,
-    folds_keep_rank,
-    identifiable_folds,
     is_adequate,
-    linear_validation_rms,
     linearized_fit,
-    moved_joints,
     noise_verdict,
     orthonormal_basis,
-    pose_index,
     residual_report,
     sigma_overstated_text,
-    stratified_fold_ids,
-    validation_rms,
 )
 from kpi_calib_ros.core.estimation.robust import (
     GROSS_DISTANCE,

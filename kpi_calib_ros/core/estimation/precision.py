@@ -25,17 +25,15 @@ from typing import Callable
 import numpy as np
 import scipy.stats
 
+from kpi_calib_ros.core.estimation.cross_validation import prior_system
+from kpi_calib_ros.core.estimation.folds import LEAVE_ONE_OUT, RANK_TOLERANCE, identifiable_folds
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult, point_sigma_squares
 from kpi_calib_ros.core.estimation.prior import Prior
 from kpi_calib_ros.core.estimation.residuals import (
     ADEQUACY_ALPHA,
-    LEAVE_ONE_OUT,
-    RANK_TOLERANCE,
-    identifiable_folds,
     is_adequate,
     linearized_fit,
     orthonormal_basis,
-    prior_system,
 )
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
@@ -242,7 +240,7 @@ def typical_held_out_rms(model: MeasurementModel, data: Measurements,
                          prior: Prior | None = None) -> tuple[float, tuple[int, ...]]:
     """Leave-one-pose-out rms (m) over the poses like the measured ones, and those left out.
 
-    As :func:`~kpi_calib_ros.core.estimation.residuals.validation_rms` (the PRESS identity:
+    As :func:`~kpi_calib_ros.core.estimation.cross_validation.validation_rms` (the PRESS identity:
     pose F's held-out residual is (I − H_FF)⁻¹ e_F), over the poses whose hat-matrix block
     H_FF has every eigenvalue below ``leverage_limit``. A pose at or above it alone determines
     some direction of the parameters: its held-out residual is amplified by up to 1/(1 − h)
