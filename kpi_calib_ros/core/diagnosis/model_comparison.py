@@ -43,7 +43,8 @@ class ModelComparison:
     std_basis: str = ''
     # Cross-validated rms over held-out regions of joint space (whole k-means blocks of
     # poses, core.estimation.cross_validation.region_validation) before/after, on the
-    # same folds; NaN where not estimable. ``validation_rms_*`` are the figures where the poses were measured.
+    # same folds; NaN where not estimable. ``validation_rms_*`` are the figures where the
+    # poses were measured.
     other_region_rms_before_m: float = float('nan')
     other_region_rms_after_m: float = float('nan')
     region_blocks: int = 0
