@@ -226,7 +226,6 @@ OVER_THE_LIMIT = {
     'kpi_calib_ros/io/report.py': 672,
     'kpi_calib_ros/core/estimation/residuals.py': 665,
     'kpi_calib_ros/core/acquisition/pairing.py': 637,
-    'kpi_calib_ros/app/identify.py': 606,
 }
 
 
