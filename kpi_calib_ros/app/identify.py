@@ -58,11 +58,8 @@ from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.core.measurement.weighting import row_torques
 from kpi_calib_ros.io.cell import CellModel
 from kpi_calib_ros.io.recordings_manifest import RecordingSource
-from kpi_calib_ros.io.report import (
-    comparison_text,
-    comparison_to_dict,
-    write_identification_plot,
-)
+from kpi_calib_ros.io.report import comparison_text, comparison_to_dict
+from kpi_calib_ros.io.report_plots import write_identification_plot
 from kpi_calib_ros.io.results import (
     summary_text,
     writable_folder,
