@@ -37,7 +37,7 @@ import numpy as np
 import scipy.stats
 
 from kpi_calib_ros.app.cell_model import build_cell_model
-from kpi_calib_ros.app.identify import calibrate_cell, load_measurements, registered_start
+from kpi_calib_ros.app.identify import calibrate_cell
 from kpi_calib_ros.app.learned_residual import (
     choose_residual,
     field_covariance,
@@ -45,6 +45,8 @@ from kpi_calib_ros.app.learned_residual import (
     point_rows,
     predict_tcp,
 )
+from kpi_calib_ros.app.measurements import load_measurements
+from kpi_calib_ros.app.placement import registered_start
 from kpi_calib_ros.cli import main as cli
 from kpi_calib_ros.core.diagnosis.corrected_tcp import corrected_tcp
 from kpi_calib_ros.core.diagnosis.learned_residual import fit_learned_residual

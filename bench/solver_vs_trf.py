@@ -27,7 +27,7 @@ import numpy as np
 import scipy.optimize
 
 from kpi_calib_ros.app.cell_model import build_cell_model
-from kpi_calib_ros.app.identify import registered_start
+from kpi_calib_ros.app.placement import registered_start
 from kpi_calib_ros.core.estimation.least_squares import (
     DEFAULT_MAX_ITERATIONS,
     ITERATIONS_PER_PARAMETER,

@@ -25,8 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
-from kpi_calib_ros.app.identify import identify_cell, registered_start
+from kpi_calib_ros.app.identify import identify_cell
 from kpi_calib_ros.app.measurements import load_measurements
+from kpi_calib_ros.app.placement import registered_start
 from kpi_calib_ros.cli import main as cli
 from kpi_calib_ros.core.diagnosis.model_selection import level_free
 from kpi_calib_ros.core.estimation.cross_validation import validation_rms

@@ -39,14 +39,14 @@ OUT = DOC / '_static' / 'pictures'
 MANIFEST = OUT / 'manifest.json'
 SCRIPT = 'doc/pictures.py'
 # The plotting module of each kind of picture (repository paths).
-REPORT = 'kpi_calib_ros/io/report.py'
+REPORT_PLOTS = 'kpi_calib_ros/io/report_plots.py'
 RESIDUAL_PLOTS = 'kpi_calib_ros/io/residual_plots.py'
 DESIGN_IO = 'kpi_calib_ros/io/design_io.py'
 CAMPAIGN_IO = 'kpi_calib_ros/io/campaign_io.py'
-DRAWN_BY = {'identification.png': REPORT, 'validation_residuals.png': REPORT,
-            'before_after.png': REPORT, 'periodogram.png': REPORT,
-            'residuals_vs_joints.png': REPORT, 'residuals_vs_torque.png': REPORT,
-            'joint_errors.png': REPORT, 'partial_residuals.png': RESIDUAL_PLOTS,
+DRAWN_BY = {'identification.png': REPORT_PLOTS, 'validation_residuals.png': REPORT_PLOTS,
+            'before_after.png': REPORT_PLOTS, 'periodogram.png': REPORT_PLOTS,
+            'residuals_vs_joints.png': REPORT_PLOTS, 'residuals_vs_torque.png': REPORT_PLOTS,
+            'joint_errors.png': REPORT_PLOTS, 'partial_residuals.png': RESIDUAL_PLOTS,
             'learned_residual.png': RESIDUAL_PLOTS, 'campaign_tcp_std.png': CAMPAIGN_IO,
             'change_test.png': CAMPAIGN_IO}
 SIMULATED = 'the built-in simulated cell (kpi_calib_ros/data/cells/default_cell.yaml)'

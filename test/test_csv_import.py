@@ -18,8 +18,8 @@ from mcap_ros2.decoder import DecoderFactory
 from scipy.spatial.transform import Rotation
 
 from kpi_calib_ros.app.cell_model import build_cell_model
-from kpi_calib_ros.app.identify import registered_start
 from kpi_calib_ros.app.measurements import measurements_from_bag
+from kpi_calib_ros.app.placement import registered_start
 from kpi_calib_ros.cli import main
 from kpi_calib_ros.io.cell import load_cell
 from kpi_calib_ros.io.csv_import import import_csv, load_mapping, mapping_from_dict, read_postures

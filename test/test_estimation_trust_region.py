@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from kpi_calib_ros.app.identify import registered_start
+from kpi_calib_ros.app.placement import registered_start
 from kpi_calib_ros.core.estimation.least_squares import identify
 from kpi_calib_ros.core.measurement.data import Measurements
 

@@ -261,7 +261,8 @@ def test_the_node_campaign_logs_each_measurements_efforts_and_pairs_them(cm, tmp
     joint state); its jobs pair them as the rows' torques, as identify does from a bag."""
     from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
     from kpi_calib_ros.io.measurement_log import MeasurementLog
-    from kpi_calib_ros.ros.measurement_store import MeasurementStore, model_measurements
+    from kpi_calib_ros.ros.measurement_store import MeasurementStore
+    from kpi_calib_ros.ros.stored_measurements import model_measurements
     q, eta, torque, _ = _loaded(cm, 12, 5)
     measured = build_cell_model(cell_from_dict(read_cell_document(
         _cell(tmp_path, compliance={'torque_source': 'measured'})), tmp_path))

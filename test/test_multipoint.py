@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from kpi_calib_ros.app.cell_model import build_cell_model
-from kpi_calib_ros.app.identify import identify_cell, registered_start
+from kpi_calib_ros.app.identify import identify_cell
 from kpi_calib_ros.app.measurements import measurements_from_bag, print_rejections
+from kpi_calib_ros.app.placement import registered_start
 from kpi_calib_ros.cli import main
 from kpi_calib_ros.core.acquisition.pairing import pair_measurements
 from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample

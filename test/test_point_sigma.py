@@ -13,8 +13,8 @@ from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
 from kpi_calib_ros.app.cell_model import build_cell_model
-from kpi_calib_ros.app.identify import registered_start
 from kpi_calib_ros.app.measurements import measurements_from_bag
+from kpi_calib_ros.app.placement import registered_start
 from kpi_calib_ros.cli import main
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation.least_squares import identify

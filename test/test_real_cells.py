@@ -10,12 +10,8 @@ import pytest
 import yaml
 
 from kpi_calib_ros.app.cell_model import build_cell_model
-from kpi_calib_ros.app.identify import (
-    REGISTER_ABOVE_M,
-    identify_cell,
-    registered_start,
-    run_identify,
-)
+from kpi_calib_ros.app.identify import identify_cell, run_identify
+from kpi_calib_ros.app.placement import REGISTER_ABOVE_M, registered_start
 from kpi_calib_ros.core.acquisition.streams import synthesize_streams
 from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.simulation import (

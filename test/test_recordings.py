@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from kpi_calib_ros.app.identify import calibrate_cell, recordings_start
+from kpi_calib_ros.app.identify import calibrate_cell
 from kpi_calib_ros.app.measurements import with_recordings
+from kpi_calib_ros.app.placement import recordings_start
 from kpi_calib_ros.core.diagnosis.learned_residual import LearnedResidual
 from kpi_calib_ros.core.estimation.least_squares import identify
 from kpi_calib_ros.core.measurement import recordings as rec

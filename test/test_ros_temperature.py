@@ -22,8 +22,9 @@ from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.io.cell import DEFAULT_CELL
 from kpi_calib_ros.io.measurement_log import MeasurementLog
 from kpi_calib_ros.io.ros_messages import time_msg
-from kpi_calib_ros.ros.measurement_store import MeasurementStore, with_temperature_readings
+from kpi_calib_ros.ros.measurement_store import MeasurementStore
 from kpi_calib_ros.ros.node import CalibrationNode
+from kpi_calib_ros.ros.stored_measurements import with_temperature_readings
 
 from ros_helpers import KR15_URDF
 

@@ -38,13 +38,9 @@ from kpi_calib_ros.app.calibration_document import (
 )
 from kpi_calib_ros.app.cell_model import CellModel
 from kpi_calib_ros.app.finish import finish_calibration
-from kpi_calib_ros.app.identify import (
-    calibrate_cell,
-    places_the_points,
-    registered_start,
-    with_iteration_limit,
-)
+from kpi_calib_ros.app.identify import calibrate_cell, with_iteration_limit
 from kpi_calib_ros.app.measurements import load_measurements
+from kpi_calib_ros.app.placement import places_the_points, registered_start
 from kpi_calib_ros.app.validate import calibration_noise_scale
 from kpi_calib_ros.core.acquisition.outcomes import PairingResult
 from kpi_calib_ros.core.campaigns.change_detection import CHANGE_ALPHA, ChangeTest, change_test
@@ -325,7 +321,7 @@ def drift_time_warnings(hours: float, stamp_ns: int) -> list[str]:
 def cycle_start(cm: CellModel, data: Measurements, cp: CyclePrior) -> np.ndarray:
     """Start of the new cycle: every parameter at the previous calibration's value; the
     placement registered from the points when it is not in the prior and misses them by
-    more than :data:`~kpi_calib_ros.app.identify.REGISTER_ABOVE_M` (a moved tracker)."""
+    more than :data:`~kpi_calib_ros.app.placement.REGISTER_ABOVE_M` (a moved tracker)."""
     params = cm.model.params
     start = params.with_values(cp.values)
     if cp.keep_placement:

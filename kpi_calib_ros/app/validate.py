@@ -42,7 +42,7 @@ from kpi_calib_ros.io.calibration_file import calibration_recordings, read_calib
 from kpi_calib_ros.io.cell import load_cell
 from kpi_calib_ros.io.learned_residual_file import StoredResidual, read_residual
 from kpi_calib_ros.io.names import LEARNED_RESIDUAL_FILE, VALIDATION_FILE
-from kpi_calib_ros.io.report import write_validation_plots
+from kpi_calib_ros.io.report_plots import write_validation_plots
 from kpi_calib_ros.io.results import writable_folder, write_atomic
 
 # What ``validate --register`` re-fits on the new recording: the base pose, the base pose

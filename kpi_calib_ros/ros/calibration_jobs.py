@@ -23,8 +23,8 @@ from kpi_calib_ros.core.estimation.drift_state import DriftSwing
 from kpi_calib_ros.core.estimation.precision import precision_statement
 from kpi_calib_ros.ros import job_work
 from kpi_calib_ros.ros.answers import identify_answer, validate_answer
-from kpi_calib_ros.ros.measurement_store import model_measurements, station_measurements
 from kpi_calib_ros.ros.node_parts import NodeParts
+from kpi_calib_ros.ros.stored_measurements import model_measurements, station_measurements
 
 
 class CalibrationJobs(NodeParts):

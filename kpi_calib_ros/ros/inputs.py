@@ -6,7 +6,7 @@ reading (covariate name, value, the message's header stamp) that goes to the
 :class:`~kpi_calib_ros.ros.measurement_store.MeasurementStore` (durably logged on the cell's
 ``inputs.topic`` before it is kept; a reading that is not finite is counted and warned, never
 kept). A job pairs them with the accepted measurements as a bag's are
-(:func:`kpi_calib_ros.ros.measurement_store.with_input_readings`): interpolated at each
+(:func:`kpi_calib_ros.ros.stored_measurements.with_input_readings`): interpolated at each
 point's stamp within ``inputs.max_gap``, a point without a reading refused with a warning.
 """
 from __future__ import annotations

@@ -209,7 +209,7 @@ def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, dat
     file never corrects a calibration it was not fitted to.
 
     ``stations``: the tracker stations of ``data``'s rows as recordings (``cm`` and ``data``
-    from :func:`~kpi_calib_ros.ros.measurement_store.station_measurements`); with several,
+    from :func:`~kpi_calib_ros.ros.stored_measurements.station_measurements`); with several,
     each has its own placement, the document states what each contributed
     (``recordings:``, as ``identify --bag a --bag b``) and no prior is used (a prior
     calibration places one station).

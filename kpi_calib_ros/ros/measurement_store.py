@@ -20,10 +20,13 @@ stamp by the pairer's window and timeout (its point, had it come, would be decid
 then). Before the first joint state or point there is no pairing clock and nothing is
 decided, so a σ waits (bounded by ``SIGMA_HELD_MAX``); a σ whose point is still waiting for
 its joint states waits with it. A measurement without σ takes the cell's, as in a bag.
+
+Kept with the measurements: the joint states' efforts (:mod:`kpi_calib_ros.ros.effort_buffer`)
+and the tracker station of each one (:mod:`kpi_calib_ros.ros.stations`). The jobs read them as
+the model takes them with :mod:`kpi_calib_ros.ros.stored_measurements`.
 """
 from __future__ import annotations
 
-import dataclasses
 import shutil
 import threading
 import time
@@ -33,15 +36,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from kpi_calib_ros.app.cell_model import CellModel
-from kpi_calib_ros.app.measurements import (
-    paired_sigma,
-    pose_rows,
-    urdf_measurements,
-    with_inputs,
-    with_readings,
-    with_recordings,
-)
+from kpi_calib_ros.app.measurements import paired_sigma
 from kpi_calib_ros.core.acquisition.outcomes import (
     REJECTION_REASONS,
     Decision,
@@ -57,14 +52,14 @@ from kpi_calib_ros.core.measurement.covariates import (
     TEMPERATURE_RANGE_C,
     InputSample,
     TemperatureSample,
-    effort_name,
-    interpolate,
     plausible_temperature,
 )
 from kpi_calib_ros.core.measurement.data import Measurements
-from kpi_calib_ros.core.measurement.recordings import NAME_PATTERN, Recording, row_covariates
+from kpi_calib_ros.core.measurement.recordings import Recording
 from kpi_calib_ros.io.measurement_log import DEFAULT_STATION, MeasurementLog, stored_pairing
 from kpi_calib_ros.io.names import DEFAULT_POINT_TOPIC, RESULT_FILES, point_sigma_topic
+from kpi_calib_ros.ros.effort_buffer import EffortBuffer
+from kpi_calib_ros.ros.stations import Stations, check_station
 
 # The store's reasons besides the pairer's: the measurement could not be written.
 NOT_STORED = 'not_stored'
@@ -82,13 +77,6 @@ SIGMA_HELD_MAX = 20_000
 # own limit, 4 x chain + 64, needs the chain): far above any robot cell's joint count,
 # far below a hostile message, so the early buffer of 20 000 samples stays small.
 EARLY_MAX_NAMES = 256
-
-
-# Joint states' efforts kept for the measurements they belong to: 20 s at 500 Hz (the pairer
-# decides a point within seconds of its stamp); an effort is bridged over at most 1 s.
-EFFORT_BUFFER_SAMPLES = 10_000
-EFFORT_BUFFER_S = 20.0
-EFFORT_MAX_GAP_NS = 10**9
 
 
 class MeasurementStore:
@@ -117,9 +105,10 @@ class MeasurementStore:
     record_efforts : bool
         The cell reads measured torques (``compliance.torque_source: measured``): the joint
         states' efforts (:meth:`receive_efforts`) are buffered for the last
-        :data:`EFFORT_BUFFER_S` of stream time, and each accepted measurement logs the chain
-        joints' efforts interpolated at its stamp as ``effort.<joint>`` on ``inputs_topic``
-        (one record per measurement, not per joint state).
+        :data:`~kpi_calib_ros.ros.effort_buffer.EFFORT_BUFFER_S` of stream time, and each
+        accepted measurement logs the chain joints' efforts interpolated at its stamp as
+        ``effort.<joint>`` on ``inputs_topic`` (one record per measurement, not per joint
+        state).
     station : str
         The tracker station the measurements arriving now belong to (:meth:`set_station`);
         '' : the station of the newest log in ``data_dir`` (a restart continues it), else
@@ -146,17 +135,15 @@ class MeasurementStore:
         self._sigma: dict[tuple[int, str, str], np.ndarray] = {}
         self._held_sigma: dict[tuple[int, str, str], tuple[np.ndarray, int]] = {}
         self._stored_frames: dict[tuple[int, str, str], str] = {}  # σ key -> frame id
-        # Stations in the order first measured: name -> probe remounted; each stamp's station.
-        self._stations: dict[str, bool] = {}
-        self._station_of: dict[int, str] = {}
+        # The stations in the order first measured, and each stored measurement's station.
+        self._stations = Stations()
         current = (DEFAULT_STATION, False)
         if self.data_dir.is_dir():
             pairs, sigma = MeasurementLog.load(self.data_dir)
             for name, remounted, logged in MeasurementLog.load_stations(self.data_dir):
                 current = (name, remounted)
                 for _, point in logged:
-                    self._stations.setdefault(name, remounted)
-                    self._station_of.setdefault(int(point.stamp_ns), name)
+                    self._stations.record(point.stamp_ns, name, remounted)
             for joint, point in pairs:
                 self._store(joint, point)
             self._sigma = {k: v for k, v in ((_sigma_key(*key), s) for key, s in sigma.items())
@@ -177,9 +164,8 @@ class MeasurementStore:
             if temperature_topic and self.data_dir.is_dir() else [])
         self.inputs_topic = inputs_topic
         self.record_efforts = record_efforts
-        # (stamp ns, names, efforts) of the recent joint states; the chain's joint names
-        self._efforts: deque[tuple[int, tuple[str, ...], np.ndarray]] = deque(
-            maxlen=EFFORT_BUFFER_SAMPLES)
+        # The recent joint states' efforts; the chain's joint names
+        self._efforts = EffortBuffer()
         self._chain: tuple[str, ...] = ()
         self._effort_stamps: set[int] = set()
         self.rejected_inputs = 0
@@ -210,13 +196,7 @@ class MeasurementStore:
         """Why the station cannot become (``name``, ``reflector_remounted``) now ('' : it
         can): a station already measured keeps whether its probe was remounted."""
         with self.lock:
-            name = name or self.station[0]
-            known = self._stations.get(name)
-            if known is None or known == bool(reflector_remounted):
-                return ''
-            return (f'station {name!r} was measured with station_reflector_remounted '
-                    f'{str(known).lower()}: a station keeps it; name a new station for a '
-                    'new set-up of the probe')
+            return self._stations.conflict(name or self.station[0], reflector_remounted)
 
     def set_station(self, name: str, reflector_remounted: bool = False) -> bool:
         """Make (``name``, ``reflector_remounted``) the station of the measurements stored
@@ -253,13 +233,7 @@ class MeasurementStore:
         the order first measured (the probe's remount as each states it), and each row's
         index into them."""
         with self.lock:
-            names = [self._station_of.get(int(t), self.station[0])
-                     for t in np.asarray(stamps_ns).ravel()]
-            order = [n for n in self._stations if n in set(names)]
-            order += [n for n in dict.fromkeys(names) if n not in order]
-            recordings = [Recording(n, self._stations.get(n, False)) for n in order]
-        index = np.array([order.index(n) for n in names], dtype=int)
-        return recordings, index
+            return self._stations.recordings(stamps_ns, self.station[0])
 
     # ------------------------------------------------------------------ pairing
     def set_chain(self, joint_names: list[str], tracker_frame: str,
@@ -415,8 +389,7 @@ class MeasurementStore:
                                       f'{exc}')
                     else:
                         self._store(joint, point)
-                        self._stations.setdefault(*self.station)
-                        self._station_of.setdefault(int(d.stamp_ns), self.station[0])
+                        self._stations.record(d.stamp_ns, *self.station)
                         if self.record_efforts:
                             self._log_efforts(d.stamp_ns)
                         if sigma is not None:
@@ -432,31 +405,18 @@ class MeasurementStore:
         measurements it may belong to; ignored unless ``record_efforts``."""
         if not self.record_efforts:
             return
-        efforts = np.asarray(efforts, float).reshape(-1)
-        if efforts.shape != (len(names),):
-            efforts = np.full(len(names), np.nan)  # counts differ: no effort of this state
+        sample = EffortBuffer.sample(stamp_ns, names, efforts)
         with self.lock:
-            self._efforts.append((int(stamp_ns), tuple(names), efforts))
+            self._efforts.append(sample)
 
     def _log_efforts(self, stamp_ns: int) -> None:
-        """Log the chain joints' efforts at an accepted measurement's stamp (interpolated in
-        the buffer within :data:`EFFORT_MAX_GAP_NS`); those not known there are not logged
-        (the measurement is then refused when paired, for want of them)."""
+        """Log the chain joints' efforts at an accepted measurement's stamp
+        (:meth:`~kpi_calib_ros.ros.effort_buffer.EffortBuffer.at`); those not known there are
+        not logged (the measurement is then refused when paired, for want of them)."""
         if stamp_ns in self._effort_stamps or not self._chain:
             return  # the other reflectors of one pose share its stamp
-        names, values = [], []
-        for joint in self._chain:
-            rows = [(t, e[n.index(joint)]) for t, n, e in self._efforts if joint in n]
-            value = float('nan')
-            if rows:
-                t = np.array([r[0] for r in rows], dtype=np.int64)
-                v = np.array([r[1] for r in rows], dtype=float)
-                value = float(interpolate(np.array([stamp_ns]), t, v, EFFORT_MAX_GAP_NS)[0])
-            if np.isfinite(value):
-                names.append(effort_name(joint))
-                values.append(value)
-            else:
-                self.rejected_inputs += 1
+        names, values, missing = self._efforts.at(stamp_ns, self._chain)
+        self.rejected_inputs += missing
         if names:
             self.log.append_inputs(stamp_ns, tuple(names), np.array(values))
             self._inputs += [InputSample(stamp_ns, n, v) for n, v in zip(names, values)]
@@ -541,7 +501,6 @@ class MeasurementStore:
             self._efforts.clear()
             self._effort_stamps.clear()
             self._stations.clear()
-            self._station_of.clear()
             self.log = self._new_log()
             if self.pairer is not None:
                 self.pairer.reset()
@@ -605,79 +564,6 @@ class MeasurementStore:
             self.log.close()
 
 
-def model_measurements(store: MeasurementStore, cm: CellModel
-                       ) -> tuple[Measurements, PairingResult]:
-    """Every accepted measurement in ``store`` as the model ``cm`` takes it: every row
-    of each pose (reflectors, tracked bodies' rotation rows), URDF joint values (from the
-    controller's readings), stamps as int64 ns, each row's stated σ (NaN: the cell's)."""
-    data, pairing = store.measurements(cm.joint_names, cm.cell.tracker_frame,
-                                       cm.cell.reflector_names or ('',))
-    data = urdf_measurements(cm, pose_rows(cm, data, pairing))
-    stamps = np.asarray(data.stamps_ns, dtype=np.int64).ravel()
-    data = with_temperature_readings(store, cm, dataclasses.replace(data, stamps_ns=stamps))
-    return with_input_readings(store, cm, data), pairing
-
-
-def station_measurements(store: MeasurementStore, cm: CellModel
-                         ) -> tuple[CellModel, Measurements, PairingResult, list[Recording]]:
-    """:func:`model_measurements` over every station: with measurements from several, the
-    cell model with each further station's placement
-    (:func:`kpi_calib_ros.app.measurements.with_recordings`) and each row's one-hot
-    ``recording.<station>``, as ``kpi-calib identify`` takes several recordings; the stations
-    as recordings, in the order first measured."""
-    data, pairing = model_measurements(store, cm)
-    recordings, index = store.stations(np.asarray(data.stamps_ns))
-    if len(recordings) <= 1:
-        return cm, data, pairing, recordings
-    covariates = dict(data.covariates or {})
-    covariates.update(row_covariates([r.name for r in recordings], index))
-    return (with_recordings(cm, recordings), dataclasses.replace(data, covariates=covariates),
-            pairing, recordings)
-
-
-def check_station(name: str) -> str:
-    """``name`` if it can name a station (it becomes part of parameter names).
-
-    Raises
-    ------
-    ValueError
-        It cannot: says which characters it may hold.
-    """
-    if not isinstance(name, str) or not NAME_PATTERN.match(name):
-        raise ValueError(f'station name {name!r} must start with a letter and hold letters, '
-                         'digits, _ or - only')
-    return name
-
-
-def with_input_readings(store: MeasurementStore, cm: CellModel,
-                        data: Measurements) -> Measurements:
-    """``data`` with the store's measured input readings paired to its rows by stamp, as
-    a bag's are (:func:`kpi_calib_ros.app.measurements.with_inputs`).
-
-    Raises
-    ------
-    DataError
-        A source of the cell gave no finite reading (with ``compliance.torque_source:
-        measured``: no effort of every chain joint at the measurements).
-    """
-    return with_inputs(cm, data, store.inputs(), 'the node\'s measured inputs',
-                       [s.topic for s in cm.cell.inputs.sources])
-
-
-def with_temperature_readings(store: MeasurementStore, cm: CellModel,
-                              data: Measurements) -> Measurements:
-    """``data`` with the store's temperature readings paired to its rows by stamp, as
-    a bag's are (:func:`kpi_calib_ros.app.measurements.with_readings`); unchanged when
-    the cell reads no temperature. A row outside the readings is refused with a warning.
-
-    Raises
-    ------
-    DataError
-        The cell reads a temperature but none has arrived (or a listed sensor never did).
-    """
-    return with_readings(cm, data, lambda _topic: store.temperatures())
-
-
 def _sigma_key(stamp_ns: int, frame_id: str) -> tuple[int, str, str]:
     """A point's (stamp, tracker frame, reflector) as its σ is matched by (a leading '/'
     of the frame id does not count)."""
@@ -688,5 +574,4 @@ def _frame_id(key: tuple[int, str, str]) -> str:
     return key[1] + ('#' + key[2] if key[2] else '')
 
 
-__all__ = ['MeasurementStore', 'NOT_STORED', 'REASONS', 'SIGMA_REASONS', 'SIGMA_WAIT_S',
-           'check_station', 'model_measurements', 'station_measurements']
+__all__ = ['MeasurementStore', 'NOT_STORED', 'REASONS', 'SIGMA_REASONS', 'SIGMA_WAIT_S']

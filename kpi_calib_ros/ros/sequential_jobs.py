@@ -24,8 +24,8 @@ from kpi_calib_ros.io.names import CAMPAIGN_STATE_FILE, MEASUREMENT_POSES_TOPIC
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros import job_work
 from kpi_calib_ros.ros.answers import campaign_progress
-from kpi_calib_ros.ros.measurement_store import model_measurements
 from kpi_calib_ros.ros.node_parts import NodeParts
+from kpi_calib_ros.ros.stored_measurements import model_measurements
 
 
 class SequentialCampaignJobs(NodeParts):

@@ -3,7 +3,7 @@ the measurements and paired to them by time when a job takes the campaign's data
 
 Readings go to the :class:`~kpi_calib_ros.ros.measurement_store.MeasurementStore` (durably
 logged before they are kept); a job pairs them with the accepted measurements as a bag's are
-paired (:func:`kpi_calib_ros.ros.measurement_store.with_temperature_readings`): interpolated at
+paired (:func:`kpi_calib_ros.ros.stored_measurements.with_temperature_readings`): interpolated at
 each point's stamp, a point outside the readings refused with a warning.
 """
 from __future__ import annotations
