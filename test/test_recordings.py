@@ -308,3 +308,28 @@ def test_the_next_stations_design_predicts_the_identification_with_the_joint_pri
     print(f'KPI design {best.objective:.3e} m², random poses {min(randoms):.3e} best of 10, '
           f'median {np.median(randoms):.3e} m²')
     assert best.objective < min(randoms)
+
+
+def test_renamed_as_first_a_recordings_rows_are_placed_as_they_were(cm):
+    """``as_first``: with base.* (and, remounted, reflector.*) exchanged for set-up C's own,
+    rows without a recording covariate predict what C's rows predicted, to the bit; the
+    first recording renames nothing."""
+    rng = np.random.default_rng(10)
+    p_robot = true_parameters(cm.model.params, rng)
+    data, truth = _campaign(cm, RECORDINGS, p_robot, 4, rng)
+    model = rec.placed_model(cm.model, RECORDINGS)
+    params = model.params
+    swap = rec.as_first(params, 'c')
+    assert set(swap) == set(rec.base_names('c') + rec.reflector_names('c', 'reflector')
+                            + [f'base.{c}' for c in ('x', 'y', 'z', 'roll', 'pitch', 'yaw')]
+                            + ['reflector.x', 'reflector.y', 'reflector.z'])
+    renamed = truth.copy()
+    for old, new in swap.items():
+        renamed[params.index(new)] = truth[params.index(old)]
+    c_rows = data.subset(np.arange(8, 12))
+    np.testing.assert_array_equal(
+        model.predict(renamed, c_rows.q),
+        model.predict(truth, c_rows.q, covariates=c_rows.covariates))
+    assert rec.as_first(params, 'a') == {}
+    assert set(rec.as_first(params, 'b')) == set(rec.base_names('b')) | {
+        f'base.{c}' for c in ('x', 'y', 'z', 'roll', 'pitch', 'yaw')}
