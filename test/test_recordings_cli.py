@@ -279,3 +279,31 @@ def test_validate_recording_places_a_later_bag_of_a_known_set_up_as_the_calibrat
     err = capsys.readouterr().err
     assert "--recording: the calibration has no recording 'c'; its recordings: ['a', 'b']" \
         in err and 'Traceback' not in err
+
+
+@pytest.mark.slow
+def test_validate_recording_carries_the_learned_residual_into_that_set_up(tmp_path, capsys):
+    """A joint-2 error at twice per turn the geometric model lacks, learned from set-ups A and
+    B together (100 poses each): a later bag from B validated with ``--recording b`` has the
+    field carried into B's frame; it predicts B better than the physical model alone, within
+    its stated uncertainty."""
+    doc = _cell_document({'cyclic_joint_error_h2:joint_2': {'a': 4e-4, 'b': 2e-4}})
+    truths = _set_ups(tmp_path, doc, {'a': 100, 'b': 100}, 11)
+    assert main(['identify', '--cell', str(tmp_path / 'cell.yaml'), '--bag',
+                 str(tmp_path / 'a.mcap'), '--bag', str(tmp_path / 'b.mcap'), '--out',
+                 str(tmp_path / 'cal'), '--learned-residual']) == 0, capsys.readouterr()
+    assert (tmp_path / 'cal' / 'learned_residual.yaml').is_file()
+    cm_b, _ = truth_cell_model(load_cell(tmp_path / 'cell_b.yaml'))
+    simulate_campaign(tmp_path / 'cell_b.yaml', 40, tmp_path / 'b_later.mcap', 77, cm=cm_b,
+                      p_true=truths['b'])
+    assert main(['validate', '--cell', str(tmp_path / 'cell.yaml'), '--calibration',
+                 str(tmp_path / 'cal' / 'calibration.yaml'), '--bag',
+                 str(tmp_path / 'b_later.mcap'), '--out', str(tmp_path / 'val'),
+                 '--recording', 'b']) == 0, capsys.readouterr()
+    learned = json.loads((tmp_path / 'val' / 'validation.json').read_text())['learned_residual']
+    with capsys.disabled():
+        print(f"learned residual in B: rms {learned['rms_m'] * 1e6:.1f} µm, physical "
+              f"{learned['rms_physical_m'] * 1e6:.1f} µm, p {learned['p_value']:.3g}")
+    assert 'skipped' not in learned
+    assert learned['rms_m'] < 0.7 * learned['rms_physical_m'], learned
+    assert learned['holds'], learned
