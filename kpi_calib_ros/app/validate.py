@@ -4,8 +4,10 @@ A recording made with the tracker (or the probe) set up again is validated with
 ``register`` (:data:`REGISTER`): the base pose, and with ``'base+reflector'`` the
 reflector offsets too (``'reflector'``: the offsets alone, the probe remounted and the
 tracker where it was), are re-fitted on the new recording alone; the rms after that
-re-registration is the figure to compare, and χ² loses the dof the fit took. A learned
-residual is carried into the registered set-up (it moves with the robot).
+re-registration is the figure to compare, and χ² loses the dof the fit took. A later
+recording from a set-up a calibration of several recordings holds is placed as that
+recording (``recording``, :func:`recording_calibration`), no dof taken. A learned
+residual is carried into the registered or named set-up (it moves with the robot).
 
 ``kpi-calib validate`` and the node's ``~/validate`` call :func:`validate_calibration`;
 the numerics are :mod:`kpi_calib_ros.core.diagnosis.validation`.
