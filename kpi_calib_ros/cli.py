@@ -186,6 +186,11 @@ def build_parser() -> argparse.ArgumentParser:
                      'alone, the probe remounted) on the new recording alone first; the rms '
                      'after it is the figure to compare, chi2 loses its dof; a learned '
                      'residual is carried into the registered set-up')
+    val.add_argument('--recording', metavar='NAME',
+                     help='the new bag was measured from the set-up of this recording of the '
+                     "calibration (its recordings: section): placed as the calibration placed "
+                     "it (its base pose, its reflector offsets when remounted), not as the "
+                     'first recording')
     _bag_topics(val)
 
     imp = sub.add_parser('import-csv', help='a table of static postures (CSV) into an MCAP bag')
@@ -420,7 +425,7 @@ def _validate(args: argparse.Namespace) -> int:
     return run_validate(args.cell, args.calibration, args.bag, args.out, args.register,
                         allow_code_effects=args.allow_code_effects,
                         joint_topic=args.joint_topic, point_topic=args.point_topic,
-                        pose_topic=args.pose_topic)
+                        pose_topic=args.pose_topic, recording=args.recording)
 
 
 def _import_csv(args: argparse.Namespace) -> int:

@@ -232,3 +232,105 @@ def test_a_remounted_probe_the_postures_cannot_register_starts_at_the_first_offs
     # its base registered with that offset: within the remount (1.1 cm) of the truth
     base = start[params.indices(rec.base_names('c'))]
     assert np.linalg.norm(base[:3] - single[:3]) < 0.05
+
+
+def _station_cell(move: np.ndarray):
+    """The default cell seen from another tracker station: its base moved by ``move``."""
+    import yaml
+
+    from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict
+    doc = yaml.safe_load(DEFAULT_CELL.read_text())
+    doc['tracker']['base_in_tracker'] = (np.array(doc['tracker']['base_in_tracker'])
+                                         + move).tolist()
+    return build_cell_model(cell_from_dict(doc, DEFAULT_CELL.parent))
+
+
+@pytest.fixture(scope='module')
+def joint_calibration(cm):
+    """calibration.yaml of set-ups A and B identified together (30 poses each)."""
+    from kpi_calib_ros.app.calibration_document import calibration_document
+    rng = np.random.default_rng(9)
+    p_robot = true_parameters(cm.model.params, rng)
+    data, _ = _campaign(cm, RECORDINGS[:2], p_robot, 30, rng)
+    placed = with_recordings(cm, RECORDINGS[:2])
+    cal = calibrate_cell(placed, data, model='geometric')
+    assert cal.valid
+    return calibration_document(placed, cal.result)
+
+
+@pytest.mark.slow
+def test_the_next_stations_design_predicts_the_identification_with_the_joint_prior(
+        cm, joint_calibration):
+    """Calibrated from set-ups A and B together, the robot measured next from station C (its
+    cell file places the base metres and 30° away): ``design --prior`` marginalises B's
+    placement out of the prior, frees C's base and linearises there, so the TCP covariance
+    it predicts at the designed poses is the one the identification with that prior reports
+    there (1e-6 relative, the matrix: the frame included; 0.37 when it linearised at
+    A's placement), and the KPI design beats random
+    poses of station C."""
+    from kpi_calib_ros.app.design import design_free, design_point
+    from kpi_calib_ros.app.reidentify import cycle_prior
+    from kpi_calib_ros.core.design.optimum import (
+        DesignSettings,
+        design_context,
+        design_measurements,
+    )
+    doc = joint_calibration
+    assert any(n.startswith('recording.b.') for n in doc['parameter_covariance']['names'])
+    station = _station_cell(MOVES['c'])
+    cp = cycle_prior(station, doc, None, hours=1.0)
+    assert not any(n.startswith(('recording.', 'base.', 'reflector.')) for n in cp.prior.names)
+    free = design_free(station, cp.allowed)
+    assert {f'base.{c}' for c in ('x', 'y', 'z', 'roll', 'pitch', 'yaw')} <= set(free)
+    # Station C as its cell file places it, the robot as the joint calibration has it.
+    params = station.model.params
+    truth = params.with_values(cp.values)
+    placement = [i for i, n in enumerate(params.names) if n.startswith(('base.', 'reflector.'))]
+    truth[placement] = params.nominal[placement]
+    p = design_point(station, cp)
+    settings = DesignSettings(candidates=400, nlp=False)
+    rng = np.random.default_rng(3)
+    cell = station.design_cell()
+    ctx = design_context(cell, rng, settings, prior=cp.prior, p=p, free=free)
+    best = design_measurements(cell, 10, 'kpi', rng, settings, context=ctx)
+    assert best.verification.ok
+    # the identification of station C's points at the designed poses, with the joint prior
+    q = best.configurations
+    data = Measurements(q=q, eta=station.model.predict(truth, q))
+    fit = identify(station.model, data, SIGMA, station.q_work, p0=truth, free=free,
+                   prior=cp.prior)
+    for predicted, identified in zip(best.tcp_covariance, fit.tcp_covariance):
+        deviation = np.linalg.norm(predicted - identified) / np.linalg.norm(identified)
+        print(f'|C_design - C_identified| / |C_identified| = {deviation:.2e}, TCP std '
+              f'{np.sqrt(np.diag(identified)) * 1e6} µm')
+        assert deviation < 1e-6
+    randoms = [design_measurements(cell, 10, 'random', np.random.default_rng(s), settings,
+                                   context=ctx).objective for s in range(10)]
+    print(f'KPI design {best.objective:.3e} m², random poses {min(randoms):.3e} best of 10, '
+          f'median {np.median(randoms):.3e} m²')
+    assert best.objective < min(randoms)
+
+
+def test_renamed_as_first_a_recordings_rows_are_placed_as_they_were(cm):
+    """``as_first``: with base.* (and, remounted, reflector.*) exchanged for set-up C's own,
+    rows without a recording covariate predict what C's rows predicted, to the bit; the
+    first recording renames nothing."""
+    rng = np.random.default_rng(10)
+    p_robot = true_parameters(cm.model.params, rng)
+    data, truth = _campaign(cm, RECORDINGS, p_robot, 4, rng)
+    model = rec.placed_model(cm.model, RECORDINGS)
+    params = model.params
+    swap = rec.as_first(params, 'c')
+    assert set(swap) == set(rec.base_names('c') + rec.reflector_names('c', 'reflector')
+                            + [f'base.{c}' for c in ('x', 'y', 'z', 'roll', 'pitch', 'yaw')]
+                            + ['reflector.x', 'reflector.y', 'reflector.z'])
+    renamed = truth.copy()
+    for old, new in swap.items():
+        renamed[params.index(new)] = truth[params.index(old)]
+    c_rows = data.subset(np.arange(8, 12))
+    np.testing.assert_array_equal(
+        model.predict(renamed, c_rows.q),
+        model.predict(truth, c_rows.q, covariates=c_rows.covariates))
+    assert rec.as_first(params, 'a') == {}
+    assert set(rec.as_first(params, 'b')) == set(rec.base_names('b')) | {
+        f'base.{c}' for c in ('x', 'y', 'z', 'roll', 'pitch', 'yaw')}

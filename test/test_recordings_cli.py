@@ -228,3 +228,82 @@ def test_a_learned_residual_is_carried_into_a_registered_set_up(tmp_path, capsys
     assert 'skipped' not in learned
     assert learned['rms_m'] < 0.7 * learned['rms_physical_m'], learned
     assert learned['holds'], learned
+
+
+@pytest.mark.slow
+def test_validate_recording_places_a_later_bag_of_a_known_set_up_as_the_calibration_did(
+        set_ups, capsys):
+    """Calibrated from set-ups A and B together, a later recording from B (30 new poses,
+    nothing moved): ``--recording b`` places it with B's stored placement and its covariance
+    and the calibration holds (χ² within its dof's acceptance, rms near the noise); without
+    it the bag is placed by the first set-up's base pose, 2 m and 35° away, and it does not
+    hold. An unknown name exits 2 naming --recording and the calibration's recordings."""
+    folder, truths = set_ups
+    cal = folder / 'joint_for_later'
+    assert main(['identify', '--cell', str(folder / 'cell.yaml'), '--bag',
+                 str(folder / 'a.mcap'), '--bag', str(folder / 'b.mcap'), '--out',
+                 str(cal)]) == 0, capsys.readouterr()
+    cm_b, _ = truth_cell_model(load_cell(folder / 'cell_b.yaml'))
+    simulate_campaign(folder / 'cell_b.yaml', 30, folder / 'b_later.mcap', 41, cm=cm_b,
+                      p_true=truths['b'])
+    args = ['validate', '--cell', str(folder / 'cell.yaml'), '--calibration',
+            str(cal / 'calibration.yaml'), '--bag', str(folder / 'b_later.mcap')]
+    capsys.readouterr()
+    assert main(args + ['--out', str(folder / 'v_b'), '--recording', 'b']) == 0, \
+        capsys.readouterr()
+    assert 'placed as recording b of the calibration' in capsys.readouterr().out
+    out = json.loads((folder / 'v_b' / 'validation.json').read_text())
+    with capsys.disabled():
+        print(f"--recording b: chi2/dof {out['chi2']:.1f}/{out['dof']}, p "
+              f"{out['p_value']:.3g}, rms {out['rms_m'] * 1e6:.1f} µm")
+    assert out['holds'] is True and out['recording'] == 'b' and out['dof'] == 90
+    assert out['rms_m'] < 2 * np.sqrt(3) * 2e-5
+    # combined with --register: B's stored placement is the start, re-fitted on the bag
+    assert main(args + ['--out', str(folder / 'v_b_reg'), '--recording', 'b',
+                        '--register', 'base']) == 0, capsys.readouterr()
+    again = json.loads((folder / 'v_b_reg' / 'validation.json').read_text())
+    assert again['dof'] == 84 and again['registration']['parameters'][0] == 'base.x'
+    stored = _placement(yaml.safe_load((cal / 'calibration.yaml').read_text()), 'b')
+    moved = np.array(list(again['registration']['values'].values()))[:3] - stored[:3]
+    with capsys.disabled():
+        print(f'--recording b --register base: chi2/dof {again["chi2"]:.1f}/84, base moved '
+              f'{np.linalg.norm(moved) * 1e6:.1f} µm from B\'s stored placement')
+    assert np.linalg.norm(moved) < 1e-3  # nothing moved: B's, not A's 2 m away
+    assert main(args + ['--out', str(folder / 'v_first')]) == 1
+    first = json.loads((folder / 'v_first' / 'validation.json').read_text())
+    with capsys.disabled():
+        print(f"without: chi2/dof {first['chi2']:.3g}/{first['dof']}, rms "
+              f"{first['rms_m'] * 1e3:.0f} mm")
+    assert first['holds'] is False and first['rms_m'] > 0.5
+    assert main(args + ['--out', str(folder / 'v_c'), '--recording', 'c']) == 2
+    err = capsys.readouterr().err
+    assert "--recording: the calibration has no recording 'c'; its recordings: ['a', 'b']" \
+        in err and 'Traceback' not in err
+
+
+@pytest.mark.slow
+def test_validate_recording_carries_the_learned_residual_into_that_set_up(tmp_path, capsys):
+    """A joint-2 error at twice per turn the geometric model lacks, learned from set-ups A and
+    B together (100 poses each): a later bag from B validated with ``--recording b`` has the
+    field carried into B's frame; it predicts B better than the physical model alone, within
+    its stated uncertainty."""
+    doc = _cell_document({'cyclic_joint_error_h2:joint_2': {'a': 4e-4, 'b': 2e-4}})
+    truths = _set_ups(tmp_path, doc, {'a': 100, 'b': 100}, 11)
+    assert main(['identify', '--cell', str(tmp_path / 'cell.yaml'), '--bag',
+                 str(tmp_path / 'a.mcap'), '--bag', str(tmp_path / 'b.mcap'), '--out',
+                 str(tmp_path / 'cal'), '--learned-residual']) == 0, capsys.readouterr()
+    assert (tmp_path / 'cal' / 'learned_residual.yaml').is_file()
+    cm_b, _ = truth_cell_model(load_cell(tmp_path / 'cell_b.yaml'))
+    simulate_campaign(tmp_path / 'cell_b.yaml', 40, tmp_path / 'b_later.mcap', 77, cm=cm_b,
+                      p_true=truths['b'])
+    assert main(['validate', '--cell', str(tmp_path / 'cell.yaml'), '--calibration',
+                 str(tmp_path / 'cal' / 'calibration.yaml'), '--bag',
+                 str(tmp_path / 'b_later.mcap'), '--out', str(tmp_path / 'val'),
+                 '--recording', 'b']) == 0, capsys.readouterr()
+    learned = json.loads((tmp_path / 'val' / 'validation.json').read_text())['learned_residual']
+    with capsys.disabled():
+        print(f"learned residual in B: rms {learned['rms_m'] * 1e6:.1f} µm, physical "
+              f"{learned['rms_physical_m'] * 1e6:.1f} µm, p {learned['p_value']:.3g}")
+    assert 'skipped' not in learned
+    assert learned['rms_m'] < 0.7 * learned['rms_physical_m'], learned
+    assert learned['holds'], learned

@@ -2,7 +2,8 @@
 real rclpy and Fast DDS): the cell controller names the station with the ``station``
 parameter; every accepted measurement keeps its station in the measurement log, so it
 survives a restart; ``~/identify`` identifies every station together, each with its own
-placement, and the calibration says what each contributed."""
+placement, and the calibration says what each contributed; ``~/validate`` places later
+measurements from a station it holds as it placed that station."""
 from __future__ import annotations
 
 import dataclasses
@@ -84,6 +85,16 @@ def test_two_stations_metres_apart_are_identified_together_across_a_restart(cm, 
         assert 'recording far: 30 poses' in answer.message, answer.message
         client.spin_until(lambda: client.received['calibration'], 10, 'the calibration')
         doc = client.received['calibration'][-1]
+        # Later poses from the far station (the current one): ~/validate places them with
+        # the far station's stored placement, no re-registration (validate_register '').
+        later = _station(cm, p_robot, MOVE, 10, np.random.default_rng(6), sigma)
+        client.publish_measurements(later.q, cm.joint_names, later.eta, frame,
+                                    2 * N_POSES + 10, start_ns=1_700_000_200_000_000_000)
+        answer = client.call('validate', timeout=60)
+        print(answer.message)
+        assert answer.success, answer.message
+        assert answer.message.startswith('calibration holds on 10 new measurements')
+        assert 'placed as station far of the calibration' in answer.message
         # The calibration of both stations is served again after a restart.
         assert node.stop() == 0, node.output()
         client.received.clear()

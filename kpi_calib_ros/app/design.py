@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 
@@ -25,10 +25,14 @@ from kpi_calib_ros.core.estimation.estimability import KpiEstimability, result_e
 from kpi_calib_ros.core.estimation.prior import (
     DRIFT_ANGLE_PER_SQRT_HOUR,
     DRIFT_LENGTH_PER_SQRT_HOUR,
+    PLACEMENT_PREFIXES,
     Prior,
 )
 from kpi_calib_ros.io.cell import load_cell
 from kpi_calib_ros.io.design_io import plot_design, plot_ellipsoids, summary_text, write_design
+
+if TYPE_CHECKING:  # a type only: run_design imports app.reidentify when given a prior
+    from kpi_calib_ros.app.reidentify import CyclePrior
 
 
 def design_cell_model(cm: CellModel, n: int, criterion: str, seed: int,
@@ -87,6 +91,25 @@ def design_estimability(cm: CellModel, configurations: np.ndarray,
     return result_estimability(cm.model, rows.q, cm.cell.sigma, at, cm.q_work,
                                cm.working_pose_names, free, prior=prior,
                                reflector=rows.reflector, rotation=rows.rotation)
+
+
+def design_point(cm: CellModel, cp: CyclePrior) -> np.ndarray:
+    """Where a design with the previous calibration ``cp`` as prior linearises (n_p,): every
+    robot parameter at the calibration's value; the base and reflector placement, when the
+    new cycle identifies it anew (not ``cp.keep_placement``), where the cell file puts it.
+
+    The cell file describes the station the design is for. A calibration of several
+    recordings holds the first recording's placement in ``base.*``: from another station
+    (metres and tens of degrees away) linearised there, the predicted TCP covariance was
+    that of the first station's frame, not of the identification the design plans (37 %
+    off on the default cell with the station 30° turned).
+    """
+    p = cm.model.params.with_values(cp.values)
+    if cp.keep_placement:
+        return p
+    placed = [i for i, n in enumerate(cm.model.params.names) if n.startswith(PLACEMENT_PREFIXES)]
+    p[placed] = cm.model.params.nominal[placed]
+    return p
 
 
 def design_free(cm: CellModel, allowed: Sequence[str] | None = None) -> list[str]:
@@ -159,7 +182,7 @@ def run_design(cell_path: str | Path, n: int, criterion: str, out: str | Path,
                          rotation_rate=drift[2] if len(drift) > 2 else None,
                          placement_rate=drift[3] if len(drift) > 3 else None,
                          swing=swing)
-        prior, p, allowed = cp.prior, cm.model.params.with_values(cp.values), cp.allowed
+        prior, p, allowed = cp.prior, design_point(cm, cp), cp.allowed
         prior_doc = {'source': str(prior_path), 'description': cp.description,
                      'hours': float(hours), 'keep_placement': keep_placement}
         print(cp.description)

@@ -4,8 +4,10 @@ A recording made with the tracker (or the probe) set up again is validated with
 ``register`` (:data:`REGISTER`): the base pose, and with ``'base+reflector'`` the
 reflector offsets too (``'reflector'``: the offsets alone, the probe remounted and the
 tracker where it was), are re-fitted on the new recording alone; the rms after that
-re-registration is the figure to compare, and χ² loses the dof the fit took. A learned
-residual is carried into the registered set-up (it moves with the robot).
+re-registration is the figure to compare, and χ² loses the dof the fit took. A later
+recording from a set-up a calibration of several recordings holds is placed as that
+recording (``recording``, :func:`recording_calibration`), no dof taken. A learned
+residual is carried into the registered or named set-up (it moves with the robot).
 
 ``kpi-calib validate`` and the node's ``~/validate`` call :func:`validate_calibration`;
 the numerics are :mod:`kpi_calib_ros.core.diagnosis.validation`.
@@ -35,6 +37,7 @@ from kpi_calib_ros.core.estimation.residuals import (
     sigma_overstated_text,
 )
 from kpi_calib_ros.core.measurement.data import Measurements
+from kpi_calib_ros.core.measurement.recordings import as_first
 from kpi_calib_ros.core.measurement.replicates import SAME_POSE_TOLERANCE
 from kpi_calib_ros.core.model.kinematics import rpy_matrix
 from kpi_calib_ros.core.model.parameters import BASE_COMPONENTS, reflector_prefixes
@@ -78,6 +81,41 @@ def calibrated_model(cell: Any, doc: dict[str, Any]) -> tuple[CellModel, np.ndar
     cm = build_cell_model(cell, effects=tuple(doc.get('effects') or ()))
     cm = with_recordings(cm, calibration_recordings(doc, 'calibration'))
     return cm, parameter_vector(cm, doc)
+
+
+def recording_calibration(cm: CellModel, doc: dict[str, Any], name: str) -> dict[str, Any]:
+    """``doc`` seen from its recording ``name`` (``recordings:``): a new recording made from
+    that set-up, its rows without a recording covariate, is placed by that recording's base
+    pose (and, remounted, its reflector offsets) with their covariance with the robot, not by
+    the first recording's. The parameters, ``parameter_covariance`` and
+    ``dropped_parameters`` renamed by :func:`~kpi_calib_ros.core.measurement.recordings.
+    as_first`; ``doc`` itself for the first recording. ``cm`` is :func:`calibrated_model`'s.
+
+    Raises
+    ------
+    ConfigError
+        ``--recording``: ``name`` is none of the calibration's recordings (the message names
+        them).
+    """
+    known = [r.name for r in calibration_recordings(doc, 'calibration')]
+    if name not in known:
+        raise ConfigError('--recording', f'the calibration has no recording {name!r}; '
+                          + (f'its recordings: {known}' if known else
+                             'it was identified from one recording (no recordings: '
+                             'section): validate without --recording')
+                          + '; a set-up not in the calibration is validated with --register')
+    swap = as_first(cm.model.params, name)
+    if not swap:
+        return doc
+
+    def renamed(entries: Any) -> list[dict[str, Any]]:
+        return [dict(e, name=swap.get(str(e['name']), e['name'])) for e in entries]
+    out = dict(doc, parameters=renamed(doc['parameters']))
+    cov = doc['parameter_covariance']
+    out['parameter_covariance'] = dict(cov, names=[swap.get(n, n) for n in cov['names']])
+    if doc.get('dropped_parameters'):
+        out['dropped_parameters'] = renamed(doc['dropped_parameters'])
+    return out
 
 
 def parameter_vector(cm: CellModel, doc: dict[str, Any]) -> np.ndarray:
@@ -295,6 +333,9 @@ def validation_text(doc: dict[str, Any]) -> str:
                 is not None else 'none: ' + doc['predicted_std_median_m_reason'])
              + (f", with the noise the calibration showed, {np.sqrt(doc['noise_scale']):.3g} x "
                 'the stated sigma' if doc.get('noise_scale', 1.0) != 1.0 else '') + ')',
+             *([f"placed as recording {doc['recording']} of the calibration (its base pose "
+                'and, remounted, its reflector offsets, with their covariance)']
+               if doc.get('recording') else []),
              *(['re-registered on the new recording: '
                 + ', '.join(doc['registration']['parameters'])
                 + f" ({doc['registration']['dof']} dof); the rms above is after it"]
@@ -327,21 +368,30 @@ def validation_text(doc: dict[str, Any]) -> str:
 
 def validate_report(cm: CellModel, doc: dict[str, Any], data: Measurements,
                     out_dir: str | Path, register: str | None = None,
-                    learned: Path | None = None) -> dict[str, Any]:
+                    learned: Path | None = None,
+                    recording: str | None = None) -> dict[str, Any]:
     """Validate ``doc`` on ``data`` (re-fitting ``register`` first, :data:`REGISTER`) and
     write validation.json and the plot to ``out_dir``; returns the validation document.
 
     ``learned``: the calibration's learned_residual.yaml, when it has one; its predictions
     are validated too (``learned_residual`` in the document,
-    :func:`~kpi_calib_ros.app.learned_residual.validate_learned`)."""
+    :func:`~kpi_calib_ros.app.learned_residual.validate_learned`). ``recording``: ``data``
+    was measured from that set-up of the calibration's ``recordings:``, placed as it is
+    there (:func:`recording_calibration`); a learned residual is carried into it."""
     if len(data) == 0:
         raise DataError('no new measurement to validate the calibration on')
     p = parameter_vector(cm, doc)
-    v = validate_calibration(cm, p, doc, data, register)
+    seen = doc if recording is None else recording_calibration(cm, doc, recording)
+    placed = parameter_vector(cm, seen)
+    v = validate_calibration(cm, placed, seen, data, register)
     out = validation_to_dict(v, data, doc.get('rms_m'), cm, calibration_noise_scale(doc))
+    if recording is not None:
+        out['recording'] = recording
     if learned is not None:
+        moved = seen is not doc or v.registration is not None
         out['learned_residual'] = learned_section(
-            cm, p, learned, data, None if v.registration is None else v.registration.p)
+            cm, p, learned, data,
+            None if not moved else placed if v.registration is None else v.registration.p)
     write_atomic(Path(out_dir) / VALIDATION_FILE, json.dumps(out, indent=1, allow_nan=False))
     write_validation_plots(out_dir, cm.robot, np.atleast_2d(data.q), v.residuals, v.outside,
                            v.repeated)
@@ -391,9 +441,12 @@ def learned_file(calibration_path: str | Path) -> Path | None:
 def run_validate(cell_path: str | Path, calibration_path: str | Path, bag_path: str | Path,
                  out_dir: str | Path, register: str | None = None,
                  allow_code_effects: bool = False, joint_topic: str | None = None,
-                 point_topic: str | None = None, pose_topic: str | None = None) -> int:
+                 point_topic: str | None = None, pose_topic: str | None = None,
+                 recording: str | None = None) -> int:
     """``kpi-calib validate``: validation.json and a plot in ``out_dir``; ``register``
-    (:data:`REGISTER`) re-fits the placement on the new recording first.
+    (:data:`REGISTER`) re-fits the placement on the new recording first; ``recording``
+    (``--recording``): the new recording was made from that set-up of the calibration,
+    placed as the calibration placed it (:func:`recording_calibration`).
 
     ``allow_code_effects``: the cell's (and the calibration's) effects may name Python
     code, as for identify. ``joint_topic`` / ``point_topic`` / ``pose_topic``: the bag's
@@ -408,9 +461,12 @@ def run_validate(cell_path: str | Path, calibration_path: str | Path, bag_path: 
     doc = read_calibration(calibration_path)
     require_valid(doc, '--calibration', calibration_path, 'calibration to validate')
     cm, _ = calibrated_model(load_cell(cell_path, allow_code_effects=allow_code_effects), doc)
+    if recording is not None:
+        recording_calibration(cm, doc, recording)  # an unknown name before the bag is read
     data, pairing = measurements_from_bag(cm, bag_path, joint_topic, point_topic, pose_topic)
     print_rejections(pairing)
-    out = validate_report(cm, doc, data, out_dir, register, learned_file(calibration_path))
+    out = validate_report(cm, doc, data, out_dir, register, learned_file(calibration_path),
+                          recording)
     print(validation_text(out))
     print(f"written: {Path(out_dir) / VALIDATION_FILE}, "
           f"{Path(out_dir) / 'validation_residuals.png'}")

@@ -43,6 +43,8 @@ def validate_answer(doc: dict[str, Any]) -> str:
     """~/validate: the verdict on the new measurements (the validation document)."""
     return (f"{doc['verdict']} on {doc['measurements']} new measurements: "
             f"rms {doc['rms_m'] * 1e6:.1f} µm"
+            + (f" placed as station {doc['recording']} of the calibration"
+               if doc.get('recording') else '')
             + (' after re-registering ' + '/'.join(doc['registration']['parameters'])
                if doc.get('registration') else '')
             + f", chi2/dof {doc['chi2']:.1f}/{doc['dof']}, "

@@ -162,7 +162,8 @@ class CalibrationJobs(NodeParts):
                             'validate one station at a time (validate_register registers a '
                             'new one); call ~/identify to identify them together')
         doc, text = await self._offload(job_work.validate_work, cm, self._calibration_text, fresh,
-                                        self.data_dir, self.settings.validate_register or None)
+                                        self.data_dir, self.settings.validate_register or None,
+                                        stations[0].name if stations else '')
         self._pub_validation.publish(String(data=text))
         return doc['holds'] is True, validate_answer(doc)
 

@@ -37,6 +37,7 @@ from kpi_calib_ros.app.diagnose import diagnose_cell
 from kpi_calib_ros.app.finish import finish_calibration
 from kpi_calib_ros.app.identify import calibrate_cell
 from kpi_calib_ros.app.learned_residual import learned_residual_section
+from kpi_calib_ros.app.measurements import with_recordings
 from kpi_calib_ros.app.reidentify import (
     cycle_prior,
     read_prior_calibration,
@@ -53,6 +54,7 @@ from kpi_calib_ros.core.errors import DataError, KpiCalibError
 from kpi_calib_ros.core.estimation.drift_state import DriftSwing
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.recordings import Recording
+from kpi_calib_ros.io.calibration_file import calibration_recordings
 from kpi_calib_ros.io.campaign_io import CampaignState, write_campaign_state, write_plan
 from kpi_calib_ros.io.design_io import write_design
 from kpi_calib_ros.io.names import (
@@ -266,9 +268,15 @@ def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, dat
 
 
 def validate_work(cm: CellModel, calibration: str, data: Measurements,
-                  data_dir: Path, register: str | None = None) -> tuple[dict[str, Any], str]:
+                  data_dir: Path, register: str | None = None,
+                  station: str = '') -> tuple[dict[str, Any], str]:
     """Validate the calibration (the YAML text the node published) on new measurements,
     as ``kpi-calib validate`` (``--register register``) does; writes ``data_dir/validation/``.
+
+    ``cm``: the cell's model of one station; the calibration's further stations are placed
+    as it placed them (:func:`~kpi_calib_ros.app.validate.calibrated_model`). ``station``:
+    the station ``data`` was measured from; one the calibration holds places them as it
+    did (``validate --recording``), another (or the first) by ``base.*``.
 
     Returns
     -------
@@ -276,8 +284,13 @@ def validate_work(cm: CellModel, calibration: str, data: Measurements,
         ``validation.json``'s document; ``text`` : str, it as JSON.
     """
     learned = data_dir / LEARNED_RESIDUAL_FILE
-    doc = validate_report(cm, yaml.safe_load(calibration), data, data_dir / VALIDATION_DIR,
-                          register, learned if learned.is_file() else None)
+    stored = yaml.safe_load(calibration)
+    recordings = calibration_recordings(stored, 'the calibration')
+    known = [r.name for r in recordings]
+    doc = validate_report(with_recordings(cm, recordings), stored, data,
+                          data_dir / VALIDATION_DIR, register,
+                          learned if learned.is_file() else None,
+                          station if station in known else None)
     return doc, json.dumps(doc, allow_nan=False)
 
 

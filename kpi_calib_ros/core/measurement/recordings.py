@@ -42,6 +42,7 @@ __all__ = [
     'PREFIX', 'NAME_PATTERN', 'Recording', 'covariate', 'base_names', 'reflector_names',
     'recording_parameters', 'recording_names', 'placed_model', 'combine', 'row_recording',
     'row_covariates', 'Contribution', 'contributions', 'placement_names', 'to_first_frame',
+    'as_first',
 ]
 
 PREFIX = RECORDING_PREFIX
@@ -241,6 +242,24 @@ def placement_names(params: ParameterSet, index: int, names: Sequence[str]) -> l
     if index == 0:
         return [n for n in params.names if n.startswith(('base.', 'reflector.'))]
     return [n for n in params.names if n.startswith(f'{PREFIX}{names[index]}.')]
+
+
+def as_first(params: ParameterSet, name: str) -> dict[str, str]:
+    """Return the renaming that makes recording ``name`` the first ({old: new}).
+
+    ``recording.<name>.base.*`` and ``base.*`` exchanged, and, for a remounted probe,
+    ``recording.<name>.<prefix>.*`` and ``<prefix>.*``; {} when ``params`` places no
+    recording ``name`` (the first).
+
+    Rows without a recording covariate are placed by ``base.*``: with the parameter values
+    and covariance renamed so, they are placed as that recording's rows were, exactly.
+    """
+    out: dict[str, str] = {}
+    for own in params.names:
+        if own.startswith(f'{PREFIX}{name}.'):
+            shared = own[len(f'{PREFIX}{name}.'):]
+            out[own], out[shared] = shared, own
+    return out
 
 
 @dataclass(frozen=True)
