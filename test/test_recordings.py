@@ -238,7 +238,8 @@ def _station_cell(move: np.ndarray):
     """The default cell seen from another tracker station: its base moved by ``move``."""
     import yaml
 
-    from kpi_calib_ros.io.cell import DEFAULT_CELL, build_cell_model, cell_from_dict
+    from kpi_calib_ros.app.cell_model import build_cell_model
+    from kpi_calib_ros.io.cell import DEFAULT_CELL, cell_from_dict
     doc = yaml.safe_load(DEFAULT_CELL.read_text())
     doc['tracker']['base_in_tracker'] = (np.array(doc['tracker']['base_in_tracker'])
                                          + move).tolist()
