@@ -161,7 +161,9 @@ class Client:
     def spin_until(self, condition: Callable[[], Any], timeout: float, what: str) -> None:
         deadline = time.monotonic() + timeout
         while not condition():
-            assert time.monotonic() < deadline, f'timed out after {timeout} s waiting for {what}'
+            assert time.monotonic() < deadline, (
+                f'timed out after {timeout} s waiting for {what}; the node\'s last '
+                f'diagnostics: {self.diagnostics()}')
             self.executor.spin_once(timeout_sec=0.05)
 
     def diagnostics(self) -> dict[str, str]:
