@@ -50,7 +50,7 @@ from typing import Sequence
 import numpy as np
 
 from kpi_calib_ros.core.estimation.cross_validation import prior_system
-from kpi_calib_ros.core.estimation.folds import RANK_TOLERANCE
+from kpi_calib_ros.core.estimation.folds import RANK_TOLERANCE, fold_blocks
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.core.estimation.prior import Prior
 from kpi_calib_ros.core.estimation.residuals import linearized_fit, orthonormal_basis
@@ -153,15 +153,11 @@ def held_out_residuals(model: MeasurementModel, data: Measurements, result: Cali
     u = orthonormal_basis(a)
     e = r - u @ (u.T @ r)
     n_rows = len(sys_.r)
-    rows = np.concatenate([np.repeat(pose_folds, 3), np.full(len(r) - n_rows, -1)])
     held = np.zeros(n_rows)
-    for k in np.unique(pose_folds):
-        test = rows == k
-        uf = u[test]
-        m = np.eye(int(test.sum())) - uf @ uf.T
-        if np.linalg.eigvalsh(m)[0] <= RANK_TOLERANCE:
+    for test, m in fold_blocks(a, pose_folds, u):
+        if m.smallest <= RANK_TOLERANCE:
             return None
-        held[test[:n_rows]] = np.linalg.solve(m, e[test])
+        held[test] = m.solve(e[test])
     w = np.asarray(sys_.w, float)
     if w.ndim == 3:  # whitening matrices W: the point's covariance (WᵀW)⁻¹
         variance = np.trace(np.linalg.inv(np.einsum('nba,nbc->nac', w, w)), axis1=1, axis2=2)

@@ -92,7 +92,7 @@ from kpi_calib_ros.core.diagnosis.residual_curves import (
     implied_values,
 )
 from kpi_calib_ros.core.diagnosis.residual_inputs import ResidualInput, residual_inputs
-from kpi_calib_ros.core.estimation.folds import identifiable_folds
+from kpi_calib_ros.core.estimation.folds import HeldOutBlock, fold_rows, identifiable_folds
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.core.estimation.residuals import (
     ADEQUACY_ALPHA,
@@ -281,9 +281,8 @@ class _Press:
 
     def __init__(self, geometry: np.ndarray, pose_folds: np.ndarray | None) -> None:
         self.geometry = geometry
-        self.rows = None if pose_folds is None else np.repeat(pose_folds, 3)
-        self.folds = () if self.rows is None else [self.rows == k
-                                                   for k in np.unique(self.rows)]
+        self.folds: list[np.ndarray] = ([] if pose_folds is None
+                                        else [rows for _, rows in fold_rows(pose_folds)])
 
     def held_out(self, u: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, float] | None:
         """Held-out residuals (3N,) of r ≈ [geometry, u]·δ and their expected sum of squares.
@@ -296,17 +295,11 @@ class _Press:
         held = np.empty_like(r)
         noise = 0.0
         for test in self.folds:
-            b = basis[test]
-            m = np.eye(int(test.sum())) - b @ b.T
-            try:
-                chol = np.linalg.cholesky(m)
-            except np.linalg.LinAlgError:
+            m = HeldOutBlock(basis[test])
+            if m.smallest < 1e-10:
                 return None
-            if np.min(np.diag(chol)) ** 2 < 1e-10:
-                return None
-            held[test] = np.linalg.solve(m, e[test])
-            inv = np.linalg.solve(chol, np.eye(len(chol)))
-            noise += float(np.sum(inv ** 2))   # tr(m⁻¹) = ‖L⁻¹‖_F²
+            held[test] = m.solve(e[test])
+            noise += m.trace_inverse()
         return held, noise
 
 
@@ -483,8 +476,8 @@ def _pair(a: ResidualInput, b: ResidualInput, additive: list[np.ndarray], r: np.
     delta = float(np.sum((u.T @ e) ** 2))
     f_stat = (delta / u.shape[1]) / max(float(e @ e) - delta, 1e-300) * dof
     p = float(scipy.stats.f.sf(f_stat, u.shape[1], dof))
-    held_add = press.held_out(add, r) if press.rows is not None else None
-    held_pair = press.held_out(np.hstack([add, u]), r) if press.rows is not None else None
+    held_add = press.held_out(add, r) if press.folds else None
+    held_pair = press.held_out(np.hstack([add, u]), r) if press.folds else None
     before = _rms_m(held_add[0], w) if held_add else float('nan')
     after = _rms_m(held_pair[0], w) if held_pair else float('nan')
     better = not after >= before  # NaN (no folds): the test alone

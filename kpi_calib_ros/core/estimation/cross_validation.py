@@ -20,6 +20,7 @@ from kpi_calib_ros.core.estimation.folds import (
     LEAVE_ONE_OUT,
     RANK_TOLERANCE,
     REGION_BLOCKS,
+    HeldOutBlock,
     fold_blocks,
     identifiable_folds,
     pose_index,
@@ -69,9 +70,9 @@ def linear_validation_rms(a: np.ndarray, r: np.ndarray, w: np.ndarray,
     r = r - u @ (u.T @ r)  # the full-data fit of r ≈ a·δ (r need not be converged on a)
     held = np.empty_like(r)
     for test, m in fold_blocks(a, pose_folds, u):
-        if np.linalg.eigvalsh(m)[0] <= RANK_TOLERANCE:
+        if m.smallest <= RANK_TOLERANCE:
             return float('nan')
-        held[test] = np.linalg.solve(m, r[test])
+        held[test] = m.solve(r[test])
     metres = unweighted(held[:n_rows], w)
     return float(np.sqrt(np.mean(np.sum(metres ** 2, axis=1))))
 
@@ -163,12 +164,11 @@ def fold_rms(a: np.ndarray, r: np.ndarray, w: np.ndarray, masks: list[np.ndarray
     out, noise = np.full(len(masks), np.nan), np.full(len(masks), np.nan)
     for i, mask in enumerate(masks):
         noise[i] = float(np.sqrt(np.mean(variance[mask]) / (6 * mask.sum())))
-        test = np.concatenate([np.repeat(mask, 3), np.zeros(len(r) - 3 * len(mask), bool)])
-        uf = u[test]
-        m = np.eye(int(test.sum())) - uf @ uf.T
-        if np.linalg.eigvalsh(m)[0] <= RANK_TOLERANCE:
+        test = np.flatnonzero(np.repeat(mask, 3))
+        m = HeldOutBlock(u[test])
+        if m.smallest <= RANK_TOLERANCE:
             continue
-        metres = unweighted(np.linalg.solve(m, e[test]), w if w.ndim == 1 else w[mask])
+        metres = unweighted(m.solve(e[test]), w if w.ndim == 1 else w[mask])
         out[i] = float(np.sqrt(np.mean(np.sum(metres ** 2, axis=1))))
     return out, noise
 

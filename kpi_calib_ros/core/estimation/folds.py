@@ -20,7 +20,8 @@ from kpi_calib_ros.core.estimation.residuals import orthonormal_basis
 
 __all__ = [
     'fold_ids', 'campaign_home', 'moved_joints', 'stratified_fold_ids', 'RANK_TOLERANCE',
-    'LEAVE_ONE_OUT', 'fold_blocks', 'folds_keep_rank', 'identifiable_folds', 'pose_index',
+    'LEAVE_ONE_OUT', 'HeldOutBlock', 'fold_rows', 'fold_blocks', 'folds_keep_rank',
+    'identifiable_folds', 'pose_index',
     'REGION_BLOCKS', 'region_fold_ids', 'region_folds', 'RANGE_END', 'range_end_folds',
 ]
 
@@ -88,21 +89,70 @@ RANK_TOLERANCE = 1e-9
 LEAVE_ONE_OUT = 0  # ``folds`` value: every pose its own fold (exact, the default)
 
 
+class HeldOutBlock:
+    """I − H_FF of one fold F, H = U Uᵀ the hat matrix, without forming it when F is large.
+
+    ``uf`` (f, r): the fold's rows of the orthonormal basis U. I − U_F U_Fᵀ (f, f) has the
+    eigenvalues 1 − λ of the Gram matrix G = U_Fᵀ U_F (r, r) and 1 for the rest, and
+    (I − U_F U_Fᵀ)⁻¹ = I + U_F (I − G)⁻¹ U_Fᵀ (Woodbury). A fold of more rows than the
+    basis has columns (a region of a real campaign: tens of thousands of rows) costs
+    O(f r²) time and O(f r) memory through G; the dense f × f matrix would take f² memory
+    and f³ time (17 GiB for one region of 12 000 poses). Small folds use the dense matrix.
+    """
+
+    def __init__(self, uf: np.ndarray) -> None:
+        self._uf = uf
+        f, r = uf.shape
+        self._dense = f <= r
+        if self._dense:
+            self._m = np.eye(f) - uf @ uf.T
+            lam, self._v = np.linalg.eigh(self._m)
+            self.eigenvalues = lam
+        else:
+            gram, self._v = np.linalg.eigh(uf.T @ uf)
+            self.eigenvalues = 1.0 - gram[::-1]  # those of I − U_F U_Fᵀ below 1, ascending
+            self._v = self._v[:, ::-1]
+        self.smallest = float(self.eigenvalues[0]) if len(self.eigenvalues) else 1.0
+
+    def solve(self, e: np.ndarray) -> np.ndarray:
+        """(I − H_FF)⁻¹ e for ``e`` (f,): the held-out residuals of the fold's refit."""
+        proj = self._v.T @ (e if self._dense else self._uf.T @ e)
+        if self._dense:
+            return self._v @ (proj / self.eigenvalues)
+        return e + self._uf @ (self._v @ (proj / self.eigenvalues))
+
+    def trace_inverse(self) -> float:
+        """Return tr (I − H_FF)⁻¹: the expected sum of squares of unit noise held out."""
+        f = self._uf.shape[0]
+        return float(np.sum(1.0 / self.eigenvalues) + f - len(self.eigenvalues))
+
+
+def fold_rows(pose_folds: np.ndarray) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """Yield (fold id, row indices) of each fold, three rows per pose of ``pose_folds`` (N,).
+
+    In ascending fold order, each fold's rows ascending; rows past 3N (a prior's) are in no
+    fold. One sort: a leave-one-out over thousands of poses does not scan
+    every row once per fold.
+    """
+    rows = np.repeat(np.asarray(pose_folds), 3)
+    order = np.argsort(rows, kind='stable')
+    ids, starts = np.unique(rows[order], return_index=True)
+    for k, idx in zip(ids, np.split(order, starts[1:])):
+        yield k, idx
+
+
 def fold_blocks(a: np.ndarray, pose_folds: np.ndarray, u: np.ndarray | None = None
-                 ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+                ) -> Iterator[tuple[np.ndarray, HeldOutBlock]]:
     """Yield (rows, I − H_FF) of each fold F, H = U Uᵀ the hat matrix of span(a).
 
-    ``rows`` (len(a),) bool: the fold's held-out rows, three per pose of ``pose_folds`` (N,);
-    I − H_FF (3|F|, 3|F|). Rows of ``a`` after the 3N of the measurements (a prior's) are in
-    every training set. ``u``: an orthonormal basis of span(a) already at hand.
+    ``rows``: the row indices of the fold's held-out rows (ascending), three per pose of
+    ``pose_folds`` (N,); I − H_FF as a :class:`HeldOutBlock`. Rows of ``a`` after the 3N of
+    the measurements (a prior's) are in every training set. ``u``: an orthonormal basis of
+    span(a) already at hand.
     """
     u = orthonormal_basis(a) if u is None else u
-    rows = np.concatenate([np.repeat(pose_folds, 3),
-                           np.full(a.shape[0] - 3 * len(pose_folds), -1)])
-    for k in np.unique(pose_folds):
-        test = rows == k  # never a prior row (-1)
-        uf = u[test]
-        yield test, np.eye(int(test.sum())) - uf @ uf.T
+    for _, rows in fold_rows(pose_folds):
+        yield rows, HeldOutBlock(u[rows])
 
 
 def folds_keep_rank(a: np.ndarray, pose_folds: np.ndarray) -> bool:
@@ -110,7 +160,7 @@ def folds_keep_rank(a: np.ndarray, pose_folds: np.ndarray) -> bool:
 
     The training rows are the other folds' poses: I − H_FF is nonsingular for every fold F.
     """
-    return all(np.linalg.eigvalsh(m)[0] > RANK_TOLERANCE for _, m in fold_blocks(a, pose_folds))
+    return all(m.smallest > RANK_TOLERANCE for _, m in fold_blocks(a, pose_folds))
 
 
 def identifiable_folds(a: np.ndarray, q: np.ndarray, folds: int,

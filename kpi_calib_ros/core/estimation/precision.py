@@ -26,7 +26,13 @@ import numpy as np
 import scipy.stats
 
 from kpi_calib_ros.core.estimation.cross_validation import prior_system
-from kpi_calib_ros.core.estimation.folds import LEAVE_ONE_OUT, RANK_TOLERANCE, identifiable_folds
+from kpi_calib_ros.core.estimation.folds import (
+    LEAVE_ONE_OUT,
+    RANK_TOLERANCE,
+    HeldOutBlock,
+    fold_rows,
+    identifiable_folds,
+)
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult, point_sigma_squares
 from kpi_calib_ros.core.estimation.prior import Prior
 from kpi_calib_ros.core.estimation.residuals import (
@@ -262,19 +268,16 @@ def typical_held_out_rms(model: MeasurementModel, data: Measurements,
     b = np.concatenate([sys_.r, prior_r])
     r = (b - u_all @ (u_all.T @ b))[:n_data]
     u = u_all[:n_data]
-    rows = np.repeat(folds, 3)
     held = np.full_like(r, np.nan)
     left: list[int] = []
-    for k in np.unique(folds):
-        test = rows == k
-        m = np.eye(int(test.sum())) - u[test] @ u[test].T
-        smallest = float(np.linalg.eigvalsh(m)[0])
-        if smallest <= 1.0 - leverage_limit:
-            left.append(int(np.flatnonzero(folds == k)[0]))
+    for _, test in fold_rows(folds):
+        m = HeldOutBlock(u[test])
+        if m.smallest <= 1.0 - leverage_limit:
+            left.append(int(test[0]) // 3)
             continue
-        if smallest <= RANK_TOLERANCE:
+        if m.smallest <= RANK_TOLERANCE:
             return float('nan'), ()
-        held[test] = np.linalg.solve(m, r[test])
+        held[test] = m.solve(r[test])
     kept = ~np.isnan(held.reshape(-1, 3)[:, 0])
     if not kept.any():
         return float('nan'), tuple(left)
