@@ -34,4 +34,8 @@ def main(bag: str | None = None, seed: int = 11) -> float:
 
 
 if __name__ == '__main__':
-    main(*sys.argv[1:2])
+    args = sys.argv[1:]
+    if len(args) > 1 or (args and args[0].startswith('-')):
+        sys.exit(f'usage: python {sys.argv[0]} [BAG.mcap]  (the bag to write; '
+                 f'default a temporary file)')
+    main(*args)
