@@ -57,7 +57,7 @@ from kpi_calib_ros.core.estimation.residuals import linearized_fit, orthonormal_
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.recordings import row_recording
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
-from kpi_calib_ros.core.measurement.weighting import unweighted
+from kpi_calib_ros.core.measurement.weighting import point_rows, unweighted
 
 __all__ = ['RecordingComparison', 'held_out_residuals', 'recording_comparisons', 'named', 'FIX']
 
@@ -195,9 +195,12 @@ def recording_comparisons(model: MeasurementModel, data: Measurements,
     nom = [held_out_residuals(nominal_model, data, nominal, nominal_prior, f)
            for f in nominal_folds]
     variance = next((h[1] for h in cal + nom if h is not None), None)
+    points = point_rows(data.reflector, model.n_reflectors)
     out = []
     for i, name in enumerate(names):
         rows = index == i
+        if points is not None:  # a tracked body's rotation rows are no length
+            rows &= points
         n = int(rows.sum())
         noise = (float(np.sqrt(np.mean(variance[rows]) / (6 * n)))
                  if variance is not None and n else float('nan'))

@@ -36,7 +36,7 @@ from kpi_calib_ros.core.estimation.residuals import (
 )
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
-from kpi_calib_ros.core.measurement.weighting import unweighted
+from kpi_calib_ros.core.measurement.weighting import point_rows, unweighted
 
 __all__ = [
     'linear_validation_rms', 'validation_rms', 'prior_system', 'validation_folds', 'fold_rms',
@@ -46,8 +46,13 @@ __all__ = [
 
 def linear_validation_rms(a: np.ndarray, r: np.ndarray, w: np.ndarray,
                           pose_folds: np.ndarray | None,
-                          prior_rows: tuple[np.ndarray, np.ndarray] | None = None) -> float:
+                          prior_rows: tuple[np.ndarray, np.ndarray] | None = None,
+                          points: np.ndarray | None = None) -> float:
     """Cross-validated rms (m) of the linear model r ≈ a·δ, folds over poses.
+
+    ``points`` (N,) bool: the rows the rms is taken over (the point rows,
+    :func:`~kpi_calib_ros.core.measurement.weighting.point_rows`; default every row): a
+    tracked body's rotation rows are held out with their pose but are no length.
 
     ``prior_rows`` (L (m, k), its residual (m,), :func:`prior_system`): a prior the fit
     used, kept in every fold's refit (without it a fold refits a weaker, unregularised
@@ -74,6 +79,8 @@ def linear_validation_rms(a: np.ndarray, r: np.ndarray, w: np.ndarray,
             return float('nan')
         held[test] = m.solve(r[test])
     metres = unweighted(held[:n_rows], w)
+    if points is not None:
+        metres = metres[points]
     return float(np.sqrt(np.mean(np.sum(metres ** 2, axis=1))))
 
 
@@ -99,7 +106,7 @@ def validation_rms(model: MeasurementModel, data: Measurements,
     a = np.vstack([sys_.jac, rows[0]])
     return linear_validation_rms(sys_.jac, sys_.r, sys_.w,
                                  identifiable_folds(a, np.atleast_2d(data.q), folds, seed),
-                                 rows)
+                                 rows, point_rows(data.reflector, model.n_reflectors))
 
 
 def prior_system(model: MeasurementModel, result: CalibrationResult, prior: Prior | None
@@ -138,8 +145,8 @@ def validation_folds(model: MeasurementModel, data: Measurements, result: Calibr
 
 
 def fold_rms(a: np.ndarray, r: np.ndarray, w: np.ndarray, masks: list[np.ndarray],
-             prior_rows: tuple[np.ndarray, np.ndarray] | None = None
-             ) -> tuple[np.ndarray, np.ndarray]:
+             prior_rows: tuple[np.ndarray, np.ndarray] | None = None,
+             points: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Held-out rms (m) of each fold of the linear model r ≈ a·δ, and its noise, (len(masks),).
 
     ``masks``: held-out measurements (N,) bool per fold (folds may overlap). Each rms is
@@ -148,6 +155,8 @@ def fold_rms(a: np.ndarray, r: np.ndarray, w: np.ndarray, masks: list[np.ndarray
     leave a column of ``a`` undetermined. The noise: the standard deviation the stated
     noise alone gives the rms of the fold's n points, σ_p/√(6n) with σ_p² the mean of the
     points' total variance (σ/√(2n) per axis σ; an rms of 3-D noise over n points).
+    ``points`` (N,) bool: the rows both are taken over (as :func:`linear_validation_rms`);
+    a fold's other rows are held out with it.
     """
     if prior_rows is not None and len(prior_rows[1]):
         a = np.vstack([a, prior_rows[0]])
@@ -163,12 +172,17 @@ def fold_rms(a: np.ndarray, r: np.ndarray, w: np.ndarray, masks: list[np.ndarray
         variance = np.sum(unweighted(np.ones(3 * len(masks[0])), w) ** 2, axis=1)
     out, noise = np.full(len(masks), np.nan), np.full(len(masks), np.nan)
     for i, mask in enumerate(masks):
-        noise[i] = float(np.sqrt(np.mean(variance[mask]) / (6 * mask.sum())))
+        counted = mask if points is None else mask & points
+        if not counted.any():
+            continue
+        noise[i] = float(np.sqrt(np.mean(variance[counted]) / (6 * counted.sum())))
         test = np.flatnonzero(np.repeat(mask, 3))
         m = HeldOutBlock(u[test])
         if m.smallest <= RANK_TOLERANCE:
             continue
         metres = unweighted(m.solve(e[test]), w if w.ndim == 1 else w[mask])
+        if points is not None:
+            metres = metres[points[mask]]
         out[i] = float(np.sqrt(np.mean(np.sum(metres ** 2, axis=1))))
     return out, noise
 
@@ -225,8 +239,9 @@ def region_validation(model: MeasurementModel, data: Measurements, result: Calib
     poses, pose = pose_index(np.atleast_2d(data.q))
     masks = ([] if region_ids is None else [region_ids == b for b in range(used)]) + [
         m[pose] for m in range_end_folds(poses)]
-    held, noise = fold_rms(sys_.jac, sys_.r, sys_.w, masks, rows)
+    points = point_rows(data.reflector, model.n_reflectors)
+    held, noise = fold_rms(sys_.jac, sys_.r, sys_.w, masks, rows, points)
     return RegionValidation(
-        linear_validation_rms(sys_.jac, sys_.r, sys_.w, inside, rows),
-        linear_validation_rms(sys_.jac, sys_.r, sys_.w, region_ids, rows), folds, used,
+        linear_validation_rms(sys_.jac, sys_.r, sys_.w, inside, rows, points),
+        linear_validation_rms(sys_.jac, sys_.r, sys_.w, region_ids, rows, points), folds, used,
         tuple(float(v) for v in held), tuple(float(v) for v in noise))

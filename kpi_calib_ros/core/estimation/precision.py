@@ -43,7 +43,7 @@ from kpi_calib_ros.core.estimation.residuals import (
 )
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
-from kpi_calib_ros.core.measurement.weighting import unweighted
+from kpi_calib_ros.core.measurement.weighting import point_rows, unweighted
 
 # A pose whose hat-matrix block has an eigenvalue this close to 1 is the only one that
 # determines some direction of the parameters: leaving it out is an extrapolation, not a
@@ -279,6 +279,9 @@ def typical_held_out_rms(model: MeasurementModel, data: Measurements,
             return float('nan'), ()
         held[test] = m.solve(r[test])
     kept = ~np.isnan(held.reshape(-1, 3)[:, 0])
+    points = point_rows(data.reflector, model.n_reflectors)
+    if points is not None:  # a tracked body's rotation rows are no length
+        kept &= points
     if not kept.any():
         return float('nan'), tuple(left)
     metres = unweighted(held, sys_.w)[kept]

@@ -12,7 +12,8 @@ from kpi_calib_ros.core.measurement.data import Measurements, row_sigma
 from kpi_calib_ros.core.measurement.payload import payload_torques
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 
-__all__ = ['row_torques', 'noise_weights', 'weighted_rows', 'weighted_residuals', 'unweighted']
+__all__ = ['row_torques', 'noise_weights', 'weighted_rows', 'weighted_residuals', 'unweighted',
+           'point_rows']
 
 
 def row_torques(model: MeasurementModel, data: Measurements) -> np.ndarray | None:
@@ -93,3 +94,14 @@ def unweighted(r: np.ndarray, w: np.ndarray) -> np.ndarray:
         return np.einsum('nab,nb->na', np.linalg.pinv(w), r)
     return np.divide(r, w, out=np.zeros_like(r), where=w != 0)
 
+
+def point_rows(reflector: np.ndarray | None, n_reflectors: int) -> np.ndarray | None:
+    """Which rows (N,) bool are points, not the rotation rows of a tracked body; None: all.
+
+    A rotation row's residual is in rad: an rms in m takes the point rows only (the rows
+    of channels from ``n_reflectors`` on are rotations, as the fit's own rms counts them).
+    """
+    if reflector is None:
+        return None
+    points = np.asarray(reflector, int) < n_reflectors
+    return None if points.all() else points
