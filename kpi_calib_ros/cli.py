@@ -9,6 +9,8 @@ Results go to files; a summary to stdout.
 from __future__ import annotations
 
 import argparse
+import io
+import os
 import signal
 import sys
 import threading
@@ -300,7 +302,55 @@ def _raise_stopped(signum: int, frame: object) -> None:
     raise Stopped(signum)
 
 
+class _PipeSafe(io.TextIOBase):
+    """Standard output that a reader closing the pipe (``| head``) does not stop.
+
+    The command's output is its summary; its result is the files it writes. A write to a
+    pipe whose reader has gone raises BrokenPipeError in the middle of the work (a
+    traceback, exit 1, the files after that print unwritten); from then on the rest of
+    the output goes to the null device and the work goes on.
+    """
+
+    def __init__(self, stream: Any) -> None:
+        self._stream = stream
+
+    def _closed_pipe(self) -> None:
+        null = os.open(os.devnull, os.O_WRONLY)
+        try:  # the real descriptor too: the interpreter flushes it at exit
+            os.dup2(null, self._stream.fileno())
+        finally:
+            os.close(null)
+
+    def write(self, text: str) -> int:
+        try:
+            return self._stream.write(text)
+        except BrokenPipeError:
+            self._closed_pipe()
+            return len(text)
+
+    def flush(self) -> None:
+        try:
+            self._stream.flush()
+        except BrokenPipeError:
+            self._closed_pipe()
+
+    def writable(self) -> bool:
+        return True
+
+    def isatty(self) -> bool:
+        return self._stream.isatty()
+
+    def fileno(self) -> int:
+        return self._stream.fileno()
+
+    @property
+    def encoding(self) -> str:  # type: ignore[override]
+        return self._stream.encoding
+
+
 def main(argv: list[str] | None = None) -> int:
+    if argv is None and not isinstance(sys.stdout, _PipeSafe):  # run as the program
+        sys.stdout = _PipeSafe(sys.stdout)
     parser = build_parser()
     args = parser.parse_args(argv)
     # Only the main thread may set a handler (main() is also called from tests' threads).

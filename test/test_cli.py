@@ -251,3 +251,21 @@ def test_identify_help_says_how_auto_chooses(capsys):
     assert 'by cross-validation' not in text
     assert 'out-of-sample rms, predicted from each fit without refits' in text
     assert '--max-iterations' in text
+
+
+@pytest.mark.slow
+def test_a_reader_that_closes_the_pipe_early_loses_no_result(run_bag, tmp_path):
+    """``kpi-calib identify … | true``: the reader leaves before the first line; the
+    command still writes its whole result, exits 0 and prints no traceback."""
+    out = tmp_path / 'out'
+    with subprocess.Popen(
+            [sys.executable, '-m', 'kpi_calib_ros.cli', 'identify', '--cell', CELL,
+             '--bag', str(run_bag), '--out', str(out)],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE) as proc:
+        assert proc.stdout is not None and proc.stderr is not None
+        proc.stdout.close()  # as `true` does, or `head` once it has its lines
+        stderr = proc.stderr.read().decode()
+        code = proc.wait(timeout=300)
+    assert code == 0, stderr
+    assert 'Traceback' not in stderr and 'BrokenPipeError' not in stderr, stderr
+    assert yaml.safe_load((out / 'calibration.yaml').read_text())['valid'] is True
