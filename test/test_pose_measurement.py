@@ -17,6 +17,7 @@ from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.cli import main
 from kpi_calib_ros.core.acquisition.pairing import pair_measurements
 from kpi_calib_ros.core.acquisition.streams import PointSample, synthesize_streams
+from kpi_calib_ros.core.diagnosis.screening import screen_effects
 from kpi_calib_ros.core.diagnosis.validation import validate
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation.cross_validation import region_validation, validation_rms
@@ -239,6 +240,7 @@ def test_the_orientation_identifies_more_and_shrinks_the_tcp_std(cm, identified)
     assert np.all(std_with < std_without)
 
 
+@pytest.mark.slow
 def test_held_out_figures_of_a_pose_campaign_are_lengths_of_its_points(cm):
     """A tracked body's rotation rows are held out with their pose but are no length: every
     held-out rms (m) is that of the points and predicts fresh poses' point error. Here the
@@ -270,6 +272,10 @@ def test_held_out_figures_of_a_pose_campaign_are_lengths_of_its_points(cm):
     for name, value in figures.items():
         # A held-out residual is never below its fitted one: nor is their rms.
         assert value > result.rms_m and 0.85 < value / fresh_rms < 1.2, (name, value)
+    # The effect screen states the fit's rms before each candidate: the same point rows.
+    screened, _ = screen_effects(cm.model, data, result)
+    assert screened and all(f'rms {result.rms_m * 1e6:.1f} -> ' in c.explanation
+                            for c in screened)
 
 
 def test_validate_takes_rotation_rows_and_holds_on_fresh_poses(cm, identified):

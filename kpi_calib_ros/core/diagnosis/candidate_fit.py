@@ -22,7 +22,7 @@ import scipy.stats
 from kpi_calib_ros.core.effects.registry import BoundEffect, implausible
 from kpi_calib_ros.core.estimation.cross_validation import linear_validation_rms
 from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA, LinearizedFit
-from kpi_calib_ros.core.measurement.weighting import unweighted
+from kpi_calib_ros.core.measurement.weighting import point_rms, unweighted
 
 __all__ = ['SAME_SIGNATURE', 'CandidateFit', 'fit_candidate', 'merge_same_signature',
            'nested_alternatives', 'torque_effect_notes']
@@ -75,13 +75,13 @@ class CandidateFit:
 def fit_candidate(effect: BoundEffect, cols: np.ndarray, sys_: LinearizedFit, r_perp: np.ndarray,
                   chi2_base: float, dof_base: int, pose_folds: np.ndarray | None,
                   joint_jac: np.ndarray, q: np.ndarray, tau: np.ndarray,
-                  fraction: float, shape: tuple[float, ...] = ()) -> CandidateFit:
+                  fraction: float, shape: tuple[float, ...] = (),
+                  points: np.ndarray | None = None) -> CandidateFit:
     """Augmented least squares [J E] from the geometric solution, its F-test and CV.
 
     Shape parameters held at ``shape`` (chosen from a grid) count as fitted in the F-test's
     degrees of freedom; their std is NaN.
     """
-    n = len(q)
     k = cols.shape[1] + len(shape)
     unique = cols - sys_.basis @ (sys_.basis.T @ cols)
     info = unique.T @ unique  # Schur complement: information on θ with geometry free
@@ -95,8 +95,9 @@ def fit_candidate(effect: BoundEffect, cols: np.ndarray, sys_: LinearizedFit, r_
     dof = dof_base - k
     f_stat = (delta / k) / (chi2_aug / dof)
     p_raw = float(scipy.stats.f.sf(f_stat, k, dof))
-    cv = linear_validation_rms(np.hstack([sys_.jac, cols]), sys_.r, sys_.w, pose_folds)
-    rms = float(np.sqrt(np.sum(unweighted(r_aug, sys_.w) ** 2) / n))
+    cv = linear_validation_rms(np.hstack([sys_.jac, cols]), sys_.r, sys_.w, pose_folds,
+                               points=points)
+    rms = point_rms(unweighted(r_aug, sys_.w), points)
     corr = float(np.sqrt(max(delta, 0.0) / chi2_base)) if chi2_base > 0 else 0.0
     return CandidateFit(
         effect=effect, theta=theta, std=std, rms_m=rms, chi2=chi2_aug, dof=dof, unique=unique,

@@ -45,7 +45,7 @@ from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA, linearized_f
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.payload import payload_torques
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
-from kpi_calib_ros.core.measurement.weighting import unweighted
+from kpi_calib_ros.core.measurement.weighting import point_rms, point_rows, unweighted
 
 __all__ = ['DEPENDENCE_TOLERANCE', 'NO_EFFECT_M', 'Candidate', 'default_candidates',
            'screen_effects']
@@ -138,8 +138,9 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
     pose_folds = identifiable_folds(sys_.jac, np.atleast_2d(data.q), folds, seed)
     r_perp = sys_.r - sys_.basis @ (sys_.basis.T @ sys_.r)
     chi2_base = float(r_perp @ r_perp)
-    rms_base = float(np.sqrt(np.sum(unweighted(r_perp, sys_.w) ** 2) / n))
-    cv_base = linear_validation_rms(sys_.jac, sys_.r, sys_.w, pose_folds)
+    points = point_rows(data.reflector, model.n_reflectors)  # the rows that are lengths
+    rms_base = point_rms(unweighted(r_perp, sys_.w), points)
+    cv_base = linear_validation_rms(sys_.jac, sys_.r, sys_.w, pose_folds, points=points)
     dof_base = 3 * n - sys_.basis.shape[1]
     q = np.atleast_2d(data.q)
     tau = sys_.tau if sys_.tau is not None else payload_torques(model.robot, q, data.covariates)
@@ -177,7 +178,8 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
                     f'distinguishable: {effect.hint()}.'))
                 continue
             tried.append(fit_candidate(effect, cols, sys_, r_perp, chi2_base, dof_base,
-                                       pose_folds, joint_jac, q, tau, fraction, shape))
+                                       pose_folds, joint_jac, q, tau, fraction, shape,
+                                       points))
         if tried:
             # The best physically plausible shape (a fit constrained to the plausible
             # region); only when none is plausible, the best of all (reported implausible).

@@ -13,7 +13,7 @@ from kpi_calib_ros.core.measurement.payload import payload_torques
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 
 __all__ = ['row_torques', 'noise_weights', 'weighted_rows', 'weighted_residuals', 'unweighted',
-           'point_rows']
+           'point_rows', 'point_rms']
 
 
 def row_torques(model: MeasurementModel, data: Measurements) -> np.ndarray | None:
@@ -96,7 +96,7 @@ def unweighted(r: np.ndarray, w: np.ndarray) -> np.ndarray:
 
 
 def point_rows(reflector: np.ndarray | None, n_reflectors: int) -> np.ndarray | None:
-    """Which rows (N,) bool are points, not the rotation rows of a tracked body; None: all.
+    """Return which rows (N,) bool are points, not a tracked body's rotations; None: all.
 
     A rotation row's residual is in rad: an rms in m takes the point rows only (the rows
     of channels from ``n_reflectors`` on are rotations, as the fit's own rms counts them).
@@ -105,3 +105,11 @@ def point_rows(reflector: np.ndarray | None, n_reflectors: int) -> np.ndarray | 
         return None
     points = np.asarray(reflector, int) < n_reflectors
     return None if points.all() else points
+
+
+def point_rms(metres: np.ndarray, points: np.ndarray | None) -> float:
+    """Return the rms (m) of the residuals (N, 3) ``metres`` over rows ``points`` (None: all)."""
+    metres = np.asarray(metres, float).reshape(-1, 3)
+    if points is not None:
+        metres = metres[points]
+    return float(np.sqrt(np.sum(metres ** 2) / len(metres)))
