@@ -6,6 +6,7 @@ read as they are and identified from; every malformed table is an exit code 2 na
 the file and the line or column, with no bag (or part of one) left behind.
 """
 import codecs
+import json
 import os
 import tracemalloc
 from pathlib import Path
@@ -121,6 +122,35 @@ def test_series_d_truncated_stamps_say_the_time_axis_is_the_row_order(tmp_path, 
     sigma = np.array([[float(v.replace(',', '.')) for v in line.split(';')[15:20:2]]
                       for line in table.read_text().splitlines()[1:]]) * 1e3
     assert f'mean {np.round(sigma.mean(axis=0), 1).tolist()} µm' in out
+
+
+@pytest.mark.slow
+def test_stamps_that_number_the_rows_are_no_clock_past_pairing(tmp_path, capsys):
+    """A table without times is stamped in row order to pair its columns; the bag says so,
+    and past pairing those stamps are no clock: the calibration states no date (a later
+    --prior would take drift time from a made-up one) and the residual analysis offers no
+    'time' input (it ranked the row order third on the real Series D)."""
+    table = _subset(DATA / 'Series_D' / 'measurements_iso_cubes.csv', tmp_path / 'cubes.csv',
+                    60, 1)
+    doc = yaml.safe_load(MAPPING.read_text())
+    del doc['stamp_columns']
+    mapping = tmp_path / 'rows.yaml'
+    mapping.write_text(yaml.safe_dump(doc))
+    bag = tmp_path / 'cubes.mcap'
+    assert main(['import-csv', str(table), '--mapping', str(mapping), '--out', str(bag)]) == 0
+    cm = build_cell_model(load_cell(CELL))
+    data, pairing = measurements_from_bag(cm, bag)
+    assert len(data) >= 60 and data.stamps_ns is None and not pairing.stamps_are_times
+    out = tmp_path / 'cal'
+    assert main(['identify', '--cell', str(CELL), '--bag', str(bag), '--out', str(out)]) in (0, 1)
+    cal = yaml.safe_load(next(out.glob('calibration*.yaml')).read_text())
+    assert 'identified_at_ns' not in cal and cal['pairing']['accepted'] == 60
+    assert len(cal['training_configurations']['joints']) == 6
+    diag = tmp_path / 'diag'
+    capsys.readouterr()
+    assert main(['diagnose', '--cell', str(CELL), '--bag', str(bag), '--out', str(diag)]) == 0
+    inputs = json.loads((diag / 'diagnosis.json').read_text())['residual_inputs']['inputs']
+    assert inputs and 'time' not in {i['name'] for i in inputs}
 
 
 def _plain_table(rows: int, stamps: bool = True) -> list[str]:

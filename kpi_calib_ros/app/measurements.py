@@ -167,10 +167,15 @@ def measurements_from_bag(cm: CellModel, path: str | Path,
                                                   **pairer_options)
     data = with_temperature(cm, data, path)
     sources = input_sources(cm)
-    if not sources and cm.cell.inputs.topic not in contents.topics:
-        return data, pairing  # no measured input in the cell or the recording
-    samples, topics = read_inputs(path, cm.cell.inputs.topic, sources)
-    return with_inputs(cm, data, samples, str(path), topics), pairing
+    if sources or cm.cell.inputs.topic in contents.topics:
+        samples, topics = read_inputs(path, cm.cell.inputs.topic, sources)
+        data = with_inputs(cm, data, samples, str(path), topics)
+    if contents.row_order_stamps:
+        # Stamps that number a table's rows paired its columns; past pairing they are no
+        # clock: no time input, no date of the calibration, no drift time from them.
+        data = dataclasses.replace(data, stamps_ns=None)
+        pairing = dataclasses.replace(pairing, stamps_are_times=False)
+    return data, pairing
 
 
 def input_sources(cm: CellModel) -> list[tuple[str, str, tuple[tuple[str, FieldPath], ...]]]:
@@ -384,7 +389,8 @@ def merged_pairing(pairings: Sequence[PairingResult]) -> PairingResult:
                          np.concatenate([p.q for p in pairings]),
                          np.concatenate([p.eta for p in pairings]),
                          np.concatenate([p.stamps_ns for p in pairings]), rejections,
-                         [r for p in pairings for r in p.rejected], reflectors, rotations)
+                         [r for p in pairings for r in p.rejected], reflectors, rotations,
+                         all(p.stamps_are_times for p in pairings))
 
 
 def load_recordings(cell_path: str | Path, sources: Sequence[RecordingSource],

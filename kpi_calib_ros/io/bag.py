@@ -36,6 +36,7 @@ from kpi_calib_ros.io.bag_writing import (
     LIBRARY,
     POINT_STAMPED_TYPE,
     POSE_STAMPED_TYPE,
+    ROW_ORDER_METADATA,
     TEMPERATURE_TYPE,
     VECTOR3_STAMPED_TYPE,
     StreamEncoders,
@@ -271,6 +272,8 @@ class BagContents:
     ``point_sigma``: the tracker's stated σ (3,) (m) of points by (stamp ns, frame id),
     from the point topic's companion ``<point topic>/sigma`` (empty when the bag has none).
     ``topics``: every topic the bag has (whether to read measured inputs).
+    ``row_order_stamps``: the stamps number the rows of a table that had no times
+    (``kpi-calib import-csv``); they are no clock.
     """
 
     joints: list[JointSample]
@@ -279,6 +282,7 @@ class BagContents:
     unreadable_bytes: int
     point_sigma: dict[tuple[int, str], np.ndarray] = field(default_factory=dict)
     topics: frozenset[str] = frozenset()
+    row_order_stamps: bool = False
 
 
 def _point_sigma(path: Path, bag: ScannedBag, point_topic: str
@@ -421,8 +425,10 @@ def read_for_pairing(
     _warn_undecodable(path, bad)
     joint_samples.sort(key=lambda j: j.stamp_ns)
     point_samples.sort(key=lambda p: p.stamp_ns)
+    row_order = any(m.name == ROW_ORDER_METADATA and m.metadata.get('stamps') == 'row_order'
+                    for m in bag.metadata)
     return BagContents(joint_samples, point_samples, False, bag.unreadable_bytes, sigma,
-                       _topics(bag))
+                       _topics(bag), row_order)
 
 
 def _topics(bag: ScannedBag) -> frozenset[str]:

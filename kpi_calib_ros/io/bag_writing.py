@@ -56,6 +56,8 @@ TEMPERATURE_TYPE = 'sensor_msgs/msg/Temperature'
 VECTOR3_STAMPED_TYPE = 'geometry_msgs/msg/Vector3Stamped'   # a point's stated σ (m)
 
 LIBRARY = f'kpi_calib_ros; {LIBRARY_IDENTIFIER}'
+# The metadata record of a bag whose stamps number the rows of a table without times.
+ROW_ORDER_METADATA = 'kpi_calib_ros_stamps'
 _ROSBAG2_CHUNK_SIZE = 768 * 1024  # libmcap's default, which rosbag2 keeps
 # What a default reliable/volatile publisher offers, as rosbag2 (metadata v9) writes it.
 _INFINITE = '\n    sec: 9223372036\n    nsec: 854775807'
@@ -267,6 +269,11 @@ class _Recorder:
         self._write(JOINT_STATE_TYPE, stamp_ns, self.encoders.inputs(stamp_ns, names, values),
                     self.inputs_topic)
 
+    def mark_row_order_stamps(self) -> None:
+        """Say in the bag that its stamps number the rows of a table that had none: they are
+        no clock (:data:`ROW_ORDER_METADATA`)."""
+        self._writer.add_metadata(ROW_ORDER_METADATA, {'stamps': 'row_order'})
+
     def finish(self) -> None:
         self._writer.finish()
 
@@ -382,5 +389,6 @@ def write_bag(
 
 
 __all__ = ['BagStream', 'DEFAULT_JOINT_TOPIC', 'DEFAULT_POINT_TOPIC', 'JOINT_STATE_TYPE',
-           'LIBRARY', 'POINT_STAMPED_TYPE', 'POSE_STAMPED_TYPE', 'StreamEncoders',
+           'LIBRARY', 'POINT_STAMPED_TYPE', 'POSE_STAMPED_TYPE', 'ROW_ORDER_METADATA',
+           'StreamEncoders',
            'TEMPERATURE_TYPE', 'message_definition', 'type_hash', 'write_bag']

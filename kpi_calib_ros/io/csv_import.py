@@ -341,6 +341,8 @@ def import_csv(csv_path: str | Path | list, out_path: str | Path, mapping: CsvMa
                    sigma_topic=point_sigma_topic(point_topic) if has_sigma else None,
                    inputs_topic=inputs_topic if mapping.covariates else None) as bag:
         summary.inputs_topic = inputs_topic
+        if not mapping.stamp_columns:  # stamps numbering the rows: no clock
+            bag.mark_row_order_stamps()
         for i, row in enumerate(rows):
             t = row.stamp_ns if row.stamp_ns is not None else _START_NS + i * _PERIOD_NS
             stamps.add(t, row, table[row.path])

@@ -183,7 +183,9 @@ def calibration_to_dict(result: CalibrationResult,
         if len(pairing):
             # When the robot was as calibrated: a later campaign widens this calibration,
             # used as its prior, by the drift since then (core.estimation.prior.drift_widened).
-            doc['identified_at_ns'] = int(np.max(pairing.stamps_ns))
+            # Stamps that number a table's rows are no date: then none is stated.
+            if pairing.stamps_are_times:
+                doc['identified_at_ns'] = int(np.max(pairing.stamps_ns))
             # The joint ranges the calibration has seen: validation marks poses beyond them.
             doc['training_joint_ranges'] = {
                 name: [float(lo), float(hi)] for name, lo, hi in zip(

@@ -104,6 +104,8 @@ class PairingResult:
     rejected: list[Rejection] = field(default_factory=list)
     reflectors: tuple[str, ...] = ()
     rotations: np.ndarray | None = None
+    # False: the stamps number the rows of a table that had no times, no clock.
+    stamps_are_times: bool = True
 
     def reflector_indices(self, names: Sequence[str]) -> np.ndarray:
         """(N,) index of every row's reflector in ``names`` (the cell's order)."""
