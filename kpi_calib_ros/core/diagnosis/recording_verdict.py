@@ -49,15 +49,19 @@ from typing import Sequence
 
 import numpy as np
 
-from kpi_calib_ros.core.estimation.cross_validation import prior_system
-from kpi_calib_ros.core.estimation.folds import RANK_TOLERANCE, fold_blocks
+from kpi_calib_ros.core.estimation.cross_validation import press_residuals, prior_system
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.core.estimation.prior import Prior
-from kpi_calib_ros.core.estimation.residuals import linearized_fit, orthonormal_basis
+from kpi_calib_ros.core.estimation.residuals import linearized_fit
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.recordings import row_recording
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
-from kpi_calib_ros.core.measurement.weighting import point_rows, unweighted
+from kpi_calib_ros.core.measurement.weighting import (
+    point_rms,
+    point_rows,
+    row_noise_variance,
+    unweighted,
+)
 
 __all__ = ['RecordingComparison', 'held_out_residuals', 'recording_comparisons', 'named', 'FIX']
 
@@ -147,29 +151,16 @@ def held_out_residuals(model: MeasurementModel, data: Measurements, result: Cali
     if pose_folds is None:
         return None
     sys_ = linearized_fit(model, data, result)
-    prior_a, prior_r = prior_system(model, result, prior)
-    a = np.vstack([sys_.jac, prior_a])
-    r = np.concatenate([sys_.r, prior_r])
-    u = orthonormal_basis(a)
-    e = r - u @ (u.T @ r)
-    n_rows = len(sys_.r)
-    held = np.zeros(n_rows)
-    for test, m in fold_blocks(a, pose_folds, u):
-        if m.smallest <= RANK_TOLERANCE:
-            return None
-        held[test] = m.solve(e[test])
-    w = np.asarray(sys_.w, float)
-    if w.ndim == 3:  # whitening matrices W: the point's covariance (WᵀW)⁻¹
-        variance = np.trace(np.linalg.inv(np.einsum('nba,nbc->nac', w, w)), axis1=1, axis2=2)
-    else:
-        variance = np.sum(unweighted(np.ones(n_rows), w) ** 2, axis=1)
-    return unweighted(held, w), variance
+    held = press_residuals(sys_.jac, sys_.r, pose_folds, prior_system(model, result, prior))
+    if held is None:
+        return None
+    return unweighted(held, sys_.w), row_noise_variance(sys_.w, len(data))
 
 
 def _rms(metres: np.ndarray | None, rows: np.ndarray) -> float:
     if metres is None or not rows.any():
         return float('nan')
-    return float(np.sqrt(np.mean(np.sum(metres[rows] ** 2, axis=1))))
+    return point_rms(metres, rows)
 
 
 def recording_comparisons(model: MeasurementModel, data: Measurements,

@@ -36,37 +36,31 @@ from kpi_calib_ros.core.estimation.residuals import (
 )
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
-from kpi_calib_ros.core.measurement.weighting import point_rows, unweighted
+from kpi_calib_ros.core.measurement.weighting import (
+    point_rms,
+    point_rows,
+    row_noise_variance,
+    unweighted,
+)
 
 __all__ = [
-    'linear_validation_rms', 'validation_rms', 'prior_system', 'validation_folds', 'fold_rms',
-    'RegionValidation', 'region_validation',
+    'press_residuals', 'linear_validation_rms', 'validation_rms', 'prior_system',
+    'validation_folds', 'fold_rms', 'RegionValidation', 'region_validation',
 ]
 
 
-def linear_validation_rms(a: np.ndarray, r: np.ndarray, w: np.ndarray,
-                          pose_folds: np.ndarray | None,
-                          prior_rows: tuple[np.ndarray, np.ndarray] | None = None,
-                          points: np.ndarray | None = None) -> float:
-    """Cross-validated rms (m) of the linear model r ≈ a·δ, folds over poses.
+def press_residuals(a: np.ndarray, r: np.ndarray, pose_folds: np.ndarray,
+                    prior_rows: tuple[np.ndarray, np.ndarray] | None = None
+                    ) -> np.ndarray | None:
+    """Held-out weighted residual (3N,) of each row of the linear model r ≈ a·δ.
 
-    ``points`` (N,) bool: the rows the rms is taken over (the point rows,
-    :func:`~kpi_calib_ros.core.measurement.weighting.point_rows`; default every row): a
-    tracked body's rotation rows are held out with their pose but are no length.
-
-    ``prior_rows`` (L (m, k), its residual (m,), :func:`prior_system`): a prior the fit
-    used, kept in every fold's refit (without it a fold refits a weaker, unregularised
-    model and the figure can fall below the fit's own rms).
-
-    Each fold's held-out residual is exactly that of the refit without it,
-    (I − H_FF)⁻¹ e_F with e = (I − H) r the full-data residual (the PRESS identity; H
-    the hat matrix of ``a``). NaN ("not
-    estimable from this design") when ``pose_folds`` is None or a fold's training poses
-    leave a column of ``a`` undetermined: a minimum-norm refit would then predict the
-    held-out poses with a parameter the fold cannot see.
+    Each fold's (``pose_folds`` (N,)) held-out residual is exactly that of the refit
+    without it, (I − H_FF)⁻¹ e_F with e = (I − H) r the full-data residual (the PRESS
+    identity; H the hat matrix of ``a``), ``prior_rows`` (L (m, k), its residual (m,),
+    :func:`prior_system`) kept in every refit. None when a fold's training poses leave a
+    column of ``a`` undetermined: a minimum-norm refit would then predict the held-out
+    poses with a parameter the fold cannot see.
     """
-    if pose_folds is None:
-        return float('nan')
     n_rows = len(r)
     if prior_rows is not None and len(prior_rows[1]):
         a = np.vstack([a, prior_rows[0]])
@@ -76,12 +70,32 @@ def linear_validation_rms(a: np.ndarray, r: np.ndarray, w: np.ndarray,
     held = np.empty_like(r)
     for test, m in fold_blocks(a, pose_folds, u):
         if m.smallest <= RANK_TOLERANCE:
-            return float('nan')
+            return None
         held[test] = m.solve(r[test])
-    metres = unweighted(held[:n_rows], w)
-    if points is not None:
-        metres = metres[points]
-    return float(np.sqrt(np.mean(np.sum(metres ** 2, axis=1))))
+    return held[:n_rows]
+
+
+def linear_validation_rms(a: np.ndarray, r: np.ndarray, w: np.ndarray,
+                          pose_folds: np.ndarray | None,
+                          prior_rows: tuple[np.ndarray, np.ndarray] | None = None,
+                          points: np.ndarray | None = None) -> float:
+    """Cross-validated rms (m) of the linear model r ≈ a·δ, folds over poses.
+
+    ``prior_rows`` (L (m, k), its residual (m,), :func:`prior_system`): a prior the fit
+    used, kept in every fold's refit (without it a fold refits a weaker, unregularised
+    model and the figure can fall below the fit's own rms). ``points`` (N,) bool: the rows
+    the rms is taken over (the point rows,
+    :func:`~kpi_calib_ros.core.measurement.weighting.point_rows`; default every row): a
+    tracked body's rotation rows are held out with their pose but are no length.
+
+    The held-out residuals: :func:`press_residuals`. NaN ("not estimable from this
+    design") when ``pose_folds`` is None or a fold's training poses leave a column of ``a``
+    undetermined.
+    """
+    held = None if pose_folds is None else press_residuals(a, r, pose_folds, prior_rows)
+    if held is None:
+        return float('nan')
+    return point_rms(unweighted(held, w), points)
 
 
 def validation_rms(model: MeasurementModel, data: Measurements,
@@ -166,10 +180,7 @@ def fold_rms(a: np.ndarray, r: np.ndarray, w: np.ndarray, masks: list[np.ndarray
     w = np.asarray(w, float)
     if not masks:
         return np.zeros(0), np.zeros(0)
-    if w.ndim == 3:  # whitening matrices W: the point's covariance (WᵀW)⁻¹
-        variance = np.trace(np.linalg.inv(np.einsum('nba,nbc->nac', w, w)), axis1=1, axis2=2)
-    else:
-        variance = np.sum(unweighted(np.ones(3 * len(masks[0])), w) ** 2, axis=1)
+    variance = row_noise_variance(w, len(masks[0]))
     out, noise = np.full(len(masks), np.nan), np.full(len(masks), np.nan)
     for i, mask in enumerate(masks):
         counted = mask if points is None else mask & points
@@ -181,9 +192,7 @@ def fold_rms(a: np.ndarray, r: np.ndarray, w: np.ndarray, masks: list[np.ndarray
         if m.smallest <= RANK_TOLERANCE:
             continue
         metres = unweighted(m.solve(e[test]), w if w.ndim == 1 else w[mask])
-        if points is not None:
-            metres = metres[points[mask]]
-        out[i] = float(np.sqrt(np.mean(np.sum(metres ** 2, axis=1))))
+        out[i] = point_rms(metres, None if points is None else points[mask])
     return out, noise
 
 

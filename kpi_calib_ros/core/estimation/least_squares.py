@@ -51,7 +51,13 @@ from kpi_calib_ros.core.estimation.identifiability import (
 from kpi_calib_ros.core.estimation.prior import Prior
 from kpi_calib_ros.core.measurement.data import Measurements, row_sigma
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
-from kpi_calib_ros.core.measurement.weighting import row_torques, weighted_residuals, weighted_rows
+from kpi_calib_ros.core.measurement.weighting import (
+    point_rms,
+    point_rows,
+    row_torques,
+    weighted_residuals,
+    weighted_rows,
+)
 from kpi_calib_ros.core.model.parameters import RECORDING_PREFIX
 
 __all__ = [
@@ -396,7 +402,7 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     return CalibrationResult(
         names=model.params.names, values=p, units=model.params.units,
         estimated=ident.kept, std=np.sqrt(np.diag(c_p)), covariance=c_p,
-        residuals=residuals, rms_m=_point_rms(residuals, ref, model.n_reflectors),
+        residuals=residuals, rms_m=point_rms(residuals, point_rows(ref, model.n_reflectors)),
         tcp=tcp, tcp_covariance=tcp_cov, working_pose_names=tuple(names),
         sigma=1.0 / w_axis, chi2=chi2, dof=dof, p_value=float(scipy.stats.chi2.sf(chi2, dof)),
         status=status, message=message, iterations=iterations, identifiability=ident,
@@ -416,15 +422,6 @@ def point_sigma_squares(result: CalibrationResult, reflector: np.ndarray | None,
     if reflector is not None:
         rows = rows[np.asarray(reflector) < n_reflectors]
     return np.sum(rows ** 2, axis=1)
-
-
-def _point_rms(residuals: np.ndarray, reflector: np.ndarray | None, n_reflectors: int) -> float:
-    """Return the root mean square (m) of the point rows' residuals.
-
-    Rotation rows (tracked poses) are not lengths.
-    """
-    points = residuals if reflector is None else residuals[np.asarray(reflector) < n_reflectors]
-    return float(np.sqrt(np.mean(np.sum(points ** 2, axis=1))))
 
 
 def _with_prior(f: np.ndarray, rows: PriorRows | None, idx: np.ndarray) -> np.ndarray:

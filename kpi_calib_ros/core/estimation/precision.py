@@ -43,7 +43,7 @@ from kpi_calib_ros.core.estimation.residuals import (
 )
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
-from kpi_calib_ros.core.measurement.weighting import point_rows, unweighted
+from kpi_calib_ros.core.measurement.weighting import point_rms, point_rows, unweighted
 
 # A pose whose hat-matrix block has an eigenvalue this close to 1 is the only one that
 # determines some direction of the parameters: leaving it out is an extrapolation, not a
@@ -284,8 +284,7 @@ def typical_held_out_rms(model: MeasurementModel, data: Measurements,
         kept &= points
     if not kept.any():
         return float('nan'), tuple(left)
-    metres = unweighted(held, sys_.w)[kept]
-    return float(np.sqrt(np.mean(np.sum(metres ** 2, axis=1)))), tuple(left)
+    return point_rms(unweighted(held, sys_.w), kept), tuple(left)
 
 
 BALANCE_ROUNDS = 12

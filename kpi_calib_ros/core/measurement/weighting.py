@@ -13,7 +13,7 @@ from kpi_calib_ros.core.measurement.payload import payload_torques
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 
 __all__ = ['row_torques', 'noise_weights', 'weighted_rows', 'weighted_residuals', 'unweighted',
-           'point_rows', 'point_rms']
+           'point_rows', 'point_rms', 'row_noise_variance']
 
 
 def row_torques(model: MeasurementModel, data: Measurements) -> np.ndarray | None:
@@ -112,4 +112,16 @@ def point_rms(metres: np.ndarray, points: np.ndarray | None) -> float:
     metres = np.asarray(metres, float).reshape(-1, 3)
     if points is not None:
         metres = metres[points]
-    return float(np.sqrt(np.sum(metres ** 2) / len(metres)))
+    return float(np.sqrt(np.mean(np.sum(metres ** 2, axis=1))))
+
+
+def row_noise_variance(w: np.ndarray, n: int) -> np.ndarray:
+    """Return the total noise variance Σ_a σ_a² (n,) (m²) the weights ``w`` state per row.
+
+    ``w``: weights 1/σ as :func:`unweighted` takes them, or whitening matrices W
+    (n, 3, 3), whose point covariance is (WᵀW)⁻¹.
+    """
+    w = np.asarray(w, float)
+    if w.ndim == 3:
+        return np.trace(np.linalg.inv(np.einsum('nba,nbc->nac', w, w)), axis1=1, axis2=2)
+    return np.sum(unweighted(np.ones(3 * n), w) ** 2, axis=1)
