@@ -7,7 +7,6 @@ the file and the line or column, with no bag (or part of one) left behind.
 """
 import codecs
 import json
-import os
 import tracemalloc
 from pathlib import Path
 
@@ -26,9 +25,9 @@ from kpi_calib_ros.io.cell import load_cell
 from kpi_calib_ros.io.csv_import import import_csv, load_mapping, mapping_from_dict, read_postures
 from kpi_calib_ros.io.names import DEFAULT_POSE_TOPIC, DEFAULT_TEMPERATURE_TOPIC
 
-_BESIDE = Path(__file__).resolve().parents[2] / 'shared' / 'data' / 'ipa_ur10'
-DATA = Path(os.environ.get('IPA_UR10_DIR') or (
-    _BESIDE if _BESIDE.is_dir() else '/work/shared/data/ipa_ur10'))
+from real_data import UR10_DATA
+
+DATA = UR10_DATA
 HERE = Path(__file__).resolve().parent / 'data'
 CELL = HERE / 'ipa_ur10_cell.yaml'
 MAPPING = HERE / 'ipa_ur10_mapping.yaml'

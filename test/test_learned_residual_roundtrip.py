@@ -26,9 +26,9 @@ from kpi_calib_ros.io.cell import load_cell
 from kpi_calib_ros.io.learned_residual_file import read_residual
 from kpi_calib_ros.io.results import read_truth
 
+from real_data import UR10_DATA
+
 HERE = Path(__file__).parent / 'data'
-_BESIDE = Path(__file__).resolve().parents[2] / 'shared' / 'data' / 'ipa_ur10'
-UR10_DATA = _BESIDE if _BESIDE.is_dir() else Path('/work/shared/data/ipa_ur10')
 ROBOTS = 'package://example-robot-data/robots/'
 UR_POSE = [0.0, -1.2, 1.7, -2.07, -1.57, 0.0]
 # id: (URDF, base, tip, the joint of the hidden error, working pose, training poses)

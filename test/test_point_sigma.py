@@ -24,6 +24,8 @@ from kpi_calib_ros.core.simulation import random_configurations, true_parameters
 from kpi_calib_ros.io.cell import DEFAULT_CELL, load_cell
 from kpi_calib_ros.io.names import DEFAULT_POINT_TOPIC, DEFAULT_POSE_TOPIC, point_sigma_topic
 
+from real_data import UR10_DATA
+
 # An AT960's maximum permissible error, per axis: 15 µm + 6 µm/m of distance.
 SIGMA_0_M, SIGMA_PER_M = 15e-6, 6e-6
 POSES = 30
@@ -216,8 +218,7 @@ def test_out_of_sample_error_holds_the_points_own_sigma(cm):
     assert abs(ratio - 1) < 3 * error + 0.02, (ratio, error)
 
 
-_BESIDE = Path(__file__).resolve().parents[2] / 'shared' / 'data' / 'ipa_ur10'
-UR10 = _BESIDE if _BESIDE.is_dir() else Path('/work/shared/data/ipa_ur10')
+UR10 = UR10_DATA
 HERE = Path(__file__).resolve().parent / 'data'
 
 

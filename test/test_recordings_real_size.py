@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import csv
 import json
-import os
 from pathlib import Path
 
 import numpy as np
@@ -25,9 +24,9 @@ from scipy.spatial.transform import Rotation
 
 from kpi_calib_ros.cli import main
 
-_BESIDE = Path(__file__).resolve().parents[2] / 'shared' / 'data' / 'ipa_ur10'
-DATA = Path(os.environ.get('IPA_UR10_DIR') or (
-    _BESIDE if _BESIDE.is_dir() else '/work/shared/data/ipa_ur10'))
+from real_data import UR10_DATA
+
+DATA = UR10_DATA
 HERE = Path(__file__).resolve().parent / 'data'
 CELL = HERE / 'ipa_ur10_cell.yaml'
 MAPPING = HERE / 'ipa_ur10_mapping.yaml'

@@ -2,16 +2,14 @@
 checked
 against the re-reads of a real robot, and the grouping of replicates."""
 import csv
-import os
-from pathlib import Path
 
 import numpy as np
 
 from kpi_calib_ros.core.measurement.replicates import SAME_POSE_TOLERANCE, pose_groups, same_pose
 
-_BESIDE = Path(__file__).resolve().parents[2] / 'shared' / 'data' / 'tiago_mocap'
-TIAGO = Path(os.environ.get('TIAGO_MOCAP_DIR') or (
-    _BESIDE if _BESIDE.is_dir() else '/work/shared/data/tiago_mocap'))
+from real_data import TIAGO_DATA
+
+TIAGO = TIAGO_DATA
 JOINTS = ['torso_lift_joint'] + [f'arm_{i}_joint' for i in range(1, 8)]
 
 

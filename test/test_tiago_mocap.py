@@ -6,7 +6,6 @@ test environment (it is not copied into the repository); the cell and column map
 in test/data/.
 """
 import json
-import os
 from pathlib import Path
 
 import pytest
@@ -14,10 +13,9 @@ import yaml
 
 from kpi_calib_ros.cli import main
 
-# Beside the repository (../shared/data/tiago_mocap), or where TIAGO_MOCAP_DIR says.
-_BESIDE = Path(__file__).resolve().parents[2] / 'shared' / 'data' / 'tiago_mocap'
-DATA = Path(os.environ.get('TIAGO_MOCAP_DIR') or (
-    _BESIDE if _BESIDE.is_dir() else '/work/shared/data/tiago_mocap'))
+from real_data import TIAGO_DATA
+
+DATA = TIAGO_DATA
 HERE = Path(__file__).resolve().parent / 'data'
 CELL = HERE / 'tiago_mocap_cell.yaml'
 TOLERANCES = HERE / 'tiago_mocap_cell_tolerances.yaml'

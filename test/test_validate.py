@@ -35,6 +35,8 @@ from kpi_calib_ros.io.csv_import import read_postures
 from kpi_calib_ros.io.csv_mapping import mapping_from_dict
 from kpi_calib_ros.io.results import write_calibration
 
+from real_data import UR10_DATA
+
 
 @pytest.fixture(scope='module')
 def setup(tmp_path_factory):
@@ -295,9 +297,6 @@ def test_validate_register_on_a_bag_recorded_with_the_tracker_set_up_again(setup
     assert out['rms_m'] < 2 * np.sqrt(3) * 2e-5
 
 
-# Beside the repository (../shared/data/ipa_ur10), else the shared folder.
-_UR10_BESIDE = Path(__file__).resolve().parents[2] / 'shared' / 'data' / 'ipa_ur10'
-UR10_DATA = _UR10_BESIDE if _UR10_BESIDE.is_dir() else Path('/work/shared/data/ipa_ur10')
 UR10_MAPPING = Path(__file__).parent / 'data' / 'ipa_ur10_mapping.yaml'
 
 
