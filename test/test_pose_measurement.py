@@ -74,9 +74,15 @@ def campaign(cm, p_true, q, rng, with_orientation=True):
     return with_rotation_rows(cm.model, points, rotations) if with_orientation else points
 
 
-def equivalent_truth(cm, p_true, kept, start, q_dense):
-    """The true robot in the identified parameterisation: the kept parameters fitted
-    noise-free to the true points and rotations at ``q_dense`` (dropped ones at ``start``)."""
+def equivalent_truth(cm, p_true, result, seed):
+    """The true robot in ``result``'s parameterisation: its identified parameters fitted
+    noise-free to the true points and rotations at 400 configurations drawn with ``seed``,
+    from the truth (the dropped ones at their identified values)."""
+    kept = result.estimated
+    start = result.values.copy()
+    start[cm.model.params.indices(kept)] = p_true[cm.model.params.indices(kept)]
+    q_dense = random_configurations(cm.model, cm.model.params.nominal, 400,
+                                    np.random.default_rng(seed))
     truth = campaign(cm, p_true, q_dense, np.random.default_rng(0), True)
     exact = with_rotation_rows(cm.model, Measurements(
         q=q_dense, eta=cm.model.predict(p_true, q_dense, reflector=np.zeros(len(q_dense), int)),
@@ -212,11 +218,7 @@ def test_a_pose_campaign_recovers_the_truth_within_3_sigma(cm, identified):
     p_true, q, data, result, _ = identified
     assert result.converged and len(data) == 2 * N_POSES
     idx = cm.model.params.indices(result.estimated)
-    start = result.values.copy()
-    start[idx] = p_true[idx]
-    dense = random_configurations(cm.model, cm.model.params.nominal, 400,
-                                  np.random.default_rng(13))
-    p_equiv, representation = equivalent_truth(cm, p_true, result.estimated, start, dense)
+    p_equiv, representation = equivalent_truth(cm, p_true, result, 13)
     z = (result.values[idx] - p_equiv[idx]) / result.std
     print(f'identified {len(idx)} parameters with orientation, within 3σ '
           f'{np.mean(np.abs(z) < 3):.3f}, max |z| {np.abs(z).max():.2f}, '
@@ -505,12 +507,7 @@ def test_a_body_turned_from_the_stated_orientation_is_identified_within_3_sigma(
     result = cal.result
     assert cal.valid and not cal.implausible, (cal.problems, cal.implausible)
     assert set(names) <= set(result.estimated)
-    idx = cm.model.params.indices(result.estimated)
-    start = result.values.copy()
-    start[idx] = p_true[idx]
-    dense = random_configurations(cm.model, cm.model.params.nominal, 400,
-                                  np.random.default_rng(23))
-    p_equiv, representation = equivalent_truth(cm, p_true, result.estimated, start, dense)
+    p_equiv, representation = equivalent_truth(cm, p_true, result, 23)
     assert representation < SIGMA / 2
     std = dict(zip(result.estimated, result.std))
     z = [(result.values[i] - p_equiv[i]) / std[n] for n, i in zip(names, idx_o)]
