@@ -76,8 +76,10 @@ def test_two_stations_metres_apart_are_identified_together_across_a_restart(cm, 
         node = spawn(data_dir, 'node_2.log', 'auto_identify:=false')
         client.spin_until(lambda: client.count('accepted') == 2 * N_POSES
                           and client.diagnostics().get('station') == 'far'
-                          and client.count('stations') == 2, 60,
-                          'the restored measurements of both stations, the last one current')
+                          and client.count('stations') == 2
+                          and client.diagnostics().get('state') == 'idle', 60,
+                          'the robot model and the restored measurements of both stations, '
+                          'the last one current')
         answer = client.call('identify', timeout=180)
         assert answer.success, answer.message
         print(answer.message)
