@@ -17,8 +17,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from kpi_calib_ros.app.calibration_document import calibrated_robot_description
 from kpi_calib_ros.app.cell_model import CellModel
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
@@ -30,6 +28,7 @@ from kpi_calib_ros.io.names import (
     LEARNED_RESIDUAL_FILE,
 )
 from kpi_calib_ros.io.result_set import write_result_set
+from kpi_calib_ros.io.yaml_bounded import dump_yaml
 
 
 @dataclass(frozen=True)
@@ -104,7 +103,7 @@ def finish_calibration(cm: CellModel, result: CalibrationResult, doc: dict[str, 
     """
     out_dir = Path(out_dir)
     valid = bool(doc.get('valid', True))
-    text = yaml.safe_dump(doc, sort_keys=False)
+    text = dump_yaml(doc)
     urdf = calibrated_robot_description(cm, result) if valid else ''
     files = result_set(doc, text, urdf, learned, archive)
     written = write_result_set(out_dir, files, key)

@@ -18,6 +18,7 @@ from kpi_calib_ros.core.campaigns.change_detection import ChangeTest  # noqa: E4
 from kpi_calib_ros.core.campaigns.settings import CampaignSettings, SimulatedRun
 from kpi_calib_ros.core.errors import DataError  # noqa: E402
 from kpi_calib_ros.io.results import write_atomic  # noqa: E402
+from kpi_calib_ros.io.yaml_bounded import dump_yaml
 
 STATE_VERSION = 1
 CHANGE_PLOT_FILE = 'change_test.png'
@@ -31,7 +32,7 @@ def write_plan(path: str | Path, joint_names: Sequence[str], q: np.ndarray,
            'configurations': [[float(v) for v in row] for row in np.atleast_2d(q)],
            'criterion': 'kpi', 'campaign': 'sequential',
            'target_tcp_std_m': float(settings.target_std)}
-    return write_atomic(path, yaml.safe_dump(doc, sort_keys=False))
+    return write_atomic(path, dump_yaml(doc))
 
 
 def write_campaign(path: str | Path, run: SimulatedRun, working_pose_names: Sequence[str],
@@ -54,7 +55,7 @@ def write_campaign(path: str | Path, run: SimulatedRun, working_pose_names: Sequ
         'fixed_designs': [{'n': int(n), 'kpi_m2': v[0], 'max_tcp_std_m': v[1]}
                           for n, v in sorted(curve.items())],
     }
-    return write_atomic(path, yaml.safe_dump(doc, sort_keys=False))
+    return write_atomic(path, dump_yaml(doc))
 
 
 def plot_campaign(path: str | Path, run: SimulatedRun,
@@ -148,7 +149,7 @@ def write_campaign_state(path: str | Path, state: CampaignState) -> Path:
                         'confidence': float(s.confidence), 'design_seed': int(state.design_seed)},
            'steps': [[int(t) for t in step] for step in state.steps],
            'status': state.status}
-    return write_atomic(path, yaml.safe_dump(doc, sort_keys=False))
+    return write_atomic(path, dump_yaml(doc))
 
 
 def read_campaign_state(path: str | Path) -> CampaignState:

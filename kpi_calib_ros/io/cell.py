@@ -90,7 +90,7 @@ from kpi_calib_ros.io.cell_values import (
 from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, DEFAULT_POSE_TOPIC
 from kpi_calib_ros.io.resources import resolve_uri
 from kpi_calib_ros.io.results import write_atomic
-from kpi_calib_ros.io.yaml_bounded import read_yaml_file
+from kpi_calib_ros.io.yaml_bounded import SAFE_LOADER, dump_yaml, read_yaml_file
 
 _TOP_KEYS = {'robot', 'tracker', 'reflector', 'reflectors', 'noise', 'payload', 'working_poses',
              'obstacles', 'collision', 'identification', 'effects', 'simulation', 'design',
@@ -197,7 +197,7 @@ def read_cell_document(path: str | Path) -> Any:
                           loader=CellLoader, max_bytes=4 * 2 ** 20, max_nodes=1_000_000)
 
 
-class CellLoader(yaml.SafeLoader):
+class CellLoader(SAFE_LOADER):
     """PyYAML's safe loader with the YAML 1.2 float rule.
 
     YAML 1.1 (PyYAML) reads ``2e-06`` as the *string* '2e-06' (it wants ``2.0e-06``);
@@ -220,7 +220,7 @@ CellLoader.add_implicit_resolver(
 
 def write_cell_document(path: str | Path, doc: dict[str, Any]) -> Path:
     """Write a cell document as YAML (atomically); :func:`load_cell` reads it back."""
-    return write_atomic(path, yaml.safe_dump(doc, sort_keys=False))
+    return write_atomic(path, dump_yaml(doc))
 
 
 def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None,

@@ -28,7 +28,7 @@ import yaml  # noqa: E402
 from kpi_calib_ros.core.errors import ConfigError  # noqa: E402
 from kpi_calib_ros.core.model.robot import RobotModel  # noqa: E402
 from kpi_calib_ros.io.results import write_atomic  # noqa: E402
-from kpi_calib_ros.io.yaml_bounded import read_yaml_file  # noqa: E402
+from kpi_calib_ros.io.yaml_bounded import dump_yaml, read_yaml_file  # noqa: E402
 
 CHI2_95_3D = float(scipy.stats.chi2.ppf(0.95, 3))
 
@@ -162,7 +162,7 @@ def write_design(path: str | Path, result: DesignRecord,
     """Write design.yaml atomically; ``extra`` adds top-level sections (e.g. ``geometry``)."""
     doc = design_to_dict(result)
     doc.update(extra or {})
-    return write_atomic(path, yaml.safe_dump(doc, sort_keys=False))
+    return write_atomic(path, dump_yaml(doc))
 
 
 def read_design_poses(path: str | Path) -> tuple[list[str], np.ndarray]:

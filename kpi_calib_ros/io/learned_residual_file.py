@@ -24,7 +24,6 @@ from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
-import yaml
 
 from kpi_calib_ros.core.diagnosis.learned_residual import (
     MAX_TRAINING_ROWS,
@@ -39,7 +38,7 @@ from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.io.names import LEARNED_RESIDUAL_FILE
 from kpi_calib_ros.io.results import write_atomic
-from kpi_calib_ros.io.yaml_bounded import read_yaml_file
+from kpi_calib_ros.io.yaml_bounded import dump_yaml, read_yaml_file
 
 FORMAT = 'kpi_calib_ros learned_residual 3'
 FIX = 'give a learned_residual.yaml written by kpi-calib identify --learned-residual (unedited)'
@@ -155,13 +154,9 @@ def residual_document(choice: ResidualChoice, result: CalibrationResult,
                      'covariance_outside': _symmetrised(covariance_outside)}}
 
 
-# libyaml's parser when PyYAML has it (4 to 5 times faster on the training rows).
-_LOADER: type[yaml.SafeLoader] = getattr(yaml, 'CSafeLoader', yaml.SafeLoader)
-
-
 def residual_text(doc: dict[str, Any]) -> str:
     """learned_residual.yaml's text of ``doc``."""
-    return yaml.safe_dump(doc, sort_keys=False)
+    return dump_yaml(doc)
 
 
 def write_residual(out_dir: str | Path, doc: dict[str, Any]) -> Path:
@@ -180,7 +175,7 @@ def read_residual(path: str | Path, key: str = 'learned_residual') -> StoredResi
     path = Path(path)
     if not path.is_file():
         raise ConfigError(key, f'file {str(path)!r} does not exist; {FIX}')
-    doc = read_yaml_file(path, key, FIX, loader=_LOADER, max_bytes=MAX_FILE_BYTES,
+    doc = read_yaml_file(path, key, FIX, max_bytes=MAX_FILE_BYTES,
                          max_nodes=2 * MAX_FILE_ITEMS + 1, max_items=MAX_FILE_ITEMS)
 
     def bad(field: str, what: str) -> ConfigError:

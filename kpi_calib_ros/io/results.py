@@ -32,6 +32,7 @@ from kpi_calib_ros.core.estimation.residuals import (
     sigma_overstated_text,
 )
 from kpi_calib_ros.io.names import CALIBRATION_FILE, truth_path
+from kpi_calib_ros.io.yaml_bounded import dump_yaml
 
 
 def _umask() -> int:
@@ -199,12 +200,12 @@ def calibration_to_dict(result: CalibrationResult,
 
 
 def write_calibration(out_dir: str | Path, doc: dict[str, Any]) -> Path:
-    return write_atomic(Path(out_dir) / CALIBRATION_FILE, yaml.safe_dump(doc, sort_keys=False))
+    return write_atomic(Path(out_dir) / CALIBRATION_FILE, dump_yaml(doc))
 
 
 def write_truth(bag_path: str | Path, truth: dict[str, Any]) -> Path:
     """Write the simulated truth of a bag to ``<bag>.truth.yaml``."""
-    return write_atomic(truth_path(bag_path), yaml.safe_dump(truth, sort_keys=False))
+    return write_atomic(truth_path(bag_path), dump_yaml(truth))
 
 
 def read_truth(bag_path: str | Path) -> dict[str, Any]:

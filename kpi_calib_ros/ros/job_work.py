@@ -67,6 +67,7 @@ from kpi_calib_ros.io.names import (
     VALIDATION_DIR,
 )
 from kpi_calib_ros.io.report import diagnosis_to_dict, write_report
+from kpi_calib_ros.io.yaml_bounded import dump_yaml
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros.parameters import NodeSettings
 
@@ -396,7 +397,7 @@ def _step_output(campaign: SequentialCampaign, cm: CellModel, state: CampaignSta
     doc = {**status.to_dict(cm.working_pose_names), **(extra or {})}
     plan = cm.joint_coupling.to_controller(status.next_configurations) if len(
         status.next_configurations) else status.next_configurations
-    text = yaml.safe_dump(doc, sort_keys=False)
+    text = dump_yaml(doc)
     calibration, result = None, None
     # The calibration is on disk before the state says the campaign stopped: a node
     # killed in between repeats this step on restart and writes it again.

@@ -92,7 +92,7 @@ from kpi_calib_ros.core.diagnosis.residual_curves import (
     implied_values,
 )
 from kpi_calib_ros.core.diagnosis.residual_inputs import ResidualInput, residual_inputs
-from kpi_calib_ros.core.estimation.folds import HeldOutBlock, fold_rows, identifiable_folds
+from kpi_calib_ros.core.estimation.folds import fold_rows, held_out_blocks, identifiable_folds
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.core.estimation.residuals import (
     ADEQUACY_ALPHA,
@@ -294,8 +294,7 @@ class _Press:
         e = r - basis @ (basis.T @ r)
         held = np.empty_like(r)
         noise = 0.0
-        for test in self.folds:
-            m = HeldOutBlock(basis[test])
+        for test, m in zip(self.folds, held_out_blocks(basis, self.folds)):
             if m.smallest < 1e-10:
                 return None
             held[test] = m.solve(e[test])

@@ -12,7 +12,7 @@ joint's range: the error by extrapolation. The held-out error over these folds i
 """
 from __future__ import annotations
 
-from typing import Iterator
+from typing import Iterator, Sequence
 
 import numpy as np
 
@@ -20,8 +20,8 @@ from kpi_calib_ros.core.estimation.residuals import orthonormal_basis
 
 __all__ = [
     'fold_ids', 'campaign_home', 'moved_joints', 'stratified_fold_ids', 'RANK_TOLERANCE',
-    'LEAVE_ONE_OUT', 'HeldOutBlock', 'fold_rows', 'fold_blocks', 'folds_keep_rank',
-    'identifiable_folds', 'pose_index',
+    'LEAVE_ONE_OUT', 'HeldOutBlock', 'held_out_blocks', 'fold_rows', 'fold_blocks',
+    'folds_keep_rank', 'identifiable_folds', 'pose_index',
     'REGION_BLOCKS', 'region_fold_ids', 'region_folds', 'RANGE_END', 'range_end_folds',
 ]
 
@@ -100,13 +100,14 @@ class HeldOutBlock:
     and f³ time (17 GiB for one region of 12 000 poses). Small folds use the dense matrix.
     """
 
-    def __init__(self, uf: np.ndarray) -> None:
+    def __init__(self, uf: np.ndarray,
+                 eigen: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         self._uf = uf
         f, r = uf.shape
         self._dense = f <= r
         if self._dense:
-            self._m = np.eye(f) - uf @ uf.T
-            lam, self._v = np.linalg.eigh(self._m)
+            # ``eigen``: the eigenpairs of I − U_F U_Fᵀ already at hand (held_out_blocks).
+            lam, self._v = np.linalg.eigh(np.eye(f) - uf @ uf.T) if eigen is None else eigen
             self.eigenvalues = lam
         else:
             gram, self._v = np.linalg.eigh(uf.T @ uf)
@@ -141,6 +142,25 @@ def fold_rows(pose_folds: np.ndarray) -> Iterator[tuple[np.ndarray, np.ndarray]]
         yield k, idx
 
 
+def held_out_blocks(u: np.ndarray, folds: Sequence[np.ndarray]) -> list[HeldOutBlock]:
+    """I − H_FF of each fold of ``folds`` (row indices), H = U Uᵀ, ``u`` (3N, r) orthonormal.
+
+    The folds no larger than the basis (a pose, a few poses) are decomposed together, one
+    stacked eigendecomposition per fold size: a leave-one-out over a few hundred poses,
+    done for every candidate effect of a diagnosis, spent most of its time calling the
+    decomposition once per fold.
+    """
+    folds = list(folds)
+    sizes = np.array([len(rows) for rows in folds], dtype=int)
+    eigen: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    for f in np.unique(sizes[sizes <= u.shape[1]]):
+        which = np.flatnonzero(sizes == f)
+        uf = u[np.stack([folds[i] for i in which])]  # (g, f, r)
+        lam, v = np.linalg.eigh(np.eye(f) - uf @ uf.transpose(0, 2, 1))
+        eigen.update((int(i), (lam[j], v[j])) for j, i in enumerate(which))
+    return [HeldOutBlock(u[rows], eigen.get(i)) for i, rows in enumerate(folds)]
+
+
 def fold_blocks(a: np.ndarray, pose_folds: np.ndarray, u: np.ndarray | None = None
                 ) -> Iterator[tuple[np.ndarray, HeldOutBlock]]:
     """Yield (rows, I − H_FF) of each fold F, H = U Uᵀ the hat matrix of span(a).
@@ -151,8 +171,8 @@ def fold_blocks(a: np.ndarray, pose_folds: np.ndarray, u: np.ndarray | None = No
     span(a) already at hand.
     """
     u = orthonormal_basis(a) if u is None else u
-    for _, rows in fold_rows(pose_folds):
-        yield rows, HeldOutBlock(u[rows])
+    folds = [rows for _, rows in fold_rows(pose_folds)]
+    yield from zip(folds, held_out_blocks(u, folds))
 
 
 def folds_keep_rank(a: np.ndarray, pose_folds: np.ndarray) -> bool:

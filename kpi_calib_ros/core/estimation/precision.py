@@ -29,8 +29,8 @@ from kpi_calib_ros.core.estimation.cross_validation import prior_system
 from kpi_calib_ros.core.estimation.folds import (
     LEAVE_ONE_OUT,
     RANK_TOLERANCE,
-    HeldOutBlock,
     fold_rows,
+    held_out_blocks,
     identifiable_folds,
 )
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult, point_sigma_squares
@@ -270,8 +270,8 @@ def typical_held_out_rms(model: MeasurementModel, data: Measurements,
     u = u_all[:n_data]
     held = np.full_like(r, np.nan)
     left: list[int] = []
-    for _, test in fold_rows(folds):
-        m = HeldOutBlock(u[test])
+    tests = [test for _, test in fold_rows(folds)]
+    for test, m in zip(tests, held_out_blocks(u, tests)):
         if m.smallest <= 1.0 - leverage_limit:
             left.append(int(test[0]) // 3)
             continue
