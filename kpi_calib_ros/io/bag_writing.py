@@ -40,8 +40,6 @@ from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
 from kpi_calib_ros.io.mcap_scan import BagError
 from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, DEFAULT_POSE_TOPIC
 from kpi_calib_ros.io.ros_messages import (
-    joint_state_fields,
-    named_values_fields,
     point_stamped_fields,
     pose_stamped_fields,
     stamp_fields,
@@ -177,7 +175,7 @@ class StreamEncoders:
         self._encode = {t: serialize_dynamic(t, self.text[t])[t] for _, t in self.topics}
 
     def joint(self, sample: JointSample) -> bytes:
-        return self._encode[JOINT_STATE_TYPE](joint_state_fields(sample))
+        return joint_state_cdr(sample)
 
     def point(self, sample: PointSample) -> bytes:
         return self._encode[POINT_STAMPED_TYPE](point_stamped_fields(sample))
@@ -193,7 +191,47 @@ class StreamEncoders:
                                                                          sigma))
 
     def inputs(self, stamp_ns: int, names: tuple[str, ...], values: np.ndarray) -> bytes:
-        return self._encode[JOINT_STATE_TYPE](named_values_fields(stamp_ns, names, values))
+        return joint_state_cdr(JointSample(stamp_ns, names, np.asarray(values, float)))
+
+
+def _cdr_string(out: bytearray, text: str) -> None:
+    """Append a CDR string (uint32 length with the NUL, UTF-8, NUL) at 4-byte alignment."""
+    data = text.encode('utf-8')
+    out += b'\0' * (-(len(out) - 4) % 4)
+    out += struct.pack('<I', len(data) + 1)
+    out += data
+    out += b'\0'
+
+
+def _cdr_float64s(out: bytearray, values: np.ndarray | None) -> None:
+    """Append a CDR sequence<float64>: its length, then the values at 8-byte alignment."""
+    n = 0 if values is None else len(values)
+    out += b'\0' * (-(len(out) - 4) % 4)
+    out += struct.pack('<I', n)
+    if n:
+        out += b'\0' * (-(len(out) - 4) % 8)
+        out += np.asarray(values, dtype='<f8').tobytes()
+
+
+def joint_state_cdr(sample: JointSample) -> bytes:
+    """``sample`` as a sensor_msgs/msg/JointState in little-endian CDR (no effort).
+
+    The bytes of mcap_ros2's dynamic encoder for :func:`joint_state_fields` (a test holds
+    them equal), written straight: that encoder, element by element in Python, took most of
+    the time of writing a bag (joint states outnumber the points a hundred to one).
+    """
+    sec, nanosec = stamp_fields(sample.stamp_ns)
+    out = bytearray(b'\x00\x01\x00\x00')  # CDR_LE encapsulation; alignment counts after it
+    out += struct.pack('<iI', sec, nanosec)
+    _cdr_string(out, '')  # header.frame_id
+    out += b'\0' * (-(len(out) - 4) % 4)
+    out += struct.pack('<I', len(sample.names))
+    for name in sample.names:
+        _cdr_string(out, name)
+    _cdr_float64s(out, sample.positions)
+    _cdr_float64s(out, sample.velocities)
+    _cdr_float64s(out, None)  # effort
+    return bytes(out)
 
 
 class _Recorder:
