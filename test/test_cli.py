@@ -118,6 +118,7 @@ def test_too_few_measurements(tmp_path, run_bag, capsys):
     assert 'too few measurements' in err and '5 points' in err
 
 
+@pytest.mark.slow
 def test_cli_errors_have_no_traceback(tmp_path):
     exe = Path(sys.executable).with_name('kpi-calib')
     proc = subprocess.run([str(exe), 'identify', '--cell', CELL, '--bag',
@@ -146,6 +147,7 @@ def test_renamed_topics_error_names_the_options_that_exist(command, renamed_bag,
     assert "'/arm/joint_states'" in err and '--joint-topic' in err and 'topics.' in err
 
 
+@pytest.mark.slow
 def test_identify_reads_renamed_topics_from_options_or_cell(renamed_bag, tmp_path, capsys):
     assert main(['identify', '--cell', CELL, '--bag', str(renamed_bag), '--out',
                  str(tmp_path / 'a'), '--joint-topic', '/arm/joint_states',

@@ -111,6 +111,7 @@ def test_coupled_publication_gives_the_uncoupled_calibration(tmp_path):
     np.testing.assert_allclose(r_cpl.tcp_covariance, r_ref.tcp_covariance, rtol=1e-9, atol=0)
 
 
+@pytest.mark.slow
 def test_coupled_publication_off_grid_gives_the_same_tcp(tmp_path):
     """Off the encoder grid the readings come back within one ulp; the identifiable
     subset may then be a different but equivalent choice (same span), so the
@@ -178,6 +179,7 @@ def test_a_number_written_as_text_names_the_cause(tmp_path):
         load_cell(path)
 
 
+@pytest.mark.slow
 def test_validate_compares_urdf_values_with_the_training_poses_of_a_coupled_robot(tmp_path):
     """The training ranges and poses of calibration.yaml are URDF joint values, as validate
     reads new joint states: the training recording validated against its own calibration

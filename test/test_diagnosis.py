@@ -62,6 +62,7 @@ def cell(request):
     return request.param, _cell_model(request.param)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('effect_index', range(4))
 def test_hidden_effect_is_top_candidate_and_adding_it_reaches_noise_floor(cell, effect_index):
     robot, cm = cell
@@ -149,6 +150,7 @@ def test_residual_report_statistics_and_outliers():
     assert not report.adequate
 
 
+@pytest.mark.slow
 def test_injected_outliers_are_flagged_and_false_flags_stay_within_bonferroni():
     # Over 20 seeds, three blunders at known poses (0.16-0.24 mm, 8-12σ, random directions)
     # among 60: every one is flagged after the refit. The other poses are clean; the

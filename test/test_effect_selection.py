@@ -37,6 +37,7 @@ def _campaign(cm, hidden, seed, n=60):
     return data, dict(zip(truth.params.names, p_true))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('seed', range(6))
 def test_auto_adds_no_effect_to_a_robot_without_hidden_effects(cm, seed):
     data, _ = _campaign(cm, {}, 100 + seed)

@@ -47,6 +47,7 @@ def test_first_calibration_tcp_error_within_3_sigma_of_its_predicted_std(capsys)
         assert all(2.0 < s < 20.0 for s in std), line
 
 
+@pytest.mark.slow
 def test_kpi_design_has_less_tcp_variance_than_random(capsys):
     out = _run('design_kpi_vs_random.py', capsys)
     kpi = {m.group(1): float(m.group(2))
@@ -57,6 +58,7 @@ def test_kpi_design_has_less_tcp_variance_than_random(capsys):
     assert share and int(share.group(1)) == round(100 * (1 - kpi['kpi'] / kpi['random']))
 
 
+@pytest.mark.slow
 def test_the_hidden_compliance_is_found_and_recovered(capsys):
     out = _run('find_missing_effect.py', capsys)
     assert 'geometric model adequate: False' in out

@@ -9,6 +9,7 @@ builds no design or collision problem (it imports neither ``core.design`` nor
 from __future__ import annotations
 
 import ast
+import functools
 import importlib
 from pathlib import Path
 
@@ -20,6 +21,12 @@ LAYERS = {'core': 0, 'io': 1, 'app': 2, 'api': 2.5, 'ros': 3, 'cli': 4}
 # Message, service and middleware packages: never in the numerical core.
 ROS_ROOTS = ('rclpy', 'rosbag2_py', 'builtin_interfaces', 'rcl_interfaces')
 ROS_SUFFIXES = ('_msgs', '_srvs', '_interfaces')
+
+
+@functools.lru_cache(maxsize=None)
+def _parse(text: str, filename: str) -> ast.Module:
+    """The syntax tree of ``text``, parsed once: some 300 checks read the same modules."""
+    return ast.parse(text, filename)
 
 
 def _module_name(path: Path) -> str:
@@ -42,7 +49,7 @@ def _layer(module: str) -> int | None:
 
 def _imports(path: Path) -> list[tuple[int, str]]:
     """(line, absolute module name) of every import in ``path``."""
-    tree = ast.parse(path.read_text(), str(path))
+    tree = _parse(path.read_text(), str(path))
     package = _module_name(path).rsplit('.', 0 if path.name == '__init__.py' else 1)[0]
     found = []
     for node in ast.walk(tree):
@@ -123,7 +130,7 @@ def test_every_core_module_declares_its_public_names(path):
     """``__all__`` in every core module and family package, and every name in it exists."""
     if path == PACKAGE / 'core' / '__init__.py':
         return
-    tree = ast.parse(path.read_text())
+    tree = _parse(path.read_text(), str(path))
     declared = [node for node in tree.body if isinstance(node, ast.Assign)
                 and any(isinstance(t, ast.Name) and t.id == '__all__' for t in node.targets)]
     assert declared, f'{path.name} declares no __all__'
@@ -154,7 +161,7 @@ KNOWN_PRIVATE: set[str] = set()
 def test_no_private_names_imported_across_modules():
     private = []
     for path in _sources():
-        for node in ast.walk(ast.parse(path.read_text())):
+        for node in ast.walk(_parse(path.read_text(), str(path))):
             if isinstance(node, ast.ImportFrom) and (node.module or '').startswith('kpi_calib_ros'):
                 private += [f'{path.name}: {node.module}.{a.name}' for a in node.names
                             if a.name.startswith('_')]
@@ -335,7 +342,7 @@ def _file_writes(tree: ast.AST) -> list[str]:
 @pytest.mark.parametrize('path', sorted((PACKAGE / 'core').rglob('*.py')),
                          ids=lambda p: str(p.relative_to(PACKAGE / 'core')))
 def test_core_writes_no_file(path):
-    writes = _file_writes(ast.parse(path.read_text(), str(path)))
+    writes = _file_writes(_parse(path.read_text(), str(path)))
     assert not writes, f'core module {path.name} writes a file (do that in io): {writes}'
 
 

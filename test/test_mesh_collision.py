@@ -262,6 +262,7 @@ def test_vectorised_margins_equal_the_per_configuration_margins(stock):
                        @ robot.tip_placement, tip, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_a_chain_link_without_collision_geometry_is_named_not_refused(tmp_path):
     """Stock descriptions leave small links without <collision> (the Unitree Z1's link01,
     04, 05, TIAGo's arm_7_link): no body to check, as in MoveIt. The cell loads, a campaign

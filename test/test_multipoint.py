@@ -246,6 +246,7 @@ def test_a_cell_names_a_pip_installed_urdf_by_package_uri():
     assert tiago.needs_registration and tiago.model.n_reflectors == 4
 
 
+@pytest.mark.slow
 def test_robust_identification_and_auto_model_keep_each_rows_reflector(cm):
     """The path the CLI and the node publish (calibrate_cell: registration, gross screen,
     model choice by cross-validation over poses, outlier exclusion, estimability) keeps

@@ -56,6 +56,7 @@ def test_one_joint_at_a_time_moves_one_joint_per_pose(cm):
                                               np.random.default_rng(0))) is None
 
 
+@pytest.mark.slow
 def test_prediction_equals_the_monte_carlo_mean_of_the_true_error(cm):
     """Same robot and poses, 40 noise draws: the mean predicted square error at fresh poses
     of the sweeps equals the mean true square error (the linear model's expectation)."""

@@ -426,6 +426,7 @@ def test_simulate_writes_pose_stamped_and_identify_recovers_the_tcp(pose_bag, ca
     assert doc['valid']
 
 
+@pytest.mark.slow
 def test_validate_a_pose_calibration_on_a_new_pose_recording(pose_bag, tmp_path):
     folder, cell, bag = pose_bag
     out = folder / 'result_for_validation'

@@ -162,6 +162,7 @@ def run_bag(tmp_path_factory):
     return bag
 
 
+@pytest.mark.slow
 def test_previous_calibration_as_prior_from_the_cli(run_bag, tmp_path, capsys):
     import yaml
 

@@ -138,6 +138,7 @@ def test_the_f_test_is_exact_on_noise_and_holm_keeps_the_family_level():
     assert flagged <= scipy.stats.binom.ppf(0.999, 100, 0.05)
 
 
+@pytest.mark.slow
 def test_clean_campaigns_rarely_flag_an_input(ur):
     """At most one of five clean campaigns flags an input (at the family-wise α = 0.01,
     two or more happen with probability 0.1 %; bench/residual_inputs.py counts 100)."""

@@ -26,6 +26,7 @@ def test_concurrent_holders_get_distinct_ids_until_none_is_left(tmp_path):
         assert again == a
 
 
+@pytest.mark.slow
 def test_an_id_held_by_another_process_is_skipped(tmp_path):
     holder = subprocess.Popen([sys.executable, '-c', textwrap.dedent(f'''
         import sys

@@ -36,6 +36,7 @@ def setup():
     return cell_doc, cm, cell, ctx
 
 
+@pytest.mark.slow
 def test_sigma_upper_limit_covers_the_true_sigma_at_its_confidence():
     rng = np.random.default_rng(0)
     runs, dof, sigma = 20000, 40, 2e-5
@@ -177,6 +178,7 @@ def test_campaign_meets_the_target_and_the_prediction_holds(setup):
     assert np.all(np.abs(error) <= 4 * run.tcp_std_true)
 
 
+@pytest.mark.slow
 def test_hidden_compliance_stops_model_inadequate_before_max(setup):
     cell_doc, cm, cell, ctx = setup
     effects, overrides = hidden_effects({'joint_compliance:joint_2': {'c': 4.0e-7}}, cm.robot)

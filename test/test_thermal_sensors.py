@@ -175,6 +175,7 @@ def _two_sensor_shift(doc, seed, n=60, n_fresh=40):
             simulate_two_sensor_shift(truth_cm.model, p_true, n_fresh, SIGMA, rng), truth)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('seed', [0, 3])
 def test_links_that_warm_differently_are_recovered_with_their_own_sensors(doc, seed):
     """The upper arm grows with the upper-arm sensor and the forearm with the forearm sensor.

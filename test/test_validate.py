@@ -273,6 +273,7 @@ def test_re_registration_chi2_follows_its_reduced_dof_over_calibrations(setup):
     assert scipy.stats.kstest(p_values, 'uniform').pvalue > 0.01
 
 
+@pytest.mark.slow
 def test_validate_register_on_a_bag_recorded_with_the_tracker_set_up_again(setup, capsys):
     """`kpi-calib validate --register base` on a bag of the same robot seen from a moved
     tracker: exit 0, the rms after re-registration printed and in validation.json;
@@ -313,6 +314,7 @@ def _ur10_series(path):
     return Measurements(q=q, eta=eta, reflector=np.zeros(len(q), int))
 
 
+@pytest.mark.slow
 def test_the_real_ur10_series_with_the_tracker_and_probe_set_up_again_is_scored():
     """Real UR10 data: calibrated on 400 poses of Series A, validated on Series D (632
     poses, recorded months later with the tracker set up again and the probe mounted
