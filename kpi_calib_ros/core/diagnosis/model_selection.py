@@ -242,14 +242,15 @@ def choose_model(model: MeasurementModel, data: Measurements, fit: Fit, requeste
     """Every level's out-of-sample figures and the level to use.
 
     Each level is fitted once on all of ``data``. ``requested`` is a level (used as given;
-    the figures are still reported) or ``'auto'``: from the smallest level, a larger one is
-    taken when its cross-validated rms over held-out regions of joint space is lower by
-    :data:`REGION_MARGIN` (:func:`holds_elsewhere`; every level on the regions of the
-    largest fitted level, which keep the rank of the smaller ones). Where no level has that
-    figure, the predicted rms error of new measurements at the measured configurations
+    the figures are still reported) or ``'auto'``: the predicted rms error of new
+    measurements at the measured configurations
     (:func:`kpi_calib_ros.core.diagnosis.out_of_sample.out_of_sample_error`, ``like_measured``)
-    decides: the smallest level within `PARSIMONY` of the best. Beside them, the
-    cross-validated rms over ``folds`` folds of poses
+    decides: the smallest level within :data:`PARSIMONY` of the best, a level whose fit did
+    not converge left out while another converged. Every level's cross-validated rms over
+    held-out regions of joint space (on the regions of the largest fitted level, which keep
+    the rank of the smaller ones) is reported beside it, not used: it decides the effects
+    (:func:`holds_elsewhere`). Beside them, the cross-validated rms over ``folds`` folds of
+    poses
     (:func:`kpi_calib_ros.core.estimation.cross_validation.validation_rms`) is reported. ``prior``:
     the prior ``fit`` uses (``balanced``: a tolerance prior ``fit`` balances against the
     noise, :func:`~kpi_calib_ros.core.estimation.precision.fit_prior`); every fold's refit
