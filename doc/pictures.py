@@ -11,7 +11,8 @@ picture that does not exist, or when a picture exists that no page shows.
 
     make pictures          # or: .venv/bin/python doc/pictures.py [DATA_DIR]
 
-A few minutes on one free core; nothing here runs in ``make test``.
+A few minutes on one free core; not part of ``make test``. ``make test-slow`` draws every
+picture again into a temporary folder and compares it with the committed one.
 """
 from __future__ import annotations
 

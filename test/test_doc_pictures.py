@@ -2,7 +2,9 @@
 
 ``make pictures`` (doc/pictures.py) runs ``kpi-calib`` and records, per picture, the sha256
 of the code that drew it; these checks compare those hashes with the files as they are now
-(no picture drawn by an older plotting module survives), match the pictures with the pages
+(no picture drawn by an older plotting module survives), draw every picture again and
+compare it byte for byte (slow: a change elsewhere in the code that moves a picture), match
+the pictures with the pages
 that show them, and keep every line of code on a page within what the theme shows
 without scrolling.
 """
@@ -14,6 +16,10 @@ import json
 import re
 import sys
 from pathlib import Path
+
+import pytest
+
+from real_data import TIAGO_DATA, UR10_DATA
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / 'doc'
@@ -63,6 +69,28 @@ def test_every_picture_was_drawn_by_the_plotting_code_as_it_is_now():
         assert _sha256(png) == entry['png_sha256'], f'{png} differs from what make pictures wrote'
         assert 'kpi_calib_ros/io/' in ' '.join(entry['sources']), \
             f'{name}: not drawn by the tool\'s own plotting code'
+
+
+@pytest.mark.slow
+def test_every_picture_is_what_the_code_draws_now(tmp_path, monkeypatch):
+    """Every picture drawn again (doc/pictures.py into a temporary folder, about 90 s) is
+    the committed one, byte for byte: a change anywhere in the code that moves a picture
+    (a fit, a held-out figure, a design), not only in its plotting module, fails here."""
+    spec = importlib.util.spec_from_file_location('doc_pictures', DOC / 'pictures.py')
+    assert spec is not None and spec.loader is not None
+    pictures = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(pictures)
+    monkeypatch.setattr(pictures, 'OUT', tmp_path)
+    monkeypatch.setattr(pictures, 'MANIFEST', tmp_path / 'manifest.json')
+    data = UR10_DATA.parent
+    assert (data / TIAGO_DATA.name).is_dir(), f'{data} holds the UR10 data but not the TIAGo'
+    assert pictures.main([str(data)]) == 0
+    drawn = json.loads((tmp_path / 'manifest.json').read_text())
+    committed = _manifest()
+    assert set(drawn) == set(committed)
+    moved = sorted(name for name, entry in committed.items()
+                   if drawn[name]['png_sha256'] != entry['png_sha256'])
+    assert moved == [], f'{moved}: the code draws them differently now; run make pictures'
 
 
 def test_pages_show_exactly_the_pictures_that_exist():
