@@ -70,7 +70,7 @@ def main(n_tilt: int = 10, n_clean: int = 100) -> str:
     floor = np.sqrt(3) * SIGMA
     lines = ['# A measured tilt: proposal, recovery, fresh-pose error, false alarms', '',
              __doc__.split('\n\n')[1].replace('\n', ' '), '',
-             f'Noise floor √3 σ = {floor * 1e6:.1f} µm. Command: `nice -n 19 .venv/bin/python '
+             f'Noise floor √3 σ = {floor * 1e6:.1f} µm. Command: `.venv/bin/python '
              f'bench/measured_tilt.py {n_tilt} {n_clean}` (seeds 2000.. tilted, 3000.. clean).',
              '',
              '| scenario | seeds | tilt proposed | any effect added | gains within 3σ | '
