@@ -172,7 +172,9 @@ class StreamEncoders:
         self.text = {t: message_definition(t) for _, t in self.topics}
         self.metadata = {t: {'offered_qos_profiles': _OFFERED_QOS, 'topic_type_hash': type_hash(t)}
                          for _, t in self.topics}
-        self._encode = {t: serialize_dynamic(t, self.text[t])[t] for _, t in self.topics}
+        # JointState (joint states and inputs) by joint_state_cdr; the others by mcap_ros2.
+        self._encode = {t: serialize_dynamic(t, self.text[t])[t] for _, t in self.topics
+                        if t != JOINT_STATE_TYPE}
 
     def joint(self, sample: JointSample) -> bytes:
         return joint_state_cdr(sample)
@@ -194,20 +196,23 @@ class StreamEncoders:
         return joint_state_cdr(JointSample(stamp_ns, names, np.asarray(values, float)))
 
 
-def _cdr_string(out: bytearray, text: str) -> None:
-    """Append a CDR string (uint32 length with the NUL, UTF-8, NUL) at 4-byte alignment."""
-    data = text.encode('utf-8')
+def _cdr_uint32(out: bytearray, value: int) -> None:
+    """Append a uint32 at 4-byte alignment (counted after the 4-byte encapsulation)."""
     out += b'\0' * (-(len(out) - 4) % 4)
-    out += struct.pack('<I', len(data) + 1)
-    out += data
-    out += b'\0'
+    out += struct.pack('<I', value)
+
+
+def _cdr_string(out: bytearray, text: str) -> None:
+    """Append a CDR string: uint32 length with the NUL, UTF-8, NUL."""
+    data = text.encode('utf-8')
+    _cdr_uint32(out, len(data) + 1)
+    out += data + b'\0'
 
 
 def _cdr_float64s(out: bytearray, values: np.ndarray | None) -> None:
     """Append a CDR sequence<float64>: its length, then the values at 8-byte alignment."""
     n = 0 if values is None else len(values)
-    out += b'\0' * (-(len(out) - 4) % 4)
-    out += struct.pack('<I', n)
+    _cdr_uint32(out, n)
     if n:
         out += b'\0' * (-(len(out) - 4) % 8)
         out += np.asarray(values, dtype='<f8').tobytes()
@@ -216,7 +221,8 @@ def _cdr_float64s(out: bytearray, values: np.ndarray | None) -> None:
 def joint_state_cdr(sample: JointSample) -> bytes:
     """``sample`` as a sensor_msgs/msg/JointState in little-endian CDR (no effort).
 
-    The bytes of mcap_ros2's dynamic encoder for :func:`joint_state_fields` (a test holds
+    The bytes of mcap_ros2's dynamic encoder for
+    :func:`~kpi_calib_ros.io.ros_messages.joint_state_fields` (a test holds
     them equal), written straight: that encoder, element by element in Python, took most of
     the time of writing a bag (joint states outnumber the points a hundred to one).
     """
@@ -224,8 +230,7 @@ def joint_state_cdr(sample: JointSample) -> bytes:
     out = bytearray(b'\x00\x01\x00\x00')  # CDR_LE encapsulation; alignment counts after it
     out += struct.pack('<iI', sec, nanosec)
     _cdr_string(out, '')  # header.frame_id
-    out += b'\0' * (-(len(out) - 4) % 4)
-    out += struct.pack('<I', len(sample.names))
+    _cdr_uint32(out, len(sample.names))
     for name in sample.names:
         _cdr_string(out, name)
     _cdr_float64s(out, sample.positions)

@@ -175,12 +175,6 @@ def joint_state_fields(sample: JointSample) -> dict[str, Any]:
             [float(x) for x in sample.velocities], 'effort': []}
 
 
-def named_values_fields(stamp_ns: int, names: tuple[str, ...], values: np.ndarray
-                        ) -> dict[str, Any]:
-    """Named values (the inputs topic) as the fields of a JointState: name, position."""
-    return joint_state_fields(JointSample(stamp_ns, names, np.asarray(values, float)))
-
-
 def point_stamped_fields(sample: PointSample) -> dict[str, Any]:
     """A PointSample as the nested fields of a PointStamped."""
     sec, nanosec = stamp_fields(sample.stamp_ns)
@@ -378,7 +372,7 @@ def _joint_sample(stamp: int, names: tuple[str, ...], positions: np.ndarray,
 
 
 __all__ = ['FieldPath', 'field_value', 'input_samples_from_message', 'named_values_from_message',
-           'named_values_fields', 'JointStateDecoder', 'joint_sample_from_message',
+           'JointStateDecoder', 'joint_sample_from_message',
            'joint_state_fields',
            'joint_state_msg', 'point_sample_from_message', 'point_stamped_fields',
            'point_stamped_msg', 'pose_sample_from_message', 'pose_stamped_fields',

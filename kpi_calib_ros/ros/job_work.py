@@ -67,7 +67,7 @@ from kpi_calib_ros.io.names import (
     VALIDATION_DIR,
 )
 from kpi_calib_ros.io.report import diagnosis_to_dict, write_report
-from kpi_calib_ros.io.yaml_bounded import dump_yaml
+from kpi_calib_ros.io.yaml_bounded import SAFE_LOADER, dump_yaml
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros.parameters import NodeSettings
 
@@ -285,7 +285,7 @@ def validate_work(cm: CellModel, calibration: str, data: Measurements,
         ``validation.json``'s document; ``text`` : str, it as JSON.
     """
     learned = data_dir / LEARNED_RESIDUAL_FILE
-    stored = yaml.safe_load(calibration)
+    stored = yaml.load(calibration, Loader=SAFE_LOADER)  # the node's own text
     recordings = calibration_recordings(stored, 'the calibration')
     known = [r.name for r in recordings]
     doc = validate_report(with_recordings(cm, recordings), stored, data,
