@@ -129,3 +129,50 @@ def test_the_design_and_the_campaign_take_the_working_pose_payload():
     np.testing.assert_allclose(cm.design_cell().tau_work, expected, atol=1e-12)
     assert not np.allclose(expected, cm.robot.gravity_torques(cm.q_work))  # not the 5 kg
     assert build_cell_model(cell).tau_work is None  # no effect reads a torque
+
+
+def _finite_differences(model, p, q, names, **kw):
+    """(3N, k) Jacobian of model.predict in the parameters ``names``, central differences."""
+    cols = []
+    for i in model.params.indices(list(names)):
+        step = np.zeros_like(p)
+        step[i] = 1e-7
+        cols.append(((model.predict(p + step, q, **kw) - model.predict(p - step, q, **kw))
+                     / 2e-7).reshape(-1))
+    return np.array(cols).T
+
+
+def test_the_estimability_verdict_is_that_of_each_rows_torques_and_the_working_payload(
+        cm, monkeypatch):
+    """identify's TCP estimability projects the working pose's TCP gradient WITH ITS OWN
+    payload (2.5 kg, not the cell's 5 kg) on the information of the rows as measured (each
+    with its payload, or the joint torques they recorded): both Jacobians it is given equal
+    central differences of the model's predictions."""
+    import kpi_calib_ros.core.estimation.estimability as estimability
+    seen = []
+    original = estimability.kpi_estimability
+
+    def spy(data_jac, kpi_jac, names, *args, **kw):
+        seen.append((np.array(data_jac), np.array(kpi_jac), list(names)))
+        return original(data_jac, kpi_jac, names, *args, **kw)
+    monkeypatch.setattr(estimability, 'kpi_estimability', spy)
+    data, _, effects, _, _ = _two_loads(cm, 5)
+    loaded = with_effects(build_cell_model(_cell_with_working_payload({'mass': 2.5})), effects)
+    rng = np.random.default_rng(1)
+    measured_tau = row_torques(loaded.model, data) + rng.normal(0.0, 2.0, (len(data), 6))
+    for rows, kw in ((data, {'covariates': data.covariates}),
+                     (dataclasses.replace(data, tau=measured_tau), {'tau': measured_tau})):
+        seen.clear()
+        cal = calibrate_cell(loaded, rows, model='geometric')
+        data_jac, kpi_jac, names = seen[-1]
+        p = cal.result.values
+        work = _finite_differences(loaded.model, p, loaded.q_work, names,
+                                   covariates={'payload.mass': np.array([2.5])})
+        np.testing.assert_allclose(kpi_jac, work, atol=1e-6 * np.abs(work).max())
+        cell_payload = _finite_differences(loaded.model, p, loaded.q_work, names)
+        assert np.abs(cell_payload - work).max() > 1e-3 * np.abs(work).max()
+        kept = rows.subset(cal.robust.kept)
+        kept_kw = {k: (v[cal.robust.kept] if k == 'tau' else
+                       {c: x[cal.robust.kept] for c, x in v.items()}) for k, v in kw.items()}
+        rows_jac = _finite_differences(loaded.model, p, kept.q, names, **kept_kw) / SIGMA
+        np.testing.assert_allclose(data_jac, rows_jac, atol=1e-6 * np.abs(rows_jac).max())

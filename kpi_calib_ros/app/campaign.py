@@ -92,7 +92,8 @@ def campaign_calibration(cm: CellModel, campaign: SequentialCampaign,
     kept = np.asarray(robust.kept, bool)
     free = tuple(campaign.free or cm.model.params.names)
     est = result_estimability(cm.model, campaign.q[kept], cm.cell.sigma, result.values,
-                              cm.q_work, cm.working_pose_names, list(free))
+                              cm.q_work, cm.working_pose_names, list(free),
+                              tau_work=cm.tau_work)
     level = cm.cell.identification.model
     choice = ModelChoice(level='geometric' if level == 'auto' else level, requested=level,
                          predicted_rms_m={}, cv_rms_m={}, folds=0,

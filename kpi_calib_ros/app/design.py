@@ -90,7 +90,8 @@ def design_estimability(cm: CellModel, configurations: np.ndarray,
     rows = cm.model.pose_measurements(at, np.atleast_2d(configurations))
     return result_estimability(cm.model, rows.q, cm.cell.sigma, at, cm.q_work,
                                cm.working_pose_names, free, prior=prior,
-                               reflector=rows.reflector, rotation=rows.rotation)
+                               reflector=rows.reflector, rotation=rows.rotation,
+                               tau_work=cm.tau_work)
 
 
 def design_point(cm: CellModel, cp: CyclePrior) -> np.ndarray:

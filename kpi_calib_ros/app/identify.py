@@ -256,7 +256,8 @@ def _final_fit(cm: CellModel, data: Measurements, choice: ModelChoice, start: np
     est = result_estimability(cm.model, kept.q, cm.cell.sigma, robust.result.values,
                               cm.q_work, cm.working_pose_names, free, prior=prior,
                               reflector=kept.reflector, rotation=kept.rotation,
-                              covariates=kept.covariates)
+                              covariates=kept.covariates, tau=kept.tau,
+                              tau_work=cm.tau_work)
     # A model that fails χ² must not report the stated σ's precision (core.estimation.precision).
     result = honest_precision(robust.result)
     implausible = plausibility_gate(cm, result, start, np.atleast_2d(kept.q),

@@ -230,7 +230,8 @@ class SequentialCampaign:
         return result_estimability(model, rows.q, self.cell.sigma, model.params.nominal,
                                    self.cell.q_work, self.cell.working_pose_names,
                                    free=self.free, reflector=rows.reflector,
-                                   rotation=rows.rotation).all_estimable
+                                   rotation=rows.rotation,
+                                   tau_work=self.cell.tau_work).all_estimable
 
     # ---------------------------------------------------------------------- the loop
     def add(self, q: np.ndarray, eta: np.ndarray,

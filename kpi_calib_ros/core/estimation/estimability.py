@@ -146,14 +146,15 @@ def information_rows(model: MeasurementModel, p: np.ndarray, q: np.ndarray,
                      sigma: float | np.ndarray, idx: np.ndarray, prior: Prior | None = None,
                      reflector: np.ndarray | None = None,
                      rotation: np.ndarray | None = None,
-                     covariates: Mapping[str, np.ndarray] | None = None) -> np.ndarray:
+                     covariates: Mapping[str, np.ndarray] | None = None,
+                     tau: np.ndarray | None = None) -> np.ndarray:
     """Information of measured poses ``q`` (N, n) at ``p`` in columns ``idx``.
 
     The data Jacobian weighted by 1/σ, with a ``prior``'s L rows below (what it determines
-    counts as determined); ``reflector``, ``rotation`` and ``covariates`` as for
+    counts as determined); ``tau``, ``reflector``, ``rotation`` and ``covariates`` as for
     :meth:`~kpi_calib_ros.core.measurement.tracker.MeasurementModel.jacobian`.
     """
-    _, jac = model.jacobian(p, np.atleast_2d(q), None, reflector, rotation, covariates)
+    _, jac = model.jacobian(p, np.atleast_2d(q), tau, reflector, rotation, covariates)
     rows = weighted_rows(jac, 1.0 / np.broadcast_to(np.asarray(sigma, float), (3,)), idx)
     return rows if prior is None else np.vstack([rows, prior.rows(model.params)[0][:, idx]])
 
@@ -166,17 +167,23 @@ def result_estimability(model: MeasurementModel, q: np.ndarray, sigma: np.ndarra
                         prior: Prior | None = None,
                         reflector: np.ndarray | None = None,
                         rotation: np.ndarray | None = None,
-                        covariates: Mapping[str, np.ndarray] | None = None) -> KpiEstimability:
+                        covariates: Mapping[str, np.ndarray] | None = None,
+                        tau: np.ndarray | None = None,
+                        tau_work: np.ndarray | None = None) -> KpiEstimability:
     """:func:`kpi_estimability` of a model at parameters ``p`` for measured poses ``q`` (N, n).
 
     σ (3,) and working poses ``q_work`` (t, n); ``free`` names the free parameters (all by
     default); ``reflector`` (N,) the reflector each row measured. A ``rotation`` (N, 3, 3) the
-    measured rotations of rotation rows; ``covariates`` the rows' covariates (their recording).
-    A ``prior``'s rows count as information: what it determines is estimable.
+    measured rotations of rotation rows; ``covariates`` the rows' covariates (their recording,
+    their payload). ``tau`` (N, n): the torques the rows' effects read (measured joint
+    torques; default the gravity torques with each row's payload); ``tau_work`` (t, n):
+    those at the working poses (each with its own payload; default the cell's). A
+    ``prior``'s rows count as information: what it determines is estimable.
     """
     names = list(free) if free else list(model.params.names)
     idx = model.params.indices(names)
-    data_jac = information_rows(model, p, q, sigma, idx, prior, reflector, rotation, covariates)
-    _, kpi = model.jacobian(p, np.atleast_2d(q_work))
+    data_jac = information_rows(model, p, q, sigma, idx, prior, reflector, rotation, covariates,
+                                tau)
+    _, kpi = model.jacobian(p, np.atleast_2d(q_work), tau_work)
     return kpi_estimability(data_jac, kpi.reshape(-1, len(p))[:, idx], names,
                             working_pose_names, tolerance)
