@@ -6,9 +6,10 @@ region in turn, up to ``N_TRAIN`` of its poses (random, seed 0) calibrate:
 
 * geometric: the full geometric model;
 * diagnose path: ``diagnose`` (α = 0.01, general effects on), its best effect refitted;
-  recommended only when it predicts held-out regions of the training poses better and is
-  worse in no held-out fold, region blocks and joint range ends
-  (``ModelComparison.holds_elsewhere``), else the geometric model;
+  recommended only when it predicts held-out regions of the training poses better beyond
+  the held-out noise and is worse beyond noise in no held-out fold, region blocks and joint
+  range ends (``ModelComparison.holds_elsewhere``, held to the tests the screen chose it
+  from), else the geometric model;
 * screen's best, unchecked: the refit with the screen's best effect, whatever its regions say
   (what the diagnose path recommended before);
 * auto: ``calibrate_cell(model='auto')``.
@@ -100,14 +101,18 @@ def main(argv: list[str]) -> int:
             after = identify_cell(richer, train,
                                   p0=effect_start(geo.values, effect, diag.best.values))
             models['screen best, unchecked'] = (richer, after)
-            cmp = compare_models((base.model, geo), (richer.model, after), train)
+            cmp = compare_models((base.model, geo), (richer.model, after), train,
+                                 tests=diag.best.tests)
+            assert cmp.gain is not None
             if cmp.holds_elsewhere:
                 recommended = 'screen best, unchecked'
             notes.append(f'- region {r}: screen proposes `{best_spec}`; training regions '
                          f'{cmp.other_region_rms_before_m * 1e6:.1f} -> '
                          f'{cmp.other_region_rms_after_m * 1e6:.1f} µm, where measured '
                          f'{cmp.validation_rms_before_m * 1e6:.1f} -> '
-                         f'{cmp.validation_rms_after_m * 1e6:.1f} µm, worse in '
+                         f'{cmp.validation_rms_after_m * 1e6:.1f} µm, held-out gain z = '
+                         f'{cmp.gain.z:.2f} (needed > {cmp.gain.threshold(cmp.tests):.2f}), '
+                         f'worse beyond noise in '
                          f'{cmp.worse_folds[0]} of {cmp.worse_folds[1]} held-out folds: '
                          f'{"recommended" if cmp.holds_elsewhere else "NOT recommended"}')
         models['diagnose path'] = models[recommended]

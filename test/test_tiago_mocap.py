@@ -139,9 +139,9 @@ def test_auto_with_tolerances_on_the_smallest_session_predicts_new_days_better(t
     """Issue 10's second acceptance on the 37-posture session, validated on the other day
     and on the two later sessions of the same day (never used for a choice). With the
     cell's tolerances (weighed against the noise the residuals show) auto keeps the
-    geometric level. It adds no play now: each significant play predicts some held-out
-    folds (region blocks, joint range ends) worse beyond their noise (arm_6: one region
-    block 4.8x, 5 of 21 folds for the best trial), and an effect must be worse in none.
+    geometric level. It adds no play: each significant play either fails to predict the
+    held-out regions better beyond what their noise can do or is worse beyond noise in
+    some held-out fold (region blocks, joint range ends), and an effect must pass both.
     Every held-out session is still predicted better than by the full geometric model
     without tolerances (measured 3.79 / 3.23 / 2.90 mm against 4.20 / 3.62 / 3.03); with
     the pooled region test alone auto added the arm_6 play (3.69 / 3.14 / 2.68 mm), with
@@ -155,14 +155,11 @@ def test_auto_with_tolerances_on_the_smallest_session_predicts_new_days_better(t
     trials = cal['model']['effect_selection']['trials']
     assert any(t['spec'] == 'joint_play:arm_6_joint' for t in trials)
     for t in trials:
-        before, after = t['cross_validated_before'], t['cross_validated_after']
-        if after is None:
+        gain = t['held_out_gain']
+        if gain is None:
             continue
-        worse = [a - b > s for a, b, s in zip(after['held_out_fold_rms_m'],
-                                              before['held_out_fold_rms_m'],
-                                              after['held_out_fold_noise_m'])
-                 if a is not None and b is not None]
-        assert any(worse), t['spec']
+        assert not gain['holds'], t['spec']
+        assert gain['z'] <= gain['z_needed'] or gain['folds_worse'] > 0, t['spec']
     for session in HELD_OUT:
         assert docs['auto', session]['rms_m'] < docs['full', session]['rms_m'], session
 

@@ -96,6 +96,7 @@ def comparison_to_dict(cmp: ModelComparison) -> dict[str, Any]:
             'held_out_fold_rms_before_m': [_finite(v) for v in cmp.held_out_folds_before_m],
             'held_out_fold_rms_after_m': [_finite(v) for v in cmp.held_out_folds_after_m],
             'held_out_folds_worse': cmp.worse_folds[0],
+            'held_out_gain': None if cmp.gain is None else cmp.gain.to_dict(cmp.tests),
             'holds_elsewhere': cmp.holds_elsewhere,
             'recommended': cmp.holds_elsewhere}
 
@@ -106,8 +107,11 @@ def _finite(value: float) -> float | None:
 
 def region_verdict(cmp: ModelComparison) -> str:
     """Whether the richer model is recommended: only when it predicts held-out regions of
-    joint space better (as ``auto`` asks)."""
-    figures = (f'{_validation(cmp.other_region_rms_before_m, "", " µm")} -> '
+    joint space better beyond noise (as ``auto`` asks)."""
+    gain = ('' if cmp.gain is None or not np.isfinite(cmp.gain.z) else
+            f'gain z = {cmp.gain.z:.2f} in held-out noise units (needed > '
+            f'{cmp.gain.threshold(cmp.tests):.2f}, {cmp.tests} tests), ')
+    figures = (gain + f'{_validation(cmp.other_region_rms_before_m, "", " µm")} -> '
                f'{_validation(cmp.other_region_rms_after_m, "", " µm")} over held-out regions '
                f'of joint space ({cmp.region_blocks} regions), '
                f'{_validation(cmp.validation_rms_before_m, "", " µm")} -> '
@@ -121,7 +125,8 @@ def region_verdict(cmp: ModelComparison) -> str:
     if cmp.holds_elsewhere:
         return f'recommended: {", ".join(cmp.effects)} holds where no pose was measured ({figures})'
     return (f'NOT recommended: {", ".join(cmp.effects)} does not predict held-out regions of '
-            f'joint space better in every held-out fold ({figures}); keep the model without it')
+            f'joint space better beyond noise, or is worse beyond noise in a held-out fold '
+            f'({figures}); keep the model without it')
 
 
 def diagnosis_to_dict(cd: CellDiagnosis) -> dict[str, Any]:

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from kpi_calib_ros.core.diagnosis.model_selection import region_test, worse_folds
+from kpi_calib_ros.core.diagnosis.model_selection import HeldOutGain, held_out_gain
 from kpi_calib_ros.core.estimation.cross_validation import region_validation, validation_folds
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.core.estimation.precision import fit_prior, precision_statement
@@ -53,36 +53,39 @@ class ModelComparison:
     held_out_folds_before_m: tuple[float, ...] = ()
     held_out_folds_after_m: tuple[float, ...] = ()
     held_out_noise_m: tuple[float, ...] = ()  # each fold's rms spread by the noise alone
+    # The richer model's gain over held-out regions and in each held-out fold, in units of
+    # what the held-out noise can do (core.diagnosis.model_selection.held_out_gain).
+    gain: HeldOutGain | None = None
+    # The tests the effects were chosen from (the screen's Bonferroni count; 1: given).
+    tests: int = 1
 
     @property
     def holds_elsewhere(self) -> bool:
         """Return whether the richer model holds over held-out regions of joint space.
 
         The test ``auto`` applies
-        (:func:`~kpi_calib_ros.core.diagnosis.model_selection.holds_elsewhere`); only then is
+        (:func:`~kpi_calib_ros.core.diagnosis.model_selection.holds_elsewhere`: better over
+        held-out regions beyond noise, worse beyond noise in no held-out fold); only then is
         it recommended. Never when a fit did not converge (``warnings``): its cross-validated
         figures linearise a last iterate, not a minimum, as ``auto`` neither screens from nor
         adds such a fit.
         """
-        if self.warnings:
+        if self.warnings or self.gain is None:
             return False
-        return region_test(self.other_region_rms_after_m, self.other_region_rms_before_m,
-                           self.validation_rms_after_m, self.validation_rms_before_m,
-                           folds_after=self.held_out_folds_after_m,
-                           folds_before=self.held_out_folds_before_m,
-                           noise=self.held_out_noise_m)
+        return self.gain.holds(self.tests)
 
     @property
     def worse_folds(self) -> tuple[int, int]:
-        """(held-out folds the richer model predicts worse, folds compared)."""
-        return worse_folds(self.held_out_folds_after_m, self.held_out_folds_before_m,
-                           self.held_out_noise_m)
+        """(held-out folds the richer model predicts worse beyond noise, folds compared)."""
+        if self.gain is None:
+            return 0, 0
+        return self.gain.worse, self.gain.compared
 
 
 def compare_models(before: tuple[MeasurementModel, CalibrationResult],
                    after: tuple[MeasurementModel, CalibrationResult], data: Measurements,
                    folds: int = 0, seed: int = 0, prior: Prior | None = None,
-                   balanced: bool = False) -> ModelComparison:
+                   balanced: bool = False, tests: int = 1) -> ModelComparison:
     """Rms, validation rms, effect parameters and TCP std before/after adding effects.
 
     ``after``'s model must contain the effects (its extra parameters are the
@@ -90,7 +93,10 @@ def compare_models(before: tuple[MeasurementModel, CalibrationResult],
     (where measured) and of folds that hold out whole regions of joint space, both models on
     the folds of ``after`` (which keep the rank of ``before``), every fold refitted with the
     fits' ``prior`` (``balanced``: balanced against the noise by the fits,
-    :func:`~kpi_calib_ros.core.estimation.precision.fit_prior`).
+    :func:`~kpi_calib_ros.core.estimation.precision.fit_prior`). ``tests``: the tests the
+    effects were chosen from on the same data (the screen's
+    :attr:`~kpi_calib_ros.core.diagnosis.screening.Candidate.tests`; 1: given by the user),
+    the Bonferroni count of the held-out test (:func:`held_out_gain`).
     """
     model_b, res_b = before
     model_a, res_a = after
@@ -123,6 +129,7 @@ def compare_models(before: tuple[MeasurementModel, CalibrationResult],
         held_out_folds_before_m=region_b.held_out_folds_m,
         held_out_folds_after_m=region_a.held_out_folds_m,
         held_out_noise_m=region_a.held_out_noise_m,
+        gain=held_out_gain(region_a, region_b), tests=tests,
         p_value_before=res_b.p_value, p_value_after=res_a.p_value,
         effect_parameters=tuple(params),
         tcp_std_before_m=_tcp_std(res_b),

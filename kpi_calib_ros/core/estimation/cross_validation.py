@@ -12,6 +12,7 @@ of every fold.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -45,7 +46,7 @@ from kpi_calib_ros.core.measurement.weighting import (
 
 __all__ = [
     'press_residuals', 'linear_validation_rms', 'validation_rms', 'prior_system',
-    'validation_folds', 'fold_rms', 'RegionValidation', 'region_validation',
+    'validation_folds', 'fold_rms', 'fold_held_out', 'RegionValidation', 'region_validation',
 ]
 
 
@@ -172,28 +173,51 @@ def fold_rms(a: np.ndarray, r: np.ndarray, w: np.ndarray, masks: list[np.ndarray
     ``points`` (N,) bool: the rows both are taken over (as :func:`linear_validation_rms`);
     a fold's other rows are held out with it.
     """
+    return _fold_figures(a, r, w, masks, prior_rows, points)[:2]
+
+
+def fold_held_out(a: np.ndarray, r: np.ndarray, masks: list[np.ndarray],
+                  prior_rows: tuple[np.ndarray, np.ndarray] | None = None
+                  ) -> list[np.ndarray | None]:
+    """Held-out weighted residuals of each fold's refit (3·|fold|,), None where undetermined.
+
+    As :func:`fold_rms` (the PRESS identity, ``prior_rows`` kept in every refit), in the
+    whitened units of ``r``: unit noise variance per row where the stated noise is right.
+    """
     if prior_rows is not None and len(prior_rows[1]):
         a = np.vstack([a, prior_rows[0]])
         r = np.concatenate([r, prior_rows[1]])
     u = orthonormal_basis(a)
     e = r - u @ (u.T @ r)
+    out: list[np.ndarray | None] = []
+    for mask in masks:
+        test = np.flatnonzero(np.repeat(mask, 3))
+        m = HeldOutBlock(u[test])
+        out.append(None if m.smallest <= RANK_TOLERANCE else m.solve(e[test]))
+    return out
+
+
+def _fold_figures(a: np.ndarray, r: np.ndarray, w: np.ndarray, masks: list[np.ndarray],
+                  prior_rows: tuple[np.ndarray, np.ndarray] | None = None,
+                  points: np.ndarray | None = None
+                  ) -> tuple[np.ndarray, np.ndarray, list[np.ndarray | None]]:
+    """:func:`fold_rms`'s rms and noise (m), and :func:`fold_held_out`'s residuals."""
     w = np.asarray(w, float)
     if not masks:
-        return np.zeros(0), np.zeros(0)
+        return np.zeros(0), np.zeros(0), []
+    held = fold_held_out(a, r, masks, prior_rows)
     variance = row_noise_variance(w, len(masks[0]))
     out, noise = np.full(len(masks), np.nan), np.full(len(masks), np.nan)
-    for i, mask in enumerate(masks):
+    for i, (mask, h) in enumerate(zip(masks, held)):
         counted = mask if points is None else mask & points
         if not counted.any():
             continue
         noise[i] = float(np.sqrt(np.mean(variance[counted]) / (6 * counted.sum())))
-        test = np.flatnonzero(np.repeat(mask, 3))
-        m = HeldOutBlock(u[test])
-        if m.smallest <= RANK_TOLERANCE:
+        if h is None:
             continue
-        metres = unweighted(m.solve(e[test]), w if w.ndim == 1 else w[mask])
+        metres = unweighted(h, w if w.ndim == 1 else w[mask])
         out[i] = point_rms(metres, None if points is None else points[mask])
-    return out, noise
+    return out, noise, held
 
 
 @dataclass(frozen=True)
@@ -216,6 +240,11 @@ class RegionValidation:
     # pair figure by figure; and what the stated noise alone spreads each by (m, fold_rms).
     held_out_folds_m: tuple[float, ...] = ()
     held_out_noise_m: tuple[float, ...] = ()
+    # Each of those folds' held-out weighted residuals (fold_held_out; None where
+    # undetermined): two models on the same folds pair row by row
+    # (core.diagnosis.model_selection.held_out_gain).
+    held_out_residuals: tuple[np.ndarray | None, ...] = dataclasses.field(
+        default=(), compare=False, repr=False)
 
     def to_dict(self) -> dict:
         """YAML-ready figures (m; None where not estimable)."""
@@ -249,8 +278,8 @@ def region_validation(model: MeasurementModel, data: Measurements, result: Calib
     masks = ([] if region_ids is None else [region_ids == b for b in range(used)]) + [
         m[pose] for m in range_end_folds(poses)]
     points = point_rows(data.reflector, model.n_reflectors)
-    held, noise = fold_rms(sys_.jac, sys_.r, sys_.w, masks, rows, points)
+    held, noise, residuals = _fold_figures(sys_.jac, sys_.r, sys_.w, masks, rows, points)
     return RegionValidation(
         linear_validation_rms(sys_.jac, sys_.r, sys_.w, inside, rows, points),
         linear_validation_rms(sys_.jac, sys_.r, sys_.w, region_ids, rows, points), folds, used,
-        tuple(float(v) for v in held), tuple(float(v) for v in noise))
+        tuple(float(v) for v in held), tuple(float(v) for v in noise), tuple(residuals))
