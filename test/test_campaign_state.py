@@ -166,3 +166,19 @@ def test_a_campaign_stopped_model_inadequate_publishes_and_archives_nothing(tmp_
     cal, text = out.calibration, out.text
     assert cal is not None and cal.valid and yaml.safe_load(text)['identified_at_ns'] > 0
     assert not (tmp_path / CALIBRATIONS_DIR).exists()
+
+
+def test_a_damaged_or_hostile_state_file_is_refused_by_name(tmp_path):
+    """The state file lies in data_dir, where a damaged disk or another writer may leave
+    anything: a NUL byte, nested aliases that expand to billions of nodes, text that is not
+    UTF-8. Each is a DataError naming the file and ~/reset (the aliases refused by their
+    count before they are expanded)."""
+    path = tmp_path / CAMPAIGN_STATE_FILE
+    laughs = 'a: &a [x, x, x, x, x, x, x, x, x, x]\n' + ''.join(
+        f'{chr(98 + i)}: &{chr(98 + i)} [*{chr(97 + i)}, *{chr(97 + i)}, *{chr(97 + i)}, '
+        f'*{chr(97 + i)}, *{chr(97 + i)}, *{chr(97 + i)}, *{chr(97 + i)}, *{chr(97 + i)}, '
+        f'*{chr(97 + i)}, *{chr(97 + i)}]\n' for i in range(9))
+    for content in (b'version: 1\nsettings: {\x00}\n', laughs.encode(), b'version: \xff\xfe\n'):
+        path.write_bytes(content)
+        with pytest.raises(DataError, match=r'campaign_state.yaml.*~/reset'):
+            read_campaign_state(path)

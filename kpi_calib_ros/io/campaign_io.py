@@ -12,13 +12,12 @@ import matplotlib
 matplotlib.use('Agg')
 import matplotlib.pyplot as plt  # noqa: E402  (backend first)
 import numpy as np  # noqa: E402
-import yaml  # noqa: E402
 
 from kpi_calib_ros.core.campaigns.change_detection import ChangeTest  # noqa: E402
 from kpi_calib_ros.core.campaigns.settings import CampaignSettings, SimulatedRun
-from kpi_calib_ros.core.errors import DataError  # noqa: E402
+from kpi_calib_ros.core.errors import ConfigError, DataError  # noqa: E402
 from kpi_calib_ros.io.results import write_atomic  # noqa: E402
-from kpi_calib_ros.io.yaml_bounded import dump_yaml
+from kpi_calib_ros.io.yaml_bounded import dump_yaml, load_yaml_bounded
 
 STATE_VERSION = 1
 CHANGE_PLOT_FILE = 'change_test.png'
@@ -157,9 +156,13 @@ def read_campaign_state(path: str | Path) -> CampaignState:
     path = Path(path)
     fix = 'call ~/reset to archive it and start a new campaign'
     try:
-        doc = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as exc:
+        # Bounded like every document from outside: a damaged or hostile file in
+        # data_dir is refused by name, never a hang or the node's memory.
+        doc = load_yaml_bounded(path.read_text(), str(path), 'data_dir', fix)
+    except (OSError, UnicodeDecodeError) as exc:
         raise DataError(f'{path}: not readable ({exc}); {fix}') from None
+    except ConfigError as exc:
+        raise DataError(str(exc)) from None
     if not isinstance(doc, dict) or doc.get('version') != STATE_VERSION:
         raise DataError(f'{path}: version must be {STATE_VERSION}; {fix}')
     try:
