@@ -248,6 +248,7 @@ def test_an_effect_that_holds_everywhere_is_not_refused_by_the_folds():
     assert holds_elsewhere(new, old)
 
 
+@pytest.mark.slow
 def test_an_effect_fitted_to_noise_passes_the_held_out_test_at_most_at_its_level():
     """Where the extra column is noise, the pooled gain z over held-out regions is below
     the normal quantile at least as often as the normal law says: over 600 linear
