@@ -8,9 +8,8 @@ joint's periodic error at its periodogram peak). Its stated level: a round's scr
 candidate with probability at most α = 0.01 (family-wise, Bonferroni over the candidates, the
 frequency search counted), and an added effect must then predict held-out regions of joint
 space better beyond the held-out noise (core.diagnosis.model_selection.held_out_gain: z above
-the normal quantile at HELD_OUT_ALPHA = 0.01, Bonferroni over the tests the screen chose
-the effect from) and be worse beyond noise in no held-out fold (region blocks and each
-joint's range ends).
+the normal quantile at HELD_OUT_ALPHA = 0.01, Bonferroni over the round's trials) and be
+worse beyond noise in no held-out fold (region blocks and each joint's range ends).
 Counts the seeds where the screen passes a candidate and where an effect is added (which),
 with an exact one-sided 95 % upper bound (Clopper-Pearson) and the binomial probability of
 at least as many at α. Cells: the built-in cell (DEFAULT_CELL, KR15-class) and the stock UR10
@@ -145,7 +144,7 @@ def main(argv: list[str]) -> int:
              f'a round\'s screen passes a candidate with probability ≤ α = {alpha} '
              '(family-wise), and an added effect must predict held-out regions of joint '
              'space better beyond the held-out noise (`held_out_gain`: z above the normal '
-             'quantile at 0.01, Bonferroni over the tests the screen chose the effect from) and '
+             'quantile at 0.01, Bonferroni over the round\'s trials) and '
              'be worse beyond noise in no held-out fold (region blocks and each joint\'s '
              'range ends). Upper bound: '
              'exact one-sided 95 % (Clopper-Pearson); P(≥ k | α): the binomial probability '

@@ -13,8 +13,7 @@ Per seed, the geometric calibration and the model the tool recommends:
 * diagnose path: the screen's best effect refitted (both fits with identify's default
   iteration limit); recommended when it predicts held-out regions of joint space better
   beyond the held-out noise and is worse beyond noise in no held-out fold, region blocks
-  and joint range ends (``ModelComparison.holds_elsewhere``, the test held to the tests
-  the screen chose the effect from), else the geometric model;
+  and joint range ends (``ModelComparison.holds_elsewhere``), else the geometric model;
 * ``auto``: ``calibrate_cell(model='auto')`` (the level and the effects, chosen by the
   cross-validated rms over held-out regions).
 
@@ -88,8 +87,7 @@ def run(cm, kind: str, seed: int) -> dict:
         p0 = np.concatenate([geo.values, np.zeros(len(effect.parameter_names))])
         after = identify(after_model, data, SIGMA, cm.q_work, p0=p0)
         after_values = after.values
-        holds = compare_models((cm.model, geo), (after_model, after), data,
-                               tests=best.tests).holds_elsewhere
+        holds = compare_models((cm.model, geo), (after_model, after), data).holds_elsewhere
         if holds:
             diag_model, diag_values = after_model, after.values
     t_diag = time.perf_counter() - t0
@@ -146,8 +144,8 @@ def write(path: Path, rows: list, seeds: int, clean: int) -> None:
             f'periodic amplitude {AMPLITUDE * 1e3:.2f} mrad. "worse": held-out rms above '
             f'{WORSE:g} × the geometric model\'s. Diagnose path: the screen\'s best effect, '
             'recommended only when it predicts held-out regions of joint space better beyond '
-            'the held-out noise (region-blocked cross-validation on the training half, the '
-            'test held to the tests the screen chose it from) and is worse beyond noise in '
+            'the held-out noise (region-blocked cross-validation on the training half) and is '
+            'worse beyond noise in '
             'no held-out fold (region blocks and each joint\'s range ends); auto: '
             '`calibrate_cell(model=\'auto\')`. Seeds from 3000. Command: '
             f'`nice -n 19 .venv/bin/python bench/region_holdout.py {seeds} {clean}`.', '',

@@ -8,8 +8,7 @@ region in turn, up to ``N_TRAIN`` of its poses (random, seed 0) calibrate:
 * diagnose path: ``diagnose`` (α = 0.01, general effects on), its best effect refitted;
   recommended only when it predicts held-out regions of the training poses better beyond
   the held-out noise and is worse beyond noise in no held-out fold, region blocks and joint
-  range ends (``ModelComparison.holds_elsewhere``, held to the tests the screen chose it
-  from), else the geometric model;
+  range ends (``ModelComparison.holds_elsewhere``), else the geometric model;
 * screen's best, unchecked: the refit with the screen's best effect, whatever its regions say
   (what the diagnose path recommended before);
 * auto: ``calibrate_cell(model='auto')``.
@@ -101,8 +100,7 @@ def main(argv: list[str]) -> int:
             after = identify_cell(richer, train,
                                   p0=effect_start(geo.values, effect, diag.best.values))
             models['screen best, unchecked'] = (richer, after)
-            cmp = compare_models((base.model, geo), (richer.model, after), train,
-                                 tests=diag.best.tests)
+            cmp = compare_models((base.model, geo), (richer.model, after), train)
             assert cmp.gain is not None
             if cmp.holds_elsewhere:
                 recommended = 'screen best, unchecked'

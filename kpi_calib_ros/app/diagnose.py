@@ -101,8 +101,7 @@ def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
         richer_free = [n for n in (richer_free or richer.model.params.names) if n not in shape]
         after = identify_cell(richer, data, p0=p0, free=richer_free)
     comparison = compare_models((cm.model, result), (richer.model, after), data, folds=folds,
-                                prior=prior, balanced=prior is not None,
-                                tests=diag.best.tests)
+                                prior=prior, balanced=prior is not None)
     after_oos = out_of_sample_error(richer.model, data, after,
                                     richer_free or list(richer.model.params.names), prior)
     return with_misfit_answer(CellDiagnosis(

@@ -110,7 +110,7 @@ def region_verdict(cmp: ModelComparison) -> str:
     joint space better beyond noise (as ``auto`` asks)."""
     gain = ('' if cmp.gain is None or not np.isfinite(cmp.gain.z) else
             f'gain z = {cmp.gain.z:.2f} in held-out noise units (needed > '
-            f'{cmp.gain.threshold(cmp.tests):.2f}, {cmp.tests} tests), ')
+            f'{cmp.gain.threshold(cmp.tests):.2f}), ')
     figures = (gain + f'{_validation(cmp.other_region_rms_before_m, "", " µm")} -> '
                f'{_validation(cmp.other_region_rms_after_m, "", " µm")} over held-out regions '
                f'of joint space ({cmp.region_blocks} regions), '

@@ -53,9 +53,6 @@ class CandidateFit:
         The part of the effect's weighted columns the geometry does not reproduce.
     merged : tuple of str
         Specs of candidates with the same signature merged into this one.
-    tests : int
-        The tests this fit is the best of (shapes of its grid times frequencies searched):
-        ``p_value_raw`` is multiplied by it.
     """
 
     effect: BoundEffect
@@ -73,7 +70,6 @@ class CandidateFit:
     driver_correlation: float
     unique_fraction: float
     merged: tuple[str, ...] = ()
-    tests: int = 1
 
 
 def fit_candidate(effect: BoundEffect, cols: np.ndarray, sys_: LinearizedFit, r_perp: np.ndarray,

@@ -23,8 +23,8 @@ Each round:
    (:func:`~kpi_calib_ros.core.estimation.cross_validation.region_validation`, the fit's prior kept
    in every refit); a trial passes when it lowers the held-out error over the regions by
    more than the held-out noise can (a one-sided test at
-   :data:`~kpi_calib_ros.core.diagnosis.model_selection.HELD_OUT_ALPHA`, Bonferroni over every
-   test the screen chose it from) and is worse beyond noise in no held-out fold
+   :data:`~kpi_calib_ros.core.diagnosis.model_selection.HELD_OUT_ALPHA`, Bonferroni over the
+   round's trials) and is worse beyond noise in no held-out fold
    (:func:`~kpi_calib_ros.core.diagnosis.model_selection.held_out_gain`), and of those the
    one with the lowest predicted out-of-sample rms is added; none passing, selection stops.
    An effect that lowers the error where the poses were measured and raises it elsewhere
@@ -99,8 +99,8 @@ class EffectTrial:
     # (in-region and over held-out regions of joint space).
     region_before: RegionValidation | None = None
     region_after: RegionValidation | None = None
-    # Its gain over held-out regions and folds in noise units, and the tests the screen
-    # chose it from (the Bonferroni count of the pooled test, Candidate.tests).
+    # Its gain over held-out regions and folds in noise units, and the trials compared in
+    # its round (the Bonferroni count of the pooled test).
     gain: HeldOutGain | None = None
     tests: int = 1
 
@@ -139,10 +139,6 @@ class EffectChoice:
     # model chosen, each on the folds of its own comparison.
     region_before: RegionValidation | None = None
     region_after: RegionValidation | None = None
-    # Its gain over held-out regions and folds in noise units, and the tests the screen
-    # chose it from (the Bonferroni count of the pooled test, Candidate.tests).
-    gain: HeldOutGain | None = None
-    tests: int = 1
 
     def to_dict(self) -> dict:
         """YAML-ready form: the effects added, held, the trials and the predicted rms (m)."""
@@ -153,8 +149,6 @@ class EffectChoice:
                 else self.region_before.to_dict(),
                 'cross_validated_after': None if self.region_after is None
                 else self.region_after.to_dict(),
-                'held_out_gain': None if self.gain is None
-                else self.gain.to_dict(self.tests),
                 'trials': [t.to_dict() for t in self.trials], 'reason': self.reason}
 
 
@@ -236,7 +230,9 @@ def choose_effects(model: MeasurementModel, data: Measurements, fit_for: FitFor,
                 model, data, fit_for, current, pool[cand.spec], cand.values, level,
                 n_geometric, held, prior, seed, rnd, (tolerances, reference, known)),
                 model, data, current, prior, balanced, seed)
-            round_trials.append((replace(record, tests=cand.tests), aug, res))
+            round_trials.append((record, aug, res))
+        compared = max(sum(_comparable(t[0]) for t in round_trials), 1)
+        round_trials = [(replace(t[0], tests=compared),) + t[1:] for t in round_trials]
         usable = [t for t in round_trials if _comparable(t[0])]
         if not usable:
             trials += [t[0] for t in round_trials]
@@ -323,7 +319,7 @@ def _region_text(trial: EffectTrial) -> str:
     gain = trial.gain
     z = ('n/a' if gain is None or not np.isfinite(gain.z) else
          f'{gain.z:.2f} (needed > {gain.threshold(trial.tests):.2f}, '
-         f'{trial.tests} tests)')
+         f'{trial.tests} compared)')
     worse, compared = (0, 0) if gain is None else (gain.worse, gain.compared)
     return (f'cross-validated rms over held-out regions of joint space '
             f'{_um(b.other_region_m)} -> {_um(a.other_region_m)} µm ({a.blocks} regions), '

@@ -56,7 +56,8 @@ class ModelComparison:
     # The richer model's gain over held-out regions and in each held-out fold, in units of
     # what the held-out noise can do (core.diagnosis.model_selection.held_out_gain).
     gain: HeldOutGain | None = None
-    # The tests the effects were chosen from (the screen's Bonferroni count; 1: given).
+    # The candidates compared with the same data for one choice (the Bonferroni count of
+    # the held-out test; 1: diagnose's best, or effects given).
     tests: int = 1
 
     @property
@@ -93,10 +94,9 @@ def compare_models(before: tuple[MeasurementModel, CalibrationResult],
     (where measured) and of folds that hold out whole regions of joint space, both models on
     the folds of ``after`` (which keep the rank of ``before``), every fold refitted with the
     fits' ``prior`` (``balanced``: balanced against the noise by the fits,
-    :func:`~kpi_calib_ros.core.estimation.precision.fit_prior`). ``tests``: the tests the
-    effects were chosen from on the same data (the screen's
-    :attr:`~kpi_calib_ros.core.diagnosis.screening.Candidate.tests`; 1: given by the user),
-    the Bonferroni count of the held-out test (:func:`held_out_gain`).
+    :func:`~kpi_calib_ros.core.estimation.precision.fit_prior`). ``tests``: the candidates
+    compared for this one choice (the Bonferroni count of the held-out test,
+    :func:`held_out_gain`; 1: diagnose's best, or effects given).
     """
     model_b, res_b = before
     model_a, res_a = after

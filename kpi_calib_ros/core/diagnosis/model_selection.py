@@ -67,9 +67,10 @@ PARSIMONY = 0.05
 DEFAULT_FOLDS = 5
 # An effect is added only when it lowers the held-out error over regions of joint space by
 # more than the held-out noise can (held_out_gain: a one-sided test at HELD_OUT_ALPHA,
-# Bonferroni over every candidate the screen chose it from, as the screen's own p-value),
-# and is worse in no held-out fold beyond what the noise can do there (family-wise
-# FOLD_ALPHA over the folds).
+# Bonferroni over the trials compared for one choice), and is worse in no held-out fold
+# beyond what the noise can do there (family-wise FOLD_ALPHA over the folds). The false
+# alarms of auto are held by the effect screen's family-wise F-test first: an effect is
+# tried only when it passes there.
 HELD_OUT_ALPHA = 0.01
 FOLD_ALPHA = 0.05
 
@@ -106,11 +107,11 @@ class HeldOutGain:
     held-out noise ε enters Δ as 2 ε·d, with standard deviation 2 s ‖d‖ (s the noise
     scale): z = Δ / (2 s ‖d‖). Where the richer model only fits noise, the rest of Δ is the
     extra variance of its prediction, negative on average, so z exceeds the normal
-    quantile no more often than the normal law says. A candidate the screen chose from m
-    tests on the same data is held to the quantile at α/m: each of the m would pass its own
-    at most that often, so the chosen one passes at most at α whichever it is (bench/
-    auto_false_alarms.py: at α alone, a shoulder_pan scale the screen had fitted to the
-    noise of a clean UR10 passed with z = 2.80). ``z``: over the region blocks pooled
+    quantile no more often than the normal law says; the screen chose the effect for fitting
+    this very noise, so after its choice z passes more often (a shoulder_pan scale fitted to
+    the noise of a clean UR10 came out at 2.80): the false-alarm level of ``auto`` is the
+    screen's family-wise α, which an effect must pass before it is tried, and this test asks
+    of it a gain where no pose was measured. ``z``: over the region blocks pooled
     (every pose held out once); ``fold_z``: each held-out fold (region blocks, then each
     joint's range ends), NaN where a fold is not compared; ``scale``: s, the rms of the
     richer model's held-out weighted residuals over the region blocks, at least 1 (a
@@ -125,7 +126,7 @@ class HeldOutGain:
     def threshold(tests: int = 1) -> float:
         """Return the pooled z above which the gain is beyond noise.
 
-        One-sided, Bonferroni over the ``tests`` the candidate was chosen from.
+        One-sided, Bonferroni over the ``tests`` compared for one choice.
         """
         return float(scipy.stats.norm.isf(HELD_OUT_ALPHA / max(tests, 1)))
 
@@ -190,8 +191,8 @@ def holds_elsewhere(new: RegionValidation, old: RegionValidation, tests: int = 1
     """Return whether ``new`` predicts held-out regions better than ``old`` beyond noise.
 
     :func:`held_out_gain` on the same folds: the pooled gain over the region blocks above
-    the normal quantile at :data:`HELD_OUT_ALPHA` (Bonferroni over the ``tests`` the
-    candidate was chosen from, :attr:`~kpi_calib_ros.core.diagnosis.screening.Candidate.tests`),
+    the normal quantile at :data:`HELD_OUT_ALPHA` (Bonferroni over the ``tests`` compared
+    for one choice),
     and worse beyond noise in NO held-out fold (each region block, each joint's range end,
     family-wise :data:`FOLD_ALPHA`): one fold that a new effect fits cannot carry it while it
     hurts another. False when the region blocks are not estimable.

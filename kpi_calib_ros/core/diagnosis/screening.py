@@ -95,11 +95,6 @@ class Candidate:
     # The number of frequencies searched when the effect's frequency was found on these
     # residuals (core.diagnosis.periodic_search); its p-values are multiplied by it. 1: no search.
     searched: int = 1
-    # The tests ``p_value`` is adjusted for: the distinguishable candidates times this one's
-    # shapes and frequencies searched. A test of the candidate on the same data after it
-    # was chosen (core.diagnosis.model_selection.held_out_gain) keeps its level when held
-    # to the same count: the chosen one is one of these.
-    tests: int = 1
 
 
 def screen_effects(model: MeasurementModel, data: Measurements, result: CalibrationResult,
@@ -194,13 +189,11 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
                 # The best of several shapes is the best of several tests: its p-value is
                 # multiplied by their number (Bonferroni), so the screen's claims keep
                 # their level (the plain best-of-grid p-value is too small on clean data).
-                best = replace(best, p_value_raw=min(1.0, best.p_value_raw * len(tried)),
-                               tests=best.tests * len(tried))
+                best = replace(best, p_value_raw=min(1.0, best.p_value_raw * len(tried)))
             if effect.searched > 1:
                 # A frequency found by a search on these residuals (core.diagnosis.periodic_search):
                 # the best of that many tests, counted the same way.
-                best = replace(best, p_value_raw=min(1.0, best.p_value_raw * effect.searched),
-                               tests=best.tests * effect.searched)
+                best = replace(best, p_value_raw=min(1.0, best.p_value_raw * effect.searched))
             fits.append(best)
         elif why_not is not None:
             rejected.append(why_not)
@@ -238,8 +231,7 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
             absorbed_by={},
             explanation=_explain(fit, significant, p_adj, m, rms_base, cv_base) + extra,
             plausible=not warning, plausibility=warning, also_explained_by=merged,
-            note=notes.get(fit.effect.name, ''), searched=fit.effect.searched,
-            tests=m * fit.tests))
+            note=notes.get(fit.effect.name, ''), searched=fit.effect.searched))
     # A general effect (core.effects.general) is offered when no named one fits: it ranks
     # after the significant, plausible named effects unless it predicts held-out poses
     # PARSIMONY better than the best of them.

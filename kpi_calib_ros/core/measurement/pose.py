@@ -87,18 +87,26 @@ def orientation_names(prefix: str) -> list[str]:
 
 
 def body_orientation(names: Sequence[str], p: Expr, stated: np.ndarray,
-                     prefix: str) -> Expr:
+                     prefix: str, remounted: Sequence[tuple[Expr, str]] = ()) -> Expr:
     """Return ``R_tip_body`` (3x3) of reflector ``prefix``.
 
     ``stated`` times ``exp(ω)``, ω the parameters :func:`orientation_names` when ``names``
-    (the model's parameter names) has them, else ``stated``.
+    (the model's parameter names) has them, else ``stated``. ``remounted``: (condition,
+    prefix) of each recording whose probe was remounted; where its condition holds, its own
+    ``<prefix>.r*`` (when ``names`` has them) turn ``stated`` instead.
     """
-    wanted = orientation_names(prefix)
-    if wanted[0] not in names:
-        return ca.DM(np.asarray(stated, float))
-    index = [list(names).index(n) for n in wanted]
-    return ca.DM(np.asarray(stated, float)) @ exp3_expression(
-        ca.vertcat(*[p[i] for i in index]))
+    def turned(which: str) -> Expr:
+        wanted = orientation_names(which)
+        if wanted[0] not in names:
+            return ca.DM(np.asarray(stated, float))
+        index = [list(names).index(n) for n in wanted]
+        return ca.DM(np.asarray(stated, float)) @ exp3_expression(
+            ca.vertcat(*[p[i] for i in index]))
+    rotation = turned(prefix)
+    for condition, own in remounted:
+        if orientation_names(own)[0] in names:
+            rotation = ca.if_else(condition, turned(own), rotation)
+    return rotation
 
 
 def measured_rotation_input(rotations: np.ndarray) -> np.ndarray:

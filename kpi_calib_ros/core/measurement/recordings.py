@@ -9,7 +9,9 @@ offsets:
 * ``recording.<name>.base.{x,y,z,roll,pitch,yaw}`` -- the base frame in that recording's
   tracker frame (full values, URDF roll-pitch-yaw convention, as ``base.*``);
 * ``recording.<name>.<reflector prefix>.{x,y,z}`` (``recording.<name>.reflector.x`` for one
-  reflector) -- its reflector centres in the tip frame, only when ``reflector_remounted``.
+  reflector) -- its reflector centres in the tip frame, only when ``reflector_remounted``;
+  with a tracked body whose orientation the cell identifies also
+  ``recording.<name>.<prefix>.{rx,ry,rz}``, that recording's turn of the stated orientation.
 
 The first recording keeps ``base.*`` and ``reflector.*``: with one recording the model is
 the one of a single bag, parameter for parameter. Rows say which recording they belong to
@@ -27,6 +29,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from kpi_calib_ros.core.measurement.data import Measurements
+from kpi_calib_ros.core.measurement.pose import orientation_names
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.core.measurement.weighting import noise_weights, row_torques, weighted_rows
 from kpi_calib_ros.core.model.kinematics import rpy_matrix
@@ -90,7 +93,10 @@ def recording_parameters(geometric: ParameterSet, recordings: Sequence[Recording
     """``geometric`` with the placement parameters of ``recordings[1:]`` appended.
 
     Each starts at the first recording's nominal values (``base.*``, ``reflector.*``); the
-    identification starts from each recording's own registration.
+    identification starts from each recording's own registration. A remounted probe whose
+    tracked body's orientation the cell identifies (``<prefix>.r{x,y,z}``) gets its own,
+    ``recording.<name>.<prefix>.r{x,y,z}`` (a turn of the stated one, from the first's
+    nominal).
 
     Raises
     ------
@@ -113,6 +119,11 @@ def recording_parameters(geometric: ParameterSet, recordings: Sequence[Recording
                 extra += reflector_names(rec.name, prefix)
                 values += [nominal[f'{prefix}.{c}'] for c in 'xyz']
                 units += ['m'] * 3
+                turned = orientation_names(prefix)
+                if turned[0] in nominal:
+                    extra += orientation_names(f'{PREFIX}{rec.name}.{prefix}')
+                    values += [nominal[n] for n in turned]
+                    units += ['rad'] * 3
         out = out.extended(extra, np.array(values), units)
     return out
 

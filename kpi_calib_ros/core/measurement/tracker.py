@@ -277,9 +277,11 @@ class MeasurementModel:
     def body_rotation_expression(self, p: Expr, q: Expr, tau: Expr, reflector: int,
                                  z: Expr = None) -> Expr:
         """Rotation (3x3) of reflector ``reflector``'s tracked body in the tracker frame."""
-        world, _ = self._tool_pose(p, q, tau, z)
-        return world[0:3, 0:3] @ body_orientation(self.params.names, p, self.orientations[
-            reflector], reflector_prefixes(self.params)[reflector])
+        prefix = reflector_prefixes(self.params)[reflector]  # a remount: its own turn
+        own = [(self._recording_selects(r, z), f'{RECORDING_PREFIX}{r}.{prefix}')
+               for r in (self.recordings if z is not None else ())]
+        return self._tool_pose(p, q, tau, z)[0][0:3, 0:3] @ body_orientation(
+            self.params.names, p, self.orientations[reflector], prefix, own)
 
     def point_expression(self, p: Expr, q: Expr, tau: Expr = None,
                          reflector: int = 0, z: Expr = None) -> Expr:
