@@ -109,7 +109,7 @@ def main(argv: list[str]) -> int:
                          f'{cmp.other_region_rms_after_m * 1e6:.1f} µm, where measured '
                          f'{cmp.validation_rms_before_m * 1e6:.1f} -> '
                          f'{cmp.validation_rms_after_m * 1e6:.1f} µm, held-out gain z = '
-                         f'{cmp.gain.z:.2f} (needed > {cmp.gain.threshold(cmp.tests):.2f}), '
+                         f'{cmp.gain.z:.2f} (needed > {cmp.gain.threshold():.2f}), '
                          f'worse beyond noise in '
                          f'{cmp.worse_folds[0]} of {cmp.worse_folds[1]} held-out folds: '
                          f'{"recommended" if cmp.holds_elsewhere else "NOT recommended"}')

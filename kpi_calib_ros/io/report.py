@@ -96,7 +96,7 @@ def comparison_to_dict(cmp: ModelComparison) -> dict[str, Any]:
             'held_out_fold_rms_before_m': [_finite(v) for v in cmp.held_out_folds_before_m],
             'held_out_fold_rms_after_m': [_finite(v) for v in cmp.held_out_folds_after_m],
             'held_out_folds_worse': cmp.worse_folds[0],
-            'held_out_gain': None if cmp.gain is None else cmp.gain.to_dict(cmp.tests),
+            'held_out_gain': None if cmp.gain is None else cmp.gain.to_dict(),
             'holds_elsewhere': cmp.holds_elsewhere,
             'recommended': cmp.holds_elsewhere}
 
@@ -110,7 +110,7 @@ def region_verdict(cmp: ModelComparison) -> str:
     joint space better beyond noise (as ``auto`` asks)."""
     gain = ('' if cmp.gain is None or not np.isfinite(cmp.gain.z) else
             f'gain z = {cmp.gain.z:.2f} in held-out noise units (needed > '
-            f'{cmp.gain.threshold(cmp.tests):.2f}), ')
+            f'{cmp.gain.threshold():.2f}), ')
     figures = (gain + f'{_validation(cmp.other_region_rms_before_m, "", " µm")} -> '
                f'{_validation(cmp.other_region_rms_after_m, "", " µm")} over held-out regions '
                f'of joint space ({cmp.region_blocks} regions), '

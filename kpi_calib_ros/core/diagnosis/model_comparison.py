@@ -56,9 +56,6 @@ class ModelComparison:
     # The richer model's gain over held-out regions and in each held-out fold, in units of
     # what the held-out noise can do (core.diagnosis.model_selection.held_out_gain).
     gain: HeldOutGain | None = None
-    # The candidates compared with the same data for one choice (the Bonferroni count of
-    # the held-out test; 1: diagnose's best, or effects given).
-    tests: int = 1
 
     @property
     def holds_elsewhere(self) -> bool:
@@ -73,7 +70,7 @@ class ModelComparison:
         """
         if self.warnings or self.gain is None:
             return False
-        return self.gain.holds(self.tests)
+        return self.gain.holds()
 
     @property
     def worse_folds(self) -> tuple[int, int]:
@@ -86,7 +83,7 @@ class ModelComparison:
 def compare_models(before: tuple[MeasurementModel, CalibrationResult],
                    after: tuple[MeasurementModel, CalibrationResult], data: Measurements,
                    folds: int = 0, seed: int = 0, prior: Prior | None = None,
-                   balanced: bool = False, tests: int = 1) -> ModelComparison:
+                   balanced: bool = False) -> ModelComparison:
     """Rms, validation rms, effect parameters and TCP std before/after adding effects.
 
     ``after``'s model must contain the effects (its extra parameters are the
@@ -94,9 +91,8 @@ def compare_models(before: tuple[MeasurementModel, CalibrationResult],
     (where measured) and of folds that hold out whole regions of joint space, both models on
     the folds of ``after`` (which keep the rank of ``before``), every fold refitted with the
     fits' ``prior`` (``balanced``: balanced against the noise by the fits,
-    :func:`~kpi_calib_ros.core.estimation.precision.fit_prior`). ``tests``: the candidates
-    compared for this one choice (the Bonferroni count of the held-out test,
-    :func:`held_out_gain`; 1: diagnose's best, or effects given).
+    :func:`~kpi_calib_ros.core.estimation.precision.fit_prior`). The richer model is judged
+    alone (one choice: the held-out test at its level, :func:`held_out_gain`).
     """
     model_b, res_b = before
     model_a, res_a = after
@@ -129,7 +125,7 @@ def compare_models(before: tuple[MeasurementModel, CalibrationResult],
         held_out_folds_before_m=region_b.held_out_folds_m,
         held_out_folds_after_m=region_a.held_out_folds_m,
         held_out_noise_m=region_a.held_out_noise_m,
-        gain=held_out_gain(region_a, region_b), tests=tests,
+        gain=held_out_gain(region_a, region_b),
         p_value_before=res_b.p_value, p_value_after=res_a.p_value,
         effect_parameters=tuple(params),
         tcp_std_before_m=_tcp_std(res_b),

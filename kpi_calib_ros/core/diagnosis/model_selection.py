@@ -57,7 +57,7 @@ from kpi_calib_ros.core.model.parameters import ParameterSet
 __all__ = [
     'LEVELS', 'MODEL_CHOICES', 'PARSIMONY', 'DEFAULT_FOLDS', 'HELD_OUT_ALPHA', 'FOLD_ALPHA',
     'level_free', 'ModelChoice', 'cross_validated_level_rms', 'choose_model',
-    'holds_elsewhere', 'HeldOutGain', 'held_out_gain', 'worse_folds', 'TIE_M',
+    'holds_elsewhere', 'HeldOutGain', 'held_out_gain', 'TIE_M',
     'NominalComparison', 'against_nominal',
 ]
 
@@ -77,23 +77,6 @@ FOLD_ALPHA = 0.05
 # Two rms figures closer than this (m) are a tie, not a verdict: far below any tracker's
 # resolution, it keeps the rounding of two fits that predict alike from deciding.
 TIE_M = 1e-9
-
-
-def worse_folds(after: tuple[float, ...], before: tuple[float, ...],
-                noise: tuple[float, ...] = ()) -> tuple[int, int]:
-    """Return (folds where ``after`` is above ``before``, folds compared), paired figures (m).
-
-    A fold is compared where both figures are finite; above when by more than its
-    ``noise`` (what the stated noise alone spreads the fold's rms by,
-    :func:`~kpi_calib_ros.core.estimation.cross_validation.fold_rms`; default none) and
-    :data:`TIE_M`: a fold the effect predicts worse by less than its noise is a tie.
-    """
-    if len(after) != len(before):
-        raise ValueError(f'fold figures must pair: {len(after)} after, {len(before)} before')
-    noise = tuple(noise) or (0.0,) * len(after)
-    pairs = [(a, b, s) for a, b, s in zip(after, before, noise)
-             if np.isfinite(a) and np.isfinite(b)]
-    return sum(a > b + max(s, 0.0) + TIE_M for a, b, s in pairs), len(pairs)
 
 
 @dataclass(frozen=True)

@@ -22,9 +22,8 @@ published.
 A recording is *harmed* when the calibration's figure where measured (folds drawn like
 the measured poses) is above the nominal's by more than the noise: what the stated noise
 alone spreads an rms of the recording's n rows by, σ_p/√(6n) with σ_p² the mean total
-variance of its points (the margin of every held-out fold,
-:func:`kpi_calib_ros.core.estimation.cross_validation.fold_rms`,
-:func:`kpi_calib_ros.core.diagnosis.model_selection.worse_folds`), plus
+variance of its points (:func:`kpi_calib_ros.core.estimation.cross_validation.fold_rms`'s
+noise of a fold), plus
 :data:`~kpi_calib_ros.core.diagnosis.model_selection.TIE_M`. The two figures of one row
 share its noise, so this margin is wide for a difference of them: a recording is named only
 for a systematic loss. The figure over held-out regions of joint space is reported beside
