@@ -632,6 +632,14 @@ def test_a_remounted_tracked_body_has_its_own_orientation_identified_within_3_si
     # the turn b's body is identified with is the remount's, to its std
     turn = [equivalent.value(f'recording.b.reflector.probe.r{c}') for c in 'xyz']
     print('b turn (equivalent truth)', turn, 'true', omega)
+    # as identify publishes it: valid, the turn judged against the rotation tolerance
+    # (0.05 rad, a length tolerance before), within 3σ of the equivalent truth there too
+    from kpi_calib_ros.app.identify import calibrate_cell
+    cal = calibrate_cell(placed, data, model='geometric')
+    assert cal.valid and not cal.implausible, cal.implausible
+    for c in 'xyz':
+        name = f'recording.b.reflector.probe.r{c}'
+        assert abs(cal.result.value(name) - equivalent.value(name)) < 3 * cal.result.std_of(name)
     # the former model: b's probe offset its own, its body's orientation the first's
     m = placed.model
     keep = [i for i, n in enumerate(names) if not n.startswith('recording.b.reflector.probe.r')]

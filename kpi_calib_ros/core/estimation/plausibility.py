@@ -197,9 +197,11 @@ def _wrapped(d: float, unit: str) -> float:
 def _tolerance_key(name: str, unit: str) -> str:
     """Return the :class:`Tolerances` field of a geometric parameter."""
     if name.startswith(RECORDING_PREFIX):
-        # a further recording's placement: its base pose or its remounted reflector
-        return ('reflector_offset' if '.reflector' in name
-                else 'base_' + ('translation' if unit == 'm' else 'rotation'))
+        # a further recording's placement: its base pose, or its remounted reflector's
+        # offset (m) or tracked body's orientation (rad), judged as the first recording's
+        if '.reflector' in name:
+            return 'reflector_offset' if unit == 'm' else 'rotation'
+        return 'base_' + ('translation' if unit == 'm' else 'rotation')
     if name.startswith('reflector'):  # an offset, or a tracked body's orientation (rad)
         return 'reflector_offset' if unit == 'm' else 'rotation'
     base = name.startswith('base.')
