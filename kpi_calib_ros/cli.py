@@ -185,7 +185,8 @@ def build_parser() -> argparse.ArgumentParser:
                      choices=['base', 'base+reflector', 'reflector'],
                      help='the tracker (or probe) was set up again: re-fit the base pose '
                      '(base+reflector: and the reflector offsets; reflector: the offsets '
-                     'alone, the probe remounted) on the new recording alone first; the rms '
+                     'alone, the probe remounted; an identified body orientation with them) '
+                     'on the new recording alone first; the rms '
                      'after it is the figure to compare, chi2 loses its dof; a learned '
                      'residual is carried into the registered set-up')
     val.add_argument('--recording', metavar='NAME',

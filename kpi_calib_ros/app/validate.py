@@ -37,6 +37,7 @@ from kpi_calib_ros.core.estimation.residuals import (
     sigma_overstated_text,
 )
 from kpi_calib_ros.core.measurement.data import Measurements
+from kpi_calib_ros.core.measurement.pose import orientation_names
 from kpi_calib_ros.core.measurement.recordings import as_first
 from kpi_calib_ros.core.measurement.replicates import SAME_POSE_TOLERANCE
 from kpi_calib_ros.core.model.kinematics import rpy_matrix
@@ -50,7 +51,8 @@ from kpi_calib_ros.io.results import writable_folder, write_atomic
 
 # What ``validate --register`` re-fits on the new recording: the base pose, the base pose
 # and the reflector offsets, or the reflector offsets alone (the probe remounted, the
-# tracker where it was).
+# tracker where it was); a remounted tracked body whose orientation the cell identifies
+# is turned by its remount too, so its orientation is re-fitted with its offset.
 REGISTER = ('base', 'base+reflector', 'reflector')
 
 
@@ -62,8 +64,10 @@ def registered_names(cm: CellModel, register: str | None) -> list[str]:
         raise ConfigError('register', f'must be one of {list(REGISTER)}, not {register!r}')
     names = [] if register == 'reflector' else [f'base.{c}' for c in BASE_COMPONENTS]
     if register in ('base+reflector', 'reflector'):
-        names += [f'{prefix}.{c}' for prefix in reflector_prefixes(cm.model.params)
-                  for c in 'xyz']
+        params = set(cm.model.params.names)
+        for prefix in reflector_prefixes(cm.model.params):
+            names += [f'{prefix}.{c}' for c in 'xyz']
+            names += [n for n in orientation_names(prefix) if n in params]
     return names
 
 
