@@ -68,6 +68,46 @@ def _measure(folder: Path, name: str, bag: str, n: int, seed: int, robot: np.nda
     simulate_campaign(path, n, folder / bag, seed, cm=cm, p_true=truth)
 
 
+def _independent_residuals(folder: Path, cal: Path, bag: str, prefix: str
+                           ) -> tuple[np.ndarray, np.ndarray]:
+    """Point residuals (N, 3) (m) and body rotation residuals (N, 3) (rad, the rotation
+    vector of R_predᵀ R_measured) of ``bag``'s poses under calibration ``cal``, recomputed
+    with Pinocchio from the calibrated URDF and the placement parameters ``prefix`` + base /
+    reflector.probe names (URDF roll-pitch-yaw; the body: the cell's orientation times
+    exp of its turn). The bag is read by the tool's reader, which its own tests check."""
+    import pinocchio as pin
+
+    from kpi_calib_ros.app.measurements import measurements_from_bag
+    doc = yaml.safe_load((cal / 'calibration.yaml').read_text())
+    value = {p['name']: p['value'] for p in doc['parameters']}
+    cm = build_cell_model(load_cell(folder / 'cell.yaml'))
+    data = measurements_from_bag(cm, folder / bag)[0]
+    model = pin.buildModelFromXML((cal / 'robot_description_calibrated.urdf').read_text())
+    pdata = model.createData()
+    tip = model.getFrameId('tool0')
+    base_turn = Rotation.from_euler('xyz', [value[f'{prefix}base.{c}']
+                                            for c in ('roll', 'pitch', 'yaw')]).as_matrix()
+    base_shift = np.array([value[f'{prefix}base.{c}'] for c in 'xyz'])
+    offset = np.array([value[f'{prefix}reflector.probe.{c}'] for c in 'xyz'])
+    body = (Rotation.from_euler('xyz', BODY_RPY) * Rotation.from_rotvec(
+        [value[f'{prefix}reflector.probe.r{c}'] for c in 'xyz'])).as_matrix()
+    ref = np.asarray(data.reflector, int)
+    points, turns = [], []
+    for row in range(len(data)):
+        config = pin.neutral(model)
+        for name, angle in zip(cm.robot.joint_names, data.q[row]):
+            config[model.joints[model.getJointId(name)].idx_q] = angle
+        pin.framesForwardKinematics(model, pdata, config)
+        flange = pdata.oMf[tip]
+        if ref[row] == 0:
+            point = base_turn @ (flange.rotation @ offset + flange.translation) + base_shift
+            points.append(data.eta[row] - point)
+        else:
+            predicted = base_turn @ flange.rotation @ body
+            turns.append(Rotation.from_matrix(predicted.T @ data.rotation[row]).as_rotvec())
+    return np.array(points), np.array(turns)
+
+
 @pytest.fixture(scope='module')
 def campaign(tmp_path_factory):
     folder = tmp_path_factory.mktemp('remounted_body')
@@ -113,6 +153,14 @@ def test_a_remounted_tracked_body_is_identified_and_read_back_by_validate_and_pr
               f"{out['p_value']:.3g}, rms {out['rms_m'] * 1e6:.1f} µm")
     assert out['holds'] is True and out['recording'] == 'b'
     assert out['rms_m'] < 2 * np.sqrt(3) * SIGMA
+    # the same residuals recomputed without the tool's model: Pinocchio's tool0 of the
+    # calibrated URDF, placed by b's base pose, b's probe offset and b's body turn
+    points, turns = _independent_residuals(folder, cal, 'b_later.mcap', 'recording.b.')
+    written = np.array([p['residual_m'] for p in out['points'] if p['reflector'] == 0])
+    assert np.max(np.abs(points - written)) < 1e-9
+    angle_rms = np.sqrt(np.mean(np.sum(turns ** 2, axis=1)))
+    assert abs(angle_rms - out['rotation_rms_rad']['probe']) < 1e-9
+    assert angle_rms < 2 * np.sqrt(3) * SIGMA_ROTATION
     # the probe remounted at a's station, its body turned another way
     bag = ['--bag', str(folder / 'a_remounted.mcap')]
     assert main(args + bag + ['--out', str(folder / 'v_r'), '--register', 'reflector']) == 0, \
