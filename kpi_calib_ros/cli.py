@@ -29,6 +29,7 @@ from kpi_calib_ros.core.estimation.prior import (
     DRIFT_ANGLE_PER_SQRT_HOUR,
     DRIFT_LENGTH_PER_SQRT_HOUR,
 )
+from kpi_calib_ros.core.measurement.recordings import stated_conditions
 from kpi_calib_ros.io.names import DEFAULT_JOINT_TOPIC, DEFAULT_POINT_TOPIC, DEFAULT_POSE_TOPIC
 
 CODE_EFFECTS_HELP = ("let the cell file's effects: name Python code ('file.py:Type:joint', "
@@ -194,6 +195,11 @@ def build_parser() -> argparse.ArgumentParser:
                      "calibration (its recordings: section): placed as the calibration placed "
                      "it (its base pose, its reflector offsets when remounted), not as the "
                      'first recording')
+    val.add_argument('--covariate', action='append', default=[], metavar='NAME=VALUE',
+                     help='a condition every new row was measured under, in its SI unit '
+                     '(e.g. payload.mass=2.5); repeat per condition; with --recording it '
+                     "replaces that recording's own; needed when the calibration's "
+                     'recordings each stated it')
     _bag_topics(val)
 
     imp = sub.add_parser('import-csv', help='a table of static postures (CSV) into an MCAP bag')
@@ -476,7 +482,26 @@ def _validate(args: argparse.Namespace) -> int:
     return run_validate(args.cell, args.calibration, args.bag, args.out, args.register,
                         allow_code_effects=args.allow_code_effects,
                         joint_topic=args.joint_topic, point_topic=args.point_topic,
-                        pose_topic=args.pose_topic, recording=args.recording)
+                        pose_topic=args.pose_topic, recording=args.recording,
+                        conditions=_conditions(args.covariate))
+
+
+def _conditions(given: list[str]) -> dict[str, float]:
+    """``--covariate NAME=VALUE`` repeated, checked as a recording's conditions are."""
+    values: dict[str, Any] = {}
+    for item in given:
+        name, sep, text = item.partition('=')
+        try:
+            value = float(text)
+        except ValueError:
+            value = None
+        if not sep or not name or value is None:
+            raise ConfigError('--covariate', f'{item!r}: give NAME=VALUE, a number in the '
+                              "covariate's SI unit, e.g. payload.mass=2.5")
+        if name in values:
+            raise ConfigError('--covariate', f'{name!r} given twice')
+        values[name] = value
+    return stated_conditions(values, '--covariate')
 
 
 def _import_csv(args: argparse.Namespace) -> int:

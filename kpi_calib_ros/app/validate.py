@@ -17,7 +17,7 @@ from __future__ import annotations
 import dataclasses
 import json
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 
@@ -38,7 +38,12 @@ from kpi_calib_ros.core.estimation.residuals import (
 )
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.pose import orientation_names
-from kpi_calib_ros.core.measurement.recordings import as_first
+from kpi_calib_ros.core.measurement.recordings import (
+    Recording,
+    as_first,
+    combine,
+    row_covariates,
+)
 from kpi_calib_ros.core.measurement.replicates import SAME_POSE_TOLERANCE
 from kpi_calib_ros.core.model.kinematics import rpy_matrix
 from kpi_calib_ros.core.model.parameters import BASE_COMPONENTS, reflector_prefixes
@@ -340,6 +345,9 @@ def validation_text(doc: dict[str, Any]) -> str:
              *([f"placed as recording {doc['recording']} of the calibration (its base pose "
                 'and, remounted, its reflector offsets, with their covariance)']
                if doc.get('recording') else []),
+             *(['conditions of the new rows: ' + ', '.join(
+                 f'{k} = {v:g}' for k, v in doc['conditions'].items())]
+               if doc.get('conditions') else []),
              *(['re-registered on the new recording: '
                 + ', '.join(doc['registration']['parameters'])
                 + f" ({doc['registration']['dof']} dof); the rms above is after it"]
@@ -370,10 +378,51 @@ def validation_text(doc: dict[str, Any]) -> str:
     return '\n'.join(lines)
 
 
+def new_row_conditions(doc: dict[str, Any], data: Measurements, recording: str | None,
+                       stated: Mapping[str, float] | None = None
+                       ) -> tuple[Measurements, dict[str, float]]:
+    """The new rows with the conditions they were measured under, and those conditions.
+
+    ``stated`` (``validate --covariate``) holds on every new row; a later bag of the
+    calibration's recording ``recording`` (``--recording``) was measured under that
+    recording's conditions (its ``covariates``, e.g. its payload) where ``stated`` says
+    nothing; a covariate the bag carries row by row is kept where neither states one. Rows
+    that carry covariates carry every recording's one-hot too, at 0: they are placed by
+    ``base.*``.
+
+    Raises
+    ------
+    ConfigError
+        The calibration's recordings each stated a condition (``payload.mass``: one
+        calibration over several loads) that the new rows carry from nowhere: predicted
+        with the cell's one value they would be judged against a load nobody measured.
+    """
+    recordings = calibration_recordings(doc, 'calibration')
+    own = next((r.covariates for r in recordings if r.name == recording), {})
+    conditions = {**own, **dict(stated or {})}
+    carried = set(data.covariates or {})
+    needed = sorted({n for r in recordings for n in r.covariates} - carried - set(conditions))
+    if needed:
+        values = {n: sorted({r.covariates[n] for r in recordings}) for n in needed}
+        raise ConfigError('--covariate', f'the calibration\'s recordings were each measured '
+                          f'under their own {", ".join(needed)} ({values}); the new rows '
+                          'state none: give it, e.g. --covariate '
+                          f'{needed[0]}=VALUE, or --recording NAME for a later bag of one '
+                          'of its recordings')
+    if conditions:
+        data = combine([data], [Recording('new', covariates=conditions)])
+    if recordings and data.covariates:
+        # placed by base.* (the first's, or the named one's renamed so): no recording's own
+        zeros = row_covariates([r.name for r in recordings], np.zeros(len(data), int))
+        data = dataclasses.replace(data, covariates={**zeros, **data.covariates})
+    return data, conditions
+
+
 def validate_report(cm: CellModel, doc: dict[str, Any], data: Measurements,
                     out_dir: str | Path, register: str | None = None,
                     learned: Path | None = None,
-                    recording: str | None = None) -> dict[str, Any]:
+                    recording: str | None = None,
+                    conditions: Mapping[str, float] | None = None) -> dict[str, Any]:
     """Validate ``doc`` on ``data`` (re-fitting ``register`` first, :data:`REGISTER`) and
     write validation.json and the plot to ``out_dir``; returns the validation document.
 
@@ -381,9 +430,11 @@ def validate_report(cm: CellModel, doc: dict[str, Any], data: Measurements,
     are validated too (``learned_residual`` in the document,
     :func:`~kpi_calib_ros.app.learned_residual.validate_learned`). ``recording``: ``data``
     was measured from that set-up of the calibration's ``recordings:``, placed as it is
-    there (:func:`recording_calibration`); a learned residual is carried into it."""
+    there (:func:`recording_calibration`); a learned residual is carried into it.
+    ``conditions``: what the new rows were measured under (:func:`new_row_conditions`)."""
     if len(data) == 0:
         raise DataError('no new measurement to validate the calibration on')
+    data, conditions = new_row_conditions(doc, data, recording, conditions)
     p = parameter_vector(cm, doc)
     seen = doc if recording is None else recording_calibration(cm, doc, recording)
     placed = parameter_vector(cm, seen)
@@ -391,6 +442,8 @@ def validate_report(cm: CellModel, doc: dict[str, Any], data: Measurements,
     out = validation_to_dict(v, data, doc.get('rms_m'), cm, calibration_noise_scale(doc))
     if recording is not None:
         out['recording'] = recording
+    if conditions:
+        out['conditions'] = dict(conditions)
     if learned is not None:
         moved = seen is not doc or v.registration is not None
         out['learned_residual'] = learned_section(
@@ -446,11 +499,14 @@ def run_validate(cell_path: str | Path, calibration_path: str | Path, bag_path: 
                  out_dir: str | Path, register: str | None = None,
                  allow_code_effects: bool = False, joint_topic: str | None = None,
                  point_topic: str | None = None, pose_topic: str | None = None,
-                 recording: str | None = None) -> int:
+                 recording: str | None = None,
+                 conditions: Mapping[str, float] | None = None) -> int:
     """``kpi-calib validate``: validation.json and a plot in ``out_dir``; ``register``
     (:data:`REGISTER`) re-fits the placement on the new recording first; ``recording``
     (``--recording``): the new recording was made from that set-up of the calibration,
-    placed as the calibration placed it (:func:`recording_calibration`).
+    placed as the calibration placed it (:func:`recording_calibration`); ``conditions``
+    (``--covariate NAME=VALUE``): what every new row was measured under, e.g. its payload
+    (:func:`new_row_conditions`).
 
     ``allow_code_effects``: the cell's (and the calibration's) effects may name Python
     code, as for identify. ``joint_topic`` / ``point_topic`` / ``pose_topic``: the bag's
@@ -470,7 +526,7 @@ def run_validate(cell_path: str | Path, calibration_path: str | Path, bag_path: 
     data, pairing = measurements_from_bag(cm, bag_path, joint_topic, point_topic, pose_topic)
     print_rejections(pairing)
     out = validate_report(cm, doc, data, out_dir, register, learned_file(calibration_path),
-                          recording)
+                          recording, conditions)
     print(validation_text(out))
     print(f"written: {Path(out_dir) / VALIDATION_FILE}, "
           f"{Path(out_dir) / 'validation_residuals.png'}")

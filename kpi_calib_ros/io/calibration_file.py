@@ -21,7 +21,7 @@ import numpy as np
 from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.estimation.drift_state import DriftState
 from kpi_calib_ros.core.estimation.prior import PLACEMENT_PREFIXES, Prior
-from kpi_calib_ros.core.measurement.recordings import NAME_PATTERN, Recording
+from kpi_calib_ros.core.measurement.recordings import NAME_PATTERN, Recording, stated_conditions
 from kpi_calib_ros.core.model.parameters import RECORDING_PREFIX
 from kpi_calib_ros.io.yaml_bounded import FIX, read_yaml_file
 
@@ -47,7 +47,8 @@ def read_calibration_document(path: str | Path, key: str = 'calibration',
 
 def calibration_recordings(doc: dict[str, Any], where: str) -> list[Recording]:
     """The recordings a calibration was identified from (its ``recordings:`` section), each
-    with whether its probe was remounted; [] for a calibration of one recording. ConfigError
+    with whether its probe was remounted and the conditions stated for it (its constant
+    covariates, e.g. ``payload.mass``); [] for a calibration of one recording. ConfigError
     names the field."""
     section = doc.get('recordings')
     if section is None:
@@ -64,7 +65,9 @@ def calibration_recordings(doc: dict[str, Any], where: str) -> list[Recording]:
         if not isinstance(remounted, bool):
             raise ConfigError(f'recordings[{i}].reflector_remounted', f'in {where}: must be '
                               f'true or false; {FIX}')
-        out.append(Recording(entry['name'], remounted))
+        conditions = stated_conditions(entry.get('covariates') or {},
+                                       f'recordings[{i}].covariates', f'in {where}: ')
+        out.append(Recording(entry['name'], remounted, conditions))
     names = [r.name for r in out]
     if len(set(names)) != len(names):
         raise ConfigError('recordings', f'in {where}: names a recording twice; {FIX}')

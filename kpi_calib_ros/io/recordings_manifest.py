@@ -13,22 +13,19 @@ a :class:`ConfigError` naming ``recordings[i].<field>`` and the fix.
 """
 from __future__ import annotations
 
-import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.core.measurement.recordings import NAME_PATTERN, Recording
+from kpi_calib_ros.core.measurement.recordings import NAME_PATTERN, Recording, stated_conditions
 from kpi_calib_ros.io.yaml_bounded import read_yaml_file
 
 __all__ = ['RecordingSource', 'sources_from_bags', 'read_manifest', 'MANIFEST_FIX']
 
 MANIFEST_FIX = ('give recordings: a list of {bag: file.mcap, name: text, '
                 'reflector_remounted: true|false, covariates: {name: number}}')
-# A covariate name as effects read them: dotted words (payload.mass, temperature.link_2).
-_COVARIATE = re.compile(r'^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z0-9_\-]+)*$')
 _FIELDS = ('bag', 'name', 'reflector_remounted', 'covariates')
 
 
@@ -129,22 +126,8 @@ def read_manifest(path: str | Path) -> list[RecordingSource]:
             raise ConfigError(f'{key}.reflector_remounted', f'in {path}: the first '
                               'recording\'s reflector is the cell\'s; list a remounted '
                               'recording after it')
-        covariates = entry.get('covariates') or {}
-        if not isinstance(covariates, dict):
-            raise ConfigError(f'{key}.covariates', f'in {path}: must be a mapping '
-                              '{name: number}, e.g. {payload.mass: 5.0}')
-        values = {}
-        for cname, value in covariates.items():
-            if not isinstance(cname, str) or not _COVARIATE.match(cname) \
-                    or cname.startswith('recording.'):
-                raise ConfigError(f'{key}.covariates', f'in {path}: {cname!r} is no covariate '
-                                  'name (dotted words, e.g. payload.mass; recording.* is '
-                                  'the recordings\' own)')
-            if isinstance(value, bool) or not isinstance(value, (int, float)) \
-                    or not math.isfinite(value):
-                raise ConfigError(f'{key}.covariates.{cname}', f'in {path}: must be a finite '
-                                  f'number (in the covariate\'s unit, e.g. kg), got {value!r}')
-            values[cname] = float(value)
+        values = stated_conditions(entry.get('covariates') or {}, f'{key}.covariates',
+                                   f'in {path}: ')
         out.append(RecordingSource(bag_path, Recording(name, remounted, values)))
     stated = [set(s.recording.covariates) for s in out]
     every = set().union(*stated)

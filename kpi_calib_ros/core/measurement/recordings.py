@@ -22,13 +22,16 @@ working poses, fresh poses) is in the first recording's tracker frame.
 """
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass, field
-from typing import Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.measurement.data import Measurements
+from kpi_calib_ros.core.measurement.payload import PAYLOAD_MASS, PAYLOAD_MASS_LIMIT_KG
 from kpi_calib_ros.core.measurement.pose import orientation_names
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.core.measurement.weighting import noise_weights, row_torques, weighted_rows
@@ -45,12 +48,49 @@ __all__ = [
     'PREFIX', 'NAME_PATTERN', 'Recording', 'covariate', 'base_names', 'reflector_names',
     'recording_parameters', 'recording_names', 'placed_model', 'combine', 'row_recording',
     'row_covariates', 'Contribution', 'contributions', 'placement_names', 'to_first_frame',
-    'as_first',
+    'as_first', 'COVARIATE_NAME', 'stated_conditions',
 ]
 
 PREFIX = RECORDING_PREFIX
 # A recording's name is part of parameter names and YAML keys: letters, digits, _ and -.
 NAME_PATTERN = re.compile(r'^[A-Za-z][A-Za-z0-9_\-]*$')
+
+
+# A covariate name as effects read them: dotted words (payload.mass, temperature.link_2).
+COVARIATE_NAME = re.compile(r'^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z0-9_\-]+)*$')
+
+
+def stated_conditions(values: Any, key: str, where: str = '') -> dict[str, float]:
+    """Return a recording's constant covariates, checked, as floats.
+
+    ``values`` as stated, {name: number}: a manifest's ``covariates``, a calibration's
+    ``recordings[i].covariates``, ``validate --covariate``.
+
+    Raises
+    ------
+    ConfigError
+        Not a mapping, a name that is no covariate name (or a recording's own one-hot), a
+        value that is not a finite number, or a payload mass outside 0 to 5000 kg; the key is
+        ``key`` (``key.<name>`` for a value), the message starts with ``where``.
+    """
+    if not isinstance(values, dict):
+        raise ConfigError(key, f'{where}must be a mapping {{name: number}}, e.g. '
+                          '{payload.mass: 5.0}')
+    out = {}
+    for name, value in values.items():
+        if not isinstance(name, str) or not COVARIATE_NAME.match(name) \
+                or name.startswith(PREFIX):
+            raise ConfigError(key, f'{where}{name!r} is no covariate name (dotted words, e.g. '
+                              "payload.mass; recording.* is the recordings' own)")
+        if isinstance(value, bool) or not isinstance(value, (int, float)) \
+                or not math.isfinite(value):
+            raise ConfigError(f'{key}.{name}', f'{where}must be a finite number (in the '
+                              f"covariate's unit, e.g. kg), got {value!r}")
+        if name == PAYLOAD_MASS and not 0.0 <= value <= PAYLOAD_MASS_LIMIT_KG:
+            raise ConfigError(f'{key}.{name}', f'{where}{value!r} kg: a payload is 0 to '
+                              f'{PAYLOAD_MASS_LIMIT_KG:g} kg (SI kg)')
+        out[name] = float(value)
+    return out
 
 
 @dataclass(frozen=True)
