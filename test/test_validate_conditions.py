@@ -129,3 +129,25 @@ def test_a_bad_condition_is_refused_by_name(given, said, tmp_path, capsys):
                  str(tmp_path / 'v'), '--covariate', given])
     err = capsys.readouterr().err
     assert code == 2 and '--covariate' in err and said in err, err
+
+
+@pytest.mark.slow
+def test_rows_that_carry_their_payload_are_placed_by_the_first_recordings_base(loads):
+    """A new bag whose rows carry their payload themselves (a cell controller's topic, an
+    input source) against the calibration of two recordings: predicted with it and placed by
+    ``base.*``, as documented; such rows stopped the validation before ("the effects read
+    the covariate 'recording.loaded'")."""
+    import dataclasses
+
+    from kpi_calib_ros.app.measurements import measurements_from_bag
+    from kpi_calib_ros.app.validate import calibrated_model, validate_report
+    folder = loads
+    doc = read_calibration_document(folder / 'cal' / 'calibration.yaml')
+    cm, _ = calibrated_model(load_cell(folder / 'cell.yaml'), doc)
+    data = measurements_from_bag(cm, folder / 'unloaded_later.mcap')[0]
+    carried = dataclasses.replace(data, covariates={'payload.mass': np.zeros(len(data))})
+    out = validate_report(cm, doc, carried, folder / 'v_carried')
+    assert out['holds'] is True and 'conditions' not in out
+    assert out['rms_m'] < 1.25 * FLOOR
+    heavy = dataclasses.replace(data, covariates={'payload.mass': np.full(len(data), 5.0)})
+    assert validate_report(cm, doc, heavy, folder / 'v_heavy')['holds'] is False
