@@ -37,14 +37,13 @@ from kpi_calib_ros.app.diagnose import diagnose_cell
 from kpi_calib_ros.app.finish import finish_calibration
 from kpi_calib_ros.app.identify import calibrate_cell
 from kpi_calib_ros.app.learned_residual import learned_residual_section
-from kpi_calib_ros.app.measurements import with_recordings
 from kpi_calib_ros.app.reidentify import (
     cycle_prior,
     read_prior_calibration,
     reidentification_document,
     reidentify,
 )
-from kpi_calib_ros.app.validate import validate_report
+from kpi_calib_ros.app.validate import calibrated_model, validate_report
 from kpi_calib_ros.core.acquisition.outcomes import PairingResult
 from kpi_calib_ros.core.campaigns.change_detection import ChangeTest
 from kpi_calib_ros.core.campaigns.sequential import SequentialCampaign
@@ -274,8 +273,10 @@ def validate_work(cm: CellModel, calibration: str, data: Measurements,
     """Validate the calibration (the YAML text the node published) on new measurements,
     as ``kpi-calib validate`` (``--register register``) does; writes ``data_dir/validation/``.
 
-    ``cm``: the cell's model of one station; the calibration's further stations are placed
-    as it placed them (:func:`~kpi_calib_ros.app.validate.calibrated_model`). ``station``:
+    ``cm``: the cell's model of one station; the calibration's model is built from it with
+    the calibration's effects (those ``identification.model: auto`` added) and its further
+    stations, placed as it placed them (:func:`~kpi_calib_ros.app.validate.calibrated_model`).
+    ``station``:
     the station ``data`` was measured from; one the calibration holds places them as it
     did (``validate --recording``), another (or the first) by ``base.*``.
 
@@ -288,7 +289,8 @@ def validate_work(cm: CellModel, calibration: str, data: Measurements,
     stored = yaml.load(calibration, Loader=SAFE_LOADER)  # the node's own text
     recordings = calibration_recordings(stored, 'the calibration')
     known = [r.name for r in recordings]
-    doc = validate_report(with_recordings(cm, recordings), stored, data,
+    # the calibration's own model: the effects identification.model auto added, its stations
+    doc = validate_report(calibrated_model(cm.cell, stored)[0], stored, data,
                           data_dir / VALIDATION_DIR, register,
                           learned if learned.is_file() else None,
                           station if station in known else None)
