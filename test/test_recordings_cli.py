@@ -307,3 +307,45 @@ def test_validate_recording_carries_the_learned_residual_into_that_set_up(tmp_pa
     assert 'skipped' not in learned
     assert learned['rms_m'] < 0.7 * learned['rms_physical_m'], learned
     assert learned['holds'], learned
+
+
+def _as_node_logs(folder: Path, bags: dict[str, tuple[str, bool]]) -> list[Path]:
+    """Each bag's paired measurements written as the node writes its measurement log, one
+    log per station (``{bag: (station, reflector_remounted)}``), in order."""
+    from kpi_calib_ros.app.cell_model import build_cell_model
+    from kpi_calib_ros.app.measurements import measurements_from_bag
+    from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
+    from kpi_calib_ros.io.measurement_log import MeasurementLog
+    cm = build_cell_model(load_cell(folder / 'cell.yaml'))
+    logs = folder / 'data_dir'
+    for i, (bag, (station, remounted)) in enumerate(bags.items()):
+        data = measurements_from_bag(cm, folder / bag)[0]
+        with MeasurementLog(logs, station=station, reflector_remounted=remounted) as log:
+            for k in range(len(data)):
+                t = int(data.stamps_ns[k]) + i * 10 ** 12
+                log.append(JointSample(t, tuple(cm.joint_names), np.asarray(data.q[k], float)),
+                           PointSample(t, cm.cell.tracker_frame, np.asarray(data.eta[k], float)))
+    return sorted(logs.glob('measurements_*.mcap'))
+
+
+@pytest.mark.slow
+def test_node_logs_given_as_bags_keep_their_stations_remounted_probe(set_ups, capsys):
+    """The node's logs of station A and of A with the probe remounted (its log says so),
+    given as ``--bag`` once per log or in a manifest that does not state
+    ``reflector_remounted``: identified as the node identifies them, the second log with its
+    own probe offset, at the noise. Before, the remount was read from the command line only:
+    both logs shared one offset, rms 3 mm, and it exited 0."""
+    folder, _ = set_ups
+    logs = _as_node_logs(folder, {'a.mcap': ('station_a', False),
+                                  'a_remounted.mcap': ('station_r', True)})
+    assert [p.name for p in logs] == ['measurements_1.mcap', 'measurements_2.mcap']
+    (folder / 'logs.yaml').write_text(yaml.safe_dump({'recordings': [
+        {'bag': str(p)} for p in logs]}))
+    for tag, given in (('bags', ['--bag', str(logs[0]), '--bag', str(logs[1])]),
+                       ('manifest', ['--recordings', str(folder / 'logs.yaml')])):
+        out = folder / f'from_logs_{tag}'
+        assert main(['identify', '--cell', str(folder / 'cell.yaml'), *given, '--out',
+                     str(out)]) == 0, capsys.readouterr()
+        doc = yaml.safe_load((out / 'calibration.yaml').read_text())
+        assert [r['reflector_remounted'] for r in doc['recordings']] == [False, True], tag
+        assert doc['rms_m'] < 2 * np.sqrt(3) * 2e-5, (tag, doc['rms_m'])

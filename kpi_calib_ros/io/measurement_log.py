@@ -22,6 +22,7 @@ A log written before stations were stored holds neither: its measurements belong
 """
 from __future__ import annotations
 
+import mmap
 import os
 import re
 import zlib
@@ -359,9 +360,13 @@ def log_station(path: str | os.PathLike) -> tuple[str, bool]:
     path = Path(path)
     try:
         with open(path, 'rb') as f:
-            data = f.read()
+            size = os.fstat(f.fileno()).st_size
+            # Mapped, not read: any recording may be asked (``identify --bag``).
+            data = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) if size else b''
+        if data[:len(MAGIC)] != MAGIC:
+            return DEFAULT_STATION, False
         bag = scan(path, data)
-    except (OSError, BagError):
+    except (OSError, BagError, ValueError):
         return DEFAULT_STATION, False
     for m in bag.metadata:
         if m.name == LOG_METADATA and m.metadata.get('content') == LOG_CONTENT:

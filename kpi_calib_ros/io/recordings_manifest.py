@@ -20,6 +20,7 @@ from typing import Any, Sequence
 
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.measurement.recordings import NAME_PATTERN, Recording, stated_conditions
+from kpi_calib_ros.io.measurement_log import log_station
 from kpi_calib_ros.io.yaml_bounded import read_yaml_file
 
 __all__ = ['RecordingSource', 'sources_from_bags', 'read_manifest', 'MANIFEST_FIX']
@@ -62,7 +63,10 @@ def sources_from_bags(bags: Sequence[str | Path], remounted: Sequence[str] = ()
                       ) -> list[RecordingSource]:
     """The recordings of ``--bag`` given once or more, named by their file stems.
 
-    ``remounted`` (``--remounted``): names of the recordings whose probe was mounted again.
+    ``remounted`` (``--remounted``): names of the recordings whose probe was mounted again;
+    a node's measurement log that says its station's probe was remounted
+    (:func:`~kpi_calib_ros.io.measurement_log.log_station`) is too, after the first, as the
+    node's ``~/identify`` takes it.
 
     Raises
     ------
@@ -79,8 +83,8 @@ def sources_from_bags(bags: Sequence[str | Path], remounted: Sequence[str] = ()
     if names and names[0] in remounted:
         raise ConfigError('--remounted', f'{names[0]!r} is the first recording, whose reflector '
                           'is the cell\'s: list a later one, or give the bags in another order')
-    return _unique([RecordingSource(p, Recording(n, n in remounted))
-                    for p, n in zip(paths, names)], '--bag')
+    return _unique([RecordingSource(p, Recording(n, n in remounted or (
+        i > 0 and log_station(p)[1]))) for i, (p, n) in enumerate(zip(paths, names))], '--bag')
 
 
 def read_manifest(path: str | Path) -> list[RecordingSource]:
@@ -118,7 +122,8 @@ def read_manifest(path: str | Path) -> list[RecordingSource]:
         if not isinstance(name, str) or not NAME_PATTERN.match(name):
             raise ConfigError(f'{key}.name', f'in {path}: {name!r} must start with a letter '
                               'and hold letters, digits, _ or - only')
-        remounted = entry.get('reflector_remounted', False)
+        # unstated: as a node's measurement log says (its station's probe remounted)
+        remounted = entry.get('reflector_remounted', i > 0 and log_station(bag_path)[1])
         if not isinstance(remounted, bool):
             raise ConfigError(f'{key}.reflector_remounted', f'in {path}: must be true or '
                               f'false, got {remounted!r}')
