@@ -126,3 +126,21 @@ def test_a_calibration_of_another_robot_or_cell_is_refused(identified):
                                                      effects=('joint_compliance:joint_2',)))
     with pytest.raises(DataError, match='its model does not fit this cell'):
         read_stored_calibration(compliant, path)
+
+
+def test_a_working_pose_changed_since_the_calibration_is_refused(identified):
+    """The node's working pose moved since the calibration (joint_2 + 0.35 rad): the written
+    TCP is no longer where the calibration puts that pose, and restoring it would publish
+    the former place, 0.39 m off; refused, naming the pose and the fix. The pose as it was,
+    or given a payload the geometric model does not feel, restores."""
+    cm, *_, path, _ = identified
+    pose = cm.cell.working_poses[0]
+    moved = dataclasses.replace(pose, joints={**pose.joints, 'joint_2':
+                                              pose.joints['joint_2'] + 0.35})
+    other = build_cell_model(with_overrides(cm.cell, working_poses=(moved,)))
+    with pytest.raises(DataError, match=f"working pose '{pose.name}' is 3.* mm from where "
+                       'its parameters put that pose now.*identify again'):
+        read_stored_calibration(other, path)
+    for same in (pose, dataclasses.replace(pose, payload=(12.0, None))):
+        here = build_cell_model(with_overrides(cm.cell, working_poses=(same,)))
+        assert read_stored_calibration(here, path).tcp.shape == (1, 3)

@@ -27,6 +27,10 @@ from kpi_calib_ros.io.urdf_export import calibrated_urdf
 # DH/Hayati values (m, rad) of the robot computed again must equal the written ones to
 # this: the same URDF and values give them to round-off; another robot differs by far more.
 ROBOT_TOLERANCE = 1e-9
+# The written TCP computed again from the written parameters at the cell's working poses
+# (m): the same poses and payloads give it to round-off; a working pose whose joints or
+# payload changed since the calibration moves it by far more.
+TCP_TOLERANCE = 1e-7
 
 
 @dataclass(frozen=True)
@@ -135,6 +139,7 @@ def read_stored_calibration(cm: CellModel, path: str | Path) -> StoredCalibratio
                        f'(unknown here: {extra[:5]}): identified for another cell or robot')
     _check_robot(path, cal_cm, values, doc)
     tcp, tcp_covariance = _tcp(path, cal_cm, doc)
+    _check_working_poses(path, cal_cm, values, tcp)
     cov = doc['parameter_covariance']
     estimated = tuple(str(n) for n in cov['names'])
     return StoredCalibration(
@@ -176,6 +181,22 @@ def _check_robot(path: Path, cm: CellModel, values: np.ndarray, doc: dict[str, A
                                    'identified on another robot description')
 
 
+def _check_working_poses(path: Path, cm: CellModel, values: np.ndarray,
+                         tcp: np.ndarray) -> None:
+    """The written TCP is where the written parameters put the cell's working poses now
+    (their joints and payloads): a working pose changed since the calibration would be
+    published at its former place, with its former covariance."""
+    now = np.asarray(cm.model.jacobian(values, cm.q_work, cm.tau_work)[0],
+                     float).reshape(-1, 3)
+    moved = np.linalg.norm(now - tcp, axis=1)
+    if not np.all(moved <= TCP_TOLERANCE):
+        i = int(np.argmax(np.where(np.isfinite(moved), moved, np.inf)))
+        raise _refused(path, f'its TCP at working pose {cm.working_pose_names[i]!r} is '
+                       f'{moved[i] * 1e3:.4g} mm from where its parameters put that pose now: '
+                       'the working pose (its joints or payload) changed since the '
+                       'calibration; identify again for the working poses as they are')
+
+
 def _count(rows: Any) -> int | str:
     return len(rows) if isinstance(rows, list) else 'no'
 
@@ -203,4 +224,4 @@ def _tcp(path: Path, cm: CellModel, doc: dict[str, Any]) -> tuple[np.ndarray, np
     return position, covariance
 
 
-__all__ = ['ROBOT_TOLERANCE', 'StoredCalibration', 'read_stored_calibration']
+__all__ = ['ROBOT_TOLERANCE', 'TCP_TOLERANCE', 'StoredCalibration', 'read_stored_calibration']
