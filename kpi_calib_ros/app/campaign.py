@@ -109,6 +109,9 @@ def campaign_calibration(cm: CellModel, campaign: SequentialCampaign,
              f'({status.sigma_upper * 1e6:.3g} um, stated {status.sigma_stated * 1e6:.3g} um): '
              'the sigma the sequential campaign stopped on')
     doc['precision']['basis'] = basis
+    # The covariance is scaled for confidence, not for noise: new points scatter by the noise
+    # the fit showed (its own scale, 1 for an adequate model), which validate and --prior read.
+    doc['precision']['noise_scale'] = float(base.covariance_scale)
     doc['campaign'] = {'statistic_m': float(status.statistic),
                        'statistic': 'largest per-axis TCP std over the working poses',
                        'sigma': basis, 'sigma_upper_m': float(status.sigma_upper),

@@ -176,13 +176,21 @@ def run_design(cell_path: str | Path, n: int, criterion: str, out: str | Path,
     rng = np.random.default_rng(seed)
     prior, p, allowed, prior_doc = None, None, None, None
     if prior_path is not None:
-        from kpi_calib_ros.app.reidentify import cycle_prior, read_prior_calibration
+        from kpi_calib_ros.app.reidentify import (
+            cycle_prior,
+            read_prior_calibration,
+            with_noise_scale,
+        )
         old = read_prior_calibration(prior_path)
         cp = cycle_prior(cm, old, None, drift[0], drift[1], keep_placement=keep_placement,
                          drift_model=drift_model, hours=hours,
                          rotation_rate=drift[2] if len(drift) > 2 else None,
                          placement_rate=drift[3] if len(drift) > 3 else None,
                          swing=swing)
+        # the new points weighted as identify --prior will weigh them: at the noise the
+        # prior showed (σ·√scale, reidentify.with_noise_scale), not the cell's σ
+        cm = with_noise_scale(cm, cp.noise_scale)
+        cell, settings = cm.design_cell(), cm.design_settings
         prior, p, allowed = cp.prior, design_point(cm, cp), cp.allowed
         prior_doc = {'source': str(prior_path), 'description': cp.description,
                      'hours': float(hours), 'keep_placement': keep_placement}

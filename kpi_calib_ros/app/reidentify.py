@@ -283,16 +283,43 @@ def cycle_prior(cm: CellModel, doc: dict[str, Any], data: Measurements | None,
                 f'±{swing.offset_rad:.3g} rad, period {swing.period_hours:g} h): '
                 + ('its drift_state' if stored else 'no drift_state in it: stationary')
                 + f' extrapolated over {hours:.3g} h')
-    noise_scale = calibration_noise_scale(doc)
+    covariance_scale = calibration_noise_scale(doc)
+    fitted = fitted_sigma_ratio(cm, doc)
+    noise_scale = covariance_scale * fitted ** 2
     noise_dof = None
-    if noise_scale != 1.0:
+    if covariance_scale != 1.0:
         noise_dof = int((doc.get('model_adequacy') or {}).get('dof', 0)) or None
-        how += (f'; its model was not adequate (chi2/dof {noise_scale:.3g}): new points are '
-                f'weighted by the noise it showed, {np.sqrt(noise_scale):.3g} x the stated '
-                'sigma, and the change test accounts for that estimate'
+        how += (f'; its model was not adequate (chi2/dof {covariance_scale:.3g}): new points '
+                f'are weighted by the noise it showed, {np.sqrt(noise_scale):.3g} x the '
+                'stated sigma, and the change test accounts for that estimate'
                 + (f' ({noise_dof} dof)' if noise_dof else ''))
+    elif fitted != 1.0:
+        how += (f'; it was fitted at {fitted:.3g} x the stated sigma (the noise its own prior '
+                'showed, noise_sigma_m): new points are weighted by it')
     return CyclePrior(widened, values, allowed, keep_placement, hours, how, noise_scale,
                       noise_dof, state, swing, tuple(warnings))
+
+
+def fitted_sigma_ratio(cm: CellModel, doc: dict[str, Any]) -> float:
+    """The noise σ the calibration ``doc`` was fitted at (``noise_sigma_m``) over the cell's
+    stated σ (mean over the axes); 1 when it states none.
+
+    A calibration identified with a prior whose model was not adequate was fitted at the
+    noise that prior showed (:func:`with_noise_scale`) and is adequate at it
+    (``covariance_scale`` 1): the next cycle weighs its points by that σ too, or prior and
+    data lose their balance and the change test rejects the same robot (a 3× noise: χ² 830
+    for 111 dof, p 2e-110).
+    """
+    written = doc.get('noise_sigma_m')
+    try:
+        fitted = float(np.mean(np.asarray(written, float)))
+    except (TypeError, ValueError):
+        return 1.0
+    stated = float(np.mean(np.asarray(cm.cell.sigma, float)))
+    if written is None or not np.isfinite(fitted) or fitted <= 0.0 or stated <= 0.0:
+        return 1.0
+    ratio = fitted / stated
+    return 1.0 if abs(ratio - 1.0) < 1e-9 else ratio
 
 
 def drift_time_warnings(hours: float, stamp_ns: int) -> list[str]:

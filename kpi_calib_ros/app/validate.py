@@ -138,11 +138,19 @@ def parameter_vector(cm: CellModel, doc: dict[str, Any]) -> np.ndarray:
 
 
 def calibration_noise_scale(doc: dict[str, Any]) -> float:
-    """χ²/dof the calibration's covariance was scaled by (its model not adequate), else 1:
-    new points scatter about its predictions by σ·√scale, the noise it showed."""
-    scale = float((doc.get('precision') or {}).get('covariance_scale', 1.0))
+    """χ²/dof the calibration's noise showed (its model not adequate), else 1: new points
+    scatter about its predictions by σ·√scale, the noise it showed.
+
+    ``precision.noise_scale`` where the covariance was scaled for another reason (a stopped
+    sequential campaign's, to the upper confidence limit of σ: read as noise it widened
+    every new point and a bag 1.3× noisier than stated held), else
+    ``precision.covariance_scale`` (identify scales the covariance by the noise it showed).
+    """
+    precision = doc.get('precision') or {}
+    key = 'noise_scale' if 'noise_scale' in precision else 'covariance_scale'
+    scale = float(precision.get(key, 1.0))
     if not np.isfinite(scale) or scale <= 0.0:
-        raise ConfigError('calibration.precision.covariance_scale',
+        raise ConfigError(f'calibration.precision.{key}',
                           f'must be a positive number, not {scale}; identify again')
     return scale
 

@@ -134,10 +134,9 @@ def check_calibration_document(doc: dict[str, Any], where: str,
         if not isinstance(precision, dict):
             raise bad('precision', f'must be a mapping (covariance_scale, basis), got '
                       f'{precision!r}')
-        if 'covariance_scale' in precision and _finite(
-                precision['covariance_scale'], 'precision.covariance_scale', bad) <= 0:
-            raise bad('precision.covariance_scale', 'must be > 0, got '
-                      f"{precision['covariance_scale']!r}")
+        for key in ('covariance_scale', 'noise_scale'):
+            if key in precision and _finite(precision[key], f'precision.{key}', bad) <= 0:
+                raise bad(f'precision.{key}', f'must be > 0, got {precision[key]!r}')
     adequacy = doc.get('model_adequacy')
     if adequacy is not None:
         if not isinstance(adequacy, dict):
