@@ -147,3 +147,28 @@ def test_a_campaigns_confidence_scaling_is_not_read_as_noise(tmp_path):
         verdicts[tag] = json.loads((tmp_path / f'v_{tag}' / 'validation.json').read_text())
     assert verdicts['stated']['holds'] is True and verdicts['stated']['noise_scale'] == 1.0
     assert verdicts['noisier']['holds'] is False
+
+
+@pytest.mark.slow
+def test_rows_with_their_own_sigma_are_weighed_at_the_noise_the_prior_showed(cycles):
+    """The tracker states σ on every row (the cell's 20 µm, the noise 3× that): with cycle
+    0 (scale ≈ 9) as prior, the rows' own σ is scaled as the cell's is (and as validate
+    scales them): the fit is adequate at it, as without rows' σ (unscaled: χ² 984 for 95
+    dof and the calibration's covariance scaled again by 10)."""
+    import dataclasses
+
+    from kpi_calib_ros.app.cell_model import build_cell_model
+    from kpi_calib_ros.app.measurements import measurements_from_bag
+    from kpi_calib_ros.app.reidentify import cycle_prior, read_prior_calibration, reidentify
+    if not (cycles / 'c0' / 'calibration.yaml').is_file():
+        assert _identify(cycles, 0)[0] == 0
+    cm = build_cell_model(load_cell(cycles / 'cell.yaml'))
+    data = measurements_from_bag(cm, cycles / 'b1.mcap')[0]
+    stated = dataclasses.replace(data, sigma=np.full((len(data), 3), STATED))
+    old = read_prior_calibration(cycles / 'c0' / 'calibration.yaml')
+    out = reidentify(cm, stated, cycle_prior(cm, old, stated, hours=0.0))
+    plain = reidentify(cm, data, cycle_prior(cm, old, data, hours=0.0))
+    assert out.change.consistent and out.calibration is not None
+    assert out.fit.chi2 < 1.5 * out.fit.dof
+    assert out.calibration.result.covariance_scale == 1.0
+    assert abs(out.fit.chi2 - plain.fit.chi2) < 1e-6 * plain.fit.chi2

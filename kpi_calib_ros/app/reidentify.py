@@ -381,6 +381,9 @@ def reidentify(cm: CellModel, data: Measurements, cp: CyclePrior, model: str | N
     if len(data) == 0:
         raise DataError('no accepted measurement to identify from')
     cm = with_noise_scale(cm, cp.noise_scale)
+    if data.sigma is not None and cp.noise_scale != 1.0:  # rows' own σ, as validate scales them
+        data = dataclasses.replace(data, sigma=np.asarray(data.sigma, float)
+                                   * np.sqrt(cp.noise_scale))
     start = cycle_start(cm, data, cp)
     level = model or cm.cell.identification.model
     free = [n for n in level_free(cm.model.params, 'geometric' if level == 'auto' else level,
