@@ -151,3 +151,25 @@ def test_rows_that_carry_their_payload_are_placed_by_the_first_recordings_base(l
     assert out['rms_m'] < 1.25 * FLOOR
     heavy = dataclasses.replace(data, covariates={'payload.mass': np.full(len(data), 5.0)})
     assert validate_report(cm, doc, heavy, folder / 'v_heavy')['holds'] is False
+
+
+@pytest.mark.slow
+def test_a_next_cycle_under_its_own_payload_is_no_change(loads):
+    """The two-load calibration as the prior of a later unloaded cycle whose rows carry
+    their payload (0 kg): the change test predicts each row with its own torques, as the
+    fit does, and finds the same robot; it predicted them with the cell's 5 kg and reported
+    a change."""
+    import dataclasses
+
+    from kpi_calib_ros.app.cell_model import build_cell_model
+    from kpi_calib_ros.app.measurements import measurements_from_bag
+    from kpi_calib_ros.app.reidentify import cycle_prior, read_prior_calibration, reidentify
+    folder = loads
+    cm = build_cell_model(load_cell(folder / 'cell.yaml'),
+                          effects=tuple(f'joint_compliance:{j}' for j in COMPLIANCE))
+    data = measurements_from_bag(cm, folder / 'unloaded_later.mcap')[0]
+    unloaded = dataclasses.replace(data, covariates={'payload.mass': np.zeros(len(data))})
+    old = read_prior_calibration(folder / 'cal' / 'calibration.yaml')
+    out = reidentify(cm, unloaded, cycle_prior(cm, old, unloaded, hours=0.0))
+    assert out.change.consistent, (out.change.chi2, out.change.dof)
+    assert out.fit.chi2 < 1.5 * out.fit.dof

@@ -36,7 +36,12 @@ from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.core.estimation.prior import Prior
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
-from kpi_calib_ros.core.measurement.weighting import weighted_rows
+from kpi_calib_ros.core.measurement.weighting import (
+    noise_weights,
+    row_torques,
+    weighted_residuals,
+    weighted_rows,
+)
 
 __all__ = ['CHANGE_ALPHA', 'ParameterShift', 'ChangeTest', 'change_test']
 
@@ -104,7 +109,9 @@ def change_test(model: MeasurementModel, data: Measurements, sigma: float | np.n
                 alpha: float = CHANGE_ALPHA, sigma_dof: int | None = None) -> ChangeTest:
     """Innovation tests of ``data`` against ``prior`` at the MAP estimate ``result``.
 
-    ``result`` is identified with that prior on the same data, all points weighted by ``sigma``.
+    ``result`` is identified with that prior on the same data, every row weighted as the
+    identification weighs it (``sigma`` or the row's own stated σ, the joint-reading noise)
+    and predicted with its own torques (its payload, its measured efforts).
 
     ``sigma_dof``: ``sigma`` is itself an estimate on that many degrees of freedom (σ̂ of
     a previous calibration whose model was not adequate); the tests then use the F
@@ -120,12 +127,14 @@ def change_test(model: MeasurementModel, data: Measurements, sigma: float | np.n
         raise ValueError(f'alpha must be in (0, 1), got {alpha}')
     p = np.asarray(result.values, float)
     idx = model.params.indices(list(result.estimated))
-    w = 1.0 / np.broadcast_to(np.asarray(sigma, float), (3,))
     q = np.atleast_2d(data.q)
-    tau = model.robot.gravity_torques(q) if model.uses_torque else None
+    # Each row as the identification takes it: its own torques (payload, measured efforts),
+    # its own stated σ and the joint-reading noise.
+    tau = row_torques(model, data)
+    w = noise_weights(model, p, data, sigma, tau)
     pred, jac = model.jacobian(p, q, tau, data.reflector, data.rotation, data.covariates)
-    r_data = ((np.atleast_2d(data.eta) - pred) * w).ravel()
-    f_data = weighted_rows(jac, np.broadcast_to(w, (len(q), 3)), idx)
+    r_data = weighted_residuals(np.atleast_2d(data.eta) - pred, w).ravel()
+    f_data = weighted_rows(jac, w, idx)
     l_full, lm = prior.rows(model.params)
     r_prior = lm - l_full @ p
     a = np.vstack([f_data, l_full[:, idx]])
