@@ -4,7 +4,6 @@ node's cell model lacks when ``identification.model: auto`` added them."""
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
