@@ -311,12 +311,14 @@ def fitted_sigma_ratio(cm: CellModel, doc: dict[str, Any]) -> float:
     for 111 dof, p 2e-110).
     """
     written = doc.get('noise_sigma_m')
+    if written is None:
+        return 1.0
     try:
         fitted = float(np.mean(np.asarray(written, float)))
     except (TypeError, ValueError):
         return 1.0
     stated = float(np.mean(np.asarray(cm.cell.sigma, float)))
-    if written is None or not np.isfinite(fitted) or fitted <= 0.0 or stated <= 0.0:
+    if not np.isfinite(fitted) or fitted <= 0.0 or stated <= 0.0:
         return 1.0
     ratio = fitted / stated
     return 1.0 if abs(ratio - 1.0) < 1e-9 else ratio

@@ -122,8 +122,10 @@ def read_manifest(path: str | Path) -> list[RecordingSource]:
         if not isinstance(name, str) or not NAME_PATTERN.match(name):
             raise ConfigError(f'{key}.name', f'in {path}: {name!r} must start with a letter '
                               'and hold letters, digits, _ or - only')
-        # unstated: as a node's measurement log says (its station's probe remounted)
-        remounted = entry.get('reflector_remounted', i > 0 and log_station(bag_path)[1])
+        # unstated: as a node's measurement log says (its station's probe remounted); the
+        # bag is scanned for it only then
+        remounted = (entry['reflector_remounted'] if 'reflector_remounted' in entry
+                     else i > 0 and log_station(bag_path)[1])
         if not isinstance(remounted, bool):
             raise ConfigError(f'{key}.reflector_remounted', f'in {path}: must be true or '
                               f'false, got {remounted!r}')
