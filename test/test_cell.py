@@ -53,7 +53,7 @@ def test_obstacles_are_read_as_written_and_built_as_collision_objects():
     doc = _doc()
     doc['obstacles'] = [
         {'name': 'floor', 'type': 'halfspace', 'normal': [0, 0, 2], 'offset': -1.2},
-        {'name': 'box', 'frame': 'link_2', 'a': [1, 0, 0], 'b': [1, 1, 0], 'radius': 0.2}]
+        {'name': 'box', 'a': [1, 0, 0], 'b': [1, 1, 0], 'radius': 0.2}]
     doc['collision'] = {'capsules': [{'link': 'link_3', 'a': [0, 0, 0], 'b': [0.5, 0, 0],
                                       'radius': 0.1}]}
     cell = cell_from_dict(doc, DEFAULT_CELL.parent)
@@ -205,3 +205,62 @@ def test_identification_priority_names_are_checked_against_the_model():
     doc = _set(_doc(), 'identification', {'priority': ['joint_1.offset']})  # method pivoted
     with pytest.raises(ConfigError, match='only with method: priority'):
         cell_from_dict(doc, DEFAULT_CELL.parent)
+
+
+@pytest.mark.parametrize('key, value', [
+    ('payload.com', [0, 0, 80]),                       # millimetres
+    ('payload.mass', 12000.0),                         # grams
+    ('working_poses.0.payload', {'mass': 5.0, 'com': [0, 0, 80]}),
+])
+def test_payload_values_in_other_units_are_caught_at_load(key, value):
+    doc = _doc()
+    if key.startswith('working_poses'):
+        doc['working_poses'][0]['payload'] = value
+        key = 'working_poses[0].payload.com'
+    else:
+        doc = _set(doc, key, value)
+    with pytest.raises(ConfigError) as info:
+        cell_from_dict(doc, DEFAULT_CELL.parent)
+    assert info.value.key == key
+    assert 'SI' in str(info.value)
+
+
+@pytest.mark.parametrize('path, key, named', [
+    (('payload',), 'cog', 'payload.cog'),
+    (('robot',), 'joint_couplng', 'robot.joint_couplng'),
+    (('tracker',), 'frame', 'tracker.frame'),
+    (('reflector',), 'max_incidense', 'reflector.max_incidense'),
+    (('noise',), 'sigma_joint', 'noise.sigma_joint'),
+    (('collision',), 'beamradius', 'collision.beamradius'),
+    (('obstacles', 0), 'ofset', 'obstacles[0].ofset'),
+])
+def test_a_misspelled_key_is_refused_not_ignored(path, key, named):
+    """Before, each of these loaded with the key's default in place of the stated value."""
+    doc = _doc()
+    target = doc
+    for step in path:
+        target = target.setdefault(step, {}) if isinstance(target, dict) else target[step]
+    target[key] = 1.0
+    with pytest.raises(ConfigError, match='unknown key') as info:
+        cell_from_dict(doc, DEFAULT_CELL.parent)
+    assert info.value.key == named
+
+
+def test_an_obstacle_takes_only_its_own_shapes_keys():
+    """A capsule with an ``offset`` or a ``frame`` (obstacles are in the base frame) would
+    be built without it; a half-space with a capsule's radius likewise."""
+    capsule = {'name': 'pillar', 'type': 'capsule', 'a': [1.0, 0, 0], 'b': [1.0, 0, 1.0],
+               'radius': 0.1}
+    for extra, named in (({'offset': 0.2}, 'obstacles[0].offset'),
+                         ({'frame': 'link_3'}, 'obstacles[0].frame')):
+        doc = _doc()
+        doc['obstacles'] = [{**capsule, **extra}]
+        with pytest.raises(ConfigError) as info:
+            cell_from_dict(doc, DEFAULT_CELL.parent)
+        assert info.value.key == named
+    doc = _doc()
+    doc['obstacles'] = [{'name': 'floor', 'type': 'halfspace', 'normal': [0, 0, 1],
+                         'radius': 0.3}]
+    with pytest.raises(ConfigError) as info:
+        cell_from_dict(doc, DEFAULT_CELL.parent)
+    assert info.value.key == 'obstacles[0].radius'

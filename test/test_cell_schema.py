@@ -32,7 +32,9 @@ STRICT = {'': (), 'identification': ('identification',),
           'identification.prior': ('identification', 'prior'),
           'identification.tolerances': ('identification', 'tolerances'),
           'simulation': ('simulation',), 'topics': ('topics',), 'design': ('design',),
-          'reflectors[]': ('reflectors', 0)}
+          'reflectors[]': ('reflectors', 0), 'robot': ('robot',), 'tracker': ('tracker',),
+          'reflector': ('reflector',), 'noise': ('noise',), 'payload': ('payload',),
+          'collision': ('collision',), 'collision.capsules[]': ('collision', 'capsules', 0)}
 
 
 def _base() -> dict[str, Any]:
@@ -70,6 +72,9 @@ def _section_doc(where: tuple, key: str) -> dict[str, Any]:
     if where and where[0] == 'reflectors':
         doc['reflector'].pop('offset', None)
         doc['reflectors'] = [{'name': 'm1'}]
+    if where[:2] == ('collision', 'capsules'):
+        doc.setdefault('collision', {})['capsules'] = [
+            dict(cell_key('collision.capsules').example[0])]
     if where == ('identification', 'prior'):
         doc.setdefault('identification', {})['prior'] = dict(
             cell_key('identification.prior').example)
@@ -119,6 +124,10 @@ def test_every_described_key_set_to_its_example_is_accepted(key):
         doc['reflector'].pop('offset', None)
     if key.path == 'reflectors[].orientation':
         doc['noise']['sigma_rotation'] = 1.0e-4
+    if key.path in ('obstacles[].a', 'obstacles[].b', 'obstacles[].radius'):
+        # a capsule's keys, on a capsule (a half-space refuses them)
+        doc['obstacles'] = [{'name': 'pillar', 'type': 'capsule', 'a': [1.75, -2.0, -0.15],
+                             'b': [1.75, 2.0, -0.15], 'radius': 0.45}]
     if key.path == 'identification.priority':
         doc.setdefault('identification', {})['method'] = 'priority'
         key_example: Any = ['joint_1.offset']

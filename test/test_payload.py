@@ -16,10 +16,12 @@ from kpi_calib_ros.core.effects.registry import parse_effect_spec
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.payload import row_payloads
+from kpi_calib_ros.core.measurement.recordings import stated_conditions
 from kpi_calib_ros.core.measurement.weighting import row_torques
 from kpi_calib_ros.core.model.robot import Payload, RobotModel
 from kpi_calib_ros.core.simulation import random_configurations, true_parameters
 from kpi_calib_ros.io.cell import DEFAULT_CELL, cell_from_dict, read_cell_document
+from kpi_calib_ros.io.cell_inputs import check_covariate_name
 
 SIGMA = 20e-6
 COMPLIANCE = {'joint_2': -2e-6, 'joint_3': -3e-6}
@@ -59,6 +61,29 @@ def test_a_payload_that_is_none_is_refused():
         row_payloads({'payload.mass': np.ones(2), 'payload.com.z': np.ones(2)}, 2, default)
     got = row_payloads({'payload.mass': np.array([1.0, 2.0])}, 2, default)
     assert got == [Payload(1.0, (0.0, 0.0, 0.05)), Payload(2.0, (0.0, 0.0, 0.05))]
+
+
+def test_a_payload_centre_in_millimetres_or_a_misspelled_payload_input_is_refused():
+    """Before, a centre of 80 (mm written as m) gave torques of an 80 m lever, a centre
+    without a mass and ``payload.mas`` were ignored: the rows were fitted with the cell's
+    payload."""
+    default = Payload(5.0, (0.0, 0.0, 0.05))
+    com = {f'payload.com.{a}': np.array([0.0, 80.0 if a == 'z' else 0.0]) for a in 'xyz'}
+    with pytest.raises(ValueError, match='row 1: .*within 2 m of the tip frame'):
+        row_payloads({'payload.mass': np.ones(2), **com}, 2, default)
+    with pytest.raises(ValueError, match='a payload centre without a mass'):
+        row_payloads({**com}, 2, default)
+    with pytest.raises(ValueError, match="'payload.mas' is no payload input"):
+        row_payloads({'payload.mas': np.ones(2)}, 2, default)
+    for key, value, named in (('payload.mas', 5.0, 'covariates.payload.mas'),
+                              ('payload.com.z', 80.0, 'covariates.payload.com.z')):
+        with pytest.raises(ConfigError) as info:
+            stated_conditions({key: value}, 'covariates')
+        assert info.value.key == named
+    assert stated_conditions({'payload.com.z': 0.08, 'payload.mass': 5}, 'c') == \
+        {'payload.com.z': 0.08, 'payload.mass': 5.0}
+    with pytest.raises(ConfigError, match="'payload.mas' is no payload input"):
+        check_covariate_name('payload.mas', 'mapping.covariates')
 
 
 def _cell_with_working_payload(payload):

@@ -51,6 +51,8 @@ from kpi_calib_ros.io.cell_sections import (
     CapsuleSpec,
     HalfSpaceSpec,
     WorkingPose,
+    checked_payload_com,
+    checked_payload_mass,
     identified_orientations,
     parse_capsule,
     parse_coupling,
@@ -83,6 +85,7 @@ from kpi_calib_ros.io.cell_values import (
     number_or_vector,
     optional_mapping,
     optional_vector,
+    refuse_unknown,
     required_mapping,
     required_string,
     vector,
@@ -95,6 +98,14 @@ from kpi_calib_ros.io.yaml_bounded import SAFE_LOADER, dump_yaml, read_yaml_file
 _TOP_KEYS = {'robot', 'tracker', 'reflector', 'reflectors', 'noise', 'payload', 'working_poses',
              'obstacles', 'collision', 'identification', 'effects', 'simulation', 'design',
              'topics', 'temperature', 'inputs', 'compliance'}
+# The keys of each section (documented in io/cell_schema.py; test_cell_schema.py checks both).
+_ROBOT_KEYS = {'urdf', 'base_frame', 'tip_frame', 'package_dirs', 'joint_coupling',
+               'working_poses_in'}
+_SECTION_KEYS = {'tracker': {'frame_id', 'base_in_tracker'},
+                 'reflector': {'offset', 'axis', 'max_incidence'},
+                 'noise': {'sigma', 'sigma_rotation', 'joint_sigma'},
+                 'payload': {'mass', 'com'},
+                 'collision': {'capsules', 'ignore_pairs', 'beam_radius'}}
 DEFAULT_CELL = Path(__file__).resolve().parent.parent / 'data' / 'cells' / 'default_cell.yaml'
 
 
@@ -234,6 +245,7 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None,
     if unknown:
         raise ConfigError(sorted(unknown)[0], f'unknown key; allowed keys are {sorted(_TOP_KEYS)}')
     robot = required_mapping(doc, 'robot')
+    refuse_unknown(robot, 'robot', _ROBOT_KEYS)
     if urdf_xml is None:
         urdf_rel = required_string(robot, 'robot.urdf', 'urdf')
         urdf_path = (base_dir / urdf_rel).resolve()
@@ -254,6 +266,10 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None,
             raise ConfigError(key, 'must be a mapping')
     noise = required_mapping(doc, 'noise')
     payload = optional_mapping(doc, 'payload')
+    collision = optional_mapping(doc, 'collision')
+    for key, section in (('tracker', tracker), ('reflector', reflector), ('noise', noise),
+                         ('payload', payload), ('collision', collision)):
+        refuse_unknown(section, key, _SECTION_KEYS[key])
     axis = vector(reflector.get('axis', [0, 0, 1]), 'reflector.axis', 3)
     if np.linalg.norm(axis) < 1e-9:
         raise ConfigError('reflector.axis', 'must be a non-zero vector in the tip frame')
@@ -273,14 +289,11 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None,
     max_inc = number(reflector, 'max_incidence', 'reflector', np.deg2rad(30.0), 'rad')
     if not 0 < max_inc <= np.pi / 2:
         raise ConfigError('reflector.max_incidence', 'must be in (0, π/2] rad (30° = 0.5236)')
-    collision = optional_mapping(doc, 'collision')
     ident = optional_mapping(doc, 'identification')
     method = ident.get('method', 'pivoted')
     if method not in ('pivoted', 'priority'):
         raise ConfigError('identification.method', "must be 'pivoted' or 'priority'")
-    mass = number(payload, 'mass', 'payload', 0.0, 'kg')
-    if mass < 0:
-        raise ConfigError('payload.mass', 'must be >= 0 kg')
+    mass = checked_payload_mass(number(payload, 'mass', 'payload', 0.0, 'kg'), 'payload.mass')
     return Cell(
         urdf_xml=urdf_xml, urdf_path=str(urdf_path),
         base_frame=required_string(robot, 'robot.base_frame', 'base_frame'),
@@ -293,11 +306,11 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None,
             optional_vector(reflector.get('offset'), 'reflector.offset', 3)),
         reflector_axis=axis / np.linalg.norm(axis), max_incidence=max_inc, sigma=sigma,
         payload_mass=mass,
-        payload_com=vector(payload.get('com', [0, 0, 0]), 'payload.com', 3),
+        payload_com=checked_payload_com(payload.get('com', [0, 0, 0]), 'payload.com'),
         working_poses=parse_working_poses(doc.get('working_poses')),
         obstacles=tuple(parse_obstacle(o, f'obstacles[{i}]')
                         for i, o in enumerate(doc.get('obstacles') or [])),
-        robot_capsules=tuple(parse_capsule(c, f'collision.capsules[{i}]', frame_key='link')
+        robot_capsules=tuple(parse_capsule(c, f'collision.capsules[{i}]')
                              for i, c in enumerate(collision.get('capsules') or [])),
         ignore_pairs=tuple(parse_ignore_pair(p, f'collision.ignore_pairs[{i}]')
                            for i, p in enumerate(collision.get('ignore_pairs') or [])),

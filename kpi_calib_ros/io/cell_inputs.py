@@ -42,6 +42,7 @@ from kpi_calib_ros.core.measurement.covariates import (
     EFFORT_PREFIX,
     TEMPERATURE_PREFIX,
 )
+from kpi_calib_ros.core.measurement.payload import payload_name_error
 from kpi_calib_ros.io.names import DEFAULT_INPUTS_TOPIC
 
 __all__ = ['INPUT_KEYS', 'SOURCE_KEYS', 'TORQUE_SOURCES', 'InputSource', 'InputSettings',
@@ -93,6 +94,9 @@ def check_covariate_name(name: Any, key: str) -> str:
     if not isinstance(name, str) or not _NAME.match(name):
         raise ConfigError(key, f'{name!r} is not a covariate name: dotted words such as '
                           'tilt.column.x or payload.mass (letters, digits, _ and -)')
+    misspelled = payload_name_error(name)
+    if misspelled:
+        raise ConfigError(key, misspelled)
     if name.startswith((TEMPERATURE_PREFIX, DELTA_TEMPERATURE, EFFORT_PREFIX)):
         raise ConfigError(key, f'{name!r}: temperatures come from the temperature: section and '
                           'measured torques from compliance.torque_source: measured; name the '

@@ -12,9 +12,16 @@ import numpy as np
 
 from kpi_calib_ros.core.acquisition.coupling import JointCoupling
 from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.core.measurement.payload import PAYLOAD_COM_LIMIT_M, PAYLOAD_MASS_LIMIT_KG
 from kpi_calib_ros.core.measurement.pose import rotation_from_quaternion, rotation_from_rpy
 from kpi_calib_ros.core.model.robot import Mimic
-from kpi_calib_ros.io.cell_values import joint_value, non_negative, number, vector
+from kpi_calib_ros.io.cell_values import (
+    joint_value,
+    non_negative,
+    number,
+    refuse_unknown,
+    vector,
+)
 
 # Plausibility of SI values: beyond these a value is almost surely in other units.
 MAX_TRACKER_RANGE_M = 50.0     # laser trackers measure to ~40-80 m; cells are far smaller
@@ -229,6 +236,25 @@ def parse_working_poses(value: Any) -> tuple[WorkingPose, ...]:
     return tuple(poses)
 
 
+def checked_payload_mass(mass: float, key: str) -> float:
+    """A payload mass in kg: 0 to :data:`PAYLOAD_MASS_LIMIT_KG` (grams or tonnes are refused)."""
+    if not 0.0 <= mass <= PAYLOAD_MASS_LIMIT_KG:
+        raise ConfigError(key, f'{mass!r} kg: a payload is 0 to {PAYLOAD_MASS_LIMIT_KG:g} kg '
+                          '(SI kg; grams? divide by 1000)')
+    return float(mass)
+
+
+def checked_payload_com(value: Any, key: str) -> np.ndarray:
+    """A payload's centre of mass [x, y, z] in the tip frame, m: each within
+    :data:`PAYLOAD_COM_LIMIT_M` of the flange (millimetres written as metres are refused)."""
+    com = vector(value, key, 3)
+    if np.any(np.abs(com) > PAYLOAD_COM_LIMIT_M):
+        raise ConfigError(key, f'{com.tolist()} m: a payload centre more than '
+                          f'{PAYLOAD_COM_LIMIT_M:g} m from the tip frame (SI metres: 50 mm is '
+                          '0.05)')
+    return com
+
+
 def _working_payload(value: Any, key: str
                      ) -> tuple[float, tuple[float, float, float] | None] | None:
     """A working pose's ``payload: {mass: kg, com: [x, y, z] m}`` (com optional: the cell's
@@ -240,14 +266,11 @@ def _working_payload(value: Any, key: str
         raise ConfigError(key, 'must be {mass: kg, com: [x, y, z] m in the tip frame} (com '
                           'optional: the cell payload\'s centre), the load the robot carries '
                           'at this pose')
-    mass = number(value, 'mass', key, None, 'kg')
-    if not 0.0 <= mass <= 5000.0:
-        raise ConfigError(f'{key}.mass', f'{mass!r} kg: a payload is 0 to 5000 kg (SI kg; '
-                          'grams? divide by 1000)')
+    mass = checked_payload_mass(number(value, 'mass', key, None, 'kg'), f'{key}.mass')
     if value.get('com') is None:
-        return float(mass), None
-    com = vector(value['com'], f'{key}.com', 3)
-    return float(mass), (float(com[0]), float(com[1]), float(com[2]))
+        return mass, None
+    com = checked_payload_com(value['com'], f'{key}.com')
+    return mass, (float(com[0]), float(com[1]), float(com[2]))
 
 
 def working_poses_from_arrays(names: Sequence[str], values: Sequence[float],
@@ -300,29 +323,41 @@ class HalfSpaceSpec:
     offset: float
 
 
-def parse_capsule(item: Any, key: str, frame_key: str = 'frame') -> CapsuleSpec:
+_CAPSULE_KEYS = {'name', 'a', 'b', 'radius'}
+
+
+def parse_capsule(item: Any, key: str, frame_key: str = 'link') -> CapsuleSpec:
+    """A robot capsule ``{name, link, a, b, radius}`` in the frame of ``link``."""
     if not isinstance(item, dict):
-        raise ConfigError(key, 'must be a mapping {name, a, b, radius}')
-    radius = non_negative(number(item, 'radius', key, unit='m'), f'{key}.radius', 'm')
+        raise ConfigError(key, 'must be a mapping {name, link, a, b, radius}')
+    refuse_unknown(item, key, _CAPSULE_KEYS | {frame_key})
     frame = str(item.get(frame_key, 'base'))
-    return CapsuleSpec(str(item.get('name', frame if frame_key == 'link' else key)), frame,
+    return _capsule(item, key, frame, frame)
+
+
+def _capsule(item: dict, key: str, frame: str, default_name: str) -> CapsuleSpec:
+    radius = non_negative(number(item, 'radius', key, unit='m'), f'{key}.radius', 'm')
+    return CapsuleSpec(str(item.get('name', default_name)), frame,
                        _point(vector(item.get('a'), f'{key}.a', 3)),
                        _point(vector(item.get('b'), f'{key}.b', 3)), float(radius))
 
 
 def parse_obstacle(item: Any, key: str) -> CapsuleSpec | HalfSpaceSpec:
+    """An obstacle in the robot base frame: ``{name, type: halfspace, normal, offset}`` or
+    ``{name, type: capsule, a, b, radius}``; a key of the other type is refused."""
     if not isinstance(item, dict) or 'name' not in item:
         raise ConfigError(key, 'must be a mapping with name and type (capsule or halfspace)')
     kind = item.get('type', 'capsule')
     if kind == 'halfspace':
+        refuse_unknown(item, key, {'name', 'type', 'normal', 'offset'})
         normal = vector(item.get('normal'), f'{key}.normal', 3)
         if np.linalg.norm(normal) < 1e-9:
             raise ConfigError(f'{key}.normal', 'must be non-zero')
         return HalfSpaceSpec(str(item['name']), _point(normal),
                              float(number(item, 'offset', key, 0.0, 'm')))
     if kind == 'capsule':
-        cap = parse_capsule(item, key)
-        return CapsuleSpec(cap.name, 'base', cap.a, cap.b, cap.radius)
+        refuse_unknown(item, key, _CAPSULE_KEYS | {'type'})
+        return _capsule(item, key, 'base', key)
     raise ConfigError(f'{key}.type', f"must be 'capsule' or 'halfspace', got {kind!r}")
 
 

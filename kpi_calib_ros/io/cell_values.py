@@ -25,6 +25,17 @@ def number(section: Mapping[str, Any], name: str, path: str,
     return float(value)
 
 
+def refuse_unknown(section: Any, path: str, allowed: Any) -> None:
+    """Raise for a key of the mapping ``section`` (at ``path``) that is not in ``allowed``: a
+    misspelled key (``payload.cog``) would otherwise be ignored and its default used."""
+    if not isinstance(section, Mapping):
+        return
+    unknown = sorted(str(k) for k in set(section) - set(allowed))
+    if unknown:
+        raise ConfigError(f'{path}.{unknown[0]}' if path else unknown[0],
+                          f'unknown key; allowed keys are {sorted(allowed)} (check the spelling)')
+
+
 def non_negative(value: float, key: str, unit: str) -> float:
     if value < 0:
         raise ConfigError(key, f'must be >= 0 {unit}, got {value}')

@@ -39,6 +39,7 @@ from kpi_calib_ros.core.measurement.covariates import (
     covariate_unit,
     plausible_temperature,
 )
+from kpi_calib_ros.core.measurement.payload import PAYLOAD_COM_LIMIT_M, PAYLOAD_MASS_LIMIT_KG
 from kpi_calib_ros.io.bag_writing import BagStream
 from kpi_calib_ros.io.csv_mapping import (
     CsvMapping,
@@ -106,7 +107,7 @@ def read_postures(path: str | Path, mapping: CsvMapping, fmt: TableFormat | None
                         f'{present} (read as {fmt.describe()}). Fix the mapping, or give '
                         '--delimiter / --decimal')
     zone = time_zone(mapping.stamp_timezone)
-    joint_scale, point_scale = _UNITS[mapping.joint_unit], _UNITS[mapping.point_unit]
+    joint_scale, point_scale = mapping.joint_scales(), _UNITS[mapping.point_unit]
     degrees = mapping.angle_unit == 'deg'
     for line, row in rows:
         cell = _Cells(path, line, row, fmt)
@@ -148,8 +149,9 @@ def read_postures(path: str | Path, mapping: CsvMapping, fmt: TableFormat | None
 
 # The size a measured input of a known kind may have (SI): beyond, a unit slip or a fault.
 _INPUT_LIMITS = (('tilt.', -0.5, 0.5, 'rad: a column leaning by more than 0.5 rad is no '
-                  'lean'), ('payload.mass', 0.0, 5000.0, 'kg'),
-                 ('payload.com.', -2.0, 2.0, 'm from the tip frame'))
+                  'lean'), ('payload.mass', 0.0, PAYLOAD_MASS_LIMIT_KG, 'kg'),
+                 ('payload.com.', -PAYLOAD_COM_LIMIT_M, PAYLOAD_COM_LIMIT_M,
+                  'm from the tip frame'))
 
 
 def _plausible_input(cell: _Cells, name: str, column: str, unit: str, value: float) -> float:

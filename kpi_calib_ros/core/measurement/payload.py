@@ -20,14 +20,29 @@ import numpy as np
 
 from kpi_calib_ros.core.model.robot import Payload, RobotModel
 
-__all__ = ['PAYLOAD_MASS', 'PAYLOAD_COM', 'PAYLOAD_MASS_LIMIT_KG', 'row_payloads',
-           'payload_torques']
+__all__ = ['PAYLOAD_MASS', 'PAYLOAD_COM', 'PAYLOAD_MASS_LIMIT_KG', 'PAYLOAD_COM_LIMIT_M',
+           'payload_name_error', 'row_payloads', 'payload_torques']
 
 PAYLOAD_MASS = 'payload.mass'
 PAYLOAD_COM = ('payload.com.x', 'payload.com.y', 'payload.com.z')
 # What any arm a tracker calibrates may lift, with margin (the largest industrial arms carry
 # 2.3 t): a value beyond is a unit slip (grams) or a fault of the controller's report.
 PAYLOAD_MASS_LIMIT_KG = 5000.0
+# How far a payload's centre of mass may lie from the tip frame, per axis: a tool, not a
+# second arm; beyond, millimetres written as metres.
+PAYLOAD_COM_LIMIT_M = 2.0
+
+
+def payload_name_error(name: str) -> str | None:
+    """Return why ``name`` is a misspelled payload input, or None.
+
+    A name in the ``payload.`` namespace that is none of its names (``payload.mas``) would be
+    read by nothing; any other name is None.
+    """
+    if not name.startswith('payload.') or name == PAYLOAD_MASS or name in PAYLOAD_COM:
+        return None
+    return (f'{name!r} is no payload input: the payload is {PAYLOAD_MASS} (kg) and '
+            f'{", ".join(PAYLOAD_COM)} (m, tip frame)')
 
 
 def row_payloads(covariates: Mapping[str, np.ndarray] | None, n: int,
@@ -43,7 +58,15 @@ def row_payloads(covariates: Mapping[str, np.ndarray] | None, n: int,
         A mass negative, beyond :data:`PAYLOAD_MASS_LIMIT_KG` or not finite, a centre not
         finite, only some of the three centre coordinates, or another length than ``n``.
     """
-    if not covariates or PAYLOAD_MASS not in covariates:
+    if not covariates:
+        return None
+    misspelled = [e for e in map(payload_name_error, covariates) if e]
+    if misspelled:
+        raise ValueError(misspelled[0])
+    if PAYLOAD_MASS not in covariates:
+        if any(name in covariates for name in PAYLOAD_COM):
+            raise ValueError(f'a payload centre without a mass: give {PAYLOAD_MASS} (kg) with '
+                             f'{list(PAYLOAD_COM)}')
         return None
     mass = np.asarray(covariates[PAYLOAD_MASS], float).reshape(-1)
     given = [name for name in PAYLOAD_COM if name in covariates]
@@ -55,11 +78,13 @@ def row_payloads(covariates: Mapping[str, np.ndarray] | None, n: int,
     if mass.shape != (n,) or com.shape != (n, 3):
         raise ValueError(f'{PAYLOAD_MASS} must hold one value per row ({n}), got {mass.shape}')
     bad = ~(np.isfinite(mass) & (mass >= 0) & (mass <= PAYLOAD_MASS_LIMIT_KG)
-            & np.all(np.isfinite(com), axis=1))
+            & np.all(np.isfinite(com), axis=1)
+            & np.all(np.abs(com) <= PAYLOAD_COM_LIMIT_M, axis=1))
     if bad.any():
         i = int(np.argmax(bad))
         raise ValueError(f'row {i}: payload {float(mass[i])!r} kg at {com[i].tolist()} m is not a '
-                         f'payload (finite, 0 to {PAYLOAD_MASS_LIMIT_KG:g} kg, SI units)')
+                         f'payload (finite, 0 to {PAYLOAD_MASS_LIMIT_KG:g} kg, its centre within '
+                         f'{PAYLOAD_COM_LIMIT_M:g} m of the tip frame per axis, SI units)')
     return [Payload(float(m), (float(c[0]), float(c[1]), float(c[2])))
             for m, c in zip(mass, com)]
 

@@ -31,7 +31,13 @@ import numpy as np
 
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.measurement.data import Measurements
-from kpi_calib_ros.core.measurement.payload import PAYLOAD_MASS, PAYLOAD_MASS_LIMIT_KG
+from kpi_calib_ros.core.measurement.payload import (
+    PAYLOAD_COM,
+    PAYLOAD_COM_LIMIT_M,
+    PAYLOAD_MASS,
+    PAYLOAD_MASS_LIMIT_KG,
+    payload_name_error,
+)
 from kpi_calib_ros.core.measurement.pose import orientation_names
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.core.measurement.weighting import noise_weights, row_torques, weighted_rows
@@ -69,8 +75,9 @@ def stated_conditions(values: Any, key: str, where: str = '') -> dict[str, float
     Raises
     ------
     ConfigError
-        Not a mapping, a name that is no covariate name (or a recording's own one-hot), a
-        value that is not a finite number, or a payload mass outside 0 to 5000 kg; the key is
+        Not a mapping, a name that is no covariate name (or a recording's own one-hot, or a
+        ``payload.`` name that is none of the payload's), a value that is not a finite number,
+        a payload mass outside 0 to 5000 kg or a centre beyond 2 m per axis; the key is
         ``key`` (``key.<name>`` for a value), the message starts with ``where``.
     """
     if not isinstance(values, dict):
@@ -82,6 +89,9 @@ def stated_conditions(values: Any, key: str, where: str = '') -> dict[str, float
                 or name.startswith(PREFIX):
             raise ConfigError(key, f'{where}{name!r} is no covariate name (dotted words, e.g. '
                               "payload.mass; recording.* is the recordings' own)")
+        misspelled = payload_name_error(name)
+        if misspelled:
+            raise ConfigError(f'{key}.{name}', f'{where}{misspelled}')
         if isinstance(value, bool) or not isinstance(value, (int, float)) \
                 or not math.isfinite(value):
             raise ConfigError(f'{key}.{name}', f'{where}must be a finite number (in the '
@@ -89,6 +99,10 @@ def stated_conditions(values: Any, key: str, where: str = '') -> dict[str, float
         if name == PAYLOAD_MASS and not 0.0 <= value <= PAYLOAD_MASS_LIMIT_KG:
             raise ConfigError(f'{key}.{name}', f'{where}{value!r} kg: a payload is 0 to '
                               f'{PAYLOAD_MASS_LIMIT_KG:g} kg (SI kg)')
+        if name in PAYLOAD_COM and not abs(value) <= PAYLOAD_COM_LIMIT_M:
+            raise ConfigError(f'{key}.{name}', f'{where}{value!r} m: a payload centre within '
+                              f'{PAYLOAD_COM_LIMIT_M:g} m of the tip frame (SI metres: 50 mm is '
+                              '0.05)')
         out[name] = float(value)
     return out
 
