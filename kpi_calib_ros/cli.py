@@ -76,6 +76,18 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _level(text: str) -> float:
+    """``--alpha A``: a false-alarm level, strictly between 0 and 1."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float('nan')
+    if not 0.0 < value < 1.0:
+        raise argparse.ArgumentTypeError(f'{text!r}: a false-alarm level is strictly between 0 '
+                                         'and 1, e.g. 0.01 (1 %)')
+    return value
+
+
 DEFAULT_SWING = DriftSwing()  # the defaults: TEMPERATURE_SWING_K, OFFSET_SWING_RAD, DAY_HOURS
 SWING_HELP = ('drift state of a daily swing (core.estimation.drift_state.DriftSwing): the rates '
               'of the prior '
@@ -169,7 +181,7 @@ def build_parser() -> argparse.ArgumentParser:
     dia.add_argument('--model', choices=['auto', 'registration', 'joint_offsets', 'geometric'],
                      help="model level the effects are screened against (overrides the cell's "
                      'identification.model)')
-    dia.add_argument('--alpha', type=float, default=None,
+    dia.add_argument('--alpha', type=_level, default=None,
                      help='family-wise false-alarm level of the effect tests (default: the '
                      'adequacy level, 0.01)')
     _bag_topics(dia)

@@ -271,3 +271,14 @@ def test_a_reader_that_closes_the_pipe_early_loses_no_result(run_bag, tmp_path):
     assert code == 0, stderr
     assert 'Traceback' not in stderr and 'BrokenPipeError' not in stderr, stderr
     assert yaml.safe_load((out / 'calibration.yaml').read_text())['valid'] is True
+
+
+@pytest.mark.parametrize('alpha', ['5', '0', '1', 'nan', '-0.01', 'one'])
+def test_a_false_alarm_level_outside_0_1_is_refused(alpha, tmp_path, capsys):
+    """Before, ``--alpha 5`` ran a diagnosis that tested nothing and exited 0, and ``nan``
+    failed on writing its JSON."""
+    with pytest.raises(SystemExit) as info:
+        main(['diagnose', '--cell', CELL, '--bag', str(tmp_path / 'b.mcap'), '--out',
+              str(tmp_path / 'd'), '--alpha', alpha])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and '--alpha' in err and 'between 0 and 1' in err

@@ -60,6 +60,14 @@ BAD = {
     'one name twice': ([{'bag': 'station_a.mcap', 'name': 'x'},
                         {'bag': 'station_b.mcap', 'name': 'x'}], 'recordings'),
     'not a list': ({'bag': 'station_a.mcap'}, 'recordings'),
+    # the same rows twice would halve every std the fit states
+    'one bag twice': ([{'bag': 'station_a.mcap', 'name': 'x'},
+                       {'bag': './station_a.mcap', 'name': 'y'}], 'recordings'),
+    'a misspelled payload': ([{'bag': 'station_a.mcap', 'covariates': {'payload.mas': 5.0}}],
+                             'recordings[0].covariates.payload.mas'),
+    'a payload centre in mm': ([{'bag': 'station_a.mcap',
+                                 'covariates': {'payload.mass': 5.0, 'payload.com.z': 80}}],
+                               'recordings[0].covariates.payload.com.z'),
 }
 
 

@@ -56,6 +56,14 @@ def _unique(sources: list[RecordingSource], key: str) -> list[RecordingSource]:
         raise ConfigError(key, f'recordings named {twice} more than once (a name comes from '
                           'the file stem): rename the bags or name them in a manifest '
                           '(--recordings)')
+    files = [s.bag.resolve() for s in sources]
+    again = next((i for i, f in enumerate(files) if f in files[:i]), None)
+    if again is not None:
+        first = files.index(files[again])
+        raise ConfigError(key, f'the bag {str(sources[again].bag)!r} is given twice (recordings '
+                          f'{sources[first].recording.name!r} and '
+                          f'{sources[again].recording.name!r}): its rows would count twice and '
+                          'the fit claim twice the data; list each bag once')
     return sources
 
 
