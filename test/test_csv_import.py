@@ -21,6 +21,7 @@ from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.measurements import measurements_from_bag
 from kpi_calib_ros.app.placement import registered_start
 from kpi_calib_ros.cli import main
+from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.io.cell import load_cell
 from kpi_calib_ros.io.csv_import import import_csv, load_mapping, mapping_from_dict, read_postures
 from kpi_calib_ros.io.names import DEFAULT_POSE_TOPIC, DEFAULT_TEMPERATURE_TOPIC
@@ -293,3 +294,25 @@ def test_a_temperature_no_arm_can_have_is_not_written_and_counted(tmp_path, caps
     assert 'temperature f: 22.00 to 22.40 °C' in out
     assert [m.temperature for m in _messages(bag, DEFAULT_TEMPERATURE_TOPIC)] == [22.0, 22.2,
                                                                                  22.4]
+
+
+def test_a_prismatic_joint_of_a_table_in_degrees_keeps_its_own_unit(tmp_path):
+    """``joint_unit: deg`` scaled every column, a lifting column's 0.35 m too (to 6.1 mm);
+    a joint now states its own unit, and one column read as two joints is refused."""
+    table = tmp_path / 't.csv'
+    table.write_text('lift;a1;x;y;z\n350;90;1;2;3\n')
+    mapping = mapping_from_dict({'frame_id': 'f', 'joint_unit': 'deg',
+                                 'joints': {'torso_lift_joint': {'column': 'lift', 'unit': 'mm'},
+                                            'arm_1_joint': 'a1'},
+                                 'markers': {'r': ['x', 'y', 'z']}})
+    row = next(iter(read_postures(table, mapping)))
+    np.testing.assert_allclose(row.q, [0.35, np.pi / 2], rtol=1e-15)
+    for joints, named in (({'torso_lift_joint': {'column': 'lift', 'unit': 'inch'}},
+                           'mapping.joints.torso_lift_joint.unit'),
+                          ({'torso_lift_joint': 'a1', 'arm_1_joint': 'a1'}, 'mapping.joints'),
+                          ({'torso_lift_joint': {'colum': 'lift'}},
+                           'mapping.joints.torso_lift_joint')):
+        with pytest.raises(ConfigError) as info:
+            mapping_from_dict({'frame_id': 'f', 'joints': joints,
+                               'markers': {'r': ['x', 'y', 'z']}})
+        assert info.value.key == named

@@ -15,6 +15,7 @@ from datetime import tzinfo
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from scipy.spatial.transform import Rotation
 
 from kpi_calib_ros.core.acquisition.reflector_frames import REFLECTOR_SEPARATOR
@@ -66,7 +67,10 @@ class CsvMapping:
     Attributes
     ----------
     joints : dict {joint name: column}
-        Joint values, in ``joint_unit`` (prismatic joints always in m).
+        Joint values, in ``joint_unit`` unless ``joint_units`` gives the joint its own.
+    joint_units : dict {joint name: unit}
+        A joint's own unit (``rad``, ``deg``, ``m``, ``mm``): a prismatic joint of a table in
+        degrees is in m or mm, and says so here (the table does not know the robot).
     markers : dict {marker name: MarkerColumns}
         Points (poses) in ``frame_id``; names as in the cell's ``reflectors:``.
     frame_id : str
@@ -105,6 +109,12 @@ class CsvMapping:
     delimiter: str | None = None
     decimal: str | None = None
     covariates: dict[str, CovariateColumn] = field(default_factory=dict)
+    joint_units: dict[str, str] = field(default_factory=dict)
+
+    def joint_scales(self) -> np.ndarray:
+        """SI factor of each joint column, in the order of ``joints``."""
+        return np.array([JOINT_UNITS[self.joint_units.get(j, self.joint_unit)]
+                         for j in self.joints])
 
     @property
     def columns(self) -> list[str]:
@@ -128,6 +138,8 @@ def mapping_from_dict(doc: Any) -> CsvMapping:
 
         frame_id: mocap
         joints: [torso_lift_joint, arm_1_joint]      # column = joint name, or {joint: column}
+        # a joint in its own unit (a prismatic one in a table in degrees):
+        # joints: {torso_lift_joint: {column: lift, unit: mm}, arm_1_joint: a1}
         markers: {m1: [x1, y1, z1], m2: [x2, y2, z2]}
         # or a 6-DoF body: {probe: {position: [x, y, z], orientation: [rx, ry, rz],
         #                           euler: XYZ, sigma: [sx, sy, sz]}}   # sigma optional
@@ -158,6 +170,7 @@ def mapping_from_dict(doc: Any) -> CsvMapping:
     if not isinstance(joints, dict) or not joints:
         raise ConfigError('mapping.joints',
                           'give the joint columns: [name, ...] or {joint: column}')
+    joints, joint_units = _joint_columns(joints)
     markers = doc.get('markers')
     if not isinstance(markers, dict) or not markers:
         raise ConfigError('mapping.markers', 'give {marker name: [x column, y column, z column]}')
@@ -187,10 +200,40 @@ def mapping_from_dict(doc: Any) -> CsvMapping:
         raise ConfigError('mapping.delimiter', f'{delimiter!r}: one of {list(DELIMITERS)}')
     if decimal is not None and decimal not in DECIMALS:
         raise ConfigError('mapping.decimal', f'{decimal!r}: one of {list(DECIMALS)}')
-    return CsvMapping({str(k): str(v) for k, v in joints.items()}, out_markers, frame,
+    return CsvMapping(joints, out_markers, frame,
                       tuple(str(s) for s in stamps), units['point_unit'], units['joint_unit'],
                       stamp_format, zone, units['angle_unit'], temperatures, delimiter, decimal,
-                      _covariates(doc.get('covariates')))
+                      _covariates(doc.get('covariates')), joint_units)
+
+
+JOINT_UNITS = {'rad': 1.0, 'deg': np.pi / 180.0, 'm': 1.0, 'mm': 1e-3}
+
+
+def _joint_columns(raw: dict) -> tuple[dict[str, str], dict[str, str]]:
+    """``mapping.joints`` {joint: column or {column, unit}}: the columns and the joints' own
+    units; one column read as two joints is refused (a copy-paste slip, not a coupling: a
+    coupled joint's value comes from the cell's ``robot.joint_coupling``)."""
+    columns, units = {}, {}
+    for joint, value in raw.items():
+        key = f'mapping.joints.{joint}'
+        if isinstance(value, dict):
+            if set(value) - {'column', 'unit'} or not isinstance(value.get('column'), str):
+                raise ConfigError(key, 'give a column, or {column: name, unit: rad|deg|m|mm}')
+            if value.get('unit') is not None:
+                if value['unit'] not in JOINT_UNITS:
+                    raise ConfigError(f'{key}.unit', f'{value["unit"]!r}: one of '
+                                      f'{list(JOINT_UNITS)} (m or mm for a prismatic joint)')
+                units[str(joint)] = str(value['unit'])
+            value = value['column']
+        if not isinstance(value, (str, int)) or isinstance(value, bool) or value == '':
+            raise ConfigError(key, f'{value!r}: give the column holding this joint')
+        columns[str(joint)] = str(value)
+    twice = sorted({c for c in columns.values() if list(columns.values()).count(c) > 1})
+    if twice:
+        both = [j for j, c in columns.items() if c == twice[0]]
+        raise ConfigError('mapping.joints', f'column {twice[0]!r} is read as joints {both}: '
+                          'give each joint its own column')
+    return columns, units
 
 
 def _covariates(raw: Any) -> dict[str, CovariateColumn]:
