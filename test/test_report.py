@@ -6,8 +6,11 @@ import json
 import pytest
 import yaml
 
+from kpi_calib_ros.app.measurements import load_measurements
 from kpi_calib_ros.cli import main
 from kpi_calib_ros.io.cell import DEFAULT_CELL
+from kpi_calib_ros.io.names import DIAGNOSIS_DIR
+from kpi_calib_ros.ros.job_work import diagnose_work
 
 HIDDEN = 'joint_compliance:shoulder_lift_joint'
 
@@ -82,3 +85,22 @@ def test_bad_effect_spec_exits_with_the_choices(campaign, tmp_path, capsys):
     assert code == 2
     err = capsys.readouterr().err
     assert "'joint_compliance:elbow'" in err and 'elbow_joint' in err
+
+
+@pytest.mark.slow
+def test_the_nodes_diagnosis_is_the_command_lines(campaign, tmp_path, capsys):
+    """~/diagnose (job_work.diagnose_work, run in the node's worker) gives the document,
+    the learned residual's decision and its plot that ``kpi-calib diagnose`` gives: before,
+    the node never asked the learned residual (no remedy of it, no decision, no plot)."""
+    cell, bag = campaign
+    assert main(['diagnose', '--cell', str(cell), '--bag', str(bag), '--out',
+                 str(tmp_path / 'cli')]) == 0
+    said = capsys.readouterr().out
+    cm, data, _ = load_measurements(cell, bag)
+    doc, text, verdict, report = diagnose_work(cm, data, tmp_path / 'node')
+    assert json.loads(text) == doc
+    assert doc == json.loads((tmp_path / 'cli' / 'diagnosis.json').read_text())
+    assert (report.parent / 'learned_residual.png').stat().st_size > 10_000
+    assert report.parent == tmp_path / 'node' / DIAGNOSIS_DIR
+    reason = next(line for line in said.splitlines() if line.startswith('learned residual'))
+    assert reason.split(';')[0] in verdict

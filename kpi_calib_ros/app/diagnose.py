@@ -177,6 +177,44 @@ def named_remedy(diag: Diagnosis, comparison: ModelComparison | None = None
                   'screening fit, the diagnosis\'s cross-validation')
 
 
+def diagnose_and_report(cm: CellModel, data: Measurements, out_dir: str | Path, folds: int = 0,
+                        alpha: float = ADEQUACY_ALPHA, model: str | None = None,
+                        progress: Callable[[str], None] | None = None
+                        ) -> tuple[CellDiagnosis, ResidualChoice | None, str, Path]:
+    """Diagnose ``data`` and write the report, the command line's and the node's alike.
+
+    When the model is not adequate and the TCP estimable, the learned residual is one more
+    remedy (:func:`kpi_calib_ros.app.learned_residual.choose_residual`): proposed when it
+    predicts held-out regions better, its plot drawn.
+
+    Returns
+    -------
+    cd : CellDiagnosis
+        With the learned remedy among its remedies when chosen.
+    choice : ResidualChoice or None
+        The learned residual's decision; None when not asked or refused.
+    refused : str
+        Why the learned residual was not tried on these rows ('' when it was or not asked).
+    report : Path
+        The written ``report.md``.
+    """
+    cd = diagnose_cell(cm, data, folds=folds, alpha=alpha, model=model, progress=progress)
+    choice, refused = None, ''
+    if cd.tcp_estimable and not is_adequate(cd.result.p_value, alpha):
+        # Beside the library's answer (or when it has none): would the learned residual
+        # predict held-out poses better than the calibrated model? It is one more remedy
+        # of the four answers.
+        refused = too_many_rows(cm, cd.data)
+        choice = None if refused else choose_residual(cm, cd.data, cd.result)
+        learned = learned_remedy(choice) if choice is not None else None
+        if learned is not None:
+            cd = with_remedies(cd, (learned,))
+    report = write_report(out_dir, cd)
+    if choice is not None:
+        write_learned_residual_plot(out_dir, choice.model, choice.chosen)
+    return cd, choice, refused, report
+
+
 def run_diagnose(cell_path: str | Path, bag_path: str | Path, out_dir: str | Path,
                  effects: str = '', folds: int = 0, alpha: float = ADEQUACY_ALPHA,
                  model: str | None = None, **options: Any) -> int:
@@ -192,21 +230,9 @@ def run_diagnose(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
     # The exclusion rounds come before the verdict in time, not in importance: kept and
     # printed after it.
     rounds: list[str] = []
-    cd = diagnose_cell(cm, data, folds=folds, alpha=alpha, model=model,
-                       progress=rounds.append)
-    choice, refused = None, ''
-    if cd.tcp_estimable and not is_adequate(cd.result.p_value, alpha):
-        # Beside the library's answer (or when it has none): would the learned residual
-        # predict held-out poses better than the calibrated model? It is one more remedy
-        # of the four answers.
-        refused = too_many_rows(cm, cd.data)
-        choice = None if refused else choose_residual(cm, cd.data, cd.result)
-        learned = learned_remedy(choice) if choice is not None else None
-        if learned is not None:
-            cd = with_remedies(cd, (learned,))
-    report = write_report(out_dir, cd)
-    if choice is not None:
-        write_learned_residual_plot(out_dir, choice.model, choice.chosen)
+    cd, choice, refused, report = diagnose_and_report(cm, data, out_dir, folds=folds,
+                                                      alpha=alpha, model=model,
+                                                      progress=rounds.append)
     print(diagnosis_text(cd), flush=True)
     for line in rounds:
         print_progress(line)

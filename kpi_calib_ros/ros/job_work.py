@@ -33,7 +33,7 @@ from kpi_calib_ros.app.design import (
     design_estimability,
     drawn_robots_section,
 )
-from kpi_calib_ros.app.diagnose import diagnose_cell
+from kpi_calib_ros.app.diagnose import diagnose_and_report
 from kpi_calib_ros.app.finish import finish_calibration
 from kpi_calib_ros.app.identify import calibrate_cell
 from kpi_calib_ros.app.learned_residual import learned_residual_section
@@ -65,7 +65,7 @@ from kpi_calib_ros.io.names import (
     LEARNED_RESIDUAL_FILE,
     VALIDATION_DIR,
 )
-from kpi_calib_ros.io.report import diagnosis_to_dict, write_report
+from kpi_calib_ros.io.report import diagnosis_to_dict
 from kpi_calib_ros.io.yaml_bounded import SAFE_LOADER, dump_yaml
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros.parameters import NodeSettings
@@ -299,18 +299,21 @@ def validate_work(cm: CellModel, calibration: str, data: Measurements,
 
 def diagnose_work(cm: CellModel, data: Measurements,
                   data_dir: Path) -> tuple[dict[str, Any], str, str, Path]:
-    """Diagnose the model on ``data`` as ``kpi-calib diagnose`` does; write the report.
+    """Diagnose the model on ``data`` as ``kpi-calib diagnose`` does (the learned residual
+    one more remedy when the model is not adequate); write the report and its plots.
 
     Returns
     -------
     doc : dict
-        ``diagnosis.json``'s document; ``text`` : str, it as JSON; ``verdict`` : str;
-        ``report`` : Path, the written ``report.md``.
+        ``diagnosis.json``'s document; ``text`` : str, it as JSON; ``verdict`` : str, with
+        the learned residual's decision when it was asked; ``report`` : Path, the written
+        ``report.md``.
     """
-    cd = diagnose_cell(cm, data)
-    report = write_report(data_dir / DIAGNOSIS_DIR, cd)
+    cd, choice, refused, report = diagnose_and_report(cm, data, data_dir / DIAGNOSIS_DIR)
     doc = diagnosis_to_dict(cd)
-    return doc, json.dumps(doc, allow_nan=False), cd.diagnosis.verdict, report
+    verdict = ' '.join(t for t in (cd.diagnosis.verdict, refused,
+                                   choice.reason if choice is not None else '') if t)
+    return doc, json.dumps(doc, allow_nan=False), verdict, report
 
 
 def campaign_settings(settings: NodeSettings) -> CampaignSettings:
