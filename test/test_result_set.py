@@ -227,3 +227,30 @@ def test_identify_on_a_full_disk_exits_2_and_keeps_the_old_set_whole(tmp_path, c
         assert 'intact' in err and 'Traceback' not in err, err
         assert snapshot(out) == before
         assert sorted(p.name for p in out.iterdir()) == sorted(before)
+
+
+@pytest.mark.slow
+def test_the_nodes_calibration_has_the_command_lines_sections(tmp_path, capsys):
+    """With the cell's tolerance prior and an effect, ~/identify's calibration.yaml holds
+    the ``prior:`` and ``effects_comparison:`` sections identify writes, equal to them;
+    before, the node's had neither."""
+    doc = yaml.safe_load(DEFAULT_CELL.read_text())
+    doc['robot']['urdf'] = str((DEFAULT_CELL.parent / doc['robot']['urdf']).resolve())
+    doc['identification'] = {'prior': {'translation': 1e-3, 'rotation': 1e-3, 'offset': 1e-3}}
+    doc['effects'] = ['joint_compliance:joint_2']
+    cell = tmp_path / 'cell.yaml'
+    cell.write_text(yaml.safe_dump(doc))
+    cm = build_cell_model(load_cell(cell))
+    bag = _bag(cm, tmp_path / 'a.mcap', 40, 2, START_NS)
+    assert main(['identify', '--cell', str(cell), '--bag', str(bag),
+                 '--out', str(tmp_path / 'cli')]) == 0
+    capsys.readouterr()
+    data, pairing = measurements_from_bag(cm, bag)
+    out = job_work.identify_work(cm, data, pairing, tmp_path / 'node')
+    assert out.calibration is not None and out.calibration.valid
+    cli, node = (yaml.safe_load((tmp_path / k / CALIBRATION_FILE).read_text())
+                 for k in ('cli', 'node'))
+    assert 'joint_compliance.joint_2.c' in {p['name'] for p in node['parameters']}
+    for section in ('prior', 'effects_comparison'):
+        assert section in cli and node.get(section) == cli[section], section
+    assert set(node) == set(cli)

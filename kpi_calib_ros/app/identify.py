@@ -374,6 +374,28 @@ def add_effect_comparison(doc: dict[str, Any], cm: CellModel, data: Measurements
     return comparison_text(cmp)
 
 
+def add_prior_and_comparison(doc: dict[str, Any], cm: CellModel, data: Measurements,
+                             cal: CellCalibration) -> tuple[str, str]:
+    """Add to calibration document ``doc`` of ``cal`` (no previous calibration as prior)
+    the cell's tolerance prior (``prior:``) and, for a valid model with effects, its
+    comparison with the geometric model on the kept rows (``effects_comparison:``); the
+    command line's and the node's alike.
+
+    Returns
+    -------
+    how, comparison : str
+        The prior's and the comparison's readable lines ('' when absent).
+    """
+    how = tolerance_text(cm, cal.prior_scale)
+    if how:
+        doc['prior'] = {'source': 'identification.prior', 'description': how,
+                        'noise_scale': cal.prior_scale}
+    comparison = ''
+    if cm.model.effects and cal.valid:
+        comparison = add_effect_comparison(doc, cm, data.subset(cal.robust.kept), cal.result)
+    return how, comparison
+
+
 def print_progress(line: str) -> None:
     """A progress line of a long identification, on stderr (stdout is the summary)."""
     print(line, file=sys.stderr, flush=True)
@@ -413,14 +435,8 @@ def run_identify(cell_path: str | Path, bag_path: str | Path | Sequence[Recordin
         cm = with_iteration_limit(cm, max_iterations)
     cal = with_recording_names(calibrate_cell(cm, data, model, progress=print_progress), bag_path)
     cm = cal.cell or cm  # with the effects auto added
-    how = tolerance_text(cm, cal.prior_scale)
     doc = add_robust_sections(calibration_document(cm, cal.result, pairing), cal)
-    if how:
-        doc['prior'] = {'source': 'identification.prior', 'description': how,
-                        'noise_scale': cal.prior_scale}
-    comparison = ''
-    if cm.model.effects and cal.valid:
-        comparison = add_effect_comparison(doc, cm, data.subset(cal.robust.kept), cal.result)
+    how, comparison = add_prior_and_comparison(doc, cm, data, cal)
     recordings_lines = ''
     if not isinstance(bag_path, (str, Path)):
         doc['recordings'] = recordings_section(cm, data.subset(cal.robust.kept), cal, [

@@ -35,7 +35,7 @@ from kpi_calib_ros.app.design import (
 )
 from kpi_calib_ros.app.diagnose import diagnose_and_report
 from kpi_calib_ros.app.finish import finish_calibration
-from kpi_calib_ros.app.identify import calibrate_cell
+from kpi_calib_ros.app.identify import add_prior_and_comparison, calibrate_cell
 from kpi_calib_ros.app.learned_residual import learned_residual_section
 from kpi_calib_ros.app.reidentify import (
     cycle_prior,
@@ -232,6 +232,7 @@ def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, dat
         assert cal is not None
         cm = cal.cell or cm  # with the effects identification.model auto added
         doc = add_robust_sections(calibration_document(cm, cal.result, pairing), cal)
+        add_prior_and_comparison(doc, cm, data, cal)
         result = cal.result
         if several and cal.valid:
             doc['recordings'] = recordings_section(
