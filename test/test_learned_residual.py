@@ -367,3 +367,33 @@ def test_validate_tells_whether_the_learned_residual_still_holds(tmp_path, capsy
     assert 1 < same['effective_points'] < same['tested_points'] == same['points'], same
     assert not changed['holds'] and changed['p_value'] < 1e-6, changed
     assert changed['inside_95_share'] < changed['inside_95_share_range'][0], changed
+
+
+@pytest.mark.slow
+def test_the_learned_tcp_of_a_working_pose_carries_its_own_payload(tmp_path, capsys):
+    """A compliant robot whose working pose is unloaded (the cell's payload 5 kg): the
+    physical part of the learned residual's TCP (position minus correction) is the
+    calibration's TCP of that pose, with its 0 kg. Before, it was predicted at the cell's
+    5 kg while calibration.yaml's TCP used the pose's 0 kg."""
+    doc = yaml.safe_load(DEFAULT_CELL.read_text())
+    doc['robot']['urdf'] = str((DEFAULT_CELL.parent / doc['robot']['urdf']).resolve())
+    doc['simulation'] = {'hidden_effects': {
+        'cyclic_joint_error_h2:joint_2': {'a': 4e-4, 'b': 2e-4},
+        'joint_compliance:joint_2': {'c': 4e-6}}}
+    doc['effects'] = ['joint_compliance:joint_2']
+    doc['working_poses'][0]['payload'] = {'mass': 0.0}
+    cell = tmp_path / 'cell.yaml'
+    cell.write_text(yaml.safe_dump(doc))
+    bag = tmp_path / 'run.mcap'
+    assert main(['simulate', '--cell', str(cell), '--n', '90', '--out', str(bag),
+                 '--seed', '4']) == 0
+    assert main(['identify', '--cell', str(cell), '--bag', str(bag), '--out',
+                 str(tmp_path / 'out'), '--model', 'geometric', '--learned-residual']) == 0
+    capsys.readouterr()
+    cal = yaml.safe_load((tmp_path / 'out' / 'calibration.yaml').read_text())
+    section = cal['learned_residual']
+    assert section['chosen'], section['reason']
+    entry = section['tcp']['car_roof_edge']
+    physical = np.subtract(entry['position_m'], entry['correction_m'])
+    tcp = next(t for t in cal['tcp'] if t['name'] == 'car_roof_edge')
+    np.testing.assert_allclose(physical, tcp['position'], rtol=0, atol=1e-12)

@@ -34,6 +34,7 @@ from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA, linearized_f
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.recordings import to_first_frame
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
+from kpi_calib_ros.core.measurement.weighting import row_torques
 from kpi_calib_ros.io.learned_residual_file import (
     StoredResidual,
     residual_document,
@@ -106,13 +107,16 @@ def predict_tcp(model: MeasurementModel, values: np.ndarray, estimated: tuple[st
                 covariance: np.ndarray, residual: LearnedResidual | None,
                 q: np.ndarray, covariance_outside: np.ndarray | None = None,
                 reflector: np.ndarray | None = None,
-                covariates: Mapping[str, np.ndarray] | None = None) -> CorrectedTcp:
+                covariates: Mapping[str, np.ndarray] | None = None,
+                tau: np.ndarray | None = None) -> CorrectedTcp:
     """The TCP (KPI point) at URDF joint values ``q`` (M, n): the physical model at
     ``values`` plus the learned residual, with the covariance of both parts
     (:func:`kpi_calib_ros.core.diagnosis.corrected_tcp.corrected_tcp`). With
-    ``reflector`` (M,) the measured points instead, at their ``covariates``."""
+    ``reflector`` (M,) the measured points instead, at their ``covariates``. ``tau`` (M, n):
+    the joint torques the effects read (a working pose's payload, measured efforts); None:
+    the gravity torques with the ``covariates``' payload, else the cell's."""
     q = np.atleast_2d(np.asarray(q, float))
-    tcp, jac = model.jacobian(np.asarray(values, float), q, None, reflector,
+    tcp, jac = model.jacobian(np.asarray(values, float), q, tau, reflector,
                               covariates=covariates)
     idx = model.params.indices(list(estimated))
     return corrected_tcp(tcp, jac[:, :, idx], covariance, q, residual, covariance_outside)
@@ -131,12 +135,14 @@ def stored_cell_model(cm: CellModel, stored: StoredResidual) -> CellModel:
 
 def predict_stored(model: MeasurementModel, stored: StoredResidual, q: np.ndarray,
                    reflector: np.ndarray | None = None,
-                   covariates: Mapping[str, np.ndarray] | None = None) -> CorrectedTcp:
+                   covariates: Mapping[str, np.ndarray] | None = None,
+                   tau: np.ndarray | None = None) -> CorrectedTcp:
     """:func:`predict_tcp` with a learned_residual.yaml read back, ``model`` the one it
     was written for (:func:`stored_cell_model`)."""
     stored.check_model(model)
     return predict_tcp(model, stored.values, stored.estimated, stored.covariance,
-                       stored.residual, q, stored.covariance_outside, reflector, covariates)
+                       stored.residual, q, stored.covariance_outside, reflector, covariates,
+                       tau)
 
 
 def validate_learned(cm: CellModel, stored: StoredResidual, data: Measurements,
@@ -162,7 +168,8 @@ def validate_learned(cm: CellModel, stored: StoredResidual, data: Measurements,
     new = data.subset(rows)
     if len(new) == 0:
         raise DataError('no point measurement to validate the learned residual on')
-    tcp = predict_stored(model, stored, new.q, new.reflector, new.covariates)
+    tau = row_torques(model, new)  # the rows' own: measured efforts, or their payloads
+    tcp = predict_stored(model, stored, new.q, new.reflector, new.covariates, tau)
     assert tcp.correction is not None
     error = np.atleast_2d(new.eta) - tcp.position
     noise = stored.residual.noise_covariance_m2
@@ -171,8 +178,9 @@ def validate_learned(cm: CellModel, stored: StoredResidual, data: Measurements,
     chi2, dof = float(np.sum(m2)), 3 * len(new)
     subset = joint_test_points(len(new))
     tested = new.subset(subset)
-    _, jac = model.jacobian(stored.values, tested.q, None, tested.reflector,
-                            covariates=tested.covariates)
+    _, jac = model.jacobian(stored.values, tested.q,
+                            None if tau is None else np.atleast_2d(tau)[subset],
+                            tested.reflector, covariates=tested.covariates)
     joint = statement_covariance(jac[:, :, model.params.indices(list(stored.estimated))],
                                  stored.covariance, np.atleast_2d(tested.q), stored.residual,
                                  stored.covariance_outside, noise)
@@ -232,7 +240,7 @@ def learned_residual_section(doc: dict[str, Any], cm: CellModel, data: Measureme
         cov = physical_covariance(result, choice.model, cm.cell.sigma)
         outside = field_covariance(cm.model, data, result, choice.model, cm.cell.sigma)
         tcp = predict_tcp(cm.model, result.values, result.estimated, cov, choice.model,
-                          cm.q_work, outside)
+                          cm.q_work, outside, tau=cm.tau_work)
         section['tcp'] = tcp_entries(cm.working_pose_names, tcp)
         joints = ', '.join(f'{n} {v:.3g}' for n, v in
                            list(choice.model.relevant_joints().items())[:3])
