@@ -32,6 +32,7 @@ from kpi_calib_ros.core.simulation import (
     equivalent_parameters,
     random_configurations,
     simulate_measurements,
+    simulate_pose_measurements,
     true_parameters,
 )
 from kpi_calib_ros.io.cell import DEFAULT_CELL, cell_from_dict, load_cell, read_cell_document
@@ -295,3 +296,109 @@ def test_a_candidate_that_leaves_the_geometry_undetermined_is_not_plausible(cm, 
     # The joint-2 zero is carried by joint_2.placement.ry in this gauge.
     assert tight.plausibility.startswith('it leaves the geometry undetermined: joint_2.')
     assert 'rad > its tolerance 0.0001' in tight.plausibility
+
+
+def _every_effect(cm):
+    from kpi_calib_ros.core.effects.library import LIBRARY
+    from kpi_calib_ros.core.effects.registry import ARGUMENT_EFFECTS, CHAIN_EFFECTS
+    # The built-in kinds (other tests register effects of their own in this process).
+    specs = [f'{kind.name}:joint_2' if kind.per_joint else kind.name for kind in LIBRARY]
+    specs += [f'{name}:joint_2' for name in CHAIN_EFFECTS]
+    specs += ['periodic_joint_error:joint_2:k=17', 'measured_tilt:joint_1']
+    assert set(ARGUMENT_EFFECTS) <= {s.split(':')[0] for s in specs}
+    return [parse_effect_spec(s, cm.robot) for s in specs]
+
+
+def test_every_parameter_of_every_effect_has_a_bound(cm):
+    """gravity_compliance had none: its coefficients were never judged, and one of std
+    0.0119 rad on 14 poses was published as valid."""
+    for effect in _every_effect(cm):
+        assert len(effect_bounds(effect)) == len(effect.parameter_names), effect.name
+    # and on a prismatic joint (its own bounds), every kind that applies there
+    from conftest import ODD_ARM_URDF
+
+    from kpi_calib_ros.core.effects.library import LIBRARY
+    from kpi_calib_ros.core.model.robot import RobotModel
+    robot = RobotModel(ODD_ARM_URDF, 'base', 'flange')
+    specs = [f'{k.name}:telescope' for k in LIBRARY if k.per_joint and (
+        k.joint_kinds is None or 'prismatic' in k.joint_kinds)]
+    specs += ['gravity_compliance:telescope', 'link_bending:telescope',
+              'measured_tilt:telescope']
+    for spec in specs:
+        effect = parse_effect_spec(spec, robot)
+        assert effect.joint_kind == 'prismatic'
+        assert len(effect_bounds(effect)) == len(effect.parameter_names), spec
+    gravity = parse_effect_spec('gravity_compliance:joint_2', cm.robot)
+    names = gravity.parameter_names
+    result = type('Fit', (), {'names': names, 'values': np.full(len(names), -1e-3),
+                              'estimated': names, 'std': np.full(len(names), 1e-4)})()
+    assert effect_violations((gravity,), result) == []
+    result.std = np.r_[0.0119, np.full(len(names) - 1, 1e-4)]
+    (v,) = effect_violations((gravity,), result)
+    assert v.reason.startswith('undetermined: gravity_compliance.joint_2.g0 std 0.0119 rad')
+
+
+def test_an_effect_without_a_bound_cannot_be_judged_and_is_refused(cm):
+    loose = bind_effect(EffectType('sag', ('s',), ('rad',),
+                                   joint_function=lambda q, t, th: th[0] * q), cm.robot,
+                        'joint_2')
+    result = type('Fit', (), {'names': ('sag.joint_2.s',), 'values': np.array([1e-4]),
+                              'estimated': ('sag.joint_2.s',), 'std': np.array([1e-5])})()
+    (v,) = effect_violations((loose,), result)
+    assert 'no physical bound' in v.reason and 'plausible=' in v.fix
+    assert effect_violations((loose,), result, {'sag:joint_2': (1e-3,)}) == []
+
+
+def test_bounds_of_the_wrong_count_for_an_effect_are_refused_when_it_is_bound(cm):
+    """gravity_compliance:joint_4 has 6 coefficients: two bounds left four unjudged."""
+    effect = parse_effect_spec('gravity_compliance:joint_4', cm.robot)
+    assert len(effect.parameter_names) > 2
+    with pytest.raises(ConfigError, match=r'identification\.bounds\.gravity_compliance:joint_4'
+                                          r': 2 bounds'):
+        effect_bounds(effect, {'gravity_compliance:joint_4': (6e-5, 6e-5)})
+    assert effect_bounds(effect, {'gravity_compliance:joint_4': (6e-5,)}) == \
+        (6e-5,) * len(effect.parameter_names)
+
+
+def test_a_play_judged_as_its_compliance_names_the_compliance_key(cm):
+    play = parse_effect_spec('joint_play:joint_5', cm.robot)
+    names = play.parameter_names
+    result = type('Fit', (), {'names': names, 'values': np.array([4e-3, np.log(10.0)]),
+                              'estimated': names, 'std': np.array([1e-5, 1e-3])})()
+    tau = np.zeros((5, 6))
+    tau[:, 4] = np.linspace(-3.0, 3.0, 5)
+    (v,) = effect_violations((play,), result, tau=tau)
+    assert 'compliance b/τ0' in v.reason
+    assert 'identification.bounds.joint_compliance:joint_5' in v.fix
+    assert effect_violations((play,), result, {'joint_compliance:joint_5': (1e-3,)}, tau) == []
+
+
+def _body_cell(tmp_path, rpy, identify):
+    doc = read_cell_document(DEFAULT_CELL)
+    doc['robot']['urdf'] = str((DEFAULT_CELL.parent / doc['robot']['urdf']).resolve())
+    doc['reflector'].pop('offset', None)
+    orientation = {'rpy': rpy, 'identify': True} if identify else {'rpy': rpy}
+    doc['reflectors'] = [{'name': 'probe', 'offset': [0.0, 0.0, 0.1],
+                          'orientation': orientation}]
+    doc['noise']['sigma_rotation'] = 1e-4
+    return cell_from_dict(doc, DEFAULT_CELL.parent)
+
+
+def test_a_body_orientation_identified_far_from_the_stated_one_is_refused(tmp_path):
+    """The stated orientation is a guess held within identification.tolerances.rotation, as
+    a stated offset within its tolerance: 0.6 rad from it was published as valid."""
+    truth_cell = _body_cell(tmp_path, [0.0, 0.0, 0.6], identify=False)
+    truth = build_cell_model(truth_cell)
+    rng = np.random.default_rng(5)
+    p_true = true_parameters(truth.model.params, rng)
+    q = random_configurations(truth.model, p_true, 60, rng)
+    data = simulate_pose_measurements(truth.model, p_true, q, SIGMA, 1e-4, rng)
+    verdicts = {}
+    for rpy in ([0.0, 0.0, 0.58], [0.1, -0.2, 0.3]):
+        cm = build_cell_model(_body_cell(tmp_path, rpy, identify=True))
+        cal = calibrate_cell(cm, data)
+        verdicts[rpy[2]] = (cal.valid, ' '.join(cal.problems))
+    assert verdicts[0.58][0], verdicts[0.58][1]
+    assert not verdicts[0.3][0]
+    assert 'reflector.probe' in verdicts[0.3][1]
+    assert 'from the orientation the cell states' in verdicts[0.3][1]

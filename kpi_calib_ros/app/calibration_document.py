@@ -116,9 +116,12 @@ def plausibility_gate(cm: CellModel, result: CalibrationResult, start: np.ndarra
             reference[params.indices([f'{prefix}.{c}' for c in 'xyz'])] = offset
     if tau is None and cm.model.uses_torque and len(q):
         tau = cm.robot.gravity_torques(np.atleast_2d(q))
+    # A tracked body's orientation the cell states and identifies from there.
+    guessed = [f'reflector.{cm.cell.reflector_names[k]}' for k in cm.cell.stated_orientations
+               if k < len(cm.cell.reflector_names)]
     return tuple(v.text() for v in gate(cm.model, result, reference,
                                         cm.cell.identification.tolerances, stated,
-                                        q, tau, n_geo, reflector, free, covariates))
+                                        q, tau, n_geo, reflector, free, covariates, guessed))
 
 
 def calibration_document(cm: CellModel, result: CalibrationResult,

@@ -164,6 +164,8 @@ class Cell:
     # Reflectors whose body orientation is identified (reflectors[].orientation: identify):
     # three parameters reflector.<name>.r{x,y,z} after the stated rotation.
     identified_orientations: tuple[int, ...] = ()
+    # Of those, the ones the cell states a guess of (identify: true): held within tolerance.
+    stated_orientations: tuple[int, ...] = ()
     # noise.joint_sigma: a number (rad, every joint) or {joint name: rad}; None: exact
     # joint readings. Matched to the chain by name in build_cell_model.
     joint_sigma: float | Mapping[str, float] | None = None
@@ -331,6 +333,7 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None,
         reflector_offsets=np.nan_to_num(offsets) if offsets is not None else None,
         reflector_orientations=orientations, sigma_rotation=sigma_rotation,
         identified_orientations=identified_orientations(doc),
+        stated_orientations=identified_orientations(doc, stated_only=True),
         joint_sigma=joint_sigma,
         joint_coupling=parse_coupling(robot.get('joint_coupling')),
         working_poses_in=parse_working_poses_in(robot.get('working_poses_in', 'controller')),

@@ -116,14 +116,18 @@ def parse_reflectors(doc: dict) -> tuple[tuple[str, ...], np.ndarray | None,
     return tuple(names), np.array(offsets), tuple(orientations)
 
 
-def identified_orientations(doc: Mapping[str, Any]) -> tuple[int, ...]:
+def identified_orientations(doc: Mapping[str, Any], stated_only: bool = False
+                            ) -> tuple[int, ...]:
     """The reflectors (indices) whose tracked body's orientation is identified
-    (``orientation: identify``, or a stated guess with ``identify: true``); the document
-    checked by :func:`parse_reflectors` first."""
+    (``orientation: identify``, or a stated guess with ``identify: true``; with
+    ``stated_only`` the latter alone: an orientation the cell states, identified from there,
+    which the plausibility gate holds within its tolerance); the document checked by
+    :func:`parse_reflectors` first."""
     out = []
     for i, item in enumerate(doc.get('reflectors') or []):
         raw = item.get('orientation') if isinstance(item, dict) else None
-        if raw == IDENTIFY or (isinstance(raw, dict) and raw.get(IDENTIFY) is True):
+        if (raw == IDENTIFY and not stated_only) or (
+                isinstance(raw, dict) and raw.get(IDENTIFY) is True):
             out.append(i)
     return tuple(out)
 

@@ -60,7 +60,10 @@ class EffectType:
         A cyclic error is a function of an angle: it has no meaning on a prismatic joint.
     plausible : tuple of float
         Largest physically plausible |value| of each parameter (revolute units); a fit
-        beyond it is flagged (see :func:`implausible`). Empty: no bound.
+        beyond it is flagged (see :func:`implausible`). Empty: no bound, and the
+        plausibility gate refuses a calibration with the effect (it cannot tell an
+        impossible or undetermined value) unless the cell's ``identification.bounds`` gives
+        one (for a registered or installed effect).
     prismatic_plausible : tuple of float, optional
         The same for a prismatic joint (its units); None: no bound there.
     shape_grid : tuple of tuple of float

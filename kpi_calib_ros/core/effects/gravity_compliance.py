@@ -41,6 +41,11 @@ HOLDING = np.array([0.0, 0.0, 9.81])  # m/s²
 BASIS_SAMPLES = 400
 BASIS_TOLERANCE = 1e-8  # singular values below this fraction of the largest: dependent
 NAME = 'gravity_compliance'
+# The largest plausible rms deflection a basis function carries (ψ has rms 1): 10 mrad (m on
+# a prismatic joint), 10 mm at a metre; an industrial arm sags below 2 mrad under gravity,
+# a servo-stiff or cable-driven one (1/kp ≈ 1e-3 rad/(N m)) more, and the cell's
+# identification.bounds.gravity_compliance widens it.
+PLAUSIBLE_DEFLECTION = 1e-2
 
 
 def torque_regressor(robot: RobotModel, joint: int) -> ca.Function:
@@ -128,6 +133,8 @@ def mass_free_compliance(robot: RobotModel, joint: str | None,
     kind = EffectType(
         NAME, tuple(f'g{i}' for i in range(rank)), ('rad',) * rank,
         joint_function=_whole_configuration, typical=(1e-4,) * rank, prismatic_units=('m',) * rank,
+        plausible=(PLAUSIBLE_DEFLECTION,) * rank,
+        prismatic_plausible=(PLAUSIBLE_DEFLECTION,) * rank,
         description='joint deflection under its gravity torque, link masses unknown: '
                     'a combination of the trigonometric functions the chain makes',
         hint='pose the arm so the gravity torque of {joint} varies widely (arm stretched '

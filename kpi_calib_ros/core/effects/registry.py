@@ -65,6 +65,9 @@ state and the parameters, then make it known in one of three ways::
 
     THERMAL = EffectType('thermal_bend', parameters=('g',), units=('rad',),
                          joint_function=_thermal, typical=(1e-4,),
+                         plausible=(2e-3,),   # the largest physical |g|: without a
+                         # bound the plausibility gate cannot judge the effect, and a
+                         # calibration with it is not valid
                          description='bending that grows with cos² of the joint')
     register_effect(THERMAL)                  # 1. in-process
 
@@ -97,7 +100,8 @@ from kpi_calib_ros.core.model.robot import RobotModel
 __all__ = [
     'ENTRY_POINT_GROUP', 'register_effect', 'available_effects', 'bind_effect', 'CHAIN_EFFECTS',
     'ARGUMENT_EFFECTS', 'parse_effect_spec', 'resolve_effects', 'split_specs',
-    'candidate_effects', 'implausible', 'LINEAR_PLAY', 'effect_bounds', 'bound_key',
+    'candidate_effects', 'implausible', 'LINEAR_PLAY', 'COMPLIANCE_LIMIT', 'effect_bounds',
+    'bound_key',
     'COVARIATE_CANDIDATES',
 ]
 
@@ -407,7 +411,14 @@ def effect_bounds(effect: BoundEffect, overrides: Bounds | None = None) -> tuple
                 kind.name):
         if key is not None and overrides and key in overrides:
             given = tuple(float(b) for b in overrides[key])
-            return given * len(effect.parameter_names) if len(given) == 1 else given
+            n = len(effect.parameter_names)
+            if len(given) not in (1, n):
+                # A chain effect's parameters are counted only once bound to the robot
+                # (gravity_compliance: the rank of its joint's torque functions).
+                raise ConfigError(f'identification.bounds.{key}', f'{len(given)} bounds for '
+                                  f'the {n} parameters {list(effect.parameter_names)} of '
+                                  f'{effect.name}: give one bound (every parameter) or {n}')
+            return given * n if len(given) == 1 else given
     bounds = kind.prismatic_plausible if effect.joint_kind == 'prismatic' else kind.plausible
     return tuple(bounds or ())
 
@@ -439,6 +450,8 @@ def implausible(effect: BoundEffect, values: Sequence[float] | np.ndarray,
 
 
 LINEAR_PLAY = 1.0 / 3.0
+# The words of a play judged as the compliance it is (the gate names the compliance's key).
+COMPLIANCE_LIMIT = 'it is the compliance'
 
 
 def _compliance_limit(effect: BoundEffect, values: Sequence[float] | np.ndarray,
@@ -454,5 +467,5 @@ def _compliance_limit(effect: BoundEffect, values: Sequence[float] | np.ndarray,
     if abs(c) <= bound[0]:
         return []
     unit = 'm/N' if effect.joint_kind == 'prismatic' else 'rad/(N m)'
-    return [f'at the measured torques (|τ| ≤ {largest:.3g}, τ0 = {tau0:.3g}) it is the '
-            f'compliance b/τ0 = {c:.3g} {unit}, beyond the plausible ±{bound[0]:.3g}']
+    return [f'at the measured torques (|τ| ≤ {largest:.3g}, τ0 = {tau0:.3g}) '
+            f'{COMPLIANCE_LIMIT} b/τ0 = {c:.3g} {unit}, beyond the plausible ±{bound[0]:.3g}']

@@ -42,7 +42,13 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from kpi_calib_ros.core.effects.registry import BoundEffect, bound_key, effect_bounds, implausible
+from kpi_calib_ros.core.effects.registry import (
+    COMPLIANCE_LIMIT,
+    BoundEffect,
+    bound_key,
+    effect_bounds,
+    implausible,
+)
 from kpi_calib_ros.core.estimation.identifiability import select_identifiable
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.core.measurement.pose import orientation_names
@@ -233,7 +239,8 @@ def geometric_violations(model: MeasurementModel, result: CalibrationResult,
                          n_geometric: int | None = None,
                          reflector: np.ndarray | None = None,
                          tau: np.ndarray | None = None,
-                         covariates: Mapping[str, np.ndarray] | None = None
+                         covariates: Mapping[str, np.ndarray] | None = None,
+                         orientation_stated: Sequence[str] = ()
                          ) -> list[Violation]:
     """Violations of the placement and geometric quantities of ``result``.
 
@@ -260,6 +267,10 @@ def geometric_violations(model: MeasurementModel, result: CalibrationResult,
         (N,) reflector index and (N, n) gravity torques of the rows of ``q``.
     covariates : mapping, optional
         The rows' covariates (their recording, :attr:`MeasurementModel.inputs`).
+    orientation_stated : sequence of str
+        Reflector prefixes whose tracked body's orientation the cell states and identifies
+        from there (``identify: true``): its rotation from the stated one is held within
+        ``tolerances.rotation``, as a stated reflector offset within its tolerance.
     """
     params = model.params
     n_geo = len(params) - sum(len(e.parameter_names) for e in model.effects) \
@@ -313,12 +324,21 @@ def geometric_violations(model: MeasurementModel, result: CalibrationResult,
                 'poses that turn the tool, or state its orientation'))
             continue
         spread = max(std[n] for n in names)
+        turned = float(np.linalg.norm([values[n] for n in names]))  # from the stated guess
         if spread > tolerances.rotation:  # identified (orientation: identify), not determined
             out.append(Violation(
                 f'body orientation {prefix} ({", ".join(names)})',
                 f'undetermined: std {spread:.3g} rad > the tolerance {tolerances.rotation:g} '
                 'rad', 'measure poses of the tracked body (6-DoF) that turn the tool, or state '
                 'its orientation (identification.tolerances.rotation widens the tolerance)'))
+        elif prefix in orientation_stated and turned > tolerances.rotation:
+            out.append(Violation(
+                f'body orientation {prefix} ({", ".join(names)})',
+                f'identified {turned:.3g} rad from the orientation the cell states, beyond the '
+                f'tolerance {tolerances.rotation:g} rad', 'check the stated orientation (rpy '
+                'order and units, the tip frame), or identify it without a guess '
+                "(orientation: identify); identification.tolerances.rotation widens the "
+                'tolerance'))
     for i, (name, unit) in enumerate(zip(params.names[:n_geo], params.units[:n_geo])):
         if name.startswith('reflector.') or name not in values:
             continue
@@ -378,6 +398,15 @@ def effect_violations(effects: Sequence[Any], result: CalibrationResult,
             continue
         limits = effect_bounds(effect, bounds)
         key = bound_key(effect)
+        unbounded = effect.parameter_names[len(limits):]
+        if unbounded:
+            # Without a bound the gate can tell neither an impossible value nor an
+            # undetermined one: the result is not to be trusted until one is stated.
+            out.append(Violation(effect.name, f'no physical bound for {list(unbounded)}: '
+                                 'the gate cannot judge them', 'give the effect type '
+                                 f'plausible=(...), or state {key} (one bound, or one per '
+                                 'parameter; a registered or installed effect)'))
+            continue
         loose = [f'{n} std {std[n]:.3g} {u} > its bound {b:.3g}'
                  for n, u, b in zip(effect.parameter_names, effect.units, limits)
                  if n in std and std[n] > b]
@@ -390,6 +419,9 @@ def effect_violations(effects: Sequence[Any], result: CalibrationResult,
             continue
         why = implausible(effect, [values[n] for n in effect.parameter_names], tau, bounds)
         if why:
+            if COMPLIANCE_LIMIT in why and effect.joint is not None:
+                # A play within its linear range is the compliance it is: its bound decides.
+                key = f'{key} and identification.bounds.joint_compliance:{effect.joint}'
             out.append(Violation(effect.name, why,
                                  f'widen {key} if this arm is that soft or loose (servo-stiff '
                                  'or cable-driven joints: compliance ~1e-3 rad/(N m)); else '
@@ -402,14 +434,17 @@ def gate(model: MeasurementModel, result: CalibrationResult, reference: np.ndarr
          q: np.ndarray | None = None, tau: np.ndarray | None = None,
          n_geometric: int | None = None, reflector: np.ndarray | None = None,
          free: Sequence[str] | None = None,
-         covariates: Mapping[str, np.ndarray] | None = None) -> tuple[Violation, ...]:
+         covariates: Mapping[str, np.ndarray] | None = None,
+         orientation_stated: Sequence[str] = ()) -> tuple[Violation, ...]:
     """Every violation of ``result`` (:func:`geometric_violations`, :func:`effect_violations`).
 
     () when every identified quantity is plausible and determined. ``q``, ``tau``,
     ``reflector``: the measured rows (joint values, gravity torques, reflector index);
     ``free``: the parameters the fit was asked to identify (:func:`effect_violations`);
-    ``covariates``: the rows' covariates (their recording).
+    ``covariates``: the rows' covariates (their recording); ``orientation_stated``: as for
+    :func:`geometric_violations`.
     """
     return tuple(geometric_violations(model, result, reference, tolerances, reflector_stated,
-                                      q, n_geometric, reflector, tau, covariates)
+                                      q, n_geometric, reflector, tau, covariates,
+                                      orientation_stated)
                  + effect_violations(model.effects, result, tolerances.bounds, tau, free))
