@@ -35,6 +35,7 @@ from kpi_calib_ros.core.design.optimum import DesignContext, design_context
 from kpi_calib_ros.core.diagnosis.model_selection import ModelChoice, level_free
 from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.estimation.estimability import result_estimability
+from kpi_calib_ros.core.measurement.weighting import row_torques
 from kpi_calib_ros.core.simulation import simulate_pose_measurements, true_parameters
 from kpi_calib_ros.io.campaign_io import plot_campaign, write_campaign, write_plan
 from kpi_calib_ros.io.cell import load_cell
@@ -89,17 +90,23 @@ def campaign_calibration(cm: CellModel, campaign: SequentialCampaign,
                                  covariance=base.covariance * scale,
                                  tcp_covariance=base.tcp_covariance * scale,
                                  covariance_scale=scale)
-    kept = np.asarray(robust.kept, bool)
+    # The rows the last fit kept (each reflector's point, each body's rotation: a pose
+    # gives several rows), judged as identify judges its rows.
+    rows = campaign.rows.subset(np.asarray(robust.kept, bool))
     free = tuple(campaign.free or cm.model.params.names)
-    est = result_estimability(cm.model, campaign.q[kept], cm.cell.sigma, result.values,
+    est = result_estimability(cm.model, rows.q, cm.cell.sigma, result.values,
                               cm.q_work, cm.working_pose_names, list(free),
+                              reflector=rows.reflector, rotation=rows.rotation,
+                              covariates=rows.covariates, tau=rows.tau,
                               tau_work=cm.tau_work)
     level = cm.cell.identification.model
     choice = ModelChoice(level='geometric' if level == 'auto' else level, requested=level,
                          predicted_rms_m={}, cv_rms_m={}, folds=0,
                          reason='the sequential campaign\'s model (no model selection)')
+    # The campaign fits from the cell's placement (it plans from it): the reference.
     implausible = plausibility_gate(cm, result, cm.model.params.nominal,
-                                    np.atleast_2d(campaign.q[kept]))
+                                    np.atleast_2d(rows.q), row_torques(cm.model, rows),
+                                    rows.reflector, free, rows.covariates)
     cal = CellCalibration(result, dataclasses.replace(robust, result=result), choice, est, free,
                           cell=cm, implausible=implausible)
     doc = add_robust_sections(calibration_document(cm, result, pairing), cal)
