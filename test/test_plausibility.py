@@ -402,3 +402,25 @@ def test_a_body_orientation_identified_far_from_the_stated_one_is_refused(tmp_pa
     assert not verdicts[0.3][0]
     assert 'reflector.probe' in verdicts[0.3][1]
     assert 'from the orientation the cell states' in verdicts[0.3][1]
+
+
+def test_joint_corrections_are_judged_against_the_urdf_whatever_the_start(cm, truth):
+    """A cycle starts from the previous calibration: its joint corrections were judged
+    against that start, so a cycle could take a placement 0.04 m further each time, unseen.
+    The placement is still judged against the start (the previous or registered one)."""
+    from kpi_calib_ros.app.calibration_document import plausibility_gate
+    p_true, q = truth
+    name = 'joint_3.placement.tz'  # no other parameter can take its place
+    i = cm.model.params.names.index(name)
+    start = cm.model.params.nominal.copy()
+    start[i] += 0.04                                  # the previous cycle: within 0.05 m
+    values = start.copy()
+    values[i] += 0.04                                 # this cycle: 0.08 m from the URDF
+    values[cm.model.params.names.index('base.x')] += 0.5  # a station moved: the start's
+    start[cm.model.params.names.index('base.x')] += 0.5
+    names = tuple(cm.model.params.names)
+    result = type('Fit', (), {'names': names, 'values': values, 'estimated': names,
+                              'std': np.full(len(names), 1e-6)})()
+    problems = plausibility_gate(cm, result, start, q)
+    assert any(p.startswith(name) and 'from the URDF' in p for p in problems), problems
+    assert not any(p.startswith('base.') for p in problems), problems

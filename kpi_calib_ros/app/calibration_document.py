@@ -21,6 +21,7 @@ from kpi_calib_ros.core.estimation.estimability import KpiEstimability
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.core.estimation.plausibility import gate
 from kpi_calib_ros.core.estimation.precision import ExpectedTcpError
+from kpi_calib_ros.core.estimation.prior import PLACEMENT_PREFIXES
 from kpi_calib_ros.core.estimation.registration import Registration
 from kpi_calib_ros.core.estimation.robust import LOSS_SCALE, ExcludedMeasurement, RobustResult
 from kpi_calib_ros.core.measurement.data import Measurements
@@ -109,7 +110,12 @@ def plausibility_gate(cm: CellModel, result: CalibrationResult, start: np.ndarra
     registration in ``start``). Returns one line per violation."""
     n_geo = len(cm.geometric)
     params = cm.model.params
-    reference = np.array(start[:n_geo], dtype=float)
+    # The placement against where the fit started (the cell's, the registered or the
+    # previous cycle's); every joint correction against the URDF, whatever the start (a
+    # cycle started from the previous calibration drifted from it unjudged).
+    reference = np.array(params.nominal[:n_geo], dtype=float)
+    placed = [i for i, n in enumerate(params.names[:n_geo]) if n.startswith(PLACEMENT_PREFIXES)]
+    reference[placed] = np.asarray(start, float)[placed]
     stated = cm.cell.reflector_offset_given
     if stated:
         for prefix, offset in zip(reflector_prefixes(params), cm.cell.offsets):
