@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import re
 import runpy
+import sys
 from pathlib import Path
 
 import pytest
@@ -15,7 +16,10 @@ NUMBER = r'[-+]?\d+(?:\.\d+)?(?:e[-+]?\d+)?'
 
 
 def _run(name: str, capsys: pytest.CaptureFixture[str]) -> str:
-    runpy.run_path(str(EXAMPLES / name), run_name='__main__')
+    # As a user runs it: no arguments (not pytest's own, which a script would read as its).
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(sys, 'argv', [str(EXAMPLES / name)])
+        runpy.run_path(str(EXAMPLES / name), run_name='__main__')
     return capsys.readouterr().out
 
 

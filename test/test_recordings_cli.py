@@ -349,3 +349,35 @@ def test_node_logs_given_as_bags_keep_their_stations_remounted_probe(set_ups, ca
         doc = yaml.safe_load((out / 'calibration.yaml').read_text())
         assert [r['reflector_remounted'] for r in doc['recordings']] == [False, True], tag
         assert doc['rms_m'] < 2 * np.sqrt(3) * 2e-5, (tag, doc['rms_m'])
+
+
+@pytest.mark.slow
+def test_validate_refuses_a_placement_the_new_poses_cannot_register(set_ups, capsys):
+    """The probe remounted, then 20 poses turning joint 1 alone: re-registering base and
+    probe together trades one against the other (the tool would report a base and an offset
+    that are guesses), so validate exits 1 naming both and the fix; the probe alone
+    (the tracker where it was) is determined by the same poses and holds."""
+    folder, truths = set_ups
+    cal = folder / 'for_gate'
+    assert main(['identify', '--cell', str(folder / 'cell.yaml'), '--bag',
+                 str(folder / 'a.mcap'), '--out', str(cal)]) == 0, capsys.readouterr()
+    cm, _ = truth_cell_model(load_cell(folder / 'cell_a_remounted.yaml'))
+    q = np.tile([0.1, 0.3, -0.4, 0.2, 0.5, 0.3], (20, 1))
+    q[:, 0] = np.linspace(-1.0, 1.0, len(q))
+    simulate_campaign(folder / 'cell_a_remounted.yaml', len(q), folder / 'joint_1.mcap', 77,
+                      poses=(cm.robot.joint_names, q), cm=cm, p_true=truths['a_remounted'])
+    args = ['validate', '--cell', str(folder / 'cell.yaml'), '--calibration',
+            str(cal / 'calibration.yaml'), '--bag', str(folder / 'joint_1.mcap')]
+    capsys.readouterr()
+    assert main(args + ['--out', str(folder / 'v_both'), '--register', 'base+reflector']) == 1
+    text = capsys.readouterr().out
+    assert 'NOT VALID' in text and 'cannot place the probe' in text \
+        and 'joint_4 (measured over 0 rad)' in text, text
+    out = json.loads((folder / 'v_both' / 'validation.json').read_text())
+    assert out['registration']['valid'] is False and out['registration']['std']['reflector.z'] \
+        is None
+    assert main(args + ['--out', str(folder / 'v_probe'), '--register', 'reflector']) == 0
+    out = json.loads((folder / 'v_probe' / 'validation.json').read_text())
+    assert out['registration']['valid'] is True
+    std = np.array([out['registration']['std'][f'reflector.{c}'] for c in 'xyz'])
+    assert np.all(std < 1e-4), std

@@ -160,3 +160,48 @@ def test_a_few_gross_points_are_trimmed_and_do_not_move_the_registration(cm, cam
     assert _rotation_error(reg.base_in_tracker[3:], clean.base_in_tracker[3:]) < 1e-4
     assert np.allclose(reg.reflector_offset, clean.reflector_offset, atol=5 * SIGMA)
     assert reg.residuals_m[7] > 9.0 and reg.rms_m < 5 * SIGMA
+
+
+def _reregistered(cm, q, eta, names):
+    from kpi_calib_ros.core.estimation.registration import reregister
+    from kpi_calib_ros.core.measurement.data import Measurements
+    index = cm.model.params.indices(names)
+    return reregister(cm.model, cm.model.params.nominal.copy(), Measurements(q=q, eta=eta),
+                      index, np.full(3, SIGMA), np.zeros(0, int), np.zeros((0, 0)))
+
+
+def test_a_re_registered_placement_states_the_std_monte_carlo_finds(cm, campaign):
+    """The std a re-registration states for the offsets of a remounted probe is the spread
+    of the re-fitted offsets over 200 noise draws on the same poses (within 15 %)."""
+    q = campaign[0][:12]
+    names = ['reflector.x', 'reflector.y', 'reflector.z']
+    truth = cm.model.predict(cm.model.params.nominal, q)
+    rng = np.random.default_rng(21)
+    fits = [_reregistered(cm, q, truth + rng.normal(scale=SIGMA, size=truth.shape), names)
+            for _ in range(200)]
+    index = cm.model.params.indices(names)
+    spread = np.std([f.p[index] for f in fits], axis=0, ddof=1)
+    assert np.allclose(fits[0].std, spread, rtol=0.15), (fits[0].std, spread)
+
+
+def test_poses_that_never_turn_the_tool_cannot_place_base_and_probe_and_the_gate_says_so(
+        cm, campaign):
+    """Poses moving joint 1 alone: base and probe trade (undetermined, std inf) and
+    registration_violations names both and the fixes; the probe alone (the tracker where
+    it was) is determined by the same poses and passes."""
+    from kpi_calib_ros.core.estimation.plausibility import registration_violations
+    q = np.repeat(campaign[0][:1], 15, axis=0)
+    q[:, 0] = np.linspace(-1.0, 1.0, len(q))
+    eta = cm.model.predict(cm.model.params.nominal, q) + np.random.default_rng(3).normal(
+        scale=SIGMA, size=(len(q), 3))
+    both = [f'base.{c}' for c in ('x', 'y', 'z', 'roll', 'pitch', 'yaw')] + \
+        ['reflector.x', 'reflector.y', 'reflector.z']
+    fit = _reregistered(cm, q, eta, both)
+    assert fit.dof < len(both) and not np.isfinite(fit.std).all()
+    violations = registration_violations(cm.model, both, fit.std, q=q)
+    text = ' '.join(v.text() for v in violations)
+    assert len(violations) == 2 and 'cannot place the base' in text \
+        and 'cannot place the probe' in text and '--register reflector' in text, text
+    probe = _reregistered(cm, q, eta, both[6:])
+    assert np.all(probe.std < 1e-4) and not registration_violations(cm.model, both[6:],
+                                                                      probe.std, q=q)

@@ -31,6 +31,7 @@ from kpi_calib_ros.app.measurements import (
 )
 from kpi_calib_ros.core.diagnosis.validation import Validation, validate
 from kpi_calib_ros.core.errors import ConfigError, DataError
+from kpi_calib_ros.core.estimation.plausibility import registration_violations
 from kpi_calib_ros.core.estimation.residuals import (
     SIGMA_OVERSTATED,
     noise_verdict,
@@ -216,10 +217,18 @@ def validation_to_dict(v: Validation, data: Measurements, training_rms_m: float 
     extra: dict[str, Any] = {}
     if v.registration is not None and cm is not None:
         names = [cm.model.params.names[i] for i in v.registration.index]
+        std = (v.registration.std if len(v.registration.std) == len(names)
+               else np.full(len(names), np.inf))
+        violations = registration_violations(cm.model, names, std,
+                                             cm.cell.identification.tolerances, data.q)
         extra['registration'] = {
             'parameters': names, 'dof': v.registration.dof,
             'values': {n: float(v.registration.p[i])
-                       for n, i in zip(names, v.registration.index)}}
+                       for n, i in zip(names, v.registration.index)},
+            # None: the new poses do not determine it at all.
+            'std': {n: _num(float(x)) for n, x in zip(names, std)},
+            'valid': not violations,
+            **({'violations': [x.text() for x in violations]} if violations else {})}
     if cm is not None:
         names = list(cm.cell.reflector_names) or ['reflector']
         extra['rms_per_reflector_m'] = {n: _num(v.rms_where(ref == k))
@@ -302,6 +311,18 @@ def prediction_overstated_text(doc: dict[str, Any]) -> str:
             'not below it): a better model or more poses like these narrow the prediction')
 
 
+def registration_valid(doc: Mapping[str, Any]) -> bool:
+    """Whether the validation document's re-registered placement (if any) passed the gate
+    (:func:`~kpi_calib_ros.core.estimation.plausibility.registration_violations`)."""
+    return bool((doc.get('registration') or {}).get('valid', True))
+
+
+def passed(doc: Mapping[str, Any]) -> bool:
+    """Whether the validation document passes: the calibration holds and the placement it
+    re-registered on the new recording (if any) is determined."""
+    return doc.get('holds') is True and registration_valid(doc)
+
+
 def verdict(v: Validation) -> str:
     """The validation's verdict: holds, does not hold, or cannot test."""
     if not v.tested:
@@ -360,6 +381,10 @@ def validation_text(doc: dict[str, Any]) -> str:
                 + ', '.join(doc['registration']['parameters'])
                 + f" ({doc['registration']['dof']} dof); the rms above is after it"]
                if doc.get('registration') else []),
+             *(['NOT VALID: the re-registered placement is undetermined, a guess to use for '
+                'nothing (the chi2 test above stands, on the directions the new poses '
+                'determine): ' + '; '.join(doc['registration']['violations'])]
+               if not registration_valid(doc) else []),
              f"inside the training joint ranges: rms {mm(doc['rms_inside_training_range_m'])}; "
              f"outside ({doc['outside_training_range']} points): "
              f"{mm(doc['rms_outside_training_range_m'])}"]
@@ -452,7 +477,11 @@ def validate_report(cm: CellModel, doc: dict[str, Any], data: Measurements,
         out['recording'] = recording
     if conditions:
         out['conditions'] = dict(conditions)
-    if learned is not None:
+    if learned is not None and not registration_valid(out):
+        out['learned_residual'] = {
+            'file': learned.name, 'skipped': 'not carried into the new set-up: its '
+            're-registered placement is undetermined (registration.violations)'}
+    elif learned is not None:
         moved = seen is not doc or v.registration is not None
         out['learned_residual'] = learned_section(
             cm, p, learned, data,
@@ -521,7 +550,8 @@ def run_validate(cell_path: str | Path, calibration_path: str | Path, bag_path: 
     topics when they are not the cell's (``--joint-topic`` …, as for identify).
 
     Returns 0 when the calibration holds, 1 when it does not or cannot be tested (no
-    degrees of freedom left after the re-registration). A calibration whose ``valid:`` is
+    degrees of freedom left after the re-registration) or when the placement ``register``
+    re-fitted is undetermined by the new poses (:func:`passed`). A calibration whose ``valid:`` is
     false (calibration.failed.yaml) is refused (ConfigError): whether it holds is no
     question for a calibration that was never published.
     """
@@ -538,4 +568,4 @@ def run_validate(cell_path: str | Path, calibration_path: str | Path, bag_path: 
     print(validation_text(out))
     print(f"written: {Path(out_dir) / VALIDATION_FILE}, "
           f"{Path(out_dir) / 'validation_residuals.png'}")
-    return 0 if out['holds'] is True else 1
+    return 0 if passed(out) else 1

@@ -47,6 +47,10 @@ def validate_answer(doc: dict[str, Any]) -> str:
                if doc.get('recording') else '')
             + (' after re-registering ' + '/'.join(doc['registration']['parameters'])
                if doc.get('registration') else '')
+            + ('; NOT VALID, the re-registered placement is undetermined: '
+               + '; '.join(doc['registration']['violations'])
+               if doc.get('registration') and not doc['registration'].get('valid', True)
+               else '')
             + f", chi2/dof {doc['chi2']:.1f}/{doc['dof']}, "
             + (f"p = {doc['p_value']:.3g}; " if doc.get('tested', True)
                else f"{doc['not_tested_reason']}; ")

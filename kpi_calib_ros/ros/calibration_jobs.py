@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 from std_msgs.msg import String
 
+from kpi_calib_ros.app.validate import passed
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation.drift_state import DriftSwing
 from kpi_calib_ros.core.estimation.precision import precision_statement
@@ -165,7 +166,7 @@ class CalibrationJobs(NodeParts):
                                         self.data_dir, self.settings.validate_register or None,
                                         stations[0].name if stations else '')
         self._pub_validation.publish(String(data=text))
-        return doc['holds'] is True, validate_answer(doc)
+        return passed(doc), validate_answer(doc)
 
 
 __all__ = ['CalibrationJobs']

@@ -56,6 +56,7 @@ from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.core.model.parameters import RECORDING_PREFIX, reflector_prefixes
 
 __all__ = ['Tolerances', 'Violation', 'gate', 'geometric_violations', 'effect_violations',
+           'registration_violations',
            'gauge_free_deviation', 'observed_std', 'structural_jacobian', 'TURN_RANGE_RAD',
            'STRUCTURAL_POSES']
 
@@ -230,6 +231,57 @@ def _tool_joints(model: MeasurementModel, q: np.ndarray | None) -> str:
     narrow = [f'{names[i]} (measured over {s:.2g} rad)' for i, s in zip(revolute, span)
               if s < TURN_RANGE_RAD]
     return ', '.join(narrow) if narrow else ', '.join(names[i] for i in revolute)
+
+
+def registration_violations(model: MeasurementModel, names: Sequence[str],
+                            std: Sequence[float] | np.ndarray,
+                            tolerances: Tolerances = Tolerances(),
+                            q: np.ndarray | None = None) -> list[Violation]:
+    """Violations of a placement re-fitted on a new recording (``validate --register``).
+
+    A new set-up's base pose and a remounted probe's offsets are the new recording's to
+    say, whatever their value; what the gate asks is that its poses determine them:
+    each re-fitted parameter's ``std`` (from the new recording alone, the calibration held)
+    within its tolerance (``base_translation`` / ``base_rotation`` / ``reflector_offset``,
+    ``rotation`` for a tracked body's orientation). Poses that never turn the tool leave
+    the base position and the reflector offset trading: the registered placement would be
+    a guess, and so would a learned residual carried into it.
+
+    Parameters
+    ----------
+    names, std : sequences
+        The re-fitted parameters and their std (m, rad; inf: not determined at all).
+    q : (N, n) ndarray, optional
+        The new recording's joint values (the fix names the wrist joints it hardly turned).
+    """
+    units = dict(zip(model.params.names, model.params.units))
+    groups: dict[bool, list[str]] = {}  # reflector or not -> '<name> (<std>)'
+    keys: dict[bool, list[str]] = {}
+    for name, spread in zip(names, std):
+        unit = units[name]
+        key = _tolerance_key(name, unit)
+        tol = float(getattr(tolerances, key))
+        if spread <= tol:
+            continue
+        probe = name.startswith('reflector') or '.reflector' in name
+        groups.setdefault(probe, []).append(
+            f'{name} (' + ('not determined at all' if not np.isfinite(spread)
+                           else f'std {spread:.3g} {unit} > {tol:g} {unit}') + ')')
+        if f'identification.tolerances.{key}' not in keys.setdefault(probe, []):
+            keys[probe].append(f'identification.tolerances.{key}')
+    out: list[Violation] = []
+    for probe, undetermined in groups.items():
+        fix = (f'measure poses that turn the wrist ({_tool_joints(model, q)}) over wide '
+               'ranges' if probe else 'measure poses spread over the workspace in every '
+               'direction')
+        out.append(Violation(
+            ', '.join(undetermined),
+            'undetermined by the new recording: its poses cannot place '
+            + ('the probe' if probe else 'the base'),
+            f'{fix}, or re-register less (--register base when the probe was not remounted, '
+            f'--register reflector when the tracker did not move), or widen '
+            + ' / '.join(keys[probe])))
+    return out
 
 
 def geometric_violations(model: MeasurementModel, result: CalibrationResult,

@@ -22,7 +22,7 @@ calibration's other parameters held, as ``validate --register`` needs.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import pinocchio as pin
@@ -357,6 +357,10 @@ class Reregistration:
         calibration holds.
     iterations : int
         Gauss-Newton steps taken after the closed-form start.
+    std : (r,) ndarray
+        Each re-fitted parameter's std from the new recording alone (the calibration held),
+        the noise as stated; inf for one the new poses do not determine (a part of it lies
+        in a direction below :data:`RANK_TOLERANCE`). Empty when not computed.
     """
 
     p: np.ndarray
@@ -364,6 +368,7 @@ class Reregistration:
     dof: int
     chi2: float
     iterations: int
+    std: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 def reregister(model: MeasurementModel, p: np.ndarray, data: Measurements, index: np.ndarray,
@@ -444,7 +449,31 @@ def reregister(model: MeasurementModel, p: np.ndarray, data: Measurements, index
                             np.zeros((0, 0)), iterations, tol)
     _, chi2, rank, more = _refit(model, p, data, index, weight, uncertain, prior,
                                  iterations, tol)
-    return Reregistration(p, index, rank - k, chi2, steps + more)
+    return Reregistration(p, index, rank - k, chi2, steps + more,
+                          _refitted_std(model, p, data, index, weight))
+
+
+def _refitted_std(model: MeasurementModel, p: np.ndarray, data: Measurements,
+                  index: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """Return the (r,) std of ``p[index]`` fitted on ``data`` alone, the rest held.
+
+    The square root of the diagonal of ``(Jᵀ W² J)⁺``; inf where a direction the data do
+    not determine (singular value below :data:`RANK_TOLERANCE` of the largest, columns
+    scaled) enters.
+    """
+    _, jac = model.jacobian(p, np.atleast_2d(data.q), data.tau, data.reflector, data.rotation,
+                            data.covariates)
+    rows = weighted_rows(jac, weight, index)
+    scale = np.linalg.norm(rows, axis=0)
+    scale[scale == 0.0] = 1.0
+    _, s, vt = np.linalg.svd(rows / scale, full_matrices=True)
+    s = np.concatenate([s, np.zeros(len(vt) - len(s))])  # fewer rows than parameters
+    kept = s > RANK_TOLERANCE * (s[0] if len(s) else 0.0)
+    s = np.where(kept, s, 1.0)
+    var = np.sum((vt[kept] / s[kept, None]) ** 2, axis=0)
+    # A parameter with a part in a left-out direction is not determined, whatever its size.
+    lost = np.sum(vt[~kept] ** 2, axis=0) > 1e-6
+    return np.where(lost, np.inf, np.sqrt(var) / scale)
 
 
 def _refit(model: MeasurementModel, p: np.ndarray, data: Measurements, index: np.ndarray,
