@@ -270,3 +270,35 @@ def test_an_effect_fitted_to_noise_passes_the_held_out_test_at_most_at_its_level
     rate = np.mean(zs > norm.isf(HELD_OUT_ALPHA))
     assert rate <= HELD_OUT_ALPHA + 3 * np.sqrt(HELD_OUT_ALPHA * (1 - HELD_OUT_ALPHA) / 600)
     assert np.mean(zs) < 0
+
+
+def test_a_calibration_better_where_measured_and_worse_elsewhere_states_its_scope():
+    """The figures of a geometric fit of the real UR10 on one region of joint space (held-out
+    regions 4565.5 µm against the registered nominal's 590.5 µm, while the prediction from
+    the fit favours it, 449.3 against 543.3 µm): not refused, but the document and the
+    summary warn that outside the measured region it predicts worse than no calibration.
+    When the held-out regions favour the calibration, or it is refused anyway, no warning."""
+    from kpi_calib_ros.app.calibration_document import robust_summary
+    from kpi_calib_ros.core.diagnosis.model_selection import NominalComparison
+    from kpi_calib_ros.core.estimation.cross_validation import RegionValidation
+
+    def comparison(other_cal, predicted_cal=449.3e-6):
+        return NominalComparison(RegionValidation(4550.2e-6, other_cal, 10, 5),
+                                 RegionValidation(543.3e-6, 590.5e-6, 10, 5),
+                                 calibrated_predicted_m=predicted_cal,
+                                 nominal_predicted_m=543.3e-6)
+    harmful = comparison(4565.5e-6)
+    assert harmful.better and harmful.elsewhere_worse
+    doc = harmful.to_dict()
+    assert doc['elsewhere_worse'] is True
+    assert '4565.5 µm against 590.5 µm' in harmful.scope_text()
+    assert not comparison(400e-6).elsewhere_worse and comparison(400e-6).scope_text() == ''
+    refused = comparison(4565.5e-6, predicted_cal=600e-6)
+    assert not refused.better and not refused.elsewhere_worse
+    summary = robust_summary({
+        'robust': {'sigma_stated_m': 1e-4, 'sigma_robust_m': 1e-4, 'sigma_ratio': 1.0,
+                   'loss': 'linear', 'excluded': [], 'warnings': []},
+        'model': {'level': 'geometric', 'free_parameters': 30, 'reason': 'asked'},
+        'against_nominal': {**doc, 'scope_warning': harmful.scope_text()},
+        'tcp_estimable': True, 'tcp': [], 'valid': True})
+    assert 'WARNING: outside the region of joint space it was measured in' in summary

@@ -166,6 +166,8 @@ def add_robust_sections(doc: dict[str, Any], cal: CellCalibration) -> dict[str, 
     doc['model'] = {**cal.choice.to_dict(), 'free_parameters': len(cal.free)}
     if cal.nominal is not None:
         doc['against_nominal'] = cal.nominal.to_dict()
+        if cal.nominal.elsewhere_worse:
+            doc['against_nominal']['scope_warning'] = cal.nominal.scope_text()
     doc['robust'] = {
         'sigma_stated_m': rob.sigma_stated, 'sigma_robust_m': rob.sigma_robust,
         'sigma_ratio': rob.sigma_ratio, 'loss': rob.loss,
@@ -237,6 +239,8 @@ def robust_summary(doc: dict[str, Any]) -> str:
                      + per_level(model['other_region_rms_m'], 'not estimable from this design'))
     if doc.get('against_nominal'):
         lines.append(doc['against_nominal']['text'])
+        if doc['against_nominal'].get('scope_warning'):
+            lines.append('WARNING: ' + doc['against_nominal']['scope_warning'])
     lines.append(f"noise σ: stated {rob['sigma_stated_m'] * 1e6:.3g} µm, robust estimate from "
                  f"the residuals {rob['sigma_robust_m'] * 1e6:.3g} µm "
                  f"(ratio {rob['sigma_ratio']:.3g}); loss {rob['loss']}")
