@@ -117,6 +117,8 @@ def test_three_set_ups_recover_every_placement_and_the_robot_within_3_sigma(cm):
     assert np.linalg.norm(start[b][:3] - truth[b][:3]) < 0.01
     cal = calibrate_cell(placed, data, model='geometric')
     assert cal.valid and not cal.implausible, cal.implausible
+    # B shares A's probe: the test of the shared probe runs and finds them agreeing
+    assert [s.name for s in cal.remount.shifts] == ['b'] and not cal.remount.disagrees
     result = cal.result
     placements = [n for n in placed.model.params.names
                   if n.startswith(('base.', 'reflector.', 'recording.'))]
@@ -136,6 +138,27 @@ def test_three_set_ups_recover_every_placement_and_the_robot_within_3_sigma(cm):
           f'{chi2:.1f} for {len(z)} parameters')
     assert np.all(np.abs(z) < 3), result.estimated[worst]
     assert chi2 < scipy.stats.chi2.ppf(0.999, len(z))
+
+
+def test_a_remount_left_undeclared_is_named_and_the_calibration_not_valid(cm):
+    """C's probe moved 11 mm but the recordings say it is shared: the fit converges
+    millimetres off (a valid calibration before); the shared probe's test names C alone,
+    with the shift of the remount, and the calibration is not valid, naming the fix."""
+    rng = np.random.default_rng(3)
+    p_robot = true_parameters(cm.model.params, rng)
+    data, _ = _campaign(cm, RECORDINGS, p_robot, 40, rng)
+    undeclared = [rec.Recording(r.name) for r in RECORDINGS]
+    placed = with_recordings(cm, undeclared)
+    cal = calibrate_cell(placed, data, model='geometric')
+    test = cal.remount
+    print(test.text())
+    assert cal.result.rms_m > 1e-3  # the shared robot bent to the remount
+    assert test.disagrees and test.fraction > 0.9
+    assert [s.name for s in test.moved] == ['c']
+    shift = test.moved[0].shift_m[0]
+    assert np.linalg.norm(shift - REMOUNT) < 0.05 * np.linalg.norm(REMOUNT)
+    assert not cal.valid
+    assert any('--remounted c' in p for p in cal.problems)
 
 
 def test_contributions_say_what_each_recording_adds(cm):

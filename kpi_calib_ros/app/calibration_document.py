@@ -15,6 +15,7 @@ import numpy as np
 from kpi_calib_ros.app.cell_model import CellModel
 from kpi_calib_ros.core.acquisition.outcomes import PairingResult
 from kpi_calib_ros.core.diagnosis.model_selection import ModelChoice, NominalComparison
+from kpi_calib_ros.core.diagnosis.remount import RemountTest
 from kpi_calib_ros.core.effects.gravity_compliance import compliance_warnings, mass_warning
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation.estimability import KpiEstimability
@@ -61,6 +62,9 @@ class CellCalibration:
     # Cross-validated rms against the nominal robot with the placement registered
     # (core.diagnosis.model_selection.against_nominal); None: the calibration is that fit.
     nominal: NominalComparison | None = None
+    # Whether recordings sharing the probe disagree on it (core.diagnosis.remount); None:
+    # one recording, or every one after the first remounted.
+    remount: RemountTest | None = None
 
     @property
     def problems(self) -> tuple[str, ...]:
@@ -75,6 +79,8 @@ class CellCalibration:
         if self.nominal is not None:
             out += [f'worse than no calibration on one set-up: {r.text()}'
                     for r in self.nominal.harmed]
+        if self.remount is not None and self.remount.disagrees:
+            out.append(self.remount.text())
         return tuple(out)
 
     @property
@@ -168,6 +174,8 @@ def add_robust_sections(doc: dict[str, Any], cal: CellCalibration) -> dict[str, 
         doc['against_nominal'] = cal.nominal.to_dict()
         if cal.nominal.elsewhere_worse:
             doc['against_nominal']['scope_warning'] = cal.nominal.scope_text()
+    if cal.remount is not None:
+        doc['shared_probe'] = cal.remount.to_dict()
     doc['robust'] = {
         'sigma_stated_m': rob.sigma_stated, 'sigma_robust_m': rob.sigma_robust,
         'sigma_ratio': rob.sigma_ratio, 'loss': rob.loss,

@@ -37,6 +37,7 @@ from kpi_calib_ros.core.diagnosis.model_selection import (
     choose_model,
     level_free,
 )
+from kpi_calib_ros.core.diagnosis.remount import remount_test
 from kpi_calib_ros.core.effects.registry import BoundEffect, parse_effect_spec
 from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.estimation.estimability import result_estimability
@@ -266,7 +267,8 @@ def _final_fit(cm: CellModel, data: Measurements, choice: ModelChoice, start: np
     return CellCalibration(result, robust, choice, est, tuple(free),
                            registration, scales[-1], cm,
                            expected_tcp_error(cm.model, kept, result, prior=used_prior),
-                           implausible=implausible, nominal=nominal)
+                           implausible=implausible, nominal=nominal,
+                           remount=remount_test(cm.model, kept, result))
 
 
 def nominal_comparison(cm: CellModel, data: Measurements, result: CalibrationResult,
