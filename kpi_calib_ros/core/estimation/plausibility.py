@@ -116,8 +116,11 @@ def structural_jacobian(model: MeasurementModel, values: np.ndarray, seed: int =
     blocks = []
     # Every recording at every spread pose: each one's placement is seen by its own rows.
     for k in range(len(model.recordings) + 1):
-        z = {f'{RECORDING_PREFIX}{name}': np.full(len(ref_s), float(i + 1 == k))
-             for i, name in enumerate(model.recordings)}
+        # The model's other inputs (a measured tilt, a temperature) at zero: the structure
+        # is the robot's; with any recording, covariates must carry every input.
+        z = {name: np.zeros(len(ref_s)) for name in model.inputs}
+        z.update({f'{RECORDING_PREFIX}{name}': np.full(len(ref_s), float(i + 1 == k))
+                  for i, name in enumerate(model.recordings)})
         _, jac = model.jacobian(np.asarray(values, float), np.tile(spread, (n_ref, 1)), None,
                                 ref_s if n_ref > 1 else None, covariates=z or None)
         blocks.append(jac.reshape(-1, len(model.params)))
