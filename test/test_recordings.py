@@ -229,6 +229,19 @@ def test_combine_refuses_a_condition_stated_for_some_recordings_only():
         rec.Recording('2nd station')
 
 
+def test_combine_refuses_a_constant_its_rows_contradict():
+    """A manifest's constant replaced the bag's per-row payload silently before."""
+    rows = Measurements(q=np.zeros((2, 6)), eta=np.zeros((2, 3)),
+                        covariates={'payload.mass': np.array([0.0, 10.0])})
+    with pytest.raises(ValueError, match=r"'a' states payload.mass = 5 while its rows carry"):
+        rec.combine([rows, rows], [rec.Recording('a', covariates={'payload.mass': 5.0}),
+                                   rec.Recording('b', covariates={'payload.mass': 0.0})])
+    same = dataclasses.replace(rows, covariates={'payload.mass': np.array([5.0, 5.0])})
+    both = rec.combine([same, rows], [rec.Recording('a', covariates={'payload.mass': 5.0}),
+                                      rec.Recording('b')])
+    np.testing.assert_array_equal(both.covariates['payload.mass'], [5, 5, 0, 10])
+
+
 def test_a_remounted_probe_the_postures_cannot_register_starts_at_the_first_offset(cm):
     """Set-up C's postures turn the tool about one axis only (joint 1 and q2 + q3 fixed, the
     wrist still): its own offset cannot be registered, so its placement is registered with the

@@ -105,3 +105,27 @@ def test_bag_names_come_from_the_file_stems_and_must_differ(bags, capsys):
                     + argv)
         err = capsys.readouterr().err
         assert code == 2 and key in err and 'Traceback' not in err, err
+
+
+@pytest.mark.parametrize('name, close', [('paylaod.mass', 'payload.mass'),
+                                         ('payload_mass', 'payload.mass')])
+def test_a_condition_misspelled_is_refused_naming_the_one_meant(name, close, bags, capsys):
+    """A condition close to one the model reads is a slip: before, it was stored with the
+    calibration and read by nothing (the payload fitted as none)."""
+    path = _manifest(bags, [{'bag': 'station_a.mcap', 'covariates': {name: 5.0}},
+                            {'bag': 'station_b.mcap', 'covariates': {name: 0.0}}])
+    code = main(['identify', '--cell', str(DEFAULT_CELL), '--recordings', str(path),
+                 '--effects', 'joint_compliance:joint_2', '--out', str(bags / 'out')])
+    err = capsys.readouterr().err
+    assert code == 2 and f'recordings[0].covariates.{name}' in err, err
+    assert f'did you mean {close!r}' in err
+
+
+def test_a_condition_nothing_reads_is_said(bags, capsys):
+    path = _manifest(bags, [{'bag': 'station_a.mcap', 'covariates': {'hall.humidity': 0.4}},
+                            {'bag': 'station_b.mcap', 'covariates': {'hall.humidity': 0.5}}])
+    main(['identify', '--cell', str(DEFAULT_CELL), '--recordings', str(path), '--out',
+          str(bags / 'out')])
+    err = capsys.readouterr().err
+    assert ('warning: recordings[0].covariates.hall.humidity: no effect of the model reads it'
+            in err), err

@@ -43,6 +43,7 @@ from kpi_calib_ros.core.measurement.recordings import (
     combine,
     placed_model,
     recording_parameters,
+    unread_covariates,
 )
 from kpi_calib_ros.io.bag import JOINT_STATE_TYPE, read_for_pairing, read_inputs, read_temperatures
 from kpi_calib_ros.io.cell import load_cell
@@ -412,6 +413,7 @@ def load_recordings(cell_path: str | Path, sources: Sequence[RecordingSource],
     """
     cell = load_cell(cell_path, allow_code_effects=allow_code_effects)
     cm = build_cell_model(cell, effects=tuple(split_specs(effects)))
+    check_stated_covariates(cm, [s.recording for s in sources])
     parts, pairings = [], []
     for source in sources:
         data, pairing = measurements_from_bag(cm, source.bag, joint_topic, point_topic,
@@ -428,6 +430,30 @@ def load_recordings(cell_path: str | Path, sources: Sequence[RecordingSource],
     except ValueError as exc:
         raise ConfigError('recordings', f'{exc}') from None
     return with_recordings(cm, recordings), data, merged_pairing(pairings)
+
+
+def check_stated_covariates(cm: CellModel, recordings: Sequence[Recording]) -> None:
+    """Refuse a recording's constant covariate that is a misspelling of one the model
+    reads, and warn (stderr) of one nothing reads: stored with the calibration, it would
+    change no prediction (:func:`kpi_calib_ros.core.measurement.recordings.unread_covariates`).
+
+    Raises
+    ------
+    ConfigError
+        ``recordings[i].covariates.<name>``: the name is close to one the model reads.
+    """
+    for i, rec in enumerate(recordings):
+        misspelled, unread = unread_covariates(cm.model, list(rec.covariates))
+        for name, close in misspelled:
+            raise ConfigError(f'recordings[{i}].covariates.{name}',
+                              f'no effect reads {name!r}: did you mean {close!r}? (a '
+                              'condition read by nothing changes no prediction)')
+        for name in unread:
+            reads = ', '.join(n for n in cm.model.inputs) or 'none'
+            print(f'warning: recordings[{i}].covariates.{name}: no effect of the model reads '
+                  f'it (the effects read: {reads}{"; the payload" if cm.model.uses_torque else ""}'
+                  '); it is kept with the recording and changes no prediction',
+                  file=sys.stderr)
 
 
 def print_rejections(pairing: PairingResult) -> None:

@@ -443,7 +443,11 @@ def new_row_conditions(doc: dict[str, Any], data: Measurements, recording: str |
                           f'{needed[0]}=VALUE, or --recording NAME for a later bag of one '
                           'of its recordings')
     if conditions:
-        data = combine([data], [Recording('new', covariates=conditions)])
+        try:
+            data = combine([data], [Recording('new', covariates=conditions)])
+        except ValueError as exc:
+            raise ConfigError('--covariate', str(exc).replace("recording 'new'", 'the bag')
+                              .replace("the recording's covariates", '--covariate')) from None
     if recordings and data.covariates:
         # placed by base.* (the first's, or the named one's renamed so): no recording's own
         zeros = row_covariates([r.name for r in recordings], np.zeros(len(data), int))

@@ -22,6 +22,7 @@ working poses, fresh poses) is in the first recording's tracker frame.
 """
 from __future__ import annotations
 
+import difflib
 import math
 import re
 from dataclasses import dataclass, field
@@ -54,7 +55,7 @@ __all__ = [
     'PREFIX', 'NAME_PATTERN', 'Recording', 'covariate', 'base_names', 'reflector_names',
     'recording_parameters', 'recording_names', 'placed_model', 'combine', 'row_recording',
     'row_covariates', 'Contribution', 'contributions', 'placement_names', 'to_first_frame',
-    'as_first', 'COVARIATE_NAME', 'stated_conditions',
+    'as_first', 'COVARIATE_NAME', 'stated_conditions', 'unread_covariates',
 ]
 
 PREFIX = RECORDING_PREFIX
@@ -125,6 +126,31 @@ class Recording:
         if not isinstance(self.name, str) or not NAME_PATTERN.match(self.name):
             raise ValueError(f'recording name {self.name!r} must start with a letter and hold '
                              'letters, digits, _ or - only')
+
+
+def unread_covariates(model: MeasurementModel, names: Sequence[str]
+                      ) -> tuple[list[tuple[str, str]], list[str]]:
+    """Split stated covariate ``names`` that no part of ``model`` reads.
+
+    A covariate is read by an effect's inputs (:attr:`MeasurementModel.inputs`) or, when an
+    effect reads the gravity torque, as the payload (``payload.*``). Returns (misspelled,
+    unread): ``misspelled`` [(name, the read name it is close to)], ``unread`` the other
+    names read by nothing (a condition kept for the record, which changes no prediction).
+    """
+    read = [n for n in model.inputs if not n.startswith(PREFIX)]
+    if model.uses_torque:
+        read += [PAYLOAD_MASS, *PAYLOAD_COM]
+    known = set(read) | {PAYLOAD_MASS, *PAYLOAD_COM}
+    misspelled, unread = [], []
+    for name in names:
+        if name in read:
+            continue
+        close = difflib.get_close_matches(name, sorted(known - {name}), n=1, cutoff=0.75)
+        if close and name not in known:
+            misspelled.append((name, close[0]))
+        else:
+            unread.append(name)
+    return misspelled, unread
 
 
 def covariate(name: str) -> str:
@@ -256,8 +282,10 @@ def combine(parts: Sequence[Measurements], recordings: Sequence[Recording]) -> M
     Raises
     ------
     ValueError
-        Lengths differ, or a covariate is given for some recordings and not others (a
-        condition of one recording must be stated for every one: 0 is a condition too).
+        Lengths differ, a covariate is given for some recordings and not others (a
+        condition of one recording must be stated for every one: 0 is a condition too), or
+        a recording states a constant its own rows carry with other values (the constant
+        replaced them silently).
     """
     if len(parts) != len(recordings) or not parts:
         raise ValueError('one Measurements per recording, at least one')
@@ -267,6 +295,16 @@ def combine(parts: Sequence[Measurements], recordings: Sequence[Recording]) -> M
         if have != every:
             raise ValueError(f'recording {rec.name!r} states no covariate '
                              f'{sorted(every - have)}: give it for every recording')
+    for rec, part in zip(recordings, parts):
+        for name, value in rec.covariates.items():
+            rows = (part.covariates or {}).get(name)
+            if rows is not None and not np.allclose(np.asarray(rows, float), float(value),
+                                                    rtol=1e-9, atol=1e-12):
+                rows = np.asarray(rows, float)
+                raise ValueError(
+                    f'recording {rec.name!r} states {name} = {float(value):g} while its rows '
+                    f'carry {name} per row ({rows.min():g} to {rows.max():g}): state it in '
+                    'one place (drop it from the recording\'s covariates to use the rows\')')
     index = np.concatenate([np.full(len(p), i) for i, p in enumerate(parts)])
     covariates: dict[str, np.ndarray] = {}
     for name in sorted(every):
