@@ -43,6 +43,7 @@ from kpi_calib_ros.core.measurement.recordings import (
     combine,
     placed_model,
     recording_parameters,
+    repeated_rows,
     unread_covariates,
 )
 from kpi_calib_ros.io.bag import JOINT_STATE_TYPE, read_for_pairing, read_inputs, read_temperatures
@@ -425,6 +426,13 @@ def load_recordings(cell_path: str | Path, sources: Sequence[RecordingSource],
         parts.append(data)
         pairings.append(pairing)
     recordings = [s.recording for s in sources]
+    for i, j, count in repeated_rows(parts):
+        raise ConfigError('recordings', f'recording {recordings[j].name!r} '
+                          f'({sources[j].bag}) repeats {count} of its {len(parts[j])} rows '
+                          f'bit for bit from recording {recordings[i].name!r} '
+                          f'({sources[i].bag}): the same measurements given twice (a copy '
+                          'under another name) would count twice and halve every variance; '
+                          'give each recording once')
     try:
         data = combine(parts, recordings)
     except ValueError as exc:

@@ -56,6 +56,7 @@ __all__ = [
     'recording_parameters', 'recording_names', 'placed_model', 'combine', 'row_recording',
     'row_covariates', 'Contribution', 'contributions', 'placement_names', 'to_first_frame',
     'as_first', 'COVARIATE_NAME', 'stated_conditions', 'unread_covariates',
+    'repeated_rows',
 ]
 
 PREFIX = RECORDING_PREFIX
@@ -126,6 +127,27 @@ class Recording:
         if not isinstance(self.name, str) or not NAME_PATTERN.match(self.name):
             raise ValueError(f'recording name {self.name!r} must start with a letter and hold '
                              'letters, digits, _ or - only')
+
+
+def repeated_rows(parts: Sequence[Measurements]) -> list[tuple[int, int, int]]:
+    """Rows one recording repeats of an earlier one, bit for bit (joint values and point).
+
+    Returns [(earlier, later, count)] of recording indices into ``parts`` with the count of
+    the later one's rows found in the earlier one. Two measurements of a tracker never agree
+    to the bit: a repeated row is the same file read twice (a copy under another name),
+    which would count its rows twice and halve every variance they give.
+    """
+    seen: dict[bytes, int] = {}
+    found: dict[tuple[int, int], int] = {}
+    for k, part in enumerate(parts):
+        q = np.ascontiguousarray(np.atleast_2d(part.q), float)
+        eta = np.ascontiguousarray(np.atleast_2d(part.eta), float)
+        for row in range(len(q)):
+            key = q[row].tobytes() + eta[row].tobytes()
+            first = seen.setdefault(key, k)
+            if first != k:
+                found[(first, k)] = found.get((first, k), 0) + 1
+    return [(i, j, n) for (i, j), n in sorted(found.items())]
 
 
 def unread_covariates(model: MeasurementModel, names: Sequence[str]
