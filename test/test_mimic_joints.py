@@ -91,6 +91,53 @@ def test_actuated_joints_limits_and_kinematics_of_a_mimic_column():
     assert np.abs(again.pin_tip_pose(q[0]) - robot.pin_tip_pose(q[0])).max() == 0.0
 
 
+def _leader_after(extra: str = '', j2_master: str = 'j4') -> str:
+    """Four revolute joints in a row; j2 = -j4 + 0.1, its leader later on the chain."""
+    def joint(name, parent, child, mimic=''):
+        return (f'<joint name="{name}" type="revolute"><parent link="{parent}"/>'
+                f'<child link="{child}"/><origin xyz="0 0.05 0.3"/><axis xyz="0 1 0"/>'
+                f'<limit lower="-1.5" upper="1.5" effort="1" velocity="1"/>{mimic}</joint>')
+    links = ''.join(f'<link name="{n}"/>' for n in ('base', 'l1', 'l2', 'l3', 'tip'))
+    return (f'<robot name="leader_after">{links}' + joint('j1', 'base', 'l1')
+            + joint('j2', 'l1', 'l2', f'<mimic joint="{j2_master}" multiplier="-1" '
+                    'offset="0.1"/>')
+            + joint('j3', 'l2', 'l3') + joint('j4', 'l3', 'tip') + extra + '</robot>')
+
+
+def test_the_independent_joints_keep_their_chain_order_whatever_their_mimics():
+    """j2 mimics j4, later on the chain: the independent joints are j1, j3, j4 in that
+    order (before, j4 took j2's place and an unnamed working pose [j1, j3, j4] was read
+    with j3 and j4 swapped: a column arm's TCP 384.7 mm off, no error)."""
+    urdf = _leader_after()
+    robot = RobotModel(urdf, 'base', 'tip')
+    assert robot.actuated_names == ('j1', 'j3', 'j4')
+    x = np.array([0.2, -0.7, 0.5])
+    q = robot.chain_values(x)
+    np.testing.assert_allclose(q, [0.2, -0.4, -0.7, 0.5], rtol=0, atol=1e-15)
+    # Pinocchio's mimic=True cannot load a leader after its mimic: plain Pinocchio with
+    # the relation applied by hand (the URDF's j2 = -j4 + 0.1).
+    model = pin.buildModelFromXML(urdf)
+    data = model.createData()
+    values = {'j1': 0.2, 'j2': -0.5 + 0.1, 'j3': -0.7, 'j4': 0.5}
+    full = pin.neutral(model)
+    for name, value in values.items():
+        full[model.joints[model.getJointId(name)].idx_q] = value
+    pin.framesForwardKinematics(model, data, full)
+    expected = (data.oMf[model.getFrameId('base')].inverse()
+                * data.oMf[model.getFrameId('tip')]).homogeneous
+    assert np.abs(robot.pin_tip_pose(q) - expected).max() < 1e-12
+
+
+def test_a_mimic_of_a_mimic_off_the_chain_is_refused():
+    """j2 mimics aux, off the chain, which mimics j3: refused as on the chain (before, aux
+    was taken as independent and j2 read 0.1 where the URDF makes it -0.7)."""
+    aux = ('<link name="aux_link"/><joint name="aux" type="revolute"><parent link="l1"/>'
+           '<child link="aux_link"/><axis xyz="0 0 1"/><limit lower="-3" upper="3" '
+           'effort="1" velocity="1"/><mimic joint="j3"/></joint>')
+    with pytest.raises(ConfigError, match="'j2' mimics 'aux', which mimics another joint"):
+        RobotModel(_leader_after(aux, 'aux'), 'base', 'tip')
+
+
 @pytest.mark.parametrize('tip, mimic_in_chain', [('panda_hand', False),
                                                  ('panda_rightfinger', True)])
 def test_panda_finger_mimic_loads(tip, mimic_in_chain):
@@ -258,3 +305,38 @@ def test_design_gives_actuated_poses_inside_every_limit(tmp_path):
     q = cm.joint_coupling.to_urdf(x)
     assert cm.robot.within_limits(q).all() and cm.robot.mimic_residual(q).max() < 1e-12
     assert design['verification']['ok']
+
+
+def test_a_leader_its_mimics_leave_one_value_is_a_named_error():
+    """The stock PR2's right parallel link mimics the left finger with limits that leave the
+    finger the single value 0: a clear error naming the joint, where sampling poses
+    crashed with numpy's 'high - low < 0'."""
+    urdf = resolve_uri('package://example-robot-data/robots/pr2_description/urdf/pr2.urdf')
+    with pytest.raises(ConfigError, match=r"\['r_gripper_l_finger_joint'\].*single value 0"):
+        RobotModel(urdf.read_text(), 'base_footprint', 'r_gripper_r_parallel_link')
+
+
+def test_the_drives_reading_noise_moves_its_mimic_joints_with_it(tmp_path):
+    """noise.joint_sigma of the drive ``lift`` (off the chain; before refused as an unknown
+    joint, and a number was taken as independent noise on each stage): each point's stated
+    covariance σ²I + J_q S Sᵀ J_qᵀ matches Monte Carlo of the drive's reading error carried
+    to both stages by the URDF relation: the whitened residuals' mean square is 3."""
+    cm = build_cell_model(load_cell(write_cell(tmp_path, noise={
+        'sigma': SIGMA, 'joint_sigma': {'lift': 2e-3}})))
+    with pytest.raises(ConfigError, match="'stage_1' mimics 'lift'"):
+        build_cell_model(load_cell(write_cell(tmp_path, noise={
+            'sigma': SIGMA, 'joint_sigma': {'stage_1': 2e-3}})))
+    robot, model = cm.robot, cm.model
+    rng = np.random.default_rng(3)
+    p = model.params.nominal
+    for x in robot.actuated_values(robot.sample_configurations(rng, 3)):
+        draws = 4000
+        read = np.tile(x, (draws, 1))
+        read[:, 0] += rng.normal(0.0, 2e-3, draws)       # the drive's reading error
+        q_read = robot.chain_values(read)
+        eta = model.predict(p, robot.chain_values(x)[None])[0] + rng.normal(0, SIGMA, (draws, 3))
+        r = eta - model.predict(p, q_read)
+        w = model.whitening(p, q_read, np.full(3, SIGMA))
+        mean_square = float(np.mean(np.sum(np.einsum('nab,nb->na', w, r) ** 2, axis=1)))
+        # the mean of χ²₃ over 4000 draws: 3 ± 0.05 (1σ)
+        assert abs(mean_square - 3.0) < 0.2, mean_square

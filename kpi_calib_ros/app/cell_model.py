@@ -32,7 +32,7 @@ from kpi_calib_ros.io.cell_sections import (
     HalfSpaceSpec,
     WorkingPose,
     coupling_from_mapping,
-    joint_sigma_vector,
+    joint_noise_map,
 )
 from kpi_calib_ros.io.cell_temperature import joint_temperatures
 
@@ -181,7 +181,7 @@ def build_cell_model(cell: Cell, effects: tuple = ()) -> CellModel:
                              dict(cell.reflector_orientations),
                              None if cell.sigma_rotation is None
                              else cell.sigma / cell.sigma_rotation,
-                             joint_sigma_vector(cell.joint_sigma, robot.joint_names),
+                             joint_noise_map(cell.joint_sigma, robot),
                              temperatures)
     for spec in cell.identification.tolerances.bounds:
         parts = spec.split(':')

@@ -349,7 +349,7 @@ def geometric_only(cm: CellModel) -> CellModel:
     """``cm`` with the geometric model only (no effects)."""
     return dataclasses.replace(cm, model=MeasurementModel(
         cm.robot, cm.geometric, (), cm.cell.reflector_axis, cm.model.orientations,
-        cm.model.rotation_scale, cm.model.joint_sigma, cm.model.joint_temperatures))
+        cm.model.rotation_scale, cm.model.joint_noise_map, cm.model.joint_temperatures))
 
 
 def with_effects(cm: CellModel, effects: tuple) -> CellModel:

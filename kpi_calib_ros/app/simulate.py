@@ -107,7 +107,7 @@ def simulate_campaign(cell_path: str | Path, n: int, out: str | Path, seed: int,
                                   cm.cell.max_incidence, accept=collision_filter(cm))
     # The points of the true poses q; the joint readings (data.q) carry the cell's
     # noise.joint_sigma when it states one.
-    data = simulate_measurements(cm.model, p_true, q, cm.cell.sigma, rng, cm.model.joint_sigma)
+    data = simulate_measurements(cm.model, p_true, q, cm.cell.sigma, rng, cm.model.joint_noise_map)
     # The joint states as the controller reports them (robot.joint_coupling).
     joints, points = synthesize_streams(cm.joint_coupling.to_controller(data.q), cm.joint_names,
                                         data.eta, cm.cell.tracker_frame, rng=rng)

@@ -212,8 +212,9 @@ def simulate_measurements(model: MeasurementModel, p_true: np.ndarray, q: np.nda
                           stamps_ns: np.ndarray | None = None) -> Measurements:
     """Tracker points h(p_true, q) + N(0, σ²) per axis.
 
-    With ``joint_sigma`` (rad, scalar or (n,) in chain order) the joint readings are not
-    exact: the measurements carry the readings q + N(0, joint_sigma²) of the true joints q
+    With ``joint_sigma`` (rad, scalar or (n,) in chain order, or a (n, k) noise map S as
+    :class:`MeasurementModel` keeps it) the joint readings are not exact: the measurements
+    carry the readings q + N(0, joint_sigma²) (q + S ε) of the true joints q
     (drawn after the tracker noise, so the points are the same as without it).
     ``covariates`` (name -> (N,), e.g. a temperature ramp over a shift,
     :func:`kpi_calib_ros.core.measurement.covariates.shift_temperature`) drive the true model's
@@ -226,8 +227,11 @@ def simulate_measurements(model: MeasurementModel, p_true: np.ndarray, q: np.nda
     recorded = None if covariates is None else {k: np.asarray(v, float).copy()
                                                 for k, v in covariates.items()}
     if joint_sigma is not None:
-        q = q + rng.normal(size=q.shape) * np.broadcast_to(np.asarray(joint_sigma, float),
-                                                           (q.shape[1],))
+        given = np.asarray(joint_sigma, float)
+        if given.ndim == 2:  # a noise map (MeasurementModel's): q + S ε
+            q = q + rng.normal(size=(len(q), given.shape[1])) @ given.T
+        else:
+            q = q + rng.normal(size=q.shape) * np.broadcast_to(given, (q.shape[1],))
     return Measurements(q=q, eta=clean + noise, stamps_ns=stamps_ns, covariates=recorded)
 
 

@@ -113,7 +113,8 @@ CELL_KEYS: tuple[CellKey, ...] = (
     _K('noise.joint_sigma', 'number or mapping of joint name to number', 'rad (m for '
        'prismatic joints)', NONE, 'Joint-reading noise (a controller read-back): one σ for '
        'every joint or per joint by name, joints left out read exactly; each point then has '
-       'the covariance σ²I + J_q Σ_q J_qᵀ.', 5.2e-4),
+       'the covariance σ²I + J_q Σ_q J_qᵀ. With mimic joints, of the actuated joints (the '
+       'drive too): a mimic joint\'s reading follows its leader\'s.', 5.2e-4),
     # ---------------------------------------------------------------- payload
     _K('payload', 'mapping', '', '{}', 'Payload on the tip, for the gravity torques of the '
        'torque-driven effects.', {'mass': 5.0}),

@@ -14,7 +14,7 @@ from kpi_calib_ros.core.acquisition.coupling import JointCoupling
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.measurement.payload import PAYLOAD_COM_LIMIT_M, PAYLOAD_MASS_LIMIT_KG
 from kpi_calib_ros.core.measurement.pose import rotation_from_quaternion, rotation_from_rpy
-from kpi_calib_ros.core.model.robot import Mimic
+from kpi_calib_ros.core.model.robot import Mimic, RobotModel
 from kpi_calib_ros.io.cell_values import (
     joint_value,
     non_negative,
@@ -208,6 +208,41 @@ def joint_sigma_vector(value: float | Mapping[str, float] | None,
         raise ConfigError('noise.joint_sigma', f'unknown joint(s) {unknown}; the chain joints '
                           f'are {list(joint_names)}')
     return np.array([float(value.get(n, 0.0)) for n in joint_names])
+
+
+def joint_noise_map(value: float | Mapping[str, float] | None, robot: RobotModel
+                    ) -> np.ndarray | None:
+    """noise.joint_sigma as the map of :class:`MeasurementModel`'s ``joint_sigma``.
+
+    A robot without mimic joints: the (n,) σ of each chain joint (:func:`joint_sigma_vector`).
+    With mimic joints the σ is stated for the actuated joints (a number: each; a mapping: by
+    actuated joint name, the drive off the chain too) and a mimic joint's reading follows
+    its leader's: the map M diag(σ_x) (n, m), M the robot's mimic matrix.
+
+    Raises
+    ------
+    ConfigError
+        ``noise.joint_sigma``: a name that is no actuated joint (a mimic joint: its leader
+        is named).
+    """
+    if value is None or not robot.has_mimic:
+        return joint_sigma_vector(value, robot.joint_names)
+    actuated = list(robot.actuated_names)
+    if isinstance(value, Mapping):
+        leaders = {j.name: j.mimic.master for j in robot.joints if j.mimic is not None}
+        for name in value:
+            if name in leaders:
+                raise ConfigError(f'noise.joint_sigma.{name}', f'{name!r} mimics '
+                                  f'{leaders[name]!r}: state the reading noise of '
+                                  f'{leaders[name]!r}, its mimic joints follow it')
+        unknown = [n for n in value if n not in actuated]
+        if unknown:
+            raise ConfigError('noise.joint_sigma', f'unknown joint(s) {unknown}; the actuated '
+                              f'joints are {actuated}')
+        sigma = np.array([float(value.get(n, 0.0)) for n in actuated])
+    else:
+        sigma = np.full(len(actuated), float(value))
+    return robot.mimic_matrix * sigma
 
 
 def parse_working_poses(value: Any) -> tuple[WorkingPose, ...]:

@@ -25,7 +25,7 @@ def augmented_model(model: MeasurementModel, effects: tuple) -> MeasurementModel
     """``model`` with ``effects`` appended (their parameters after the existing ones)."""
     return MeasurementModel(model.robot, model.geometric, model.effects + tuple(effects),
                             model.reflector_axis, model.orientations, model.rotation_scale,
-                            model.joint_sigma, model.joint_temperatures)
+                            model.joint_noise_map, model.joint_temperatures)
 
 
 # Candidate models of a base model, by effect name: the screen builds one per candidate

@@ -341,7 +341,7 @@ def out_of_sample_error(model: MeasurementModel, data: Measurements,
             # Joint-reading noise at the fresh poses: mean tr(J_q Σ_q J_qᵀ) per point.
             jq = model.joint_jacobian(p, rows_q, None, None if data.reflector is None else ref,
                                       covariates=rows_z)
-            noise_ms += float(np.mean(np.sum((jq * model.joint_sigma) ** 2, axis=(1, 2))))
+            noise_ms += float(np.mean(np.sum((jq @ model.joint_noise_map) ** 2, axis=(1, 2))))
         ms_unit = param_ms + noise_ms                # mean square at s = 1
         lo, hi = _interval(c0, m, noise_ms, scale, dof)
         out[domain] = DomainError(domain, True, float(np.sqrt(scale * ms_unit)),

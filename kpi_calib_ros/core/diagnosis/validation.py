@@ -354,7 +354,7 @@ def validate(model: MeasurementModel, p: np.ndarray, estimated: np.ndarray,
         if model.joint_sigma is not None:
             jq = (model.joint_jacobian(p_now, q, tau, data.reflector, data.rotation,
                                        data.covariates)
-                  * model.joint_sigma)
+                  @ model.joint_noise_map)
             noise = noise + noise_scale * np.einsum('nak,nbk->nab', jq, jq)
         return noise
 

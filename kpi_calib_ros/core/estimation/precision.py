@@ -207,7 +207,7 @@ def measurement_noise_ms(model: MeasurementModel, data: Measurements,
                               None if data.tau is None else data.tau[point],
                               None if data.reflector is None else data.reflector[point],
                               covariates=data.subset(point).covariates)
-    return noise + float(np.mean(np.sum((jq * model.joint_sigma) ** 2, axis=(1, 2))))
+    return noise + float(np.mean(np.sum((jq @ model.joint_noise_map) ** 2, axis=(1, 2))))
 
 
 def expected_tcp_error(model: MeasurementModel, data: Measurements, result: CalibrationResult,

@@ -242,7 +242,7 @@ def placed_model(model: MeasurementModel, recordings: Sequence[Recording]
         return model
     geometric = recording_parameters(model.geometric, recordings)
     return MeasurementModel(model.robot, geometric, model.effects, model.reflector_axis,
-                            model.orientations, model.rotation_scale, model.joint_sigma,
+                            model.orientations, model.rotation_scale, model.joint_noise_map,
                             model.joint_temperatures)
 
 

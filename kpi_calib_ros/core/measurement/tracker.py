@@ -94,9 +94,11 @@ class MeasurementModel:
         reflector; each gets a rotation row (channel ``n_reflectors + index``).
     rotation_scale : (3,) array, optional
         σ / σ_rot per axis (m/rad): rotation rows are in metres at the stated σ.
-    joint_sigma : (n,) array, optional
+    joint_sigma : (n,) or (n, k) array, optional
         Standard deviation of each joint reading (rad, m for prismatic joints) in chain
-        order; None (default): exact joint readings, every row weighted by 1/σ alone.
+        order, independent; or the map S (n, k) of k independent unit noises onto the chain
+        readings (``q + S ε``: a drive's reading noise that its mimic joints follow);
+        None (default): exact joint readings, every row weighted by 1/σ alone.
     joint_temperatures : mapping {joint name: covariate name}, optional
         The temperature each joint's thermal effects read, where it is not the arm's mean
         ``delta_temperature`` (the cell's ``temperature.sensors`` mapping, e.g.
@@ -119,12 +121,22 @@ class MeasurementModel:
         if unknown:
             raise ValueError(f'joint_temperatures name joints {unknown} not on the chain '
                              f'{robot.joint_names}')
-        self.joint_sigma = None if joint_sigma is None else np.asarray(joint_sigma, float)
-        if self.joint_sigma is not None and (
-                self.joint_sigma.shape != (robot.n_joints,)
-                or not np.all(np.isfinite(self.joint_sigma)) or np.any(self.joint_sigma < 0)):
-            raise ValueError(f'joint_sigma must be {robot.n_joints} finite numbers >= 0 (one '
-                             f'per joint, chain order), got {self.joint_sigma}')
+        # The joint-reading noise: chain readings q + S ε, ε ~ N(0, I); S (n, k) is
+        # diag(joint_sigma) for independent readings, M diag(σ_x) when the readings are of
+        # the actuated joints and mimic joints follow them (cell_model.joint_noise_map).
+        self.joint_noise_map: np.ndarray | None = None
+        self.joint_sigma: np.ndarray | None = None
+        if joint_sigma is not None:
+            given = np.asarray(joint_sigma, float)
+            if not (given.ndim in (1, 2) and given.shape[0] == robot.n_joints
+                    and np.all(np.isfinite(given)) and (given.ndim == 2 or np.all(given >= 0))):
+                raise ValueError(f'joint_sigma must be {robot.n_joints} finite numbers >= 0 '
+                                 '(one per joint, chain order) or a finite map of '
+                                 f'{robot.n_joints} rows, got {given}')
+            self.joint_noise_map = np.diag(given) if given.ndim == 1 else given
+            # Each chain reading's own std.
+            self.joint_sigma = (given if given.ndim == 1
+                                else np.sqrt(np.sum(given ** 2, axis=1)))
         self.geometric = geometric
         self.effects = tuple(effects)
         params = geometric
@@ -503,7 +515,7 @@ class MeasurementModel:
                              f'{omega.shape}')
         if self.joint_sigma is None:
             return np.sqrt(omega)[:, None] / sigma
-        jq = self.joint_jacobian(p, q, tau, reflector, rotation, covariates) * self.joint_sigma
+        jq = self.joint_jacobian(p, q, tau, reflector, rotation, covariates) @ self.joint_noise_map
         cov = np.einsum('nak,nbk->nab', jq, jq) + sigma[:, :, None] ** 2 * np.eye(3)
         chol = np.linalg.cholesky(cov)
         inverse = np.linalg.solve(chol, np.broadcast_to(np.eye(3), chol.shape))

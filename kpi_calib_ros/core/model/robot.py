@@ -156,6 +156,7 @@ class RobotModel:
         # descriptions ship such tags, and urdfdom reads them): the joint stays independent.
         mimics = {name: m for name, m in urdf_mimics(urdf_xml).items()
                   if model.existJointName(m.master)}
+        self._urdf_mimics = mimics
         self.joints = tuple(self._chain_joint(jid, first=(i == 0), base=base,
                                               mimic=mimics.get(model.names[jid]))
                             for i, jid in enumerate(path))
@@ -194,8 +195,8 @@ class RobotModel:
     def actuated_names(self) -> tuple[str, ...]:
         """The independent joints, base to tip.
 
-        Each non-mimic chain joint and, at its first mimic joint, each master (on the
-        chain or off it); the chain's joint names when nothing mimics.
+        Each non-mimic chain joint at its place on the chain, and each master off the chain
+        at its first mimic joint's place; the chain's joint names when nothing mimics.
         """
         return self._actuated_names
 
@@ -288,8 +289,8 @@ class RobotModel:
         for joint in self.joints:
             source = joint.mimic.master if joint.mimic is not None else joint.name
             if joint.mimic is not None:
-                master = by_name.get(source)
-                if master is not None and self.joints[master].mimic is not None:
+                # On the chain or off it (a middle joint off the chain was taken as free).
+                if source in self._urdf_mimics:
                     raise ConfigError('robot.urdf', f'joint {joint.name!r} mimics {source!r}, '
                                       'which mimics another joint itself; let it mimic the '
                                       'independent joint directly')
@@ -297,6 +298,10 @@ class RobotModel:
                     raise ConfigError('robot.urdf', f'joint {joint.name!r}: <mimic '
                                       'multiplier="0"> makes it a fixed joint; write it as '
                                       'type="fixed" with its origin')
+            # A master on the chain takes its own place (an unnamed working pose lists the
+            # independent joints in chain order); one off it, its first mimic's.
+            if joint.mimic is not None and source in by_name:
+                continue
             if source not in names:
                 names.append(source)
         self._actuated_names = tuple(names)
@@ -328,10 +333,22 @@ class RobotModel:
             if jmodel.nq == 1:
                 lower[k] = max(lower[k], float(model.lowerPositionLimit[jmodel.idx_q]))
                 upper[k] = min(upper[k], float(model.upperPositionLimit[jmodel.idx_q]))
+        lower, upper = lower + 0.0, upper + 0.0  # no -0.0 bound
         bad = [names[k] for k in range(m) if not lower[k] <= upper[k]]
         if bad:
             raise ConfigError('robot.urdf', f'joint(s) {bad}: the limits of the joints that '
                               'mimic them leave no value; check the <limit> and <mimic> tags')
+        # A leader whose mimics' limits leave one value cannot move: a mimic's limits or
+        # multiplier written wrong (the PR2's right gripper finger), not a joint to draw.
+        narrowed = {names.index(j.mimic.master) for j in self.joints
+                    if j.mimic is not None and j.upper > j.lower}
+        single = [k for k in sorted(narrowed) if not lower[k] < upper[k]]
+        if single:
+            raise ConfigError('robot.urdf', f'joint(s) {[names[k] for k in single]}: the '
+                              'limits of the joints that mimic them leave the single value '
+                              f'{lower[single[0]]:g}: '
+                              'the joint could not move; check the <limit> and <mimic> '
+                              '(multiplier sign, offset) tags')
         self._mimic_matrix, self._mimic_offset = matrix, offset
         self._actuated_bounds = (lower, upper)
         self._recover = recover
