@@ -129,3 +129,17 @@ def test_a_condition_nothing_reads_is_said(bags, capsys):
     err = capsys.readouterr().err
     assert ('warning: recordings[0].covariates.hall.humidity: no effect of the model reads it'
             in err), err
+
+
+def test_a_rejection_names_its_recording(capsys):
+    """With several bags a rejection said which one it came from only by its stamp."""
+    import numpy as np
+
+    from kpi_calib_ros.app.measurements import print_rejections
+    from kpi_calib_ros.core.acquisition.outcomes import PairingResult, Rejection
+    pairing = PairingResult(('j',), 'tracker', np.zeros((0, 1)), np.zeros((0, 3)),
+                            np.zeros(0, np.int64), {'no_joint_state': 1},
+                            [Rejection(5, 'no_joint_state', 'no joint state within 5 ms')])
+    print_rejections(pairing, "recording 'b': ")
+    assert ("recording 'b': rejected 1 sample(s): no_joint_state (first: no joint state "
+            'within 5 ms)') in capsys.readouterr().err

@@ -419,7 +419,8 @@ def load_recordings(cell_path: str | Path, sources: Sequence[RecordingSource],
     for source in sources:
         data, pairing = measurements_from_bag(cm, source.bag, joint_topic, point_topic,
                                               pose_topic)
-        print_rejections(pairing)
+        print_rejections(pairing, f'recording {source.recording.name!r}: '
+                         if len(sources) > 1 else '')
         if len(data) == 0:
             raise DataError(f'recording {source.recording.name!r} ({source.bag}) gives no '
                             'paired measurement: check its topics and the cell\'s joint names')
@@ -464,12 +465,12 @@ def check_stated_covariates(cm: CellModel, recordings: Sequence[Recording]) -> N
                   file=sys.stderr)
 
 
-def print_rejections(pairing: PairingResult) -> None:
+def print_rejections(pairing: PairingResult, where: str = '') -> None:
     """Every rejection reason on stderr with its count and the first one's detail (which
-    names what was received and the fix)."""
+    names what was received and the fix); ``where`` names the recording (several)."""
     first: dict[str, str] = {}
     for r in pairing.rejected:
         first.setdefault(r.reason, r.detail)
     for reason, count in sorted(pairing.rejections.items()):
         detail = f' (first: {first[reason]})' if reason in first else ''
-        print(f'rejected {count} sample(s): {reason}{detail}', file=sys.stderr)
+        print(f'{where}rejected {count} sample(s): {reason}{detail}', file=sys.stderr)
