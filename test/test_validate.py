@@ -11,7 +11,7 @@ import yaml
 
 from kpi_calib_ros.app.calibration_document import calibration_document
 from kpi_calib_ros.app.cell_model import build_cell_model
-from kpi_calib_ros.app.identify import identify_cell
+from kpi_calib_ros.app.identify import calibrate_cell, identify_cell
 from kpi_calib_ros.app.measurements import measurements_from_bag
 from kpi_calib_ros.app.validate import (
     calibration_noise_scale,
@@ -22,6 +22,7 @@ from kpi_calib_ros.app.validate import (
 from kpi_calib_ros.cli import main
 from kpi_calib_ros.core.acquisition.streams import synthesize_streams
 from kpi_calib_ros.core.diagnosis.validation import shared_chi2
+from kpi_calib_ros.core.estimation.folds import pose_index, region_fold_ids
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.replicates import SAME_POSE_TOLERANCE
 from kpi_calib_ros.core.simulation import (
@@ -525,3 +526,40 @@ def test_residuals_above_the_stated_noise_are_not_called_sigma_overstated(unders
     text = validation_text(out)
     assert 'sigma overstated' not in text and 'check noise.sigma' not in text
     assert f"residuals are {out['residual_to_noise_ratio']:.3g} x the stated noise" in text
+
+
+@pytest.mark.slow
+def test_auto_steps_down_from_a_level_the_gate_refuses_on_the_real_ur10():
+    """200 poses of one k-means region of the real UR10's Series A: ``auto`` chose the
+    geometric level by the error predicted from the fit, whose last wrist placement moved
+    0.31 m (rx 2.82 ± 0.71 rad): not valid, nothing published. It now takes the largest
+    smaller level whose calibration is valid, and that one predicts every other region of
+    the series better than the refused geometric fit."""
+    doc = {'robot': {'urdf': 'package://example-robot-data/robots/ur_description/urdf/'
+                             'ur10_robot.urdf', 'base_frame': 'base_link', 'tip_frame': 'tool0'},
+           'tracker': {'frame_id': 'laser_tracker'}, 'reflectors': [{'name': 'probe'}],
+           'noise': {'sigma': 2.0e-5},
+           'working_poses': [[0.0, -1.2, 1.7, -2.07, -1.57, 0.0]]}
+    cm = build_cell_model(cell_from_dict(doc, UR10_DATA))
+    series_a = _ur10_series(UR10_DATA / 'Series_A' / 'measurements_grid.csv')
+    poses, pose = pose_index(series_a.q)
+    region = region_fold_ids(poses, 4, seed=0)[pose]
+    inside = np.flatnonzero(region == 0)
+    train = series_a.subset(np.random.default_rng(0).permutation(inside)[:200])
+    geometric = calibrate_cell(cm, train, 'geometric')
+    assert not geometric.valid and geometric.implausible
+    cal = calibrate_cell(cm, train, 'auto')
+    assert cal.valid, cal.problems
+    assert cal.choice.level != 'geometric' and 'geometric refused in the final fit' in \
+        cal.choice.reason
+
+    def rms(c, rows):
+        data = series_a.subset(rows)
+        miss = data.eta - c.cell.model.predict(c.result.values, data.q)
+        return float(np.sqrt(np.mean(np.sum(miss ** 2, axis=1))))
+    for other in (1, 2, 3):
+        rows = np.flatnonzero(region == other)
+        chosen, refused = rms(cal, rows), rms(geometric, rows)
+        print(f'region {other}: {cal.choice.level} {chosen * 1e6:.1f} µm, geometric '
+              f'{refused * 1e6:.1f} µm')
+        assert chosen < refused

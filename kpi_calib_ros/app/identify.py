@@ -31,6 +31,7 @@ from kpi_calib_ros.app.placement import registered_start, registration_text
 from kpi_calib_ros.core.diagnosis import augmented_model, compare_models
 from kpi_calib_ros.core.diagnosis.effect_selection import choose_effects
 from kpi_calib_ros.core.diagnosis.model_selection import (
+    LEVELS,
     ModelChoice,
     NominalComparison,
     against_nominal,
@@ -206,6 +207,36 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
             reason=f'{choice.reason}; refused in the final fit: {why}')
         cal = _final_fit(cm, data, choice, start, prior, balance, scales, registration,
                          allowed, progress)
+    if chosen and not cal.valid:
+        cal = _valid_smaller_level(cal, cm, data, choice, start, prior, balance, scales,
+                                   registration, progress)
+    return cal
+
+
+def _valid_smaller_level(cal: CellCalibration, cm: CellModel, data: Measurements,
+                         choice: ModelChoice, start: np.ndarray, prior: Prior | None,
+                         balance: bool, scales: list[float],
+                         registration: Registration | None,
+                         progress: Callable[[str], None] | None) -> CellCalibration:
+    """``auto``'s level refused in the final fit (a quantity beyond physics or undetermined,
+    or worse than no calibration): the largest smaller level whose calibration is valid,
+    with why in the choice's reason; ``cal`` itself when none is.
+
+    The level was chosen by the error predicted from the fit, which cannot see a fit that
+    bends the geometry into an impossible robot: on the real UR10, 200 poses of one region of
+    joint space chose the geometric level with the last wrist's placement moved 0.31 m, and
+    the published result was no calibration at all.
+    """
+    levels = LEVELS[:LEVELS.index(choice.level)] if choice.level in LEVELS else ()
+    why = cal.problems[0]
+    for level in reversed(levels):
+        smaller = dataclasses.replace(choice, level=level, reason=(
+            f'{choice.reason}; {choice.level} refused in the final fit ({why}): {level}, '
+            'the largest smaller level whose calibration is valid'))
+        trial = _final_fit(cm, data, smaller, start, prior, balance, scales, registration,
+                           None, progress)
+        if trial.valid:
+            return trial
     return cal
 
 
