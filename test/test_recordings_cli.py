@@ -8,6 +8,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pinocchio as pin
 import pytest
 import yaml
 
@@ -186,6 +187,32 @@ def test_diagnose_and_a_manifest_take_several_recordings(set_ups, capsys):
     first_offset = np.array([first['placement'][f'reflector.{c}']['value'] for c in 'xyz'])
     moved = offset - first_offset
     assert np.linalg.norm(moved - SET_UPS['a_remounted'][1]) < 2e-4, moved
+
+
+def test_validate_says_when_a_miss_is_the_set_up_moved(set_ups, capsys):
+    """Calibrated on set-up A and validated on B without --register: the miss (metres) is
+    a rigid move of the tracker frame, and validate says so and names --register base
+    (before: 'does not hold', rms 1761 mm, no hint). A probe remounted is no rigid move of
+    the points: no such hint."""
+    folder, _ = set_ups
+    cal = folder / 'single_hint'
+    assert main(['identify', '--cell', str(folder / 'cell.yaml'), '--bag',
+                 str(folder / 'a.mcap'), '--out', str(cal)]) == 0, capsys.readouterr()
+    args = ['validate', '--cell', str(folder / 'cell.yaml'), '--calibration',
+            str(cal / 'calibration.yaml')]
+    assert main(args + ['--bag', str(folder / 'b.mcap'), '--out', str(folder / 'v_b')]) == 1
+    printed = capsys.readouterr().out
+    assert 'set up again since the calibration; validate with --register base' in printed
+    moved = json.loads((folder / 'v_b' / 'validation.json').read_text())['set_up_moved']
+    roll, pitch, yaw = SET_UPS['b'][0][3:]
+    turn = pin.rpy.rpyToMatrix(roll, pitch, yaw)
+    angle = np.arccos((np.trace(turn) - 1) / 2)
+    assert abs(moved['rotation_rad'] - angle) < 1e-3, (moved, angle)
+    assert moved['rms_after_m'] < 0.01 * moved['rms_before_m']
+    assert main(args + ['--bag', str(folder / 'a_remounted.mcap'), '--out',
+                        str(folder / 'v_probe')]) == 1
+    doc = json.loads((folder / 'v_probe' / 'validation.json').read_text())
+    assert 'set_up_moved' not in doc and 'set up again' not in capsys.readouterr().out
 
 
 def test_a_copy_of_a_bag_under_another_name_is_refused(set_ups, capsys):

@@ -32,6 +32,7 @@ from kpi_calib_ros.app.measurements import (
 from kpi_calib_ros.core.diagnosis.validation import Validation, validate
 from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.estimation.plausibility import registration_violations
+from kpi_calib_ros.core.estimation.registration import horn
 from kpi_calib_ros.core.estimation.residuals import (
     SIGMA_OVERSTATED,
     noise_verdict,
@@ -199,6 +200,36 @@ def free_parameters(cm: CellModel, doc: dict[str, Any]) -> np.ndarray | None:
     return cm.model.params.indices(list(doc['parameter_covariance']['names']) + held)
 
 
+# A miss a rigid move of the points explains to this fraction of its rms is a set-up moved.
+SET_UP_MOVED_FRACTION = 0.1
+
+
+def set_up_moved(v: Validation, data: Measurements, points: np.ndarray
+                 ) -> dict[str, float] | None:
+    """The rigid move of the tracker frame that explains a validation's miss, or None.
+
+    Without ``--register``, a miss that one rotation and translation of the new points
+    takes to below :data:`SET_UP_MOVED_FRACTION` of its rms, beyond 10× the predicted std,
+    is the tracker (or robot) set up again since the calibration, not the robot's error:
+    {'translation_m', 'rotation_rad', 'rms_before_m', 'rms_after_m'}.
+    """
+    if v.registration is not None or v.holds or np.count_nonzero(points) < 4:
+        return None
+    eta = np.atleast_2d(data.eta)[points]
+    predicted = eta - v.residuals[points]
+    rot, trans = horn(predicted, eta)
+    after = eta - (predicted @ rot.T + trans)
+    before_rms = float(np.sqrt(np.mean(np.sum(v.residuals[points] ** 2, axis=1))))
+    after_rms = float(np.sqrt(np.mean(np.sum(after ** 2, axis=1))))
+    std = v.predicted_std[points]
+    scale = float(np.nanmedian(std)) if np.isfinite(std).any() else 0.0
+    if not (after_rms < SET_UP_MOVED_FRACTION * before_rms and before_rms > 10 * scale):
+        return None
+    angle = float(np.arccos(np.clip((np.trace(rot) - 1.0) / 2.0, -1.0, 1.0)))
+    return {'translation_m': float(np.linalg.norm(trans)), 'rotation_rad': angle,
+            'rms_before_m': before_rms, 'rms_after_m': after_rms}
+
+
 def validation_to_dict(v: Validation, data: Measurements, training_rms_m: float | None,
                        cm: CellModel | None = None, noise_scale: float = 1.0) -> dict[str, Any]:
     """JSON-ready verdict, figures and per-point residuals.
@@ -229,6 +260,9 @@ def validation_to_dict(v: Validation, data: Measurements, training_rms_m: float 
             'std': {n: _num(float(x)) for n, x in zip(names, std)},
             'valid': not violations,
             **({'violations': [x.text() for x in violations]} if violations else {})}
+    moved = set_up_moved(v, data, points)
+    if moved is not None:
+        extra['set_up_moved'] = moved
     if cm is not None:
         names = list(cm.cell.reflector_names) or ['reflector']
         extra['rms_per_reflector_m'] = {n: _num(v.rms_where(ref == k))
@@ -388,6 +422,14 @@ def validation_text(doc: dict[str, Any]) -> str:
              f"inside the training joint ranges: rms {mm(doc['rms_inside_training_range_m'])}; "
              f"outside ({doc['outside_training_range']} points): "
              f"{mm(doc['rms_outside_training_range_m'])}"]
+    moved = doc.get('set_up_moved')
+    if moved:
+        lines.append(f"the new points match the calibration after a rigid move of "
+                     f"{moved['translation_m']:.3g} m and {np.degrees(moved['rotation_rad']):.3g}"
+                     f" deg (rms {mm(moved['rms_before_m'])} -> {mm(moved['rms_after_m'])}): "
+                     'the tracker or the robot was set up again since the calibration; '
+                     'validate with --register base (--recording NAME for a later bag of one '
+                     'of its set-ups)')
     if doc.get('not_determined_by_training'):
         lines.append(f"not determined by the training poses: {doc['not_determined_by_training']} "
                      'points (their prediction depends on the parameters the calibration held '
