@@ -29,10 +29,9 @@ from kpi_calib_ros.app.measurements import (
     print_rejections,
     with_recordings,
 )
-from kpi_calib_ros.core.diagnosis.validation import Validation, validate
+from kpi_calib_ros.core.diagnosis.validation import Validation, set_up_moved, validate
 from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.estimation.plausibility import registration_violations
-from kpi_calib_ros.core.estimation.registration import horn
 from kpi_calib_ros.core.estimation.residuals import (
     SIGMA_OVERSTATED,
     noise_verdict,
@@ -198,36 +197,6 @@ def free_parameters(cm: CellModel, doc: dict[str, Any]) -> np.ndarray | None:
     if not held:
         return None
     return cm.model.params.indices(list(doc['parameter_covariance']['names']) + held)
-
-
-# A miss a rigid move of the points explains to this fraction of its rms is a set-up moved.
-SET_UP_MOVED_FRACTION = 0.1
-
-
-def set_up_moved(v: Validation, data: Measurements, points: np.ndarray
-                 ) -> dict[str, float] | None:
-    """The rigid move of the tracker frame that explains a validation's miss, or None.
-
-    Without ``--register``, a miss that one rotation and translation of the new points
-    takes to below :data:`SET_UP_MOVED_FRACTION` of its rms, beyond 10× the predicted std,
-    is the tracker (or robot) set up again since the calibration, not the robot's error:
-    {'translation_m', 'rotation_rad', 'rms_before_m', 'rms_after_m'}.
-    """
-    if v.registration is not None or v.holds or np.count_nonzero(points) < 4:
-        return None
-    eta = np.atleast_2d(data.eta)[points]
-    predicted = eta - v.residuals[points]
-    rot, trans = horn(predicted, eta)
-    after = eta - (predicted @ rot.T + trans)
-    before_rms = float(np.sqrt(np.mean(np.sum(v.residuals[points] ** 2, axis=1))))
-    after_rms = float(np.sqrt(np.mean(np.sum(after ** 2, axis=1))))
-    std = v.predicted_std[points]
-    scale = float(np.nanmedian(std)) if np.isfinite(std).any() else 0.0
-    if not (after_rms < SET_UP_MOVED_FRACTION * before_rms and before_rms > 10 * scale):
-        return None
-    angle = float(np.arccos(np.clip((np.trace(rot) - 1.0) / 2.0, -1.0, 1.0)))
-    return {'translation_m': float(np.linalg.norm(trans)), 'rotation_rad': angle,
-            'rms_before_m': before_rms, 'rms_after_m': after_rms}
 
 
 def validation_to_dict(v: Validation, data: Measurements, training_rms_m: float | None,

@@ -67,7 +67,7 @@ import scipy.stats
 
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation.identifiability import DEFAULT_TOLERANCE
-from kpi_calib_ros.core.estimation.registration import Reregistration, reregister
+from kpi_calib_ros.core.estimation.registration import Reregistration, horn, reregister
 from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA
 from kpi_calib_ros.core.measurement.data import Measurements, row_sigma
 from kpi_calib_ros.core.measurement.replicates import SAME_POSE_TOLERANCE, same_pose
@@ -75,7 +75,8 @@ from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.core.measurement.weighting import row_torques
 
 __all__ = ['PREDICTION_TOLERANCE', 'TrainingSpan', 'Validation', 'range_tolerance',
-           'shared_chi2', 'training_row_space', 'validate']
+           'shared_chi2', 'training_row_space', 'validate', 'set_up_moved',
+           'SET_UP_MOVED_FRACTION']
 
 # Largest relative part of a new point's gradient outside the training row space
 # (column-equilibrated, as core.estimation.estimability) for its prediction to count as
@@ -401,3 +402,33 @@ def validate(model: MeasurementModel, p: np.ndarray, estimated: np.ndarray,
     std = np.where(determined, np.sqrt(np.trace(cov, axis1=1, axis2=2) / 3), np.nan)
     return Validation(residuals, std, np.sqrt(d2), outside, repeated, chi2, dof, p_value,
                       alpha, registration, noise_ratio, determined)
+
+
+# A miss a rigid move of the points explains to this fraction of its rms is a set-up moved.
+SET_UP_MOVED_FRACTION = 0.1
+
+
+def set_up_moved(v: Validation, data: Measurements, points: np.ndarray
+                 ) -> dict[str, float] | None:
+    """Return the rigid move of the tracker frame that explains a validation's miss, or None.
+
+    Without ``--register``, a miss that one rotation and translation of the new points
+    takes to below :data:`SET_UP_MOVED_FRACTION` of its rms, beyond 10× the predicted std,
+    is the tracker (or robot) set up again since the calibration, not the robot's error:
+    {'translation_m', 'rotation_rad', 'rms_before_m', 'rms_after_m'}.
+    """
+    if v.registration is not None or v.holds or np.count_nonzero(points) < 4:
+        return None
+    eta = np.atleast_2d(data.eta)[points]
+    predicted = eta - v.residuals[points]
+    rot, trans = horn(predicted, eta)
+    after = eta - (predicted @ rot.T + trans)
+    before_rms = float(np.sqrt(np.mean(np.sum(v.residuals[points] ** 2, axis=1))))
+    after_rms = float(np.sqrt(np.mean(np.sum(after ** 2, axis=1))))
+    std = v.predicted_std[points]
+    scale = float(np.nanmedian(std)) if np.isfinite(std).any() else 0.0
+    if not (after_rms < SET_UP_MOVED_FRACTION * before_rms and before_rms > 10 * scale):
+        return None
+    angle = float(np.arccos(np.clip((np.trace(rot) - 1.0) / 2.0, -1.0, 1.0)))
+    return {'translation_m': float(np.linalg.norm(trans)), 'rotation_rad': angle,
+            'rms_before_m': before_rms, 'rms_after_m': after_rms}

@@ -10,11 +10,11 @@ data rows are formed).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Mapping
+from typing import Mapping, Sequence
 
 import numpy as np
 
-__all__ = ['Measurements', 'row_sigma', 'stated_sigma']
+__all__ = ['Measurements', 'row_sigma', 'stated_sigma', 'joint_noise']
 
 
 @dataclass(frozen=True)
@@ -102,3 +102,29 @@ def stated_sigma(sigma: float | np.ndarray, data_sigma: np.ndarray | None, n: in
         return float(np.mean(np.broadcast_to(np.asarray(sigma, float), (3,))))
     rows = row_sigma(sigma, data_sigma, n)
     return float(np.mean(np.sqrt(np.mean(rows ** 2, axis=0))))
+
+
+def joint_noise(joint_sigma: np.ndarray | Sequence[float] | None, n: int
+                ) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Return the joint-reading noise as a map and each chain reading's std: (S, σ_q).
+
+    The chain readings are q + S ε, ε ~ N(0, I): ``joint_sigma`` (n,) independent stds give
+    S = diag(joint_sigma); an (n, k) map is S itself (the readings of actuated joints that
+    mimic joints follow: M diag(σ_x), :func:`kpi_calib_ros.io.cell_sections.joint_noise_map`).
+    σ_q (n,) is each reading's std, √(S Sᵀ)_ii. (None, None) without noise.
+
+    Raises
+    ------
+    ValueError
+        Not n finite numbers >= 0 nor a finite map of n rows.
+    """
+    if joint_sigma is None:
+        return None, None
+    given = np.asarray(joint_sigma, float)
+    if not (given.ndim in (1, 2) and given.shape[0] == n and np.all(np.isfinite(given))
+            and (given.ndim == 2 or np.all(given >= 0))):
+        raise ValueError(f'joint_sigma must be {n} finite numbers >= 0 (one per joint, chain '
+                         f'order) or a finite map of {n} rows, got {given}')
+    if given.ndim == 1:
+        return np.diag(given), given
+    return given, np.sqrt(np.sum(given ** 2, axis=1))

@@ -52,7 +52,7 @@ import casadi as ca
 import numpy as np
 
 from kpi_calib_ros.core.measurement.buffers import Mapped, call_mapped
-from kpi_calib_ros.core.measurement.data import Measurements
+from kpi_calib_ros.core.measurement.data import Measurements, joint_noise
 from kpi_calib_ros.core.measurement.effect_protocol import (
     Effect,
     effect_inputs,
@@ -121,22 +121,8 @@ class MeasurementModel:
         if unknown:
             raise ValueError(f'joint_temperatures name joints {unknown} not on the chain '
                              f'{robot.joint_names}')
-        # The joint-reading noise: chain readings q + S ε, ε ~ N(0, I); S (n, k) is
-        # diag(joint_sigma) for independent readings, M diag(σ_x) when the readings are of
-        # the actuated joints and mimic joints follow them (cell_model.joint_noise_map).
-        self.joint_noise_map: np.ndarray | None = None
-        self.joint_sigma: np.ndarray | None = None
-        if joint_sigma is not None:
-            given = np.asarray(joint_sigma, float)
-            if not (given.ndim in (1, 2) and given.shape[0] == robot.n_joints
-                    and np.all(np.isfinite(given)) and (given.ndim == 2 or np.all(given >= 0))):
-                raise ValueError(f'joint_sigma must be {robot.n_joints} finite numbers >= 0 '
-                                 '(one per joint, chain order) or a finite map of '
-                                 f'{robot.n_joints} rows, got {given}')
-            self.joint_noise_map = np.diag(given) if given.ndim == 1 else given
-            # Each chain reading's own std.
-            self.joint_sigma = (given if given.ndim == 1
-                                else np.sqrt(np.sum(given ** 2, axis=1)))
+        # The joint-reading noise map S (chain readings q + S ε) and each reading's std.
+        self.joint_noise_map, self.joint_sigma = joint_noise(joint_sigma, robot.n_joints)
         self.geometric = geometric
         self.effects = tuple(effects)
         params = geometric
