@@ -8,6 +8,12 @@ import numpy as np
 import pytest
 import scipy.stats
 
+from kpi_calib_ros.app.calibration_document import (
+    add_robust_sections,
+    calibration_document,
+    name_excluded,
+    recordings_section,
+)
 from kpi_calib_ros.app.identify import calibrate_cell
 from kpi_calib_ros.app.measurements import with_recordings
 from kpi_calib_ros.app.placement import recordings_start
@@ -371,3 +377,23 @@ def test_renamed_as_first_a_recordings_rows_are_placed_as_they_were(cm):
     assert rec.as_first(params, 'a') == {}
     assert set(rec.as_first(params, 'b')) == set(rec.base_names('b')) | {
         f'base.{c}' for c in ('x', 'y', 'z', 'roll', 'pitch', 'yaw')}
+
+
+def test_an_excluded_row_names_its_recording(cm):
+    """A gross point in set-up B: excluded, and calibration.yaml says from which recording
+    (before: an index into every recording's rows, and B's pose count silently one less)."""
+    rng = np.random.default_rng(6)
+    p_robot = true_parameters(cm.model.params, rng)
+    recordings = [rec.Recording('a'), rec.Recording('b')]
+    data, _ = _campaign(cm, recordings, p_robot, 40, rng)
+    eta = data.eta.copy()
+    eta[45] += 0.01  # the sixth row of B, 10 mm off
+    data = dataclasses.replace(data, eta=eta)
+    placed = with_recordings(cm, recordings)
+    cal = calibrate_cell(placed, data, model='geometric')
+    doc = add_robust_sections(calibration_document(placed, cal.result), cal)
+    section = recordings_section(placed, data, cal, recordings, ['a.mcap', 'b.mcap'])
+    name_excluded(doc, data, recordings)
+    assert [e['index'] for e in doc['robust']['excluded']] == [45]
+    assert doc['robust']['excluded'][0]['recording'] == 'b'
+    assert [(s['poses'], s['excluded']) for s in section] == [(40, 0), (39, 1)]

@@ -26,7 +26,7 @@ from kpi_calib_ros.core.estimation.prior import PLACEMENT_PREFIXES
 from kpi_calib_ros.core.estimation.registration import Registration
 from kpi_calib_ros.core.estimation.robust import LOSS_SCALE, ExcludedMeasurement, RobustResult
 from kpi_calib_ros.core.measurement.data import Measurements
-from kpi_calib_ros.core.measurement.recordings import Recording, contributions
+from kpi_calib_ros.core.measurement.recordings import Recording, contributions, row_recording
 from kpi_calib_ros.core.model.dh import dh_table
 from kpi_calib_ros.core.model.parameters import reflector_prefixes
 from kpi_calib_ros.io.recordings_manifest import RecordingSource
@@ -278,14 +278,18 @@ def calibrated_robot_description(cm: CellModel, result: CalibrationResult) -> st
 def recordings_section(cm: CellModel, data: Measurements, cal: CellCalibration,
                        recordings: Sequence[Recording], bags: Sequence[str]
                        ) -> list[dict[str, Any]]:
-    """calibration.yaml's ``recordings:``: per recording (``data`` the rows the calibration
-    ``cal`` kept) its bag, whether its probe was remounted, its constant covariates, what it
-    contributed (:func:`kpi_calib_ros.core.measurement.recordings.contributions`): poses,
-    rms, its placement with std, and the TCP variance without its rows over the one with
-    them; and its own figures against the nominal robot (``against_nominal``,
+    """calibration.yaml's ``recordings:``: per recording (``data`` every row the calibration
+    ``cal`` was given) its bag, whether its probe was remounted, its constant covariates, the
+    rows the outlier test excluded from it (``excluded``), what its kept rows contributed
+    (:func:`kpi_calib_ros.core.measurement.recordings.contributions`): poses, rms, its
+    placement with std, and the TCP variance without its rows over the one with them; and
+    its own figures against the nominal robot (``against_nominal``,
     :mod:`kpi_calib_ros.core.diagnosis.recording_verdict`)."""
     result, nominal = cal.result, cal.nominal
     names = [r.name for r in recordings]
+    index = row_recording(data, names)
+    excluded = np.bincount(index[~np.asarray(cal.robust.kept, bool)], minlength=len(names))
+    data = data.subset(cal.robust.kept)
     found = contributions(cm.model, data, result.values, result.estimated, result.std,
                           result.sigma, cm.q_work, names)
     verdicts = (nominal.recordings if nominal is not None
@@ -296,7 +300,7 @@ def recordings_section(cm: CellModel, data: Measurements, cal: CellCalibration,
         entry: dict[str, Any] = {
             'name': rec.name, 'bag': str(bag), 'reflector_remounted': rec.reflector_remounted,
             'covariates': {k: float(v) for k, v in rec.covariates.items()},
-            'poses': c.poses, 'rms_m': _finite(c.rms_m),
+            'poses': c.poses, 'excluded': int(excluded[i]), 'rms_m': _finite(c.rms_m),
             'placement': {n: {'value': float(v), 'std': _finite(c.placement_std[n])}
                           for n, v in c.placement.items()},
             'tcp_variance_ratio_without': (None if ratio is None or not np.isfinite(ratio)
@@ -308,6 +312,15 @@ def recordings_section(cm: CellModel, data: Measurements, cal: CellCalibration,
             entry['against_nominal'] = verdicts[i].to_dict()
         out.append(entry)
     return out
+
+
+def name_excluded(doc: dict[str, Any], data: Measurements,
+                  recordings: Sequence[Recording]) -> None:
+    """Name each excluded row's recording in ``doc['robust']['excluded']`` (its index is
+    into every recording's rows in order, ``data``)."""
+    index = row_recording(data, [r.name for r in recordings])
+    for entry in doc.get('robust', {}).get('excluded', []):
+        entry['recording'] = recordings[int(index[entry['index']])].name
 
 
 def recordings_text(section: Sequence[Mapping[str, Any]]) -> str:

@@ -18,6 +18,7 @@ from kpi_calib_ros.app.calibration_document import (
     CellCalibration,
     add_robust_sections,
     calibration_document,
+    name_excluded,
     plausibility_gate,
     recordings_section,
     recordings_text,
@@ -472,8 +473,10 @@ def run_identify(cell_path: str | Path, bag_path: str | Path | Sequence[Recordin
     how, comparison = add_prior_and_comparison(doc, cm, data, cal)
     recordings_lines = ''
     if not isinstance(bag_path, (str, Path)):
-        doc['recordings'] = recordings_section(cm, data.subset(cal.robust.kept), cal, [
-            s.recording for s in bag_path], [str(s.bag) for s in bag_path])
+        recordings = [s.recording for s in bag_path]
+        doc['recordings'] = recordings_section(cm, data, cal, recordings,
+                                               [str(s.bag) for s in bag_path])
+        name_excluded(doc, data, recordings)
         recordings_lines = recordings_text(doc['recordings'])
     residual_text, learned = '', None
     if learned_residual:

@@ -21,6 +21,7 @@ from kpi_calib_ros.app.calibration_document import (
     CellCalibration,
     add_robust_sections,
     calibration_document,
+    name_excluded,
     recordings_section,
     recordings_text,
     with_recording_names,
@@ -236,8 +237,8 @@ def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, dat
         result = cal.result
         if several and cal.valid:
             doc['recordings'] = recordings_section(
-                cm, data.subset(cal.robust.kept), cal, stations,
-                [f'{data_dir} station {r.name}' for r in stations])
+                cm, data, cal, stations, [f'{data_dir} station {r.name}' for r in stations])
+            name_excluded(doc, data, stations)
     else:
         assert old is not None
         cp = cycle_prior(cm, old, data, swing=swing)
