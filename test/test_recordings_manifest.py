@@ -143,3 +143,11 @@ def test_a_rejection_names_its_recording(capsys):
     print_rejections(pairing, "recording 'b': ")
     assert ("recording 'b': rejected 1 sample(s): no_joint_state (first: no joint state "
             'within 5 ms)') in capsys.readouterr().err
+
+
+def test_bags_given_relative_are_stored_absolute(bags, monkeypatch):
+    """calibration.yaml names each recording's bag; a manifest's were absolute, --bag's as
+    typed, relative to wherever the command ran."""
+    monkeypatch.chdir(bags)
+    a, b = sources_from_bags(['station_a.mcap', 'station_b.mcap'])
+    assert a.bag == bags / 'station_a.mcap' and b.bag.is_absolute()

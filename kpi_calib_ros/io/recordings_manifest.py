@@ -82,7 +82,7 @@ def sources_from_bags(bags: Sequence[str | Path], remounted: Sequence[str] = ()
         Two bags with one name (``--bag``), or ``--remounted`` names no recording, or names
         the first (the first recording's reflector is the cell's).
     """
-    paths = [Path(b) for b in bags]
+    paths = [Path(b).resolve() for b in bags]  # stored absolute, as a manifest's are
     names = [_name_from_stem(p, '--bag') for p in paths]
     unknown = sorted(set(remounted) - set(names))
     if unknown:
