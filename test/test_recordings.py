@@ -13,6 +13,7 @@ from kpi_calib_ros.app.calibration_document import (
     calibration_document,
     name_excluded,
     recordings_section,
+    robust_summary,
 )
 from kpi_calib_ros.app.identify import calibrate_cell
 from kpi_calib_ros.app.measurements import with_recordings
@@ -397,3 +398,4 @@ def test_an_excluded_row_names_its_recording(cm):
     assert [e['index'] for e in doc['robust']['excluded']] == [45]
     assert doc['robust']['excluded'][0]['recording'] == 'b'
     assert [(s['poses'], s['excluded']) for s in section] == [(40, 0), (39, 1)]
+    assert "recording 'b': " in robust_summary(doc)

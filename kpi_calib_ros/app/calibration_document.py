@@ -252,7 +252,9 @@ def robust_summary(doc: dict[str, Any]) -> str:
     lines.append(f"noise σ: stated {rob['sigma_stated_m'] * 1e6:.3g} µm, robust estimate from "
                  f"the residuals {rob['sigma_robust_m'] * 1e6:.3g} µm "
                  f"(ratio {rob['sigma_ratio']:.3g}); loss {rob['loss']}")
-    lines += [ExcludedMeasurement(**e).text() for e in rob['excluded']]
+    lines += [(f"recording {e['recording']!r}: " if 'recording' in e else '')
+              + ExcludedMeasurement(**{k: v for k, v in e.items() if k != 'recording'}).text()
+              for e in rob['excluded']]
     lines += [f'WARNING: {w}' for w in rob['warnings']]
     precision = doc.get('precision', {})
     for name, error in precision.get('expected_tcp_error_m', {}).items():
