@@ -79,6 +79,9 @@ class CellCalibration:
         if self.nominal is not None:
             out += [f'worse than no calibration on one set-up: {r.text()}'
                     for r in self.nominal.harmed]
+            if self.nominal.undetermined_where_it_works:
+                out.append('worse than no calibration where the robot works: '
+                           + self.nominal.working_text())
         if self.remount is not None and self.remount.disagrees:
             out.append(self.remount.text())
         return tuple(out)

@@ -351,7 +351,8 @@ def add_chosen_effects(cm: CellModel, data: Measurements, choice: ModelChoice,
                              np.concatenate([start, extra]), prior, balance=balance)
     chosen = choose_effects(cm.model, data, fit_for, choice.level, n_geo, prior,
                             tolerances=cm.cell.identification.tolerances,
-                            reference=start[:n_geo], balanced=balance)
+                            reference=start[:n_geo], balanced=balance,
+                            q_work=cm.q_work if len(cm.q_work) else None)
     if not chosen.effects:
         return cm, start, dataclasses.replace(
             choice, reason=f'{choice.reason}; {chosen.reason}',

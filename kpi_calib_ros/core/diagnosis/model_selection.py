@@ -25,17 +25,17 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Callable, Sequence
+from typing import Callable
 
 import numpy as np
 import scipy.stats
 
-from kpi_calib_ros.core.diagnosis.out_of_sample import METHOD, out_of_sample_error
-from kpi_calib_ros.core.diagnosis.recording_verdict import (
-    RecordingComparison,
-    named,
-    recording_comparisons,
+from kpi_calib_ros.core.diagnosis.nominal_comparison import (
+    TIE_M,
+    NominalComparison,
+    against_nominal,
 )
+from kpi_calib_ros.core.diagnosis.out_of_sample import METHOD, out_of_sample_error
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation.cross_validation import (
     RegionValidation,
@@ -45,9 +45,7 @@ from kpi_calib_ros.core.estimation.cross_validation import (
 )
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.core.estimation.precision import (
-    expected_tcp_error,
     fit_prior,
-    honest_precision,
 )
 from kpi_calib_ros.core.estimation.prior import Prior
 from kpi_calib_ros.core.measurement.data import Measurements
@@ -74,9 +72,6 @@ DEFAULT_FOLDS = 5
 HELD_OUT_ALPHA = 0.01
 FOLD_ALPHA = 0.05
 
-# Two rms figures closer than this (m) are a tie, not a verdict: far below any tracker's
-# resolution, it keeps the rounding of two fits that predict alike from deciding.
-TIE_M = 1e-9
 
 
 @dataclass(frozen=True)
@@ -395,196 +390,3 @@ def choose_model(model: MeasurementModel, data: Measurements, fit: Fit, requeste
             why += f'; {k} not compared: its fit did not converge ({message})'
     return ModelChoice(level, 'auto', predicted, cv, used, why, METHOD,
                        other_region_rms_m=other, region_blocks=blocks)
-
-
-
-def _not_above(calibrated_m: float, nominal_m: float) -> bool:
-    """Whether the calibration's figure is lower than the nominal's, or tied with it."""
-    return calibrated_m < nominal_m or abs(calibrated_m - nominal_m) <= TIE_M
-
-
-@dataclass(frozen=True)
-class NominalComparison:
-    """A calibration's cross-validated rms against the nominal model, placement registered.
-
-    The nominal model: base in the tracker and reflector offsets fitted, the robot nominal;
-    both on the same folds, where measured (``in_region``) and over held-out regions of
-    joint space.
-
-    ``better``: False (worse than no calibration) when the cross-validated figures (where
-    measured, over held-out regions, the expected TCP error over the working poses) do not
-    all favour the calibration *and* the error predicted from the fit itself at the
-    measured configurations (:mod:`~kpi_calib_ros.core.diagnosis.out_of_sample`, no refits)
-    does not either. Both are asked because each errs alone on real data: with 37 TIAGo
-    postures of 4 markers and millimetre play, the leave-one-out refits of the geometric
-    model (4.9 mm) are above the nominal robot's (4.5 mm), yet it predicts the other day
-    with 4.2 mm against the nominal's 5.9 mm, as its predicted error (2.4 against 4.1 mm)
-    says; the prediction from the fit is itself low where the model misfits.
-    """
-
-    calibrated: RegionValidation
-    nominal: RegionValidation
-    # rms over the working poses of the expected TCP error (parameter part and misfit,
-    # core.estimation.precision.expected_tcp_error) of each, m; NaN: no working pose or no figure.
-    calibrated_working_m: float = float('nan')
-    nominal_working_m: float = float('nan')
-    # Predicted rms of new measurements at the measured configurations, from each fit
-    # (core.diagnosis.out_of_sample, like_measured), m; NaN: not estimable.
-    calibrated_predicted_m: float = float('nan')
-    nominal_predicted_m: float = float('nan')
-    # With several recordings, each one's figures on its own rows, first included
-    # (core.diagnosis.recording_verdict); () with one.
-    recordings: tuple[RecordingComparison, ...] = ()
-
-    @property
-    def harmed(self) -> tuple[RecordingComparison, ...]:
-        """The recordings the calibration predicts worse than nominal beyond the noise."""
-        return tuple(r for r in self.recordings if r.harmed)
-
-    def named(self, names: Sequence[str]) -> NominalComparison:
-        """Return the comparison with the recordings' ``names`` (first included)."""
-        if not self.recordings:
-            return self
-        return dataclasses.replace(self, recordings=named(self.recordings, names))
-
-    @property
-    def compared(self) -> tuple[str, ...]:
-        """The figures both models have: 'in_region', 'other_region'."""
-        out = []
-        for key in ('in_region', 'other_region', 'working'):
-            a, b = self._figures(key)
-            if np.isfinite(a) and np.isfinite(b):
-                out.append(key)
-        return tuple(out)
-
-    def _figures(self, key: str) -> tuple[float, float]:
-        if key == 'working':
-            return self.calibrated_working_m, self.nominal_working_m
-        return getattr(self.calibrated, f'{key}_m'), getattr(self.nominal, f'{key}_m')
-
-    @property
-    def better(self) -> bool:
-        """False when the cross-validated and the predicted figures both favour the nominal.
-
-        A figure favours the nominal only when it is lower by more than
-        :data:`TIE_M` (noise-free data of a robot built to its URDF predict both at 0).
-        """
-        a, b = self.calibrated_predicted_m, self.nominal_predicted_m
-        predicted_better = bool(np.isfinite(a) and np.isfinite(b) and _not_above(a, b))
-        return self._cv_better or predicted_better
-
-    @property
-    def elsewhere_worse(self) -> bool:
-        """Whether a calibration found better predicts held-out regions worse than nominal.
-
-        Found better (:attr:`better`), it predicts the held-out regions of joint space worse
-        than the nominal robot: better where it was measured, harmful beyond (a region-0
-        geometric fit of the real UR10: 4566 µm over held-out regions
-        against the registered nominal's 591 µm, and 4.3 mm against 1.3 mm measured there).
-        Not refused (37 TIAGo postures put the nominal first over held-out regions, 4.9
-        against 6.2 mm, while the calibration predicts the other days better, 4.2 against
-        5.9 mm), but stated: its scope is the measured region.
-        """
-        a, b = self._figures('other_region')
-        return bool(self.better and np.isfinite(a) and np.isfinite(b) and not _not_above(a, b))
-
-    def scope_text(self) -> str:
-        """Return the warning of :attr:`elsewhere_worse` ('' when it does not apply)."""
-        if not self.elsewhere_worse:
-            return ''
-        a, b = self._figures('other_region')
-        return (f'outside the region of joint space it was measured in, this calibration '
-                f'predicts worse than the nominal robot with the placement registered '
-                f'(cross-validated over held-out regions: {a * 1e6:.1f} µm against '
-                f'{b * 1e6:.1f} µm): use it within the measured joint ranges '
-                '(training_joint_ranges), or measure poses over the region where the robot '
-                'works and identify again')
-
-    @property
-    def _cv_better(self) -> bool:
-        return all(_not_above(*self._figures(k)) for k in self.compared)
-
-    def text(self) -> str:
-        """One line: both figures of both models."""
-        def um(v: float) -> str:
-            return f'{v * 1e6:.1f} µm' if np.isfinite(v) else 'not estimable'
-        c, n = self.calibrated, self.nominal
-        split = self.better and not self._cv_better
-        verdict = ('is not refused against' if split else
-                   'predicts held-out poses better than' if self.better else
-                   'does NOT predict held-out poses better than')
-        return (f'the calibration {verdict} the nominal robot with the placement registered: '
-                f'cross-validated rms where measured {um(c.in_region_m)} (nominal '
-                f'{um(n.in_region_m)}), over held-out regions of joint space '
-                f'{um(c.other_region_m)} (nominal {um(n.other_region_m)}; {c.blocks or n.blocks} '
-                f'regions, same folds), expected TCP error over the working poses '
-                f'{um(self.calibrated_working_m)} (nominal {um(self.nominal_working_m)}); '
-                f'predicted from the fit at the measured configurations '
-                f'{um(self.calibrated_predicted_m)} (nominal {um(self.nominal_predicted_m)})'
-                + ('; the cross-validated figures favour the nominal robot, the prediction from '
-                   'the fit the calibration' if split else ''))
-
-    def to_dict(self) -> dict:
-        """YAML-ready figures (m)."""
-        def m(v: float) -> float | None:
-            return float(v) if np.isfinite(v) else None
-        return {'better': self.better, 'compared': list(self.compared),
-                'elsewhere_worse': self.elsewhere_worse,
-                'calibrated': {**self.calibrated.to_dict(),
-                               'working_poses_expected_rms_m': m(self.calibrated_working_m),
-                               'predicted_rms_m': m(self.calibrated_predicted_m)},
-                'nominal': {**self.nominal.to_dict(),
-                            'working_poses_expected_rms_m': m(self.nominal_working_m),
-                            'predicted_rms_m': m(self.nominal_predicted_m)},
-                'text': self.text()}
-
-
-def against_nominal(model: MeasurementModel, data: Measurements, result: CalibrationResult,
-                    nominal_model: MeasurementModel, nominal: CalibrationResult,
-                    prior: Prior | None = None, nominal_prior: Prior | None = None,
-                    seed: int = 0, free: list[str] | None = None,
-                    nominal_free: list[str] | None = None) -> NominalComparison:
-    """Compare the calibration ``result`` with the ``nominal`` fit (the placement only).
-
-    Both are cross-validated (linear refits, each fit's prior kept) on the folds of the
-    calibration, which keep the rank of the placement it contains; where those folds do not
-    keep the nominal fit's rank, on its own. ``free``, ``nominal_free``: the free parameters
-    of each fit (default: its estimated ones), for the error predicted from the fit. With
-    several recordings each is also judged on its own rows, on the same folds
-    (:func:`~kpi_calib_ros.core.diagnosis.recording_verdict.recording_comparisons`).
-    """
-    folds = validation_folds(model, data, result, prior, seed=seed)
-    cal = region_validation(model, data, result, prior, seed=seed, pose_folds=folds)
-    nom = region_validation(nominal_model, data, nominal, nominal_prior, seed=seed,
-                            pose_folds=folds)
-    nominal_folds = folds
-    if not (np.isfinite(nom.in_region_m) and np.isfinite(nom.other_region_m)):
-        nominal_folds = validation_folds(nominal_model, data, nominal, nominal_prior, seed=seed)
-        nom = region_validation(nominal_model, data, nominal, nominal_prior, seed=seed,
-                                pose_folds=nominal_folds)
-    return NominalComparison(
-        cal, nom, _working(model, data, result, prior),
-        _working(nominal_model, data, nominal, nominal_prior),
-        _predicted(model, data, result, free or list(result.estimated), prior, seed),
-        _predicted(nominal_model, data, nominal, nominal_free or list(nominal.estimated),
-                   nominal_prior, seed),
-        recording_comparisons(model, data, result, prior, nominal_model, nominal,
-                              nominal_prior, folds, nominal_folds))
-
-
-def _predicted(model: MeasurementModel, data: Measurements, result: CalibrationResult,
-               free: list[str], prior: Prior | None, seed: int) -> float:
-    """Predicted rms (m) of new measurements at the measured configurations, NaN if none."""
-    if result.dof <= 0:
-        return float('nan')
-    oos = out_of_sample_error(model, data, result, free, prior, seed,
-                              domains=('like_measured',)).domains['like_measured']
-    return float(oos.rms_m) if oos.estimable else float('nan')
-
-
-def _working(model: MeasurementModel, data: Measurements, result: CalibrationResult,
-             prior: Prior | None) -> float:
-    """Rms over the working poses of the expected TCP error (m), NaN without one."""
-    errors = expected_tcp_error(model, data, honest_precision(result), prior=prior)
-    values = np.asarray(errors.expected_tcp_error_m, float)
-    return float(np.sqrt(np.mean(values ** 2))) if len(values) else float('nan')
