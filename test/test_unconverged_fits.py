@@ -97,3 +97,24 @@ def test_a_comparison_with_a_fit_that_did_not_converge_recommends_nothing(cell, 
     assert not cmp.holds_elsewhere
     assert 'NOT recommended: a fit did not converge' in comparison_text(cmp)
     assert comparison_to_dict(cmp)['recommended'] is False
+
+
+def test_a_comparison_whose_effect_a_working_pose_extrapolates_recommends_nothing(cell, data):
+    """An added effect of a joint angle the working poses set outside its measured range
+    (core.diagnosis.effect_selection.extrapolated) is not recommended, whatever the
+    held-out regions of the measured poses say, and the reason is named; a recommendation
+    says it was checked within the measured joint ranges only (it said 'holds where no
+    pose was measured')."""
+    import dataclasses
+
+    from kpi_calib_ros.io.report import region_verdict
+    done = _fit(cell, lambda free: False)(data, list(cell.model.params.names))
+    cmp = compare_models((cell.model, done), (cell.model, done), data)
+    why = ('periodic_joint_error:joint_2:k=7: not tried: a working pose sets joint_2 to 1, '
+           'outside its measured range [-0.49, 0.198]')
+    beyond = dataclasses.replace(cmp, extrapolated=(why,))
+    assert not beyond.holds_elsewhere
+    assert region_verdict(beyond).startswith(f'NOT recommended: {why}')
+    assert comparison_to_dict(beyond)['recommended'] is False
+    if cmp.holds_elsewhere:
+        assert 'checked within the measured joint ranges only' in region_verdict(cmp)

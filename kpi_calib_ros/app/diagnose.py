@@ -22,7 +22,7 @@ from kpi_calib_ros.app.identify import (
 from kpi_calib_ros.app.learned_residual import choose_residual, too_many_rows
 from kpi_calib_ros.app.measurements import load_measurements
 from kpi_calib_ros.core.diagnosis.cell_diagnosis import CellDiagnosis
-from kpi_calib_ros.core.diagnosis.effect_selection import effect_start
+from kpi_calib_ros.core.diagnosis.effect_selection import effect_start, extrapolated
 from kpi_calib_ros.core.diagnosis.learned_residual import ResidualChoice
 from kpi_calib_ros.core.diagnosis.misfit import GENERAL, NAMED, Remedy, answer_misfit
 from kpi_calib_ros.core.diagnosis.model_comparison import ModelComparison, compare_models
@@ -102,6 +102,9 @@ def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
         after = identify_cell(richer, data, p0=p0, free=richer_free)
     comparison = compare_models((cm.model, result), (richer.model, after), data, folds=folds,
                                 prior=prior, balanced=prior is not None)
+    beyond = extrapolated(best, data.q, cm.q_work if len(cm.q_work) else None)
+    if beyond:
+        comparison = dataclasses.replace(comparison, extrapolated=(f'{best.name}: {beyond}',))
     after_oos = out_of_sample_error(richer.model, data, after,
                                     richer_free or list(richer.model.params.names), prior)
     return with_misfit_answer(CellDiagnosis(

@@ -30,7 +30,7 @@ from kpi_calib_ros.app.finish import finish_calibration
 from kpi_calib_ros.app.measurements import load_measurements
 from kpi_calib_ros.app.placement import registered_start, registration_text
 from kpi_calib_ros.core.diagnosis import augmented_model, compare_models
-from kpi_calib_ros.core.diagnosis.effect_selection import choose_effects
+from kpi_calib_ros.core.diagnosis.effect_selection import choose_effects, extrapolated
 from kpi_calib_ros.core.diagnosis.model_selection import (
     LEVELS,
     ModelChoice,
@@ -405,6 +405,11 @@ def add_effect_comparison(doc: dict[str, Any], cm: CellModel, data: Measurements
     prior = cell_prior(cm)
     cmp = compare_models((base.model, before), (cm.model, result), data, folds=folds,
                          prior=prior, balanced=prior is not None)
+    work = cm.q_work if len(cm.q_work) else None
+    beyond = tuple(f'{e.name}: {why}' for e in cm.model.effects
+                   if (why := extrapolated(e, data.q, work)))
+    if beyond:
+        cmp = dataclasses.replace(cmp, extrapolated=beyond)
     doc['effects_comparison'] = comparison_to_dict(cmp)
     return comparison_text(cmp)
 

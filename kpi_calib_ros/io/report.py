@@ -122,8 +122,12 @@ def region_verdict(cmp: ModelComparison) -> str:
         return (f'NOT recommended: a fit did not converge, so its cross-validated figures '
                 f'judge a last iterate, not a minimum ({figures}); raise '
                 'identification.max_iterations / --max-iterations and compare again')
+    if cmp.extrapolated:
+        return (f'NOT recommended: {"; ".join(cmp.extrapolated)} ({figures})')
     if cmp.holds_elsewhere:
-        return f'recommended: {", ".join(cmp.effects)} holds where no pose was measured ({figures})'
+        return (f'recommended: {", ".join(cmp.effects)} predicts held-out regions of the '
+                f'measured poses better ({figures}); checked within the measured joint ranges '
+                'only')
     return (f'NOT recommended: {", ".join(cmp.effects)} does not predict held-out regions of '
             f'joint space better beyond noise, or is worse beyond noise in a held-out fold '
             f'({figures}); keep the model without it')

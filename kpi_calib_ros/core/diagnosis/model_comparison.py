@@ -56,6 +56,9 @@ class ModelComparison:
     # The richer model's gain over held-out regions and in each held-out fold, in units of
     # what the held-out noise can do (core.diagnosis.model_selection.held_out_gain).
     gain: HeldOutGain | None = None
+    # Why an added effect would be extrapolated at the working poses
+    # (core.diagnosis.effect_selection.extrapolated); never recommended then.
+    extrapolated: tuple[str, ...] = ()
 
     @property
     def holds_elsewhere(self) -> bool:
@@ -68,7 +71,7 @@ class ModelComparison:
         figures linearise a last iterate, not a minimum, as ``auto`` neither screens from nor
         adds such a fit.
         """
-        if self.warnings or self.gain is None:
+        if self.warnings or self.gain is None or self.extrapolated:
             return False
         return self.gain.holds()
 
