@@ -110,7 +110,7 @@ def test_a_comparison_whose_effect_a_working_pose_extrapolates_recommends_nothin
     from kpi_calib_ros.io.report import region_verdict
     done = _fit(cell, lambda free: False)(data, list(cell.model.params.names))
     cmp = compare_models((cell.model, done), (cell.model, done), data)
-    why = ('periodic_joint_error:joint_2:k=7: not tried: a working pose sets joint_2 to 1, '
+    why = ('periodic_joint_error:joint_2:k=7: a working pose sets joint_2 to 1, '
            'outside its measured range [-0.49, 0.198]')
     beyond = dataclasses.replace(cmp, extrapolated=(why,))
     assert not beyond.holds_elsewhere

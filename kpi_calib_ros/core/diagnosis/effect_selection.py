@@ -226,7 +226,7 @@ def choose_effects(model: MeasurementModel, data: Measurements, fit_for: FitFor,
         passed = [c for c in ranked if c.significant and c.plausible]
         beyond = {c.spec: extrapolated(pool[c.spec], data.q, q_work) for c in passed}
         passed = [c for c in passed if not beyond[c.spec]]
-        trials += [EffectTrial(spec, rnd, {}, {}, None, False, why)
+        trials += [EffectTrial(spec, rnd, {}, {}, None, False, f'not tried: {why}')
                    for spec, why in beyond.items() if why]
         if not passed:
             significant = [c.spec for c in ranked if c.significant]
@@ -303,7 +303,7 @@ def choose_effects(model: MeasurementModel, data: Measurements, fit_for: FitFor,
 RANGE_TOLERANCE = 1e-3
 
 
-def extrapolated(effect: BoundEffect, q: np.ndarray, q_work: np.ndarray | None) -> str:
+def extrapolated(effect: object, q: np.ndarray, q_work: np.ndarray | None) -> str:
     """Why ``effect`` would be extrapolated at the working poses ``q_work``, or ''.
 
     An effect whose joint correction is a function of its joint's angle alone (not of a
@@ -311,8 +311,10 @@ def extrapolated(effect: BoundEffect, q: np.ndarray, q_work: np.ndarray | None) 
     range of that joint (``q`` (N, n) the measured poses): a working pose beyond that range
     is a value of the function no pose measured.
     """
-    j = getattr(effect, 'joint_index', None)
-    if (not isinstance(effect, BoundEffect) or q_work is None or not len(q_work) or j is None
+    if not isinstance(effect, BoundEffect):
+        return ''  # an effect of the cell's own code: its function is unknown here
+    j = effect.joint_index
+    if (q_work is None or not len(q_work) or j is None
             or effect.kind.joint_function is None or effect.uses_torque or effect.kind.inputs):
         return ''
     lo, hi = float(np.min(q[:, j])), float(np.max(q[:, j]))
@@ -320,7 +322,7 @@ def extrapolated(effect: BoundEffect, q: np.ndarray, q_work: np.ndarray | None) 
     out = work[(work < lo - RANGE_TOLERANCE) | (work > hi + RANGE_TOLERANCE)]
     if not len(out):
         return ''
-    return (f'not tried: a working pose sets {effect.joint} to {float(out[0]):.3g}, outside '
+    return (f'a working pose sets {effect.joint} to {float(out[0]):.3g}, outside '
             f'its measured range [{lo:.3g}, {hi:.3g}]: the effect would be extrapolated '
             'there, where no held-out fold can check it (measure poses over the joint\'s '
             'working range)')
