@@ -462,7 +462,7 @@ def read_log_with_sigma(path: str | os.PathLike, joint_topic: str = DEFAULT_JOIN
 
 
 
-def _scanned(path: str | os.PathLike) -> tuple[Path, ScannedBag]:
+def scanned_bag(path: str | os.PathLike) -> tuple[Path, ScannedBag]:
     """The checked path and the record-level scan of the MCAP bag at ``path`` (mapped, not
     read), for the readers of one side topic (temperatures, measured inputs).
 
@@ -489,7 +489,7 @@ def read_temperatures(path: str | os.PathLike,
     BagError
         File missing or not MCAP, or ``topic`` carrying another message type.
     """
-    path, bag = _scanned(path)
+    path, bag = scanned_bag(path)
     ids = sorted(c.id for c in bag.channels.values() if c.topic == topic)
     if not ids:
         return []
@@ -537,7 +537,7 @@ def read_inputs(path: str | os.PathLike, named_topic: str,
         File missing or not MCAP, a topic carrying another type than stated, or a field the
         type does not have.
     """
-    path, bag = _scanned(path)
+    path, bag = scanned_bag(path)
     present = {c.topic for c in bag.channels.values()}
     wanted: list[tuple[str, str, Callable[[Any], list[InputSample]], str]] = []
     if named_topic in present:
@@ -580,4 +580,5 @@ __all__ = ['BagContents', 'BagError', 'BagWarning', 'LIBRARY', 'StreamEncoders',
            'DEFAULT_JOINT_TOPIC', 'DEFAULT_POINT_TOPIC', 'JOINT_STATE_TYPE', 'LOG_CONTENT',
            'LOG_METADATA', 'POINT_STAMPED_TYPE', 'is_measurement_log', 'message_definition',
            'read_bag', 'read_bag_with_sigma', 'read_for_pairing', 'read_log',
-           'read_inputs', 'read_log_with_sigma', 'read_temperatures', 'type_hash', 'write_bag']
+           'read_inputs', 'read_log_with_sigma', 'read_temperatures', 'scanned_bag', 'type_hash',
+           'write_bag']

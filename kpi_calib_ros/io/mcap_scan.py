@@ -18,7 +18,7 @@ import struct
 import zlib
 from dataclasses import dataclass, field
 from io import BytesIO
-from typing import Union
+from typing import Sequence, Union
 
 import numpy as np
 from mcap.data_stream import ReadDataStream
@@ -289,4 +289,29 @@ def scan(path, data: Buffer) -> ScannedBag:
     return bag
 
 
-__all__ = ['BagError', 'ChannelMessages', 'MAGIC', 'ScannedBag', 'scan']
+def side_messages(bag: ScannedBag, skip: Sequence[str]
+                  ) -> tuple[list[tuple[int, str, str, bytes]], list[str]]:
+    """Return the messages of every other topic of a scanned bag, as recorded, for a player.
+
+    Returns [(header stamp ns, topic, ROS type, CDR payload)] of the topics not in ``skip``
+    (the joint, point and pose topics a player rebuilds), in stamp order, and the topics it
+    cannot give (not CDR, or a message without a header stamp to place it in time).
+    """
+    out: list[tuple[int, str, str, bytes]] = []
+    unsent: list[str] = []
+    for cid, channel in sorted(bag.channels.items()):
+        messages = bag.messages.get(cid)
+        if channel.topic in set(skip) or messages is None or not len(messages):
+            continue
+        schema = bag.schemas.get(channel.schema_id)
+        if (schema is None or channel.message_encoding != 'cdr'
+                or not bool(np.all(messages.stamped))):
+            unsent.append(channel.topic)
+            continue
+        out += [(int(messages.stamp_ns[i]), channel.topic, schema.name, bag.payload(cid, i))
+                for i in range(len(messages))]
+    out.sort(key=lambda m: m[0])
+    return out, sorted(set(unsent))
+
+
+__all__ = ['BagError', 'ChannelMessages', 'MAGIC', 'ScannedBag', 'scan', 'side_messages']

@@ -19,7 +19,7 @@ from rclpy.qos import QoSProfile
 
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.io.cell_inputs import InputSource, field_path
-from kpi_calib_ros.io.ros_messages import input_samples_from_message
+from kpi_calib_ros.io.ros_messages import input_samples_from_message, named_values_from_message
 from kpi_calib_ros.ros.measurement_store import MeasurementStore
 
 INPUT_DEPTH = 100  # an inclinometer at 10-100 Hz: a buffer of a second or more
@@ -35,8 +35,12 @@ def message_class(type_name: str) -> Any:
 
 
 def subscribe_inputs(node: Node, store: MeasurementStore, sources: tuple[InputSource, ...],
-                     callback_group: Any = None) -> list[Any]:
+                     callback_group: Any = None, named_topic: str | None = None) -> list[Any]:
     """Subscribe ``node`` to every input source; returns the subscriptions.
+
+    ``named_topic`` (the cell's ``inputs.topic``): named values (``sensor_msgs/JointState``,
+    name = covariate, position = value), as ``identify`` reads them from a bag and a
+    replayed bag publishes them (a row's payload from an import, a controller's reading).
 
     Raises
     ------
@@ -44,6 +48,12 @@ def subscribe_inputs(node: Node, store: MeasurementStore, sources: tuple[InputSo
         A source's type is not an installed message type.
     """
     out = []
+    if named_topic is not None:
+        from sensor_msgs.msg import JointState
+        out.append(node.create_subscription(JointState, named_topic,
+                                            _named_receiver(node, store, named_topic),
+                                            QoSProfile(depth=INPUT_DEPTH),
+                                            callback_group=callback_group))
     for i, source in enumerate(sources):
         key = f'inputs.sources[{i}]'
         try:
@@ -58,6 +68,18 @@ def subscribe_inputs(node: Node, store: MeasurementStore, sources: tuple[InputSo
                                             QoSProfile(depth=INPUT_DEPTH),
                                             callback_group=callback_group))
     return out
+
+
+def _named_receiver(node: Node, store: MeasurementStore, topic: str) -> Any:
+    def on_message(message: Any) -> None:
+        try:
+            refused = store.receive_inputs(named_values_from_message(message))
+        except (OSError, ValueError) as exc:
+            node.get_logger().error(f'measured input on {topic} not stored: {exc}')
+            return
+        if refused:
+            node.get_logger().warning(f'{topic}: {refused}', throttle_duration_sec=5.0)
+    return on_message
 
 
 def _receiver(node: Node, store: MeasurementStore, source: InputSource, fields: tuple) -> Any:

@@ -131,8 +131,9 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
                                    else None),
                 temperature_range_c=(self._cell.temperature.valid_range_c
                                      if self._cell.temperature else TEMPERATURE_RANGE_C),
-                inputs_topic=(self._cell.inputs.topic if self._cell.inputs.sources
-                              or measured_torques else None),
+                # The named inputs topic always: identify reads a bag's rows from it, and
+                # a replayed bag (or a controller) publishes them there.
+                inputs_topic=self._cell.inputs.topic,
                 record_efforts=measured_torques, station=self.settings.station,
                 reflector_remounted=self.settings.station_reflector_remounted)
         except OSError as exc:  # missing parent, read-only, a file in the way, no space
@@ -198,7 +199,8 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
                                  stream_qos(int(POINTS_MAX_HZ * STREAM_BUFFER_S)),
                                  callback_group=streams)
         subscribe_temperature(self, self.store, callback_group=streams)
-        subscribe_inputs(self, self.store, self._cell.inputs.sources, callback_group=streams)
+        subscribe_inputs(self, self.store, self._cell.inputs.sources, callback_group=streams,
+                         named_topic=self._cell.inputs.topic)
         for name, doing, work in (('design', 'designing', self._design),
                                   ('identify', 'identifying', self._identify),
                                   ('diagnose', 'diagnosing', self._diagnose),

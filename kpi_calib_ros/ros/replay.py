@@ -23,6 +23,7 @@ node that receives nothing else.
 """
 from __future__ import annotations
 
+import importlib
 import mmap
 import signal
 import time
@@ -41,18 +42,19 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
-from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
+from kpi_calib_ros.core.acquisition.streams import PointSample
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.io.bag import (
     DEFAULT_JOINT_TOPIC,
     DEFAULT_POINT_TOPIC,
     is_measurement_log,
     read_bag_with_sigma,
+    scanned_bag,
 )
-from kpi_calib_ros.io.mcap_scan import MAGIC, scan
+from kpi_calib_ros.io.mcap_scan import MAGIC, scan, side_messages
 from kpi_calib_ros.io.names import DEFAULT_POSE_TOPIC, point_sigma_topic
 from kpi_calib_ros.io.ros_messages import pose_stamped_msg, vector3_stamped_msg
-from kpi_calib_ros.ros.conversions import diagnostic_values, joint_state_msg, point_stamped_msg
+from kpi_calib_ros.ros.conversions import diagnostic_values, point_stamped_msg
 
 # Publisher history at least this deep; it is sized to the whole recording when longer,
 # so a message DDS has not yet acknowledged is never overwritten before it is.
@@ -81,6 +83,11 @@ class ReplayReport:
     acknowledged: bool
     seconds: float
     sigma_sent: int = 0
+    # The bag's other topics (measured inputs, temperatures) sent as recorded, and the
+    # topics it could not send (no installed message type, or no header stamp).
+    side_sent: int = 0
+    side_topics: tuple[str, ...] = ()
+    unsent_topics: tuple[str, ...] = ()
 
     @property
     def lost(self) -> tuple[int, int] | None:
@@ -91,6 +98,8 @@ class ReplayReport:
 
     @property
     def complete(self) -> bool:
+        if self.unsent_topics:
+            return False
         return self.acknowledged if self.lost is None else not any(self.lost)
 
 
@@ -163,9 +172,18 @@ def replay(node: Node, path: str | Path, rate: float = 1.0,
     if not rate > 0:
         raise ValueError(f'rate must be > 0, got {rate}')
     refuse_measurement_log(path)
-    joints, points, sigma = read_bag_with_sigma(path, joint_topic, point_topic, pose_topic)
-    stream = sorted([(s.stamp_ns, 0, s) for s in joints] + [(p.stamp_ns, 1, p) for p in points],
-                    key=lambda item: item[:2])
+    _, points, sigma = read_bag_with_sigma(path, joint_topic, point_topic, pose_topic)
+    # The joint states and every other topic (measured inputs, temperatures) as recorded:
+    # a joint state's efforts and an input read from a topic reach the node unchanged.
+    raw, unsent = side_messages(scanned_bag(path)[1], (point_topic, pose_topic,
+                                                       point_sigma_topic(point_topic)))
+    classes = {name: _message_class(name) for name in {m[2] for m in raw}}
+    unsent += sorted({m[1] for m in raw if classes[m[2]] is None})
+    joints = [(m[0], 0, m[3]) for m in raw if m[1] == joint_topic]
+    side = [(m[0], 2, m) for m in raw if m[1] != joint_topic and classes[m[2]] is not None]
+    Item = tuple[int, int, 'bytes | PointSample | tuple[int, str, str, bytes]']
+    items: list[Item] = [*joints, *[(p.stamp_ns, 1, p) for p in points], *side]
+    stream = sorted(items, key=lambda item: item[:2])
     n_poses = sum(p.orientation is not None for p in points)
     topics = [(JointState, joint_topic, len(joints)), (PointStamped, point_topic, len(points))]
     if n_poses:
@@ -173,6 +191,11 @@ def replay(node: Node, path: str | Path, rate: float = 1.0,
     pubs = [node.create_publisher(kind, topic, QoSProfile(
         depth=max(QOS_DEPTH, n), reliability=ReliabilityPolicy.RELIABLE))
         for kind, topic, n in topics]
+    side_pubs = {topic: node.create_publisher(classes[kind], topic, QoSProfile(
+        depth=max(QOS_DEPTH, sum(m[2][1] == topic for m in side)),
+        reliability=ReliabilityPolicy.RELIABLE))
+        for topic, kind in {(m[2][1], m[2][2]) for m in side}}
+    side_sent = 0
     # The points' stated σ: not counted by the node's acknowledgement, each sent with its
     # point (so at most POINT_WINDOW of them in flight).
     sigma_pub = node.create_publisher(Vector3Stamped, point_sigma_topic(point_topic), QoSProfile(
@@ -197,6 +220,10 @@ def replay(node: Node, path: str | Path, rate: float = 1.0,
         delay = start + (stamp - first) * 1e-9 / rate - time.monotonic()
         if delay > 0:
             time.sleep(delay)  # pacing is the point of a player
+        if isinstance(sample, tuple):  # a side topic: not counted by the node's counts
+            side_pubs[sample[1]].publish(sample[3])
+            side_sent += 1
+            continue
         if baseline is not None and not stalled:
             if not sum(sent) % 50:  # a spin costs ~1 ms: take new counts now and then
                 node_counts.spin(0.0)
@@ -207,8 +234,8 @@ def replay(node: Node, path: str | Path, rate: float = 1.0,
             if stalled:
                 log.error(f'{NODE_STATUS} stopped counting for {STALL_S} s; publishing the '
                           'rest without waiting for it')
-        if isinstance(sample, JointSample):
-            pubs[0].publish(joint_state_msg(sample))
+        if isinstance(sample, bytes):
+            pubs[0].publish(sample)  # the recorded joint state, efforts included
         elif sample.orientation is not None:  # a tracked pose; counted as a point
             pubs[2].publish(pose_stamped_msg(sample))
         else:
@@ -220,7 +247,8 @@ def replay(node: Node, path: str | Path, rate: float = 1.0,
             sigma_sent += 1
         sent[kind] += 1
     acknowledged = all(p.wait_for_all_acked(Duration(seconds=STALL_S))
-                       for p in pubs + ([sigma_pub] if sigma_pub is not None else []))
+                       for p in pubs + list(side_pubs.values())
+                       + ([sigma_pub] if sigma_pub is not None else []))
     delivered = None
     if baseline is not None:
         _await(node_counts, lambda: all(node_counts.latest()[k] - baseline[k] >= sent[k]
@@ -228,7 +256,18 @@ def replay(node: Node, path: str | Path, rate: float = 1.0,
         counts = node_counts.latest()
         delivered = (counts[0] - baseline[0], counts[1] - baseline[1])
     return ReplayReport((sent[0], sent[1]), delivered, acknowledged, time.monotonic() - start,
-                        sigma_sent)
+                        sigma_sent, side_sent, tuple(sorted(side_pubs)), tuple(unsent))
+
+
+def _message_class(type_name: str) -> type | None:
+    """The rclpy message class of ``pkg/msg/Type``, None when it is not installed."""
+    parts = type_name.split('/')
+    if len(parts) != 3 or parts[1] != 'msg':
+        return None
+    try:
+        return getattr(importlib.import_module(f'{parts[0]}.msg'), parts[2])
+    except (ImportError, AttributeError):
+        return None
 
 
 def refuse_measurement_log(path: str | Path) -> None:
@@ -300,7 +339,13 @@ def run_replay(bag: str | Path, rate: float = 1.0, joint_topic: str = DEFAULT_JO
     print(f'sent {n_joints} joint states and {n_points} tracker points from {bag} in '
           f'{seconds:.1f} s (rate {rate:g})'
           + (f', with the stated sigma of {report.sigma_sent} points on '
-             f'{point_sigma_topic(point_topic)}' if report.sigma_sent else ''))
+             f'{point_sigma_topic(point_topic)}' if report.sigma_sent else '')
+          + (f', and {report.side_sent} messages of {", ".join(report.side_topics)}'
+             if report.side_sent else ''))
+    if report.unsent_topics:
+        print(f'NOT SENT: the bag\'s topics {", ".join(report.unsent_topics)} (no installed '
+              'message type or no header stamp): a node reading them gets nothing from this '
+              'replay')
     if report.delivered is None:
         print('no kpi_calib_node counts seen; DDS acknowledged '
               + ('every message' if report.acknowledged else 'NOT every message'))
