@@ -113,8 +113,10 @@ class RemountTest:
                 f'(tip frame) explain {100 * self.fraction:.4g} % of the calibration\'s χ² '
                 f'(F = {self.f_stat:.3g}, p = {self.p_value:.2g}); a probe remounted '
                 f'between recordings must be declared: pass {names} (a manifest: '
-                'reflector_remounted: true), or, when it was not remounted, the recordings '
-                'measure a different tool or robot')
+                'reflector_remounted: true; the node: station_reflector_remounted:=true '
+                'before a station is measured, or kpi-calib identify on its logs with '
+                '--remounted), or, when it was not remounted, the recordings measure a '
+                'different tool or robot')
 
     def to_dict(self) -> dict:
         """YAML-ready figures (m)."""
