@@ -486,10 +486,12 @@ def fit_learned_residual(q: np.ndarray, residual_m: np.ndarray, sigma_m: float |
         p_value = float(scipy.stats.ttest_1samp(gain, 0.0, alternative='greater').pvalue)
     relative = 1.0 - rms_after ** 2 / rms_before ** 2 if rms_before > 0 else 0.0
     chosen = bool(p_value < alpha and relative >= MIN_GAIN)
-    figures = (f'held-out rms {rms_before * 1e6:.1f} um (physical model) -> '
-               f'{rms_after * 1e6:.1f} um (with the learned residual), {k} regions of '
-               f'joint space held out in turn over {n_poses} poses, paired test '
-               f'p = {p_value:.2g}')
+    # The physical model's residuals at the poses (its own fit), against what is left
+    # when the field, refitted without each region, predicts that region.
+    figures = (f'rms {rms_before * 1e6:.1f} um of the physical model\'s residuals -> '
+               f'{rms_after * 1e6:.1f} um with the learned residual predicted from the other '
+               f'regions ({k} regions of joint space held out in turn over {n_poses} poses), '
+               f'paired test p = {p_value:.2g}')
     if chosen:
         reason = f'learned residual chosen: {figures}'
     else:
