@@ -161,3 +161,29 @@ def test_an_old_log_without_station_loads_as_one_station_and_a_new_station_start
             store.set_station('2nd station')
     finally:
         store.close()
+
+
+@pytest.mark.slow
+def test_identify_names_the_rows_rejected_on_arrival(cm, client, spawn, tmp_path):
+    """A second station's bag simulated with the first one's stamps: its points are
+    rejected as duplicate stamps (a bag replayed twice is not counted twice), and
+    ~/identify, which answered success with one station and said nothing, names them."""
+    rng = np.random.default_rng(7)
+    sigma = float(np.max(cm.cell.sigma))
+    p_robot = true_parameters(cm.model.params, rng)
+    near = _station(cm, p_robot, np.zeros(6), N_POSES, rng, sigma)
+    far = _station(cm, p_robot, MOVE, N_POSES, rng, sigma)
+    frame = cm.cell.tracker_frame
+    node = spawn(tmp_path / 'data', 'node.log', 'auto_identify:=false', 'station:=near')
+    try:
+        client.publish_measurements(near.q, cm.joint_names, near.eta, frame, N_POSES)
+        _set_station(client, 'far')
+        client.publish_measurements(far.q, cm.joint_names, far.eta, frame, N_POSES)
+        client.spin_until(lambda: client.count('rejected.duplicate_stamp') == N_POSES, 60,
+                          'the far station\'s points rejected as duplicates')
+        answer = client.call('identify', timeout=180)
+        assert answer.success, answer.message
+        assert (f'rejected on arrival, not in this fit: {N_POSES} duplicate_stamp'
+                in answer.message), answer.message
+    finally:
+        assert node.stop() == 0, node.output()

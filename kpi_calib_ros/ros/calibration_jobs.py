@@ -127,6 +127,10 @@ class CalibrationJobs(NodeParts):
                 result.covariance_scale, result.joint_sigma))
         if out.stations:
             self.get_logger().info(out.stations)
+        rejected = {r: n for r, n in sorted(self.store.rejections.items()) if n}
+        if rejected:  # a whole station's rows can be among them (stamps received before)
+            notes = [*notes, 'rejected on arrival, not in this fit: ' + ', '.join(
+                f'{n} {r}' for r, n in rejected.items()) + ' (counted on /diagnostics)']
         answer = identify_answer(len(data), cal, prior, notes, self.data_dir, learned[1])
         return True, answer + (f'\n{out.stations}' if out.stations else '')
 
