@@ -151,3 +151,21 @@ def test_bags_given_relative_are_stored_absolute(bags, monkeypatch):
     monkeypatch.chdir(bags)
     a, b = sources_from_bags(['station_a.mcap', 'station_b.mcap'])
     assert a.bag == bags / 'station_a.mcap' and b.bag.is_absolute()
+
+
+def test_an_empty_node_log_among_the_bags_is_skipped_and_said(tmp_path, capsys):
+    """A node whose station was set, then its remount, leaves a log with no measurement
+    between the two; identify --bag over the node's logs stopped on it (exit 2). It is
+    skipped with a warning; a bag that is no node log, or every log empty, is not."""
+    from kpi_calib_ros.io.measurement_log import MeasurementLog
+    logs = tmp_path / 'data_dir'
+    for station in ('a', 'b', 'b'):
+        with MeasurementLog(logs, station=station, reflector_remounted=False):
+            pass
+    files = sorted(logs.glob('measurements_*.mcap'))
+    (tmp_path / 'other.mcap').write_bytes(b'')
+    sources = sources_from_bags([*files[:2], tmp_path / 'other.mcap'])
+    assert [s.bag for s in sources] == [tmp_path / 'other.mcap']
+    err = capsys.readouterr().err
+    assert err.count('is a node measurement log with no measurement') == 2, err
+    assert [s.bag for s in sources_from_bags(files[:2])] == files[:2]

@@ -14,12 +14,14 @@ a :class:`ConfigError` naming ``recordings[i].<field>`` and the fix.
 from __future__ import annotations
 
 import re
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.measurement.recordings import NAME_PATTERN, Recording, stated_conditions
+from kpi_calib_ros.io.bag import BagError, is_measurement_log, scanned_bag
 from kpi_calib_ros.io.measurement_log import log_station
 from kpi_calib_ros.io.yaml_bounded import read_yaml_file
 
@@ -47,6 +49,15 @@ def _name_from_stem(path: Path, key: str) -> str:
         raise ConfigError(key, f'cannot name a recording after {str(path)!r}; give names in a '
                           'manifest (--recordings)')
     return name
+
+
+def _empty_node_log(path: Path) -> bool:
+    """Whether ``path`` is a node's measurement log that holds no message."""
+    try:
+        _, bag = scanned_bag(path)
+    except (BagError, OSError):
+        return False  # read_bag names what the file is not
+    return is_measurement_log(bag) and not any(len(m) for m in bag.messages.values())
 
 
 def _unique(sources: list[RecordingSource], key: str) -> list[RecordingSource]:
@@ -83,6 +94,13 @@ def sources_from_bags(bags: Sequence[str | Path], remounted: Sequence[str] = ()
         the first (the first recording's reflector is the cell's).
     """
     paths = [Path(b).resolve() for b in bags]  # stored absolute, as a manifest's are
+    empty = [p for p in paths if _empty_node_log(p)]
+    for path in empty if len(empty) < len(paths) else ():
+        # A node's station set and changed before any measurement leaves such a file.
+        print(f'warning: {path} is a node measurement log with no measurement (a station '
+              'set and changed before any was taken): skipped', file=sys.stderr)
+    if len(empty) < len(paths):
+        paths = [p for p in paths if p not in empty]
     names = [_name_from_stem(p, '--bag') for p in paths]
     unknown = sorted(set(remounted) - set(names))
     if unknown:
