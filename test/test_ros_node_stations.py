@@ -187,3 +187,19 @@ def test_identify_names_the_rows_rejected_on_arrival(cm, client, spawn, tmp_path
                 in answer.message), answer.message
     finally:
         assert node.stop() == 0, node.output()
+
+
+@pytest.mark.slow
+def test_a_new_station_that_takes_the_last_ones_remount_is_warned(client, spawn, tmp_path):
+    """station_reflector_remounted is a parameter and keeps its value: a new station set
+    alone after a remounted one is logged as remounted too (its probe then gets offsets of
+    its own, a little precision lost). The node now says so and names the fix."""
+    node = spawn(tmp_path / 'data', 'node.log', 'auto_identify:=false', 'station:=b',
+                 'station_reflector_remounted:=true')
+    try:
+        client.spin_until(lambda: client.diagnostics().get('station') == 'b', 30, 'station b')
+        _set_station(client, 'd')
+        client.spin_until(lambda: "station 'd' takes station_reflector_remounted true from "
+                          "station 'b'" in node.output(), 10, 'the warning')
+    finally:
+        assert node.stop() == 0, node.output()

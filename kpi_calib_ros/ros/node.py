@@ -249,7 +249,9 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
         station (or remount) starts its log file now: the measurements stored from here on
         belong to it."""
         self.settings = settings_from_parameters(parameter_values(self))
-        if STATION_PARAMETERS & {p.name for p in parameters}:
+        names = {p.name for p in parameters}
+        if STATION_PARAMETERS & names:
+            previous = self.store.station[0]
             try:
                 changed = self.store.set_station(self.settings.station,
                                                  self.settings.station_reflector_remounted)
@@ -261,6 +263,14 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
                     self.get_logger().info(f'station {self.store.station[0]!r} (probe '
                                            f'remounted: {self.store.station[1]}) from now on; '
                                            f'logging to {self.store.log.path}')
+                if (changed and self.store.station[1] and self.store.station[0] != previous
+                        and 'station_reflector_remounted' not in names):
+                    # A parameter keeps its value: the new station takes the last one's.
+                    self.get_logger().warning(
+                        f'station {self.store.station[0]!r} takes station_reflector_remounted '
+                        f'true from station {previous!r}: its probe gets its own offsets; '
+                        'set station_reflector_remounted false with the station when the '
+                        'probe was not remounted')
         self._run.auto_pending = self._auto_wanted()
 
     # ------------------------------------------------------------------ robot model
