@@ -229,15 +229,16 @@ def _valid_smaller_level(cal: CellCalibration, cm: CellModel, data: Measurements
     the published result was no calibration at all.
     """
     levels = LEVELS[:LEVELS.index(choice.level)] if choice.level in LEVELS else ()
-    why = cal.problems[0]
+    refused = [f'{choice.level} refused in the final fit ({cal.problems[0]})']
     for level in reversed(levels):
         smaller = dataclasses.replace(choice, level=level, reason=(
-            f'{choice.reason}; {choice.level} refused in the final fit ({why}): {level}, '
-            'the largest smaller level whose calibration is valid'))
+            f'{choice.reason}; {"; ".join(refused)}: {level}, the largest smaller level '
+            'whose calibration is valid'))
         trial = _final_fit(cm, data, smaller, start, prior, balance, scales, registration,
                            None, progress)
         if trial.valid:
             return trial
+        refused.append(f'{level} refused too ({trial.problems[0]})')
     return cal
 
 
