@@ -315,6 +315,17 @@ def _ur10_series(path):
     return Measurements(q=q, eta=eta, reflector=np.zeros(len(q), int))
 
 
+def _ur10_cell_model():
+    """The stock UR10 of example-robot-data 2.5 m from the tracker (its placement and the
+    probe registered from the data), σ 20 µm, one working pose."""
+    doc = {'robot': {'urdf': 'package://example-robot-data/robots/ur_description/urdf/'
+                             'ur10_robot.urdf', 'base_frame': 'base_link', 'tip_frame': 'tool0'},
+           'tracker': {'frame_id': 'laser_tracker'}, 'reflectors': [{'name': 'probe'}],
+           'noise': {'sigma': 2.0e-5},
+           'working_poses': [[0.0, -1.2, 1.7, -2.07, -1.57, 0.0]]}
+    return build_cell_model(cell_from_dict(doc, UR10_DATA))
+
+
 @pytest.mark.slow
 def test_the_real_ur10_series_with_the_tracker_and_probe_set_up_again_is_scored():
     """Real UR10 data: calibrated on 400 poses of Series A, validated on Series D (632
@@ -322,12 +333,7 @@ def test_the_real_ur10_series_with_the_tracker_and_probe_set_up_again_is_scored(
     again). In A's tracker frame D misses by a metre; re-registered (base and probe
     offset, 9 dof) it is predicted as well as 632 held-out poses of A itself, with A's
     set-up (0.443 against 0.465 mm rms)."""
-    doc = {'robot': {'urdf': 'package://example-robot-data/robots/ur_description/urdf/'
-                             'ur10_robot.urdf', 'base_frame': 'base_link', 'tip_frame': 'tool0'},
-           'tracker': {'frame_id': 'laser_tracker'}, 'reflectors': [{'name': 'probe'}],
-           'noise': {'sigma': 2.0e-5},
-           'working_poses': [[0.0, -1.2, 1.7, -2.07, -1.57, 0.0]]}
-    cm = build_cell_model(cell_from_dict(doc, UR10_DATA))
+    cm = _ur10_cell_model()
     series_a = _ur10_series(UR10_DATA / 'Series_A' / 'measurements_grid.csv')
     series_d = _ur10_series(UR10_DATA / 'Series_D' / 'measurements_iso_cubes.csv')
     pick = np.random.default_rng(0).choice(len(series_a), 400, replace=False)
@@ -535,12 +541,7 @@ def test_auto_steps_down_from_a_level_the_gate_refuses_on_the_real_ur10():
     0.31 m (rx 2.82 ± 0.71 rad): not valid, nothing published. It now takes the largest
     smaller level whose calibration is valid, and that one predicts every other region of
     the series better than the refused geometric fit."""
-    doc = {'robot': {'urdf': 'package://example-robot-data/robots/ur_description/urdf/'
-                             'ur10_robot.urdf', 'base_frame': 'base_link', 'tip_frame': 'tool0'},
-           'tracker': {'frame_id': 'laser_tracker'}, 'reflectors': [{'name': 'probe'}],
-           'noise': {'sigma': 2.0e-5},
-           'working_poses': [[0.0, -1.2, 1.7, -2.07, -1.57, 0.0]]}
-    cm = build_cell_model(cell_from_dict(doc, UR10_DATA))
+    cm = _ur10_cell_model()
     series_a = _ur10_series(UR10_DATA / 'Series_A' / 'measurements_grid.csv')
     poses, pose = pose_index(series_a.q)
     region = region_fold_ids(poses, 4, seed=0)[pose]
@@ -575,12 +576,7 @@ def test_an_hour_of_the_real_ur10_is_not_published_where_it_does_not_hold():
     error and a scale of joints the working pose sets outside their ranges (10.6 mm); now
     it publishes a model that predicts the rest of the night within 10 % of the nominal
     robot with the placement registered."""
-    doc = {'robot': {'urdf': 'package://example-robot-data/robots/ur_description/urdf/'
-                             'ur10_robot.urdf', 'base_frame': 'base_link', 'tip_frame': 'tool0'},
-           'tracker': {'frame_id': 'laser_tracker'}, 'reflectors': [{'name': 'probe'}],
-           'noise': {'sigma': 2.0e-5},
-           'working_poses': [[0.0, -1.2, 1.7, -2.07, -1.57, 0.0]]}
-    cm = build_cell_model(cell_from_dict(doc, UR10_DATA))
+    cm = _ur10_cell_model()
     series_a = _ur10_series(UR10_DATA / 'Series_A' / 'measurements_grid.csv')
     train = series_a.subset(np.arange(300))
     rest = series_a.subset(np.arange(300, len(series_a.q), 5))

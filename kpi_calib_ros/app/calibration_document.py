@@ -14,6 +14,7 @@ import numpy as np
 
 from kpi_calib_ros.app.cell_model import CellModel
 from kpi_calib_ros.core.acquisition.outcomes import PairingResult
+from kpi_calib_ros.core.diagnosis.effect_selection import RANGE_TOLERANCE
 from kpi_calib_ros.core.diagnosis.model_selection import ModelChoice, NominalComparison
 from kpi_calib_ros.core.diagnosis.remount import RemountTest
 from kpi_calib_ros.core.effects.gravity_compliance import compliance_warnings, mass_warning
@@ -224,7 +225,7 @@ def working_poses_outside(doc: dict[str, Any], cal: CellCalibration
     out: dict[str, dict[str, float]] = {}
     for pose, q in zip(cm.working_pose_names, np.atleast_2d(cm.q_work)):
         beyond = {n: float(v) for n, v in zip(names, q) if n in ranges
-                  and not ranges[n][0] - 1e-3 <= v <= ranges[n][1] + 1e-3}
+                  and not ranges[n][0] - RANGE_TOLERANCE <= v <= ranges[n][1] + RANGE_TOLERANCE}
         if beyond:
             out[pose] = beyond
     return out

@@ -427,7 +427,9 @@ def load_recordings(cell_path: str | Path, sources: Sequence[RecordingSource],
         parts.append(data)
         pairings.append(pairing)
     recordings = [s.recording for s in sources]
-    for i, j, count in repeated_rows(parts):
+    repeated = repeated_rows(parts)
+    if repeated:
+        i, j, count = repeated[0]
         raise ConfigError('recordings', f'recording {recordings[j].name!r} '
                           f'({sources[j].bag}) repeats {count} of its {len(parts[j])} rows '
                           f'bit for bit from recording {recordings[i].name!r} '
@@ -453,7 +455,8 @@ def check_stated_covariates(cm: CellModel, recordings: Sequence[Recording]) -> N
     """
     for i, rec in enumerate(recordings):
         misspelled, unread = unread_covariates(cm.model, list(rec.covariates))
-        for name, close in misspelled:
+        if misspelled:
+            name, close = misspelled[0]
             raise ConfigError(f'recordings[{i}].covariates.{name}',
                               f'no effect reads {name!r}: did you mean {close!r}? (a '
                               'condition read by nothing changes no prediction)')

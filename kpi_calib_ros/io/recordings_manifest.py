@@ -95,11 +95,11 @@ def sources_from_bags(bags: Sequence[str | Path], remounted: Sequence[str] = ()
     """
     paths = [Path(b).resolve() for b in bags]  # stored absolute, as a manifest's are
     empty = [p for p in paths if _empty_node_log(p)]
-    for path in empty if len(empty) < len(paths) else ():
-        # A node's station set and changed before any measurement leaves such a file.
-        print(f'warning: {path} is a node measurement log with no measurement (a station '
-              'set and changed before any was taken): skipped', file=sys.stderr)
-    if len(empty) < len(paths):
+    if len(empty) < len(paths):  # every one empty: read_bag says there is nothing
+        for path in empty:
+            # A node's station set and changed before any measurement leaves such a file.
+            print(f'warning: {path} is a node measurement log with no measurement (a '
+                  'station set and changed before any was taken): skipped', file=sys.stderr)
         paths = [p for p in paths if p not in empty]
     names = [_name_from_stem(p, '--bag') for p in paths]
     unknown = sorted(set(remounted) - set(names))

@@ -70,15 +70,20 @@ def subscribe_inputs(node: Node, store: MeasurementStore, sources: tuple[InputSo
     return out
 
 
+def _kept(node: Node, store: MeasurementStore, topic: str, samples: list) -> None:
+    """Store ``samples`` read on ``topic``; a failure or a refusal is logged."""
+    try:
+        refused = store.receive_inputs(samples)
+    except (OSError, ValueError) as exc:
+        node.get_logger().error(f'measured input on {topic} not stored: {exc}')
+        return
+    if refused:
+        node.get_logger().warning(f'{topic}: {refused}', throttle_duration_sec=5.0)
+
+
 def _named_receiver(node: Node, store: MeasurementStore, topic: str) -> Any:
     def on_message(message: Any) -> None:
-        try:
-            refused = store.receive_inputs(named_values_from_message(message))
-        except (OSError, ValueError) as exc:
-            node.get_logger().error(f'measured input on {topic} not stored: {exc}')
-            return
-        if refused:
-            node.get_logger().warning(f'{topic}: {refused}', throttle_duration_sec=5.0)
+        _kept(node, store, topic, named_values_from_message(message))
     return on_message
 
 
@@ -90,11 +95,5 @@ def _receiver(node: Node, store: MeasurementStore, source: InputSource, fields: 
             node.get_logger().error(f'{source.topic} ({source.type}): {exc}; fix the field '
                                     "paths of the cell's inputs.sources", throttle_duration_sec=5.0)
             return
-        try:
-            refused = store.receive_inputs(samples)
-        except (OSError, ValueError) as exc:
-            node.get_logger().error(f'measured input not stored: {exc}')
-            return
-        if refused:
-            node.get_logger().warning(f'{source.topic}: {refused}', throttle_duration_sec=5.0)
+        _kept(node, store, source.topic, samples)
     return on_message
