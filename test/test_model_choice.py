@@ -304,6 +304,75 @@ def test_a_calibration_better_where_measured_and_worse_elsewhere_states_its_scop
     assert 'WARNING: outside the region of joint space it was measured in' in summary
 
 
+def test_one_undetermined_region_does_not_make_a_calibration_worse_elsewhere():
+    """The figures of 60 random poses over the real UR10's workspace (Series A): better than
+    the registered nominal robot in 4 of its 5 held-out regions, and 143 mm in the fifth,
+    whose refit the other four leave undetermined; pooled 36969 against 1080 µm. It was
+    warned "predicts worse than the nominal robot outside the region it was measured in",
+    and it predicts 1500 other poses of the series at 501 against 850 µm. An hour of the
+    night at joint_offsets, worse in 4 of 5 regions (measured 1490 against 939 µm over the
+    rest of the night), keeps the warning."""
+    from kpi_calib_ros.core.diagnosis.nominal_comparison import NominalComparison
+    from kpi_calib_ros.core.estimation.cross_validation import RegionValidation
+
+    def comparison(cal_blocks, nom_blocks, cal_pooled, nom_pooled):
+        return NominalComparison(
+            RegionValidation(519.9e-6, cal_pooled, 0, 5, tuple(np.array(cal_blocks) * 1e-6)),
+            RegionValidation(883.8e-6, nom_pooled, 0, 5, tuple(np.array(nom_blocks) * 1e-6)),
+            calibrated_predicted_m=347.0e-6, nominal_predicted_m=616.8e-6,
+            calibrated_predicted_interval_m=(320e-6, 375e-6),
+            nominal_predicted_interval_m=(570e-6, 660e-6))
+    sixty = comparison([1115, 470, 663, 401, 143151], [1171, 1173, 1100, 706, 1194],
+                       36969.0e-6, 1080.0e-6)
+    assert sixty.better and sixty.regions_worse() == (1, 5)
+    assert not sixty.elsewhere_worse and sixty.scope_text() == ''
+    hour = comparison([827, 696, 5652, 550, 610], [644, 559, 566, 569, 603],
+                      764.0e-6, 595.4e-6)
+    assert hour.better and hour.regions_worse() == (4, 5) and hour.elsewhere_worse
+    assert 'worse in 4 of 5 regions' in hour.scope_text()
+    assert hour.to_dict()['regions_worse'] == [4, 5]
+
+
+def test_a_calibration_expected_worse_at_the_working_poses_is_worse_than_none_there():
+    """Figures of 200 poses of one region of the real UR10 at joint_offsets with a periodic
+    error of wrist_1: every cross-validated figure where measured and over the region's own
+    blocks for the calibration, the prediction from the fit too, and the expected TCP error
+    over the working poses 593.2 against the nominal robot's 587.9 µm. It was valid, and it
+    predicted two of the three other regions 1.5-2.4x worse than the registered nominal
+    robot. Now not valid, naming both figures; 502.8 against 515.7 µm is valid."""
+    from kpi_calib_ros.app.calibration_document import CellCalibration
+    from kpi_calib_ros.core.diagnosis.nominal_comparison import NominalComparison
+    from kpi_calib_ros.core.estimation.cross_validation import RegionValidation
+
+    def comparison(working_cal, working_nom):
+        return NominalComparison(RegionValidation(416.4e-6, 470.7e-6, 0, 5),
+                                 RegionValidation(527.4e-6, 574.2e-6, 0, 5),
+                                 calibrated_working_m=working_cal,
+                                 nominal_working_m=working_nom,
+                                 calibrated_predicted_m=415.5e-6,
+                                 nominal_predicted_m=527.2e-6,
+                                 calibrated_working_parameter_m=250e-6)
+    region = comparison(593.2e-6, 587.9e-6)
+    assert region.better and not region.undetermined_where_it_works
+    assert region.worse_where_it_works and region.to_dict()['worse_where_it_works'] is True
+    assert '(593.2 µm, parameter part and misfit)' in region.worse_working_text()
+    assert '(587.9 µm)' in region.worse_working_text()
+    fine = comparison(502.8e-6, 515.7e-6)
+    assert not fine.worse_where_it_works and fine.worse_working_text() == ''
+
+    class Stub:  # the parts of a CellCalibration its problems read
+        result = type('R', (), {'converged': True})()
+        estimability = type('E', (), {'all_estimable': True})()
+        implausible = ()
+        remount = None
+    for nominal, valid in ((region, False), (fine, True)):
+        stub = Stub()
+        stub.nominal = nominal
+        problems = CellCalibration.problems.fget(stub)
+        assert (not problems) == valid
+        assert valid or problems[0].startswith('worse than no calibration where the robot works')
+
+
 def test_the_prediction_from_the_fit_outweighs_the_held_out_figures_only_beyond_its_interval():
     """Figures of 300 poses of an hour of the real UR10's night at joint_offsets: every
     cross-validated figure favours the nominal robot, the prediction from the fit the

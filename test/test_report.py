@@ -78,6 +78,29 @@ def test_identify_with_effects_reports_before_and_after(campaign, tmp_path, caps
     assert 'validation rms' in out and 'joint_compliance.shoulder_lift_joint.c' in out
 
 
+def test_the_effects_are_compared_at_the_level_they_were_fitted(campaign, tmp_path):
+    """Fitted at ``joint_offsets``, the model with the effect is compared with the
+    ``joint_offsets`` model without it: before, with the geometric model, which the
+    identification did not publish (a real UR10 region read "NOT recommended" of the
+    effects ``auto`` published at its smaller level)."""
+    cell, bag = campaign
+    assert main(['identify', '--cell', str(cell), '--bag', str(bag), '--out',
+                 str(tmp_path / 'with'), '--effects', HIDDEN, '--model', 'joint_offsets']) == 0
+    assert main(['identify', '--cell', str(cell), '--bag', str(bag), '--out',
+                 str(tmp_path / 'without'), '--model', 'joint_offsets']) == 0
+    assert main(['identify', '--cell', str(cell), '--bag', str(bag), '--out',
+                 str(tmp_path / 'geometric'), '--model', 'geometric']) == 0
+    with_, without, geometric = (
+        yaml.safe_load((tmp_path / k / 'calibration.yaml').read_text())
+        for k in ('with', 'without', 'geometric'))
+    assert with_['model']['level'] == without['model']['level'] == 'joint_offsets'
+    cmp = with_['effects_comparison']
+    # The same fit as the published joint_offsets calibration without the effect, and not
+    # the geometric one (a different rms on these poses).
+    assert cmp['rms_before_m'] == pytest.approx(without['rms_m'], rel=1e-6)
+    assert abs(geometric['rms_m'] - without['rms_m']) > 0.05 * without['rms_m']
+
+
 def test_bad_effect_spec_exits_with_the_choices(campaign, tmp_path, capsys):
     cell, bag = campaign
     code = main(['identify', '--cell', str(cell), '--bag', str(bag), '--out', str(tmp_path),
