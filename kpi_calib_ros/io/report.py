@@ -226,7 +226,10 @@ def periodogram_dict(gram: Periodogram) -> dict[str, Any]:
             'peak_delta_chi2': float(np.max(gram.power)), 'p_value': finite(gram.p_value),
             'resolution_cycles_per_revolution': finite(gram.resolution),
             'refused_as_aliased': [int(k) for k in gram.refused],
-            'periodic_errors_in_model': [int(k) for k in gram.near]}
+            'periodic_errors_in_model': [int(k) for k in gram.near],
+            'runner_up_cycles_per_revolution': int(gram.runner_up) or None,
+            'margin': finite(gram.margin), 'margin_needed': finite(gram.margin_needed),
+            'ambiguous': gram.ambiguous}
 
 
 def periodic_search_line(grams: tuple[Periodogram, ...]) -> str:
@@ -236,7 +239,10 @@ def periodic_search_line(grams: tuple[Periodogram, ...]) -> str:
             + ', '.join(f'{g.joint} {g.peak} (p = {g.p_value:.2g}; ±{g.resolution:.3g}'
                         + (f'; {len(g.refused)} frequencies within it of k = '
                            f'{", ".join(map(str, g.near))} refused as aliased' if g.refused
-                           else '') + ')' for g in grams))
+                           else '')
+                        + (f'; ambiguous: k = {g.runner_up} explains nearly as well, margin '
+                           f'{g.margin:.3g} < {g.margin_needed:.3g}, not a candidate'
+                           if g.ambiguous else '') + ')' for g in grams))
 
 
 def diagnosis_text(cd: CellDiagnosis, top: int = 5) -> str:
@@ -382,12 +388,19 @@ def write_report(out_dir: str | Path, cd: CellDiagnosis) -> Path:
                   'Frequencies within the resolution 2π/Δq (Δq the joint\'s measured range) of a '
                   'periodic error the model has on the joint are refused: over that range they '
                   'are its peak aliased.', '',
+                  'A peak is a candidate only when it stands out from the best frequency '
+                  'outside its resolution window (the runner-up): its margin, the difference '
+                  'of their Δχ² over the residual variance the peak leaves, above what two '
+                  'frequencies that explain alike reach (α = 0.01, Bonferroni); else it is '
+                  'ambiguous, as when the poses are too few for the error\'s frequency.', '',
                   '| joint | cycles/rev searched | resolution 2π/Δq | refused as aliased | peak '
-                  '| Δχ² at the peak | p |',
-                  '|---|---|---|---|---|---|---|']
+                  '| Δχ² at the peak | p | runner-up | margin (needed) |',
+                  '|---|---|---|---|---|---|---|---|---|']
         lines += [f'| {g.joint} | {g.cycles[0]}–{g.cycles[-1]} | {g.resolution:.3g} | '
                   f'{", ".join(map(str, g.refused)) or "none"} | {g.peak} | '
-                  f'{np.max(g.power):.1f} | {g.p_value:.2g} |' for g in diag.periodograms]
+                  f'{np.max(g.power):.1f} | {g.p_value:.2g} | {g.runner_up or "none"} | '
+                  f'{g.margin:.3g} ({g.margin_needed:.3g}){" ambiguous" if g.ambiguous else ""}'
+                  ' |' for g in diag.periodograms]
     lines += ['', '## Not distinguishable with this data', '']
     lines += [f'- **{c.spec}**: {c.explanation}' for c in diag.not_distinguishable] or ['- none']
     if cd.comparison is not None:
