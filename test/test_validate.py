@@ -540,9 +540,7 @@ def test_auto_steps_down_from_a_level_the_gate_refuses_on_the_real_ur10():
     geometric level by the error predicted from the fit, whose last wrist placement moved
     0.31 m (rx 2.82 ± 0.71 rad): not valid, nothing published. It now takes the largest
     smaller level whose calibration is valid, and that one predicts every other region of
-    the series better than the refused geometric fit. joint_offsets with a wrist_1 periodic
-    error is refused on the way (its expected TCP error at the working pose 593.2 against
-    the nominal robot's 587.9 µm)."""
+    the series better than the refused geometric fit."""
     cm = _ur10_cell_model()
     series_a = _ur10_series(UR10_DATA / 'Series_A' / 'measurements_grid.csv')
     poses, pose = pose_index(series_a.q)

@@ -83,9 +83,6 @@ class CellCalibration:
             if self.nominal.undetermined_where_it_works:
                 out.append('worse than no calibration where the robot works: '
                            + self.nominal.working_text())
-            elif self.nominal.better and self.nominal.worse_where_it_works:
-                out.append('worse than no calibration where the robot works: '
-                           + self.nominal.worse_working_text())
         if self.remount is not None and self.remount.disagrees:
             out.append(self.remount.text())
         return tuple(out)

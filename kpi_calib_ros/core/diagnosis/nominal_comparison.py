@@ -113,37 +113,6 @@ class NominalComparison:
                 'or identify fewer parameters (identification.model)')
 
     @property
-    def worse_where_it_works(self) -> bool:
-        """Whether the expected TCP error over the working poses exceeds the nominal's.
-
-        The calibration's whole expected error (its parameter part and its misfit) against
-        the nominal robot's.
-
-        The robot's job is at the working poses: a calibration expected to place the TCP
-        there worse than the nominal robot with the placement registered is worse than none
-        where it matters, whatever it does where it was measured (the parameter part alone
-        above the nominal's error, :attr:`undetermined_where_it_works`, is one way to get
-        there). 200 poses of one region of the real UR10 at ``joint_offsets`` with a
-        periodic error of wrist_1 that held over the region's own held-out blocks: 593.2
-        against 587.9 µm, kept by the prediction from the fit, and it predicted two of the
-        three other regions 1.5-2.4x worse than the registered nominal robot (1943 and 2433
-        against 1289 and 1017 µm).
-        """
-        a, b = self.calibrated_working_m, self.nominal_working_m
-        return bool(np.isfinite(a) and np.isfinite(b) and not _not_above(a, b))
-
-    def worse_working_text(self) -> str:
-        """Return the problem of :attr:`worse_where_it_works` ('' when it does not apply)."""
-        if not self.worse_where_it_works:
-            return ''
-        calibrated = self.calibrated_working_m * 1e6
-        return (f'the expected TCP error over the working poses ({calibrated:.1f} µm, '
-                'parameter part and misfit) exceeds the nominal robot\'s '
-                f'with the placement registered ({self.nominal_working_m * 1e6:.1f} µm): '
-                'measure poses around the working poses (kpi-calib design plans them), or '
-                'identify fewer parameters (identification.model)')
-
-    @property
     def harmed(self) -> tuple[RecordingComparison, ...]:
         """The recordings the calibration predicts worse than nominal beyond the noise."""
         return tuple(r for r in self.recordings if r.harmed)
@@ -278,7 +247,6 @@ class NominalComparison:
                 'elsewhere_worse': self.elsewhere_worse,
                 'regions_worse': list(self.regions_worse()),
                 'undetermined_where_it_works': self.undetermined_where_it_works,
-                'worse_where_it_works': self.worse_where_it_works,
                 'calibrated': {**self.calibrated.to_dict(),
                                'working_poses_expected_rms_m': m(self.calibrated_working_m),
                                'working_poses_parameter_rms_m': m(
