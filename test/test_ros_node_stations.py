@@ -189,17 +189,38 @@ def test_identify_names_the_rows_rejected_on_arrival(cm, client, spawn, tmp_path
         assert node.stop() == 0, node.output()
 
 
+def _remounted(client) -> bool:
+    params = AsyncParameterClient(client.node, 'kpi_calib_node')
+    assert params.wait_for_services(timeout_sec=10)
+    future = params.get_parameters(['station_reflector_remounted'])
+    client.executor.spin_until_future_complete(future, timeout_sec=10)
+    return bool(future.result().values[0].bool_value)
+
+
 @pytest.mark.slow
-def test_a_new_station_that_takes_the_last_ones_remount_is_warned(client, spawn, tmp_path):
-    """station_reflector_remounted is a parameter and keeps its value: a new station set
-    alone after a remounted one is logged as remounted too (its probe then gets offsets of
-    its own, a little precision lost). The node now says so and names the fix."""
+def test_a_station_set_alone_takes_its_own_remount_not_the_last_ones(cm, client, spawn,
+                                                                     tmp_path):
+    """station_reflector_remounted is a parameter and kept its value: a new station set
+    alone after a remounted one was logged as remounted too (its probe got offsets of its
+    own, silently; then a warning). Now a station set alone takes its own remount: a new
+    one is not remounted, one measured before keeps the remount it was measured with, and
+    the parameter follows."""
+    rng = np.random.default_rng(3)
+    near = _station(cm, true_parameters(cm.model.params, rng), np.zeros(6), 5, rng,
+                    float(np.max(cm.cell.sigma)))
     node = spawn(tmp_path / 'data', 'node.log', 'auto_identify:=false', 'station:=b',
                  'station_reflector_remounted:=true')
     try:
         client.spin_until(lambda: client.diagnostics().get('station') == 'b', 30, 'station b')
+        client.publish_measurements(near.q, cm.joint_names, near.eta, cm.cell.tracker_frame, 5)
         _set_station(client, 'd')
-        client.spin_until(lambda: "station 'd' takes station_reflector_remounted true from "
-                          "station 'b'" in node.output(), 10, 'the warning')
+        client.spin_until(lambda: client.diagnostics().get('station') == 'd', 30, 'station d')
+        assert not _remounted(client)
+        logs = sorted((tmp_path / 'data').glob('measurements_*.mcap'))
+        assert [log_station(p) for p in logs] == [('b', True), ('d', False)]
+        _set_station(client, 'b')  # measured remounted: it stays so
+        client.spin_until(lambda: client.diagnostics().get('station') == 'b', 30, 'back to b')
+        assert _remounted(client)
+        assert 'takes station_reflector_remounted' not in node.output()
     finally:
         assert node.stop() == 0, node.output()

@@ -198,6 +198,15 @@ class MeasurementStore:
         with self.lock:
             return self._stations.conflict(name or self.station[0], reflector_remounted)
 
+    def station_remount(self, name: str) -> bool:
+        """Whether station ``name`` ('' : the current one) is remounted when set alone: as
+        stated for the current station, as measured for another, else False (a new station
+        is not remounted unless said)."""
+        with self.lock:
+            if not name or name == self.station[0]:
+                return self.station[1]
+            return bool(self._stations.remounted(name))
+
     def set_station(self, name: str, reflector_remounted: bool = False) -> bool:
         """Make (``name``, ``reflector_remounted``) the station of the measurements stored
         from now on ('' : keep the current name); returns whether it changed. A change

@@ -238,11 +238,21 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
             refused = ('station: a sequential campaign is running, and it plans from one '
                        'station; change the station after it stops, or call ~/reset')
         elif not refused and STATION_PARAMETERS & set(changes):
-            refused = self.store.station_conflict(
-                changes.get('station', self.settings.station),
-                changes.get('station_reflector_remounted',
-                            self.settings.station_reflector_remounted))
+            station = changes.get('station', self.settings.station)
+            refused = self.store.station_conflict(station, self._station_remount(
+                changes, station))
         return SetParametersResult(successful=not refused, reason=refused)
+
+    def _station_remount(self, changes: dict[str, Any], station: str) -> bool:
+        """Whether ``station`` is remounted after the parameter ``changes``: as stated with
+        them, else, the station set alone, the station's own (its recorded remount; a new
+        station is not remounted). A parameter keeps its value, and a new station set alone
+        after a remounted one took its remount: its probe got offsets of its own silently."""
+        if 'station_reflector_remounted' in changes:
+            return bool(changes['station_reflector_remounted'])
+        if 'station' in changes:
+            return self.store.station_remount(station)
+        return self.settings.station_reflector_remounted
 
     def _apply_parameters(self, parameters: list[Parameter]) -> None:
         """Post-set callback: the values are set (and were validated); use them. A new
@@ -251,10 +261,10 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
         self.settings = settings_from_parameters(parameter_values(self))
         names = {p.name for p in parameters}
         if STATION_PARAMETERS & names:
-            previous = self.store.station[0]
+            remount = self._station_remount({p.name: p.value for p in parameters},
+                                            self.settings.station)
             try:
-                changed = self.store.set_station(self.settings.station,
-                                                 self.settings.station_reflector_remounted)
+                changed = self.store.set_station(self.settings.station, remount)
             except (OSError, ValueError) as exc:  # validated: only a disk that fails now
                 self.get_logger().error(f'station not changed, still '
                                         f'{self.store.station[0]!r}: {exc}')
@@ -263,14 +273,10 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
                     self.get_logger().info(f'station {self.store.station[0]!r} (probe '
                                            f'remounted: {self.store.station[1]}) from now on; '
                                            f'logging to {self.store.log.path}')
-                if (changed and self.store.station[1] and self.store.station[0] != previous
-                        and 'station_reflector_remounted' not in names):
-                    # A parameter keeps its value: the new station takes the last one's.
-                    self.get_logger().warning(
-                        f'station {self.store.station[0]!r} takes station_reflector_remounted '
-                        f'true from station {previous!r}: its probe gets its own offsets; '
-                        'set station_reflector_remounted false with the station when the '
-                        'probe was not remounted')
+                if remount != self.settings.station_reflector_remounted:
+                    # The parameter follows the station set alone (its own remount).
+                    self.set_parameters([Parameter('station_reflector_remounted',
+                                                   Parameter.Type.BOOL, remount)])
         self._run.auto_pending = self._auto_wanted()
 
     # ------------------------------------------------------------------ robot model

@@ -32,6 +32,11 @@ class Stations:
         self._remounted.setdefault(name, reflector_remounted)
         self._of.setdefault(int(stamp_ns), name)
 
+    def remounted(self, name: str) -> bool | None:
+        """Whether station ``name`` was measured with its probe remounted (None: not
+        measured)."""
+        return self._remounted.get(name)
+
     def conflict(self, name: str, reflector_remounted: bool) -> str:
         """Why station ``name`` cannot be measured with ``reflector_remounted`` ('' : it can):
         a station already measured keeps whether its probe was remounted."""
