@@ -17,6 +17,7 @@ import numpy as np
 from kpi_calib_ros.core.diagnosis import Candidate, CellDiagnosis, ModelComparison
 from kpi_calib_ros.core.diagnosis.out_of_sample import DOMAIN_TEXT, NOT_ESTIMABLE, OutOfSample
 from kpi_calib_ros.core.diagnosis.periodic_search import Periodogram
+from kpi_calib_ros.core.estimation.cross_validation import fold_kinds
 from kpi_calib_ros.core.estimation.precision import ExpectedTcpError, precision_statement
 from kpi_calib_ros.io.names import DIAGNOSIS_FILE, REPORT_FILE
 from kpi_calib_ros.io.report_plots import write_plots
@@ -96,6 +97,9 @@ def comparison_to_dict(cmp: ModelComparison) -> dict[str, Any]:
             'held_out_fold_rms_before_m': [_finite(v) for v in cmp.held_out_folds_before_m],
             'held_out_fold_rms_after_m': [_finite(v) for v in cmp.held_out_folds_after_m],
             'held_out_folds_worse': cmp.worse_folds[0],
+            'other_recording_rms_before_m': _finite(cmp.other_recording_rms_before_m),
+            'other_recording_rms_after_m': _finite(cmp.other_recording_rms_after_m),
+            'recordings_held_out': int(cmp.recordings_held_out),
             'held_out_gain': None if cmp.gain is None else cmp.gain.to_dict(),
             'holds_elsewhere': cmp.holds_elsewhere,
             'recommended': cmp.holds_elsewhere}
@@ -115,9 +119,13 @@ def region_verdict(cmp: ModelComparison) -> str:
                f'{_validation(cmp.other_region_rms_after_m, "", " µm")} over held-out regions '
                f'of joint space ({cmp.region_blocks} regions), '
                f'{_validation(cmp.validation_rms_before_m, "", " µm")} -> '
-               f'{_validation(cmp.validation_rms_after_m, "", " µm")} where measured; worse '
-               f'beyond the noise in {cmp.worse_folds[0]} of {cmp.worse_folds[1]} held-out folds '
-               '(region blocks and joint range ends)')
+               f'{_validation(cmp.validation_rms_after_m, "", " µm")} where measured'
+               + (f', {_validation(cmp.other_recording_rms_before_m, "", " µm")} -> '
+                  f'{_validation(cmp.other_recording_rms_after_m, "", " µm")} over recordings '
+                  'held out whole (each one\'s placement registered)'
+                  if cmp.recordings_held_out else '')
+               + f'; worse beyond the noise in {cmp.worse_folds[0]} of {cmp.worse_folds[1]} '
+               f'held-out folds {fold_kinds(cmp.recordings_held_out)}')
     if cmp.warnings:
         return (f'NOT recommended: a fit did not converge, so its cross-validated figures '
                 f'judge a last iterate, not a minimum ({figures}); raise '
@@ -391,7 +399,7 @@ def write_report(out_dir: str | Path, cd: CellDiagnosis) -> Path:
                   'A peak is a candidate only when it stands out from the best frequency '
                   'outside its resolution window (the runner-up): its margin, the difference '
                   'of their Δχ² over the residual variance the peak leaves, above what two '
-                  'frequencies that explain alike reach (α = 0.01, Bonferroni); else it is '
+                  'frequencies that explain alike reach (α = 0.01); else it is '
                   'ambiguous, as when the poses are too few for the error\'s frequency.', '',
                   '| joint | cycles/rev searched | resolution 2π/Δq | refused as aliased | peak '
                   '| Δχ² at the peak | p | runner-up | margin (needed) |',

@@ -53,6 +53,7 @@ from kpi_calib_ros.core.effects.registry import BoundEffect, implausible
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation.cross_validation import (
     RegionValidation,
+    fold_kinds,
     region_validation,
     validation_folds,
 )
@@ -369,12 +370,14 @@ def _region_text(trial: EffectTrial) -> str:
          f'{gain.z:.2f} (needed > {gain.threshold(trial.tests):.2f}, '
          f'{trial.tests} compared)')
     worse, compared = (0, 0) if gain is None else (gain.worse, gain.compared)
+    recorded = (f', over recordings held out whole {_um(b.other_recording_m)} -> '
+                f'{_um(a.other_recording_m)} µm (each one\'s placement registered)'
+                if a.recordings else '')
     return (f'cross-validated rms over held-out regions of joint space '
             f'{_um(b.other_region_m)} -> {_um(a.other_region_m)} µm ({a.blocks} regions), '
-            f'where measured {_um(b.in_region_m)} -> {_um(a.in_region_m)} µm, gain over '
-            f'held-out regions in noise units z = {z}, worse beyond noise in '
-            f'{worse} of {compared} held-out folds (region blocks and joint '
-            'range ends)')
+            f'where measured {_um(b.in_region_m)} -> {_um(a.in_region_m)} µm{recorded}, gain '
+            f'over held-out regions in noise units z = {z}, worse beyond noise in '
+            f'{worse} of {compared} held-out folds {fold_kinds(a.recordings)}')
 
 
 def _judged(trial: tuple[EffectTrial, MeasurementModel | None, CalibrationResult | None],

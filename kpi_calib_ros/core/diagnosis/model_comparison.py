@@ -59,6 +59,11 @@ class ModelComparison:
     # Why an added effect would be extrapolated at the working poses
     # (core.diagnosis.effect_selection.extrapolated); never recommended then.
     extrapolated: tuple[str, ...] = ()
+    # With several recordings, the rms over recordings held out whole (each one's placement
+    # registered on its rows) before/after, and how many (the last folds above).
+    other_recording_rms_before_m: float = float('nan')
+    other_recording_rms_after_m: float = float('nan')
+    recordings_held_out: int = 0
 
     @property
     def holds_elsewhere(self) -> bool:
@@ -128,6 +133,9 @@ def compare_models(before: tuple[MeasurementModel, CalibrationResult],
         held_out_folds_before_m=region_b.held_out_folds_m,
         held_out_folds_after_m=region_a.held_out_folds_m,
         held_out_noise_m=region_a.held_out_noise_m,
+        other_recording_rms_before_m=region_b.other_recording_m,
+        other_recording_rms_after_m=region_a.other_recording_m,
+        recordings_held_out=region_a.recordings,
         gain=held_out_gain(region_a, region_b),
         p_value_before=res_b.p_value, p_value_after=res_a.p_value,
         effect_parameters=tuple(params),

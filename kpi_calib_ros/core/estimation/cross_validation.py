@@ -6,9 +6,11 @@ the held-out residual of a fold F is (I − H_FF)⁻¹ e_F, e the full-data resi
 hat matrix of the weighted Jacobian (the PRESS identity, :func:`linear_validation_rms`,
 :func:`fold_rms`). The folds are :mod:`kpi_calib_ros.core.estimation.folds`'s: leave one
 pose out or k-fold (:func:`validation_rms`), and region-blocked beside them
-(:func:`region_validation`: the error where no pose was measured). A fit with a prior
-keeps it in every fold's refit (:func:`prior_system`): the prior's rows are training rows
-of every fold.
+(:func:`region_validation`: the error where no pose was measured), and with several
+recordings each recording held out whole (:func:`recording_held_out`: the robot refitted on
+the others, the held-out recording's own placement registered on its rows, as ``validate
+--register`` places a new set-up). A fit with a prior keeps it in every fold's refit
+(:func:`prior_system`): the prior's rows are training rows of every fold.
 """
 from __future__ import annotations
 
@@ -36,6 +38,7 @@ from kpi_calib_ros.core.estimation.residuals import (
     orthonormal_basis,
 )
 from kpi_calib_ros.core.measurement.data import Measurements
+from kpi_calib_ros.core.measurement.recordings import recording_names, row_recording
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.core.measurement.weighting import (
     point_rms,
@@ -46,8 +49,13 @@ from kpi_calib_ros.core.measurement.weighting import (
 
 __all__ = [
     'press_residuals', 'linear_validation_rms', 'validation_rms', 'prior_system',
-    'validation_folds', 'fold_rms', 'fold_held_out', 'RegionValidation', 'region_validation',
+    'validation_folds', 'fold_rms', 'fold_held_out', 'recording_held_out', 'RegionValidation',
+    'region_validation', 'PLACEMENT_PREFIXES', 'fold_kinds', 'recording_masks',
 ]
+
+# Parameters that place a recording (its base in the tracker frame, its reflector offsets):
+# a recording held out whole has them registered on its own rows.
+PLACEMENT_PREFIXES = ('base.', 'reflector.', 'recording.')
 
 
 def press_residuals(a: np.ndarray, r: np.ndarray, pose_folds: np.ndarray,
@@ -197,15 +205,89 @@ def fold_held_out(a: np.ndarray, r: np.ndarray, masks: list[np.ndarray],
     return out
 
 
+def recording_held_out(a: np.ndarray, r: np.ndarray, mask: np.ndarray, own: np.ndarray,
+                       prior_rows: tuple[np.ndarray, np.ndarray] | None = None
+                       ) -> np.ndarray | None:
+    """Held-out weighted residuals (3·|mask|,) of a recording held out whole, or None.
+
+    The columns ``own`` (bool (k,)) are the recording's own placement: no training row
+    sees them. The other columns are refitted on the training rows (``prior_rows`` kept,
+    its rows on the own columns left out), the held-out rows predicted, and the own
+    columns registered on them (least squares); the rest is the held-out residual, in the
+    whitened units of ``r``. None when the training rows leave a column undetermined or
+    the held-out rows do not determine the own columns.
+    """
+    test = np.repeat(np.asarray(mask, bool), 3)
+    keep = ~np.asarray(own, bool)
+    a_t, r_t = a[~test][:, keep], r[~test]
+    if prior_rows is not None and len(prior_rows[1]):
+        rows = np.any(prior_rows[0][:, keep] != 0, axis=1)
+        a_t = np.vstack([a_t, prior_rows[0][rows][:, keep]])
+        r_t = np.concatenate([r_t, prior_rows[1][rows]])
+
+    def determined(m: np.ndarray) -> bool:
+        if not m.shape[1]:
+            return True
+        s = np.linalg.svd(m, compute_uv=False)
+        return bool(s[-1] > RANK_TOLERANCE * max(s[0], 1e-300))
+    a_own = a[test][:, ~keep]
+    if not determined(a_t) or not determined(a_own):
+        return None
+    delta = np.linalg.lstsq(a_t, r_t, rcond=None)[0]
+    e = r[test] - a[test][:, keep] @ delta
+    if a_own.shape[1]:
+        e = e - a_own @ np.linalg.lstsq(a_own, e, rcond=None)[0]
+    return e
+
+
+def fold_kinds(recordings: int) -> str:
+    """Name the held-out folds of :func:`region_validation` ((region blocks ...))."""
+    if not recordings:
+        return '(region blocks and joint range ends)'
+    return f'(region blocks, joint range ends and {recordings} recordings held out whole)'
+
+
+def recording_masks(model: MeasurementModel, data: Measurements, estimated: list[str],
+                    a: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Return the rows (N,) bool of each recording and its own placement columns (k,) bool.
+
+    Empty with one recording. The own columns: the placement parameters (names starting
+    with :data:`PLACEMENT_PREFIXES`) that no row of another recording sees.
+    """
+    names = recording_names(model.params)
+    if not names:
+        return []
+    index = row_recording(data, ['first'] + names)
+    placement = np.array([n.startswith(PLACEMENT_PREFIXES) for n in estimated], bool)
+    norm = np.linalg.norm(a, axis=0)
+    out = []
+    for i in range(len(names) + 1):
+        mask = index == i
+        if not mask.any() or mask.all():
+            continue
+        elsewhere = np.linalg.norm(a[~np.repeat(mask, 3)], axis=0)
+        own = placement & (elsewhere <= 1e-12 * np.maximum(norm, 1e-300))
+        out.append((mask, own))
+    return out
+
+
 def _fold_figures(a: np.ndarray, r: np.ndarray, w: np.ndarray, masks: list[np.ndarray],
                   prior_rows: tuple[np.ndarray, np.ndarray] | None = None,
-                  points: np.ndarray | None = None
+                  points: np.ndarray | None = None,
+                  recordings: list[tuple[np.ndarray, np.ndarray]] | None = None
                   ) -> tuple[np.ndarray, np.ndarray, list[np.ndarray | None]]:
-    """:func:`fold_rms`'s rms and noise (m), and :func:`fold_held_out`'s residuals."""
+    """Return :func:`fold_rms`'s rms and noise (m), and :func:`fold_held_out`'s residuals.
+
+    Then those of each recording held out whole (:func:`recording_held_out`,
+    ``recordings``: its rows and own placement columns).
+    """
     w = np.asarray(w, float)
+    recordings = recordings or []
+    held = fold_held_out(a, r, masks, prior_rows) if masks else []
+    held += [recording_held_out(a, r, mask, own, prior_rows) for mask, own in recordings]
+    masks = list(masks) + [mask for mask, _ in recordings]
     if not masks:
         return np.zeros(0), np.zeros(0), []
-    held = fold_held_out(a, r, masks, prior_rows)
     variance = row_noise_variance(w, len(masks[0]))
     out, noise = np.full(len(masks), np.nan), np.full(len(masks), np.nan)
     for i, (mask, h) in enumerate(zip(masks, held)):
@@ -245,6 +327,19 @@ class RegionValidation:
     # (core.diagnosis.model_selection.held_out_gain).
     held_out_residuals: tuple[np.ndarray | None, ...] = dataclasses.field(
         default=(), compare=False, repr=False)
+    # With several recordings, the last ``recordings`` of those folds hold out one recording
+    # whole each (its placement registered on its rows, :func:`recording_held_out`).
+    recordings: int = 0
+
+    @property
+    def other_recording_m(self) -> float:
+        """Rms (m) over the recordings held out whole (NaN: none, or one not estimable)."""
+        if not self.recordings:
+            return float('nan')
+        values = np.array(self.held_out_folds_m[-self.recordings:], float)
+        if not np.all(np.isfinite(values)):
+            return float('nan')
+        return float(np.sqrt(np.mean(values ** 2)))
 
     def to_dict(self) -> dict:
         """YAML-ready figures (m; None where not estimable)."""
@@ -252,6 +347,8 @@ class RegionValidation:
             return float(v) if np.isfinite(v) else None
         return {'in_region_rms_m': m(self.in_region_m),
                 'other_region_rms_m': m(self.other_region_m),
+                'other_recording_rms_m': m(self.other_recording_m),
+                'recordings_held_out': self.recordings,
                 'folds': self.folds, 'region_blocks': self.blocks,
                 'held_out_fold_rms_m': [m(v) for v in self.held_out_folds_m],
                 'held_out_fold_noise_m': [m(v) for v in self.held_out_noise_m]}
@@ -278,8 +375,11 @@ def region_validation(model: MeasurementModel, data: Measurements, result: Calib
     masks = ([] if region_ids is None else [region_ids == b for b in range(used)]) + [
         m[pose] for m in range_end_folds(poses)]
     points = point_rows(data.reflector, model.n_reflectors)
-    held, noise, residuals = _fold_figures(sys_.jac, sys_.r, sys_.w, masks, rows, points)
+    recordings = recording_masks(model, data, list(result.estimated), sys_.jac)
+    held, noise, residuals = _fold_figures(sys_.jac, sys_.r, sys_.w, masks, rows, points,
+                                           recordings)
     return RegionValidation(
         linear_validation_rms(sys_.jac, sys_.r, sys_.w, inside, rows, points),
         linear_validation_rms(sys_.jac, sys_.r, sys_.w, region_ids, rows, points), folds, used,
-        tuple(float(v) for v in held), tuple(float(v) for v in noise), tuple(residuals))
+        tuple(float(v) for v in held), tuple(float(v) for v in noise), tuple(residuals),
+        len(recordings))
