@@ -27,16 +27,17 @@ A peak must also stand out from every frequency outside its resolution window: t
 runner-up there explains the residuals nearly as well when the poses are too few for the
 error's frequency (it lies beyond the search, and the frequencies searched are its
 aliases). The margin (P_peak − P_runner-up)/s², s² the residual variance the peak leaves
-per degree of freedom, of two frequencies that explain alike is the difference of two
-χ²₂ variables, Laplace with scale 2: P(margin > c) = ½ e^(−c/2); a peak whose margin is
-below c = 2 ln(K / (2 α)) (K the frequencies outside the window, Bonferroni,
-α = :data:`AMBIGUITY_ALPHA`) is *ambiguous* and not a candidate. Simulated, a k = 40 error
-of 0.25 mrad on 40 poses over 3.2 rad (searched to k = 39): margins 0.4–32 at k = 25, 36,
-39, where a second frequency at the beat (k = 4 after 36) made fresh poses 45 % worse;
-found within the search: 1190–2280. The real UR10 (Series A, 1200 and 2 × 300 poses):
-shoulder_pan and shoulder_lift at k = 17 and wrist_1 at 34 stand out in every subset
-(12–215), wrist_2 and wrist_3 do not (0.3–11; their peaks move between subsets: 13, 14,
-17 and 35, 43, 54).
+per degree of freedom, is the gap between the two largest powers; of frequencies that
+explain alike (independent χ²₂ powers, exponential with mean 2) that gap is itself
+exponential with mean 2 (memorylessness): P(margin > c) = e^(−c/2). A peak whose margin
+is below c = 2 ln(1/α), α = :data:`AMBIGUITY_ALPHA` (9.2), is *ambiguous* and not a
+candidate. Simulated, a k = 40 error of 0.25 mrad on 40 poses over 3.2 rad (searched to
+k = 39): margins 0.4, 1.3 and 3.8 at k = 25 and 36, where a second frequency at the beat
+(k = 4 after 36) made fresh poses 32 % worse than the geometric level; found within the
+search: 1190–2280; k = 39 (within the resolution of the true 40): 16 and 32. The real
+UR10 (Series A, 1200 and 2 × 300 poses): shoulder_pan and shoulder_lift at k = 17 and
+wrist_1 at 34 stand out in every subset (12–215); wrist_3's peak (35, 43, 54) never does
+(0.3–1.2), nor wrist_2's (13, 14, 17) twice of three (0.4, 5.5; 10.9).
 The peak of each joint becomes a candidate whose ``searched`` is the number of k tried
 there: the screen multiplies its p-value by it (Bonferroni over the search; the peak's
 p-value is the smallest of the K_j − 1 tests), and then by the number of candidates, so
@@ -65,7 +66,7 @@ from kpi_calib_ros.core.measurement.weighting import weighted_rows
 
 MAX_SEARCHED = 64  # cycles per revolution searched at most
 MIN_CYCLES = 2     # k = 1 is cyclic_joint_error, screened by name
-AMBIGUITY_ALPHA = 0.01  # a peak's margin over the runner-up beyond noise at this level
+AMBIGUITY_ALPHA = 0.01  # a peak's margin over the runner-up beyond a tie at this level
 
 
 @dataclass(frozen=True)
@@ -171,7 +172,7 @@ def periodograms(model: MeasurementModel, data: Measurements, result: Calibratio
             second = int(np.argmax(np.where(outside, power, -np.inf)))
             runner_up = int(cycles[second])
             margin = float((power[best] - power[second]) / left)
-            needed = 2.0 * math.log(int(outside.sum()) / (2.0 * AMBIGUITY_ALPHA))
+            needed = 2.0 * math.log(1.0 / AMBIGUITY_ALPHA)
         out.append(Periodogram(joint.name, cycles, power, int(cycles[best]),
                                min(1.0, p_raw * len(cycles)), resolution, refused,
                                tuple(have), runner_up, margin, needed))
