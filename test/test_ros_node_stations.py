@@ -14,6 +14,7 @@ from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
 
 from kpi_calib_ros.app.measurements import with_recordings
+from kpi_calib_ros.app.validate import calibrated_model
 from kpi_calib_ros.core.estimation.least_squares import identify
 from kpi_calib_ros.core.measurement import recordings as rec
 from kpi_calib_ros.core.simulation import (
@@ -222,5 +223,68 @@ def test_a_station_set_alone_takes_its_own_remount_not_the_last_ones(cm, client,
         client.spin_until(lambda: client.diagnostics().get('station') == 'b', 30, 'back to b')
         assert _remounted(client)
         assert 'takes station_reflector_remounted' not in node.output()
+    finally:
+        assert node.stop() == 0, node.output()
+
+
+@pytest.mark.slow
+def test_the_design_for_a_station_the_calibration_holds_predicts_its_identification(
+        cm, client, spawn, tmp_path):
+    """Two stations identified together, the far one from a few poses: ~/design plans the
+    far station from where the calibration places it, with the calibration as prior (as
+    ``kpi-calib design --prior`` does with that station's cell file). The TCP std it
+    predicts at the far station is the one the identification of everything measured and
+    its poses gives there (offline, 4.544 / 4.369 / 4.813 µm both). Before, ~/design planned
+    where the cell file places the robot (the near station) as if nothing had been
+    measured, and predicted 8.7 / 9.7 / 9.4 µm."""
+    import yaml
+    rng = np.random.default_rng(21)
+    sigma = float(np.max(cm.cell.sigma))
+    p_robot = true_parameters(cm.model.params, rng)
+    near = _station(cm, p_robot, np.zeros(6), N_POSES, rng, sigma)
+    far = _station(cm, p_robot, MOVE, 12, rng, sigma)
+    frame = cm.cell.tracker_frame
+    data_dir = tmp_path / 'data'
+    node = spawn(data_dir, 'node.log', 'auto_identify:=false', 'station:=near',
+                 'num_measurements:=20')
+    try:
+        client.publish_measurements(near.q, cm.joint_names, near.eta, frame, N_POSES)
+        _set_station(client, 'far')
+        client.publish_measurements(far.q, cm.joint_names, far.eta, frame, N_POSES + 12,
+                                    start_ns=1_700_000_100_000_000_000)
+        answer = client.call('identify', timeout=180)
+        assert answer.success, answer.message
+        answer = client.call('design', timeout=300)
+        print(answer.message)
+        assert answer.success, answer.message
+        assert "designed for station 'far' with the calibration of stations near, far" \
+            in answer.message
+        design = yaml.safe_load((data_dir / 'design.yaml').read_text())
+        assert design['prior']['station'] == 'far'
+        q = np.array(design['configurations'])
+        predicted = np.array(design['working_poses'][0]['tcp_std_m'])
+        single = p_robot.copy()
+        single[:6] += MOVE
+        measured = simulate_measurements(cm.model, single, q, sigma, rng)
+        client.publish_measurements(q, cm.joint_names, measured.eta, frame,
+                                    N_POSES + 12 + len(q),
+                                    start_ns=1_700_000_200_000_000_000)
+        answer = client.call('identify', timeout=180)
+        assert answer.success, answer.message
+        client.spin_until(lambda: len(client.received['calibration']) == 2, 10,
+                          'the second calibration')
+        doc = client.received['calibration'][-1]
+        # The TCP covariance of that identification in the far station's tracker frame
+        # (the design's), from its parameter covariance: J C Jᵀ, dense.
+        placed, values = calibrated_model(cm.cell, doc)
+        names = doc['parameter_covariance']['names']
+        cov = np.array(doc['parameter_covariance']['matrix'], float)
+        _, jac = placed.model.jacobian(values, placed.q_work, covariates={
+            'recording.far': np.ones(len(placed.q_work))})
+        jac = jac.reshape(-1, len(values))[:3, placed.model.params.indices(names)]
+        reported = np.sqrt(np.diag(jac @ cov @ jac.T))
+        print(f'TCP std at the far station predicted {np.round(predicted * 1e6, 3)} µm, '
+              f'identified {np.round(reported * 1e6, 3)} µm')
+        np.testing.assert_allclose(predicted, reported, rtol=0.01)
     finally:
         assert node.stop() == 0, node.output()

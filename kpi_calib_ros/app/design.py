@@ -113,6 +113,30 @@ def design_point(cm: CellModel, cp: CyclePrior) -> np.ndarray:
     return p
 
 
+def prior_cell_model(cm: CellModel, cp: CyclePrior) -> tuple[CellModel, np.ndarray]:
+    """``cm`` as a design with the previous calibration ``cp`` as prior sees it, and where
+    it linearises (:func:`design_point`): the new points weighted as ``identify --prior``
+    will weigh them, at the noise the prior showed (σ·√scale,
+    :func:`~kpi_calib_ros.app.reidentify.with_noise_scale`), not the cell's σ."""
+    from kpi_calib_ros.app.reidentify import with_noise_scale
+    cm = with_noise_scale(cm, cp.noise_scale)
+    return cm, design_point(cm, cp)
+
+
+def prior_design(cm: CellModel, cp: CyclePrior, n: int, criterion: str, seed: int
+                 ) -> tuple[CellModel, DesignResult, np.ndarray]:
+    """``n`` configurations optimal for ``criterion`` with ``cp``'s information added (as
+    ``kpi-calib design --prior``), verified on the meshes: the cell model they were
+    designed in (:func:`prior_cell_model`), the design and the linearisation point."""
+    cm, p = prior_cell_model(cm, cp)
+    rng = np.random.default_rng(seed)
+    context = design_context(cm.design_cell(), rng, cm.design_settings, prior=cp.prior, p=p,
+                             free=design_free(cm, cp.allowed))
+    result = design_measurements(cm.design_cell(), n, criterion, rng, cm.design_settings,
+                                 context=context)
+    return cm, mesh_verified(cm, result)[0], p
+
+
 def design_free(cm: CellModel, allowed: Sequence[str] | None = None) -> list[str]:
     """Free parameters of the cell's model level (``auto``: geometric), within
     ``allowed`` when given."""
@@ -176,22 +200,16 @@ def run_design(cell_path: str | Path, n: int, criterion: str, out: str | Path,
     rng = np.random.default_rng(seed)
     prior, p, allowed, prior_doc = None, None, None, None
     if prior_path is not None:
-        from kpi_calib_ros.app.reidentify import (
-            cycle_prior,
-            read_prior_calibration,
-            with_noise_scale,
-        )
+        from kpi_calib_ros.app.reidentify import cycle_prior, read_prior_calibration
         old = read_prior_calibration(prior_path)
         cp = cycle_prior(cm, old, None, drift[0], drift[1], keep_placement=keep_placement,
                          drift_model=drift_model, hours=hours,
                          rotation_rate=drift[2] if len(drift) > 2 else None,
                          placement_rate=drift[3] if len(drift) > 3 else None,
                          swing=swing)
-        # the new points weighted as identify --prior will weigh them: at the noise the
-        # prior showed (σ·√scale, reidentify.with_noise_scale), not the cell's σ
-        cm = with_noise_scale(cm, cp.noise_scale)
+        cm, p = prior_cell_model(cm, cp)
         cell, settings = cm.design_cell(), cm.design_settings
-        prior, p, allowed = cp.prior, design_point(cm, cp), cp.allowed
+        prior, allowed = cp.prior, cp.allowed
         prior_doc = {'source': str(prior_path), 'description': cp.description,
                      'hours': float(hours), 'keep_placement': keep_placement}
         print(cp.description)

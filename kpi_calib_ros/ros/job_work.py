@@ -27,12 +27,13 @@ from kpi_calib_ros.app.calibration_document import (
     with_recording_names,
 )
 from kpi_calib_ros.app.campaign import campaign_calibration, campaign_context, new_campaign
-from kpi_calib_ros.app.cell_model import CellModel
+from kpi_calib_ros.app.cell_model import CellModel, build_cell_model
 from kpi_calib_ros.app.design import (
     controller_design,
     design_cell_model,
     design_estimability,
     drawn_robots_section,
+    prior_design,
 )
 from kpi_calib_ros.app.diagnose import diagnose_and_report
 from kpi_calib_ros.app.finish import finish_calibration
@@ -44,7 +45,11 @@ from kpi_calib_ros.app.reidentify import (
     reidentification_document,
     reidentify,
 )
-from kpi_calib_ros.app.validate import calibrated_model, validate_report
+from kpi_calib_ros.app.validate import (
+    calibrated_model,
+    recording_calibration,
+    validate_report,
+)
 from kpi_calib_ros.core.acquisition.outcomes import PairingResult
 from kpi_calib_ros.core.campaigns.change_detection import ChangeTest
 from kpi_calib_ros.core.campaigns.sequential import SequentialCampaign
@@ -54,6 +59,7 @@ from kpi_calib_ros.core.errors import DataError, KpiCalibError
 from kpi_calib_ros.core.estimation.drift_state import DriftSwing
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.recordings import Recording
+from kpi_calib_ros.core.model.parameters import BASE_COMPONENTS
 from kpi_calib_ros.io.calibration_file import calibration_recordings
 from kpi_calib_ros.io.campaign_io import CampaignState, write_campaign_state, write_plan
 from kpi_calib_ros.io.design_io import write_design
@@ -99,6 +105,54 @@ def design_work(cm: CellModel, settings: NodeSettings,
                         extra={'geometry': cm.robot_geometry().summary(),
                                'drawn_robots': drawn})
     return design, points, path, '' if estimability.all_estimable else estimability.summary()
+
+
+def station_design_work(cm: CellModel, settings: NodeSettings, data_dir: Path,
+                        calibration: str, station: str
+                        ) -> tuple[DesignResult, np.ndarray, Path, str, str]:
+    """Design ``settings.num_measurements`` poses for ``station`` with the calibration the
+    node published (its YAML text, several stations identified together) as prior, and
+    write ``design.yaml``; as ``kpi-calib design --prior`` does for a station's cell file.
+
+    The calibration seen from ``station``
+    (:func:`~kpi_calib_ros.app.validate.recording_calibration`): its base pose in the
+    tracker frame places the design (the tracker's line of sight and incidence from where
+    that station stands, the KPI linearised there), with its covariance and the robot's
+    in the prior (:func:`~kpi_calib_ros.app.reidentify.cycle_prior`, no drift: the same
+    campaign); the other stations' placements are marginalised out. The predicted TCP
+    covariance is that of identifying everything measured and these poses together.
+
+    Returns
+    -------
+    design, points, path, estimability
+        As :func:`design_work` (``points`` where the calibration places them).
+    description : str
+        The prior, in words.
+    """
+    stored = yaml.load(calibration, Loader=SAFE_LOADER)  # the node's own text
+    placed, _ = calibrated_model(cm.cell, stored)
+    seen = recording_calibration(placed, stored, station)
+    values = {e['name']: float(e['value']) for e in seen['parameters']}
+    base = np.array([values[f'base.{c}'] for c in BASE_COMPONENTS])
+    at_station = build_cell_model(dataclasses.replace(cm.cell, base_in_tracker=base,
+                                                      base_in_tracker_given=True),
+                                  effects=tuple(stored.get('effects') or ()))
+    cp = cycle_prior(at_station, seen, None, keep_placement=True, hours=0.0)
+    weighted, design, p = prior_design(at_station, cp, settings.num_measurements,
+                                       settings.criterion, settings.design_seed)
+    points = weighted.model.predict(p, design.configurations)
+    estimability = design_estimability(weighted, design.configurations, cp.prior, p,
+                                       cp.allowed)
+    description = (f'designed for station {station!r} with the calibration of stations '
+                   f"{', '.join(r.name for r in calibration_recordings(stored, 'calibration'))}"
+                   f' as prior: {cp.description}')
+    design = controller_design(weighted, design)
+    path = write_design(data_dir / DESIGN_FILE, design, extra={
+        'geometry': weighted.robot_geometry().summary(),
+        'prior': {'source': 'the calibration the node published', 'station': station,
+                  'description': description}})
+    return (design, points, path,
+            '' if estimability.all_estimable else estimability.summary(), description)
 
 
 def previous_calibration(data_dir: Path, first_stamp_ns: int

@@ -41,6 +41,7 @@ from typing import Any
 
 import numpy as np
 import rclpy
+import yaml
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped, PoseStamped, PoseWithCovarianceStamped, Vector3Stamped
 from rcl_interfaces.msg import SetParametersResult
@@ -60,6 +61,7 @@ from kpi_calib_ros.core.acquisition.outcomes import Decision, Rejection
 from kpi_calib_ros.core.collision.capsules import Capsule
 from kpi_calib_ros.core.errors import ConfigError, DataError, KpiCalibError
 from kpi_calib_ros.core.measurement.covariates import TEMPERATURE_RANGE_C
+from kpi_calib_ros.io.calibration_file import calibration_recordings
 from kpi_calib_ros.io.cell import load_cell, with_overrides
 from kpi_calib_ros.io.names import (
     CALIBRATED_URDF_TOPIC,
@@ -75,6 +77,7 @@ from kpi_calib_ros.io.names import (
     VALIDATION_TOPIC,
     point_sigma_topic,
 )
+from kpi_calib_ros.io.yaml_bounded import SAFE_LOADER
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros import job_work
 from kpi_calib_ros.ros.answers import design_answer
@@ -383,8 +386,14 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
         cm = self._model()
         if self.settings.campaign == 'sequential':
             return await self._design_sequential(cm)
-        design, points, path, not_estimable = await self._offload(
-            job_work.design_work, cm, self.settings, self.data_dir, child=True)
+        station, held, note = self._design_station()
+        if held:
+            design, points, path, not_estimable, note = await self._offload(
+                job_work.station_design_work, cm, self.settings, self.data_dir,
+                self._calibration_text, station, child=True)
+        else:
+            design, points, path, not_estimable = await self._offload(
+                job_work.design_work, cm, self.settings, self.data_dir, child=True)
         self._pub_poses.publish(cv.joint_trajectory_msg(design.joint_names,
                                                         design.configurations))
         self._design_points = points
@@ -393,7 +402,27 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
             o for o in cm.obstacles if isinstance(o, Capsule)]
         self._publish_markers()
         return design.verification.ok and not not_estimable, design_answer(
-            design, not_estimable, self.resolve_topic_name(MEASUREMENT_POSES_TOPIC), path)
+            design, not_estimable, self.resolve_topic_name(MEASUREMENT_POSES_TOPIC),
+            path) + (f'; {note}' if note else '')
+
+    def _design_station(self) -> tuple[str, bool, str]:
+        """The current station, whether the published calibration identified it with
+        others (then ~/design plans it with that calibration as prior, from where it
+        places the station), and what the answer says otherwise."""
+        station = self.store.station[0]
+        if not self._calibration_text:
+            return station, False, ''
+        names = [r.name for r in calibration_recordings(
+            yaml.load(self._calibration_text, Loader=SAFE_LOADER), 'the calibration')]
+        if len(names) < 2:
+            return station, False, ''
+        if station in names:
+            return station, True, ''
+        return station, False, (
+            f'station {station!r} is not in the calibration (stations {", ".join(names)}): '
+            'designed where the cell file places the robot; measure a few poses from it '
+            'and call ~/identify, then ~/design plans it from where it stands with the '
+            'stations before it as prior')
 
     async def _reset(self) -> tuple[bool, str]:
         """Start a new campaign: archive (never delete) the logs and results."""
