@@ -86,3 +86,21 @@ def test_backlash_told_apart_from_compliance(cm, hidden, value, better):
     assert len(ranked) == 2 and ranked[0].note == ranked[1].note
     assert f'{better} (' in ranked[0].note.split('fits better')[0]
     assert ranked[0].effect == f'joint_{better}' and ranked[0].plausible
+
+
+def test_a_variance_the_kkt_solve_lost_is_an_undetermined_parameter():
+    """A negative variance (the real TIAGo: a play trial's fit gave −1.2e6 m² to a link
+    length, the KKT matrix numerically singular there) gave a NaN std, which every bound
+    test passed: the trial's parameters counted as determined. It is now inf, and an effect
+    with an infinite std is undetermined; NaN keeps meaning a shape held at its grid."""
+    from kpi_calib_ros.app.cell_model import build_cell_model
+    from kpi_calib_ros.core.diagnosis.candidate_plausibility import effect_undetermined
+    from kpi_calib_ros.core.effects.registry import parse_effect_spec
+    from kpi_calib_ros.core.estimation.covariance import standard_deviations
+    from kpi_calib_ros.io.cell import DEFAULT_CELL, load_cell
+    cov = np.diag([4.0, -1.2e6, np.nan, 0.0])
+    assert standard_deviations(cov).tolist() == [2.0, np.inf, np.inf, 0.0]
+    cm = build_cell_model(load_cell(DEFAULT_CELL))
+    play = parse_effect_spec('joint_play:joint_2', cm.robot)
+    assert effect_undetermined(play, np.array([np.inf, 0.1]), {}).startswith('undetermined')
+    assert effect_undetermined(play, np.array([1e-4, np.nan]), {}) == ''

@@ -47,10 +47,14 @@ def backlash_unloaded(effect: BoundEffect, tau: np.ndarray) -> str:
 
 def effect_undetermined(effect: BoundEffect, std: np.ndarray,
                         bounds: Mapping[str, tuple[float, ...]]) -> str:
-    """Why a screened effect is undetermined (a std above its bound), '' when it is not."""
+    """Why a screened effect is undetermined (a std above its bound), '' when it is not.
+
+    An infinite std (not determined at all) is above every bound; NaN is a shape parameter
+    held at its grid value (no std).
+    """
     loose = [f'{n} std {v:.3g} {u} > its bound {b:.3g}' for n, v, u, b in
              zip(effect.parameter_names, std, effect.units, effect_bounds(effect, bounds))
-             if np.isfinite(v) and v > b]
+             if not np.isnan(v) and v > b]
     return ('undetermined: ' + '; '.join(loose) + f' (to determine it: {effect.hint()})'
             if loose else '')
 

@@ -35,7 +35,11 @@ import scipy.optimize
 import scipy.stats
 
 from kpi_calib_ros.core.errors import DataError
-from kpi_calib_ros.core.estimation.covariance import kkt_covariance, kpi_jacobians
+from kpi_calib_ros.core.estimation.covariance import (
+    kkt_covariance,
+    kpi_jacobians,
+    standard_deviations,
+)
 from kpi_calib_ros.core.estimation.gauss_newton import (
     TOLERANCES,
     PriorRows,
@@ -401,7 +405,7 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
         dof = int(round(3 * len(q) - float(np.sum((f_data @ c_p) * f_data))))
     return CalibrationResult(
         names=model.params.names, values=p, units=model.params.units,
-        estimated=ident.kept, std=np.sqrt(np.diag(c_p)), covariance=c_p,
+        estimated=ident.kept, std=standard_deviations(c_p), covariance=c_p,
         residuals=residuals, rms_m=point_rms(residuals, point_rows(ref, model.n_reflectors)),
         tcp=tcp, tcp_covariance=tcp_cov, working_pose_names=tuple(names),
         sigma=1.0 / w_axis, chi2=chi2, dof=dof, p_value=float(scipy.stats.chi2.sf(chi2, dof)),
