@@ -388,3 +388,22 @@ def test_a_table_of_two_marker_mounts_gives_each_row_the_markers_it_has(cm, tmp_
                  str(tmp_path / 'none.mcap')]) == 2
     err = capsys.readouterr().err
     assert f'{table}: line 42: no marker has a value' in err, err
+
+
+def test_a_recording_counts_its_poses_and_its_points_apart(cm):
+    """Two recordings of 12 poses, three reflectors each: each recording reports 12 poses and
+    36 points (the real TIAGo's sessions of 63, 59 and 37 postures were reported as 252,
+    236 and 148 poses: its four markers' points)."""
+    from kpi_calib_ros.app.calibration_document import recordings_section, recordings_text
+    from kpi_calib_ros.app.identify import calibrate_cell
+    from kpi_calib_ros.app.measurements import with_recordings
+    from kpi_calib_ros.core.measurement import recordings as rec
+    p_true = true_parameters(cm.model.params, np.random.default_rng(5))
+    recordings = [rec.Recording('a'), rec.Recording('b')]
+    data = rec.combine([_campaign(cm, 12, 6, p_true, 2e-5), _campaign(cm, 12, 7, p_true, 2e-5)],
+                       recordings)
+    placed = with_recordings(cm, recordings)
+    cal = calibrate_cell(placed, data, 'geometric')
+    section = recordings_section(placed, data, cal, recordings, ['a.mcap', 'b.mcap'])
+    assert [(s['poses'], s['points']) for s in section] == [(12, 36), (12, 36)]
+    assert 'recording a: 12 poses (36 points), rms' in recordings_text(section)

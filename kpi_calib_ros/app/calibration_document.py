@@ -334,7 +334,8 @@ def recordings_section(cm: CellModel, data: Measurements, cal: CellCalibration,
         entry: dict[str, Any] = {
             'name': rec.name, 'bag': str(bag), 'reflector_remounted': rec.reflector_remounted,
             'covariates': {k: float(v) for k, v in rec.covariates.items()},
-            'poses': c.poses, 'excluded': int(excluded[i]), 'rms_m': _finite(c.rms_m),
+            'poses': c.poses, 'points': c.points, 'excluded': int(excluded[i]),
+            'rms_m': _finite(c.rms_m),
             'placement': {n: {'value': float(v), 'std': _finite(c.placement_std[n])}
                           for n, v in c.placement.items()},
             'tcp_variance_ratio_without': (None if ratio is None or not np.isfinite(ratio)
@@ -366,7 +367,9 @@ def recordings_text(section: Sequence[Mapping[str, Any]]) -> str:
         ratio = entry['tcp_variance_ratio_without']
         versus = entry.get('against_nominal')
         lines.append(
-            f"recording {entry['name']}: {entry['poses']} poses, rms "
+            f"recording {entry['name']}: {entry['poses']} poses"
+            + (f" ({entry['points']} points)" if entry.get('points', entry['poses'])
+               != entry['poses'] else '') + ', rms '
             + ('n/a' if entry['rms_m'] is None else f"{entry['rms_m'] * 1e3:.3f} mm")
             + f", base in tracker {np.round(base, 4).tolist()}"
             + (' (reflector remounted)' if entry['reflector_remounted'] else '')

@@ -391,7 +391,8 @@ def as_first(params: ParameterSet, name: str) -> dict[str, str]:
 class Contribution:
     """What one recording contributed to a joint identification.
 
-    ``poses``: its point rows; ``rms_m``: the rms of their residual distance (m);
+    ``poses``: its distinct poses among the kept rows; ``points``: its point rows (a pose
+    gives one per reflector); ``rms_m``: the rms of their residual distance (m);
     ``placement``: {parameter name: value} of its base pose (and reflector, remounted),
     ``placement_std``: their std (NaN: not identified); ``tcp_variance_ratio``: the trace of
     the TCP covariance at the working poses in the robot's base frame (its placement not
@@ -405,6 +406,7 @@ class Contribution:
     placement: dict[str, float]
     placement_std: dict[str, float]
     tcp_variance_ratio: float | None
+    points: int = 0
 
 
 def contributions(model: MeasurementModel, data: Measurements, values: np.ndarray,
@@ -461,9 +463,11 @@ def contributions(model: MeasurementModel, data: Measurements, values: np.ndarra
     for i, name in enumerate(names):
         mine = (index == i) & points
         placed = placement_names(params, i, names)
+        poses = len(np.unique(np.atleast_2d(data.q)[mine], axis=0)) if mine.any() else 0
         out.append(Contribution(
-            name, int(np.count_nonzero(mine)),
+            name, int(poses),
             float(np.sqrt(np.mean(miss[mine] ** 2))) if mine.any() else float('nan'),
             {n: float(value[n]) for n in placed},
-            {n: float(stds.get(n, float('nan'))) for n in placed}, ratio[i]))
+            {n: float(stds.get(n, float('nan'))) for n in placed}, ratio[i],
+            int(np.count_nonzero(mine))))
     return out
