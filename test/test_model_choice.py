@@ -397,6 +397,9 @@ def test_the_prediction_from_the_fit_outweighs_the_held_out_figures_only_beyond_
     # the text names the figures that favour the nominal robot, not all of them
     assert ('cross-validated where measured and cross-validated over held-out regions '
             'favour the nominal robot') in tiago.text()
+    # and the document names them beside better: true (not refused, not better everywhere)
+    assert tiago.to_dict()['better'] is True
+    assert tiago.to_dict()['favour_nominal'] == ['in_region', 'other_region']
 
 
 def test_a_calibration_whose_own_uncertainty_where_it_works_exceeds_the_nominal_error():

@@ -274,9 +274,9 @@ def choose_effects(model: MeasurementModel, data: Measurements, fit_for: FitFor,
                     'beyond noise in a held-out fold: ' + _region_text(trial)))
             trials.append(trial)
         if not improves:
-            reason = (f'{best[0].spec} fails the held-out test (better over held-out regions '
-                      'of joint space beyond noise, and worse beyond noise in no held-out '
-                      f'fold): {_region_text(best[0])}')
+            reason = (f'{best[0].spec} fails the held-out test (it asks: better over '
+                      'held-out regions of joint space beyond noise, and worse beyond noise in '
+                      f'no held-out fold): {_region_text(best[0])}')
             break
         if region_first is None:
             region_first = before_region

@@ -244,6 +244,10 @@ class NominalComparison:
         def m(v: float) -> float | None:
             return float(v) if np.isfinite(v) else None
         return {'better': self.better, 'compared': list(self.compared),
+                # The cross-validated figures that favour the nominal robot: ``better`` with
+                # some of them is the prediction from the fit outweighing them (not refused).
+                'favour_nominal': [k for k in self.compared
+                                   if not _not_above(*self._figures(k))],
                 'elsewhere_worse': self.elsewhere_worse,
                 'regions_worse': list(self.regions_worse()),
                 'undetermined_where_it_works': self.undetermined_where_it_works,

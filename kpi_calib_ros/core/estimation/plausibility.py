@@ -363,8 +363,9 @@ def geometric_violations(model: MeasurementModel, result: CalibrationResult,
                                  f'{tol:g} m', f'{turn} (identification.tolerances.'
                                  'reflector_offset widens the tolerance)'))
         elif reflector_stated and moved > tol:
-            out.append(Violation(label, f'identified {moved:.3g} m from the offset the cell '
-                                 f'states, beyond the tolerance {tol:g} m',
+            out.append(Violation(label, f'identified {moved:.3g} m from its reference (the '
+                                 'offset the cell states, or the one registered from the '
+                                 f'points when it leaves it out), beyond the tolerance {tol:g} m',
                                  'check reflector.offset (units, the tip frame) or widen '
                                  'identification.tolerances.reflector_offset'))
     for prefix in reflector_prefixes(params):
