@@ -137,6 +137,30 @@ def test_design_covariance_equals_the_identifications_at_the_designed_poses(kind
         assert deviation < 1e-6
 
 
+def test_a_model_with_a_torque_effect_is_designed_and_predicts_its_identification():
+    """A cell whose model has a compliance (``effects: [joint_compliance:joint_2]``, or a
+    calibration that added one as the prior of a design) crashed the design with a
+    TypeError: the symbolic refinement has no gravity torque. The refinement is skipped and
+    said so; the exchange design's predicted TCP covariance is the identification's at its
+    poses (noise-free at the nominal geometry, 1e-6 relative)."""
+    doc = yaml.safe_load(DEFAULT_CELL.read_text())
+    doc['effects'] = ['joint_compliance:joint_2']
+    model_cell = build_cell_model(cell_from_dict(doc, DEFAULT_CELL.parent))
+    cell = model_cell.design_cell()
+    assert cell.model.uses_torque
+    design = design_measurements(cell, 15, 'kpi', np.random.default_rng(2),
+                                 dataclasses.replace(SMALL, nlp=True))
+    assert 'ipopt refinement skipped: an effect of the model reads the gravity torque' \
+        in design.status
+    assert design.verification.ok
+    data = _measured(cell.model, cell.model.params.nominal, design.configurations,
+                     np.zeros(3), np.random.default_rng(3))
+    result = identify(cell.model, data, cell.sigma, cell.q_work)
+    assert 'joint_compliance.joint_2.c' in result.estimated
+    for predicted, identified in zip(design.tcp_covariance, result.tcp_covariance):
+        assert np.linalg.norm(predicted - identified) / np.linalg.norm(identified) < 1e-6
+
+
 def test_the_nlp_counts_the_rotation_rows_of_a_tracked_pose():
     """The IPOPT refinement's KPI criterion at its start is the identification's (the
     weighted mean TCP variance) for a tracked-pose cell: its rotation rows are in it."""

@@ -263,7 +263,13 @@ def design_measurements(cell: DesignCell, n: int, criterion: str, rng: np.random
         status.append(f'exchange: {best.exchanges} exchanges')
     timings['exchange'] = time.perf_counter() - t
     t = time.perf_counter()
-    if settings.nlp and criterion in ('kpi', 'A', 'D', 'O1'):
+    if settings.nlp and criterion in ('kpi', 'A', 'D', 'O1') and cell.model.uses_torque:
+        # A compliance, a play: the point reads the gravity torque, computed by Pinocchio
+        # (no CasADi form here), which the symbolic NLP cannot differentiate; it crashed.
+        status.append('ipopt refinement skipped: an effect of the model reads the gravity '
+                      'torque, which the symbolic refinement cannot differentiate; the '
+                      'design is the exchange over the feasible candidates')
+    elif settings.nlp and criterion in ('kpi', 'A', 'D', 'O1'):
         nlp = solve_design_nlp(problem, cell, ctx.scene, q, criterion,
                                clearance=settings.clearance,
                                incidence_clearance=settings.incidence_clearance,
