@@ -104,6 +104,15 @@ def test_state_round_trip(tmp_path):
     assert read_campaign_state(write_campaign_state(tmp_path / 's.yaml', state)) == state
     stopped = dataclasses.replace(state, status={'stop_reason': TARGET_MET})
     assert stopped.stopped and not state.stopped
+    # A campaign at a later station keeps its station and where it plans from.
+    far = dataclasses.replace(state, station='far',
+                              base_in_tracker=(2.5, -2.0, 0.15, 0.03, -0.02, 0.7))
+    assert read_campaign_state(write_campaign_state(tmp_path / 'f.yaml', far)) == far
+    doc = yaml.safe_load((tmp_path / 'f.yaml').read_text())
+    doc['base_in_tracker'] = [1.0, 2.0]
+    (tmp_path / 'bad.yaml').write_text(yaml.safe_dump(doc))
+    with pytest.raises(DataError, match='base_in_tracker must be 6 finite numbers'):
+        read_campaign_state(tmp_path / 'bad.yaml')
 
 
 @pytest.mark.slow

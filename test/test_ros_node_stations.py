@@ -288,3 +288,107 @@ def test_the_design_for_a_station_the_calibration_holds_predicts_its_identificat
         np.testing.assert_allclose(predicted, reported, rtol=0.01)
     finally:
         assert node.stop() == 0, node.output()
+
+
+@pytest.mark.slow
+def test_a_sequential_campaign_runs_at_a_later_station_from_where_it_stands(cm, client, spawn,
+                                                                           tmp_path):
+    """A sequential campaign at a station the published calibration of several stations
+    holds plans from where that calibration places it and identifies that station's
+    measurements only, until the target is met; killed mid-campaign, the restarted node
+    resumes it at that station with the same plan. Before, any step with measurements from
+    two stations failed ("a sequential campaign plans from one station"), so after a
+    station change the campaign could not run without archiving the first station."""
+    import signal
+
+    import yaml
+    from std_msgs.msg import String
+
+    from kpi_calib_ros.app.campaign import campaign_context, new_campaign
+    from kpi_calib_ros.core.campaigns.settings import TARGET_MET, CampaignSettings
+    from kpi_calib_ros.ros import job_work
+
+    from ros_helpers import LATCHED, NS
+    target = 12e-6
+    rng = np.random.default_rng(23)
+    sigma = float(np.max(cm.cell.sigma))
+    p_robot = true_parameters(cm.model.params, rng)
+    near = _station(cm, p_robot, np.zeros(6), N_POSES, rng, sigma)
+    far = _station(cm, p_robot, MOVE, 8, rng, sigma)
+    single = p_robot.copy()
+    single[:6] += MOVE
+    frame = cm.cell.tracker_frame
+    client.node.create_subscription(String, f'{NS}/campaign_status',
+                                    client._recorder('campaign_status'), LATCHED)
+    node = spawn(tmp_path / 'data', 'node.log', 'auto_identify:=false', 'station:=near',
+                 'campaign:=sequential', f'target_tcp_std:={target}', 'max_measurements:=80')
+    try:
+        client.publish_measurements(near.q, cm.joint_names, near.eta, frame, N_POSES)
+        _set_station(client, 'far')
+        client.publish_measurements(far.q, cm.joint_names, far.eta, frame, N_POSES + 8,
+                                    start_ns=1_700_000_100_000_000_000)
+        answer = client.call('identify', timeout=180)
+        assert answer.success, answer.message
+        calibration = client.received['calibration'][-1]
+        answer = client.call('design', timeout=300)
+        print(answer.message)
+        assert answer.success, answer.message
+        assert "station 'far' placed where the published calibration" in answer.message
+        client.spin_until(lambda: client.received['measurement_poses'], 10, 'the initial design')
+        initial = np.array([p.positions for p in client.received['measurement_poses'][-1].points])
+        # The same campaign offline, planned where the calibration places the far station.
+        placed = job_work.at_placement(cm, job_work.station_placement(
+            cm, yaml.safe_dump(calibration), 'far'))
+        cell, ctx = campaign_context(placed, 0)
+        offline = new_campaign(placed, cell, ctx, CampaignSettings(target_std=target,
+                                                                   max_measurements=80), 0)
+        np.testing.assert_allclose(ctx.candidates.configurations[offline.initial_design()],
+                                   initial, atol=1e-12)
+        measured = 8
+        stamp = 1_700_000_200_000_000_000
+        plan = initial
+        plans_seen = len(client.received['measurement_poses'])
+        resumed = False
+        while True:
+            eta = simulate_measurements(cm.model, single, plan, sigma, rng).eta
+            client.publish_measurements(plan, cm.joint_names, eta, frame,
+                                        N_POSES + measured + len(plan), start_ns=stamp)
+            measured += len(plan)
+            stamp += 100_000_000_000
+
+            def reported(count: int = measured) -> bool:
+                return any(yaml.safe_load(m.data).get('measurements') == count
+                           for m in client.received['campaign_status'])
+            client.spin_until(reported, 90, f'the campaign status after {measured}')
+            status = next(d for d in (yaml.safe_load(m.data) for m in
+                                      client.received['campaign_status'])
+                          if d.get('measurements') == measured)
+            if status['stop_reason'] != 'running':
+                break
+            assert measured < 80, 'the campaign did not stop'
+            client.spin_until(lambda seen=plans_seen: len(client.received['measurement_poses'])
+                              > seen, 10, 'the updated plan')
+            plans_seen = len(client.received['measurement_poses'])
+            plan = np.array(client.received['measurement_poses'][-1].points[0].positions)[None]
+            if not resumed:  # killed mid-campaign: the restart resumes it at the far station
+                resumed = True
+                assert node.stop(signal.SIGKILL) == -signal.SIGKILL
+                client.received['measurement_poses'].clear()
+                client.received['diagnostics'].clear()
+                node = spawn(tmp_path / 'data', 'node_2.log', 'auto_identify:=false',
+                             'campaign:=sequential', f'target_tcp_std:={target}',
+                             'max_measurements:=80')
+                client.spin_until(lambda: client.diagnostics().get('campaign.resumed')
+                                  == 'True', 90, 'the campaign resumed')
+                client.spin_until(lambda: client.received['measurement_poses'], 30,
+                                  'the plan after the restart')
+                again = client.received['measurement_poses'][-1].points[0].positions
+                np.testing.assert_allclose(again, plan[0], atol=1e-9)
+                plans_seen = len(client.received['measurement_poses'])
+        print(f"stopped after {measured} far measurements: {status['stop_reason']}, TCP std "
+              f"{status['statistic_m'] * 1e6:.2f} µm")
+        assert status['stop_reason'] == TARGET_MET and status['statistic_m'] <= target
+        # The campaign counted the far station's measurements only, not the near 30.
+        assert status['measurements'] == measured
+    finally:
+        assert node.stop() == 0, node.output()

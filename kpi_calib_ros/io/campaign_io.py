@@ -97,12 +97,20 @@ class CampaignState:
         campaign is rebuilt by adding them again step by step.
     status : dict
         The last ``~/campaign_status`` document ({} before the first step).
+    station : str
+        The tracker station it plans and identifies (its measurements only; '' : every
+        measurement, a state written before stations).
+    base_in_tracker : tuple of float
+        The base pose [x, y, z, roll, pitch, yaw] (m, rad) it plans from, where a
+        calibration of several stations placed the station; () : the cell file's.
     """
 
     settings: CampaignSettings
     design_seed: int
     steps: tuple[tuple[int, ...], ...] = ()
     status: dict = field(default_factory=dict)
+    station: str = ''
+    base_in_tracker: tuple[float, ...] = ()
 
     @property
     def stopped(self) -> bool:
@@ -147,7 +155,8 @@ def write_campaign_state(path: str | Path, state: CampaignState) -> Path:
                         'max_measurements': int(s.max_measurements),
                         'confidence': float(s.confidence), 'design_seed': int(state.design_seed)},
            'steps': [[int(t) for t in step] for step in state.steps],
-           'status': state.status}
+           'status': state.status, 'station': state.station,
+           'base_in_tracker': [float(v) for v in state.base_in_tracker]}
     return write_atomic(path, dump_yaml(doc))
 
 
@@ -175,6 +184,12 @@ def read_campaign_state(path: str | Path) -> CampaignState:
         status = doc['status']
         if not isinstance(status, dict):
             raise TypeError('status must be a mapping')
+        station = doc.get('station') or ''
+        if not isinstance(station, str):
+            raise TypeError('station must be a name')
+        base = tuple(float(v) for v in doc.get('base_in_tracker') or ())
+        if base and (len(base) != 6 or not np.all(np.isfinite(base))):
+            raise ValueError('base_in_tracker must be 6 finite numbers')
     except (KeyError, TypeError, ValueError) as exc:
         raise DataError(f'{path}: field {exc} missing or malformed; {fix}') from None
-    return CampaignState(settings, seed, steps, status)
+    return CampaignState(settings, seed, steps, status, station, base)

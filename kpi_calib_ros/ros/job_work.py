@@ -130,13 +130,8 @@ def station_design_work(cm: CellModel, settings: NodeSettings, data_dir: Path,
         The prior, in words.
     """
     stored = yaml.load(calibration, Loader=SAFE_LOADER)  # the node's own text
-    placed, _ = calibrated_model(cm.cell, stored)
-    seen = recording_calibration(placed, stored, station)
-    values = {e['name']: float(e['value']) for e in seen['parameters']}
-    base = np.array([values[f'base.{c}'] for c in BASE_COMPONENTS])
-    at_station = build_cell_model(dataclasses.replace(cm.cell, base_in_tracker=base,
-                                                      base_in_tracker_given=True),
-                                  effects=tuple(stored.get('effects') or ()))
+    seen = _seen_from(cm, stored, station)
+    at_station = at_placement(cm, _base_of(seen), tuple(stored.get('effects') or ()))
     cp = cycle_prior(at_station, seen, None, keep_placement=True, hours=0.0)
     weighted, design, p = prior_design(at_station, cp, settings.num_measurements,
                                        settings.criterion, settings.design_seed)
@@ -153,6 +148,35 @@ def station_design_work(cm: CellModel, settings: NodeSettings, data_dir: Path,
                   'description': description}})
     return (design, points, path,
             '' if estimability.all_estimable else estimability.summary(), description)
+
+
+def _seen_from(cm: CellModel, stored: dict[str, Any], station: str) -> dict[str, Any]:
+    """The calibration document ``stored`` seen from its recording ``station``."""
+    placed, _ = calibrated_model(cm.cell, stored)
+    return recording_calibration(placed, stored, station)
+
+
+def _base_of(doc: dict[str, Any]) -> tuple[float, ...]:
+    """The base pose ``base.*`` of a calibration document (m, rad)."""
+    values = {e['name']: float(e['value']) for e in doc['parameters']}
+    return tuple(values[f'base.{c}'] for c in BASE_COMPONENTS)
+
+
+def station_placement(cm: CellModel, calibration: str, station: str) -> tuple[float, ...]:
+    """Where the calibration the node published (its YAML text) places ``station``'s base
+    in that station's tracker frame [x, y, z, roll, pitch, yaw] (m, rad)."""
+    stored = yaml.load(calibration, Loader=SAFE_LOADER)
+    return _base_of(_seen_from(cm, stored, station))
+
+
+def at_placement(cm: CellModel, base: Sequence[float], effects: tuple = ()) -> CellModel:
+    """``cm`` with the robot's base at ``base`` in the tracker frame (a station's; () keeps
+    the cell file's) and ``effects`` added."""
+    if not len(base) and not effects:
+        return cm
+    cell = cm.cell if not len(base) else dataclasses.replace(
+        cm.cell, base_in_tracker=np.asarray(base, float), base_in_tracker_given=True)
+    return build_cell_model(cell, effects=effects)
 
 
 def previous_calibration(data_dir: Path, first_stamp_ns: int
@@ -379,10 +403,12 @@ def campaign_settings(settings: NodeSettings) -> CampaignSettings:
 
 
 def sequential_start_work(cm: CellModel, settings: CampaignSettings, design_seed: int,
-                          data_dir: Path) -> tuple[SequentialCampaign, np.ndarray, np.ndarray,
-                                                   Path]:
+                          data_dir: Path, station: str = '',
+                          base: Sequence[float] = ()) -> tuple[SequentialCampaign, np.ndarray,
+                                                               np.ndarray, Path]:
     """A sequential campaign for the cell and its initial design; writes the plan and the
-    campaign state (no step yet), so a restarted node resumes it.
+    campaign state (no step yet), so a restarted node resumes it. ``cm``: the cell model
+    at ``station``'s placement ``base`` (() : the cell file's), which the state keeps.
 
     Returns
     -------
@@ -400,7 +426,8 @@ def sequential_start_work(cm: CellModel, settings: CampaignSettings, design_seed
     controller = cm.joint_coupling.to_controller(q)
     path = write_plan(data_dir / CAMPAIGN_PLAN_FILE, cm.joint_names, controller,
                       campaign.settings)
-    write_campaign_state(data_dir / CAMPAIGN_STATE_FILE, CampaignState(settings, design_seed))
+    write_campaign_state(data_dir / CAMPAIGN_STATE_FILE, CampaignState(
+        settings, design_seed, station=station, base_in_tracker=tuple(float(v) for v in base)))
     return campaign, controller, points, path
 
 

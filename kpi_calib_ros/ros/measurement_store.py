@@ -198,6 +198,11 @@ class MeasurementStore:
         with self.lock:
             return self._stations.conflict(name or self.station[0], reflector_remounted)
 
+    def station_count(self, name: str) -> int:
+        """The accepted measurements from station ``name`` ('' : every one)."""
+        with self.lock:
+            return self._stations.count(name) if name else len(self._measurements)
+
     def station_remount(self, name: str) -> bool:
         """Whether station ``name`` ('' : the current one) is remounted when set alone: as
         stated for the current station, as measured for another, else False (a new station

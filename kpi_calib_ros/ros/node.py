@@ -368,7 +368,8 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
         if (self._run.resume_pending and self._cm is not None
                 and self._claim_job('resuming the sequential campaign')):
             self._create_task('resuming the sequential campaign', self._resume)
-        if (self._run.sequential_due(len(self.store))
+        state = self._run.sequential_state
+        if (self._run.sequential_due(self.store.station_count(state.station if state else ''))
                 and self._claim_job('planning the next pose')):
             self._create_task('sequential campaign step', self._sequential_step)
         if self._run.auto_pending and self._claim_job('identifying (automatic)'):

@@ -52,6 +52,9 @@ class NodeParts(JobNode):
     def _publish_markers(self) -> None:
         raise NotImplementedError
 
+    def _design_station(self) -> tuple[str, bool, str]:
+        raise NotImplementedError
+
     def _publish_diagnostics(self, force: bool = False) -> None:
         raise NotImplementedError
 

@@ -67,6 +67,8 @@ a new one replaces it (``result`` stays None, no fit of this run).
     sequential_stamps: set[int] = field(default_factory=set)
     sequential_initial: int = 0
     sequential_state: CampaignState | None = None
+    # The cell model the campaign plans and identifies in (its station's placement).
+    sequential_cm: Any = None
     resume_pending: bool = False
     resumed: bool = False
 

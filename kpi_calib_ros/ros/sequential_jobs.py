@@ -25,7 +25,7 @@ from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros import job_work
 from kpi_calib_ros.ros.answers import campaign_progress
 from kpi_calib_ros.ros.node_parts import NodeParts
-from kpi_calib_ros.ros.stored_measurements import model_measurements
+from kpi_calib_ros.ros.stored_measurements import model_measurements, station_rows
 
 
 class SequentialCampaignJobs(NodeParts):
@@ -52,14 +52,23 @@ class SequentialCampaignJobs(NodeParts):
                     'resuming it once the robot model is known')
 
     async def _design_sequential(self, cm: CellModel) -> tuple[bool, str]:
-        """Start a sequential campaign: publish its initial design on ~/measurement_poses.
-        Measurements accepted before it are part of the campaign (the first step adds
-        them all)."""
+        """Start a sequential campaign at the current station: publish its initial design
+        on ~/measurement_poses. Measurements accepted before it from that station are part
+        of the campaign (the first step adds them all); another station's are not. At a
+        station the published calibration of several stations holds, it plans from where
+        that calibration places the station (the cell file places the first one)."""
         settings, seed = job_work.campaign_settings(self.settings), self.settings.design_seed
+        station, held, _ = self._design_station()
+        base = (await self._offload(job_work.station_placement, cm, self._calibration_text,
+                                    station)) if held else ()
+        placed = await self._offload(job_work.at_placement, cm, base)
         campaign, initial, points, path = await self._offload(
-            job_work.sequential_start_work, cm, settings, seed, self.data_dir)
+            job_work.sequential_start_work, placed, settings, seed, self.data_dir, station,
+            base)
         self._run.sequential, self._run.sequential_status = campaign, None
-        self._run.sequential_state = CampaignState(settings, seed)
+        self._run.sequential_cm = placed
+        self._run.sequential_state = CampaignState(settings, seed, station=station,
+                                                   base_in_tracker=tuple(base))
         self._run.sequential_stamps, self._run.sequential_initial = set(), len(initial)
         self._run.resume_pending, self._run.resumed = False, False
         self._pub_poses.publish(cv.joint_trajectory_msg(cm.joint_names, initial))
@@ -72,16 +81,21 @@ class SequentialCampaignJobs(NodeParts):
         return True, (f'sequential campaign: initial design of {len(initial)} poses '
                       f'published on {self.resolve_topic_name(MEASUREMENT_POSES_TOPIC)}, '
                       f'written to {path}; target TCP std {settings.target_std:g} m, '
-                      f'at most {settings.max_measurements} measurements')
+                      f'at most {settings.max_measurements} measurements; station '
+                      f'{station!r}'
+                      + (' placed where the published calibration of several stations '
+                         'places it' if held else ''))
 
     async def _resume(self) -> tuple[bool, str]:
         """Rebuild the campaign data_dir/campaign_state.yaml keeps, from the restored
         measurements (the same steps, so the same status and plan), and publish its
         plan and status again, saying it was resumed."""
-        cm, state = self._model(), self._run.sequential_state
+        state = self._run.sequential_state
         assert state is not None
+        cm = await self._offload(job_work.at_placement, self._model(), state.base_in_tracker)
         self._run.resume_pending = False
-        data = model_measurements(self.store, cm)[0] if len(self.store) else Measurements(
+        data = station_rows(self.store, *model_measurements(self.store, cm),
+                            state.station)[0] if len(self.store) else Measurements(
             q=np.zeros((0, len(cm.joint_names))), eta=np.zeros((0, 3)),
             stamps_ns=np.zeros(0, np.int64))
         try:
@@ -92,6 +106,7 @@ class SequentialCampaignJobs(NodeParts):
             self._publish_diagnostics(force=True)
             raise
         self._run.sequential, self._run.sequential_initial = campaign, len(initial)
+        self._run.sequential_cm = cm
         self._run.sequential_stamps = {t for step in state.steps for t in step}
         self._run.resumed = True
         if out is None:  # no step yet: the initial design is still the plan
@@ -114,18 +129,15 @@ class SequentialCampaignJobs(NodeParts):
         """Add the accepted measurements the campaign has not seen, re-identify and
         publish the updated plan (next pose first) and ~/campaign_status; once the
         campaign stopped (target met or cap), publish its calibration."""
-        cm, campaign, state = self._model(), self._run.sequential, self._run.sequential_state
+        campaign, state = self._run.sequential, self._run.sequential_state
         if campaign is None or state is None:
             raise DataError('no sequential campaign: call ~/design with campaign:=sequential')
-        data, pairing = model_measurements(self.store, cm)
+        cm = self._run.sequential_cm or self._model()
+        # The campaign's station's measurements only: another station's points are in
+        # another tracker frame (~/identify takes every station together).
+        data, pairing = station_rows(self.store, *model_measurements(self.store, cm),
+                                     state.station)
         stamps = np.asarray(data.stamps_ns, dtype=np.int64)
-        stations = self.store.stations(stamps)[0]
-        if len(stations) > 1:
-            named = ', '.join(r.name for r in stations)
-            raise DataError(f'measurements from {len(stations)} stations ({named}): a '
-                            'sequential campaign plans from one station; call ~/reset and '
-                            'measure the campaign from one station, or ~/identify them '
-                            'together')
         new = np.array([int(t) not in self._run.sequential_stamps for t in stamps], dtype=bool)
         fresh = data.subset(new)
         out = await self._offload(job_work.sequential_step_work, campaign, cm, fresh, state,

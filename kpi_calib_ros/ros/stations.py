@@ -37,6 +37,10 @@ class Stations:
         measured)."""
         return self._remounted.get(name)
 
+    def count(self, name: str) -> int:
+        """The measurements recorded from station ``name``."""
+        return sum(1 for station in self._of.values() if station == name)
+
     def conflict(self, name: str, reflector_remounted: bool) -> str:
         """Why station ``name`` cannot be measured with ``reflector_remounted`` ('' : it can):
         a station already measured keeps whether its probe was remounted."""

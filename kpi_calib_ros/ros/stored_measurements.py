@@ -41,6 +41,24 @@ def model_measurements(store: MeasurementStore, cm: CellModel
     return with_input_readings(store, cm, data), pairing
 
 
+def station_rows(store: MeasurementStore, data: Measurements, pairing: PairingResult,
+                 station: str) -> tuple[Measurements, PairingResult]:
+    """The rows of ``data`` (and the poses of ``pairing``) measured from ``station``; all
+    of them for '' (a campaign state written before stations)."""
+    if not station:
+        return data, pairing
+    stamps = np.asarray(data.stamps_ns, dtype=np.int64).ravel()
+    recordings, index = store.stations(stamps)
+    names = [r.name for r in recordings]
+    mine = (index == names.index(station)) if station in names else np.zeros(len(data), bool)
+    keep = np.isin(np.asarray(pairing.stamps_ns, dtype=np.int64), stamps[mine])
+    return data.subset(mine), dataclasses.replace(
+        pairing, q=pairing.q[keep], eta=pairing.eta[keep], stamps_ns=pairing.stamps_ns[keep],
+        rotations=None if pairing.rotations is None else pairing.rotations[keep],
+        reflectors=tuple(r for r, k in zip(pairing.reflectors, keep) if k)
+        if pairing.reflectors else ())
+
+
 def station_measurements(store: MeasurementStore, cm: CellModel
                          ) -> tuple[CellModel, Measurements, PairingResult, list[Recording]]:
     """:func:`model_measurements` over every station: with measurements from several, the
