@@ -305,11 +305,12 @@ def test_a_sequential_campaign_runs_at_a_later_station_from_where_it_stands(cm, 
     from std_msgs.msg import String
 
     from kpi_calib_ros.app.campaign import campaign_context, new_campaign
+    from kpi_calib_ros.app.design import design_free, design_point
     from kpi_calib_ros.core.campaigns.settings import TARGET_MET, CampaignSettings
     from kpi_calib_ros.ros import job_work
 
     from ros_helpers import LATCHED, NS
-    target = 12e-6
+    target = 9e-6
     rng = np.random.default_rng(23)
     sigma = float(np.max(cm.cell.sigma))
     p_robot = true_parameters(cm.model.params, rng)
@@ -336,14 +337,22 @@ def test_a_sequential_campaign_runs_at_a_later_station_from_where_it_stands(cm, 
         assert "station 'far' placed where the published calibration" in answer.message
         client.spin_until(lambda: client.received['measurement_poses'], 10, 'the initial design')
         initial = np.array([p.positions for p in client.received['measurement_poses'][-1].points])
-        # The same campaign offline, planned where the calibration places the far station.
-        placed = job_work.at_placement(cm, job_work.station_placement(
-            cm, yaml.safe_dump(calibration), 'far'))
-        cell, ctx = campaign_context(placed, 0)
-        offline = new_campaign(placed, cell, ctx, CampaignSettings(target_std=target,
-                                                                   max_measurements=80), 0)
+        # The same campaign offline, planned where the calibration places the far station,
+        # with that calibration as prior: an initial design of a few poses, not the 11 a
+        # campaign that knows nothing needs.
+        placed, _, cp = job_work.station_campaign(cm, yaml.safe_dump(calibration), 'far')
+        p, free = design_point(placed, cp), design_free(placed, cp.allowed)
+        cell, ctx = campaign_context(placed, 0, prior=cp.prior, p=p, free=free)
+        offline = new_campaign(placed, cell, ctx, CampaignSettings(
+            target_std=target, max_measurements=80), 0, prior=cp.prior, start=p, free=free)
         np.testing.assert_allclose(ctx.candidates.configurations[offline.initial_design()],
                                    initial, atol=1e-12)
+        alone, alone_ctx = campaign_context(placed, 0)
+        without = new_campaign(placed, alone, alone_ctx, CampaignSettings(
+            target_std=target, max_measurements=80), 0)
+        print(f'initial design {len(initial)} poses with the prior, '
+              f'{len(without.initial_design())} without')
+        assert len(initial) < len(without.initial_design())
         measured = 8
         stamp = 1_700_000_200_000_000_000
         plan = initial
@@ -388,6 +397,7 @@ def test_a_sequential_campaign_runs_at_a_later_station_from_where_it_stands(cm, 
         print(f"stopped after {measured} far measurements: {status['stop_reason']}, TCP std "
               f"{status['statistic_m'] * 1e6:.2f} µm")
         assert status['stop_reason'] == TARGET_MET and status['statistic_m'] <= target
+        assert resumed, 'the campaign stopped before the kill: nothing resumed'
         # The campaign counted the far station's measurements only, not the near 30.
         assert status['measurements'] == measured
     finally:

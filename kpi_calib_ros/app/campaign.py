@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
@@ -35,6 +36,7 @@ from kpi_calib_ros.core.design.optimum import DesignContext, design_context
 from kpi_calib_ros.core.diagnosis.model_selection import ModelChoice, level_free
 from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.estimation.estimability import result_estimability
+from kpi_calib_ros.core.estimation.prior import Prior
 from kpi_calib_ros.core.measurement.weighting import row_torques
 from kpi_calib_ros.core.simulation import simulate_pose_measurements, true_parameters
 from kpi_calib_ros.io.campaign_io import plot_campaign, write_campaign, write_plan
@@ -53,19 +55,29 @@ def campaign_free(cm: CellModel) -> list[str]:
 
 
 def campaign_context(cm: CellModel, seed: int,
-                     candidates: int = CAMPAIGN_CANDIDATES) -> tuple[DesignCell, DesignContext]:
-    """The cell's design problem and ``candidates`` feasible configurations."""
+                     candidates: int = CAMPAIGN_CANDIDATES, prior: Prior | None = None,
+                     p: np.ndarray | None = None, free: Sequence[str] | None = None
+                     ) -> tuple[DesignCell, DesignContext]:
+    """The cell's design problem and ``candidates`` feasible configurations; with ``prior``
+    linearised at ``p`` over the parameters ``free`` (as a design with a prior)."""
     cell = cm.design_cell()
     settings = dataclasses.replace(cm.design_settings, candidates=candidates)
-    return cell, design_context(cell, np.random.default_rng(seed), settings)
+    return cell, design_context(cell, np.random.default_rng(seed), settings, prior=prior,
+                                p=p, free=None if free is None else list(free))
 
 
 def new_campaign(cm: CellModel, cell: DesignCell, ctx: DesignContext,
-                 settings: CampaignSettings, seed: int) -> SequentialCampaign:
+                 settings: CampaignSettings, seed: int, prior: Prior | None = None,
+                 start: np.ndarray | None = None,
+                 free: Sequence[str] | None = None) -> SequentialCampaign:
     """A sequential campaign on the cell; every pose is measured with every row the cell
-    declares (each reflector's point, each tracked body's rotation)."""
+    declares (each reflector's point, each tracked body's rotation). ``prior``, ``start``
+    and ``free``: what is known before it (:class:`SequentialCampaign`), its values and the
+    parameters its fits free (default: the cell's model level)."""
     return SequentialCampaign(cell, ctx.problem, ctx.candidates.configurations, settings,
-                              np.random.default_rng(seed), free=campaign_free(cm))
+                              np.random.default_rng(seed),
+                              free=campaign_free(cm) if free is None else list(free),
+                              prior=prior, start=start)
 
 
 def campaign_calibration(cm: CellModel, campaign: SequentialCampaign,

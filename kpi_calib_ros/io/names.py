@@ -20,6 +20,8 @@ LEARNED_RESIDUAL_FILE = 'learned_residual.yaml'
 DESIGN_FILE = 'design.yaml'
 CAMPAIGN_PLAN_FILE = 'campaign_plan.yaml'   # initial design of a sequential campaign
 CAMPAIGN_STATE_FILE = 'campaign_state.yaml'  # a node's sequential campaign, to resume it
+# The calibration a sequential campaign at a later station took as prior, to resume it.
+CAMPAIGN_PRIOR_FILE = 'campaign_prior.yaml'
 DIAGNOSIS_DIR = 'diagnosis'
 DIAGNOSIS_FILE = 'diagnosis.json'
 REPORT_FILE = 'report.md'

@@ -32,7 +32,10 @@ from kpi_calib_ros.app.design import (
     controller_design,
     design_cell_model,
     design_estimability,
+    design_free,
+    design_point,
     drawn_robots_section,
+    prior_cell_model,
     prior_design,
 )
 from kpi_calib_ros.app.diagnose import diagnose_and_report
@@ -66,6 +69,7 @@ from kpi_calib_ros.io.design_io import write_design
 from kpi_calib_ros.io.names import (
     CALIBRATIONS_DIR,
     CAMPAIGN_PLAN_FILE,
+    CAMPAIGN_PRIOR_FILE,
     CAMPAIGN_STATE_FILE,
     DESIGN_FILE,
     DIAGNOSIS_DIR,
@@ -73,6 +77,7 @@ from kpi_calib_ros.io.names import (
     VALIDATION_DIR,
 )
 from kpi_calib_ros.io.report import diagnosis_to_dict
+from kpi_calib_ros.io.results import write_atomic
 from kpi_calib_ros.io.yaml_bounded import SAFE_LOADER, dump_yaml
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros.parameters import NodeSettings
@@ -402,13 +407,33 @@ def campaign_settings(settings: NodeSettings) -> CampaignSettings:
                             max_measurements=settings.max_measurements)
 
 
+def station_campaign(cm: CellModel, calibration: str, station: str
+                     ) -> tuple[CellModel, tuple[float, ...], Any]:
+    """The cell model a sequential campaign at ``station`` plans and identifies in, where
+    the calibration the node published (its YAML text, several stations) places it, and
+    that calibration as its prior, seen from the station (the other stations' placements
+    marginalised, no drift: the same campaign;
+    :func:`~kpi_calib_ros.app.reidentify.cycle_prior`), the new points weighted at the
+    noise it showed (:func:`~kpi_calib_ros.app.design.prior_cell_model`)."""
+    stored = yaml.load(calibration, Loader=SAFE_LOADER)
+    seen = _seen_from(cm, stored, station)
+    base = _base_of(seen)
+    at_station = at_placement(cm, base, tuple(stored.get('effects') or ()))
+    cp = cycle_prior(at_station, seen, None, keep_placement=True, hours=0.0)
+    weighted, _ = prior_cell_model(at_station, cp)
+    return weighted, base, cp
+
+
 def sequential_start_work(cm: CellModel, settings: CampaignSettings, design_seed: int,
                           data_dir: Path, station: str = '',
-                          base: Sequence[float] = ()) -> tuple[SequentialCampaign, np.ndarray,
-                                                               np.ndarray, Path]:
+                          base: Sequence[float] = (), cp: Any = None,
+                          calibration: str = '') -> tuple[SequentialCampaign, np.ndarray,
+                                                          np.ndarray, Path]:
     """A sequential campaign for the cell and its initial design; writes the plan and the
     campaign state (no step yet), so a restarted node resumes it. ``cm``: the cell model
-    at ``station``'s placement ``base`` (() : the cell file's), which the state keeps.
+    at ``station``'s placement ``base`` (() : the cell file's), which the state keeps;
+    ``cp`` its prior (:func:`station_campaign`) from ``calibration``, kept in
+    ``data_dir/campaign_prior.yaml`` for the resume.
 
     Returns
     -------
@@ -421,9 +446,11 @@ def sequential_start_work(cm: CellModel, settings: CampaignSettings, design_seed
     path : Path
         ``campaign_plan.yaml``: the initial design, as ``kpi-calib campaign`` writes it.
     """
-    campaign, q = _new_sequential(cm, settings, design_seed)
-    points = cm.model.predict(cm.model.params.nominal, q)
+    campaign, q = _new_sequential(cm, settings, design_seed, cp)
+    points = cm.model.predict(campaign.start, q)
     controller = cm.joint_coupling.to_controller(q)
+    if cp is not None:
+        write_atomic(data_dir / CAMPAIGN_PRIOR_FILE, calibration)
     path = write_plan(data_dir / CAMPAIGN_PLAN_FILE, cm.joint_names, controller,
                       campaign.settings)
     write_campaign_state(data_dir / CAMPAIGN_STATE_FILE, CampaignState(
@@ -431,12 +458,18 @@ def sequential_start_work(cm: CellModel, settings: CampaignSettings, design_seed
     return campaign, controller, points, path
 
 
-def _new_sequential(cm: CellModel, settings: CampaignSettings,
-                    design_seed: int) -> tuple[SequentialCampaign, np.ndarray]:
+def _new_sequential(cm: CellModel, settings: CampaignSettings, design_seed: int,
+                    cp: Any = None) -> tuple[SequentialCampaign, np.ndarray]:
     """The campaign and its initial design (URDF joint values): the same for the same
-    cell, settings and seed."""
-    cell, ctx = campaign_context(cm, design_seed)
-    campaign = new_campaign(cm, cell, ctx, settings, design_seed)
+    cell, settings, seed and prior ``cp``."""
+    if cp is None:
+        cell, ctx = campaign_context(cm, design_seed)
+        campaign = new_campaign(cm, cell, ctx, settings, design_seed)
+    else:
+        p, free = design_point(cm, cp), design_free(cm, cp.allowed)
+        cell, ctx = campaign_context(cm, design_seed, prior=cp.prior, p=p, free=free)
+        campaign = new_campaign(cm, cell, ctx, settings, design_seed, prior=cp.prior,
+                                start=p, free=free)
     return campaign, ctx.candidates.configurations[campaign.initial_design()]
 
 
@@ -504,12 +537,13 @@ def _step_output(campaign: SequentialCampaign, cm: CellModel, state: CampaignSta
 
 
 def sequential_resume_work(cm: CellModel, state: CampaignState, data: Measurements,
-                           data_dir: Path) -> tuple[SequentialCampaign, np.ndarray,
-                                                    StepOutput | None]:
+                           data_dir: Path, cp: Any = None
+                           ) -> tuple[SequentialCampaign, np.ndarray, StepOutput | None]:
     """Rebuild the campaign of ``state`` after a restart: the same initial design, then
     every step added again with the same stored measurements (found by stamp in
     ``data``, URDF joint values), so the status and the plan are the ones the campaign
-    had (the core is deterministic). Nothing is published as a calibration here: a
+    had (the core is deterministic); ``cm`` and ``cp`` as it started with them
+    (:func:`station_campaign`). Nothing is published as a calibration here: a
     campaign that had stopped published its calibration then.
 
     Returns the campaign, its initial design (controller values) and the last step's
@@ -528,7 +562,7 @@ def sequential_resume_work(cm: CellModel, state: CampaignState, data: Measuremen
         raise DataError(f'{data_dir / CAMPAIGN_STATE_FILE}: steps: measurement stamp '
                         f'{missing[0]} is not in the restored measurement logs; call '
                         '~/reset to archive the campaign and start a new one')
-    campaign, q = _new_sequential(cm, state.settings, state.design_seed)
+    campaign, q = _new_sequential(cm, state.settings, state.design_seed, cp)
     for step in state.steps:
         # Every row with a stamp of the step (a pose's reflectors and rotation rows).
         rows = data.subset(np.isin(stamps, np.asarray(step, np.int64)))

@@ -20,7 +20,11 @@ from kpi_calib_ros.app.cell_model import CellModel
 from kpi_calib_ros.core.errors import DataError, KpiCalibError
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.io.campaign_io import CampaignState, read_campaign_state
-from kpi_calib_ros.io.names import CAMPAIGN_STATE_FILE, MEASUREMENT_POSES_TOPIC
+from kpi_calib_ros.io.names import (
+    CAMPAIGN_PRIOR_FILE,
+    CAMPAIGN_STATE_FILE,
+    MEASUREMENT_POSES_TOPIC,
+)
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros import job_work
 from kpi_calib_ros.ros.answers import campaign_progress
@@ -59,12 +63,13 @@ class SequentialCampaignJobs(NodeParts):
         that calibration places the station (the cell file places the first one)."""
         settings, seed = job_work.campaign_settings(self.settings), self.settings.design_seed
         station, held, _ = self._design_station()
-        base = (await self._offload(job_work.station_placement, cm, self._calibration_text,
-                                    station)) if held else ()
-        placed = await self._offload(job_work.at_placement, cm, base)
+        placed, base, cp = cm, (), None
+        if held:
+            placed, base, cp = await self._offload(job_work.station_campaign, cm,
+                                                   self._calibration_text, station)
         campaign, initial, points, path = await self._offload(
             job_work.sequential_start_work, placed, settings, seed, self.data_dir, station,
-            base)
+            base, cp, self._calibration_text if held else '')
         self._run.sequential, self._run.sequential_status = campaign, None
         self._run.sequential_cm = placed
         self._run.sequential_state = CampaignState(settings, seed, station=station,
@@ -84,7 +89,7 @@ class SequentialCampaignJobs(NodeParts):
                       f'at most {settings.max_measurements} measurements; station '
                       f'{station!r}'
                       + (' placed where the published calibration of several stations '
-                         'places it' if held else ''))
+                         'places it, that calibration its prior' if held else ''))
 
     async def _resume(self) -> tuple[bool, str]:
         """Rebuild the campaign data_dir/campaign_state.yaml keeps, from the restored
@@ -92,7 +97,13 @@ class SequentialCampaignJobs(NodeParts):
         plan and status again, saying it was resumed."""
         state = self._run.sequential_state
         assert state is not None
-        cm = await self._offload(job_work.at_placement, self._model(), state.base_in_tracker)
+        cm, cp = self._model(), None
+        prior = self.data_dir / CAMPAIGN_PRIOR_FILE
+        if state.base_in_tracker and prior.is_file():  # started with a calibration as prior
+            cm, _, cp = await self._offload(job_work.station_campaign, cm, prior.read_text(),
+                                            state.station)
+        elif state.base_in_tracker:
+            cm = await self._offload(job_work.at_placement, cm, state.base_in_tracker)
         self._run.resume_pending = False
         data = station_rows(self.store, *model_measurements(self.store, cm),
                             state.station)[0] if len(self.store) else Measurements(
@@ -100,7 +111,7 @@ class SequentialCampaignJobs(NodeParts):
             stamps_ns=np.zeros(0, np.int64))
         try:
             campaign, initial, out = await self._offload(job_work.sequential_resume_work, cm,
-                                                         state, data, self.data_dir)
+                                                         state, data, self.data_dir, cp)
         except KpiCalibError as exc:
             self._run.result_error = f'sequential campaign not resumed: {exc}'
             self._publish_diagnostics(force=True)

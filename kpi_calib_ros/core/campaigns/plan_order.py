@@ -69,18 +69,21 @@ def plan_ahead(rows: np.ndarray, info: np.ndarray, m: int, loss: Loss,
     return np.array(chosen)[np.argsort(first, kind='stable')]
 
 
-def nested_order(rows: np.ndarray, design: np.ndarray, loss: Loss, n_min: int) -> np.ndarray:
+def nested_order(rows: np.ndarray, design: np.ndarray, loss: Loss, n_min: int,
+                 base: np.ndarray | None = None) -> np.ndarray:
     """Order the poses of ``design`` so that every prefix is a good design of its size.
 
     ``design`` indexes ``rows`` (c, 3, k); every prefix of at least ``n_min`` poses counts.
     Backward elimination, repeatedly removing the pose whose removal raises ``loss`` least
     (never one that makes the information singular) down to ``n_min``; the removed ones follow
-    the rest in reverse order of removal.
+    the rest in reverse order of removal. ``base`` (k, k): information every design has (a
+    prior's), added to each prefix's.
     """
     kept = [int(i) for i in design]
     removed: list[int] = []
     while len(kept) > max(n_min, 1):
-        raise_ = loss.delta(inverse(information(rows[kept])), rows[kept], -1.0)
+        info = information(rows[kept])
+        raise_ = loss.delta(inverse(info if base is None else info + base), rows[kept], -1.0)
         if not np.any(np.isfinite(raise_)):
             break
         removed.append(kept.pop(int(np.argmin(raise_))))

@@ -69,10 +69,11 @@ from kpi_calib_ros.core.campaigns.settings import (
 from kpi_calib_ros.core.campaigns.statistics import lack_of_fit, pure_error, sigma_upper_limit
 from kpi_calib_ros.core.design.cell import DesignCell
 from kpi_calib_ros.core.design.criteria import DesignProblem, scales
-from kpi_calib_ros.core.design.exchange import exchange, information
+from kpi_calib_ros.core.design.exchange import exchange
 from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.estimation.estimability import result_estimability
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult, identify
+from kpi_calib_ros.core.estimation.prior import Prior
 from kpi_calib_ros.core.estimation.robust import (
     ExcludedMeasurement,
     Fit,
@@ -114,11 +115,17 @@ class SequentialCampaign:
         Parameters the identification may free (the model level); all by default.
     rng : numpy.random.Generator
         For the exchange algorithm of the initial design.
+    prior : Prior, optional
+        What is known before the campaign (e.g. the calibration of the stations measured
+        before, its placements marginalised): in every fit, in the initial design's size
+        and the plan (``problem`` built with it, ``problem.prior_information``), and the
+        start of the fits at ``start`` (its values).
     """
 
     def __init__(self, cell: DesignCell, problem: DesignProblem, candidates: np.ndarray,
                  settings: CampaignSettings, rng: np.random.Generator,
-                 free: list[str] | None = None) -> None:
+                 free: list[str] | None = None, prior: Prior | None = None,
+                 start: np.ndarray | None = None) -> None:
         sigma = np.asarray(cell.sigma, float)
         if not np.allclose(sigma, sigma[0]):
             raise ConfigError('noise.sigma', 'the sequential campaign estimates one σ for '
@@ -137,10 +144,21 @@ class SequentialCampaign:
         self.robust: RobustResult | None = None
         self.status: CampaignStatus | None = None
         self._suspects: list[int] = []  # excluded measurements, to be measured again
-        self._p = cell.model.params.nominal.copy()
+        self.prior = prior
+        self._start = (cell.model.params.nominal if start is None
+                       else np.asarray(start, float)).copy()
+        self._p = self._start.copy()
         self._replicating = False
         self._statistic = float('inf')
         self._last_plan: list[int] = []
+
+    @property
+    def start(self) -> np.ndarray:
+        """Return where the first fit starts and the initial design is linearised.
+
+        The prior's values, or the nominal parameters.
+        """
+        return self._start.copy()
 
     # ------------------------------------------------------------------ initial design
     def initial_design(self) -> np.ndarray:
@@ -158,9 +176,11 @@ class SequentialCampaign:
         """
         rows = self.problem.rows(self.cell.model, self.candidates)
         loss = self.problem.loss('kpi')
-        for n in range(int(np.ceil(self.problem.k / 3)), len(self.candidates)):
+        base = self.problem.prior_information
+        first = 1 if base is not None else int(np.ceil(self.problem.k / 3))
+        for n in range(first, len(self.candidates)):
             try:
-                res = exchange(rows, n, loss, self.rng)
+                res = exchange(rows, n, loss, self.rng, base=base)
             except ValueError:
                 continue
             if np.isfinite(res.loss) and self._estimable(self.candidates[res.selected]):
@@ -174,11 +194,11 @@ class SequentialCampaign:
         big = min(NESTED_FACTOR * size, cap)
         best = res if big == n else None
         for _ in range(INITIAL_STARTS if best is None else 0):
-            trial = exchange(rows, big, loss, self.rng)
+            trial = exchange(rows, big, loss, self.rng, base=base)
             if best is None or trial.loss < best.loss:
                 best = trial
         assert best is not None
-        order = nested_order(rows, np.asarray(best.selected, int), loss, n)
+        order = nested_order(rows, np.asarray(best.selected, int), loss, n, base)
         while size < len(order) and not self._estimable(self.candidates[order[:size]]):
             size += 1
         self._check_cap(size, n)
@@ -226,11 +246,11 @@ class SequentialCampaign:
 
     def _estimable(self, q: np.ndarray) -> bool:
         model = self.cell.model
-        rows = model.pose_measurements(model.params.nominal, q)  # every row of each pose
-        return result_estimability(model, rows.q, self.cell.sigma, model.params.nominal,
+        rows = model.pose_measurements(self._p, q)  # every row of each pose
+        return result_estimability(model, rows.q, self.cell.sigma, self._p,
                                    self.cell.q_work, self.cell.working_pose_names,
                                    free=self.free, reflector=rows.reflector,
-                                   rotation=rows.rotation,
+                                   rotation=rows.rotation, prior=self.prior,
                                    tau_work=self.cell.tau_work).all_estimable
 
     # ---------------------------------------------------------------------- the loop
@@ -348,7 +368,7 @@ class SequentialCampaign:
                             p0=self._p if p0 is None else p0, free=self.free,
                             identifiability_method=cell.identification_method,
                             priority=list(cell.identification_priority) or None,
-                            point_weights=point_weights)
+                            point_weights=point_weights, prior=self.prior)
         data = self.rows
         try:
             robust = robust_identify(cell.model, data, cell.sigma, fit)
@@ -435,7 +455,7 @@ class SequentialCampaign:
         model = self.cell.model
         problem = self._estimate_problem()
         loss = problem.loss('kpi')
-        info = information(problem.rows(model, self._kept_q()))
+        info = problem.information(problem.rows(model, self._kept_q()))
         rows = problem.rows(model, self.candidates)
         exclude = np.array(sorted({u for u in self.used if u >= 0}), int)
         planned = plan_ahead(rows, info, self._horizon(), loss, exclude,
@@ -506,8 +526,13 @@ class SequentialCampaign:
         column_scale, physical_scale = scales(jac[:, :, idx],
                                               np.tile(weight, model.rows_per_pose))
         kpi = model.jacobian(self._p, self.cell.q_work, self.cell.tau_work)[1][:, :, idx]
+        prior_info = None
+        if self.prior is not None:  # in the scaled columns, as build_problem has it
+            scaled = self.prior.rows(model.params)[0][:, idx] * column_scale
+            prior_info = scaled.T @ scaled
         return DesignProblem(tuple(self.result.estimated), idx, self._p.copy(), weight,
-                             column_scale, physical_scale, kpi, self.problem.kpi_weights)
+                             column_scale, physical_scale, kpi, self.problem.kpi_weights,
+                             prior_info)
 
     def _horizon(self) -> int:
         """Poses still needed, from the std falling as 1/√N (at least 1)."""
