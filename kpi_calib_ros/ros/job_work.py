@@ -446,7 +446,7 @@ def sequential_start_work(cm: CellModel, settings: CampaignSettings, design_seed
     path : Path
         ``campaign_plan.yaml``: the initial design, as ``kpi-calib campaign`` writes it.
     """
-    campaign, q = _new_sequential(cm, settings, design_seed, cp)
+    campaign, q = new_sequential(cm, settings, design_seed, cp)
     points = cm.model.predict(campaign.start, q)
     controller = cm.joint_coupling.to_controller(q)
     if cp is not None:
@@ -458,7 +458,7 @@ def sequential_start_work(cm: CellModel, settings: CampaignSettings, design_seed
     return campaign, controller, points, path
 
 
-def _new_sequential(cm: CellModel, settings: CampaignSettings, design_seed: int,
+def new_sequential(cm: CellModel, settings: CampaignSettings, design_seed: int,
                     cp: Any = None) -> tuple[SequentialCampaign, np.ndarray]:
     """The campaign and its initial design (URDF joint values): the same for the same
     cell, settings, seed and prior ``cp``."""
@@ -562,7 +562,7 @@ def sequential_resume_work(cm: CellModel, state: CampaignState, data: Measuremen
         raise DataError(f'{data_dir / CAMPAIGN_STATE_FILE}: steps: measurement stamp '
                         f'{missing[0]} is not in the restored measurement logs; call '
                         '~/reset to archive the campaign and start a new one')
-    campaign, q = _new_sequential(cm, state.settings, state.design_seed, cp)
+    campaign, q = new_sequential(cm, state.settings, state.design_seed, cp)
     for step in state.steps:
         # Every row with a stamp of the step (a pose's reflectors and rotation rows).
         rows = data.subset(np.isin(stamps, np.asarray(step, np.int64)))
@@ -575,7 +575,7 @@ def sequential_resume_work(cm: CellModel, state: CampaignState, data: Measuremen
                                               {'resumed': True}, publish=False)
 
 
-__all__ = ['IdentifyOutput', 'StepOutput', 'campaign_settings', 'design_work',
-           'diagnose_work', 'identify_work', 'previous_calibration',
+__all__ = ['IdentifyOutput', 'StepOutput', 'at_placement', 'campaign_settings', 'design_work',
+           'diagnose_work', 'identify_work', 'new_sequential', 'previous_calibration',
            'sequential_resume_work', 'sequential_start_work', 'sequential_step_work',
-           'validate_work']
+           'station_campaign', 'station_design_work', 'station_placement', 'validate_work']
