@@ -133,7 +133,12 @@ def test_reset_archives_instead_of_deleting(tmp_path):
     (tmp_path / 'diagnosis').mkdir()
     (tmp_path / 'diagnosis' / 'report.md').write_text('# Model diagnosis\n')
     (tmp_path / 'design.yaml').write_text('criterion: kpi\n')
+    # a sequential campaign's state and the prior a campaign at a later station took
+    (tmp_path / 'campaign_state.yaml').write_text('version: 1\n')
+    (tmp_path / 'campaign_prior.yaml').write_text('rms_m: 1\n')
     count, archive = store.reset()
+    assert (archive / 'campaign_state.yaml').exists() and (archive / 'campaign_prior.yaml').exists()
+    assert not (tmp_path / 'campaign_prior.yaml').exists()
     assert count == 2 and len(store) == 0 and store.counts()['rejected'] == 0
     assert (archive / 'calibration.yaml').exists() and list(archive.glob('measurements_*.mcap'))
     assert (archive / 'diagnosis' / 'report.md').exists()

@@ -31,7 +31,7 @@ VALIDATION_FILE = 'validation.json'
 # Every valid calibration of the node, kept by its identified_at_ns (not moved by reset).
 CALIBRATIONS_DIR = 'calibrations'
 RESULT_FILES = (CALIBRATION_FILE, FAILED_CALIBRATION_FILE, CALIBRATED_URDF_FILE, DIAGNOSIS_DIR,
-                VALIDATION_DIR, CAMPAIGN_STATE_FILE, LEARNED_RESIDUAL_FILE)
+                VALIDATION_DIR, CAMPAIGN_STATE_FILE, CAMPAIGN_PRIOR_FILE, LEARNED_RESIDUAL_FILE)
 
 # ---------------------------------------------------------------------- topics
 DEFAULT_JOINT_TOPIC = '/joint_states'
