@@ -227,6 +227,18 @@ def test_a_station_set_alone_takes_its_own_remount_not_the_last_ones(cm, client,
         assert node.stop() == 0, node.output()
 
 
+def _identify_near_then_far(client, cm, near, far) -> None:
+    """Measure ``near`` from station near (the node started there), set station far,
+    measure ``far``, and ~/identify both stations together."""
+    frame = cm.cell.tracker_frame
+    client.publish_measurements(near.q, cm.joint_names, near.eta, frame, len(near))
+    _set_station(client, 'far')
+    client.publish_measurements(far.q, cm.joint_names, far.eta, frame, len(near) + len(far),
+                                start_ns=1_700_000_100_000_000_000)
+    answer = client.call('identify', timeout=180)
+    assert answer.success, answer.message
+
+
 @pytest.mark.slow
 def test_the_design_for_a_station_the_calibration_holds_predicts_its_identification(
         cm, client, spawn, tmp_path):
@@ -248,12 +260,7 @@ def test_the_design_for_a_station_the_calibration_holds_predicts_its_identificat
     node = spawn(data_dir, 'node.log', 'auto_identify:=false', 'station:=near',
                  'num_measurements:=20')
     try:
-        client.publish_measurements(near.q, cm.joint_names, near.eta, frame, N_POSES)
-        _set_station(client, 'far')
-        client.publish_measurements(far.q, cm.joint_names, far.eta, frame, N_POSES + 12,
-                                    start_ns=1_700_000_100_000_000_000)
-        answer = client.call('identify', timeout=180)
-        assert answer.success, answer.message
+        _identify_near_then_far(client, cm, near, far)
         answer = client.call('design', timeout=300)
         print(answer.message)
         assert answer.success, answer.message
@@ -324,12 +331,7 @@ def test_a_sequential_campaign_runs_at_a_later_station_from_where_it_stands(cm, 
     node = spawn(tmp_path / 'data', 'node.log', 'auto_identify:=false', 'station:=near',
                  'campaign:=sequential', f'target_tcp_std:={target}', 'max_measurements:=80')
     try:
-        client.publish_measurements(near.q, cm.joint_names, near.eta, frame, N_POSES)
-        _set_station(client, 'far')
-        client.publish_measurements(far.q, cm.joint_names, far.eta, frame, N_POSES + 8,
-                                    start_ns=1_700_000_100_000_000_000)
-        answer = client.call('identify', timeout=180)
-        assert answer.success, answer.message
+        _identify_near_then_far(client, cm, near, far)
         calibration = client.received['calibration'][-1]
         answer = client.call('design', timeout=300)
         print(answer.message)

@@ -135,9 +135,7 @@ def station_design_work(cm: CellModel, settings: NodeSettings, data_dir: Path,
         The prior, in words.
     """
     stored = yaml.load(calibration, Loader=SAFE_LOADER)  # the node's own text
-    seen = _seen_from(cm, stored, station)
-    at_station = at_placement(cm, _base_of(seen), tuple(stored.get('effects') or ()))
-    cp = cycle_prior(at_station, seen, None, keep_placement=True, hours=0.0)
+    at_station, _, cp = _station_prior(cm, stored, station)
     weighted, design, p = prior_design(at_station, cp, settings.num_measurements,
                                        settings.criterion, settings.design_seed)
     points = weighted.model.predict(p, design.configurations)
@@ -155,23 +153,20 @@ def station_design_work(cm: CellModel, settings: NodeSettings, data_dir: Path,
             '' if estimability.all_estimable else estimability.summary(), description)
 
 
-def _seen_from(cm: CellModel, stored: dict[str, Any], station: str) -> dict[str, Any]:
-    """The calibration document ``stored`` seen from its recording ``station``."""
+def _station_prior(cm: CellModel, stored: dict[str, Any], station: str
+                   ) -> tuple[CellModel, tuple[float, ...], Any]:
+    """The cell model placed where the calibration document ``stored`` (several stations)
+    places ``station``, that base pose, and the calibration seen from the station as prior
+    (:func:`~kpi_calib_ros.app.validate.recording_calibration`; the other stations'
+    placements marginalised, no drift: the same campaign;
+    :func:`~kpi_calib_ros.app.reidentify.cycle_prior`)."""
     placed, _ = calibrated_model(cm.cell, stored)
-    return recording_calibration(placed, stored, station)
-
-
-def _base_of(doc: dict[str, Any]) -> tuple[float, ...]:
-    """The base pose ``base.*`` of a calibration document (m, rad)."""
-    values = {e['name']: float(e['value']) for e in doc['parameters']}
-    return tuple(values[f'base.{c}'] for c in BASE_COMPONENTS)
-
-
-def station_placement(cm: CellModel, calibration: str, station: str) -> tuple[float, ...]:
-    """Where the calibration the node published (its YAML text) places ``station``'s base
-    in that station's tracker frame [x, y, z, roll, pitch, yaw] (m, rad)."""
-    stored = yaml.load(calibration, Loader=SAFE_LOADER)
-    return _base_of(_seen_from(cm, stored, station))
+    seen = recording_calibration(placed, stored, station)
+    values = {e['name']: float(e['value']) for e in seen['parameters']}
+    base = tuple(values[f'base.{c}'] for c in BASE_COMPONENTS)
+    at_station = at_placement(cm, base, tuple(stored.get('effects') or ()))
+    return at_station, base, cycle_prior(at_station, seen, None, keep_placement=True,
+                                         hours=0.0)
 
 
 def at_placement(cm: CellModel, base: Sequence[float], effects: tuple = ()) -> CellModel:
@@ -415,11 +410,8 @@ def station_campaign(cm: CellModel, calibration: str, station: str
     marginalised, no drift: the same campaign;
     :func:`~kpi_calib_ros.app.reidentify.cycle_prior`), the new points weighted at the
     noise it showed (:func:`~kpi_calib_ros.app.design.prior_cell_model`)."""
-    stored = yaml.load(calibration, Loader=SAFE_LOADER)
-    seen = _seen_from(cm, stored, station)
-    base = _base_of(seen)
-    at_station = at_placement(cm, base, tuple(stored.get('effects') or ()))
-    cp = cycle_prior(at_station, seen, None, keep_placement=True, hours=0.0)
+    at_station, base, cp = _station_prior(cm, yaml.load(calibration, Loader=SAFE_LOADER),
+                                          station)
     weighted, _ = prior_cell_model(at_station, cp)
     return weighted, base, cp
 
@@ -578,4 +570,4 @@ def sequential_resume_work(cm: CellModel, state: CampaignState, data: Measuremen
 __all__ = ['IdentifyOutput', 'StepOutput', 'at_placement', 'campaign_settings', 'design_work',
            'diagnose_work', 'identify_work', 'new_sequential', 'previous_calibration',
            'sequential_resume_work', 'sequential_start_work', 'sequential_step_work',
-           'station_campaign', 'station_design_work', 'station_placement', 'validate_work']
+           'station_campaign', 'station_design_work', 'validate_work']

@@ -10,6 +10,8 @@ A station keeps whether its probe was remounted; its name becomes part of parame
 """
 from __future__ import annotations
 
+from collections import Counter
+
 import numpy as np
 
 from kpi_calib_ros.core.measurement.recordings import NAME_PATTERN, Recording
@@ -22,6 +24,8 @@ class Stations:
     def __init__(self) -> None:
         self._remounted: dict[str, bool] = {}  # name -> probe remounted
         self._of: dict[int, str] = {}          # stamp ns -> station name
+        # Measurements per station: the node asks after every tick (a sequential step due).
+        self._counts: Counter[str] = Counter()
 
     def __len__(self) -> int:
         return len(self._remounted)
@@ -30,7 +34,9 @@ class Stations:
         """The measurement stamped ``stamp_ns`` was measured from station ``name`` (the first
         station recorded for a stamp, and the first remount stated for a station, stay)."""
         self._remounted.setdefault(name, reflector_remounted)
-        self._of.setdefault(int(stamp_ns), name)
+        if int(stamp_ns) not in self._of:
+            self._of[int(stamp_ns)] = name
+            self._counts[name] += 1
 
     def remounted(self, name: str) -> bool | None:
         """Whether station ``name`` was measured with its probe remounted (None: not
@@ -39,7 +45,7 @@ class Stations:
 
     def count(self, name: str) -> int:
         """The measurements recorded from station ``name``."""
-        return sum(1 for station in self._of.values() if station == name)
+        return self._counts[name]
 
     def conflict(self, name: str, reflector_remounted: bool) -> str:
         """Why station ``name`` cannot be measured with ``reflector_remounted`` ('' : it can):
@@ -67,6 +73,7 @@ class Stations:
         """Forget every station and measurement recorded."""
         self._remounted.clear()
         self._of.clear()
+        self._counts.clear()
 
 
 def check_station(name: str) -> str:
