@@ -213,7 +213,12 @@ class NominalComparison:
 
     @property
     def _cv_better(self) -> bool:
-        return all(_not_above(*self._figures(k)) for k in self.compared)
+        return not self.favour_nominal
+
+    @property
+    def favour_nominal(self) -> tuple[str, ...]:
+        """The compared figures that favour the nominal robot (lower beyond :data:`TIE_M`)."""
+        return tuple(k for k in self.compared if not _not_above(*self._figures(k)))
 
     def text(self) -> str:
         """One line: both figures of both models."""
@@ -227,7 +232,7 @@ class NominalComparison:
         labels = {'in_region': 'cross-validated where measured',
                   'other_region': 'cross-validated over held-out regions',
                   'working': 'expected TCP error over the working poses'}
-        against = [labels[k] for k in self.compared if not _not_above(*self._figures(k))]
+        against = [labels[k] for k in self.favour_nominal]
         return (f'the calibration {verdict} the nominal robot with the placement registered: '
                 f'cross-validated rms where measured {um(c.in_region_m)} (nominal '
                 f'{um(n.in_region_m)}), over held-out regions of joint space '
@@ -246,8 +251,7 @@ class NominalComparison:
         return {'better': self.better, 'compared': list(self.compared),
                 # The cross-validated figures that favour the nominal robot: ``better`` with
                 # some of them is the prediction from the fit outweighing them (not refused).
-                'favour_nominal': [k for k in self.compared
-                                   if not _not_above(*self._figures(k))],
+                'favour_nominal': list(self.favour_nominal),
                 'elsewhere_worse': self.elsewhere_worse,
                 'regions_worse': list(self.regions_worse()),
                 'undetermined_where_it_works': self.undetermined_where_it_works,
