@@ -231,6 +231,27 @@ class ModelChoice:
     # level (None: not estimable), and the number of regions.
     other_region_rms_m: dict[str, float | None] = dataclasses.field(default_factory=dict)
     region_blocks: int = 0
+    # Levels whose fit did not converge (left out of the comparison).
+    unconverged: tuple[str, ...] = ()
+
+    @property
+    def unsettled_larger(self) -> tuple[str, ...]:
+        """Larger levels left out that fit better than the chosen one.
+
+        Their fit did not converge, and their last iterate predicts new measurements better
+        than the chosen level by more than :data:`PARSIMONY`: the chosen level's misfit
+        holds geometry these poses need and cannot settle, and an effect fitted on it takes
+        that geometry up.
+        """
+        if self.level not in LEVELS:
+            return ()
+        mine = self.predicted_rms_m.get(self.level)
+        if mine is None:
+            return ()
+        larger = {k: self.predicted_rms_m.get(k) for k in LEVELS[LEVELS.index(self.level) + 1:]
+                  if k in self.unconverged}
+        return tuple(k for k, v in larger.items()
+                     if v is not None and v < (1 - PARSIMONY) * mine)
 
     def to_dict(self) -> dict:
         """YAML-ready form: the level chosen, its reason and the rms figures (m) per level."""
@@ -350,7 +371,8 @@ def choose_model(model: MeasurementModel, data: Measurements, fit: Fit, requeste
     if requested != 'auto':
         return ModelChoice(requested, requested, predicted, cv, used,
                            f'{requested} as configured', METHOD,
-                           other_region_rms_m=other, region_blocks=blocks)
+                           other_region_rms_m=other, region_blocks=blocks,
+                           unconverged=tuple(unconverged))
     # A level whose fit did not converge is judged by its last iterate, not its minimum:
     # it is neither chosen nor the best the others are measured against.
     finite = {k: v for k, v in predicted.items() if v is not None and k not in unconverged}
@@ -389,4 +411,5 @@ def choose_model(model: MeasurementModel, data: Measurements, fit: Fit, requeste
         for k, message in unconverged.items():
             why += f'; {k} not compared: its fit did not converge ({message})'
     return ModelChoice(level, 'auto', predicted, cv, used, why, METHOD,
-                       other_region_rms_m=other, region_blocks=blocks)
+                       other_region_rms_m=other, region_blocks=blocks,
+                       unconverged=tuple(unconverged))
