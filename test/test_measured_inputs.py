@@ -20,6 +20,7 @@ from kpi_calib_ros.core.acquisition.streams import synthesize_streams
 from kpi_calib_ros.core.diagnosis.effect_signature import augmented_model
 from kpi_calib_ros.core.effects.registry import parse_effect_spec
 from kpi_calib_ros.core.errors import ConfigError, DataError
+from kpi_calib_ros.core.measurement.covariates import InputSample, input_covariates
 from kpi_calib_ros.core.model.robot import Payload
 from kpi_calib_ros.core.simulation import random_configurations, true_parameters
 from kpi_calib_ros.io.bag_writing import (
@@ -171,9 +172,12 @@ def test_inclinometer_readings_are_paired_stale_rows_refused_bad_readings_unused
         data, _ = measurements_from_bag(cell, bag)
     text = ' '.join(str(w.message) for w in caught)
     assert '1 measured input reading(s) not finite, never used' in text
-    assert '1 of 6 measurement rows refused: no measured input at its stamp' in text
-    keep = [0, 1, 3, 4, 5]
-    assert len(data) == 5
+    # Row 2 has no reading within the gap; row 4's reading at its stamp has no value: its
+    # neighbours' are not bridged over it (an input may step there).
+    assert '2 of 6 measurement rows refused: no measured input at its stamp' in text
+    assert 'next to a reading without a value' in text
+    keep = [0, 1, 3, 5]
+    assert len(data) == 4
     np.testing.assert_allclose(data.covariates['tilt.column.x'], tilt[keep, 0], rtol=1e-12)
     # a source whose field the type lacks, or a type the topic does not carry: exit 2
     wrong = dict(INPUTS, sources=[dict(INPUTS['sources'][0], fields={'tilt.column.x': 'point.x'})])
@@ -185,6 +189,24 @@ def test_inclinometer_readings_are_paired_stale_rows_refused_bad_readings_unused
                                         r"\['tilt.column.x', 'tilt.column.y'\]"):
         measurements_from_bag(build_cell_model(cell_from_dict(read_cell_document(
             _cell(tmp_path, inputs=absent)), tmp_path)), bag)
+
+
+def test_a_payload_reading_without_a_value_is_not_bridged_by_its_neighbours():
+    """A payload steps: 0 kg, then 5 kg picked up. One 5 kg reading is NaN; its row took
+    0 kg from the readings around it and was used in the fit (only the count warned). It
+    now has no payload: the row is refused, the others keep their readings."""
+    S = 10 ** 9
+    values = [0.0, 0.0, 0.0, np.nan, 5.0, 5.0]
+    samples = [InputSample(i * S, 'payload.mass', v) for i, v in enumerate(values)]
+    rows = np.arange(6, dtype=np.int64) * S
+    cov, rejected = input_covariates(rows, samples, 2 * S)
+    assert [r.stamp_ns for r in rejected] == [3 * S]
+    np.testing.assert_array_equal(cov['payload.mass'], [0.0, 0.0, 0.0, np.nan, 5.0, 5.0])
+    # a row between a good and a valueless reading has no value either; one beyond the
+    # last good reading keeps it
+    cov, _ = input_covariates(np.array([2.5 * S, 3.5 * S, 5.5 * S], dtype=np.int64), samples,
+                              2 * S)
+    np.testing.assert_array_equal(cov['payload.mass'], [np.nan, np.nan, 5.0])
 
 
 @pytest.mark.slow

@@ -2,7 +2,8 @@
 Fast DDS): an inclinometer published as geometry_msgs/Vector3Stamped on a topic of the cell's
 ``inputs.sources`` is logged with the measurements and paired to them by time; the node's
 ~/identify recovers the gains of the column's measured tilt within 3σ, and the same readings
-come back from its measurement log. A reading that is not finite is counted, never kept."""
+come back from its measurement log. A reading that is not finite is counted, never used as a
+value: logged as a reading without one, it voids the measurement it falls among."""
 from __future__ import annotations
 
 import numpy as np
@@ -96,8 +97,15 @@ def test_the_node_logs_and_pairs_an_inclinometer_topic(tmp_path, ros_domain):
         client.close()
     # logged durably beside the measurements, and paired offline from the log as in the node
     logged = MeasurementLog.load_inputs(tmp_path / 'data', cm.cell.inputs.topic)
-    assert len(logged) == 2 * sent
+    assert len(logged) == 2 * sent + 2
+    assert sum(not np.isfinite(s.value) for s in logged) == 2
     log = sorted((tmp_path / 'data').glob('measurements_*.mcap'))[0]
-    data, _ = measurements_from_bag(cm, log)
-    order = np.argsort([p.stamp_ns for p in points])
+    with pytest.warns(UserWarning) as caught:
+        data, _ = measurements_from_bag(cm, log)
+    text = ' '.join(str(w.message) for w in caught)
+    assert '2 measured input reading(s) not finite' in text
+    assert '1 of 30 measurement rows refused' in text, text
+    # the measurement at the reading without a value is refused, not given its neighbours'
+    order = [i for i in np.argsort([p.stamp_ns for p in points]) if i != 0]
+    assert points[0].stamp_ns not in set(data.stamps_ns.tolist())
     np.testing.assert_allclose(data.covariates['tilt.column.x'], tilt[order, 0], rtol=1e-12)

@@ -542,14 +542,16 @@ class MeasurementStore:
 
     def receive_inputs(self, samples: Sequence[InputSample]) -> str:
         """Keep the measured input readings of one message, logged durably first (OSError:
-        not kept); returns '' when all are kept, else why not: a reading that is not finite
-        is counted (``rejected_inputs``) and neither logged nor kept."""
+        not kept); returns '' when all are finite, else why not: a reading that is not
+        finite is counted (``rejected_inputs``), and logged and kept as a reading without a
+        value, so that a measurement it falls among is refused when paired
+        (:func:`~kpi_calib_ros.core.measurement.covariates.input_covariates`), never given
+        its neighbours' value (a payload may step there)."""
         with self.lock:
             self.received['inputs'] += 1
-            good = [s for s in samples if np.isfinite(s.value)]
             bad = [s for s in samples if not np.isfinite(s.value)]
             by_stamp: dict[int, list[InputSample]] = {}
-            for s in good:
+            for s in samples:
                 by_stamp.setdefault(int(s.stamp_ns), []).append(s)
             for stamp, group in sorted(by_stamp.items()):
                 self.log.append_inputs(stamp, tuple(s.name for s in group),
@@ -559,8 +561,9 @@ class MeasurementStore:
                 return ''
             self.rejected_inputs += len(bad)
             return (f'measured input {bad[0].name} = {bad[0].value!r} (stamp '
-                    f'{bad[0].stamp_ns} ns) not finite: not used ({self.rejected_inputs} so '
-                    'far); check the sensor or the message\'s names and counts')
+                    f'{bad[0].stamp_ns} ns) not finite: not used, and a measurement next to '
+                    f'it is refused ({self.rejected_inputs} so far); check the sensor or the '
+                    'message\'s names and counts')
 
     def inputs(self) -> list[InputSample]:
         """The measured input readings kept (this run's and the reloaded ones), a copy."""

@@ -98,13 +98,19 @@ def input_covariates(stamps_ns: np.ndarray, samples: Iterable[InputSample],
 
     One covariate per name among ``samples``, :func:`interpolate` d at the stamps (NaN where
     no reading lies within ``max_gap_ns``); readings that are not finite are never used and
-    returned as the second value (in the order given).
+    returned as the second value (in the order given). A reading that is not finite is
+    still a reading the sensor made: a row it falls among (between the two readings the row
+    would be interpolated from, or at its stamp) gets NaN, never a value bridged over it.
+    An input may step (a payload picked up between two readings): a NaN 5 kg reading
+    between two 0 kg ones gave its row 0 kg, used in the fit, with only a count warned.
     """
     by_name: dict[str, list[tuple[int, float]]] = {}
+    unknown: dict[str, list[int]] = {}
     rejected: list[InputSample] = []
     for s in samples:
         if not np.isfinite(s.value):
             rejected.append(s)
+            unknown.setdefault(s.name, []).append(int(s.stamp_ns))
             continue
         by_name.setdefault(s.name, []).append((int(s.stamp_ns), float(s.value)))
     stamps = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
@@ -112,7 +118,8 @@ def input_covariates(stamps_ns: np.ndarray, samples: Iterable[InputSample],
     for name, readings in sorted(by_name.items()):
         t = np.array([r[0] for r in readings], dtype=np.int64)
         v = np.array([r[1] for r in readings], dtype=float)
-        out[name] = interpolate(stamps, t, v, max_gap_ns)
+        out[name] = interpolate(stamps, t, v, max_gap_ns,
+                                np.array(unknown.get(name, ()), dtype=np.int64))
     return out, rejected
 
 
@@ -191,13 +198,16 @@ def range_text(rejected: Sequence[TemperatureSample],
 
 
 def interpolate(stamps_ns: np.ndarray, sample_stamps_ns: np.ndarray, values: np.ndarray,
-                max_gap_ns: int = DEFAULT_MAX_GAP_NS) -> np.ndarray:
+                max_gap_ns: int = DEFAULT_MAX_GAP_NS,
+                unknown_ns: np.ndarray | None = None) -> np.ndarray:
     """Values (N,) of a slowly varying signal at ``stamps_ns`` (N,), NaN where unknown.
 
     Linear between the samples around a stamp when they are at most ``max_gap_ns`` apart;
     the first/last value within ``max_gap_ns`` before/after the samples; NaN elsewhere
     (a gap, outside the recording, no samples). Samples need not be sorted; samples of one
-    stamp are averaged.
+    stamp are averaged. ``unknown_ns``: stamps of readings without a value (not finite):
+    a stamp whose value would come across one of them (between its two samples, between it
+    and the first or last sample, or at it) is NaN.
     """
     stamps = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
     out = np.full(len(stamps), np.nan)
@@ -222,6 +232,16 @@ def interpolate(stamps_ns: np.ndarray, sample_stamps_ns: np.ndarray, values: np.
     before = (stamps < t[0]) & (t[0] - stamps <= max_gap_ns)
     after = (stamps > t[-1]) & (stamps - t[-1] <= max_gap_ns)
     out[before], out[after] = v[0], v[-1]
+    if unknown_ns is not None and len(unknown_ns):
+        u = np.sort(np.asarray(unknown_ns, dtype=np.int64).reshape(-1))
+        # The span each stamp's value comes from: its bracketing samples, or the stamp and
+        # the end sample it takes; an unknown reading inside it (ends included) voids it.
+        low = np.where(exact, stamps, np.where(
+            before, stamps, np.where(after, t[-1], t[np.clip(right - 1, 0, len(t) - 1)])))
+        high = np.where(exact, stamps, np.where(
+            before, t[0], np.where(after, stamps, t[np.clip(right, 0, len(t) - 1)])))
+        crossed = np.searchsorted(u, high, side='right') > np.searchsorted(u, low, side='left')
+        out[crossed] = np.nan
     return out
 
 
@@ -295,8 +315,9 @@ def with_covariates(data: Measurements, covariates: Mapping[str, np.ndarray],
             finite = np.isfinite(merged[name])
             lacking[~finite & keep] = name
             keep &= finite
-    refused = [(int(i), f'no {what} at its stamp ({lacking[i]}: outside its recording or '
-                'in a gap longer than the tolerance)') for i in np.flatnonzero(~keep)]
+    refused = [(int(i), f'no {what} at its stamp ({lacking[i]}: outside its recording, '
+                'in a gap longer than the tolerance, or next to a reading without a value)')
+               for i in np.flatnonzero(~keep)]
     full = dataclasses.replace(data, covariates=merged)
     return (full if keep.all() else full.subset(keep)), refused
 
