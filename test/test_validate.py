@@ -6,6 +6,7 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 import pytest
+import scipy.optimize
 import scipy.stats
 import yaml
 
@@ -99,6 +100,55 @@ def test_calibration_does_not_hold_for_a_changed_robot(setup):
     out = json.loads((tmp / 'val_bad' / 'validation.json').read_text())
     assert not out['holds'] and out['p_value'] < 1e-10
     assert out['verdict'] == 'calibration does not hold'
+
+
+def _registered_rms(cm, p, new):
+    """The rms on ``new`` of the robot ``p`` with its base pose and reflector offset fitted
+    on them by SciPy (independent of the tool's re-registration), corrected for the 9 dof."""
+    names = BASE + ['reflector.x', 'reflector.y', 'reflector.z']
+    index = cm.model.params.indices(names)
+    p = np.array(p, float)
+
+    def miss(x):
+        values = p.copy()
+        values[index] = x
+        return (new.eta - cm.model.predict(values, new.q)).ravel()
+    fit = scipy.optimize.least_squares(miss, p[index], x_scale='jac', xtol=1e-15,
+                                       ftol=1e-15, gtol=1e-15)
+    return float(np.sqrt(np.sum(fit.fun ** 2) * 3 / (fit.fun.size - len(names))))
+
+
+def test_validate_compares_the_calibrated_robot_with_the_nominal_one_on_the_new_points(
+        setup, capsys):
+    """Each robot with its placement registered on the new points (the robots compared, not
+    the placements; each figure equals a SciPy fit of that placement): on new points of the
+    same robot the calibration predicts better than the nominal robot; a calibration
+    10 mrad off in one joint does harm, and validate says so and exits 1."""
+    tmp, doc, cm = setup
+    new, _ = measurements_from_bag(cm, tmp / 'new.mcap')
+    nominal = _registered_rms(cm, cm.model.params.nominal, new)
+    assert _run(tmp, 'good', 'val_vs_nominal') == 0
+    out = json.loads((tmp / 'val_vs_nominal' / 'validation.json').read_text())
+    versus = out['against_nominal']
+    assert versus['nominal_rms_m'] == pytest.approx(nominal, rel=1e-6)
+    assert versus['rms_m'] == pytest.approx(
+        _registered_rms(cm, parameter_vector(cm, doc), new), rel=1e-6)
+    assert versus['nominal_dof'] == versus['dof'] == 9 and versus['points'] == 30
+    assert versus['rms_m'] < versus['nominal_rms_m'] and not versus['worse_than_nominal']
+    harmful = yaml.safe_load(yaml.safe_dump(doc))
+    for entry in harmful['parameters']:
+        if entry['name'] == 'joint_2.offset':
+            entry['value'] += 1e-2
+    write_calibration(tmp / 'harmful', harmful)
+    capsys.readouterr()
+    assert _run(tmp, 'harmful', 'val_harmful') == 1
+    text = capsys.readouterr().out
+    out = json.loads((tmp / 'val_harmful' / 'validation.json').read_text())
+    versus = out['against_nominal']
+    assert versus['worse_than_nominal'] and versus['rms_m'] > 2 * versus['nominal_rms_m']
+    assert versus['rms_m'] == pytest.approx(
+        _registered_rms(cm, parameter_vector(cm, harmful), new), rel=1e-6)
+    assert 'WORSE THAN NO CALIBRATION' in text and 'does harm' in text
 
 
 def test_poses_beyond_the_training_ranges_are_marked(setup):

@@ -8,6 +8,8 @@ TCP at joint values with both parts of its uncertainty.
 """
 from __future__ import annotations
 
+import dataclasses
+from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
@@ -35,8 +37,11 @@ from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.recordings import to_first_frame
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.core.measurement.weighting import row_torques
+from kpi_calib_ros.core.model.kinematics import rpy_matrix
+from kpi_calib_ros.core.model.parameters import BASE_COMPONENTS
 from kpi_calib_ros.io.learned_residual_file import (
     StoredResidual,
+    read_residual,
     residual_document,
     residual_text,
 )
@@ -278,7 +283,47 @@ def tcp_entries(names: tuple[str, ...] | list[str], tcp: CorrectedTcp) -> dict[s
     return out
 
 
-__all__ = ['choose_residual', 'field_covariance', 'learned_residual_section',
-           'learned_validation_text', 'physical_covariance', 'point_rows', 'predict_stored',
-           'predict_tcp', 'stored_cell_model', 'tcp_entries', 'too_many_rows',
-           'validate_learned']
+def learned_section(cm: CellModel, p: np.ndarray, path: Path, data: Measurements,
+                    registered: np.ndarray | None = None) -> dict[str, Any]:
+    """The learned residual at ``path`` validated on ``data``, or why it was not.
+
+    One written for another calibration than ``p`` (:meth:`~kpi_calib_ros.io.
+    learned_residual_file.StoredResidual.other_calibration`) is skipped, said why.
+    ``registered``: the values after ``--register`` re-fitted the placement on ``data``. The
+    learned field lives in the robot's joint space and moves with the robot: it is carried
+    into the new set-up turned by the registered base rotation relative to the calibration's
+    (:func:`carried_residual`), and predicts with the registered placement.
+    """
+    stored = read_residual(path, 'learned residual')
+    other = stored.other_calibration(cm.model.params.names, p)
+    if other:
+        return {'file': path.name, 'skipped': f'not validated: {other}'}
+    if registered is not None:
+        stored = carried_residual(cm, stored, p, registered)
+    return validate_learned(cm, stored, data)
+
+
+def carried_residual(cm: CellModel, stored: StoredResidual, p: np.ndarray,
+                     registered: np.ndarray) -> StoredResidual:
+    """``stored`` (written for the calibration ``p``) in a set-up registered as
+    ``registered``: its values the registered ones, its field turned by R_new R_calᵀ (the
+    base rotations in the tracker frame; the identity when only the reflector was
+    re-fitted), exactly (:meth:`~kpi_calib_ros.core.diagnosis.learned_residual.
+    LearnedResidual.rotated`)."""
+    base = cm.model.params.indices([f'base.{c}' for c in BASE_COMPONENTS[3:]])
+    old = np.array(rpy_matrix(*np.asarray(p, float)[base]), float)
+    new = np.array(rpy_matrix(*np.asarray(registered, float)[base]), float)
+    return dataclasses.replace(stored, residual=stored.residual.rotated(new @ old.T),
+                               values=np.asarray(registered, float).copy())
+
+
+def learned_file(calibration_path: str | Path) -> Path | None:
+    """The learned_residual.yaml written beside ``calibration_path``, if there is one."""
+    path = Path(calibration_path).parent / LEARNED_RESIDUAL_FILE
+    return path if path.is_file() else None
+
+
+__all__ = ['carried_residual', 'choose_residual', 'field_covariance', 'learned_file',
+           'learned_residual_section', 'learned_section', 'learned_validation_text',
+           'physical_covariance', 'point_rows', 'predict_stored', 'predict_tcp',
+           'stored_cell_model', 'tcp_entries', 'too_many_rows', 'validate_learned']

@@ -23,13 +23,23 @@ import numpy as np
 
 from kpi_calib_ros.app.calibration_document import require_valid
 from kpi_calib_ros.app.cell_model import CellModel, build_cell_model
-from kpi_calib_ros.app.learned_residual import learned_validation_text, validate_learned
+from kpi_calib_ros.app.learned_residual import (
+    learned_file,
+    learned_section,
+    learned_validation_text,
+)
 from kpi_calib_ros.app.measurements import (
     measurements_from_bag,
     print_rejections,
     with_recordings,
 )
-from kpi_calib_ros.core.diagnosis.validation import Validation, set_up_moved, validate
+from kpi_calib_ros.core.diagnosis.validation import (
+    Validation,
+    against_nominal_on_new,
+    nominal_validation,
+    set_up_moved,
+    validate,
+)
 from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.estimation.plausibility import registration_violations
 from kpi_calib_ros.core.estimation.residuals import (
@@ -46,12 +56,10 @@ from kpi_calib_ros.core.measurement.recordings import (
     row_covariates,
 )
 from kpi_calib_ros.core.measurement.replicates import SAME_POSE_TOLERANCE
-from kpi_calib_ros.core.model.kinematics import rpy_matrix
 from kpi_calib_ros.core.model.parameters import BASE_COMPONENTS, reflector_prefixes
 from kpi_calib_ros.io.calibration_file import calibration_recordings, read_calibration_document
 from kpi_calib_ros.io.cell import load_cell
-from kpi_calib_ros.io.learned_residual_file import StoredResidual, read_residual
-from kpi_calib_ros.io.names import LEARNED_RESIDUAL_FILE, VALIDATION_FILE
+from kpi_calib_ros.io.names import VALIDATION_FILE
 from kpi_calib_ros.io.report_plots import write_validation_plots
 from kpi_calib_ros.io.results import writable_folder, write_atomic
 
@@ -321,9 +329,37 @@ def registration_valid(doc: Mapping[str, Any]) -> bool:
 
 
 def passed(doc: Mapping[str, Any]) -> bool:
-    """Whether the validation document passes: the calibration holds and the placement it
-    re-registered on the new recording (if any) is determined."""
-    return doc.get('holds') is True and registration_valid(doc)
+    """Whether the validation document passes: the calibration holds, the placement it
+    re-registered on the new recording (if any) is determined, and it predicts the new
+    points no worse than the nominal robot registered on them (``against_nominal``)."""
+    return (doc.get('holds') is True and registration_valid(doc)
+            and not (doc.get('against_nominal') or {}).get('worse_than_nominal', False))
+
+
+def against_nominal_robot(cm: CellModel, placed: np.ndarray, doc: dict[str, Any],
+                          data: Measurements, v: Validation, register: str | None
+                          ) -> dict[str, Any] | None:
+    """The calibrated robot against the nominal robot on the new points ``data``, each with
+    its placement (base pose, reflector offsets) registered on them: the robots compared,
+    not the placements (:func:`~kpi_calib_ros.core.diagnosis.validation.
+    against_nominal_on_new`; the nominal robot with its placement fitted on the points
+    against the calibration with the placement it brings would compare an oracle with a
+    prediction). ``v``: the validation with ``register``, reused when it registered both.
+    None when the new points cannot place either or leave no degree of freedom."""
+    index = cm.model.params.indices(registered_names(cm, 'base+reflector'))
+    nominal = nominal_validation(cm.model, placed, index,
+                                 np.array(doc['noise_sigma_m'], float), data)
+    try:
+        same = v if register == 'base+reflector' else validate_calibration(
+            cm, placed, doc, data, 'base+reflector')
+    except (DataError, np.linalg.LinAlgError):
+        return None
+    ref = np.zeros(len(v.residuals), int) if data.reflector is None else data.reflector
+    versus = (None if nominal is None else
+              against_nominal_on_new(same, nominal, np.asarray(ref) < cm.model.n_reflectors))
+    if versus is None or not np.isfinite([versus.rms_m, versus.nominal_rms_m]).all():
+        return None
+    return versus.to_dict()
 
 
 def verdict(v: Validation) -> str:
@@ -391,6 +427,19 @@ def validation_text(doc: dict[str, Any]) -> str:
              f"inside the training joint ranges: rms {mm(doc['rms_inside_training_range_m'])}; "
              f"outside ({doc['outside_training_range']} points): "
              f"{mm(doc['rms_outside_training_range_m'])}"]
+    versus = doc.get('against_nominal')
+    if versus:
+        worse = versus['worse_than_nominal']
+        label = ('WORSE THAN NO CALIBRATION' if worse else 'better than no calibration'
+                 if versus['rms_m'] < versus['nominal_rms_m']
+                 else 'no better than no calibration, within the noise')
+        lines.append(
+            f"{label}: with the placement (base pose, reflector offsets) registered on these "
+            f"points, the calibrated robot predicts them at {mm(versus['rms_m'])} rms, the "
+            f"nominal robot at {mm(versus['nominal_rms_m'])} (corrected for the "
+            f"{versus['dof']} dof the placement took; noise {mm(versus['noise_m'])})" + (
+                '; here the calibration does harm: do not use it for poses like these '
+                '(identify again with poses that cover them)' if worse else ''))
     moved = doc.get('set_up_moved')
     if moved:
         lines.append(f"the new points match the calibration after a rigid move of "
@@ -488,6 +537,9 @@ def validate_report(cm: CellModel, doc: dict[str, Any], data: Measurements,
     placed = parameter_vector(cm, seen)
     v = validate_calibration(cm, placed, seen, data, register)
     out = validation_to_dict(v, data, doc.get('rms_m'), cm, calibration_noise_scale(doc))
+    versus = against_nominal_robot(cm, placed, seen, data, v, register)
+    if versus is not None:
+        out['against_nominal'] = versus
     if recording is not None:
         out['recording'] = recording
     if conditions:
@@ -505,46 +557,6 @@ def validate_report(cm: CellModel, doc: dict[str, Any], data: Measurements,
     write_validation_plots(out_dir, cm.robot, np.atleast_2d(data.q), v.residuals, v.outside,
                            v.repeated)
     return out
-
-
-def learned_section(cm: CellModel, p: np.ndarray, path: Path, data: Measurements,
-                    registered: np.ndarray | None = None) -> dict[str, Any]:
-    """The learned residual at ``path`` validated on ``data``, or why it was not.
-
-    One written for another calibration than ``p`` (:meth:`~kpi_calib_ros.io.
-    learned_residual_file.StoredResidual.other_calibration`) is skipped, said why.
-    ``registered``: the values after ``--register`` re-fitted the placement on ``data``. The
-    learned field lives in the robot's joint space and moves with the robot: it is carried
-    into the new set-up turned by the registered base rotation relative to the calibration's
-    (:func:`carried_residual`), and predicts with the registered placement.
-    """
-    stored = read_residual(path, 'learned residual')
-    other = stored.other_calibration(cm.model.params.names, p)
-    if other:
-        return {'file': path.name, 'skipped': f'not validated: {other}'}
-    if registered is not None:
-        stored = carried_residual(cm, stored, p, registered)
-    return validate_learned(cm, stored, data)
-
-
-def carried_residual(cm: CellModel, stored: StoredResidual, p: np.ndarray,
-                     registered: np.ndarray) -> StoredResidual:
-    """``stored`` (written for the calibration ``p``) in a set-up registered as
-    ``registered``: its values the registered ones, its field turned by R_new R_calᵀ (the
-    base rotations in the tracker frame; the identity when only the reflector was
-    re-fitted), exactly (:meth:`~kpi_calib_ros.core.diagnosis.learned_residual.
-    LearnedResidual.rotated`)."""
-    base = cm.model.params.indices([f'base.{c}' for c in BASE_COMPONENTS[3:]])
-    old = np.array(rpy_matrix(*np.asarray(p, float)[base]), float)
-    new = np.array(rpy_matrix(*np.asarray(registered, float)[base]), float)
-    return dataclasses.replace(stored, residual=stored.residual.rotated(new @ old.T),
-                               values=np.asarray(registered, float).copy())
-
-
-def learned_file(calibration_path: str | Path) -> Path | None:
-    """The learned_residual.yaml written beside ``calibration_path``, if there is one."""
-    path = Path(calibration_path).parent / LEARNED_RESIDUAL_FILE
-    return path if path.is_file() else None
 
 
 def run_validate(cell_path: str | Path, calibration_path: str | Path, bag_path: str | Path,
@@ -565,8 +577,9 @@ def run_validate(cell_path: str | Path, calibration_path: str | Path, bag_path: 
     topics when they are not the cell's (``--joint-topic`` …, as for identify).
 
     Returns 0 when the calibration holds, 1 when it does not or cannot be tested (no
-    degrees of freedom left after the re-registration) or when the placement ``register``
-    re-fitted is undetermined by the new poses (:func:`passed`). A calibration whose ``valid:`` is
+    degrees of freedom left after the re-registration), when the placement ``register``
+    re-fitted is undetermined by the new poses, or when it predicts the new points worse
+    than the nominal robot registered on them (:func:`passed`). A calibration whose ``valid:`` is
     false (calibration.failed.yaml) is refused (ConfigError): whether it holds is no
     question for a calibration that was never published.
     """

@@ -76,7 +76,8 @@ from kpi_calib_ros.core.measurement.weighting import row_torques
 
 __all__ = ['PREDICTION_TOLERANCE', 'TrainingSpan', 'Validation', 'range_tolerance',
            'shared_chi2', 'training_row_space', 'validate', 'set_up_moved',
-           'SET_UP_MOVED_FRACTION']
+           'SET_UP_MOVED_FRACTION', 'NominalOnNew', 'against_nominal_on_new', 'corrected_rms',
+           'nominal_validation']
 
 # Largest relative part of a new point's gradient outside the training row space
 # (column-equilibrated, as core.estimation.estimability) for its prediction to count as
@@ -432,3 +433,104 @@ def set_up_moved(v: Validation, data: Measurements, points: np.ndarray
     angle = float(np.arccos(np.clip((np.trace(rot) - 1.0) / 2.0, -1.0, 1.0)))
     return {'translation_m': float(np.linalg.norm(trans)), 'rotation_rad': angle,
             'rms_before_m': before_rms, 'rms_after_m': after_rms}
+
+
+@dataclass(frozen=True)
+class NominalOnNew:
+    """A calibrated robot against the nominal robot on new measurements.
+
+    The calibrated robot and the nominal robot (every parameter at its URDF value) each
+    have their placement registered on the new points themselves, so the robots are
+    compared, not the placements. Each rms is over the point rows and corrected for the
+    degrees of freedom its placement took from them, rms·√(3n / (3n − k)): a placement
+    fitted to the points it is scored on makes them look better than new ones by that
+    factor (the unbiased residual variance of least squares).
+
+    Attributes
+    ----------
+    rms_m, nominal_rms_m : float
+        The calibration's and the registered nominal robot's corrected rms (m).
+    dof, nominal_dof : int
+        Degrees of freedom each took from the new points (k).
+    points : int
+        Point rows compared (n).
+    noise_m : float
+        What the noise alone spreads an rms of these points by, σ_p/√(6n), σ_p² the mean
+        total variance of a point's noise (as the recordings' verdict of identify).
+    """
+
+    rms_m: float
+    nominal_rms_m: float
+    dof: int
+    nominal_dof: int
+    points: int
+    noise_m: float
+
+    @property
+    def worse(self) -> bool:
+        """Whether the calibrated robot predicts the new points worse than nominal.
+
+        Worse than the nominal robot, both registered on them, beyond the noise: the
+        calibration does harm where these poses were taken.
+        """
+        return bool(np.isfinite(self.rms_m) and np.isfinite(self.nominal_rms_m)
+                    and self.rms_m > self.nominal_rms_m + self.noise_m)
+
+    def to_dict(self) -> dict[str, float | int | bool]:
+        """JSON-ready figures and the verdict (``worse_than_nominal``)."""
+        return {'rms_m': self.rms_m, 'nominal_rms_m': self.nominal_rms_m,
+                'dof': self.dof, 'nominal_dof': self.nominal_dof, 'points': self.points,
+                'noise_m': self.noise_m, 'worse_than_nominal': self.worse}
+
+
+def corrected_rms(residuals: np.ndarray, dof: int) -> float:
+    """Return the rms of ``residuals`` (n, 3) corrected for the ``dof`` a fit on them took.
+
+    sqrt(Σ‖r_i‖² / (3n − dof)) per axis times √3; NaN when no degree of freedom is left.
+    """
+    r = np.atleast_2d(residuals)
+    left = 3 * len(r) - int(dof)
+    if left <= 0:
+        return float('nan')
+    return float(np.sqrt(3.0 * np.sum(r ** 2) / left))
+
+
+def against_nominal_on_new(calibration: Validation, nominal: Validation,
+                           points: np.ndarray) -> NominalOnNew:
+    """Compare a calibration's validation with the nominal robot's on the same points.
+
+    ``calibration``: the calibration's validation with its placement re-registered on the
+    new points as the nominal's is. ``nominal``: the nominal robot's validation on the same
+    new measurements with its placement re-registered (:func:`validate` with the nominal
+    values, nothing estimated, ``registered`` its placement). ``points``: the point rows (a
+    tracked body's rotation rows are no length).
+    """
+    points = np.asarray(points, dtype=bool)
+    n = int(points.sum())
+    taken = calibration.registration.dof if calibration.registration is not None else 0
+    taken_nominal = nominal.registration.dof if nominal.registration is not None else 0
+    variance = 3.0 * nominal.predicted_std[points] ** 2  # its noise alone: nothing estimated
+    noise = float(np.sqrt(np.mean(variance) / (6 * n))) if n else float('nan')
+    return NominalOnNew(corrected_rms(calibration.residuals[points], taken),
+                        corrected_rms(nominal.residuals[points], taken_nominal),
+                        int(taken), int(taken_nominal), n, noise)
+
+
+def nominal_validation(model: MeasurementModel, placed: np.ndarray, registered: np.ndarray,
+                       sigma: np.ndarray, data: Measurements) -> Validation | None:
+    """Return the nominal robot's validation on ``data``, its placement re-registered.
+
+    Every parameter at its nominal (URDF) value but the placement ``registered``
+    (positions), started from the calibration's ``placed`` and re-fitted on ``data``;
+    ``sigma``: the stated noise. None when the new points cannot place it (fewer than 3,
+    or a singular fit).
+    """
+    registered = np.asarray(registered, dtype=int)
+    p = np.array(model.params.nominal, dtype=float)
+    p[registered] = np.asarray(placed, dtype=float)[registered]
+    n = model.robot.n_joints
+    try:
+        return validate(model, p, np.zeros(0, dtype=int), np.zeros((0, 0)), sigma, data,
+                        np.full(n, -np.inf), np.full(n, np.inf), registered=registered)
+    except (DataError, np.linalg.LinAlgError):
+        return None
