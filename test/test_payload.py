@@ -8,12 +8,14 @@ import dataclasses
 
 import numpy as np
 import pytest
+import yaml
 
 from kpi_calib_ros.app.cell_model import build_cell_model
 from kpi_calib_ros.app.identify import calibrate_cell, with_effects
+from kpi_calib_ros.app.measurements import check_payload_limit
 from kpi_calib_ros.core.diagnosis.effect_signature import augmented_model
 from kpi_calib_ros.core.effects.registry import parse_effect_spec
-from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.payload import row_payloads
 from kpi_calib_ros.core.measurement.recordings import stated_conditions
@@ -201,3 +203,25 @@ def test_the_estimability_verdict_is_that_of_each_rows_torques_and_the_working_p
                        {c: x[cal.robust.kept] for c, x in v.items()}) for k, v in kw.items()}
         rows_jac = _finite_differences(loaded.model, p, kept.q, names, **kept_kw) / SIGMA
         np.testing.assert_allclose(data_jac, rows_jac, atol=1e-6 * np.abs(rows_jac).max())
+
+
+def test_a_row_payload_beyond_what_the_robot_carries_is_refused(cm, tmp_path, capsys):
+    """Payloads in grams written as kg (0 and 5000) passed the 5000 kg any arm may lift, and
+    a fit published compliances 400-800 times too small as valid. A row's payload is now
+    bounded by the robot's moving links' mass in the URDF (the KR15-class arm: 186 kg), or
+    by the cell's payload.limit; beyond it the rows are refused naming the field and fix."""
+    assert cm.robot.moving_mass_kg == pytest.approx(186.0)
+    grams = {'payload.mass': np.array([0.0, 5000.0, 0.0, 5000.0])}
+    with pytest.raises(DataError, match=r'payload.mass of 2 of 4 rows beyond what the robot '
+                                        r'carries, 186 kg .*largest 5000 kg at row 1.*'
+                                        r'grams\? divide by 1000.*payload.limit'):
+        check_payload_limit(cm, grams, 'bag')
+    check_payload_limit(cm, {'payload.mass': np.array([0.0, 5.0])}, 'bag')  # kilograms pass
+    doc = yaml.safe_load(DEFAULT_CELL.read_text())
+    doc['robot']['urdf'] = str((DEFAULT_CELL.parent / doc['robot']['urdf']).resolve())
+    doc['payload'] = dict(doc.get('payload') or {}, limit=5000.0)
+    rated = build_cell_model(cell_from_dict(doc, tmp_path))
+    check_payload_limit(rated, grams, 'bag')  # a heavy-duty rating stated: accepted
+    doc['payload']['limit'] = 1.0  # below the cell's own payload (5 kg)
+    with pytest.raises(ConfigError, match='payload.limit'):
+        cell_from_dict(doc, tmp_path)

@@ -36,7 +36,7 @@ from kpi_calib_ros.core.measurement.covariates import (
     with_covariates,
 )
 from kpi_calib_ros.core.measurement.data import Measurements
-from kpi_calib_ros.core.measurement.payload import row_payloads
+from kpi_calib_ros.core.measurement.payload import PAYLOAD_MASS, row_payloads
 from kpi_calib_ros.core.measurement.pose_rows import with_rotation_rows
 from kpi_calib_ros.core.measurement.recordings import (
     Recording,
@@ -245,6 +245,7 @@ def with_inputs(cm: CellModel, data: Measurements, samples: Sequence[InputSample
         row_payloads(kept.covariates, len(kept), cm.robot.payload)
     except ValueError as exc:
         raise DataError(f'{where}: payload.mass / payload.com: {exc}') from None
+    check_payload_limit(cm, kept.covariates, where)
     if settings.torque_source == 'measured' and len(kept):
         assert kept.covariates is not None
         tau = np.column_stack([kept.covariates[effort_name(j)] for j in cm.joint_names])
@@ -440,7 +441,46 @@ def load_recordings(cell_path: str | Path, sources: Sequence[RecordingSource],
         data = combine(parts, recordings)
     except ValueError as exc:
         raise ConfigError('recordings', f'{exc}') from None
+    check_payload_limit(cm, data.covariates, 'recordings')
     return with_recordings(cm, recordings), data, merged_pairing(pairings)
+
+
+def payload_limit(cm: CellModel) -> tuple[float, str] | None:
+    """The most the robot carries (kg) and where that figure comes from: the cell's
+    ``payload.limit``, else the mass of the robot's moving links in the URDF (no serial
+    arm carries more than its own arm weighs); None when the URDF states no masses."""
+    if cm.cell.payload_limit is not None:
+        return cm.cell.payload_limit, 'payload.limit'
+    mass = cm.robot.moving_mass_kg
+    if mass > 0.0:
+        return mass, f"the mass of the robot's moving links in the URDF ({mass:.3g} kg)"
+    return None
+
+
+def check_payload_limit(cm: CellModel, covariates: Mapping[str, np.ndarray] | None,
+                        where: str) -> None:
+    """Refuse rows whose ``payload.mass`` exceeds what the robot carries
+    (:func:`payload_limit`): grams written as kg passed the 5000 kg any arm may lift, and
+    a fit of 0 and 5000 "kg" published compliances 400-800 times too small as valid.
+
+    Raises
+    ------
+    DataError
+        Naming the field, the rows, the largest value and the fix.
+    """
+    mass = (covariates or {}).get(PAYLOAD_MASS)
+    limit = payload_limit(cm)
+    if mass is None or limit is None:
+        return
+    mass = np.asarray(mass, float)
+    over = np.flatnonzero(mass > limit[0])
+    if len(over):
+        raise DataError(f'{where}: {PAYLOAD_MASS} of {len(over)} of {len(mass)} rows beyond '
+                        f'what the robot carries, {limit[0]:.3g} kg ({limit[1]}): largest '
+                        f'{float(mass[over].max()):g} kg at row {int(over[0])}; a payload is in '
+                        'kg (grams? divide by 1000; the column\'s unit in the mapping); if '
+                        'the robot truly carries it, state its rating as payload.limit (kg) '
+                        'in the cell')
 
 
 def check_stated_covariates(cm: CellModel, recordings: Sequence[Recording]) -> None:

@@ -104,7 +104,7 @@ _ROBOT_KEYS = {'urdf', 'base_frame', 'tip_frame', 'package_dirs', 'joint_couplin
 _SECTION_KEYS = {'tracker': {'frame_id', 'base_in_tracker'},
                  'reflector': {'offset', 'axis', 'max_incidence'},
                  'noise': {'sigma', 'sigma_rotation', 'joint_sigma'},
-                 'payload': {'mass', 'com'},
+                 'payload': {'mass', 'com', 'limit'},
                  'collision': {'capsules', 'ignore_pairs', 'beam_radius'}}
 DEFAULT_CELL = Path(__file__).resolve().parent.parent / 'data' / 'cells' / 'default_cell.yaml'
 
@@ -148,6 +148,8 @@ class Cell:
     # stored zeros are then placeholders, registered from the data before identifying.
     base_in_tracker_given: bool = True
     reflector_offset_given: bool = True
+    # payload.limit (kg): the most the robot carries; None: its moving links' mass.
+    payload_limit: float | None = None
     # robot.joint_coupling: {urdf_joint: {controller_joint: factor}} (validated against
     # the chain in build_cell_model); robot.working_poses_in: 'controller' or 'urdf'.
     joint_coupling: Mapping[str, Any] = field(default_factory=dict)
@@ -326,6 +328,9 @@ def cell_from_dict(doc: Any, base_dir: Path, urdf_xml: str | None = None,
         simulation=simulation_settings(doc.get('simulation')),
         identification=identification_settings(ident), source_dir=str(base_dir),
         package_dirs=parse_package_dirs(robot.get('package_dirs')),
+        payload_limit=(None if payload.get('limit') is None else _payload_limit(
+            checked_payload_mass(number(payload, 'limit', 'payload', None, 'kg'),
+                                 'payload.limit'), mass)),
         base_in_tracker_given=tracker.get('base_in_tracker') is not None,
         reflector_offset_given=(bool(not np.isnan(offsets).any()) if offsets is not None
                                 else reflector.get('offset') is not None),
@@ -354,3 +359,11 @@ def with_overrides(cell: Cell, urdf_xml: str | None = None,
     if working_poses:
         changes['working_poses'] = tuple(working_poses)
     return replace(cell, **changes)
+
+
+def _payload_limit(limit: float, mass: float) -> float:
+    """``payload.limit`` (kg), positive and no less than the cell's ``payload.mass``."""
+    if limit <= 0.0 or limit < mass:
+        raise ConfigError('payload.limit', f'{limit!r} kg: the most the robot carries, '
+                          f'positive and at least payload.mass ({mass:g} kg)')
+    return limit

@@ -121,6 +121,11 @@ CELL_KEYS: tuple[CellKey, ...] = (
     _K('payload.mass', 'number', 'kg', '0', 'Payload mass, ≥ 0.', 5.0),
     _K('payload.com', '[x, y, z]', 'm', '[0, 0, 0]', 'Payload centre of mass in the tip '
        'frame.', [0.0, 0.0, 0.05]),
+    _K('payload.limit', 'number', 'kg', 'the mass of the robot\'s moving links in the URDF',
+       'The most the robot carries (its rated payload): a measured row\'s `payload.mass` '
+       'beyond it is refused as a unit slip (grams written as kg) or a fault of the '
+       'controller\'s report. No serial arm carries more than its own moving links weigh '
+       '(payload to arm mass: 0.2-0.5 for cobots, below for industrial arms).', 10.0),
     # ---------------------------------------------------------- working poses
     _K('working_poses', 'list', 'rad (m for prismatic joints)', NONE, 'The poses where '
        'the robot works: the KPI is the TCP covariance there. Each item is a mapping or a '

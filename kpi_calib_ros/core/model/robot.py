@@ -187,6 +187,16 @@ class RobotModel:
         return np.array([j.upper for j in self.joints])
 
     @property
+    def moving_mass_kg(self) -> float:
+        """The mass (kg) of the links the chain's joints move.
+
+        The cell's payload left out; 0 when the URDF states no inertias.
+        """
+        model, first, tip = self.pin_model, self._pin_joint_ids[0], self._pin_joint_ids[-1]
+        return float(sum(self._bare_tip.mass if j == tip else model.inertias[j].mass
+                         for j in model.subtrees[first]))
+
+    @property
     def has_mimic(self) -> bool:
         """Whether a chain joint mimics another (its value follows the master's)."""
         return any(j.mimic is not None for j in self.joints)
