@@ -128,6 +128,51 @@ def test_the_independent_joints_keep_their_chain_order_whatever_their_mimics():
     assert np.abs(robot.pin_tip_pose(q) - expected).max() < 1e-12
 
 
+def _heavy_chain() -> str:
+    """Four horizontal-axis revolute joints with masses; j3 = -j2 + 0.1 (j2 drives it)."""
+    def joint(name, parent, child, mimic=''):
+        return (f'<joint name="{name}" type="revolute"><parent link="{parent}"/>'
+                f'<child link="{child}"/><origin xyz="0.3 0 0.05"/><axis xyz="0 1 0"/>'
+                f'<limit lower="-1.5" upper="1.5" effort="1" velocity="1"/>{mimic}</joint>')
+
+    def link(name, mass):
+        return (f'<link name="{name}"><inertial><origin xyz="0.15 0 0"/><mass value="{mass}"/>'
+                '<inertia ixx="0.01" ixy="0" ixz="0" iyy="0.01" iyz="0" izz="0.01"/>'
+                '</inertial></link>')
+    links = ''.join(link(n, m) for n, m in (('base', 5.0), ('l1', 4.0), ('l2', 3.0),
+                                             ('l3', 2.0), ('tip', 1.0)))
+    return (f'<robot name="heavy">{links}' + joint('j1', 'base', 'l1')
+            + joint('j2', 'l1', 'l2') + joint('j3', 'l2', 'l3', '<mimic joint="j2" '
+                                                'multiplier="-1" offset="0.1"/>')
+            + joint('j4', 'l3', 'tip') + '</robot>')
+
+
+def test_a_drive_carries_the_gravity_load_of_the_joints_that_mimic_it():
+    """The gravity force of a chain joint other chain joints mimic is that of its actuated
+    coordinate (the drive's virtual work, Pinocchio's mimic=True model): it was the joint's
+    own torque alone, so a compliance on a drive read a lift's 470 N where it carries
+    607 N. A mimic joint and the others keep their own."""
+    urdf = _heavy_chain()
+    robot = RobotModel(urdf, 'base', 'tip')
+    assert robot.actuated_names == ('j1', 'j2', 'j4')
+    reduced = pin.buildModelFromXML(urdf, mimic=True)
+    plain = pin.buildModelFromXML(urdf)
+    rng = np.random.default_rng(3)
+    for x in rng.uniform(-1.0, 1.0, (5, 3)):
+        q = robot.chain_values(x)
+        tau = robot.gravity_torques(q)
+        values = pin.neutral(reduced)
+        for name, v in zip(robot.actuated_names, x):
+            values[reduced.joints[reduced.getJointId(name)].idx_q] = v
+        g = pin.computeGeneralizedGravity(reduced, reduced.createData(), values)
+        own = pin.computeGeneralizedGravity(plain, plain.createData(), q)
+        for name in robot.actuated_names:
+            assert tau[robot.joint_names.index(name)] == pytest.approx(
+                g[reduced.joints[reduced.getJointId(name)].idx_v], rel=1e-10, abs=1e-10)
+        assert tau[2] == pytest.approx(own[2], rel=1e-12)  # the mimic joint: its own
+        assert abs(tau[1] - own[1]) > 1.0  # the drive carries j3's load too
+
+
 def test_a_mimic_of_a_mimic_off_the_chain_is_refused():
     """j2 mimics aux, off the chain, which mimics j3: refused as on the chain (before, aux
     was taken as independent and j2 read 0.1 where the URDF makes it -0.7)."""

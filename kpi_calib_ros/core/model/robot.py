@@ -490,7 +490,11 @@ class RobotModel:
         -------
         (n,) or (N, n) ndarray
             Generalised gravity forces including the payload, with the URDF
-            root frame taken as level (gravity along its -z).
+            root frame taken as level (gravity along its -z). A chain joint that other
+            chain joints mimic carries their load too: its force is that of its actuated
+            coordinate, Σ_i M_ij τ_i over the chain joints i it drives (itself included,
+            :attr:`mimic_matrix`), the virtual work of the drive (as Pinocchio's
+            ``mimic=True`` model gives it); a mimic joint keeps its own.
 
         Raises
         ------
@@ -517,6 +521,10 @@ class RobotModel:
                            else self._model_with(payloads[k]))
             tau = pin.computeGeneralizedGravity(model, data, self.pin_configuration(row))
             out[k] = np.asarray(tau)[v_idx]
+        if self.has_mimic:
+            drives = [i for i, j in enumerate(self.joints) if j.mimic is None]
+            columns = np.argmax(np.abs(self._mimic_matrix[drives]), axis=1)
+            out[:, drives] = (out @ self._mimic_matrix)[:, columns]
         return out[0] if single else out
 
     def within_limits(self, q: np.ndarray, margin: float = 0.0) -> np.ndarray:
