@@ -84,6 +84,9 @@ def test_the_node_logs_and_pairs_an_inclinometer_topic(tmp_path, ros_domain):
         client.publish_measurements(q, cm.joint_names, eta, cm.cell.tracker_frame, accepted=N)
         answer = client.call('identify', timeout=120.0)
         assert answer.success, answer.message
+        # the published URDF holds the geometry only: the node says what it leaves out
+        assert ('robot_description_calibrated: the calibrated URDF holds the geometry only: '
+                f'the effects {SPEC} move the point by up to') in answer.message, answer.message
         client.spin_until(lambda: client.received['calibration'], 30, 'a calibration')
         doc = client.received['calibration'][-1]
         gains = {p['name']: p for p in doc['parameters']

@@ -254,3 +254,51 @@ def test_cli_calibrated_urdf_of_the_stock_ur10_reproduces_the_fit(tmp_path):
     # ... and the calibration is a real one: the nominal URDF misses by far more.
     nominal = np.array([(base @ cm.robot.pin_tip_pose(q) @ reflector)[:3] for q in data.q])
     assert np.sqrt(np.mean((data.eta - nominal) ** 2)) > 20 * doc['rms_m']
+
+
+def test_identify_says_how_far_the_effects_the_urdf_leaves_out_move_the_point(tmp_path,
+                                                                              capsys):
+    """A compliance identified (joint 2 sags under its gravity torque): the written URDF
+    holds the geometry only, and identify says by how much the effects move the point at
+    the measured poses; the figure equals the largest distance between the calibration's
+    prediction (the measured points less its residuals) and the written URDF's Pinocchio
+    forward kinematics with the calibration's placement."""
+    import re
+
+    import yaml
+
+    from kpi_calib_ros.app.measurements import load_measurements
+    from kpi_calib_ros.app.simulate import simulate_campaign
+    from kpi_calib_ros.cli import main
+    from kpi_calib_ros.core.model.kinematics import pose6
+    from kpi_calib_ros.io.cell import DEFAULT_CELL
+    from kpi_calib_ros.io.names import CALIBRATED_URDF_FILE
+    doc = yaml.safe_load(DEFAULT_CELL.read_text())
+    doc['robot']['urdf'] = str((DEFAULT_CELL.parent / doc['robot']['urdf']).resolve())
+    doc['simulation'] = {'hidden_effects': {'joint_compliance:joint_2': {'c': 4.0e-6}}}
+    doc.setdefault('identification', {})['model'] = 'geometric'
+    cell = tmp_path / 'cell.yaml'
+    cell.write_text(yaml.safe_dump(doc))
+    bag = tmp_path / 'run.mcap'
+    simulate_campaign(cell, 40, bag, seed=7)
+    capsys.readouterr()
+    assert main(['identify', '--cell', str(cell), '--bag', str(bag), '--effects',
+                 'joint_compliance:joint_2', '--out', str(tmp_path / 'out')]) == 0
+    text = capsys.readouterr().out
+    found = re.search(r'NOTE: the calibrated URDF holds the geometry only: the effects '
+                      r'joint_compliance:joint_2 move the point by up to ([0-9.]+) µm', text)
+    assert found, text
+    out = yaml.safe_load((tmp_path / 'out' / 'calibration.yaml').read_text())
+    value = {p['name']: p['value'] for p in out['parameters']}
+    cm, data, _ = load_measurements(cell, bag)
+    written = RobotModel((tmp_path / 'out' / CALIBRATED_URDF_FILE).read_text(),
+                         cm.robot.base_frame, cm.robot.tip_frame)
+    base = np.array(pose6([value[f'base.{c}'] for c in ('x', 'y', 'z', 'roll', 'pitch',
+                                                         'yaw')]))
+    reflector = np.array([value[f'reflector.{c}'] for c in 'xyz'] + [1.0])
+    urdf = np.array([(base @ written.pin_tip_pose(q) @ reflector)[:3] for q in data.q])
+    calibration = data.eta - np.asarray(out['residuals_m'])
+    largest = np.linalg.norm(calibration - urdf, axis=1).max() * 1e6
+    print(f"URDF leaves out up to {largest:.1f} µm")
+    assert float(found.group(1)) == pytest.approx(largest, abs=0.06)
+    assert largest > 50.0  # the sag is real: 4e-6 rad/(N m) under the arm's own weight

@@ -309,6 +309,32 @@ def calibrated_robot_description(cm: CellModel, result: CalibrationResult) -> st
     return calibrated_urdf(cm.cell.urdf_xml, cm.robot, dict(zip(result.names, result.values)))
 
 
+def urdf_omission(cm: CellModel, result: CalibrationResult, data: Measurements) -> str:
+    """What the calibrated URDF leaves out, in words ('' when nothing): a URDF holds the
+    geometry only, so the effects of the model (a compliance's sag, a periodic error, a
+    measured tilt) are not in it; the figure is how far they move the point at the
+    measured rows (``data``, with their torques and covariates), the calibration's values
+    against the same values with every effect parameter at its nominal value."""
+    effects = [e.name for e in cm.model.effects]
+    if not effects or len(data) == 0:
+        return ''
+    values = np.asarray(result.values, float)
+    geometric = values.copy()
+    extra = np.arange(len(cm.geometric), len(values))
+    geometric[extra] = np.asarray(cm.model.params.nominal, float)[extra]
+    points = (np.ones(len(data), bool) if data.reflector is None
+              else np.asarray(data.reflector) < cm.model.n_reflectors)
+    rows = data.subset(points)
+    moved = np.linalg.norm(
+        cm.model.predict(values, rows.q, rows.tau, rows.reflector, covariates=rows.covariates)
+        - cm.model.predict(geometric, rows.q, rows.tau, rows.reflector,
+                           covariates=rows.covariates), axis=1)
+    return (f'the calibrated URDF holds the geometry only: the effects {", ".join(effects)} '
+            f'move the point by up to {moved.max() * 1e6:.1f} µm (rms '
+            f'{np.sqrt(np.mean(moved ** 2)) * 1e6:.1f} µm) at the measured poses and are not '
+            'in it; predict the TCP with calibration.yaml (the node\'s TCP query, validate)')
+
+
 def recordings_section(cm: CellModel, data: Measurements, cal: CellCalibration,
                        recordings: Sequence[Recording], bags: Sequence[str]
                        ) -> list[dict[str, Any]]:

@@ -23,6 +23,7 @@ from kpi_calib_ros.app.calibration_document import (
     recordings_section,
     recordings_text,
     robust_summary,
+    urdf_omission,
     with_recording_names,
 )
 from kpi_calib_ros.app.cell_model import CellModel
@@ -568,5 +569,7 @@ def run_identify(cell_path: str | Path, bag_path: str | Path | Sequence[Recordin
         print(residual_text)
     print(f'written: {done.path}')
     if done.urdf_path is not None:
-        print(f'calibrated robot description (URDF): {done.urdf_path}')
+        omitted = urdf_omission(cm, cal.result, kept)
+        print(f'calibrated robot description (URDF): {done.urdf_path}'
+              + (f'\nNOTE: {omitted}' if omitted else ''))
     return 0 if cal.valid else 1

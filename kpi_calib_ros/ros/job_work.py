@@ -24,6 +24,7 @@ from kpi_calib_ros.app.calibration_document import (
     name_excluded,
     recordings_section,
     recordings_text,
+    urdf_omission,
     with_recording_names,
 )
 from kpi_calib_ros.app.campaign import campaign_calibration, campaign_context, new_campaign
@@ -67,6 +68,7 @@ from kpi_calib_ros.io.calibration_file import calibration_recordings
 from kpi_calib_ros.io.campaign_io import CampaignState, write_campaign_state, write_plan
 from kpi_calib_ros.io.design_io import write_design
 from kpi_calib_ros.io.names import (
+    CALIBRATED_URDF_TOPIC,
     CALIBRATIONS_DIR,
     CAMPAIGN_PLAN_FILE,
     CAMPAIGN_PRIOR_FILE,
@@ -342,6 +344,8 @@ def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, dat
                               notes=tuple(notes))
     tcp = cv.tcp_pose_msgs(result.tcp, result.tcp_covariance, cm.cell.tracker_frame,
                            int(data.stamps_ns[-1]))
+    omitted = urdf_omission(cal.cell or cm, result, data.subset(cal.robust.kept))
+    notes = [*notes, f'{CALIBRATED_URDF_TOPIC}: {omitted}'] if omitted else notes
     return IdentifyOutput(cal, done.text, done.urdf, tuple(tcp), change, str(source or ''),
                           tuple(notes), learned,
                           recordings_text(doc['recordings']) if 'recordings' in doc else '')
