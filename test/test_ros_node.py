@@ -494,6 +494,62 @@ def test_joint_states_at_1khz_all_arrive_while_the_node_identifies(client, spawn
 
 
 @pytest.mark.slow
+def test_a_station_change_stops_a_running_sequential_campaign(tmp_path, ros_domain):
+    """The tracker moved under a running campaign (lost line of sight): the station change
+    was refused, and the campaign could go on only after ~/reset archived its measurements.
+    It is now accepted and stops the campaign (it plans from one placement): stop_reason
+    'station changed' in /diagnostics and campaign_state.yaml, its plan withdrawn,
+    ~/identify no longer refused; a restart does not resume it."""
+    import yaml
+    from std_srvs.srv import Trigger
+
+    from kpi_calib_ros.core.campaigns.settings import STATION_CHANGED
+    from kpi_calib_ros.io.names import CAMPAIGN_STATE_FILE
+    context = Context()
+    rclpy.init(context=context, domain_id=ros_domain)
+    node = caller = again = None
+    executor = SingleThreadedExecutor(context=context)
+    overrides = [Parameter('robot_description', value=KR15_URDF),
+                 Parameter('data_dir', value=str(tmp_path)),
+                 Parameter('campaign', value='sequential'), Parameter('station', value='near')]
+    try:
+        node = CalibrationNode(context=context, parameter_overrides=overrides)
+        caller = rclpy.create_node('caller', context=context)
+        executor.add_node(node)
+        executor.add_node(caller)
+        design = caller.create_client(Trigger, '/kpi_calib_node/design')
+        assert design.wait_for_service(timeout_sec=10)
+        future = design.call_async(Trigger.Request())
+        executor.spin_until_future_complete(future, timeout_sec=120)
+        assert future.done() and future.result().success, future.result()
+        assert node.status()[2]['campaign.stop_reason'] == 'running'
+        result = node.set_parameters([Parameter('station', value='far')])[0]
+        assert result.successful, result.reason
+        assert node.status()[2]['campaign.stop_reason'] == STATION_CHANGED
+        state = yaml.safe_load((tmp_path / CAMPAIGN_STATE_FILE).read_text())
+        assert state['status']['stop_reason'] == STATION_CHANGED
+        assert state['status']['station_changed'] == {'from': 'near', 'to': 'far',
+                                                      'probe_remounted': False}
+        identify = caller.create_client(Trigger, '/kpi_calib_node/identify')
+        assert identify.wait_for_service(timeout_sec=10)
+        future = identify.call_async(Trigger.Request())
+        executor.spin_until_future_complete(future, timeout_sec=60)
+        assert 'sequential campaign is running' not in future.result().message
+        executor.remove_node(node)
+        node.destroy_node()
+        node = None
+        again = CalibrationNode(context=context, parameter_overrides=overrides)
+        assert not again._run.resume_pending
+        assert again.status()[2]['campaign.stop_reason'] == STATION_CHANGED
+    finally:
+        executor.shutdown()
+        for n in (caller, node, again):
+            if n is not None:
+                n.destroy_node()
+        rclpy.shutdown(context=context)
+
+
+@pytest.mark.slow
 def test_campaign_parameters_are_refused_while_a_sequential_campaign_runs(tmp_path,
                                                                           ros_domain):
     """A running campaign keeps its target and cap: a change is refused with the reason, so

@@ -237,10 +237,7 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
                                             CAMPAIGN_FIXED and p.value != getattr(
                                                 self.settings, p.name)])
         changes = {p.name: p.value for p in parameters}
-        if not refused and STATION_PARAMETERS & set(changes) and self._run.sequential_running():
-            refused = ('station: a sequential campaign is running, and it plans from one '
-                       'station; change the station after it stops, or call ~/reset')
-        elif not refused and STATION_PARAMETERS & set(changes):
+        if not refused and STATION_PARAMETERS & set(changes):
             station = changes.get('station', self.settings.station)
             refused = self.store.station_conflict(station, self._station_remount(
                 changes, station))
@@ -266,6 +263,7 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
         if STATION_PARAMETERS & names:
             remount = self._station_remount({p.name: p.value for p in parameters},
                                             self.settings.station)
+            before = self.store.station
             try:
                 changed = self.store.set_station(self.settings.station, remount)
             except (OSError, ValueError) as exc:  # validated: only a disk that fails now
@@ -276,6 +274,8 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
                     self.get_logger().info(f'station {self.store.station[0]!r} (probe '
                                            f'remounted: {self.store.station[1]}) from now on; '
                                            f'logging to {self.store.log.path}')
+                if changed and self._run.sequential_running():
+                    self._stop_for_station(before, self.store.station)
                 if remount != self.settings.station_reflector_remounted:
                     # The parameter follows the station set alone (its own remount).
                     self.set_parameters([Parameter('station_reflector_remounted',

@@ -71,9 +71,13 @@ a new one replaces it (``result`` stays None, no fit of this run).
     sequential_cm: Any = None
     resume_pending: bool = False
     resumed: bool = False
+    # Why the node stopped the campaign itself ('' : it did not): the station changed.
+    sequential_stopped: str = ''
 
     def sequential_running(self) -> bool:
         """A sequential campaign was started (or is to be resumed) and has not stopped."""
+        if self.sequential_stopped:
+            return False
         if self.resume_pending:
             return self.sequential_state is not None and not self.sequential_state.stopped
         status = self.sequential_status

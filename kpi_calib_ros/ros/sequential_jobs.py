@@ -10,6 +10,7 @@ run on the executor and update the node's :class:`~kpi_calib_ros.ros.run_state.R
 """
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import numpy as np
@@ -17,9 +18,10 @@ import yaml
 from std_msgs.msg import String
 
 from kpi_calib_ros.app.cell_model import CellModel
+from kpi_calib_ros.core.campaigns.settings import STATION_CHANGED
 from kpi_calib_ros.core.errors import DataError, KpiCalibError
 from kpi_calib_ros.core.measurement.data import Measurements
-from kpi_calib_ros.io.campaign_io import CampaignState, read_campaign_state
+from kpi_calib_ros.io.campaign_io import CampaignState, read_campaign_state, write_campaign_state
 from kpi_calib_ros.io.names import (
     CAMPAIGN_PRIOR_FILE,
     CAMPAIGN_STATE_FILE,
@@ -48,12 +50,56 @@ class SequentialCampaignJobs(NodeParts):
                 self._run.result_error = f'sequential campaign not resumed: {exc}'
                 self.get_logger().error(self._run.result_error)
             else:
+                stopped = self._run.sequential_state.status.get('stop_reason')
+                if stopped == STATION_CHANGED:  # stopped by the node: nothing to resume
+                    self._run.sequential_stopped = STATION_CHANGED
+                    self.get_logger().info(f'sequential campaign found in {state_path} '
+                                           f'stopped: {STATION_CHANGED}')
+                    return
                 self._run.resume_pending = True
                 self.get_logger().info(
                     f'sequential campaign found in {state_path} '
                     f'({len(self._run.sequential_state.steps)} step(s), '
                     f"{self._run.sequential_state.status.get('stop_reason', 'running')}): "
                     'resuming it once the robot model is known')
+
+    def _stop_for_station(self, before: tuple[str, bool], now: tuple[str, bool]) -> None:
+        """The station changed under a running sequential campaign (the tracker moved, or
+        the probe was remounted): the campaign plans and identifies from one placement, so it
+        stops here, its plan withdrawn (an empty ~/measurement_poses) and ``stop_reason``
+        :data:`STATION_CHANGED` in ~/campaign_status and campaign_state.yaml (a restart does
+        not resume it). Its measurements stay: ``~/identify`` takes every station together,
+        and a campaign at the new station, started with ``~/design`` once a calibration
+        holds it, plans with that calibration as prior. The station change was refused
+        before, and a campaign that lost the line of sight could go on only after
+        ``~/reset`` archived its measurements."""
+        state = self._run.sequential_state
+        self._run.sequential_stopped = STATION_CHANGED
+        advice = (f'measure a few poses at station {now[0]!r}, call ~/identify (every '
+                  'station together), then ~/design with campaign:=sequential plans there '
+                  'with that calibration as prior')
+        if state is not None:
+            doc = {**state.status, 'stop_reason': STATION_CHANGED,
+                   'station_changed': {'from': before[0], 'to': now[0],
+                                       'probe_remounted': now[1]},
+                   'next': advice}
+            state = dataclasses.replace(state, status=doc)
+            self._run.sequential_state = state
+            try:
+                write_campaign_state(self.data_dir / CAMPAIGN_STATE_FILE, state)
+            except OSError as exc:
+                self.get_logger().error(f'campaign state not written: {exc}')
+            self._pub_campaign_status.publish(String(data=yaml.safe_dump(doc, sort_keys=False)))
+        try:
+            names = self._model().joint_names
+        except DataError:  # no robot model yet: no plan was published either
+            names = []
+        if names:
+            self._pub_poses.publish(cv.joint_trajectory_msg(
+                names, np.zeros((0, len(names)), dtype=float)))
+        self.get_logger().warning(f'sequential campaign stopped: {STATION_CHANGED} from '
+                                  f'{before[0]!r} to {now[0]!r}; {advice}')
+        self._publish_diagnostics(force=True)
 
     async def _design_sequential(self, cm: CellModel) -> tuple[bool, str]:
         """Start a sequential campaign at the current station: publish its initial design
@@ -72,6 +118,7 @@ class SequentialCampaignJobs(NodeParts):
             base, cp, self._calibration_text if held else '')
         self._run.sequential, self._run.sequential_status = campaign, None
         self._run.sequential_cm = placed
+        self._run.sequential_stopped = ''
         self._run.sequential_state = CampaignState(settings, seed, station=station,
                                                    base_in_tracker=tuple(base))
         self._run.sequential_stamps, self._run.sequential_initial = set(), len(initial)
@@ -154,6 +201,11 @@ class SequentialCampaignJobs(NodeParts):
         out = await self._offload(job_work.sequential_step_work, campaign, cm, fresh, state,
                                   self.data_dir, pairing,
                                   {'resumed': True} if self._run.resumed else None)
+        if self._run.sequential_stopped and self._run.sequential_state is not None:
+            # The station changed while this step ran: the stop stands, in the file too.
+            write_campaign_state(self.data_dir / CAMPAIGN_STATE_FILE,
+                                 self._run.sequential_state)
+            return False, f'sequential campaign stopped: {self._run.sequential_stopped}'
         status, plan = out.status, out.plan
         self._run.sequential_stamps.update(int(t) for t in stamps[new])
         self._run.sequential_status, self._run.sequential_state = status, out.state

@@ -112,8 +112,8 @@ def node_status(run: RunState, counts: Mapping[str, int], streams: StreamHealth,
                        'campaign.excluded': len(seq.excluded) if seq else 0,
                        'campaign.resumed': run.resumed or run.resume_pending,
                        'campaign.stop_reason': (
-                           'resuming' if run.resume_pending else
-                           (seq.stop_reason if seq else '') or 'running')})
+                           'resuming' if run.resume_pending else run.sequential_stopped
+                           or (seq.stop_reason if seq else '') or 'running')})
     error = model_error or run.result_error
     if error or values['rejected.not_stored']:
         return 'ERROR', error or 'accepted measurements could not be stored', values

@@ -17,6 +17,9 @@ __all__ = ['TARGET_MET', 'MODEL_INADEQUATE', 'MAX_MEASUREMENTS', 'CampaignSettin
 TARGET_MET = 'target met'
 MODEL_INADEQUATE = 'model inadequate: call ~/diagnose'
 MAX_MEASUREMENTS = 'max_measurements reached'
+# The node's campaign stopped because the tracker station changed under it (its stations'
+# measurements stay; ~/identify takes every station together).
+STATION_CHANGED = 'station changed'
 
 
 @dataclass(frozen=True)
