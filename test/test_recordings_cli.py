@@ -250,6 +250,18 @@ def test_validate_register_reflector_refits_the_probe_alone(set_ups, capsys):
     assert out['registration']['parameters'] == ['reflector.x', 'reflector.y', 'reflector.z']
     assert out['dof'] == 3 * POSES['a_remounted'] - 3
     assert out['rms_m'] < 2 * np.sqrt(3) * 2e-5
+    assert out['registration']['valid']  # a remount of 11 mm is one
+    # From another station (the tracker 1.9 m away) the offsets alone take up the move,
+    # metres: that registration was called valid; it is no remount.
+    capsys.readouterr()
+    far = args[:-1] + [str(folder / 'b.mcap'), '--out', str(folder / 'v_far'),
+                       '--register', 'reflector']
+    assert main(far) == 1
+    out = json.loads((folder / 'v_far' / 'validation.json').read_text())
+    assert not out['registration']['valid']
+    moved = next(v for v in out['registration']['violations'] if v.startswith('reflector'))
+    assert 'from the calibration' in moved and '--register base+reflector' in moved, moved
+    assert 'NOT VALID: the re-registered placement fails the gate' in capsys.readouterr().out
 
 
 @pytest.mark.slow

@@ -41,7 +41,7 @@ from kpi_calib_ros.core.diagnosis.validation import (
     validate,
 )
 from kpi_calib_ros.core.errors import ConfigError, DataError
-from kpi_calib_ros.core.estimation.plausibility import registration_violations
+from kpi_calib_ros.core.estimation.plausibility import reflector_shift, registration_violations
 from kpi_calib_ros.core.estimation.residuals import (
     SIGMA_OVERSTATED,
     noise_verdict,
@@ -208,7 +208,8 @@ def free_parameters(cm: CellModel, doc: dict[str, Any]) -> np.ndarray | None:
 
 
 def validation_to_dict(v: Validation, data: Measurements, training_rms_m: float | None,
-                       cm: CellModel | None = None, noise_scale: float = 1.0) -> dict[str, Any]:
+                       cm: CellModel | None = None, noise_scale: float = 1.0,
+                       calibrated: np.ndarray | None = None) -> dict[str, Any]:
     """JSON-ready verdict, figures and per-point residuals.
 
     The rms figures (m) are over point rows; with ``cm``, ``rms_per_reflector_m`` gives
@@ -227,8 +228,10 @@ def validation_to_dict(v: Validation, data: Measurements, training_rms_m: float 
         names = [cm.model.params.names[i] for i in v.registration.index]
         std = (v.registration.std if len(v.registration.std) == len(names)
                else np.full(len(names), np.inf))
-        violations = registration_violations(cm.model, names, std,
-                                             cm.cell.identification.tolerances, data.q)
+        violations = registration_violations(
+            cm.model, names, std, cm.cell.identification.tolerances, data.q, None if
+            calibrated is None else reflector_shift(cm.model, names, v.registration.p,
+                                                    calibrated))
         extra['registration'] = {
             'parameters': names, 'dof': v.registration.dof,
             'values': {n: float(v.registration.p[i])
@@ -339,13 +342,10 @@ def passed(doc: Mapping[str, Any]) -> bool:
 def against_nominal_robot(cm: CellModel, placed: np.ndarray, doc: dict[str, Any],
                           data: Measurements, v: Validation, register: str | None
                           ) -> dict[str, Any] | None:
-    """The calibrated robot against the nominal robot on the new points ``data``, each with
-    its placement (base pose, reflector offsets) registered on them: the robots compared,
-    not the placements (:func:`~kpi_calib_ros.core.diagnosis.validation.
-    against_nominal_on_new`; the nominal robot with its placement fitted on the points
-    against the calibration with the placement it brings would compare an oracle with a
-    prediction). ``v``: the validation with ``register``, reused when it registered both.
-    None when the new points cannot place either or leave no degree of freedom."""
+    """The calibrated robot against the nominal one on the new points ``data``, each placed
+    (base pose, reflector offsets) on them: robots compared, not placements
+    (:func:`~kpi_calib_ros.core.diagnosis.validation.against_nominal_on_new`). ``v``: the
+    validation with ``register``, reused when it registered both. None: nothing to compare."""
     index = cm.model.params.indices(registered_names(cm, 'base+reflector'))
     nominal = nominal_validation(cm.model, placed, index,
                                  np.array(doc['noise_sigma_m'], float), data)
@@ -420,9 +420,8 @@ def validation_text(doc: dict[str, Any]) -> str:
                 + ', '.join(doc['registration']['parameters'])
                 + f" ({doc['registration']['dof']} dof); the rms above is after it"]
                if doc.get('registration') else []),
-             *(['NOT VALID: the re-registered placement is undetermined, a guess to use for '
-                'nothing (the chi2 test above stands, on the directions the new poses '
-                'determine): ' + '; '.join(doc['registration']['violations'])]
+             *(['NOT VALID: the re-registered placement fails the gate, a guess to use for '
+                'nothing: ' + '; '.join(doc['registration']['violations'])]
                if not registration_valid(doc) else []),
              f"inside the training joint ranges: rms {mm(doc['rms_inside_training_range_m'])}; "
              f"outside ({doc['outside_training_range']} points): "
@@ -536,7 +535,8 @@ def validate_report(cm: CellModel, doc: dict[str, Any], data: Measurements,
     seen = doc if recording is None else recording_calibration(cm, doc, recording)
     placed = parameter_vector(cm, seen)
     v = validate_calibration(cm, placed, seen, data, register)
-    out = validation_to_dict(v, data, doc.get('rms_m'), cm, calibration_noise_scale(doc))
+    out = validation_to_dict(v, data, doc.get('rms_m'), cm, calibration_noise_scale(doc),
+                             placed)
     versus = against_nominal_robot(cm, placed, seen, data, v, register)
     if versus is not None:
         out['against_nominal'] = versus

@@ -56,7 +56,7 @@ from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.core.model.parameters import RECORDING_PREFIX, reflector_prefixes
 
 __all__ = ['Tolerances', 'Violation', 'gate', 'geometric_violations', 'effect_violations',
-           'registration_violations',
+           'registration_violations', 'reflector_shift',
            'gauge_free_deviation', 'observed_std', 'structural_jacobian', 'TURN_RANGE_RAD',
            'STRUCTURAL_POSES']
 
@@ -236,10 +236,27 @@ def _tool_joints(model: MeasurementModel, q: np.ndarray | None) -> str:
     return ', '.join(narrow) if narrow else ', '.join(names[i] for i in revolute)
 
 
+def reflector_shift(model: MeasurementModel, names: Sequence[str], after: np.ndarray,
+                    before: np.ndarray) -> dict[str, float]:
+    """Return how far (m) each reflector offset among the re-fitted ``names`` moved.
+
+    Keyed by the offset's prefix (``reflector``, ``reflector.<name>``, a recording's); the
+    distance between its ``after`` and ``before`` values (full parameter vectors).
+    """
+    shift: dict[str, float] = {}
+    for prefix in sorted({n.rsplit('.', 1)[0] for n in names
+                          if (n.startswith('reflector') or '.reflector' in n)
+                          and n.rsplit('.', 1)[1] in ('x', 'y', 'z')}):
+        idx = model.params.indices([f'{prefix}.{c}' for c in 'xyz'])
+        shift[prefix] = float(np.linalg.norm(np.asarray(after)[idx] - np.asarray(before)[idx]))
+    return shift
+
+
 def registration_violations(model: MeasurementModel, names: Sequence[str],
                             std: Sequence[float] | np.ndarray,
                             tolerances: Tolerances = Tolerances(),
-                            q: np.ndarray | None = None) -> list[Violation]:
+                            q: np.ndarray | None = None,
+                            shift: Mapping[str, float] | None = None) -> list[Violation]:
     """Violations of a placement re-fitted on a new recording (``validate --register``).
 
     A new set-up's base pose and a remounted probe's offsets are the new recording's to
@@ -256,6 +273,12 @@ def registration_violations(model: MeasurementModel, names: Sequence[str],
         The re-fitted parameters and their std (m, rad; inf: not determined at all).
     q : (N, n) ndarray, optional
         The new recording's joint values (the fix names the wrist joints it hardly turned).
+    shift : mapping, optional
+        How far each re-fitted reflector offset moved from the calibration's
+        (:func:`reflector_shift`), judged when the base is not re-fitted with it: beyond
+        ``reflector_offset`` it is no remount of a probe (millimetres) but the tracker
+        moved and the offset took it up: 686 mm with ``--register reflector`` from another
+        station was called a valid registration.
     """
     units = dict(zip(model.params.names, model.params.units))
     groups: dict[bool, list[str]] = {}  # reflector or not -> '<name> (<std>)'
@@ -284,6 +307,15 @@ def registration_violations(model: MeasurementModel, names: Sequence[str],
             f'{fix}, or re-register less (--register base when the probe was not remounted, '
             f'--register reflector when the tracker did not move), or widen '
             + ' / '.join(keys[probe])))
+    base = any(n.startswith('base.') or '.base.' in n for n in names)
+    for prefix, moved in ({} if base else shift or {}).items():
+        if moved > tolerances.reflector_offset:
+            out.append(Violation(
+                f'{prefix} offset', f'moved {moved:.4g} m from the calibration\'s, beyond '
+                f'{tolerances.reflector_offset:g} m: a probe remount moves it by millimetres; '
+                'this is the tracker set up elsewhere, taken up by the offset',
+                'register the base too (--register base+reflector); a new mount truly this '
+                'far: widen identification.tolerances.reflector_offset'))
     return out
 
 
