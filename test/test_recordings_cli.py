@@ -215,6 +215,27 @@ def test_validate_says_when_a_miss_is_the_set_up_moved(set_ups, capsys):
     assert 'set_up_moved' not in doc and 'set up again' not in capsys.readouterr().out
 
 
+def test_a_recording_with_the_wrong_joint_names_is_named(set_ups, capsys):
+    """Of several recordings, the one whose joint states name other joints is named with its
+    bag; the error named neither."""
+    from kpi_calib_ros.app.cell_model import build_cell_model
+    from kpi_calib_ros.app.measurements import measurements_from_bag
+    from kpi_calib_ros.core.acquisition.streams import synthesize_streams
+    from kpi_calib_ros.io.bag_writing import write_bag
+    folder, _ = set_ups
+    cm = build_cell_model(load_cell(folder / 'cell.yaml'))
+    data, _ = measurements_from_bag(cm, folder / 'b.mcap')
+    names = ['elbow' if n == cm.joint_names[2] else n for n in cm.joint_names]
+    joints, points = synthesize_streams(data.q, names, data.eta, cm.cell.tracker_frame)
+    (folder / 'typo').mkdir(exist_ok=True)
+    typo = write_bag(folder / 'typo' / 'b_typo.mcap', joints, points)
+    code = main(['identify', '--cell', str(folder / 'cell.yaml'), '--bag',
+                 str(folder / 'a.mcap'), '--bag', str(typo), '--out', str(folder / 'typo_out')])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert f"recording 'b_typo' ({typo}): the joint states name joints" in err, err
+
+
 def test_a_copy_of_a_bag_under_another_name_is_refused(set_ups, capsys):
     """The same measurements under two names were two set-ups, their rows counted twice
     (the TCP std 17.0 µm instead of 22.7 µm): refused, naming both files, by identify and

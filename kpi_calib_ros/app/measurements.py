@@ -418,8 +418,14 @@ def load_recordings(cell_path: str | Path, sources: Sequence[RecordingSource],
     check_stated_covariates(cm, [s.recording for s in sources])
     parts, pairings = [], []
     for source in sources:
-        data, pairing = measurements_from_bag(cm, source.bag, joint_topic, point_topic,
-                                              pose_topic)
+        try:
+            data, pairing = measurements_from_bag(cm, source.bag, joint_topic, point_topic,
+                                                  pose_topic)
+        except DataError as exc:  # which of the recordings says it
+            if len(sources) == 1:
+                raise
+            raise DataError(f'recording {source.recording.name!r} ({source.bag}): '
+                            f'{exc}') from None
         print_rejections(pairing, f'recording {source.recording.name!r}: '
                          if len(sources) > 1 else '')
         if len(data) == 0:
