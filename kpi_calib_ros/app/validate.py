@@ -26,12 +26,16 @@ from kpi_calib_ros.app.cell_model import CellModel, build_cell_model
 from kpi_calib_ros.app.learned_residual import (
     learned_file,
     learned_section,
-    learned_validation_text,
 )
 from kpi_calib_ros.app.measurements import (
     measurements_from_bag,
     print_rejections,
     with_recordings,
+)
+from kpi_calib_ros.app.validation_text import (
+    PREDICTION_OVERSTATED,
+    registration_valid,
+    validation_text,
 )
 from kpi_calib_ros.core.diagnosis.validation import (
     Validation,
@@ -45,7 +49,6 @@ from kpi_calib_ros.core.estimation.plausibility import reflector_shift, registra
 from kpi_calib_ros.core.estimation.residuals import (
     SIGMA_OVERSTATED,
     noise_verdict,
-    sigma_overstated_text,
 )
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.pose import orientation_names
@@ -55,7 +58,6 @@ from kpi_calib_ros.core.measurement.recordings import (
     combine,
     row_covariates,
 )
-from kpi_calib_ros.core.measurement.replicates import SAME_POSE_TOLERANCE
 from kpi_calib_ros.core.model.parameters import BASE_COMPONENTS, reflector_prefixes
 from kpi_calib_ros.io.calibration_file import calibration_recordings, read_calibration_document
 from kpi_calib_ros.io.cell import load_cell
@@ -293,12 +295,6 @@ def validation_to_dict(v: Validation, data: Measurements, training_rms_m: float 
     }
 
 
-# χ² far below its dof while the residuals are not below the stated noise: the calibration's
-# prediction (the noise it showed, σ·√covariance_scale, and its parameters' part), not σ, is
-# wider than the new points.
-PREDICTION_OVERSTATED = 'predicted error overstated'
-
-
 def validation_noise_verdict(v: Validation) -> tuple[str, float]:
     """The lower tail of the validation's χ² (:func:`noise_verdict`), told apart:
     :data:`SIGMA_OVERSTATED` only when the residuals are smaller than the stated noise
@@ -308,27 +304,6 @@ def validation_noise_verdict(v: Validation) -> tuple[str, float]:
     if verdict_ == SIGMA_OVERSTATED and not v.noise_ratio < 1.0:
         return PREDICTION_OVERSTATED, lower
     return verdict_, lower
-
-
-def prediction_overstated_text(doc: dict[str, Any]) -> str:
-    """The warning of :data:`PREDICTION_OVERSTATED` from the validation document."""
-    scale = float(doc.get('noise_scale', 1.0))
-    return (f"{PREDICTION_OVERSTATED}: chi2/dof = {doc['chi2']:.3g}/{doc['dof']} is far below "
-            f"its dof while the residuals are {doc['residual_to_noise_ratio']:.3g} x the "
-            'stated noise: the calibration predicts them wider'
-            + (f", with the noise it showed ({np.sqrt(scale):.3g} x the stated sigma, its "
-               'model not adequate)' if scale != 1.0 else '')
-            + (f" and its parameters' error (predicted std median "
-               f"{doc['predicted_std_median_m'] * 1e3:.3g} mm per axis)"
-               if doc.get('predicted_std_median_m') is not None else '')
-            + ', and the test cannot fail; noise.sigma is not the cause (the residuals are '
-            'not below it): a better model or more poses like these narrow the prediction')
-
-
-def registration_valid(doc: Mapping[str, Any]) -> bool:
-    """Whether the validation document's re-registered placement (if any) passed the gate
-    (:func:`~kpi_calib_ros.core.estimation.plausibility.registration_violations`)."""
-    return bool((doc.get('registration') or {}).get('valid', True))
 
 
 def passed(doc: Mapping[str, Any]) -> bool:
@@ -395,79 +370,6 @@ def _with_reason(key: str, x: float, reason: str) -> dict[str, Any]:
 
 def _numbers(values: tuple[str, float]) -> tuple[str, float | None]:
     return values[0], _num(values[1])
-
-
-def validation_text(doc: dict[str, Any]) -> str:
-    """Readable summary for a terminal."""
-    def mm(x: float | None) -> str:
-        return 'n/a' if x is None else f'{x * 1e3:.3f} mm'
-    lines = [f"{doc['verdict']}: chi2/dof = {doc['chi2']:.1f}/{doc['dof']}, "
-             + (f"p = {doc['p_value']:.3g} (level {doc['alpha']})" if doc.get('tested', True)
-                else doc['not_tested_reason']),
-             f"new measurements: {doc['measurements']}, rms {mm(doc['rms_m'])} "
-             f"(training rms {mm(doc['training_rms_m'])}, predicted std per axis "
-             + (f"{mm(doc['predicted_std_median_m'])} median" if doc['predicted_std_median_m']
-                is not None else 'none: ' + doc['predicted_std_median_m_reason'])
-             + (f", with the noise the calibration showed, {np.sqrt(doc['noise_scale']):.3g} x "
-                'the stated sigma' if doc.get('noise_scale', 1.0) != 1.0 else '') + ')',
-             *([f"placed as recording {doc['recording']} of the calibration (its base pose "
-                'and, remounted, its reflector offsets, with their covariance)']
-               if doc.get('recording') else []),
-             *(['conditions of the new rows: ' + ', '.join(
-                 f'{k} = {v:g}' for k, v in doc['conditions'].items())]
-               if doc.get('conditions') else []),
-             *(['re-registered on the new recording: '
-                + ', '.join(doc['registration']['parameters'])
-                + f" ({doc['registration']['dof']} dof); the rms above is after it"]
-               if doc.get('registration') else []),
-             *(['NOT VALID: the re-registered placement fails the gate, a guess to use for '
-                'nothing: ' + '; '.join(doc['registration']['violations'])]
-               if not registration_valid(doc) else []),
-             f"inside the training joint ranges: rms {mm(doc['rms_inside_training_range_m'])}; "
-             f"outside ({doc['outside_training_range']} points): "
-             f"{mm(doc['rms_outside_training_range_m'])}"]
-    versus = doc.get('against_nominal')
-    if versus:
-        worse = versus['worse_than_nominal']
-        label = ('WORSE THAN NO CALIBRATION' if worse else 'better than no calibration'
-                 if versus['rms_m'] < versus['nominal_rms_m']
-                 else 'no better than no calibration, within the noise')
-        lines.append(
-            f"{label}: with the placement (base pose, reflector offsets) registered on these "
-            f"points, the calibrated robot predicts them at {mm(versus['rms_m'])} rms, the "
-            f"nominal robot at {mm(versus['nominal_rms_m'])} (corrected for the "
-            f"{versus['dof']} dof the placement took; noise {mm(versus['noise_m'])})" + (
-                '; here the calibration does harm: do not use it for poses like these '
-                '(identify again with poses that cover them)' if worse else ''))
-    moved = doc.get('set_up_moved')
-    if moved:
-        lines.append(f"the new points match the calibration after a rigid move of "
-                     f"{moved['translation_m']:.3g} m and {np.degrees(moved['rotation_rad']):.3g}"
-                     f" deg (rms {mm(moved['rms_before_m'])} -> {mm(moved['rms_after_m'])}): "
-                     'the tracker or the robot was set up again since the calibration; '
-                     'validate with --register base (--recording NAME for a later bag of one '
-                     'of its set-ups)')
-    if doc.get('not_determined_by_training'):
-        lines.append(f"not determined by the training poses: {doc['not_determined_by_training']} "
-                     'points (their prediction depends on the parameters the calibration held '
-                     'for identifiability; no predicted std, not in chi2): measure poses like '
-                     'them and identify again')
-    if doc.get('noise_verdict') == SIGMA_OVERSTATED:
-        lines.append('WARNING: ' + sigma_overstated_text(doc['chi2'], doc['dof'],
-                                                         doc['lower_tail_p'], doc['alpha'],
-                                                         doc['residual_to_noise_ratio']))
-    elif doc.get('noise_verdict') == PREDICTION_OVERSTATED:
-        lines.append('WARNING: ' + prediction_overstated_text(doc))
-    learned = doc.get('learned_residual')
-    if learned is not None:
-        lines.append(f"learned residual ({learned['file']}) {learned['skipped']}"
-                     if 'skipped' in learned else learned_validation_text(learned))
-    if doc.get('repeated_from_training'):
-        lines.append(f"inside: poses repeated from training ({doc['repeated_from_training']} "
-                     f"points, every joint within {SAME_POSE_TOLERANCE:g} rad or m): rms "
-                     f"{mm(doc['rms_repeated_from_training_m'])} (repeatability between "
-                     f"the campaigns); new poses: {mm(doc['rms_new_inside_training_range_m'])}")
-    return '\n'.join(lines)
 
 
 def new_row_conditions(doc: dict[str, Any], data: Measurements, recording: str | None,
