@@ -151,6 +151,26 @@ def test_validate_compares_the_calibrated_robot_with_the_nominal_one_on_the_new_
     assert 'WORSE THAN NO CALIBRATION' in text and 'does harm' in text
 
 
+def test_validating_on_the_training_measurements_is_said(setup, capsys):
+    """Validated on its own training bag, a calibration 'holds' and every point was called
+    a pose measured again ("repeatability between the campaigns"); the readings equal the
+    training poses bit for bit, and validate now says these are the training measurements.
+    New poses are not called so."""
+    tmp, _, _ = setup
+    capsys.readouterr()
+    code = main(['validate', '--cell', str(DEFAULT_CELL), '--calibration',
+                 str(tmp / 'good' / 'calibration.yaml'), '--bag', str(tmp / 'train.mcap'),
+                 '--out', str(tmp / 'val_train')])
+    text = capsys.readouterr().out
+    out = json.loads((tmp / 'val_train' / 'validation.json').read_text())
+    assert code == 0 and out['identical_to_training'] == out['measurements'] == 40
+    assert "40 of 40 points have the joint readings of a training pose bit for bit" in text
+    assert _run(tmp, 'good', 'val_new') == 0
+    out = json.loads((tmp / 'val_new' / 'validation.json').read_text())
+    assert out['identical_to_training'] == 0
+    assert 'bit for bit' not in capsys.readouterr().out
+
+
 def test_poses_beyond_the_training_ranges_are_marked(setup):
     tmp, doc, cm = setup
     narrow = yaml.safe_load(yaml.safe_dump(doc))

@@ -271,6 +271,8 @@ def validation_to_dict(v: Validation, data: Measurements, training_rms_m: float 
         **extra,
         'outside_training_range': int(np.count_nonzero(v.outside)),
         'repeated_from_training': int(np.count_nonzero(v.repeated)),
+        'identical_to_training': int(np.count_nonzero(v.identical))
+        if v.identical is not None else 0,
         'noise_scale': noise_scale,
         'training_rms_m': training_rms_m,
         **_with_reason('predicted_std_median_m', float(np.median(v.predicted_std[determined]))

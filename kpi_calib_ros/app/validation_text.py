@@ -107,6 +107,12 @@ def validation_text(doc: dict[str, Any]) -> str:
     if learned is not None:
         lines.append(f"learned residual ({learned['file']}) {learned['skipped']}"
                      if 'skipped' in learned else learned_validation_text(learned))
+    if 2 * doc.get('identical_to_training', 0) >= doc['measurements']:
+        lines.append(f"WARNING: {doc['identical_to_training']} of {doc['measurements']} points "
+                     'have the joint readings of a training pose bit for bit: these are the '
+                     "calibration's own training measurements, and how well it fits them "
+                     'says nothing of how it predicts; validate on a recording it was not '
+                     'identified from')
     if doc.get('repeated_from_training'):
         lines.append(f"inside: poses repeated from training ({doc['repeated_from_training']} "
                      f"points, every joint within {SAME_POSE_TOLERANCE:g} rad or m): rms "

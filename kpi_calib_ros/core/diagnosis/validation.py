@@ -170,6 +170,9 @@ class Validation:
         Tested and p_value >= alpha.
     registration : Reregistration or None
         The placement re-fitted on the new recording (``registered`` of :func:`validate`).
+    identical : (N,) bool ndarray or None
+        The pose's joint readings equal a training pose's bit for bit: no encoder reads a
+        pose measured again so, these are the training measurements themselves.
     determined : (N,) bool ndarray
         The point's prediction is determined by the training poses (module text, the
         estimable combination); an undetermined point has NaN ``predicted_std`` and
@@ -194,6 +197,7 @@ class Validation:
     registration: Reregistration | None = None
     noise_ratio: float = float('nan')
     determined: np.ndarray | None = None
+    identical: np.ndarray | None = None
 
     @property
     def tested(self) -> bool:
@@ -393,16 +397,17 @@ def validate(model: MeasurementModel, p: np.ndarray, estimated: np.ndarray,
     dof = 3 * int(tested.sum()) - (registration.dof if registration is not None else 0)
     tol = range_tolerance(model)
     outside = np.any((q < np.asarray(lower) - tol) | (q > np.asarray(upper) + tol), axis=1)
-    repeated = np.zeros(len(q), dtype=bool)
+    repeated = identical = np.zeros(len(q), dtype=bool)
     if training_q is not None and len(training_q):
         repeated = same_pose(q, np.asarray(training_q, float)) & ~outside
+        identical = same_pose(q, np.asarray(training_q, float), 0.0)
     p_value = float(scipy.stats.chi2.sf(chi2, dof)) if dof > 0 else float('nan')
     noise_d2 = np.sum((residuals * np.linalg.solve(noise, residuals[:, :, None])[:, :, 0])[tested])
     # Against the stated noise: ``noise`` holds it times noise_scale.
     noise_ratio = float(np.sqrt(noise_d2 * noise_scale / dof)) if dof > 0 else float('nan')
     std = np.where(determined, np.sqrt(np.trace(cov, axis1=1, axis2=2) / 3), np.nan)
     return Validation(residuals, std, np.sqrt(d2), outside, repeated, chi2, dof, p_value,
-                      alpha, registration, noise_ratio, determined)
+                      alpha, registration, noise_ratio, determined, identical)
 
 
 # A miss a rigid move of the points explains to this fraction of its rms is a set-up moved.
