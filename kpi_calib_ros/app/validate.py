@@ -45,6 +45,7 @@ from kpi_calib_ros.core.diagnosis.validation import (
     validate,
 )
 from kpi_calib_ros.core.errors import ConfigError, DataError
+from kpi_calib_ros.core.estimation.folds import pose_index
 from kpi_calib_ros.core.estimation.plausibility import reflector_shift, registration_violations
 from kpi_calib_ros.core.estimation.residuals import (
     SIGMA_OVERSTATED,
@@ -324,16 +325,17 @@ def against_nominal_robot(cm: CellModel, placed: np.ndarray, doc: dict[str, Any]
     (:func:`~kpi_calib_ros.core.diagnosis.validation.against_nominal_on_new`). ``v``: the
     validation with ``register``, reused when it registered both. None: nothing to compare."""
     index = cm.model.params.indices(registered_names(cm, 'base+reflector'))
-    nominal = nominal_validation(cm.model, placed, index,
-                                 np.array(doc['noise_sigma_m'], float), data)
+    scale = calibration_noise_scale(doc)
+    nominal = nominal_validation(cm.model, placed, index, np.array(
+        doc['noise_sigma_m'], float) * np.sqrt(scale), data, scale)
     try:
         same = v if register == 'base+reflector' else validate_calibration(
             cm, placed, doc, data, 'base+reflector')
     except (DataError, np.linalg.LinAlgError):
         return None
     ref = np.zeros(len(v.residuals), int) if data.reflector is None else data.reflector
-    versus = (None if nominal is None else
-              against_nominal_on_new(same, nominal, np.asarray(ref) < cm.model.n_reflectors))
+    versus = (None if nominal is None else against_nominal_on_new(
+        same, nominal, np.asarray(ref) < cm.model.n_reflectors, pose_index(data.q)[1]))
     if versus is None or not np.isfinite([versus.rms_m, versus.nominal_rms_m]).all():
         return None
     return versus.to_dict()

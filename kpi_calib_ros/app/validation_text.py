@@ -74,14 +74,16 @@ def validation_text(doc: dict[str, Any]) -> str:
     versus = doc.get('against_nominal')
     if versus:
         worse = versus['worse_than_nominal']
+        z = versus['z'] if versus['z'] is not None else float('nan')
         label = ('WORSE THAN NO CALIBRATION' if worse else 'better than no calibration'
-                 if versus['rms_m'] < versus['nominal_rms_m']
-                 else 'no better than no calibration, within the noise')
+                 if z < -versus['z_needed'] else
+                 'neither better nor worse than no calibration beyond the scatter of these poses')
         lines.append(
             f"{label}: with the placement (base pose, reflector offsets) registered on these "
             f"points, the calibrated robot predicts them at {mm(versus['rms_m'])} rms, the "
             f"nominal robot at {mm(versus['nominal_rms_m'])} (corrected for the "
-            f"{versus['dof']} dof the placement took; noise {mm(versus['noise_m'])})" + (
+            f"{versus['dof']} dof the placement took; paired over {versus['poses']} poses, "
+            f"z = {z:.2f}, worse beyond {versus['z_needed']:.2f})" + (
                 '; here the calibration does harm: do not use it for poses like these '
                 '(identify again with poses that cover them)' if worse else ''))
     moved = doc.get('set_up_moved')
