@@ -98,6 +98,7 @@ def test_two_stations_metres_apart_are_identified_together_across_a_restart(cm, 
         assert answer.success, answer.message
         assert answer.message.startswith('calibration holds on 10 new measurements')
         assert 'placed as station far of the calibration' in answer.message
+        assert '; better than no calibration: the calibrated robot' in answer.message
         # The calibration of both stations is served again after a restart.
         assert node.stop() == 0, node.output()
         client.received.clear()

@@ -47,10 +47,11 @@ def validate_answer(doc: dict[str, Any]) -> str:
                if doc.get('recording') else '')
             + (' after re-registering ' + '/'.join(doc['registration']['parameters'])
                if doc.get('registration') else '')
-            + ('; NOT VALID, the re-registered placement is undetermined: '
+            + ('; NOT VALID, the re-registered placement fails the gate: '
                + '; '.join(doc['registration']['violations'])
                if doc.get('registration') and not doc['registration'].get('valid', True)
                else '')
+            + nominal_answer(doc.get('against_nominal'))
             + f", chi2/dof {doc['chi2']:.1f}/{doc['dof']}, "
             + (f"p = {doc['p_value']:.3g}; " if doc.get('tested', True)
                else f"{doc['not_tested_reason']}; ")
@@ -60,6 +61,20 @@ def validate_answer(doc: dict[str, Any]) -> str:
                f"{doc['rms_repeated_from_training_m'] * 1e6:.1f} µm"
                if doc['repeated_from_training'] else '')
             + learned_answer(doc.get('learned_residual')))
+
+
+def nominal_answer(versus: dict[str, Any] | None) -> str:
+    """~/validate: the calibrated robot against the nominal one on the new points, both
+    placed on them (``against_nominal``; '' without)."""
+    if not versus:
+        return ''
+    z = versus['z'] if versus['z'] is not None else float('nan')
+    head = ('WORSE THAN NO CALIBRATION, it does harm here' if versus['worse_than_nominal']
+            else 'better than no calibration' if z < -versus['z_needed']
+            else 'neither better nor worse than no calibration')
+    return (f"; {head}: the calibrated robot {versus['rms_m'] * 1e6:.1f} µm, the nominal "
+            f"robot {versus['nominal_rms_m'] * 1e6:.1f} µm, both placed on these points "
+            f"(paired z {z:.2f})")
 
 
 def learned_answer(learned: dict[str, Any] | None) -> str:
