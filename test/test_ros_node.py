@@ -493,6 +493,22 @@ def test_joint_states_at_1khz_all_arrive_while_the_node_identifies(client, spawn
     assert int(counts['identifications']) >= 2  # jobs ran while the stream went on
 
 
+def _with_a_campaign(context, executor, overrides):
+    """An in-process node with ``overrides`` and a caller on ``executor``; ~/design started
+    its sequential campaign. Returns (node, caller)."""
+    from std_srvs.srv import Trigger
+    node = CalibrationNode(context=context, parameter_overrides=overrides)
+    caller = rclpy.create_node('caller', context=context)
+    executor.add_node(node)
+    executor.add_node(caller)
+    design = caller.create_client(Trigger, '/kpi_calib_node/design')
+    assert design.wait_for_service(timeout_sec=10)
+    future = design.call_async(Trigger.Request())
+    executor.spin_until_future_complete(future, timeout_sec=120)
+    assert future.done() and future.result().success, future.result()
+    return node, caller
+
+
 @pytest.mark.slow
 def test_a_station_change_stops_a_running_sequential_campaign(tmp_path, ros_domain):
     """The tracker moved under a running campaign (lost line of sight): the station change
@@ -513,15 +529,7 @@ def test_a_station_change_stops_a_running_sequential_campaign(tmp_path, ros_doma
                  Parameter('data_dir', value=str(tmp_path)),
                  Parameter('campaign', value='sequential'), Parameter('station', value='near')]
     try:
-        node = CalibrationNode(context=context, parameter_overrides=overrides)
-        caller = rclpy.create_node('caller', context=context)
-        executor.add_node(node)
-        executor.add_node(caller)
-        design = caller.create_client(Trigger, '/kpi_calib_node/design')
-        assert design.wait_for_service(timeout_sec=10)
-        future = design.call_async(Trigger.Request())
-        executor.spin_until_future_complete(future, timeout_sec=120)
-        assert future.done() and future.result().success, future.result()
+        node, caller = _with_a_campaign(context, executor, overrides)
         assert node.status()[2]['campaign.stop_reason'] == 'running'
         result = node.set_parameters([Parameter('station', value='far')])[0]
         assert result.successful, result.reason
@@ -561,19 +569,11 @@ def test_campaign_parameters_are_refused_while_a_sequential_campaign_runs(tmp_pa
     node = caller = None
     executor = SingleThreadedExecutor(context=context)
     try:
-        node = CalibrationNode(context=context, parameter_overrides=[
+        node, caller = _with_a_campaign(context, executor, [
             Parameter('robot_description', value=KR15_URDF),
             Parameter('data_dir', value=str(tmp_path)),
             Parameter('campaign', value='sequential'),
             Parameter('target_tcp_std', value=12e-6)])
-        caller = rclpy.create_node('caller', context=context)
-        executor.add_node(node)
-        executor.add_node(caller)
-        design = caller.create_client(Trigger, '/kpi_calib_node/design')
-        assert design.wait_for_service(timeout_sec=10)
-        future = design.call_async(Trigger.Request())
-        executor.spin_until_future_complete(future, timeout_sec=120)
-        assert future.done() and future.result().success, future.result()
         for name, value in (('target_tcp_std', 2e-5), ('max_measurements', 30)):
             result = node.set_parameters([Parameter(name, value=value)])[0]
             assert not result.successful

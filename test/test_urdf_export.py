@@ -222,37 +222,44 @@ def test_stock_description_exports_the_calibrated_kinematics(case):
 
 
 @pytest.mark.slow
+def _written_urdf_points(cm, out: Path, q: np.ndarray, robot: RobotModel | None = None
+                         ) -> tuple[dict, np.ndarray]:
+    """calibration.yaml of ``out`` and the points (N, 3) its written URDF (or ``robot``)
+    gives at ``q`` (Pinocchio forward kinematics) with its base pose and reflector offset."""
+    import yaml
+
+    from kpi_calib_ros.core.model.kinematics import pose6
+    from kpi_calib_ros.io.names import CALIBRATED_URDF_FILE
+    doc = yaml.safe_load((out / 'calibration.yaml').read_text())
+    value = {p['name']: p['value'] for p in doc['parameters']}
+    written = robot or RobotModel((out / CALIBRATED_URDF_FILE).read_text(),
+                                  cm.robot.base_frame, cm.robot.tip_frame)
+    base = np.array(pose6([value[f'base.{c}'] for c in ('x', 'y', 'z', 'roll', 'pitch',
+                                                         'yaw')]))
+    reflector = np.array([value[f'reflector.{c}'] for c in 'xyz'] + [1.0])
+    return doc, np.array([(base @ written.pin_tip_pose(row) @ reflector)[:3] for row in q])
+
+
 def test_cli_calibrated_urdf_of_the_stock_ur10_reproduces_the_fit(tmp_path):
     """As a user uses it: the written URDF, the base pose and reflector of calibration.yaml
     predict every measured point with the identification's own residual (the stock UR10 has
     <transmission> elements; with them edited instead of the joints it missed by mm)."""
-    import yaml
 
     from kpi_calib_ros.app.measurements import load_measurements
     from kpi_calib_ros.app.simulate import simulate_campaign
     from kpi_calib_ros.cli import main
-    from kpi_calib_ros.core.model.kinematics import pose6
-    from kpi_calib_ros.io.names import CALIBRATED_URDF_FILE
     cell = Path(__file__).parent / 'data' / 'ur10_mesh_cell.yaml'
     bag = tmp_path / 'run.mcap'
     simulate_campaign(cell, 40, bag, seed=5)
     assert main(['identify', '--cell', str(cell), '--bag', str(bag),
                  '--out', str(tmp_path / 'out')]) == 0
-    doc = yaml.safe_load((tmp_path / 'out' / 'calibration.yaml').read_text())
-    value = {p['name']: p['value'] for p in doc['parameters']}
     cm, data, _ = load_measurements(cell, bag)
-    calibrated = RobotModel((tmp_path / 'out' / CALIBRATED_URDF_FILE).read_text(),
-                            cm.robot.base_frame, cm.robot.tip_frame)
-    base = np.array(pose6([value[f'base.{c}'] for c in ('x', 'y', 'z', 'roll', 'pitch',
-                                                         'yaw')]))
-    reflector = np.array([value[f'reflector.{c}'] for c in 'xyz'] + [1.0])
-    predicted = np.array([(base @ calibrated.pin_tip_pose(q) @ reflector)[:3]
-                          for q in data.q])
+    doc, predicted = _written_urdf_points(cm, tmp_path / 'out', data.q)
     residuals = np.asarray(doc['residuals_m'])
     assert residuals.shape == data.eta.shape
     np.testing.assert_allclose(data.eta - predicted, residuals, atol=1e-9)
     # ... and the calibration is a real one: the nominal URDF misses by far more.
-    nominal = np.array([(base @ cm.robot.pin_tip_pose(q) @ reflector)[:3] for q in data.q])
+    _, nominal = _written_urdf_points(cm, tmp_path / 'out', data.q, cm.robot)
     assert np.sqrt(np.mean((data.eta - nominal) ** 2)) > 20 * doc['rms_m']
 
 
@@ -270,9 +277,7 @@ def test_identify_says_how_far_the_effects_the_urdf_leaves_out_move_the_point(tm
     from kpi_calib_ros.app.measurements import load_measurements
     from kpi_calib_ros.app.simulate import simulate_campaign
     from kpi_calib_ros.cli import main
-    from kpi_calib_ros.core.model.kinematics import pose6
     from kpi_calib_ros.io.cell import DEFAULT_CELL
-    from kpi_calib_ros.io.names import CALIBRATED_URDF_FILE
     doc = yaml.safe_load(DEFAULT_CELL.read_text())
     doc['robot']['urdf'] = str((DEFAULT_CELL.parent / doc['robot']['urdf']).resolve())
     doc['simulation'] = {'hidden_effects': {'joint_compliance:joint_2': {'c': 4.0e-6}}}
@@ -288,15 +293,8 @@ def test_identify_says_how_far_the_effects_the_urdf_leaves_out_move_the_point(tm
     found = re.search(r'NOTE: the calibrated URDF holds the geometry only: the effects '
                       r'joint_compliance:joint_2 move the point by up to ([0-9.]+) µm', text)
     assert found, text
-    out = yaml.safe_load((tmp_path / 'out' / 'calibration.yaml').read_text())
-    value = {p['name']: p['value'] for p in out['parameters']}
     cm, data, _ = load_measurements(cell, bag)
-    written = RobotModel((tmp_path / 'out' / CALIBRATED_URDF_FILE).read_text(),
-                         cm.robot.base_frame, cm.robot.tip_frame)
-    base = np.array(pose6([value[f'base.{c}'] for c in ('x', 'y', 'z', 'roll', 'pitch',
-                                                         'yaw')]))
-    reflector = np.array([value[f'reflector.{c}'] for c in 'xyz'] + [1.0])
-    urdf = np.array([(base @ written.pin_tip_pose(q) @ reflector)[:3] for q in data.q])
+    out, urdf = _written_urdf_points(cm, tmp_path / 'out', data.q)
     calibration = data.eta - np.asarray(out['residuals_m'])
     largest = np.linalg.norm(calibration - urdf, axis=1).max() * 1e6
     print(f"URDF leaves out up to {largest:.1f} µm")

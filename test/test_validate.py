@@ -618,6 +618,17 @@ def test_residuals_above_the_stated_noise_are_not_called_sigma_overstated(unders
     assert f"residuals are {out['residual_to_noise_ratio']:.3g} x the stated noise" in text
 
 
+def _ur10_region(which: int):
+    """Series A of the real UR10, each pose's k-means region of four (normalised joint
+    space, seed 0), and 200 random poses (seed 0) of region ``which``."""
+    series_a = _ur10_series(UR10_DATA / 'Series_A' / 'measurements_grid.csv')
+    poses, pose = pose_index(series_a.q)
+    region = region_fold_ids(poses, 4, seed=0)[pose]
+    inside = np.flatnonzero(region == which)
+    return series_a, region, series_a.subset(
+        np.random.default_rng(0).permutation(inside)[:200])
+
+
 @pytest.mark.slow
 def test_auto_steps_down_from_a_level_the_gate_refuses_on_the_real_ur10():
     """200 poses of one k-means region of the real UR10's Series A: ``auto`` chose the
@@ -626,11 +637,7 @@ def test_auto_steps_down_from_a_level_the_gate_refuses_on_the_real_ur10():
     smaller level whose calibration is valid, and that one predicts every other region of
     the series better than the refused geometric fit."""
     cm = _ur10_cell_model()
-    series_a = _ur10_series(UR10_DATA / 'Series_A' / 'measurements_grid.csv')
-    poses, pose = pose_index(series_a.q)
-    region = region_fold_ids(poses, 4, seed=0)[pose]
-    inside = np.flatnonzero(region == 0)
-    train = series_a.subset(np.random.default_rng(0).permutation(inside)[:200])
+    series_a, region, train = _ur10_region(0)
     geometric = calibrate_cell(cm, train, 'geometric')
     assert not geometric.valid and geometric.implausible
     cal = calibrate_cell(cm, train, 'auto')
@@ -664,11 +671,7 @@ def test_auto_adds_no_effect_under_a_larger_level_that_did_not_converge_on_the_r
     tries no effect there, which is what it does when the geometric fit is let converge
     (the final fit then refuses it and steps down without effects)."""
     cm = _ur10_cell_model()
-    series_a = _ur10_series(UR10_DATA / 'Series_A' / 'measurements_grid.csv')
-    poses, pose = pose_index(series_a.q)
-    region = region_fold_ids(poses, 4, seed=0)[pose]
-    inside = np.flatnonzero(region == 3)
-    train = series_a.subset(np.random.default_rng(0).permutation(inside)[:200])
+    series_a, region, train = _ur10_region(3)
     cal = calibrate_cell(cm, train, 'auto')
     assert cal.valid, cal.problems
     assert 'geometric' in cal.choice.unconverged
@@ -698,12 +701,9 @@ def test_validate_says_a_real_ur10_calibration_does_harm_beyond_its_region(tmp_p
     of this arm, good or not). The registration alone is the nominal robot: a tie."""
     from kpi_calib_ros.app.validate import calibrated_model, validate_report
     cm = _ur10_cell_model()
-    series_a = _ur10_series(UR10_DATA / 'Series_A' / 'measurements_grid.csv')
-    poses, pose = pose_index(series_a.q)
-    region = region_fold_ids(poses, 4, seed=0)[pose]
-    rng = np.random.default_rng(0)
-    train = series_a.subset(rng.permutation(np.flatnonzero(region == 3))[:200])
-    other = series_a.subset(rng.permutation(np.flatnonzero(region != 3))[:1500])
+    series_a, region, train = _ur10_region(3)
+    other = series_a.subset(np.random.default_rng(1).permutation(
+        np.flatnonzero(region != 3))[:1500])
     specs = ('joint_compliance:shoulder_lift_joint', 'joint_compliance:elbow_joint',
              'joint_backlash:shoulder_lift_joint')
     verdicts = {}
