@@ -189,3 +189,45 @@ def test_validate_and_reset_after_a_restore(cm, tmp_path, ros_domain):
             assert not (tmp_path / 'calibration.yaml').exists()
         finally:
             spinner.stop()
+
+
+@pytest.mark.slow
+def test_after_a_restart_validate_takes_every_measurement_the_calibration_was_not_fitted_to(
+        cm, tmp_path, ros_domain):
+    """Held-out poses stamped inside the training span (rows drawn from one table, a tracker
+    clock set back): the restarted node took every measurement stamped up to the
+    calibration's last one as fitted and validated on none of them (a verdict could turn:
+    "does not hold on 180" before, "holds on 60" after, on real UR10 data). It now reads
+    the stamps it fitted from fitted_stamps.json and validates on the same measurements
+    as before the restart."""
+    q, eta, stamps, _ = simulated(cm, seed=11)
+    held = np.arange(N_POSES) % 5 == 2  # every fifth pose, inside the span
+    with MeasurementLog(tmp_path) as log:
+        for qi, ei, t in zip(q[~held], eta[~held], stamps[~held]):
+            log.append(JointSample(int(t), tuple(cm.joint_names), qi),
+                       PointSample(int(t), cm.cell.tracker_frame, ei))
+
+    def answers(node, *jobs):
+        executor = SingleThreadedExecutor(context=node.context)
+        executor.add_node(node)
+        spinner = SpinThread(executor)
+        spinner.start()
+        try:
+            return [run_job(node, executor, name, job, 120) for name, job in jobs]
+        finally:
+            spinner.stop()
+    with idle_node(tmp_path, ros_domain) as node:
+        (ok, message), = answers(node, ('identifying', node._identify))
+        assert ok, message
+    assert (tmp_path / 'fitted_stamps.json').is_file()
+    with MeasurementLog(tmp_path) as log:  # measured after the identification
+        for qi, ei, t in zip(q[held], eta[held], stamps[held]):
+            log.append(JointSample(int(t), tuple(cm.joint_names), qi),
+                       PointSample(int(t), cm.cell.tracker_frame, ei))
+    with idle_node(tmp_path, ros_domain) as node:
+        node._run.restore_pending = False
+        (ok, restored), (valid, message) = answers(node, ('restoring', node._restore),
+                                                   ('validating', node._validate))
+        assert ok, restored
+        assert valid and message.startswith(f'calibration holds on {held.sum()} new '
+                                             'measurements'), message

@@ -22,6 +22,8 @@ CAMPAIGN_PLAN_FILE = 'campaign_plan.yaml'   # initial design of a sequential cam
 CAMPAIGN_STATE_FILE = 'campaign_state.yaml'  # a node's sequential campaign, to resume it
 # The calibration a sequential campaign at a later station took as prior, to resume it.
 CAMPAIGN_PRIOR_FILE = 'campaign_prior.yaml'
+# The stamps of the measurements the node's published calibration was fitted to.
+FITTED_STAMPS_FILE = 'fitted_stamps.json'
 DIAGNOSIS_DIR = 'diagnosis'
 DIAGNOSIS_FILE = 'diagnosis.json'
 REPORT_FILE = 'report.md'
@@ -31,7 +33,8 @@ VALIDATION_FILE = 'validation.json'
 # Every valid calibration of the node, kept by its identified_at_ns (not moved by reset).
 CALIBRATIONS_DIR = 'calibrations'
 RESULT_FILES = (CALIBRATION_FILE, FAILED_CALIBRATION_FILE, CALIBRATED_URDF_FILE, DIAGNOSIS_DIR,
-                VALIDATION_DIR, CAMPAIGN_STATE_FILE, CAMPAIGN_PRIOR_FILE, LEARNED_RESIDUAL_FILE)
+                VALIDATION_DIR, CAMPAIGN_STATE_FILE, CAMPAIGN_PRIOR_FILE, LEARNED_RESIDUAL_FILE,
+                FITTED_STAMPS_FILE)
 
 # ---------------------------------------------------------------------- topics
 DEFAULT_JOINT_TOPIC = '/joint_states'

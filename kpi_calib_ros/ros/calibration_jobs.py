@@ -22,6 +22,8 @@ from kpi_calib_ros.app.validate import passed
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation.drift_state import DriftSwing
 from kpi_calib_ros.core.estimation.precision import precision_statement
+from kpi_calib_ros.io.fitted_stamps import write_fitted_stamps
+from kpi_calib_ros.io.names import FITTED_STAMPS_FILE
 from kpi_calib_ros.ros import job_work
 from kpi_calib_ros.ros.answers import identify_answer, validate_answer
 from kpi_calib_ros.ros.node_parts import NodeParts
@@ -49,6 +51,13 @@ class CalibrationJobs(NodeParts):
         self._pub_calibration.publish(String(data=text))
         self._calibration_text = text
         self._identified_stamps = {int(t) for t in np.asarray(stamps).ravel()}
+        try:  # for ~/validate after a restart (the calibration does not list them)
+            write_fitted_stamps(self.data_dir / FITTED_STAMPS_FILE, text,
+                                self._identified_stamps)
+        except OSError as exc:
+            self.get_logger().warning(f'{FITTED_STAMPS_FILE} not written ({exc}): after a '
+                                      'restart, ~/validate takes the measurements stamped '
+                                      "up to the calibration's last one as fitted")
         self._pub_urdf.publish(String(data=urdf))
         publisher = self._tcp_publisher(len(tcp))
         for msg in tcp:

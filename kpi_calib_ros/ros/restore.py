@@ -17,7 +17,8 @@ from std_msgs.msg import String
 
 from kpi_calib_ros.app.stored_calibration import read_stored_calibration
 from kpi_calib_ros.core.errors import DataError, KpiCalibError
-from kpi_calib_ros.io.names import CALIBRATION_FILE, LEARNED_RESIDUAL_FILE
+from kpi_calib_ros.io.fitted_stamps import read_fitted_stamps
+from kpi_calib_ros.io.names import CALIBRATION_FILE, FITTED_STAMPS_FILE, LEARNED_RESIDUAL_FILE
 from kpi_calib_ros.io.result_set import complete_pending
 from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros.node_parts import NodeParts
@@ -45,15 +46,18 @@ class CalibrationRestore(NodeParts):
         except KpiCalibError as exc:
             raise DataError(f'{exc}; the node starts without a calibration (call '
                             '~/identify)') from None
-        # ~/validate tests on what was measured after it: the restored measurements
-        # stamped up to the calibration's last one are those it was fitted to.
-        stamp, fitted = stored.identified_at_ns, set()
-        if stamp is not None and len(self.store):
+        # ~/validate tests on what was measured after it: the stamps the node wrote when it
+        # published this calibration; without them, the restored measurements stamped up
+        # to the calibration's last one.
+        stamp = stored.identified_at_ns
+        fitted = read_fitted_stamps(self.data_dir / FITTED_STAMPS_FILE, stored.text)
+        if fitted is None and stamp is not None and len(self.store):
             # The stamps alone: no temperature reading needed (none may have arrived yet).
             stamps = np.asarray(self.store.measurements(
                 cm.joint_names, cm.cell.tracker_frame, cm.cell.reflector_names or ('',)
             )[0].stamps_ns).ravel()
             fitted = {int(t) for t in stamps if t <= stamp}
+        fitted = fitted or set()
         run = self._run
         run.restored, run.cell, run.identified_with = stored, stored.cell, stored.measurements
         section = stored.doc.get('learned_residual')
