@@ -373,3 +373,15 @@ def test_exchange_at_the_smallest_size_completes_when_a_removal_is_singular(cm):
     assert len(set(res.selected)) == n and np.isfinite(res.loss) and res.loss > 0
     info = sum(r.T @ r for r in rows[res.selected])
     assert np.linalg.matrix_rank(info) == ctx.problem.k
+
+
+def test_a_design_leaves_identify_a_degree_of_freedom():
+    """As many equations as parameters (9 poses for 27 parameters of a UR5) was designed,
+    called estimable, and refused by identify ("too few measurements"); the exchange now
+    asks for one pose more, as identify does."""
+    rng = np.random.default_rng(0)
+    rows = rng.normal(size=(40, 3, 6))
+    with pytest.raises(ValueError, match='2 configurations give 6 equations for 6 parameters; '
+                                         'at least 3 are needed'):
+        exchange(rows, 2, LogDetLoss(), rng)
+    assert len(exchange(rows, 3, LogDetLoss(), rng).selected) == 3

@@ -154,8 +154,12 @@ def exchange(rows: np.ndarray, n: int, loss: Loss, rng: np.random.Generator,
     def information_of(chosen: Sequence[int] | np.ndarray) -> np.ndarray:
         return information(rows[chosen]) + prior_info
 
-    if base is None and 3 * n < k:
-        raise ValueError(f'n = {n} configurations give {3 * n} equations for {k} parameters')
+    if base is None and 3 * n <= k:
+        # identify needs a degree of freedom left (the noise it estimates): as many
+        # equations as parameters is a design it refuses to identify.
+        raise ValueError(f'n = {n} configurations give {3 * n} equations for {k} parameters; '
+                         f'at least {k // 3 + 1} are needed (identify needs more equations '
+                         'than parameters)')
     n_init = min(n, max(int(np.ceil(k / 3)) + 2, 1) if n_init is None else n_init)
     say = progress or (lambda _msg: None)
     # (1) Initialise: a random subset with a nonsingular information matrix.

@@ -369,7 +369,7 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
         if 3 * len(q) + (0 if rows is None else len(rows[0])) <= len(idx):
             raise DataError(f'too few measurements: {len(q)} points give {3 * len(q)} '
                             f'equations for {len(idx)} identifiable parameters; measure at '
-                            f'least {len(idx) // 3 + 2} poses (better 3-5x that)')
+                            f'least {len(idx) // 3 + 1} poses (better 3-5x that)')
         p, status, message, used = gauss_newton(model, p, idx, q, eta, tau, w,
                                                  limit(idx), tolerances, ref, rows, rot, cov)
         iterations += used
