@@ -301,3 +301,28 @@ def test_a_chain_link_without_collision_geometry_is_named_not_refused(tmp_path):
     result = identify_cell(cm, data)
     error = np.asarray(result.tcp[0]) - np.asarray(read_truth(bag)['tcp_true'][0])
     assert np.all(np.abs(error) < 3.5 * np.sqrt(np.diag(result.tcp_covariance[0])))
+
+
+def test_the_mesh_check_takes_continuous_joints():
+    """The stock Kinova's joints are continuous ((cos θ, sin θ) in Pinocchio): the mesh check
+    refused them ("only 1-DoF joints") after a whole design had run, and no Kinova could be
+    designed. It takes them now: every configuration gives the same contacts as itself
+    turned by 2π on every joint, some configurations of the folded arm do collide, and the
+    contacts equal a check of the same arm with its joints made revolute."""
+    xml = resolve_mesh_uris(resolve_uri(
+        'package://example-robot-data/robots/kinova_description/robots/kinova.urdf').read_text())
+    robot = RobotModel(xml, 'base', 'j2s6s200_end_effector')
+    assert any(j.kind == 'continuous' for j in robot.joints)
+    names = robot.joint_names
+    q = np.random.default_rng(4).uniform(-np.pi, np.pi, (40, len(names)))
+    check = mesh_collisions(xml, [], 'base', names, q)
+    turned = mesh_collisions(xml, [], 'base', names, q + 2 * np.pi)
+    assert check.collisions == turned.collisions
+    assert any(check.collisions)
+    root = ET.fromstring(xml)
+    for joint in root.iter('joint'):
+        if joint.get('type') == 'continuous':
+            joint.set('type', 'revolute')
+            ET.SubElement(joint, 'limit', lower='-7', upper='7', effort='1', velocity='1')
+    revolute = mesh_collisions(ET.tostring(root, encoding='unicode'), [], 'base', names, q)
+    assert check.collisions == revolute.collisions

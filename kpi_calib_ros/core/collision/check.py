@@ -197,8 +197,21 @@ def mesh_collisions(urdf_xml: str, package_dirs: Sequence[str], base_frame: str,
     if unknown:
         raise ValueError(f'joints {unknown} are not in the URDF')
     idx_q = [model.joints[model.getJointId(n)].idx_q for n in joint_names]
-    if any(model.joints[model.getJointId(n)].nq != 1 for n in joint_names):
-        raise ValueError('only 1-DoF joints can be given (revolute, prismatic)')
+    # A continuous joint is (cos θ, sin θ) in Pinocchio (nq 2, nv 1): the stock Kinova's
+    # were refused here after a whole design had run.
+    nq = [model.joints[model.getJointId(n)].nq for n in joint_names]
+    if any(model.joints[model.getJointId(n)].nv != 1 or k not in (1, 2)
+           for n, k in zip(joint_names, nq)):
+        raise ValueError('only 1-DoF joints can be given (revolute, continuous, prismatic)')
+
+    def pin_configuration(row: np.ndarray) -> np.ndarray:
+        q_pin = pin.neutral(model)
+        for idx, k, value in zip(idx_q, nq, row):
+            if k == 2:
+                q_pin[idx:idx + 2] = np.cos(value), np.sin(value)
+            else:
+                q_pin[idx] = value
+        return q_pin
 
     def below(jid: int, root: int) -> bool:
         while jid != root and jid != 0:
@@ -255,9 +268,7 @@ def mesh_collisions(urdf_xml: str, package_dirs: Sequence[str], base_frame: str,
     data, gdata = model.createData(), pin.GeometryData(geom)
     collisions = []
     for row in q:
-        q_pin = pin.neutral(model)
-        q_pin[idx_q] = row
-        pin.computeCollisions(model, data, geom, gdata, q_pin, False)
+        pin.computeCollisions(model, data, geom, gdata, pin_configuration(row), False)
         hit = {pair_links[c] for c, res in enumerate(gdata.collisionResults) if res.isCollision()}
         collisions.append(tuple(sorted(hit)))
     return MeshCheck(tuple(collisions), tuple(dict.fromkeys(pair_links)), excluded)
