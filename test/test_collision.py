@@ -264,9 +264,10 @@ def test_obstacle_and_beam_pairs():
     assert 'link_1~floor' not in labels and 'link_1~mounting' not in labels
     assert 'link_1~wall' in labels and 'link_5~car_roof' in labels
     beam = [lab for lab in labels if lab.startswith('beam~')]
-    # Every robot capsule but the reflector's link, every obstacle capsule, no half-space.
-    assert beam == [f'beam~link_{i}' for i in range(1, 6)] + ['beam~mounting', 'beam~car_roof',
-                                                              'beam~car_body']
+    # Every robot capsule but the reflector's link, every obstacle, half-spaces included
+    # (a tracker below the floor was designed for).
+    assert beam == [f'beam~link_{i}' for i in range(1, 6)] + [
+        'beam~floor', 'beam~wall', 'beam~mounting', 'beam~car_roof', 'beam~car_body']
     assert scene.count == 10 + 6 * 5 - 2 + len(beam)
     other = CollisionScene(_chain_capsules(links), obstacles, links, reflector_link='link_5')
     assert 'beam~link_5' not in other.labels and 'beam~link_6' in other.labels
@@ -274,14 +275,32 @@ def test_obstacle_and_beam_pairs():
         CollisionScene([Capsule('x', 'link_9', (0, 0, 0), (0, 0, 1), 0.1)], [], links)
 
 
-def test_beam_is_shortened_at_the_reflector_end():
+def test_beam_is_shortened_at_the_reflector_end_against_the_robot_alone():
+    """Against the robot's capsules the beam stops ``beam_end_clearance`` short of the
+    reflector (the tool carrying it); against obstacles it runs to the reflector's centre:
+    a reflector 8 cm from an obstacle's axis of radius 10 cm is inside it, and the
+    shortened beam called that free (a probe's reflector designed 25 mm inside a
+    conveyor). A half-space beyond which the tracker stands crosses every beam."""
     blocker = Capsule('blocker', 'base', (1.0, -1, 0), (1.0, 1, 0), 0.1)
-    scene = CollisionScene([], [blocker], ['link_1'], beam_radius=0.005, beam_end_clearance=0.05)
-    # Reflector 0.12 m behind the blocker's axis: the beam stops 0.07 m from it.
+    post = Capsule('post', 'base', (1.0, -1, 0), (1.0, 1, 0), 0.1)
+    floor = HalfSpace('floor', (0, 0, 1), -0.5)
+    scene = CollisionScene([post], [blocker, floor], ['link_1'], beam_radius=0.005,
+                           beam_end_clearance=0.05,
+                           ignore_pairs={frozenset({'post', 'blocker'}),
+                                         frozenset({'post', 'floor'})})
+    assert scene.labels == ['beam~post', 'beam~blocker', 'beam~floor']
+    # Reflector 0.12 m behind the axis: both beams cross it.
     margin = scene.margins({}, [0.0, 0, 0], [1.12, 0, 0])
-    assert margin == pytest.approx([-0.105])  # the beam crosses the blocker
+    assert margin[:2] == pytest.approx([-0.105, -0.105])
+    # 0.15 m before it: the robot's beam stops 0.20 m from the axis, the obstacle's 0.15 m.
     margin = scene.margins({}, [0.0, 0, 0], [0.85, 0, 0])
-    assert margin == pytest.approx([0.20 - 0.1 - 0.005])
+    assert margin[:2] == pytest.approx([0.20 - 0.105, 0.15 - 0.105])
+    # 0.08 m before it, the reflector inside the obstacle: refused; the robot's beam is free.
+    margin = scene.margins({}, [0.0, 0, 0], [0.92, 0, 0])
+    assert margin[:2] == pytest.approx([0.13 - 0.105, 0.08 - 0.105])
+    assert margin[2] == pytest.approx(0.5 - 0.005)  # tracker and reflector above the floor
+    below = scene.margins({}, [0.0, 0, -0.8], [0.85, 0, 0])
+    assert below[2] == pytest.approx(-0.3 - 0.005)  # the tracker below it: the beam crosses
 
 
 def _arm_scene():

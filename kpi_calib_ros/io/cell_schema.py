@@ -181,7 +181,10 @@ CELL_KEYS: tuple[CellKey, ...] = (
        'or obstacles never checked (added to the computed collision matrix).',
        [['base_link', 'mounting']]),
     _K('collision.beam_radius', 'number', 'm', '0.005', 'Radius of the tracker beam kept '
-       'clear of obstacles and links, ≥ 0.', 0.005),
+       'clear of obstacles (all the way to the reflector\'s centre, half-spaces included: '
+       'the reflector outside every obstacle, the tracker on the free side of every '
+       'half-space) and of the links (but the last 5 cm, next to the tool carrying the '
+       'reflector, and the reflector\'s own link), ≥ 0.', 0.005),
     # --------------------------------------------------------- identification
     _K('identification', 'mapping', '', '{}', 'How the robot is identified.',
        {'method': 'pivoted'}),

@@ -204,7 +204,12 @@ class CollisionScene:
     ``chain_links`` (eq. 22: neighbours are kept apart by the joint limits);
     every robot capsule vs every obstacle; the beam (tracker to reflector,
     shortened by ``beam_end_clearance`` at the reflector) vs every robot capsule
-    not on ``reflector_link`` and vs every obstacle capsule (line of sight).
+    not on ``reflector_link``, and the whole beam, to the reflector's centre, vs every
+    obstacle, capsule or half-space (line of sight; the reflector itself outside every
+    obstacle; the tracker on the free side of every half-space). The beam's last
+    ``beam_end_clearance`` was left out against obstacles too and half-spaces were not
+    checked: a design put a probe's reflector 25 mm inside a conveyor, and a tracker
+    below the floor was designed for.
     A pair is dropped when ``frozenset({x, y})`` is in ``ignore_pairs`` for x, y
     a capsule name, its frame, a half-space name or ``'beam'``.
 
@@ -266,8 +271,9 @@ class CollisionScene:
         for cap in self.robot_capsules:
             for obs in self.obstacles:
                 candidates.append(_Pair(f'{cap.name}~{obs.name}', cap, obs))
-        beam_targets = [c for c in self.robot_capsules if c.frame != self.reflector_link]
-        beam_targets += [o for o in self.obstacles if isinstance(o, Capsule)]
+        beam_targets: list[Capsule | HalfSpace] = [
+            c for c in self.robot_capsules if c.frame != self.reflector_link]
+        beam_targets += self.obstacles
         candidates += [_Pair(f'{BEAM}~{c.name}', None, c) for c in beam_targets]
         self._pairs = [p for p in candidates if not any(
             frozenset({x, y}) in self.ignore_pairs
@@ -322,9 +328,14 @@ class CollisionScene:
             world[cap.name] = tuple(ca.mtimes(rot, _as_casadi(p)) + pos for p in (cap.a, cap.b))
         tracker, reflector = _as_casadi(tracker), _as_casadi(reflector)
         beam = (tracker, _beam_end(tracker, reflector, self.beam_end_clearance))
+        obstacles = {o.name for o in self.obstacles}
         out = []
         for pair in self._pairs:
-            a1, b1 = beam if pair.first is None else world[pair.first.name]
+            # The whole beam against obstacles, the shortened one against the robot.
+            whole = pair.first is None and pair.second is not None \
+                and pair.second.name in obstacles
+            a1, b1 = ((tracker, reflector) if whole else beam) if pair.first is None \
+                else world[pair.first.name]
             r1 = self.beam_radius if pair.first is None else pair.first.radius
             obs = pair.second
             if isinstance(obs, HalfSpace):
