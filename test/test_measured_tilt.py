@@ -86,7 +86,40 @@ def test_a_gain_beyond_its_bound_is_implausible(cm):
     assert 'measured_tilt.joint_1.column.gx = 3.5 1 beyond the plausible ±3' in v.reason
 
 
-def _leaning(cm, seed, gains, n):
+def test_a_gain_far_below_one_is_a_unit_slip_and_implausible(cm):
+    """A tilt recorded in milliradians and stated as radians passes the input's ±0.5 rad
+    range and fits a gain of 1e-3: refused (1/3 ≤ |g| ≤ 3), naming the units; the real gain
+    of a sensor mounted the other way round (−1) passes."""
+    effect = parse_effect_spec('measured_tilt:joint_1:column', cm.robot)
+    names = effect.parameter_names
+
+    def verdict(values):
+        result = type('Fit', (), {'names': names, 'values': np.array(values),
+                                  'estimated': names, 'std': np.array([1e-5, 1e-5])})()
+        return effect_violations((effect,), result)
+    (v,) = verdict([1.0e-3, 1.0])
+    assert 'measured_tilt.joint_1.column.gx = 0.001, below the plausible magnitude 0.333' \
+        in v.reason and 'milliradians as radians' in v.reason
+    assert verdict([-1.0, 0.8]) == []
+
+
+@pytest.mark.slow
+def test_a_tilt_recorded_in_milliradians_stated_as_radians_is_not_published(cm):
+    """The column leans by up to 0.2 mrad; the sensor's values are milliradians, the cell
+    states radians: the fitted gains are 1e-3 and the calibration is not valid, the gate
+    naming the gain and the units."""
+    data, _ = _leaning(cm, 3, (1.0, 1.0), 60, lean=2e-4)
+    slipped = dataclasses.replace(data, covariates={k: 1e3 * v
+                                                    for k, v in data.covariates.items()})
+    tilt = with_effects(cm, ('measured_tilt:joint_2:column',))
+    cal = calibrate_cell(tilt, slipped, model='geometric')
+    gain = cal.result.value('measured_tilt.joint_2.column.gx')
+    assert abs(gain - 1e-3) < 3 * cal.result.std_of('measured_tilt.joint_2.column.gx')
+    assert not cal.valid
+    assert any('below the plausible magnitude' in p for p in cal.problems), cal.problems
+
+
+def _leaning(cm, seed, gains, n, lean=2e-3):
     rng = np.random.default_rng(seed)
     effect = parse_effect_spec('measured_tilt:joint_2:column', cm.robot)
     truth = augmented_model(cm.model, (effect,))
@@ -94,8 +127,8 @@ def _leaning(cm, seed, gains, n):
 
     def measure(count):
         q = random_configurations(cm.model, cm.model.params.nominal, count, rng)
-        lean = rng.uniform(-2e-3, 2e-3, (count, 2))
-        actual = {'tilt.column.x': lean[:, 0], 'tilt.column.y': lean[:, 1]}
+        angles = rng.uniform(-lean, lean, (count, 2))
+        actual = {'tilt.column.x': angles[:, 0], 'tilt.column.y': angles[:, 1]}
         data = simulate_measurements(truth, p_true, q, SIGMA, rng, covariates=actual)
         # the inclinometer reads the lean with a noise of 2 µrad
         return dataclasses.replace(data, covariates={

@@ -90,6 +90,11 @@ class EffectType:
         A general effect (a periodic joint error at a frequency found from the data, link
         bending; :mod:`kpi_calib_ros.core.effects.general`) rather than a named mechanism:
         the diagnosis ranks it after the significant, plausible named effects.
+    gains : bool
+        Its parameters are gains of a measured input (a sensor reading the turn it models):
+        plausible between 1/bound and bound in magnitude. A gain far below 1/bound says the
+        input is in other units than stated (milliradians given as radians fit a gain of
+        1e-3) or measures something else.
     """
 
     name: str
@@ -113,6 +118,7 @@ class EffectType:
     inputs: tuple[str, ...] = ()
     placement_function: Callable | None = None
     general: bool = False
+    gains: bool = False
 
     def __post_init__(self) -> None:
         """Check the name, the single correction function, parameters, units, sizes, bounds."""

@@ -436,10 +436,17 @@ def implausible(effect: BoundEffect, values: Sequence[float] | np.ndarray,
     cell's ``identification.bounds`` (:func:`effect_bounds`).
     """
     kind = effect.kind
+    limits = effect_bounds(effect, bounds)
     out = [f'{name} = {value:.3g} {unit} beyond the plausible ±{bound:.3g}'
            for name, value, unit, bound in zip(effect.parameter_names, values, effect.units,
-                                               effect_bounds(effect, bounds))
+                                               limits)
            if abs(value) > bound]
+    if kind.gains:
+        out += [f'{name} = {value:.3g}, below the plausible magnitude {1 / bound:.3g} (the '
+                'input in other units than stated, e.g. milliradians as radians, or reading '
+                'something else)'
+                for name, value, bound in zip(effect.parameter_names, values, limits)
+                if bound > 0 and abs(value) < 1 / bound]
     if not out and tau is not None and effect.joint_index is not None and len(tau) \
             and 'joint_compliance' in kind.nests and kind.n_shape == 1:
         out += _compliance_limit(effect, values, np.atleast_2d(tau)[:, effect.joint_index],

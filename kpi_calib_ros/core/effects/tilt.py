@@ -16,8 +16,9 @@ other order differs by t_x·t_y (1.5e-3 rad at 50 and 30 mrad, a millimetre at a
 rad at 2 mrad).
 Everything from joint j on turns with its frame. The gains are identified: 1 when the
 sensor measures exactly the turn of the frame, less when it sits on a stiffer part, of the
-other sign when it is mounted the other way round; |g| ≤ 3 plausible (a sensor that reads a
-third of the turn is mounted elsewhere than the effect is bound). The constant part of the
+other sign when it is mounted the other way round; 1/3 ≤ |g| ≤ 3 plausible (a sensor that
+reads a third of the turn, or three times it, is mounted elsewhere than the effect is bound;
+a gain of 1e-3 is a reading in milliradians stated as radians). The constant part of the
 tilt, the angle at which the frame stands as the URDF states, is the geometric placement of
 joint j (the base pose for the first joint), identified with the geometry: a separate offset
 parameter would be that placement twice and never distinguishable from it. Parameters
@@ -74,6 +75,7 @@ def _no_joint_value(q_j: ca.SX, tau_j: ca.SX, theta: ca.SX, z: ca.SX) -> ca.SX:
 TILT_KIND = EffectType(
     MEASURED_TILT, ('gx', 'gy'), ('1', '1'), _no_joint_value, typical=(1.0, 1.0),
     plausible=(GAIN_BOUND, GAIN_BOUND), prismatic_plausible=(GAIN_BOUND, GAIN_BOUND),
+    gains=True,
     prismatic_units=('1', '1'), inputs=(TILT_PREFIX + 'x', TILT_PREFIX + 'y'),
     description='the frame of the joint turned by a measured tilt (an inclinometer or '
                 'accelerometer on a column) with an identified gain per axis',
