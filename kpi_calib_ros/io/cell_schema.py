@@ -184,7 +184,7 @@ CELL_KEYS: tuple[CellKey, ...] = (
        'clear of obstacles (all the way to the reflector\'s centre, half-spaces included: '
        'the reflector outside every obstacle, the tracker on the free side of every '
        'half-space) and of the links (but the last 5 cm, next to the tool carrying the '
-       'reflector, and the reflector\'s own link), ≥ 0.', 0.005),
+       'reflector), ≥ 0.', 0.005),
     # --------------------------------------------------------- identification
     _K('identification', 'mapping', '', '{}', 'How the robot is identified.',
        {'method': 'pivoted'}),

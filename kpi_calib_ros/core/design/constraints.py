@@ -136,8 +136,7 @@ def scene_without(scene: CollisionScene, labels: tuple[str, ...]) -> CollisionSc
     return CollisionScene(scene.robot_capsules, scene.obstacles, scene.chain_links,
                           ignore_pairs=scene.ignore_pairs | extra,
                           beam_radius=scene.beam_radius,
-                          beam_end_clearance=scene.beam_end_clearance,
-                          reflector_link=scene.reflector_link)
+                          beam_end_clearance=scene.beam_end_clearance)
 
 
 # ---------------------------------------------------------------------- verifier
