@@ -100,6 +100,7 @@ def test_a_gain_far_below_one_is_a_unit_slip_and_implausible(cm):
     (v,) = verdict([1.0e-3, 1.0])
     assert 'measured_tilt.joint_1.column.gx = 0.001, below the plausible magnitude 0.333' \
         in v.reason and 'milliradians as radians' in v.reason
+    assert v.fix.startswith('state the input in the units the cell says')
     assert verdict([-1.0, 0.8]) == []
 
 

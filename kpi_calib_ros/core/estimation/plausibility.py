@@ -510,10 +510,13 @@ def effect_violations(effects: Sequence[Any], result: CalibrationResult,
             if COMPLIANCE_LIMIT in why and effect.joint is not None:
                 # A play within its linear range is the compliance it is: its bound decides.
                 key = f'{key} and identification.bounds.joint_compliance:{effect.joint}'
-            out.append(Violation(effect.name, why,
-                                 f'widen {key} if this arm is that soft or loose (servo-stiff '
-                                 'or cable-driven joints: compliance ~1e-3 rad/(N m)); else '
-                                 'leave the effect out'))
+            fix = (f'state the input in the units the cell says (a column\'s unit in the '
+                   f'CSV mapping, a source\'s field), or widen {key} if the sensor sits '
+                   'where it reads that share of the turn; else leave the effect out'
+                   if effect.kind.gains else
+                   f'widen {key} if this arm is that soft or loose (servo-stiff or '
+                   'cable-driven joints: compliance ~1e-3 rad/(N m)); else leave the effect out')
+            out.append(Violation(effect.name, why, fix))
     return out
 
 
