@@ -28,6 +28,7 @@ from kpi_calib_ros.core.estimation.registration import Registration
 from kpi_calib_ros.core.estimation.robust import LOSS_SCALE, ExcludedMeasurement, RobustResult
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.recordings import Recording, contributions, row_recording
+from kpi_calib_ros.core.measurement.weighting import point_rows
 from kpi_calib_ros.core.model.dh import dh_table
 from kpi_calib_ros.core.model.parameters import reflector_prefixes
 from kpi_calib_ros.io.recordings_manifest import RecordingSource
@@ -322,9 +323,8 @@ def urdf_omission(cm: CellModel, result: CalibrationResult, data: Measurements) 
     geometric = values.copy()
     extra = np.arange(len(cm.geometric), len(values))
     geometric[extra] = np.asarray(cm.model.params.nominal, float)[extra]
-    points = (np.ones(len(data), bool) if data.reflector is None
-              else np.asarray(data.reflector) < cm.model.n_reflectors)
-    rows = data.subset(points)
+    points = point_rows(data.reflector, cm.model.n_reflectors)
+    rows = data if points is None else data.subset(points)
     moved = np.linalg.norm(
         cm.model.predict(values, rows.q, rows.tau, rows.reflector, covariates=rows.covariates)
         - cm.model.predict(geometric, rows.q, rows.tau, rows.reflector,

@@ -23,10 +23,7 @@ import numpy as np
 
 from kpi_calib_ros.app.calibration_document import require_valid
 from kpi_calib_ros.app.cell_model import CellModel, build_cell_model
-from kpi_calib_ros.app.learned_residual import (
-    learned_file,
-    learned_section,
-)
+from kpi_calib_ros.app.learned_residual import learned_file, learned_section, point_rows
 from kpi_calib_ros.app.measurements import (
     measurements_from_bag,
     print_rejections,
@@ -333,9 +330,8 @@ def against_nominal_robot(cm: CellModel, placed: np.ndarray, doc: dict[str, Any]
             cm, placed, doc, data, 'base+reflector')
     except (DataError, np.linalg.LinAlgError):
         return None
-    ref = np.zeros(len(v.residuals), int) if data.reflector is None else data.reflector
     versus = (None if nominal is None else against_nominal_on_new(
-        same, nominal, np.asarray(ref) < cm.model.n_reflectors, pose_index(data.q)[1]))
+        same, nominal, point_rows(cm.model, data), pose_index(data.q)[1]))
     if versus is None or not np.isfinite([versus.rms_m, versus.nominal_rms_m]).all():
         return None
     return versus.to_dict()

@@ -42,6 +42,17 @@ def prediction_overstated_text(doc: dict[str, Any]) -> str:
             'not below it): a better model or more poses like these narrow the prediction')
 
 
+def nominal_verdict(versus: Mapping[str, Any]) -> str:
+    """The calibrated robot against the nominal one (``against_nominal``), in words: worse,
+    better, or neither beyond the paired test's level."""
+    z = versus['z'] if versus['z'] is not None else float('nan')
+    if versus['worse_than_nominal']:
+        return 'WORSE THAN NO CALIBRATION'
+    if z < -versus['z_needed']:
+        return 'better than no calibration'
+    return 'neither better nor worse than no calibration'
+
+
 def validation_text(doc: dict[str, Any]) -> str:
     """Readable summary for a terminal."""
     def mm(x: float | None) -> str:
@@ -75,9 +86,9 @@ def validation_text(doc: dict[str, Any]) -> str:
     if versus:
         worse = versus['worse_than_nominal']
         z = versus['z'] if versus['z'] is not None else float('nan')
-        label = ('WORSE THAN NO CALIBRATION' if worse else 'better than no calibration'
-                 if z < -versus['z_needed'] else
-                 'neither better nor worse than no calibration beyond the scatter of these poses')
+        label = nominal_verdict(versus)
+        if label.startswith('neither'):
+            label += ' beyond the scatter of these poses'
         lines.append(
             f"{label}: with the placement (base pose, reflector offsets) registered on these "
             f"points, the calibrated robot predicts them at {mm(versus['rms_m'])} rms, the "
@@ -123,5 +134,5 @@ def validation_text(doc: dict[str, Any]) -> str:
     return '\n'.join(lines)
 
 
-__all__ = ['PREDICTION_OVERSTATED', 'prediction_overstated_text', 'registration_valid',
-           'validation_text']
+__all__ = ['PREDICTION_OVERSTATED', 'nominal_verdict', 'prediction_overstated_text',
+           'registration_valid', 'validation_text']

@@ -6,6 +6,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from kpi_calib_ros.app.validation_text import nominal_verdict
 from kpi_calib_ros.core.estimation.precision import precision_statement
 
 
@@ -69,9 +70,8 @@ def nominal_answer(versus: dict[str, Any] | None) -> str:
     if not versus:
         return ''
     z = versus['z'] if versus['z'] is not None else float('nan')
-    head = ('WORSE THAN NO CALIBRATION, it does harm here' if versus['worse_than_nominal']
-            else 'better than no calibration' if z < -versus['z_needed']
-            else 'neither better nor worse than no calibration')
+    head = nominal_verdict(versus) + (', it does harm here' if versus['worse_than_nominal']
+                                      else '')
     return (f"; {head}: the calibrated robot {versus['rms_m'] * 1e6:.1f} µm, the nominal "
             f"robot {versus['nominal_rms_m'] * 1e6:.1f} µm, both placed on these points "
             f"(paired z {z:.2f})")
