@@ -135,10 +135,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help="physical effects added to the cell file's effects: (e.g. "
                      'joint_compliance:joint_2); the summary compares with the geometric model')
     ide.add_argument('--model', choices=['auto', 'registration', 'joint_offsets', 'geometric'],
-                     help="model size (overrides the cell's identification.model; auto: the "
-                     'smallest level whose out-of-sample rms, predicted from each fit without '
-                     'refits, is within 5%% of the best; then the significant, plausible '
-                     'effects that predict better)')
+                     help="model size (overrides the cell's identification.model; auto: a "
+                     'larger level only when it lowers the misfit beyond noise (F-test), from '
+                     'the smallest up; then the significant, plausible effects that predict '
+                     'held-out regions of joint space better)')
     ide.add_argument('--max-iterations', type=_positive_int, metavar='N',
                      help="iteration limit of every fit (overrides the cell's "
                      f'identification.max_iterations; default {ITERATIONS_PER_PARAMETER} '

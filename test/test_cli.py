@@ -245,13 +245,13 @@ def test_identify_needs_no_working_poses_and_design_says_it_does(run_bag, tmp_pa
 
 
 def test_identify_help_says_how_auto_chooses(capsys):
-    """auto chooses by the out-of-sample rms predicted from each fit (core.model_selection),
-    not by cross-validation, which it only reports beside."""
+    """auto takes a larger level by a test of its held-out gain (core.model_selection), not
+    by a margin on a figure."""
     with pytest.raises(SystemExit):
         main(['identify', '--help'])
     text = ' '.join(capsys.readouterr().out.split())
-    assert 'by cross-validation' not in text
-    assert 'out-of-sample rms, predicted from each fit without refits' in text
+    assert '5%' not in text
+    assert 'larger level only when it lowers the misfit beyond noise (F-test)' in text
     assert '--max-iterations' in text
 
 

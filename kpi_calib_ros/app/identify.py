@@ -214,25 +214,25 @@ def _auto_at_level(cm: CellModel, screened: Measurements, data: Measurements,
     effects.
 
     No effect is tried when a larger level whose fit did not converge fits these poses
-    better (:attr:`ModelChoice.unsettled_larger`): the chosen level's misfit then holds
-    geometry the poses need and cannot settle, as when the final fit refuses the larger
-    level (:func:`_valid_smaller_level`). On 200 real UR10 poses of one region of joint
-    space (the geometric fit stopped at its iteration limit, predicted 340 against the
-    registration's 509 µm), a shoulder and an elbow compliance and a shoulder backlash were
-    added at the registration level; the shoulder compliance came out at three times the one
-    every region of the series gives, and the model predicted two of the three other regions
-    worse than the plain registration (1711 and 1785 against 1580 and 1413 µm).
+    better beyond noise (:attr:`ModelChoice.unsettled_larger`): the chosen level's misfit
+    then holds geometry the poses need and cannot settle, as when the final fit refuses the
+    larger level (:func:`_valid_smaller_level`). On 200 real UR10 poses of one region of
+    joint space (the geometric fit stopped at its iteration limit, predicted 340 against
+    the registration's 509 µm), a shoulder and an elbow compliance and a shoulder backlash
+    were added at the registration level; the shoulder compliance came out at three times
+    the one every region of the series gives, and the model predicted two of the three
+    other regions worse than the plain registration (1711 and 1785 against 1580 and
+    1413 µm).
     """
     unsettled = choice.unsettled_larger
     if unsettled:
-        figures = ', '.join(f'{k} {(choice.predicted_rms_m[k] or np.nan) * 1e6:.1f} µm'
-                            for k in (choice.level, *unsettled))
+        figures = ', '.join(f'{k} F-test z {choice.level_z[k]:.1f}' for k in unsettled)
         choice = dataclasses.replace(choice, reason=(
             f'{choice.reason}; no effect tried: {", ".join(unsettled)} fits these poses '
-            f'better ({figures}) but did not converge, so the misfit of {choice.level} '
-            'holds geometry the poses cannot settle and an effect would take it up '
-            '(raise identification.max_iterations, or measure poses that spread every '
-            'joint, to let the larger level settle)'))
+            f'better beyond noise ({figures}) but did not converge, so the misfit of '
+            f'{choice.level} holds geometry the poses cannot settle and an effect would '
+            'take it up (raise identification.max_iterations, or measure poses that spread '
+            'every joint, to let the larger level settle)'))
         return _final_fit(cm, data, choice, start, prior, balance, scales, registration,
                           None, progress)
     cm, start, choice = add_chosen_effects(cm, screened, choice, start, prior, balance)
