@@ -267,9 +267,10 @@ def validation_to_dict(v: Validation, data: Measurements, training_rms_m: float 
         'rms_repeated_from_training_m': _num(v.rms_where(v.repeated & points)),
         'rms_new_inside_training_range_m': _num(v.rms_where(inside & ~v.repeated & points)),
         **extra,
-        'outside_training_range': int(np.count_nonzero(v.outside)),
-        'repeated_from_training': int(np.count_nonzero(v.repeated)),
-        'identical_to_training': int(np.count_nonzero(v.identical))
+        # Points, as the rms beside them (a tracked body's rotation row is no point).
+        'outside_training_range': int(np.count_nonzero(v.outside & points)),
+        'repeated_from_training': int(np.count_nonzero(v.repeated & points)),
+        'identical_to_training': int(np.count_nonzero(v.identical & points))
         if v.identical is not None else 0,
         'noise_scale': noise_scale,
         'training_rms_m': training_rms_m,

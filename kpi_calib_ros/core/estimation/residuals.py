@@ -28,6 +28,7 @@ from kpi_calib_ros.core.measurement.data import Measurements, stated_sigma
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.core.measurement.weighting import (
     noise_weights,
+    point_rows,
     row_torques,
     unweighted,
     weighted_residuals,
@@ -57,9 +58,10 @@ class ResidualReport:
     norms : (N,) ndarray
         ‖r_i‖, m.
     rms_m, max_m : float
-        sqrt(mean ‖r_i‖²) and max ‖r_i‖, m.
+        sqrt(mean ‖r_i‖²) and max ‖r_i‖ over the point rows (a tracked body's rotation
+        rows, in rad, are no length), m.
     percentiles_m : dict
-        {50, 90, 95, 99} -> percentile of ‖r_i‖, m.
+        {50, 90, 95, 99} -> percentile of ‖r_i‖ over the point rows, m.
     chi2, dof, p_value : float, int, float
         Σ‖r_i/σ‖² against χ²(dof); p is the upper tail.
     adequate : bool
@@ -242,10 +244,12 @@ def residual_report(model: MeasurementModel, data: Measurements, result: Calibra
         1 / SIGMA_RATIO_WARNING <= ratio <= SIGMA_RATIO_WARNING) else ''
     chi2 = float(sys_.r @ sys_.r)
     p_value = float(scipy.stats.chi2.sf(chi2, dof)) if dof > 0 else float('nan')
+    points = point_rows(data.reflector, model.n_reflectors)
+    lengths = norms if points is None else norms[points]
     return ResidualReport(
         residuals=residuals, norms=norms,
-        rms_m=float(np.sqrt(np.mean(norms ** 2))), max_m=float(norms.max()),
-        percentiles_m={p: float(np.percentile(norms, p)) for p in PERCENTILES},
+        rms_m=float(np.sqrt(np.mean(lengths ** 2))), max_m=float(lengths.max()),
+        percentiles_m={p: float(np.percentile(lengths, p)) for p in PERCENTILES},
         chi2=chi2, dof=dof, p_value=p_value, adequate=is_adequate(p_value, alpha),
         leverage=leverage, standardized=standardized, outlier=outlier,
         high_leverage=leverage > 3 * k / n, alpha=alpha, sigma_robust_m=sigma_hat,
