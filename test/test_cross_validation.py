@@ -11,6 +11,7 @@ from kpi_calib_ros.app.identify import identify_cell
 from kpi_calib_ros.core.estimation.cross_validation import (
     fold_rms,
     linear_validation_rms,
+    region_validation,
     validation_rms,
 )
 from kpi_calib_ros.core.estimation.folds import (
@@ -24,6 +25,7 @@ from kpi_calib_ros.core.estimation.residuals import linearized_fit
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.simulation import (
     one_joint_at_a_time,
+    random_configurations,
     simulate_measurements,
     true_parameters,
 )
@@ -114,6 +116,27 @@ def test_a_fold_of_thousands_of_poses_is_refitted_in_memory_linear_in_its_size()
     assert fold[0] == pytest.approx(np.sqrt(np.mean(per_point[region])), rel=1e-10)
     assert every == pytest.approx(np.sqrt(np.mean(per_point)), rel=1e-10)
     assert peak < 10 * a.nbytes, f'peak {peak / 1e6:.0f} MB, the Jacobian {a.nbytes / 1e6} MB'
+
+
+def test_folds_that_hold_the_same_poses_are_one_fold(cm):
+    """Joints 4 and 5 moved together (each at the same fraction of its range): their
+    range-end folds hold the same poses. Each distinct set of held-out poses is one fold;
+    on the real UR10 a wrist's range end equal to a region block was judged twice ("worse in
+    2 of 17 folds": one fold of 16)."""
+    rng = np.random.default_rng(5)
+    q = random_configurations(cm.model, cm.model.params.nominal, 80, rng)
+    lo, hi = q.min(axis=0), q.max(axis=0)
+    q[:, 4] = lo[4] + (q[:, 3] - lo[3]) / (hi[3] - lo[3]) * (hi[4] - lo[4])
+    data = simulate_measurements(cm.model, true_parameters(cm.model.params, rng), q,
+                                 cm.cell.sigma, rng)
+    result = identify_cell(cm, data)
+    figures = region_validation(cm.model, data, result)
+    held = np.array(figures.held_out_folds_m)
+    assert figures.blocks >= 2
+    # 6 joints move, 2 ends each, joint 5's two the same as joint 4's: 10 range ends.
+    assert len(held) == figures.blocks + 10
+    rows = [tuple(np.round(r, 15)) for r in figures.held_out_residuals if r is not None]
+    assert len(set(rows)) == len(rows)
 
 
 def test_moved_joints_and_stratified_folds(cm):

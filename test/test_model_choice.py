@@ -3,6 +3,7 @@ that hold out whole regions, a calibration never worse than the nominal robot, a
 periodic frequency within the search's resolution."""
 from __future__ import annotations
 
+import dataclasses
 
 import numpy as np
 import pytest
@@ -256,6 +257,13 @@ def test_an_effect_that_helps_only_where_measured_is_not_recommended(cm):
     assert not cmp.holds_elsewhere
     assert named_remedy(diag, cmp) is None
     assert 'NOT recommended' in comparison_text(cmp)
+    # The verdict's first line no longer tells the user to add it.
+    from kpi_calib_ros.app.diagnose import verdict_with_comparison
+    assert f'Add it with --effects {diag.best.spec}' in diag.verdict
+    told = verdict_with_comparison(diag, cmp).verdict
+    assert 'Add it with' not in told and 'It is NOT recommended' in told
+    assert verdict_with_comparison(diag, dataclasses.replace(
+        cmp, gain=None)).verdict == told  # no held-out figure: not recommended either
 
 
 def _corner_case(seed: int = 0):

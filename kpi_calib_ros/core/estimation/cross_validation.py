@@ -317,7 +317,8 @@ class RegionValidation:
     folds: int
     blocks: int
     # Held-out rms (m) of every fold that asks for a prediction away from the training
-    # poses: each region block, then each range-end fold (:func:`range_end_folds`); NaN
+    # poses: each region block, then each range-end fold (:func:`range_end_folds`) that
+    # holds other poses than the folds before it; NaN
     # where a fold leaves a parameter undetermined. Two models judged on the same folds
     # pair figure by figure; and what the stated noise alone spreads each by (m, fold_rms).
     held_out_folds_m: tuple[float, ...] = ()
@@ -372,8 +373,12 @@ def region_validation(model: MeasurementModel, data: Measurements, result: Calib
     inside, region_ids = pose_folds
     used = 0 if region_ids is None else int(region_ids.max()) + 1
     poses, pose = pose_index(np.atleast_2d(data.q))
-    masks = ([] if region_ids is None else [region_ids == b for b in range(used)]) + [
-        m[pose] for m in range_end_folds(poses)]
+    masks = [] if region_ids is None else [region_ids == b for b in range(used)]
+    for end in (m[pose] for m in range_end_folds(poses)):
+        # A range end that holds the same poses as a region block or another end (joints
+        # that move together) is one fold: counted twice, it was judged twice.
+        if not any(np.array_equal(end, m) for m in masks):
+            masks.append(end)
     points = point_rows(data.reflector, model.n_reflectors)
     recordings = recording_masks(model, data, list(result.estimated), sys_.jac)
     held, noise, residuals = _fold_figures(sys_.jac, sys_.r, sys_.w, masks, rows, points,
