@@ -528,3 +528,25 @@ def test_a_working_pose_outside_the_measured_ranges_is_said(cm):
         'precision': {'working_poses_outside_training': outside},
         'tcp_estimable': True, 'tcp': [], 'valid': True})
     assert f'WARNING: working pose {cm.working_pose_names[0]} sets {names[0]}' in summary
+
+
+def test_an_effect_refused_for_extrapolation_is_not_called_implausible(cm):
+    """A periodic error of joint 2 (k = 10, 0.28 mrad) measured over 40 % of its range, a
+    working pose beyond it: auto does not try it, and says why (the effect would be
+    extrapolated there). It said "significant but implausible" of a value far inside its
+    bound, sending the user after the wrong cause."""
+    rng = np.random.default_rng(3)
+    effect = periodic_joint_error(cm.robot, 'joint_2', 10)
+    truth = augmented_model(cm.model, (effect,))
+    q = random_configurations(cm.model, cm.model.params.nominal, 100, rng)
+    lo, hi = cm.robot.lower[1], cm.robot.upper[1]
+    q[:, 1] = rng.uniform(lo, lo + 0.4 * (hi - lo), len(q))
+    p_true = np.concatenate([true_parameters(cm.model.params, rng), [2.5e-4, -1.25e-4]])
+    data = simulate_measurements(truth, p_true, q, cm.cell.sigma, rng)
+    work = np.array(cm.q_work, float)
+    work[:, 1] = hi - 0.05 * (hi - lo)
+    cal = calibrate_cell(dataclasses.replace(cm, q_work=work), data, 'auto')
+    reason = cal.choice.reason
+    assert 'periodic_joint_error:joint_2:k=' in reason, reason
+    assert 'significant and plausible, but a working pose sets joint_2' in reason
+    assert 'significant but implausible: periodic_joint_error:joint_2' not in reason

@@ -230,10 +230,16 @@ def choose_effects(model: MeasurementModel, data: Measurements, fit_for: FitFor,
         trials += [EffectTrial(spec, rnd, {}, {}, None, False, f'not tried: {why}')
                    for spec, why in beyond.items() if why]
         if not passed:
-            significant = [c.spec for c in ranked if c.significant]
+            out = [spec for spec, why in beyond.items() if why]
+            significant = [c.spec for c in ranked if c.significant and not c.plausible]
             reason = ('no candidate effect is significant and physically plausible'
                       + (f' (significant but implausible: {", ".join(significant)})'
                          if significant else ''))
+            if out:  # significant and plausible, but a working pose lies beyond their data
+                reason = (f'no candidate effect is tried: {", ".join(out)} significant and '
+                          f'plausible, but {beyond[out[0]]}'
+                          + (f'; significant but implausible: {", ".join(significant)}'
+                             if significant else ''))
             break
         round_trials: list[tuple[EffectTrial, MeasurementModel | None,
                                  CalibrationResult | None]] = []
