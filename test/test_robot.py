@@ -1,4 +1,6 @@
 """Robot model: chain extraction from arbitrary URDFs, against Pinocchio."""
+from pathlib import Path
+
 import numpy as np
 import pinocchio as pin
 import pytest
@@ -90,3 +92,28 @@ def test_a_urdf_with_more_links_than_any_robot_is_refused_before_parsing(odd_arm
         RobotModel(with_fixed_links(n), 'mount', 'flange')
     found = int(str(info.value).split()[1])
     assert found >= 2 * n and str(MAX_URDF_ELEMENTS) in str(info.value)
+
+
+def test_a_link_named_like_a_joint_is_the_tip():
+    """The stock SO-100 names a joint and a link ``gripper``: Pinocchio holds two frames of
+    that name and refused ``tip_frame: gripper`` with an uncaught "Several frames match".
+    The link is the frame; the chain's FK equals Pinocchio's at the link."""
+    from kpi_calib_ros.io.resources import resolve_uri
+    path = resolve_uri('package://example-robot-data/robots/so_arm_description/urdf/so100.urdf')
+    xml = Path(path).read_text()
+    pinned = pin.buildModelFromXML(xml)
+    assert len([f for f in pinned.frames if f.name == 'gripper']) == 2
+    robot = RobotModel(xml, 'base', 'gripper')
+    params = geometric_parameters(robot, np.zeros(6), np.zeros(3))
+    fk = nominal_fk_function(robot, params)
+    data = pinned.createData()
+    link = pinned.getFrameId('gripper', pin.BODY)
+    base = pinned.getFrameId('base', pin.BODY)
+    rng = np.random.default_rng(2)
+    for _ in range(10):
+        q = rng.uniform(pinned.lowerPositionLimit, pinned.upperPositionLimit)
+        pin.framesForwardKinematics(pinned, data, q)
+        expected = (data.oMf[base].inverse() * data.oMf[link]).homogeneous
+        chain = [pinned.getJointId(n) for n in robot.joint_names]
+        qc = np.array([q[pinned.joints[j].idx_q] for j in chain])
+        assert np.abs(np.array(fk(params.nominal, qc)) - expected).max() < 1e-12

@@ -36,7 +36,7 @@ from kpi_calib_ros.core.collision.matrix import (
     link_transforms,
 )
 from kpi_calib_ros.core.errors import ConfigError
-from kpi_calib_ros.core.model.robot import RobotModel
+from kpi_calib_ros.core.model.robot import RobotModel, frame_id
 from kpi_calib_ros.io.resources import resolve_mesh_uris
 
 # Random configurations of the sampled collision matrix (MoveIt's setup assistant
@@ -213,7 +213,7 @@ def _attached_capsules(robot: RobotModel, urdf_xml: str) -> list[Capsule]:
         while jid != 0 and jid not in joint_of:
             jid = model.parents[jid]
         carrier = joint_of.get(jid, base_link)
-        if jid == 0 and model.frames[model.getFrameId(robot.base_frame)].parentJoint != 0:
+        if jid == 0 and model.frames[frame_id(model, robot.base_frame)].parentJoint != 0:
             continue  # upstream of a base that sits on a joint: not part of this arm
         carried[name] = carrier
     if not carried:

@@ -19,6 +19,7 @@ import pinocchio as pin
 
 from kpi_calib_ros.core.collision.capsules import BASE, Capsule, CollisionScene, HalfSpace
 from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.core.model.robot import frame_id
 
 __all__ = ['Verification', 'verify_configuration', 'MeshCheck', 'mesh_collisions']
 
@@ -221,7 +222,7 @@ def mesh_collisions(urdf_xml: str, package_dirs: Sequence[str], base_frame: str,
             jid = model.parents[jid]
         return jid == root
 
-    root = model.frames[model.getFrameId(base_frame)].parentJoint
+    root = model.frames[frame_id(model, base_frame)].parentJoint
     objects = [(k, o) for k, o in enumerate(geom.geometryObjects) if below(o.parentJoint, root)]
     carrying = {o.parentJoint for _, o in objects}
 

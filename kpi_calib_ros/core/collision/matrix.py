@@ -33,7 +33,7 @@ import numpy as np
 import pinocchio as pin
 
 from kpi_calib_ros.core.collision.capsules import BEAM, Capsule, CollisionScene
-from kpi_calib_ros.core.model.robot import RobotModel
+from kpi_calib_ros.core.model.robot import RobotModel, frame_id
 
 __all__ = [
     'SKIPPED_KINDS', 'PairClass', 'CollisionMatrix', 'link_transforms', 'classify_link_pairs',
@@ -100,7 +100,7 @@ def link_transforms(robot: RobotModel, q: np.ndarray, links: Sequence[str]) -> n
     model = robot.pin_model
     data = model.createData()
     ids = [model.getFrameId(link, pin.BODY) for link in links]
-    base_id = model.getFrameId(robot.base_frame)
+    base_id = frame_id(model, robot.base_frame)
     q = np.atleast_2d(np.asarray(q, dtype=float))
     out = np.empty((len(q), len(links), 4, 4))
     for k, row in enumerate(q):

@@ -45,7 +45,7 @@ from kpi_calib_ros.core.effects.registry import (
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.model.kinematics import SymbolicChain, axis_rotation
 from kpi_calib_ros.core.model.parameters import geometric_parameters
-from kpi_calib_ros.core.model.robot import RobotModel
+from kpi_calib_ros.core.model.robot import RobotModel, frame_id
 
 PERIODIC = 'periodic_joint_error'
 BENDING = 'link_bending'
@@ -238,7 +238,7 @@ def gravity_moment(robot: RobotModel, joint: int) -> ca.Function:
     model = robot.pin_model
     data = model.createData()
     pin.framesForwardKinematics(model, data, pin.neutral(model))
-    base = data.oMf[model.getFrameId(robot.base_frame)].rotation
+    base = data.oMf[frame_id(model, robot.base_frame)].rotation
     up = ca.DM(base.T @ HOLDING)  # the holding acceleration in the chain's base frame
     origin = frames[joint][:3, 3]
     moment = ca.SX.zeros(3)

@@ -30,7 +30,8 @@ import pinocchio as pin
 
 from kpi_calib_ros.core.errors import ConfigError
 
-__all__ = ['MAX_URDF_ELEMENTS', 'ChainJoint', 'Mimic', 'Payload', 'RobotModel', 'urdf_mimics']
+__all__ = ['MAX_URDF_ELEMENTS', 'ChainJoint', 'Mimic', 'Payload', 'RobotModel', 'frame_id',
+           'urdf_mimics']
 
 _REVOLUTE = {'JointModelRX', 'JointModelRY', 'JointModelRZ', 'JointModelRevoluteUnaligned'}
 _CONTINUOUS = {'JointModelRUBX', 'JointModelRUBY', 'JointModelRUBZ',
@@ -100,6 +101,17 @@ class Payload:
     com: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
+
+def frame_id(model: pin.Model, name: str) -> int:
+    """Return the Pinocchio id of the frame ``name``: the link (body) of that name first.
+
+    A URDF may name a joint like a link (the stock SO-100's ``gripper``): Pinocchio then
+    holds two frames of the name and refuses to pick one.
+    """
+    if model.existFrame(name, pin.BODY):
+        return int(model.getFrameId(name, pin.BODY))
+    return int(model.getFrameId(name))
+
 class RobotModel:
     """A serial chain from ``base_frame`` to ``tip_frame`` of a URDF.
 
@@ -142,8 +154,8 @@ class RobotModel:
             if not model.existFrame(frame):
                 links = sorted({f.name for f in model.frames if f.type == pin.FrameType.BODY})
                 raise ConfigError(key, f'frame {frame!r} is not in the URDF; links are {links}')
-        base = model.frames[model.getFrameId(base_frame)]
-        tip = model.frames[model.getFrameId(tip_frame)]
+        base = model.frames[frame_id(model, base_frame)]
+        tip = model.frames[frame_id(model, tip_frame)]
         path = _joint_path(model, base.parentJoint, tip.parentJoint)
         if path is None:
             raise ConfigError('robot.tip_frame', f'{tip_frame!r} is not downstream of base frame '
@@ -288,7 +300,7 @@ class RobotModel:
     def link_names(self) -> list[str]:
         """Links moved by each chain joint, base to tip (the base link first)."""
         model = self.pin_model
-        base_link = model.frames[model.getFrameId(self.base_frame)].name
+        base_link = model.frames[frame_id(model, self.base_frame)].name
         return [base_link] + [j.child_link for j in self.joints]
 
     def _actuated(self) -> None:
@@ -464,10 +476,10 @@ class RobotModel:
         model = self.pin_model
         data = model.createData()  # own data: callers may run in several threads
         pin.framesForwardKinematics(model, data, self.pin_configuration(q))
-        base_inv = data.oMf[model.getFrameId(self.base_frame)].inverse()
+        base_inv = data.oMf[frame_id(model, self.base_frame)].inverse()
         poses = {link: np.array((base_inv * data.oMf[model.getFrameId(link, pin.BODY)])
                                 .homogeneous) for link in self.link_names}
-        tip = np.array((base_inv * data.oMf[model.getFrameId(self.tip_frame)]).homogeneous)
+        tip = np.array((base_inv * data.oMf[frame_id(model, self.tip_frame)]).homogeneous)
         return poses, tip
 
     def pin_tip_pose(self, q: np.ndarray) -> np.ndarray:
