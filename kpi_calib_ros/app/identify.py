@@ -27,6 +27,7 @@ from kpi_calib_ros.app.calibration_document import (
     with_recording_names,
 )
 from kpi_calib_ros.app.cell_model import CellModel
+from kpi_calib_ros.app.effect_shapes import hold_undetermined_shapes
 from kpi_calib_ros.app.finish import finish_calibration
 from kpi_calib_ros.app.measurements import load_measurements
 from kpi_calib_ros.app.placement import registered_start, registration_text
@@ -193,8 +194,12 @@ def calibrate_cell(cm: CellModel, data: Measurements, model: str | None = None,
     fit = _fit_function(cm, start, prior, balance=balance, scales=scales)
     choice = choose_level(cm, screened, model, start, prior, fit, balance)
     if choice.requested != 'auto' or allowed is not None:
-        return _final_fit(cm, data, choice, start, prior, balance, scales, registration,
-                          allowed, progress)
+        cal = _final_fit(cm, data, choice, start, prior, balance, scales, registration,
+                         allowed, progress)
+        if cal.valid or allowed is not None:
+            return cal
+        return hold_undetermined_shapes(cal, cm, choice, start, lambda c, s: _final_fit(
+            cm, data, c, s, prior, balance, scales, registration, None, progress))
     cal = _auto_at_level(cm, screened, data, choice, start, prior, balance, scales,
                          registration, progress)
     if not cal.valid:
