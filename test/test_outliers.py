@@ -216,6 +216,53 @@ def test_a_misfit_everywhere_with_one_point_a_pose_is_kept_not_excluded():
     cal = calibrate_cell(single, data)
     assert not cal.robust.excluded
     assert cal.robust.misfit
-    assert any('more than 20% of the measurements' in w for w in cal.robust.warnings)
+    assert any(f'more than {OutlierSettings().max_fraction:.0%} of the measurements' in w
+               for w in cal.robust.warnings)
     plain = calibrate_cell(_no_exclusion(single), data)
     np.testing.assert_allclose(cal.result.values, plain.result.values, rtol=0, atol=1e-12)
+
+
+def test_a_backlash_is_not_excluded_as_lone_faults_on_a_stock_xarm7():
+    """A stock xArm7 with a 0.2 mrad backlash of joint 2, one reflector, 150 poses of one
+    region: the geometric fit left 28 of them (19 %) beyond the threshold with no replicate
+    to confirm a fault, and with the former cap of 20 % they were excluded as faults; on the
+    76 % left, diagnose judged the backlash not to hold over held-out regions and said to
+    keep the model without it (on the held-out other region the geometric model missed by
+    208 µm, with the backlash 41 µm). Faults no replicate confirms are few: beyond 5 % of
+    the points they are the model's misfit, kept, and the backlash is recommended."""
+    from kpi_calib_ros.app.simulate import truth_cell_model
+    from kpi_calib_ros.core.simulation import (
+        ErrorMagnitudes,
+        measurable_batch,
+        sampling_bounds,
+        simulate_measurements,
+    )
+    from kpi_calib_ros.io.arm_cell import arm_cell_document
+    from kpi_calib_ros.io.cell import cell_from_dict
+    doc = arm_cell_document('package://example-robot-data/robots/xarm_description/urdf/'
+                            'xarm7.urdf', 'link_base', 'link7', 20e-6)
+    cm = build_cell_model(cell_from_dict(doc, DEFAULT_CELL.parent))
+    doc['simulation'] = {'hidden_effects': {'joint_backlash:joint2': {'b': 2e-4}}}
+    truth, overrides = truth_cell_model(cell_from_dict(doc, DEFAULT_CELL.parent))
+    rng = np.random.default_rng(2)
+    p_true = true_parameters(truth.model.params, rng, ErrorMagnitudes(
+        placement_translation=(2e-4, 8e-4), placement_rotation=(3e-4, 1.5e-3),
+        joint_offset=(5e-4, 1.5e-3)), overrides)
+    lo, hi = sampling_bounds(truth.model)
+    found = []
+    while sum(len(f) for f in found) < 150:
+        c = measurable_batch(truth.model, truth.model.params.nominal, rng, 4000,
+                             np.cos(np.pi * 0.999))
+        u = (c - lo) / (hi - lo)
+        found.append(c[(u[:, 1] < 0.6) & (u[:, 2] < 0.6)])
+    q = np.vstack(found)[:150]
+    data = simulate_measurements(truth.model, p_true, q, 20e-6, rng)
+    cd = diagnose_cell(cm, data, model='geometric')
+    assert cd.excluded == ()
+    assert cd.diagnosis.best is not None and cd.diagnosis.best.spec == 'joint_backlash:joint2'
+    assert cd.comparison is not None and cd.comparison.holds_elsewhere
+    assert 'Add it with --effects joint_backlash:joint2' in cd.diagnosis.verdict
+    b = 'joint_backlash.joint2.b'
+    assert cd.after is not None
+    std = cd.after.std[list(cd.after.estimated).index(b)]
+    assert abs(cd.after.value(b) - 2e-4) < 3 * std

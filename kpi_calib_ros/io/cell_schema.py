@@ -204,8 +204,9 @@ CELL_KEYS: tuple[CellKey, ...] = (
        'report them only).', False),
     _K('identification.outliers.threshold', 'number or null', 'robust σ', 'null (Bonferroni '
        'bound √χ²₃(1 − 0.01/N))', 'Distance beyond which a point is an outlier, > 1.', 5.0),
-    _K('identification.outliers.max_fraction', 'number', '', '0.2', 'Largest fraction of '
-       'outliers before the fit is refused, in [0, 1).', 0.1),
+    _K('identification.outliers.max_fraction', 'number', '', '0.05', 'Largest fraction of '
+       'the points excluded as faults no replicate confirms; more are a model misfit, kept '
+       'in the fit, in [0, 1).', 0.1),
     _K('identification.cv_folds', 'integer', '', '5', 'Folds of the cross-validated rms '
        "reported beside `auto`'s choice, ≥ 2.", 5),
     _K('identification.max_iterations', 'integer or null', '', 'null', 'Iteration limit of '

@@ -150,7 +150,7 @@ def identification_settings(raw: Mapping[str, Any]) -> IdentificationSettings:
                                   not isinstance(threshold, (int, float)) or threshold <= 1):
         raise ConfigError('identification.outliers.threshold', 'must be a distance in units of '
                           f'the robust σ greater than 1 (e.g. 5.0), or null; got {threshold!r}')
-    fraction = out.get('max_fraction', 0.2)
+    fraction = out.get('max_fraction', OutlierSettings().max_fraction)
     if isinstance(fraction, bool) or not isinstance(fraction, (int, float)) or \
             not 0 <= fraction < 1:
         raise ConfigError('identification.outliers.max_fraction', f'must be in [0, 1), got '

@@ -86,7 +86,7 @@ class OutlierSettings:
 
     exclude: bool = True
     threshold: float | None = None
-    max_fraction: float = 0.2
+    max_fraction: float = 0.05
 
 
 @dataclass(frozen=True)
