@@ -29,10 +29,11 @@ def hold_undetermined_shapes(cal: CellCalibration, cm: CellModel, choice: ModelC
     """Return ``cal`` refitted with the refused effects' shape parameters held on their grid.
 
     ``cal``: a calibration the gate refused; the effects of ``cm`` whose shape parameters it
-    names (undetermined, beyond their bound), and none of their size parameters, are refitted with those held at each point of
-    their grid (``refit(choice, start)``, the same final fit); the valid one with the lowest
-    χ² is returned, its ``model.held`` and reason saying so. ``cal`` itself when no effect
-    with a shape is named or no grid point gives a valid calibration.
+    names (undetermined, beyond their bound), and none of their size parameters, are
+    refitted with those held at each point of their grid (``refit(choice, start)``, the
+    same final fit); the valid one with the lowest χ² is returned, its ``model.held`` and
+    reason saying so. ``cal`` itself when no effect with a shape is named or no grid point
+    gives a valid calibration.
     """
     names = list(cm.model.params.names)
 
