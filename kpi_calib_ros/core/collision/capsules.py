@@ -189,6 +189,9 @@ class _Pair:
     label: str
     first: Capsule | None  # None is the beam
     second: Obstacle
+    # The beam against an obstacle: the whole beam, to the reflector's centre (against the
+    # robot it is shortened by the scene's beam_end_clearance).
+    whole_beam: bool = False
 
 
 def _names(item: Capsule | HalfSpace | None) -> set[str]:
@@ -266,9 +269,9 @@ class CollisionScene:
         for cap in self.robot_capsules:
             for obs in self.obstacles:
                 candidates.append(_Pair(f'{cap.name}~{obs.name}', cap, obs))
-        beam_targets: list[Capsule | HalfSpace] = list(self.robot_capsules)
-        beam_targets += self.obstacles
-        candidates += [_Pair(f'{BEAM}~{c.name}', None, c) for c in beam_targets]
+        candidates += [_Pair(f'{BEAM}~{c.name}', None, c) for c in self.robot_capsules]
+        candidates += [_Pair(f'{BEAM}~{o.name}', None, o, whole_beam=True)
+                       for o in self.obstacles]
         self._pairs = [p for p in candidates if not any(
             frozenset({x, y}) in self.ignore_pairs
             for x in _names(p.first) for y in _names(p.second))]
@@ -322,13 +325,9 @@ class CollisionScene:
             world[cap.name] = tuple(ca.mtimes(rot, _as_casadi(p)) + pos for p in (cap.a, cap.b))
         tracker, reflector = _as_casadi(tracker), _as_casadi(reflector)
         beam = (tracker, _beam_end(tracker, reflector, self.beam_end_clearance))
-        obstacles = {o.name for o in self.obstacles}
         out = []
         for pair in self._pairs:
-            # The whole beam against obstacles, the shortened one against the robot.
-            whole = pair.first is None and pair.second is not None \
-                and pair.second.name in obstacles
-            a1, b1 = ((tracker, reflector) if whole else beam) if pair.first is None \
+            a1, b1 = ((tracker, reflector) if pair.whole_beam else beam) if pair.first is None \
                 else world[pair.first.name]
             r1 = self.beam_radius if pair.first is None else pair.first.radius
             obs = pair.second

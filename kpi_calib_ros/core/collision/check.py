@@ -90,11 +90,10 @@ def verify_configuration(scene: CollisionScene, link_transforms: Mapping[str, An
     keep = max(length - scene.beam_end_clearance, 0.0) / length if length > 1e-12 else 0.0
     beam = (tracker, tracker + keep * ray)
     whole = (tracker, tracker + ray)  # against obstacles: to the reflector's centre
-    obstacles = {o.name for o in scene.obstacles}
     request = coal.DistanceRequest()
     distances: dict[str, float] = {}
     for pair in scene._pairs:
-        a1, b1 = ((whole if pair.second.name in obstacles else beam) if pair.first is None
+        a1, b1 = ((whole if pair.whole_beam else beam) if pair.first is None
                   else world(pair.first))
         r1 = scene.beam_radius if pair.first is None else pair.first.radius
         shape1, pose1 = _coal_capsule(a1, b1, r1)

@@ -101,7 +101,6 @@ class Payload:
     com: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
-
 def frame_id(model: pin.Model, name: str) -> int:
     """Return the Pinocchio id of the frame ``name``: the link (body) of that name first.
 
@@ -111,6 +110,7 @@ def frame_id(model: pin.Model, name: str) -> int:
     if model.existFrame(name, pin.BODY):
         return int(model.getFrameId(name, pin.BODY))
     return int(model.getFrameId(name))
+
 
 class RobotModel:
     """A serial chain from ``base_frame`` to ``tip_frame`` of a URDF.
