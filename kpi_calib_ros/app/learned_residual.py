@@ -33,6 +33,7 @@ from kpi_calib_ros.core.diagnosis.shared_error import (
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA, linearized_fit
+from kpi_calib_ros.core.measurement import weighting
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.recordings import to_first_frame
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
@@ -49,10 +50,10 @@ from kpi_calib_ros.io.names import LEARNED_RESIDUAL_FILE
 
 
 def point_rows(model: MeasurementModel, data: Measurements) -> np.ndarray:
-    """(N,) bool: the rows of ``data`` that are points (not rotation rows)."""
-    if data.reflector is None:
-        return np.ones(len(data), bool)
-    return np.asarray(data.reflector) < model.n_reflectors
+    """(N,) bool: the rows of ``data`` that are points (not rotation rows), every row
+    named (:func:`~kpi_calib_ros.core.measurement.weighting.point_rows`)."""
+    rows = weighting.point_rows(data.reflector, model.n_reflectors)
+    return np.ones(len(data), bool) if rows is None else rows
 
 
 def too_many_rows(cm: CellModel, data: Measurements) -> str:
