@@ -29,7 +29,12 @@ from kpi_calib_ros.core.diagnosis.model_comparison import ModelComparison, compa
 from kpi_calib_ros.core.diagnosis.model_selection import level_free
 from kpi_calib_ros.core.diagnosis.out_of_sample import out_of_sample_error
 from kpi_calib_ros.core.diagnosis.residual_analysis import analyse_calibration
-from kpi_calib_ros.core.diagnosis.verdict import Diagnosis, diagnose, with_estimability
+from kpi_calib_ros.core.diagnosis.verdict import (
+    Diagnosis,
+    diagnose,
+    not_recommended,
+    with_estimability,
+)
 from kpi_calib_ros.core.effects.registry import implausible, parse_effect_spec
 from kpi_calib_ros.core.estimation.precision import expected_tcp_error
 from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA, is_adequate
@@ -118,10 +123,10 @@ def verdict_with_comparison(diag: Diagnosis, comparison: ModelComparison) -> Dia
     with it is NOT recommended (it does not predict held-out regions better, extrapolates
     past the measured ranges, or did not converge): the first line of the real TIAGo's
     diagnosis said "Add it with --effects joint_play:arm_6_joint" of a play whose held-out
-    error over other regions rose from 4763 to 5426 µm."""
+    error over other regions rose from 4763 to 5426 µm. With the χ² test passing, the
+    model is then adequate (:func:`~kpi_calib_ros.core.diagnosis.verdict.not_recommended`)."""
     if comparison.holds_elsewhere or diag.best is None:
         return diag
-    spec = diag.best.spec
     if comparison.warnings:
         why = 'a fit with it did not converge, so the comparison judges a last iterate'
     elif comparison.extrapolated:
@@ -129,9 +134,7 @@ def verdict_with_comparison(diag: Diagnosis, comparison: ModelComparison) -> Dia
     else:
         why = ('refitted with it, the calibration does not predict held-out regions of '
                'joint space better beyond noise, or is worse in a held-out fold')
-    return dataclasses.replace(diag, verdict=diag.verdict.replace(
-        f'Add it with --effects {spec}.',
-        f'It is NOT recommended ({why}; see the comparison).'))
+    return not_recommended(diag, why)
 
 
 def recorded_covariates(data: Measurements) -> dict[str, tuple[np.ndarray, str]]:

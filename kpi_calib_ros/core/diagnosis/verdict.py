@@ -34,7 +34,8 @@ from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA, ResidualRepo
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 
-__all__ = ['Diagnosis', 'diagnose', 'equivalent_joint_sigma', 'with_estimability']
+__all__ = ['Diagnosis', 'diagnose', 'equivalent_joint_sigma', 'not_recommended',
+           'with_estimability']
 
 
 @dataclass(frozen=True)
@@ -84,15 +85,13 @@ def diagnose(model: MeasurementModel, data: Measurements, result: CalibrationRes
     best = ranked[0] if ranked and ranked[0].significant and ranked[0].plausible else None
     implausible_only = best is None and any(c.significant for c in ranked)
     adequate = report.adequate and best is None and not implausible_only
-    chi = (f'χ²/dof = {report.chi2:.1f}/{report.dof} (p = {report.p_value:.3g}) against the '
-           f'stated σ')
+    chi = _chi(report)
     if adequate:
         verdict = (f'model adequate: {chi}; no candidate effect is significant at the '
                    f'family-wise level {alpha:g}.')
     elif best is not None:
-        verdict = (f'model not adequate: {chi}. Most likely missing effect: {best.spec} '
-                   f'(validation rms {_micro(cv)} -> {_micro(best.validation_rms_after_m)}'
-                   f'). Add it with --effects {best.spec}.')
+        verdict = (f'model not adequate: {chi}. {_most_likely(best, cv)}. Add it with '
+                   f'--effects {best.spec}.')
     elif implausible_only:
         verdict = (f'model not adequate: {chi}; the significant candidates fit physically '
                    'implausible values (see their warnings): the misfit is something else '
@@ -111,6 +110,30 @@ def diagnose(model: MeasurementModel, data: Measurements, result: CalibrationRes
                      rms_m=report.rms_m, validation_rms_m=cv, candidates=ranked,
                      not_distinguishable=rejected, alpha=alpha, folds=folds,
                      periodograms=grams)
+
+
+def not_recommended(diag: Diagnosis, why: str) -> Diagnosis:
+    """Return ``diag`` whose best candidate, refitted, is NOT recommended for ``why``.
+
+    Why: it does not predict held-out regions of joint space better, it extrapolates, or
+    its fit did not converge. The verdict no longer tells the user to add it. When the χ²
+    test accepts the model, the model is adequate: the candidate's significance in the
+    screen (a lower misfit of the measured poses) is not a missing effect when adding it
+    predicts no better elsewhere, and a clean robot is not called "not adequate" for it.
+    """
+    best = diag.best
+    if best is None:
+        return diag
+    refused = (f'It is NOT recommended ({why}; see the comparison); keep the model without '
+               f'it.')
+    if diag.residuals.adequate:
+        return replace(diag, model_adequate=True, verdict=(
+            f'model adequate: {_chi(diag.residuals)}; the screen\'s most significant '
+            f'candidate, {best.spec} (validation rms {_micro(diag.validation_rms_m)} -> '
+            f'{_micro(best.validation_rms_after_m)}), lowers the misfit of the measured poses '
+            f'only. {refused}'))
+    return replace(diag, verdict=(f'model not adequate: {_chi(diag.residuals)}. '
+                                  f'{_most_likely(best, diag.validation_rms_m)}. {refused}'))
 
 
 def with_estimability(diag: Diagnosis, estimability: KpiEstimability) -> Diagnosis:
@@ -152,6 +175,16 @@ def equivalent_joint_sigma(model: MeasurementModel, data: Measurements,
                                                      model.n_reflectors)))
     lever = float(np.sum(jq ** 2))
     return float(np.sqrt(max(excess, 0.0) / lever)) if lever > 0 else float('nan')
+
+
+def _chi(report: ResidualReport) -> str:
+    return (f'χ²/dof = {report.chi2:.1f}/{report.dof} (p = {report.p_value:.3g}) against the '
+            f'stated σ')
+
+
+def _most_likely(best: Candidate, cv: float) -> str:
+    return (f'Most likely missing effect: {best.spec} (validation rms {_micro(cv)} -> '
+            f'{_micro(best.validation_rms_after_m)})')
 
 
 def _micro(rms_m: float) -> str:
