@@ -225,3 +225,35 @@ def test_a_row_payload_beyond_what_the_robot_carries_is_refused(cm, tmp_path, ca
     doc['payload']['limit'] = 1.0  # below the cell's own payload (5 kg)
     with pytest.raises(ConfigError, match='payload.limit'):
         cell_from_dict(doc, tmp_path)
+
+
+def test_a_working_pose_loaded_beyond_the_measured_payloads_is_warned_of(cm, tmp_path):
+    """A 7-DoF arm calibrated at 0 kg stated 1.6 mm of expected error at a 2.5 kg working
+    pose it missed by 7.8 mm, without a word about the load. The payloads measured are now
+    stored (``training_payload_kg``) and a working pose loaded beyond them is warned of;
+    calibrated from 0 and 5 kg, the 2.5 kg pose lies within and nothing is said."""
+    from kpi_calib_ros.app.calibration_document import (
+        add_robust_sections,
+        calibration_document,
+        robust_summary,
+    )
+    from kpi_calib_ros.io.calibration_file import read_calibration_document
+    from kpi_calib_ros.io.results import write_calibration
+    data, _, effects, _, _ = _two_loads(cm, 5)
+    loaded = with_effects(build_cell_model(_cell_with_working_payload({'mass': 2.5})), effects)
+    unloaded = data.subset(data.covariates['payload.mass'] == 0.0)
+    for rows, warned in ((unloaded, True), (data, False)):
+        cal = calibrate_cell(loaded, rows, model='geometric')
+        doc = add_robust_sections(calibration_document(loaded, cal.result), cal)
+        heaviest = float(rows.covariates['payload.mass'].max())
+        assert doc['training_payload_kg'] == [0.0, heaviest]
+        outside = doc['precision'].get('working_payloads_outside_training', {})
+        assert outside == ({'half_load': 2.5} if warned else {})
+        text = robust_summary(doc)
+        assert ('WARNING: working pose half_load carries 2.5 kg, outside the payloads measured '
+                '(0 to 0 kg' in text) is warned
+        assert read_calibration_document(write_calibration(tmp_path, doc))[
+            'training_payload_kg'] == [0.0, heaviest]
+    doc['training_payload_kg'] = [5.0, 0.0]
+    with pytest.raises(ConfigError, match='training_payload_kg'):
+        read_calibration_document(write_calibration(tmp_path, doc))

@@ -37,6 +37,7 @@ from kpi_calib_ros.core.diagnosis.model_selection import ModelChoice, level_free
 from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.estimation.estimability import result_estimability
 from kpi_calib_ros.core.estimation.prior import Prior
+from kpi_calib_ros.core.measurement.payload import payload_range
 from kpi_calib_ros.core.measurement.weighting import row_torques
 from kpi_calib_ros.core.simulation import simulate_pose_measurements, true_parameters
 from kpi_calib_ros.io.campaign_io import plot_campaign, write_campaign, write_plan
@@ -120,7 +121,9 @@ def campaign_calibration(cm: CellModel, campaign: SequentialCampaign,
                                     np.atleast_2d(rows.q), row_torques(cm.model, rows),
                                     rows.reflector, free, rows.covariates)
     cal = CellCalibration(result, dataclasses.replace(robust, result=result), choice, est, free,
-                          cell=cm, implausible=implausible)
+                          cell=cm, implausible=implausible,
+                          payload_range_kg=payload_range(rows.covariates, len(rows),
+                                                         cm.robot.payload.mass))
     doc = add_robust_sections(calibration_document(cm, result, pairing), cal)
     if 'identified_at_ns' not in doc and len(campaign.stamps) and campaign.stamps.min() >= 0:
         doc['identified_at_ns'] = int(campaign.stamps.max())  # when the robot was measured

@@ -61,6 +61,7 @@ from kpi_calib_ros.core.estimation.robust import (
     robust_identify,
 )
 from kpi_calib_ros.core.measurement.data import Measurements
+from kpi_calib_ros.core.measurement.payload import payload_range
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.core.measurement.weighting import row_torques
 from kpi_calib_ros.io.recordings_manifest import RecordingSource
@@ -355,7 +356,9 @@ def _final_fit(cm: CellModel, data: Measurements, choice: ModelChoice, start: np
                            registration, scales[-1], cm,
                            expected_tcp_error(cm.model, kept, result, prior=used_prior),
                            implausible=implausible, nominal=nominal,
-                           remount=remount_test(cm.model, kept, result))
+                           remount=remount_test(cm.model, kept, result),
+                           payload_range_kg=payload_range(kept.covariates, len(kept),
+                                                          cm.robot.payload.mass))
 
 
 def nominal_comparison(cm: CellModel, data: Measurements, result: CalibrationResult,

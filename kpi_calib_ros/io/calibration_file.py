@@ -160,6 +160,15 @@ def check_calibration_document(doc: dict[str, Any], where: str,
             lo, hi = (_finite(x, field, bad) for x in pair)
             if lo > hi:
                 raise bad(field, f'lower {lo} is above upper {hi}')
+    if doc.get('training_payload_kg') is not None:
+        pair = doc['training_payload_kg']
+        if not isinstance(pair, list) or len(pair) != 2:
+            raise bad('training_payload_kg', 'must be [lightest, heaviest] payload measured '
+                      f'(kg), got {pair!r}')
+        lo, hi = (_finite(x, 'training_payload_kg', bad) for x in pair)
+        if not 0.0 <= lo <= hi:
+            raise bad('training_payload_kg', f'must be 0 <= lightest <= heaviest (kg), got '
+                      f'{pair!r}')
     if doc.get('training_configurations') is not None:
         conf = doc['training_configurations']
         joints = conf.get('joints') if isinstance(conf, dict) else None

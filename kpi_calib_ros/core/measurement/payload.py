@@ -21,7 +21,8 @@ import numpy as np
 from kpi_calib_ros.core.model.robot import Payload, RobotModel
 
 __all__ = ['PAYLOAD_MASS', 'PAYLOAD_COM', 'PAYLOAD_MASS_LIMIT_KG', 'PAYLOAD_COM_LIMIT_M',
-           'payload_name_error', 'row_payloads', 'payload_torques']
+           'payload_name_error', 'row_payloads', 'payload_torques', 'payload_range',
+           'outside_payloads']
 
 PAYLOAD_MASS = 'payload.mass'
 PAYLOAD_COM = ('payload.com.x', 'payload.com.y', 'payload.com.z')
@@ -99,3 +100,34 @@ def payload_torques(robot: RobotModel, q: np.ndarray,
     q = np.atleast_2d(q)
     return np.atleast_2d(robot.gravity_torques(q, row_payloads(covariates, len(q),
                                                                 robot.payload)))
+
+
+def payload_range(covariates: Mapping[str, np.ndarray] | None, n: int,
+                  default_mass: float) -> tuple[float, float]:
+    """Return the lightest and heaviest payload (kg) of ``n`` measured rows.
+
+    Each row's ``payload.mass`` where the covariates carry it, else ``default_mass`` (the
+    cell's).
+    """
+    if n == 0 or not covariates or PAYLOAD_MASS not in covariates:
+        return float(default_mass), float(default_mass)
+    mass = np.asarray(covariates[PAYLOAD_MASS], float).reshape(-1)
+    return float(mass.min()), float(mass.max())
+
+
+# A working pose's payload is within the measured loads when it lies inside their range
+# widened by this fraction of the heaviest (and PAYLOAD_TOLERANCE_KG): a tool's mass stated
+# to a few per cent.
+PAYLOAD_TOLERANCE_KG = 0.01
+PAYLOAD_TOLERANCE_FRACTION = 0.05
+
+
+def outside_payloads(mass: float, measured: tuple[float, float]) -> bool:
+    """Whether a payload of ``mass`` kg lies outside the ``measured`` (lightest, heaviest) loads.
+
+    There the joints' deflection under it is extrapolated (or, with no effect reading the
+    load, in no prediction) and no measured pose checks it.
+    """
+    lo, hi = measured
+    tol = max(PAYLOAD_TOLERANCE_KG, PAYLOAD_TOLERANCE_FRACTION * hi)
+    return not lo - tol <= mass <= hi + tol
