@@ -84,6 +84,12 @@ def test_compliance_sign_and_range_are_checked():
     notes = compliance_warnings(names, [-1e-6, 1e-6, -1e-2, -1e-6], [1e-8, 1e-8, 1e-8, 1e-5])
     assert len(notes) == 2
     assert '> 0' in notes[0] and 'stiffness' in notes[1]
+    # A servo-stiff or cable-driven arm: c = -6e-4 (1.7e3 N m/rad) is named with the key that
+    # states it; with the cell's bound widened to 2e-3 it is no longer warned of.
+    soft = compliance_warnings(names[:1], [-6e-4], [2e-6])
+    assert len(soft) == 1 and 'identification.bounds.joint_compliance' in soft[0]
+    assert not compliance_warnings(names[:1], [-6e-4], [2e-6], {names[0]: 2e-3})
+    assert compliance_warnings(names[:1], [-6e-3], [2e-6], {names[0]: 2e-3})
 
 
 def recovery(tmp_path, seed: int, n: int = 60, fresh: int = 200) -> dict[str, float]:

@@ -18,6 +18,7 @@ from kpi_calib_ros.core.diagnosis.effect_selection import RANGE_TOLERANCE
 from kpi_calib_ros.core.diagnosis.model_selection import ModelChoice, NominalComparison
 from kpi_calib_ros.core.diagnosis.remount import RemountTest
 from kpi_calib_ros.core.effects.gravity_compliance import compliance_warnings, mass_warning
+from kpi_calib_ros.core.effects.registry import BoundEffect, effect_bounds
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.estimation.estimability import KpiEstimability
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
@@ -158,8 +159,13 @@ def calibration_document(cm: CellModel, result: CalibrationResult,
     std = dict(zip(result.estimated, result.std))
     estimated = [n for n in result.names if n in std]
     values = dict(zip(result.names, result.values))
+    # the cell's bound (identification.bounds) widens the stiffness range it warns outside
+    bounds = cm.cell.identification.tolerances.bounds
+    softest = {f'{e.name.replace(":", ".")}.c': effect_bounds(e, bounds)[0]
+               for e in cm.model.effects if isinstance(e, BoundEffect)
+               and e.kind.name == 'joint_compliance'}
     notes = compliance_warnings(estimated, [values[n] for n in estimated],
-                                [std[n] for n in estimated])
+                                [std[n] for n in estimated], softest)
     missing_masses = mass_warning(cm.robot, cm.model.effects)
     if missing_masses:
         notes.insert(0, missing_masses)

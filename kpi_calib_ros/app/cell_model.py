@@ -22,6 +22,7 @@ from kpi_calib_ros.core.effects.general import general_candidates  # noqa: F401 
 from kpi_calib_ros.core.effects.gravity_compliance import mass_warning
 from kpi_calib_ros.core.effects.registry import resolve_effects
 from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.core.measurement.payload import gravity_input
 from kpi_calib_ros.core.measurement.pose import orientation_names, pose_matrix
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.core.model.parameters import ParameterSet, geometric_parameters
@@ -80,7 +81,7 @@ class CellModel:
         cell_payload = self.robot.payload
         payloads = [cell_payload if w.payload is None else
                     Payload(w.payload[0], w.payload[1] or cell_payload.com) for w in poses]
-        return np.atleast_2d(self.robot.gravity_torques(self.q_work, payloads))
+        return gravity_input(self.robot, self.q_work, payloads)
 
     @property
     def joint_coupling(self) -> JointCoupling:

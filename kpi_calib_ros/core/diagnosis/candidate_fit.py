@@ -230,4 +230,4 @@ def _joint_correction_values(effect: BoundEffect, q: np.ndarray, tau: np.ndarray
     qs, ts = ca.SX.sym('q', n), ca.SX.sym('tau', n)
     th = ca.SX.sym('theta', len(theta))
     fn = ca.Function('dq', [qs, ts, th], [effect.joint_correction(qs, ts, th)])
-    return np.array(fn.map(len(q))(q.T, tau.T, theta)).T
+    return np.array(fn.map(len(q))(q.T, np.atleast_2d(tau)[:, :n].T, theta)).T  # τ, not G

@@ -89,7 +89,8 @@ def residual_inputs(model: MeasurementModel, data: Measurements, result: Calibra
         unit = 'rad' if revolute[j] else 'm'
         out.append(ResidualInput(name, q[:, j], jq[:, :, j:j + 1], ('joint error',), (unit,),
                                  unit, 'joint', periodic=revolute[j]))
-    torque = payload_torques(robot, q, data.covariates) if tau is None and data.tau is None \
+    torque = payload_torques(robot, q, data.covariates, gradient=model.uses_torque) \
+        if tau is None and data.tau is None \
         else np.asarray(tau if tau is not None else data.tau, float)
     for j, name in enumerate(robot.joint_names):
         if np.ptp(torque[:, j]) > 1e-6:

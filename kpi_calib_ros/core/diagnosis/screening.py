@@ -143,7 +143,10 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
     cv_base = linear_validation_rms(sys_.jac, sys_.r, sys_.w, pose_folds, points=points)
     dof_base = 3 * n - sys_.basis.shape[1]
     q = np.atleast_2d(data.q)
-    tau = sys_.tau if sys_.tau is not None else payload_torques(model.robot, q, data.covariates)
+    # τ with its gradient: a candidate that reads the torque takes it at the deflected
+    # configuration (core.measurement.deflection)
+    tau = sys_.tau if sys_.tau is not None else payload_torques(model.robot, q, data.covariates,
+                                                                gradient=True)
     joint_jac = model.joint_jacobian(sys_.p, q, sys_.tau, sys_.reflector, sys_.rotation,
                                      sys_.covariates)
 

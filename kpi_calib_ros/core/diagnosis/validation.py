@@ -70,6 +70,7 @@ from kpi_calib_ros.core.estimation.identifiability import DEFAULT_TOLERANCE
 from kpi_calib_ros.core.estimation.registration import Reregistration, horn, reregister
 from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA
 from kpi_calib_ros.core.measurement.data import Measurements, row_sigma
+from kpi_calib_ros.core.measurement.payload import gravity_input
 from kpi_calib_ros.core.measurement.replicates import SAME_POSE_TOLERANCE, same_pose
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.core.measurement.weighting import row_torques
@@ -133,7 +134,7 @@ def training_row_space(model: MeasurementModel, p: np.ndarray, q: np.ndarray,
     n_ref = max(model.n_reflectors, 1)
     poses = np.repeat(q, n_ref, axis=0)
     reflector = np.tile(np.arange(n_ref), len(q))
-    tau = model.robot.gravity_torques(poses) if model.uses_torque else None
+    tau = gravity_input(model.robot, poses) if model.uses_torque else None
     _, jac = model.jacobian(np.asarray(p, float), poses, tau, reflector)
     free = np.asarray(free, dtype=int)
     f = jac[:, :, free].reshape(-1, len(free))

@@ -23,7 +23,7 @@ function. Its parameters are ``gravity_compliance.<joint>.g0, g1, …``.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 import casadi as ca
 import numpy as np
@@ -182,25 +182,31 @@ def mass_warning(robot: RobotModel, effects: Sequence[Any]) -> str:
 
 
 def compliance_warnings(names: Sequence[str], values: Sequence[float],
-                        stds: Sequence[float]) -> list[str]:
+                        stds: Sequence[float],
+                        softest: Mapping[str, float] | None = None) -> list[str]:
     """Fitted ``joint_compliance`` values outside physical sense.
 
     A positive c (the joint deflecting along its holding torque, beyond 3 std) or |c| outside
-    the stiffness range of industrial joints (:data:`STIFFNESS_RANGE`).
+    the stiffness range of industrial joints (:data:`STIFFNESS_RANGE`); ``softest`` {name:
+    largest |c|} the cell's bound where it widens that range (a servo-stiff or cable-driven
+    arm, ``identification.bounds``).
     """
     out = []
-    lo, hi = 1.0 / STIFFNESS_RANGE[1], 1.0 / STIFFNESS_RANGE[0]
+    lo = 1.0 / STIFFNESS_RANGE[1]
     for name, c, std in zip(names, values, stds):
         if not (name.startswith('joint_compliance.') and name.endswith('.c')):
             continue
+        hi = max(1.0 / STIFFNESS_RANGE[0], (softest or {}).get(name, 0.0))
         if c > 3 * std:
             out.append(f'{name} = {c:.3g} rad/(N m) > 0: the joint would deflect along its '
                        'holding torque; a physical compliance is negative (δq = c·τ, τ the '
                        'holding torque): check the joint axis sign and the link masses')
         if abs(c) > 3 * std and not lo <= abs(c) <= hi:
             out.append(f'{name} = {c:.3g} rad/(N m) means a stiffness {1 / abs(c):.3g} N m/rad, '
-                       f'outside {STIFFNESS_RANGE[0]:.0e}..{STIFFNESS_RANGE[1]:.0e}: it likely '
-                       'absorbs another effect (or the masses are wrong)')
+                       f'outside {1 / hi:.3g}..{STIFFNESS_RANGE[1]:.0e}: it absorbs another '
+                       'effect, or the masses are wrong, or the arm is that soft (a '
+                       'servo-stiff or cable-driven joint: state it with identification.bounds.'
+                       f'joint_compliance:<joint>)')
     return out
 __all__ = ['MassFreeCompliance', 'compliance_warnings', 'mass_free_compliance', 'mass_warning',
            'massless_links', 'torque_regressor']

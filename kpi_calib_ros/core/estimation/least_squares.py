@@ -54,6 +54,7 @@ from kpi_calib_ros.core.estimation.identifiability import (
 )
 from kpi_calib_ros.core.estimation.prior import Prior
 from kpi_calib_ros.core.measurement.data import Measurements, row_sigma
+from kpi_calib_ros.core.measurement.payload import gravity_input
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.core.measurement.weighting import (
     point_rms,
@@ -274,7 +275,7 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
     # each row's torques: measured, or the gravity torques with its own payload
     tau = row_torques(model, data)
     if tau_work is None and model.uses_torque:
-        tau_work = model.robot.gravity_torques(q_work)
+        tau_work = gravity_input(model.robot, q_work)
     p = np.array(model.params.nominal if p0 is None else p0, dtype=float)
     free_idx = model.params.indices(free) if free else np.arange(len(p))
     ref = data.reflector  # (pose, reflector) rows; None: reflector 0 throughout

@@ -15,7 +15,7 @@ from typing import Any, Callable, Protocol, Sequence
 
 import casadi as ca
 
-__all__ = ['Effect', 'OptionalEffect', 'OPTIONAL_CORRECTIONS', 'effect_inputs',
+__all__ = ['Effect', 'OptionalEffect', 'OPTIONAL_CORRECTIONS', 'effect_inputs', 'bound_arguments',
            'optional_correction']
 
 
@@ -107,3 +107,20 @@ def optional_correction(effect: Effect, name: str) -> Callable[..., Any] | None:
         raise ValueError(f'{name!r} is not an optional correction of an effect; one of '
                          f'{OPTIONAL_CORRECTIONS}')
     return getattr(effect, name, None)
+
+
+def bound_arguments(effects: Sequence[Effect], p: Any, offset: int, z: Any,
+                    inputs: Sequence[str]) -> list[tuple[Effect, Any, tuple]]:
+    """Return each effect with its parameter slice and its optional fourth argument.
+
+    The slices of ``p`` follow one another from ``offset`` on, in order; the fourth argument
+    is the covariates the effect reads, picked from ``z`` (ordered as ``inputs``), or () for
+    an effect that reads none.
+    """
+    out = []
+    for effect in effects:
+        names = effect_inputs(effect)
+        extra = (ca.vertcat(*[z[list(inputs).index(m)] for m in names]),) if names else ()
+        out.append((effect, p[offset:offset + len(effect.parameter_names)], extra))
+        offset += len(effect.parameter_names)
+    return out

@@ -22,7 +22,7 @@ from kpi_calib_ros.core.model.robot import Payload, RobotModel
 
 __all__ = ['PAYLOAD_MASS', 'PAYLOAD_COM', 'PAYLOAD_MASS_LIMIT_KG', 'PAYLOAD_COM_LIMIT_M',
            'payload_name_error', 'row_payloads', 'payload_torques', 'payload_range',
-           'outside_payloads']
+           'outside_payloads', 'gravity_gradient', 'gravity_input', 'GRADIENT_STEP']
 
 PAYLOAD_MASS = 'payload.mass'
 PAYLOAD_COM = ('payload.com.x', 'payload.com.y', 'payload.com.z')
@@ -91,15 +91,60 @@ def row_payloads(covariates: Mapping[str, np.ndarray] | None, n: int,
 
 
 def payload_torques(robot: RobotModel, q: np.ndarray,
-                    covariates: Mapping[str, np.ndarray] | None = None) -> np.ndarray:
+                    covariates: Mapping[str, np.ndarray] | None = None,
+                    gradient: bool = False) -> np.ndarray:
     """Return the gravity torques (N, n) of rows ``q`` (N, n).
 
     Each with its own payload where ``covariates`` carry one (:func:`row_payloads`), else
-    with the cell's.
+    with the cell's. With ``gradient``, each row also carries its gradient ∂τ/∂q
+    (:func:`gravity_gradient`), row-major: (N, n + n²), the torque input of a model whose
+    effects read the torque (the torque at the deflected configuration,
+    :class:`~kpi_calib_ros.core.measurement.tracker.MeasurementModel`).
     """
     q = np.atleast_2d(q)
-    return np.atleast_2d(robot.gravity_torques(q, row_payloads(covariates, len(q),
-                                                                robot.payload)))
+    payloads = row_payloads(covariates, len(q), robot.payload)
+    if gradient:
+        return gravity_input(robot, q, payloads)
+    return np.atleast_2d(robot.gravity_torques(q, payloads))
+
+
+def gravity_input(robot: RobotModel, q: np.ndarray,
+                  payloads: list[Payload] | None = None) -> np.ndarray:
+    """Return the gravity torques of rows ``q`` (N, n) with their gradient, (N, n + n²).
+
+    Each row with its payload (None: the cell's); the torque input of a model whose effects
+    read the torque (:mod:`kpi_calib_ros.core.measurement.deflection`).
+    """
+    q = np.atleast_2d(np.asarray(q, float))
+    tau = np.atleast_2d(robot.gravity_torques(q, payloads))
+    n = q.shape[1]
+    if not len(q):
+        return np.zeros((0, n * (n + 1)))
+    return np.hstack([tau, gravity_gradient(robot, q, payloads).reshape(len(q), n * n)])
+
+
+# Central differences of the gravity torques: exact to ~1e-10 relative for a step of 1 µrad
+# (the torques are smooth trigonometric sums).
+GRADIENT_STEP = 1e-6
+
+
+def gravity_gradient(robot: RobotModel, q: np.ndarray,
+                     payloads: list[Payload] | None = None) -> np.ndarray:
+    """Return ∂τ_i/∂q_j (N, n, n) of the gravity torques at rows ``q`` (N, n).
+
+    Each row with its payload (None: the cell's): how much a deflection changes the torque,
+    since a joint that bends under its load is held by the deflected configuration's torque.
+    """
+    q = np.atleast_2d(np.asarray(q, float))
+    n = q.shape[1]
+    out = np.empty((len(q), n, n))
+    for j in range(n):
+        step = np.zeros(n)
+        step[j] = GRADIENT_STEP
+        up = np.atleast_2d(robot.gravity_torques(q + step, payloads))
+        down = np.atleast_2d(robot.gravity_torques(q - step, payloads))
+        out[:, :, j] = (up - down) / (2 * GRADIENT_STEP)
+    return out
 
 
 def payload_range(covariates: Mapping[str, np.ndarray] | None, n: int,

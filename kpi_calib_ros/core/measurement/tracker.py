@@ -53,8 +53,10 @@ import numpy as np
 
 from kpi_calib_ros.core.measurement.buffers import Mapped, call_mapped
 from kpi_calib_ros.core.measurement.data import Measurements, joint_noise
+from kpi_calib_ros.core.measurement.deflection import deflected_torque, torque_input, torque_width
 from kpi_calib_ros.core.measurement.effect_protocol import (
     Effect,
+    bound_arguments,
     effect_inputs,
     optional_correction,
 )
@@ -144,7 +146,7 @@ class MeasurementModel:
         n = robot.n_joints
         p = ca.SX.sym('p', len(params))
         q = ca.SX.sym('q', n)
-        tau = ca.SX.sym('tau', n)
+        tau = ca.SX.sym('tau', torque_width(n, self.uses_torque))
         z = ca.SX.sym('z', len(self.inputs))
         # One tool pose for every reflector; ∂h/∂q and the incidence cosine are built on
         # first use (a model made for one Jacobian, as the diagnosis screen makes one per
@@ -201,21 +203,15 @@ class MeasurementModel:
         the covariates (None: 0, the reference condition).
         """
         q_eff = q
-        offset = len(self.geometric)
-        thetas = []
         if z is None:
             z = ca.DM.zeros(len(self.inputs))
         placement = None
         deflections: dict[int, Expr] = {}
         tilts: dict[int, Expr] = {}
-        for effect in self.effects:
-            theta = p[offset:offset + len(effect.parameter_names)]
-            offset += len(effect.parameter_names)
-            thetas.append(theta)
-            names = effect_inputs(effect)
-            # the optional fourth argument of an effect with inputs (module docstring)
-            extra = (ca.vertcat(*[z[self.inputs.index(name)] for name in names]),) \
-                if names else ()
+        bound = bound_arguments(self.effects, p, len(self.geometric), z, self.inputs)
+        thetas = [theta for _, theta, _ in bound]
+        tau = deflected_torque(tau, q, [b for b in bound if b[0].uses_torque])
+        for effect, theta, extra in bound:
             correction = cast(Any, effect).joint_correction(q, tau, theta, *extra)
             moves = optional_correction(effect, 'placement_correction')
             for joint, delta in (moves(theta, *extra) if moves is not None else ()):
@@ -317,10 +313,11 @@ class MeasurementModel:
     # ------------------------------------------------------------- numerics
     def _torques(self, q: np.ndarray, tau: np.ndarray | None,
                  covariates: Mapping[str, np.ndarray] | None = None) -> np.ndarray:
+        n = self.robot.n_joints
         if tau is not None:
-            return np.atleast_2d(tau)
+            return torque_input(tau, n, self.uses_torque)
         if self.uses_torque:
-            return payload_torques(self.robot, q, covariates)
+            return payload_torques(self.robot, q, covariates, gradient=True)
         return np.zeros_like(np.atleast_2d(q))
 
     def input_values(self, n: int, covariates: Mapping[str, np.ndarray] | None) -> np.ndarray:

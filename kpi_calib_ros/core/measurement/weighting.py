@@ -19,16 +19,18 @@ __all__ = ['row_torques', 'noise_weights', 'weighted_rows', 'weighted_residuals'
 def row_torques(model: MeasurementModel, data: Measurements) -> np.ndarray | None:
     """Return the torques (N, n) the effects of ``model`` read at ``data``'s rows, or None.
 
-    ``data.tau`` where recorded (measured joint torques); else, when an effect reads the
-    gravity torque, the robot's at every row with that row's payload
+    ``data.tau`` where recorded (measured joint torques, (N, n)); else, when an effect reads
+    the gravity torque, the robot's at every row with that row's payload
     (:mod:`kpi_calib_ros.core.measurement.payload`: ``payload.mass`` among the covariates, else
-    the cell's payload); None when no effect reads a torque.
+    the cell's payload) with its gradient, (N, n + n²): the model takes the torque at the
+    deflected configuration from it; None when no effect reads a torque. Column j < n is
+    joint j's torque either way.
     """
     if data.tau is not None:
         return np.atleast_2d(np.asarray(data.tau, float))
     if not model.uses_torque:
         return None
-    return payload_torques(model.robot, np.atleast_2d(data.q), data.covariates)
+    return payload_torques(model.robot, np.atleast_2d(data.q), data.covariates, gradient=True)
 
 
 def noise_weights(model: MeasurementModel, p: np.ndarray, data: Measurements,
