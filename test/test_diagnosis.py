@@ -263,3 +263,48 @@ def test_a_clean_robot_is_adequate_when_the_screens_effect_is_not_recommended():
     assert 'joint_scale:shoulder_lift_joint' in diag.verdict
     assert 'It is NOT recommended' in diag.verdict and '--effects' not in diag.verdict
     assert cd.answer.missing.kind != NAMED
+
+
+def test_a_compliance_beyond_its_bound_is_named_before_a_stand_in_is_offered():
+    """A UR whose shoulder is servo-soft (c = -5e-4 rad/(N m), 31 mrad of sag), beyond the
+    default bound 2e-4: the screen's best plausible candidate is a play (validation rms
+    3958 µm), the compliance fits at 184 µm. The verdict names the compliance, its value
+    beyond the bound and the key that states a softer arm, and does not tell the user to add
+    the play; with the bound widened in the cell, the compliance is the effect to add."""
+    from kpi_calib_ros.core.estimation.plausibility import Tolerances
+    from kpi_calib_ros.core.simulation import (
+        random_configurations,
+        simulate_measurements,
+        true_parameters,
+    )
+    cm = _cell_model('ur')
+    spec = 'joint_compliance:shoulder_lift_joint'
+    truth = augmented_model(cm.model, (parse_effect_spec(spec, cm.robot),))
+    rng = np.random.default_rng(1)
+    p = np.concatenate([true_parameters(cm.model.params, rng), [-5e-4]])
+    q = random_configurations(cm.model, cm.model.params.nominal, N_POSES, rng)
+    data = simulate_measurements(truth, p, q, SIGMA, rng)
+    result = identify(cm.model, data, SIGMA, cm.q_work, max_iterations=25)
+    diag = diagnose(cm.model, data, result)
+    assert diag.best is not None and diag.best.effect == 'joint_play'
+    assert f'identification.bounds.{spec}' in diag.verdict and '-0.0005' in diag.verdict
+    assert 'Add it with' not in diag.verdict
+    assert f'add it (--effects {diag.best.spec}) only if the arm is as stiff' in diag.verdict
+    wide = diagnose(cm.model, data, result,
+                    tolerances=Tolerances(bounds={'joint_compliance': (2e-3,)}))
+    assert wide.best is not None and wide.best.spec == spec
+    assert f'Add it with --effects {spec}.' in wide.verdict and not wide.beyond
+    # auto records it too, and identify's summary warns of it
+    from kpi_calib_ros.app.calibration_document import (
+        add_robust_sections,
+        calibration_document,
+        robust_summary,
+    )
+    from kpi_calib_ros.app.identify import calibrate_cell
+    cal = calibrate_cell(cm, data, model='auto')
+    said = cal.choice.effect_selection['beyond_bounds']
+    assert said and f'identification.bounds.{spec}' in said[0]
+    summary = robust_summary(add_robust_sections(calibration_document(cal.cell, cal.result),
+                                                 cal))
+    warned = [line for line in summary.splitlines() if line.startswith('WARNING: auto, round 1')]
+    assert warned and f'identification.bounds.{spec}' in warned[0]

@@ -314,6 +314,9 @@ def robust_summary(doc: dict[str, Any]) -> str:
               + ExcludedMeasurement(**{k: v for k, v in e.items() if k != 'recording'}).text()
               for e in rob['excluded']]
     lines += [f'WARNING: {w}' for w in rob['warnings']]
+    lines += [f'WARNING: auto, {b}; state the bound in the cell if the arm is that soft or '
+              'loose, and identify again'
+              for b in (model.get('effect_selection') or {}).get('beyond_bounds', ())]
     precision = doc.get('precision', {})
     for name, error in precision.get('expected_tcp_error_m', {}).items():
         std = precision['tcp_std_m'][name]

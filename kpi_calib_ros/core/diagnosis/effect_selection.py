@@ -49,6 +49,7 @@ from kpi_calib_ros.core.diagnosis.model_selection import (
 )
 from kpi_calib_ros.core.diagnosis.out_of_sample import out_of_sample_error
 from kpi_calib_ros.core.diagnosis.screening import default_candidates, screen_effects
+from kpi_calib_ros.core.diagnosis.verdict import beyond_bound_candidates, bound_text
 from kpi_calib_ros.core.effects.registry import BoundEffect, implausible
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.estimation.cross_validation import (
@@ -100,6 +101,9 @@ class EffectTrial:
     # (in-region and over held-out regions of joint space).
     region_before: RegionValidation | None = None
     region_after: RegionValidation | None = None
+    # Per round, the significant candidates that fit better than the best plausible one
+    # but beyond their physical bound, with the cell key that states a softer arm.
+    beyond_bounds: tuple[str, ...] = ()
     # Its gain over held-out regions and folds in noise units, and the trials compared in
     # its round (the Bonferroni count of the pooled test).
     gain: HeldOutGain | None = None
@@ -140,6 +144,9 @@ class EffectChoice:
     # model chosen, each on the folds of its own comparison.
     region_before: RegionValidation | None = None
     region_after: RegionValidation | None = None
+    # Per round, the significant candidates that fit better than the best plausible one
+    # but beyond their physical bound, with the cell key that states a softer arm.
+    beyond_bounds: tuple[str, ...] = ()
 
     def to_dict(self) -> dict:
         """YAML-ready form: the effects added, held, the trials and the predicted rms (m)."""
@@ -150,7 +157,8 @@ class EffectChoice:
                 else self.region_before.to_dict(),
                 'cross_validated_after': None if self.region_after is None
                 else self.region_after.to_dict(),
-                'trials': [t.to_dict() for t in self.trials], 'reason': self.reason}
+                'trials': [t.to_dict() for t in self.trials], 'reason': self.reason,
+                'beyond_bounds': list(self.beyond_bounds)}
 
 
 def _predicted(model: MeasurementModel, data: Measurements, result: CalibrationResult,
@@ -217,6 +225,7 @@ def choose_effects(model: MeasurementModel, data: Measurements, fit_for: FitFor,
     held: list[str] = []
     added: list[BoundEffect] = []
     trials: list[EffectTrial] = []
+    bounded: list[str] = []  # candidates that fit better beyond their physical bound
     reason = f'at most {max_effects} effects'
     for rnd in range(1, max_effects + 1):
         pool = {e.name: e for e in default_candidates(model, data, current, general)[0]}
@@ -227,6 +236,12 @@ def choose_effects(model: MeasurementModel, data: Measurements, fit_for: FitFor,
         passed = [c for c in ranked if c.significant and c.plausible]
         beyond = {c.spec: extrapolated(pool[c.spec], data.q, q_work) for c in passed}
         passed = [c for c in passed if not beyond[c.spec]]
+        refused = beyond_bound_candidates(ranked, passed[0] if passed else None)
+        if refused:
+            bounded.append(f'round {rnd}: ' + bound_text(refused) + (
+                f' fit these poses better than {passed[0].spec} but only beyond their '
+                f'physical bound: {passed[0].spec} may stand in for what they explain'
+                if passed else ' are significant only beyond their physical bound'))
         trials += [EffectTrial(spec, rnd, {}, {}, None, False, f'not tried: {why}')
                    for spec, why in beyond.items() if why]
         if not passed:
@@ -303,7 +318,7 @@ def choose_effects(model: MeasurementModel, data: Measurements, fit_for: FitFor,
             if added else f'no effect added: {reason}')
     values = {n: float(current.value(n)) for e in added for n in e.parameter_names}
     return EffectChoice(tuple(added), model, values, before, best_rms, tuple(trials), text,
-                        tuple(held), region_first, region_now)
+                        tuple(held), region_first, region_now, tuple(bounded))
 
 
 # A working pose beyond a joint's measured range by more than this fraction of the range

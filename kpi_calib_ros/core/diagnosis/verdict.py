@@ -19,6 +19,7 @@ Three steps, all pure (no files, no plots):
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Sequence
 
 import numpy as np
 
@@ -34,7 +35,8 @@ from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA, ResidualRepo
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 
-__all__ = ['Diagnosis', 'diagnose', 'equivalent_joint_sigma', 'not_recommended',
+__all__ = ['Diagnosis', 'beyond_bound_candidates', 'beyond_bounds', 'bound_text', 'diagnose',
+           'equivalent_joint_sigma', 'not_recommended',
            'with_estimability']
 
 
@@ -53,6 +55,9 @@ class Diagnosis:
     folds: int
     # The frequency search of the periodic joint errors (one per revolute joint searched).
     periodograms: tuple[Periodogram, ...] = ()
+    # What the verdict says of candidates that fit better than the best but beyond their
+    # physical bound (:func:`beyond_bounds`); '' when none does.
+    beyond: str = ''
 
     @property
     def best(self) -> Candidate | None:
@@ -90,8 +95,9 @@ def diagnose(model: MeasurementModel, data: Measurements, result: CalibrationRes
         verdict = (f'model adequate: {chi}; no candidate effect is significant at the '
                    f'family-wise level {alpha:g}.')
     elif best is not None:
-        verdict = (f'model not adequate: {chi}. {_most_likely(best, cv)}. Add it with '
-                   f'--effects {best.spec}.')
+        verdict = (f'model not adequate: {chi}. {_most_likely(best, cv)}.'
+                   + ('' if beyond_bounds(ranked, best) else
+                      f' Add it with --effects {best.spec}.'))
     elif implausible_only:
         verdict = (f'model not adequate: {chi}; the significant candidates fit physically '
                    'implausible values (see their warnings): the misfit is something else '
@@ -99,6 +105,8 @@ def diagnose(model: MeasurementModel, data: Measurements, result: CalibrationRes
     else:
         verdict = (f'model not adequate: {chi}, but no candidate effect explains the misfit; '
                    'check the outliers, the stated σ and the plots against time and distance.')
+    beyond = beyond_bounds(ranked, best)
+    verdict += beyond
     if not report.adequate and model.joint_sigma is None and best is None:
         # Only where no effect explains the misfit: beside a significant compliance the
         # sentence would send the user after the wrong cause.
@@ -109,7 +117,64 @@ def diagnose(model: MeasurementModel, data: Measurements, result: CalibrationRes
     return Diagnosis(model_adequate=adequate, verdict=verdict, residuals=report,
                      rms_m=report.rms_m, validation_rms_m=cv, candidates=ranked,
                      not_distinguishable=rejected, alpha=alpha, folds=folds,
-                     periodograms=grams)
+                     periodograms=grams, beyond=beyond)
+
+
+BEYOND_BOUND = 'beyond the plausible'
+# A candidate beyond its bound is named against the best plausible one when its validation
+# rms is below this fraction of the best's: a clear gain, not a tie within the folds' noise.
+CLEARLY_BETTER = 0.95
+
+
+def beyond_bound_candidates(ranked: Sequence[Candidate],
+                            best: Candidate | None) -> list[Candidate]:
+    """Return the significant candidates that fit better than ``best`` beyond their bound.
+
+    Their fitted values break their physical bound, and they fit the poses better than
+    ``best`` (the best plausible candidate; None: any).
+    """
+    return [c for c in ranked if c.significant and not c.plausible
+            and BEYOND_BOUND in c.plausibility
+            and (best is None or c.validation_rms_after_m
+                 < CLEARLY_BETTER * best.validation_rms_after_m)]
+
+
+def bound_text(candidates: Sequence[Candidate]) -> str:
+    """Return each candidate (at most three) with what its bound refuses.
+
+    Its validation rms, the value beyond its bound and the cell key that states a softer or
+    looser arm.
+    """
+    return '; '.join(
+        f'{c.spec} (validation rms {_micro(c.validation_rms_after_m)}: '
+        + c.plausibility.removeprefix('physically implausible: ').split(' (the fit')[0]
+        + f'; widen identification.bounds.{c.effect}'
+        + (f':{c.joint}' if c.joint else '') + ' if the arm is that soft or loose)'
+        for c in candidates[:3])
+
+
+def beyond_bounds(ranked: Sequence[Candidate], best: Candidate | None) -> str:
+    """Return the sentence on candidates that fit only beyond their physical bound, or ''.
+
+    A 7-DoF arm with servo compliances (c = -6e-4 rad/(N m), beyond the default bound):
+    diagnose said "Add it with --effects joint_play:joint2" (validation rms 1775 µm) and
+    ``auto`` added two plays, while the compliance it set aside fitted at 922 µm, its reason
+    in diagnosis.json only. The data prefer an explanation the bound refuses: the user must
+    hear of it, and of the key that states a softer arm, before taking a stand-in.
+    """
+    better = beyond_bound_candidates(ranked, best)
+    if not better:
+        return ''
+    said = bound_text(better)
+    if best is None:
+        return (f' Beyond their physical bound: {said}. If the arm is that soft or loose (a '
+                'servo-stiff or cable-driven arm, the physics in the guide), state the bound '
+                'in the cell and diagnose again.')
+    return (f' Beyond their physical bound, candidates fit these poses better than '
+            f'{best.spec}: {said}. {best.spec} may stand in for what they explain: state the '
+            'bound in the cell (a servo-stiff or cable-driven arm, the physics in the guide) '
+            f'and diagnose again; add it (--effects {best.spec}) only if the arm is as stiff '
+            'as the bounds say.')
 
 
 def not_recommended(diag: Diagnosis, why: str) -> Diagnosis:
@@ -131,9 +196,10 @@ def not_recommended(diag: Diagnosis, why: str) -> Diagnosis:
             f'model adequate: {_chi(diag.residuals)}; the screen\'s most significant '
             f'candidate, {best.spec} (validation rms {_micro(diag.validation_rms_m)} -> '
             f'{_micro(best.validation_rms_after_m)}), lowers the misfit of the measured poses '
-            f'only. {refused}'))
+            f'only. {refused}{diag.beyond}'))
     return replace(diag, verdict=(f'model not adequate: {_chi(diag.residuals)}. '
-                                  f'{_most_likely(best, diag.validation_rms_m)}. {refused}'))
+                                  f'{_most_likely(best, diag.validation_rms_m)}. {refused}'
+                                  f'{diag.beyond}'))
 
 
 def with_estimability(diag: Diagnosis, estimability: KpiEstimability) -> Diagnosis:
