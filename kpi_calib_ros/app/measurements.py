@@ -36,7 +36,7 @@ from kpi_calib_ros.core.measurement.covariates import (
     with_covariates,
 )
 from kpi_calib_ros.core.measurement.data import Measurements
-from kpi_calib_ros.core.measurement.payload import PAYLOAD_MASS, row_payloads
+from kpi_calib_ros.core.measurement.payload import PAYLOAD_COM, PAYLOAD_MASS, row_payloads
 from kpi_calib_ros.core.measurement.pose_rows import with_rotation_rows
 from kpi_calib_ros.core.measurement.recordings import (
     Recording,
@@ -508,6 +508,14 @@ def check_stated_covariates(cm: CellModel, recordings: Sequence[Recording]) -> N
                               'condition read by nothing changes no prediction)')
         for name in unread:
             reads = ', '.join(n for n in cm.model.inputs) or 'none'
+            if name == PAYLOAD_MASS or name in PAYLOAD_COM:
+                # auto may yet add an effect that reads it: not "changes no prediction"
+                print(f'warning: recordings[{i}].covariates.{name}: no effect of the model '
+                      'reads the payload yet; effects of the gravity torque do '
+                      '(joint_compliance, joint_backlash, joint_play: --effects, or those '
+                      '--model auto adds), and it is kept with the recording for them',
+                      file=sys.stderr)
+                continue
             print(f'warning: recordings[{i}].covariates.{name}: no effect of the model reads '
                   f'it (the effects read: {reads}{"; the payload" if cm.model.uses_torque else ""}'
                   '); it is kept with the recording and changes no prediction',
