@@ -340,3 +340,29 @@ def test_a_servo_soft_compliance_is_identified_at_the_deflected_configuration():
         assert abs(cal.result.value(name) - value) < 3 * cal.result.std_of(name), name
     miss = fresh.eta - cm.model.predict(cal.result.values, fresh.q, covariates=fresh.covariates)
     assert np.sqrt(np.mean(np.sum(miss ** 2, axis=1))) <= 1.2 * np.sqrt(3) * SIGMA
+
+
+def test_validate_says_when_new_points_carry_a_payload_the_calibration_never_measured(cm):
+    """validate reads training_payload_kg: new rows loaded beyond the calibration's payloads
+    are counted and named (a miss there is the load's deflection before the calibration's);
+    rows within them, or a calibration that stored none, say nothing."""
+    from kpi_calib_ros.app.validate import payloads_outside
+    from kpi_calib_ros.app.validation_text import validation_text
+    q = random_configurations(cm.model, cm.model.params.nominal, 4, np.random.default_rng(0))
+    rows = Measurements(q=q, eta=np.zeros((4, 3)),
+                        covariates={'payload.mass': np.array([0.0, 2.5, 5.0, 0.2])})
+    said = payloads_outside(cm, {'training_payload_kg': [0.0, 0.0]}, rows)
+    assert said == {'points': 3, 'new_kg': [0.0, 5.0], 'training_kg': [0.0, 0.0],
+                    'reads_load': False}
+    assert payloads_outside(cm, {'training_payload_kg': [0.0, 5.0]}, rows) is None
+    assert payloads_outside(cm, {}, rows) is None
+    # no payload per row: the cell's, 5 kg
+    assert payloads_outside(cm, {'training_payload_kg': [0.0, 0.0]},
+                            dataclasses.replace(rows, covariates=None))['points'] == 4
+    text = validation_text({'verdict': 'calibration holds', 'chi2': 1.0, 'dof': 1,
+                            'p_value': 0.5, 'alpha': 0.01, 'measurements': 4, 'rms_m': 1e-5,
+                            'training_rms_m': 1e-5, 'predicted_std_median_m': 1e-5,
+                            'rms_inside_training_range_m': 1e-5, 'outside_training_range': 0,
+                            'rms_outside_training_range_m': None,
+                            'payloads_outside_training': said})
+    assert 'WARNING: 3 points carry a payload outside those the calibration measured' in text

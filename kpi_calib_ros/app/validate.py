@@ -49,6 +49,7 @@ from kpi_calib_ros.core.estimation.residuals import (
     noise_verdict,
 )
 from kpi_calib_ros.core.measurement.data import Measurements
+from kpi_calib_ros.core.measurement.payload import PAYLOAD_MASS, outside_payloads
 from kpi_calib_ros.core.measurement.pose import orientation_names
 from kpi_calib_ros.core.measurement.recordings import (
     Recording,
@@ -447,6 +448,9 @@ def validate_report(cm: CellModel, doc: dict[str, Any], data: Measurements,
         out['recording'] = recording
     if conditions:
         out['conditions'] = dict(conditions)
+    loads = payloads_outside(cm, doc, data)
+    if loads:
+        out['payloads_outside_training'] = loads
     if learned is not None and not registration_valid(out):
         out['learned_residual'] = {
             'file': learned.name, 'skipped': 'not carried into the new set-up: its '
@@ -460,6 +464,26 @@ def validate_report(cm: CellModel, doc: dict[str, Any], data: Measurements,
     write_validation_plots(out_dir, cm.robot, np.atleast_2d(data.q), v.residuals, v.outside,
                            v.repeated)
     return out
+
+
+def payloads_outside(cm: CellModel, doc: dict[str, Any], data: Measurements
+                     ) -> dict[str, Any] | None:
+    """The new rows whose payload lies outside those the calibration measured
+    (``training_payload_kg``), or None: there its prediction of the deflection under load is
+    an extrapolation (or, with no effect of the gravity torque, absent)."""
+    measured = doc.get('training_payload_kg')
+    if not measured or not len(data):
+        return None
+    stated = (data.covariates or {}).get(PAYLOAD_MASS)
+    mass = (np.full(len(data), cm.robot.payload.mass) if stated is None
+            else np.asarray(stated, float).reshape(-1))
+    outside = [outside_payloads(float(m), (float(measured[0]), float(measured[1])))
+               for m in mass]
+    if not any(outside):
+        return None
+    return {'points': int(sum(outside)), 'new_kg': [float(mass.min()), float(mass.max())],
+            'training_kg': [float(measured[0]), float(measured[1])],
+            'reads_load': bool(cm.model.uses_torque)}
 
 
 def run_validate(cell_path: str | Path, calibration_path: str | Path, bag_path: str | Path,

@@ -105,6 +105,16 @@ def validation_text(doc: dict[str, Any]) -> str:
                      'the tracker or the robot was set up again since the calibration; '
                      'validate with --register base (--recording NAME for a later bag of one '
                      'of its set-ups)')
+    loads = doc.get('payloads_outside_training')
+    if loads:
+        lines.append(f"WARNING: {loads['points']} points carry a payload outside those the "
+                     f"calibration measured ({loads['new_kg'][0]:.3g} to {loads['new_kg'][1]:.3g} "
+                     f"kg against {loads['training_kg'][0]:.3g} to {loads['training_kg'][1]:.3g}"
+                     ' kg, training_payload_kg): '
+                     + ('its deflection under that load is extrapolated' if loads['reads_load']
+                        else 'no effect of the calibration reads the load, so the deflection '
+                        'under it is in no prediction')
+                     + '; a miss there is the load before the calibration')
     if doc.get('not_determined_by_training'):
         lines.append(f"not determined by the training poses: {doc['not_determined_by_training']} "
                      'points (their prediction depends on the parameters the calibration held '
