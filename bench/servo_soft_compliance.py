@@ -1,7 +1,7 @@
 """A servo-soft arm: joint compliance identified with the torque at the deflected configuration.
 
 Simulated KR15-class default cell, tracker σ = 20 µm per axis; truth ``joint_compliance`` of
-joint_2 (c = -3e-5 rad/(N m)) and joint_3 (-4e-5), 20× softer than its gearboxes: 19–24 mrad
+joint_2 (c = -3e-5 rad/(N m)) and joint_3 (-4e-5), 20× softer than its gearboxes: about 22 mrad
 of sag. The truth is solved independently of the model's linearisation: δ = c τ(q + δ) by
 fixed point on Pinocchio's gravity torques (to 1e-14 rad), the torques there given to the
 model as measured ones. Per seed, the same 60 random poses measured with 0 and 10 kg
