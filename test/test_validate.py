@@ -752,3 +752,43 @@ def test_an_hour_of_the_real_ur10_is_not_published_where_it_does_not_hold():
     print(f'{cal.choice.level} {cal.choice.effects}: {rms(cal) * 1e6:.1f} µm, registered '
           f'nominal {rms(nominal) * 1e6:.1f} µm, geometric {rms(geometric) * 1e6:.1f} µm')
     assert rms(cal) < 1.1 * rms(nominal)
+
+
+@pytest.mark.slow
+def test_validate_compares_a_calibration_as_used_with_the_nominal_robot_it_registered(
+        tmp_path):
+    """Without --register a calibration is used with its own placement: validate now also
+    compares it, so used, with the nominal robot placed as identify registered it
+    (against_nominal.nominal.placement of calibration.yaml). 200 poses of one region of the
+    real UR10 (same set-up) with compliances and backlash predict the other regions worse
+    than that nominal robot as used (1.335 against 1.238 mm), and validate fails; the figures
+    are its own rms and the nominal robot's rms computed here from the stored placement."""
+    from kpi_calib_ros.app.calibration_document import add_robust_sections
+    from kpi_calib_ros.app.validate import calibrated_model, passed, validate_report
+    from kpi_calib_ros.app.validation_text import validation_text
+    cm = _ur10_cell_model()
+    series_a, region, train = _ur10_region(3)
+    other = series_a.subset(np.random.default_rng(1).permutation(
+        np.flatnonzero(region != 3))[:1500])
+    model = with_effects(cm, ('joint_compliance:shoulder_lift_joint',
+                              'joint_compliance:elbow_joint',
+                              'joint_backlash:shoulder_lift_joint'))
+    cal = calibrate_cell(model, train, 'registration')
+    doc = json.loads(json.dumps(add_robust_sections(
+        calibration_document(cal.cell or model, cal.result), cal)))
+    stored = doc['against_nominal']['nominal']['placement']
+    assert set(stored) == {n for n in cm.model.params.names
+                           if n.startswith(('base.', 'reflector.'))}
+    placed, _ = calibrated_model(cm.cell, doc)
+    out = validate_report(placed, doc, other, tmp_path / 'v')
+    used = out['against_nominal_as_used']
+    p = np.array(cm.model.params.nominal, float)
+    p[cm.model.params.indices(list(stored))] = list(stored.values())
+    miss = other.eta - cm.model.predict(p, other.q)
+    assert used['nominal_rms_m'] == pytest.approx(
+        float(np.sqrt(np.mean(np.sum(miss ** 2, axis=1)))), rel=1e-6)
+    assert used['rms_m'] == pytest.approx(out['rms_m'], rel=1e-6)
+    assert used['worse_than_nominal'] and used['z'] > used['z_needed']
+    assert used['rms_m'] > used['nominal_rms_m']  # 1.335 against 1.238 mm
+    assert not passed(out)
+    assert 'WORSE THAN NO CALIBRATION as used' in validation_text(out)

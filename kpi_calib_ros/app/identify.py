@@ -388,9 +388,11 @@ def nominal_comparison(cm: CellModel, data: Measurements, result: CalibrationRes
         return None
     if not np.all(np.isfinite(nominal.values)) or not np.all(np.isfinite(result.values)):
         return None
-    return against_nominal(cm.model, data, result, base.model, nominal, used_prior,
-                           fit_prior(prior, nominal, balance), free=list(free),
-                           nominal_free=placement)
+    return dataclasses.replace(
+        against_nominal(cm.model, data, result, base.model, nominal, used_prior,
+                        fit_prior(prior, nominal, balance), free=list(free),
+                        nominal_free=placement),
+        nominal_placement={n: float(nominal.value(n)) for n in placement})
 
 
 def add_chosen_effects(cm: CellModel, data: Measurements, choice: ModelChoice,

@@ -97,6 +97,19 @@ def validation_text(doc: dict[str, Any]) -> str:
             f"z = {z:.2f}, worse beyond {versus['z_needed']:.2f})" + (
                 '; here the calibration does harm: do not use it for poses like these '
                 '(identify again with poses that cover them)' if worse else ''))
+    used = doc.get('against_nominal_as_used')
+    if used:
+        z = used['z'] if used['z'] is not None else float('nan')
+        label = nominal_verdict(used)
+        lines.append(
+            f"{label} as used: with the placement as calibrated (nothing re-registered), the "
+            f"calibrated robot predicts these points at {mm(used['rms_m'])} rms, the nominal "
+            f"robot with the placement identify registered for it at "
+            f"{mm(used['nominal_rms_m'])} (paired over {used['poses']} poses, z = {z:.2f}, "
+            f"worse beyond {used['z_needed']:.2f})" + (
+                '; as it stands, the calibration does harm here: identify again with poses '
+                'that cover these, or re-register (--register base) if the set-up moved'
+                if used['worse_than_nominal'] else ''))
     moved = doc.get('set_up_moved')
     if moved:
         lines.append(f"the new points match the calibration after a rigid move of "

@@ -82,6 +82,9 @@ class NominalComparison:
     # 95 % intervals (m) of the predicted rms of each (core.diagnosis.out_of_sample).
     calibrated_predicted_interval_m: tuple[float, float] = (float('nan'), float('nan'))
     nominal_predicted_interval_m: tuple[float, float] = (float('nan'), float('nan'))
+    # The nominal robot's registered placement {name: value} (base.*, reflector.*): validate
+    # compares a calibration as used (its own placement) with it on new points.
+    nominal_placement: dict[str, float] = dataclasses.field(default_factory=dict)
 
     @property
     def undetermined_where_it_works(self) -> bool:
@@ -262,7 +265,9 @@ class NominalComparison:
                                'predicted_rms_m': m(self.calibrated_predicted_m)},
                 'nominal': {**self.nominal.to_dict(),
                             'working_poses_expected_rms_m': m(self.nominal_working_m),
-                            'predicted_rms_m': m(self.nominal_predicted_m)},
+                            'predicted_rms_m': m(self.nominal_predicted_m),
+                            'placement': {k: float(v) for k, v in
+                                          self.nominal_placement.items()}},
                 'text': self.text()}
 
 
