@@ -227,3 +227,35 @@ def test_a_registered_validation_predicts_the_miss_it_sees_with_a_tilt(cm):
     print(f'predicted std {predicted * 1e6:.1f} µm, rms per axis {per_axis * 1e6:.1f} µm, '
           f'base.x std {result.std_of("base.x") * 1e3:.2f} mm')
     assert 0.5 * per_axis < predicted < 2 * per_axis
+
+
+def test_recordings_whose_only_robot_parameters_are_tilt_gains_state_no_tcp_share(cm):
+    """At the registration level with a measured tilt, the robot's parameters are the gains
+    alone, and a working pose carries no reading: no robot parameter moves its TCP. The
+    per-recording share of the TCP variance divided by that zero (ZeroDivisionError, exit 1,
+    nothing written); now it is not stated."""
+    rng = np.random.default_rng(5)
+    effect = parse_effect_spec('measured_tilt:joint_2:column', cm.robot)
+    truth = augmented_model(cm.model, (effect,))
+    robot = np.concatenate([cm.model.params.nominal, (1.0, 0.8)])
+    recordings = [rec.Recording('a'), rec.Recording('b')]
+    parts = []
+    for move in (np.zeros(6), np.array([-1.2, 1.5, 0.1, 0.02, -0.03, 0.6])):
+        p = robot.copy()
+        p[:6] += move
+        q = random_configurations(cm.model, cm.model.params.nominal, 30, rng)
+        lean = rng.uniform(-2e-3, 2e-3, (30, 2))
+        parts.append(simulate_measurements(
+            truth, p, q, SIGMA, rng,
+            covariates={'tilt.column.x': lean[:, 0], 'tilt.column.y': lean[:, 1]}))
+    placed = with_recordings(with_effects(cm, (effect,)), recordings)
+    data = rec.combine(parts, recordings)
+    cal = calibrate_cell(placed, data, model='registration')
+    robot_free = [n for n in cal.result.estimated if not n.startswith(
+        ('base.', 'reflector.', 'recording.'))]
+    assert robot_free and all(n.startswith('measured_tilt.') for n in robot_free)
+    found = rec.contributions(placed.model, data.subset(cal.robust.kept), cal.result.values,
+                              cal.result.estimated, cal.result.std, np.full(3, SIGMA),
+                              placed.q_work, ['a', 'b'])
+    assert [c.tcp_variance_ratio for c in found] == [None, None]
+    assert all(np.isfinite(c.rms_m) and c.poses == 30 for c in found)

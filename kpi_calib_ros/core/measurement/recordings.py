@@ -455,8 +455,11 @@ def contributions(model: MeasurementModel, data: Measurements, values: np.ndarra
             k = kpi[:, cols]
             return float(np.trace(k @ np.linalg.solve(info, k.T)))
         every = tcp_trace(np.ones(len(data), bool), set())
+        # 0 when no robot parameter moves the working poses' TCP (a measured tilt's gains at
+        # working poses without a reading): no recording's contribution to it to state
         for i in range(len(names)):
-            ratio[i] = tcp_trace(index != i, own[i]) / every
+            ratio[i] = (tcp_trace(index != i, own[i]) / every
+                        if np.isfinite(every) and every > 0 else None)
     stds = dict(zip(estimated, std))
     value = dict(zip(params.names, values))
     out = []
