@@ -161,6 +161,28 @@ def test_a_model_with_a_torque_effect_is_designed_and_predicts_its_identificatio
         assert np.linalg.norm(predicted - identified) / np.linalg.norm(identified) < 1e-6
 
 
+def test_a_model_with_a_measured_tilt_is_refined_by_the_nlp():
+    """A cell whose model holds a measured tilt (``effects: [measured_tilt:joint_2:column]``,
+    or a calibration that added one as the prior of the next station's design) crashed the
+    symbolic refinement with a TypeError: the effect's joint correction indexed torques the
+    refinement does not have. The design is refined; at the reference condition (no tilt
+    recorded) the gains move no point, so they are not among its parameters, and its
+    predicted TCP covariance is the identification's at its poses."""
+    doc = yaml.safe_load(DEFAULT_CELL.read_text())
+    doc['effects'] = ['measured_tilt:joint_2:column']
+    cell = build_cell_model(cell_from_dict(doc, DEFAULT_CELL.parent)).design_cell()
+    design = design_measurements(cell, 15, 'kpi', np.random.default_rng(2),
+                                 dataclasses.replace(SMALL, nlp=True, max_iterations=5))
+    assert 'ipopt: ' in design.status and 'skipped' not in design.status, design.status
+    assert design.verification.ok
+    data = _measured(cell.model, cell.model.params.nominal, design.configurations,
+                     np.zeros(3), np.random.default_rng(3))
+    result = identify(cell.model, data, cell.sigma, cell.q_work)
+    assert not any(n.startswith('measured_tilt.') for n in result.estimated)
+    for predicted, identified in zip(design.tcp_covariance, result.tcp_covariance):
+        assert np.linalg.norm(predicted - identified) / np.linalg.norm(identified) < 1e-6
+
+
 def test_the_nlp_counts_the_rotation_rows_of_a_tracked_pose():
     """The IPOPT refinement's KPI criterion at its start is the identification's (the
     weighted mean TCP variance) for a tracked-pose cell: its rotation rows are in it."""

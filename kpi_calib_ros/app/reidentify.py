@@ -201,8 +201,12 @@ def cycle_prior(cm: CellModel, doc: dict[str, Any], data: Measurements | None,
     params = cm.model.params
     unknown = [n for n in prior.names if n not in params.names]
     if unknown:
+        missing = [e for e in doc.get('effects') or ()
+                   if e not in {x.name for x in cm.model.effects}]
         raise DataError(f'the prior calibration has parameters {unknown} this cell model '
-                        'lacks; use a calibration of the same robot and effects')
+                        'lacks; use a calibration of the same robot and effects'
+                        + (f' (its effects {missing}, which --model auto may have added, '
+                           f'belong in the cell: effects: {missing})' if missing else ''))
     values = {p['name']: float(p['value']) for p in doc['parameters']
               if p['name'] in params.names}
     vectors = link_vectors(cm)

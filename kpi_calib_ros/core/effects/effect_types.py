@@ -259,7 +259,10 @@ class BoundEffect:
             # a global joint correction reads the kind's inputs (bind_effect maps none)
             return fn(q, tau, theta, *extra)
         out = ca.SX.zeros(self.n_joints)
-        out[self.joint_index] = fn(q[self.joint_index], tau[self.joint_index], theta, *extra)
+        # No torques (the design's symbolic refinement, which runs only when no effect reads
+        # them): an effect of an angle or an input gets a zero torque it does not read.
+        torque = tau[self.joint_index] if tau is not None else ca.SX.zeros(1)
+        out[self.joint_index] = fn(q[self.joint_index], torque, theta, *extra)
         return out
 
     def placement_correction(self, theta: ca.SX, z: Any = None) -> list[tuple[int, Any]]:
