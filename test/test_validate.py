@@ -792,3 +792,28 @@ def test_validate_compares_a_calibration_as_used_with_the_nominal_robot_it_regis
     assert used['rms_m'] > used['nominal_rms_m']  # 1.335 against 1.238 mm
     assert not passed(out)
     assert 'WORSE THAN NO CALIBRATION as used' in validation_text(out)
+
+
+def test_register_reflector_refits_only_the_markers_the_new_bag_measures():
+    """A cell of two markers; a new bag of the first only: ``--register reflector`` re-fitted
+    both offsets, the second undetermined by the bag, and validate failed on a calibration
+    that held. Now only the measured marker's offset (and orientation) is re-fitted; the
+    bag of both re-fits both, and no bag means every marker."""
+    from kpi_calib_ros.app.validate import registered_names
+    from kpi_calib_ros.core.model.parameters import reflector_prefixes
+    doc = yaml.safe_load(DEFAULT_CELL.read_text())
+    doc['robot']['urdf'] = str((DEFAULT_CELL.parent / doc['robot']['urdf']).resolve())
+    doc.pop('reflector')
+    doc['reflectors'] = [{'name': 'first', 'offset': [0.0, 0.0, 0.03]},
+                         {'name': 'second', 'offset': [0.0, 0.05, 0.06]}]
+    cm = build_cell_model(cell_from_dict(doc, DEFAULT_CELL.parent))
+    a, b = reflector_prefixes(cm.model.params)
+    q = np.zeros((4, cm.robot.n_joints))
+    one = Measurements(q=q, eta=np.zeros((4, 3)), reflector=np.zeros(4, int))
+    both = Measurements(q=q, eta=np.zeros((4, 3)), reflector=np.array([0, 1, 0, 1]))
+    only_a = registered_names(cm, 'reflector', one)
+    assert only_a == [f'{a}.{c}' for c in 'xyz']
+    assert registered_names(cm, 'reflector', both) == only_a + [f'{b}.{c}' for c in 'xyz']
+    assert registered_names(cm, 'reflector') == registered_names(cm, 'reflector', both)
+    assert registered_names(cm, 'base+reflector', one)[:6] == [
+        f'base.{c}' for c in ('x', 'y', 'z', 'roll', 'pitch', 'yaw')]

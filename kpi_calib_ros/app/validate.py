@@ -71,8 +71,13 @@ from kpi_calib_ros.io.results import writable_folder, write_atomic
 REGISTER = ('base', 'base+reflector', 'reflector')
 
 
-def registered_names(cm: CellModel, register: str | None) -> list[str]:
-    """Names of the parameters ``register`` (one of :data:`REGISTER`, or None) re-fits."""
+def registered_names(cm: CellModel, register: str | None,
+                     data: Measurements | None = None) -> list[str]:
+    """Names of the parameters ``register`` (one of :data:`REGISTER`, or None) re-fits.
+
+    With ``data``, only the reflectors (markers) its rows measure: a bag of one marker of a
+    cell that declares four re-fitted all four, three of them undetermined, and failed.
+    """
     if register is None:
         return []
     if register not in REGISTER:
@@ -80,7 +85,13 @@ def registered_names(cm: CellModel, register: str | None) -> list[str]:
     names = [] if register == 'reflector' else [f'base.{c}' for c in BASE_COMPONENTS]
     if register in ('base+reflector', 'reflector'):
         params = set(cm.model.params.names)
-        for prefix in reflector_prefixes(cm.model.params):
+        n_ref = cm.model.n_reflectors
+        present = (None if data is None else set(range(n_ref)) if data.reflector is None
+                   else {int(r) - n_ref if r >= n_ref else int(r)
+                         for r in np.unique(np.asarray(data.reflector))})
+        for k, prefix in enumerate(reflector_prefixes(cm.model.params)):
+            if present is not None and k not in present:
+                continue
             names += [f'{prefix}.{c}' for c in 'xyz']
             names += [n for n in orientation_names(prefix) if n in params]
     return names
@@ -181,7 +192,7 @@ def validate_calibration(cm: CellModel, p: np.ndarray, doc: dict[str, Any],
                          data: Measurements, register: str | None = None) -> Validation:
     """Test the calibration ``doc`` (values ``p``) on new measurements ``data``, after
     re-fitting the placement ``register`` (:data:`REGISTER`) on them when given."""
-    registered = registered_names(cm, register)
+    registered = registered_names(cm, register, data)
     cov = doc['parameter_covariance']
     estimated = cm.model.params.indices(list(cov['names']))
     ranges = doc.get('training_joint_ranges') or {}
@@ -355,7 +366,7 @@ def against_nominal_robot(cm: CellModel, placed: np.ndarray, doc: dict[str, Any]
     (base pose, reflector offsets) on them: robots compared, not placements
     (:func:`~kpi_calib_ros.core.diagnosis.validation.against_nominal_on_new`). ``v``: the
     validation with ``register``, reused when it registered both. None: nothing to compare."""
-    index = cm.model.params.indices(registered_names(cm, 'base+reflector'))
+    index = cm.model.params.indices(registered_names(cm, 'base+reflector', data))
     scale = calibration_noise_scale(doc)
     nominal = nominal_validation(cm.model, placed, index, np.array(
         doc['noise_sigma_m'], float) * np.sqrt(scale), data, scale)
