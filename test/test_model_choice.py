@@ -550,3 +550,39 @@ def test_an_effect_refused_for_extrapolation_is_not_called_implausible(cm):
     assert 'periodic_joint_error:joint_2:k=' in reason, reason
     assert 'significant and plausible, but a working pose sets joint_2' in reason
     assert 'significant but implausible: periodic_joint_error:joint_2' not in reason
+
+
+def test_an_effect_whose_refit_identify_would_refuse_is_not_recommended(cm):
+    """diagnose recommended a link bending whose refit moved a joint placement 0.133 m, and
+    identify with it was not valid. Now what the plausibility gate refuses in the refit with
+    the effect, and not without it, makes the effect NOT recommended, and the verdict and
+    the comparison say why. (The refit is the calibration itself with joint_3's placement
+    moved 0.2 m, beyond the 0.05 m tolerance, which the gate judges free of gauge: what
+    such a refit gives.)"""
+    from kpi_calib_ros.app.diagnose import added_violations
+    from kpi_calib_ros.app.identify import with_effects
+    from kpi_calib_ros.core.diagnosis.model_comparison import compare_models
+    from kpi_calib_ros.core.measurement.data import Measurements
+    from kpi_calib_ros.io.report import comparison_text
+    rng = np.random.default_rng(3)
+    p = true_parameters(cm.model.params, rng)
+    q = random_configurations(cm.model, cm.model.params.nominal, 60, rng)
+    data = Measurements(q=q, eta=cm.model.predict(p, q) + rng.normal(0, 20e-6, (60, 3)))
+    cal = calibrate_cell(cm, data, 'geometric')
+    kept = data.subset(cal.robust.kept)
+    richer = with_effects(cm, ('cyclic_joint_error:joint_2',))
+    values = np.concatenate([cal.result.values, [0.0, 0.0]])
+    assert not added_violations(cm, cal.result, richer, dataclasses.replace(
+        cal.result, values=values, names=tuple(richer.model.params.names)), kept, None)
+    moved = values.copy()
+    moved[richer.model.params.index('joint_3.placement.tx')] += 0.2
+    after = dataclasses.replace(cal.result, values=moved,
+                                names=tuple(richer.model.params.names))
+    said = added_violations(cm, cal.result, richer, after, kept, None)
+    assert said and all('moved' in v and 'beyond the tolerance' in v for v in said), said
+    cmp = compare_models((cm.model, cal.result), (richer.model, after), kept)
+    assert dataclasses.replace(cmp, implausible=()).gain is not None
+    cmp = dataclasses.replace(cmp, implausible=said)
+    assert not cmp.holds_elsewhere
+    assert ('the calibration is not plausible, identify would not publish it: '
+            + said[0]) in comparison_text(cmp)

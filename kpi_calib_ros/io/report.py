@@ -102,6 +102,7 @@ def comparison_to_dict(cmp: ModelComparison) -> dict[str, Any]:
             'recordings_held_out': int(cmp.recordings_held_out),
             'held_out_gain': None if cmp.gain is None else cmp.gain.to_dict(),
             'holds_elsewhere': cmp.holds_elsewhere,
+            'extrapolated': list(cmp.extrapolated), 'implausible': list(cmp.implausible),
             'recommended': cmp.holds_elsewhere}
 
 
@@ -132,6 +133,10 @@ def region_verdict(cmp: ModelComparison) -> str:
                 'identification.max_iterations / --max-iterations and compare again')
     if cmp.extrapolated:
         return (f'NOT recommended: {"; ".join(cmp.extrapolated)} ({figures})')
+    if cmp.implausible:
+        return (f'NOT recommended: refitted with {", ".join(cmp.effects)} the calibration is not '
+                f'plausible, identify would not publish it: {"; ".join(cmp.implausible)} '
+                f'({figures})')
     if cmp.holds_elsewhere:
         return (f'recommended: {", ".join(cmp.effects)} predicts held-out regions of the '
                 f'measured poses better ({figures}); checked within the measured joint ranges '

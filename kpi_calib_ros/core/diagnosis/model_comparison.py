@@ -59,6 +59,9 @@ class ModelComparison:
     # Why an added effect would be extrapolated at the working poses
     # (core.diagnosis.effect_selection.extrapolated); never recommended then.
     extrapolated: tuple[str, ...] = ()
+    # What the plausibility gate refuses in the richer fit that it did not in the smaller
+    # (identify would call the calibration with the effect not valid); never recommended then.
+    implausible: tuple[str, ...] = ()
     # With several recordings, the rms over recordings held out whole (each one's placement
     # registered on its rows) before/after, and how many (the last folds above).
     other_recording_rms_before_m: float = float('nan')
@@ -76,7 +79,7 @@ class ModelComparison:
         figures linearise a last iterate, not a minimum, as ``auto`` neither screens from nor
         adds such a fit.
         """
-        if self.warnings or self.gain is None or self.extrapolated:
+        if self.warnings or self.gain is None or self.extrapolated or self.implausible:
             return False
         return self.gain.holds()
 
