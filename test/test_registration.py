@@ -205,3 +205,18 @@ def test_poses_that_never_turn_the_tool_cannot_place_base_and_probe_and_the_gate
     probe = _reregistered(cm, q, eta, both[6:])
     assert np.all(probe.std < 1e-4) and not registration_violations(cm.model, both[6:],
                                                                       probe.std, q=q)
+
+
+def test_a_probe_moved_beyond_its_tolerance_names_both_causes(cm):
+    """A marker remounted 36 mm away (re-fitted alone, determined) was said to be "the
+    tracker set up elsewhere"; the tracker never moved. Both causes are named, and both
+    fixes; within the tolerance nothing is said."""
+    from kpi_calib_ros.core.estimation.plausibility import registration_violations
+    names = ['reflector.x', 'reflector.y', 'reflector.z']
+    far = registration_violations(cm.model, names, [1e-5] * 3, shift={'reflector': 0.0364})
+    assert len(far) == 1
+    text = far[0].text()
+    assert 'tracker was set up elsewhere' in text and 'remounted this far' in text
+    assert '--register base+reflector' in text
+    assert 'identification.tolerances.reflector_offset' in text
+    assert not registration_violations(cm.model, names, [1e-5] * 3, shift={'reflector': 0.01})

@@ -312,8 +312,9 @@ def registration_violations(model: MeasurementModel, names: Sequence[str],
         if moved > tolerances.reflector_offset:
             out.append(Violation(
                 f'{prefix} offset', f'moved {moved:.4g} m from the calibration\'s, beyond '
-                f'{tolerances.reflector_offset:g} m: a probe remount moves it by millimetres; '
-                'this is the tracker set up elsewhere, taken up by the offset',
+                f'{tolerances.reflector_offset:g} m: a probe remount moves it by millimetres, '
+                'so either the tracker was set up elsewhere and the offset took it up, or the '
+                'marker was truly remounted this far',
                 'register the base too (--register base+reflector); a new mount truly this '
                 'far: widen identification.tolerances.reflector_offset'))
     return out
