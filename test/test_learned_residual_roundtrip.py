@@ -10,6 +10,7 @@ validated on 100 others. Above MAX_TRAINING_ROWS identify fits no learned residu
 why."""
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -115,3 +116,52 @@ def test_above_the_training_bound_no_learned_residual_is_fitted(cm):
         f'learned residual not fitted: {MAX_TRAINING_ROWS + 1} point measurements, more than '
         f'the {MAX_TRAINING_ROWS} a learned residual is fitted on (its cost grows with the '
         'cube of their number); identify --learned-residual on fewer poses')
+
+
+def test_the_learned_statement_after_registration_does_not_depend_on_the_turn_of_the_station(
+        tmp_path, capsys):
+    """The same 50 poses, the same noise, measured from the calibration's station and from
+    stations moved rigidly (shifted, turned by 0.1 and 1 rad about the vertical, tilted by
+    36 mrad): validated after ``--register base``, the learned residual's statement is the
+    same (χ², p-value, the independent points the recording is worth). Before, the
+    calibration's base covariance was propagated at the registered placement and the
+    statement grew with the turn (a column robot: 34 independent points from its own
+    station, 1 to 3 turned, and "its uncertainty holds" could not fail)."""
+    from kpi_calib_ros.app.measurements import measurements_from_bag
+    from kpi_calib_ros.app.validate import calibrated_model, validate_report
+    from kpi_calib_ros.core.model.kinematics import rpy_matrix
+    path, base, tip, joint, pose, n = ARMS['ur5']
+    doc = arm_cell_document(ROBOTS + path, base, tip, 2e-5)
+    doc['working_poses'] = [pose]
+    doc['identification'] = {'model': 'geometric'}
+    doc['simulation'] = {'hidden_effects': {f'cyclic_joint_error_h2:{joint}':
+                                            {'a': 4e-4, 'b': 2e-4}}}
+    cell = tmp_path / 'cell.yaml'
+    cell.write_text(yaml.safe_dump(doc))
+    train, new = tmp_path / 'train.mcap', tmp_path / 'new.mcap'
+    assert main(['simulate', '--cell', str(cell), '--n', str(n), '--out', str(train),
+                 '--seed', '1']) == 0
+    cm, _ = truth_cell_model(load_cell(cell))
+    truth = read_truth(train)['parameters']
+    simulate_campaign(cell, NEW_POSES, new, 2, cm=cm,
+                      p_true=np.array([truth[name] for name in cm.model.params.names]))
+    assert main(['identify', '--cell', str(cell), '--bag', str(train), '--out',
+                 str(tmp_path / 'cal'), '--learned-residual']) == 0
+    calibration = yaml.safe_load((tmp_path / 'cal' / 'calibration.yaml').read_text())
+    placed, _ = calibrated_model(load_cell(cell), calibration)
+    data, _ = measurements_from_bag(placed, new)
+    seen = {}
+    for name, (rpy, shift) in {'same': ((0, 0, 0), (0, 0, 0)),
+                               'shifted': ((0, 0, 0), (1.5, -0.7, 0.2)),
+                               'turned 0.1': ((0, 0, 0.1), (0, 0, 0)),
+                               'turned 1': ((0, 0, 1.0), (0.3, 0.2, 0)),
+                               'tilted': ((0.036, 0, 0), (0, 0, 0))}.items():
+        turn = np.array(rpy_matrix(*rpy), float)
+        moved = dataclasses.replace(data, eta=data.eta @ turn.T + np.array(shift))
+        out = validate_report(placed, calibration, moved, tmp_path / name, 'base',
+                              tmp_path / 'cal' / 'learned_residual.yaml')
+        learned = out['learned_residual']
+        seen[name] = (learned['chi2'], learned['p_value'], learned['effective_points'])
+        print(name, seen[name])
+    for name, figures in seen.items():
+        np.testing.assert_allclose(figures, seen['same'], rtol=1e-4, err_msg=name)
