@@ -259,3 +259,32 @@ def test_recordings_whose_only_robot_parameters_are_tilt_gains_state_no_tcp_shar
                               placed.q_work, ['a', 'b'])
     assert [c.tcp_variance_ratio for c in found] == [None, None]
     assert all(np.isfinite(c.rms_m) and c.poses == 30 for c in found)
+
+
+def test_a_tilted_recording_whose_held_probe_misses_is_registered_with_the_probe_free(cm):
+    """A second station whose column leans by up to 30 mrad at its stops (recorded), the
+    probe 15 mm from the cell's offset: the nominal robot with the first recording's offsets
+    held missed its points by 23 mm, beyond the 20 mm registration limit, and identify was
+    refused naming joint order and units. The offsets free give the station's start (the
+    joint fit keeps the shared probe): it is registered."""
+    from kpi_calib_ros.app.placement import registered_start
+    effect = parse_effect_spec('measured_tilt:joint_2:column', cm.robot)
+    truth = augmented_model(cm.model, (effect,))
+    rng = np.random.default_rng(0)
+    parts = []
+    for k, move in enumerate((np.zeros(6), np.array([-1.2, 1.5, 0.1, 0.02, -0.03, 0.6]))):
+        p = np.concatenate([cm.model.params.nominal, (1.0, 1.0)])
+        p[:6] += move
+        p[cm.model.params.index('reflector.x')] += 0.015
+        q = random_configurations(cm.model, cm.model.params.nominal, 40, rng)
+        lean = np.zeros((40, 2)) if k == 0 else rng.uniform(-0.03, 0.03, (40, 2))
+        parts.append(simulate_measurements(
+            truth, p, q, SIGMA, rng,
+            covariates={'tilt.column.x': lean[:, 0], 'tilt.column.y': lean[:, 1]}))
+    recordings = [rec.Recording('a'), rec.Recording('b')]
+    placed = with_recordings(with_effects(cm, (effect,)), recordings)
+    start, _ = registered_start(placed, rec.combine(parts, recordings))
+    names = placed.model.params.names
+    turned = start[[names.index(f'recording.b.base.{c}') for c in ('x', 'y', 'yaw')]]
+    np.testing.assert_allclose(turned - cm.model.params.nominal[[0, 1, 5]], [-1.2, 1.5, 0.6],
+                               atol=0.05)

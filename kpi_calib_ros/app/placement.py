@@ -135,13 +135,15 @@ def recordings_start(cm: CellModel, data: Measurements
                 own = register(rows.eta, tips, max_rms=REGISTRATION_MAX_RMS_M,
                                reflector=rows.reflector, offsets=held)
             except DataError:
-                if not remounted:
-                    raise
-                # Postures that hardly turn the tool cannot register the remounted offset:
-                # it starts at the first recording's, and the joint fit takes what they
-                # determine of it.
+                # Remounted: postures that hardly turn the tool cannot register the
+                # offset; it starts at the first recording's, and the joint fit takes what
+                # they determine of it. Not remounted: the first's offsets held miss these
+                # points (the nominal robot's misfit, a column the recording tilts: 20.2 mm
+                # where the offsets free placed them within 10 mm); the offsets free give
+                # this station's start, the joint fit keeps the shared probe.
                 own = register(rows.eta, tips, max_rms=REGISTRATION_MAX_RMS_M,
-                               reflector=rows.reflector, offsets=first)
+                               reflector=rows.reflector,
+                               offsets=first if remounted else None)
         except (DataError, ValueError) as exc:
             raise DataError(f'recording {name!r}: {exc}') from None
         values = dict(zip(base_names(name), own.base_in_tracker))
