@@ -188,6 +188,12 @@ def test_diagnose_answers_where_what_command_and_held_out_error(ur, tmp_path):
     # The library's screen names an effect that explains a sliver (a joint scale of the
     # elbow): the answer names it as a partial step, not as what is missing.
     assert library.best is not None and f'--effects {library.best.spec}' in plain.missing.what
+    # ... and its command line says so: "none: no effect of the library has this shape"
+    # contradicted the verdict's "Add it with" where two library effects were missing
+    assert plain.missing.part == f'--effects {library.best.spec}'
+    assert any(line.startswith(f'the command that adds it: none answers it alone: --effects '
+                               f'{library.best.spec} explains part of it')
+               for line in plain.lines()), plain.lines()
     assert plain.missing.held_out_after_m < 0.7 * plain.missing.held_out_before_m
     write_report(tmp_path, cd)
     report = (tmp_path / 'report.md').read_text()

@@ -59,6 +59,9 @@ class Remedy:
         Rms (m) of the error on held-out poses without and with it (NaN: not estimable).
     basis : str
         How the held-out figures were obtained.
+    part : str
+        A smooth misfit only: the command of the remedy at hand that explains part of it
+        ('' when none does).
     """
 
     kind: str
@@ -67,6 +70,7 @@ class Remedy:
     held_out_before_m: float = float('nan')
     held_out_after_m: float = float('nan')
     basis: str = ''
+    part: str = ''
 
 
 @dataclass(frozen=True)
@@ -98,6 +102,8 @@ class MisfitAnswer:
             if m.basis:
                 held += f' ({m.basis})'
         command = m.command or ('none needed' if m.kind == NONE else
+                                f'none answers it alone: {m.part} explains part of it (a first '
+                                'step; diagnose again after it)' if m.part else
                                 'none: no effect of the library has this shape')
         return [f'where the model fails: {self.where}',
                 f'what is missing: {m.what}',
@@ -163,7 +169,7 @@ def answer_misfit(analysis: ResidualAnalysis | None, named: Remedy | None = None
                        f'the held-out error only from {missing.held_out_before_m * 1e6:.1f} '
                        f'to {missing.held_out_after_m * 1e6:.1f} µm')
             missing = Remedy(SMOOTH, partial, '', smooth.held_out_before_m,
-                             smooth.held_out_after_m, smooth.basis)
+                             smooth.held_out_after_m, smooth.basis, missing.command)
     elif smooth is not None:
         missing = smooth
     elif model_adequate:
