@@ -103,6 +103,7 @@ def comparison_to_dict(cmp: ModelComparison) -> dict[str, Any]:
             'held_out_gain': None if cmp.gain is None else cmp.gain.to_dict(),
             'holds_elsewhere': cmp.holds_elsewhere,
             'extrapolated': list(cmp.extrapolated), 'implausible': list(cmp.implausible),
+            'readmitted': list(cmp.readmitted),
             'recommended': cmp.holds_elsewhere}
 
 
@@ -215,6 +216,10 @@ def comparison_text(cmp: ModelComparison) -> str:
              f'joint space, {cmp.region_blocks} regions)',
              f'  {region_verdict(cmp)}',
              f'  χ² p-value      {cmp.p_value_before:9.3g} -> {cmp.p_value_after:9.3g}']
+    if cmp.readmitted:
+        lines.append(f'  measurements {list(cmp.readmitted)}, outliers of the model without '
+                     f'{", ".join(cmp.effects)}, are within the threshold with it: both fits '
+                     'and this comparison include them')
     if cmp.std_basis and cmp.effect_parameters:
         lines.append(f'  std {cmp.std_basis}')
     for p in cmp.effect_parameters:

@@ -62,6 +62,9 @@ class ModelComparison:
     # What the plausibility gate refuses in the richer fit that it did not in the smaller
     # (identify would call the calibration with the effect not valid); never recommended then.
     implausible: tuple[str, ...] = ()
+    # Points excluded as outliers of the smaller model that the effect explains: both fits
+    # and this comparison include them (indices into the given measurements).
+    readmitted: tuple[int, ...] = ()
     # With several recordings, the rms over recordings held out whole (each one's placement
     # registered on its rows) before/after, and how many (the last folds above).
     other_recording_rms_before_m: float = float('nan')
