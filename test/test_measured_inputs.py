@@ -310,3 +310,36 @@ def test_the_node_campaign_logs_each_measurements_efforts_and_pairs_them(cm, tmp
     assert len(logged) == 5 * len(cm.joint_names)
     with pytest.raises(ValueError, match='record_efforts needs an inputs_topic'):
         MeasurementStore(tmp_path / 'other', record_efforts=True)
+
+
+def test_a_table_of_measured_torques_is_the_rows_torques(cm, tmp_path):
+    """import-csv refused effort columns and wrote joint states without efforts, so a
+    campaign recorded as a table could not use its measured torques
+    (``compliance.torque_source: measured`` then refused every row). ``efforts:`` maps a
+    joint's torque column (N m, or kN m scaled) into the joint states' effort, and the rows'
+    torques are the table's; a joint not of the table, or an unknown unit, is refused."""
+    q, eta, torque, _ = _loaded(cm, 13, 6)
+    tau = torque(q)
+    names = cm.joint_names
+    lines = [';'.join(names + ['x', 'y', 'z', 't'] + [f'tau_{j}' for j in names])]
+    for i in range(len(q)):
+        values = list(q[i]) + list(eta[i]) + [1.7e9 + 4 * i] + list(tau[i] / 1e3)
+        lines.append(';'.join(repr(float(v)) for v in values))
+    table = tmp_path / 'efforts.csv'
+    table.write_text('\n'.join(lines) + '\n')
+    doc = {'frame_id': cm.cell.tracker_frame, 'joints': list(names),
+           'markers': {'r': ['x', 'y', 'z']}, 'stamp_columns': ['t'],
+           'efforts': {j: {'column': f'tau_{j}', 'unit': 'kN m'} for j in names}}
+    import_csv(table, tmp_path / 'efforts.mcap', mapping_from_dict(doc))
+    cell = read_cell_document(_cell(tmp_path, compliance={'torque_source': 'measured'}))
+    cell['reflector'].pop('offset')
+    cell['reflectors'] = [{'name': 'r', 'offset': [0.0, 0.0, 0.03]}]
+    measured = build_cell_model(cell_from_dict(cell, tmp_path))
+    data, _ = measurements_from_bag(measured, tmp_path / 'efforts.mcap')
+    assert len(data) == len(q)
+    np.testing.assert_allclose(data.tau, tau, rtol=1e-12, atol=1e-9)
+    with pytest.raises(ConfigError, match=r"mapping.efforts.elbow: 'elbow' is not in "
+                                          r'mapping.joints'):
+        mapping_from_dict({**doc, 'efforts': {'elbow': 'tau_joint_1'}})
+    with pytest.raises(ConfigError, match=r"mapping.efforts.joint_1.unit: 'Nm'"):
+        mapping_from_dict({**doc, 'efforts': {'joint_1': {'column': 'a', 'unit': 'Nm'}}})

@@ -219,7 +219,7 @@ def _cdr_float64s(out: bytearray, values: np.ndarray | None) -> None:
 
 
 def joint_state_cdr(sample: JointSample) -> bytes:
-    """``sample`` as a sensor_msgs/msg/JointState in little-endian CDR (no effort).
+    """``sample`` as a sensor_msgs/msg/JointState in little-endian CDR.
 
     The bytes of mcap_ros2's dynamic encoder for
     :func:`~kpi_calib_ros.io.ros_messages.joint_state_fields` (a test holds
@@ -235,7 +235,7 @@ def joint_state_cdr(sample: JointSample) -> bytes:
         _cdr_string(out, name)
     _cdr_float64s(out, sample.positions)
     _cdr_float64s(out, sample.velocities)
-    _cdr_float64s(out, None)  # effort
+    _cdr_float64s(out, sample.efforts)
     return bytes(out)
 
 

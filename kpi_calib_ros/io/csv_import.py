@@ -85,6 +85,7 @@ class Posture:
     points: tuple[tuple[str, np.ndarray, np.ndarray | None, np.ndarray | None], ...]
     temperatures: dict[str, float]  # sensor frame id -> °C
     inputs: dict[str, float] = field(default_factory=dict)  # covariate name -> value, SI
+    efforts: dict[str, float] = field(default_factory=dict)  # joint -> measured torque, SI
 
 
 def read_postures(path: str | Path, mapping: CsvMapping, fmt: TableFormat | None = None
@@ -144,7 +145,9 @@ def read_postures(path: str | Path, mapping: CsvMapping, fmt: TableFormat | None
                        for sensor, column in mapping.temperatures.items()},
                       {name: _plausible_input(cell, name, c.column, c.unit,
                                               cell.value(c.column) * c.scale)
-                       for name, c in mapping.covariates.items()})
+                       for name, c in mapping.covariates.items()},
+                      {joint: cell.value(c.column) * c.scale
+                       for joint, c in mapping.efforts.items()})
 
 
 # The size a measured input of a known kind may have (SI): beyond, a unit slip or a fault.
@@ -348,7 +351,9 @@ def import_csv(csv_path: str | Path | list, out_path: str | Path, mapping: CsvMa
         for i, row in enumerate(rows):
             t = row.stamp_ns if row.stamp_ns is not None else _START_NS + i * _PERIOD_NS
             stamps.add(t, row, table[row.path])
-            held = JointSample(t, names, row.q, zeros)
+            held = JointSample(t, names, row.q, zeros,
+                               np.array([row.efforts.get(j, np.nan) for j in names])
+                               if mapping.efforts else None)
             bag.write_joint_held(held, (int(t + dt) for dt in offsets[offsets <= 0]))
             for name, xyz, quaternion, sigma in row.points:
                 sample = PointSample(t, f'{mapping.frame_id}{REFLECTOR_SEPARATOR}{name}', xyz,

@@ -94,6 +94,10 @@ class CsvMapping:
     covariates : dict of str to CovariateColumn
         Measured inputs: covariate name (``tilt.column.x``, ``payload.mass``) -> its column
         and unit, each row's value written (SI) to the inputs topic; {} for none.
+    efforts : dict of str to CovariateColumn
+        Measured joint torques: joint -> its column and unit (N m, or N for a prismatic
+        joint; ``kN m``, ``mN m`` scaled), written as the joint states' ``effort``, which
+        ``compliance.torque_source: measured`` reads; {} for none.
     """
 
     joints: dict[str, str]
@@ -110,6 +114,7 @@ class CsvMapping:
     decimal: str | None = None
     covariates: dict[str, CovariateColumn] = field(default_factory=dict)
     joint_units: dict[str, str] = field(default_factory=dict)
+    efforts: dict[str, CovariateColumn] = field(default_factory=dict)
 
     def joint_scales(self) -> np.ndarray:
         """SI factor of each joint column, in the order of ``joints``."""
@@ -121,7 +126,8 @@ class CsvMapping:
         return (list(self.joints.values()) + [c for m in self.markers.values()
                                               for c in m.columns]
                 + list(self.stamp_columns) + list(self.temperatures.values())
-                + [c.column for c in self.covariates.values()])
+                + [c.column for c in self.covariates.values()]
+                + [c.column for c in self.efforts.values()])
 
     @property
     def has_poses(self) -> bool:
@@ -130,7 +136,7 @@ class CsvMapping:
 
 _KEYS = ('frame_id', 'joints', 'markers', 'stamp_columns', 'stamp_format', 'stamp_timezone',
          'point_unit', 'joint_unit', 'angle_unit', 'temperature', 'delimiter', 'decimal',
-         'covariates')
+         'covariates', 'efforts')
 
 
 def mapping_from_dict(doc: Any) -> CsvMapping:
@@ -157,6 +163,8 @@ def mapping_from_dict(doc: Any) -> CsvMapping:
           tilt.column.x: {column: incl_x, unit: mrad} # tilt.*: rad | mrad | urad | deg
           payload.mass: {column: load, unit: kg}      # kg | g; payload.com.*: m | mm
           shift_hours: hours                          # any other quantity, as written
+        efforts: {arm_1_joint: tau1}                  # optional: measured joint torques,
+                                                      # N m (N prismatic) or {column, unit}
     """
     if not isinstance(doc, dict):
         raise ConfigError('mapping', 'must be a mapping with joints, markers, frame_id')
@@ -203,7 +211,38 @@ def mapping_from_dict(doc: Any) -> CsvMapping:
     return CsvMapping(joints, out_markers, frame,
                       tuple(str(s) for s in stamps), units['point_unit'], units['joint_unit'],
                       stamp_format, zone, units['angle_unit'], temperatures, delimiter, decimal,
-                      _covariates(doc.get('covariates')), joint_units)
+                      _covariates(doc.get('covariates')), joint_units,
+                      _efforts(doc.get('efforts'), joints))
+
+
+EFFORT_UNITS = {'N m': 1.0, 'N': 1.0, 'kN m': 1e3, 'mN m': 1e-3, 'kN': 1e3}
+
+
+def _efforts(raw: Any, joints: dict[str, str]) -> dict[str, CovariateColumn]:
+    """The ``efforts:`` key: {joint: column, or {column: ..., unit: ...}}, joints of the
+    mapping's ``joints``."""
+    if raw is None:
+        return {}
+    fix = ('{joint: column} or {joint: {column: ..., unit: N m}}, one entry per joint of '
+           'mapping.joints whose torque the table records')
+    if not isinstance(raw, dict) or not raw:
+        raise ConfigError('mapping.efforts', fix)
+    out = {}
+    for joint, spec in raw.items():
+        key = f'mapping.efforts.{joint}'
+        if str(joint) not in joints:
+            raise ConfigError(key, f'{joint!r} is not in mapping.joints {list(joints)}: an '
+                              'effort belongs to a joint of the table')
+        if isinstance(spec, str):
+            spec = {'column': spec}
+        if not isinstance(spec, dict) or set(spec) - {'column', 'unit'} \
+                or not isinstance(spec.get('column'), str) or not spec['column']:
+            raise ConfigError(key, fix)
+        unit = spec.get('unit', 'N m')
+        if unit not in EFFORT_UNITS:
+            raise ConfigError(f'{key}.unit', f'{unit!r}: one of {list(EFFORT_UNITS)}')
+        out[str(joint)] = CovariateColumn(spec['column'], str(unit), EFFORT_UNITS[unit])
+    return out
 
 
 JOINT_UNITS = {'rad': 1.0, 'deg': np.pi / 180.0, 'm': 1.0, 'mm': 1e-3}

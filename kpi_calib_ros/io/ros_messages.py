@@ -167,12 +167,13 @@ def input_samples_from_message(message: Any, fields: tuple[tuple[str, FieldPath]
 
 
 def joint_state_fields(sample: JointSample) -> dict[str, Any]:
-    """A JointSample as the nested fields of a JointState (empty velocity when none)."""
+    """A JointSample as the nested fields of a JointState (empty velocity, effort when none)."""
     sec, nanosec = stamp_fields(sample.stamp_ns)
     return {'header': {'stamp': {'sec': sec, 'nanosec': nanosec}, 'frame_id': ''},
             'name': list(sample.names), 'position': [float(x) for x in sample.positions],
             'velocity': [] if sample.velocities is None else
-            [float(x) for x in sample.velocities], 'effort': []}
+            [float(x) for x in sample.velocities],
+            'effort': [] if sample.efforts is None else [float(x) for x in sample.efforts]}
 
 
 def point_stamped_fields(sample: PointSample) -> dict[str, Any]:

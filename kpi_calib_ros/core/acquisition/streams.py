@@ -45,12 +45,15 @@ class JointSample:
         Joint positions (rad or m). NaN is allowed here; the pairer rejects it.
     velocities : ndarray, shape (len(names),), or None
         Joint velocities (rad/s or m/s); None when the driver publishes none.
+    efforts : ndarray, shape (len(names),), or None
+        Joint efforts (N m or N), NaN where a joint has none; None when none is published.
     """
 
     stamp_ns: int
     names: tuple[str, ...]
     positions: np.ndarray
     velocities: np.ndarray | None = None
+    efforts: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         """Store the stamp as int, positions and velocities as frozen (len(names),) arrays."""
@@ -62,6 +65,9 @@ class JointSample:
         if self.velocities is not None:
             object.__setattr__(self, 'velocities',
                                frozen_array(self.velocities, (len(names),), 'velocities'))
+        if self.efforts is not None:
+            object.__setattr__(self, 'efforts',
+                               frozen_array(self.efforts, (len(names),), 'efforts'))
 
 
 @dataclass(frozen=True, eq=False)
