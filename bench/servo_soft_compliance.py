@@ -27,7 +27,11 @@ from kpi_calib_ros.app.identify import calibrate_cell, with_effects
 from kpi_calib_ros.core.effects.registry import parse_effect_spec
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.payload import row_payloads
-from kpi_calib_ros.core.simulation import random_configurations, true_parameters
+from kpi_calib_ros.core.simulation import (
+    held_deflection,
+    random_configurations,
+    true_parameters,
+)
 from kpi_calib_ros.io.cell import DEFAULT_CELL, cell_from_dict, read_cell_document
 
 SIGMA = 20e-6
@@ -38,14 +42,7 @@ POSES = 60
 
 def held(cm, c, q, cov):
     """The exact fixed point δ = c τ(q + δ) and the torques there."""
-    loads = row_payloads(cov, len(q), cm.robot.payload)
-    d = np.zeros_like(q)
-    for _ in range(100):
-        bent = c * cm.robot.gravity_torques(q + d, loads)
-        if np.max(np.abs(bent - d)) < 1e-14:
-            break
-        d = bent
-    return d, np.atleast_2d(cm.robot.gravity_torques(q + d, loads))
+    return held_deflection(cm.robot, c, q, row_payloads(cov, len(q), cm.robot.payload))
 
 
 def seed_run(cm0, cm, c, seed):

@@ -69,25 +69,32 @@ def round_trip(cell: Path, train: Path, new: Path, out: Path, capsys) -> None:
     print(f'{len(stored.residual.q)} training rows, {len(stored.estimated)} parameters: read back')
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize('arm', ARMS)
-def test_validate_reads_what_identify_writes_on_a_stock_arm(arm, tmp_path, capsys):
+def stock_campaign(arm: str, folder: Path) -> tuple[Path, Path, Path]:
+    """A stock arm's cell with a second-harmonic error of its second joint the geometric
+    model lacks; its training bag (simulated, seed 1) and NEW_POSES new poses of the same
+    robot. Returns (cell, train, new)."""
     path, base, tip, joint, pose, n = ARMS[arm]
     doc = arm_cell_document(ROBOTS + path, base, tip, 2e-5)
     doc['working_poses'] = [pose]
     doc['identification'] = {'model': 'geometric'}
     doc['simulation'] = {'hidden_effects': {f'cyclic_joint_error_h2:{joint}':
                                             {'a': 4e-4, 'b': 2e-4}}}
-    cell = tmp_path / 'cell.yaml'
+    cell = folder / 'cell.yaml'
     cell.write_text(yaml.safe_dump(doc))
-    train, new = tmp_path / 'train.mcap', tmp_path / 'new.mcap'
+    train, new = folder / 'train.mcap', folder / 'new.mcap'
     assert main(['simulate', '--cell', str(cell), '--n', str(n), '--out', str(train),
                  '--seed', '1']) == 0
     cm, _ = truth_cell_model(load_cell(cell))
     truth = read_truth(train)['parameters']
     simulate_campaign(cell, NEW_POSES, new, 2, cm=cm,
                       p_true=np.array([truth[name] for name in cm.model.params.names]))
-    round_trip(cell, train, new, tmp_path, capsys)
+    return cell, train, new
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize('arm', ARMS)
+def test_validate_reads_what_identify_writes_on_a_stock_arm(arm, tmp_path, capsys):
+    round_trip(*stock_campaign(arm, tmp_path), tmp_path, capsys)
 
 
 @pytest.mark.slow
@@ -130,21 +137,7 @@ def test_the_learned_statement_after_registration_does_not_depend_on_the_turn_of
     from kpi_calib_ros.app.measurements import measurements_from_bag
     from kpi_calib_ros.app.validate import calibrated_model, validate_report
     from kpi_calib_ros.core.model.kinematics import rpy_matrix
-    path, base, tip, joint, pose, n = ARMS['ur5']
-    doc = arm_cell_document(ROBOTS + path, base, tip, 2e-5)
-    doc['working_poses'] = [pose]
-    doc['identification'] = {'model': 'geometric'}
-    doc['simulation'] = {'hidden_effects': {f'cyclic_joint_error_h2:{joint}':
-                                            {'a': 4e-4, 'b': 2e-4}}}
-    cell = tmp_path / 'cell.yaml'
-    cell.write_text(yaml.safe_dump(doc))
-    train, new = tmp_path / 'train.mcap', tmp_path / 'new.mcap'
-    assert main(['simulate', '--cell', str(cell), '--n', str(n), '--out', str(train),
-                 '--seed', '1']) == 0
-    cm, _ = truth_cell_model(load_cell(cell))
-    truth = read_truth(train)['parameters']
-    simulate_campaign(cell, NEW_POSES, new, 2, cm=cm,
-                      p_true=np.array([truth[name] for name in cm.model.params.names]))
+    cell, train, new = stock_campaign('ur5', tmp_path)
     assert main(['identify', '--cell', str(cell), '--bag', str(train), '--out',
                  str(tmp_path / 'cal'), '--learned-residual']) == 0
     calibration = yaml.safe_load((tmp_path / 'cal' / 'calibration.yaml').read_text())

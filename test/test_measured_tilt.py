@@ -137,6 +137,33 @@ def _leaning(cm, seed, gains, n, lean=2e-3):
     return measure(n), measure(40)
 
 
+STATION_B = np.array([-1.2, 1.5, 0.1, 0.02, -0.03, 0.6])  # 1.9 m and 34° from station a
+
+
+def _two_stations(cm, rng, geometry, n, leans=(2e-3, 2e-3), gains=(1.0, 0.8),
+                  probe_shift=0.0):
+    """Stations a and b (``STATION_B`` from a) of one robot, the column leaning by a recorded
+    angle up to ``leans`` at each: the cell model with the tilt and both recordings, and
+    their rows. ``geometry`` the robot's geometric parameters, ``probe_shift`` the probe's
+    x from the cell's (m)."""
+    effect = parse_effect_spec('measured_tilt:joint_2:column', cm.robot)
+    truth = augmented_model(cm.model, (effect,))
+    robot = np.concatenate([geometry, gains])
+    robot[cm.model.params.index('reflector.x')] += probe_shift
+    recordings = [rec.Recording('a'), rec.Recording('b')]
+    parts = []
+    for move, lean in zip((np.zeros(6), STATION_B), leans):
+        p = robot.copy()
+        p[:6] += move
+        q = random_configurations(cm.model, cm.model.params.nominal, n, rng)
+        angles = rng.uniform(-lean, lean, (n, 2))
+        parts.append(simulate_measurements(
+            truth, p, q, SIGMA, rng,
+            covariates={'tilt.column.x': angles[:, 0], 'tilt.column.y': angles[:, 1]}))
+    return (with_recordings(with_effects(cm, (effect,)), recordings),
+            rec.combine(parts, recordings))
+
+
 @pytest.mark.slow
 def test_a_column_leaning_by_a_recorded_angle_is_found_and_recovered(cm):
     data, fresh = _leaning(cm, 1, (1.0, 1.0), 60)
@@ -173,21 +200,8 @@ def test_a_tilt_is_identified_across_two_set_ups(cm):
     only the recordings' covariates and the identification stopped (exit 2) saying the
     measurements lacked the tilt they carried."""
     rng = np.random.default_rng(4)
-    effect = parse_effect_spec('measured_tilt:joint_2:column', cm.robot)
-    truth = augmented_model(cm.model, (effect,))
-    robot = np.concatenate([true_parameters(cm.model.params, rng), (1.0, 0.8)])
-    recordings = [rec.Recording('a'), rec.Recording('b')]
-    parts = []
-    for move in (np.zeros(6), np.array([-1.2, 1.5, 0.1, 0.02, -0.03, 0.6])):
-        p = robot.copy()
-        p[:6] += move
-        q = random_configurations(cm.model, cm.model.params.nominal, 40, rng)
-        lean = rng.uniform(-2e-3, 2e-3, (40, 2))
-        parts.append(simulate_measurements(
-            truth, p, q, SIGMA, rng,
-            covariates={'tilt.column.x': lean[:, 0], 'tilt.column.y': lean[:, 1]}))
-    placed = with_recordings(with_effects(cm, (effect,)), recordings)
-    cal = calibrate_cell(placed, rec.combine(parts, recordings), model='geometric')
+    placed, data = _two_stations(cm, rng, true_parameters(cm.model.params, rng), 40)
+    cal = calibrate_cell(placed, data, model='geometric')
     assert cal.result.converged
     for axis, gain in zip('xy', (1.0, 0.8)):
         name = f'measured_tilt.joint_2.column.g{axis}'
@@ -234,22 +248,8 @@ def test_recordings_whose_only_robot_parameters_are_tilt_gains_state_no_tcp_shar
     alone, and a working pose carries no reading: no robot parameter moves its TCP. The
     per-recording share of the TCP variance divided by that zero (ZeroDivisionError, exit 1,
     nothing written); now it is not stated."""
-    rng = np.random.default_rng(5)
-    effect = parse_effect_spec('measured_tilt:joint_2:column', cm.robot)
-    truth = augmented_model(cm.model, (effect,))
-    robot = np.concatenate([cm.model.params.nominal, (1.0, 0.8)])
-    recordings = [rec.Recording('a'), rec.Recording('b')]
-    parts = []
-    for move in (np.zeros(6), np.array([-1.2, 1.5, 0.1, 0.02, -0.03, 0.6])):
-        p = robot.copy()
-        p[:6] += move
-        q = random_configurations(cm.model, cm.model.params.nominal, 30, rng)
-        lean = rng.uniform(-2e-3, 2e-3, (30, 2))
-        parts.append(simulate_measurements(
-            truth, p, q, SIGMA, rng,
-            covariates={'tilt.column.x': lean[:, 0], 'tilt.column.y': lean[:, 1]}))
-    placed = with_recordings(with_effects(cm, (effect,)), recordings)
-    data = rec.combine(parts, recordings)
+    placed, data = _two_stations(cm, np.random.default_rng(5),
+                                 np.asarray(cm.model.params.nominal, float), 30)
     cal = calibrate_cell(placed, data, model='registration')
     robot_free = [n for n in cal.result.estimated if not n.startswith(
         ('base.', 'reflector.', 'recording.'))]
@@ -268,22 +268,10 @@ def test_a_tilted_recording_whose_held_probe_misses_is_registered_with_the_probe
     refused naming joint order and units. The offsets free give the station's start (the
     joint fit keeps the shared probe): it is registered."""
     from kpi_calib_ros.app.placement import registered_start
-    effect = parse_effect_spec('measured_tilt:joint_2:column', cm.robot)
-    truth = augmented_model(cm.model, (effect,))
-    rng = np.random.default_rng(0)
-    parts = []
-    for k, move in enumerate((np.zeros(6), np.array([-1.2, 1.5, 0.1, 0.02, -0.03, 0.6]))):
-        p = np.concatenate([cm.model.params.nominal, (1.0, 1.0)])
-        p[:6] += move
-        p[cm.model.params.index('reflector.x')] += 0.015
-        q = random_configurations(cm.model, cm.model.params.nominal, 40, rng)
-        lean = np.zeros((40, 2)) if k == 0 else rng.uniform(-0.03, 0.03, (40, 2))
-        parts.append(simulate_measurements(
-            truth, p, q, SIGMA, rng,
-            covariates={'tilt.column.x': lean[:, 0], 'tilt.column.y': lean[:, 1]}))
-    recordings = [rec.Recording('a'), rec.Recording('b')]
-    placed = with_recordings(with_effects(cm, (effect,)), recordings)
-    start, _ = registered_start(placed, rec.combine(parts, recordings))
+    placed, data = _two_stations(cm, np.random.default_rng(0),
+                                 np.asarray(cm.model.params.nominal, float), 40,
+                                 leans=(0.0, 0.03), gains=(1.0, 1.0), probe_shift=0.015)
+    start, _ = registered_start(placed, data)
     names = placed.model.params.names
     turned = start[[names.index(f'recording.b.base.{c}') for c in ('x', 'y', 'yaw')]]
     np.testing.assert_allclose(turned - cm.model.params.nominal[[0, 1, 5]], [-1.2, 1.5, 0.6],

@@ -21,7 +21,11 @@ from kpi_calib_ros.core.measurement.payload import row_payloads
 from kpi_calib_ros.core.measurement.recordings import stated_conditions
 from kpi_calib_ros.core.measurement.weighting import row_torques
 from kpi_calib_ros.core.model.robot import Payload, RobotModel
-from kpi_calib_ros.core.simulation import random_configurations, true_parameters
+from kpi_calib_ros.core.simulation import (
+    held_deflection,
+    random_configurations,
+    true_parameters,
+)
 from kpi_calib_ros.io.cell import DEFAULT_CELL, cell_from_dict, read_cell_document
 from kpi_calib_ros.io.cell_inputs import check_covariate_name
 
@@ -270,13 +274,7 @@ def test_a_working_pose_loaded_beyond_the_measured_payloads_is_warned_of(cm, tmp
 def _held_deflection(cm, c, q, payloads):
     """δ = c τ(q + δ) solved by fixed point on Pinocchio's gravity torques (to 1e-14 rad),
     and the torques there: how a joint that bends under its load is held."""
-    d = np.zeros_like(q)
-    for _ in range(100):
-        bent = c * cm.robot.gravity_torques(q + d, payloads)
-        if np.max(np.abs(bent - d)) < 1e-14:
-            break
-        d = bent
-    return d, np.atleast_2d(cm.robot.gravity_torques(q + d, payloads))
+    return held_deflection(cm.robot, c, q, payloads)
 
 
 STIFF = {'joint_2': -3e-5, 'joint_3': -4e-5}  # 19 mrad of sag at joint 2 under 10 kg

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Callable, Mapping
+from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -25,12 +25,13 @@ from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.pose import noisy_rotations
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.core.model.parameters import ParameterSet
+from kpi_calib_ros.core.model.robot import Payload, RobotModel
 
 __all__ = [
     'ErrorMagnitudes', 'true_parameters', 'sampling_bounds', 'random_configurations',
     'measurable_batch', 'one_joint_at_a_time', 'simulate_measurements',
     'simulate_pose_measurements', 'equivalent_parameters', 'smooth_joint_map',
-    'sensor_temperatures', 'simulate_two_sensor_shift',
+    'sensor_temperatures', 'simulate_two_sensor_shift', 'held_deflection',
 ]
 
 _DEG = np.pi / 180.0
@@ -381,3 +382,26 @@ def smooth_joint_map(q: np.ndarray, joints: tuple[int, int], amplitude_m: float,
     phase = np.asarray(phase, float).reshape(3, 2)
     return amplitude_m * np.column_stack([np.sin(1.3 * a + ph[0]) * np.cos(1.1 * b + ph[1])
                                           for ph in phase])
+
+
+def held_deflection(robot: RobotModel, compliance: np.ndarray, q: np.ndarray,
+                    payloads: Sequence[Payload] | None = None
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Return the deflection δ = c·τ(q + δ) a joint of compliance ``c`` (n,) holds, exactly.
+
+    By fixed point on the robot's gravity torques (Pinocchio, each row with its
+    ``payloads``, None: the cell's) to 1e-14 rad: a truth independent of the model's
+    linearised torque at the deflected configuration
+    (:mod:`kpi_calib_ros.core.measurement.deflection`). Returns δ (N, n) and the torques
+    there (N, n), to give a model as measured ones.
+    """
+    q = np.atleast_2d(np.asarray(q, float))
+    c = np.asarray(compliance, float)
+    d = np.zeros_like(q)
+    for _ in range(100):
+        bent = c * np.atleast_2d(robot.gravity_torques(q + d, payloads))
+        if np.max(np.abs(bent - d)) < 1e-14:
+            d = bent
+            break
+        d = bent
+    return d, np.atleast_2d(robot.gravity_torques(q + d, payloads))

@@ -233,11 +233,7 @@ def _efforts(raw: Any, joints: dict[str, str]) -> dict[str, CovariateColumn]:
         if str(joint) not in joints:
             raise ConfigError(key, f'{joint!r} is not in mapping.joints {list(joints)}: an '
                               'effort belongs to a joint of the table')
-        if isinstance(spec, str):
-            spec = {'column': spec}
-        if not isinstance(spec, dict) or set(spec) - {'column', 'unit'} \
-                or not isinstance(spec.get('column'), str) or not spec['column']:
-            raise ConfigError(key, fix)
+        spec = _column_spec(spec, key, fix)
         unit = spec.get('unit', 'N m')
         if unit not in EFFORT_UNITS:
             raise ConfigError(f'{key}.unit', f'{unit!r}: one of {list(EFFORT_UNITS)}')
@@ -275,6 +271,17 @@ def _joint_columns(raw: dict) -> tuple[dict[str, str], dict[str, str]]:
     return columns, units
 
 
+def _column_spec(spec: Any, key: str, fix: str) -> dict[str, Any]:
+    """A column entry: a column name, or ``{column: ..., unit: ...}``; ConfigError naming
+    ``key`` with ``fix`` otherwise."""
+    if isinstance(spec, str):
+        spec = {'column': spec}
+    if not isinstance(spec, dict) or set(spec) - {'column', 'unit'} \
+            or not isinstance(spec.get('column'), str) or not spec['column']:
+        raise ConfigError(key, fix)
+    return spec
+
+
 def _covariates(raw: Any) -> dict[str, CovariateColumn]:
     """The ``covariates:`` key: {covariate name: column, or {column: ..., unit: ...}}."""
     if raw is None:
@@ -287,11 +294,7 @@ def _covariates(raw: Any) -> dict[str, CovariateColumn]:
     for name, spec in raw.items():
         key = f'mapping.covariates.{name}'
         check_covariate_name(name, 'mapping.covariates')
-        if isinstance(spec, str):
-            spec = {'column': spec}
-        if not isinstance(spec, dict) or set(spec) - {'column', 'unit'} \
-                or not isinstance(spec.get('column'), str) or not spec['column']:
-            raise ConfigError(key, fix)
+        spec = _column_spec(spec, key, fix)
         unit = spec.get('unit')
         kind = next((units for prefix, units in COVARIATE_UNITS.items()
                      if name.startswith(prefix)), None)
