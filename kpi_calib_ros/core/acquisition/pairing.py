@@ -170,6 +170,9 @@ class Pairer:
             raise ValueError('derived joints must not be among joint_names, and derived_tol '
                              'must be positive')
         self.derived_tol = float(derived_tol)
+        # Mimic mismatches logged: the first only (a swapped column mismatches at every joint
+        # state, a thousand lines for one campaign); the rejections count them all.
+        self._mismatches_logged = 0
         self._index_cache: OrderedDict[tuple[str, ...], tuple[np.ndarray, np.ndarray,
                                                               tuple[str, ...]]] = OrderedDict()
         self.reset()
@@ -267,8 +270,12 @@ class Pairer:
             expected = float(relation[0] @ q + relation[1])
             value = float(sample.positions[i])
             if not abs(value - expected) <= self.derived_tol:
-                _log.warning('joint state at %d ns: mimic joint %s reads %.6g, its master '
-                             'gives %.6g', sample.stamp_ns, name, value, expected)
+                if not self._mismatches_logged:
+                    _log.warning('joint state at %d ns: mimic joint %s reads %.6g, its master '
+                                 'gives %.6g (further mismatches are counted with the '
+                                 'rejected points, not logged)', sample.stamp_ns, name, value,
+                                 expected)
+                self._mismatches_logged += 1
                 return (f"mimic joint '{name}' reads {value:.6g}, the URDF's relation to its "
                         f'master gives {expected:.6g} (tolerance {self.derived_tol:g}); the '
                         'stage did not follow its drive, or the URDF is not this robot')
