@@ -161,7 +161,7 @@ def calibration_document(cm: CellModel, result: CalibrationResult,
     values = dict(zip(result.names, result.values))
     # the cell's bound (identification.bounds) widens the stiffness range it warns outside
     bounds = cm.cell.identification.tolerances.bounds
-    softest = {f'{e.name.replace(":", ".")}.c': effect_bounds(e, bounds)[0]
+    softest = {e.parameter_names[0]: effect_bounds(e, bounds)[0]
                for e in cm.model.effects if isinstance(e, BoundEffect)
                and e.kind.name == 'joint_compliance'}
     notes = compliance_warnings(estimated, [values[n] for n in estimated],

@@ -35,10 +35,10 @@ from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA, linearized_fit
 from kpi_calib_ros.core.measurement import weighting
 from kpi_calib_ros.core.measurement.data import Measurements
+from kpi_calib_ros.core.measurement.pose import pose_matrix
 from kpi_calib_ros.core.measurement.recordings import to_first_frame
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.core.measurement.weighting import row_torques
-from kpi_calib_ros.core.model.kinematics import rpy_matrix
 from kpi_calib_ros.core.model.parameters import BASE_COMPONENTS
 from kpi_calib_ros.io.learned_residual_file import (
     StoredResidual,
@@ -319,13 +319,8 @@ def carried_residual(cm: CellModel, stored: StoredResidual, p: np.ndarray,
     station, 23.5 mm turned by 1 rad), so that "its uncertainty holds" could not fail.
     """
     base = cm.model.params.indices([f'base.{c}' for c in BASE_COMPONENTS])
-
-    def pose(values: np.ndarray) -> np.ndarray:
-        out = np.eye(4)
-        out[:3, :3] = np.array(rpy_matrix(*values[base][3:]), float)
-        out[:3, 3] = values[base][:3]
-        return out
-    move = pose(np.asarray(p, float)) @ np.linalg.inv(pose(np.asarray(registered, float)))
+    move = (pose_matrix(np.asarray(p, float)[base])
+            @ np.linalg.inv(pose_matrix(np.asarray(registered, float)[base])))
     values = np.asarray(registered, float).copy()
     values[base] = np.asarray(p, float)[base]
     eta = np.atleast_2d(np.asarray(data.eta, float)) @ move[:3, :3].T + move[:3, 3]

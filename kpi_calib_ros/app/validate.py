@@ -49,7 +49,7 @@ from kpi_calib_ros.core.estimation.residuals import (
     noise_verdict,
 )
 from kpi_calib_ros.core.measurement.data import Measurements
-from kpi_calib_ros.core.measurement.payload import PAYLOAD_MASS, outside_payloads
+from kpi_calib_ros.core.measurement.payload import outside_payloads, row_masses
 from kpi_calib_ros.core.measurement.pose import orientation_names
 from kpi_calib_ros.core.measurement.recordings import (
     Recording,
@@ -342,15 +342,13 @@ def against_nominal_as_used(cm: CellModel, doc: dict[str, Any], data: Measuremen
     if register is not None or v.registration is not None or not stored \
             or any(n not in cm.model.params.names for n in stored):
         return None
+    index = cm.model.params.indices(list(stored))
     p = np.array(cm.model.params.nominal, dtype=float)
-    p[cm.model.params.indices(list(stored))] = [float(x) for x in stored.values()]
+    p[index] = [float(x) for x in stored.values()]
     scale = calibration_noise_scale(doc)
-    n = cm.robot.n_joints
-    try:
-        nominal = validate(cm.model, p, np.zeros(0, dtype=int), np.zeros((0, 0)),
-                           np.array(doc['noise_sigma_m'], float) * np.sqrt(scale), data,
-                           np.full(n, -np.inf), np.full(n, np.inf), noise_scale=scale)
-    except (DataError, np.linalg.LinAlgError):
+    nominal = nominal_validation(cm.model, p, index, np.array(
+        doc['noise_sigma_m'], float) * np.sqrt(scale), data, scale, refit=False)
+    if nominal is None:
         return None
     versus = against_nominal_on_new(v, nominal, point_rows(cm.model, data),
                                     pose_index(data.q)[1])
@@ -521,9 +519,7 @@ def payloads_outside(cm: CellModel, doc: dict[str, Any], data: Measurements
     measured = doc.get('training_payload_kg')
     if not measured or not len(data):
         return None
-    stated = (data.covariates or {}).get(PAYLOAD_MASS)
-    mass = (np.full(len(data), cm.robot.payload.mass) if stated is None
-            else np.asarray(stated, float).reshape(-1))
+    mass = row_masses(data.covariates, len(data), cm.robot.payload.mass)
     outside = [outside_payloads(float(m), (float(measured[0]), float(measured[1])))
                for m in mass]
     if not any(outside):

@@ -13,7 +13,7 @@ import zoneinfo
 from dataclasses import dataclass, field
 from datetime import tzinfo
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -221,23 +221,19 @@ EFFORT_UNITS = {'N m': 1.0, 'N': 1.0, 'kN m': 1e3, 'mN m': 1e-3, 'kN': 1e3}
 def _efforts(raw: Any, joints: dict[str, str]) -> dict[str, CovariateColumn]:
     """The ``efforts:`` key: {joint: column, or {column: ..., unit: ...}}, joints of the
     mapping's ``joints``."""
-    if raw is None:
-        return {}
-    fix = ('{joint: column} or {joint: {column: ..., unit: N m}}, one entry per joint of '
-           'mapping.joints whose torque the table records')
-    if not isinstance(raw, dict) or not raw:
-        raise ConfigError('mapping.efforts', fix)
-    out = {}
-    for joint, spec in raw.items():
-        key = f'mapping.efforts.{joint}'
+    def joint_of_the_table(joint: Any, key: str) -> None:
         if str(joint) not in joints:
             raise ConfigError(key, f'{joint!r} is not in mapping.joints {list(joints)}: an '
                               'effort belongs to a joint of the table')
-        spec = _column_spec(spec, key, fix)
+    out = {}
+    for joint, key, spec in _column_entries(
+            raw, 'mapping.efforts', '{joint: column} or {joint: {column: ..., unit: N m}}, '
+            'one entry per joint of mapping.joints whose torque the table records',
+            joint_of_the_table):
         unit = spec.get('unit', 'N m')
         if unit not in EFFORT_UNITS:
             raise ConfigError(f'{key}.unit', f'{unit!r}: one of {list(EFFORT_UNITS)}')
-        out[str(joint)] = CovariateColumn(spec['column'], str(unit), EFFORT_UNITS[unit])
+        out[joint] = CovariateColumn(spec['column'], str(unit), EFFORT_UNITS[unit])
     return out
 
 
@@ -271,30 +267,36 @@ def _joint_columns(raw: dict) -> tuple[dict[str, str], dict[str, str]]:
     return columns, units
 
 
-def _column_spec(spec: Any, key: str, fix: str) -> dict[str, Any]:
-    """A column entry: a column name, or ``{column: ..., unit: ...}``; ConfigError naming
-    ``key`` with ``fix`` otherwise."""
-    if isinstance(spec, str):
-        spec = {'column': spec}
-    if not isinstance(spec, dict) or set(spec) - {'column', 'unit'} \
-            or not isinstance(spec.get('column'), str) or not spec['column']:
-        raise ConfigError(key, fix)
-    return spec
+def _column_entries(raw: Any, section: str, fix: str, check: Callable[[Any, str], Any]
+                    ) -> list[tuple[str, str, dict[str, Any]]]:
+    """The entries of a ``{name: column, or {column: ..., unit: ...}}`` section as
+    (name, its key, {column, unit}); [] when the section is absent. ``check(name, key)``
+    refuses a name first; a section or an entry of another shape is refused naming it, with
+    ``fix``."""
+    if raw is None:
+        return []
+    if not isinstance(raw, dict) or not raw:
+        raise ConfigError(section, fix)
+    out = []
+    for name, spec in raw.items():
+        key = f'{section}.{name}'
+        check(name, key)
+        if isinstance(spec, str):
+            spec = {'column': spec}
+        if not isinstance(spec, dict) or set(spec) - {'column', 'unit'} \
+                or not isinstance(spec.get('column'), str) or not spec['column']:
+            raise ConfigError(key, fix)
+        out.append((str(name), key, spec))
+    return out
 
 
 def _covariates(raw: Any) -> dict[str, CovariateColumn]:
     """The ``covariates:`` key: {covariate name: column, or {column: ..., unit: ...}}."""
-    if raw is None:
-        return {}
-    fix = ('{covariate name: column} or {covariate name: {column: ..., unit: ...}}, e.g. '
-           '{tilt.column.x: {column: incl_x, unit: mrad}}')
-    if not isinstance(raw, dict) or not raw:
-        raise ConfigError('mapping.covariates', fix)
     out = {}
-    for name, spec in raw.items():
-        key = f'mapping.covariates.{name}'
-        check_covariate_name(name, 'mapping.covariates')
-        spec = _column_spec(spec, key, fix)
+    for name, key, spec in _column_entries(
+            raw, 'mapping.covariates', '{covariate name: column} or {covariate name: '
+            '{column: ..., unit: ...}}, e.g. {tilt.column.x: {column: incl_x, unit: mrad}}',
+            lambda name, _: check_covariate_name(name, 'mapping.covariates')):
         unit = spec.get('unit')
         kind = next((units for prefix, units in COVARIATE_UNITS.items()
                      if name.startswith(prefix)), None)

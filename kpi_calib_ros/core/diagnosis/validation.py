@@ -559,11 +559,12 @@ def against_nominal_on_new(calibration: Validation, nominal: Validation,
 
 def nominal_validation(model: MeasurementModel, placed: np.ndarray, registered: np.ndarray,
                        sigma: np.ndarray, data: Measurements,
-                       noise_scale: float = 1.0) -> Validation | None:
+                       noise_scale: float = 1.0, refit: bool = True) -> Validation | None:
     """Return the nominal robot's validation on ``data``, its placement re-registered.
 
     Every parameter at its nominal (URDF) value but the placement ``registered``
-    (positions), started from the calibration's ``placed`` and re-fitted on ``data``;
+    (positions), started from ``placed`` and re-fitted on ``data`` (``refit`` False: held
+    as ``placed`` gives it, the nominal robot as a user would place it without the points);
     ``sigma`` and ``noise_scale``: the calibration's (its rows weighed as the calibration's
     are, so that the two placements are fitted alike: a tracked body's rotation rows
     against its points). None when the new points cannot place it (fewer than 3, or a
@@ -575,7 +576,7 @@ def nominal_validation(model: MeasurementModel, placed: np.ndarray, registered: 
     n = model.robot.n_joints
     try:
         return validate(model, p, np.zeros(0, dtype=int), np.zeros((0, 0)), sigma, data,
-                        np.full(n, -np.inf), np.full(n, np.inf), registered=registered,
-                        noise_scale=noise_scale)
+                        np.full(n, -np.inf), np.full(n, np.inf),
+                        registered=registered if refit else None, noise_scale=noise_scale)
     except (DataError, np.linalg.LinAlgError):
         return None

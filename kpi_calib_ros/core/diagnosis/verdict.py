@@ -91,13 +91,13 @@ def diagnose(model: MeasurementModel, data: Measurements, result: CalibrationRes
     implausible_only = best is None and any(c.significant for c in ranked)
     adequate = report.adequate and best is None and not implausible_only
     chi = _chi(report)
+    beyond = beyond_bounds(ranked, best)
     if adequate:
         verdict = (f'model adequate: {chi}; no candidate effect is significant at the '
                    f'family-wise level {alpha:g}.')
     elif best is not None:
         verdict = (f'model not adequate: {chi}. {_most_likely(best, cv)}.'
-                   + ('' if beyond_bounds(ranked, best) else
-                      f' Add it with --effects {best.spec}.'))
+                   + ('' if beyond else f' Add it with --effects {best.spec}.'))
     elif implausible_only:
         verdict = (f'model not adequate: {chi}; the significant candidates fit physically '
                    'implausible values (see their warnings): the misfit is something else '
@@ -105,7 +105,6 @@ def diagnose(model: MeasurementModel, data: Measurements, result: CalibrationRes
     else:
         verdict = (f'model not adequate: {chi}, but no candidate effect explains the misfit; '
                    'check the outliers, the stated σ and the plots against time and distance.')
-    beyond = beyond_bounds(ranked, best)
     verdict += beyond
     if not report.adequate and model.joint_sigma is None and best is None:
         # Only where no effect explains the misfit: beside a significant compliance the

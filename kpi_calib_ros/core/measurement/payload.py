@@ -22,7 +22,7 @@ from kpi_calib_ros.core.model.robot import Payload, RobotModel
 
 __all__ = ['PAYLOAD_MASS', 'PAYLOAD_COM', 'PAYLOAD_MASS_LIMIT_KG', 'PAYLOAD_COM_LIMIT_M',
            'payload_name_error', 'row_payloads', 'payload_torques', 'payload_range',
-           'outside_payloads', 'gravity_gradient', 'gravity_input', 'GRADIENT_STEP']
+           'outside_payloads', 'row_masses', 'gravity_gradient', 'gravity_input', 'GRADIENT_STEP']
 
 PAYLOAD_MASS = 'payload.mass'
 PAYLOAD_COM = ('payload.com.x', 'payload.com.y', 'payload.com.z')
@@ -147,16 +147,27 @@ def gravity_gradient(robot: RobotModel, q: np.ndarray,
     return out
 
 
-def payload_range(covariates: Mapping[str, np.ndarray] | None, n: int,
-                  default_mass: float) -> tuple[float, float]:
-    """Return the lightest and heaviest payload (kg) of ``n`` measured rows.
+def row_masses(covariates: Mapping[str, np.ndarray] | None, n: int,
+               default_mass: float) -> np.ndarray:
+    """Return the payload mass (kg) of each of ``n`` rows, (n,).
 
     Each row's ``payload.mass`` where the covariates carry it, else ``default_mass`` (the
     cell's).
     """
-    if n == 0 or not covariates or PAYLOAD_MASS not in covariates:
+    if not covariates or PAYLOAD_MASS not in covariates:
+        return np.full(n, float(default_mass))
+    return np.asarray(covariates[PAYLOAD_MASS], float).reshape(-1)
+
+
+def payload_range(covariates: Mapping[str, np.ndarray] | None, n: int,
+                  default_mass: float) -> tuple[float, float]:
+    """Return the lightest and heaviest payload (kg) of ``n`` measured rows.
+
+    Each row's mass as :func:`row_masses` gives it; ``default_mass`` for no row.
+    """
+    mass = row_masses(covariates, n, default_mass)
+    if not len(mass):
         return float(default_mass), float(default_mass)
-    mass = np.asarray(covariates[PAYLOAD_MASS], float).reshape(-1)
     return float(mass.min()), float(mass.max())
 
 
