@@ -14,6 +14,7 @@ from kpi_calib_ros.app.identify import identify_cell
 from kpi_calib_ros.app.measurements import measurements_from_samples
 from kpi_calib_ros.app.simulate import simulate_campaign
 from kpi_calib_ros.cli import main
+from kpi_calib_ros.core.acquisition.streams import synthesize_streams
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.io.bag import read_bag
 from kpi_calib_ros.io.cell import DEFAULT_CELL, load_cell
@@ -202,3 +203,24 @@ def test_validate_compares_urdf_values_with_the_training_poses_of_a_coupled_robo
     out = yaml.safe_load((tmp_path / 'val' / 'validation.json').read_text())
     assert out['outside_training_range'] == 0
     assert out['repeated_from_training'] == out['measurements'] == 30
+
+
+def test_a_reading_beyond_the_limits_is_judged_on_the_urdf_joint_values(tmp_path):
+    """The joint-limit check of a recorded pose is on the URDF joint values the coupling
+    gives: a FANUC-like J3 reading (joint_3 − joint_2) far from joint_3's own range is a
+    pose, and a URDF joint beyond its limit is a rejected row that names the joint, the
+    value and its range."""
+    coupled = build_cell_model(load_cell(_cell_copy(tmp_path, joint_coupling=FANUC,
+                                                    working_poses_in='urdf')))
+    robot = coupled.robot
+    q = np.repeat(coupled.q_work[:1], 3, axis=0)
+    q[0, 1], q[0, 2] = robot.upper[1] - 0.05, robot.lower[2] + 0.05  # J3 below joint_3's range
+    q[1, 2] = robot.lower[2] - 0.3
+    joints, points = synthesize_streams(coupled.joint_coupling.to_controller(q),
+                                        coupled.joint_names, np.zeros((3, 3)),
+                                        coupled.cell.tracker_frame)
+    assert coupled.joint_coupling.to_controller(q)[0, 2] < robot.lower[2] - 0.5
+    data, pairing = measurements_from_samples(coupled, joints, points)
+    assert len(data) == 2 and pairing.rejections == {'outside_joint_limits': 1}
+    assert pairing.rejected[0].detail.startswith(
+        f'joint joint_3 at {robot.lower[2] - 0.3:.6g} rad is outside its URDF limits')

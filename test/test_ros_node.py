@@ -596,3 +596,26 @@ def test_campaign_parameters_are_refused_while_a_sequential_campaign_runs(tmp_pa
             if n is not None:
                 n.destroy_node()
         rclpy.shutdown(context=context)
+
+
+def test_a_pose_read_beyond_the_joint_limits_is_rejected_and_named(in_process):
+    """A still pose whose reading lies beyond a joint's URDF limits (a wrong joint order,
+    unit or zero) is a rejected row, counted and named, as the TCP query refuses it; the
+    node accepted such rows silently and fitted them, stating training joint ranges beyond
+    the robot's."""
+    node = in_process
+    cm = node._cm
+    q = np.repeat(cm.q_work[:1], 3, axis=0)
+    q[1, 1] = cm.robot.upper[1] + 0.2  # joint_2 0.2 rad beyond its upper limit
+    q[2, 2] = cm.robot.lower[2] - 0.02  # joint_3 just beyond, beyond the 0.01 rad tolerance
+    joints, points = synthesize_streams(cm.joint_coupling.to_controller(q), cm.joint_names,
+                                        np.zeros((3, 3)), cm.cell.tracker_frame)
+    stream = sorted([(s.stamp_ns, 0, s) for s in joints] + [(p.stamp_ns, 1, p) for p in points],
+                    key=lambda item: item[:2])
+    for _, kind, sample in stream:
+        if kind == 0:
+            node._on_joint_state(cv.joint_state_msg(sample), {})
+        else:
+            node._on_point(cv.point_stamped_msg(sample), {})
+    counts = node.store.counts()
+    assert counts['accepted'] == 1 and counts['rejected.outside_joint_limits'] == 2

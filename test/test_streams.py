@@ -18,6 +18,11 @@ NOISE = 1e-5
 DERIVED = {'stage': (np.r_[0.5, np.zeros(5)], -0.1)}
 
 
+def within_limits(q):
+    """The robot's check of a still pose: joint_1 within ±3 rad."""
+    return f'joint_1 at {q[0]:.3g} rad is outside [-3, 3]' if abs(q[0]) > 3.0 else ''
+
+
 def make_cell(seed: int = 7, noise: float = NOISE):
     rng = np.random.default_rng(seed)
     q = rng.uniform(-2.0, 2.0, (N_POSES, len(NAMES)))
@@ -178,6 +183,13 @@ def bad_input_cases():
                                    np.r_[s.velocities, 0.0])
         return j, p
 
+    def beyond_limits(j, p):
+        # Around pose 4 joint_1 reads 5 rad more: a wrong zero, beyond its limits.
+        for i, s in enumerate(j):
+            if abs(s.stamp_ns - p[4].stamp_ns) <= 200_000_000:
+                j[i] = replace(s, positions=np.r_[s.positions[0] + 5.0, s.positions[1:]])
+        return j, p
+
     return [('nan_point', nan_point, 'non_finite_point', 1),
             ('wrong_frame', wrong_frame, 'wrong_frame', 1),
             ('during_motion', during_motion, 'robot_moving', 0),
@@ -188,7 +200,8 @@ def bad_input_cases():
             ('oversized', oversized, 'oversized_joint_state', 0),
             ('unknown_reflector', unknown_reflector, 'unknown_reflector', 0),
             ('invalid_orientation', invalid_orientation, 'invalid_orientation', 0),
-            ('mimic_mismatch', mimic_mismatch, 'mimic_mismatch', 1)]
+            ('mimic_mismatch', mimic_mismatch, 'mimic_mismatch', 1),
+            ('beyond_limits', beyond_limits, 'outside_joint_limits', 1)]
 
 
 @pytest.mark.parametrize('name, mutate, reason, lost', bad_input_cases(),
@@ -196,7 +209,8 @@ def bad_input_cases():
 def test_each_bad_input_is_rejected_with_its_reason(name, mutate, reason, lost):
     q, _, joints, points = make_cell()
     joints, points = mutate(list(joints), list(points))
-    result = pair_measurements(joints, points, NAMES, FRAME, derived=DERIVED)
+    result = pair_measurements(joints, points, NAMES, FRAME, derived=DERIVED,
+                               joint_check=within_limits)
     assert result.rejections == {reason: 1}
     assert [r.reason for r in result.rejected] == [reason] and result.rejected[0].detail
     assert len(result) == N_POSES - lost
@@ -213,9 +227,10 @@ def test_all_bad_inputs_together_are_all_counted():
     joints, points = list(joints), list(points)
     for _, mutate, _, _ in bad_input_cases():
         joints, points = mutate(joints, points)
-    result = pair_measurements(joints, points, NAMES, FRAME, derived=DERIVED)
+    result = pair_measurements(joints, points, NAMES, FRAME, derived=DERIVED,
+                               joint_check=within_limits)
     assert result.rejections == {reason: 1 for reason in REJECTION_REASONS}
-    assert len(result) == N_POSES - 4
+    assert len(result) == N_POSES - 5
 
 
 def test_velocity_alone_reveals_motion():

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -229,3 +230,38 @@ def _ordered(pose: WorkingPose, names: list[str], key: str) -> list[float]:
         raise ConfigError(key, f'joint names must be exactly {names}; missing {missing}, '
                           f'unknown {extra}')
     return [pose.joints[n] for n in names]
+
+
+# How far beyond its URDF limits a joint reading may be: encoder noise and a controller's
+# overshoot at a limit, not a pose the calibration has any knowledge of (a measurement
+# beyond is refused as `outside_joint_limits`, a TCP query unanswered).
+LIMIT_TOLERANCE_RAD = 0.01
+LIMIT_TOLERANCE_M = 0.001
+# A continuous joint has no limit; beyond 16 turns a value is a unit or driver fault.
+CONTINUOUS_MAX_RAD = 32 * np.pi
+
+
+def joint_range_problem(cm: CellModel, q: np.ndarray) -> str:
+    """Why the URDF joint values ``q`` (n,) cannot be a pose of ``cm``'s robot ('' when they
+    can): the first joint not finite, beyond its limits by more than the tolerance, or a
+    continuous joint beyond ±CONTINUOUS_MAX_RAD, named with its value and range."""
+    for joint, value in zip(cm.robot.joints, np.asarray(q, float).reshape(-1)):
+        if not np.isfinite(value):
+            return f'joint {joint.name} position {value} is not finite'
+        if joint.kind == 'continuous':
+            if abs(value) > CONTINUOUS_MAX_RAD:
+                return (f'joint {joint.name} (continuous) at {value:.6g} rad is beyond '
+                        f'±{CONTINUOUS_MAX_RAD:.4g} rad (16 turns): a unit or driver fault')
+            continue
+        tol = LIMIT_TOLERANCE_M if joint.kind == 'prismatic' else LIMIT_TOLERANCE_RAD
+        unit = 'm' if joint.kind == 'prismatic' else 'rad'
+        if not joint.lower - tol <= value <= joint.upper + tol:
+            return (f'joint {joint.name} at {value:.6g} {unit} is outside its URDF limits '
+                    f'[{joint.lower:.6g}, {joint.upper:.6g}] {unit} (tolerance {tol:g} {unit})')
+    return ''
+
+
+def reading_check(cm: CellModel) -> Callable[[np.ndarray], str]:
+    """Why a still pose's controller readings (m,) cannot be a pose of ``cm``'s robot ('' when
+    they can): :func:`joint_range_problem` of their URDF joint values, for the pairing."""
+    return lambda q: joint_range_problem(cm, cm.joint_coupling.to_urdf(q))

@@ -17,7 +17,7 @@ from typing import Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from kpi_calib_ros.app.cell_model import CellModel, build_cell_model
+from kpi_calib_ros.app.cell_model import CellModel, build_cell_model, reading_check
 from kpi_calib_ros.core.acquisition.outcomes import PairingResult
 from kpi_calib_ros.core.acquisition.pairing import pair_measurements
 from kpi_calib_ros.core.acquisition.reflector_frames import split_frame
@@ -70,6 +70,7 @@ def measurements_from_samples(cm: CellModel, joint_samples: Iterable[JointSample
     joint_samples = list(joint_samples)
     pairer_options.setdefault('reflectors', reflector_names(cm))
     pairer_options.setdefault('derived', cm.joint_coupling.derived())
+    pairer_options.setdefault('joint_check', reading_check(cm))
     pairing = pair_measurements(joint_samples, point_samples, cm.joint_names,
                                 cm.cell.tracker_frame, **pairer_options)
     if len(pairing) == 0 and pairing.rejections.get('missing_joints'):

@@ -32,7 +32,7 @@ import threading
 import time
 from collections import Counter, deque
 from pathlib import Path
-from typing import Mapping, Sequence
+from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -252,15 +252,17 @@ class MeasurementStore:
     # ------------------------------------------------------------------ pairing
     def set_chain(self, joint_names: list[str], tracker_frame: str,
                   reflectors: Sequence[str] = ('',),
-                  derived: Mapping[str, tuple[np.ndarray, float]] | None = None
+                  derived: Mapping[str, tuple[np.ndarray, float]] | None = None,
+                  joint_check: Callable[[np.ndarray], str] | None = None
                   ) -> list[Decision]:
-        """(Re)start pairing for a robot's joints (and the cell's reflector names and the
-        mimic joints' relations, see :mod:`kpi_calib_ros.core.acquisition.pairing`); pairs
-        the samples held until now."""
+        """(Re)start pairing for a robot's joints (and the cell's reflector names, the mimic
+        joints' relations and the check of a pose's readings against the joint limits, see
+        :mod:`kpi_calib_ros.core.acquisition.pairing`); pairs the samples held until now."""
         with self.lock:
             decisions = self._handle(self.pairer.flush()) if self.pairer else []
             pairer = self.pairer = Pairer(joint_names, tracker_frame,
-                                          reflectors=tuple(reflectors), derived=derived)
+                                          reflectors=tuple(reflectors), derived=derived,
+                                          joint_check=joint_check)
             self._chain = tuple(joint_names)
             early, self._early = list(self._early), deque(maxlen=self._early.maxlen)
             for sample in early:  # all of them before any timeout is judged

@@ -56,7 +56,7 @@ from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import MarkerArray
 
-from kpi_calib_ros.app.cell_model import CellModel, build_cell_model
+from kpi_calib_ros.app.cell_model import CellModel, build_cell_model, reading_check
 from kpi_calib_ros.core.acquisition.outcomes import Decision, Rejection
 from kpi_calib_ros.core.collision.capsules import Capsule
 from kpi_calib_ros.core.errors import ConfigError, DataError, KpiCalibError
@@ -301,7 +301,7 @@ class CalibrationNode(CalibrationJobs, CalibrationRestore, SequentialCampaignJob
         self._cm, self._urdf, self._model_error = cm, urdf_xml, ''
         self._report(self.store.set_chain(cm.joint_names, cm.cell.tracker_frame,
                                           cm.cell.reflector_names or ('',),
-                                          cm.joint_coupling.derived()))
+                                          cm.joint_coupling.derived(), reading_check(cm)))
         self._run.auto_pending = self._auto_wanted()
         self.get_logger().info(f'robot model ready: joints {cm.joint_names}, tracker frame '
                                f"'{cm.cell.tracker_frame}', working poses "

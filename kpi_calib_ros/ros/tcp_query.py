@@ -41,7 +41,13 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
-from kpi_calib_ros.app.cell_model import CellModel
+from kpi_calib_ros.app.cell_model import (
+    CONTINUOUS_MAX_RAD,
+    LIMIT_TOLERANCE_M,
+    LIMIT_TOLERANCE_RAD,
+    CellModel,
+    joint_range_problem,
+)
 from kpi_calib_ros.app.learned_residual import predict_stored, predict_tcp, stored_cell_model
 from kpi_calib_ros.core.errors import KpiCalibError
 from kpi_calib_ros.io.learned_residual_file import StoredResidual, read_residual
@@ -51,34 +57,6 @@ from kpi_calib_ros.ros.conversions import tcp_pose_msgs
 
 QUERY_DEPTH = 10
 LOG_THROTTLE_S = 5.0
-# How far beyond its URDF limits a queried joint may be: encoder noise and a controller's
-# overshoot at a limit, not a pose the calibration has any knowledge of.
-LIMIT_TOLERANCE_RAD = 0.01
-LIMIT_TOLERANCE_M = 0.001
-# A continuous joint has no limit; beyond 16 turns a value is a unit or driver fault.
-CONTINUOUS_MAX_RAD = 32 * np.pi
-
-
-def joint_range_problem(cm: CellModel, q: np.ndarray) -> str:
-    """Why the URDF joint values ``q`` (n,) cannot be a pose of ``cm``'s robot ('' when they
-    can): the first joint not finite, beyond its limits by more than the tolerance, or a
-    continuous joint beyond ±CONTINUOUS_MAX_RAD, named with its value and range."""
-    for joint, value in zip(cm.robot.joints, np.asarray(q, float).reshape(-1)):
-        if not np.isfinite(value):
-            return f'joint {joint.name} position {value} is not finite'
-        if joint.kind == 'continuous':
-            if abs(value) > CONTINUOUS_MAX_RAD:
-                return (f'joint {joint.name} (continuous) at {value:.6g} rad is beyond '
-                        f'±{CONTINUOUS_MAX_RAD:.4g} rad (16 turns): a unit or driver fault')
-            continue
-        tol = LIMIT_TOLERANCE_M if joint.kind == 'prismatic' else LIMIT_TOLERANCE_RAD
-        unit = 'm' if joint.kind == 'prismatic' else 'rad'
-        if not joint.lower - tol <= value <= joint.upper + tol:
-            return (f'joint {joint.name} at {value:.6g} {unit} is outside its URDF limits '
-                    f'[{joint.lower:.6g}, {joint.upper:.6g}] {unit} (tolerance {tol:g} {unit})')
-    return ''
-
-
 class Fit(Protocol):
     """A calibration's parameters as the query needs them: every parameter's value
     (n_p,), the identified ones' names and their covariance (k, k); a

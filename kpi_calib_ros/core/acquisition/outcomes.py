@@ -26,7 +26,7 @@ __all__ = ['REJECTION_REASONS', 'Rejection', 'PairedMeasurement', 'Decision', 'P
 REJECTION_REASONS = (
     'non_finite_point', 'wrong_frame', 'no_joint_state', 'robot_moving',
     'missing_joints', 'non_finite_joint_state', 'duplicate_stamp', 'oversized_joint_state',
-    'unknown_reflector', 'invalid_orientation', 'mimic_mismatch',
+    'unknown_reflector', 'invalid_orientation', 'mimic_mismatch', 'outside_joint_limits',
 )
 
 

@@ -119,6 +119,10 @@ class Pairer:
         value follows from ``joint_names``' (mimic joints: ``coefficients @ q + offset``).
         A joint state whose reading of one differs by more than ``derived_tol`` (rad or
         m) marks the points around it ``mimic_mismatch``; one without them is as good.
+    joint_check : callable, optional
+        ``q (n,) -> str``: why the mean readings of a still pose cannot be a pose of the
+        robot ('' when they can; beyond its joint limits); a point paired with such a pose
+        is rejected as ``outside_joint_limits`` with that reason.
     """
 
     def __init__(
@@ -135,6 +139,7 @@ class Pairer:
         reflectors: Sequence[str] = ('',),
         derived: Mapping[str, tuple[np.ndarray, float]] | None = None,
         derived_tol: float = MIMIC_TOL,
+        joint_check: Callable[[np.ndarray], str] | None = None,
     ) -> None:
         names = tuple(joint_names)
         if not names or len(set(names)) != len(names) or not all(
@@ -170,6 +175,9 @@ class Pairer:
             raise ValueError('derived joints must not be among joint_names, and derived_tol '
                              'must be positive')
         self.derived_tol = float(derived_tol)
+        # Why a still pose's readings (joint_names order) cannot be a pose of the robot, ''
+        # when they can: beyond the URDF limits is a wrong joint order or unit, not a pose.
+        self.joint_check = joint_check
         # Mimic mismatches logged: the first only (a swapped column mismatches at every joint
         # state, a thousand lines for one campaign); the rejections count them all.
         self._mismatches_logged = 0
@@ -467,6 +475,11 @@ class Pairer:
                          f"'{self.joint_names[j]}' spread {spread[j]:.3g} rad "
                          f'(tol {self.still_tol_rad:g}), |velocity| up to {speed[j]:.3g} rad/s '
                          f'(tol {self.still_vel_tol:g}) within ±{w} ns')
+            return
+        problem = self.joint_check(q.mean(axis=0)) if self.joint_check is not None else ''
+        if problem:
+            self._reject(t, 'outside_joint_limits', problem + '; a reading beyond the limits '
+                         'is a wrong joint order, unit or zero, not a pose the robot can take')
             return
         self._decided.append(PairedMeasurement(
             stamp_ns=t, joint_names=self.joint_names, q=frozen_array(
