@@ -15,6 +15,7 @@ from kpi_calib_ros.app.calibration_document import (
     recordings_section,
     robust_summary,
 )
+from kpi_calib_ros.app.diagnose import diagnose_cell
 from kpi_calib_ros.app.identify import calibrate_cell
 from kpi_calib_ros.app.measurements import with_recordings
 from kpi_calib_ros.app.placement import recordings_start
@@ -27,6 +28,7 @@ from kpi_calib_ros.core.simulation import (
     simulate_measurements,
     true_parameters,
 )
+from kpi_calib_ros.io.report import diagnosis_text
 
 SIGMA = 2e-5
 # Set-ups B and C: the robot moved metres and turned tens of degrees against the tracker,
@@ -166,6 +168,11 @@ def test_a_remount_left_undeclared_is_named_and_the_calibration_not_valid(cm):
     assert np.linalg.norm(shift - REMOUNT) < 0.05 * np.linalg.norm(REMOUNT)
     assert not cal.valid
     assert any('--remounted c' in p for p in cal.problems)
+    # diagnose says it first, before the robot: it named the joint readings and a link
+    # bending as the cause of the misfit the remount made, and never the probe
+    cd = diagnose_cell(placed, data, model='geometric', add_best=False)
+    assert cd.set_up == (test.text(),)
+    assert diagnosis_text(cd).startswith('WARNING: the recordings disagree on the probe')
 
 
 def test_contributions_say_what_each_recording_adds(cm):

@@ -63,6 +63,12 @@ BAD = {
     # the same rows twice would halve every std the fit states
     'one bag twice': ([{'bag': 'station_a.mcap', 'name': 'x'},
                        {'bag': './station_a.mcap', 'name': 'y'}], 'recordings'),
+    'split not increasing': ([{'bag': 'station_a.mcap', 'split_at': [60.0, 30.0]}],
+                             'recordings[0].split_at'),
+    'split not positive': ([{'bag': 'station_a.mcap', 'split_at': 0}],
+                           'recordings[0].split_at'),
+    'split not a number': ([{'bag': 'station_a.mcap', 'split_at': ['half']}],
+                           'recordings[0].split_at'),
     'a misspelled payload': ([{'bag': 'station_a.mcap', 'covariates': {'payload.mas': 5.0}}],
                              'recordings[0].covariates.payload.mas'),
     'a payload centre in mm': ([{'bag': 'station_a.mcap',

@@ -16,6 +16,7 @@ from kpi_calib_ros.app.cell_model import CellModel
 from kpi_calib_ros.core.acquisition.outcomes import PairingResult
 from kpi_calib_ros.core.diagnosis.effect_selection import RANGE_TOLERANCE
 from kpi_calib_ros.core.diagnosis.model_selection import ModelChoice, NominalComparison
+from kpi_calib_ros.core.diagnosis.placement_jump import PlacementJump, placement_jumps
 from kpi_calib_ros.core.diagnosis.remount import RemountTest
 from kpi_calib_ros.core.effects.gravity_compliance import compliance_warnings, mass_warning
 from kpi_calib_ros.core.effects.registry import BoundEffect, effect_bounds
@@ -27,7 +28,7 @@ from kpi_calib_ros.core.estimation.precision import ExpectedTcpError
 from kpi_calib_ros.core.estimation.prior import PLACEMENT_PREFIXES
 from kpi_calib_ros.core.estimation.registration import Registration
 from kpi_calib_ros.core.estimation.robust import LOSS_SCALE, ExcludedMeasurement, RobustResult
-from kpi_calib_ros.core.measurement.data import Measurements
+from kpi_calib_ros.core.measurement.data import Measurements, row_sigma
 from kpi_calib_ros.core.measurement.payload import outside_payloads
 from kpi_calib_ros.core.measurement.recordings import Recording, contributions, row_recording
 from kpi_calib_ros.core.measurement.weighting import point_rows
@@ -457,3 +458,30 @@ def recordings_text(section: Sequence[Mapping[str, Any]]) -> str:
 
 def _finite(x: float) -> float | None:
     return float(x) if np.isfinite(x) else None
+
+
+def recording_jumps(cm: CellModel, data: Measurements, cal: CellCalibration,
+                    names: Sequence[str]) -> list[PlacementJump]:
+    """The recordings (``names``, the first that of rows without a recording covariate) whose
+    placement changed while they were measured, judged on the calibration's kept rows
+    (:mod:`kpi_calib_ros.core.diagnosis.placement_jump`); [] without stamps."""
+    kept = data.subset(cal.robust.kept)
+    result = cal.result
+    if kept.stamps_ns is None or len(kept) != len(result.residuals):
+        return []
+    points = point_rows(kept.reflector, cm.model.n_reflectors)
+    rows = np.arange(len(kept)) if points is None else np.flatnonzero(points)
+    sigma = (result.point_sigma if result.point_sigma is not None
+             else row_sigma(result.sigma, None, len(kept)))
+    index = row_recording(kept, names)[rows]
+    residuals = np.asarray(result.residuals)[rows]
+    return placement_jumps(residuals, np.asarray(kept.eta)[rows] - residuals,
+                           np.asarray(sigma)[rows], np.asarray(kept.stamps_ns)[rows],
+                           [(name, np.flatnonzero(index == i)) for i, name in enumerate(names)])
+
+
+def recording_names(bags: str | Path | Sequence[RecordingSource]) -> list[str]:
+    """The recordings' names, the first included: one bag's file stem, or each source's."""
+    if isinstance(bags, (str, Path)):
+        return [Path(bags).stem]
+    return [s.recording.name for s in bags]

@@ -11,7 +11,11 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-from kpi_calib_ros.app.calibration_document import plausibility_gate
+from kpi_calib_ros.app.calibration_document import (
+    plausibility_gate,
+    recording_jumps,
+    recording_names,
+)
 from kpi_calib_ros.app.cell_model import CellModel
 from kpi_calib_ros.app.identify import (
     calibrate_cell,
@@ -58,8 +62,8 @@ def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
                   alpha: float = ADEQUACY_ALPHA, add_best: bool = True,
                   model: str | None = None,
                   progress: Callable[[str], None] | None = None,
-                  covariates: Mapping[str, tuple[np.ndarray, str]] | None = None
-                  ) -> CellDiagnosis:
+                  covariates: Mapping[str, tuple[np.ndarray, str]] | None = None,
+                  recording_names: Sequence[str] = ()) -> CellDiagnosis:
     """Calibrate ``cm`` on ``data``, diagnose it and, when an effect is significant,
     add the top one and compare before/after (full nonlinear refit). ``model`` (or the
     cell's ``identification.model``) sets the model level the effects are screened
@@ -69,7 +73,9 @@ def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
     (``kept``, ``excluded`` of the result); ``progress`` gets its exclusion rounds.
     The residuals are also analysed model-free (:func:`with_misfit_answer`), with the
     extra ``covariates`` (name -> ((M,) values of the given measurements, unit); default:
-    the temperatures ``data`` carries, :func:`recorded_covariates`)."""
+    the temperatures ``data`` carries, :func:`recorded_covariates`). What the recordings
+    (``recording_names``, the first included) say before the robot, a probe they disagree on
+    or a placement that changed while measured, is ``set_up``, as identify finds it."""
     if covariates is None:
         covariates = recorded_covariates(data)
     # The points identify keeps, with its model level (outliers that are faults excluded,
@@ -79,6 +85,9 @@ def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
     free = None if level == 'geometric' else level_free(cm.model.params, level,
                                                          len(cm.geometric))
     kept, excluded = cal.robust.kept, tuple(e.index for e in cal.robust.excluded)
+    names = list(recording_names) or ['first', *cm.model.recordings]
+    set_up = tuple(([cal.remount.text()] if cal.remount is not None and cal.remount.disagrees
+                    else []) + [j.text() for j in recording_jumps(cm, data, cal, names)])
     given, data = data, data.subset(kept)
     # Without effects auto added, identify's fit is the one on the kept points.
     result = cal.result if cal.cell is None or cal.cell is cm else \
@@ -97,7 +106,7 @@ def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
     if not add_best or diag.best is None or not est.all_estimable:
         return with_misfit_answer(CellDiagnosis(
             cm.model, data, result, diag, out_of_sample=oos, kept=kept, excluded=excluded,
-            expected=expected, estimability=est), covariates)
+            expected=expected, estimability=est, set_up=set_up), covariates)
     best = parse_effect_spec(diag.best.spec, cm.robot, temperatures=cm.model.joint_temperatures)
     richer = with_effects(cm, (best,))
     richer_free = None if free is None else level_free(richer.model.params, level,
@@ -137,7 +146,7 @@ def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
                                     richer_free or list(richer.model.params.names), prior)
     return with_misfit_answer(CellDiagnosis(
         cm.model, data, result, diag, best, richer.model, after, comparison, oos, after_oos,
-        kept, excluded, expected, estimability=est), covariates)
+        kept, excluded, expected, estimability=est, set_up=set_up), covariates)
 
 
 def readmitted(model: MeasurementModel, given: Measurements, kept: np.ndarray,
@@ -275,7 +284,8 @@ def named_remedy(diag: Diagnosis, comparison: ModelComparison | None = None
 
 def diagnose_and_report(cm: CellModel, data: Measurements, out_dir: str | Path, folds: int = 0,
                         alpha: float = ADEQUACY_ALPHA, model: str | None = None,
-                        progress: Callable[[str], None] | None = None
+                        progress: Callable[[str], None] | None = None,
+                        recording_names: Sequence[str] = ()
                         ) -> tuple[CellDiagnosis, ResidualChoice | None, str, Path]:
     """Diagnose ``data`` and write the report, the command line's and the node's alike.
 
@@ -294,7 +304,8 @@ def diagnose_and_report(cm: CellModel, data: Measurements, out_dir: str | Path, 
     report : Path
         The written ``report.md``.
     """
-    cd = diagnose_cell(cm, data, folds=folds, alpha=alpha, model=model, progress=progress)
+    cd = diagnose_cell(cm, data, folds=folds, alpha=alpha, model=model, progress=progress,
+                       recording_names=recording_names)
     choice, refused = None, ''
     if cd.tcp_estimable and not is_adequate(cd.result.p_value, alpha):
         # Beside the library's answer (or when it has none): would the learned residual
@@ -328,7 +339,8 @@ def run_diagnose(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
     rounds: list[str] = []
     cd, choice, refused, report = diagnose_and_report(cm, data, out_dir, folds=folds,
                                                       alpha=alpha, model=model,
-                                                      progress=rounds.append)
+                                                      progress=rounds.append,
+                                                      recording_names=recording_names(bag_path))
     print(diagnosis_text(cd), flush=True)
     for line in rounds:
         print_progress(line)

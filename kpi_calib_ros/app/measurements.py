@@ -429,6 +429,7 @@ def load_recordings(cell_path: str | Path, sources: Sequence[RecordingSource],
                             f'{exc}') from None
         print_rejections(pairing, f'recording {source.recording.name!r}: '
                          if len(sources) > 1 else '')
+        data = in_window(data, source)
         if len(data) == 0:
             raise DataError(f'recording {source.recording.name!r} ({source.bag}) gives no '
                             'paired measurement: check its topics and the cell\'s joint names')
@@ -450,6 +451,30 @@ def load_recordings(cell_path: str | Path, sources: Sequence[RecordingSource],
         raise ConfigError('recordings', f'{exc}') from None
     check_payload_limit(cm, data.covariates, 'recordings')
     return with_recordings(cm, recordings), data, merged_pairing(pairings)
+
+
+def in_window(data: Measurements, source: RecordingSource) -> Measurements:
+    """The rows of ``data`` (one bag's) in ``source.window``: s from its first row (a manifest's
+    ``split_at``); all of them without one.
+
+    Raises
+    ------
+    DataError
+        A window without stamps to place it, or with no row (named with the times).
+    """
+    lo, hi = source.window
+    if lo is None and hi is None:
+        return data
+    if data.stamps_ns is None:
+        raise DataError(f'recording {source.recording.name!r} ({source.bag}): split_at needs '
+                        'the rows\' stamps, and they have none')
+    t = (np.asarray(data.stamps_ns, np.int64) - int(np.min(data.stamps_ns))) * 1e-9
+    keep = (t >= (-np.inf if lo is None else lo)) & (t < (np.inf if hi is None else hi))
+    if not keep.any():
+        raise DataError(f'recording {source.recording.name!r} ({source.bag}): no measurement '
+                        f'between {lo or 0:g} s and {"the end" if hi is None else f"{hi:g} s"} '
+                        f'of the bag (its rows span {t.max():.1f} s): check split_at')
+    return data.subset(keep)
 
 
 def payload_limit(cm: CellModel) -> tuple[float, str] | None:

@@ -7,8 +7,13 @@ A manifest (``--recordings manifest.yaml``) lists the recordings, each a mapping
         name: station_a              # default: the bag's file stem
         reflector_remounted: false   # the probe was mounted again for this recording
         covariates: {payload.mass: 5.0}   # constant on every row of this recording
+        split_at: [585.0]            # the placement changed here: two recordings
 
-(a bare list of such mappings is read the same). Every field is checked here; a bad one is
+(a bare list of such mappings is read the same). ``split_at`` (s from the bag's first
+paired measurement, increasing) makes the bag's rows between the times recordings of their
+own, ``<name>_1``, ``<name>_2``, …, each with its own placement (the tracker or the robot
+moved during the recording, as ``identify`` warns with the time); the probe is the first
+part's (a remount is the first part's only). Every field is checked here; a bad one is
 a :class:`ConfigError` naming ``recordings[i].<field>`` and the fix.
 """
 from __future__ import annotations
@@ -19,6 +24,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
+import numpy as np
+
 from kpi_calib_ros.core.errors import ConfigError
 from kpi_calib_ros.core.measurement.recordings import NAME_PATTERN, Recording, stated_conditions
 from kpi_calib_ros.io.bag import BagError, is_measurement_log, scanned_bag
@@ -28,16 +35,33 @@ from kpi_calib_ros.io.yaml_bounded import read_yaml_file
 __all__ = ['RecordingSource', 'sources_from_bags', 'read_manifest', 'MANIFEST_FIX']
 
 MANIFEST_FIX = ('give recordings: a list of {bag: file.mcap, name: text, '
-                'reflector_remounted: true|false, covariates: {name: number}}')
-_FIELDS = ('bag', 'name', 'reflector_remounted', 'covariates')
+                'reflector_remounted: true|false, covariates: {name: number}, '
+                'split_at: [seconds]}')
+_FIELDS = ('bag', 'name', 'reflector_remounted', 'covariates', 'split_at')
 
 
 @dataclass(frozen=True)
 class RecordingSource:
-    """A recording's bag and what is stated about it."""
+    """A recording's bag and what is stated about it.
+
+    ``window``: the part of the bag's rows it holds, (from, until) in s from the bag's first
+    paired measurement (``from`` included; None: open), from a manifest's ``split_at``.
+    """
 
     bag: Path
     recording: Recording
+    window: tuple[float | None, float | None] = (None, None)
+
+
+def _split_times(value: Any, key: str, where: str) -> list[float]:
+    """The times of ``split_at``: one number or a list, finite, > 0 and increasing."""
+    times = value if isinstance(value, list) else [value]
+    if not times or not all(isinstance(t, (int, float)) and not isinstance(t, bool)
+                            and np.isfinite(t) and t > 0 for t in times) \
+            or any(b <= a for a, b in zip(times, times[1:])):
+        raise ConfigError(key, f'{where}must be times in s from the bag\'s first paired '
+                          f'measurement, > 0 and increasing (e.g. [585.0]), got {value!r}')
+    return [float(t) for t in times]
 
 
 def _name_from_stem(path: Path, key: str) -> str:
@@ -67,7 +91,7 @@ def _unique(sources: list[RecordingSource], key: str) -> list[RecordingSource]:
         raise ConfigError(key, f'recordings named {twice} more than once (a name comes from '
                           'the file stem): rename the bags or name them in a manifest '
                           '(--recordings)')
-    files = [s.bag.resolve() for s in sources]
+    files = [(s.bag.resolve(), s.window) for s in sources]
     again = next((i for i, f in enumerate(files) if f in files[:i]), None)
     if again is not None:
         first = files.index(files[again])
@@ -161,7 +185,13 @@ def read_manifest(path: str | Path) -> list[RecordingSource]:
                               'recording after it')
         values = stated_conditions(entry.get('covariates') or {}, f'{key}.covariates',
                                    f'in {path}: ')
-        out.append(RecordingSource(bag_path, Recording(name, remounted, values)))
+        if 'split_at' not in entry:
+            out.append(RecordingSource(bag_path, Recording(name, remounted, values)))
+            continue
+        edges = [None, *_split_times(entry['split_at'], f'{key}.split_at', f'in {path}: '), None]
+        out.extend(RecordingSource(bag_path, Recording(f'{name}_{j + 1}', remounted and j == 0,
+                                                       values), (lo, hi))
+                   for j, (lo, hi) in enumerate(zip(edges, edges[1:])))
     stated = [set(s.recording.covariates) for s in out]
     every = set().union(*stated)
     for i, have in enumerate(stated):

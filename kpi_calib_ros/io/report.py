@@ -157,7 +157,7 @@ def diagnosis_to_dict(cd: CellDiagnosis) -> dict[str, Any]:
         **_with_reason({}, 'validation_rms_m', diag.validation_rms_m, NOT_ESTIMABLE),
         'noise_floor_m': float(np.sqrt(np.sum(cd.result.sigma ** 2))),
         'candidates': [_candidate_dict(c) for c in diag.candidates],
-        'verdict': diag.verdict,
+        'verdict': diag.verdict, 'set_up': list(cd.set_up),
         'alpha': diag.alpha, 'folds': diag.folds,
         'residuals': {'measurements': int(len(rep.norms)), 'max_m': float(rep.max_m),
                       'percentiles_m': {str(k): float(v) for k, v in rep.percentiles_m.items()},
@@ -270,6 +270,8 @@ def diagnosis_text(cd: CellDiagnosis, top: int = 5) -> str:
     lines = [*([f'WARNING: the calibration did not converge ({cd.result.message}); the '
                'diagnosis judges its last iterate, not a minimum (identification.'
                'max_iterations raises the limit)'] if not cd.result.converged else []),
+             *[f'WARNING: {line}; the recordings before the robot: the effects below are '
+               'screened on a fit this bends' for line in cd.set_up],
              diag.verdict,
              f'rms {diag.rms_m * _UM:.1f} µm, validation rms '
              f'{_validation(diag.validation_rms_m, "", " µm")} '
@@ -350,7 +352,8 @@ def write_report(out_dir: str | Path, cd: CellDiagnosis) -> Path:
     if cd.residual_analysis is not None:
         plots.insert(0, write_partial_residual_plot(out, cd.residual_analysis))
     diag, rep = cd.diagnosis, cd.diagnosis.residuals
-    lines = ['# Model diagnosis', '', f'**{diag.verdict}**', '',
+    lines = ['# Model diagnosis', '', *[f'**WARNING**: {line}' for line in cd.set_up],
+             *([''] if cd.set_up else []), f'**{diag.verdict}**', '',
              '## Residuals of the calibrated model', '',
              '| quantity | value |', '|---|---|',
              f'| measurements | {len(rep.norms)} |',

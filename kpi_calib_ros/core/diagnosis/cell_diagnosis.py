@@ -63,6 +63,10 @@ class CellDiagnosis:
     # (core.estimation.estimability); when they do not, ``expected`` is None and the
     # verdict says so.
     estimability: KpiEstimability | None = None
+    # What the recordings say before the robot: a probe they disagree on (not declared
+    # remounted), a placement that changed while measured (a tracker knocked); each a line
+    # naming the recording and the fix. The effects are screened on a fit these bend.
+    set_up: tuple[str, ...] = ()
 
     @property
     def tcp_estimable(self) -> bool:
