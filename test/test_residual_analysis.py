@@ -260,3 +260,48 @@ def test_the_size_where_the_misfit_is_largest_is_read_where_the_fit_is_determine
         sizes.append(float(re.match(r'joint error up to (\S+) µrad', score.region).group(1)))
     assert max(sizes) < 25 * 200, sizes
     assert np.sum(np.abs(np.log(np.array(sizes) / 200)) < np.log(2)) >= 6, sizes
+
+
+def test_a_misfit_over_time_is_placed_where_rows_were_measured_not_between_recordings():
+    """Two recordings a day apart (0-1170 s and 86400-87570 s), the second's points drifted
+    by 300 µm more at its end than at its start. The region reported for time lies inside the
+    recordings' spans: the spline between them, where no row was measured, reached 7.75e4
+    µm "where time is 3.147e+04 to 6.732e+04 s" on four recordings whose largest residual was
+    416 µm."""
+    import re
+    rng = np.random.default_rng(3)
+    n, k, sigma = 80, 4, 2e-5
+    t = np.r_[np.linspace(0, 1170, n // 2), 86400 + np.linspace(0, 1170, n // 2)]
+    fields = np.zeros((n, 3, 4))
+    fields[:, :, :3] = np.eye(3)
+    drift = np.where(t > 4e4, 3e-4 * (t - 86400) / 1170, 0.0)
+    res = np.c_[drift, np.zeros(n), np.zeros(n)] + rng.normal(size=(n, 3)) * sigma
+    jac = rng.normal(size=(3 * n, k))
+    basis = orthonormal_basis(jac)
+    r = res.reshape(-1) / sigma
+    r -= basis @ (basis.T @ r)
+    fit = LinearizedFit(r, jac, basis, np.full(3, 1 / sigma), None, np.zeros(k))
+    time = ResidualInput('time', t, fields, ('drift x', 'drift y', 'drift z', 'scale'),
+                         ('m', 'm', 'm', ''), 's')
+    score = analyse_residuals(fit, (r * sigma).reshape(-1, 3), [time],
+                              np.arange(n, dtype=float)[:, None], folds=5).scores[0]
+    print(score.region)
+    assert score.significant
+    size = float(re.match(r'drift x up to (\S+) µm', score.region).group(1))
+    assert size < 2 * 300
+    where = [float(v) for v in re.findall(r'-?\d[\d.e+]*', score.region.split(' is ')[1])]
+    assert all(v <= 1170 or v >= 86400 for v in where), score.region
+
+
+def test_a_covariate_of_two_values_is_a_level_each_not_a_curve(ur):
+    """A recording's one-hot (or a payload changed once) takes two values: the analysis fits
+    a level to each, and says where the misfit is by the value, not by a range between the
+    two ("where recording.d2A is 0.5377 to 1")."""
+    from kpi_calib_ros.core.diagnosis.residual_inputs import residual_inputs
+    data, result, _ = campaign(ur, 5, n=40)
+    second = (np.arange(len(data)) >= 20).astype(float)
+    temperature = 20.0 + np.linspace(0.0, 3.0, len(data))
+    inputs = {i.name: i for i in residual_inputs(
+        ur.model, data, result, {'recording.b': (second, ''), 'temperature': (temperature,
+                                                                            'degC')})}
+    assert inputs['recording.b'].categorical and not inputs['temperature'].categorical

@@ -12,7 +12,8 @@ from kpi_calib_ros.core.diagnosis.residual_bases import Basis, basis_columns
 from kpi_calib_ros.core.diagnosis.residual_inputs import ResidualInput
 from kpi_calib_ros.core.measurement.weighting import weighted_rows
 
-__all__ = ['CURVE_POINTS', 'DETERMINED_SE', 'implied_values', 'fitted_curve', 'curve_region']
+__all__ = ['CURVE_POINTS', 'DETERMINED_SE', 'GAP_SPACINGS', 'implied_values', 'fitted_curve',
+           'curve_region']
 
 CURVE_POINTS = 200
 
@@ -67,7 +68,29 @@ def fitted_curve(inp: ResidualInput, implied: np.ndarray, weight: np.ndarray, si
         unresolved = np.linalg.norm(at @ vt[~keep].T, axis=1) > 1e-9 * np.linalg.norm(at, axis=1)
         se[unresolved] = np.inf
         determined[:, k] = np.where(np.abs(out[:, k]) >= DETERMINED_SE * se, out[:, k], np.nan)
+    if not inp.categorical:
+        far = ~_near_values(grid, np.asarray(inp.values, float))
+        out[far] = np.nan
+        determined[far] = np.nan
     return grid, out, determined
+
+
+# A grid point farther from every measured value than this many of their median spacings
+# (and the grid's step) lies in a gap no row measured: recordings a day apart on the time
+# axis, where the spline's value is an extrapolation (it reached 7.75e4 µm between two
+# recordings whose largest residual was 416 µm).
+GAP_SPACINGS = 5.0
+
+
+def _near_values(grid: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Which points of ``grid`` have a measured value within reach (:data:`GAP_SPACINGS`)."""
+    values = np.unique(values[np.isfinite(values)])
+    if len(values) < 3 or len(grid) < 2:
+        return np.ones(len(grid), bool)
+    reach = max(float(grid[1] - grid[0]), GAP_SPACINGS * float(np.median(np.diff(values))))
+    i = np.clip(np.searchsorted(values, grid), 1, len(values) - 1)
+    nearest = np.minimum(np.abs(grid - values[i - 1]), np.abs(values[i] - grid))
+    return nearest <= reach
 
 
 _SHOWN = {'rad': (1e6, 'µrad'), 'm': (1e6, 'µm'), '': (1e6, 'ppm')}

@@ -122,7 +122,10 @@ def residual_inputs(model: MeasurementModel, data: Measurements, result: Calibra
             raise ValueError(f'covariate {name!r} must have one value per measurement '
                              f'({n}), got shape {values.shape}')
         if np.all(np.isfinite(values)) and np.ptp(values) > 0:
-            out.append(ResidualInput(name, values, fields, names, units, unit))
+            # two values (a recording's one-hot, a payload changed once): a level each, not
+            # a curve between them ("where recording.b is 0.5377 to 1")
+            out.append(ResidualInput(name, values, fields, names, units, unit,
+                                     categorical=len(np.unique(values)) == 2))
     if data.reflector is not None and len(np.unique(np.asarray(data.reflector)[point])) > 1:
         out.append(ResidualInput('reflector', np.asarray(data.reflector, float), fields[:, :, :3],
                                  names[:3], units[:3], '', categorical=True))
