@@ -207,6 +207,30 @@ def test_identification_priority_names_are_checked_against_the_model():
         cell_from_dict(doc, DEFAULT_CELL.parent)
 
 
+def test_a_priority_of_joint_parameters_holds_at_every_model_level():
+    """``method: priority`` naming joint offsets: every level fits, the smaller ones (the
+    registration, which moves the placement alone) with those names held. Before, any
+    joint name was refused as unknown there (exit 2, naming base.* and reflector.* as the
+    valid ones) and priority could not be used at all."""
+    from kpi_calib_ros.app.identify import calibrate_cell
+    from kpi_calib_ros.core.simulation import (
+        random_configurations,
+        simulate_measurements,
+        true_parameters,
+    )
+    doc = _set(_doc(), 'identification', {'method': 'priority',
+                                          'priority': ['joint_1.offset', 'joint_2.offset']})
+    cm = build_cell_model(cell_from_dict(doc, DEFAULT_CELL.parent))
+    rng = np.random.default_rng(2)
+    q = random_configurations(cm.model, cm.model.params.nominal, 40, rng)
+    data = simulate_measurements(cm.model, true_parameters(cm.model.params, rng), q,
+                                 cm.cell.sigma, rng)
+    for level in ('registration', 'auto', 'geometric'):
+        cal = calibrate_cell(cm, data, model=level)
+        assert cal.result.converged, level
+    assert {'joint_1.offset', 'joint_2.offset'} <= set(cal.result.estimated)
+
+
 @pytest.mark.parametrize('key, value', [
     ('payload.com', [0, 0, 80]),                       # millimetres
     ('payload.mass', 12000.0),                         # grams

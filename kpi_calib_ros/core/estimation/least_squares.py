@@ -306,6 +306,9 @@ def identify(model: MeasurementModel, data: Measurements, sigma: float | np.ndar
                         'the point topic carries one reflector (several reflectors on one '
                         'topic pair each pose with points of the others)')
     free_names = [model.params.names[i] for i in free_idx]
+    # The preferred order among the parameters this fit may move: a smaller level (the
+    # registration, the joint offsets) leaves the cell's other preferred names held.
+    priority = None if priority is None else [n for n in priority if n in free_names]
     # Identifiability depends on the geometry: at a nominal reflector exactly on the
     # flange axis some directions vanish that the real (slightly off-axis) robot has.
     # Select at the start, fit, and select again at the estimate until the set is stable.
