@@ -22,11 +22,13 @@ from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
+import pinocchio as pin
 import pytest
 
 from kpi_calib_ros.app.cell_model import CellModel, build_cell_model
 from kpi_calib_ros.app.diagnose import diagnose_cell
 from kpi_calib_ros.core.effects.general import gravity_moment
+from kpi_calib_ros.core.model.robot import Payload
 from kpi_calib_ros.core.simulation import random_configurations, sampling_bounds
 from kpi_calib_ros.io.arm_cell import arm_cell_document
 from kpi_calib_ros.io.cell import cell_from_dict
@@ -122,9 +124,21 @@ def test_stock_bending_moment_along_the_axis_is_the_gravity_torque(arm):
     q = np.random.default_rng(3).uniform(lower, upper, (6, robot.n_joints))
     tau = robot.gravity_torques(q)
     assert np.abs(tau).max() > 1.0  # the arms carry their link masses
+    cell_load = [robot.payload.mass, *robot.payload.com]
+    # another payload than the cell's, as a row may carry: the whole moment is the wrench
+    # Pinocchio's RNEA transmits through the joint at rest with it
+    load = Payload(3.0, (0.01, 0.0, 0.08))
+    model, data = robot._model_with(load)
     for j, joint in enumerate(robot.joints):
         if joint.kind == 'prismatic':
             continue  # its gravity "torque" is the force along the slide, not a moment
-        moment = np.array([np.array(gravity_moment(robot, j)(x)).ravel() for x in q])
+        moment = np.array([np.array(gravity_moment(robot, j)(x, cell_load)).ravel() for x in q])
         np.testing.assert_allclose(moment @ joint.axis, tau[:, j],
                                    atol=1e-9 * (1 + abs(tau).max()), err_msg=joint.name)
+        for x in q:
+            pin.rnea(model, data, robot.pin_configuration(x), np.zeros(model.nv),
+                     np.zeros(model.nv))
+            wrench = data.f[robot._pin_joint_ids[j]].angular
+            np.testing.assert_allclose(
+                np.array(gravity_moment(robot, j)(x, [load.mass, *load.com])).ravel(), wrench,
+                atol=1e-9 * (1 + abs(wrench).max()), err_msg=joint.name)

@@ -29,7 +29,7 @@ from kpi_calib_ros.core.estimation.prior import PLACEMENT_PREFIXES
 from kpi_calib_ros.core.estimation.registration import Registration
 from kpi_calib_ros.core.estimation.robust import LOSS_SCALE, ExcludedMeasurement, RobustResult
 from kpi_calib_ros.core.measurement.data import Measurements, row_sigma
-from kpi_calib_ros.core.measurement.payload import gravity_input, outside_payloads
+from kpi_calib_ros.core.measurement.payload import gravity_input, outside_payloads, reads_load
 from kpi_calib_ros.core.measurement.recordings import Recording, contributions, row_recording
 from kpi_calib_ros.core.measurement.weighting import point_rows
 from kpi_calib_ros.core.model.dh import dh_table
@@ -187,7 +187,7 @@ def add_robust_sections(doc: dict[str, Any], cal: CellCalibration) -> dict[str, 
     doc['invalid_reasons'] = list(cal.problems)
     doc['model'] = {**cal.choice.to_dict(), 'free_parameters': len(cal.free)}
     if cal.cell is not None:
-        doc['model']['reads_load'] = bool(cal.cell.model.uses_torque)
+        doc['model']['reads_load'] = reads_load(cal.cell.model)
     if cal.nominal is not None:
         doc['against_nominal'] = cal.nominal.to_dict()
         if cal.nominal.elsewhere_worse:
@@ -387,13 +387,13 @@ def robust_summary(doc: dict[str, Any]) -> str:
                      f'{_um(n["tcp_std_m"])} to {_um(n["tcp_std_at_limits_m"])} (what only its '
                      'motion shows, its axis direction and scale, is extrapolated, also in the '
                      'written URDF); measure poses over its range (kpi-calib design)')
-    reads_load = bool(doc.get('model', {}).get('reads_load'))
+    loaded = bool(doc.get('model', {}).get('reads_load'))
     for name, mass in precision.get('working_payloads_outside_training', {}).items():
         lo, hi = doc['training_payload_kg']
         lines.append(f'WARNING: working pose {name} carries {mass:.3g} kg, outside the payloads '
                      f'measured ({lo:.3g} to {hi:.3g} kg, training_payload_kg): '
                      + ('its deflection under that load is extrapolated from the measured '
-                        'loads and no measured pose checks it' if reads_load else
+                        'loads and no measured pose checks it' if loaded else
                         'no effect of the model reads the load, so the joints\' deflection '
                         'under it is in no prediction and no expected TCP error')
                      + '; measure poses with that payload (payload.mass per row) and '

@@ -538,8 +538,9 @@ def check_stated_covariates(cm: CellModel, recordings: Sequence[Recording]) -> N
                 # auto may yet add an effect that reads it: not "changes no prediction"
                 print(f'warning: recordings[{i}].covariates.{name}: no effect of the model '
                       'reads the payload yet; effects of the gravity torque do '
-                      '(joint_compliance, joint_backlash, joint_play: --effects, or those '
-                      '--model auto adds), and it is kept with the recording for them',
+                      '(joint_compliance, joint_backlash, joint_play) and link_bending '
+                      '(--effects, or those --model auto adds), and it is kept with the '
+                      'recording for them',
                       file=sys.stderr)
                 continue
             print(f'warning: recordings[{i}].covariates.{name}: no effect of the model reads '

@@ -49,7 +49,7 @@ from kpi_calib_ros.core.estimation.residuals import (
     noise_verdict,
 )
 from kpi_calib_ros.core.measurement.data import Measurements
-from kpi_calib_ros.core.measurement.payload import outside_payloads, row_masses
+from kpi_calib_ros.core.measurement.payload import outside_payloads, reads_load, row_masses
 from kpi_calib_ros.core.measurement.pose import orientation_names
 from kpi_calib_ros.core.measurement.recordings import (
     Recording,
@@ -526,7 +526,7 @@ def payloads_outside(cm: CellModel, doc: dict[str, Any], data: Measurements
         return None
     return {'points': int(sum(outside)), 'new_kg': [float(mass.min()), float(mass.max())],
             'training_kg': [float(measured[0]), float(measured[1])],
-            'reads_load': bool(cm.model.uses_torque)}
+            'reads_load': reads_load(cm.model)}
 
 
 def run_validate(cell_path: str | Path, calibration_path: str | Path, bag_path: str | Path,

@@ -289,11 +289,12 @@ class BoundEffect:
         fn = self.kind.point_function
         return None if fn is None else fn(point, theta)
 
-    def frame_correction(self, q: ca.SX, tau: ca.SX, theta: ca.SX) -> Any:
+    def frame_correction(self, q: ca.SX, tau: ca.SX, theta: ca.SX, z: Any = None) -> Any:
         """``(joint index, SX (3, 3) rotation)`` applied to that joint's frame after its motion.
 
         For link bending (:class:`kpi_calib_ros.core.effects.general.LinkBending`); None
-        otherwise: the library's effects correct joint values or the point only.
+        otherwise: the library's effects correct joint values or the point only. ``z`` the
+        covariates :attr:`inputs`.
         """
         return None
 

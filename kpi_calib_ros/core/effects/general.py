@@ -175,8 +175,13 @@ def periodic_joint_error(robot: RobotModel, joint: str | None, cycles: int | str
 
 
 # ------------------------------------------------------------------- link bending
-def _no_joint_value(q_j: ca.SX, tau_j: ca.SX, theta: ca.SX) -> ca.SX:
+def _no_joint_value(q_j: ca.SX, tau_j: ca.SX, theta: ca.SX, *z: ca.SX) -> ca.SX:
     return 0 * theta[0]  # link bending turns the frame (frame_correction), not the joint
+
+
+# The payload a row carries (core.measurement.payload): the moment of its own load, the cell's
+# where it states none (MeasurementModel.input_values).
+PAYLOAD_INPUTS = ('payload.mass', 'payload.com.x', 'payload.com.y', 'payload.com.z')
 
 
 @dataclass(frozen=True)
@@ -187,13 +192,17 @@ class LinkBending(BoundEffect):
     the links it carries.
     """
 
-    moment: ca.Function | None = field(default=None, compare=False)  # q (n,) -> M (3,), N m
+    # (q (n,), payload (4,): mass, centre in the tip frame) -> M (3,), N m
+    moment: ca.Function | None = field(default=None, compare=False)
     bend_axes: tuple[tuple[float, ...], ...] = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0))
 
-    def frame_correction(self, q: ca.SX, tau: ca.SX, theta: ca.SX) -> Any:
-        """``(joint index, rotation (3x3))``: the bend of this joint's frame after its motion."""
+    def frame_correction(self, q: ca.SX, tau: ca.SX, theta: ca.SX, z: Any = None) -> Any:
+        """``(joint index, rotation (3x3))``: the bend of this joint's frame after its motion.
+
+        ``z``: the row's payload (:data:`PAYLOAD_INPUTS`).
+        """
         assert self.moment is not None and self.joint_index is not None  # set by the binder
-        m = self.moment(q)
+        m = self.moment(q, z)
         u, v = (np.array(a) for a in self.bend_axes)
         rotation = (axis_rotation(u, theta[0] * ca.dot(ca.DM(u), m))
                     @ axis_rotation(v, theta[1] * ca.dot(ca.DM(v), m)))
@@ -226,11 +235,12 @@ def _carried_masses(robot: RobotModel) -> list[tuple[int, float, np.ndarray]]:
 
 
 def gravity_moment(robot: RobotModel, joint: int) -> ca.Function:
-    """CasADi Function q (n,) -> (3,): the static gravity (holding) moment, N m, of a joint.
+    """CasADi Function (q (n,), payload (4,)) -> (3,): the static gravity (holding) moment, N m.
 
     The moment of the bodies chain joint ``joint`` carries, about its origin, in its frame after
-    its motion, at the nominal geometry. Its component along the joint axis is
-    :meth:`~kpi_calib_ros.core.model.robot.RobotModel.gravity_torques`.
+    its motion, at the nominal geometry, with the payload (mass kg, centre m in the tip frame)
+    in place of the cell's. Its component along the joint axis is
+    :meth:`~kpi_calib_ros.core.model.robot.RobotModel.gravity_torques` with that payload.
     """
     chain = SymbolicChain(robot, geometric_parameters(robot, np.zeros(6), np.zeros(3)))
     q = ca.SX.sym('q', robot.n_joints)
@@ -247,7 +257,17 @@ def gravity_moment(robot: RobotModel, joint: int) -> ca.Function:
             continue
         point = frames[index][:3, :3] @ ca.DM(com) + frames[index][:3, 3]
         moment += ca.cross(point - origin, mass * up)
-    return ca.Function('gravity_moment', [q], [frames[joint][:3, :3].T @ moment])
+    # the cell's payload (in the tip body above) out, the row's in, both on the last joint
+    load = ca.SX.sym('payload', 4)
+    tip = frames[robot.n_joints - 1]
+    place = robot._tip_in_joint
+
+    def carried(mass: Any, centre: Any) -> Any:
+        point = tip[:3, :3] @ (ca.DM(place.rotation) @ centre + ca.DM(place.translation)) \
+            + tip[:3, 3]
+        return ca.cross(point - origin, mass * up)
+    moment += carried(load[0], load[1:]) - carried(robot.payload.mass, ca.DM(robot.payload.com))
+    return ca.Function('gravity_moment', [q, load], [frames[joint][:3, :3].T @ moment])
 
 
 def _bend_axes(axis: np.ndarray) -> tuple[tuple[np.ndarray, str], tuple[np.ndarray, str]]:
@@ -290,7 +310,7 @@ def link_bending(robot: RobotModel, joint: str | None, key: str = 'effects') -> 
                     'it exert',
         hint='pose the arm so the moment on {joint} varies (stretched and folded, turned '
              'about its axis)',
-        signature='gravity bending moment on {joint}')
+        signature='gravity bending moment on {joint}', inputs=PAYLOAD_INPUTS)
     return LinkBending(kind, joint, index, len(names), robot.joints[index].kind,
                        moment=gravity_moment(robot, index),
                        bend_axes=(tuple(u.tolist()), tuple(v.tolist())))

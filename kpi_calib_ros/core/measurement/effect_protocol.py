@@ -71,7 +71,7 @@ class OptionalEffect(Effect, Protocol):
         (tx, ty, tz m; rx, ry, rz rad).
         """
 
-    def frame_correction(self, q: ca.SX, tau: ca.SX, theta: ca.SX
+    def frame_correction(self, q: ca.SX, tau: ca.SX, theta: ca.SX, *z: ca.SX
                          ) -> tuple[int, ca.SX] | None:
         """Rotation ``(joint index, SX (3, 3))`` of that joint's frame after its motion, or None.
 

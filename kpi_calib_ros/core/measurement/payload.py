@@ -14,7 +14,7 @@ loads: the way a compliance is proved, the same poses measured unloaded and load
 """
 from __future__ import annotations
 
-from typing import Mapping
+from typing import Any, Mapping
 
 import numpy as np
 
@@ -22,7 +22,8 @@ from kpi_calib_ros.core.model.robot import Payload, RobotModel
 
 __all__ = ['PAYLOAD_MASS', 'PAYLOAD_COM', 'PAYLOAD_MASS_LIMIT_KG', 'PAYLOAD_COM_LIMIT_M',
            'payload_name_error', 'row_payloads', 'payload_torques', 'payload_range',
-           'outside_payloads', 'row_masses', 'gravity_gradient', 'gravity_input', 'GRADIENT_STEP']
+           'outside_payloads', 'reads_load', 'cell_payload_inputs', 'row_masses',
+           'gravity_gradient', 'gravity_input', 'GRADIENT_STEP']
 
 PAYLOAD_MASS = 'payload.mass'
 PAYLOAD_COM = ('payload.com.x', 'payload.com.y', 'payload.com.z')
@@ -187,3 +188,19 @@ def outside_payloads(mass: float, measured: tuple[float, float]) -> bool:
     lo, hi = measured
     tol = max(PAYLOAD_TOLERANCE_KG, PAYLOAD_TOLERANCE_FRACTION * hi)
     return not lo - tol <= mass <= hi + tol
+
+
+def reads_load(model: Any) -> bool:
+    """Return whether ``model`` (a MeasurementModel) predicts anything from a row's payload.
+
+    An effect of the gravity torque does, or one that reads the payload inputs (link bending).
+    """
+    return bool(model.uses_torque or PAYLOAD_MASS in model.inputs)
+
+
+def cell_payload_inputs(payload: Payload) -> dict[str, float]:
+    """Return the payload inputs (:data:`PAYLOAD_MASS`, :data:`PAYLOAD_COM`) of ``payload``.
+
+    What a row that states no payload carries: the cell's.
+    """
+    return {PAYLOAD_MASS: float(payload.mass), **dict(zip(PAYLOAD_COM, map(float, payload.com)))}

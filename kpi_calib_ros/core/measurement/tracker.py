@@ -60,7 +60,7 @@ from kpi_calib_ros.core.measurement.effect_protocol import (
     effect_inputs,
     optional_correction,
 )
-from kpi_calib_ros.core.measurement.payload import payload_torques
+from kpi_calib_ros.core.measurement.payload import cell_payload_inputs, payload_torques
 from kpi_calib_ros.core.measurement.pose import (
     body_orientation,
     measured_rotation_input,
@@ -221,7 +221,7 @@ class MeasurementModel:
             if correction is not None:
                 q_eff = q_eff + correction
             frame = optional_correction(effect, 'frame_correction')
-            bent = frame(q, tau, theta) if frame is not None else None
+            bent = frame(q, tau, theta, *extra) if frame is not None else None
             if bent is not None:
                 index, rotation = bent
                 deflections[index] = (deflections[index] @ rotation if index in deflections
@@ -323,17 +323,22 @@ class MeasurementModel:
     def input_values(self, n: int, covariates: Mapping[str, np.ndarray] | None) -> np.ndarray:
         """Return the covariates the effects read, (n, len(inputs)) in :attr:`inputs` order.
 
-        Zeros (the reference condition) where ``covariates`` is None.
+        Zeros (the reference condition) where ``covariates`` is None; a payload input
+        (:data:`~kpi_calib_ros.core.measurement.payload.PAYLOAD_MASS`, ``PAYLOAD_COM``) the
+        cell's payload where the covariates do not state it.
 
         Raises
         ------
         ValueError
             A covariate the effects read is missing, of another length or not finite.
         """
-        out = np.zeros((n, len(self.inputs)))
-        if covariates is None:
-            return out
+        # A row's payload is the cell's where it states none, as its gravity torques are
+        # (core.measurement.payload): its reference condition.
+        stated = cell_payload_inputs(self.robot.payload)
+        out = np.tile([stated.get(name, 0.0) for name in self.inputs], (n, 1))
         for i, name in enumerate(self.inputs):
+            if covariates is None or (name in stated and name not in covariates):
+                continue
             if name not in covariates:
                 raise ValueError(f'the effects read the covariate {name!r}; the measurements '
                                  f'carry {sorted(covariates)}: record it (e.g. the cell\'s '
