@@ -551,7 +551,7 @@ def run_identify(cell_path: str | Path, bag_path: str | Path | Sequence[Recordin
     how, comparison = add_prior_and_comparison(doc, cm, data, cal)
     recordings_lines = ''
     if not isinstance(bag_path, (str, Path)):
-        recordings = [s.recording for s in bag_path]
+        recordings = [s.fitted for s in bag_path]
         doc['recordings'] = recordings_section(cm, data, cal, recordings,
                                                [str(s.bag) for s in bag_path])
         name_excluded(doc, data, recordings)

@@ -41,6 +41,7 @@ from kpi_calib_ros.core.measurement.pose_rows import with_rotation_rows
 from kpi_calib_ros.core.measurement.recordings import (
     Recording,
     combine,
+    concatenate,
     placed_model,
     recording_parameters,
     repeated_rows,
@@ -416,26 +417,31 @@ def load_recordings(cell_path: str | Path, sources: Sequence[RecordingSource],
     """
     cell = load_cell(cell_path, allow_code_effects=allow_code_effects)
     cm = build_cell_model(cell, effects=tuple(split_specs(effects)))
-    check_stated_covariates(cm, [s.recording for s in sources])
-    parts, pairings = [], []
+    check_stated_covariates(cm, [r for s in sources for r in (
+        s.recording, *(dataclasses.replace(s.recording, covariates=m.covariates)
+                       for m in s.more))])
+    parts, pairings, recordings = [], [], []
     for source in sources:
-        try:
-            data, pairing = measurements_from_bag(cm, source.bag, joint_topic, point_topic,
-                                                  pose_topic)
-        except DataError as exc:  # which of the recordings says it
-            if len(sources) == 1:
-                raise
-            raise DataError(f'recording {source.recording.name!r} ({source.bag}): '
-                            f'{exc}') from None
-        print_rejections(pairing, f'recording {source.recording.name!r}: '
-                         if len(sources) > 1 else '')
-        data = in_window(data, source)
-        if len(data) == 0:
-            raise DataError(f'recording {source.recording.name!r} ({source.bag}) gives no '
-                            'paired measurement: check its topics and the cell\'s joint names')
-        parts.append(data)
-        pairings.append(pairing)
-    recordings = [s.recording for s in sources]
+        pieces = []
+        for bag, window, values in [(source.bag, source.window, source.recording.covariates),
+                                    *((m.bag, m.window, m.covariates) for m in source.more)]:
+            try:
+                data, pairing = measurements_from_bag(cm, bag, joint_topic, point_topic,
+                                                      pose_topic)
+            except DataError as exc:  # which of the recordings says it
+                if len(sources) == 1 and not source.more:
+                    raise
+                raise DataError(f'recording {source.recording.name!r} ({bag}): {exc}') from None
+            print_rejections(pairing, f'recording {source.recording.name!r} ({bag.name}): '
+                             if len(sources) > 1 or source.more else '')
+            data = in_window(data, source.recording.name, bag, window)
+            if len(data) == 0:
+                raise DataError(f'recording {source.recording.name!r} ({bag}) gives no paired '
+                                'measurement: check its topics and the cell\'s joint names')
+            pieces.append(with_conditions(data, values) if source.more else data)
+            pairings.append(pairing)
+        parts.append(pieces[0] if len(pieces) == 1 else concatenate(pieces))
+        recordings.append(source.fitted)  # several bags: each one's conditions on its rows
     repeated = repeated_rows(parts)
     if repeated:
         i, j, count = repeated[0]
@@ -453,25 +459,44 @@ def load_recordings(cell_path: str | Path, sources: Sequence[RecordingSource],
     return with_recordings(cm, recordings), data, merged_pairing(pairings)
 
 
-def in_window(data: Measurements, source: RecordingSource) -> Measurements:
-    """The rows of ``data`` (one bag's) in ``source.window``: s from its first row (a manifest's
-    ``split_at``); all of them without one.
+def with_conditions(data: Measurements, values: Mapping[str, float]) -> Measurements:
+    """``data`` with each of ``values`` (a bag's stated conditions) on every one of its rows.
+
+    Raises
+    ------
+    ConfigError
+        The rows carry one of them with other values.
+    """
+    covariates = dict(data.covariates or {})
+    for name, value in values.items():
+        rows = covariates.get(name)
+        if rows is not None and not np.allclose(np.asarray(rows, float), value, atol=1e-12):
+            raise ConfigError('recordings', f'a bag states {name} = {value:g} while its rows '
+                              'carry other values: state it in one place')
+        covariates[name] = np.full(len(data), float(value))
+    return dataclasses.replace(data, covariates=covariates or None)
+
+
+def in_window(data: Measurements, name: str, bag: Path,
+              window: tuple[float | None, float | None]) -> Measurements:
+    """The rows of ``data`` (one bag's) in ``window``: s from its first row (a manifest's
+    ``split_at``); all of them without one. ``name`` and ``bag`` name the recording.
 
     Raises
     ------
     DataError
         A window without stamps to place it, or with no row (named with the times).
     """
-    lo, hi = source.window
+    lo, hi = window
     if lo is None and hi is None:
         return data
     if data.stamps_ns is None:
-        raise DataError(f'recording {source.recording.name!r} ({source.bag}): split_at needs '
+        raise DataError(f'recording {name!r} ({bag}): split_at needs '
                         'the rows\' stamps, and they have none')
     t = (np.asarray(data.stamps_ns, np.int64) - int(np.min(data.stamps_ns))) * 1e-9
     keep = (t >= (-np.inf if lo is None else lo)) & (t < (np.inf if hi is None else hi))
     if not keep.any():
-        raise DataError(f'recording {source.recording.name!r} ({source.bag}): no measurement '
+        raise DataError(f'recording {name!r} ({bag}): no measurement '
                         f'between {lo or 0:g} s and {"the end" if hi is None else f"{hi:g} s"} '
                         f'of the bag (its rows span {t.max():.1f} s): check split_at')
     return data.subset(keep)

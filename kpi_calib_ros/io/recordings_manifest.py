@@ -8,16 +8,24 @@ A manifest (``--recordings manifest.yaml``) lists the recordings, each a mapping
         reflector_remounted: false   # the probe was mounted again for this recording
         covariates: {payload.mass: 5.0}   # constant on every row of this recording
         split_at: [585.0]            # the placement changed here: two recordings
+      - bag: station_a_loaded.mcap
+        same_placement_as: station_a # nothing moved: more rows of that recording
+        covariates: {payload.mass: 5.0}
 
-(a bare list of such mappings is read the same). ``split_at`` (s from the bag's first
-paired measurement, increasing) makes the bag's rows between the times recordings of their
-own, ``<name>_1``, ``<name>_2``, …, each with its own placement (the tracker or the robot
-moved during the recording, as ``identify`` warns with the time); the probe is the first
-part's (a remount is the first part's only). Every field is checked here; a bad one is
-a :class:`ConfigError` naming ``recordings[i].<field>`` and the fix.
+(a bare list of such mappings is read the same). ``same_placement_as`` names an earlier
+recording whose placement and probe this bag shares (the tracker and the robot stayed put,
+the load or the day changed): its rows join that recording, each bag's covariates on its own
+rows, so one placement is fitted to both and what the load changes is left to the robot.
+``split_at`` (s from the bag's first paired measurement, increasing) makes the bag's rows
+between the times recordings of their own, ``<name>_1``, ``<name>_2``, …, each with its own
+placement (the tracker or the robot moved during the recording, as ``identify`` warns with
+the time); the probe is the first part's (a remount is the first part's only). Every field
+is checked here; a bad one is a :class:`ConfigError` naming ``recordings[i].<field>`` and
+the fix.
 """
 from __future__ import annotations
 
+import dataclasses
 import re
 import sys
 from dataclasses import dataclass
@@ -32,12 +40,23 @@ from kpi_calib_ros.io.bag import BagError, is_measurement_log, scanned_bag
 from kpi_calib_ros.io.measurement_log import log_station
 from kpi_calib_ros.io.yaml_bounded import read_yaml_file
 
-__all__ = ['RecordingSource', 'sources_from_bags', 'read_manifest', 'MANIFEST_FIX']
+__all__ = ['RecordingSource', 'RecordingPart', 'sources_from_bags', 'read_manifest',
+           'MANIFEST_FIX']
 
 MANIFEST_FIX = ('give recordings: a list of {bag: file.mcap, name: text, '
                 'reflector_remounted: true|false, covariates: {name: number}, '
-                'split_at: [seconds]}')
-_FIELDS = ('bag', 'name', 'reflector_remounted', 'covariates', 'split_at')
+                'split_at: [seconds], same_placement_as: an earlier name}')
+_FIELDS = ('bag', 'name', 'reflector_remounted', 'covariates', 'split_at', 'same_placement_as')
+Window = tuple[float | None, float | None]
+
+
+@dataclass(frozen=True)
+class RecordingPart:
+    """A further bag of a recording (``same_placement_as``), the covariates of its rows."""
+
+    bag: Path
+    covariates: dict[str, float]
+    window: Window = (None, None)
 
 
 @dataclass(frozen=True)
@@ -45,12 +64,20 @@ class RecordingSource:
     """A recording's bag and what is stated about it.
 
     ``window``: the part of the bag's rows it holds, (from, until) in s from the bag's first
-    paired measurement (``from`` included; None: open), from a manifest's ``split_at``.
+    paired measurement (``from`` included; None: open), from a manifest's ``split_at``;
+    ``more``: further bags of the same placement, each with its covariates.
     """
 
     bag: Path
     recording: Recording
-    window: tuple[float | None, float | None] = (None, None)
+    window: Window = (None, None)
+    more: tuple[RecordingPart, ...] = ()
+
+    @property
+    def fitted(self) -> Recording:
+        """The recording as identified: with further bags, its conditions are on the rows."""
+        return dataclasses.replace(self.recording, covariates={}) if self.more else \
+            self.recording
 
 
 def _split_times(value: Any, key: str, where: str) -> list[float]:
@@ -91,14 +118,16 @@ def _unique(sources: list[RecordingSource], key: str) -> list[RecordingSource]:
         raise ConfigError(key, f'recordings named {twice} more than once (a name comes from '
                           'the file stem): rename the bags or name them in a manifest '
                           '(--recordings)')
-    files = [(s.bag.resolve(), s.window) for s in sources]
+    files = [(b.resolve(), w) for s in sources
+             for b, w in [(s.bag, s.window), *((m.bag, m.window) for m in s.more)]]
+    sources_of = [s for s in sources for _ in range(1 + len(s.more))]
     again = next((i for i, f in enumerate(files) if f in files[:i]), None)
     if again is not None:
         first = files.index(files[again])
-        raise ConfigError(key, f'the bag {str(sources[again].bag)!r} is given twice (recordings '
-                          f'{sources[first].recording.name!r} and '
-                          f'{sources[again].recording.name!r}): its rows would count twice and '
-                          'the fit claim twice the data; list each bag once')
+        raise ConfigError(key, f'the bag {str(files[again][0])!r} is given twice (recordings '
+                          f'{sources_of[first].recording.name!r} and '
+                          f'{sources_of[again].recording.name!r}): its rows would count twice '
+                          'and the fit claim twice the data; list each bag once')
     return sources
 
 
@@ -153,7 +182,7 @@ def read_manifest(path: str | Path) -> list[RecordingSource]:
     entries: Any = doc.get('recordings') if isinstance(doc, dict) else doc
     if not isinstance(entries, list) or not entries:
         raise ConfigError('recordings', f'in {path}: must be a non-empty list; {MANIFEST_FIX}')
-    out = []
+    out: list[RecordingSource] = []
     for i, entry in enumerate(entries):
         key = f'recordings[{i}]'
         if not isinstance(entry, dict):
@@ -168,6 +197,9 @@ def read_manifest(path: str | Path) -> list[RecordingSource]:
         bag_path = Path(bag) if Path(bag).is_absolute() else path.parent / bag
         if not bag_path.exists():
             raise ConfigError(f'{key}.bag', f'in {path}: {str(bag_path)!r} does not exist')
+        if 'same_placement_as' in entry:
+            out = _joined(out, entry, key, bag_path, f'in {path}: ')
+            continue
         name = entry.get('name', _name_from_stem(bag_path, f'{key}.bag'))
         if not isinstance(name, str) or not NAME_PATTERN.match(name):
             raise ConfigError(f'{key}.name', f'in {path}: {name!r} must start with a letter '
@@ -192,7 +224,8 @@ def read_manifest(path: str | Path) -> list[RecordingSource]:
         out.extend(RecordingSource(bag_path, Recording(f'{name}_{j + 1}', remounted and j == 0,
                                                        values), (lo, hi))
                    for j, (lo, hi) in enumerate(zip(edges, edges[1:])))
-    stated = [set(s.recording.covariates) for s in out]
+    stated = [set(c) for s in out for c in (s.recording.covariates,
+                                            *(m.covariates for m in s.more))]
     every = set().union(*stated)
     for i, have in enumerate(stated):
         if have != every:
@@ -200,3 +233,23 @@ def read_manifest(path: str | Path) -> list[RecordingSource]:
                               f'{sorted(every - have)}, given for other recordings: a '
                               'condition must be stated for every recording (0 is one too)')
     return _unique(out, 'recordings')
+
+
+def _joined(out: list[RecordingSource], entry: dict, key: str, bag: Path, where: str
+            ) -> list[RecordingSource]:
+    """``out`` with ``entry``'s bag a further part of the recording it names
+    (``same_placement_as``), its covariates on its own rows."""
+    name = entry['same_placement_as']
+    names = [s.recording.name for s in out]
+    if not isinstance(name, str) or name not in names:
+        raise ConfigError(f'{key}.same_placement_as', f'{where}must name a recording listed '
+                          f'before it, one of {names}, got {name!r}')
+    clash = sorted({'name', 'reflector_remounted', 'split_at'} & set(map(str, entry)))
+    if clash:
+        raise ConfigError(f'{key}.{clash[0]}', f'{where}a bag of the placement of {name!r} '
+                          'shares its name, probe and times; give it as a recording of its own '
+                          'instead when any of them differs')
+    values = stated_conditions(entry.get('covariates') or {}, f'{key}.covariates', where)
+    i = names.index(name)
+    part = RecordingPart(bag, dict(values))
+    return [*out[:i], dataclasses.replace(out[i], more=(*out[i].more, part)), *out[i + 1:]]

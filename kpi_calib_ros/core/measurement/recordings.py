@@ -53,7 +53,8 @@ from kpi_calib_ros.core.model.parameters import (
 
 __all__ = [
     'PREFIX', 'NAME_PATTERN', 'Recording', 'covariate', 'base_names', 'reflector_names',
-    'recording_parameters', 'recording_names', 'placed_model', 'combine', 'row_recording',
+    'recording_parameters', 'recording_names', 'placed_model', 'combine', 'concatenate',
+    'row_recording',
     'row_covariates', 'Contribution', 'contributions', 'placement_names', 'to_first_frame',
     'as_first', 'COVARIATE_NAME', 'stated_conditions', 'unread_covariates',
     'repeated_rows',
@@ -335,6 +336,22 @@ def combine(parts: Sequence[Measurements], recordings: Sequence[Recording]) -> M
             else np.asarray((p.covariates or {})[name], float)
             for r, p in zip(recordings, parts)])
     covariates.update(row_covariates([r.name for r in recordings], index))
+    return concatenate(parts, covariates or None)
+
+
+def concatenate(parts: Sequence[Measurements],
+                covariates: Mapping[str, np.ndarray] | None = None) -> Measurements:
+    """Return the rows of ``parts`` in order, with ``covariates`` (N,) per row.
+
+    Default: the covariates of the parts (every part must carry the same names).
+    """
+    if covariates is None and any(p.covariates for p in parts):
+        names = [set(p.covariates or {}) for p in parts]
+        if any(n != names[0] for n in names):
+            raise ValueError(f'the parts carry different covariates {names}: give each the same')
+        covariates = {k: np.concatenate([np.asarray(p.covariates[k], float) for p in parts
+                                         if p.covariates is not None])
+                      for k in names[0]}
 
     def stack(field_name: str) -> np.ndarray | None:
         values = [getattr(p, field_name) for p in parts]
