@@ -268,9 +268,13 @@ def mesh_collisions(urdf_xml: str, package_dirs: Sequence[str], base_frame: str,
                 continue
             if names[0] != names[1]:
                 excluded.setdefault(names, reason)
-    data, gdata = model.createData(), pin.GeometryData(geom)
+    data = model.createData()
     collisions = []
     for row in q:
+        # Fresh geometry data per configuration: coal warm-starts GJK from the previous
+        # query's result, and on the stock Baxter that made the verdict on a pose depend on
+        # the poses checked before it (3 to 12 of 30 differed; a 13 mm overlap cleared).
+        gdata = pin.GeometryData(geom)
         pin.computeCollisions(model, data, geom, gdata, pin_configuration(row), False)
         hit = {pair_links[c] for c, res in enumerate(gdata.collisionResults) if res.isCollision()}
         collisions.append(tuple(sorted(hit)))
