@@ -51,10 +51,9 @@ excluding a fault makes it better. What tells them apart is what the model can n
 Misfit points are kept in the fit and reported ("model misfit at these poses, see
 kpi-calib diagnose"), never excluded. Gross points (metres off, a wrong unit or target)
 are excluded before any fit (:func:`kpi_calib_ros.core.estimation.robust.gross_outliers`).
-Limitations: the hat matrix is that of the data alone (a prior lowers the leverage a
-little, so t_i is slightly overstated at poses the prior helps); without replicates a
-misfit at ordinary leverage looks like a fault and is excluded (one-reflector sweeps of 8
-poses per joint with a hidden cubic joint error, 1 of 8 seeds: the pose next to a sweep
+The hat matrix is the fit's, with its prior (H_ii = F_i C_p F_iᵀ). Limitation: without
+replicates a misfit at ordinary leverage looks like a fault and is excluded (one-reflector
+sweeps of 8 poses per joint with a hidden cubic joint error, 1 of 8 seeds: the pose next to a sweep
 end, 4.5 σ̂ against the bound 4.42, leverage 0.30, its residual along the sweep end's
 (cosine 0.83), held-out rms 39.6 µm against 39.2 µm keeping it; a leverage bound of 0.3
 has no meaning like ½'s and would shield faults at up to 2 of 60 random poses, largest
@@ -125,11 +124,16 @@ class Judgement:
 
 def hat_blocks(model: MeasurementModel, data: Measurements, p: np.ndarray,
                estimated: tuple[str, ...], sigma: float | np.ndarray,
-               point_weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+               point_weights: np.ndarray | None = None,
+               covariance: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Weighted residuals (N, 3) in σ units and hat-matrix blocks H_ii (N, 3, 3) at ``p``.
 
-    The hat matrix is that of the data Jacobian of the ``estimated`` parameters; robustness
-    weights ω_i scale point i's rows by √ω_i, as in the fit.
+    The hat matrix is that of the data Jacobian F of the ``estimated`` parameters; robustness
+    weights ω_i scale point i's rows by √ω_i, as in the fit. With ``covariance`` (k, k), the
+    fit's covariance of the estimated parameters at the stated σ, H_ii = F_i C Fᵢᵀ: a prior
+    in the fit lowers the leverage (C = (FᵀF + RᵀR)⁻¹), which F's own projection ignores
+    (10 poses re-identified with a prior: leverage near 1 for every point, whose residuals
+    of 0.3 to 2 σ then read as 4 σ̂ outliers, and "model misfit" on clean data).
     """
     q = np.atleast_2d(data.q)
     tau = row_torques(model, data)
@@ -141,6 +145,9 @@ def hat_blocks(model: MeasurementModel, data: Measurements, p: np.ndarray,
     row_w = noise_weights(model, p, data, sigma, tau, point_weights)
     r = weighted_residuals(np.atleast_2d(data.eta) - pred, row_w).reshape(n, 3)
     f = weighted_rows(jac, row_w, model.params.indices(list(estimated)))
+    if covariance is not None:
+        rows = f.reshape(n, 3, -1)
+        return r, np.einsum('nak,kl,nbl->nab', rows, np.asarray(covariance, float), rows)
     norms = np.linalg.norm(f, axis=0)
     f = f[:, norms > 0] / norms[norms > 0]
     u = scipy.linalg.orth(f, rcond=RANK_TOLERANCE) if f.size else np.zeros((3 * n, 0))
@@ -178,7 +185,8 @@ def rigid_inconsistency(residuals: np.ndarray, points: np.ndarray) -> tuple[floa
 def judge(model: MeasurementModel, data: Measurements, p: np.ndarray,
           estimated: tuple[str, ...], sigma: float | np.ndarray, scale: float,
           threshold: float, kept: np.ndarray, pose: np.ndarray | None = None,
-          point_weights: np.ndarray | None = None) -> Judgement:
+          point_weights: np.ndarray | None = None,
+          covariance: np.ndarray | None = None) -> Judgement:
     """Fault or misfit for every point of ``data`` (N) against the fit ``p`` of the ``kept`` points.
 
     See the module text.
@@ -200,6 +208,9 @@ def judge(model: MeasurementModel, data: Measurements, p: np.ndarray,
         Pose index of every point (default :func:`pose_groups` of ``data.q``).
     point_weights : (n_kept,) ndarray, optional
         Robustness weights of the kept points in the fit.
+    covariance : (k, k) ndarray, optional
+        The fit's covariance of ``estimated`` at the stated σ: the leverage with the fit's
+        prior (:func:`hat_blocks`).
     """
     n = len(data)
     kept = np.asarray(kept, bool)
@@ -208,13 +219,15 @@ def judge(model: MeasurementModel, data: Measurements, p: np.ndarray,
     # The σ whitened rows are multiplied by to compare with σ̂ (core.estimation.robust.noise_units):
     # the cell's, or the points' own.
     reference = stated_sigma(stated, data.sigma, n)
-    # A noise-free fit (simulated) has a σ̂ of round-off, or 0: floored far below any
-    # real noise, so its residuals stay far below the threshold instead of 0/0.
-    scale = max(float(scale), 1e-9 * reference)
+    # σ̂ below the stated σ is the noise of the estimate (a MAD of 30 residuals with 14
+    # degrees of freedom came out at half the stated 20 µm and made points of 2.1 and
+    # 2.6 σ "outliers beyond 4 σ̂" on clean data): a point is far by the larger of the two.
+    scale = max(float(scale), float(np.max(reference)))
     ratio = reference / scale  # σ units -> σ̂ units
     t = np.zeros(n)
     lev = np.zeros(n)
-    r_k, blocks = hat_blocks(model, data.subset(kept), p, estimated, sigma, point_weights)
+    r_k, blocks = hat_blocks(model, data.subset(kept), p, estimated, sigma, point_weights,
+                             covariance)
     t[kept] = np.sqrt(studentized(r_k, blocks)) * ratio
     lev[kept] = np.linalg.eigvalsh(blocks)[:, -1]
     # Excluded points: plain distance in σ̂ (no leverage: they are not in the fit).

@@ -243,7 +243,8 @@ def robust_identify(model: MeasurementModel, data: Measurements, sigma: float | 
             tested, scaled = np.linalg.norm(standard, axis=1), standard[kept]
         scale = robust_sigma(scaled, result.dof)
         verdict = judge(model, data, result.values, result.estimated, sigma, scale,
-                        threshold, kept, pose, omega)
+                        threshold, kept, pose, omega,
+                        np.asarray(result.covariance) / result.covariance_scale)
         t = verdict.distance_sigma
         fault = verdict.fault & ~(verdict.lone & lone_misfit)
         if not outliers.exclude or not fault.any():
