@@ -22,7 +22,9 @@ of the residuals (a misfit that inflates them all makes no jump). A jump is name
 largest F's p-value times the number of splits tried (Bonferroni) is below :data:`ALPHA`,
 and the split explains at least :data:`SHARE` of the recording's χ² beyond its coordinates
 (3n): a misfit of the robot that the poses' order in time happens to follow is absorbed by
-a rigid motion in part only.
+a rigid motion in part only. A motion in proportion to time (6 parameters, as the step's)
+that explains more than the best step makes it a steady drift (a tracker warming up, a base
+creeping), named as such.
 """
 from __future__ import annotations
 
@@ -60,15 +62,28 @@ class PlacementJump:
     chi2: float
     chi2_split: float
     p_value: float
+    # A steady drift over the recording explains it better than a step (χ² with a motion in
+    # proportion to time, 6 parameters as the step's): a tracker warming up, a base creeping.
+    drift: bool = False
+    chi2_drift: float = float('nan')
 
     def text(self) -> str:
         """One line: which recording, when, how much, and the fix."""
-        return (f'recording {self.recording}: its placement changed at {self.at_s:.1f} s '
-                f'(after {self.before} of its {self.before + self.after} rows): the rows after '
-                f'moved rigidly by {self.translation_m * 1e3:.3f} mm and '
-                f'{self.rotation_rad * 1e3:.3f} mrad (χ² {self.chi2:.1f} -> '
-                f'{self.chi2_split:.1f} with a placement each side, p = {self.p_value:.2g}): '
-                'the tracker or the robot moved during the recording; split it there '
+        head = f'recording {self.recording}: its placement changed while it was measured'
+        if self.drift:
+            return (f'{head}: it drifted steadily, by {self.translation_m * 1e3:.3f} mm and '
+                    f'{self.rotation_rad * 1e3:.3f} mrad from the half before '
+                    f'{self.at_s:.1f} s to the half after (χ² {self.chi2:.1f} -> '
+                    f'{self.chi2_drift:.1f} with a motion in proportion to time, '
+                    f'{self.chi2_split:.1f} with a step; p = {self.p_value:.2g}): a tracker '
+                    'warming up or a base creeping; let the tracker warm up and measure it '
+                    'again, or split it into shorter recordings (split_at on this recording '
+                    'in a --recordings manifest)')
+        return (f'{head}, at {self.at_s:.1f} s (after {self.before} of its '
+                f'{self.before + self.after} rows): the rows after moved rigidly by '
+                f'{self.translation_m * 1e3:.3f} mm and {self.rotation_rad * 1e3:.3f} mrad '
+                f'(χ² {self.chi2:.1f} -> {self.chi2_split:.1f} with a placement each side, '
+                f'p = {self.p_value:.2g}): the tracker or the robot moved; split it there '
                 f'(split_at: [{self.at_s:.1f}] on this recording in a --recordings manifest) '
                 'or measure it again')
 
@@ -78,7 +93,9 @@ class PlacementJump:
                 'stamp_ns': int(self.stamp_ns), 'rows_before': int(self.before),
                 'rows_after': int(self.after), 'translation_m': float(self.translation_m),
                 'rotation_rad': float(self.rotation_rad), 'chi2': float(self.chi2),
-                'chi2_split': float(self.chi2_split), 'p_value': float(self.p_value)}
+                'chi2_split': float(self.chi2_split), 'p_value': float(self.p_value),
+                'drift': bool(self.drift),
+                'chi2_drift': None if np.isnan(self.chi2_drift) else float(self.chi2_drift)}
 
 
 def _motion_rows(points: np.ndarray) -> np.ndarray:
@@ -122,6 +139,21 @@ def _scan(residuals: np.ndarray, points: np.ndarray, sigma: np.ndarray
     return drop, delta, float(np.sum(b ** 2)) - common
 
 
+def _drift_drop(residuals: np.ndarray, points: np.ndarray, sigma: np.ndarray,
+                time: np.ndarray) -> float:
+    """Return the drop of χ² by a motion in proportion to time, beyond one motion of all."""
+    w = 1.0 / sigma
+    a = _motion_rows(points) * w[:, :, None]
+    b = (residuals * w).reshape(-1)
+    both = np.concatenate([a, a * (time - time.mean())[:, None, None]], axis=2).reshape(-1, 12)
+    one = a.reshape(-1, 6)
+
+    def explained(m: np.ndarray) -> float:
+        x = np.linalg.lstsq(m, b, rcond=None)[0]
+        return float(b @ (m @ x))
+    return explained(both) - explained(one)
+
+
 def placement_jumps(residuals: np.ndarray, predicted: np.ndarray, sigma: np.ndarray,
                     stamps_ns: np.ndarray, groups: Sequence[tuple[str, np.ndarray]]
                     ) -> list[PlacementJump]:
@@ -153,8 +185,10 @@ def placement_jumps(residuals: np.ndarray, predicted: np.ndarray, sigma: np.ndar
         centre = predicted[order].mean(axis=0)
         t, theta = delta[k, :3], delta[k, 3:]
         s = np.asarray(stamps_ns)[order].astype(np.int64)
+        steady = _drift_drop(residuals[order], predicted[order], sigma[order],
+                             (s - s[0]) * 1e-9)
         out.append(PlacementJump(
             name, float((s[k - 1] + s[k]) / 2 - s[0]) * 1e-9, int(s[k]), k, n - k,
             float(np.linalg.norm(t + np.cross(theta, centre))), float(np.linalg.norm(theta)),
-            chi2, chi2 - float(drop[k]), p))
+            chi2, chi2 - float(drop[k]), p, steady > drop[k], chi2 - steady))
     return out
