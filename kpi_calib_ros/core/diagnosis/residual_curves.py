@@ -12,7 +12,7 @@ from kpi_calib_ros.core.diagnosis.residual_bases import Basis, basis_columns
 from kpi_calib_ros.core.diagnosis.residual_inputs import ResidualInput
 from kpi_calib_ros.core.measurement.weighting import weighted_rows
 
-__all__ = ['CURVE_POINTS', 'DETERMINED_SE', 'GAP_SPACINGS', 'implied_values', 'fitted_curve',
+__all__ = ['CURVE_POINTS', 'DETERMINED_SE', 'GAP_SHARE', 'implied_values', 'fitted_curve',
            'curve_region']
 
 CURVE_POINTS = 200
@@ -75,22 +75,23 @@ def fitted_curve(inp: ResidualInput, implied: np.ndarray, weight: np.ndarray, si
     return grid, out, determined
 
 
-# A grid point farther from every measured value than this many of their median spacings
-# (and the grid's step) lies in a gap no row measured: recordings a day apart on the time
-# axis, where the spline's value is an extrapolation (it reached 7.75e4 µm between two
-# recordings whose largest residual was 416 µm).
-GAP_SPACINGS = 5.0
+# A stretch between two neighbouring measured values longer than this share of their span
+# is a gap no row measured: recordings a day apart on the time axis, where the spline's
+# value is an extrapolation (it reached 7.75e4 µm between two recordings whose largest
+# residual was 416 µm). Random poses leave gaps of a few per cent: read through.
+GAP_SHARE = 0.1
 
 
 def _near_values(grid: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """Which points of ``grid`` have a measured value within reach (:data:`GAP_SPACINGS`)."""
+    """Which points of ``grid`` lie outside every gap of the measured ``values``."""
     values = np.unique(values[np.isfinite(values)])
-    if len(values) < 3 or len(grid) < 2:
+    if len(values) < 3:
         return np.ones(len(grid), bool)
-    reach = max(float(grid[1] - grid[0]), GAP_SPACINGS * float(np.median(np.diff(values))))
-    i = np.clip(np.searchsorted(values, grid), 1, len(values) - 1)
-    nearest = np.minimum(np.abs(grid - values[i - 1]), np.abs(values[i] - grid))
-    return nearest <= reach
+    gaps = np.flatnonzero(np.diff(values) > GAP_SHARE * (values[-1] - values[0]))
+    near = np.ones(len(grid), bool)
+    for i in gaps:
+        near &= ~((grid > values[i]) & (grid < values[i + 1]))
+    return near
 
 
 _SHOWN = {'rad': (1e6, 'µrad'), 'm': (1e6, 'µm'), '': (1e6, 'ppm')}
