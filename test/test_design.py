@@ -407,3 +407,12 @@ def test_a_design_leaves_identify_a_degree_of_freedom():
                                          'at least 3 are needed'):
         exchange(rows, 2, LogDetLoss(), rng)
     assert len(exchange(rows, 3, LogDetLoss(), rng).selected) == 3
+
+
+def test_an_incidence_limit_no_pose_meets_is_named_as_such(cm):
+    """An incidence limit of 0.002 rad: no drawn pose sees the reflector, and the error names
+    reflector.max_incidence, not the number of candidates (which raising would not help)."""
+    tight = dataclasses.replace(cm.design_cell(), max_incidence=0.002)
+    with pytest.raises(ConfigError, match='reflector.max_incidence') as caught:
+        design_context(tight, np.random.default_rng(8), SMALL)
+    assert caught.value.key == 'reflector.max_incidence'

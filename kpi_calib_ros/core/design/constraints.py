@@ -94,6 +94,13 @@ def generate_candidates(cell: DesignCell, scene: CollisionScene | None, count: i
         # Give up early when the feasible rate cannot reach ``count`` within max_draws.
         if drawn * count > max_draws * max(n_found, 0.05 * count):
             break
+    if not measurable:
+        raise ConfigError('reflector.max_incidence', f'no pose of {drawn} drawn in the joint '
+                          'ranges sees the reflector within its incidence limit '
+                          f'{cell.max_incidence:.3g} rad ({np.degrees(cell.max_incidence):.3g}°) '
+                          'from the tracker: raise it to what the reflector takes (a 1.5-inch '
+                          'SMR about 0.52 rad), or check reflector.axis (tip frame) and '
+                          'tracker.base_in_tracker')
     rate = {lab: float(v / max(measurable, 1)) for lab, v in zip(labels, violated)}
     flagged = tuple(lab for lab, r in rate.items() if measurable and r >= flag_threshold)
     if n_found < count:
