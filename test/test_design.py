@@ -416,3 +416,23 @@ def test_an_incidence_limit_no_pose_meets_is_named_as_such(cm):
     with pytest.raises(ConfigError, match='reflector.max_incidence') as caught:
         design_context(tight, np.random.default_rng(8), SMALL)
     assert caught.value.key == 'reflector.max_incidence'
+
+
+def test_a_beam_crossing_an_obstacle_at_every_pose_is_refused_even_when_ignoring(cm):
+    """A capsule round the tracker (a stand drawn as an obstacle): the beam crosses it at
+    every pose. The design stops naming the obstacle and the tracker's placement, with
+    design.ignore_flagged too: dropped as flagged, the design's beam crossed it at 12 of 12
+    poses with a warning alone."""
+    from kpi_calib_ros.core.collision.capsules import Capsule  # noqa: PLC0415
+    cell = cm.design_cell()
+    tracker = cell.tracker_in_base[:3, 3]
+    stand = Capsule('stand', 'base', tuple(tracker - [0, 0, 0.3]), tuple(tracker + [0, 0, 0.3]),
+                    0.4)
+    scene = CollisionScene(cell.scene.robot_capsules, [*cell.scene.obstacles, stand],
+                           cell.scene.chain_links, ignore_pairs=set(cm.cell.ignore_pairs),
+                           beam_radius=cm.cell.beam_radius)
+    for relaxed in (SMALL, dataclasses.replace(SMALL, ignore_flagged=True)):
+        with pytest.raises(ConfigError, match='beam crosses obstacle') as caught:
+            design_context(dataclasses.replace(cell, scene=scene), np.random.default_rng(8),
+                           relaxed)
+        assert caught.value.key == 'obstacles' and 'stand' in str(caught.value)

@@ -21,7 +21,7 @@ from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
-from kpi_calib_ros.core.collision.capsules import CollisionScene, HalfSpace
+from kpi_calib_ros.core.collision.capsules import CollisionScene
 from kpi_calib_ros.core.design.cell import DesignCell
 from kpi_calib_ros.core.design.constraints import (
     CandidateSet,
@@ -182,18 +182,25 @@ def design_context(cell: DesignCell, rng: np.random.Generator,
     settings = settings or DesignSettings()
     full = cell.scene
     flagged = flag_pairs(cell, full, rng, threshold=settings.flag_threshold)
+    # A line of sight crossed at nearly every pose is no overlap by construction: the tracker
+    # stands beyond or inside the obstacle. Dropped (design.ignore_flagged), the design's
+    # beam crossed a capsule round the tracker at 12 of 12 poses with a warning alone.
+    sight = {k: v for k, v in flagged.items() if k.split('~')[0] == 'beam'}
+    if sight:
+        raise ConfigError('obstacles', 'the laser beam crosses obstacle(s) '
+                          + ', '.join(f"{k.split('~')[1]} ({100 * v:.0f} %)"
+                                      for k, v in sight.items())
+                          + ' in nearly every measurable pose: the tracker stands beyond or '
+                          'inside them; check tracker.base_in_tracker and the obstacles (a '
+                          'stand of the tracker is no obstacle of its beam: leave it out, or '
+                          'add beam~<name> to collision.ignore_pairs when the beam truly '
+                          'passes above it); design.ignore_flagged drops no line of sight')
     if flagged and not settings.ignore_flagged:
         text = ', '.join(f'{k} ({100 * v:.0f} %)' for k, v in flagged.items())
-        halfspaces = {o.name for o in full.obstacles if isinstance(o, HalfSpace)}
-        beyond = [k.split('~')[1] for k in flagged if k.split('~')[0] == 'beam'
-                  and k.split('~')[1] in halfspaces]
         raise ConfigError('collision.ignore_pairs', f'pairs in collision in nearly every '
-                          f'measurable pose: {text}; '
-                          + (f'the tracker stands beyond obstacle(s) {beyond} (the beam '
-                             'crosses them at every pose): check tracker.base_in_tracker '
-                             'and the obstacles; ' if beyond else '')
-                          + 'if the capsules only overlap by construction, add the pairs to '
-                          'collision.ignore_pairs (or set design.ignore_flagged: true)')
+                          f'measurable pose: {text}; if the capsules only overlap by '
+                          'construction, add the pairs to collision.ignore_pairs (or set '
+                          'design.ignore_flagged: true)')
     check = scene_without(full, tuple(flagged)) if flagged else full
     scene = check if settings.collision else None
     cand = generate_candidates(cell, scene, settings.candidates, rng,
