@@ -257,8 +257,9 @@ def learned_remedy(choice: ResidualChoice) -> Remedy | None:
                            'space): the misfit is smooth in the joints but no effect of the '
                            'library has its shape',
                   'kpi-calib identify --learned-residual', choice.cv_rms_physical_m,
-                  choice.cv_rms_learned_m, f'{choice.folds} pose folds, the learned '
-                  'residual refitted without each fold')
+                  choice.cv_rms_learned_m, f'before: the calibrated model\'s residuals, '
+                  'fitted with these poses; after: with the learned residual refitted '
+                  f'without each of {choice.folds} pose folds')
 
 
 def named_remedy(diag: Diagnosis, comparison: ModelComparison | None = None
