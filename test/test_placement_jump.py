@@ -64,6 +64,20 @@ def test_a_tracker_moved_half_way_is_named_with_its_time_and_size(cm, seed):
     assert 'split_at: [735.0]' in jump.text() and not jump.drift
 
 
+def test_a_move_is_found_between_poses_of_several_points(cm):
+    """Every pose measured by two points at one stamp (several markers or reflectors): the
+    splits fall between poses. Before, a recording whose stamps repeat was not judged at all
+    (the real TIAGo's four markers per posture)."""
+    data, _ = _run(cm, 1, MOVE)
+    rng = np.random.default_rng(3)
+    twice = Measurements(q=np.repeat(data.q, 2, axis=0),
+                         eta=np.repeat(data.eta, 2, axis=0) + rng.normal(0, SIGMA, (2 * POSES, 3)),
+                         stamps_ns=np.repeat(data.stamps_ns, 2))
+    jumps = recording_jumps(cm, twice, calibrate_cell(cm, twice, model='geometric'), ['run'])
+    assert len(jumps) == 1 and jumps[0].before == POSES  # rows: 2 per pose
+    assert jumps[0].at_s == pytest.approx((POSES // 2 - 0.5) * STEP_NS * 1e-9)
+
+
 def test_diagnose_names_the_move_before_the_robot(cm):
     """``diagnose`` says what identify says about the recording, first: its effects are
     screened on a fit the move bends (it ranked a joint-reading noise and a link bending)."""

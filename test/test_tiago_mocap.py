@@ -241,3 +241,23 @@ def test_the_final_fit_converges_with_the_selected_shapes_free(tmp_path):
     assert 'the final fit did not converge' not in cal['model']['reason']
     assert cal['model']['held'] == []
     assert cal['effects'] == [] and 'held-out folds' in cal['model']['reason']
+
+
+@pytest.mark.slow
+def test_a_real_session_whose_misfit_follows_its_postures_names_no_move(tmp_path):
+    """Four markers per posture (one stamp): the check of a placement that changed splits
+    between postures. On the real sessions the model misses by millimetres and the misfit
+    follows the postures' order: the best split explains 9 to 12 % of the χ² beyond the
+    noise (significant by its F test), a rigid move of 3.6 mm and 4.5 mrad injected half way
+    20 to 22 %. A move is named only where it explains at least half: none here."""
+    from kpi_calib_ros.app.calibration_document import recording_jumps
+    from kpi_calib_ros.app.identify import calibrate_cell
+    from kpi_calib_ros.app.measurements import load_measurements
+
+    for session in ('2021-11-26', '2021-11-30-1403'):
+        bag = tmp_path / f'{session}.mcap'
+        assert main(['import-csv', _table(session), '--mapping', str(MAPPING),
+                     '--out', str(bag)]) == 0
+        cm, data, _ = load_measurements(CELL, bag)
+        assert len(set(data.stamps_ns.tolist())) < len(data)  # several markers per stamp
+        assert recording_jumps(cm, data, calibrate_cell(cm, data), [session]) == []

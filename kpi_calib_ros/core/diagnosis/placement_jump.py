@@ -110,12 +110,12 @@ def _motion_rows(points: np.ndarray) -> np.ndarray:
     return a
 
 
-def _scan(residuals: np.ndarray, points: np.ndarray, sigma: np.ndarray
-          ) -> tuple[np.ndarray, np.ndarray, float]:
-    """Return the drop of χ² at every split k beyond one motion of all the rows.
+def _scan(residuals: np.ndarray, points: np.ndarray, sigma: np.ndarray,
+          allowed: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Return the drop of χ² at every allowed split k beyond one motion of all the rows.
 
-    Rows [0, k) and [k, n) each get a motion; also returns the motions' difference
-    (n + 1, 6) and the χ² with the one motion.
+    Rows [0, k) and [k, n) each get a motion; ``allowed`` (n + 1,) bool; also returns the
+    motions' difference (n + 1, 6) and the χ² with the one motion.
     """
     w = 1.0 / sigma                                       # (n, 3)
     a = _motion_rows(points) * w[:, :, None]              # weighted A_i
@@ -129,7 +129,7 @@ def _scan(residuals: np.ndarray, points: np.ndarray, sigma: np.ndarray
     common = float(cum_v[n] @ np.linalg.lstsq(cum_m[n], cum_v[n], rcond=None)[0])
     drop = np.zeros(n + 1)
     delta = np.zeros((n + 1, 6))
-    for k in range(MIN_ROWS, n - MIN_ROWS + 1):
+    for k in np.flatnonzero(allowed):
         m1, v1 = cum_m[k], cum_v[k]
         m2, v2 = cum_m[n] - m1, cum_v[n] - v1
         x1 = np.linalg.lstsq(m1, v1, rcond=None)[0]
@@ -162,22 +162,30 @@ def placement_jumps(residuals: np.ndarray, predicted: np.ndarray, sigma: np.ndar
     The test is the module docstring's.
 
     ``residuals``, ``predicted``, ``sigma`` (N, 3) of the fit's point rows (tracker frame, m),
-    ``stamps_ns`` (N,); ``groups``: (recording name, its row indices). A recording with fewer
-    than 2 :data:`MIN_ROWS` rows, or without stamps that order it, is not judged.
+    ``stamps_ns`` (N,); ``groups``: (recording name, its row indices). A pose is the rows of
+    one stamp (its reflectors): splits fall between poses. A recording with fewer than 2
+    :data:`MIN_ROWS` poses is not judged.
     """
     out = []
     for name, rows in groups:
         rows = np.asarray(rows, int)
         stamps = np.asarray(stamps_ns)[rows]
-        if len(rows) < 2 * MIN_ROWS or np.unique(stamps).size < len(rows):
+        if np.unique(stamps).size < 2 * MIN_ROWS:
             continue
         order = rows[np.argsort(stamps, kind='stable')]
-        drop, delta, chi2 = _scan(residuals[order], predicted[order], sigma[order])
+        sorted_stamps = np.asarray(stamps_ns)[order]
         n = len(order)
+        new_pose = np.r_[True, sorted_stamps[1:] != sorted_stamps[:-1]]
+        poses_before = np.r_[0, np.cumsum(new_pose)]  # distinct poses among rows [0, k)
+        allowed = np.r_[new_pose, False] & (poses_before >= MIN_ROWS) \
+            & (poses_before[-1] - poses_before >= MIN_ROWS)
+        if not allowed.any():
+            continue
+        drop, delta, chi2 = _scan(residuals[order], predicted[order], sigma[order], allowed)
         dof = 3 * n - 12
-        splits = n - 2 * MIN_ROWS + 1
+        splits = int(allowed.sum())
         with np.errstate(divide='ignore', invalid='ignore'):
-            f = (drop / 6.0) / np.maximum(chi2 - drop, 1e-300) * dof
+            f = np.where(allowed, (drop / 6.0) / np.maximum(chi2 - drop, 1e-300) * dof, -1.0)
         k = int(np.argmax(f))
         p = min(1.0, float(scipy.stats.f.sf(f[k], 6, dof)) * splits)
         if not (p < ALPHA and drop[k] >= SHARE * (chi2 - 3 * n)):
