@@ -14,7 +14,7 @@ from typing import Callable
 
 import numpy as np
 
-from kpi_calib_ros.app.robot_geometry import RobotGeometry, robot_geometry
+from kpi_calib_ros.app.robot_geometry import RobotGeometry, mesh_check, robot_geometry
 from kpi_calib_ros.core.acquisition.coupling import JointCoupling, mimic_coupling
 from kpi_calib_ros.core.collision.capsules import Capsule, CollisionScene, HalfSpace
 from kpi_calib_ros.core.design.cell import DesignCell
@@ -147,7 +147,17 @@ class CellModel:
                           self.tracker_in_base, self.cell.reflector_offset,
                           self.cell.max_incidence, self.cell.sigma,
                           self.cell.identification_method, self.cell.identification_priority,
-                          self.collision_scene(), self.tau_work)
+                          self.collision_scene(), self.tau_work, self.mesh_free())
+
+    def mesh_free(self) -> Callable[[np.ndarray], np.ndarray] | None:
+        """(N, n) -> (N,) bool: the configurations in no contact on the collision meshes, as
+        the design's verification judges them; None without meshes."""
+        geometry = self.robot_geometry()
+        if not geometry.has_meshes:
+            return None
+        ignore = self.cell.ignore_pairs
+        return lambda q: np.array([not pairs for pairs in mesh_check(
+            geometry, self.robot, q, ignore)[0].collisions], bool)
 
 
 def build_cell_model(cell: Cell, effects: tuple = ()) -> CellModel:

@@ -5,7 +5,8 @@ cell file; the design modules take this object and nothing from the YAML.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 
@@ -43,6 +44,11 @@ class DesignCell:
     tau_work : (t, n) ndarray or None
         Torques at the working poses, each with the payload it carries there (N m); None:
         the gravity torques with the cell's payload.
+    accept : callable or None
+        Which configurations the robot can take beyond the capsules (its meshes in no
+        contact): candidates and the refined design are held to it. Capsules fitted to a
+        link overlap their neighbour's in every pose, so the pair is skipped, while the
+        meshes touch in some (a Baxter's shoulder and elbow in 62 % of random poses).
     """
 
     model: MeasurementModel
@@ -56,6 +62,9 @@ class DesignCell:
     identification_priority: tuple[str, ...]
     scene: CollisionScene
     tau_work: np.ndarray | None = None
+    # (N, n) configurations -> (N,) bool: those the robot can take beyond the capsules'
+    # judgement (its collision meshes); None: the capsules decide alone.
+    accept: Callable[[np.ndarray], np.ndarray] | None = field(default=None, compare=False)
 
     @property
     def robot(self) -> RobotModel:

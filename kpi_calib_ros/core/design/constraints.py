@@ -89,6 +89,8 @@ def generate_candidates(cell: DesignCell, scene: CollisionScene | None, count: i
             margins = np.array(fun.map(len(q))(q.T))[1:].T
             violated += np.sum(margins < clearance, axis=0)
             q = q[np.all(margins >= clearance, axis=1)]
+        if cell.accept is not None and len(q):
+            q = q[np.asarray(cell.accept(q), bool)]
         found.append(q)
         n_found += len(q)
         # Give up early when the feasible rate cannot reach ``count`` within max_draws.

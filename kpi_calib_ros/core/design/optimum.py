@@ -291,8 +291,13 @@ def design_measurements(cell: DesignCell, n: int, criterion: str, rng: np.random
                       f'{nlp.loss_start:.4g} -> {nlp.loss:.4g}')
         if nlp.loss < nlp.loss_start:
             trial = verify_design(cell, ctx.scene, nlp.configurations)
-            if trial.ok:
+            refused = (0 if cell.accept is None
+                       else int(np.sum(~np.asarray(cell.accept(nlp.configurations), bool))))
+            if trial.ok and not refused:
                 q = nlp.configurations
+            elif trial.ok:
+                status.append(f'the NLP result put {refused} configuration(s) in contact on '
+                              'the collision meshes; returned the exchange design')
             else:
                 status.append(f'the NLP result failed the independent check '
                               f'({len(trial.violations)} violations, first: '
