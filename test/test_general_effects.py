@@ -252,3 +252,18 @@ def test_link_bending_is_identified_across_payloads_and_predicts_another(kr15):
           f'(floor {FLOOR * 1e6:.1f} µm), χ²/dof {after.chi2 / after.dof:.2f}')
     assert np.all(np.abs(z) < 3)
     assert rms <= 1.3 * FLOOR
+
+
+def test_a_transmission_error_of_a_prismatic_joint_follows_its_reading_not_an_angle():
+    """The screen's explanation of a joint_scale names what the correction follows: the
+    joint's reading, an angle or a travel (a lift's k·q "correlated with the angle of
+    torso_lift_joint")."""
+    from kpi_calib_ros.core.effects.registry import available_effects, bind_effect
+    from kpi_calib_ros.core.model.robot import RobotModel
+    from kpi_calib_ros.io.resources import resolve_uri
+    xml = resolve_uri('package://example-robot-data/robots/tiago_description/robots/'
+                      'tiago.urdf').read_text()
+    robot = RobotModel(xml, 'base_footprint', 'arm_7_link')
+    effect = bind_effect(available_effects()['joint_scale'], robot, 'torso_lift_joint')
+    assert effect.joint_kind == 'prismatic'
+    assert effect.signature() == 'reading of torso_lift_joint'

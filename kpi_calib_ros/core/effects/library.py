@@ -134,7 +134,7 @@ LIBRARY: tuple[EffectType, ...] = (
                description='transmission-ratio error k·q',
                hint='move {joint} over a wide range; over a narrow one k·q looks like '
                     'the joint offset',
-               signature='angle of {joint}'),
+               signature='reading of {joint}'),
     EffectType('tracker_scale', ('s',), ('1',), point_function=_tracker_scale,
                per_joint=False, typical=(1e-5,), screen=True,
                plausible=(1e-3,),  # 1000 ppm: far beyond any tracker's or camera's scale
