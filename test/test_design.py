@@ -424,7 +424,7 @@ def test_a_beam_crossing_an_obstacle_at_every_pose_is_refused_even_when_ignoring
     every pose. The design stops naming the obstacle and the tracker's placement, with
     design.ignore_flagged too: dropped as flagged, the design's beam crossed it at 12 of 12
     poses with a warning alone."""
-    from kpi_calib_ros.core.collision.capsules import Capsule  # noqa: PLC0415
+    from kpi_calib_ros.core.collision.capsules import Capsule
     cell = cm.design_cell()
     tracker = cell.tracker_in_base[:3, 3]
     stand = Capsule('stand', 'base', tuple(tracker - [0, 0, 0.3]), tuple(tracker + [0, 0, 0.3]),
