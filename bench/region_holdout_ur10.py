@@ -1,6 +1,7 @@
 """Real UR10: calibrate on one region of joint space, validate on the others and on Series D.
 
-Series A (laser tracker, one night) is cut into ``REGIONS`` regions of joint space
+Series A (laser tracker, one set-up, 2020-07-14 to 07-18: four days, not the one night its
+README says) is cut into ``REGIONS`` regions of joint space
 (k-means in normalised joint space, ``core.estimation.folds.region_fold_ids``, seed 0). For each
 region in turn, up to ``N_TRAIN`` of its poses (random, seed 0) calibrate:
 

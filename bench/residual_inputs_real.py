@@ -1,6 +1,6 @@
 """Real data: where the geometric model of the UR10 and the TIAGo fails, model-free.
 
-UR10 (../shared/data/ipa_ur10, Series A, every ``STEP``-th posture of the overnight grid,
+UR10 (../shared/data/ipa_ur10, Series A, every ``STEP``-th posture of the grid (four days),
 with the cell temperature as a covariate: ``import-csv`` records it, the cell's
 ``temperature:`` section reads it and pairs it to the measurements as ``kpi-calib
 diagnose`` does, :func:`kpi_calib_ros.app.measurements.with_readings`) and TIAGo
