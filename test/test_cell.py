@@ -288,3 +288,25 @@ def test_an_obstacle_takes_only_its_own_shapes_keys():
     with pytest.raises(ConfigError) as info:
         cell_from_dict(doc, DEFAULT_CELL.parent)
     assert info.value.key == 'obstacles[0].radius'
+
+
+@pytest.mark.parametrize('key, value, field', [
+    ('payload.mass', 500.0, 'payload.mass'),
+    ('working_poses.0.payload', {'mass': 500.0}, 'working_poses[0].payload'),
+])
+def test_a_payload_beyond_what_the_arm_carries_is_refused_at_load(key, value, field):
+    """A cell payload (or a working pose's) beyond the arm's rating, or without one the mass of
+    its moving links, is refused as a row's is: 500 kg on a Baxter arm was accepted."""
+    def cell(limit=None):
+        doc = _doc()
+        if key.startswith('working_poses'):
+            doc['working_poses'][0]['payload'] = value
+        else:
+            doc = _set(doc, key, value)
+        if limit is not None:
+            doc = _set(doc, 'payload.limit', limit)
+        return cell_from_dict(doc, DEFAULT_CELL.parent)
+    with pytest.raises(ConfigError) as caught:
+        build_cell_model(cell())
+    assert caught.value.key == field and 'payload.limit' in str(caught.value)
+    build_cell_model(cell(600.0))  # its rating stated

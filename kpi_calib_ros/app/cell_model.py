@@ -175,6 +175,20 @@ def build_cell_model(cell: Cell, effects: tuple = ()) -> CellModel:
                           'URDF document (with_overrides)')
     robot = RobotModel(cell.urdf_xml, cell.base_frame, cell.tip_frame,
                        Payload(cell.payload_mass, tuple(cell.payload_com)))
+    # A payload beyond what the arm carries (its rating, else its moving links' own mass) is a
+    # unit slip, as a row's is (app.measurements.check_payload_limit): a 500 kg payload on a
+    # Baxter arm was accepted without a word.
+    limit = cell.payload_limit if cell.payload_limit is not None else robot.moving_mass_kg
+    stated = [('payload.mass', cell.payload_mass)] + [
+        (f'working_poses[{i}].payload', w.payload[0])
+        for i, w in enumerate(cell.working_poses) if w.payload is not None]
+    for key, mass in stated:
+        if limit > 0.0 and mass > limit:
+            raise ConfigError(key, f'{mass:g} kg is beyond what the robot carries, {limit:.3g} '
+                              'kg (' + ('payload.limit' if cell.payload_limit is not None
+                                        else "the mass of its moving links in the URDF")
+                              + '): a payload is in kg (grams? divide by 1000); if the robot '
+                              'truly carries it, state its rating as payload.limit (kg)')
     # Placements left out are zeros here; identification registers them first.
     geometric = geometric_parameters(robot, cell.base_in_tracker, cell.offsets,
                                      cell.reflector_names or None)

@@ -122,8 +122,9 @@ CELL_KEYS: tuple[CellKey, ...] = (
     _K('payload.com', '[x, y, z]', 'm', '[0, 0, 0]', 'Payload centre of mass in the tip '
        'frame.', [0.0, 0.0, 0.05]),
     _K('payload.limit', 'number', 'kg', 'the mass of the robot\'s moving links in the URDF',
-       'The most the robot carries (its rated payload): a measured row\'s `payload.mass` '
-       'beyond it is refused as a unit slip (grams written as kg) or a fault of the '
+       'The most the robot carries (its rated payload): a measured row\'s `payload.mass`, '
+       'the cell\'s `payload.mass` or a working pose\'s payload beyond it is refused as a '
+       'unit slip (grams written as kg) or a fault of the '
        'controller\'s report. No serial arm carries more than its own moving links weigh '
        '(payload to arm mass: 0.2-0.5 for cobots, below for industrial arms).', 10.0),
     # ---------------------------------------------------------- working poses
