@@ -43,6 +43,7 @@ from kpi_calib_ros.core.effects.registry import (
     EffectType,
 )
 from kpi_calib_ros.core.errors import ConfigError
+from kpi_calib_ros.core.measurement.payload import PAYLOAD_COM, PAYLOAD_MASS
 from kpi_calib_ros.core.model.kinematics import SymbolicChain, axis_rotation
 from kpi_calib_ros.core.model.parameters import geometric_parameters
 from kpi_calib_ros.core.model.robot import RobotModel, frame_id
@@ -181,7 +182,7 @@ def _no_joint_value(q_j: ca.SX, tau_j: ca.SX, theta: ca.SX, *z: ca.SX) -> ca.SX:
 
 # The payload a row carries (core.measurement.payload): the moment of its own load, the cell's
 # where it states none (MeasurementModel.input_values).
-PAYLOAD_INPUTS = ('payload.mass', 'payload.com.x', 'payload.com.y', 'payload.com.z')
+PAYLOAD_INPUTS = (PAYLOAD_MASS, *PAYLOAD_COM)
 
 
 @dataclass(frozen=True)
