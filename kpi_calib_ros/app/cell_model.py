@@ -160,6 +160,18 @@ class CellModel:
             geometry, self.robot, q, ignore)[0].collisions], bool)
 
 
+def carried_limit(stated: float | None, robot: RobotModel) -> tuple[float, str] | None:
+    """The most the robot carries (kg) and where that figure comes from: ``stated`` (the
+    cell's ``payload.limit``), else the mass of the robot's moving links in the URDF (no
+    serial arm carries more than its own arm weighs); None when the URDF states no masses."""
+    if stated is not None:
+        return stated, 'payload.limit'
+    mass = robot.moving_mass_kg
+    if mass > 0.0:
+        return mass, f"the mass of the robot's moving links in the URDF ({mass:.3g} kg)"
+    return None
+
+
 def build_cell_model(cell: Cell, effects: tuple = ()) -> CellModel:
     """Robot, parameters, measurement model and working poses of ``cell``.
 
@@ -178,17 +190,16 @@ def build_cell_model(cell: Cell, effects: tuple = ()) -> CellModel:
     # A payload beyond what the arm carries (its rating, else its moving links' own mass) is a
     # unit slip, as a row's is (app.measurements.check_payload_limit): a 500 kg payload on a
     # Baxter arm was accepted without a word.
-    limit = cell.payload_limit if cell.payload_limit is not None else robot.moving_mass_kg
+    limit = carried_limit(cell.payload_limit, robot)
     stated = [('payload.mass', cell.payload_mass)] + [
         (f'working_poses[{i}].payload', w.payload[0])
         for i, w in enumerate(cell.working_poses) if w.payload is not None]
     for key, mass in stated:
-        if limit > 0.0 and mass > limit:
-            raise ConfigError(key, f'{mass:g} kg is beyond what the robot carries, {limit:.3g} '
-                              'kg (' + ('payload.limit' if cell.payload_limit is not None
-                                        else "the mass of its moving links in the URDF")
-                              + '): a payload is in kg (grams? divide by 1000); if the robot '
-                              'truly carries it, state its rating as payload.limit (kg)')
+        if limit is not None and mass > limit[0]:
+            raise ConfigError(key, f'{mass:g} kg is beyond what the robot carries, '
+                              f'{limit[0]:.3g} kg ({limit[1]}): a payload is in kg (grams? '
+                              'divide by 1000); if the robot truly carries it, state its '
+                              'rating as payload.limit (kg)')
     # Placements left out are zeros here; identification registers them first.
     geometric = geometric_parameters(robot, cell.base_in_tracker, cell.offsets,
                                      cell.reflector_names or None)

@@ -17,7 +17,12 @@ from typing import Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from kpi_calib_ros.app.cell_model import CellModel, build_cell_model, reading_check
+from kpi_calib_ros.app.cell_model import (
+    CellModel,
+    build_cell_model,
+    carried_limit,
+    reading_check,
+)
 from kpi_calib_ros.core.acquisition.outcomes import PairingResult
 from kpi_calib_ros.core.acquisition.pairing import pair_measurements
 from kpi_calib_ros.core.acquisition.reflector_frames import split_frame
@@ -503,15 +508,9 @@ def in_window(data: Measurements, name: str, bag: Path,
 
 
 def payload_limit(cm: CellModel) -> tuple[float, str] | None:
-    """The most the robot carries (kg) and where that figure comes from: the cell's
-    ``payload.limit``, else the mass of the robot's moving links in the URDF (no serial
-    arm carries more than its own arm weighs); None when the URDF states no masses."""
-    if cm.cell.payload_limit is not None:
-        return cm.cell.payload_limit, 'payload.limit'
-    mass = cm.robot.moving_mass_kg
-    if mass > 0.0:
-        return mass, f"the mass of the robot's moving links in the URDF ({mass:.3g} kg)"
-    return None
+    """The most ``cm``'s robot carries (kg) and where that figure comes from
+    (:func:`~kpi_calib_ros.app.cell_model.carried_limit`)."""
+    return carried_limit(cm.cell.payload_limit, cm.robot)
 
 
 def check_payload_limit(cm: CellModel, covariates: Mapping[str, np.ndarray] | None,
