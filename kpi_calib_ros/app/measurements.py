@@ -429,7 +429,7 @@ def load_recordings(cell_path: str | Path, sources: Sequence[RecordingSource],
     for source in sources:
         pieces = []
         for bag, window, values in [(source.bag, source.window, source.recording.covariates),
-                                    *((m.bag, m.window, m.covariates) for m in source.more)]:
+                                    *((m.bag, (None, None), m.covariates) for m in source.more)]:
             try:
                 data, pairing = measurements_from_bag(cm, bag, joint_topic, point_topic,
                                                       pose_topic)
@@ -443,7 +443,11 @@ def load_recordings(cell_path: str | Path, sources: Sequence[RecordingSource],
             if len(data) == 0:
                 raise DataError(f'recording {source.recording.name!r} ({bag}) gives no paired '
                                 'measurement: check its topics and the cell\'s joint names')
-            pieces.append(with_conditions(data, values) if source.more else data)
+            # several bags of one placement: each one's conditions on its own rows, checked
+            # against those its rows carry, as a recording's are
+            pieces.append(_combined([data], [Recording(source.recording.name,
+                                                       covariates=values)])
+                          if source.more else data)
             pairings.append(pairing)
         parts.append(pieces[0] if len(pieces) == 1 else concatenate(pieces))
         recordings.append(source.fitted)  # several bags: each one's conditions on its rows
@@ -456,30 +460,17 @@ def load_recordings(cell_path: str | Path, sources: Sequence[RecordingSource],
                           f'({sources[i].bag}): the same measurements given twice (a copy '
                           'under another name) would count twice and halve every variance; '
                           'give each recording once')
-    try:
-        data = combine(parts, recordings)
-    except ValueError as exc:
-        raise ConfigError('recordings', f'{exc}') from None
+    data = _combined(parts, recordings)
     check_payload_limit(cm, data.covariates, 'recordings')
     return with_recordings(cm, recordings), data, merged_pairing(pairings)
 
 
-def with_conditions(data: Measurements, values: Mapping[str, float]) -> Measurements:
-    """``data`` with each of ``values`` (a bag's stated conditions) on every one of its rows.
-
-    Raises
-    ------
-    ConfigError
-        The rows carry one of them with other values.
-    """
-    covariates = dict(data.covariates or {})
-    for name, value in values.items():
-        rows = covariates.get(name)
-        if rows is not None and not np.allclose(np.asarray(rows, float), value, atol=1e-12):
-            raise ConfigError('recordings', f'a bag states {name} = {value:g} while its rows '
-                              'carry other values: state it in one place')
-        covariates[name] = np.full(len(data), float(value))
-    return dataclasses.replace(data, covariates=covariates or None)
+def _combined(parts: Sequence[Measurements], recordings: Sequence[Recording]) -> Measurements:
+    """:func:`~kpi_calib_ros.core.measurement.recordings.combine`, its refusals a ConfigError."""
+    try:
+        return combine(parts, recordings)
+    except ValueError as exc:
+        raise ConfigError('recordings', f'{exc}') from None
 
 
 def in_window(data: Measurements, name: str, bag: Path,

@@ -56,7 +56,6 @@ class RecordingPart:
 
     bag: Path
     covariates: dict[str, float]
-    window: Window = (None, None)
 
 
 @dataclass(frozen=True)
@@ -119,7 +118,7 @@ def _unique(sources: list[RecordingSource], key: str) -> list[RecordingSource]:
                           'the file stem): rename the bags or name them in a manifest '
                           '(--recordings)')
     files = [(b.resolve(), w) for s in sources
-             for b, w in [(s.bag, s.window), *((m.bag, m.window) for m in s.more)]]
+             for b, w in [(s.bag, s.window), *((m.bag, (None, None)) for m in s.more)]]
     sources_of = [s for s in sources for _ in range(1 + len(s.more))]
     again = next((i for i, f in enumerate(files) if f in files[:i]), None)
     if again is not None:
