@@ -535,6 +535,15 @@ def recording_jumps(cm: CellModel, data: Measurements, cal: CellCalibration,
                            [(name, np.flatnonzero(index == i)) for i, name in enumerate(names)])
 
 
+def add_placement_jumps(doc: dict[str, Any], cm: CellModel, data: Measurements,
+                        cal: CellCalibration, names: Sequence[str]) -> list[str]:
+    """calibration.yaml's ``placement_jumps`` (:func:`recording_jumps`) in ``doc``, and the
+    WARNING line of each for the summary."""
+    jumps = recording_jumps(cm, data, cal, names)
+    doc['placement_jumps'] = [j.to_dict() for j in jumps]
+    return [f'WARNING: {j.text()}' for j in jumps]
+
+
 def recording_names(bags: str | Path | Sequence[RecordingSource]) -> list[str]:
     """The recordings' names, the first included: one bag's file stem, or each source's."""
     if isinstance(bags, (str, Path)):

@@ -14,7 +14,9 @@ import numpy as np
 from kpi_calib_ros.app.calibration_document import (
     plausibility_gate,
     recording_jumps,
-    recording_names,
+)
+from kpi_calib_ros.app.calibration_document import (
+    recording_names as bag_recording_names,  # diagnose_cell takes the names themselves
 )
 from kpi_calib_ros.app.cell_model import CellModel
 from kpi_calib_ros.app.identify import (
@@ -341,7 +343,8 @@ def run_diagnose(cell_path: str | Path, bag_path: str | Path, out_dir: str | Pat
     cd, choice, refused, report = diagnose_and_report(cm, data, out_dir, folds=folds,
                                                       alpha=alpha, model=model,
                                                       progress=rounds.append,
-                                                      recording_names=recording_names(bag_path))
+                                                      recording_names=bag_recording_names(
+                                                          bag_path))
     print(diagnosis_text(cd), flush=True)
     for line in rounds:
         print_progress(line)

@@ -16,11 +16,11 @@ import numpy as np
 
 from kpi_calib_ros.app.calibration_document import (
     CellCalibration,
+    add_placement_jumps,
     add_robust_sections,
     calibration_document,
     name_excluded,
     plausibility_gate,
-    recording_jumps,
     recording_names,
     recordings_section,
     recordings_text,
@@ -556,9 +556,8 @@ def run_identify(cell_path: str | Path, bag_path: str | Path | Sequence[Recordin
                                                [str(s.bag) for s in bag_path])
         name_excluded(doc, data, recordings)
         recordings_lines = recordings_text(doc['recordings'])
-    jumps = recording_jumps(cm, data, cal, recording_names(bag_path))
-    doc['placement_jumps'] = [j.to_dict() for j in jumps]
-    recordings_lines += ''.join(f'\nWARNING: {j.text()}' for j in jumps)
+    recordings_lines += ''.join(f'\n{line}' for line in add_placement_jumps(
+        doc, cm, data, cal, recording_names(bag_path)))
     residual_text, learned = '', None
     if learned_residual:
         from kpi_calib_ros.app.learned_residual import learned_residual_section

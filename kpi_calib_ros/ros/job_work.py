@@ -19,10 +19,10 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 
 from kpi_calib_ros.app.calibration_document import (
     CellCalibration,
+    add_placement_jumps,
     add_robust_sections,
     calibration_document,
     name_excluded,
-    recording_jumps,
     recordings_section,
     recordings_text,
     urdf_omission,
@@ -316,9 +316,8 @@ def identify_work(cm: CellModel, data: Measurements, pairing: PairingResult, dat
         doc = add_robust_sections(calibration_document(cm, cal.result, pairing), cal)
         add_prior_and_comparison(doc, cm, data, cal)
         result = cal.result
-        jumps = recording_jumps(cm, data, cal, [r.name for r in stations] or ['station'])
-        doc['placement_jumps'] = [j.to_dict() for j in jumps]
-        notes += [f'WARNING: {j.text()}' for j in jumps]
+        notes += add_placement_jumps(doc, cm, data, cal,
+                                     [r.name for r in stations] or ['station'])
         if several and cal.valid:
             doc['recordings'] = recordings_section(
                 cm, data, cal, stations, [f'{data_dir} station {r.name}' for r in stations])
