@@ -69,6 +69,10 @@ BAD = {
                            'recordings[0].split_at'),
     'split not a number': ([{'bag': 'station_a.mcap', 'split_at': ['half']}],
                            'recordings[0].split_at'),
+    # the entry is named, not its place among the recordings a split makes
+    'condition of some only, after a split': (
+        [{'bag': 'station_a.mcap', 'split_at': [100.0], 'covariates': {'payload.mass': 5.0}},
+         {'bag': 'station_b.mcap'}], 'recordings[1].covariates'),
     'a misspelled payload': ([{'bag': 'station_a.mcap', 'covariates': {'payload.mas': 5.0}}],
                              'recordings[0].covariates.payload.mas'),
     'a payload centre in mm': ([{'bag': 'station_a.mcap',

@@ -223,8 +223,8 @@ def read_manifest(path: str | Path) -> list[RecordingSource]:
         out.extend(RecordingSource(bag_path, Recording(f'{name}_{j + 1}', remounted and j == 0,
                                                        values), (lo, hi))
                    for j, (lo, hi) in enumerate(zip(edges, edges[1:])))
-    stated = [set(c) for s in out for c in (s.recording.covariates,
-                                            *(m.covariates for m in s.more))]
+    # by manifest entry: a split or joined entry is not one recording of ``out``
+    stated = [set(map(str, entry.get('covariates') or {})) for entry in entries]
     every = set().union(*stated)
     for i, have in enumerate(stated):
         if have != every:
