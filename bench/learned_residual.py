@@ -8,7 +8,7 @@ and the real UR10 and TIAGo splits.
    error lies in the 95 % ellipsoid (χ²₃), inside and outside.
 2. Clean data (no map), 150 poses: how often the learned residual is chosen (false alarms).
 3. UR10 Series A (real, laser tracker): a geometric calibration on 300 poses of the first
-   quarter of the night with shoulder_pan below its median; held-out: later poses in the
+   quarter of Series A with shoulder_pan below its median; held-out: later poses in the
    same region, and poses of the other region; rms of the physical model and with the
    learned residual (also on the poses of the same quarter and region not trained on), and
    the share of held-out measurements in their 95 % ellipsoid
@@ -247,7 +247,7 @@ def ur10(lines: list[str]) -> None:
     outside = field_covariance(cm.model, data, result, choice.model, cm.cell.sigma)
     misfit = physical_misfit(cm.model, data, result)
     lines += ['## 3. UR10 Series A (real, laser tracker)', '',
-              f'Geometric calibration on {UR10_TRAIN} poses of the first quarter of the night '
+              f'Geometric calibration on {UR10_TRAIN} poses of the first quarter of Series A '
               f'with shoulder_pan < {pan_median:.3f} rad (training rms {result.rms_m * 1e6:.0f} '
               f'µm, χ²/dof {result.chi2 / result.dof:.1f}); {choice.reason}; length scales '
               + ', '.join(f'{k} {v:.3g}' for k, v in choice.model.relevant_joints().items())

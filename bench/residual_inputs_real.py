@@ -35,7 +35,7 @@ from kpi_calib_ros.io.residual_plots import analysis_lines
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / 'bench' / 'results'
-STEP = 40   # every 40th of the 11911 Series A postures: 298 poses over the night
+STEP = 40   # every 40th of the 11911 Series A postures: 298 poses over Series A's four days
 
 
 def _subset(source: Path, target: Path, step: int) -> Path:

@@ -62,7 +62,7 @@ UR10_SIGMA = 20e-6
 
 
 def ur10_series_a(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """``n`` poses of Series A drawn over the night (seeded): joint values (rad, by name)
+    """``n`` poses of Series A drawn over Series A (seeded): joint values (rad, by name)
     and the probe origin in the tracker frame (m), read as import-csv reads the table."""
     rows = list(read_postures(DATA / 'Series_A' / 'measurements_grid.csv',
                               load_mapping(MAPPING)))

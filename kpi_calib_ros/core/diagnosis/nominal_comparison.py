@@ -95,7 +95,7 @@ class NominalComparison:
         nominal robot's expected error (its misfit, its placement's part): wherever the
         robot was measured, the poses do not determine it where it works, and using the
         calibration there is expected to be worse than using none. Real UR10 Series A,
-        300 poses of one region, slab of the shoulder or hour of the night: 1343-19502 µm
+        300 poses of one region, slab of the shoulder or hour of Series A: 1343-19502 µm
         against 516-923 µm, measured 3-20x worse than the nominal robot over the rest of
         the workspace, while every cross-validated figure, drawn from the measured poses,
         favoured the calibration; 300 or 60 poses over the workspace: 157 and 423 µm
@@ -150,10 +150,10 @@ class NominalComparison:
         The prediction from the fit outweighs cross-validated figures that favour the
         nominal only when it favours the calibration beyond its own uncertainty: the upper
         end of the calibration's 95 % interval below the lower end of the nominal's (the
-        real TIAGo: 2405 against 4120 µm). On 300 poses of an hour of the real UR10's night
+        real TIAGo: 2405 against 4120 µm). On 300 poses of an hour of the real UR10's Series A
         every cross-validated figure favoured the nominal robot, the prediction the
         calibration by 1 % (349.0 against 353.4 µm), and the calibration predicted the rest
-        of the night 1.6x worse than the nominal robot (1490 against 939 µm).
+        of Series A 1.6x worse than the nominal robot (1490 against 939 µm).
         """
         return self._cv_better or self._predicted_better
 
