@@ -13,7 +13,11 @@ the calibration held: its first 6 poses, random, or 6 spread over its points by
 farthest-point selection, as one places registration points) and its other 34 points
 predicted: rms against the noise floor √3·σ (the rms distance pure noise gives); the same
 with set-up A alone calibrated (40 poses), and with the true robot (what the registration on
-6 points costs by itself).
+6 points costs by itself). The tool's own way to the next station is a third: the 6 poses
+designed for it (``kpi-calib design --cell CELL_d.yaml --prior calibration.yaml``, KPI
+criterion, the joint calibration as prior, D's cell file placing the base where the station
+puts it roughly, 400 candidates, no NLP refinement), measured, registered on and the same 34
+random poses predicted.
 
 Real (../shared/data/ipa_ur10): 400 poses of Series A (random, seed 0) and half of Series D
 (316 poses, random, seed 0: months later, tracker set up again and the probe remounted)
@@ -38,9 +42,16 @@ import yaml
 
 from kpi_calib_ros.app.calibration_document import calibration_document
 from kpi_calib_ros.app.cell_model import build_cell_model
+from kpi_calib_ros.app.design import design_free, design_point
 from kpi_calib_ros.app.identify import calibrate_cell
 from kpi_calib_ros.app.measurements import with_recordings
+from kpi_calib_ros.app.reidentify import cycle_prior
 from kpi_calib_ros.app.validate import validate_calibration
+from kpi_calib_ros.core.design.optimum import (
+    DesignSettings,
+    design_context,
+    design_measurements,
+)
 from kpi_calib_ros.core.estimation.least_squares import identify
 from kpi_calib_ros.core.estimation.registration import reregister
 from kpi_calib_ros.core.measurement import recordings as rec
@@ -102,6 +113,43 @@ def predict_registered(model, p: np.ndarray, new: Measurements, spread_points: b
     return float(np.sqrt(np.mean(np.sum(miss ** 2, axis=1))))
 
 
+def station_cell(move: np.ndarray):
+    """The default cell seen from another tracker station: its base moved by ``move``; the
+    robot stands elsewhere in the hall, so of the obstacles only its floor and mounting
+    remain (the default cell's wall and car would stand between it and this tracker)."""
+    doc = yaml.safe_load(DEFAULT_CELL.read_text())
+    doc['tracker']['base_in_tracker'] = (np.array(doc['tracker']['base_in_tracker'])
+                                         + move).tolist()
+    doc['obstacles'] = [o for o in doc['obstacles'] if o['name'] in ('floor', 'mounting')]
+    return build_cell_model(cell_from_dict(doc, DEFAULT_CELL.parent))
+
+
+def predict_designed(cm, placed, result, p_robot: np.ndarray, rest: Measurements, rng,
+                     prior_doc: dict | None = None) -> tuple[float, float]:
+    """Rms (m) of ``rest`` (the fourth set-up's random poses) after registering on
+    REGISTER_ON poses the tool designs for station D with ``result`` (of ``placed``) as
+    prior, measured there; and the same with the true robot registered on them."""
+    station = station_cell(MOVES['d'])
+    doc = prior_doc if prior_doc is not None else calibration_document(placed, result)
+    cp = cycle_prior(station, doc, None, hours=0.0)
+    free = design_free(station, cp.allowed)
+    cell = station.design_cell()
+    settings = DesignSettings(candidates=400, nlp=False)
+    ctx = design_context(cell, rng, settings, prior=cp.prior, p=design_point(station, cp),
+                         free=free)
+    q = design_measurements(cell, REGISTER_ON, 'kpi', rng, settings, context=ctx).configurations
+    single = p_robot.copy()
+    single[:6] += MOVES['d']
+    on = simulate_measurements(cm.model, single, q, SIGMA, rng)
+    out = []
+    for model, p in ((placed.model, result.values), (cm.model, p_robot)):
+        reg = reregister(model, p, on, model.params.indices(BASE), np.full(3, SIGMA),
+                         np.zeros(0, int), np.zeros((0, 0)))
+        miss = rest.eta - model.predict(reg.p, rest.q)
+        out.append(float(np.sqrt(np.mean(np.sum(miss ** 2, axis=1)))))
+    return out[0], out[1]
+
+
 def simulated(seed: int, cm) -> dict:
     rng = np.random.default_rng(seed)
     p_robot = true_parameters(cm.model.params, rng)
@@ -139,6 +187,8 @@ def simulated(seed: int, cm) -> dict:
     # the fourth set-up, and set-up A alone
     fourth, _ = set_up_rows(cm, p_robot, 'd', POSES, rng)
     alone = calibrate_cell(cm, parts[0], model='geometric').result
+    designed, truth_designed = predict_designed(
+        cm, placed, result, p_robot, fourth.subset(np.arange(REGISTER_ON, POSES)), rng)
     return {'seed': seed, 'valid': joint.valid, 'implausible': len(joint.implausible),
             'parameters': len(result.estimated), 'worst_z': float(abs(z[worst])),
             'chi2': chi2, 'chi2_p': float(scipy.stats.chi2.sf(chi2, len(z))),
@@ -149,7 +199,8 @@ def simulated(seed: int, cm) -> dict:
             'alone_rms_m': predict_registered(cm.model, alone.values, fourth),
             'truth_rms_m': predict_registered(cm.model, p_robot, fourth),
             'joint_spread_m': predict_registered(placed.model, result.values, fourth, True),
-            'alone_spread_m': predict_registered(cm.model, alone.values, fourth, True)}
+            'alone_spread_m': predict_registered(cm.model, alone.values, fourth, True),
+            'joint_designed_m': designed, 'truth_designed_m': truth_designed}
 
 
 def ur10_series(path: Path) -> Measurements:
@@ -219,8 +270,9 @@ def main(argv: list[str]) -> int:
              'worst \\|error\\|/σ (which) | '
              'worst over placements | D, 6 random points: joint (µm, × floor) | A alone | '
              'true robot | '
-             'D, 6 spread points: joint | A alone | joint fit (s) |',
-             '|---|---|---|---|---|---|---|---|---|---|---|---|---|']
+             'D, 6 spread points: joint | A alone | D, 6 designed poses: joint | '
+             'true robot | joint fit (s) |',
+             '|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|']
     for r in rows:
         lines.append(
             f"| {r['seed']} | {r['valid']} | {r['implausible']} | {r['parameters']} | "
@@ -231,6 +283,8 @@ def main(argv: list[str]) -> int:
             f"{r['truth_rms_m'] * 1e6:.1f} ({r['truth_rms_m'] / floor:.3f}) | "
             f"{r['joint_spread_m'] * 1e6:.1f} ({r['joint_spread_m'] / floor:.3f}) | "
             f"{r['alone_spread_m'] * 1e6:.1f} ({r['alone_spread_m'] / floor:.3f}) | "
+            f"{r['joint_designed_m'] * 1e6:.1f} ({r['joint_designed_m'] / floor:.3f}) | "
+            f"{r['truth_designed_m'] * 1e6:.1f} ({r['truth_designed_m'] / floor:.3f}) | "
             f"{r['seconds']:.1f} |")
     def mean(key: str) -> float:
         return float(np.mean([r[key] for r in rows]))
@@ -260,7 +314,14 @@ def main(argv: list[str]) -> int:
               'what the registration on 6 points alone costs); on 6 spread points: joint '
               f"{mean('joint_spread_m') * 1e6:.1f} µm ({mean('joint_spread_m') / floor:.3f} × "
               f"floor), A alone {mean('alone_spread_m') * 1e6:.1f} µm "
-              f"({mean('alone_spread_m') / floor:.3f} × floor).", '',
+              f"({mean('alone_spread_m') / floor:.3f} × floor); on 6 poses designed for "
+              f"station D with the joint calibration as prior: joint "
+              f"{mean('joint_designed_m') * 1e6:.1f} µm "
+              f"({mean('joint_designed_m') / floor:.3f} × floor; worst seed "
+              f"{max(r['joint_designed_m'] for r in rows) / floor:.3f}, above 1.2 × in "
+              f"{sum(r['joint_designed_m'] > 1.2 * floor for r in rows)} of {len(rows)}), "
+              f"the true robot on them {mean('truth_designed_m') * 1e6:.1f} µm "
+              f"({mean('truth_designed_m') / floor:.3f} × floor).", '',
               '## Real: UR10 Series A and D in one identification', '',
               f"{ur10['a']} poses of Series A and {ur10['d_train']} of Series D (probe "
               f"remounted, its own reflector offset) identified together, at two model levels; "
