@@ -150,10 +150,15 @@ def validation_text(doc: dict[str, Any]) -> str:
                      'says nothing of how it predicts; validate on a recording it was not '
                      'identified from')
     if doc.get('repeated_from_training'):
+        training = doc.get('training_rms_m')
         lines.append(f"inside: poses repeated from training ({doc['repeated_from_training']} "
                      f"points, every joint within {SAME_POSE_TOLERANCE:g} rad or m): rms "
-                     f"{mm(doc['rms_repeated_from_training_m'])} (repeatability between "
-                     f"the campaigns); new poses: {mm(doc['rms_new_inside_training_range_m'])}")
+                     f"{mm(doc['rms_repeated_from_training_m'])} (the calibration's misfit at "
+                     'poses it was fitted to'
+                     + (f', its training rms {mm(training)},' if training is not None else '')
+                     + ' plus the repeatability between the campaigns: no floor, a better '
+                     'model lowers the misfit part); new poses: '
+                     f"{mm(doc['rms_new_inside_training_range_m'])}")
     return '\n'.join(lines)
 
 
