@@ -308,3 +308,24 @@ def test_a_compliance_beyond_its_bound_is_named_before_a_stand_in_is_offered():
                                                  cal))
     warned = [line for line in summary.splitlines() if line.startswith('WARNING: auto, round 1')]
     assert warned and f'identification.bounds.{spec}' in warned[0]
+
+
+def test_the_explanation_states_the_std_the_candidate_table_states():
+    """Where the model is not adequate, every std in a candidate's explanation is the one the
+    candidate carries (scaled by χ²/dof): the explanation gave them at the stated σ, 7.6x
+    smaller than the table's on the real UR10."""
+    import re
+    cm = _cell_model('kr15')
+    data, result, *_ = campaign(cm, {'joint_compliance:joint_2': {'c': 2e-6},
+                                     'cyclic_joint_error:joint_3': {'a': 4e-4, 'b': -3e-4}},
+                                seed=5, n=N_POSES)
+    diag = diagnose(cm.model, data, result)
+    checked = 0
+    for c in diag.candidates:
+        if c.covariance_scale < 4.0:
+            continue
+        stated = re.findall(r'= \S+ ± (\S+) ', c.explanation)
+        finite = [s for s in c.std if np.isfinite(s)]
+        assert stated == [f'{s:.2g}' for s in finite], (c.spec, stated, finite)
+        checked += 1
+    assert checked >= 3
