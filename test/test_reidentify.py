@@ -364,3 +364,47 @@ def test_drift_velocity_options_are_validated():
     values['drift_velocity'] = [5.0]
     with pytest.raises(ConfigError, match='drift_velocity'):
         settings_from_parameters(values)
+
+
+def test_a_new_station_whose_postures_hardly_turn_the_tool_holds_the_previous_probe():
+    """The cell leaves the reflector offset out (registered from the points), the previous
+    calibration has it, and the next cycle is measured from a station 0.4 m and 0.3 rad
+    away with joint 1 still and the wrist straight: the tool turns about one axis only.
+    The start registers the base with the previous calibration's probe held (on the nominal
+    robot: within 1 cm), and the cycle predicts the working pose within 4σ; it registered
+    the probe from the points as though nothing were known and stopped ("the tip
+    orientations hardly vary"), as on the real UR10's Series D."""
+    import yaml
+
+    from kpi_calib_ros.app.calibration_document import calibration_document
+    from kpi_calib_ros.app.cell_model import build_cell_model
+    from kpi_calib_ros.app.identify import calibrate_cell
+    from kpi_calib_ros.app.reidentify import cycle_prior, cycle_start, reidentify
+    from kpi_calib_ros.io.cell import cell_from_dict
+    doc = yaml.safe_load(DEFAULT_CELL.read_text())
+    del doc['reflector']['offset']
+    cm = build_cell_model(cell_from_dict(doc, DEFAULT_CELL.parent))
+    assert cm.needs_registration
+    rng = np.random.default_rng(31)
+    p_true = true_parameters(cm.model.params, rng)
+    p_true[cm.model.params.indices([f'reflector.{c}' for c in 'xyz'])] = [0.004, -0.002, 0.03]
+    q = random_configurations(cm.model, p_true, 60, rng)
+    cal = calibrate_cell(cm, simulate_measurements(cm.model, p_true, q, SIGMA, rng))
+    assert cal.valid
+    previous = calibration_document(cm, cal.result)
+    moved = p_true.copy()
+    moved[:6] += [0.3, -0.25, 0.05, 0.0, 0.0, 0.3]
+    q = random_configurations(cm.model, moved, 40, rng)
+    q[:, 0] = q[0, 0]
+    q[:, 3:] = 0.0
+    data = simulate_measurements(cm.model, moved, q, SIGMA, rng)
+    cp = cycle_prior(cm, previous, None, hours=0.0)
+    start = cycle_start(cm, data, cp)
+    names = cm.model.params.names
+    reflector = cm.model.params.indices([f'reflector.{c}' for c in 'xyz'])
+    assert np.allclose(start[reflector], cal.result.values[reflector])
+    assert np.max(np.abs(start[:3] - moved[:3])) < 0.01, (names[:3], start[:3] - moved[:3])
+    out = reidentify(cm, data, cp)
+    assert out.change.consistent and out.calibration is not None
+    tcp = out.calibration.result.tcp[0] - cm.model.predict(moved, cm.q_work)[0]
+    assert np.linalg.norm(tcp) < 4 * np.sqrt(np.trace(out.calibration.result.tcp_covariance[0]))

@@ -74,21 +74,29 @@ def registered_start(cm: CellModel, data: Measurements) -> tuple[np.ndarray, Reg
     return _single_start(cm, data)
 
 
-def _single_start(cm: CellModel, data: Measurements
+def _single_start(cm: CellModel, data: Measurements, held: np.ndarray | None = None
                   ) -> tuple[np.ndarray, Registration | None]:
-    """:func:`registered_start` of one recording (the rows of the first, with several)."""
+    """:func:`registered_start` of one recording (the rows of the first, with several).
+
+    ``held`` (R, 3): reflector offsets to hold in the registration instead of the cell's
+    (a previous calibration's, :func:`registered_from`); they are registered too when they
+    miss the points.
+    """
     params = cm.model.params
     p0 = np.array(params.nominal, dtype=float)
-    if not cm.needs_registration and len(data) and places_the_points(cm, data, p0):
+    if held is None and not cm.needs_registration and len(data) \
+            and places_the_points(cm, data, p0):
         return p0, None
     if data.reflector is not None:  # rotation rows (tracked poses) carry no point
         data = data.subset(np.asarray(data.reflector) < cm.model.n_reflectors)
     tips = np.array([cm.robot.pin_tip_pose(row) for row in np.atleast_2d(data.q)])
     reg = None
-    if cm.cell.reflector_offset_given:
+    if held is None and cm.cell.reflector_offset_given:
+        held = cm.cell.offsets
+    if held is not None:
         try:
             reg = register(data.eta, tips, max_rms=REGISTRATION_MAX_RMS_M,
-                           reflector=data.reflector, offsets=cm.cell.offsets)
+                           reflector=data.reflector, offsets=held)
         except DataError:
             reg = None  # the stated offsets miss the points: register them too
     if reg is None:
@@ -101,6 +109,28 @@ def _single_start(cm: CellModel, data: Measurements
     for prefix, offset in zip(prefixes, offsets):
         values.update({f'{prefix}.{c}': float(v) for c, v in zip('xyz', offset)})
     return params.with_values(values), reg
+
+
+def registered_from(cm: CellModel, data: Measurements, p: np.ndarray) -> np.ndarray:
+    """``p`` with the placement registered from the points of one recording, the reflector
+    offsets ``p`` holds kept (a previous calibration's probe: a stated offset, as the cell's)
+    unless they miss the points, then registered too.
+
+    A re-identification from another tracker station registered the offsets from the points
+    as though the cell had never stated them, and stopped where the postures hardly turn the
+    tool (the real UR10's Series D: "the tip orientations hardly vary") though the previous
+    calibration knew the probe to 0.1 mm.
+    """
+    params = cm.model.params
+    prefixes = reflector_prefixes(params)
+    held = np.array([p[params.indices([f'{prefix}.{c}' for c in 'xyz'])]
+                     for prefix in prefixes])
+    registered = _single_start(cm, data, held)[0]
+    out = np.array(p, dtype=float)
+    for i, name in enumerate(params.names):
+        if name.startswith(('base.', 'reflector.')):
+            out[i] = registered[i]
+    return out
 
 
 def recordings_start(cm: CellModel, data: Measurements

@@ -40,7 +40,11 @@ from kpi_calib_ros.app.cell_model import CellModel
 from kpi_calib_ros.app.finish import finish_calibration
 from kpi_calib_ros.app.identify import calibrate_cell, with_iteration_limit
 from kpi_calib_ros.app.measurements import load_measurements
-from kpi_calib_ros.app.placement import places_the_points, registered_start
+from kpi_calib_ros.app.placement import (
+    places_the_points,
+    registered_from,
+    registered_start,
+)
 from kpi_calib_ros.app.validate import calibration_noise_scale
 from kpi_calib_ros.core.acquisition.outcomes import PairingResult
 from kpi_calib_ros.core.campaigns.change_detection import CHANGE_ALPHA, ChangeTest, change_test
@@ -361,6 +365,9 @@ def cycle_start(cm: CellModel, data: Measurements, cp: CyclePrior) -> np.ndarray
         return start
     if places_the_points(cm, data, start):
         return start
+    if not cm.model.recordings:
+        # The previous calibration's probe is held as a stated offset would be.
+        return registered_from(cm, data, start)
     registered = registered_start(cm, data)[0]
     for i, name in enumerate(params.names):
         if name.startswith(PLACEMENT_PREFIXES):
