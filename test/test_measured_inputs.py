@@ -202,11 +202,33 @@ def test_a_payload_reading_without_a_value_is_not_bridged_by_its_neighbours():
     cov, rejected = input_covariates(rows, samples, 2 * S)
     assert [r.stamp_ns for r in rejected] == [3 * S]
     np.testing.assert_array_equal(cov['payload.mass'], [0.0, 0.0, 0.0, np.nan, 5.0, 5.0])
-    # a row between a good and a valueless reading has no value either; one beyond the
-    # last good reading keeps it
+    # a payload holds from its reading: a row before the valueless reading keeps the last
+    # one, a row after it (before the next good one) has no value; one beyond the last good
+    # reading keeps it
     cov, _ = input_covariates(np.array([2.5 * S, 3.5 * S, 5.5 * S], dtype=np.int64), samples,
                               2 * S)
-    np.testing.assert_array_equal(cov['payload.mass'], [np.nan, np.nan, 5.0])
+    np.testing.assert_array_equal(cov['payload.mass'], [0.0, np.nan, 5.0])
+
+
+def test_a_payload_reported_when_it_changes_holds_until_the_next_report():
+    """A controller reports the payload when it changes, 0.3 s before the first point of
+    each hold (a pick, a settle): every row carries the payload of its hold, whatever the
+    gap between reports. Interpolated, rows got 0.94, 3.44 and 3.13 kg for 0, 2.5 and 5 kg.
+    A row before the first report has none; a drifting input (a tilt) is still
+    interpolated."""
+    S = 10 ** 9
+    loads = [0.0, 2.5, 5.0, 0.0, 2.5, 5.0]
+    hold_starts = np.arange(6) * 40 * S            # a hold of 40 s per payload
+    reports = [InputSample(int(t - 0.3 * S), 'payload.mass', m)
+               for t, m in zip(hold_starts, loads)]
+    rows = np.concatenate([t + np.array([0, 10, 20, 30]) * S for t in hold_starts])
+    cov, rejected = input_covariates(np.concatenate([[-S], rows]), reports, 10 * S)
+    assert not rejected
+    np.testing.assert_array_equal(cov['payload.mass'][1:], np.repeat(loads, 4))
+    assert np.isnan(cov['payload.mass'][0])
+    tilt = [InputSample(0, 'tilt.column.x', 0.0), InputSample(4 * S, 'tilt.column.x', 0.004)]
+    cov, _ = input_covariates(np.array([S], dtype=np.int64), tilt, 10 * S)
+    assert cov['tilt.column.x'][0] == pytest.approx(0.001)
 
 
 @pytest.mark.slow

@@ -21,7 +21,8 @@ with ``[i]`` for an array element or ``[name]`` for the element of a message's `
 (``effort[joint_2]`` of a ``sensor_msgs/msg/JointState``). Readings are paired with the points
 by their header stamps as temperatures are (:func:`~kpi_calib_ros.core.measurement.
 covariates.input_covariates`); a reading that is not finite is never used (counted and
-warned), a point with no reading of an input within ``max_gap`` is refused with the reason.
+warned), a point with no reading of an input within ``max_gap`` is refused with the reason. A
+payload (``payload.*``) is held from a reading to the next, not interpolated: it steps.
 
 ``torque_source: measured`` records each chain joint's ``effort`` from the joint-state topic
 as ``effort.<joint>`` and uses them as the rows' torques (``Measurements.tau``) in place of the

@@ -29,7 +29,11 @@ mass ``payload.mass`` from the cell controller, measured joint torques ``effort.
 any named quantity) arrive as :class:`InputSample` (stamp, covariate name, value in SI
 units) and are paired the same way (:func:`input_covariates`): interpolated at each row's
 stamp within ``max_gap_ns``, a reading that is not finite set aside and counted, a row with no
-value of an input refused with the reason, never filled in.
+value of an input refused with the reason, never filled in. A payload (``payload.*``) does not
+drift, it steps: a controller reports it when it changes, and a row between a 0 kg and a
+5 kg report carries one of them, never 3.4 kg. It is held (:func:`hold`): each row takes the
+last reading at or before its stamp, whatever the gap (a report stands until the next), none
+before the first.
 
 Only differences of temperature enter a model, so °C and K are interchangeable for ΔT; the
 raw readings stay in °C as the message carries them. A stamp is given the value linearly
@@ -56,6 +60,7 @@ __all__ = [
     'plausible_readings', 'plausible_temperature', 'range_text',
     'temperature_covariates', 'with_covariates', 'shift_temperature',
     'InputSample', 'DEFAULT_INPUT_MAX_GAP_NS', 'EFFORT_PREFIX', 'effort_name', 'input_covariates',
+    'STEP_PREFIX', 'hold', 'steps',
     'covariate_unit', 'measured_covariates',
 ]
 
@@ -75,6 +80,8 @@ TEMPERATURE_LIMIT_C = 1000.0
 # first/last): an inclinometer or a controller publishes at 1 Hz or faster.
 DEFAULT_INPUT_MAX_GAP_NS = 10 * 10**9
 EFFORT_PREFIX = 'effort.'
+# Covariates that step rather than drift: held from a reading to the next (:func:`hold`).
+STEP_PREFIX = 'payload.'
 
 
 @dataclass(frozen=True)
@@ -118,9 +125,46 @@ def input_covariates(stamps_ns: np.ndarray, samples: Iterable[InputSample],
     for name, readings in sorted(by_name.items()):
         t = np.array([r[0] for r in readings], dtype=np.int64)
         v = np.array([r[1] for r in readings], dtype=float)
-        out[name] = interpolate(stamps, t, v, max_gap_ns,
-                                np.array(unknown.get(name, ()), dtype=np.int64))
+        voids = np.array(unknown.get(name, ()), dtype=np.int64)
+        out[name] = (hold(stamps, t, v, voids) if steps(name)
+                     else interpolate(stamps, t, v, max_gap_ns, voids))
     return out, rejected
+
+
+def steps(name: str) -> bool:
+    """Return whether covariate ``name`` steps rather than drifts (a payload)."""
+    return name.startswith(STEP_PREFIX)
+
+
+def hold(stamps_ns: np.ndarray, sample_stamps_ns: np.ndarray, values: np.ndarray,
+         unknown_ns: np.ndarray | None = None) -> np.ndarray:
+    """Return the values (N,) of a quantity that steps at ``stamps_ns`` (N,).
+
+    The last reading at or before each stamp (readings of one stamp averaged), NaN before the
+    first and where a reading without a value (``unknown_ns``) lies between that reading and
+    the stamp. Interpolated, a payload reported at 0, 2.5 and 5 kg when it changed gave rows 0.94,
+    3.44 and 3.13 kg.
+    """
+    stamps = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
+    out = np.full(len(stamps), np.nan)
+    t = np.asarray(sample_stamps_ns, dtype=np.int64).reshape(-1)
+    v = np.asarray(values, float).reshape(-1)
+    good = np.isfinite(v)
+    t, v = t[good], v[good]
+    if not len(t):
+        return out
+    t, inverse = np.unique(t, return_inverse=True)
+    v = np.bincount(inverse, weights=v) / np.bincount(inverse)
+    last = np.searchsorted(t, stamps, side='right') - 1
+    known = last >= 0
+    out[known] = v[last[known]]
+    if unknown_ns is not None and len(unknown_ns):
+        u = np.sort(np.asarray(unknown_ns, dtype=np.int64).reshape(-1))
+        since = t[np.clip(last, 0, len(t) - 1)]
+        crossed = known & (np.searchsorted(u, stamps, side='right')
+                           > np.searchsorted(u, since, side='left'))
+        out[crossed] = np.nan
+    return out
 
 
 # The unit of a covariate, from its name (measured inputs are stored in SI units).
