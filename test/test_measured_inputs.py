@@ -365,3 +365,34 @@ def test_a_table_of_measured_torques_is_the_rows_torques(cm, tmp_path):
         mapping_from_dict({**doc, 'efforts': {'elbow': 'tau_joint_1'}})
     with pytest.raises(ConfigError, match=r"mapping.efforts.joint_1.unit: 'Nm'"):
         mapping_from_dict({**doc, 'efforts': {'joint_1': {'column': 'a', 'unit': 'Nm'}}})
+
+
+def test_an_expected_input_that_never_arrives_stops_the_job(cm, tmp_path):
+    """``inputs.expect`` names what the named-values topic must give: a payload published on
+    another topic was fitted as the cell's 0 kg (compliance 4.7σ off, published as a
+    success). A bag without it now stops naming the input, the topic and the fix; a bag
+    with it reads as before; a bad ``expect`` names the key."""
+    q, eta, tilt = _tilted(cm, 7, 6)
+    tilt_only = _mapping(cm, **{'tilt.column.x': {'column': 'incl_x', 'unit': 'mrad'},
+                                'tilt.column.y': {'column': 'incl_y', 'unit': 'mrad'}})
+    table = _table(tmp_path / 'postures.csv', cm, q, eta, tilt, np.full(6, 2.5))
+    import_csv(table, tmp_path / 'tilt.mcap', tilt_only)
+    import_csv(table, tmp_path / 'both.mcap', _mapping(cm))
+
+    def model(inputs):
+        doc = read_cell_document(_cell(tmp_path, inputs=inputs))
+        doc['reflector'].pop('offset')
+        doc['reflectors'] = [{'name': 'r', 'offset': [0.0, 0.0, 0.03]}]
+        return build_cell_model(cell_from_dict(doc, tmp_path))
+
+    expecting = model({'expect': ['payload.mass']})
+    with pytest.raises(DataError, match=r"no finite reading of the measured input\(s\) "
+                                        r"\['payload.mass'\].*publish \['payload.mass'\] on "
+                                        r'/kpi_calib/inputs.*or remove them from inputs.expect'):
+        measurements_from_bag(expecting, tmp_path / 'tilt.mcap')
+    data, _ = measurements_from_bag(expecting, tmp_path / 'both.mcap')
+    np.testing.assert_array_equal(data.covariates['payload.mass'], np.full(6, 2.5))
+    with pytest.raises(ConfigError, match=r'inputs.expect.*a list of covariate names'):
+        model({'expect': 'payload.mass'})
+    with pytest.raises(ConfigError, match=r"inputs.expect.*'payload mass' is not a covariate"):
+        model({'expect': ['payload mass']})

@@ -201,8 +201,10 @@ def input_sources(cm: CellModel) -> list[tuple[str, str, tuple[tuple[str, FieldP
 
 
 def expected_inputs(cm: CellModel) -> list[str]:
-    """The covariate names the cell's sources must give (:func:`input_sources`)."""
-    return [name for _, _, fields in input_sources(cm) for name, _ in fields]
+    """The covariate names the cell's sources (:func:`input_sources`) and its named-values
+    topic (``inputs.expect``) must give."""
+    return [name for _, _, fields in input_sources(cm) for name, _ in fields] \
+        + list(cm.cell.inputs.expect)
 
 
 def with_inputs(cm: CellModel, data: Measurements, samples: Sequence[InputSample],
@@ -237,9 +239,13 @@ def with_inputs(cm: CellModel, data: Measurements, samples: Sequence[InputSample
     missing = [name for name in expected if name not in cov]
     if missing:
         efforts = [n for n in missing if n.startswith(EFFORT_PREFIX)]
+        named = [n for n in missing if n in cm.cell.inputs.expect]
         fix = (f'the joint states on {cm.cell.joint_topic} must name every chain joint '
                f'{list(cm.joint_names)} with one finite effort each, or set '
                'compliance.torque_source: model' if efforts else
+               f'publish {named} on {cm.cell.inputs.topic} (sensor_msgs/msg/JointState: name = '
+               'covariate, position = value, SI), or remove them from inputs.expect'
+               if named else
                'record the topic of each inputs.sources entry, or remove the source')
         raise DataError(f'{where}: no finite reading of the measured input(s) {missing} '
                         f'(topics recorded: {sorted(topics)}); {fix}')

@@ -8,6 +8,7 @@ joint state, and which torques the compliance reads.
                                       # position = value, SI); import-csv and the node's log
                                       # write here; read whenever a bag has it
       max_gap: 10.0                   # s: the largest gap between readings bridged
+      expect: [payload.mass]          # names the topic must give every point (optional)
       sources:                        # other topics, each field one covariate
         - topic: /column_tilt
           type: geometry_msgs/msg/Vector3Stamped
@@ -23,6 +24,9 @@ by their header stamps as temperatures are (:func:`~kpi_calib_ros.core.measureme
 covariates.input_covariates`); a reading that is not finite is never used (counted and
 warned), a point with no reading of an input within ``max_gap`` is refused with the reason. A
 payload (``payload.*``) is held from a reading to the next, not interpolated: it steps.
+``expect`` names the covariates the named-values topic must give: one that never arrives
+stops the job (a payload published on another topic was fitted as the cell's 0 kg, a
+compliance 4.7σ off published as a success), a point without one is refused.
 
 ``torque_source: measured`` records each chain joint's ``effort`` from the joint-state topic
 as ``effort.<joint>`` and uses them as the rows' torques (``Measurements.tau``) in place of the
@@ -49,7 +53,7 @@ from kpi_calib_ros.io.names import DEFAULT_INPUTS_TOPIC
 __all__ = ['INPUT_KEYS', 'SOURCE_KEYS', 'TORQUE_SOURCES', 'InputSource', 'InputSettings',
            'input_settings', 'torque_source', 'check_covariate_name', 'field_path']
 
-INPUT_KEYS = ('topic', 'max_gap', 'sources')
+INPUT_KEYS = ('topic', 'max_gap', 'expect', 'sources')
 SOURCE_KEYS = ('topic', 'type', 'fields')
 TORQUE_SOURCES = ('model', 'measured')
 MAX_INPUT_GAP_S = 24 * 3600.0
@@ -75,6 +79,7 @@ class InputSettings:
     max_gap_s: float = DEFAULT_INPUT_MAX_GAP_NS / 1e9
     sources: tuple[InputSource, ...] = field(default_factory=tuple)
     torque_source: str = 'model'
+    expect: tuple[str, ...] = ()
 
     @property
     def max_gap_ns(self) -> int:
@@ -82,8 +87,9 @@ class InputSettings:
 
     @property
     def names(self) -> tuple[str, ...]:
-        """Covariate names the sources give (the named-values topic may add more)."""
-        return tuple(name for s in self.sources for name, _ in s.fields)
+        """Covariate names the sources give and the named-values topic must (``expect``;
+        it may give more)."""
+        return tuple(name for s in self.sources for name, _ in s.fields) + self.expect
 
 
 def check_covariate_name(name: Any, key: str) -> str:
@@ -164,15 +170,21 @@ def input_settings(raw: Any, compliance: Any = None) -> InputSettings:
     if not isinstance(sources, list):
         raise ConfigError('inputs.sources', 'must be a list of {topic, type, fields}')
     parsed = tuple(_source(s, f'inputs.sources[{i}]') for i, s in enumerate(sources))
-    names = [n for s in parsed for n, _ in s.fields]
+    expect = raw.get('expect') or []
+    if not isinstance(expect, list):
+        raise ConfigError('inputs.expect', f'{expect!r}: a list of covariate names the '
+                          f'named-values topic {topic} must give every point, such as '
+                          '[payload.mass]')
+    expect = [check_covariate_name(n, 'inputs.expect') for n in expect]
+    names = [n for s in parsed for n, _ in s.fields] + expect
     twice = sorted({n for n in names if names.count(n) > 1})
     if twice:
-        raise ConfigError('inputs.sources', f'covariate {twice[0]!r} is given by two fields; '
-                          'name each input once')
+        raise ConfigError('inputs.sources', f'covariate {twice[0]!r} is given by two fields '
+                          '(or a field and inputs.expect); name each input once')
     if any(s.topic == topic for s in parsed):
         raise ConfigError('inputs.sources', f'{topic} is inputs.topic, read as named values; '
                           'give a source another topic')
-    return InputSettings(topic, float(gap), parsed, source)
+    return InputSettings(topic, float(gap), parsed, source, tuple(expect))
 
 
 def torque_source(raw: Any) -> str:
