@@ -824,3 +824,35 @@ def test_register_reflector_refits_only_the_markers_the_new_bag_measures():
     assert registered_names(cm, 'reflector') == registered_names(cm, 'reflector', both)
     assert registered_names(cm, 'base+reflector', one)[:6] == [
         f'base.{c}' for c in ('x', 'y', 'z', 'roll', 'pitch', 'yaw')]
+
+
+def test_a_continuous_joint_read_a_turn_on_is_the_same_pose():
+    """A continuous joint read 2π further is the pose it was: a Kinova's poses with joints 1
+    and 4 read one turn on are predicted alike, inside the training ranges and repeated
+    from training (all 60 were "outside the training ranges"); a revolute joint beyond its
+    range stays outside."""
+    from kpi_calib_ros.io.arm_cell import arm_cell_document
+    doc = arm_cell_document('package://example-robot-data/robots/kinova_description/robots/'
+                            'kinova.urdf', 'base', 'j2s6s200_link_6', 2e-5)
+    cm = build_cell_model(cell_from_dict(doc, Path('.')))
+    kinds = [j.kind for j in cm.robot.joints]
+    assert kinds[0] == kinds[3] == 'continuous' and kinds[1] == 'revolute'
+    rng = np.random.default_rng(4)
+    p_true = true_parameters(cm.model.params, rng)
+    q = random_configurations(cm.model, p_true, 40, rng)
+    cal = calibrate_cell(cm, simulate_measurements(cm.model, p_true, q, 2e-5, rng),
+                         model='geometric')
+    calibration = calibration_document(cm, cal.result)
+    calibration['training_joint_ranges'] = {n: [float(lo), float(hi)] for n, lo, hi in zip(
+        cm.joint_names, q.min(axis=0), q.max(axis=0))}
+    calibration['training_configurations'] = {'joints': list(cm.joint_names),
+                                              'q': q.tolist()}
+    again = simulate_measurements(cm.model, p_true, q[:10], 2e-5, rng)
+    turned = dataclasses.replace(again, q=again.q + np.array([2 * np.pi, 0, 0, -2 * np.pi,
+                                                              0, 0]))
+    as_read = validate_calibration(cm, cal.result.values, calibration, again)
+    one_on = validate_calibration(cm, cal.result.values, calibration, turned)
+    np.testing.assert_allclose(one_on.residuals, as_read.residuals, atol=1e-9)
+    assert not one_on.outside.any() and one_on.repeated.all()
+    beyond = dataclasses.replace(again, q=again.q + np.array([0, 2 * np.pi, 0, 0, 0, 0]))
+    assert validate_calibration(cm, cal.result.values, calibration, beyond).outside.all()
