@@ -231,3 +231,18 @@ def test_arguments_of_the_fault_handling_are_checked():
         Pairer(NAMES, FRAME, jump_ns=0)
     with pytest.raises(ValueError, match='max_names'):
         Pairer(NAMES, FRAME, max_names=3)
+
+
+def test_a_pose_read_alike_every_time_is_paired_to_the_bit():
+    """Each of six poses visited three times (three payloads), its joint states read alike:
+    every point's pose is the reading itself, so the campaign has six poses, not more. A
+    plain mean of the window's readings rounded some (24 poses of three payloads counted as
+    28, their rows then in different cross-validation folds)."""
+    rng = np.random.default_rng(3)
+    q = rng.uniform(-2.0, 2.0, (N_POSES, len(NAMES)))
+    visits = np.repeat(q, 3, axis=0)
+    joints, points = synthesize_streams(visits, NAMES, rng.uniform(-1.5, 1.5, (len(visits), 3)),
+                                        FRAME, start_ns=RECORDED)
+    got = pair_measurements(joints, points, NAMES, FRAME).q
+    assert np.array_equal(got, visits)
+    assert len(np.unique(got, axis=0)) == N_POSES

@@ -476,14 +476,17 @@ class Pairer:
                          f'(tol {self.still_tol_rad:g}), |velocity| up to {speed[j]:.3g} rad/s '
                          f'(tol {self.still_vel_tol:g}) within ±{w} ns')
             return
-        problem = self.joint_check(q.mean(axis=0)) if self.joint_check is not None else ''
+        # The mean about the first reading: a pose read alike every time is that reading to
+        # the bit (a plain mean's rounding made 24 poses of three payloads count as 28).
+        mean = q[0] + (q - q[0]).mean(axis=0)
+        problem = self.joint_check(mean) if self.joint_check is not None else ''
         if problem:
             self._reject(t, 'outside_joint_limits', problem + '; a reading beyond the limits '
                          'is a wrong joint order, unit or zero, not a pose the robot can take')
             return
         self._decided.append(PairedMeasurement(
             stamp_ns=t, joint_names=self.joint_names, q=frozen_array(
-                q.mean(axis=0), (len(self.joint_names),), 'q'),
+                mean, (len(self.joint_names),), 'q'),
             eta=point.xyz, frame_id=point.frame_id, n_joint_samples=len(window),
             spread_rad=float(spread.max()), orientation=point.orientation))
 
