@@ -91,6 +91,10 @@ def test_table_covariates_are_imported_in_si_and_paired_to_their_rows(cm, tmp_pa
     assert any(line.startswith('input tilt.column.x: ') and line.endswith('rad, written to '
                                                                          '/kpi_calib/inputs')
                for line in summary.lines())
+    # the frame ids the points carry, and the cell's reflectors they call for (a cell with
+    # one reflector: of no name refused every point as unknown_reflector)
+    assert f"points written with frame_id '{cm.cell.tracker_frame}#r': the cell names these " \
+           'reflectors, reflectors: [{name: r}]' in '\n'.join(summary.lines())
     doc = read_cell_document(_cell(tmp_path))
     doc['reflector'].pop('offset')
     doc['reflectors'] = [{'name': 'r', 'offset': [0.0, 0.0, 0.03]}]

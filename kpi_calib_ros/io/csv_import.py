@@ -257,11 +257,19 @@ class ImportSummary:
     # measured inputs: name -> (lowest, highest) in SI, and the topic they were written to
     input_range: dict[str, tuple[float, float]] = field(default_factory=dict)
     inputs_topic: str = ''
+    # the points' frame ids, '<frame_id>#<marker name>': what the cell's reflectors must name
+    frame_ids: tuple[str, ...] = ()
 
     def lines(self) -> list[str]:
         out = [f'written: {self.path} ({self.postures} postures, {self.points} points'
                + (f', of which {self.poses} 6-DoF poses' if self.poses else '') + ')']
         out += [f'read {name}: {how}' for name, how in self.formats.items()]
+        if self.frame_ids:
+            names = [f.partition(REFLECTOR_SEPARATOR)[2] for f in self.frame_ids]
+            out.append(f'points written with frame_id {", ".join(map(repr, self.frame_ids))}: '
+                       'the cell names these reflectors, reflectors: ['
+                       + ', '.join(f'{{name: {n}}}' for n in names) + '] (a cell with one '
+                       'reflector: without a name reads plain frame ids only)')
         out.append(f'time axis: {self.time_axis}')
         if self.reordered:
             out.append(f'{len(self.reordered)} row(s) out of stamp order kept at their '
@@ -313,6 +321,8 @@ def import_csv(csv_path: str | Path | list, out_path: str | Path, mapping: CsvMa
     if not paths:
         raise DataError('import-csv: give at least one table')
     summary = ImportSummary(Path(out_path))
+    summary.frame_ids = tuple(f'{mapping.frame_id}{REFLECTOR_SEPARATOR}{name}'
+                              for name in mapping.markers)
     formats = {}
     for p in paths:
         fmt = detect_format(p, delimiter or mapping.delimiter, decimal or mapping.decimal)
