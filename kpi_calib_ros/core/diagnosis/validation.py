@@ -74,7 +74,11 @@ from kpi_calib_ros.core.estimation.registration import Reregistration, horn, rer
 from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA
 from kpi_calib_ros.core.measurement.data import Measurements, row_sigma
 from kpi_calib_ros.core.measurement.payload import gravity_input
-from kpi_calib_ros.core.measurement.replicates import SAME_POSE_TOLERANCE, same_pose
+from kpi_calib_ros.core.measurement.replicates import (
+    SAME_POSE_TOLERANCE,
+    same_pose,
+    same_turn,
+)
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.core.measurement.weighting import row_torques
 
@@ -243,24 +247,6 @@ def range_tolerance(model: MeasurementModel) -> np.ndarray:
     return tol
 
 
-def same_turn(model: MeasurementModel, q: np.ndarray, lower: np.ndarray,
-              upper: np.ndarray) -> np.ndarray:
-    """Return ``q`` (N, n) with each continuous joint's reading moved by whole turns.
-
-    To the reading nearest the middle of its training range (``lower``, ``upper``; 0 when
-    unbounded). A continuous joint read 2π further is the same pose: 60 points of a
-    Kinova's joints 1 and 4 read one turn on were all "outside the training ranges",
-    predicted alike.
-    """
-    q = np.array(np.atleast_2d(q), dtype=float)
-    turns = np.array([j.kind == 'continuous' for j in model.robot.joints])
-    if turns.any() and q.shape[1] == len(turns):
-        lo, hi = np.asarray(lower, float)[turns], np.asarray(upper, float)[turns]
-        mid = np.where(np.isfinite(lo) & np.isfinite(hi), 0.5 * (lo + hi), 0.0)
-        q[:, turns] += 2.0 * np.pi * np.round((mid - q[:, turns]) / (2.0 * np.pi))
-    return q
-
-
 def _rms(r: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum(r ** 2, axis=1))))
 
@@ -418,12 +404,13 @@ def validate(model: MeasurementModel, p: np.ndarray, estimated: np.ndarray,
             if tested.any() else 0.0)
     dof = 3 * int(tested.sum()) - (registration.dof if registration is not None else 0)
     tol = range_tolerance(model)
-    turned = same_turn(model, q, lower, upper)
+    turns = np.array([j.kind == 'continuous' for j in model.robot.joints])
+    turned = same_turn(q, lower, upper, turns)
     outside = np.any((turned < np.asarray(lower) - tol) | (turned > np.asarray(upper) + tol),
                      axis=1)
     repeated = identical = np.zeros(len(q), dtype=bool)
     if training_q is not None and len(training_q):
-        trained = same_turn(model, np.asarray(training_q, float), lower, upper)
+        trained = same_turn(np.asarray(training_q, float), lower, upper, turns)
         repeated = same_pose(turned, trained) & ~outside
         identical = same_pose(q, np.asarray(training_q, float), 0.0)
     p_value = float(scipy.stats.chi2.sf(chi2, dof)) if dof > 0 else float('nan')

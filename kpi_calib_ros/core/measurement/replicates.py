@@ -65,4 +65,22 @@ def pose_groups(q: np.ndarray, tolerance: float = SAME_POSE_TOLERANCE) -> np.nda
     return rank[inverse.reshape(-1)]
 
 
-__all__ = ['SAME_POSE_TOLERANCE', 'pose_groups', 'same_pose']
+__all__ = ['SAME_POSE_TOLERANCE', 'pose_groups', 'same_pose', 'same_turn']
+
+
+def same_turn(q: np.ndarray, lower: np.ndarray, upper: np.ndarray,
+              turns: np.ndarray) -> np.ndarray:
+    """Return ``q`` (N, n) with each continuous joint's reading moved by whole turns.
+
+    ``turns`` (n,) bool marks the continuous joints; each goes to the reading nearest the
+    middle of its training range (``lower``, ``upper``; 0 when unbounded). A continuous
+    joint read 2π further is the same pose: 60 points of a Kinova's joints 1 and 4 read
+    one turn on were all "outside the training ranges", predicted alike.
+    """
+    q = np.array(np.atleast_2d(q), dtype=float)
+    turns = np.asarray(turns, dtype=bool)
+    if turns.any() and q.shape[1] == len(turns):
+        lo, hi = np.asarray(lower, float)[turns], np.asarray(upper, float)[turns]
+        mid = np.where(np.isfinite(lo) & np.isfinite(hi), 0.5 * (lo + hi), 0.0)
+        q[:, turns] += 2.0 * np.pi * np.round((mid - q[:, turns]) / (2.0 * np.pi))
+    return q
