@@ -27,7 +27,11 @@ from kpi_calib_ros.core.diagnosis.candidate_plausibility import (
     effect_undetermined,
     geometry_undetermined,
 )
-from kpi_calib_ros.core.diagnosis.effect_signature import absorbed_by, effect_columns
+from kpi_calib_ros.core.diagnosis.effect_signature import (
+    absorbed_by,
+    effect_columns,
+    effect_std,
+)
 from kpi_calib_ros.core.diagnosis.model_selection import PARSIMONY
 from kpi_calib_ros.core.diagnosis.periodic_search import (
     Periodogram,
@@ -193,6 +197,10 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
                 # multiplied by their number (Bonferroni), so the screen's claims keep
                 # their level (the plain best-of-grid p-value is too small on clean data).
                 best = replace(best, p_value_raw=min(1.0, best.p_value_raw * len(tried)))
+            if np.isnan(best.std).any():
+                # shape parameters held at a grid value: their std, and the sizes' with them
+                # free, from the full Jacobian at the screened values
+                best = replace(best, std=effect_std(model, sys_, effect, q, tau, best.theta))
             if effect.searched > 1:
                 # A frequency found by a search on these residuals (core.diagnosis.periodic_search):
                 # the best of that many tests, counted the same way.
