@@ -480,7 +480,8 @@ class StepOutput:
     text : ``~/campaign_status`` (YAML); state : the campaign state as written;
     calibration : (text, urdf, tcp messages) of a stopped campaign's calibration, None
     while it runs or when it stopped as model inadequate (nothing published, nothing
-    archived as a prior); result : that calibration.
+    archived as a prior); result : that calibration; refused : why a stopped campaign's
+    calibration is not valid and not published ('' otherwise).
     """
 
     status: CampaignStatus
@@ -489,6 +490,7 @@ class StepOutput:
     state: CampaignState
     calibration: tuple[str, str, list[PoseWithCovarianceStamped]] | None = None
     result: CellCalibration | None = None
+    refused: str = ''
 
 
 def sequential_step_work(campaign: SequentialCampaign, cm: CellModel, data: Measurements,
@@ -517,8 +519,7 @@ def _step_output(campaign: SequentialCampaign, cm: CellModel, state: CampaignSta
     doc = {**status.to_dict(cm.working_pose_names), **(extra or {})}
     plan = cm.joint_coupling.to_controller(status.next_configurations) if len(
         status.next_configurations) else status.next_configurations
-    text = dump_yaml(doc)
-    calibration, result = None, None
+    calibration, result, refused = None, None, ''
     # The calibration is on disk before the state says the campaign stopped: a node
     # killed in between repeats this step on restart and writes it again.
     if publish and status.stopped and status.stop_reason != MODEL_INADEQUATE:
@@ -530,9 +531,15 @@ def _step_output(campaign: SequentialCampaign, cm: CellModel, state: CampaignSta
             calibration = (done.text, done.urdf, cv.tcp_pose_msgs(
                 cal.result.tcp, cal.result.tcp_covariance, cm.cell.tracker_frame, stamp))
             result = cal
+        else:
+            # Stopped, and its calibration is not valid: said in the status, not left to a
+            # calibration.failed.yaml nobody is told of.
+            refused = ' | '.join(cal.problems) or 'not valid'
+            doc['calibration_not_published'] = refused
+    text = dump_yaml(doc)
     state = dataclasses.replace(state, status=doc)
     write_campaign_state(data_dir / CAMPAIGN_STATE_FILE, state)
-    return StepOutput(status, plan, text, state, calibration, result)
+    return StepOutput(status, plan, text, state, calibration, result, refused)
 
 
 def sequential_resume_work(cm: CellModel, state: CampaignState, data: Measurements,

@@ -220,6 +220,13 @@ class SequentialCampaignJobs(NodeParts):
         if out.calibration is not None and out.result is not None:
             text, urdf, tcp = out.calibration
             self._publish_campaign_calibration(out.result, text, urdf, tcp, stamps)
+        elif out.refused:
+            # Never published as the calibration: /diagnostics says ERROR with the reason,
+            # as ~/identify's refusal does.
+            self._run.result_error = f'calibration not published: {out.refused}'
+            self.get_logger().error(f'sequential campaign stopped ({status.stop_reason}) '
+                                    'but its calibration is not valid, last good '
+                                    f'calibration kept: {out.refused}')
         self._publish_diagnostics(force=True)
         if status.stopped:
             self.get_logger().info(f'sequential campaign stopped after {status.measurements} '

@@ -73,6 +73,7 @@ from kpi_calib_ros.core.design.exchange import exchange
 from kpi_calib_ros.core.errors import ConfigError, DataError
 from kpi_calib_ros.core.estimation.estimability import result_estimability
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult, identify
+from kpi_calib_ros.core.estimation.plausibility import moved_beyond
 from kpi_calib_ros.core.estimation.prior import Prior
 from kpi_calib_ros.core.estimation.robust import (
     ExcludedMeasurement,
@@ -360,12 +361,18 @@ class SequentialCampaign:
         and the lack-of-fit test judges the model.
         """
         cell = self.cell
+        # The warm start, unless a point since excluded threw it beyond the tolerances of
+        # a robot (a 50 mm fault moved a wrist placement 0.93 m and a joint zero 7.6 rad,
+        # never to come back, and every later plan and the final calibration rested on it):
+        # then from where the campaign started.
+        warm = self._p if not moved_beyond(cell.model, self._p, self._start) \
+            else self._start
 
         def fit(data: Measurements, p0: np.ndarray | None = None,
                 point_weights: np.ndarray | None = None) -> CalibrationResult:
             return identify(cell.model, data, cell.sigma, cell.q_work,
                             list(cell.working_pose_names),
-                            p0=self._p if p0 is None else p0, free=self.free,
+                            p0=warm if p0 is None else p0, free=self.free,
                             identifiability_method=cell.identification_method,
                             priority=list(cell.identification_priority) or None,
                             point_weights=point_weights, prior=self.prior)

@@ -56,7 +56,7 @@ from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.core.model.parameters import RECORDING_PREFIX, reflector_prefixes
 
 __all__ = ['Tolerances', 'Violation', 'gate', 'geometric_violations', 'effect_violations',
-           'registration_violations', 'reflector_shift',
+           'registration_violations', 'reflector_shift', 'moved_beyond',
            'gauge_free_deviation', 'observed_std', 'structural_jacobian', 'TURN_RANGE_RAD',
            'STRUCTURAL_POSES']
 
@@ -222,6 +222,20 @@ def _tolerance_key(name: str, unit: str) -> str:
 
 def _tolerance(tolerances: Tolerances, name: str, unit: str) -> float:
     return float(getattr(tolerances, _tolerance_key(name, unit)))
+
+
+def moved_beyond(model: MeasurementModel, values: np.ndarray, reference: np.ndarray,
+                 tolerances: Tolerances = Tolerances()) -> list[str]:
+    """Return the geometric and placement parameters of ``values`` moved beyond tolerance.
+
+    Each is compared with ``reference`` and its tolerance, no gauge taken out: a quick screen
+    of an estimate (a warm start), not the gate's judgement.
+    """
+    params = model.params
+    n_geo = len(params) - sum(len(e.parameter_names) for e in model.effects)
+    return [n for n, u, v, r in zip(params.names[:n_geo], params.units[:n_geo],
+                                    values[:n_geo], reference[:n_geo])
+            if abs(_wrapped(float(v) - float(r), u)) > _tolerance(tolerances, n, u)]
 
 
 def _tool_joints(model: MeasurementModel, q: np.ndarray | None) -> str:
