@@ -19,6 +19,7 @@ import numpy as np
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.payload import payload_torques
+from kpi_calib_ros.core.measurement.recordings import row_recording
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 
 __all__ = ['ResidualInput', 'residual_inputs']
@@ -109,7 +110,8 @@ def residual_inputs(model: MeasurementModel, data: Measurements, result: Calibra
         sight[point, :, 0] = eta[point] / distance[point, None]
         out.append(ResidualInput('tracker distance', np.where(point, distance, filler), sight,
                                  ('range error',), ('m',), 'm'))
-    fields = _covariate_fields(eta, point)
+    fields = _covariate_fields(eta, point,
+                               row_recording(data, ('',) + tuple(model.recordings)))
     names = ('drift x', 'drift y', 'drift z', 'scale')
     units = ('m', 'm', 'm', '')
     if data.stamps_ns is not None and len(data.stamps_ns) == n:
@@ -132,14 +134,17 @@ def residual_inputs(model: MeasurementModel, data: Measurements, result: Calibra
     return out
 
 
-def _covariate_fields(eta: np.ndarray, point: np.ndarray) -> np.ndarray:
+def _covariate_fields(eta: np.ndarray, point: np.ndarray, group: np.ndarray) -> np.ndarray:
     """(N, 3, 4) fields of an input with no direction.
 
-    Each tracker axis and the offset of the (predicted) points ``eta`` from their centroid; 0 on
-    rotation rows.
+    Each tracker axis and the offset of the (predicted) points ``eta`` from the centroid of
+    their recording's (``group`` (N,): each recording is in its own tracker frame; about the
+    centroid of every recording's points together, a station's 122 ppm scale read 4.95
+    ppm); 0 on rotation rows.
     """
     fields = np.zeros((len(eta), 3, 4))
     fields[point, :, :3] = np.eye(3)
-    if point.any():
-        fields[point, :, 3] = eta[point] - eta[point].mean(axis=0)
+    for g in np.unique(group[point]):
+        rows = point & (group == g)
+        fields[rows, :, 3] = eta[rows] - eta[rows].mean(axis=0)
     return fields
