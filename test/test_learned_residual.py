@@ -336,7 +336,9 @@ def test_validate_tells_whether_the_learned_residual_still_holds(tmp_path, capsy
     95 % ellipsoids at ~95 %; 200 training poses: from 90 it fails in 1 of 10 seeds,
     bench/learned_residual_poses.py);
     on a recording where the arm changed (joint_2's zero moved by 0.5 mrad, as between days)
-    it says the uncertainty no longer holds."""
+    it says the uncertainty no longer holds, warns to predict without it, and exits 1 (it
+    had exited 0 with "calibration holds", the learned residual part of the calibration as
+    used)."""
     misfit = _cell(tmp_path, {'cyclic_joint_error_h2:joint_2': {'a': 4e-4, 'b': 2e-4}})
     train, out = tmp_path / 'train.mcap', tmp_path / 'out'
     assert main(['simulate', '--cell', str(misfit), '--n', '200', '--out', str(train),
@@ -349,14 +351,15 @@ def test_validate_tells_whether_the_learned_residual_still_holds(tmp_path, capsy
     p_true = np.array([truth[n] for n in cm.model.params.names])
     moved = p_true.copy()
     moved[cm.model.params.index('joint_2.offset')] += 5e-4
-    found = {}
+    found, texts, codes = {}, {}, {}
     for name, p, seed in (('same', p_true, 7), ('changed', moved, 8)):
         bag = tmp_path / f'{name}.mcap'
         simulate_campaign(misfit, 100, bag, seed, cm=cm, p_true=p)
         capsys.readouterr()
-        main(['validate', '--cell', str(misfit), '--calibration', str(out / 'calibration.yaml'),
-              '--bag', str(bag), '--out', str(tmp_path / name)])
-        text = capsys.readouterr().out
+        codes[name] = main(['validate', '--cell', str(misfit), '--calibration',
+                            str(out / 'calibration.yaml'), '--bag', str(bag), '--out',
+                            str(tmp_path / name)])
+        texts[name] = text = capsys.readouterr().out
         found[name] = json.loads((tmp_path / name / 'validation.json').read_text())
         assert 'with the learned residual (learned_residual.yaml)' in text, text
     same, changed = found['same']['learned_residual'], found['changed']['learned_residual']
@@ -367,6 +370,9 @@ def test_validate_tells_whether_the_learned_residual_still_holds(tmp_path, capsy
     assert 1 < same['effective_points'] < same['tested_points'] == same['points'], same
     assert not changed['holds'] and changed['p_value'] < 1e-6, changed
     assert changed['inside_95_share'] < changed['inside_95_share_range'][0], changed
+    warning = 'WARNING: with its learned residual the calibration does NOT hold'
+    assert warning in texts['changed'] and codes['changed'] == 1
+    assert warning not in texts['same']
 
 
 @pytest.mark.slow

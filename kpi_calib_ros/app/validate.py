@@ -321,9 +321,13 @@ def validation_noise_verdict(v: Validation) -> tuple[str, float]:
 
 def passed(doc: Mapping[str, Any]) -> bool:
     """Whether the validation document passes: the calibration holds, the placement it
-    re-registered on the new recording (if any) is determined, and it predicts the new
-    points no worse than the nominal robot registered on them (``against_nominal``)."""
+    re-registered on the new recording (if any) is determined, it predicts the new points
+    no worse than the nominal robot registered on them (``against_nominal``), and its
+    learned residual, when it has one, holds too (it is part of the calibration as used:
+    one that made fresh poses worse, 83 % inside their 95 % ellipsoids, passed with exit 0)."""
+    learned = doc.get('learned_residual') or {}
     return (doc.get('holds') is True and registration_valid(doc)
+            and learned.get('holds') is not False
             and not (doc.get('against_nominal') or {}).get('worse_than_nominal', False)
             and not (doc.get('against_nominal_as_used') or {}).get('worse_than_nominal',
                                                                    False))

@@ -143,6 +143,11 @@ def validation_text(doc: dict[str, Any]) -> str:
     if learned is not None:
         lines.append(f"learned residual ({learned['file']}) {learned['skipped']}"
                      if 'skipped' in learned else learned_validation_text(learned))
+        if learned.get('holds') is False:
+            lines.append(f"WARNING: with its learned residual the calibration does NOT hold "
+                         f"on these points (rms {learned['rms_m'] * 1e3:.3f} mm against "
+                         f"{learned['rms_physical_m'] * 1e3:.3f} mm without it): predict "
+                         f"without {learned['file']}, or learn it again on more poses")
     if 2 * doc.get('identical_to_training', 0) >= doc['measurements']:
         lines.append(f"WARNING: {doc['identical_to_training']} of {doc['measurements']} points "
                      'have the joint readings of a training pose bit for bit: these are the '
