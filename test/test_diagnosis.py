@@ -353,3 +353,37 @@ def test_a_joint_plays_transition_gets_its_std_in_the_screen():
                                    rtol=1e-3, err_msg=spec)
     assert not plays['joint_play:joint_5'].plausible
     assert 'undetermined: joint_play.joint_5.u std' in plays['joint_play:joint_5'].plausibility
+
+
+def test_the_only_poses_of_a_backlash_are_not_diagnosed_away_as_outliers():
+    """145 poses with joint 5's gravity torque of one sign, 5 of the other, a 0.4 mrad
+    backlash: the 5 are the outlier rule's "faults" and diagnose, on the points identify
+    keeps, called the model adequate ("nothing missing") where auto, on every point, added
+    the backlash. Diagnose now finds the backlash whose fit takes the 5 back as measurements
+    and recommends it; the comparison names them."""
+    from kpi_calib_ros.app.diagnose import diagnose_cell
+    from kpi_calib_ros.core.measurement.payload import payload_torques
+    from kpi_calib_ros.core.simulation import (
+        random_configurations,
+        simulate_measurements,
+        true_parameters,
+    )
+    cm = _cell_model('kr15')
+    effect = parse_effect_spec('joint_backlash:joint_5', cm.robot)
+    truth = augmented_model(cm.model, (effect,))
+    rng = np.random.default_rng(21)
+    p_robot = true_parameters(cm.model.params, rng)
+    q = random_configurations(cm.model, p_robot, 2000, rng)
+    tau = payload_torques(cm.model.robot, q)[:, cm.robot.joint_names.index('joint_5')]
+    pick = np.concatenate([np.flatnonzero(tau < -0.5)[:145], np.flatnonzero(tau > 0.5)[:5]])
+    rng.shuffle(pick)
+    data = simulate_measurements(truth, np.concatenate([p_robot, [4e-4]]), q[pick], SIGMA, rng)
+    other_sign = tuple(int(i) for i in np.flatnonzero(np.isin(pick, np.flatnonzero(
+        tau > 0.5)[:5])))
+    cd = diagnose_cell(cm, data)
+    assert cd.diagnosis.best is not None and cd.diagnosis.best.spec == 'joint_backlash:joint_5'
+    assert 'Add it with --effects joint_backlash:joint_5' in cd.diagnosis.verdict
+    assert tuple(sorted(cd.comparison.readmitted)) == other_sign
+    z = (cd.after.value('joint_backlash.joint_5.b') - 4e-4) / cd.after.std_of(
+        'joint_backlash.joint_5.b')
+    assert abs(z) < 3, z

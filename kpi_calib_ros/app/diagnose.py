@@ -100,6 +100,19 @@ def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
     est = cal.estimability
     diag = with_estimability(diagnose(cm.model, data, result, folds=folds, alpha=alpha,
                                       tolerances=cm.cell.identification.tolerances), est)
+    if excluded and diag.best is None and add_best and est.all_estimable:
+        # The excluded points may be an effect's only evidence (the few poses where a
+        # joint's torque has the other sign: a backlash's), as auto sees on every point:
+        # diagnose called the model adequate where auto added the backlash (z = 12).
+        every = explained_outliers(cm, given, kept, level, free, cal.robust.threshold,
+                                   folds, alpha)
+        if every is not None:
+            data, result, diag = every
+            diag = with_estimability(diag, est)
+    # What the diagnosis describes: the points identify keeps, or every point when the
+    # excluded ones are an effect's measurements (the comparison names them, readmitted).
+    shown_kept, shown_excluded = (kept, excluded) if len(data) != len(given) else (
+        np.ones(len(given), bool), ())
     prior = cell_prior(cm)
     oos = out_of_sample_error(cm.model, data, result, free or list(cm.model.params.names),
                               prior)
@@ -107,7 +120,8 @@ def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
     expected = expected_tcp_error(cm.model, data, result) if est.all_estimable else None
     if not add_best or diag.best is None or not est.all_estimable:
         return with_misfit_answer(CellDiagnosis(
-            cm.model, data, result, diag, out_of_sample=oos, kept=kept, excluded=excluded,
+            cm.model, data, result, diag, out_of_sample=oos, kept=shown_kept,
+            excluded=shown_excluded,
             expected=expected, estimability=est, set_up=set_up), covariates)
     best = parse_effect_spec(diag.best.spec, cm.robot, temperatures=cm.model.joint_temperatures)
     richer = with_effects(cm, (best,))
@@ -148,7 +162,31 @@ def diagnose_cell(cm: CellModel, data: Measurements, folds: int = 0,
                                     richer_free or list(richer.model.params.names), prior)
     return with_misfit_answer(CellDiagnosis(
         cm.model, data, result, diag, best, richer.model, after, comparison, oos, after_oos,
-        kept, excluded, expected, estimability=est, set_up=set_up), covariates)
+        shown_kept, shown_excluded, expected, estimability=est, set_up=set_up), covariates)
+
+
+def explained_outliers(cm: CellModel, given: Measurements, kept: np.ndarray, level: str,
+                       free: list[str] | None, threshold: float, folds: int, alpha: float
+                       ) -> tuple[Measurements, CalibrationResult, Diagnosis] | None:
+    """Every point of ``given``, its fit and its diagnosis, when the diagnosis of every
+    point finds an effect whose fit (on every point) has each point the outlier rule
+    excluded (not ``kept``) within the exclusion threshold, a measurement
+    (:func:`readmitted`); None otherwise."""
+    every = identify_cell(cm, given, free=free)
+    diag = diagnose(cm.model, given, every, folds=folds, alpha=alpha,
+                    tolerances=cm.cell.identification.tolerances)
+    if diag.best is None:
+        return None
+    best = parse_effect_spec(diag.best.spec, cm.robot, temperatures=cm.model.joint_temperatures)
+    richer = with_effects(cm, (best,))
+    richer_free = None if free is None else level_free(richer.model.params, level,
+                                                       len(cm.geometric))
+    # fitted on every point: the excluded ones may be all that determines the effect (a
+    # backlash where the torque has one sign on the kept points is a joint offset)
+    after = identify_cell(richer, given, free=richer_free,
+                          p0=effect_start(every.values, best, diag.best.values))
+    back = readmitted(richer.model, given, kept, after, threshold)
+    return (given, every, diag) if len(back) == int(np.count_nonzero(~kept)) else None
 
 
 def readmitted(model: MeasurementModel, given: Measurements, kept: np.ndarray,
