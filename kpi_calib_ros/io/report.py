@@ -35,8 +35,8 @@ _UM = 1e6
 
 # ------------------------------------------------------------------ documents
 # Why a figure of diagnosis.json is null (JSON has no NaN): what it would need.
-HELD_SHAPE = ('held at its screened grid value (a shape parameter chosen from a grid, not '
-              'fitted): no std')
+UNDETERMINED_STD = ('not determined by these measurements (no direction of its own beside the '
+              'geometry and the other parameters): no finite std')
 NO_DOF = 'no degrees of freedom left: no test'
 
 
@@ -54,7 +54,7 @@ def _with_reason(doc: dict[str, Any], key: str, x: float, reason: str) -> dict[s
 
 
 def _parameter_dict(name: str, value: float, std: float, unit: str) -> dict[str, Any]:
-    return _with_reason({'name': name, 'value': float(value)}, 'std', std, HELD_SHAPE) | {
+    return _with_reason({'name': name, 'value': float(value)}, 'std', std, UNDETERMINED_STD) | {
         'unit': unit}
 
 

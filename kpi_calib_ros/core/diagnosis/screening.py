@@ -310,7 +310,7 @@ def _explain(fit: CandidateFit, significant: bool, p_adj: float, m: int, rms_bas
     # when the model is not adequate (at the stated σ they understated it 7.6x on the UR10).
     std = fit.std * np.sqrt(chi2_scale(fit.chi2, fit.dof))
     values = ', '.join(f'{name.rsplit(".", 1)[1]} = {v:.3g} '
-                       + (f'± {s:.2g} {u}' if np.isfinite(s) else f'{u} (best of its grid)')
+                       + (f'± {s:.2g} {u}' if np.isfinite(s) else f'{u} (not determined)')
                        for name, v, s, u in zip(effect.parameter_names, fit.theta,
                                                 std, effect.units))
     numbers = (f'rms {rms_base * 1e6:.1f} -> {fit.rms_m * 1e6:.1f} µm, validation rms '
