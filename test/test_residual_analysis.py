@@ -378,3 +378,27 @@ def test_a_smooth_function_that_predicts_worse_is_not_what_is_missing(ur):
     worse = dataclasses.replace(an, combined_after_m=2.5 * an.combined_before_m)
     answer = answer_misfit(worse, None, ())
     assert answer.missing.kind == NONE and answer.inputs == tuple(s.name for s in an.significant)
+
+
+def test_repeated_postures_are_held_out_together():
+    """40 postures measured in three sessions (readings 0.3 mrad apart), each posture with
+    an error of its own (200 µm, no function of any input): held out one row at a time, a
+    posture's repeats in the other folds taught its error to the smooth functions, and
+    shares up to 0.42 looked like a misfit that carries over to new poses (the real TIAGo's
+    0.71). Held out with their repeats, no input explains a quarter of it."""
+    from kpi_calib_ros.core.measurement.replicates import SAME_POSE_TOLERANCE
+    cm = build_cell_model(load_cell(DEFAULT_CELL.parent / 'ur_cell.yaml'))
+    shares = []
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        p = true_parameters(cm.model.params, rng)
+        q0 = random_configurations(cm.model, p, 40, rng)
+        jitter = 0.3 * SAME_POSE_TOLERANCE
+        q = np.vstack([q0 + rng.uniform(-jitter, jitter, q0.shape) for _ in range(3)])
+        own = np.tile(rng.normal(0, 2e-4, (40, 3)), (3, 1))
+        eta = cm.model.predict(p, q) + own + rng.normal(0, SIGMA, (len(q), 3))
+        data = Measurements(q=q, eta=eta)
+        result = identify(cm.model, data, SIGMA, cm.q_work, max_iterations=25)
+        shares += [s.share for s in analyse_calibration(cm.model, data, result).scores]
+    print(f'largest share {max(shares):.2f}')
+    assert max(shares) < 0.25
