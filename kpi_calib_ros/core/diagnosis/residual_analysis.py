@@ -400,6 +400,8 @@ def analyse_residuals(fit: LinearizedFit, residuals: np.ndarray,
 
     scores = []
     excess = base_sse - base_noise
+    largest_m = float(np.max(np.linalg.norm(np.asarray(residuals, float), axis=1),
+                             initial=0.0))
     for inp, pick, p_raw, p_adj in zip(inputs, chosen, raw, adjusted):
         best = pick or {}
         implied, weight = implied_values(inp, np.asarray(residuals, float), fit.w)
@@ -427,7 +429,7 @@ def analyse_residuals(fit: LinearizedFit, residuals: np.ndarray,
             p_value=float(p_adj), significant=significant,
             x=np.asarray(inp.values, float), implied=implied, weight=weight,
             curve_x=grid, curve=curve,
-            region=curve_region(inp, grid, determined) if significant else ''))
+            region=curve_region(inp, grid, determined, largest_m) if significant else ''))
     order = sorted(range(len(scores)), key=lambda i: (
         not scores[i].significant, scores[i].p_value_raw,
         -np.nan_to_num(scores[i].share, nan=-np.inf)))
