@@ -135,8 +135,8 @@ def curve_region(inp: ResidualInput, grid: np.ndarray, curve: np.ndarray,
                       for a, b in runs)
     factor, shown = _SHOWN.get(inp.field_units[k], (1.0, inp.field_units[k]))
     if peak * lever[k] > 2.0 * largest_m:
-        return (f'{inp.field_names[k]} largest (its size not determined: nearly a direction '
-                f'of the geometry) where {inp.name} is {where} {unit}').strip()
+        return (f'{inp.field_names[k]} largest (its size not what the points show: more than '
+                f'twice the largest residual) where {inp.name} is {where} {unit}').strip()
     points = (f' (~{peak * lever[k] * 1e6:.3g} µm at the points)'
               if inp.field_units[k] != 'm' else '')
     return (f'{inp.field_names[k]} up to {peak * factor:.3g} {shown}{points} where '
