@@ -312,9 +312,10 @@ def test_a_covariate_of_two_values_is_a_level_each_not_a_curve(ur):
     assert inputs['recording.b'].categorical and not inputs['temperature'].categorical
 
 
-def _three_stations(scale: float):
+def _three_stations(scale: float, every: bool = False):
     """The default cell measured from three stations metres apart, 40 poses each, the third's
-    points ``scale`` larger (about its tracker); its cell model with the recordings, rows."""
+    points (``every``: every station's) ``scale`` larger (about its tracker); its cell model
+    with the recordings, rows."""
     from kpi_calib_ros.app.measurements import with_recordings
     from kpi_calib_ros.core.measurement import recordings as rec
     from kpi_calib_ros.core.simulation import simulate_measurements
@@ -330,7 +331,7 @@ def _three_stations(scale: float):
         placed[:6] += move
         q = random_configurations(cm.model, placed, 40, rng)
         rows = simulate_measurements(cm.model, placed, q, 2e-5, rng)
-        if name == 'c':
+        if name == 'c' or every:
             rows = dataclasses.replace(rows, eta=rows.eta * (1 + scale))
         parts.append(rows)
     data = rec.combine(parts, recordings)
@@ -424,3 +425,31 @@ def test_a_size_beyond_what_the_points_show_is_not_stated():
     assert 'not what the points show' in big and 'µrad' not in big, big
     small = curve_region(inp, grid, 2e-3 * np.exp(-grid[:, None] ** 2), largest_m=7.1e-3)
     assert small.startswith('joint error up to 2e+03 µrad (~920 µm at the points)'), small
+
+
+def test_what_every_recording_shares_is_no_recordings_own():
+    """Two recordings, a misfit along one field (a scale) on every row: the recording's
+    one-hot input is judged on how it differs from the other recording, so the shared
+    misfit flags it not (on three real TIAGo sessions each later recording was flagged for
+    a 367 ppm scale that was one scale shared by all: alone, 1.2-1.4σ); the same misfit on
+    the second recording's rows only flags it."""
+    found = {}
+    for case in ('shared', 'own'):
+        rng = np.random.default_rng(2)
+        n, k, sigma = 160, 4, 1e-5
+        rec = (np.arange(n) >= n // 2).astype(float)
+        field = rng.normal(size=(n, 3)) * 0.5
+        size = 1e-4 * (np.ones(n) if case == 'shared' else rec)
+        res = field * size[:, None] + rng.normal(size=(n, 3)) * sigma
+        jac = rng.normal(size=(3 * n, k))
+        basis = orthonormal_basis(jac)
+        r = res.reshape(-1) / sigma
+        r -= basis @ (basis.T @ r)
+        fit = LinearizedFit(r, jac, basis, np.full(3, 1 / sigma), None, np.zeros(k))
+        one_hot = ResidualInput('recording.b', rec, field[:, :, None], ('scale',), ('',), '',
+                                categorical=True)
+        score = analyse_residuals(fit, (r * sigma).reshape(-1, 3), [one_hot],
+                                  np.arange(n, dtype=float)[:, None], folds=5).scores[0]
+        found[case] = score
+    assert not found['shared'].significant, found['shared'].p_value
+    assert found['own'].significant and found['own'].share > 0.3

@@ -367,9 +367,15 @@ def analyse_residuals(fit: LinearizedFit, residuals: np.ndarray,
         support = np.asarray(inp.values, float)[active]
         cap = max(1, n_poses // (MIN_POSES_PER_COLUMN * inp.fields.shape[2]))
         tests = []
+        # A category (a recording, a reflector) is judged on how it differs from the others:
+        # what its fields do alike on every row (a scale common to all recordings) is not
+        # its own. On three real TIAGo sessions each later recording was flagged for a
+        # 367 ppm scale that was one scale shared by all (alone, 1.2-1.4σ).
+        against = geometry if not inp.categorical else np.hstack([geometry, _unique_basis(
+            _design(inp, np.ones((len(inp.values), 1)), fit.w), geometry)])
         for size in candidate_bases(inp, support, cap, sizes, harmonics):
             u = _unique_basis(_design(inp, basis_columns(np.asarray(inp.values, float), size,
-                                                  support), fit.w), geometry)
+                                                  support), fit.w), against)
             if u.shape[1] == 0 or dof0 - u.shape[1] <= 0:
                 continue
             coef = u.T @ r
