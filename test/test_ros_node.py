@@ -400,6 +400,39 @@ def test_an_invalid_identification_keeps_the_last_good_calibration(in_process, m
         spinner.stop()
 
 
+def test_measured_inputs_that_cannot_be_paired_fail_the_identification_loudly(in_process,
+                                                                           monkeypatch):
+    """Pairing the measured inputs is part of ~/identify: an input the cell expects
+    (``inputs.expect``) that never arrived refuses the identification and /diagnostics says
+    ERROR with the reason. The refusal came before the job's error handling and
+    /diagnostics stayed OK."""
+    from kpi_calib_ros.core.errors import DataError
+    from kpi_calib_ros.ros import calibration_jobs
+    node = in_process
+
+    def unpaired(*_args, **_kwargs):
+        raise DataError("the node's measured inputs: no finite reading of the measured "
+                        "input(s) ['payload.mass']")
+
+    monkeypatch.setattr(calibration_jobs, 'station_measurements', unpaired)
+    executor = SingleThreadedExecutor(context=node.context)
+    executor.add_node(node)
+    spinner = SpinThread(executor)
+    spinner.start()
+    try:
+        assert node._claim_job('identifying')
+        task = executor.create_task(node._run_job, 'identify', node._identify)
+        finished = threading.Event()
+        task.add_done_callback(lambda _: finished.set())
+        assert finished.wait(timeout=60), 'identification did not finish'
+        ok, message = task.result()
+        assert not ok and 'payload.mass' in message
+        level, text, _ = node.status()
+        assert level == 'ERROR' and 'identification failed' in text and 'payload.mass' in text
+    finally:
+        spinner.stop()
+
+
 def test_heavy_jobs_compute_in_a_child_process_that_holds_no_gil_of_the_node(in_process,
                                                                             tmp_path):
     """``child=True``: the function runs in another process (its own interpreter and GIL),

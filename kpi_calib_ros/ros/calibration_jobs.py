@@ -73,8 +73,10 @@ class CalibrationJobs(NodeParts):
             raise DataError('a sequential campaign is running: its calibration is published '
                             'on ~/calibration when it stops (~/campaign_status); call '
                             '~/reset to end it')
-        cm, data, pairing, stations = station_measurements(self.store, cm)
         try:
+            # Pairing the measured inputs is part of the identification: a declared input
+            # that never arrived left /diagnostics OK after the refusal.
+            cm, data, pairing, stations = station_measurements(self.store, cm)
             out = await self._offload(
                 job_work.identify_work, cm, data, pairing, self.data_dir,
                 self.settings.reidentify_with_prior,
