@@ -99,3 +99,22 @@ def test_a_far_point_excluded_leaves_no_trace_in_the_campaign(tmp_path):
     assert doc['valid'], doc['invalid_reasons']
     err = cal.result.tcp[0] - truth.model.predict(p_true, truth.q_work)[0]
     assert np.all(np.abs(err) < 4 * np.sqrt(np.diag(cal.result.tcp_covariance[0])) * 1.25)
+
+
+def test_a_stopped_campaign_whose_calibration_is_not_valid_says_so(tmp_path):
+    """The node's step output of a stopped campaign whose calibration the gate refuses (an
+    effect the fit left out): nothing to publish, and the status says why
+    (``calibration_not_published``, the node's /diagnostics ERROR); it said "target met"
+    or "max_measurements reached" and left calibration.failed.yaml unmentioned."""
+    from kpi_calib_ros.io.campaign_io import CampaignState
+    from kpi_calib_ros.ros import job_work
+    cm, campaign = _campaign(tmp_path, effects=['joint_compliance:joint_1'])
+    assert campaign.status.stopped
+    folder = tmp_path / 'node'
+    folder.mkdir()
+    out = job_work._step_output(campaign, cm, CampaignState(campaign.settings, 0), folder,
+                                None, None)
+    assert out.calibration is None and 'joint_compliance:joint_1' in out.refused
+    status = yaml.safe_load(out.text)
+    assert status['calibration_not_published'] == out.refused
+    assert (folder / 'calibration.failed.yaml').is_file()
