@@ -136,25 +136,32 @@ def steps(name: str) -> bool:
     return name.startswith(STEP_PREFIX)
 
 
+def _readings(sample_stamps_ns: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return the finite readings by stamp, sorted, those of one stamp averaged."""
+    t = np.asarray(sample_stamps_ns, dtype=np.int64).reshape(-1)
+    v = np.asarray(values, float).reshape(-1)
+    good = np.isfinite(v)
+    t, v = t[good], v[good]
+    if not len(t):
+        return t, v
+    t, inverse = np.unique(t, return_inverse=True)
+    return t, np.bincount(inverse, weights=v) / np.bincount(inverse)
+
+
 def hold(stamps_ns: np.ndarray, sample_stamps_ns: np.ndarray, values: np.ndarray,
          unknown_ns: np.ndarray | None = None) -> np.ndarray:
     """Return the values (N,) of a quantity that steps at ``stamps_ns`` (N,).
 
     The last reading at or before each stamp (readings of one stamp averaged), NaN before the
     first and where a reading without a value (``unknown_ns``) lies between that reading and
-    the stamp. Interpolated, a payload reported at 0, 2.5 and 5 kg when it changed gave rows 0.94,
-    3.44 and 3.13 kg.
+    the stamp. Interpolated, a payload reported at 0, 2.5 and 5 kg when it changed gave rows
+    0.94, 3.44 and 3.13 kg.
     """
     stamps = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
     out = np.full(len(stamps), np.nan)
-    t = np.asarray(sample_stamps_ns, dtype=np.int64).reshape(-1)
-    v = np.asarray(values, float).reshape(-1)
-    good = np.isfinite(v)
-    t, v = t[good], v[good]
+    t, v = _readings(sample_stamps_ns, values)
     if not len(t):
         return out
-    t, inverse = np.unique(t, return_inverse=True)
-    v = np.bincount(inverse, weights=v) / np.bincount(inverse)
     last = np.searchsorted(t, stamps, side='right') - 1
     known = last >= 0
     out[known] = v[last[known]]
@@ -255,14 +262,9 @@ def interpolate(stamps_ns: np.ndarray, sample_stamps_ns: np.ndarray, values: np.
     """
     stamps = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
     out = np.full(len(stamps), np.nan)
-    t = np.asarray(sample_stamps_ns, dtype=np.int64).reshape(-1)
-    v = np.asarray(values, float).reshape(-1)
-    good = np.isfinite(v)
-    t, v = t[good], v[good]
+    t, v = _readings(sample_stamps_ns, values)
     if not len(t):
         return out
-    t, inverse = np.unique(t, return_inverse=True)
-    v = np.bincount(inverse, weights=v) / np.bincount(inverse)
     # offsets from the first sample keep the arithmetic exact in float64 (ns since 1970
     # exceed its integer precision)
     x, xs = (stamps - t[0]).astype(float), (t - t[0]).astype(float)
