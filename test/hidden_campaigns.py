@@ -48,3 +48,19 @@ def campaign(cm: CellModel, hidden: dict, seed: int, n: int,
     data = simulate_measurements(truth, p_true, q, SIGMA, rng)
     result = identify(cm.model, data, SIGMA, cm.q_work, max_iterations=25)
     return Campaign(data, result, p_true, truth, rng)
+
+
+def repeated_postures(cm: CellModel, rng: np.random.Generator, postures: int = 40,
+                      sessions: int = 3, own_m: float = 2e-4
+                      ) -> tuple[Measurements, CalibrationResult, np.ndarray]:
+    """``postures`` random postures of a true robot measured in ``sessions`` sessions
+    (readings 0.3 mrad apart), each posture with an error of its own (``own_m`` per axis,
+    no function of anything), σ = :data:`SIGMA`: the data, their geometric calibration and
+    the true parameters."""
+    p = true_parameters(cm.model.params, rng)
+    q0 = random_configurations(cm.model, p, postures, rng)
+    q = np.vstack([q0 + rng.uniform(-3e-4, 3e-4, q0.shape) for _ in range(sessions)])
+    own = np.tile(rng.normal(0, own_m, (postures, 3)), (sessions, 1))
+    eta = cm.model.predict(p, q) + own + rng.normal(0, SIGMA, (len(q), 3))
+    data = Measurements(q=q, eta=eta)
+    return data, identify(cm.model, data, SIGMA, cm.q_work, max_iterations=25), p

@@ -148,19 +148,14 @@ def test_the_misfit_of_repeated_postures_is_that_of_a_new_pose():
     (0.93-1.09 of the misfit measured at 300 fresh poses); held out one row at a time, the
     repeats predicted each posture and b understated it (0.77-0.91)."""
     from kpi_calib_ros.app.cell_model import build_cell_model
-    from kpi_calib_ros.core.measurement.data import Measurements
     from kpi_calib_ros.io.cell import load_cell
+
+    from hidden_campaigns import repeated_postures
     cm = build_cell_model(load_cell(DEFAULT_CELL.parent / 'ur_cell.yaml'))
     ratios = []
     for seed in range(3):
         rng = np.random.default_rng(seed)
-        p = true_parameters(cm.model.params, rng)
-        q0 = random_configurations(cm.model, p, 40, rng)
-        q = np.vstack([q0 + rng.uniform(-3e-4, 3e-4, q0.shape) for _ in range(3)])
-        own = np.tile(rng.normal(0, 2e-4, (40, 3)), (3, 1))
-        eta = cm.model.predict(p, q) + own + rng.normal(0, 2e-5, (len(q), 3))
-        data = Measurements(q=q, eta=eta)
-        result = identify(cm.model, data, 2e-5, cm.q_work, max_iterations=25)
+        data, result, p = repeated_postures(cm, rng)
         expected = expected_tcp_error(cm.model, data, honest_precision(result))
         fresh_q = random_configurations(cm.model, p, 300, rng)
         fresh = (cm.model.predict(p, fresh_q) + rng.normal(0, 2e-4, (300, 3))

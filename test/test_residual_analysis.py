@@ -391,19 +391,11 @@ def test_repeated_postures_are_held_out_together():
     posture's repeats in the other folds taught its error to the smooth functions, and
     shares up to 0.42 looked like a misfit that carries over to new poses (the real TIAGo's
     0.71). Held out with their repeats, no input explains a quarter of it."""
-    from kpi_calib_ros.core.measurement.replicates import SAME_POSE_TOLERANCE
+    from hidden_campaigns import repeated_postures
     cm = build_cell_model(load_cell(DEFAULT_CELL.parent / 'ur_cell.yaml'))
     shares = []
     for seed in range(3):
-        rng = np.random.default_rng(seed)
-        p = true_parameters(cm.model.params, rng)
-        q0 = random_configurations(cm.model, p, 40, rng)
-        jitter = 0.3 * SAME_POSE_TOLERANCE
-        q = np.vstack([q0 + rng.uniform(-jitter, jitter, q0.shape) for _ in range(3)])
-        own = np.tile(rng.normal(0, 2e-4, (40, 3)), (3, 1))
-        eta = cm.model.predict(p, q) + own + rng.normal(0, SIGMA, (len(q), 3))
-        data = Measurements(q=q, eta=eta)
-        result = identify(cm.model, data, SIGMA, cm.q_work, max_iterations=25)
+        data, result, _ = repeated_postures(cm, np.random.default_rng(seed))
         shares += [s.share for s in analyse_calibration(cm.model, data, result).scores]
     print(f'largest share {max(shares):.2f}')
     assert max(shares) < 0.25
