@@ -101,7 +101,7 @@ from kpi_calib_ros.core.estimation.residuals import (
     orthonormal_basis,
 )
 from kpi_calib_ros.core.measurement.data import Measurements
-from kpi_calib_ros.core.measurement.replicates import pose_groups
+from kpi_calib_ros.core.measurement.replicates import as_first_of_pose
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.core.measurement.weighting import unweighted, weighted_rows
 
@@ -350,8 +350,7 @@ def analyse_residuals(fit: LinearizedFit, residuals: np.ndarray,
     # program) is one pose, held out with its repeats: in other folds they leaked its
     # residual into the fit (three real TIAGo sessions of 62 postures, 184 "poses": a
     # share of 0.71 for arm_6_joint, negative with the repeats held out together).
-    groups = pose_groups(np.atleast_2d(q))
-    q = np.atleast_2d(q)[np.unique(groups, return_index=True)[1][groups]]
+    q = as_first_of_pose(q)
     n_poses = len(np.unique(q, axis=0))
     pose_folds = identifiable_folds(fit.jac, q, folds, seed)
     press = _Press(geometry, pose_folds)

@@ -42,7 +42,7 @@ from kpi_calib_ros.core.estimation.residuals import (
     orthonormal_basis,
 )
 from kpi_calib_ros.core.measurement.data import Measurements
-from kpi_calib_ros.core.measurement.replicates import pose_groups
+from kpi_calib_ros.core.measurement.replicates import as_first_of_pose
 from kpi_calib_ros.core.measurement.tracker import MeasurementModel
 from kpi_calib_ros.core.measurement.weighting import point_rms, point_rows, unweighted
 
@@ -260,9 +260,7 @@ def typical_held_out_rms(model: MeasurementModel, data: Measurements,
     # A posture measured again (another session of the same program, readings within a
     # reading's tolerance) is held out with its repeats: left in, they predict it and the
     # misfit a new pose meets is understated.
-    q = np.atleast_2d(data.q)
-    groups = pose_groups(q)
-    q = q[np.unique(groups, return_index=True)[1][groups]]
+    q = as_first_of_pose(data.q)
     prior_rows, prior_r = prior_system(model, result, prior)
     a = np.vstack([sys_.jac, prior_rows])
     folds = identifiable_folds(a, q, LEAVE_ONE_OUT, 0)

@@ -65,7 +65,18 @@ def pose_groups(q: np.ndarray, tolerance: float = SAME_POSE_TOLERANCE) -> np.nda
     return rank[inverse.reshape(-1)]
 
 
-__all__ = ['SAME_POSE_TOLERANCE', 'pose_groups', 'same_pose', 'same_turn']
+__all__ = ['SAME_POSE_TOLERANCE', 'pose_groups', 'as_first_of_pose', 'same_pose', 'same_turn']
+
+
+def as_first_of_pose(q: np.ndarray) -> np.ndarray:
+    """Return ``q`` (N, n) with every row replaced by the first row of its pose.
+
+    Poses as :func:`pose_groups` makes them: folds over exact poses then hold a posture out
+    with its repeats (another session's readings within a reading's tolerance).
+    """
+    q = np.atleast_2d(np.asarray(q, float))
+    groups = pose_groups(q)
+    return q[np.unique(groups, return_index=True)[1][groups]]
 
 
 def same_turn(q: np.ndarray, lower: np.ndarray, upper: np.ndarray,
