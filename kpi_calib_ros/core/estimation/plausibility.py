@@ -232,7 +232,7 @@ def moved_beyond(model: MeasurementModel, values: np.ndarray, reference: np.ndar
     of an estimate (a warm start), not the gate's judgement.
     """
     params = model.params
-    n_geo = len(params) - sum(len(e.parameter_names) for e in model.effects)
+    n_geo = len(model.geometric)
     return [n for n, u, v, r in zip(params.names[:n_geo], params.units[:n_geo],
                                     values[:n_geo], reference[:n_geo])
             if abs(_wrapped(float(v) - float(r), u)) > _tolerance(tolerances, n, u)]
@@ -375,8 +375,7 @@ def geometric_violations(model: MeasurementModel, result: CalibrationResult,
         ``tolerances.rotation``, as a stated reflector offset within its tolerance.
     """
     params = model.params
-    n_geo = len(params) - sum(len(e.parameter_names) for e in model.effects) \
-        if n_geometric is None else n_geometric
+    n_geo = len(model.geometric) if n_geometric is None else n_geometric
     values = dict(zip(result.names, result.values))
     std = dict(zip(result.estimated, result.std))
     # How far each geometric quantity moved, judged on the equivalent robot closest to the
