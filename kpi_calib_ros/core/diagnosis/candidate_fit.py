@@ -21,6 +21,7 @@ import scipy.stats
 
 from kpi_calib_ros.core.effects.registry import BoundEffect, implausible
 from kpi_calib_ros.core.estimation.cross_validation import linear_validation_rms
+from kpi_calib_ros.core.estimation.precision import chi2_scale
 from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA, LinearizedFit
 from kpi_calib_ros.core.measurement.weighting import point_rms, unweighted
 
@@ -70,6 +71,19 @@ class CandidateFit:
     driver_correlation: float
     unique_fraction: float
     merged: tuple[str, ...] = ()
+
+    @property
+    def covariance_scale(self) -> float:
+        """Return χ²/dof of the augmented fit when its χ² test rejects, else 1.
+
+        As :func:`~kpi_calib_ros.core.estimation.precision.chi2_scale` gives it.
+        """
+        return chi2_scale(self.chi2, self.dof)
+
+    @property
+    def scaled_std(self) -> np.ndarray:
+        """Return the std as reported: scaled by :attr:`covariance_scale`."""
+        return self.std * np.sqrt(self.covariance_scale)
 
 
 def fit_candidate(effect: BoundEffect, cols: np.ndarray, sys_: LinearizedFit, r_perp: np.ndarray,

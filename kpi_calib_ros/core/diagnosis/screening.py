@@ -44,7 +44,6 @@ from kpi_calib_ros.core.estimation.cross_validation import linear_validation_rms
 from kpi_calib_ros.core.estimation.folds import identifiable_folds
 from kpi_calib_ros.core.estimation.least_squares import CalibrationResult
 from kpi_calib_ros.core.estimation.plausibility import Tolerances
-from kpi_calib_ros.core.estimation.precision import chi2_scale
 from kpi_calib_ros.core.estimation.residuals import ADEQUACY_ALPHA, linearized_fit
 from kpi_calib_ros.core.measurement.data import Measurements
 from kpi_calib_ros.core.measurement.payload import payload_torques
@@ -219,8 +218,7 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
         nested = simpler.get(fit.effect.name, '')
         significant = bool(p_adj < alpha) and not nested
         warning = implausible(fit.effect, fit.theta, tau, bounds) \
-            or effect_undetermined(fit.effect, fit.std * np.sqrt(chi2_scale(fit.chi2, fit.dof)),
-                                   bounds)
+            or effect_undetermined(fit.effect, fit.scaled_std, bounds)
         if significant and not warning:
             warning = geometry_undetermined(model, sys_, result, fit, q, tau, tolerances)
         merged = fit.merged
@@ -233,8 +231,7 @@ def screen_effects(model: MeasurementModel, data: Measurements, result: Calibrat
             effect=fit.effect.kind.name, joint=fit.effect.joint, spec=fit.effect.name,
             parameter_names=fit.effect.parameter_names, units=fit.effect.units,
             distinguishable=True, values=fit.theta,
-            std=fit.std * np.sqrt(chi2_scale(fit.chi2, fit.dof)),
-            covariance_scale=chi2_scale(fit.chi2, fit.dof),
+            std=fit.scaled_std, covariance_scale=fit.covariance_scale,
             rms_after_m=fit.rms_m, validation_rms_after_m=fit.validation_rms_m,
             delta_chi2=fit.delta_chi2, f_statistic=fit.f_statistic, p_value_raw=fit.p_value_raw,
             p_value=p_adj, significant=significant, correlation=fit.correlation,
@@ -308,7 +305,7 @@ def _explain(fit: CandidateFit, significant: bool, p_adj: float, m: int, rms_bas
     effect: BoundEffect = fit.effect
     # The std as the candidate table states them: scaled by χ²/dof of the augmented fit
     # when the model is not adequate (at the stated σ they understated it 7.6x on the UR10).
-    std = fit.std * np.sqrt(chi2_scale(fit.chi2, fit.dof))
+    std = fit.scaled_std
     values = ', '.join(f'{name.rsplit(".", 1)[1]} = {v:.3g} '
                        + (f'± {s:.2g} {u}' if np.isfinite(s) else f'{u} (not determined)')
                        for name, v, s, u in zip(effect.parameter_names, fit.theta,
