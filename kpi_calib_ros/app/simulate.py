@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from kpi_calib_ros.app.cell_model import CellModel, build_cell_model
-from kpi_calib_ros.core.acquisition.reflector_frames import REFLECTOR_SEPARATOR
+from kpi_calib_ros.core.acquisition.reflector_frames import reflector_frame
 from kpi_calib_ros.core.acquisition.streams import PointSample, synthesize_streams
 from kpi_calib_ros.core.collision.check import verify_configuration
 from kpi_calib_ros.core.errors import ConfigError
@@ -146,7 +146,7 @@ def every_reflector(cm: CellModel, p_true: np.ndarray, q: np.ndarray,
     out = []
     for i, sample in enumerate(first):
         for k, name in enumerate(names):
-            out.append(PointSample(sample.stamp_ns, f'{tracker}{REFLECTOR_SEPARATOR}{name}',
+            out.append(PointSample(sample.stamp_ns, reflector_frame(tracker, name),
                                    eta[k][i], quaternion_from_rotation(rotations[k][i])
                                    if k in rotations else None))
     return out

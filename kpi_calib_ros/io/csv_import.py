@@ -30,7 +30,7 @@ from typing import Iterator
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from kpi_calib_ros.core.acquisition.reflector_frames import REFLECTOR_SEPARATOR
+from kpi_calib_ros.core.acquisition.reflector_frames import reflector_frame
 from kpi_calib_ros.core.acquisition.streams import JointSample, PointSample
 from kpi_calib_ros.core.errors import DataError
 from kpi_calib_ros.core.measurement.covariates import (
@@ -257,19 +257,21 @@ class ImportSummary:
     # measured inputs: name -> (lowest, highest) in SI, and the topic they were written to
     input_range: dict[str, tuple[float, float]] = field(default_factory=dict)
     inputs_topic: str = ''
-    # the points' frame ids, '<frame_id>#<marker name>': what the cell's reflectors must name
-    frame_ids: tuple[str, ...] = ()
+    # the tracker frame and the markers the points are written for ('<frame_id>#<marker>'):
+    # what the cell's reflectors must name
+    frame_id: str = ''
+    markers: tuple[str, ...] = ()
 
     def lines(self) -> list[str]:
         out = [f'written: {self.path} ({self.postures} postures, {self.points} points'
                + (f', of which {self.poses} 6-DoF poses' if self.poses else '') + ')']
         out += [f'read {name}: {how}' for name, how in self.formats.items()]
-        if self.frame_ids:
-            names = [f.partition(REFLECTOR_SEPARATOR)[2] for f in self.frame_ids]
-            out.append(f'points written with frame_id {", ".join(map(repr, self.frame_ids))}: '
+        if self.markers:
+            frames = [reflector_frame(self.frame_id, n) for n in self.markers]
+            out.append(f'points written with frame_id {", ".join(map(repr, frames))}: '
                        'the cell names these reflectors, reflectors: ['
-                       + ', '.join(f'{{name: {n}}}' for n in names) + '] (a cell with one '
-                       'reflector: without a name reads plain frame ids only)')
+                       + ', '.join(f'{{name: {n}}}' for n in self.markers) + '] (a cell with '
+                       'one reflector: without a name reads plain frame ids only)')
         out.append(f'time axis: {self.time_axis}')
         if self.reordered:
             out.append(f'{len(self.reordered)} row(s) out of stamp order kept at their '
@@ -321,8 +323,7 @@ def import_csv(csv_path: str | Path | list, out_path: str | Path, mapping: CsvMa
     if not paths:
         raise DataError('import-csv: give at least one table')
     summary = ImportSummary(Path(out_path))
-    summary.frame_ids = tuple(f'{mapping.frame_id}{REFLECTOR_SEPARATOR}{name}'
-                              for name in mapping.markers)
+    summary.frame_id, summary.markers = mapping.frame_id, tuple(mapping.markers)
     formats = {}
     for p in paths:
         fmt = detect_format(p, delimiter or mapping.delimiter, decimal or mapping.decimal)
@@ -366,7 +367,7 @@ def import_csv(csv_path: str | Path | list, out_path: str | Path, mapping: CsvMa
                                if mapping.efforts else None)
             bag.write_joint_held(held, (int(t + dt) for dt in offsets[offsets <= 0]))
             for name, xyz, quaternion, sigma in row.points:
-                sample = PointSample(t, f'{mapping.frame_id}{REFLECTOR_SEPARATOR}{name}', xyz,
+                sample = PointSample(t, reflector_frame(mapping.frame_id, name), xyz,
                                      quaternion)
                 bag.write_point(sample)
                 summary.points += 1

@@ -11,9 +11,17 @@ from __future__ import annotations
 
 from typing import Sequence
 
-__all__ = ['REFLECTOR_SEPARATOR', 'split_frame', 'unknown_reflector']
+__all__ = ['REFLECTOR_SEPARATOR', 'reflector_frame', 'split_frame', 'unknown_reflector']
 
 REFLECTOR_SEPARATOR = '#'
+
+
+def reflector_frame(tracker_frame: str, name: str) -> str:
+    """Return the frame id ``'<tracker_frame>#<name>'`` of reflector ``name``'s points.
+
+    ``tracker_frame`` itself for the single unnamed reflector (``name`` '').
+    """
+    return f'{tracker_frame}{REFLECTOR_SEPARATOR}{name}' if name else tracker_frame
 
 
 def split_frame(frame_id: str) -> tuple[str, str]:
@@ -31,8 +39,7 @@ def unknown_reflector(frame_id: str, tracker_frame: str, reflectors: Sequence[st
     ``tracker_frame`` and ``reflectors`` (names, '' the single one) are the cell's; the
     text lists the frame ids expected and says what to change, in the points or the cell.
     """
-    expected = [tracker_frame if not r else f'{tracker_frame}{REFLECTOR_SEPARATOR}{r}'
-                for r in reflectors]
+    expected = [reflector_frame(tracker_frame, r) for r in reflectors]
     _, name = split_frame(frame_id)
     if not name:
         fix = (f"send the points with frame_id '{expected[0]}', or their reflector name "
