@@ -34,7 +34,8 @@ STRICT = {'': (), 'identification': ('identification',),
           'simulation': ('simulation',), 'topics': ('topics',), 'design': ('design',),
           'reflectors[]': ('reflectors', 0), 'robot': ('robot',), 'tracker': ('tracker',),
           'reflector': ('reflector',), 'noise': ('noise',), 'payload': ('payload',),
-          'collision': ('collision',), 'collision.capsules[]': ('collision', 'capsules', 0)}
+          'collision': ('collision',), 'collision.capsules[]': ('collision', 'capsules', 0),
+          'inputs': ('inputs',)}
 
 
 def _base() -> dict[str, Any]:

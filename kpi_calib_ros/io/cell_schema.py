@@ -320,7 +320,11 @@ CELL_KEYS: tuple[CellKey, ...] = (
        '(sensor_msgs/JointState: name = covariate, position = value, SI) that `import-csv` '
        'writes from a table\'s covariates and the node logs.', '/cell/inputs'),
     _K('inputs.max_gap', 'number', 's', '10.0', 'Largest gap between readings of an input (and '
-       'beyond the first/last) bridged by interpolation; a point outside is refused.', 2.0),
+       'beyond the first/last) bridged by interpolation; a point outside is refused. A payload '
+       '(`payload.*`) is held from a reading to the next, whatever the gap.', 2.0),
+    _K('inputs.expect', 'list of covariate names', '', '[]', 'Inputs the named-values topic '
+       'must give every point: one that never arrives stops the identification naming the '
+       'input, the topic and the fix; a point without one is refused.', ['payload.mass']),
     _K('inputs.sources', 'list', '', '[]', 'Other topics whose fields are inputs, each '
        '{topic, type, fields}.', [{'topic': '/column_tilt',
                                    'type': 'geometry_msgs/msg/Vector3Stamped',
