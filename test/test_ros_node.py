@@ -36,7 +36,7 @@ from kpi_calib_ros.ros import conversions as cv
 from kpi_calib_ros.ros.node import CalibrationNode
 from kpi_calib_ros.ros.parameters import PARAMETERS, settings_from_parameters
 
-from ros_helpers import KR15_URDF, SpinThread, finish, start_error
+from ros_helpers import KR15_URDF, SpinThread, finish, run_job, start_error
 
 
 @pytest.mark.slow
@@ -378,12 +378,7 @@ def test_an_invalid_identification_keeps_the_last_good_calibration(in_process, m
 
     def run(name: str) -> tuple[bool, str]:
         chosen['name'] = name
-        assert node._claim_job('identifying')
-        task = executor.create_task(node._run_job, 'identify', node._identify)
-        finished = threading.Event()
-        task.add_done_callback(lambda _: finished.set())
-        assert finished.wait(timeout=120), 'identification did not finish'
-        return task.result()
+        return run_job(node, executor, 'identifying', node._identify, 120)
 
     try:
         ok, message = run('good')
@@ -420,12 +415,7 @@ def test_measured_inputs_that_cannot_be_paired_fail_the_identification_loudly(in
     spinner = SpinThread(executor)
     spinner.start()
     try:
-        assert node._claim_job('identifying')
-        task = executor.create_task(node._run_job, 'identify', node._identify)
-        finished = threading.Event()
-        task.add_done_callback(lambda _: finished.set())
-        assert finished.wait(timeout=60), 'identification did not finish'
-        ok, message = task.result()
+        ok, message = run_job(node, executor, 'identifying', node._identify, 60)
         assert not ok and 'payload.mass' in message
         level, text, _ = node.status()
         assert level == 'ERROR' and 'identification failed' in text and 'payload.mass' in text

@@ -3,8 +3,6 @@ a junk file in data_dir/calibrations/ is skipped with a warning, the answer says
 prior was used or why none (a full disk: test_ros_full_disk.py)."""
 from __future__ import annotations
 
-import threading
-
 import numpy as np
 import pytest
 import rclpy
@@ -20,7 +18,7 @@ from kpi_calib_ros.core.simulation import (
 )
 from kpi_calib_ros.ros.node import CalibrationNode
 
-from ros_helpers import KR15_URDF, SpinThread
+from ros_helpers import KR15_URDF, SpinThread, run_job
 
 FIRST_NS = 1_700_000_000_000_000_000
 
@@ -51,12 +49,7 @@ def node(tmp_path, ros_domain, monkeypatch):
         spinner.start()
 
         def identify() -> tuple[bool, str]:
-            assert made._claim_job('identifying')
-            task = executor.create_task(made._run_job, 'identify', made._identify)
-            finished = threading.Event()
-            task.add_done_callback(lambda _: finished.set())
-            assert finished.wait(timeout=120), 'identification did not finish'
-            return task.result()
+            return run_job(made, executor, 'identifying', made._identify, 120)
         made.identify = identify
         yield made
     finally:

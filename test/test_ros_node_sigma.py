@@ -4,7 +4,6 @@ pairs each σ with its point whichever comes first, and identifies exactly as
 and end to end with `kpi-calib replay` into the node as a process)."""
 from __future__ import annotations
 
-import threading
 import time
 
 import numpy as np
@@ -29,7 +28,7 @@ from kpi_calib_ros.io.ros_messages import joint_state_msg, point_stamped_msg, ve
 from kpi_calib_ros.ros import job_work
 from kpi_calib_ros.ros.node import CalibrationNode
 
-from ros_helpers import KR15_URDF, SpinThread, finish
+from ros_helpers import KR15_URDF, SpinThread, finish, run_job
 
 POSES = 40
 SIGMA_TOPIC = point_sigma_topic(DEFAULT_POINT_TOPIC)
@@ -143,12 +142,7 @@ def test_live_sigma_identifies_as_the_bag_with_sigma(tmp_path, ros_domain, cm):
 
         spinner = SpinThread(executor)
         spinner.start()
-        assert node._claim_job('identifying')
-        task = executor.create_task(node._run_job, 'identify', node._identify)
-        finished = threading.Event()
-        task.add_done_callback(lambda _: finished.set())
-        assert finished.wait(timeout=120), 'identification did not finish'
-        ok, message = task.result()
+        ok, message = run_job(node, executor, 'identifying', node._identify, 120)
         assert ok, message
         live = node._run.result.values
     finally:
